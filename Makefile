@@ -1,0 +1,51 @@
+# volwarp: make demo | make test | make bench | make lint | make examples
+# Every target installs what it needs into .venv first; nothing else is assumed.
+
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+DEMO   ?= demo-output
+export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
+export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba-cache
+
+.PHONY: install system-deps demo test bench lint examples clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@$(MAKE) --no-print-directory system-deps
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[test]'
+	touch $@
+
+# Headless rendering goes through Mesa's software EGL (no display, no GPU).
+# Install the Debian packages when they are missing and we are allowed to.
+system-deps:
+	@if ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so.0' && ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1; then \
+	  :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  echo "installing Mesa EGL for headless rendering"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null; \
+	else \
+	  echo "warning: libEGL/Mesa not found and cannot install it: renders will fail" >&2; \
+	fi
+
+demo: $(STAMP)
+	DEMO=$(DEMO) BIN=$(BIN) bash scripts/demo.sh
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/run.py
+
+lint: $(STAMP)
+	$(BIN)/ruff check volwarp_cli tests benchmarks examples
+
+examples: $(STAMP)
+	PATH=$(CURDIR)/$(BIN):$$PATH $(MAKE) -C examples
+
+clean:
+	rm -rf $(DEMO) .pytest_cache .numba-cache

@@ -1,0 +1,50 @@
+"""Shared test fixtures: running the CLI in-process and small volumes."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+DATA = Path(__file__).parent / "data"
+
+
+class Result:
+    def __init__(self, code: int, stdout: str, stderr: str):
+        self.code = code
+        self.stdout = stdout
+        self.stderr = stderr
+
+    def __repr__(self):
+        return f"Result(code={self.code}, stderr={self.stderr!r})"
+
+
+@pytest.fixture
+def run():
+    """``run("info", path, "--json")`` -> Result(code, stdout, stderr), in process."""
+    from volwarp_cli.cli.main import cli
+
+    def _run(*args) -> Result:
+        runner = CliRunner()
+        res = runner.invoke(cli, [str(a) for a in args], catch_exceptions=False)
+        return Result(res.exit_code, res.stdout, res.stderr)
+
+    return _run
+
+
+@pytest.fixture
+def data_dir() -> Path:
+    return DATA
+
+
+def ball(n: int = 30, radius: float | None = None, dtype=np.uint8) -> np.ndarray:
+    """A binary ball in an n^3 array (the value 1 inside, [z, y, x])."""
+    radius = radius if radius is not None else n / 3
+    c = (n - 1) / 2
+    z, y, x = np.mgrid[:n, :n, :n]
+    return (((x - c) ** 2 + (y - c) ** 2 + (z - c) ** 2) <= radius ** 2).astype(dtype)

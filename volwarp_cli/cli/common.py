@@ -1,0 +1,42 @@
+"""Small helpers the subcommands share: loading inputs, describing volumes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..io import read_volume
+from ..progress import timed
+from ..volume import Volume
+
+
+def load_input(path, raw=None, volume_index=None) -> Volume:
+    with timed(f"read {path}"):
+        return read_volume(path, raw=raw, volume_index=volume_index)
+
+
+def describe_volume(vol: Volume, fmt: str) -> dict:
+    """The stable ``volwarp info --json`` description of a volume."""
+    data = vol.data
+    if data.size:
+        lo = data.min()
+        hi = data.max()
+        mean = float(data.mean(dtype=np.float64))
+    else:  # pragma: no cover - volumes always have samples
+        lo = hi = mean = None
+    def num(v):
+        if v is None:
+            return None
+        return int(v) if np.issubdtype(type(v), np.integer) else float(v)
+    return {
+        "format": fmt,
+        "shape": list(vol.shape_xyz),
+        "dtype": data.dtype.name,
+        "spacing": [float(v) for v in vol.spacing],
+        "origin": [float(v) for v in vol.origin],
+        "direction": [[float(v) for v in row] for row in vol.direction],
+        "space": vol.space,
+        "min": num(lo),
+        "max": num(hi),
+        "mean": mean,
+        "meta": {str(k): str(v) for k, v in sorted(vol.meta.items())},
+    }

@@ -1,0 +1,24 @@
+"""`volwarp convert IN -o OUT`: any supported volume format to any other."""
+
+from __future__ import annotations
+
+import click
+
+from ..io import check_output_path, write_volume
+from ..progress import timed
+from .common import load_input
+from .options import common_options, output_option, raw_options, write_options
+
+
+@click.command(name="convert")
+@click.argument("input", type=click.Path(dir_okay=False))
+@output_option()
+@write_options
+@raw_options
+@common_options
+def command(input, output, dtype, compress, byte_order, raw, volume_index):
+    """Convert INPUT to OUTPUT (format by extension), keeping geometry and key/values."""
+    check_output_path(output)
+    vol = load_input(input, raw, volume_index)
+    with timed(f"write {output}"):
+        write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order)

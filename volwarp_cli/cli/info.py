@@ -1,0 +1,55 @@
+"""`volwarp info FILE`: format, geometry and statistics of a volume (or capture file)."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+from ..io import volume_format
+from .common import describe_volume, load_input
+from .options import common_options, raw_options
+
+
+def _format_text(d: dict) -> str:
+    def vec(v):
+        return " ".join(f"{x:g}" for x in v)
+    lines = [
+        f"format:    {d['format']}",
+        f"shape:     {vec(d['shape'])} (x y z)",
+        f"dtype:     {d['dtype']}",
+        f"spacing:   {vec(d['spacing'])}",
+        f"origin:    {vec(d['origin'])}",
+        "direction: " + "; ".join(vec(r) for r in d["direction"]),
+        f"space:     {d['space'] or '-'}",
+        f"min/max:   {d['min']:g} / {d['max']:g}",
+        f"mean:      {d['mean']:.6g}",
+    ]
+    for k, v in d["meta"].items():
+        lines.append(f"meta:      {k} = {v}")
+    for k, v in d.items():
+        if k not in ("format", "shape", "dtype", "spacing", "origin", "direction", "space",
+                     "min", "max", "mean", "meta"):
+            lines.append(f"{k}: {json.dumps(v)}")
+    return "\n".join(lines)
+
+
+@click.command(name="info")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--json", "as_json", is_flag=True,
+              help="Print one JSON object (stable keys: format shape dtype spacing origin "
+                   "direction space min max mean meta).")
+@raw_options
+@common_options
+def command(file, as_json, raw, volume_index):
+    """Print FILE's format, size (x y z), type, geometry, value range and key/values."""
+    if file.lower().endswith(".vwc"):
+        from ..bspline.capture_file import describe_capture
+        desc = describe_capture(file)
+    else:
+        vol = load_input(file, raw, volume_index)
+        desc = describe_volume(vol, volume_format(file))
+    if as_json:
+        click.echo(json.dumps(desc, indent=2, sort_keys=False))
+    else:
+        click.echo(_format_text(desc))

@@ -1,0 +1,137 @@
+"""The ``volwarp`` command group and its error handling.
+
+Errors become one line on stderr, ``volwarp: error: ...``, and an exit code:
+0 success, 2 usage or spec error, 1 anything else (bad volume, I/O, a
+computation that cannot be done). ``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from .. import __version__
+from ..errors import SpecError, VolwarpError
+from ..io.atomic import Interrupted, install_signal_handlers
+
+# subcommand name -> module under volwarp_cli.cli; imported when used, so that
+# `volwarp --help` stays fast and one broken command cannot break the others.
+COMMANDS = {
+    "capture": "capture",
+    "warp": "warp",
+    "morph": "morph",
+    "sweep": "sweep",
+    "distance": "distance",
+    "mesh": "mesh",
+    "info": "info",
+    "convert": "convert",
+}
+_SHORT_HELP = {
+    "capture": "Capture a volume into a B-spline domain voxmap (.vwc).",
+    "warp": "Warp a volume by moving B-spline control points or dragging handles.",
+    "morph": "Morph one shape into another through signed distance fields.",
+    "sweep": "Sweep 2-D image templates along a trajectory into volumes.",
+    "distance": "Signed distance field of a shape (euclidean or min-norm).",
+    "mesh": "Isosurface a volume to PLY/STL/OBJ/VTP and render it to PNG.",
+    "info": "Print a volume's format, geometry and statistics.",
+    "convert": "Convert a volume between raw, TIFF, NRRD and NIfTI.",
+}
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _fail(message: str, code: int) -> int:
+    click.echo(f"volwarp: error: {_one_line(message)}", err=True)
+    return code
+
+
+class VolwarpGroup(click.Group):
+    """A group that loads subcommands lazily and maps errors to exit codes."""
+
+    def list_commands(self, ctx):
+        return list(COMMANDS)
+
+    def get_command(self, ctx, name):
+        if name not in COMMANDS:
+            return None
+        import importlib
+
+        module = importlib.import_module(f"volwarp_cli.cli.{COMMANDS[name]}")
+        return getattr(module, "command")
+
+    def format_commands(self, ctx, formatter):
+        rows = [(name, _SHORT_HELP[name]) for name in COMMANDS]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if args is None:
+            args = sys.argv[1:]
+        args = list(args)
+        debug = "--debug" in args
+        code = self._run(args, prog_name or "volwarp", debug, extra)
+        if standalone_mode:
+            sys.exit(code)
+        return code
+
+    def _run(self, args, prog_name, debug, extra) -> int:
+        try:
+            result = super().main(args=args, prog_name=prog_name, standalone_mode=False, **extra)
+            return result if isinstance(result, int) else 0
+        except click.exceptions.Exit as exc:
+            return exc.exit_code
+        except click.exceptions.Abort:
+            return _fail("aborted", 1)
+        except click.ClickException as exc:
+            hint = ""
+            ctx = getattr(exc, "ctx", None)
+            if isinstance(exc, click.UsageError) and ctx is not None:
+                hint = f" (see '{ctx.command_path} --help')"
+            return _fail(exc.format_message() + hint, exc.exit_code)
+        except Interrupted as exc:
+            if debug:
+                raise
+            return _fail(str(exc), 128 + exc.signum)
+        except SpecError as exc:
+            if debug:
+                raise
+            return _fail(str(exc), 2)
+        except VolwarpError as exc:
+            if debug:
+                raise
+            return _fail(str(exc), 1)
+        except MemoryError:
+            if debug:
+                raise
+            return _fail("out of memory (the volume is too large for this machine)", 1)
+        except OSError as exc:
+            if debug:
+                raise
+            name = f"{exc.filename}: " if exc.filename else ""
+            return _fail(f"{name}{exc.strerror or exc}", 1)
+        except Exception as exc:  # a bug: say so, in one line, unless --debug
+            if debug:
+                raise
+            return _fail(f"internal error: {type(exc).__name__}: {exc} "
+                         "(run with --debug for a traceback)", 1)
+
+
+@click.group(cls=VolwarpGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "-V", "--version", prog_name="volwarp")
+@click.option("--debug", is_flag=True, help="Show a traceback on errors.")
+def cli(debug):
+    """volwarp: modelling with sampled volumes, in batch.
+
+    Volumes are raw, TIFF, NRRD or NIfTI files; geometry on the command line
+    and in specs is always (x, y, z) in world units unless a spec says
+    `units: voxel`. Exit codes: 0 success, 2 usage or spec error, 1 other
+    failures.
+    """
+
+
+def main(argv=None) -> int:
+    install_signal_handlers()
+    return cli.main(args=argv, prog_name="volwarp", standalone_mode=False)

@@ -1,0 +1,96 @@
+"""Options shared by several subcommands, each defined once (rasterio's habit).
+
+Decorators add the options; callbacks validate them (``click.BadParameter``,
+exit 2) and hand the command typed values.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import click
+
+from ..io import SUPPORTED_DTYPES, RawLayout
+from ..progress import configure
+
+
+def _configure_verbosity(ctx, param, value):
+    # --quiet and --verbose each arrive here; keep the combined level on ctx.
+    level = ctx.meta.get("volwarp.verbosity", 0)
+    if param.name == "quiet" and value:
+        level = -1
+    elif param.name == "verbose" and value:
+        level = max(level, 0) + value if level >= 0 else level
+    ctx.meta["volwarp.verbosity"] = level
+    configure(level)
+    return value
+
+
+def common_options(f):
+    """--quiet, --verbose and --debug, on every subcommand."""
+    f = click.option("-q", "--quiet", is_flag=True, expose_value=False, is_eager=True,
+                     callback=_configure_verbosity,
+                     help="No progress bar; errors only.")(f)
+    f = click.option("-v", "--verbose", count=True, expose_value=False, is_eager=True,
+                     callback=_configure_verbosity,
+                     help="Log each step and its time (-vv for more).")(f)
+    f = click.option("--debug", is_flag=True, expose_value=False,
+                     help="Show a traceback on errors.")(f)
+    return f
+
+
+def output_option(help_text: str = "Output file (format by extension)."):
+    return click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+                        help=help_text)
+
+
+def raw_options(f):
+    """Options describing a headerless raw input; they combine into ``raw: RawLayout``."""
+
+    @functools.wraps(f)
+    def wrapper(*args, raw_shape, raw_dtype, raw_endian, raw_spacing, raw_origin,
+                raw_header_bytes, volume_index, **kwargs):
+        layout = None
+        if raw_shape is not None or raw_dtype is not None:
+            if raw_shape is None or raw_dtype is None:
+                raise click.UsageError("--raw-shape and --raw-dtype go together")
+            layout = RawLayout(shape=tuple(raw_shape), dtype=raw_dtype, endian=raw_endian,
+                               spacing=tuple(raw_spacing) if raw_spacing else (1.0, 1.0, 1.0),
+                               origin=tuple(raw_origin) if raw_origin else (0.0, 0.0, 0.0),
+                               header_bytes=raw_header_bytes)
+        elif raw_spacing or raw_origin or raw_header_bytes:
+            raise click.UsageError("--raw-spacing/--raw-origin/--raw-header-bytes need "
+                                   "--raw-shape and --raw-dtype")
+        return f(*args, raw=layout, volume_index=volume_index, **kwargs)
+
+    opts = [
+        click.option("--raw-shape", nargs=3, type=click.IntRange(min=1), default=None,
+                     metavar="X Y Z", help="Raw input: samples along x, y, z."),
+        click.option("--raw-dtype", type=click.Choice(SUPPORTED_DTYPES), default=None,
+                     help="Raw input: sample type."),
+        click.option("--raw-endian", type=click.Choice(["little", "big"]), default="little",
+                     show_default=True, help="Raw input: byte order."),
+        click.option("--raw-spacing", nargs=3, type=float, default=None, metavar="SX SY SZ",
+                     help="Raw input: voxel spacing (x, y, z)."),
+        click.option("--raw-origin", nargs=3, type=float, default=None, metavar="OX OY OZ",
+                     help="Raw input: world position of the first voxel's centre."),
+        click.option("--raw-header-bytes", type=click.IntRange(min=0), default=0,
+                     help="Raw input: bytes to skip before the samples."),
+        click.option("--volume-index", type=click.IntRange(min=0), default=None,
+                     help="4-D NIfTI input: which volume to read."),
+    ]
+    for opt in reversed(opts):
+        wrapper = opt(wrapper)
+    return wrapper
+
+
+def write_options(f):
+    """--dtype, --compress and --byte-order for volume outputs."""
+    f = click.option("--dtype", type=click.Choice(SUPPORTED_DTYPES), default=None,
+                     help="Output sample type (default: the input's). Integers are rounded "
+                          "and clipped to the type's range.")(f)
+    f = click.option("--compress/--no-compress", default=False, show_default=True,
+                     help="gzip NRRD data, zlib TIFF pages (.nii.gz is always gzip).")(f)
+    f = click.option("--byte-order", type=click.Choice(["little", "big"]), default="little",
+                     show_default=True, help="Byte order of NRRD, TIFF and raw outputs.")(f)
+    return f

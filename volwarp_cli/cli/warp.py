@@ -1,0 +1,14 @@
+"""`volwarp warp`: not implemented yet (its issue replaces this module)."""
+
+import click
+
+from ..errors import VolwarpError
+from .options import common_options
+
+
+@click.command(name="warp", context_settings={"ignore_unknown_options": True})
+@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+@common_options
+def command(args):
+    """Not implemented yet."""
+    raise VolwarpError("'warp' is not implemented yet")

@@ -1,0 +1,122 @@
+"""Volume files: the format is chosen by extension and checked by content.
+
+``read_volume`` and ``write_volume`` are the only entry points the rest of
+volwarp uses; each format module converts its file's layout to the
+``[z, y, x]`` array and (x, y, z) geometry of :class:`~volwarp_cli.volume.Volume`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, VolwarpError
+from ..volume import Volume
+from .atomic import atomic_output, check_output_path
+from .common import SUPPORTED_DTYPES, cast_samples
+from .raw import RawLayout
+
+__all__ = ["read_volume", "write_volume", "volume_format", "RawLayout", "atomic_output",
+           "check_output_path", "SUPPORTED_DTYPES", "VOLUME_EXTENSIONS"]
+
+#: extension -> format name
+VOLUME_EXTENSIONS = {
+    ".nrrd": "nrrd", ".nhdr": "nrrd",
+    ".tif": "tiff", ".tiff": "tiff",
+    ".raw": "raw", ".bin": "raw",
+    ".nii": "nifti", ".nii.gz": "nifti",
+}
+
+_MAGIC_CHECK = {
+    "nrrd": lambda head: head.startswith(b"NRRD000"),
+    "tiff": lambda head: head[:4] in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"),
+    "nifti": lambda head: head[:2] == b"\x1f\x8b" or head[344:348] in (b"n+1\0", b"n+2\0")
+    or head[4:8] in (b"n+2\0",),
+}
+_FORMAT_NAMES = {"nrrd": "NRRD", "tiff": "TIFF", "nifti": "NIfTI", "raw": "raw"}
+
+
+def volume_format(path: str | os.PathLike) -> str:
+    """The format name for ``path`` by its extension, or raise listing the known ones."""
+    name = Path(path).name.lower()
+    if name.endswith(".nii.gz"):
+        return "nifti"
+    fmt = VOLUME_EXTENSIONS.get(Path(name).suffix)
+    if fmt is None:
+        known = " ".join(sorted(VOLUME_EXTENSIONS))
+        raise VolwarpError(f"{path}: unknown volume extension (known: {known})")
+    return fmt
+
+
+def _check_content(path: Path, fmt: str) -> None:
+    if not path.exists():
+        raise FormatError(f"{path}: no such file")
+    if path.is_dir():
+        raise FormatError(f"{path}: is a folder, not a volume file")
+    check = _MAGIC_CHECK.get(fmt)
+    if check is None:
+        return
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(352)
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot open ({exc.strerror})") from None
+    if not check(head):
+        raise FormatError(f"{path}: content is not {_FORMAT_NAMES[fmt]} "
+                          f"(file starts with {head[:8]!r})")
+
+
+def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
+                volume_index: int | None = None) -> Volume:
+    """Read a volume file; ``raw`` describes headerless ``.raw``/``.bin`` files.
+
+    ``volume_index`` selects one volume of a 4-D NIfTI file.
+    """
+    path = Path(path)
+    fmt = volume_format(path)
+    _check_content(path, fmt)
+    if fmt == "nrrd":
+        from .nrrd import read_nrrd
+        vol = read_nrrd(path)
+    elif fmt == "tiff":
+        from .tiff import read_tiff
+        vol = read_tiff(path)
+    elif fmt == "nifti":
+        from .nifti import read_nifti
+        vol = read_nifti(path, volume_index)
+    else:
+        from .raw import read_raw
+        vol = read_raw(path, raw)
+    return vol
+
+
+def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: bool = False,
+                 byte_order: str = "little") -> None:
+    """Write ``vol`` atomically, converting samples to ``dtype`` when given.
+
+    Integer outputs from float samples are rounded and clipped to the type's
+    range; NaN is refused for integer types.
+    """
+    path = Path(path)
+    fmt = volume_format(path)
+    check_output_path(path)
+    if dtype is not None:
+        vol = vol.with_data(cast_samples(vol.data, dtype, what=str(path)))
+    if not np.issubdtype(vol.data.dtype, np.number):
+        raise VolwarpError(f"{path}: cannot write samples of type {vol.data.dtype}")
+    if fmt == "nrrd":
+        from .nrrd import write_nrrd
+        write_nrrd(vol, path, compress=compress, byte_order=byte_order)
+    elif fmt == "tiff":
+        from .tiff import write_tiff
+        write_tiff(vol, path, compress=compress, byte_order=byte_order)
+    elif fmt == "nifti":
+        if byte_order != "little":
+            raise VolwarpError(f"{path}: volwarp writes NIfTI little-endian only")
+        from .nifti import write_nifti
+        write_nifti(vol, path)
+    else:
+        from .raw import write_raw
+        write_raw(vol, path, byte_order=byte_order)

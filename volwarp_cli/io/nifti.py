@@ -1,0 +1,123 @@
+"""NIfTI-1/2 (``.nii``, ``.nii.gz``) via nibabel, in the LPS frame SimpleITK reports.
+
+NIfTI stores a voxel-to-RAS matrix; volwarp (like ITK, DICOM and 3D Slicer's
+files) works in LPS, so x and y of the world are negated on the way in and out.
+
+Which matrix is used, in this order:
+
+1. the sform, when ``sform_code > 0``;
+2. else the qform, when ``qform_code > 0``;
+3. else ("method 1" files) the voxel sizes ``pixdim[1:4]`` on the diagonal and
+   origin 0, as ITK does.
+
+Written files carry the same matrix as both sform and qform, code 1
+(scanner), so every reader finds the same geometry whichever it prefers.
+Files with a 4th dimension longer than 1 are refused unless ``volume_index``
+picks one volume.
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, VolwarpError
+from ..volume import Volume
+from .atomic import atomic_output
+from .common import check_dtype, ensure_fits_in_memory, native, voxel_count
+
+_RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
+
+
+def choose_affine(header) -> tuple[np.ndarray, str]:
+    """The voxel-to-RAS 4x4 matrix by volwarp's rule, and which one it was."""
+    sform, scode = header.get_sform(coded=True)
+    if sform is not None and scode and scode > 0:
+        return np.asarray(sform, dtype=np.float64), "sform"
+    qform, qcode = header.get_qform(coded=True)
+    if qform is not None and qcode and qcode > 0:
+        return np.asarray(qform, dtype=np.float64), "qform"
+    zooms = [float(z) if z > 0 else 1.0 for z in header["pixdim"][1:4]]
+    aff = np.eye(4)
+    aff[:3, :3] = np.diag(zooms)
+    return aff, "pixdim"
+
+
+def read_nifti(path: str | os.PathLike, volume_index: int | None = None) -> Volume:
+    import nibabel as nib
+    from nibabel.filebasedimages import ImageFileError
+
+    where = str(path)
+    try:
+        img = nib.load(str(path))
+    except (ImageFileError, OSError, EOFError, ValueError) as exc:
+        raise FormatError(f"{where}: not a readable NIfTI file ({exc})") from None
+    shape = tuple(int(s) for s in img.shape)
+    if len(shape) < 3:
+        shape = shape + (1,) * (3 - len(shape))
+    extra = shape[3:]
+    if any(s > 1 for s in extra[1:]):
+        raise FormatError(f"{where}: NIfTI with shape {shape} has more than 4 dimensions")
+    nvol = extra[0] if extra else 1
+    if nvol > 1 and volume_index is None:
+        raise FormatError(f"{where}: 4-D NIfTI with {nvol} volumes; choose one with "
+                          "--volume-index N")
+    if volume_index is not None and not 0 <= volume_index < nvol:
+        raise VolwarpError(f"{where}: --volume-index {volume_index} is outside 0..{nvol - 1}")
+    dtype = img.get_data_dtype()
+    slope, inter = img.header.get_slope_inter()
+    scaled = slope is not None and not (np.isnan(slope) or (slope == 1 and not inter))
+    item = 8 if scaled else np.dtype(dtype).itemsize
+    ensure_fits_in_memory(voxel_count(shape[:3]) * item, f"{where} ({shape[:3]})")
+    try:
+        proxy = img.dataobj
+        if len(img.shape) >= 4:
+            index = (slice(None),) * 3 + (volume_index or 0,) + (0,) * (len(img.shape) - 4)
+            arr = np.asanyarray(proxy[index])
+        else:
+            arr = np.asanyarray(proxy)
+    except (OSError, EOFError, ValueError) as exc:
+        raise FormatError(f"{where}: cannot read NIfTI data ({exc})") from None
+    arr = arr.reshape(shape[:3], order="A") if arr.ndim != 3 else arr
+    if scaled:
+        arr = arr.astype(np.float32) if np.dtype(dtype).itemsize <= 2 else arr.astype(np.float64)
+    check_dtype(arr.dtype, where)
+    data = native(np.ascontiguousarray(arr.transpose(2, 1, 0)))
+    aff, _ = choose_affine(img.header)
+    lin = _RAS_TO_LPS @ aff[:3, :3]
+    spacing = np.linalg.norm(lin, axis=0)
+    if np.any(spacing == 0):
+        raise FormatError(f"{where}: NIfTI matrix has a zero-length axis")
+    meta = {}
+    descrip = img.header.get("descrip")
+    if descrip is not None:
+        text = bytes(np.asarray(descrip).tobytes()).split(b"\0", 1)[0].decode("latin-1").strip()
+        if text:
+            meta["descrip"] = text
+    return Volume(data, spacing=spacing, origin=_RAS_TO_LPS @ aff[:3, 3],
+                  direction=lin / spacing[None, :], space="left-posterior-superior", meta=meta)
+
+
+def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
+    import nibabel as nib
+
+    path = Path(path)
+    check_dtype(vol.data.dtype, str(path))
+    aff = np.eye(4)
+    aff[:3, :3] = _RAS_TO_LPS @ (vol.direction * vol.spacing[None, :])
+    aff[:3, 3] = _RAS_TO_LPS @ vol.origin
+    img = nib.Nifti1Image(vol.data.transpose(2, 1, 0), aff)
+    img.header.set_xyzt_units("mm")
+    img.set_sform(aff, code=1)
+    img.set_qform(aff, code=1)
+    descrip = str(vol.meta.get("descrip", ""))[:79]
+    if descrip:
+        img.header["descrip"] = descrip.encode("latin-1", errors="replace")
+    payload = img.to_bytes()
+    if path.name.lower().endswith(".gz"):
+        payload = gzip.compress(payload, compresslevel=1, mtime=0)
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(payload)

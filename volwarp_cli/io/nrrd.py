@@ -1,0 +1,367 @@
+"""NRRD (``.nrrd`` attached, ``.nhdr`` detached) reading and writing.
+
+Reads NRRD0001-5 headers with encodings raw, gzip, bzip2 and ascii, either
+endian, ``space``/``space directions``/``space origin`` or ``spacings``/``axis
+mins`` geometry, detached data (one file, ``LIST`` or a ``%d`` pattern), line
+and byte skips. Key/value pairs (``key:=value``) are kept in ``Volume.meta``;
+the descriptive fields ``content``, ``space units`` and ``measurement frame``
+are kept as ``NRRD_content`` etc. (ITK's names), and written back.
+
+Writes deterministic files (no timestamp, gzip with mtime 0) that pynrrd,
+SimpleITK and 3D Slicer open with the same geometry. The header is parsed
+here rather than by pynrrd so that every error names the field and the file.
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError
+from ..volume import Volume, xyz_to_zyx
+from .atomic import atomic_output
+from .common import check_dtype, ensure_fits_in_memory, native, read_exact, with_byte_order, voxel_count
+
+_TYPES = {
+    "signed char": "int8", "int8": "int8", "int8_t": "int8",
+    "uchar": "uint8", "unsigned char": "uint8", "uint8": "uint8", "uint8_t": "uint8",
+    "short": "int16", "short int": "int16", "signed short": "int16", "signed short int": "int16",
+    "int16": "int16", "int16_t": "int16",
+    "ushort": "uint16", "unsigned short": "uint16", "unsigned short int": "uint16",
+    "uint16": "uint16", "uint16_t": "uint16",
+    "int": "int32", "signed int": "int32", "int32": "int32", "int32_t": "int32",
+    "uint": "uint32", "unsigned int": "uint32", "uint32": "uint32", "uint32_t": "uint32",
+    "longlong": "int64", "long long": "int64", "long long int": "int64", "signed long long": "int64",
+    "signed long long int": "int64", "int64": "int64", "int64_t": "int64",
+    "ulonglong": "uint64", "unsigned long long": "uint64", "unsigned long long int": "uint64",
+    "uint64": "uint64", "uint64_t": "uint64",
+    "float": "float32", "double": "float64",
+}
+_WRITE_TYPES = {"int8": "int8", "uint8": "uint8", "int16": "int16", "uint16": "uint16",
+                "int32": "int32", "uint32": "uint32", "float32": "float", "float64": "double"}
+_ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2",
+              "ascii": "ascii", "txt": "ascii", "text": "ascii"}
+_KEPT_FIELDS = ("content", "space units", "measurement frame")
+_VECTOR = re.compile(r"\(([^()]*)\)")
+
+
+def _parse_vector(text: str, where: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise FormatError(f"{where}: cannot read vector ({text})") from None
+
+
+def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
+    """Parse a NRRD header from a binary file positioned at its start.
+
+    Returns (fields, key/values), fields with lower-case names. The file is
+    left at the first byte after the header's blank line.
+    """
+    magic = fh.readline(64)
+    if not re.match(rb"^NRRD000[1-9]\s*$", magic):
+        raise FormatError(f"{where}: not a NRRD file (no NRRD000x magic line)")
+    fields: dict[str, str] = {}
+    keyvals: dict[str, str] = {}
+    while True:
+        raw = fh.readline(1 << 20)
+        if not raw:
+            break  # detached header ends at end of file
+        line = raw.decode("latin-1").rstrip("\r\n")
+        if line == "":
+            break
+        if line.startswith("#"):
+            continue
+        if ":=" in line:
+            key, value = line.split(":=", 1)
+            keyvals[key] = value
+            continue
+        if ": " not in line:
+            raise FormatError(f"{where}: malformed header line {line!r}")
+        name, value = line.split(": ", 1)
+        fields[name.strip().lower()] = value.strip()
+    return fields, keyvals
+
+
+def _geometry(fields: dict[str, str], dim: int, where: str):
+    """Return (spacing, origin, direction, space) in (x, y, z) for a 3-D header."""
+    space = fields.get("space")
+    spacing = np.ones(3)
+    origin = np.zeros(3)
+    direction = np.eye(3)
+    if "space directions" in fields:
+        entries = fields["space directions"].split()
+        if len(entries) != dim:
+            raise FormatError(f"{where}: 'space directions' has {len(entries)} entries, "
+                              f"'dimension' is {dim}")
+        vectors = [e for e in entries if e.lower() != "none"]
+        if len(vectors) != 3:
+            raise FormatError(f"{where}: 'space directions' must give 3 axis vectors")
+        cols = []
+        for e in vectors:
+            m = _VECTOR.fullmatch(e)
+            if not m:
+                raise FormatError(f"{where}: cannot read 'space directions' entry {e!r}")
+            v = _parse_vector(m.group(1), where)
+            if len(v) != 3:
+                raise FormatError(f"{where}: 'space directions' vectors must have 3 components")
+            cols.append(v)
+        mat = np.array(cols, dtype=np.float64).T  # columns are the axes
+        spacing = np.linalg.norm(mat, axis=0)
+        if np.any(spacing == 0) or not np.all(np.isfinite(mat)):
+            raise FormatError(f"{where}: 'space directions' has a zero or non-finite axis")
+        direction = mat / spacing[None, :]
+        if "space origin" in fields:
+            m = _VECTOR.fullmatch(fields["space origin"].strip())
+            if not m:
+                raise FormatError(f"{where}: cannot read 'space origin'")
+            origin = np.array(_parse_vector(m.group(1), where))
+            if origin.shape != (3,):
+                raise FormatError(f"{where}: 'space origin' must have 3 components")
+    else:
+        if "spacings" in fields:
+            vals = [v for v in fields["spacings"].split() if v.lower() != "nan"]
+            if len(vals) == 3:
+                spacing = np.array([float(v) for v in vals])
+            if np.any(spacing <= 0):
+                raise FormatError(f"{where}: 'spacings' must be positive")
+        if "axis mins" in fields:
+            vals = [v for v in fields["axis mins"].split() if v.lower() != "nan"]
+            if len(vals) == 3:
+                origin = np.array([float(v) for v in vals])
+                cent = fields.get("centerings", fields.get("centers", "")).split()
+                if len(cent) == 3:
+                    origin += np.array([0.5 if c == "cell" else 0.0 for c in cent]) * spacing
+    return spacing, origin, direction, space
+
+
+def _data_files(fields: dict[str, str], header_path: Path, fh, where: str):
+    """List the files holding the data (None means: after the header, in ``fh``)."""
+    spec = fields.get("data file", fields.get("datafile"))
+    if spec is None:
+        return None
+    base = header_path.parent
+    if spec.startswith("LIST"):
+        names = []
+        for raw in fh:
+            name = raw.decode("latin-1").strip()
+            if name:
+                names.append(base / name)
+        return names
+    parts = spec.split()
+    if len(parts) >= 4 and "%" in parts[0]:
+        fmt, lo, hi, step = parts[0], int(parts[1]), int(parts[2]), int(parts[3])
+        if step == 0:
+            raise FormatError(f"{where}: 'data file' pattern has step 0")
+        stop = hi + (1 if step > 0 else -1)
+        return [base / (fmt % i) for i in range(lo, stop, step)]
+    return [base / spec]
+
+
+def read_nrrd(path: str | os.PathLike) -> Volume:
+    """Read a 3-D NRRD volume (attached or detached)."""
+    path = Path(path)
+    where = str(path)
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise FormatError(f"{where}: cannot open ({exc.strerror})") from None
+    with fh:
+        fields, keyvals = read_header(fh, where)
+        for req in ("type", "dimension", "sizes", "encoding"):
+            if req not in fields:
+                raise FormatError(f"{where}: header has no '{req}' field")
+        type_name = fields["type"].lower()
+        if type_name not in _TYPES:
+            raise FormatError(f"{where}: unknown 'type' {fields['type']!r}")
+        try:
+            dim = int(fields["dimension"])
+            sizes = [int(s) for s in fields["sizes"].split()]
+        except ValueError:
+            raise FormatError(f"{where}: 'dimension' or 'sizes' is not a whole number") from None
+        if len(sizes) != dim:
+            raise FormatError(f"{where}: 'sizes' has {len(sizes)} entries, 'dimension' is {dim}")
+        if any(s <= 0 for s in sizes):
+            raise FormatError(f"{where}: 'sizes' must be positive, got {sizes}")
+        if dim != 3:
+            raise FormatError(f"{where}: volwarp reads 3-D volumes; this file has "
+                              f"dimension {dim} (sizes {sizes})")
+        encoding = _ENCODINGS.get(fields["encoding"].lower())
+        if encoding is None:
+            raise FormatError(f"{where}: unknown encoding {fields['encoding']!r} "
+                              "(supported: raw, gzip, bzip2, ascii)")
+        dtype = np.dtype(_TYPES[type_name])
+        check_dtype(dtype, where)
+        endian = fields.get("endian", "little").lower()
+        if endian not in ("little", "big"):
+            raise FormatError(f"{where}: unknown endian {fields.get('endian')!r}")
+        file_dtype = dtype.newbyteorder("<" if endian == "little" else ">")
+        spacing, origin, direction, space = _geometry(fields, dim, where)
+        count = voxel_count(sizes)
+        nbytes = count * dtype.itemsize
+        ensure_fits_in_memory(nbytes, f"{where} ({'x'.join(map(str, sizes))} {dtype.name})")
+        files = _data_files(fields, path, fh, where)
+        lineskip = int(fields.get("line skip", fields.get("lineskip", "0")))
+        byteskip = int(fields.get("byte skip", fields.get("byteskip", "0")))
+        if files is None:
+            data = _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where,
+                              exact_end=True)
+        else:
+            chunks = []
+            per_file = count // len(files) if files else 0
+            if not files or per_file * len(files) != count:
+                raise FormatError(f"{where}: {len(files)} data files do not divide {count} samples")
+            for f in files:
+                try:
+                    dfh = open(f, "rb")
+                except OSError as exc:
+                    raise FormatError(f"{where}: data file {str(f)!r}: {exc.strerror}") from None
+                with dfh:
+                    chunks.append(_read_data(dfh, file_dtype, per_file, encoding, lineskip,
+                                             byteskip, str(f), exact_end=True))
+            data = np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
+    data = native(data.reshape(xyz_to_zyx(sizes)))
+    meta = dict(keyvals)
+    for name in _KEPT_FIELDS:
+        if name in fields:
+            meta[f"NRRD_{name}"] = fields[name]
+    return Volume(data, spacing=spacing, origin=origin, direction=direction, space=space, meta=meta)
+
+
+def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact_end):
+    for _ in range(lineskip):
+        if not fh.readline():
+            raise FormatError(f"{where}: file ends inside 'line skip'")
+    nbytes = count * file_dtype.itemsize
+    if encoding == "raw":
+        start = fh.tell()
+        size = os.fstat(fh.fileno()).st_size
+        if byteskip == -1:
+            start = size - nbytes
+        else:
+            start += byteskip
+        have = size - start
+        if have < nbytes:
+            raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of samples, "
+                              f"file has {max(have, 0)}")
+        if have > nbytes and byteskip != -1:
+            raise FormatError(f"{where}: file has {have} bytes of samples, expected {nbytes} "
+                              "(wrong sizes or type in the header?)")
+        fh.seek(start)
+        return np.frombuffer(read_exact(fh, nbytes, where), dtype=file_dtype)
+    if encoding == "ascii":
+        text = fh.read().decode("latin-1")
+        try:
+            values = np.array(text.replace(",", " ").split(), dtype=np.float64)
+        except ValueError:
+            raise FormatError(f"{where}: ascii data has a non-numeric entry") from None
+        if values.size != count:
+            raise FormatError(f"{where}: ascii data has {values.size} values, expected {count}")
+        return values.astype(file_dtype.newbyteorder("="))
+    if byteskip > 0:
+        fh.seek(byteskip, os.SEEK_CUR)
+    stream = gzip.GzipFile(fileobj=fh, mode="rb") if encoding == "gzip" else bz2.BZ2File(fh)
+    with stream:
+        buf = read_exact(stream, nbytes, where)
+        if exact_end and stream.read(1):
+            raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
+                              "(wrong sizes or type in the header?)")
+    return np.frombuffer(buf, dtype=file_dtype)
+
+
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+def _vec(v) -> str:
+    return "(" + ",".join(_fmt(x) for x in v) + ")"
+
+
+def nrrd_header(vol: Volume, dtype: np.dtype, *, encoding: str, byte_order: str,
+                data_file: str | None = None, components: list[str] | None = None) -> bytes:
+    """The header text of ``vol`` as volwarp writes it (deterministic)."""
+    lines = ["NRRD0005", "# Complete NRRD file format specification at:",
+             "# http://teem.sourceforge.net/nrrd/format.html",
+             f"type: {_WRITE_TYPES[dtype.name]}"]
+    sizes = list(vol.shape_xyz)
+    dirs = [_vec(vol.direction[:, a] * vol.spacing[a]) for a in range(3)]
+    kinds = ["domain"] * 3
+    if components is not None:
+        sizes = [len(components)] + sizes
+        dirs = ["none"] + dirs
+        kinds = ["vector"] + kinds
+    lines.append(f"dimension: {len(sizes)}")
+    if vol.space:
+        lines.append(f"space: {vol.space}")
+    else:
+        lines.append("space dimension: 3")
+    lines.append("sizes: " + " ".join(str(s) for s in sizes))
+    lines.append("space directions: " + " ".join(dirs))
+    lines.append("kinds: " + " ".join(kinds))
+    if dtype.itemsize > 1:
+        lines.append(f"endian: {byte_order}")
+    lines.append(f"encoding: {encoding}")
+    lines.append(f"space origin: {_vec(vol.origin)}")
+    for name in _KEPT_FIELDS:
+        value = vol.meta.get(f"NRRD_{name}")
+        if value is not None:
+            lines.append(f"{name}: {value}")
+    if data_file is not None:
+        lines.append(f"data file: {data_file}")
+    meta = {k: v for k, v in vol.meta.items() if not k.startswith("NRRD_")}
+    if components is not None:
+        meta["volwarp_components"] = " ".join(components)
+    for key in sorted(meta):
+        value = str(meta[key]).replace("\n", " ")
+        if ":=" in key or "\n" in key:
+            continue
+        lines.append(f"{key}:={value}")
+    text = "\n".join(lines) + "\n"
+    if data_file is None:
+        text += "\n"
+    return text.encode("latin-1", errors="replace")
+
+
+def _write_payload(fh, data: np.ndarray, encoding: str, level: int) -> None:
+    if encoding == "raw":
+        fh.write(memoryview(data).cast("B"))
+        return
+    with gzip.GzipFile(filename="", fileobj=fh, mode="wb", compresslevel=level, mtime=0) as gz:
+        gz.write(memoryview(data).cast("B"))
+
+
+def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
+               byte_order: str = "little", level: int = 1,
+               components: list[np.ndarray] | None = None,
+               component_names: list[str] | None = None) -> None:
+    """Write ``vol`` as NRRD (``.nhdr`` writes a detached header plus ``.raw``/``.raw.gz``).
+
+    ``components`` (arrays shaped like ``vol.data``) writes one multi-component
+    file whose first, fastest axis holds them, in the order of ``component_names``.
+    """
+    path = Path(path)
+    encoding = "gzip" if compress else "raw"
+    data = vol.data if components is None else np.stack(components, axis=-1)
+    dtype = check_dtype(data.dtype, str(path))
+    payload = with_byte_order(data, byte_order)
+    if path.suffix.lower() == ".nhdr":
+        data_path = path.with_suffix(".raw.gz" if compress else ".raw")
+        header = nrrd_header(vol, dtype, encoding=encoding, byte_order=byte_order,
+                             data_file=data_path.name, components=component_names)
+        with atomic_output(data_path) as tmp_data, atomic_output(path) as tmp_header:
+            with open(tmp_data, "wb") as fh:
+                _write_payload(fh, payload, encoding, level)
+            tmp_header.write_bytes(header)
+        return
+    header = nrrd_header(vol, dtype, encoding=encoding, byte_order=byte_order,
+                         components=component_names)
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(header)
+            _write_payload(fh, payload, encoding, level)
+

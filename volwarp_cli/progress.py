@@ -1,0 +1,81 @@
+"""Progress bars and step logging for long work, on stderr.
+
+The core calls :func:`progress` and :func:`timed`; both do nothing visible
+unless the command line switched them on (a bar only when stderr is a
+terminal and ``--quiet`` was not given; step timings with ``--verbose``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import sys
+import time
+
+log = logging.getLogger("volwarp")
+
+_settings = {"bars": False}
+
+
+def configure(verbosity: int) -> None:
+    """``verbosity``: -1 quiet, 0 default, 1 verbose (steps), 2 debug."""
+    _settings["bars"] = verbosity >= 0 and sys.stderr.isatty()
+    level = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(verbosity, logging.DEBUG)
+    log.setLevel(level)
+    if not log.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("volwarp: %(message)s"))
+        log.addHandler(handler)
+    log.propagate = False
+
+
+class Progress:
+    """A counter from 0 to ``total`` drawn as a one-line bar."""
+
+    def __init__(self, total: int, label: str):
+        self.total = max(int(total), 1)
+        self.label = label
+        self.done = 0
+        self.enabled = _settings["bars"]
+        self._start = time.perf_counter()
+        self._last_draw = 0.0
+
+    def advance(self, n: int = 1) -> None:
+        self.done = min(self.done + n, self.total)
+        if self.enabled:
+            now = time.perf_counter()
+            if now - self._last_draw > 0.1 or self.done == self.total:
+                self._last_draw = now
+                self._draw()
+
+    def _draw(self) -> None:
+        width = 30
+        filled = int(width * self.done / self.total)
+        bar = "#" * filled + "-" * (width - filled)
+        sys.stderr.write(f"\r{self.label} [{bar}] {self.done}/{self.total}")
+        sys.stderr.flush()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.enabled:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+        log.info("%s: %d steps in %.2f s", self.label, self.done,
+                 time.perf_counter() - self._start)
+        return False
+
+
+def progress(total: int, label: str) -> Progress:
+    return Progress(total, label)
+
+
+@contextlib.contextmanager
+def timed(label: str):
+    """Log how long the block took (shown with --verbose)."""
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        log.info("%s: %.3f s", label, time.perf_counter() - start)

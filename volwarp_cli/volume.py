@@ -1,0 +1,142 @@
+"""The Volume type: a ``[z, y, x]`` sample array plus its place in the world.
+
+Geometry (sizes, spacing, origin, points, indices) is always written (x, y, z);
+samples are indexed ``[z, y, x]``. :func:`xyz_to_zyx` and :func:`zyx_to_xyz`
+are the one place where the two orders meet: every module that turns a
+geometric tuple into an array axis (or back) calls them.
+
+The voxel with index ``(i, j, k)`` (x, y, z) has its centre at::
+
+    world = origin + direction @ (spacing * (i, j, k))
+
+``direction`` is a 3x3 matrix whose *columns* are the unit vectors of the
+index axes in world space, as ITK and NRRD's ``space directions`` have them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from .errors import VolwarpError
+
+#: NRRD's names of world frames, and the short forms accepted on input.
+SPACE_NAMES = {
+    "right-anterior-superior": "right-anterior-superior",
+    "ras": "right-anterior-superior",
+    "left-anterior-superior": "left-anterior-superior",
+    "las": "left-anterior-superior",
+    "left-posterior-superior": "left-posterior-superior",
+    "lps": "left-posterior-superior",
+    "scanner-xyz": "scanner-xyz",
+    "3d-right-handed": "3d-right-handed",
+    "3d-left-handed": "3d-left-handed",
+}
+
+
+def xyz_to_zyx(values):
+    """Reverse a per-axis (x, y, z) sequence to array order [z, y, x]."""
+    return tuple(values)[::-1]
+
+
+def zyx_to_xyz(values):
+    """Reverse a per-axis array-order [z, y, x] sequence to (x, y, z)."""
+    return tuple(values)[::-1]
+
+
+def _vec3(value, name: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape == ():
+        arr = np.full(3, float(arr))
+    if arr.shape != (3,):
+        raise VolwarpError(f"{name} must have 3 values (x, y, z), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise VolwarpError(f"{name} must be finite, got {arr.tolist()}")
+    return arr
+
+
+@dataclass
+class Volume:
+    """Samples ``data[z, y, x]`` with spacing, origin and direction, all (x, y, z).
+
+    ``meta`` holds the file format's other key/value pairs (strings), carried
+    from input to output so that a pipeline does not lose them.
+    """
+
+    data: np.ndarray
+    spacing: np.ndarray = field(default_factory=lambda: np.ones(3))
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
+    space: str | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        data = np.asarray(self.data)
+        if data.ndim != 3:
+            raise VolwarpError(f"a volume has 3 axes, got an array of shape {data.shape}")
+        self.data = data
+        self.spacing = _vec3(self.spacing, "spacing")
+        if np.any(self.spacing <= 0):
+            raise VolwarpError(f"spacing must be positive, got {self.spacing.tolist()}")
+        self.origin = _vec3(self.origin, "origin")
+        direction = np.asarray(self.direction, dtype=np.float64)
+        if direction.shape != (3, 3) or not np.all(np.isfinite(direction)):
+            raise VolwarpError("direction must be a finite 3x3 matrix")
+        if abs(np.linalg.det(direction)) < 1e-9:
+            raise VolwarpError("direction matrix is singular")
+        self.direction = direction
+        if self.space is not None:
+            self.space = SPACE_NAMES.get(str(self.space).lower(), str(self.space))
+        self.meta = dict(self.meta)
+
+    # -- sizes --------------------------------------------------------------
+    @property
+    def shape_xyz(self) -> tuple[int, int, int]:
+        """Number of samples along x, y, z."""
+        return tuple(int(n) for n in zyx_to_xyz(self.data.shape))
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.data.dtype
+
+    # -- coordinates ----------------------------------------------------------
+    @property
+    def index_to_world_matrix(self) -> np.ndarray:
+        """4x4 matrix taking homogeneous (i, j, k, 1) indices to world (x, y, z, 1)."""
+        m = np.eye(4)
+        m[:3, :3] = self.direction * self.spacing[None, :]
+        m[:3, 3] = self.origin
+        return m
+
+    def index_to_world(self, ijk) -> np.ndarray:
+        """World coordinates of (fractional) voxel indices, shape (..., 3) in (x, y, z)."""
+        ijk = np.asarray(ijk, dtype=np.float64)
+        return ijk @ (self.direction * self.spacing[None, :]).T + self.origin
+
+    def world_to_index(self, xyz) -> np.ndarray:
+        """Fractional voxel indices (i, j, k) of world points, shape (..., 3)."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        inv = np.linalg.inv(self.direction * self.spacing[None, :])
+        return (xyz - self.origin) @ inv.T
+
+    def world_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned world bounding box (min, max) of the voxel centres."""
+        n = np.array(self.shape_xyz) - 1
+        corners = np.array([[a, b, c] for a in (0, n[0]) for b in (0, n[1]) for c in (0, n[2])])
+        pts = self.index_to_world(corners)
+        return pts.min(axis=0), pts.max(axis=0)
+
+    def with_data(self, data: np.ndarray, **changes) -> "Volume":
+        """A copy with new samples (and optionally new geometry), meta kept."""
+        return replace(self, data=data, meta=dict(self.meta), **changes)
+
+    def same_grid(self, other: "Volume", atol: float = 1e-6) -> bool:
+        """True when both volumes sample the same world points."""
+        return (
+            self.shape_xyz == other.shape_xyz
+            and np.allclose(self.spacing, other.spacing, atol=atol)
+            and np.allclose(self.origin, other.origin, atol=atol)
+            and np.allclose(self.direction, other.direction, atol=atol)
+        )
