@@ -1,0 +1,1 @@
+"""Pictures of volumes and meshes: surface renders, volume ray casts, contact sheets."""
