@@ -128,11 +128,11 @@ class Volume:
         pts = self.index_to_world(corners)
         return pts.min(axis=0), pts.max(axis=0)
 
-    def with_data(self, data: np.ndarray, **changes) -> "Volume":
+    def with_data(self, data: np.ndarray, **changes) -> Volume:
         """A copy with new samples (and optionally new geometry), meta kept."""
         return replace(self, data=data, meta=dict(self.meta), **changes)
 
-    def same_grid(self, other: "Volume", atol: float = 1e-6) -> bool:
+    def same_grid(self, other: Volume, atol: float = 1e-6) -> bool:
         """True when both volumes sample the same world points."""
         return (
             self.shape_xyz == other.shape_xyz

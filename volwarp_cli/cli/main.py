@@ -60,7 +60,7 @@ class VolwarpGroup(click.Group):
         import importlib
 
         module = importlib.import_module(f"volwarp_cli.cli.{COMMANDS[name]}")
-        return getattr(module, "command")
+        return module.command
 
     def format_commands(self, ctx, formatter):
         rows = [(name, _SHORT_HELP[name]) for name in COMMANDS]

@@ -45,7 +45,8 @@ def available_memory() -> int:
         try:
             avail = min(avail, int(float(override)))
         except ValueError:
-            raise VolwarpError(f"VOLWARP_MEMORY_LIMIT={override!r} is not a number of bytes")
+            raise VolwarpError(
+                f"VOLWARP_MEMORY_LIMIT={override!r} is not a number of bytes") from None
     return avail
 
 

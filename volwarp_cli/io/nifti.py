@@ -3,12 +3,17 @@
 NIfTI stores a voxel-to-RAS matrix; volwarp (like ITK, DICOM and 3D Slicer's
 files) works in LPS, so x and y of the world are negated on the way in and out.
 
-Which matrix is used, in this order:
+Which matrix is used follows ITK's NiftiImageIO (so volwarp and SimpleITK place
+every file alike):
 
-1. the sform, when ``sform_code > 0``;
-2. else the qform, when ``qform_code > 0``;
-3. else ("method 1" files) the voxel sizes ``pixdim[1:4]`` on the diagonal and
-   origin 0, as ITK does.
+1. neither form coded (``sform_code == qform_code == 0``, "method 1"): the
+   voxel sizes ``pixdim[1:4]`` on the diagonal, origin 0;
+2. the sform, when it is coded and orthonormal once its column lengths are
+   divided out, and either the qform is not coded, or the sform's code is 1
+   (scanner), or both forms agree within 1e-4;
+3. else the qform, when it is coded;
+4. else the (skewed) sform: ITK refuses such files, volwarp keeps the shear in
+   ``direction``.
 
 Written files carry the same matrix as both sform and qform, code 1
 (scanner), so every reader finds the same geometry whichever it prefers.
@@ -33,17 +38,33 @@ _RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 
 
 def choose_affine(header) -> tuple[np.ndarray, str]:
-    """The voxel-to-RAS 4x4 matrix by volwarp's rule, and which one it was."""
+    """The voxel-to-RAS 4x4 matrix by ITK's rule (module docstring), and its name."""
+    zooms = np.array([float(z) if z > 0 else 1.0 for z in header["pixdim"][1:4]])
     sform, scode = header.get_sform(coded=True)
-    if sform is not None and scode and scode > 0:
-        return np.asarray(sform, dtype=np.float64), "sform"
     qform, qcode = header.get_qform(coded=True)
-    if qform is not None and qcode and qcode > 0:
-        return np.asarray(qform, dtype=np.float64), "qform"
-    zooms = [float(z) if z > 0 else 1.0 for z in header["pixdim"][1:4]]
-    aff = np.eye(4)
-    aff[:3, :3] = np.diag(zooms)
-    return aff, "pixdim"
+    scode = int(scode or 0) if sform is not None else 0
+    qcode = int(qcode or 0) if qform is not None else 0
+    if scode == 0 and qcode == 0:
+        aff = np.eye(4)
+        aff[:3, :3] = np.diag(zooms)
+        return aff, "pixdim"
+    sform = np.asarray(sform, dtype=np.float64) if scode else None
+    qform = np.asarray(qform, dtype=np.float64) if qcode else None
+    prefer_sform = (sform is not None and qform is not None
+                    and np.allclose(sform[:3, :3], qform[:3, :3], rtol=0, atol=1e-5)
+                    and np.abs(sform[:3, 3] - qform[:3, 3]).sum() <= 1e-7)
+    if sform is not None:
+        lin = sform[:3, :3] / np.linalg.norm(sform[:3, :3], axis=0)[None, :]
+        if np.allclose(lin @ lin.T, np.eye(3), atol=1e-4):
+            if qform is None or scode == 1:
+                prefer_sform = True
+            else:
+                prefer_sform = bool(np.allclose(sform, qform, rtol=0, atol=1e-4))
+    if prefer_sform:
+        return sform, "sform"
+    if qform is not None:
+        return qform, "qform"
+    return sform, "sform"
 
 
 def read_nifti(path: str | os.PathLike, volume_index: int | None = None) -> Volume:

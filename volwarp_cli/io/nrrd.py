@@ -25,7 +25,14 @@ import numpy as np
 from ..errors import FormatError
 from ..volume import Volume, xyz_to_zyx
 from .atomic import atomic_output
-from .common import check_dtype, ensure_fits_in_memory, native, read_exact, with_byte_order, voxel_count
+from .common import (
+    check_dtype,
+    ensure_fits_in_memory,
+    native,
+    read_exact,
+    voxel_count,
+    with_byte_order,
+)
 
 _TYPES = {
     "signed char": "int8", "int8": "int8", "int8_t": "int8",

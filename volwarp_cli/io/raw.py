@@ -11,7 +11,14 @@ import numpy as np
 from ..errors import FormatError, VolwarpError
 from ..volume import Volume, xyz_to_zyx
 from .atomic import atomic_output
-from .common import check_dtype, ensure_fits_in_memory, native, read_exact, voxel_count, with_byte_order
+from .common import (
+    check_dtype,
+    ensure_fits_in_memory,
+    native,
+    read_exact,
+    voxel_count,
+    with_byte_order,
+)
 
 
 @dataclass(frozen=True)

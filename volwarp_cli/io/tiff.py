@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import FormatError
 from ..volume import Volume
 from .atomic import atomic_output
-from .common import check_dtype, ensure_fits_in_memory, native, with_byte_order, voxel_count
+from .common import check_dtype, ensure_fits_in_memory, native, voxel_count, with_byte_order
 
 _IMAGEJ_TYPES = ("uint8", "int16", "uint16", "float32")
 _UNIT_TO_MM = {"inch": 25.4, "centimeter": 10.0, "millimeter": 1.0, "micrometer": 1e-3}

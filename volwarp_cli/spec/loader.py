@@ -9,7 +9,7 @@ spec's own folder (so a spec and its data move together).
 from __future__ import annotations
 
 import json
-from functools import lru_cache
+from functools import cache
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -114,7 +114,7 @@ def parse_spec_text(text: str, file: str = "<spec>", base: Path | None = None) -
     return SpecDoc(data, lines, file, base or Path("."))
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_schema(kind: str) -> dict:
     """The JSON Schema of spec kind ``kind`` (``warp``, ``morph``, ``sweep``, ...)."""
     text = resources.files("volwarp_cli.schemas").joinpath(f"{kind}.schema.json").read_text()

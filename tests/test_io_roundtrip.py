@@ -1,0 +1,296 @@
+"""Round trips of every format x dtype x byte order, and cross-checks with independent readers."""
+
+from __future__ import annotations
+
+import gzip
+
+import nrrd as pynrrd
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from volwarp_cli.io import RawLayout, read_volume, write_volume
+from volwarp_cli.io.common import SUPPORTED_DTYPES
+from volwarp_cli.volume import Volume
+
+DTYPES = list(SUPPORTED_DTYPES)
+
+
+def sample_volume(dtype, shape_zyx=(5, 6, 7)) -> Volume:
+    rng = np.random.default_rng(7)
+    dt = np.dtype(dtype)
+    if dt.kind == "f":
+        data = rng.normal(0, 1000, shape_zyx).astype(dt)
+        data.flat[0] = np.finfo(dt).max
+        data.flat[1] = np.finfo(dt).tiny
+    else:
+        info = np.iinfo(dt)
+        data = rng.integers(info.min, info.max, shape_zyx, endpoint=True, dtype=dt)
+        data.flat[0] = info.min
+        data.flat[1] = info.max
+    a = np.deg2rad(20.0)
+    direction = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    return Volume(data, spacing=(0.7, 1.3, 2.9), origin=(-3.25, 11.5, 101.0), direction=direction,
+                  space="left-posterior-superior")
+
+
+def assert_same_geometry(a: Volume, b: Volume, atol=1e-12):
+    np.testing.assert_allclose(b.spacing, a.spacing, rtol=0, atol=atol)
+    np.testing.assert_allclose(b.origin, a.origin, rtol=0, atol=atol)
+    np.testing.assert_allclose(b.direction, a.direction, rtol=0, atol=atol)
+
+
+FORMATS = [
+    ("x.nrrd", {}, ("little", "big")),
+    ("x.nrrd", {"compress": True}, ("little", "big")),
+    ("x.nhdr", {}, ("little", "big")),
+    ("x.tif", {}, ("little", "big")),
+    ("x.tif", {"compress": True}, ("little",)),
+    ("x.nii", {}, ("little",)),
+    ("x.nii.gz", {}, ("little",)),
+]
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("name,kwargs,orders", FORMATS, ids=lambda v: str(v))
+def test_round_trip_is_bit_identical(tmp_path, dtype, name, kwargs, orders):
+    vol = sample_volume(dtype)
+    for order in orders:
+        path = tmp_path / f"{order}-{name}"
+        write_volume(vol, path, byte_order=order, **kwargs)
+        back = read_volume(path)
+        assert back.data.dtype == np.dtype(dtype)
+        assert back.data.shape == vol.data.shape
+        assert back.data.tobytes() == vol.data.tobytes()
+        # NIfTI stores its matrices as float32: geometry is exact to float32 precision there.
+        assert_same_geometry(vol, back, atol=1e-5 if ".nii" in name else 1e-12)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("order", ["little", "big"])
+def test_raw_round_trip(tmp_path, dtype, order):
+    vol = sample_volume(dtype)
+    path = tmp_path / "x.raw"
+    write_volume(vol, path, byte_order=order)
+    assert path.stat().st_size == vol.data.nbytes
+    layout = RawLayout(shape=vol.shape_xyz, dtype=dtype, endian=order,
+                       spacing=tuple(vol.spacing), origin=tuple(vol.origin))
+    back = read_volume(path, raw=layout)
+    assert back.data.tobytes() == vol.data.tobytes()
+    np.testing.assert_array_equal(back.spacing, vol.spacing)
+    np.testing.assert_array_equal(back.origin, vol.origin)
+    # big-endian bytes really are big-endian on disk
+    expect = vol.data.astype(vol.data.dtype.newbyteorder("<" if order == "little" else ">"))
+    assert path.read_bytes() == expect.tobytes()
+
+
+def test_raw_header_bytes(tmp_path):
+    data = np.arange(24, dtype=np.uint16).reshape(2, 3, 4)
+    path = tmp_path / "h.bin"
+    path.write_bytes(b"HEADER!!" + data.astype(">u2").tobytes())
+    vol = read_volume(path, raw=RawLayout(shape=(4, 3, 2), dtype="uint16", endian="big",
+                                          header_bytes=8))
+    np.testing.assert_array_equal(vol.data, data)
+
+
+@pytest.mark.parametrize("name", ["a.nrrd", "a.nhdr", "a.tif", "a.nii", "a.nii.gz", "a.raw"])
+def test_writes_are_deterministic(tmp_path, name):
+    vol = sample_volume("int16")
+    vol.meta["note"] = "kept"
+    for sub in ("one", "two"):
+        (tmp_path / sub).mkdir()
+        write_volume(vol, tmp_path / sub / name, compress=True)
+    assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "two" / name).read_bytes()
+
+
+def test_meta_key_values_survive(tmp_path):
+    vol = sample_volume("uint8")
+    vol.meta.update({"modality": "MR", "patient position": "HFS", "NRRD_content": "a test"})
+    for name in ("m.nrrd", "m.tif"):
+        write_volume(vol, tmp_path / name)
+        back = read_volume(tmp_path / name)
+        for key in ("modality", "patient position", "NRRD_content"):
+            assert back.meta[key] == vol.meta[key], (name, key)
+
+
+# -- independent readers ------------------------------------------------------
+
+def sitk_geometry(path):
+    img = sitk.ReadImage(str(path))
+    return (img.GetSize(), np.array(img.GetSpacing()), np.array(img.GetOrigin()),
+            np.array(img.GetDirection()).reshape(3, 3), sitk.GetArrayFromImage(img))
+
+
+@pytest.mark.parametrize("name", ["s.nrrd", "s.nii", "s.nii.gz", "s.nhdr"])
+def test_simpleitk_reads_what_volwarp_writes(tmp_path, name):
+    vol = sample_volume("int16")
+    write_volume(vol, tmp_path / name, compress=name.endswith("nrrd"))
+    size, spacing, origin, direction, arr = sitk_geometry(tmp_path / name)
+    assert size == vol.shape_xyz
+    np.testing.assert_allclose(spacing, vol.spacing, atol=1e-6)
+    np.testing.assert_allclose(origin, vol.origin, atol=1e-5)
+    np.testing.assert_allclose(direction, vol.direction, atol=1e-6)
+    np.testing.assert_array_equal(arr, vol.data)  # SimpleITK's arrays are [z, y, x] too
+
+
+def test_pynrrd_reads_what_volwarp_writes(tmp_path):
+    vol = sample_volume("float32")
+    write_volume(vol, tmp_path / "p.nrrd", byte_order="big", compress=True)
+    data, header = pynrrd.read(str(tmp_path / "p.nrrd"), index_order="C")
+    np.testing.assert_array_equal(data, vol.data)
+    np.testing.assert_allclose(header["space origin"], vol.origin)
+    # pynrrd's space directions rows are the axis vectors (x, y, z)
+    np.testing.assert_allclose(np.asarray(header["space directions"]).T,
+                               vol.direction * vol.spacing[None, :], atol=1e-12)
+    assert header["space"] == "left-posterior-superior"
+
+
+@pytest.mark.parametrize("name", ["t.nrrd", "t.nii.gz", "t.nii"])
+def test_volwarp_reads_what_simpleitk_writes(tmp_path, name):
+    rng = np.random.default_rng(3)
+    arr = rng.integers(-300, 3000, (9, 8, 7)).astype(np.int16)
+    img = sitk.GetImageFromArray(arr)
+    img.SetSpacing((0.9, 1.1, 3.0))
+    img.SetOrigin((10.0, -20.0, 30.5))
+    a = np.deg2rad(15)
+    d = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    img.SetDirection(d.ravel().tolist())
+    sitk.WriteImage(img, str(tmp_path / name), useCompression=name.endswith("nrrd"))
+    vol = read_volume(tmp_path / name)
+    np.testing.assert_array_equal(vol.data, arr)
+    np.testing.assert_allclose(vol.spacing, (0.9, 1.1, 3.0), atol=1e-5)
+    np.testing.assert_allclose(vol.origin, (10.0, -20.0, 30.5), atol=1e-4)
+    np.testing.assert_allclose(vol.direction, d, atol=1e-5)
+
+
+def test_real_scan_matches_simpleitk_reference(data_dir):
+    """The shared MRI (written by pynrrd): the geometry SimpleITK reports, per data/README.md."""
+    path = data_dir / "mri_t1_head_coronal_2x2x3mm.nrrd"
+    vol = read_volume(path)
+    assert vol.shape_xyz == (128, 128, 62)
+    np.testing.assert_array_equal(vol.spacing, (2, 2, 3))
+    np.testing.assert_array_equal(vol.origin, (0, 254, 0))
+    np.testing.assert_array_equal(vol.direction, [[1, 0, 0], [0, 0, -1], [0, 1, 0]])
+    assert vol.data.min() == 0 and vol.data.max() == 255
+    assert round(float(vol.data.mean()), 4) == 19.2298
+    size, spacing, origin, direction, arr = sitk_geometry(path)
+    np.testing.assert_array_equal(arr, vol.data)
+    np.testing.assert_allclose(direction, vol.direction)
+
+
+def test_colin27_against_simpleitk(data_dir):
+    path = data_dir / "mri_colin27_brain_1mm.nrrd"
+    vol = read_volume(path)
+    size, spacing, origin, direction, arr = sitk_geometry(path)
+    assert size == vol.shape_xyz == (181, 217, 181)
+    np.testing.assert_allclose(origin, vol.origin)
+    np.testing.assert_allclose(direction, vol.direction)
+    np.testing.assert_array_equal(arr, vol.data)
+    assert vol.data.dtype == np.uint8
+
+
+def test_world_coordinates_agree_with_simpleitk(data_dir):
+    vol = read_volume(data_dir / "mri_t1_head_coronal_2x2x3mm.nrrd")
+    img = sitk.ReadImage(str(data_dir / "mri_t1_head_coronal_2x2x3mm.nrrd"))
+    for ijk in [(0, 0, 0), (5, 17, 3), (127, 127, 61), (10.5, 3.25, 7.75)]:
+        expect = img.TransformContinuousIndexToPhysicalPoint([float(v) for v in ijk])
+        np.testing.assert_allclose(vol.index_to_world(ijk), expect, atol=1e-9)
+        np.testing.assert_allclose(vol.world_to_index(expect), ijk, atol=1e-9)
+
+
+def _nifti_with_forms(path, sform, scode, qform, qcode):
+    import nibabel as nib
+
+    img = nib.Nifti1Image(np.zeros((4, 5, 6), np.uint8), None)
+    img.set_qform(qform, code=qcode)  # also sets pixdim from the qform's scales
+    img.set_sform(sform, code=scode)
+    nib.save(img, path)
+
+
+def _affine(scales, shift, angle=0.0):
+    a = np.deg2rad(angle)
+    rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    m = np.eye(4)
+    m[:3, :3] = rot * np.asarray(scales, float)[None, :]
+    m[:3, 3] = shift
+    return m
+
+
+@pytest.mark.parametrize("scode,qcode,sform_kind,expect_from", [
+    (1, 1, "rotated", "sform"),      # scanner-coded sform wins
+    (2, 1, "rotated", "qform"),      # aligned sform that disagrees with the qform loses
+    (2, 1, "same", "sform"),         # forms agree: sform (higher precision)
+    (2, 0, "rotated", "sform"),      # only the sform is coded
+    (0, 1, "rotated", "qform"),      # only the qform is coded
+])
+def test_nifti_sform_qform_rule_matches_simpleitk(tmp_path, scode, qcode, sform_kind, expect_from):
+    qform = _affine((2, 3, 4), (1, 2, 3))
+    sform = qform if sform_kind == "same" else _affine((2, 3, 4), (10, 20, 30), angle=25)
+    path = tmp_path / "f.nii"
+    _nifti_with_forms(path, sform, scode, qform, qcode)
+    chosen = sform if expect_from == "sform" else qform
+    lps = np.diag([-1.0, -1.0, 1.0])
+    vol = read_volume(path)
+    np.testing.assert_allclose(vol.index_to_world_matrix[:3, :3], lps @ chosen[:3, :3], atol=1e-5)
+    np.testing.assert_allclose(vol.origin, lps @ chosen[:3, 3], atol=1e-5)
+    img = sitk.ReadImage(str(path))
+    np.testing.assert_allclose(img.GetSpacing(), vol.spacing, atol=1e-5)
+    np.testing.assert_allclose(img.GetOrigin(), vol.origin, atol=1e-5)
+    np.testing.assert_allclose(np.reshape(img.GetDirection(), (3, 3)), vol.direction, atol=1e-5)
+
+
+def test_nifti_4d_needs_volume_index(tmp_path):
+    import nibabel as nib
+
+    data = np.arange(4 * 5 * 6 * 3, dtype=np.int16).reshape(4, 5, 6, 3)
+    nib.save(nib.Nifti1Image(data, np.eye(4)), tmp_path / "t.nii.gz")
+    from volwarp_cli.errors import FormatError
+    with pytest.raises(FormatError, match="4-D NIfTI with 3 volumes"):
+        read_volume(tmp_path / "t.nii.gz")
+    vol = read_volume(tmp_path / "t.nii.gz", volume_index=2)
+    np.testing.assert_array_equal(vol.data, data[..., 2].transpose(2, 1, 0))
+
+
+def test_tiff_imagej_spacing_read_from_fiji_style_file(tmp_path):
+    """A stack written the way Fiji writes it (no volwarp keys): spacing from resolution + ImageJ."""
+    import tifffile
+
+    data = np.arange(3 * 4 * 5, dtype=np.uint16).reshape(3, 4, 5)
+    tifffile.imwrite(tmp_path / "fiji.tif", data, imagej=True, resolution=(1 / 0.25, 1 / 0.5),
+                     metadata={"axes": "ZYX", "spacing": 2.0, "unit": "micron"})
+    vol = read_volume(tmp_path / "fiji.tif")
+    np.testing.assert_array_equal(vol.data, data)
+    np.testing.assert_allclose(vol.spacing, (0.25, 0.5, 2.0), rtol=1e-6)
+    assert vol.meta["unit"] == "micron"
+    # and what volwarp writes, tifffile's ImageJ reader sees with the same voxel size
+    write_volume(vol, tmp_path / "out.tif")
+    with tifffile.TiffFile(tmp_path / "out.tif") as tif:
+        assert tif.is_imagej
+        assert tif.imagej_metadata["spacing"] == 2.0
+        assert tif.imagej_metadata["unit"] == "micron"
+        xres = tif.pages[0].tags["XResolution"].value
+        assert abs(xres[1] / xres[0] - 0.25) < 1e-6
+
+
+def test_detached_nhdr_written_by_another_program(tmp_path):
+    data = np.arange(2 * 3 * 4, dtype=">f4").reshape(2, 3, 4)
+    (tmp_path / "vol.raw.gz").write_bytes(gzip.compress(data.tobytes()))
+    (tmp_path / "vol.nhdr").write_text(
+        "NRRD0004\ntype: float\ndimension: 3\nsizes: 4 3 2\nendian: big\nencoding: gzip\n"
+        "spacings: 0.5 0.5 2\ndata file: vol.raw.gz\n")
+    vol = read_volume(tmp_path / "vol.nhdr")
+    np.testing.assert_array_equal(vol.data, data.astype(np.float32))
+    np.testing.assert_array_equal(vol.spacing, (0.5, 0.5, 2))
+
+
+def test_ascii_and_bzip2_nrrd(tmp_path):
+    import bz2
+
+    data = np.arange(24, dtype=np.int32).reshape(2, 3, 4) - 5
+    header = "NRRD0004\ntype: int\ndimension: 3\nsizes: 4 3 2\nencoding: {enc}\n\n"
+    (tmp_path / "a.nrrd").write_bytes(header.format(enc="ascii").encode()
+                                      + " ".join(map(str, data.ravel())).encode())
+    (tmp_path / "b.nrrd").write_bytes(header.format(enc="bzip2").encode()
+                                      + bz2.compress(data.astype("<i4").tobytes()))
+    for name in ("a.nrrd", "b.nrrd"):
+        np.testing.assert_array_equal(read_volume(tmp_path / name).data, data)
