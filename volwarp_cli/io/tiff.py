@@ -117,9 +117,10 @@ def read_tiff(path: str | os.PathLike) -> Volume:
             direction = np.array(_floats(extra["volwarp_direction"], 9, where,
                                          "volwarp_direction")).reshape(3, 3)
         space = extra.get("volwarp_space") or None
-        if "volwarp_meta" in extra:
+        if "volwarp_spacing" in extra:
+            # written by volwarp: its key/values are exactly the volume's meta
             try:
-                meta.update(json.loads(extra["volwarp_meta"]))
+                meta = dict(json.loads(extra.get("volwarp_meta", "{}")))
             except (TypeError, ValueError):
                 raise FormatError(f"{where}: volwarp_meta is not valid JSON") from None
     try:
@@ -136,7 +137,7 @@ def write_tiff(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
     path = Path(path)
     dtype = check_dtype(vol.data.dtype, str(path))
     meta = dict(vol.meta)
-    unit = str(meta.pop("unit", "mm"))
+    unit = str(meta.get("unit", "mm"))
     geometry = {
         "volwarp_spacing": " ".join(repr(float(v)) for v in vol.spacing),
         "volwarp_origin": " ".join(repr(float(v)) for v in vol.origin),
