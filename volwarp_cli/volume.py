@@ -129,8 +129,9 @@ class Volume:
         return pts.min(axis=0), pts.max(axis=0)
 
     def with_data(self, data: np.ndarray, **changes) -> Volume:
-        """A copy with new samples (and optionally new geometry), meta kept."""
-        return replace(self, data=data, meta=dict(self.meta), **changes)
+        """A copy with new samples (and optionally new geometry or meta); meta kept by default."""
+        changes.setdefault("meta", dict(self.meta))
+        return replace(self, data=data, **changes)
 
     def same_grid(self, other: Volume, atol: float = 1e-6) -> bool:
         """True when both volumes sample the same world points."""

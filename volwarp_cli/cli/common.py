@@ -40,3 +40,34 @@ def describe_volume(vol: Volume, fmt: str) -> dict:
         "mean": mean,
         "meta": {str(k): str(v) for k, v in sorted(vol.meta.items())},
     }
+
+
+def provenance(command: str, inputs, spec=None) -> dict[str, str]:
+    """Key/values recording how an output was made (deterministic: no time, no host).
+
+    ``volwarp_version``, ``volwarp_command``, ``volwarp_input`` (the input
+    files' names, not their folders, so moving a tree does not change bytes)
+    and, when a spec drove the work, ``volwarp_spec_sha256`` of its bytes.
+    """
+    import hashlib
+    from pathlib import Path
+
+    from .. import __version__
+
+    if isinstance(inputs, (str, Path)):
+        inputs = [inputs]
+    meta = {
+        "volwarp_version": __version__,
+        "volwarp_command": command,
+        "volwarp_input": " ".join(Path(p).name for p in inputs),
+    }
+    if spec is not None:
+        meta["volwarp_spec_sha256"] = hashlib.sha256(Path(spec).read_bytes()).hexdigest()
+    return meta
+
+
+def stamp(vol: Volume, command: str, inputs, spec=None) -> Volume:
+    """``vol`` with its provenance key/values set (earlier steps' ``volwarp_*`` keys replaced)."""
+    meta = {k: v for k, v in vol.meta.items() if not str(k).startswith("volwarp_")}
+    meta.update(provenance(command, inputs, spec))
+    return vol.with_data(vol.data, meta=meta)
