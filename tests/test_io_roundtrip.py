@@ -294,3 +294,13 @@ def test_ascii_and_bzip2_nrrd(tmp_path):
                                       + bz2.compress(data.astype("<i4").tobytes()))
     for name in ("a.nrrd", "b.nrrd"):
         np.testing.assert_array_equal(read_volume(tmp_path / name).data, data)
+
+
+def test_multi_member_gzip_nrrd(tmp_path):
+    """gzip files may hold several members back to back (e.g. from `cat a.gz b.gz`)."""
+    data = np.arange(4 * 4 * 4, dtype=np.uint8).reshape(4, 4, 4)
+    raw = data.tobytes()
+    payload = gzip.compress(raw[:20]) + gzip.compress(raw[20:])
+    (tmp_path / "m.nrrd").write_bytes(b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 4 4 4\n"
+                                      b"encoding: gzip\n\n" + payload)
+    np.testing.assert_array_equal(read_volume(tmp_path / "m.nrrd").data, data)

@@ -131,3 +131,44 @@ def read_exact(fh, nbytes: int, where: str) -> bytearray:
     if got < nbytes:
         raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes, found {got}")
     return buf
+
+
+def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
+    """Decompress a gzip (or zlib) stream from ``fh`` into exactly ``nbytes``.
+
+    Faster than ``gzip.GzipFile`` (one decompressor, large chunks written in
+    place); refuses truncated streams and streams holding more than ``nbytes``.
+    """
+    out = bytearray(nbytes)
+    pos = 0
+    dec = zlib.decompressobj(zlib.MAX_WBITS | 32)  # gzip or zlib header
+    try:
+        while True:
+            chunk = fh.read(1 << 22)
+            if not chunk:
+                break
+            while chunk:
+                piece = dec.decompress(chunk, nbytes - pos + 1)
+                if pos + len(piece) > nbytes:
+                    raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
+                                      "(wrong sizes or type in the header?)")
+                out[pos:pos + len(piece)] = piece
+                pos += len(piece)
+                if dec.eof:
+                    rest = dec.unused_data
+                    if rest.strip(b"\0") and pos < nbytes:  # another gzip member follows
+                        dec = zlib.decompressobj(zlib.MAX_WBITS | 32)
+                        chunk = rest
+                        continue
+                    if rest.strip(b"\0"):
+                        raise FormatError(f"{where}: compressed data holds more than {nbytes} "
+                                          "bytes (wrong sizes or type in the header?)")
+                    break
+                chunk = dec.unconsumed_tail
+    except zlib.error as exc:
+        raise FormatError(f"{where}: corrupt compressed data ({exc})") from None
+    if pos < nbytes or not dec.eof:
+        if pos >= nbytes:
+            raise FormatError(f"{where}: compressed data is truncated (no end-of-stream marker)")
+        raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes, found {pos}")
+    return out

@@ -30,6 +30,7 @@ from .common import (
     ensure_fits_in_memory,
     native,
     read_exact,
+    read_gzip_exact,
     voxel_count,
     with_byte_order,
 )
@@ -272,8 +273,9 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
         return values.astype(file_dtype.newbyteorder("="))
     if byteskip > 0:
         fh.seek(byteskip, os.SEEK_CUR)
-    stream = gzip.GzipFile(fileobj=fh, mode="rb") if encoding == "gzip" else bz2.BZ2File(fh)
-    with stream:
+    if encoding == "gzip":
+        return np.frombuffer(read_gzip_exact(fh, nbytes, where), dtype=file_dtype)
+    with bz2.BZ2File(fh) as stream:
         buf = read_exact(stream, nbytes, where)
         if exact_end and stream.read(1):
             raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
