@@ -33,9 +33,9 @@ def main(quick: bool = False) -> None:
             row(f"read {n}^3 int16 NRRD ({label})", ours, peer, "SimpleITK")
             vol = read_volume(path)
             img = sitk.ReadImage(str(path))
-            ours = median_time(lambda c=compress: write_volume(vol, tmp / "o.nrrd", compress=c),
+            ours = median_time(lambda c=compress, v=vol: write_volume(v, tmp / "o.nrrd", compress=c),
                                repeat=3)
-            peer = median_time(lambda c=compress: sitk.WriteImage(img, str(tmp / "s.nrrd"),
+            peer = median_time(lambda c=compress, im=img: sitk.WriteImage(im, str(tmp / "s.nrrd"),
                                                                    useCompression=c), repeat=3)
             row(f"write {n}^3 int16 NRRD ({label})", ours, peer, "SimpleITK")
         ours = command_time(volwarp_argv("convert", str(src), "-o", str(tmp / "c.nii.gz")))
