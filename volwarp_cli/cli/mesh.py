@@ -1,14 +1,212 @@
-"""`volwarp mesh`: not implemented yet (its issue replaces this module)."""
+"""`volwarp mesh`: isosurface a volume to a mesh file, measure it, render it to PNG."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
 
 import click
 
 from ..errors import VolwarpError
-from .options import common_options
+from .common import load_input
+from .options import common_options, raw_options
+
+_IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
 
 
-@click.command(name="mesh", context_settings={"ignore_unknown_options": True})
-@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+def _bad(fn):
+    """Turn a core parser's VolwarpError into click.BadParameter (exit 2)."""
+    def callback(ctx, param, value):
+        if value is None:
+            return None
+        try:
+            return fn(value)
+        except VolwarpError as exc:
+            raise click.BadParameter(str(exc)) from None
+    return callback
+
+
+def _parse_size(value):
+    from ..render.surface import parse_size
+    return parse_size(value)
+
+
+def _parse_view(value):
+    from ..render.surface import parse_view
+    return parse_view(value)
+
+
+def _parse_color(value):
+    from ..render.surface import parse_color
+    return parse_color(value)
+
+
+def turntable_paths(render: str, n: int) -> list[Path]:
+    """``out.png`` -> ``out-000.png`` ... ``out-{n-1}.png``."""
+    p = Path(render)
+    return [p.with_name(f"{p.stem}-{k:03d}{p.suffix}") for k in range(n)]
+
+
+def _format_stats(d: dict) -> str:
+    def vec(v):
+        return "-" if v is None else " ".join(f"{x:.6g}" for x in v)
+    return "\n".join([
+        f"vertices:   {d['vertices']}",
+        f"triangles:  {d['triangles']}",
+        f"area:       {d['area']:.6g}",
+        f"volume:     {d['volume']:.6g}",
+        f"bbox min:   {vec(d['bbox_min'])}",
+        f"bbox max:   {vec(d['bbox_max'])}",
+        f"components: {d['components']}",
+        f"closed:     {'yes' if d['closed'] else 'no'}",
+    ])
+
+
+@click.command(name="mesh")
+@click.argument("input", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Mesh file: .ply .stl .obj .vtp .vtk (binary where the format has it). "
+                   "May be left out when --render or --stats is given.")
+@click.option("--iso", type=float, default=None,
+              help="Isosurface level (default: the middle of the value range).")
+@click.option("--inside", type=click.Choice(["above", "below"]), default="above",
+              show_default=True,
+              help="Which side of the level is the shape (sets the outward direction): "
+                   "'above' for bright objects, 'below' e.g. for distance fields negative "
+                   "inside.")
+@click.option("--cap", is_flag=True,
+              help="Pad the volume with one layer of outside samples so shapes touching its "
+                   "border are closed there.")
+@click.option("--smooth", type=click.IntRange(min=0), default=0, show_default=True,
+              metavar="N", help="Windowed-sinc smoothing iterations (volume-preserving; 0: off).")
+@click.option("--decimate", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.0,
+              show_default=True, metavar="FRACTION",
+              help="Fraction of the triangles to remove by quadric decimation (0.9 keeps 10%).")
+@click.option("--largest-component", is_flag=True,
+              help="Keep only the connected piece with the most triangles.")
+@click.option("--allow-empty", is_flag=True,
+              help="An empty surface is a warning (exit 0, empty mesh written) instead of an "
+                   "error (exit 1).")
+@click.option("--render", type=click.Path(dir_okay=False), default=None, metavar="OUT.png",
+              help="Also render the surface, shaded, to this image.")
+@click.option("--view", default="iso", show_default=True, callback=_bad(_parse_view),
+              help="Render view: iso, x, y, z (looking from that axis) or AZIMUTH,ELEVATION "
+                   "in degrees (z is up).")
+@click.option("--size", default="800x600", show_default=True, callback=_bad(_parse_size),
+              metavar="WxH", help="Render size in pixels.")
+@click.option("--color", default=None, callback=_bad(_parse_color),
+              help="Surface colour: a name, #rrggbb or r,g,b (default: bone).")
+@click.option("--background", default=None, callback=_bad(_parse_color),
+              help="Background colour (default: white).")
+@click.option("--turntable", type=click.IntRange(min=1, max=360), default=None, metavar="N",
+              help="Render N views around the vertical axis, starting at --view, written as "
+                   "OUT-000.png ... next to --render's name.")
+@click.option("--stats", "show_stats", is_flag=True,
+              help="Print counts, area, enclosed volume, bounding box, components, closed.")
+@click.option("--json", "as_json", is_flag=True,
+              help="Print the statistics as one JSON object (implies --stats).")
+@raw_options
 @common_options
-def command(args):
-    """Not implemented yet."""
-    raise VolwarpError("'mesh' is not implemented yet")
+def command(input, output, iso, inside, cap, smooth, decimate, largest_component, allow_empty,
+            render, view, size, color, background, turntable, show_stats, as_json, raw,
+            volume_index):
+    """Isosurface INPUT at level --iso and write it to OUTPUT (world coordinates).
+
+    Triangles are wound counter-clockwise seen from outside and normals point
+    outwards. The surface is closed wherever the shape does not touch the
+    volume's border; use --cap to close it there too. An empty surface (a level
+    outside the data range, or never crossed) is an error, exit 1, and nothing
+    is written, unless --allow-empty.
+    """
+    from ..io.atomic import check_output_path
+    from ..progress import log, timed
+    from ..surface.mesh_io import check_mesh_output
+
+    if output is None and render is None and not (show_stats or as_json):
+        raise click.UsageError("nothing to do: give -o/--output, --render or --stats")
+    if turntable is not None and render is None:
+        raise click.UsageError("--turntable needs --render OUT.png (the frames' name)")
+    # Fail on bad outputs before any work.
+    if output is not None:
+        check_mesh_output(output)
+    if render is not None:
+        ext = Path(render).suffix.lower()
+        if ext not in _IMAGE_EXTENSIONS:
+            raise VolwarpError(f"{render}: unknown image extension {ext or '(none)'} "
+                               f"(known: {' '.join(_IMAGE_EXTENSIONS)})")
+        check_output_path(render)
+
+    vol = load_input(input, raw, volume_index)
+
+    import numpy as np
+
+    from ..surface.isosurface import default_iso, isosurface, touches_border
+
+    lo, hi = float(np.min(vol.data)), float(np.max(vol.data))  # NaN if any sample is NaN
+    if np.isnan(lo) or np.isnan(hi):
+        raise VolwarpError(f"{input}: the volume contains NaN samples; an isosurface is not "
+                           "defined there")
+    if iso is None:
+        iso = default_iso(vol.data)
+        log.info("iso level not given: using the middle of the value range, %g", iso)
+    empty_reason = None
+    if not lo <= iso <= hi:
+        empty_reason = f"iso level {iso:g} is outside the data range [{lo:g}, {hi:g}] of {input}"
+        from ..surface.mesh import Mesh
+        mesh = Mesh.empty()
+    else:
+        mesh = isosurface(vol, iso, inside=inside, cap=cap)
+        if mesh.is_empty:
+            empty_reason = f"no surface at level {iso:g} in {input} (the level is never crossed)"
+        elif not cap and touches_border(vol.data, iso, inside):
+            log.warning("the shape touches the volume's border, where its surface is open "
+                        "(use --cap to close it)")
+    if empty_reason:
+        if not allow_empty:
+            raise VolwarpError(f"{empty_reason}; nothing written (--allow-empty writes an "
+                               "empty mesh)")
+        log.warning("%s: the mesh is empty", empty_reason)
+
+    from ..surface import ops
+
+    if largest_component and not mesh.is_empty:
+        with timed("largest component"):
+            mesh = ops.largest_component(mesh)
+    if smooth:
+        with timed(f"smooth ({smooth} iterations)"):
+            mesh = ops.smooth(mesh, smooth)
+    if decimate:
+        with timed(f"decimate ({decimate:g})"):
+            mesh = ops.decimate(mesh, decimate)
+    log.info("mesh: %d vertices, %d triangles", mesh.n_vertices, mesh.n_faces)
+
+    if output is not None:
+        from ..surface.mesh_io import write_mesh
+        with timed(f"write {output}"):
+            write_mesh(mesh, output)
+
+    if show_stats or as_json:
+        from ..surface.stats import mesh_stats
+        with timed("statistics"):
+            stats = mesh_stats(mesh)
+        stats["iso"] = iso
+        if as_json:
+            click.echo(json.dumps(stats, sort_keys=True))
+        else:
+            click.echo(_format_stats(stats))
+
+    if render is not None:
+        from ..io.images import write_image
+        from ..render import surface as rs
+        if turntable is None:
+            with timed(f"render {render}"):
+                image = rs.render_mesh(mesh, view=view, size=size, color=color,
+                                       background=background)
+                write_image(render, image)
+        else:
+            paths = turntable_paths(render, turntable)
+            with timed(f"render {turntable} turntable views"):
+                images = rs.render_turntable(mesh, turntable, view=view, size=size,
+                                             color=color, background=background)
+                for path, image in zip(paths, images, strict=True):
+                    write_image(path, image)

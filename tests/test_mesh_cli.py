@@ -1,0 +1,279 @@
+"""`volwarp mesh` end to end: outputs, statistics, renders, errors and exit codes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.io.images import read_image
+from volwarp_cli.volume import Volume
+
+
+@pytest.fixture
+def messages():
+    """Messages logged by the "volwarp" logger during the test.
+
+    (The CLI's log handler writes to the sys.stderr of the first command run
+    in the process, so CliRunner does not see later commands' log lines.)
+    """
+    import logging
+
+    records: list[str] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            records.append(record.getMessage())
+
+    handler = Keep(level=logging.DEBUG)
+    logger = logging.getLogger("volwarp")
+    logger.addHandler(handler)
+    yield records
+    logger.removeHandler(handler)
+
+
+@pytest.fixture
+def sphere_file(tmp_path):
+    """A smooth sphere field (radius 9, positive inside) with world geometry, as NRRD."""
+    r = 9.0
+    z, y, x = np.indices((26, 24, 28)).astype(np.float32)
+    f = r - np.sqrt(((x - 14) * 0.8) ** 2 + (y - 12) ** 2 + ((z - 13) * 1.0) ** 2)
+    vol = Volume(f.astype(np.float32), spacing=(0.8, 1.0, 1.0), origin=(-20.0, 5.0, 100.0))
+    path = tmp_path / "sphere.nrrd"
+    write_volume(vol, path)
+    center = np.array([-20.0 + 14 * 0.8, 5.0 + 12, 100.0 + 13])
+    return path, r, center
+
+
+def test_mesh_stats_json_and_ply(run, sphere_file, tmp_path):
+    path, r, center = sphere_file
+    out = tmp_path / "s.ply"
+    res = run("mesh", path, "-o", out, "--iso", "0", "--json")
+    assert res.code == 0, res.stderr
+    st = json.loads(res.stdout)
+    assert st["closed"] is True and st["components"] == 1
+    assert st["volume"] == pytest.approx(4 / 3 * np.pi * r**3, rel=0.01)
+    assert st["area"] == pytest.approx(4 * np.pi * r**2, rel=0.02)
+    np.testing.assert_allclose(st["bbox_min"], center - r, atol=0.05)
+    np.testing.assert_allclose(st["bbox_max"], center + r, atol=0.05)
+    import trimesh
+
+    m = trimesh.load(str(out), process=False)
+    assert len(m.faces) == st["triangles"] and len(m.vertices) == st["vertices"]
+    assert m.is_watertight and m.volume == pytest.approx(st["volume"], rel=1e-4)
+
+
+def test_text_stats_and_default_iso(run, sphere_file, tmp_path, messages):
+    path, _, _ = sphere_file
+    res = run("mesh", path, "--stats", "-v")
+    assert res.code == 0, res.stderr
+    st = json.loads(run("mesh", path, "--json").stdout)
+    assert f"triangles:  {st['triangles']}" in res.stdout
+    assert f"components: {st['components']}" in res.stdout
+    assert ("closed:     yes" if st["closed"] else "closed:     no") in res.stdout
+    vol = read_volume(path)
+    mid = 0.5 * (float(vol.data.min()) + float(vol.data.max()))
+    # the default level is reported with --verbose
+    assert any("middle of the value range" in m and f"{mid:g}" in m for m in messages)
+    # the default level (middle of the range) is what --iso of that value gives
+    a = json.loads(run("mesh", path, "--json").stdout)
+    b = json.loads(run("mesh", path, "--json", "--iso", repr(mid)).stdout)
+    assert a["triangles"] == b["triangles"] and a["iso"] == pytest.approx(mid)
+
+
+@pytest.mark.parametrize("ext", ["ply", "stl", "obj", "vtp", "vtk"])
+def test_every_format_and_deterministic(run, sphere_file, tmp_path, ext):
+    import pyvista as pv
+
+    path, _, _ = sphere_file
+    a, b = tmp_path / f"a.{ext}", tmp_path / f"b.{ext}"
+    assert run("mesh", path, "-o", a, "--iso", "0").code == 0
+    assert run("mesh", path, "-o", b, "--iso", "0").code == 0
+    assert a.read_bytes() == b.read_bytes()
+    st = json.loads(run("mesh", path, "--iso", "0", "--json").stdout)
+    m = pv.read(str(a))
+    assert m.n_cells == st["triangles"]
+    if ext != "stl":
+        assert m.n_points == st["vertices"]
+
+
+def test_smooth_decimate_largest_component(run, tmp_path):
+    z, y, x = np.indices((30, 30, 44)).astype(np.float32)
+    mask = (((x - 12) ** 2 + (y - 15) ** 2 + (z - 15) ** 2) <= 81) | \
+           (((x - 33) ** 2 + (y - 15) ** 2 + (z - 15) ** 2) <= 25)
+    path = tmp_path / "two.nrrd"
+    write_volume(Volume(mask.astype(np.uint8)), path)
+    base = json.loads(run("mesh", path, "--iso", "0.5", "--json").stdout)
+    assert base["components"] == 2
+    res = run("mesh", path, "--iso", "0.5", "--largest-component", "--smooth", "15",
+              "--decimate", "0.5", "--json", "-o", tmp_path / "one.stl")
+    assert res.code == 0, res.stderr
+    st = json.loads(res.stdout)
+    assert st["components"] == 1 and st["closed"]
+    # the big ball (r = 9) survives, smoothed and decimated, its volume about the voxel count
+    assert st["volume"] == pytest.approx(mask[:, :, :23].sum(), rel=0.05)
+    assert st["bbox_min"][0] < 4 and st["bbox_max"][0] < 23
+    assert st["triangles"] < 0.55 * (base["triangles"] * 0.8)
+
+
+def test_cap_closes_a_border_shape(run, tmp_path, messages):
+    data = np.zeros((12, 12, 12), dtype=np.uint8)
+    data[:, 3:9, 3:9] = 200  # a bar through the whole z extent
+    path = tmp_path / "bar.nrrd"
+    write_volume(Volume(data), path)
+    res = run("mesh", path, "--iso", "100", "--json")
+    assert res.code == 0
+    assert json.loads(res.stdout)["closed"] is False
+    assert any("--cap" in m for m in messages)  # the warning says how to close it
+    res = run("mesh", path, "--iso", "100", "--json", "--cap")
+    st = json.loads(res.stdout)
+    assert st["closed"] is True and st["volume"] > 0
+    assert st["bbox_min"][2] == pytest.approx(-0.5) and st["bbox_max"][2] == pytest.approx(11.5)
+
+
+def test_inside_below_for_distance_fields(run, sphere_file, tmp_path):
+    path, r, _ = sphere_file
+    vol = read_volume(path)
+    neg = tmp_path / "neg.nrrd"
+    write_volume(vol.with_data(-vol.data), neg)
+    st = json.loads(run("mesh", neg, "--iso", "0", "--inside", "below", "--json").stdout)
+    assert st["volume"] == pytest.approx(4 / 3 * np.pi * r**3, rel=0.01)
+
+
+def test_render_png_size_and_turntable(run, sphere_file, tmp_path):
+    path, _, _ = sphere_file
+    png = tmp_path / "s.png"
+    res = run("mesh", path, "--iso", "0", "--render", png, "--size", "320x200",
+              "--view", "30,10", "--color", "steelblue", "--background", "#000000")
+    assert res.code == 0, res.stderr
+    img = read_image(png, normalize=False)
+    assert img.shape == (200, 320, 3) and img.dtype == np.uint8
+    assert tuple(img[0, 0]) == (0, 0, 0)
+    covered = img.max(axis=2) > 8
+    assert 0.1 < covered.mean() < 0.9
+    # turntable: N frames named after --render
+    res = run("mesh", path, "--iso", "0", "--render", tmp_path / "t.png", "--turntable", "3",
+              "--size", "64x48")
+    assert res.code == 0, res.stderr
+    names = sorted(p.name for p in tmp_path.glob("t-*.png"))
+    assert names == ["t-000.png", "t-001.png", "t-002.png"]
+    assert not (tmp_path / "t.png").exists()
+
+
+def test_render_of_the_coronal_scan(run, data_dir, tmp_path):
+    """A real scan with a rotated direction matrix renders upright (z up) and closed pieces."""
+    png = tmp_path / "head.png"
+    res = run("mesh", data_dir / "mri_t1_head_coronal_2x2x3mm.nrrd", "--iso", "60", "--cap",
+              "--render", png, "--view", "x", "--size", "200x200", "--json")
+    assert res.code == 0, res.stderr
+    st = json.loads(res.stdout)
+    assert st["closed"] is True
+    vol = read_volume(data_dir / "mri_t1_head_coronal_2x2x3mm.nrrd")
+    lo, hi = vol.world_bounds()
+    assert np.all(np.array(st["bbox_min"]) >= lo - 3.0)
+    assert np.all(np.array(st["bbox_max"]) <= hi + 3.0)
+    assert read_image(png).shape == (200, 200, 3)
+
+
+def test_iso_outside_range_is_an_error_and_writes_nothing(run, sphere_file, tmp_path,
+                                                          messages):
+    path, _, _ = sphere_file
+    out = tmp_path / "e.ply"
+    res = run("mesh", path, "-o", out, "--iso", "1000")
+    assert res.code == 1
+    assert "outside the data range" in res.stderr and res.stderr.count("\n") == 1
+    assert not out.exists()
+    # --allow-empty: a warning, exit 0, an empty (valid) mesh written
+    res = run("mesh", path, "-o", out, "--iso", "1000", "--allow-empty", "--json",
+              "--render", tmp_path / "e.png", "--size", "20x10")
+    assert res.code == 0
+    assert any("empty" in m for m in messages)
+    assert json.loads(res.stdout)["triangles"] == 0
+    assert out.exists() and b"element face 0" in out.read_bytes()
+    assert np.all(read_image(tmp_path / "e.png") == 1.0)
+
+
+def test_level_never_crossed_is_an_error(run, tmp_path):
+    path = tmp_path / "flat.nrrd"
+    data = np.zeros((5, 5, 5), dtype=np.uint8)
+    data[2, 2, 2] = 10
+    write_volume(Volume(data), path)
+    # at the minimum every sample counts as above the level: nothing is crossed
+    res = run("mesh", path, "--iso", "0", "-o", tmp_path / "x.ply")
+    assert res.code == 1 and "never crossed" in res.stderr
+    assert not (tmp_path / "x.ply").exists()
+    # a sample exactly at the level counts as above it: the lone voxel is a small closed surface
+    res = run("mesh", path, "--iso", "10", "--json")
+    assert res.code == 0 and json.loads(res.stdout)["closed"] is True
+
+
+def test_bad_outputs_fail_before_work(run, sphere_file, tmp_path):
+    path, _, _ = sphere_file
+    res = run("mesh", path, "-o", tmp_path / "m.off", "--iso", "0")
+    assert res.code == 1 and "unknown mesh extension" in res.stderr
+    res = run("mesh", path, "-o", tmp_path / "missing" / "m.ply", "--iso", "0")
+    assert res.code == 1 and "does not exist" in res.stderr
+    # an existing folder, or a file where the folder should be
+    res = run("mesh", path, "-o", tmp_path, "--iso", "0")  # click refuses it: usage error
+    assert res.code == 2 and "directory" in res.stderr
+    (tmp_path / "plain").write_text("x")
+    res = run("mesh", path, "-o", tmp_path / "plain" / "m.ply", "--iso", "0")
+    assert res.code == 1
+    res = run("mesh", path, "--iso", "0", "--render", tmp_path / "missing" / "x.png")
+    assert res.code == 1 and "does not exist" in res.stderr
+
+
+def test_read_only_folder(run, sphere_file, tmp_path):
+    import os
+
+    if os.geteuid() == 0:
+        pytest.skip("root ignores folder permissions: cannot make an unwritable folder")
+    path, _, _ = sphere_file
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        res = run("mesh", path, "-o", ro / "m.ply", "--iso", "0")
+        assert res.code == 1 and "not writable" in res.stderr
+    finally:
+        ro.chmod(0o700)
+
+
+def test_bad_render_options_and_usage(run, sphere_file, tmp_path):
+    path, _, _ = sphere_file
+    res = run("mesh", path, "--render", tmp_path / "x.gifx")
+    assert res.code == 1 and "unknown image extension" in res.stderr
+    for args in (["--size", "big"], ["--view", "top"], ["--color", "blurple"],
+                 ["--decimate", "1.5"], ["--smooth", "-2"]):
+        res = run("mesh", path, "--render", tmp_path / "x.png", *args)
+        assert res.code == 2, args
+        assert not (tmp_path / "x.png").exists()
+    res = run("mesh", path)
+    assert res.code == 2 and "nothing to do" in res.stderr
+    res = run("mesh", path, "--turntable", "4", "--stats")
+    assert res.code == 2 and "--render" in res.stderr
+    res = run("mesh", tmp_path / "nope.nrrd", "--stats")
+    assert res.code == 1
+
+
+def test_raw_input(run, tmp_path):
+    z, y, x = np.indices((16, 16, 16))
+    data = ((x - 7.5) ** 2 + (y - 7.5) ** 2 + (z - 7.5) ** 2 <= 25).astype(np.uint8) * 100
+    raw = tmp_path / "ball.raw"
+    raw.write_bytes(data.tobytes())
+    res = run("mesh", raw, "--raw-shape", "16", "16", "16", "--raw-dtype", "uint8",
+              "--raw-spacing", "2", "2", "2", "--iso", "50", "--json")
+    assert res.code == 0, res.stderr
+    st = json.loads(res.stdout)
+    assert st["closed"] and st["volume"] == pytest.approx(8 * (data > 0).sum(), rel=0.08)
+
+
+def test_nan_samples_are_refused(run, tmp_path):
+    data = np.zeros((6, 6, 6), dtype=np.float32)
+    data[3, 3, 3] = np.nan
+    path = tmp_path / "nan.nrrd"
+    write_volume(Volume(data), path)
+    res = run("mesh", path, "--iso", "0.5", "--stats")
+    assert res.code == 1 and "NaN" in res.stderr

@@ -1,0 +1,177 @@
+"""Mesh files re-read by independent readers (meshio, trimesh, pyvista); deterministic bytes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volwarp_cli.errors import VolwarpError
+from volwarp_cli.surface.isosurface import isosurface
+from volwarp_cli.surface.mesh import Mesh
+from volwarp_cli.surface.mesh_io import MESH_EXTENSIONS, write_mesh
+from volwarp_cli.volume import Volume
+
+FORMATS = sorted(ext.lstrip(".") for ext in MESH_EXTENSIONS)
+
+
+@pytest.fixture(scope="module")
+def blob() -> Mesh:
+    """Two separate ellipsoids, world geometry with a non-trivial origin and spacing."""
+    z, y, x = np.indices((20, 24, 30)).astype(np.float32)
+    f = np.maximum(1 - ((x - 9) / 6) ** 2 - ((y - 11) / 7) ** 2 - ((z - 9) / 5) ** 2,
+                   1 - ((x - 22) / 4) ** 2 - ((y - 12) / 4) ** 2 - ((z - 10) / 4) ** 2)
+    vol = Volume(f, spacing=(0.7, 0.8, 1.1), origin=(-120.5, 33.25, 1000.0))
+    mesh = isosurface(vol, 0.0)
+    assert mesh.n_faces > 1000
+    return mesh
+
+
+def _read_meshio(path):
+    import meshio
+
+    m = meshio.read(path)
+    tri = [c.data for c in m.cells if c.type == "triangle"]
+    return np.asarray(m.points, dtype=np.float64), np.concatenate(tri).astype(np.int64)
+
+
+def _read_trimesh(path):
+    import trimesh
+
+    m = trimesh.load(path, process=False, force="mesh")
+    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+
+
+def _read_pyvista(path):
+    import pyvista as pv
+
+    m = pv.read(path)
+    faces = np.asarray(m.faces).reshape(-1, 4)
+    assert np.all(faces[:, 0] == 3)
+    return np.asarray(m.points, dtype=np.float64), faces[:, 1:].astype(np.int64)
+
+
+READERS = {
+    "ply": [_read_meshio, _read_trimesh, _read_pyvista],
+    "stl": [_read_meshio, _read_trimesh, _read_pyvista],
+    "obj": [_read_meshio, _read_trimesh, _read_pyvista],
+    # meshio reads neither VTP nor legacy POLYDATA; VTK's own readers are the reference
+    "vtp": [_read_pyvista],
+    "vtk": [_read_pyvista],
+}
+
+
+def _same_triangles(mesh: Mesh, points: np.ndarray, faces: np.ndarray):
+    """Compare triangle corner positions, independently of vertex numbering."""
+    ours = mesh.vertices[mesh.faces].astype(np.float32).astype(np.float64)
+    theirs = points[faces]
+    np.testing.assert_allclose(theirs, ours, rtol=0, atol=1e-3)
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_independent_readers_agree(blob, tmp_path, fmt):
+    path = tmp_path / f"blob.{fmt}"
+    write_mesh(blob, path)
+    for reader in READERS[fmt]:
+        points, faces = reader(str(path))
+        assert len(faces) == blob.n_faces, reader.__name__
+        if fmt == "stl":
+            # STL stores every corner; the readers merge equal positions back
+            if reader is _read_trimesh:
+                assert len(points) == 3 * blob.n_faces
+            else:
+                assert len(points) == blob.n_vertices, reader.__name__
+        else:
+            assert len(points) == blob.n_vertices, reader.__name__
+        _same_triangles(blob, points, faces)
+
+
+@pytest.mark.parametrize("fmt", ["ply", "obj", "vtp", "vtk"])
+def test_normals_stored(blob, tmp_path, fmt):
+    import pyvista as pv
+
+    path = tmp_path / f"blob.{fmt}"
+    write_mesh(blob, path)
+    m = pv.read(str(path))
+    normals = m.point_data.get("Normals")
+    if normals is None:
+        normals = m.point_normals if fmt == "obj" else None
+    assert normals is not None
+    np.testing.assert_allclose(np.asarray(normals), blob.normals, atol=2e-6)
+
+
+def test_stl_facet_normals_outward(blob, tmp_path):
+    import trimesh
+
+    path = tmp_path / "blob.stl"
+    write_mesh(blob, path)
+    raw = np.frombuffer(path.read_bytes()[84:], dtype=np.dtype(
+        [("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a", "<u2")]))
+    np.testing.assert_allclose(raw["n"], blob.face_normals(), atol=1e-5)
+    # trimesh agrees the STL is watertight and encloses positive volume
+    m = trimesh.load(str(path), force="mesh")  # merges the corners
+    assert m.is_watertight and m.is_winding_consistent and m.volume > 0
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_deterministic_bytes(blob, tmp_path, fmt):
+    a, b = tmp_path / f"a.{fmt}", tmp_path / f"b.{fmt}"
+    write_mesh(blob, a)
+    copy = Mesh(blob.vertices.copy(), blob.faces.copy(), blob.normals.copy())
+    write_mesh(copy, b)
+    assert a.read_bytes() == b.read_bytes()
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_empty_mesh_is_a_valid_file(tmp_path, fmt):
+    import meshio
+
+    path = tmp_path / f"empty.{fmt}"
+    write_mesh(Mesh.empty(), path)
+    if fmt == "stl":
+        assert path.stat().st_size == 84
+    elif fmt in ("vtp", "vtk"):
+        import pyvista as pv
+
+        m = pv.read(str(path))
+        assert m.n_points == 0 and m.n_cells == 0
+    elif fmt == "ply":
+        m = meshio.read(str(path))
+        assert len(m.points) == 0
+    else:  # OBJ: comments only
+        assert all(line.startswith(b"#") for line in path.read_bytes().splitlines())
+
+
+def test_binary_sizes(blob, tmp_path):
+    """Binary encodings: sizes are exactly header + records."""
+    write_mesh(blob, tmp_path / "m.ply")
+    data = (tmp_path / "m.ply").read_bytes()
+    header_end = data.index(b"end_header\n") + len(b"end_header\n")
+    assert b"binary_little_endian" in data[:header_end]
+    assert len(data) - header_end == blob.n_vertices * 24 + blob.n_faces * 13
+    write_mesh(blob, tmp_path / "m.stl")
+    assert (tmp_path / "m.stl").stat().st_size == 84 + 50 * blob.n_faces
+
+
+def test_unknown_extension_and_missing_folder(blob, tmp_path):
+    with pytest.raises(VolwarpError, match="unknown mesh extension"):
+        write_mesh(blob, tmp_path / "m.off")
+    with pytest.raises(VolwarpError, match="does not exist"):
+        write_mesh(blob, tmp_path / "nope" / "m.ply")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_write_leaves_existing_file(blob, tmp_path, monkeypatch):
+    from volwarp_cli.surface import mesh_io
+
+    path = tmp_path / "m.ply"
+    path.write_bytes(b"old")
+
+    def boom(mesh, fh):
+        fh.write(b"partial")
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(mesh_io, "_write_ply", boom)
+    with pytest.raises(RuntimeError):
+        write_mesh(blob, path)
+    assert path.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["m.ply"]

@@ -1,0 +1,1 @@
+"""Isosurfaces, triangle meshes, mesh files and mesh operations."""

@@ -1,0 +1,232 @@
+"""Mesh files: PLY, STL, OBJ, VTP and legacy VTK, written atomically.
+
+The format is chosen by the output's extension. Binary encodings are used
+where the format has one (PLY binary little-endian, binary STL, VTP with raw
+appended data, legacy VTK BINARY); OBJ is text by definition. Coordinates
+and normals are stored as 32-bit floats, vertex indices as 32-bit integers
+(64-bit in VTP). The writers are written here rather than taken from VTK so
+that the bytes depend only on the mesh: no timestamps, version strings or
+library-dependent layout, and the same mesh always gives the same file.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import VolwarpError
+from ..io.atomic import atomic_output, check_output_path
+from .mesh import Mesh
+
+#: extension -> format name
+MESH_EXTENSIONS = {".ply": "ply", ".stl": "stl", ".obj": "obj", ".vtp": "vtp", ".vtk": "vtk"}
+
+_INT32_MAX = np.iinfo(np.int32).max
+
+
+def mesh_format(path: str | os.PathLike) -> str:
+    """The mesh format of ``path`` by its extension, or raise listing the known ones."""
+    ext = Path(path).suffix.lower()
+    fmt = MESH_EXTENSIONS.get(ext)
+    if fmt is None:
+        known = " ".join(MESH_EXTENSIONS)
+        shown = ext or "(none)"
+        raise VolwarpError(f"{path}: unknown mesh extension {shown} (known: {known})")
+    return fmt
+
+
+def check_mesh_output(path: str | os.PathLike) -> str:
+    """Fail early for an unknown extension or an unwritable place; return the format."""
+    fmt = mesh_format(path)
+    check_output_path(path)
+    return fmt
+
+
+def write_mesh(mesh: Mesh, path: str | os.PathLike) -> None:
+    """Write ``mesh`` to ``path`` atomically, in the format its extension names.
+
+    Normals are written when the mesh has them (PLY, OBJ, VTP, VTK); STL
+    always stores each facet's normal computed from its winding.
+    """
+    fmt = check_mesh_output(path)
+    writer = {"ply": _write_ply, "stl": _write_stl, "obj": _write_obj,
+              "vtp": _write_vtp, "vtk": _write_vtk}[fmt]
+    if mesh.n_vertices > _INT32_MAX:
+        raise VolwarpError(f"{path}: {mesh.n_vertices} vertices are more than the "
+                           f"{fmt.upper()} writer's 32-bit indices can address")
+    with atomic_output(path) as tmp, open(tmp, "wb") as fh:
+        writer(mesh, fh)
+
+
+def _f32(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype="<f4")
+
+
+#: rows converted per block: big meshes are written through one reused buffer
+#: instead of a second full-size copy (fresh memory is slow to touch)
+_BLOCK = 1 << 20
+
+
+def _write_blocks(fh, n: int, dtype, fill) -> None:
+    """Write ``n`` records of ``dtype`` in blocks; ``fill(buf, start, stop)`` fills a block."""
+    buf = np.empty(min(n, _BLOCK), dtype=dtype)
+    for start in range(0, n, _BLOCK):
+        stop = min(start + _BLOCK, n)
+        view = buf[:stop - start]
+        fill(view, start, stop)
+        fh.write(memoryview(view).cast("B"))
+
+
+# -- PLY ---------------------------------------------------------------------
+def _write_ply(mesh: Mesh, fh) -> None:
+    has_n = mesh.normals is not None
+    header = ["ply", "format binary_little_endian 1.0", "comment written by volwarp",
+              f"element vertex {mesh.n_vertices}",
+              "property float x", "property float y", "property float z"]
+    if has_n:
+        header += ["property float nx", "property float ny", "property float nz"]
+    header += [f"element face {mesh.n_faces}", "property list uchar int vertex_indices",
+               "end_header"]
+    fh.write(("\n".join(header) + "\n").encode("ascii"))
+
+    def vertices(buf, a, b):
+        buf[:, :3] = mesh.vertices[a:b]
+        if has_n:
+            buf[:, 3:] = mesh.normals[a:b]
+
+    _write_blocks(fh, mesh.n_vertices, np.dtype(("<f4", (6 if has_n else 3,))), vertices)
+
+    def faces(buf, a, b):
+        buf["n"] = 3
+        buf["v"] = mesh.faces[a:b]
+
+    _write_blocks(fh, mesh.n_faces, np.dtype([("n", "u1"), ("v", "<i4", (3,))]), faces)
+
+
+# -- STL ---------------------------------------------------------------------
+def _write_stl(mesh: Mesh, fh) -> None:
+    # The 80-byte header must not start with "solid" (readers take that for ASCII STL).
+    head = b"binary STL written by volwarp; units of the volume's world frame"
+    fh.write(head.ljust(80, b" "))
+    fh.write(np.uint32(mesh.n_faces).astype("<u4").tobytes())
+
+    def facets(buf, a, b):
+        f = mesh.faces[a:b]
+        corners = mesh.vertices[f]  # (k, 3, 3) float64
+        n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        np.divide(n, length, out=n, where=length > 0)
+        buf["n"] = n
+        buf["v"] = corners
+        buf["attr"] = 0
+
+    _write_blocks(fh, mesh.n_faces, np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)),
+                                             ("attr", "<u2")]), facets)
+
+
+# -- OBJ ---------------------------------------------------------------------
+def _text_rows(prefix: str, values: np.ndarray, fmt: str, chunk: int = 200_000):
+    """Yield encoded text lines ``prefix v0 v1 v2`` for rows of ``values``, in chunks."""
+    line = f"{prefix} {fmt} {fmt} {fmt}\n"
+    for start in range(0, len(values), chunk):
+        block = values[start:start + chunk]
+        yield ((line * len(block)) % tuple(block.ravel().tolist())).encode("ascii")
+
+
+def _write_obj(mesh: Mesh, fh) -> None:
+    fh.write(b"# written by volwarp\n")
+    fh.write(f"# {mesh.n_vertices} vertices, {mesh.n_faces} triangles\n".encode("ascii"))
+    # %.9g keeps a float32 exactly; coordinates are rounded to float32 first
+    # so that every format stores the same numbers.
+    for part in _text_rows("v", mesh.vertices.astype(np.float32).astype(np.float64), "%.9g"):
+        fh.write(part)
+    if mesh.normals is not None:
+        for part in _text_rows("vn", mesh.normals.astype(np.float64), "%.7g"):
+            fh.write(part)
+        f1 = mesh.faces + 1
+        line = "f %d//%d %d//%d %d//%d\n"
+        for start in range(0, len(f1), 200_000):
+            block = f1[start:start + 200_000]
+            pairs = np.repeat(block, 2, axis=1)
+            fh.write(((line * len(block)) % tuple(pairs.ravel().tolist())).encode("ascii"))
+    else:
+        for part in _text_rows("f", mesh.faces + 1, "%d"):
+            fh.write(part)
+
+
+# -- VTP (VTK XML PolyData, raw appended binary) -----------------------------
+def _write_vtp(mesh: Mesh, fh) -> None:
+    nv, nf = mesh.n_vertices, mesh.n_faces
+    f3 = np.dtype(("<f4", (3,)))
+
+    def floats(values):
+        return lambda: _write_blocks(
+            fh, nv, f3, lambda buf, a, b: buf.__setitem__(slice(None), values[a:b]))
+
+    def connectivity():
+        _write_blocks(fh, nf, np.dtype(("<i8", (3,))),
+                      lambda buf, a, b: buf.__setitem__(slice(None), mesh.faces[a:b]))
+
+    def offsets():
+        _write_blocks(fh, nf, np.dtype("<i8"),
+                      lambda buf, a, b: np.multiply(np.arange(a + 1, b + 1), 3, out=buf))
+
+    # (section, DataArray attributes, bytes, writer)
+    arrays = []
+    if mesh.normals is not None:
+        arrays.append(("PointData", 'type="Float32" Name="Normals" NumberOfComponents="3"',
+                       12 * nv, floats(mesh.normals)))
+    arrays.append(("Points", 'type="Float32" Name="Points" NumberOfComponents="3"',
+                   12 * nv, floats(mesh.vertices)))
+    arrays.append(("Polys", 'type="Int64" Name="connectivity"', 24 * nf, connectivity))
+    arrays.append(("Polys", 'type="Int64" Name="offsets"', 8 * nf, offsets))
+    offset = 0
+    sections: dict[str, list[str]] = {"PointData": [], "Points": [], "Polys": []}
+    for section, attrs, nbytes, _ in arrays:
+        sections[section].append(f'        <DataArray {attrs} format="appended" '
+                                 f'offset="{offset}"/>')
+        offset += 8 + nbytes
+    point_data = ('      <PointData Normals="Normals">\n' + "\n".join(sections["PointData"])
+                  + "\n      </PointData>\n") if sections["PointData"] else ""
+    xml = (
+        '<?xml version="1.0"?>\n'
+        '<VTKFile type="PolyData" version="1.0" byte_order="LittleEndian" '
+        'header_type="UInt64">\n'
+        "  <PolyData>\n"
+        f'    <Piece NumberOfPoints="{nv}" NumberOfVerts="0" '
+        f'NumberOfLines="0" NumberOfStrips="0" NumberOfPolys="{nf}">\n'
+        f"{point_data}"
+        "      <Points>\n" + "\n".join(sections["Points"]) + "\n      </Points>\n"
+        "      <Polys>\n" + "\n".join(sections["Polys"]) + "\n      </Polys>\n"
+        "    </Piece>\n"
+        "  </PolyData>\n"
+        '  <AppendedData encoding="raw">\n   _'
+    )
+    fh.write(xml.encode("ascii"))
+    for _, _, nbytes, write in arrays:
+        fh.write(np.uint64(nbytes).astype("<u8").tobytes())
+        write()
+    fh.write(b"\n  </AppendedData>\n</VTKFile>\n")
+
+
+# -- legacy VTK ------------------------------------------------------------------
+def _write_vtk(mesh: Mesh, fh) -> None:
+    fh.write(b"# vtk DataFile Version 4.2\nvolwarp mesh\nBINARY\nDATASET POLYDATA\n")
+    fh.write(f"POINTS {mesh.n_vertices} float\n".encode("ascii"))
+    _write_blocks(fh, mesh.n_vertices, np.dtype((">f4", (3,))),
+                  lambda buf, a, b: buf.__setitem__(slice(None), mesh.vertices[a:b]))
+    fh.write(f"\nPOLYGONS {mesh.n_faces} {4 * mesh.n_faces}\n".encode("ascii"))
+
+    def cells(buf, a, b):
+        buf[:, 0] = 3
+        buf[:, 1:] = mesh.faces[a:b]
+
+    _write_blocks(fh, mesh.n_faces, np.dtype((">i4", (4,))), cells)
+    fh.write(b"\n")
+    if mesh.normals is not None:
+        fh.write(f"POINT_DATA {mesh.n_vertices}\nNORMALS Normals float\n".encode("ascii"))
+        _write_blocks(fh, mesh.n_vertices, np.dtype((">f4", (3,))),
+                      lambda buf, a, b: buf.__setitem__(slice(None), mesh.normals[a:b]))
+        fh.write(b"\n")
