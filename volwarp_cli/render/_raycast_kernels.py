@@ -1,0 +1,231 @@
+"""numba kernels of the volume ray caster (see :mod:`.raycast`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(cache=True, parallel=True)
+def gradient(v):
+    """Central-difference gradient (x, y, z components, per voxel) of ``v[z, y, x]``."""
+    nz, ny, nx = v.shape
+    g = np.zeros((nz, ny, nx, 3), dtype=np.float32)
+    for z in prange(nz):
+        z0 = z - 1 if z > 0 else 0
+        z1 = z + 1 if z < nz - 1 else nz - 1
+        for y in range(ny):
+            y0 = y - 1 if y > 0 else 0
+            y1 = y + 1 if y < ny - 1 else ny - 1
+            for x in range(nx):
+                x0 = x - 1 if x > 0 else 0
+                x1 = x + 1 if x < nx - 1 else nx - 1
+                g[z, y, x, 0] = (v[z, y, x1] - v[z, y, x0]) / max(x1 - x0, 1)
+                g[z, y, x, 1] = (v[z, y1, x] - v[z, y0, x]) / max(y1 - y0, 1)
+                g[z, y, x, 2] = (v[z1, y, x] - v[z0, y, x]) / max(z1 - z0, 1)
+    return g
+
+
+@njit(cache=True, parallel=True)
+def block_max(v, b):
+    """Maximum of ``v`` over each block's voxels [k b, k b + b] (one voxel of overlap)."""
+    nz, ny, nx = v.shape
+    bz = (nz + b - 1) // b
+    by = (ny + b - 1) // b
+    bx = (nx + b - 1) // b
+    out = np.zeros((bz, by, bx), dtype=np.float32)
+    for k in prange(bz):
+        for j in range(by):
+            for i in range(bx):
+                m = np.float32(0.0)
+                for z in range(k * b, min(k * b + b + 1, nz)):
+                    for y in range(j * b, min(j * b + b + 1, ny)):
+                        for x in range(i * b, min(i * b + b + 1, nx)):
+                            if v[z, y, x] > m:
+                                m = v[z, y, x]
+                out[k, j, i] = m
+    return out
+
+
+@njit(cache=True, inline="always")
+def _unit(v):
+    if v > 1.0:
+        return 1.0
+    if v >= 0.0:
+        return v
+    return 0.0  # negative or NaN
+
+
+@njit(cache=True, inline="always")
+def _cell(p, n):
+    if p < 0.0:
+        p = 0.0
+    elif p > n - 1:
+        p = n - 1.0
+    i0 = int(p)
+    if i0 >= n - 1:
+        i0 = n - 2 if n > 1 else 0
+    f = p - i0
+    i1 = i0 + 1 if n > 1 else 0
+    return i0, i1, f
+
+
+@njit(cache=True)
+def _march_row(row, op, cr_, cg_, cb_, grad, bmax, B, spacing, centre, fwd, right, up, half_w, half_h,
+               pix, radius, hstep, step, light, halfway, background, shading, img):
+    nz, ny, nx = op.shape
+    w = img.shape[1]
+    const_col = cr_.size == 1
+    dx = fwd[0] / spacing[0]
+    dy = fwd[1] / spacing[1]
+    dz = fwd[2] / spacing[2]
+    for c in range(w):
+        a = -half_w + (c + 0.5) * pix
+        bb = half_h - (row + 0.5) * pix
+        ox = centre[0] + a * right[0] + bb * up[0] - 1.5 * radius * fwd[0]
+        oy = centre[1] + a * right[1] + bb * up[1] - 1.5 * radius * fwd[1]
+        oz = centre[2] + a * right[2] + bb * up[2] - 1.5 * radius * fwd[2]
+        px = ox / spacing[0]
+        py = oy / spacing[1]
+        pz = oz / spacing[2]
+        # slab intersection with the box of voxel centres
+        t0 = 0.0
+        t1 = 3.0 * radius
+        for ax in range(3):
+            if ax == 0:
+                p, d, n = px, dx, nx
+            elif ax == 1:
+                p, d, n = py, dy, ny
+            else:
+                p, d, n = pz, dz, nz
+            if abs(d) < 1e-12:
+                if p < 0.0 or p > n - 1:
+                    t1 = -1.0
+            else:
+                ta = (0.0 - p) / d
+                tb = (n - 1 - p) / d
+                if ta > tb:
+                    ta, tb = tb, ta
+                if ta > t0:
+                    t0 = ta
+                if tb < t1:
+                    t1 = tb
+        cr = 0.0
+        cg = 0.0
+        cb = 0.0
+        A = 0.0
+        # a fixed per-pixel offset of the first sample (a hash of the pixel) turns the
+        # rings of regular sampling into fine noise; renders stay deterministic
+        hsh = ((row * 73856093) ^ (c * 19349663)) & 1023
+        t = t0 + hstep * (hsh / 1024.0)
+        while t <= t1 and A < 0.995:
+            x = px + t * dx
+            y = py + t * dy
+            z = pz + t * dz
+            bxi = min(max(int(x) // B, 0), bmax.shape[2] - 1)
+            byi = min(max(int(y) // B, 0), bmax.shape[1] - 1)
+            bzi = min(max(int(z) // B, 0), bmax.shape[0] - 1)
+            if bmax[bzi, byi, bxi] <= 0.0:
+                # skip to where the ray leaves this block
+                te = 1e300
+                for ax in range(3):
+                    if ax == 0:
+                        p, d, bi = x, dx, bxi
+                    elif ax == 1:
+                        p, d, bi = y, dy, byi
+                    else:
+                        p, d, bi = z, dz, bzi
+                    if d > 1e-12:
+                        tt = ((bi + 1) * B - p) / d
+                    elif d < -1e-12:
+                        tt = (bi * B - p) / d
+                    else:
+                        tt = 1e300
+                    if tt < te:
+                        te = tt
+                k = math.ceil((te + 1e-6) / hstep)
+                if k < 1:
+                    k = 1
+                t += k * hstep
+                continue
+            x0, x1, fx = _cell(x, nx)
+            y0, y1, fy = _cell(y, ny)
+            z0, z1, fz = _cell(z, nz)
+            w000 = (1 - fx) * (1 - fy) * (1 - fz)
+            w100 = fx * (1 - fy) * (1 - fz)
+            w010 = (1 - fx) * fy * (1 - fz)
+            w110 = fx * fy * (1 - fz)
+            w001 = (1 - fx) * (1 - fy) * fz
+            w101 = fx * (1 - fy) * fz
+            w011 = (1 - fx) * fy * fz
+            w111 = fx * fy * fz
+            o = (op[z0, y0, x0] * w000 + op[z0, y0, x1] * w100 + op[z0, y1, x0] * w010
+                 + op[z0, y1, x1] * w110 + op[z1, y0, x0] * w001 + op[z1, y0, x1] * w101
+                 + op[z1, y1, x0] * w011 + op[z1, y1, x1] * w111)
+            if o > 1e-4:
+                alpha = 1.0 - (1.0 - min(o, 1.0)) ** step
+                if const_col:
+                    r = cr_[0, 0, 0]
+                    g = cg_[0, 0, 0]
+                    b = cb_[0, 0, 0]
+                else:
+                    r = (cr_[z0, y0, x0] * w000 + cr_[z0, y0, x1] * w100
+                         + cr_[z0, y1, x0] * w010 + cr_[z0, y1, x1] * w110
+                         + cr_[z1, y0, x0] * w001 + cr_[z1, y0, x1] * w101
+                         + cr_[z1, y1, x0] * w011 + cr_[z1, y1, x1] * w111)
+                    g = (cg_[z0, y0, x0] * w000 + cg_[z0, y0, x1] * w100
+                         + cg_[z0, y1, x0] * w010 + cg_[z0, y1, x1] * w110
+                         + cg_[z1, y0, x0] * w001 + cg_[z1, y0, x1] * w101
+                         + cg_[z1, y1, x0] * w011 + cg_[z1, y1, x1] * w111)
+                    b = (cb_[z0, y0, x0] * w000 + cb_[z0, y0, x1] * w100
+                         + cb_[z0, y1, x0] * w010 + cb_[z0, y1, x1] * w110
+                         + cb_[z1, y0, x0] * w001 + cb_[z1, y0, x1] * w101
+                         + cb_[z1, y1, x0] * w011 + cb_[z1, y1, x1] * w111)
+                r = _unit(r)
+                g = _unit(g)
+                b = _unit(b)
+                shade = 1.0
+                spec = 0.0
+                if shading:
+                    gx = 0.0
+                    gy = 0.0
+                    gz = 0.0
+                    for ch in range(3):
+                        v = (grad[z0, y0, x0, ch] * w000 + grad[z0, y0, x1, ch] * w100
+                             + grad[z0, y1, x0, ch] * w010 + grad[z0, y1, x1, ch] * w110
+                             + grad[z1, y0, x0, ch] * w001 + grad[z1, y0, x1, ch] * w101
+                             + grad[z1, y1, x0, ch] * w011 + grad[z1, y1, x1, ch] * w111)
+                        if ch == 0:
+                            gx = v / spacing[0]
+                        elif ch == 1:
+                            gy = v / spacing[1]
+                        else:
+                            gz = v / spacing[2]
+                    gn = math.sqrt(gx * gx + gy * gy + gz * gz)
+                    if gn > 1e-3 / min(spacing[0], min(spacing[1], spacing[2])):
+                        nx_ = -gx / gn
+                        ny_ = -gy / gn
+                        nz_ = -gz / gn
+                        ndl = abs(nx_ * light[0] + ny_ * light[1] + nz_ * light[2])
+                        ndh = abs(nx_ * halfway[0] + ny_ * halfway[1] + nz_ * halfway[2])
+                        shade = 0.3 + 0.7 * ndl
+                        spec = 0.25 * ndh ** 24
+                k = (1.0 - A) * alpha
+                cr += k * (r * shade + spec)
+                cg += k * (g * shade + spec)
+                cb += k * (b * shade + spec)
+                A += k
+            t += hstep
+        img[row, c, 0] = cr + (1.0 - A) * background[0]
+        img[row, c, 1] = cg + (1.0 - A) * background[1]
+        img[row, c, 2] = cb + (1.0 - A) * background[2]
+
+
+@njit(cache=True, parallel=True)
+def march(op, cr_, cg_, cb_, grad, bmax, B, spacing, centre, fwd, right, up, half_w, half_h, pix, radius,
+          hstep, step, light, halfway, background, shading, img):
+    for row in prange(img.shape[0]):
+        _march_row(row, op, cr_, cg_, cb_, grad, bmax, B, spacing, centre, fwd, right, up, half_w, half_h,
+                   pix, radius, hstep, step, light, halfway, background, shading, img)

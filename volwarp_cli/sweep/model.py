@@ -1,0 +1,325 @@
+"""The sweep spec as objects: sweeps, scenes (CVG operator trees) and the output grid.
+
+:func:`parse_sweep_spec` turns a schema-checked :class:`~volwarp_cli.spec.SpecDoc`
+into a :class:`SweepSpec`; every semantic error found here (a missing
+template, a zero-length segment, an unknown field in ``combine``) is a
+:class:`~volwarp_cli.errors.SpecError` with the key path and line.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..spec.functions import Function, parse_function, spec_error
+from .cvg import OPERATORS, resolve_ops
+from .frames import Frames, Secondary, SweepFunctions, compute_frames
+from .templates import Template, TemplateLoader
+from .trajectory import Arc, Bezier, Line, Polyline, Segment
+from .voxelize import Grid
+
+DEFAULT_LONGEST_SIDE = 128
+
+
+@dataclass
+class Sweep:
+    templates: dict[str, Template]
+    segments: list[Segment]
+    functions: list[SweepFunctions]
+    ops: dict[str, str]
+    tau: float | None = None
+    key: tuple = ()
+
+    def bounds(self, samples: int = 257) -> tuple[np.ndarray, np.ndarray]:
+        """World bounding box of the swept template squares (sampled densely)."""
+        pts = []
+        for i, (seg, fns) in enumerate(zip(self.segments, self.functions, strict=True)):
+            s = np.unique(np.concatenate([np.linspace(0, 1, samples), seg.breaks()]))
+            fr = compute_frames(seg, fns, s, i)
+            pts.append(fr.corners().reshape(-1, 3))
+            if isinstance(seg, Polyline):  # joints turn about the vertices
+                left = compute_frames(seg, fns, seg.breaks(), i, left=True)
+                pts.append(left.corners().reshape(-1, 3))
+                r = 0.5 * np.hypot(left.SX, left.SY)
+                pts.append(left.P - r[:, None])
+                pts.append(left.P + r[:, None])
+        p = np.concatenate(pts)
+        return p.min(axis=0), p.max(axis=0)
+
+    def frames(self, index: int, s) -> Frames:
+        return compute_frames(self.segments[index], self.functions[index], np.asarray(s), index)
+
+
+@dataclass
+class SceneNode:
+    ops: dict[str, str]
+    children: list  # Sweep | SceneNode
+    key: tuple = ()
+
+    def sweeps(self) -> list[Sweep]:
+        out = []
+        for c in self.children:
+            out.extend(c.sweeps() if isinstance(c, SceneNode) else [c])
+        return out
+
+    def field_names(self) -> list[str]:
+        names: list[str] = []
+        for sw in self.sweeps():
+            for n in sw.templates:
+                if n not in names:
+                    names.append(n)
+        return names
+
+
+@dataclass
+class SweepSpec:
+    root: Sweep | SceneNode
+    grid: dict = field(default_factory=dict)
+    tau: float | None = None
+    method: str = "voxelize"
+    doc: object = None
+
+    def sweeps(self) -> list[Sweep]:
+        return self.root.sweeps() if isinstance(self.root, SceneNode) else [self.root]
+
+    def field_names(self) -> list[str]:
+        if isinstance(self.root, SceneNode):
+            return self.root.field_names()
+        return list(self.root.templates)
+
+    def bounds(self):
+        los, his = zip(*(sw.bounds() for sw in self.sweeps()), strict=True)
+        return np.min(los, axis=0), np.max(his, axis=0)
+
+
+# -- parsing ------------------------------------------------------------------------
+def _vec(doc, path, value, n=3, name="value") -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise spec_error(doc, path, f"{name} must be {n} finite numbers")
+    return arr
+
+
+def _urange(doc, path, body) -> tuple[float, float]:
+    if "u" not in body:
+        return 0.0, 1.0
+    u = _vec(doc, path + ("u",), body["u"], 2, "u")
+    if u[0] == u[1]:
+        raise spec_error(doc, path + ("u",), "u range must not be empty")
+    return float(u[0]), float(u[1])
+
+
+def parse_segment(doc, path: tuple, item: dict) -> Segment:
+    kind = next(iter(item))
+    body = item[kind]
+    bp = path + (kind,)
+    u0, u1 = _urange(doc, bp, body)
+    if kind == "line":
+        a = _vec(doc, bp + ("from",), body["from"], name="from")
+        b = _vec(doc, bp + ("to",), body["to"], name="to")
+        if np.linalg.norm(b - a) == 0:
+            raise spec_error(doc, bp, "a line needs two different points ('from' equals 'to')")
+        return Line(u0=u0, u1=u1, path=bp, start=a, stop=b)
+    if kind == "arc":
+        c = _vec(doc, bp + ("center",), body["center"], name="center")
+        axis = _vec(doc, bp + ("axis",), body.get("axis", [0, 0, 1]), name="axis")
+        if np.linalg.norm(axis) == 0:
+            raise spec_error(doc, bp + ("axis",), "the arc's axis must not be zero")
+        r = float(body["radius"])
+        start = float(body.get("start", 0.0))
+        end = float(body.get("end", 360.0))
+        if start == end:
+            raise spec_error(doc, bp + ("end",), "an arc needs 'end' different from 'start'")
+        if r <= 0:
+            raise spec_error(doc, bp + ("radius",), "radius must be positive")
+        return Arc(u0=u0, u1=u1, path=bp, center=c, radius=r, axis=axis, start_deg=start,
+                   end_deg=end)
+    pts = np.asarray(body["points"], dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+        raise spec_error(doc, bp + ("points",), "points must be a list of [x, y, z]")
+    if kind == "bezier":
+        if np.ptp(pts, axis=0).max() == 0:
+            raise spec_error(doc, bp + ("points",), "a Bezier curve needs control points "
+                             "that are not all the same")
+        return Bezier(u0=u0, u1=u1, path=bp, points=pts)
+    steps = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    if np.any(steps == 0):
+        i = int(np.argmax(steps == 0)) + 1
+        raise spec_error(doc, bp + ("points", i), "a polyline point repeats the previous one")
+    return Polyline(u0=u0, u1=u1, path=bp, points=pts)
+
+
+def parse_trajectory(doc, path: tuple, items) -> list[Segment]:
+    if not isinstance(items, list) or not items:
+        raise spec_error(doc, path, "the trajectory needs at least one segment")
+    return [parse_segment(doc, path + (i,), it) for i, it in enumerate(items)]
+
+
+def _vector_fn(doc, path, value, name) -> Function:
+    fn = parse_function(value, path, doc, dim=3, name=name)
+    return fn
+
+
+def _direction(doc, path, value, n_segments):
+    if value is None or value == "tangent":
+        return "tangent"
+    if isinstance(value, dict) and "trajectory" in value:
+        return _secondary(doc, path, value, n_segments)
+    return _vector_fn(doc, path, value, "direction")
+
+
+def _up(doc, path, value, n_segments):
+    if value is None:
+        value = [0, 0, 1]
+    if value == "binormal":
+        return "binormal"
+    if isinstance(value, dict) and "trajectory" in value:
+        return _secondary(doc, path, value, n_segments)
+    return _vector_fn(doc, path, value, "up")
+
+
+def _secondary(doc, path, value, n_segments) -> Secondary:
+    segs = parse_trajectory(doc, path + ("trajectory",), value["trajectory"])
+    if len(segs) not in (1, n_segments):
+        raise spec_error(doc, path + ("trajectory",),
+                         f"a secondary trajectory has 1 segment or one per trajectory segment "
+                         f"({n_segments}), got {len(segs)}")
+    return Secondary(segs, path)
+
+
+def parse_sweep(doc, path: tuple, body: dict, loader: TemplateLoader) -> Sweep:
+    """One sweep: ``fields``, ``trajectory`` and its functions, at key ``path``."""
+    segments = parse_trajectory(doc, path + ("trajectory",), body.get("trajectory"))
+    n = len(segments)
+    fields_spec = body.get("fields")
+    if not fields_spec:
+        raise spec_error(doc, path + ("fields",), "a sweep needs at least one field")
+    templates = {}
+    for name, fspec in fields_spec.items():
+        fp = path + ("fields", name)
+        if isinstance(fspec, (int, float)) and not isinstance(fspec, bool):
+            fspec = {"value": fspec}
+        path_fn = None
+        if "path" in fspec:
+            if "frames" not in fspec:
+                raise spec_error(doc, fp + ("path",), "'path' (f(u)) goes with 'frames'")
+            path_fn = parse_function(fspec["path"], fp + ("path",), doc, dim=None, name="path")
+        templates[name] = loader.load(name, fspec, fp, path_fn)
+    top = {k: body.get(k) for k in ("direction", "up", "scale")}
+    functions = []
+    for i, _seg in enumerate(segments):
+        kind = next(iter(body["trajectory"][i]))
+        sbody = body["trajectory"][i][kind]
+        sp = path + ("trajectory", i, kind)
+
+        def pick(key, sbody=sbody, sp=sp):
+            if key in sbody:
+                return sbody[key], sp + (key,)
+            return top[key], path + (key,)
+
+        dval, dpath = pick("direction")
+        uval, upath = pick("up")
+        sval, spath = pick("scale")
+        if sval is None:
+            sval = [1.0, 1.0]
+        functions.append(SweepFunctions(
+            direction=_direction(doc, dpath, dval, n),
+            up=_up(doc, upath, uval, n),
+            scale=parse_function(sval, spath, doc, dim=2, name="scale"),
+            direction_path=dpath, up_path=upath, doc=doc))
+    ops = _ops(doc, path + ("combine",), body.get("combine"), list(templates))
+    tau = body.get("tau")
+    return Sweep(templates, segments, functions, ops,
+                 None if tau is None else float(tau), path)
+
+
+def _ops(doc, path, value, names) -> dict[str, str]:
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if k != "default" and k not in names:
+                raise spec_error(doc, path + (k,), f"no field named {k!r} "
+                                 f"(fields: {', '.join(names)})")
+            if v not in OPERATORS:
+                raise spec_error(doc, path + (k,), f"unknown operator {v!r} "
+                                 f"(known: {', '.join(OPERATORS)})")
+    elif value is not None and value not in OPERATORS:
+        raise spec_error(doc, path, f"unknown operator {value!r} (known: {', '.join(OPERATORS)})")
+    return resolve_ops(value, names)
+
+
+def parse_scene(doc, path: tuple, node: dict, loader: TemplateLoader):
+    if "sweep" in node:
+        return parse_sweep(doc, path + ("sweep",), node["sweep"], loader)
+    children = [parse_scene(doc, path + ("of", i), c, loader) for i, c in enumerate(node["of"])]
+    scene = SceneNode({}, children, path)
+    scene.ops = _ops(doc, path + ("op",), node.get("op"), scene.field_names())
+    return scene
+
+
+def parse_sweep_spec(doc) -> SweepSpec:
+    """A :class:`SweepSpec` from a schema-checked sweep spec."""
+    data = doc.data
+    loader = TemplateLoader(doc)
+    if "scene" in data:
+        for key in ("fields", "trajectory", "direction", "up", "scale", "combine"):
+            if key in data:
+                raise spec_error(doc, (key,), f"'{key}' belongs inside a sweep of the scene "
+                                 "(a spec has either a scene or one sweep)")
+        root = parse_scene(doc, ("scene",), data["scene"], loader)
+    else:
+        if "trajectory" not in data:
+            raise spec_error(doc, (), "a sweep spec needs 'trajectory' and 'fields' (or 'scene')")
+        root = parse_sweep(doc, (), data, loader)
+    tau = data.get("tau")
+    return SweepSpec(root, dict(data.get("grid") or {}), None if tau is None else float(tau),
+                     data.get("method", "voxelize"), doc)
+
+
+# -- the output grid ------------------------------------------------------------------
+def _three(v):
+    arr = np.asarray(v, dtype=np.float64)
+    return np.full(3, float(arr)) if arr.ndim == 0 else arr
+
+
+def fit_grid(spec: dict, lo: np.ndarray, hi: np.ndarray) -> Grid:
+    """The output grid from ``grid`` keys (shape, origin, spacing, margin) and the bounds.
+
+    Given keys are kept; missing ones are fitted so the grid covers
+    ``[lo - margin, hi + margin]``: without spacing the longest side gets
+    ``shape`` (or 128) samples at isotropic spacing; without shape it is the
+    count that covers the box; without origin the grid is centred on the box.
+    The default margin is two voxels.
+    """
+    shape = spec.get("shape")
+    origin = spec.get("origin")
+    spacing = spec.get("spacing")
+    margin = spec.get("margin")
+    ext0 = np.maximum(hi - lo, 1e-9)
+    if spacing is None:
+        n = np.asarray(shape, dtype=np.float64) if shape is not None else None
+        longest = DEFAULT_LONGEST_SIDE if n is None else None
+        m = margin if margin is not None else 0.0
+        for _ in range(2):  # margin in voxels depends on spacing: settle it twice
+            ext = ext0 + 2 * m
+            if n is not None:
+                sp = float(np.max(ext / np.maximum(n - 1, 1)))
+            else:
+                sp = float(ext.max() / (longest - 1))
+            if margin is None:
+                m = 2 * sp
+        spacing = np.full(3, sp)
+        margin = m
+    spacing = _three(spacing)
+    if margin is None:
+        margin = 2 * float(spacing.min())
+    glo = lo - margin
+    ghi = hi + margin
+    if shape is None:
+        start = glo if origin is None else _three(origin)
+        shape = np.maximum(np.ceil((ghi - start) / spacing - 1e-9).astype(int) + 1, 1)
+    shape = np.asarray(shape, dtype=np.int64)
+    if origin is None:
+        centre = 0.5 * (glo + ghi)
+        origin = centre - spacing * (shape - 1) / 2
+    return Grid(shape, _three(origin), spacing)

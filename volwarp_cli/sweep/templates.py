@@ -1,0 +1,215 @@
+"""Sweeping templates: images (and image stacks) on the normalised square [0, 1]^2.
+
+Winter & Chen §3 map an ``nx x ny`` image onto ``m(x, y)``, 0 <= x, y <= 1,
+with an interpolation function; §5.4 stacks several images into a volume
+template ``w(x, y, z)`` whose ``z`` is picked by an image-path association
+function ``f(u)``. Here:
+
+* pixel centres sit at ``((i + 0.5) / W, 1 - (j + 0.5) / H)`` for column ``i``,
+  row ``j`` (row 0 is the top of the picture, so ``y`` points up the image);
+  between centres values are bilinear, beyond the outer centres they are
+  clamped (the square's border keeps the edge pixels' values); outside the
+  square there is no template (the paper's constant ``c``, 0);
+* a volume template's slice coordinate ``f(u)`` is fractional: the two
+  neighbouring slices are interpolated linearly, and coordinates outside
+  ``[0, n - 1]`` are clamped. Without ``path``, ``f`` runs from slice 0 to the
+  last slice along each segment.
+
+Images are read with OpenImageIO (as :func:`volwarp_cli.io.images.read_image`
+does, but with alpha left unassociated: :func:`read_template_image`): 8- and
+16-bit images are scaled to [0, 1], float images are kept as they are.
+Image stacks come from a glob pattern, a list of files, or one volume file
+(NRRD, multi-page TIFF, NIfTI: its z slices are the frames, samples unscaled).
+"""
+
+from __future__ import annotations
+
+import glob as globmod
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import VolwarpError
+from ..spec.functions import Function, spec_error
+
+
+@dataclass
+class Template:
+    """One field's template: ``data`` is ``(n_slices, H, W)`` float32."""
+
+    name: str
+    data: np.ndarray
+    path_fn: Function | None = None
+    key: tuple = ()
+
+    @property
+    def n_slices(self) -> int:
+        return int(self.data.shape[0])
+
+    def slice_coords(self, seg, s: np.ndarray) -> np.ndarray:
+        """Fractional slice index at normalised parameters ``s`` of segment ``seg``."""
+        s = np.asarray(s, dtype=np.float64)
+        if self.n_slices == 1:
+            return np.zeros_like(s)
+        if self.path_fn is None:
+            return np.clip(s, 0.0, 1.0) * (self.n_slices - 1)
+        return self.path_fn(seg.u_of(s))
+
+
+def sample_template(data: np.ndarray, x: np.ndarray, y: np.ndarray,
+                    sl: np.ndarray | None = None) -> np.ndarray:
+    """Bilinear (and linear-between-slices) sample of ``data[n, H, W]`` at (x, y[, slice]).
+
+    The numpy reference of the voxeliser's numba sampler (same conventions).
+    """
+    n, h, w = data.shape
+    cx = np.clip(np.asarray(x, dtype=np.float64) * w - 0.5, 0.0, w - 1)
+    cy = np.clip((1.0 - np.asarray(y, dtype=np.float64)) * h - 0.5, 0.0, h - 1)
+    x0 = np.floor(cx).astype(np.int64)
+    y0 = np.floor(cy).astype(np.int64)
+    fx = cx - x0
+    fy = cy - y0
+    x1 = np.minimum(x0 + 1, w - 1)
+    y1 = np.minimum(y0 + 1, h - 1)
+    if sl is None or n == 1:
+        z0 = np.zeros_like(x0)
+        z1 = z0
+        fz = np.zeros_like(fx)
+    else:
+        cz = np.clip(np.asarray(sl, dtype=np.float64), 0.0, n - 1)
+        z0 = np.floor(cz).astype(np.int64)
+        fz = cz - z0
+        z1 = np.minimum(z0 + 1, n - 1)
+
+    def plane(z):
+        return ((data[z, y0, x0] * (1 - fx) + data[z, y0, x1] * fx) * (1 - fy)
+                + (data[z, y1, x0] * (1 - fx) + data[z, y1, x1] * fx) * fy)
+
+    out = plane(z0)
+    if np.any(fz > 0):
+        out = out * (1 - fz) + plane(z1) * fz
+    return out
+
+
+def read_template_image(path) -> np.ndarray:
+    """Read an image as ``(H, W, C)`` float32 with every channel as stored in the file.
+
+    Like :func:`volwarp_cli.io.images.read_image` (8/16-bit scaled to [0, 1],
+    floats kept), except that an alpha channel is *not* multiplied into the
+    colour channels: OpenImageIO premultiplies RGBA files by default
+    (``oiio:UnassociatedAlpha`` off), which would darken a template's colour
+    field wherever its opacity is low. Template channels are independent fields.
+    """
+    import OpenImageIO as oiio
+
+    from ..errors import FormatError
+
+    where = str(path)
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(where, config)
+    if inp is None:
+        raise FormatError(f"{where}: cannot read image ({oiio.geterror().strip()})")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, spec.format)
+        if pixels is None:
+            raise FormatError(f"{where}: cannot read image data ({inp.geterror().strip()})")
+    finally:
+        inp.close()
+    arr = np.asarray(pixels)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim != 3:
+        raise FormatError(f"{where}: expected a 2-D image, got shape {arr.shape}")
+    if arr.dtype.kind in "ui":
+        return arr.astype(np.float32) / np.float32(np.iinfo(arr.dtype).max)
+    return arr.astype(np.float32)
+
+
+class TemplateLoader:
+    """Loads the ``fields`` of a spec, reading each image file once."""
+
+    def __init__(self, doc):
+        self.doc = doc
+        self._images: dict[str, np.ndarray] = {}
+
+    def _err(self, path, message):
+        return spec_error(self.doc, path, message)
+
+    def _image(self, name: str, path: tuple, resolved: bool = False) -> np.ndarray:
+        file = self.doc.resolve(name) if self.doc is not None and not resolved else name
+        key = str(file)
+        if key not in self._images:
+            try:
+                if not Path(file).is_file():
+                    raise self._err(path, f"template image {str(file)!r} does not exist")
+                self._images[key] = read_template_image(file)
+            except VolwarpError as exc:
+                if getattr(exc, "key", None):
+                    raise
+                raise self._err(path, f"cannot read template image: {exc}") from None
+        return self._images[key]
+
+    def _channel(self, img: np.ndarray, channel: int, path: tuple, file: str) -> np.ndarray:
+        if channel >= img.shape[2]:
+            raise self._err(path, f"channel {channel} does not exist in {file!r} "
+                            f"({img.shape[2]} channel{'s' if img.shape[2] != 1 else ''})")
+        return np.ascontiguousarray(img[:, :, channel], dtype=np.float32)
+
+    def load(self, name: str, spec: dict, path: tuple, path_fn: Function | None) -> Template:
+        """A :class:`Template` for field ``name`` from its spec mapping at key ``path``."""
+        channel = int(spec.get("channel", 0))
+        if "value" in spec:
+            data = np.full((1, 1, 1), float(spec["value"]), dtype=np.float32)
+        elif "image" in spec:
+            img = self._image(spec["image"], path + ("image",))
+            data = self._channel(img, channel, path + ("channel",), spec["image"])[None]
+        else:
+            data = self._frames(spec["frames"], channel, path)
+        if not np.all(np.isfinite(data)):
+            raise self._err(path, f"template of field {name!r} has non-finite values")
+        if path_fn is not None and data.shape[0] == 1:
+            raise self._err(path + ("path",), "'path' (f(u)) needs a stack of frames; "
+                            "this template has one image")
+        return Template(name, np.ascontiguousarray(data, dtype=np.float32), path_fn, path)
+
+    def _frames(self, frames, channel: int, path: tuple) -> np.ndarray:
+        fpath = path + ("frames",)
+        if isinstance(frames, str) and any(c in frames for c in "*?["):
+            pattern = str(self.doc.resolve(frames)) if self.doc is not None else frames
+            files = sorted(globmod.glob(pattern))
+            if not files:
+                raise self._err(fpath, f"no files match {frames!r}")
+            resolved = True
+        elif isinstance(frames, str):
+            from ..io import VOLUME_EXTENSIONS, read_volume
+
+            resolved = True
+            file = self.doc.resolve(frames) if self.doc is not None else Path(frames)
+            lower = str(file).lower()
+            if not any(lower.endswith(ext) for ext in VOLUME_EXTENSIONS):
+                files = [str(file)]
+            else:
+                if not file.is_file():
+                    raise self._err(fpath, f"template volume {str(file)!r} does not exist")
+                try:
+                    vol = read_volume(file)
+                except VolwarpError as exc:
+                    raise self._err(fpath, f"cannot read template volume: {exc}") from None
+                return vol.data.astype(np.float32)
+        else:
+            files = list(frames)
+            resolved = False
+        slices = []
+        for i, f in enumerate(files):
+            p = fpath + (i,) if isinstance(frames, list) else fpath
+            img = self._image(f, p, resolved)
+            sl = self._channel(img, channel, path + ("channel",), f)
+            if slices and sl.shape != slices[0].shape:
+                raise self._err(p, f"frame {f!r} is {sl.shape[1]}x{sl.shape[0]}, the first "
+                                f"frame is {slices[0].shape[1]}x{slices[0].shape[0]}; "
+                                "all frames must have the same size")
+            slices.append(sl)
+        return np.stack(slices)
