@@ -1,14 +1,98 @@
-"""`volwarp capture`: not implemented yet (its issue replaces this module)."""
+"""`volwarp capture INPUT -o SCENE.vwc`: pull a volume back into a B-spline domain voxmap."""
+
+from __future__ import annotations
 
 import click
 
-from ..errors import VolwarpError
-from .options import common_options
+from ..io import check_output_path
+from ..progress import timed
+from .common import load_input
+from .options import common_options, output_option, raw_options
 
 
-@click.command(name="capture", context_settings={"ignore_unknown_options": True})
-@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+class LatticeOption(click.Option):
+    """``--lattice 9`` or ``--lattice 9 7 9`` (one size for every axis, or x y z)."""
+
+    def add_to_parser(self, parser, ctx):
+        ret = super().add_to_parser(parser, ctx)
+        for name in self.opts:
+            opt = parser._long_opt.get(name) or parser._short_opt.get(name)
+            if opt is None:
+                continue
+            previous = opt.process
+
+            def process(value, state, previous=previous):
+                values = [value]
+                while len(values) < 3 and state.rargs and state.rargs[0].isdigit():
+                    values.append(state.rargs.pop(0))
+                previous(" ".join(values), state)
+
+            opt.process = process
+        return ret
+
+
+def _lattice(ctx, param, value):
+    if value is None:
+        return None
+    try:
+        sizes = [int(v) for v in str(value).replace(",", " ").split()]
+    except ValueError:
+        raise click.BadParameter(f"{value!r} is not one or three integers") from None
+    if len(sizes) == 1:
+        sizes *= 3
+    if len(sizes) != 3:
+        raise click.BadParameter("give one size or three (x y z)")
+    if min(sizes) < 4:
+        raise click.BadParameter("a lattice needs at least 4 control points per axis")
+    return tuple(sizes)
+
+
+def lattice_option(default="9"):
+    return click.option("--lattice", cls=LatticeOption, default=default, callback=_lattice,
+                        metavar="N | NX NY NZ", show_default=True,
+                        help="Control points per axis (x y z), at least 4 each.")
+
+
+@click.command(name="capture")
+@click.argument("input", type=click.Path(dir_okay=False))
+@output_option("Capture file to write (.vwc).")
+@lattice_option()
+@click.option("--placement", type=click.Choice(["uniform", "tripled"]), default="uniform",
+              show_default=True,
+              help="Capture lattice: evenly spaced, an affine map (thesis 5.5), or the first "
+                   "and last points tripled (paper 7).")
+@click.option("--oversample", type=click.FloatRange(min=0, min_open=True, max=16),
+              default=2.0, show_default=True,
+              help="Domain voxels per input voxel: granularity G = ceil(oversample * I / R).")
+@click.option("--pad", type=click.IntRange(min=0), default=None,
+              help="Target padding (voxels per side) for later warps that do not set one "
+                   "[default: each warp's largest displacement + 1].")
+@click.option("--sampling", type=click.Choice(["linear", "nearest"]), default="linear",
+              show_default=True, help="Pullback sampling: trilinear, or the paper's rounding.")
+@raw_options
 @common_options
-def command(args):
-    """Not implemented yet."""
-    raise VolwarpError("'capture' is not implemented yet")
+def command(input, output, lattice, placement, oversample, pad, sampling, raw, volume_index):
+    """Capture INPUT into a domain voxmap file (.vwc) for `volwarp warp`.
+
+    The capture lattice's B-spline image of the domain is exactly INPUT's
+    voxel box in world space. `volwarp info SCENE.vwc --json` lists the
+    lattice's world positions (lattice_points[i][j][k]).
+    """
+    from ..bspline.capture import capture_volume
+    from ..bspline.capture_file import write_capture
+    from ..errors import VolwarpError
+
+    if not output.lower().endswith(".vwc"):
+        raise click.BadParameter("a capture file must end in .vwc", param_hint="'-o'")
+    check_output_path(output)
+    if placement == "tripled" and min(lattice) < 6:
+        raise click.BadParameter("the tripled placement needs at least 6 points per axis",
+                                 param_hint="'--lattice'")
+    vol = load_input(input, raw, volume_index)
+    try:
+        cap = capture_volume(vol, lattice=lattice, placement=placement, oversample=oversample,
+                             sampling=sampling, pad=pad)
+    except VolwarpError as exc:
+        raise VolwarpError(f"{input}: {exc}") from None
+    with timed(f"write {output}"):
+        write_capture(cap, output)

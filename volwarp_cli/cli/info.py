@@ -51,5 +51,14 @@ def command(file, as_json, raw, volume_index):
         desc = describe_volume(vol, volume_format(file))
     if as_json:
         click.echo(json.dumps(desc, indent=2, sort_keys=False))
+    elif desc.get("format") == "vwc":
+        # a capture file: the lattice positions are many numbers; show their extent
+        pts = desc.pop("lattice_points")
+        flat = [p for plane in pts for row in plane for p in row]
+        lo = [min(p[a] for p in flat) for a in range(3)]
+        hi = [max(p[a] for p in flat) for a in range(3)]
+        click.echo(_format_text(desc))
+        click.echo(f"lattice_points: {len(flat)} points, world x {lo[0]:g}..{hi[0]:g}, "
+                   f"y {lo[1]:g}..{hi[1]:g}, z {lo[2]:g}..{hi[2]:g} (all of them: --json)")
     else:
         click.echo(_format_text(desc))

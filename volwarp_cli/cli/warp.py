@@ -1,14 +1,111 @@
-"""`volwarp warp`: not implemented yet (its issue replaces this module)."""
+"""`volwarp warp INPUT|SCENE.vwc --spec WARP.yaml -o OUT`: B-spline volume warping."""
+
+from __future__ import annotations
+
+import string
 
 import click
 
-from ..errors import VolwarpError
-from .options import common_options
+from ..io import check_output_path, write_volume
+from ..progress import timed
+from .common import load_input
+from .options import common_options, output_option, raw_options, write_options
+
+_FIELDS = ("frame", "step", "spec_step", "sub")
 
 
-@click.command(name="warp", context_settings={"ignore_unknown_options": True})
-@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+def _check_pattern(pattern: str) -> None:
+    """The --frames-to pattern: known fields only, distinct names for distinct frames."""
+    try:
+        names = {f for _, f, _, _ in string.Formatter().parse(pattern) if f is not None}
+    except ValueError as exc:
+        raise click.BadParameter(f"{pattern!r}: {exc}", param_hint="'--frames-to'") from None
+    unknown = sorted(n for n in names if n.split(".")[0].split("[")[0] not in _FIELDS)
+    if unknown:
+        raise click.BadParameter(f"unknown field {{{unknown[0]}}} (use {{frame}} or {{step}}, "
+                                 "e.g. 'out_{frame:03d}.nrrd')", param_hint="'--frames-to'")
+    try:
+        a = pattern.format(frame=1, step=1, spec_step=1, sub=1)
+        b = pattern.format(frame=2, step=2, spec_step=1, sub=2)
+    except (ValueError, KeyError, IndexError) as exc:
+        raise click.BadParameter(f"{pattern!r}: {exc}", param_hint="'--frames-to'") from None
+    if a == b:
+        raise click.BadParameter("the pattern must number the frames, e.g. "
+                                 "'out_{frame:03d}.nrrd'", param_hint="'--frames-to'")
+    check_output_path(a)
+
+
+@click.command(name="warp")
+@click.argument("input", type=click.Path(dir_okay=False))
+@click.option("--spec", "spec_path", required=True, type=click.Path(dir_okay=False),
+              help="Warp spec (YAML; schema specs/warp.schema.json).")
+@output_option("Warped volume (format by extension).")
+@click.option("--frames-to", default=None, metavar="PATTERN",
+              help="Also write every animation frame, e.g. 'out_{frame:03d}.nrrd' "
+                   "({frame} and its alias {step}: 0 = unwarped, then one per increment; "
+                   "{spec_step}, {sub}: the spec step and the increment within it).")
+@click.option("--pushforward", type=click.Choice(["box", "nearest"]), default=None,
+              help="Pushforward filter [default: the spec's, else box].")
+@click.option("--evaluator", type=click.Choice(["separable", "table"]), default=None,
+              help="Deformation evaluator [default: the spec's, else separable].")
+@click.option("--crop", is_flag=True, help="Cut the output back to the input's extent.")
+@write_options
+@raw_options
 @common_options
-def command(args):
-    """Not implemented yet."""
-    raise VolwarpError("'warp' is not implemented yet")
+def command(input, spec_path, output, frames_to, pushforward, evaluator, crop, dtype, compress,
+            byte_order, raw, volume_index):
+    """Warp INPUT (a volume, or a capture file .vwc) as the spec says.
+
+    A plain volume is captured on the fly with the spec's `capture` settings.
+    The output keeps the input's dtype, spacing, direction and key/values;
+    it is padded (origin shifted, anatomy in place) unless --crop.
+    """
+    from ..bspline.capture import capture_volume
+    from ..bspline.capture_file import read_capture
+    from ..bspline.plan import read_warp_spec
+    from ..bspline.warp import check_capture_settings, output_volume, prepare, run
+    from ..errors import SpecError, VolwarpError
+    from ..spec.loader import load_spec
+
+    check_output_path(output)
+    if frames_to:
+        _check_pattern(frames_to)
+    doc = load_spec(spec_path, "warp")
+    spec = read_warp_spec(doc)
+    if input.lower().endswith(".vwc"):
+        if raw is not None or volume_index is not None:
+            raise click.UsageError("--raw-* and --volume-index describe volume inputs, "
+                                   f"not the capture file {input}")
+        with timed(f"read {input}"):
+            cap = read_capture(input)
+        check_capture_settings(doc, spec, cap, input)
+    else:
+        vol = load_input(input, raw, volume_index)
+        s = spec.capture
+        if s.placement == "tripled" and min(s.lattice) < 6:
+            raise doc.error(("capture", "lattice"), "the tripled placement needs at least 6 "
+                            "control points per axis")
+        try:
+            cap = capture_volume(vol, lattice=s.lattice, placement=s.placement,
+                                 oversample=s.oversample, sampling=s.sampling, pad=None)
+        except SpecError:
+            raise
+        except VolwarpError as exc:
+            raise VolwarpError(f"{input}: {exc}") from None
+        del vol
+    scene, frames = prepare(cap, doc, spec, method=pushforward, evaluator=evaluator)
+
+    def write(target, path):
+        out = output_volume(cap, scene, target, crop=crop, dtype=dtype)
+        with timed(f"write {path}"):
+            write_volume(out, path, compress=compress, byte_order=byte_order)
+
+    on_frame = None
+    if frames_to:
+        def on_frame(n, fr, target):
+            name = frames_to.format(frame=n, step=n, spec_step=fr.step if fr else 0,
+                                    sub=fr.sub if fr else 0)
+            write(target, name)
+
+    target = run(scene, frames, on_frame)
+    write(target, output)

@@ -1,0 +1,105 @@
+"""`volwarp capture` and the .vwc capture file."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from volwarp_cli.bspline.capture import capture_volume
+from volwarp_cli.bspline.capture_file import read_capture
+from volwarp_cli.io import read_volume
+
+
+def test_capture_writes_checked_file_and_info_lists_lattice(run, data_dir, tmp_path):
+    src = data_dir / "block_int16_aniso.nrrd"
+    out = tmp_path / "s.vwc"
+    res = run("capture", src, "-o", out, "--lattice", "5", "6", "7", "--oversample", "1.5",
+              "--pad", "3")
+    assert res.code == 0, res.stderr
+    vol = read_volume(src)
+    cap = read_capture(out)
+    ref = capture_volume(vol, lattice=(5, 6, 7), oversample=1.5)
+    assert np.array_equal(cap.domain, ref.domain)
+    assert cap.grid.lattice == (5, 6, 7) and cap.pad == (3, 3, 3)
+    assert cap.grid.domain_shape == tuple(g * (c - 3) for g, c in
+                                          zip(cap.grid.granularity, (5, 6, 7), strict=False))
+    res = run("info", out, "--json")
+    assert res.code == 0, res.stderr
+    d = json.loads(res.stdout)
+    assert d["format"] == "vwc" and d["shape"] == [24, 16, 10] and d["dtype"] == "int16"
+    assert d["lattice"] == [5, 6, 7]
+    assert np.allclose(d["spacing"], vol.spacing) and np.allclose(d["origin"], vol.origin)
+    assert np.allclose(d["direction"], vol.direction)
+    assert d["min"] == vol.data.min() and d["max"] == vol.data.max()
+    assert d["meta"] == {k: str(v) for k, v in vol.meta.items()}
+    pts = np.array(d["lattice_points"])  # [i][j][k] -> world x y z
+    assert pts.shape == (5, 6, 7, 3)
+    # uniform lattice: point (i, j, k) sits at input index -0.5 + (I/R) * (i - 1, ...)
+    for ijk in [(0, 0, 0), (2, 3, 4), (4, 5, 6)]:
+        idx = [-0.5 + n / (c - 3) * (i - 1) for n, c, i in zip((24, 16, 10), (5, 6, 7), ijk, strict=False)]
+        assert np.allclose(pts[ijk], vol.index_to_world(idx))
+    text = run("info", out)
+    assert text.code == 0 and "lattice" in text.stdout
+
+
+def test_capture_is_deterministic(run, data_dir, tmp_path):
+    a, b = tmp_path / "a.vwc", tmp_path / "b.vwc"
+    for p in (a, b):
+        assert run("capture", data_dir / "ball_30_uint8.nrrd", "-o", p).code == 0
+    assert a.read_bytes() == b.read_bytes()
+
+
+def test_truncated_and_foreign_capture_files(run, data_dir, tmp_path):
+    good = tmp_path / "g.vwc"
+    assert run("capture", data_dir / "ball_30_uint8.nrrd", "-o", good,
+               "--oversample", "1").code == 0
+    raw = good.read_bytes()
+    trunc = tmp_path / "t.vwc"
+    trunc.write_bytes(raw[:-100])
+    foreign = tmp_path / "f.vwc"
+    foreign.write_bytes((data_dir / "ball_30_uint8.nrrd").read_bytes())
+    corrupt = tmp_path / "c.vwc"
+    corrupt.write_bytes(raw[:-1] + bytes([raw[-1] ^ 0xFF]))
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nsteps: []\n")
+    for path, msg in [(trunc, "truncated"), (foreign, "not a volwarp capture"),
+                      (corrupt, "corrupt")]:
+        res = run("warp", path, "--spec", spec, "-o", tmp_path / "o.nrrd")
+        assert res.code == 1 and msg in res.stderr and str(path) in res.stderr
+        res = run("info", path, "--json")
+        if msg != "corrupt":  # info reads the header only
+            assert res.code == 1 and msg in res.stderr
+    assert not (tmp_path / "o.nrrd").exists()
+
+
+@pytest.mark.parametrize("args, msg", [
+    (["--lattice", "3"], "at least 4"),
+    (["--lattice", "5", "5"], "one size or three"),
+    (["--placement", "tripled", "--lattice", "5"], "at least 6"),
+    (["--oversample", "0"], "oversample"),
+])
+def test_bad_capture_options_exit_2(run, data_dir, tmp_path, args, msg):
+    out = tmp_path / "s.vwc"
+    res = run("capture", data_dir / "ball_30_uint8.nrrd", "-o", out, *args)
+    assert res.code == 2 and msg in res.stderr
+    assert not out.exists()
+
+
+def test_capture_missing_input_exit_1(run, tmp_path):
+    res = run("capture", tmp_path / "nope.nrrd", "-o", tmp_path / "s.vwc")
+    assert res.code == 1 and "nope.nrrd" in res.stderr
+
+
+def test_capture_refuses_non_finite_samples(run, tmp_path):
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    data = np.ones((6, 7, 8), np.float32)
+    data[2, 3, 4] = np.nan
+    src = tmp_path / "nan.nrrd"
+    write_volume(Volume(data), src)
+    res = run("capture", src, "-o", tmp_path / "s.vwc")
+    assert res.code == 1 and "NaN" in res.stderr and str(src) in res.stderr
+    assert not (tmp_path / "s.vwc").exists()

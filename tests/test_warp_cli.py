@@ -1,0 +1,219 @@
+"""`volwarp warp`: specs, geometry, dtypes, frames, errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.volume import Volume
+
+SPECS = Path(__file__).parent.parent / "specs"
+
+
+def _spec(tmp_path, text, name="w.yaml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def _centroid_world(vol):
+    w = vol.data.astype(np.float64)
+    idx = np.argwhere(w >= 0.5 * w.max())[:, ::-1]  # (x, y, z)
+    vals = w[w >= 0.5 * w.max()]
+    c = (idx * vals[:, None]).sum(0) / vals.sum()
+    return vol.index_to_world(c)
+
+
+@pytest.mark.parametrize("spec", sorted(p.name for p in SPECS.glob("warp-*.yaml")))
+def test_example_specs_run(run, data_dir, tmp_path, spec):
+    sample = "mri_t1_head_coronal_2x2x3mm.nrrd" if "head" in spec else "ball_30_uint8.nrrd"
+    out = tmp_path / "o.nrrd"
+    res = run("warp", data_dir / sample, "--spec", SPECS / spec, "-o", out)
+    assert res.code == 0, res.stderr
+    vin, vout = read_volume(data_dir / sample), read_volume(out)
+    assert vout.dtype == vin.dtype
+    assert np.allclose(vout.spacing, vin.spacing) and np.allclose(vout.direction, vin.direction)
+    assert not np.array_equal(vout.data.shape, vin.data.shape) or \
+        not np.array_equal(vout.data, vin.data)
+
+
+def test_world_move_shifts_the_model_by_the_world_amount(run, tmp_path):
+    # whole lattice moved by one world vector on a rotated, anisotropic grid:
+    # the model moves by exactly that vector, and unwarped output keeps world position
+    nz, ny, nx = 20, 24, 28
+    z, y, x = np.mgrid[:nz, :ny, :nx]
+    data = (200 * ((x - 13.5) ** 2 / 64 + (y - 11.5) ** 2 / 36 + (z - 9.5) ** 2 / 25 <= 1)
+            ).astype(np.uint8)
+    ang = np.deg2rad(25)
+    direction = np.array([[np.cos(ang), 0, -np.sin(ang)], [0, 1, 0], [np.sin(ang), 0, np.cos(ang)]])
+    vol = Volume(data, spacing=(0.8, 1.2, 2.0), origin=(5, -3, 10), direction=direction,
+                 meta={"patient": "x"})
+    src = tmp_path / "in.nrrd"
+    write_volume(vol, src)
+    shift = np.array([3.0, -2.4, 4.0])
+    moves = "\n".join(f"      - {{index: [{i}, {j}, {k}], by: [{shift[0]}, {shift[1]}, {shift[2]}]}}"
+                      for i in range(7) for j in range(7) for k in range(7))
+    spec = _spec(tmp_path, f"version: 1\ncapture: {{lattice: 7}}\nsteps:\n  - move:\n{moves}\n")
+    empty = _spec(tmp_path, "version: 1\ncapture: {lattice: 7}\nsteps: []\n", "e.yaml")
+    out, ident = tmp_path / "o.nrrd", tmp_path / "i.nrrd"
+    assert run("warp", src, "--spec", spec, "-o", out).code == 0
+    assert run("warp", src, "--spec", empty, "-o", ident).code == 0
+    vo, vi = read_volume(out), read_volume(ident)
+    assert vo.meta.get("patient") == "x" and vo.dtype == np.uint8
+    assert np.allclose(_centroid_world(vi), _centroid_world(vol), atol=0.05)
+    assert np.allclose(_centroid_world(vo) - _centroid_world(vol), shift, atol=0.1)
+    # --crop cuts back to the input grid
+    crop = tmp_path / "c.nrrd"
+    assert run("warp", src, "--spec", empty, "-o", crop, "--crop").code == 0
+    vc = read_volume(crop)
+    assert vc.same_grid(vol)
+    diff = np.abs(vc.data.astype(int) - data)
+    # box filtering blurs the binary edge a little, nothing more
+    assert np.mean(diff > 100) < 0.01 and diff.mean() < 3.0
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "int8", "uint16", "int16", "uint32", "int32",
+                                   "float32", "float64"])
+def test_every_dtype_identity_is_exact_with_nearest(run, tmp_path, dtype):
+    rng = np.random.default_rng(3)
+    info = np.iinfo(dtype) if np.dtype(dtype).kind in "iu" else None
+    lo, hi = (info.min, info.max) if info else (-1e6, 1e6)
+    data = rng.uniform(lo, hi, size=(9, 11, 13))
+    data = np.rint(data).astype(dtype) if info else data.astype(dtype)
+    src = tmp_path / "in.nrrd"
+    write_volume(Volume(data, spacing=(1, 2, 3)), src)
+    spec = _spec(tmp_path, "version: 1\ncapture: {lattice: [5, 6, 4], oversample: 1, "
+                 "sampling: nearest}\npushforward: nearest\nsteps: []\n")
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", spec, "-o", out)
+    assert res.code == 0, res.stderr
+    got = read_volume(out)
+    assert got.dtype == np.dtype(dtype)
+    if np.dtype(dtype).kind == "f":
+        # exact up to the fixed-point accumulators (2**-40 of the value range)
+        assert np.max(np.abs(got.data - data)) <= 1e-11 * np.abs(data).max() + (
+            np.finfo(dtype).eps * np.abs(data).max())
+    else:
+        assert np.array_equal(got.data, data)
+
+
+def test_capture_file_then_warp_equals_direct_warp_and_frames(run, data_dir, tmp_path):
+    src = data_dir / "ball_30_uint8.nrrd"
+    scene = tmp_path / "s.vwc"
+    spec = SPECS / "warp-ball.yaml"
+    assert run("capture", src, "-o", scene, "--lattice", "9").code == 0
+    a, b = tmp_path / "a.nrrd", tmp_path / "b.nrrd"
+    res = run("warp", scene, "--spec", spec, "-o", a,
+              "--frames-to", str(tmp_path / "f_{frame:02d}.nrrd"))
+    assert res.code == 0, res.stderr
+    assert run("warp", src, "--spec", spec, "-o", b).code == 0
+    va, vb = read_volume(a), read_volume(b)
+    assert np.array_equal(va.data, vb.data)
+    frames = sorted(tmp_path.glob("f_*.nrrd"))
+    assert [f.name for f in frames] == [f"f_{n:02d}.nrrd" for n in range(6)]  # 0 + 1 + 4
+    assert np.array_equal(read_volume(frames[-1]).data, va.data)
+    # frame 0 is the unwarped model, frames change monotonically towards the end
+    f0 = read_volume(frames[0]).data.astype(float)
+    diffs = [np.abs(read_volume(f).data.astype(float) - f0).sum() for f in frames]
+    assert diffs[0] == 0 and all(x < y for x, y in zip(diffs[1:], diffs[2:], strict=False))
+
+
+def test_drag_reaches_its_target(run, tmp_path):
+    # a smooth marker; drag its centre 4 voxels and find its peak there
+    zz, yy, xx = np.mgrid[:24, :24, :24]
+    data = (100 * np.exp(-((xx - 11) ** 2 + (yy - 11) ** 2 + (zz - 11) ** 2) / 4.0)
+            ).astype(np.float32)
+    src = tmp_path / "in.nrrd"
+    write_volume(Volume(data), src)
+    spec = _spec(tmp_path, "version: 1\nunits: voxel\ncapture: {lattice: 9, pad: 6}\n"
+                 "steps:\n  - drag:\n      - {from: [11, 11, 11], to: [15, 11, 11]}\n")
+    out = tmp_path / "o.nrrd"
+    assert run("warp", src, "--spec", spec, "-o", out, "--crop").code == 0
+    got = read_volume(out).data
+    z, y, x = np.unravel_index(np.argmax(got), got.shape)
+    assert (x, y, z) == (15, 11, 11)
+    assert got.max() > 0.8 * data.max()
+
+
+BAD = [
+    ("version: 1\nsteps: []\nbogus: 1\n", "bogus", 3),
+    ("version: 1\nsteps:\n  - move:\n      - {index: [9, 0, 0], by: [1, 0, 0]}\n",
+     "steps[0].move[0].index", 4),
+    ("version: 1\nsteps:\n  - move:\n      - {index: [1, 0], by: [1, 0, 0]}\n",
+     "steps[0].move[0].index", 4),
+    ("version: 1\nsteps:\n  - move:\n      - {index: [1, 0, 0], by: [1, 0, 'a']}\n",
+     "steps[0].move[0].by", 4),
+    ("version: 1\nsteps:\n  - move:\n      - {index: [1, 0, 0]}\n", "steps[0].move[0]", 4),
+    ("version: 1\nunits: voxel\nsteps:\n  - drag:\n      - {from: [5, 5, 5], to: [6, 5, 5]}\n"
+     "      - {from: [500, 5, 5], to: [6, 5, 5]}\n", "steps[0].drag[1].from", 6),
+    ("version: 1\nsteps:\n  - frames: 0\n", "steps[0].frames", 3),
+    ("version: 1\nsteps:\n  - radius: 3\n", "steps[0].radius", 3),
+    ("version: 2\nsteps: []\n", "version", 1),
+    ("version: 1\ncapture: {lattice: 3}\nsteps: []\n", "capture.lattice", 2),
+]
+
+
+@pytest.mark.parametrize("text, key, line", BAD)
+def test_bad_specs_exit_2_with_key_and_line(run, data_dir, tmp_path, text, key, line):
+    spec = _spec(tmp_path, text)
+    out = tmp_path / "o.nrrd"
+    res = run("warp", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out,
+              "--frames-to", str(tmp_path / "f{frame}.nrrd"))
+    assert res.code == 2, res.stderr
+    assert f"{spec}:{line}:" in res.stderr and key in res.stderr
+    assert list(tmp_path.glob("*.nrrd")) == []
+
+
+def test_spec_capture_conflicting_with_scene_is_exit_2(run, data_dir, tmp_path):
+    scene = tmp_path / "s.vwc"
+    assert run("capture", data_dir / "ball_30_uint8.nrrd", "-o", scene, "--lattice", "7").code == 0
+    spec = _spec(tmp_path, "version: 1\ncapture: {lattice: 9}\nsteps: []\n")
+    res = run("warp", scene, "--spec", spec, "-o", tmp_path / "o.nrrd")
+    assert res.code == 2 and "capture.lattice" in res.stderr
+
+
+@pytest.mark.parametrize("pattern", ["f.nrrd", "f_{nope}.nrrd", "f_{frame:q}.nrrd"])
+def test_bad_frame_pattern_exit_2(run, data_dir, tmp_path, pattern):
+    spec = _spec(tmp_path, "version: 1\nsteps: []\n")
+    res = run("warp", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o",
+              tmp_path / "o.nrrd", "--frames-to", str(tmp_path / pattern))
+    assert res.code == 2
+    assert list(tmp_path.glob("*.nrrd")) == []
+
+
+def test_table_evaluator_gives_the_same_output(run, data_dir, tmp_path):
+    a, b = tmp_path / "a.nrrd", tmp_path / "b.nrrd"
+    spec = SPECS / "warp-ball-voxel.yaml"
+    src = data_dir / "ball_30_uint8.nrrd"
+    assert run("warp", src, "--spec", spec, "-o", a, "--pushforward", "box").code == 0
+    assert run("warp", src, "--spec", spec, "-o", b, "--pushforward", "box",
+               "--evaluator", "table").code == 0
+    da, db = read_volume(a).data.astype(int), read_volume(b).data.astype(int)
+    assert np.max(np.abs(da - db)) <= 1
+
+
+def test_clay_block_example_specs(run, tmp_path):
+    """examples/clay-block: the corner goes in with inward.yaml and out with outward.yaml."""
+    import subprocess
+    import sys
+
+    folder = Path(__file__).parent.parent / "examples" / "clay-block"
+    block = tmp_path / "block.nrrd"
+    subprocess.run([sys.executable, str(folder / "make_block.py"), str(block)], check=True)
+    scene = tmp_path / "block.vwc"
+    assert run("capture", block, "-o", scene, "--lattice", "9").code == 0
+    src = read_volume(block)
+    corner = (slice(20, 24),) * 3  # inside the block, at its (+x, +y, +z) corner
+    beyond = (slice(24, 28),) * 3  # outside it
+    for name in ("inward", "outward"):
+        out = tmp_path / f"{name}.nrrd"
+        res = run("warp", scene, "--spec", folder / f"{name}.yaml", "-o", out, "--crop")
+        assert res.code == 0, res.stderr
+        got = read_volume(out).data.astype(float)
+        if name == "inward":
+            assert got[corner].mean() < 0.6 * src.data[corner].mean()
+        else:
+            assert got[beyond].mean() > src.data[beyond].astype(float).mean() + 40

@@ -1,0 +1,82 @@
+"""A captured volume: the domain voxmap plus everything needed to warp it later.
+
+:func:`capture_volume` is the ``volwarp capture`` core (paper §5
+"Initialization"): it sets up the lattice, places the capture control points
+and pulls the input back into the domain voxmap.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import VolwarpError
+from ..io.common import ensure_fits_in_memory
+from ..progress import timed
+from ..volume import Volume
+from .lattice import PLACEMENTS, Grid, capture_offsets
+from .pullback import SAMPLINGS, pullback
+
+
+@dataclass
+class Capture:
+    """Domain voxmap ``[Dz, Dy, Dx]`` and the capture set-up.
+
+    ``geometry`` is the input volume's geometry with a 1-voxel placeholder
+    array (its ``meta`` kept); ``input_dtype`` and ``stats`` (min, max, mean)
+    describe the captured input.
+    """
+
+    domain: np.ndarray
+    grid: Grid
+    placement: str
+    oversample: float
+    sampling: str
+    pad: tuple[int, int, int] | None
+    geometry: Volume
+    input_dtype: np.dtype
+    stats: tuple[float, float, float]
+
+    @property
+    def dq(self) -> np.ndarray:
+        """Capture lattice offsets from the uniform lattice, (Cz, Cy, Cx, 3)."""
+        return capture_offsets(self.grid, self.placement)
+
+    def lattice_points_index(self) -> np.ndarray:
+        """Capture control points in input voxel indices, (Cz, Cy, Cx, 3)."""
+        return self.grid.uniform_positions() + self.dq
+
+
+def domain_dtype(dtype) -> np.dtype:
+    """float64 where float32 would lose the input's precision, else float32."""
+    dt = np.dtype(dtype)
+    return np.dtype(np.float64) if dt in (np.float64, np.int32, np.uint32, np.int64,
+                                          np.uint64) else np.dtype(np.float32)
+
+
+def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform",
+                   oversample: float = 2.0, sampling: str = "linear", pad=None) -> Capture:
+    """Capture ``vol`` into a domain voxmap (see :mod:`.pullback`)."""
+    if placement not in PLACEMENTS:
+        raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
+    if sampling not in SAMPLINGS:
+        raise VolwarpError(f"unknown sampling {sampling!r} (use linear or nearest)")
+    if vol.data.dtype.kind == "f" and not np.all(np.isfinite(vol.data)):
+        raise VolwarpError("the volume has NaN or infinite samples; warping needs finite ones "
+                           "(replace them first)")
+    lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
+    grid = Grid.create(vol.shape_xyz, lattice, oversample)
+    capture_offsets(grid, placement)  # validates the placement for this lattice
+    dt = domain_dtype(vol.dtype)
+    ensure_fits_in_memory(int(np.prod(grid.domain_shape)) * dt.itemsize * 2,
+                          f"the {'x'.join(map(str, grid.domain_shape))} domain voxmap")
+    with timed("capture (pullback)"):
+        domain = pullback(vol.data, grid, placement, sampling, dt)
+    data = vol.data
+    stats = (float(data.min()), float(data.max()), float(data.mean(dtype=np.float64)))
+    geometry = vol.with_data(np.zeros((1, 1, 1), dtype=vol.dtype))
+    if pad is not None:
+        pad = tuple(int(v) for v in np.broadcast_to(np.asarray(pad), (3,)))
+    return Capture(domain, grid, placement, float(oversample), sampling, pad, geometry,
+                   np.dtype(vol.dtype), stats)

@@ -1,0 +1,216 @@
+"""The ``.vwc`` capture file: a captured domain voxmap and its set-up, versioned.
+
+Layout (all integers little-endian)::
+
+    offset 0   16 bytes  magic  b"VOLWARP-CAPTURE\\n"
+    offset 16  uint32    format version (currently 1)
+    offset 20  uint32    n, the length of the JSON header
+    offset 24  n bytes   JSON header (UTF-8, sorted keys, no timestamps)
+    offset 24+n          payload: the domain voxmap, C order [z, y, x],
+                         little-endian float32 or float64
+
+The header holds ``format`` ("vwc"), ``version``, ``input`` (shape x y z,
+dtype, spacing, origin, direction, space, meta, min, max, mean of the captured
+volume), ``capture`` (lattice, placement, oversample, sampling, pad,
+granularity, domain_shape) and ``payload`` (dtype, shape x y z, nbytes,
+crc32). Loading checks the magic (a foreign file), the version, the file size
+(a truncated file) and the CRC-32 of the payload (a corrupted one); each
+failure is a :class:`~volwarp_cli.errors.FormatError` naming the file.
+Identical captures give byte-identical files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError
+from ..io.atomic import atomic_output
+from ..volume import Volume
+from .capture import Capture
+from .lattice import Grid
+
+MAGIC = b"VOLWARP-CAPTURE\n"
+VERSION = 1
+_PREFIX = struct.Struct("<16sII")
+
+
+def _header(cap: Capture, payload: np.ndarray, crc: int) -> dict:
+    g = cap.geometry
+    return {
+        "format": "vwc",
+        "version": VERSION,
+        "input": {
+            "shape": list(cap.grid.input_shape),
+            "dtype": cap.input_dtype.name,
+            "spacing": [float(v) for v in g.spacing],
+            "origin": [float(v) for v in g.origin],
+            "direction": [[float(v) for v in row] for row in g.direction],
+            "space": g.space,
+            "meta": {str(k): str(v) for k, v in sorted(g.meta.items())},
+            "min": cap.stats[0],
+            "max": cap.stats[1],
+            "mean": cap.stats[2],
+        },
+        "capture": {
+            "lattice": list(cap.grid.lattice),
+            "placement": cap.placement,
+            "oversample": cap.oversample,
+            "sampling": cap.sampling,
+            "pad": list(cap.pad) if cap.pad is not None else None,
+            "granularity": list(cap.grid.granularity),
+            "domain_shape": list(cap.grid.domain_shape),
+        },
+        "payload": {
+            "dtype": payload.dtype.name,
+            "shape": list(cap.grid.domain_shape),
+            "nbytes": int(payload.nbytes),
+            "crc32": crc,
+        },
+    }
+
+
+def write_capture(cap: Capture, path: str | os.PathLike) -> None:
+    """Write ``cap`` to ``path`` atomically."""
+    payload = np.ascontiguousarray(cap.domain, dtype=cap.domain.dtype.newbyteorder("<"))
+    crc = zlib.crc32(memoryview(payload).cast("B"))
+    head = json.dumps(_header(cap, payload, crc), sort_keys=True).encode("utf-8")
+    with atomic_output(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(_PREFIX.pack(MAGIC, VERSION, len(head)))
+        fh.write(head)
+        fh.write(memoryview(payload).cast("B"))
+
+
+def read_header(path: str | os.PathLike) -> tuple[dict, int]:
+    """The checked JSON header of a capture file and the payload's byte offset."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            prefix = fh.read(_PREFIX.size)
+            if len(prefix) < _PREFIX.size or not prefix.startswith(MAGIC):
+                raise FormatError(f"{path}: not a volwarp capture file (file starts with "
+                                  f"{prefix[:16]!r})")
+            magic, version, n = _PREFIX.unpack(prefix)
+            if version != VERSION:
+                raise FormatError(f"{path}: capture file version {version} is not supported "
+                                  f"(this volwarp reads version {VERSION})")
+            raw = fh.read(n)
+    except FileNotFoundError:
+        raise FormatError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise FormatError(f"{path}: is a folder, not a capture file") from None
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read ({exc.strerror})") from None
+    if len(raw) < n:
+        raise FormatError(f"{path}: capture file is truncated (header incomplete)")
+    try:
+        head = json.loads(raw.decode("utf-8"))
+        payload = head["payload"]
+        expected = _PREFIX.size + n + int(payload["nbytes"])
+        shape = [int(v) for v in payload["shape"]]
+        dtype = np.dtype(payload["dtype"])
+        head["input"]["shape"], head["capture"]["lattice"]  # noqa: B018 - presence check
+    except (ValueError, KeyError, TypeError) as exc:
+        raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
+    if int(np.prod(shape)) * dtype.itemsize != int(payload["nbytes"]):
+        raise FormatError(f"{path}: capture file header is inconsistent (payload size)")
+    if size < expected:
+        raise FormatError(f"{path}: capture file is truncated: expected {expected} bytes, "
+                          f"found {size}")
+    if size > expected:
+        raise FormatError(f"{path}: capture file has {size - expected} unexpected trailing bytes")
+    return head, _PREFIX.size + n
+
+
+def read_capture(path: str | os.PathLike) -> Capture:
+    """Load and check a capture file written by :func:`write_capture`."""
+    head, offset = read_header(path)
+    pl = head["payload"]
+    dtype = np.dtype(pl["dtype"]).newbyteorder("<")
+    shape = tuple(int(v) for v in pl["shape"])[::-1]
+    from ..io.common import ensure_fits_in_memory
+    ensure_fits_in_memory(int(pl["nbytes"]), f"{path}: domain voxmap")
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        buf = bytearray(int(pl["nbytes"]))
+        got = fh.readinto(buf)
+    if got != len(buf):
+        raise FormatError(f"{path}: capture file is truncated")
+    if zlib.crc32(buf) != int(pl["crc32"]):
+        raise FormatError(f"{path}: capture file is corrupt (payload checksum mismatch)")
+    domain = np.frombuffer(buf, dtype=dtype).reshape(shape)
+    domain = domain.astype(dtype.newbyteorder("="), copy=False)
+    try:
+        inp = head["input"]
+        capd = head["capture"]
+        geometry = Volume(np.zeros((1, 1, 1), dtype=np.dtype(inp["dtype"])),
+                          spacing=inp["spacing"], origin=inp["origin"],
+                          direction=inp["direction"], space=inp["space"], meta=inp["meta"])
+        grid = Grid(tuple(int(v) for v in inp["shape"]), tuple(int(v) for v in capd["lattice"]),
+                    tuple(int(v) for v in capd["granularity"]))
+        if grid.domain_shape != tuple(int(v) for v in pl["shape"]):
+            raise ValueError("domain shape does not match the lattice")
+        pad = capd["pad"]
+        return Capture(domain, grid, capd["placement"], float(capd["oversample"]),
+                       capd["sampling"], tuple(pad) if pad is not None else None, geometry,
+                       np.dtype(inp["dtype"]), (inp["min"], inp["max"], inp["mean"]))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
+    except Exception as exc:  # a Volume check failing on bad geometry
+        raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
+
+
+def describe_capture(path: str | os.PathLike) -> dict:
+    """The ``volwarp info SCENE.vwc --json`` description.
+
+    Keys: the volume keys of the captured input (format "vwc", shape, dtype,
+    spacing, origin, direction, space, min, max, mean, meta), then
+    ``version``, ``lattice``, ``lattice_points`` (world x, y, z of control
+    point (i, j, k) at ``lattice_points[i][j][k]``), ``placement``,
+    ``oversample``, ``sampling``, ``pad``, ``granularity``, ``domain_shape``
+    and ``domain_dtype``.
+    """
+    head, _ = read_header(path)
+    inp = head["input"]
+    capd = head["capture"]
+    geometry = Volume(np.zeros((1, 1, 1)), spacing=inp["spacing"], origin=inp["origin"],
+                      direction=inp["direction"])
+    grid = Grid(tuple(inp["shape"]), tuple(capd["lattice"]), tuple(capd["granularity"]))
+    from .lattice import capture_offsets
+    pts = grid.uniform_positions() + capture_offsets(grid, capd["placement"])  # (k, j, i, 3)
+    world = geometry.index_to_world(pts.reshape(-1, 3)).reshape(pts.shape)
+    world = np.transpose(world, (2, 1, 0, 3))  # [i][j][k]
+    world = np.round(world, 9) + 0.0
+
+    def num(v):
+        return int(v) if np.dtype(inp["dtype"]).kind in "iu" else float(v)
+
+    return {
+        "format": "vwc",
+        "shape": inp["shape"],
+        "dtype": inp["dtype"],
+        "spacing": inp["spacing"],
+        "origin": inp["origin"],
+        "direction": inp["direction"],
+        "space": inp["space"],
+        "min": num(inp["min"]),
+        "max": num(inp["max"]),
+        "mean": inp["mean"],
+        "meta": inp["meta"],
+        "version": head["version"],
+        "lattice": capd["lattice"],
+        "placement": capd["placement"],
+        "oversample": capd["oversample"],
+        "sampling": capd["sampling"],
+        "pad": capd["pad"],
+        "granularity": capd["granularity"],
+        "domain_shape": capd["domain_shape"],
+        "domain_dtype": head["payload"]["dtype"],
+        "lattice_points": world.tolist(),
+    }

@@ -1,0 +1,160 @@
+"""Handles: "move this point there" (paper §7, thesis §6; Hsu's direct manipulation).
+
+For a handle ``from -> to``, Newton's method on the cubic write map finds the
+domain parameter ``(s0, t0, u0)`` that the current map sends to ``from``.
+Each handle gives one row of basis weights ``B`` over the control points;
+all handles of a step are solved together for the least-norm change::
+
+    delta P = B^+ (to - from)       (per coordinate; numpy.linalg.lstsq)
+
+so that afterwards the map sends each parameter exactly to its ``to`` point
+when the system is solvable. An optional ``radius`` (world units) limits the
+unknowns to control points within that distance of a handle's ``from`` point.
+
+All positions here are input voxel indices (x, y, z); the caller converts
+world coordinates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import VolwarpError
+from .basis import basis, basis_derivative, point_weights
+from .lattice import Grid
+
+
+class HandleError(VolwarpError):
+    """A handle that cannot be placed; ``index`` says which one."""
+
+    def __init__(self, message: str, index: int):
+        self.index = index
+        super().__init__(message)
+
+
+def _eval(dq, grid: Grid, params, derivative: bool):
+    params = np.atleast_2d(np.asarray(params, dtype=np.float64))
+    regions = np.array(grid.regions)
+    a = np.clip(np.floor(params), 0, regions - 1).astype(np.intp)
+    frac = params - a
+    w = [basis(frac[:, d]) for d in range(3)]  # (N, 4) each
+    ar = np.arange(4)
+    kk = a[:, 2][:, None, None, None] + ar[None, :, None, None]
+    jj = a[:, 1][:, None, None, None] + ar[None, None, :, None]
+    ii = a[:, 0][:, None, None, None] + ar[None, None, None, :]
+    block = dq[kk, jj, ii]  # (N, 4k, 4j, 4i, 3)
+    h = grid.spacing_h
+    val = np.einsum("nk,nj,ni,nkjim->nm", w[2], w[1], w[0], block) + (-0.5 + h * params)
+    if not derivative:
+        return val, None
+    dw = [basis_derivative(frac[:, d]) for d in range(3)]
+    jac = np.empty(params.shape + (3,))
+    jac[:, :, 0] = np.einsum("nk,nj,ni,nkjim->nm", w[2], w[1], dw[0], block)
+    jac[:, :, 1] = np.einsum("nk,nj,ni,nkjim->nm", w[2], dw[1], w[0], block)
+    jac[:, :, 2] = np.einsum("nk,nj,ni,nkjim->nm", dw[2], w[1], w[0], block)
+    jac += np.diag(h)[None]
+    return val, jac
+
+
+def map_params(dq, grid: Grid, params) -> np.ndarray:
+    """Positions (input voxels, x y z) of spline parameters (N, 3) under offsets ``dq``."""
+    return _eval(dq, grid, params, False)[0]
+
+
+def _newton(dq, grid, point, start, iters=60):
+    s = start.copy()
+    regions = np.array(grid.regions, dtype=np.float64)
+    for _ in range(iters):
+        val, jac = _eval(dq, grid, s[None], True)
+        r = val[0] - point
+        if np.max(np.abs(r)) < 1e-10:
+            break
+        try:
+            step = np.linalg.solve(jac[0], r)
+        except np.linalg.LinAlgError:
+            return s, np.inf
+        # damp steps that would jump far outside the parameter box
+        s = np.clip(s - step, -0.5, regions + 0.5)
+    val, _ = _eval(dq, grid, s[None], False)
+    return s, float(np.max(np.abs(val[0] - point)))
+
+
+def locate(dq, grid: Grid, points) -> np.ndarray:
+    """Parameters (N, 3) that the map sends to ``points`` (input voxels); Newton's method.
+
+    Starts from the inverse of the affine base map, then from the nearest of
+    a coarse grid of parameters. Raises :class:`HandleError` for a point the
+    warped model does not cover.
+    """
+    points = np.atleast_2d(np.asarray(points, dtype=np.float64))
+    regions = np.array(grid.regions, dtype=np.float64)
+    h = grid.spacing_h
+    coarse = None
+    out = np.empty_like(points)
+    for n, p in enumerate(points):
+        starts = [np.clip((p + 0.5) / h, 0, regions)]
+        found = None
+        for attempt in range(2):
+            for st in starts:
+                s, res = _newton(dq, grid, p, st)
+                if res < 1e-6 and np.all(s >= -1e-9) and np.all(s <= regions + 1e-9):
+                    found = np.clip(s, 0, regions)
+                    break
+            if found is not None or attempt == 1:
+                break
+            if coarse is None:
+                axes = [np.linspace(0, r, int(4 * r) + 1) for r in regions]
+                cs = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+                coarse = (cs, map_params(dq, grid, cs))
+            d = np.linalg.norm(coarse[1] - p, axis=1)
+            starts = [coarse[0][i] for i in np.argsort(d)[:4]]
+        if found is None:
+            raise HandleError(f"point {np.round(p, 4).tolist()} (input voxels x y z) is outside "
+                              "the region the warped model covers", n)
+        out[n] = found
+    return out
+
+
+def solve(dq, grid: Grid, sources, targets, free_mask=None):
+    """Least-norm control-point change moving each source point to its target.
+
+    Parameters
+    ----------
+    dq : (Cz, Cy, Cx, 3) current offsets.
+    sources, targets : (H, 3) input voxel positions (x y z).
+    free_mask : (Cz, Cy, Cx) bool, or None for all points.
+        Control points allowed to move.
+
+    Returns
+    -------
+    delta : (Cz, Cy, Cx, 3) float64
+        The change, zero outside the free points.
+    params : (H, 3)
+        The located parameters of the sources.
+    residual : float
+        Largest remaining error (input voxels) of the solved system.
+    """
+    sources = np.atleast_2d(np.asarray(sources, dtype=np.float64))
+    targets = np.atleast_2d(np.asarray(targets, dtype=np.float64))
+    params = locate(dq, grid, sources)
+    current = map_params(dq, grid, params)
+    ncp = int(np.prod(grid.lattice))
+    rows = np.zeros((len(params), ncp))
+    for n, prm in enumerate(params):
+        flat, w = point_weights(grid, prm)
+        rows[n, flat] = w
+    if free_mask is not None:
+        free = np.flatnonzero(np.asarray(free_mask).ravel())
+    else:
+        free = np.arange(ncp)
+    sub = rows[:, free]
+    for n in range(len(params)):
+        if not np.any(sub[n] > 1e-12):
+            raise HandleError("no control point that influences this handle is within the "
+                              "radius", n)
+    rhs = targets - current
+    sol, *_ = np.linalg.lstsq(sub, rhs, rcond=None)
+    delta = np.zeros((ncp, 3))
+    delta[free] = sol
+    residual = float(np.max(np.abs(sub @ sol - rhs))) if len(rhs) else 0.0
+    return delta.reshape(dq.shape), params, residual

@@ -1,0 +1,175 @@
+"""A warp spec turned into a sequence of control lattices (one per animation frame).
+
+The plan is computed on the lattice alone (moves, and handle solves against
+the write map, need no pushforward), before any volume work, so every spec
+error (an index outside the lattice, a handle outside the model) is reported
+with its key path and line before anything is written.
+
+A step may ``move`` control points (``by`` a displacement or ``to`` a point),
+``drag`` handles (solved together, least norm, optionally limited to control
+points within ``radius`` of a handle), and run over ``frames`` equal
+increments. Moves are applied first, in order, then the drags are solved
+against the moved lattice.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..progress import log
+from ..volume import Volume
+from .handles import HandleError, solve
+from .lattice import Grid
+
+
+@dataclass
+class CaptureSettings:
+    lattice: tuple[int, int, int] = (9, 9, 9)
+    placement: str = "uniform"
+    oversample: float = 2.0
+    pad: tuple[int, int, int] | None = None
+    sampling: str = "linear"
+
+
+@dataclass
+class Frame:
+    """One lattice state: ``dq`` offsets, 1-based spec step and increment within it."""
+
+    dq: np.ndarray
+    step: int
+    sub: int
+
+
+@dataclass
+class WarpSpec:
+    units: str = "world"
+    capture: CaptureSettings = field(default_factory=CaptureSettings)
+    capture_given: set = field(default_factory=set)
+    pushforward: str = "box"
+    evaluator: str = "separable"
+    steps: list = field(default_factory=list)
+
+
+def _vec3(v):
+    return tuple(int(x) for x in ([v] * 3 if isinstance(v, int) else v))
+
+
+def read_warp_spec(doc) -> WarpSpec:
+    """Typed settings from a schema-validated warp :class:`SpecDoc`."""
+    d = doc.data
+    cap = d.get("capture", {}) or {}
+    settings = CaptureSettings()
+    if "lattice" in cap:
+        settings.lattice = _vec3(cap["lattice"])
+    if "placement" in cap:
+        settings.placement = cap["placement"]
+        if settings.placement == "tripled" and min(settings.lattice) < 6:
+            raise doc.error(("capture", "placement"),
+                            "the tripled placement needs a lattice of at least 6 points per axis")
+    if "oversample" in cap:
+        settings.oversample = float(cap["oversample"])
+    if "pad" in cap:
+        settings.pad = _vec3(cap["pad"])
+    if "sampling" in cap:
+        settings.sampling = cap["sampling"]
+    steps = d.get("steps", [])
+    for s, step in enumerate(steps):
+        if "radius" in step and "drag" not in step:
+            raise doc.error(("steps", s, "radius"), "radius limits a drag; this step has none")
+    return WarpSpec(units=d.get("units", "world"), capture=settings, capture_given=set(cap),
+                    pushforward=d.get("pushforward", "box"),
+                    evaluator=d.get("evaluator", "separable"), steps=steps)
+
+
+class Geometry:
+    """World <-> input voxel conversions of the input volume."""
+
+    def __init__(self, vol: Volume, units: str = "world"):
+        self.vol = vol
+        self.units = units
+        self.matrix = vol.direction * vol.spacing[None, :]
+        self.inverse = np.linalg.inv(self.matrix)
+
+    def point(self, p) -> np.ndarray:
+        p = np.asarray(p, dtype=np.float64)
+        return p if self.units == "voxel" else self.vol.world_to_index(p)
+
+    def vector(self, v) -> np.ndarray:
+        v = np.asarray(v, dtype=np.float64)
+        return v if self.units == "voxel" else self.inverse @ v
+
+    def world(self, idx) -> np.ndarray:
+        return self.vol.index_to_world(idx)
+
+
+def check_indices(doc, spec: WarpSpec, lattice) -> None:
+    """Every move index inside the lattice, else a SpecError naming it."""
+    for s, step in enumerate(spec.steps):
+        for m, mv in enumerate(step.get("move", [])):
+            idx = mv["index"]
+            if any(i >= c for i, c in zip(idx, lattice, strict=False)):
+                raise doc.error(("steps", s, "move", m, "index"),
+                                f"control point {idx} is outside the {lattice[0]}x{lattice[1]}x"
+                                f"{lattice[2]} lattice (indices 0..{lattice[0] - 1}, "
+                                f"0..{lattice[1] - 1}, 0..{lattice[2] - 1})")
+
+
+def plan(doc, spec: WarpSpec, grid: Grid, dq0: np.ndarray, geom: Geometry) -> list[Frame]:
+    """The lattice after every increment of every step, in order."""
+    check_indices(doc, spec, grid.lattice)
+    uniform = grid.uniform_positions()
+    frames = []
+    current = np.array(dq0, dtype=np.float64)
+    for s, step in enumerate(spec.steps):
+        work = current.copy()
+        for mv in step.get("move", []):
+            i, j, k = mv["index"]
+            if "by" in mv:
+                work[k, j, i] += geom.vector(mv["by"])
+            else:
+                work[k, j, i] = geom.point(mv["to"]) - uniform[k, j, i]
+        if "drag" in step:
+            drags = step["drag"]
+            src = np.array([geom.point(h["from"]) for h in drags])
+            dst = np.array([geom.point(h["to"]) for h in drags])
+            free = None
+            if "radius" in step:
+                radius = float(step["radius"])
+                pts = uniform + work  # input voxels
+                if geom.units == "world":
+                    pts_w = geom.world(pts.reshape(-1, 3)).reshape(pts.shape)
+                    src_w = geom.world(src)
+                else:
+                    pts_w, src_w = pts, src
+                dist = np.linalg.norm(pts_w[None] - src_w[:, None, None, None, :], axis=-1)
+                free = np.any(dist <= radius, axis=0)
+            try:
+                delta, _, residual = solve(work, grid, src, dst, free)
+            except HandleError as exc:
+                raise doc.error(("steps", s, "drag", exc.index, "from"), str(exc)) from None
+            if residual > 1e-3:
+                log.warning("steps[%d]: the handles cannot all be reached (largest miss %.3g "
+                            "voxel); used the least-squares compromise", s, residual)
+            work = work + delta
+        n = int(step.get("frames", 1))
+        total = work - current
+        for f in range(1, n + 1):
+            dq = work.copy() if f == n else current + total * (f / n)
+            frames.append(Frame(dq, s + 1, f))
+        current = work
+    return frames
+
+
+def default_pad(frames: list[Frame], dq0: np.ndarray) -> tuple[int, int, int]:
+    """Padding that holds the image of every frame's map: max control-point displacement + 1.
+
+    The B-spline weights are non-negative and sum to one, so no point moves
+    further (per axis) than the largest control-point displacement.
+    """
+    pad = np.zeros(3)
+    for fr in frames:
+        pad = np.maximum(pad, np.abs(fr.dq - dq0).reshape(-1, 3).max(axis=0))
+    return tuple(int(math.ceil(p - 1e-9)) + 1 if p > 0 else 0 for p in pad)

@@ -1,0 +1,99 @@
+"""The ``volwarp warp`` core: a captured volume, a spec, and the warped frames.
+
+:func:`prepare` checks the spec against the capture, plans every lattice
+state (see :mod:`.plan`) and builds the :class:`~.scene.Scene`;
+:func:`run` renders the frames (incremental updates between them) and
+:func:`output_volume` turns a target array into a Volume in the right place.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..io.common import cast_samples
+from ..progress import log, progress, timed
+from ..volume import Volume
+from .capture import Capture
+from .plan import Geometry, WarpSpec, default_pad, plan
+from .scene import Scene
+
+
+def check_capture_settings(doc, spec: WarpSpec, cap: Capture, source: str) -> None:
+    """A spec's capture settings must agree with an already captured scene."""
+    have = {"lattice": tuple(cap.grid.lattice), "placement": cap.placement,
+            "oversample": cap.oversample, "sampling": cap.sampling}
+    want = {"lattice": tuple(spec.capture.lattice), "placement": spec.capture.placement,
+            "oversample": spec.capture.oversample, "sampling": spec.capture.sampling}
+    for key in ("lattice", "placement", "oversample", "sampling"):
+        if key in spec.capture_given and have[key] != want[key]:
+            raise doc.error(("capture", key),
+                            f"is {want[key]!r} but {source} was captured with {have[key]!r} "
+                            "(remove the key or capture again)")
+
+
+def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
+            evaluator: str | None = None):
+    """The scene (with its target padding) and the planned frames."""
+    geom = Geometry(cap.geometry, spec.units)
+    dq0 = cap.dq
+    with timed("plan lattice moves"):
+        frames = plan(doc, spec, cap.grid, dq0, geom)
+    if spec.capture.pad is not None:
+        pad = spec.capture.pad
+    elif cap.pad is not None:
+        pad = cap.pad
+    else:
+        pad = default_pad(frames, dq0)
+    needed = default_pad(frames, dq0)
+    if any(p < n - 1 for p, n in zip(pad, needed, strict=False)):
+        log.warning("pad %s is smaller than the largest displacement %s: material moved "
+                    "outside the padded grid is cut off", list(pad), [max(n - 1, 0) for n in needed])
+    scene = Scene(cap.domain, cap.grid, dq0, pad, method=method or spec.pushforward,
+                  evaluator=evaluator or spec.evaluator)
+    return scene, frames
+
+
+def run(scene: Scene, frames, on_frame=None) -> np.ndarray:
+    """Apply the frames; ``on_frame(n, frame_or_None, target)`` after each (incremental).
+
+    Without ``on_frame`` only the final lattice is rendered (in full), which
+    gives the same target as the incremental sequence.
+    """
+    if on_frame is None:
+        if frames:
+            scene.set_lattice(frames[-1].dq)
+        with timed("warp (deformation + pushforward)"):
+            return scene.render()
+    with timed("warp frame 0 (full)"):
+        on_frame(0, None, scene.render())
+    with progress(len(frames), "warp") as bar:
+        for n, fr in enumerate(frames, start=1):
+            with timed(f"warp frame {n} (step {fr.step}, increment {fr.sub})"):
+                scene.set_lattice(fr.dq)
+            on_frame(n, fr, scene.out)
+            bar.advance()
+    return scene.out
+
+
+def output_volume(cap: Capture, scene: Scene, target: np.ndarray, *, crop: bool = False,
+                  dtype=None) -> Volume:
+    """The target as a Volume: the input's dtype, spacing, direction and meta.
+
+    The padded target's origin is shifted by ``pad`` voxels so that unwarped
+    anatomy stays at the same world position; ``crop`` cuts back to the
+    input's extent (and origin).
+    """
+    g = cap.geometry
+    pad = np.array(scene.pad)
+    data = target
+    if crop:
+        px, py, pz = (int(v) for v in pad)
+        nx, ny, nz = cap.grid.input_shape
+        data = data[pz:pz + nz, py:py + ny, px:px + nx]
+        origin = g.origin
+    else:
+        origin = g.origin - g.direction @ (g.spacing * pad)
+    out_dtype = dtype or cap.input_dtype
+    data = cast_samples(np.ascontiguousarray(data), out_dtype, what="warped volume")
+    return Volume(data, spacing=g.spacing, origin=origin, direction=g.direction, space=g.space,
+                  meta=g.meta)
