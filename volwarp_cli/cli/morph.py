@@ -1,14 +1,244 @@
-"""`volwarp morph`: not implemented yet (its issue replaces this module)."""
+"""`volwarp morph`: implicit morph frames between two shapes (Dinh & Carvalho 2004).
+
+    volwarp morph --spec MORPH.yaml -o 'frame_{i:03d}.nrrd'
+        [--mesh-to 'frame_{i:03d}.ply'] [--render-to 'frame_{i:03d}.png']
+    volwarp morph SOURCE TARGET --frames N --iso V -o PATTERN [--inside ...] [--metric ...]
+
+Patterns are Python format strings with ``{i}`` (frame number) and ``{t}``
+(its time), e.g. ``frame_{i:03d}.nrrd`` or ``m_{t:.2f}.nrrd``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
 
 import click
 
 from ..errors import VolwarpError
+from ..progress import log, progress, timed
 from .options import common_options
 
+_METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
-@click.command(name="morph", context_settings={"ignore_unknown_options": True})
-@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+
+def _expand(pattern: str, times: list[float], option: str) -> list[str]:
+    try:
+        names = [pattern.format(i=i, t=t) for i, t in enumerate(times)]
+    except (KeyError, IndexError, ValueError, AttributeError) as exc:
+        raise click.BadParameter(f"bad pattern {pattern!r} ({exc}); use {{i}} and {{t}}, "
+                                 "e.g. frame_{i:03d}.nrrd", param_hint=option) from None
+    if len(set(names)) != len(names):
+        raise click.BadParameter(f"{pattern!r} gives the same file name to several frames; "
+                                 "put {i} (or {t}) in it", param_hint=option)
+    return names
+
+
+def _attribute_name(frame_path: str, name: str) -> str:
+    p = Path(frame_path)
+    suffix = "".join(p.suffixes[-2:]) if p.name.endswith(".nii.gz") else p.suffix
+    stem = p.name[: len(p.name) - len(suffix)] if suffix else p.name
+    return str(p.with_name(f"{stem}_{name}{suffix}"))
+
+
+@click.command(name="morph")
+@click.argument("shapes", nargs=-1, type=click.Path(dir_okay=False), metavar="[SOURCE TARGET]")
+@click.option("--spec", "spec_path", type=click.Path(dir_okay=False), default=None,
+              help="Morph spec (YAML, see specs/morph.schema.json).")
+@click.option("-o", "--output", required=True,
+              help="Frame file pattern, e.g. 'frame_{i:03d}.nrrd' ({i} frame number, {t} time).")
+@click.option("--mesh-to", default=None,
+              help="Also write each frame's surface: pattern with a mesh extension "
+                   "(.ply .stl .obj .vtp .vtk).")
+@click.option("--render-to", default=None,
+              help="Also render each frame's surface to a PNG: pattern.")
+@click.option("--sheet", "sheet_path", default=None, type=click.Path(dir_okay=False),
+              help="With --render-to: also one contact sheet of all frames' renders.")
+@click.option("--frames", type=click.IntRange(min=2), default=None,
+              help="Short form: number of frames (t = 0 .. 1).")
+@click.option("--times", default=None, metavar="T1,T2,...",
+              help="Short form: explicit times in [0, 1] instead of --frames.")
+@click.option("--iso", type=float, default=None, help="Short form: iso level of both shapes.")
+@click.option("--inside", type=click.Choice(["above", "below"]), default="above",
+              show_default=True, help="Short form: which side of the iso level is inside.")
+@click.option("--metric", type=click.Choice(_METRICS), default=None,
+              help="Short form: distance metric (default euclidean).")
+@click.option("--grid", "grid_choice", type=click.Choice(["source", "target", "union"]),
+              default=None, help="Short form: the frame grid when the inputs' grids differ.")
+@click.option("--density", "as_density", is_flag=True,
+              help="Short form: write a 0..1 occupancy (0.5 on the surface) instead of the SDF.")
+@click.option("--size", default="640x480", show_default=True,
+              help="Render size WxH for --render-to.")
+@click.option("--view", default="iso", show_default=True,
+              help="Render view: iso, x, y, z or 'azimuth,elevation'.")
+@click.option("--compress/--no-compress", default=False, show_default=True,
+              help="gzip NRRD frame data.")
 @common_options
-def command(args):
-    """Not implemented yet."""
-    raise VolwarpError("'morph' is not implemented yet")
+def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, times, iso, inside,
+            metric, grid_choice, as_density, size, view, compress):
+    """Morph SOURCE into TARGET: frame t is the zero level set of (1-t) d_source + t d_target.
+
+    Give a --spec, or SOURCE TARGET with --frames (or --times) and --iso.
+    Frames are float32 signed distance fields (negative inside), or a 0..1
+    occupancy with --density / output: density. Source and target on
+    different grids need an alignment or a grid (spec 'grid', --grid).
+    """
+    from ..morph.spec import MorphJob, ShapeRef
+
+    if spec_path is not None:
+        if shapes:
+            raise click.UsageError("give either --spec or SOURCE TARGET, not both")
+        for flag, given in (("--frames", frames is not None), ("--times", times is not None),
+                            ("--iso", iso is not None), ("--metric", metric is not None),
+                            ("--grid", grid_choice is not None), ("--density", as_density),
+                            ("--inside", inside != "above")):
+            if given:
+                raise click.UsageError(f"{flag} belongs to the short form; with --spec, set it "
+                                       "in the spec")
+        from ..morph.spec import job_from_spec
+        from ..spec.loader import load_spec
+
+        job = job_from_spec(load_spec(spec_path, "morph"))
+    else:
+        if len(shapes) != 2:
+            raise click.UsageError("give SOURCE and TARGET (or --spec MORPH.yaml)")
+        if iso is None:
+            raise click.UsageError("--iso V is required in the short form")
+        if (frames is None) == (times is None):
+            raise click.UsageError("give --frames N or --times T1,T2,... (one of them)")
+        if times is not None:
+            try:
+                tlist = [float(v) for v in times.split(",") if v.strip()]
+            except ValueError:
+                raise click.BadParameter(f"{times!r} is not a comma-separated list of numbers",
+                                         param_hint="--times") from None
+            bad = [t for t in tlist if not 0.0 <= t <= 1.0]
+            if bad or not tlist:
+                raise click.BadParameter(f"times must lie in [0, 1], got {times}",
+                                         param_hint="--times")
+        else:
+            tlist = [i / (frames - 1) for i in range(frames)]
+        job = MorphJob(source=ShapeRef(Path(shapes[0]), iso, inside),
+                       target=ShapeRef(Path(shapes[1]), iso, inside), times=tlist,
+                       metric=metric or "euclidean", output="density" if as_density else "sdf",
+                       grid=grid_choice)
+    if sheet_path is not None and render_to is None:
+        raise click.UsageError("--sheet needs --render-to")
+    _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec_path)
+
+
+def _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec_path):
+    import numpy as np
+
+    from ..io import check_output_path, read_volume, write_volume
+    from ..morph.grid import GridError
+    from ..morph.interpolate import density, occupancy_to_range
+    from ..morph.pipeline import prepare
+
+    frame_paths = _expand(output, job.times, "-o")
+    mesh_paths = _expand(mesh_to, job.times, "--mesh-to") if mesh_to else None
+    render_paths = _expand(render_to, job.times, "--render-to") if render_to else None
+    for p in frame_paths:
+        check_output_path(p)
+    for a in job.attributes:
+        for p in frame_paths:
+            check_output_path(_attribute_name(p, a.name))
+    if mesh_paths:
+        from ..surface.mesh_io import check_mesh_output
+
+        for p in mesh_paths:
+            check_mesh_output(p)
+    if render_paths:
+        for p in render_paths:
+            check_output_path(p)
+        if sheet_path:
+            check_output_path(sheet_path)
+    with timed("read inputs"):
+        source = read_volume(job.source.path)
+        target = read_volume(job.target.path)
+        attrs = {a.name: (read_volume(a.source), read_volume(a.target)) for a in job.attributes}
+    try:
+        prep = prepare(job, source, target, attrs)
+    except GridError as exc:
+        if spec_path is None:
+            raise click.UsageError(f"{exc} (short form: --grid union|source|target)") from None
+        from ..errors import SpecError
+
+        raise SpecError(str(exc), file=str(spec_path), key="grid") from None
+    grid = prep.grid
+    width = job.density_width or float(min(grid.spacing))
+    meta_base = {"volwarp_morph": f"metric={job.metric} output={job.output}"}
+    camera = None
+    renders = []
+    with progress(len(job.times), "morph frames") as bar:
+        buf = np.empty(grid.shape_zyx, np.float32)
+        for i, t in enumerate(job.times):
+            field = prep.morph.field(t, out=buf)
+            if job.output == "density":
+                data = density(field, width)
+                if job.density_range == "source":
+                    lo = float(np.nanmin(source.data))
+                    hi = float(np.nanmax(source.data))
+                    data = occupancy_to_range(data, lo, job.source.iso, hi, job.source.inside,
+                                              source.data.dtype)
+            else:
+                data = field
+            meta = dict(meta_base, volwarp_morph_t=f"{t:.9g}")
+            write_volume(grid.volume(data, meta), frame_paths[i], compress=compress)
+            for a in job.attributes:
+                va, vb = prep.attributes[a.name]
+                dtype = a.dtype or np.dtype(attrs[a.name][0].data.dtype).name
+                vol = grid.volume(prep.morph.attribute(t, va, vb), dict(meta))
+                write_volume(vol, _attribute_name(frame_paths[i], a.name), dtype=dtype,
+                             compress=compress)
+            if mesh_paths or render_paths:
+                from ..surface.isosurface import isosurface
+
+                mesh = isosurface(grid.volume(field), 0.0, inside="below")
+                if mesh_paths:
+                    from ..surface.mesh_io import write_mesh
+
+                    write_mesh(mesh, mesh_paths[i])
+                if render_paths:
+                    from ..io.images import write_image
+                    from ..render.surface import fit_camera, render_mesh
+
+                    if camera is None:
+                        camera = fit_camera(_shape_box(prep), _parse_view(view), size)
+                    image = render_mesh(mesh, camera=camera)
+                    write_image(render_paths[i], image)
+                    if sheet_path:
+                        renders.append(image)
+            bar.advance()
+    if sheet_path:
+        from ..io.images import write_image
+        from ..render.sheet import contact_sheet
+
+        write_image(sheet_path, contact_sheet(renders))
+    log.info("wrote %d frames on a %s grid", len(job.times), "x".join(map(str, grid.shape_xyz)))
+
+
+def _parse_view(view: str):
+    if view in ("iso", "x", "y", "z"):
+        return view
+    try:
+        az, el = (float(v) for v in view.split(","))
+    except ValueError:
+        raise click.BadParameter(f"{view!r}: use iso, x, y, z or 'azimuth,elevation'",
+                                 param_hint="--view") from None
+    return (az, el)
+
+
+def _shape_box(prep):
+    """World corners of the box holding source and target shapes (for one fixed camera)."""
+    import numpy as np
+
+    inside = (prep.morph.source < 0) | (prep.morph.target < 0)
+    if not inside.any():
+        raise VolwarpError("neither shape has any voxel inside on the frame grid")
+    idx = [np.flatnonzero(inside.any(axis=a)) for a in ((1, 2), (0, 2), (0, 1))]  # z, y, x
+    lo = np.array([idx[2][0], idx[1][0], idx[0][0]], dtype=np.float64)
+    hi = np.array([idx[2][-1], idx[1][-1], idx[0][-1]], dtype=np.float64)
+    corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
+                        for c in (lo[2], hi[2])])
+    m = prep.grid.index_to_world
+    return corners @ m[:3, :3].T + m[:3, 3]

@@ -1,0 +1,202 @@
+"""`distance`: exact signed Euclidean (vs scipy), min-norm (vs distance_transform_cdt), CLI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import ball
+from scipy import ndimage as ndi
+
+from volwarp_cli.distance.exact import signed_edt
+from volwarp_cli.distance.field import signed_distance
+from volwarp_cli.distance.minnorm import minnorm_signed, passes_needed
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.volume import Volume
+
+
+def blobs(shape, seed, sigma=2.5, level=0.5):
+    rng = np.random.default_rng(seed)
+    return ndi.gaussian_filter(rng.random(shape), sigma) > level
+
+
+def scipy_signed(mask, sampling):
+    return (ndi.distance_transform_edt(~mask, sampling=sampling)
+            - ndi.distance_transform_edt(mask, sampling=sampling))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (2.5, 1.0, 0.7), (0.3, 1.7, 1.1)])
+def test_signed_edt_matches_scipy_on_random_blobs(seed, spacing):
+    mask = blobs((23, 31, 37), seed)
+    assert 0.2 < mask.mean() < 0.8
+    got = signed_edt(mask, spacing)
+    ref = scipy_signed(mask, spacing)
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-4)
+
+
+def test_signed_edt_sign_and_thin_shapes():
+    mask = np.zeros((9, 10, 11), bool)
+    mask[4, 5, :] = True  # a one-voxel line: every inside voxel is 1 away from outside
+    d = signed_edt(mask, (1, 1, 1))
+    assert np.all(d[mask] == -1.0)
+    assert d[4, 5 + 3, 2] == 3.0 and d[0, 5, 0] == 4.0
+    np.testing.assert_allclose(d, scipy_signed(mask, (1, 1, 1)), atol=1e-5)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_minnorm_equals_cdt_taxicab(seed):
+    mask = blobs((19, 33, 40), seed)
+    got, passes = minnorm_signed(mask)
+    ref = (ndi.distance_transform_cdt(~mask, metric="taxicab")
+           - ndi.distance_transform_cdt(mask, metric="taxicab"))
+    np.testing.assert_array_equal(got, ref.astype(np.float32))
+    # log2 passes per axis (the paper: log2 w + log2 h per side), both sides
+    assert passes == 2 * (passes_needed(19) + passes_needed(33) + passes_needed(40))
+    assert passes == 2 * (5 + 6 + 6)
+
+
+def test_minnorm_with_spacing_is_weighted_taxicab():
+    mask = np.zeros((6, 7, 8), bool)
+    mask[2, 3, 4] = True
+    mask[4, 1, 1] = True
+    h = (2.0, 0.5, 1.5)  # z, y, x
+    got, _ = minnorm_signed(mask, h)
+    sites = np.argwhere(mask)
+    idx = np.indices(mask.shape).reshape(3, -1).T
+    brute = np.min(np.abs(idx[:, None, :] - sites[None]) @ np.array(h), axis=1)
+    brute = brute.reshape(mask.shape)
+    brute[mask] = -min(h)  # inside: distance to the nearest outside voxel
+    np.testing.assert_allclose(got, brute, atol=1e-6)
+
+
+@pytest.mark.parametrize("metric", ["chessboard", "taxicab"])
+def test_cdt_metrics(metric):
+    mask = blobs((15, 20, 25), 5)
+    got, _ = signed_distance(mask.astype(np.uint8), (2, 2, 2), iso=0.5, metric=metric)
+    ref = 2.0 * (ndi.distance_transform_cdt(~mask, metric=metric)
+                 - ndi.distance_transform_cdt(mask, metric=metric))
+    np.testing.assert_array_equal(got, ref.astype(np.float32))
+
+
+def test_cdt_metrics_refuse_anisotropic_spacing():
+    from volwarp_cli.errors import VolwarpError
+
+    with pytest.raises(VolwarpError, match="isotropic"):
+        signed_distance(ball(12).astype(np.uint8), (1, 1, 2), iso=0.5, metric="chessboard")
+
+
+def test_inside_below_and_iso():
+    data = (200 - 150 * ball(20)).astype(np.int16)  # 50 inside, 200 outside
+    d_below, _ = signed_distance(data, (1, 1, 1), iso=120, inside="below")
+    d_above, _ = signed_distance(ball(20), (1, 1, 1), iso=0.5)
+    np.testing.assert_array_equal(d_below, d_above)
+
+
+# -- command line -------------------------------------------------------------
+
+def write_ball(path, spacing=(1.0, 1.5, 2.0), n=24, origin=(3.0, -2.0, 5.0)):
+    vol = Volume((ball(n, n / 3.2) * 200).astype(np.uint8), spacing=spacing, origin=origin)
+    write_volume(vol, path)
+    return vol
+
+
+def test_cli_distance_matches_scipy_and_keeps_geometry(run, tmp_path):
+    vol = write_ball(tmp_path / "b.nrrd")
+    r = run("distance", tmp_path / "b.nrrd", "-o", tmp_path / "d.nrrd", "--iso", 100)
+    assert r.code == 0, r.stderr
+    out = read_volume(tmp_path / "d.nrrd")
+    assert out.data.dtype == np.float32
+    assert out.same_grid(vol)
+    ref = scipy_signed(vol.data >= 100, vol.spacing[::-1])
+    np.testing.assert_allclose(out.data, ref, atol=1e-4)
+    assert "metric=euclidean" in out.meta["volwarp_distance"]
+
+
+def test_cli_distance_is_deterministic(run, tmp_path):
+    write_ball(tmp_path / "b.nrrd")
+    for name in ("1.nrrd", "2.nrrd"):
+        assert run("distance", tmp_path / "b.nrrd", "-o", tmp_path / name, "--iso", 100,
+                   "--metric", "minnorm").code == 0
+    assert (tmp_path / "1.nrrd").read_bytes() == (tmp_path / "2.nrrd").read_bytes()
+
+
+def test_cli_unsigned_and_max_distance(run, tmp_path):
+    vol = write_ball(tmp_path / "b.nrrd")
+    r = run("distance", tmp_path / "b.nrrd", "-o", tmp_path / "u.nrrd", "--iso", 100,
+            "--unsigned", "--max-distance", 4)
+    assert r.code == 0, r.stderr
+    u = read_volume(tmp_path / "u.nrrd").data
+    ref = np.minimum(ndi.distance_transform_edt(~(vol.data >= 100), sampling=vol.spacing[::-1]), 4)
+    np.testing.assert_allclose(u, ref, atol=1e-4)
+    assert u.min() == 0.0 and u.max() == 4.0
+
+
+def test_cli_real_scan_voxel_mode_matches_scipy(run, tmp_path, data_dir):
+    src = data_dir / "mri_t1_head_coronal_2x2x3mm.nrrd"
+    r = run("distance", src, "-o", tmp_path / "d.nrrd", "--iso", 40, "--surface", "voxel")
+    assert r.code == 0, r.stderr
+    vol = read_volume(src)
+    out = read_volume(tmp_path / "d.nrrd")
+    assert out.same_grid(vol)
+    ref = scipy_signed(vol.data >= 40, vol.spacing[::-1])
+    np.testing.assert_allclose(out.data, ref, atol=2e-3)
+
+
+def test_cli_real_scan_subvoxel_is_close_to_voxel_mode(run, tmp_path, data_dir):
+    src = data_dir / "mri_t1_head_coronal_2x2x3mm.nrrd"
+    assert run("distance", src, "-o", tmp_path / "s.nrrd", "--iso", 40).code == 0
+    vol = read_volume(src)
+    sub = read_volume(tmp_path / "s.nrrd").data
+    mask = vol.data >= 40
+    assert np.all(sub[mask] <= 0) and np.all(sub[~mask] >= 0)  # sign from the samples
+    vox = scipy_signed(mask, vol.spacing[::-1])
+    # the sub-voxel surface lies between the voxel centres the binary field puts at +-h
+    assert np.max(np.abs(sub - vox)) < 2 * vol.spacing.max()
+
+
+def test_cli_errors(run, tmp_path):
+    write_ball(tmp_path / "b.nrrd")
+    out = tmp_path / "d.nrrd"
+    r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", 250)
+    assert r.code == 1 and "empty" in r.stderr and not out.exists()
+    r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", -1)
+    assert r.code == 1 and "fills the whole grid" in r.stderr
+    r = run("distance", tmp_path / "b.nrrd", "-o", out)
+    assert r.code == 2 and "--iso" in r.stderr
+    r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", 1, "--metric", "chessboard")
+    assert r.code == 1 and "isotropic" in r.stderr
+    r = run("distance", tmp_path / "missing.nrrd", "-o", out, "--iso", 1)
+    assert r.code == 1 and "missing.nrrd" in r.stderr
+    r = run("distance", tmp_path / "b.nrrd", "-o", tmp_path / "nope" / "d.nrrd", "--iso", 1)
+    assert r.code == 1 and "does not exist" in r.stderr
+    assert not out.exists()
+
+
+def test_cli_refuses_what_does_not_fit_in_memory(run, tmp_path, monkeypatch):
+    write_ball(tmp_path / "b.nrrd")
+    monkeypatch.setenv("VOLWARP_MEMORY_LIMIT", "100000")
+    r = run("distance", tmp_path / "b.nrrd", "-o", tmp_path / "d.nrrd", "--iso", 100)
+    assert r.code == 1 and "memory" in r.stderr
+    assert not (tmp_path / "d.nrrd").exists()
+
+
+def test_signed_edt_property_against_scipy():
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+    from hypothesis.extra.numpy import arrays
+
+    @settings(max_examples=40, deadline=None)
+    @given(arrays(bool, st.tuples(st.integers(1, 7), st.integers(1, 9), st.integers(1, 11))),
+           st.tuples(*[st.floats(0.25, 4.0)] * 3))
+    def check(mask, spacing):
+        if mask.all() or not mask.any():
+            return
+        got = signed_edt(mask, spacing)
+        np.testing.assert_allclose(got, scipy_signed(mask, spacing), rtol=1e-5, atol=1e-4)
+        got_mn, _ = minnorm_signed(mask)
+        ref_mn = (ndi.distance_transform_cdt(~mask, metric="taxicab")
+                  - ndi.distance_transform_cdt(mask, metric="taxicab"))
+        np.testing.assert_array_equal(got_mn, ref_mn)
+
+    check()

@@ -1,0 +1,141 @@
+"""One entry point for signed distance fields: shape by iso level, metric, surface mode.
+
+Conventions (the same for every metric): the shape is the set of samples at
+or above the iso level ``V`` (``inside="above"``) or below it (``"below"``), as
+``volwarp mesh`` has it (a sample equal to ``V`` counts as above); NaN samples
+are outside. Inside voxels always get a negative value (at least 1e-6 of the
+finest spacing in magnitude, for a sample lying exactly on ``V``), so the sign
+alone tells the side. Distances are in world units (each
+axis' spacing), **negative inside, positive outside**.
+
+Metrics
+-------
+``euclidean``
+    Binary inputs (two distinct sample values): the exact distance between
+    voxel centres (:mod:`.exact`). Smooth inputs: the distance to the
+    sub-voxel iso-surface (:mod:`.subvoxel`). ``surface`` forces either.
+``minnorm``
+    The paper's shift-and-min scheme (:mod:`.minnorm`); it equals the
+    spacing-weighted taxicab distance between voxel centres.
+``taxicab``, ``chessboard``
+    ``scipy.ndimage.distance_transform_cdt`` (two-pass chamfer scans) between
+    voxel centres; voxel steps, so isotropic spacing only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import VolwarpError
+
+METRICS = ("euclidean", "minnorm", "chessboard", "taxicab")
+SURFACES = ("auto", "voxel", "subvoxel")
+
+
+def inside_mask(data: np.ndarray, iso: float, inside: str = "above") -> np.ndarray:
+    """The shape: samples at or above (or below) ``iso``; NaN is outside."""
+    if inside == "above":
+        return data >= iso
+    if inside == "below":
+        return data < iso
+    raise VolwarpError(f"inside must be 'above' or 'below', got {inside!r}")
+
+
+def is_binary(data: np.ndarray) -> bool:
+    """True when the samples take at most two distinct values."""
+    if data.dtype == bool:
+        return True
+    lo = data.min()
+    hi = data.max()
+    if lo == hi:
+        return True
+    return int(np.count_nonzero((data == lo) | (data == hi))) == data.size
+
+
+def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
+                    inside: str = "above", metric: str = "euclidean",
+                    surface: str = "auto") -> tuple[np.ndarray, dict]:
+    """Signed distance field of the shape ``data`` {above|below} ``iso``.
+
+    Parameters
+    ----------
+    data : (Z, Y, X) array
+    spacing_zyx : 3 floats
+        Spacing along the array axes.
+    iso, inside : the shape's definition (module doc).
+    metric : {"euclidean", "minnorm", "chessboard", "taxicab"}
+    surface : {"auto", "voxel", "subvoxel"}
+        Euclidean only: voxel-centre distances (binary) or sub-voxel surface.
+
+    Returns
+    -------
+    field : (Z, Y, X) float32 array
+    info : dict
+        ``{"metric", "surface", "passes"}`` (passes for ``minnorm``).
+    """
+    if metric not in METRICS:
+        raise VolwarpError(f"unknown metric {metric!r} (known: {', '.join(METRICS)})")
+    if surface not in SURFACES:
+        raise VolwarpError(f"unknown surface mode {surface!r} (known: {', '.join(SURFACES)})")
+    if surface == "subvoxel" and metric != "euclidean":
+        raise VolwarpError(f"sub-voxel surfaces need the euclidean metric, not {metric!r}")
+    data = np.asarray(data)
+    if data.dtype.kind == "c" or data.dtype.kind not in "biuf":
+        raise VolwarpError(f"cannot take the distance of samples of type {data.dtype}")
+    from ..io.common import ensure_fits_in_memory
+
+    # mask + float32 field (+ seed ids, a second id buffer and float32 samples, sub-voxel)
+    ensure_fits_in_memory(data.size * (18 if metric == "euclidean" else 13),
+                          f"the distance field of {data.size} samples")
+    mask = inside_mask(data, iso, inside)
+    count = int(np.count_nonzero(mask))
+    if count == 0:
+        raise VolwarpError(f"the shape is empty: no sample is {inside} the iso level {iso:g} "
+                           f"(samples range {float(np.nanmin(data)):g} to "
+                           f"{float(np.nanmax(data)):g})")
+    if count == mask.size:
+        raise VolwarpError(f"the shape fills the whole grid: every sample is {inside} the iso "
+                           f"level {iso:g}, so there is no surface")
+    spacing_zyx = tuple(float(s) for s in spacing_zyx)
+    info = {"metric": metric, "surface": "voxel", "passes": 0}
+    if metric == "euclidean":
+        sub = surface == "subvoxel" or (surface == "auto" and not is_binary(data))
+        if sub:
+            from .subvoxel import subvoxel_signed_distance
+
+            info["surface"] = "subvoxel"
+            return subvoxel_signed_distance(data, iso, inside=inside,
+                                            spacing_zyx=spacing_zyx), info
+        from .exact import signed_edt
+
+        return signed_edt(mask, spacing_zyx), info
+    if metric == "minnorm":
+        from .minnorm import minnorm_signed
+
+        field, passes = minnorm_signed(mask, spacing_zyx)
+        info["passes"] = passes
+        return field, info
+    if not np.allclose(spacing_zyx, spacing_zyx[0], rtol=1e-6):
+        raise VolwarpError(f"the {metric} metric counts voxel steps and needs isotropic "
+                           f"spacing, got {list(spacing_zyx[::-1])} (x, y, z); use euclidean "
+                           "or minnorm (spacing-weighted taxicab)")
+    from scipy import ndimage
+
+    out = ndimage.distance_transform_cdt(~mask, metric=metric).astype(np.float32)
+    inner = ndimage.distance_transform_cdt(mask, metric=metric)
+    np.copyto(out, -inner.astype(np.float32), where=mask)
+    if spacing_zyx[0] != 1.0:
+        out *= np.float32(spacing_zyx[0])
+    return out, info
+
+
+def finish_field(field: np.ndarray, *, unsigned: bool = False,
+                 max_distance: float | None = None) -> np.ndarray:
+    """Apply ``--unsigned`` (distance to the shape, 0 inside) and ``--max-distance``, in place."""
+    if unsigned:
+        np.maximum(field, 0, out=field)
+    if max_distance is not None:
+        if not max_distance > 0:
+            raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
+        np.clip(field, -max_distance, max_distance, out=field)
+    return field

@@ -1,0 +1,1 @@
+"""Implicit morphs (Dinh & Carvalho 2004): alignment, landmark warps, SDF interpolation."""

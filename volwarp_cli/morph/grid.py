@@ -1,0 +1,122 @@
+"""The world grid the morph frames are sampled on.
+
+Rules (documented in the README and the morph schema):
+
+* ``source`` / ``target``: that input's grid.
+* ``union``: the **source's spacing and direction**, extended (on the
+  source's own lattice, so that a source not moved is sampled at exactly its
+  own voxels) to cover the voxel boxes of both aligned inputs plus ``margin``
+  voxels on every side.
+* an explicit ``{origin, spacing, size, direction}``.
+* not given: the common grid when source and target share one and there is no
+  alignment or warp; ``union`` when an alignment or warp is given; otherwise an
+  error (the inputs lie on different grids and nothing says how to combine
+  them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import VolwarpError
+from ..volume import Volume, xyz_to_zyx
+
+
+class GridError(VolwarpError):
+    """Source and target cannot be put on one grid without more information."""
+
+
+@dataclass
+class Grid:
+    shape_xyz: tuple[int, int, int]
+    spacing: np.ndarray
+    origin: np.ndarray
+    direction: np.ndarray
+
+    @classmethod
+    def of(cls, vol: Volume) -> Grid:
+        return cls(tuple(vol.shape_xyz), vol.spacing.copy(), vol.origin.copy(),
+                   vol.direction.copy())
+
+    @property
+    def shape_zyx(self) -> tuple[int, int, int]:
+        return tuple(int(n) for n in xyz_to_zyx(self.shape_xyz))
+
+    @property
+    def spacing_zyx(self) -> tuple[float, float, float]:
+        return tuple(float(s) for s in xyz_to_zyx(self.spacing))
+
+    @property
+    def index_to_world(self) -> np.ndarray:
+        m = np.eye(4)
+        m[:3, :3] = self.direction * self.spacing[None, :]
+        m[:3, 3] = self.origin
+        return m
+
+    @property
+    def voxels(self) -> int:
+        return int(np.prod(self.shape_xyz))
+
+    def volume(self, data: np.ndarray, meta: dict | None = None) -> Volume:
+        return Volume(data, spacing=self.spacing, origin=self.origin, direction=self.direction,
+                      meta=meta or {})
+
+
+def _corners(grid: Grid) -> np.ndarray:
+    n = np.array(grid.shape_xyz) - 1
+    c = np.array([[a, b, d, 1.0] for a in (0, n[0]) for b in (0, n[1]) for d in (0, n[2])])
+    return c @ grid.index_to_world.T
+
+
+def union_grid(source: Grid, target: Grid, source_matrix: np.ndarray,
+               target_matrix: np.ndarray, margin: float = 2.0) -> Grid:
+    """Source spacing/direction, on the source lattice, covering both moved input boxes."""
+    to_idx = np.linalg.inv(source.index_to_world)
+    pts = np.vstack([_corners(source) @ source_matrix.T, _corners(target) @ target_matrix.T])
+    idx = pts @ to_idx.T
+    lo = np.floor(idx[:, :3].min(axis=0) + 1e-6) - np.ceil(margin)
+    hi = np.ceil(idx[:, :3].max(axis=0) - 1e-6) + np.ceil(margin)
+    shape = tuple(int(v) for v in (hi - lo + 1))
+    origin = source.index_to_world[:3, :3] @ lo + source.origin
+    return Grid(shape, source.spacing.copy(), origin, source.direction.copy())
+
+
+def explicit_grid(spec: dict) -> Grid:
+    spacing = np.asarray(spec["spacing"], dtype=np.float64)
+    spacing = np.full(3, float(spacing)) if spacing.shape == () else spacing
+    direction = np.asarray(spec.get("direction", np.eye(3)), dtype=np.float64)
+    if abs(np.linalg.det(direction)) < 1e-9:
+        raise VolwarpError("grid.direction is singular")
+    return Grid(tuple(int(v) for v in spec["size"]), spacing,
+                np.asarray(spec["origin"], dtype=np.float64), direction)
+
+
+def choose_grid(grid_spec, source: Grid, target: Grid, source_matrix: np.ndarray,
+                target_matrix: np.ndarray, *, moved: bool, margin: float = 2.0) -> Grid:
+    """The frame grid by the rules of the module doc; ``moved``: align or warp given."""
+    if isinstance(grid_spec, dict):
+        return explicit_grid(grid_spec)
+    if grid_spec == "source":
+        return source
+    if grid_spec == "target":
+        return target
+    if grid_spec == "union":
+        return union_grid(source, target, source_matrix, target_matrix, margin)
+    if grid_spec is not None:
+        raise VolwarpError(f"unknown grid {grid_spec!r} (source, target, union or geometry)")
+    same = (source.shape_xyz == target.shape_xyz
+            and np.allclose(source.spacing, target.spacing, atol=1e-6)
+            and np.allclose(source.origin, target.origin, atol=1e-6)
+            and np.allclose(source.direction, target.direction, atol=1e-6))
+    if same and not moved:
+        return source
+    if moved:
+        return union_grid(source, target, source_matrix, target_matrix, margin)
+    raise GridError(
+        "source and target lie on different grids (source "
+        f"{'x'.join(map(str, source.shape_xyz))} at spacing {source.spacing.tolist()}, origin "
+        f"{source.origin.tolist()}; target {'x'.join(map(str, target.shape_xyz))} at spacing "
+        f"{target.spacing.tolist()}, origin {target.origin.tolist()}) and no align or grid is "
+        "given: say grid: union (or source/target, or explicit geometry)")
