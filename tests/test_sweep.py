@@ -462,13 +462,13 @@ def test_anisotropic_grid(tmp_path, method):
 
 
 def test_rgba_template_channels_are_not_premultiplied(tmp_path):
-    from volwarp_cli.sweep.templates import read_template_image
+    from volwarp_cli.io.images import read_image
 
     img = np.zeros((4, 4, 4), dtype=np.float32)
     img[..., 0] = 1.0
     img[..., 3] = 0.25
     write_image(tmp_path / "rgba.png", img)
-    got = read_template_image(tmp_path / "rgba.png")
+    got = read_image(tmp_path / "rgba.png")
     assert np.allclose(got[..., 0], 1.0) and np.allclose(got[..., 3], 64 / 255)
 
 

@@ -166,7 +166,10 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec
         raise SpecError(str(exc), file=str(spec_path), key="grid") from None
     grid = prep.grid
     width = job.density_width or float(min(grid.spacing))
-    meta_base = {"volwarp_morph": f"metric={job.metric} output={job.output}"}
+    from .common import provenance
+
+    meta_base = {"volwarp_morph": f"metric={job.metric} output={job.output}",
+                 **provenance("morph", [job.source.path, job.target.path], spec_path)}
     camera = None
     renders = []
     with progress(len(job.times), "morph frames") as bar:

@@ -83,6 +83,7 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     from ..sweep import evaluate
     from ..sweep.model import fit_grid, parse_sweep_spec
     from ..volume import Volume
+    from .common import provenance
 
     if shape is not None and spacing is not None:
         raise click.UsageError("give --shape or --spacing, not both")
@@ -116,17 +117,18 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     with timed(f"sweep {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} ({method or sspec.method})"):
         fields = evaluate(sspec, grid, method=method, tau=tau)
     out_dtype = dtype or "float32"
+    stamp_meta = provenance("sweep", [spec], spec)
 
     def as_volume(data, name=None):
         data = cast_samples(scale_to_dtype(data, out_dtype), out_dtype, what=str(name))
-        meta = {"volwarp_sweep_field": name} if name else {}
+        meta = dict(stamp_meta, volwarp_sweep_field=name) if name else dict(stamp_meta)
         return Volume(data, spacing=grid.spacing, origin=grid.origin, meta=meta)
 
     with timed("write"):
         if multi:
             from ..io.nrrd import write_nrrd
             comps = [as_volume(fields[n]).data for n in names]
-            write_nrrd(Volume(comps[0], spacing=grid.spacing, origin=grid.origin),
+            write_nrrd(as_volume(fields[names[0]]),
                        paths[None], compress=compress, byte_order=byte_order,
                        components=comps, component_names=names)
         else:

@@ -19,18 +19,25 @@ _OIIO_TYPES = {"uint8": "UINT8", "uint16": "UINT16", "float32": "FLOAT", "float1
 
 
 def read_image(path: str | os.PathLike, *, normalize: bool = True) -> np.ndarray:
-    """Read an image as ``(H, W, C)``.
+    """Read an image as ``(H, W, C)`` with every channel as stored in the file.
 
     With ``normalize`` (default), integer images are scaled to float32 in
     [0, 1] (255 -> 1.0 for 8-bit, 65535 -> 1.0 for 16-bit) and float images are
     returned as float32 unchanged; otherwise the file's own type is kept.
+
+    Alpha is *not* multiplied into the colour channels: OpenImageIO
+    premultiplies RGBA files by default (``oiio:UnassociatedAlpha`` off), which
+    would darken colour wherever alpha is low; volwarp treats channels as
+    independent fields (a sweep template's opacity and colour, for instance).
     """
     import OpenImageIO as oiio
 
     where = str(path)
     if not Path(path).is_file():
         raise FormatError(f"{where}: no such image file")
-    inp = oiio.ImageInput.open(where)
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(where, config)
     if inp is None:
         raise FormatError(f"{where}: cannot read image ({oiio.geterror().strip()})")
     try:

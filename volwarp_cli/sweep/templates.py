@@ -15,8 +15,8 @@ function ``f(u)``. Here:
   ``[0, n - 1]`` are clamped. Without ``path``, ``f`` runs from slice 0 to the
   last slice along each segment.
 
-Images are read with OpenImageIO (as :func:`volwarp_cli.io.images.read_image`
-does, but with alpha left unassociated: :func:`read_template_image`): 8- and
+Images are read with :func:`volwarp_cli.io.images.read_image` (OpenImageIO,
+alpha left unassociated so colour is not darkened by opacity): 8- and
 16-bit images are scaled to [0, 1], float images are kept as they are.
 Image stacks come from a glob pattern, a list of files, or one volume file
 (NRRD, multi-page TIFF, NIfTI: its z slices are the frames, samples unscaled).
@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VolwarpError
+from ..io.images import read_image
 from ..spec.functions import Function, spec_error
 
 
@@ -92,42 +93,6 @@ def sample_template(data: np.ndarray, x: np.ndarray, y: np.ndarray,
     return out
 
 
-def read_template_image(path) -> np.ndarray:
-    """Read an image as ``(H, W, C)`` float32 with every channel as stored in the file.
-
-    Like :func:`volwarp_cli.io.images.read_image` (8/16-bit scaled to [0, 1],
-    floats kept), except that an alpha channel is *not* multiplied into the
-    colour channels: OpenImageIO premultiplies RGBA files by default
-    (``oiio:UnassociatedAlpha`` off), which would darken a template's colour
-    field wherever its opacity is low. Template channels are independent fields.
-    """
-    import OpenImageIO as oiio
-
-    from ..errors import FormatError
-
-    where = str(path)
-    config = oiio.ImageSpec()
-    config.attribute("oiio:UnassociatedAlpha", 1)
-    inp = oiio.ImageInput.open(where, config)
-    if inp is None:
-        raise FormatError(f"{where}: cannot read image ({oiio.geterror().strip()})")
-    try:
-        spec = inp.spec()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, spec.format)
-        if pixels is None:
-            raise FormatError(f"{where}: cannot read image data ({inp.geterror().strip()})")
-    finally:
-        inp.close()
-    arr = np.asarray(pixels)
-    if arr.ndim == 2:
-        arr = arr[:, :, None]
-    if arr.ndim != 3:
-        raise FormatError(f"{where}: expected a 2-D image, got shape {arr.shape}")
-    if arr.dtype.kind in "ui":
-        return arr.astype(np.float32) / np.float32(np.iinfo(arr.dtype).max)
-    return arr.astype(np.float32)
-
-
 class TemplateLoader:
     """Loads the ``fields`` of a spec, reading each image file once."""
 
@@ -145,7 +110,7 @@ class TemplateLoader:
             try:
                 if not Path(file).is_file():
                     raise self._err(path, f"template image {str(file)!r} does not exist")
-                self._images[key] = read_template_image(file)
+                self._images[key] = read_image(file)
             except VolwarpError as exc:
                 if getattr(exc, "key", None):
                     raise
