@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
+from volwarp_cli.errors import FormatError
 from volwarp_cli.io import RawLayout, read_volume, write_volume
 from volwarp_cli.io.common import SUPPORTED_DTYPES
 from volwarp_cli.volume import Volume
@@ -304,3 +305,52 @@ def test_multi_member_gzip_nrrd(tmp_path):
     (tmp_path / "m.nrrd").write_bytes(b"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 4 4 4\n"
                                       b"encoding: gzip\n\n" + payload)
     np.testing.assert_array_equal(read_volume(tmp_path / "m.nrrd").data, data)
+
+
+def test_multi_component_nrrd_reads_one_component(tmp_path):
+    """`sweep --multi` writes 4-D vector NRRDs; each component reads back as a volume."""
+    from volwarp_cli.io.nrrd import write_nrrd
+
+    rng = np.random.default_rng(3)
+    comps = [rng.random((3, 4, 5), dtype=np.float32) for _ in range(3)]
+    base = Volume(comps[0], spacing=(0.5, 0.7, 2.0), origin=(1.0, -2.0, 3.0))
+    write_nrrd(base, tmp_path / "m.nrrd", components=comps,
+               component_names=["opacity", "red", "green"])
+    for i, name in enumerate(["opacity", "red", "green"]):
+        vol = read_volume(tmp_path / "m.nrrd", volume_index=i)
+        np.testing.assert_array_equal(vol.data, comps[i])
+        np.testing.assert_allclose(vol.spacing, (0.5, 0.7, 2.0))
+        np.testing.assert_allclose(vol.origin, (1.0, -2.0, 3.0))
+        assert vol.meta["volwarp_component"] == name
+    with pytest.raises(FormatError, match=r"3 components per voxel \(opacity red green\)"):
+        read_volume(tmp_path / "m.nrrd")
+    with pytest.raises(FormatError, match="out of range"):
+        read_volume(tmp_path / "m.nrrd", volume_index=3)
+    # pynrrd, an independent reader, sees the same samples on the vector axis
+    data, _ = pynrrd.read(str(tmp_path / "m.nrrd"), index_order="C")
+    np.testing.assert_array_equal(data[..., 1], comps[1])
+
+
+def test_vector_nrrd_from_pynrrd_with_component_axis_last(tmp_path):
+    data = np.arange(2 * 3 * 4 * 2, dtype=np.int16).reshape(2, 2, 3, 4)  # [c, z, y, x]
+    pynrrd.write(str(tmp_path / "v.nrrd"), data, index_order="C",
+               header={"kinds": ["domain", "domain", "domain", "vector"],
+                       "space directions": [[2, 0, 0], [0, 1, 0], [0, 0, 1], [np.nan] * 3],
+                       "space": "left-posterior-superior"})
+    # NRRD order is fastest first: x, y, z, then the component axis (slowest)
+    vol = read_volume(tmp_path / "v.nrrd", volume_index=1)
+    np.testing.assert_array_equal(vol.data, data[1])
+    np.testing.assert_allclose(vol.spacing, (2.0, 1.0, 1.0))
+
+
+def test_volume_index_refused_where_it_means_nothing(tmp_path):
+    from conftest import ball
+
+    vol = Volume(ball(12))
+    write_volume(vol, tmp_path / "b.tif")
+    with pytest.raises(FormatError, match="--volume-index"):
+        read_volume(tmp_path / "b.tif", volume_index=0)
+    write_volume(vol, tmp_path / "b.nrrd")
+    assert read_volume(tmp_path / "b.nrrd", volume_index=0).data.shape == vol.data.shape
+    with pytest.raises(FormatError, match="one component"):
+        read_volume(tmp_path / "b.nrrd", volume_index=1)

@@ -77,7 +77,8 @@ def raw_options(f):
         click.option("--raw-header-bytes", type=click.IntRange(min=0), default=0,
                      help="Raw input: bytes to skip before the samples."),
         click.option("--volume-index", type=click.IntRange(min=0), default=None,
-                     help="4-D NIfTI input: which volume to read."),
+                     help="4-D NIfTI input: which volume to read; multi-component NRRD: "
+                          "which component."),
     ]
     for opt in reversed(opts):
         wrapper = opt(wrapper)

@@ -72,14 +72,18 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
                 volume_index: int | None = None) -> Volume:
     """Read a volume file; ``raw`` describes headerless ``.raw``/``.bin`` files.
 
-    ``volume_index`` selects one volume of a 4-D NIfTI file.
+    ``volume_index`` selects one volume of a 4-D NIfTI file or one component
+    of a multi-component (4-D) NRRD file.
     """
     path = Path(path)
     fmt = volume_format(path)
     _check_content(path, fmt)
+    if volume_index is not None and fmt in ("tiff", "raw"):
+        raise FormatError(f"{path}: --volume-index selects a volume of a 4-D NIfTI or a "
+                          f"component of a 4-D NRRD; a {_FORMAT_NAMES[fmt]} file has one")
     if fmt == "nrrd":
         from .nrrd import read_nrrd
-        vol = read_nrrd(path)
+        vol = read_nrrd(path, volume_index)
     elif fmt == "tiff":
         from .tiff import read_tiff
         vol = read_tiff(path)

@@ -171,8 +171,15 @@ def _data_files(fields: dict[str, str], header_path: Path, fh, where: str):
     return [base / spec]
 
 
-def read_nrrd(path: str | os.PathLike) -> Volume:
-    """Read a 3-D NRRD volume (attached or detached)."""
+def read_nrrd(path: str | os.PathLike, component: int | None = None) -> Volume:
+    """Read a 3-D NRRD volume (attached or detached).
+
+    A 4-D file with one non-spatial axis (``space directions`` entry ``none``,
+    e.g. the vector files ``volwarp sweep --multi`` writes) holds several
+    components per voxel: ``component`` picks one (its name, when the file
+    names them, is kept as ``volwarp_component``). A single-component 4-D file
+    reads without it.
+    """
     path = Path(path)
     where = str(path)
     try:
@@ -196,9 +203,19 @@ def read_nrrd(path: str | os.PathLike) -> Volume:
             raise FormatError(f"{where}: 'sizes' has {len(sizes)} entries, 'dimension' is {dim}")
         if any(s <= 0 for s in sizes):
             raise FormatError(f"{where}: 'sizes' must be positive, got {sizes}")
-        if dim != 3:
-            raise FormatError(f"{where}: volwarp reads 3-D volumes; this file has "
-                              f"dimension {dim} (sizes {sizes})")
+        comp_axis = _component_axis(fields, dim, sizes, where)
+        n_comp = sizes[comp_axis] if comp_axis is not None else 1
+        if comp_axis is None and component not in (None, 0):
+            raise FormatError(f"{where}: --volume-index {component} given, but the file "
+                              "has one component")
+        if comp_axis is not None and component is None and n_comp > 1:
+            names = keyvals.get("volwarp_components", "")
+            raise FormatError(f"{where}: has {n_comp} components per voxel"
+                              f"{f' ({names})' if names else ''}; "
+                              f"select one with --volume-index 0..{n_comp - 1}")
+        if component is not None and component >= n_comp:
+            raise FormatError(f"{where}: --volume-index {component} is out of range: "
+                              f"the file has {n_comp} component{'s' if n_comp > 1 else ''}")
         encoding = _ENCODINGS.get(fields["encoding"].lower())
         if encoding is None:
             raise FormatError(f"{where}: unknown encoding {fields['encoding']!r} "
@@ -233,12 +250,38 @@ def read_nrrd(path: str | os.PathLike) -> Volume:
                     chunks.append(_read_data(dfh, file_dtype, per_file, encoding, lineskip,
                                              byteskip, str(f), exact_end=True))
             data = np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
-    data = native(data.reshape(xyz_to_zyx(sizes)))
     meta = dict(keyvals)
+    if comp_axis is not None:
+        index = component or 0
+        data = data.reshape(sizes[::-1])
+        data = np.take(data, index, axis=dim - 1 - comp_axis)
+        sizes = [s for a, s in enumerate(sizes) if a != comp_axis]
+        names = meta.pop("volwarp_components", "").split()
+        if len(names) == n_comp:
+            meta["volwarp_component"] = names[index]
+    data = native(np.ascontiguousarray(data.reshape(xyz_to_zyx(sizes))))
     for name in _KEPT_FIELDS:
         if name in fields:
             meta[f"NRRD_{name}"] = fields[name]
     return Volume(data, spacing=spacing, origin=origin, direction=direction, space=space, meta=meta)
+
+
+def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: str):
+    """The index of the one non-spatial axis of a 4-D header (None for 3-D)."""
+    if dim == 3:
+        return None
+    if dim == 4:
+        entries = fields.get("space directions", "").split()
+        if len(entries) == 4:
+            nonspatial = [a for a, e in enumerate(entries) if e.lower() == "none"]
+        else:  # no space directions: the kinds say which axis is not a domain
+            kinds = fields.get("kinds", "").lower().split()
+            nonspatial = ([a for a, k in enumerate(kinds) if k not in ("domain", "space")]
+                          if len(kinds) == 4 else [])
+        if len(nonspatial) == 1:
+            return nonspatial[0]
+    raise FormatError(f"{where}: volwarp reads 3-D volumes (or 4-D ones with one component "
+                      f"axis); this file has dimension {dim} (sizes {sizes})")
 
 
 def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact_end):
