@@ -259,3 +259,13 @@ def test_sigterm_while_writing_leaves_nothing(tmp_path):
     assert "interrupted by SIGTERM" in err
     assert out.read_bytes() == b"old output"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["big.nrrd", "out.nrrd"]
+
+
+def test_verbose_log_reaches_each_invocations_stderr(run, tmp_path, data_dir):
+    """The log handler follows sys.stderr: a second in-process run still shows its steps."""
+    path = tmp_path / "b.nrrd"
+    run("convert", data_dir / "ball_30_uint8.nrrd", "-o", path)
+    for _ in range(2):
+        res = run("info", path, "-v")
+        assert res.code == 0
+        assert f"volwarp: read {path}" in res.stderr
