@@ -70,7 +70,8 @@ def _same_triangles(mesh: Mesh, points: np.ndarray, faces: np.ndarray):
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_independent_readers_agree(blob, tmp_path, fmt):
     path = tmp_path / f"blob.{fmt}"
-    write_mesh(blob, path)
+    # provenance comments (with awkward characters) must not disturb any reader
+    write_mesh(blob, path, comments={"volwarp_input": "a b--c.nrrd", "volwarp_iso": "0.5"})
     for reader in READERS[fmt]:
         points, faces = reader(str(path))
         assert len(faces) == blob.n_faces, reader.__name__
@@ -166,7 +167,7 @@ def test_failed_write_leaves_existing_file(blob, tmp_path, monkeypatch):
     path = tmp_path / "m.ply"
     path.write_bytes(b"old")
 
-    def boom(mesh, fh):
+    def boom(mesh, fh, notes):
         fh.write(b"partial")
         raise RuntimeError("disk full")
 
@@ -175,3 +176,12 @@ def test_failed_write_leaves_existing_file(blob, tmp_path, monkeypatch):
         write_mesh(blob, path)
     assert path.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["m.ply"]
+
+
+@pytest.mark.parametrize("fmt", ["ply", "obj", "vtp"])
+def test_provenance_comments_are_kept(blob, tmp_path, fmt):
+    path = tmp_path / f"blob.{fmt}"
+    write_mesh(blob, path, comments={"volwarp_spec_sha256": "ab" * 32, "volwarp_input": "x y.nrrd"})
+    head = path.read_bytes()[:2000]
+    assert b"volwarp_spec_sha256=" + b"ab" * 32 in head
+    assert b"volwarp_input=x y.nrrd" in head

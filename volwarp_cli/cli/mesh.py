@@ -182,8 +182,10 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
 
     if output is not None:
         from ..surface.mesh_io import write_mesh
+        from .common import provenance
         with timed(f"write {output}"):
-            write_mesh(mesh, output)
+            write_mesh(mesh, output, comments=dict(provenance("mesh", input),
+                                                   volwarp_iso=f"{iso:.9g}"))
 
     if show_stats or as_json:
         from ..surface.stats import mesh_stats

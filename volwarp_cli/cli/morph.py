@@ -200,7 +200,7 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec
                 if mesh_paths:
                     from ..surface.mesh_io import write_mesh
 
-                    write_mesh(mesh, mesh_paths[i])
+                    write_mesh(mesh, mesh_paths[i], comments=meta)
                 if render_paths:
                     from ..io.images import write_image
                     from ..render.surface import fit_camera, render_mesh

@@ -44,20 +44,33 @@ def check_mesh_output(path: str | os.PathLike) -> str:
     return fmt
 
 
-def write_mesh(mesh: Mesh, path: str | os.PathLike) -> None:
+def write_mesh(mesh: Mesh, path: str | os.PathLike,
+               comments: dict[str, str] | None = None) -> None:
     """Write ``mesh`` to ``path`` atomically, in the format its extension names.
 
     Normals are written when the mesh has them (PLY, OBJ, VTP, VTK); STL
     always stores each facet's normal computed from its winding.
+    ``comments`` (provenance key/values) go where the format has room for
+    text: ``comment key=value`` header lines in PLY, ``# key=value`` in OBJ,
+    an XML comment in VTP; STL's 80-byte header and legacy VTK's title line
+    are too small and keep their fixed text.
     """
     fmt = check_mesh_output(path)
+    notes = [f"{k}={_one_line(v)}" for k, v in sorted((comments or {}).items())]
     writer = {"ply": _write_ply, "stl": _write_stl, "obj": _write_obj,
               "vtp": _write_vtp, "vtk": _write_vtk}[fmt]
     if mesh.n_vertices > _INT32_MAX:
         raise VolwarpError(f"{path}: {mesh.n_vertices} vertices are more than the "
                            f"{fmt.upper()} writer's 32-bit indices can address")
     with atomic_output(path) as tmp, open(tmp, "wb") as fh:
-        writer(mesh, fh)
+        if fmt in ("ply", "obj", "vtp"):
+            writer(mesh, fh, notes)
+        else:
+            writer(mesh, fh)
+
+
+def _one_line(value) -> str:
+    return " ".join(str(value).split())
 
 
 def _f32(a: np.ndarray) -> np.ndarray:
@@ -80,9 +93,10 @@ def _write_blocks(fh, n: int, dtype, fill) -> None:
 
 
 # -- PLY ---------------------------------------------------------------------
-def _write_ply(mesh: Mesh, fh) -> None:
+def _write_ply(mesh: Mesh, fh, notes: list[str]) -> None:
     has_n = mesh.normals is not None
     header = ["ply", "format binary_little_endian 1.0", "comment written by volwarp",
+              *(f"comment {n}" for n in notes),
               f"element vertex {mesh.n_vertices}",
               "property float x", "property float y", "property float z"]
     if has_n:
@@ -135,8 +149,10 @@ def _text_rows(prefix: str, values: np.ndarray, fmt: str, chunk: int = 200_000):
         yield ((line * len(block)) % tuple(block.ravel().tolist())).encode("ascii")
 
 
-def _write_obj(mesh: Mesh, fh) -> None:
+def _write_obj(mesh: Mesh, fh, notes: list[str]) -> None:
     fh.write(b"# written by volwarp\n")
+    for n in notes:
+        fh.write(f"# {n}\n".encode())
     fh.write(f"# {mesh.n_vertices} vertices, {mesh.n_faces} triangles\n".encode("ascii"))
     # %.9g keeps a float32 exactly; coordinates are rounded to float32 first
     # so that every format stores the same numbers.
@@ -157,7 +173,7 @@ def _write_obj(mesh: Mesh, fh) -> None:
 
 
 # -- VTP (VTK XML PolyData, raw appended binary) -----------------------------
-def _write_vtp(mesh: Mesh, fh) -> None:
+def _write_vtp(mesh: Mesh, fh, notes: list[str]) -> None:
     nv, nf = mesh.n_vertices, mesh.n_faces
     f3 = np.dtype(("<f4", (3,)))
 
@@ -190,8 +206,10 @@ def _write_vtp(mesh: Mesh, fh) -> None:
         offset += 8 + nbytes
     point_data = ('      <PointData Normals="Normals">\n' + "\n".join(sections["PointData"])
                   + "\n      </PointData>\n") if sections["PointData"] else ""
+    # "--" may not appear inside an XML comment
+    comment = "".join(f"<!-- {n.replace('--', '- -')} -->\n" for n in notes)
     xml = (
-        '<?xml version="1.0"?>\n'
+        '<?xml version="1.0"?>\n' + comment +
         '<VTKFile type="PolyData" version="1.0" byte_order="LittleEndian" '
         'header_type="UInt64">\n'
         "  <PolyData>\n"
