@@ -1,4 +1,4 @@
-"""Contact sheets: several equally sized pictures tiled into one."""
+"""Contact sheets: several pictures tiled into one."""
 
 from __future__ import annotations
 
@@ -11,30 +11,32 @@ from ..errors import VolwarpError
 
 def contact_sheet(images: list[np.ndarray], columns: int | None = None, *,
                   gap: int = 4, background: float | int = 255) -> np.ndarray:
-    """Tile ``images`` (each ``(H, W, C)``, same shape and type) row by row.
+    """Tile ``images`` (each ``(H, W, C)``, same channels and type) row by row.
 
-    ``columns`` defaults to a near-square layout. Cells are separated by
+    ``columns`` defaults to a near-square layout. Every cell is as large as the
+    largest picture; smaller ones are centred in theirs. Cells are separated by
     ``gap`` pixels of ``background``.
     """
     if not images:
         raise VolwarpError("a contact sheet needs at least one image")
-    first = np.asarray(images[0])
-    if first.ndim == 2:
-        images = [np.asarray(im)[:, :, None] for im in images]
-        first = images[0]
+    images = [np.asarray(im) for im in images]
+    images = [im[:, :, None] if im.ndim == 2 else im for im in images]
+    first = images[0]
     for i, im in enumerate(images):
-        if np.asarray(im).shape != first.shape or np.asarray(im).dtype != first.dtype:
-            raise VolwarpError(f"contact sheet: image {i} has shape {np.asarray(im).shape}, "
-                               f"image 0 has {first.shape}")
+        if im.ndim != 3 or im.shape[2] != first.shape[2] or im.dtype != first.dtype:
+            raise VolwarpError(f"contact sheet: image {i} is {im.shape} {im.dtype}, "
+                               f"image 0 is {first.shape} {first.dtype}")
     n = len(images)
     cols = columns or math.ceil(math.sqrt(n))
     rows = math.ceil(n / cols)
-    h, w, c = first.shape
+    h = max(im.shape[0] for im in images)
+    w = max(im.shape[1] for im in images)
+    c = first.shape[2]
     sheet = np.full((rows * h + (rows + 1) * gap, cols * w + (cols + 1) * gap, c),
                     background, dtype=first.dtype)
     for idx, im in enumerate(images):
         r, q = divmod(idx, cols)
-        y = gap + r * (h + gap)
-        x = gap + q * (w + gap)
-        sheet[y:y + h, x:x + w] = im
+        y = gap + r * (h + gap) + (h - im.shape[0]) // 2
+        x = gap + q * (w + gap) + (w - im.shape[1]) // 2
+        sheet[y:y + im.shape[0], x:x + im.shape[1]] = im
     return sheet
