@@ -70,9 +70,10 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
             dtype, compress, byte_order):
     """Sweep 2-D image templates along the trajectory of SPEC into one volume per field.
 
-    Fields are float32 (``--dtype uint8`` scales 0..1 to 0..255, other integer
-    types to their maximum). The grid comes from the spec's ``grid`` or is fitted
-    around the sweep with a margin.
+    Fields are float32 (--dtype uint8 scales 0..1 to 0..255, other integer
+    types to their maximum). The grid comes from the spec's `grid` or is fitted
+    around the sweep with a margin. A multi-component file (--multi) reads back
+    one field at a time with `--volume-index N` in the other commands.
     """
     import numpy as np
 
