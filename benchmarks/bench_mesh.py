@@ -29,20 +29,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-
-
-def _median_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
-
-
-def _row(name: str, ours: float, peer: float, peer_name: str) -> None:
-    print(f"{name:<38} volwarp {ours:7.3f} s  {peer_name} {peer:7.3f} s  "
-          f"ratio {ours / peer:5.2f}x", flush=True)
+sys.path.insert(0, str(Path(__file__).parent))
+from common import median_time, row  # noqa: E402
 
 
 def sphere_field(n: int) -> np.ndarray:
@@ -92,11 +80,11 @@ def main(quick: bool = False) -> None:
     for name, f in fields.items():
         vol = Volume(f)
         mesh = isosurface(vol, 0.0)
-        ours = _median_time(lambda vol=vol: isosurface(vol, 0.0), repeats)
+        ours = median_time(lambda vol=vol: isosurface(vol, 0.0), repeat=repeats, warmup=0)
         verts, faces, _, _ = marching_cubes(f, 0.0)
-        peer = _median_time(lambda f=f: marching_cubes(f, 0.0), repeats)
+        peer = median_time(lambda f=f: marching_cubes(f, 0.0), repeat=repeats, warmup=0)
         skimage_times[name] = peer
-        _row(f"isosurface {name} {n}^3 ({mesh.n_faces / 1e6:.2f}M tri)", ours, peer,
+        row(f"isosurface {name} {n}^3 ({mesh.n_faces / 1e6:.2f}M tri)", ours, peer,
              "skimage")
         assert abs(len(faces) - mesh.n_faces) < 0.01 * len(faces)
 
@@ -107,9 +95,9 @@ def main(quick: bool = False) -> None:
         out = tmp / "gyroid.ply"
         cmd = [str(gpath), "-o", str(out), "--iso", "0", "-q"]
         _run_cmd(cmd)  # warm the file cache
-        whole = _median_time(lambda: _run_cmd(cmd), max(2, repeats - 2))
+        whole = median_time(lambda: _run_cmd(cmd), repeat=max(2, repeats - 2), warmup=0)
         size_mb = out.stat().st_size / 1e6
-        _row(f"volwarp mesh gyroid -> PLY ({size_mb:.0f} MB)", whole,
+        row(f"volwarp mesh gyroid -> PLY ({size_mb:.0f} MB)", whole,
              skimage_times["gyroid"], "skimage (bare)")
 
         # ~1M triangles: a 150^3 gyroid (64^3 in quick mode)
@@ -120,14 +108,14 @@ def main(quick: bool = False) -> None:
         mesh = isosurface(rvol, 0.0)
         tri = f"{mesh.n_faces / 1e6:.2f}M tri"
         size = (1024, 768)
-        ours = _median_time(lambda: render_mesh(mesh, size=size), repeats)
+        ours = median_time(lambda: render_mesh(mesh, size=size), repeat=repeats, warmup=0)
         peer_cold, peer_warm = _pyvista_render(mesh, size)
-        _row(f"render {tri} 1024x768 (core)", ours, peer_warm, "pyvista EGL")
+        row(f"render {tri} 1024x768 (core)", ours, peer_warm, "pyvista EGL")
         png = tmp / "r.png"
         cmd = [str(rpath), "--iso", "0", "--render", str(png), "--size", "1024x768", "-q"]
         _run_cmd(cmd)
-        whole = _median_time(lambda: _run_cmd(cmd), max(2, repeats - 2))
-        _row(f"volwarp mesh --render {tri} (whole)", whole, peer_cold,
+        whole = median_time(lambda: _run_cmd(cmd), repeat=max(2, repeats - 2), warmup=0)
+        row(f"volwarp mesh --render {tri} (whole)", whole, peer_cold,
              "pyvista 1st render")
 
 
