@@ -78,10 +78,15 @@ def _kernels():
     from numba import njit
 
     @njit(cache=True, nogil=True)
-    def separable(dq, wx, wy, wz, rx0, rx1, ry0, ry1, z0, z1, out, org):  # pragma: no cover
+    def separable(dq, wx, wy, wz, x0, x1, y0, y1, z0, z1, out, org):  # pragma: no cover
+        # domain voxels [x0, x1) x [y0, y1) x [z0, z1)
         gx = wx.shape[0]
         gy = wy.shape[0]
         gz = wz.shape[0]
+        rx0 = x0 // gx
+        rx1 = (x1 - 1) // gx + 1
+        ry0 = y0 // gy
+        ry1 = (y1 - 1) // gy + 1
         ny = ry1 - ry0 + 3
         nx = rx1 - rx0 + 3
         ox = org[0]
@@ -103,33 +108,33 @@ def _kernels():
                     for m in range(3):
                         qz[jj, ii, m] = (w0 * dq[c, j, i, m] + w1 * dq[c + 1, j, i, m]
                                          + w2 * dq[c + 2, j, i, m] + w3 * dq[c + 3, j, i, m])
-            for b in range(ry0, ry1):
+            for f in range(y0, y1):
+                b = f // gy
+                fb = f - b * gy
                 bb = b - ry0
-                for fb in range(gy):
-                    f = b * gy + fb
-                    v0 = wy[fb, 0]
-                    v1 = wy[fb, 1]
-                    v2 = wy[fb, 2]
-                    v3 = wy[fb, 3]
-                    for ii in range(nx):
+                v0 = wy[fb, 0]
+                v1 = wy[fb, 1]
+                v2 = wy[fb, 2]
+                v3 = wy[fb, 3]
+                for ii in range(nx):
+                    for m in range(3):
+                        qy[ii, m] = (v0 * qz[bb, ii, m] + v1 * qz[bb + 1, ii, m]
+                                     + v2 * qz[bb + 2, ii, m] + v3 * qz[bb + 3, ii, m])
+                for a in range(rx0, rx1):
+                    aa = a - rx0
+                    for e in range(max(a * gx, x0), min(a * gx + gx, x1)):
+                        eb = e - a * gx
+                        u0 = wx[eb, 0]
+                        u1 = wx[eb, 1]
+                        u2 = wx[eb, 2]
+                        u3 = wx[eb, 3]
                         for m in range(3):
-                            qy[ii, m] = (v0 * qz[bb, ii, m] + v1 * qz[bb + 1, ii, m]
-                                         + v2 * qz[bb + 2, ii, m] + v3 * qz[bb + 3, ii, m])
-                    for a in range(rx0, rx1):
-                        aa = a - rx0
-                        for eb in range(gx):
-                            e = a * gx + eb
-                            u0 = wx[eb, 0]
-                            u1 = wx[eb, 1]
-                            u2 = wx[eb, 2]
-                            u3 = wx[eb, 3]
-                            for m in range(3):
-                                out[g - oz, f - oy, e - ox, m] = (
-                                    u0 * qy[aa, m] + u1 * qy[aa + 1, m]
-                                    + u2 * qy[aa + 2, m] + u3 * qy[aa + 3, m])
+                            out[g - oz, f - oy, e - ox, m] = (
+                                u0 * qy[aa, m] + u1 * qy[aa + 1, m]
+                                + u2 * qy[aa + 2, m] + u3 * qy[aa + 3, m])
 
     @njit(cache=True, nogil=True)
-    def table(dq, tab, rx0, rx1, ry0, ry1, z0, z1, out, org):  # pragma: no cover - jit
+    def table(dq, tab, x0, x1, y0, y1, z0, z1, out, org):  # pragma: no cover - jit
         gx = tab.shape[0]
         gy = tab.shape[1]
         gz = tab.shape[2]
@@ -139,19 +144,19 @@ def _kernels():
         for g in range(z0, z1):
             c = g // gz
             gb = g % gz
-            for b in range(ry0, ry1):
-                for fb in range(gy):
-                    f = b * gy + fb
-                    for a in range(rx0, rx1):
-                        for eb in range(gx):
-                            e = a * gx + eb
-                            for m in range(3):
-                                acc = 0.0
-                                for i in range(4):
-                                    for j in range(4):
-                                        for k in range(4):
-                                            acc += tab[eb, fb, gb, i, j, k] * dq[c + k, b + j, a + i, m]
-                                out[g - oz, f - oy, e - ox, m] = acc
+            for f in range(y0, y1):
+                b = f // gy
+                fb = f - b * gy
+                for e in range(x0, x1):
+                    a = e // gx
+                    eb = e - a * gx
+                    for m in range(3):
+                        acc = 0.0
+                        for i in range(4):
+                            for j in range(4):
+                                for k in range(4):
+                                    acc += tab[eb, fb, gb, i, j, k] * dq[c + k, b + j, a + i, m]
+                        out[g - oz, f - oy, e - ox, m] = acc
 
     return separable, table
 
@@ -167,14 +172,16 @@ def kernels():
     return _KERNELS
 
 
-def _block(grid, lo, hi, z):
+def _block(grid, lo, hi, x, y, z):
+    """Domain voxel ranges ((x0, x1), (y0, y1), (z0, z1)): regions [lo, hi), or the given ranges."""
     if lo is None:
         lo, hi = (0, 0, 0), grid.regions
-    lo, hi = [int(v) for v in lo], [int(v) for v in hi]
-    if z is None:
-        gz = grid.granularity[2]
-        z = (lo[2] * gz, hi[2] * gz)
-    return lo, hi, (int(z[0]), int(z[1]))
+    ranges = []
+    for axis, given in enumerate((x, y, z)):
+        g = grid.granularity[axis]
+        r = given if given is not None else (int(lo[axis]) * g, int(hi[axis]) * g)
+        ranges.append((int(r[0]), int(r[1])))
+    return ranges
 
 
 #: Work (voxels) from which the kernels run in two threads.
@@ -201,8 +208,8 @@ def run_split(kernel, args_for, lo_z: int, hi_z: int, work: int) -> None:
             f.result()
 
 
-def evaluate_separable(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, *, z=None,
-                       origin=(0, 0, 0)) -> np.ndarray:
+def evaluate_separable(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, *, x=None, y=None,
+                       z=None, origin=(0, 0, 0), parallel: bool = True) -> np.ndarray:
     """Fill ``out[z, y, x, 3]`` with the spline of offsets ``dq`` on regions [lo, hi).
 
     Parameters
@@ -214,32 +221,34 @@ def evaluate_separable(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, 
         Deformation offsets; domain voxel (e, f, g) goes to
         ``out[g - origin[2], f - origin[1], e - origin[0]]``.
     lo, hi : (x, y, z) region indices, ``hi`` exclusive; default all regions.
-    z : (z0, z1), optional
-        Domain voxel range along z (instead of the regions ``lo[2]..hi[2]``).
+    x, y, z : (v0, v1), optional
+        Domain voxel range along that axis (instead of the regions ``lo..hi``).
     origin : (x, y, z) domain voxel index of ``out[0, 0, 0]``.
+    parallel : split large blocks over two threads (off when the caller's
+        threads already share the work).
     """
-    lo, hi, (z0, z1) = _block(grid, lo, hi, z)
+    (x0, x1), (y0, y1), (z0, z1) = _block(grid, lo, hi, x, y, z)
     wx, wy, wz = (region_weights(g) for g in grid.granularity)
     separable, _ = kernels()
     dq = np.ascontiguousarray(dq, dtype=np.float64)
     org = np.asarray(origin, dtype=np.int64)
-    work = (hi[0] - lo[0]) * (hi[1] - lo[1]) * (z1 - z0) * grid.granularity[0] * grid.granularity[1]
-    run_split(separable, lambda a, b: (dq, wx, wy, wz, lo[0], hi[0], lo[1], hi[1], a, b, out, org),
-              z0, z1, work)
+    work = (x1 - x0) * (y1 - y0) * (z1 - z0)
+    run_split(separable, lambda a, b: (dq, wx, wy, wz, x0, x1, y0, y1, a, b, out, org),
+              z0, z1, work if parallel else 0)
     return out
 
 
-def evaluate_table(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, *, z=None,
-                   origin=(0, 0, 0)) -> np.ndarray:
+def evaluate_table(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, *, x=None, y=None,
+                   z=None, origin=(0, 0, 0), parallel: bool = True) -> np.ndarray:
     """Same as :func:`evaluate_separable` with the papers' 64-term table sum (eq. 4)."""
-    lo, hi, (z0, z1) = _block(grid, lo, hi, z)
+    (x0, x1), (y0, y1), (z0, z1) = _block(grid, lo, hi, x, y, z)
     tab = coefficient_table(*grid.granularity)
     _, table = kernels()
     dq = np.ascontiguousarray(dq, dtype=np.float64)
     org = np.asarray(origin, dtype=np.int64)
-    work = (hi[0] - lo[0]) * (hi[1] - lo[1]) * (z1 - z0) * grid.granularity[0] * grid.granularity[1]
-    run_split(table, lambda a, b: (dq, tab, lo[0], hi[0], lo[1], hi[1], a, b, out, org),
-              z0, z1, work * 16)
+    work = (x1 - x0) * (y1 - y0) * (z1 - z0)
+    run_split(table, lambda a, b: (dq, tab, x0, x1, y0, y1, a, b, out, org),
+              z0, z1, work * 16 if parallel else 0)
     return out
 
 

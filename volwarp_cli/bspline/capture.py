@@ -62,7 +62,9 @@ def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
         raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
     if sampling not in SAMPLINGS:
         raise VolwarpError(f"unknown sampling {sampling!r} (use linear or nearest)")
-    if vol.data.dtype.kind == "f" and not np.all(np.isfinite(vol.data)):
+    data = vol.data
+    lo, hi = float(data.min()), float(data.max())
+    if not (np.isfinite(lo) and np.isfinite(hi)):  # NaN and inf reach min or max
         raise VolwarpError("the volume has NaN or infinite samples; warping needs finite ones "
                            "(replace them first)")
     lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
@@ -73,8 +75,7 @@ def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
                           f"the {'x'.join(map(str, grid.domain_shape))} domain voxmap")
     with timed("capture (pullback)"):
         domain = pullback(vol.data, grid, placement, sampling, dt)
-    data = vol.data
-    stats = (float(data.min()), float(data.max()), float(data.mean(dtype=np.float64)))
+    stats = (lo, hi, float(data.mean(dtype=np.float64)))
     geometry = vol.with_data(np.zeros((1, 1, 1), dtype=vol.dtype))
     if pad is not None:
         pad = tuple(int(v) for v in np.broadcast_to(np.asarray(pad), (3,)))

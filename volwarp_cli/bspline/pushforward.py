@@ -45,145 +45,161 @@ def _kernels():
     from numba import njit
 
     @njit(cache=True, nogil=True)
-    def scatter(uh, org, values, off, scale, lo, hi, sign, inv_vmax, box, acc):  # pragma: no cover
-        # uh holds the deformation offsets around the block, with a one-voxel
+    def scatter(uha, uhb, npass, org, values, off, scale, lo, hi, sign, inv_vmax, box, acc,
+                tzo):  # pragma: no cover - jit
+        # uha (and uhb) hold deformation offsets around the block, with a one-voxel
         # margin: domain voxel (g, f, e) is uh[g - oz + 1, f - oy + 1, e - ox + 1].
-        tz, ty, tx, _ = acc.shape
+        # Pass 0 adds sign * uha's contributions; with npass 2, pass 1 adds
+        # -sign * uhb's, voxel by voxel (an update: old and new boxes hit the
+        # same, cache-hot, target voxels).
+        # acc holds target z planes [tzo, tzo + nz): target voxel z is acc[z - tzo].
+        nz, ty, tx, _ = acc.shape
+        tz0 = tzo
+        tz1 = tzo + nz
         q = 1099511627776.0  # 2**40
         iq = np.int64(1) << 40
         bx0 = by0 = bz0 = np.int64(1) << 40
         bx1 = by1 = bz1 = np.int64(-1)
-        nmax = max(tx, max(ty, tz)) + 2
+        nmax = max(tx, max(ty, nz)) + 2
         ovx = np.empty(nmax)
         ovy = np.empty(nmax)
         ovz = np.empty(nmax)
-        hx = 0.5 * scale[0]
-        hy = 0.5 * scale[1]
-        hz = 0.5 * scale[2]
-        for g in range(lo[2], hi[2]):
-            bz = off[2] + scale[2] * g
-            for f in range(lo[1], hi[1]):
-                by = off[1] + scale[1] * f
-                for e in range(lo[0], hi[0]):
-                    bxx = off[0] + scale[0] * e
+        # scalars in locals: the stores into acc could alias the small arrays,
+        # which would make the compiler reload them in the inner loop
+        sx = scale[0]
+        sy = scale[1]
+        sz = scale[2]
+        fx = off[0]
+        fy = off[1]
+        fz = off[2]
+        ex = 1 - org[0]
+        ey = 1 - org[1]
+        ez = 1 - org[2]
+        e0 = lo[0]
+        e1 = hi[0]
+        f0 = lo[1]
+        f1 = hi[1]
+        g0 = lo[2]
+        g1 = hi[2]
+        hx = 0.5 * sx
+        hy = 0.5 * sy
+        hz = 0.5 * sz
+        for g in range(g0, g1):
+            bz = fz + sz * g
+            for f in range(f0, f1):
+                by = fy + sy * f
+                for e in range(e0, e1):
+                    bxx = fx + sx * e
                     val = values[g, f, e] * inv_vmax
-                    G = g + 1 - org[2]
-                    F = f + 1 - org[1]
-                    E = e + 1 - org[0]
-                    ux = uh[G, F, E, 0]
-                    uy = uh[G, F, E, 1]
-                    uz = uh[G, F, E, 2]
-                    if not box:
-                        x = np.int64(np.floor(bxx + ux + ROUND))
-                        y = np.int64(np.floor(by + uy + ROUND))
-                        z = np.int64(np.floor(bz + uz + ROUND))
-                        if x < 0 or y < 0 or z < 0 or x >= tx or y >= ty or z >= tz:
+                    G = g + ez
+                    F = f + ey
+                    E = e + ex
+                    for p in range(npass):
+                        uh = uha if p == 0 else uhb
+                        sgn = sign if p == 0 else -sign
+                        ux = uh[G, F, E, 0]
+                        uy = uh[G, F, E, 1]
+                        uz = uh[G, F, E, 2]
+                        if not box:
+                            x = np.int64(np.floor(bxx + ux + ROUND))
+                            y = np.int64(np.floor(by + uy + ROUND))
+                            z = np.int64(np.floor(bz + uz + ROUND))
+                            if x < 0 or y < 0 or z < tz0 or x >= tx or y >= ty or z >= tz1:
+                                continue
+                            acc[z - tzo, y, x, 0] += sgn * iq
+                            acc[z - tzo, y, x, 1] += sgn * np.int64(np.floor(val * q + 0.5))
+                            bx0 = min(bx0, x)
+                            by0 = min(by0, y)
+                            bz0 = min(bz0, z)
+                            bx1 = max(bx1, x)
+                            by1 = max(by1, y)
+                            bz1 = max(bz1, z)
                             continue
-                        acc[z, y, x, 0] += sign * iq
-                        acc[z, y, x, 1] += sign * np.int64(np.floor(val * q + 0.5))
-                        bx0 = min(bx0, x)
-                        by0 = min(by0, y)
-                        bz0 = min(bz0, z)
-                        bx1 = max(bx1, x)
-                        by1 = max(by1, y)
-                        bz1 = max(bz1, z)
-                        continue
-                    # six face centres: averages with the neighbours' entries (paper 6)
-                    # x faces
-                    a0 = uh[G, F, E - 1, 0]
-                    a1 = uh[G, F, E + 1, 0]
-                    xmin = min(0.5 * (ux + a0) - hx, 0.5 * (ux + a1) + hx)
-                    xmax = max(0.5 * (ux + a0) - hx, 0.5 * (ux + a1) + hx)
-                    a0 = uh[G, F, E - 1, 1]
-                    a1 = uh[G, F, E + 1, 1]
-                    ymin = min(0.5 * (uy + a0), 0.5 * (uy + a1))
-                    ymax = max(0.5 * (uy + a0), 0.5 * (uy + a1))
-                    a0 = uh[G, F, E - 1, 2]
-                    a1 = uh[G, F, E + 1, 2]
-                    zmin = min(0.5 * (uz + a0), 0.5 * (uz + a1))
-                    zmax = max(0.5 * (uz + a0), 0.5 * (uz + a1))
-                    # y faces
-                    a0 = 0.5 * (ux + uh[G, F - 1, E, 0])
-                    a1 = 0.5 * (ux + uh[G, F + 1, E, 0])
-                    xmin = min(xmin, min(a0, a1))
-                    xmax = max(xmax, max(a0, a1))
-                    a0 = 0.5 * (uy + uh[G, F - 1, E, 1]) - hy
-                    a1 = 0.5 * (uy + uh[G, F + 1, E, 1]) + hy
-                    ymin = min(ymin, min(a0, a1))
-                    ymax = max(ymax, max(a0, a1))
-                    a0 = 0.5 * (uz + uh[G, F - 1, E, 2])
-                    a1 = 0.5 * (uz + uh[G, F + 1, E, 2])
-                    zmin = min(zmin, min(a0, a1))
-                    zmax = max(zmax, max(a0, a1))
-                    # z faces
-                    a0 = 0.5 * (ux + uh[G - 1, F, E, 0])
-                    a1 = 0.5 * (ux + uh[G + 1, F, E, 0])
-                    xmin = min(xmin, min(a0, a1))
-                    xmax = max(xmax, max(a0, a1))
-                    a0 = 0.5 * (uy + uh[G - 1, F, E, 1])
-                    a1 = 0.5 * (uy + uh[G + 1, F, E, 1])
-                    ymin = min(ymin, min(a0, a1))
-                    ymax = max(ymax, max(a0, a1))
-                    a0 = 0.5 * (uz + uh[G - 1, F, E, 2]) - hz
-                    a1 = 0.5 * (uz + uh[G + 1, F, E, 2]) + hz
-                    zmin = min(zmin, min(a0, a1))
-                    zmax = max(zmax, max(a0, a1))
-                    xmin += bxx
-                    xmax += bxx
-                    ymin += by
-                    ymax += by
-                    zmin += bz
-                    zmax += bz
-                    if not (xmax > xmin and ymax > ymin and zmax > zmin):
-                        continue
-                    # floor/ceil by truncation of shifted values (coordinates > -2**20)
-                    x0 = max(np.int64(xmin - 0.5 + SHIFT) - ISHIFT + 1, 0)
-                    x1 = min(ISHIFT - np.int64(SHIFT - xmax - 0.5) - 1, tx - 1)
-                    y0 = max(np.int64(ymin - 0.5 + SHIFT) - ISHIFT + 1, 0)
-                    y1 = min(ISHIFT - np.int64(SHIFT - ymax - 0.5) - 1, ty - 1)
-                    z0 = max(np.int64(zmin - 0.5 + SHIFT) - ISHIFT + 1, 0)
-                    z1 = min(ISHIFT - np.int64(SHIFT - zmax - 0.5) - 1, tz - 1)
-                    if x1 < x0 or y1 < y0 or z1 < z0:
-                        continue
-                    wq = val * q
-                    if x1 - x0 <= 1 and y1 - y0 <= 1 and z1 - z0 <= 1:
-                        # the common case (at most 2 target voxels per axis), unrolled
-                        ax0 = min(xmax, x0 + 0.5) - max(xmin, x0 - 0.5)
-                        ax1 = min(xmax, x1 + 0.5) - max(xmin, x1 - 0.5) if x1 > x0 else 0.0
-                        ay0 = min(ymax, y0 + 0.5) - max(ymin, y0 - 0.5)
-                        ay1 = min(ymax, y1 + 0.5) - max(ymin, y1 - 0.5) if y1 > y0 else 0.0
-                        az0 = min(zmax, z0 + 0.5) - max(zmin, z0 - 0.5)
-                        az1 = min(zmax, z1 + 0.5) - max(zmin, z1 - 0.5) if z1 > z0 else 0.0
-                        for dz in range(z1 - z0 + 1):
-                            wz = az0 if dz == 0 else az1
-                            for dy in range(y1 - y0 + 1):
-                                wzy = wz * (ay0 if dy == 0 else ay1)
-                                for dx in range(x1 - x0 + 1):
-                                    w = wzy * (ax0 if dx == 0 else ax1)
-                                    acc[z0 + dz, y0 + dy, x0 + dx, 0] += sign * np.int64(w * q + 0.5)
-                                    acc[z0 + dz, y0 + dy, x0 + dx, 1] += sign * np.int64(
-                                        np.floor(w * wq + 0.5))
-                    else:
-                        for v in range(x0, x1 + 1):
-                            ovx[v - x0] = min(xmax, v + 0.5) - max(xmin, v - 0.5)
-                        for v in range(y0, y1 + 1):
-                            ovy[v - y0] = min(ymax, v + 0.5) - max(ymin, v - 0.5)
-                        for v in range(z0, z1 + 1):
-                            ovz[v - z0] = min(zmax, v + 0.5) - max(zmin, v - 0.5)
-                        for z in range(z0, z1 + 1):
-                            wz = ovz[z - z0]
-                            for y in range(y0, y1 + 1):
-                                wzy = wz * ovy[y - y0]
-                                for x in range(x0, x1 + 1):
-                                    w = wzy * ovx[x - x0]
-                                    acc[z, y, x, 0] += sign * np.int64(w * q + 0.5)
-                                    acc[z, y, x, 1] += sign * np.int64(np.floor(w * wq + 0.5))
-                    bx0 = min(bx0, x0)
-                    by0 = min(by0, y0)
-                    bz0 = min(bz0, z0)
-                    bx1 = max(bx1, x1)
-                    by1 = max(by1, y1)
-                    bz1 = max(bz1, z1)
+                        # six face centres: averages with the neighbours' entries (paper 6).
+                        # Per component, the two faces across its own axis are offset by
+                        # the half voxel; the four others only need the extreme neighbour
+                        # (rounding is monotone: min(fl(u + a), fl(u + b)) = fl(u + min(a, b)))
+                        n0 = min(min(uh[G, F - 1, E, 0], uh[G, F + 1, E, 0]),
+                                 min(uh[G - 1, F, E, 0], uh[G + 1, F, E, 0]))
+                        n1 = max(max(uh[G, F - 1, E, 0], uh[G, F + 1, E, 0]),
+                                 max(uh[G - 1, F, E, 0], uh[G + 1, F, E, 0]))
+                        a0 = 0.5 * (ux + uh[G, F, E - 1, 0]) - hx
+                        a1 = 0.5 * (ux + uh[G, F, E + 1, 0]) + hx
+                        xmin = min(min(a0, a1), 0.5 * (ux + n0))
+                        xmax = max(max(a0, a1), 0.5 * (ux + n1))
+                        n0 = min(min(uh[G, F, E - 1, 1], uh[G, F, E + 1, 1]),
+                                 min(uh[G - 1, F, E, 1], uh[G + 1, F, E, 1]))
+                        n1 = max(max(uh[G, F, E - 1, 1], uh[G, F, E + 1, 1]),
+                                 max(uh[G - 1, F, E, 1], uh[G + 1, F, E, 1]))
+                        a0 = 0.5 * (uy + uh[G, F - 1, E, 1]) - hy
+                        a1 = 0.5 * (uy + uh[G, F + 1, E, 1]) + hy
+                        ymin = min(min(a0, a1), 0.5 * (uy + n0))
+                        ymax = max(max(a0, a1), 0.5 * (uy + n1))
+                        n0 = min(min(uh[G, F, E - 1, 2], uh[G, F, E + 1, 2]),
+                                 min(uh[G, F - 1, E, 2], uh[G, F + 1, E, 2]))
+                        n1 = max(max(uh[G, F, E - 1, 2], uh[G, F, E + 1, 2]),
+                                 max(uh[G, F - 1, E, 2], uh[G, F + 1, E, 2]))
+                        a0 = 0.5 * (uz + uh[G - 1, F, E, 2]) - hz
+                        a1 = 0.5 * (uz + uh[G + 1, F, E, 2]) + hz
+                        zmin = min(min(a0, a1), 0.5 * (uz + n0))
+                        zmax = max(max(a0, a1), 0.5 * (uz + n1))
+                        xmin += bxx
+                        xmax += bxx
+                        ymin += by
+                        ymax += by
+                        zmin += bz
+                        zmax += bz
+                        if not (xmax > xmin and ymax > ymin and zmax > zmin):
+                            continue
+                        # floor/ceil by truncation of shifted values (coordinates > -2**20)
+                        x0 = max(np.int64(xmin - 0.5 + SHIFT) - ISHIFT + 1, 0)
+                        x1 = min(ISHIFT - np.int64(SHIFT - xmax - 0.5) - 1, tx - 1)
+                        y0 = max(np.int64(ymin - 0.5 + SHIFT) - ISHIFT + 1, 0)
+                        y1 = min(ISHIFT - np.int64(SHIFT - ymax - 0.5) - 1, ty - 1)
+                        z0 = max(np.int64(zmin - 0.5 + SHIFT) - ISHIFT + 1, tz0)
+                        z1 = min(ISHIFT - np.int64(SHIFT - zmax - 0.5) - 1, tz1 - 1)
+                        if x1 < x0 or y1 < y0 or z1 < z0:
+                            continue
+                        wq = val * q
+                        if x1 - x0 <= 1 and y1 - y0 <= 1 and z1 - z0 <= 1:
+                            # the common case (at most 2 target voxels per axis), unrolled
+                            ax0 = min(xmax, x0 + 0.5) - max(xmin, x0 - 0.5)
+                            ax1 = min(xmax, x1 + 0.5) - max(xmin, x1 - 0.5) if x1 > x0 else 0.0
+                            ay0 = min(ymax, y0 + 0.5) - max(ymin, y0 - 0.5)
+                            ay1 = min(ymax, y1 + 0.5) - max(ymin, y1 - 0.5) if y1 > y0 else 0.0
+                            az0 = min(zmax, z0 + 0.5) - max(zmin, z0 - 0.5)
+                            az1 = min(zmax, z1 + 0.5) - max(zmin, z1 - 0.5) if z1 > z0 else 0.0
+                            for dz in range(z1 - z0 + 1):
+                                wz = az0 if dz == 0 else az1
+                                for dy in range(y1 - y0 + 1):
+                                    wzy = wz * (ay0 if dy == 0 else ay1)
+                                    for dx in range(x1 - x0 + 1):
+                                        w = wzy * (ax0 if dx == 0 else ax1)
+                                        acc[z0 + dz - tzo, y0 + dy, x0 + dx, 0] += sgn * np.int64(
+                                            w * q + 0.5)
+                                        acc[z0 + dz - tzo, y0 + dy, x0 + dx, 1] += sgn * np.int64(
+                                            np.floor(w * wq + 0.5))
+                        else:
+                            for v in range(x0, x1 + 1):
+                                ovx[v - x0] = min(xmax, v + 0.5) - max(xmin, v - 0.5)
+                            for v in range(y0, y1 + 1):
+                                ovy[v - y0] = min(ymax, v + 0.5) - max(ymin, v - 0.5)
+                            for v in range(z0, z1 + 1):
+                                ovz[v - z0] = min(zmax, v + 0.5) - max(zmin, v - 0.5)
+                            for z in range(z0, z1 + 1):
+                                wz = ovz[z - z0]
+                                for y in range(y0, y1 + 1):
+                                    wzy = wz * ovy[y - y0]
+                                    for x in range(x0, x1 + 1):
+                                        w = wzy * ovx[x - x0]
+                                        acc[z - tzo, y, x, 0] += sgn * np.int64(w * q + 0.5)
+                                        acc[z - tzo, y, x, 1] += sgn * np.int64(np.floor(w * wq + 0.5))
+                        bx0 = min(bx0, x0)
+                        by0 = min(by0, y0)
+                        bz0 = min(bz0, z0)
+                        bx1 = max(bx1, x1)
+                        by1 = max(by1, y1)
+                        bz1 = max(bz1, z1)
         return np.array([bx0, by0, bz0, bx1, by1, bz1], dtype=np.int64)
 
     @njit(cache=True, nogil=True)
@@ -235,13 +251,19 @@ def fill_halo(uh, faces=None):
 
 
 def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None,
-            origin=(0, 0, 0)):
+            origin=(0, 0, 0), tzo=0, u_new=None):
     """Add (``sign`` +1) or remove (-1) the contributions of domain block [lo, hi) (x, y, z).
+
+    With ``u_new`` (deformation offsets of another lattice, same layout as
+    ``u``) the block's ``u_new`` contributions are added with ``-sign`` in the
+    same pass: ``sign`` -1 replaces the old map's contributions by the new one's.
 
     ``u`` holds the deformation offsets with a one-voxel margin (see
     :func:`fill_halo`): domain voxel (e, f, g) is ``u[g - oz + 1, f - oy + 1,
     e - ox + 1]`` with ``origin = (ox, oy, oz)``; the margin and every
     neighbour of the block's voxels must be filled.
+    ``acc`` holds the target z planes ``[tzo, tzo + len(acc))``; contributions
+    to other planes are left out.
     ``split_z``: domain z indices ``(z1, z2)`` such that [lo, z1) and [z2, hi)
     are known to write disjoint target z ranges; those halves then run on two
     threads, and the band [z1, z2) after them (integer sums: the result does
@@ -257,42 +279,39 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     hi = np.asarray(hi, np.int64)
     box = method == "box"
     org = np.asarray(origin, np.int64)
+
+    def run(a, b):
+        return kern(u, u if u_new is None else u_new, 1 if u_new is None else 2, org, values,
+                    off, scale, a, b, np.int64(sign), inv, box, acc, np.int64(tzo))
+
     if split_z is None or not lo[2] < split_z[0] <= split_z[1] < hi[2]:
-        bb = kern(u, org, values, off, scale, lo, hi, np.int64(sign), inv, box, acc)
+        boxes = [run(lo, hi)]
     else:
         from concurrent.futures import ThreadPoolExecutor
 
         z1, z2 = split_z
-        hi_a = hi.copy()
-        hi_a[2] = z1
-        lo_b = lo.copy()
-        lo_b[2] = z2
-        lo_m, hi_m = lo.copy(), hi.copy()
-        lo_m[2], hi_m[2] = z1, z2
+        hi_a, lo_b = hi.copy(), lo.copy()
+        hi_a[2], lo_b[2] = z1, z2
         with ThreadPoolExecutor(2) as pool:
-            fa = pool.submit(kern, u, org, values, off, scale, lo, hi_a, np.int64(sign), inv, box,
-                             acc)
-            fb = pool.submit(kern, u, org, values, off, scale, lo_b, hi, np.int64(sign), inv, box,
-                             acc)
+            fa = pool.submit(run, lo, hi_a)
+            fb = pool.submit(run, lo_b, hi)
             boxes = [fa.result(), fb.result()]
         if z2 > z1:
-            boxes.append(kern(u, org, values, off, scale, lo_m, hi_m, np.int64(sign), inv, box,
-                              acc))
-        boxes = [b for b in boxes if b[3] >= 0]
-        if not boxes:
-            bb = np.full(6, -1, np.int64)
-        else:
-            bb = np.concatenate([np.min([b[:3] for b in boxes], axis=0),
-                                 np.max([b[3:] for b in boxes], axis=0)])
-    if bb[3] < 0:
+            lo_m, hi_m = lo.copy(), hi.copy()
+            lo_m[2], hi_m[2] = z1, z2
+            boxes.append(run(lo_m, hi_m))
+    boxes = [b for b in boxes if b[3] >= 0]
+    if not boxes:
         return None
-    return bb[:3].copy(), bb[3:] + 1
+    return (np.min([b[:3] for b in boxes], axis=0),
+            np.max([b[3:] for b in boxes], axis=0) + 1)
 
 
-def finalize(acc, vmax, lo, hi, out):
+def finalize(acc, vmax, lo, hi, out, parallel=True):
     """``out = v if w < 1 else v / w`` on the target block [lo, hi) (x, y, z).
 
-    ``acc[z, y, x, 0]`` is the fixed-point weight, ``acc[..., 1]`` the weighted value.
+    ``acc[z, y, x, 0]`` is the fixed-point weight, ``acc[..., 1]`` the weighted value;
+    ``parallel`` lets large blocks use two threads.
     """
     from .basis import run_split
 
@@ -305,5 +324,5 @@ def finalize(acc, vmax, lo, hi, out):
         a[2], b[2] = z0, z1
         return acc, float(vmax), a, b, out
 
-    run_split(kern, args, int(lo[2]), int(hi[2]), int(np.prod(hi - lo)))
+    run_split(kern, args, int(lo[2]), int(hi[2]), int(np.prod(hi - lo)) if parallel else 0)
     return out

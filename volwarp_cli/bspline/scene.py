@@ -16,14 +16,17 @@ sequence of updates the target equals a full recomputation with the final
 lattice bit for bit. And the deformation mapping array (offsets ``U`` of the
 write map from the affine base map) is never held whole: it is evaluated
 chunk by chunk along z into a small buffer with a one-voxel margin, for the
-old lattice when subtracting and the new one when adding. The evaluators give
-every voxel the same value whatever block it is computed in, so this is exact,
-and it saves 12 bytes per domain voxel (200 MiB for a 256^3 domain).
+old lattice when subtracting and the new one when adding (both in one pass
+over the block). The evaluators give every voxel the same value whatever block
+it is computed in, so this is exact, and it saves 12 bytes per domain voxel
+(200 MiB for a 256^3 domain). :meth:`Scene.render_once`, for a warp without
+later updates, also never holds the target accumulators whole.
 """
 
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -35,8 +38,27 @@ from .lattice import Grid, affected_regions
 
 #: Blocks with at least this many domain voxels are split over two threads.
 PARALLEL_MIN_VOXELS = 1 << 18
-#: Size of the deformation buffer of one z chunk (the array is never held whole).
+#: Size of the deformation buffers of one z chunk (the array is never held whole).
 CHUNK_BYTES = 32 << 20
+#: Target z planes covered by one step of :meth:`Scene.render_once`'s stream.
+STREAM_PLANES = 8
+
+
+class Scratch:
+    """Deformation buffers kept between updates (fresh pages are slow to fault in)."""
+
+    def __init__(self):
+        self.flat = np.zeros(0, dtype=np.float32)
+
+    def arrays(self, shape, n: int) -> list[np.ndarray]:
+        """``n`` zeroed float32 arrays of ``shape``, views of one reused buffer."""
+        size = int(np.prod(shape))
+        if self.flat.size < n * size:
+            self.flat = np.zeros(n * size, dtype=np.float32)
+        out = [self.flat[i * size:(i + 1) * size].reshape(shape) for i in range(n)]
+        for a in out:
+            a.fill(0)
+        return out
 
 
 class Scene:
@@ -71,76 +93,97 @@ class Scene:
             raise VolwarpError(f"pad must not be negative, got {self.pad.tolist()}")
         self.method = method
         self.evaluator = evaluator
-        vmax = float(np.max(np.abs(domain))) if domain.size else 0.0
+        # max |v| without a whole-volume temporary
+        vmax = max(-float(domain.min()), float(domain.max())) if domain.size else 0.0
         self.vmax = vmax if vmax > 0 else 1.0
         self.offset = grid.affine_offset(self.pad)
         self.scale = grid.scale
         self.acc = self.out = None
         self.last_touched = None
+        self.scratch = Scratch()
 
     @property
     def target_shape(self) -> tuple[int, int, int]:
         """Target size (x, y, z)."""
         return tuple(int(i + 2 * p) for i, p in zip(self.grid.input_shape, self.pad, strict=False))
 
-    def _contribute(self, dq, vlo, vhi, sign):
+    def _contribute(self, dqs, vlo, vhi, sign, acc=None, tzo=0, parallel=True, scratch=None):
         """Add (``sign`` +1) or remove (-1) the contributions of domain voxels [vlo, vhi).
 
+        ``dqs``: one lattice, or two (old, new) whose contributions are
+        removed and added in one pass (``sign`` -1).
         The deformation offsets are evaluated on the fly, chunk by chunk along
         z, into a small buffer covering the voxels and their neighbours (the
         evaluators give a voxel the same value whatever block it is computed
         in, so removing a contribution recomputes exactly what was added).
+        ``acc`` (default the scene's) holds target z planes from ``tzo`` on;
+        ``parallel`` lets large blocks use two threads. ``scratch`` (a
+        :class:`Scratch`, default the scene's) holds the deformation buffers.
         Returns the touched target bounding box or None.
         """
+        acc = self.acc if acc is None else acc
+        scratch = self.scratch if scratch is None else scratch
         grid = self.grid
         dshape = np.array(grid.domain_shape)
-        g = np.array(grid.granularity)
         vlo = np.asarray(vlo, dtype=np.int64)
         vhi = np.asarray(vhi, dtype=np.int64)
-        elo = np.maximum(vlo - 1, 0)
+        elo = np.maximum(vlo - 1, 0)  # the voxels and their neighbours
         ehi = np.minimum(vhi + 1, dshape)
-        rlo = elo // g
-        rhi = -(-ehi // g)
-        nx = int((rhi[0] - rlo[0]) * g[0])
-        ny = int((rhi[1] - rlo[1]) * g[1])
-        cz = int(max(4, CHUNK_BYTES // ((nx + 2) * (ny + 2) * 12)))
+        nx = int(ehi[0] - elo[0])
+        ny = int(ehi[1] - elo[1])
+        cz = int(max(4, CHUNK_BYTES // ((nx + 2) * (ny + 2) * 12 * len(dqs))))
         nz = int(vhi[2] - vlo[2])
-        buf = np.zeros((min(cz, nz) + 4, ny + 2, nx + 2, 3), dtype=np.float32)
+        bufs = scratch.arrays((min(cz, nz) + 4, ny + 2, nx + 2, 3), len(dqs))
         evaluate = basis.EVALUATORS[self.evaluator]
         boxes = []
         for z0 in range(int(vlo[2]), int(vhi[2]), cz):
             z1 = min(z0 + cz, int(vhi[2]))
             e0, e1 = max(z0 - 1, 0), min(z1 + 1, int(dshape[2]))
-            ub = buf[:e1 - e0 + 2]
-            origin = (int(rlo[0] * g[0]), int(rlo[1] * g[1]), e0)
-            evaluate(dq, grid, ub[1:-1, 1:-1, 1:-1], (rlo[0], rlo[1], 0), (rhi[0], rhi[1], 0),
-                     z=(e0, e1), origin=origin)
+            ubs = [buf[:e1 - e0 + 2] for buf in bufs]
+            origin = (int(elo[0]), int(elo[1]), e0)
+            for dq, ub in zip(dqs, ubs, strict=True):
+                evaluate(dq, grid, ub[1:-1, 1:-1, 1:-1], x=(elo[0], ehi[0]), y=(elo[1], ehi[1]),
+                         z=(e0, e1), origin=origin, parallel=parallel)
             faces = [(0, 0)] if e0 == 0 else []
             if e1 == dshape[2]:
                 faces.append((0, 1))
             for axis_xyz, axis in ((0, 2), (1, 1)):
-                if rlo[axis_xyz] == 0:
+                if elo[axis_xyz] == 0:
                     faces.append((axis, 0))
-                if rhi[axis_xyz] * g[axis_xyz] == dshape[axis_xyz]:
+                if ehi[axis_xyz] == dshape[axis_xyz]:
                     faces.append((axis, 1))
-            pushforward.fill_halo(ub, faces)
+            for ub in ubs:
+                pushforward.fill_halo(ub, faces)
             lo = (int(vlo[0]), int(vlo[1]), z0)
             hi = (int(vhi[0]), int(vhi[1]), z1)
-            bb = pushforward.scatter(ub, self.domain, self.offset, self.scale, lo, hi, sign,
-                                     self.vmax, self.method, self.acc,
-                                     split_z=self._split_z(dq, lo, hi), origin=origin)
+            split = self._split_z(np.stack(dqs), lo, hi) if parallel else None
+            bb = pushforward.scatter(ubs[0], self.domain, self.offset, self.scale, lo, hi, sign,
+                                     self.vmax, self.method, acc, split_z=split, origin=origin,
+                                     tzo=tzo, u_new=ubs[1] if len(ubs) > 1 else None)
             if bb is not None:
                 boxes.append(bb)
         if not boxes:
             return None
         return (np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0))
 
+    def _z_reach(self, dq) -> tuple[float, float]:
+        """``(below, above)``: domain voxel g's box lies in target z ``[A(g) - below, A(g) + above]``.
+
+        ``A(g) = offset + scale * g`` is the affine base map. The bound comes
+        from the lattice alone: a voxel's offset is a convex combination of
+        control-point offsets, and its box (face centres, halo extrapolation)
+        stays within that range widened by the range itself.
+        """
+        dz = dq[..., 2]
+        top, bottom = float(dz.max()), float(dz.min())
+        spread = top - bottom
+        half = 0.5 * float(self.scale[2])
+        slack = 0.01  # float32 deformation arrays
+        return half - bottom + spread + slack, half + top + spread + slack
+
     def _split_z(self, dq, lo, hi):
         """Two domain z indices ``(z1, z2)``: halves [lo, z1) and [z2, hi) hit disjoint target z.
 
-        The bound comes from the lattice alone: a voxel's offset is a convex
-        combination of control-point offsets, and its box (face centres, halo
-        extrapolation) stays within that range widened by the range itself.
         The band [z1, z2) between the halves is done afterwards. None when the
         block is small or no safe split exists.
         """
@@ -148,19 +191,34 @@ class Scene:
         hi = np.asarray(hi)
         if int(np.prod(hi - lo)) < PARALLEL_MIN_VOXELS or (os.cpu_count() or 1) < 2:
             return None
-        dz = dq[..., 2]
-        top, bottom = dz.max(), dz.min()
-        spread = top - bottom
+        below, above = self._z_reach(dq)
         s, o = self.scale[2], self.offset[2]
         mid = (int(lo[2]) + int(hi[2])) // 2
         for gap in range(2, max(3, (int(hi[2]) - int(lo[2])) // 4)):
             z1 = mid - gap // 2
             z2 = z1 + gap
-            a_max = o + s * (z1 - 1) + 0.5 * s + top + spread + 0.01  # + float32 slack
-            b_min = o + s * z2 - 0.5 * s + bottom - spread - 0.01
+            a_max = o + s * (z1 - 1) + above
+            b_min = o + s * z2 - below
             if np.ceil(a_max + 0.5) - 1 < np.floor(b_min - 0.5) + 1:
                 return z1, z2
         return None
+
+    def _target_z_reach(self, dq, g0: int, g1: int) -> tuple[int, int]:
+        """Target z planes [t0, t1) that domain z planes [g0, g1) can reach."""
+        below, above = self._z_reach(dq)
+        s, o = float(self.scale[2]), float(self.offset[2])
+        t0 = int(np.floor(o + s * g0 - below - 0.5))
+        t1 = int(np.ceil(o + s * (g1 - 1) + above + 0.5)) + 1
+        return t0, t1
+
+    def _domain_z_window(self, dq, t0: int, t1: int) -> tuple[int, int]:
+        """Domain z range [g0, g1) holding every voxel that can reach target z planes [t0, t1)."""
+        below, above = self._z_reach(dq)
+        s, o = float(self.scale[2]), float(self.offset[2])
+        dz = self.grid.domain_shape[2]
+        g0 = int(np.floor((t0 - 0.5 - o - above) / s))
+        g1 = int(np.ceil((t1 - 0.5 - o + below) / s)) + 1
+        return max(g0, 0), min(g1, dz)
 
     def render(self) -> np.ndarray:
         """Full computation with the current lattice; returns the target ``[z, y, x]``."""
@@ -174,15 +232,81 @@ class Scene:
         else:
             self.acc.fill(0)
         with timed(f"deformation + {self.method} pushforward"):
-            self._contribute(self.dq, (0, 0, 0), self.grid.domain_shape, 1)
+            self._contribute([self.dq], (0, 0, 0), self.grid.domain_shape, 1)
         with timed("finalize"):
             pushforward.finalize(self.acc, self.vmax, (0, 0, 0), self.target_shape, self.out)
         self.last_touched = ((0, 0, 0), self.target_shape)
         return self.out
 
+    def render_once(self) -> np.ndarray:
+        """The same target as :meth:`render`, without keeping accumulators for later updates.
+
+        Two threads each stream one half of the target along z: domain z
+        chunks in order, scattered into a rolling accumulator of a few target
+        planes; a plane is finalized and dropped as soon as no later chunk can
+        reach it (see :meth:`_z_reach`). Contributions are integer sums
+        clipped to the planes held, so every voxel gets exactly the sums of a
+        full :meth:`render`, and the whole-target accumulators (16 bytes per
+        voxel) are never allocated. Later :meth:`set_lattice` calls start
+        from scratch.
+        """
+        tx, ty, tz = self.target_shape
+        out_dtype = np.float64 if self.domain.dtype == np.float64 else np.float32
+        s = float(self.scale[2])
+        chunk = max(1, int(STREAM_PLANES / s))  # domain planes per step
+        r_lo, r_hi = self._target_z_reach(self.dq, 0, chunk)
+        planes = r_hi - r_lo + 2  # target planes one step can reach (+ rounding)
+        ensure_fits_in_memory(tx * ty * tz * np.dtype(out_dtype).itemsize
+                              + 2 * planes * tx * ty * 16, "the warped target")
+        out = np.empty((tz, ty, tx), dtype=out_dtype)
+        dshape = self.grid.domain_shape
+        workers = 2 if (os.cpu_count() or 1) >= 2 and tz >= 2 * planes else 1
+        cuts = [tz * i // workers for i in range(workers + 1)]
+
+        def stream(t_lo, t_hi):
+            acc = np.zeros((planes, ty, tx, 2), dtype=np.int64)
+            scratch = Scratch()
+            base = t_lo  # acc[i] holds target plane base + i
+
+            def flush(upto):
+                nonlocal base
+                k = upto - base
+                if k <= 0:
+                    return
+                pushforward.finalize(acc, self.vmax, (0, 0, 0), (tx, ty, k), out[base:upto],
+                                     parallel=False)
+                acc[:planes - k] = acc[k:]
+                acc[planes - k:] = 0
+                base = upto
+
+            g_lo, g_hi = self._domain_z_window(self.dq, t_lo, t_hi)
+            for g0 in range(g_lo, g_hi, chunk):
+                g1 = min(g0 + chunk, g_hi)
+                r_lo, r_hi = self._target_z_reach(self.dq, g0, g1)
+                flush(min(max(r_lo, base), t_hi))  # no later chunk reaches below r_lo
+                if min(r_hi, t_hi) - base > planes:  # pragma: no cover - cannot happen
+                    raise AssertionError("rolling accumulator too small")
+                self._contribute([self.dq], (0, 0, g0), (dshape[0], dshape[1], g1), 1,
+                                 acc=acc[:min(planes, t_hi - base)], tzo=base, parallel=False,
+                                 scratch=scratch)
+            while base < t_hi:
+                flush(min(base + planes, t_hi))
+
+        with timed(f"deformation + {self.method} pushforward + finalize ({workers} threads)"):
+            if workers < 2:
+                stream(0, tz)
+            else:
+                with ThreadPoolExecutor(workers) as pool:
+                    for f in [pool.submit(stream, cuts[i], cuts[i + 1]) for i in range(workers)]:
+                        f.result()
+        self.acc = None
+        self.out = out
+        self.last_touched = ((0, 0, 0), self.target_shape)
+        return out
+
     def result(self) -> np.ndarray:
         """The target for the current lattice (computed in full on first use)."""
-        if self.acc is None:
+        if self.out is None:
             return self.render()
         return self.out
 
@@ -191,7 +315,9 @@ class Scene:
         dq = np.asarray(dq, dtype=np.float64)
         if dq.shape != self.dq.shape:
             raise VolwarpError("lattice shape changed")
-        if self.acc is None:
+        if self.acc is None:  # nothing rendered, or rendered once: no local update
+            if np.any(dq != self.dq):
+                self.out = None
             self.dq = dq.copy()
             return
         moved = np.argwhere(np.any(dq != self.dq, axis=-1))  # (k, j, i)
@@ -203,15 +329,12 @@ class Scene:
         dshape = np.array(self.grid.domain_shape)
         vlo = np.maximum(rlo * g - 1, 0)
         vhi = np.minimum(rhi * g + 1, dshape)
-        bb_old = self._contribute(self.dq, vlo, vhi, -1)
+        bb = self._contribute([self.dq, dq], vlo, vhi, -1)
         self.dq = dq.copy()
-        bb_new = self._contribute(self.dq, vlo, vhi, 1)
-        boxes = [b for b in (bb_old, bb_new) if b is not None]
-        if not boxes:
+        if bb is None:
             self.last_touched = None
             return
-        tlo = np.min([b[0] for b in boxes], axis=0)
-        thi = np.max([b[1] for b in boxes], axis=0)
+        tlo, thi = bb
         pushforward.finalize(self.acc, self.vmax, tlo, thi, self.out)
         self.last_touched = (tuple(int(v) for v in tlo), tuple(int(v) for v in thi))
         log.debug("local update: regions %s..%s, target block %s..%s", rlo.tolist(),

@@ -56,14 +56,15 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
 def run(scene: Scene, frames, on_frame=None) -> np.ndarray:
     """Apply the frames; ``on_frame(n, frame_or_None, target)`` after each (incremental).
 
-    Without ``on_frame`` only the final lattice is rendered (in full), which
-    gives the same target as the incremental sequence.
+    Without ``on_frame`` only the final lattice is rendered (in full, without
+    keeping accumulators), which gives the same target as the incremental
+    sequence.
     """
     if on_frame is None:
         if frames:
             scene.set_lattice(frames[-1].dq)
         with timed("warp (deformation + pushforward)"):
-            return scene.render()
+            return scene.render_once()
     with timed("warp frame 0 (full)"):
         on_frame(0, None, scene.render())
     with progress(len(frames), "warp") as bar:
