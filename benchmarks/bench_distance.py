@@ -7,7 +7,9 @@ A 256^3 shape (two overlapping ellipsoids; 128^3 with --quick). Rows:
 * the in-process signed Euclidean core vs scipy.ndimage.distance_transform_edt
   (both sides), SimpleITK SignedMaurerDistanceMap and edt.sdf;
 * the whole ``volwarp distance`` command (a new process, NRRD in and out) vs
-  the scipy reference;
+  the scipy reference; its input is the same binary mask (uint8, unit
+  spacing), so it takes the exact voxel-centre path and computes the same
+  signed field as the core row and every peer;
 * the sub-voxel field of a smooth input, and the paper's min-norm scheme
   (time and pass count; reference: scipy distance_transform_cdt taxicab, both
   sides); the distance update of a moved field vs a full min-norm recomputation.
