@@ -111,6 +111,8 @@ def test_cli_distance_matches_scipy_and_keeps_geometry(run, tmp_path):
     ref = scipy_signed(vol.data >= 100, vol.spacing[::-1])
     np.testing.assert_allclose(out.data, ref, atol=1e-4)
     assert "metric=euclidean" in out.meta["volwarp_distance"]
+    assert out.meta["volwarp_command"] == "distance"
+    assert out.meta["volwarp_input"] == "b.nrrd"
 
 
 def test_cli_distance_is_deterministic(run, tmp_path):

@@ -115,6 +115,14 @@ def test_capture_file_then_warp_equals_direct_warp_and_frames(run, data_dir, tmp
     frames = sorted(tmp_path.glob("f_*.nrrd"))
     assert [f.name for f in frames] == [f"f_{n:02d}.nrrd" for n in range(6)]  # 0 + 1 + 4
     assert np.array_equal(read_volume(frames[-1]).data, va.data)
+    # provenance: the warp, its input's name and the spec's hash, in outputs and frames
+    import hashlib
+    sha = hashlib.sha256(spec.read_bytes()).hexdigest()
+    for path, name in ((a, "s.vwc"), (b, src.name), (frames[2], "s.vwc")):
+        meta = read_volume(path).meta
+        assert meta["volwarp_command"] == "warp"
+        assert meta["volwarp_input"] == name
+        assert meta["volwarp_spec_sha256"] == sha
     # frame 0 is the unwarped model, frames change monotonically towards the end
     f0 = read_volume(frames[0]).data.astype(float)
     diffs = [np.abs(read_volume(f).data.astype(float) - f0).sum() for f in frames]

@@ -15,7 +15,7 @@ import click
 
 from ..io import check_output_path, write_volume
 from ..progress import log, timed
-from .common import load_input
+from .common import load_input, stamp
 from .options import common_options, output_option, raw_options, write_options
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
@@ -90,11 +90,9 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
     if info["passes"]:
         log.info("min-norm: %d shift-and-min passes", info["passes"])
     finish_field(field, unsigned=unsigned, max_distance=max_distance)
-    meta = dict(vol.meta)
-    meta["volwarp_distance"] = (f"metric={metric} surface={info['surface']} iso={iso:g} "
-                                f"inside={inside}" + (" unsigned" if unsigned else ""))
-    out = vol.with_data(field)
-    out.meta = meta
+    out = stamp(vol.with_data(field), "distance", input)
+    out.meta["volwarp_distance"] = (f"metric={metric} surface={info['surface']} iso={iso:g} "
+                                    f"inside={inside}" + (" unsigned" if unsigned else ""))
     with timed(f"write {output}"):
         write_volume(out, output, dtype=dtype, compress=compress, byte_order=byte_order)
 
@@ -155,5 +153,5 @@ def _update(old_path, transform_path, output, metric, max_distance, dtype, compr
              stats["passes"])
     finish_field(new, max_distance=max_distance)
     with timed(f"write {output}"):
-        write_volume(vol.with_data(new), output, dtype=dtype, compress=compress,
-                     byte_order=byte_order)
+        write_volume(stamp(vol.with_data(new), "distance --update", old_path, transform_path),
+                     output, dtype=dtype, compress=compress, byte_order=byte_order)

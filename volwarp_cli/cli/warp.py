@@ -8,7 +8,7 @@ import click
 
 from ..io import check_output_path, write_volume
 from ..progress import timed
-from .common import load_input
+from .common import load_input, stamp
 from .options import common_options, output_option, raw_options, write_options
 
 _FIELDS = ("frame", "step", "spec_step", "sub")
@@ -96,7 +96,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, crop, d
     scene, frames = prepare(cap, doc, spec, method=pushforward, evaluator=evaluator)
 
     def write(target, path):
-        out = output_volume(cap, scene, target, crop=crop, dtype=dtype)
+        out = stamp(output_volume(cap, scene, target, crop=crop, dtype=dtype), "warp", input,
+                    spec_path)
         with timed(f"write {path}"):
             write_volume(out, path, compress=compress, byte_order=byte_order)
 
