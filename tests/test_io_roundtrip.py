@@ -354,3 +354,23 @@ def test_volume_index_refused_where_it_means_nothing(tmp_path):
     assert read_volume(tmp_path / "b.nrrd", volume_index=0).data.shape == vol.data.shape
     with pytest.raises(FormatError, match="one component"):
         read_volume(tmp_path / "b.nrrd", volume_index=1)
+
+
+@pytest.mark.parametrize("ext", [".png", ".tif"])
+def test_rgba_image_keeps_unpremultiplied_colour(tmp_path, ext):
+    """Half-transparent pixels keep their colour (PNG stores straight alpha)."""
+    from volwarp_cli.io.images import read_image, write_image
+
+    img = np.zeros((4, 5, 4), np.uint8)
+    img[..., :3] = (200, 100, 50)
+    img[..., 3] = [[0], [64], [128], [255]]
+    path = tmp_path / f"rgba{ext}"
+    write_image(path, img)
+    back = read_image(path)
+    np.testing.assert_allclose(back[1:, :, :3] * 255, np.broadcast_to([200, 100, 50], (3, 5, 3)),
+                               atol=0.51)
+    np.testing.assert_allclose(back[..., 3] * 255, img[..., 3], atol=0.51)
+    if ext == ".png":  # an independent reader sees the same straight colour
+        from PIL import Image
+
+        np.testing.assert_array_equal(np.asarray(Image.open(path))[1:], img[1:])

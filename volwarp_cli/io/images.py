@@ -84,6 +84,9 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     arr = np.ascontiguousarray(arr)
     h, w, c = arr.shape
     spec = oiio.ImageSpec(w, h, c, getattr(oiio, _OIIO_TYPES[arr.dtype.name]))
+    # our colours are not premultiplied by alpha: without this, PNG's writer
+    # would divide them by alpha (read_image reads them back the same way)
+    spec.attribute("oiio:UnassociatedAlpha", 1)
     with atomic_output(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
