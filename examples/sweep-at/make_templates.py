@@ -58,7 +58,11 @@ def at_templates(size: int = AT_SIZE):
     # the inner 'a': a bowl and a stem on its right that runs into the ring's tail
     bowl = (np.hypot(dx + 0.03, dy) > 0.09) & (np.hypot(dx + 0.03, dy) < 0.19)
     stem = (dx > 0.13) & (dx < 0.22) & (dy > -0.20) & (dy < 0.19)
-    tail = (dx > 0.13) & (dx < 0.40) & (dy > -0.20) & (dy < -0.12)
+    # the tail: from the stem's foot a quarter-ellipse curling up into the ring's end
+    # at the right (5 degrees), which makes the 'a' and the ring one '@' stroke
+    t = np.linspace(0.0, np.pi / 2, 64)
+    cx, cy = 0.175 + 0.24 * np.sin(t), 0.036 - 0.236 * np.cos(t)
+    tail = np.min(np.hypot(dx[..., None] - cx, dy[..., None] - cy), axis=-1) < 0.045
     inner = bowl | stem | tail
     opacity = np.where(inner, 1.0, np.where(ring, 0.06, 0.0)).astype(np.float32)
     colour = np.zeros((size, size, 3), dtype=np.float32)
@@ -74,9 +78,9 @@ def bottle_templates(size=BOTTLE_SIZE):
     x, y = _grid(w, h)
     rad = 1.0 - x  # distance from the axis, in template widths
     # outer radius along the height: body, shoulder, neck, lip
-    body = 0.80
-    neck = 0.38
-    shoulder = np.clip((y - 0.55) / 0.2, 0, 1)
+    body = 0.62
+    neck = 0.27
+    shoulder = np.clip((y - 0.50) / 0.25, 0, 1)
     outer = body + (neck - body) * (3 * shoulder ** 2 - 2 * shoulder ** 3)
     outer = np.where(y > 0.9, neck + 0.06, outer)  # the lip
     inside_shape = (rad <= outer) & (y > 0.04) & (y < 0.95)
@@ -96,21 +100,50 @@ def bottle_templates(size=BOTTLE_SIZE):
 
 
 def flame_frame(k: int, n: int, size=FLAME_SIZE) -> np.ndarray:
-    """RGBA flame number ``k`` of ``n`` (its sway and height flicker with k)."""
+    """RGBA flame number ``k`` of ``n``: a tongue whose height and sway flicker with k.
+
+    The flicker mixes several frequencies (whole numbers of cycles over the n
+    frames, so the video loops), so neighbouring frames differ a little and
+    frames far apart a lot: swept along the ring it gives a row of tongues of
+    different heights, as in the paper's Fig. 8.
+    """
     w, h = size
     x, y = _grid(w, h)
     phase = 2 * np.pi * k / n
-    height = 0.75 + 0.12 * np.sin(3 * phase) + 0.05 * np.sin(7 * phase + 1.0)
-    sway = 0.08 * np.sin(2 * phase + 4 * y) * y
+    height = (0.68 + 0.14 * np.sin(9 * phase) + 0.10 * np.sin(17 * phase + 1.0)
+              + 0.06 * np.sin(29 * phase + 2.0))
+    sway = (0.06 * np.sin(5 * phase + 5 * y) + 0.04 * np.sin(13 * phase + 9 * y)) * y
     yy = np.clip(y / height, 0, None)
-    half_width = 0.32 * np.sqrt(np.clip(yy, 0, 1)) * np.clip(1 - yy, 0, 1) * 1.6
+    half_width = 0.30 * np.sqrt(np.clip(yy, 0, 1)) * np.clip(1 - yy, 0, 1) * 1.7
     d = np.abs(x - 0.5 - sway) / np.maximum(half_width, 1e-6)
     inten = np.clip(1 - d, 0, 1) * (yy < 1) * (y > 0.02)
     inten = _smooth(inten, 1)
-    # red at the fringe, yellow to white in the core
-    rgba = np.stack([np.clip(2.5 * inten, 0, 1), np.clip(1.3 * inten ** 2, 0, 1),
-                     0.5 * inten ** 6, np.clip(0.3 * inten, 0, 1)], axis=-1)
+    # red at the fringe, orange, yellow in the core; faint (it glows)
+    rgba = np.stack([np.clip(4.0 * inten, 0, 1), np.clip(1.1 * inten ** 1.2, 0, 1),
+                     np.clip(0.6 * inten ** 4, 0, 1), np.clip(0.4 * inten, 0, 1)], axis=-1)
     return rgba.astype(np.float32)
+
+
+def write_rgba_png(path: Path, rgba: np.ndarray) -> None:
+    """An RGBA PNG with the colour stored as given (unassociated alpha).
+
+    volwarp's ``write_image`` hands RGBA to OpenImageIO as associated
+    (premultiplied) alpha, so the PNG writer divides the colour by alpha and a
+    faint flame (alpha 0.2) comes out white; ``read_image`` reads PNG alpha
+    unassociated. Write the samples as they are, as the spec's channels expect.
+    """
+    import OpenImageIO as oiio
+
+    arr = np.rint(np.clip(rgba, 0.0, 1.0) * 255.0).astype(np.uint8)
+    h, w, c = arr.shape
+    spec = oiio.ImageSpec(w, h, c, oiio.UINT8)
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    tmp = path.with_name(path.name + ".tmp.png")
+    png = oiio.ImageOutput.create(str(tmp))
+    if png is None or not png.open(str(tmp), spec) or not png.write_image(arr):
+        raise SystemExit(f"make_templates.py: cannot write {path}: {oiio.geterror()}")
+    png.close()
+    tmp.replace(path)
 
 
 def make_all(outdir, frames: int = 256) -> list[Path]:
@@ -120,7 +153,10 @@ def make_all(outdir, frames: int = 256) -> list[Path]:
     written = []
 
     def put(name, arr):
-        write_image(out / name, np.ascontiguousarray(arr))
+        if arr.ndim == 3 and arr.shape[2] == 4:
+            write_rgba_png(out / name, arr)
+        else:
+            write_image(out / name, np.ascontiguousarray(arr))
         written.append(out / name)
 
     o, c, g = at_templates()
