@@ -39,6 +39,18 @@ def test_python_dash_m_entry_point():
     assert volwarp_cli.__version__ in out.stdout
 
 
+def test_command_line_runs_exit_quietly(data_dir, tmp_path):
+    """A whole process (the path that freezes objects before exit) prints nothing
+    at shutdown: no library's leak report after a render, nothing after a distance."""
+    ball = data_dir / "ball_30_uint8.nrrd"
+    for args in (["mesh", ball, "-o", tmp_path / "b.ply", "--render", tmp_path / "b.png",
+                  "--size", "64x64"],
+                 ["distance", ball, "-o", tmp_path / "d.nrrd", "--iso", "127"]):
+        out = subprocess.run(VOLWARP + [str(a) for a in args], capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        assert out.stderr == "", out.stderr[:500]
+
+
 def test_info_json_is_stable(run, data_dir):
     res = run("info", data_dir / "mri_t1_head_coronal_2x2x3mm.nrrd", "--json")
     assert res.code == 0, res.stderr
