@@ -202,3 +202,18 @@ def test_signed_edt_property_against_scipy():
         np.testing.assert_array_equal(got_mn, ref_mn)
 
     check()
+
+
+def test_cli_nan_samples_are_outside_and_reported(run, tmp_path):
+    vol = write_ball(tmp_path / "b.nrrd")
+    data = vol.data.astype(np.float32)
+    data[0, 0, :4] = np.nan  # corner samples, outside the ball anyway
+    data[data.shape[0] // 2, data.shape[1] // 2, data.shape[2] // 2] = np.nan  # the centre
+    write_volume(vol.with_data(data), tmp_path / "n.nrrd")
+    r = run("distance", tmp_path / "n.nrrd", "-o", tmp_path / "d.nrrd", "--iso", 100)
+    assert r.code == 0, r.stderr
+    assert "5 NaN samples" in r.stderr and "outside" in r.stderr
+    out = read_volume(tmp_path / "d.nrrd").data
+    c = tuple(n // 2 for n in data.shape)
+    assert out[c] > 0  # the NaN centre is a one-voxel hole: outside
+    assert np.isfinite(out).all()

@@ -87,6 +87,13 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
     # mask + float32 field (+ seed ids, a second id buffer and float32 samples, sub-voxel)
     ensure_fits_in_memory(data.size * (18 if metric == "euclidean" else 13),
                           f"the distance field of {data.size} samples")
+    if data.dtype.kind == "f":
+        nans = int(np.count_nonzero(np.isnan(data)))
+        if nans:
+            from ..progress import log
+
+            log.warning("%d NaN samples (%.2g%%) count as outside the shape", nans,
+                        100.0 * nans / data.size)
     mask = inside_mask(data, iso, inside)
     count = int(np.count_nonzero(mask))
     if count == 0:
