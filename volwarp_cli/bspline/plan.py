@@ -50,6 +50,7 @@ class WarpSpec:
     capture_given: set = field(default_factory=set)
     pushforward: str = "box"
     evaluator: str = "separable"
+    background: float = 0.0
     steps: list = field(default_factory=list)
 
 
@@ -81,7 +82,8 @@ def read_warp_spec(doc) -> WarpSpec:
             raise doc.error(("steps", s, "radius"), "radius limits a drag; this step has none")
     return WarpSpec(units=d.get("units", "world"), capture=settings, capture_given=set(cap),
                     pushforward=d.get("pushforward", "box"),
-                    evaluator=d.get("evaluator", "separable"), steps=steps)
+                    evaluator=d.get("evaluator", "separable"),
+                    background=float(d.get("background", 0.0)), steps=steps)
 
 
 class Geometry:

@@ -203,14 +203,14 @@ def _kernels():
         return np.array([bx0, by0, bz0, bx1, by1, bz1], dtype=np.int64)
 
     @njit(cache=True, nogil=True)
-    def finalize(acc, vmax, lo, hi, out):  # pragma: no cover - jit
+    def finalize(acc, vmax, lo, hi, out, background):  # pragma: no cover - jit
         inv_q = 1.0 / 1099511627776.0
         for z in range(lo[2], hi[2]):
             for y in range(lo[1], hi[1]):
                 for x in range(lo[0], hi[0]):
                     w = acc[z, y, x, 0] * inv_q
                     v = acc[z, y, x, 1] * inv_q * vmax
-                    out[z, y, x] = v if w < 1.0 else v / w
+                    out[z, y, x] = v + background * (1.0 - w) if w < 1.0 else v / w
 
     return scatter, finalize
 
@@ -307,11 +307,14 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
             np.max([b[3:] for b in boxes], axis=0) + 1)
 
 
-def finalize(acc, vmax, lo, hi, out, parallel=True):
-    """``out = v if w < 1 else v / w`` on the target block [lo, hi) (x, y, z).
+def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0):
+    """``out = v + b (1 - w) if w < 1 else v / w`` on the target block [lo, hi) (x, y, z).
 
     ``acc[z, y, x, 0]`` is the fixed-point weight, ``acc[..., 1]`` the weighted value;
-    ``parallel`` lets large blocks use two threads.
+    ``parallel`` lets large blocks use two threads. ``background`` ``b`` is the
+    value of the space around the model (the papers': 0): a partly covered
+    voxel is blended with it and an uncovered one gets it, exactly what
+    pushing ``data - b`` and adding ``b`` would give.
     """
     from .basis import run_split
 
@@ -322,7 +325,7 @@ def finalize(acc, vmax, lo, hi, out, parallel=True):
     def args(z0, z1):
         a, b = lo.copy(), hi.copy()
         a[2], b[2] = z0, z1
-        return acc, float(vmax), a, b, out
+        return acc, float(vmax), a, b, out, float(background)
 
     run_split(kern, args, int(lo[2]), int(hi[2]), int(np.prod(hi - lo)) if parallel else 0)
     return out

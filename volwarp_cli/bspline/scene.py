@@ -75,10 +75,12 @@ class Scene:
         Target padding per side; target index = input index + pad.
     method : {"box", "nearest"}
     evaluator : {"separable", "table"}
+    background : float
+        Value of the space around the model (uncovered target voxels).
     """
 
     def __init__(self, domain, grid: Grid, dq, pad, *, method: str = "box",
-                 evaluator: str = "separable"):
+                 evaluator: str = "separable", background: float = 0.0):
         if method not in pushforward.METHODS:
             raise VolwarpError(f"unknown pushforward {method!r} (use box or nearest)")
         if evaluator not in basis.EVALUATORS:
@@ -93,6 +95,9 @@ class Scene:
             raise VolwarpError(f"pad must not be negative, got {self.pad.tolist()}")
         self.method = method
         self.evaluator = evaluator
+        self.background = float(background)
+        if not np.isfinite(self.background):
+            raise VolwarpError(f"the background must be a finite number, got {background}")
         # max |v| without a whole-volume temporary
         vmax = max(-float(domain.min()), float(domain.max())) if domain.size else 0.0
         self.vmax = vmax if vmax > 0 else 1.0
@@ -234,7 +239,8 @@ class Scene:
         with timed(f"deformation + {self.method} pushforward"):
             self._contribute([self.dq], (0, 0, 0), self.grid.domain_shape, 1)
         with timed("finalize"):
-            pushforward.finalize(self.acc, self.vmax, (0, 0, 0), self.target_shape, self.out)
+            pushforward.finalize(self.acc, self.vmax, (0, 0, 0), self.target_shape, self.out,
+                                 background=self.background)
         self.last_touched = ((0, 0, 0), self.target_shape)
         return self.out
 
@@ -274,7 +280,7 @@ class Scene:
                 if k <= 0:
                     return
                 pushforward.finalize(acc, self.vmax, (0, 0, 0), (tx, ty, k), out[base:upto],
-                                     parallel=False)
+                                     parallel=False, background=self.background)
                 acc[:planes - k] = acc[k:]
                 acc[planes - k:] = 0
                 base = upto
@@ -335,7 +341,8 @@ class Scene:
             self.last_touched = None
             return
         tlo, thi = bb
-        pushforward.finalize(self.acc, self.vmax, tlo, thi, self.out)
+        pushforward.finalize(self.acc, self.vmax, tlo, thi, self.out,
+                             background=self.background)
         self.last_touched = (tuple(int(v) for v in tlo), tuple(int(v) for v in thi))
         log.debug("local update: regions %s..%s, target block %s..%s", rlo.tolist(),
                   rhi.tolist(), tlo.tolist(), thi.tolist())

@@ -32,8 +32,11 @@ def check_capture_settings(doc, spec: WarpSpec, cap: Capture, source: str) -> No
 
 
 def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
-            evaluator: str | None = None):
-    """The scene (with its target padding) and the planned frames."""
+            evaluator: str | None = None, background: float | None = None):
+    """The scene (with its target padding) and the planned frames.
+
+    ``method``, ``evaluator``, ``background``: override the spec's.
+    """
     geom = Geometry(cap.geometry, spec.units)
     dq0 = cap.dq
     with timed("plan lattice moves"):
@@ -49,7 +52,8 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
         log.warning("pad %s is smaller than the largest displacement %s: material moved "
                     "outside the padded grid is cut off", list(pad), [max(n - 1, 0) for n in needed])
     scene = Scene(cap.domain, cap.grid, dq0, pad, method=method or spec.pushforward,
-                  evaluator=evaluator or spec.evaluator)
+                  evaluator=evaluator or spec.evaluator,
+                  background=spec.background if background is None else background)
     return scene, frames
 
 

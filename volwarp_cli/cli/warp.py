@@ -48,12 +48,16 @@ def _check_pattern(pattern: str) -> None:
               help="Pushforward filter [default: the spec's, else box].")
 @click.option("--evaluator", type=click.Choice(["separable", "table"]), default=None,
               help="Deformation evaluator [default: the spec's, else separable].")
+@click.option("--background", type=float, default=None, metavar="B",
+              help="Value of the space around the model, given to uncovered output voxels "
+                   "and blended into partly covered ones [default: the spec's, else 0]; "
+                   "e.g. a large positive distance for a signed distance field.")
 @click.option("--crop", is_flag=True, help="Cut the output back to the input's extent.")
 @write_options
 @raw_options
 @common_options
-def command(input, spec_path, output, frames_to, pushforward, evaluator, crop, dtype, compress,
-            byte_order, raw, volume_index):
+def command(input, spec_path, output, frames_to, pushforward, evaluator, background, crop, dtype,
+            compress, byte_order, raw, volume_index):
     """Warp INPUT (a volume, or a capture file .vwc) as the spec says.
 
     A plain volume is captured on the fly with the spec's `capture` settings.
@@ -93,7 +97,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, crop, d
         except VolwarpError as exc:
             raise VolwarpError(f"{input}: {exc}") from None
         del vol
-    scene, frames = prepare(cap, doc, spec, method=pushforward, evaluator=evaluator)
+    scene, frames = prepare(cap, doc, spec, method=pushforward, evaluator=evaluator,
+                            background=background)
 
     def write(target, path):
         out = stamp(output_volume(cap, scene, target, crop=crop, dtype=dtype), "warp", input,
