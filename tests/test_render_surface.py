@@ -133,6 +133,34 @@ def test_colors_background_and_empty_mesh(sphere):
     assert np.all(empty == np.array([51, 102, 153], dtype=np.uint8))
 
 
+def test_face_colors_paint_each_triangle(sphere):
+    mesh, _, centre = sphere
+    # uniform face colours give exactly the single-colour picture
+    plain = render_mesh(mesh, view="y", size=(90, 70), color="#3080c0")
+    rows = np.tile(np.array([[0x30, 0x80, 0xC0]], np.uint8), (len(mesh.faces), 1))
+    assert np.array_equal(render_mesh(mesh, view="y", size=(90, 70), face_colors=rows), plain)
+    # the +x half red, the -x half blue: seen along y (x to the right) they split left/right
+    cx = mesh.vertices[mesh.faces].mean(axis=1)[:, 0]
+    colors = np.where((cx > centre[0])[:, None], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0])
+    image = render_mesh(mesh, view="y", size=(90, 70), face_colors=colors,
+                        background="black").astype(int)
+    from scipy import ndimage as ndi
+
+    inside = ndi.binary_erosion(silhouette(image.astype(np.uint8), background=(0, 0, 0)))
+    cols = np.nonzero(inside.any(axis=0))[0]
+    mid = (cols[0] + cols[-1]) // 2
+    left, right = inside.copy(), inside.copy()
+    left[:, mid - 3:] = False
+    right[:, :mid + 4] = False
+    sides = {"left": image[left], "right": image[right]}
+    red = "right" if view_axes("y")[0][0] > 0 else "left"
+    blue = "left" if red == "right" else "right"
+    assert (sides[red][:, 0] > sides[red][:, 2] + 30).all()
+    assert (sides[blue][:, 2] > sides[blue][:, 0] + 30).all()
+    with pytest.raises(VolwarpError, match="one RGB row per triangle"):
+        render_mesh(mesh, size=(20, 20), face_colors=colors[:-1])
+
+
 def test_open_surface_inside_is_drawn_darker():
     # half a sphere (cut open at the border): looking into it shows its inner side
     z, y, x = np.indices((20, 20, 20)).astype(np.float32)

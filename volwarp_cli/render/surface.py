@@ -216,14 +216,15 @@ def _render_kernel():
     import numba
 
     @numba.njit(cache=True, nogil=True)
-    def draw(vertices, world_normals, faces, center, axes, scale, ss, shading, colors, out):
+    def draw(vertices, world_normals, faces, center, axes, scale, ss, shading, face_colors,
+             back_shade, background, out):
         """Project, z-buffer the triangles at ``ss`` x the output size, shade, average down.
 
         ``axes`` rows are the camera's right, up and back (towards the viewer)
         unit vectors; ``scale`` is output pixels per world unit. ``shading`` =
         (key xyz, fill xyz, half xyz, ambient, key diffuse, fill diffuse,
-        specular, shininess) in the camera frame; ``colors`` = (front, back,
-        background) RGB rows.
+        specular, shininess) in the camera frame; ``face_colors`` one RGB row
+        per triangle (its back side drawn ``back_shade`` times as bright).
         """
         height, width = out.shape[0], out.shape[1]
         big_h = height * ss
@@ -248,6 +249,7 @@ def _render_kernel():
         zbuf = np.full((big_h, big_w), -np.inf, dtype=np.float32)
         nbuf = np.zeros((big_h, big_w, 3), dtype=np.float32)
         front = np.zeros((big_h, big_w), dtype=np.bool_)
+        fid = np.zeros((big_h, big_w), dtype=np.int32)
         for t in range(faces.shape[0]):
             a = faces[t, 0]
             b = faces[t, 1]
@@ -298,6 +300,7 @@ def _render_kernel():
                             nbuf[i, j, k] = (w0 * normals[a, k] + w1 * normals[b, k]
                                              + w2 * normals[c, k])
                         front[i, j] = is_front
+                        fid[i, j] = t
         # Blinn-Phong per sample, averaged over the ss x ss samples of a pixel
         inv_n = 1.0 / (ss * ss)
         for i in range(height):
@@ -310,9 +313,9 @@ def _render_kernel():
                         y = i * ss + u
                         x = j * ss + v
                         if zbuf[y, x] == -np.inf:
-                            acc0 += colors[2, 0]
-                            acc1 += colors[2, 1]
-                            acc2 += colors[2, 2]
+                            acc0 += background[0]
+                            acc1 += background[1]
+                            acc2 += background[2]
                             continue
                         nx = nbuf[y, x, 0]
                         ny = nbuf[y, x, 1]
@@ -322,19 +325,20 @@ def _render_kernel():
                             nx /= length
                             ny /= length
                             nz /= length
-                        side = 0
+                        shade = 1.0
                         if not front[y, x]:
                             # seen from behind (inside an open surface): light that side
                             nx, ny, nz = -nx, -ny, -nz
-                            side = 1
+                            shade = back_shade
                         dk = max(nx * shading[0] + ny * shading[1] + nz * shading[2], 0.0)
                         df = max(nx * shading[3] + ny * shading[4] + nz * shading[5], 0.0)
                         dh = max(nx * shading[6] + ny * shading[7] + nz * shading[8], 0.0)
                         light = shading[9] + shading[10] * dk + shading[11] * df
                         spec = shading[12] * dh ** shading[13]
-                        acc0 += min(colors[side, 0] * light + spec, 1.0)
-                        acc1 += min(colors[side, 1] * light + spec, 1.0)
-                        acc2 += min(colors[side, 2] * light + spec, 1.0)
+                        f = fid[y, x]
+                        acc0 += min(shade * face_colors[f, 0] * light + spec, 1.0)
+                        acc1 += min(shade * face_colors[f, 1] * light + spec, 1.0)
+                        acc2 += min(shade * face_colors[f, 2] * light + spec, 1.0)
                 out[i, j, 0] = np.uint8(min(max(acc0 * inv_n, 0.0), 1.0) * 255.0 + 0.5)
                 out[i, j, 1] = np.uint8(min(max(acc1 * inv_n, 0.0), 1.0) * 255.0 + 0.5)
                 out[i, j, 2] = np.uint8(min(max(acc2 * inv_n, 0.0), 1.0) * 255.0 + 0.5)
@@ -363,7 +367,8 @@ BACK_SIDE_SHADE = 0.55
 
 
 def render_mesh(mesh: Mesh, *, view="iso", size=(800, 600), color=None, background=None,
-                camera: Camera | None = None, supersample: int = 2) -> np.ndarray:
+                camera: Camera | None = None, supersample: int = 2,
+                face_colors=None) -> np.ndarray:
     """Render ``mesh`` shaded, headless: an ``(H, W, 3)`` uint8 picture.
 
     Parameters
@@ -380,6 +385,9 @@ def render_mesh(mesh: Mesh, *, view="iso", size=(800, 600), color=None, backgrou
         Overrides ``view`` and ``size`` (see :func:`fit_camera`).
     supersample : int
         Samples per pixel along each axis (anti-aliasing), 1..4.
+    face_colors : (F, 3) array, optional
+        One colour per triangle (0..1 floats, or uint8), instead of ``color``:
+        parts of a model in their own colours, drawn in one picture.
 
     Returns
     -------
@@ -396,10 +404,19 @@ def render_mesh(mesh: Mesh, *, view="iso", size=(800, 600), color=None, backgrou
         raise VolwarpError(f"supersample must be 1..4, got {supersample}")
     while ss > 1 and width * height * ss * ss > 64_000_000:
         ss -= 1
-    ensure_fits_in_memory(width * height * ss * ss * 17 + width * height * 3,
+    ensure_fits_in_memory(width * height * ss * ss * 21 + width * height * 3,
                           f"a {width}x{height} render")
-    colors = np.array([color, [BACK_SIDE_SHADE * c for c in color], background],
-                      dtype=np.float64)
+    n_faces = len(mesh.faces)
+    if face_colors is None:
+        face_colors = np.empty((n_faces, 3))
+        face_colors[:] = color
+    else:
+        face_colors = np.asarray(face_colors)
+        if face_colors.shape != (n_faces, 3):
+            raise VolwarpError(f"face_colors must be one RGB row per triangle ({n_faces}, 3), "
+                               f"got {face_colors.shape}")
+        scale = 1.0 / 255.0 if face_colors.dtype == np.uint8 else 1.0
+        face_colors = np.clip(face_colors.astype(np.float64) * scale, 0.0, 1.0)
     out = np.empty((height, width, 3), dtype=np.uint8)
     if mesh.is_empty:
         out[...] = np.rint(np.asarray(background) * 255.0).astype(np.uint8)
@@ -411,7 +428,9 @@ def render_mesh(mesh: Mesh, *, view="iso", size=(800, 600), color=None, backgrou
         _KERNELS["draw"] = _render_kernel()
     _KERNELS["draw"](mesh.vertices, np.ascontiguousarray(normals, dtype=np.float32),
                      mesh.faces, np.asarray(camera.center, dtype=np.float64), axes,
-                     float(camera.scale), ss, _shading_table(), colors, out)
+                     float(camera.scale), ss, _shading_table(),
+                     np.ascontiguousarray(face_colors, dtype=np.float64), BACK_SIDE_SHADE,
+                     np.asarray(background, dtype=np.float64), out)
     return out
 
 
