@@ -53,7 +53,7 @@ mkdir -p "$DEMO/sweep"
 python examples/sweep-at/make_templates.py "$DEMO/sweep/templates" >/dev/null
 cp specs/sweep-bottle.yaml "$DEMO/sweep/"
 volwarp sweep "$DEMO/sweep/sweep-bottle.yaml" -o "$DEMO/sweep/bottle_{field}.nrrd" \
-  --spacing 0.3 --render "$DEMO/bottle.png" --view 20,25
+  --spacing 0.3 --render "$DEMO/bottle.png" --view -70,25
 
 step "one picture of it all: demo-output/demo.png"
 python - "$DEMO" <<'EOF'

@@ -245,7 +245,7 @@ def test_bad_render_options_and_usage(run, sphere_file, tmp_path):
     path, _, _ = sphere_file
     res = run("mesh", path, "--render", tmp_path / "x.gifx")
     assert res.code == 1 and "unknown image extension" in res.stderr
-    for args in (["--size", "big"], ["--view", "top"], ["--color", "blurple"],
+    for args in (["--size", "big"], ["--view", "sideways"], ["--color", "blurple"],
                  ["--decimate", "1.5"], ["--smooth", "-2"]):
         res = run("mesh", path, "--render", tmp_path / "x.png", *args)
         assert res.code == 2, args

@@ -85,6 +85,14 @@ def test_mesh_and_render_outputs(run, shapes):
     assert sheet.shape[0] > 240 and sheet.shape[1] > 320
 
 
+@pytest.mark.parametrize("option", [("--view", "sideways"), ("--size", "big")])
+def test_bad_render_options_are_usage_errors_before_any_work(run, shapes, option):
+    r = run("morph", shapes / "ball.nrrd", shapes / "lobes.nrrd", "--frames", 2, "--iso", 100,
+            "-o", shapes / "bad_{i}.nrrd", "--render-to", shapes / "bad_{i}.png", *option)
+    assert r.code == 2 and option[0] in r.stderr
+    assert not list(shapes.glob("bad_*"))
+
+
 def test_spec_with_attributes_and_source_range(run, shapes):
     (shapes / "m.yaml").write_text(
         "version: 1\n"

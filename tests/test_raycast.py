@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from volwarp_cli.errors import VolwarpError
-from volwarp_cli.render.raycast import camera, parse_view, render_volume
+from volwarp_cli.render.raycast import camera, render_volume
 
 
 def test_uniform_slab_composites_to_the_analytic_opacity():
     n, o = 41, 0.05
     vol = np.full((n, n, n), o, dtype=np.float32)
-    img = render_volume(vol, view=(0, 0), size=(33, 33), step=0.5, shading=False, zoom=2.0)
+    img = render_volume(vol, view="front", size=(33, 33), step=0.5, shading=False, zoom=2.0)
     # a ray along +y through the centre crosses n - 1 voxel lengths
     expected = 1 - (1 - o) ** (n - 1)
     assert img[16, 16, 0] / 255 == pytest.approx(expected, abs=0.02)
@@ -58,12 +58,12 @@ def test_colour_and_shading():
 def test_orientation_of_the_views():
     vol = np.zeros((32, 32, 32), dtype=np.float32)
     vol[2:8, 14:18, 24:30] = 1  # low z, high x
-    front = render_volume(vol, view=(0, 0), size=(64, 64), shading=False)
+    front = render_volume(vol, view="front", size=(64, 64), shading=False)
     ys, xs = np.nonzero(front[:, :, 0])
     assert xs.mean() > 32 and ys.mean() > 32  # right and bottom
-    back = render_volume(vol, view=(180, 0), size=(64, 64), shading=False)
+    back = render_volume(vol, view="back", size=(64, 64), shading=False)
     assert np.nonzero(back[:, :, 0])[1].mean() < 32  # mirrored from behind
-    top = render_volume(vol, view=(0, 90), size=(64, 64), shading=False)
+    top = render_volume(vol, view="top", size=(64, 64), shading=False)
     ys, xs = np.nonzero(top[:, :, 0])
     assert xs.mean() > 32
 
@@ -77,12 +77,14 @@ def test_background_and_deterministic():
     assert tuple(a[0, 0]) == (0, 0, 255)
 
 
-def test_parse_view():
-    assert parse_view("30,20") == (30.0, 20.0)
-    assert parse_view("front") == (0.0, 0.0)
-    with pytest.raises(VolwarpError):
-        parse_view("north")
-    fwd, right, up = camera((0, 0), None)
+def test_camera_follows_the_surface_views():
+    """The ray caster looks from where `volwarp mesh --view` looks."""
+    fwd, right, up = camera("front")  # from -y, looking along +y
     assert np.allclose(fwd, [0, 1, 0]) and np.allclose(right, [1, 0, 0]) and np.allclose(up, [0, 0, 1])
-    fwd, right, up = camera((90, 0), None)
+    fwd, right, up = camera((0, 0))  # from +x
     assert np.allclose(fwd, [-1, 0, 0]) and np.allclose(right, [0, 1, 0])
+    fwd, right, up = camera("z")  # from above: x to the right, y up
+    assert np.allclose(fwd, [0, 0, -1]) and np.allclose(right, [1, 0, 0])
+    assert np.allclose(up, [0, 1, 0])
+    with pytest.raises(VolwarpError):
+        camera("north")

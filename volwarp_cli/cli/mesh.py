@@ -9,7 +9,7 @@ import click
 
 from ..errors import VolwarpError
 from .common import load_input
-from .options import common_options, raw_options
+from .options import VIEW_HELP, common_options, raw_options
 
 _IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
 
@@ -90,8 +90,7 @@ def _format_stats(d: dict) -> str:
 @click.option("--render", type=click.Path(dir_okay=False), default=None, metavar="OUT.png",
               help="Also render the surface, shaded, to this image.")
 @click.option("--view", default="iso", show_default=True, callback=_bad(_parse_view),
-              help="Render view: iso, x, y, z (looking from that axis) or AZIMUTH,ELEVATION "
-                   "in degrees (z is up).")
+              help=VIEW_HELP)
 @click.option("--size", default="800x600", show_default=True, callback=_bad(_parse_size),
               metavar="WxH", help="Render size in pixels.")
 @click.option("--color", default=None, callback=_bad(_parse_color),

@@ -16,7 +16,7 @@ import click
 
 from ..errors import VolwarpError
 from ..progress import log, progress, timed
-from .options import common_options
+from .options import VIEW_HELP, common_options
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
@@ -67,9 +67,10 @@ def _attribute_name(frame_path: str, name: str) -> str:
 @click.option("--density", "as_density", is_flag=True,
               help="Short form: write a 0..1 occupancy (0.5 on the surface) instead of the SDF.")
 @click.option("--size", default="640x480", show_default=True,
+              callback=lambda ctx, param, value: _parse_size(value),
               help="Render size WxH for --render-to.")
 @click.option("--view", default="iso", show_default=True,
-              help="Render view: iso, x, y, z or 'azimuth,elevation'.")
+              callback=lambda ctx, param, value: _parse_view(value), help=VIEW_HELP)
 @click.option("--compress/--no-compress", default=False, show_default=True,
               help="gzip NRRD frame data.")
 @common_options
@@ -206,7 +207,7 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec
                     from ..render.surface import fit_camera, render_mesh
 
                     if camera is None:
-                        camera = fit_camera(_shape_box(prep), _parse_view(view), size)
+                        camera = fit_camera(_shape_box(prep), view, size)
                     image = render_mesh(mesh, camera=camera)
                     write_image(render_paths[i], image)
                     if sheet_path:
@@ -220,15 +221,22 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec
     log.info("wrote %d frames on a %s grid", len(job.times), "x".join(map(str, grid.shape_xyz)))
 
 
-def _parse_view(view: str):
-    if view in ("iso", "x", "y", "z"):
-        return view
+def _parse_size(size: str):
+    from ..render.surface import parse_size
+
     try:
-        az, el = (float(v) for v in view.split(","))
-    except ValueError:
-        raise click.BadParameter(f"{view!r}: use iso, x, y, z or 'azimuth,elevation'",
-                                 param_hint="--view") from None
-    return (az, el)
+        return parse_size(size)
+    except VolwarpError as exc:
+        raise click.BadParameter(str(exc), param_hint="'--size'") from None
+
+
+def _parse_view(view: str):
+    from ..render.surface import parse_view
+
+    try:
+        return parse_view(view)
+    except VolwarpError as exc:
+        raise click.BadParameter(str(exc), param_hint="'--view'") from None
 
 
 def _shape_box(prep):

@@ -95,3 +95,8 @@ def write_options(f):
     f = click.option("--byte-order", type=click.Choice(["little", "big"]), default="little",
                      show_default=True, help="Byte order of NRRD, TIFF and raw outputs.")(f)
     return f
+
+
+#: --view of every command that renders (mesh, morph, sweep): one convention
+VIEW_HELP = ("Render view: iso, x, y, z, front, back, left, right, top, bottom (looking from "
+             "there) or AZIMUTH,ELEVATION in degrees (azimuth from +x towards +y, z up).")

@@ -5,9 +5,7 @@ from __future__ import annotations
 import click
 
 from ..errors import VolwarpError
-from .options import common_options, output_option, write_options
-
-VIEW_HELP = "Render view 'AZ,EL' in degrees (azimuth about z, elevation), or iso/front/top/..."
+from .options import VIEW_HELP, common_options, output_option, write_options
 
 
 def output_paths(pattern: str, names: list[str], multi: bool) -> dict[str, str]:
@@ -90,7 +88,7 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
         raise click.UsageError("give --shape or --spacing, not both")
     view_angles = None
     if render_path is not None:
-        from ..render.raycast import parse_view
+        from ..render.surface import parse_view
         try:
             view_angles = parse_view(view)
         except VolwarpError as exc:

@@ -24,8 +24,6 @@ matrix, if any, is not applied.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ..errors import VolwarpError
@@ -33,44 +31,21 @@ from ..errors import VolwarpError
 BLOCK = 8
 
 
-def parse_view(text) -> tuple[float, float]:
-    """``"az,el"`` (degrees) or a named view (front, back, left, right, top, bottom, iso)."""
-    named = {"front": (0.0, 0.0), "back": (180.0, 0.0), "left": (-90.0, 0.0),
-             "right": (90.0, 0.0), "top": (0.0, 90.0), "bottom": (0.0, -90.0),
-             "iso": (35.0, 30.0)}
-    if isinstance(text, (tuple, list)):
-        return float(text[0]), float(text[1])
-    t = str(text).strip().lower()
-    if t in named:
-        return named[t]
-    parts = t.split(",")
-    try:
-        az, el = (float(p) for p in parts)
-    except ValueError:
-        raise VolwarpError(f"view must be 'AZ,EL' in degrees or one of {', '.join(named)}; "
-                           f"got {text!r}") from None
-    if not (math.isfinite(az) and math.isfinite(el)):
-        raise VolwarpError(f"view angles must be finite, got {text!r}")
-    return az, el
+def camera(view, extent=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit (forward, right, up) vectors for ``view`` (as :func:`.surface.parse_view` reads it).
 
+    The same camera directions as the surface renders: a sweep's picture and a
+    mesh's picture of the same view show the same side.
+    """
+    from .surface import view_axes
 
-def camera(view, extent) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Unit (forward, right, up) vectors for ``view`` = (az, el) degrees."""
-    az, el = (math.radians(v) for v in view)
-    pos = np.array([math.cos(el) * math.sin(az), -math.cos(el) * math.cos(az), math.sin(el)])
-    fwd = -pos
-    ref = np.array([0.0, 0.0, 1.0])
-    if abs(np.dot(fwd, ref)) > 0.999:
-        ref = np.array([0.0, 1.0, 0.0]) if fwd[2] < 0 else np.array([0.0, -1.0, 0.0])
-    right = np.cross(fwd, ref)
-    right /= np.linalg.norm(right)
-    up = np.cross(right, fwd)
-    return fwd, right, up
+    right, up, back = view_axes(view)
+    return -back, right, up
 
 
 def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None,
                   geometry: np.ndarray | None = None, spacing=(1.0, 1.0, 1.0),
-                  view=(35.0, 30.0), size=(512, 512), background=(0.0, 0.0, 0.0),
+                  view="iso", size=(512, 512), background=(0.0, 0.0, 0.0),
                   step: float = 0.5, shading: bool = True, zoom: float = 1.0) -> np.ndarray:
     """Ray-cast ``opacity[z, y, x]`` (values in [0, 1]) into an ``(H, W, 3)`` uint8 image.
 

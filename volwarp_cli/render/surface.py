@@ -17,7 +17,9 @@ azimuth (degrees, in the x-y plane from +x towards +y) and an elevation
 except when looking straight down or up, where +y is up. Named views:
 ``"x"`` (from +x, +y to the right), ``"y"`` (from +y, -x to the right),
 ``"z"`` (azimuth -90, elevation 90: from +z, x to the right, y up) and ``"iso"`` (azimuth 45, elevation 35.26: from the (1, 1, 1)
-diagonal).
+diagonal); ``"front"`` (from -y, x to the right), ``"back"``, ``"right"``
+(from +x), ``"left"``, ``"top"`` (as ``"z"``) and ``"bottom"``. The volume
+ray caster (:mod:`.raycast`) uses the same views.
 
 Both sides of a triangle are drawn: the outer side in the mesh's colour,
 the inner side (visible through the opening of an open surface) darker.
@@ -38,7 +40,10 @@ from ..surface.mesh import Mesh, vertex_normals
 DEFAULT_COLOR = (0.85, 0.80, 0.70)  # bone
 DEFAULT_BACKGROUND = (1.0, 1.0, 1.0)
 ISO_ELEVATION = math.degrees(math.atan(1 / math.sqrt(2)))
-NAMED_VIEWS = {"x": (0.0, 0.0), "y": (90.0, 0.0), "z": (-90.0, 90.0), "iso": (45.0, ISO_ELEVATION)}
+NAMED_VIEWS = {"x": (0.0, 0.0), "y": (90.0, 0.0), "z": (-90.0, 90.0), "iso": (45.0, ISO_ELEVATION),
+               # from -y: the face, for LPS scans (y runs to the back of the head)
+               "front": (-90.0, 0.0), "back": (90.0, 0.0), "right": (0.0, 0.0),
+               "left": (180.0, 0.0), "top": (-90.0, 90.0), "bottom": (-90.0, -90.0)}
 MAX_SIZE = 16384
 
 NAMED_COLORS = {
@@ -107,7 +112,7 @@ def parse_view(value) -> tuple[float, float]:
         try:
             az, el = (float(p) for p in parts)
         except ValueError:
-            raise VolwarpError(f"unknown view {value!r}: give iso, x, y, z or "
+            raise VolwarpError(f"unknown view {value!r}: give {', '.join(NAMED_VIEWS)} or "
                                "AZIMUTH,ELEVATION in degrees") from None
     else:
         try:
