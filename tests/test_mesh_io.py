@@ -185,3 +185,62 @@ def test_provenance_comments_are_kept(blob, tmp_path, fmt):
     head = path.read_bytes()[:2000]
     assert b"volwarp_spec_sha256=" + b"ab" * 32 in head
     assert b"volwarp_input=x y.nrrd" in head
+
+
+def test_read_mesh_round_trip(blob, tmp_path):
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    path = tmp_path / "m.ply"
+    write_mesh(blob, path, comments={"volwarp_input": "x.nrrd"})
+    back = read_mesh(path)
+    np.testing.assert_array_equal(back.faces, blob.faces)
+    np.testing.assert_array_equal(back.vertices, blob.vertices.astype(np.float32))
+    np.testing.assert_array_equal(back.normals, blob.normals)
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary_big_endian"])
+def test_read_mesh_reads_other_writers_ply(blob, tmp_path, encoding):
+    """ASCII PLY from meshio, and big-endian PLY with double coordinates, read the same."""
+    import meshio
+
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    path = tmp_path / "m.ply"
+    if encoding == "ascii":
+        meshio.write(path, meshio.Mesh(blob.vertices, [("triangle", blob.faces.astype(np.int32))]),
+                     binary=False)
+        assert b"format ascii" in path.read_bytes()[:200]
+    else:
+        _write_big_endian(path, blob)
+    back = read_mesh(path)
+    np.testing.assert_array_equal(back.faces, blob.faces)
+    np.testing.assert_allclose(back.vertices, blob.vertices, atol=1e-9)
+    assert back.normals is None
+
+
+def _write_big_endian(path, mesh):
+    """The same mesh as a big-endian PLY with double coordinates and int list counts."""
+    header = (f"ply\nformat binary_big_endian 1.0\nelement vertex {mesh.n_vertices}\n"
+              "property double x\nproperty double y\nproperty double z\n"
+              f"element face {mesh.n_faces}\nproperty list int int vertex_indices\n"
+              "end_header\n").encode()
+    faces = np.empty(mesh.n_faces, dtype=[("n", ">i4"), ("v", ">i4", (3,))])
+    faces["n"] = 3
+    faces["v"] = mesh.faces
+    path.write_bytes(header + mesh.vertices.astype(">f8").tobytes() + faces.tobytes())
+
+
+def test_read_mesh_refuses_bad_files(blob, tmp_path):
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    path = tmp_path / "m.ply"
+    write_mesh(blob, path)
+    good = path.read_bytes()
+    path.write_bytes(good[:len(good) // 2])
+    with pytest.raises(VolwarpError, match="truncated"):
+        read_mesh(path)
+    path.write_bytes(b"solid nothing\n")
+    with pytest.raises(VolwarpError, match="not a PLY"):
+        read_mesh(path)
+    with pytest.raises(VolwarpError, match="PLY files only"):
+        read_mesh(tmp_path / "m.stl")

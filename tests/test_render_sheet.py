@@ -39,3 +39,29 @@ def test_refuses_mixed_channels_and_empty():
         contact_sheet([np.zeros((2, 2, 3), np.uint8), np.zeros((2, 2, 4), np.uint8)])
     with pytest.raises(VolwarpError):
         contact_sheet([])
+
+
+def test_titles_are_written_above_each_picture():
+    ims = [np.full((40, 120, 3), 200, np.uint8), np.full((30, 80, 3), 90, np.uint8)]
+    plain = contact_sheet(ims, columns=2, gap=2, background=255)
+    sheet = contact_sheet(ims, columns=2, gap=2, background=255, titles=["t = 0.00", "t = 1"])
+    strip = max(16, 120 // 12)
+    assert sheet.shape == (plain.shape[0] + strip, plain.shape[1], 3)
+    # the pictures sit below their strips, unchanged
+    assert (sheet[2 + strip:2 + strip + 40, 2:122] == 200).all()
+    # text: dark pixels in each title strip, centred over its cell, none elsewhere in it
+    for cell_x in (2, 124):
+        title = sheet[2:2 + strip, cell_x:cell_x + 120].min(axis=2)
+        ink = np.nonzero((title < 128).any(axis=0))[0]
+        assert ink.size > 5
+        assert abs((ink.min() + ink.max()) / 2 - 60) < 8
+    with pytest.raises(VolwarpError, match="titles"):
+        contact_sheet(ims, titles=["one"])
+
+
+def test_titles_on_float_pictures_and_dark_backgrounds():
+    ims = [np.zeros((20, 48, 1), np.float32)] * 2
+    sheet = contact_sheet(ims, background=0.0, titles=["a", "b"], gap=0)
+    assert sheet.dtype == np.float32 and sheet.shape == (20 + 16, 96, 1)
+    assert sheet[:16].max() > 0.5  # light ink on the dark strip
+    assert (sheet[16:] == 0).all()

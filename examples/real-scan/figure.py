@@ -30,7 +30,7 @@ from volwarp_cli.io import read_volume
 from volwarp_cli.io.images import write_image
 from volwarp_cli.render.sheet import contact_sheet
 from volwarp_cli.render.surface import fit_camera, render_mesh
-from volwarp_cli.surface.mesh import Mesh
+from volwarp_cli.surface.mesh_io import read_mesh
 
 SKIN = "skin"
 MARK = np.array([200, 30, 30], dtype=np.uint8)
@@ -39,31 +39,7 @@ OUTLINE = np.array([40, 40, 40], dtype=np.uint8)
 SLICE_OUTLINE = np.array([255, 210, 0], dtype=np.uint8)
 WHITE = (255, 255, 255)
 ISO = 40.0  # the skin level of the scan (as in the Makefile)
-
-
-def read_ply(path: str) -> Mesh:
-    """A binary little-endian PLY as `volwarp mesh` writes it (float xyz [+ normals], uchar-int faces)."""
-    with open(path, "rb") as fh:
-        header = []
-        while True:
-            line = fh.readline().decode("ascii").strip()
-            header.append(line)
-            if line == "end_header":
-                break
-        body = fh.read()
-    nv = nf = props = 0
-    for line in header:
-        if line.startswith("element vertex"):
-            nv = int(line.split()[-1])
-        elif line.startswith("element face"):
-            nf = int(line.split()[-1])
-        elif line.startswith("property float"):
-            props += 1
-    verts = np.frombuffer(body, dtype="<f4", count=nv * props).reshape(nv, props)
-    faces = np.frombuffer(body, dtype=[("n", "u1"), ("v", "<i4", (3,))], count=nf,
-                          offset=nv * props * 4)
-    normals = verts[:, 3:6] if props >= 6 else None
-    return Mesh(verts[:, :3].astype(np.float64), faces["v"].astype(np.int64), normals)
+GAP = 4  # pixels between tiles
 
 
 def disc(img, xy, color, r):
@@ -178,21 +154,6 @@ def slice_row(volumes, y, lo, hi, size, handles, r):
     return tiles
 
 
-def title_strip(labels, tile, width, gap=4):
-    """A white strip with one centred title per column (OpenImageIO's text; blank without a font)."""
-    import OpenImageIO as oiio
-
-    height = max(16, tile // 10)
-    buf = oiio.ImageBuf(oiio.ImageSpec(width, height, 3, "uint8"))
-    oiio.ImageBufAlgo.fill(buf, (1.0, 1.0, 1.0))
-    for c, text in enumerate(labels):
-        x = gap + c * (tile + gap) + tile // 2
-        oiio.ImageBufAlgo.render_text(buf, x, int(height * 0.72), text.strip(),
-                                      max(10, int(height * 0.6)), "", (0.1, 0.1, 0.1),
-                                      alignx="center")
-    return np.asarray(buf.get_pixels(oiio.UINT8)).reshape(height, width, 3)
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out")
@@ -213,7 +174,7 @@ def main():
                for st in spec["steps"] for h in st.get("drag", [])]
     size = (args.tile, args.tile)
     r = max(2.0, args.tile / 70)
-    meshes = [read_ply(p) for p in args.meshes]
+    meshes = [read_mesh(p) for p in args.meshes]
     tiles = []
     for view in args.views.split(";"):
         az, el = (float(v) for v in view.split(","))
@@ -223,10 +184,11 @@ def main():
         allv = np.concatenate([m.vertices for m in meshes])
         lo, hi = allv.min(axis=0)[[0, 2]] - 8.0, allv.max(axis=0)[[0, 2]] + 8.0
         tiles += slice_row(vols, args.slice_y, lo, hi, size, handles, r)
-    sheet = contact_sheet(tiles, columns=len(meshes))
-    if args.labels:
-        sheet = np.concatenate([title_strip(args.labels.split("|"), args.tile, sheet.shape[1]),
-                                sheet])
+    n = len(meshes)  # titles over the first row's columns only
+    titles = args.labels.split("|") if args.labels else None
+    sheet = contact_sheet(tiles[:n], columns=n, titles=titles, gap=GAP)
+    if len(tiles) > n:
+        sheet = np.concatenate([sheet, contact_sheet(tiles[n:], columns=n, gap=GAP)[GAP:]])
     q = 256 // args.levels  # posterise: smooth shading compresses far better
     sheet = np.minimum((sheet // q) * q + q // 2, 255).astype(np.uint8)
     write_image(args.out, sheet)

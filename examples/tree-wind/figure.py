@@ -26,36 +26,12 @@ from volwarp_cli.io.images import write_image
 from volwarp_cli.render.sheet import contact_sheet
 from volwarp_cli.render.surface import fit_camera, render_mesh
 from volwarp_cli.surface.mesh import Mesh
+from volwarp_cli.surface.mesh_io import read_mesh
 
 LEAF = (0.30, 0.56, 0.22)
 WOOD = (0.50, 0.34, 0.20)
 WHITE = (1.0, 1.0, 1.0)
 OUTLINE = np.array([50, 50, 50], dtype=np.uint8)
-
-
-def read_ply(path: str) -> Mesh:
-    """A binary little-endian PLY as `volwarp mesh` writes it (float xyz [+ normals], uchar-int faces)."""
-    with open(path, "rb") as fh:
-        header = []
-        while True:
-            line = fh.readline().decode("ascii").strip()
-            header.append(line)
-            if line == "end_header":
-                break
-        body = fh.read()
-    nv = nf = props = 0
-    for line in header:
-        if line.startswith("element vertex"):
-            nv = int(line.split()[-1])
-        elif line.startswith("element face"):
-            nf = int(line.split()[-1])
-        elif line.startswith("property float"):
-            props += 1
-    verts = np.frombuffer(body, dtype="<f4", count=nv * props).reshape(nv, props)
-    faces = np.frombuffer(body, dtype=[("n", "u1"), ("v", "<i4", (3,))], count=nf,
-                          offset=nv * props * 4)
-    normals = verts[:, 3:6] if props >= 6 else None
-    return Mesh(verts[:, :3].astype(np.float64), faces["v"].astype(np.int64), normals)
 
 
 def wood_faces(mesh: Mesh, label_path: str) -> np.ndarray:
@@ -80,21 +56,6 @@ def dashed_edge(mask, r):
     return yy[keep], xx[keep]
 
 
-def title_strip(titles, tile_w, width, gap=4):
-    """A white strip with one centred title per column (OpenImageIO's text; blank without a font)."""
-    import OpenImageIO as oiio
-
-    height = max(16, tile_w // 12)
-    buf = oiio.ImageBuf(oiio.ImageSpec(width, height, 3, "uint8"))
-    oiio.ImageBufAlgo.fill(buf, (1.0, 1.0, 1.0))
-    for c, text in enumerate(titles):
-        x = gap + c * (tile_w + gap) + tile_w // 2
-        oiio.ImageBufAlgo.render_text(buf, x, int(height * 0.75), text.strip(),
-                                      max(10, int(height * 0.6)), "", (0.1, 0.1, 0.1),
-                                      alignx="center")
-    return np.asarray(buf.get_pixels(oiio.UINT8)).reshape(height, width, 3)
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out")
@@ -111,7 +72,7 @@ def main():
 
     view = tuple(float(v) for v in args.view.split(","))
     size = tuple(int(v) for v in args.tile.lower().split("x"))
-    meshes = [read_ply(p) for p in args.meshes]
+    meshes = [read_mesh(p) for p in args.meshes]
     camera = fit_camera(np.concatenate([m.vertices for m in meshes]), view, size, margin=0.04)
     r = max(2.0, size[0] / 75)
     tiles = []
@@ -125,10 +86,8 @@ def main():
             empty = ~near[yy, xx]
             img[yy[empty], xx[empty]] = OUTLINE
         tiles.append(img)
-    sheet = contact_sheet(tiles, columns=len(tiles))
-    if args.titles:
-        sheet = np.concatenate([title_strip(args.titles.split("|"), size[0], sheet.shape[1]),
-                                sheet])
+    sheet = contact_sheet(tiles, columns=len(tiles),
+                          titles=args.titles.split("|") if args.titles else None)
     q = 256 // args.levels  # posterise: smooth shading compresses far better
     sheet = np.minimum((sheet // q) * q + q // 2, 255).astype(np.uint8)
     write_image(args.out, sheet)

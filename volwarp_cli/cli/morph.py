@@ -52,7 +52,8 @@ def _attribute_name(frame_path: str, name: str) -> str:
 @click.option("--render-to", default=None,
               help="Also render each frame's surface to a PNG: pattern.")
 @click.option("--sheet", "sheet_path", default=None, type=click.Path(dir_okay=False),
-              help="With --render-to: also one contact sheet of all frames' renders.")
+              help="With --render-to: also one contact sheet of all frames' renders, each "
+                   "titled with its time t.")
 @click.option("--frames", type=click.IntRange(min=2), default=None,
               help="Short form: number of frames (t = 0 .. 1).")
 @click.option("--times", default=None, metavar="T1,T2,...",
@@ -217,7 +218,8 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec
         from ..io.images import write_image
         from ..render.sheet import contact_sheet
 
-        write_image(sheet_path, contact_sheet(renders))
+        titles = [f"t = {t:.3g}" for t in job.times]
+        write_image(sheet_path, contact_sheet(renders, titles=titles))
     log.info("wrote %d frames on a %s grid", len(job.times), "x".join(map(str, grid.shape_xyz)))
 
 

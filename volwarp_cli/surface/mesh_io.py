@@ -248,3 +248,119 @@ def _write_vtk(mesh: Mesh, fh) -> None:
         _write_blocks(fh, mesh.n_vertices, np.dtype((">f4", (3,))),
                       lambda buf, a, b: buf.__setitem__(slice(None), mesh.normals[a:b]))
         fh.write(b"\n")
+
+
+# -- reading -----------------------------------------------------------------
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",
+              "int16": "i2", "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4",
+              "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
+              "double": "f8", "float64": "f8"}
+
+
+def read_mesh(path: str | os.PathLike) -> Mesh:
+    """Read a triangle mesh from a PLY file (what ``volwarp mesh -o X.ply`` writes).
+
+    Binary (either byte order) and ASCII PLY; vertex ``x y z`` and, when
+    present, ``nx ny nz``; faces as a list property of triangles. Other
+    elements and properties are skipped. Other formats are refused: read
+    them with a mesh library (meshio, trimesh).
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".ply":
+        raise VolwarpError(f"{path}: volwarp reads meshes from PLY files only")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise VolwarpError(f"{path}: cannot read ({exc.strerror})") from None
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise VolwarpError(f"{path}: not a PLY file (no 'ply ... end_header' header)")
+    body_at = data.index(b"\n", end) + 1
+    header = data[:end].decode("ascii", "replace").splitlines()
+    fmt, elements = None, []  # elements: [name, count, [(prop, type, list_types | None)]]
+    for line in header[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if words[0] == "format":
+                fmt = words[1]
+            elif words[0] == "element":
+                elements.append([words[1], int(words[2]), []])
+            elif words[0] == "property" and words[1] == "list":
+                elements[-1][2].append((words[4], _PLY_TYPES[words[3]],
+                                        _PLY_TYPES[words[2]]))
+            elif words[0] == "property":
+                elements[-1][2].append((words[2], _PLY_TYPES[words[1]], None))
+        except (IndexError, KeyError, ValueError):
+            raise VolwarpError(f"{path}: bad PLY header line {line!r}") from None
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise VolwarpError(f"{path}: unknown PLY format {fmt!r}")
+    try:
+        parsed = _ply_elements(data[body_at:], fmt, elements)
+    except (ValueError, IndexError) as exc:
+        raise VolwarpError(f"{path}: the PLY data is truncated or does not match its "
+                           f"header ({exc})") from None
+    vert = parsed.get("vertex")
+    if vert is None or "face" not in parsed:
+        raise VolwarpError(f"{path}: a PLY mesh needs vertex and face elements")
+    try:
+        vertices = np.stack([vert[k] for k in ("x", "y", "z")], axis=1).astype(np.float64)
+    except KeyError:
+        raise VolwarpError(f"{path}: vertices have no x, y, z") from None
+    normals = None
+    if all(k in vert for k in ("nx", "ny", "nz")):
+        normals = np.stack([vert[k] for k in ("nx", "ny", "nz")], axis=1).astype(np.float32)
+    face = parsed["face"]
+    lists = face.get("vertex_indices", face.get("vertex_index"))
+    if lists is None:
+        raise VolwarpError(f"{path}: faces have no vertex_indices list")
+    faces = np.asarray(lists, dtype=np.int64).reshape(-1, 3) if len(lists) else \
+        np.zeros((0, 3), np.int64)
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise VolwarpError(f"{path}: face indices outside the {len(vertices)} vertices")
+    return Mesh(vertices, faces, normals)
+
+
+def _ply_elements(body: bytes, fmt: str, elements) -> dict[str, dict[str, np.ndarray]]:
+    """Each element's properties as arrays (list properties: triangles only, (N, 3))."""
+    out = {}
+    if fmt == "ascii":
+        tokens = body.split()
+        at = 0
+        for name, count, props in elements:
+            cols = {p: [] for p, _, _ in props}
+            for _ in range(count):
+                for p, _, lt in props:
+                    if lt is None:
+                        cols[p].append(float(tokens[at]))
+                        at += 1
+                    else:
+                        n = int(tokens[at])
+                        cols[p].append([int(t) for t in tokens[at + 1:at + 1 + n]])
+                        if n != 3:
+                            raise ValueError(f"a {n}-sided face (triangles only)")
+                        at += 1 + n
+            out[name] = {p: np.asarray(v) for p, v in cols.items()}
+        return out
+    order = "<" if fmt == "binary_little_endian" else ">"
+    at = 0
+    for name, count, props in elements:
+        if all(lt is None for _, _, lt in props):
+            dt = np.dtype([(p, order + t) for p, t, _ in props])
+            arr = np.frombuffer(body, dtype=dt, count=count, offset=at)
+            at += count * dt.itemsize
+            out[name] = {p: arr[p] for p, _, _ in props}
+            continue
+        if len(props) == 1:  # one list of triangles: fixed-size records
+            p, t, lt = props[0]
+            dt = np.dtype([("n", order + lt), ("v", order + t, (3,))])
+            arr = np.frombuffer(body, dtype=dt, count=count, offset=at)
+            if count and not (arr["n"] == 3).all():
+                raise ValueError("faces that are not triangles")
+            at += count * dt.itemsize
+            out[name] = {p: arr["v"]}
+            continue
+        raise ValueError(f"element {name!r} mixes list and other properties")
+    return out
