@@ -19,6 +19,12 @@ Departures:
   values in units of 2**-40), so adding and later *subtracting* a region's
   contribution is exact: the incremental updates of :mod:`.scene` equal a
   full recomputation bit for bit, instead of the papers' "write zeros".
+- The box's overlaps are scaled by (Jacobian volume of the voxel's image) /
+  (box volume). The papers' proxy box of a voxel rotated by theta covers only
+  about cos^2(theta) of it (2-D), so rotated parts of a model came out that
+  much darker (about 30% at 33 degrees) under "v where w < 1"; with the
+  scale every voxel carries its true volume and the inside of a rotated
+  region sums to w = 1. Axis-aligned stretches and shears are unchanged.
 - At the domain's outer faces the missing neighbour is extrapolated linearly
   (``1.5 U[e] - 0.5 U[e+1]``) so border voxels get a box too.
 """
@@ -160,7 +166,25 @@ def _kernels():
                         z1 = min(ISHIFT - np.int64(SHIFT - zmax - 0.5) - 1, tz1 - 1)
                         if x1 < x0 or y1 < y0 or z1 < z0:
                             continue
-                        wq = val * q
+                        # Mass: the box stands for the voxel's image, whose volume is
+                        # the Jacobian |det| of the face-centre differences. Scaling the
+                        # overlaps by |det| / box volume gives each voxel its true
+                        # volume, so a rotated region is covered once (w = 1) instead
+                        # of cos^2 of it (the papers' proxy alone); an axis-aligned
+                        # stretch or shear has |det| = box volume and is unchanged.
+                        dxx = sx + 0.5 * (uh[G, F, E + 1, 0] - uh[G, F, E - 1, 0])
+                        dxy = 0.5 * (uh[G, F, E + 1, 1] - uh[G, F, E - 1, 1])
+                        dxz = 0.5 * (uh[G, F, E + 1, 2] - uh[G, F, E - 1, 2])
+                        dyx = 0.5 * (uh[G, F + 1, E, 0] - uh[G, F - 1, E, 0])
+                        dyy = sy + 0.5 * (uh[G, F + 1, E, 1] - uh[G, F - 1, E, 1])
+                        dyz = 0.5 * (uh[G, F + 1, E, 2] - uh[G, F - 1, E, 2])
+                        dzx = 0.5 * (uh[G + 1, F, E, 0] - uh[G - 1, F, E, 0])
+                        dzy = 0.5 * (uh[G + 1, F, E, 1] - uh[G - 1, F, E, 1])
+                        dzz = sz + 0.5 * (uh[G + 1, F, E, 2] - uh[G - 1, F, E, 2])
+                        jac = abs(dxx * (dyy * dzz - dyz * dzy) - dxy * (dyx * dzz - dyz * dzx)
+                                  + dxz * (dyx * dzy - dyy * dzx))
+                        kq = q * (jac / ((xmax - xmin) * (ymax - ymin) * (zmax - zmin)))
+                        wq = val * kq
                         if x1 - x0 <= 1 and y1 - y0 <= 1 and z1 - z0 <= 1:
                             # the common case (at most 2 target voxels per axis), unrolled
                             ax0 = min(xmax, x0 + 0.5) - max(xmin, x0 - 0.5)
@@ -176,7 +200,7 @@ def _kernels():
                                     for dx in range(x1 - x0 + 1):
                                         w = wzy * (ax0 if dx == 0 else ax1)
                                         acc[z0 + dz - tzo, y0 + dy, x0 + dx, 0] += sgn * np.int64(
-                                            w * q + 0.5)
+                                            w * kq + 0.5)
                                         acc[z0 + dz - tzo, y0 + dy, x0 + dx, 1] += sgn * np.int64(
                                             np.floor(w * wq + 0.5))
                         else:
@@ -192,7 +216,7 @@ def _kernels():
                                     wzy = wz * ovy[y - y0]
                                     for x in range(x0, x1 + 1):
                                         w = wzy * ovx[x - x0]
-                                        acc[z - tzo, y, x, 0] += sgn * np.int64(w * q + 0.5)
+                                        acc[z - tzo, y, x, 0] += sgn * np.int64(w * kq + 0.5)
                                         acc[z - tzo, y, x, 1] += sgn * np.int64(np.floor(w * wq + 0.5))
                         bx0 = min(bx0, x0)
                         by0 = min(by0, y0)
