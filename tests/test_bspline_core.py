@@ -215,6 +215,36 @@ def test_handles_reach_targets_with_least_norm():
         assert np.linalg.norm(other) > np.linalg.norm(flat_delta)
 
 
+def test_handles_pulling_against_each_other_stay_bounded():
+    """Two handles 0.05 voxel apart dragged in opposite directions: the exact
+    solution would move control points by hundreds of voxels; the solve keeps
+    them within reach of the handles' moves and reports the miss."""
+    grid = Grid.create((30, 30, 30), (9, 9, 9), 2)
+    dq = capture_offsets(grid, "uniform")
+    src = np.array([[15.0, 15.0, 15.0], [15.05, 15.0, 15.0]])
+    dst = src + np.array([[0.0, 0.0, 3.0], [0.0, 0.0, -3.0]])
+    exact = np.linalg.lstsq(_weight_rows(grid, src, dq), dst - src, rcond=None)[0]
+    assert np.abs(exact).max() > 100.0  # the trap
+    delta, _, residual = solve(dq, grid, src, dst)
+    assert np.abs(delta).max() < 10.0
+    assert 2.0 < residual < 3.5  # the compromise: both end near the middle
+    # handles that agree are still met exactly, however close
+    dst = src + np.array([[0.0, 0.0, 3.0], [0.0, 0.0, 3.0]])
+    delta, params, residual = solve(dq, grid, src, dst)
+    assert residual < 1e-9
+    assert np.max(np.abs(map_params(dq + delta, grid, params) - dst)) < 1e-3
+
+
+def _weight_rows(grid, points, dq):
+    from volwarp_cli.bspline.handles import locate
+
+    rows = np.zeros((len(points), int(np.prod(grid.lattice))))
+    for n, p in enumerate(locate(dq, grid, points)):
+        flat, w = basis.point_weights(grid, p)
+        rows[n, flat] = w
+    return rows
+
+
 def test_handle_on_warped_map_and_radius():
     grid = Grid.create((30, 30, 30), (9, 9, 9), 2)
     dq = capture_offsets(grid, "uniform").copy()

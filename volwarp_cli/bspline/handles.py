@@ -23,6 +23,11 @@ from ..errors import VolwarpError
 from .basis import basis, basis_derivative, point_weights
 from .lattice import Grid
 
+#: Relative cut-offs tried for the handle system's singular values (see
+#: :func:`_bounded_least_norm`), and the bound on control-point moves.
+RCONDS = (1e-12, 1e-4, 1e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
+MOVE_BOUND = 4.0  # times the largest handle move, plus one voxel
+
 
 class HandleError(VolwarpError):
     """A handle that cannot be placed; ``index`` says which one."""
@@ -153,8 +158,37 @@ def solve(dq, grid: Grid, sources, targets, free_mask=None):
             raise HandleError("no control point that influences this handle is within the "
                               "radius", n)
     rhs = targets - current
-    sol, *_ = np.linalg.lstsq(sub, rhs, rcond=None)
+    # Only control points that influence some handle can take part in the
+    # least-norm solution (the others get 0): solve for those alone, a few
+    # hundred columns instead of the whole lattice.
+    active = np.flatnonzero(np.any(sub > 0.0, axis=0))
+    sol = _bounded_least_norm(sub[:, active], rhs)
     delta = np.zeros((ncp, 3))
-    delta[free] = sol
-    residual = float(np.max(np.abs(sub @ sol - rhs))) if len(rhs) else 0.0
+    delta[free[active]] = sol
+    residual = float(np.max(np.abs(sub[:, active] @ sol - rhs))) if len(rhs) else 0.0
     return delta.reshape(dq.shape), params, residual
+
+
+def _bounded_least_norm(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Least-norm solution of ``a x = rhs``, truncated only as far as needed.
+
+    Handles much closer together than the control points, dragged apart,
+    make the system nearly singular: its exact solution moves control points
+    by hundreds or millions of voxels and folds the volume. The exact
+    (least-norm) solution is kept when no control point moves more than
+    ``MOVE_BOUND`` times the largest handle move; otherwise the smallest
+    singular values are dropped, cut-off by cut-off (``RCONDS``), until it
+    does, and the handles are met as a least-squares compromise (the caller
+    reports the miss).
+    """
+    if a.size == 0:
+        return np.zeros((a.shape[1], rhs.shape[1]))
+    u, sv, vt = np.linalg.svd(a, full_matrices=False)
+    bound = MOVE_BOUND * float(np.max(np.abs(rhs))) + 1.0
+    proj = u.T @ rhs
+    for rcond in RCONDS:
+        keep = sv > rcond * sv[0]
+        sol = vt[keep].T @ (proj[keep] / sv[keep, None])
+        if float(np.max(np.abs(sol))) <= bound:
+            break
+    return sol

@@ -154,7 +154,10 @@ def plan(doc, spec: WarpSpec, grid: Grid, dq0: np.ndarray, geom: Geometry) -> li
                 raise doc.error(("steps", s, "drag", exc.index, "from"), str(exc)) from None
             if residual > 1e-3:
                 log.warning("steps[%d]: the handles cannot all be reached (largest miss %.3g "
-                            "voxel); used the least-squares compromise", s, residual)
+                            "voxel): they conflict, or lie closer together than the control "
+                            "points and pull apart; used a bounded least-squares compromise",
+                            s, residual)
+
             work = work + delta
         n = int(step.get("frames", 1))
         total = work - current
