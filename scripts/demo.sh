@@ -62,8 +62,10 @@ from volwarp_cli.io.images import read_image, write_image
 from volwarp_cli.render.sheet import contact_sheet
 d = sys.argv[1]
 names = ["head.png", "head_warped.png", "morph_sheet.png", "bottle.png"]
+titles = ["the bundled MRI (iso 60)", "warped: crown raised, left side pushed in",
+          "morph: head to brain", "a swept milk bottle"]
 write_image(f"{d}/demo.png", contact_sheet([read_image(f"{d}/{n}")[..., :3] for n in names],
-                                           columns=4))
+                                           columns=2, titles=titles))
 EOF
 
 printf '\ndemo outputs in %s/:\n' "$DEMO"

@@ -71,7 +71,7 @@ def title_strip(text: str, width: int, like: np.ndarray, background) -> np.ndarr
 
     from ..progress import log
 
-    height = max(16, width // 12)
+    height = max(16, min(width // 12, 40))
     channels = like.shape[2]
     scale = 255.0 if like.dtype == np.uint8 else (65535.0 if like.dtype == np.uint16 else 1.0)
     bg = float(background) / scale
