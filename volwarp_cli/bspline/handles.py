@@ -26,7 +26,7 @@ from .lattice import Grid
 #: Relative cut-offs tried for the handle system's singular values (see
 #: :func:`_bounded_least_norm`), and the bound on control-point moves.
 RCONDS = (1e-12, 1e-4, 1e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
-MOVE_BOUND = 4.0  # times the largest handle move, plus one voxel
+MOVE_BOUND = 16.0  # times the largest handle move, plus one voxel
 
 
 class HandleError(VolwarpError):
