@@ -132,7 +132,7 @@ def test_output_folder_checked_before_work(tmp_path, run):
 def test_render_writes_png(tmp_path, run):
     (tmp_path / "s.yaml").write_text(GOOD)
     res = run("sweep", tmp_path / "s.yaml", "-o", tmp_path / "o_{field}.nrrd", "--render",
-              tmp_path / "r.png", "--render-size", "64", "48", "--view", "0,0")
+              tmp_path / "r.png", "--render-size", "64x48", "--view", "0,0")
     assert res.code == 0, res.stderr
     img = read_image(tmp_path / "r.png")
     assert img.shape == (48, 64, 3) and img.max() > 0.3 and img[0, 0].max() == 0
@@ -143,6 +143,10 @@ def test_bad_view_is_a_usage_error(tmp_path, run):
     res = run("sweep", tmp_path / "s.yaml", "-o", tmp_path / "o_{field}.nrrd", "--render",
               tmp_path / "r.png", "--view", "sideways")
     assert res.code == 2 and "view" in res.stderr
+    res = run("sweep", tmp_path / "s.yaml", "-o", tmp_path / "o_{field}.nrrd", "--render",
+              tmp_path / "r.png", "--render-size", "64 48")
+    assert res.code == 2 and "--render-size" in res.stderr and "WIDTHxHEIGHT" in res.stderr
+    assert not list(tmp_path.glob("o_*")) and not (tmp_path / "r.png").exists()
 
 
 BAD = [
@@ -193,7 +197,7 @@ def test_bad_specs_exit_2_with_key_and_line(tmp_path, run, text, key, line, word
 def test_example_specs_run(spec_dir, tmp_path, run, spec):
     res = run("sweep", spec_dir / spec.name, "-o", tmp_path / "o_{field}.nrrd",
               "--shape", "40", "40", "40", "--render", tmp_path / "r.png",
-              "--render-size", "64", "64")
+              "--render-size", "64x64")
     assert res.code == 0, res.stderr
     o = read_volume(tmp_path / "o_opacity.nrrd")
     assert o.shape_xyz[0] <= 40 and o.data.max() > 0.2

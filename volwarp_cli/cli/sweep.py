@@ -8,6 +8,15 @@ from ..errors import VolwarpError
 from .options import VIEW_HELP, common_options, output_option, write_options
 
 
+def _parse_size(value):
+    from ..render.surface import parse_size
+
+    try:
+        return parse_size(value)
+    except VolwarpError as exc:
+        raise click.BadParameter(str(exc), param_hint="'--render-size'") from None
+
+
 def output_paths(pattern: str, names: list[str], multi: bool) -> dict[str, str]:
     """Output file per field from ``pattern`` (``{field}`` is replaced by the field name).
 
@@ -50,8 +59,9 @@ def scale_to_dtype(data, dtype):
               help="Also ray-cast the spatial object (opacity, red/green/blue, geometry) "
                    "to this PNG.")
 @click.option("--view", default="iso", show_default=True, help=VIEW_HELP)
-@click.option("--render-size", nargs=2, type=click.IntRange(1, 8192), default=(512, 512),
-              show_default=True, metavar="W H", help="Render size in pixels.")
+@click.option("--render-size", default="512x512", show_default=True, metavar="WxH",
+              callback=lambda ctx, param, value: _parse_size(value),
+              help="Render size in pixels (as `volwarp mesh --size`).")
 @click.option("--shape", nargs=3, type=click.IntRange(min=1), default=None, metavar="X Y Z",
               help="Output grid size; spacing is fitted (overrides the spec's grid).")
 @click.option("--spacing", type=click.FloatRange(min=0, min_open=True), default=None,
