@@ -72,3 +72,25 @@ def test_background_is_the_value_of_the_space_around_the_model(method):
     for got in (full, once, scene.result()):
         np.testing.assert_allclose(got, ref, atol=1e-4)
     assert full[0, 0, 0] == b and full[-1, -1, -1] == b  # padding: nothing lands there
+
+
+@pytest.mark.parametrize("background", [0.0, 100.0])
+@pytest.mark.parametrize("degrees", [33.0, 45.0])
+def test_rotated_constant_stays_constant_inside(background, degrees):
+    """Inside a rotated model every target voxel is fully covered, however the box
+    weights scatter: a constant stays that constant, not darkened (b = 0) or
+    pulled towards the background (b = 100)."""
+    n = 30
+    cap = capture_volume(Volume(np.full((n, n, n), 50.0, np.float32)), lattice=7, oversample=1)
+    a = np.deg2rad(degrees)
+    rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    c = np.full(3, (n - 1) / 2)
+    pts = cap.grid.uniform_positions() + cap.dq
+    dq = (pts - c) @ rot.T + c - cap.grid.uniform_positions()
+    pad = 8
+    out = Scene(cap.domain, cap.grid, dq, pad, background=background).render_once()
+    z, y, x = np.indices(out.shape)
+    centre = c + pad
+    inside = ((x - centre[0]) ** 2 + (y - centre[1]) ** 2 < 10 ** 2) & (abs(z - centre[2]) < 12)
+    np.testing.assert_allclose(out[inside], 50.0, atol=1e-3)
+    assert out[0, 0, 0] == background  # the padding
