@@ -119,6 +119,10 @@ def test_cli_update_with_world_geometry(run, tmp_path):
     ref, _ = minnorm_signed(ball_mask((19, 17, 26)).astype(bool), (2.0, 1.0, 1.0))
     np.testing.assert_array_equal(got.data, ref)
     assert np.allclose(got.origin, origin) and np.allclose(got.spacing, spacing)
+    # provenance says the update made it; the field's own description is kept
+    assert got.meta["volwarp_command"] == "distance --update"
+    assert got.meta["volwarp_input"] == "d0.nrrd"
+    assert "metric=minnorm" in got.meta["volwarp_distance"]
 
 
 def test_cli_update_spec_errors(run, tmp_path):

@@ -5,11 +5,15 @@ domain parameter ``(s0, t0, u0)`` that the current map sends to ``from``.
 Each handle gives one row of basis weights ``B`` over the control points;
 all handles of a step are solved together for the least-norm change::
 
-    delta P = B^+ (to - from)       (per coordinate; numpy.linalg.lstsq)
+    delta P = B^+ (to - from)       (per coordinate; via the SVD of B)
 
 so that afterwards the map sends each parameter exactly to its ``to`` point
-when the system is solvable. An optional ``radius`` (world units) limits the
-unknowns to control points within that distance of a handle's ``from`` point.
+when the system is solvable, unless that would move control points far more
+than the handles move (handles closer together than the control points,
+pulled apart): then the pseudoinverse is truncated (see
+:func:`_bounded_least_norm`) and the handles are met as a compromise. An
+optional ``radius`` (world units) limits the unknowns to control points
+within that distance of a handle's ``from`` point.
 
 All positions here are input voxel indices (x, y, z); the caller converts
 world coordinates.
@@ -25,7 +29,7 @@ from .lattice import Grid
 
 #: Relative cut-offs tried for the handle system's singular values (see
 #: :func:`_bounded_least_norm`), and the bound on control-point moves.
-RCONDS = (1e-12, 1e-4, 1e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0)
+RCONDS = (1e-12, 1e-4, 1e-3, 1e-2, 3e-2, 0.1, 0.3)
 MOVE_BOUND = 16.0  # times the largest handle move, plus one voxel
 
 
@@ -121,7 +125,7 @@ def locate(dq, grid: Grid, points) -> np.ndarray:
 
 
 def solve(dq, grid: Grid, sources, targets, free_mask=None):
-    """Least-norm control-point change moving each source point to its target.
+    """Least-norm control-point change moving each source point to its target (bounded).
 
     Parameters
     ----------
@@ -178,8 +182,9 @@ def _bounded_least_norm(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     (least-norm) solution is kept when no control point moves more than
     ``MOVE_BOUND`` times the largest handle move; otherwise the smallest
     singular values are dropped, cut-off by cut-off (``RCONDS``), until it
-    does, and the handles are met as a least-squares compromise (the caller
-    reports the miss).
+    does, and the handles are met as a compromise (the caller reports the
+    miss); if even the most truncated solution moves too far, it is scaled
+    down to the bound.
     """
     if a.size == 0:
         return np.zeros((a.shape[1], rhs.shape[1]))
@@ -189,6 +194,7 @@ def _bounded_least_norm(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     for rcond in RCONDS:
         keep = sv > rcond * sv[0]
         sol = vt[keep].T @ (proj[keep] / sv[keep, None])
-        if float(np.max(np.abs(sol))) <= bound:
-            break
-    return sol
+        largest = float(np.max(np.abs(sol)))
+        if largest <= bound:
+            return sol
+    return sol * (bound / largest)

@@ -66,8 +66,13 @@ def provenance(command: str, inputs, spec=None) -> dict[str, str]:
     return meta
 
 
+#: The keys :func:`provenance` writes (an earlier step's are replaced; other
+#: ``volwarp_*`` keys, such as ``volwarp_distance``, still describe the values)
+PROVENANCE_KEYS = ("volwarp_version", "volwarp_command", "volwarp_input", "volwarp_spec_sha256")
+
+
 def stamp(vol: Volume, command: str, inputs, spec=None) -> Volume:
-    """``vol`` with its provenance key/values set (earlier steps' ``volwarp_*`` keys replaced)."""
-    meta = {k: v for k, v in vol.meta.items() if not str(k).startswith("volwarp_")}
+    """``vol`` with its provenance key/values set (an earlier step's replaced)."""
+    meta = {k: v for k, v in vol.meta.items() if k not in PROVENANCE_KEYS}
     meta.update(provenance(command, inputs, spec))
     return vol.with_data(vol.data, meta=meta)
