@@ -244,3 +244,69 @@ def test_read_mesh_refuses_bad_files(blob, tmp_path):
         read_mesh(path)
     with pytest.raises(VolwarpError, match="PLY files only"):
         read_mesh(tmp_path / "m.stl")
+
+
+TRI_ASCII = """ply
+format ascii 1.0
+comment a line mentioning end_header is still a comment
+element vertex 4
+property float x
+property float y
+property float z
+property uchar red
+element face 2
+property list uchar int vertex_indices
+property list uchar float texcoord
+property uchar flags
+element edge 1
+property list uchar int vertex_pair
+end_header
+0 0 0 255
+1 0 0 255
+0 1 0 255
+0 0 1 255
+3 0 1 2 6 0 0 1 0 0 1 7
+3 0 3 1 6 0 0 1 0 0 1 7
+2 0 3
+"""
+
+
+def test_read_mesh_skips_other_properties_and_elements(tmp_path):
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    path = tmp_path / "t.ply"
+    path.write_text(TRI_ASCII)
+    m = read_mesh(path)
+    assert m.faces.tolist() == [[0, 1, 2], [0, 3, 1]]
+    assert m.vertices.shape == (4, 3) and m.normals is None
+    # the same as binary big-endian, per-face extras included
+    head, body = TRI_ASCII.split("end_header\n")
+    head = head.replace("format ascii 1.0", "format binary_big_endian 1.0")
+    verts = np.zeros(4, dtype=[("x", ">f4"), ("y", ">f4"), ("z", ">f4"), ("red", "u1")])
+    verts["x"], verts["y"], verts["z"] = [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]
+    face = np.zeros(2, dtype=[("n", "u1"), ("v", ">i4", (3,)), ("m", "u1"), ("t", ">f4", (6,)),
+                              ("f", "u1")])
+    face["n"], face["m"], face["f"] = 3, 6, 7
+    face["v"] = [[0, 1, 2], [0, 3, 1]]
+    edge = np.zeros(1, dtype=[("n", "u1"), ("v", ">i4", (2,))])
+    edge["n"], edge["v"] = 2, [[0, 3]]
+    path.write_bytes((head + "end_header\n").encode() + verts.tobytes() + face.tobytes()
+                     + edge.tobytes())
+    mb = read_mesh(path)
+    assert mb.faces.tolist() == m.faces.tolist()
+    np.testing.assert_array_equal(mb.vertices, m.vertices)
+
+
+@pytest.mark.parametrize("text, match", [
+    (TRI_ASCII.replace("3 0 3 1 6 0 0 1 0 0 1 7\n2 0 3\n", "3 0 3"), "truncated"),
+    (TRI_ASCII.replace("3 0 1 2 6", "4 0 1 2 3 6"), "not triangles"),
+    ("ply\nformat ascii 1.0\nelement vertex 0\nend_header", "needs vertex and face"),
+    ("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x", "not a PLY"),
+])
+def test_read_mesh_bad_ascii_is_a_clear_error(tmp_path, text, match):
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    path = tmp_path / "b.ply"
+    path.write_text(text)
+    with pytest.raises(VolwarpError, match=match):
+        read_mesh(path)

@@ -262,9 +262,10 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     """Read a triangle mesh from a PLY file (what ``volwarp mesh -o X.ply`` writes).
 
     Binary (either byte order) and ASCII PLY; vertex ``x y z`` and, when
-    present, ``nx ny nz``; faces as a list property of triangles. Other
-    elements and properties are skipped. Other formats are refused: read
-    them with a mesh library (meshio, trimesh).
+    present, ``nx ny nz``; faces from their ``vertex_indices`` list, which
+    must hold triangles. Other elements and properties (colours, texture
+    coordinates, edges) are read past and dropped. Other formats are
+    refused: read them with a mesh library (meshio, trimesh).
     """
     path = Path(path)
     if path.suffix.lower() != ".ply":
@@ -273,12 +274,10 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
         data = path.read_bytes()
     except OSError as exc:
         raise VolwarpError(f"{path}: cannot read ({exc.strerror})") from None
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
+    header, body_at = _ply_header_lines(data)
+    if header is None:
         raise VolwarpError(f"{path}: not a PLY file (no 'ply ... end_header' header)")
-    body_at = data.index(b"\n", end) + 1
-    header = data[:end].decode("ascii", "replace").splitlines()
-    fmt, elements = None, []  # elements: [name, count, [(prop, type, list_types | None)]]
+    fmt, elements = None, []  # elements: [name, count, [(prop, type, list_count_type | None)]]
     for line in header[1:]:
         words = line.split()
         if not words or words[0] in ("comment", "obj_info"):
@@ -288,6 +287,8 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
                 fmt = words[1]
             elif words[0] == "element":
                 elements.append([words[1], int(words[2]), []])
+                if elements[-1][1] < 0:
+                    raise ValueError
             elif words[0] == "property" and words[1] == "list":
                 elements[-1][2].append((words[4], _PLY_TYPES[words[3]],
                                         _PLY_TYPES[words[2]]))
@@ -313,54 +314,120 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     if all(k in vert for k in ("nx", "ny", "nz")):
         normals = np.stack([vert[k] for k in ("nx", "ny", "nz")], axis=1).astype(np.float32)
     face = parsed["face"]
-    lists = face.get("vertex_indices", face.get("vertex_index"))
-    if lists is None:
+    faces = face.get("vertex_indices", face.get("vertex_index"))
+    if faces is None:
         raise VolwarpError(f"{path}: faces have no vertex_indices list")
-    faces = np.asarray(lists, dtype=np.int64).reshape(-1, 3) if len(lists) else \
-        np.zeros((0, 3), np.int64)
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise VolwarpError(f"{path}: faces that are not triangles (volwarp reads triangle "
+                           "meshes)")
+    faces = faces.astype(np.int64)
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise VolwarpError(f"{path}: face indices outside the {len(vertices)} vertices")
     return Mesh(vertices, faces, normals)
 
 
+def _ply_header_lines(data: bytes):
+    """The header's lines and the body's offset, or (None, 0) when there is none."""
+    if not data.startswith(b"ply"):
+        return None, 0
+    lines, at = [], 0
+    while at < len(data) and len(lines) < 10000:
+        nl = data.find(b"\n", at)
+        end = len(data) if nl < 0 else nl + 1
+        line = data[at:end].decode("ascii", "replace").strip()
+        lines.append(line)
+        at = end
+        if line == "end_header":
+            return lines, at
+    return None, 0
+
+
 def _ply_elements(body: bytes, fmt: str, elements) -> dict[str, dict[str, np.ndarray]]:
-    """Each element's properties as arrays (list properties: triangles only, (N, 3))."""
-    out = {}
+    """Each element's properties as arrays: lists as (N, k) arrays when every record
+    has k items, else as a 1-D object array of rows (the caller refuses faces that
+    are not triangles)."""
     if fmt == "ascii":
-        tokens = body.split()
-        at = 0
-        for name, count, props in elements:
-            cols = {p: [] for p, _, _ in props}
-            for _ in range(count):
-                for p, _, lt in props:
-                    if lt is None:
-                        cols[p].append(float(tokens[at]))
-                        at += 1
-                    else:
-                        n = int(tokens[at])
-                        cols[p].append([int(t) for t in tokens[at + 1:at + 1 + n]])
-                        if n != 3:
-                            raise ValueError(f"a {n}-sided face (triangles only)")
-                        at += 1 + n
-            out[name] = {p: np.asarray(v) for p, v in cols.items()}
-        return out
+        return _ply_ascii(body, elements)
     order = "<" if fmt == "binary_little_endian" else ">"
-    at = 0
+    out, at = {}, 0
     for name, count, props in elements:
         if all(lt is None for _, _, lt in props):
             dt = np.dtype([(p, order + t) for p, t, _ in props])
+            need = count * dt.itemsize
+            if at + need > len(body):
+                raise ValueError(f"element {name!r} needs {need} bytes")
             arr = np.frombuffer(body, dtype=dt, count=count, offset=at)
-            at += count * dt.itemsize
+            at += need
             out[name] = {p: arr[p] for p, _, _ in props}
             continue
-        if len(props) == 1:  # one list of triangles: fixed-size records
-            p, t, lt = props[0]
-            dt = np.dtype([("n", order + lt), ("v", order + t, (3,))])
-            arr = np.frombuffer(body, dtype=dt, count=count, offset=at)
-            if count and not (arr["n"] == 3).all():
-                raise ValueError("faces that are not triangles")
-            at += count * dt.itemsize
-            out[name] = {p: arr["v"]}
+        cols, at = _ply_binary_lists(body, at, order, count, props, name)
+        out[name] = cols
+    return out
+
+
+def _ply_binary_lists(body, at, order, count, props, name):
+    """Records of an element with list properties, from offset ``at``.
+
+    Fast path: every list has the length of the first record's (one
+    structured read); otherwise record by record.
+    """
+    fields, pos = [], at
+    for p, t, lt in props:  # the first record fixes the lengths
+        if lt is None:
+            fields.append((p, order + t))
+            pos += np.dtype(t).itemsize
             continue
-        raise ValueError(f"element {name!r} mixes list and other properties")
+        n = int(np.frombuffer(body, dtype=order + lt, count=1, offset=pos)[0]) if count else 0
+        fields.append((p + "#n", order + lt))
+        fields.append((p, order + t, (n,)))
+        pos += np.dtype(lt).itemsize + n * np.dtype(t).itemsize
+    dt = np.dtype(fields)
+    if at + count * dt.itemsize <= len(body):
+        arr = np.frombuffer(body, dtype=dt, count=count, offset=at)
+        same = all(np.all(arr[p + "#n"] == arr.dtype[p].shape[0])
+                   for p, _, lt in props if lt is not None)
+        if same:
+            return {p: arr[p] for p, _, _ in props}, at + count * dt.itemsize
+    cols = {p: [] for p, _, _ in props}
+    for _ in range(count):
+        for p, t, lt in props:
+            if lt is None:
+                cols[p].append(np.frombuffer(body, dtype=order + t, count=1, offset=at)[0])
+                at += np.dtype(t).itemsize
+                continue
+            n = int(np.frombuffer(body, dtype=order + lt, count=1, offset=at)[0])
+            at += np.dtype(lt).itemsize
+            cols[p].append(np.frombuffer(body, dtype=order + t, count=n, offset=at))
+            at += n * np.dtype(t).itemsize
+    return {p: _stack(v) for p, v in cols.items()}, at
+
+
+def _stack(values):
+    """Rows of equal length as a 2-D array, else a 1-D object array (ragged lists)."""
+    if values and isinstance(values[0], np.ndarray):
+        if len({len(v) for v in values}) == 1:
+            return np.stack(values)
+        ragged = np.empty(len(values), dtype=object)
+        ragged[:] = values
+        return ragged
+    return np.asarray(values)
+
+
+def _ply_ascii(body: bytes, elements) -> dict[str, dict[str, np.ndarray]]:
+    tokens = body.split()
+    out, at = {}, 0
+    for name, count, props in elements:
+        cols = {p: [] for p, _, _ in props}
+        for _ in range(count):
+            for p, _, lt in props:
+                if lt is None:
+                    cols[p].append(float(tokens[at]))
+                    at += 1
+                    continue
+                n = int(tokens[at])
+                if at + 1 + n > len(tokens):
+                    raise IndexError(f"a list of {n} items runs past the end")
+                cols[p].append(np.array([float(v) for v in tokens[at + 1:at + 1 + n]]))
+                at += 1 + n
+        out[name] = {p: _stack(v) for p, v in cols.items()}
     return out
