@@ -65,3 +65,11 @@ def test_titles_on_float_pictures_and_dark_backgrounds():
     assert sheet.dtype == np.float32 and sheet.shape == (20 + 16, 96, 1)
     assert sheet[:16].max() > 0.5  # light ink on the dark strip
     assert (sheet[16:] == 0).all()
+
+
+def test_titles_on_rgba_pictures_are_opaque_ink():
+    ims = [np.zeros((20, 120, 4), np.uint8)] * 2
+    sheet = contact_sheet(ims, background=255, titles=["frame one", "two"], gap=0)
+    strip = sheet[:16]
+    assert (strip[..., 3] == 255).all()  # opaque, text or not
+    assert (strip[..., :3] < 128).any(axis=2).sum() > 20  # dark ink on the white strip

@@ -99,4 +99,6 @@ def write_options(f):
 
 #: --view of every command that renders (mesh, morph, sweep): one convention
 VIEW_HELP = ("Render view: iso, x, y, z, front, back, left, right, top, bottom (looking from "
-             "there) or AZIMUTH,ELEVATION in degrees (azimuth from +x towards +y, z up).")
+             "there) or AZIMUTH,ELEVATION in degrees (azimuth from +x towards +y, z up). "
+             "front looks from -y, right from +x: for LPS scans, the face and the "
+             "patient's left side.")

@@ -9,12 +9,17 @@ from .options import VIEW_HELP, common_options, output_option, write_options
 
 
 def _parse_size(value):
+    from ..render.raycast import MAX_PIXELS
     from ..render.surface import parse_size
 
     try:
-        return parse_size(value)
+        w, h = parse_size(value)
     except VolwarpError as exc:
         raise click.BadParameter(str(exc), param_hint="'--render-size'") from None
+    if w * h > MAX_PIXELS:
+        raise click.BadParameter(f"{w}x{h} is more than the ray caster's {MAX_PIXELS} pixels",
+                                 param_hint="'--render-size'")
+    return w, h
 
 
 def output_paths(pattern: str, names: list[str], multi: bool) -> dict[str, str]:

@@ -29,6 +29,8 @@ import numpy as np
 from ..errors import VolwarpError
 
 BLOCK = 8
+#: Largest picture (pixels) the ray caster makes.
+MAX_PIXELS = 1 << 26
 
 
 def camera(view, extent=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -74,8 +76,9 @@ def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None
     ensure_fits_in_memory(int(np.size(opacity)) * 4 * 5, "volume render")
     op = np.ascontiguousarray(np.clip(np.nan_to_num(opacity), 0.0, 1.0), dtype=np.float32)
     w, h = (int(v) for v in size)
-    if w < 1 or h < 1 or w * h > 1 << 26:
-        raise VolwarpError(f"image size must be between 1x1 and 8192x8192, got {w}x{h}")
+    if w < 1 or h < 1 or w * h > MAX_PIXELS:
+        raise VolwarpError(f"image size must be at least 1x1 and at most {MAX_PIXELS} pixels, "
+                           f"got {w}x{h}")
     if step <= 0:
         raise VolwarpError("step must be positive")
     nz, ny, nx = op.shape

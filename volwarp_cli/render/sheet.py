@@ -73,16 +73,19 @@ def title_strip(text: str, width: int, like: np.ndarray, background) -> np.ndarr
 
     height = max(16, min(width // 12, 40))
     channels = like.shape[2]
+    colour = channels - 1 if channels in (2, 4) else channels  # the last of 2 or 4 is alpha
     scale = 255.0 if like.dtype == np.uint8 else (65535.0 if like.dtype == np.uint16 else 1.0)
     bg = float(background) / scale
-    buf = oiio.ImageBuf(oiio.ImageSpec(width, height, channels, oiio.FLOAT))
-    oiio.ImageBufAlgo.fill(buf, (bg,) * channels)
-    ink = (0.1 if bg > 0.5 else 0.9,) * channels
+    buf = oiio.ImageBuf(oiio.ImageSpec(width, height, colour, oiio.FLOAT))
+    oiio.ImageBufAlgo.fill(buf, (bg,) * colour)
+    ink = (0.1 if bg > 0.5 else 0.9,) * colour
     if text and not oiio.ImageBufAlgo.render_text(buf, width // 2, int(height * 0.75),
                                                   str(text), max(10, int(height * 0.6)), "",
                                                   ink, alignx="center"):
         log.warning("no font for contact sheet titles: %s", buf.geterror().strip())
-    strip = np.asarray(buf.get_pixels(oiio.FLOAT)).reshape(height, width, channels)
+    strip = np.asarray(buf.get_pixels(oiio.FLOAT)).reshape(height, width, colour)
+    if colour < channels:  # an opaque strip
+        strip = np.concatenate([strip, np.ones((height, width, 1), np.float32)], axis=2)
     if like.dtype.kind in "ui":
         return np.clip(np.rint(strip * scale), 0, scale).astype(like.dtype)
     return strip.astype(like.dtype)

@@ -118,8 +118,8 @@ def parse_view(value) -> tuple[float, float]:
         try:
             az, el = (float(v) for v in value)
         except (TypeError, ValueError):
-            raise VolwarpError(f"a view is iso, x, y, z or (azimuth, elevation), "
-                               f"got {value!r}") from None
+            raise VolwarpError(f"a view is one of {', '.join(NAMED_VIEWS)} or (azimuth, "
+                               f"elevation), got {value!r}") from None
     if not (math.isfinite(az) and math.isfinite(el)) or not -90.0 <= el <= 90.0:
         raise VolwarpError(f"view elevation must be within -90..90 degrees, got {value!r}")
     return az, el
