@@ -161,6 +161,8 @@ BAD = [
     ("version: 1\nsteps:\n  - radius: 3\n", "steps[0].radius", 3),
     ("version: 2\nsteps: []\n", "version", 1),
     ("version: 1\ncapture: {lattice: 3}\nsteps: []\n", "capture.lattice", 2),
+    ("version: 1\nbackground: .nan\nsteps: []\n", "background", 2),
+    ("version: 1\nbackground: far\nsteps: []\n", "background", 2),
 ]
 
 

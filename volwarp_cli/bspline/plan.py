@@ -80,10 +80,14 @@ def read_warp_spec(doc) -> WarpSpec:
     for s, step in enumerate(steps):
         if "radius" in step and "drag" not in step:
             raise doc.error(("steps", s, "radius"), "radius limits a drag; this step has none")
+    background = float(d.get("background", 0.0))
+    if not np.isfinite(background):
+        raise doc.error(("background",), f"the background must be a finite number, got "
+                        f"{background}")
     return WarpSpec(units=d.get("units", "world"), capture=settings, capture_given=set(cap),
                     pushforward=d.get("pushforward", "box"),
                     evaluator=d.get("evaluator", "separable"),
-                    background=float(d.get("background", 0.0)), steps=steps)
+                    background=background, steps=steps)
 
 
 class Geometry:

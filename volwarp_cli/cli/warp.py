@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import string
 
 import click
@@ -35,6 +36,12 @@ def _check_pattern(pattern: str) -> None:
     check_output_path(a)
 
 
+def _finite(ctx, param, value):
+    if value is not None and not math.isfinite(value):
+        raise click.BadParameter(f"must be a finite number, got {value}")
+    return value
+
+
 @click.command(name="warp")
 @click.argument("input", type=click.Path(dir_okay=False))
 @click.option("--spec", "spec_path", required=True, type=click.Path(dir_okay=False),
@@ -48,7 +55,7 @@ def _check_pattern(pattern: str) -> None:
               help="Pushforward filter [default: the spec's, else box].")
 @click.option("--evaluator", type=click.Choice(["separable", "table"]), default=None,
               help="Deformation evaluator [default: the spec's, else separable].")
-@click.option("--background", type=float, default=None, metavar="B",
+@click.option("--background", type=float, default=None, metavar="B", callback=_finite,
               help="Value of the space around the model, given to uncovered output voxels "
                    "and blended into partly covered ones [default: the spec's, else 0]; "
                    "e.g. a large positive distance for a signed distance field.")
