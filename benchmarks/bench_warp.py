@@ -23,7 +23,11 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba-cache"))
+
+import common  # noqa: E402
+from common import row  # noqa: E402
 
 
 def peak_rss_mib() -> float:
@@ -39,17 +43,8 @@ def peak_rss_mib() -> float:
 
 
 def median_time(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
-
-
-def row(name, ours, peer, peer_name):
-    print(f"{name:<44s} volwarp {ours:7.3f} s  {peer_name} {peer:7.3f} s  ratio {ours / peer:5.2f}x",
-          flush=True)
+    """Median of ``repeats`` runs, no warm-up run (callers warm up what needs it)."""
+    return common.median_time(fn, repeats, warmup=0)
 
 
 def volume(n):
