@@ -9,36 +9,17 @@ import click
 
 from ..errors import VolwarpError
 from .common import load_input
-from .options import VIEW_HELP, common_options, raw_options
+from .options import (
+    VIEW_HELP,
+    common_options,
+    core_parser,
+    parse_color,
+    parse_size,
+    parse_view,
+    raw_options,
+)
 
 _IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
-
-
-def _bad(fn):
-    """Turn a core parser's VolwarpError into click.BadParameter (exit 2)."""
-    def callback(ctx, param, value):
-        if value is None:
-            return None
-        try:
-            return fn(value)
-        except VolwarpError as exc:
-            raise click.BadParameter(str(exc)) from None
-    return callback
-
-
-def _parse_size(value):
-    from ..render.surface import parse_size
-    return parse_size(value)
-
-
-def _parse_view(value):
-    from ..render.surface import parse_view
-    return parse_view(value)
-
-
-def _parse_color(value):
-    from ..render.surface import parse_color
-    return parse_color(value)
 
 
 def turntable_paths(render: str, n: int) -> list[Path]:
@@ -89,13 +70,13 @@ def _format_stats(d: dict) -> str:
                    "error (exit 1).")
 @click.option("--render", type=click.Path(dir_okay=False), default=None, metavar="OUT.png",
               help="Also render the surface, shaded, to this image.")
-@click.option("--view", default="iso", show_default=True, callback=_bad(_parse_view),
+@click.option("--view", default="iso", show_default=True, callback=core_parser(parse_view),
               help=VIEW_HELP)
-@click.option("--size", default="800x600", show_default=True, callback=_bad(_parse_size),
+@click.option("--size", default="800x600", show_default=True, callback=core_parser(parse_size),
               metavar="WxH", help="Render size in pixels.")
-@click.option("--color", default=None, callback=_bad(_parse_color),
+@click.option("--color", default=None, callback=core_parser(parse_color),
               help="Surface colour: a name, #rrggbb or r,g,b (default: bone).")
-@click.option("--background", default=None, callback=_bad(_parse_color),
+@click.option("--background", default=None, callback=core_parser(parse_color),
               help="Background colour (default: white).")
 @click.option("--turntable", type=click.IntRange(min=1, max=360), default=None, metavar="N",
               help="Render N views around the vertical axis, starting at --view, written as "

@@ -16,7 +16,7 @@ import click
 
 from ..errors import VolwarpError
 from ..progress import log, progress, timed
-from .options import VIEW_HELP, common_options
+from .options import VIEW_HELP, common_options, core_parser, parse_size, parse_view
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
@@ -68,10 +68,10 @@ def _attribute_name(frame_path: str, name: str) -> str:
 @click.option("--density", "as_density", is_flag=True,
               help="Short form: write a 0..1 occupancy (0.5 on the surface) instead of the SDF.")
 @click.option("--size", default="640x480", show_default=True,
-              callback=lambda ctx, param, value: _parse_size(value),
+              callback=core_parser(parse_size),
               help="Render size WxH for --render-to.")
 @click.option("--view", default="iso", show_default=True,
-              callback=lambda ctx, param, value: _parse_view(value), help=VIEW_HELP)
+              callback=core_parser(parse_view), help=VIEW_HELP)
 @click.option("--compress/--no-compress", default=False, show_default=True,
               help="gzip NRRD frame data.")
 @common_options
@@ -221,24 +221,6 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec
         titles = [f"t = {t:.3g}" for t in job.times]
         write_image(sheet_path, contact_sheet(renders, titles=titles))
     log.info("wrote %d frames on a %s grid", len(job.times), "x".join(map(str, grid.shape_xyz)))
-
-
-def _parse_size(size: str):
-    from ..render.surface import parse_size
-
-    try:
-        return parse_size(size)
-    except VolwarpError as exc:
-        raise click.BadParameter(str(exc), param_hint="'--size'") from None
-
-
-def _parse_view(view: str):
-    from ..render.surface import parse_view
-
-    try:
-        return parse_view(view)
-    except VolwarpError as exc:
-        raise click.BadParameter(str(exc), param_hint="'--view'") from None
 
 
 def _shape_box(prep):

@@ -10,6 +10,7 @@ import functools
 
 import click
 
+from ..errors import VolwarpError
 from ..io import SUPPORTED_DTYPES, RawLayout
 from ..progress import configure
 
@@ -102,3 +103,35 @@ VIEW_HELP = ("Render view: iso, x, y, z, front, back, left, right, top, bottom (
              "there) or AZIMUTH,ELEVATION in degrees (azimuth from +x towards +y, z up). "
              "front looks from -y, right from +x: for LPS scans, the face and the "
              "patient's left side.")
+
+
+def core_parser(fn):
+    """A click callback running ``fn`` (a core parser) on the option's value.
+
+    Its ``VolwarpError`` becomes a usage error (exit 2) naming the option;
+    ``None`` (an option not given) passes through.
+    """
+    def callback(ctx, param, value):
+        if value is None:
+            return None
+        try:
+            return fn(value)
+        except VolwarpError as exc:
+            raise click.BadParameter(str(exc)) from None
+    return callback
+
+
+# the render parsers, imported when an option is parsed (not at start-up)
+def parse_view(value):
+    from ..render.surface import parse_view
+    return parse_view(value)
+
+
+def parse_size(value):
+    from ..render.surface import parse_size
+    return parse_size(value)
+
+
+def parse_color(value):
+    from ..render.surface import parse_color
+    return parse_color(value)

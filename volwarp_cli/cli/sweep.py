@@ -5,20 +5,24 @@ from __future__ import annotations
 import click
 
 from ..errors import VolwarpError
-from .options import VIEW_HELP, common_options, output_option, write_options
+from .options import (
+    VIEW_HELP,
+    common_options,
+    core_parser,
+    output_option,
+    parse_size,
+    parse_view,
+    write_options,
+)
 
 
-def _parse_size(value):
+def _render_size(value):
+    """``WxH`` as for every render, within what the ray caster can make."""
     from ..render.raycast import MAX_PIXELS
-    from ..render.surface import parse_size
 
-    try:
-        w, h = parse_size(value)
-    except VolwarpError as exc:
-        raise click.BadParameter(str(exc), param_hint="'--render-size'") from None
+    w, h = parse_size(value)
     if w * h > MAX_PIXELS:
-        raise click.BadParameter(f"{w}x{h} is more than the ray caster's {MAX_PIXELS} pixels",
-                                 param_hint="'--render-size'")
+        raise VolwarpError(f"{w}x{h} is more than the ray caster's {MAX_PIXELS} pixels")
     return w, h
 
 
@@ -63,9 +67,10 @@ def scale_to_dtype(data, dtype):
 @click.option("--render", "render_path", type=click.Path(dir_okay=False), default=None,
               help="Also ray-cast the spatial object (opacity, red/green/blue, geometry) "
                    "to this PNG.")
-@click.option("--view", default="iso", show_default=True, help=VIEW_HELP)
+@click.option("--view", default="iso", show_default=True, callback=core_parser(parse_view),
+              help=VIEW_HELP)
 @click.option("--render-size", default="512x512", show_default=True, metavar="WxH",
-              callback=lambda ctx, param, value: _parse_size(value),
+              callback=core_parser(_render_size),
               help="Render size in pixels (as `volwarp mesh --size`).")
 @click.option("--shape", nargs=3, type=click.IntRange(min=1), default=None, metavar="X Y Z",
               help="Output grid size; spacing is fitted (overrides the spec's grid).")
@@ -101,13 +106,6 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
 
     if shape is not None and spacing is not None:
         raise click.UsageError("give --shape or --spacing, not both")
-    view_angles = None
-    if render_path is not None:
-        from ..render.surface import parse_view
-        try:
-            view_angles = parse_view(view)
-        except VolwarpError as exc:
-            raise click.BadParameter(str(exc), param_hint="'--view'") from None
     with timed("read spec and templates"):
         doc = load_spec(spec, "sweep")
         sspec = parse_sweep_spec(doc)
@@ -157,5 +155,5 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
             colour = [fields["red"], fields["green"], fields["blue"]]
         with timed(f"render {render_path}"):
             img = render_volume(fields["opacity"], colour=colour, geometry=fields.get("geometry"),
-                                spacing=grid.spacing, view=view_angles, size=render_size)
+                                spacing=grid.spacing, view=view, size=render_size)
             write_image(render_path, np.ascontiguousarray(img))
