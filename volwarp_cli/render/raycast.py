@@ -33,7 +33,7 @@ BLOCK = 8
 MAX_PIXELS = 1 << 26
 
 
-def camera(view, extent=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def camera(view) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unit (forward, right, up) vectors for ``view`` (as :func:`.surface.parse_view` reads it).
 
     The same camera directions as the surface renders: a sweep's picture and a
@@ -94,7 +94,7 @@ def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None
     grad = gradient(geo) if shading else np.zeros((1, 1, 1, 3), dtype=np.float32)
     bmax = block_max(op, BLOCK)
     spacing = np.asarray(spacing, dtype=np.float64)
-    fwd, right, up = camera(view, None)
+    fwd, right, up = camera(view)
     ext = spacing * (np.array([nx, ny, nz]) - 1)
     centre = 0.5 * ext  # box of voxel centres in the volume's own frame, min corner at 0
     radius = 0.5 * float(np.linalg.norm(ext)) + float(spacing.max())
