@@ -227,3 +227,20 @@ def test_clay_block_example_specs(run, tmp_path):
             assert got[corner].mean() < 0.6 * src.data[corner].mean()
         else:
             assert got[beyond].mean() > src.data[beyond].astype(float).mean() + 40
+
+
+def test_background_from_spec_and_command_line(run, data_dir, tmp_path):
+    """The padding gets the background: the spec's, or --background over it."""
+    src = data_dir / "ball_30_uint8.nrrd"
+    spec = _spec(tmp_path, "version: 1\nunits: voxel\nbackground: 7\ncapture: {pad: 4}\n"
+                           "steps:\n  - move:\n      - {index: [4, 4, 4], by: [1, 0, 0]}\n")
+    outs = {}
+    for name, extra in (("spec", []), ("cli", ["--background", "250"])):
+        outs[name] = tmp_path / f"{name}.nrrd"
+        res = run("warp", src, "--spec", spec, "-o", outs[name], *extra)
+        assert res.code == 0, res.stderr
+    a, b = read_volume(outs["spec"]).data, read_volume(outs["cli"]).data
+    assert a[0, 0, 0] == 7 and b[0, 0, 0] == 250
+    assert a[a.shape[0] // 2, a.shape[1] // 2, a.shape[2] // 2] == b[b.shape[0] // 2,
+                                                                      b.shape[1] // 2,
+                                                                      b.shape[2] // 2]
