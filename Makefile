@@ -13,7 +13,8 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba-cache
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml
+# the compiled warp kernels are built by the install: rebuild when they change
+$(STAMP): pyproject.toml volwarp_cli/bspline/_warpkernels.c
 	@$(MAKE) --no-print-directory system-deps
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip

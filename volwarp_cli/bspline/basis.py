@@ -78,62 +78,6 @@ def _kernels():
     from numba import njit
 
     @njit(cache=True, nogil=True)
-    def separable(dq, wx, wy, wz, x0, x1, y0, y1, z0, z1, out, org):  # pragma: no cover
-        # domain voxels [x0, x1) x [y0, y1) x [z0, z1)
-        gx = wx.shape[0]
-        gy = wy.shape[0]
-        gz = wz.shape[0]
-        rx0 = x0 // gx
-        rx1 = (x1 - 1) // gx + 1
-        ry0 = y0 // gy
-        ry1 = (y1 - 1) // gy + 1
-        ny = ry1 - ry0 + 3
-        nx = rx1 - rx0 + 3
-        ox = org[0]
-        oy = org[1]
-        oz = org[2]
-        qz = np.empty((ny, nx, 3))
-        qy = np.empty((nx, 3))
-        for g in range(z0, z1):
-            c = g // gz
-            gb = g % gz
-            w0 = wz[gb, 0]
-            w1 = wz[gb, 1]
-            w2 = wz[gb, 2]
-            w3 = wz[gb, 3]
-            for jj in range(ny):
-                j = ry0 + jj
-                for ii in range(nx):
-                    i = rx0 + ii
-                    for m in range(3):
-                        qz[jj, ii, m] = (w0 * dq[c, j, i, m] + w1 * dq[c + 1, j, i, m]
-                                         + w2 * dq[c + 2, j, i, m] + w3 * dq[c + 3, j, i, m])
-            for f in range(y0, y1):
-                b = f // gy
-                fb = f - b * gy
-                bb = b - ry0
-                v0 = wy[fb, 0]
-                v1 = wy[fb, 1]
-                v2 = wy[fb, 2]
-                v3 = wy[fb, 3]
-                for ii in range(nx):
-                    for m in range(3):
-                        qy[ii, m] = (v0 * qz[bb, ii, m] + v1 * qz[bb + 1, ii, m]
-                                     + v2 * qz[bb + 2, ii, m] + v3 * qz[bb + 3, ii, m])
-                for a in range(rx0, rx1):
-                    aa = a - rx0
-                    for e in range(max(a * gx, x0), min(a * gx + gx, x1)):
-                        eb = e - a * gx
-                        u0 = wx[eb, 0]
-                        u1 = wx[eb, 1]
-                        u2 = wx[eb, 2]
-                        u3 = wx[eb, 3]
-                        for m in range(3):
-                            out[g - oz, f - oy, e - ox, m] = (
-                                u0 * qy[aa, m] + u1 * qy[aa + 1, m]
-                                + u2 * qy[aa + 2, m] + u3 * qy[aa + 3, m])
-
-    @njit(cache=True, nogil=True)
     def table(dq, tab, x0, x1, y0, y1, z0, z1, out, org):  # pragma: no cover - jit
         gx = tab.shape[0]
         gy = tab.shape[1]
@@ -158,18 +102,18 @@ def _kernels():
                                     acc += tab[eb, fb, gb, i, j, k] * dq[c + k, b + j, a + i, m]
                         out[g - oz, f - oy, e - ox, m] = acc
 
-    return separable, table
+    return table
 
 
-_KERNELS = None
+_TABLE = None
 
 
-def kernels():
-    """The jitted evaluators (compiled or loaded from numba's cache on first use)."""
-    global _KERNELS
-    if _KERNELS is None:
-        _KERNELS = _kernels()
-    return _KERNELS
+def table_kernel():
+    """The jitted table evaluator (compiled or loaded from numba's cache on first use)."""
+    global _TABLE
+    if _TABLE is None:
+        _TABLE = _kernels()
+    return _TABLE
 
 
 def _block(grid, lo, hi, x, y, z):
@@ -191,7 +135,8 @@ SPLIT_MIN_WORK = 1 << 18
 def run_split(kernel, args_for, lo_z: int, hi_z: int, work: int) -> None:
     """Run ``kernel(*args_for(z0, z1))`` on [lo_z, hi_z), in two threads when ``work`` is large.
 
-    The kernels are ``nogil``; the halves write disjoint output slabs.
+    The kernels release the GIL (numba ``nogil``, or the compiled ones of
+    ``_warpkernels.c``); the halves write disjoint output slabs.
     (Python threads instead of numba's ``prange``, whose threading layer
     costs about a second to start in every process.)
     """
@@ -228,12 +173,13 @@ def evaluate_separable(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, 
         threads already share the work).
     """
     (x0, x1), (y0, y1), (z0, z1) = _block(grid, lo, hi, x, y, z)
-    wx, wy, wz = (region_weights(g) for g in grid.granularity)
-    separable, _ = kernels()
+    from ._warpkernels import separable
+
+    wx, wy, wz = (np.ascontiguousarray(region_weights(g)) for g in grid.granularity)
     dq = np.ascontiguousarray(dq, dtype=np.float64)
-    org = np.asarray(origin, dtype=np.int64)
+    ox, oy, oz = (int(v) for v in origin)
     work = (x1 - x0) * (y1 - y0) * (z1 - z0)
-    run_split(separable, lambda a, b: (dq, wx, wy, wz, x0, x1, y0, y1, a, b, out, org),
+    run_split(separable, lambda a, b: (dq, wx, wy, wz, x0, x1, y0, y1, a, b, out, ox, oy, oz),
               z0, z1, work if parallel else 0)
     return out
 
@@ -243,7 +189,7 @@ def evaluate_table(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, *, x
     """Same as :func:`evaluate_separable` with the papers' 64-term table sum (eq. 4)."""
     (x0, x1), (y0, y1), (z0, z1) = _block(grid, lo, hi, x, y, z)
     tab = coefficient_table(*grid.granularity)
-    _, table = kernels()
+    table = table_kernel()
     dq = np.ascontiguousarray(dq, dtype=np.float64)
     org = np.asarray(origin, dtype=np.int64)
     work = (x1 - x0) * (y1 - y0) * (z1 - z0)

@@ -53,40 +53,6 @@ def _axis_weights(coords: np.ndarray, n: int, sampling: str):
     return i0, i1, c - i0
 
 
-_KERNEL = None
-
-
-def _kernel():
-    global _KERNEL
-    if _KERNEL is None:
-        from numba import njit
-
-        @njit(cache=True, nogil=True)
-        def sample(data, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1):  # pragma: no cover
-            for g in range(g0, g1):
-                a0 = z0[g]
-                a1 = z1[g]
-                wz = fz[g]
-                for f in range(out.shape[1]):
-                    b0 = y0[f]
-                    b1 = y1[f]
-                    wy = fy[f]
-                    for e in range(out.shape[2]):
-                        c0 = x0[e]
-                        c1 = x1[e]
-                        wx = fx[e]
-                        v00 = data[a0, b0, c0] + wx * (data[a0, b0, c1] - data[a0, b0, c0])
-                        v01 = data[a0, b1, c0] + wx * (data[a0, b1, c1] - data[a0, b1, c0])
-                        v10 = data[a1, b0, c0] + wx * (data[a1, b0, c1] - data[a1, b0, c0])
-                        v11 = data[a1, b1, c0] + wx * (data[a1, b1, c1] - data[a1, b1, c0])
-                        v0 = v00 + wy * (v01 - v00)
-                        v1 = v10 + wy * (v11 - v10)
-                        out[g, f, e] = v0 + wz * (v1 - v0)
-
-        _KERNEL = sample
-    return _KERNEL
-
-
 def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",
              sampling: str = "linear", dtype=np.float32) -> np.ndarray:
     """Domain voxmap ``[Dz, Dy, Dx]`` sampled from ``data[z, y, x]`` through the capture map.
@@ -112,7 +78,10 @@ def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",
     src = np.ascontiguousarray(data)
     if src.dtype != np.dtype(dtype):
         src = src.astype(dtype)
-    kern = _kernel()
-    run_split(kern, lambda g0, g1: (src, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1),
+    from ._warpkernels import sample
+
+    x0, x1, y0, y1, z0, z1 = (np.ascontiguousarray(i, np.int64) for i in (x0, x1, y0, y1, z0, z1))
+    fx, fy, fz = (np.ascontiguousarray(w, np.float64) for w in (fx, fy, fz))
+    run_split(sample, lambda g0, g1: (src, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1),
               0, out.shape[0], out.size)
     return out

@@ -112,7 +112,8 @@ class Scene:
         """Target size (x, y, z)."""
         return tuple(int(i + 2 * p) for i, p in zip(self.grid.input_shape, self.pad, strict=False))
 
-    def _contribute(self, dqs, vlo, vhi, sign, acc=None, tzo=0, parallel=True, scratch=None):
+    def _contribute(self, dqs, vlo, vhi, sign, acc=None, tzo=0, parallel=True, scratch=None,
+                    bounds=False):
         """Add (``sign`` +1) or remove (-1) the contributions of domain voxels [vlo, vhi).
 
         ``dqs``: one lattice, or two (old, new) whose contributions are
@@ -124,7 +125,7 @@ class Scene:
         ``acc`` (default the scene's) holds target z planes from ``tzo`` on;
         ``parallel`` lets large blocks use two threads. ``scratch`` (a
         :class:`Scratch`, default the scene's) holds the deformation buffers.
-        Returns the touched target bounding box or None.
+        Returns the touched target bounding box with ``bounds``, else None.
         """
         acc = self.acc if acc is None else acc
         scratch = self.scratch if scratch is None else scratch
@@ -137,14 +138,15 @@ class Scene:
         nx = int(ehi[0] - elo[0])
         ny = int(ehi[1] - elo[1])
         cz = int(max(4, CHUNK_BYTES // ((nx + 2) * (ny + 2) * 12 * len(dqs))))
-        nz = int(vhi[2] - vlo[2])
-        bufs = scratch.arrays((min(cz, nz) + 4, ny + 2, nx + 2, 3), len(dqs))
         evaluate = basis.EVALUATORS[self.evaluator]
         boxes = []
         for z0 in range(int(vlo[2]), int(vhi[2]), cz):
             z1 = min(z0 + cz, int(vhi[2]))
             e0, e1 = max(z0 - 1, 0), min(z1 + 1, int(dshape[2]))
-            ubs = [buf[:e1 - e0 + 2] for buf in bufs]
+            # planar buffers [3, z, y, x] (the scatter reads each component's rows as
+            # vectors), seen by the evaluator and fill_halo as [z, y, x, 3]
+            planar = scratch.arrays((3, e1 - e0 + 2, ny + 2, nx + 2), len(dqs))
+            ubs = [np.moveaxis(buf, 0, -1) for buf in planar]
             origin = (int(elo[0]), int(elo[1]), e0)
             for dq, ub in zip(dqs, ubs, strict=True):
                 evaluate(dq, grid, ub[1:-1, 1:-1, 1:-1], x=(elo[0], ehi[0]), y=(elo[1], ehi[1]),
@@ -162,9 +164,11 @@ class Scene:
             lo = (int(vlo[0]), int(vlo[1]), z0)
             hi = (int(vhi[0]), int(vhi[1]), z1)
             split = self._split_z(np.stack(dqs), lo, hi) if parallel else None
-            bb = pushforward.scatter(ubs[0], self.domain, self.offset, self.scale, lo, hi, sign,
-                                     self.vmax, self.method, acc, split_z=split, origin=origin,
-                                     tzo=tzo, u_new=ubs[1] if len(ubs) > 1 else None)
+            bb = pushforward.scatter(planar[0], self.domain, self.offset, self.scale, lo, hi,
+                                     sign, self.vmax, self.method, acc, split_z=split,
+                                     origin=origin, tzo=tzo,
+                                     u_new=planar[1] if len(planar) > 1 else None,
+                                     bounds=bounds)
             if bb is not None:
                 boxes.append(bb)
         if not boxes:
@@ -335,7 +339,7 @@ class Scene:
         dshape = np.array(self.grid.domain_shape)
         vlo = np.maximum(rlo * g - 1, 0)
         vhi = np.minimum(rhi * g + 1, dshape)
-        bb = self._contribute([self.dq, dq], vlo, vhi, -1)
+        bb = self._contribute([self.dq, dq], vlo, vhi, -1, bounds=True)
         self.dq = dq.copy()
         if bb is None:
             self.last_touched = None

@@ -1,0 +1,191 @@
+"""The compiled warp kernels (volwarp_cli/bspline/_warpkernels.c) against independent references.
+
+- the box pushforward of a small random deformation against a brute-force
+  evaluation of its definition (face-centre box, overlaps, Jacobian mass);
+- a voxel's contributions do not depend on the block it is scattered in;
+- the trilinear gather against scipy.ndimage.map_coordinates;
+- finalize against its formula;
+- wrong buffers are errors, not crashes.
+"""
+
+from __future__ import annotations
+
+from itertools import pairwise
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from volwarp_cli.bspline import _warpkernels as K
+from volwarp_cli.bspline import pushforward
+from volwarp_cli.bspline.pushforward import COVERED_HI, COVERED_LO, QUANTUM
+
+
+def random_offsets(shape_zyx, rng, amplitude=0.6):
+    """Planar float32 offsets [3, z+2, y+2, x+2] (smooth random field, margin extrapolated)."""
+    nz, ny, nx = shape_zyx
+    u = np.zeros((3, nz + 2, ny + 2, nx + 2), np.float32)
+    view = np.moveaxis(u, 0, -1)
+    coarse = rng.normal(0, amplitude, (3, 3, 3, 3))
+    for c in range(3):
+        zoom = [(n + 2) / 3 for n in (nz, ny, nx)]
+        view[..., c] = ndimage.zoom(coarse[c], zoom, order=1)[:nz + 2, :ny + 2, :nx + 2]
+    pushforward.fill_halo(view)
+    return u
+
+
+def brute_force_box(u, values, off, scale, tshape_zyx, vmax):
+    """Weights and weighted values of the box pushforward, straight from the definition."""
+    w = np.zeros(tshape_zyx)
+    v = np.zeros(tshape_zyx)
+    _, nzb, nyb, nxb = u.shape
+    s = np.asarray(scale, float)
+    for g in range(nzb - 2):
+        for f in range(nyb - 2):
+            for e in range(nxb - 2):
+                U = u[:, g + 1, f + 1, e + 1].astype(float)
+                base = np.asarray(off, float) + s * (e, f, g)
+                # neighbours' offsets along x, y, z (axis order of u is c, z, y, x)
+                nb = {}
+                for axis, (dz, dy, dx) in enumerate(((0, 0, 1), (0, 1, 0), (1, 0, 0))):
+                    nb[axis, -1] = u[:, g + 1 - dz, f + 1 - dy, e + 1 - dx].astype(float)
+                    nb[axis, 1] = u[:, g + 1 + dz, f + 1 + dy, e + 1 + dx].astype(float)
+                lo = np.empty(3)
+                hi = np.empty(3)
+                for c in range(3):  # component c: the 6 face centres' coordinate c
+                    faces = []
+                    for axis in range(3):
+                        for side in (-1, 1):
+                            shift = side * 0.5 * s[c] if axis == c else 0.0
+                            faces.append(0.5 * (U[c] + nb[axis, side][c]) + shift)
+                    lo[c], hi[c] = min(faces) + base[c], max(faces) + base[c]
+                jac = np.array([[s[c] * (axis == c) + 0.5 * (nb[axis, 1][c] - nb[axis, -1][c])
+                                 for c in range(3)] for axis in range(3)])
+                mass = abs(np.linalg.det(jac)) / np.prod(hi - lo)
+                val = float(values[g, f, e]) / vmax
+                for z in range(tshape_zyx[0]):
+                    oz = min(hi[2], z + 0.5) - max(lo[2], z - 0.5)
+                    if oz <= 0:
+                        continue
+                    for y in range(tshape_zyx[1]):
+                        oy = min(hi[1], y + 0.5) - max(lo[1], y - 0.5)
+                        if oy <= 0:
+                            continue
+                        for x in range(tshape_zyx[2]):
+                            ox = min(hi[0], x + 0.5) - max(lo[0], x - 0.5)
+                            if ox <= 0:
+                                continue
+                            w[z, y, x] += oz * oy * ox * mass
+                            v[z, y, x] += oz * oy * ox * mass * val
+    return w, v
+
+
+def test_box_pushforward_matches_its_definition():
+    rng = np.random.default_rng(3)
+    dz, dy, dx = 5, 6, 7
+    u = random_offsets((dz, dy, dx), rng)
+    values = rng.uniform(-3, 5, (dz, dy, dx)).astype(np.float32)
+    off = (1.3, 0.7, 1.1)
+    scale = (0.93, 1.07, 0.81)
+    tshape = (9, 10, 11)
+    vmax = float(np.abs(values).max())
+    acc = np.zeros(tshape + (2,), np.int64)
+    bb = pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, vmax, "box", acc)
+    w, v = brute_force_box(u, values, off, scale, tshape, vmax)
+    assert np.abs(acc[..., 0] / QUANTUM - w).max() < 1e-9
+    assert np.abs(acc[..., 1] / QUANTUM - v).max() < 1e-9
+    touched = np.argwhere(w > 0)
+    assert np.array_equal(bb[0], touched.min(0)[::-1])
+    assert np.array_equal(bb[1], touched.max(0)[::-1] + 1)
+
+
+@pytest.mark.parametrize("method", ["box", "nearest"])
+def test_contributions_do_not_depend_on_the_block(method):
+    """Integer sums: the same per-voxel contributions give the same accumulators in any split."""
+    rng = np.random.default_rng(5)
+    dz, dy, dx = 13, 11, 40
+    u = random_offsets((dz, dy, dx), rng, amplitude=1.5)
+    values = rng.uniform(0, 1, (dz, dy, dx))  # float64 domain
+    # coordinates away from 0 and scales that round: a voxel position computed from
+    # the block's start instead of its own index differs in the last bit and flips
+    # the fixed-point rounding of some overlaps (seen: 21 accumulators differ)
+    off = (100.3, 1.0 / 7.0, 0.3)
+    scale = (256.0 / 258.0, 0.77, 1.0 / 3.0 + 0.5)
+    tshape = (14, 15, 145)
+    whole = np.zeros(tshape + (2,), np.int64)
+    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method, whole)
+    parts = np.zeros_like(whole)
+    cuts = [(0, 7, 23, 40), (0, 4, 11), (0, 6, 13)]  # x, y, z
+    for x0, x1 in pairwise(cuts[0]):
+        for y0, y1 in pairwise(cuts[1]):
+            for z0, z1 in pairwise(cuts[2]):
+                pushforward.scatter(u, values, off, scale, (x0, y0, z0), (x1, y1, z1), 1, 1.0,
+                                    method, parts)
+    assert np.array_equal(whole, parts)
+    assert whole[..., 0].sum() > 0
+    # removing what was added leaves exactly nothing
+    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), -1, 1.0, method, parts)
+    assert not parts.any()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_trilinear_gather_matches_scipy(dtype):
+    rng = np.random.default_rng(7)
+    data = rng.normal(size=(6, 7, 8)).astype(dtype)
+    axes = [np.sort(rng.uniform(0, n - 1, m)) for n, m in ((8, 5), (7, 4), (6, 3))]  # x, y, z
+    idx = []
+    for c, n in zip(axes, (8, 7, 6), strict=True):
+        i0 = np.floor(c).astype(np.int64)
+        i1 = np.minimum(i0 + 1, n - 1)
+        idx.append((i0, i1, c - i0))
+    out = np.empty((3, 4, 5), dtype)
+    (x0, x1, fx), (y0, y1, fy), (z0, z1, fz) = idx
+    K.sample(data, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, 0, 3)
+    zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    ref = ndimage.map_coordinates(data.astype(float), [zz, yy, xx], order=1)
+    assert np.allclose(out, ref, rtol=0, atol=1e-5 if dtype == np.float32 else 1e-12)
+
+
+def test_finalize_formula():
+    rng = np.random.default_rng(9)
+    w = rng.uniform(0, 1.3, (4, 5, 6))
+    v = rng.uniform(-1, 1, (4, 5, 6))
+    acc = np.stack([np.rint(w * QUANTUM), np.rint(v * QUANTUM)], -1).astype(np.int64)
+    out = np.full((4, 5, 6), np.nan)
+    vmax, b = 3.0, 7.5
+    K.finalize(acc, vmax, (1, 0, 2), (6, 5, 4), out, b)
+    w = acc[..., 0] / QUANTUM
+    v = acc[..., 1] / QUANTUM * vmax
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip((w - COVERED_LO) / (COVERED_HI - COVERED_LO), 0, 1)
+        ref = t * (v / w) + (1 - t) * (v + b * (1 - w))
+    ref = np.where(w >= COVERED_HI, v / np.where(w > 0, w, 1), ref)
+    ref = np.where(w <= COVERED_LO, v + b * (1 - w), ref)
+    assert np.allclose(out[2:, :, 1:], ref[2:, :, 1:], rtol=1e-12, atol=1e-12)
+    assert np.isnan(out[:2]).all() and np.isnan(out[:, :, 0]).all()  # outside the block
+
+
+def test_wrong_buffers_are_errors():
+    acc = np.zeros((4, 4, 4, 2), np.int64)
+    out = np.zeros((4, 4, 4), np.float32)
+    with pytest.raises(TypeError, match="sample type"):
+        K.finalize(acc.astype(np.int32), 1.0, (0, 0, 0), (4, 4, 4), out, 0.0)
+    with pytest.raises(ValueError, match="outside"):
+        K.finalize(acc, 1.0, (0, 0, 0), (5, 4, 4), out, 0.0)
+    with pytest.raises(ValueError, match="dimensions"):
+        K.finalize(np.zeros((4, 4, 4), np.int64), 1.0, (0, 0, 0), (4, 4, 4), out, 0.0)
+    with pytest.raises(ValueError, match="contiguous"):
+        K.finalize(acc[::2], 1.0, (0, 0, 0), (4, 2, 2), out[::2], 0.0)
+    with pytest.raises(ValueError, match="read-only"):
+        out.flags.writeable = False
+        K.finalize(acc, 1.0, (0, 0, 0), (4, 4, 4), out, 0.0)
+    u = np.zeros((3, 4, 4, 4), np.float32)
+    vals = np.zeros((2, 2, 2), np.float32)
+    with pytest.raises(ValueError, match="block outside"):
+        pushforward.scatter(u, vals, (0, 0, 0), (1, 1, 1), (0, 0, 0), (3, 2, 2), 1, 1.0, "box",
+                            acc)
+    i = np.array([0, 9], np.int64)
+    f = np.zeros(2)
+    with pytest.raises(IndexError, match="outside the source"):
+        K.sample(np.zeros((2, 2, 2), np.float32), i, i, f, i[:1], i[:1], f, i[:1], i[:1], f,
+                 np.zeros((1, 1, 2), np.float32), 0, 1)

@@ -1,0 +1,691 @@
+/* The warp's inner loops, compiled ahead of time (module volwarp_cli.bspline._warpkernels).
+ *
+ * Why C and not numba like the rest of volwarp: `volwarp warp` is a one-shot
+ * command whose whole run is about a second, and numba costs about half a
+ * second of it before any work (its import, the LLVM start-up and loading each
+ * cached kernel). These four kernels are all the warp and capture commands
+ * need; compiled when the package is installed, they load in a millisecond.
+ *
+ * Every function takes C-contiguous buffers (numpy arrays) whose dtypes and
+ * shapes the Python wrappers in pullback.py, basis.py and pushforward.py have
+ * checked, and releases the GIL while it runs, so the callers' threads share
+ * the work.
+ *
+ * Built with -ffp-contract=off: no fused multiply-adds, so a voxel's values
+ * are the same on every machine and whatever block it is computed in (the
+ * exact local updates rely on the latter).
+ */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* ---------------------------------------------------------------- buffers */
+
+enum { K_F32 = 1, K_F64 = 2, K_I64 = 4, K_FLOAT = K_F32 | K_F64 };
+
+static int buf_kind(const Py_buffer *v)
+{
+    const char *f = v->format ? v->format : "B";
+    size_t n = strlen(f);
+    char c = n ? f[n - 1] : 'B';
+    if (n > 2 || (n == 2 && strchr("@=<>!", f[0]) == NULL))
+        return 0;
+    if (c == 'f' && v->itemsize == 4)
+        return K_F32;
+    if (c == 'd' && v->itemsize == 8)
+        return K_F64;
+    if ((c == 'l' || c == 'q') && v->itemsize == 8)
+        return K_I64;
+    return 0;
+}
+
+/* A C-contiguous buffer of one of the kinds in `kinds` with `ndim` dimensions
+ * (writable > 1: a writable buffer with any strides). */
+static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim, const char *name)
+{
+    int flags = (writable > 1 ? PyBUF_STRIDES : PyBUF_C_CONTIGUOUS) | PyBUF_FORMAT |
+                (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(o, v, flags) < 0)
+        return -1;
+    if (!(buf_kind(v) & kinds)) {
+        PyErr_Format(PyExc_TypeError, "%s: unexpected sample type '%s'", name,
+                     v->format ? v->format : "B");
+        PyBuffer_Release(v);
+        return -1;
+    }
+    if (v->ndim != ndim) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %d dimensions, got %d", name, ndim,
+                     v->ndim);
+        PyBuffer_Release(v);
+        return -1;
+    }
+    return 0;
+}
+
+/* Row loops that run as vectors get an AVX2 clone on x86-64, chosen when the
+ * module loads (same IEEE operations, no FMA: the same results as the baseline). */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define VECTOR_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define VECTOR_CLONES
+#endif
+
+#define MIN(a, b) ((a) < (b) ? (a) : (b))
+#define MAX(a, b) ((a) > (b) ? (a) : (b))
+
+/* ------------------------------------------------------------- pullback */
+/* Trilinear (or, with equal indices and zero weights, nearest) gather of the
+ * source at separable per-axis sample positions: out[g, f, e] for g in [g0, g1). */
+
+#define SAMPLE_BODY(T)                                                                        \
+    for (Py_ssize_t g = g0; g < g1; g++) {                                                   \
+        const T *p0 = data + z0[g] * sy * sx, *p1 = data + z1[g] * sy * sx;                   \
+        double wz = fz[g];                                                                    \
+        for (Py_ssize_t f = 0; f < ny; f++) {                                                 \
+            Py_ssize_t b0 = y0[f] * sx, b1 = y1[f] * sx;                                      \
+            double wy = fy[f];                                                                \
+            const T *r00 = p0 + b0, *r01 = p0 + b1, *r10 = p1 + b0, *r11 = p1 + b1;           \
+            T *o = out + (g * ny + f) * nx;                                                   \
+            for (Py_ssize_t e = 0; e < nx; e++) {                                             \
+                Py_ssize_t c0 = x0[e], c1 = x1[e];                                            \
+                double wx = fx[e];                                                            \
+                double v00 = r00[c0] + wx * ((double)r00[c1] - r00[c0]);                      \
+                double v01 = r01[c0] + wx * ((double)r01[c1] - r01[c0]);                      \
+                double v10 = r10[c0] + wx * ((double)r10[c1] - r10[c0]);                      \
+                double v11 = r11[c0] + wx * ((double)r11[c1] - r11[c0]);                      \
+                double v0 = v00 + wy * (v01 - v00);                                           \
+                double v1 = v10 + wy * (v11 - v10);                                           \
+                o[e] = (T)(v0 + wz * (v1 - v0));                                              \
+            }                                                                                 \
+        }                                                                                     \
+    }
+
+static void sample_f32(const float *restrict data, Py_ssize_t sy, Py_ssize_t sx,
+                       const int64_t *x0, const int64_t *x1, const double *fx,
+                       const int64_t *y0, const int64_t *y1, const double *fy,
+                       const int64_t *z0, const int64_t *z1, const double *fz,
+                       float *restrict out, Py_ssize_t ny, Py_ssize_t nx, Py_ssize_t g0,
+                       Py_ssize_t g1)
+{
+    SAMPLE_BODY(float)
+}
+
+static void sample_f64(const double *restrict data, Py_ssize_t sy, Py_ssize_t sx,
+                       const int64_t *x0, const int64_t *x1, const double *fx,
+                       const int64_t *y0, const int64_t *y1, const double *fy,
+                       const int64_t *z0, const int64_t *z1, const double *fz,
+                       double *restrict out, Py_ssize_t ny, Py_ssize_t nx, Py_ssize_t g0,
+                       Py_ssize_t g1)
+{
+    SAMPLE_BODY(double)
+}
+
+static PyObject *py_sample(PyObject *self, PyObject *args)
+{
+    PyObject *o[11];
+    Py_ssize_t g0, g1;
+    Py_buffer b[11];
+    int n = 0;
+    static const int kinds[11] = {K_FLOAT, K_I64, K_I64, K_F64, K_I64, K_I64, K_F64,
+                                  K_I64,   K_I64, K_F64, K_FLOAT};
+    static const int dims[11] = {3, 1, 1, 1, 1, 1, 1, 1, 1, 1, 3};
+    static const char *names[11] = {"data", "x0", "x1", "fx", "y0", "y1", "fy",
+                                    "z0",   "z1", "fz", "out"};
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOOnn", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5],
+                          &o[6], &o[7], &o[8], &o[9], &o[10], &g0, &g1))
+        return NULL;
+    for (; n < 11; n++)
+        if (get_buf(o[n], &b[n], n == 10, kinds[n], dims[n], names[n]) < 0)
+            goto fail;
+    Py_ssize_t nz = b[10].shape[0], ny = b[10].shape[1], nx = b[10].shape[2];
+    Py_ssize_t iz = b[0].shape[0], iy = b[0].shape[1], ix = b[0].shape[2];
+    if (buf_kind(&b[0]) != buf_kind(&b[10]) || b[1].shape[0] < nx || b[2].shape[0] < nx ||
+        b[3].shape[0] < nx || b[4].shape[0] < ny || b[5].shape[0] < ny || b[6].shape[0] < ny ||
+        b[7].shape[0] < g1 || b[8].shape[0] < g1 || b[9].shape[0] < g1 || g0 < 0 || g1 > nz) {
+        PyErr_SetString(PyExc_ValueError, "sample: inconsistent arguments");
+        goto fail;
+    }
+    /* every sample index inside the source */
+    for (int k = 0; k < 3; k++) {
+        const int64_t *lo = (const int64_t *)b[1 + 3 * k].buf;
+        const int64_t *hi = (const int64_t *)b[2 + 3 * k].buf;
+        Py_ssize_t len = k == 0 ? nx : (k == 1 ? ny : g1), lim = k == 0 ? ix : (k == 1 ? iy : iz);
+        for (Py_ssize_t i = (k == 2 ? g0 : 0); i < len; i++)
+            if (lo[i] < 0 || hi[i] < 0 || lo[i] >= lim || hi[i] >= lim) {
+                PyErr_SetString(PyExc_IndexError, "sample: index outside the source");
+                goto fail;
+            }
+    }
+    Py_BEGIN_ALLOW_THREADS
+    if (buf_kind(&b[0]) == K_F32)
+        sample_f32(b[0].buf, iy, ix, b[1].buf, b[2].buf, b[3].buf, b[4].buf, b[5].buf, b[6].buf,
+                   b[7].buf, b[8].buf, b[9].buf, b[10].buf, ny, nx, g0, g1);
+    else
+        sample_f64(b[0].buf, iy, ix, b[1].buf, b[2].buf, b[3].buf, b[4].buf, b[5].buf, b[6].buf,
+                   b[7].buf, b[8].buf, b[9].buf, b[10].buf, ny, nx, g0, g1);
+    Py_END_ALLOW_THREADS
+    for (int k = 0; k < n; k++)
+        PyBuffer_Release(&b[k]);
+    Py_RETURN_NONE;
+fail:
+    for (int k = 0; k < n; k++)
+        PyBuffer_Release(&b[k]);
+    return NULL;
+}
+
+/* ---------------------------------------------------- separable evaluator */
+/* Tensor-product spline of the control offsets dq[Cz, Cy, Cx, 3] on domain voxels
+ * [x0, x1) x [y0, y1) x [z0, z1): three 1-D passes of 4 terms (z, then y, then x).
+ * Voxel (e, f, g) goes to out[g - oz, f - oy, e - ox, :]. The summation order depends
+ * on the voxel only, so it gets the same value in any block. */
+
+#define SEPARABLE_BODY(T)                                                                      \
+    for (Py_ssize_t g = z0; g < z1; g++) {                                                     \
+        Py_ssize_t c = g / gz, gb = g % gz;                                                    \
+        const double *w = wz + 4 * gb;                                                         \
+        for (Py_ssize_t jj = 0; jj < nyr; jj++) {                                              \
+            for (Py_ssize_t ii = 0; ii < nxr; ii++) {                                          \
+                const double *d = dq + ((c * cy + ry0 + jj) * cx + rx0 + ii) * 3;              \
+                double *q = qz + (jj * nxr + ii) * 3;                                          \
+                for (int m = 0; m < 3; m++)                                                    \
+                    q[m] = w[0] * d[m] + w[1] * d[pz + m] + w[2] * d[2 * pz + m]               \
+                           + w[3] * d[3 * pz + m];                                             \
+            }                                                                                  \
+        }                                                                                      \
+        for (Py_ssize_t f = y0; f < y1; f++) {                                                 \
+            Py_ssize_t b = f / gy, fb = f - b * gy, bb = b - ry0;                              \
+            const double *v = wy + 4 * fb;                                                     \
+            for (Py_ssize_t ii = 0; ii < nxr; ii++) {                                          \
+                const double *q = qz + (bb * nxr + ii) * 3;                                    \
+                Py_ssize_t py = nxr * 3;                                                       \
+                for (int m = 0; m < 3; m++)                                                    \
+                    qy[ii * 3 + m] = v[0] * q[m] + v[1] * q[py + m] + v[2] * q[2 * py + m]     \
+                                     + v[3] * q[3 * py + m];                                   \
+            }                                                                                  \
+            T *row = (T *)(out + (g - oz) * st0 + (f - oy) * st1);                             \
+            for (Py_ssize_t a = rx0; a < rx1; a++) {                                           \
+                const double *q = qy + (a - rx0) * 3;                                          \
+                Py_ssize_t e0 = MAX(a * gx, x0), e1 = MIN(a * gx + gx, x1);                    \
+                for (Py_ssize_t e = e0; e < e1; e++) {                                         \
+                    const double *u = wx + 4 * (e - a * gx);                                   \
+                    for (int m = 0; m < 3; m++)                                                \
+                        row[(e - ox) * sxe + m * sce] = (T)(u[0] * q[m] + u[1] * q[3 + m]      \
+                                                            + u[2] * q[6 + m] + u[3] * q[9 + m]); \
+                }                                                                              \
+            }                                                                                  \
+        }                                                                                      \
+    }
+
+static PyObject *py_separable(PyObject *self, PyObject *args)
+{
+    PyObject *o[5];
+    Py_ssize_t x0, x1, y0, y1, z0, z1, ox, oy, oz;
+    Py_buffer b[5];
+    int n = 0;
+    static const int kinds[5] = {K_F64, K_F64, K_F64, K_F64, K_FLOAT};
+    static const int dims[5] = {4, 2, 2, 2, 4};
+    static const char *names[5] = {"dq", "wx", "wy", "wz", "out"};
+    if (!PyArg_ParseTuple(args, "OOOOnnnnnnOnnn", &o[0], &o[1], &o[2], &o[3], &x0, &x1, &y0,
+                          &y1, &z0, &z1, &o[4], &ox, &oy, &oz))
+        return NULL;
+    for (; n < 5; n++)
+        if (get_buf(o[n], &b[n], n == 4 ? 2 : 0, kinds[n], dims[n], names[n]) < 0)
+            goto fail;
+    if (x1 <= x0 || y1 <= y0 || z1 <= z0) {
+        for (int k = 0; k < n; k++)
+            PyBuffer_Release(&b[k]);
+        Py_RETURN_NONE;
+    }
+    Py_ssize_t cz = b[0].shape[0], cy = b[0].shape[1], cx = b[0].shape[2];
+    Py_ssize_t gx = b[1].shape[0], gy = b[2].shape[0], gz = b[3].shape[0];
+    Py_ssize_t snz = b[4].shape[0], sny = b[4].shape[1], snx = b[4].shape[2];
+    Py_ssize_t rx0 = x0 / gx, rx1 = (x1 - 1) / gx + 1, ry0 = y0 / gy, ry1 = (y1 - 1) / gy + 1;
+    Py_ssize_t nxr = rx1 - rx0 + 3, nyr = ry1 - ry0 + 3;
+    if (b[0].shape[3] != 3 || b[4].shape[3] != 3 || b[1].shape[1] != 4 || b[2].shape[1] != 4 ||
+        b[3].shape[1] != 4 || x0 < 0 || y0 < 0 || z0 < 0 || rx1 + 3 > cx || ry1 + 3 > cy ||
+        (z1 - 1) / gz + 4 > cz || x0 - ox < 0 || y0 - oy < 0 || z0 - oz < 0 ||
+        x1 - ox > snx || y1 - oy > sny || z1 - oz > snz ||
+        b[4].strides[3] % b[4].itemsize || b[4].strides[2] % b[4].itemsize) {
+        PyErr_SetString(PyExc_ValueError, "separable: block outside the lattice or the output");
+        goto fail;
+    }
+    double *qz = PyMem_RawMalloc(sizeof(double) * 3 * (size_t)(nxr * nyr + nxr));
+    if (!qz) {
+        PyErr_NoMemory();
+        goto fail;
+    }
+    double *qy = qz + 3 * nxr * nyr;
+    const double *dq = b[0].buf, *wx = b[1].buf, *wy = b[2].buf, *wz = b[3].buf;
+    Py_ssize_t pz = cy * cx * 3, st0 = b[4].strides[0], st1 = b[4].strides[1];
+    Py_ssize_t sxe = b[4].strides[2] / b[4].itemsize, sce = b[4].strides[3] / b[4].itemsize;
+    char *out = b[4].buf; /* any strides: interleaved (x, y, z) triplets or planar */
+    Py_BEGIN_ALLOW_THREADS
+    if (buf_kind(&b[4]) == K_F32) {
+        SEPARABLE_BODY(float)
+    } else {
+        SEPARABLE_BODY(double)
+    }
+    Py_END_ALLOW_THREADS
+    PyMem_RawFree(qz);
+    for (int k = 0; k < n; k++)
+        PyBuffer_Release(&b[k]);
+    Py_RETURN_NONE;
+fail:
+    for (int k = 0; k < n; k++)
+        PyBuffer_Release(&b[k]);
+    return NULL;
+}
+
+/* ---------------------------------------------------------- pushforward */
+
+#define QUANTUM 1099511627776.0 /* 2**40: fixed-point unit of the accumulators */
+#define IQUANTUM ((int64_t)1 << 40)
+#define SHIFT 1048576.0 /* makes coordinates positive so that truncation is floor */
+#define ISHIFT ((int64_t)1048576)
+#define ROUND (0.5 - 1e-6)
+#define COVERED_HI 0.8
+#define COVERED_LO 0.6
+
+/* floor(x) as an integer for |x| < 2**62 (libm's floor is a call without SSE4.1). */
+static inline int64_t ifloor(double x)
+{
+    int64_t t = (int64_t)x;
+    return t - (x < (double)t);
+}
+
+typedef struct {
+    const float *uh[2]; /* deformation offsets, planar: [3][nzb][nyb][nxb], one-voxel margin */
+    Py_ssize_t cstride, nyb, nxb;
+    int npass;
+    Py_ssize_t ox, oy, oz; /* domain voxel of uh[:, 1, 1, 1] */
+    const void *values;   /* domain samples [Dz, Dy, Dx] */
+    int values_f64;
+    Py_ssize_t vy, vx;
+    double off[3], scale[3];
+    Py_ssize_t lo[3], hi[3];
+    double sign;
+    double inv_vmax;
+    int box;
+    int track; /* find the touched target box (else bbox stays empty) */
+    int64_t *acc; /* [nz, ty, tx, 2] holding target planes [tzo, tzo + nz) */
+    Py_ssize_t nz, ty, tx, tzo;
+    int64_t bbox[6];
+} Scatter;
+
+/* Phase 1, one row of n voxels (no stores into the accumulators, so it runs as
+ * vectors): the box of each voxel's image relative to its base position (paper 6:
+ * the six face centres are averages of neighbouring entries; per component, the two
+ * faces across its own axis are offset by the half voxel, the four others only need
+ * the extreme neighbour, since rounding is monotone), in target coordinates (voxel
+ * e0 + e has base position (bx + sx (e0 + e), by, bz)), and its mass factor
+ * |det J| / box volume (the Jacobian from the same face-centre differences; see
+ * pushforward.py). */
+VECTOR_CLONES static void row_boxes(const float *restrict u0, const float *restrict u1,
+                      const float *restrict u2, Py_ssize_t sF, Py_ssize_t sG, Py_ssize_t e0,
+                      Py_ssize_t n, double bx, double by, double bz, double sx, double sy,
+                      double sz,
+                      double *restrict xmin, double *restrict xmax,
+                      double *restrict ymin, double *restrict ymax, double *restrict zmin,
+                      double *restrict zmax, double *restrict mass)
+{
+    const double hx = 0.5 * sx, hy = 0.5 * sy, hz = 0.5 * sz;
+    for (Py_ssize_t e = 0; e < n; e++) {
+        double c, a0, a1, n0, n1;
+        double x_xm = u0[e - 1], x_xp = u0[e + 1], x_ym = u0[e - sF], x_yp = u0[e + sF],
+              x_zm = u0[e - sG], x_zp = u0[e + sG];
+        c = u0[e];
+        a0 = 0.5 * (c + x_xm) - hx;
+        a1 = 0.5 * (c + x_xp) + hx;
+        n0 = MIN(MIN(x_ym, x_yp), MIN(x_zm, x_zp));
+        n1 = MAX(MAX(x_ym, x_yp), MAX(x_zm, x_zp));
+        /* the voxel's own index, not the row offset: a voxel gets the same box whatever
+         * block it is in (int32: converts as a vector; rows < 2**31) */
+        double base = bx + sx * (int32_t)(e0 + e);
+        double bx0 = MIN(MIN(a0, a1), 0.5 * (c + n0)) + base;
+        double bx1 = MAX(MAX(a0, a1), 0.5 * (c + n1)) + base;
+        double y_xm = u1[e - 1], y_xp = u1[e + 1], y_ym = u1[e - sF], y_yp = u1[e + sF],
+              y_zm = u1[e - sG], y_zp = u1[e + sG];
+        c = u1[e];
+        a0 = 0.5 * (c + y_ym) - hy;
+        a1 = 0.5 * (c + y_yp) + hy;
+        n0 = MIN(MIN(y_xm, y_xp), MIN(y_zm, y_zp));
+        n1 = MAX(MAX(y_xm, y_xp), MAX(y_zm, y_zp));
+        double by0 = MIN(MIN(a0, a1), 0.5 * (c + n0)) + by;
+        double by1 = MAX(MAX(a0, a1), 0.5 * (c + n1)) + by;
+        double z_xm = u2[e - 1], z_xp = u2[e + 1], z_ym = u2[e - sF], z_yp = u2[e + sF],
+              z_zm = u2[e - sG], z_zp = u2[e + sG];
+        c = u2[e];
+        a0 = 0.5 * (c + z_zm) - hz;
+        a1 = 0.5 * (c + z_zp) + hz;
+        n0 = MIN(MIN(z_xm, z_xp), MIN(z_ym, z_yp));
+        n1 = MAX(MAX(z_xm, z_xp), MAX(z_ym, z_yp));
+        double bz0 = MIN(MIN(a0, a1), 0.5 * (c + n0)) + bz;
+        double bz1 = MAX(MAX(a0, a1), 0.5 * (c + n1)) + bz;
+        double dxx = sx + 0.5 * (x_xp - x_xm), dxy = 0.5 * (y_xp - y_xm), dxz = 0.5 * (z_xp - z_xm);
+        double dyx = 0.5 * (x_yp - x_ym), dyy = sy + 0.5 * (y_yp - y_ym), dyz = 0.5 * (z_yp - z_ym);
+        double dzx = 0.5 * (x_zp - x_zm), dzy = 0.5 * (y_zp - y_zm), dzz = sz + 0.5 * (z_zp - z_zm);
+        double det = dxx * (dyy * dzz - dyz * dzy) - dxy * (dyx * dzz - dyz * dzx)
+                    + dxz * (dyx * dzy - dyy * dzx);
+        /* a degenerate box gets inf or NaN here; phase 2 skips it before use */
+        mass[e] = fabs(det) / ((bx1 - bx0) * (by1 - by0) * (bz1 - bz0));
+        xmin[e] = bx0;
+        xmax[e] = bx1;
+        ymin[e] = by0;
+        ymax[e] = by1;
+        zmin[e] = bz0;
+        zmax[e] = bz1;
+    }
+}
+
+/* Fixed-point accumulation of pairs (weight, weighted value) with 2-lane vectors (GCC
+ * vector extensions: SSE2 on x86-64, NEON on arm64). quantize2 rounds to the nearest
+ * integer (ties to even, so quantize2(-x) = -quantize2(x)) by adding 1.5 * 2**52, exact
+ * for |x| < 2**51; here |x| <= 6 * 2**40 (overlaps <= 1, |value| <= 1, and |det J| is
+ * at most 6 box volumes). */
+typedef double v2d __attribute__((vector_size(16)));
+typedef int64_t v2i __attribute__((vector_size(16)));
+#define MAGIC 6755399441055744.0
+
+static inline v2i quantize2(v2d x)
+{
+    const v2d m = {MAGIC, MAGIC};
+    v2d t = x + m;
+    v2i bits, mbits;
+    memcpy(&bits, &t, sizeof bits);
+    memcpy(&mbits, &m, sizeof mbits);
+    return bits - mbits;
+}
+
+/* acc[0:2] += quantize2(w * kv), kv = (weight scale, value scale) */
+static inline void add2(int64_t *acc, v2d kv, double w)
+{
+    v2i a;
+    memcpy(&a, acc, sizeof a);
+    a += quantize2(kv * w);
+    memcpy(acc, &a, sizeof a);
+}
+
+static void scatter_run(Scatter *s)
+{
+    int64_t *restrict acc = s->acc;
+    const Py_ssize_t ty = s->ty, tx = s->tx, tzo = s->tzo, tz0 = tzo, tz1 = tzo + s->nz;
+    const Py_ssize_t sF = s->nxb, sG = s->nyb * s->nxb, cs = s->cstride;
+    const double sx = s->scale[0], sy = s->scale[1], sz = s->scale[2];
+    const Py_ssize_t e_lo = s->lo[0], e_hi = s->hi[0], n = e_hi - e_lo;
+    const int npass = s->npass, box = s->box, f64 = s->values_f64;
+    const double inv_vmax = s->inv_vmax;
+    const int track = s->track;
+    const Py_ssize_t line = tx * 2, plane = ty * tx * 2;
+    int64_t bx0 = IQUANTUM, by0 = IQUANTUM, bz0 = IQUANTUM, bx1 = -1, by1 = -1, bz1 = -1;
+    /* row buffers: 7 doubles per voxel */
+    double *rows = malloc((size_t)n * 7 * sizeof(double));
+    if (!rows)
+        return; /* the caller checks bbox[0] for this */
+    double *xmin = rows, *xmax = rows + n, *ymin = rows + 2 * n, *ymax = rows + 3 * n,
+           *zmin = rows + 4 * n, *zmax = rows + 5 * n, *mass = rows + 6 * n;
+    for (Py_ssize_t g = s->lo[2]; g < s->hi[2]; g++) {
+        const double bz = s->off[2] + sz * g;
+        for (Py_ssize_t f = s->lo[1]; f < s->hi[1]; f++) {
+            const double by = s->off[1] + sy * f;
+            const double bx = s->off[0];
+            const Py_ssize_t vrow = (g * s->vy + f) * s->vx + e_lo;
+            const Py_ssize_t urow = ((g - s->oz + 1) * s->nyb + (f - s->oy + 1)) * s->nxb +
+                                    e_lo - s->ox + 1;
+            for (int p = 0; p < npass; p++) {
+                const float *u = s->uh[p] + urow;
+                const double sgn = p == 0 ? s->sign : -s->sign;
+                if (!box) { /* nearest: map and round (ties down, see pushforward.py) */
+                    for (Py_ssize_t i = 0; i < n; i++) {
+                        double val = f64 ? ((const double *)s->values)[vrow + i]
+                                         : (double)((const float *)s->values)[vrow + i];
+                        int64_t x = ifloor(bx + sx * (e_lo + i) + u[i] + ROUND);
+                        int64_t y = ifloor(by + u[cs + i] + ROUND);
+                        int64_t z = ifloor(bz + u[2 * cs + i] + ROUND);
+                        if (x < 0 || y < 0 || z < tz0 || x >= tx || y >= ty || z >= tz1)
+                            continue;
+                        v2d kv = {sgn * QUANTUM, sgn * QUANTUM * (val * inv_vmax)};
+                        add2(acc + (((z - tzo) * ty + y) * tx + x) * 2, kv, 1.0);
+                        if (track) {
+                            bx0 = MIN(bx0, x); by0 = MIN(by0, y); bz0 = MIN(bz0, z);
+                            bx1 = MAX(bx1, x); by1 = MAX(by1, y); bz1 = MAX(bz1, z);
+                        }
+                    }
+                    continue;
+                }
+                row_boxes(u, u + cs, u + 2 * cs, sF, sG, e_lo, n, bx, by, bz, sx, sy, sz, xmin,
+                          xmax, ymin, ymax, zmin, zmax, mass);
+                /* Phase 2: overlaps with the target voxels, accumulated (a scatter: scalar) */
+                for (Py_ssize_t i = 0; i < n; i++) {
+                    const double x_lo = xmin[i], x_hi = xmax[i], y_lo = ymin[i], y_hi = ymax[i],
+                                 z_lo = zmin[i], z_hi = zmax[i];
+                    if (!(x_hi > x_lo && y_hi > y_lo && z_hi > z_lo))
+                        continue;
+                    /* covered target voxels, clipped to the target (coordinates > -2**20) */
+                    const int64_t x0 = MAX((int64_t)(x_lo - 0.5 + SHIFT) - ISHIFT + 1, 0);
+                    const int64_t x1 = MIN(ISHIFT - (int64_t)(SHIFT - x_hi - 0.5) - 1, tx - 1);
+                    const int64_t y0 = MAX((int64_t)(y_lo - 0.5 + SHIFT) - ISHIFT + 1, 0);
+                    const int64_t y1 = MIN(ISHIFT - (int64_t)(SHIFT - y_hi - 0.5) - 1, ty - 1);
+                    const int64_t z0 = MAX((int64_t)(z_lo - 0.5 + SHIFT) - ISHIFT + 1, tz0);
+                    const int64_t z1 = MIN(ISHIFT - (int64_t)(SHIFT - z_hi - 0.5) - 1, tz1 - 1);
+                    if (x1 < x0 || y1 < y0 || z1 < z0)
+                        continue;
+                    double val = f64 ? ((const double *)s->values)[vrow + i]
+                                     : (double)((const float *)s->values)[vrow + i];
+                    double kq = sgn * QUANTUM * mass[i];
+                    v2d kv = {kq, kq * (val * inv_vmax)};
+                    if (x1 - x0 <= 1 && y1 - y0 <= 1 && z1 - z0 <= 1) {
+                        /* the common case: at most 2 target voxels per axis */
+                        const double ax0 = MIN(x_hi, x0 + 0.5) - MAX(x_lo, x0 - 0.5);
+                        const double ax1 = MIN(x_hi, x1 + 0.5) - MAX(x_lo, x1 - 0.5);
+                        const double ay0 = MIN(y_hi, y0 + 0.5) - MAX(y_lo, y0 - 0.5);
+                        const double ay1 = MIN(y_hi, y1 + 0.5) - MAX(y_lo, y1 - 0.5);
+                        const double az0 = MIN(z_hi, z0 + 0.5) - MAX(z_lo, z0 - 0.5);
+                        const double az1 = MIN(z_hi, z1 + 0.5) - MAX(z_lo, z1 - 0.5);
+                        const int two_x = x1 > x0;
+                        int64_t *p = acc + (((z0 - tzo) * ty + y0) * tx + x0) * 2;
+                        for (int64_t dz = 0; dz <= z1 - z0; dz++, p += plane) {
+                            const double wz = dz ? az1 : az0;
+                            for (int64_t dy = 0; dy <= y1 - y0; dy++) {
+                                int64_t *row = p + dy * line;
+                                const double wzy = wz * (dy ? ay1 : ay0);
+                                add2(row, kv, wzy * ax0);
+                                if (two_x)
+                                    add2(row + 2, kv, wzy * ax1);
+                            }
+                        }
+                    } else { /* a box over two voxels wide: overlaps computed as they go */
+                        for (int64_t z = z0; z <= z1; z++) {
+                            double wz = MIN(z_hi, z + 0.5) - MAX(z_lo, z - 0.5);
+                            for (int64_t y = y0; y <= y1; y++) {
+                                int64_t *row = acc + ((z - tzo) * ty + y) * tx * 2;
+                                double wzy = wz * (MIN(y_hi, y + 0.5) - MAX(y_lo, y - 0.5));
+                                for (int64_t x = x0; x <= x1; x++)
+                                    add2(row + 2 * x, kv,
+                                         wzy * (MIN(x_hi, x + 0.5) - MAX(x_lo, x - 0.5)));
+                            }
+                        }
+                    }
+                    if (track) {
+                        bx0 = MIN(bx0, x0); by0 = MIN(by0, y0); bz0 = MIN(bz0, z0);
+                        bx1 = MAX(bx1, x1); by1 = MAX(by1, y1); bz1 = MAX(bz1, z1);
+                    }
+                }
+            }
+        }
+    }
+    free(rows);
+    s->bbox[0] = bx0; s->bbox[1] = by0; s->bbox[2] = bz0;
+    s->bbox[3] = bx1; s->bbox[4] = by1; s->bbox[5] = bz1;
+}
+
+static PyObject *py_scatter(PyObject *self, PyObject *args)
+{
+    PyObject *o_uha, *o_uhb, *o_values, *o_acc;
+    Scatter s;
+    int npass, box;
+    Py_buffer b[4];
+    int n = 0;
+    long long sign;
+    memset(&s, 0, sizeof s);
+    if (!PyArg_ParseTuple(args, "OOi(nnn)O(ddd)(ddd)(nnn)(nnn)LdpOnp", &o_uha, &o_uhb, &npass,
+                          &s.ox, &s.oy, &s.oz, &o_values, &s.off[0], &s.off[1], &s.off[2],
+                          &s.scale[0], &s.scale[1], &s.scale[2], &s.lo[0], &s.lo[1], &s.lo[2],
+                          &s.hi[0], &s.hi[1], &s.hi[2], &sign, &s.inv_vmax, &box, &o_acc,
+                          &s.tzo, &s.track))
+        return NULL;
+    if (get_buf(o_uha, &b[n++], 0, K_F32, 4, "uh") < 0 ||
+        get_buf(o_uhb, &b[n++], 0, K_F32, 4, "uh_new") < 0 ||
+        get_buf(o_values, &b[n++], 0, K_FLOAT, 3, "values") < 0 ||
+        get_buf(o_acc, &b[n++], 1, K_I64, 4, "acc") < 0) {
+        n--;
+        goto fail;
+    }
+    s.sign = sign < 0 ? -1.0 : 1.0;
+    s.npass = npass;
+    s.box = box;
+    s.uh[0] = b[0].buf;
+    s.uh[1] = b[1].buf;
+    s.cstride = b[0].shape[1] * b[0].shape[2] * b[0].shape[3];
+    s.nyb = b[0].shape[2];
+    s.nxb = b[0].shape[3];
+    s.values = b[2].buf;
+    s.values_f64 = buf_kind(&b[2]) == K_F64;
+    s.vy = b[2].shape[1];
+    s.vx = b[2].shape[2];
+    s.acc = b[3].buf;
+    s.nz = b[3].shape[0];
+    s.ty = b[3].shape[1];
+    s.tx = b[3].shape[2];
+    /* the block, its one-voxel margin in uh, and the domain */
+    int bad = npass < 1 || npass > 2 || (sign != 1 && sign != -1) || b[3].shape[3] != 2 ||
+              b[0].shape[0] != 3;
+    for (int k = 0; k < 4 && !bad; k++)
+        bad = b[1].shape[k] != b[0].shape[k];
+    Py_ssize_t org[3] = {s.ox, s.oy, s.oz};
+    Py_ssize_t ub[3] = {b[0].shape[3], b[0].shape[2], b[0].shape[1]};
+    Py_ssize_t vb[3] = {b[2].shape[2], b[2].shape[1], b[2].shape[0]};
+    for (int k = 0; k < 3 && !bad; k++)
+        bad = s.lo[k] < s.hi[k] && (s.lo[k] < 0 || s.hi[k] > vb[k] || s.lo[k] - org[k] < 0 ||
+                                    s.hi[k] - org[k] + 2 > ub[k]);
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "scatter: block outside the domain or its buffers");
+        goto fail;
+    }
+    s.bbox[3] = s.bbox[4] = s.bbox[5] = -1;
+    if (s.lo[0] < s.hi[0] && s.lo[1] < s.hi[1] && s.lo[2] < s.hi[2]) {
+        s.bbox[0] = -1; /* stays -1 only when the row buffers could not be allocated */
+        Py_BEGIN_ALLOW_THREADS
+        scatter_run(&s);
+        Py_END_ALLOW_THREADS
+        if (s.bbox[0] == -1) {
+            PyErr_NoMemory();
+            goto fail;
+        }
+    }
+    for (int k = 0; k < n; k++)
+        PyBuffer_Release(&b[k]);
+    return Py_BuildValue("(LLLLLL)", (long long)s.bbox[0], (long long)s.bbox[1],
+                         (long long)s.bbox[2], (long long)s.bbox[3], (long long)s.bbox[4],
+                         (long long)s.bbox[5]);
+fail:
+    for (int k = 0; k < n; k++)
+        PyBuffer_Release(&b[k]);
+    return NULL;
+}
+
+/* out = v / w where w >= COVERED_HI, v + b (1 - w) where w <= COVERED_LO, a ramp between. */
+#define FINALIZE_BODY(T)                                                                       \
+    for (Py_ssize_t z = lo[2]; z < hi[2]; z++)                                                 \
+        for (Py_ssize_t y = lo[1]; y < hi[1]; y++) {                                           \
+            const int64_t *a = acc + ((z * ny + y) * nx + lo[0]) * 2;                          \
+            T *o = out + (z * ny + y) * nx + lo[0];                                            \
+            for (Py_ssize_t x = 0; x < hi[0] - lo[0]; x++) {                                   \
+                double w = a[2 * x] * inv_q;                                                   \
+                double v = a[2 * x + 1] * inv_q * vmax;                                        \
+                double r;                                                                      \
+                if (w >= COVERED_HI)                                                           \
+                    r = v / w;                                                                 \
+                else if (w <= COVERED_LO)                                                      \
+                    r = v + background * (1.0 - w);                                            \
+                else {                                                                         \
+                    double t = (w - COVERED_LO) / (COVERED_HI - COVERED_LO);                   \
+                    r = t * (v / w) + (1.0 - t) * (v + background * (1.0 - w));                \
+                }                                                                              \
+                o[x] = (T)r;                                                                   \
+            }                                                                                  \
+        }
+
+static PyObject *py_finalize(PyObject *self, PyObject *args)
+{
+    PyObject *o_acc, *o_out;
+    double vmax, background;
+    Py_ssize_t lo[3], hi[3];
+    Py_buffer b[2];
+    int n = 0;
+    if (!PyArg_ParseTuple(args, "Od(nnn)(nnn)Od", &o_acc, &vmax, &lo[0], &lo[1], &lo[2], &hi[0],
+                          &hi[1], &hi[2], &o_out, &background))
+        return NULL;
+    if (get_buf(o_acc, &b[n++], 0, K_I64, 4, "acc") < 0 ||
+        get_buf(o_out, &b[n++], 1, K_FLOAT, 3, "out") < 0) {
+        n--;
+        goto fail;
+    }
+    /* acc and out share their y and x sizes; the block lies in both */
+    Py_ssize_t nz = MIN(b[0].shape[0], b[1].shape[0]), ny = b[1].shape[1], nx = b[1].shape[2];
+    int bad = b[0].shape[1] != ny || b[0].shape[2] != nx || b[0].shape[3] != 2;
+    Py_ssize_t dims[3] = {nx, ny, nz};
+    for (int k = 0; k < 3 && !bad; k++)
+        bad = lo[k] < hi[k] && (lo[k] < 0 || hi[k] > dims[k]);
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "finalize: block outside the accumulators");
+        goto fail;
+    }
+    if (lo[0] < hi[0] && lo[1] < hi[1] && lo[2] < hi[2]) {
+        const int64_t *acc = b[0].buf;
+        const double inv_q = 1.0 / QUANTUM;
+        Py_BEGIN_ALLOW_THREADS
+        if (buf_kind(&b[1]) == K_F32) {
+            float *out = b[1].buf;
+            FINALIZE_BODY(float)
+        } else {
+            double *out = b[1].buf;
+            FINALIZE_BODY(double)
+        }
+        Py_END_ALLOW_THREADS
+    }
+    for (int k = 0; k < n; k++)
+        PyBuffer_Release(&b[k]);
+    Py_RETURN_NONE;
+fail:
+    for (int k = 0; k < n; k++)
+        PyBuffer_Release(&b[k]);
+    return NULL;
+}
+
+static PyMethodDef methods[] = {
+    {"sample", py_sample, METH_VARARGS,
+     "sample(data, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1): trilinear gather "
+     "of out[g0:g1] at separable sample positions."},
+    {"separable", py_separable, METH_VARARGS,
+     "separable(dq, wx, wy, wz, x0, x1, y0, y1, z0, z1, out, ox, oy, oz): the spline "
+     "offsets on a block of domain voxels, three 1-D passes."},
+    {"scatter", py_scatter, METH_VARARGS,
+     "scatter(uh, uh_new, npass, origin, values, off, scale, lo, hi, sign, inv_vmax, box, "
+     "acc, tzo, track) -> touched box (x0, y0, z0, x1, y1, z1), empty unless track: add a "
+     "block's pushforward."},
+    {"finalize", py_finalize, METH_VARARGS,
+     "finalize(acc, vmax, lo, hi, out, background): accumulators to samples on a block."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "_warpkernels",
+    "The warp's inner loops (pullback, separable spline, box pushforward, finalize) in C.", -1,
+    methods, NULL, NULL, NULL, NULL,
+};
+
+PyMODINIT_FUNC PyInit__warpkernels(void) { return PyModule_Create(&module); }
