@@ -189,3 +189,26 @@ def test_wrong_buffers_are_errors():
     with pytest.raises(IndexError, match="outside the source"):
         K.sample(np.zeros((2, 2, 2), np.float32), i, i, f, i[:1], i[:1], f, i[:1], i[:1], f,
                  np.zeros((1, 1, 2), np.float32), 0, 1)
+
+
+@pytest.mark.parametrize("oversample", [1.0, 1.5])
+def test_still_regions_take_a_shortcut_to_the_same_sums(monkeypatch, oversample):
+    """Regions whose control points are unmoved skip the box computation, bit for bit."""
+    from volwarp_cli.bspline.capture import capture_volume
+    from volwarp_cli.bspline.scene import Scene
+    from volwarp_cli.volume import Volume
+
+    rng = np.random.default_rng(11)
+    data = rng.uniform(0, 100, (23, 19, 29)).astype(np.float32)
+    cap = capture_volume(Volume(data), lattice=(9, 8, 7), oversample=oversample)
+    dq = cap.dq.copy()
+    dq[3, 4, 5] += [1.7, -0.9, 0.6]
+    still = pushforward.still_regions([dq])
+    assert still is not None and 0 < still.mean() < 1
+    fast = Scene(cap.domain, cap.grid, dq, 3)
+    fast.render()
+    monkeypatch.setattr(pushforward, "still_regions", lambda dqs: None)
+    slow = Scene(cap.domain, cap.grid, dq, 3)
+    slow.render()
+    assert np.array_equal(fast.acc, slow.acc)
+    assert np.array_equal(fast.out, slow.out)

@@ -6,7 +6,10 @@ Modules, one idea each:
 - :mod:`.basis`: the cubic B-spline basis, the papers' coefficient table
   evaluator (eq. 3/4) and the separable three-pass evaluator.
 - :mod:`.pullback`: capture, sampling the source through the capture map.
-- :mod:`.pushforward`: the numba scatter kernels (nearest and box filter).
+- :mod:`.pushforward`: the scatter into the target (nearest and box filter).
+- ``_warpkernels.c``: the pullback, separable evaluator, scatter and finalize
+  loops, compiled at install (a warp is one short command: numba's start-up
+  would be half of it).
 - :mod:`.scene`: the warp state with exact local updates.
 - :mod:`.handles`: the inverse problem (Newton inverse, least-norm solve).
 - :mod:`.plan`: a warp spec turned into a sequence of lattice changes.

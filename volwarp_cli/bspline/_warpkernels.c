@@ -25,7 +25,7 @@
 
 /* ---------------------------------------------------------------- buffers */
 
-enum { K_F32 = 1, K_F64 = 2, K_I64 = 4, K_FLOAT = K_F32 | K_F64 };
+enum { K_F32 = 1, K_F64 = 2, K_I64 = 4, K_U8 = 8, K_FLOAT = K_F32 | K_F64 };
 
 static int buf_kind(const Py_buffer *v)
 {
@@ -40,6 +40,8 @@ static int buf_kind(const Py_buffer *v)
         return K_F64;
     if ((c == 'l' || c == 'q') && v->itemsize == 8)
         return K_I64;
+    if ((c == 'B' || c == '?') && v->itemsize == 1)
+        return K_U8;
     return 0;
 }
 
@@ -311,6 +313,8 @@ typedef struct {
     double inv_vmax;
     int box;
     int track; /* find the touched target box (else bbox stays empty) */
+    const unsigned char *still; /* [Rz][Ry][Rx]: region's control points unmoved, or NULL */
+    Py_ssize_t regions[3], gran[3], vz;
     int64_t *acc; /* [nz, ty, tx, 2] holding target planes [tzo, tzo + nz) */
     Py_ssize_t nz, ty, tx, tzo;
     int64_t bbox[6];
@@ -409,32 +413,136 @@ static inline void add2(int64_t *acc, v2d kv, double w)
     memcpy(acc, &a, sizeof a);
 }
 
+/* The target voxels [v0, v1] that a box side [lo, hi] covers (clipped to [first, last],
+ * coordinates > -2**20), and its overlaps with the first and the last of them. */
+typedef struct {
+    int64_t v0, v1;
+    double a0, a1, lo, hi;
+} Span;
+
+static inline int span_of(double lo, double hi, int64_t first, int64_t last, Span *s)
+{
+    s->lo = lo;
+    s->hi = hi;
+    s->v0 = MAX((int64_t)(lo - 0.5 + SHIFT) - ISHIFT + 1, first);
+    s->v1 = MIN(ISHIFT - (int64_t)(SHIFT - hi - 0.5) - 1, last);
+    s->a0 = MIN(hi, s->v0 + 0.5) - MAX(lo, s->v0 - 0.5);
+    s->a1 = MIN(hi, s->v1 + 0.5) - MAX(lo, s->v1 - 0.5);
+    return s->v1 >= s->v0;
+}
+
+/* Phase 2 for one voxel: add kv times each overlap volume to the covered target voxels
+ * (acc holds target planes from tzo on; line, plane: strides of y and z in int64s). */
+static inline void splat(int64_t *restrict acc, Py_ssize_t tzo, Py_ssize_t line,
+                         Py_ssize_t plane, const Span *x, const Span *y, const Span *z, v2d kv)
+{
+    if (x->v1 - x->v0 <= 1 && y->v1 - y->v0 <= 1 && z->v1 - z->v0 <= 1) {
+        /* the common case: at most 2 target voxels per axis */
+        const int two_x = x->v1 > x->v0;
+        int64_t *p = acc + (z->v0 - tzo) * plane + y->v0 * line + x->v0 * 2;
+        for (int64_t dz = 0; dz <= z->v1 - z->v0; dz++, p += plane) {
+            const double wz = dz ? z->a1 : z->a0;
+            for (int64_t dy = 0; dy <= y->v1 - y->v0; dy++) {
+                int64_t *row = p + dy * line;
+                const double wzy = wz * (dy ? y->a1 : y->a0);
+                add2(row, kv, wzy * x->a0);
+                if (two_x)
+                    add2(row + 2, kv, wzy * x->a1);
+            }
+        }
+        return;
+    }
+    /* a box over two voxels wide: overlaps computed as they go */
+    for (int64_t tz = z->v0; tz <= z->v1; tz++) {
+        double wz = MIN(z->hi, tz + 0.5) - MAX(z->lo, tz - 0.5);
+        for (int64_t ty = y->v0; ty <= y->v1; ty++) {
+            int64_t *row = acc + (tz - tzo) * plane + ty * line;
+            double wzy = wz * (MIN(y->hi, ty + 0.5) - MAX(y->lo, ty - 0.5));
+            for (int64_t tx = x->v0; tx <= x->v1; tx++)
+                add2(row + 2 * tx, kv, wzy * (MIN(x->hi, tx + 0.5) - MAX(x->lo, tx - 0.5)));
+        }
+    }
+}
+
+/* Which voxels of row (f, g), block columns [e_lo, e_lo + n), lie in still regions: every
+ * control point of the regions their face centres reach (the voxel's 3x3x3 neighbourhood,
+ * clamped to the domain, which also covers the margin's extrapolation) has zero offset,
+ * so their offsets are exactly 0. Returns how many. */
+static Py_ssize_t row_still(const Scatter *s, Py_ssize_t f, Py_ssize_t g, unsigned char *fast,
+                            unsigned char *reg)
+{
+    const Py_ssize_t gx = s->gran[0], gy = s->gran[1], gz = s->gran[2];
+    const Py_ssize_t rx = s->regions[0], ry = s->regions[1];
+    const Py_ssize_t dx = s->vx, dy = s->vy, dz = s->vz;
+    const Py_ssize_t c0 = MAX(g - 1, 0) / gz, c1 = MIN(g + 1, dz - 1) / gz;
+    const Py_ssize_t b0 = MAX(f - 1, 0) / gy, b1 = MIN(f + 1, dy - 1) / gy;
+    const Py_ssize_t e_lo = s->lo[0], n = s->hi[0] - e_lo;
+    const Py_ssize_t a0 = MAX(e_lo - 1, 0) / gx, a1 = MIN(e_lo + n, dx - 1) / gx;
+    for (Py_ssize_t a = a0; a <= a1; a++) {
+        unsigned char all = 1;
+        for (Py_ssize_t c = c0; c <= c1; c++)
+            for (Py_ssize_t b = b0; b <= b1; b++)
+                all &= s->still[(c * ry + b) * rx + a];
+        reg[a - a0] = all;
+    }
+    Py_ssize_t count = 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const Py_ssize_t e = e_lo + i;
+        fast[i] = reg[MAX(e - 1, 0) / gx - a0] & reg[MIN(e + 1, dx - 1) / gx - a0];
+        count += fast[i];
+    }
+    return count;
+}
+
 static void scatter_run(Scatter *s)
 {
     int64_t *restrict acc = s->acc;
     const Py_ssize_t ty = s->ty, tx = s->tx, tzo = s->tzo, tz0 = tzo, tz1 = tzo + s->nz;
     const Py_ssize_t sF = s->nxb, sG = s->nyb * s->nxb, cs = s->cstride;
     const double sx = s->scale[0], sy = s->scale[1], sz = s->scale[2];
+    const double hx = 0.5 * sx, hy = 0.5 * sy, hz = 0.5 * sz;
     const Py_ssize_t e_lo = s->lo[0], e_hi = s->hi[0], n = e_hi - e_lo;
     const int npass = s->npass, box = s->box, f64 = s->values_f64;
     const double inv_vmax = s->inv_vmax;
     const int track = s->track;
     const Py_ssize_t line = tx * 2, plane = ty * tx * 2;
+    const double bx = s->off[0];
     int64_t bx0 = IQUANTUM, by0 = IQUANTUM, bz0 = IQUANTUM, bx1 = -1, by1 = -1, bz1 = -1;
-    /* row buffers: 7 doubles per voxel */
-    double *rows = malloc((size_t)n * 7 * sizeof(double));
-    if (!rows)
+    /* row buffers: 7 doubles (boxes) and a Span (still voxels' x) per voxel, flags */
+    char *mem = malloc((size_t)n * (7 * sizeof(double) + sizeof(Span) + 2) + 8);
+    if (!mem)
         return; /* the caller checks bbox[0] for this */
-    double *xmin = rows, *xmax = rows + n, *ymin = rows + 2 * n, *ymax = rows + 3 * n,
-           *zmin = rows + 4 * n, *zmax = rows + 5 * n, *mass = rows + 6 * n;
+    double *xmin = (double *)mem, *xmax = xmin + n, *ymin = xmin + 2 * n, *ymax = xmin + 3 * n,
+           *zmin = xmin + 4 * n, *zmax = xmin + 5 * n, *mass = xmin + 6 * n;
+    Span *xstill = (Span *)(xmin + 7 * n);
+    unsigned char *fast = (unsigned char *)(xstill + n), *reg = fast + n;
+    /* Still voxels: offsets exactly 0, so the boxes of phase 1 are base -/+ half a voxel,
+     * each side a function of one index, and the mass is sx (sy sz) over the box volume:
+     * the same doubles that row_boxes computes from zeros (tested), found per axis once. */
+    if (box && s->still)
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const double base = bx + sx * (int32_t)(e_lo + i);
+            span_of(-hx + base, hx + base, 0, tx - 1, &xstill[i]);
+        }
+    const double det_still = sx * (sy * sz);
     for (Py_ssize_t g = s->lo[2]; g < s->hi[2]; g++) {
         const double bz = s->off[2] + sz * g;
+        Span zstill;
+        const int zok = span_of(-hz + bz, hz + bz, tz0, tz1 - 1, &zstill);
         for (Py_ssize_t f = s->lo[1]; f < s->hi[1]; f++) {
             const double by = s->off[1] + sy * f;
-            const double bx = s->off[0];
             const Py_ssize_t vrow = (g * s->vy + f) * s->vx + e_lo;
             const Py_ssize_t urow = ((g - s->oz + 1) * s->nyb + (f - s->oy + 1)) * s->nxb +
                                     e_lo - s->ox + 1;
+            Py_ssize_t nfast = 0;
+            Span ystill;
+            int yzok = 0;
+            double yw = 0.0, zw = zstill.hi - zstill.lo;
+            if (box && s->still) {
+                nfast = row_still(s, f, g, fast, reg);
+                yzok = span_of(-hy + by, hy + by, 0, ty - 1, &ystill) && zok;
+                yw = ystill.hi - ystill.lo;
+            }
             for (int p = 0; p < npass; p++) {
                 const float *u = s->uh[p] + urow;
                 const double sgn = p == 0 ? s->sign : -s->sign;
@@ -456,93 +564,76 @@ static void scatter_run(Scatter *s)
                     }
                     continue;
                 }
-                row_boxes(u, u + cs, u + 2 * cs, sF, sG, e_lo, n, bx, by, bz, sx, sy, sz, xmin,
-                          xmax, ymin, ymax, zmin, zmax, mass);
+                if (nfast < n)
+                    row_boxes(u, u + cs, u + 2 * cs, sF, sG, e_lo, n, bx, by, bz, sx, sy, sz,
+                              xmin, xmax, ymin, ymax, zmin, zmax, mass);
                 /* Phase 2: overlaps with the target voxels, accumulated (a scatter: scalar) */
                 for (Py_ssize_t i = 0; i < n; i++) {
-                    const double x_lo = xmin[i], x_hi = xmax[i], y_lo = ymin[i], y_hi = ymax[i],
-                                 z_lo = zmin[i], z_hi = zmax[i];
-                    if (!(x_hi > x_lo && y_hi > y_lo && z_hi > z_lo))
-                        continue;
-                    /* covered target voxels, clipped to the target (coordinates > -2**20) */
-                    const int64_t x0 = MAX((int64_t)(x_lo - 0.5 + SHIFT) - ISHIFT + 1, 0);
-                    const int64_t x1 = MIN(ISHIFT - (int64_t)(SHIFT - x_hi - 0.5) - 1, tx - 1);
-                    const int64_t y0 = MAX((int64_t)(y_lo - 0.5 + SHIFT) - ISHIFT + 1, 0);
-                    const int64_t y1 = MIN(ISHIFT - (int64_t)(SHIFT - y_hi - 0.5) - 1, ty - 1);
-                    const int64_t z0 = MAX((int64_t)(z_lo - 0.5 + SHIFT) - ISHIFT + 1, tz0);
-                    const int64_t z1 = MIN(ISHIFT - (int64_t)(SHIFT - z_hi - 0.5) - 1, tz1 - 1);
-                    if (x1 < x0 || y1 < y0 || z1 < z0)
-                        continue;
+                    Span xs, ys, zs;
+                    const Span *X = &xs, *Y = &ys, *Z = &zs;
+                    double m;
+                    if (nfast && fast[i]) {
+                        X = &xstill[i];
+                        Y = &ystill;
+                        Z = &zstill;
+                        if (!yzok || X->v1 < X->v0)
+                            continue;
+                        m = det_still / ((X->hi - X->lo) * yw * zw); /* as row_boxes */
+                    } else {
+                        if (!(xmax[i] > xmin[i] && ymax[i] > ymin[i] && zmax[i] > zmin[i]))
+                            continue;
+                        if (!(span_of(xmin[i], xmax[i], 0, tx - 1, &xs) &
+                              span_of(ymin[i], ymax[i], 0, ty - 1, &ys) &
+                              span_of(zmin[i], zmax[i], tz0, tz1 - 1, &zs)))
+                            continue;
+                        m = mass[i];
+                    }
                     double val = f64 ? ((const double *)s->values)[vrow + i]
                                      : (double)((const float *)s->values)[vrow + i];
-                    double kq = sgn * QUANTUM * mass[i];
+                    double kq = sgn * QUANTUM * m;
                     v2d kv = {kq, kq * (val * inv_vmax)};
-                    if (x1 - x0 <= 1 && y1 - y0 <= 1 && z1 - z0 <= 1) {
-                        /* the common case: at most 2 target voxels per axis */
-                        const double ax0 = MIN(x_hi, x0 + 0.5) - MAX(x_lo, x0 - 0.5);
-                        const double ax1 = MIN(x_hi, x1 + 0.5) - MAX(x_lo, x1 - 0.5);
-                        const double ay0 = MIN(y_hi, y0 + 0.5) - MAX(y_lo, y0 - 0.5);
-                        const double ay1 = MIN(y_hi, y1 + 0.5) - MAX(y_lo, y1 - 0.5);
-                        const double az0 = MIN(z_hi, z0 + 0.5) - MAX(z_lo, z0 - 0.5);
-                        const double az1 = MIN(z_hi, z1 + 0.5) - MAX(z_lo, z1 - 0.5);
-                        const int two_x = x1 > x0;
-                        int64_t *p = acc + (((z0 - tzo) * ty + y0) * tx + x0) * 2;
-                        for (int64_t dz = 0; dz <= z1 - z0; dz++, p += plane) {
-                            const double wz = dz ? az1 : az0;
-                            for (int64_t dy = 0; dy <= y1 - y0; dy++) {
-                                int64_t *row = p + dy * line;
-                                const double wzy = wz * (dy ? ay1 : ay0);
-                                add2(row, kv, wzy * ax0);
-                                if (two_x)
-                                    add2(row + 2, kv, wzy * ax1);
-                            }
-                        }
-                    } else { /* a box over two voxels wide: overlaps computed as they go */
-                        for (int64_t z = z0; z <= z1; z++) {
-                            double wz = MIN(z_hi, z + 0.5) - MAX(z_lo, z - 0.5);
-                            for (int64_t y = y0; y <= y1; y++) {
-                                int64_t *row = acc + ((z - tzo) * ty + y) * tx * 2;
-                                double wzy = wz * (MIN(y_hi, y + 0.5) - MAX(y_lo, y - 0.5));
-                                for (int64_t x = x0; x <= x1; x++)
-                                    add2(row + 2 * x, kv,
-                                         wzy * (MIN(x_hi, x + 0.5) - MAX(x_lo, x - 0.5)));
-                            }
-                        }
-                    }
+                    splat(acc, tzo, line, plane, X, Y, Z, kv);
                     if (track) {
-                        bx0 = MIN(bx0, x0); by0 = MIN(by0, y0); bz0 = MIN(bz0, z0);
-                        bx1 = MAX(bx1, x1); by1 = MAX(by1, y1); bz1 = MAX(bz1, z1);
+                        bx0 = MIN(bx0, X->v0); by0 = MIN(by0, Y->v0); bz0 = MIN(bz0, Z->v0);
+                        bx1 = MAX(bx1, X->v1); by1 = MAX(by1, Y->v1); bz1 = MAX(bz1, Z->v1);
                     }
                 }
             }
         }
     }
-    free(rows);
+    free(mem);
     s->bbox[0] = bx0; s->bbox[1] = by0; s->bbox[2] = bz0;
     s->bbox[3] = bx1; s->bbox[4] = by1; s->bbox[5] = bz1;
 }
 
 static PyObject *py_scatter(PyObject *self, PyObject *args)
 {
-    PyObject *o_uha, *o_uhb, *o_values, *o_acc;
+    PyObject *o_uha, *o_uhb, *o_values, *o_acc, *o_still;
     Scatter s;
     int npass, box;
-    Py_buffer b[4];
+    Py_buffer b[5];
     int n = 0;
     long long sign;
     memset(&s, 0, sizeof s);
-    if (!PyArg_ParseTuple(args, "OOi(nnn)O(ddd)(ddd)(nnn)(nnn)LdpOnp", &o_uha, &o_uhb, &npass,
-                          &s.ox, &s.oy, &s.oz, &o_values, &s.off[0], &s.off[1], &s.off[2],
-                          &s.scale[0], &s.scale[1], &s.scale[2], &s.lo[0], &s.lo[1], &s.lo[2],
-                          &s.hi[0], &s.hi[1], &s.hi[2], &sign, &s.inv_vmax, &box, &o_acc,
-                          &s.tzo, &s.track))
+    if (!PyArg_ParseTuple(args, "OOi(nnn)O(ddd)(ddd)(nnn)(nnn)LdpOnpO(nnn)", &o_uha, &o_uhb,
+                          &npass, &s.ox, &s.oy, &s.oz, &o_values, &s.off[0], &s.off[1],
+                          &s.off[2], &s.scale[0], &s.scale[1], &s.scale[2], &s.lo[0], &s.lo[1],
+                          &s.lo[2], &s.hi[0], &s.hi[1], &s.hi[2], &sign, &s.inv_vmax, &box,
+                          &o_acc, &s.tzo, &s.track, &o_still, &s.gran[0], &s.gran[1],
+                          &s.gran[2]))
         return NULL;
     if (get_buf(o_uha, &b[n++], 0, K_F32, 4, "uh") < 0 ||
         get_buf(o_uhb, &b[n++], 0, K_F32, 4, "uh_new") < 0 ||
         get_buf(o_values, &b[n++], 0, K_FLOAT, 3, "values") < 0 ||
-        get_buf(o_acc, &b[n++], 1, K_I64, 4, "acc") < 0) {
+        get_buf(o_acc, &b[n++], 1, K_I64, 4, "acc") < 0 ||
+        (o_still != Py_None && get_buf(o_still, &b[n++], 0, K_U8, 3, "still") < 0)) {
         n--;
         goto fail;
+    }
+    if (o_still != Py_None) {
+        s.still = b[4].buf;
+        for (int k = 0; k < 3; k++)
+            s.regions[k] = b[4].shape[2 - k];
     }
     s.sign = sign < 0 ? -1.0 : 1.0;
     s.npass = npass;
@@ -556,6 +647,7 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     s.values_f64 = buf_kind(&b[2]) == K_F64;
     s.vy = b[2].shape[1];
     s.vx = b[2].shape[2];
+    s.vz = b[2].shape[0];
     s.acc = b[3].buf;
     s.nz = b[3].shape[0];
     s.ty = b[3].shape[1];
@@ -571,6 +663,9 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     for (int k = 0; k < 3 && !bad; k++)
         bad = s.lo[k] < s.hi[k] && (s.lo[k] < 0 || s.hi[k] > vb[k] || s.lo[k] - org[k] < 0 ||
                                     s.hi[k] - org[k] + 2 > ub[k]);
+    /* the still regions tile the domain: regions * granularity = domain size */
+    for (int k = 0; k < 3 && !bad && s.still; k++)
+        bad = s.gran[k] < 1 || s.regions[k] * s.gran[k] != vb[k];
     if (bad) {
         PyErr_SetString(PyExc_ValueError, "scatter: block outside the domain or its buffers");
         goto fail;
@@ -675,8 +770,9 @@ static PyMethodDef methods[] = {
      "offsets on a block of domain voxels, three 1-D passes."},
     {"scatter", py_scatter, METH_VARARGS,
      "scatter(uh, uh_new, npass, origin, values, off, scale, lo, hi, sign, inv_vmax, box, "
-     "acc, tzo, track) -> touched box (x0, y0, z0, x1, y1, z1), empty unless track: add a "
-     "block's pushforward."},
+     "acc, tzo, track, still, granularity) -> touched box (x0, y0, z0, x1, y1, z1), empty "
+     "unless track: add a block's pushforward (still: uint8 [Rz, Ry, Rx] of regions whose "
+     "control points have zero offsets, or None)."},
     {"finalize", py_finalize, METH_VARARGS,
      "finalize(acc, vmax, lo, hi, out, background): accumulators to samples on a block."},
     {NULL, NULL, 0, NULL},

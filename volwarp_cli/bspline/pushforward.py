@@ -37,6 +37,13 @@ Departures:
   ramp between.
 - At the domain's outer faces the missing neighbour is extrapolated linearly
   (``1.5 U[e] - 0.5 U[e+1]``) so border voxels get a box too.
+
+The loops are in ``_warpkernels.c``: per row of domain voxels, the boxes and
+their Jacobian mass are computed as vectors, then scattered. Voxels whose
+regions' control points are all unmoved (:func:`still_regions`) have exactly
+zero offsets, so their boxes are the affine images of the voxels and their
+overlaps are found once per axis; the sums are bit-identical to the general
+path (tested).
 """
 
 from __future__ import annotations
@@ -95,7 +102,7 @@ def fill_halo(uh, faces=None):
 
 
 def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None,
-            origin=(0, 0, 0), tzo=0, u_new=None, bounds=True):
+            origin=(0, 0, 0), tzo=0, u_new=None, bounds=True, still=None, granularity=None):
     """Add (``sign`` +1) or remove (-1) the contributions of domain block [lo, hi) (x, y, z).
 
     With ``u_new`` (deformation offsets of another lattice, same layout as
@@ -113,6 +120,10 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     are known to write disjoint target z ranges; those halves then run on two
     threads, and the band [z1, z2) after them (integer sums: the result does
     not depend on the split).
+    ``still`` (uint8 ``[Rz, Ry, Rx]``, with the lattice's ``granularity``
+    (x, y, z)) marks the regions whose control points all have zero offset
+    (in ``u`` and ``u_new``): voxels there take a faster path with the same
+    result (see :func:`still_regions`).
     Returns the touched target bounding box ``(lo_xyz, hi_xyz)`` (hi
     exclusive), or None when nothing landed in the target; always None
     without ``bounds`` (which saves a few percent of the scatter).
@@ -130,7 +141,9 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
         return np.array(kern(u, u if u_new is None else u_new, 1 if u_new is None else 2, org,
                              values, off, scale, tuple(int(v) for v in a),
                              tuple(int(v) for v in b), int(sign), inv, box, acc, int(tzo),
-                             bounds))
+                             bounds, still, gran))
+
+    gran = (1, 1, 1) if granularity is None else tuple(int(v) for v in granularity)
 
     if split_z is None or not lo[2] < split_z[0] <= split_z[1] < hi[2]:
         boxes = [run(lo, hi)]
@@ -153,6 +166,20 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
         return None
     return (np.min([b[:3] for b in boxes], axis=0),
             np.max([b[3:] for b in boxes], axis=0) + 1)
+
+
+def still_regions(dqs) -> np.ndarray | None:
+    """uint8 ``[Rz, Ry, Rx]``: 1 where every control point of the region is unmoved in all ``dqs``.
+
+    There the deformation offsets are exactly zero, every voxel's box is its
+    affine image (half a voxel either side of its base position) and the
+    scatter skips the per-voxel box computation. None when no region is still.
+    """
+    from numpy.lib.stride_tricks import sliding_window_view
+
+    zero = np.logical_and.reduce([np.all(np.asarray(dq) == 0, axis=-1) for dq in dqs])
+    still = sliding_window_view(zero, (4, 4, 4)).all(axis=(-3, -2, -1))
+    return np.ascontiguousarray(still, dtype=np.uint8) if still.any() else None
 
 
 def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0):

@@ -139,6 +139,7 @@ class Scene:
         ny = int(ehi[1] - elo[1])
         cz = int(max(4, CHUNK_BYTES // ((nx + 2) * (ny + 2) * 12 * len(dqs))))
         evaluate = basis.EVALUATORS[self.evaluator]
+        still = pushforward.still_regions(dqs) if self.method == "box" else None
         boxes = []
         for z0 in range(int(vlo[2]), int(vhi[2]), cz):
             z1 = min(z0 + cz, int(vhi[2]))
@@ -168,7 +169,8 @@ class Scene:
                                      sign, self.vmax, self.method, acc, split_z=split,
                                      origin=origin, tzo=tzo,
                                      u_new=planar[1] if len(planar) > 1 else None,
-                                     bounds=bounds)
+                                     bounds=bounds, still=still,
+                                     granularity=grid.granularity)
             if bb is not None:
                 boxes.append(bb)
         if not boxes:
