@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from volwarp_cli.bspline import basis
+from volwarp_cli.bspline import scene as scene_module
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.lattice import Grid
 from volwarp_cli.bspline.scene import Scene
@@ -19,9 +20,12 @@ def _blob(shape_zyx):
 
 @pytest.mark.parametrize("method", ["box", "nearest"])
 @pytest.mark.parametrize("shift", [(0.0, 0.0, 0.0), (2.0, -1.0, 9.0), (-3.0, 2.5, -14.0)])
-def test_render_once_equals_render(method, shift):
-    # tall in z so that the stream runs on two threads and rolls its accumulator;
-    # large z moves stretch and fold the map along the streamed axis
+@pytest.mark.parametrize("stream_planes", [1, 8])
+def test_render_once_equals_render(method, shift, stream_planes, monkeypatch):
+    # tall in z so that the stream runs on two threads and wraps its ring of planes
+    # (many times with 1 plane per step); large z moves stretch and fold the map
+    # along the streamed axis
+    monkeypatch.setattr(scene_module, "STREAM_PLANES", stream_planes)
     cap = capture_volume(Volume(_blob((90, 20, 24))), lattice=(6, 6, 12), oversample=1.5)
     dq = cap.dq.copy()
     dq[5, 2, 3] += shift

@@ -315,8 +315,9 @@ typedef struct {
     int track; /* find the touched target box (else bbox stays empty) */
     const unsigned char *still; /* [Rz][Ry][Rx]: region's control points unmoved, or NULL */
     Py_ssize_t regions[3], gran[3], vz;
-    int64_t *acc; /* [nz, ty, tx, 2] holding target planes [tzo, tzo + nz) */
-    Py_ssize_t nz, ty, tx, tzo;
+    int64_t *acc; /* [nz, ty, tx, 2]: target planes [tz_lo, tz_hi), plane z in slot z - rb,
+                   * less nz from nz on (a ring when rb is a multiple of nz below tz_lo) */
+    Py_ssize_t nz, ty, tx, tz_lo, tz_hi, rb;
     int64_t bbox[6];
 } Scatter;
 
@@ -432,15 +433,23 @@ static inline int span_of(double lo, double hi, int64_t first, int64_t last, Spa
 }
 
 /* Phase 2 for one voxel: add kv times each overlap volume to the covered target voxels
- * (acc holds target planes from tzo on; line, plane: strides of y and z in int64s). */
-static inline void splat(int64_t *restrict acc, Py_ssize_t tzo, Py_ssize_t line,
+ * (target plane z in slot z - rb of acc, less nz from nz on; line, plane: strides of y
+ * and z in int64s). */
+static inline int64_t *plane_at(int64_t *acc, int64_t z, Py_ssize_t rb, Py_ssize_t nz,
+                                Py_ssize_t plane)
+{
+    int64_t slot = z - rb;
+    return acc + (slot >= nz ? slot - nz : slot) * plane;
+}
+
+static inline void splat(int64_t *restrict acc, Py_ssize_t rb, Py_ssize_t nz, Py_ssize_t line,
                          Py_ssize_t plane, const Span *x, const Span *y, const Span *z, v2d kv)
 {
     if (x->v1 - x->v0 <= 1 && y->v1 - y->v0 <= 1 && z->v1 - z->v0 <= 1) {
         /* the common case: at most 2 target voxels per axis */
         const int two_x = x->v1 > x->v0;
-        int64_t *p = acc + (z->v0 - tzo) * plane + y->v0 * line + x->v0 * 2;
-        for (int64_t dz = 0; dz <= z->v1 - z->v0; dz++, p += plane) {
+        for (int64_t dz = 0; dz <= z->v1 - z->v0; dz++) {
+            int64_t *p = plane_at(acc, z->v0 + dz, rb, nz, plane) + y->v0 * line + x->v0 * 2;
             const double wz = dz ? z->a1 : z->a0;
             for (int64_t dy = 0; dy <= y->v1 - y->v0; dy++) {
                 int64_t *row = p + dy * line;
@@ -456,7 +465,7 @@ static inline void splat(int64_t *restrict acc, Py_ssize_t tzo, Py_ssize_t line,
     for (int64_t tz = z->v0; tz <= z->v1; tz++) {
         double wz = MIN(z->hi, tz + 0.5) - MAX(z->lo, tz - 0.5);
         for (int64_t ty = y->v0; ty <= y->v1; ty++) {
-            int64_t *row = acc + (tz - tzo) * plane + ty * line;
+            int64_t *row = plane_at(acc, tz, rb, nz, plane) + ty * line;
             double wzy = wz * (MIN(y->hi, ty + 0.5) - MAX(y->lo, ty - 0.5));
             for (int64_t tx = x->v0; tx <= x->v1; tx++)
                 add2(row + 2 * tx, kv, wzy * (MIN(x->hi, tx + 0.5) - MAX(x->lo, tx - 0.5)));
@@ -497,7 +506,8 @@ static Py_ssize_t row_still(const Scatter *s, Py_ssize_t f, Py_ssize_t g, unsign
 static void scatter_run(Scatter *s)
 {
     int64_t *restrict acc = s->acc;
-    const Py_ssize_t ty = s->ty, tx = s->tx, tzo = s->tzo, tz0 = tzo, tz1 = tzo + s->nz;
+    const Py_ssize_t ty = s->ty, tx = s->tx, tz0 = s->tz_lo, tz1 = s->tz_hi, rb = s->rb;
+    const Py_ssize_t nz = s->nz;
     const Py_ssize_t sF = s->nxb, sG = s->nyb * s->nxb, cs = s->cstride;
     const double sx = s->scale[0], sy = s->scale[1], sz = s->scale[2];
     const double hx = 0.5 * sx, hy = 0.5 * sy, hz = 0.5 * sz;
@@ -556,7 +566,7 @@ static void scatter_run(Scatter *s)
                         if (x < 0 || y < 0 || z < tz0 || x >= tx || y >= ty || z >= tz1)
                             continue;
                         v2d kv = {sgn * QUANTUM, sgn * QUANTUM * (val * inv_vmax)};
-                        add2(acc + (((z - tzo) * ty + y) * tx + x) * 2, kv, 1.0);
+                        add2(plane_at(acc, z, rb, nz, plane) + y * line + x * 2, kv, 1.0);
                         if (track) {
                             bx0 = MIN(bx0, x); by0 = MIN(by0, y); bz0 = MIN(bz0, z);
                             bx1 = MAX(bx1, x); by1 = MAX(by1, y); bz1 = MAX(bz1, z);
@@ -592,7 +602,7 @@ static void scatter_run(Scatter *s)
                                      : (double)((const float *)s->values)[vrow + i];
                     double kq = sgn * QUANTUM * m;
                     v2d kv = {kq, kq * (val * inv_vmax)};
-                    splat(acc, tzo, line, plane, X, Y, Z, kv);
+                    splat(acc, rb, nz, line, plane, X, Y, Z, kv);
                     if (track) {
                         bx0 = MIN(bx0, X->v0); by0 = MIN(by0, Y->v0); bz0 = MIN(bz0, Z->v0);
                         bx1 = MAX(bx1, X->v1); by1 = MAX(by1, Y->v1); bz1 = MAX(bz1, Z->v1);
@@ -615,12 +625,13 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     int n = 0;
     long long sign;
     memset(&s, 0, sizeof s);
-    if (!PyArg_ParseTuple(args, "OOi(nnn)O(ddd)(ddd)(nnn)(nnn)LdpOnpO(nnn)", &o_uha, &o_uhb,
-                          &npass, &s.ox, &s.oy, &s.oz, &o_values, &s.off[0], &s.off[1],
+    int ring;
+    if (!PyArg_ParseTuple(args, "OOi(nnn)O(ddd)(ddd)(nnn)(nnn)LdpO(nn)ppO(nnn)", &o_uha,
+                          &o_uhb, &npass, &s.ox, &s.oy, &s.oz, &o_values, &s.off[0], &s.off[1],
                           &s.off[2], &s.scale[0], &s.scale[1], &s.scale[2], &s.lo[0], &s.lo[1],
                           &s.lo[2], &s.hi[0], &s.hi[1], &s.hi[2], &sign, &s.inv_vmax, &box,
-                          &o_acc, &s.tzo, &s.track, &o_still, &s.gran[0], &s.gran[1],
-                          &s.gran[2]))
+                          &o_acc, &s.tz_lo, &s.tz_hi, &ring, &s.track, &o_still, &s.gran[0],
+                          &s.gran[1], &s.gran[2]))
         return NULL;
     if (get_buf(o_uha, &b[n++], 0, K_F32, 4, "uh") < 0 ||
         get_buf(o_uhb, &b[n++], 0, K_F32, 4, "uh_new") < 0 ||
@@ -650,11 +661,14 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     s.vz = b[2].shape[0];
     s.acc = b[3].buf;
     s.nz = b[3].shape[0];
+    /* planes [tz_lo, tz_hi) held: from slot 0 on, or in a ring of nz slots (slot z mod nz) */
+    s.rb = ring && s.nz > 0 ? s.tz_lo - s.tz_lo % s.nz : s.tz_lo;
     s.ty = b[3].shape[1];
     s.tx = b[3].shape[2];
     /* the block, its one-voxel margin in uh, and the domain */
     int bad = npass < 1 || npass > 2 || (sign != 1 && sign != -1) || b[3].shape[3] != 2 ||
-              b[0].shape[0] != 3;
+              b[0].shape[0] != 3 || s.tz_lo < 0 || s.tz_hi < s.tz_lo ||
+              s.tz_hi - s.tz_lo > s.nz;
     for (int k = 0; k < 4 && !bad; k++)
         bad = b[1].shape[k] != b[0].shape[k];
     Py_ssize_t org[3] = {s.ox, s.oy, s.oz};
@@ -770,7 +784,8 @@ static PyMethodDef methods[] = {
      "offsets on a block of domain voxels, three 1-D passes."},
     {"scatter", py_scatter, METH_VARARGS,
      "scatter(uh, uh_new, npass, origin, values, off, scale, lo, hi, sign, inv_vmax, box, "
-     "acc, tzo, track, still, granularity) -> touched box (x0, y0, z0, x1, y1, z1), empty "
+     "acc, (tz_lo, tz_hi), ring, track, still, granularity) -> touched box (x0, y0, z0, x1, "
+     "y1, z1), empty "
      "unless track: add a block's pushforward (still: uint8 [Rz, Ry, Rx] of regions whose "
      "control points have zero offsets, or None)."},
     {"finalize", py_finalize, METH_VARARGS,

@@ -102,7 +102,8 @@ def fill_halo(uh, faces=None):
 
 
 def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None,
-            origin=(0, 0, 0), tzo=0, u_new=None, bounds=True, still=None, granularity=None):
+            origin=(0, 0, 0), tzo=0, u_new=None, bounds=True, still=None, granularity=None,
+            tz_hi=None, ring=False):
     """Add (``sign`` +1) or remove (-1) the contributions of domain block [lo, hi) (x, y, z).
 
     With ``u_new`` (deformation offsets of another lattice, same layout as
@@ -114,8 +115,9 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     voxel (e, f, g) is ``u[c, g - oz + 1, f - oy + 1, e - ox + 1]`` with
     ``origin = (ox, oy, oz)``; the margin and every neighbour of the block's
     voxels must be filled.
-    ``acc`` holds the target z planes ``[tzo, tzo + len(acc))``; contributions
-    to other planes are left out.
+    ``acc`` holds the target z planes ``[tzo, tz_hi)`` (default ``tzo +
+    len(acc)``), plane ``z`` in ``acc[z - tzo]``, or with ``ring`` in
+    ``acc[z % len(acc)]``; contributions to other planes are left out.
     ``split_z``: domain z indices ``(z1, z2)`` such that [lo, z1) and [z2, hi)
     are known to write disjoint target z ranges; those halves then run on two
     threads, and the band [z1, z2) after them (integer sums: the result does
@@ -140,8 +142,10 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     def run(a, b):
         return np.array(kern(u, u if u_new is None else u_new, 1 if u_new is None else 2, org,
                              values, off, scale, tuple(int(v) for v in a),
-                             tuple(int(v) for v in b), int(sign), inv, box, acc, int(tzo),
-                             bounds, still, gran))
+                             tuple(int(v) for v in b), int(sign), inv, box, acc,
+                             (int(tzo), int(tz_end)), ring, bounds, still, gran))
+
+    tz_end = tzo + len(acc) if tz_hi is None else tz_hi
 
     gran = (1, 1, 1) if granularity is None else tuple(int(v) for v in granularity)
 

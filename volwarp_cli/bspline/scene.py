@@ -51,14 +51,34 @@ class Scratch:
         self.flat = np.zeros(0, dtype=np.float32)
 
     def arrays(self, shape, n: int) -> list[np.ndarray]:
-        """``n`` zeroed float32 arrays of ``shape``, views of one reused buffer."""
+        """``n`` float32 arrays of ``shape`` (..., z, y, x), views of one reused buffer.
+
+        Only the outer faces are zeroed: the evaluator fills the inside, and
+        ``fill_halo`` reads the faces (where it does not write them) for the
+        corners, which nothing else reads.
+        """
         size = int(np.prod(shape))
         if self.flat.size < n * size:
             self.flat = np.zeros(n * size, dtype=np.float32)
         out = [self.flat[i * size:(i + 1) * size].reshape(shape) for i in range(n)]
         for a in out:
-            a.fill(0)
+            for axis in (-3, -2, -1):
+                face = [slice(None)] * a.ndim
+                for end in (0, -1):
+                    face[axis] = end
+                    a[tuple(face)] = 0
         return out
+
+
+def _all_still(still, grid: Grid, lo, hi) -> bool:
+    """Whether every voxel of block [lo, hi) (x, y, z), with its neighbours, is in a still region."""
+    if still is None:
+        return False
+    region = []
+    for axis in (2, 1, 0):  # still is [Rz, Ry, Rx]
+        g, d = grid.granularity[axis], grid.domain_shape[axis]
+        region.append(slice(max(lo[axis] - 1, 0) // g, min(hi[axis], d - 1) // g + 1))
+    return bool(still[tuple(region)].all())
 
 
 class Scene:
@@ -113,7 +133,7 @@ class Scene:
         return tuple(int(i + 2 * p) for i, p in zip(self.grid.input_shape, self.pad, strict=False))
 
     def _contribute(self, dqs, vlo, vhi, sign, acc=None, tzo=0, parallel=True, scratch=None,
-                    bounds=False):
+                    bounds=False, tz_hi=None, ring=False):
         """Add (``sign`` +1) or remove (-1) the contributions of domain voxels [vlo, vhi).
 
         ``dqs``: one lattice, or two (old, new) whose contributions are
@@ -122,7 +142,8 @@ class Scene:
         z, into a small buffer covering the voxels and their neighbours (the
         evaluators give a voxel the same value whatever block it is computed
         in, so removing a contribution recomputes exactly what was added).
-        ``acc`` (default the scene's) holds target z planes from ``tzo`` on;
+        ``acc`` (default the scene's) holds target z planes from ``tzo`` on
+        (up to ``tz_hi``; with ``ring``, plane z in ``acc[z % len(acc)]``);
         ``parallel`` lets large blocks use two threads. ``scratch`` (a
         :class:`Scratch`, default the scene's) holds the deformation buffers.
         Returns the touched target bounding box with ``bounds``, else None.
@@ -149,25 +170,28 @@ class Scene:
             planar = scratch.arrays((3, e1 - e0 + 2, ny + 2, nx + 2), len(dqs))
             ubs = [np.moveaxis(buf, 0, -1) for buf in planar]
             origin = (int(elo[0]), int(elo[1]), e0)
-            for dq, ub in zip(dqs, ubs, strict=True):
-                evaluate(dq, grid, ub[1:-1, 1:-1, 1:-1], x=(elo[0], ehi[0]), y=(elo[1], ehi[1]),
-                         z=(e0, e1), origin=origin, parallel=parallel)
-            faces = [(0, 0)] if e0 == 0 else []
-            if e1 == dshape[2]:
-                faces.append((0, 1))
-            for axis_xyz, axis in ((0, 2), (1, 1)):
-                if elo[axis_xyz] == 0:
-                    faces.append((axis, 0))
-                if ehi[axis_xyz] == dshape[axis_xyz]:
-                    faces.append((axis, 1))
-            for ub in ubs:
-                pushforward.fill_halo(ub, faces)
             lo = (int(vlo[0]), int(vlo[1]), z0)
+            # a chunk wholly in still regions takes the scatter's shortcut for every
+            # voxel, which reads no offsets: nothing to evaluate
+            if not _all_still(still, grid, lo, (int(vhi[0]), int(vhi[1]), z1)):
+                for dq, ub in zip(dqs, ubs, strict=True):
+                    evaluate(dq, grid, ub[1:-1, 1:-1, 1:-1], x=(elo[0], ehi[0]),
+                             y=(elo[1], ehi[1]), z=(e0, e1), origin=origin, parallel=parallel)
+                faces = [(0, 0)] if e0 == 0 else []
+                if e1 == dshape[2]:
+                    faces.append((0, 1))
+                for axis_xyz, axis in ((0, 2), (1, 1)):
+                    if elo[axis_xyz] == 0:
+                        faces.append((axis, 0))
+                    if ehi[axis_xyz] == dshape[axis_xyz]:
+                        faces.append((axis, 1))
+                for ub in ubs:
+                    pushforward.fill_halo(ub, faces)
             hi = (int(vhi[0]), int(vhi[1]), z1)
             split = self._split_z(np.stack(dqs), lo, hi) if parallel else None
             bb = pushforward.scatter(planar[0], self.domain, self.offset, self.scale, lo, hi,
                                      sign, self.vmax, self.method, acc, split_z=split,
-                                     origin=origin, tzo=tzo,
+                                     origin=origin, tzo=tzo, tz_hi=tz_hi, ring=ring,
                                      u_new=planar[1] if len(planar) > 1 else None,
                                      bounds=bounds, still=still,
                                      granularity=grid.granularity)
@@ -276,20 +300,22 @@ class Scene:
         cuts = [tz * i // workers for i in range(workers + 1)]
 
         def stream(t_lo, t_hi):
+            # a ring of target planes: plane z in acc[z % planes]; planes [base, ...)
+            # are still accumulating, those below are finalized
             acc = np.zeros((planes, ty, tx, 2), dtype=np.int64)
             scratch = Scratch()
-            base = t_lo  # acc[i] holds target plane base + i
+            base = t_lo
 
             def flush(upto):
                 nonlocal base
-                k = upto - base
-                if k <= 0:
-                    return
-                pushforward.finalize(acc, self.vmax, (0, 0, 0), (tx, ty, k), out[base:upto],
-                                     parallel=False, background=self.background)
-                acc[:planes - k] = acc[k:]
-                acc[planes - k:] = 0
-                base = upto
+                while base < upto:
+                    s0 = base % planes
+                    k = min(upto - base, planes - s0)  # contiguous slots
+                    pushforward.finalize(acc[s0:s0 + k], self.vmax, (0, 0, 0), (tx, ty, k),
+                                         out[base:base + k], parallel=False,
+                                         background=self.background)
+                    acc[s0:s0 + k] = 0
+                    base += k
 
             g_lo, g_hi = self._domain_z_window(self.dq, t_lo, t_hi)
             for g0 in range(g_lo, g_hi, chunk):
@@ -298,11 +324,10 @@ class Scene:
                 flush(min(max(r_lo, base), t_hi))  # no later chunk reaches below r_lo
                 if min(r_hi, t_hi) - base > planes:  # pragma: no cover - cannot happen
                     raise AssertionError("rolling accumulator too small")
-                self._contribute([self.dq], (0, 0, g0), (dshape[0], dshape[1], g1), 1,
-                                 acc=acc[:min(planes, t_hi - base)], tzo=base, parallel=False,
-                                 scratch=scratch)
-            while base < t_hi:
-                flush(min(base + planes, t_hi))
+                self._contribute([self.dq], (0, 0, g0), (dshape[0], dshape[1], g1), 1, acc=acc,
+                                 tzo=base, tz_hi=min(base + planes, t_hi), ring=True,
+                                 parallel=False, scratch=scratch)
+            flush(t_hi)
 
         with timed(f"deformation + {self.method} pushforward + finalize ({workers} threads)"):
             if workers < 2:
