@@ -38,6 +38,15 @@ def run():
 
 
 @pytest.fixture
+def local_updates(monkeypatch):
+    """Scenes update locally even where a full recomputation would be cheaper (it gives the
+    same sums), so that tests of the local update exercise it on small lattices."""
+    from volwarp_cli.bspline.scene import Scene
+
+    monkeypatch.setattr(Scene, "_full_work", lambda self, dq: float("inf"))
+
+
+@pytest.fixture
 def data_dir() -> Path:
     return DATA
 

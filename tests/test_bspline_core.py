@@ -137,7 +137,7 @@ def _moved_scene(method="box"):
 
 
 @pytest.mark.parametrize("method", ["box", "nearest"])
-def test_local_control_bit_identical_outside(method):
+def test_local_control_bit_identical_outside(method, local_updates):
     cap, scene = _moved_scene(method)
     before = scene.render().copy()
     i, j, k = 4, 3, 5
@@ -167,12 +167,13 @@ def _region_image(scene, i, j, k):
     return pts.min(0), pts.max(0)
 
 
-@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=20, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
 @given(moves=st.lists(st.tuples(st.integers(0, 6), st.integers(0, 5), st.integers(0, 4),
                                 st.floats(-2.5, 2.5), st.floats(-2.5, 2.5),
                                 st.floats(-2.5, 2.5)), min_size=1, max_size=4),
        method=st.sampled_from(["box", "nearest"]))
-def test_incremental_equals_full(moves, method):
+def test_incremental_equals_full(moves, method, local_updates):
     data = smooth_blob((14, 16, 18))
     cap = capture_volume(Volume(data), lattice=(7, 6, 5), oversample=1.5)
     scene = Scene(cap.domain, cap.grid, cap.dq, 4, method=method)
@@ -269,7 +270,7 @@ def test_handle_outside_model_is_an_error():
         solve(dq, grid, [[10.0, 10.0, 10.0], [40.0, 10.0, 10.0]], [[0, 0, 0], [0, 0, 0]])
 
 
-def test_two_thread_paths_give_identical_results(monkeypatch):
+def test_two_thread_paths_give_identical_results(monkeypatch, local_updates):
     """Threads (forced on small sizes) and small z chunks of the deformation change nothing."""
     from volwarp_cli.bspline import scene as scene_mod
 
@@ -304,3 +305,19 @@ def test_two_thread_paths_give_identical_results(monkeypatch):
     for a, b in zip(serial[1], chunked[1], strict=True):
         assert np.array_equal(a, b)
     assert np.array_equal(serial[2], chunked[2])
+
+
+def test_update_touching_most_of_the_lattice_recomputes_in_full(caplog):
+    """Where subtracting and adding would cost more than a full pass, the scene recomputes:
+    the same sums, so the same target bit for bit."""
+    data = smooth_blob((20, 22, 24))
+    cap = capture_volume(Volume(data), lattice=(7, 6, 5), oversample=1)
+    scene = Scene(cap.domain, cap.grid, cap.dq, 4)
+    scene.render()
+    dq = cap.dq.copy()
+    dq[2, 2, 3] += [1.5, -1.0, 0.5]  # its 4^3 regions cover the whole 4 x 3 x 2 lattice
+    with caplog.at_level("DEBUG", logger="volwarp"):
+        scene.set_lattice(dq)
+    assert "costs more than a full recomputation" in caplog.text
+    assert scene.last_touched == ((0, 0, 0), scene.target_shape)
+    assert np.array_equal(scene.out, Scene(cap.domain, cap.grid, dq, 4).render())

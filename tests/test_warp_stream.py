@@ -57,7 +57,7 @@ def test_voxel_range_evaluation_is_bit_identical(evaluate):
 
 
 @pytest.mark.parametrize("method", ["box", "nearest"])
-def test_background_is_the_value_of_the_space_around_the_model(method):
+def test_background_is_the_value_of_the_space_around_the_model(method, local_updates):
     """Warping with background b equals warping data - b with background 0, plus b
     (the pushforward is linear), in the full, streamed and incremental paths; an
     uncovered voxel (in the padding) gets b exactly."""

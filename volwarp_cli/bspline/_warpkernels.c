@@ -313,7 +313,8 @@ typedef struct {
     double inv_vmax;
     int box;
     int track; /* find the touched target box (else bbox stays empty) */
-    const unsigned char *still; /* [Rz][Ry][Rx]: region's control points unmoved, or NULL */
+    const unsigned char *still; /* [npass][Rz][Ry][Rx]: region's control points unmoved in
+                                 * pass p's lattice, or NULL */
     Py_ssize_t regions[3], gran[3], vz;
     int64_t *acc; /* [nz, ty, tx, 2]: target planes [tz_lo, tz_hi), plane z in slot z - rb,
                    * less nz from nz on (a ring when rb is a multiple of nz below tz_lo) */
@@ -477,8 +478,8 @@ static inline void splat(int64_t *restrict acc, Py_ssize_t rb, Py_ssize_t nz, Py
  * control point of the regions their face centres reach (the voxel's 3x3x3 neighbourhood,
  * clamped to the domain, which also covers the margin's extrapolation) has zero offset,
  * so their offsets are exactly 0. Returns how many. */
-static Py_ssize_t row_still(const Scatter *s, Py_ssize_t f, Py_ssize_t g, unsigned char *fast,
-                            unsigned char *reg)
+static Py_ssize_t row_still(const Scatter *s, int p, Py_ssize_t f, Py_ssize_t g,
+                            unsigned char *fast, unsigned char *reg)
 {
     const Py_ssize_t gx = s->gran[0], gy = s->gran[1], gz = s->gran[2];
     const Py_ssize_t rx = s->regions[0], ry = s->regions[1];
@@ -491,7 +492,7 @@ static Py_ssize_t row_still(const Scatter *s, Py_ssize_t f, Py_ssize_t g, unsign
         unsigned char all = 1;
         for (Py_ssize_t c = c0; c <= c1; c++)
             for (Py_ssize_t b = b0; b <= b1; b++)
-                all &= s->still[(c * ry + b) * rx + a];
+                all &= s->still[((p * s->regions[2] + c) * ry + b) * rx + a];
         reg[a - a0] = all;
     }
     Py_ssize_t count = 0;
@@ -544,16 +545,11 @@ static void scatter_run(Scatter *s)
             const Py_ssize_t vrow = (g * s->vy + f) * s->vx + e_lo;
             const Py_ssize_t urow = ((g - s->oz + 1) * s->nyb + (f - s->oy + 1)) * s->nxb +
                                     e_lo - s->ox + 1;
-            Py_ssize_t nfast = 0;
             Span ystill;
-            int yzok = 0;
-            double yw = 0.0, zw = zstill.hi - zstill.lo;
-            if (box && s->still) {
-                nfast = row_still(s, f, g, fast, reg);
-                yzok = span_of(-hy + by, hy + by, 0, ty - 1, &ystill) && zok;
-                yw = ystill.hi - ystill.lo;
-            }
+            const int yzok = span_of(-hy + by, hy + by, 0, ty - 1, &ystill) && zok;
+            const double yw = ystill.hi - ystill.lo, zw = zstill.hi - zstill.lo;
             for (int p = 0; p < npass; p++) {
+                const Py_ssize_t nfast = box && s->still ? row_still(s, p, f, g, fast, reg) : 0;
                 const float *u = s->uh[p] + urow;
                 const double sgn = p == 0 ? s->sign : -s->sign;
                 if (!box) { /* nearest: map and round (ties down, see pushforward.py) */
@@ -637,14 +633,14 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
         get_buf(o_uhb, &b[n++], 0, K_F32, 4, "uh_new") < 0 ||
         get_buf(o_values, &b[n++], 0, K_FLOAT, 3, "values") < 0 ||
         get_buf(o_acc, &b[n++], 1, K_I64, 4, "acc") < 0 ||
-        (o_still != Py_None && get_buf(o_still, &b[n++], 0, K_U8, 3, "still") < 0)) {
+        (o_still != Py_None && get_buf(o_still, &b[n++], 0, K_U8, 4, "still") < 0)) {
         n--;
         goto fail;
     }
     if (o_still != Py_None) {
         s.still = b[4].buf;
         for (int k = 0; k < 3; k++)
-            s.regions[k] = b[4].shape[2 - k];
+            s.regions[k] = b[4].shape[3 - k];
     }
     s.sign = sign < 0 ? -1.0 : 1.0;
     s.npass = npass;
@@ -677,7 +673,8 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     for (int k = 0; k < 3 && !bad; k++)
         bad = s.lo[k] < s.hi[k] && (s.lo[k] < 0 || s.hi[k] > vb[k] || s.lo[k] - org[k] < 0 ||
                                     s.hi[k] - org[k] + 2 > ub[k]);
-    /* the still regions tile the domain: regions * granularity = domain size */
+    /* one still mask per pass; the regions tile the domain: regions * granularity = size */
+    bad = bad || (s.still && b[4].shape[0] != npass);
     for (int k = 0; k < 3 && !bad && s.still; k++)
         bad = s.gran[k] < 1 || s.regions[k] * s.gran[k] != vb[k];
     if (bad) {
@@ -786,7 +783,7 @@ static PyMethodDef methods[] = {
      "scatter(uh, uh_new, npass, origin, values, off, scale, lo, hi, sign, inv_vmax, box, "
      "acc, (tz_lo, tz_hi), ring, track, still, granularity) -> touched box (x0, y0, z0, x1, "
      "y1, z1), empty "
-     "unless track: add a block's pushforward (still: uint8 [Rz, Ry, Rx] of regions whose "
+     "unless track: add a block's pushforward (still: uint8 [npass, Rz, Ry, Rx], regions whose "
      "control points have zero offsets, or None)."},
     {"finalize", py_finalize, METH_VARARGS,
      "finalize(acc, vmax, lo, hi, out, background): accumulators to samples on a block."},

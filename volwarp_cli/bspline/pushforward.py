@@ -122,10 +122,10 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     are known to write disjoint target z ranges; those halves then run on two
     threads, and the band [z1, z2) after them (integer sums: the result does
     not depend on the split).
-    ``still`` (uint8 ``[Rz, Ry, Rx]``, with the lattice's ``granularity``
-    (x, y, z)) marks the regions whose control points all have zero offset
-    (in ``u`` and ``u_new``): voxels there take a faster path with the same
-    result (see :func:`still_regions`).
+    ``still`` (uint8 ``[passes, Rz, Ry, Rx]``, with the lattice's
+    ``granularity`` (x, y, z)) marks the regions whose control points all
+    have zero offset, for ``u`` and (second) ``u_new``: voxels there take a
+    faster path with the same result (see :func:`still_regions`).
     Returns the touched target bounding box ``(lo_xyz, hi_xyz)`` (hi
     exclusive), or None when nothing landed in the target; always None
     without ``bounds`` (which saves a few percent of the scatter).
@@ -173,16 +173,18 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
 
 
 def still_regions(dqs) -> np.ndarray | None:
-    """uint8 ``[Rz, Ry, Rx]``: 1 where every control point of the region is unmoved in all ``dqs``.
+    """uint8 ``[len(dqs), Rz, Ry, Rx]``: 1 where every control point of the region is unmoved.
 
-    There the deformation offsets are exactly zero, every voxel's box is its
-    affine image (half a voxel either side of its base position) and the
-    scatter skips the per-voxel box computation. None when no region is still.
+    One mask per lattice of ``dqs`` (the scatter's passes). There the
+    deformation offsets are exactly zero, every voxel's box is its affine
+    image (half a voxel either side of its base position) and the scatter
+    skips the per-voxel box computation. None when no region is still.
     """
     from numpy.lib.stride_tricks import sliding_window_view
 
-    zero = np.logical_and.reduce([np.all(np.asarray(dq) == 0, axis=-1) for dq in dqs])
-    still = sliding_window_view(zero, (4, 4, 4)).all(axis=(-3, -2, -1))
+    masks = [sliding_window_view(np.all(np.asarray(dq) == 0, axis=-1), (4, 4, 4))
+             .all(axis=(-3, -2, -1)) for dq in dqs]
+    still = np.stack(masks)
     return np.ascontiguousarray(still, dtype=np.uint8) if still.any() else None
 
 

@@ -40,6 +40,9 @@ from .lattice import Grid, affected_regions
 PARALLEL_MIN_VOXELS = 1 << 18
 #: Size of the deformation buffers of one z chunk (the array is never held whole).
 CHUNK_BYTES = 32 << 20
+#: Scatter cost of a voxel outside the still regions relative to one inside
+#: (callgrind, 96^3 domain: about 313 against 187 instructions, evaluation included).
+GENERAL_COST = 1.7
 #: Target z planes covered by one step of :meth:`Scene.render_once`'s stream.
 STREAM_PLANES = 8
 
@@ -74,8 +77,8 @@ def _all_still(still, grid: Grid, lo, hi) -> bool:
     """Whether every voxel of block [lo, hi) (x, y, z), with its neighbours, is in a still region."""
     if still is None:
         return False
-    region = []
-    for axis in (2, 1, 0):  # still is [Rz, Ry, Rx]
+    region = [slice(None)]  # still is [passes, Rz, Ry, Rx]: still in every pass
+    for axis in (2, 1, 0):
         g, d = grid.granularity[axis], grid.domain_shape[axis]
         region.append(slice(max(lo[axis] - 1, 0) // g, min(hi[axis], d - 1) // g + 1))
     return bool(still[tuple(region)].all())
@@ -362,6 +365,13 @@ class Scene:
             self.last_touched = None
             return
         rlo, rhi = affected_regions(moved[:, ::-1], self.grid)
+        if self._update_work(dq, rlo, rhi) > self._full_work(dq):
+            # the same sums either way: take the cheaper
+            log.debug("update of regions %s..%s costs more than a full recomputation",
+                      rlo.tolist(), rhi.tolist())
+            self.dq = dq.copy()
+            self.render()
+            return
         g = np.array(self.grid.granularity)
         dshape = np.array(self.grid.domain_shape)
         vlo = np.maximum(rlo * g - 1, 0)
@@ -377,6 +387,23 @@ class Scene:
         self.last_touched = (tuple(int(v) for v in tlo), tuple(int(v) for v in thi))
         log.debug("local update: regions %s..%s, target block %s..%s", rlo.tolist(),
                   rhi.tolist(), tlo.tolist(), thi.tolist())
+
+    def _work(self, dqs, lo, hi) -> float:
+        """Scatter work of region block [lo, hi) (x, y, z), one pass per lattice, in still-voxel units."""
+        n = int(np.prod(np.asarray(hi) - np.asarray(lo))) * len(dqs)
+        still = pushforward.still_regions(dqs) if self.method == "box" else None
+        if still is None:
+            return n * GENERAL_COST
+        k = int(still[:, lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]].sum())
+        return k + (n - k) * GENERAL_COST
+
+    def _update_work(self, dq, rlo, rhi) -> float:
+        """Work of an update of regions [rlo, rhi): the old lattice's contributions out, the new in."""
+        return self._work([self.dq, dq], rlo, rhi)
+
+    def _full_work(self, dq) -> float:
+        """Work of a full recomputation with lattice ``dq``."""
+        return self._work([dq], (0, 0, 0), self.grid.regions)
 
     def map_points(self, param) -> np.ndarray:
         """Target indices (x, y, z) of spline parameters (N, 3) under the current map."""
