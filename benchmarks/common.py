@@ -27,14 +27,37 @@ def command_time(argv: list[str], repeat: int = 3, warmup: int = 1) -> float:
     return median_time(run, repeat=repeat, warmup=warmup)
 
 
+def paired_times(ours, peer, pairs: int) -> tuple[float, float, float]:
+    """Run ``ours()`` and ``peer()`` in turn ``pairs`` times (A B A B ...).
+
+    Returns the medians of both and the median of the pair-by-pair ratios
+    ours / peer, which stays meaningful when the machine's speed drifts
+    during the run (this machine's drifts by 20-30% within minutes).
+    """
+    a, b = [], []
+    for _ in range(pairs):
+        for fn, times in ((ours, a), (peer, b)):
+            start = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - start)
+    ratio = statistics.median(x / y for x, y in zip(a, b, strict=True))
+    return statistics.median(a), statistics.median(b), ratio
+
+
 def volwarp_argv(*args: str) -> list[str]:
     return [sys.executable, "-m", "volwarp_cli", *args]
 
 
-def row(name: str, ours: float, peer: float | None = None, peer_name: str = "peer") -> None:
-    """Print one comparison row: our time, the peer's, and ours / peer."""
+def row(name: str, ours: float, peer: float | None = None, peer_name: str = "peer",
+        ratio: float | None = None) -> None:
+    """Print one comparison row: our time, the peer's, and ours / peer.
+
+    ``ratio``: the median of paired ratios (see :func:`paired_times`) instead
+    of the ratio of the medians.
+    """
     if peer is None:
         print(f"  {name:<48} volwarp {ours:8.3f} s", flush=True)
     else:
+        r = ours / peer if ratio is None else ratio
         print(f"  {name:<48} volwarp {ours:8.3f} s   {peer_name} {peer:8.3f} s   "
-              f"ratio {ours / peer:6.2f}x", flush=True)
+              f"ratio {r:6.2f}x{' (paired)' if ratio is not None else ''}", flush=True)
