@@ -44,7 +44,7 @@ CHUNK_BYTES = 32 << 20
 #: (callgrind, 96^3 domain: about 313 against 187 instructions, evaluation included).
 GENERAL_COST = 1.7
 #: Target z planes covered by one step of :meth:`Scene.render_once`'s stream.
-STREAM_PLANES = 8
+STREAM_PLANES = 16
 
 
 class Scratch:

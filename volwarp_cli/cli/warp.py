@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import string
+from concurrent.futures import ThreadPoolExecutor
 
 import click
 
@@ -81,9 +82,16 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     check_output_path(output)
     if frames_to:
         _check_pattern(frames_to)
-    doc = load_spec(spec_path, "warp")
-    spec = read_warp_spec(doc)
-    if input.lower().endswith(".vwc"):
+    is_capture = input.lower().endswith(".vwc")
+    with ThreadPoolExecutor(1) as pool:
+        # a volume is read while the spec is loaded and checked (reading releases the
+        # GIL; the spec's checks import jsonschema): a spec error still comes first
+        reading = None if is_capture else pool.submit(load_input, input, raw, volume_index)
+        doc = load_spec(spec_path, "warp")
+        spec = read_warp_spec(doc)
+        vol = None if reading is None else reading.result()
+        del reading  # the future holds the volume too: freed with vol after capture
+    if is_capture:
         if raw is not None or volume_index is not None:
             raise click.UsageError("--raw-* and --volume-index describe volume inputs, "
                                    f"not the capture file {input}")
@@ -91,7 +99,6 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             cap = read_capture(input)
         check_capture_settings(doc, spec, cap, input)
     else:
-        vol = load_input(input, raw, volume_index)
         s = spec.capture
         if s.placement == "tripled" and min(s.lattice) < 6:
             raise doc.error(("capture", "lattice"), "the tripled placement needs at least 6 "
