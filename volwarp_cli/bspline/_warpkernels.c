@@ -81,7 +81,8 @@ static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim,
 
 /* ------------------------------------------------------------- pullback */
 /* Trilinear (or, with equal indices and zero weights, nearest) gather of the
- * source at separable per-axis sample positions: out[g, f, e] for g in [g0, g1). */
+ * source at separable per-axis sample positions: out[g, f, e] for g in [g0, g1); the
+ * range of the values written goes to range[0], range[1] (NaN-free input). */
 
 #define SAMPLE_BODY(T)                                                                        \
     for (Py_ssize_t g = g0; g < g1; g++) {                                                   \
@@ -101,18 +102,24 @@ static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim,
                 double v11 = r11[c0] + wx * ((double)r11[c1] - r11[c0]);                      \
                 double v0 = v00 + wy * (v01 - v00);                                           \
                 double v1 = v10 + wy * (v11 - v10);                                           \
-                o[e] = (T)(v0 + wz * (v1 - v0));                                              \
+                T r = (T)(v0 + wz * (v1 - v0));                                               \
+                o[e] = r;                                                                     \
+                lo = MIN(lo, (double)r);                                                      \
+                hi = MAX(hi, (double)r);                                                      \
             }                                                                                 \
         }                                                                                     \
-    }
+    }                                                                                         \
+    range[0] = lo;                                                                            \
+    range[1] = hi;
 
 static void sample_f32(const float *restrict data, Py_ssize_t sy, Py_ssize_t sx,
                        const int64_t *x0, const int64_t *x1, const double *fx,
                        const int64_t *y0, const int64_t *y1, const double *fy,
                        const int64_t *z0, const int64_t *z1, const double *fz,
                        float *restrict out, Py_ssize_t ny, Py_ssize_t nx, Py_ssize_t g0,
-                       Py_ssize_t g1)
+                       Py_ssize_t g1, double *range)
 {
+    double lo = HUGE_VAL, hi = -HUGE_VAL;
     SAMPLE_BODY(float)
 }
 
@@ -121,8 +128,9 @@ static void sample_f64(const double *restrict data, Py_ssize_t sy, Py_ssize_t sx
                        const int64_t *y0, const int64_t *y1, const double *fy,
                        const int64_t *z0, const int64_t *z1, const double *fz,
                        double *restrict out, Py_ssize_t ny, Py_ssize_t nx, Py_ssize_t g0,
-                       Py_ssize_t g1)
+                       Py_ssize_t g1, double *range)
 {
+    double lo = HUGE_VAL, hi = -HUGE_VAL;
     SAMPLE_BODY(double)
 }
 
@@ -162,17 +170,18 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
                 goto fail;
             }
     }
+    double range[2];
     Py_BEGIN_ALLOW_THREADS
     if (buf_kind(&b[0]) == K_F32)
         sample_f32(b[0].buf, iy, ix, b[1].buf, b[2].buf, b[3].buf, b[4].buf, b[5].buf, b[6].buf,
-                   b[7].buf, b[8].buf, b[9].buf, b[10].buf, ny, nx, g0, g1);
+                   b[7].buf, b[8].buf, b[9].buf, b[10].buf, ny, nx, g0, g1, range);
     else
         sample_f64(b[0].buf, iy, ix, b[1].buf, b[2].buf, b[3].buf, b[4].buf, b[5].buf, b[6].buf,
-                   b[7].buf, b[8].buf, b[9].buf, b[10].buf, ny, nx, g0, g1);
+                   b[7].buf, b[8].buf, b[9].buf, b[10].buf, ny, nx, g0, g1, range);
     Py_END_ALLOW_THREADS
     for (int k = 0; k < n; k++)
         PyBuffer_Release(&b[k]);
-    Py_RETURN_NONE;
+    return Py_BuildValue("(dd)", range[0], range[1]);
 fail:
     for (int k = 0; k < n; k++)
         PyBuffer_Release(&b[k]);
@@ -774,8 +783,8 @@ fail:
 
 static PyMethodDef methods[] = {
     {"sample", py_sample, METH_VARARGS,
-     "sample(data, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1): trilinear gather "
-     "of out[g0:g1] at separable sample positions."},
+     "sample(data, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1) -> (min, max): trilinear "
+     "gather of out[g0:g1] at separable sample positions, and the range of what it wrote."},
     {"separable", py_separable, METH_VARARGS,
      "separable(dq, wx, wy, wz, x0, x1, y0, y1, z0, z1, out, ox, oy, oz): the spline "
      "offsets on a block of domain voxels, three 1-D passes."},

@@ -132,25 +132,24 @@ def _block(grid, lo, hi, x, y, z):
 SPLIT_MIN_WORK = 1 << 18
 
 
-def run_split(kernel, args_for, lo_z: int, hi_z: int, work: int) -> None:
+def run_split(kernel, args_for, lo_z: int, hi_z: int, work: int) -> list:
     """Run ``kernel(*args_for(z0, z1))`` on [lo_z, hi_z), in two threads when ``work`` is large.
 
     The kernels release the GIL (numba ``nogil``, or the compiled ones of
     ``_warpkernels.c``); the halves write disjoint output slabs.
     (Python threads instead of numba's ``prange``, whose threading layer
     costs about a second to start in every process.)
+    Returns the kernel's results, one per part.
     """
     if work < SPLIT_MIN_WORK or hi_z - lo_z < 2 or (os.cpu_count() or 1) < 2:
-        kernel(*args_for(lo_z, hi_z))
-        return
+        return [kernel(*args_for(lo_z, hi_z))]
     from concurrent.futures import ThreadPoolExecutor
 
     mid = (lo_z + hi_z) // 2
     with ThreadPoolExecutor(2) as pool:
         futures = [pool.submit(kernel, *args_for(lo_z, mid)),
                    pool.submit(kernel, *args_for(mid, hi_z))]
-        for f in futures:
-            f.result()
+        return [f.result() for f in futures]
 
 
 def evaluate_separable(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, *, x=None, y=None,

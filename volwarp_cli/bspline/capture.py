@@ -24,8 +24,9 @@ class Capture:
     """Domain voxmap ``[Dz, Dy, Dx]`` and the capture set-up.
 
     ``geometry`` is the input volume's geometry with a 1-voxel placeholder
-    array (its ``meta`` kept); ``input_dtype`` and ``stats`` (min, max, mean)
-    describe the captured input.
+    array (its ``meta`` kept); ``input_dtype`` and ``stats`` (min, max, mean;
+    the mean None when not asked for) describe the captured input;
+    ``domain_range`` is the (min, max) of the domain voxmap when known.
     """
 
     domain: np.ndarray
@@ -36,7 +37,8 @@ class Capture:
     pad: tuple[int, int, int] | None
     geometry: Volume
     input_dtype: np.dtype
-    stats: tuple[float, float, float]
+    stats: tuple[float, float, float | None]
+    domain_range: tuple[float, float] | None = None
 
     @property
     def dq(self) -> np.ndarray:
@@ -56,8 +58,13 @@ def domain_dtype(dtype) -> np.dtype:
 
 
 def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform",
-                   oversample: float = 2.0, sampling: str = "linear", pad=None) -> Capture:
-    """Capture ``vol`` into a domain voxmap (see :mod:`.pullback`)."""
+                   oversample: float = 2.0, sampling: str = "linear", pad=None,
+                   mean: bool = True) -> Capture:
+    """Capture ``vol`` into a domain voxmap (see :mod:`.pullback`).
+
+    ``mean``: also find the input's mean for ``stats`` (a capture file keeps
+    it; a one-shot warp has no use for that extra pass).
+    """
     if placement not in PLACEMENTS:
         raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
     if sampling not in SAMPLINGS:
@@ -74,10 +81,10 @@ def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
     ensure_fits_in_memory(int(np.prod(grid.domain_shape)) * dt.itemsize * 2,
                           f"the {'x'.join(map(str, grid.domain_shape))} domain voxmap")
     with timed("capture (pullback)"):
-        domain = pullback(vol.data, grid, placement, sampling, dt)
-    stats = (lo, hi, float(data.mean(dtype=np.float64)))
+        domain, domain_range = pullback(vol.data, grid, placement, sampling, dt)
+    stats = (lo, hi, float(data.mean(dtype=np.float64)) if mean else None)
     geometry = vol.with_data(np.zeros((1, 1, 1), dtype=vol.dtype))
     if pad is not None:
         pad = tuple(int(v) for v in np.broadcast_to(np.asarray(pad), (3,)))
     return Capture(domain, grid, placement, float(oversample), sampling, pad, geometry,
-                   np.dtype(vol.dtype), stats)
+                   np.dtype(vol.dtype), stats, domain_range)

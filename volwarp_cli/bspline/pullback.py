@@ -54,8 +54,10 @@ def _axis_weights(coords: np.ndarray, n: int, sampling: str):
 
 
 def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",
-             sampling: str = "linear", dtype=np.float32) -> np.ndarray:
+             sampling: str = "linear", dtype=np.float32) -> tuple[np.ndarray, tuple[float, float]]:
     """Domain voxmap ``[Dz, Dy, Dx]`` sampled from ``data[z, y, x]`` through the capture map.
+
+    Returns the voxmap and the (min, max) of its samples (found while writing them).
 
     Parameters
     ----------
@@ -82,6 +84,7 @@ def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",
 
     x0, x1, y0, y1, z0, z1 = (np.ascontiguousarray(i, np.int64) for i in (x0, x1, y0, y1, z0, z1))
     fx, fy, fz = (np.ascontiguousarray(w, np.float64) for w in (fx, fy, fz))
-    run_split(sample, lambda g0, g1: (src, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1),
-              0, out.shape[0], out.size)
-    return out
+    parts = run_split(sample,
+                      lambda g0, g1: (src, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1),
+                      0, out.shape[0], out.size)
+    return out, (min(p[0] for p in parts), max(p[1] for p in parts))

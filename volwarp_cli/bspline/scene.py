@@ -100,10 +100,11 @@ class Scene:
     evaluator : {"separable", "table"}
     background : float
         Value of the space around the model (uncovered target voxels).
+    domain_range : (min, max) of ``domain`` when already known (saves two passes).
     """
 
     def __init__(self, domain, grid: Grid, dq, pad, *, method: str = "box",
-                 evaluator: str = "separable", background: float = 0.0):
+                 evaluator: str = "separable", background: float = 0.0, domain_range=None):
         if method not in pushforward.METHODS:
             raise VolwarpError(f"unknown pushforward {method!r} (use box or nearest)")
         if evaluator not in basis.EVALUATORS:
@@ -122,7 +123,9 @@ class Scene:
         if not np.isfinite(self.background):
             raise VolwarpError(f"the background must be a finite number, got {background}")
         # max |v| without a whole-volume temporary
-        vmax = max(-float(domain.min()), float(domain.max())) if domain.size else 0.0
+        if domain_range is None and domain.size:
+            domain_range = (float(domain.min()), float(domain.max()))
+        vmax = max(-domain_range[0], domain_range[1]) if domain.size else 0.0
         self.vmax = vmax if vmax > 0 else 1.0
         self.offset = grid.affine_offset(self.pad)
         self.scale = grid.scale

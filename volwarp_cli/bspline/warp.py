@@ -53,7 +53,8 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
                     "outside the padded grid is cut off", list(pad), [max(n - 1, 0) for n in needed])
     scene = Scene(cap.domain, cap.grid, dq0, pad, method=method or spec.pushforward,
                   evaluator=evaluator or spec.evaluator,
-                  background=spec.background if background is None else background)
+                  background=spec.background if background is None else background,
+                  domain_range=cap.domain_range)
     return scene, frames
 
 

@@ -105,7 +105,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                             "control points per axis")
         try:
             cap = capture_volume(vol, lattice=s.lattice, placement=s.placement,
-                                 oversample=s.oversample, sampling=s.sampling, pad=None)
+                                 oversample=s.oversample, sampling=s.sampling, pad=None,
+                                 mean=False)
         except SpecError:
             raise
         except VolwarpError as exc:
