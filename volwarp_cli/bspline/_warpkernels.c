@@ -483,12 +483,14 @@ static inline void splat(int64_t *restrict acc, Py_ssize_t rb, Py_ssize_t nz, Py
     }
 }
 
-/* Which voxels of row (f, g), block columns [e_lo, e_lo + n), lie in still regions: every
- * control point of the regions their face centres reach (the voxel's 3x3x3 neighbourhood,
- * clamped to the domain, which also covers the margin's extrapolation) has zero offset,
- * so their offsets are exactly 0. Returns how many. */
+/* Which voxels of row (f, g), block columns [e_lo, e_lo + n), lie in still regions for
+ * pass p: every control point of the regions their face centres reach (the voxel's
+ * 3x3x3 neighbourhood, clamped to the domain, which also covers the margin's
+ * extrapolation) has zero offset, so their offsets are exactly 0. ra[i], rb_[i]: the
+ * x regions of voxels e - 1 and e + 1 (clamped), relative to ra[0]. Returns how many. */
 static Py_ssize_t row_still(const Scatter *s, int p, Py_ssize_t f, Py_ssize_t g,
-                            unsigned char *fast, unsigned char *reg)
+                            const int32_t *ra, const int32_t *rb_, unsigned char *fast,
+                            unsigned char *reg)
 {
     const Py_ssize_t gx = s->gran[0], gy = s->gran[1], gz = s->gran[2];
     const Py_ssize_t rx = s->regions[0], ry = s->regions[1];
@@ -506,8 +508,7 @@ static Py_ssize_t row_still(const Scatter *s, int p, Py_ssize_t f, Py_ssize_t g,
     }
     Py_ssize_t count = 0;
     for (Py_ssize_t i = 0; i < n; i++) {
-        const Py_ssize_t e = e_lo + i;
-        fast[i] = reg[MAX(e - 1, 0) / gx - a0] & reg[MIN(e + 1, dx - 1) / gx - a0];
+        fast[i] = reg[ra[i]] & reg[rb_[i]];
         count += fast[i];
     }
     return count;
@@ -529,21 +530,28 @@ static void scatter_run(Scatter *s)
     const double bx = s->off[0];
     int64_t bx0 = IQUANTUM, by0 = IQUANTUM, bz0 = IQUANTUM, bx1 = -1, by1 = -1, bz1 = -1;
     /* row buffers: 7 doubles (boxes) and a Span (still voxels' x) per voxel, flags */
-    char *mem = malloc((size_t)n * (7 * sizeof(double) + sizeof(Span) + 2) + 8);
+    char *mem = malloc((size_t)n * (7 * sizeof(double) + sizeof(Span) + 2 * sizeof(int32_t) + 2)
+                       + 8);
     if (!mem)
         return; /* the caller checks bbox[0] for this */
     double *xmin = (double *)mem, *xmax = xmin + n, *ymin = xmin + 2 * n, *ymax = xmin + 3 * n,
            *zmin = xmin + 4 * n, *zmax = xmin + 5 * n, *mass = xmin + 6 * n;
     Span *xstill = (Span *)(xmin + 7 * n);
-    unsigned char *fast = (unsigned char *)(xstill + n), *reg = fast + n;
+    int32_t *ra = (int32_t *)(xstill + n), *rb_ = ra + n;
+    unsigned char *fast = (unsigned char *)(rb_ + n), *reg = fast + n;
     /* Still voxels: offsets exactly 0, so the boxes of phase 1 are base -/+ half a voxel,
      * each side a function of one index, and the mass is sx (sy sz) over the box volume:
      * the same doubles that row_boxes computes from zeros (tested), found per axis once. */
-    if (box && s->still)
+    if (box && s->still) {
+        const Py_ssize_t gx = s->gran[0], a0 = MAX(e_lo - 1, 0) / gx;
         for (Py_ssize_t i = 0; i < n; i++) {
-            const double base = bx + sx * (int32_t)(e_lo + i);
+            const Py_ssize_t e = e_lo + i;
+            const double base = bx + sx * (int32_t)e;
             span_of(-hx + base, hx + base, 0, tx - 1, &xstill[i]);
+            ra[i] = (int32_t)(MAX(e - 1, 0) / gx - a0);
+            rb_[i] = (int32_t)(MIN(e + 1, s->vx - 1) / gx - a0);
         }
+    }
     const double det_still = sx * (sy * sz);
     for (Py_ssize_t g = s->lo[2]; g < s->hi[2]; g++) {
         const double bz = s->off[2] + sz * g;
@@ -558,7 +566,8 @@ static void scatter_run(Scatter *s)
             const int yzok = span_of(-hy + by, hy + by, 0, ty - 1, &ystill) && zok;
             const double yw = ystill.hi - ystill.lo, zw = zstill.hi - zstill.lo;
             for (int p = 0; p < npass; p++) {
-                const Py_ssize_t nfast = box && s->still ? row_still(s, p, f, g, fast, reg) : 0;
+                const Py_ssize_t nfast =
+                    box && s->still ? row_still(s, p, f, g, ra, rb_, fast, reg) : 0;
                 const float *u = s->uh[p] + urow;
                 const double sgn = p == 0 ? s->sign : -s->sign;
                 if (!box) { /* nearest: map and round (ties down, see pushforward.py) */
@@ -582,6 +591,21 @@ static void scatter_run(Scatter *s)
                 if (nfast < n)
                     row_boxes(u, u + cs, u + 2 * cs, sF, sG, e_lo, n, bx, by, bz, sx, sy, sz,
                               xmin, xmax, ymin, ymax, zmin, zmax, mass);
+                /* still voxels of this row share their y and z spans: the (at most 4)
+                 * target rows they reach and those rows' weights az * ay, as splat has */
+                int64_t *trow[4];
+                double wrow[4];
+                int nrow = 0;
+                const int narrow_yz = nfast && yzok && ystill.v1 - ystill.v0 <= 1 &&
+                                      zstill.v1 - zstill.v0 <= 1;
+                if (narrow_yz)
+                    for (int64_t dz = 0; dz <= zstill.v1 - zstill.v0; dz++)
+                        for (int64_t dy = 0; dy <= ystill.v1 - ystill.v0; dy++) {
+                            trow[nrow] = plane_at(acc, zstill.v0 + dz, rb, nz, plane) +
+                                         (ystill.v0 + dy) * line;
+                            wrow[nrow++] = (dz ? zstill.a1 : zstill.a0) *
+                                           (dy ? ystill.a1 : ystill.a0);
+                        }
                 /* Phase 2: overlaps with the target voxels, accumulated (a scatter: scalar) */
                 for (Py_ssize_t i = 0; i < n; i++) {
                     Span xs, ys, zs;
@@ -594,6 +618,25 @@ static void scatter_run(Scatter *s)
                         if (!yzok || X->v1 < X->v0)
                             continue;
                         m = det_still / ((X->hi - X->lo) * yw * zw); /* as row_boxes */
+                        if (narrow_yz && X->v1 - X->v0 <= 1) { /* splat's common case */
+                            double val = f64 ? ((const double *)s->values)[vrow + i]
+                                             : (double)((const float *)s->values)[vrow + i];
+                            double kq = sgn * QUANTUM * m;
+                            v2d kv = {kq, kq * (val * inv_vmax)};
+                            int64_t *at = NULL;
+                            for (int r = 0; r < nrow; r++) {
+                                at = trow[r] + X->v0 * 2;
+                                add2(at, kv, wrow[r] * X->a0);
+                                if (X->v1 > X->v0)
+                                    add2(at + 2, kv, wrow[r] * X->a1);
+                            }
+                            if (track) {
+                                bx0 = MIN(bx0, X->v0); by0 = MIN(by0, Y->v0);
+                                bz0 = MIN(bz0, Z->v0); bx1 = MAX(bx1, X->v1);
+                                by1 = MAX(by1, Y->v1); bz1 = MAX(bz1, Z->v1);
+                            }
+                            continue;
+                        }
                     } else {
                         if (!(xmax[i] > xmin[i] && ymax[i] > ymin[i] && zmax[i] > zmin[i]))
                             continue;
