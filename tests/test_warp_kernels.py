@@ -135,8 +135,8 @@ def test_trilinear_gather_matches_scipy(dtype):
     axes = [np.sort(rng.uniform(0, n - 1, m)) for n, m in ((8, 5), (7, 4), (6, 3))]  # x, y, z
     idx = []
     for c, n in zip(axes, (8, 7, 6), strict=True):
-        i0 = np.floor(c).astype(np.int64)
-        i1 = np.minimum(i0 + 1, n - 1)
+        i0 = np.floor(c).astype(np.int32)
+        i1 = np.minimum(i0 + 1, n - 1).astype(np.int32)
         idx.append((i0, i1, c - i0))
     out = np.empty((3, 4, 5), dtype)
     (x0, x1, fx), (y0, y1, fy), (z0, z1, fz) = idx
@@ -185,7 +185,7 @@ def test_wrong_buffers_are_errors():
     with pytest.raises(ValueError, match="block outside"):
         pushforward.scatter(u, vals, (0, 0, 0), (1, 1, 1), (0, 0, 0), (3, 2, 2), 1, 1.0, "box",
                             acc)
-    i = np.array([0, 9], np.int64)
+    i = np.array([0, 9], np.int32)
     f = np.zeros(2)
     with pytest.raises(IndexError, match="outside the source"):
         K.sample(np.zeros((2, 2, 2), np.float32), i, i, f, i[:1], i[:1], f, i[:1], i[:1], f,

@@ -25,7 +25,7 @@
 
 /* ---------------------------------------------------------------- buffers */
 
-enum { K_F32 = 1, K_F64 = 2, K_I64 = 4, K_U8 = 8, K_FLOAT = K_F32 | K_F64 };
+enum { K_F32 = 1, K_F64 = 2, K_I64 = 4, K_U8 = 8, K_I32 = 16, K_FLOAT = K_F32 | K_F64 };
 
 static int buf_kind(const Py_buffer *v)
 {
@@ -42,6 +42,8 @@ static int buf_kind(const Py_buffer *v)
         return K_I64;
     if ((c == 'B' || c == '?') && v->itemsize == 1)
         return K_U8;
+    if ((c == 'i' || c == 'l') && v->itemsize == 4)
+        return K_I32;
     return 0;
 }
 
@@ -84,6 +86,13 @@ static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim,
  * source at separable per-axis sample positions: out[g, f, e] for g in [g0, g1); the
  * range of the values written goes to range[0], range[1] (NaN-free input). */
 
+/* The input is finite (capture_volume checks): the range reduction may run as vectors. */
+#if defined(__GNUC__) && !defined(__clang__)
+#define SAMPLE_OPT __attribute__((optimize("finite-math-only", "no-signed-zeros")))
+#else
+#define SAMPLE_OPT
+#endif
+
 #define SAMPLE_BODY(T)                                                                        \
     for (Py_ssize_t g = g0; g < g1; g++) {                                                   \
         const T *p0 = data + z0[g] * sy * sx, *p1 = data + z1[g] * sy * sx;                   \
@@ -112,10 +121,11 @@ static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim,
     range[0] = lo;                                                                            \
     range[1] = hi;
 
-static void sample_f32(const float *restrict data, Py_ssize_t sy, Py_ssize_t sx,
-                       const int64_t *x0, const int64_t *x1, const double *fx,
-                       const int64_t *y0, const int64_t *y1, const double *fy,
-                       const int64_t *z0, const int64_t *z1, const double *fz,
+SAMPLE_OPT VECTOR_CLONES static void sample_f32(const float *restrict data, Py_ssize_t sy,
+                                                Py_ssize_t sx,
+                       const int32_t *x0, const int32_t *x1, const double *fx,
+                       const int32_t *y0, const int32_t *y1, const double *fy,
+                       const int32_t *z0, const int32_t *z1, const double *fz,
                        float *restrict out, Py_ssize_t ny, Py_ssize_t nx, Py_ssize_t g0,
                        Py_ssize_t g1, double *range)
 {
@@ -123,10 +133,11 @@ static void sample_f32(const float *restrict data, Py_ssize_t sy, Py_ssize_t sx,
     SAMPLE_BODY(float)
 }
 
-static void sample_f64(const double *restrict data, Py_ssize_t sy, Py_ssize_t sx,
-                       const int64_t *x0, const int64_t *x1, const double *fx,
-                       const int64_t *y0, const int64_t *y1, const double *fy,
-                       const int64_t *z0, const int64_t *z1, const double *fz,
+SAMPLE_OPT VECTOR_CLONES static void sample_f64(const double *restrict data, Py_ssize_t sy,
+                                                Py_ssize_t sx,
+                       const int32_t *x0, const int32_t *x1, const double *fx,
+                       const int32_t *y0, const int32_t *y1, const double *fy,
+                       const int32_t *z0, const int32_t *z1, const double *fz,
                        double *restrict out, Py_ssize_t ny, Py_ssize_t nx, Py_ssize_t g0,
                        Py_ssize_t g1, double *range)
 {
@@ -140,8 +151,8 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     Py_ssize_t g0, g1;
     Py_buffer b[11];
     int n = 0;
-    static const int kinds[11] = {K_FLOAT, K_I64, K_I64, K_F64, K_I64, K_I64, K_F64,
-                                  K_I64,   K_I64, K_F64, K_FLOAT};
+    static const int kinds[11] = {K_FLOAT, K_I32, K_I32, K_F64, K_I32, K_I32, K_F64,
+                                  K_I32,   K_I32, K_F64, K_FLOAT};
     static const int dims[11] = {3, 1, 1, 1, 1, 1, 1, 1, 1, 1, 3};
     static const char *names[11] = {"data", "x0", "x1", "fx", "y0", "y1", "fy",
                                     "z0",   "z1", "fz", "out"};
@@ -161,8 +172,8 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     }
     /* every sample index inside the source */
     for (int k = 0; k < 3; k++) {
-        const int64_t *lo = (const int64_t *)b[1 + 3 * k].buf;
-        const int64_t *hi = (const int64_t *)b[2 + 3 * k].buf;
+        const int32_t *lo = (const int32_t *)b[1 + 3 * k].buf;
+        const int32_t *hi = (const int32_t *)b[2 + 3 * k].buf;
         Py_ssize_t len = k == 0 ? nx : (k == 1 ? ny : g1), lim = k == 0 ? ix : (k == 1 ? iy : iz);
         for (Py_ssize_t i = (k == 2 ? g0 : 0); i < len; i++)
             if (lo[i] < 0 || hi[i] < 0 || lo[i] >= lim || hi[i] >= lim) {
@@ -826,7 +837,8 @@ fail:
 
 static PyMethodDef methods[] = {
     {"sample", py_sample, METH_VARARGS,
-     "sample(data, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1) -> (min, max): trilinear "
+     "sample(data, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1) -> (min, max) (indices "
+     "int32, weights float64): trilinear "
      "gather of out[g0:g1] at separable sample positions, and the range of what it wrote."},
     {"separable", py_separable, METH_VARARGS,
      "separable(dq, wx, wy, wz, x0, x1, y0, y1, z0, z1, out, ox, oy, oz): the spline "

@@ -82,7 +82,7 @@ def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",
         src = src.astype(dtype)
     from ._warpkernels import sample
 
-    x0, x1, y0, y1, z0, z1 = (np.ascontiguousarray(i, np.int64) for i in (x0, x1, y0, y1, z0, z1))
+    x0, x1, y0, y1, z0, z1 = (np.ascontiguousarray(i, np.int32) for i in (x0, x1, y0, y1, z0, z1))
     fx, fy, fz = (np.ascontiguousarray(w, np.float64) for w in (fx, fy, fz))
     parts = run_split(sample,
                       lambda g0, g1: (src, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1),
