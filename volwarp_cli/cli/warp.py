@@ -72,21 +72,22 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     The output keeps the input's dtype, spacing, direction and key/values;
     it is padded (origin shifted, anatomy in place) unless --crop.
     """
-    from ..bspline.capture import capture_volume
-    from ..bspline.capture_file import read_capture
-    from ..bspline.plan import read_warp_spec
-    from ..bspline.warp import check_capture_settings, output_volume, prepare, run
-    from ..errors import SpecError, VolwarpError
-    from ..spec.loader import load_spec
-
     check_output_path(output)
     if frames_to:
         _check_pattern(frames_to)
     is_capture = input.lower().endswith(".vwc")
     with ThreadPoolExecutor(1) as pool:
-        # a volume is read while the spec is loaded and checked (reading releases the
-        # GIL; the spec's checks import jsonschema): a spec error still comes first
+        # a volume is read while the warp modules are imported and the spec is loaded
+        # and checked (reading releases the GIL; the checks import jsonschema); a spec
+        # error still comes first
         reading = None if is_capture else pool.submit(load_input, input, raw, volume_index)
+        from ..bspline.capture import capture_volume
+        from ..bspline.capture_file import read_capture
+        from ..bspline.plan import read_warp_spec
+        from ..bspline.warp import check_capture_settings, output_volume, prepare, run
+        from ..errors import SpecError, VolwarpError
+        from ..spec.loader import load_spec
+
         doc = load_spec(spec_path, "warp")
         spec = read_warp_spec(doc)
         vol = None if reading is None else reading.result()
