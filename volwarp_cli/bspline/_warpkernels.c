@@ -6,10 +6,10 @@
  * cached kernel). These four kernels are all the warp and capture commands
  * need; compiled when the package is installed, they load in a millisecond.
  *
- * Every function takes C-contiguous buffers (numpy arrays) whose dtypes and
- * shapes the Python wrappers in pullback.py, basis.py and pushforward.py have
- * checked, and releases the GIL while it runs, so the callers' threads share
- * the work.
+ * Every function takes buffers (numpy arrays; the wrappers are in pullback.py,
+ * basis.py and pushforward.py), checks their types, shapes and index ranges
+ * itself (a wrong call is a Python exception, never a stray write), and
+ * releases the GIL while it runs, so the callers' threads share the work.
  *
  * Built with -ffp-contract=off: no fused multiply-adds, so a voxel's values
  * are the same on every machine and whatever block it is computed in (the

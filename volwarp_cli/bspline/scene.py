@@ -40,9 +40,12 @@ from .lattice import Grid, affected_regions
 PARALLEL_MIN_VOXELS = 1 << 18
 #: Size of the deformation buffers of one z chunk (the array is never held whole).
 CHUNK_BYTES = 32 << 20
-#: Scatter cost of a voxel outside the still regions relative to one inside
-#: (callgrind, 96^3 domain: about 313 against 187 instructions, evaluation included).
-GENERAL_COST = 1.7
+#: Cost of a voxel outside the still regions (evaluated, boxed, scattered) relative
+#: to one inside (the shortcut), for choosing between an update and a full pass.
+#: Fitted on 128^3 at oversample 2 with one point moved: a 9^3 lattice's update
+#: took 0.26-0.28 s on the first move and 0.36-0.44 s on the next, a full pass
+#: 0.34-0.38 s; a 13^3 lattice's 0.06-0.10 s against 0.26-0.27 s.
+GENERAL_COST = 2.4
 #: Target z planes covered by one step of :meth:`Scene.render_once`'s stream.
 STREAM_PLANES = 16
 
@@ -392,7 +395,11 @@ class Scene:
                   rhi.tolist(), tlo.tolist(), thi.tolist())
 
     def _work(self, dqs, lo, hi) -> float:
-        """Scatter work of region block [lo, hi) (x, y, z), one pass per lattice, in still-voxel units."""
+        """Scatter work over region block [lo, hi) (x, y, z), one pass per lattice of ``dqs``.
+
+        In still-voxel units: a region still in a pass costs 1 per voxel, any
+        other ``GENERAL_COST``.
+        """
         n = int(np.prod(np.asarray(hi) - np.asarray(lo))) * len(dqs)
         still = pushforward.still_regions(dqs) if self.method == "box" else None
         if still is None:
