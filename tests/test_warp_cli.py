@@ -244,3 +244,64 @@ def test_background_from_spec_and_command_line(run, data_dir, tmp_path):
     assert a[a.shape[0] // 2, a.shape[1] // 2, a.shape[2] // 2] == b[b.shape[0] // 2,
                                                                       b.shape[1] // 2,
                                                                       b.shape[2] // 2]
+
+
+def test_capture_made_while_the_spec_is_checked_is_used_once(run, data_dir, tmp_path):
+    """The volume is captured with the spec's settings before the schema check; the
+    command uses that capture (no second pullback) and writes the same output."""
+    spec = _spec(tmp_path, "version: 1\ncapture: {lattice: 6, oversample: 1}\nsteps:\n"
+                 "  - move:\n      - {index: [2, 2, 2], by: [1.5, 0, 0]}\n")
+    out = tmp_path / "o.nrrd"
+    res = run("warp", "-vv", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out)
+    assert res.code == 0, res.stderr
+    assert res.stderr.count("capture (pullback)") == 1
+    from volwarp_cli.bspline.capture import capture_volume
+    from volwarp_cli.bspline.plan import read_warp_spec
+    from volwarp_cli.bspline.warp import output_volume, prepare
+    from volwarp_cli.bspline.warp import run as run_warp
+    from volwarp_cli.io import read_volume
+    from volwarp_cli.spec.loader import load_spec
+
+    doc = load_spec(spec, "warp")
+    cap = capture_volume(read_volume(data_dir / "ball_30_uint8.nrrd"), lattice=6,
+                         oversample=1)
+    scene, frames = prepare(cap, doc, read_warp_spec(doc))
+    expected = output_volume(cap, scene, run_warp(scene, frames)).data
+    assert np.array_equal(read_volume(out).data, expected)
+
+
+@pytest.mark.parametrize("text, input_name, code, words", [
+    # capture settings that cannot be read early (tripled needs 6 points): the check reports
+    ("version: 1\ncapture: {lattice: 5, placement: tripled}\nsteps: []\n", "ball_30_uint8.nrrd",
+     2, ["capture.placement", "tripled"]),
+
+    # a spec error comes before an input error
+    ("version: 1\nsteps: []\nbogus: 1\n", "missing.nrrd", 2, ["bogus"]),
+    # a good spec and a missing input: the input error
+    ("version: 1\nsteps: []\n", "missing.nrrd", 1, ["missing.nrrd"]),
+])
+def test_errors_of_the_overlapped_read_and_capture_come_in_order(run, data_dir, tmp_path,
+                                                                  text, input_name, code,
+                                                                  words):
+    spec = _spec(tmp_path, text)
+    out = tmp_path / "o.nrrd"
+    res = run("warp", data_dir / input_name, "--spec", spec, "-o", out)
+    assert res.code == code, res.stderr
+    assert all(w in res.stderr for w in words), res.stderr
+    assert not out.exists()
+
+
+def test_a_failed_early_capture_is_reported_after_the_spec_check(run, tmp_path):
+    """The early capture of a volume with NaN fails; the capture after the check says why."""
+    data = np.ones((12, 12, 12), np.float32)
+    data[5, 5, 5] = np.nan
+    src = tmp_path / "nan.nrrd"
+    write_volume(Volume(data), src)
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", _spec(tmp_path, "version: 1\nsteps: []\n"), "-o", out)
+    assert res.code == 1 and "nan.nrrd" in res.stderr and "NaN" in res.stderr, res.stderr
+    assert not out.exists()
+    # with a bad spec too, the spec error comes first
+    res = run("warp", src, "--spec", _spec(tmp_path, "version: 1\nsteps: []\nbogus: 1\n"),
+              "-o", out)
+    assert res.code == 2 and "bogus" in res.stderr, res.stderr

@@ -43,6 +43,41 @@ def _finite(ctx, param, value):
     return value
 
 
+def _unchecked_capture_settings(doc, read_warp_spec):
+    """The spec's capture settings read before its schema check; None if they cannot be."""
+    try:
+        return read_warp_spec(doc).capture
+    except Exception:  # an invalid spec: the schema check reports it
+        return None
+
+
+def _capture(vol, settings, input):
+    """``vol`` captured with ``settings``; errors name the input."""
+    from ..bspline.capture import capture_volume
+    from ..errors import SpecError, VolwarpError
+
+    s = settings
+    try:
+        return capture_volume(vol, lattice=s.lattice, placement=s.placement,
+                              oversample=s.oversample, sampling=s.sampling, pad=None,
+                              mean=False)
+    except SpecError:
+        raise
+    except VolwarpError as exc:
+        raise VolwarpError(f"{input}: {exc}") from None
+
+
+def _capture_early(reading, settings, input):
+    """The capture, started before the spec is checked; None where it cannot be made
+    (the capture after the check then reports why, in order)."""
+    if settings is None:
+        return None
+    try:
+        return _capture(reading.result(), settings, input)
+    except Exception:
+        return None
+
+
 @click.command(name="warp")
 @click.argument("input", type=click.Path(dir_okay=False))
 @click.option("--spec", "spec_path", required=True, type=click.Path(dir_okay=False),
@@ -76,42 +111,38 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     if frames_to:
         _check_pattern(frames_to)
     is_capture = input.lower().endswith(".vwc")
+    if is_capture and (raw is not None or volume_index is not None):
+        raise click.UsageError("--raw-* and --volume-index describe volume inputs, "
+                               f"not the capture file {input}")
     with ThreadPoolExecutor(1) as pool:
-        # a volume is read while the warp modules are imported and the spec is loaded
-        # and checked (reading releases the GIL; the checks import jsonschema); a spec
-        # error still comes first
+        # The volume is read while the warp modules are imported and the spec is
+        # loaded, and captured (with the settings the spec gives, read before it is
+        # checked) while the spec is checked against its schema, which imports
+        # jsonschema: reading and capturing release the GIL. A spec error still
+        # comes first; the early capture is used only if it matches the checked spec.
         reading = None if is_capture else pool.submit(load_input, input, raw, volume_index)
-        from ..bspline.capture import capture_volume
         from ..bspline.capture_file import read_capture
         from ..bspline.plan import read_warp_spec
         from ..bspline.warp import check_capture_settings, output_volume, prepare, run
-        from ..errors import SpecError, VolwarpError
-        from ..spec.loader import load_spec
+        from ..spec.loader import load_schema, load_spec, validate
 
-        doc = load_spec(spec_path, "warp")
+        doc = load_spec(spec_path)
+        if reading is not None:
+            settings = _unchecked_capture_settings(doc, read_warp_spec)
+            early = pool.submit(_capture_early, reading, settings, input)
+        validate(doc, load_schema("warp"))
         spec = read_warp_spec(doc)
-        vol = None if reading is None else reading.result()
-        del reading  # the future holds the volume too: freed with vol after capture
-    if is_capture:
-        if raw is not None or volume_index is not None:
-            raise click.UsageError("--raw-* and --volume-index describe volume inputs, "
-                                   f"not the capture file {input}")
-        with timed(f"read {input}"):
-            cap = read_capture(input)
-        check_capture_settings(doc, spec, cap, input)
-    else:
-        s = spec.capture
-        if s.placement == "tripled" and min(s.lattice) < 6:
-            raise doc.error(("capture", "lattice"), "the tripled placement needs at least 6 "
-                            "control points per axis")
-        try:
-            cap = capture_volume(vol, lattice=s.lattice, placement=s.placement,
-                                 oversample=s.oversample, sampling=s.sampling, pad=None,
-                                 mean=False)
-        except SpecError:
-            raise
-        except VolwarpError as exc:
-            raise VolwarpError(f"{input}: {exc}") from None
+        if is_capture:
+            with timed(f"read {input}"):
+                cap = read_capture(input)
+            check_capture_settings(doc, spec, cap, input)
+        else:
+            vol = reading.result()  # a read error, after any spec error
+            cap = early.result() if settings == spec.capture else None
+            del reading, early  # the futures hold the volume and the capture too
+    if not is_capture:
+        if cap is None:
+            cap = _capture(vol, spec.capture, input)
         del vol
     scene, frames = prepare(cap, doc, spec, method=pushforward, evaluator=evaluator,
                             background=background)
