@@ -599,9 +599,18 @@ static void scatter_run(Scatter *s)
                     }
                     continue;
                 }
-                if (nfast < n)
-                    row_boxes(u, u + cs, u + 2 * cs, sF, sG, e_lo, n, bx, by, bz, sx, sy, sz,
-                              xmin, xmax, ymin, ymax, zmin, zmax, mass);
+                /* boxes for the voxels between the row's first and last general one */
+                Py_ssize_t i0 = 0, i1 = n;
+                if (nfast) {
+                    while (i0 < n && fast[i0])
+                        i0++;
+                    while (i1 > i0 && fast[i1 - 1])
+                        i1--;
+                }
+                if (i1 > i0)
+                    row_boxes(u + i0, u + cs + i0, u + 2 * cs + i0, sF, sG, e_lo + i0, i1 - i0,
+                              bx, by, bz, sx, sy, sz, xmin + i0, xmax + i0, ymin + i0,
+                              ymax + i0, zmin + i0, zmax + i0, mass + i0);
                 /* still voxels of this row share their y and z spans: the (at most 4)
                  * target rows they reach and those rows' weights az * ay, as splat has */
                 int64_t *trow[4];

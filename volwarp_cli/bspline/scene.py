@@ -76,15 +76,32 @@ class Scratch:
         return out
 
 
-def _all_still(still, grid: Grid, lo, hi) -> bool:
-    """Whether every voxel of block [lo, hi) (x, y, z), with its neighbours, is in a still region."""
+def _to_evaluate(still, grid: Grid, lo, hi, elo, ehi):
+    """The voxel ranges ``((x0, x1), (y0, y1))`` of block [lo, hi) whose offsets the scatter reads.
+
+    Those of its voxels outside the still regions (in some pass) and their
+    neighbours, within the evaluated extent [elo, ehi) (x, y); everything
+    without ``still``; None when every voxel takes the still shortcut, which
+    reads no offsets.
+    """
+    full = ((int(elo[0]), int(ehi[0])), (int(elo[1]), int(ehi[1])))
     if still is None:
-        return False
-    region = [slice(None)]  # still is [passes, Rz, Ry, Rx]: still in every pass
-    for axis in (2, 1, 0):
-        g, d = grid.granularity[axis], grid.domain_shape[axis]
-        region.append(slice(max(lo[axis] - 1, 0) // g, min(hi[axis], d - 1) // g + 1))
-    return bool(still[tuple(region)].all())
+        return full
+    gx, gy, gz = grid.granularity
+    dz = grid.domain_shape[2]
+    cz = slice(max(lo[2] - 1, 0) // gz, min(hi[2], dz - 1) // gz + 1)
+    moving = ~still[:, cz].all(axis=(0, 1))  # [Ry, Rx]: not still in some pass and plane
+    if not moving.any():
+        return None
+    out = []
+    for axis, g, profile in ((0, gx, moving.any(axis=0)), (1, gy, moving.any(axis=1))):
+        idx = np.flatnonzero(profile)
+        # general voxels lie within one voxel of a moving region; the scatter reads
+        # their neighbours too
+        a = max(int(idx[0]) * g - 2, int(elo[axis]))
+        b = min((int(idx[-1]) + 1) * g + 2, int(ehi[axis]))
+        out.append((a, max(a, b)))
+    return tuple(out)
 
 
 class Scene:
@@ -180,12 +197,13 @@ class Scene:
             ubs = [np.moveaxis(buf, 0, -1) for buf in planar]
             origin = (int(elo[0]), int(elo[1]), e0)
             lo = (int(vlo[0]), int(vlo[1]), z0)
-            # a chunk wholly in still regions takes the scatter's shortcut for every
-            # voxel, which reads no offsets: nothing to evaluate
-            if not _all_still(still, grid, lo, (int(vhi[0]), int(vhi[1]), z1)):
+            # voxels in still regions take the scatter's shortcut, which reads no
+            # offsets: only the rest (and their neighbours) are evaluated
+            sub = _to_evaluate(still, grid, lo, (int(vhi[0]), int(vhi[1]), z1), elo, ehi)
+            if sub is not None:
                 for dq, ub in zip(dqs, ubs, strict=True):
-                    evaluate(dq, grid, ub[1:-1, 1:-1, 1:-1], x=(elo[0], ehi[0]),
-                             y=(elo[1], ehi[1]), z=(e0, e1), origin=origin, parallel=parallel)
+                    evaluate(dq, grid, ub[1:-1, 1:-1, 1:-1], x=sub[0], y=sub[1], z=(e0, e1),
+                             origin=origin, parallel=parallel)
                 faces = [(0, 0)] if e0 == 0 else []
                 if e1 == dshape[2]:
                     faces.append((0, 1))
