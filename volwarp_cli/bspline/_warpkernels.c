@@ -492,9 +492,13 @@ static inline void splat(int64_t *restrict acc, Py_ssize_t rb, Py_ssize_t nz, Py
             for (int64_t dy = 0; dy <= y->v1 - y->v0; dy++) {
                 int64_t *row = p + dy * line;
                 const double wzy = wz * (dy ? y->a1 : y->a0);
-                add2(row, kv, wzy * x->a0);
-                if (two_x)
-                    add2(row + 2, kv, wzy * x->a1);
+                if (two_x) {
+                    const double w0 = wzy * x->a0, w1 = wzy * x->a1;
+                    const v4d kv2 = {kv[0], kv[1], kv[0], kv[1]}, w2 = {w0, w0, w1, w1};
+                    add4(row, kv2, w2);
+                } else {
+                    add2(row, kv, wzy * x->a0);
+                }
             }
         }
         return;
