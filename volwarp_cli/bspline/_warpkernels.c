@@ -342,6 +342,18 @@ typedef struct {
     int64_t bbox[6];
 } Scatter;
 
+/* One component's extent of a voxel's box, from its offset c and its six neighbours'
+ * offsets: the faces across the component's own axis (own_m, own_p) are offset by the
+ * half voxel h, the other four (o1..o4) only need the extreme neighbour. */
+#define BOX_SIDE(c, own_m, own_p, o1, o2, o3, o4, h, base, lo, hi)                            \
+    do {                                                                                       \
+        const double c_ = (c), a0_ = 0.5 * (c_ + (own_m)) - (h);                              \
+        const double a1_ = 0.5 * (c_ + (own_p)) + (h);                                        \
+        const double n0_ = MIN(MIN(o1, o2), MIN(o3, o4)), n1_ = MAX(MAX(o1, o2), MAX(o3, o4)); \
+        lo = MIN(MIN(a0_, a1_), 0.5 * (c_ + n0_)) + (base);                                    \
+        hi = MAX(MAX(a0_, a1_), 0.5 * (c_ + n1_)) + (base);                                    \
+    } while (0)
+
 /* Phase 1, one row of n voxels (no stores into the accumulators, so it runs as
  * vectors): the box of each voxel's image relative to its base position (paper 6:
  * the six face centres are averages of neighbouring entries; per component, the two
@@ -351,46 +363,28 @@ typedef struct {
  * |det J| / box volume (the Jacobian from the same face-centre differences; see
  * pushforward.py). */
 VECTOR_CLONES static void row_boxes(const float *restrict u0, const float *restrict u1,
-                      const float *restrict u2, Py_ssize_t sF, Py_ssize_t sG, Py_ssize_t e0,
-                      Py_ssize_t n, double bx, double by, double bz, double sx, double sy,
-                      double sz,
-                      double *restrict xmin, double *restrict xmax,
-                      double *restrict ymin, double *restrict ymax, double *restrict zmin,
-                      double *restrict zmax, double *restrict mass)
+                                   const float *restrict u2, Py_ssize_t sF, Py_ssize_t sG,
+                                   Py_ssize_t e0, Py_ssize_t n, double bx, double by, double bz,
+                                   double sx, double sy, double sz, double *restrict xmin,
+                                   double *restrict xmax, double *restrict ymin,
+                                   double *restrict ymax, double *restrict zmin,
+                                   double *restrict zmax, double *restrict mass)
 {
     const double hx = 0.5 * sx, hy = 0.5 * sy, hz = 0.5 * sz;
     for (Py_ssize_t e = 0; e < n; e++) {
-        double c, a0, a1, n0, n1;
         double x_xm = u0[e - 1], x_xp = u0[e + 1], x_ym = u0[e - sF], x_yp = u0[e + sF],
-              x_zm = u0[e - sG], x_zp = u0[e + sG];
-        c = u0[e];
-        a0 = 0.5 * (c + x_xm) - hx;
-        a1 = 0.5 * (c + x_xp) + hx;
-        n0 = MIN(MIN(x_ym, x_yp), MIN(x_zm, x_zp));
-        n1 = MAX(MAX(x_ym, x_yp), MAX(x_zm, x_zp));
+               x_zm = u0[e - sG], x_zp = u0[e + sG];
+        double y_xm = u1[e - 1], y_xp = u1[e + 1], y_ym = u1[e - sF], y_yp = u1[e + sF],
+               y_zm = u1[e - sG], y_zp = u1[e + sG];
+        double z_xm = u2[e - 1], z_xp = u2[e + 1], z_ym = u2[e - sF], z_yp = u2[e + sF],
+               z_zm = u2[e - sG], z_zp = u2[e + sG];
         /* the voxel's own index, not the row offset: a voxel gets the same box whatever
          * block it is in (int32: converts as a vector; rows < 2**31) */
         double base = bx + sx * (int32_t)(e0 + e);
-        double bx0 = MIN(MIN(a0, a1), 0.5 * (c + n0)) + base;
-        double bx1 = MAX(MAX(a0, a1), 0.5 * (c + n1)) + base;
-        double y_xm = u1[e - 1], y_xp = u1[e + 1], y_ym = u1[e - sF], y_yp = u1[e + sF],
-              y_zm = u1[e - sG], y_zp = u1[e + sG];
-        c = u1[e];
-        a0 = 0.5 * (c + y_ym) - hy;
-        a1 = 0.5 * (c + y_yp) + hy;
-        n0 = MIN(MIN(y_xm, y_xp), MIN(y_zm, y_zp));
-        n1 = MAX(MAX(y_xm, y_xp), MAX(y_zm, y_zp));
-        double by0 = MIN(MIN(a0, a1), 0.5 * (c + n0)) + by;
-        double by1 = MAX(MAX(a0, a1), 0.5 * (c + n1)) + by;
-        double z_xm = u2[e - 1], z_xp = u2[e + 1], z_ym = u2[e - sF], z_yp = u2[e + sF],
-              z_zm = u2[e - sG], z_zp = u2[e + sG];
-        c = u2[e];
-        a0 = 0.5 * (c + z_zm) - hz;
-        a1 = 0.5 * (c + z_zp) + hz;
-        n0 = MIN(MIN(z_xm, z_xp), MIN(z_ym, z_yp));
-        n1 = MAX(MAX(z_xm, z_xp), MAX(z_ym, z_yp));
-        double bz0 = MIN(MIN(a0, a1), 0.5 * (c + n0)) + bz;
-        double bz1 = MAX(MAX(a0, a1), 0.5 * (c + n1)) + bz;
+        double bx0, bx1, by0, by1, bz0, bz1;
+        BOX_SIDE(u0[e], x_xm, x_xp, x_ym, x_yp, x_zm, x_zp, hx, base, bx0, bx1);
+        BOX_SIDE(u1[e], y_ym, y_yp, y_xm, y_xp, y_zm, y_zp, hy, by, by0, by1);
+        BOX_SIDE(u2[e], z_zm, z_zp, z_xm, z_xp, z_ym, z_yp, hz, bz, bz0, bz1);
         double dxx = sx + 0.5 * (x_xp - x_xm), dxy = 0.5 * (y_xp - y_xm), dxz = 0.5 * (z_xp - z_xm);
         double dyx = 0.5 * (x_yp - x_ym), dyy = sy + 0.5 * (y_yp - y_ym), dyz = 0.5 * (z_yp - z_ym);
         double dzx = 0.5 * (x_zp - x_zm), dzy = 0.5 * (y_zp - y_zm), dzz = sz + 0.5 * (z_zp - z_zm);
