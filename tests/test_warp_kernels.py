@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 from itertools import pairwise
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -213,3 +214,65 @@ def test_still_regions_take_a_shortcut_to_the_same_sums(monkeypatch, oversample)
     slow.render()
     assert np.array_equal(fast.acc, slow.acc)
     assert np.array_equal(fast.out, slow.out)
+
+
+def _baseline_module(tmp_path):
+    """The kernels compiled without the AVX2 clones (what a machine without AVX2 runs)."""
+    import importlib.machinery
+    import importlib.util
+    import shutil
+    import subprocess
+    import sysconfig
+
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:  # pragma: no cover - the install needs one
+        pytest.skip("no C compiler")
+    so = tmp_path / ("_warpkernels" + sysconfig.get_config_var("EXT_SUFFIX"))
+    src = Path(K.__file__).with_name("_warpkernels.c")
+    subprocess.run([cc, "-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math",
+                    "-Wno-psabi", "-shared", "-fPIC", "-DVOLWARP_NO_CLONES",
+                    f"-I{sysconfig.get_paths()['include']}", str(src), "-o", str(so)],
+                   check=True)
+    name = "volwarp_cli.bspline._warpkernels"
+    loader = importlib.machinery.ExtensionFileLoader(name, str(so))
+    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(name, loader))
+    loader.exec_module(module)
+    return module
+
+
+def test_vector_clones_give_the_baseline_results(tmp_path):
+    """The installed kernels (AVX2 clones where the CPU has AVX2) and a build without clones
+    agree bit for bit: gather, spline evaluation and scatter (general and still voxels)."""
+    base = _baseline_module(tmp_path)
+    rng = np.random.default_rng(13)
+    data = rng.normal(size=(9, 10, 11)).astype(np.float32)
+    idx = [np.sort(rng.integers(0, n - 1, m)).astype(np.int32) for n, m in ((11, 13), (10, 12),
+                                                                        (9, 7))]
+    args = []
+    for i0 in idx:
+        args += [i0, (i0 + 1).astype(np.int32), rng.uniform(0, 1, len(i0))]
+    outs = [np.empty((7, 12, 13), np.float32) for _ in range(2)]
+    ranges = [mod.sample(data, *args, out, 0, 7) for mod, out in zip((K, base), outs,
+                                                                     strict=True)]
+    assert ranges[0] == ranges[1] and np.array_equal(outs[0], outs[1])
+
+    dq = rng.normal(size=(7, 8, 9, 3))
+    w = [np.ascontiguousarray(rng.uniform(0, 1, (g, 4))) for g in (3, 4, 5)]
+    evals = [np.zeros((20, 20, 18, 3), np.float32) for _ in range(2)]
+    for mod, out in zip((K, base), evals, strict=True):
+        mod.separable(dq, *w, 1, 17, 2, 19, 3, 20, out, 1, 2, 3)
+    assert np.array_equal(evals[0], evals[1])
+
+    u = random_offsets((13, 11, 17), rng, amplitude=1.2)
+    u[:, :, :, :9] = 0  # a still part: regions of 3 voxels in x, the first 3 columns
+    values = rng.uniform(-2, 5, (13, 11, 17)).astype(np.float32)
+    still = np.zeros((1, 13, 11, 17 // 1), np.uint8)[:, :, :, :17]
+    still[..., :3] = 1
+    accs = [np.zeros((17, 16, 22, 2), np.int64) for _ in range(2)]
+    for method in ("box", "nearest"):
+        for mod, acc in zip((K, base), accs, strict=True):
+            acc[:] = 0
+            mod.scatter(u, u, 1, (0, 0, 0), values, (1.5, 2.25, 1.75), (0.93, 1.07, 0.81),
+                        (0, 0, 0), (17, 11, 13), 1, 0.2, method == "box", acc, (0, 17), False,
+                        True, still if method == "box" else None, (1, 1, 1))
+        assert np.array_equal(accs[0], accs[1]) and accs[0].any()

@@ -71,8 +71,9 @@ static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim,
 }
 
 /* Row loops that run as vectors get an AVX2 clone on x86-64, chosen when the
- * module loads (same IEEE operations, no FMA: the same results as the baseline). */
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+ * module loads (same IEEE operations, no FMA: the same results as the baseline, which
+ * a test builds with -DVOLWARP_NO_CLONES to compare). */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(VOLWARP_NO_CLONES)
 #define VECTOR_CLONES __attribute__((target_clones("avx2", "default")))
 #else
 #define VECTOR_CLONES
