@@ -113,9 +113,13 @@ def with_byte_order(data: np.ndarray, byte_order: str) -> np.ndarray:
     return np.ascontiguousarray(data, dtype=data.dtype.newbyteorder(code))
 
 
-def read_exact(fh, nbytes: int, where: str) -> bytearray:
-    """Read exactly ``nbytes`` from ``fh`` into a new buffer, or raise 'truncated'."""
-    buf = bytearray(nbytes)
+def read_exact(fh, nbytes: int, where: str) -> np.ndarray:
+    """Read exactly ``nbytes`` from ``fh`` into a new uint8 buffer, or raise 'truncated'.
+
+    The buffer is not zeroed first (a bytearray would be: one more pass over
+    every byte of a large volume).
+    """
+    buf = np.empty(nbytes, dtype=np.uint8)
     view = memoryview(buf)
     got = 0
     try:
