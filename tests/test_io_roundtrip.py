@@ -374,3 +374,20 @@ def test_rgba_image_keeps_unpremultiplied_colour(tmp_path, ext):
         from PIL import Image
 
         np.testing.assert_array_equal(np.asarray(Image.open(path))[1:], img[1:])
+
+
+def test_nrrd_mapped_read_gives_the_same_samples_read_only(tmp_path):
+    """mmap=True maps raw native-order samples (read-only) and copies everything else."""
+    rng = np.random.default_rng(3)
+    data = rng.normal(size=(5, 6, 7)).astype(np.float32)
+    vol = Volume(data, spacing=(0.5, 1.0, 2.0), origin=(1, 2, 3), meta={"k": "v"})
+    cases = {"little.nrrd": {}, "big.nrrd": {"byte_order": "big"}, "gz.nrrd": {"compress": True}}
+    for name, opts in cases.items():
+        write_volume(vol, tmp_path / name, **opts)
+        copied = read_volume(tmp_path / name)
+        mapped = read_volume(tmp_path / name, mmap=True)
+        assert np.array_equal(mapped.data, data) and np.array_equal(copied.data, data)
+        assert mapped.meta == copied.meta and np.allclose(mapped.origin, copied.origin)
+        assert copied.data.flags.writeable
+        # only the raw file in this machine's byte order is mapped
+        assert mapped.data.flags.writeable == (name != "little.nrrd")

@@ -9,9 +9,9 @@ from ..progress import timed
 from ..volume import Volume
 
 
-def load_input(path, raw=None, volume_index=None) -> Volume:
+def load_input(path, raw=None, volume_index=None, mmap=False) -> Volume:
     with timed(f"read {path}"):
-        return read_volume(path, raw=raw, volume_index=volume_index)
+        return read_volume(path, raw=raw, volume_index=volume_index, mmap=mmap)
 
 
 def describe_volume(vol: Volume, fmt: str) -> dict:

@@ -120,7 +120,9 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         # checked) while the spec is checked against its schema, which imports
         # jsonschema: reading and capturing release the GIL. A spec error still
         # comes first; the early capture is used only if it matches the checked spec.
-        reading = None if is_capture else pool.submit(load_input, input, raw, volume_index)
+        # (mapped, not copied, where it can be: the warp only reads it)
+        reading = None if is_capture else pool.submit(load_input, input, raw, volume_index,
+                                                      True)
         from ..bspline.capture_file import read_capture
         from ..bspline.plan import read_warp_spec
         from ..bspline.warp import check_capture_settings, output_volume, prepare, run

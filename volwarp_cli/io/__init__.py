@@ -69,11 +69,13 @@ def _check_content(path: Path, fmt: str) -> None:
 
 
 def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
-                volume_index: int | None = None) -> Volume:
+                volume_index: int | None = None, mmap: bool = False) -> Volume:
     """Read a volume file; ``raw`` describes headerless ``.raw``/``.bin`` files.
 
     ``volume_index`` selects one volume of a 4-D NIfTI file or one component
-    of a multi-component (4-D) NRRD file.
+    of a multi-component (4-D) NRRD file. ``mmap``: where the samples lie raw
+    in the machine's byte order in an attached NRRD, map them read-only
+    instead of copying (a command that only reads its input).
     """
     path = Path(path)
     fmt = volume_format(path)
@@ -83,7 +85,7 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
                           f"component of a 4-D NRRD; a {_FORMAT_NAMES[fmt]} file has one")
     if fmt == "nrrd":
         from .nrrd import read_nrrd
-        vol = read_nrrd(path, volume_index)
+        vol = read_nrrd(path, volume_index, mmap=mmap)
     elif fmt == "tiff":
         from .tiff import read_tiff
         vol = read_tiff(path)

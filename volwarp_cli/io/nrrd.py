@@ -171,8 +171,12 @@ def _data_files(fields: dict[str, str], header_path: Path, fh, where: str):
     return [base / spec]
 
 
-def read_nrrd(path: str | os.PathLike, component: int | None = None) -> Volume:
+def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
+              mmap: bool = False) -> Volume:
     """Read a 3-D NRRD volume (attached or detached).
+
+    ``mmap``: samples stored raw, in this machine's byte order, in the header's
+    own file are mapped read-only instead of copied (the array is not writable).
 
     A 4-D file with one non-spatial axis (``space directions`` entry ``none``,
     e.g. the vector files ``volwarp sweep --multi`` writes) holds several
@@ -235,7 +239,7 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None) -> Volume:
         byteskip = int(fields.get("byte skip", fields.get("byteskip", "0")))
         if files is None:
             data = _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where,
-                              exact_end=True)
+                              exact_end=True, mmap=mmap)
         else:
             chunks = []
             per_file = count // len(files) if files else 0
@@ -284,7 +288,8 @@ def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: s
                       f"axis); this file has dimension {dim} (sizes {sizes})")
 
 
-def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact_end):
+def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact_end,
+               mmap=False):
     for _ in range(lineskip):
         if not fh.readline():
             raise FormatError(f"{where}: file ends inside 'line skip'")
@@ -303,6 +308,8 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
         if have > nbytes and byteskip != -1:
             raise FormatError(f"{where}: file has {have} bytes of samples, expected {nbytes} "
                               "(wrong sizes or type in the header?)")
+        if mmap and file_dtype.isnative:
+            return np.memmap(fh, dtype=file_dtype, mode="r", offset=start, shape=(count,))
         fh.seek(start)
         return np.frombuffer(read_exact(fh, nbytes, where), dtype=file_dtype)
     if encoding == "ascii":
