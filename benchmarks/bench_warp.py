@@ -251,7 +251,7 @@ def main(quick: bool = False):
         row("warp command 256^3 vs vtkImageReslice+BSpline", ours, vtk_t, "vtk", r)
         sitk_go = sitk_resample(data, (4, 4, 4), shift)
         ours, sitk_t, r = common.paired_times(lambda: subprocess.run(cmd, check=True), sitk_go,
-                                              1 if quick else 3)
+                                              1 if quick else 5)
         row("warp command 256^3 vs SimpleITK Resample", ours, sitk_t, "sitk", r)
     core_figures(quick)
     # in a fresh process, so that its peak memory is its own

@@ -59,5 +59,6 @@ def row(name: str, ours: float, peer: float | None = None, peer_name: str = "pee
         print(f"  {name:<48} volwarp {ours:8.3f} s", flush=True)
     else:
         r = ours / peer if ratio is None else ratio
+        paired = f"{r:6.3f}x (paired)" if ratio is not None else f"{r:6.2f}x"
         print(f"  {name:<48} volwarp {ours:8.3f} s   {peer_name} {peer:8.3f} s   "
-              f"ratio {r:6.2f}x{' (paired)' if ratio is not None else ''}", flush=True)
+              f"ratio {paired}", flush=True)
