@@ -165,6 +165,13 @@ def test_finalize_formula():
     ref = np.where(w <= COVERED_LO, v + b * (1 - w), ref)
     assert np.allclose(out[2:, :, 1:], ref[2:, :, 1:], rtol=1e-12, atol=1e-12)
     assert np.isnan(out[:2]).all() and np.isnan(out[:, :, 0]).all()  # outside the block
+    # clear: the same samples, and the block's accumulators back to zero (only the block's)
+    again = np.full_like(out, np.nan)
+    before = acc.copy()
+    K.finalize(acc, vmax, (1, 0, 2), (6, 5, 4), again, b, True)
+    assert np.array_equal(again, out, equal_nan=True)
+    assert not acc[2:, :, 1:].any()
+    assert np.array_equal(acc[:2], before[:2]) and np.array_equal(acc[:, :, 0], before[:, :, 0])
 
 
 def test_wrong_buffers_are_errors():

@@ -800,7 +800,7 @@ fail:
 #define FINALIZE_BODY(T)                                                                       \
     for (Py_ssize_t z = lo[2]; z < hi[2]; z++)                                                 \
         for (Py_ssize_t y = lo[1]; y < hi[1]; y++) {                                           \
-            const int64_t *a = acc + ((z * ny + y) * nx + lo[0]) * 2;                          \
+            int64_t *a = acc + ((z * ny + y) * nx + lo[0]) * 2;                                \
             T *o = out + (z * ny + y) * nx + lo[0];                                            \
             for (Py_ssize_t x = 0; x < hi[0] - lo[0]; x++) {                                   \
                 double w = a[2 * x] * inv_q;                                                   \
@@ -816,6 +816,8 @@ fail:
                 }                                                                              \
                 o[x] = (T)r;                                                                   \
             }                                                                                  \
+            if (clear) /* the accumulators are used again (a ring of planes) */               \
+                memset(a, 0, sizeof(int64_t) * 2 * (size_t)(hi[0] - lo[0]));                 \
         }
 
 static PyObject *py_finalize(PyObject *self, PyObject *args)
@@ -825,10 +827,11 @@ static PyObject *py_finalize(PyObject *self, PyObject *args)
     Py_ssize_t lo[3], hi[3];
     Py_buffer b[2];
     int n = 0;
-    if (!PyArg_ParseTuple(args, "Od(nnn)(nnn)Od", &o_acc, &vmax, &lo[0], &lo[1], &lo[2], &hi[0],
-                          &hi[1], &hi[2], &o_out, &background))
+    int clear = 0;
+    if (!PyArg_ParseTuple(args, "Od(nnn)(nnn)Od|p", &o_acc, &vmax, &lo[0], &lo[1], &lo[2], &hi[0],
+                          &hi[1], &hi[2], &o_out, &background, &clear))
         return NULL;
-    if (get_buf(o_acc, &b[n++], 0, K_I64, 4, "acc") < 0 ||
+    if (get_buf(o_acc, &b[n++], clear, K_I64, 4, "acc") < 0 ||
         get_buf(o_out, &b[n++], 1, K_FLOAT, 3, "out") < 0) {
         n--;
         goto fail;
@@ -844,7 +847,7 @@ static PyObject *py_finalize(PyObject *self, PyObject *args)
         goto fail;
     }
     if (lo[0] < hi[0] && lo[1] < hi[1] && lo[2] < hi[2]) {
-        const int64_t *acc = b[0].buf;
+        int64_t *acc = b[0].buf;
         const double inv_q = 1.0 / QUANTUM;
         Py_BEGIN_ALLOW_THREADS
         if (buf_kind(&b[1]) == K_F32) {
@@ -880,7 +883,8 @@ static PyMethodDef methods[] = {
      "unless track: add a block's pushforward (still: uint8 [npass, Rz, Ry, Rx], regions whose "
      "control points have zero offsets, or None)."},
     {"finalize", py_finalize, METH_VARARGS,
-     "finalize(acc, vmax, lo, hi, out, background): accumulators to samples on a block."},
+     "finalize(acc, vmax, lo, hi, out, background, clear=False): accumulators to samples on "
+     "a block (and, with clear, the block's accumulators back to zero)."},
     {NULL, NULL, 0, NULL},
 };
 

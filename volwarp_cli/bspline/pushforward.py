@@ -188,7 +188,7 @@ def still_regions(dqs) -> np.ndarray | None:
     return np.ascontiguousarray(still, dtype=np.uint8) if still.any() else None
 
 
-def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0):
+def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0, clear=False):
     """``out = v / w`` inside the model, ``v + b (1 - w)`` on its silhouette, on [lo, hi).
 
     (x, y, z) block; see the module notes for the two weight levels.
@@ -198,6 +198,7 @@ def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0):
     value of the space around the model (the papers': 0): a partly covered
     voxel is blended with it and an uncovered one gets it, exactly what
     pushing ``data - b`` and adding ``b`` would give.
+    ``clear`` also sets the block's accumulators back to zero (in the same pass).
     """
     from .basis import run_split
 
@@ -207,7 +208,7 @@ def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0):
 
     def args(z0, z1):
         return (acc, float(vmax), (int(lo[0]), int(lo[1]), z0), (int(hi[0]), int(hi[1]), z1),
-                out, float(background))
+                out, float(background), clear)
 
     run_split(kern, args, int(lo[2]), int(hi[2]), int(np.prod(hi - lo)) if parallel else 0)
     return out

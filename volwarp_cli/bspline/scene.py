@@ -340,8 +340,7 @@ class Scene:
                     k = min(upto - base, planes - s0)  # contiguous slots
                     pushforward.finalize(acc[s0:s0 + k], self.vmax, (0, 0, 0), (tx, ty, k),
                                          out[base:base + k], parallel=False,
-                                         background=self.background)
-                    acc[s0:s0 + k] = 0
+                                         background=self.background, clear=True)
                     base += k
 
             g_lo, g_hi = self._domain_z_window(self.dq, t_lo, t_hi)
