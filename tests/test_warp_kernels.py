@@ -148,9 +148,12 @@ def test_trilinear_gather_matches_scipy(dtype):
     assert np.allclose(out, ref, rtol=0, atol=1e-5 if dtype == np.float32 else 1e-12)
 
 
-def test_finalize_formula():
+@pytest.mark.parametrize("heavy", [1.0, 4000.0])
+def test_finalize_formula(heavy):
+    """Sums of ordinary size, and sums beyond 2**51 (a region folded onto a few voxels):
+    both conversions give the formula's values."""
     rng = np.random.default_rng(9)
-    w = rng.uniform(0, 1.3, (4, 5, 6))
+    w = rng.uniform(0, 1.3, (4, 5, 6)) * heavy
     v = rng.uniform(-1, 1, (4, 5, 6))
     acc = np.stack([np.rint(w * QUANTUM), np.rint(v * QUANTUM)], -1).astype(np.int64)
     out = np.full((4, 5, 6), np.nan)
@@ -163,6 +166,8 @@ def test_finalize_formula():
         ref = t * (v / w) + (1 - t) * (v + b * (1 - w))
     ref = np.where(w >= COVERED_HI, v / np.where(w > 0, w, 1), ref)
     ref = np.where(w <= COVERED_LO, v + b * (1 - w), ref)
+    if heavy > 1:
+        assert np.abs(acc).max() > 2 ** 51
     assert np.allclose(out[2:, :, 1:], ref[2:, :, 1:], rtol=1e-12, atol=1e-12)
     assert np.isnan(out[:2]).all() and np.isnan(out[:, :, 0]).all()  # outside the block
     # clear: the same samples, and the block's accumulators back to zero (only the block's)
@@ -283,3 +288,10 @@ def test_vector_clones_give_the_baseline_results(tmp_path):
                         (0, 0, 0), (17, 11, 13), 1, 0.2, method == "box", acc, (0, 17), False,
                         True, still if method == "box" else None, (1, 1, 1))
         assert np.array_equal(accs[0], accs[1]) and accs[0].any()
+
+    for scale in (1.0, 4000.0):  # both conversions of finalize
+        sums = (rng.uniform(-1, 1.3, (3, 4, 37, 2)) * scale * 2.0 ** 40).astype(np.int64)
+        finals = [np.empty((3, 4, 37), np.float32) for _ in range(2)]
+        for mod, out in zip((K, base), finals, strict=True):
+            mod.finalize(sums, 2.5, (0, 0, 0), (37, 4, 3), out, 1.5)
+        assert np.array_equal(finals[0], finals[1])

@@ -796,29 +796,57 @@ fail:
     return NULL;
 }
 
-/* out = v / w where w >= COVERED_HI, v + b (1 - w) where w <= COVERED_LO, a ramp between. */
-#define FINALIZE_BODY(T)                                                                       \
-    for (Py_ssize_t z = lo[2]; z < hi[2]; z++)                                                 \
-        for (Py_ssize_t y = lo[1]; y < hi[1]; y++) {                                           \
-            int64_t *a = acc + ((z * ny + y) * nx + lo[0]) * 2;                                \
-            T *o = out + (z * ny + y) * nx + lo[0];                                            \
-            for (Py_ssize_t x = 0; x < hi[0] - lo[0]; x++) {                                   \
-                double w = a[2 * x] * inv_q;                                                   \
-                double v = a[2 * x + 1] * inv_q * vmax;                                        \
-                double r;                                                                      \
-                if (w >= COVERED_HI)                                                           \
-                    r = v / w;                                                                 \
-                else if (w <= COVERED_LO)                                                      \
-                    r = v + background * (1.0 - w);                                            \
-                else {                                                                         \
-                    double t = (w - COVERED_LO) / (COVERED_HI - COVERED_LO);                   \
-                    r = t * (v / w) + (1.0 - t) * (v + background * (1.0 - w));                \
-                }                                                                              \
-                o[x] = (T)r;                                                                   \
-            }                                                                                  \
-            if (clear) /* the accumulators are used again (a ring of planes) */               \
-                memset(a, 0, sizeof(int64_t) * 2 * (size_t)(hi[0] - lo[0]));                 \
-        }
+/* The sample of a target voxel with weight w and weighted value v: v / w where
+ * w >= COVERED_HI (inside the model), v + b (1 - w) where w <= COVERED_LO (its
+ * silhouette), a linear ramp between. All three are computed, one kept: the same
+ * value as evaluating only the one kept, and no branch in a vector loop. */
+static inline double finalize_value(double w, double v, double background)
+{
+    const double inside = v / w, edge = v + background * (1.0 - w);
+    const double t = (w - COVERED_LO) / (COVERED_HI - COVERED_LO);
+    const double ramp = t * inside + (1.0 - t) * edge;
+    return w >= COVERED_HI ? inside : (w <= COVERED_LO ? edge : ramp);
+}
+
+/* An int64 of magnitude below 2**51 as a double (exact): its bits added to those of
+ * 1.5 * 2**52, less that number; integer and float vector operations only. */
+static inline double small_int_to_double(int64_t x)
+{
+    int64_t bits = x + (int64_t)0x4338000000000000LL;
+    double d;
+    memcpy(&d, &bits, sizeof d);
+    return d - 6755399441055744.0;
+}
+
+/* One row of n target voxels: acc pairs (weight, weighted value) to samples, the
+ * accumulators cleared afterwards when asked. Rows whose sums all lie below 2**51 in
+ * magnitude (every ordinary warp: a voxel's weight is about 1 in units of 2**40) are
+ * converted as vectors, others one by one; the values are the same. */
+#define FINALIZE_ROW(NAME, T)                                                                  \
+    VECTOR_CLONES static void NAME(int64_t *restrict a, T *restrict o, Py_ssize_t n,          \
+                                   double scale_w, double scale_v, double background,          \
+                                   int clear)                                                  \
+    {                                                                                          \
+        const int64_t big = (int64_t)1 << 51;                                                  \
+        int64_t far = 0;                                                                       \
+        for (Py_ssize_t x = 0; x < 2 * n; x++)                                                 \
+            far |= (a[x] >= big) | (a[x] <= -big);                                             \
+        if (!far) {                                                                            \
+            for (Py_ssize_t x = 0; x < n; x++)                                                 \
+                o[x] = (T)finalize_value(small_int_to_double(a[2 * x]) * scale_w,              \
+                                         small_int_to_double(a[2 * x + 1]) * scale_v,          \
+                                         background);                                          \
+        } else {                                                                               \
+            for (Py_ssize_t x = 0; x < n; x++)                                                 \
+                o[x] = (T)finalize_value((double)a[2 * x] * scale_w,                           \
+                                         (double)a[2 * x + 1] * scale_v, background);          \
+        }                                                                                      \
+        if (clear) /* the accumulators are used again (a ring of planes) */                   \
+            memset(a, 0, sizeof(int64_t) * 2 * (size_t)n);                                     \
+    }
+
+FINALIZE_ROW(finalize_row_f32, float)
+FINALIZE_ROW(finalize_row_f64, double)
 
 static PyObject *py_finalize(PyObject *self, PyObject *args)
 {
@@ -849,14 +877,18 @@ static PyObject *py_finalize(PyObject *self, PyObject *args)
     if (lo[0] < hi[0] && lo[1] < hi[1] && lo[2] < hi[2]) {
         int64_t *acc = b[0].buf;
         const double inv_q = 1.0 / QUANTUM;
+        const int f32 = buf_kind(&b[1]) == K_F32;
         Py_BEGIN_ALLOW_THREADS
-        if (buf_kind(&b[1]) == K_F32) {
-            float *out = b[1].buf;
-            FINALIZE_BODY(float)
-        } else {
-            double *out = b[1].buf;
-            FINALIZE_BODY(double)
-        }
+        for (Py_ssize_t z = lo[2]; z < hi[2]; z++)
+            for (Py_ssize_t y = lo[1]; y < hi[1]; y++) {
+                const Py_ssize_t at = (z * ny + y) * nx + lo[0];
+                if (f32)
+                    finalize_row_f32(acc + 2 * at, (float *)b[1].buf + at, hi[0] - lo[0],
+                                     inv_q, inv_q * vmax, background, clear);
+                else
+                    finalize_row_f64(acc + 2 * at, (double *)b[1].buf + at, hi[0] - lo[0],
+                                     inv_q, inv_q * vmax, background, clear);
+            }
         Py_END_ALLOW_THREADS
     }
     for (int k = 0; k < n; k++)
