@@ -79,6 +79,12 @@ static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim,
 #define VECTOR_CLONES
 #endif
 
+static void release_all(Py_buffer *b, int n)
+{
+    for (int k = 0; k < n; k++)
+        PyBuffer_Release(&b[k]);
+}
+
 #define MIN(a, b) ((a) < (b) ? (a) : (b))
 #define MAX(a, b) ((a) > (b) ? (a) : (b))
 
@@ -122,29 +128,20 @@ static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim,
     range[0] = lo;                                                                            \
     range[1] = hi;
 
-SAMPLE_OPT VECTOR_CLONES static void sample_f32(const float *restrict data, Py_ssize_t sy,
-                                                Py_ssize_t sx,
-                       const int32_t *x0, const int32_t *x1, const double *fx,
-                       const int32_t *y0, const int32_t *y1, const double *fy,
-                       const int32_t *z0, const int32_t *z1, const double *fz,
-                       float *restrict out, Py_ssize_t ny, Py_ssize_t nx, Py_ssize_t g0,
-                       Py_ssize_t g1, double *range)
-{
-    double lo = HUGE_VAL, hi = -HUGE_VAL;
-    SAMPLE_BODY(float)
-}
+#define SAMPLE_FN(NAME, T)                                                                     \
+    SAMPLE_OPT VECTOR_CLONES static void NAME(                                                 \
+        const T *restrict data, Py_ssize_t sy, Py_ssize_t sx, const int32_t *x0,               \
+        const int32_t *x1, const double *fx, const int32_t *y0, const int32_t *y1,             \
+        const double *fy, const int32_t *z0, const int32_t *z1, const double *fz,              \
+        T *restrict out, Py_ssize_t ny, Py_ssize_t nx, Py_ssize_t g0, Py_ssize_t g1,           \
+        double *range)                                                                         \
+    {                                                                                          \
+        double lo = HUGE_VAL, hi = -HUGE_VAL;                                                  \
+        SAMPLE_BODY(T)                                                                         \
+    }
 
-SAMPLE_OPT VECTOR_CLONES static void sample_f64(const double *restrict data, Py_ssize_t sy,
-                                                Py_ssize_t sx,
-                       const int32_t *x0, const int32_t *x1, const double *fx,
-                       const int32_t *y0, const int32_t *y1, const double *fy,
-                       const int32_t *z0, const int32_t *z1, const double *fz,
-                       double *restrict out, Py_ssize_t ny, Py_ssize_t nx, Py_ssize_t g0,
-                       Py_ssize_t g1, double *range)
-{
-    double lo = HUGE_VAL, hi = -HUGE_VAL;
-    SAMPLE_BODY(double)
-}
+SAMPLE_FN(sample_f32, float)
+SAMPLE_FN(sample_f64, double)
 
 static PyObject *py_sample(PyObject *self, PyObject *args)
 {
@@ -191,12 +188,10 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
         sample_f64(b[0].buf, iy, ix, b[1].buf, b[2].buf, b[3].buf, b[4].buf, b[5].buf, b[6].buf,
                    b[7].buf, b[8].buf, b[9].buf, b[10].buf, ny, nx, g0, g1, range);
     Py_END_ALLOW_THREADS
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
+    release_all(b, n);
     return Py_BuildValue("(dd)", range[0], range[1]);
 fail:
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
+    release_all(b, n);
     return NULL;
 }
 
@@ -294,12 +289,10 @@ static PyObject *py_separable(PyObject *self, PyObject *args)
     }
     Py_END_ALLOW_THREADS
     PyMem_RawFree(qz);
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
+    release_all(b, n);
     Py_RETURN_NONE;
 fail:
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
+    release_all(b, n);
     return NULL;
 }
 
@@ -785,14 +778,12 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
             goto fail;
         }
     }
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
+    release_all(b, n);
     return Py_BuildValue("(LLLLLL)", (long long)s.bbox[0], (long long)s.bbox[1],
                          (long long)s.bbox[2], (long long)s.bbox[3], (long long)s.bbox[4],
                          (long long)s.bbox[5]);
 fail:
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
+    release_all(b, n);
     return NULL;
 }
 
@@ -891,12 +882,10 @@ static PyObject *py_finalize(PyObject *self, PyObject *args)
             }
         Py_END_ALLOW_THREADS
     }
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
+    release_all(b, n);
     Py_RETURN_NONE;
 fail:
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
+    release_all(b, n);
     return NULL;
 }
 
