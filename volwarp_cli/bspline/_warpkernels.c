@@ -503,20 +503,19 @@ static inline void splat(int64_t *restrict acc, Py_ssize_t rb, Py_ssize_t nz, Py
     }
 }
 
-/* Which voxels of row (f, g), block columns [e_lo, e_lo + n), lie in still regions for
- * pass p: every control point of the regions their face centres reach (the voxel's
- * 3x3x3 neighbourhood, clamped to the domain, which also covers the margin's
- * extrapolation) has zero offset, so their offsets are exactly 0. ra[i], rb_[i]: the
- * x regions of voxels e - 1 and e + 1 (clamped), relative to ra[0]. Returns how many. */
-static Py_ssize_t row_still(const Scatter *s, int p, Py_ssize_t f, Py_ssize_t g,
-                            const int32_t *ra, const int32_t *rb_, unsigned char *fast,
-                            unsigned char *reg)
+/* Which voxels of a row, block columns [e_lo, e_lo + n), lie in still regions for pass
+ * p: every control point of the regions their face centres reach (the voxel's 3x3x3
+ * neighbourhood, clamped to the domain, which also covers the margin's extrapolation)
+ * has zero offset, so their offsets are exactly 0. cb: the z and y regions that
+ * neighbourhood reaches (c0, c1, b0, b1); ra[i], rb_[i]: the x regions of voxels e - 1
+ * and e + 1 (clamped), relative to the first. Returns how many. */
+static Py_ssize_t row_still(const Scatter *s, int p, const Py_ssize_t cb[4], const int32_t *ra,
+                            const int32_t *rb_, unsigned char *fast, unsigned char *reg)
 {
-    const Py_ssize_t gx = s->gran[0], gy = s->gran[1], gz = s->gran[2];
+    const Py_ssize_t gx = s->gran[0];
     const Py_ssize_t rx = s->regions[0], ry = s->regions[1];
-    const Py_ssize_t dx = s->vx, dy = s->vy, dz = s->vz;
-    const Py_ssize_t c0 = MAX(g - 1, 0) / gz, c1 = MIN(g + 1, dz - 1) / gz;
-    const Py_ssize_t b0 = MAX(f - 1, 0) / gy, b1 = MIN(f + 1, dy - 1) / gy;
+    const Py_ssize_t dx = s->vx;
+    const Py_ssize_t c0 = cb[0], c1 = cb[1], b0 = cb[2], b1 = cb[3];
     const Py_ssize_t e_lo = s->lo[0], n = s->hi[0] - e_lo;
     const Py_ssize_t a0 = MAX(e_lo - 1, 0) / gx, a1 = MIN(e_lo + n, dx - 1) / gx;
     for (Py_ssize_t a = a0; a <= a1; a++) {
@@ -550,7 +549,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
     const double bx = s->off[0];
     int64_t bx0 = IQUANTUM, by0 = IQUANTUM, bz0 = IQUANTUM, bx1 = -1, by1 = -1, bz1 = -1;
     /* row buffers: 7 doubles (boxes) and a Span (still voxels' x) per voxel, flags */
-    char *mem = malloc((size_t)n * (7 * sizeof(double) + sizeof(Span) + 2 * sizeof(int32_t) + 2)
+    char *mem = malloc((size_t)n * (7 * sizeof(double) + sizeof(Span) + 2 * sizeof(int32_t) + 3)
                        + 8);
     if (!mem)
         return; /* the caller checks bbox[0] for this */
@@ -558,7 +557,10 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
            *zmin = xmin + 4 * n, *zmax = xmin + 5 * n, *mass = xmin + 6 * n;
     Span *xstill = (Span *)(xmin + 7 * n);
     int32_t *ra = (int32_t *)(xstill + n), *rb_ = ra + n;
-    unsigned char *fast = (unsigned char *)(rb_ + n), *reg = fast + n;
+    /* still flags per pass, kept while the rows reach the same z and y regions */
+    unsigned char *fasts[2] = {(unsigned char *)(rb_ + n), (unsigned char *)(rb_ + n) + n};
+    unsigned char *reg = fasts[1] + n;
+    Py_ssize_t known[2][4] = {{-1, -1, -1, -1}, {-1, -1, -1, -1}}, nknown[2] = {0, 0};
     /* Still voxels: offsets exactly 0, so the boxes of phase 1 are base -/+ half a voxel,
      * each side a function of one index, and the mass is sx (sy sz) over the box volume:
      * the same doubles that row_boxes computes from zeros (tested), found per axis once. */
@@ -585,9 +587,20 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
             Span ystill;
             const int yzok = span_of(-hy + by, hy + by, 0, ty - 1, &ystill) && zok;
             const double yw = ystill.hi - ystill.lo, zw = zstill.hi - zstill.lo;
+            Py_ssize_t cb[4] = {0, 0, 0, 0};
+            if (s->still) { /* the z and y regions the row's neighbourhood reaches */
+                cb[0] = MAX(g - 1, 0) / s->gran[2];
+                cb[1] = MIN(g + 1, s->vz - 1) / s->gran[2];
+                cb[2] = MAX(f - 1, 0) / s->gran[1];
+                cb[3] = MIN(f + 1, s->vy - 1) / s->gran[1];
+            }
             for (int p = 0; p < npass; p++) {
-                const Py_ssize_t nfast =
-                    box && s->still ? row_still(s, p, f, g, ra, rb_, fast, reg) : 0;
+                unsigned char *fast = fasts[p];
+                if (box && s->still && memcmp(cb, known[p], sizeof cb) != 0) {
+                    nknown[p] = row_still(s, p, cb, ra, rb_, fast, reg);
+                    memcpy(known[p], cb, sizeof cb);
+                }
+                const Py_ssize_t nfast = box && s->still ? nknown[p] : 0;
                 const float *u = s->uh[p] + urow;
                 const double sgn = p == 0 ? s->sign : -s->sign;
                 if (!box) { /* nearest: map and round (ties down, see pushforward.py) */
