@@ -298,13 +298,14 @@ fail:
 
 /* ---------------------------------------------------------- pushforward */
 
+/* The constants pushforward.py documents and exports (it takes them from this module) */
 #define QUANTUM 1099511627776.0 /* 2**40: fixed-point unit of the accumulators */
 #define IQUANTUM ((int64_t)1 << 40)
 #define SHIFT 1048576.0 /* makes coordinates positive so that truncation is floor */
 #define ISHIFT ((int64_t)1048576)
-#define ROUND (0.5 - 1e-6)
-#define COVERED_HI 0.8
-#define COVERED_LO 0.6
+#define ROUND (0.5 - 1e-6) /* nearest modes: round half down, with a tolerance */
+#define COVERED_HI 0.8     /* weights from which a voxel counts as inside the model */
+#define COVERED_LO 0.6     /* and up to which as on its silhouette */
 
 /* floor(x) as an integer for |x| < 2**62 (libm's floor is a call without SSE4.1). */
 static inline int64_t ifloor(double x)
@@ -928,4 +929,19 @@ static struct PyModuleDef module = {
     methods, NULL, NULL, NULL, NULL,
 };
 
-PyMODINIT_FUNC PyInit__warpkernels(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__warpkernels(void)
+{
+    PyObject *m = PyModule_Create(&module);
+    const char *names[4] = {"QUANTUM", "ROUND", "COVERED_HI", "COVERED_LO"};
+    const double values[4] = {QUANTUM, ROUND, COVERED_HI, COVERED_LO};
+    for (int k = 0; m && k < 4; k++) {
+        PyObject *v = PyFloat_FromDouble(values[k]);
+        if (!v || PyModule_AddObjectRef(m, names[k], v) < 0) {
+            Py_XDECREF(v);
+            Py_CLEAR(m);
+        } else {
+            Py_DECREF(v);
+        }
+    }
+    return m;
+}

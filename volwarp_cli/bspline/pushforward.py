@@ -50,30 +50,18 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Rounding offset of the nearest modes: round half *down*, with a 1e-6 voxel
-#: tolerance, the same in pullback and pushforward, so that a point on a tie
-#: computed two slightly different ways still lands in the same voxel.
-ROUND = 0.5 - 1e-6
+# The kernels' constants, defined once in _warpkernels.c:
+# ROUND: rounding offset of the nearest modes: round half *down*, with a 1e-6
+# voxel tolerance, the same in pullback and pushforward, so that a point on a
+# tie computed two slightly different ways still lands in the same voxel.
+# COVERED_HI, COVERED_LO: weights from which a target voxel counts as inside
+# the model (normalised) and up to which it counts as on its silhouette
+# (blended with the background).
+# QUANTUM: fixed-point unit of the accumulators (2**40 per unit weight).
+from . import _warpkernels
+from ._warpkernels import COVERED_HI, COVERED_LO, QUANTUM, ROUND  # noqa: F401
 
-#: Shift making coordinates positive so that truncation is floor.
-SHIFT = 1048576.0
-ISHIFT = 1048576
-
-#: Weights from which a target voxel counts as inside the model (normalised)
-#: and up to which it counts as on its silhouette (blended with the background).
-COVERED_HI = 0.8
-COVERED_LO = 0.6
-
-#: Fixed-point unit of the accumulators (2**40 per unit weight).
-QUANTUM = float(2 ** 40)
 METHODS = ("box", "nearest")
-
-
-def kernels():
-    """``(scatter, finalize)``: the compiled kernels (``_warpkernels.c``, which has the loops)."""
-    from . import _warpkernels
-
-    return _warpkernels.scatter, _warpkernels.finalize
 
 
 def fill_halo(uh, faces=None):
@@ -130,7 +118,7 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     exclusive), or None when nothing landed in the target; always None
     without ``bounds`` (which saves a few percent of the scatter).
     """
-    kern, _ = kernels()
+    kern = _warpkernels.scatter
     inv = 1.0 / vmax if vmax > 0 else 0.0
     off = tuple(float(v) for v in off)
     scale = tuple(float(v) for v in scale)
@@ -202,7 +190,7 @@ def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0, clear=False)
     """
     from .basis import run_split
 
-    _, kern = kernels()
+    kern = _warpkernels.finalize
     lo = np.asarray(lo, np.int64)
     hi = np.asarray(hi, np.int64)
 
