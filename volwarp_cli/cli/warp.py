@@ -43,8 +43,10 @@ def _finite(ctx, param, value):
     return value
 
 
-def _unchecked_capture_settings(doc, read_warp_spec):
+def _unchecked_capture_settings(doc):
     """The spec's capture settings read before its schema check; None if they cannot be."""
+    from ..bspline.plan import read_warp_spec
+
     try:
         return read_warp_spec(doc).capture
     except Exception:  # an invalid spec: the schema check reports it
@@ -130,7 +132,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
 
         doc = load_spec(spec_path)
         if reading is not None:
-            settings = _unchecked_capture_settings(doc, read_warp_spec)
+            settings = _unchecked_capture_settings(doc)
             early = pool.submit(_capture_early, reading, settings, input)
         validate(doc, load_schema("warp"))
         spec = read_warp_spec(doc)
