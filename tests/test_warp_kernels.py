@@ -129,6 +129,30 @@ def test_contributions_do_not_depend_on_the_block(method):
     assert not parts.any()
 
 
+@pytest.mark.parametrize("method", ["box", "nearest"])
+def test_window_keeps_exactly_the_contributions_inside_it(method):
+    """A target window (columns, rows, planes) clips contributions and changes no sum in it:
+    what a local rebuild of the accumulators relies on. Boxes straddle the window's edges
+    and lie beyond them (large offsets)."""
+    rng = np.random.default_rng(11)
+    dz, dy, dx = 9, 10, 12
+    u = random_offsets((dz, dy, dx), rng, amplitude=3.0)
+    values = rng.uniform(-1, 2, (dz, dy, dx)).astype(np.float32)
+    off, scale = (2.2, 1.7, 2.4), (0.8, 0.9, 0.7)
+    whole = np.zeros((12, 13, 14, 2), np.int64)
+    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 2.0, method, whole)
+    for (x0, x1), (y0, y1), (z0, z1) in [((3, 9), (2, 11), (4, 8)), ((0, 14), (5, 6), (0, 12)),
+                                         ((7, 8), (0, 13), (8, 10))]:
+        part = np.zeros_like(whole)
+        pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 2.0, method,
+                            part[z0:z1], tzo=z0, window=((x0, x1), (y0, y1)))
+        inside = np.zeros(whole.shape[:3], bool)
+        inside[z0:z1, y0:y1, x0:x1] = True
+        assert np.array_equal(part[inside], whole[inside])
+        assert not part[~inside].any()
+        assert part.any() and whole[~inside].any()
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_trilinear_gather_matches_scipy(dtype):
     rng = np.random.default_rng(7)
@@ -285,7 +309,8 @@ def test_vector_clones_give_the_baseline_results(tmp_path):
         for mod, acc in zip((K, base), accs, strict=True):
             acc[:] = 0
             mod.scatter(u, u, 1, (0, 0, 0), values, (1.5, 2.25, 1.75), (0.93, 1.07, 0.81),
-                        (0, 0, 0), (17, 11, 13), 1, 0.2, method == "box", acc, (0, 17), False,
+                        (0, 0, 0), (17, 11, 13), 1, 0.2, method == "box", acc,
+                        (0, 22, 0, 16, 0, 17), False,
                         True, still if method == "box" else None, (1, 1, 1))
         assert np.array_equal(accs[0], accs[1]) and accs[0].any()
 

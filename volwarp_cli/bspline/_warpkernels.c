@@ -334,6 +334,8 @@ typedef struct {
     int64_t *acc; /* [nz, ty, tx, 2]: target planes [tz_lo, tz_hi), plane z in slot z - rb,
                    * less nz from nz on (a ring when rb is a multiple of nz below tz_lo) */
     Py_ssize_t nz, ty, tx, tz_lo, tz_hi, rb;
+    Py_ssize_t tx_lo, tx_hi, ty_lo, ty_hi; /* contributions kept: x in [tx_lo, tx_hi), y in
+                                            * [ty_lo, ty_hi) (and z in [tz_lo, tz_hi)) */
     int64_t bbox[6];
 } Scatter;
 
@@ -459,6 +461,30 @@ static inline int span_of(double lo, double hi, int64_t first, int64_t last, Spa
     return s->v1 >= s->v0;
 }
 
+/* span_of for a row of boxes, as vectors (the general voxels' spans, before the scalar
+ * accumulation): the same numbers. Sides are first clamped to [first - 2, last + 2],
+ * which changes no span's voxels nor the overlaps of a non-empty one (a side beyond
+ * that range is beyond the first or last voxel's centre-side face either way), and
+ * keeps the conversions in int32 range (and NaN out of them: MAX(NaN, x) is x; the
+ * caller skips boxes with NaN sides before using their spans). Targets < 2**20 - 2
+ * voxels per axis, as span_of assumes. */
+VECTOR_CLONES static void row_spans(const double *restrict lo, const double *restrict hi,
+                                    Py_ssize_t n, int32_t first, int32_t last,
+                                    int32_t *restrict v0, int32_t *restrict v1,
+                                    double *restrict a0, double *restrict a1)
+{
+    const double f2 = first - 2.0, l2 = last + 2.0;
+    for (Py_ssize_t e = 0; e < n; e++) {
+        const double l = MIN(MAX(lo[e], f2), l2), h = MIN(MAX(hi[e], f2), l2);
+        const int32_t p = MAX((int32_t)(l - 0.5 + SHIFT) - (int32_t)ISHIFT + 1, first);
+        const int32_t q = MIN((int32_t)ISHIFT - (int32_t)(SHIFT - h - 0.5) - 1, last);
+        v0[e] = p;
+        v1[e] = q;
+        a0[e] = MIN(h, p + 0.5) - MAX(l, p - 0.5);
+        a1[e] = MIN(h, q + 0.5) - MAX(l, q - 0.5);
+    }
+}
+
 /* Phase 2 for one voxel: add kv times each overlap volume to the covered target voxels
  * (target plane z in slot z - rb of acc, less nz from nz on; line, plane: strides of y
  * and z in int64s). */
@@ -537,7 +563,9 @@ static Py_ssize_t row_still(const Scatter *s, int p, const Py_ssize_t cb[4], con
 VECTOR_CLONES static void scatter_run(Scatter *s)
 {
     int64_t *restrict acc = s->acc;
-    const Py_ssize_t ty = s->ty, tx = s->tx, tz0 = s->tz_lo, tz1 = s->tz_hi, rb = s->rb;
+    const Py_ssize_t tz0 = s->tz_lo, tz1 = s->tz_hi, rb = s->rb;
+    const Py_ssize_t tx0 = s->tx_lo, tx1 = s->tx_hi, ty0 = s->ty_lo, ty1 = s->ty_hi;
+    const Py_ssize_t tx = s->tx, ty = s->ty;
     const Py_ssize_t nz = s->nz;
     const Py_ssize_t sF = s->nxb, sG = s->nyb * s->nxb, cs = s->cstride;
     const double sx = s->scale[0], sy = s->scale[1], sz = s->scale[2];
@@ -549,17 +577,22 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
     const Py_ssize_t line = tx * 2, plane = ty * tx * 2;
     const double bx = s->off[0];
     int64_t bx0 = IQUANTUM, by0 = IQUANTUM, bz0 = IQUANTUM, bx1 = -1, by1 = -1, bz1 = -1;
-    /* row buffers: 7 doubles (boxes) and a Span (still voxels' x) per voxel, flags */
-    char *mem = malloc((size_t)n * (7 * sizeof(double) + sizeof(Span) + 2 * sizeof(int32_t) + 3)
-                       + 8);
+    /* row buffers: 7 doubles (boxes), 6 doubles and 6 int32 (their spans) and a Span
+     * (still voxels' x) per voxel, flags */
+    char *mem = malloc((size_t)n * (13 * sizeof(double) + sizeof(Span) + 8 * sizeof(int32_t) +
+                                    3) + 8);
     if (!mem)
         return; /* the caller checks bbox[0] for this */
     double *xmin = (double *)mem, *xmax = xmin + n, *ymin = xmin + 2 * n, *ymax = xmin + 3 * n,
            *zmin = xmin + 4 * n, *zmax = xmin + 5 * n, *mass = xmin + 6 * n;
-    Span *xstill = (Span *)(xmin + 7 * n);
+    double *sa0[3] = {xmin + 7 * n, xmin + 8 * n, xmin + 9 * n};
+    double *sa1[3] = {xmin + 10 * n, xmin + 11 * n, xmin + 12 * n};
+    Span *xstill = (Span *)(xmin + 13 * n);
     int32_t *ra = (int32_t *)(xstill + n), *rb_ = ra + n;
+    int32_t *sv0[3] = {rb_ + n, rb_ + 2 * n, rb_ + 3 * n};
+    int32_t *sv1[3] = {rb_ + 4 * n, rb_ + 5 * n, rb_ + 6 * n};
     /* still flags per pass, kept while the rows reach the same z and y regions */
-    unsigned char *fasts[2] = {(unsigned char *)(rb_ + n), (unsigned char *)(rb_ + n) + n};
+    unsigned char *fasts[2] = {(unsigned char *)(rb_ + 7 * n), (unsigned char *)(rb_ + 7 * n) + n};
     unsigned char *reg = fasts[1] + n;
     Py_ssize_t known[2][4] = {{-1, -1, -1, -1}, {-1, -1, -1, -1}}, nknown[2] = {0, 0};
     /* Still voxels: offsets exactly 0, so the boxes of phase 1 are base -/+ half a voxel,
@@ -570,7 +603,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
         for (Py_ssize_t i = 0; i < n; i++) {
             const Py_ssize_t e = e_lo + i;
             const double base = bx + sx * (int32_t)e;
-            span_of(-hx + base, hx + base, 0, tx - 1, &xstill[i]);
+            span_of(-hx + base, hx + base, tx0, tx1 - 1, &xstill[i]);
             ra[i] = (int32_t)(MAX(e - 1, 0) / gx - a0);
             rb_[i] = (int32_t)(MIN(e + 1, s->vx - 1) / gx - a0);
         }
@@ -586,7 +619,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
             const Py_ssize_t urow = ((g - s->oz + 1) * s->nyb + (f - s->oy + 1)) * s->nxb +
                                     e_lo - s->ox + 1;
             Span ystill;
-            const int yzok = span_of(-hy + by, hy + by, 0, ty - 1, &ystill) && zok;
+            const int yzok = span_of(-hy + by, hy + by, ty0, ty1 - 1, &ystill) && zok;
             const double yw = ystill.hi - ystill.lo, zw = zstill.hi - zstill.lo;
             Py_ssize_t cb[4] = {0, 0, 0, 0};
             if (s->still) { /* the z and y regions the row's neighbourhood reaches */
@@ -611,7 +644,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                         int64_t x = ifloor(bx + sx * (e_lo + i) + u[i] + ROUND);
                         int64_t y = ifloor(by + u[cs + i] + ROUND);
                         int64_t z = ifloor(bz + u[2 * cs + i] + ROUND);
-                        if (x < 0 || y < 0 || z < tz0 || x >= tx || y >= ty || z >= tz1)
+                        if (x < tx0 || y < ty0 || z < tz0 || x >= tx1 || y >= ty1 || z >= tz1)
                             continue;
                         v2d kv = {sgn * QUANTUM, sgn * QUANTUM * (val * inv_vmax)};
                         add2(plane_at(acc, z, rb, nz, plane) + y * line + x * 2, kv, 1.0);
@@ -630,10 +663,17 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                     while (i1 > i0 && fast[i1 - 1])
                         i1--;
                 }
-                if (i1 > i0)
+                if (i1 > i0) {
                     row_boxes(u + i0, u + cs + i0, u + 2 * cs + i0, sF, sG, e_lo + i0, i1 - i0,
                               bx, by, bz, sx, sy, sz, xmin + i0, xmax + i0, ymin + i0,
                               ymax + i0, zmin + i0, zmax + i0, mass + i0);
+                    row_spans(xmin + i0, xmax + i0, i1 - i0, (int32_t)tx0, (int32_t)tx1 - 1,
+                              sv0[0] + i0, sv1[0] + i0, sa0[0] + i0, sa1[0] + i0);
+                    row_spans(ymin + i0, ymax + i0, i1 - i0, (int32_t)ty0, (int32_t)ty1 - 1,
+                              sv0[1] + i0, sv1[1] + i0, sa0[1] + i0, sa1[1] + i0);
+                    row_spans(zmin + i0, zmax + i0, i1 - i0, (int32_t)tz0, (int32_t)tz1 - 1,
+                              sv0[2] + i0, sv1[2] + i0, sa0[2] + i0, sa1[2] + i0);
+                }
                 /* still voxels of this row share their y and z spans: the (at most 4)
                  * target rows they reach and those rows' weights az * ay, as splat has */
                 int64_t *trow[4];
@@ -688,10 +728,12 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                     } else {
                         if (!(xmax[i] > xmin[i] && ymax[i] > ymin[i] && zmax[i] > zmin[i]))
                             continue;
-                        if (!(span_of(xmin[i], xmax[i], 0, tx - 1, &xs) &
-                              span_of(ymin[i], ymax[i], 0, ty - 1, &ys) &
-                              span_of(zmin[i], zmax[i], tz0, tz1 - 1, &zs)))
+                        if (sv1[0][i] < sv0[0][i] || sv1[1][i] < sv0[1][i] ||
+                            sv1[2][i] < sv0[2][i])
                             continue;
+                        xs = (Span){sv0[0][i], sv1[0][i], sa0[0][i], sa1[0][i], xmin[i], xmax[i]};
+                        ys = (Span){sv0[1][i], sv1[1][i], sa0[1][i], sa1[1][i], ymin[i], ymax[i]};
+                        zs = (Span){sv0[2][i], sv1[2][i], sa0[2][i], sa1[2][i], zmin[i], zmax[i]};
                         m = mass[i];
                     }
                     double val = f64 ? ((const double *)s->values)[vrow + i]
@@ -722,11 +764,11 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     long long sign;
     memset(&s, 0, sizeof s);
     int ring;
-    if (!PyArg_ParseTuple(args, "OOi(nnn)O(ddd)(ddd)(nnn)(nnn)LdpO(nn)ppO(nnn)", &o_uha,
+    if (!PyArg_ParseTuple(args, "OOi(nnn)O(ddd)(ddd)(nnn)(nnn)LdpO(nnnnnn)ppO(nnn)", &o_uha,
                           &o_uhb, &npass, &s.ox, &s.oy, &s.oz, &o_values, &s.off[0], &s.off[1],
                           &s.off[2], &s.scale[0], &s.scale[1], &s.scale[2], &s.lo[0], &s.lo[1],
                           &s.lo[2], &s.hi[0], &s.hi[1], &s.hi[2], &sign, &s.inv_vmax, &box,
-                          &o_acc, &s.tz_lo, &s.tz_hi, &ring, &s.track, &o_still, &s.gran[0],
+                          &o_acc, &s.tx_lo, &s.tx_hi, &s.ty_lo, &s.ty_hi, &s.tz_lo, &s.tz_hi, &ring, &s.track, &o_still, &s.gran[0],
                           &s.gran[1], &s.gran[2]))
         return NULL;
     if (get_buf(o_uha, &b[n++], 0, K_F32, 4, "uh") < 0 ||
@@ -764,7 +806,8 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     /* the block, its one-voxel margin in uh, and the domain */
     int bad = npass < 1 || npass > 2 || (sign != 1 && sign != -1) || b[3].shape[3] != 2 ||
               b[0].shape[0] != 3 || s.tz_lo < 0 || s.tz_hi < s.tz_lo ||
-              s.tz_hi - s.tz_lo > s.nz;
+              s.tz_hi - s.tz_lo > s.nz || s.tx_lo < 0 || s.tx_hi < s.tx_lo ||
+              s.tx_hi > s.tx || s.ty_lo < 0 || s.ty_hi < s.ty_lo || s.ty_hi > s.ty;
     for (int k = 0; k < 4 && !bad; k++)
         bad = b[1].shape[k] != b[0].shape[k];
     Py_ssize_t org[3] = {s.ox, s.oy, s.oz};
@@ -913,9 +956,9 @@ static PyMethodDef methods[] = {
      "offsets on a block of domain voxels, three 1-D passes."},
     {"scatter", py_scatter, METH_VARARGS,
      "scatter(uh, uh_new, npass, origin, values, off, scale, lo, hi, sign, inv_vmax, box, "
-     "acc, (tz_lo, tz_hi), ring, track, still, granularity) -> touched box (x0, y0, z0, x1, "
-     "y1, z1), empty "
-     "unless track: add a block's pushforward (still: uint8 [npass, Rz, Ry, Rx], regions whose "
+     "acc, (tx_lo, tx_hi, ty_lo, ty_hi, tz_lo, tz_hi), ring, track, still, granularity) -> "
+     "touched box (x0, y0, z0, x1, y1, z1), empty unless track: add a block's pushforward to "
+     "the target voxels in the window (still: uint8 [npass, Rz, Ry, Rx], regions whose "
      "control points have zero offsets, or None)."},
     {"finalize", py_finalize, METH_VARARGS,
      "finalize(acc, vmax, lo, hi, out, background, clear=False): accumulators to samples on "

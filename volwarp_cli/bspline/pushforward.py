@@ -91,7 +91,7 @@ def fill_halo(uh, faces=None):
 
 def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None,
             origin=(0, 0, 0), tzo=0, u_new=None, bounds=True, still=None, granularity=None,
-            tz_hi=None, ring=False):
+            tz_hi=None, ring=False, window=None):
     """Add (``sign`` +1) or remove (-1) the contributions of domain block [lo, hi) (x, y, z).
 
     With ``u_new`` (deformation offsets of another lattice, same layout as
@@ -105,7 +105,9 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     voxels must be filled.
     ``acc`` holds the target z planes ``[tzo, tz_hi)`` (default ``tzo +
     len(acc)``), plane ``z`` in ``acc[z - tzo]``, or with ``ring`` in
-    ``acc[z % len(acc)]``; contributions to other planes are left out.
+    ``acc[z % len(acc)]``; contributions to other planes are left out, and
+    with ``window`` ``((x0, x1), (y0, y1))`` those outside target columns
+    [x0, x1) and rows [y0, y1) too.
     ``split_z``: domain z indices ``(z1, z2)`` such that [lo, z1) and [z2, hi)
     are known to write disjoint target z ranges; those halves then run on two
     threads, and the band [z1, z2) after them (integer sums: the result does
@@ -131,9 +133,11 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
         return np.array(kern(u, u if u_new is None else u_new, 1 if u_new is None else 2, org,
                              values, off, scale, tuple(int(v) for v in a),
                              tuple(int(v) for v in b), int(sign), inv, box, acc,
-                             (int(tzo), int(tz_end)), ring, bounds, still, gran))
+                             clip, ring, bounds, still, gran))
 
     tz_end = tzo + len(acc) if tz_hi is None else tz_hi
+    (x0, x1), (y0, y1) = ((0, acc.shape[2]), (0, acc.shape[1])) if window is None else window
+    clip = (int(x0), int(x1), int(y0), int(y1), int(tzo), int(tz_end))
 
     gran = (1, 1, 1) if granularity is None else tuple(int(v) for v in granularity)
 
@@ -168,11 +172,10 @@ def still_regions(dqs) -> np.ndarray | None:
     image (half a voxel either side of its base position) and the scatter
     skips the per-voxel box computation. None when no region is still.
     """
-    from numpy.lib.stride_tricks import sliding_window_view
+    from .lattice import window_reduce
 
-    masks = [sliding_window_view(np.all(np.asarray(dq) == 0, axis=-1), (4, 4, 4))
-             .all(axis=(-3, -2, -1)) for dq in dqs]
-    still = np.stack(masks)
+    still = np.stack([window_reduce(np.all(np.asarray(dq) == 0, axis=-1), 4, np.logical_and)
+                      for dq in dqs])
     return np.ascontiguousarray(still, dtype=np.uint8) if still.any() else None
 
 
