@@ -37,13 +37,13 @@ def run():
     return _run
 
 
-@pytest.fixture
-def local_updates(monkeypatch):
-    """Scenes update locally even where a full recomputation would be cheaper (it gives the
-    same sums), so that tests of the local update exercise it on small lattices."""
+@pytest.fixture(params=["subtract", "rebuild"])
+def local_updates(monkeypatch, request):
+    """Scenes update locally, by each of the two local updates, even where another way would
+    be cheaper (all give the same sums), so that tests exercise them on small lattices."""
     from volwarp_cli.bspline.scene import Scene
 
-    monkeypatch.setattr(Scene, "_full_work", lambda self, dq: float("inf"))
+    monkeypatch.setattr(Scene, "update", request.param)
 
 
 @pytest.fixture

@@ -13,7 +13,13 @@ points and updates only what they influence:
 Departures: the papers write zeros where the old contributions went (an
 approximation); the accumulators here are exact fixed point, so after any
 sequence of updates the target equals a full recomputation with the final
-lattice bit for bit. And the deformation mapping array (offsets ``U`` of the
+lattice bit for bit. Steps 2-3 have an exact alternative, the papers' zeroing
+made exact: zero the target block the old and new images can reach and add
+back, clipped to it, the new contributions of every domain voxel that can
+reach it (the moved block and a thin shell of unchanged voxels around it,
+mostly in still regions). One pass instead of two over the moved block; the
+scene takes whichever of the two, or a full recomputation, costs least (the
+sums are the same). And the deformation mapping array (offsets ``U`` of the
 write map from the affine base map) is never held whole: it is evaluated
 chunk by chunk along z into a small buffer with a one-voxel margin, for the
 old lattice when subtracting and the new one when adding (both in one pass
@@ -34,7 +40,7 @@ from ..errors import VolwarpError
 from ..io.common import ensure_fits_in_memory
 from ..progress import log, timed
 from . import basis, pushforward
-from .lattice import Grid, affected_regions
+from .lattice import Grid, affected_regions, window_reduce
 
 #: Blocks with at least this many domain voxels are split over two threads.
 PARALLEL_MIN_VOXELS = 1 << 18
@@ -48,6 +54,8 @@ CHUNK_BYTES = 32 << 20
 GENERAL_COST = 2.4
 #: Target z planes covered by one step of :meth:`Scene.render_once`'s stream.
 STREAM_PLANES = 16
+#: Slack for float32 deformation offsets in bounds derived from the lattice.
+OFFSET_SLACK = 0.01
 
 
 class Scratch:
@@ -64,8 +72,8 @@ class Scratch:
         corners, which nothing else reads.
         """
         size = int(np.prod(shape))
-        if self.flat.size < n * size:
-            self.flat = np.zeros(n * size, dtype=np.float32)
+        if self.flat.size < n * size:  # with room to grow: updates' blocks vary a little
+            self.flat = np.zeros(n * size + n * size // 4, dtype=np.float32)
         out = [self.flat[i * size:(i + 1) * size].reshape(shape) for i in range(n)]
         for a in out:
             for axis in (-3, -2, -1):
@@ -121,7 +129,15 @@ class Scene:
     background : float
         Value of the space around the model (uncovered target voxels).
     domain_range : (min, max) of ``domain`` when already known (saves two passes).
+
+    Attributes
+    ----------
+    update : {None, "subtract", "rebuild", "full"}
+        How :meth:`set_lattice` updates rendered accumulators: None (default)
+        takes the cheapest by a work estimate; tests and benchmarks force one.
     """
+
+    update = None
 
     def __init__(self, domain, grid: Grid, dq, pad, *, method: str = "box",
                  evaluator: str = "separable", background: float = 0.0, domain_range=None):
@@ -159,7 +175,7 @@ class Scene:
         return tuple(int(i + 2 * p) for i, p in zip(self.grid.input_shape, self.pad, strict=False))
 
     def _contribute(self, dqs, vlo, vhi, sign, acc=None, tzo=0, parallel=True, scratch=None,
-                    bounds=False, tz_hi=None, ring=False):
+                    bounds=False, tz_hi=None, ring=False, window=None):
         """Add (``sign`` +1) or remove (-1) the contributions of domain voxels [vlo, vhi).
 
         ``dqs``: one lattice, or two (old, new) whose contributions are
@@ -170,6 +186,8 @@ class Scene:
         in, so removing a contribution recomputes exactly what was added).
         ``acc`` (default the scene's) holds target z planes from ``tzo`` on
         (up to ``tz_hi``; with ``ring``, plane z in ``acc[z % len(acc)]``);
+        ``window`` ``((x0, x1), (y0, y1))`` also leaves out target voxels
+        outside those columns and rows.
         ``parallel`` lets large blocks use two threads. ``scratch`` (a
         :class:`Scratch`, default the scene's) holds the deformation buffers.
         Returns the touched target bounding box with ``bounds``, else None.
@@ -215,12 +233,12 @@ class Scene:
                 for ub in ubs:
                     pushforward.fill_halo(ub, faces)
             hi = (int(vhi[0]), int(vhi[1]), z1)
-            split = self._split_z(np.stack(dqs), lo, hi) if parallel else None
+            split = self._split_z(np.stack(dqs), lo, hi, still) if parallel else None
             bb = pushforward.scatter(planar[0], self.domain, self.offset, self.scale, lo, hi,
                                      sign, self.vmax, self.method, acc, split_z=split,
                                      origin=origin, tzo=tzo, tz_hi=tz_hi, ring=ring,
                                      u_new=planar[1] if len(planar) > 1 else None,
-                                     bounds=bounds, still=still,
+                                     bounds=bounds, still=still, window=window,
                                      granularity=grid.granularity)
             if bb is not None:
                 boxes.append(bb)
@@ -243,11 +261,13 @@ class Scene:
         slack = 0.01  # float32 deformation arrays
         return half - bottom + spread + slack, half + top + spread + slack
 
-    def _split_z(self, dq, lo, hi):
+    def _split_z(self, dq, lo, hi, still=None):
         """Two domain z indices ``(z1, z2)``: halves [lo, z1) and [z2, hi) hit disjoint target z.
 
-        The band [z1, z2) between the halves is done afterwards. None when the
-        block is small or no safe split exists.
+        The band [z1, z2) between the halves is done afterwards. The halves
+        get equal work by :meth:`_work`'s measure (``still``: the scatter's
+        still regions, or None). None when the block is small or no safe split
+        exists.
         """
         lo = np.asarray(lo)
         hi = np.asarray(hi)
@@ -256,6 +276,10 @@ class Scene:
         below, above = self._z_reach(dq)
         s, o = self.scale[2], self.offset[2]
         mid = (int(lo[2]) + int(hi[2])) // 2
+        if still is not None:  # general voxels cost more: balance by work, not planes
+            plane_work = self._plane_work(still, lo, hi)
+            cum = np.cumsum(plane_work)
+            mid = int(lo[2]) + int(np.searchsorted(cum, 0.5 * cum[-1]))
         for gap in range(2, max(3, (int(hi[2]) - int(lo[2])) // 4)):
             z1 = mid - gap // 2
             z2 = z1 + gap
@@ -388,49 +412,162 @@ class Scene:
             self.last_touched = None
             return
         rlo, rhi = affected_regions(moved[:, ::-1], self.grid)
-        if self._update_work(dq, rlo, rhi) > self._full_work(dq):
-            # the same sums either way: take the cheaper
-            log.debug("update of regions %s..%s costs more than a full recomputation",
-                      rlo.tolist(), rhi.tolist())
+        g = np.array(self.grid.granularity)
+        dshape = np.array(self.grid.domain_shape)
+        vlo = np.maximum(rlo * g - 1, 0)  # the regions' voxels and their neighbours
+        vhi = np.minimum(rhi * g + 1, dshape)
+        block = self._rebuild_block(dq, vlo, vhi)
+        if block is None:  # neither image reaches the target: nothing changes there
+            self.dq = dq.copy()
+            self.last_touched = None
+            return
+        work = {"subtract": self._work([self.dq, dq], vlo, vhi),
+                "rebuild": self._work([dq], *block[2:]),
+                "full": self._work([dq], (0, 0, 0), dshape)}
+        how = self.update or min(("full", "rebuild", "subtract"), key=work.get)  # ties: full
+        log.debug("update of regions %s..%s by %s (work: %s)", rlo.tolist(), rhi.tolist(),
+                  how, {k: round(v) for k, v in work.items()})
+        if how == "full":
             self.dq = dq.copy()
             self.render()
             return
-        g = np.array(self.grid.granularity)
-        dshape = np.array(self.grid.domain_shape)
-        vlo = np.maximum(rlo * g - 1, 0)
-        vhi = np.minimum(rhi * g + 1, dshape)
-        bb = self._contribute([self.dq, dq], vlo, vhi, -1, bounds=True)
+        if how == "rebuild":
+            (t0x, t0y, t0z), (t1x, t1y, t1z), dlo, dhi = block
+            part = self.acc[t0z:t1z]  # the block's planes, a view
+            part[:, t0y:t1y, t0x:t1x] = 0
+            self._contribute([dq], dlo, dhi, 1, acc=part, tzo=t0z, tz_hi=t1z,
+                             window=((t0x, t1x), (t0y, t1y)))
+            tlo, thi = block[0], block[1]
+        else:
+            bb = self._contribute([self.dq, dq], vlo, vhi, -1, bounds=True)
+            if bb is None:
+                self.dq = dq.copy()
+                self.last_touched = None
+                return
+            tlo, thi = bb
         self.dq = dq.copy()
-        if bb is None:
-            self.last_touched = None
-            return
-        tlo, thi = bb
         pushforward.finalize(self.acc, self.vmax, tlo, thi, self.out,
                              background=self.background)
         self.last_touched = (tuple(int(v) for v in tlo), tuple(int(v) for v in thi))
-        log.debug("local update: regions %s..%s, target block %s..%s", rlo.tolist(),
-                  rhi.tolist(), tlo.tolist(), thi.tolist())
 
-    def _work(self, dqs, lo, hi) -> float:
-        """Scatter work over region block [lo, hi) (x, y, z), one pass per lattice of ``dqs``.
+    def _offset_bounds(self, dq) -> tuple[np.ndarray, np.ndarray]:
+        """``(lo, hi)``, each ``[Rz, Ry, Rx, 3]``: bounds of the offsets any voxel of a region
+        and its neighbours can have (x y z components), from the lattice alone.
 
-        In still-voxel units: a region still in a pass costs 1 per voxel, any
+        A voxel's offset is a convex combination of its region's 4^3 control
+        points, so a voxel and its neighbours (in the next region at most) stay
+        within the points [r - 1, r + 4] of each axis (a float32 slack added).
+        At the domain's faces the halo is extrapolated (``2 U[0] - U[1]``):
+        there the range is widened by itself, as :meth:`_z_reach` does.
+        """
+        pad = ((1, 1), (1, 1), (1, 1), (0, 0))
+        lo = window_reduce(np.pad(dq, pad, constant_values=np.inf), 6, np.minimum)
+        hi = window_reduce(np.pad(dq, pad, constant_values=-np.inf), 6, np.maximum)
+        edge = np.zeros(lo.shape[:3], bool)
+        edge[[0, -1]] = edge[:, [0, -1]] = edge[:, :, [0, -1]] = True
+        spread = np.where(edge[..., None], hi - lo, 0.0)
+        return lo - spread - OFFSET_SLACK, hi + spread + OFFSET_SLACK
+
+    def _rebuild_block(self, dq, vlo, vhi):
+        """``(tlo, thi, dlo, dhi)`` (x y z) for an update of domain voxels [vlo, vhi) to ``dq``.
+
+        Target block [tlo, thi): every target voxel the old or new image of
+        those voxels can reach; domain block [dlo, dhi): every voxel whose new
+        image can reach that target block. Both from :meth:`_offset_bounds`,
+        region by region. None when the images miss the target.
+        """
+        grid = self.grid
+        tshape = np.array(self.target_shape)
+        half = 0.5 * self.scale
+
+        def region_voxels(axis, wlo, whi):
+            # per region along the axis: its voxels within [wlo, whi), as [a, b)
+            g = grid.granularity[axis]
+            r = np.arange(grid.regions[axis])
+            return np.maximum(r * g, wlo), np.minimum((r + 1) * g, whi)
+
+        def along(v, axis):  # a per-region vector of x (0), y or z, broadcast on [Rz, Ry, Rx]
+            shape = [1, 1, 1]
+            shape[2 - axis] = -1
+            return v.reshape(shape)
+
+        def image_cells(bounds, wlo, whi):
+            # per axis: the target cells [t0, t1) that the images of the regions'
+            # voxels within [wlo, whi) can overlap, and which regions have such voxels
+            lo_u, hi_u = bounds
+            t0, t1, inside = [], [], np.ones(lo_u.shape[:3], bool)
+            for axis in range(3):
+                a, b = region_voxels(axis, wlo[axis], whi[axis])
+                inside &= along(a < b, axis)
+                a_img = self.offset[axis] + self.scale[axis] * along(a, axis)
+                b_img = self.offset[axis] + self.scale[axis] * (along(b, axis) - 1)
+                t0.append(np.floor(a_img + lo_u[..., axis] - half[axis] - 0.5))
+                t1.append(np.ceil(b_img + hi_u[..., axis] + half[axis] + 0.5) + 1)
+            return t0, t1, inside
+
+        t_lo, t_hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for bounds in (self._offset_bounds(self.dq), self._offset_bounds(dq)):
+            t0, t1, inside = image_cells(bounds, vlo, vhi)
+            if inside.any():
+                for axis in range(3):
+                    t_lo[axis] = min(t_lo[axis], t0[axis][inside].min())
+                    t_hi[axis] = max(t_hi[axis], t1[axis][inside].max())
+        tlo = np.clip(t_lo, 0, tshape).astype(np.int64)
+        thi = np.clip(t_hi, 0, tshape).astype(np.int64)
+        if np.any(thi <= tlo):
+            return None
+        # domain voxels g whose new box [A(g) + lo_u - half, A(g) + hi_u + half]
+        # overlaps the cells [tlo, thi), i.e. the interval [tlo - 0.5, thi - 0.5]
+        lo_u, hi_u = self._offset_bounds(dq)
+        d_lo, d_hi, inside = [], [], np.ones(lo_u.shape[:3], bool)
+        for axis in range(3):
+            a, b = region_voxels(axis, 0, grid.domain_shape[axis])
+            s, o = self.scale[axis], self.offset[axis]
+            first = np.floor((tlo[axis] - 0.5 - o - half[axis] - hi_u[..., axis]) / s)
+            last = np.ceil((thi[axis] - 0.5 - o + half[axis] - lo_u[..., axis]) / s) + 1
+            first = np.maximum(first, along(a, axis))
+            last = np.minimum(last, along(b, axis))
+            inside &= first < last
+            d_lo.append(first)
+            d_hi.append(last)
+        if not inside.any():  # pragma: no cover - the moved voxels' images reach it
+            return None
+        dlo = np.array([int(v[inside].min()) for v in d_lo])
+        dhi = np.array([int(v[inside].max()) for v in d_hi])
+        return tlo, thi, dlo, dhi
+
+    def _region_voxels(self, vlo, vhi) -> list[np.ndarray]:
+        """Per axis (x, y, z): how many voxels of each region lie in [vlo, vhi)."""
+        counts = []
+        for axis in range(3):
+            g = self.grid.granularity[axis]
+            r = np.arange(self.grid.regions[axis])
+            counts.append(np.clip(np.minimum((r + 1) * g, vhi[axis])
+                                  - np.maximum(r * g, vlo[axis]), 0, None))
+        return counts
+
+    def _plane_work(self, still, vlo, vhi) -> np.ndarray:
+        """:meth:`_work`'s measure of each domain z plane of block [vlo, vhi), all passes."""
+        cx, cy, _ = self._region_voxels(vlo, vhi)
+        cost = np.where(still, 1.0, GENERAL_COST).sum(axis=0)  # [Rz, Ry, Rx]
+        per_region_plane = np.einsum("kji,j,i->k", cost, cy, cx)
+        planes = np.arange(int(vlo[2]), int(vhi[2]))
+        return per_region_plane[planes // self.grid.granularity[2]]
+
+    def _work(self, dqs, vlo, vhi) -> float:
+        """Scatter work over domain voxels [vlo, vhi) (x, y, z), one pass per lattice of ``dqs``.
+
+        In still-voxel units: a voxel in a region still in a pass costs 1, any
         other ``GENERAL_COST``.
         """
-        n = int(np.prod(np.asarray(hi) - np.asarray(lo))) * len(dqs)
+        counts = self._region_voxels(vlo, vhi)
+        n = np.einsum("k,j,i->kji", counts[2], counts[1], counts[0])  # [Rz, Ry, Rx]
+        total = float(n.sum()) * len(dqs)
         still = pushforward.still_regions(dqs) if self.method == "box" else None
         if still is None:
-            return n * GENERAL_COST
-        k = int(still[:, lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]].sum())
-        return k + (n - k) * GENERAL_COST
-
-    def _update_work(self, dq, rlo, rhi) -> float:
-        """Work of an update of regions [rlo, rhi): the old lattice's contributions out, the new in."""
-        return self._work([self.dq, dq], rlo, rhi)
-
-    def _full_work(self, dq) -> float:
-        """Work of a full recomputation with lattice ``dq``."""
-        return self._work([dq], (0, 0, 0), self.grid.regions)
+            return total * GENERAL_COST
+        k = float((still * n).sum())
+        return k + (total - k) * GENERAL_COST
 
     def map_points(self, param) -> np.ndarray:
         """Target indices (x, y, z) of spline parameters (N, 3) under the current map."""
