@@ -465,9 +465,9 @@ static inline int span_of(double lo, double hi, int64_t first, int64_t last, Spa
  * accumulation): the same numbers. Sides are first clamped to [first - 2, last + 2],
  * which changes no span's voxels nor the overlaps of a non-empty one (a side beyond
  * that range is beyond the first or last voxel's centre-side face either way), and
- * keeps the conversions in int32 range (and NaN out of them: MAX(NaN, x) is x; the
- * caller skips boxes with NaN sides before using their spans). Targets < 2**20 - 2
- * voxels per axis, as span_of assumes. */
+ * keeps the conversions in int32 range (and NaN out of them: MAX(NaN, x) is x). A
+ * degenerate side (not hi > lo, NaN included) gets an empty span (v1 < v0): the
+ * voxel is skipped. Targets < 2**20 - 2 voxels per axis, as span_of assumes. */
 VECTOR_CLONES static void row_spans(const double *restrict lo, const double *restrict hi,
                                     Py_ssize_t n, int32_t first, int32_t last,
                                     int32_t *restrict v0, int32_t *restrict v1,
@@ -479,10 +479,19 @@ VECTOR_CLONES static void row_spans(const double *restrict lo, const double *res
         const int32_t p = MAX((int32_t)(l - 0.5 + SHIFT) - (int32_t)ISHIFT + 1, first);
         const int32_t q = MIN((int32_t)ISHIFT - (int32_t)(SHIFT - h - 0.5) - 1, last);
         v0[e] = p;
-        v1[e] = q;
+        v1[e] = hi[e] > lo[e] ? q : p - 1;
         a0[e] = MIN(h, p + 0.5) - MAX(l, p - 0.5);
         a1[e] = MIN(h, q + 0.5) - MAX(l, q - 0.5);
     }
+}
+
+/* keep[e]: voxel e's spans are all non-empty (its box is valid and reaches the window) */
+VECTOR_CLONES static void row_keep(int32_t *const v0[3], int32_t *const v1[3], Py_ssize_t e0,
+                                   Py_ssize_t e1, unsigned char *restrict keep)
+{
+    const int32_t *x0 = v0[0], *x1 = v1[0], *y0 = v0[1], *y1 = v1[1], *z0 = v0[2], *z1 = v1[2];
+    for (Py_ssize_t e = e0; e < e1; e++)
+        keep[e] = (x1[e] >= x0[e]) & (y1[e] >= y0[e]) & (z1[e] >= z0[e]);
 }
 
 /* Phase 2 for one voxel: add kv times each overlap volume to the covered target voxels
@@ -495,27 +504,38 @@ static inline int64_t *plane_at(int64_t *acc, int64_t z, Py_ssize_t rb, Py_ssize
     return acc + (slot >= nz ? slot - nz : slot) * plane;
 }
 
+/* splat's common case, a box at most 2 target voxels wide on each axis: voxels [x0, x1]
+ * (x1 - x0 <= 1) with overlaps ax0, ax1, and likewise y and z */
+static inline void splat_narrow(int64_t *restrict acc, Py_ssize_t rb, Py_ssize_t nz,
+                                Py_ssize_t line, Py_ssize_t plane, int64_t x0, int64_t x1,
+                                double ax0, double ax1, int64_t y0, int64_t y1, double ay0,
+                                double ay1, int64_t z0, int64_t z1, double az0, double az1,
+                                v2d kv)
+{
+    const int two_x = x1 > x0;
+    for (int64_t dz = 0; dz <= z1 - z0; dz++) {
+        int64_t *p = plane_at(acc, z0 + dz, rb, nz, plane) + y0 * line + x0 * 2;
+        const double wz = dz ? az1 : az0;
+        for (int64_t dy = 0; dy <= y1 - y0; dy++) {
+            int64_t *row = p + dy * line;
+            const double wzy = wz * (dy ? ay1 : ay0);
+            if (two_x) {
+                const double w0 = wzy * ax0, w1 = wzy * ax1;
+                const v4d kv2 = {kv[0], kv[1], kv[0], kv[1]}, w2 = {w0, w0, w1, w1};
+                add4(row, kv2, w2);
+            } else {
+                add2(row, kv, wzy * ax0);
+            }
+        }
+    }
+}
+
 static inline void splat(int64_t *restrict acc, Py_ssize_t rb, Py_ssize_t nz, Py_ssize_t line,
                          Py_ssize_t plane, const Span *x, const Span *y, const Span *z, v2d kv)
 {
     if (x->v1 - x->v0 <= 1 && y->v1 - y->v0 <= 1 && z->v1 - z->v0 <= 1) {
-        /* the common case: at most 2 target voxels per axis */
-        const int two_x = x->v1 > x->v0;
-        for (int64_t dz = 0; dz <= z->v1 - z->v0; dz++) {
-            int64_t *p = plane_at(acc, z->v0 + dz, rb, nz, plane) + y->v0 * line + x->v0 * 2;
-            const double wz = dz ? z->a1 : z->a0;
-            for (int64_t dy = 0; dy <= y->v1 - y->v0; dy++) {
-                int64_t *row = p + dy * line;
-                const double wzy = wz * (dy ? y->a1 : y->a0);
-                if (two_x) {
-                    const double w0 = wzy * x->a0, w1 = wzy * x->a1;
-                    const v4d kv2 = {kv[0], kv[1], kv[0], kv[1]}, w2 = {w0, w0, w1, w1};
-                    add4(row, kv2, w2);
-                } else {
-                    add2(row, kv, wzy * x->a0);
-                }
-            }
-        }
+        splat_narrow(acc, rb, nz, line, plane, x->v0, x->v1, x->a0, x->a1, y->v0, y->v1, y->a0,
+                     y->a1, z->v0, z->v1, z->a0, z->a1, kv);
         return;
     }
     /* a box over two voxels wide: overlaps computed as they go */
@@ -580,7 +600,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
     /* row buffers: 7 doubles (boxes), 6 doubles and 6 int32 (their spans) and a Span
      * (still voxels' x) per voxel, flags */
     char *mem = malloc((size_t)n * (13 * sizeof(double) + sizeof(Span) + 8 * sizeof(int32_t) +
-                                    3) + 8);
+                                    4) + 8);
     if (!mem)
         return; /* the caller checks bbox[0] for this */
     double *xmin = (double *)mem, *xmax = xmin + n, *ymin = xmin + 2 * n, *ymax = xmin + 3 * n,
@@ -593,7 +613,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
     int32_t *sv1[3] = {rb_ + 4 * n, rb_ + 5 * n, rb_ + 6 * n};
     /* still flags per pass, kept while the rows reach the same z and y regions */
     unsigned char *fasts[2] = {(unsigned char *)(rb_ + 7 * n), (unsigned char *)(rb_ + 7 * n) + n};
-    unsigned char *reg = fasts[1] + n;
+    unsigned char *keep = fasts[1] + n, *reg = keep + n; /* reg: up to n + 2, last */
     Py_ssize_t known[2][4] = {{-1, -1, -1, -1}, {-1, -1, -1, -1}}, nknown[2] = {0, 0};
     /* Still voxels: offsets exactly 0, so the boxes of phase 1 are base -/+ half a voxel,
      * each side a function of one index, and the mass is sx (sy sz) over the box volume:
@@ -673,6 +693,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                               sv0[1] + i0, sv1[1] + i0, sa0[1] + i0, sa1[1] + i0);
                     row_spans(zmin + i0, zmax + i0, i1 - i0, (int32_t)tz0, (int32_t)tz1 - 1,
                               sv0[2] + i0, sv1[2] + i0, sa0[2] + i0, sa1[2] + i0);
+                    row_keep(sv0, sv1, i0, i1, keep);
                 }
                 /* still voxels of this row share their y and z spans: the (at most 4)
                  * target rows they reach and those rows' weights az * ay, as splat has */
@@ -725,16 +746,30 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                             }
                             continue;
                         }
-                    } else {
-                        if (!(xmax[i] > xmin[i] && ymax[i] > ymin[i] && zmax[i] > zmin[i]))
+                    } else { /* spans from row_spans, read in place */
+                        if (!keep[i])
                             continue;
-                        if (sv1[0][i] < sv0[0][i] || sv1[1][i] < sv0[1][i] ||
-                            sv1[2][i] < sv0[2][i])
-                            continue;
-                        xs = (Span){sv0[0][i], sv1[0][i], sa0[0][i], sa1[0][i], xmin[i], xmax[i]};
-                        ys = (Span){sv0[1][i], sv1[1][i], sa0[1][i], sa1[1][i], ymin[i], ymax[i]};
-                        zs = (Span){sv0[2][i], sv1[2][i], sa0[2][i], sa1[2][i], zmin[i], zmax[i]};
-                        m = mass[i];
+                        const int64_t x0 = sv0[0][i], x1 = sv1[0][i], y0 = sv0[1][i],
+                                      y1 = sv1[1][i], z0 = sv0[2][i], z1 = sv1[2][i];
+                        double val = f64 ? ((const double *)s->values)[vrow + i]
+                                         : (double)((const float *)s->values)[vrow + i];
+                        double kq = sgn * QUANTUM * mass[i];
+                        v2d kv = {kq, kq * (val * inv_vmax)};
+                        if (x1 - x0 <= 1 && y1 - y0 <= 1 && z1 - z0 <= 1) {
+                            splat_narrow(acc, rb, nz, line, plane, x0, x1, sa0[0][i],
+                                         sa1[0][i], y0, y1, sa0[1][i], sa1[1][i], z0, z1,
+                                         sa0[2][i], sa1[2][i], kv);
+                        } else {
+                            xs = (Span){x0, x1, sa0[0][i], sa1[0][i], xmin[i], xmax[i]};
+                            ys = (Span){y0, y1, sa0[1][i], sa1[1][i], ymin[i], ymax[i]};
+                            zs = (Span){z0, z1, sa0[2][i], sa1[2][i], zmin[i], zmax[i]};
+                            splat(acc, rb, nz, line, plane, &xs, &ys, &zs, kv);
+                        }
+                        if (track) {
+                            bx0 = MIN(bx0, x0); by0 = MIN(by0, y0); bz0 = MIN(bz0, z0);
+                            bx1 = MAX(bx1, x1); by1 = MAX(by1, y1); bz1 = MAX(bz1, z1);
+                        }
+                        continue;
                     }
                     double val = f64 ? ((const double *)s->values)[vrow + i]
                                      : (double)((const float *)s->values)[vrow + i];
