@@ -246,15 +246,29 @@ def test_background_from_spec_and_command_line(run, data_dir, tmp_path):
                                                                       b.shape[2] // 2]
 
 
-def test_capture_made_while_the_spec_is_checked_is_used_once(run, data_dir, tmp_path):
+def test_capture_made_while_the_spec_is_checked_is_used_once(run, data_dir, tmp_path,
+                                                            monkeypatch):
     """The volume is captured with the spec's settings before the schema check; the
-    command uses that capture (no second pullback) and writes the same output."""
+    command uses that capture (made once) and writes the output of capturing, then
+    warping. A one-shot warp defers the gather: its planes are gathered as they are
+    streamed, the whole domain never; with frames the whole domain is gathered once."""
+    from volwarp_cli.bspline import capture as capture_mod
+
+    calls = []
+    real = capture_mod.capture_volume
+    monkeypatch.setattr(capture_mod, "capture_volume",
+                        lambda *a, **k: calls.append(k.get("defer")) or real(*a, **k))
     spec = _spec(tmp_path, "version: 1\ncapture: {lattice: 6, oversample: 1}\nsteps:\n"
                  "  - move:\n      - {index: [2, 2, 2], by: [1.5, 0, 0]}\n")
     out = tmp_path / "o.nrrd"
     res = run("warp", "-vv", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out)
     assert res.code == 0, res.stderr
-    assert res.stderr.count("capture (pullback)") == 1
+    assert calls == [True] and "capture (pullback)" not in res.stderr
+    framed = tmp_path / "framed.nrrd"
+    res = run("warp", "-vv", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", framed,
+              "--frames-to", str(tmp_path / "f{frame}.nrrd"))
+    assert res.code == 0, res.stderr
+    assert calls == [True, False] and res.stderr.count("capture (pullback)") == 1
     from volwarp_cli.bspline.capture import capture_volume
     from volwarp_cli.bspline.plan import read_warp_spec
     from volwarp_cli.bspline.warp import output_volume, prepare
@@ -268,6 +282,7 @@ def test_capture_made_while_the_spec_is_checked_is_used_once(run, data_dir, tmp_
     scene, frames = prepare(cap, doc, read_warp_spec(doc))
     expected = output_volume(cap, scene, run_warp(scene, frames)).data
     assert np.array_equal(read_volume(out).data, expected)
+    assert np.array_equal(read_volume(framed).data, expected)
 
 
 @pytest.mark.parametrize("text, input_name, code, words", [

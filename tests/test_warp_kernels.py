@@ -153,6 +153,31 @@ def test_window_keeps_exactly_the_contributions_inside_it(method):
         assert part.any() and whole[~inside].any()
 
 
+@pytest.mark.parametrize("method", ["box", "nearest"])
+def test_values_may_hold_only_the_blocks_planes(method):
+    """The scatter reads a block's samples from a buffer of just its planes (what a
+    capture gathered plane by plane gives) exactly as from the whole domain."""
+    rng = np.random.default_rng(12)
+    dz, dy, dx = 12, 9, 10
+    u = random_offsets((dz, dy, dx), rng, amplitude=1.0)
+    values = rng.uniform(-1, 2, (dz, dy, dx)).astype(np.float32)
+    still = np.zeros((1, 4, 3, 5), np.uint8)
+    still[0, 1:3] = 1  # the still shortcut reads the samples too
+    whole = np.zeros((14, 12, 13, 2), np.int64)
+    parts = np.zeros_like(whole)
+    for z0, z1 in [(0, 5), (5, 6), (6, 12)]:
+        kw = dict(still=still if method == "box" else None, granularity=(2, 3, 3))
+        pushforward.scatter(u, values, (1.2, 1.4, 1.1), (0.9, 1.1, 0.95), (0, 0, z0),
+                            (dx, dy, z1), 1, 2.0, method, whole, **kw)
+        pushforward.scatter(u, values[z0:z1].copy(), (1.2, 1.4, 1.1), (0.9, 1.1, 0.95),
+                            (0, 0, z0), (dx, dy, z1), 1, 2.0, method, parts, planes=(z0, dz),
+                            **kw)
+    assert np.array_equal(whole, parts) and whole.any()
+    with pytest.raises(ValueError, match="outside"):  # a plane of the block not given
+        pushforward.scatter(u, values[2:5].copy(), (1.2, 1.4, 1.1), (0.9, 1.1, 0.95),
+                            (0, 0, 1), (dx, dy, 5), 1, 2.0, method, parts, planes=(2, dz))
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_trilinear_gather_matches_scipy(dtype):
     rng = np.random.default_rng(7)
@@ -308,7 +333,7 @@ def test_vector_clones_give_the_baseline_results(tmp_path):
     for method in ("box", "nearest"):
         for mod, acc in zip((K, base), accs, strict=True):
             acc[:] = 0
-            mod.scatter(u, u, 1, (0, 0, 0), values, (1.5, 2.25, 1.75), (0.93, 1.07, 0.81),
+            mod.scatter(u, u, 1, (0, 0, 0), values, (0, 13), (1.5, 2.25, 1.75), (0.93, 1.07, 0.81),
                         (0, 0, 0), (17, 11, 13), 1, 0.2, method == "box", acc,
                         (0, 22, 0, 16, 0, 17), False,
                         True, still if method == "box" else None, (1, 1, 1))

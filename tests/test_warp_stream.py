@@ -33,6 +33,17 @@ def test_render_once_equals_render(method, shift, stream_planes, monkeypatch):
     full = Scene(cap.domain, cap.grid, dq, 16, method=method).render()
     once = Scene(cap.domain, cap.grid, dq, 16, method=method).render_once()
     assert np.array_equal(once, full)
+    # a deferred capture: planes gathered chunk by chunk as the stream needs them
+    # (overlapping chunks of the two threads included), the whole domain never
+    lazy = capture_volume(Volume(_blob((90, 20, 24))), lattice=(6, 6, 12), oversample=1.5,
+                          defer=True)
+    assert lazy.domain is None
+    value_range = (float(cap.domain.min()), float(cap.domain.max()))
+    scene = Scene(lazy.voxmap, lazy.grid, dq, 16, method=method, domain_range=value_range)
+    assert np.array_equal(scene.render_once(), full)
+    assert scene.sampler is not None  # still not gathered whole
+    assert np.array_equal(scene.render(), full)  # gathers it whole
+    assert np.array_equal(scene.domain, cap.domain) and scene.sampler is None
 
 
 def test_render_once_then_updates_start_from_scratch():

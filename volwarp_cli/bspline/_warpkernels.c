@@ -319,8 +319,9 @@ typedef struct {
     Py_ssize_t cstride, nyb, nxb;
     int npass;
     Py_ssize_t ox, oy, oz; /* domain voxel of uh[:, 1, 1, 1] */
-    const void *values;   /* domain samples [Dz, Dy, Dx] */
+    const void *values;   /* domain samples [planes, Dy, Dx]: domain plane g in values[g - voz] */
     int values_f64;
+    Py_ssize_t voz;
     Py_ssize_t vy, vx;
     double off[3], scale[3];
     Py_ssize_t lo[3], hi[3];
@@ -635,7 +636,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
         const int zok = span_of(-hz + bz, hz + bz, tz0, tz1 - 1, &zstill);
         for (Py_ssize_t f = s->lo[1]; f < s->hi[1]; f++) {
             const double by = s->off[1] + sy * f;
-            const Py_ssize_t vrow = (g * s->vy + f) * s->vx + e_lo;
+            const Py_ssize_t vrow = ((g - s->voz) * s->vy + f) * s->vx + e_lo;
             const Py_ssize_t urow = ((g - s->oz + 1) * s->nyb + (f - s->oy + 1)) * s->nxb +
                                     e_lo - s->ox + 1;
             Span ystill;
@@ -799,8 +800,9 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     long long sign;
     memset(&s, 0, sizeof s);
     int ring;
-    if (!PyArg_ParseTuple(args, "OOi(nnn)O(ddd)(ddd)(nnn)(nnn)LdpO(nnnnnn)ppO(nnn)", &o_uha,
-                          &o_uhb, &npass, &s.ox, &s.oy, &s.oz, &o_values, &s.off[0], &s.off[1],
+    if (!PyArg_ParseTuple(args, "OOi(nnn)O(nn)(ddd)(ddd)(nnn)(nnn)LdpO(nnnnnn)ppO(nnn)", &o_uha,
+                          &o_uhb, &npass, &s.ox, &s.oy, &s.oz, &o_values, &s.voz, &s.vz,
+                          &s.off[0], &s.off[1],
                           &s.off[2], &s.scale[0], &s.scale[1], &s.scale[2], &s.lo[0], &s.lo[1],
                           &s.lo[2], &s.hi[0], &s.hi[1], &s.hi[2], &sign, &s.inv_vmax, &box,
                           &o_acc, &s.tx_lo, &s.tx_hi, &s.ty_lo, &s.ty_hi, &s.tz_lo, &s.tz_hi, &ring, &s.track, &o_still, &s.gran[0],
@@ -831,7 +833,6 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     s.values_f64 = buf_kind(&b[2]) == K_F64;
     s.vy = b[2].shape[1];
     s.vx = b[2].shape[2];
-    s.vz = b[2].shape[0];
     s.acc = b[3].buf;
     s.nz = b[3].shape[0];
     /* planes [tz_lo, tz_hi) held: from slot 0 on, or in a ring of nz slots (slot z mod nz) */
@@ -847,7 +848,9 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
         bad = b[1].shape[k] != b[0].shape[k];
     Py_ssize_t org[3] = {s.ox, s.oy, s.oz};
     Py_ssize_t ub[3] = {b[0].shape[3], b[0].shape[2], b[0].shape[1]};
-    Py_ssize_t vb[3] = {b[2].shape[2], b[2].shape[1], b[2].shape[0]};
+    Py_ssize_t vb[3] = {b[2].shape[2], b[2].shape[1], s.vz}; /* the domain */
+    /* the block's planes are among those given */
+    bad = bad || (s.lo[2] < s.hi[2] && (s.lo[2] < s.voz || s.hi[2] > s.voz + b[2].shape[0]));
     for (int k = 0; k < 3 && !bad; k++)
         bad = s.lo[k] < s.hi[k] && (s.lo[k] < 0 || s.hi[k] > vb[k] || s.lo[k] - org[k] < 0 ||
                                     s.hi[k] - org[k] + 2 > ub[k]);
@@ -990,7 +993,8 @@ static PyMethodDef methods[] = {
      "separable(dq, wx, wy, wz, x0, x1, y0, y1, z0, z1, out, ox, oy, oz): the spline "
      "offsets on a block of domain voxels, three 1-D passes."},
     {"scatter", py_scatter, METH_VARARGS,
-     "scatter(uh, uh_new, npass, origin, values, off, scale, lo, hi, sign, inv_vmax, box, "
+     "scatter(uh, uh_new, npass, origin, values, (voz, dz), off, scale, lo, hi, sign, inv_vmax, "
+     "box, "
      "acc, (tx_lo, tx_hi, ty_lo, ty_hi, tz_lo, tz_hi), ring, track, still, granularity) -> "
      "touched box (x0, y0, z0, x1, y1, z1), empty unless track: add a block's pushforward to "
      "the target voxels in the window (still: uint8 [npass, Rz, Ry, Rx], regions whose "

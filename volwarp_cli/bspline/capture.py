@@ -16,7 +16,7 @@ from ..io.common import ensure_fits_in_memory
 from ..progress import timed
 from ..volume import Volume
 from .lattice import PLACEMENTS, Grid, capture_offsets
-from .pullback import SAMPLINGS, pullback
+from .pullback import SAMPLINGS, Sampler
 
 
 @dataclass
@@ -25,11 +25,13 @@ class Capture:
 
     ``geometry`` is the input volume's geometry with a 1-voxel placeholder
     array (its ``meta`` kept); ``input_dtype`` and ``stats`` (min, max, mean;
-    the mean None when not asked for) describe the captured input;
-    ``domain_range`` is the (min, max) of the domain voxmap when known.
+    the mean None when not asked for) describe the captured input. The
+    domain's samples lie within the input's (min, max): each is one input
+    sample or a convex combination of eight. A deferred capture has no
+    ``domain`` array but a ``sampler`` that gathers its planes on demand.
     """
 
-    domain: np.ndarray
+    domain: np.ndarray | None
     grid: Grid
     placement: str
     oversample: float
@@ -38,7 +40,12 @@ class Capture:
     geometry: Volume
     input_dtype: np.dtype
     stats: tuple[float, float, float | None]
-    domain_range: tuple[float, float] | None = None
+    sampler: Sampler | None = None
+
+    @property
+    def voxmap(self) -> np.ndarray | Sampler:
+        """The domain array, or for a deferred capture its sampler."""
+        return self.domain if self.domain is not None else self.sampler
 
     @property
     def dq(self) -> np.ndarray:
@@ -59,11 +66,13 @@ def domain_dtype(dtype) -> np.dtype:
 
 def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform",
                    oversample: float = 2.0, sampling: str = "linear", pad=None,
-                   mean: bool = True) -> Capture:
+                   mean: bool = True, defer: bool = False) -> Capture:
     """Capture ``vol`` into a domain voxmap (see :mod:`.pullback`).
 
     ``mean``: also find the input's mean for ``stats`` (a capture file keeps
-    it; a one-shot warp has no use for that extra pass).
+    it; a one-shot warp has no use for that extra pass). ``defer``: set the
+    gather up without running it (the one-shot warp gathers the planes as it
+    streams them; ``vol`` must then stay valid).
     """
     if placement not in PLACEMENTS:
         raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
@@ -80,11 +89,15 @@ def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
     dt = domain_dtype(vol.dtype)
     ensure_fits_in_memory(int(np.prod(grid.domain_shape)) * dt.itemsize * 2,
                           f"the {'x'.join(map(str, grid.domain_shape))} domain voxmap")
-    with timed("capture (pullback)"):
-        domain, domain_range = pullback(vol.data, grid, placement, sampling, dt)
+    sampler = Sampler(vol.data, grid, placement, sampling, dt)
+    domain = None
+    if not defer:
+        with timed("capture (pullback)"):
+            domain, _ = sampler.whole()
+        sampler = None
     stats = (lo, hi, float(data.mean(dtype=np.float64)) if mean else None)
     geometry = vol.with_data(np.zeros((1, 1, 1), dtype=vol.dtype))
     if pad is not None:
         pad = tuple(int(v) for v in np.broadcast_to(np.asarray(pad), (3,)))
     return Capture(domain, grid, placement, float(oversample), sampling, pad, geometry,
-                   np.dtype(vol.dtype), stats, domain_range)
+                   np.dtype(vol.dtype), stats, sampler)

@@ -53,6 +53,57 @@ def _axis_weights(coords: np.ndarray, n: int, sampling: str):
     return i0, i1, c - i0
 
 
+class Sampler:
+    """The capture's gather, set up once: domain z planes on demand.
+
+    ``shape`` ``(Dz, Dy, Dx)`` and ``dtype`` are the domain voxmap's. A
+    plane's samples do not depend on which planes are gathered with it, so
+    planes gathered a few at a time (:meth:`planes`, what a one-shot warp
+    streams) equal the whole voxmap's (:meth:`whole`) bit for bit.
+    """
+
+    def __init__(self, data: np.ndarray, grid: Grid, placement: str = "uniform",
+                 sampling: str = "linear", dtype=np.float32):
+        if sampling not in SAMPLINGS:
+            raise VolwarpError(f"unknown sampling {sampling!r} (use linear or nearest)")
+        if tuple(data.shape[::-1]) != tuple(grid.input_shape):
+            raise VolwarpError(f"input shape {data.shape[::-1]} does not match the grid "
+                               f"{grid.input_shape}")
+        coords = capture_coordinates(grid, placement)
+        (x0, x1, fx), (y0, y1, fy), (z0, z1, fz) = (
+            _axis_weights(c, n, sampling) for c, n in zip(coords, grid.input_shape, strict=False))
+        self.shape = tuple(grid.domain_shape[::-1])
+        self.dtype = np.dtype(dtype)
+        src = np.ascontiguousarray(data)
+        self._src = src if src.dtype == self.dtype else src.astype(self.dtype)
+        self._x = tuple(np.ascontiguousarray(a, t) for a, t in
+                        ((x0, np.int32), (x1, np.int32), (fx, np.float64)))
+        self._y = tuple(np.ascontiguousarray(a, t) for a, t in
+                        ((y0, np.int32), (y1, np.int32), (fy, np.float64)))
+        self._z = tuple(np.ascontiguousarray(a, t) for a, t in
+                        ((z0, np.int32), (z1, np.int32), (fz, np.float64)))
+
+    def planes(self, g0: int, g1: int, out: np.ndarray | None = None) -> np.ndarray:
+        """Domain planes [g0, g1) into ``out`` (``(g1 - g0, Dy, Dx)``, default new)."""
+        from ._warpkernels import sample
+
+        if out is None:
+            out = np.empty((g1 - g0,) + self.shape[1:], dtype=self.dtype)
+        z = tuple(a[g0:g1] for a in self._z)
+        sample(self._src, *self._x, *self._y, *z, out, 0, g1 - g0)
+        return out
+
+    def whole(self) -> tuple[np.ndarray, tuple[float, float]]:
+        """The whole voxmap (two threads) and the (min, max) of its samples."""
+        from ._warpkernels import sample
+
+        out = np.empty(self.shape, dtype=self.dtype)
+        parts = run_split(sample, lambda g0, g1: (self._src, *self._x, *self._y, *self._z, out,
+                                                  g0, g1),
+                          0, out.shape[0], out.size)
+        return out, (min(p[0] for p in parts), max(p[1] for p in parts))
+
+
 def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",
              sampling: str = "linear", dtype=np.float32) -> tuple[np.ndarray, tuple[float, float]]:
     """Domain voxmap ``[Dz, Dy, Dx]`` sampled from ``data[z, y, x]`` through the capture map.
@@ -68,23 +119,4 @@ def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",
     sampling : {"linear", "nearest"}
     dtype : float32 or float64, the domain's sample type.
     """
-    if sampling not in SAMPLINGS:
-        raise VolwarpError(f"unknown sampling {sampling!r} (use linear or nearest)")
-    if tuple(data.shape[::-1]) != tuple(grid.input_shape):
-        raise VolwarpError(f"input shape {data.shape[::-1]} does not match the grid "
-                           f"{grid.input_shape}")
-    coords = capture_coordinates(grid, placement)
-    (x0, x1, fx), (y0, y1, fy), (z0, z1, fz) = (
-        _axis_weights(c, n, sampling) for c, n in zip(coords, grid.input_shape, strict=False))
-    out = np.empty(grid.domain_shape[::-1], dtype=dtype)
-    src = np.ascontiguousarray(data)
-    if src.dtype != np.dtype(dtype):
-        src = src.astype(dtype)
-    from ._warpkernels import sample
-
-    x0, x1, y0, y1, z0, z1 = (np.ascontiguousarray(i, np.int32) for i in (x0, x1, y0, y1, z0, z1))
-    fx, fy, fz = (np.ascontiguousarray(w, np.float64) for w in (fx, fy, fz))
-    parts = run_split(sample,
-                      lambda g0, g1: (src, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1),
-                      0, out.shape[0], out.size)
-    return out, (min(p[0] for p in parts), max(p[1] for p in parts))
+    return Sampler(data, grid, placement, sampling, dtype).whole()

@@ -91,7 +91,7 @@ def fill_halo(uh, faces=None):
 
 def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None,
             origin=(0, 0, 0), tzo=0, u_new=None, bounds=True, still=None, granularity=None,
-            tz_hi=None, ring=False, window=None):
+            tz_hi=None, ring=False, window=None, planes=None):
     """Add (``sign`` +1) or remove (-1) the contributions of domain block [lo, hi) (x, y, z).
 
     With ``u_new`` (deformation offsets of another lattice, same layout as
@@ -108,6 +108,9 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     ``acc[z % len(acc)]``; contributions to other planes are left out, and
     with ``window`` ``((x0, x1), (y0, y1))`` those outside target columns
     [x0, x1) and rows [y0, y1) too.
+    ``values`` holds the domain's samples ``[z, y, x]``, or with ``planes``
+    ``(z0, dz)`` only some z planes of a domain of ``dz`` planes, plane ``g``
+    in ``values[g - z0]`` (those of the block at least).
     ``split_z``: domain z indices ``(z1, z2)`` such that [lo, z1) and [z2, hi)
     are known to write disjoint target z ranges; those halves then run on two
     threads, and the band [z1, z2) after them (integer sums: the result does
@@ -131,7 +134,7 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
 
     def run(a, b):
         return np.array(kern(u, u if u_new is None else u_new, 1 if u_new is None else 2, org,
-                             values, off, scale, tuple(int(v) for v in a),
+                             values, vplanes, off, scale, tuple(int(v) for v in a),
                              tuple(int(v) for v in b), int(sign), inv, box, acc,
                              clip, ring, bounds, still, gran))
 
@@ -140,6 +143,7 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     clip = (int(x0), int(x1), int(y0), int(y1), int(tzo), int(tz_end))
 
     gran = (1, 1, 1) if granularity is None else tuple(int(v) for v in granularity)
+    vplanes = (0, values.shape[0]) if planes is None else (int(planes[0]), int(planes[1]))
 
     if split_z is None or not lo[2] < split_z[0] <= split_z[1] < hi[2]:
         boxes = [run(lo, hi)]

@@ -113,8 +113,10 @@ class Scene:
 
     Parameters
     ----------
-    domain : (Dz, Dy, Dx) float32 or float64
-        The captured (pulled back) density.
+    domain : (Dz, Dy, Dx) float32 or float64, or a :class:`~.pullback.Sampler`
+        The captured (pulled back) density; a sampler's planes are gathered
+        as :meth:`render_once` streams them (never whole), and in full the
+        first time anything else needs them.
     grid : lattice.Grid
     dq : (Cz, Cy, Cx, 3) float64
         Control-point offsets from the uniform lattice (input voxels, x y z).
@@ -124,7 +126,10 @@ class Scene:
     evaluator : {"separable", "table"}
     background : float
         Value of the space around the model (uncovered target voxels).
-    domain_range : (min, max) of ``domain`` when already known (saves two passes).
+    domain_range : (min, max) bounding the domain's samples (default: the domain's
+        own, found in two passes): sets the fixed-point scale of the sums, so
+        scenes meant to agree bit for bit must get the same (a capture's:
+        the input's range).
 
     Attributes
     ----------
@@ -143,7 +148,10 @@ class Scene:
             raise VolwarpError(f"unknown evaluator {evaluator!r} (use separable or table)")
         if tuple(domain.shape[::-1]) != grid.domain_shape:
             raise VolwarpError("domain voxmap does not match the lattice")
-        self.domain = domain
+        deferred = hasattr(domain, "planes")  # a Sampler
+        self.sampler = domain if deferred else None
+        self._domain = None if deferred else domain
+        self.dtype = np.dtype(domain.dtype)
         self.grid = grid
         self.dq = np.array(dq, dtype=np.float64)
         self.pad = np.array([int(p) for p in np.broadcast_to(pad, (3,))])
@@ -154,10 +162,11 @@ class Scene:
         self.background = float(background)
         if not np.isfinite(self.background):
             raise VolwarpError(f"the background must be a finite number, got {background}")
+        size = int(np.prod(domain.shape))
         # max |v| without a whole-volume temporary
-        if domain_range is None and domain.size:
-            domain_range = (float(domain.min()), float(domain.max()))
-        vmax = max(-domain_range[0], domain_range[1]) if domain.size else 0.0
+        if domain_range is None and size:
+            domain_range = (float(self.domain.min()), float(self.domain.max()))
+        vmax = max(-domain_range[0], domain_range[1]) if size else 0.0
         self.vmax = vmax if vmax > 0 else 1.0
         self.offset = grid.affine_offset(self.pad)
         self.scale = grid.scale
@@ -166,12 +175,21 @@ class Scene:
         self.scratch = Scratch()
 
     @property
+    def domain(self) -> np.ndarray:
+        """The domain voxmap (a deferred one gathered in full on first use)."""
+        if self._domain is None:
+            with timed("capture (pullback)"):
+                self._domain, _ = self.sampler.whole()
+            self.sampler = None
+        return self._domain
+
+    @property
     def target_shape(self) -> tuple[int, int, int]:
         """Target size (x, y, z)."""
         return tuple(int(i + 2 * p) for i, p in zip(self.grid.input_shape, self.pad, strict=False))
 
     def _contribute(self, dqs, vlo, vhi, sign, acc=None, tzo=0, parallel=True, scratch=None,
-                    bounds=False, tz_hi=None, ring=False, window=None):
+                    bounds=False, tz_hi=None, ring=False, window=None, values=None):
         """Add (``sign`` +1) or remove (-1) the contributions of domain voxels [vlo, vhi).
 
         ``dqs``: one lattice, or two (old, new) whose contributions are
@@ -183,7 +201,9 @@ class Scene:
         ``acc`` (default the scene's) holds target z planes from ``tzo`` on
         (up to ``tz_hi``; with ``ring``, plane z in ``acc[z % len(acc)]``);
         ``window`` ``((x0, x1), (y0, y1))`` also leaves out target voxels
-        outside those columns and rows.
+        outside those columns and rows. ``values``: ``(array, z0)``, the
+        samples of domain planes from ``z0`` on (those of [vlo, vhi) at
+        least), instead of the domain's.
         ``parallel`` lets large blocks use two threads. ``scratch`` (a
         :class:`Scratch`, default the scene's) holds the deformation buffers.
         Returns the touched target bounding box with ``bounds``, else None.
@@ -201,6 +221,10 @@ class Scene:
         cz = int(max(4, CHUNK_BYTES // ((nx + 2) * (ny + 2) * 12 * len(dqs))))
         evaluate = basis.EVALUATORS[self.evaluator]
         still = pushforward.still_regions(dqs) if self.method == "box" else None
+        if values is None:
+            samples, planes = self.domain, None
+        else:
+            samples, planes = values[0], (values[1], grid.domain_shape[2])
         boxes = []
         for z0 in range(int(vlo[2]), int(vhi[2]), cz):
             z1 = min(z0 + cz, int(vhi[2]))
@@ -230,12 +254,12 @@ class Scene:
                     pushforward.fill_halo(ub, faces)
             hi = (int(vhi[0]), int(vhi[1]), z1)
             split = self._split_z(np.stack(dqs), lo, hi, still) if parallel else None
-            bb = pushforward.scatter(planar[0], self.domain, self.offset, self.scale, lo, hi,
+            bb = pushforward.scatter(planar[0], samples, self.offset, self.scale, lo, hi,
                                      sign, self.vmax, self.method, acc, split_z=split,
                                      origin=origin, tzo=tzo, tz_hi=tz_hi, ring=ring,
                                      u_new=planar[1] if len(planar) > 1 else None,
                                      bounds=bounds, still=still, window=window,
-                                     granularity=grid.granularity)
+                                     granularity=grid.granularity, planes=planes)
             if bb is not None:
                 boxes.append(bb)
         if not boxes:
@@ -305,7 +329,7 @@ class Scene:
     def render(self) -> np.ndarray:
         """Full computation with the current lattice; returns the target ``[z, y, x]``."""
         tshape = self.target_shape[::-1]
-        out_dtype = np.float64 if self.domain.dtype == np.float64 else np.float32
+        out_dtype = np.float64 if self.dtype == np.float64 else np.float32
         nbytes = int(np.prod(tshape)) * (16 + np.dtype(out_dtype).itemsize) + 2 * CHUNK_BYTES
         ensure_fits_in_memory(nbytes, "the warp's target accumulators")
         if self.acc is None:
@@ -331,10 +355,12 @@ class Scene:
         clipped to the planes held, so every voxel gets exactly the sums of a
         full :meth:`render`, and the whole-target accumulators (16 bytes per
         voxel) are never allocated. Later :meth:`set_lattice` calls start
-        from scratch.
+        from scratch. A deferred domain (a sampler) is gathered chunk by
+        chunk just before its chunk is scattered, never whole: its gather
+        runs in the two threads, and its samples are read back from cache.
         """
         tx, ty, tz = self.target_shape
-        out_dtype = np.float64 if self.domain.dtype == np.float64 else np.float32
+        out_dtype = np.float64 if self.dtype == np.float64 else np.float32
         s = float(self.scale[2])
         chunk = max(1, int(STREAM_PLANES / s))  # domain planes per step
         r_lo, r_hi = self._target_z_reach(self.dq, 0, chunk)
@@ -346,12 +372,16 @@ class Scene:
         workers = 2 if (os.cpu_count() or 1) >= 2 and tz >= 2 * planes else 1
         cuts = [tz * i // workers for i in range(workers + 1)]
 
+        sampler = self.sampler
+
         def stream(t_lo, t_hi):
             # a ring of target planes: plane z in acc[z % planes]; planes [base, ...)
             # are still accumulating, those below are finalized
             acc = np.zeros((planes, ty, tx, 2), dtype=np.int64)
             scratch = Scratch()
             base = t_lo
+            gathered = None if sampler is None else np.empty((chunk,) + sampler.shape[1:],
+                                                             dtype=sampler.dtype)
 
             def flush(upto):
                 nonlocal base
@@ -370,9 +400,12 @@ class Scene:
                 flush(min(max(r_lo, base), t_hi))  # no later chunk reaches below r_lo
                 if min(r_hi, t_hi) - base > planes:  # pragma: no cover - cannot happen
                     raise AssertionError("rolling accumulator too small")
+                values = None
+                if sampler is not None:
+                    values = (sampler.planes(g0, g1, out=gathered[:g1 - g0]), g0)
                 self._contribute([self.dq], (0, 0, g0), (dshape[0], dshape[1], g1), 1, acc=acc,
                                  tzo=base, tz_hi=min(base + planes, t_hi), ring=True,
-                                 parallel=False, scratch=scratch)
+                                 parallel=False, scratch=scratch, values=values)
             flush(t_hi)
 
         with timed(f"deformation + {self.method} pushforward + finalize ({workers} threads)"):

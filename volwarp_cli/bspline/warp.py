@@ -51,10 +51,10 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     if any(p < n - 1 for p, n in zip(pad, needed, strict=False)):
         log.warning("pad %s is smaller than the largest displacement %s: material moved "
                     "outside the padded grid is cut off", list(pad), [max(n - 1, 0) for n in needed])
-    scene = Scene(cap.domain, cap.grid, dq0, pad, method=method or spec.pushforward,
+    scene = Scene(cap.voxmap, cap.grid, dq0, pad, method=method or spec.pushforward,
                   evaluator=evaluator or spec.evaluator,
                   background=spec.background if background is None else background,
-                  domain_range=cap.domain_range)
+                  domain_range=cap.stats[:2])
     return scene, frames
 
 

@@ -53,8 +53,9 @@ def _unchecked_capture_settings(doc):
         return None
 
 
-def _capture(vol, settings, input):
-    """``vol`` captured with ``settings``; errors name the input."""
+def _capture(vol, settings, input, defer):
+    """``vol`` captured with ``settings``; errors name the input. ``defer``: leave the
+    gather to the warp (a one-shot warp gathers the planes as it streams them)."""
     from ..bspline.capture import capture_volume
     from ..errors import SpecError, VolwarpError
 
@@ -62,20 +63,20 @@ def _capture(vol, settings, input):
     try:
         return capture_volume(vol, lattice=s.lattice, placement=s.placement,
                               oversample=s.oversample, sampling=s.sampling, pad=None,
-                              mean=False)
+                              mean=False, defer=defer)
     except SpecError:
         raise
     except VolwarpError as exc:
         raise VolwarpError(f"{input}: {exc}") from None
 
 
-def _capture_early(reading, settings, input):
+def _capture_early(reading, settings, input, defer):
     """The capture, started before the spec is checked; None where it cannot be made
     (the capture after the check then reports why, in order)."""
     if settings is None:
         return None
     try:
-        return _capture(reading.result(), settings, input)
+        return _capture(reading.result(), settings, input, defer)
     except Exception:
         return None
 
@@ -113,6 +114,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     if frames_to:
         _check_pattern(frames_to)
     is_capture = input.lower().endswith(".vwc")
+    one_shot = not frames_to  # only the final lattice is rendered, streamed
     if is_capture and (raw is not None or volume_index is not None):
         raise click.UsageError("--raw-* and --volume-index describe volume inputs, "
                                f"not the capture file {input}")
@@ -133,7 +135,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         doc = load_spec(spec_path)
         if reading is not None:
             settings = _unchecked_capture_settings(doc)
-            early = pool.submit(_capture_early, reading, settings, input)
+            early = pool.submit(_capture_early, reading, settings, input, one_shot)
         validate(doc, load_schema("warp"))
         spec = read_warp_spec(doc)
         if is_capture:
@@ -146,7 +148,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             del reading, early  # the futures hold the volume and the capture too
     if not is_capture:
         if cap is None:
-            cap = _capture(vol, spec.capture, input)
+            cap = _capture(vol, spec.capture, input, one_shot)
         del vol
     scene, frames = prepare(cap, doc, spec, method=pushforward, evaluator=evaluator,
                             background=background)
