@@ -47,10 +47,11 @@ PARALLEL_MIN_VOXELS = 1 << 18
 #: Size of the deformation buffers of one z chunk (the array is never held whole).
 CHUNK_BYTES = 32 << 20
 #: Cost of a voxel outside the still regions (evaluated, boxed, scattered) relative
-#: to one inside (the shortcut), for choosing between an update and a full pass.
-#: Fitted on 128^3 at oversample 2 with one point moved: a 9^3 lattice's update
-#: took 0.26-0.28 s on the first move and 0.36-0.44 s on the next, a full pass
-#: 0.34-0.38 s; a 13^3 lattice's 0.06-0.10 s against 0.26-0.27 s.
+#: to one inside (the shortcut), for choosing between the ways of an update. Timed
+#: on 128^3 at oversample 2 (9^3 and 13^3 lattices, one or three points moved, an
+#: edge point, the papers' size; each way forced): a least-squares fit gives 2.9,
+#: and 2.4 picks the fastest way in all but the papers' size, where it takes a full
+#: pass of 9.1 ms over a rebuild of 7.9 ms (a tie in its count).
 GENERAL_COST = 2.4
 #: Target z planes covered by one step of :meth:`Scene.render_once`'s stream.
 STREAM_PLANES = 16
