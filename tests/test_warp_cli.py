@@ -320,3 +320,42 @@ def test_a_failed_early_capture_is_reported_after_the_spec_check(run, tmp_path):
     res = run("warp", src, "--spec", _spec(tmp_path, "version: 1\nsteps: []\nbogus: 1\n"),
               "-o", out)
     assert res.code == 2 and "bogus" in res.stderr, res.stderr
+
+
+@pytest.mark.parametrize("extra", [[], ["--crop"], ["--dtype", "int16", "--byte-order", "big"],
+                                   ["--crop", "--dtype", "float32"]])
+def test_streamed_nrrd_output_is_the_whole_targets_file(run, data_dir, tmp_path, extra):
+    """A one-shot warp to raw NRRD writes its planes as the warp finishes them; the file
+    is byte for byte the one written from the whole target (the --frames-to path)."""
+    spec = SPECS / "warp-ball.yaml"
+    src = data_dir / "ball_30_uint8.nrrd"
+    streamed, whole = tmp_path / "streamed.nrrd", tmp_path / "whole.nrrd"
+    assert run("warp", src, "--spec", spec, "-o", streamed, *extra).code == 0
+    res = run("warp", src, "--spec", spec, "-o", whole, *extra,
+              "--frames-to", str(tmp_path / "f{frame}.nrrd"))
+    assert res.code == 0, res.stderr
+    assert streamed.read_bytes() == whole.read_bytes()
+
+
+def test_a_warp_failing_midway_leaves_the_existing_output(run, data_dir, tmp_path,
+                                                          monkeypatch):
+    from volwarp_cli.bspline import scene as scene_mod
+
+    spec = SPECS / "warp-ball.yaml"
+    out = tmp_path / "o.nrrd"
+    out.write_bytes(b"an earlier result")
+    calls = []
+    real = scene_mod.Scene._contribute
+
+    def failing(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise MemoryError("out of memory midway")
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(scene_mod.Scene, "_contribute", failing)
+    monkeypatch.setattr(scene_mod, "STREAM_PLANES", 1)  # many chunks: some planes written
+    res = run("warp", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out)
+    assert len(calls) >= 3 and res.code == 1 and "memory" in res.stderr
+    assert out.read_bytes() == b"an earlier result"
+    assert [p.name for p in tmp_path.iterdir()] == ["o.nrrd"]

@@ -346,7 +346,7 @@ class Scene:
         self.last_touched = ((0, 0, 0), self.target_shape)
         return self.out
 
-    def render_once(self) -> np.ndarray:
+    def render_once(self, sink=None) -> np.ndarray | None:
         """The same target as :meth:`render`, without keeping accumulators for later updates.
 
         Two threads each stream one half of the target along z: domain z
@@ -359,6 +359,11 @@ class Scene:
         from scratch. A deferred domain (a sampler) is gathered chunk by
         chunk just before its chunk is scattered, never whole: its gather
         runs in the two threads, and its samples are read back from cache.
+
+        ``sink(z0, z1, planes)``, if given, receives the finished target planes
+        [z0, z1) (``[z1 - z0, y, x]``, a buffer reused after the call) from the
+        two threads, each range once, in no particular order; the whole
+        target is then never held and None is returned.
         """
         tx, ty, tz = self.target_shape
         out_dtype = np.float64 if self.dtype == np.float64 else np.float32
@@ -366,9 +371,10 @@ class Scene:
         chunk = max(1, int(STREAM_PLANES / s))  # domain planes per step
         r_lo, r_hi = self._target_z_reach(self.dq, 0, chunk)
         planes = r_hi - r_lo + 2  # target planes one step can reach (+ rounding)
-        ensure_fits_in_memory(tx * ty * tz * np.dtype(out_dtype).itemsize
+        held = planes if sink is not None else tz  # target planes held at a time
+        ensure_fits_in_memory(tx * ty * held * np.dtype(out_dtype).itemsize
                               + 2 * planes * tx * ty * 16, "the warped target")
-        out = np.empty((tz, ty, tx), dtype=out_dtype)
+        out = None if sink is not None else np.empty((tz, ty, tx), dtype=out_dtype)
         dshape = self.grid.domain_shape
         workers = 2 if (os.cpu_count() or 1) >= 2 and tz >= 2 * planes else 1
         cuts = [tz * i // workers for i in range(workers + 1)]
@@ -383,15 +389,19 @@ class Scene:
             base = t_lo
             gathered = None if sampler is None else np.empty((chunk,) + sampler.shape[1:],
                                                              dtype=sampler.dtype)
+            done = None if sink is None else np.empty((planes, ty, tx), dtype=out_dtype)
 
             def flush(upto):
                 nonlocal base
                 while base < upto:
                     s0 = base % planes
                     k = min(upto - base, planes - s0)  # contiguous slots
+                    dest = out[base:base + k] if sink is None else done[:k]
                     pushforward.finalize(acc[s0:s0 + k], self.vmax, (0, 0, 0), (tx, ty, k),
-                                         out[base:base + k], parallel=False,
+                                         dest, parallel=False,
                                          background=self.background, clear=True)
+                    if sink is not None:
+                        sink(base, base + k, dest)
                     base += k
 
             g_lo, g_hi = self._domain_z_window(self.dq, t_lo, t_hi)

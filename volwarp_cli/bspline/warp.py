@@ -58,18 +58,21 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     return scene, frames
 
 
-def run(scene: Scene, frames, on_frame=None) -> np.ndarray:
+def run(scene: Scene, frames, on_frame=None, sink=None) -> np.ndarray | None:
     """Apply the frames; ``on_frame(n, frame_or_None, target)`` after each (incremental).
 
     Without ``on_frame`` only the final lattice is rendered (in full, without
     keeping accumulators), which gives the same target as the incremental
-    sequence.
+    sequence; with ``sink`` too, its planes go to ``sink`` as they are
+    finished (see :meth:`Scene.render_once`) and None is returned.
     """
     if on_frame is None:
         if frames:
             scene.set_lattice(frames[-1].dq)
         with timed("warp (deformation + pushforward)"):
-            return scene.render_once()
+            return scene.render_once(sink)
+    if sink is not None:
+        raise ValueError("frames are rendered whole: no sink")
     with timed("warp frame 0 (full)"):
         on_frame(0, None, scene.render())
     with progress(len(frames), "warp") as bar:
@@ -89,17 +92,52 @@ def output_volume(cap: Capture, scene: Scene, target: np.ndarray, *, crop: bool 
     anatomy stays at the same world position; ``crop`` cuts back to the
     input's extent (and origin).
     """
+    window, origin = _output_window(cap, scene, crop)
+    data = cast_samples(np.ascontiguousarray(target[window]), dtype or cap.input_dtype,
+                        what="warped volume")
+    g = cap.geometry
+    return Volume(data, spacing=g.spacing, origin=origin, direction=g.direction, space=g.space,
+                  meta=g.meta)
+
+
+def output_planes(cap: Capture, scene: Scene, *, crop: bool = False, dtype=None):
+    """:func:`output_volume` for a target that arrives as z planes.
+
+    Returns the output Volume with a zero-strided placeholder of its shape and
+    dtype (for the file's header), and ``convert(z0, planes)``: target planes
+    [z0, z0 + k) as ``(output z0, samples)``, the part :func:`output_volume`
+    keeps and converts in the same way, or None when it keeps none of them.
+    """
+    window, origin = _output_window(cap, scene, crop)
+    out_dtype = np.dtype(dtype or cap.input_dtype)
+    shape = tuple(w.stop - w.start for w in window)
+    g = cap.geometry
+    template = Volume(np.broadcast_to(np.zeros((), out_dtype), shape), spacing=g.spacing,
+                      origin=origin, direction=g.direction, space=g.space, meta=g.meta)
+    wz, wy, wx = window
+
+    def convert(z0: int, planes: np.ndarray):
+        a, b = max(z0, wz.start), min(z0 + len(planes), wz.stop)
+        if a >= b:
+            return None
+        part = np.ascontiguousarray(planes[a - z0:b - z0, wy, wx])
+        return a - wz.start, cast_samples(part, out_dtype, what="warped volume")
+
+    return template, convert
+
+
+def _output_window(cap: Capture, scene: Scene, crop: bool):
+    """The output's part of the target (slices z, y, x) and its origin.
+
+    The padded target's origin is shifted by ``pad`` voxels so that unwarped
+    anatomy stays in place; ``crop`` keeps the input's extent (and origin).
+    """
     g = cap.geometry
     pad = np.array(scene.pad)
-    data = target
+    tx, ty, tz = scene.target_shape
     if crop:
         px, py, pz = (int(v) for v in pad)
         nx, ny, nz = cap.grid.input_shape
-        data = data[pz:pz + nz, py:py + ny, px:px + nx]
-        origin = g.origin
-    else:
-        origin = g.origin - g.direction @ (g.spacing * pad)
-    out_dtype = dtype or cap.input_dtype
-    data = cast_samples(np.ascontiguousarray(data), out_dtype, what="warped volume")
-    return Volume(data, spacing=g.spacing, origin=origin, direction=g.direction, space=g.space,
-                  meta=g.meta)
+        return (slice(pz, pz + nz), slice(py, py + ny), slice(px, px + nx)), g.origin
+    origin = g.origin - g.direction @ (g.spacing * pad)
+    return (slice(0, tz), slice(0, ty), slice(0, tx)), origin

@@ -129,7 +129,13 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                                                       True)
         from ..bspline.capture_file import read_capture
         from ..bspline.plan import read_warp_spec
-        from ..bspline.warp import check_capture_settings, output_volume, prepare, run
+        from ..bspline.warp import (
+            check_capture_settings,
+            output_planes,
+            output_volume,
+            prepare,
+            run,
+        )
         from ..spec.loader import load_schema, load_spec, validate
 
         doc = load_spec(spec_path)
@@ -166,5 +172,20 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                                     sub=fr.sub if fr else 0)
             write(target, name)
 
+    if one_shot and output.lower().endswith(".nrrd") and not compress:
+        # raw NRRD: the warp's planes go to the file as they are finished (the
+        # whole target is never held, and the writing runs in the warp's threads)
+        from ..io.nrrd import nrrd_plane_writer
+
+        template, convert = output_planes(cap, scene, crop=crop, dtype=dtype)
+        template = stamp(template, "warp", input, spec_path)
+        with nrrd_plane_writer(template, output, byte_order=byte_order) as write_planes:
+            def sink(z0, z1, planes):
+                part = convert(z0, planes)
+                if part is not None:
+                    write_planes(*part)
+
+            run(scene, frames, sink=sink)
+        return
     target = run(scene, frames, on_frame)
     write(target, output)

@@ -15,6 +15,7 @@ here rather than by pynrrd so that every error names the field and the file.
 from __future__ import annotations
 
 import bz2
+import contextlib
 import gzip
 import os
 import re
@@ -392,6 +393,58 @@ def _write_payload(fh, data: np.ndarray, encoding: str, level: int) -> None:
         return
     with gzip.GzipFile(filename="", fileobj=fh, mode="wb", compresslevel=level, mtime=0) as gz:
         gz.write(memoryview(data).cast("B"))
+
+
+@contextlib.contextmanager
+def nrrd_plane_writer(vol: Volume, path: str | os.PathLike, *, byte_order: str = "little"):
+    """Write a raw single-file NRRD whose z planes arrive one range at a time.
+
+    ``vol`` gives the header: geometry, meta, and ``data`` of the output's
+    shape and dtype (a zero-strided placeholder will do). Yields
+    ``write(z0, planes)``, which puts ``planes`` (``[k, y, x]``, that dtype)
+    at planes [z0, z0 + k) with ``pwrite``: callable from several threads at
+    once, in any order. The file is the same, byte for byte, as
+    :func:`write_nrrd` of the whole volume, once every plane is written; it
+    appears at ``path`` only if the block ends without an error (atomic).
+    """
+    dtype = check_dtype(vol.data.dtype, str(path))
+    header = nrrd_header(vol, dtype, encoding="raw", byte_order=byte_order)
+    nz, ny, nx = vol.data.shape
+    plane_bytes = ny * nx * dtype.itemsize
+    with atomic_output(path) as tmp:
+        fd = os.open(tmp, os.O_WRONLY)
+        try:
+            _pwrite_all(fd, header, 0)
+            os.ftruncate(fd, len(header) + nz * plane_bytes)
+
+            def write(z0: int, planes: np.ndarray) -> None:
+                if planes.dtype != dtype or planes.shape[1:] != (ny, nx) or not (
+                        0 <= z0 and z0 + len(planes) <= nz):
+                    raise ValueError("planes outside the volume or of another type")
+                payload = with_byte_order(planes, byte_order)
+                offset = len(header) + z0 * plane_bytes
+                _pwrite_all(fd, memoryview(payload).cast("B"), offset)
+                if _START_WRITEBACK:
+                    os.posix_fadvise(fd, offset, payload.nbytes, os.POSIX_FADV_DONTNEED)
+
+            yield write
+        finally:
+            os.close(fd)
+
+
+#: Start writing finished planes back to disk as they are written (Linux: DONTNEED
+#: starts writeback, and pages still dirty or under writeback stay cached). Renaming
+#: onto an existing output makes ext4 write the new file's data back at once
+#: (auto_da_alloc, for crash safety): 0.05 s of a 256^3 warp command's tail, done
+#: here in the warp's threads instead (paired A/B of the command: 0.97).
+_START_WRITEBACK = hasattr(os, "posix_fadvise")
+
+
+def _pwrite_all(fd: int, data, offset: int) -> None:
+    view = memoryview(data)
+    while len(view):
+        n = os.pwrite(fd, view, offset)
+        view, offset = view[n:], offset + n
 
 
 def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
