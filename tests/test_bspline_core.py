@@ -14,6 +14,7 @@ from volwarp_cli.bspline.handles import map_params, solve
 from volwarp_cli.bspline.lattice import Grid, affected_regions, capture_offsets, window_reduce
 from volwarp_cli.bspline.pullback import capture_coordinates
 from volwarp_cli.bspline.scene import Scene
+from volwarp_cli.errors import VolwarpError
 from volwarp_cli.volume import Volume
 
 
@@ -355,5 +356,8 @@ def test_update_touching_most_of_the_lattice_recomputes_in_full(caplog):
     with caplog.at_level("DEBUG", logger="volwarp"):
         scene.set_lattice(dq)
     assert "by full" in caplog.text
+    scene.update = "zero"  # the papers' approximation is not one of the ways
+    with pytest.raises(VolwarpError, match="unknown update"):
+        scene.set_lattice(cap.dq)
     assert scene.last_touched == ((0, 0, 0), scene.target_shape)
     assert np.array_equal(scene.out, Scene(cap.domain, cap.grid, dq, 4).render())

@@ -420,6 +420,9 @@ def test_nrrd_written_plane_by_plane_is_the_whole_files_bytes(tmp_path, dtype, o
         with pytest.raises(ValueError):
             write(0, data[:1].astype(np.float64))
     assert streamed.read_bytes() == whole.read_bytes()
+    with pytest.raises(ValueError, match="closed"):  # a straggler thread writes nothing
+        write(0, data[:1])
+    assert streamed.read_bytes() == whole.read_bytes()
     # an error inside the block: no file, and an existing one is left as it was
     with pytest.raises(RuntimeError), nrrd_plane_writer(template, whole) as write:
         write(0, data[:5])

@@ -87,8 +87,11 @@ def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
     grid = Grid.create(vol.shape_xyz, lattice, oversample)
     capture_offsets(grid, placement)  # validates the placement for this lattice
     dt = domain_dtype(vol.dtype)
-    ensure_fits_in_memory(int(np.prod(grid.domain_shape)) * dt.itemsize * 2,
-                          f"the {'x'.join(map(str, grid.domain_shape))} domain voxmap")
+    if not defer:
+        ensure_fits_in_memory(int(np.prod(grid.domain_shape)) * dt.itemsize * 2,
+                              f"the {'x'.join(map(str, grid.domain_shape))} domain voxmap")
+    elif np.dtype(vol.dtype) != dt:  # the sampler's copy of the input in the domain's type
+        ensure_fits_in_memory(data.size * dt.itemsize, "the input's samples as floats")
     sampler = Sampler(vol.data, grid, placement, sampling, dt)
     domain = None
     if not defer:

@@ -128,9 +128,9 @@ class Scene:
     background : float
         Value of the space around the model (uncovered target voxels).
     domain_range : (min, max) bounding the domain's samples (default: the domain's
-        own, found in two passes): sets the fixed-point scale of the sums, so
-        scenes meant to agree bit for bit must get the same (a capture's:
-        the input's range).
+        own, found in two passes, which gathers a deferred domain whole): sets
+        the fixed-point scale of the sums, so scenes meant to agree bit for bit
+        must get the same (a capture's: the input's range).
 
     Attributes
     ----------
@@ -300,7 +300,8 @@ class Scene:
         if still is not None:  # general voxels cost more: balance by work, not planes
             plane_work = self._plane_work(still, lo, hi)
             cum = np.cumsum(plane_work)
-            mid = int(lo[2]) + int(np.searchsorted(cum, 0.5 * cum[-1]))
+            # planes lo .. lo + i hold half the work: split after them
+            mid = int(lo[2]) + int(np.searchsorted(cum, 0.5 * cum[-1])) + 1
         for gap in range(2, max(3, (int(hi[2]) - int(lo[2])) // 4)):
             z1 = mid - gap // 2
             z2 = z1 + gap
@@ -371,7 +372,9 @@ class Scene:
         chunk = max(1, int(STREAM_PLANES / s))  # domain planes per step
         r_lo, r_hi = self._target_z_reach(self.dq, 0, chunk)
         planes = r_hi - r_lo + 2  # target planes one step can reach (+ rounding)
-        held = planes if sink is not None else tz  # target planes held at a time
+        # target planes held at a time: the whole target, or each thread's finished
+        # planes and their converted copy
+        held = 4 * planes if sink is not None else tz
         ensure_fits_in_memory(tx * ty * held * np.dtype(out_dtype).itemsize
                               + 2 * planes * tx * ty * 16, "the warped target")
         out = None if sink is not None else np.empty((tz, ty, tx), dtype=out_dtype)
@@ -464,6 +467,8 @@ class Scene:
         work = {"subtract": self._work([self.dq, dq], vlo, vhi),
                 "rebuild": self._work([dq], *block[2:]),
                 "full": self._work([dq], (0, 0, 0), dshape)}
+        if self.update not in (None, *work):
+            raise VolwarpError(f"unknown update {self.update!r} (use subtract, rebuild or full)")
         how = self.update or min(("full", "rebuild", "subtract"), key=work.get)  # ties: full
         log.debug("update of regions %s..%s by %s (work: %s)", rlo.tolist(), rhi.tolist(),
                   how, {k: round(v) for k, v in work.items()})

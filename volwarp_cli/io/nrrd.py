@@ -407,12 +407,20 @@ def nrrd_plane_writer(vol: Volume, path: str | os.PathLike, *, byte_order: str =
     :func:`write_nrrd` of the whole volume, once every plane is written; it
     appears at ``path`` only if the block ends without an error (atomic).
     """
+    import threading
+
     dtype = check_dtype(vol.data.dtype, str(path))
     header = nrrd_header(vol, dtype, encoding="raw", byte_order=byte_order)
     nz, ny, nx = vol.data.shape
     plane_bytes = ny * nx * dtype.itemsize
+    # The descriptor is closed once no write is under way, and later writes are
+    # refused: a writer thread still running when the block is left (a second
+    # Ctrl-C while the threads are joined) cannot write through a number the
+    # system has given another file. Writes themselves run side by side.
+    state = {"fd": -1, "busy": 0}
+    cond = threading.Condition()
     with atomic_output(path) as tmp:
-        fd = os.open(tmp, os.O_WRONLY)
+        state["fd"] = fd = os.open(tmp, os.O_WRONLY)
         try:
             _pwrite_all(fd, header, 0)
             os.ftruncate(fd, len(header) + nz * plane_bytes)
@@ -423,12 +431,26 @@ def nrrd_plane_writer(vol: Volume, path: str | os.PathLike, *, byte_order: str =
                     raise ValueError("planes outside the volume or of another type")
                 payload = with_byte_order(planes, byte_order)
                 offset = len(header) + z0 * plane_bytes
-                _pwrite_all(fd, memoryview(payload).cast("B"), offset)
-                if _START_WRITEBACK:
-                    os.posix_fadvise(fd, offset, payload.nbytes, os.POSIX_FADV_DONTNEED)
+                with cond:
+                    if state["fd"] < 0:
+                        raise ValueError("the plane writer is closed")
+                    state["busy"] += 1
+                try:
+                    _pwrite_all(fd, memoryview(payload).cast("B"), offset)
+                    if _START_WRITEBACK:
+                        with contextlib.suppress(OSError):  # only a hint
+                            os.posix_fadvise(fd, offset, payload.nbytes,
+                                             os.POSIX_FADV_DONTNEED)
+                finally:
+                    with cond:
+                        state["busy"] -= 1
+                        cond.notify_all()
 
             yield write
         finally:
+            with cond:
+                state["fd"] = -1
+                cond.wait_for(lambda: state["busy"] == 0)
             os.close(fd)
 
 
