@@ -201,7 +201,22 @@ fail:
  * Voxel (e, f, g) goes to out[g - oz, f - oy, e - ox, :]. The summation order depends
  * on the voxel only, so it gets the same value in any block. */
 
-#define SEPARABLE_BODY(T)                                                                      \
+/* The x pass for one component's row when x is contiguous in the output: out[i] = the
+ * four weights of voxel i (wT[k][i], a transposed copy of wx) times the region's four
+ * y-pass values c0..c3, summed in the same order as the strided loop (same values). */
+#define XROW_FN(NAME, T)                                                                       \
+    VECTOR_CLONES static void NAME(T *restrict out, const double *restrict w0,                 \
+                                   const double *restrict w1, const double *restrict w2,       \
+                                   const double *restrict w3, Py_ssize_t n, double c0,         \
+                                   double c1, double c2, double c3)                            \
+    {                                                                                          \
+        for (Py_ssize_t i = 0; i < n; i++)                                                     \
+            out[i] = (T)(w0[i] * c0 + w1[i] * c1 + w2[i] * c2 + w3[i] * c3);                   \
+    }
+XROW_FN(xrow_f32, float)
+XROW_FN(xrow_f64, double)
+
+#define SEPARABLE_BODY(T, XROW)                                                                \
     for (Py_ssize_t g = z0; g < z1; g++) {                                                     \
         Py_ssize_t c = g / gz, gb = g % gz;                                                    \
         const double *w = wz + 4 * gb;                                                         \
@@ -228,6 +243,13 @@ fail:
             for (Py_ssize_t a = rx0; a < rx1; a++) {                                           \
                 const double *q = qy + (a - rx0) * 3;                                          \
                 Py_ssize_t e0 = MAX(a * gx, x0), e1 = MIN(a * gx + gx, x1);                    \
+                if (sxe == 1) {                                                                \
+                    const Py_ssize_t k = e0 - a * gx;                                          \
+                    for (int m = 0; m < 3; m++)                                                \
+                        XROW(row + (e0 - ox) + m * sce, wT + k, wT + gx + k, wT + 2 * gx + k,   \
+                             wT + 3 * gx + k, e1 - e0, q[m], q[3 + m], q[6 + m], q[9 + m]);     \
+                    continue;                                                                  \
+                }                                                                              \
                 for (Py_ssize_t e = e0; e < e1; e++) {                                         \
                     const double *u = wx + 4 * (e - a * gx);                                   \
                     for (int m = 0; m < 3; m++)                                                \
@@ -271,21 +293,24 @@ static PyObject *py_separable(PyObject *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, "separable: block outside the lattice or the output");
         goto fail;
     }
-    double *qz = PyMem_RawMalloc(sizeof(double) * 3 * (size_t)(nxr * nyr + nxr));
+    double *qz = PyMem_RawMalloc(sizeof(double) * (3 * (size_t)(nxr * nyr + nxr) + 4 * gx));
     if (!qz) {
         PyErr_NoMemory();
         goto fail;
     }
-    double *qy = qz + 3 * nxr * nyr;
+    double *qy = qz + 3 * nxr * nyr, *wT = qy + 3 * nxr;
     const double *dq = b[0].buf, *wx = b[1].buf, *wy = b[2].buf, *wz = b[3].buf;
+    for (Py_ssize_t k = 0; k < 4; k++) /* wx [gx][4] transposed: wT[k][i] */
+        for (Py_ssize_t i = 0; i < gx; i++)
+            wT[k * gx + i] = wx[i * 4 + k];
     Py_ssize_t pz = cy * cx * 3, st0 = b[4].strides[0], st1 = b[4].strides[1];
     Py_ssize_t sxe = b[4].strides[2] / b[4].itemsize, sce = b[4].strides[3] / b[4].itemsize;
     char *out = b[4].buf; /* any strides: interleaved (x, y, z) triplets or planar */
     Py_BEGIN_ALLOW_THREADS
     if (buf_kind(&b[4]) == K_F32) {
-        SEPARABLE_BODY(float)
+        SEPARABLE_BODY(float, xrow_f32)
     } else {
-        SEPARABLE_BODY(double)
+        SEPARABLE_BODY(double, xrow_f64)
     }
     Py_END_ALLOW_THREADS
     PyMem_RawFree(qz);
