@@ -525,12 +525,6 @@ class Scene:
         tshape = np.array(self.target_shape)
         half = 0.5 * self.scale
 
-        def region_voxels(axis, wlo, whi):
-            # per region along the axis: its voxels within [wlo, whi), as [a, b)
-            g = grid.granularity[axis]
-            r = np.arange(grid.regions[axis])
-            return np.maximum(r * g, wlo), np.minimum((r + 1) * g, whi)
-
         def along(v, axis):  # a per-region vector of x (0), y or z, broadcast on [Rz, Ry, Rx]
             shape = [1, 1, 1]
             shape[2 - axis] = -1
@@ -542,7 +536,7 @@ class Scene:
             lo_u, hi_u = bounds
             t0, t1, inside = [], [], np.ones(lo_u.shape[:3], bool)
             for axis in range(3):
-                a, b = region_voxels(axis, wlo[axis], whi[axis])
+                a, b = self._region_range(axis, wlo[axis], whi[axis])
                 inside &= along(a < b, axis)
                 a_img = self.offset[axis] + self.scale[axis] * along(a, axis)
                 b_img = self.offset[axis] + self.scale[axis] * (along(b, axis) - 1)
@@ -551,7 +545,8 @@ class Scene:
             return t0, t1, inside
 
         t_lo, t_hi = np.full(3, np.inf), np.full(3, -np.inf)
-        for bounds in (self._offset_bounds(self.dq), self._offset_bounds(dq)):
+        new_bounds = self._offset_bounds(dq)
+        for bounds in (self._offset_bounds(self.dq), new_bounds):
             t0, t1, inside = image_cells(bounds, vlo, vhi)
             if inside.any():
                 for axis in range(3):
@@ -563,10 +558,10 @@ class Scene:
             return None
         # domain voxels g whose new box [A(g) + lo_u - half, A(g) + hi_u + half]
         # overlaps the cells [tlo, thi), i.e. the interval [tlo - 0.5, thi - 0.5]
-        lo_u, hi_u = self._offset_bounds(dq)
+        lo_u, hi_u = new_bounds
         d_lo, d_hi, inside = [], [], np.ones(lo_u.shape[:3], bool)
         for axis in range(3):
-            a, b = region_voxels(axis, 0, grid.domain_shape[axis])
+            a, b = self._region_range(axis, 0, grid.domain_shape[axis])
             s, o = self.scale[axis], self.offset[axis]
             first = np.floor((tlo[axis] - 0.5 - o - half[axis] - hi_u[..., axis]) / s)
             last = np.ceil((thi[axis] - 0.5 - o + half[axis] - lo_u[..., axis]) / s) + 1
@@ -581,14 +576,19 @@ class Scene:
         dhi = np.array([int(v[inside].max()) for v in d_hi])
         return tlo, thi, dlo, dhi
 
+    def _region_range(self, axis: int, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per region along ``axis`` (0 = x): its voxels within [lo, hi), as [a, b)
+        (empty where b <= a)."""
+        g = self.grid.granularity[axis]
+        r = np.arange(self.grid.regions[axis])
+        return np.maximum(r * g, lo), np.minimum((r + 1) * g, hi)
+
     def _region_voxels(self, vlo, vhi) -> list[np.ndarray]:
         """Per axis (x, y, z): how many voxels of each region lie in [vlo, vhi)."""
         counts = []
         for axis in range(3):
-            g = self.grid.granularity[axis]
-            r = np.arange(self.grid.regions[axis])
-            counts.append(np.clip(np.minimum((r + 1) * g, vhi[axis])
-                                  - np.maximum(r * g, vlo[axis]), 0, None))
+            a, b = self._region_range(axis, vlo[axis], vhi[axis])
+            counts.append(np.clip(b - a, 0, None))
         return counts
 
     def _plane_work(self, still, vlo, vhi) -> np.ndarray:

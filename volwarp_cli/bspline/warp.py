@@ -95,9 +95,7 @@ def output_volume(cap: Capture, scene: Scene, target: np.ndarray, *, crop: bool 
     window, origin = _output_window(cap, scene, crop)
     data = cast_samples(np.ascontiguousarray(target[window]), dtype or cap.input_dtype,
                         what="warped volume")
-    g = cap.geometry
-    return Volume(data, spacing=g.spacing, origin=origin, direction=g.direction, space=g.space,
-                  meta=g.meta)
+    return cap.geometry.with_data(data, origin=origin)
 
 
 def output_planes(cap: Capture, scene: Scene, *, crop: bool = False, dtype=None):
@@ -111,9 +109,8 @@ def output_planes(cap: Capture, scene: Scene, *, crop: bool = False, dtype=None)
     window, origin = _output_window(cap, scene, crop)
     out_dtype = np.dtype(dtype or cap.input_dtype)
     shape = tuple(w.stop - w.start for w in window)
-    g = cap.geometry
-    template = Volume(np.broadcast_to(np.zeros((), out_dtype), shape), spacing=g.spacing,
-                      origin=origin, direction=g.direction, space=g.space, meta=g.meta)
+    template = cap.geometry.with_data(np.broadcast_to(np.zeros((), out_dtype), shape),
+                                      origin=origin)
     wz, wy, wx = window
 
     def convert(z0: int, planes: np.ndarray):

@@ -417,10 +417,10 @@ def nrrd_plane_writer(vol: Volume, path: str | os.PathLike, *, byte_order: str =
     # refused: a writer thread still running when the block is left (a second
     # Ctrl-C while the threads are joined) cannot write through a number the
     # system has given another file. Writes themselves run side by side.
-    state = {"fd": -1, "busy": 0}
+    state = {"closed": False, "busy": 0}
     cond = threading.Condition()
     with atomic_output(path) as tmp:
-        state["fd"] = fd = os.open(tmp, os.O_WRONLY)
+        fd = os.open(tmp, os.O_WRONLY)
         try:
             _pwrite_all(fd, header, 0)
             os.ftruncate(fd, len(header) + nz * plane_bytes)
@@ -432,7 +432,7 @@ def nrrd_plane_writer(vol: Volume, path: str | os.PathLike, *, byte_order: str =
                 payload = with_byte_order(planes, byte_order)
                 offset = len(header) + z0 * plane_bytes
                 with cond:
-                    if state["fd"] < 0:
+                    if state["closed"]:
                         raise ValueError("the plane writer is closed")
                     state["busy"] += 1
                 try:
@@ -449,7 +449,7 @@ def nrrd_plane_writer(vol: Volume, path: str | os.PathLike, *, byte_order: str =
             yield write
         finally:
             with cond:
-                state["fd"] = -1
+                state["closed"] = True
                 cond.wait_for(lambda: state["busy"] == 0)
             os.close(fd)
 
