@@ -278,7 +278,7 @@ def test_still_regions_take_a_shortcut_to_the_same_sums(monkeypatch, oversample)
 
 
 def _baseline_module(tmp_path):
-    """The kernels compiled without the AVX2 clones (what a machine without AVX2 runs)."""
+    """The kernels compiled without the vector clones (what a machine without AVX2 runs)."""
     import importlib.machinery
     import importlib.util
     import shutil
@@ -302,7 +302,7 @@ def _baseline_module(tmp_path):
 
 
 def test_vector_clones_give_the_baseline_results(tmp_path):
-    """The installed kernels (AVX2 clones where the CPU has AVX2) and a build without clones
+    """The installed kernels (AVX-512 or AVX2 clones where the CPU has them) and a build without clones
     agree bit for bit: gather, spline evaluation and scatter (general and still voxels)."""
     base = _baseline_module(tmp_path)
     rng = np.random.default_rng(13)
