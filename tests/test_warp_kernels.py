@@ -130,6 +130,36 @@ def test_contributions_do_not_depend_on_the_block(method):
 
 
 @pytest.mark.parametrize("method", ["box", "nearest"])
+def test_two_thread_split_at_a_target_plane_gives_the_same_sums(method):
+    """split=(tm, za, zb): one thread takes the target planes below tm (domain planes
+    [lo, za)), the other tm and above ([zb, hi)); voxels whose boxes straddle tm are
+    done by both, each keeping its side. The sums equal one unsplit run's; a split whose
+    domain ranges miss some straddling voxels would lose their contributions."""
+    rng = np.random.default_rng(8)
+    dz, dy, dx = 24, 9, 10
+    u = random_offsets((dz, dy, dx), rng, amplitude=1.5)
+    values = rng.uniform(0, 1, (dz, dy, dx)).astype(np.float32)
+    off, scale = (1.3, 0.7, 2.2), (1.0, 1.0, 0.9)
+    tshape = (26, 12, 13)
+    whole = np.zeros(tshape + (2,), np.int64)
+    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method, whole)
+    tm = 12
+    # a box reaches at most r planes from its base position 2.2 + 0.9 g
+    r = float(np.abs(u[2]).max()) + 1.0
+    za, zb = int(np.ceil((tm + r - 2.2) / 0.9)) + 1, int(np.floor((tm - 1 - r - 2.2) / 0.9))
+    assert zb < za  # the straddling voxels are in both ranges
+    split = np.zeros_like(whole)
+    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method, split,
+                        split=(tm, za, zb))
+    assert np.array_equal(whole, split)
+    assert whole[:tm, ..., 0].any() and whole[tm:, ..., 0].any()
+    short = np.zeros_like(whole)  # the second thread starting too late misses some
+    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method, short,
+                        split=(tm, za, za - 1))
+    assert not np.array_equal(whole, short)
+
+
+@pytest.mark.parametrize("method", ["box", "nearest"])
 def test_window_keeps_exactly_the_contributions_inside_it(method):
     """A target window (columns, rows, planes) clips contributions and changes no sum in it:
     what a local rebuild of the accumulators relies on. Boxes straddle the window's edges

@@ -134,10 +134,13 @@ def window_reduce(a: np.ndarray, width: int, ufunc) -> np.ndarray:
     a small lattice is ~50x slower)."""
     for axis in range(3):
         n = a.shape[axis] - width + 1
-        parts = [np.take(a, np.arange(k, k + n), axis=axis) for k in range(width)]
-        a = parts[0]
-        for p in parts[1:]:
-            ufunc(a, p, out=a)
+        shifted = [slice(None)] * a.ndim
+        shifted[axis] = slice(0, n)
+        out = a[tuple(shifted)].copy()
+        for k in range(1, width):
+            shifted[axis] = slice(k, k + n)
+            ufunc(out, a[tuple(shifted)], out=out)
+        a = out
     return a
 
 

@@ -89,7 +89,7 @@ def fill_halo(uh, faces=None):
             uh[sl(n + 1)] = 2 * uh[sl(n)] - uh[sl(n - 1)]
 
 
-def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None,
+def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split=None,
             origin=(0, 0, 0), tzo=0, u_new=None, bounds=True, still=None, granularity=None,
             tz_hi=None, ring=False, window=None, planes=None):
     """Add (``sign`` +1) or remove (-1) the contributions of domain block [lo, hi) (x, y, z).
@@ -111,10 +111,12 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     ``values`` holds the domain's samples ``[z, y, x]``, or with ``planes``
     ``(z0, dz)`` only some z planes of a domain of ``dz`` planes, plane ``g``
     in ``values[g - z0]`` (those of the block at least).
-    ``split_z``: domain z indices ``(z1, z2)`` such that [lo, z1) and [z2, hi)
-    are known to write disjoint target z ranges; those halves then run on two
-    threads, and the band [z1, z2) after them (integer sums: the result does
-    not depend on the split).
+    ``split``: ``(tm, za, zb)``, a target plane and the domain z ranges [lo, za)
+    and [zb, hi) holding every voxel that can reach target planes below ``tm``
+    and from ``tm`` on: two threads then take one side of ``tm`` each (the
+    voxels in [zb, za), whose boxes may straddle it, in both, each thread
+    keeping its side's part; integer sums: the result does not depend on the
+    split). Not with ``ring``.
     ``still`` (uint8 ``[passes, Rz, Ry, Rx]``, with the lattice's
     ``granularity`` (x, y, z)) marks the regions whose control points all
     have zero offset, for ``u`` and (second) ``u_new``: voxels there take a
@@ -132,11 +134,12 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     box = method == "box"
     org = tuple(int(v) for v in origin)
 
-    def run(a, b):
+    def run(a, b, acc=acc, clip_z=None):
         return np.array(kern(u, u if u_new is None else u_new, 1 if u_new is None else 2, org,
                              values, vplanes, off, scale, tuple(int(v) for v in a),
                              tuple(int(v) for v in b), int(sign), inv, box, acc,
-                             clip, ring, bounds, still, gran))
+                             clip if clip_z is None else clip[:4] + clip_z, ring, bounds,
+                             still, gran))
 
     tz_end = tzo + len(acc) if tz_hi is None else tz_hi
     (x0, x1), (y0, y1) = ((0, acc.shape[2]), (0, acc.shape[1])) if window is None else window
@@ -145,22 +148,18 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split_z=None
     gran = (1, 1, 1) if granularity is None else tuple(int(v) for v in granularity)
     vplanes = (0, values.shape[0]) if planes is None else (int(planes[0]), int(planes[1]))
 
-    if split_z is None or not lo[2] < split_z[0] <= split_z[1] < hi[2]:
+    tm = None if split is None or ring else int(split[0])
+    if tm is None or not (tzo < tm < tz_end and lo[2] < split[1] and split[2] < hi[2]):
         boxes = [run(lo, hi)]
     else:
         from concurrent.futures import ThreadPoolExecutor
 
-        z1, z2 = split_z
         hi_a, lo_b = hi.copy(), lo.copy()
-        hi_a[2], lo_b[2] = z1, z2
+        hi_a[2], lo_b[2] = min(int(split[1]), hi[2]), max(int(split[2]), lo[2])
         with ThreadPoolExecutor(2) as pool:
-            fa = pool.submit(run, lo, hi_a)
-            fb = pool.submit(run, lo_b, hi)
+            fa = pool.submit(run, lo, hi_a, acc, (int(tzo), tm))
+            fb = pool.submit(run, lo_b, hi, acc[tm - tzo:], (tm, int(tz_end)))
             boxes = [fa.result(), fb.result()]
-        if z2 > z1:
-            lo_m, hi_m = lo.copy(), hi.copy()
-            lo_m[2], hi_m[2] = z1, z2
-            boxes.append(run(lo_m, hi_m))
     boxes = [b for b in boxes if b[3] >= 0]
     if not boxes:
         return None
@@ -176,11 +175,15 @@ def still_regions(dqs) -> np.ndarray | None:
     image (half a voxel either side of its base position) and the scatter
     skips the per-voxel box computation. None when no region is still.
     """
+    still = np.stack([still_mask(dq) for dq in dqs])
+    return np.ascontiguousarray(still, dtype=np.uint8) if still.any() else None
+
+
+def still_mask(dq) -> np.ndarray:
+    """bool ``[Rz, Ry, Rx]``: the regions of lattice ``dq`` whose 4^3 control points are unmoved."""
     from .lattice import window_reduce
 
-    still = np.stack([window_reduce(np.all(np.asarray(dq) == 0, axis=-1), 4, np.logical_and)
-                      for dq in dqs])
-    return np.ascontiguousarray(still, dtype=np.uint8) if still.any() else None
+    return window_reduce(np.all(np.asarray(dq) == 0, axis=-1), 4, np.logical_and)
 
 
 def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0, clear=False):

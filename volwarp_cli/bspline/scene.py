@@ -174,6 +174,7 @@ class Scene:
         self.acc = self.out = None
         self.last_touched = None
         self.scratch = Scratch()
+        self._lattice_facts = {}
 
     @property
     def domain(self) -> np.ndarray:
@@ -221,7 +222,7 @@ class Scene:
         ny = int(ehi[1] - elo[1])
         cz = int(max(4, CHUNK_BYTES // ((nx + 2) * (ny + 2) * 12 * len(dqs))))
         evaluate = basis.EVALUATORS[self.evaluator]
-        still = pushforward.still_regions(dqs) if self.method == "box" else None
+        still = self._still(dqs)
         if values is None:
             samples, planes = self.domain, None
         else:
@@ -254,9 +255,9 @@ class Scene:
                 for ub in ubs:
                     pushforward.fill_halo(ub, faces)
             hi = (int(vhi[0]), int(vhi[1]), z1)
-            split = self._split_z(np.stack(dqs), lo, hi, still) if parallel else None
+            split = self._split(np.stack(dqs), lo, hi, tzo, tz_hi, still) if parallel and not ring else None
             bb = pushforward.scatter(planar[0], samples, self.offset, self.scale, lo, hi,
-                                     sign, self.vmax, self.method, acc, split_z=split,
+                                     sign, self.vmax, self.method, acc, split=split,
                                      origin=origin, tzo=tzo, tz_hi=tz_hi, ring=ring,
                                      u_new=planar[1] if len(planar) > 1 else None,
                                      bounds=bounds, still=still, window=window,
@@ -282,34 +283,34 @@ class Scene:
         slack = 0.01  # float32 deformation arrays
         return half - bottom + spread + slack, half + top + spread + slack
 
-    def _split_z(self, dq, lo, hi, still=None):
-        """Two domain z indices ``(z1, z2)``: halves [lo, z1) and [z2, hi) hit disjoint target z.
+    def _split(self, dq, lo, hi, tzo=0, tz_hi=None, still=None):
+        """``(tm, za, zb)``: a target plane splitting block [lo, hi)'s work in two
+        (for :func:`pushforward.scatter`'s two threads).
 
-        The band [z1, z2) between the halves is done afterwards. The halves
+        [lo, za) holds every domain voxel that can reach target planes below
+        ``tm``, [zb, hi) every one that can reach ``tm`` or above; the halves
         get equal work by :meth:`_work`'s measure (``still``: the scatter's
-        still regions, or None). None when the block is small or no safe split
-        exists.
+        still regions, or None). None when the block is small or the target
+        planes held, [tzo, tz_hi), are not split by ``tm``.
         """
         lo = np.asarray(lo)
         hi = np.asarray(hi)
         if int(np.prod(hi - lo)) < PARALLEL_MIN_VOXELS or (os.cpu_count() or 1) < 2:
             return None
-        below, above = self._z_reach(dq)
-        s, o = self.scale[2], self.offset[2]
-        mid = (int(lo[2]) + int(hi[2])) // 2
+        mid = (int(lo[2]) + int(hi[2])) / 2
         if still is not None:  # general voxels cost more: balance by work, not planes
-            plane_work = self._plane_work(still, lo, hi)
-            cum = np.cumsum(plane_work)
-            # planes lo .. lo + i hold half the work: split after them
-            mid = int(lo[2]) + int(np.searchsorted(cum, 0.5 * cum[-1])) + 1
-        for gap in range(2, max(3, (int(hi[2]) - int(lo[2])) // 4)):
-            z1 = mid - gap // 2
-            z2 = z1 + gap
-            a_max = o + s * (z1 - 1) + above
-            b_min = o + s * z2 - below
-            if np.ceil(a_max + 0.5) - 1 < np.floor(b_min - 0.5) + 1:
-                return z1, z2
-        return None
+            cum = np.cumsum(self._plane_work(still, lo, hi))
+            # planes lo .. lo + i hold half the work
+            mid = int(lo[2]) + int(np.searchsorted(cum, 0.5 * cum[-1])) + 0.5
+        # the target plane whose centre the middle domain plane's centre maps to
+        tm = int(np.floor(float(self.offset[2]) + float(self.scale[2]) * mid + 0.5))
+        tz_end = self.target_shape[2] if tz_hi is None else tz_hi
+        if not tzo < tm < tz_end:
+            return None
+        zb, za = self._domain_z_window(dq, tm, tm)
+        if not (lo[2] < za and zb < hi[2]):
+            return None
+        return tm, za, zb
 
     def _target_z_reach(self, dq, g0: int, g1: int) -> tuple[int, int]:
         """Target z planes [t0, t1) that domain z planes [g0, g1) can reach."""
@@ -495,6 +496,33 @@ class Scene:
                              background=self.background)
         self.last_touched = (tuple(int(v) for v in tlo), tuple(int(v) for v in thi))
 
+    def _facts(self, dq) -> dict:
+        """A dict of values derived from lattice ``dq`` alone (still regions, offset
+        bounds), kept for the last few lattices: an update needs both the old
+        lattice's and the new one's, and the old one was the previous update's new."""
+        key = np.asarray(dq).tobytes()
+        facts = self._lattice_facts.pop(key, None)
+        if facts is None:
+            facts = {}
+            while len(self._lattice_facts) >= 3:
+                del self._lattice_facts[next(iter(self._lattice_facts))]
+        self._lattice_facts[key] = facts  # the most recent last
+        return facts
+
+    def _still(self, dqs) -> np.ndarray | None:
+        """:func:`pushforward.still_regions` of ``dqs`` (None for the nearest method, which
+        has no still shortcut), from cached per-lattice masks."""
+        if self.method != "box":
+            return None
+        masks = []
+        for dq in dqs:
+            facts = self._facts(dq)
+            if "still" not in facts:
+                facts["still"] = pushforward.still_mask(dq)
+            masks.append(facts["still"])
+        still = np.stack(masks)
+        return np.ascontiguousarray(still, dtype=np.uint8) if still.any() else None
+
     def _offset_bounds(self, dq) -> tuple[np.ndarray, np.ndarray]:
         """``(lo, hi)``, each ``[Rz, Ry, Rx, 3]``: bounds of the offsets any voxel of a region
         and its neighbours can have (x y z components), from the lattice alone.
@@ -505,6 +533,12 @@ class Scene:
         At the domain's faces the halo is extrapolated (``2 U[0] - U[1]``):
         there the range is widened by itself, as :meth:`_z_reach` does.
         """
+        facts = self._facts(dq)
+        if "bounds" not in facts:
+            facts["bounds"] = self._compute_offset_bounds(dq)
+        return facts["bounds"]
+
+    def _compute_offset_bounds(self, dq) -> tuple[np.ndarray, np.ndarray]:
         pad = ((1, 1), (1, 1), (1, 1), (0, 0))
         lo = window_reduce(np.pad(dq, pad, constant_values=np.inf), 6, np.minimum)
         hi = window_reduce(np.pad(dq, pad, constant_values=-np.inf), 6, np.maximum)
@@ -546,7 +580,7 @@ class Scene:
 
         t_lo, t_hi = np.full(3, np.inf), np.full(3, -np.inf)
         new_bounds = self._offset_bounds(dq)
-        for bounds in (self._offset_bounds(self.dq), new_bounds):
+        for bounds in (self._offset_bounds(self.dq), new_bounds):  # (cached)
             t0, t1, inside = image_cells(bounds, vlo, vhi)
             if inside.any():
                 for axis in range(3):
@@ -608,7 +642,7 @@ class Scene:
         counts = self._region_voxels(vlo, vhi)
         n = np.einsum("k,j,i->kji", counts[2], counts[1], counts[0])  # [Rz, Ry, Rx]
         total = float(n.sum()) * len(dqs)
-        still = pushforward.still_regions(dqs) if self.method == "box" else None
+        still = self._still(dqs)
         if still is None:
             return total * GENERAL_COST
         k = float((still * n).sum())
