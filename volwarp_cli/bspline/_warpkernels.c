@@ -73,8 +73,8 @@ static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim,
 /* Row loops that run as vectors get AVX-512 (x86-64-v4) and AVX2 clones on x86-64, the
  * best the CPU has chosen when the module loads (same IEEE operations, no FMA: the same
  * results as the baseline, which a test builds with -DVOLWARP_NO_CLONES to compare).
- * AVX-512's 32 registers and 8 doubles per vector: row_boxes keeps its 21 neighbours in
- * registers (the AVX2 clone spills them); 0.84 of an all-general scatter's time. */
+ * AVX-512: 32 registers and 8 doubles per vector (row_boxes still spills some of its 21
+ * neighbours; the AVX2 clone spills more); 0.84 of an all-general scatter's time. */
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(VOLWARP_NO_CLONES)
 #define VECTOR_CLONES __attribute__((target_clones("arch=x86-64-v4", "avx2", "default")))
 #else
