@@ -298,11 +298,22 @@ def test_still_regions_take_a_shortcut_to_the_same_sums(monkeypatch, oversample)
     dq[3, 4, 5] += [1.7, -0.9, 0.6]
     still = pushforward.still_regions([dq])
     assert still is not None and 0 < still.mean() < 1
+    masks = []  # the still masks the scatter was given
+    scatter = pushforward.scatter
+
+    def recording_scatter(*args, **kwargs):
+        masks.append(kwargs.get("still"))
+        return scatter(*args, **kwargs)
+
+    monkeypatch.setattr(pushforward, "scatter", recording_scatter)
     fast = Scene(cap.domain, cap.grid, dq, 3)
     fast.render()
-    monkeypatch.setattr(pushforward, "still_regions", lambda dqs: None)
+    assert masks and all(m is not None for m in masks)
+    masks.clear()
+    monkeypatch.setattr(Scene, "_still", lambda self, dqs: None)  # no shortcut
     slow = Scene(cap.domain, cap.grid, dq, 3)
     slow.render()
+    assert masks and all(m is None for m in masks)
     assert np.array_equal(fast.acc, slow.acc)
     assert np.array_equal(fast.out, slow.out)
 

@@ -32,6 +32,7 @@ later updates, also never holds the target accumulators whole.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -53,6 +54,9 @@ CHUNK_BYTES = 32 << 20
 #: and 2.4 picks the fastest way in all but the papers' size, where it takes a full
 #: pass of 9.1 ms over a rebuild of 7.9 ms (a tie in its count).
 GENERAL_COST = 2.4
+#: A two-thread split is taken only if neither thread gets more than this share of
+#: the block's work (the planes whose boxes can straddle the split are done by both).
+SPLIT_MAX_SHARE = 0.8
 #: Target z planes covered by one step of :meth:`Scene.render_once`'s stream.
 STREAM_PLANES = 16
 #: Slack for float32 deformation offsets in bounds derived from the lattice.
@@ -175,6 +179,7 @@ class Scene:
         self.last_touched = None
         self.scratch = Scratch()
         self._lattice_facts = {}
+        self._facts_lock = threading.Lock()  # render_once's threads share the cache
 
     @property
     def domain(self) -> np.ndarray:
@@ -297,11 +302,11 @@ class Scene:
         hi = np.asarray(hi)
         if int(np.prod(hi - lo)) < PARALLEL_MIN_VOXELS or (os.cpu_count() or 1) < 2:
             return None
-        mid = (int(lo[2]) + int(hi[2])) / 2
-        if still is not None:  # general voxels cost more: balance by work, not planes
-            cum = np.cumsum(self._plane_work(still, lo, hi))
-            # planes lo .. lo + i hold half the work
-            mid = int(lo[2]) + int(np.searchsorted(cum, 0.5 * cum[-1])) + 0.5
+        z0 = int(lo[2])
+        # general voxels cost more: balance by work, not planes
+        work = self._plane_work(still, lo, hi) if still is not None else np.ones(hi[2] - z0)
+        cum = np.concatenate([[0.0], np.cumsum(work)])  # work of planes [lo, lo + i)
+        mid = z0 + int(np.searchsorted(cum, 0.5 * cum[-1])) - 0.5  # half the work below
         # the target plane whose centre the middle domain plane's centre maps to
         tm = int(np.floor(float(self.offset[2]) + float(self.scale[2]) * mid + 0.5))
         tz_end = self.target_shape[2] if tz_hi is None else tz_hi
@@ -309,6 +314,12 @@ class Scene:
             return None
         zb, za = self._domain_z_window(dq, tm, tm)
         if not (lo[2] < za and zb < hi[2]):
+            return None
+        # the planes both threads scatter: with a long reach (a lattice moved far in z)
+        # they can be most of the block, and one thread does as well
+        a = cum[min(za, int(hi[2])) - z0]
+        b = cum[-1] - cum[max(zb, z0) - z0]
+        if max(a, b) > SPLIT_MAX_SHARE * cum[-1]:
             return None
         return tm, za, zb
 
@@ -501,12 +512,13 @@ class Scene:
         bounds), kept for the last few lattices: an update needs both the old
         lattice's and the new one's, and the old one was the previous update's new."""
         key = np.asarray(dq).tobytes()
-        facts = self._lattice_facts.pop(key, None)
-        if facts is None:
-            facts = {}
-            while len(self._lattice_facts) >= 3:
-                del self._lattice_facts[next(iter(self._lattice_facts))]
-        self._lattice_facts[key] = facts  # the most recent last
+        with self._facts_lock:
+            facts = self._lattice_facts.pop(key, None)
+            if facts is None:
+                facts = {}
+                while len(self._lattice_facts) >= 3:
+                    del self._lattice_facts[next(iter(self._lattice_facts))]
+            self._lattice_facts[key] = facts  # the most recent last
         return facts
 
     def _still(self, dqs) -> np.ndarray | None:
