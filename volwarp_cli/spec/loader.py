@@ -1,14 +1,26 @@
 """YAML specs: safe loading, JSON Schema validation, errors with key path and line.
 
-A spec is plain data (``yaml.safe_load``): it never runs code. Every error
+A spec is plain data (PyYAML's safe loader): it never runs code. Every error
 names the offending key as ``steps[2].move[0].index`` and its line, so a user
 can jump straight to it. Relative file names in a spec are relative to the
 spec's own folder (so a spec and its data move together).
+
+Scalars resolve as in YAML 1.1 (PyYAML's default: ``yes``/``on`` are booleans),
+plus the floats of YAML 1.2 and JSON that 1.1 reads as strings (``1e-05``,
+``1E+3``, ``-.5``), so a spec written by ``json.dumps`` loads. A spec is checked
+before anything reads it: no non-finite number (``.nan``, ``.inf``, ``1e999``),
+no recursive alias, at most :data:`MAX_VALUES` values with every alias expanded
+(a "billion laughs" spec is refused in time proportional to its text) and at
+most :data:`MAX_DEPTH` levels of nesting. Values quoted in error messages are
+cut short, so an error is always one short line.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import re
+import sys
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -18,6 +30,11 @@ import yaml
 from ..errors import SpecError
 
 Key = tuple  # a path into the document: ("steps", 2, "move", 0, "index")
+
+MAX_VALUES = 1_000_000  # values in a spec, counting every expansion of an alias
+MAX_DEPTH = 64  # levels of nesting (jsonschema and the readers recurse on them)
+MAX_QUOTE = 100  # characters of a value quoted in an error message
+MAX_MESSAGE = 300  # characters of an error message (file, line and key apart)
 
 
 def format_key(path: Key) -> str:
@@ -31,10 +48,34 @@ def format_key(path: Key) -> str:
     return out
 
 
-class SpecDoc:
-    """A loaded spec: ``data`` (plain Python values) plus the line of every key."""
+def clip(text: Any, limit: int = MAX_QUOTE) -> str:
+    """``str(text)`` cut to at most ``limit`` characters, ending in ``...`` when cut."""
+    text = str(text)
+    return text if len(text) <= limit else text[:max(limit - 3, 0)] + "..."
 
-    def __init__(self, data: Any, lines: dict[Key, int], file: str, base: Path):
+
+def _quote(value: Any) -> str:
+    """``repr(value)``, cut short for an error message."""
+    return clip(repr(value))
+
+
+def _error_key(path: Key) -> str | None:
+    """The key path of an error: long key names and very deep paths shortened."""
+    key = format_key(tuple(clip(p, 40) if isinstance(p, str) else p for p in path))
+    if len(key) > 120:
+        key = key[:60] + "..." + key[-57:]
+    return key or None
+
+
+class SpecDoc:
+    """A loaded spec: ``data`` (plain Python values) plus the line of every key.
+
+    ``lines`` is the document's YAML node tree (lines are looked up in it on
+    demand, so an alias costs no memory per expansion) or a dict mapping key
+    paths to lines.
+    """
+
+    def __init__(self, data: Any, lines: yaml.Node | dict[Key, int], file: str, base: Path):
         self.data = data
         self._lines = lines
         self.file = file
@@ -43,6 +84,8 @@ class SpecDoc:
     def line(self, path: Key) -> int | None:
         """Line of ``path``, or of its nearest ancestor that has one."""
         path = tuple(path)
+        if isinstance(self._lines, yaml.Node):
+            return _node_line(self._lines, path)
         while True:
             if path in self._lines:
                 return self._lines[path]
@@ -52,7 +95,7 @@ class SpecDoc:
 
     def error(self, path: Key, message: str) -> SpecError:
         """A :class:`SpecError` pointing at ``path`` (raise it)."""
-        return SpecError(message, file=self.file, key=format_key(path) or None,
+        return SpecError(clip(message, MAX_MESSAGE), file=self.file, key=_error_key(path),
                          line=self.line(path))
 
     def get(self, path: Key, default=None):
@@ -70,47 +113,211 @@ class SpecDoc:
         return p if p.is_absolute() else self.base / p
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    pass
+def _node_line(node: yaml.Node, path: Key) -> int:
+    """The line of ``path`` in a node tree: of its key in a mapping, of the item in a
+    list; of the nearest ancestor found when the path leaves the tree."""
+    line = node.start_mark.line + 1
+    for part in path:
+        found = None
+        if isinstance(node, yaml.MappingNode):
+            for key_node, value_node in node.value:  # the last one: merged keys come first
+                if isinstance(key_node, yaml.ScalarNode) and key_node.value == part:
+                    found = value_node, key_node.start_mark.line + 1
+        elif (isinstance(node, yaml.SequenceNode) and isinstance(part, int)
+              and not isinstance(part, bool) and 0 <= part < len(node.value)):
+            found = node.value[part], node.value[part].start_mark.line + 1
+        if found is None:
+            break
+        node, line = found
+    return line
 
 
-def _collect_lines(node, path: Key, lines: dict[Key, int], file: str) -> None:
+class _TooDeep(Exception):
+    def __init__(self, path: Key, mark):
+        self.path, self.mark = path, mark
+
+
+class _SpecLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, also reading YAML 1.2 / JSON floats such as ``1e-05``.
+
+    It stops composing past :data:`MAX_DEPTH` levels: PyYAML's scanner costs time
+    in proportion to text size times nesting, and its composer recurses per level.
+    """
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        self._path: list = []  # key path of the node being composed
+
+    def compose_node(self, parent, index):
+        # index: the key node of a mapping value, the number of a list item, None
+        # for the root and for keys
+        self._path.append(index.value if isinstance(index, yaml.ScalarNode) else index)
+        try:
+            if len(self._path) > MAX_DEPTH + 1:  # the root is level 0
+                path = tuple(self._path[1:])
+                raise _TooDeep(path[:path.index(None)] if None in path else path,
+                               self.peek_event().start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._path.pop()
+
+
+# YAML 1.2 core schema floats that YAML 1.1 reads as strings: an exponent without a
+# dot or without a sign (1e5, 1.5e5), a signed leading dot (-.5). Only strings with a
+# dot or an exponent, so 089 stays a string; tried after 1.1's own int and float.
+_FLOAT_12 = re.compile(r"^[-+]?(?:(?:\.[0-9]+|[0-9]+\.[0-9]*)(?:[eE][-+]?[0-9]+)?"
+                       r"|[0-9]+[eE][-+]?[0-9]+)$")
+_SpecLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+.0123456789"))
+
+_MAX_FLOAT = sys.float_info.max
+
+# keys the constructor reads itself when it flattens a mapping (<< merges, = values)
+_SPECIAL_KEY_TAGS = {"tag:yaml.org,2002:merge", "tag:yaml.org,2002:value"}
+
+
+def _children(node: yaml.Node, path: Key) -> list:
+    """``(child node, its key path)`` of a collection node, in document order."""
+    if isinstance(node, yaml.SequenceNode):
+        return [(item, path + (i,)) for i, item in enumerate(node.value)]
     if isinstance(node, yaml.MappingNode):
-        seen = set()
-        for key_node, value_node in node.value:
-            key = key_node.value
-            if key in seen:
-                raise SpecError(f"duplicate key {key!r}", file=file,
-                                key=format_key(path + (key,)), line=key_node.start_mark.line + 1)
-            seen.add(key)
-            lines[path + (key,)] = key_node.start_mark.line + 1
-            _collect_lines(value_node, path + (key,), lines, file)
-    elif isinstance(node, yaml.SequenceNode):
-        for i, item in enumerate(node.value):
-            lines[path + (i,)] = item.start_mark.line + 1
-            _collect_lines(item, path + (i,), lines, file)
+        return [(v, path + (k.value,)) for k, v in node.value]
+    return []
+
+
+def _check_tree(loader: _SpecLoader, root: yaml.Node, file: str) -> None:
+    """Refuse a node tree that is not plain, finite, bounded data, before it is read.
+
+    One walk over the distinct nodes (an alias is not walked again), so the cost
+    is that of the text whatever the aliases expand to. Refused, with key path and
+    line: a scalar its tag cannot read (``!!float abc``), a non-finite float, a
+    list or mapping as a key, a duplicate key, an alias inside the value it names,
+    over :data:`MAX_VALUES` values with aliases expanded, over :data:`MAX_DEPTH`
+    levels of nesting.
+    """
+    def fail(path, node, message):
+        raise SpecError(clip(message, MAX_MESSAGE), file=file, key=_error_key(path),
+                        line=node.start_mark.line + 1)
+
+    def scalar(node, path):
+        try:
+            value = loader.construct_object(node)
+        except yaml.YAMLError as exc:
+            fail(path, node, f"cannot read {_quote(node.value)}: "
+                             f"{clip(getattr(exc, 'problem', None) or exc)}")
+        except (ValueError, TypeError, ArithmeticError):  # !!int 1.5, 5000 digits
+            fail(path, node, f"cannot read {_quote(node.value)} as "
+                             f"!!{node.tag.rsplit(':', 1)[-1]}")
+        if isinstance(value, float) and not math.isfinite(value):
+            said = node.value.lower().lstrip("+-.") in ("nan", "inf", "infinity")
+            fail(path, node, f"must be a finite number, got {clip(node.value)}"
+                             + ("" if said else f" (= {value})"))
+        if type(value) is int and not -_MAX_FLOAT <= value <= _MAX_FLOAT:
+            fail(path, node, f"number too large: {clip(node.value)} (the limit is "
+                             f"{_MAX_FLOAT:.4g})")
+        return value
+
+    size: dict[int, int] = {}  # id(node) -> values in its expansion (capped)
+    height: dict[int, int] = {}  # id(node) -> levels of nesting below it
+    open_: set[int] = set()  # nodes on the walk's current path
+    aliased = False
+    stack: list = [("node", root, (), None)]
+    while stack:
+        what, node, path, seen = stack.pop()
+        nid = id(node)
+        if what == "key":
+            if not isinstance(node, yaml.ScalarNode):
+                fail(path, node, f"a key must be a name, not a {node.id}")
+            key = node.value if node.tag in _SPECIAL_KEY_TAGS else scalar(node, path + (node.value,))
+            try:
+                duplicate = key in seen
+            except TypeError:  # unhashable: the constructor says so
+                duplicate = False
+            if duplicate:
+                fail(path + (node.value,), node, f"duplicate key {_quote(node.value)}")
+            else:
+                seen.add(key)
+        elif what == "exit":
+            if isinstance(node, yaml.MappingNode):
+                kids = [size[id(v)] + 1 for _, v in node.value]  # + 1: the key
+            else:
+                kids = [size[id(v)] for v in node.value]
+            size[nid] = min(1 + sum(kids), MAX_VALUES + 1)
+            height[nid] = 1 + max((height[id(v)] for v, _ in _children(node, ())), default=0)
+            open_.discard(nid)
+        elif nid in size or nid in height:
+            aliased = True  # an alias of a node already walked
+        elif nid in open_:
+            fail(path, node, "an alias here names a value that contains it (a recursive "
+                             "value)")
+        elif isinstance(node, yaml.ScalarNode):
+            scalar(node, path)
+            size[nid], height[nid] = 1, 0
+        elif node.tag not in loader.yaml_constructors:  # !!python/tuple [..], !foo {..}
+            fail(path, node, f"cannot read a {node.id} tagged {_quote(node.tag)}")
+        else:
+            open_.add(nid)
+            stack.append(("exit", node, path, None))
+            items: list = []
+            seen_keys: set = set()
+            if isinstance(node, yaml.MappingNode):
+                for key_node, value_node in node.value:
+                    items.append(("key", key_node, path, seen_keys))
+                    key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+                    items.append(("node", value_node, path + (key,), None))
+            else:
+                items = [("node", item, path + (i,), None) for i, item in enumerate(node.value)]
+            stack.extend(reversed(items))
+
+    if size[id(root)] > MAX_VALUES:
+        node, path = root, ()
+        while True:  # point at the smallest part that is too large by itself
+            big = [(c, p) for c, p in _children(node, path) if size[id(c)] > MAX_VALUES]
+            if not big:
+                break
+            node, path = big[0]
+        fail(path, node, (f"spec too large (aliases expand to over {MAX_VALUES} values)"
+                          if aliased else f"spec too large (over {MAX_VALUES} values)"))
+    if height[id(root)] > MAX_DEPTH:
+        node, path = root, ()
+        while len(path) < MAX_DEPTH:  # follow the deepest branch down to the limit
+            node, path = max(_children(node, path), key=lambda cp: height[id(cp[0])])
+        fail(path, node, f"nested more than {MAX_DEPTH} levels deep")
 
 
 def parse_spec_text(text: str, file: str = "<spec>", base: Path | None = None) -> SpecDoc:
     """Parse YAML text into a :class:`SpecDoc` (no schema check)."""
+    loader = None
     try:
-        node = yaml.compose(text, Loader=_UniqueKeyLoader)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise SpecError(f"YAML syntax error: {problem}", file=file,
-                        line=mark.line + 1 if mark else None) from None
-    if node is None:
-        raise SpecError("spec is empty", file=file)
-    lines: dict[Key, int] = {(): node.start_mark.line + 1}
-    _collect_lines(node, (), lines, file)
-    try:
-        data = yaml.load(text, Loader=_UniqueKeyLoader)
-    except yaml.YAMLError as exc:  # pragma: no cover - compose already parsed it
-        raise SpecError(f"YAML error: {exc}", file=file) from None
+        try:
+            loader = _SpecLoader(text)  # (a control character: ReaderError, here)
+            node = loader.get_single_node()
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+            raise SpecError(f"YAML syntax error: {clip(problem)}", file=file,
+                            line=mark.line + 1 if mark else None) from None
+        except _TooDeep as exc:
+            raise SpecError(f"nested more than {MAX_DEPTH} levels deep", file=file,
+                            key=_error_key(exc.path), line=exc.mark.line + 1) from None
+        except RecursionError:  # pragma: no cover - _TooDeep comes first
+            raise SpecError(f"nested more than {MAX_DEPTH} levels deep", file=file,
+                            line=loader.get_mark().line + 1) from None
+        if node is None:
+            raise SpecError("spec is empty", file=file)
+        _check_tree(loader, node, file)
+        try:
+            data = loader.construct_document(node)
+        except (yaml.YAMLError, ValueError, TypeError, OverflowError) as exc:  # a bad << merge
+            mark = getattr(exc, "problem_mark", None)
+            problem = getattr(exc, "problem", None) or exc
+            raise SpecError(f"YAML error: {clip(problem)}", file=file,
+                            line=mark.line + 1 if mark else None) from None
+    finally:
+        if loader is not None:
+            loader.dispose()
     if not isinstance(data, dict):
         raise SpecError("a spec must be a mapping of keys to values", file=file, line=1)
-    return SpecDoc(data, lines, file, base or Path("."))
+    return SpecDoc(data, node, file, base or Path("."))
 
 
 @cache
@@ -125,6 +332,18 @@ def load_schema(kind: str) -> dict:
 
         text = resources.files("volwarp_cli.schemas").joinpath(name).read_text()
     return json.loads(text)
+
+
+def _message(err) -> str:
+    """jsonschema's wording of ``err``, with the value it quotes cut short."""
+    message = err.message
+    try:
+        full = repr(err.instance)
+    except Exception:  # pragma: no cover - repr of plain data does not fail
+        return message
+    if len(full) > MAX_QUOTE:
+        message = message.replace(full, clip(full))
+    return message
 
 
 def validate(doc: SpecDoc, schema: dict) -> None:
@@ -144,21 +363,21 @@ def validate(doc: SpecDoc, schema: dict) -> None:
     # best_match prefers shallow errors; report the one the user reaches first
     # when several top-level problems exist.
     path = tuple(err.absolute_path)
-    message = err.message
+    message = _message(err)
     if err.validator == "additionalProperties" and isinstance(err.instance, dict):
         allowed = set(err.schema.get("properties", {}))
         extra = sorted(k for k in err.instance if k not in allowed)
         if extra:
             path = path + (extra[0],)
-            message = (f"unknown key {extra[0]!r}"
+            message = (f"unknown key {_quote(extra[0])}"
                        + (f" (allowed: {', '.join(sorted(allowed))})" if allowed else ""))
     elif err.validator == "required":
-        message = err.message.replace("is a required property", "is required")
+        message = message.replace("is a required property", "is required")
     elif err.validator in ("oneOf", "anyOf") and err.context:
         deepest = max(err.context, key=lambda e: len(e.absolute_path))
         if len(deepest.absolute_path) > len(err.absolute_path):
             path = tuple(deepest.absolute_path)
-            message = deepest.message
+            message = _message(deepest)
     raise doc.error(path, message)
 
 
