@@ -24,6 +24,20 @@ def check_dtype(dtype, where: str = "") -> np.dtype:
     return native
 
 
+def make_volume(where: str, data: np.ndarray, *, error=FormatError, **geometry):
+    """A :class:`~volwarp_cli.volume.Volume`, or ``error`` naming the file ``where``.
+
+    The Volume's own checks (a singular direction, a spacing that is not
+    positive, ...) do not know which file the geometry came from.
+    """
+    from ..volume import Volume
+
+    try:
+        return Volume(data, **geometry)
+    except VolwarpError as exc:
+        raise error(f"{where}: {exc}") from None
+
+
 def available_memory() -> int:
     """Bytes of memory this process may still use (MemAvailable, or cgroup limit)."""
     avail = None
@@ -61,7 +75,9 @@ def ensure_fits_in_memory(nbytes: int, what: str) -> None:
 def _human(n: int) -> str:
     for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
         if abs(n) < 1024 or unit == "PiB":
-            return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
+            if unit == "B":
+                return f"{n} B"
+            return f"{n:.1f} {unit}" if abs(n) < 1e6 else f"{n:.3g} {unit}"
         n /= 1024
     return f"{n} B"
 

@@ -23,8 +23,11 @@ picks one volume.
 
 from __future__ import annotations
 
+import contextlib
 import gzip
+import logging
 import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +35,9 @@ import numpy as np
 from ..errors import FormatError, VolwarpError
 from ..volume import Volume
 from .atomic import atomic_output
-from .common import check_dtype, ensure_fits_in_memory, native, voxel_count
+from .common import check_dtype, ensure_fits_in_memory, make_volume, native, voxel_count
+
+log = logging.getLogger("volwarp")
 
 _RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 
@@ -72,11 +77,19 @@ def read_nifti(path: str | os.PathLike, volume_index: int | None = None) -> Volu
     from nibabel.filebasedimages import ImageFileError
 
     where = str(path)
-    try:
-        img = nib.load(str(path))
-    except (ImageFileError, OSError, EOFError, ValueError) as exc:
-        raise FormatError(f"{where}: not a readable NIfTI file ({exc})") from None
+    with _quiet_nibabel():
+        try:
+            img = nib.load(str(path))
+        except (ImageFileError, OSError, EOFError, ValueError) as exc:
+            raise FormatError(f"{where}: not a readable NIfTI file ({_one_line(exc)})") from None
+        except Exception as exc:  # nibabel's HeaderDataError and others, for damaged headers
+            raise FormatError(f"{where}: not a readable NIfTI file "
+                              f"({type(exc).__name__}: {_one_line(exc)})") from None
     shape = tuple(int(s) for s in img.shape)
+    if not shape or any(s <= 0 for s in shape):
+        dims = [int(d) for d in img.header["dim"]]
+        raise FormatError(f"{where}: NIfTI sizes must be positive, got {shape} "
+                          f"(header dim {dims})")
     if len(shape) < 3:
         shape = shape + (1,) * (3 - len(shape))
     extra = shape[3:]
@@ -118,8 +131,53 @@ def read_nifti(path: str | os.PathLike, volume_index: int | None = None) -> Volu
         text = bytes(np.asarray(descrip).tobytes()).split(b"\0", 1)[0].decode("latin-1").strip()
         if text:
             meta["descrip"] = text
-    return Volume(data, spacing=spacing, origin=_RAS_TO_LPS @ aff[:3, 3],
-                  direction=lin / spacing[None, :], space="left-posterior-superior", meta=meta)
+    return make_volume(where, data, spacing=spacing, origin=_RAS_TO_LPS @ aff[:3, 3],
+                       direction=lin / spacing[None, :], space="left-posterior-superior",
+                       meta=meta)
+
+
+def _one_line(exc: Exception) -> str:
+    return " ".join(str(exc).split())[:200]
+
+
+class _ThreadFilter(logging.Filter):
+    """Drops the records of threads reading a NIfTI file (they go to volwarp's debug log)."""
+
+    def __init__(self):
+        super().__init__()
+        self.threads: dict[int, int] = {}
+        self.lock = threading.Lock()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.thread in self.threads:
+            log.debug("nibabel: %s", record.getMessage())
+            return False
+        return True
+
+
+_FILTER = _ThreadFilter()
+
+
+@contextlib.contextmanager
+def _quiet_nibabel():
+    """Keep nibabel's header-fix messages ("sizeof_hdr should be 348; ...") off stderr.
+
+    nibabel logs them through its own stderr handler; the contract is one
+    line on stderr per failure, so they go to volwarp's debug log instead.
+    """
+    logger = logging.getLogger("nibabel.global")
+    ident = threading.get_ident()
+    with _FILTER.lock:
+        if _FILTER not in logger.filters:
+            logger.addFilter(_FILTER)
+        _FILTER.threads[ident] = _FILTER.threads.get(ident, 0) + 1
+    try:
+        yield
+    finally:
+        with _FILTER.lock:
+            _FILTER.threads[ident] -= 1
+            if not _FILTER.threads[ident]:
+                del _FILTER.threads[ident]
 
 
 def write_nifti(vol: Volume, path: str | os.PathLike) -> None:

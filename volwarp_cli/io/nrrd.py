@@ -29,6 +29,7 @@ from .atomic import atomic_output
 from .common import (
     check_dtype,
     ensure_fits_in_memory,
+    make_volume,
     native,
     read_exact,
     read_gzip_exact,
@@ -56,6 +57,14 @@ _WRITE_TYPES = {"int8": "int8", "uint8": "uint8", "int16": "int16", "uint16": "u
 _ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2",
               "ascii": "ascii", "txt": "ascii", "text": "ascii"}
 _KEPT_FIELDS = ("content", "space units", "measurement frame")
+#: the NRRD field names (to tell a field from a file name after "data file: LIST")
+_FIELDS = frozenset((
+    "dimension", "type", "block size", "blocksize", "encoding", "endian", "content", "number",
+    "min", "max", "old min", "oldmin", "old max", "oldmax", "data file", "datafile",
+    "line skip", "lineskip", "byte skip", "byteskip", "sample units", "sampleunits", "sizes",
+    "spacings", "thicknesses", "axis mins", "axismins", "axis maxs", "axismaxs", "centers",
+    "centerings", "labels", "units", "kinds", "space", "space dimension", "space units",
+    "space origin", "space directions", "measurement frame"))
 _VECTOR = re.compile(r"\(([^()]*)\)")
 
 
@@ -77,7 +86,9 @@ def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
         raise FormatError(f"{where}: not a NRRD file (no NRRD000x magic line)")
     fields: dict[str, str] = {}
     keyvals: dict[str, str] = {}
+    listing = False  # after "data file: LIST": the file names follow the last field
     while True:
+        pos = fh.tell()
         raw = fh.readline(1 << 20)
         if not raw:
             break  # detached header ends at end of file
@@ -86,14 +97,22 @@ def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
             break
         if line.startswith("#"):
             continue
+        if listing and ":=" not in line and (
+                ": " not in line or line.split(": ", 1)[0].strip().lower() not in _FIELDS):
+            fh.seek(pos)  # the first data file name
+            break
         if ":=" in line:
             key, value = line.split(":=", 1)
             keyvals[key] = value
             continue
         if ": " not in line:
-            raise FormatError(f"{where}: malformed header line {line!r}")
+            shown = line if len(line) <= 80 else line[:77] + "..."
+            raise FormatError(f"{where}: malformed header line {shown!r}")
         name, value = line.split(": ", 1)
-        fields[name.strip().lower()] = value.strip()
+        name = name.strip().lower()
+        fields[name] = value.strip()
+        if name in ("data file", "datafile") and value.split()[:1] == ["LIST"]:
+            listing = True
     return fields, keyvals
 
 
@@ -149,27 +168,84 @@ def _geometry(fields: dict[str, str], dim: int, where: str):
     return spacing, origin, direction, space
 
 
-def _data_files(fields: dict[str, str], header_path: Path, fh, where: str):
-    """List the files holding the data (None means: after the header, in ``fh``)."""
+def _data_files(fields: dict[str, str], header_path: Path, fh, where: str, sizes: list[int]):
+    """List the files holding the data (None means: after the header, in ``fh``).
+
+    The forms ``<format> <min> <max> <step> [<subdim>]`` and ``LIST [<subdim>]``
+    split the data into pieces of ``subdim`` axes (default: all axes but the
+    slowest). As in teem, there must be one file per piece when ``subdim`` is
+    below the dimension; each file may also hold a slab of the slowest axis
+    (the files then divide its size). The number of files is checked before
+    any is listed: a header naming a billion files is refused at once.
+    """
     spec = fields.get("data file", fields.get("datafile"))
     if spec is None:
         return None
     base = header_path.parent
-    if spec.startswith("LIST"):
+    parts = spec.split()
+    if parts and parts[0] == "LIST":
+        subdim = _subdim(parts[1:], sizes, where, "LIST")
         names = []
         for raw in fh:
             name = raw.decode("latin-1").strip()
             if name:
                 names.append(base / name)
+        _check_file_count(len(names), subdim, sizes, where)
         return names
-    parts = spec.split()
     if len(parts) >= 4 and "%" in parts[0]:
-        fmt, lo, hi, step = parts[0], int(parts[1]), int(parts[2]), int(parts[3])
+        fmt = parts[0]
+        try:
+            lo, hi, step = int(parts[1]), int(parts[2]), int(parts[3])
+        except ValueError:
+            raise FormatError(f"{where}: 'data file' pattern needs whole numbers "
+                              f"<min> <max> <step> after {fmt!r}, got {' '.join(parts[1:4])!r}"
+                              ) from None
+        subdim = _subdim(parts[4:], sizes, where, fmt)
         if step == 0:
             raise FormatError(f"{where}: 'data file' pattern has step 0")
-        stop = hi + (1 if step > 0 else -1)
-        return [base / (fmt % i) for i in range(lo, stop, step)]
+        if (hi - lo) * step < 0:
+            raise FormatError(f"{where}: 'data file' pattern: max {hi} is not reached from "
+                              f"min {lo} by step {step}")
+        n = (hi - lo) // step + 1
+        _check_file_count(n, subdim, sizes, where)
+        try:
+            return [base / (fmt % i) for i in range(lo, lo + n * step, step)]
+        except (TypeError, ValueError) as exc:
+            raise FormatError(f"{where}: 'data file' pattern {fmt!r} is not a file name "
+                              f"with one %d ({exc})") from None
     return [base / spec]
+
+
+def _subdim(rest: list[str], sizes: list[int], where: str, what: str) -> int | None:
+    """The optional ``<subdim>`` after a data file pattern or ``LIST`` (None: not given)."""
+    if not rest:
+        return None
+    dim = len(sizes)
+    try:
+        subdim = int(rest[0])
+    except ValueError:
+        raise FormatError(f"{where}: 'data file' {what}: <subdim> {rest[0]!r} is not a "
+                          "whole number") from None
+    if len(rest) > 1 or not 1 <= subdim <= dim:
+        raise FormatError(f"{where}: 'data file' {what}: <subdim> must be one number in "
+                          f"1..{dim}, got {' '.join(rest)!r}")
+    return subdim
+
+
+def _check_file_count(n: int, subdim: int | None, sizes: list[int], where: str) -> None:
+    """Refuse a number of data files that cannot split ``sizes`` (see :func:`_data_files`)."""
+    dim = len(sizes)
+    slow = sizes[-1]
+    if subdim is not None and subdim < dim:
+        pieces = voxel_count(sizes[subdim:])
+        if n != pieces:
+            raise FormatError(f"{where}: 'data file' names {n} file{'s' if n != 1 else ''}, "
+                              f"but sizes {' '.join(map(str, sizes))} in {subdim}-D pieces "
+                              f"need {pieces}")
+        return
+    if n < 1 or n > slow or slow % n:
+        raise FormatError(f"{where}: 'data file' names {n} file{'s' if n != 1 else ''}, "
+                          f"which do not split the slowest axis (size {slow}) evenly")
 
 
 def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
@@ -235,7 +311,7 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
         count = voxel_count(sizes)
         nbytes = count * dtype.itemsize
         ensure_fits_in_memory(nbytes, f"{where} ({'x'.join(map(str, sizes))} {dtype.name})")
-        files = _data_files(fields, path, fh, where)
+        files = _data_files(fields, path, fh, where, sizes)
         lineskip = int(fields.get("line skip", fields.get("lineskip", "0")))
         byteskip = int(fields.get("byte skip", fields.get("byteskip", "0")))
         if files is None:
@@ -268,7 +344,8 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
     for name in _KEPT_FIELDS:
         if name in fields:
             meta[f"NRRD_{name}"] = fields[name]
-    return Volume(data, spacing=spacing, origin=origin, direction=direction, space=space, meta=meta)
+    return make_volume(where, data, spacing=spacing, origin=origin, direction=direction,
+                       space=space, meta=meta)
 
 
 def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: str):
@@ -314,14 +391,8 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
         fh.seek(start)
         return np.frombuffer(read_exact(fh, nbytes, where), dtype=file_dtype)
     if encoding == "ascii":
-        text = fh.read().decode("latin-1")
-        try:
-            values = np.array(text.replace(",", " ").split(), dtype=np.float64)
-        except ValueError:
-            raise FormatError(f"{where}: ascii data has a non-numeric entry") from None
-        if values.size != count:
-            raise FormatError(f"{where}: ascii data has {values.size} values, expected {count}")
-        return values.astype(file_dtype.newbyteorder("="))
+        return _ascii_values(fh.read().decode("latin-1"), file_dtype.newbyteorder("="), count,
+                             where)
     if byteskip > 0:
         fh.seek(byteskip, os.SEEK_CUR)
     if encoding == "gzip":
@@ -332,6 +403,57 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
             raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
                               "(wrong sizes or type in the header?)")
     return np.frombuffer(buf, dtype=file_dtype)
+
+
+def _ascii_values(text: str, dtype: np.dtype, count: int, where: str) -> np.ndarray:
+    """Parse ASCII samples into ``dtype``, refusing values the type cannot hold.
+
+    An integer type takes only finite, whole numbers within its range (no
+    silent wrap-around, truncation or NaN-to-0). A float type keeps NaN and
+    infinities as data, as the binary encodings do, but refuses a finite value
+    too large for it (which would become infinity).
+    """
+    tokens = text.replace(",", " ").split()
+    try:
+        values = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        bad = next((i, t) for i, t in enumerate(tokens) if not _is_number(t))
+        raise FormatError(f"{where}: ascii data value {bad[1][:40]!r} (sample {bad[0]}) is "
+                          "not a number") from None
+    if values.size != count:
+        raise FormatError(f"{where}: ascii data has {values.size} values, expected {count}")
+    if dtype.kind in "iu":
+        info = np.iinfo(dtype)
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(values) | (values != np.floor(values)) | (values < info.min) | (
+                values > info.max)
+        if bad.any():
+            i = int(np.argmax(bad))
+            v = values[i]
+            why = ("is not a number" if np.isnan(v) else
+                   "is infinite" if not np.isfinite(v) else
+                   "is not a whole number" if v != np.floor(v) else
+                   "is out of range")
+            raise FormatError(f"{where}: ascii data value {tokens[i][:40]!r} (sample {i}) "
+                              f"{why}: type {dtype.name} holds whole numbers "
+                              f"{info.min}..{info.max}")
+        return values.astype(dtype)
+    with np.errstate(over="ignore"):
+        out = values.astype(dtype)
+    big = np.isinf(out) & np.isfinite(values)  # finite in the file, too large for the type
+    if big.any():
+        i = int(np.argmax(big))
+        raise FormatError(f"{where}: ascii data value {tokens[i][:40]!r} (sample {i}) is "
+                          f"outside the range of {dtype.name}")
+    return out
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
 
 
 def _fmt(x: float) -> str:

@@ -14,6 +14,7 @@ from .atomic import atomic_output
 from .common import (
     check_dtype,
     ensure_fits_in_memory,
+    make_volume,
     native,
     read_exact,
     voxel_count,
@@ -61,7 +62,9 @@ def read_raw(path: str | os.PathLike, layout: RawLayout | None) -> Volume:
         fh.seek(layout.header_bytes)
         buf = read_exact(fh, nbytes, where)
     data = np.frombuffer(buf, dtype=file_dtype).reshape(xyz_to_zyx(layout.shape))
-    return Volume(native(data), spacing=layout.spacing, origin=layout.origin)
+    # the geometry comes from the command line: a bad one is not the file's fault
+    return make_volume(where, native(data), error=VolwarpError, spacing=layout.spacing,
+                       origin=layout.origin)
 
 
 def write_raw(vol: Volume, path: str | os.PathLike, *, byte_order: str = "little") -> None:

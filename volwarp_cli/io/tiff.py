@@ -15,8 +15,13 @@ geometry in tifffile's JSON description.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import os
+import re
+import struct
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +29,17 @@ import numpy as np
 from ..errors import FormatError
 from ..volume import Volume
 from .atomic import atomic_output
-from .common import check_dtype, ensure_fits_in_memory, native, voxel_count, with_byte_order
+from .common import (
+    check_dtype,
+    ensure_fits_in_memory,
+    make_volume,
+    native,
+    read_exact,
+    voxel_count,
+    with_byte_order,
+)
+
+log = logging.getLogger("volwarp")
 
 _IMAGEJ_TYPES = ("uint8", "int16", "uint16", "float32")
 _UNIT_TO_MM = {"inch": 25.4, "centimeter": 10.0, "millimeter": 1.0, "micrometer": 1e-3}
@@ -42,92 +57,310 @@ def _floats(value, n, where, name):
     return out
 
 
+class _TifffileLog(logging.Handler):
+    """Receives tifffile's log records, so that none reaches stderr.
+
+    While :func:`_collect_tifffile_log` is active in a thread, that thread's
+    records are kept for the reader to judge (a broken chain of pages is an
+    error); any other record is passed on to volwarp's log at DEBUG level.
+    """
+
+    _local = threading.local()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        records = getattr(self._local, "records", None)
+        if records is not None:
+            records.append(record)
+        else:
+            log.debug("tifffile: %s", record.getMessage())
+
+
+_HANDLER = _TifffileLog()
+
+
+@contextlib.contextmanager
+def _collect_tifffile_log():
+    """Keep tifffile's log records of this thread in a list, off stderr."""
+    logger = logging.getLogger("tifffile")
+    if _HANDLER not in logger.handlers:
+        logger.addHandler(_HANDLER)
+        logger.propagate = False  # not to the root logger, nor Python's last resort
+    outer = getattr(_TifffileLog._local, "records", None)
+    records: list[logging.LogRecord] = []
+    _TifffileLog._local.records = records
+    try:
+        yield records
+    finally:
+        _TifffileLog._local.records = outer
+        for rec in records:
+            log.debug("tifffile: %s", rec.getMessage())
+
+
+#: tifffile log messages that mean the pages (or the tags volwarp needs) are
+#: not all in the file: a truncated or damaged file, never a readable one.
+_BROKEN_CHAIN = ("invalid page offset", "corrupted tag list", "invalid offset to page",
+                 "circular reference", "invalid next page")
+_BROKEN_DATA = ("missing data offset", "missing data bytecounts", "missing bytecounts",
+                "incorrect stripbytecounts", "incorrect stripoffsets")
+#: the tags whose loss changes what volwarp reads: sizes, sample type, strips
+#: and tiles, resolution, the description holding the ImageJ/volwarp metadata
+_TAG_NAMES = {256: "ImageWidth", 257: "ImageLength", 258: "BitsPerSample", 259: "Compression",
+              262: "PhotometricInterpretation", 270: "ImageDescription", 273: "StripOffsets",
+              277: "SamplesPerPixel", 278: "RowsPerStrip", 279: "StripByteCounts",
+              282: "XResolution", 283: "YResolution", 284: "PlanarConfiguration",
+              296: "ResolutionUnit", 317: "Predictor", 322: "TileWidth", 323: "TileLength",
+              324: "TileOffsets", 325: "TileByteCounts", 339: "SampleFormat",
+              32997: "ImageDepth", 32998: "TileDepth", 50838: "IJMetadataByteCounts",
+              50839: "IJMetadata"}
+#: tags whose loss changes what volwarp reads
+_NEEDED_TAGS = set(_TAG_NAMES)
+_TAG_CODE = re.compile(r"TiffTag (\d+) @")
+
+
+def _tifffile_message(record: logging.LogRecord) -> str:
+    """A tifffile log message without its leading ``<tifffile.X @n>`` object name."""
+    text = re.sub(r"^<[^>]*>\s*", "", record.getMessage())
+    return " ".join(text.split())[:200]
+
+
+def _check_tifffile_log(records, where: str, npages: int) -> None:
+    """Raise for a logged sign of truncation or damage (see ``_BROKEN_*``)."""
+    for rec in records:
+        if rec.levelno < logging.WARNING:
+            continue
+        msg = rec.getMessage()
+        low = msg.lower()
+        if any(k in low for k in _BROKEN_CHAIN):
+            raise FormatError(f"{where}: TIFF is truncated or damaged: the list of pages breaks "
+                              f"after {npages} page{'s' if npages != 1 else ''} "
+                              f"({_tifffile_message(rec)})")
+        if any(k in low for k in _BROKEN_DATA):
+            raise FormatError(f"{where}: TIFF is truncated or damaged "
+                              f"({_tifffile_message(rec)})")
+        m = _TAG_CODE.search(msg)
+        if m and int(m.group(1)) in _NEEDED_TAGS and "invalid" in low:
+            code = int(m.group(1))
+            what = ("lies outside the file" if "offset" in low
+                    else f"cannot be read ({_tifffile_message(rec)})")
+            raise FormatError(f"{where}: TIFF is truncated or damaged: the value of tag {code} "
+                              f"({_TAG_NAMES.get(code, 'tag')}) {what}")
+
+
+def _declared_pages(tif, pages, ij, where: str) -> tuple[int, str] | None:
+    """The number of pages the file's own metadata declares, and which metadata says so."""
+    if ij:
+        try:
+            if "images" in ij:
+                return int(ij["images"]), f"ImageJ metadata (images={ij['images']})"
+            if "slices" in ij:
+                n = int(ij["slices"]) * int(ij.get("channels", 1)) * int(ij.get("frames", 1))
+                return n, f"ImageJ metadata (slices={ij['slices']})"
+        except (TypeError, ValueError):
+            raise FormatError(f"{where}: ImageJ metadata has a count that is not a whole "
+                              "number") from None
+        return None
+    shaped = 0
+    found = False
+    for page in pages:  # tifffile's shaped series: JSON {"shape": [...]} on each first page
+        desc = page.description
+        if not desc.startswith("{") or '"shape"' not in desc:
+            continue
+        try:
+            shape = [int(v) for v in json.loads(desc)["shape"]]
+        except (ValueError, TypeError, KeyError):
+            continue
+        plane = int(np.prod(page.shape[-2:])) if len(page.shape) >= 2 else 0
+        total = int(np.prod(shape))
+        if plane <= 0 or total % plane:
+            continue
+        shaped += total // plane
+        found = True
+    if found:
+        return shaped, "tifffile metadata (shape)"
+    if getattr(tif, "is_ome", False):
+        return _ome_pages(tif)
+    return None
+
+
+def _ome_pages(tif) -> tuple[int, str] | None:
+    """SizeZ x SizeC x SizeT summed over the OME images of a one-file OME-TIFF."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.fromstring(tif.ome_metadata)
+    except Exception:  # not parseable: nothing declared that we can check
+        return None
+    total = 0
+    found = False
+    for el in root.iter():
+        tag = el.tag.rsplit("}", 1)[-1]
+        if tag == "UUID" and el.get("FileName"):
+            return None  # a multi-file OME set: this file holds only some of the planes
+        if tag == "Pixels":
+            try:
+                total += (int(el.get("SizeZ", 1)) * int(el.get("SizeC", 1))
+                          * int(el.get("SizeT", 1)))
+            except ValueError:
+                return None
+            found = True
+    return (total, "OME metadata") if found else None
+
+
 def read_tiff(path: str | os.PathLike) -> Volume:
     import tifffile
 
     where = str(path)
-    try:
-        tif = tifffile.TiffFile(path)
-    except (OSError, ValueError, tifffile.TiffFileError) as exc:
-        raise FormatError(f"{where}: not a readable TIFF ({exc})") from None
-    with tif:
-        pages = tif.pages
-        if len(pages) == 0:
-            raise FormatError(f"{where}: TIFF has no pages")
-        first = pages.first
-        shape0, dtype0 = first.shape, first.dtype
-        if first.samplesperpixel > 1:
-            raise FormatError(f"{where}: TIFF has {first.samplesperpixel} samples per pixel; "
-                              "volwarp reads one-channel stacks")
-        for i, page in enumerate(pages):
-            if page.shape != shape0 or page.dtype != dtype0:
-                raise FormatError(f"{where}: page {i} has shape {page.shape} {page.dtype}, "
-                                  f"page 0 has {shape0} {dtype0}; all slices must match")
-        if dtype0 is None:
-            raise FormatError(f"{where}: unsupported TIFF sample format")
-        check_dtype(dtype0, where)
-        ny, nx = shape0[-2], shape0[-1]
-        nz = len(pages)
-        ensure_fits_in_memory(voxel_count((nx, ny, nz)) * dtype0.itemsize,
-                              f"{where} ({nx}x{ny}x{nz} {dtype0.name})")
+    with _collect_tifffile_log() as records:
         try:
-            data = tif.asarray(key=range(nz)) if nz > 1 else first.asarray()
+            tif = tifffile.TiffFile(path)
+        except OSError as exc:
+            raise FormatError(f"{where}: cannot open ({exc.strerror or exc})") from None
         except Exception as exc:  # tifffile raises many types for damaged files
-            raise FormatError(f"{where}: cannot read TIFF data ({exc})") from None
-        data = np.asarray(data).reshape(nz, ny, nx)
-        meta: dict = {}
-        spacing = [1.0, 1.0, 1.0]
-        origin = [0.0, 0.0, 0.0]
-        direction = np.eye(3)
-        extra = {}
-        ij = tif.imagej_metadata
-        if ij:
-            extra = ij
-            for key in ("channels", "frames"):
-                if int(ij.get(key, 1)) > 1:
-                    raise FormatError(f"{where}: ImageJ hyperstack has {ij[key]} {key}; "
-                                      "volwarp reads single-channel, single-frame stacks")
-            if ij.get("unit"):
-                meta["unit"] = str(ij["unit"])
-            if "spacing" in ij:
-                spacing[2] = float(ij["spacing"])
-        elif tif.shaped_metadata:
-            extra = tif.shaped_metadata[0]
-            if "unit" in extra:
-                meta["unit"] = str(extra["unit"])
-        scale = 1.0
-        tags = first.tags
-        if not ij and "ResolutionUnit" in tags:
-            unit = {2: "inch", 3: "centimeter"}.get(int(tags["ResolutionUnit"].value))
-            if unit and "volwarp_spacing" not in extra:
-                scale = _UNIT_TO_MM[unit]
-                meta["unit"] = "mm"
-        for axis, tag in ((0, "XResolution"), (1, "YResolution")):
-            if tag in tags:
-                num, den = tags[tag].value
-                if num > 0 and den > 0:
-                    spacing[axis] = scale * den / num
-        if "volwarp_spacing" in extra:
-            spacing = _floats(extra["volwarp_spacing"], 3, where, "volwarp_spacing")
-        elif "spacing" in extra and not ij and not isinstance(extra["spacing"], (int, float)):
-            spacing = _floats(extra["spacing"], 3, where, "spacing")
-        if "volwarp_origin" in extra:
-            origin = _floats(extra["volwarp_origin"], 3, where, "volwarp_origin")
-        if "volwarp_direction" in extra:
-            direction = np.array(_floats(extra["volwarp_direction"], 9, where,
-                                         "volwarp_direction")).reshape(3, 3)
-        space = extra.get("volwarp_space") or None
-        if "volwarp_spacing" in extra:
-            # written by volwarp: its key/values are exactly the volume's meta
+            _check_tifffile_log(records, where, 0)
+            raise FormatError(f"{where}: not a readable TIFF ({_reason(exc)})") from None
+        with tif:
             try:
-                meta = dict(json.loads(extra.get("volwarp_meta", "{}")))
-            except (TypeError, ValueError):
-                raise FormatError(f"{where}: volwarp_meta is not valid JSON") from None
+                return _read_tiff(tif, where, records)
+            except FormatError:
+                raise
+            except Exception as exc:  # tifffile raises many types for damaged files
+                raise FormatError(f"{where}: TIFF is damaged ({_reason(exc)})") from None
+
+
+def _reason(exc: Exception) -> str:
+    """tifffile's (or struct's, numpy's) complaint about a damaged file, in one short line."""
+    text = " ".join(str(exc).split())[:200]
+    if isinstance(exc, struct.error):
+        return f"file ends too early: {text}"
+    return text or type(exc).__name__
+
+
+def _read_tiff(tif, where: str, records) -> Volume:
+    pages = []
+    seen: dict[int, int] = {}
     try:
-        return Volume(native(data), spacing=spacing, origin=origin, direction=direction,
-                      space=space, meta=meta)
+        for page in tif.pages:  # reads every page's IFD
+            # A damaged "next page" offset can point back to an earlier page:
+            # tifffile would then go round the loop until memory runs out.
+            if page.offset in seen:
+                raise FormatError(f"{where}: TIFF is truncated or damaged: page {len(pages)} "
+                                  f"is page {seen[page.offset]} again (the list of pages "
+                                  "loops)")
+            seen[page.offset] = len(pages)
+            pages.append(page)
+    except FormatError:
+        raise
     except Exception as exc:
-        raise FormatError(f"{where}: {exc}") from None
+        _check_tifffile_log(records, where, len(pages))
+        raise FormatError(f"{where}: TIFF is truncated or damaged: page {len(pages)} cannot be "
+                          f"read ({_reason(exc)})") from None
+    _check_tifffile_log(records, where, len(pages))
+    if len(pages) == 0:
+        raise FormatError(f"{where}: TIFF has no pages")
+    first = pages[0]
+    shape0, dtype0 = first.shape, first.dtype
+    if first.samplesperpixel > 1:
+        raise FormatError(f"{where}: TIFF has {first.samplesperpixel} samples per pixel; "
+                          "volwarp reads one-channel stacks")
+    for i, page in enumerate(pages):
+        if page.shape != shape0 or page.dtype != dtype0:
+            raise FormatError(f"{where}: page {i} has shape {page.shape} {page.dtype}, "
+                              f"page 0 has {shape0} {dtype0}; all slices must match")
+    if dtype0 is None:
+        raise FormatError(f"{where}: unsupported TIFF sample format")
+    check_dtype(dtype0, where)
+    ij = tif.imagej_metadata
+    if ij:
+        for key in ("channels", "frames"):
+            if int(ij.get(key, 1)) > 1:
+                raise FormatError(f"{where}: ImageJ hyperstack has {ij[key]} {key}; "
+                                  "volwarp reads single-channel, single-frame stacks")
+    ny, nx = shape0[-2], shape0[-1]
+    nz = len(pages)
+    declared = _declared_pages(tif, pages, ij, where)
+    contiguous_stack = False
+    if declared is not None and declared[0] != nz:
+        count, source = declared
+        if ij and nz == 1 and count > 1 and _is_imagej_big_stack(tif, first, count):
+            contiguous_stack, nz = True, count  # ImageJ's own layout of stacks over 4 GiB
+        else:
+            raise FormatError(f"{where}: TIFF has {nz} page{'s' if nz != 1 else ''} but its "
+                              f"{source} declares {count}: the file is truncated or damaged")
+    ensure_fits_in_memory(voxel_count((nx, ny, nz)) * dtype0.itemsize,
+                          f"{where} ({nx}x{ny}x{nz} {dtype0.name})")
+    try:
+        if contiguous_stack:
+            dt = np.dtype(dtype0).newbyteorder(tif.byteorder)
+            tif.filehandle.seek(first.dataoffsets[0])
+            data = np.frombuffer(read_exact(tif.filehandle, nz * ny * nx * dt.itemsize, where),
+                                 dtype=dt)
+        else:
+            data = tif.asarray(key=range(nz)) if nz > 1 else first.asarray()
+    except FormatError:
+        raise
+    except Exception as exc:  # tifffile raises many types for damaged files
+        raise FormatError(f"{where}: cannot read TIFF data ({_reason(exc)})") from None
+    _check_tifffile_log(records, where, nz)
+    data = np.asarray(data).reshape(nz, ny, nx)
+    return _geometry(tif, first, ij, data, where)
+
+
+def _is_imagej_big_stack(tif, first, count: int) -> bool:
+    """True for ImageJ's layout of a stack: one IFD, all planes stored back to back after it."""
+    if not first.is_contiguous or first.compression != 1 or first.predictor not in (0, 1):
+        return False
+    if getattr(first, "fillorder", 1) != 1 or len(first.dataoffsets) == 0:
+        return False
+    need = first.dataoffsets[0] + count * first.nbytes
+    return need <= tif.filehandle.size
+
+
+def _geometry(tif, first, ij, data, where: str) -> Volume:
+    meta: dict = {}
+    spacing = [1.0, 1.0, 1.0]
+    origin = [0.0, 0.0, 0.0]
+    direction = np.eye(3)
+    extra = {}
+    if ij:
+        extra = ij
+        if ij.get("unit"):
+            meta["unit"] = str(ij["unit"])
+        if "spacing" in ij:
+            spacing[2] = float(ij["spacing"])
+    elif tif.shaped_metadata:
+        extra = tif.shaped_metadata[0]
+        if "unit" in extra:
+            meta["unit"] = str(extra["unit"])
+    scale = 1.0
+    tags = first.tags
+    if not ij and "ResolutionUnit" in tags:
+        unit = {2: "inch", 3: "centimeter"}.get(int(tags["ResolutionUnit"].value))
+        if unit and "volwarp_spacing" not in extra:
+            scale = _UNIT_TO_MM[unit]
+            meta["unit"] = "mm"
+    for axis, tag in ((0, "XResolution"), (1, "YResolution")):
+        if tag in tags:
+            num, den = tags[tag].value
+            if num > 0 and den > 0:
+                spacing[axis] = scale * den / num
+    if "volwarp_spacing" in extra:
+        spacing = _floats(extra["volwarp_spacing"], 3, where, "volwarp_spacing")
+    elif "spacing" in extra and not ij and not isinstance(extra["spacing"], (int, float)):
+        spacing = _floats(extra["spacing"], 3, where, "spacing")
+    if "volwarp_origin" in extra:
+        origin = _floats(extra["volwarp_origin"], 3, where, "volwarp_origin")
+    if "volwarp_direction" in extra:
+        direction = np.array(_floats(extra["volwarp_direction"], 9, where,
+                                     "volwarp_direction")).reshape(3, 3)
+    space = extra.get("volwarp_space") or None
+    if "volwarp_spacing" in extra:
+        # written by volwarp: its key/values are exactly the volume's meta
+        try:
+            meta = dict(json.loads(extra.get("volwarp_meta", "{}")))
+        except (TypeError, ValueError):
+            raise FormatError(f"{where}: volwarp_meta is not valid JSON") from None
+    return make_volume(where, native(data), spacing=spacing, origin=origin,
+                       direction=direction, space=space, meta=meta)
 
 
 def write_tiff(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
@@ -160,5 +393,6 @@ def write_tiff(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
                              metadata={"axes": "ZYX", "spacing": float(vol.spacing[2]),
                                        "unit": unit, **geometry}, **kwargs)
         else:
+            # minisblack: else tifffile stores a stack of 3 or 4 slices as one RGB(A) page
             tifffile.imwrite(tmp, data, metadata={"axes": "ZYX", "unit": unit, **geometry},
-                             resolutionunit="NONE", **kwargs)
+                             resolutionunit="NONE", photometric="minisblack", **kwargs)
