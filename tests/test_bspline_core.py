@@ -361,3 +361,39 @@ def test_update_touching_most_of_the_lattice_recomputes_in_full(caplog):
         scene.set_lattice(cap.dq)
     assert scene.last_touched == ((0, 0, 0), scene.target_shape)
     assert np.array_equal(scene.out, Scene(cap.domain, cap.grid, dq, 4).render())
+
+
+def test_samples_far_above_the_rest_are_refused_before_they_wipe_it_out():
+    """The box pushforward's exact sums are fixed point scaled by the largest |value|:
+    a no-data marker (-3.4e38) or a spike 1e12 times the rest would leave the rest
+    no precision (the warp came out 0 everywhere else). Those are refused; ordinary
+    wide ranges (a probability map with tiny tails, one bright voxel in zeros) are not."""
+    ball = np.zeros((16, 17, 18), np.float32)
+    ball[4:12, 4:12, 4:12] = 100
+    for marker in (-3.4e38, 1e12):
+        data = ball.copy()
+        data[0, 0, 0] = marker
+        with pytest.raises(VolwarpError, match="clip or mask"):
+            capture_volume(Volume(data), lattice=5, oversample=1)
+    ok = ball.copy()
+    ok[0, 0, 0] = 1e6  # 10^4 times the rest: sums still resolve 1e-6 of a unit
+    cap = capture_volume(Volume(ok), lattice=5, oversample=1, sampling="nearest")
+    scene = Scene(cap.domain, cap.grid, cap.dq, 0, method="nearest",
+                  domain_range=cap.stats[:2])
+    assert np.abs(scene.render()[4:12, 4:12, 4:12] - 100).max() < 1e-4
+    tails = np.exp(-np.linspace(0, 60, 16 * 17 * 18)).reshape(16, 17, 18)  # down to 1e-26
+    capture_volume(Volume(tails.astype(np.float32)), lattice=5, oversample=1)
+    point = np.zeros((16, 17, 18), np.float32)
+    point[8, 8, 8] = 1e30  # the bulk is 0: nothing to lose
+    capture_volume(Volume(point), lattice=5, oversample=1)
+
+
+def test_a_lattice_too_big_for_memory_is_refused_before_it_is_built(monkeypatch):
+    """A lattice much finer than the input (1000^3 points on 20^3 voxels) needs tens of
+    GiB for its own arrays: refused with the sizes before any is allocated."""
+    from volwarp_cli.errors import OutOfMemoryError
+
+    monkeypatch.setenv("VOLWARP_MEMORY_LIMIT", str(1 << 30))
+    data = np.zeros((20, 20, 20), np.float32)
+    with pytest.raises(OutOfMemoryError, match="1000x1000x1000 control lattice needs"):
+        capture_volume(Volume(data), lattice=1000, oversample=1)

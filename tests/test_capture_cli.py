@@ -103,3 +103,39 @@ def test_capture_refuses_non_finite_samples(run, tmp_path):
     res = run("capture", src, "-o", tmp_path / "s.vwc")
     assert res.code == 1 and "NaN" in res.stderr and str(src) in res.stderr
     assert not (tmp_path / "s.vwc").exists()
+
+
+@pytest.mark.parametrize("field, value, what", [
+    (("input", "shape"), [30, -1, 30], "input shape"),
+    (("input", "dtype"), "complex64", "input dtype"),
+    (("input", "min"), float("nan"), "input range"),
+    (("capture", "placement"), "weird", "placement"),
+    (("capture", "domain_shape"), [31, 30, 30], "domain shape does not match"),
+    (("capture", "granularity"), [1.5, 2, 2], "granularity"),
+])
+def test_damaged_header_fields_are_the_capture_files_fault(run, data_dir, tmp_path, field,
+                                                           value, what):
+    """The JSON header carries no checksum: each field is checked on load, so a damaged
+    one is reported as the capture file's (exit 1, naming it) by warp and info alike,
+    not blamed on the spec or the output, nor used."""
+    import struct
+
+    good = tmp_path / "g.vwc"
+    assert run("capture", data_dir / "ball_30_uint8.nrrd", "-o", good,
+               "--oversample", "1").code == 0
+    raw = good.read_bytes()
+    magic, version, n = struct.unpack("<16sII", raw[:24])
+    head = json.loads(raw[24:24 + n])
+    head[field[0]][field[1]] = value
+    text = json.dumps(head, sort_keys=True).encode()
+    bad = tmp_path / "b.vwc"
+    bad.write_bytes(struct.pack("<16sII", magic, version, len(text)) + text + raw[24 + n:])
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nsteps: []\n")
+    for args in (("warp", bad, "--spec", spec, "-o", tmp_path / "o.nrrd"),
+                 ("info", bad, "--json")):
+        res = run(*args)
+        assert res.code == 1, res.stderr
+        assert "header is malformed" in res.stderr and what in res.stderr
+        assert str(bad) in res.stderr
+    assert not (tmp_path / "o.nrrd").exists()

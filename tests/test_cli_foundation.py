@@ -230,7 +230,7 @@ def test_content_not_matching_extension(run, tmp_path):
 
 def test_unknown_extension_and_usage_errors(run, data_dir, tmp_path):
     res = run("convert", data_dir / "ball_30_uint8.nrrd", "-o", tmp_path / "o.xyz")
-    _assert_clean_failure(res, 1, "unknown volume extension")
+    _assert_clean_failure(res, 2, "unknown volume extension")  # usage: before any work
     res = run("convert", data_dir / "ball_30_uint8.nrrd")  # no -o
     _assert_clean_failure(res, 2, "-o")
     res = run("info", tmp_path / "x.raw", "--raw-shape", 2, 2, 2)  # no --raw-dtype
@@ -281,3 +281,50 @@ def test_verbose_log_reaches_each_invocations_stderr(run, tmp_path, data_dir):
         res = run("info", path, "-v")
         assert res.code == 0
         assert f"volwarp: read {path}" in res.stderr
+
+
+def test_info_json_stays_strict_with_nan_and_inf_samples(run, tmp_path):
+    """min/max/mean describe the finite samples; `nonfinite` counts the rest; no NaN or
+    Infinity tokens (strict JSON parsers reject them)."""
+    data = np.arange(24, dtype=np.float32).reshape(2, 3, 4)
+    data[0, 0, 0] = np.nan
+    data[1, 2, 3] = -np.inf
+    path = tmp_path / "n.nrrd"
+    write_volume(Volume(data), path)
+    res = run("info", path, "--json")
+    assert res.code == 0, res.stderr
+
+    def strict(token):
+        raise AssertionError(f"non-standard JSON token {token}")
+
+    d = json.loads(res.stdout, parse_constant=strict)
+    assert (d["min"], d["max"], d["nonfinite"]) == (1.0, 22.0, 2)
+    assert d["mean"] == pytest.approx(np.arange(1, 23).mean())
+    text = run("info", path)
+    assert text.code == 0 and "nonfinite: 2 samples" in text.stdout
+
+
+def test_bad_inputs_and_options_get_the_designed_exit_codes(run, data_dir, tmp_path):
+    """A folder given as the input is a file error (1), not click's usage wording; a
+    non-finite or non-positive number, a --frames-to pattern that cannot format, an
+    unknown output extension are usage errors (2), found before any work."""
+    ball = data_dir / "ball_30_uint8.nrrd"
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nsteps: []\n")
+    out = tmp_path / "o.nrrd"
+    _assert_clean_failure(run("warp", data_dir, "--spec", spec, "-o", out), 1, "is a folder",
+                          str(data_dir), out=out)
+    _assert_clean_failure(run("info", tmp_path), 1, "is a folder")
+    _assert_clean_failure(run("capture", ball, "-o", tmp_path / "c.vwc", "--oversample", "nan"),
+                          2, "--oversample", "finite", out=tmp_path / "c.vwc")
+    raw = tmp_path / "x.raw"
+    raw.write_bytes(bytes(8))
+    for flag, values, what in (("--raw-spacing", ("0", "1", "1"), "positive"),
+                               ("--raw-spacing", ("nan", "1", "1"), "finite"),
+                               ("--raw-origin", ("0", "inf", "0"), "finite")):
+        res = run("info", raw, "--raw-shape", 2, 2, 2, "--raw-dtype", "uint8", flag, *values)
+        _assert_clean_failure(res, 2, flag, what)
+    res = run("warp", ball, "--spec", spec, "-o", out, "--frames-to", "f_{frame[0]}.nrrd")
+    _assert_clean_failure(res, 2, "--frames-to", out=out)
+    res = run("warp", ball, "--spec", spec, "-o", tmp_path / "o.xyz")
+    _assert_clean_failure(res, 2, "unknown volume extension", out=tmp_path / "o.xyz")

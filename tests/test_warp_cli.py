@@ -359,3 +359,43 @@ def test_a_warp_failing_midway_leaves_the_existing_output(run, data_dir, tmp_pat
     assert len(calls) >= 3 and res.code == 1 and "memory" in res.stderr
     assert out.read_bytes() == b"an earlier result"
     assert [p.name for p in tmp_path.iterdir()] == ["o.nrrd"]
+
+
+@pytest.mark.parametrize("capture, move", [
+    ("{lattice: 5, oversample: 1, pad: 100000000000000000000}", "[1.0, 0, 0]"),
+    ("{lattice: 5, oversample: 1}", "[1.0e+300, 0, 0]"),
+])
+def test_a_target_too_big_to_make_is_refused_naming_the_input(run, data_dir, tmp_path, capture,
+                                                              move):
+    """A huge pad, or a displacement that asks for one, is refused before anything of the
+    target's size is made (numpy could not even make its shape: that was an internal
+    error), in one line naming the input and the size; the existing output is kept."""
+    src = data_dir / "ball_30_uint8.nrrd"
+    spec = _spec(tmp_path, f"version: 1\nunits: voxel\ncapture: {capture}\nsteps:\n"
+                           f"  - move:\n      - {{index: [2, 2, 2], by: {move}}}\n")
+    out = tmp_path / "o.nrrd"
+    out.write_bytes(b"old")
+    res = run("warp", src, "--spec", spec, "-o", out)
+    assert res.code == 1, res.stderr
+    line = res.stderr.strip()
+    assert "\n" not in line and len(line) < 400
+    assert str(src) in line and "the warped target" in line and "needs" in line
+    assert out.read_bytes() == b"old"
+
+
+def test_a_failed_write_names_the_output_and_leaves_nothing(tmp_path):
+    """An OSError while an output is written (a full disk, a quota) becomes an error
+    naming the output; the temporary file goes, an existing output stays."""
+    import errno
+
+    from volwarp_cli.errors import VolwarpError
+    from volwarp_cli.io.atomic import atomic_output
+
+    out = tmp_path / "o.nrrd"
+    out.write_bytes(b"old")
+    with pytest.raises(VolwarpError, match=r"o\.nrrd: cannot write \(No space left on device\)"):
+        with atomic_output(out) as tmp:
+            tmp.write_bytes(b"part")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert out.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["o.nrrd"]

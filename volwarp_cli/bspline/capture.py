@@ -57,6 +57,39 @@ class Capture:
         return self.grid.uniform_positions() + self.dq
 
 
+#: float64 (x, y, z) arrays of the control lattice's size held at a time (positions,
+#: offsets, a move's old and new offsets, the scene's bounds): for the memory check.
+LATTICE_ARRAYS = 8
+#: How far above the bulk of the samples the largest may lie (see check_value_range).
+MAX_VALUE_SPREAD = 2.0 ** 20
+def check_value_range(data: np.ndarray, lo: float, hi: float) -> None:
+    """Refuse samples whose extremes would leave the warp's sums no precision for the rest.
+
+    The box pushforward adds values as fixed-point integers scaled by the
+    largest magnitude (exact, so local updates equal a full recomputation);
+    they resolve about 2**-40 of it. A no-data marker such as -3.4e38, or a
+    single spike, far above the bulk of the samples would then wipe the rest
+    out. Refused: a largest magnitude over ``MAX_VALUE_SPREAD`` times the 99th
+    percentile of ``|value|`` in an evenly strided sample of the input (about
+    65000 samples, a millisecond or two), where that percentile is not 0.
+    """
+    vmax = max(-lo, hi)
+    if vmax <= 0:
+        return
+    # 16 planes, each on a 64 x 64 grid: a view reading about 1 MiB of a 256^3 input
+    nz, ny, nx = data.shape
+    sample = data[::max(1, nz // 16), ::max(1, ny // 64), ::max(1, nx // 64)]
+    mags = np.abs(sample, dtype=np.float64).ravel()
+    k = int(0.99 * (mags.size - 1))
+    bulk = float(np.partition(mags, k)[k])  # (np.percentile's first call imports ~60 ms)
+    if bulk > 0 and vmax > MAX_VALUE_SPREAD * bulk:
+        raise VolwarpError(
+            f"samples reach {lo if -lo > hi else hi:.3g}, over {MAX_VALUE_SPREAD:.0f} times "
+            f"the bulk of the values (99% have |value| <= {bulk:.3g}): the warp's exact "
+            f"sums resolve about {vmax * 2.0 ** -40:.2g}, too coarse for the rest; clip or "
+            "mask those samples first (a no-data value?)")
+
+
 def domain_dtype(dtype) -> np.dtype:
     """float64 where float32 would lose the input's precision, else float32."""
     dt = np.dtype(dtype)
@@ -83,8 +116,13 @@ def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
     if not (np.isfinite(lo) and np.isfinite(hi)):  # NaN and inf reach min or max
         raise VolwarpError("the volume has NaN or infinite samples; warping needs finite ones "
                            "(replace them first)")
+    check_value_range(data, lo, hi)
     lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
     grid = Grid.create(vol.shape_xyz, lattice, oversample)
+    # the lattice's own arrays (positions, offsets, the scene's bounds and masks) come
+    # before the domain's: a lattice finer than the input can outgrow it
+    ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,
+                          f"the {'x'.join(map(str, grid.lattice))} control lattice")
     capture_offsets(grid, placement)  # validates the placement for this lattice
     dt = domain_dtype(vol.dtype)
     if not defer:

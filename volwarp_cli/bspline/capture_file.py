@@ -120,12 +120,59 @@ def read_header(path: str | os.PathLike) -> tuple[dict, int]:
         raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
     if int(np.prod(shape)) * dtype.itemsize != int(payload["nbytes"]):
         raise FormatError(f"{path}: capture file header is inconsistent (payload size)")
+    problem = _header_problem(head)
+    if problem:
+        raise FormatError(f"{path}: capture file header is malformed ({problem})")
     if size < expected:
         raise FormatError(f"{path}: capture file is truncated: expected {expected} bytes, "
                           f"found {size}")
     if size > expected:
         raise FormatError(f"{path}: capture file has {size - expected} unexpected trailing bytes")
     return head, _PREFIX.size + n
+
+
+def _header_problem(head: dict) -> str | None:
+    """What is wrong with a header's fields (the JSON is not checksummed), or None."""
+    from ..io.common import SUPPORTED_DTYPES
+    from .lattice import PLACEMENTS
+    from .pullback import SAMPLINGS
+
+    def ints(v, n, least):
+        return (isinstance(v, list) and len(v) == n
+                and all(isinstance(x, int) and not isinstance(x, bool) and x >= least
+                        for x in v))
+
+    def reals(v, n):
+        return (isinstance(v, list) and len(v) == n
+                and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                        and np.isfinite(x) for x in v))
+
+    try:
+        inp, capd, pl = head["input"], head["capture"], head["payload"]
+        checks = [
+            (ints(inp["shape"], 3, 1), "input shape"),
+            (inp["dtype"] in SUPPORTED_DTYPES, "input dtype"),
+            (reals(inp["spacing"], 3) and min(inp["spacing"]) > 0, "input spacing"),
+            (reals(inp["origin"], 3), "input origin"),
+            (isinstance(inp["direction"], list) and len(inp["direction"]) == 3
+             and all(reals(r, 3) for r in inp["direction"]), "input direction"),
+            (reals([inp["min"], inp["max"]], 2) and inp["min"] <= inp["max"], "input range"),
+            (inp["mean"] is None or reals([inp["mean"]], 1), "input mean"),
+            (ints(capd["lattice"], 3, 4), "lattice"),
+            (ints(capd["granularity"], 3, 1), "granularity"),
+            (capd["placement"] in PLACEMENTS, "placement"),
+            (capd["sampling"] in SAMPLINGS, "sampling"),
+            (reals([capd["oversample"]], 1) and capd["oversample"] > 0, "oversample"),
+            (capd["pad"] is None or ints(capd["pad"], 3, 0), "pad"),
+            (pl["dtype"] in ("float32", "float64"), "payload dtype"),
+            (capd["domain_shape"] == pl["shape"] == [
+                g * (c - 3) for g, c in zip(capd["granularity"], capd["lattice"], strict=True)],
+             "domain shape does not match the lattice"),
+        ]
+    except (KeyError, TypeError) as exc:
+        return f"missing or wrong field {exc}"
+    bad = [what for ok, what in checks if not ok]
+    return ", ".join(bad) if bad else None
 
 
 def read_capture(path: str | os.PathLike) -> Capture:

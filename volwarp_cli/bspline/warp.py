@@ -8,9 +8,11 @@ state (see :mod:`.plan`) and builds the :class:`~.scene.Scene`;
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from ..io.common import cast_samples
+from ..io.common import cast_samples, ensure_fits_in_memory
 from ..progress import log, progress, timed
 from ..volume import Volume
 from .capture import Capture
@@ -48,6 +50,14 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     else:
         pad = default_pad(frames, dq0)
     needed = default_pad(frames, dq0)
+    # the padded target, before anything of its size (or a shape numpy cannot make)
+    tshape = [int(i) + 2 * int(p) for i, p in zip(cap.grid.input_shape, pad, strict=True)]
+    def size(v):
+        return str(v) if v < 10**9 else f"{v:.3g}"
+
+    ensure_fits_in_memory(math.prod(tshape) * 4,
+                          f"the warped target ({'x'.join(map(size, tshape))} voxels, "
+                          f"pad {' '.join(size(int(p)) for p in pad)})")
     if any(p < n - 1 for p, n in zip(pad, needed, strict=False)):
         log.warning("pad %s is smaller than the largest displacement %s: material moved "
                     "outside the padded grid is cut off", list(pad), [max(n - 1, 0) for n in needed])

@@ -7,7 +7,7 @@ import click
 from ..io import check_output_path
 from ..progress import timed
 from .common import load_input
-from .options import common_options, output_option, raw_options
+from .options import INPUT_PATH, common_options, finite, output_option, raw_options
 
 
 class LatticeOption(click.Option):
@@ -54,14 +54,15 @@ def lattice_option(default="9"):
 
 
 @click.command(name="capture")
-@click.argument("input", type=click.Path(dir_okay=False))
-@output_option("Capture file to write (.vwc).")
+@click.argument("input", type=INPUT_PATH)
+@output_option("Capture file to write (.vwc).", volume=False)
 @lattice_option()
 @click.option("--placement", type=click.Choice(["uniform", "tripled"]), default="uniform",
               show_default=True,
               help="Capture lattice: evenly spaced, an affine map (thesis 5.5), or the first "
                    "and last points tripled (paper 7).")
 @click.option("--oversample", type=click.FloatRange(min=0, min_open=True, max=16),
+              callback=finite,
               default=2.0, show_default=True,
               help="Domain voxels per input voxel: granularity G = ceil(oversample * I / R).")
 @click.option("--pad", type=click.IntRange(min=0), default=None,

@@ -15,18 +15,29 @@ def load_input(path, raw=None, volume_index=None, mmap=False) -> Volume:
 
 
 def describe_volume(vol: Volume, fmt: str) -> dict:
-    """The stable ``volwarp info --json`` description of a volume."""
+    """The stable ``volwarp info --json`` description of a volume.
+
+    min, max and mean are those of the finite samples; ``nonfinite`` (only
+    when there are any) counts the NaN and infinite ones, so the JSON stays
+    strict (no NaN or Infinity tokens)."""
     data = vol.data
+    nonfinite = 0
     if data.size:
         lo = data.min()
         hi = data.max()
         mean = float(data.mean(dtype=np.float64))
+        if not (np.isfinite(lo) and np.isfinite(hi)):  # NaN or inf: describe the rest
+            finite = data[np.isfinite(data)]
+            nonfinite = data.size - finite.size
+            lo, hi = (finite.min(), finite.max()) if finite.size else (None, None)
+            mean = float(finite.mean(dtype=np.float64)) if finite.size else None
     else:  # pragma: no cover - volumes always have samples
         lo = hi = mean = None
     def num(v):
         if v is None:
             return None
         return int(v) if np.issubdtype(type(v), np.integer) else float(v)
+    extra = {"nonfinite": nonfinite} if nonfinite else {}
     return {
         "format": fmt,
         "shape": list(vol.shape_xyz),
@@ -39,6 +50,7 @@ def describe_volume(vol: Volume, fmt: str) -> dict:
         "max": num(hi),
         "mean": mean,
         "meta": {str(k): str(v) for k, v in sorted(vol.meta.items())},
+        **extra,
     }
 
 

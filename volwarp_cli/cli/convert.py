@@ -7,11 +7,11 @@ import click
 from ..io import check_output_path, write_volume
 from ..progress import timed
 from .common import load_input
-from .options import common_options, output_option, raw_options, write_options
+from .options import INPUT_PATH, common_options, output_option, raw_options, write_options
 
 
 @click.command(name="convert")
-@click.argument("input", type=click.Path(dir_okay=False))
+@click.argument("input", type=INPUT_PATH)
 @output_option()
 @write_options
 @raw_options

@@ -16,13 +16,13 @@ import click
 from ..io import check_output_path, write_volume
 from ..progress import log, timed
 from .common import load_input, stamp
-from .options import common_options, output_option, raw_options, write_options
+from .options import INPUT_PATH, common_options, output_option, raw_options, write_options
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
 
 @click.command(name="distance")
-@click.argument("input", required=False, type=click.Path(dir_okay=False))
+@click.argument("input", required=False, type=INPUT_PATH)
 @output_option("Output distance field (float32 by default; format by extension).")
 @click.option("--iso", type=float, default=None, metavar="V",
               help="Iso level: the shape is the samples on the inside of V.")
@@ -40,9 +40,9 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
               help="Distance to the shape (0 inside) instead of the signed field.")
 @click.option("--max-distance", type=click.FloatRange(min=0, min_open=True), default=None,
               metavar="D", help="Clamp distances to [-D, D] (world units).")
-@click.option("--update", "update", type=click.Path(dir_okay=False), default=None,
+@click.option("--update", "update", type=INPUT_PATH, default=None,
               metavar="OLD_SDF", help="Update an existing signed field instead (needs --transform).")
-@click.option("--transform", type=click.Path(dir_okay=False), default=None, metavar="AFFINE.yaml",
+@click.option("--transform", type=INPUT_PATH, default=None, metavar="AFFINE.yaml",
               help="With --update: the move (transform spec, see specs/transform.schema.json).")
 @write_options
 @raw_options

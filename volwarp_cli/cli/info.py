@@ -8,12 +8,15 @@ import click
 
 from ..io import volume_format
 from .common import describe_volume, load_input
-from .options import common_options, raw_options
+from .options import INPUT_PATH, common_options, raw_options
 
 
 def _format_text(d: dict) -> str:
     def vec(v):
         return " ".join(f"{x:g}" for x in v)
+
+    def num(v, fmt):
+        return "-" if v is None else format(v, fmt)
     lines = [
         f"format:    {d['format']}",
         f"shape:     {vec(d['shape'])} (x y z)",
@@ -22,20 +25,22 @@ def _format_text(d: dict) -> str:
         f"origin:    {vec(d['origin'])}",
         "direction: " + "; ".join(vec(r) for r in d["direction"]),
         f"space:     {d['space'] or '-'}",
-        f"min/max:   {d['min']:g} / {d['max']:g}",
-        f"mean:      {d['mean']:.6g}",
+        f"min/max:   {num(d['min'], 'g')} / {num(d['max'], 'g')}",
+        f"mean:      {num(d['mean'], '.6g')}",
     ]
+    if d.get("nonfinite"):
+        lines.append(f"nonfinite: {d['nonfinite']} samples (NaN or infinite; not in min/max/mean)")
     for k, v in d["meta"].items():
         lines.append(f"meta:      {k} = {v}")
     for k, v in d.items():
         if k not in ("format", "shape", "dtype", "spacing", "origin", "direction", "space",
-                     "min", "max", "mean", "meta"):
+                     "min", "max", "mean", "meta", "nonfinite"):
             lines.append(f"{k}: {json.dumps(v)}")
     return "\n".join(lines)
 
 
 @click.command(name="info")
-@click.argument("file", type=click.Path(dir_okay=False))
+@click.argument("file", type=INPUT_PATH)
 @click.option("--json", "as_json", is_flag=True,
               help="Print one JSON object (stable keys: format shape dtype spacing origin "
                    "direction space min max mean meta).")
@@ -50,7 +55,7 @@ def command(file, as_json, raw, volume_index):
         vol = load_input(file, raw, volume_index)
         desc = describe_volume(vol, volume_format(file))
     if as_json:
-        click.echo(json.dumps(desc, indent=2, sort_keys=False))
+        click.echo(json.dumps(desc, indent=2, sort_keys=False, allow_nan=False))
     elif desc.get("format") == "vwc":
         # a capture file: the lattice positions are many numbers; show their extent
         pts = desc.pop("lattice_points")

@@ -10,6 +10,7 @@ import click
 from ..errors import VolwarpError
 from .common import load_input
 from .options import (
+    INPUT_PATH,
     VIEW_HELP,
     common_options,
     core_parser,
@@ -44,7 +45,7 @@ def _format_stats(d: dict) -> str:
 
 
 @click.command(name="mesh")
-@click.argument("input", type=click.Path(dir_okay=False))
+@click.argument("input", type=INPUT_PATH)
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
               help="Mesh file: .ply .stl .obj .vtp .vtk (binary where the format has it). "
                    "May be left out when --render or --stats is given.")

@@ -16,7 +16,7 @@ import click
 
 from ..errors import VolwarpError
 from ..progress import log, progress, timed
-from .options import VIEW_HELP, common_options, core_parser, parse_size, parse_view
+from .options import INPUT_PATH, VIEW_HELP, common_options, core_parser, parse_size, parse_view
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
@@ -41,8 +41,8 @@ def _attribute_name(frame_path: str, name: str) -> str:
 
 
 @click.command(name="morph")
-@click.argument("shapes", nargs=-1, type=click.Path(dir_okay=False), metavar="[SOURCE TARGET]")
-@click.option("--spec", "spec_path", type=click.Path(dir_okay=False), default=None,
+@click.argument("shapes", nargs=-1, type=INPUT_PATH, metavar="[SOURCE TARGET]")
+@click.option("--spec", "spec_path", type=INPUT_PATH, default=None,
               help="Morph spec (YAML, see specs/morph.schema.json).")
 @click.option("-o", "--output", required=True,
               help="Frame file pattern, e.g. 'frame_{i:03d}.nrrd' ({i} frame number, {t} time).")

@@ -7,6 +7,7 @@ exit 2) and hand the command typed values.
 from __future__ import annotations
 
 import functools
+import math
 
 import click
 
@@ -40,9 +41,44 @@ def common_options(f):
     return f
 
 
-def output_option(help_text: str = "Output file (format by extension)."):
+def finite(ctx, param, value):
+    """Callback: a float option (or each of a tuple of them) must be a finite number."""
+    values = value if isinstance(value, tuple) else (value,)
+    for v in values:
+        if v is not None and not math.isfinite(v):
+            raise click.BadParameter(f"must be a finite number, got {v}", ctx=ctx, param=param)
+    return value
+
+
+def _positive(ctx, param, value):
+    finite(ctx, param, value)
+    if value is not None and any(v <= 0 for v in value):
+        raise click.BadParameter(f"must be positive, got {' '.join(map(str, value))}",
+                                 ctx=ctx, param=param)
+    return value
+
+
+#: An input path: no checks by click (whose "not readable" or "is a directory" would exit
+#: 2); the readers report a missing, unreadable or folder input as a file error (exit 1).
+INPUT_PATH = click.Path(readable=False)
+
+
+def _volume_output(ctx, param, value):
+    # an unknown extension is a usage error, found before any work
+    from ..io import volume_format
+
+    if value is not None:
+        try:
+            volume_format(value)
+        except VolwarpError as exc:
+            raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+    return value
+
+
+def output_option(help_text: str = "Output file (format by extension).", volume: bool = True):
+    """-o/--output; ``volume``: a volume file, its extension checked at once."""
     return click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
-                        help=help_text)
+                        callback=_volume_output if volume else None, help=help_text)
 
 
 def raw_options(f):
@@ -72,8 +108,9 @@ def raw_options(f):
         click.option("--raw-endian", type=click.Choice(["little", "big"]), default="little",
                      show_default=True, help="Raw input: byte order."),
         click.option("--raw-spacing", nargs=3, type=float, default=None, metavar="SX SY SZ",
-                     help="Raw input: voxel spacing (x, y, z)."),
+                     callback=_positive, help="Raw input: voxel spacing (x, y, z)."),
         click.option("--raw-origin", nargs=3, type=float, default=None, metavar="OX OY OZ",
+                     callback=finite,
                      help="Raw input: world position of the first voxel's centre."),
         click.option("--raw-header-bytes", type=click.IntRange(min=0), default=0,
                      help="Raw input: bytes to skip before the samples."),

@@ -6,6 +6,7 @@ import click
 
 from ..errors import VolwarpError
 from .options import (
+    INPUT_PATH,
     VIEW_HELP,
     common_options,
     core_parser,
@@ -59,7 +60,7 @@ def scale_to_dtype(data, dtype):
 
 
 @click.command(name="sweep")
-@click.argument("spec", type=click.Path(dir_okay=False))
+@click.argument("spec", type=INPUT_PATH)
 @output_option("Output file pattern: '{field}' becomes each field's name "
                "(e.g. 'at_{field}.nrrd'); format by extension.")
 @click.option("--multi", is_flag=True,

@@ -2,16 +2,23 @@
 
 from __future__ import annotations
 
-import math
 import string
 from concurrent.futures import ThreadPoolExecutor
 
 import click
 
+from ..errors import OutOfMemoryError
 from ..io import check_output_path, write_volume
 from ..progress import timed
 from .common import load_input, stamp
-from .options import common_options, output_option, raw_options, write_options
+from .options import (
+    INPUT_PATH,
+    common_options,
+    finite,
+    output_option,
+    raw_options,
+    write_options,
+)
 
 _FIELDS = ("frame", "step", "spec_step", "sub")
 
@@ -29,18 +36,13 @@ def _check_pattern(pattern: str) -> None:
     try:
         a = pattern.format(frame=1, step=1, spec_step=1, sub=1)
         b = pattern.format(frame=2, step=2, spec_step=1, sub=2)
-    except (ValueError, KeyError, IndexError) as exc:
+    except (ValueError, KeyError, IndexError, TypeError, AttributeError) as exc:
+        # e.g. {frame[0]} (an int has no items) or {frame.x}
         raise click.BadParameter(f"{pattern!r}: {exc}", param_hint="'--frames-to'") from None
     if a == b:
         raise click.BadParameter("the pattern must number the frames, e.g. "
                                  "'out_{frame:03d}.nrrd'", param_hint="'--frames-to'")
     check_output_path(a)
-
-
-def _finite(ctx, param, value):
-    if value is not None and not math.isfinite(value):
-        raise click.BadParameter(f"must be a finite number, got {value}")
-    return value
 
 
 def _unchecked_capture_settings(doc):
@@ -82,8 +84,8 @@ def _capture_early(reading, settings, input, defer):
 
 
 @click.command(name="warp")
-@click.argument("input", type=click.Path(dir_okay=False))
-@click.option("--spec", "spec_path", required=True, type=click.Path(dir_okay=False),
+@click.argument("input", type=INPUT_PATH)
+@click.option("--spec", "spec_path", required=True, type=INPUT_PATH,
               help="Warp spec (YAML; schema specs/warp.schema.json).")
 @output_option("Warped volume (format by extension).")
 @click.option("--frames-to", default=None, metavar="PATTERN",
@@ -94,7 +96,7 @@ def _capture_early(reading, settings, input, defer):
               help="Pushforward filter [default: the spec's, else box].")
 @click.option("--evaluator", type=click.Choice(["separable", "table"]), default=None,
               help="Deformation evaluator [default: the spec's, else separable].")
-@click.option("--background", type=float, default=None, metavar="B", callback=_finite,
+@click.option("--background", type=float, default=None, metavar="B", callback=finite,
               help="Value of the space around the model, given to uncovered output voxels "
                    "and blended into partly covered ones [default: the spec's, else 0]; "
                    "e.g. a large positive distance for a signed distance field.")
@@ -156,8 +158,11 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         if cap is None:
             cap = _capture(vol, spec.capture, input, one_shot)
         del vol
-    scene, frames = prepare(cap, doc, spec, method=pushforward, evaluator=evaluator,
-                            background=background)
+    try:
+        scene, frames = prepare(cap, doc, spec, method=pushforward, evaluator=evaluator,
+                                background=background)
+    except OutOfMemoryError as exc:  # the target this input and spec ask for
+        raise OutOfMemoryError(f"{input}: {exc}") from None
 
     def write(target, path):
         out = stamp(output_volume(cap, scene, target, crop=crop, dtype=dtype), "warp", input,

@@ -78,6 +78,8 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
     instead of copying (a command that only reads its input).
     """
     path = Path(path)
+    if path.is_dir():  # before its (missing) extension
+        raise FormatError(f"{path}: is a folder, not a volume file")
     fmt = volume_format(path)
     _check_content(path, fmt)
     if volume_index is not None and fmt in ("tiff", "raw"):

@@ -77,9 +77,12 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None):
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.filename in (None, tmp):
+            # writing the output failed (a full disk, a quota): say which output
+            raise VolwarpError(f"{path}: cannot write ({exc.strerror or exc})") from exc
         raise
     finally:
         _live_temporaries.discard(tmp)
