@@ -307,7 +307,8 @@ def test_info_json_stays_strict_with_nan_and_inf_samples(run, tmp_path):
 def test_bad_inputs_and_options_get_the_designed_exit_codes(run, data_dir, tmp_path):
     """A folder given as the input is a file error (1), not click's usage wording; a
     non-finite or non-positive number, a --frames-to pattern that cannot format, an
-    unknown output extension are usage errors (2), found before any work."""
+    unknown output extension, --raw-* options for a file with a header are usage
+    errors (2), found before any work."""
     ball = data_dir / "ball_30_uint8.nrrd"
     spec = tmp_path / "w.yaml"
     spec.write_text("version: 1\nsteps: []\n")
@@ -328,3 +329,6 @@ def test_bad_inputs_and_options_get_the_designed_exit_codes(run, data_dir, tmp_p
     _assert_clean_failure(res, 2, "--frames-to", out=out)
     res = run("warp", ball, "--spec", spec, "-o", tmp_path / "o.xyz")
     _assert_clean_failure(res, 2, "unknown volume extension", out=tmp_path / "o.xyz")
+    # a file with a header describes itself: --raw-* would be parsed and ignored
+    res = run("info", ball, "--raw-shape", 2, 2, 2, "--raw-dtype", "uint8")
+    _assert_clean_failure(res, 2, "--raw-*", str(ball))

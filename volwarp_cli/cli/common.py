@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import click
 import numpy as np
 
 from ..io import read_volume
@@ -10,6 +11,10 @@ from ..volume import Volume
 
 
 def load_input(path, raw=None, volume_index=None, mmap=False) -> Volume:
+    if raw is not None and not str(path).lower().endswith((".raw", ".bin")):
+        # a file with a header describes itself: the options would be ignored
+        raise click.UsageError(f"--raw-* options describe headerless .raw/.bin inputs, "
+                               f"not {path}")
     with timed(f"read {path}"):
         return read_volume(path, raw=raw, volume_index=volume_index, mmap=mmap)
 
