@@ -430,3 +430,23 @@ def test_raw_geometry_errors_name_the_file(tmp_path):
     with pytest.raises(VolwarpError, match=r"v\.raw: spacing must be positive"):
         read_volume(tmp_path / "v.raw", raw=RawLayout(shape=(2, 2, 2), dtype="uint8",
                                                       spacing=(1.0, 0.0, 1.0)))
+
+
+@pytest.mark.parametrize("axes, shape, what", [("CZYX", (2, 3, 8, 9), "2 channels"),
+                                               ("TZYX", (3, 2, 8, 9), "3 time points")])
+def test_ome_tiff_with_channels_or_time_points_is_refused(tmp_path, axes, shape, what):
+    """An OME-TIFF's planes are channels x time points x z: read as z slices they would
+    make a wrong volume, so more than one channel or time point is refused (as ImageJ
+    hyperstacks are)."""
+    import tifffile
+
+    from volwarp_cli.io import read_volume
+
+    path = tmp_path / "h.ome.tif"
+    tifffile.imwrite(path, np.zeros(shape, np.uint8), ome=True, metadata={"axes": axes})
+    with pytest.raises(FormatError, match=what):
+        read_volume(path)
+    single = tmp_path / "s.ome.tif"
+    tifffile.imwrite(single, np.arange(3 * 8 * 9, dtype=np.uint8).reshape(3, 8, 9), ome=True,
+                     metadata={"axes": "ZYX"})
+    assert read_volume(single).data.shape == (3, 8, 9)

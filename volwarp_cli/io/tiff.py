@@ -206,6 +206,29 @@ def _ome_pages(tif) -> tuple[int, str] | None:
     return (total, "OME metadata") if found else None
 
 
+def _ome_extra_axes(tif) -> tuple[str, int] | None:
+    """``("channels", n)`` or ``("time points", n)`` where an OME image has more than one
+    (its planes would otherwise be read as z slices), else None."""
+    import xml.etree.ElementTree as ET
+
+    if not getattr(tif, "is_ome", False) or not tif.ome_metadata:
+        return None
+    try:
+        root = ET.fromstring(tif.ome_metadata)
+    except Exception:  # not parseable: nothing declared
+        return None
+    for el in root.iter():
+        if el.tag.rsplit("}", 1)[-1] == "Pixels":
+            for key, name in (("SizeC", "channels"), ("SizeT", "time points")):
+                try:
+                    n = int(el.get(key, 1))
+                except ValueError:
+                    continue
+                if n > 1:
+                    return name, n
+    return None
+
+
 def read_tiff(path: str | os.PathLike) -> Volume:
     import tifffile
 
@@ -275,6 +298,10 @@ def _read_tiff(tif, where: str, records) -> Volume:
             if int(ij.get(key, 1)) > 1:
                 raise FormatError(f"{where}: ImageJ hyperstack has {ij[key]} {key}; "
                                   "volwarp reads single-channel, single-frame stacks")
+    extra = _ome_extra_axes(tif)
+    if extra:
+        raise FormatError(f"{where}: OME-TIFF has {extra[1]} {extra[0]}; volwarp reads "
+                          "single-channel, single-time-point stacks")
     ny, nx = shape0[-2], shape0[-1]
     nz = len(pages)
     declared = _declared_pages(tif, pages, ij, where)
