@@ -381,6 +381,9 @@ def test_samples_far_above_the_rest_are_refused_before_they_wipe_it_out():
     scene = Scene(cap.domain, cap.grid, cap.dq, 0, method="nearest",
                   domain_range=cap.stats[:2])
     assert np.abs(scene.render()[4:12, 4:12, 4:12] - 100).max() < 1e-4
+    spike = ball.copy()
+    spike[0, 0, 0] = 1e10  # 10^8 times the rest: about 1e-4 of it lost, still accepted
+    capture_volume(Volume(spike), lattice=5, oversample=1)
     tails = np.exp(-np.linspace(0, 60, 16 * 17 * 18)).reshape(16, 17, 18)  # down to 1e-26
     capture_volume(Volume(tails.astype(np.float32)), lattice=5, oversample=1)
     point = np.zeros((16, 17, 18), np.float32)

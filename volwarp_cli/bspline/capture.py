@@ -60,8 +60,9 @@ class Capture:
 #: float64 (x, y, z) arrays of the control lattice's size held at a time (positions,
 #: offsets, a move's old and new offsets, the scene's bounds): for the memory check.
 LATTICE_ARRAYS = 8
-#: How far above the bulk of the samples the largest may lie (see check_value_range).
-MAX_VALUE_SPREAD = 2.0 ** 20
+#: How far above the bulk of the samples the largest may lie (see check_value_range):
+#: the bulk then keeps at least 8 bits in the sums' 2**-40 of the largest.
+MAX_VALUE_SPREAD = 2.0 ** 32
 def check_value_range(data: np.ndarray, lo: float, hi: float) -> None:
     """Refuse samples whose extremes would leave the warp's sums no precision for the rest.
 
@@ -84,7 +85,7 @@ def check_value_range(data: np.ndarray, lo: float, hi: float) -> None:
     bulk = float(np.partition(mags, k)[k])  # (np.percentile's first call imports ~60 ms)
     if bulk > 0 and vmax > MAX_VALUE_SPREAD * bulk:
         raise VolwarpError(
-            f"samples reach {lo if -lo > hi else hi:.3g}, over {MAX_VALUE_SPREAD:.0f} times "
+            f"samples reach {lo if -lo > hi else hi:.3g}, over 2^{np.log2(MAX_VALUE_SPREAD):.0f} times "
             f"the bulk of the values (99% have |value| <= {bulk:.3g}): the warp's exact "
             f"sums resolve about {vmax * 2.0 ** -40:.2g}, too coarse for the rest; clip or "
             "mask those samples first (a no-data value?)")
