@@ -325,8 +325,9 @@ def test_bad_inputs_and_options_get_the_designed_exit_codes(run, data_dir, tmp_p
                                ("--raw-origin", ("0", "inf", "0"), "finite")):
         res = run("info", raw, "--raw-shape", 2, 2, 2, "--raw-dtype", "uint8", flag, *values)
         _assert_clean_failure(res, 2, flag, what)
-    res = run("warp", ball, "--spec", spec, "-o", out, "--frames-to", "f_{frame[0]}.nrrd")
-    _assert_clean_failure(res, 2, "--frames-to", out=out)
+    for pattern in ("f_{frame[0]}.nrrd", "f_{frame}.xyz"):
+        res = run("warp", ball, "--spec", spec, "-o", out, "--frames-to", pattern)
+        _assert_clean_failure(res, 2, "--frames-to", out=out)
     res = run("warp", ball, "--spec", spec, "-o", tmp_path / "o.xyz")
     _assert_clean_failure(res, 2, "unknown volume extension", out=tmp_path / "o.xyz")
     # a file with a header describes itself: --raw-* would be parsed and ignored

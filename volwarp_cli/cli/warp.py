@@ -7,8 +7,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import click
 
-from ..errors import OutOfMemoryError
-from ..io import check_output_path, write_volume
+from ..errors import OutOfMemoryError, VolwarpError
+from ..io import check_output_path, volume_format, write_volume
 from ..progress import timed
 from .common import load_input, stamp
 from .options import (
@@ -42,6 +42,10 @@ def _check_pattern(pattern: str) -> None:
     if a == b:
         raise click.BadParameter("the pattern must number the frames, e.g. "
                                  "'out_{frame:03d}.nrrd'", param_hint="'--frames-to'")
+    try:
+        volume_format(a)
+    except VolwarpError as exc:
+        raise click.BadParameter(str(exc), param_hint="'--frames-to'") from None
     check_output_path(a)
 
 
