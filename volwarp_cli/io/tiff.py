@@ -182,33 +182,9 @@ def _declared_pages(tif, pages, ij, where: str) -> tuple[int, str] | None:
     return None
 
 
-def _ome_pages(tif) -> tuple[int, str] | None:
-    """SizeZ x SizeC x SizeT summed over the OME images of a one-file OME-TIFF."""
-    import xml.etree.ElementTree as ET
-
-    try:
-        root = ET.fromstring(tif.ome_metadata)
-    except Exception:  # not parseable: nothing declared that we can check
-        return None
-    total = 0
-    found = False
-    for el in root.iter():
-        tag = el.tag.rsplit("}", 1)[-1]
-        if tag == "UUID" and el.get("FileName"):
-            return None  # a multi-file OME set: this file holds only some of the planes
-        if tag == "Pixels":
-            try:
-                total += (int(el.get("SizeZ", 1)) * int(el.get("SizeC", 1))
-                          * int(el.get("SizeT", 1)))
-            except ValueError:
-                return None
-            found = True
-    return (total, "OME metadata") if found else None
-
-
-def _ome_extra_axes(tif) -> tuple[str, int] | None:
-    """``("channels", n)`` or ``("time points", n)`` where an OME image has more than one
-    (its planes would otherwise be read as z slices), else None."""
+def _ome_pixels(tif) -> tuple[list[dict], bool] | None:
+    """The attributes of each OME ``Pixels`` element, and whether the file is one of a
+    multi-file OME set; None without readable OME metadata."""
     import xml.etree.ElementTree as ET
 
     if not getattr(tif, "is_ome", False) or not tif.ome_metadata:
@@ -217,15 +193,41 @@ def _ome_extra_axes(tif) -> tuple[str, int] | None:
         root = ET.fromstring(tif.ome_metadata)
     except Exception:  # not parseable: nothing declared
         return None
+    pixels, multi_file = [], False
     for el in root.iter():
-        if el.tag.rsplit("}", 1)[-1] == "Pixels":
-            for key, name in (("SizeC", "channels"), ("SizeT", "time points")):
-                try:
-                    n = int(el.get(key, 1))
-                except ValueError:
-                    continue
-                if n > 1:
-                    return name, n
+        tag = el.tag.rsplit("}", 1)[-1]
+        if tag == "UUID" and el.get("FileName"):
+            multi_file = True
+        elif tag == "Pixels":
+            pixels.append(dict(el.attrib))
+    return pixels, multi_file
+
+
+def _ome_pages(tif) -> tuple[int, str] | None:
+    """SizeZ x SizeC x SizeT summed over the OME images of a one-file OME-TIFF."""
+    ome = _ome_pixels(tif)
+    if ome is None or ome[1] or not ome[0]:  # a multi-file set: this file holds some planes
+        return None
+    try:
+        total = sum(int(p.get("SizeZ", 1)) * int(p.get("SizeC", 1)) * int(p.get("SizeT", 1))
+                    for p in ome[0])
+    except ValueError:
+        return None
+    return total, "OME metadata"
+
+
+def _ome_extra_axes(tif) -> tuple[str, int] | None:
+    """``("channels", n)`` or ``("time points", n)`` where an OME image has more than one
+    (its planes would otherwise be read as z slices), else None."""
+    ome = _ome_pixels(tif)
+    for pixels in ome[0] if ome else ():
+        for key, name in (("SizeC", "channels"), ("SizeT", "time points")):
+            try:
+                n = int(pixels.get(key, 1))
+            except ValueError:
+                continue
+            if n > 1:
+                return name, n
     return None
 
 
