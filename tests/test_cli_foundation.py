@@ -56,7 +56,7 @@ def test_info_json_is_stable(run, data_dir):
     assert res.code == 0, res.stderr
     d = json.loads(res.stdout)
     assert list(d) == ["format", "shape", "dtype", "spacing", "origin", "direction", "space",
-                       "min", "max", "mean", "meta"]
+                       "file_space", "min", "max", "mean", "meta"]
     assert d["format"] == "nrrd"
     assert d["shape"] == [128, 128, 62]
     assert d["dtype"] == "int16"

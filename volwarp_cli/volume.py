@@ -36,6 +36,38 @@ SPACE_NAMES = {
 }
 
 
+#: volwarp's world frame (ITK's, DICOM's, 3D Slicer's files')
+LPS = "left-posterior-superior"
+
+#: For each anatomical frame a file may store, the signs that take its world (x, y, z)
+#: to LPS. ``scanner-xyz`` and ``3d-right-handed`` are taken as LPS-like, and
+#: ``3d-left-handed`` as it stands, as ITK's NrrdImageIO does (their numbers are kept).
+_TO_LPS_SIGNS = {
+    "right-anterior-superior": (-1.0, -1.0, 1.0),
+    "left-anterior-superior": (1.0, -1.0, 1.0),
+    "left-posterior-superior": (1.0, 1.0, 1.0),
+    "scanner-xyz": (1.0, 1.0, 1.0),
+    "3d-right-handed": (1.0, 1.0, 1.0),
+    "3d-left-handed": (1.0, 1.0, 1.0),
+}
+
+
+def frame_to_lps(space: str | None) -> np.ndarray | None:
+    """The 3x3 matrix taking world vectors of the file frame ``space`` to LPS.
+
+    None when ``space`` names no frame (a file without one: its numbers are
+    used as they stand, and the volume has no anatomical frame). An unknown
+    frame name raises: guessing would place the anatomy somewhere else.
+    """
+    if space is None:
+        return None
+    name = SPACE_NAMES.get(str(space).lower())
+    if name is None:
+        known = ", ".join(sorted(_TO_LPS_SIGNS))
+        raise VolwarpError(f"unknown world frame {space!r} (known: {known})")
+    return np.diag(_TO_LPS_SIGNS[name])
+
+
 def xyz_to_zyx(values):
     """Reverse a per-axis (x, y, z) sequence to array order [z, y, x]."""
     return tuple(values)[::-1]
@@ -63,6 +95,14 @@ class Volume:
 
     ``meta`` holds the file format's other key/value pairs (strings), carried
     from input to output so that a pipeline does not lose them.
+
+    ``space`` is the world frame of origin and direction: LPS
+    (``left-posterior-superior``) for every file with an anatomical frame, or
+    None for files that name none (TIFF, raw, a NRRD without ``space``). A
+    Volume made with another frame (a reader passes the file's own, e.g. a
+    NRRD's ``right-anterior-superior``) converts its origin and direction to
+    LPS here, once, and keeps the file's frame in ``file_space``: no other
+    code converts frames, and every writer starts from LPS.
     """
 
     data: np.ndarray
@@ -71,6 +111,8 @@ class Volume:
     direction: np.ndarray = field(default_factory=lambda: np.eye(3))
     space: str | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    #: the world frame the file itself used (its readers converted it to ``space``)
+    file_space: str | None = None
 
     def __post_init__(self):
         data = np.asarray(self.data)
@@ -87,8 +129,15 @@ class Volume:
         if abs(np.linalg.det(direction)) < 1e-9:
             raise VolwarpError("direction matrix is singular")
         self.direction = direction
-        if self.space is not None:
-            self.space = SPACE_NAMES.get(str(self.space).lower(), str(self.space))
+        to_lps = frame_to_lps(self.space)
+        if to_lps is not None:  # the one conversion of a file's frame to LPS
+            frame = SPACE_NAMES[str(self.space).lower()]
+            if self.file_space is None:
+                self.file_space = frame
+            if frame != LPS:
+                self.origin = to_lps @ self.origin + 0.0  # + 0.0: no negative zeros
+                self.direction = to_lps @ self.direction + 0.0
+            self.space = LPS
         self.meta = dict(self.meta)
 
     # -- sizes --------------------------------------------------------------

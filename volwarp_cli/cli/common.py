@@ -51,6 +51,7 @@ def describe_volume(vol: Volume, fmt: str) -> dict:
         "origin": [float(v) for v in vol.origin],
         "direction": [[float(v) for v in row] for row in vol.direction],
         "space": vol.space,
+        "file_space": vol.file_space,
         "min": num(lo),
         "max": num(hi),
         "mean": mean,

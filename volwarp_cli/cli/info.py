@@ -24,7 +24,9 @@ def _format_text(d: dict) -> str:
         f"spacing:   {vec(d['spacing'])}",
         f"origin:    {vec(d['origin'])}",
         "direction: " + "; ".join(vec(r) for r in d["direction"]),
-        f"space:     {d['space'] or '-'}",
+        f"space:     {d['space'] or '-'}" + (
+            f" (the file's own: {d['file_space']}, converted)"
+            if d.get("file_space") and d["file_space"] != d["space"] else ""),
         f"min/max:   {num(d['min'], 'g')} / {num(d['max'], 'g')}",
         f"mean:      {num(d['mean'], '.6g')}",
     ]
@@ -34,7 +36,7 @@ def _format_text(d: dict) -> str:
         lines.append(f"meta:      {k} = {v}")
     for k, v in d.items():
         if k not in ("format", "shape", "dtype", "spacing", "origin", "direction", "space",
-                     "min", "max", "mean", "meta", "nonfinite"):
+                     "file_space", "min", "max", "mean", "meta", "nonfinite"):
             lines.append(f"{k}: {json.dumps(v)}")
     return "\n".join(lines)
 
@@ -43,7 +45,8 @@ def _format_text(d: dict) -> str:
 @click.argument("file", type=INPUT_PATH)
 @click.option("--json", "as_json", is_flag=True,
               help="Print one JSON object (stable keys: format shape dtype spacing origin "
-                   "direction space min max mean meta).")
+                   "direction space file_space min max mean meta). Geometry is in LPS "
+                   "millimetres (space), whatever frame the file used (file_space).")
 @raw_options
 @common_options
 def command(file, as_json, raw, volume_index):

@@ -127,9 +127,12 @@ class VolwarpGroup(click.Group):
 def cli(debug):
     """volwarp: modelling with sampled volumes, in batch.
 
-    Volumes are raw, TIFF, NRRD or NIfTI files; geometry on the command line
-    and in specs is always (x, y, z) in world units unless a spec says
-    `units: voxel`. Exit codes: 0 success, 2 usage or spec error, 1 other
+    Volumes are raw, TIFF, NRRD or NIfTI files; geometry
+    on the command line and in specs is always (x, y, z) in world units
+    unless a spec says `units: voxel`. The world frame is LPS millimetres
+    (x to the patient's left, y posterior, z superior, as ITK and 3D Slicer
+    have it), whatever frame a file stores: a RAS point (FSL, SPM, MNI) is
+    (-x, -y, z). Exit codes: 0 success, 2 usage or spec error, 1 other
     failures.
     """
 

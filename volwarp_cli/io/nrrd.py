@@ -19,12 +19,13 @@ import contextlib
 import gzip
 import os
 import re
+import zlib
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError
-from ..volume import Volume, xyz_to_zyx
+from ..errors import FormatError, VolwarpError
+from ..volume import Volume, frame_to_lps, xyz_to_zyx
 from .atomic import atomic_output
 from .common import (
     check_dtype,
@@ -55,6 +56,7 @@ _TYPES = {
 _WRITE_TYPES = {"int8": "int8", "uint8": "uint8", "int16": "int16", "uint16": "uint16",
                 "int32": "int32", "uint32": "uint32", "float32": "float", "float64": "double"}
 _ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2": "bzip2",
+              "hex": "hex",
               "ascii": "ascii", "txt": "ascii", "text": "ascii"}
 _KEPT_FIELDS = ("content", "space units", "measurement frame")
 #: the NRRD field names (to tell a field from a file name after "data file: LIST")
@@ -68,11 +70,41 @@ _FIELDS = frozenset((
 _VECTOR = re.compile(r"\(([^()]*)\)")
 
 
-def _parse_vector(text: str, where: str) -> list[float]:
+def _parse_vector(text: str, where: str, name: str) -> list[float]:
     try:
         return [float(v) for v in text.split(",")]
     except ValueError:
-        raise FormatError(f"{where}: cannot read vector ({text})") from None
+        raise FormatError(f"{where}: '{name}': cannot read vector ({_short(text)})") from None
+
+
+def _short(text: str, n: int = 60) -> str:
+    return text if len(text) <= n else text[:n - 3] + "..."
+
+
+def _numbers(fields: dict[str, str], name: str, where: str) -> list[float]:
+    """A per-axis float field (``spacings``, ``axis mins``): NaN marks a non-spatial axis."""
+    try:
+        return [float(v) for v in fields[name].split()]
+    except ValueError:
+        raise FormatError(f"{where}: '{name}' must be numbers, got "
+                          f"{_short(fields[name])!r}") from None
+
+
+def _whole(fields: dict[str, str], names: tuple[str, ...], where: str, default: int = 0,
+           minimum: int = 0) -> int:
+    """A whole-number field (``line skip``, ``byte skip``) under any of its spellings."""
+    for name in names:
+        if name in fields:
+            text = fields[name]
+            try:
+                value = int(text)
+            except ValueError:
+                raise FormatError(f"{where}: '{name}' must be a whole number, got "
+                                  f"{_short(text)!r}") from None
+            if value < minimum:
+                raise FormatError(f"{where}: '{name}' must be at least {minimum}, got {value}")
+            return value
+    return default
 
 
 def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
@@ -135,33 +167,37 @@ def _geometry(fields: dict[str, str], dim: int, where: str):
             m = _VECTOR.fullmatch(e)
             if not m:
                 raise FormatError(f"{where}: cannot read 'space directions' entry {e!r}")
-            v = _parse_vector(m.group(1), where)
+            v = _parse_vector(m.group(1), where, "space directions")
             if len(v) != 3:
                 raise FormatError(f"{where}: 'space directions' vectors must have 3 components")
             cols.append(v)
         mat = np.array(cols, dtype=np.float64).T  # columns are the axes
-        spacing = np.linalg.norm(mat, axis=0)
-        if np.any(spacing == 0) or not np.all(np.isfinite(mat)):
-            raise FormatError(f"{where}: 'space directions' has a zero or non-finite axis")
+        with np.errstate(over="ignore", under="ignore"):
+            spacing = np.linalg.norm(mat, axis=0)
+        if np.any(spacing == 0) or not np.all(np.isfinite(spacing)):
+            raise FormatError(f"{where}: 'space directions' has a zero, non-finite or "
+                              "too long axis")
         direction = mat / spacing[None, :]
         if "space origin" in fields:
             m = _VECTOR.fullmatch(fields["space origin"].strip())
             if not m:
                 raise FormatError(f"{where}: cannot read 'space origin'")
-            origin = np.array(_parse_vector(m.group(1), where))
+            origin = np.array(_parse_vector(m.group(1), where, "space origin"))
             if origin.shape != (3,):
                 raise FormatError(f"{where}: 'space origin' must have 3 components")
     else:
         if "spacings" in fields:
-            vals = [v for v in fields["spacings"].split() if v.lower() != "nan"]
+            vals = [v for v in _numbers(fields, "spacings", where) if not np.isnan(v)]
             if len(vals) == 3:
-                spacing = np.array([float(v) for v in vals])
-            if np.any(spacing <= 0):
-                raise FormatError(f"{where}: 'spacings' must be positive")
-        if "axis mins" in fields:
-            vals = [v for v in fields["axis mins"].split() if v.lower() != "nan"]
+                spacing = np.array(vals)
+            if np.any(spacing <= 0) or not np.all(np.isfinite(spacing)):
+                raise FormatError(f"{where}: 'spacings' must be positive and finite")
+        for name in ("axis mins", "axismins"):
+            if name not in fields:
+                continue
+            vals = [v for v in _numbers(fields, name, where) if not np.isnan(v)]
             if len(vals) == 3:
-                origin = np.array([float(v) for v in vals])
+                origin = np.array(vals)
                 cent = fields.get("centerings", fields.get("centers", "")).split()
                 if len(cent) == 3:
                     origin += np.array([0.5 if c == "cell" else 0.0 for c in cent]) * spacing
@@ -300,7 +336,7 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
         encoding = _ENCODINGS.get(fields["encoding"].lower())
         if encoding is None:
             raise FormatError(f"{where}: unknown encoding {fields['encoding']!r} "
-                              "(supported: raw, gzip, bzip2, ascii)")
+                              "(supported: raw, gzip, bzip2, ascii, hex)")
         dtype = np.dtype(_TYPES[type_name])
         check_dtype(dtype, where)
         endian = fields.get("endian", "little").lower()
@@ -312,8 +348,8 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
         nbytes = count * dtype.itemsize
         ensure_fits_in_memory(nbytes, f"{where} ({'x'.join(map(str, sizes))} {dtype.name})")
         files = _data_files(fields, path, fh, where, sizes)
-        lineskip = int(fields.get("line skip", fields.get("lineskip", "0")))
-        byteskip = int(fields.get("byte skip", fields.get("byteskip", "0")))
+        lineskip = _whole(fields, ("line skip", "lineskip"), where)
+        byteskip = _whole(fields, ("byte skip", "byteskip"), where, minimum=-1)
         if files is None:
             data = _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where,
                               exact_end=True, mmap=mmap)
@@ -344,8 +380,30 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
     for name in _KEPT_FIELDS:
         if name in fields:
             meta[f"NRRD_{name}"] = fields[name]
+    if "measurement frame" in fields and space is not None:
+        meta["NRRD_measurement frame"] = _measurement_frame_lps(fields, space, where)
     return make_volume(where, data, spacing=spacing, origin=origin, direction=direction,
                        space=space, meta=meta)
+
+
+def _measurement_frame_lps(fields: dict[str, str], space: str, where: str) -> str:
+    """The ``measurement frame`` (its vectors are world directions) in LPS.
+
+    The Volume converts origin and direction from the file's frame; the
+    measurement frame, which only NRRD has, is converted with the same matrix.
+    """
+    try:
+        to_lps = frame_to_lps(space)
+    except VolwarpError as exc:
+        raise FormatError(f"{where}: 'space': {exc}") from None
+    text = fields["measurement frame"]
+    vectors = [_parse_vector(m.group(1), where, "measurement frame")
+               for m in _VECTOR.finditer(text)]
+    if len(vectors) != 3 or any(len(v) != 3 for v in vectors):
+        raise FormatError(f"{where}: 'measurement frame' must be 3 vectors of 3 numbers, got "
+                          f"{_short(text)!r}")
+    frame = to_lps @ np.array(vectors, dtype=np.float64).T  # columns are the vectors
+    return " ".join(_vec(frame[:, a]) for a in range(3))
 
 
 def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: str):
@@ -393,16 +451,80 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
     if encoding == "ascii":
         return _ascii_values(fh.read().decode("latin-1"), file_dtype.newbyteorder("="), count,
                              where)
-    if byteskip > 0:
-        fh.seek(byteskip, os.SEEK_CUR)
-    if encoding == "gzip":
+    if encoding == "hex":
+        return np.frombuffer(_hex_bytes(fh.read(), nbytes, where), dtype=file_dtype)
+    if encoding == "gzip" and byteskip == 0:  # the common case: one pass, in place
         return np.frombuffer(read_gzip_exact(fh, nbytes, where), dtype=file_dtype)
-    with bz2.BZ2File(fh) as stream:
-        buf = read_exact(stream, nbytes, where)
-        if exact_end and stream.read(1):
-            raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
-                              "(wrong sizes or type in the header?)")
+    # A byte skip of compressed data counts decompressed bytes, and -1 means the samples
+    # are the stream's last bytes (as teem, ITK and pynrrd read it).
+    stream = gzip.GzipFile(fileobj=fh) if encoding == "gzip" else bz2.BZ2File(fh)
+    with stream:
+        if byteskip == -1:
+            buf = _stream_tail(stream, nbytes, where)
+        else:
+            _skip_stream(stream, byteskip, where)
+            buf = read_exact(stream, nbytes, where)
+            if exact_end and _read_stream(stream, 1, where):
+                raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
+                                  "(wrong sizes or type in the header?)")
     return np.frombuffer(buf, dtype=file_dtype)
+
+
+def _read_stream(stream, n: int, where: str) -> bytes:
+    """``stream.read(n)`` of a decompressing stream, its failures as file errors."""
+    try:
+        return stream.read(n)
+    except EOFError:
+        raise FormatError(f"{where}: compressed data is truncated (the stream ends before "
+                          "its end-of-stream marker)") from None
+    except (OSError, ValueError, zlib.error) as exc:
+        raise FormatError(f"{where}: corrupt compressed data ({exc})") from None
+
+
+def _skip_stream(stream, nbytes: int, where: str) -> None:
+    left = nbytes
+    while left:
+        got = len(_read_stream(stream, min(left, 1 << 22), where))
+        if not got:
+            raise FormatError(f"{where}: compressed data ends inside 'byte skip' "
+                              f"({nbytes - left} of {nbytes} bytes)")
+        left -= got
+
+
+def _stream_tail(stream, nbytes: int, where: str) -> np.ndarray:
+    """The last ``nbytes`` of a decompressing stream (``byte skip: -1``), in bounded memory."""
+    buf = bytearray()
+    while chunk := _read_stream(stream, 1 << 22, where):
+        buf += chunk
+        if len(buf) > 2 * nbytes + (1 << 22):
+            del buf[:len(buf) - nbytes]
+    if len(buf) < nbytes:
+        raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of samples, "
+                          f"the compressed stream holds {len(buf)}")
+    return np.frombuffer(bytes(buf[len(buf) - nbytes:]), dtype=np.uint8)
+
+
+def _hex_bytes(text: bytes, nbytes: int, where: str) -> bytes:
+    """Samples in NRRD's ``hex`` encoding: two hex digits a byte, white space ignored."""
+    try:
+        data = bytes.fromhex(text.decode("latin-1"))
+    except ValueError:
+        bad = next((c for c in text.decode("latin-1").split() if not _is_hex(c)), "?")
+        raise FormatError(f"{where}: hex data is not pairs of hex digits (near "
+                          f"{_short(bad, 20)!r})") from None
+    if len(data) != nbytes:
+        what = "truncated" if len(data) < nbytes else "too long"
+        raise FormatError(f"{where}: hex data is {what}: expected {nbytes} bytes of samples, "
+                          f"found {len(data)}")
+    return data
+
+
+def _is_hex(token: str) -> bool:
+    try:
+        bytes.fromhex(token)
+    except ValueError:
+        return False
+    return True
 
 
 def _ascii_values(text: str, dtype: np.dtype, count: int, where: str) -> np.ndarray:

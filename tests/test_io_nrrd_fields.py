@@ -1,0 +1,113 @@
+"""NRRD details other readers get right: compressed byte skips, hex data, named field errors.
+
+References: SimpleITK (teem's NrrdIO inside ITK) and pynrrd read the same files (teem's rules:
+a byte skip of compressed data counts decompressed bytes, and -1 means the samples are the
+stream's last bytes).
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+
+import nrrd as pynrrd
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from volwarp_cli.errors import FormatError
+from volwarp_cli.io import read_volume
+
+DATA = np.arange(3 * 4 * 5, dtype=np.int16).reshape(5, 4, 3) * 7 - 100
+
+
+def _header(encoding: str, extra: str = "") -> bytes:
+    return (f"NRRD0004\ntype: short\ndimension: 3\nsizes: 3 4 5\nendian: little\n"
+            f"encoding: {encoding}\nspacings: 1 2 3\n{extra}\n").encode()
+
+
+def _compress(encoding: str, raw: bytes) -> bytes:
+    return gzip.compress(raw, mtime=0) if encoding == "gzip" else bz2.compress(raw)
+
+
+@pytest.mark.parametrize("encoding", ["gzip", "bzip2"])
+@pytest.mark.parametrize("skip", [-1, 0, 11])
+def test_compressed_byte_skip_counts_decompressed_bytes(tmp_path, encoding, skip):
+    junk = bytes(range(37))  # a stream prefix the samples follow
+    payload = DATA.astype("<i2").tobytes()
+    stream = payload if skip == 0 else (junk + payload if skip == -1 else junk[:skip] + payload)
+    path = tmp_path / "s.nrrd"
+    path.write_bytes(_header(encoding, f"byte skip: {skip}\n") + _compress(encoding, stream))
+    vol = read_volume(path)
+    np.testing.assert_array_equal(vol.data, DATA)
+    if encoding == "gzip":  # ITK reads NRRD through teem's own NrrdIO (built without bzip2)
+        np.testing.assert_array_equal(sitk.GetArrayFromImage(sitk.ReadImage(str(path))), DATA)
+    if skip <= 0:  # pynrrd skips compressed bytes for a positive skip (teem: decompressed)
+        ref, _ = pynrrd.read(str(path), index_order="C")
+        np.testing.assert_array_equal(vol.data, ref)
+
+
+def test_compressed_byte_skip_past_the_stream_is_an_error(tmp_path):
+    path = tmp_path / "s.nrrd"
+    path.write_bytes(_header("gzip", "byte skip: 1000\n") + gzip.compress(b"\0" * 20, mtime=0))
+    with pytest.raises(FormatError, match=r"s\.nrrd.*ends inside 'byte skip'"):
+        read_volume(path)
+
+
+def test_compressed_tail_shorter_than_the_samples_is_truncated(tmp_path):
+    path = tmp_path / "s.nrrd"
+    path.write_bytes(_header("gzip", "byte skip: -1\n") + gzip.compress(b"\0" * 20, mtime=0))
+    with pytest.raises(FormatError, match=r"s\.nrrd.*truncated.*expected 120 bytes"):
+        read_volume(path)
+
+
+def test_hex_encoding_matches_pynrrd(tmp_path):
+    text = DATA.astype("<i2").tobytes().hex()
+    lines = "\n".join(text[i:i + 34] for i in range(0, len(text), 34))  # white space between
+    path = tmp_path / "h.nrrd"
+    path.write_bytes(_header("hex") + lines.encode() + b"\n")
+    vol = read_volume(path)
+    np.testing.assert_array_equal(vol.data, DATA)
+    np.testing.assert_array_equal(vol.spacing, [1, 2, 3])
+
+
+@pytest.mark.parametrize("body,match", [
+    (b"00 01 zz", r"not pairs of hex digits.*'zz'"),
+    (b"0001", r"hex data is truncated: expected 120 bytes of samples, found 2"),
+])
+def test_bad_hex_data_is_named(tmp_path, body, match):
+    path = tmp_path / "h.nrrd"
+    path.write_bytes(_header("hex") + body)
+    with pytest.raises(FormatError, match=match):
+        read_volume(path)
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("spacings", "a 1 1", r"'spacings' must be numbers, got 'a 1 1'"),
+    ("spacings", "1 0 1", r"'spacings' must be positive"),
+    ("axis mins", "x 0 0", r"'axis mins' must be numbers, got 'x 0 0'"),
+    ("line skip", "abc", r"'line skip' must be a whole number, got 'abc'"),
+    ("byte skip", "1.5", r"'byte skip' must be a whole number, got '1.5'"),
+    ("byte skip", "-2", r"'byte skip' must be at least -1, got -2"),
+    ("space origin", "(1,b,3)", r"'space origin': cannot read vector"),
+])
+def test_malformed_numeric_fields_name_the_field(tmp_path, field, value, match):
+    extra = f"{field}: {value}\n"
+    if field == "space origin":
+        extra = "space: LPS\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n" + extra
+    text = _header("raw", extra).decode().replace("spacings: 1 2 3\n", "" if field in (
+        "spacings", "space origin") else "spacings: 1 2 3\n")
+    path = tmp_path / "bad.nrrd"
+    path.write_bytes(text.encode() + DATA.astype("<i2").tobytes())
+    with pytest.raises(FormatError, match=r"bad\.nrrd: " + match):
+        read_volume(path)
+
+
+def test_huge_space_directions_are_an_error_without_numpy_warnings(tmp_path, recwarn):
+    path = tmp_path / "big.nrrd"
+    extra = "space: LPS\nspace directions: (1e200,1e200,0) (0,1,0) (0,0,1)\n"
+    text = _header("raw", extra).decode().replace("spacings: 1 2 3\n", "")
+    path.write_bytes(text.encode() + DATA.astype("<i2").tobytes())
+    with pytest.raises(FormatError, match=r"big\.nrrd: 'space directions' has a zero"):
+        read_volume(path)
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
