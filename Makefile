@@ -10,8 +10,10 @@ export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba-cache
 # The package's bytecode, written ahead (only changed modules are recompiled): where
 # PYTHONDONTWRITEBYTECODE is set, as on this project's CI machines, Python would
-# otherwise compile every module it imports in every command (~0.08 s of a warp).
-BYTECODE = $(BIN)/python -m compileall -q volwarp_cli
+# otherwise compile every module it imports in every command (~0.08 s of a warp),
+# and the editable install's finder, which every start-up imports before any volwarp code.
+BYTECODE = $(BIN)/python -m compileall -q volwarp_cli && $(BIN)/python -c \
+  "import compileall, glob, sysconfig; [compileall.compile_file(f, quiet=1) for f in glob.glob(sysconfig.get_paths()['purelib'] + '/__editable__*.py')]"
 
 .PHONY: install system-deps demo test bench lint examples clean
 

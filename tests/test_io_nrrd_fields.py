@@ -111,3 +111,15 @@ def test_huge_space_directions_are_an_error_without_numpy_warnings(tmp_path, rec
     with pytest.raises(FormatError, match=r"big\.nrrd: 'space directions' has a zero"):
         read_volume(path)
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
+@pytest.mark.parametrize("cut", [4, 40])
+def test_bzip2_missing_its_last_bytes_is_truncated_naming_the_file(run, tmp_path, cut):
+    # was a blank line and "volwarp: error: aborted" (the stream's EOFError from its last read)
+    path = tmp_path / "cut.nrrd"
+    stream = bz2.compress(DATA.astype("<i2").tobytes())
+    path.write_bytes(_header("bzip2") + stream[:-cut])
+    res = run("info", path)
+    assert res.code == 1
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "cut.nrrd: compressed data is truncated" in lines[0], res.stderr

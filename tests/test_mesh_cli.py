@@ -212,7 +212,7 @@ def test_level_never_crossed_is_an_error(run, tmp_path):
 def test_bad_outputs_fail_before_work(run, sphere_file, tmp_path):
     path, _, _ = sphere_file
     res = run("mesh", path, "-o", tmp_path / "m.off", "--iso", "0")
-    assert res.code == 1 and "unknown mesh extension" in res.stderr
+    assert res.code == 2 and "unknown mesh extension" in res.stderr
     res = run("mesh", path, "-o", tmp_path / "missing" / "m.ply", "--iso", "0")
     assert res.code == 1 and "does not exist" in res.stderr
     # an existing folder, or a file where the folder should be
@@ -244,7 +244,7 @@ def test_read_only_folder(run, sphere_file, tmp_path):
 def test_bad_render_options_and_usage(run, sphere_file, tmp_path):
     path, _, _ = sphere_file
     res = run("mesh", path, "--render", tmp_path / "x.gifx")
-    assert res.code == 1 and "unknown image extension" in res.stderr
+    assert res.code == 2 and "unknown image extension" in res.stderr
     for args in (["--size", "big"], ["--view", "sideways"], ["--color", "blurple"],
                  ["--decimate", "1.5"], ["--smooth", "-2"]):
         res = run("mesh", path, "--render", tmp_path / "x.png", *args)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from volwarp_cli.errors import FormatError
+from volwarp_cli.errors import FormatError, VolwarpError
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.volume import LPS, Volume
 
@@ -74,7 +74,7 @@ def test_nrrd_frame_is_converted_to_lps_as_simpleitk_reads_it(tmp_path, space):
 
 
 #: every writer SimpleITK can read the geometry of (TIFF: volwarp's own reader only)
-WRITERS = ["o.nrrd", "o.nhdr", "o.nii", "o.nii.gz"]
+WRITERS = ["o.nrrd", "o.nhdr", "o.nii", "o.nii.gz", "o.mha", "o.mhd"]
 
 
 @pytest.mark.parametrize("space", ["right-anterior-superior", "LAS", "LPS", "scanner-xyz"])
@@ -169,3 +169,18 @@ def test_one_scan_as_ras_nrrd_and_as_nifti_is_one_volume_and_warps_alike(run, tm
     assert changed.any()  # the warp did something
     np.testing.assert_array_equal(outs[0].data, outs[1].data)
     np.testing.assert_allclose(outs[0].origin, outs[1].origin, atol=1e-4)
+
+
+def test_a_sheared_grid_is_refused_by_nifti_and_kept_by_nrrd_and_metaimage(tmp_path):
+    # (a gantry-tilted DICOM read with --keep-shear): ITK reads a NIfTI's qform, which has
+    # no shear, so the NIfTI writer refuses instead of moving the anatomy
+    d = np.array([[1.0, 0.0, 0.2], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    d[:, 2] /= np.linalg.norm(d[:, 2])
+    vol = Volume(np.arange(120, dtype=np.int16).reshape(4, 5, 6), direction=d, space="LPS")
+    with pytest.raises(VolwarpError, match=r"sheared.*write \.nrrd or \.mha"):
+        write_volume(vol, tmp_path / "s.nii.gz")
+    assert not list(tmp_path.iterdir())
+    for name in ("s.nrrd", "s.mha"):
+        write_volume(vol, tmp_path / name)
+        img = sitk.ReadImage(str(tmp_path / name))
+        np.testing.assert_allclose(np.array(img.GetDirection()).reshape(3, 3), d, atol=1e-12)

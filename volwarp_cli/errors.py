@@ -1,8 +1,8 @@
 """Errors raised by the volwarp core.
 
 The core never imports click: the command line maps these to exit codes
-(``SpecError`` -> 2, every other ``VolwarpError`` -> 1) and prints them as one
-line, ``volwarp: error: ...``.
+(``SpecError`` and ``ChoiceNeeded`` -> 2, every other ``VolwarpError`` -> 1)
+and prints them as one line, ``volwarp: error: ...``.
 """
 
 from __future__ import annotations
@@ -39,6 +39,11 @@ class SpecError(VolwarpError):
             where = f"line {self.line}: "
         key = f"{self.key}: " if self.key else ""
         return f"{where}{key}{self.message}"
+
+
+class ChoiceNeeded(VolwarpError):
+    """An input that holds several things where one is needed, and only the user can say
+    which (a DICOM folder with several series): a usage error, since an option chooses."""
 
 
 class OutOfMemoryError(VolwarpError):

@@ -7,7 +7,7 @@ import click
 from ..io import check_output_path
 from ..progress import timed
 from .common import load_input
-from .options import INPUT_PATH, common_options, finite, output_option, raw_options
+from .options import INPUT_PATH, common_options, finite, input_options, output_option
 
 
 class LatticeOption(click.Option):
@@ -70,9 +70,10 @@ def lattice_option(default="9"):
                    "[default: each warp's largest displacement + 1].")
 @click.option("--sampling", type=click.Choice(["linear", "nearest"]), default="linear",
               show_default=True, help="Pullback sampling: trilinear, or the paper's rounding.")
-@raw_options
+@input_options
 @common_options
-def command(input, output, lattice, placement, oversample, pad, sampling, raw, volume_index):
+def command(input, output, lattice, placement, oversample, pad, sampling, raw, volume_index,
+            dicom):
     """Capture INPUT into a domain voxmap file (.vwc) for `volwarp warp`.
 
     The capture lattice's B-spline image of the domain is exactly INPUT's
@@ -89,7 +90,7 @@ def command(input, output, lattice, placement, oversample, pad, sampling, raw, v
     if placement == "tripled" and min(lattice) < 6:
         raise click.BadParameter("the tripled placement needs at least 6 points per axis",
                                  param_hint="'--lattice'")
-    vol = load_input(input, raw, volume_index)
+    vol = load_input(input, raw, volume_index, dicom=dicom)
     try:
         cap = capture_volume(vol, lattice=lattice, placement=placement, oversample=oversample,
                              sampling=sampling, pad=pad)

@@ -5,18 +5,22 @@ from __future__ import annotations
 import click
 import numpy as np
 
-from ..io import read_volume
+from ..io import read_volume, volume_format
 from ..progress import timed
 from ..volume import Volume
 
 
-def load_input(path, raw=None, volume_index=None, mmap=False) -> Volume:
+def load_input(path, raw=None, volume_index=None, mmap=False, dicom=None) -> Volume:
+    """Read a command's input; options that do not apply to its format are usage errors
+    (a file with a header describes itself: the options would be ignored)."""
     if raw is not None and not str(path).lower().endswith((".raw", ".bin")):
-        # a file with a header describes itself: the options would be ignored
         raise click.UsageError(f"--raw-* options describe headerless .raw/.bin inputs, "
                                f"not {path}")
+    if dicom is not None and volume_format(path, reading=True) != "dicom":
+        given = " ".join(f"--{k.replace('_', '-')}" for k in sorted(dicom))
+        raise click.UsageError(f"{given}: DICOM options, and {path} is not a DICOM input")
     with timed(f"read {path}"):
-        return read_volume(path, raw=raw, volume_index=volume_index, mmap=mmap)
+        return read_volume(path, raw=raw, volume_index=volume_index, mmap=mmap, dicom=dicom)
 
 
 def describe_volume(vol: Volume, fmt: str) -> dict:
@@ -25,17 +29,45 @@ def describe_volume(vol: Volume, fmt: str) -> dict:
     min, max and mean are those of the finite samples; ``nonfinite`` (only
     when there are any) counts the NaN and infinite ones, so the JSON stays
     strict (no NaN or Infinity tokens)."""
+    import itertools
+    import math
+
+    def mean_of(a, lo, hi) -> float:
+        """The float64 mean of finite ``a`` (min ``lo``, max ``hi``), without overflow.
+
+        The plain float64 mean is kept whenever its sum stays finite (every integer
+        volume, every float32 one: the result is what it has always been); only a
+        float64 sum beyond 1.8e308 (finite samples near the largest double) is
+        redone on the samples scaled by a power of two (exact) below 1 in
+        magnitude, summed exactly (``math.fsum``) block by block.
+        """
+        with np.errstate(over="ignore", invalid="ignore"):
+            m = float(a.mean(dtype=np.float64))
+        if math.isfinite(m):
+            return m
+        e = math.frexp(max(abs(float(lo)), abs(float(hi))))[1]
+        inv = math.ldexp(1.0, -e)  # |a * inv| < 1, exactly a power-of-two scaling
+        flat = a.reshape(-1)
+        block = 1 << 20
+        scaled = itertools.chain.from_iterable(
+            (flat[k:k + block].astype(np.float64) * inv).tolist()
+            for k in range(0, flat.size, block))
+        ms = math.fsum(scaled) / flat.size  # the exact sum, rounded once
+        ms = min(max(ms, float(lo) * inv), float(hi) * inv)  # rounding stays in range
+        return math.ldexp(ms, e)
+
     data = vol.data
     nonfinite = 0
     if data.size:
         lo = data.min()
         hi = data.max()
-        mean = float(data.mean(dtype=np.float64))
         if not (np.isfinite(lo) and np.isfinite(hi)):  # NaN or inf: describe the rest
             finite = data[np.isfinite(data)]
             nonfinite = data.size - finite.size
             lo, hi = (finite.min(), finite.max()) if finite.size else (None, None)
-            mean = float(finite.mean(dtype=np.float64)) if finite.size else None
+            mean = mean_of(finite, lo, hi) if finite.size else None
+        else:
+            mean = mean_of(data, lo, hi)
     else:  # pragma: no cover - volumes always have samples
         lo = hi = mean = None
     def num(v):

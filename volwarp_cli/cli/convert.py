@@ -7,18 +7,18 @@ import click
 from ..io import check_output_path, write_volume
 from ..progress import timed
 from .common import load_input
-from .options import INPUT_PATH, common_options, output_option, raw_options, write_options
+from .options import INPUT_PATH, common_options, input_options, output_option, write_options
 
 
 @click.command(name="convert")
 @click.argument("input", type=INPUT_PATH)
 @output_option()
 @write_options
-@raw_options
+@input_options
 @common_options
-def command(input, output, dtype, compress, byte_order, raw, volume_index):
+def command(input, output, dtype, compress, byte_order, raw, volume_index, dicom):
     """Convert INPUT to OUTPUT (format by extension), keeping geometry and key/values."""
     check_output_path(output)
-    vol = load_input(input, raw, volume_index)
+    vol = load_input(input, raw, volume_index, dicom=dicom)
     with timed(f"write {output}"):
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order)

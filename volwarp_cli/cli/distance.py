@@ -16,7 +16,7 @@ import click
 from ..io import check_output_path, write_volume
 from ..progress import log, timed
 from .common import load_input, stamp
-from .options import INPUT_PATH, common_options, output_option, raw_options, write_options
+from .options import INPUT_PATH, common_options, input_options, output_option, write_options
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
@@ -45,10 +45,10 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 @click.option("--transform", type=INPUT_PATH, default=None, metavar="AFFINE.yaml",
               help="With --update: the move (transform spec, see specs/transform.schema.json).")
 @write_options
-@raw_options
+@input_options
 @common_options
 def command(input, output, iso, inside, metric, surface, unsigned, max_distance, update,
-            transform, dtype, compress, byte_order, raw, volume_index):
+            transform, dtype, compress, byte_order, raw, volume_index, dicom):
     """Signed distance field of the shape in INPUT: negative inside, world units.
 
     The output is float32 (whatever the input's type) unless --dtype says
@@ -70,7 +70,7 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
         if metric not in ("euclidean", "minnorm"):
             raise click.UsageError("--update propagates euclidean or minnorm fields only")
         _update(update, transform, output, metric, max_distance, dtype, compress, byte_order,
-                raw, volume_index)
+                raw, volume_index, dicom)
         return
     if transform is not None:
         raise click.UsageError("--transform goes with --update OLD_SDF")
@@ -83,7 +83,7 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
     from ..volume import xyz_to_zyx
 
     check_output_path(output)
-    vol = load_input(input, raw, volume_index)
+    vol = load_input(input, raw, volume_index, dicom=dicom)
     with timed(f"distance ({metric})"), _collector_paused():
         field, info = signed_distance(vol.data, xyz_to_zyx(vol.spacing), iso=iso, inside=inside,
                                       metric=metric, surface=surface)
@@ -117,7 +117,7 @@ def _collector_paused():
 
 
 def _update(old_path, transform_path, output, metric, max_distance, dtype, compress, byte_order,
-            raw, volume_index):
+            raw, volume_index, dicom):
     import numpy as np
 
     from ..distance.field import finish_field
@@ -129,7 +129,7 @@ def _update(old_path, transform_path, output, metric, max_distance, dtype, compr
 
     doc = load_spec(transform_path, "transform")
     check_output_path(output)
-    vol = load_input(old_path, raw, volume_index)
+    vol = load_input(old_path, raw, volume_index, dicom=dicom)
     field = np.asarray(vol.data, dtype=np.float32)
     if not np.all(np.isfinite(field)):
         raise VolwarpError(f"{old_path}: the field has NaN or infinite samples")

@@ -8,7 +8,7 @@ import click
 
 from ..io import volume_format
 from .common import describe_volume, load_input
-from .options import INPUT_PATH, common_options, raw_options
+from .options import INPUT_PATH, common_options, input_options
 
 
 def _format_text(d: dict) -> str:
@@ -35,8 +35,10 @@ def _format_text(d: dict) -> str:
     for k, v in d["meta"].items():
         lines.append(f"meta:      {k} = {v}")
     for k, v in d.items():
-        if k not in ("format", "shape", "dtype", "spacing", "origin", "direction", "space",
-                     "file_space", "min", "max", "mean", "meta", "nonfinite"):
+        if k == "candidates":
+            lines.append(f"candidates: {len(v)} volume{'s' if len(v) > 1 else ''} in the input")
+        elif k not in ("format", "shape", "dtype", "spacing", "origin", "direction", "space",
+                       "file_space", "min", "max", "mean", "meta", "nonfinite"):
             lines.append(f"{k}: {json.dumps(v)}")
     return "\n".join(lines)
 
@@ -47,17 +49,21 @@ def _format_text(d: dict) -> str:
               help="Print one JSON object (stable keys: format shape dtype spacing origin "
                    "direction space file_space min max mean meta). Geometry is in LPS "
                    "millimetres (space), whatever frame the file used (file_space).")
-@raw_options
+@input_options
 @common_options
-def command(file, as_json, raw, volume_index):
+def command(file, as_json, raw, volume_index, dicom):
     """Print FILE's format, size (x y z), type, geometry, value range and key/values."""
     if file.lower().endswith(".vwc"):
         from ..bspline.capture_file import describe_capture
         desc = describe_capture(file)
+    elif volume_format(file, reading=True) == "dicom":
+        desc = _describe_dicom(file, raw, volume_index, dicom)
     else:
-        vol = load_input(file, raw, volume_index)
-        desc = describe_volume(vol, volume_format(file))
-    if as_json:
+        vol = load_input(file, raw, volume_index, dicom=dicom)
+        desc = describe_volume(vol, volume_format(file, reading=True))
+    if desc.get("format") == "dicom" and "shape" not in desc:  # several volumes, none chosen
+        click.echo(json.dumps(desc, indent=2) if as_json else _candidates_text(desc))
+    elif as_json:
         click.echo(json.dumps(desc, indent=2, sort_keys=False, allow_nan=False))
     elif desc.get("format") == "vwc":
         # a capture file: the lattice positions are many numbers; show their extent
@@ -70,3 +76,32 @@ def command(file, as_json, raw, volume_index):
                    f"y {lo[1]:g}..{hi[1]:g}, z {lo[2]:g}..{hi[2]:g} (all of them: --json)")
     else:
         click.echo(_format_text(desc))
+
+
+def _describe_dicom(file, raw, volume_index, dicom) -> dict:
+    """A DICOM input: the chosen (or only) volume with the list of candidates, or, when it
+    holds several and ``--series`` chose none, the candidates alone (UID, description,
+    size, spacing, why split) so that the user can choose."""
+    from ..io.dicom import scan_dicom
+
+    if raw is not None or volume_index is not None:
+        load_input(file, raw, volume_index)  # the usage error those options get
+    scanned = scan_dicom(file)
+    candidates = [c.describe() for c in scanned]
+    if len(candidates) > 1 and not (dicom and "series" in dicom):
+        return {"format": "dicom", "candidates": candidates}
+    vol = load_input(file, dicom={**(dicom or {}), "candidates": scanned})
+    return {**describe_volume(vol, "dicom"), "candidates": candidates}
+
+
+def _candidates_text(desc: dict) -> str:
+    lines = [f"format:    dicom, {len(desc['candidates'])} volumes (choose one with --series "
+             "UID|N)"]
+    for c in desc["candidates"]:
+        x, y, z = c["shape_xyz"]
+        sx, sy, sz = c["spacing"]
+        text = f" {c['description']!r}" if c["description"] else ""
+        why = f"; {c['why']}" if c["why"] else ""
+        lines.append(f"  [{c['index']}] {c['series_uid']}{text} {c['modality']} "
+                     f"{x}x{y}x{z}, spacing {sx:g} {sy:g} {sz:g}, {c['files']} file(s){why}")
+    return "\n".join(lines)

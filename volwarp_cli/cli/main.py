@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
 
 import click
 
 from .. import __version__
-from ..errors import SpecError, VolwarpError
-from ..io.atomic import Interrupted, install_signal_handlers
+from ..errors import ChoiceNeeded, SpecError, VolwarpError
+from ..signals import Interrupted, stop_requested
+from ..signals import install as install_signal_handlers
 
 # subcommand name -> module under volwarp_cli.cli; imported when used, so that
 # `volwarp --help` stays fast and one broken command cannot break the others.
@@ -37,7 +39,7 @@ _SHORT_HELP = {
     "distance": "Signed distance field of a shape (euclidean or min-norm).",
     "mesh": "Isosurface a volume to PLY/STL/OBJ/VTP and render it to PNG.",
     "info": "Print a volume's format, geometry and statistics.",
-    "convert": "Convert a volume between raw, TIFF, NRRD and NIfTI.",
+    "convert": "Convert a volume between NRRD, NIfTI, MetaImage, TIFF and raw (DICOM in).",
 }
 
 
@@ -48,6 +50,10 @@ def _one_line(text: str) -> str:
 def _fail(message: str, code: int) -> int:
     click.echo(f"volwarp: error: {_one_line(message)}", err=True)
     return code
+
+
+def _stopped(signum: int) -> int:
+    return _fail(str(Interrupted(signum)), 128 + signum)
 
 
 class VolwarpGroup(click.Group):
@@ -82,7 +88,24 @@ class VolwarpGroup(click.Group):
     def _run(self, args, prog_name, debug, extra) -> int:
         try:
             result = super().main(args=args, prog_name=prog_name, standalone_mode=False, **extra)
-            return result if isinstance(result, int) else 0
+            code = result if isinstance(result, int) else 0
+        except BaseException as exc:
+            stop = stop_requested()
+            if stop is not None and not debug:
+                # whatever the stop became on its way out (a reader's "file damaged",
+                # an error of a library that caught it): it is a stop
+                return _stopped(stop)
+            code = self._failure(exc, debug)
+        stop = stop_requested()
+        if stop is not None:  # asked during the run and swallowed: the run did not finish
+            return _stopped(stop)
+        return code
+
+    @staticmethod
+    def _failure(exc: BaseException, debug: bool) -> int:
+        """The exit code of a run that raised ``exc`` (its message printed)."""
+        try:
+            raise exc
         except click.exceptions.Exit as exc:
             return exc.exit_code
         except click.exceptions.Abort:
@@ -97,7 +120,7 @@ class VolwarpGroup(click.Group):
             if debug:
                 raise
             return _fail(str(exc), 128 + exc.signum)
-        except SpecError as exc:
+        except (SpecError, ChoiceNeeded) as exc:
             if debug:
                 raise
             return _fail(str(exc), 2)
@@ -139,7 +162,10 @@ def cli(debug):
 
 def main(argv=None) -> int:
     install_signal_handlers()
-    code = cli.main(args=argv, prog_name="volwarp", standalone_mode=False)
+    try:
+        code = cli.main(args=argv, prog_name="volwarp", standalone_mode=False)
+    except Interrupted as exc:  # a second stop while the first was being reported
+        code = 128 + exc.signum
     if argv is None:  # a command-line run, not a call from Python
         _end_process(code)
     return code
@@ -153,6 +179,8 @@ def _end_process(code: int) -> None:
     objects in a `distance`), and OpenImageIO's nanobind bindings would print a
     "leaked" report for each of their objects still alive.
     """
+    # the run is over (its code decided): a stop arriving now changes nothing
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()

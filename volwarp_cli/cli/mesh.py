@@ -14,13 +14,27 @@ from .options import (
     VIEW_HELP,
     common_options,
     core_parser,
+    input_options,
     parse_color,
     parse_size,
     parse_view,
-    raw_options,
 )
 
-_IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
+
+def image_path(value):
+    """An image output's extension, checked when the option is parsed (a usage error,
+    before any work); shared by every command that renders."""
+    from ..io.images import check_image_extension
+
+    return check_image_extension(value)
+
+
+def mesh_path(value):
+    """A mesh output's extension, checked when the option is parsed (a usage error)."""
+    from ..surface.mesh_io import mesh_format
+
+    mesh_format(value)
+    return value
 
 
 def turntable_paths(render: str, n: int) -> list[Path]:
@@ -47,7 +61,7 @@ def _format_stats(d: dict) -> str:
 @click.command(name="mesh")
 @click.argument("input", type=INPUT_PATH)
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
-              help="Mesh file: .ply .stl .obj .vtp .vtk (binary where the format has it). "
+              callback=core_parser(mesh_path), help="Mesh file: .ply .stl .obj .vtp .vtk (binary where the format has it). "
                    "May be left out when --render or --stats is given.")
 @click.option("--iso", type=float, default=None,
               help="Isosurface level (default: the middle of the value range).")
@@ -70,6 +84,7 @@ def _format_stats(d: dict) -> str:
               help="An empty surface is a warning (exit 0, empty mesh written) instead of an "
                    "error (exit 1).")
 @click.option("--render", type=click.Path(dir_okay=False), default=None, metavar="OUT.png",
+              callback=core_parser(image_path),
               help="Also render the surface, shaded, to this image.")
 @click.option("--view", default="iso", show_default=True, callback=core_parser(parse_view),
               help=VIEW_HELP)
@@ -86,11 +101,11 @@ def _format_stats(d: dict) -> str:
               help="Print counts, area, enclosed volume, bounding box, components, closed.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the statistics as one JSON object (implies --stats).")
-@raw_options
+@input_options
 @common_options
 def command(input, output, iso, inside, cap, smooth, decimate, largest_component, allow_empty,
             render, view, size, color, background, turntable, show_stats, as_json, raw,
-            volume_index):
+            volume_index, dicom):
     """Isosurface INPUT at level --iso and write it to OUTPUT (world coordinates).
 
     Triangles are wound counter-clockwise seen from outside and normals point
@@ -107,17 +122,13 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         raise click.UsageError("nothing to do: give -o/--output, --render or --stats")
     if turntable is not None and render is None:
         raise click.UsageError("--turntable needs --render OUT.png (the frames' name)")
-    # Fail on bad outputs before any work.
+    # Fail on bad outputs before any work (their extensions are checked by the options).
     if output is not None:
         check_mesh_output(output)
     if render is not None:
-        ext = Path(render).suffix.lower()
-        if ext not in _IMAGE_EXTENSIONS:
-            raise VolwarpError(f"{render}: unknown image extension {ext or '(none)'} "
-                               f"(known: {' '.join(_IMAGE_EXTENSIONS)})")
         check_output_path(render)
 
-    vol = load_input(input, raw, volume_index)
+    vol = load_input(input, raw, volume_index, dicom=dicom)
 
     import numpy as np
 

@@ -16,6 +16,7 @@ import click
 
 from ..errors import VolwarpError
 from ..progress import log, progress, timed
+from .mesh import image_path, mesh_path
 from .options import INPUT_PATH, VIEW_HELP, common_options, core_parser, parse_size, parse_view
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
@@ -33,6 +34,33 @@ def _expand(pattern: str, times: list[float], option: str) -> list[str]:
     return names
 
 
+def _pattern_check(kind: str):
+    """A click callback checking a frame pattern's extension (``kind``: volume, mesh or
+    image) on its first frame's name, when the option is parsed: an unknown extension
+    is a usage error found before any input or spec is read."""
+    def check(name: str) -> None:
+        if kind == "volume":
+            from ..io import volume_format
+
+            volume_format(name)
+        elif kind == "mesh":
+            mesh_path(name)
+        else:
+            image_path(name)
+
+    def callback(ctx, param, value):
+        if value is None:
+            return None
+        option = " / ".join(f"'{o}'" for o in param.opts)
+        first = _expand(value, [0.0], option)[0]
+        try:
+            check(first)
+        except VolwarpError as exc:
+            raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+        return value
+    return callback
+
+
 def _attribute_name(frame_path: str, name: str) -> str:
     p = Path(frame_path)
     suffix = "".join(p.suffixes[-2:]) if p.name.endswith(".nii.gz") else p.suffix
@@ -44,14 +72,15 @@ def _attribute_name(frame_path: str, name: str) -> str:
 @click.argument("shapes", nargs=-1, type=INPUT_PATH, metavar="[SOURCE TARGET]")
 @click.option("--spec", "spec_path", type=INPUT_PATH, default=None,
               help="Morph spec (YAML, see specs/morph.schema.json).")
-@click.option("-o", "--output", required=True,
+@click.option("-o", "--output", required=True, callback=_pattern_check("volume"),
               help="Frame file pattern, e.g. 'frame_{i:03d}.nrrd' ({i} frame number, {t} time).")
-@click.option("--mesh-to", default=None,
+@click.option("--mesh-to", default=None, callback=_pattern_check("mesh"),
               help="Also write each frame's surface: pattern with a mesh extension "
                    "(.ply .stl .obj .vtp .vtk).")
-@click.option("--render-to", default=None,
-              help="Also render each frame's surface to a PNG: pattern.")
+@click.option("--render-to", default=None, callback=_pattern_check("image"),
+              help="Also render each frame's surface to an image (.png ...): pattern.")
 @click.option("--sheet", "sheet_path", default=None, type=click.Path(dir_okay=False),
+              callback=core_parser(image_path),
               help="With --render-to: also one contact sheet of all frames' renders, each "
                    "titled with its time t.")
 @click.option("--frames", type=click.IntRange(min=2), default=None,
@@ -163,9 +192,11 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec
     except GridError as exc:
         if spec_path is None:
             raise click.UsageError(f"{exc} (short form: --grid union|source|target)") from None
+        if job.doc is not None:
+            raise job.doc.error(exc.key, str(exc)) from None
         from ..errors import SpecError
 
-        raise SpecError(str(exc), file=str(spec_path), key="grid") from None
+        raise SpecError(str(exc), file=str(spec_path), key=".".join(exc.key)) from None
     grid = prep.grid
     width = job.density_width or float(min(grid.spacing))
     from .common import provenance

@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 
 import click
 
 from ..errors import VolwarpError
 from ..io import SUPPORTED_DTYPES, RawLayout
+from ..io.common import ALLOW_OUTSIDE_DATA
 from ..progress import configure
 
 
@@ -81,12 +83,37 @@ def output_option(help_text: str = "Output file (format by extension).", volume:
                         callback=_volume_output if volume else None, help=help_text)
 
 
-def raw_options(f):
-    """Options describing a headerless raw input; they combine into ``raw: RawLayout``."""
+def _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi) -> dict | None:
+    """The DICOM options given, as keyword arguments of ``read_dicom`` (None: none given)."""
+    given = {}
+    if series is not None:
+        given["series"] = int(series) if series.isdigit() else series
+    if irregular is not None:
+        given["irregular"] = irregular
+    if duplicates is not None:
+        given["duplicates"] = duplicates
+    if keep_shear:
+        given["keep_shear"] = True
+    if keep_phi:
+        given["keep_phi"] = True
+    return given or None
+
+
+def input_options(f):
+    """Options describing how to read a volume input.
+
+    Headerless raw inputs (``--raw-*``, combined into ``raw: RawLayout``),
+    ``--volume-index``, and the DICOM choices (combined into ``dicom``: the
+    keyword arguments of ``read_dicom``, or None).
+    """
 
     @functools.wraps(f)
     def wrapper(*args, raw_shape, raw_dtype, raw_endian, raw_spacing, raw_origin,
-                raw_header_bytes, volume_index, **kwargs):
+                raw_header_bytes, volume_index, series, irregular, duplicates, keep_shear,
+                keep_phi, allow_outside_data, **kwargs):
+        dicom = _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi)
+        if allow_outside_data:  # read where the readers open data files (io.common)
+            os.environ[ALLOW_OUTSIDE_DATA] = "1"
         layout = None
         if raw_shape is not None or raw_dtype is not None:
             if raw_shape is None or raw_dtype is None:
@@ -98,7 +125,7 @@ def raw_options(f):
         elif raw_spacing or raw_origin or raw_header_bytes:
             raise click.UsageError("--raw-spacing/--raw-origin/--raw-header-bytes need "
                                    "--raw-shape and --raw-dtype")
-        return f(*args, raw=layout, volume_index=volume_index, **kwargs)
+        return f(*args, raw=layout, volume_index=volume_index, dicom=dicom, **kwargs)
 
     opts = [
         click.option("--raw-shape", nargs=3, type=click.IntRange(min=1), default=None,
@@ -115,8 +142,27 @@ def raw_options(f):
         click.option("--raw-header-bytes", type=click.IntRange(min=0), default=0,
                      help="Raw input: bytes to skip before the samples."),
         click.option("--volume-index", type=click.IntRange(min=0), default=None,
-                     help="4-D NIfTI input: which volume to read; multi-component NRRD: "
-                          "which component."),
+                     help="4-D NIfTI or MetaImage input: which volume to read; "
+                          "multi-component NRRD or MetaImage: which component."),
+        click.option("--series", default=None, metavar="UID|N",
+                     help="DICOM input holding several volumes: which one, by "
+                          "SeriesInstanceUID or by its number in `volwarp info`'s list."),
+        click.option("--irregular", type=click.Choice(["resample"]), default=None,
+                     help="DICOM input whose slice gaps differ: resample it onto a uniform "
+                          "grid (default: an error naming the gap)."),
+        click.option("--duplicates", type=click.Choice(["first", "last"]), default=None,
+                     help="DICOM input with several images at one position: keep the first "
+                          "or last in file order (default: an error)."),
+        click.option("--keep-shear", is_flag=True, default=False,
+                     help="Gantry-tilted DICOM input: keep the exact sheared geometry "
+                          "(NRRD and MetaImage outputs only) instead of resampling onto an "
+                          "orthogonal grid."),
+        click.option("--allow-outside-data", is_flag=True, default=False,
+                     help="Let a detached header (.nhdr, .mhd) read data files outside its "
+                          "own folder (default: refused; also VOLWARP_ALLOW_OUTSIDE_DATA=1)."),
+        click.option("--keep-phi", is_flag=True, default=False,
+                     help="DICOM input: keep identifying tags (patient name, ID, birth "
+                          "date, ...) in the output's key/values (default: left out)."),
     ]
     for opt in reversed(opts):
         wrapper = opt(wrapper)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from ..errors import VolwarpError
+from .mesh import image_path
 from .options import (
     INPUT_PATH,
     VIEW_HELP,
@@ -50,6 +51,49 @@ def output_paths(pattern: str, names: list[str], multi: bool) -> dict[str, str]:
     return {n: pattern.replace("{field}", n) for n in names}
 
 
+#: most samples along one axis of a sweep's grid: beyond it a spacing, margin or size is
+#: many orders of magnitude off (and the sizes overflow)
+MAX_AXIS = 1 << 31
+
+
+def _check_grid(grid, doc, from_options: bool, lo, hi, margin=None) -> None:
+    """Refuse a grid whose numbers are absurd (a spacing of 1e-300, a margin of 1e300):
+    a spec error at ``grid`` (a usage error when --shape/--spacing made it)."""
+    import numpy as np
+
+    shape = np.asarray(grid.shape, dtype=np.float64)
+    values = np.concatenate([np.asarray(grid.origin, np.float64).ravel(),
+                             np.asarray(grid.spacing, np.float64).ravel()])
+    bounds = np.concatenate([np.ravel(lo), np.ravel(hi)]).astype(np.float64)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        across = (np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
+                  + 2 * float(margin or 0.0)) / grid.spacing
+        ok = (np.all(np.isfinite(values)) and np.all((shape >= 1) & (shape <= MAX_AXIS))
+              and np.all(np.abs(values) <= 1e15) and np.all(across <= MAX_AXIS))
+    if ok:
+        return
+    what = (f"the output grid ({'x'.join(str(int(v)) if 0 <= v < 1e18 else '?' for v in shape)}"
+            f" samples, spacing {' '.join(f'{v:g}' for v in np.ravel(grid.spacing))}) is "
+            f"absurd: at most {MAX_AXIS} samples per axis and coordinates within 1e15")
+    if from_options:
+        raise click.UsageError(f"--shape/--spacing: {what}")
+    given = doc.data.get("grid") or {}
+
+    def extreme(name):
+        v = np.abs(np.asarray(given[name], dtype=np.float64))
+        return bool(np.any(v > 1e15) or (name == "spacing" and np.any(v < 1e-9)))
+    names = [n for n in ("spacing", "margin", "origin", "shape") if n in given]
+    bad = [n for n in names if extreme(n)]
+    if bad:
+        raise doc.error(("grid", bad[0]), what)
+    if not np.all(np.abs(bounds) <= 1e15):  # the sweep itself: its trajectory or scale
+        for name in ("scale", "trajectory", "scene"):
+            if name in doc.data:
+                raise doc.error((name,), f"the sweep reaches {np.abs(bounds).max():.3g} world "
+                                "units from the origin (at most 1e15)")
+    raise doc.error(("grid", names[0]) if names else ("grid",), what)
+
+
 def scale_to_dtype(data, dtype):
     """Float fields in [0, 1] scaled to an integer type's full range (floats unchanged)."""
     import numpy as np
@@ -66,6 +110,7 @@ def scale_to_dtype(data, dtype):
 @click.option("--multi", is_flag=True,
               help="Write all fields into one multi-component NRRD (-o without {field}).")
 @click.option("--render", "render_path", type=click.Path(dir_okay=False), default=None,
+              callback=core_parser(image_path),
               help="Also ray-cast the spatial object (opacity, red/green/blue, geometry) "
                    "to this PNG.")
 @click.option("--view", default="iso", show_default=True, callback=core_parser(parse_view),
@@ -107,6 +152,8 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
 
     if shape is not None and spacing is not None:
         raise click.UsageError("give --shape or --spacing, not both")
+    if multi:  # the output's form is checked before the spec and its templates are read
+        output_paths(output, [], multi)
     with timed("read spec and templates"):
         doc = load_spec(spec, "sweep")
         sspec = parse_sweep_spec(doc)
@@ -126,7 +173,10 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
         grid_spec = {"spacing": spacing, "margin": grid_spec.get("margin")}
     grid_spec = {k: v for k, v in grid_spec.items() if v is not None}
     lo, hi = sspec.bounds()
-    grid = fit_grid(grid_spec, lo, hi)
+    with np.errstate(over="ignore", invalid="ignore"):
+        grid = fit_grid(grid_spec, lo, hi)
+    _check_grid(grid, doc, shape is not None or spacing is not None, lo, hi,
+                grid_spec.get("margin"))
     with timed(f"sweep {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} ({method or sspec.method})"):
         fields = evaluate(sspec, grid, method=method, tau=tau)
     out_dtype = dtype or "float32"

@@ -15,8 +15,8 @@ from .options import (
     INPUT_PATH,
     common_options,
     finite,
+    input_options,
     output_option,
-    raw_options,
     write_options,
 )
 
@@ -106,10 +106,10 @@ def _capture_early(reading, settings, input, defer):
                    "e.g. a large positive distance for a signed distance field.")
 @click.option("--crop", is_flag=True, help="Cut the output back to the input's extent.")
 @write_options
-@raw_options
+@input_options
 @common_options
 def command(input, spec_path, output, frames_to, pushforward, evaluator, background, crop, dtype,
-            compress, byte_order, raw, volume_index):
+            compress, byte_order, raw, volume_index, dicom):
     """Warp INPUT (a volume, or a capture file .vwc) as the spec says.
 
     A plain volume is captured on the fly with the spec's `capture` settings.
@@ -121,8 +121,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         _check_pattern(frames_to)
     is_capture = input.lower().endswith(".vwc")
     one_shot = not frames_to  # only the final lattice is rendered, streamed
-    if is_capture and (raw is not None or volume_index is not None):
-        raise click.UsageError("--raw-* and --volume-index describe volume inputs, "
+    if is_capture and (raw is not None or volume_index is not None or dicom is not None):
+        raise click.UsageError("--raw-*, --volume-index and the DICOM options describe volume inputs, "
                                f"not the capture file {input}")
     with ThreadPoolExecutor(1) as pool:
         # The volume is read while the warp modules are imported and the spec is
@@ -132,7 +132,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         # comes first; the early capture is used only if it matches the checked spec.
         # (mapped, not copied, where it can be: the warp only reads it)
         reading = None if is_capture else pool.submit(load_input, input, raw, volume_index,
-                                                      True)
+                                                      True, dicom)
         from ..bspline.capture_file import read_capture
         from ..bspline.plan import read_warp_spec
         from ..bspline.warp import (

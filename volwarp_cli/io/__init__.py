@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import FormatError, VolwarpError
 from ..volume import Volume
 from .atomic import atomic_output, check_output_path
-from .common import SUPPORTED_DTYPES, cast_samples
+from .common import SUPPORTED_DTYPES, cast_samples, note_input
 from .raw import RawLayout
 
 __all__ = ["read_volume", "write_volume", "volume_format", "RawLayout", "atomic_output",
@@ -24,30 +24,61 @@ __all__ = ["read_volume", "write_volume", "volume_format", "RawLayout", "atomic_
 #: extension -> format name
 VOLUME_EXTENSIONS = {
     ".nrrd": "nrrd", ".nhdr": "nrrd",
+    ".mha": "metaimage", ".mhd": "metaimage",
     ".tif": "tiff", ".tiff": "tiff",
     ".raw": "raw", ".bin": "raw",
     ".nii": "nifti", ".nii.gz": "nifti",
+    ".dcm": "dicom",
 }
+#: the formats volwarp reads but does not write
+READ_ONLY_FORMATS = frozenset({"dicom"})
 
 _MAGIC_CHECK = {
     "nrrd": lambda head: head.startswith(b"NRRD000"),
     "tiff": lambda head: head[:4] in (b"II*\0", b"MM\0*", b"II+\0", b"MM\0+"),
     "nifti": lambda head: head[:2] == b"\x1f\x8b" or head[344:348] in (b"n+1\0", b"n+2\0")
     or head[4:8] in (b"n+2\0",),
+    "metaimage": lambda head: _metaimage_head(head),
 }
-_FORMAT_NAMES = {"nrrd": "NRRD", "tiff": "TIFF", "nifti": "NIfTI", "raw": "raw"}
+_FORMAT_NAMES = {"nrrd": "NRRD", "tiff": "TIFF", "nifti": "NIfTI", "raw": "raw",
+                 "metaimage": "MetaImage", "dicom": "DICOM"}
 
 
-def volume_format(path: str | os.PathLike) -> str:
-    """The format name for ``path`` by its extension, or raise listing the known ones."""
+def volume_format(path: str | os.PathLike, *, reading: bool = False) -> str:
+    """The format name for ``path`` by its extension, or raise listing the known ones.
+
+    ``reading``: DICOM is also recognised without an extension (scanners name
+    files ``IM000001``, folders of them, ``DICOMDIR``), by content.
+    """
+    if reading and Path(path).is_dir():
+        return "dicom"  # read_volume says so when it holds none
     name = Path(path).name.lower()
     if name.endswith(".nii.gz"):
         return "nifti"
     fmt = VOLUME_EXTENSIONS.get(Path(name).suffix)
+    if fmt is None and reading and _is_dicom(Path(path)):
+        return "dicom"
     if fmt is None:
-        known = " ".join(sorted(VOLUME_EXTENSIONS))
-        raise VolwarpError(f"{path}: unknown volume extension (known: {known})")
+        known = " ".join(sorted(e for e, f in VOLUME_EXTENSIONS.items()
+                                if reading or f not in READ_ONLY_FORMATS))
+        raise VolwarpError(f"{path}: unknown volume extension (known: {known}; "
+                           "DICOM files, folders and DICOMDIRs are read by content)")
+    if fmt in READ_ONLY_FORMATS and not reading:
+        raise VolwarpError(f"{path}: volwarp reads {_FORMAT_NAMES[fmt]} but does not write it "
+                           "(write .nrrd, .nii.gz or .mha)")
     return fmt
+
+
+def _metaimage_head(head: bytes) -> bool:
+    from .metaimage import looks_like_metaimage
+
+    return looks_like_metaimage(head)
+
+
+def _is_dicom(path: Path) -> bool:
+    from .dicom import is_dicom_path
+
+    return path.exists() and is_dicom_path(path)
 
 
 def _check_content(path: Path, fmt: str) -> None:
@@ -69,23 +100,37 @@ def _check_content(path: Path, fmt: str) -> None:
 
 
 def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
-                volume_index: int | None = None, mmap: bool = False) -> Volume:
+                volume_index: int | None = None, mmap: bool = False,
+                dicom: dict | None = None) -> Volume:
     """Read a volume file; ``raw`` describes headerless ``.raw``/``.bin`` files.
 
-    ``volume_index`` selects one volume of a 4-D NIfTI file or one component
-    of a multi-component (4-D) NRRD file. ``mmap``: where the samples lie raw
-    in the machine's byte order in an attached NRRD, map them read-only
-    instead of copying (a command that only reads its input).
+    ``volume_index`` selects one volume of a 4-D NIfTI or MetaImage file or
+    one component of a multi-component (4-D) NRRD file. ``mmap``: where the
+    samples lie raw in the machine's byte order in an attached NRRD, map them
+    read-only instead of copying (a command that only reads its input).
+    ``dicom``: keyword arguments of :func:`~volwarp_cli.io.dicom.read_dicom`
+    (series, irregular, duplicates, keep_shear, keep_phi); used for a DICOM
+    input only (the command line refuses them for others).
     """
     path = Path(path)
-    if path.is_dir():  # before its (missing) extension
-        raise FormatError(f"{path}: is a folder, not a volume file")
-    fmt = volume_format(path)
-    _check_content(path, fmt)
-    if volume_index is not None and fmt in ("tiff", "raw"):
-        raise FormatError(f"{path}: --volume-index selects a volume of a 4-D NIfTI or a "
-                          f"component of a 4-D NRRD; a {_FORMAT_NAMES[fmt]} file has one")
-    if fmt == "nrrd":
+    if path.is_dir():  # a folder is DICOM or nothing
+        if not _is_dicom(path):
+            raise FormatError(f"{path}: is a folder with no DICOM files, not a volume file")
+        fmt = "dicom"
+    else:
+        fmt = volume_format(path, reading=True)
+        _check_content(path, fmt)
+    if volume_index is not None and fmt in ("tiff", "raw", "dicom"):
+        raise FormatError(f"{path}: --volume-index selects a volume of a 4-D NIfTI or "
+                          f"MetaImage or a component of a 4-D NRRD; a {_FORMAT_NAMES[fmt]} "
+                          "input has one")
+    if fmt == "dicom":
+        from .dicom import read_dicom
+        vol = read_dicom(path, **(dicom or {}))
+    elif fmt == "metaimage":
+        from .metaimage import read_metaimage
+        vol = read_metaimage(path, volume_index)
+    elif fmt == "nrrd":
         from .nrrd import read_nrrd
         vol = read_nrrd(path, volume_index, mmap=mmap)
     elif fmt == "tiff":
@@ -97,6 +142,8 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
     else:
         from .raw import read_raw
         vol = read_raw(path, raw)
+    if path.is_file():
+        note_input(path)  # (data files of detached headers: noted as they are opened)
     return vol
 
 
@@ -120,6 +167,9 @@ def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: 
     elif fmt == "tiff":
         from .tiff import write_tiff
         write_tiff(vol, path, compress=compress, byte_order=byte_order)
+    elif fmt == "metaimage":
+        from .metaimage import write_metaimage
+        write_metaimage(vol, path, compress=compress, byte_order=byte_order)
     elif fmt == "nifti":
         if byte_order != "little":
             raise VolwarpError(f"{path}: volwarp writes NIfTI little-endian only")

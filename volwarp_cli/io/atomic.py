@@ -11,37 +11,24 @@ from __future__ import annotations
 
 import contextlib
 import os
-import signal
+import re
+import socket
 import tempfile
 from pathlib import Path
 
 from ..errors import VolwarpError
+from ..signals import Interrupted, check_stop, install, temporaries
 
-_live_temporaries: set[str] = set()
+__all__ = ["Interrupted", "atomic_output", "check_output_path", "install_signal_handlers",
+           "write_bytes_atomic"]
 
-
-class Interrupted(VolwarpError):
-    """Raised inside the work when SIGINT or SIGTERM arrives."""
-
-    def __init__(self, signum: int):
-        self.signum = signum
-        super().__init__(f"interrupted by {signal.Signals(signum).name}")
-
-
-def _on_signal(signum, frame):  # pragma: no cover - exercised in a subprocess test
-    # Remove temporaries first: if the raise below is swallowed somewhere,
-    # the promise "no stray temporary file" still holds.
-    for tmp in list(_live_temporaries):
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-    _live_temporaries.clear()
-    raise Interrupted(signum)
+#: the registry the signal handler empties (see :mod:`volwarp_cli.signals`)
+_live_temporaries = temporaries
 
 
 def install_signal_handlers() -> None:
-    """Turn SIGINT/SIGTERM into :class:`Interrupted` so outputs are cleaned up."""
-    signal.signal(signal.SIGTERM, _on_signal)
-    signal.signal(signal.SIGINT, _on_signal)
+    """Record and raise SIGINT/SIGTERM (:mod:`volwarp_cli.signals`) so outputs are cleaned up."""
+    install()
 
 
 def check_output_path(path: str | os.PathLike) -> Path:
@@ -67,7 +54,9 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None):
     path = check_output_path(path)
     if suffix is None:
         suffix = "".join(path.suffixes[-2:]) if path.name.endswith(".gz") else path.suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".part{suffix}", dir=path.parent)
+    _remove_stale_temporaries(path)
+    fd, tmp = tempfile.mkstemp(prefix=_temporary_prefix(path.name), suffix=f".part{suffix}",
+                               dir=path.parent)
     os.close(fd)
     _live_temporaries.add(tmp)
     try:
@@ -76,6 +65,7 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None):
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
+        check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
         os.replace(tmp, path)
     except BaseException as exc:
         with contextlib.suppress(OSError):
@@ -86,6 +76,50 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None):
         raise
     finally:
         _live_temporaries.discard(tmp)
+
+
+def _host() -> str:
+    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname()) or "host"
+
+
+def _temporary_prefix(name: str) -> str:
+    """``.NAME.vw-PID@HOST.``: a temporary says whose it is (mkstemp adds 8 random characters)."""
+    return f".{name}.vw-{os.getpid()}@{_host()}."
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Remove the temporaries of ``path`` left by dead volwarp processes of this host.
+
+    A process killed with SIGKILL (or a machine that lost power) cannot clean
+    up; the next write of the same output does. Only files named by
+    :func:`_temporary_prefix` for this output, this host and a process that no
+    longer exists are removed: never another host's (a shared folder), a
+    live process's, or anything else.
+    """
+    pattern = re.compile(re.escape(f".{path.name}.vw-") + r"(\d+)@" + re.escape(_host())
+                         + r"\.[A-Za-z0-9_]{8}\.part")
+    try:
+        names = os.listdir(path.parent if str(path.parent) else ".")
+    except OSError:
+        return
+    for name in names:
+        m = pattern.match(name)
+        if m is None or _alive(int(m.group(1))):
+            continue
+        with contextlib.suppress(OSError):
+            os.unlink(path.parent / name)
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process (EPERM): alive
+        return True
+    return True
 
 
 def write_bytes_atomic(path: str | os.PathLike, payload: bytes) -> None:

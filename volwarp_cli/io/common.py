@@ -1,9 +1,10 @@
-"""Pieces every reader and writer shares: dtypes, memory checks, casting."""
+"""Pieces every reader and writer shares: dtypes, memory checks, casting, data files."""
 
 from __future__ import annotations
 
 import os
 import zlib
+from pathlib import Path
 
 import numpy as np
 
@@ -192,3 +193,79 @@ def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
             raise FormatError(f"{where}: compressed data is truncated (no end-of-stream marker)")
         raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes, found {pos}")
     return out
+
+
+# -- detached data files -------------------------------------------------------------
+
+#: set to 1 to let detached headers read data files outside their own folder
+ALLOW_OUTSIDE_DATA = "VOLWARP_ALLOW_OUTSIDE_DATA"
+#: (device, inode) of every file this process has read as an input
+_inputs: set[tuple[int, int]] = set()
+
+
+def note_input(file) -> None:
+    """Record an input (an open file or a path), so that no output of this process
+    replaces it behind the user's back."""
+    st = os.fstat(file.fileno()) if hasattr(file, "fileno") else os.stat(file)
+    _inputs.add((st.st_dev, st.st_ino))
+
+
+def is_input(path: str | os.PathLike) -> bool:
+    """True when ``path`` is (the same file as) one this process read as an input."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return (st.st_dev, st.st_ino) in _inputs
+
+
+def open_data_file(header: Path, path: Path, where: str):
+    """Open a detached header's data file for reading, refusing one outside its folder.
+
+    A batch tool reprocessing headers from many sources must not let a header
+    (``data file: /etc/shadow``, ``../../x``, a symbolic link or a ``LIST`` or
+    ``%d`` name leading out) copy other files into its outputs: after every
+    link is followed, the data file must lie inside the header's own folder,
+    unless ``VOLWARP_ALLOW_OUTSIDE_DATA=1`` (the command line's
+    ``--allow-outside-data``) says otherwise.
+    """
+    if os.environ.get(ALLOW_OUTSIDE_DATA, "") not in ("1", "yes", "true"):
+        base = os.path.realpath(header.parent)
+        real = os.path.realpath(path)
+        if os.path.commonpath([base, real]) != base:
+            raise FormatError(f"{where}: data file {str(path)!r} lies outside the header's "
+                              f"folder ({real}); give --allow-outside-data (or set "
+                              f"{ALLOW_OUTSIDE_DATA}=1) to read it")
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise FormatError(f"{where}: data file {str(path)!r}: {exc.strerror}") from None
+    note_input(fh)
+    return fh
+
+
+def check_data_output(data_path: Path, header_path: Path, referenced) -> None:
+    """Refuse to write a detached header's data file over a file that is not its own.
+
+    ``-o scan.nhdr`` also writes ``scan.raw``, a file the user did not name:
+    it may replace an earlier run's data file (the existing header at
+    ``header_path`` names it: ``referenced(header_path)`` lists the data file
+    names it refers to, or raises), never an input of this command (unless the
+    header is the input too: the pair rewritten in place, as asked) and never
+    any other existing file.
+    """
+    if is_input(data_path) and not is_input(header_path):
+        raise VolwarpError(f"{header_path}: its data file {data_path} is an input of this "
+                           "command; choose another output name")
+    if not data_path.exists():
+        return
+    try:
+        names = referenced(header_path) if header_path.exists() else []
+    except (OSError, VolwarpError):
+        names = []
+    if not any(os.path.realpath(header_path.parent / n) == os.path.realpath(data_path)
+               for n in names):
+        raise VolwarpError(f"{header_path}: its data file {data_path} exists and is not an "
+                           "earlier output's (no header of that name refers to it): volwarp "
+                           "does not replace a file -o does not name; remove it or choose "
+                           "another name")

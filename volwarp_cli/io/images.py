@@ -17,6 +17,19 @@ from .atomic import atomic_output
 
 _OIIO_TYPES = {"uint8": "UINT8", "uint16": "UINT16", "float32": "FLOAT", "float16": "HALF"}
 
+#: the image extensions volwarp's renders and sheets are written to
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
+
+
+def check_image_extension(path: str | os.PathLike) -> str | os.PathLike:
+    """``path`` itself when its extension is a known image one, else raise listing them
+    (an option's check, before any work)."""
+    ext = Path(path).suffix.lower()
+    if ext not in IMAGE_EXTENSIONS:
+        raise VolwarpError(f"{path}: unknown image extension {ext or '(none)'} "
+                           f"(known: {' '.join(IMAGE_EXTENSIONS)})")
+    return path
+
 
 def read_image(path: str | os.PathLike, *, normalize: bool = True) -> np.ndarray:
     """Read an image as ``(H, W, C)`` with every channel as stored in the file.
@@ -88,11 +101,104 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     # would divide them by alpha (read_image reads them back the same way)
     spec.attribute("oiio:UnassociatedAlpha", 1)
     with atomic_output(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None:
-            raise VolwarpError(f"{path}: no image writer for {ext!r} ({oiio.geterror().strip()})")
-        try:
-            if not out.open(str(tmp), spec) or not out.write_image(arr):
-                raise VolwarpError(f"{path}: cannot write image ({out.geterror().strip()})")
-        finally:
+        _write_checked(oiio, path, tmp, spec, arr)
+
+
+#: the error OpenImageIO's TIFF writer reports on every close, the file being complete
+_BENIGN_CLOSE = "failed TIFFWriteCustomDirectory() of the Exif data"
+
+#: the last 12 bytes of every complete PNG: the IEND chunk (length 0, type, CRC)
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+
+
+def _oiio_errors(obj) -> str:
+    """The pending error text of an OpenImageIO object (or the global one), on one line."""
+    import OpenImageIO as oiio
+
+    text = obj.geterror() if obj is not None else ""
+    text = text or oiio.geterror()
+    lines = [line.strip() for line in str(text).splitlines() if line.strip()]
+    if not lines:
+        return "unknown error"
+    return lines[0] + (f" (and {len(lines) - 1} more)" if len(lines) > 1 else "")
+
+
+def _write_checked(oiio, path: Path, tmp: Path, spec, arr: np.ndarray) -> None:
+    """Write ``arr`` to the temporary ``tmp`` through OpenImageIO, checking every step.
+
+    OpenImageIO's writers report a short write (a full disk, a quota) only through
+    ``has_error``/``geterror()``, with ``write_image`` and ``close`` still returning
+    success: each result and the error state are checked, the file is synced, then
+    read back (size, and for PNG the closing IEND chunk, then the pixels), so that a
+    cut image never replaces an output.
+    """
+    ext = path.suffix.lower()
+    h, w, c = arr.shape
+    oiio.geterror()  # drop any stale global error text
+    out = oiio.ImageOutput.create(str(tmp))
+    if out is None:
+        raise VolwarpError(f"{path}: no image writer for {ext!r} ({_oiio_errors(None)})")
+    closed = False
+    try:
+        if not out.open(str(tmp), spec):
+            raise VolwarpError(f"{path}: cannot write image ({_oiio_errors(out)})")
+        ok = out.write_image(arr)
+        if not ok or out.has_error:
+            raise VolwarpError(f"{path}: cannot write image ({_oiio_errors(out)})")
+        closed = True
+        ok = out.close()
+        if not ok:
+            raise VolwarpError(f"{path}: cannot write image ({_oiio_errors(out)})")
+        if out.has_error:
+            text = out.geterror()
+            lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+            # OpenImageIO's TIFF writer reports this on every close (its Exif directory),
+            # with the image complete: the read-back below checks it
+            if not all(_BENIGN_CLOSE in ln for ln in lines):
+                raise VolwarpError(f"{path}: cannot write image ({lines[0] if lines else text})")
+    finally:
+        if not closed:
             out.close()
+            out.geterror()  # consumed: nothing reported at exit
+    try:
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        size = tmp.stat().st_size
+    except OSError as exc:
+        raise VolwarpError(f"{path}: cannot write image ({exc.strerror or exc})") from exc
+    if size == 0:
+        raise VolwarpError(f"{path}: cannot write image (the file written is empty)")
+    if ext == ".png":
+        with open(tmp, "rb") as fh:
+            fh.seek(max(0, size - len(_PNG_END)))
+            if fh.read() != _PNG_END:
+                raise VolwarpError(f"{path}: cannot write image (the PNG written is cut "
+                                   f"short at {size} bytes: is the disk full?)")
+    _verify_readback(oiio, path, tmp, (h, w, c))
+
+
+def _verify_readback(oiio, path: Path, tmp: Path, shape: tuple[int, int, int]) -> None:
+    """Re-open the written image: it must read in full, with the size written."""
+    inp = oiio.ImageInput.open(str(tmp))
+    if inp is None:
+        raise VolwarpError(f"{path}: cannot write image (the file written does not read "
+                           f"back: {_oiio_errors(None)})")
+    try:
+        s = inp.spec()
+        got = (s.height, s.width, s.nchannels)
+        pixels = inp.read_image(0, 0, 0, s.nchannels, oiio.UINT8)
+        bad = pixels is None or inp.has_error
+        why = _oiio_errors(inp) if bad else ""
+    finally:
+        inp.close()
+        inp.geterror()
+    if bad:
+        raise VolwarpError(f"{path}: cannot write image (the file written does not read "
+                           f"back: {why})")
+    if got != shape:
+        raise VolwarpError(f"{path}: cannot write image (it reads back as {got[1]}x{got[0]} "
+                           f"with {got[2]} channels, not {shape[1]}x{shape[0]} with "
+                           f"{shape[2]})")

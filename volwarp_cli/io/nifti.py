@@ -1,13 +1,15 @@
 """NIfTI-1/2 (``.nii``, ``.nii.gz``) via nibabel, in the LPS frame SimpleITK reports.
 
 NIfTI stores a voxel-to-RAS matrix; volwarp (like ITK, DICOM and 3D Slicer's
-files) works in LPS, so x and y of the world are negated on the way in and out.
+files) works in LPS, so x and y of the world are negated on the way in and out
+(``Volume.space`` is LPS, ``Volume.file_space`` right-anterior-superior).
 
 Which matrix is used follows ITK's NiftiImageIO (so volwarp and SimpleITK place
 every file alike):
 
 1. neither form coded (``sform_code == qform_code == 0``, "method 1"): the
-   voxel sizes ``pixdim[1:4]`` on the diagonal, origin 0;
+   voxel sizes ``pixdim[1:4]`` along the LPS axes (identity direction, as
+   ITK reads such files), origin 0;
 2. the sform, when it is coded and orthonormal once its column lengths are
    divided out, and either the qform is not coded, or the sform's code is 1
    (scanner), or both forms agree within 1e-4;
@@ -15,8 +17,51 @@ every file alike):
 4. else the (skewed) sform: ITK refuses such files, volwarp keeps the shear in
    ``direction``.
 
-Written files carry the same matrix as both sform and qform, code 1
-(scanner), so every reader finds the same geometry whichever it prefers.
+Units: like ITK, a file whose ``xyzt_units`` say metres or microns is read in
+millimetres (spacing and origin scaled by 1000 or 1/1000); other space units
+(mm, unknown) are taken as millimetres. The units are written back as they
+were, with the matrix scaled back to them.
+
+Header fields kept on a round trip, as ``Volume.meta`` strings:
+
+* ``NIfTI_sform_code``, ``NIfTI_qform_code`` (integers; e.g. 4 for an MNI152
+  template, 2 for an aligned space). volwarp writes its one matrix into both
+  forms; each form gets the code it had in the input, so a form the input
+  left uncoded (code 0) stays uncoded, and readers keep using the same form.
+  Without these keys (an NRRD or TIFF input) both codes are 1 (scanner).
+  Two exceptions, so that the written geometry is always the one readers
+  use: when both codes are 0 but the geometry is no longer the one "method
+  1" gives (origin 0, identity direction in LPS), both are written as 1;
+  when only the qform is coded but the matrix has a shear a quaternion
+  cannot hold, the sform gets the qform's code.
+* ``NIfTI_xyzt_units`` (the byte: space units | time units; default 2, mm);
+* ``NIfTI_intent_code``, ``NIfTI_intent_p1`` .. ``p3``, ``NIfTI_intent_name``
+  (only when the file has an intent);
+* ``descrip`` (at most 79 bytes, latin-1).
+
+``cal_min``/``cal_max`` (a display window for the samples) are not carried:
+volwarp's commands change the samples, and a stale window would hide them.
+
+volwarp's other key/values (``volwarp_version``, ``volwarp_command``,
+``volwarp_input``, ``volwarp_spec_sha256``, key/values carried from an NRRD
+input, ...) go into one header extension with code 6 ("comment", the
+registered code for free text: nibabel, niftilib-based readers such as ITK
+and FSL, and AFNI skip or display it as text, while the codes of other
+registered formats, e.g. 4 AFNI or 8 XCEDE XML, promise a content volwarp's
+does not have). Its content is ``volwarp-meta-json/1`` and a newline, then
+the key/values as ASCII JSON with sorted keys (deterministic bytes), padded
+with NULs to a multiple of 16 bytes as the format requires. On reading, only
+a code-6 extension starting with that prefix is volwarp's; any other
+extension (another program's comment, DICOM, AFNI, ...) is left alone: not
+read into ``meta`` and not copied to outputs.
+
+Damaged headers are a one-line :class:`FormatError` naming the file and the
+field: a ``vox_offset`` that would make the samples start inside the header
+(smaller than 352 bytes for a NIfTI-1 file, 544 for a NIfTI-2 file), a coded
+qform whose ``quatern_b, quatern_c, quatern_d`` have a sum of squares above
+1. An all-zero or otherwise degenerate matrix is an error, never a numpy
+warning on stderr.
+
 Files with a 4th dimension longer than 1 are refused unless ``volume_index``
 picks one volume.
 """
@@ -25,9 +70,12 @@ from __future__ import annotations
 
 import contextlib
 import gzip
+import json
 import logging
 import os
+import struct
 import threading
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -41,17 +89,43 @@ log = logging.getLogger("volwarp")
 
 _RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 
+#: NIfTI space units (``xyzt_units & 7``) -> millimetres, as ITK converts them
+#: (1 metre, 3 micron; 2 is mm, 0 unknown, taken as mm)
+_SPACE_UNIT_TO_MM = {1: 1000.0, 3: 1e-3}
+#: ``xyzt_units`` of a file written from a volume that names none: mm, no time unit
+_DEFAULT_XYZT_UNITS = 2
 
-def choose_affine(header) -> tuple[np.ndarray, str]:
+#: volwarp's header extension: code 6 ("comment"), content starting with this prefix
+EXTENSION_CODE = 6
+EXTENSION_PREFIX = b"volwarp-meta-json/1\n"
+
+#: the meta keys that are NIfTI header fields (everything else goes to the extension)
+_INTENT_KEYS = ("NIfTI_intent_code", "NIfTI_intent_p1", "NIfTI_intent_p2", "NIfTI_intent_p3",
+                "NIfTI_intent_name")
+HEADER_KEYS = ("descrip", "NIfTI_sform_code", "NIfTI_qform_code", "NIfTI_xyzt_units",
+               *_INTENT_KEYS)
+
+
+def choose_affine(header, where: str = "") -> tuple[np.ndarray, str]:
     """The voxel-to-RAS 4x4 matrix by ITK's rule (module docstring), and its name."""
+    with np.errstate(all="ignore"):
+        return _choose_affine(header, where)
+
+
+def _choose_affine(header, where: str) -> tuple[np.ndarray, str]:
     zooms = np.array([float(z) if z > 0 else 1.0 for z in header["pixdim"][1:4]])
     sform, scode = header.get_sform(coded=True)
-    qform, qcode = header.get_qform(coded=True)
+    try:
+        qform, qcode = header.get_qform(coded=True)
+    except ValueError as exc:  # nibabel's "w2 should be positive": an invalid quaternion
+        prefix = f"{where}: " if where else ""
+        raise FormatError(f"{prefix}NIfTI qform has an invalid quaternion (quatern_b, "
+                          f"quatern_c, quatern_d): {_one_line(exc)}") from None
     scode = int(scode or 0) if sform is not None else 0
     qcode = int(qcode or 0) if qform is not None else 0
-    if scode == 0 and qcode == 0:
+    if scode == 0 and qcode == 0:  # as ITK: LPS axes (RAS -x, -y, +z), origin 0
         aff = np.eye(4)
-        aff[:3, :3] = np.diag(zooms)
+        aff[:3, :3] = np.diag(zooms * [-1.0, -1.0, 1.0])
         return aff, "pixdim"
     sform = np.asarray(sform, dtype=np.float64) if scode else None
     qform = np.asarray(qform, dtype=np.float64) if qcode else None
@@ -72,11 +146,73 @@ def choose_affine(header) -> tuple[np.ndarray, str]:
     return sform, "sform"
 
 
+def _read_header_block(path) -> bytes | None:
+    """The first 560 bytes of the (possibly gzipped) file, or None when they cannot be read
+    (nibabel then says why)."""
+    try:
+        with open(path, "rb") as fh:
+            if fh.read(2) == b"\x1f\x8b":
+                fh.seek(0)
+                with gzip.GzipFile(fileobj=fh) as gz:
+                    return gz.read(560)
+            fh.seek(0)
+            return fh.read(560)
+    except (OSError, EOFError, zlib.error):
+        return None
+
+
+def _check_raw_header(path, where: str) -> None:
+    """Refuse, before nibabel reads them, a vox_offset inside the header and an invalid
+    quaternion: nibabel would read header bytes as samples, or fail with a traceback-like
+    message that names no field."""
+    block = _read_header_block(path)
+    if not block or len(block) < 348:
+        return
+    for end in "<>":
+        size = struct.unpack_from(end + "i", block, 0)[0]
+        if size in (348, 540):
+            break
+    else:
+        return
+    if size == 348:
+        single = block[344:348] == b"n+1\0"
+        vox = struct.unpack_from(end + "f", block, 108)[0]
+        qcode = struct.unpack_from(end + "h", block, 252)[0]
+        quat = struct.unpack_from(end + "3f", block, 256)
+        minimum, eps = 352, float(np.finfo(np.float32).eps)
+    else:
+        if len(block) < 376:
+            return
+        single = block[4:8] == b"n+2\0"
+        vox = struct.unpack_from(end + "q", block, 168)[0]
+        qcode = struct.unpack_from(end + "i", block, 344)[0]
+        quat = struct.unpack_from(end + "3d", block, 352)
+        minimum, eps = 544, float(np.finfo(np.float64).eps)
+    if single and not vox >= minimum:  # also NaN
+        raise FormatError(f"{where}: NIfTI header field vox_offset is {vox:g}, but the samples "
+                          f"of a single-file NIfTI-{1 if size == 348 else 2} file start after "
+                          f"its {minimum}-byte header (vox_offset >= {minimum})")
+    if qcode != 0:
+        with np.errstate(all="ignore"):
+            norm2 = float(np.dot(np.asarray(quat, np.float64), np.asarray(quat, np.float64)))
+        if not norm2 <= 1.0 + 3 * eps:
+            b, c, d = (f"{v:.6g}" for v in quat)
+            raise FormatError(f"{where}: NIfTI qform (qform_code {qcode}) has an invalid "
+                              f"quaternion: quatern_b, quatern_c, quatern_d = {b}, {c}, {d} "
+                              f"give b^2+c^2+d^2 = {norm2:.6g}, more than 1")
+
+
 def read_nifti(path: str | os.PathLike, volume_index: int | None = None) -> Volume:
+    where = str(path)
+    _check_raw_header(path, where)
+    with np.errstate(all="ignore"):  # an all-zero matrix: an error below, not a warning
+        return _read_nifti(path, where, volume_index)
+
+
+def _read_nifti(path, where: str, volume_index: int | None) -> Volume:
     import nibabel as nib
     from nibabel.filebasedimages import ImageFileError
 
-    where = str(path)
     with _quiet_nibabel():
         try:
             img = nib.load(str(path))
@@ -102,8 +238,10 @@ def read_nifti(path: str | os.PathLike, volume_index: int | None = None) -> Volu
     if volume_index is not None and not 0 <= volume_index < nvol:
         raise VolwarpError(f"{where}: --volume-index {volume_index} is outside 0..{nvol - 1}")
     dtype = img.get_data_dtype()
-    slope, inter = img.header.get_slope_inter()
-    scaled = slope is not None and not (np.isnan(slope) or (slope == 1 and not inter))
+    # nibabel moves scl_slope/scl_inter from the header to the data proxy on loading
+    slope = float(getattr(img.dataobj, "slope", 1.0))
+    inter = float(getattr(img.dataobj, "inter", 0.0))
+    scaled = np.isfinite(slope) and slope != 0 and not (slope == 1 and not inter)
     item = 8 if scaled else np.dtype(dtype).itemsize
     ensure_fits_in_memory(voxel_count(shape[:3]) * item, f"{where} ({shape[:3]})")
     try:
@@ -120,20 +258,76 @@ def read_nifti(path: str | os.PathLike, volume_index: int | None = None) -> Volu
         arr = arr.astype(np.float32) if np.dtype(dtype).itemsize <= 2 else arr.astype(np.float64)
     check_dtype(arr.dtype, where)
     data = native(np.ascontiguousarray(arr.transpose(2, 1, 0)))
-    aff, _ = choose_affine(img.header)
+    header = img.header
+    aff, _ = choose_affine(header, where)
+    aff = np.array(aff, dtype=np.float64)
+    aff[:3, :] *= _SPACE_UNIT_TO_MM.get(int(header["xyzt_units"]) & 7, 1.0)  # as ITK: in mm
     lin = _RAS_TO_LPS @ aff[:3, :3]
     spacing = np.linalg.norm(lin, axis=0)
+    if not np.all(np.isfinite(lin)):
+        raise FormatError(f"{where}: NIfTI matrix has values that are not finite numbers")
     if np.any(spacing == 0):
         raise FormatError(f"{where}: NIfTI matrix has a zero-length axis")
-    meta = {}
-    descrip = img.header.get("descrip")
-    if descrip is not None:
-        text = bytes(np.asarray(descrip).tobytes()).split(b"\0", 1)[0].decode("latin-1").strip()
-        if text:
-            meta["descrip"] = text
+    meta = {**_extension_meta(header, where), **_header_meta(header)}
     return make_volume(where, data, spacing=spacing, origin=_RAS_TO_LPS @ aff[:3, 3],
                        direction=lin / spacing[None, :], space="left-posterior-superior",
-                       meta=meta)
+                       file_space="right-anterior-superior", meta=meta)
+
+
+def _text_field(header, name: str) -> str:
+    value = header.get(name)
+    if value is None:
+        return ""
+    return bytes(np.asarray(value).tobytes()).split(b"\0", 1)[0].decode("latin-1").strip()
+
+
+def _header_meta(header) -> dict[str, str]:
+    """The header fields volwarp keeps (module docstring), as meta strings."""
+    meta = {
+        "NIfTI_sform_code": str(int(header["sform_code"])),
+        "NIfTI_qform_code": str(int(header["qform_code"])),
+        "NIfTI_xyzt_units": str(int(header["xyzt_units"])),
+    }
+    params = [float(header[f"intent_p{i}"]) for i in (1, 2, 3)]
+    name = _text_field(header, "intent_name")
+    if int(header["intent_code"]) or any(params) or name:
+        meta["NIfTI_intent_code"] = str(int(header["intent_code"]))
+        for i, p in enumerate(params, 1):
+            meta[f"NIfTI_intent_p{i}"] = repr(p)
+        meta["NIfTI_intent_name"] = name
+    descrip = _text_field(header, "descrip")
+    if descrip:
+        meta["descrip"] = descrip
+    return meta
+
+
+def _extension_content(ext) -> bytes:
+    content = getattr(ext, "content", None)
+    if not isinstance(content, bytes):
+        content = ext.get_content()
+    return content if isinstance(content, bytes) else b""
+
+
+def _extension_meta(header, where: str) -> dict:
+    """The key/values of volwarp's own extension (module docstring); others are ignored."""
+    meta: dict = {}
+    for ext in header.extensions:
+        if ext.get_code() != EXTENSION_CODE:
+            continue
+        content = _extension_content(ext)
+        if not content.startswith(EXTENSION_PREFIX):
+            continue  # another program's comment: not volwarp's to read
+        text = content[len(EXTENSION_PREFIX):].rstrip(b"\0")
+        try:
+            values = json.loads(text.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError):
+            raise FormatError(f"{where}: volwarp's NIfTI extension (code 6, "
+                              f"{EXTENSION_PREFIX.decode().strip()}) is not valid JSON") from None
+        if not isinstance(values, dict):
+            raise FormatError(f"{where}: volwarp's NIfTI extension (code 6, "
+                              f"{EXTENSION_PREFIX.decode().strip()}) is not a JSON object")
+        meta.update(values)
+    return meta
 
 
 def _one_line(exc: Exception) -> str:
@@ -180,21 +374,91 @@ def _quiet_nibabel():
                 del _FILTER.threads[ident]
 
 
+def _meta_int(meta: dict, key: str, default: int, lo: int, hi: int) -> int:
+    """``meta[key]`` as an integer in lo..hi, else ``default`` (a hand-edited NRRD key)."""
+    if key not in meta:
+        return default
+    try:
+        value = int(str(meta[key]).strip())
+    except ValueError:
+        value = None
+    if value is None or not lo <= value <= hi:
+        log.debug("%s = %r is not an integer in %d..%d: writing %d", key, meta[key], lo, hi,
+                  default)
+        return default
+    return value
+
+
+def _meta_float(meta: dict, key: str) -> float:
+    try:
+        value = float(str(meta.get(key, 0.0)))
+    except ValueError:
+        value = 0.0
+    return value if np.isfinite(value) else 0.0
+
+
+def _form_codes(meta: dict, ras: np.ndarray, spacing: np.ndarray) -> tuple[int, int]:
+    """The sform and qform codes to write (module docstring: the codes rule)."""
+    scode = _meta_int(meta, "NIfTI_sform_code", 1, 0, 5)
+    qcode = _meta_int(meta, "NIfTI_qform_code", 1, 0, 5)
+    lin = ras[:3, :3] / spacing[None, :]
+    if scode == 0 and qcode == 0:
+        method1 = (np.allclose(lin, np.diag([-1.0, -1.0, 1.0]), rtol=0, atol=1e-6)
+                   and np.allclose(ras[:3, 3], 0, rtol=0, atol=1e-6 * max(1.0, spacing.max())))
+        if not method1:  # the geometry needs a coded matrix to be read back
+            scode = qcode = 1
+    elif scode == 0 and not np.allclose(lin.T @ lin, np.eye(3), rtol=0, atol=1e-4):
+        scode = qcode  # a shear a quaternion cannot hold: the sform carries it, same frame
+    return scode, qcode
+
+
+def _extension(meta: dict):
+    """volwarp's header extension for the meta that is not a header field, or None."""
+    from nibabel.nifti1 import Nifti1Extension
+
+    rest = {str(k): v for k, v in meta.items() if k not in HEADER_KEYS}
+    if not rest:
+        return None
+    text = json.dumps(rest, sort_keys=True, ensure_ascii=True, separators=(",", ":"),
+                      default=str)
+    return Nifti1Extension(EXTENSION_CODE, EXTENSION_PREFIX + text.encode("ascii"))
+
+
 def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
     import nibabel as nib
 
     path = Path(path)
     check_dtype(vol.data.dtype, str(path))
+    d = vol.direction
+    if not np.allclose(d.T @ d, np.eye(3), atol=1e-6):
+        # ITK, SimpleITK and volwarp's reader would take the qform, which has no shear:
+        # the grid would land elsewhere (a gantry tilt kept with --keep-shear, say)
+        raise VolwarpError(f"{path}: the grid is sheared (its axes are not orthogonal), which "
+                           "NIfTI readers do not keep; write .nrrd or .mha")
+    meta = dict(vol.meta)
+    units = _meta_int(meta, "NIfTI_xyzt_units", _DEFAULT_XYZT_UNITS, 0, 255)
+    to_file_units = 1.0 / _SPACE_UNIT_TO_MM.get(units & 7, 1.0)  # the file's own units
     aff = np.eye(4)
-    aff[:3, :3] = _RAS_TO_LPS @ (vol.direction * vol.spacing[None, :])
-    aff[:3, 3] = _RAS_TO_LPS @ vol.origin
+    aff[:3, :3] = _RAS_TO_LPS @ (vol.direction * vol.spacing[None, :]) * to_file_units
+    aff[:3, 3] = _RAS_TO_LPS @ vol.origin * to_file_units
+    scode, qcode = _form_codes(meta, aff, vol.spacing * to_file_units)
     img = nib.Nifti1Image(vol.data.transpose(2, 1, 0), aff)
-    img.header.set_xyzt_units("mm")
-    img.set_sform(aff, code=1)
-    img.set_qform(aff, code=1)
-    descrip = str(vol.meta.get("descrip", ""))[:79]
+    header = img.header
+    header["xyzt_units"] = units
+    img.set_sform(aff, code=scode)
+    img.set_qform(aff, code=qcode)
+    if any(k in meta for k in _INTENT_KEYS):
+        header["intent_code"] = _meta_int(meta, "NIfTI_intent_code", 0, -32768, 32767)
+        for i in (1, 2, 3):
+            header[f"intent_p{i}"] = _meta_float(meta, f"NIfTI_intent_p{i}")
+        name = str(meta.get("NIfTI_intent_name", ""))[:15]
+        header["intent_name"] = name.encode("latin-1", errors="replace")
+    descrip = str(meta.get("descrip", ""))[:79]
     if descrip:
-        img.header["descrip"] = descrip.encode("latin-1", errors="replace")
+        header["descrip"] = descrip.encode("latin-1", errors="replace")
+    ext = _extension(meta)
+    if ext is not None:
+        header.extensions.append(ext)
     payload = img.to_bytes()
     if path.name.lower().endswith(".gz"):
         payload = gzip.compress(payload, compresslevel=1, mtime=0)

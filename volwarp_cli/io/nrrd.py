@@ -28,10 +28,13 @@ from ..errors import FormatError, VolwarpError
 from ..volume import Volume, frame_to_lps, xyz_to_zyx
 from .atomic import atomic_output
 from .common import (
+    check_data_output,
     check_dtype,
     ensure_fits_in_memory,
     make_volume,
     native,
+    note_input,
+    open_data_file,
     read_exact,
     read_gzip_exact,
     voxel_count,
@@ -252,6 +255,15 @@ def _data_files(fields: dict[str, str], header_path: Path, fh, where: str, sizes
     return [base / spec]
 
 
+def _referenced_data_files(header_path: Path) -> list[str]:
+    """The data file an existing detached header names (a single file; none for LIST or a
+    pattern, which volwarp does not write)."""
+    with open(header_path, "rb") as fh:
+        fields, _ = read_header(fh, str(header_path))
+    spec = fields.get("data file", fields.get("datafile", ""))
+    return [] if not spec or spec.startswith("LIST") or "%" in spec else [spec]
+
+
 def _subdim(rest: list[str], sizes: list[int], where: str, what: str) -> int | None:
     """The optional ``<subdim>`` after a data file pattern or ``LIST`` (None: not given)."""
     if not rest:
@@ -303,6 +315,7 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
         fh = open(path, "rb")
     except OSError as exc:
         raise FormatError(f"{where}: cannot open ({exc.strerror})") from None
+    note_input(fh)  # a detached header's data file may then be rewritten with it
     with fh:
         fields, keyvals = read_header(fh, where)
         for req in ("type", "dimension", "sizes", "encoding"):
@@ -359,11 +372,7 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
             if not files or per_file * len(files) != count:
                 raise FormatError(f"{where}: {len(files)} data files do not divide {count} samples")
             for f in files:
-                try:
-                    dfh = open(f, "rb")
-                except OSError as exc:
-                    raise FormatError(f"{where}: data file {str(f)!r}: {exc.strerror}") from None
-                with dfh:
+                with open_data_file(path, f, where) as dfh:
                     chunks.append(_read_data(dfh, file_dtype, per_file, encoding, lineskip,
                                              byteskip, str(f), exact_end=True))
             data = np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
@@ -731,6 +740,7 @@ def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
         data_path = path.with_suffix(".raw.gz" if compress else ".raw")
         header = nrrd_header(vol, dtype, encoding=encoding, byte_order=byte_order,
                              data_file=data_path.name, components=component_names)
+        check_data_output(data_path, path, _referenced_data_files)
         with atomic_output(data_path) as tmp_data, atomic_output(path) as tmp_header:
             with open(tmp_data, "wb") as fh:
                 _write_payload(fh, payload, encoding, level)

@@ -3,7 +3,18 @@
 Spacing is read the way ImageJ/Fiji store it: x and y from the resolution
 tags (pixels per unit), z from the ImageJ description's ``spacing``, the unit
 from its ``unit``. Plain TIFFs with a ResolutionUnit of inch or centimetre
-are converted to millimetres. volwarp also stores its exact spacing, origin
+are converted to millimetres.
+
+An OME-TIFF's ``PhysicalSizeX``/``Y``/``Z`` (of its first ``Pixels``
+element) come ahead of those: each is converted to millimetres from its
+``PhysicalSizeXUnit``/``Y``/``Z`` (any length of the OME schema's
+``UnitsLength``: nm, µm (or um), mm, cm, m, Å, in, ...; µm when the unit is
+not given, the schema's default), and meta ``unit`` is then ``mm``. An axis
+whose size is missing, not a positive number, or in a unit that is no length
+(``pixel``, ``reference frame``) keeps the source it had before (the
+resolution tags for x and y, 1 for z); a stack of several planes whose OME
+metadata give x or y but no ``PhysicalSizeZ`` is read with z spacing 1 and a
+warning. volwarp also stores its exact spacing, origin
 and direction (keys ``volwarp_spacing``, ``volwarp_origin``,
 ``volwarp_direction``) so that a round trip keeps the geometry to the bit,
 since TIFF resolutions are rationals.
@@ -43,6 +54,21 @@ log = logging.getLogger("volwarp")
 
 _IMAGEJ_TYPES = ("uint8", "int16", "uint16", "float32")
 _UNIT_TO_MM = {"inch": 25.4, "centimeter": 10.0, "millimeter": 1.0, "micrometer": 1e-3}
+
+#: The OME schema's UnitsLength symbols (and the common spellings of micrometre and
+#: ångström) in millimetres. ``pixel`` and ``reference frame`` are not lengths.
+_OME_LENGTH_TO_MM = {
+    "Ym": 1e27, "Zm": 1e24, "Em": 1e21, "Pm": 1e18, "Tm": 1e15, "Gm": 1e12, "Mm": 1e9,
+    "km": 1e6, "hm": 1e5, "dam": 1e4, "m": 1e3, "dm": 1e2, "cm": 10.0, "mm": 1.0,
+    "\u00b5m": 1e-3, "\u03bcm": 1e-3, "um": 1e-3, "micron": 1e-3,
+    "nm": 1e-6, "pm": 1e-9, "fm": 1e-12, "am": 1e-15, "zm": 1e-18, "ym": 1e-21,
+    "\u00c5": 1e-7, "\u212b": 1e-7,
+    "thou": 0.0254, "li": 25.4 / 12, "in": 25.4, "ft": 304.8, "yd": 914.4,
+    "mi": 1609344.0, "ua": 1.495978707e14, "ly": 9.4607304725808e18,
+    "pc": 3.0856775814913673e19, "pt": 25.4 / 72,
+}
+#: the schema's default PhysicalSize unit
+_OME_DEFAULT_UNIT = "\u00b5m"
 
 
 def _floats(value, n, where, name):
@@ -184,7 +210,21 @@ def _declared_pages(tif, pages, ij, where: str) -> tuple[int, str] | None:
 
 def _ome_pixels(tif) -> tuple[list[dict], bool] | None:
     """The attributes of each OME ``Pixels`` element, and whether the file is one of a
-    multi-file OME set; None without readable OME metadata."""
+    multi-file OME set; None without readable OME metadata.
+
+    The OME-XML is parsed once per open file (the result is kept on ``tif``)."""
+    cached = getattr(tif, "_volwarp_ome_pixels", _NOT_PARSED)
+    if cached is _NOT_PARSED:
+        cached = _parse_ome_pixels(tif)
+        with contextlib.suppress(AttributeError):
+            tif._volwarp_ome_pixels = cached
+    return cached
+
+
+_NOT_PARSED = object()
+
+
+def _parse_ome_pixels(tif) -> tuple[list[dict], bool] | None:
     import xml.etree.ElementTree as ET
 
     if not getattr(tif, "is_ome", False) or not tif.ome_metadata:
@@ -334,6 +374,34 @@ def _read_tiff(tif, where: str, records) -> Volume:
     return _geometry(tif, first, ij, data, where)
 
 
+def _ome_spacing(tif, where: str) -> list[float | None] | None:
+    """The OME ``PhysicalSizeX/Y/Z`` of the first image in mm (None for an axis without a
+    usable size), or None when the file has no OME metadata."""
+    ome = _ome_pixels(tif)
+    if ome is None or not ome[0]:
+        return None
+    pixels = ome[0][0]
+    out: list[float | None] = []
+    for axis in "XYZ":
+        text = pixels.get(f"PhysicalSize{axis}")
+        unit = pixels.get(f"PhysicalSize{axis}Unit", _OME_DEFAULT_UNIT).strip()
+        if text is None:
+            out.append(None)
+            continue
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+        scale = _OME_LENGTH_TO_MM.get(unit)
+        if not (np.isfinite(value) and value > 0) or scale is None:
+            log.debug("%s: OME PhysicalSize%s=%r %r is not a positive length: ignored",
+                      where, axis, text, unit)
+            out.append(None)
+            continue
+        out.append(value * scale)
+    return out
+
+
 def _is_imagej_big_stack(tif, first, count: int) -> bool:
     """True for ImageJ's layout of a stack: one IFD, all planes stored back to back after it."""
     if not first.is_contiguous or first.compression != 1 or first.predictor not in (0, 1):
@@ -376,6 +444,15 @@ def _geometry(tif, first, ij, data, where: str) -> Volume:
         spacing = _floats(extra["volwarp_spacing"], 3, where, "volwarp_spacing")
     elif "spacing" in extra and not ij and not isinstance(extra["spacing"], (int, float)):
         spacing = _floats(extra["spacing"], 3, where, "spacing")
+    ome = _ome_spacing(tif, where) if "volwarp_spacing" not in extra else None
+    if ome and any(v is not None for v in ome):
+        for axis, value in enumerate(ome):
+            if value is not None:
+                spacing[axis] = value
+        meta["unit"] = "mm"
+        if ome[2] is None and data.shape[0] > 1:
+            log.warning("%s: the OME metadata give no PhysicalSizeZ: z spacing is %g", where,
+                        spacing[2])
     if "volwarp_origin" in extra:
         origin = _floats(extra["volwarp_origin"], 3, where, "volwarp_origin")
     if "volwarp_direction" in extra:

@@ -25,7 +25,18 @@ from ..volume import Volume, xyz_to_zyx
 
 
 class GridError(VolwarpError):
-    """Source and target cannot be put on one grid without more information."""
+    """Source and target cannot be put on one grid without more information, or the
+    grid the spec asks for cannot be made; ``key``: the spec key at fault (a path such
+    as ``("align", "target")``), reported by the command line with its line."""
+
+    def __init__(self, message: str, key: tuple = ("grid",)):
+        super().__init__(message)
+        self.key = tuple(key)
+
+
+#: most voxels along one axis of a frame grid (beyond it the sizes are absurd: a scale
+#: or translation many orders of magnitude off, or a margin of 1e300 voxels)
+MAX_AXIS = 1 << 31
 
 
 @dataclass
@@ -75,9 +86,24 @@ def union_grid(source: Grid, target: Grid, source_matrix: np.ndarray,
     """Source spacing/direction, on the source lattice, covering both moved input boxes."""
     to_idx = np.linalg.inv(source.index_to_world)
     pts = np.vstack([_corners(source) @ source_matrix.T, _corners(target) @ target_matrix.T])
-    idx = pts @ to_idx.T
-    lo = np.floor(idx[:, :3].min(axis=0) + 1e-6) - np.ceil(margin)
-    hi = np.ceil(idx[:, :3].max(axis=0) - 1e-6) + np.ceil(margin)
+    with np.errstate(over="ignore", invalid="ignore"):
+        idx = pts @ to_idx.T
+        lo = np.floor(idx[:, :3].min(axis=0) + 1e-6)
+        hi = np.ceil(idx[:, :3].max(axis=0) - 1e-6)
+        span = hi - lo + 1
+    if not np.all(np.isfinite(span)) or span.max() > MAX_AXIS:
+        key = (("align", "target") if not np.allclose(target_matrix, np.eye(4))
+               else ("align", "source") if not np.allclose(source_matrix, np.eye(4))
+               else ("grid",))
+        axis = "xyz"[int(np.argmax(np.where(np.isfinite(span), span, np.inf)))]
+        raise GridError(f"the aligned shapes would need a frame grid {float(span.max()):.3g} "
+                        f"voxels long along {axis} (the limit is {MAX_AXIS}): the alignment is "
+                        "far too large or too far away", key=key)
+    pad = float(np.ceil(margin))
+    if span.max() + 2 * pad > MAX_AXIS:
+        raise GridError(f"a margin of {margin:g} voxels makes the frame grid longer than "
+                        f"{MAX_AXIS} voxels", key=("margin",))
+    lo, hi = lo - pad, hi + pad
     shape = tuple(int(v) for v in (hi - lo + 1))
     origin = source.index_to_world[:3, :3] @ lo + source.origin
     return Grid(shape, source.spacing.copy(), origin, source.direction.copy())
@@ -87,8 +113,11 @@ def explicit_grid(spec: dict) -> Grid:
     spacing = np.asarray(spec["spacing"], dtype=np.float64)
     spacing = np.full(3, float(spacing)) if spacing.shape == () else spacing
     direction = np.asarray(spec.get("direction", np.eye(3)), dtype=np.float64)
-    if abs(np.linalg.det(direction)) < 1e-9:
-        raise VolwarpError("grid.direction is singular")
+    with np.errstate(over="ignore", invalid="ignore"):
+        det = np.linalg.det(direction)
+    if not abs(det) >= 1e-9:  # also NaN
+        raise GridError("the direction matrix is singular (its columns are the axes' "
+                        "directions: three independent vectors)", key=("grid", "direction"))
     return Grid(tuple(int(v) for v in spec["size"]), spacing,
                 np.asarray(spec["origin"], dtype=np.float64), direction)
 
@@ -105,7 +134,7 @@ def choose_grid(grid_spec, source: Grid, target: Grid, source_matrix: np.ndarray
     if grid_spec == "union":
         return union_grid(source, target, source_matrix, target_matrix, margin)
     if grid_spec is not None:
-        raise VolwarpError(f"unknown grid {grid_spec!r} (source, target, union or geometry)")
+        raise GridError(f"unknown grid {grid_spec!r} (source, target, union or geometry)")
     same = (source.shape_xyz == target.shape_xyz
             and np.allclose(source.spacing, target.spacing, atol=1e-6)
             and np.allclose(source.origin, target.origin, atol=1e-6)

@@ -83,7 +83,9 @@ def grid_field(field: np.ndarray, field_i2w: np.ndarray, matrix: np.ndarray, gri
     uncovered = int(unknown.sum())
     if uncovered:
         if uncovered == out.size:
-            raise VolwarpError("the frame grid does not overlap an input's grid at all")
+            from .grid import GridError
+
+            raise GridError("the frame grid does not overlap an input's grid at all")
         fill_uncovered(out, unknown, grid.spacing_zyx,
                        metric="minnorm" if metric in ("minnorm", "taxicab") else "euclidean")
     return out, uncovered

@@ -16,7 +16,7 @@ from ..io.common import ensure_fits_in_memory
 from ..progress import log, timed
 from ..volume import Volume, xyz_to_zyx
 from .align import affine_from_params, shape_centroid
-from .grid import Grid, choose_grid
+from .grid import Grid, GridError, choose_grid
 from .interpolate import Morph, grid_field, resample_to_grid
 from .landmarks import LandmarkWarp
 from .spec import MorphJob
@@ -66,8 +66,13 @@ def prepare(job: MorphJob, source: Volume, target: Volume,
     on_grid = {}
     for name, vol, mat in (("source", source, a_s), ("target", target, a_t)):
         with timed(f"{name} field onto the frame grid"):
-            on_grid[name], uncovered[name] = grid_field(fields.pop(name), vol.index_to_world_matrix,
-                                                        mat, grid, job.metric)
+            try:
+                on_grid[name], uncovered[name] = grid_field(
+                    fields.pop(name), vol.index_to_world_matrix, mat, grid, job.metric)
+            except GridError as exc:  # the spec's alignment or grid put it elsewhere
+                moved = getattr(job, f"align_{name}")
+                key = ("align", name) if moved and not isinstance(job.grid, dict) else ("grid",)
+                raise GridError(f"{exc} ({name} {ref_path(job, name)})", key=key) from None
     warp_back = warp_fwd = None
     if job.warp_source_points is not None:
         ps = _apply(a_s, job.warp_source_points)
@@ -83,6 +88,10 @@ def prepare(job: MorphJob, source: Volume, target: Volume,
         sb = resample_to_grid(vb.data, vb.index_to_world_matrix, a_t, grid, outside="nearest")
         prepared.attributes[name] = (morph.static_source(sa, warp_back), sb)
     return prepared
+
+
+def ref_path(job: MorphJob, name: str):
+    return getattr(job, name).path
 
 
 def _apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:

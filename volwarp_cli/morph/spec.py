@@ -51,6 +51,7 @@ class MorphJob:
     grid: object = None
     margin: float = 2.0
     attributes: list[AttributeRef] = field(default_factory=list)
+    doc: object = None  # the spec document (SpecDoc) it came from, for errors found later
 
     @property
     def moved(self) -> bool:
@@ -58,9 +59,45 @@ class MorphJob:
                     or self.warp_source_points is not None)
 
 
+#: largest world coordinate or length a morph spec may give (1e15 mm is 1e9 km): beyond
+#: it squared distances overflow and the results are noise
+MAX_COORD = 1e15
+
+
+def _check_bounded(doc, path: tuple, value) -> None:
+    """Refuse (key path and line) any number in ``value`` beyond :data:`MAX_COORD`."""
+    if isinstance(value, list):
+        for i, v in enumerate(value):
+            _check_bounded(doc, path + (i,), v)
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+        if not abs(value) <= MAX_COORD:
+            raise doc.error(path, f"{value:g} is too large (world coordinates and lengths "
+                                  f"are at most {MAX_COORD:g})")
+
+
 def job_from_spec(doc) -> MorphJob:
     """A :class:`MorphJob` from a loaded, schema-valid spec document."""
     d = doc.data
+    for side in ("source", "target"):
+        for name in ("translate", "center"):
+            _check_bounded(doc, ("align", side, name),
+                           (d.get("align", {}).get(side) or {}).get(name))
+    for name in ("pairs", "source_points", "target_points", "sigma"):
+        _check_bounded(doc, ("warp", name), d.get("warp", {}).get(name))
+    if isinstance(d.get("grid"), dict):
+        for name in ("origin", "spacing"):
+            _check_bounded(doc, ("grid", name), d["grid"].get(name))
+        sp = d["grid"].get("spacing")
+        size = d["grid"].get("size")
+        if isinstance(sp, (int, float)) and isinstance(size, list) and size:
+            sp = [sp] * len(size)
+        if isinstance(sp, list) and isinstance(size, list):
+            for i, (a, n) in enumerate(zip(sp, size, strict=False)):
+                if isinstance(a, (int, float)) and isinstance(n, int) and a * n > MAX_COORD:
+                    raise doc.error(("grid", "size", i), f"the grid is {a * n:g} world units "
+                                    f"long along {'xyz'[i]} (at most {MAX_COORD:g})")
+    if "density" in d:
+        _check_bounded(doc, ("density", "width"), d["density"].get("width"))
 
     def shape(key):
         s = d[key]
@@ -130,6 +167,13 @@ def job_from_spec(doc) -> MorphJob:
         except VolwarpError as exc:
             raise doc.error(("warp",), str(exc)) from None
     job.grid = d.get("grid")
+    if isinstance(job.grid, dict):
+        from .grid import GridError, explicit_grid
+
+        try:
+            explicit_grid(job.grid)
+        except GridError as exc:
+            raise doc.error(exc.key, str(exc)) from None
     job.margin = float(d.get("margin", 2.0))
     names = set()
     for i, a in enumerate(d.get("attributes", [])):
@@ -138,4 +182,5 @@ def job_from_spec(doc) -> MorphJob:
         names.add(a["name"])
         job.attributes.append(AttributeRef(a["name"], doc.resolve(a["source"]),
                                            doc.resolve(a["target"]), a.get("dtype")))
+    job.doc = doc
     return job

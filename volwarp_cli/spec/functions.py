@@ -43,6 +43,7 @@ ALLOWED_FUNCTIONS: dict[str, tuple[Callable, int | None]] = {
 #: names an expression may use besides the functions
 ALLOWED_NAMES = ("u", "pi")
 MAX_EXPRESSION_LENGTH = 2000
+_MAX_FLOAT = float(np.finfo(np.float64).max)
 
 _BINOPS = {ast.Add: np.add, ast.Sub: np.subtract, ast.Mult: np.multiply,
            ast.Div: np.divide, ast.Pow: np.power, ast.Mod: np.mod}
@@ -259,6 +260,11 @@ def _check(node, path, doc, text) -> None:
     if isinstance(node, ast.Constant):
         if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
             _raise(doc, path, f"only numbers are allowed as constants{where}, got {node.value!r}")
+        if isinstance(node.value, int) and not abs(node.value) <= _MAX_FLOAT:
+            digits = len(str(abs(node.value))) if abs(node.value).bit_length() < 20000 else None
+            _raise(doc, path, "number too large in expression"
+                   + (f" ({digits} digits)" if digits else "")
+                   + f" (the limit is {_MAX_FLOAT:.4g})")
         return
     if isinstance(node, ast.Name):
         if node.id not in ALLOWED_NAMES:

@@ -1,0 +1,167 @@
+"""Outputs on a full disk: every write fails naming the output, exit 1, and leaves the
+earlier output byte-identical and no temporary file behind.
+
+OpenImageIO's writers report a short write only through ``has_error``/``geterror()``
+(``write_image`` and ``close`` still return success), so a PNG cut at a few KiB, with
+no IEND chunk, used to be renamed over a complete render with exit 0.
+
+The full disk is a 64 KiB tmpfs mounted by the test (CI runs the tests as root); the
+tests skip when mounting is not permitted.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import ball
+
+from volwarp_cli.io import write_volume
+from volwarp_cli.io.images import write_image
+from volwarp_cli.volume import Volume
+
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+
+
+@pytest.fixture
+def small_fs(tmp_path):
+    """A 64 KiB tmpfs at ``tmp_path / "full"`` (unmounted afterwards)."""
+    if shutil.which("mount") is None:
+        pytest.skip("no mount command")
+    where = tmp_path / "full"
+    where.mkdir()
+    proc = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(where)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({proc.stderr.strip()})")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], capture_output=True)
+
+
+def fill(folder: Path, leave: int) -> None:
+    """Fill ``folder``'s file system but ``leave`` bytes (with a file named ``filler``)."""
+    st = os.statvfs(folder)
+    free = st.f_bavail * st.f_frsize
+    if free > leave:
+        (folder / "filler").write_bytes(b"\0" * (free - leave))
+
+
+def old_png(folder: Path, name: str = "out.png") -> tuple[Path, bytes]:
+    """A complete small PNG already in place; returns its path and bytes."""
+    path = folder / name
+    write_image(path, np.full((16, 16, 3), 200, np.uint8))
+    data = path.read_bytes()
+    assert data.endswith(PNG_END)
+    return path, data
+
+
+def only(folder: Path, *names: str) -> None:
+    """``folder`` holds exactly ``names`` (and the filler): no temporary file remains."""
+    assert sorted(p.name for p in folder.iterdir() if p.name != "filler") == sorted(names)
+
+
+def assert_failed(res, output: Path) -> None:
+    assert res.code == 1, res
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith("volwarp: error: ")
+    assert str(output) in lines[0]
+    assert "internal error" not in lines[0]
+
+
+@pytest.fixture
+def ball_file(tmp_path):
+    path = tmp_path / "ball.nrrd"
+    write_volume(Volume(ball(30) * 100), path)
+    return path
+
+
+def test_mesh_render_on_a_full_disk_keeps_the_old_png(run, small_fs, ball_file):
+    out, before = old_png(small_fs)
+    res = run("mesh", ball_file, "--iso", 50, "--render", out, "--size", "800x600", "-q")
+    assert_failed(res, out)
+    assert out.read_bytes() == before
+    only(small_fs, "out.png")
+
+
+def test_mesh_render_that_fits_is_written_whole(run, small_fs, ball_file):
+    out, _ = old_png(small_fs)
+    res = run("mesh", ball_file, "--iso", 50, "--render", out, "--size", "60x40", "-q")
+    assert res.code == 0, res
+    assert out.read_bytes().endswith(PNG_END)
+    only(small_fs, "out.png")
+
+
+def test_sweep_render_on_a_full_disk_keeps_the_old_png(run, small_fs, tmp_path):
+    spec = tmp_path / "sweep.yaml"
+    spec.write_text("version: 1\ngrid: {shape: [16, 16, 16]}\nfields:\n  opacity: 1\n"
+                    "trajectory:\n  - arc: {center: [0, 0, 0], radius: 6, axis: [0, 0, 1]}\n"
+                    "up: [0, 0, 1]\nscale: [3, 3]\n")
+    out, before = old_png(small_fs)
+    fill(small_fs, 8192)
+    res = run("sweep", spec, "-o", tmp_path / "sw.nrrd", "--render", out,
+              "--render-size", "300x300", "-q")
+    assert_failed(res, out)
+    assert out.read_bytes() == before
+    only(small_fs, "out.png")
+    assert (tmp_path / "sw.nrrd").is_file()  # the volume, elsewhere, was written
+
+
+def test_morph_sheet_on_a_full_disk_keeps_the_old_png(run, small_fs, tmp_path, ball_file):
+    out, before = old_png(small_fs, "sheet.png")
+    fill(small_fs, 8192)
+    res = run("morph", ball_file, ball_file, "--frames", 2, "--iso", 50,
+              "-o", tmp_path / "m{i}.nrrd", "--render-to", tmp_path / "m{i}.png",
+              "--size", "200x150", "--sheet", out, "-q")
+    assert_failed(res, out)
+    assert out.read_bytes() == before
+    only(small_fs, "sheet.png")
+
+
+def test_write_image_refuses_a_cut_file_even_when_the_writer_says_nothing(tmp_path,
+                                                                         monkeypatch):
+    # a writer that "succeeds" but leaves a PNG without its IEND chunk
+    import OpenImageIO as oiio
+
+    from volwarp_cli.errors import VolwarpError
+    from volwarp_cli.io import images
+
+    out, before = old_png(tmp_path)
+
+    def cut_then_verify(oiio_mod, path, tmp, shape):
+        raise AssertionError("not reached: the IEND check comes first")
+
+    original_close = oiio.ImageOutput.close
+
+    def close_and_cut(self):
+        ok = original_close(self)
+        for p in tmp_path.glob(".out.png.*"):
+            p.write_bytes(p.read_bytes()[:-12])
+        return ok
+
+    monkeypatch.setattr(oiio.ImageOutput, "close", close_and_cut)
+    monkeypatch.setattr(images, "_verify_readback", cut_then_verify)
+    with pytest.raises(VolwarpError, match="cut short"):
+        write_image(out, np.zeros((40, 50, 3), np.uint8))
+    assert out.read_bytes() == before
+    only(tmp_path, "out.png")
+
+
+@pytest.mark.parametrize("ext", ["nrrd", "nii.gz", "mha", "tif"])
+def test_volume_output_on_a_full_disk_keeps_the_old_one(run, small_fs, tmp_path, ext):
+    # already atomic before the image fix: this documents it for the volume writers
+    src = tmp_path / "noise.nrrd"
+    write_volume(Volume(np.random.default_rng(0).random((40, 40, 40), np.float32)), src)
+    out = small_fs / f"old.{ext}"
+    write_volume(Volume(np.zeros((4, 4, 4), np.uint8)), out)
+    before = out.read_bytes()
+    res = run("convert", src, "-o", out, "-q")
+    assert_failed(res, out)
+    assert out.read_bytes() == before
+    only(small_fs, out.name)

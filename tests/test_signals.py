@@ -1,0 +1,124 @@
+"""A stop is a stop: SIGTERM / SIGINT at any moment of a run exits 143 / 130 with one line,
+the old output intact and no temporary file left (or the run had finished: exit 0, the
+new output complete).
+
+Each command is run once to completion (its length and its reference output), then
+again and again with the signal sent at delays swept over that length.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+DATA = Path(__file__).parent / "data"
+VOLWARP = Path(sys.executable).parent / "volwarp"
+OLD = b"the old output, complete\n"
+
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(not VOLWARP.exists(), reason="the volwarp command is not installed")]
+
+
+def _commands(tmp: Path):
+    scan = tmp / "scan.nrrd"
+    scan.write_bytes((DATA / "mri_colin27_brain_1mm.nrrd").read_bytes())
+    spec = tmp / "w.yaml"
+    spec.write_text("version: 1\ncapture: {lattice: 7, oversample: 1}\nsteps:\n"
+                    "  - move:\n      - {index: [3, 3, 3], by: [6.0, 0.0, 0.0]}\n")
+    return {
+        "convert": (["convert", scan, "-o", tmp / "out.nii.gz"], tmp / "out.nii.gz"),
+        "info": (["info", tmp / "ras.nii.gz"], None),
+        "distance": (["distance", scan, "--iso", "40", "-o", tmp / "d.nrrd"], tmp / "d.nrrd"),
+        "warp": (["warp", scan, "--spec", spec, "-o", tmp / "w.nrrd"], tmp / "w.nrrd"),
+        "mesh": (["mesh", scan, "--iso", "40", "-o", tmp / "m.ply"], tmp / "m.ply"),
+    }
+
+
+def _run(args, env, delay=None, signum=None):
+    start = time.perf_counter()
+    proc = subprocess.Popen([str(VOLWARP)] + [str(a) for a in args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, env=env)
+    if delay is not None:
+        time.sleep(delay)
+        proc.send_signal(signum)
+    out, err = proc.communicate(timeout=120)
+    return proc.returncode, err.decode(), time.perf_counter() - start
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["TERM", "INT"])
+@pytest.mark.parametrize("name", ["convert", "info", "distance", "warp", "mesh"])
+def test_a_stop_at_any_moment_keeps_the_old_output(tmp_path, name, signum):
+    if name == "info":  # read a NIfTI (nibabel's optional imports used to swallow the stop)
+        code, err, _ = _run(["convert", DATA / "mri_colin27_brain_1mm.nrrd", "-o",
+                             tmp_path / "ras.nii.gz"], os.environ)
+        assert code == 0, err
+    args, out = _commands(tmp_path)[name]
+    env = dict(os.environ)
+    code, err, length = _run(args, env)
+    assert code == 0, err
+    reference = out.read_bytes() if out else None
+    before = set(os.listdir(tmp_path))
+    if signum == signal.SIGINT:
+        # from 0.25 s: before that the interpreter may still be starting (site, the
+        # editable install's finder), where a Ctrl-C is Python's own KeyboardInterrupt,
+        # before any volwarp code runs (SIGTERM there kills the process cleanly: -15)
+        delays = np.linspace(0.25, max(length * 1.05, 0.3), 3 if name in ("info", "mesh")
+                             else 5)
+    else:
+        delays = np.concatenate([[0.03, 0.08, 0.15], np.linspace(0.2, length * 1.05, 5)])
+    seen = {"stopped": 0, "finished": 0}
+    for delay in delays:
+        if out is not None:
+            out.write_bytes(OLD)
+        code, err, _ = _run(args, env, float(delay), signum)
+        assert "Traceback" not in err, (delay, err)
+        assert set(os.listdir(tmp_path)) == before, (delay, "a temporary file was left")
+        if code == 0:
+            seen["finished"] += 1
+            if out is not None:
+                assert out.read_bytes() == reference, (delay, "exit 0 with a wrong output")
+            continue
+        assert code in (128 + signum, -signum), (delay, code, err)
+        seen["stopped"] += 1
+        if code == 128 + signum:  # our handler ran (-signum: killed before Python started it)
+            lines = err.strip().splitlines()
+            assert lines[-1] == f"volwarp: error: interrupted by {signum.name}", (delay, err)
+        if out is not None:
+            # the old output, or (a stop landing after the output's rename, in the last
+            # moments of the run) the complete new one: never anything else
+            assert out.read_bytes() in (OLD, reference), (delay, "output damaged")
+    assert seen["stopped"] >= 2, seen  # the sweep really stopped runs
+
+
+def test_stale_temporaries_of_dead_processes_are_removed_and_others_kept(tmp_path):
+    """SIGKILL leaves a temporary behind; the next write of the same output removes it
+    (a dead pid of this host), never a live process's or another host's."""
+    out = tmp_path / "o.nrrd"
+    proc = subprocess.Popen([str(VOLWARP), "distance", DATA / "mri_colin27_brain_1mm.nrrd",
+                             "--iso", "40", "-o", out])
+    deadline = time.time() + 60
+    while time.time() < deadline and not any(".part" in n for n in os.listdir(tmp_path)):
+        time.sleep(0.01)
+    proc.kill()
+    proc.wait()
+    stale = [n for n in os.listdir(tmp_path) if ".part" in n]
+    assert stale, "the killed run had no temporary to leave"
+    assert f".vw-{proc.pid}@" in stale[0]  # says whose it is
+    host = stale[0].split("@", 1)[1].split(".", 1)[0]
+    alive = tmp_path / f".o.nrrd.vw-{os.getpid()}@{host}.abcdefgh.part.nrrd"
+    other_host = tmp_path / f".o.nrrd.vw-{proc.pid}@elsewhere.abcdefgh.part.nrrd"
+    unrelated = tmp_path / ".o.nrrd.notours.part.nrrd"
+    for p in (alive, other_host, unrelated):
+        p.write_bytes(b"x")
+    code, err, _ = _run(["convert", DATA / "ball_30_uint8.nrrd", "-o", out], os.environ)
+    assert code == 0, err
+    left = set(os.listdir(tmp_path))
+    assert not set(stale) & left
+    assert {alive.name, other_host.name, unrelated.name} <= left

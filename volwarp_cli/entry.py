@@ -1,0 +1,25 @@
+"""The ``volwarp`` command's entry point: the stop handling comes before any import.
+
+Importing numpy, click and the command modules takes about 0.1 s; a SIGINT in
+that time used to print a KeyboardInterrupt traceback and exit -2. The
+handlers of :mod:`volwarp_cli.signals` (standard library only) are installed
+first, so a stop at any moment exits 130 / 143 with one line.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+
+def main() -> int:
+    from . import signals
+
+    signals.install()
+    try:
+        from .cli.main import main as run
+    except signals.Interrupted as exc:  # stopped while the command line was imported
+        sys.stderr.write(f"volwarp: error: {exc}\n")
+        sys.stderr.flush()
+        os._exit(128 + exc.signum)
+    return run()

@@ -1,0 +1,80 @@
+"""DICOM input: a folder of slices, a DICOMDIR, or one (multi-frame) file, read as a Volume.
+
+The world frame is DICOM's patient frame, LPS, so positions and cosines are
+taken as they are. Geometry matches SimpleITK's ``ImageSeriesReader`` (ITK +
+GDCM) wherever ITK is right; the rules, and why:
+
+Finding files
+    A folder is searched recursively; files without the ``DICM`` preamble
+    (README, thumbnails) are skipped, and so are DICOMDIR files (Media Storage
+    Directory). A DICOMDIR given as the path is read with pydicom and only the
+    files its records reference are used. One file without the preamble is
+    read when it is named explicitly and ends in ``.dcm`` (old files).
+
+Candidates (:func:`scan_dicom`)
+    Images are grouped by SeriesInstanceUID, and a series is split where its
+    geometry differs: FrameOfReferenceUID, ImageOrientationPatient, Rows /
+    Columns, PixelSpacing, EchoNumbers; and, when a stack has several images
+    at one position, by TemporalPositionIdentifier or AcquisitionNumber
+    (only then: some scanners give every slice its own AcquisitionNumber).
+    Localizer images (ImageType ``LOCALIZER``) in another orientation than the
+    series' main stack are dropped, and the main stack's ``why`` says so.
+    Every other split part is a candidate of its own with ``why`` saying why.
+    When a path holds several candidates the caller must choose one
+    (``series=`` a SeriesInstanceUID or a 0-based index): volwarp never picks
+    the first silently (:class:`DicomSeriesChoiceError`).
+    Enhanced multi-frame files (and any multi-frame with per-frame functional
+    groups) give one frame record per frame from the per-frame groups
+    (PlanePosition, PlaneOrientation, PixelMeasures, PixelValueTransformation,
+    the shared groups as fallback); different orientations, StackIDs, temporal
+    positions or segments are different candidates. RT Dose frames lie at
+    GridFrameOffsetVector: relative to ImagePositionPatient when the first
+    offset is 0, else absolute positions along the normal (PS3.3 C.8.8.3.2).
+
+Geometry
+    Slices are sorted by their position projected on the slice normal (row
+    cosine x column cosine), never by InstanceNumber or file name. Direction
+    columns are the row cosine (x), the column cosine (y) and the stack
+    direction; the origin is the first sorted slice's ImagePositionPatient.
+    The slice spacing comes from the positions, never from SliceThickness;
+    gaps must agree within max(1e-3 * spacing, 0.01 mm), else a FormatError
+    names the gap (a multiple of the spacing is reported as missing slices),
+    unless ``irregular="resample"``: then the stack is linearly interpolated
+    onto a uniform grid of the smallest gap, along the normal, with a warning.
+    Images at one position: an error, or ``duplicates="first"``/``"last"``
+    keeps the first/last of them in file order (files sorted by path, frames
+    by frame number). One slice: z spacing is SpacingBetweenSlices, else 1
+    (what ITK does: it ignores SliceThickness). A gantry-tilted stack (slice
+    origins moving in-plane along the stack) is by default resampled onto the
+    orthogonal grid that has the normal as third axis, slice by slice in the
+    slice planes (bilinear = trilinear with integer z), out-of-field voxels
+    set to the volume's minimum, with the tilt angle logged; ``keep_shear``
+    returns the exact sheared geometry instead (third direction column the
+    unit vector between successive slice origins, as ITK does).
+
+Values
+    Modality rescale per slice: the output is the stored type when every slope
+    is 1 and intercept 0, else int16 or int32 when every slope and intercept is
+    an integer and the whole stored range (BitsStored, PixelRepresentation)
+    maps into the type, else float32; computed in int64/float64 first. RT Dose
+    is ``stored * DoseGridScaling`` as float32 (SimpleITK leaves it unscaled).
+    Resampled volumes (tilt, irregular) are float32. Colour images are refused.
+
+Meta
+    ``DICOM_<Keyword>`` for Modality, SeriesDescription, PatientPosition,
+    StudyInstanceUID, SeriesInstanceUID, FrameOfReferenceUID, SeriesNumber,
+    (RT Dose) DoseUnits, DoseType, DoseSummationType. Identifying tags
+    (PatientName, PatientID, PatientBirthDate, ...) only with ``keep_phi``.
+
+Pixel data is read once per file, after the header scan, into one
+preallocated array: uncompressed little-endian files straight from disk,
+everything else through pydicom's decoders (gdcm, pylibjpeg-openjpeg,
+pylibjpeg-rle).
+"""
+
+from __future__ import annotations
+
+from ._read import read_dicom
+from ._scan import Candidate, DicomSeriesChoiceError, is_dicom_path, scan_dicom
+
+__all__ = ["Candidate", "DicomSeriesChoiceError", "is_dicom_path", "read_dicom", "scan_dicom"]

@@ -1,0 +1,92 @@
+"""``read_dicom``: choose a candidate, plan its grid, read its pixels, build the Volume."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ...errors import FormatError, VolwarpError
+from ...volume import Volume
+from ..common import ensure_fits_in_memory, make_volume
+from ._geometry import plan_stack, resample
+from ._pixels import output_dtype, read_frames
+from ._scan import META_TAGS, PHI_TAGS, Candidate, DicomSeriesChoiceError, scan_dicom
+
+_LPS = "left-posterior-superior"
+
+
+def choose(candidates: list[Candidate], series, where: str) -> Candidate:
+    """The candidate ``series`` names (SeriesInstanceUID or index), or the only one."""
+    def listing(cands):
+        return "; ".join(c.one_line() for c in cands)
+
+    if series is None:
+        if len(candidates) == 1:
+            return candidates[0]
+        raise DicomSeriesChoiceError(f"{where}: {len(candidates)} candidate volumes, choose one "
+                                     f"with --series UID|INDEX: {listing(candidates)}")
+    if isinstance(series, int) or (isinstance(series, str) and series.strip().isdigit()
+                                   and not any(c.series_uid == series for c in candidates)):
+        i = int(series)
+        if not 0 <= i < len(candidates):
+            raise DicomSeriesChoiceError(f"{where}: --series {i} is outside 0..{len(candidates) - 1}"
+                                         f": {listing(candidates)}")
+        return candidates[i]
+    hits = [c for c in candidates if c.series_uid == str(series).strip()]
+    if not hits:
+        raise DicomSeriesChoiceError(f"{where}: no series {series}: {listing(candidates)}")
+    if len(hits) > 1:
+        raise DicomSeriesChoiceError(f"{where}: series {series} has {len(hits)} candidate "
+                                     f"volumes, choose one by index: {listing(hits)}")
+    return hits[0]
+
+
+def read_dicom(path: str | os.PathLike, *, series: str | int | None = None,
+               irregular: str = "error", duplicates: str = "error", keep_shear: bool = False,
+               keep_phi: bool = False, candidates: list[Candidate] | None = None) -> Volume:
+    """Read one volume from a DICOM folder, DICOMDIR or file (rules: the package docstring).
+
+    ``series``: a SeriesInstanceUID or a 0-based candidate index (required when
+    the path holds several candidates). ``irregular``: ``"error"`` or
+    ``"resample"``; ``duplicates``: ``"error"``, ``"first"`` or ``"last"``.
+    ``candidates``: :func:`scan_dicom` of ``path``, when the caller has it already.
+    """
+    if irregular not in ("error", "resample"):
+        raise VolwarpError(f"irregular must be error or resample, got {irregular!r}")
+    if duplicates not in ("error", "first", "last"):
+        raise VolwarpError(f"duplicates must be error, first or last, got {duplicates!r}")
+    where = str(path)
+    cand = choose(candidates if candidates is not None else scan_dicom(path), series, where)
+    f0 = cand.frames[0]
+    if f0.problem:
+        raise FormatError(f"{f0.file.path}: {f0.problem}")
+    plan = plan_stack(list(cand.frames), where, irregular=irregular, duplicates=duplicates,
+                      keep_shear=keep_shear)
+    rows, cols = f0.file.rows, f0.file.columns
+    dtype = output_dtype(plan.frames)
+    n_in = len(plan.frames)
+    nbytes = n_in * rows * cols * dtype.itemsize
+    if plan.resampled:
+        nbytes += 2 * plan.n_out * rows * cols * 4
+    ensure_fits_in_memory(nbytes, f"{where} ({cols}x{rows}x{plan.n_out} {dtype.name})")
+    data = np.empty((n_in, rows, cols), dtype=dtype)
+    read_frames(plan.frames, dtype, data)
+    if plan.resampled:
+        data = resample(plan, data)
+    meta = _meta(cand, plan, keep_phi)
+    return make_volume(where, data, spacing=plan.spacing, origin=plan.origin,
+                       direction=plan.direction, space=_LPS, file_space=_LPS, meta=meta)
+
+
+def _meta(cand: Candidate, plan, keep_phi: bool) -> dict[str, str]:
+    src = plan.frames[0].file.meta
+    keep = META_TAGS + (PHI_TAGS if keep_phi else ())
+    meta = {f"DICOM_{k}": str(src[k]) for k in keep if k in src}
+    if plan.frames[0].synthetic:
+        meta["DICOM_geometry"] = "none in the file: unit spacing, origin 0"
+    if cand.why:
+        meta["DICOM_candidate"] = cand.why
+    return meta
+
+

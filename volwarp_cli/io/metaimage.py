@@ -1,0 +1,566 @@
+"""MetaImage (``.mha`` attached, ``.mhd`` detached: ITK's format) reading and writing.
+
+Reads 3-D images (and 4-D ones or multi-channel ones, one volume or channel at
+a time) whose header is ``Key = Value`` lines ending with ``ElementDataFile``:
+binary or ASCII samples, either byte order, zlib-compressed data
+(``CompressedData``, with or without ``CompressedDataSize``), ``HeaderSize``
+(``-1``: the samples are the last bytes of the file), and data in the header's
+file (``LOCAL``), in one other file, in a ``LIST`` of files or in files named
+by a printf pattern (``name%03d.raw <min> <max> <step>``).
+
+Geometry is ITK's: ``TransformMatrix`` (synonyms ``Rotation``, ``Orientation``)
+holds the direction *columns* one after the other (its first three numbers are
+the unit vector of index axis i), ``Offset`` (``Origin``, ``Position``) the
+world position of voxel (0, 0, 0) and ``ElementSpacing`` (else ``ElementSize``,
+as ITK falls back) the spacing; all in LPS, volwarp's own frame, so no
+conversion. Field names are case-sensitive, as in MetaIO. ``AnatomicalOrientation``
+is not geometry (ITK ignores it on read): volwarp writes the one ITK would
+compute from the direction (``RAI`` for the identity), and on read keeps a
+file's value in ``meta`` only where it disagrees with that.
+
+``meta``: MetaIO's descriptive fields (``Comment``, ``Name``, ``Modality``, ...)
+are kept as ``MetaImage_<Key>`` and written back; other (user) fields are kept
+under their own name, as ITK puts them in its metadata dictionary, so that they
+survive a trip through NRRD and back. Writes deterministic files, header fields
+in the order ITK writes them, floats exact (``repr``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, VolwarpError
+from ..volume import LPS, Volume, xyz_to_zyx
+from .atomic import atomic_output
+from .common import (
+    check_data_output,
+    check_dtype,
+    ensure_fits_in_memory,
+    make_volume,
+    native,
+    note_input,
+    open_data_file,
+    read_exact,
+    read_gzip_exact,
+    voxel_count,
+    with_byte_order,
+)
+
+#: MetaIO element types -> numpy (MET_LONG is 4 bytes in MetaIO, as ITK reads it)
+_TYPES = {
+    "MET_UCHAR": "uint8", "MET_CHAR": "int8", "MET_USHORT": "uint16", "MET_SHORT": "int16",
+    "MET_UINT": "uint32", "MET_INT": "int32", "MET_ULONG": "uint32", "MET_LONG": "int32",
+    "MET_ULONG_LONG": "uint64", "MET_LONG_LONG": "int64", "MET_FLOAT": "float32",
+    "MET_DOUBLE": "float64",
+}
+_WRITE_TYPES = {"uint8": "MET_UCHAR", "int8": "MET_CHAR", "uint16": "MET_USHORT",
+                "int16": "MET_SHORT", "uint32": "MET_UINT", "int32": "MET_INT",
+                "float32": "MET_FLOAT", "float64": "MET_DOUBLE"}
+#: header names that mean the same field (the last one in the file wins, as in ITK)
+_SYNONYMS = {"Origin": "Offset", "Position": "Offset", "Rotation": "TransformMatrix",
+             "Orientation": "TransformMatrix", "ElementByteOrderMSB": "BinaryDataByteOrderMSB"}
+#: fields that describe the layout or geometry: read here, written by volwarp itself
+_STRUCTURE = frozenset((
+    "ObjectType", "NDims", "BinaryData", "BinaryDataByteOrderMSB", "ElementByteOrderMSB",
+    "CompressedData", "CompressedDataSize", "TransformMatrix", "Rotation", "Orientation",
+    "Offset", "Origin", "Position", "CenterOfRotation", "AnatomicalOrientation",
+    "ElementSpacing", "ElementSize", "DimSize", "ElementType", "ElementDataFile",
+    "HeaderSize", "ElementNumberOfChannels"))
+#: MetaIO's descriptive fields, kept in meta as MetaImage_<Key>
+_DESCRIPTIVE = frozenset((
+    "Comment", "ObjectSubType", "TransformType", "Name", "ID", "ParentID", "Color",
+    "Modality", "SequenceID", "ElementMin", "ElementMax", "DistanceUnits", "AcquisitionDate"))
+PREFIX = "MetaImage_"
+_MAX_HEADER_LINES = 100_000
+_TRUE = ("true", "1")
+_FALSE = ("false", "0")
+
+
+_FIRST_LINE = re.compile(rb"\s*[A-Za-z_][A-Za-z0-9_]*[ \t]*=")
+
+
+def looks_like_metaimage(head: bytes) -> bool:
+    """True when ``head`` (a file's first bytes) starts with a ``Key = Value`` line.
+
+    The content check for ``.mha``/``.mhd``: ITK writes ``ObjectType = Image``
+    first, other writers may begin with ``NDims =`` or ``Comment =``.
+    """
+    return bool(_FIRST_LINE.match(head))
+
+
+# -- header ---------------------------------------------------------------------
+
+def _referenced_data_files(header_path: Path) -> list[str]:
+    """The data file an existing ``.mhd`` names (a single file; none for LOCAL, LIST or a
+    pattern, which volwarp does not write)."""
+    with open(header_path, "rb") as fh:
+        value = dict(read_header(fh, str(header_path))).get("ElementDataFile", "")
+    return [] if value in ("LOCAL", "Local", "local") or "%" in value or value.startswith(
+        "LIST") else [value]
+
+
+def read_header(fh, where: str) -> list[tuple[str, str]]:
+    """Parse the ``Key = Value`` lines of a MetaImage header, up to ``ElementDataFile``.
+
+    Returns the (key, value) pairs in file order; ``fh`` is left at the first
+    byte after the ``ElementDataFile`` line.
+    """
+    pairs: list[tuple[str, str]] = []
+    for _ in range(_MAX_HEADER_LINES):
+        raw = fh.readline(1 << 20)
+        if not raw:
+            break
+        line = raw.decode("latin-1").rstrip("\r\n")
+        if not line.strip():
+            continue
+        if "=" not in line:
+            shown = line if len(line) <= 80 else line[:77] + "..."
+            if not pairs:
+                raise FormatError(f"{where}: not a MetaImage file (first line {shown!r} is "
+                                  "not 'Key = Value')")
+            raise FormatError(f"{where}: malformed header line {shown!r} (expected "
+                              "'Key = Value')")
+        key, value = line.split("=", 1)
+        key, value = key.strip(), value.strip()
+        if not key:
+            raise FormatError(f"{where}: header line {line[:80]!r} has no key")
+        pairs.append((key, value))
+        if key == "ElementDataFile":
+            return pairs
+    raise FormatError(f"{where}: header has no 'ElementDataFile' field (it must be the "
+                      "last field of the header)")
+
+
+def _numbers(fields, key: str, n: int, where: str, kind=float) -> list | None:
+    """``n`` numbers of field ``key`` (None when absent); FormatError naming it otherwise."""
+    if key not in fields:
+        return None
+    name, value = fields[key]
+    parts = value.split()
+    try:
+        vals = [kind(p) for p in parts]
+    except ValueError:
+        what = "whole numbers" if kind is int else "numbers"
+        raise FormatError(f"{where}: {name}: {value!r} is not {n} {what}") from None
+    if len(vals) != n:
+        raise FormatError(f"{where}: {name}: expected {n} values, got {len(vals)} "
+                          f"({value!r})")
+    if kind is float and not all(np.isfinite(vals)):
+        raise FormatError(f"{where}: {name}: values must be finite, got {value!r}")
+    return vals
+
+
+def _bool(fields, key: str, default: bool, where: str) -> bool:
+    if key not in fields:
+        return default
+    name, value = fields[key]
+    low = value.lower()
+    if low in _TRUE:
+        return True
+    if low in _FALSE:
+        return False
+    raise FormatError(f"{where}: {name}: {value!r} is not True or False")
+
+
+def _int(fields, key: str, default: int, where: str) -> int:
+    vals = _numbers(fields, key, 1, where, int)
+    return default if vals is None else vals[0]
+
+
+# -- reading ------------------------------------------------------------------------
+
+def read_metaimage(path: str | os.PathLike, volume_index: int | None = None) -> Volume:
+    """Read a 3-D MetaImage volume (``.mha`` or ``.mhd``).
+
+    A 4-D file (several volumes along the 4th axis) or a file with several
+    channels per voxel (``ElementNumberOfChannels``) reads one volume or
+    channel, chosen by ``volume_index``; a 4-D file with one volume, or a
+    single-channel file, reads without it.
+    """
+    path = Path(path)
+    where = str(path)
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise FormatError(f"{where}: cannot open ({exc.strerror})") from None
+    note_input(fh)  # a detached header's data file may then be rewritten with it
+    with fh:
+        pairs = read_header(fh, where)
+        fields: dict[str, tuple[str, str]] = {}  # canonical key -> (name in file, value)
+        for key, value in pairs:
+            fields[_SYNONYMS.get(key, key)] = (key, value)
+        for req in ("NDims", "DimSize", "ElementType"):
+            if req not in fields:
+                raise FormatError(f"{where}: header has no '{req}' field")
+        if "ObjectType" in fields and fields["ObjectType"][1] != "Image":
+            raise FormatError(f"{where}: ObjectType is {fields['ObjectType'][1]!r}; volwarp "
+                              "reads MetaImage files of ObjectType Image")
+        ndims = _int(fields, "NDims", 0, where)
+        if ndims not in (3, 4):
+            raise FormatError(f"{where}: volwarp reads 3-D volumes (or 4-D ones, one volume "
+                              f"at a time); this file has NDims {ndims}")
+        sizes = _numbers(fields, "DimSize", ndims, where, int)
+        if any(s <= 0 for s in sizes):
+            raise FormatError(f"{where}: DimSize must be positive, got {fields['DimSize'][1]!r}")
+        channels = _int(fields, "ElementNumberOfChannels", 1, where)
+        if channels < 1:
+            raise FormatError(f"{where}: ElementNumberOfChannels must be at least 1, "
+                              f"got {channels}")
+        type_name = fields["ElementType"][1]
+        if type_name not in _TYPES:
+            raise FormatError(f"{where}: ElementType: unknown type {type_name!r} (volwarp "
+                              f"reads {', '.join(_WRITE_TYPES.values())})")
+        dtype = check_dtype(_TYPES[type_name], f"{where}: ElementType {type_name}")
+        select = _selection(where, ndims, sizes, channels, volume_index)
+        spacing, origin, direction = _geometry(fields, ndims, where)
+        binary = _bool(fields, "BinaryData", True, where)
+        msb = _bool(fields, "BinaryDataByteOrderMSB", False, where)
+        compressed = _bool(fields, "CompressedData", False, where)
+        comp_size = _int(fields, "CompressedDataSize", -1, where) if compressed else -1
+        header_size = _int(fields, "HeaderSize", 0, where)
+        if header_size < -1:
+            raise FormatError(f"{where}: HeaderSize must be -1 (data at the end of the file) "
+                              f"or at least 0, got {header_size}")
+        file_dtype = dtype.newbyteorder(">" if msb else "<")
+        count = voxel_count(sizes) * channels
+        nbytes = count * dtype.itemsize
+        ensure_fits_in_memory(nbytes, f"{where} ({'x'.join(map(str, sizes))} {dtype.name})")
+        layout = _Layout(file_dtype, binary, compressed, comp_size, header_size)
+        spec = fields["ElementDataFile"][1]
+        if spec in ("LOCAL", "Local", "local"):
+            data = _read_piece(fh, layout, count, where, local=True)
+        else:
+            files = _data_files(spec, path, fh, where, sizes)
+            per_file = count // len(files)
+            chunks = []
+            for f in files:
+                with open_data_file(path, f, where) as dfh:
+                    chunks.append(_read_piece(dfh, layout, per_file, str(f), local=False))
+            data = np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
+    shape = xyz_to_zyx(sizes) + ((channels,) if channels > 1 else ())
+    data = data.reshape(shape)
+    for axis, index in select:
+        data = np.take(data, index, axis=axis)
+    data = native(np.ascontiguousarray(data))
+    meta = _meta(pairs, direction)
+    return make_volume(where, data, spacing=spacing, origin=origin, direction=direction,
+                       space=LPS, file_space=LPS, meta=meta)
+
+
+def _selection(where, ndims, sizes, channels, index) -> list[tuple[int, int]]:
+    """(array axis, index) pairs, last axis first, that take one volume or channel.
+
+    The samples are shaped ``[t, z, y, x, c]`` (``t`` for 4-D files, ``c`` for
+    several channels); the result leaves ``[z, y, x]``.
+    """
+    n_vol = sizes[3] if ndims == 4 else 1
+    if n_vol > 1 and channels > 1:
+        raise FormatError(f"{where}: has {n_vol} volumes of {channels} channels per voxel; "
+                          "volwarp reads files with one of the two")
+    n, what = (channels, "component") if channels > 1 else (n_vol, "volume")
+    if n == 1 and index not in (None, 0):
+        raise FormatError(f"{where}: --volume-index {index} given, but the file has one "
+                          "volume of one component")
+    if n > 1 and index is None:
+        noun = "components per voxel" if what == "component" else "volumes"
+        raise FormatError(f"{where}: has {n} {noun}; select one with --volume-index "
+                          f"0..{n - 1}")
+    if n > 1 and not 0 <= index < n:
+        raise FormatError(f"{where}: --volume-index {index} is out of range: the file has "
+                          f"{n} {what}s")
+    steps = []
+    if channels > 1:
+        steps.append((ndims, index))
+    if ndims == 4:
+        steps.append((0, index if n_vol > 1 else 0))
+    return steps
+
+
+def _geometry(fields, ndims: int, where: str):
+    """(spacing, origin, direction) in (x, y, z) from the header (ITK's defaults)."""
+    spacing = _numbers(fields, "ElementSpacing", ndims, where)
+    if spacing is None:
+        spacing = _numbers(fields, "ElementSize", ndims, where)
+    spacing = np.ones(3) if spacing is None else np.array(spacing[:3])
+    if np.any(spacing <= 0):
+        key = "ElementSpacing" if "ElementSpacing" in fields else "ElementSize"
+        raise FormatError(f"{where}: {key} must be positive, got {fields[key][1]!r}")
+    origin = _numbers(fields, "Offset", ndims, where)
+    origin = np.zeros(3) if origin is None else np.array(origin[:3])
+    matrix = _numbers(fields, "TransformMatrix", ndims * ndims, where)
+    if matrix is None:
+        direction = np.eye(3)
+    else:
+        # axis i's unit vector is numbers [i*n, i*n + n): rows of the reshape, columns here
+        direction = np.array(matrix).reshape(ndims, ndims).T[:3, :3].copy()
+        if abs(np.linalg.det(direction)) < 1e-9:
+            raise FormatError(f"{where}: {fields['TransformMatrix'][0]}: the direction "
+                              "matrix is singular")
+    return spacing, origin, direction
+
+
+class _Layout:
+    def __init__(self, file_dtype, binary, compressed, comp_size, header_size):
+        self.file_dtype = file_dtype
+        self.binary = binary
+        self.compressed = compressed
+        self.comp_size = comp_size
+        self.header_size = header_size
+
+
+def _read_piece(fh, layout: _Layout, count: int, where: str, *, local: bool) -> np.ndarray:
+    """``count`` samples from ``fh`` (positioned after the header when ``local``)."""
+    nbytes = count * layout.file_dtype.itemsize
+    size = os.fstat(fh.fileno()).st_size
+    start = fh.tell() if local else 0
+    if layout.header_size > 0:
+        start = layout.header_size  # from the start of the file, also for LOCAL (as ITK)
+    if not layout.binary:
+        from .nrrd import _ascii_values
+
+        fh.seek(start)
+        return _ascii_values(fh.read().decode("latin-1"), layout.file_dtype.newbyteorder("="),
+                             count, where)
+    if layout.compressed:
+        have = size - start
+        if layout.comp_size >= 0:
+            if layout.header_size == -1:
+                start, have = size - layout.comp_size, layout.comp_size
+            if have < layout.comp_size or start < 0:
+                raise FormatError(f"{where}: compressed data is truncated: CompressedDataSize "
+                                  f"is {layout.comp_size} bytes, found {max(have, 0)}")
+            if have > layout.comp_size:
+                raise FormatError(f"{where}: file has {have} bytes of compressed data, "
+                                  f"CompressedDataSize is {layout.comp_size}")
+        fh.seek(start)
+        return np.frombuffer(read_gzip_exact(fh, nbytes, where), dtype=layout.file_dtype)
+    if layout.header_size == -1:
+        start = size - nbytes
+    have = size - start
+    if have < nbytes or start < 0:
+        raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of samples, "
+                          f"found {max(have if start >= 0 else size, 0)}")
+    if have > nbytes:
+        raise FormatError(f"{where}: file has {have} bytes of samples, expected {nbytes} "
+                          "(wrong DimSize or ElementType in the header?)")
+    fh.seek(start)
+    return np.frombuffer(read_exact(fh, nbytes, where), dtype=layout.file_dtype)
+
+
+def _data_files(spec: str, header_path: Path, fh, where: str, sizes: list[int]) -> list[Path]:
+    """The files that hold the data, for ``ElementDataFile`` = a name, LIST or a pattern.
+
+    ``LIST [<dim>]``: the names follow, one a line; each file holds a
+    ``<dim>``-D piece (default: all axes but the slowest), so there must be one
+    name per piece. ``<pattern> <min> <max> <step>``: one file per index of the
+    slowest axis, named by ``pattern % i`` (MetaIO's form ``<pattern>`` alone
+    counts from 1, ``<pattern> <min>`` from min). Relative names are relative
+    to the header's folder.
+    """
+    base = header_path.parent
+    ndims = len(sizes)
+    parts = spec.split()
+    if parts[:1] == ["LIST"]:
+        fdim = ndims - 1
+        if len(parts) > 1:
+            m = re.fullmatch(r"(\d+)[dD]?", parts[1])
+            if not m or len(parts) > 2:
+                raise FormatError(f"{where}: ElementDataFile: LIST takes one optional "
+                                  f"dimension (like 2 or 2D), got {spec!r}")
+            fdim = int(m.group(1))
+            if fdim == 0 or fdim > ndims:  # MetaIO's default for these
+                fdim = ndims - 1
+        n = voxel_count(sizes[fdim:])
+        names = []
+        for raw in fh:
+            name = raw.decode("latin-1").strip()
+            if not name:
+                continue
+            if len(names) == n:
+                raise FormatError(f"{where}: ElementDataFile LIST names more than the {n} "
+                                  f"file{'s' if n > 1 else ''} DimSize {' '.join(map(str, sizes))}"
+                                  f" in {fdim}-D pieces needs")
+            names.append(base / name)
+        if len(names) != n:
+            raise FormatError(f"{where}: ElementDataFile LIST names {len(names)} "
+                              f"file{'s' if len(names) != 1 else ''}, but DimSize "
+                              f"{' '.join(map(str, sizes))} in {fdim}-D pieces needs {n}")
+        return names
+    if "%" in spec:
+        slow = sizes[-1]
+        words = parts
+        if len(words) >= 4:
+            fmt, nums = " ".join(words[:-3]), words[-3:]
+        elif len(words) == 3:
+            raise FormatError(f"{where}: ElementDataFile pattern needs <min> <max> <step>, "
+                              f"got {spec!r}")
+        else:
+            fmt, nums = words[0], words[1:]
+        try:
+            vals = [int(v) for v in nums]
+        except ValueError:
+            raise FormatError(f"{where}: ElementDataFile pattern needs whole numbers <min> "
+                              f"<max> <step> after {fmt!r}, got {' '.join(nums)!r}") from None
+        if len(vals) == 3:
+            lo, hi, step = vals
+        else:
+            lo = vals[0] if vals else 1
+            hi, step = lo + slow - 1, 1
+        if step == 0:
+            raise FormatError(f"{where}: ElementDataFile pattern has step 0")
+        if (hi - lo) * step < 0:
+            raise FormatError(f"{where}: ElementDataFile pattern: max {hi} is not reached "
+                              f"from min {lo} by step {step}")
+        n = (hi - lo) // step + 1
+        if n != slow:
+            raise FormatError(f"{where}: ElementDataFile pattern names {n} "
+                              f"file{'s' if n != 1 else ''} ({lo}..{hi} step {step}), but "
+                              f"the slowest axis of DimSize has {slow} slices")
+        try:
+            return [base / (fmt % i) for i in range(lo, lo + n * step, step)]
+        except (TypeError, ValueError) as exc:
+            raise FormatError(f"{where}: ElementDataFile pattern {fmt!r} is not a file name "
+                              f"with one %d ({exc})") from None
+    return [base / spec]
+
+
+def _meta(pairs, direction) -> dict[str, str]:
+    """The header's non-geometry key/values, as volwarp keeps them (see module doc)."""
+    meta: dict[str, str] = {}
+    for key, value in pairs:
+        if key in _DESCRIPTIVE:
+            meta[PREFIX + key] = value
+        elif key == "CenterOfRotation":
+            try:
+                zero = all(float(v) == 0 for v in value.split())
+            except ValueError:
+                zero = False
+            if not zero:  # only a non-default one carries information
+                meta[PREFIX + key] = value
+        elif key == "AnatomicalOrientation":
+            if value.upper() != anatomical_orientation(direction):
+                meta[PREFIX + key] = value
+        elif key not in _STRUCTURE:
+            meta[key] = value
+    return meta
+
+
+# -- writing ------------------------------------------------------------------------
+
+_LETTERS = (("R", "L"), ("A", "P"), ("I", "S"))
+
+
+def anatomical_orientation(direction) -> str:
+    """The ``AnatomicalOrientation`` ITK writes for ``direction`` (LPS; ``RAI`` = identity).
+
+    As ITK's AnatomicalOrientation: repeatedly take the largest remaining
+    ``|direction[row, col]|`` (ties: the last in row-major order), give index
+    axis ``col`` world axis ``row``, and drop that row and column. The letter
+    is the side the axis comes *from* (ITK's convention): x R/L, y A/P, z I/S
+    for a positive/negative component.
+    """
+    d = np.asarray(direction, dtype=np.float64)
+    cand = [(abs(d[r, c]), r, c) for r in range(3) for c in range(3)]
+    terms = ["?"] * 3
+    for _ in range(3):
+        _, r, c = max(cand)
+        terms[c] = _LETTERS[r][0 if d[r, c] > 0 else 1]
+        cand = [x for x in cand if x[1] != r and x[2] != c]
+    return "".join(terms)
+
+
+def _fmt(x: float) -> str:
+    text = repr(float(x))
+    return text[:-2] if text.endswith(".0") else text
+
+
+def _nums(values) -> str:
+    return " ".join(_fmt(v) for v in values)
+
+
+def _user_fields(meta: dict) -> list[tuple[str, str]]:
+    """The meta key/values written to the header (sorted, as ITK writes its dictionary)."""
+    out = {}
+    for key, value in meta.items():
+        key = str(key)
+        name = key[len(PREFIX):] if key.startswith(PREFIX) else key
+        if (not name or name in _STRUCTURE or "=" in name or name != name.strip()
+                or any(ch in name for ch in "\r\n")):
+            continue  # written by volwarp itself, or not a header key
+        out[name] = str(value).replace("\r", " ").replace("\n", " ").strip()
+    return sorted(out.items())
+
+
+def metaimage_header(vol: Volume, dtype: np.dtype, *, byte_order: str, data_file: str,
+                     compressed_size: int | None = None) -> bytes:
+    """The header text of ``vol`` as volwarp writes it (deterministic)."""
+    center = str(vol.meta.get(PREFIX + "CenterOfRotation", "0 0 0"))
+    try:
+        center_vals = [float(v) for v in center.split()]
+        center = _nums(center_vals) if len(center_vals) == 3 else "0 0 0"
+    except ValueError:
+        center = "0 0 0"
+    lines = [
+        "ObjectType = Image",
+        "NDims = 3",
+        "BinaryData = True",
+        f"BinaryDataByteOrderMSB = {byte_order == 'big'}",
+        f"CompressedData = {compressed_size is not None}",
+    ]
+    if compressed_size is not None:
+        lines.append(f"CompressedDataSize = {compressed_size}")
+    lines += [
+        "TransformMatrix = " + _nums(vol.direction.T.ravel()),  # column after column
+        "Offset = " + _nums(vol.origin),
+        f"CenterOfRotation = {center}",
+        f"AnatomicalOrientation = {anatomical_orientation(vol.direction)}",
+        "ElementSpacing = " + _nums(vol.spacing),
+    ]
+    lines += [f"{k} = {v}" for k, v in _user_fields(vol.meta)]
+    lines += [
+        "DimSize = " + " ".join(str(n) for n in vol.shape_xyz),
+        f"ElementType = {_WRITE_TYPES[dtype.name]}",
+        f"ElementDataFile = {data_file}",
+    ]
+    return ("\n".join(lines) + "\n").encode("latin-1", errors="replace")
+
+
+def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
+                    byte_order: str = "little", level: int = 1) -> None:
+    """Write ``vol`` as MetaImage: ``.mhd`` writes a header plus ``.raw`` (``.zraw``
+    when compressed, as ITK names it) next to it, any other name one ``.mha``.
+
+    Compressed data is one zlib stream (as MetaIO writes it), ``level`` 1..9.
+    """
+    path = Path(path)
+    dtype = check_dtype(vol.data.dtype, str(path))
+    payload = memoryview(with_byte_order(vol.data, byte_order)).cast("B")
+    if compress:
+        payload = zlib.compress(payload, level)
+    size = len(payload) if compress else None
+    if path.suffix.lower() == ".mhd":
+        data_path = path.with_suffix(".zraw" if compress else ".raw")
+        name = data_path.name
+        if "%" in name or name.split()[:1] == ["LIST"] or name.lower() == "local" or (
+                name != name.strip()):
+            raise VolwarpError(f"{path}: a MetaImage data file cannot be named {name!r} "
+                               "(it would read as a LIST, a pattern or LOCAL)")
+        header = metaimage_header(vol, dtype, byte_order=byte_order, data_file=name,
+                                  compressed_size=size)
+        check_data_output(data_path, path, _referenced_data_files)
+        with atomic_output(data_path) as tmp_data, atomic_output(path) as tmp_header:
+            with open(tmp_data, "wb") as fh:
+                fh.write(payload)
+            tmp_header.write_bytes(header)
+        return
+    header = metaimage_header(vol, dtype, byte_order=byte_order, data_file="LOCAL",
+                              compressed_size=size)
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(header)
+            fh.write(payload)

@@ -1,0 +1,119 @@
+"""Stopping on SIGINT / SIGTERM: the stop is recorded, raised, and checked again.
+
+A cron job or Make that kills a run must be able to rely on exit 130 / 143
+and on its old outputs. Raising from the handler alone is not enough: a
+library's ``except Exception`` (nibabel's optional imports, a reader's
+catch-all turning any failure into "file damaged") or a callback from C
+(llvmlite's, through ctypes) can swallow the exception, and the run would go
+on to rename its output into place and exit 0. So the handler
+
+1. records the first signal (:func:`stop_requested`),
+2. removes every temporary output still open (:data:`temporaries`),
+3. raises :class:`Interrupted`, a ``BaseException`` (as ``KeyboardInterrupt``
+   is) so that ``except Exception`` does not catch it,
+
+and the safe points check the record again: :func:`check_stop` before every
+rename of an output (``atomic_output``), and the command line's exit, which
+turns any run during which a stop was asked into 128 + N, whatever the
+command's own result.
+
+This module imports nothing but the standard library, so the command line
+installs it before numpy, click or any volwarp module is imported.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import sys
+
+#: paths of temporary outputs not yet renamed into place (removed on a stop)
+temporaries: set[str] = set()
+_stop: list[int] = []  # the first stop's signal number, once one is asked
+
+
+class Interrupted(BaseException):
+    """Raised inside the work when SIGINT or SIGTERM arrives (or at a later safe point)."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        super().__init__(f"interrupted by {signal.Signals(signum).name}")
+
+
+def _on_signal(signum, frame):  # pragma: no cover - exercised in subprocess tests
+    if not _stop:
+        _stop.append(signum)
+    # Temporaries first: if the raise below is swallowed somewhere, the promise
+    # "no stray temporary file" still holds, and the rename will find none.
+    for tmp in list(temporaries):
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+    temporaries.clear()
+    _raise_when_safe(frame)
+
+
+#: how soon a stop deferred by an import is looked at again (seconds)
+_RECHECK = 0.02
+
+
+def _raise_when_safe(frame) -> None:
+    """Raise :class:`Interrupted` now, or, inside an import, as soon as it is over.
+
+    An exception raised while an extension module initialises (VTK's
+    ``vtkCommonCore``) crashed the process with SIGSEGV in about one run in
+    ten stopped there; a timer looks again every few milliseconds instead.
+    """
+    if _importing(frame):
+        signal.signal(signal.SIGALRM, lambda s, f: _raise_when_safe(f))
+        signal.setitimer(signal.ITIMER_REAL, _RECHECK)
+        return
+    raise Interrupted(_stop[0])
+
+
+def _importing(frame) -> bool:
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib._bootstrap"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _unraisable(hook):
+    """An unraisable-exception hook that stays quiet about a stop.
+
+    An exception raised in a ctypes callback (numba's compiler calls back into
+    Python) cannot propagate: Python prints it as "Exception ignored in ..." with
+    a traceback. A stop is recorded anyway, so it needs no such report.
+    """
+    def quiet(info):
+        if isinstance(info.exc_value, Interrupted):
+            return
+        hook(info)
+    return quiet
+
+
+def install() -> None:
+    """Handle SIGINT and SIGTERM as described above (main thread only)."""
+    signal.signal(signal.SIGTERM, _on_signal)
+    signal.signal(signal.SIGINT, _on_signal)
+    if not getattr(sys.unraisablehook, "_volwarp", False):
+        hook = _unraisable(sys.unraisablehook)
+        hook._volwarp = True
+        sys.unraisablehook = hook
+
+
+def stop_requested() -> int | None:
+    """The signal number of the stop asked so far, or None."""
+    return _stop[0] if _stop else None
+
+
+def check_stop() -> None:
+    """Raise :class:`Interrupted` if a stop was asked (a safe point: before a rename)."""
+    if _stop:
+        raise Interrupted(_stop[0])
+
+
+def reset() -> None:
+    """Forget a recorded stop (for in-process callers such as tests)."""
+    _stop.clear()
