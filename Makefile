@@ -19,8 +19,8 @@ BYTECODE = $(BIN)/python -m compileall -q volwarp_cli && $(BIN)/python -c \
 
 install: $(STAMP)
 
-# the compiled warp kernels are built by the install: rebuild when they change
-$(STAMP): pyproject.toml volwarp_cli/bspline/_warpkernels.c
+# the compiled warp kernels and the SIGBUS guard are built by the install: rebuild when they change
+$(STAMP): pyproject.toml volwarp_cli/bspline/_warpkernels.c volwarp_cli/io/_mapguard.c
 	@$(MAKE) --no-print-directory system-deps
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip

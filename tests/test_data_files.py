@@ -4,6 +4,7 @@ never replaces an input or a file the user did not name (issue: hostile test run
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -114,3 +115,79 @@ def test_a_detached_output_replaces_only_its_own_earlier_data_file(run, data_dir
     assert run("convert", src, "-o", out).code == 0  # a rerun replaces its own pair
     assert (tmp_path / data_name).read_bytes() == first
     np.testing.assert_array_equal(read_volume(out).data, read_volume(src).data)
+
+
+def _big_nrrd(path, n=192):
+    rng = np.random.default_rng(1)
+    data = rng.random((n, n, n), dtype=np.float32)
+    header = (f"NRRD0004\ntype: float\ndimension: 3\nsizes: {n} {n} {n}\nendian: little\n"
+              "encoding: raw\n\n").encode()
+    path.write_bytes(header + data.tobytes())
+    return len(header)
+
+
+@pytest.mark.slow
+def test_an_input_truncated_while_a_warp_maps_it_fails_cleanly(tmp_path):
+    """`cp new.nrrd in.nrrd` while a warp maps in.nrrd used to kill it with SIGBUS, no
+    message, its 70 MB temporary left behind. Now: one line, exit 1, nothing left."""
+    import subprocess
+    import sys
+    import time
+
+    volwarp = Path(sys.executable).parent / "volwarp"
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\ncapture: {lattice: 7, oversample: 1}\nsteps:\n"
+                    "  - move:\n      - {index: [3, 3, 3], by: [5.0, 0.0, 0.0]}\n")
+    src, out = tmp_path / "in.nrrd", tmp_path / "out.nrrd"
+    header = _big_nrrd(src)
+    start = time.perf_counter()
+    done = subprocess.run([str(volwarp), "warp", str(src), "--spec", str(spec), "-o", str(out)],
+                          capture_output=True, text=True)
+    length = time.perf_counter() - start
+    assert done.returncode == 0, done.stderr
+    outcomes = set()
+    for delay in np.linspace(0.15, length * 0.9, 6):
+        header = _big_nrrd(src)
+        out.write_bytes(b"old output")
+        proc = subprocess.Popen([str(volwarp), "warp", str(src), "--spec", str(spec), "-o",
+                                 str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True)
+        time.sleep(float(delay))
+        os.truncate(src, header + 1000)  # what `cp` does first
+        _, err = proc.communicate(timeout=120)
+        if proc.returncode == 0:  # it had finished before the truncation
+            outcomes.add("finished")
+            continue
+        lines = err.strip().splitlines()
+        assert proc.returncode == 1 and len(lines) == 1, (delay, proc.returncode, err)
+        assert "in.nrrd" in lines[0] and ("truncated" in lines[0] or "changed" in lines[0])
+        assert out.read_bytes() == b"old output"
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["in.nrrd", "out.nrrd", "w.yaml"]
+        outcomes.add(lines[0].split(": ", 2)[-1][:30])
+    print(outcomes)
+    assert len(outcomes - {"finished"}) >= 1, outcomes
+
+
+def test_an_input_rewritten_in_place_while_mapped_is_not_used(tmp_path):
+    """The same size rewritten in place (no fault, but a mix of two files): refused at the
+    output's rename."""
+    from volwarp_cli.io import write_volume
+
+    from volwarp_cli.io import mapped
+
+    src = tmp_path / "in.nrrd"
+    _big_nrrd(src, n=16)
+    vol = read_volume(src, mmap=True)
+    try:
+        with open(src, "r+b") as fh:  # rewrite a sample in place, as `cp` onto it would
+            fh.seek(-4, os.SEEK_END)
+            fh.write(b"\0\0\0\0")
+        st = os.stat(src)
+        os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+        out = tmp_path / "out.nrrd"
+        with pytest.raises(FormatError,
+                           match=r"in\.nrrd: the file changed while it was being read"):
+            write_volume(vol, out)
+        assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["in.nrrd"]
+    finally:
+        mapped._mapped.clear()  # this process goes on with other tests

@@ -69,7 +69,7 @@ def test_a_stop_at_any_moment_keeps_the_old_output(tmp_path, name, signum):
         # from 0.25 s: before that the interpreter may still be starting (site, the
         # editable install's finder), where a Ctrl-C is Python's own KeyboardInterrupt,
         # before any volwarp code runs (SIGTERM there kills the process cleanly: -15)
-        delays = np.linspace(0.25, max(length * 1.05, 0.3), 3 if name in ("info", "mesh")
+        delays = np.linspace(0.25, max(length * 0.9, 0.3), 3 if name in ("info", "mesh")
                              else 5)
     else:
         delays = np.concatenate([[0.03, 0.08, 0.15], np.linspace(0.2, length * 1.05, 5)])
@@ -94,7 +94,7 @@ def test_a_stop_at_any_moment_keeps_the_old_output(tmp_path, name, signum):
             # the old output, or (a stop landing after the output's rename, in the last
             # moments of the run) the complete new one: never anything else
             assert out.read_bytes() in (OLD, reference), (delay, "output damaged")
-    assert seen["stopped"] >= 2, seen  # the sweep really stopped runs
+    assert seen["stopped"] >= (2 if signum == signal.SIGTERM else 1), seen  # not vacuous
 
 
 def test_stale_temporaries_of_dead_processes_are_removed_and_others_kept(tmp_path):

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from ..errors import VolwarpError
 from ..signals import Interrupted, check_stop, install, temporaries
+from .mapped import check_unchanged, sync_temporaries
 
 __all__ = ["Interrupted", "atomic_output", "check_output_path", "install_signal_handlers",
            "write_bytes_atomic"]
@@ -59,6 +60,7 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None):
                                dir=path.parent)
     os.close(fd)
     _live_temporaries.add(tmp)
+    sync_temporaries()
     try:
         yield Path(tmp)
         # Files are created 0600 by mkstemp; give the output the usual mode.
@@ -66,6 +68,7 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None):
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
+        check_unchanged()  # an input mapped for this output changed meanwhile: no rename
         os.replace(tmp, path)
     except BaseException as exc:
         with contextlib.suppress(OSError):
@@ -76,6 +79,7 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None):
         raise
     finally:
         _live_temporaries.discard(tmp)
+        sync_temporaries()
 
 
 def _host() -> str:

@@ -269,3 +269,56 @@ def check_data_output(data_path: Path, header_path: Path, referenced) -> None:
                            "earlier output's (no header of that name refers to it): volwarp "
                            "does not replace a file -o does not name; remove it or choose "
                            "another name")
+
+
+# -- ascii samples (NRRD and MetaImage) ----------------------------------------------
+
+def ascii_values(text: str, dtype: np.dtype, count: int, where: str) -> np.ndarray:
+    """Parse ASCII samples into ``dtype``, refusing values the type cannot hold.
+
+    An integer type takes only finite, whole numbers within its range (no
+    silent wrap-around, truncation or NaN-to-0). A float type keeps NaN and
+    infinities as data, as the binary encodings do, but refuses a finite value
+    too large for it (which would become infinity).
+    """
+    tokens = text.replace(",", " ").split()
+    try:
+        values = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        bad = next((i, t) for i, t in enumerate(tokens) if not is_number(t))
+        raise FormatError(f"{where}: ascii data value {bad[1][:40]!r} (sample {bad[0]}) is "
+                          "not a number") from None
+    if values.size != count:
+        raise FormatError(f"{where}: ascii data has {values.size} values, expected {count}")
+    if dtype.kind in "iu":
+        info = np.iinfo(dtype)
+        with np.errstate(invalid="ignore"):
+            bad = ~np.isfinite(values) | (values != np.floor(values)) | (values < info.min) | (
+                values > info.max)
+        if bad.any():
+            i = int(np.argmax(bad))
+            v = values[i]
+            why = ("is not a number" if np.isnan(v) else
+                   "is infinite" if not np.isfinite(v) else
+                   "is not a whole number" if v != np.floor(v) else
+                   "is out of range")
+            raise FormatError(f"{where}: ascii data value {tokens[i][:40]!r} (sample {i}) "
+                              f"{why}: type {dtype.name} holds whole numbers "
+                              f"{info.min}..{info.max}")
+        return values.astype(dtype)
+    with np.errstate(over="ignore"):
+        out = values.astype(dtype)
+    big = np.isinf(out) & np.isfinite(values)  # finite in the file, too large for the type
+    if big.any():
+        i = int(np.argmax(big))
+        raise FormatError(f"{where}: ascii data value {tokens[i][:40]!r} (sample {i}) is "
+                          f"outside the range of {dtype.name}")
+    return out
+
+
+def is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True

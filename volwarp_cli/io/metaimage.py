@@ -38,6 +38,7 @@ from ..errors import FormatError, VolwarpError
 from ..volume import LPS, Volume, xyz_to_zyx
 from .atomic import atomic_output
 from .common import (
+    ascii_values,
     check_data_output,
     check_dtype,
     ensure_fits_in_memory,
@@ -321,10 +322,8 @@ def _read_piece(fh, layout: _Layout, count: int, where: str, *, local: bool) -> 
     if layout.header_size > 0:
         start = layout.header_size  # from the start of the file, also for LOCAL (as ITK)
     if not layout.binary:
-        from .nrrd import _ascii_values
-
         fh.seek(start)
-        return _ascii_values(fh.read().decode("latin-1"), layout.file_dtype.newbyteorder("="),
+        return ascii_values(fh.read().decode("latin-1"), layout.file_dtype.newbyteorder("="),
                              count, where)
     if layout.compressed:
         have = size - start

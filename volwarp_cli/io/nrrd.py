@@ -28,6 +28,7 @@ from ..errors import FormatError, VolwarpError
 from ..volume import Volume, frame_to_lps, xyz_to_zyx
 from .atomic import atomic_output
 from .common import (
+    ascii_values,
     check_data_output,
     check_dtype,
     ensure_fits_in_memory,
@@ -40,6 +41,7 @@ from .common import (
     voxel_count,
     with_byte_order,
 )
+from .mapped import guard
 
 _TYPES = {
     "signed char": "int8", "int8": "int8", "int8_t": "int8",
@@ -454,11 +456,12 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
             raise FormatError(f"{where}: file has {have} bytes of samples, expected {nbytes} "
                               "(wrong sizes or type in the header?)")
         if mmap and file_dtype.isnative:
+            guard(fh, where)  # a truncation meanwhile: one line and exit 1, not a crash
             return np.memmap(fh, dtype=file_dtype, mode="r", offset=start, shape=(count,))
         fh.seek(start)
         return np.frombuffer(read_exact(fh, nbytes, where), dtype=file_dtype)
     if encoding == "ascii":
-        return _ascii_values(fh.read().decode("latin-1"), file_dtype.newbyteorder("="), count,
+        return ascii_values(fh.read().decode("latin-1"), file_dtype.newbyteorder("="), count,
                              where)
     if encoding == "hex":
         return np.frombuffer(_hex_bytes(fh.read(), nbytes, where), dtype=file_dtype)
@@ -531,57 +534,6 @@ def _hex_bytes(text: bytes, nbytes: int, where: str) -> bytes:
 def _is_hex(token: str) -> bool:
     try:
         bytes.fromhex(token)
-    except ValueError:
-        return False
-    return True
-
-
-def _ascii_values(text: str, dtype: np.dtype, count: int, where: str) -> np.ndarray:
-    """Parse ASCII samples into ``dtype``, refusing values the type cannot hold.
-
-    An integer type takes only finite, whole numbers within its range (no
-    silent wrap-around, truncation or NaN-to-0). A float type keeps NaN and
-    infinities as data, as the binary encodings do, but refuses a finite value
-    too large for it (which would become infinity).
-    """
-    tokens = text.replace(",", " ").split()
-    try:
-        values = np.array(tokens, dtype=np.float64)
-    except ValueError:
-        bad = next((i, t) for i, t in enumerate(tokens) if not _is_number(t))
-        raise FormatError(f"{where}: ascii data value {bad[1][:40]!r} (sample {bad[0]}) is "
-                          "not a number") from None
-    if values.size != count:
-        raise FormatError(f"{where}: ascii data has {values.size} values, expected {count}")
-    if dtype.kind in "iu":
-        info = np.iinfo(dtype)
-        with np.errstate(invalid="ignore"):
-            bad = ~np.isfinite(values) | (values != np.floor(values)) | (values < info.min) | (
-                values > info.max)
-        if bad.any():
-            i = int(np.argmax(bad))
-            v = values[i]
-            why = ("is not a number" if np.isnan(v) else
-                   "is infinite" if not np.isfinite(v) else
-                   "is not a whole number" if v != np.floor(v) else
-                   "is out of range")
-            raise FormatError(f"{where}: ascii data value {tokens[i][:40]!r} (sample {i}) "
-                              f"{why}: type {dtype.name} holds whole numbers "
-                              f"{info.min}..{info.max}")
-        return values.astype(dtype)
-    with np.errstate(over="ignore"):
-        out = values.astype(dtype)
-    big = np.isinf(out) & np.isfinite(values)  # finite in the file, too large for the type
-    if big.any():
-        i = int(np.argmax(big))
-        raise FormatError(f"{where}: ascii data value {tokens[i][:40]!r} (sample {i}) is "
-                          f"outside the range of {dtype.name}")
-    return out
-
-
-def _is_number(token: str) -> bool:
-    try:
-        float(token)
     except ValueError:
         return False
     return True
