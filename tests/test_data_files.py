@@ -171,9 +171,7 @@ def test_an_input_truncated_while_a_warp_maps_it_fails_cleanly(tmp_path):
 def test_an_input_rewritten_in_place_while_mapped_is_not_used(tmp_path):
     """The same size rewritten in place (no fault, but a mix of two files): refused at the
     output's rename."""
-    from volwarp_cli.io import write_volume
-
-    from volwarp_cli.io import mapped
+    from volwarp_cli.io import mapped, write_volume
 
     src = tmp_path / "in.nrrd"
     _big_nrrd(src, n=16)
