@@ -450,3 +450,22 @@ def test_ome_tiff_with_channels_or_time_points_is_refused(tmp_path, axes, shape,
     tifffile.imwrite(single, np.arange(3 * 8 * 9, dtype=np.uint8).reshape(3, 8, 9), ome=True,
                      metadata={"axes": "ZYX"})
     assert read_volume(single).data.shape == (3, 8, 9)
+
+
+@pytest.mark.parametrize("name,spacing,match", [
+    ("t.tif", (1e-30, 1, 1), r"t\.tif: spacing 1e-30 cannot be stored in TIFF's XResolution"),
+    ("t.tif", (1, 1e300, 1), r"t\.tif: spacing 1e\+300 cannot be stored in TIFF's YResolution"),
+    ("t.nii.gz", (1e300, 1, 1), r"t\.nii\.gz: the geometry .* beyond NIfTI's float32"),
+])
+def test_geometry_a_format_cannot_hold_is_a_clear_error(run, tmp_path, name, spacing, match):
+    """Were an internal error (tifffile's rational) and a NIfTI full of inf with numpy
+    warnings, exit 0; NRRD and MetaImage hold such numbers exactly."""
+    src = tmp_path / "s.nrrd"
+    write_volume(Volume(np.zeros((2, 2, 2), np.uint8), spacing=spacing), src)
+    res = run("convert", src, "-o", tmp_path / name)
+    assert res.code == 1 and len(res.stderr.strip().splitlines()) == 1, res
+    import re
+    assert re.search(match, res.stderr), res.stderr
+    assert not (tmp_path / name).exists()
+    write_volume(read_volume(src), tmp_path / "ok.mha")
+    np.testing.assert_array_equal(read_volume(tmp_path / "ok.mha").spacing, spacing)

@@ -103,14 +103,27 @@ def test_malformed_numeric_fields_name_the_field(tmp_path, field, value, match):
         read_volume(path)
 
 
-def test_huge_space_directions_are_an_error_without_numpy_warnings(tmp_path, recwarn):
+def test_huge_space_directions_read_without_numpy_warnings(tmp_path, recwarn):
+    # the axis' length overflowed (a RuntimeWarning on stderr, then an internal error)
     path = tmp_path / "big.nrrd"
     extra = "space: LPS\nspace directions: (1e200,1e200,0) (0,1,0) (0,0,1)\n"
     text = _header("raw", extra).decode().replace("spacings: 1 2 3\n", "")
     path.write_bytes(text.encode() + DATA.astype("<i2").tobytes())
-    with pytest.raises(FormatError, match=r"big\.nrrd: 'space directions' has a zero"):
-        read_volume(path)
+    vol = read_volume(path)
+    np.testing.assert_allclose(vol.spacing, [np.sqrt(2) * 1e200, 1, 1], rtol=1e-15)
+    np.testing.assert_allclose(vol.direction[:, 0], [np.sqrt(0.5), np.sqrt(0.5), 0])
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+
+
+@pytest.mark.parametrize("dirs,match", [("(0,0,0) (0,1,0) (0,0,1)", "a zero axis"),
+                                        ("(inf,0,0) (0,1,0) (0,0,1)", "a non-finite axis")])
+def test_degenerate_space_directions_are_named(tmp_path, dirs, match):
+    path = tmp_path / "bad.nrrd"
+    text = _header("raw", f"space: LPS\nspace directions: {dirs}\n").decode().replace(
+        "spacings: 1 2 3\n", "")
+    path.write_bytes(text.encode() + DATA.astype("<i2").tobytes())
+    with pytest.raises(FormatError, match=r"bad\.nrrd: 'space directions' has " + match):
+        read_volume(path)
 
 
 @pytest.mark.parametrize("cut", [4, 40])

@@ -442,6 +442,10 @@ def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
     aff[:3, :3] = _RAS_TO_LPS @ (vol.direction * vol.spacing[None, :]) * to_file_units
     aff[:3, 3] = _RAS_TO_LPS @ vol.origin * to_file_units
     scode, qcode = _form_codes(meta, aff, vol.spacing * to_file_units)
+    if not np.all(np.abs(aff) <= np.finfo(np.float32).max):
+        raise VolwarpError(f"{path}: the geometry (spacing or origin up to "
+                           f"{np.abs(aff).max():.3g}) is beyond NIfTI's float32 matrices; "
+                           "write .nrrd or .mha")
     img = nib.Nifti1Image(vol.data.transpose(2, 1, 0), aff)
     header = img.header
     header["xyzt_units"] = units

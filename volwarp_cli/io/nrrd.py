@@ -177,11 +177,13 @@ def _geometry(fields: dict[str, str], dim: int, where: str):
                 raise FormatError(f"{where}: 'space directions' vectors must have 3 components")
             cols.append(v)
         mat = np.array(cols, dtype=np.float64).T  # columns are the axes
-        with np.errstate(over="ignore", under="ignore"):
-            spacing = np.linalg.norm(mat, axis=0)
-        if np.any(spacing == 0) or not np.all(np.isfinite(spacing)):
-            raise FormatError(f"{where}: 'space directions' has a zero, non-finite or "
-                              "too long axis")
+        if not np.all(np.isfinite(mat)):
+            raise FormatError(f"{where}: 'space directions' has a non-finite axis")
+        # lengths scaled first: (1e200, 1e200, 0) is 1.4e200 long, not an overflow
+        big = np.abs(mat).max(axis=0)
+        if np.any(big == 0):
+            raise FormatError(f"{where}: 'space directions' has a zero axis")
+        spacing = big * np.linalg.norm(mat / big[None, :], axis=0)
         direction = mat / spacing[None, :]
         if "space origin" in fields:
             m = _VECTOR.fullmatch(fields["space origin"].strip())

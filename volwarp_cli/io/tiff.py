@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError
+from ..errors import FormatError, VolwarpError
 from ..volume import Volume
 from .atomic import atomic_output
 from .common import (
@@ -486,6 +486,12 @@ def write_tiff(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
         geometry["volwarp_space"] = vol.space
     if meta:
         geometry["volwarp_meta"] = json.dumps(meta, sort_keys=True, default=str)
+    for axis, tag in ((0, "XResolution"), (1, "YResolution")):
+        # a RATIONAL of two 32-bit integers holds 1 / spacing (1e-30 mm failed inside tifffile)
+        if not 2.0 ** -31 <= 1.0 / vol.spacing[axis] <= 2.0 ** 31:
+            raise VolwarpError(f"{path}: spacing {vol.spacing[axis]:g} cannot be stored in "
+                               f"TIFF's {tag} (a ratio of 32-bit integers); write .nrrd, "
+                               ".nii.gz or .mha")
     data = with_byte_order(vol.data, byte_order)
     kwargs = dict(
         byteorder="<" if byte_order == "little" else ">",
