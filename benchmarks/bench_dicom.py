@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).parent))
-from common import paired_times, row  # noqa: E402
+from common import paired_times, row, volwarp_argv  # noqa: E402
 
 
 def write_ct_series(folder: Path, nx: int, ny: int, nz: int) -> None:
@@ -75,6 +76,26 @@ def main(quick: bool = False) -> None:
         t_ours, t_peer, ratio = paired_times(ours, peer, pairs=3 if quick else 5)
         row(f"read {nx}x{ny}x{nz} int16 CT series ({nz} files)", t_ours, t_peer, "SimpleITK",
             ratio=ratio)
+        # the whole command, process start-up and the NRRD write included
+        out = Path(tmp) / "out"
+        out.mkdir()
+        script = ("import SimpleITK as s, sys; r = s.ImageSeriesReader(); "
+                  "r.SetFileNames(r.GetGDCMSeriesFileNames(sys.argv[1])); "
+                  "s.WriteImage(r.Execute(), sys.argv[2])")
+
+        def ours_cmd():
+            subprocess.run(volwarp_argv("convert", str(folder), "-o", str(out / "v.nrrd")),
+                           check=True, stdout=subprocess.DEVNULL)
+
+        def peer_cmd():
+            subprocess.run([sys.executable, "-c", script, str(folder), str(out / "s.nrrd")],
+                           check=True, stdout=subprocess.DEVNULL)
+
+        ours_cmd()
+        peer_cmd()
+        t_ours, t_peer, ratio = paired_times(ours_cmd, peer_cmd, pairs=3 if quick else 5)
+        row(f"`convert` {nz}-file CT series -> NRRD (whole command)", t_ours, t_peer,
+            "SimpleITK script", ratio=ratio)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-from volwarp_cli.cli.main import main
+from volwarp_cli.entry import main
 
 if __name__ == "__main__":
     raise SystemExit(main())
