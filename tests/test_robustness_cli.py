@@ -276,3 +276,19 @@ def test_batch_relative_paths_are_the_callers_and_every_format_is_read(batch_dir
         for out in ("nrrd", "ply", "png"):
             assert (tmp_path / "results" / "site" / f"{stem}.{out}").is_file(), (stem, out)
     assert not (batch_dir / "results").exists()
+
+
+def test_numpy_warnings_never_reach_stderr(data_dir, tmp_path):
+    """A handle at 1e300 overflowed numpy's norm: its RuntimeWarning (two lines of numpy
+    source) came before the spec error on stderr."""
+    spec = tmp_path / "s.yaml"
+    spec.write_text("{version: 1, capture: {lattice: 7}, steps: [{drag: [{from: [1e300, 0, 0], "
+                    "to: [0, 0, 0]}]}]}\n")
+    # a process of its own: pytest would capture the warning before it reached stderr
+    volwarp = Path(sys.executable).parent / "volwarp"
+    res = subprocess.run([str(volwarp), "warp", str(data_dir / "ball_30_uint8.nrrd"), "--spec",
+                          str(spec), "-o", str(tmp_path / "o.nrrd")], capture_output=True,
+                         text=True)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "steps[0].drag[0].from" in lines[0], res.stderr

@@ -11,6 +11,7 @@ import logging
 import os
 import signal
 import sys
+import warnings
 
 import click
 
@@ -86,6 +87,11 @@ class VolwarpGroup(click.Group):
         return code
 
     def _run(self, args, prog_name, debug, extra) -> int:
+        if not debug:
+            # numpy's "overflow encountered in multiply" and the like are not messages for
+            # the user (the contract is one line, and volwarp checks what it computes for
+            # finiteness itself); --debug shows them
+            warnings.filterwarnings("ignore", category=RuntimeWarning)
         try:
             result = super().main(args=args, prog_name=prog_name, standalone_mode=False, **extra)
             code = result if isinstance(result, int) else 0
