@@ -160,9 +160,11 @@ def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
     Faster than ``gzip.GzipFile`` (one decompressor, large chunks written in
     place); refuses truncated streams and streams holding more than ``nbytes``.
     """
+    from .deflate import ERRORS, decompressobj
+
     out = bytearray(nbytes)
     pos = 0
-    dec = zlib.decompressobj(zlib.MAX_WBITS | 32)  # gzip or zlib header
+    dec = decompressobj()  # gzip or zlib header
     try:
         while True:
             chunk = fh.read(1 << 22)
@@ -178,7 +180,7 @@ def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
                 if dec.eof:
                     rest = dec.unused_data
                     if rest.strip(b"\0") and pos < nbytes:  # another gzip member follows
-                        dec = zlib.decompressobj(zlib.MAX_WBITS | 32)
+                        dec = decompressobj()
                         chunk = rest
                         continue
                     if rest.strip(b"\0"):
@@ -186,7 +188,7 @@ def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
                                           "bytes (wrong sizes or type in the header?)")
                     break
                 chunk = dec.unconsumed_tail
-    except zlib.error as exc:
+    except ERRORS as exc:
         raise FormatError(f"{where}: corrupt compressed data ({exc})") from None
     if pos < nbytes or not dec.eof:
         if pos >= nbytes:

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import os
 import re
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +50,7 @@ from .common import (
     voxel_count,
     with_byte_order,
 )
+from .deflate import zlib_bytes
 
 #: MetaIO element types -> numpy (MET_LONG is 4 bytes in MetaIO, as ITK reads it)
 _TYPES = {
@@ -540,7 +540,7 @@ def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = Fa
     dtype = check_dtype(vol.data.dtype, str(path))
     payload = memoryview(with_byte_order(vol.data, byte_order)).cast("B")
     if compress:
-        payload = zlib.compress(payload, level)
+        payload = zlib_bytes(payload, level)
     size = len(payload) if compress else None
     if path.suffix.lower() == ".mhd":
         data_path = path.with_suffix(".zraw" if compress else ".raw")

@@ -84,6 +84,7 @@ from ..errors import FormatError, VolwarpError
 from ..volume import Volume
 from .atomic import atomic_output
 from .common import check_dtype, ensure_fits_in_memory, make_volume, native, voxel_count
+from .deflate import gzip_bytes
 
 log = logging.getLogger("volwarp")
 
@@ -465,6 +466,6 @@ def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
         header.extensions.append(ext)
     payload = img.to_bytes()
     if path.name.lower().endswith(".gz"):
-        payload = gzip.compress(payload, compresslevel=1, mtime=0)
+        payload = gzip_bytes(payload, 1)
     with atomic_output(path) as tmp:
         tmp.write_bytes(payload)

@@ -41,6 +41,7 @@ from .common import (
     voxel_count,
     with_byte_order,
 )
+from .deflate import gzip_bytes
 from .mapped import guard
 
 _TYPES = {
@@ -598,8 +599,7 @@ def _write_payload(fh, data: np.ndarray, encoding: str, level: int) -> None:
     if encoding == "raw":
         fh.write(memoryview(data).cast("B"))
         return
-    with gzip.GzipFile(filename="", fileobj=fh, mode="wb", compresslevel=level, mtime=0) as gz:
-        gz.write(memoryview(data).cast("B"))
+    fh.write(gzip_bytes(memoryview(data).cast("B"), level))
 
 
 @contextlib.contextmanager
