@@ -57,21 +57,54 @@ def test_table_equals_separable_and_blocks_are_bit_identical():
 
 @pytest.mark.parametrize("placement", ["uniform", "tripled"])
 def test_capture_image_is_the_voxel_box(placement):
-    grid = Grid.create((30, 17, 11), (9, 6, 7), 2)
+    """The model's part of the domain maps onto the input's voxel box [-0.5, I - 0.5]:
+    with the uniform placement at an integer oversample k (a subdivision grid) the
+    domain voxels [lead, lead + k I), each 1/k of an input voxel; with the tripled
+    placement (a spanning grid) the whole domain box [0, D]."""
+    grid = Grid.create((30, 17, 11), (9, 6, 7), 2, placement)
+    assert grid.subdivision == (2 if placement == "uniform" else 0)
     coords = capture_coordinates(grid, placement)
+    dq = capture_offsets(grid, placement)
     for axis, c in enumerate(coords):
         n = grid.input_shape[axis]
+        g = grid.granularity[axis]
         assert np.all(np.diff(c) > 0)
-        # the domain's voxel box [0, D] maps onto the input's box [-0.5, I - 0.5]
-        dq = capture_offsets(grid, placement)
         ends = np.zeros((2, 3))
-        ends[1, axis] = grid.regions[axis]
+        ends[0, axis] = grid.data_lo[axis] / g
+        ends[1, axis] = grid.data_hi[axis] / g
         mapped = map_params(dq, grid, ends)
         assert mapped[0, axis] == pytest.approx(-0.5, abs=1e-12)
         assert mapped[1, axis] == pytest.approx(n - 0.5, abs=1e-12)
     if placement == "uniform":
-        for c, n, d in zip(coords, grid.input_shape, grid.domain_shape, strict=False):
-            assert np.allclose(c, -0.5 + (np.arange(d) + 0.5) * n / d)
+        for c, n, d, a in zip(coords, grid.input_shape, grid.domain_shape, grid.lead,
+                              strict=True):
+            assert d >= 2 * n and a == (d - 2 * n) // 2  # centred on the input
+            # voxel centres half an input voxel apart: two in each input voxel
+            assert np.allclose(c, -0.5 + (np.arange(d) - a + 0.5) / 2, atol=1e-12)
+        assert grid.domain_shape == (30 * 2, 17 * 2 + 2, 11 * 2 + 2)  # G = 10, 12, 6
+    else:
+        for c, n in zip(coords, grid.input_shape, strict=True):
+            assert c[0] > -0.5 and c[-1] < n - 0.5
+
+
+def test_capture_of_a_subdivision_grid_is_the_box_model():
+    """At an integer oversample every domain voxel takes its input voxel's value exactly
+    (either sampling); a non-integer oversample keeps the spanning grid and trilinear
+    samples."""
+    rng = np.random.default_rng(4)
+    data = rng.integers(0, 1000, size=(7, 9, 11)).astype(np.int16)
+    for k in (1, 2, 3):
+        for sampling in ("linear", "nearest"):
+            cap = capture_volume(Volume(data), lattice=(6, 5, 7), oversample=k,
+                                 sampling=sampling)
+            grid = cap.grid
+            assert grid.subdivision == k
+            (x0, y0, z0), (x1, y1, z1) = grid.data_lo, grid.data_hi
+            inside = cap.domain[z0:z1, y0:y1, x0:x1]
+            want = np.repeat(np.repeat(np.repeat(data, k, 0), k, 1), k, 2)
+            assert np.array_equal(inside, want.astype(np.float32))
+    assert capture_volume(Volume(data), lattice=5, oversample=1.5).grid.subdivision == 0
+    assert Grid.create((7, 9, 11), (5, 5, 5), 2, "tripled").subdivision == 0
 
 
 @pytest.mark.parametrize("size", [30, 31, 23])
@@ -174,9 +207,10 @@ def _region_image(scene, i, j, k):
                                 st.floats(-2.5, 2.5), st.floats(-2.5, 2.5),
                                 st.floats(-2.5, 2.5)), min_size=1, max_size=4),
        method=st.sampled_from(["box", "nearest"]))
-def test_incremental_equals_full(moves, method, local_updates):
+@pytest.mark.parametrize("oversample", [1.5, 1])  # a spanning grid; a subdivision grid
+def test_incremental_equals_full(moves, method, oversample, local_updates):
     data = smooth_blob((14, 16, 18))
-    cap = capture_volume(Volume(data), lattice=(7, 6, 5), oversample=1.5)
+    cap = capture_volume(Volume(data), lattice=(7, 6, 5), oversample=oversample)
     scene = Scene(cap.domain, cap.grid, cap.dq, 4, method=method)
     scene.render()
     dq = cap.dq.copy()

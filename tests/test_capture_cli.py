@@ -112,6 +112,8 @@ def test_capture_refuses_non_finite_samples(run, tmp_path):
     (("capture", "placement"), "weird", "placement"),
     (("capture", "domain_shape"), [31, 30, 30], "domain shape does not match"),
     (("capture", "granularity"), [1.5, 2, 2], "granularity"),
+    (("capture", "subdivision"), 7, "subdivision"),  # 7 x 30 voxels do not fit in 30
+    (("capture", "subdivision"), None, "subdivision"),
 ])
 def test_damaged_header_fields_are_the_capture_files_fault(run, data_dir, tmp_path, field,
                                                            value, what):
@@ -139,3 +141,44 @@ def test_damaged_header_fields_are_the_capture_files_fault(run, data_dir, tmp_pa
         assert "header is malformed" in res.stderr and what in res.stderr
         assert str(bad) in res.stderr
     assert not (tmp_path / "o.nrrd").exists()
+
+
+def test_version_1_capture_files_keep_their_spanning_grid(run, data_dir, tmp_path):
+    """Version 2 files record the grid's subdivision (an integer oversample's exact
+    subdivision of the input voxels); a version 1 file, from before, has none: it is
+    read with the spanning grid it was captured on and warps as before."""
+    import struct
+
+    from volwarp_cli.bspline.capture_file import VERSION
+
+    src = data_dir / "ball_30_uint8.nrrd"
+    new = tmp_path / "new.vwc"
+    assert run("capture", src, "-o", new, "--lattice", "7", "--oversample", "1.5").code == 0
+    raw = new.read_bytes()
+    magic, version, n = struct.unpack("<16sII", raw[:24])
+    assert version == VERSION == 2
+    head = json.loads(raw[24:24 + n])
+    assert head["capture"]["subdivision"] == 0  # a non-integer oversample: spanning
+    del head["capture"]["subdivision"]
+    head["version"] = 1
+    text = json.dumps(head, sort_keys=True).encode()
+    old = tmp_path / "old.vwc"
+    old.write_bytes(struct.pack("<16sII", magic, 1, len(text)) + text + raw[24 + n:])
+    a, b = read_capture(new), read_capture(old)
+    assert a.grid == b.grid and b.grid.subdivision == 0
+    assert np.array_equal(a.domain, b.domain)
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nunits: voxel\nsteps:\n  - move:\n"
+                    "      - {index: [3, 3, 3], by: [1.5, 0, -1]}\n")
+    outs = []
+    for path in (new, old):
+        out = tmp_path / f"{path.stem}.nrrd"
+        assert run("warp", path, "--spec", spec, "-o", out).code == 0
+        outs.append(read_volume(out).data)
+    assert np.array_equal(outs[0], outs[1])
+    d = json.loads(run("info", old, "--json").stdout)
+    assert d["version"] == 1 and d["domain_shape"] == list(b.grid.domain_shape)
+    bad = tmp_path / "future.vwc"
+    bad.write_bytes(struct.pack("<16sII", magic, 3, n) + raw[24:])
+    res = run("info", bad, "--json")
+    assert res.code == 1 and "version 3 is not supported" in res.stderr

@@ -27,7 +27,9 @@ class Capture:
     array (its ``meta`` kept); ``input_dtype`` and ``stats`` (min, max, mean;
     the mean None when not asked for) describe the captured input. The
     domain's samples lie within the input's (min, max): each is one input
-    sample or a convex combination of eight. A deferred capture has no
+    sample (on a subdivision grid: its input voxel's; outside the input, the
+    nearest edge voxel's, which the pushforward leaves out) or a convex
+    combination of eight. A deferred capture has no
     ``domain`` array but a ``sampler`` that gathers its planes on demand.
     """
 
@@ -119,7 +121,7 @@ def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
                            "(replace them first)")
     check_value_range(data, lo, hi)
     lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
-    grid = Grid.create(vol.shape_xyz, lattice, oversample)
+    grid = Grid.create(vol.shape_xyz, lattice, oversample, placement)
     # the lattice's own arrays (positions, offsets, the scene's bounds and masks) come
     # before the domain's: a lattice finer than the input can outgrow it
     ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,

@@ -3,7 +3,7 @@
 Layout (all integers little-endian)::
 
     offset 0   16 bytes  magic  b"VOLWARP-CAPTURE\\n"
-    offset 16  uint32    format version (currently 1)
+    offset 16  uint32    format version (currently 2; 1 is read too)
     offset 20  uint32    n, the length of the JSON header
     offset 24  n bytes   JSON header (UTF-8, sorted keys, no timestamps)
     offset 24+n          payload: the domain voxmap, C order [z, y, x],
@@ -12,11 +12,16 @@ Layout (all integers little-endian)::
 The header holds ``format`` ("vwc"), ``version``, ``input`` (shape x y z,
 dtype, spacing, origin, direction, space, meta, min, max, mean of the captured
 volume), ``capture`` (lattice, placement, oversample, sampling, pad,
-granularity, domain_shape) and ``payload`` (dtype, shape x y z, nbytes,
+granularity, subdivision, domain_shape) and ``payload`` (dtype, shape x y z, nbytes,
 crc32). Loading checks the magic (a foreign file), the version, the file size
 (a truncated file) and the CRC-32 of the payload (a corrupted one); each
 failure is a :class:`~volwarp_cli.errors.FormatError` naming the file.
 Identical captures give byte-identical files.
+
+Version 2 placed the domain on the input as an exact subdivision of its
+voxels at an integer oversample (``subdivision`` k; see :mod:`.lattice`);
+version 1 files have the spanning grid (the domain's box the input's), and
+are warped as they were captured.
 """
 
 from __future__ import annotations
@@ -36,7 +41,9 @@ from .capture import Capture
 from .lattice import Grid
 
 MAGIC = b"VOLWARP-CAPTURE\n"
-VERSION = 1
+VERSION = 2
+#: Versions read: 1 has no ``subdivision`` (its grid spans the input).
+READ_VERSIONS = (1, 2)
 _PREFIX = struct.Struct("<16sII")
 
 
@@ -64,6 +71,7 @@ def _header(cap: Capture, payload: np.ndarray, crc: int) -> dict:
             "sampling": cap.sampling,
             "pad": list(cap.pad) if cap.pad is not None else None,
             "granularity": list(cap.grid.granularity),
+            "subdivision": cap.grid.subdivision,
             "domain_shape": list(cap.grid.domain_shape),
         },
         "payload": {
@@ -97,9 +105,10 @@ def read_header(path: str | os.PathLike) -> tuple[dict, int]:
                 raise FormatError(f"{path}: not a volwarp capture file (file starts with "
                                   f"{prefix[:16]!r})")
             magic, version, n = _PREFIX.unpack(prefix)
-            if version != VERSION:
+            if version not in READ_VERSIONS:
                 raise FormatError(f"{path}: capture file version {version} is not supported "
-                                  f"(this volwarp reads version {VERSION})")
+                                  f"(this volwarp reads versions "
+                                  f"{', '.join(map(str, READ_VERSIONS))})")
             raw = fh.read(n)
     except FileNotFoundError:
         raise FormatError(f"{path}: no such file") from None
@@ -120,6 +129,8 @@ def read_header(path: str | os.PathLike) -> tuple[dict, int]:
         raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
     if int(np.prod(shape)) * dtype.itemsize != int(payload["nbytes"]):
         raise FormatError(f"{path}: capture file header is inconsistent (payload size)")
+    if version == 1:  # before subdivision grids
+        head["capture"]["subdivision"] = 0
     problem = _header_problem(head)
     if problem:
         raise FormatError(f"{path}: capture file header is malformed ({problem})")
@@ -160,6 +171,14 @@ def _header_problem(head: dict) -> str | None:
             (inp["mean"] is None or reals([inp["mean"]], 1), "input mean"),
             (ints(capd["lattice"], 3, 4), "lattice"),
             (ints(capd["granularity"], 3, 1), "granularity"),
+            (isinstance(capd["subdivision"], int) and not isinstance(capd["subdivision"], bool)
+             and 0 <= capd["subdivision"] <= 16
+             and (capd["subdivision"] == 0 or (
+                 capd["placement"] == "uniform" and ints(inp["shape"], 3, 1)
+                 and ints(capd["granularity"], 3, 1) and ints(capd["lattice"], 3, 4)
+                 and all(g * (c - 3) >= capd["subdivision"] * i for g, c, i in
+                         zip(capd["granularity"], capd["lattice"], inp["shape"], strict=True)))),
+             "subdivision"),
             (capd["placement"] in PLACEMENTS, "placement"),
             (capd["sampling"] in SAMPLINGS, "sampling"),
             (reals([capd["oversample"]], 1) and capd["oversample"] > 0, "oversample"),
@@ -200,7 +219,7 @@ def read_capture(path: str | os.PathLike) -> Capture:
                           spacing=inp["spacing"], origin=inp["origin"],
                           direction=inp["direction"], space=inp["space"], meta=inp["meta"])
         grid = Grid(tuple(int(v) for v in inp["shape"]), tuple(int(v) for v in capd["lattice"]),
-                    tuple(int(v) for v in capd["granularity"]))
+                    tuple(int(v) for v in capd["granularity"]), int(capd["subdivision"]))
         if grid.domain_shape != tuple(int(v) for v in pl["shape"]):
             raise ValueError("domain shape does not match the lattice")
         pad = capd["pad"]
@@ -220,7 +239,8 @@ def describe_capture(path: str | os.PathLike) -> dict:
     spacing, origin, direction, space, min, max, mean, meta), then
     ``version``, ``lattice``, ``lattice_points`` (world x, y, z of control
     point (i, j, k) at ``lattice_points[i][j][k]``), ``placement``,
-    ``oversample``, ``sampling``, ``pad``, ``granularity``, ``domain_shape``
+    ``oversample``, ``sampling``, ``pad``, ``granularity``, ``subdivision``
+    (domain voxels per input voxel, 0 for a spanning grid), ``domain_shape``
     and ``domain_dtype``.
     """
     head, _ = read_header(path)
@@ -228,7 +248,8 @@ def describe_capture(path: str | os.PathLike) -> dict:
     capd = head["capture"]
     geometry = Volume(np.zeros((1, 1, 1)), spacing=inp["spacing"], origin=inp["origin"],
                       direction=inp["direction"])
-    grid = Grid(tuple(inp["shape"]), tuple(capd["lattice"]), tuple(capd["granularity"]))
+    grid = Grid(tuple(inp["shape"]), tuple(capd["lattice"]), tuple(capd["granularity"]),
+                int(capd["subdivision"]))
     from .lattice import capture_offsets
     pts = grid.uniform_positions() + capture_offsets(grid, capd["placement"])  # (k, j, i, 3)
     world = geometry.index_to_world(pts.reshape(-1, 3)).reshape(pts.shape)
@@ -257,6 +278,7 @@ def describe_capture(path: str | os.PathLike) -> dict:
         "sampling": capd["sampling"],
         "pad": capd["pad"],
         "granularity": capd["granularity"],
+        "subdivision": capd["subdivision"],
         "domain_shape": capd["domain_shape"],
         "domain_dtype": head["payload"]["dtype"],
         "lattice_points": world.tolist(),

@@ -53,7 +53,7 @@ def _eval(dq, grid: Grid, params, derivative: bool):
     ii = a[:, 0][:, None, None, None] + ar[None, None, None, :]
     block = dq[kk, jj, ii]  # (N, 4k, 4j, 4i, 3)
     h = grid.spacing_h
-    val = np.einsum("nk,nj,ni,nkjim->nm", w[2], w[1], w[0], block) + (-0.5 + h * params)
+    val = np.einsum("nk,nj,ni,nkjim->nm", w[2], w[1], w[0], block) + (grid.origin + h * params)
     if not derivative:
         return val, None
     dw = [basis_derivative(frac[:, d]) for d in range(3)]
@@ -98,16 +98,19 @@ def locate(dq, grid: Grid, points) -> np.ndarray:
     points = np.atleast_2d(np.asarray(points, dtype=np.float64))
     regions = np.array(grid.regions, dtype=np.float64)
     h = grid.spacing_h
+    # the model's parameters: the domain voxels inside the input (all on a spanning grid)
+    g = np.array(grid.granularity, dtype=np.float64)
+    p_lo, p_hi = np.array(grid.data_lo) / g, np.array(grid.data_hi) / g
     coarse = None
     out = np.empty_like(points)
     for n, p in enumerate(points):
-        starts = [np.clip((p + 0.5) / h, 0, regions)]
+        starts = [np.clip((p - grid.origin) / h, 0, regions)]
         found = None
         for attempt in range(2):
             for st in starts:
                 s, res = _newton(dq, grid, p, st)
-                if res < 1e-6 and np.all(s >= -1e-9) and np.all(s <= regions + 1e-9):
-                    found = np.clip(s, 0, regions)
+                if res < 1e-6 and np.all(s >= p_lo - 1e-9) and np.all(s <= p_hi + 1e-9):
+                    found = np.clip(s, p_lo, p_hi)
                     break
             if found is not None or attempt == 1:
                 break

@@ -10,11 +10,22 @@ or 1 (nearest) samples of each domain voxel.
 - ``nearest``: the paper's rounding (ties down, as in the pushforward).
 - ``linear``: trilinear interpolation (default).
 
-Departure: the papers sample a zero-padded source; the capture image is
-exactly the input's voxel box ``[-0.5, I - 0.5]``, so the only points outside
-the voxel centres' range are the outer half voxels, which we sample with
-edge clamping (the box reconstruction of the edge voxel) instead of blending
-them with the zero padding, which would darken every edge of a scan.
+On a subdivision grid (an integer oversample ``k``, uniform placement; see
+:mod:`.lattice`) every domain voxel lies inside one input voxel, and both
+samplings give it that voxel's value, exactly (integer indices, no
+weights): the box model of a voxel, a constant over its box, which the box
+pushforward then spreads back over the same box. An unmoved region is thus
+copied exactly, and a moved one is the box model carried by the map
+(trilinear samples of ``k^3`` points inside one voxel would blend in its
+neighbours: an unmoved warp would blur). Domain voxels outside the input
+take the nearest edge voxel's value; the pushforward leaves them out.
+
+Departure: the papers sample a zero-padded source; on a spanning grid the
+capture image is exactly the input's voxel box ``[-0.5, I - 0.5]``, so the
+only points outside the voxel centres' range are the outer half voxels, which
+we sample with edge clamping (the box reconstruction of the edge voxel)
+instead of blending them with the zero padding, which would darken every edge
+of a scan.
 """
 
 from __future__ import annotations
@@ -33,13 +44,21 @@ def capture_coordinates(grid: Grid, placement: str) -> list[np.ndarray]:
     """Source coordinates (input voxel indices) of the domain voxel centres, per axis (x, y, z)."""
     out = []
     for axis in range(3):
-        pos = capture_axis_positions(grid.input_shape[axis], grid.lattice[axis], placement)
+        pos = capture_axis_positions(grid, axis, placement)
         g = grid.granularity[axis]
         w = region_weights(g)  # (g, 4)
         regions = grid.regions[axis]
         windows = np.stack([pos[a:a + 4] for a in range(regions)])  # (R, 4)
         out.append((windows[:, None, :] * w[None, :, :]).sum(-1).ravel())
     return out
+
+
+def _subdivision_indices(grid: Grid, axis: int):
+    """Input voxel of each domain voxel on one axis of a subdivision grid (clamped to the
+    input outside it), as lower/upper sample index and a zero weight."""
+    d, n, k = grid.domain_shape[axis], grid.input_shape[axis], grid.subdivision
+    i0 = np.clip((np.arange(d) - grid.lead[axis]) // k, 0, n - 1).astype(np.int64)
+    return i0, i0, np.zeros(d)
 
 
 def _axis_weights(coords: np.ndarray, n: int, sampling: str):
@@ -69,9 +88,13 @@ class Sampler:
         if tuple(data.shape[::-1]) != tuple(grid.input_shape):
             raise VolwarpError(f"input shape {data.shape[::-1]} does not match the grid "
                                f"{grid.input_shape}")
-        coords = capture_coordinates(grid, placement)
-        (x0, x1, fx), (y0, y1, fy), (z0, z1, fz) = (
-            _axis_weights(c, n, sampling) for c, n in zip(coords, grid.input_shape, strict=False))
+        if grid.subdivision and placement == "uniform":
+            axes = [_subdivision_indices(grid, axis) for axis in range(3)]
+        else:
+            coords = capture_coordinates(grid, placement)
+            axes = [_axis_weights(c, n, sampling)
+                    for c, n in zip(coords, grid.input_shape, strict=False)]
+        (x0, x1, fx), (y0, y1, fy), (z0, z1, fz) = axes
         self.shape = tuple(grid.domain_shape[::-1])
         self.dtype = np.dtype(dtype)
         src = np.ascontiguousarray(data)

@@ -27,6 +27,10 @@ over the block). The evaluators give every voxel the same value whatever block
 it is computed in, so this is exact, and it saves 12 bytes per domain voxel
 (200 MiB for a 256^3 domain). :meth:`Scene.render_once`, for a warp without
 later updates, also never holds the target accumulators whole.
+
+Only the domain voxels inside the input are the model: on a subdivision grid
+(an integer oversample, see :mod:`.lattice`) those around it carry nothing, so
+every pass leaves them out (the space they would cover is the background).
 """
 
 from __future__ import annotations
@@ -219,8 +223,12 @@ class Scene:
         scratch = self.scratch if scratch is None else scratch
         grid = self.grid
         dshape = np.array(grid.domain_shape)
-        vlo = np.asarray(vlo, dtype=np.int64)
-        vhi = np.asarray(vhi, dtype=np.int64)
+        # only the domain voxels inside the input are the model (a subdivision grid's
+        # others, around it, carry nothing: the space there is the background)
+        vlo = np.maximum(np.asarray(vlo, dtype=np.int64), grid.data_lo)
+        vhi = np.minimum(np.asarray(vhi, dtype=np.int64), grid.data_hi)
+        if np.any(vhi <= vlo):
+            return None
         elo = np.maximum(vlo - 1, 0)  # the voxels and their neighbours
         ehi = np.minimum(vhi + 1, dshape)
         nx = int(ehi[0] - elo[0])
@@ -632,8 +640,9 @@ class Scene:
     def _region_voxels(self, vlo, vhi) -> list[np.ndarray]:
         """Per axis (x, y, z): how many voxels of each region lie in [vlo, vhi)."""
         counts = []
-        for axis in range(3):
-            a, b = self._region_range(axis, vlo[axis], vhi[axis])
+        for axis in range(3):  # (the voxels the pushforward scatters: those inside the input)
+            a, b = self._region_range(axis, max(int(vlo[axis]), self.grid.data_lo[axis]),
+                                      min(int(vhi[axis]), self.grid.data_hi[axis]))
             counts.append(np.clip(b - a, 0, None))
         return counts
 
@@ -643,7 +652,8 @@ class Scene:
         cost = np.where(still, 1.0, GENERAL_COST).sum(axis=0)  # [Rz, Ry, Rx]
         per_region_plane = np.einsum("kji,j,i->k", cost, cy, cx)
         planes = np.arange(int(vlo[2]), int(vhi[2]))
-        return per_region_plane[planes // self.grid.granularity[2]]
+        inside = (planes >= self.grid.data_lo[2]) & (planes < self.grid.data_hi[2])
+        return np.where(inside, per_region_plane[planes // self.grid.granularity[2]], 0.0)
 
     def _work(self, dqs, vlo, vhi) -> float:
         """Scatter work over domain voxels [vlo, vhi) (x, y, z), one pass per lattice of ``dqs``.

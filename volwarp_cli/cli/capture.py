@@ -64,20 +64,26 @@ def lattice_option(default="9"):
 @click.option("--oversample", type=click.FloatRange(min=0, min_open=True, max=16),
               callback=finite,
               default=2.0, show_default=True,
-              help="Domain voxels per input voxel: granularity G = ceil(oversample * I / R).")
+              help="Domain voxels per input voxel: granularity G = ceil(oversample * I / R); "
+                   "an integer one (uniform placement) makes each domain voxel an exact "
+                   "1/oversample of an input voxel, so what a warp leaves unmoved stays exact.")
 @click.option("--pad", type=click.IntRange(min=0), default=None,
               help="Target padding (voxels per side) for later warps that do not set one "
                    "[default: each warp's largest displacement + 1].")
 @click.option("--sampling", type=click.Choice(["linear", "nearest"]), default="linear",
-              show_default=True, help="Pullback sampling: trilinear, or the paper's rounding.")
+              show_default=True,
+              help="Pullback sampling: trilinear, or the paper's rounding (at an integer "
+                   "--oversample with the uniform placement, both give each domain voxel the "
+                   "value of the input voxel it lies in).")
 @input_options
 @common_options
 def command(input, output, lattice, placement, oversample, pad, sampling, raw, volume_index,
             dicom):
     """Capture INPUT into a domain voxmap file (.vwc) for `volwarp warp`.
 
-    The capture lattice's B-spline image of the domain is exactly INPUT's
-    voxel box in world space. `volwarp info SCENE.vwc --json` lists the
+    The capture lattice's B-spline image of the domain's model voxels is exactly
+    INPUT's voxel box in world space (at an integer oversample the lattice
+    spans a little more, centred on it). `volwarp info SCENE.vwc --json` lists the
     lattice's world positions (lattice_points[i][j][k]).
     """
     from ..bspline.capture import capture_volume
