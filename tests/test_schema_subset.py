@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import datetime
 import json
+import math
 import subprocess
 import sys
 from decimal import Decimal
@@ -122,7 +123,8 @@ def mutated(draw):
             _at(doc, path[:-1])[path[-1]] = copy.deepcopy(donor)
         elif op == "tweak" and path and isinstance(node, int | float):  # around the bounds
             _at(doc, path[:-1])[path[-1]] = draw(st.sampled_from(
-                [node + 1, node - 1, -node, node * 1.0, 0, 0.5, float(round(node))]))
+                [node + 1, node - 1, -node, node * 1.0, 0, 0.5,
+                 float(round(node)) if math.isfinite(node) else node]))  # an earlier nan/inf
         elif op == "delete" and path:
             del _at(doc, path[:-1])[path[-1]]
         elif op == "add" and isinstance(node, dict):
