@@ -21,7 +21,7 @@ import numpy as np
 
 from ..progress import log
 from ..volume import Volume
-from .handles import HandleError, solve
+from .handles import HandleError, map_params, solve
 from .lattice import Grid
 
 
@@ -36,11 +36,17 @@ class CaptureSettings:
 
 @dataclass
 class Frame:
-    """One lattice state: ``dq`` offsets, 1-based spec step and increment within it."""
+    """One lattice state: ``dq`` offsets, 1-based spec step and increment within it.
+
+    ``handles``: on a step's last frame, its drags as ``(from, to, reached)``
+    input-voxel positions (x, y, z), ``reached`` where the solved lattice sends
+    ``from`` (for the miss report).
+    """
 
     dq: np.ndarray
     step: int
     sub: int
+    handles: list = field(default_factory=list)
 
 
 @dataclass
@@ -153,7 +159,7 @@ def plan(doc, spec: WarpSpec, grid: Grid, dq0: np.ndarray, geom: Geometry) -> li
                 dist = np.linalg.norm(pts_w[None] - src_w[:, None, None, None, :], axis=-1)
                 free = np.any(dist <= radius, axis=0)
             try:
-                delta, _, residual = solve(work, grid, src, dst, free)
+                delta, params, residual = solve(work, grid, src, dst, free)
             except HandleError as exc:
                 raise doc.error(("steps", s, "drag", exc.index, "from"), str(exc)) from None
             if residual > 1e-3:
@@ -163,11 +169,15 @@ def plan(doc, spec: WarpSpec, grid: Grid, dq0: np.ndarray, geom: Geometry) -> li
                             s, residual)
 
             work = work + delta
+            reached = map_params(work, grid, params)
+            handles = [(src[i], dst[i], reached[i]) for i in range(len(src))]
+        else:
+            handles = []
         n = int(step.get("frames", 1))
         total = work - current
         for f in range(1, n + 1):
             dq = work.copy() if f == n else current + total * (f / n)
-            frames.append(Frame(dq, s + 1, f))
+            frames.append(Frame(dq, s + 1, f, handles if f == n else []))
         current = work
     return frames
 

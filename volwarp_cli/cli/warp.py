@@ -105,11 +105,40 @@ def _capture_early(reading, settings, input, defer):
                    "and blended into partly covered ones [default: the spec's, else 0]; "
                    "e.g. a large positive distance for a signed distance field.")
 @click.option("--crop", is_flag=True, help="Cut the output back to the input's extent.")
+@click.option("--labels", is_flag=True,
+              help="INPUT is a label map (segmentation): each output voxel takes the label of "
+                   "largest box-filter weight (the background 0 competes); ids are never "
+                   "averaged. -v prints each label's volume before and after.")
+@click.option("--preserve-labels", is_flag=True,
+              help="With --labels: a label that would vanish keeps its voxel of largest weight.")
+@click.option("--displacement-to", default=None, metavar="FIELD",
+              help="Write the resampling displacement field y -> F^-1(y) - y (LPS mm) on the "
+                   "output grid, as ITK, ANTs and Slicer resample with (.nii.gz or .nrrd); "
+                   "NaN where the map folds or has no inverse.")
+@click.option("--forward-field-to", default=None, metavar="FIELD",
+              help="Write the forward (modelling) field x -> F(x) - x (LPS mm) on the input "
+                   "grid (.nii.gz or .nrrd).")
+@click.option("--jacobian-to", default=None, metavar="MAP",
+              help="Write det dF/dx on the input grid (float32, any volume format).")
+@click.option("--transform-to", default=None, metavar="F.tfm",
+              help="Write the forward map as an ITK BSplineTransform (.tfm), for moving "
+                   "points; ITK tools read it as a resampling transform: do not resample "
+                   "the input with it (use --displacement-to).")
+@click.option("--points-in", default=None, type=INPUT_PATH, metavar="P.csv",
+              help="Points to move by the forward map: a CSV with x, y, z columns (LPS mm; "
+                   "ANTs' layout works) or a Slicer .mrk.json markups file.")
+@click.option("--points-to", default=None, metavar="Q.csv",
+              help="Where the moved points go (the same format as --points-in).")
+@click.option("--mesh-in", default=None, type=INPUT_PATH, metavar="M.ply",
+              help="A mesh (PLY, world coordinates) whose vertices to move by the forward map.")
+@click.option("--mesh-to", default=None, metavar="M2.ply",
+              help="The moved mesh, normals recomputed (.ply .stl .obj .vtp .vtk).")
 @write_options
 @input_options
 @common_options
-def command(input, spec_path, output, frames_to, pushforward, evaluator, background, crop, dtype,
-            compress, byte_order, raw, volume_index, dicom):
+def command(input, spec_path, output, frames_to, pushforward, evaluator, background, crop,
+            labels, preserve_labels, displacement_to, forward_field_to, jacobian_to, transform_to, points_in, points_to,
+            mesh_in, mesh_to, dtype, compress, byte_order, raw, volume_index, dicom):
     """Warp INPUT (a volume, or a capture file .vwc) as the spec says.
 
     A plain volume is captured on the fly with the spec's `capture` settings.
@@ -117,8 +146,20 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     it is padded (origin shifted, anatomy in place) unless --crop.
     """
     check_output_path(output)
+    if preserve_labels and not labels:
+        raise click.UsageError("--preserve-labels needs --labels")
+    if labels and (frames_to or input.lower().endswith(".vwc")):
+        raise click.UsageError("--labels warps a label-map volume in one shot "
+                               "(no --frames-to, no capture file)")
+    if labels and dtype is not None:
+        raise click.UsageError("--labels keeps the label map's own integer type (no --dtype)")
     if frames_to:
         _check_pattern(frames_to)
+    exports = _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to,
+                             points_in, points_to, mesh_in, mesh_to)
+    if labels and exports:
+        raise click.UsageError("--labels with the deformation's exports: export them from a "
+                               "warp without --labels (the deformation is the same)")
     is_capture = input.lower().endswith(".vwc")
     one_shot = not frames_to  # only the final lattice is rendered, streamed
     if is_capture and (raw is not None or volume_index is not None or dicom is not None):
@@ -146,7 +187,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
 
         doc = load_spec(spec_path)
         if reading is not None:
-            settings = _unchecked_capture_settings(doc)
+            # (a label map is captured by its own path, below: no float capture)
+            settings = None if labels else _unchecked_capture_settings(doc)
             early = pool.submit(_capture_early, reading, settings, input, one_shot)
         validate(doc, load_schema("warp"))
         spec = read_warp_spec(doc)
@@ -158,6 +200,18 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             vol = reading.result()  # a read error, after any spec error
             cap = early.result() if settings == spec.capture else None
             del reading, early  # the futures hold the volume and the capture too
+    if labels:
+        from ..bspline.labels import format_report, label_warp
+        from ..progress import log
+
+        out, report = label_warp(vol, doc, spec, method=pushforward, evaluator=evaluator,
+                                 background=background, crop=crop, preserve=preserve_labels,
+                                 source=input)
+        out = stamp(out, "warp", input, spec_path)
+        with timed(f"write {output}"):
+            write_volume(out, output, compress=compress, byte_order=byte_order)
+        log.info("per-label volumes (mm^3):\n%s", format_report(report))
+        return
     if not is_capture:
         if cap is None:
             cap = _capture(vol, spec.capture, input, one_shot)
@@ -167,6 +221,9 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                                 background=background)
     except OutOfMemoryError as exc:  # the target this input and spec ask for
         raise OutOfMemoryError(f"{input}: {exc}") from None
+    _report_handles(cap, frames)
+    if exports:
+        _write_exports(exports, cap, scene, frames, crop, input, spec_path)
 
     def write(target, path):
         out = stamp(output_volume(cap, scene, target, crop=crop, dtype=dtype), "warp", input,
@@ -198,3 +255,162 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         return
     target = run(scene, frames, on_frame)
     write(target, output)
+
+
+def _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to, points_in,
+                   points_to, mesh_in, mesh_to) -> dict:
+    """The export options, checked before any work (usage errors), and their inputs read
+    (a points or mesh file that does not parse fails here, before any output)."""
+    from ..bspline.export import field_format, points_format, read_points
+
+    out = {}
+    for name, path in (("--displacement-to", displacement_to),
+                       ("--forward-field-to", forward_field_to)):
+        if path is not None:
+            try:
+                field_format(path)
+            except VolwarpError as exc:
+                raise click.BadParameter(str(exc), param_hint=f"'{name}'") from None
+            check_output_path(path)
+    if jacobian_to is not None:
+        try:
+            volume_format(jacobian_to)
+        except VolwarpError as exc:
+            raise click.BadParameter(str(exc), param_hint="'--jacobian-to'") from None
+        check_output_path(jacobian_to)
+    if transform_to is not None:
+        if not transform_to.lower().endswith(".tfm"):
+            raise click.BadParameter(f"{transform_to}: the ITK transform is written as .tfm",
+                                     param_hint="'--transform-to'")
+        check_output_path(transform_to)
+    if (points_in is None) != (points_to is None):
+        raise click.UsageError("--points-in and --points-to go together")
+    if (mesh_in is None) != (mesh_to is None):
+        raise click.UsageError("--mesh-in and --mesh-to go together")
+    if points_in is not None:
+        try:
+            kinds = points_format(points_in), points_format(points_to)
+        except VolwarpError as exc:
+            raise click.UsageError(str(exc)) from None
+        if kinds[0] != kinds[1]:
+            raise click.UsageError(f"--points-to {points_to}: write the points in the format "
+                                   f"they were read in ({'.csv' if kinds[0] == 'csv' else '.mrk.json'})")
+        check_output_path(points_to)
+    if mesh_in is not None:
+        from ..surface.mesh_io import check_mesh_output
+
+        if not mesh_in.lower().endswith(".ply"):
+            raise click.BadParameter(f"{mesh_in}: volwarp reads meshes from PLY files only",
+                                     param_hint="'--mesh-in'")
+        try:
+            check_mesh_output(mesh_to)
+        except VolwarpError as exc:
+            raise click.BadParameter(str(exc), param_hint="'--mesh-to'") from None
+    out.update({k: v for k, v in (("displacement", displacement_to),
+                                   ("forward", forward_field_to), ("jacobian", jacobian_to),
+                                   ("transform", transform_to)) if v is not None})
+    if points_in is not None:
+        out["points"] = (read_points(points_in), points_to)
+    if mesh_in is not None:
+        from ..surface.mesh_io import read_mesh
+
+        out["mesh"] = (read_mesh(mesh_in), mesh_in, mesh_to)
+    return out
+
+
+def _final_dq(cap, frames):
+    return frames[-1].dq if frames else cap.dq
+
+
+def _report_handles(cap, frames) -> None:
+    """How far each handle missed its target, world mm (-v)."""
+    import numpy as np
+
+    from ..progress import log
+
+    g = cap.geometry
+    matrix = g.direction * g.spacing[None, :]
+    for fr in frames:
+        for n, (_, to, reached) in enumerate(fr.handles):
+            miss = float(np.linalg.norm(matrix @ (np.asarray(reached) - np.asarray(to))))
+            log.info("steps[%d].drag[%d]: reached %s, missed its target by %.3g mm",
+                     fr.step - 1, n, np.round(g.index_to_world(reached), 4).tolist(), miss)
+
+
+def _write_exports(exports, cap, scene, frames, crop, input, spec_path) -> None:
+    """The deformation's exports (see :mod:`volwarp_cli.bspline.export`), written before
+    the warp is rendered; they describe the final lattice."""
+    import numpy as np
+
+    from ..bspline.export import (
+        ForwardMap,
+        check_exportable,
+        field_stats_ok,
+        jacobian_stats,
+        report_outside,
+        write_field,
+        write_points,
+        write_tfm,
+    )
+    from ..bspline.warp import _output_window
+    from ..progress import log
+    from ..volume import Volume
+    from .common import provenance
+
+    check_exportable(cap.placement, cap.dq, input)
+    meta = provenance("warp", input, spec_path)
+    fmap = ForwardMap(cap.grid, _final_dq(cap, frames), cap.geometry)
+    g = cap.geometry
+    nx, ny, nz = cap.grid.input_shape
+    in_grid = Volume(np.zeros((nz, ny, nx), np.uint8), spacing=g.spacing, origin=g.origin,
+                     direction=g.direction, space=g.space)
+    if "displacement" in exports:
+        path = exports["displacement"]
+        window, origin = _output_window(cap, scene, crop)
+        shape = tuple(w.stop - w.start for w in window)
+        out_grid = Volume(np.zeros(shape, np.uint8), spacing=g.spacing, origin=origin,
+                          direction=g.direction, space=g.space)
+        shift = np.array([window[2].start, window[1].start, window[0].start]) - np.array(scene.pad)
+        with timed(f"invert the map on {shape[2]}x{shape[1]}x{shape[0]} voxels"):
+            field, counts = fmap.resampling_field(shape[::-1], shift)
+        log.info("%s: %s", path, field_stats_ok(counts))
+        if counts["folded"]:
+            log.warning("%s: the map folds: %d voxels have no single inverse (NaN)", path,
+                        counts["folded"])
+        with timed(f"write {path}"):
+            write_field(field, out_grid, path, meta, "resampling")
+        del field
+    if "forward" in exports:
+        path = exports["forward"]
+        with timed(f"write {path}"):
+            write_field(fmap.forward_field(), in_grid, path, meta, "forward")
+    if "jacobian" in exports:
+        path = exports["jacobian"]
+        det = fmap.jacobian()
+        st = jacobian_stats(det)
+        log.info("%s: det dF/dx min %.4g, max %.4g; %.3g%% of voxels below 0, %.3g%% below 0.1",
+                 path, st["min"], st["max"], 100 * st["below_0"], 100 * st["below_0.1"])
+        jmeta = {**dict(g.meta), **meta, "volwarp_field": "jacobian"}
+        with timed(f"write {path}"):
+            write_volume(in_grid.with_data(det, meta=jmeta), path)
+    if "transform" in exports:
+        path = exports["transform"]
+        with timed(f"write {path}"):
+            write_tfm(fmap, path, meta)
+    if "points" in exports:
+        pf, path = exports["points"]
+        moved, inside = fmap.map_world(pf.points)
+        report_outside(pf.path, inside, fmap)
+        with timed(f"write {path}"):
+            write_points(pf, moved, path)
+    if "mesh" in exports:
+        from ..surface.mesh import Mesh
+        from ..surface.mesh_io import write_mesh
+
+        mesh, src, path = exports["mesh"]
+        moved, inside = fmap.map_world(mesh.vertices)
+        report_outside(src, inside, fmap)
+        out = Mesh(moved, mesh.faces).with_normals()
+        with timed(f"write {path}"):
+            write_mesh(out, path, comments={**provenance("warp", [input, src], spec_path),
+                                            "volwarp_field": "forward"})

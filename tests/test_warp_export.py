@@ -1,0 +1,260 @@
+"""`volwarp warp` exports: resampling and forward fields, Jacobian, ITK transform."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.volume import Volume
+
+sitk = pytest.importorskip("SimpleITK")
+
+ANG = np.deg2rad(20)
+DIRECTION = np.array([[np.cos(ANG), -np.sin(ANG), 0], [np.sin(ANG), np.cos(ANG), 0], [0, 0, 1]])
+
+
+def smooth_volume(shape=(24, 28, 32)):
+    nz, ny, nx = shape
+    z, y, x = np.mgrid[:nz, :ny, :nx].astype(float)
+    data = (100 * np.exp(-((x - 15.5) ** 2 / 80 + (y - 13.5) ** 2 / 60 + (z - 11.5) ** 2 / 40))
+            + 20 * np.sin(x / 5) * np.cos(y / 7)).astype(np.float32)
+    return Volume(data, spacing=(1.0, 1.2, 1.5), origin=(-10, 5, 3), direction=DIRECTION)
+
+
+def drag_spec(tmp_path, vol, by=(3.0, -2.0, 2.0), lattice=7, name="w.yaml"):
+    c = [float(v) for v in vol.index_to_world([15.5, 13.5, 11.5])]
+    t = [a + float(b) for a, b in zip(c, by, strict=True)]
+    p = tmp_path / name
+    p.write_text(f"version: 1\ncapture: {{lattice: {lattice}}}\nsteps:\n  - drag:\n"
+                 f"      - {{from: [{c[0]!r}, {c[1]!r}, {c[2]!r}], "
+                 f"to: [{t[0]!r}, {t[1]!r}, {t[2]!r}]}}\n")
+    return p
+
+
+@pytest.fixture
+def scene(tmp_path):
+    vol = smooth_volume()
+    src = tmp_path / "in.nrrd"
+    write_volume(vol, src)
+    return src, drag_spec(tmp_path, vol)
+
+
+def _ncc_rms(a, b):
+    a, b = a.astype(np.float64).ravel(), b.astype(np.float64).ravel()
+    return np.corrcoef(a, b)[0, 1], np.sqrt(np.mean((a - b) ** 2)) / (b.max() - b.min())
+
+
+@pytest.mark.parametrize("ext", [".nii.gz", ".nrrd"])
+@pytest.mark.parametrize("crop", [False, True])
+def test_itk_resamples_with_the_displacement_field_as_volwarp_warps(run, scene, tmp_path, ext,
+                                                                    crop):
+    src, spec = scene
+    out, field = tmp_path / "out.nrrd", tmp_path / f"disp{ext}"
+    res = run("warp", src, "--spec", spec, "-o", out, "--displacement-to", field,
+              *(["--crop"] if crop else []))
+    assert res.code == 0, res.stderr
+    ref = sitk.ReadImage(str(out))
+    f = sitk.ReadImage(str(field))
+    assert f.GetSize() == ref.GetSize()
+    assert np.allclose(f.GetOrigin(), ref.GetOrigin(), atol=1e-5)
+    assert np.allclose(f.GetDirection(), ref.GetDirection(), atol=1e-6)
+    assert np.allclose(f.GetSpacing(), ref.GetSpacing(), atol=1e-6)
+    arr = sitk.GetArrayFromImage(f)
+    arr = np.nan_to_num(arr)  # outside the lattice's image: no inverse
+    f64 = sitk.GetImageFromArray(arr.astype(np.float64), isVector=True)
+    f64.CopyInformation(f)
+    warped = sitk.Resample(sitk.ReadImage(str(src)), ref,
+                           sitk.DisplacementFieldTransform(f64), sitk.sitkLinear, 0.0)
+    ncc, rms = _ncc_rms(sitk.GetArrayFromImage(warped), sitk.GetArrayFromImage(ref))
+    assert ncc >= 0.995 and rms <= 0.01, (ncc, rms)
+    # and a wrong sign (the forward field) would not do
+    wrong = sitk.GetImageFromArray(-arr.astype(np.float64), isVector=True)
+    wrong.CopyInformation(f)
+    bad = sitk.Resample(sitk.ReadImage(str(src)), ref, sitk.DisplacementFieldTransform(wrong),
+                        sitk.sitkLinear, 0.0)
+    assert _ncc_rms(sitk.GetArrayFromImage(bad), sitk.GetArrayFromImage(ref))[1] > 0.02
+
+
+def test_field_files_say_their_direction_and_layout(run, scene, tmp_path):
+    import nibabel as nib
+    import nrrd
+
+    src, spec = scene
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd",
+              "--forward-field-to", tmp_path / "f.nii.gz", "--displacement-to",
+              tmp_path / "d.nii.gz")
+    assert res.code == 0, res.stderr
+    img = nib.load(tmp_path / "d.nii.gz")
+    assert img.shape[3:] == (1, 3) and int(img.header["intent_code"]) == 1007
+    assert b"resampling" in img.header["descrip"].tobytes()
+    fimg = nib.load(tmp_path / "f.nii.gz")
+    assert b"forward" in fimg.header["descrip"].tobytes()
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd",
+              "--displacement-to", tmp_path / "d.nrrd", "--forward-field-to", tmp_path / "f.nrrd")
+    assert res.code == 0, res.stderr
+    _, hdr = nrrd.read(str(tmp_path / "d.nrrd"))
+    assert hdr["kinds"] == ["vector", "domain", "domain", "domain"]
+    assert hdr["volwarp_field"] == "resampling"
+    assert hdr["displacement field type"] == "resampling"
+    assert hdr["volwarp_command"] == "warp"
+    _, fh = nrrd.read(str(tmp_path / "f.nrrd"))
+    assert fh["volwarp_field"] == "forward" and "displacement field type" not in fh
+
+
+def test_tfm_matches_the_forward_map_at_random_points(run, scene, tmp_path):
+    from volwarp_cli.bspline.handles import map_params
+    from volwarp_cli.bspline.lattice import Grid
+
+    src, spec = scene
+    tfm = tmp_path / "f.tfm"
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--transform-to", tfm,
+              "--forward-field-to", tmp_path / "f.nrrd")
+    assert res.code == 0, res.stderr
+    t = sitk.ReadTransform(str(tfm))
+    assert "BSplineTransform" in t.GetName() or "BSpline" in str(t)
+    # volwarp's forward map, independently: the lattice from the planned spec
+    from volwarp_cli.bspline.plan import Geometry, plan, read_warp_spec
+    from volwarp_cli.spec.loader import load_schema, load_spec, validate
+
+    vol = read_volume(src)
+    doc = load_spec(spec)
+    validate(doc, load_schema("warp"))
+    ws = read_warp_spec(doc)
+    grid = Grid.create(vol.shape_xyz, ws.capture.lattice, ws.capture.oversample)
+    dq = plan(doc, ws, grid, np.zeros(grid.lattice[::-1] + (3,)), Geometry(vol))[-1].dq
+    rng = np.random.default_rng(7)
+    lo, hi = grid.origin, grid.origin + grid.spacing_h * np.array(grid.regions)
+    s = rng.uniform(0, np.array(grid.regions), size=(10_000, 3))
+    x = grid.origin + grid.spacing_h * s
+    assert np.all((x >= lo) & (x <= hi))
+    want = vol.index_to_world(map_params(dq, grid, s))
+    p = vol.index_to_world(x)
+    got = np.array([t.TransformPoint(q.tolist()) for q in p])
+    assert np.max(np.abs(got - want)) <= 1e-6
+    assert np.max(np.abs(want - p)) > 0.5  # the map does move points
+    # the forward field file agrees at the voxel centres
+    fwd = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "f.nrrd")))
+    nz, ny, nx = vol.data.shape
+    zz, yy, xx = np.mgrid[:nz, :ny, :nx]
+    xi = np.stack([xx, yy, zz], -1).reshape(-1, 3).astype(float)
+    pts = vol.index_to_world(xi)
+    got = np.array([t.TransformPoint(q.tolist()) for q in pts[::97]])
+    assert np.max(np.abs(got - pts[::97] - fwd.reshape(-1, 3)[::97])) <= 1e-4
+
+
+def test_jacobian_against_finite_differences(run, scene, tmp_path):
+    src, spec = scene
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--jacobian-to",
+              tmp_path / "j.nrrd", "--forward-field-to", tmp_path / "f.nii.gz", "-v")
+    assert res.code == 0, res.stderr
+    assert "det dF/dx min" in res.stderr
+    vol = read_volume(src)
+    jac = read_volume(tmp_path / "j.nrrd").data.astype(np.float64)
+    assert read_volume(tmp_path / "j.nrrd").meta["volwarp_field"] == "jacobian"
+    f = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "f.nii.gz"))).astype(np.float64)
+    # F(x) in world mm at voxel centres; d/d(index) by central differences, then
+    # det dF_world/dx_world = det(dF_world/di) / det(M)
+    pw = f.copy()
+    nz, ny, nx = vol.data.shape
+    zz, yy, xx = np.mgrid[:nz, :ny, :nx]
+    pw += vol.index_to_world(np.stack([xx, yy, zz], -1).reshape(-1, 3).astype(float)).reshape(
+        f.shape)
+    d = [np.gradient(pw, axis=a) for a in (2, 1, 0)]  # d/di, d/dj, d/dk: [..., m]
+    j = np.stack(d, axis=-1)  # [..., m, axis]
+    m = vol.direction * vol.spacing[None, :]
+    fd = np.linalg.det(j) / np.linalg.det(m)
+    inner = (slice(2, -2),) * 3
+    assert np.max(np.abs(fd[inner] - jac[inner])) < 0.02
+    assert jac.min() < 0.95 and jac.max() > 1.05
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.1, 0.8])
+def test_jacobian_of_affine_lattices(scale):
+    from volwarp_cli.bspline.export import ForwardMap
+    from volwarp_cli.bspline.lattice import Grid
+
+    vol = smooth_volume()
+    grid = Grid.create(vol.shape_xyz, (7, 8, 9), 2)
+    uni = grid.uniform_positions()
+    centre = np.array(vol.shape_xyz) / 2.0
+    dq = (scale - 1.0) * (uni - centre)  # every control point scaled about the centre
+    fm = ForwardMap(grid, dq, vol)
+    assert np.allclose(fm.jacobian(), scale ** 3, atol=1e-5)
+    ff = fm.forward_field()
+    nz, ny, nx = vol.data.shape
+    zz, yy, xx = np.mgrid[:nz, :ny, :nx]
+    x = np.stack([xx, yy, zz], -1).astype(float)
+    want = (x - centre) * (scale - 1.0) @ fm.matrix.T
+    assert np.allclose(ff, want, atol=1e-4)
+
+
+def test_unmoved_lattice_exports_identity(run, tmp_path):
+    vol = smooth_volume()
+    src = tmp_path / "in.nrrd"
+    write_volume(vol, src)
+    spec = tmp_path / "e.yaml"
+    spec.write_text("version: 1\ncapture: {lattice: 7}\nsteps: []\n")
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--jacobian-to",
+              tmp_path / "j.nii.gz", "--displacement-to", tmp_path / "d.nrrd", "--crop")
+    assert res.code == 0, res.stderr
+    assert np.all(read_volume(tmp_path / "j.nii.gz").data == 1.0)
+    d = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "d.nrrd")))
+    assert np.nanmax(np.abs(d)) < 1e-5 and not np.isnan(d).any()
+
+
+def test_capture_file_input_exports_the_same(run, scene, tmp_path):
+    src, spec = scene
+    vwc = tmp_path / "s.vwc"
+    assert run("capture", src, "--lattice", "7", "-o", vwc).code == 0
+    for name, inp in (("a", src), ("b", vwc)):
+        res = run("warp", inp, "--spec", spec, "-o", tmp_path / f"{name}.nrrd",
+                  "--displacement-to", tmp_path / f"{name}_d.nrrd", "--transform-to",
+                  tmp_path / f"{name}.tfm", "--jacobian-to", tmp_path / f"{name}_j.nrrd")
+        assert res.code == 0, res.stderr
+    da = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "a_d.nrrd")))
+    db = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "b_d.nrrd")))
+    assert np.array_equal(np.isnan(da), np.isnan(db))
+    assert np.nanmax(np.abs(da - db)) == 0
+    ta = (tmp_path / "a.tfm").read_text().split("#Transform 0")[1]
+    tb = (tmp_path / "b.tfm").read_text().split("#Transform 0")[1]
+    assert ta == tb
+
+
+def test_folds_are_nan_and_reported(run, tmp_path):
+    vol = smooth_volume()
+    src = tmp_path / "in.nrrd"
+    write_volume(vol, src)
+    spec = tmp_path / "fold.yaml"
+    spec.write_text("version: 1\nunits: voxel\ncapture: {lattice: 7}\nsteps:\n  - move:\n"
+                    "      - {index: [3, 3, 3], by: [30.0, 0.0, 0.0]}\n")
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--jacobian-to",
+              tmp_path / "j.nrrd", "--displacement-to", tmp_path / "d.nrrd", "-v")
+    assert res.code == 0, res.stderr
+    assert read_volume(tmp_path / "j.nrrd").data.min() < 0
+    assert "the map folds" in res.stderr and "below 0" in res.stderr
+    d = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "d.nrrd")))
+    assert np.isnan(d).any()
+
+
+def test_unknown_field_extension_is_a_usage_error_before_any_work(run, scene, tmp_path):
+    src, spec = scene
+    for opt in ("--displacement-to", "--forward-field-to", "--jacobian-to", "--transform-to"):
+        res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", opt,
+                  tmp_path / "f.xyz")
+        assert res.code == 2, (opt, res.stderr)
+        assert not any(tmp_path.glob("o.nrrd")) and not any(tmp_path.glob("f.*"))
+        assert not any(p.name.startswith(".") for p in tmp_path.iterdir())
+
+
+def test_tripled_placement_is_refused(run, tmp_path):
+    vol = smooth_volume()
+    src = tmp_path / "in.nrrd"
+    write_volume(vol, src)
+    spec = tmp_path / "t.yaml"
+    spec.write_text("version: 1\ncapture: {lattice: 7, placement: tripled}\nsteps: []\n")
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--transform-to",
+              tmp_path / "f.tfm")
+    assert res.code == 1
+    assert "uniform placement" in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "o.nrrd").exists() and not (tmp_path / "f.tfm").exists()

@@ -1,0 +1,561 @@
+"""The deformation of a warp, exported: fields, Jacobian, ITK transform, points, meshes.
+
+volwarp's native object is the forward (modelling) map ``F: input -> output``.
+With the uniform placement the capture map is the affine base map, so in
+input voxel indices ``F(x) = x + sum_i B_i(s(x)) dq_i`` with the spline
+parameter ``s(x) = (x - grid.origin) / h`` (see :mod:`.lattice`), defined on
+the lattice's support ``s in [0, R]^3``. The input's ``index_to_world`` is
+affine (``p = O + M x``, ``M = direction * spacing``), so in LPS millimetres
+``F_w(p) = p + sum_i B_i(...) (M dq_i)``: a uniform cubic B-spline on a grid
+with origin ``O + M (grid.origin - h)``, spacing ``spacing * h`` and the
+input's direction, which is exactly ITK's ``BSplineTransform`` layout.
+
+Exports:
+
+- :meth:`ForwardMap.forward_field`: ``x -> F(x) - x`` on the input grid (world mm);
+- :meth:`ForwardMap.jacobian`: ``det dF/dx`` on the input grid (the same in
+  voxels and in world coordinates);
+- :meth:`ForwardMap.resampling_field`: ``y -> F^-1(y) - y`` on an output
+  grid, by Newton's method per voxel (vectorised), NaN where none is found or
+  the map folds;
+- :func:`write_tfm`: the forward map as ITK ``BSplineTransform_double_3_3``;
+- :meth:`ForwardMap.map_world`: points (points files, mesh vertices).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import VolwarpError
+from ..progress import log
+from ..volume import LPS, Volume
+from .basis import basis, basis_derivative
+from .lattice import Grid
+
+#: Newton's stopping residual for the inverse (input voxels) and the accepted one
+INVERSE_TOL = 1e-8
+INVERSE_ACCEPT = 1e-3
+INVERSE_ITERATIONS = 40
+#: points evaluated at a time (bounds the scratch memory to a few tens of MB)
+CHUNK = 1 << 17
+
+FIELD_EXTENSIONS = (".nii.gz", ".nii", ".nrrd")
+
+
+def field_format(path: str) -> str:
+    """``nifti`` or ``nrrd`` for a displacement field output, else a VolwarpError."""
+    name = str(path).lower()
+    if name.endswith((".nii.gz", ".nii")):
+        return "nifti"
+    if name.endswith(".nrrd"):
+        return "nrrd"
+    raise VolwarpError(f"{path}: unknown displacement field extension "
+                       f"(use {', '.join(FIELD_EXTENSIONS)})")
+
+
+def points_format(path: str) -> str:
+    """``csv`` or ``markups`` (Slicer ``.mrk.json``) for a points file, else a VolwarpError."""
+    name = str(path).lower()
+    if name.endswith(".mrk.json"):
+        return "markups"
+    if name.endswith(".csv"):
+        return "csv"
+    raise VolwarpError(f"{path}: unknown points file extension (use .csv or .mrk.json)")
+
+
+def check_exportable(placement: str, dq0: np.ndarray, what: str) -> None:
+    """Exports need the affine capture map of the uniform placement."""
+    if placement != "uniform" or np.any(dq0 != 0):
+        raise VolwarpError(f"{what}: the deformation can be exported for the uniform placement "
+                           f"only (this capture uses {placement!r}, whose capture map is not "
+                           "affine)")
+
+
+@dataclass
+class ForwardMap:
+    """The forward map of one lattice state on one input geometry."""
+
+    grid: Grid
+    dq: np.ndarray  # (Cz, Cy, Cx, 3) offsets from the uniform lattice, input voxels
+    geometry: Volume  # the input's geometry (its samples unused: a capture's is a placeholder)
+
+    def __post_init__(self):
+        self.dq = np.asarray(self.dq, dtype=np.float64)
+        g = self.geometry
+        self.matrix = g.direction * g.spacing[None, :]  # index vector -> world vector
+        self.inverse = np.linalg.inv(self.matrix)
+        self.h = np.asarray(self.grid.spacing_h, dtype=np.float64)
+        self.org = np.asarray(self.grid.origin, dtype=np.float64)
+        self.regions = np.array(self.grid.regions)
+        self._rows = np.ascontiguousarray(self.dq.reshape(-1, 3))
+
+    # ---- index <-> world -------------------------------------------------------------
+    def to_index(self, p) -> np.ndarray:
+        return (np.asarray(p, dtype=np.float64) - self.geometry.origin) @ self.inverse.T
+
+    def to_world(self, x) -> np.ndarray:
+        return np.asarray(x, dtype=np.float64) @ self.matrix.T + self.geometry.origin
+
+    # ---- support ---------------------------------------------------------------------
+    def params(self, x) -> np.ndarray:
+        return (np.asarray(x, dtype=np.float64) - self.org) / self.h
+
+    def inside(self, x, tol: float = 1e-9) -> np.ndarray:
+        s = self.params(x)
+        return np.all((s >= -tol) & (s <= self.regions + tol), axis=-1)
+
+    def support_world_box(self):
+        lo = self.org
+        hi = self.org + self.h * self.regions
+        corners = np.array([[a[0], b[1], c[2]] for a in (lo, hi) for b in (lo, hi)
+                            for c in (lo, hi)])
+        w = self.to_world(corners)
+        return w.min(axis=0), w.max(axis=0)
+
+    # ---- scattered evaluation ----------------------------------------------------------
+    def _eval_params(self, s, derivative: bool):
+        """Offsets sum B dq (N, 3) at parameters s (N, 3), and d/ds (N, 3, 3) [m, axis]."""
+        a = np.clip(np.floor(s), 0, self.regions - 1).astype(np.intp)
+        frac = s - a
+        w = [basis(frac[:, d]) for d in range(3)]
+        dw = [basis_derivative(frac[:, d]) for d in range(3)] if derivative else None
+        cz, cy, cx = self.dq.shape[:3]
+        n = len(s)
+        val = np.zeros((n, 3))
+        jac = np.zeros((n, 3, 3)) if derivative else None
+        for dk in range(4):
+            for dj in range(4):
+                base = (a[:, 2] + dk) * (cy * cx) + (a[:, 1] + dj) * cx + a[:, 0]
+                ax = np.zeros((n, 3))
+                adx = np.zeros((n, 3)) if derivative else None
+                for di in range(4):
+                    idx = base + di
+                    u = np.take(self._rows, idx, axis=0)
+                    ax += w[0][:, di, None] * u
+                    if derivative:
+                        adx += dw[0][:, di, None] * u
+                wyz = (w[1][:, dj] * w[2][:, dk])[:, None]
+                val += wyz * ax
+                if derivative:
+                    jac[:, :, 0] += wyz * adx
+                    jac[:, :, 1] += (dw[1][:, dj] * w[2][:, dk])[:, None] * ax
+                    jac[:, :, 2] += (w[1][:, dj] * dw[2][:, dk])[:, None] * ax
+        return val, jac
+
+    def map_index(self, x) -> np.ndarray:
+        """F(x) for input indices x (N, 3) inside the support."""
+        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        out = np.empty_like(x)
+        for a in range(0, len(x), CHUNK):
+            part = x[a:a + CHUNK]
+            out[a:a + CHUNK] = part + self._eval_params(self.params(part), False)[0]
+        return out
+
+    def map_world(self, p) -> tuple[np.ndarray, np.ndarray]:
+        """F of world points (N, 3); points outside the lattice's support are returned
+        unmoved. Returns (mapped, inside mask)."""
+        p = np.atleast_2d(np.asarray(p, dtype=np.float64)).reshape(-1, 3)
+        x = self.to_index(p)
+        ok = self.inside(x)
+        out = p.copy()
+        if ok.any():
+            out[ok] = self.to_world(self.map_index(x[ok]))
+        return out, ok
+
+    # ---- grid evaluation ------------------------------------------------------------------
+    def _axis_weights(self, axis: int, n: int, derivative: bool) -> np.ndarray:
+        """Dense (n, C) weights of input voxel centres 0..n-1 on one axis (d/dx if asked)."""
+        c = self.grid.lattice[axis]
+        s = (np.arange(n) - self.org[axis]) / self.h[axis]
+        a = np.clip(np.floor(s), 0, c - 4).astype(np.intp)
+        frac = s - a
+        b = basis_derivative(frac) / self.h[axis] if derivative else basis(frac)
+        out = np.zeros((n, c))
+        rows = np.arange(n)
+        for i in range(4):
+            out[rows, a + i] = b[:, i]
+        return out
+
+    def _grid(self, wz, wy, wx) -> np.ndarray:
+        t = np.tensordot(wz, self.dq, axes=(1, 0))  # (nz, Cy, Cx, 3)
+        t = np.einsum("yj,zjim->zyim", wy, t)
+        return np.einsum("xi,zyim->zyxm", wx, t)  # (nz, ny, nx, 3)
+
+    def _slabs(self):
+        nx, ny, nz = self.grid.input_shape
+        step = max(1, CHUNK * 8 // max(1, nx * ny))
+        wz_all = self._axis_weights(2, nz, False)
+        dwz_all = self._axis_weights(2, nz, True)
+        for z0 in range(0, nz, step):
+            yield z0, wz_all[z0:z0 + step], dwz_all[z0:z0 + step]
+
+    def forward_field(self) -> np.ndarray:
+        """F(x) - x on the input grid, world mm, [z, y, x, 3] float32."""
+        nx, ny, nz = self.grid.input_shape
+        wy, wx = self._axis_weights(1, ny, False), self._axis_weights(0, nx, False)
+        out = np.empty((nz, ny, nx, 3), np.float32)
+        for z0, wz, _ in self._slabs():
+            out[z0:z0 + len(wz)] = self._grid(wz, wy, wx) @ self.matrix.T
+        return out
+
+    def jacobian(self) -> np.ndarray:
+        """det dF/dx on the input grid, [z, y, x] float32."""
+        nx, ny, nz = self.grid.input_shape
+        wy, wx = self._axis_weights(1, ny, False), self._axis_weights(0, nx, False)
+        dwy, dwx = self._axis_weights(1, ny, True), self._axis_weights(0, nx, True)
+        out = np.empty((nz, ny, nx), np.float32)
+        for z0, wz, dwz in self._slabs():
+            cols = [self._grid(wz, wy, dwx), self._grid(wz, dwy, wx), self._grid(dwz, wy, wx)]
+            j = np.stack(cols, axis=-1)  # [..., m, axis]
+            j += np.eye(3)
+            out[z0:z0 + len(wz)] = np.linalg.det(j)
+        return out
+
+    # ---- inverse ------------------------------------------------------------------------------
+    def invert_index(self, y) -> tuple[np.ndarray, np.ndarray]:
+        """x with F(x) = y for input-index points y (N, 3); NaN where none is found in the
+        support or the map folds there (det <= 0). Returns (x, status): status 0 found,
+        1 no inverse in the support, 2 folded."""
+        y = np.atleast_2d(np.asarray(y, dtype=np.float64))
+        x = np.full_like(y, np.nan)
+        status = np.zeros(len(y), np.int8)
+        for a in range(0, len(y), CHUNK):
+            x[a:a + CHUNK], status[a:a + CHUNK] = self._invert_chunk(y[a:a + CHUNK])
+        return x, status
+
+    def _invert_chunk(self, y):
+        h, org, regions = self.h, self.org, self.regions
+        lo, hi = np.full(3, -0.5), regions + 0.5  # a little extrapolation while iterating
+        s = np.clip((y - org) / h, lo, hi)  # the identity's parameters: the start
+        res = np.full(len(y), np.inf)
+        active = np.arange(len(y))
+        for _ in range(INVERSE_ITERATIONS):
+            if not len(active):
+                break
+            sa = s[active]
+            val, jac = self._eval_params(sa, True)
+            r = org + h * sa + val - y[active]  # W(s) - y, input voxels
+            res[active] = np.max(np.abs(r), axis=1)
+            done = res[active] < INVERSE_TOL
+            keep = ~done
+            active, sa, r, jac = active[keep], sa[keep], r[keep], jac[keep]
+            if not len(active):
+                break
+            jac += np.diag(h)[None]  # dW/ds
+            det = np.linalg.det(jac)
+            good = np.abs(det) > 1e-12
+            step = np.zeros_like(sa)
+            if good.any():
+                step[good] = np.linalg.solve(jac[good], r[good][..., None])[..., 0]
+            # damp: at most one region per axis per iteration
+            big = np.max(np.abs(step), axis=1)
+            step *= np.minimum(1.0, 1.0 / np.maximum(big, 1e-300))[:, None]
+            new = np.clip(sa - step, lo, hi)
+            moved = np.max(np.abs(new - sa), axis=1) > 1e-13
+            s[active] = new
+            bad = ~good | ~moved  # singular, or held at the box's edge: no inverse here
+            if bad.any():
+                res[active[bad]] = np.inf
+                active = active[~bad]
+        # accept
+        eps = 1e-9
+        inside = np.all((s >= -eps) & (s <= regions + eps), axis=1)
+        found = (res < INVERSE_ACCEPT) & inside
+        status = np.where(found, 0, 1).astype(np.int8)
+        x = np.full_like(y, np.nan)
+        idx = np.flatnonzero(found)
+        if len(idx):
+            _, jac = self._eval_params(s[idx], True)
+            jac += np.diag(h)[None]
+            folded = np.linalg.det(jac) <= 0
+            status[idx[folded]] = 2
+            ok = idx[~folded]
+            x[ok] = org + h * s[ok]
+        return x, status
+
+    def resampling_field(self, shape_xyz, shift) -> tuple[np.ndarray, dict]:
+        """F^-1(y) - y on an output grid of ``shape_xyz`` voxels, world mm, [z, y, x, 3]
+        float32, NaN where there is none. The output grid is the input's, shifted:
+        output voxel t is the input-index point ``t + shift``."""
+        nx, ny, nz = (int(v) for v in shape_xyz)
+        shift = np.asarray(shift, dtype=np.float64)
+        out = np.empty((nz * ny * nx, 3), np.float32)
+        counts = {"voxels": nx * ny * nz, "no_inverse": 0, "folded": 0}
+        # the image of the support lies inside the control points' bounding box
+        pts = self.grid.uniform_positions() + self.dq
+        box_lo = pts.reshape(-1, 3).min(axis=0) - 1e-6
+        box_hi = pts.reshape(-1, 3).max(axis=0) + 1e-6
+        total = nx * ny * nz
+        folds = self._fold_image((nx, ny, nz), shift)
+        for a in range(0, total, CHUNK):
+            flat = np.arange(a, min(a + CHUNK, total))
+            y = np.stack([flat % nx, (flat // nx) % ny, flat // (nx * ny)], axis=1) + shift
+            near = np.all((y >= box_lo) & (y <= box_hi), axis=1)
+            x = np.full_like(y, np.nan)
+            status = np.ones(len(y), np.int8)
+            if near.any():
+                x[near], status[near] = self._invert_chunk(y[near])
+            if folds is not None:
+                status[(status == 0) & folds[flat]] = 2
+                x[status == 2] = np.nan
+            counts["no_inverse"] += int(np.count_nonzero(status == 1))
+            counts["folded"] += int(np.count_nonzero(status == 2))
+            out[flat] = (x - y) @ self.matrix.T
+        return out.reshape(nz, ny, nx, 3), counts
+
+
+    def _fold_image(self, shape_xyz, shift):
+        """Output voxels (flat bool) that the folded part of the input (det <= 0) maps
+        onto, where the map has several preimages; None when nothing folds. Sampled at
+        27 points per input voxel near the fold, each marking the 8 output voxels
+        around its image."""
+        det = self.jacobian()
+        neg = det <= 0
+        if not neg.any():
+            return None
+        from scipy.ndimage import binary_dilation
+
+        near = np.argwhere(binary_dilation(neg, iterations=1))[:, ::-1].astype(np.float64)
+        offs = np.stack(np.meshgrid(*[np.array([-1, 0, 1]) / 3.0] * 3, indexing="ij"),
+                        -1).reshape(-1, 3)
+        mark = np.zeros(int(np.prod(shape_xyz)), bool)
+        nx, ny, nz = shape_xyz
+        for a in range(0, len(near), CHUNK // 27 + 1):
+            x = (near[a:a + CHUNK // 27 + 1, None, :] + offs[None]).reshape(-1, 3)
+            x = x[self.inside(x)]
+            val, jac = self._eval_params(self.params(x), True)
+            j = np.eye(3)[None] + jac / self.h[None, None, :]
+            x = x[np.linalg.det(j) <= 0]
+            t = x + self._eval_params(self.params(x), False)[0] - shift
+            base = np.floor(t).astype(np.int64)
+            for c in np.ndindex(2, 2, 2):
+                q = base + np.array(c)
+                ok = np.all((q >= 0) & (q < np.array([nx, ny, nz])), axis=1)
+                q = q[ok]
+                mark[(q[:, 2] * ny + q[:, 1]) * nx + q[:, 0]] = True
+        return mark
+
+
+# ---- writers ------------------------------------------------------------------------------------
+
+def write_field(field: np.ndarray, geometry: Volume, path: str, meta: dict, kind: str) -> None:
+    """Write a displacement field ([z, y, x, 3], LPS mm) atomically as NRRD or NIfTI.
+
+    NRRD: ``kinds: vector domain domain domain``, ``space: left-posterior-superior``,
+    key/values ``volwarp_field:=KIND`` (and ``displacement field type:=resampling``
+    for a resampling field). NIfTI: SimpleITK's layout, a 5-D (x, y, z, 1, 3)
+    array with intent 1007 (vector), LPS components, RAS affine; ``descrip``
+    says the direction and volwarp's header extension holds the key/values.
+    """
+    meta = dict(meta)
+    meta["volwarp_field"] = kind
+    meta["volwarp_field_units"] = "mm (LPS)"
+    fmt = field_format(path)
+    vol = Volume(np.zeros(field.shape[:3], np.float32), spacing=geometry.spacing,
+                 origin=geometry.origin, direction=geometry.direction, space=LPS, meta=meta)
+    if fmt == "nrrd":
+        from ..io.nrrd import write_nrrd
+
+        if kind == "resampling":
+            meta["displacement field type"] = "resampling"
+        meta.pop("volwarp_components", None)
+        vol = vol.with_data(vol.data, meta=meta)
+        write_nrrd(vol, path, compress=True,
+                   components=[field[..., m] for m in range(3)], component_names=["x", "y", "z"])
+        return
+    _write_nifti_field(field, vol, path, kind)
+
+
+def _write_nifti_field(field, vol: Volume, path: str, kind: str) -> None:
+    import nibabel as nib
+
+    from ..io.atomic import atomic_output
+    from ..io.deflate import gzip_bytes
+    from ..io.nifti import _RAS_TO_LPS, _extension
+
+    aff = np.eye(4)
+    aff[:3, :3] = _RAS_TO_LPS @ (vol.direction * vol.spacing[None, :])
+    aff[:3, 3] = _RAS_TO_LPS @ vol.origin
+    data = np.ascontiguousarray(field.transpose(2, 1, 0, 3))[:, :, :, None, :]
+    img = nib.Nifti1Image(data, aff)
+    header = img.header
+    header["xyzt_units"] = 2  # mm
+    img.set_sform(aff, code=1)
+    img.set_qform(aff, code=1)
+    header.set_intent("vector")
+    header["descrip"] = f"volwarp {kind} displacement field, LPS mm".encode("latin-1")
+    ext = _extension(vol.meta)
+    if ext is not None:
+        header.extensions.append(ext)
+    payload = img.to_bytes()
+    if str(path).lower().endswith(".gz"):
+        payload = gzip_bytes(payload, 1)
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(payload)
+
+
+def _num(x: float) -> str:
+    return repr(float(x))
+
+
+def tfm_text(fmap: ForwardMap, meta: dict) -> str:
+    """The forward map as an ITK ``BSplineTransform_double_3_3`` text transform.
+
+    FixedParameters are the coefficient grid (ITK v4): size (C), origin, spacing
+    and direction in LPS mm; Parameters the world displacement coefficients,
+    all x (x fastest), then all y, then all z.
+    """
+    g = fmap.geometry
+    size = [float(c) for c in fmap.grid.lattice]
+    origin = fmap.to_world((fmap.org - fmap.h)[None])[0]
+    spacing = g.spacing * fmap.h
+    direction = g.direction.ravel()
+    coef = fmap.dq @ fmap.matrix.T  # (Cz, Cy, Cx, 3) world mm
+    params = np.concatenate([coef[..., m].ravel() for m in range(3)])
+    lines = ["#Insight Transform File V1.0"]
+    lines += [f"#{k}: {str(v).replace(chr(10), ' ')}" for k, v in sorted(meta.items())]
+    lines += ["#Transform 0", "Transform: BSplineTransform_double_3_3",
+              "Parameters: " + " ".join(_num(v) for v in params),
+              "FixedParameters: " + " ".join(_num(v) for v in
+                                             [*size, *origin, *spacing, *direction])]
+    return "\n".join(lines) + "\n"
+
+
+def write_tfm(fmap: ForwardMap, path: str, meta: dict) -> None:
+    from ..io.atomic import write_bytes_atomic
+
+    meta = dict(meta)
+    meta["volwarp_field"] = "forward"
+    meta["volwarp_note"] = ("forward (modelling) map for points: ITK reads it as a resampling "
+                            "transform, do not resample the input with it")
+    write_bytes_atomic(path, tfm_text(fmap, meta).encode("ascii"))
+
+
+# ---- points files -------------------------------------------------------------------------------
+
+@dataclass
+class PointsFile:
+    """Points read from a CSV (x, y, z columns) or a Slicer markups file, LPS mm."""
+
+    path: str
+    kind: str  # csv | markups
+    points: np.ndarray  # (N, 3) LPS
+    rows: list | None = None  # csv: header + rows (strings)
+    columns: tuple | None = None  # csv: x, y, z column numbers
+    doc: dict | None = None  # markups: the document
+    where: list | None = None  # markups: (markup, point, frame flip) of each point
+
+
+def read_points(path: str) -> PointsFile:
+    kind = points_format(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise VolwarpError(f"{path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError:
+        raise VolwarpError(f"{path}: not a text file (UTF-8)") from None
+    if kind == "csv":
+        return _read_csv(path, text)
+    return _read_markups(path, text)
+
+
+def _read_csv(path, text) -> PointsFile:
+    rows = list(csv.reader(io.StringIO(text)))
+    rows = [r for r in rows if any(c.strip() for c in r)]
+    if not rows:
+        raise VolwarpError(f"{path}: empty points file (a header with x, y, z columns is needed)")
+    header = [c.strip().lower() for c in rows[0]]
+    try:
+        cols = tuple(header.index(k) for k in ("x", "y", "z"))
+    except ValueError:
+        raise VolwarpError(f"{path}: the header has no x, y, z columns (got "
+                           f"{', '.join(rows[0])[:60]!r})") from None
+    pts = np.empty((len(rows) - 1, 3))
+    for n, row in enumerate(rows[1:]):
+        try:
+            pts[n] = [float(row[c]) for c in cols]
+        except (IndexError, ValueError):
+            raise VolwarpError(f"{path}: line {n + 2}: x, y, z are not numbers") from None
+        if not np.all(np.isfinite(pts[n])):
+            raise VolwarpError(f"{path}: line {n + 2}: x, y, z must be finite")
+    return PointsFile(path, "csv", pts, rows=rows, columns=cols)
+
+
+def _read_markups(path, text) -> PointsFile:
+    try:
+        doc = json.loads(text)
+        markups = doc["markups"]
+        pts, where = [], []
+        for m, mk in enumerate(markups):
+            frame = str(mk.get("coordinateSystem", "LPS")).upper()
+            if frame not in ("LPS", "RAS"):
+                raise VolwarpError(f"{path}: markups[{m}]: unknown coordinateSystem {frame!r}")
+            flip = np.array([-1.0, -1.0, 1.0]) if frame == "RAS" else np.ones(3)
+            for c, cp in enumerate(mk.get("controlPoints", []) or []):
+                p = np.array([float(v) for v in cp["position"]], dtype=np.float64)
+                if p.shape != (3,) or not np.all(np.isfinite(p)):
+                    raise ValueError("position")
+                pts.append(p * flip)
+                where.append((m, c, flip))
+    except VolwarpError:
+        raise
+    except (ValueError, KeyError, TypeError, AttributeError):
+        raise VolwarpError(f"{path}: not a Slicer markups file (markups[].controlPoints[]."
+                           "position)") from None
+    return PointsFile(path, "markups", np.array(pts, dtype=np.float64).reshape(-1, 3), doc=doc,
+                      where=where)
+
+
+def points_text(pf: PointsFile, moved: np.ndarray) -> str:
+    if pf.kind == "csv":
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(pf.rows[0])
+        for row, p in zip(pf.rows[1:], moved, strict=True):
+            row = list(row)
+            for c, v in zip(pf.columns, p, strict=True):
+                row[c] = _num(v)
+            w.writerow(row)
+        return buf.getvalue()
+    doc = json.loads(json.dumps(pf.doc))
+    for (m, c, flip), p in zip(pf.where, moved, strict=True):
+        doc["markups"][m]["controlPoints"][c]["position"] = [float(v) for v in p * flip]
+    return json.dumps(doc, indent=4) + "\n"
+
+
+def write_points(pf: PointsFile, moved: np.ndarray, path: str) -> None:
+    from ..io.atomic import write_bytes_atomic
+
+    write_bytes_atomic(path, points_text(pf, moved).encode("utf-8"))
+
+
+def report_outside(what: str, inside: np.ndarray, fmap: ForwardMap) -> int:
+    n = int(np.count_nonzero(~inside))
+    if n:
+        lo, hi = fmap.support_world_box()
+        log.warning("%s: %d of %d points lie outside the lattice's support (world box %s .. "
+                    "%s mm) and were left unmoved", what, n, len(inside),
+                    np.round(lo, 2).tolist(), np.round(hi, 2).tolist())
+    return n
+
+
+def jacobian_stats(det: np.ndarray) -> dict:
+    d = det.astype(np.float64, copy=False)
+    return {"min": float(d.min()), "max": float(d.max()),
+            "below_0": float(np.count_nonzero(d < 0) / d.size),
+            "below_0.1": float(np.count_nonzero(d < 0.1) / d.size)}
+
+
+def field_stats_ok(counts: dict) -> str:
+    return (f"{counts['no_inverse']} of {counts['voxels']} voxels without an inverse in the "
+            f"lattice's support, {counts['folded']} folded (NaN)")
+
+
+__all__ = ["ForwardMap", "write_field", "write_tfm", "read_points", "write_points",
+           "field_format", "points_format", "check_exportable", "jacobian_stats"]
