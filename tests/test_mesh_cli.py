@@ -277,3 +277,56 @@ def test_nan_samples_are_refused(run, tmp_path):
     write_volume(Volume(data), path)
     res = run("mesh", path, "--iso", "0.5", "--stats")
     assert res.code == 1 and "NaN" in res.stderr
+
+
+@pytest.fixture
+def two_labels(tmp_path):
+    """A ball of label 7 (radius 8) beside a box of label 300 touching the volume's border,
+    anisotropic spacing, as uint16 NRRD."""
+    z, y, x = np.indices((30, 28, 40))
+    lab = np.zeros((30, 28, 40), np.uint16)
+    lab[(x - 12) ** 2 + (y - 14) ** 2 + (z - 15) ** 2 <= 64] = 7
+    lab[5:25, 4:24, 26:40] = 300  # reaches x's last plane
+    spacing = (0.5, 1.0, 2.0)
+    path = tmp_path / "seg.nrrd"
+    write_volume(Volume(lab, spacing=spacing), path)
+    return path, lab, float(np.prod(spacing))
+
+
+@pytest.mark.parametrize("label", [7, 300])
+def test_mesh_label_is_closed_with_the_labels_volume(run, two_labels, tmp_path, label):
+    path, lab, voxel = two_labels
+    res = run("mesh", path, "--label", str(label), "-o", tmp_path / "l.ply", "--json")
+    assert res.code == 0, res.stderr
+    st = json.loads(res.stdout)
+    assert st["closed"] is True and st["components"] == 1  # the box is capped at the border
+    want = float((lab == label).sum()) * voxel
+    assert st["volume"] == pytest.approx(want, rel=0.04)
+    assert st["iso"] == 0.5
+
+
+def test_mesh_labels_writes_one_mesh_per_label(run, two_labels, tmp_path):
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    path, lab, voxel = two_labels
+    res = run("mesh", path, "--labels", "-o", tmp_path / "seg_{label}.ply", "--json")
+    assert res.code == 0, res.stderr
+    st = json.loads(res.stdout)
+    assert sorted(st) == ["300", "7"]
+    for label in (7, 300):
+        mesh = read_mesh(tmp_path / f"seg_{label}.ply")
+        assert mesh.n_faces == st[str(label)]["triangles"] > 0
+        assert st[str(label)]["volume"] == pytest.approx(float((lab == label).sum()) * voxel,
+                                                         rel=0.04)
+
+
+def test_mesh_label_usage_errors(run, two_labels, tmp_path, sphere_file):
+    path, _, _ = two_labels
+    res = run("mesh", path, "--labels", "-o", tmp_path / "seg.ply")
+    assert res.code == 2 and "{label}" in res.stderr
+    res = run("mesh", path, "--label", "7", "--iso", "3", "--stats")
+    assert res.code == 2
+    res = run("mesh", path, "--label", "8", "--stats")
+    assert res.code != 0 and "does not occur" in res.stderr
+    res = run("mesh", sphere_file[0], "--label", "1", "--stats")
+    assert res.code != 0 and "integer" in res.stderr

@@ -35,7 +35,12 @@ def _format_text(d: dict) -> str:
     for k, v in d["meta"].items():
         lines.append(f"meta:      {k} = {v}")
     for k, v in d.items():
-        if k == "candidates":
+        if k == "label_map":
+            vals = " ".join(map(str, v["values"])) + (" ..." if v["labels"] > len(v["values"])
+                                                         else "")
+            lines.append(f"hint:      looks like a label map ({v['labels']} distinct values: "
+                         f"{vals}): warp it with --labels, mesh it with --label N or --labels")
+        elif k == "candidates":
             lines.append(f"candidates: {len(v)} volume{'s' if len(v) > 1 else ''} in the input")
         elif k not in ("format", "shape", "dtype", "spacing", "origin", "direction", "space",
                        "file_space", "min", "max", "mean", "meta", "nonfinite"):
@@ -61,6 +66,7 @@ def command(file, as_json, raw, volume_index, dicom):
     else:
         vol = load_input(file, raw, volume_index, dicom=dicom)
         desc = describe_volume(vol, volume_format(file, reading=True))
+        _label_hint(desc, vol)
     if desc.get("format") == "dicom" and "shape" not in desc:  # several volumes, none chosen
         click.echo(json.dumps(desc, indent=2) if as_json else _candidates_text(desc))
     elif as_json:
@@ -76,6 +82,18 @@ def command(file, as_json, raw, volume_index, dicom):
                    f"y {lo[1]:g}..{hi[1]:g}, z {lo[2]:g}..{hi[2]:g} (all of them: --json)")
     else:
         click.echo(_format_text(desc))
+
+
+def _label_hint(desc: dict, vol) -> None:
+    """Add ``label_map`` (distinct values, the first 16) when an integer volume looks like a
+    segmentation: at most 256 distinct values and piecewise constant (see
+    :func:`volwarp_cli.bspline.labels.label_map_hint`)."""
+    if vol.data.dtype.kind in "iu":
+        from ..bspline.labels import label_map_hint
+
+        hint = label_map_hint(vol.data)
+        if hint is not None:
+            desc["label_map"] = hint
 
 
 def _describe_dicom(file, raw, volume_index, dicom) -> dict:

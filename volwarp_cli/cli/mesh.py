@@ -97,6 +97,13 @@ def _format_stats(d: dict) -> str:
 @click.option("--turntable", type=click.IntRange(min=1, max=360), default=None, metavar="N",
               help="Render N views around the vertical axis, starting at --view, written as "
                    "OUT-000.png ... next to --render's name.")
+@click.option("--label", "label", type=int, default=None, metavar="N",
+              help="A label map: the surface of label N (its indicator's isosurface at 0.5, "
+                   "closed at the border as with --cap); no --iso.")
+@click.option("--labels", "labels", is_flag=True,
+              help="A label map: one mesh per non-zero label, to -o's pattern with {label}, "
+                   "e.g. -o 'seg_{label}.ply' (--stats / --json: one entry per label); "
+                   "no --iso or --render.")
 @click.option("--stats", "show_stats", is_flag=True,
               help="Print counts, area, enclosed volume, bounding box, components, closed.")
 @click.option("--json", "as_json", is_flag=True,
@@ -104,8 +111,8 @@ def _format_stats(d: dict) -> str:
 @input_options
 @common_options
 def command(input, output, iso, inside, cap, smooth, decimate, largest_component, allow_empty,
-            render, view, size, color, background, turntable, show_stats, as_json, raw,
-            volume_index, dicom):
+            render, view, size, color, background, turntable, label, labels, show_stats,
+            as_json, raw, volume_index, dicom):
     """Isosurface INPUT at level --iso and write it to OUTPUT (world coordinates).
 
     Triangles are wound counter-clockwise seen from outside and normals point
@@ -122,16 +129,70 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         raise click.UsageError("nothing to do: give -o/--output, --render or --stats")
     if turntable is not None and render is None:
         raise click.UsageError("--turntable needs --render OUT.png (the frames' name)")
+    if labels and label is not None:
+        raise click.UsageError("--label N and --labels exclude each other")
+    if (labels or label is not None) and iso is not None:
+        raise click.UsageError("--iso does not apply to --label/--labels (the level is 0.5 of "
+                               "each label's indicator)")
+    if labels and render is not None:
+        raise click.UsageError("--render does not apply to --labels (render one --label N)")
     # Fail on bad outputs before any work (their extensions are checked by the options).
     if output is not None:
-        check_mesh_output(output)
+        check_mesh_output(_label_pattern(output) if labels else output)
     if render is not None:
         check_output_path(render)
 
     vol = load_input(input, raw, volume_index, dicom=dicom)
 
+    if labels:
+        _mesh_labels(vol, input, output, smooth, decimate, largest_component, allow_empty,
+                     show_stats or as_json, as_json)
+        return
+    if label is not None:
+        vol, iso, inside, cap = _label_indicator(vol, input, label), 0.5, "above", True
+    mesh, iso = _surface(vol, input, iso, inside, cap, allow_empty, largest_component, smooth,
+                         decimate)
+    log.info("mesh: %d vertices, %d triangles", mesh.n_vertices, mesh.n_faces)
+
+    if output is not None:
+        from ..surface.mesh_io import write_mesh
+        from .common import provenance
+        with timed(f"write {output}"):
+            write_mesh(mesh, output, comments=dict(provenance("mesh", input),
+                                                   volwarp_iso=f"{iso:.9g}"))
+
+    if show_stats or as_json:
+        from ..surface.stats import mesh_stats
+        with timed("statistics"):
+            stats = mesh_stats(mesh)
+        stats["iso"] = iso
+        if as_json:
+            click.echo(json.dumps(stats, sort_keys=True))
+        else:
+            click.echo(_format_stats(stats))
+
+    if render is not None:
+        from ..io.images import write_image
+        from ..render import surface as rs
+        if turntable is None:
+            with timed(f"render {render}"):
+                image = rs.render_mesh(mesh, view=view, size=size, color=color,
+                                       background=background)
+                write_image(render, image)
+        else:
+            paths = turntable_paths(render, turntable)
+            with timed(f"render {turntable} turntable views"):
+                images = rs.render_turntable(mesh, turntable, view=view, size=size,
+                                             color=color, background=background)
+                for path, image in zip(paths, images, strict=True):
+                    write_image(path, image)
+
+
+def _surface(vol, input, iso, inside, cap, allow_empty, largest_component, smooth, decimate):
+    """The isosurface of ``vol`` at ``iso`` after the optional clean-ups; ``(mesh, iso)``."""
     import numpy as np
 
+    from ..progress import log, timed
     from ..surface.isosurface import default_iso, isosurface, touches_border
 
     lo, hi = float(np.min(vol.data)), float(np.max(vol.data))  # NaN if any sample is NaN
@@ -170,37 +231,70 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
     if decimate:
         with timed(f"decimate ({decimate:g})"):
             mesh = ops.decimate(mesh, decimate)
-    log.info("mesh: %d vertices, %d triangles", mesh.n_vertices, mesh.n_faces)
+    return mesh, iso
 
-    if output is not None:
-        from ..surface.mesh_io import write_mesh
-        from .common import provenance
-        with timed(f"write {output}"):
-            write_mesh(mesh, output, comments=dict(provenance("mesh", input),
-                                                   volwarp_iso=f"{iso:.9g}"))
 
-    if show_stats or as_json:
-        from ..surface.stats import mesh_stats
-        with timed("statistics"):
-            stats = mesh_stats(mesh)
-        stats["iso"] = iso
-        if as_json:
-            click.echo(json.dumps(stats, sort_keys=True))
-        else:
-            click.echo(_format_stats(stats))
+def _check_labels(vol, input, what):
+    import numpy as np
 
-    if render is not None:
-        from ..io.images import write_image
-        from ..render import surface as rs
-        if turntable is None:
-            with timed(f"render {render}"):
-                image = rs.render_mesh(mesh, view=view, size=size, color=color,
-                                       background=background)
-                write_image(render, image)
-        else:
-            paths = turntable_paths(render, turntable)
-            with timed(f"render {turntable} turntable views"):
-                images = rs.render_turntable(mesh, turntable, view=view, size=size,
-                                             color=color, background=background)
-                for path, image in zip(paths, images, strict=True):
-                    write_image(path, image)
+    if np.dtype(vol.dtype).kind not in "iu":
+        raise VolwarpError(f"{input}: {what} needs a label map (integer samples), got {vol.dtype}")
+
+
+def _label_indicator(vol, input, label):
+    """The indicator of ``label`` (1 inside, 0 elsewhere), float32, same geometry."""
+    import numpy as np
+
+    _check_labels(vol, input, "--label")
+    ind = vol.data == label
+    if not ind.any():
+        raise VolwarpError(f"{input}: label {label} does not occur in the volume")
+    return vol.with_data(ind.astype(np.float32))
+
+
+def _mesh_labels(vol, input, output, smooth, decimate, largest_component, allow_empty,
+                 show_stats, as_json):
+    """``mesh --labels``: one mesh per non-zero label, to ``output.format(label=L)``."""
+    import numpy as np
+
+    from ..progress import log, timed
+
+    _check_labels(vol, input, "--labels")
+    values = [int(v) for v in np.unique(vol.data) if v != 0]
+    if not values:
+        raise VolwarpError(f"{input}: no label other than 0 in the volume")
+    log.info("%d labels: %s", len(values), " ".join(map(str, values[:20])))
+    all_stats = {}
+    for label in values:
+        ind = _label_indicator(vol, input, label)
+        mesh, _ = _surface(ind, f"{input} label {label}", 0.5, "above", True, allow_empty,
+                           largest_component, smooth, decimate)
+        if output is not None:
+            from ..surface.mesh_io import write_mesh
+            from .common import provenance
+            path = output.format(label=label)
+            with timed(f"write {path}"):
+                write_mesh(mesh, path, comments=dict(provenance("mesh", input),
+                                                     volwarp_label=str(label)))
+        if show_stats:
+            from ..surface.stats import mesh_stats
+            all_stats[label] = mesh_stats(mesh)
+    if as_json:
+        click.echo(json.dumps({str(k): v for k, v in all_stats.items()}, sort_keys=True))
+    elif show_stats:
+        for label, st in all_stats.items():
+            click.echo(f"label:      {label}")
+            click.echo(_format_stats(st))
+
+
+def _label_pattern(output):
+    """``--labels``' output: a pattern with ``{label}`` (checked before any work)."""
+    try:
+        a, b = output.format(label=1), output.format(label=2)
+    except (ValueError, KeyError, IndexError, AttributeError) as exc:
+        raise click.BadParameter(f"{output!r}: {exc} (use e.g. 'seg_{{label}}.ply')",
+                                 param_hint="'-o'") from None
+    if a == b:
+        raise click.BadParameter("with --labels the name must hold {label}, e.g. "
+                                 "'seg_{label}.ply'", param_hint="'-o'")
+    return a

@@ -1,0 +1,462 @@
+"""Warping label maps (segmentations): the forward counterpart of ITK's label interpolators.
+
+The intensity warp averages sample values, which on a label map writes ids
+that occur nowhere near the voxel. Here every label ``L`` gets a weight per
+output voxel instead, and the output voxel takes the label of largest weight:
+
+- ``L``'s weight is the box pushforward's accumulated weight of its indicator
+  (1 inside ``L``, 0 elsewhere): the exact fixed-point sums of the intensity
+  warp (:meth:`.scene.Scene._contribute`), read before the ``v / w``
+  normalisation. One pass per label, over the domain block of its bounding
+  box, into a rolling accumulator that covers only the target block the
+  label's image can reach (bounded from the lattice alone, region by region:
+  :meth:`.scene.Scene._rebuild_block`), so memory does not grow with the
+  number of labels: the output holds the best weight and label so far.
+- The background (label 0) competes like any label: its weight is that of
+  the input's 0 voxels plus the empty space around the model, ``max(w, 1) -
+  w_fg`` (``w`` all the model's weight, ``w_fg`` that of its non-zero voxels;
+  one full pass of the indicator ``label != 0``), so labels do not grow into
+  empty space: a label is kept on the model's silhouette only where it
+  covers more than the space around it.
+- Ties go to the smaller label (0 before positive ids, negative ids before
+  0), deterministically. Every output value is an input label or 0, and ids
+  stay integers end to end (the input's integer dtype; only the weights are
+  numbers): ids above 2^24 survive.
+
+Labels need the subdivision grid (an integer oversample with the uniform
+placement, see :mod:`.lattice`): there every domain voxel lies inside one
+input voxel and takes its label, with no blend of ids. The spanning grid
+(non-integer oversample, tripled placement) is refused.
+
+``preserve``: a label that would vanish (no output voxel) keeps its voxel of
+largest weight (where two such labels want the same voxel, the larger weight,
+then the smaller label). :func:`warp_labels` also reports, per label, the
+input and output volume and the volume the deformation predicts: the total
+weight the label deposits, i.e. the sum of its domain voxels' Jacobian
+volumes (the box filter scales every voxel's overlaps to it), in mm^3.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import VolwarpError
+from ..io.common import ensure_fits_in_memory
+from ..progress import log, timed
+from ..volume import Volume
+from .capture import LATTICE_ARRAYS, Capture
+from .lattice import PLACEMENTS, Grid, capture_offsets
+from .pushforward import QUANTUM
+from .scene import STREAM_PLANES, Scene
+
+#: ``info``'s label-map hint: an integer volume with at most this many distinct values...
+HINT_MAX_LABELS = 256
+#: ...where at least this share of the x-neighbour pairs that are not both 0 are equal
+#: (piecewise constant: a label map; the bundled scans have 0.03 and 0.12, their
+#: binary ball 0.86).
+HINT_MIN_EQUAL = 0.5
+
+_Q = int(QUANTUM)
+
+
+def label_map_hint(data: np.ndarray) -> dict | None:
+    """``{"labels": n, "values": [...]}`` when an integer volume looks like a label map.
+
+    An integer dtype, 2 to :data:`HINT_MAX_LABELS` distinct values, and piecewise
+    constant: at least :data:`HINT_MIN_EQUAL` of the pairs of x neighbours that
+    are not both 0 are equal (a scan with few grey levels, e.g. a 0..133 brain
+    scan or a 0..255 head, varies from voxel to voxel; a segmentation does not).
+    None otherwise (the values: the first 16).
+    """
+    if np.dtype(data.dtype).kind not in "iu" or data.size == 0:
+        return None
+    values = _distinct(data, HINT_MAX_LABELS + 1)
+    if values is None or not 2 <= len(values) <= HINT_MAX_LABELS:
+        return None
+    if data.shape[-1] > 1:
+        step = max(1, data.shape[0] // 64)  # about 64 planes are enough
+        a, b = data[::step, :, :-1], data[::step, :, 1:]
+        some = (a != 0) | (b != 0)
+        n = int(some.sum())
+        if n and int((some & (a == b)).sum()) < HINT_MIN_EQUAL * n:
+            return None
+    return {"labels": int(len(values)), "values": [int(v) for v in values[:16]]}
+
+
+def _distinct(data: np.ndarray, limit: int) -> np.ndarray | None:
+    """The sorted distinct values of an integer array, or None if there are more than
+    ``limit`` (a count table for small ranges, else a sort)."""
+    lo, hi = int(data.min()), int(data.max())
+    if hi - lo < 1 << 24:
+        counts = np.bincount((data.ravel() - lo).astype(np.intp, copy=False)
+                             if lo else data.ravel().astype(np.intp, copy=False),
+                             minlength=hi - lo + 1)
+        values = np.flatnonzero(counts) + lo
+    else:
+        values = np.unique(data)
+    return None if len(values) > limit else values
+
+
+class _NoSamples:
+    """The Scene's domain for a label warp: only its shape (the label passes give their
+    own indicator samples; nothing else may gather)."""
+
+    dtype = np.dtype(np.float32)
+
+    def __init__(self, shape):
+        self.shape = shape
+
+    def planes(self, *a, **k):  # pragma: no cover - the label passes never ask
+        raise VolwarpError("a label map's scene has no samples of its own")
+
+    whole = planes
+
+
+def capture_labels(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform",
+                   oversample: float = 2.0, sampling: str = "linear", pad=None) -> Capture:
+    """A :class:`Capture` of a label map (no float voxmap: the label passes gather their own).
+
+    Refuses a non-integer volume and the spanning grid (a non-integer
+    oversample or the tripled placement: its capture would blend ids). The
+    returned capture keeps the labels as ``labels`` (``vol.data``, not copied).
+    """
+    data = vol.data
+    if np.dtype(data.dtype).kind not in "iu":
+        raise VolwarpError(f"a label map needs integer samples, got {data.dtype} (convert it "
+                           "with --dtype, or warp it without --labels)")
+    if placement not in PLACEMENTS:
+        raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
+    k = float(oversample)
+    if placement != "uniform" or not (k >= 1 and k.is_integer()):
+        raise VolwarpError("a label map is warped on the subdivision grid, where each domain "
+                           "voxel takes one input voxel's label: use an integer oversample "
+                           f"(1, 2, ...) and the uniform placement (got oversample {oversample:g}, "
+                           f"placement {placement})")
+    lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
+    grid = Grid.create(vol.shape_xyz, lattice, k, placement)
+    ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,
+                          f"the {'x'.join(map(str, grid.lattice))} control lattice")
+    capture_offsets(grid, placement)
+    if pad is not None:
+        pad = tuple(int(v) for v in np.broadcast_to(np.asarray(pad), (3,)))
+    geometry = vol.with_data(np.zeros((1, 1, 1), dtype=vol.dtype))
+    cap = Capture(None, grid, placement, k, sampling, pad, geometry, np.dtype(vol.dtype),
+                  (0.0, 1.0, None), _NoSamples(tuple(grid.domain_shape[::-1])))
+    cap.labels = data
+    return cap
+
+
+@dataclass
+class LabelWarp:
+    """The result of :func:`warp_labels`: the target labels ``[z, y, x]`` (the input's
+    dtype) and the per-label report."""
+
+    target: np.ndarray
+    report: dict = field(default_factory=dict)
+
+
+def _bounding_boxes(data: np.ndarray):
+    """``(labels, counts, boxes)``: the distinct non-zero labels (sorted), their voxel
+    counts and input bounding boxes ``(lo, hi)`` (x y z, hi exclusive); ``(count of 0)``."""
+    from scipy import ndimage
+
+    lo, hi = int(data.min()), int(data.max())
+    if hi - lo < 1 << 24:
+        # a count table and a compact index (1..n), a few planes at a time: no
+        # whole-size int64 temporaries
+        step = max(1, (1 << 20) // max(1, data[0].size))
+        counts = np.zeros(hi - lo + 1, dtype=np.int64)
+        for z in range(0, len(data), step):
+            counts += np.bincount(data[z:z + step].ravel().astype(np.int64) - lo,
+                                  minlength=hi - lo + 1)
+        present = np.flatnonzero(counts)
+        values = present + lo
+        itype = np.uint8 if len(present) < 255 else (np.uint16 if len(present) < 65535
+                                                     else np.int32)
+        lut = np.zeros(hi - lo + 1, dtype=itype)
+        lut[present] = np.arange(1, len(present) + 1)
+        index = np.empty(data.shape, dtype=itype)
+        for z in range(0, len(data), step):
+            part = data[z:z + step]
+            index[z:z + step] = lut[part - np.asarray(lo, part.dtype) if lo else part]
+        counts = counts[present]
+    else:
+        values, inverse, counts = np.unique(data, return_inverse=True, return_counts=True)
+        index = (inverse.reshape(data.shape) + 1).astype(np.int32)
+    objects = ndimage.find_objects(index)
+    zero = int(counts[values == 0].sum())
+    labels, nvox, boxes = [], [], []
+    for v, c, sl in zip(values, counts, objects, strict=True):
+        if v == 0 or sl is None:
+            continue
+        labels.append(int(v))
+        nvox.append(int(c))
+        boxes.append((np.array([sl[2].start, sl[1].start, sl[0].start]),
+                      np.array([sl[2].stop, sl[1].stop, sl[0].stop])))
+    return labels, nvox, boxes, zero
+
+
+class _Stream:
+    """One thread's share of the target (z planes [t_lo, t_hi)): its buffers, and one
+    label pass at a time streamed into a rolling accumulator of its target block."""
+
+    def __init__(self, scene: Scene, dq, labels_in: np.ndarray, t_lo: int, t_hi: int,
+                 best_w: np.ndarray, best_l: np.ndarray):
+        self.scene, self.dq, self.data = scene, dq, labels_in
+        self.t_lo, self.t_hi = t_lo, t_hi
+        self.best_w, self.best_l = best_w, best_l
+        grid = scene.grid
+        self.k = grid.subdivision
+        self.lead = np.array(grid.lead)
+        self.chunk = max(1, int(STREAM_PLANES * self.k))  # domain planes per step
+        r_lo, r_hi = scene._target_z_reach(dq, 0, self.chunk)
+        self.planes = r_hi - r_lo + 2
+        dz, dy, dx = grid.domain_shape[::-1]
+        self.values = np.zeros((self.chunk, dy, dx), dtype=np.float32)
+        self.acc = np.zeros(0, dtype=np.int64)
+        from .scene import Scratch
+        self.scratch = Scratch()
+
+    def run(self, label, box, on_planes) -> None:
+        """Scatter label ``label``'s indicator (0 for ``label != 0``) over input box ``box``;
+        ``on_planes(z0, weights [k, y, x, 2], (x0, x1, y0, y1))`` for the finished target
+        planes of its block in this thread's share."""
+        sc, k = self.scene, self.k
+        vlo = self.lead + k * box[0]
+        vhi = self.lead + k * box[1]
+        block = sc._rebuild_block(self.dq, vlo, vhi)
+        if block is None:
+            return
+        tlo, thi = block[0], block[1]
+        z_lo, z_hi = max(int(tlo[2]), self.t_lo), min(int(thi[2]), self.t_hi)
+        if z_lo >= z_hi:
+            return
+        x0, y0 = int(tlo[0]), int(tlo[1])
+        wx, wy = int(thi[0]) - x0, int(thi[1]) - y0
+        # target coordinates relative to the block's corner in x and y: a small ring
+        sub = copy.copy(sc)
+        sub.offset = sc.offset - np.array([x0, y0, 0.0])
+        sub.scratch = self.scratch
+        need = self.planes * wy * wx * 2
+        if self.acc.size < need:
+            self.acc = np.zeros(need + need // 4, dtype=np.int64)
+        acc = self.acc[:need].reshape(self.planes, wy, wx, 2)
+        acc.fill(0)
+        g_lo, g_hi = sc._domain_z_window(self.dq, z_lo, z_hi)
+        g_lo, g_hi = max(g_lo, int(vlo[2])), min(g_hi, int(vhi[2]))
+        base = z_lo
+        planes = self.planes
+        window = (x0, x0 + wx, y0, y0 + wy)
+
+        def flush(upto):
+            nonlocal base
+            while base < upto:
+                s0 = base % planes
+                n = min(upto - base, planes - s0)
+                on_planes(base, acc[s0:s0 + n], window)
+                acc[s0:s0 + n] = 0
+                base += n
+
+        (bx0, by0, bz0), (bx1, by1, bz1) = box
+        xs = slice(int(vlo[0]), int(vhi[0]))
+        ys = slice(int(vlo[1]), int(vhi[1]))
+        for g0 in range(g_lo, g_hi, self.chunk):
+            g1 = min(g0 + self.chunk, g_hi)
+            r_lo, r_hi = sc._target_z_reach(self.dq, g0, g1)
+            flush(min(max(r_lo, base), z_hi))
+            if min(r_hi, z_hi) - base > planes:  # pragma: no cover - cannot happen
+                raise AssertionError("rolling accumulator too small")
+            # the indicator of the label on domain planes [g0, g1) (the box's voxels;
+            # the rest of the buffer stays 0): each domain voxel takes its input voxel's
+            zi = (np.arange(g0, g1) - self.lead[2]) // k
+            src = self.data[zi, by0:by1, bx0:bx1]
+            ind = (src != 0) if label == 0 else (src == label)
+            view = self.values[:g1 - g0, ys, xs].reshape(g1 - g0, by1 - by0, k, bx1 - bx0, k)
+            np.copyto(view, ind[:, :, None, :, None])
+            sub._contribute([self.dq], (int(vlo[0]), int(vlo[1]), g0),
+                            (int(vhi[0]), int(vhi[1]), g1), 1, acc=acc, tzo=base,
+                            tz_hi=min(base + planes, z_hi), ring=True, parallel=False,
+                            scratch=self.scratch, values=(self.values[:g1 - g0], g0),
+                            window=((0, wx), (0, wy)))
+            self.values[:g1 - g0, ys, xs] = 0
+        flush(z_hi)
+
+
+def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: bool = False,
+                spacing=(1.0, 1.0, 1.0)) -> LabelWarp:
+    """Warp the label map ``labels_in`` ``[z, y, x]`` (integer) with ``scene``'s lattice.
+
+    ``scene``: from :func:`.warp.prepare` on a :func:`capture_labels` capture;
+    the last of ``frames`` (if any) is the lattice applied. ``spacing``
+    (x y z, mm) scales the report's volumes. Returns the target labels
+    (padded like the intensity warp's target: crop with
+    :func:`.warp.output_volume`) and a report::
+
+        {"labels": {L: {"input_voxels", "output_voxels", "input_mm3",
+                        "output_mm3", "predicted_mm3", "preserved"}},
+         "vanished": [...], "preserved": [...]}
+    """
+    grid = scene.grid
+    if not grid.subdivision:
+        raise VolwarpError("label maps are warped on the subdivision grid (integer oversample, "
+                           "uniform placement)")
+    if np.dtype(labels_in.dtype).kind not in "iu":
+        raise VolwarpError(f"a label map needs integer samples, got {labels_in.dtype}")
+    if tuple(labels_in.shape[::-1]) != tuple(grid.input_shape):
+        raise VolwarpError("the label map does not match the lattice's input")
+    if scene.background != 0:
+        raise VolwarpError("a label map's background is label 0 (no --background)")
+    if frames:
+        scene.set_lattice(frames[-1].dq)
+    dq = scene.dq
+    tx, ty, tz = scene.target_shape
+    ensure_fits_in_memory(tx * ty * tz * (8 + labels_in.dtype.itemsize), "the warped labels")
+    with timed("labels: bounding boxes"):
+        labels, nvox, boxes, _ = _bounding_boxes(labels_in)
+    best_w = np.empty((tz, ty, tx), dtype=np.int64)
+    best_l = np.zeros((tz, ty, tx), dtype=labels_in.dtype)
+    # the background's weight where nothing of the model lands: all of it
+    best_w.fill(_Q)
+    workers = 2 if (os.cpu_count() or 1) >= 2 and tz >= 8 else 1
+    cuts = [tz * i // workers for i in range(workers + 1)]
+    vol_voxel = float(np.prod(spacing))
+    predicted = {L: 0.0 for L in labels}
+    peak = {L: (0, None) for L in labels}  # (weight, target index z y x)
+    lock = threading.Lock()
+    # negative labels first, descending, winning ties (>=: the smaller id wins), then the
+    # positive ones ascending, losing ties
+    order = [L for L in labels if L < 0][::-1] + [L for L in labels if L > 0]
+    where = {L: i for i, L in enumerate(labels)}
+
+    def share(i):
+        st = _Stream(scene, dq, labels_in, cuts[i], cuts[i + 1], best_w, best_l)
+        full = (np.zeros(3, np.int64), np.array(grid.input_shape, np.int64))
+
+        def background(z0, acc, win):
+            x0, x1, y0, y1 = win
+            w_all, w_fg = acc[..., 0], acc[..., 1]
+            best_w[z0:z0 + len(acc), y0:y1, x0:x1] = np.maximum(w_all, _Q) - w_fg
+
+        st.run(0, full, background)
+        for L in order:
+            total = [0.0]
+            top = [0, None]
+
+            def keep(z0, acc, win, L=L, total=total, top=top):
+                x0, x1, y0, y1 = win
+                w = acc[..., 1]
+                bw = best_w[z0:z0 + len(acc), y0:y1, x0:x1]
+                bl = best_l[z0:z0 + len(acc), y0:y1, x0:x1]
+                better = (w >= bw) if L < 0 else (w > bw)
+                np.copyto(bw, w, where=better)
+                np.copyto(bl, L, where=better, casting="unsafe")
+                total[0] += float(w.sum(dtype=np.float64))
+                if preserve:
+                    j = int(np.argmax(w))
+                    if w.flat[j] > top[0]:
+                        kz, ky, kx = np.unravel_index(j, w.shape)
+                        top[0], top[1] = int(w.flat[j]), (z0 + kz, y0 + ky, x0 + kx)
+
+            st.run(L, boxes[where[L]], keep)
+            with lock:
+                predicted[L] += total[0]
+                if top[1] is not None and top[0] > peak[L][0]:
+                    peak[L] = (top[0], top[1])
+
+    with timed(f"labels: {len(labels)} label passes + background ({workers} threads)"):
+        if workers < 2:
+            share(0)
+        else:
+            with ThreadPoolExecutor(workers) as pool:
+                for f in [pool.submit(share, i) for i in range(workers)]:
+                    f.result()
+    best_w = None  # (freed before the counts)
+    out_counts = _counts(best_l, labels)
+    vanished = [L for L in labels if out_counts[L] == 0]
+    preserved = []
+    if preserve and vanished:
+        # the strongest first: a voxel wanted by two vanishing labels goes to the larger weight
+        for L in sorted(vanished, key=lambda L: (-peak[L][0], L)):
+            w, at = peak[L]
+            if at is None or w <= 0:
+                continue
+            old = best_l[at]
+            if old in vanished and old in preserved:
+                continue
+            best_l[at] = L
+            preserved.append(L)
+            if old != 0 and old in out_counts:
+                out_counts[old] -= 1
+            out_counts[L] = 1
+        for L in preserved:
+            log.info("label %d would vanish: kept at its voxel of largest weight", L)
+        # a label whose only voxels were taken by a preserved one vanishes in turn
+        vanished = [L for L in labels if out_counts[L] == 0]
+    report = {"labels": {}, "vanished": vanished, "preserved": sorted(preserved)}
+    for L, n in zip(labels, nvox, strict=True):
+        report["labels"][L] = {
+            "input_voxels": n, "output_voxels": int(out_counts[L]),
+            "input_mm3": n * vol_voxel, "output_mm3": int(out_counts[L]) * vol_voxel,
+            "predicted_mm3": predicted[L] / _Q * vol_voxel,
+            "preserved": L in preserved}
+    for L in vanished:
+        log.warning("label %d vanished in the warp (%d input voxels)%s", L,
+                    report["labels"][L]["input_voxels"],
+                    "" if preserve else ": --preserve-labels keeps one voxel of it")
+    return LabelWarp(best_l, report)
+
+
+def _counts(target: np.ndarray, labels) -> dict:
+    """Voxels of each label in ``target`` (a few planes at a time: no whole-size copy)."""
+    if not labels:
+        return {}
+    lo, hi = min(min(labels), 0), max(max(labels), 0)
+    if hi - lo >= 1 << 24:
+        values, counts = np.unique(target, return_counts=True)
+        have = dict(zip(values.tolist(), counts.tolist(), strict=True))
+        return {L: int(have.get(L, 0)) for L in labels}
+    counts = np.zeros(hi - lo + 1, dtype=np.int64)
+    step = max(1, (1 << 20) // max(1, target[0].size))
+    for z in range(0, len(target), step):
+        part = target[z:z + step].ravel().astype(np.int64) - lo
+        counts += np.bincount(part, minlength=hi - lo + 1)
+    return {L: int(counts[L - lo]) for L in labels}
+
+
+def label_warp(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
+               crop: bool = False, preserve: bool = False, source: str = "input"):
+    """The whole ``warp --labels``: ``(output Volume, report)`` for the label map ``vol``
+    and a checked spec (``doc``, ``spec``), as :mod:`..cli.warp` does for intensities."""
+    from .warp import output_volume, prepare
+
+    if background not in (None, 0, 0.0):
+        raise VolwarpError("--background does not apply to a label map (its background is 0)")
+    s = spec.capture
+    try:
+        cap = capture_labels(vol, lattice=s.lattice, placement=s.placement,
+                             oversample=s.oversample, sampling=s.sampling)
+    except VolwarpError as exc:
+        raise VolwarpError(f"{source}: {exc}") from None
+    if spec.background != 0:
+        raise doc.error(("background",), "does not apply to a label map (its background is 0)")
+    scene, frames = prepare(cap, doc, spec, method=method, evaluator=evaluator, background=0.0)
+    res = warp_labels(vol.data, scene, frames, preserve=preserve, spacing=vol.spacing)
+    return output_volume(cap, scene, res.target, crop=crop), res.report
+
+
+def format_report(report: dict) -> str:
+    """The per-label report as text lines (``warp --labels -v``)."""
+    lines = ["label  input_mm3  output_mm3  predicted_mm3  output/predicted"]
+    for L, r in report["labels"].items():
+        ratio = r["output_mm3"] / r["predicted_mm3"] if r["predicted_mm3"] > 0 else float("nan")
+        mark = "  (preserved)" if r["preserved"] else ("  (vanished)" if L in report["vanished"]
+                                                       else "")
+        lines.append(f"{L:>5}  {r['input_mm3']:>9.6g}  {r['output_mm3']:>10.6g}  "
+                     f"{r['predicted_mm3']:>13.6g}  {ratio:>16.4f}{mark}")
+    return "\n".join(lines)
