@@ -182,3 +182,38 @@ def test_version_1_capture_files_keep_their_spanning_grid(run, data_dir, tmp_pat
     bad.write_bytes(struct.pack("<16sII", magic, 3, n) + raw[24:])
     res = run("info", bad, "--json")
     assert res.code == 1 and "version 3 is not supported" in res.stderr
+
+
+@pytest.mark.parametrize("space,refused", [("right-anterior-superior", True), ("LAS", True),
+                                           ("left-posterior-superior", False),
+                                           ("scanner-xyz", False), (None, False)])
+def test_version_1_capture_files_from_a_ras_input_are_refused(run, data_dir, tmp_path, space,
+                                                              refused):
+    """Before the LPS world frame a capture of a RAS NRRD kept the RAS numbers (and its
+    measurement frame): `info` printed them unconverted while `warp` converted the
+    geometry only. Such files are refused, by both, naming the remedy."""
+    import struct
+
+    src = data_dir / "ball_30_uint8.nrrd"
+    new = tmp_path / "new.vwc"
+    assert run("capture", src, "-o", new, "--lattice", "7", "--oversample", "1.5").code == 0
+    raw = new.read_bytes()
+    magic, _, n = struct.unpack("<16sII", raw[:24])
+    head = json.loads(raw[24:24 + n])
+    del head["capture"]["subdivision"]
+    head["version"] = 1
+    head["input"]["space"] = space
+    text = json.dumps(head, sort_keys=True).encode()
+    old = tmp_path / "old.vwc"
+    old.write_bytes(struct.pack("<16sII", magic, 1, len(text)) + text + raw[24 + n:])
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nunits: voxel\nsteps: []\n")
+    for args in (["info", old, "--json"], ["warp", old, "--spec", spec, "-o", tmp_path / "o.nrrd"]):
+        res = run(*args)
+        if refused:
+            assert res.code == 1 and "capture the input again" in res.stderr, res
+        else:
+            assert res.code == 0, res
+    if not refused:
+        d = json.loads(run("info", old, "--json").stdout)
+        assert d["space"] == (None if space is None else "left-posterior-superior")

@@ -73,7 +73,7 @@ def test_keep_phi_keeps_the_patients_name(run, two_series, tmp_path):
 def test_dicom_options_for_another_format_are_usage_errors(run, data_dir, tmp_path):
     res = run("convert", data_dir / "ball_30_uint8.nrrd", "--series", "1", "-o",
               tmp_path / "x.nrrd")
-    assert res.code == 2 and "not a DICOM input" in res.stderr
+    assert res.code == 2 and "applies to DICOM inputs" in res.stderr
     res = run("convert", data_dir / "ball_30_uint8.nrrd", "-o", tmp_path / "x.dcm")
     assert res.code == 2 and "does not write it" in res.stderr
 
@@ -85,3 +85,18 @@ def test_a_dicom_series_feeds_the_other_commands(run, two_series, tmp_path):
     assert res.code == 0, res
     vol = read_volume(out)
     assert vol.shape_xyz == (7, 5, 3) and vol.meta["DICOM_SeriesInstanceUID"] == B
+
+
+def test_pydicom_warnings_stay_off_stderr(tmp_path):
+    """badVR.dcm made pydicom print a two-line UserWarning before volwarp's one line."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import pydicom.data
+
+    path = Path(pydicom.data.__file__).parent / "test_files" / "badVR.dcm"
+    res = subprocess.run([str(Path(sys.executable).parent / "volwarp"), "info", str(path)],
+                         capture_output=True, text=True)
+    assert res.returncode == 1
+    assert res.stderr.count("\n") == 1 and res.stderr.startswith("volwarp: error: "), res.stderr

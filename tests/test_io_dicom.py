@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import random
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -616,3 +617,16 @@ def test_gantry_tilt_with_irregular_gap_resampled(tmp_path):
     fov = fov[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
     assert fov.mean() > 0.5
     np.testing.assert_allclose(got[fov], _ramp_world(world[fov]), atol=0.51)
+
+
+def test_projection_images_take_the_imager_pixel_spacing():
+    """A CR image has no PixelSpacing, only ImagerPixelSpacing (0.1 mm): SimpleITK (GDCM)
+    reads that, volwarp read 1 mm (physical points 10x apart)."""
+    import pydicom.data
+
+    path = str(Path(pydicom.data.__file__).parent / "test_files" / "dicomdirtests" / "77654033"
+               / "CR1" / "6154")
+    vol = read_dicom(path)
+    img = sitk.ReadImage(path)
+    np.testing.assert_allclose(vol.spacing[:2], img.GetSpacing()[:2], rtol=1e-9)
+    np.testing.assert_allclose(vol.spacing[:2], [0.1, 0.1])

@@ -122,3 +122,34 @@ def test_stale_temporaries_of_dead_processes_are_removed_and_others_kept(tmp_pat
     left = set(os.listdir(tmp_path))
     assert not set(stale) & left
     assert {alive.name, other_host.name, unrelated.name} <= left
+
+
+def test_a_detached_pair_is_both_old_or_both_new_after_a_stop(tmp_path):
+    """`.mhd` + `.raw`: the header was renamed before its data file, so a stop between the
+    two renames left a new header over old samples (a wrong image, read without error)."""
+    big = tmp_path / "big.nrrd"
+    other = tmp_path / "other.nrrd"
+    rng = np.random.default_rng(4)
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+    write_volume(Volume(rng.random((96, 96, 96), dtype=np.float32)), big)
+    write_volume(Volume(rng.random((96, 96, 96), dtype=np.float32) * 0.5, origin=(5, 0, 0)),
+                 other)
+    out = tmp_path / "o" / "out.mhd"
+    out.parent.mkdir()
+    refs = {}
+    for src in (other, big):
+        code, err, length = _run(["convert", src, "-o", out], os.environ)
+        assert code == 0, err
+        refs[src] = (out.read_bytes(), out.with_suffix(".raw").read_bytes())
+    stopped = 0
+    for delay in np.linspace(0.1, length * 1.1, 12):
+        code, err, _ = _run(["convert", other, "-o", out], os.environ)
+        assert code == 0, err
+        code, err, _ = _run(["convert", big, "-o", out], os.environ, float(delay),
+                            signal.SIGTERM)
+        pair = (out.read_bytes(), out.with_suffix(".raw").read_bytes())
+        assert pair in (refs[other], refs[big]), (delay, code, "a mixed pair")
+        assert sorted(os.listdir(out.parent)) == ["out.mhd", "out.raw"], (delay, "temporary")
+        stopped += code in (143, -15)
+    assert stopped >= 1

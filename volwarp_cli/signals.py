@@ -27,6 +27,7 @@ import contextlib
 import os
 import signal
 import sys
+import threading
 
 #: paths of temporary outputs not yet renamed into place (removed on a stop)
 temporaries: set[str] = set()
@@ -44,13 +45,17 @@ class Interrupted(BaseException):
 def _on_signal(signum, frame):  # pragma: no cover - exercised in subprocess tests
     if not _stop:
         _stop.append(signum)
-    # Temporaries first: if the raise below is swallowed somewhere, the promise
-    # "no stray temporary file" still holds, and the rename will find none.
+    _remove_temporaries()
+    _raise_when_safe(frame)
+
+
+def _remove_temporaries() -> None:
+    # Before raising: if the raise is swallowed somewhere, the promise "no stray
+    # temporary file" still holds, and the rename will find none.
     for tmp in list(temporaries):
         with contextlib.suppress(OSError):
             os.unlink(tmp)
     temporaries.clear()
-    _raise_when_safe(frame)
 
 
 #: how soon a stop deferred by an import is looked at again (seconds)
@@ -68,7 +73,24 @@ def _raise_when_safe(frame) -> None:
         signal.signal(signal.SIGALRM, lambda s, f: _raise_when_safe(f))
         signal.setitimer(signal.ITIMER_REAL, _RECHECK)
         return
+    _remove_temporaries()  # (again: some may have been made while the raise waited)
     raise Interrupted(_stop[0])
+
+
+@contextlib.contextmanager
+def blocked():
+    """Hold SIGINT, SIGTERM (and the deferred stop's SIGALRM) back for a few steps that
+    must not be cut in two: a temporary made and registered, several files renamed
+    together. A stop asked meanwhile is handled as soon as the block ends."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # Python runs its handlers in the main thread only
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK,
+                                 {signal.SIGINT, signal.SIGTERM, signal.SIGALRM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _importing(frame) -> bool:

@@ -131,6 +131,7 @@ def read_header(path: str | os.PathLike) -> tuple[dict, int]:
         raise FormatError(f"{path}: capture file header is inconsistent (payload size)")
     if version == 1:  # before subdivision grids
         head["capture"]["subdivision"] = 0
+        _refuse_unconverted_frame(head, path)
     problem = _header_problem(head)
     if problem:
         raise FormatError(f"{path}: capture file header is malformed ({problem})")
@@ -140,6 +141,24 @@ def read_header(path: str | os.PathLike) -> tuple[dict, int]:
     if size > expected:
         raise FormatError(f"{path}: capture file has {size - expected} unexpected trailing bytes")
     return head, _PREFIX.size + n
+
+
+def _refuse_unconverted_frame(head: dict, path) -> None:
+    """A version 1 file captured from a RAS or LAS input holds the input's numbers in that
+    frame (volwarp converted frames only later) and its key/values (a NRRD measurement
+    frame) too: refused, rather than half converted."""
+    from ..volume import LPS, SPACE_NAMES, frame_to_lps
+
+    space = head.get("input", {}).get("space")
+    try:
+        to_lps = frame_to_lps(space)
+    except Exception:  # an unknown name: the header check below reports it
+        return
+    if to_lps is not None and not np.array_equal(to_lps, np.eye(3)):
+        name = SPACE_NAMES[str(space).lower()]
+        raise FormatError(f"{path}: this capture file (version 1) keeps its input's "
+                          f"{name} coordinates, from before volwarp's world frame was "
+                          f"{LPS}; capture the input again")
 
 
 def _header_problem(head: dict) -> str | None:
@@ -246,8 +265,9 @@ def describe_capture(path: str | os.PathLike) -> dict:
     head, _ = read_header(path)
     inp = head["input"]
     capd = head["capture"]
+    # (as read_capture builds it: a version 1 file's frame name normalised to LPS)
     geometry = Volume(np.zeros((1, 1, 1)), spacing=inp["spacing"], origin=inp["origin"],
-                      direction=inp["direction"])
+                      direction=inp["direction"], space=inp["space"])
     grid = Grid(tuple(inp["shape"]), tuple(capd["lattice"]), tuple(capd["granularity"]),
                 int(capd["subdivision"]))
     from .lattice import capture_offsets
@@ -266,7 +286,7 @@ def describe_capture(path: str | os.PathLike) -> dict:
         "spacing": inp["spacing"],
         "origin": inp["origin"],
         "direction": inp["direction"],
-        "space": inp["space"],
+        "space": geometry.space,
         "min": num(inp["min"]),
         "max": num(inp["max"]),
         "mean": inp["mean"],

@@ -18,7 +18,7 @@ def load_input(path, raw=None, volume_index=None, mmap=False, dicom=None) -> Vol
                                f"not {path}")
     if dicom is not None and volume_format(path, reading=True) != "dicom":
         given = " ".join(f"--{k.replace('_', '-')}" for k in sorted(dicom))
-        raise click.UsageError(f"{given}: DICOM options, and {path} is not a DICOM input")
+        raise click.UsageError(f"{given} applies to DICOM inputs, and {path} is not one")
     with timed(f"read {path}"):
         return read_volume(path, raw=raw, volume_index=volume_index, mmap=mmap, dicom=dicom)
 

@@ -92,6 +92,9 @@ class VolwarpGroup(click.Group):
             # the user (the contract is one line, and volwarp checks what it computes for
             # finiteness itself); --debug shows them
             warnings.filterwarnings("ignore", category=RuntimeWarning)
+            # pydicom warns about every odd element it reads past (a bad VR, a missing
+            # preamble): the reader's own errors say what matters
+            warnings.filterwarnings("ignore", module=r"pydicom(\..*)?$")
         try:
             result = super().main(args=args, prog_name=prog_name, standalone_mode=False, **extra)
             code = result if isinstance(result, int) else 0

@@ -17,11 +17,11 @@ import tempfile
 from pathlib import Path
 
 from ..errors import VolwarpError
-from ..signals import Interrupted, check_stop, install, temporaries
+from ..signals import Interrupted, blocked, check_stop, install, temporaries
 from .mapped import check_unchanged, sync_temporaries
 
-__all__ = ["Interrupted", "atomic_output", "check_output_path", "install_signal_handlers",
-           "write_bytes_atomic"]
+__all__ = ["Interrupted", "atomic_output", "atomic_outputs", "check_output_path",
+           "install_signal_handlers", "write_bytes_atomic"]
 
 #: the registry the signal handler empties (see :mod:`volwarp_cli.signals`)
 _live_temporaries = temporaries
@@ -52,34 +52,65 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None):
     ``suffix`` defaults to the output's own extension(s), so libraries that
     choose behaviour by file name (``.nii.gz``, ``.tif``) see the right one.
     """
-    path = check_output_path(path)
-    if suffix is None:
-        suffix = "".join(path.suffixes[-2:]) if path.name.endswith(".gz") else path.suffix
-    _remove_stale_temporaries(path)
-    fd, tmp = tempfile.mkstemp(prefix=_temporary_prefix(path.name), suffix=f".part{suffix}",
-                               dir=path.parent)
-    os.close(fd)
-    _live_temporaries.add(tmp)
-    sync_temporaries()
+    with atomic_outputs(path, suffixes=None if suffix is None else [suffix]) as (tmp,):
+        yield tmp
+
+
+@contextlib.contextmanager
+def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None):
+    """Temporaries for several files that belong together, renamed onto them together.
+
+    A detached header and its data file (``.nhdr`` + ``.raw``, ``.mhd`` +
+    ``.raw``) must be both new or both old: the renames run with SIGINT and
+    SIGTERM held back, in the order given (the data file first, so that a
+    header never names data it does not describe), after the last checks.
+    """
+    paths = [check_output_path(p) for p in paths]
+    if suffixes is None:
+        suffixes = ["".join(p.suffixes[-2:]) if p.name.endswith(".gz") else p.suffix
+                    for p in paths]
+    tmps: list[str] = []
     try:
-        yield Path(tmp)
-        # Files are created 0600 by mkstemp; give the output the usual mode.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
-        check_unchanged()  # an input mapped for this output changed meanwhile: no rename
-        os.replace(tmp, path)
+        for path, suffix in zip(paths, suffixes, strict=True):
+            _remove_stale_temporaries(path)
+            with blocked():  # made and registered at once: a stop cannot leak it
+                fd, tmp = tempfile.mkstemp(prefix=_temporary_prefix(path.name),
+                                           suffix=f".part{suffix}", dir=path.parent)
+                _live_temporaries.add(tmp)
+                tmps.append(tmp)
+            os.close(fd)
+        sync_temporaries()
+        yield [Path(t) for t in tmps]
+        for tmp in tmps:  # mkstemp makes files 0600: give the outputs the usual mode
+            os.chmod(tmp, 0o666 & ~_UMASK)
+        with blocked():
+            check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
+            check_unchanged()  # an input mapped for these outputs changed: no rename
+            for tmp, path in zip(tmps, paths, strict=True):
+                os.replace(tmp, path)
     except BaseException as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        if isinstance(exc, OSError) and exc.filename in (None, tmp):
-            # writing the output failed (a full disk, a quota): say which output
-            raise VolwarpError(f"{path}: cannot write ({exc.strerror or exc})") from exc
+        for tmp in tmps:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        if isinstance(exc, OSError) and (exc.filename is None or exc.filename in tmps):
+            # writing an output failed (a full disk, a quota): say which output
+            named = paths[tmps.index(exc.filename)] if exc.filename in tmps else paths[-1]
+            raise VolwarpError(f"{named}: cannot write ({exc.strerror or exc})") from exc
         raise
     finally:
-        _live_temporaries.discard(tmp)
+        for tmp in tmps:
+            _live_temporaries.discard(tmp)
         sync_temporaries()
+
+
+def _read_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+#: read once, at import (os.umask can only be read by setting it: racy under threads)
+_UMASK = _read_umask()
 
 
 def _host() -> str:

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import FormatError, VolwarpError
 from ..volume import LPS, Volume, xyz_to_zyx
-from .atomic import atomic_output
+from .atomic import atomic_output, atomic_outputs
 from .common import (
     ascii_values,
     check_data_output,
@@ -552,7 +552,7 @@ def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = Fa
         header = metaimage_header(vol, dtype, byte_order=byte_order, data_file=name,
                                   compressed_size=size)
         check_data_output(data_path, path, _referenced_data_files)
-        with atomic_output(data_path) as tmp_data, atomic_output(path) as tmp_header:
+        with atomic_outputs(data_path, path) as (tmp_data, tmp_header):
             with open(tmp_data, "wb") as fh:
                 fh.write(payload)
             tmp_header.write_bytes(header)

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import FormatError, VolwarpError
 from ..volume import Volume, frame_to_lps, xyz_to_zyx
-from .atomic import atomic_output
+from .atomic import atomic_output, atomic_outputs
 from .common import (
     ascii_values,
     check_data_output,
@@ -695,7 +695,7 @@ def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
         header = nrrd_header(vol, dtype, encoding=encoding, byte_order=byte_order,
                              data_file=data_path.name, components=component_names)
         check_data_output(data_path, path, _referenced_data_files)
-        with atomic_output(data_path) as tmp_data, atomic_output(path) as tmp_header:
+        with atomic_outputs(data_path, path) as (tmp_data, tmp_header):
             with open(tmp_data, "wb") as fh:
                 _write_payload(fh, payload, encoding, level)
             tmp_header.write_bytes(header)

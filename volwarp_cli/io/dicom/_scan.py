@@ -393,6 +393,8 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
     image_type = _text(ds, "ImageType").upper().split("\\")
     localizer = "LOCALIZER" in image_type
     top_spacing = _floats(ds, "PixelSpacing", 2, where)
+    if top_spacing is None:  # projection images (CR, DX) give the detector's, as GDCM reads it
+        top_spacing = _floats(ds, "ImagerPixelSpacing", 2, where)
     top_slope = _float(ds, "RescaleSlope", 1.0, where)
     top_inter = _float(ds, "RescaleIntercept", 0.0, where)
     if top_slope == 0:
