@@ -93,13 +93,14 @@ def case(kind: str, n: int, cells: int, repeat: int) -> dict:
             "before_mib": base}
 
 
-def main() -> None:
+def main(quick: bool = False, argv: list[str] | None = None) -> None:
+    """``benchmarks/run.py labels`` calls this with ``quick`` (128^3) and no arguments."""
     ap = argparse.ArgumentParser()
-    ap.add_argument("--n", type=int, default=256)
+    ap.add_argument("--n", type=int, default=128 if quick else 256)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--case", default=None)
     ap.add_argument("--cells", type=int, default=8)
-    a = ap.parse_args()
+    a = ap.parse_args([] if argv is None else argv)
     if a.case:
         print(json.dumps(case(a.case, a.n, a.cells, a.repeat)))
         return
@@ -122,4 +123,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(argv=sys.argv[1:])
