@@ -429,3 +429,20 @@ def test_nrrd_written_plane_by_plane_is_the_whole_files_bytes(tmp_path, dtype, o
         raise RuntimeError("the warp failed")
     assert streamed.read_bytes() == whole.read_bytes()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_a_chain_through_every_format_keeps_key_values_exactly(tmp_path, data_dir):
+    """NRRD -> NIfTI -> MetaImage -> TIFF -> NRRD (what `make demo` checks): samples,
+    geometry and key/values come back as they were; no format adds keys of its own where
+    its header holds nothing but its defaults (NIfTI's codes 1 and 1, mm)."""
+    src = read_volume(data_dir / "mri_t1_head_coronal_2x2x3mm.nrrd")
+    src.meta["note"] = "kept"
+    path = tmp_path / "a.nrrd"
+    write_volume(src, path)
+    for name in ("b.nii.gz", "c.mha", "d.tif", "e.nrrd"):
+        write_volume(read_volume(path), tmp_path / name)
+        path = tmp_path / name
+    back = read_volume(path)
+    assert back.meta == src.meta
+    assert back.data.tobytes() == src.data.tobytes()
+    assert_same_geometry(src, back, atol=1e-5)

@@ -22,7 +22,8 @@ millimetres (spacing and origin scaled by 1000 or 1/1000); other space units
 (mm, unknown) are taken as millimetres. The units are written back as they
 were, with the matrix scaled back to them.
 
-Header fields kept on a round trip, as ``Volume.meta`` strings:
+Header fields kept on a round trip, as ``Volume.meta`` strings (each only where
+it differs from what the writer does by default: codes 1 and 1, mm):
 
 * ``NIfTI_sform_code``, ``NIfTI_qform_code`` (integers; e.g. 4 for an MNI152
   template, 2 for an aligned space). volwarp writes its one matrix into both
@@ -284,11 +285,14 @@ def _text_field(header, name: str) -> str:
 
 def _header_meta(header) -> dict[str, str]:
     """The header fields volwarp keeps (module docstring), as meta strings."""
-    meta = {
-        "NIfTI_sform_code": str(int(header["sform_code"])),
-        "NIfTI_qform_code": str(int(header["qform_code"])),
-        "NIfTI_xyzt_units": str(int(header["xyzt_units"])),
-    }
+    # only what differs from what the writer does anyway (codes 1 and 1, mm): a plain
+    # scanner-coded file's key/values stay empty through NIfTI -> NRRD -> NIfTI
+    meta = {}
+    codes = (int(header["sform_code"]), int(header["qform_code"]))
+    if codes != (1, 1):
+        meta["NIfTI_sform_code"], meta["NIfTI_qform_code"] = (str(c) for c in codes)
+    if int(header["xyzt_units"]) != _DEFAULT_XYZT_UNITS:
+        meta["NIfTI_xyzt_units"] = str(int(header["xyzt_units"]))
     params = [float(header[f"intent_p{i}"]) for i in (1, 2, 3)]
     name = _text_field(header, "intent_name")
     if int(header["intent_code"]) or any(params) or name:
