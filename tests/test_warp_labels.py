@@ -230,3 +230,29 @@ def test_warp_labels_through_the_command_line(run, tmp_path):
         res = run("warp", src, "--spec", spec, "-o", tmp_path / "x.nrrd", *args)
         assert res.code == 2, (extra, res)
         assert not (tmp_path / "x.nrrd").exists()
+
+
+def test_the_spec_can_say_values_labels(run, tmp_path):
+    """`values: labels` in the warp spec does what --labels does; its clashes are spec errors
+    naming the key and its line."""
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    seg = np.zeros((20, 20, 20), np.int16)
+    seg[4:12, 5:14, 6:15] = 7
+    seg[12:17, 5:14, 6:15] = 300
+    src = tmp_path / "seg.nrrd"
+    write_volume(Volume(seg), src)
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nvalues: labels\ncapture: {lattice: 6, oversample: 1}\nsteps:\n"
+                    "  - move:\n      - {index: [2, 2, 2], by: [1.7, 0.4, -0.9]}\n")
+    a, b = tmp_path / "a.nrrd", tmp_path / "b.nrrd"
+    assert run("warp", src, "--spec", spec, "-o", a, "--crop").code == 0
+    assert run("warp", src, "--spec", spec, "-o", b, "--labels", "--crop").code == 0
+    got = read_volume(a).data
+    assert np.array_equal(got, read_volume(b).data)
+    assert set(np.unique(got)) <= {0, 7, 300} and not np.array_equal(got, seg)
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "c.nrrd", "--dtype", "uint8")
+    assert res.code == 2 and "values" in res.stderr and ":2:" in res.stderr, res
+    assert run("warp", src, "--spec", spec, "-o", tmp_path / "d.nrrd",
+               "--preserve-labels").code == 0

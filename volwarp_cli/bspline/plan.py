@@ -58,6 +58,7 @@ class WarpSpec:
     evaluator: str = "separable"
     background: float = 0.0
     steps: list = field(default_factory=list)
+    values: str = "intensity"
 
 
 def _vec3(v):
@@ -93,7 +94,7 @@ def read_warp_spec(doc) -> WarpSpec:
     return WarpSpec(units=d.get("units", "world"), capture=settings, capture_given=set(cap),
                     pushforward=d.get("pushforward", "box"),
                     evaluator=d.get("evaluator", "separable"),
-                    background=background, steps=steps)
+                    background=background, steps=steps, values=d.get("values", "intensity"))
 
 
 class Geometry:

@@ -54,9 +54,10 @@ def _unchecked_capture_settings(doc):
     from ..bspline.plan import read_warp_spec
 
     try:
-        return read_warp_spec(doc).capture
+        spec = read_warp_spec(doc)
     except Exception:  # an invalid spec: the schema check reports it
         return None
+    return None if spec.values == "labels" else spec.capture  # labels: their own capture
 
 
 def _capture(vol, settings, input, defer):
@@ -146,8 +147,6 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     it is padded (origin shifted, anatomy in place) unless --crop.
     """
     check_output_path(output)
-    if preserve_labels and not labels:
-        raise click.UsageError("--preserve-labels needs --labels")
     if labels and (frames_to or input.lower().endswith(".vwc")):
         raise click.UsageError("--labels warps a label-map volume in one shot "
                                "(no --frames-to, no capture file)")
@@ -192,6 +191,17 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             early = pool.submit(_capture_early, reading, settings, input, one_shot)
         validate(doc, load_schema("warp"))
         spec = read_warp_spec(doc)
+        if spec.values == "labels" and not labels:  # the spec says what --labels says
+            for clash, given in (("--frames-to", frames_to), ("a capture file", is_capture),
+                                 ("--dtype", dtype is not None),
+                                 ("the deformation's exports", bool(exports))):
+                if given:
+                    raise doc.error(("values",), f"labels are warped in one shot from a "
+                                    f"volume, without {clash}")
+            labels = True
+        if preserve_labels and not labels:
+            raise click.UsageError("--preserve-labels needs --labels (or the spec's "
+                                   "values: labels)")
         if is_capture:
             with timed(f"read {input}"):
                 cap = read_capture(input)
