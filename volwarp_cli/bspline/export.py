@@ -27,6 +27,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -279,18 +280,57 @@ class ForwardMap:
             x[ok] = org + h * s[ok]
         return x, status
 
-    def resampling_field(self, shape_xyz, shift) -> tuple[np.ndarray, dict]:
+    def _image_box(self):
+        """The image of the support lies inside the control points' bounding box."""
+        pts = (self.grid.uniform_positions() + self.dq).reshape(-1, 3)
+        return pts.min(axis=0) - 1e-6, pts.max(axis=0) + 1e-6
+
+    def resampling_field(self, shape_xyz, shift, *, warm: bool = True,
+                         threads: int | None = None) -> tuple[np.ndarray, dict]:
         """F^-1(y) - y on an output grid of ``shape_xyz`` voxels, world mm, [z, y, x, 3]
         float32, NaN where there is none. The output grid is the input's, shifted:
-        output voxel t is the input-index point ``t + shift``."""
+        output voxel t is the input-index point ``t + shift``.
+
+        The numba kernel of :mod:`._export_kernels` (the same Newton iteration as
+        :meth:`_invert_chunk`, per voxel, warm-started along output rows unless
+        ``warm`` is false), the output's z slices split over ``threads`` threads
+        (default: the CPUs). :meth:`_resampling_field_numpy` is the vectorised
+        reference it is tested against."""
+        from ._export_kernels import invert_rows
+
+        nx, ny, nz = (int(v) for v in shape_xyz)
+        shift = np.ascontiguousarray(shift, dtype=np.float64)
+        box_lo, box_hi = self._image_box()
+        folds = self._fold_image((nx, ny, nz), shift, fast=True, threads=threads)
+        out = np.empty((nz, ny, nx, 3), np.float32)
+        status = np.empty((nz, ny, nx), np.int8)
+        dq = np.ascontiguousarray(self.dq)
+        regions = np.ascontiguousarray(self.regions, dtype=np.int64)
+        matrix = np.ascontiguousarray(self.matrix, dtype=np.float64)
+
+        def part(z0, z1):
+            invert_rows(dq, self.org, self.h, regions, shift, box_lo, box_hi, matrix, nx, ny,
+                        z0, z1, INVERSE_ITERATIONS, INVERSE_TOL, INVERSE_ACCEPT, bool(warm),
+                        out, status)
+
+        _run_slabs(part, nz, nx * ny, threads)
+        if folds is not None:
+            hit = (status == 0) & folds.reshape(nz, ny, nx)
+            status[hit] = 2
+            out[hit] = np.nan
+        counts = {"voxels": nx * ny * nz, "no_inverse": int(np.count_nonzero(status == 1)),
+                  "folded": int(np.count_nonzero(status == 2))}
+        return out, counts
+
+    def _resampling_field_numpy(self, shape_xyz, shift) -> tuple[np.ndarray, dict]:
+        """F^-1(y) - y on an output grid of ``shape_xyz`` voxels, world mm, [z, y, x, 3]
+        float32, NaN where there is none: the vectorised reference of
+        :meth:`resampling_field` (about 40 us per voxel; the tests' yardstick)."""
         nx, ny, nz = (int(v) for v in shape_xyz)
         shift = np.asarray(shift, dtype=np.float64)
         out = np.empty((nz * ny * nx, 3), np.float32)
         counts = {"voxels": nx * ny * nz, "no_inverse": 0, "folded": 0}
-        # the image of the support lies inside the control points' bounding box
-        pts = self.grid.uniform_positions() + self.dq
-        box_lo = pts.reshape(-1, 3).min(axis=0) - 1e-6
-        box_hi = pts.reshape(-1, 3).max(axis=0) + 1e-6
+        box_lo, box_hi = self._image_box()
         total = nx * ny * nz
         folds = self._fold_image((nx, ny, nz), shift)
         for a in range(0, total, CHUNK):
@@ -310,12 +350,25 @@ class ForwardMap:
         return out.reshape(nz, ny, nx, 3), counts
 
 
-    def _fold_image(self, shape_xyz, shift):
+    def _jacobian_fast(self, threads: int | None = None) -> np.ndarray:
+        """:meth:`jacobian` by the numba kernel of :mod:`._export_kernels` (the same
+        values to rounding; what the fold test of :meth:`resampling_field` uses)."""
+        from ._export_kernels import jacobian_rows
+
+        nx, ny, nz = self.grid.input_shape
+        out = np.empty((nz, ny, nx), np.float32)
+        dq = np.ascontiguousarray(self.dq)
+        regions = np.ascontiguousarray(self.regions, dtype=np.int64)
+        _run_slabs(lambda z0, z1: jacobian_rows(dq, self.org, self.h, regions, nx, ny, z0, z1,
+                                                out), nz, nx * ny, threads)
+        return out
+
+    def _fold_image(self, shape_xyz, shift, fast: bool = False, threads: int | None = None):
         """Output voxels (flat bool) that the folded part of the input (det <= 0) maps
         onto, where the map has several preimages; None when nothing folds. Sampled at
         27 points per input voxel near the fold, each marking the 8 output voxels
-        around its image."""
-        det = self.jacobian()
+        around its image. (``fast``: det on the input grid by the numba kernel.)"""
+        det = self._jacobian_fast(threads) if fast else self.jacobian()
         neg = det <= 0
         if not neg.any():
             return None
@@ -340,6 +393,25 @@ class ForwardMap:
                 q = q[ok]
                 mark[(q[:, 2] * ny + q[:, 1]) * nx + q[:, 0]] = True
         return mark
+
+
+def _run_slabs(part, nz: int, per_slice: int, threads: int | None) -> None:
+    """``part(z0, z1)`` over [0, nz) in slabs of a few slices, spread over ``threads`` threads
+    (default: the CPUs; the kernels release the GIL and write disjoint slices). Threads
+    instead of numba's ``prange``, whose threading layer costs time to start in every
+    process (see :func:`.basis.run_split`)."""
+    n = threads if threads is not None else (os.cpu_count() or 1)
+    n = max(1, min(int(n), nz, 1 + nz * per_slice // 32768))
+    if n == 1:
+        part(0, nz)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    # interleaved slabs: the work per slice varies (the image's edge, folds)
+    step = max(1, min(8, nz // (4 * n)))
+    with ThreadPoolExecutor(n) as pool:
+        for f in [pool.submit(part, z0, min(z0 + step, nz)) for z0 in range(0, nz, step)]:
+            f.result()
 
 
 # ---- writers ------------------------------------------------------------------------------------
