@@ -31,6 +31,7 @@ COMMANDS = {
     "mesh": "mesh",
     "info": "info",
     "convert": "convert",
+    "batch": "batch",
 }
 _SHORT_HELP = {
     "capture": "Capture a volume into a B-spline domain voxmap (.vwc).",
@@ -41,6 +42,7 @@ _SHORT_HELP = {
     "mesh": "Isosurface a volume to PLY/STL/OBJ/VTP and render it to PNG.",
     "info": "Print a volume's format, geometry and statistics.",
     "convert": "Convert a volume between NRRD, NIfTI, MetaImage, TIFF and raw (DICOM in).",
+    "batch": "Run a manifest of scans through a chain of volwarp steps, in parallel.",
 }
 
 

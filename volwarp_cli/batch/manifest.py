@@ -1,0 +1,272 @@
+"""The batch manifest: loaded, checked against its schema and against itself, before any work.
+
+A manifest (``specs/manifest.schema.json``) names the scans (a glob, a list or a
+CSV column), the output folder and the chain of volwarp steps each scan goes
+through. Everything that can be wrong with it is a :class:`SpecError` (exit 2)
+naming the key path and its line: an unknown subcommand, a step reading a
+step that does not come before it, a missing output pattern, an unknown
+placeholder, an option the manifest sets itself (``-o``, ``--spec``), an
+output extension the step cannot write. The scans are found here too
+(:func:`find_scans`), so two scans that would share outputs are refused before
+anything runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import hashlib
+import string
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import SpecError, VolwarpError
+from ..spec.loader import SpecDoc, load_spec
+
+#: where a step's input is the scan itself
+SCAN = "scan"
+#: the placeholders of output patterns and option values
+PLACEHOLDERS = ("stem", "relpath")
+#: extensions a single extension's worth of stem stripping treats as one
+DOUBLE_EXTENSIONS = (".nii.gz", ".raw.gz")
+#: options the manifest's own keys set (given in ``options`` they would clash)
+RESERVED_OPTIONS = ("-o", "--output", "--spec")
+_MESH_EXTENSIONS = (".ply", ".stl", ".obj", ".vtp", ".vtk")
+
+
+@dataclass(frozen=True)
+class Step:
+    index: int
+    name: str
+    run: str
+    input: str  # SCAN or an earlier step's name
+    output: str  # the pattern
+    spec: Path | None
+    options: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Scan:
+    id: str  # relpath/stem, posix: the scan's name in progress lines and the report
+    path: Path
+    stem: str
+    relpath: str  # "" at the root
+
+
+@dataclass
+class Manifest:
+    path: Path
+    base: Path  # the manifest's folder
+    output_dir: Path
+    steps: list[Step]
+    doc: SpecDoc
+    sha256: str = ""
+    specs: dict[str, str] = field(default_factory=dict)  # spec path -> sha256
+
+
+def stem_of(name: str) -> str:
+    """``p01.nii.gz`` -> ``p01``; ``p01.nrrd`` -> ``p01``; one extension only."""
+    lower = name.lower()
+    for ext in DOUBLE_EXTENSIONS:
+        if lower.endswith(ext) and len(name) > len(ext):
+            return name[:-len(ext)]
+    return Path(name).stem
+
+
+def placeholders(text: str) -> list[str] | None:
+    """The placeholder names in ``text``, or None if it is not a valid pattern."""
+    try:
+        parsed = list(string.Formatter().parse(text))
+    except ValueError:
+        return None
+    names = []
+    for _, name, spec, conversion in parsed:
+        if name is None:
+            continue
+        if spec or conversion or name not in PLACEHOLDERS:
+            return None
+        names.append(name)
+    return names
+
+
+def fill(text: str, scan: Scan) -> str:
+    return text.format(stem=scan.stem, relpath=scan.relpath or ".")
+
+
+def _check_pattern(doc: SpecDoc, path: tuple, text: str) -> list[str]:
+    names = placeholders(text)
+    if names is None:
+        raise doc.error(path, f"bad pattern {text!r}: the placeholders are "
+                              + ", ".join("{" + p + "}" for p in PLACEHOLDERS)
+                              + " (write {{ and }} for braces)")
+    return names
+
+
+def _produces(run: str) -> str:
+    return {"mesh": "mesh", "capture": "capture"}.get(run, "volume")
+
+
+def _check_output_extension(doc: SpecDoc, path: tuple, run: str, pattern: str) -> None:
+    from ..io import volume_format
+
+    name = pattern.lower()
+    if run == "mesh":
+        if not name.endswith(_MESH_EXTENSIONS):
+            raise doc.error(path, f"a mesh output must end in {' '.join(_MESH_EXTENSIONS)}, "
+                                  f"not {pattern!r}")
+    elif run == "capture":
+        if not name.endswith(".vwc"):
+            raise doc.error(path, f"a capture output must end in .vwc, not {pattern!r}")
+    else:
+        try:
+            volume_format(pattern)
+        except VolwarpError as exc:
+            raise doc.error(path, str(exc)) from None
+
+
+def load_manifest(path: str | Path) -> Manifest:
+    """Read and check a manifest (every error a :class:`SpecError` with key and line)."""
+    path = Path(path)
+    doc = load_spec(path, "manifest")
+    base = path.parent
+    steps: list[Step] = []
+    by_name: dict[str, Step] = {}
+    for i, raw in enumerate(doc.data["steps"]):
+        key = ("steps", i)
+        name, run = raw["name"], raw["run"]
+        if name == SCAN:
+            raise doc.error(key + ("name",), f"{SCAN!r} names the scan itself; "
+                                             "choose another step name")
+        if name in by_name:
+            raise doc.error(key + ("name",), f"duplicate step name {name!r} "
+                                             f"(also steps[{by_name[name].index}])")
+        source = raw.get("input", SCAN)
+        if source != SCAN:
+            if source not in by_name:
+                later = [j for j, s in enumerate(doc.data["steps"]) if s.get("name") == source]
+                known = ", ".join([SCAN] + list(by_name))
+                why = (f"step {source!r} comes later (steps[{later[0]}]); a step reads "
+                       "the scan or an earlier step" if later else f"unknown step {source!r}")
+                raise doc.error(key + ("input",), f"{why} (known here: {known})")
+            made = _produces(by_name[source].run)
+            if made == "mesh":
+                raise doc.error(key + ("input",), f"step {source!r} writes a mesh, which "
+                                                  f"{run} cannot read")
+            if made == "capture" and run != "warp":
+                raise doc.error(key + ("input",), f"step {source!r} writes a capture file "
+                                                  f"(.vwc), which only warp reads")
+        spec = raw.get("spec")
+        if run == "warp" and spec is None:
+            raise doc.error(key, "a warp step needs 'spec' (its warp spec)")
+        if run != "warp" and spec is not None:
+            raise doc.error(key + ("spec",), f"{run} takes no spec (only warp steps do)")
+        spec_path = doc.resolve(spec) if spec is not None else None
+        if spec_path is not None and not spec_path.is_file():
+            raise doc.error(key + ("spec",), f"no such spec file: {spec_path}")
+        _check_pattern(doc, key + ("output",), raw["output"])
+        _check_output_extension(doc, key + ("output",), run, raw["output"])
+        options = []
+        for k, value in enumerate(raw.get("options", [])):
+            if isinstance(value, bool):
+                raise doc.error(key + ("options", k), "an option value must be a string or "
+                                                      f"a number, not {value!r}")
+            text = value if isinstance(value, str) else f"{value:g}" if isinstance(
+                value, float) else str(value)
+            flag = text.split("=", 1)[0]
+            if flag in RESERVED_OPTIONS:
+                raise doc.error(key + ("options", k),
+                                f"{flag} is set by the step's "
+                                f"{'spec' if flag == '--spec' else 'output'} key, not options")
+            _check_pattern(doc, key + ("options", k), text)
+            options.append(text)
+        step = Step(i, name, run, source, raw["output"], spec_path, tuple(options))
+        steps.append(step)
+        by_name[name] = step
+    manifest = Manifest(path=path, base=base,
+                        output_dir=doc.resolve(doc.data["output_dir"]).absolute(),
+                        steps=steps, doc=doc)
+    manifest.sha256 = hashlib.sha256(path.read_bytes()).hexdigest()
+    for step in steps:
+        if step.spec is not None and str(step.spec) not in manifest.specs:
+            manifest.specs[str(step.spec)] = hashlib.sha256(step.spec.read_bytes()).hexdigest()
+    return manifest
+
+
+def _glob_root(pattern: str) -> str:
+    """The folder of a glob pattern before its first wildcard: ``scans/**/*.nrrd`` -> ``scans``."""
+    parts = Path(pattern).parts
+    fixed = []
+    for part in parts[:-1]:
+        if glob.has_magic(part):
+            break
+        fixed.append(part)
+    return str(Path(*fixed)) if fixed else "."
+
+
+def find_scans(manifest: Manifest) -> list[Scan]:
+    """The manifest's scans, sorted by id; two scans with one id are a spec error."""
+    doc = manifest.doc
+    inputs = doc.data["inputs"]
+    paths: list[tuple[Path, tuple]] = []  # (file, the key that named it)
+    if "glob" in inputs:
+        pattern = str(doc.resolve(inputs["glob"]))
+        root = doc.resolve(inputs.get("root", _glob_root(pattern)))
+        out = manifest.output_dir.resolve()
+        for name in sorted(glob.glob(pattern, recursive=True)):
+            p = Path(name)
+            if not p.is_file():  # (DICOM folders: convert them first, or list them)
+                continue
+            if p.resolve().is_relative_to(out):  # our own outputs are not scans
+                continue
+            paths.append((p, ("inputs", "glob")))
+        if not paths:
+            raise VolwarpError(f"{manifest.path}: inputs.glob: no scan matches {pattern!r} "
+                               "(empty or not mounted?)")
+    elif "list" in inputs:
+        root = doc.resolve(inputs.get("root", "."))
+        paths = [(doc.resolve(p), ("inputs", "list", i)) for i, p in enumerate(inputs["list"])]
+    else:
+        table = doc.resolve(inputs["csv"])
+        column = inputs.get("column", "path")
+        root = doc.resolve(inputs["root"]) if "root" in inputs else table.parent
+        try:
+            with open(table, newline="", encoding="utf-8-sig") as fh:
+                reader = csv.DictReader(fh)
+                if column not in (reader.fieldnames or []):
+                    raise doc.error(("inputs", "column"),
+                                    f"{table.name} has no column {column!r} (columns: "
+                                    f"{', '.join(reader.fieldnames or []) or 'none'})")
+                for row in reader:
+                    cell = (row.get(column) or "").strip()
+                    if not cell:
+                        raise SpecError(f"{column}: empty cell", file=str(table),
+                                        line=reader.line_num)
+                    p = Path(cell).expanduser()
+                    paths.append((p if p.is_absolute() else table.parent / p, ("inputs", "csv")))
+        except OSError as exc:
+            raise doc.error(("inputs", "csv"), f"cannot read {table}: "
+                                               f"{exc.strerror or exc}") from None
+        if not paths:
+            raise VolwarpError(f"{table}: no scan listed")
+    scans: dict[str, Scan] = {}
+    for p, key in paths:
+        try:
+            rel = Path(p).absolute().parent.relative_to(Path(root).absolute())
+        except ValueError:
+            raise doc.error(key, f"{p} is not under the inputs' root {root} (set inputs.root)"
+                            ) from None
+        relpath = "" if str(rel) == "." else rel.as_posix()
+        stem = stem_of(Path(p).name)
+        scan = Scan(id=f"{relpath}/{stem}" if relpath else stem, path=Path(p), stem=stem,
+                    relpath=relpath)
+        if scan.id in scans:
+            raise doc.error(key, f"{scans[scan.id].path} and {p} would share outputs "
+                                 f"(both are scan {scan.id!r})")
+        scans[scan.id] = scan
+    return [scans[k] for k in sorted(scans)]
+
+
+def shard(scans: list[Scan], index: int, count: int) -> list[Scan]:
+    """Shard ``index`` of ``count`` (0-based): every ``count``-th scan of the sorted list,
+    so the shards together hold every scan exactly once, and are of even size."""
+    return scans[index::count]

@@ -1,0 +1,124 @@
+"""What each scan's steps are, concretely, and whether they are up to date (Make's habit).
+
+A step's plan is its command line (``volwarp RUN INPUT [--spec S] -o OUT
+OPTIONS -q``), its input (the scan, or an earlier step's output) and its
+outputs: ``-o`` and every option value holding a placeholder (a mesh's
+``--render {stem}.png``), all under the output folder.
+
+A step is up to date when every output exists, none is older than the step's
+input and spec, and, for a volume written by a command that stamps its
+provenance (warp, distance), the provenance read back with volwarp's own
+reader records the same input name, spec sha256, command and volwarp version.
+Meshes, renders, capture files and converted volumes (convert keeps its
+input's key/values) carry less: for them the modification times decide.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .. import __version__
+from .manifest import SCAN, Manifest, Scan, Step, fill, placeholders
+
+#: the subcommands whose volume outputs carry volwarp_* provenance of their own
+STAMPING = ("warp", "distance")
+
+
+@dataclass
+class StepPlan:
+    step: Step
+    input: Path
+    output: Path
+    extra_outputs: list[Path] = field(default_factory=list)
+    argv: list[str] = field(default_factory=list)  # after ``volwarp``
+
+    @property
+    def outputs(self) -> list[Path]:
+        return [self.output, *self.extra_outputs]
+
+
+def output_path(manifest: Manifest, scan: Scan, pattern: str) -> Path:
+    """A pattern filled for ``scan``, under the output folder (mirroring the scan's folder
+    unless the pattern places ``{relpath}`` itself)."""
+    filled = fill(pattern, scan)
+    if "relpath" in (placeholders(pattern) or ()):
+        return manifest.output_dir / filled
+    return manifest.output_dir / scan.relpath / filled
+
+
+def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
+    plans: dict[str, StepPlan] = {}
+    for step in manifest.steps:
+        source = scan.path if step.input == SCAN else plans[step.input].output
+        output = output_path(manifest, scan, step.output)
+        options, extra = [], []
+        for value in step.options:
+            if placeholders(value):
+                path = output_path(manifest, scan, value)
+                extra.append(path)
+                options.append(str(path.absolute()))
+            else:
+                options.append(value)
+        argv = [step.run, str(Path(source).absolute())]
+        if step.spec is not None:
+            argv += ["--spec", str(step.spec.absolute())]
+        argv += ["-o", str(output.absolute()), *options, "-q"]
+        plans[step.name] = StepPlan(step, Path(source), output, extra, argv)
+    return list(plans.values())
+
+
+def _mtime(path: Path) -> int | None:
+    try:
+        return os.stat(path).st_mtime_ns
+    except OSError:
+        return None
+
+
+def stale_reason(manifest: Manifest, plan: StepPlan) -> str | None:
+    """Why ``plan``'s outputs must be (re)made, or None when they are up to date."""
+    sources = [plan.input] + ([plan.step.spec] if plan.step.spec is not None else [])
+    newest = 0
+    for src in sources:
+        t = _mtime(src)
+        if t is None:
+            return f"{src} is missing"  # the step runs, and says what is wrong
+        newest = max(newest, t)
+    for out in plan.outputs:
+        t = _mtime(out)
+        if t is None:
+            return f"{out.name} is missing"
+        if t < newest:
+            return f"{out.name} is older than its input or spec"
+    if plan.step.run in STAMPING and _is_volume(plan.output):
+        return _provenance_differs(manifest, plan)
+    return None
+
+
+def _is_volume(path: Path) -> bool:
+    from ..errors import VolwarpError
+    from ..io import volume_format
+
+    try:
+        volume_format(path)
+    except VolwarpError:
+        return False
+    return True
+
+
+def _provenance_differs(manifest: Manifest, plan: StepPlan) -> str | None:
+    from ..io import read_volume
+
+    try:
+        meta = read_volume(plan.output, mmap=True).meta
+    except Exception:  # unreadable: remake it  # noqa: BLE001
+        return f"{plan.output.name} cannot be read"
+    spec = plan.step.spec
+    want = {"volwarp_version": __version__, "volwarp_command": plan.step.run,
+            "volwarp_input": plan.input.name,
+            "volwarp_spec_sha256": manifest.specs[str(spec)] if spec is not None else None}
+    for key, value in want.items():
+        if meta.get(key) != value:
+            return f"{plan.output.name}: {key} differs"
+    return None

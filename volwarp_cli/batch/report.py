@@ -1,0 +1,124 @@
+"""What a batch says: a progress line per scan, one summary line, the JSON run report.
+
+Progress (stderr, unless ``--quiet``), as each scan ends::
+
+    ok site-a/p01 3.2 s
+    skipped site-a/p02
+    failed site-b/p17 0.4 s: truncated gzip stream
+
+The summary (stderr, always), e.g.::
+
+    volwarp batch: 412 scans, 409 ok, 2 skipped, 1 failed: site-b/p17 (truncated gzip stream)
+
+The report (``--report-json``): per scan and per step its status, seconds,
+attempts, exit code, error line, command and outputs, with the provenance
+key/values every volwarp output carries (``volwarp_input``: the manifest's
+name, ``volwarp_spec_sha256``: its sha256). Written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+from pathlib import Path
+
+from .run import ScanResult
+
+#: at most this many failed scans are named in the summary line
+NAMED_FAILURES = 5
+_PREFIX = "volwarp: error: "
+
+
+def short_error(error: str | None, result: ScanResult) -> str:
+    """The error line without ``volwarp: error:`` and without the scan's own path."""
+    if not error:
+        return "failed"
+    text = error[len(_PREFIX):] if error.startswith(_PREFIX) else error
+    paths = [str(result.scan.path.absolute()), str(result.scan.path)]
+    for step in result.steps:
+        paths += step.outputs
+        paths += [c for c in step.command if c.startswith("/")]
+    for p in sorted(set(paths), key=len, reverse=True):
+        if text.startswith(p + ": "):
+            return text[len(p) + 2:]
+    return text
+
+
+def progress_line(result: ScanResult) -> str:
+    if result.status in ("skipped", "not started"):
+        return f"{result.status} {result.scan.id}"
+    line = f"{result.status} {result.scan.id} {result.seconds:.1f} s"
+    if result.status == "failed":
+        line += f": {short_error(result.error, result)}"
+    return line
+
+
+def counts(results: list[ScanResult]) -> dict[str, int]:
+    out = {"scans": len(results)}
+    for status in ("ok", "skipped", "failed", "stopped", "not started"):
+        out[status.replace(" ", "_")] = sum(r.status == status for r in results)
+    return out
+
+
+def summary_line(results: list[ScanResult], *, stop: int | None = None,
+                 shard: tuple[int, int, int] | None = None) -> str:
+    """One line: how many scans, how many ok / skipped / failed, which failed and why."""
+    c = counts(results)
+    head = f"{c['scans']} scan{'' if c['scans'] == 1 else 's'}"
+    if shard is not None:
+        head += f" (shard {shard[0]}/{shard[1]} of {shard[2]})"
+    parts = [head, f"{c['ok']} ok", f"{c['skipped']} skipped", f"{c['failed']} failed"]
+    if c["stopped"]:
+        parts.append(f"{c['stopped']} stopped")
+    if c["not_started"]:
+        parts.append(f"{c['not_started']} not started")
+    line = "volwarp batch: "
+    if stop is not None:
+        done = c["ok"] + c["skipped"] + c["failed"]
+        line += f"stopped by {signal.Signals(stop).name} with {done} of {c['scans']} done: "
+    line += ", ".join(parts)
+    failed = [r for r in results if r.status == "failed"]
+    if failed:
+        named = ", ".join(f"{r.scan.id} ({short_error(r.error, r)})"
+                          for r in failed[:NAMED_FAILURES])
+        more = len(failed) - NAMED_FAILURES
+        line += f": {named}" + (f" and {more} more" if more > 0 else "")
+    return " ".join(line.split())
+
+
+def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | None,
+                shard: tuple[int, int, int] | None, exit_code: int) -> dict:
+    from ..cli.common import provenance
+
+    meta = provenance("batch", manifest.path)
+    meta["volwarp_spec_sha256"] = manifest.sha256
+    return {
+        **meta,
+        "manifest": str(manifest.path),
+        "output_dir": str(manifest.output_dir),
+        "jobs": jobs,
+        "shard": None if shard is None else f"{shard[0]}/{shard[1]}",
+        "stopped_by": None if stop is None else signal.Signals(stop).name,
+        "exit_code": exit_code,
+        "summary": counts(results),
+        "scans": [{
+            "scan": r.scan.id,
+            "input": str(r.scan.path),
+            "status": r.status,
+            "seconds": round(r.seconds, 3),
+            "error": r.error,
+            "steps": [{
+                "name": s.name, "run": s.run, "status": s.status,
+                "seconds": round(s.seconds, 3), "error": s.error, "attempts": s.attempts,
+                "exit_code": s.exit_code, "reason": s.reason,
+                "command": s.command, "outputs": s.outputs,
+            } for s in r.steps],
+        } for r in results],
+    }
+
+
+def write_report(path: str | Path, report: dict) -> None:
+    from ..io.atomic import write_bytes_atomic
+
+    text = json.dumps(report, indent=2, sort_keys=False) + "\n"
+    write_bytes_atomic(path, text.encode("utf-8"))
