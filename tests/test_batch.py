@@ -22,6 +22,7 @@ import pytest
 
 from volwarp_cli import __version__
 from volwarp_cli.batch.manifest import find_scans, load_manifest, shard, stem_of
+from volwarp_cli.batch.plan import STATE_NAME
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.volume import Volume
 
@@ -122,7 +123,7 @@ def test_chain_outputs_mirror_folders_and_equal_hand_runs(warped, tmp_path):
         assert meta["volwarp_input"] == Path(rel).name
         assert read_volume(out / s.name).meta["volwarp_input"] == w.name
     assert sorted(str(p.relative_to(root / "out")) for p in (root / "out").rglob("*")
-                  if p.is_file()) == sorted(
+                  if p.is_file() and p.name != STATE_NAME) == sorted(
         f"{sid}{suffix}" for sid in SCANS.values() for suffix in ("_sdf.nrrd", "_warped.nrrd"))
 
 
@@ -219,7 +220,8 @@ def test_bad_scan_fails_alone(tmp_path):
     for scan_id in ("site-a/p02", "site-b/p03"):
         assert (tmp_path / "out" / f"{scan_id}_sdf.nrrd").is_file()
     assert not (tmp_path / "out" / "site-a" / "p01.nrrd").exists()
-    assert not [p for p in (tmp_path / "out").rglob(".*")]  # no temporary left
+    assert not [p for p in (tmp_path / "out").rglob(".*")
+                if p.name != STATE_NAME]  # no temporary left
     report = json.loads((tmp_path / "r.json").read_text())
     bad = next(s for s in report["scans"] if s["scan"] == "site-a/p01")
     assert bad["status"] == "failed" and bad["error"].startswith("volwarp: error: ")
@@ -293,6 +295,21 @@ MALFORMED = {
     "unknown key": (
         CONVERT_MANIFEST.replace("output_dir: out", "output_dir: out\njobs: 4"),
         r"manifest\.yaml:4: jobs: unknown key 'jobs'"),
+    # found by a review: each of these ran, and lost or mixed up data
+    "an output that is a scan": (
+        "version: 1\ninputs: {list: [scans/site-a/p02.nrrd], root: scans}\noutput_dir: scans\n"
+        "steps:\n  - {name: conv, run: convert, output: \"{stem}.nrrd\", "
+        "options: [\"--dtype\", \"uint8\"]}\n",
+        r"manifest\.yaml:5: steps\[0\]\.output: .*p02\.nrrd is the scan 'site-a/p02' itself"),
+    "two steps, one output": (
+        CONVERT_MANIFEST.replace('output: "{stem}_sdf.nrrd"', 'output: "{stem}.nrrd"'),
+        r"manifest\.yaml:6: steps\[1\]\.output: .* also written by step 'conv'"),
+    "an output option in the = form": (
+        CONVERT_MANIFEST.replace('options: ["--iso", "50"]}',
+                                 'options: ["--iso", "50"]}\n  - {name: m, run: mesh, input: conv, '
+                                 'output: "{stem}.ply", options: ["--iso=50", "--render={stem}.png"]}'),
+        r"manifest\.yaml:7: steps\[2\]\.options\[1\]: write --render and its output name as "
+        "two items"),
 }
 
 
@@ -392,8 +409,30 @@ def test_sigterm_stops_the_batch(tmp_path):
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["stopped_by"] == "SIGTERM" and report["exit_code"] == 143
     assert report["scans"][0]["status"] == "ok"
-    assert not [p for p in (tmp_path / "out").rglob(".*")]  # no temporary left
+    assert not [p for p in (tmp_path / "out").rglob(".*")
+                if p.name != STATE_NAME]  # no temporary left
     # a rerun finishes the job, skipping what was done
     res = volwarp("batch", manifest)
     assert res.returncode == 0
     assert re.search(r"^skipped site-a/p01$", res.stderr, re.M)
+
+
+def test_changed_options_redo_the_step(warped, tmp_path):
+    """Outputs looked up to date after the manifest's options changed (--iso 50 -> 60):
+    times and provenance do not show options; the batch's record of each output's
+    command does."""
+    root = tmp_path / "tree"
+    shutil.copytree(warped[0], root)  # moved: still up to date (the record is relative)
+    res = volwarp("batch", root / "manifest.yaml")
+    assert summary(res) == "volwarp batch: 3 scans, 0 ok, 3 skipped, 0 failed", res.stderr
+    manifest = root / "manifest.yaml"
+    manifest.write_text(manifest.read_text().replace('["--iso", 50]', '["--iso", 60]'))
+    res = volwarp("batch", manifest)
+    assert summary(res) == "volwarp batch: 3 scans, 3 ok, 0 skipped, 0 failed", res.stderr
+    for scan_id in SCANS.values():  # the distance step reran; the warp was up to date
+        sdf = read_volume(root / "out" / f"{scan_id}_sdf.nrrd")
+        hand = tmp_path / "hand.nrrd"
+        assert volwarp("distance", root / "out" / f"{scan_id}_warped.nrrd", "--iso", 60, "-o",
+                       hand).returncode == 0
+        assert (root / "out" / f"{scan_id}_sdf.nrrd").read_bytes() != b"" and np.array_equal(
+            sdf.data, read_volume(hand).data)

@@ -326,6 +326,9 @@ def test_mesh_label_usage_errors(run, two_labels, tmp_path, sphere_file):
     assert res.code == 2 and "{label}" in res.stderr
     res = run("mesh", path, "--label", "7", "--iso", "3", "--stats")
     assert res.code == 2
+    for args in (["--label", "7"], ["--labels"]):  # was accepted and ignored
+        res = run("mesh", path, *args, "--inside", "below", "--stats")
+        assert res.code == 2 and "--inside does not apply" in res.stderr, res
     res = run("mesh", path, "--label", "8", "--stats")
     assert res.code != 0 and "does not occur" in res.stderr
     res = run("mesh", sphere_file[0], "--label", "1", "--stats")

@@ -303,3 +303,46 @@ def test_simpleitk_label_linear_through_the_exported_field_agrees(run, tmp_path)
         checked += 1
     assert checked == 3
     assert np.nanmax(np.linalg.norm(sitk.GetArrayFromImage(f), axis=-1)) > 3.0  # it moves
+
+
+@pytest.mark.parametrize("dtype,ids", [("int8", (-100, -60, 100)), ("int16", (-30000, 30000))])
+def test_signed_ids_spanning_the_type_do_not_wrap(run, tmp_path, dtype, ids):
+    """100 - (-100) wrapped in int8 inside the label bookkeeping: warp --labels and info
+    failed with internal errors on such maps."""
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    seg = np.zeros((12, 13, 14), dtype)
+    for n, v in enumerate(ids):
+        seg[2 + 3 * n:4 + 3 * n, 3:9, 2:10] = v
+    src = tmp_path / "s.nrrd"
+    write_volume(Volume(seg), src)
+    spec = tmp_path / "id.yaml"
+    spec.write_text("version: 1\ncapture: {lattice: 5, oversample: 1}\nsteps: []\n")
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", spec, "--labels", "--crop", "-o", out)
+    assert res.code == 0, res
+    assert np.array_equal(read_volume(out).data, seg)  # an unmoved lattice: exactly the map
+    assert run("info", src).code == 0
+
+
+@pytest.mark.parametrize("capture,extra,key", [
+    ("{lattice: 6, oversample: 1.5}", [], "capture.oversample"),
+    ("{lattice: 6, oversample: 1, placement: tripled}", [], "capture.placement"),
+    ("{lattice: 6, oversample: 1}", ["--background", "3"], "--background"),
+])
+def test_what_a_label_map_cannot_have_is_a_usage_or_spec_error(run, tmp_path, capture, extra,
+                                                                key):
+    """Were exit 1 (found after the read): a spec error naming the key, or a usage error."""
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    seg = np.zeros((12, 12, 12), np.uint8)
+    seg[3:8, 3:8, 3:8] = 5
+    src = tmp_path / "s.nrrd"
+    write_volume(Volume(seg), src)
+    spec = tmp_path / "w.yaml"
+    spec.write_text(f"version: 1\nvalues: labels\ncapture: {capture}\nsteps: []\n")
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", *extra)
+    assert res.code == 2 and key in res.stderr, res
+    assert not (tmp_path / "o.nrrd").exists()

@@ -173,6 +173,11 @@ def load_manifest(path: str | Path) -> Manifest:
             text = value if isinstance(value, str) else f"{value:g}" if isinstance(
                 value, float) else str(value)
             flag = text.split("=", 1)[0]
+            if "=" in text and flag.startswith("-") and placeholders(text.split("=", 1)[1]):
+                raise doc.error(key + ("options", k),
+                                f"write {flag} and its output name as two items "
+                                f"([{flag!r}, {text.split('=', 1)[1]!r}]): the name is placed "
+                                "under output_dir")
             if flag in RESERVED_OPTIONS:
                 raise doc.error(key + ("options", k),
                                 f"{flag} is set by the step's "

@@ -76,8 +76,83 @@ def _mtime(path: Path) -> int | None:
         return None
 
 
-def stale_reason(manifest: Manifest, plan: StepPlan) -> str | None:
+#: in the output folder: each output's command (sha256 of its argv), written as steps end
+STATE_NAME = ".volwarp-batch-state.json"
+
+
+def command_digest(manifest: Manifest, plan: StepPlan) -> str:
+    """The step as the manifest defines it (run, input, output pattern, spec, options),
+    hashed; paths relative to the manifest, so a tree moved elsewhere is still up to date."""
+    import hashlib
+    import json
+
+    step = plan.step
+    spec = None if step.spec is None else os.path.relpath(step.spec, manifest.base)
+    text = json.dumps([step.run, step.input, step.output, spec, list(step.options)])
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+class CommandRecord:
+    """Which command made each output (``STATE_NAME``): options changed since an output
+    was made (``--crop`` added, ``--iso 20`` to 60) make it stale, which neither times
+    nor the outputs' provenance (it names the command, not its options) would show."""
+
+    def __init__(self, manifest: Manifest):
+        import json
+        import threading
+
+        self.manifest = manifest
+        self.path = manifest.output_dir / STATE_NAME
+        self.lock = threading.Lock()
+        try:
+            self.made = dict(json.loads(self.path.read_text()))
+        except (OSError, ValueError, TypeError):
+            self.made = {}
+
+    def _key(self, path: Path) -> str:
+        return os.path.relpath(path.absolute(), self.manifest.output_dir)
+
+    def matches(self, plan: StepPlan) -> bool:
+        digest = command_digest(self.manifest, plan)
+        return all(self.made.get(self._key(p)) == digest for p in plan.outputs)
+
+    def record(self, plan: StepPlan) -> None:
+        import json
+
+        from ..io.atomic import write_bytes_atomic
+
+        with self.lock:
+            for p in plan.outputs:
+                self.made[self._key(p)] = command_digest(self.manifest, plan)
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            write_bytes_atomic(self.path, json.dumps(self.made, sort_keys=True,
+                                                     indent=1).encode())
+
+
+def check_outputs(manifest: Manifest, scans: list[Scan]) -> None:
+    """Refuse, before any work, an output that is a scan or that two steps both write."""
+    inputs = {str(s.path.resolve()): s for s in scans}
+    writers: dict[str, tuple[Scan, Step]] = {}
+    for scan in scans:
+        for plan in plan_scan(manifest, scan):
+            key = ("steps", plan.step.index, "output")
+            for out in plan.outputs:
+                real = str(out.resolve())
+                if real in inputs:
+                    raise manifest.doc.error(key, f"{out} is the scan {inputs[real].id!r} "
+                                                  "itself: an output never replaces an input")
+                if real in writers:
+                    other = writers[real][1]
+                    raise manifest.doc.error(key, f"{out} is also written by step "
+                                                  f"{other.name!r} (steps[{other.index}])")
+                writers[real] = (scan, plan.step)
+
+
+def stale_reason(manifest: Manifest, plan: StepPlan, record: CommandRecord | None = None
+                 ) -> str | None:
     """Why ``plan``'s outputs must be (re)made, or None when they are up to date."""
+    if record is not None and not record.matches(plan):
+        return "its command (options) changed, or this batch did not make it"
     sources = [plan.input] + ([plan.step.spec] if plan.step.spec is not None else [])
     newest = 0
     for src in sources:
@@ -111,7 +186,7 @@ def _provenance_differs(manifest: Manifest, plan: StepPlan) -> str | None:
     from ..io import read_volume
 
     try:
-        meta = read_volume(plan.output, mmap=True).meta
+        meta = read_volume(plan.output).meta
     except Exception:  # unreadable: remake it  # noqa: BLE001
         return f"{plan.output.name} cannot be read"
     spec = plan.step.spec

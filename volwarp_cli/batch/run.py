@@ -33,7 +33,7 @@ from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
 from .manifest import SCAN, Manifest, Scan
-from .plan import StepPlan, plan_scan, stale_reason
+from .plan import CommandRecord, StepPlan, plan_scan, stale_reason
 
 #: seconds a stopped child is given before it is killed
 STOP_GRACE = 20.0
@@ -91,6 +91,7 @@ class Batch:
         self._stopping: int | None = None
         self._failed = False
         self._signals: list[int] = []  # appended by the signal handler only
+        self._record = CommandRecord(manifest)
 
     # --- the main thread -----------------------------------------------------------------
 
@@ -179,13 +180,14 @@ class Batch:
                 res.status = "stopped"
                 continue
             if not self.force and step.input not in ran:
-                res.reason = stale_reason(self.manifest, plan)
+                res.reason = stale_reason(self.manifest, plan, self._record)
                 if res.reason is None:
                     res.status = "skipped"
                     continue
             self._run_step(plan, res)
             if res.status == "ok":
                 ran.add(step.name)
+                self._record.record(plan)
         steps = list(results.values())
         statuses = {s.status for s in steps}
         if "failed" in statuses:

@@ -94,9 +94,8 @@ def _distinct(data: np.ndarray, limit: int) -> np.ndarray | None:
     ``limit`` (a count table for small ranges, else a sort)."""
     lo, hi = int(data.min()), int(data.max())
     if hi - lo < 1 << 24:
-        counts = np.bincount((data.ravel() - lo).astype(np.intp, copy=False)
-                             if lo else data.ravel().astype(np.intp, copy=False),
-                             minlength=hi - lo + 1)
+        # shifted in intp: in the map's own type, 100 - (-100) wraps (int8)
+        counts = np.bincount(data.ravel().astype(np.intp) - lo, minlength=hi - lo + 1)
         values = np.flatnonzero(counts) + lo
     else:
         values = np.unique(data)
@@ -184,7 +183,7 @@ def _bounding_boxes(data: np.ndarray):
         index = np.empty(data.shape, dtype=itype)
         for z in range(0, len(data), step):
             part = data[z:z + step]
-            index[z:z + step] = lut[part - np.asarray(lo, part.dtype) if lo else part]
+            index[z:z + step] = lut[part.astype(np.intp) - lo]  # (not in part's own type)
         counts = counts[present]
     else:
         values, inverse, counts = np.unique(data, return_inverse=True, return_counts=True)

@@ -51,6 +51,7 @@ def command(manifest, jobs, shard, force, fail_fast, retries, report_json):
     """
     from ..batch.manifest import find_scans, load_manifest
     from ..batch.manifest import shard as take_shard
+    from ..batch.plan import check_outputs
     from ..batch.report import progress_line, report_dict, summary_line, write_report
     from ..batch.run import Batch, default_jobs
     from ..io import check_output_path
@@ -60,6 +61,7 @@ def command(manifest, jobs, shard, force, fail_fast, retries, report_json):
     if report_json is not None:
         check_output_path(report_json)
     scans = find_scans(m)
+    check_outputs(m, scans)  # all of them, whatever the shard: an error is the manifest's
     total = len(scans)
     shard_info = None
     if shard is not None:

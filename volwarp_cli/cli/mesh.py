@@ -134,6 +134,9 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
     if (labels or label is not None) and iso is not None:
         raise click.UsageError("--iso does not apply to --label/--labels (the level is 0.5 of "
                                "each label's indicator)")
+    if (labels or label is not None) and inside != "above":
+        raise click.UsageError("--inside does not apply to --label/--labels (inside is "
+                               "where the label is)")
     if labels and render is not None:
         raise click.UsageError("--render does not apply to --labels (render one --label N)")
     # Fail on bad outputs before any work (their extensions are checked by the options).

@@ -202,6 +202,17 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         if preserve_labels and not labels:
             raise click.UsageError("--preserve-labels needs --labels (or the spec's "
                                    "values: labels)")
+        if labels:  # what a label map cannot have: usage or spec errors, before any work
+            if background not in (None, 0, 0.0):
+                raise click.UsageError("--background does not apply to a label map (its "
+                                       "background is the label 0)")
+            c = spec.capture
+            if c.placement != "uniform" and "placement" in spec.capture_given:
+                raise doc.error(("capture", "placement"), "a label map is warped with the "
+                                "uniform placement (each domain voxel one input voxel's label)")
+            if c.oversample != int(c.oversample):
+                raise doc.error(("capture", "oversample"), "a label map needs an integer "
+                                "oversample (each domain voxel one input voxel's label)")
         if is_capture:
             with timed(f"read {input}"):
                 cap = read_capture(input)
@@ -232,8 +243,10 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     except OutOfMemoryError as exc:  # the target this input and spec ask for
         raise OutOfMemoryError(f"{input}: {exc}") from None
     _report_handles(cap, frames)
-    if exports:
-        _write_exports(exports, cap, scene, frames, crop, input, spec_path)
+    if exports:  # refused before any work where they cannot be exact
+        from ..bspline.export import check_exportable
+
+        check_exportable(cap.placement, cap.dq, input)
 
     def write(target, path):
         out = stamp(output_volume(cap, scene, target, crop=crop, dtype=dtype), "warp", input,
@@ -262,9 +275,13 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                     write_planes(*part)
 
             run(scene, frames, sink=sink)
-        return
-    target = run(scene, frames, on_frame)
-    write(target, output)
+    else:
+        target = run(scene, frames, on_frame)
+        write(target, output)
+    if exports:
+        # after -o: a run that fails or is stopped before its output leaves the old
+        # exports as they were (each export file is atomic on its own)
+        _write_exports(exports, cap, scene, frames, crop, input, spec_path)
 
 
 def _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to, points_in,
@@ -348,13 +365,12 @@ def _report_handles(cap, frames) -> None:
 
 
 def _write_exports(exports, cap, scene, frames, crop, input, spec_path) -> None:
-    """The deformation's exports (see :mod:`volwarp_cli.bspline.export`), written before
-    the warp is rendered; they describe the final lattice."""
+    """The deformation's exports (see :mod:`volwarp_cli.bspline.export`), written after
+    the warp's output; they describe the final lattice."""
     import numpy as np
 
     from ..bspline.export import (
         ForwardMap,
-        check_exportable,
         field_stats_ok,
         jacobian_stats,
         report_outside,
@@ -367,7 +383,6 @@ def _write_exports(exports, cap, scene, frames, crop, input, spec_path) -> None:
     from ..volume import Volume
     from .common import provenance
 
-    check_exportable(cap.placement, cap.dq, input)
     meta = provenance("warp", input, spec_path)
     fmap = ForwardMap(cap.grid, _final_dq(cap, frames), cap.geometry)
     g = cap.geometry
