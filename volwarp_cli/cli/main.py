@@ -161,7 +161,8 @@ class VolwarpGroup(click.Group):
 def cli(debug):
     """volwarp: modelling with sampled volumes, in batch.
 
-    Volumes are raw, TIFF, NRRD or NIfTI files; geometry
+    Volumes are NRRD, NIfTI, MetaImage, TIFF or raw files, or DICOM (a file,
+    a folder or a DICOMDIR); geometry
     on the command line and in specs is always (x, y, z) in world units
     unless a spec says `units: voxel`. The world frame is LPS millimetres
     (x to the patient's left, y posterior, z superior, as ITK and 3D Slicer

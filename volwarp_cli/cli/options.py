@@ -175,7 +175,8 @@ def write_options(f):
                      help="Output sample type (default: the input's). Integers are rounded "
                           "and clipped to the type's range.")(f)
     f = click.option("--compress/--no-compress", default=False, show_default=True,
-                     help="gzip NRRD data, zlib TIFF pages (.nii.gz is always gzip).")(f)
+                     help="gzip NRRD data, zlib MetaImage data and TIFF pages (.nii.gz is "
+                          "always gzip).")(f)
     f = click.option("--byte-order", type=click.Choice(["little", "big"]), default="little",
                      show_default=True, help="Byte order of NRRD, TIFF and raw outputs.")(f)
     return f
