@@ -399,3 +399,68 @@ def test_a_failed_write_names_the_output_and_leaves_nothing(tmp_path):
             raise OSError(errno.ENOSPC, "No space left on device")
     assert out.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["o.nrrd"]
+
+
+def _strict_json(text):
+    """The one JSON document ``text`` holds (NaN / Infinity tokens refused)."""
+    import json
+
+    def no_constant(name):
+        raise AssertionError(f"non-strict JSON token {name}")
+
+    doc = json.loads(text, parse_constant=no_constant)  # extra data after it: an error
+    assert isinstance(doc, dict) and text.strip().count("\n") == 0
+    return doc
+
+
+def test_json_reports_the_handles_in_world_mm(run, tmp_path):
+    """`warp --json`: one JSON object on stdout (logs stay on stderr); per handle its
+    spec step and index, from / to / reached in world mm and the miss |reached - to|."""
+    zz, yy, xx = np.mgrid[:24, :24, :24]
+    data = (100 * np.exp(-((xx - 11) ** 2 + (yy - 11) ** 2 + (zz - 11) ** 2) / 4.0)
+            ).astype(np.float32)
+    ang = np.deg2rad(30)
+    direction = np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0],
+                          [0, 0, 1]])
+    vol = Volume(data, spacing=(1.0, 1.2, 1.5), origin=(-4.0, 2.0, 7.0), direction=direction)
+    src = tmp_path / "in.nrrd"
+    write_volume(vol, src)
+    # step 0: one handle, free control points within 6 voxels: reachable;
+    # step 1: two handles half a voxel apart pulled opposite ways: a compromise
+    spec = _spec(tmp_path, "version: 1\nunits: voxel\ncapture: {lattice: 9, pad: 8}\nsteps:\n"
+                 "  - radius: 6\n    drag:\n      - {from: [11, 11, 11], to: [13, 11, 11]}\n"
+                 "  - drag:\n      - {from: [13, 11, 11], to: [16, 11, 11]}\n"
+                 "      - {from: [13.5, 11, 11], to: [10, 11, 11]}\n")
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", spec, "-o", out, "--json", "-v")
+    assert res.code == 0, res.stderr
+    doc = _strict_json(res.stdout)
+    assert "missed its target" in res.stderr and "volwarp:" not in res.stdout
+    assert doc["output"] == str(out)
+    assert doc["shape"] == list(read_volume(out).shape_xyz)
+    assert "frames" not in doc and "jacobian" not in doc and "displacement" not in doc
+    hs = doc["handles"]
+    assert [(h["step"], h["index"]) for h in hs] == [(0, 0), (1, 0), (1, 1)]
+    spec_from = [[11, 11, 11], [13, 11, 11], [13.5, 11, 11]]
+    spec_to = [[13, 11, 11], [16, 11, 11], [10, 11, 11]]
+    for h, a, b in zip(hs, spec_from, spec_to, strict=True):
+        assert np.allclose(h["from"], vol.index_to_world(a), atol=1e-9)
+        assert np.allclose(h["to"], vol.index_to_world(b), atol=1e-9)
+        miss = np.linalg.norm(np.subtract(h["reached"], h["to"]))
+        assert h["miss_mm"] == pytest.approx(miss, abs=1e-9)
+        assert isinstance(h["miss_mm"], float)
+    assert hs[0]["miss_mm"] < 1e-3  # within its radius it is reached
+    assert hs[1]["miss_mm"] > 0.3 and hs[2]["miss_mm"] > 0.3  # they conflict
+
+
+def test_json_counts_the_frames_written(run, tmp_path, data_dir):
+    src = data_dir / "ball_30_uint8.nrrd"
+    res = run("warp", src, "--spec", SPECS / "warp-ball.yaml", "-o", tmp_path / "o.nii.gz",
+              "--frames-to", str(tmp_path / "f_{frame:02d}.nrrd"), "--json")
+    assert res.code == 0, res.stderr
+    doc = _strict_json(res.stdout)
+    assert doc["frames"] == len(list(tmp_path.glob("f_*.nrrd"))) == 6
+    assert doc["shape"] == list(read_volume(tmp_path / "o.nii.gz").shape_xyz)
+    # without --json: nothing on stdout
+    res = run("warp", src, "--spec", SPECS / "warp-ball.yaml", "-o", tmp_path / "p.nrrd")
+    assert res.code == 0 and res.stdout == ""

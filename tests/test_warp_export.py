@@ -325,3 +325,38 @@ def test_fast_inverse_folds_are_at_least_as_strict():
     # the reference's fold marks (status 2) are NaN here
     flat = fm._fold_image(shape, shift).reshape(rn.shape)
     assert np.all(gn[flat])
+
+
+def test_json_reports_the_exports_figures(run, tmp_path):
+    """`warp --json` with exports: the Jacobian's extremes and fractions are those of the
+    written map, the displacement's folded count that of its NaN voxels."""
+    import json
+
+    vol = smooth_volume()
+    src = tmp_path / "in.nrrd"
+    write_volume(vol, src)
+    spec = tmp_path / "fold.yaml"
+    spec.write_text("version: 1\nunits: voxel\ncapture: {lattice: 7}\nsteps:\n  - move:\n"
+                    "      - {index: [3, 3, 3], by: [30.0, 0.0, 0.0]}\n")
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--jacobian-to",
+              tmp_path / "j.nrrd", "--displacement-to", tmp_path / "d.nrrd", "--json", "-v")
+    assert res.code == 0, res.stderr
+
+    def no_constant(name):
+        raise AssertionError(f"non-strict JSON token {name}")
+
+    doc = json.loads(res.stdout, parse_constant=no_constant)
+    assert "the map folds" in res.stderr and "volwarp:" not in res.stdout
+    jac = read_volume(tmp_path / "j.nrrd").data.astype(np.float64)
+    j = doc["jacobian"]
+    assert j["path"] == str(tmp_path / "j.nrrd")
+    assert j["min"] == pytest.approx(jac.min()) and j["max"] == pytest.approx(jac.max())
+    assert j["below_0"] == pytest.approx(np.mean(jac < 0)) and j["below_0"] > 0
+    assert j["below_0_1"] == pytest.approx(np.mean(jac < 0.1))
+    assert j["below_0_1"] >= j["below_0"]
+    d = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "d.nrrd")))
+    disp = doc["displacement"]
+    assert disp["voxels"] == d.shape[0] * d.shape[1] * d.shape[2]
+    nan = np.isnan(d).any(axis=-1)
+    assert disp["folded"] > 0 and disp["folded"] + disp["no_preimage"] == int(nan.sum())
+    assert doc["handles"] == []

@@ -346,3 +346,122 @@ def test_what_a_label_map_cannot_have_is_a_usage_or_spec_error(run, tmp_path, ca
     res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", *extra)
     assert res.code == 2 and key in res.stderr, res
     assert not (tmp_path / "o.nrrd").exists()
+
+
+def test_json_reports_the_label_volumes(run, tmp_path):
+    """`warp --labels --json`: per label its voxels and volumes, consistent with the written
+    map (voxel counts times the voxel volume); the preserved and vanished lists."""
+    import json
+
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    z, y, x = np.mgrid[:24, :26, :28]
+    seg = np.zeros((24, 26, 28), np.int16)
+    seg[(x - 10) ** 2 + (y - 12) ** 2 + (z - 11) ** 2 < 40] = 3
+    seg[(x - 18) ** 2 + (y - 13) ** 2 + (z - 12) ** 2 < 30] = 700
+    seg[20, 3, 4] = 5  # one voxel, in a region the move squeezes
+    spacing = (0.9, 1.1, 1.3)
+    src = tmp_path / "seg.nrrd"
+    write_volume(Volume(seg, spacing=spacing), src)
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\ncapture: {lattice: 7, oversample: 1}\nsteps:\n"
+                    "  - move:\n      - {index: [3, 3, 3], by: [2.5, -1.0, 0.7]}\n")
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", spec, "-o", out, "--labels", "--json",
+              "--preserve-labels")
+    assert res.code == 0, res
+    doc = json.loads(res.stdout)
+    got = read_volume(out)
+    assert doc["output"] == str(out) and doc["shape"] == list(got.shape_xyz)
+    assert doc["handles"] == []
+    voxel = float(np.prod(spacing))
+    assert [e["label"] for e in doc["labels"]] == [3, 5, 700]
+    for e in doc["labels"]:
+        n_in, n_out = int((seg == e["label"]).sum()), int((got.data == e["label"]).sum())
+        assert (e["input_voxels"], e["output_voxels"]) == (n_in, n_out)
+        assert e["input_mm3"] == pytest.approx(n_in * voxel)
+        assert e["output_mm3"] == pytest.approx(n_out * voxel)
+        # the box filter's weight follows the Jacobian: the output volume is close to it
+        if n_in > 10:
+            assert e["output_mm3"] == pytest.approx(e["predicted_mm3"], rel=0.1)
+    assert doc["vanished"] == [e["label"] for e in doc["labels"] if e["output_voxels"] == 0]
+    assert set(doc["preserved"]) <= {3, 5, 700}
+
+
+def test_json_lists_the_vanished_and_preserved_labels(run, tmp_path):
+    import json
+
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    lab = np.zeros((12, 12, 12), np.int16)
+    lab[3:9, 3:9, 3:9] = 1
+    lab[6, 6, 6] = 5  # one voxel, squeezed below half a voxel (test_preserve_keeps_...)
+    src = tmp_path / "seg.nrrd"
+    write_volume(Volume(lab), src)
+    moves = "\n".join(f"      - {{index: [{i}, {j}, {k}], by: [{-2.4 * (i - 2)}, "
+                      f"{-2.4 * (j - 2)}, {-2.4 * (k - 2)}]}}"
+                      for i in range(5) for j in range(5) for k in range(5))
+    spec = tmp_path / "w.yaml"
+    spec.write_text(f"version: 1\nunits: voxel\ncapture: {{lattice: 5}}\nsteps:\n  - move:\n"
+                    f"{moves}\n")
+    docs = {}
+    for extra in ([], ["--preserve-labels"]):
+        out = tmp_path / f"o{len(extra)}.nrrd"
+        res = run("warp", src, "--spec", spec, "-o", out, "--labels", "--json", *extra)
+        assert res.code == 0, res
+        docs[bool(extra)] = doc = json.loads(res.stdout)
+        n5 = int((read_volume(out).data == 5).sum())
+        assert [e["output_voxels"] for e in doc["labels"] if e["label"] == 5] == [n5]
+    assert docs[False]["vanished"] == [5] and docs[False]["preserved"] == []
+    assert docs[True]["vanished"] == [] and docs[True]["preserved"] == [5]
+
+
+def test_labels_over_frames_are_each_frames_exact_label_warp(run, tmp_path):
+    """`warp --labels --frames-to`: frame 0 is the map itself, every frame the one-shot
+    label warp of its lattice (recomputed, not incremental), the last one the output."""
+    import json
+
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    z, y, x = np.mgrid[:20, :22, :24]
+    seg = np.zeros((20, 22, 24), np.uint16)
+    seg[(x - 9) ** 2 + (y - 10) ** 2 + (z - 9) ** 2 < 30] = 4
+    seg[(x - 15) ** 2 + (y - 11) ** 2 + (z - 10) ** 2 < 20] = 9
+    src = tmp_path / "seg.nrrd"
+    write_volume(Volume(seg, spacing=(1.0, 1.25, 0.5)), src)
+
+    def spec(name, by, frames):
+        p = tmp_path / name
+        p.write_text("version: 1\nunits: voxel\ncapture: {lattice: 6, oversample: 1, pad: 4}\n"
+                     f"steps:\n  - frames: {frames}\n    move:\n"
+                     f"      - {{index: [2, 3, 2], by: {by}}}\n")
+        return p
+
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", spec("a.yaml", [3.0, -1.5, 1.0], 2), "-o", out,
+              "--labels", "--crop", "--frames-to", str(tmp_path / "f_{frame}.nrrd"), "--json")
+    assert res.code == 0, res
+    doc = json.loads(res.stdout)
+    assert doc["frames"] == 3
+    frames = [read_volume(tmp_path / f"f_{n}.nrrd") for n in range(3)]
+    assert all(f.dtype == np.uint16 for f in frames)
+    assert np.array_equal(frames[0].data, seg)
+    assert np.array_equal(frames[2].data, read_volume(out).data)
+    assert not np.array_equal(frames[1].data, seg)
+    assert not np.array_equal(frames[1].data, frames[2].data)
+    for n, by in ((1, [1.5, -0.75, 0.5]), (2, [3.0, -1.5, 1.0])):
+        one = tmp_path / f"one_{n}.nrrd"
+        assert run("warp", src, "--spec", spec(f"b{n}.yaml", by, 1), "-o", one, "--labels",
+                   "--crop").code == 0
+        assert np.array_equal(frames[n].data, read_volume(one).data), n
+    # the report is the last frame's
+    for e in doc["labels"]:
+        assert e["output_voxels"] == int((read_volume(out).data == e["label"]).sum())
+    # a capture file is still refused
+    assert run("capture", src, "-o", tmp_path / "s.vwc", "--lattice", "6").code == 0
+    res = run("warp", tmp_path / "s.vwc", "--spec", spec("c.yaml", [1.0, 0, 0], 1), "-o",
+              tmp_path / "x.nrrd", "--labels")
+    assert res.code == 2 and not (tmp_path / "x.nrrd").exists()

@@ -89,11 +89,14 @@ def test_points_outside_the_support_are_reported_and_left(run, setup, tmp_path):
     pin.write_text(f"label,X,Y,Z\na,{far[0]},{far[1]},{far[2]}\nb,{float(froms[0][0])!r},"
                    f"{float(froms[0][1])!r},{float(froms[0][2])!r}\n")
     res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--points-in", pin,
-              "--points-to", tmp_path / "q.csv")
+              "--points-to", tmp_path / "q.csv", "--json")
     assert res.code == 0, res.stderr
     assert "1 of 2 points lie outside the lattice's support" in res.stderr
     rows = (tmp_path / "q.csv").read_text().splitlines()
     assert rows[1] == "a,1000.0,1000.0,1000.0"
+    doc = json.loads(res.stdout)  # the warning on stderr, the one document on stdout
+    assert doc["points"] == {"path": str(tmp_path / "q.csv"), "count": 2, "outside": 1}
+    assert len(doc["handles"]) == 2
 
 
 def test_mesh_lies_on_the_warped_isosurface(run, setup, tmp_path):
@@ -112,9 +115,11 @@ def test_mesh_lies_on_the_warped_isosurface(run, setup, tmp_path):
 
     write_mesh(iso(vol).with_normals(), tmp_path / "m.ply")
     res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--mesh-in",
-              tmp_path / "m.ply", "--mesh-to", tmp_path / "m2.ply")
+              tmp_path / "m.ply", "--mesh-to", tmp_path / "m2.ply", "--json")
     assert res.code == 0, res.stderr
     moved = read_mesh(tmp_path / "m2.ply")
+    assert json.loads(res.stdout)["mesh"] == {"path": str(tmp_path / "m2.ply"),
+                                              "count": len(moved.vertices), "outside": 0}
     assert moved.normals is not None and moved.n_faces == iso(vol).n_faces
     target = iso(read_volume(tmp_path / "o.nrrd"))
     # densify the reference surface (edge midpoints and centroids) for point-to-surface distances

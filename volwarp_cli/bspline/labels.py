@@ -428,11 +428,12 @@ def _counts(target: np.ndarray, labels) -> dict:
     return {L: int(counts[L - lo]) for L in labels}
 
 
-def label_warp(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
-               crop: bool = False, preserve: bool = False, source: str = "input"):
-    """The whole ``warp --labels``: ``(output Volume, report)`` for the label map ``vol``
-    and a checked spec (``doc``, ``spec``), as :mod:`..cli.warp` does for intensities."""
-    from .warp import output_volume, prepare
+def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
+                   source: str = "input"):
+    """``(cap, scene, frames)`` for warping the label map ``vol`` with a checked spec
+    (``doc``, ``spec``): its :func:`capture_labels` capture and :func:`.warp.prepare`'s
+    scene and frames (the frames' lattices are applied by :func:`warp_labels`)."""
+    from .warp import prepare
 
     if background not in (None, 0, 0.0):
         raise VolwarpError("--background does not apply to a label map (its background is 0)")
@@ -445,6 +446,17 @@ def label_warp(vol: Volume, doc, spec, *, method=None, evaluator=None, backgroun
     if spec.background != 0:
         raise doc.error(("background",), "does not apply to a label map (its background is 0)")
     scene, frames = prepare(cap, doc, spec, method=method, evaluator=evaluator, background=0.0)
+    return cap, scene, frames
+
+
+def label_warp(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
+               crop: bool = False, preserve: bool = False, source: str = "input"):
+    """The whole ``warp --labels``: ``(output Volume, report)`` for the label map ``vol``
+    and a checked spec (``doc``, ``spec``), as :mod:`..cli.warp` does for intensities."""
+    from .warp import output_volume
+
+    cap, scene, frames = prepare_labels(vol, doc, spec, method=method, evaluator=evaluator,
+                                        background=background, source=source)
     res = warp_labels(vol.data, scene, frames, preserve=preserve, spacing=vol.spacing)
     return output_volume(cap, scene, res.target, crop=crop), res.report
 

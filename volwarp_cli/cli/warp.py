@@ -22,6 +22,22 @@ from .options import (
 
 _FIELDS = ("frame", "step", "spec_step", "sub")
 
+JSON_HELP = (
+    "After a successful run, print one JSON object on stdout (nothing else goes there; "
+    "logs and progress go to stderr). Keys: output (path), shape (x y z voxels of the "
+    "written output), frames (frame files written, with --frames-to), handles (one per "
+    "drag handle: step (0-based spec step), index (within the step's drag list), from, "
+    "to, reached (world LPS mm; reached: where the solved lattice sends from), miss_mm "
+    "(|reached - to|)); with --jacobian-to: jacobian {path, min, max, below_0, below_0_1} "
+    "(det dF/dx extremes and the fractions of input voxels below 0 and 0.1); with "
+    "--displacement-to: displacement {path, voxels, folded, no_preimage} (output voxel "
+    "counts: folded = NaN, no_preimage = without an inverse in the lattice's support); "
+    "with --points-in / --mesh-in: points / mesh {path, count, outside}; with labels: "
+    "labels (one per input label: label, input_voxels, output_voxels, input_mm3, "
+    "output_mm3, predicted_mm3; output_*: the warped map before --crop; with --frames-to: "
+    "the last frame's), vanished and preserved (label ids). A value that is "
+    "not a finite number is null.")
+
 
 def _check_pattern(pattern: str) -> None:
     """The --frames-to pattern: known fields only, distinct names for distinct frames."""
@@ -96,7 +112,10 @@ def _capture_early(reading, settings, input, defer):
 @click.option("--frames-to", default=None, metavar="PATTERN",
               help="Also write every animation frame, e.g. 'out_{frame:03d}.nrrd' "
                    "({frame} and its alias {step}: 0 = unwarped, then one per increment; "
-                   "{spec_step}, {sub}: the spec step and the increment within it).")
+                   "{spec_step}, {sub}: the spec step and the increment within it). With "
+                   "--labels every frame is the label warp recomputed exactly from the input "
+                   "map for that frame's lattice (not incremental: each frame costs a whole "
+                   "label warp).")
 @click.option("--pushforward", type=click.Choice(["box", "nearest"]), default=None,
               help="Pushforward filter [default: the spec's, else box].")
 @click.option("--evaluator", type=click.Choice(["separable", "table"]), default=None,
@@ -109,7 +128,8 @@ def _capture_early(reading, settings, input, defer):
 @click.option("--labels", is_flag=True,
               help="INPUT is a label map (segmentation): each output voxel takes the label of "
                    "largest box-filter weight (the background 0 competes); ids are never "
-                   "averaged. -v prints each label's volume before and after.")
+                   "averaged. -v prints each label's volume before and after (--json: the "
+                   "labels key); with --frames-to, those of the last frame.")
 @click.option("--preserve-labels", is_flag=True,
               help="With --labels: a label that would vanish keeps its voxel of largest weight.")
 @click.option("--displacement-to", default=None, metavar="FIELD",
@@ -134,12 +154,13 @@ def _capture_early(reading, settings, input, defer):
               help="A mesh (PLY, world coordinates) whose vertices to move by the forward map.")
 @click.option("--mesh-to", default=None, metavar="M2.ply",
               help="The moved mesh, normals recomputed (.ply .stl .obj .vtp .vtk).")
+@click.option("--json", "as_json", is_flag=True, help=JSON_HELP)
 @write_options
 @input_options
 @common_options
 def command(input, spec_path, output, frames_to, pushforward, evaluator, background, crop,
             labels, preserve_labels, displacement_to, forward_field_to, jacobian_to, transform_to, points_in, points_to,
-            mesh_in, mesh_to, dtype, compress, byte_order, raw, volume_index, dicom):
+            mesh_in, mesh_to, as_json, dtype, compress, byte_order, raw, volume_index, dicom):
     """Warp INPUT (a volume, or a capture file .vwc) as the spec says.
 
     A plain volume is captured on the fly with the spec's `capture` settings.
@@ -147,9 +168,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     it is padded (origin shifted, anatomy in place) unless --crop.
     """
     check_output_path(output)
-    if labels and (frames_to or input.lower().endswith(".vwc")):
-        raise click.UsageError("--labels warps a label-map volume in one shot "
-                               "(no --frames-to, no capture file)")
+    if labels and input.lower().endswith(".vwc"):
+        raise click.UsageError("--labels warps a label-map volume (not a capture file)")
     if labels and dtype is not None:
         raise click.UsageError("--labels keeps the label map's own integer type (no --dtype)")
     if frames_to:
@@ -192,12 +212,12 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         validate(doc, load_schema("warp"))
         spec = read_warp_spec(doc)
         if spec.values == "labels" and not labels:  # the spec says what --labels says
-            for clash, given in (("--frames-to", frames_to), ("a capture file", is_capture),
+            for clash, given in (("a capture file", is_capture),
                                  ("--dtype", dtype is not None),
                                  ("the deformation's exports", bool(exports))):
                 if given:
-                    raise doc.error(("values",), f"labels are warped in one shot from a "
-                                    f"volume, without {clash}")
+                    raise doc.error(("values",), f"labels are warped from a volume, "
+                                    f"without {clash}")
             labels = True
         if preserve_labels and not labels:
             raise click.UsageError("--preserve-labels needs --labels (or the spec's "
@@ -222,16 +242,47 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             cap = early.result() if settings == spec.capture else None
             del reading, early  # the futures hold the volume and the capture too
     if labels:
-        from ..bspline.labels import format_report, label_warp
+        from ..bspline.labels import format_report, prepare_labels, warp_labels
         from ..progress import log
 
-        out, report = label_warp(vol, doc, spec, method=pushforward, evaluator=evaluator,
-                                 background=background, crop=crop, preserve=preserve_labels,
-                                 source=input)
-        out = stamp(out, "warp", input, spec_path)
+        cap, scene, frames = prepare_labels(vol, doc, spec, method=pushforward,
+                                            evaluator=evaluator, background=background,
+                                            source=input)
+        handles = _report_handles(cap, frames)
+
+        def label_volume(lattice):
+            # exact: the whole label warp for this lattice, from the input map
+            scene.set_lattice(lattice)
+            res = warp_labels(vol.data, scene, (), preserve=preserve_labels,
+                              spacing=vol.spacing)
+            out = stamp(output_volume(cap, scene, res.target, crop=crop), "warp", input,
+                        spec_path)
+            return out, res.report
+
+        written = 0
+        if frames_to:
+            # frame 0 (the unmoved lattice), then every increment's lattice; the last
+            # frame is the output too
+            lattices = [cap.dq] + [fr.dq for fr in frames]
+            for n, lattice in enumerate(lattices):
+                fr = frames[n - 1] if n else None
+                with timed(f"labels: frame {n} of {len(lattices) - 1}"):
+                    out, report = label_volume(lattice)
+                name = frames_to.format(frame=n, step=n, spec_step=fr.step if fr else 0,
+                                        sub=fr.sub if fr else 0)
+                with timed(f"write {name}"):
+                    write_volume(out, name, compress=compress, byte_order=byte_order)
+                written += 1
+        else:
+            out, report = label_volume(frames[-1].dq if frames else cap.dq)
         with timed(f"write {output}"):
             write_volume(out, output, compress=compress, byte_order=byte_order)
         log.info("per-label volumes (mm^3):\n%s", format_report(report))
+        if as_json:
+            summary = {"output": str(output), "shape": list(out.shape_xyz)}
+            if frames_to:
+                summary["frames"] = written
+            _print_json({**summary, "handles": handles, **_labels_json(report)})
         return
     if not is_capture:
         if cap is None:
@@ -242,7 +293,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                                 background=background)
     except OutOfMemoryError as exc:  # the target this input and spec ask for
         raise OutOfMemoryError(f"{input}: {exc}") from None
-    _report_handles(cap, frames)
+    handles = _report_handles(cap, frames)
     if exports:  # refused before any work where they cannot be exact
         from ..bspline.export import check_exportable
 
@@ -253,13 +304,16 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                     spec_path)
         with timed(f"write {path}"):
             write_volume(out, path, compress=compress, byte_order=byte_order)
+        return list(out.shape_xyz)
 
     on_frame = None
+    written = [0]  # frame files
     if frames_to:
         def on_frame(n, fr, target):
             name = frames_to.format(frame=n, step=n, spec_step=fr.step if fr else 0,
                                     sub=fr.sub if fr else 0)
             write(target, name)
+            written[0] += 1
 
     if one_shot and output.lower().endswith(".nrrd") and not compress:
         # raw NRRD: the warp's planes go to the file as they are finished (the
@@ -268,6 +322,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
 
         template, convert = output_planes(cap, scene, crop=crop, dtype=dtype)
         template = stamp(template, "warp", input, spec_path)
+        shape = list(template.shape_xyz)
         with nrrd_plane_writer(template, output, byte_order=byte_order) as write_planes:
             def sink(z0, z1, planes):
                 part = convert(z0, planes)
@@ -277,11 +332,54 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             run(scene, frames, sink=sink)
     else:
         target = run(scene, frames, on_frame)
-        write(target, output)
+        shape = write(target, output)
+    stats = {}
     if exports:
         # after -o: a run that fails or is stopped before its output leaves the old
         # exports as they were (each export file is atomic on its own)
-        _write_exports(exports, cap, scene, frames, crop, input, spec_path)
+        stats = _write_exports(exports, cap, scene, frames, crop, input, spec_path)
+    if as_json:
+        summary = {"output": str(output), "shape": shape}
+        if frames_to:
+            summary["frames"] = written[0]
+        _print_json({**summary, "handles": handles, **stats})
+
+
+def _jsonable(v):
+    """``v`` as strict JSON values: numpy scalars and arrays to Python ones, a float
+    that is not finite to None."""
+    import math
+
+    import numpy as np
+
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        v = float(v)
+        return v if math.isfinite(v) else None
+    return v
+
+
+def _print_json(summary: dict) -> None:
+    """The --json summary: one JSON document on stdout."""
+    import json
+
+    click.echo(json.dumps(_jsonable(summary), allow_nan=False))
+
+
+def _labels_json(report: dict) -> dict:
+    """The per-label report (:func:`..bspline.labels.warp_labels`) as --json keys."""
+    keys = ("input_voxels", "output_voxels", "input_mm3", "output_mm3", "predicted_mm3")
+    return {"labels": [{"label": int(L), **{k: r[k] for k in keys}}
+                       for L, r in report["labels"].items()],
+            "vanished": [int(L) for L in report["vanished"]],
+            "preserved": [int(L) for L in report["preserved"]]}
 
 
 def _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to, points_in,
@@ -349,24 +447,33 @@ def _final_dq(cap, frames):
     return frames[-1].dq if frames else cap.dq
 
 
-def _report_handles(cap, frames) -> None:
-    """How far each handle missed its target, world mm (-v)."""
+def _report_handles(cap, frames) -> list:
+    """How far each handle missed its target, world mm (-v); returned for --json as
+    ``{step, index, from, to, reached, miss_mm}`` (world LPS mm, ``step`` 0-based)."""
     import numpy as np
 
     from ..progress import log
 
     g = cap.geometry
     matrix = g.direction * g.spacing[None, :]
+    out = []
     for fr in frames:
-        for n, (_, to, reached) in enumerate(fr.handles):
+        for n, (src, to, reached) in enumerate(fr.handles):
             miss = float(np.linalg.norm(matrix @ (np.asarray(reached) - np.asarray(to))))
             log.info("steps[%d].drag[%d]: reached %s, missed its target by %.3g mm",
                      fr.step - 1, n, np.round(g.index_to_world(reached), 4).tolist(), miss)
+            world = [np.asarray(g.index_to_world(np.asarray(p, dtype=np.float64)),
+                                dtype=np.float64).reshape(3).tolist()
+                     for p in (src, to, reached)]
+            out.append({"step": fr.step - 1, "index": n, "from": world[0], "to": world[1],
+                        "reached": world[2], "miss_mm": miss})
+    return out
 
 
-def _write_exports(exports, cap, scene, frames, crop, input, spec_path) -> None:
+def _write_exports(exports, cap, scene, frames, crop, input, spec_path) -> dict:
     """The deformation's exports (see :mod:`volwarp_cli.bspline.export`), written after
-    the warp's output; they describe the final lattice."""
+    the warp's output; they describe the final lattice. Returns their figures, as
+    --json keys (``jacobian``, ``displacement``, ``points``, ``mesh``)."""
     import numpy as np
 
     from ..bspline.export import (
@@ -384,6 +491,7 @@ def _write_exports(exports, cap, scene, frames, crop, input, spec_path) -> None:
     from .common import provenance
 
     meta = provenance("warp", input, spec_path)
+    stats = {}
     fmap = ForwardMap(cap.grid, _final_dq(cap, frames), cap.geometry)
     g = cap.geometry
     nx, ny, nz = cap.grid.input_shape
@@ -404,6 +512,9 @@ def _write_exports(exports, cap, scene, frames, crop, input, spec_path) -> None:
                         counts["folded"])
         with timed(f"write {path}"):
             write_field(field, out_grid, path, meta, "resampling")
+        stats["displacement"] = {"path": str(path), "voxels": counts["voxels"],
+                                 "folded": counts["folded"],
+                                 "no_preimage": counts["no_inverse"]}
         del field
     if "forward" in exports:
         path = exports["forward"]
@@ -415,6 +526,8 @@ def _write_exports(exports, cap, scene, frames, crop, input, spec_path) -> None:
         st = jacobian_stats(det)
         log.info("%s: det dF/dx min %.4g, max %.4g; %.3g%% of voxels below 0, %.3g%% below 0.1",
                  path, st["min"], st["max"], 100 * st["below_0"], 100 * st["below_0.1"])
+        stats["jacobian"] = {"path": str(path), "min": st["min"], "max": st["max"],
+                             "below_0": st["below_0"], "below_0_1": st["below_0.1"]}
         jmeta = {**dict(g.meta), **meta, "volwarp_field": "jacobian"}
         with timed(f"write {path}"):
             write_volume(in_grid.with_data(det, meta=jmeta), path)
@@ -425,17 +538,20 @@ def _write_exports(exports, cap, scene, frames, crop, input, spec_path) -> None:
     if "points" in exports:
         pf, path = exports["points"]
         moved, inside = fmap.map_world(pf.points)
-        report_outside(pf.path, inside, fmap)
+        outside = report_outside(pf.path, inside, fmap)
         with timed(f"write {path}"):
             write_points(pf, moved, path)
+        stats["points"] = {"path": str(path), "count": len(inside), "outside": outside}
     if "mesh" in exports:
         from ..surface.mesh import Mesh
         from ..surface.mesh_io import write_mesh
 
         mesh, src, path = exports["mesh"]
         moved, inside = fmap.map_world(mesh.vertices)
-        report_outside(src, inside, fmap)
+        outside = report_outside(src, inside, fmap)
         out = Mesh(moved, mesh.faces).with_normals()
         with timed(f"write {path}"):
             write_mesh(out, path, comments={**provenance("warp", [input, src], spec_path),
                                             "volwarp_field": "forward"})
+        stats["mesh"] = {"path": str(path), "count": len(inside), "outside": outside}
+    return stats
