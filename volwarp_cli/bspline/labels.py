@@ -429,7 +429,7 @@ def _counts(target: np.ndarray, labels) -> dict:
 
 
 def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
-                   source: str = "input"):
+                   source: str = "input", allow_growth: bool = False):
     """``(cap, scene, frames)`` for warping the label map ``vol`` with a checked spec
     (``doc``, ``spec``): its :func:`capture_labels` capture and :func:`.warp.prepare`'s
     scene and frames (the frames' lattices are applied by :func:`warp_labels`)."""
@@ -445,7 +445,8 @@ def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, backg
         raise VolwarpError(f"{source}: {exc}") from None
     if spec.background != 0:
         raise doc.error(("background",), "does not apply to a label map (its background is 0)")
-    scene, frames = prepare(cap, doc, spec, method=method, evaluator=evaluator, background=0.0)
+    scene, frames = prepare(cap, doc, spec, method=method, evaluator=evaluator, background=0.0,
+                            allow_growth=allow_growth)
     return cap, scene, frames
 
 

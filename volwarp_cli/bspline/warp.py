@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from ..errors import SpecError
 from ..io.common import cast_samples, ensure_fits_in_memory
 from ..progress import log, progress, timed
 from ..volume import Volume
@@ -33,11 +34,20 @@ def check_capture_settings(doc, spec: WarpSpec, cap: Capture, source: str) -> No
                             "(remove the key or capture again)")
 
 
+#: the largest growth of the output per axis that a warp's own padding may cause
+#: without --allow-growth (a mistyped 320 mm drag made a 181x217x1701 output)
+MAX_GROWTH = 2.0
+
+
 def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
-            evaluator: str | None = None, background: float | None = None):
+            evaluator: str | None = None, background: float | None = None,
+            allow_growth: bool = False):
     """The scene (with its target padding) and the planned frames.
 
     ``method``, ``evaluator``, ``background``: override the spec's.
+    ``allow_growth``: let the padding the moves need make the output more than
+    ``MAX_GROWTH`` times the input along an axis (refused otherwise, before
+    anything of that size is made).
     """
     geom = Geometry(cap.geometry, spec.units)
     dq0 = cap.dq
@@ -49,6 +59,16 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
         pad = cap.pad
     else:
         pad = default_pad(frames, dq0)
+        grown = [(int(i) + 2 * int(p)) / int(i) for i, p in zip(cap.grid.input_shape, pad,
+                                                                  strict=True)]
+        if not allow_growth and max(grown) > MAX_GROWTH:
+            shape = "x".join(str(int(i) + 2 * int(p))
+                             for i, p in zip(cap.grid.input_shape, pad, strict=True))
+            raise SpecError(f"the moves reach so far that the output would be {shape} "
+                            f"voxels ({max(grown):.1f} times the input's "
+                            f"{'x'.join(map(str, cap.grid.input_shape))} along an axis): a "
+                            "mistyped move or drag? Give --allow-growth (or the spec's "
+                            "capture.pad) to make it", file=getattr(doc, "file", None))
     needed = default_pad(frames, dq0)
     # the padded target, before anything of its size (or a shape numpy cannot make)
     tshape = [int(i) + 2 * int(p) for i, p in zip(cap.grid.input_shape, pad, strict=True)]

@@ -154,13 +154,17 @@ def _capture_early(reading, settings, input, defer):
               help="A mesh (PLY, world coordinates) whose vertices to move by the forward map.")
 @click.option("--mesh-to", default=None, metavar="M2.ply",
               help="The moved mesh, normals recomputed (.ply .stl .obj .vtp .vtk).")
+@click.option("--allow-growth", is_flag=True,
+              help="Let the padding the moves need make the output more than 2x the input "
+                   "along an axis (refused otherwise, naming the sizes: a mistyped 320 mm "
+                   "drag made a 181x217x1701 volume).")
 @click.option("--json", "as_json", is_flag=True, help=JSON_HELP)
 @write_options
 @input_options
 @common_options
 def command(input, spec_path, output, frames_to, pushforward, evaluator, background, crop,
             labels, preserve_labels, displacement_to, forward_field_to, jacobian_to, transform_to, points_in, points_to,
-            mesh_in, mesh_to, as_json, dtype, compress, byte_order, raw, volume_index, dicom):
+            mesh_in, mesh_to, allow_growth, as_json, dtype, compress, byte_order, raw, volume_index, dicom):
     """Warp INPUT (a volume, or a capture file .vwc) as the spec says.
 
     A plain volume is captured on the fly with the spec's `capture` settings.
@@ -247,7 +251,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
 
         cap, scene, frames = prepare_labels(vol, doc, spec, method=pushforward,
                                             evaluator=evaluator, background=background,
-                                            source=input)
+                                            source=input, allow_growth=allow_growth)
         handles = _report_handles(cap, frames)
 
         def label_volume(lattice):
@@ -290,7 +294,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         del vol
     try:
         scene, frames = prepare(cap, doc, spec, method=pushforward, evaluator=evaluator,
-                                background=background)
+                                background=background, allow_growth=allow_growth)
     except OutOfMemoryError as exc:  # the target this input and spec ask for
         raise OutOfMemoryError(f"{input}: {exc}") from None
     handles = _report_handles(cap, frames)
