@@ -35,8 +35,10 @@ def check_capture_settings(doc, spec: WarpSpec, cap: Capture, source: str) -> No
 
 
 #: the largest growth of the output per axis that a warp's own padding may cause
-#: without --allow-growth (a mistyped 320 mm drag made a 181x217x1701 output)
+#: without --allow-growth (a mistyped 320 mm drag made a 181x217x1701 output): twice the
+#: input, or 64 voxels more where that is larger (small inputs, moves of a few mm)
 MAX_GROWTH = 2.0
+MIN_GROWTH_VOXELS = 64
 
 
 def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
@@ -59,9 +61,11 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
         pad = cap.pad
     else:
         pad = default_pad(frames, dq0)
-        grown = [(int(i) + 2 * int(p)) / int(i) for i, p in zip(cap.grid.input_shape, pad,
-                                                                  strict=True)]
-        if not allow_growth and max(grown) > MAX_GROWTH:
+        sizes = [(int(i), int(i) + 2 * int(p)) for i, p in zip(cap.grid.input_shape, pad,
+                                                                 strict=True)]
+        grown = [t / i for i, t in sizes]
+        if not allow_growth and any(t > max(MAX_GROWTH * i, i + MIN_GROWTH_VOXELS)
+                                    for i, t in sizes):
             shape = "x".join(str(int(i) + 2 * int(p))
                              for i, p in zip(cap.grid.input_shape, pad, strict=True))
             raise SpecError(f"the moves reach so far that the output would be {shape} "

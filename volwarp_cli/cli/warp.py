@@ -156,8 +156,8 @@ def _capture_early(reading, settings, input, defer):
               help="The moved mesh, normals recomputed (.ply .stl .obj .vtp .vtk).")
 @click.option("--allow-growth", is_flag=True,
               help="Let the padding the moves need make the output more than 2x the input "
-                   "along an axis (refused otherwise, naming the sizes: a mistyped 320 mm "
-                   "drag made a 181x217x1701 volume).")
+                   "(and more than 64 voxels larger) along an axis; refused otherwise, naming "
+                   "the sizes (a mistyped 320 mm drag made a 181x217x1701 volume).")
 @click.option("--json", "as_json", is_flag=True, help=JSON_HELP)
 @write_options
 @input_options
