@@ -189,3 +189,26 @@ def test_an_input_rewritten_in_place_while_mapped_is_not_used(tmp_path):
         assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["in.nrrd"]
     finally:
         mapped._mapped.clear()  # this process goes on with other tests
+
+
+def test_a_truncation_between_the_size_check_and_the_map_is_a_file_error(tmp_path):
+    """The sweep above once caught this window: numpy's "mmap length is greater than file
+    size" came out as an internal error."""
+    from unittest import mock
+
+    from volwarp_cli.io import mapped
+
+    src = tmp_path / "in.nrrd"
+    _big_nrrd(src, n=8)
+    real = np.memmap
+
+    def shrink_then_map(fh, **kwargs):
+        os.truncate(src, 100)
+        return real(fh, **kwargs)
+
+    try:
+        with mock.patch("volwarp_cli.io.nrrd.np.memmap", side_effect=shrink_then_map), \
+                pytest.raises(FormatError, match=r"in\.nrrd: the file was truncated while"):
+            read_volume(src, mmap=True)
+    finally:
+        mapped._mapped.clear()  # this process goes on with other tests

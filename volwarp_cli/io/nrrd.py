@@ -460,7 +460,11 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
                               "(wrong sizes or type in the header?)")
         if mmap and file_dtype.isnative:
             guard(fh, where)  # a truncation meanwhile: one line and exit 1, not a crash
-            return np.memmap(fh, dtype=file_dtype, mode="r", offset=start, shape=(count,))
+            try:
+                return np.memmap(fh, dtype=file_dtype, mode="r", offset=start, shape=(count,))
+            except (ValueError, OSError):  # truncated between the size check and the map
+                raise FormatError(f"{where}: the file was truncated while it was being read "
+                                  "(replaced by another program?)") from None
         fh.seek(start)
         return np.frombuffer(read_exact(fh, nbytes, where), dtype=file_dtype)
     if encoding == "ascii":
