@@ -31,7 +31,10 @@ def _configure_verbosity(ctx, param, value):
 
 
 def common_options(f):
-    """--quiet, --verbose and --debug, on every subcommand."""
+    """--quiet, --verbose, --debug, --threads and --memory-limit, on every subcommand."""
+    from .resources import resource_options
+
+    f = resource_options(f)
     f = click.option("-q", "--quiet", is_flag=True, expose_value=False, is_eager=True,
                      callback=_configure_verbosity,
                      help="No progress bar; errors only.")(f)

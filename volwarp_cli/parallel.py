@@ -1,0 +1,239 @@
+"""How many threads volwarp's work runs on, and running block tasks over them.
+
+The count comes from, in order: :func:`use_threads` (the CLI's ``--threads``),
+``VOLWARP_THREADS``, then :func:`available_cores`, the cores this process may
+use (its CPU affinity and its cgroup's CPU quota, not the machine's count:
+inside a container or a cluster worker limited to 4 CPUs, 4).
+
+The count lives in a context variable, not in a module global: a caller's
+threads (a Dask worker's, a test's) each have their own, and :func:`run_blocks`
+hands it to the tasks it runs. Every kernel sums exact integers or writes
+disjoint blocks, so results do not depend on the count or the block sizes.
+
+Libraries with thread pools of their own are matched to the count:
+BLAS (threadpoolctl) and VTK's SMP tools by :func:`library_threads` around a
+command, numba's ``prange`` kernels by :func:`numba_threads` before each call.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import math
+import os
+from collections.abc import Callable, Iterable, Sequence
+
+from .errors import SpecError
+
+#: Environment variable giving the default thread count.
+THREADS_ENV = "VOLWARP_THREADS"
+
+_threads: contextvars.ContextVar[int | None] = contextvars.ContextVar("volwarp_threads",
+                                                                       default=None)
+
+
+def _read(path: str) -> str | None:
+    try:
+        with open(path) as fh:
+            return fh.read().strip()
+    except OSError:
+        return None
+
+
+def _cgroup_paths() -> dict[str, str]:
+    """This process's cgroup per controller (``""`` for the v2 unified hierarchy)."""
+    out = {}
+    text = _read("/proc/self/cgroup") or ""
+    for line in text.splitlines():
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        for controller in parts[1].split(",") if parts[1] else [""]:
+            out[controller] = parts[2]
+    return out
+
+
+def _under(mount: str, path: str, name: str) -> str | None:
+    """The file ``name`` of cgroup ``path`` under ``mount``, or at the mount's root.
+
+    Inside a container the process's cgroup path is often not mounted below its
+    own name (the container sees its cgroup as the root): try both.
+    """
+    for base in (os.path.join(mount, path.lstrip("/")), mount):
+        text = _read(os.path.join(base, name))
+        if text is not None:
+            return text
+    return None
+
+
+def cgroup_cpu_quota(root: str = "/sys/fs/cgroup") -> float | None:
+    """The CPUs this process's cgroup may use per period (quota / period), or None.
+
+    cgroup v2 ``cpu.max`` (``"max 100000"`` or ``"200000 100000"``), else v1
+    ``cpu.cfs_quota_us`` / ``cpu.cfs_period_us`` (-1: no quota).
+    """
+    paths = _cgroup_paths()
+    if "" in paths:
+        text = _under(root, paths[""], "cpu.max")
+        if text:
+            quota, _, period = text.partition(" ")
+            if quota != "max":
+                try:
+                    return int(quota) / int(period or 100000)
+                except ValueError:
+                    return None
+    for controller in ("cpu", "cpu,cpuacct"):
+        if controller in paths or controller == "cpu":
+            path = paths.get(controller, "/")
+            for mount in (os.path.join(root, "cpu"), os.path.join(root, "cpu,cpuacct")):
+                quota = _under(mount, path, "cpu.cfs_quota_us")
+                period = _under(mount, path, "cpu.cfs_period_us")
+                if quota is None or period is None:
+                    continue
+                try:
+                    q, p = int(quota), int(period)
+                except ValueError:
+                    return None
+                return q / p if q > 0 and p > 0 else None
+    return None
+
+
+def available_cores() -> int:
+    """The cores this process may use: its affinity, capped by its cgroup's CPU quota.
+
+    A fractional quota (1.5 CPUs) rounds up, as loky and the JVM do: the
+    scheduler lets the process burst, and one thread fewer would leave half a
+    core idle.
+    """
+    try:
+        cores = len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        cores = os.cpu_count() or 1
+    quota = cgroup_cpu_quota()
+    if quota is not None:
+        cores = max(1, min(cores, math.ceil(quota)))
+    return cores
+
+
+def parse_threads(value, where: str = THREADS_ENV) -> int:
+    """A thread count: a positive integer, or ``0``/``auto`` for :func:`available_cores`."""
+    text = str(value).strip().lower()
+    if text in ("0", "auto", ""):
+        return available_cores()
+    try:
+        n = int(text)
+    except ValueError:
+        raise SpecError(f"{where}: {value!r} is not a thread count "
+                        "(a positive integer, or 0/auto for every core)") from None
+    if n < 0:
+        raise SpecError(f"{where}: {value!r} is not a thread count "
+                        "(a positive integer, or 0/auto for every core)")
+    return n or available_cores()
+
+
+def threads() -> int:
+    """The thread count in effect (see the module notes for where it comes from)."""
+    n = _threads.get()
+    if n is not None:
+        return n
+    env = os.environ.get(THREADS_ENV)
+    if env:
+        return parse_threads(env)
+    return available_cores()
+
+
+@contextlib.contextmanager
+def use_threads(n: int | None):
+    """Run the block inside with ``n`` threads (None: keep the count in effect)."""
+    if n is None:
+        yield threads()
+        return
+    if int(n) < 1:
+        raise ValueError(f"thread count must be at least 1, got {n}")
+    token = _threads.set(int(n))
+    try:
+        yield int(n)
+    finally:
+        _threads.reset(token)
+
+
+def cuts(lo: int, hi: int, parts: int) -> list[int]:
+    """Boundaries of ``parts`` near-equal ranges of [lo, hi) (fewer when the range is short)."""
+    parts = max(1, min(int(parts), hi - lo))
+    return [lo + (hi - lo) * i // parts for i in range(parts + 1)]
+
+
+def run_blocks(task: Callable, blocks: Sequence | Iterable, n: int | None = None) -> list:
+    """``[task(b) for b in blocks]`` over ``n`` threads (default :func:`threads`), in order.
+
+    Each task runs in a copy of the caller's context (its thread count, its
+    memory budget). The tasks must write disjoint outputs and release the
+    GIL for the threads to help (volwarp's kernels do: numba ``nogil`` and the
+    C extension). An exception in a task is raised here once the others end.
+    """
+    blocks = list(blocks)
+    n = threads() if n is None else int(n)
+    if n <= 1 or len(blocks) <= 1:
+        return [task(b) for b in blocks]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(n, len(blocks)), thread_name_prefix="volwarp") as pool:
+        futures = [pool.submit(contextvars.copy_context().run, task, b) for b in blocks]
+        return [f.result() for f in futures]
+
+
+@contextlib.contextmanager
+def library_threads(n: int | None = None):
+    """Run the block inside with ``n`` threads (default :func:`threads`), BLAS's and VTK's too.
+
+    BLAS's pools (threadpoolctl) and VTK's SMP tools are process-wide (set here
+    and, for BLAS, put back after), which is why this wraps a command, not a
+    kernel. numba's count is per calling thread and starting its pool costs
+    ~50 ms, so the ``prange`` kernels' callers set it through
+    :func:`numba_threads` when they run.
+    """
+    n = threads() if n is None else int(n)
+    restore = None
+    try:
+        from threadpoolctl import threadpool_limits
+
+        restore = threadpool_limits(limits=n)
+    except ImportError:  # pragma: no cover - a dependency
+        pass
+    smp = _vtk_smp()
+    if smp is not None:
+        smp.Initialize(n)
+    try:
+        with use_threads(n):
+            yield n
+    finally:
+        if restore is not None:
+            restore.restore_original_limits()
+
+
+def numba_threads() -> int:
+    """Set numba's ``prange`` thread count for the calling thread to :func:`threads`.
+
+    Capped by ``NUMBA_NUM_THREADS`` (the pool's size, fixed at numba's first
+    parallel call). Returns the count set.
+    """
+    import numba
+
+    n = max(1, min(threads(), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(n)
+    return n
+
+
+def _vtk_smp():
+    """VTK's ``vtkSMPTools`` when VTK is imported already (importing it costs ~0.3 s)."""
+    import sys
+
+    module = sys.modules.get("vtkmodules.vtkCommonCore")
+    return getattr(module, "vtkSMPTools", None) if module is not None else None
+
+
+def vtk_threads() -> None:
+    """Set VTK's SMP thread count to :func:`threads` (call after importing VTK)."""
+    smp = _vtk_smp()
+    if smp is not None:
+        smp.Initialize(threads())
