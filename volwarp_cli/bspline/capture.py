@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import VolwarpError
-from ..io.common import ensure_fits_in_memory
+from ..memory import ensure_fits_in_memory
 from ..progress import timed
 from ..volume import Volume
 from .lattice import PLACEMENTS, Grid, capture_offsets

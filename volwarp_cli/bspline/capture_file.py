@@ -22,6 +22,10 @@ Version 2 placed the domain on the input as an exact subdivision of its
 voxels at an integer oversample (``subdivision`` k; see :mod:`.lattice`);
 version 1 files have the spanning grid (the domain's box the input's), and
 are warped as they were captured.
+
+It lives in ``bspline/``, not ``io/``, because it stores a :class:`~.capture.Capture`, not a
+volume: reading one builds the B-spline ``Grid`` and ``Capture`` and checks their placement
+and sampling names, and ``io/`` imports nothing of the numeric core.
 """
 
 from __future__ import annotations
@@ -163,7 +167,7 @@ def _refuse_unconverted_frame(head: dict, path) -> None:
 
 def _header_problem(head: dict) -> str | None:
     """What is wrong with a header's fields (the JSON is not checksummed), or None."""
-    from ..io.common import SUPPORTED_DTYPES
+    from ..samples import SUPPORTED_DTYPES
     from .lattice import PLACEMENTS
     from .pullback import SAMPLINGS
 
@@ -219,7 +223,7 @@ def read_capture(path: str | os.PathLike) -> Capture:
     pl = head["payload"]
     dtype = np.dtype(pl["dtype"]).newbyteorder("<")
     shape = tuple(int(v) for v in pl["shape"])[::-1]
-    from ..io.common import ensure_fits_in_memory
+    from ..memory import ensure_fits_in_memory
     ensure_fits_in_memory(int(pl["nbytes"]), f"{path}: domain voxmap")
     with open(path, "rb") as fh:
         fh.seek(offset)

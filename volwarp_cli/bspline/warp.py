@@ -13,8 +13,9 @@ import math
 import numpy as np
 
 from ..errors import SpecError
-from ..io.common import cast_samples, ensure_fits_in_memory
+from ..memory import ensure_fits_in_memory
 from ..progress import log, progress, timed
+from ..samples import cast_samples
 from ..volume import Volume
 from .capture import Capture
 from .plan import Geometry, WarpSpec, default_pad, plan

@@ -82,7 +82,7 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
     data = np.asarray(data)
     if data.dtype.kind == "c" or data.dtype.kind not in "biuf":
         raise VolwarpError(f"cannot take the distance of samples of type {data.dtype}")
-    from ..io.common import ensure_fits_in_memory
+    from ..memory import ensure_fits_in_memory
 
     # mask + float32 field (+ seed ids, a second id buffer and float32 samples, sub-voxel)
     ensure_fits_in_memory(data.size * (18 if metric == "euclidean" else 13),

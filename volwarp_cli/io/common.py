@@ -1,4 +1,9 @@
-"""Pieces every reader and writer shares: dtypes, memory checks, casting, data files."""
+"""Pieces every reader and writer shares: byte order, exact reads, data files, ascii samples.
+
+Sample types and casting live in :mod:`volwarp_cli.samples`, the memory checks
+in :mod:`volwarp_cli.memory` (the numeric core needs them too, and imports
+nothing from ``io/``); their names are imported here for the readers.
+"""
 
 from __future__ import annotations
 
@@ -8,21 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, OutOfMemoryError, VolwarpError
-
-#: The sample types volwarp reads and writes unchanged.
-SUPPORTED_DTYPES = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float32", "float64")
-
-
-def check_dtype(dtype, where: str = "") -> np.dtype:
-    """Return the native-order dtype for a supported sample type, else raise."""
-    dt = np.dtype(dtype)
-    native = dt.newbyteorder("=")
-    if native.name not in SUPPORTED_DTYPES:
-        prefix = f"{where}: " if where else ""
-        raise FormatError(f"{prefix}unsupported sample type {dt.name!r} "
-                          f"(supported: {', '.join(SUPPORTED_DTYPES)})")
-    return native
+from ..errors import FormatError, VolwarpError
+from ..memory import available_memory, ensure_fits_in_memory  # noqa: F401
+from ..memory import human_bytes as _human  # noqa: F401
+from ..samples import SUPPORTED_DTYPES, cast_samples, check_dtype, voxel_count  # noqa: F401
 
 
 def make_volume(where: str, data: np.ndarray, *, error=FormatError, **geometry):
@@ -37,82 +31,6 @@ def make_volume(where: str, data: np.ndarray, *, error=FormatError, **geometry):
         return Volume(data, **geometry)
     except VolwarpError as exc:
         raise error(f"{where}: {exc}") from None
-
-
-def available_memory() -> int:
-    """Bytes of memory this process may still use (MemAvailable, or cgroup limit)."""
-    avail = None
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    avail = int(line.split()[1]) * 1024
-                    break
-    except OSError:
-        pass
-    if avail is None:
-        try:
-            avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (ValueError, OSError, AttributeError):
-            avail = 1 << 62
-    override = os.environ.get("VOLWARP_MEMORY_LIMIT")
-    if override:
-        try:
-            avail = min(avail, int(float(override)))
-        except ValueError:
-            raise VolwarpError(
-                f"VOLWARP_MEMORY_LIMIT={override!r} is not a number of bytes") from None
-    return avail
-
-
-def ensure_fits_in_memory(nbytes: int, what: str) -> None:
-    """Refuse, before allocating, an array that would not fit in memory."""
-    avail = available_memory()
-    if nbytes > avail:
-        raise OutOfMemoryError(
-            f"{what} needs {_human(nbytes)} but only {_human(avail)} of memory is available")
-
-
-def _human(n: int) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
-        if abs(n) < 1024 or unit == "PiB":
-            if unit == "B":
-                return f"{n} B"
-            return f"{n:.1f} {unit}" if abs(n) < 1e6 else f"{n:.3g} {unit}"
-        n /= 1024
-    return f"{n} B"
-
-
-def voxel_count(shape_xyz) -> int:
-    n = 1
-    for s in shape_xyz:
-        n *= int(s)
-    return n
-
-
-def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray:
-    """Convert samples to ``dtype``: integers are rounded and clipped to the type's range.
-
-    NaN cannot be stored in an integer type and is refused rather than
-    silently turned into 0.
-    """
-    dt = check_dtype(dtype)
-    if data.dtype == dt:
-        return data
-    if dt.kind in "iu":
-        if data.dtype.kind == "f":
-            if np.isnan(data).any():
-                raise VolwarpError(f"{what} contains NaN, which {dt.name} cannot hold")
-            info = np.iinfo(dt)
-            out = np.rint(data)
-            np.clip(out, info.min, info.max, out=out)
-            return out.astype(dt)
-        info = np.iinfo(dt)
-        src = np.iinfo(data.dtype)
-        if src.min >= info.min and src.max <= info.max:
-            return data.astype(dt)
-        return np.clip(data, max(info.min, src.min), min(info.max, src.max)).astype(dt)
-    return data.astype(dt)
 
 
 def native(data: np.ndarray) -> np.ndarray:

@@ -214,7 +214,7 @@ def occupancy_to_range(occ: np.ndarray, lo: float, iso: float, hi: float, inside
     ``above``, ``< iso`` for ``below``) and every other voxel one outside it, so
     ``volwarp distance``/``mesh`` at the source's iso level see the frame's shape.
     """
-    from ..io.common import cast_samples
+    from ..samples import cast_samples
 
     dt = np.dtype(dtype)
     a, b = (lo, hi) if inside == "above" else (hi, lo)

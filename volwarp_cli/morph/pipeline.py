@@ -12,7 +12,7 @@ import numpy as np
 
 from ..distance.field import inside_mask, signed_distance
 from ..errors import VolwarpError
-from ..io.common import ensure_fits_in_memory
+from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
 from ..volume import Volume, xyz_to_zyx
 from .align import affine_from_params, shape_centroid

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VolwarpError
-from ..io.common import ensure_fits_in_memory
+from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
 from ..volume import Volume
 from .mesh import Mesh

@@ -1,0 +1,379 @@
+"""The memory budget (volwarp_cli.memory): sizes, cgroup limits, the context variable, and a
+command held to --memory-limit, measured."""
+
+from __future__ import annotations
+
+import contextvars
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+from conftest import ball
+
+from volwarp_cli import memory
+from volwarp_cli.errors import OutOfMemoryError, VolwarpError
+
+K, M, G = 1 << 10, 1 << 20, 1 << 30
+V1_NO_LIMIT = "9223372036854771712"  # 2^63 - 1 rounded down to a 4 KiB page
+
+
+@pytest.fixture(autouse=True)
+def _no_env_limit(monkeypatch):
+    monkeypatch.delenv(memory.MEMORY_ENV, raising=False)
+
+
+@pytest.fixture
+def holding(monkeypatch):
+    """This process holds ``holding.rss`` bytes (0 by default): explicit limits are the
+    whole process's, so what it holds is taken off them."""
+    class Held:
+        rss = 0
+
+    monkeypatch.setattr(memory, "process_rss", lambda: Held.rss)
+    return Held
+
+
+# -- parse_size ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("text, expected", [
+    ("8G", 8 * G), ("512M", 512 * M), ("1.5GiB", 3 * G // 2), ("2g", 2 * G),
+    ("300MB", 300 * M), ("123456", 123456), ("8 GB", 8 * G), ("64k", 64 * K),
+    ("64KiB", 64 * K), ("1Ti", 1 << 40), ("100B", 100), ("1e6", 10 ** 6), (" 4m ", 4 * M),
+    ("0.5k", 512), (4096, 4096),
+])
+def test_parse_size_forms_are_powers_of_1024(text, expected):
+    assert memory.parse_size(text) == expected
+
+
+@pytest.mark.parametrize("text", ["", "abc", "8X", "G", "1iB", "8 G B", "1,5G", "nan", "inf",
+                                  "8GG", "--1"])
+def test_parse_size_refuses_what_is_not_a_size(text):
+    with pytest.raises(ValueError, match="not a memory size") as exc:
+        memory.parse_size(text)
+    msg = str(exc.value)
+    assert "\n" not in msg and "8G" in msg and "512M" in msg and "1024" in msg
+
+
+@pytest.mark.parametrize("text", ["0", "0G", "-1", "-2G", "0.4"])
+def test_parse_size_refuses_sizes_that_are_not_positive(text):
+    with pytest.raises(ValueError, match="not a positive memory size"):
+        memory.parse_size(text)
+
+
+# -- cgroup limits on fake trees -----------------------------------------------------
+
+def tree(root: Path, files: dict[str, str]) -> str:
+    for name, text in files.items():
+        p = root / name
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(text + "\n")
+    return str(root)
+
+
+def test_cgroup_v2_limit_and_working_set(tmp_path):
+    root = tree(tmp_path, {"user.slice/job/memory.max": str(4 * G),
+                           "user.slice/job/memory.current": str(G),
+                           "user.slice/job/memory.stat": f"anon 1\ninactive_file {256 * M}\n"
+                                                         "active_file 5"})
+    # the inactive page cache is reclaimable: not counted as used
+    assert memory.cgroup_memory_limit(root, {"": "/user.slice/job"}) == (4 * G, G - 256 * M)
+
+
+def test_cgroup_v2_max_means_no_limit(tmp_path):
+    root = tree(tmp_path, {"a/memory.max": "max", "a/memory.current": str(G)})
+    assert memory.cgroup_memory_limit(root, {"": "/a"}) is None
+
+
+def test_cgroup_v2_a_limit_on_an_ancestor_counts(tmp_path):
+    """A Slurm job's limit sits on the job's cgroup; the task's own says max."""
+    root = tree(tmp_path, {"job/memory.max": str(2 * G), "job/memory.current": str(3 * G // 2),
+                           "job/task/memory.max": "max", "job/task/memory.current": str(M)})
+    assert memory.cgroup_memory_limit(root, {"": "/job/task"}) == (2 * G, 3 * G // 2)
+    # the level that leaves least wins, not the smallest limit
+    tree(tmp_path, {"job/task/memory.max": str(G), "job/task/memory.current": str(M)})
+    assert memory.cgroup_memory_limit(root, {"": "/job/task"}) == (2 * G, 3 * G // 2)
+
+
+def test_cgroup_v2_path_not_mounted_under_its_name(tmp_path):
+    """In a container the process's cgroup is the mount's root."""
+    root = tree(tmp_path, {"memory.max": str(G), "memory.current": str(100 * M)})
+    assert memory.cgroup_memory_limit(root, {"": "/docker/0123abcd"}) == (G, 100 * M)
+
+
+def test_cgroup_v1_limit(tmp_path):
+    root = tree(tmp_path, {"memory/docker/abc/memory.limit_in_bytes": str(2 * G),
+                           "memory/docker/abc/memory.usage_in_bytes": str(G),
+                           "memory/docker/abc/memory.stat":
+                               f"cache 9\ninactive_file {M}\ntotal_inactive_file {64 * M}",
+                           "memory/memory.limit_in_bytes": V1_NO_LIMIT,
+                           "memory/memory.usage_in_bytes": str(8 * G)})
+    paths = {"memory": "/docker/abc", "cpu": "/docker/abc"}
+    assert memory.cgroup_memory_limit(root, paths) == (2 * G, G - 64 * M)
+
+
+def test_cgroup_v1_page_rounded_2_63_means_no_limit(tmp_path):
+    root = tree(tmp_path, {"memory/x/memory.limit_in_bytes": V1_NO_LIMIT,
+                           "memory/x/memory.usage_in_bytes": str(G),
+                           "memory/memory.limit_in_bytes": V1_NO_LIMIT,
+                           "memory/memory.usage_in_bytes": str(G)})
+    assert memory.cgroup_memory_limit(root, {"memory": "/x"}) is None
+    # a 64 KiB page rounds it differently
+    tree(tmp_path, {"memory/x/memory.limit_in_bytes": str((1 << 63) - (1 << 16))})
+    assert memory.cgroup_memory_limit(root, {"memory": "/x"}) is None
+
+
+def test_cgroup_v1_path_not_mounted_under_its_name(tmp_path):
+    root = tree(tmp_path, {"memory/memory.limit_in_bytes": str(512 * M),
+                           "memory/memory.usage_in_bytes": str(12 * M)})
+    assert memory.cgroup_memory_limit(root, {"memory": "/docker/abc"}) == (512 * M, 12 * M)
+
+
+def test_cgroup_hybrid_reads_v1_when_the_unified_tree_has_no_memory_files(tmp_path):
+    root = tree(tmp_path, {"unified/cgroup.procs": "1",
+                           "memory/s/memory.limit_in_bytes": str(G),
+                           "memory/s/memory.usage_in_bytes": str(M)})
+    assert memory.cgroup_memory_limit(root, {"": "/", "memory": "/s"}) == (G, M)
+
+
+def test_no_cgroup_files_no_limit(tmp_path):
+    assert memory.cgroup_memory_limit(str(tmp_path), {"": "/a", "memory": "/a"}) is None
+    assert memory.cgroup_memory_limit(str(tmp_path), {}) is None
+    # this process's own (whatever the machine has): a pair of ints or None
+    own = memory.cgroup_memory_limit()
+    assert own is None or (len(own) == 2 and all(isinstance(v, int) for v in own))
+
+
+# -- available_memory and the budget -------------------------------------------------
+
+@pytest.fixture
+def machine(monkeypatch, holding):
+    """A machine with 8 GiB available and no cgroup limit (set ``cgroup`` to add one)."""
+    state = {"cgroup": None}
+    monkeypatch.setattr(memory, "meminfo_available", lambda path="/proc/meminfo": 8 * G)
+    monkeypatch.setattr(memory, "cgroup_memory_limit", lambda *a, **k: state["cgroup"])
+    return state
+
+
+def test_available_memory_is_the_lower_of_meminfo_and_the_cgroup(machine):
+    assert memory.available_memory() == 8 * G
+    machine["cgroup"] = (3 * G, G)
+    assert memory.available_memory() == 2 * G
+    machine["cgroup"] = (64 * G, G)
+    assert memory.available_memory() == 8 * G
+    machine["cgroup"] = (G, 2 * G)  # over its limit already (cache): nothing left
+    assert memory.available_memory() == 0
+
+
+def test_available_memory_capped_by_the_variable(machine, monkeypatch):
+    monkeypatch.setenv(memory.MEMORY_ENV, "512M")
+    assert memory.available_memory() == 512 * M
+    monkeypatch.setenv(memory.MEMORY_ENV, "100000")  # a plain byte count, as before
+    assert memory.available_memory() == 100000
+    monkeypatch.setenv(memory.MEMORY_ENV, "64G")  # does not raise the machine's
+    assert memory.available_memory() == 8 * G
+    monkeypatch.setenv(memory.MEMORY_ENV, "lots")
+    with pytest.raises(VolwarpError, match=memory.MEMORY_ENV) as exc:
+        memory.available_memory()
+    assert "\n" not in str(exc.value) and not isinstance(exc.value, ValueError)
+
+
+def test_use_memory_limit_caps_available_memory_and_nests(machine, monkeypatch):
+    with memory.use_memory_limit(G) as budget:
+        assert budget == G
+        assert memory.available_memory() == memory.memory_limit() == G
+        with memory.use_memory_limit(4 * G) as inner:  # a callee cannot raise it
+            assert inner == G and memory.memory_limit() == G
+        with memory.use_memory_limit(256 * M):
+            assert memory.memory_limit() == 256 * M
+            monkeypatch.setenv(memory.MEMORY_ENV, "100M")
+            assert memory.memory_limit() == 100 * M
+            monkeypatch.delenv(memory.MEMORY_ENV)
+        with memory.use_memory_limit(None) as same:
+            assert same == G
+        assert memory.memory_limit() == G
+    assert memory.memory_limit() == 8 * G
+    with memory.use_memory_limit(None) as none:
+        assert none is None
+    with pytest.raises(ValueError), memory.use_memory_limit(0):
+        pass
+    with memory.use_memory_limit(64 * G):  # above what the machine leaves
+        assert memory.memory_limit() == 8 * G
+
+
+def test_the_budget_is_per_thread_unless_the_context_is_copied(machine):
+    from volwarp_cli import parallel
+
+    seen = {}
+
+    def look(key):
+        seen[key] = memory.memory_limit()
+
+    with memory.use_memory_limit(16 * M):
+        t = threading.Thread(target=look, args=("plain",))
+        t.start()
+        t.join()
+        ctx = contextvars.copy_context()
+        t = threading.Thread(target=ctx.run, args=(look, "copied"))
+        t.start()
+        t.join()
+        blocks = parallel.run_blocks(lambda b: memory.memory_limit(), range(4), n=2)
+    assert seen == {"plain": 8 * G, "copied": 16 * M}
+    assert blocks == [16 * M] * 4
+
+    # a thread's own budget does not leak to the caller's
+    def set_own():
+        with memory.use_memory_limit(M):
+            seen["own"] = memory.memory_limit()
+
+    t = threading.Thread(target=set_own)
+    t.start()
+    t.join()
+    assert seen["own"] == M and memory.memory_limit() == 8 * G
+
+
+def test_ensure_fits_in_memory_says_where_the_limit_comes_from(machine, monkeypatch, holding):
+    memory.ensure_fits_in_memory(8 * G, "exactly all")
+    with pytest.raises(OutOfMemoryError, match=r"^big needs 9.0 GiB but only 8.0 GiB of "
+                                                r"memory is available on this machine$"):
+        memory.ensure_fits_in_memory(9 * G, "big")
+    machine["cgroup"] = (4 * G, G)
+    with pytest.raises(OutOfMemoryError, match=r"only 3.0 GiB .* cgroup \(its limit 4.0 GiB, "
+                                                r"1.0 GiB in use\)"):
+        memory.ensure_fits_in_memory(4 * G, "big")
+    monkeypatch.setenv(memory.MEMORY_ENV, "2G")
+    with pytest.raises(OutOfMemoryError, match=r"only 2.0 GiB is left under the memory limit "
+                                                r"\(VOLWARP_MEMORY_LIMIT: 2.0 GiB"):
+        memory.ensure_fits_in_memory(3 * G, "big")
+    with memory.use_memory_limit(512 * M), pytest.raises(
+            OutOfMemoryError, match=r"^big needs 1.0 GiB but only 512.0 MiB is left under the "
+                                    r"memory limit \(--memory-limit: 512.0 MiB, of which this "
+                                    r"process holds 0 B\)$"):
+        memory.ensure_fits_in_memory(G, "big")
+    holding.rss = 100 * M  # an explicit limit is the whole process's
+    with memory.use_memory_limit(512 * M), pytest.raises(
+            OutOfMemoryError, match=r"only 412.0 MiB is left .* holds 100.0 MiB\)$"):
+        memory.ensure_fits_in_memory(450 * M, "big")
+    holding.rss = 0
+    with memory.use_memory_limit(512 * M, source="the worker's budget"), pytest.raises(
+            OutOfMemoryError, match=r"the memory limit \(the worker's budget: "):
+        memory.ensure_fits_in_memory(G, "big")
+
+
+def test_block_bytes_follows_budget_and_threads_within_bounds(machine):
+    with memory.use_memory_limit(G):
+        assert memory.block_bytes(4) == 128 * M  # 1 GiB * 0.5 / 4
+        assert memory.block_bytes(4, fraction=0.25) == 64 * M
+        assert memory.block_bytes(1) == memory.BLOCK_CEILING == 256 * M
+        assert memory.block_bytes(1000) == memory.BLOCK_FLOOR == 8 * M
+        from volwarp_cli import parallel
+
+        with parallel.use_threads(2):
+            assert memory.block_bytes() == 256 * M
+    with memory.use_memory_limit(16 * M):
+        assert memory.block_bytes(2) == 8 * M  # the floor wins over a tiny budget
+    with pytest.raises(ValueError):
+        memory.block_bytes(0)
+    with pytest.raises(ValueError):
+        memory.block_bytes(2, fraction=0)
+
+
+def test_human_bytes():
+    assert memory.human_bytes(512) == "512 B"
+    assert memory.human_bytes(15 * M + M // 5) == "15.2 MiB"
+    assert memory.human_bytes(3 * G // 2) == "1.5 GiB"
+
+
+def test_old_names_still_importable_from_io_common():
+    from volwarp_cli import samples
+    from volwarp_cli.io import common
+
+    assert common.ensure_fits_in_memory is memory.ensure_fits_in_memory
+    assert common.available_memory is memory.available_memory
+    assert common.cast_samples is samples.cast_samples
+    assert common.check_dtype is samples.check_dtype
+    assert common.voxel_count is samples.voxel_count
+    assert common.SUPPORTED_DTYPES is samples.SUPPORTED_DTYPES
+
+
+_PKG = Path(memory.__file__).parent
+_CORE = sorted(str(f.relative_to(_PKG)) for sub in ("bspline", "distance", "morph", "render",
+                                                     "surface", "sweep")
+               for f in (_PKG / sub).glob("*.py"))
+
+
+@pytest.mark.parametrize("module", _CORE)
+def test_no_core_module_imports_io_common(module):
+    """Memory checks and sample casting come from memory.py and samples.py, not io/."""
+    assert "io.common import" not in (_PKG / module).read_text()
+
+
+# -- the command line ----------------------------------------------------------------
+
+def test_cli_memory_limit_bad_value_is_a_usage_error(run, tmp_path):
+    r = run("distance", tmp_path / "b.nrrd", "-o", tmp_path / "d.nrrd", "--iso", 1,
+            "--memory-limit", "lots")
+    assert r.code == 2 and "--memory-limit" in r.stderr and "not a memory size" in r.stderr
+
+
+def test_cli_memory_limit_ends_with_the_command(run, tmp_path, holding):
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    write_volume(Volume(ball(12) * 200), tmp_path / "b.nrrd")
+    before = memory.memory_limit()
+    r = run("distance", tmp_path / "b.nrrd", "-o", tmp_path / "d.nrrd", "--iso", 100,
+            "--memory-limit", "8M")
+    assert r.code == 0, r.stderr
+    assert memory.memory_limit() >= min(before, 64 * M)  # not left at 8 MiB
+
+
+_WRAPPER = """\
+import resource, subprocess, sys
+code = subprocess.run(sys.argv[1:]).returncode
+print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
+sys.exit(code)
+"""
+
+
+def _distance(src: Path, out: Path, limit: str):
+    """``volwarp distance`` in a fresh process, and that process's peak RSS in bytes."""
+    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
+    proc = subprocess.run([sys.executable, "-c", _WRAPPER, sys.executable, "-m", "volwarp_cli",
+                           "distance", str(src), "-o", str(out), "--iso", "100",
+                           "--memory-limit", limit],
+                          capture_output=True, text=True, env=env, timeout=60)
+    return proc.returncode, proc.stderr, int(proc.stdout.split()[-1])
+
+
+def test_distance_held_to_its_memory_limit_measured(tmp_path):
+    """160^3 needs 70 MiB by the distance field's own count (18 bytes a voxel): refused
+    at 64M with the budget named and nothing written; at 256M it runs, and the whole
+    process (interpreter and libraries included) peaks below 256 MiB."""
+    from volwarp_cli.distance.field import signed_distance
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    signed_distance(ball(8), iso=1)  # numba's kernels compiled and cached, here, not timed
+    write_volume(Volume(ball(16) * 200), tmp_path / "small.nrrd")
+    write_volume(Volume(ball(160) * 200), tmp_path / "big.nrrd")
+    out = tmp_path / "d.nrrd"
+
+    code, err, _ = _distance(tmp_path / "big.nrrd", out, "64M")
+    assert code == 1, err
+    line = err.strip()
+    assert "\n" not in line and line.startswith("volwarp: error: ")
+    assert "needs 70.3 MiB" in line and "memory limit (--memory-limit: 64.0 MiB" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["big.nrrd", "small.nrrd"]
+
+    code, err, base = _distance(tmp_path / "small.nrrd", tmp_path / "s.nrrd", "256M")
+    assert code == 0, err
+    code, err, peak = _distance(tmp_path / "big.nrrd", out, "256M")
+    assert code == 0, err
+    assert out.exists()
+    assert peak < 256 * M, f"peak RSS {peak / M:.0f} MiB"
+    # and what the command allocated for 160^3 (over the 16^3 run's) is within its own count
+    need = 160 ** 3 * 18
+    assert peak - base < need, f"{(peak - base) / M:.0f} MiB over {need / M:.0f} MiB"

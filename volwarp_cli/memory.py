@@ -1,0 +1,359 @@
+"""The memory budget: how much volwarp's work may allocate, and refusing what will not fit.
+
+The limit in effect (:func:`memory_limit`) is the lowest of:
+
+- :func:`use_memory_limit`'s budget (the CLI's ``--memory-limit``);
+- ``VOLWARP_MEMORY_LIMIT`` (a size, :func:`parse_size`);
+- the memory this process can still get (:func:`available_memory`): the
+  kernel's ``MemAvailable`` and its cgroup's limit minus the cgroup's usage
+  (:func:`cgroup_memory_limit`; inside a container or a cluster job limited to
+  4 GiB, what is left of the 4 GiB, not the host's free memory).
+
+Everything is read again at each call (free memory changes while a command
+runs); a call costs a few small file reads, 0.1-0.2 ms.
+
+The budget lives in a context variable, not in a module global: a Dask
+worker's threads or a caller's each have their own, and
+:func:`volwarp_cli.parallel.run_blocks` hands the caller's to its tasks. A
+thread started otherwise does not see it (run it in
+``contextvars.copy_context()`` to pass it on).
+
+A step about to allocate (:func:`ensure_fits_in_memory`, before the
+allocation) is compared with what is left: an explicit limit is the whole
+process's, so what the process holds already (the interpreter and its
+libraries, about 100-200 MiB, and the volumes read) is taken off it.
+:func:`block_bytes` sizes the blocks of block-wise work from what is left.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import os
+import re
+from collections.abc import Mapping
+
+from .errors import OutOfMemoryError, VolwarpError
+
+#: Environment variable lowering the memory limit (a size: ``8G``, ``512M``, bytes).
+MEMORY_ENV = "VOLWARP_MEMORY_LIMIT"
+
+#: A cgroup v1 limit at or above this means none (v1 writes 2^63 - 1 rounded down to
+#: the page size, 9223372036854771712 with 4 KiB pages).
+_V1_UNLIMITED = 1 << 62
+
+_UNITS = {"": 0, "k": 1, "m": 2, "g": 3, "t": 4}
+_SIZE = re.compile(r"""\s*(?P<num>[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:e[+-]?\d+)?)\s*
+                       (?P<unit>[kmgt]?)(?P<i>i?)(?P<b>b?)\s*""", re.IGNORECASE | re.VERBOSE)
+_FORMS = ("a byte count (123456) or a number with k, M, G or T, optionally followed by "
+          "B or iB (8G, 512M, 1.5GiB, 300MB); units are powers of 1024")
+
+#: (bytes, where it came from) of the innermost :func:`use_memory_limit`, or None
+_budget: contextvars.ContextVar[tuple[int, str] | None] = contextvars.ContextVar(
+    "volwarp_memory_limit", default=None)
+
+
+# -- sizes ----------------------------------------------------------------------------
+
+def parse_size(text) -> int:
+    """Bytes in a memory size: ``"8G"``, ``"512M"``, ``"1.5GiB"``, ``"2g"``, ``"300MB"``,
+    ``"123456"``.
+
+    A number (decimals and exponents allowed) with an optional unit k, M, G or T,
+    case-insensitive, optionally followed by ``B`` or ``iB``. **Every unit is a
+    power of 1024**, as Docker's ``--memory`` reads ``g`` and Dask its ``GiB``:
+    ``GB`` and ``GiB`` alike mean 2^30 bytes (a memory limit written "8GB" is
+    meant as 8 GiB; Dask reads ``GB`` as 10^9, volwarp does not). No unit, or
+    ``B``, is bytes. The result is rounded down to a whole byte.
+
+    Raises ``ValueError`` (one line, naming the accepted forms) for anything
+    else and for a size that is not positive.
+    """
+    s = str(text)
+    m = _SIZE.fullmatch(s)
+    if not m:
+        raise ValueError(f"{s.strip()!r} is not a memory size: give {_FORMS}")
+    if m["i"] and not m["unit"]:
+        raise ValueError(f"{s.strip()!r} is not a memory size: give {_FORMS}")
+    value = float(m["num"]) * 1024 ** _UNITS[m["unit"].lower()]
+    if value == float("inf"):
+        raise ValueError(f"{s.strip()!r} is too large a memory size")
+    if not value >= 1:
+        raise ValueError(f"{s.strip()!r} is not a positive memory size: give {_FORMS}")
+    return int(value)
+
+
+def human_bytes(n: int) -> str:
+    """``n`` bytes for a message: ``512 B``, ``15.2 MiB``, ``1.5 GiB`` (units of 1024)."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(n) < 1024 or unit == "PiB":
+            if unit == "B":
+                return f"{n} B"
+            return f"{n:.1f} {unit}" if abs(n) < 1e6 else f"{n:.3g} {unit}"
+        n /= 1024
+    return f"{n} B"  # pragma: no cover - the loop returns
+
+
+# -- what the machine and the cgroup leave --------------------------------------------
+
+def _int(text: str | None) -> int | None:
+    try:
+        return int(text) if text is not None else None
+    except ValueError:
+        return None
+
+
+def _stat(text: str | None, *keys: str) -> int:
+    """The first of ``keys`` found in a ``memory.stat`` text (0 if none)."""
+    values = {}
+    for line in (text or "").splitlines():
+        key, _, value = line.partition(" ")
+        values[key] = value
+    for key in keys:
+        n = _int(values.get(key))
+        if n is not None:
+            return n
+    return 0
+
+
+def _levels(path: str) -> list[str]:
+    """A cgroup and its ancestors, leaf first: ``/a/b`` -> ``/a/b``, ``/a``, ``/``."""
+    parts = [p for p in path.split("/") if p]
+    return ["/" + "/".join(parts[:n]) for n in range(len(parts), -1, -1)]
+
+
+def cgroup_memory_limit(root: str = "/sys/fs/cgroup",
+                        cgroups: Mapping[str, str] | None = None) -> tuple[int, int] | None:
+    """``(limit, usage)`` in bytes of this process's cgroup memory limit, or None if none.
+
+    cgroup v2: the unified hierarchy's path (``0::/path`` in /proc/self/cgroup)
+    gives ``<root>/<path>/memory.max`` (``max``: no limit) and
+    ``memory.current``. cgroup v1: the ``memory`` controller's path gives
+    ``<root>/memory/<path>/memory.limit_in_bytes`` (2^63 rounded to the page:
+    no limit) and ``memory.usage_in_bytes``. Inside a container the cgroup's
+    path is often not mounted under its name (the container's cgroup is the
+    mount's root): each file is looked for at ``<mount>/<path>/`` and then at
+    ``<mount>/`` (:func:`volwarp_cli.parallel._under`, as the CPU quota is).
+
+    The cgroup's ancestors are read too (a Slurm job's limit sits on the
+    job's cgroup, above the task's): the result is the level that leaves the
+    least, ``limit - usage``. ``usage`` is the working set, as the kubelet and
+    ``docker stats`` count it: the charged memory less its inactive page cache
+    (``inactive_file`` in ``memory.stat``, v1 ``total_inactive_file``), which
+    the kernel reclaims before it would kill the process (reading a 2 GiB
+    volume charges 2 GiB of cache; ``MemAvailable`` counts it as available too).
+
+    ``root`` is where the hierarchies are mounted; ``cgroups`` maps controller
+    to cgroup path (``""`` for v2) as :func:`volwarp_cli.parallel._cgroup_paths`
+    reads them from /proc/self/cgroup (the default); both are parameters for the
+    tests' fake trees.
+    """
+    from .parallel import _cgroup_paths, _under
+
+    paths = _cgroup_paths() if cgroups is None else dict(cgroups)
+    # v2 first; a hybrid system's v2 tree (at <root>/unified) has no memory files
+    layouts = []
+    if "" in paths:
+        layouts.append((root, paths[""], "memory.max", "memory.current",
+                        ("inactive_file",)))
+    if "memory" in paths:
+        layouts.append((os.path.join(root, "memory"), paths["memory"],
+                        "memory.limit_in_bytes", "memory.usage_in_bytes",
+                        ("total_inactive_file", "inactive_file")))
+    for mount, path, max_name, usage_name, inactive in layouts:
+        found = False
+        best = None
+        for level in _levels(path):
+            text = _under(mount, level, max_name)
+            if text is None:
+                continue
+            found = True
+            limit = _int(text)  # "max" (v2): None
+            usage = _int(_under(mount, level, usage_name))
+            if limit is None or limit >= _V1_UNLIMITED or usage is None:
+                continue
+            usage = max(0, usage - _stat(_under(mount, level, "memory.stat"), *inactive))
+            if best is None or limit - usage < best[0] - best[1]:
+                best = (limit, usage)
+        if found:
+            return best
+    return None
+
+
+def meminfo_available(path: str = "/proc/meminfo") -> int | None:
+    """The kernel's estimate of memory available without swapping (``MemAvailable``)."""
+    try:
+        with open(path) as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _machine() -> tuple[int, str]:
+    """What the machine and the cgroup leave, and a phrase saying which is the bound."""
+    avail = meminfo_available()
+    if avail is None:
+        try:
+            avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):  # pragma: no cover - not Linux
+            avail = 1 << 62
+    where = "available on this machine"
+    cg = cgroup_memory_limit()
+    if cg is not None:
+        limit, usage = cg
+        left = max(0, limit - usage)
+        if left < avail:
+            avail = left
+            where = (f"left by this process's cgroup (its limit {human_bytes(limit)}, "
+                     f"{human_bytes(usage)} in use)")
+    return avail, where
+
+
+def _env_limit() -> int | None:
+    text = os.environ.get(MEMORY_ENV, "")
+    if not text.strip():
+        return None
+    try:
+        return parse_size(text)
+    except ValueError as exc:
+        raise VolwarpError(f"{MEMORY_ENV}={text!r}: {exc}") from None
+
+
+def process_rss() -> int:
+    """This process's resident memory now (bytes; 0 where /proc is not there)."""
+    text = _read_text("/proc/self/statm")
+    try:
+        return int(text.split()[1]) * os.sysconf("SC_PAGE_SIZE") if text else 0
+    except (IndexError, ValueError, OSError):  # pragma: no cover - not Linux
+        return 0
+
+
+def _read_text(path: str) -> str | None:
+    try:
+        with open(path) as fh:
+            return fh.read()
+    except OSError:
+        return None
+
+
+def _limit() -> tuple[int, str]:
+    """The limit in effect and where it comes from (``--memory-limit``, the variable, ...).
+
+    An explicit limit (``--memory-limit``, ``VOLWARP_MEMORY_LIMIT``) is the whole
+    process's: what this process holds already (the interpreter, its libraries,
+    the volumes read) is taken off it. The machine's and the cgroup's figures
+    already count it.
+    """
+    avail, where = _machine()
+    explicit = []
+    env = _env_limit()
+    if env is not None:
+        explicit.append((env, MEMORY_ENV))
+    budget = _budget.get()
+    if budget is not None:
+        explicit.append(budget)
+    if explicit:
+        held = process_rss()
+        for limit, source in explicit:
+            left = max(0, limit - held)
+            if left <= avail:
+                avail = left
+                where = (f"the memory limit ({source}: {human_bytes(limit)}, of which this "
+                         f"process holds {human_bytes(held)})")
+    return avail, where
+
+
+def available_memory() -> int:
+    """Bytes this process may still allocate: the lower of ``MemAvailable`` and its
+    cgroup's limit less usage, capped by ``VOLWARP_MEMORY_LIMIT`` and by the budget in
+    effect (:func:`use_memory_limit`).
+
+    A bad ``VOLWARP_MEMORY_LIMIT`` is a :class:`~volwarp_cli.errors.VolwarpError`
+    naming the variable.
+    """
+    return _limit()[0]
+
+
+# -- the budget -----------------------------------------------------------------------
+
+@contextlib.contextmanager
+def use_memory_limit(nbytes: int | None, *, source: str = "--memory-limit"):
+    """Run the block inside with at most ``nbytes`` of memory (None: keep the limit).
+
+    Nested budgets only lower the limit (the tighter one holds). ``source``
+    names the budget in :func:`ensure_fits_in_memory`'s message. Yields the
+    budget in effect inside (bytes; None if there is none), without reading
+    the machine's memory (:func:`memory_limit` does).
+    """
+    outer = _budget.get()
+    if nbytes is None:
+        yield outer[0] if outer is not None else None
+        return
+    nbytes = int(nbytes)
+    if nbytes < 1:
+        raise ValueError(f"memory limit must be positive, got {nbytes}")
+    inner = (nbytes, source) if outer is None or nbytes < outer[0] else outer
+    token = _budget.set(inner)
+    try:
+        yield inner[0]
+    finally:
+        _budget.reset(token)
+
+
+def memory_limit() -> int:
+    """The memory budget in effect: the lower of :func:`use_memory_limit`'s (if any) and
+    :func:`available_memory` (which is already capped by it)."""
+    return _limit()[0]
+
+
+def ensure_fits_in_memory(nbytes: int, what: str) -> None:
+    """Refuse, before allocating, ``nbytes`` for ``what`` if more than :func:`memory_limit`.
+
+    Raises :class:`~volwarp_cli.errors.OutOfMemoryError`, whose one-line message
+    gives both sizes and whether the limit is ``--memory-limit`` /
+    ``VOLWARP_MEMORY_LIMIT`` or what the machine or the cgroup leaves.
+    """
+    limit, where = _limit()
+    if nbytes > limit:
+        if where.startswith("the memory limit"):
+            raise OutOfMemoryError(f"{what} needs {human_bytes(nbytes)} but only "
+                                   f"{human_bytes(limit)} is left under {where}")
+        raise OutOfMemoryError(f"{what} needs {human_bytes(nbytes)} but only "
+                               f"{human_bytes(limit)} of memory is {where}")
+
+
+#: :func:`block_bytes`'s bounds.
+BLOCK_FLOOR = 8 << 20
+BLOCK_CEILING = 256 << 20
+
+
+def block_bytes(threads: int | None = None, fraction: float = 0.5) -> int:
+    """The bytes one block task may hold when ``threads`` tasks run at once.
+
+    ``memory_limit() * fraction / threads``, kept within [8 MiB, 256 MiB]
+    (:data:`BLOCK_FLOOR`, :data:`BLOCK_CEILING`). ``fraction`` is the share of
+    the budget the blocks' working memory may take together (the rest: the
+    whole-volume inputs and outputs, which the caller checks with
+    :func:`ensure_fits_in_memory`). ``threads`` defaults to
+    :func:`volwarp_cli.parallel.threads`.
+
+    The floor wins over the budget: a block below 8 MiB (128^3 bytes) costs
+    more in per-block overhead than it saves, and the whole work's own check
+    refuses what does not fit. The ceiling bounds one task's temporaries and
+    latency: past a few hundred MiB a block is no faster per byte, and smaller
+    blocks balance the threads' load and let progress show.
+    """
+    if threads is None:
+        from .parallel import threads as current_threads
+
+        threads = current_threads()
+    threads = int(threads)
+    if threads < 1:
+        raise ValueError(f"thread count must be at least 1, got {threads}")
+    if not 0 < fraction <= 1:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction}")
+    per = int(memory_limit() * fraction) // threads
+    return max(BLOCK_FLOOR, min(BLOCK_CEILING, per))
