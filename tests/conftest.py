@@ -38,12 +38,11 @@ def run():
 
 
 @pytest.fixture(params=["subtract", "rebuild"])
-def local_updates(monkeypatch, request):
-    """Scenes update locally, by each of the two local updates, even where another way would
-    be cheaper (all give the same sums), so that tests exercise them on small lattices."""
-    from volwarp_cli.bspline.scene import Scene
-
-    monkeypatch.setattr(Scene, "update", request.param)
+def local_updates(request):
+    """How scenes update locally (pass it as ``Scene(..., update=local_updates)``): each of
+    the two local updates, even where another way would be cheaper (all give the same
+    sums), so that tests exercise them on small lattices."""
+    return request.param
 
 
 @pytest.fixture

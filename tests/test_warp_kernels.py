@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from volwarp_cli import parallel
 from volwarp_cli.bspline import _warpkernels as K
 from volwarp_cli.bspline import pushforward
 from volwarp_cli.bspline.pushforward import COVERED_HI, COVERED_LO, QUANTUM
@@ -130,11 +131,11 @@ def test_contributions_do_not_depend_on_the_block(method):
 
 
 @pytest.mark.parametrize("method", ["box", "nearest"])
-def test_two_thread_split_at_a_target_plane_gives_the_same_sums(method):
-    """split=(tm, za, zb): one thread takes the target planes below tm (domain planes
-    [lo, za)), the other tm and above ([zb, hi)); voxels whose boxes straddle tm are
-    done by both, each keeping its side. The sums equal one unsplit run's; a split whose
-    domain ranges miss some straddling voxels would lose their contributions."""
+def test_split_by_target_planes_gives_the_same_sums(method):
+    """parts=[(t0, t1, g0, g1), ...]: one thread per part takes target planes [t0, t1)
+    from domain planes [g0, g1); voxels whose boxes straddle a cut are done by both parts,
+    each keeping its side. The sums equal one unsplit run's; a part whose domain range
+    misses some straddling voxels loses their contributions."""
     rng = np.random.default_rng(8)
     dz, dy, dx = 24, 9, 10
     u = random_offsets((dz, dy, dx), rng, amplitude=1.5)
@@ -143,20 +144,28 @@ def test_two_thread_split_at_a_target_plane_gives_the_same_sums(method):
     tshape = (26, 12, 13)
     whole = np.zeros(tshape + (2,), np.int64)
     pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method, whole)
-    tm = 12
     # a box reaches at most r planes from its base position 2.2 + 0.9 g
     r = float(np.abs(u[2]).max()) + 1.0
-    za, zb = int(np.ceil((tm + r - 2.2) / 0.9)) + 1, int(np.floor((tm - 1 - r - 2.2) / 0.9))
-    assert zb < za  # the straddling voxels are in both ranges
-    split = np.zeros_like(whole)
-    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method, split,
-                        split=(tm, za, zb))
-    assert np.array_equal(whole, split)
-    assert whole[:tm, ..., 0].any() and whole[tm:, ..., 0].any()
-    short = np.zeros_like(whole)  # the second thread starting too late misses some
-    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method, short,
-                        split=(tm, za, za - 1))
-    assert not np.array_equal(whole, short)
+
+    def window(t0, t1):  # the domain planes whose boxes can reach target planes [t0, t1)
+        return (max(0, int(np.floor((t0 - 1 - r - 2.2) / 0.9))),
+                min(dz, int(np.ceil((t1 + r - 2.2) / 0.9)) + 1))
+
+    edges = [0, 8, 12, 19, tshape[0]]
+    parts = [(a, b, *window(a, b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    assert parts[1][2] < parts[0][3]  # the straddling voxels are in both ranges
+    with parallel.use_threads(len(parts)):
+        split = np.zeros_like(whole)
+        pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method,
+                            split, parts=parts)
+        assert np.array_equal(whole, split)
+        assert all(whole[a:b, ..., 0].any() for a, b, _, _ in parts)
+        short = np.zeros_like(whole)  # the third part starting too late misses some
+        t0, t1, g0, g1 = parts[2]
+        bad = parts[:2] + [(t0, t1, parts[1][3], g1)] + parts[3:]
+        pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method,
+                            short, parts=bad)
+        assert not np.array_equal(whole, short)
 
 
 @pytest.mark.parametrize("method", ["box", "nearest"])

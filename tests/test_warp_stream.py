@@ -56,10 +56,10 @@ def test_subdivision_grid_paths_agree(method, local_updates, monkeypatch):
     data = _blob((65, 20, 23))
     cap = capture_volume(Volume(data), lattice=(6, 6, 10), oversample=2)
     assert cap.grid.lead == (1, 1, 1) and cap.grid.data_hi == (47, 41, 131)
-    ident = Scene(cap.domain, cap.grid, cap.dq, 2, method=method).render_once()
+    ident = Scene(cap.domain, cap.grid, cap.dq, 2, method=method, update=local_updates).render_once()
     assert np.max(np.abs(ident[2:-2, 2:-2, 2:-2] - data)) <= 8 * 2.0 ** -39 * data.max()
     assert np.all(ident[:2] == 0) and np.all(ident[:, :, -2:] == 0)
-    scene = Scene(cap.domain, cap.grid, cap.dq, 6, method=method)
+    scene = Scene(cap.domain, cap.grid, cap.dq, 6, method=method, update=local_updates)
     scene.render()
     dq = cap.dq.copy()
     for point, move in (((0, 2, 1), (1.5, -2.0, 3.0)), ((3, 5, 9), (-2.5, 1.0, -4.0)),
@@ -67,13 +67,13 @@ def test_subdivision_grid_paths_agree(method, local_updates, monkeypatch):
         dq = dq.copy()
         dq[point[::-1]] += move
         scene.set_lattice(dq)
-    full = Scene(cap.domain, cap.grid, dq, 6, method=method).render()
+    full = Scene(cap.domain, cap.grid, dq, 6, method=method, update=local_updates).render()
     assert np.array_equal(scene.out, full)
-    once = Scene(cap.domain, cap.grid, dq, 6, method=method).render_once()
+    once = Scene(cap.domain, cap.grid, dq, 6, method=method, update=local_updates).render_once()
     assert np.array_equal(once, full)
     lazy = capture_volume(Volume(data), lattice=(6, 6, 10), oversample=2, defer=True)
     deferred = Scene(lazy.voxmap, lazy.grid, dq, 6, method=method,
-                     domain_range=lazy.stats[:2]).render_once()
+                     domain_range=lazy.stats[:2], update=local_updates).render_once()
     assert np.array_equal(deferred, full)
 
 
@@ -109,10 +109,10 @@ def test_background_is_the_value_of_the_space_around_the_model(method, local_upd
     shifted = capture_volume(Volume(data - b), lattice=7, oversample=1.5)
     dq = cap.dq.copy()
     dq[4, 3, 3] += [2.0, -1.5, 3.0]
-    ref = Scene(shifted.domain, shifted.grid, dq, 5, method=method).render() + b
-    full = Scene(cap.domain, cap.grid, dq, 5, method=method, background=b).render()
-    once = Scene(cap.domain, cap.grid, dq, 5, method=method, background=b).render_once()
-    scene = Scene(cap.domain, cap.grid, cap.dq, 5, method=method, background=b)
+    ref = Scene(shifted.domain, shifted.grid, dq, 5, method=method, update=local_updates).render() + b
+    full = Scene(cap.domain, cap.grid, dq, 5, method=method, background=b, update=local_updates).render()
+    once = Scene(cap.domain, cap.grid, dq, 5, method=method, background=b, update=local_updates).render_once()
+    scene = Scene(cap.domain, cap.grid, cap.dq, 5, method=method, background=b, update=local_updates)
     scene.render()
     scene.set_lattice(dq)
     for got in (full, once, scene.result()):

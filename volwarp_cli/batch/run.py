@@ -32,6 +32,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
+from ..parallel import THREADS_ENV
 from .manifest import SCAN, Manifest, Scan
 from .plan import CommandRecord, StepPlan, plan_scan, stale_reason
 
@@ -82,6 +83,8 @@ class Batch:
         self.manifest = manifest
         self.scans = scans
         self.jobs = max(1, jobs)
+        #: VOLWARP_THREADS of each scan's commands (a step's own --threads wins)
+        self.child_threads = child_threads(self.jobs)
         self.force = force
         self.fail_fast = fail_fast
         self.retries = retries
@@ -242,7 +245,8 @@ class Batch:
         with self._lock:
             if self._stopping is not None:
                 return None, ""
-            proc = subprocess.Popen(volwarp_argv(argv), cwd=self.manifest.base,
+            env = dict(os.environ, **{THREADS_ENV: str(self.child_threads)})
+            proc = subprocess.Popen(volwarp_argv(argv), cwd=self.manifest.base, env=env,
                                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                     stderr=subprocess.PIPE)
             self._running.add(proc)
@@ -255,8 +259,16 @@ class Batch:
 
 
 def default_jobs() -> int:
-    """The CPUs this process may run on (its affinity, as a cgroup or taskset gives it)."""
-    try:
-        return len(os.sched_getaffinity(0)) or 1
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
+    """The threads in effect (``--threads``, ``VOLWARP_THREADS``, else the cores this process
+    may use: its affinity and cgroup quota), one scan per thread."""
+    from .. import parallel
+
+    return parallel.threads()
+
+
+def child_threads(jobs: int) -> int:
+    """Threads each scan's command gets: the threads in effect shared by ``jobs`` scans at once
+    (at least one), so that a batch never runs more threads than it was given."""
+    from .. import parallel
+
+    return max(1, parallel.threads() // max(1, jobs))

@@ -26,8 +26,6 @@ Departure: fractions are ``(e + 0.5) / G`` (voxel centres), see :mod:`.lattice`.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 #: b[i][p]: coefficient of t**p in the i-th basis function (paper §4).
@@ -128,28 +126,31 @@ def _block(grid, lo, hi, x, y, z):
     return ranges
 
 
-#: Work (voxels) from which the kernels run in two threads.
+#: Work (voxels) from which the kernels split over threads; each thread gets this much at least.
 SPLIT_MIN_WORK = 1 << 18
 
 
 def run_split(kernel, args_for, lo_z: int, hi_z: int, work: int) -> list:
-    """Run ``kernel(*args_for(z0, z1))`` on [lo_z, hi_z), in two threads when ``work`` is large.
+    """Run ``kernel(*args_for(z0, z1))`` over slabs of [lo_z, hi_z), one per thread.
 
-    The kernels release the GIL (numba ``nogil``, or the compiled ones of
-    ``_warpkernels.c``); the halves write disjoint output slabs.
+    As many slabs as :func:`volwarp_cli.parallel.threads` allows, each with at
+    least ``SPLIT_MIN_WORK`` of ``work`` (one slab, in this thread, when
+    ``work`` is 0 or small). The kernels release the GIL (numba ``nogil``, or
+    the compiled ones of ``_warpkernels.c``); the slabs write disjoint output.
     (Python threads instead of numba's ``prange``, whose threading layer
-    costs about a second to start in every process.)
-    Returns the kernel's results, one per part.
+    costs time to start in every process.)
+    Returns the kernel's results, one per slab.
     """
-    if work < SPLIT_MIN_WORK or hi_z - lo_z < 2 or (os.cpu_count() or 1) < 2:
-        return [kernel(*args_for(lo_z, hi_z))]
-    from concurrent.futures import ThreadPoolExecutor
+    from .. import parallel
 
-    mid = (lo_z + hi_z) // 2
-    with ThreadPoolExecutor(2) as pool:
-        futures = [pool.submit(kernel, *args_for(lo_z, mid)),
-                   pool.submit(kernel, *args_for(mid, hi_z))]
-        return [f.result() for f in futures]
+    if work <= 0:
+        return [kernel(*args_for(lo_z, hi_z))]
+    parts = min(parallel.threads(), max(1, work // max(SPLIT_MIN_WORK, 1)), hi_z - lo_z)
+    if parts <= 1:
+        return [kernel(*args_for(lo_z, hi_z))]
+    edges = parallel.cuts(lo_z, hi_z, parts)
+    return parallel.run_blocks(lambda i: kernel(*args_for(edges[i], edges[i + 1])),
+                               range(len(edges) - 1))
 
 
 def evaluate_separable(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, *, x=None, y=None,
@@ -168,8 +169,8 @@ def evaluate_separable(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, 
     x, y, z : (v0, v1), optional
         Domain voxel range along that axis (instead of the regions ``lo..hi``).
     origin : (x, y, z) domain voxel index of ``out[0, 0, 0]``.
-    parallel : split large blocks over two threads (off when the caller's
-        threads already share the work).
+    parallel : split large blocks over the threads in effect (off when the
+        caller's threads already share the work).
     """
     (x0, x1), (y0, y1), (z0, z1) = _block(grid, lo, hi, x, y, z)
     from ._warpkernels import separable

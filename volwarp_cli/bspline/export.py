@@ -27,7 +27,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -397,21 +396,19 @@ class ForwardMap:
 
 def _run_slabs(part, nz: int, per_slice: int, threads: int | None) -> None:
     """``part(z0, z1)`` over [0, nz) in slabs of a few slices, spread over ``threads`` threads
-    (default: the CPUs; the kernels release the GIL and write disjoint slices). Threads
-    instead of numba's ``prange``, whose threading layer costs time to start in every
-    process (see :func:`.basis.run_split`)."""
-    n = threads if threads is not None else (os.cpu_count() or 1)
+    (default: :func:`volwarp_cli.parallel.threads`; the kernels release the GIL and write
+    disjoint slices). Threads instead of numba's ``prange``, whose threading layer costs
+    time to start in every process (see :func:`.basis.run_split`)."""
+    from .. import parallel
+
+    n = threads if threads is not None else parallel.threads()
     n = max(1, min(int(n), nz, 1 + nz * per_slice // 32768))
     if n == 1:
         part(0, nz)
         return
-    from concurrent.futures import ThreadPoolExecutor
-
     # interleaved slabs: the work per slice varies (the image's edge, folds)
     step = max(1, min(8, nz // (4 * n)))
-    with ThreadPoolExecutor(n) as pool:
-        for f in [pool.submit(part, z0, min(z0 + step, nz)) for z0 in range(0, nz, step)]:
-            f.result()
+    parallel.run_blocks(lambda z0: part(z0, min(z0 + step, nz)), range(0, nz, step), n)
 
 
 # ---- writers ------------------------------------------------------------------------------------

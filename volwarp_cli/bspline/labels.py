@@ -39,15 +39,14 @@ volumes (the box filter scales every voxel's overlaps to it), in mm^3.
 from __future__ import annotations
 
 import copy
-import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import parallel
 from ..errors import VolwarpError
-from ..io.common import ensure_fits_in_memory
+from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
 from ..volume import Volume
 from .capture import LATTICE_ARRAYS, Capture
@@ -322,10 +321,10 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
     best_l = np.zeros((tz, ty, tx), dtype=labels_in.dtype)
     # the background's weight where nothing of the model lands: all of it
     best_w.fill(_Q)
-    workers = 2 if (os.cpu_count() or 1) >= 2 and tz >= 8 else 1
-    cuts = [tz * i // workers for i in range(workers + 1)]
+    workers = max(1, min(parallel.threads(), tz // 4))
+    cuts = parallel.cuts(0, tz, workers)
     vol_voxel = float(np.prod(spacing))
-    predicted = {L: 0.0 for L in labels}
+    predicted = {L: 0 for L in labels}  # exact integer sums: the same for any thread count
     peak = {L: (0, None) for L in labels}  # (weight, target index z y x)
     lock = threading.Lock()
     # negative labels first, descending, winning ties (>=: the smaller id wins), then the
@@ -344,7 +343,7 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
 
         st.run(0, full, background)
         for L in order:
-            total = [0.0]
+            total = [0]
             top = [0, None]
 
             def keep(z0, acc, win, L=L, total=total, top=top):
@@ -355,26 +354,22 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
                 better = (w >= bw) if L < 0 else (w > bw)
                 np.copyto(bw, w, where=better)
                 np.copyto(bl, L, where=better, casting="unsafe")
-                total[0] += float(w.sum(dtype=np.float64))
+                total[0] += int(w.sum(dtype=np.int64))  # < 2^63: a few planes of 2^40 each
                 if preserve:
                     j = int(np.argmax(w))
-                    if w.flat[j] > top[0]:
-                        kz, ky, kx = np.unravel_index(j, w.shape)
-                        top[0], top[1] = int(w.flat[j]), (z0 + kz, y0 + ky, x0 + kx)
+                    kz, ky, kx = np.unravel_index(j, w.shape)
+                    at = (z0 + int(kz), y0 + int(ky), x0 + int(kx))
+                    if _stronger(int(w.flat[j]), at, *top):
+                        top[0], top[1] = int(w.flat[j]), at
 
             st.run(L, boxes[where[L]], keep)
             with lock:
                 predicted[L] += total[0]
-                if top[1] is not None and top[0] > peak[L][0]:
+                if top[1] is not None and _stronger(top[0], top[1], *peak[L]):
                     peak[L] = (top[0], top[1])
 
     with timed(f"labels: {len(labels)} label passes + background ({workers} threads)"):
-        if workers < 2:
-            share(0)
-        else:
-            with ThreadPoolExecutor(workers) as pool:
-                for f in [pool.submit(share, i) for i in range(workers)]:
-                    f.result()
+        parallel.run_blocks(share, range(len(cuts) - 1), workers)
     best_w = None  # (freed before the counts)
     out_counts = _counts(best_l, labels)
     vanished = [L for L in labels if out_counts[L] == 0]
@@ -409,6 +404,12 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
                     report["labels"][L]["input_voxels"],
                     "" if preserve else ": --preserve-labels keeps one voxel of it")
     return LabelWarp(best_l, report)
+
+
+def _stronger(w: int, at, w_best: int, at_best) -> bool:
+    """Whether weight ``w`` at voxel ``at`` beats the best so far: larger, or as large
+    and first in (z, y, x) order, so the winner does not depend on the blocks' order."""
+    return w > w_best or (w == w_best and at_best is not None and at < at_best)
 
 
 def _counts(target: np.ndarray, labels) -> dict:

@@ -89,7 +89,7 @@ def fill_halo(uh, faces=None):
             uh[sl(n + 1)] = 2 * uh[sl(n)] - uh[sl(n - 1)]
 
 
-def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split=None,
+def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
             origin=(0, 0, 0), tzo=0, u_new=None, bounds=True, still=None, granularity=None,
             tz_hi=None, ring=False, window=None, planes=None):
     """Add (``sign`` +1) or remove (-1) the contributions of domain block [lo, hi) (x, y, z).
@@ -111,12 +111,12 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split=None,
     ``values`` holds the domain's samples ``[z, y, x]``, or with ``planes``
     ``(z0, dz)`` only some z planes of a domain of ``dz`` planes, plane ``g``
     in ``values[g - z0]`` (those of the block at least).
-    ``split``: ``(tm, za, zb)``, a target plane and the domain z ranges [lo, za)
-    and [zb, hi) holding every voxel that can reach target planes below ``tm``
-    and from ``tm`` on: two threads then take one side of ``tm`` each (the
-    voxels in [zb, za), whose boxes may straddle it, in both, each thread
-    keeping its side's part; integer sums: the result does not depend on the
-    split). Not with ``ring``.
+    ``parts``: ``[(t0, t1, g0, g1), ...]``, target plane ranges covering the
+    planes held, each with the domain z range [g0, g1) holding every voxel
+    that can reach it: one thread per part then scatters those voxels,
+    keeping only their contributions to planes [t0, t1) (the voxels whose
+    boxes straddle two parts are done by both; integer sums: the result does
+    not depend on the parts). Not with ``ring``.
     ``still`` (uint8 ``[passes, Rz, Ry, Rx]``, with the lattice's
     ``granularity`` (x, y, z)) marks the regions whose control points all
     have zero offset, for ``u`` and (second) ``u_new``: voxels there take a
@@ -148,18 +148,20 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, split=None,
     gran = (1, 1, 1) if granularity is None else tuple(int(v) for v in granularity)
     vplanes = (0, values.shape[0]) if planes is None else (int(planes[0]), int(planes[1]))
 
-    tm = None if split is None or ring else int(split[0])
-    if tm is None or not (tzo < tm < tz_end and lo[2] < split[1] and split[2] < hi[2]):
+    if parts is None or ring or len(parts) < 2:
         boxes = [run(lo, hi)]
     else:
-        from concurrent.futures import ThreadPoolExecutor
+        from .. import parallel
 
-        hi_a, lo_b = hi.copy(), lo.copy()
-        hi_a[2], lo_b[2] = min(int(split[1]), hi[2]), max(int(split[2]), lo[2])
-        with ThreadPoolExecutor(2) as pool:
-            fa = pool.submit(run, lo, hi_a, acc, (int(tzo), tm))
-            fb = pool.submit(run, lo_b, hi, acc[tm - tzo:], (tm, int(tz_end)))
-            boxes = [fa.result(), fb.result()]
+        def part(p):
+            t0, t1, g0, g1 = (int(v) for v in p)
+            a, b = lo.copy(), hi.copy()
+            a[2], b[2] = max(g0, lo[2]), min(g1, hi[2])
+            if t1 <= t0 or b[2] <= a[2]:
+                return np.array([0, 0, 0, -1, -1, -1])
+            return run(a, b, acc[t0 - tzo:], (t0, t1))
+
+        boxes = parallel.run_blocks(part, parts, len(parts))
     boxes = [b for b in boxes if b[3] >= 0]
     if not boxes:
         return None
@@ -192,7 +194,7 @@ def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0, clear=False)
     (x, y, z) block; see the module notes for the two weight levels.
 
     ``acc[z, y, x, 0]`` is the fixed-point weight, ``acc[..., 1]`` the weighted value;
-    ``parallel`` lets large blocks use two threads. ``background`` ``b`` is the
+    ``parallel`` lets large blocks use the threads in effect. ``background`` ``b`` is the
     value of the space around the model (the papers': 0): a partly covered
     voxel is blended with it and an uncovered one gets it, exactly what
     pushing ``data - b`` and adding ``b`` would give.

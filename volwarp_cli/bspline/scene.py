@@ -35,19 +35,17 @@ every pass leaves them out (the space they would cover is the background).
 
 from __future__ import annotations
 
-import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ..errors import VolwarpError
-from ..io.common import ensure_fits_in_memory
+from ..memory import ensure_fits_in_memory, memory_limit
 from ..progress import log, timed
 from . import basis, pushforward
 from .lattice import Grid, affected_regions, window_reduce
 
-#: Blocks with at least this many domain voxels are split over two threads.
+#: Blocks are split over threads with at least this many domain voxels per thread.
 PARALLEL_MIN_VOXELS = 1 << 18
 #: Size of the deformation buffers of one z chunk (the array is never held whole).
 CHUNK_BYTES = 32 << 20
@@ -58,8 +56,8 @@ CHUNK_BYTES = 32 << 20
 #: and 2.4 picks the fastest way in all but the papers' size, where it takes a full
 #: pass of 9.1 ms over a rebuild of 7.9 ms (a tie in its count).
 GENERAL_COST = 2.4
-#: A two-thread split is taken only if neither thread gets more than this share of
-#: the block's work (the planes whose boxes can straddle the split are done by both).
+#: A split over threads is taken only if no thread gets more than this share of
+#: the block's work (the planes whose boxes can straddle a cut are done by both).
 SPLIT_MAX_SHARE = 0.8
 #: Target z planes covered by one step of :meth:`Scene.render_once`'s stream.
 STREAM_PLANES = 16
@@ -140,17 +138,19 @@ class Scene:
         the fixed-point scale of the sums, so scenes meant to agree bit for bit
         must get the same (a capture's: the input's range).
 
-    Attributes
-    ----------
     update : {None, "subtract", "rebuild", "full"}
         How :meth:`set_lattice` updates rendered accumulators: None (default)
         takes the cheapest by a work estimate; tests and benchmarks force one.
     """
 
-    update = None
+    UPDATES = ("subtract", "rebuild", "full")
 
     def __init__(self, domain, grid: Grid, dq, pad, *, method: str = "box",
-                 evaluator: str = "separable", background: float = 0.0, domain_range=None):
+                 evaluator: str = "separable", background: float = 0.0, domain_range=None,
+                 update: str | None = None):
+        if update not in (None, *self.UPDATES):
+            raise VolwarpError(f"unknown update {update!r} (use subtract, rebuild or full)")
+        self.update = update
         if method not in pushforward.METHODS:
             raise VolwarpError(f"unknown pushforward {method!r} (use box or nearest)")
         if evaluator not in basis.EVALUATORS:
@@ -215,7 +215,7 @@ class Scene:
         outside those columns and rows. ``values``: ``(array, z0)``, the
         samples of domain planes from ``z0`` on (those of [vlo, vhi) at
         least), instead of the domain's.
-        ``parallel`` lets large blocks use two threads. ``scratch`` (a
+        ``parallel`` lets large blocks use the threads in effect. ``scratch`` (a
         :class:`Scratch`, default the scene's) holds the deformation buffers.
         Returns the touched target bounding box with ``bounds``, else None.
         """
@@ -268,9 +268,9 @@ class Scene:
                 for ub in ubs:
                     pushforward.fill_halo(ub, faces)
             hi = (int(vhi[0]), int(vhi[1]), z1)
-            split = self._split(np.stack(dqs), lo, hi, tzo, tz_hi, still) if parallel and not ring else None
+            parts = self._parts(np.stack(dqs), lo, hi, tzo, tz_hi, still) if parallel and not ring else None
             bb = pushforward.scatter(planar[0], samples, self.offset, self.scale, lo, hi,
-                                     sign, self.vmax, self.method, acc, split=split,
+                                     sign, self.vmax, self.method, acc, parts=parts,
                                      origin=origin, tzo=tzo, tz_hi=tz_hi, ring=ring,
                                      u_new=planar[1] if len(planar) > 1 else None,
                                      bounds=bounds, still=still, window=window,
@@ -296,40 +296,59 @@ class Scene:
         slack = 0.01  # float32 deformation arrays
         return half - bottom + spread + slack, half + top + spread + slack
 
-    def _split(self, dq, lo, hi, tzo=0, tz_hi=None, still=None):
-        """``(tm, za, zb)``: a target plane splitting block [lo, hi)'s work in two
-        (for :func:`pushforward.scatter`'s two threads).
+    def _parts(self, dq, lo, hi, tzo=0, tz_hi=None, still=None):
+        """``[(t0, t1, g0, g1), ...]``: block [lo, hi)'s work split by target planes over threads
+        (for :func:`pushforward.scatter`).
 
-        [lo, za) holds every domain voxel that can reach target planes below
-        ``tm``, [zb, hi) every one that can reach ``tm`` or above; the halves
-        get equal work by :meth:`_work`'s measure (``still``: the scatter's
-        still regions, or None). None when the block is small or the target
-        planes held, [tzo, tz_hi), are not split by ``tm``.
+        Target planes [t0, t1) cover the planes held, [tzo, tz_hi); domain z
+        range [g0, g1) holds every voxel that can reach them. The cuts fall
+        where the cumulative work (:meth:`_work`'s measure, ``still``: the
+        scatter's still regions, or None) reaches k/n of the whole, mapped to
+        the target plane its domain plane's centre goes to. Voxels whose boxes
+        straddle a cut are scattered by both parts: with a long reach (a
+        lattice moved far in z) that can be most of the block, so the count
+        of parts is the one (up to the threads in effect) with the shortest
+        longest part, and None (one thread) unless it beats one part by
+        ``1 / SPLIT_MAX_SHARE``. None for small blocks.
         """
+        from .. import parallel
+
         lo = np.asarray(lo)
         hi = np.asarray(hi)
-        if int(np.prod(hi - lo)) < PARALLEL_MIN_VOXELS or (os.cpu_count() or 1) < 2:
+        size = int(np.prod(hi - lo))
+        n_max = min(parallel.threads(), size // max(PARALLEL_MIN_VOXELS, 1))
+        if n_max < 2:
             return None
         z0 = int(lo[2])
         # general voxels cost more: balance by work, not planes
         work = self._plane_work(still, lo, hi) if still is not None else np.ones(hi[2] - z0)
         cum = np.concatenate([[0.0], np.cumsum(work)])  # work of planes [lo, lo + i)
-        mid = z0 + int(np.searchsorted(cum, 0.5 * cum[-1])) - 0.5  # half the work below
-        # the target plane whose centre the middle domain plane's centre maps to
-        tm = int(np.floor(float(self.offset[2]) + float(self.scale[2]) * mid + 0.5))
+        total = cum[-1]
+        if total <= 0:
+            return None
         tz_end = self.target_shape[2] if tz_hi is None else tz_hi
-        if not tzo < tm < tz_end:
-            return None
-        zb, za = self._domain_z_window(dq, tm, tm)
-        if not (lo[2] < za and zb < hi[2]):
-            return None
-        # the planes both threads scatter: with a long reach (a lattice moved far in z)
-        # they can be most of the block, and one thread does as well
-        a = cum[min(za, int(hi[2])) - z0]
-        b = cum[-1] - cum[max(zb, z0) - z0]
-        if max(a, b) > SPLIT_MAX_SHARE * cum[-1]:
-            return None
-        return tm, za, zb
+        s, o = float(self.scale[2]), float(self.offset[2])
+        best, best_time = None, total * SPLIT_MAX_SHARE
+        for n in range(n_max, 1, -1):
+            cuts = []
+            for k in range(1, n):
+                mid = z0 + int(np.searchsorted(cum, total * k / n)) - 0.5
+                # the target plane whose centre the domain plane's centre maps to
+                cuts.append(int(np.floor(o + s * mid + 0.5)))
+            cuts = sorted({c for c in cuts if tzo < c < tz_end})
+            if not cuts:
+                continue
+            edges = [int(tzo), *cuts, int(tz_end)]
+            parts, longest = [], 0.0
+            for t0, t1 in zip(edges[:-1], edges[1:], strict=True):
+                g0, g1 = self._domain_z_window(dq, t0, t1)
+                g0, g1 = max(g0, z0), min(g1, int(hi[2]))
+                parts.append((t0, t1, g0, g1))
+                if g1 > g0:
+                    longest = max(longest, cum[g1 - z0] - cum[g0 - z0])
+            if longest < best_time:
+                best, best_time = parts, longest
+        return best
 
     def _target_z_reach(self, dq, g0: int, g1: int) -> tuple[int, int]:
         """Target z planes [t0, t1) that domain z planes [g0, g1) can reach."""
@@ -367,41 +386,59 @@ class Scene:
         self.last_touched = ((0, 0, 0), self.target_shape)
         return self.out
 
-    def render_once(self, sink=None) -> np.ndarray | None:
+    def render_once(self, sink=None, block_planes: int | None = None) -> np.ndarray | None:
         """The same target as :meth:`render`, without keeping accumulators for later updates.
 
-        Two threads each stream one half of the target along z: domain z
+        The target is cut along z into blocks, one per thread (see
+        :mod:`volwarp_cli.parallel`), each streamed on its own: domain z
         chunks in order, scattered into a rolling accumulator of a few target
         planes; a plane is finalized and dropped as soon as no later chunk can
         reach it (see :meth:`_z_reach`). Contributions are integer sums
         clipped to the planes held, so every voxel gets exactly the sums of a
-        full :meth:`render`, and the whole-target accumulators (16 bytes per
-        voxel) are never allocated. Later :meth:`set_lattice` calls start
-        from scratch. A deferred domain (a sampler) is gathered chunk by
-        chunk just before its chunk is scattered, never whole: its gather
-        runs in the two threads, and its samples are read back from cache.
+        full :meth:`render`, whatever the blocks, and the whole-target
+        accumulators (16 bytes per voxel) are never allocated. Later
+        :meth:`set_lattice` calls start from scratch. A deferred domain (a
+        sampler) is gathered chunk by chunk just before its chunk is
+        scattered, never whole: its gather runs in the block's thread (the
+        domain planes near a cut are gathered by both blocks).
+
+        Each block also scatters the domain planes reaching past its ends, so
+        blocks are at least a step's reach long; the thread count shrinks to
+        keep them so, and to keep the blocks' rings within the memory budget.
+        ``block_planes`` forces blocks of that many target planes (tests).
 
         ``sink(z0, z1, planes)``, if given, receives the finished target planes
         [z0, z1) (``[z1 - z0, y, x]``, a buffer reused after the call) from the
-        two threads, each range once, in no particular order; the whole
+        blocks' threads, each range once, in no particular order; the whole
         target is then never held and None is returned.
         """
+        from .. import parallel
+
         tx, ty, tz = self.target_shape
         out_dtype = np.float64 if self.dtype == np.float64 else np.float32
         s = float(self.scale[2])
         chunk = max(1, int(STREAM_PLANES / s))  # domain planes per step
         r_lo, r_hi = self._target_z_reach(self.dq, 0, chunk)
         planes = r_hi - r_lo + 2  # target planes one step can reach (+ rounding)
-        # target planes held at a time: the whole target, or each thread's finished
+        itemsize = np.dtype(out_dtype).itemsize
+        ring = planes * tx * ty * 16 + 2 * CHUNK_BYTES  # one block's accumulators and buffers
+        # target planes held at a time: the whole target, or each block's finished
         # planes and their converted copy
-        held = 4 * planes if sink is not None else tz
-        ensure_fits_in_memory(tx * ty * held * np.dtype(out_dtype).itemsize
-                              + 2 * planes * tx * ty * 16, "the warped target")
+        held = (lambda n: 4 * planes * n) if sink is not None else (lambda n: tz)
+        budget = memory_limit()
+        if block_planes is not None:
+            edges = list(range(0, tz, max(1, int(block_planes)))) + [tz]
+            workers = parallel.threads()
+        else:
+            workers = max(1, min(parallel.threads(), tz // max(planes, 1)))
+            while workers > 1 and tx * ty * held(workers) * itemsize + workers * ring > budget:
+                workers -= 1
+            edges = parallel.cuts(0, tz, workers)
+        workers = min(workers, len(edges) - 1)
+        ensure_fits_in_memory(tx * ty * held(workers) * itemsize + workers * ring,
+                              "the warped target")
         out = None if sink is not None else np.empty((tz, ty, tx), dtype=out_dtype)
         dshape = self.grid.domain_shape
-        workers = 2 if (os.cpu_count() or 1) >= 2 and tz >= 2 * planes else 1
-        cuts = [tz * i // workers for i in range(workers + 1)]
-
         sampler = self.sampler
 
         def stream(t_lo, t_hi):
@@ -442,13 +479,10 @@ class Scene:
                                  parallel=False, scratch=scratch, values=values)
             flush(t_hi)
 
-        with timed(f"deformation + {self.method} pushforward + finalize ({workers} threads)"):
-            if workers < 2:
-                stream(0, tz)
-            else:
-                with ThreadPoolExecutor(workers) as pool:
-                    for f in [pool.submit(stream, cuts[i], cuts[i + 1]) for i in range(workers)]:
-                        f.result()
+        with timed(f"deformation + {self.method} pushforward + finalize "
+                   f"({len(edges) - 1} blocks, {workers} threads)"):
+            parallel.run_blocks(lambda i: stream(edges[i], edges[i + 1]), range(len(edges) - 1),
+                                workers)
         self.acc = None
         self.out = out
         self.last_touched = ((0, 0, 0), self.target_shape)
@@ -487,8 +521,6 @@ class Scene:
         work = {"subtract": self._work([self.dq, dq], vlo, vhi),
                 "rebuild": self._work([dq], *block[2:]),
                 "full": self._work([dq], (0, 0, 0), dshape)}
-        if self.update not in (None, *work):
-            raise VolwarpError(f"unknown update {self.update!r} (use subtract, rebuild or full)")
         how = self.update or min(("full", "rebuild", "subtract"), key=work.get)  # ties: full
         log.debug("update of regions %s..%s by %s (work: %s)", rlo.tolist(), rhi.tolist(),
                   how, {k: round(v) for k, v in work.items()})

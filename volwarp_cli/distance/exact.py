@@ -33,6 +33,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .. import parallel
 from ..errors import VolwarpError
 
 
@@ -188,5 +189,6 @@ def signed_edt(mask: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, out: np.ndarray
     if out is None:
         out = np.empty(mask.shape, np.float32)
     hz, hy, hx = (float(s) for s in spacing_zyx)
+    parallel.numba_threads()
     _signed_edt_kernel(mask, hz, hy, hx, out)
     return out

@@ -39,6 +39,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .. import parallel
 from ..errors import VolwarpError
 
 #: Jacobi steps of closest-point propagation after the feature transform.
@@ -390,6 +391,7 @@ def subvoxel_signed_distance(values: np.ndarray, iso: float, *, inside: str = "a
     hs = np.array([hx, hy, hz])
     counts = np.zeros(nz, np.int64)
     idtype = np.int32 if vals.size < 2**31 else np.int64
+    parallel.numba_threads()
     _seeds(vals, float(iso), above, hs, counts, False, np.empty((1, 1, 1), idtype),
                np.empty((1, 6)))
     total = int(counts.sum())

@@ -41,8 +41,6 @@ shift and increment pass is needed" for small moves).
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from ..errors import VolwarpError
@@ -177,22 +175,23 @@ def _translate(src: np.ndarray, offset, fill_value) -> np.ndarray:
 
 
 def _affine_threaded(src: np.ndarray, m_zyx: np.ndarray, fill_value) -> np.ndarray:
-    """scipy's trilinear affine resampling, split in z slabs over two threads."""
-    from concurrent.futures import ThreadPoolExecutor
-
+    """scipy's trilinear affine resampling, split in z slabs over the threads in effect."""
     from scipy import ndimage
+
+    from .. import parallel
 
     out = np.empty(src.shape, np.float32)
     nz = src.shape[0]
-    bounds = np.linspace(0, nz, min(nz, 2 * (os.cpu_count() or 1)) + 1).astype(int)
+    n = parallel.threads()
+    bounds = parallel.cuts(0, nz, 2 * n)
 
-    def slab(z0, z1):
+    def slab(i):
+        z0, z1 = bounds[i], bounds[i + 1]
         offset = m_zyx[:3, 3] + m_zyx[:3, :3] @ [z0, 0, 0]
         ndimage.affine_transform(src, m_zyx[:3, :3], offset=offset, order=1, mode="constant",
                                  cval=fill_value, output=out[z0:z1])
 
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        list(pool.map(lambda b: slab(*b), zip(bounds[:-1], bounds[1:], strict=True)))
+    parallel.run_blocks(slab, range(len(bounds) - 1), n)
     return out
 
 

@@ -45,11 +45,10 @@ whose inverse has no closed form here; use ``method: voxelize`` for them.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
-from ..io.common import ensure_fits_in_memory
+from .. import parallel
+from ..memory import ensure_fits_in_memory
 from ..progress import progress
 from ..spec.functions import Function, spec_error
 from .cvg import Accumulator
@@ -131,7 +130,7 @@ def polynomial_roots(coef: np.ndarray) -> np.ndarray:
     comp = np.zeros((coef.shape[0], d, d))
     comp[:, np.arange(1, d), np.arange(d - 1)] = 1.0
     comp[:, :, -1] = -coef[:, :-1] / lead[:, None]
-    workers = min(os.cpu_count() or 1, 8, max(1, len(comp) // 4096))
+    workers = min(parallel.threads(), 8, max(1, len(comp) // 4096))
     if workers == 1:
         return np.linalg.eigvals(comp)
     # numpy's batched eigvals releases the GIL: split the batch over threads
@@ -147,6 +146,7 @@ def _bezier_candidates(seg: Bezier, p: np.ndarray) -> np.ndarray:
 
     coef = np.ascontiguousarray(bezier_f_coefficients(seg, p))
     roots = np.empty((coef.shape[0], coef.shape[1] - 1))
+    parallel.numba_threads()
     real_roots_unit(coef, roots)
     return roots
 

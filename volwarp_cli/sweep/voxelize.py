@@ -43,8 +43,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import parallel
 from ..errors import VolwarpError
-from ..io.common import ensure_fits_in_memory
+from ..memory import ensure_fits_in_memory
 from ..progress import log, progress, timed
 from .cvg import OP_CODES, finish_fields
 from .frames import Frames, compute_frames
@@ -263,6 +264,7 @@ def voxelize_sweep(sweep, grid: Grid, tau: float, progress_label: str = "sweep")
     covered = np.zeros((nz, ny, nx), dtype=np.uint8)
     wsum = np.zeros((nz, ny, nx) if blend else (1, 1, 1), dtype=np.float32)
     kernel = _get_kernel()
+    parallel.numba_threads()
     c64 = np.ascontiguousarray
     args = (c64(fr.P), c64(fr.EX), c64(fr.EY), c64(fr.EZ), c64(fr.SX), c64(fr.SY), SL,
             sub_a, sub_b, closed, boxes, grid.origin, grid.spacing,

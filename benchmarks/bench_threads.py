@@ -1,0 +1,197 @@
+"""Each subcommand at one thread and at every core, and the general deformation against
+VTK and SimpleITK at every core (same run).
+
+    python benchmarks/bench_threads.py [--quick]
+
+Rows: ``name  1 thread X s  N threads Y s  speedup``: whole commands (a new process
+each run, start-up, reading and writing included), paired runs (1, N, 1, N, ...).
+The first line says how many cores this process may use: figures from a bigger
+machine read right. The outputs of both counts are compared byte for byte.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba-cache"))
+
+import common  # noqa: E402
+from bench_warp import volume, volwarp_bin  # noqa: E402
+
+
+def paired(argv_a, argv_b, pairs):
+    """Medians of two commands run in turn, and the median of the pairwise ratios a / b."""
+    a, b = [], []
+    for _ in range(pairs):
+        for argv, times in ((argv_a, a), (argv_b, b)):
+            start = time.perf_counter()
+            subprocess.run(argv, check=True, stdout=subprocess.DEVNULL)
+            times.append(time.perf_counter() - start)
+    return (statistics.median(a), statistics.median(b),
+            statistics.median(x / y for x, y in zip(a, b, strict=True)))
+
+
+def scaling_row(name, argv, outputs, cores, pairs):
+    """Time ``argv`` (a list with ``{t}`` in output names) at 1 and ``cores`` threads."""
+    one = [a.replace("{t}", "1") for a in argv] + ["--threads", "1"]
+    all_ = [a.replace("{t}", "n") for a in argv] + ["--threads", str(cores)]
+    subprocess.run(one, check=True, stdout=subprocess.DEVNULL)  # warm caches
+    t1, tn, r = paired(one, all_, pairs)
+    same = all(Path(o.replace("{t}", "1")).read_bytes() == Path(o.replace("{t}", "n")).read_bytes()
+               for o in outputs)
+    print(f"  {name:<44} 1 thread {t1:7.3f} s   {cores} threads {tn:7.3f} s   "
+          f"speedup {1 / r:5.2f}x   {'identical' if same else 'OUTPUTS DIFFER'}", flush=True)
+    return t1, tn
+
+
+def general_coefficients(c, amplitude, seed=1):
+    """Offsets (voxels) of every control point of a c^3 lattice, as a registration gives."""
+    rng = np.random.default_rng(seed)
+    return rng.normal(scale=amplitude, size=(c, c, c, 3))
+
+
+def general_spec(path, dq):
+    lines = ["version: 1", f"capture: {{lattice: {dq.shape[0]}, oversample: 1}}",
+             "pushforward: box", "steps:", "  - move:"]
+    c = dq.shape[0]
+    for k in range(c):
+        for j in range(c):
+            for i in range(c):
+                by = [round(float(v), 4) for v in dq[k, j, i]]
+                lines.append(f"      - {{index: [{i}, {j}, {k}], by: {by}}}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def vtk_general(data, dq):
+    import vtk
+    from vtk.util import numpy_support as ns
+
+    n = data.shape[0]
+    img = vtk.vtkImageData()
+    img.SetDimensions(n, n, n)
+    img.GetPointData().SetScalars(ns.numpy_to_vtk(data.ravel(), deep=False))
+    c = dq.shape[0]
+    h = n / (c - 3.0)
+    cimg = vtk.vtkImageData()
+    cimg.SetDimensions(c, c, c)
+    cimg.SetSpacing(h, h, h)
+    cimg.SetOrigin(-0.5 - h, -0.5 - h, -0.5 - h)
+    coeff = (-dq).astype(np.float32)  # reslice pulls back: about the inverse displacement
+    cimg.GetPointData().SetScalars(ns.numpy_to_vtk(coeff.reshape(-1, 3), deep=True))
+    tr = vtk.vtkBSplineTransform()
+    tr.SetCoefficientData(cimg)
+    tr.SetBorderModeToZero()
+    rs = vtk.vtkImageReslice()
+    rs.SetInputData(img)
+    rs.SetResliceTransform(tr)
+    rs.SetInterpolationModeToLinear()
+    rs.SetOutputExtent(0, n - 1, 0, n - 1, 0, n - 1)
+
+    def go():
+        rs.Modified()
+        rs.Update()
+        return rs.GetOutput()
+
+    return go
+
+
+def sitk_general(data, dq):
+    import SimpleITK as sitk
+
+    img = sitk.GetImageFromArray(data)
+    c = dq.shape[0]
+    tx = sitk.BSplineTransformInitializer(img, [c - 3] * 3, 3)
+    params = np.concatenate([-dq[..., d].ravel() for d in range(3)])  # (z, y, x) flat, per axis
+    tx.SetParameters(params.tolist())
+
+    def go():
+        return sitk.Resample(img, img, tx, sitk.sitkLinear, 0.0)
+
+    return go
+
+
+def main(quick: bool = False):
+    from volwarp_cli import parallel
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    cores = parallel.available_cores()
+    print(f"  cores this process may use: {cores} (affinity and cgroup quota; "
+          f"os.cpu_count() {os.cpu_count()})", flush=True)
+    if cores < 2:
+        print("  one core: no scaling to measure", flush=True)
+        return
+    pairs = 2 if quick else 5
+    n = 128 if quick else 256
+    v = volwarp_bin()
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        data = volume(n)
+        src = tmp / "in.nrrd"
+        write_volume(Volume(data), src)
+        one = tmp / "one.yaml"
+        one.write_text("version: 1\ncapture: {lattice: 9, oversample: 1}\npushforward: box\n"
+                       "steps:\n  - move:\n      - {index: [4, 4, 4], by: [3.0, 2.0, 1.0]}\n")
+        one2 = tmp / "one2.yaml"
+        one2.write_text(one.read_text().replace("oversample: 1", "oversample: 2"))
+        dq = general_coefficients(9, 2.0)
+        general = tmp / "general.yaml"
+        general_spec(general, dq)
+        sweep = tmp / "sweep.yaml"
+        sweep.write_text(
+            "version: 1\ngrid: {spacing: 0.1}\nfields:\n  opacity: {value: 0.8}\n"
+            "trajectory:\n  - line: {from: [0, 0, 0], to: [12, 2, 1]}\n"
+            "  - arc: {center: [12, 6, 1], radius: 4, axis: [0, 0, 1], start: -90, end: 90}\n"
+            "up: [0, 0, 1]\nscale: [4, 4]\n")
+        o = str(tmp / "o_{t}")
+        rows = [
+            (f"warp {n}^3, one point moved", v + ["warp", str(src), "--spec", str(one),
+                                                  "-o", o + ".nrrd"], [o + ".nrrd"]),
+            (f"warp {n}^3, every point of 9^3 moved",
+             v + ["warp", str(src), "--spec", str(general), "-o", o + "g.nrrd"], [o + "g.nrrd"]),
+            (f"warp {n}^3 oversample 2, one point moved",
+             v + ["warp", str(src), "--spec", str(one2), "-o", o + "2.nrrd"], [o + "2.nrrd"]),
+            (f"distance {n}^3", v + ["distance", str(src), "--iso", "50", "-o", o + "d.nrrd"],
+             [o + "d.nrrd"]),
+            (f"mesh {n}^3", v + ["mesh", str(src), "--iso", "50", "-o", o + ".ply"],
+             [o + ".ply"]),
+            ("sweep 0.1 mm grid", v + ["sweep", str(sweep), "-o", o + "_{field}.nrrd"],
+             [o + "_opacity.nrrd"]),
+        ]
+        for name, argv, outputs in rows:
+            try:
+                scaling_row(name, argv, outputs, cores, pairs)
+            except subprocess.CalledProcessError as exc:
+                print(f"  {name:<44} failed: {exc}", flush=True)
+        # the general deformation against the peers, everything on every core
+        cmd = v + ["warp", str(src), "--spec", str(general), "-o", str(tmp / "g.nrrd")]
+        subprocess.run(cmd, check=True)
+        go_vtk = vtk_general(data, dq)
+        go_vtk()
+        ours, peer, r = common.paired_times(lambda: subprocess.run(cmd, check=True), go_vtk, pairs)
+        common.row(f"general warp {n}^3 vs vtkImageReslice+BSpline", ours, peer, "vtk", r)
+        go_sitk = sitk_general(data, dq)
+        ours, peer, r = common.paired_times(lambda: subprocess.run(cmd, check=True), go_sitk,
+                                            1 if quick else 3)
+        common.row(f"general warp {n}^3 vs SimpleITK Resample", ours, peer, "sitk", r)
+        import SimpleITK as sitk
+        import vtk
+
+        print(f"  (peers' threads: SimpleITK {sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()}, "
+              f"VTK SMP {vtk.vtkSMPTools.GetEstimatedNumberOfThreads()} "
+              f"[{vtk.vtkSMPTools.GetBackend()}])", flush=True)
+
+
+if __name__ == "__main__":
+    main(quick="--quick" in sys.argv)

@@ -1,0 +1,168 @@
+"""Every subcommand writes the same bytes for --threads 1, 2, 3 and 5 (and VOLWARP_THREADS),
+on inputs large enough that the work is split over the threads."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from volwarp_cli import parallel
+from volwarp_cli.io import write_volume
+from volwarp_cli.volume import Volume
+
+THREADS = ["1", "2", "3", "5"]
+
+
+def radial(n, c):
+    z, y, x = np.mgrid[:n, :n, :n].astype(np.float64)
+    return np.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2)
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("threads")
+    n = 72
+    rng = np.random.default_rng(0)
+    ball = 1 / (1 + np.exp((radial(n, (35.5, 33.0, 36.5)) - 24.0) / 1.5)) * 200
+    ball += rng.uniform(0, 4, ball.shape)  # no two runs of the same value: order matters
+    kw = {"spacing": (1.0, 0.9, 1.2), "origin": (-30.0, 12.0, 4.0)}
+    write_volume(Volume(ball.astype(np.float32), **kw), d / "ball.nrrd")
+    two = np.maximum(14 - radial(n, (22, 36, 36)), 14 - radial(n, (50, 36, 36)))
+    write_volume(Volume((1 / (1 + np.exp(-two / 1.5)) * 200).astype(np.float32), **kw),
+                 d / "lobes.nrrd")
+    (d / "warp.yaml").write_text(
+        "version: 1\ncapture: {lattice: 7, oversample: 2}\nsteps:\n"
+        "  - move:\n      - {index: [3, 3, 3], by: [4.0, -3.0, 5.0]}\n"
+        "      - {index: [2, 4, 3], by: [-2.0, 2.5, 1.0]}\n")
+    (d / "frames.yaml").write_text(
+        "version: 1\ncapture: {lattice: 7, oversample: 2}\nsteps:\n"
+        "  - move:\n      - {index: [3, 3, 3], by: [4.0, -3.0, 5.0]}\n    frames: 2\n"
+        "  - move:\n      - {index: [2, 4, 3], by: [-2.0, 2.5, 1.0]}\n")
+    (d / "sweep.yaml").write_text(
+        "version: 1\ngrid: {spacing: 0.25}\nfields:\n  opacity: {value: 0.8}\n  red: 0.25\n"
+        "trajectory:\n  - line: {from: [0, 0, 0], to: [12, 2, 1]}\n"
+        "  - arc: {center: [12, 6, 1], radius: 4, axis: [0, 0, 1], start: -90, end: 90}\n"
+        "up: [0, 0, 1]\nscale: [4, 4]\n")
+    return d
+
+
+def same_bytes_for_every_count(run, tmp_path, make_args, outputs):
+    """Run ``make_args(suffix)`` at each thread count; the files named by ``outputs(suffix)``
+    must be byte-identical to those of one thread."""
+    reference = None
+    for n in THREADS:
+        res = run(*make_args(f"t{n}"), "--threads", n)
+        assert res.code == 0, res.stderr
+        got = [p.read_bytes() for p in outputs(f"t{n}")]
+        assert all(got)
+        if reference is None:
+            reference = got
+        else:
+            assert got == reference, f"--threads {n} wrote other bytes than --threads 1"
+
+
+def test_warp(run, inputs, tmp_path):
+    same_bytes_for_every_count(
+        run, tmp_path,
+        lambda s: ("warp", inputs / "ball.nrrd", "--spec", inputs / "warp.yaml",
+                   "-o", tmp_path / f"w_{s}.nrrd"),
+        lambda s: [tmp_path / f"w_{s}.nrrd"])
+
+
+def test_warp_frames_local_updates(run, inputs, tmp_path):
+    same_bytes_for_every_count(
+        run, tmp_path,
+        lambda s: ("warp", inputs / "ball.nrrd", "--spec", inputs / "frames.yaml",
+                   "-o", tmp_path / f"w_{s}.nrrd",
+                   "--frames-to", tmp_path / f"f_{s}_{{frame}}.nrrd"),
+        lambda s: [tmp_path / f"w_{s}.nrrd"] + [tmp_path / f"f_{s}_{i}.nrrd" for i in range(4)])
+
+
+def test_distance(run, inputs, tmp_path):
+    same_bytes_for_every_count(
+        run, tmp_path,
+        lambda s: ("distance", inputs / "ball.nrrd", "--iso", "100", "-o", tmp_path / f"d_{s}.nrrd"),
+        lambda s: [tmp_path / f"d_{s}.nrrd"])
+
+
+def test_mesh(run, inputs, tmp_path):
+    same_bytes_for_every_count(
+        run, tmp_path,
+        lambda s: ("mesh", inputs / "ball.nrrd", "--iso", "100", "-o", tmp_path / f"m_{s}.ply"),
+        lambda s: [tmp_path / f"m_{s}.ply"])
+
+
+def test_sweep(run, inputs, tmp_path):
+    same_bytes_for_every_count(
+        run, tmp_path,
+        lambda s: ("sweep", inputs / "sweep.yaml", "-o", tmp_path / f"s_{s}_{{field}}.nrrd"),
+        lambda s: [tmp_path / f"s_{s}_opacity.nrrd", tmp_path / f"s_{s}_red.nrrd"])
+
+
+def test_morph(run, inputs, tmp_path):
+    same_bytes_for_every_count(
+        run, tmp_path,
+        lambda s: ("morph", inputs / "ball.nrrd", inputs / "lobes.nrrd", "--frames", "3",
+                   "--iso", "100", "-o", tmp_path / f"m_{s}_{{i}}.nrrd"),
+        lambda s: [tmp_path / f"m_{s}_{i}.nrrd" for i in range(3)])
+
+
+def test_the_option_reaches_the_core(run, inputs, tmp_path, monkeypatch):
+    """--threads N is the count the core sees, and it is undone after the command."""
+    seen = []
+    real = parallel.run_blocks
+
+    def spy(task, blocks, n=None):
+        seen.append((parallel.threads(), n))
+        return real(task, blocks, n)
+
+    monkeypatch.setattr(parallel, "run_blocks", spy)
+    before = parallel.threads()
+    res = run("warp", inputs / "ball.nrrd", "--spec", inputs / "warp.yaml",
+              "-o", tmp_path / "w.nrrd", "--threads", "3")
+    assert res.code == 0, res.stderr
+    assert seen and {t for t, _ in seen} == {3}  # the count in effect in the core
+    assert max(n or 1 for _, n in seen) > 1  # and some of the work was split
+    assert parallel.threads() == before
+
+
+def test_environment_variable_and_bad_values(run, inputs, tmp_path, monkeypatch):
+    monkeypatch.setenv("VOLWARP_THREADS", "2")
+    assert parallel.threads() == 2
+    res = run("distance", inputs / "ball.nrrd", "--iso", "100", "-o", tmp_path / "d.nrrd",
+              "--threads", "lots")
+    assert res.code == 2 and "--threads" in res.stderr and "lots" in res.stderr
+    assert not (tmp_path / "d.nrrd").exists()
+    monkeypatch.setenv("VOLWARP_THREADS", "-3")
+    res = run("distance", inputs / "ball.nrrd", "--iso", "100", "-o", tmp_path / "d.nrrd")
+    assert res.code == 2 and "VOLWARP_THREADS" in res.stderr
+
+
+def test_batch_shares_the_threads_among_its_scans():
+    from volwarp_cli.batch.run import child_threads, default_jobs
+
+    with parallel.use_threads(8):
+        assert default_jobs() == 8
+        assert child_threads(8) == 1
+        assert child_threads(3) == 2
+        assert child_threads(1) == 8
+    with parallel.use_threads(1):
+        assert child_threads(4) == 1
+
+
+def test_blas_and_vtk_follow_the_count():
+    from threadpoolctl import threadpool_info
+
+    import vtkmodules.vtkCommonCore as vc
+
+    with parallel.library_threads(1):
+        assert all(p["num_threads"] == 1 for p in threadpool_info())
+        if vc.vtkSMPTools.GetBackend() != "Sequential":
+            assert vc.vtkSMPTools.GetEstimatedNumberOfThreads() == 1
+    done = []
+    t = threading.Thread(target=lambda: done.append(parallel.threads()))
+    t.start()
+    t.join()
+    assert done == [parallel.threads()]

@@ -1,0 +1,235 @@
+"""The warp is the same bit for bit for any thread count and any block size, and the
+threads really run (each test records the threads its kernels ran in)."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from volwarp_cli import parallel
+from volwarp_cli.bspline import basis, pushforward
+from volwarp_cli.bspline import scene as scene_mod
+from volwarp_cli.bspline.capture import capture_volume
+from volwarp_cli.bspline.scene import Scene
+from volwarp_cli.volume import Volume
+
+THREADS = [1, 2, 3, 5]
+
+
+def blob(shape_zyx):
+    z, y, x = np.meshgrid(*[np.linspace(-1, 1, n) for n in shape_zyx], indexing="ij")
+    return (100 * np.exp(-(x ** 2 + 1.3 * y ** 2 + 0.7 * z ** 2) / 0.3)).astype(np.float32)
+
+
+class KernelThreads:
+    """Wraps the C scatter and the spline evaluator, recording the threads they run in."""
+
+    def __init__(self, monkeypatch):
+        self.seen = set()
+        self.lock = threading.Lock()
+        real = pushforward._warpkernels
+
+        class Proxy:
+            def __getattr__(_, name):
+                fn = getattr(real, name)
+                if name not in ("scatter", "finalize", "separable", "sample"):
+                    return fn
+
+                def wrapped(*args):
+                    with self.lock:
+                        self.seen.add(threading.get_ident())
+                    return fn(*args)
+                return wrapped
+
+        monkeypatch.setattr(pushforward, "_warpkernels", Proxy())
+
+    def reset(self):
+        self.seen = set()
+
+
+def moved_lattice(cap, seed=3, scale=1.5):
+    rng = np.random.default_rng(seed)
+    dq = cap.dq.copy()
+    dq[1:-1, 1:-1, 1:-1] += rng.normal(scale=scale, size=dq[1:-1, 1:-1, 1:-1].shape)
+    return dq
+
+
+@pytest.fixture
+def small_splits(monkeypatch):
+    """Splits taken on test sizes (the production thresholds keep small blocks whole)."""
+    monkeypatch.setattr(basis, "SPLIT_MIN_WORK", 1)
+    monkeypatch.setattr(scene_mod, "PARALLEL_MIN_VOXELS", 1)
+    monkeypatch.setattr(scene_mod, "SPLIT_MAX_SHARE", 1.01)
+
+
+def test_full_render_and_local_updates_identical_for_any_thread_count(monkeypatch, small_splits,
+                                                                       local_updates):
+    probe = KernelThreads(monkeypatch)
+    data = blob((30, 26, 28))
+    rng = np.random.default_rng(5)
+    moves = [((i, j, k), rng.normal(scale=1.5, size=3))
+             for i, j, k in [(2, 3, 1), (4, 1, 3), (3, 3, 3), (0, 5, 0)]]
+
+    def run_all():
+        cap = capture_volume(Volume(data), lattice=(7, 8, 6), oversample=1.5)
+        sc = Scene(cap.domain, cap.grid, cap.dq, 4, update=local_updates)
+        outs = [sc.render().copy()]
+        dq = cap.dq.copy()
+        for (i, j, k), d in moves:
+            dq = dq.copy()
+            dq[k, j, i] += d
+            sc.set_lattice(dq)
+            outs.append(sc.out.copy())
+        return outs, sc.acc.copy()
+
+    with parallel.use_threads(1):
+        reference = run_all()
+    assert len(probe.seen) == 1
+    for n in THREADS[1:]:
+        probe.reset()
+        with parallel.use_threads(n):
+            got = run_all()
+        assert len(probe.seen) > 1, f"{n} threads asked, the kernels ran in one"
+        for a, b in zip(reference[0], got[0], strict=True):
+            assert np.array_equal(a, b)
+        assert np.array_equal(reference[1], got[1])
+
+
+@pytest.mark.parametrize("oversample", [1, 2])
+def test_one_shot_render_identical_for_any_threads_and_block_size(monkeypatch, oversample):
+    probe = KernelThreads(monkeypatch)
+    data = blob((40, 24, 26))
+    cap = capture_volume(Volume(data), lattice=(6, 6, 7), oversample=oversample)
+    dq = moved_lattice(cap)
+
+    def scene():
+        return Scene(cap.domain, cap.grid, dq, 3, domain_range=cap.stats[:2])
+
+    full = scene().render().copy()
+    for n in THREADS:
+        for block in (None, 1, 3, 7):
+            probe.reset()
+            with parallel.use_threads(n):
+                out = scene().render_once(block_planes=block)
+            assert np.array_equal(out, full), (n, block)
+            if n > 1 and block is not None:
+                assert len(probe.seen) > 1
+
+
+def test_one_shot_sink_gets_every_plane_once_from_several_threads(monkeypatch):
+    data = blob((36, 20, 22))
+    cap = capture_volume(Volume(data), lattice=(6, 6, 6), oversample=1)
+    dq = moved_lattice(cap, seed=9)
+    full = Scene(cap.domain, cap.grid, dq, 3).render().copy()
+    got = np.full_like(full, np.nan)
+    calls, lock = [], threading.Lock()
+
+    def sink(z0, z1, planes):
+        with lock:
+            calls.append((z0, z1, threading.get_ident()))
+            assert np.all(np.isnan(got[z0:z1]))  # each range once
+            got[z0:z1] = planes
+
+    with parallel.use_threads(3):
+        assert Scene(cap.domain, cap.grid, dq, 3).render_once(sink=sink, block_planes=5) is None
+    assert np.array_equal(got, full)
+    assert len({t for _, _, t in calls}) > 1
+
+
+def test_deferred_gather_identical_for_any_thread_count():
+    data = blob((34, 22, 24))
+    vol = Volume(data)
+    ref = capture_volume(vol, lattice=(6, 6, 6), oversample=2)
+    dq = moved_lattice(ref, seed=4)
+    full = Scene(ref.domain, ref.grid, dq, 2, domain_range=ref.stats[:2]).render().copy()
+    for n in THREADS:
+        cap = capture_volume(vol, lattice=(6, 6, 6), oversample=2, defer=True)
+        assert cap.domain is None  # gathered plane by plane as the blocks stream
+        with parallel.use_threads(n):
+            out = Scene(cap.voxmap, cap.grid, dq, 2,
+                        domain_range=ref.stats[:2]).render_once(block_planes=4)
+        assert np.array_equal(out, full), n
+
+
+def test_parts_cover_the_target_planes_and_each_voxel_that_reaches_them(small_splits):
+    """Every target plane is in one part, and each part's domain range holds every domain
+    plane whose image can reach it (checked against the per-plane reach)."""
+    data = blob((40, 20, 20))
+    cap = capture_volume(Volume(data), lattice=(5, 5, 8), oversample=1)
+    dq = moved_lattice(cap, scale=2.5)
+    sc = Scene(cap.domain, cap.grid, dq, 4)
+    dshape = cap.grid.domain_shape
+    with parallel.use_threads(4):
+        parts = sc._parts(dq, (0, 0, 0), dshape, 0, None, None)
+    assert parts is not None and len(parts) >= 2
+    edges = [p[0] for p in parts] + [parts[-1][1]]
+    assert edges[0] == 0 and edges[-1] == sc.target_shape[2]
+    assert all(a < b for a, b in zip(edges[:-1], edges[1:], strict=True))
+    for t0, t1, g0, g1 in parts:
+        for g in range(dshape[2]):
+            r0, r1 = sc._target_z_reach(dq, g, g + 1)
+            if r0 < t1 and r1 > t0:  # plane g can reach the part
+                assert g0 <= g < g1
+
+
+def test_available_cores_honours_affinity_and_quota(monkeypatch, tmp_path):
+    monkeypatch.setattr(parallel.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3, 4, 5})
+    monkeypatch.setattr(parallel, "cgroup_cpu_quota", lambda root="/sys/fs/cgroup": None)
+    assert parallel.available_cores() == 6
+    monkeypatch.setattr(parallel, "cgroup_cpu_quota", lambda root="/sys/fs/cgroup": 2.5)
+    assert parallel.available_cores() == 3
+    monkeypatch.setattr(parallel, "cgroup_cpu_quota", lambda root="/sys/fs/cgroup": 64.0)
+    assert parallel.available_cores() == 6
+
+
+def test_cgroup_quota_files(monkeypatch, tmp_path):
+    v2 = tmp_path / "v2"
+    (v2 / "job").mkdir(parents=True)
+    (v2 / "job" / "cpu.max").write_text("250000 100000\n")
+    monkeypatch.setattr(parallel, "_read", lambda p, real=parallel._read: "0::/job"
+                        if p == "/proc/self/cgroup" else real(p))
+    assert parallel.cgroup_cpu_quota(str(v2)) == 2.5
+    (v2 / "job" / "cpu.max").write_text("max 100000\n")
+    assert parallel.cgroup_cpu_quota(str(v2)) is None
+    v1 = tmp_path / "v1"
+    (v1 / "cpu").mkdir(parents=True)  # the container's cgroup seen as the mount's root
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("300000")
+    (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000")
+    monkeypatch.setattr(parallel, "_read", lambda p, real=parallel._read: "4:cpu,cpuacct:/docker/x"
+                        if p == "/proc/self/cgroup" else real(p))
+    assert parallel.cgroup_cpu_quota(str(v1)) == 3.0
+    (v1 / "cpu" / "cpu.cfs_quota_us").write_text("-1")
+    assert parallel.cgroup_cpu_quota(str(v1)) is None
+
+
+def test_thread_count_sources(monkeypatch):
+    monkeypatch.delenv(parallel.THREADS_ENV, raising=False)
+    monkeypatch.setattr(parallel, "available_cores", lambda: 7)
+    assert parallel.threads() == 7
+    monkeypatch.setenv(parallel.THREADS_ENV, "3")
+    assert parallel.threads() == 3
+    with parallel.use_threads(2):
+        assert parallel.threads() == 2
+        # a thread started here has its own context: the default, unless handed ours
+        seen = []
+        t = threading.Thread(target=lambda: seen.append(parallel.threads()))
+        t.start()
+        t.join()
+        assert seen == [3]
+        assert parallel.run_blocks(lambda _: parallel.threads(), range(4), 2) == [2] * 4
+    assert parallel.threads() == 3
+    monkeypatch.setenv(parallel.THREADS_ENV, "auto")
+    assert parallel.threads() == 7
+    monkeypatch.setenv(parallel.THREADS_ENV, "many")
+    with pytest.raises(Exception, match="VOLWARP_THREADS"):
+        parallel.threads()
+
+
+def test_cuts_are_an_exact_partition():
+    for lo, hi, parts in [(0, 10, 3), (5, 6, 4), (0, 100, 7), (3, 3, 2)]:
+        c = parallel.cuts(lo, hi, parts)
+        assert c[0] == lo and c[-1] == hi
+        assert all(a <= b for a, b in zip(c[:-1], c[1:], strict=True))
+        assert len(c) - 1 <= max(1, min(parts, hi - lo))
