@@ -4,12 +4,13 @@ threads really run (each test records the threads its kernels ran in)."""
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
 
 from volwarp_cli import parallel
-from volwarp_cli.bspline import basis, pushforward
+from volwarp_cli.bspline import basis, jobs
 from volwarp_cli.bspline import scene as scene_mod
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.scene import Scene
@@ -29,7 +30,7 @@ class KernelThreads:
     def __init__(self, monkeypatch):
         self.seen = set()
         self.lock = threading.Lock()
-        real = pushforward._warpkernels
+        real = jobs._warpkernels
 
         class Proxy:
             def __getattr__(_, name):
@@ -40,10 +41,13 @@ class KernelThreads:
                 def wrapped(*args):
                     with self.lock:
                         self.seen.add(threading.get_ident())
+                    # a pause, so that a pool's other threads take the next tasks (the
+                    # first thread would otherwise finish these small ones alone)
+                    time.sleep(0.002)
                     return fn(*args)
                 return wrapped
 
-        monkeypatch.setattr(pushforward, "_warpkernels", Proxy())
+        monkeypatch.setattr(jobs, "_warpkernels", Proxy())
 
     def reset(self):
         self.seen = set()

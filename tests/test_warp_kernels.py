@@ -397,3 +397,31 @@ def test_vector_clones_give_the_baseline_results(tmp_path):
         for mod, out in zip((K, base), finals, strict=True):
             mod.finalize(sums, 2.5, (0, 0, 0), (37, 4, 3), out, 1.5)
         assert np.array_equal(finals[0], finals[1])
+
+
+def test_kernel_jobs_refuse_misplaced_arguments():
+    """The typed kernel calls: a triple in the wrong field, a wrong dtype or a missing field
+    is a TypeError at construction, not a run on the wrong voxels."""
+    from volwarp_cli.bspline.jobs import FinalizeJob, ScatterJob, SeparableJob
+
+    u = np.zeros((3, 4, 4, 4), np.float32)
+    values = np.zeros((2, 2, 2), np.float32)
+    acc = np.zeros((4, 4, 4, 2), np.int64)
+    good = dict(u=u, u_new=None, origin=(0, 0, 0), values=values, planes=(0, 2),
+                offset=(1.0, 1.0, 1.0), scale=(1.0, 1.0, 1.0), lo=(0, 0, 0), hi=(2, 2, 2),
+                sign=1, inv_vmax=1.0, box=True, acc=acc, clip=(0, 4, 0, 4, 0, 4))
+    ScatterJob(**good)
+    for change in [{"lo": (0.5, 0, 0)}, {"clip": (0, 4, 0, 4)}, {"offset": (1.0, 1.0)},
+                   {"acc": acc.astype(np.int32)}, {"u": u[0]}, {"sign": 2},
+                   {"box": "box"}, {"planes": (0, 2, 5)}]:
+        with pytest.raises(TypeError):
+            ScatterJob(**{**good, **change})
+    with pytest.raises(TypeError):
+        ScatterJob(u, None, (0, 0, 0))  # positional: keyword-only
+    with pytest.raises(TypeError, match="lo"):
+        FinalizeJob(acc=acc, vmax=1.0, lo=(0, 0), hi=(4, 4, 4),
+                    out=np.zeros((4, 4, 4), np.float32))
+    with pytest.raises(TypeError, match="weights"):
+        SeparableJob(dq=np.zeros((4, 4, 4, 3)), weights=(np.zeros((1, 4)),) * 2, x=(0, 1),
+                     y=(0, 1), z=(0, 1), out=np.zeros((1, 1, 1, 3), np.float32),
+                     origin=(0, 0, 0))

@@ -130,8 +130,9 @@ def _block(grid, lo, hi, x, y, z):
 SPLIT_MIN_WORK = 1 << 18
 
 
-def run_split(kernel, args_for, lo_z: int, hi_z: int, work: int) -> list:
-    """Run ``kernel(*args_for(z0, z1))`` over slabs of [lo_z, hi_z), one per thread.
+def run_split(job_for, lo_z: int, hi_z: int, work: int) -> list:
+    """Run ``job_for(z0, z1).run()`` (a :mod:`.jobs` kernel call) over slabs of [lo_z, hi_z),
+    one per thread.
 
     As many slabs as :func:`volwarp_cli.parallel.threads` allows, each with at
     least ``SPLIT_MIN_WORK`` of ``work`` (one slab, in this thread, when
@@ -144,12 +145,12 @@ def run_split(kernel, args_for, lo_z: int, hi_z: int, work: int) -> list:
     from .. import parallel
 
     if work <= 0:
-        return [kernel(*args_for(lo_z, hi_z))]
+        return [job_for(lo_z, hi_z).run()]
     parts = min(parallel.threads(), max(1, work // max(SPLIT_MIN_WORK, 1)), hi_z - lo_z)
     if parts <= 1:
-        return [kernel(*args_for(lo_z, hi_z))]
+        return [job_for(lo_z, hi_z).run()]
     edges = parallel.cuts(lo_z, hi_z, parts)
-    return parallel.run_blocks(lambda i: kernel(*args_for(edges[i], edges[i + 1])),
+    return parallel.run_blocks(lambda i: job_for(edges[i], edges[i + 1]).run(),
                                range(len(edges) - 1))
 
 
@@ -173,14 +174,14 @@ def evaluate_separable(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, 
         caller's threads already share the work).
     """
     (x0, x1), (y0, y1), (z0, z1) = _block(grid, lo, hi, x, y, z)
-    from ._warpkernels import separable
+    from .jobs import SeparableJob, replace
 
-    wx, wy, wz = (np.ascontiguousarray(region_weights(g)) for g in grid.granularity)
-    dq = np.ascontiguousarray(dq, dtype=np.float64)
-    ox, oy, oz = (int(v) for v in origin)
+    job = SeparableJob(dq=np.ascontiguousarray(dq, dtype=np.float64),
+                       weights=tuple(np.ascontiguousarray(region_weights(g))
+                                     for g in grid.granularity),
+                       x=(x0, x1), y=(y0, y1), z=(z0, z1), out=out, origin=origin)
     work = (x1 - x0) * (y1 - y0) * (z1 - z0)
-    run_split(separable, lambda a, b: (dq, wx, wy, wz, x0, x1, y0, y1, a, b, out, ox, oy, oz),
-              z0, z1, work if parallel else 0)
+    run_split(lambda a, b: replace(job, z=(a, b)), z0, z1, work if parallel else 0)
     return out
 
 
@@ -188,13 +189,13 @@ def evaluate_table(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, *, x
                    z=None, origin=(0, 0, 0), parallel: bool = True) -> np.ndarray:
     """Same as :func:`evaluate_separable` with the papers' 64-term table sum (eq. 4)."""
     (x0, x1), (y0, y1), (z0, z1) = _block(grid, lo, hi, x, y, z)
-    tab = coefficient_table(*grid.granularity)
-    table = table_kernel()
-    dq = np.ascontiguousarray(dq, dtype=np.float64)
-    org = np.asarray(origin, dtype=np.int64)
+    from .jobs import TableJob, replace
+
+    job = TableJob(dq=np.ascontiguousarray(dq, dtype=np.float64),
+                   table=coefficient_table(*grid.granularity), x=(x0, x1), y=(y0, y1),
+                   z=(z0, z1), out=out, origin=origin)
     work = (x1 - x0) * (y1 - y0) * (z1 - z0)
-    run_split(table, lambda a, b: (dq, tab, x0, x1, y0, y1, a, b, out, org),
-              z0, z1, work * 16 if parallel else 0)
+    run_split(lambda a, b: replace(job, z=(a, b)), z0, z1, work * 16 if parallel else 0)
     return out
 
 

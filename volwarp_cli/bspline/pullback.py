@@ -34,6 +34,7 @@ import numpy as np
 
 from ..errors import VolwarpError
 from .basis import region_weights, run_split
+from .jobs import SampleJob, replace
 from .lattice import Grid, capture_axis_positions
 from .pushforward import ROUND
 
@@ -108,22 +109,18 @@ class Sampler:
 
     def planes(self, g0: int, g1: int, out: np.ndarray | None = None) -> np.ndarray:
         """Domain planes [g0, g1) into ``out`` (``(g1 - g0, Dy, Dx)``, default new)."""
-        from ._warpkernels import sample
-
         if out is None:
             out = np.empty((g1 - g0,) + self.shape[1:], dtype=self.dtype)
-        z = tuple(a[g0:g1] for a in self._z)
-        sample(self._src, *self._x, *self._y, *z, out, 0, g1 - g0)
+        SampleJob(data=self._src, x=self._x, y=self._y, z=tuple(a[g0:g1] for a in self._z),
+                  out=out, g0=0, g1=g1 - g0).run()
         return out
 
     def whole(self) -> tuple[np.ndarray, tuple[float, float]]:
         """The whole voxmap (two threads) and the (min, max) of its samples."""
-        from ._warpkernels import sample
-
         out = np.empty(self.shape, dtype=self.dtype)
-        parts = run_split(sample, lambda g0, g1: (self._src, *self._x, *self._y, *self._z, out,
-                                                  g0, g1),
-                          0, out.shape[0], out.size)
+        job = SampleJob(data=self._src, x=self._x, y=self._y, z=self._z, out=out, g0=0,
+                        g1=out.shape[0])
+        parts = run_split(lambda g0, g1: replace(job, g0=g0, g1=g1), 0, out.shape[0], out.size)
         return out, (min(p[0] for p in parts), max(p[1] for p in parts))
 
 

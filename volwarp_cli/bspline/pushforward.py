@@ -58,7 +58,6 @@ import numpy as np
 # the model (normalised) and up to which it counts as on its silhouette
 # (blended with the background).
 # QUANTUM: fixed-point unit of the accumulators (2**40 per unit weight).
-from . import _warpkernels
 from ._warpkernels import COVERED_HI, COVERED_LO, QUANTUM, ROUND  # noqa: F401
 
 METHODS = ("box", "nearest")
@@ -125,31 +124,21 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
     exclusive), or None when nothing landed in the target; always None
     without ``bounds`` (which saves a few percent of the scatter).
     """
-    kern = _warpkernels.scatter
-    inv = 1.0 / vmax if vmax > 0 else 0.0
-    off = tuple(float(v) for v in off)
-    scale = tuple(float(v) for v in scale)
+    from .jobs import ScatterJob, replace
+
     lo = np.asarray(lo, np.int64)
     hi = np.asarray(hi, np.int64)
-    box = method == "box"
-    org = tuple(int(v) for v in origin)
-
-    def run(a, b, acc=acc, clip_z=None):
-        return np.array(kern(u, u if u_new is None else u_new, 1 if u_new is None else 2, org,
-                             values, vplanes, off, scale, tuple(int(v) for v in a),
-                             tuple(int(v) for v in b), int(sign), inv, box, acc,
-                             clip if clip_z is None else clip[:4] + clip_z, ring, bounds,
-                             still, gran))
-
     tz_end = tzo + len(acc) if tz_hi is None else tz_hi
     (x0, x1), (y0, y1) = ((0, acc.shape[2]), (0, acc.shape[1])) if window is None else window
-    clip = (int(x0), int(x1), int(y0), int(y1), int(tzo), int(tz_end))
-
-    gran = (1, 1, 1) if granularity is None else tuple(int(v) for v in granularity)
-    vplanes = (0, values.shape[0]) if planes is None else (int(planes[0]), int(planes[1]))
+    job = ScatterJob(u=u, u_new=u_new, origin=origin, values=values,
+                     planes=(0, values.shape[0]) if planes is None else planes,
+                     offset=off, scale=scale, lo=lo, hi=hi, sign=int(sign),
+                     inv_vmax=1.0 / vmax if vmax > 0 else 0.0, box=method == "box", acc=acc,
+                     clip=(x0, x1, y0, y1, tzo, tz_end), ring=bool(ring), bounds=bool(bounds),
+                     still=still, granularity=(1, 1, 1) if granularity is None else granularity)
 
     if parts is None or ring or len(parts) < 2:
-        boxes = [run(lo, hi)]
+        boxes = [job.run()]
     else:
         from .. import parallel
 
@@ -159,7 +148,8 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
             a[2], b[2] = max(g0, lo[2]), min(g1, hi[2])
             if t1 <= t0 or b[2] <= a[2]:
                 return np.array([0, 0, 0, -1, -1, -1])
-            return run(a, b, acc[t0 - tzo:], (t0, t1))
+            return replace(job, lo=a, hi=b, acc=acc[t0 - tzo:],
+                           clip=job.clip[:4] + (t0, t1)).run()
 
         boxes = parallel.run_blocks(part, parts, len(parts))
     boxes = [b for b in boxes if b[3] >= 0]
@@ -201,14 +191,14 @@ def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0, clear=False)
     ``clear`` also sets the block's accumulators back to zero (in the same pass).
     """
     from .basis import run_split
+    from .jobs import FinalizeJob
 
-    kern = _warpkernels.finalize
     lo = np.asarray(lo, np.int64)
     hi = np.asarray(hi, np.int64)
 
-    def args(z0, z1):
-        return (acc, float(vmax), (int(lo[0]), int(lo[1]), z0), (int(hi[0]), int(hi[1]), z1),
-                out, float(background), clear)
+    def job(z0, z1):
+        return FinalizeJob(acc=acc, vmax=vmax, lo=(lo[0], lo[1], z0), hi=(hi[0], hi[1], z1),
+                           out=out, background=background, clear=bool(clear))
 
-    run_split(kern, args, int(lo[2]), int(hi[2]), int(np.prod(hi - lo)) if parallel else 0)
+    run_split(job, int(lo[2]), int(hi[2]), int(np.prod(hi - lo)) if parallel else 0)
     return out

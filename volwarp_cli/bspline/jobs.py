@@ -1,0 +1,236 @@
+"""Typed calls into the warp's compiled kernels: one frozen dataclass per kernel.
+
+The C kernels of ``_warpkernels.c`` take their arguments by position (the
+scatter 19 of them, several of them triples of the same type); a triple in
+the wrong place would run, on the wrong voxels. Each job here names its
+fields, checks their types and shapes once, and calls its kernel in the
+kernel's order, so a misplaced argument is a ``TypeError`` at construction.
+``dataclasses.replace(job, lo=..., hi=...)`` derives a job's parts (the
+threads' slabs, a block's planes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from . import _warpkernels
+
+__all__ = ["ScatterJob", "SeparableJob", "TableJob", "SampleJob", "FinalizeJob", "replace"]
+
+
+def _ints(name: str, value, n: int = 3) -> tuple[int, ...]:
+    """``value`` as a tuple of ``n`` Python ints, or a TypeError naming the field."""
+    try:
+        items = tuple(value)
+    except TypeError:
+        raise TypeError(f"{name} must be {n} integers, got {value!r}") from None
+    if len(items) != n or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+                                   for v in items):
+        raise TypeError(f"{name} must be {n} integers, got {value!r}")
+    return tuple(int(v) for v in items)
+
+
+def _floats(name: str, value, n: int = 3) -> tuple[float, ...]:
+    try:
+        items = tuple(value)
+    except TypeError:
+        raise TypeError(f"{name} must be {n} numbers, got {value!r}") from None
+    if len(items) != n or not all(isinstance(v, (int, float, np.integer, np.floating))
+                                  and not isinstance(v, bool) for v in items):
+        raise TypeError(f"{name} must be {n} numbers, got {value!r}")
+    return tuple(float(v) for v in items)
+
+
+def _array(name: str, value, ndim: int, dtypes: tuple) -> np.ndarray:
+    if not isinstance(value, np.ndarray):
+        raise TypeError(f"{name} must be a numpy array, got {type(value).__name__}")
+    if value.ndim != ndim or value.dtype not in dtypes:
+        raise TypeError(f"{name} must be a {ndim}-D array of {'/'.join(map(str, dtypes))}, "
+                        f"got {value.ndim}-D {value.dtype}")
+    return value
+
+
+_F32 = (np.dtype(np.float32),)
+_FLOAT = (np.dtype(np.float32), np.dtype(np.float64))
+_I64 = (np.dtype(np.int64),)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ScatterJob:
+    """The box (or nearest) pushforward of domain block [lo, hi) (x, y, z) into ``acc``.
+
+    See :func:`.pushforward.scatter` for the meaning of each field; ``clip``
+    is the target window ``(x0, x1, y0, y1, z0, z1)`` kept, ``acc`` holding
+    plane ``z0`` first (or, with ``ring``, plane z at ``z % len(acc)``).
+    """
+
+    u: np.ndarray
+    u_new: np.ndarray | None
+    origin: tuple[int, int, int]
+    values: np.ndarray
+    planes: tuple[int, int]
+    offset: tuple[float, float, float]
+    scale: tuple[float, float, float]
+    lo: tuple[int, int, int]
+    hi: tuple[int, int, int]
+    sign: int
+    inv_vmax: float
+    box: bool
+    acc: np.ndarray
+    clip: tuple[int, int, int, int, int, int]
+    ring: bool = False
+    bounds: bool = False
+    still: np.ndarray | None = None
+    granularity: tuple[int, int, int] = (1, 1, 1)
+
+    def __post_init__(self):
+        s = object.__setattr__
+        _array("u", self.u, 4, _F32)
+        if self.u_new is not None:
+            _array("u_new", self.u_new, 4, _F32)
+        _array("values", self.values, 3, _FLOAT)
+        _array("acc", self.acc, 4, _I64)
+        if self.still is not None:
+            _array("still", self.still, 4, (np.dtype(np.uint8),))
+        s(self, "origin", _ints("origin", self.origin))
+        s(self, "planes", _ints("planes", self.planes, 2))
+        s(self, "offset", _floats("offset", self.offset))
+        s(self, "scale", _floats("scale", self.scale))
+        s(self, "lo", _ints("lo", self.lo))
+        s(self, "hi", _ints("hi", self.hi))
+        s(self, "clip", _ints("clip", self.clip, 6))
+        s(self, "granularity", _ints("granularity", self.granularity))
+        if self.sign not in (1, -1):
+            raise TypeError(f"sign must be +1 or -1, got {self.sign!r}")
+        for name in ("box", "ring", "bounds"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
+        s(self, "inv_vmax", float(self.inv_vmax))
+
+    def run(self) -> np.ndarray:
+        """Scatter; returns the touched target box ``[x0, y0, z0, x1, y1, z1]`` (inclusive;
+        x1 < 0 when nothing landed or ``bounds`` is off)."""
+        two = self.u_new is not None
+        return np.array(_warpkernels.scatter(
+            self.u, self.u_new if two else self.u, 2 if two else 1, self.origin, self.values,
+            self.planes, self.offset, self.scale, self.lo, self.hi, self.sign, self.inv_vmax,
+            bool(self.box), self.acc, self.clip, bool(self.ring), bool(self.bounds), self.still,
+            self.granularity))
+
+
+@dataclass(frozen=True, kw_only=True)
+class SeparableJob:
+    """The separable spline evaluator on domain voxels [x0, x1) x [y0, y1) x [z0, z1)."""
+
+    dq: np.ndarray
+    weights: tuple[np.ndarray, np.ndarray, np.ndarray]  # x, y, z: (granularity, 4)
+    x: tuple[int, int]
+    y: tuple[int, int]
+    z: tuple[int, int]
+    out: np.ndarray
+    origin: tuple[int, int, int]
+
+    def __post_init__(self):
+        _array("dq", self.dq, 4, (np.dtype(np.float64),))
+        if len(self.weights) != 3:
+            raise TypeError("weights must be the x, y and z tables")
+        for name, w in zip("xyz", self.weights, strict=True):
+            _array(f"weights {name}", w, 2, (np.dtype(np.float64),))
+        _array("out", self.out, 4, _FLOAT)
+        for name in ("x", "y", "z"):
+            object.__setattr__(self, name, _ints(name, getattr(self, name), 2))
+        object.__setattr__(self, "origin", _ints("origin", self.origin))
+
+    def run(self) -> None:
+        wx, wy, wz = self.weights
+        _warpkernels.separable(self.dq, wx, wy, wz, *self.x, *self.y, *self.z, self.out,
+                               *self.origin)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TableJob:
+    """The papers' 64-term table evaluator (numba) on the same ranges as :class:`SeparableJob`."""
+
+    dq: np.ndarray
+    table: np.ndarray
+    x: tuple[int, int]
+    y: tuple[int, int]
+    z: tuple[int, int]
+    out: np.ndarray
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))
+
+    def __post_init__(self):
+        _array("dq", self.dq, 4, (np.dtype(np.float64),))
+        _array("table", self.table, 6, (np.dtype(np.float64),))
+        _array("out", self.out, 4, _FLOAT)
+        for name in ("x", "y", "z"):
+            object.__setattr__(self, name, _ints(name, getattr(self, name), 2))
+        object.__setattr__(self, "origin", np.asarray(_ints("origin", self.origin), np.int64))
+
+    def run(self) -> None:
+        from .basis import table_kernel
+
+        table_kernel()(self.dq, self.table, *self.x, *self.y, *self.z, self.out, self.origin)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SampleJob:
+    """The capture's gather of domain planes [g0, g1) into ``out`` (whose first plane is g0
+    when ``relative``, else plane 0 of the domain)."""
+
+    data: np.ndarray
+    x: tuple[np.ndarray, np.ndarray, np.ndarray]  # lower index, upper index, weight
+    y: tuple[np.ndarray, np.ndarray, np.ndarray]
+    z: tuple[np.ndarray, np.ndarray, np.ndarray]
+    out: np.ndarray
+    g0: int
+    g1: int
+
+    def __post_init__(self):
+        if not isinstance(self.data, np.ndarray) or self.data.ndim != 3:
+            raise TypeError("data must be a 3-D numpy array")
+        for name in ("x", "y", "z"):
+            axis = getattr(self, name)
+            if len(axis) != 3:
+                raise TypeError(f"{name} must be (lower index, upper index, weight)")
+            _array(f"{name} lower", axis[0], 1, (np.dtype(np.int32),))
+            _array(f"{name} upper", axis[1], 1, (np.dtype(np.int32),))
+            _array(f"{name} weight", axis[2], 1, (np.dtype(np.float64),))
+        _array("out", self.out, 3, _FLOAT)
+        object.__setattr__(self, "g0", int(self.g0))
+        object.__setattr__(self, "g1", int(self.g1))
+
+    def run(self) -> tuple[float, float]:
+        """Gather; returns the (min, max) of the samples written."""
+        return _warpkernels.sample(self.data, *self.x, *self.y, *self.z, self.out, self.g0,
+                                   self.g1)
+
+
+@dataclass(frozen=True, kw_only=True)
+class FinalizeJob:
+    """``out = v / w`` (blended with the background on the silhouette) on target block
+    [lo, hi) (x, y, z); ``clear`` zeroes the block's accumulators in the same pass."""
+
+    acc: np.ndarray
+    vmax: float
+    lo: tuple[int, int, int]
+    hi: tuple[int, int, int]
+    out: np.ndarray
+    background: float = 0.0
+    clear: bool = False
+
+    def __post_init__(self):
+        _array("acc", self.acc, 4, _I64)
+        _array("out", self.out, 3, _FLOAT)
+        object.__setattr__(self, "lo", _ints("lo", self.lo))
+        object.__setattr__(self, "hi", _ints("hi", self.hi))
+        object.__setattr__(self, "vmax", float(self.vmax))
+        object.__setattr__(self, "background", float(self.background))
+        if not isinstance(self.clear, (bool, np.bool_)):
+            raise TypeError(f"clear must be a bool, got {self.clear!r}")
+
+    def run(self) -> None:
+        _warpkernels.finalize(self.acc, self.vmax, self.lo, self.hi, self.out, self.background,
+                              bool(self.clear))
