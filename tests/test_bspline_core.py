@@ -241,8 +241,7 @@ def test_rebuild_block_covers_what_an_update_touches():
     data = smooth_blob((20, 22, 24))
     cap = capture_volume(Volume(data), lattice=(8, 7, 9), oversample=1.5)
     rng = np.random.default_rng(2)
-    scene = Scene(cap.domain, cap.grid, cap.dq, 3)
-    scene.update = "subtract"
+    scene = Scene(cap.domain, cap.grid, cap.dq, 3, update="subtract")
     scene.render()
     dq = cap.dq.copy()
     for point in [(2, 3, 1), (4, 0, 6), (5, 5, 5), (0, 6, 7), (3, 3, 3)]:
@@ -252,7 +251,8 @@ def test_rebuild_block_covers_what_an_update_touches():
         g = np.array(cap.grid.granularity)
         vlo = np.maximum(rlo * g - 1, 0)
         vhi = np.minimum(rhi * g + 1, np.array(cap.grid.domain_shape))
-        tlo, thi, dlo, dhi = scene._rebuild_block(dq, vlo, vhi)
+        tlo, thi, dlo, dhi = scene.reach.rebuild_block(scene._offset_bounds(scene.dq),
+                                                       scene._offset_bounds(dq), vlo, vhi)
         scene.set_lattice(dq)
         touched_lo, touched_hi = scene.last_touched
         assert np.all(tlo <= touched_lo) and np.all(touched_hi <= thi)

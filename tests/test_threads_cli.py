@@ -153,9 +153,8 @@ def test_batch_shares_the_threads_among_its_scans():
 
 
 def test_blas_and_vtk_follow_the_count():
-    from threadpoolctl import threadpool_info
-
     import vtkmodules.vtkCommonCore as vc
+    from threadpoolctl import threadpool_info
 
     with parallel.library_threads(1):
         assert all(p["num_threads"] == 1 for p in threadpool_info())

@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 
 from volwarp_cli import parallel
-from volwarp_cli.bspline import basis, jobs
-from volwarp_cli.bspline import scene as scene_mod
+from volwarp_cli.bspline import basis, jobs, work
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.volume import Volume
@@ -64,8 +63,8 @@ def moved_lattice(cap, seed=3, scale=1.5):
 def small_splits(monkeypatch):
     """Splits taken on test sizes (the production thresholds keep small blocks whole)."""
     monkeypatch.setattr(basis, "SPLIT_MIN_WORK", 1)
-    monkeypatch.setattr(scene_mod, "PARALLEL_MIN_VOXELS", 1)
-    monkeypatch.setattr(scene_mod, "SPLIT_MAX_SHARE", 1.01)
+    monkeypatch.setattr(work, "PARALLEL_MIN_VOXELS", 1)
+    monkeypatch.setattr(work, "SPLIT_MAX_SHARE", 1.01)
 
 
 def test_full_render_and_local_updates_identical_for_any_thread_count(monkeypatch, small_splits,
@@ -166,14 +165,14 @@ def test_parts_cover_the_target_planes_and_each_voxel_that_reaches_them(small_sp
     sc = Scene(cap.domain, cap.grid, dq, 4)
     dshape = cap.grid.domain_shape
     with parallel.use_threads(4):
-        parts = sc._parts(dq, (0, 0, 0), dshape, 0, None, None)
+        parts = work.thread_parts(sc.reach, dq, (0, 0, 0), dshape, 0, None, None)
     assert parts is not None and len(parts) >= 2
     edges = [p[0] for p in parts] + [parts[-1][1]]
     assert edges[0] == 0 and edges[-1] == sc.target_shape[2]
     assert all(a < b for a, b in zip(edges[:-1], edges[1:], strict=True))
     for t0, t1, g0, g1 in parts:
         for g in range(dshape[2]):
-            r0, r1 = sc._target_z_reach(dq, g, g + 1)
+            r0, r1 = sc.reach.target_z_reach(dq, g, g + 1)
             if r0 < t1 and r1 > t0:  # plane g can reach the part
                 assert g0 <= g < g1
 

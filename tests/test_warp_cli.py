@@ -340,12 +340,13 @@ def test_streamed_nrrd_output_is_the_whole_targets_file(run, data_dir, tmp_path,
 def test_a_warp_failing_midway_leaves_the_existing_output(run, data_dir, tmp_path,
                                                           monkeypatch):
     from volwarp_cli.bspline import scene as scene_mod
+    from volwarp_cli.bspline import stream as stream_mod
 
     spec = SPECS / "warp-ball.yaml"
     out = tmp_path / "o.nrrd"
     out.write_bytes(b"an earlier result")
     calls = []
-    real = scene_mod.Scene._contribute
+    real = scene_mod.Scene.contribute
 
     def failing(self, *a, **k):
         calls.append(1)
@@ -353,8 +354,8 @@ def test_a_warp_failing_midway_leaves_the_existing_output(run, data_dir, tmp_pat
             raise MemoryError("out of memory midway")
         return real(self, *a, **k)
 
-    monkeypatch.setattr(scene_mod.Scene, "_contribute", failing)
-    monkeypatch.setattr(scene_mod, "STREAM_PLANES", 1)  # many chunks: some planes written
+    monkeypatch.setattr(scene_mod.Scene, "contribute", failing)
+    monkeypatch.setattr(stream_mod, "STREAM_PLANES", 1)  # many chunks: some planes written
     res = run("warp", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out)
     assert len(calls) >= 3 and res.code == 1 and "memory" in res.stderr
     assert out.read_bytes() == b"an earlier result"

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from volwarp_cli.bspline import basis
-from volwarp_cli.bspline import scene as scene_module
+from volwarp_cli.bspline import stream as stream_module
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.lattice import Grid
 from volwarp_cli.bspline.scene import Scene
@@ -25,7 +25,7 @@ def test_render_once_equals_render(method, shift, stream_planes, monkeypatch):
     # tall in z so that the stream runs on two threads and wraps its ring of planes
     # (many times with 1 plane per step); large z moves stretch and fold the map
     # along the streamed axis
-    monkeypatch.setattr(scene_module, "STREAM_PLANES", stream_planes)
+    monkeypatch.setattr(stream_module, "STREAM_PLANES", stream_planes)
     cap = capture_volume(Volume(_blob((90, 20, 24))), lattice=(6, 6, 12), oversample=1.5)
     dq = cap.dq.copy()
     dq[5, 2, 3] += shift
@@ -52,7 +52,7 @@ def test_subdivision_grid_paths_agree(method, local_updates, monkeypatch):
     1, 1 at oversample 2), the streamed render (whole or deferred capture), the full
     render and local updates give the same target bit for bit, and an unmoved lattice
     gives back the input."""
-    monkeypatch.setattr(scene_module, "STREAM_PLANES", 4)
+    monkeypatch.setattr(stream_module, "STREAM_PLANES", 4)
     data = _blob((65, 20, 23))
     cap = capture_volume(Volume(data), lattice=(6, 6, 10), oversample=2)
     assert cap.grid.lead == (1, 1, 1) and cap.grid.data_hi == (47, 41, 131)

@@ -6,11 +6,11 @@ output voxel instead, and the output voxel takes the label of largest weight:
 
 - ``L``'s weight is the box pushforward's accumulated weight of its indicator
   (1 inside ``L``, 0 elsewhere): the exact fixed-point sums of the intensity
-  warp (:meth:`.scene.Scene._contribute`), read before the ``v / w``
+  warp (:meth:`.scene.Scene.contribute`), read before the ``v / w``
   normalisation. One pass per label, over the domain block of its bounding
   box, into a rolling accumulator that covers only the target block the
   label's image can reach (bounded from the lattice alone, region by region:
-  :meth:`.scene.Scene._rebuild_block`), so memory does not grow with the
+  :meth:`.reach.Reach.rebuild_block`), so memory does not grow with the
   number of labels: the output holds the best weight and label so far.
 - The background (label 0) competes like any label: its weight is that of
   the input's 0 voxels plus the empty space around the model, ``max(w, 1) -
@@ -52,7 +52,8 @@ from ..volume import Volume
 from .capture import LATTICE_ARRAYS, Capture
 from .lattice import PLACEMENTS, Grid, capture_offsets
 from .pushforward import QUANTUM
-from .scene import STREAM_PLANES, Scene
+from .scene import Scene
+from .stream import STREAM_PLANES
 
 #: ``info``'s label-map hint: an integer volume with at most this many distinct values...
 HINT_MAX_LABELS = 256
@@ -213,7 +214,7 @@ class _Stream:
         self.k = grid.subdivision
         self.lead = np.array(grid.lead)
         self.chunk = max(1, int(STREAM_PLANES * self.k))  # domain planes per step
-        r_lo, r_hi = scene._target_z_reach(dq, 0, self.chunk)
+        r_lo, r_hi = scene.reach.target_z_reach(dq, 0, self.chunk)
         self.planes = r_hi - r_lo + 2
         dz, dy, dx = grid.domain_shape[::-1]
         self.values = np.zeros((self.chunk, dy, dx), dtype=np.float32)
@@ -228,7 +229,8 @@ class _Stream:
         sc, k = self.scene, self.k
         vlo = self.lead + k * box[0]
         vhi = self.lead + k * box[1]
-        block = sc._rebuild_block(self.dq, vlo, vhi)
+        bounds = sc._offset_bounds(self.dq)
+        block = sc.reach.rebuild_block(bounds, bounds, vlo, vhi)
         if block is None:
             return
         tlo, thi = block[0], block[1]
@@ -246,7 +248,7 @@ class _Stream:
             self.acc = np.zeros(need + need // 4, dtype=np.int64)
         acc = self.acc[:need].reshape(self.planes, wy, wx, 2)
         acc.fill(0)
-        g_lo, g_hi = sc._domain_z_window(self.dq, z_lo, z_hi)
+        g_lo, g_hi = sc.reach.domain_z_window(self.dq, z_lo, z_hi)
         g_lo, g_hi = max(g_lo, int(vlo[2])), min(g_hi, int(vhi[2]))
         base = z_lo
         planes = self.planes
@@ -266,7 +268,7 @@ class _Stream:
         ys = slice(int(vlo[1]), int(vhi[1]))
         for g0 in range(g_lo, g_hi, self.chunk):
             g1 = min(g0 + self.chunk, g_hi)
-            r_lo, r_hi = sc._target_z_reach(self.dq, g0, g1)
+            r_lo, r_hi = sc.reach.target_z_reach(self.dq, g0, g1)
             flush(min(max(r_lo, base), z_hi))
             if min(r_hi, z_hi) - base > planes:  # pragma: no cover - cannot happen
                 raise AssertionError("rolling accumulator too small")
@@ -277,7 +279,7 @@ class _Stream:
             ind = (src != 0) if label == 0 else (src == label)
             view = self.values[:g1 - g0, ys, xs].reshape(g1 - g0, by1 - by0, k, bx1 - bx0, k)
             np.copyto(view, ind[:, :, None, :, None])
-            sub._contribute([self.dq], (int(vlo[0]), int(vlo[1]), g0),
+            sub.contribute([self.dq], (int(vlo[0]), int(vlo[1]), g0),
                             (int(vhi[0]), int(vhi[1]), g1), 1, acc=acc, tzo=base,
                             tz_hi=min(base + planes, z_hi), ring=True, parallel=False,
                             scratch=self.scratch, values=(self.values[:g1 - g0], g0),

@@ -1,0 +1,152 @@
+"""Where the write map can send domain voxels: reach bounds from the lattice alone.
+
+Every bound here follows from the convex-hull property of the B-spline: a
+domain voxel's offset is a convex combination of its region's 4^3 control-point
+offsets, so the image of a region lies within the hull of those points, widened
+by the box filter's half voxel (and, at the domain's faces, by the linear
+extrapolation of the deformation's halo). They decide which target planes a
+domain block can touch and which domain voxels a target block needs: the
+streaming render's rolling window, the threads' parts, the local updates'
+blocks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .lattice import Grid, window_reduce
+
+#: Slack for float32 deformation offsets in bounds derived from the lattice.
+OFFSET_SLACK = 0.01
+
+
+@dataclass(frozen=True)
+class Reach:
+    """The write map's affine base ``A(g) = offset + scale * g`` (target index of domain
+    voxel g, x y z) into a target of ``target_shape`` (x, y, z), on ``grid``."""
+
+    grid: Grid
+    offset: np.ndarray
+    scale: np.ndarray
+    target_shape: tuple[int, int, int]
+
+    def z_reach(self, dq) -> tuple[float, float]:
+        """``(below, above)``: domain voxel g's box lies in target z ``[A(g) - below, A(g) + above]``.
+
+        From the lattice alone: a voxel's offset is a convex combination of
+        control-point offsets, and its box (face centres, halo extrapolation)
+        stays within that range widened by the range itself.
+        """
+        dz = dq[..., 2]
+        top, bottom = float(dz.max()), float(dz.min())
+        spread = top - bottom
+        half = 0.5 * float(self.scale[2])
+        return (half - bottom + spread + OFFSET_SLACK, half + top + spread + OFFSET_SLACK)
+
+    def target_z_reach(self, dq, g0: int, g1: int) -> tuple[int, int]:
+        """Target z planes [t0, t1) that domain z planes [g0, g1) can reach."""
+        below, above = self.z_reach(dq)
+        s, o = float(self.scale[2]), float(self.offset[2])
+        t0 = int(np.floor(o + s * g0 - below - 0.5))
+        t1 = int(np.ceil(o + s * (g1 - 1) + above + 0.5)) + 1
+        return t0, t1
+
+    def domain_z_window(self, dq, t0: int, t1: int) -> tuple[int, int]:
+        """Domain z range [g0, g1) holding every voxel that can reach target z planes [t0, t1)."""
+        below, above = self.z_reach(dq)
+        s, o = float(self.scale[2]), float(self.offset[2])
+        dz = self.grid.domain_shape[2]
+        g0 = int(np.floor((t0 - 0.5 - o - above) / s))
+        g1 = int(np.ceil((t1 - 0.5 - o + below) / s)) + 1
+        return max(g0, 0), min(g1, dz)
+
+    def region_range(self, axis: int, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        """Per region along ``axis`` (0 = x): its voxels within [lo, hi), as [a, b)
+        (empty where b <= a)."""
+        g = self.grid.granularity[axis]
+        r = np.arange(self.grid.regions[axis])
+        return np.maximum(r * g, lo), np.minimum((r + 1) * g, hi)
+
+    def rebuild_block(self, old_bounds, new_bounds, vlo, vhi):
+        """``(tlo, thi, dlo, dhi)`` (x y z) for an update of domain voxels [vlo, vhi).
+
+        ``old_bounds``, ``new_bounds``: :func:`offset_bounds` of the lattice
+        before and after. Target block [tlo, thi): every target voxel the old
+        or new image of those voxels can reach; domain block [dlo, dhi):
+        every voxel whose new image can reach that target block; region by
+        region. None when the images miss the target.
+        """
+        grid = self.grid
+        tshape = np.array(self.target_shape)
+        half = 0.5 * self.scale
+
+        def along(v, axis):  # a per-region vector of x (0), y or z, broadcast on [Rz, Ry, Rx]
+            shape = [1, 1, 1]
+            shape[2 - axis] = -1
+            return v.reshape(shape)
+
+        def image_cells(bounds, wlo, whi):
+            # per axis: the target cells [t0, t1) that the images of the regions'
+            # voxels within [wlo, whi) can overlap, and which regions have such voxels
+            lo_u, hi_u = bounds
+            t0, t1, inside = [], [], np.ones(lo_u.shape[:3], bool)
+            for axis in range(3):
+                a, b = self.region_range(axis, wlo[axis], whi[axis])
+                inside &= along(a < b, axis)
+                a_img = self.offset[axis] + self.scale[axis] * along(a, axis)
+                b_img = self.offset[axis] + self.scale[axis] * (along(b, axis) - 1)
+                t0.append(np.floor(a_img + lo_u[..., axis] - half[axis] - 0.5))
+                t1.append(np.ceil(b_img + hi_u[..., axis] + half[axis] + 0.5) + 1)
+            return t0, t1, inside
+
+        t_lo, t_hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for bounds in (old_bounds, new_bounds):
+            t0, t1, inside = image_cells(bounds, vlo, vhi)
+            if inside.any():
+                for axis in range(3):
+                    t_lo[axis] = min(t_lo[axis], t0[axis][inside].min())
+                    t_hi[axis] = max(t_hi[axis], t1[axis][inside].max())
+        tlo = np.clip(t_lo, 0, tshape).astype(np.int64)
+        thi = np.clip(t_hi, 0, tshape).astype(np.int64)
+        if np.any(thi <= tlo):
+            return None
+        # domain voxels g whose new box [A(g) + lo_u - half, A(g) + hi_u + half]
+        # overlaps the cells [tlo, thi), i.e. the interval [tlo - 0.5, thi - 0.5]
+        lo_u, hi_u = new_bounds
+        d_lo, d_hi, inside = [], [], np.ones(lo_u.shape[:3], bool)
+        for axis in range(3):
+            a, b = self.region_range(axis, 0, grid.domain_shape[axis])
+            s, o = self.scale[axis], self.offset[axis]
+            first = np.floor((tlo[axis] - 0.5 - o - half[axis] - hi_u[..., axis]) / s)
+            last = np.ceil((thi[axis] - 0.5 - o + half[axis] - lo_u[..., axis]) / s) + 1
+            first = np.maximum(first, along(a, axis))
+            last = np.minimum(last, along(b, axis))
+            inside &= first < last
+            d_lo.append(first)
+            d_hi.append(last)
+        if not inside.any():  # pragma: no cover - the moved voxels' images reach it
+            return None
+        dlo = np.array([int(v[inside].min()) for v in d_lo])
+        dhi = np.array([int(v[inside].max()) for v in d_hi])
+        return tlo, thi, dlo, dhi
+
+
+def offset_bounds(dq) -> tuple[np.ndarray, np.ndarray]:
+    """``(lo, hi)``, each ``[Rz, Ry, Rx, 3]``: bounds of the offsets any voxel of a region
+    and its neighbours can have (x y z components), from the lattice alone.
+
+    A voxel's offset is a convex combination of its region's 4^3 control
+    points, so a voxel and its neighbours (in the next region at most) stay
+    within the points [r - 1, r + 4] of each axis (a float32 slack added).
+    At the domain's faces the halo is extrapolated (``2 U[0] - U[1]``):
+    there the range is widened by itself, as :meth:`Reach.z_reach` does.
+    """
+    pad = ((1, 1), (1, 1), (1, 1), (0, 0))
+    lo = window_reduce(np.pad(dq, pad, constant_values=np.inf), 6, np.minimum)
+    hi = window_reduce(np.pad(dq, pad, constant_values=-np.inf), 6, np.maximum)
+    edge = np.zeros(lo.shape[:3], bool)
+    edge[[0, -1]] = edge[:, [0, -1]] = edge[:, :, [0, -1]] = True
+    spread = np.where(edge[..., None], hi - lo, 0.0)
+    return lo - spread - OFFSET_SLACK, hi + spread + OFFSET_SLACK
