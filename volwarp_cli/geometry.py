@@ -1,0 +1,170 @@
+"""The one grid geometry: a :class:`~.volume.Volume` without samples.
+
+A :class:`Geometry` is where a grid of samples lies in the world: its
+``shape`` in array order (z, y, x) and, as a Volume has them, ``spacing``,
+``origin`` and ``direction`` in (x, y, z). The voxel with index
+``(i, j, k)`` (x, y, z) has its centre at::
+
+    world = origin + direction @ (spacing * (i, j, k))
+
+(DESIGN.md, "World coordinates"; LPS for volumes with an anatomical frame).
+:meth:`Geometry.sub` is the geometry of a block (a :class:`~.box.Box`): the
+block's shape, and the origin moved to the block's first voxel through the
+direction matrix, so that every voxel of the block keeps its world point (as
+SimpleITK's ``image[x0:x1, y0:y1, z0:z1]`` and RegionOfInterestImageFilter
+have it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .box import Box
+from .errors import VolwarpError
+from .volume import xyz_to_zyx, zyx_to_xyz
+
+Floats3 = tuple[float, float, float]
+
+
+def _floats3(value, name: str) -> Floats3:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape == ():
+        arr = np.full(3, float(arr))
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise VolwarpError(f"{name} must be 3 finite values (x, y, z), got {np.asarray(value)}")
+    return tuple(float(v) for v in arr)
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Shape (z, y, x) and the placement of a grid; spacing, origin, direction (x, y, z).
+
+    Stored as tuples (so two geometries compare and hash exactly); the
+    ``*_array`` properties give numpy arrays. ``direction``'s *columns* are
+    the unit vectors of the index axes in world space (rows of the tuple are
+    the matrix's rows), as in :class:`~.volume.Volume`.
+    """
+
+    shape: tuple[int, int, int]
+    spacing: Floats3 = (1.0, 1.0, 1.0)
+    origin: Floats3 = (0.0, 0.0, 0.0)
+    direction: tuple[Floats3, Floats3, Floats3] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0),
+                                                   (0.0, 0.0, 1.0))
+
+    def __post_init__(self):
+        shape = tuple(int(v) for v in self.shape)
+        if len(shape) != 3 or min(shape) < 0:
+            raise VolwarpError(f"a grid shape is 3 non-negative sizes (z, y, x), got {shape}")
+        spacing = _floats3(self.spacing, "spacing")
+        if min(spacing) <= 0:
+            raise VolwarpError(f"spacing must be positive, got {list(spacing)}")
+        direction = np.asarray(self.direction, dtype=np.float64)
+        if direction.shape != (3, 3) or not np.all(np.isfinite(direction)):
+            raise VolwarpError("direction must be a finite 3x3 matrix")
+        if abs(np.linalg.det(direction)) < 1e-9:
+            raise VolwarpError("direction matrix is singular")
+        object.__setattr__(self, "shape", shape)
+        object.__setattr__(self, "spacing", spacing)
+        object.__setattr__(self, "origin", _floats3(self.origin, "origin"))
+        object.__setattr__(self, "direction", tuple(tuple(float(v) for v in row)
+                                                    for row in direction))
+
+    @classmethod
+    def of(cls, volume) -> Geometry:
+        """The geometry of a :class:`~.volume.Volume` (or anything with ``data`` or
+        ``shape`` (z, y, x), ``spacing``, ``origin`` and ``direction``)."""
+        shape = volume.data.shape if hasattr(volume, "data") else volume.shape
+        return cls(tuple(shape), volume.spacing, volume.origin, volume.direction)
+
+    @classmethod
+    def from_xyz(cls, shape_xyz, spacing=1.0, origin=0.0, direction=None) -> Geometry:
+        """A geometry from a size written (x, y, z), as specs and metadata have it."""
+        return cls(xyz_to_zyx(tuple(int(v) for v in shape_xyz)), spacing, origin,
+                   np.eye(3) if direction is None else direction)
+
+    # -- sizes ----------------------------------------------------------------------
+    @property
+    def shape_xyz(self) -> tuple[int, int, int]:
+        return tuple(zyx_to_xyz(self.shape))
+
+    @property
+    def box(self) -> Box:
+        """Every voxel: ``Box.from_shape(shape)``."""
+        return Box.from_shape(self.shape)
+
+    @property
+    def spacing_zyx(self) -> Floats3:
+        """Spacing along the array axes, as the numeric cores take it."""
+        return tuple(xyz_to_zyx(self.spacing))
+
+    # -- coordinates ----------------------------------------------------------------
+    @property
+    def spacing_array(self) -> np.ndarray:
+        return np.array(self.spacing)
+
+    @property
+    def origin_array(self) -> np.ndarray:
+        return np.array(self.origin)
+
+    @property
+    def direction_array(self) -> np.ndarray:
+        return np.array(self.direction)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """3x3 ``direction @ diag(spacing)``: index steps (x, y, z) to world vectors."""
+        return self.direction_array * self.spacing_array[None, :]
+
+    @property
+    def index_to_world_matrix(self) -> np.ndarray:
+        """4x4 homogeneous matrix taking (i, j, k, 1) to world (x, y, z, 1)."""
+        m = np.eye(4)
+        m[:3, :3] = self.matrix
+        m[:3, 3] = self.origin
+        return m
+
+    def index_to_world(self, ijk) -> np.ndarray:
+        """World points of (fractional) indices (i, j, k) = (x, y, z), shape (..., 3)."""
+        ijk = np.asarray(ijk, dtype=np.float64)
+        return ijk @ self.matrix.T + self.origin_array
+
+    def world_to_index(self, xyz) -> np.ndarray:
+        """Fractional indices (i, j, k) = (x, y, z) of world points, shape (..., 3)."""
+        xyz = np.asarray(xyz, dtype=np.float64)
+        return (xyz - self.origin_array) @ np.linalg.inv(self.matrix).T
+
+    def bounds_world(self, *, voxel_boxes: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned world bounding box ``(min, max)`` of the voxel centres, or with
+        ``voxel_boxes`` of the voxels' boxes (half a voxel beyond the centres)."""
+        if min(self.shape) == 0:
+            raise VolwarpError(f"a grid of shape {self.shape} has no voxels, hence no bounds")
+        n = np.array(self.shape_xyz, dtype=np.float64) - 1
+        a, b = (-0.5, n + 0.5) if voxel_boxes else (0.0, n)
+        lo = np.broadcast_to(a, 3)
+        corners = np.array([[x, y, z] for x in (lo[0], b[0]) for y in (lo[1], b[1])
+                            for z in (lo[2], b[2])])
+        pts = self.index_to_world(corners)
+        return pts.min(axis=0), pts.max(axis=0)
+
+    # -- blocks ---------------------------------------------------------------------
+    def sub(self, box: Box) -> Geometry:
+        """The geometry of block ``box`` (array order): its shape, and the origin at its
+        first voxel, ``origin + direction @ (spacing * lo_xyz)``; spacing and direction
+        unchanged. The box may reach beyond the grid (a halo): the grid's lattice
+        simply continues."""
+        lo_xyz, _ = box.xyz()
+        return Geometry(box.shape, self.spacing, self.index_to_world(lo_xyz), self.direction)
+
+    def volume(self, data: np.ndarray, **kwargs):
+        """A :class:`~.volume.Volume` of ``data`` (its shape must be ``shape``) on this grid;
+        ``kwargs`` (meta, ...) pass through (a ``space`` other than LPS would move it)."""
+        from .volume import Volume
+
+        data = np.asarray(data)
+        if tuple(data.shape) != self.shape:
+            raise VolwarpError(f"samples of shape {data.shape} do not fit a grid of shape "
+                               f"{self.shape}")
+        return Volume(data, spacing=self.spacing_array, origin=self.origin_array,
+                      direction=self.direction_array, **kwargs)
