@@ -15,11 +15,22 @@ normalised central-difference gradient of the geometry field (or of the
 opacity), a light over the viewer's shoulder, and ``shade = 1`` where the
 gradient vanishes. Empty 8^3 blocks are skipped whole.
 
-The camera looks at the centre of the volume's box from azimuth ``az``
-(about the world z axis; 0 looks along +y, 90 along -x) and elevation ``el``
-(above the xy plane), with world z up, and frames the box's bounding sphere.
-The volume is rendered in its own (index x spacing) frame: its direction
-matrix, if any, is not applied.
+The camera looks at the centre of the volume's box from the view's azimuth
+``az`` (in the x-y plane from +x towards +y: 0 looks from +x along -x, 90
+from +y along -y, -90 from -y along +y) and elevation ``el`` (above the x-y
+plane, towards +z), with world z up, and frames the box's bounding sphere:
+the same views as the surface renders (:func:`.surface.view_axes`), including
+the patient-named ones (``patient-left`` looks from +x, the patient's left
+in the LPS world frame).
+
+The volume is sampled in its own (index x spacing) frame. ``origin`` and
+``direction`` (orthonormal) place it in the world: the view and a given
+camera are world directions, turned into the volume's frame, so that
+``patient-left`` shows the patient's left whatever the scan's axis order.
+Left out, the volume's axes are taken as the world's (a sweep's grid).
+A saved camera (:mod:`.camera`) replaces the view and the framing, and
+``orientation_labels`` writes the picture's anatomical letters
+(:mod:`.orientation`).
 """
 
 from __future__ import annotations
@@ -27,6 +38,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VolwarpError
+from .camera import Camera, bounds_of, sees_any
+from .orientation import draw_orientation_labels, screen_letters
+from .surface import view_axes
 
 BLOCK = 8
 #: Largest picture (pixels) the ray caster makes.
@@ -39,8 +53,6 @@ def camera(view) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     The same camera directions as the surface renders: a sweep's picture and a
     mesh's picture of the same view show the same side.
     """
-    from .surface import view_axes
-
     right, up, back = view_axes(view)
     return -back, right, up
 
@@ -48,7 +60,9 @@ def camera(view) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None,
                   geometry: np.ndarray | None = None, spacing=(1.0, 1.0, 1.0),
                   view="iso", size=(512, 512), background=(0.0, 0.0, 0.0),
-                  step: float = 0.5, shading: bool = True, zoom: float = 1.0) -> np.ndarray:
+                  step: float = 0.5, shading: bool = True, zoom: float = 1.0,
+                  origin=None, direction=None, camera: Camera | None = None,
+                  orientation_labels: bool = False, return_camera: bool = False):
     """Ray-cast ``opacity[z, y, x]`` (values in [0, 1]) into an ``(H, W, 3)`` uint8 image.
 
     Parameters
@@ -59,29 +73,83 @@ def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None
         Red, green, blue in [0, 1]; white when omitted.
     geometry : (nz, ny, nx) array, optional
         Field whose gradient gives the shading normals (default: opacity).
-    spacing : (x, y, z) voxel size; view : (azimuth, elevation) degrees;
-    size : (width, height) pixels; step : sample distance in voxels.
+    spacing : (x, y, z) voxel size; view : a view name or (azimuth, elevation)
+    degrees; size : (width, height) pixels; step : sample distance in voxels;
+    zoom : magnification of the default framing (the box's bounding sphere).
+    origin : (x, y, z), optional
+        World position of the first voxel's centre (default 0): where a camera
+        is (its focal point is a world point).
+    direction : (3, 3) array, optional
+        Columns: the world directions of the index axes (a Volume's
+        ``direction``; orthonormal). Default: the identity.
+    camera : Camera, optional
+        A saved camera (:func:`.camera.read_camera`): replaces ``view``,
+        ``size`` and ``zoom``.
+    orientation_labels : bool
+        Write the anatomical letters of the picture's edges.
+    return_camera : bool
+        Return ``(image, camera)``: the camera used, for :func:`.camera.write_camera`.
 
     References
     ----------
     Winter & Chen, "Image-swept volumes", §5.1; Levoy, "Display of surfaces
     from volume data", 1988.
     """
-    from ..io.common import ensure_fits_in_memory
+    from ..memory import ensure_fits_in_memory
     from ._raycast_kernels import block_max, gradient, march
 
     if np.ndim(opacity) != 3:
         raise VolwarpError(f"opacity must be a 3-D array, got shape {np.shape(opacity)}")
-    # clipped opacity, its gradient (3 floats) and the geometry copy
-    ensure_fits_in_memory(int(np.size(opacity)) * 4 * 5, "volume render")
-    op = np.ascontiguousarray(np.clip(np.nan_to_num(opacity), 0.0, 1.0), dtype=np.float32)
-    w, h = (int(v) for v in size)
+    if step <= 0:
+        raise VolwarpError("step must be positive")
+    spacing = np.asarray(spacing, dtype=np.float64)
+    nz, ny, nx = np.shape(opacity)
+    ext = spacing * (np.array([nx, ny, nz]) - 1)
+    centre = 0.5 * ext  # box of voxel centres in the volume's own frame, min corner at 0
+    origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
+    if direction is not None:
+        direction = np.asarray(direction, dtype=np.float64)
+        if direction.shape != (3, 3) or not np.allclose(direction.T @ direction, np.eye(3),
+                                                       atol=1e-6):
+            raise VolwarpError("the ray caster needs an orthonormal 3x3 direction matrix (a "
+                               "sheared volume must be resampled first)")
+
+    def to_frame(v):  # a world direction in the volume's frame
+        return np.asarray(v, dtype=np.float64) if direction is None else direction.T @ v
+
+    def to_world(v):
+        return np.asarray(v, dtype=np.float64) if direction is None else direction @ v
+
+    if camera is None:
+        right_w, up_w, back_w = view_axes(view)
+        w, h = (int(v) for v in size)
+        radius = 0.5 * float(np.linalg.norm(ext)) + float(spacing.max())
+        half_h = radius / zoom
+    else:
+        right_w, up_w, back_w = (np.asarray(v, dtype=np.float64)
+                                 for v in (camera.right, camera.up, camera.back))
+        w, h = camera.size
+        half_h = camera.half_height
+        box = np.array([[a, b, c] for a in (0.0, ext[0]) for b in (0.0, ext[1])
+                        for c in (0.0, ext[2])])
+        if not sees_any(camera, np.array([to_world(q) for q in box]) + origin):
+            from ..progress import log
+
+            log.warning("the volume lies outside the camera's picture: the render is empty")
+        wanted = to_frame(np.asarray(camera.center, dtype=np.float64) - origin)
+        # the focal point of a camera made for this volume, back in its frame, differs from
+        # the box centre by rounding: use the centre itself (the same rays, the same picture)
+        if np.abs(wanted - centre).max() <= 1e-9 * (1.0 + float(np.abs(ext).max())):
+            radius = 0.5 * float(np.linalg.norm(ext)) + float(spacing.max())
+        else:
+            centre = wanted
+            radius = float(np.linalg.norm(box - centre, axis=1).max()) + float(spacing.max())
     if w < 1 or h < 1 or w * h > MAX_PIXELS:
         raise VolwarpError(f"image size must be at least 1x1 and at most {MAX_PIXELS} pixels, "
                            f"got {w}x{h}")
-    if step <= 0:
-        raise VolwarpError("step must be positive")
-    nz, ny, nx = op.shape
+    # clipped opacity, its gradient (3 floats) and the geometry copy
+    ensure_fits_in_memory(int(np.size(opacity)) * 4 * 5, "volume render")
+    op = np.ascontiguousarray(np.clip(np.nan_to_num(opacity), 0.0, 1.0), dtype=np.float32)
     if colour is None:
         col = tuple(np.ones((1, 1, 1), dtype=np.float32) for _ in range(3))
     else:
@@ -93,12 +161,8 @@ def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None
                                                            dtype=np.float32)
     grad = gradient(geo) if shading else np.zeros((1, 1, 1, 3), dtype=np.float32)
     bmax = block_max(op, BLOCK)
-    spacing = np.asarray(spacing, dtype=np.float64)
-    fwd, right, up = camera(view)
-    ext = spacing * (np.array([nx, ny, nz]) - 1)
-    centre = 0.5 * ext  # box of voxel centres in the volume's own frame, min corner at 0
-    radius = 0.5 * float(np.linalg.norm(ext)) + float(spacing.max())
-    half_h = radius / zoom
+    right, up = to_frame(right_w), to_frame(up_w)
+    fwd = -to_frame(back_w)
     half_w = half_h * w / h
     pix = 2.0 * half_h / h
     # lighting over the viewer's shoulder
@@ -111,4 +175,17 @@ def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None
     march(op, col[0], col[1], col[2], grad, bmax, BLOCK, spacing, centre, fwd, right, up, half_w, half_h, pix,
           radius, hstep, float(step), light, halfway, np.asarray(background, dtype=np.float32),
           bool(shading), img)
-    return np.rint(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
+    out = np.rint(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
+    if orientation_labels:
+        bg = np.clip(np.asarray(background, dtype=np.float64), 0.0, 1.0) * 255.0
+        draw_orientation_labels(out, screen_letters(up_w, -back_w), background=bg)
+    if not return_camera:
+        return out
+    if camera is None:
+        corners = np.array([[a, b, c] for a in (0.0, ext[0]) for b in (0.0, ext[1])
+                            for c in (0.0, ext[2])])
+        world = np.array([to_world(p) for p in corners]) + origin
+        camera = Camera(center=origin + to_world(centre), right=right_w, up=up_w, back=back_w,
+                        scale=h / (2.0 * half_h), size=(w, h), bounds=bounds_of(world),
+                        parallel_scale=half_h)
+    return out, camera

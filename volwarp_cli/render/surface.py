@@ -3,23 +3,49 @@
 A small z-buffer rasteriser (numba) with deferred Blinn-Phong shading,
 orthographic projection and 2x2 supersampling for anti-aliasing. It was
 chosen over VTK's OpenGL renderer through Mesa's software EGL because it
-needs no OpenGL library, no display and no GPU, gives the same bytes on
-every machine, and is faster here: one million triangles at 1024x768 take
-0.3-0.5 s, where pyvista through Mesa's software EGL took 7.5 s for its
-first render and 3.8 s for later ones on the same 2-core machine
-(``benchmarks/bench_mesh.py``).
+needs no OpenGL library, no display and no GPU, and gives the same bytes on
+every machine; it is also the faster of the two on this kind of machine (the
+README's Performance section has the figures, ``benchmarks/bench_mesh.py``
+measures them).
 
 Views
 -----
 The camera looks at the mesh's centre from the direction given by an
 azimuth (degrees, in the x-y plane from +x towards +y) and an elevation
 (degrees above the x-y plane, towards +z); world +z is up on the screen,
-except when looking straight down or up, where +y is up. Named views:
-``"x"`` (from +x, +y to the right), ``"y"`` (from +y, -x to the right),
-``"z"`` (azimuth -90, elevation 90: from +z, x to the right, y up) and ``"iso"`` (azimuth 45, elevation 35.26: from the (1, 1, 1)
-diagonal); ``"front"`` (from -y, x to the right), ``"back"``, ``"right"``
-(from +x), ``"left"``, ``"top"`` (as ``"z"``) and ``"bottom"``. The volume
-ray caster (:mod:`.raycast`) uses the same views.
+except when looking straight down or up, where the azimuth says which way is
+up (the limit of the z-up camera as the elevation reaches +-90).
+
+The world frame is LPS (+x the patient's left, +y posterior, +z superior),
+and the patient-named views say what the viewer sees:
+
+=================  ===============  ==========================================
+view               looks from       picture
+=================  ===============  ==========================================
+``patient-left``   +x (0, 0)        the patient's left side; anterior on the
+                                    left, superior up
+``patient-right``  -x (180, 0)      the right side; anterior on the right
+``anterior``       -y (-90, 0)      the face; the patient's left on the right
+``posterior``      +y (90, 0)       the back; the patient's left on the left
+``superior``       +z (90, 90)      from above the head; anterior up, the
+                                    patient's left on the left
+``inferior``       -z (-90, -90)    from the feet; anterior up, the patient's
+                                    left on the right (radiological)
+=================  ===============  ==========================================
+
+The axis names stay: ``"x"`` (from +x, +y to the right: as
+``patient-left``), ``"y"`` (from +y, -x to the right: as ``posterior``),
+``"z"`` (azimuth -90, elevation 90: from +z, x to the right, y up) and
+``"iso"`` (azimuth 45, elevation 35.26: from the (1, 1, 1) diagonal);
+``"front"`` (from -y: as ``anterior``), ``"back"`` (as ``posterior``),
+``"right"`` (from +x: the patient's *left* side of a scan), ``"left"`` (from
+-x), ``"top"`` (as ``"z"``: posterior up) and ``"bottom"`` (as
+``inferior``). The volume ray caster (:mod:`.raycast`) uses the same views.
+
+``orientation_labels=True`` writes the anatomical letters of the picture's
+edges (:mod:`.orientation`); ``return_camera=True`` also returns the
+:class:`~.camera.Camera` used, which :func:`.camera.write_camera` saves and
+``camera=`` reuses for an identical framing.
 
 Both sides of a triangle are drawn: the outer side in the mesh's colour,
 the inner side (visible through the opening of an open surface) darker.
@@ -29,13 +55,17 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import VolwarpError
-from ..io.common import ensure_fits_in_memory
+from ..memory import ensure_fits_in_memory
 from ..surface.mesh import Mesh, vertex_normals
+from .camera import Camera, sees_any
+from .orientation import draw_orientation_labels, screen_letters
+
+__all__ = ["Camera", "NAMED_VIEWS", "fit_camera", "parse_color", "parse_size", "parse_view",
+           "render_mesh", "render_turntable", "turntable_views", "view_axes"]
 
 DEFAULT_COLOR = (0.85, 0.80, 0.70)  # bone
 DEFAULT_BACKGROUND = (1.0, 1.0, 1.0)
@@ -43,7 +73,11 @@ ISO_ELEVATION = math.degrees(math.atan(1 / math.sqrt(2)))
 NAMED_VIEWS = {"x": (0.0, 0.0), "y": (90.0, 0.0), "z": (-90.0, 90.0), "iso": (45.0, ISO_ELEVATION),
                # from -y: the face, for LPS scans (y runs to the back of the head)
                "front": (-90.0, 0.0), "back": (90.0, 0.0), "right": (0.0, 0.0),
-               "left": (180.0, 0.0), "top": (-90.0, 90.0), "bottom": (-90.0, -90.0)}
+               "left": (180.0, 0.0), "top": (-90.0, 90.0), "bottom": (-90.0, -90.0),
+               # what the viewer sees, in the LPS world frame (see the module notes)
+               "patient-left": (0.0, 0.0), "patient-right": (180.0, 0.0),
+               "anterior": (-90.0, 0.0), "posterior": (90.0, 0.0),
+               "superior": (90.0, 90.0), "inferior": (-90.0, -90.0)}
 MAX_SIZE = 16384
 
 NAMED_COLORS = {
@@ -103,22 +137,29 @@ def parse_color(value) -> tuple[float, float, float]:
 
 
 def parse_view(value) -> tuple[float, float]:
-    """(azimuth, elevation) in degrees from ``iso|x|y|z``, ``"az,el"`` or a pair."""
+    """(azimuth, elevation) in degrees from a view name, ``"az,el"`` or a pair.
+
+    Names: ``patient-left``, ``patient-right``, ``anterior``, ``posterior``,
+    ``superior``, ``inferior`` (also with ``_``), ``iso``, ``x``, ``y``, ``z``,
+    ``front``, ``back``, ``left``, ``right``, ``top``, ``bottom`` (see the
+    module notes).
+    """
+    names = ", ".join(NAMED_VIEWS)
     if isinstance(value, str):
-        text = value.strip().lower()
+        text = value.strip().lower().replace("_", "-")
         if text in NAMED_VIEWS:
             return NAMED_VIEWS[text]
         parts = [p for p in re.split(r"[,\s]+", text) if p]
         try:
             az, el = (float(p) for p in parts)
         except ValueError:
-            raise VolwarpError(f"unknown view {value!r}: give {', '.join(NAMED_VIEWS)} or "
+            raise VolwarpError(f"unknown view {value!r}: give {names} or "
                                "AZIMUTH,ELEVATION in degrees") from None
     else:
         try:
             az, el = (float(v) for v in value)
         except (TypeError, ValueError):
-            raise VolwarpError(f"a view is one of {', '.join(NAMED_VIEWS)} or (azimuth, "
+            raise VolwarpError(f"a view is one of {names} or (azimuth, "
                                f"elevation), got {value!r}") from None
     if not (math.isfinite(az) and math.isfinite(el)) or not -90.0 <= el <= 90.0:
         raise VolwarpError(f"view elevation must be within -90..90 degrees, got {value!r}")
@@ -140,23 +181,6 @@ def parse_size(value) -> tuple[int, int]:
     if not (1 <= w <= MAX_SIZE and 1 <= h <= MAX_SIZE):
         raise VolwarpError(f"image size must be 1..{MAX_SIZE} pixels each way, got {w}x{h}")
     return w, h
-
-
-@dataclass
-class Camera:
-    """An orthographic camera.
-
-    ``right``, ``up`` and ``back`` are orthonormal world vectors (``back``
-    points from the scene towards the viewer); ``scale`` is output pixels per
-    world unit; ``center`` is the world point drawn at the image centre.
-    """
-
-    center: np.ndarray
-    right: np.ndarray
-    up: np.ndarray
-    back: np.ndarray
-    scale: float
-    size: tuple[int, int]
 
 
 def view_axes(view) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -214,7 +238,7 @@ def fit_camera(vertices: np.ndarray, view="iso", size=(800, 600), *, margin: flo
         scales.append(usable_h / extent_h)
     scale = min(scales) if scales else 1.0
     return Camera(np.asarray(center, dtype=np.float64), right, up, back, float(scale),
-                  (width, height))
+                  (width, height), bounds=np.stack([lo, hi], axis=1).ravel())
 
 
 def _render_kernel():
@@ -373,7 +397,8 @@ BACK_SIDE_SHADE = 0.55
 
 def render_mesh(mesh: Mesh, *, view="iso", size=(800, 600), color=None, background=None,
                 camera: Camera | None = None, supersample: int = 2,
-                face_colors=None) -> np.ndarray:
+                face_colors=None, orientation_labels: bool = False,
+                return_camera: bool = False):
     """Render ``mesh`` shaded, headless: an ``(H, W, 3)`` uint8 picture.
 
     Parameters
@@ -381,28 +406,41 @@ def render_mesh(mesh: Mesh, *, view="iso", size=(800, 600), color=None, backgrou
     mesh : Mesh
         World-coordinate triangles; vertex normals are computed when absent.
     view : str or (float, float)
-        ``"iso"``, ``"x"``, ``"y"``, ``"z"`` or (azimuth, elevation) in degrees.
+        A view name (``"patient-left"``, ``"anterior"``, ``"iso"``, ``"x"``, ...;
+        see the module notes) or (azimuth, elevation) in degrees.
     size : (int, int) or str
         (width, height) in pixels, or ``"WxH"``.
     color, background : str or (r, g, b), optional
         Surface and background colours (names, ``#rrggbb``, 0..1 triples).
     camera : Camera, optional
-        Overrides ``view`` and ``size`` (see :func:`fit_camera`).
+        Overrides ``view`` and ``size``: one from :func:`fit_camera`, or a
+        saved one (:func:`.camera.read_camera`), for pictures framed alike. A
+        warning says so when the mesh lies wholly outside its picture.
     supersample : int
         Samples per pixel along each axis (anti-aliasing), 1..4.
     face_colors : (F, 3) array, optional
         One colour per triangle (0..1 floats, or uint8), instead of ``color``:
         parts of a model in their own colours, drawn in one picture.
+    orientation_labels : bool
+        Write the anatomical letters (L/R, A/P, S/I of the LPS world frame) at
+        the picture's edges (:mod:`.orientation`).
+    return_camera : bool
+        Return ``(image, camera)``: the camera used (fitted or given), for
+        :func:`.camera.write_camera`.
 
     Returns
     -------
-    (H, W, 3) uint8
-        Write it with :func:`volwarp_cli.io.images.write_image`.
+    (H, W, 3) uint8, or (image, Camera) with ``return_camera``
+        Write the image with :func:`volwarp_cli.io.images.write_image`.
     """
     color = DEFAULT_COLOR if color is None else parse_color(color)
     background = DEFAULT_BACKGROUND if background is None else parse_color(background)
     if camera is None:
         camera = fit_camera(mesh.vertices, view, size)
+    elif not mesh.is_empty and not sees_any(camera, mesh.vertices):
+        from ..progress import log
+
+        log.warning("the mesh lies outside the camera's picture: the render is empty")
     width, height = camera.size
     ss = int(supersample)
     if not 1 <= ss <= 4:
@@ -425,18 +463,21 @@ def render_mesh(mesh: Mesh, *, view="iso", size=(800, 600), color=None, backgrou
     out = np.empty((height, width, 3), dtype=np.uint8)
     if mesh.is_empty:
         out[...] = np.rint(np.asarray(background) * 255.0).astype(np.uint8)
-        return out
-    normals = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices,
-                                                                          mesh.faces)
-    axes = np.stack([camera.right, camera.up, camera.back]).astype(np.float64)
-    if "draw" not in _KERNELS:
-        _KERNELS["draw"] = _render_kernel()
-    _KERNELS["draw"](mesh.vertices, np.ascontiguousarray(normals, dtype=np.float32),
-                     mesh.faces, np.asarray(camera.center, dtype=np.float64), axes,
-                     float(camera.scale), ss, _shading_table(),
-                     np.ascontiguousarray(face_colors, dtype=np.float64), BACK_SIDE_SHADE,
-                     np.asarray(background, dtype=np.float64), out)
-    return out
+    else:
+        normals = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices,
+                                                                              mesh.faces)
+        axes = np.stack([camera.right, camera.up, camera.back]).astype(np.float64)
+        if "draw" not in _KERNELS:
+            _KERNELS["draw"] = _render_kernel()
+        _KERNELS["draw"](mesh.vertices, np.ascontiguousarray(normals, dtype=np.float32),
+                         mesh.faces, np.asarray(camera.center, dtype=np.float64), axes,
+                         float(camera.scale), ss, _shading_table(),
+                         np.ascontiguousarray(face_colors, dtype=np.float64), BACK_SIDE_SHADE,
+                         np.asarray(background, dtype=np.float64), out)
+    if orientation_labels:
+        draw_orientation_labels(out, screen_letters(camera.up, -np.asarray(camera.back)),
+                                background=np.asarray(background) * 255.0)
+    return (out, camera) if return_camera else out
 
 
 def turntable_views(n: int, view="iso") -> list[tuple[float, float]]:
@@ -447,12 +488,38 @@ def turntable_views(n: int, view="iso") -> list[tuple[float, float]]:
     return [(az + 360.0 * k / n, el) for k in range(n)]
 
 
+def turntable_cameras(camera: Camera, n: int) -> list[Camera]:
+    """``n`` copies of ``camera`` turned about the vertical (world z) axis through its focal
+    point, by 360 k / n degrees (frame 0 is ``camera`` itself)."""
+    from dataclasses import replace
+
+    if n < 1:
+        raise VolwarpError(f"a turntable needs at least 1 view, got {n}")
+    cams = [camera]
+    for k in range(1, n):
+        a = math.radians(360.0 * k / n)
+        c, s = math.cos(a), math.sin(a)
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        cams.append(replace(camera, right=rot @ camera.right, up=rot @ camera.up,
+                            back=rot @ camera.back))
+    return cams
+
+
 def render_turntable(mesh: Mesh, n: int, *, view="iso", size=(800, 600), color=None,
-                     background=None) -> list[np.ndarray]:
-    """``n`` renders around the vertical (z) axis, all at the same scale."""
-    views = turntable_views(n, view)
-    images = []
-    for v in views:
-        cam = fit_camera(mesh.vertices, v, size, fit="sphere")
-        images.append(render_mesh(mesh, color=color, background=background, camera=cam))
-    return images
+                     background=None, camera: Camera | None = None,
+                     orientation_labels: bool = False, return_cameras: bool = False):
+    """``n`` renders around the vertical (z) axis, all at the same scale.
+
+    Without ``camera`` each frame fits the mesh's bounding sphere from its
+    view; with one (a saved camera) frame 0 is that camera and the others
+    turn it about the vertical axis through its focal point
+    (:func:`turntable_cameras`). ``orientation_labels`` as in
+    :func:`render_mesh`; ``return_cameras`` returns ``(images, cameras)``.
+    """
+    if camera is None:
+        cams = [fit_camera(mesh.vertices, v, size, fit="sphere") for v in turntable_views(n, view)]
+    else:
+        cams = turntable_cameras(camera, n)
+    images = [render_mesh(mesh, color=color, background=background, camera=cam,
+                          orientation_labels=orientation_labels) for cam in cams]
+    return (images, cams) if return_cameras else images
