@@ -14,7 +14,14 @@ import numpy as np
 
 from ..spec.functions import Function, parse_function, spec_error
 from .cvg import OPERATORS, resolve_ops
-from .frames import Frames, Secondary, SweepFunctions, compute_frames
+from .frames import (
+    Frames,
+    RotationMinimising,
+    Secondary,
+    SweepFunctions,
+    compute_frames,
+    prepare_frames,
+)
 from .templates import Template, TemplateLoader
 from .trajectory import Arc, Bezier, Line, Polyline, Segment
 from .voxelize import Grid
@@ -170,8 +177,8 @@ def _direction(doc, path, value, n_segments):
 
 
 def _up(doc, path, value, n_segments):
-    if value is None:
-        value = [0, 0, 1]
+    if value is None:  # the default: a rotation-minimising frame (see frames.py)
+        return RotationMinimising()
     if value == "binormal":
         return "binormal"
     if isinstance(value, dict) and "trajectory" in value:
@@ -229,6 +236,7 @@ def parse_sweep(doc, path: tuple, body: dict, loader: TemplateLoader) -> Sweep:
             scale=parse_function(sval, spath, doc, dim=2, name="scale"),
             direction_path=dpath, up_path=upath, doc=doc))
     ops = _ops(doc, path + ("combine",), body.get("combine"), list(templates))
+    prepare_frames(segments, functions)
     tau = body.get("tau")
     return Sweep(templates, segments, functions, ops,
                  None if tau is None else float(tau), path)
