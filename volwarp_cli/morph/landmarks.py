@@ -15,23 +15,45 @@ the side conditions ``sum w_i = 0`` and ``sum w_i p_i = 0`` (the affine part
 is then the least-bending one). With fewer than four landmarks, or all of them
 in one plane, the affine part cannot be determined and is reduced to a
 translation (``B = 0``): the warp still sends every ``p_i`` onto ``q_i``.
+
+The system is solved and evaluated by :class:`scipy.interpolate.RBFInterpolator`
+on the displacements ``q_i - p_i``. ``thin-plate`` is its ``linear`` kernel
+(``-r``: the same interpolant, the weights change sign; not its
+``thin_plate_spline``, ``r^2 log r``, which is the 2-D kernel and another
+warp), ``gaussian`` its ``gaussian`` kernel ``exp(-(epsilon r)^2)`` with
+``epsilon = 1 / (sigma sqrt 2)``; both with ``degree=1`` (the affine part) or
+``degree=0`` (the translation of the fallback above). This module keeps the
+argument checks, the fallback and the error wording.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.interpolate import RBFInterpolator
 
 from ..errors import VolwarpError
 
 KINDS = ("thin-plate", "gaussian")
 
+#: RBFInterpolator's name for each kind
+_KERNELS = {"thin-plate": "linear", "gaussian": "gaussian"}
 
-def _phi(r: np.ndarray, kind: str, sigma: float | None) -> np.ndarray:
-    if kind == "thin-plate":
-        return r
-    return np.exp(-(r * r) / (2.0 * sigma * sigma))
+
+def _epsilon(kind: str, sigma: float | None) -> float:
+    """RBFInterpolator's shape parameter: ``exp(-(eps r)^2) = exp(-r^2 / (2 sigma^2))``."""
+    if kind == "gaussian":
+        return 1.0 / (float(sigma) * np.sqrt(2.0))
+    return 1.0  # the linear kernel is scale-free: epsilon only rescales the weights
+
+
+def _degree(p: np.ndarray) -> int:
+    """1 (affine part) with four or more landmarks not in one plane, else 0 (translation)."""
+    n = len(p)
+    if n < 4:
+        return 0
+    return 1 if np.linalg.matrix_rank(p - p.mean(axis=0)) == 3 else 0
 
 
 @dataclass
@@ -39,10 +61,10 @@ class LandmarkWarp:
     """A fitted warp; call it on (N, 3) world points."""
 
     centers: np.ndarray  # (N, 3) the source landmarks p_i
-    weights: np.ndarray  # (N, 3)
-    affine: np.ndarray   # (4, 3): rows 1, x, y, z -> displacement
     kind: str
     sigma: float | None
+    degree: int  # 1: affine part, 0: translation only
+    interpolator: RBFInterpolator = field(repr=False)
 
     @classmethod
     def fit(cls, source, target, *, kind: str = "thin-plate", sigma: float | None = None
@@ -64,42 +86,26 @@ class LandmarkWarp:
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
             raise VolwarpError("landmarks must be finite")
         n = len(p)
-        dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)
-        if n > 1 and np.min(dist[~np.eye(n, dtype=bool)]) < 1e-9:
-            raise VolwarpError("two source landmarks coincide")
-        poly = np.hstack([np.ones((n, 1)), p])
-        if n < 4 or np.linalg.matrix_rank(poly - poly.mean(axis=0) * [0, 1, 1, 1]) < 4:
-            poly = poly[:, :1]  # translation only
-        m = poly.shape[1]
-        k = _phi(dist, kind, sigma)
-        system = np.zeros((n + m, n + m))
-        system[:n, :n] = k
-        system[:n, n:] = poly
-        system[n:, :n] = poly.T
-        rhs = np.zeros((n + m, 3))
-        rhs[:n] = q - p
+        if n > 1:
+            dist = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)
+            if np.min(dist[~np.eye(n, dtype=bool)]) < 1e-9:
+                raise VolwarpError("two source landmarks coincide")
+        degree = _degree(p)
         try:
-            sol = np.linalg.solve(system, rhs)
-        except np.linalg.LinAlgError:
+            interp = RBFInterpolator(p, q - p, kernel=_KERNELS[kind],
+                                     epsilon=_epsilon(kind, sigma), degree=degree)
+        except (np.linalg.LinAlgError, ValueError):
             raise VolwarpError("the landmark system is singular (landmarks too close or "
                                "degenerate)") from None
-        affine = np.zeros((4, 3))
-        affine[:m] = sol[n:]
-        return cls(p, sol[:n], affine, kind, sigma)
+        return cls(p, kind, sigma, degree, interp)
 
     def displacement(self, points) -> np.ndarray:
         """``W(x) - x`` for (..., 3) world points."""
         x = np.asarray(points, dtype=np.float64)
-        shape = x.shape
-        x = x.reshape(-1, 3)
-        out = np.empty_like(x)
-        chunk = max(1, 2_000_000 // max(len(self.centers), 1))
-        for s in range(0, len(x), chunk):
-            xs = x[s:s + chunk]
-            r = np.sqrt(((xs[:, None, :] - self.centers[None, :, :]) ** 2).sum(-1))
-            out[s:s + chunk] = (_phi(r, self.kind, self.sigma) @ self.weights
-                                + self.affine[0] + xs @ self.affine[1:])
-        return out.reshape(shape)
+        flat = x.reshape(-1, 3)
+        if flat.shape[0] == 0:
+            return np.zeros(x.shape)
+        return self.interpolator(flat).reshape(x.shape)
 
     def __call__(self, points) -> np.ndarray:
         x = np.asarray(points, dtype=np.float64)
