@@ -13,6 +13,14 @@ import sys
 
 
 def main() -> int:
+    # A command-line run, before numpy is imported: BLAS's own threads stay at one.
+    # volwarp's kernels take the cores with their own threads (--threads) and make no
+    # large dense products; OpenBLAS's threads, woken by the small products of the
+    # spline bases, would only spin beside them (about 5% of a warp's CPU) or, inside a
+    # cluster worker, oversubscribe it. A user's own setting wins. (Set here, for the
+    # command's process only: importing volwarp as a library changes no environment.)
+    for name in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
+        os.environ.setdefault(name, "1")
     from . import signals
 
     signals.install()

@@ -10,9 +10,10 @@ threads (a Dask worker's, a test's) each have their own, and :func:`run_blocks`
 hands it to the tasks it runs. Every kernel sums exact integers or writes
 disjoint blocks, so results do not depend on the count or the block sizes.
 
-Libraries with thread pools of their own are matched to the count:
-BLAS (threadpoolctl) and VTK's SMP tools by :func:`library_threads` around a
-command, numba's ``prange`` kernels by :func:`numba_threads` before each call.
+Libraries with thread pools of their own are matched to the count: VTK's
+SMP tools by :func:`library_threads` around a command (which also holds BLAS
+to one thread inside volwarp's), numba's ``prange`` kernels by
+:func:`numba_threads` before each call.
 """
 
 from __future__ import annotations
@@ -184,9 +185,14 @@ def run_blocks(task: Callable, blocks: Sequence | Iterable, n: int | None = None
 
 @contextlib.contextmanager
 def library_threads(n: int | None = None):
-    """Run the block inside with ``n`` threads (default :func:`threads`), BLAS's and VTK's too.
+    """Run the block inside with ``n`` threads (default :func:`threads`), VTK's too, and
+    BLAS held to one thread.
 
-    BLAS's pools (threadpoolctl) and VTK's SMP tools are process-wide (set here
+    VTK's SMP tools (the mesh filters) take ``n``. BLAS (through threadpoolctl)
+    gets one: volwarp's kernels already spread over the ``n`` threads and make
+    only small dense products, so BLAS threads inside them would oversubscribe
+    the cores (the command line also sets ``OPENBLAS_NUM_THREADS=1`` before
+    numpy loads, for libraries loaded later). Both are process-wide (set here
     and, for BLAS, put back after), which is why this wraps a command, not a
     kernel. numba's count is per calling thread and starting its pool costs
     ~50 ms, so the ``prange`` kernels' callers set it through
@@ -197,7 +203,7 @@ def library_threads(n: int | None = None):
     try:
         from threadpoolctl import threadpool_limits
 
-        restore = threadpool_limits(limits=n)
+        restore = threadpool_limits(limits=1, user_api="blas")
     except ImportError:  # pragma: no cover - a dependency
         pass
     smp = _vtk_smp()

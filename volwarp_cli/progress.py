@@ -8,18 +8,27 @@ terminal and ``--quiet`` was not given; step timings with ``--verbose``).
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import logging
 import sys
 import time
 
 log = logging.getLogger("volwarp")
 
-_settings = {"bars": False}
+#: Whether bars are drawn, per context: the command line's (set by :func:`configure`),
+#: not a process-wide setting a library caller or a Dask worker's threads would share.
+_bars: contextvars.ContextVar[bool] = contextvars.ContextVar("volwarp_progress_bars",
+                                                              default=False)
 
 
 def configure(verbosity: int) -> None:
-    """``verbosity``: -1 quiet, 0 default, 1 verbose (steps), 2 debug."""
-    _settings["bars"] = verbosity >= 0 and sys.stderr.isatty()
+    """``verbosity``: -1 quiet, 0 default, 1 verbose (steps), 2 debug.
+
+    Bars are switched on for the calling context (the command line's thread
+    and the tasks :func:`volwarp_cli.parallel.run_blocks` runs for it); the
+    level is the ``volwarp`` logger's, which a caller may set as it likes.
+    """
+    _bars.set(verbosity >= 0 and sys.stderr.isatty())
     level = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(verbosity, logging.DEBUG)
     log.setLevel(level)
     if not log.handlers:
@@ -56,7 +65,7 @@ class Progress:
         self.total = max(int(total), 1)
         self.label = label
         self.done = 0
-        self.enabled = _settings["bars"]
+        self.enabled = _bars.get()
         self._start = time.perf_counter()
         self._last_draw = 0.0
 

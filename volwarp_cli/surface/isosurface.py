@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import parallel
 from ..errors import VolwarpError
 from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
@@ -28,11 +29,12 @@ INSIDE_CHOICES = ("above", "below")
 
 
 def _use_threads() -> None:
-    """Run VTK's SMP filters on all cores (the wheel defaults to one thread)."""
+    """Run VTK's SMP filters on the threads in effect (the wheel defaults to one thread)."""
     from vtkmodules.vtkCommonCore import vtkSMPTools
 
     if vtkSMPTools.GetBackend() != "STDThread":
         vtkSMPTools.SetBackend("STDThread")
+    vtkSMPTools.Initialize(parallel.threads())
 
 
 def default_iso(data: np.ndarray) -> float:
