@@ -152,14 +152,25 @@ def test_batch_shares_the_threads_among_its_scans():
         assert child_threads(4) == 1
 
 
-def test_blas_and_vtk_follow_the_count():
+def test_blas_held_to_one_thread_and_vtk_follows_the_count():
+    """Inside a command BLAS runs one thread (volwarp's own threads take the cores) and VTK's
+    SMP tools take the count; BLAS's own setting comes back after."""
     import vtkmodules.vtkCommonCore as vc
     from threadpoolctl import threadpool_info
 
-    with parallel.library_threads(1):
-        assert all(p["num_threads"] == 1 for p in threadpool_info())
-        if vc.vtkSMPTools.GetBackend() != "Sequential":
-            assert vc.vtkSMPTools.GetEstimatedNumberOfThreads() == 1
+    from volwarp_cli.surface import isosurface
+
+    def blas():
+        return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+    before = blas()
+    assert before  # numpy's BLAS is loaded
+    with parallel.library_threads(3):
+        assert set(blas()) == {1}
+        isosurface._use_threads()  # what the mesh filters call first
+        assert vc.vtkSMPTools.GetBackend() == "STDThread"
+        assert vc.vtkSMPTools.GetEstimatedNumberOfThreads() == 3
+    assert blas() == before
     done = []
     t = threading.Thread(target=lambda: done.append(parallel.threads()))
     t.start()
