@@ -3,6 +3,7 @@ on inputs large enough that the work is split over the threads."""
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
@@ -165,11 +166,12 @@ def test_blas_held_to_one_thread_and_vtk_follows_the_count():
 
     before = blas()
     assert before  # numpy's BLAS is loaded
-    with parallel.library_threads(3):
-        assert set(blas()) == {1}
-        isosurface._use_threads()  # what the mesh filters call first
-        assert vc.vtkSMPTools.GetBackend() == "STDThread"
-        assert vc.vtkSMPTools.GetEstimatedNumberOfThreads() == 3
+    for n in (1, 2):  # (VTK's STDThread caps the count at the machine's cores)
+        with parallel.library_threads(n):
+            assert set(blas()) == {1}
+            isosurface._use_threads()  # what the mesh filters call first
+            assert vc.vtkSMPTools.GetBackend() == "STDThread"
+            assert vc.vtkSMPTools.GetEstimatedNumberOfThreads() == min(n, os.cpu_count())
     assert blas() == before
     done = []
     t = threading.Thread(target=lambda: done.append(parallel.threads()))
