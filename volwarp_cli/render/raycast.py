@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import parallel
 from ..errors import VolwarpError
 from .camera import Camera, bounds_of, sees_any
 from .orientation import draw_orientation_labels, screen_letters
@@ -97,6 +98,8 @@ def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None
     """
     from ..memory import ensure_fits_in_memory
     from ._raycast_kernels import block_max, gradient, march
+
+    parallel.numba_threads()
 
     if np.ndim(opacity) != 3:
         raise VolwarpError(f"opacity must be a 3-D array, got shape {np.shape(opacity)}")
