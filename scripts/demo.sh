@@ -46,7 +46,7 @@ volwarp mesh "$DEMO/head_sdf.nrrd" --iso 0 --inside below --cap --largest-compon
 step "morph: the head into the Colin27 brain, 5 frames, meshes and a contact sheet"
 volwarp morph --spec specs/morph-head-brain.yaml -o "$DEMO/morph_{i:02d}.nrrd" \
   --mesh-to "$DEMO/morph_{i:02d}.ply" --render-to "$DEMO/morph_{i:02d}.png" \
-  --sheet "$DEMO/morph_sheet.png" --size 320x320
+  --sheet "$DEMO/morph_sheet.png" --render-size 320x320
 
 step "sweep: a milk bottle by rotational sweep (Winter & Chen Fig. 1)"
 mkdir -p "$DEMO/sweep"

@@ -22,10 +22,25 @@ VOLWARP = [sys.executable, "-m", "volwarp_cli"]
 
 
 def test_help_lists_every_subcommand(run):
+    """`volwarp --help` lists every subcommand of main.COMMANDS, and each one's module
+    imports and gives its own --help (the group loads them lazily: listing them imports
+    none). tests/test_cli_help.py checks each help's examples."""
+    import importlib
+
+    from volwarp_cli.cli.main import COMMANDS
+
     res = run("--help")
     assert res.code == 0
     for name in ("capture", "warp", "morph", "sweep", "distance", "mesh", "info", "convert"):
         assert f"\n  {name} " in res.stdout
+    for name, module in COMMANDS.items():
+        assert f"\n  {name} " in res.stdout
+        command = importlib.import_module(f"volwarp_cli.cli.{module}").command
+        assert command.name == name
+        sub = run(name, "--help")
+        assert sub.code == 0, (name, sub.stderr)
+        assert "Examples:" in sub.stdout and f"volwarp {name} " in sub.stdout.rsplit(
+            "Examples:", 1)[1], name
 
 
 def test_version(run):
@@ -44,7 +59,7 @@ def test_command_line_runs_exit_quietly(data_dir, tmp_path):
     at shutdown: no library's leak report after a render, nothing after a distance."""
     ball = data_dir / "ball_30_uint8.nrrd"
     for args in (["mesh", ball, "-o", tmp_path / "b.ply", "--render", tmp_path / "b.png",
-                  "--size", "64x64"],
+                  "--render-size", "64x64"],
                  ["distance", ball, "-o", tmp_path / "d.nrrd", "--iso", "127"]):
         out = subprocess.run(VOLWARP + [str(a) for a in args], capture_output=True, text=True)
         assert out.returncode == 0, out.stderr

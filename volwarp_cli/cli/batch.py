@@ -10,7 +10,7 @@ import re
 
 import click
 
-from .options import INPUT_PATH, common_options
+from .options import INPUT_PATH, common_options, examples
 
 
 def _shard(ctx, param, value):
@@ -23,7 +23,10 @@ def _shard(ctx, param, value):
     return int(m.group(1)), int(m.group(2))
 
 
-@click.command(name="batch")
+@click.command(name="batch", epilog=examples(
+    "volwarp batch scans.yaml --jobs 4 --report-json report.json",
+    "volwarp batch scans.yaml --shard 0/8 --retries 1",
+))
 @click.argument("manifest", type=INPUT_PATH)
 @click.option("-j", "--jobs", type=click.IntRange(min=1), default=None, metavar="N",
               help="Scans processed at once (default: the CPUs this process may use).")

@@ -7,7 +7,7 @@ import click
 from ..io import check_output_path
 from ..progress import timed
 from .common import load_input
-from .options import INPUT_PATH, common_options, finite, input_options, output_option
+from .options import INPUT_PATH, common_options, examples, finite, input_options, output_option
 
 
 class LatticeOption(click.Option):
@@ -50,31 +50,46 @@ def _lattice(ctx, param, value):
 def lattice_option(default="9"):
     return click.option("--lattice", cls=LatticeOption, default=default, callback=_lattice,
                         metavar="N | NX NY NZ", show_default=True,
-                        help="Control points per axis (x y z), at least 4 each.")
+                        help="Control points per axis: one count for all three, or x y z; at "
+                             "least 4 each (6 with --placement tripled). N points make N-3 "
+                             "regions per axis and each point moves the 4 regions around it: "
+                             "more points, more local moves (9: a point reaches about 2/3 of "
+                             "the volume along each axis).")
 
 
-@click.command(name="capture")
+@click.command(name="capture", epilog=examples(
+    "volwarp capture head.nrrd -o head.vwc --lattice 9 --oversample 2",
+    "volwarp capture block.nrrd -o block.vwc --lattice 9 7 9 --placement tripled",
+))
 @click.argument("input", type=INPUT_PATH)
 @output_option("Capture file to write (.vwc).", volume=False)
 @lattice_option()
 @click.option("--placement", type=click.Choice(["uniform", "tripled"]), default="uniform",
               show_default=True,
-              help="Capture lattice: evenly spaced, an affine map (thesis 5.5), or the first "
-                   "and last points tripled (paper 7).")
+              help="Where the capture lattice's points go. uniform: evenly spaced, an exactly "
+                   "affine capture map (thesis 5.5); with an integer --oversample every domain "
+                   "voxel is a whole fraction of an input voxel, so an unmoved warp returns "
+                   "the input exactly. tripled: the papers' placement (paper 7), the first and "
+                   "last points tripled so that the lattice ends on the volume's faces; the "
+                   "grids are not aligned and even an unmoved warp resamples.")
 @click.option("--oversample", type=click.FloatRange(min=0, min_open=True, max=16),
               callback=finite,
               default=2.0, show_default=True,
-              help="Domain voxels per input voxel: granularity G = ceil(oversample * I / R); "
-                   "an integer one (uniform placement) makes each domain voxel an exact "
+              help="Domain voxels per input voxel along each axis (granularity G = "
+                   "ceil(oversample * I / R) for I input voxels and R regions): more gives "
+                   "smoother warps of stretched parts, at oversample^3 the memory and time. "
+                   "An integer one (uniform placement) makes each domain voxel an exact "
                    "1/oversample of an input voxel, so what a warp leaves unmoved stays exact.")
 @click.option("--pad", type=click.IntRange(min=0), default=None,
-              help="Target padding (voxels per side) for later warps that do not set one "
-                   "[default: each warp's largest displacement + 1].")
+              help="Output padding in voxels per side, room for material moved past the "
+                   "input's box, for later warps whose spec sets none [default: each warp's "
+                   "largest displacement + 1]; material moved beyond it is cut off.")
 @click.option("--sampling", type=click.Choice(["linear", "nearest"]), default="linear",
               show_default=True,
-              help="Pullback sampling: trilinear, or the paper's rounding (at an integer "
-                   "--oversample with the uniform placement, both give each domain voxel the "
-                   "value of the input voxel it lies in).")
+              help="How each domain voxel takes its value from the input (the pullback): "
+                   "linear (trilinear interpolation) or nearest (the paper's rounding). At an "
+                   "integer --oversample with the uniform placement both give each domain "
+                   "voxel the value of the input voxel it lies in.")
 @input_options
 @common_options
 def command(input, output, lattice, placement, oversample, pad, sampling, raw, volume_index,

@@ -7,10 +7,20 @@ import click
 from ..io import check_output_path, write_volume
 from ..progress import timed
 from .common import load_input
-from .options import INPUT_PATH, common_options, input_options, output_option, write_options
+from .options import (
+    INPUT_PATH,
+    common_options,
+    examples,
+    input_options,
+    output_option,
+    write_options,
+)
 
 
-@click.command(name="convert")
+@click.command(name="convert", epilog=examples(
+    "volwarp convert ct_series/ -o ct.nrrd --compress",
+    "volwarp convert scan.raw --raw-shape 256 256 128 --raw-dtype int16 -o scan.nii.gz",
+))
 @click.argument("input", type=INPUT_PATH)
 @output_option()
 @write_options

@@ -16,12 +16,22 @@ import click
 from ..io import check_output_path, write_volume
 from ..progress import log, timed
 from .common import load_input, stamp
-from .options import INPUT_PATH, common_options, input_options, output_option, write_options
+from .options import (
+    INPUT_PATH,
+    common_options,
+    examples,
+    input_options,
+    output_option,
+    write_options,
+)
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
 
-@click.command(name="distance")
+@click.command(name="distance", epilog=examples(
+    "volwarp distance head.nrrd -o head_sdf.nrrd --iso 40",
+    "volwarp distance --update head_sdf.nrrd --transform turn.yaml -o turned_sdf.nrrd",
+))
 @click.argument("input", required=False, type=INPUT_PATH)
 @output_option("Output distance field (float32 by default; format by extension).")
 @click.option("--iso", type=float, default=None, metavar="V",

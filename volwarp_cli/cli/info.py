@@ -8,7 +8,7 @@ import click
 
 from ..io import volume_format
 from .common import describe_volume, load_input
-from .options import INPUT_PATH, common_options, input_options
+from .options import INPUT_PATH, common_options, examples, input_options
 
 
 def _format_text(d: dict) -> str:
@@ -48,7 +48,10 @@ def _format_text(d: dict) -> str:
     return "\n".join(lines)
 
 
-@click.command(name="info")
+@click.command(name="info", epilog=examples(
+    "volwarp info head.nii.gz",
+    "volwarp info ct_series/ --series 2 --json",
+))
 @click.argument("file", type=INPUT_PATH)
 @click.option("--json", "as_json", is_flag=True,
               help="Print one JSON object (stable keys: format shape dtype spacing origin "

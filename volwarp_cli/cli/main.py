@@ -155,7 +155,9 @@ class VolwarpGroup(click.Group):
                          "(run with --debug for a traceback)", 1)
 
 
-@click.group(cls=VolwarpGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=VolwarpGroup, context_settings={"help_option_names": ["-h", "--help"]},
+             epilog="'volwarp COMMAND --help' lists a command's options and ends with "
+                    "example command lines.")
 @click.version_option(__version__, "-V", "--version", prog_name="volwarp")
 @click.option("--debug", is_flag=True, help="Show a traceback on errors.")
 def cli(debug):

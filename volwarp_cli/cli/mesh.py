@@ -1,4 +1,8 @@
-"""`volwarp mesh`: isosurface a volume to a mesh file, measure it, render it to PNG."""
+"""`volwarp mesh`: isosurface a volume to a mesh file, measure it, render it to PNG.
+
+The surface comes from :mod:`volwarp_cli.surface.pipeline`; this module parses,
+reads, calls and writes.
+"""
 
 from __future__ import annotations
 
@@ -7,17 +11,18 @@ from pathlib import Path
 
 import click
 
-from ..errors import VolwarpError
 from .common import load_input
 from .options import (
     INPUT_PATH,
     VIEW_HELP,
     common_options,
     core_parser,
+    examples,
     input_options,
+    option,
     parse_color,
-    parse_size,
     parse_view,
+    render_size_option,
 )
 
 
@@ -58,10 +63,14 @@ def _format_stats(d: dict) -> str:
     ])
 
 
-@click.command(name="mesh")
+@click.command(name="mesh", epilog=examples(
+    "volwarp mesh head.nrrd --iso 40 -o head.ply --render head.png --view front --stats",
+    "volwarp mesh seg.nii.gz --labels -o 'seg_{label}.ply' --smooth 20 --json",
+))
 @click.argument("input", type=INPUT_PATH)
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
-              callback=core_parser(mesh_path), help="Mesh file: .ply .stl .obj .vtp .vtk (binary where the format has it). "
+              callback=core_parser(mesh_path),
+              help="Mesh file: .ply .stl .obj .vtp .vtk (binary where the format has it). "
                    "May be left out when --render or --stats is given.")
 @click.option("--iso", type=float, default=None,
               help="Isosurface level (default: the middle of the value range).")
@@ -88,12 +97,12 @@ def _format_stats(d: dict) -> str:
               help="Also render the surface, shaded, to this image.")
 @click.option("--view", default="iso", show_default=True, callback=core_parser(parse_view),
               help=VIEW_HELP)
-@click.option("--size", default="800x600", show_default=True, callback=core_parser(parse_size),
-              metavar="WxH", help="Render size in pixels.")
+@render_size_option()
 @click.option("--color", default=None, callback=core_parser(parse_color),
               help="Surface colour: a name, #rrggbb or r,g,b (default: bone).")
-@click.option("--background", default=None, callback=core_parser(parse_color),
-              help="Background colour (default: white).")
+@option("--background-color", "background_color", was="--background", default=None,
+        callback=core_parser(parse_color),
+        help="Background colour of the render: a name, #rrggbb or r,g,b (default: white).")
 @click.option("--turntable", type=click.IntRange(min=1, max=360), default=None, metavar="N",
               help="Render N views around the vertical axis, starting at --view, written as "
                    "OUT-000.png ... next to --render's name.")
@@ -111,8 +120,8 @@ def _format_stats(d: dict) -> str:
 @input_options
 @common_options
 def command(input, output, iso, inside, cap, smooth, decimate, largest_component, allow_empty,
-            render, view, size, color, background, turntable, label, labels, show_stats,
-            as_json, raw, volume_index, dicom):
+            render, view, render_size, color, background_color, turntable, label, labels,
+            show_stats, as_json, raw, volume_index, dicom):
     """Isosurface INPUT at level --iso and write it to OUTPUT (world coordinates).
 
     Triangles are wound counter-clockwise seen from outside and normals point
@@ -124,6 +133,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
     from ..io.atomic import check_output_path
     from ..progress import log, timed
     from ..surface.mesh_io import check_mesh_output
+    from ..surface.pipeline import Cleanup, label_indicator, surface_mesh
 
     if output is None and render is None and not (show_stats or as_json):
         raise click.UsageError("nothing to do: give -o/--output, --render or --stats")
@@ -146,15 +156,15 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         check_output_path(render)
 
     vol = load_input(input, raw, volume_index, dicom=dicom)
+    cleanup = Cleanup(largest_component=largest_component, smooth=smooth, decimate=decimate)
 
     if labels:
-        _mesh_labels(vol, input, output, smooth, decimate, largest_component, allow_empty,
-                     show_stats or as_json, as_json)
+        _mesh_labels(vol, input, output, cleanup, allow_empty, show_stats or as_json, as_json)
         return
     if label is not None:
-        vol, iso, inside, cap = _label_indicator(vol, input, label), 0.5, "above", True
-    mesh, iso = _surface(vol, input, iso, inside, cap, allow_empty, largest_component, smooth,
-                         decimate)
+        vol, iso, inside, cap = label_indicator(vol, label, name=input), 0.5, "above", True
+    mesh, iso = surface_mesh(vol, iso, inside=inside, cap=cap, allow_empty=allow_empty,
+                             cleanup=cleanup, name=input)
     log.info("mesh: %d vertices, %d triangles", mesh.n_vertices, mesh.n_faces)
 
     if output is not None:
@@ -179,99 +189,25 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         from ..render import surface as rs
         if turntable is None:
             with timed(f"render {render}"):
-                image = rs.render_mesh(mesh, view=view, size=size, color=color,
-                                       background=background)
+                image = rs.render_mesh(mesh, view=view, size=render_size, color=color,
+                                       background=background_color)
                 write_image(render, image)
         else:
             paths = turntable_paths(render, turntable)
             with timed(f"render {turntable} turntable views"):
-                images = rs.render_turntable(mesh, turntable, view=view, size=size,
-                                             color=color, background=background)
+                images = rs.render_turntable(mesh, turntable, view=view, size=render_size,
+                                             color=color, background=background_color)
                 for path, image in zip(paths, images, strict=True):
                     write_image(path, image)
 
 
-def _surface(vol, input, iso, inside, cap, allow_empty, largest_component, smooth, decimate):
-    """The isosurface of ``vol`` at ``iso`` after the optional clean-ups; ``(mesh, iso)``."""
-    import numpy as np
-
-    from ..progress import log, timed
-    from ..surface.isosurface import default_iso, isosurface, touches_border
-
-    lo, hi = float(np.min(vol.data)), float(np.max(vol.data))  # NaN if any sample is NaN
-    if np.isnan(lo) or np.isnan(hi):
-        raise VolwarpError(f"{input}: the volume contains NaN samples; an isosurface is not "
-                           "defined there")
-    if iso is None:
-        iso = default_iso(vol.data)
-        log.info("iso level not given: using the middle of the value range, %g", iso)
-    empty_reason = None
-    if not lo <= iso <= hi:
-        empty_reason = f"iso level {iso:g} is outside the data range [{lo:g}, {hi:g}] of {input}"
-        from ..surface.mesh import Mesh
-        mesh = Mesh.empty()
-    else:
-        mesh = isosurface(vol, iso, inside=inside, cap=cap)
-        if mesh.is_empty:
-            empty_reason = f"no surface at level {iso:g} in {input} (the level is never crossed)"
-        elif not cap and touches_border(vol.data, iso, inside):
-            log.warning("the shape touches the volume's border, where its surface is open "
-                        "(use --cap to close it)")
-    if empty_reason:
-        if not allow_empty:
-            raise VolwarpError(f"{empty_reason}; nothing written (--allow-empty writes an "
-                               "empty mesh)")
-        log.warning("%s: the mesh is empty", empty_reason)
-
-    from ..surface import ops
-
-    if largest_component and not mesh.is_empty:
-        with timed("largest component"):
-            mesh = ops.largest_component(mesh)
-    if smooth:
-        with timed(f"smooth ({smooth} iterations)"):
-            mesh = ops.smooth(mesh, smooth)
-    if decimate:
-        with timed(f"decimate ({decimate:g})"):
-            mesh = ops.decimate(mesh, decimate)
-    return mesh, iso
-
-
-def _check_labels(vol, input, what):
-    import numpy as np
-
-    if np.dtype(vol.dtype).kind not in "iu":
-        raise VolwarpError(f"{input}: {what} needs a label map (integer samples), got {vol.dtype}")
-
-
-def _label_indicator(vol, input, label):
-    """The indicator of ``label`` (1 inside, 0 elsewhere), float32, same geometry."""
-    import numpy as np
-
-    _check_labels(vol, input, "--label")
-    ind = vol.data == label
-    if not ind.any():
-        raise VolwarpError(f"{input}: label {label} does not occur in the volume")
-    return vol.with_data(ind.astype(np.float32))
-
-
-def _mesh_labels(vol, input, output, smooth, decimate, largest_component, allow_empty,
-                 show_stats, as_json):
+def _mesh_labels(vol, input, output, cleanup, allow_empty, show_stats, as_json):
     """``mesh --labels``: one mesh per non-zero label, to ``output.format(label=L)``."""
-    import numpy as np
+    from ..progress import timed
+    from ..surface.pipeline import label_meshes
 
-    from ..progress import log, timed
-
-    _check_labels(vol, input, "--labels")
-    values = [int(v) for v in np.unique(vol.data) if v != 0]
-    if not values:
-        raise VolwarpError(f"{input}: no label other than 0 in the volume")
-    log.info("%d labels: %s", len(values), " ".join(map(str, values[:20])))
     all_stats = {}
-    for label in values:
-        ind = _label_indicator(vol, input, label)
-        mesh, _ = _surface(ind, f"{input} label {label}", 0.5, "above", True, allow_empty,
-                           largest_component, smooth, decimate)
+    for label, mesh in label_meshes(vol, allow_empty=allow_empty, cleanup=cleanup, name=input):
         if output is not None:
             from ..surface.mesh_io import write_mesh
             from .common import provenance

@@ -5,7 +5,9 @@
     volwarp morph SOURCE TARGET --frames N --iso V -o PATTERN [--inside ...] [--metric ...]
 
 Patterns are Python format strings with ``{i}`` (frame number) and ``{t}``
-(its time), e.g. ``frame_{i:03d}.nrrd`` or ``m_{t:.2f}.nrrd``.
+(its time), e.g. ``frame_{i:03d}.nrrd`` or ``m_{t:.2f}.nrrd``. The frames
+come from :func:`volwarp_cli.morph.frames.morph_frames`; this module parses,
+reads, calls and writes.
 """
 
 from __future__ import annotations
@@ -15,9 +17,19 @@ from pathlib import Path
 import click
 
 from ..errors import VolwarpError
-from ..progress import log, progress, timed
+from ..progress import log, timed
 from .mesh import image_path, mesh_path
-from .options import INPUT_PATH, VIEW_HELP, common_options, core_parser, parse_size, parse_view
+from .options import (
+    INPUT_PATH,
+    VIEW_HELP,
+    common_options,
+    core_parser,
+    examples,
+    output_option,
+    parse_view,
+    render_size_option,
+    write_options,
+)
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
@@ -68,12 +80,16 @@ def _attribute_name(frame_path: str, name: str) -> str:
     return str(p.with_name(f"{stem}_{name}{suffix}"))
 
 
-@click.command(name="morph")
+@click.command(name="morph", epilog=examples(
+    "volwarp morph ball.nrrd torus.nrrd --frames 9 --iso 0.5 -o 'frame_{i:02d}.nrrd'",
+    "volwarp morph --spec morph.yaml -o 'f_{i:03d}.nrrd' --render-to 'f_{i:03d}.png' "
+    "--sheet sheet.png",
+))
 @click.argument("shapes", nargs=-1, type=INPUT_PATH, metavar="[SOURCE TARGET]")
 @click.option("--spec", "spec_path", type=INPUT_PATH, default=None,
               help="Morph spec (YAML, see specs/morph.schema.json).")
-@click.option("-o", "--output", required=True, callback=_pattern_check("volume"),
-              help="Frame file pattern, e.g. 'frame_{i:03d}.nrrd' ({i} frame number, {t} time).")
+@output_option("Frame file pattern, e.g. 'frame_{i:03d}.nrrd' ({i} frame number, {t} time); "
+               "format by extension.", callback=_pattern_check("volume"))
 @click.option("--mesh-to", default=None, callback=_pattern_check("mesh"),
               help="Also write each frame's surface: pattern with a mesh extension "
                    "(.ply .stl .obj .vtp .vtk).")
@@ -96,22 +112,20 @@ def _attribute_name(frame_path: str, name: str) -> str:
               default=None, help="Short form: the frame grid when the inputs' grids differ.")
 @click.option("--density", "as_density", is_flag=True,
               help="Short form: write a 0..1 occupancy (0.5 on the surface) instead of the SDF.")
-@click.option("--size", default="640x480", show_default=True,
-              callback=core_parser(parse_size),
-              help="Render size WxH for --render-to.")
+@render_size_option(help_text="Render size in pixels, for --render-to.")
 @click.option("--view", default="iso", show_default=True,
               callback=core_parser(parse_view), help=VIEW_HELP)
-@click.option("--compress/--no-compress", default=False, show_default=True,
-              help="gzip NRRD frame data.")
+@write_options
 @common_options
 def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, times, iso, inside,
-            metric, grid_choice, as_density, size, view, compress):
+            metric, grid_choice, as_density, render_size, view, dtype, compress, byte_order):
     """Morph SOURCE into TARGET: frame t is the zero level set of (1-t) d_source + t d_target.
 
     Give a --spec, or SOURCE TARGET with --frames (or --times) and --iso.
     Frames are float32 signed distance fields (negative inside), or a 0..1
-    occupancy with --density / output: density. Source and target on
-    different grids need an alignment or a grid (spec 'grid', --grid).
+    occupancy with --density / output: density (--dtype converts them; a
+    spec's attributes keep their own types). Source and target on different
+    grids need an alignment or a grid (spec 'grid', --grid).
     """
     from ..morph.spec import MorphJob, ShapeRef
 
@@ -154,16 +168,16 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
                        grid=grid_choice)
     if sheet_path is not None and render_to is None:
         raise click.UsageError("--sheet needs --render-to")
-    _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec_path)
+    _run(job, output, mesh_to, render_to, sheet_path, render_size, view, spec_path,
+         dict(dtype=dtype, compress=compress, byte_order=byte_order))
 
 
-def _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec_path):
-    import numpy as np
-
+def _run(job, output, mesh_to, render_to, sheet_path, size, view, spec_path, write_kw):
     from ..io import check_output_path, read_volume, write_volume
+    from ..morph.frames import RenderSettings, morph_frames
     from ..morph.grid import GridError
-    from ..morph.interpolate import density, occupancy_to_range
     from ..morph.pipeline import prepare
+    from .common import provenance
 
     frame_paths = _expand(output, job.times, "-o")
     mesh_paths = _expand(mesh_to, job.times, "--mesh-to") if mesh_to else None
@@ -197,74 +211,32 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, compress, spec
         from ..errors import SpecError
 
         raise SpecError(str(exc), file=str(spec_path), key=".".join(exc.key)) from None
-    grid = prep.grid
-    width = job.density_width or float(min(grid.spacing))
-    from .common import provenance
-
-    meta_base = {"volwarp_morph": f"metric={job.metric} output={job.output}",
-                 **provenance("morph", [job.source.path, job.target.path], spec_path)}
-    camera = None
+    meta = {"volwarp_morph": f"metric={job.metric} output={job.output}",
+            **provenance("morph", [job.source.path, job.target.path], spec_path)}
+    render = RenderSettings(view, size) if render_paths else None
+    attr_kw = {k: v for k, v in write_kw.items() if k != "dtype"}  # their own types
     renders = []
-    with progress(len(job.times), "morph frames") as bar:
-        buf = np.empty(grid.shape_zyx, np.float32)
-        for i, t in enumerate(job.times):
-            field = prep.morph.field(t, out=buf)
-            if job.output == "density":
-                data = density(field, width)
-                if job.density_range == "source":
-                    lo = float(np.nanmin(source.data))
-                    hi = float(np.nanmax(source.data))
-                    data = occupancy_to_range(data, lo, job.source.iso, hi, job.source.inside,
-                                              source.data.dtype)
-            else:
-                data = field
-            meta = dict(meta_base, volwarp_morph_t=f"{t:.9g}")
-            write_volume(grid.volume(data, meta), frame_paths[i], compress=compress)
-            for a in job.attributes:
-                va, vb = prep.attributes[a.name]
-                dtype = a.dtype or np.dtype(attrs[a.name][0].data.dtype).name
-                vol = grid.volume(prep.morph.attribute(t, va, vb), dict(meta))
-                write_volume(vol, _attribute_name(frame_paths[i], a.name), dtype=dtype,
-                             compress=compress)
-            if mesh_paths or render_paths:
-                from ..surface.isosurface import isosurface
+    for frame in morph_frames(job, prep, source, attrs, meta=meta, meshes=bool(mesh_paths),
+                              render=render):
+        i = frame.index
+        write_volume(frame.volume, frame_paths[i], **write_kw)
+        for name, vol in frame.attributes.items():
+            write_volume(vol, _attribute_name(frame_paths[i], name), **attr_kw)
+        if mesh_paths:
+            from ..surface.mesh_io import write_mesh
 
-                mesh = isosurface(grid.volume(field), 0.0, inside="below")
-                if mesh_paths:
-                    from ..surface.mesh_io import write_mesh
+            write_mesh(frame.mesh, mesh_paths[i], comments=frame.volume.meta)
+        if render_paths:
+            from ..io.images import write_image
 
-                    write_mesh(mesh, mesh_paths[i], comments=meta)
-                if render_paths:
-                    from ..io.images import write_image
-                    from ..render.surface import fit_camera, render_mesh
-
-                    if camera is None:
-                        camera = fit_camera(_shape_box(prep), view, size)
-                    image = render_mesh(mesh, camera=camera)
-                    write_image(render_paths[i], image)
-                    if sheet_path:
-                        renders.append(image)
-            bar.advance()
+            write_image(render_paths[i], frame.image)
+            if sheet_path:
+                renders.append(frame.image)
     if sheet_path:
         from ..io.images import write_image
         from ..render.sheet import contact_sheet
 
         titles = [f"t = {t:.3g}" for t in job.times]
         write_image(sheet_path, contact_sheet(renders, titles=titles))
-    log.info("wrote %d frames on a %s grid", len(job.times), "x".join(map(str, grid.shape_xyz)))
-
-
-def _shape_box(prep):
-    """World corners of the box holding source and target shapes (for one fixed camera)."""
-    import numpy as np
-
-    inside = (prep.morph.source < 0) | (prep.morph.target < 0)
-    if not inside.any():
-        raise VolwarpError("neither shape has any voxel inside on the frame grid")
-    idx = [np.flatnonzero(inside.any(axis=a)) for a in ((1, 2), (0, 2), (0, 1))]  # z, y, x
-    lo = np.array([idx[2][0], idx[1][0], idx[0][0]], dtype=np.float64)
-    hi = np.array([idx[2][-1], idx[1][-1], idx[0][-1]], dtype=np.float64)
-    corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
-                        for c in (lo[2], hi[2])])
-    m = prep.grid.index_to_world
-    return corners @ m[:3, :3].T + m[:3, 3]
+    log.info("wrote %d frames on a %s grid", len(job.times),
+             "x".join(map(str, prep.grid.shape_xyz)))

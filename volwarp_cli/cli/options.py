@@ -1,7 +1,105 @@
 """Options shared by several subcommands, each defined once (rasterio's habit).
 
 Decorators add the options; callbacks validate them (``click.BadParameter``,
-exit 2) and hand the command typed values.
+exit 2) and hand the command typed values. A renamed option keeps its old
+spelling as a hidden alias (:func:`option`'s ``was``) that still works and
+says, on stderr, ``volwarp: warning: --size is now --render-size``.
+
+Every option, and the commands that take it (``tests/test_cli_help.py``
+checks this list against the commands; ``(every command)``: from
+:func:`common_options`; the ``--raw-*``, DICOM, ``--volume-index`` and
+``--allow-outside-data`` options from :func:`input_options`; ``--dtype``,
+``--compress`` and ``--byte-order`` from :func:`write_options`)::
+
+    --allow-empty             mesh
+    --allow-growth            warp
+    --allow-outside-data      capture warp distance mesh info convert
+    --background-color        mesh
+    --background-value        warp
+    --byte-order              warp morph sweep distance convert
+    --cap                     mesh
+    --color                   mesh
+    --compress/--no-compress  warp morph sweep distance convert
+    --crop                    warp
+    --debug                   (every command)
+    --decimate                mesh
+    --density                 morph
+    --displacement-to         warp
+    --dtype                   warp morph sweep distance convert
+    --duplicates              capture warp distance mesh info convert
+    --evaluator               warp
+    --fail-fast               batch
+    --force                   batch
+    --forward-field-to        warp
+    --frames                  morph
+    --frames-to               warp
+    --grid                    morph
+    --inside                  morph distance mesh
+    --irregular               capture warp distance mesh info convert
+    --iso                     morph distance mesh
+    --jacobian-to             warp
+    -j/--jobs                 batch
+    --json                    warp mesh info
+    --keep-phi                capture warp distance mesh info convert
+    --keep-shear              capture warp distance mesh info convert
+    --label                   mesh
+    --labels                  warp mesh
+    --largest-component       mesh
+    --lattice                 capture
+    --max-distance            distance
+    --memory-limit            (every command)
+    --mesh-in                 warp
+    --mesh-to                 warp morph
+    --method                  sweep
+    --metric                  morph distance
+    --multi                   sweep
+    -o/--output               capture warp morph sweep distance mesh convert
+    --oversample              capture
+    --pad                     capture
+    --placement               capture
+    --points-in               warp
+    --points-to               warp
+    --preserve-labels         warp
+    --pushforward             warp
+    -q/--quiet                (every command)
+    --raw-dtype               capture warp distance mesh info convert
+    --raw-endian              capture warp distance mesh info convert
+    --raw-header-bytes        capture warp distance mesh info convert
+    --raw-origin              capture warp distance mesh info convert
+    --raw-shape               capture warp distance mesh info convert
+    --raw-spacing             capture warp distance mesh info convert
+    --render                  sweep mesh
+    --render-size             morph sweep mesh
+    --render-to               morph
+    --report-json             batch
+    --retries                 batch
+    --sampling                capture
+    --series                  capture warp distance mesh info convert
+    --shape                   sweep
+    --shard                   batch
+    --sheet                   morph
+    --smooth                  mesh
+    --spacing                 sweep
+    --spec                    warp morph
+    --stats                   mesh
+    --surface                 distance
+    --tau                     sweep
+    --threads                 (every command)
+    --times                   morph
+    --transform               distance
+    --transform-to            warp
+    --turntable               mesh
+    --unsigned                distance
+    --update                  distance
+    -v/--verbose              (every command)
+    --view                    morph sweep mesh
+    --volume-index            capture warp distance mesh info convert
+
+Old spellings, hidden, still accepted with a warning::
+
+    --size                    --render-size: mesh morph
+    --background              --background-value: warp (a number: the space around the
+                              model); --background-color: mesh (the render's colour)
 """
 
 from __future__ import annotations
@@ -11,11 +109,12 @@ import math
 import os
 
 import click
+from click.core import ParameterSource
 
 from ..errors import VolwarpError
 from ..io import SUPPORTED_DTYPES, RawLayout
 from ..io.common import ALLOW_OUTSIDE_DATA
-from ..progress import configure
+from ..progress import configure, log
 
 
 def _configure_verbosity(ctx, param, value):
@@ -44,6 +143,60 @@ def common_options(f):
     f = click.option("--debug", is_flag=True, expose_value=False,
                      help="Show a traceback on errors.")(f)
     return f
+
+
+#: ``ctx.meta`` key: values given with an old spelling, by the new option's name
+_RENAMED = "volwarp.renamed"
+_NOT_GIVEN = object()
+
+
+def option(*decls, was: str | None = None, **attrs):
+    """``click.option(*decls, **attrs)``; ``was``: the option's old spelling, still accepted.
+
+    The old spelling is a hidden option of the same type whose value goes to the new
+    one (through the new one's callback, so its errors name the spelling used) with
+    one line on stderr, ``volwarp: warning: OLD is now NEW`` (silenced by -q). Both
+    spellings at once are a usage error.
+    """
+    if was is None:
+        return click.option(*decls, **attrs)
+    name = click.Option(list(decls)).name
+    new = max((d for d in decls if d.startswith("-")), key=len)
+    callback = attrs.pop("callback", None)
+
+    def new_callback(ctx, param, value):
+        given = ctx.meta.get(_RENAMED, {}).pop(name, _NOT_GIVEN)
+        if given is not _NOT_GIVEN:
+            if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE:
+                raise click.UsageError(f"{was} is the old name of {new}: give {new} only",
+                                       ctx=ctx)
+            return given
+        return value if callback is None else callback(ctx, param, value)
+
+    def old_callback(ctx, param, value):
+        if value is None:
+            return None
+        if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE:
+            raise click.UsageError(f"{was} is the old name of {new}: give {new} only", ctx=ctx)
+        log.warning("warning: %s is now %s", was, new)
+        value = value if callback is None else callback(ctx, param, value)
+        ctx.meta.setdefault(_RENAMED, {})[name] = value
+        return value
+
+    alias = {k: v for k, v in attrs.items() if k in ("type", "nargs", "metavar")}
+
+    def decorator(f):
+        f = click.option(*decls, callback=new_callback, **attrs)(f)
+        return click.option(was, f"renamed_{name}", hidden=True, expose_value=False,
+                            default=None, callback=old_callback, **alias)(f)
+    return decorator
+
+
+def examples(*lines: str) -> str:
+    """A command's epilog: the example command lines that end its ``--help``
+    (``tests/test_cli_help.py`` parses each against the command)."""
+    body = "\n".join(f"  {line}" for line in lines)
+    return f"Examples:\n\n\b\n{body}"
 
 
 def finite(ctx, param, value):
@@ -80,10 +233,14 @@ def _volume_output(ctx, param, value):
     return value
 
 
-def output_option(help_text: str = "Output file (format by extension).", volume: bool = True):
-    """-o/--output; ``volume``: a volume file, its extension checked at once."""
+def output_option(help_text: str = "Output file (format by extension).", volume: bool = True,
+                  callback=None):
+    """-o/--output; ``volume``: a volume file, its extension checked at once;
+    ``callback``: a check of its own instead (e.g. of a pattern of volume files)."""
+    if callback is None and volume:
+        callback = _volume_output
     return click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
-                        callback=_volume_output if volume else None, help=help_text)
+                        callback=callback, help=help_text)
 
 
 def _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi) -> dict | None:
@@ -190,6 +347,20 @@ VIEW_HELP = ("Render view: iso, x, y, z, front, back, left, right, top, bottom (
              "there) or AZIMUTH,ELEVATION in degrees (azimuth from +x towards +y, z up). "
              "front looks from -y, right from +x: for LPS scans, the face and the "
              "patient's left side.")
+
+
+#: --render-size's default, for every command that renders (mesh, morph, sweep)
+DEFAULT_RENDER_SIZE = "800x600"
+
+
+def render_size_option(parse=None, help_text: str = "Render size in pixels.",
+                       was: str | None = "--size"):
+    """--render-size WxH, the same default everywhere; ``parse``: the value's core parser
+    (default :func:`parse_size`); ``was``: the command's old spelling (mesh and morph
+    said --size)."""
+    return option("--render-size", "render_size", was=was, default=DEFAULT_RENDER_SIZE,
+                  show_default=True, metavar="WxH", callback=core_parser(parse or parse_size),
+                  help=help_text)
 
 
 def core_parser(fn):

@@ -11,9 +11,11 @@ from .options import (
     VIEW_HELP,
     common_options,
     core_parser,
+    examples,
     output_option,
     parse_size,
     parse_view,
+    render_size_option,
     write_options,
 )
 
@@ -103,7 +105,10 @@ def scale_to_dtype(data, dtype):
     return data.astype(np.float64) * np.iinfo(np.dtype(dtype)).max
 
 
-@click.command(name="sweep")
+@click.command(name="sweep", epilog=examples(
+    "volwarp sweep sweep-bottle.yaml -o 'bottle_{field}.nrrd' --render bottle.png --view -70,25",
+    "volwarp sweep sweep-at-bezier.yaml -o at.nrrd --multi --spacing 0.5 --method direct",
+))
 @click.argument("spec", type=INPUT_PATH)
 @output_option("Output file pattern: '{field}' becomes each field's name "
                "(e.g. 'at_{field}.nrrd'); format by extension.")
@@ -115,9 +120,7 @@ def scale_to_dtype(data, dtype):
                    "to this PNG.")
 @click.option("--view", default="iso", show_default=True, callback=core_parser(parse_view),
               help=VIEW_HELP)
-@click.option("--render-size", default="512x512", show_default=True, metavar="WxH",
-              callback=core_parser(_render_size),
-              help="Render size in pixels (as `volwarp mesh --size`).")
+@render_size_option(parse=_render_size, was=None)
 @click.option("--shape", nargs=3, type=click.IntRange(min=1), default=None, metavar="X Y Z",
               help="Output grid size; spacing is fitted (overrides the spec's grid).")
 @click.option("--spacing", type=click.FloatRange(min=0, min_open=True), default=None,

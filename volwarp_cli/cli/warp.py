@@ -1,26 +1,41 @@
-"""`volwarp warp INPUT|SCENE.vwc --spec WARP.yaml -o OUT`: B-spline volume warping."""
+"""`volwarp warp INPUT|SCENE.vwc --spec WARP.yaml -o OUT`: B-spline volume warping.
+
+Parses and checks the options, then calls the pipeline of
+:mod:`volwarp_cli.bspline.run` (read, capture, warp) and writes what it gives.
+"""
 
 from __future__ import annotations
 
 import string
-from concurrent.futures import ThreadPoolExecutor
 
 import click
 
-from ..errors import OutOfMemoryError, VolwarpError
+from ..errors import VolwarpError
 from ..io import check_output_path, volume_format, write_volume
 from ..progress import timed
-from .common import load_input, stamp
+from .common import load_input, provenance, stamp
 from .options import (
     INPUT_PATH,
     common_options,
+    examples,
     finite,
     input_options,
+    option,
     output_option,
     write_options,
 )
 
+#: the fields of a --frames-to pattern (:data:`volwarp_cli.bspline.run.FRAME_FIELDS`)
 _FIELDS = ("frame", "step", "spec_step", "sub")
+
+PUSHFORWARD_HELP = (
+    "How each domain voxel is pushed into the output [default: the spec's, else box]. box: "
+    "the papers' antialiasing, each voxel spread over the output voxels its transformed "
+    "box overlaps, by overlap volume (smooth edges; with the uniform placement and an "
+    "integer oversample an unmoved region is copied exactly). nearest: each voxel lands "
+    "whole in the one output voxel "
+    "holding its image (the papers' unfiltered map-and-round baseline): jagged edges, and "
+    "holes where the warp stretches the model more than the oversample covers.")
 
 JSON_HELP = (
     "After a successful run, print one JSON object on stdout (nothing else goes there; "
@@ -64,47 +79,10 @@ def _check_pattern(pattern: str) -> None:
         raise click.BadParameter(str(exc), param_hint="'--frames-to'") from None
     check_output_path(a)
 
-
-def _unchecked_capture_settings(doc):
-    """The spec's capture settings read before its schema check; None if they cannot be."""
-    from ..bspline.plan import read_warp_spec
-
-    try:
-        spec = read_warp_spec(doc)
-    except Exception:  # an invalid spec: the schema check reports it
-        return None
-    return None if spec.values == "labels" else spec.capture  # labels: their own capture
-
-
-def _capture(vol, settings, input, defer):
-    """``vol`` captured with ``settings``; errors name the input. ``defer``: leave the
-    gather to the warp (a one-shot warp gathers the planes as it streams them)."""
-    from ..bspline.capture import capture_volume
-    from ..errors import SpecError, VolwarpError
-
-    s = settings
-    try:
-        return capture_volume(vol, lattice=s.lattice, placement=s.placement,
-                              oversample=s.oversample, sampling=s.sampling, pad=None,
-                              mean=False, defer=defer)
-    except SpecError:
-        raise
-    except VolwarpError as exc:
-        raise VolwarpError(f"{input}: {exc}") from None
-
-
-def _capture_early(reading, settings, input, defer):
-    """The capture, started before the spec is checked; None where it cannot be made
-    (the capture after the check then reports why, in order)."""
-    if settings is None:
-        return None
-    try:
-        return _capture(reading.result(), settings, input, defer)
-    except Exception:
-        return None
-
-
-@click.command(name="warp")
+@click.command(name="warp", epilog=examples(
+    "volwarp warp head.nrrd --spec bend.yaml -o bent.nrrd --crop",
+    "volwarp warp head.vwc --spec bend.yaml -o bent.nrrd --frames-to 'bent_{frame:03d}.nrrd'",
+))
 @click.argument("input", type=INPUT_PATH)
 @click.option("--spec", "spec_path", required=True, type=INPUT_PATH,
               help="Warp spec (YAML; schema specs/warp.schema.json).")
@@ -117,13 +95,16 @@ def _capture_early(reading, settings, input, defer):
                    "map for that frame's lattice (not incremental: each frame costs a whole "
                    "label warp).")
 @click.option("--pushforward", type=click.Choice(["box", "nearest"]), default=None,
-              help="Pushforward filter [default: the spec's, else box].")
+              help=PUSHFORWARD_HELP)
 @click.option("--evaluator", type=click.Choice(["separable", "table"]), default=None,
-              help="Deformation evaluator [default: the spec's, else separable].")
-@click.option("--background", type=float, default=None, metavar="B", callback=finite,
-              help="Value of the space around the model, given to uncovered output voxels "
-                   "and blended into partly covered ones [default: the spec's, else 0]; "
-                   "e.g. a large positive distance for a signed distance field.")
+              help="Deformation evaluator [default: the spec's, else separable]: separable "
+                   "(three 1-D passes) or table (the papers' tabulated tensor-product "
+                   "weights); both give the same output.")
+@option("--background-value", "background", was="--background", type=float, default=None,
+        metavar="B", callback=finite,
+        help="Value of the space around the model, given to uncovered output voxels "
+             "and blended into partly covered ones [default: the spec's, else 0]; "
+             "e.g. a large positive distance for a signed distance field.")
 @click.option("--crop", is_flag=True, help="Cut the output back to the input's extent.")
 @click.option("--labels", is_flag=True,
               help="INPUT is a label map (segmentation): each output voxel takes the label of "
@@ -163,16 +144,21 @@ def _capture_early(reading, settings, input, defer):
 @input_options
 @common_options
 def command(input, spec_path, output, frames_to, pushforward, evaluator, background, crop,
-            labels, preserve_labels, displacement_to, forward_field_to, jacobian_to, transform_to, points_in, points_to,
-            mesh_in, mesh_to, allow_growth, as_json, dtype, compress, byte_order, raw, volume_index, dicom):
+            labels, preserve_labels, displacement_to, forward_field_to, jacobian_to,
+            transform_to, points_in, points_to, mesh_in, mesh_to, allow_growth, as_json, dtype,
+            compress, byte_order, raw, volume_index, dicom):
     """Warp INPUT (a volume, or a capture file .vwc) as the spec says.
 
-    A plain volume is captured on the fly with the spec's `capture` settings.
-    The output keeps the input's dtype, spacing, direction and key/values;
-    it is padded (origin shifted, anatomy in place) unless --crop.
+    A plain volume is captured on the fly with the spec's `capture` settings
+    (lattice, placement, oversample, pad, sampling: see `volwarp capture
+    --help`). The output keeps the input's dtype, spacing, direction and
+    key/values; it is padded (origin shifted, anatomy in place) unless --crop.
     """
+    from ..bspline.run import IntensityWarp, LabelMapWarp, WarpInput, WarpOptions
+
     check_output_path(output)
-    if labels and input.lower().endswith(".vwc"):
+    is_capture = input.lower().endswith(".vwc")
+    if labels and is_capture:
         raise click.UsageError("--labels warps a label-map volume (not a capture file)")
     if labels and dtype is not None:
         raise click.UsageError("--labels keeps the label map's own integer type (no --dtype)")
@@ -183,38 +169,18 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     if labels and exports:
         raise click.UsageError("--labels with the deformation's exports: export them from a "
                                "warp without --labels (the deformation is the same)")
-    is_capture = input.lower().endswith(".vwc")
-    one_shot = not frames_to  # only the final lattice is rendered, streamed
     if is_capture and (raw is not None or volume_index is not None or dicom is not None):
-        raise click.UsageError("--raw-*, --volume-index and the DICOM options describe volume inputs, "
-                               f"not the capture file {input}")
-    with ThreadPoolExecutor(1) as pool:
-        # The volume is read while the warp modules are imported and the spec is
-        # loaded, and captured (with the settings the spec gives, read before it is
-        # checked) while the spec is checked against its schema, which imports
-        # jsonschema: reading and capturing release the GIL. A spec error still
-        # comes first; the early capture is used only if it matches the checked spec.
-        # (mapped, not copied, where it can be: the warp only reads it)
-        reading = None if is_capture else pool.submit(load_input, input, raw, volume_index,
-                                                      True, dicom)
+        raise click.UsageError("--raw-*, --volume-index and the DICOM options describe volume "
+                               f"inputs, not the capture file {input}")
+    if is_capture:
         from ..bspline.capture_file import read_capture
-        from ..bspline.plan import read_warp_spec
-        from ..bspline.warp import (
-            check_capture_settings,
-            output_planes,
-            output_volume,
-            prepare,
-            run,
-        )
-        from ..spec.loader import load_schema, load_spec, validate
 
-        doc = load_spec(spec_path)
-        if reading is not None:
-            # (a label map is captured by its own path, below: no float capture)
-            settings = None if labels else _unchecked_capture_settings(doc)
-            early = pool.submit(_capture_early, reading, settings, input, one_shot)
-        validate(doc, load_schema("warp"))
-        spec = read_warp_spec(doc)
+        source = WarpInput(input, read_capture=lambda: read_capture(input))
+    else:  # mapped, not copied, where it can be: the warp only reads it
+        source = WarpInput(input, labels=labels, stream=not frames_to,
+                           read_volume=lambda: load_input(input, raw, volume_index, True, dicom))
+    with source:
+        doc, spec = source.load_spec(spec_path)
         if spec.values == "labels" and not labels:  # the spec says what --labels says
             for clash, given in (("a capture file", is_capture),
                                  ("--dtype", dtype is not None),
@@ -227,126 +193,83 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             raise click.UsageError("--preserve-labels needs --labels (or the spec's "
                                    "values: labels)")
         if labels:  # what a label map cannot have: usage or spec errors, before any work
-            if background not in (None, 0, 0.0):
-                raise click.UsageError("--background does not apply to a label map (its "
-                                       "background is the label 0)")
-            c = spec.capture
-            if c.placement != "uniform" and "placement" in spec.capture_given:
-                raise doc.error(("capture", "placement"), "a label map is warped with the "
-                                "uniform placement (each domain voxel one input voxel's label)")
-            if c.oversample != int(c.oversample):
-                raise doc.error(("capture", "oversample"), "a label map needs an integer "
-                                "oversample (each domain voxel one input voxel's label)")
-        if is_capture:
-            with timed(f"read {input}"):
-                cap = read_capture(input)
-            check_capture_settings(doc, spec, cap, input)
-        else:
-            vol = reading.result()  # a read error, after any spec error
-            cap = early.result() if settings == spec.capture else None
-            del reading, early  # the futures hold the volume and the capture too
+            _check_label_spec(doc, spec, background)
+        what = source.source(doc, spec, labels=labels)
+    options = WarpOptions(pushforward=pushforward, evaluator=evaluator, background=background,
+                          crop=crop, dtype=dtype, allow_growth=allow_growth)
+
+    def stamped(vol):
+        return stamp(vol, "warp", input, spec_path)
+
+    def write(vol, path):
+        with timed(f"write {path}"):
+            write_volume(stamped(vol), path, compress=compress, byte_order=byte_order)
+
+    written = [0]  # frame files
+
+    def write_frame(fields, vol):
+        write(vol, frames_to.format(**fields))
+        written[0] += 1
+
     if labels:
-        from ..bspline.labels import format_report, prepare_labels, warp_labels
+        from ..bspline.labels import format_report
         from ..progress import log
 
-        cap, scene, frames = prepare_labels(vol, doc, spec, method=pushforward,
-                                            evaluator=evaluator, background=background,
-                                            source=input, allow_growth=allow_growth)
-        handles = _report_handles(cap, frames)
-
-        def label_volume(lattice):
-            # exact: the whole label warp for this lattice, from the input map
-            scene.set_lattice(lattice)
-            res = warp_labels(vol.data, scene, (), preserve=preserve_labels,
-                              spacing=vol.spacing)
-            out = stamp(output_volume(cap, scene, res.target, crop=crop), "warp", input,
-                        spec_path)
-            return out, res.report
-
-        written = 0
-        if frames_to:
-            # frame 0 (the unmoved lattice), then every increment's lattice; the last
-            # frame is the output too
-            lattices = [cap.dq] + [fr.dq for fr in frames]
-            for n, lattice in enumerate(lattices):
-                fr = frames[n - 1] if n else None
-                with timed(f"labels: frame {n} of {len(lattices) - 1}"):
-                    out, report = label_volume(lattice)
-                name = frames_to.format(frame=n, step=n, spec_step=fr.step if fr else 0,
-                                        sub=fr.sub if fr else 0)
-                with timed(f"write {name}"):
-                    write_volume(out, name, compress=compress, byte_order=byte_order)
-                written += 1
-        else:
-            out, report = label_volume(frames[-1].dq if frames else cap.dq)
-        with timed(f"write {output}"):
-            write_volume(out, output, compress=compress, byte_order=byte_order)
+        warp = LabelMapWarp(what, doc, spec, options, preserve=preserve_labels, name=input)
+        del what
+        handles = warp.handles()
+        out, report = warp.render_frames(write_frame) if frames_to else warp.render()
+        write(out, output)
         log.info("per-label volumes (mm^3):\n%s", format_report(report))
-        if as_json:
-            summary = {"output": str(output), "shape": list(out.shape_xyz)}
-            if frames_to:
-                summary["frames"] = written
-            _print_json({**summary, "handles": handles, **_labels_json(report)})
-        return
-    if not is_capture:
-        if cap is None:
-            cap = _capture(vol, spec.capture, input, one_shot)
-        del vol
-    try:
-        scene, frames = prepare(cap, doc, spec, method=pushforward, evaluator=evaluator,
-                                background=background, allow_growth=allow_growth)
-    except OutOfMemoryError as exc:  # the target this input and spec ask for
-        raise OutOfMemoryError(f"{input}: {exc}") from None
-    handles = _report_handles(cap, frames)
-    if exports:  # refused before any work where they cannot be exact
-        from ..bspline.export import check_exportable
-
-        check_exportable(cap.placement, cap.dq, input)
-
-    def write(target, path):
-        out = stamp(output_volume(cap, scene, target, crop=crop, dtype=dtype), "warp", input,
-                    spec_path)
-        with timed(f"write {path}"):
-            write_volume(out, path, compress=compress, byte_order=byte_order)
-        return list(out.shape_xyz)
-
-    on_frame = None
-    written = [0]  # frame files
-    if frames_to:
-        def on_frame(n, fr, target):
-            name = frames_to.format(frame=n, step=n, spec_step=fr.step if fr else 0,
-                                    sub=fr.sub if fr else 0)
-            write(target, name)
-            written[0] += 1
-
-    if one_shot and output.lower().endswith(".nrrd") and not compress:
-        # raw NRRD: the warp's planes go to the file as they are finished (the
-        # whole target is never held, and the writing runs in the warp's threads)
-        from ..io.nrrd import nrrd_plane_writer
-
-        template, convert = output_planes(cap, scene, crop=crop, dtype=dtype)
-        template = stamp(template, "warp", input, spec_path)
-        shape = list(template.shape_xyz)
-        with nrrd_plane_writer(template, output, byte_order=byte_order) as write_planes:
-            def sink(z0, z1, planes):
-                part = convert(z0, planes)
-                if part is not None:
-                    write_planes(*part)
-
-            run(scene, frames, sink=sink)
+        shape, stats = list(out.shape_xyz), _labels_json(report)
     else:
-        target = run(scene, frames, on_frame)
-        shape = write(target, output)
-    stats = {}
-    if exports:
-        # after -o: a run that fails or is stopped before its output leaves the old
-        # exports as they were (each export file is atomic on its own)
-        stats = _write_exports(exports, cap, scene, frames, crop, input, spec_path)
+        warp = IntensityWarp(what, doc, spec, options, name=input)
+        del what
+        handles = warp.handles()
+        if exports:  # refused before any work where they cannot be exact
+            from ..bspline.export import check_exportable
+
+            check_exportable(warp.cap.placement, warp.cap.dq, input)
+        if not frames_to and output.lower().endswith(".nrrd") and not compress:
+            # raw NRRD: the warp's planes go to the file as they are finished (the
+            # whole target is never held, and the writing runs in the warp's threads)
+            from ..io.nrrd import nrrd_plane_writer
+
+            template = warp.stream(lambda t: nrrd_plane_writer(stamped(t), output,
+                                                               byte_order=byte_order))
+            shape = list(template.shape_xyz)
+        else:
+            out = warp.render_frames(write_frame) if frames_to else warp.render()
+            write(out, output)
+            shape = list(out.shape_xyz)
+        stats = {}
+        if exports:
+            # after -o: a run that fails or is stopped before its output leaves the old
+            # exports as they were (each export file is atomic on its own)
+            from ..bspline.export_outputs import write_exports
+
+            mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
+            stats = write_exports(exports, warp, meta=provenance("warp", input, spec_path),
+                                  mesh_meta=provenance("warp", [input, *mesh_src], spec_path))
     if as_json:
         summary = {"output": str(output), "shape": shape}
         if frames_to:
             summary["frames"] = written[0]
         _print_json({**summary, "handles": handles, **stats})
+
+
+def _check_label_spec(doc, spec, background) -> None:
+    """What a label map cannot have, as usage or spec errors before any work."""
+    if background not in (None, 0, 0.0):
+        raise click.UsageError("--background-value does not apply to a label map (its "
+                               "background is the label 0)")
+    c = spec.capture
+    if c.placement != "uniform" and "placement" in spec.capture_given:
+        raise doc.error(("capture", "placement"), "a label map is warped with the "
+                        "uniform placement (each domain voxel one input voxel's label)")
+    if c.oversample != int(c.oversample):
+        raise doc.error(("capture", "oversample"), "a label map needs an integer "
+                        "oversample (each domain voxel one input voxel's label)")
 
 
 def _jsonable(v):
@@ -387,12 +310,13 @@ def _labels_json(report: dict) -> dict:
 
 
 def _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to, points_in,
-                   points_to, mesh_in, mesh_to) -> dict:
+                   points_to, mesh_in, mesh_to):
     """The export options, checked before any work (usage errors), and their inputs read
-    (a points or mesh file that does not parse fails here, before any output)."""
+    (a points or mesh file that does not parse fails here, before any output), as
+    :class:`~volwarp_cli.bspline.export_outputs.ExportRequests`."""
     from ..bspline.export import field_format, points_format, read_points
+    from ..bspline.export_outputs import ExportRequests
 
-    out = {}
     for name, path in (("--displacement-to", displacement_to),
                        ("--forward-field-to", forward_field_to)):
         if path is not None:
@@ -435,127 +359,13 @@ def _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to,
             check_mesh_output(mesh_to)
         except VolwarpError as exc:
             raise click.BadParameter(str(exc), param_hint="'--mesh-to'") from None
-    out.update({k: v for k, v in (("displacement", displacement_to),
-                                   ("forward", forward_field_to), ("jacobian", jacobian_to),
-                                   ("transform", transform_to)) if v is not None})
+    points = mesh = None
     if points_in is not None:
-        out["points"] = (read_points(points_in), points_to)
+        points = (read_points(points_in), points_to)
     if mesh_in is not None:
         from ..surface.mesh_io import read_mesh
 
-        out["mesh"] = (read_mesh(mesh_in), mesh_in, mesh_to)
-    return out
-
-
-def _final_dq(cap, frames):
-    return frames[-1].dq if frames else cap.dq
-
-
-def _report_handles(cap, frames) -> list:
-    """How far each handle missed its target, world mm (-v); returned for --json as
-    ``{step, index, from, to, reached, miss_mm}`` (world LPS mm, ``step`` 0-based)."""
-    import numpy as np
-
-    from ..progress import log
-
-    g = cap.geometry
-    matrix = g.direction * g.spacing[None, :]
-    out = []
-    for fr in frames:
-        for n, (src, to, reached) in enumerate(fr.handles):
-            miss = float(np.linalg.norm(matrix @ (np.asarray(reached) - np.asarray(to))))
-            log.info("steps[%d].drag[%d]: reached %s, missed its target by %.3g mm",
-                     fr.step - 1, n, np.round(g.index_to_world(reached), 4).tolist(), miss)
-            world = [np.asarray(g.index_to_world(np.asarray(p, dtype=np.float64)),
-                                dtype=np.float64).reshape(3).tolist()
-                     for p in (src, to, reached)]
-            out.append({"step": fr.step - 1, "index": n, "from": world[0], "to": world[1],
-                        "reached": world[2], "miss_mm": miss})
-    return out
-
-
-def _write_exports(exports, cap, scene, frames, crop, input, spec_path) -> dict:
-    """The deformation's exports (see :mod:`volwarp_cli.bspline.export`), written after
-    the warp's output; they describe the final lattice. Returns their figures, as
-    --json keys (``jacobian``, ``displacement``, ``points``, ``mesh``)."""
-    import numpy as np
-
-    from ..bspline.export import (
-        ForwardMap,
-        field_stats_ok,
-        jacobian_stats,
-        report_outside,
-        write_field,
-        write_points,
-        write_tfm,
-    )
-    from ..bspline.warp import _output_window
-    from ..progress import log
-    from ..volume import Volume
-    from .common import provenance
-
-    meta = provenance("warp", input, spec_path)
-    stats = {}
-    fmap = ForwardMap(cap.grid, _final_dq(cap, frames), cap.geometry)
-    g = cap.geometry
-    nx, ny, nz = cap.grid.input_shape
-    in_grid = Volume(np.zeros((nz, ny, nx), np.uint8), spacing=g.spacing, origin=g.origin,
-                     direction=g.direction, space=g.space)
-    if "displacement" in exports:
-        path = exports["displacement"]
-        window, origin = _output_window(cap, scene, crop)
-        shape = tuple(w.stop - w.start for w in window)
-        out_grid = Volume(np.zeros(shape, np.uint8), spacing=g.spacing, origin=origin,
-                          direction=g.direction, space=g.space)
-        shift = np.array([window[2].start, window[1].start, window[0].start]) - np.array(scene.pad)
-        with timed(f"invert the map on {shape[2]}x{shape[1]}x{shape[0]} voxels"):
-            field, counts = fmap.resampling_field(shape[::-1], shift)
-        log.info("%s: %s", path, field_stats_ok(counts))
-        if counts["folded"]:
-            log.warning("%s: the map folds: %d voxels have no single inverse (NaN)", path,
-                        counts["folded"])
-        with timed(f"write {path}"):
-            write_field(field, out_grid, path, meta, "resampling")
-        stats["displacement"] = {"path": str(path), "voxels": counts["voxels"],
-                                 "folded": counts["folded"],
-                                 "no_preimage": counts["no_inverse"]}
-        del field
-    if "forward" in exports:
-        path = exports["forward"]
-        with timed(f"write {path}"):
-            write_field(fmap.forward_field(), in_grid, path, meta, "forward")
-    if "jacobian" in exports:
-        path = exports["jacobian"]
-        det = fmap.jacobian()
-        st = jacobian_stats(det)
-        log.info("%s: det dF/dx min %.4g, max %.4g; %.3g%% of voxels below 0, %.3g%% below 0.1",
-                 path, st["min"], st["max"], 100 * st["below_0"], 100 * st["below_0.1"])
-        stats["jacobian"] = {"path": str(path), "min": st["min"], "max": st["max"],
-                             "below_0": st["below_0"], "below_0_1": st["below_0.1"]}
-        jmeta = {**dict(g.meta), **meta, "volwarp_field": "jacobian"}
-        with timed(f"write {path}"):
-            write_volume(in_grid.with_data(det, meta=jmeta), path)
-    if "transform" in exports:
-        path = exports["transform"]
-        with timed(f"write {path}"):
-            write_tfm(fmap, path, meta)
-    if "points" in exports:
-        pf, path = exports["points"]
-        moved, inside = fmap.map_world(pf.points)
-        outside = report_outside(pf.path, inside, fmap)
-        with timed(f"write {path}"):
-            write_points(pf, moved, path)
-        stats["points"] = {"path": str(path), "count": len(inside), "outside": outside}
-    if "mesh" in exports:
-        from ..surface.mesh import Mesh
-        from ..surface.mesh_io import write_mesh
-
-        mesh, src, path = exports["mesh"]
-        moved, inside = fmap.map_world(mesh.vertices)
-        outside = report_outside(src, inside, fmap)
-        out = Mesh(moved, mesh.faces).with_normals()
-        with timed(f"write {path}"):
-            write_mesh(out, path, comments={**provenance("warp", [input, src], spec_path),
-                                            "volwarp_field": "forward"})
-        stats["mesh"] = {"path": str(path), "count": len(inside), "outside": outside}
-    return stats
+        mesh = (read_mesh(mesh_in), mesh_in, mesh_to)
+    return ExportRequests(displacement=displacement_to, forward=forward_field_to,
+                          jacobian=jacobian_to, transform=transform_to, points=points,
+                          mesh=mesh)

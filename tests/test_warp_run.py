@@ -1,0 +1,221 @@
+"""The warp pipeline's core (volwarp_cli.bspline.run, .export_outputs), without click.
+
+Each path is checked against the steps it strings together, called one by one
+(capture, prepare, run, output_volume): the pipeline must add nothing but the
+overlap and the plumbing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from volwarp_cli.bspline.capture import capture_volume
+from volwarp_cli.bspline.export_outputs import ExportRequests, write_exports
+from volwarp_cli.bspline.plan import read_warp_spec
+from volwarp_cli.bspline.run import (
+    IntensityWarp,
+    LabelMapWarp,
+    WarpInput,
+    WarpOptions,
+    frame_fields,
+    handle_report,
+)
+from volwarp_cli.bspline.warp import output_volume, prepare
+from volwarp_cli.bspline.warp import run as run_warp
+from volwarp_cli.errors import SpecError, VolwarpError
+from volwarp_cli.io import read_volume
+from volwarp_cli.spec.loader import load_spec
+from volwarp_cli.volume import Volume
+
+DATA = Path(__file__).parent / "data"
+BALL = DATA / "ball_30_uint8.nrrd"
+
+MOVE = ("version: 1\nunits: voxel\ncapture: {lattice: 6, oversample: 1}\nsteps:\n"
+        "  - move:\n      - {index: [2, 2, 2], by: [1.5, 0, 0]}\n    frames: 2\n")
+
+
+def _spec(tmp_path, text=MOVE) -> Path:
+    path = tmp_path / "w.yaml"
+    path.write_text(text)
+    return path
+
+
+def _opened(spec_path, read=lambda: read_volume(BALL), **kw):
+    with WarpInput(str(BALL), read_volume=read, **kw) as w:
+        doc, spec = w.load_spec(spec_path)
+        return doc, spec, w.source(doc, spec, labels=kw.get("labels", False))
+
+
+def _reference(spec_path, **prepare_kw):
+    doc = load_spec(spec_path, "warp")
+    spec = read_warp_spec(doc)
+    s = spec.capture
+    cap = capture_volume(read_volume(BALL), lattice=s.lattice, placement=s.placement,
+                         oversample=s.oversample, sampling=s.sampling)
+    scene, frames = prepare(cap, doc, spec, **prepare_kw)
+    return cap, scene, frames
+
+
+@pytest.mark.parametrize("stream", [False, True])
+def test_render_is_capture_prepare_run(tmp_path, stream):
+    spec_path = _spec(tmp_path)
+    doc, spec, cap = _opened(spec_path, stream=stream)
+    out = IntensityWarp(cap, doc, spec).render()
+    rcap, scene, frames = _reference(spec_path)
+    expected = output_volume(rcap, scene, run_warp(scene, frames))
+    assert np.array_equal(out.data, expected.data)
+    assert out.data.dtype == np.uint8
+    np.testing.assert_allclose(out.origin, expected.origin)
+
+
+def test_options_override_the_spec(tmp_path):
+    spec_path = _spec(tmp_path)
+    doc, spec, cap = _opened(spec_path)
+    opts = WarpOptions(pushforward="nearest", background=9.0, crop=True, dtype="float32")
+    out = IntensityWarp(cap, doc, spec, opts).render()
+    rcap, scene, frames = _reference(spec_path, method="nearest", background=9.0)
+    expected = output_volume(rcap, scene, run_warp(scene, frames), crop=True, dtype="float32")
+    assert out.data.dtype == np.float32 and out.shape_xyz == (30, 30, 30)
+    assert np.array_equal(out.data, expected.data)
+
+
+def test_stream_writes_the_planes_of_render(tmp_path):
+    spec_path = _spec(tmp_path)
+    doc, spec, cap = _opened(spec_path, stream=True)
+    whole = IntensityWarp(cap, doc, spec, WarpOptions(crop=True)).render()
+    doc, spec, cap = _opened(spec_path, stream=True)
+    seen = {}
+
+    @contextlib.contextmanager
+    def writer(template):
+        seen["template"] = template
+        planes = np.zeros(template.data.shape, template.data.dtype)
+
+        def write_planes(z0, samples):
+            planes[z0:z0 + len(samples)] = samples
+        yield write_planes
+        seen["planes"] = planes
+
+    template = IntensityWarp(cap, doc, spec, WarpOptions(crop=True)).stream(writer)
+    assert template is seen["template"] and template.shape_xyz == whole.shape_xyz
+    assert np.array_equal(seen["planes"], whole.data)
+
+
+def test_render_frames_hands_over_every_frame_and_returns_the_last(tmp_path):
+    spec_path = _spec(tmp_path)
+    doc, spec, cap = _opened(spec_path)
+    got = []
+    warp = IntensityWarp(cap, doc, spec)
+    last = warp.render_frames(lambda fields, vol: got.append((fields, vol.data.copy())))
+    assert [f for f, _ in got] == [frame_fields(n, fr) for n, fr in
+                                   enumerate([None, *warp.frames])]
+    assert [f["spec_step"] for f, _ in got] == [0, 1, 1] and len(got) == 3
+    assert np.array_equal(got[-1][1], last.data)
+    doc, spec, cap = _opened(spec_path)
+    assert np.array_equal(IntensityWarp(cap, doc, spec).render().data, last.data)
+    # frame 0 is the unmoved lattice: at oversample 1 the input, exactly, inside the pad
+    pad = warp.scene.pad
+    inner = got[0][1][pad[2]:pad[2] + 30, pad[1]:pad[1] + 30, pad[0]:pad[0] + 30]
+    assert np.array_equal(inner, read_volume(BALL).data)
+
+
+def test_a_spec_error_comes_before_the_inputs_error(tmp_path):
+    def unreadable():
+        raise VolwarpError("ball.nrrd: damaged")
+
+    bad = _spec(tmp_path, "version: 1\nsteps: []\nbogus: 1\n")
+    with pytest.raises(SpecError, match="bogus"):
+        _opened(bad, read=unreadable)
+    with pytest.raises(VolwarpError, match="damaged"):
+        _opened(_spec(tmp_path, "version: 1\nsteps: []\n"), read=unreadable)
+
+
+def test_the_early_capture_is_used_when_it_matches(tmp_path, monkeypatch):
+    from volwarp_cli.bspline import capture as capture_module
+
+    calls = []
+    real = capture_module.capture_volume
+    monkeypatch.setattr(capture_module, "capture_volume",
+                        lambda *a, **k: calls.append(k["defer"]) or real(*a, **k))
+    _opened(_spec(tmp_path), stream=True)
+    assert calls == [True]
+    _opened(_spec(tmp_path), labels=True)  # a label map: no intensity capture at all
+    assert calls == [True]
+
+
+def test_warp_input_needs_one_reader():
+    with pytest.raises(ValueError):
+        WarpInput("x")
+    with pytest.raises(ValueError):
+        WarpInput("x", read_volume=lambda: None, read_capture=lambda: None)
+
+
+def test_capture_file_settings_are_checked_against_the_spec(tmp_path):
+    cap = capture_volume(read_volume(BALL), lattice=7, oversample=1)
+    with WarpInput("ball.vwc", read_capture=lambda: cap) as w:
+        doc, spec = w.load_spec(_spec(tmp_path))
+        with pytest.raises(SpecError, match="capture.lattice"):
+            w.source(doc, spec)
+
+
+def test_label_map_warp_of_an_unmoved_lattice_is_the_map(tmp_path):
+    lab = np.zeros((20, 20, 20), np.int16)
+    lab[4:10, 5:15, 3:12] = 3
+    lab[11:17, 2:9, 8:18] = -7
+    spec_path = _spec(tmp_path, "version: 1\nunits: voxel\ncapture: {lattice: 6, oversample: 1}"
+                                "\nsteps:\n  - move:\n      - {index: [2, 2, 2], by: [0, 0, 0]}\n")
+    with WarpInput("lab", read_volume=lambda: Volume(lab), labels=True) as w:
+        doc, spec = w.load_spec(spec_path)
+        vol = w.source(doc, spec, labels=True)
+    warp = LabelMapWarp(vol, doc, spec, WarpOptions(crop=True))
+    frames = []
+    out, report = warp.render_frames(lambda f, v: frames.append(v.data.copy()))
+    assert out.data.dtype == np.int16 and np.array_equal(out.data, lab)
+    assert len(frames) == 2 and all(np.array_equal(f, lab) for f in frames)
+    assert report["labels"][3]["output_voxels"] == int((lab == 3).sum())
+    with pytest.raises(VolwarpError):
+        LabelMapWarp(vol, doc, spec, WarpOptions(dtype="float32"))
+
+
+def test_handle_report_is_in_world_mm(tmp_path):
+    zz, yy, xx = np.mgrid[:24, :24, :24]
+    ball = ((xx - 11.5) ** 2 + (yy - 11.5) ** 2 + (zz - 11.5) ** 2 < 36).astype(np.float32)
+    vol = Volume(ball, spacing=(2.0, 2.0, 2.0), origin=(10.0, 0.0, 0.0))
+    spec_path = _spec(tmp_path, "version: 1\ncapture: {lattice: 7, oversample: 1}\nsteps:\n"
+                                "  - drag:\n      - {from: [33, 23, 23], to: [37, 23, 23]}\n"
+                                "    radius: 20\n")
+    with WarpInput("ball", read_volume=lambda: vol) as w:
+        doc, spec = w.load_spec(spec_path)
+        cap = w.source(doc, spec)
+    warp = IntensityWarp(cap, doc, spec)
+    (h,) = warp.handles()
+    assert h["step"] == 0 and h["index"] == 0
+    np.testing.assert_allclose(h["from"], [33, 23, 23], atol=1e-9)
+    np.testing.assert_allclose(h["to"], [37, 23, 23], atol=1e-9)
+    assert h["miss_mm"] == pytest.approx(np.linalg.norm(np.subtract(h["reached"], h["to"])))
+    assert h["miss_mm"] < 1.0
+    assert handle_report(cap, warp.frames) == [h]
+
+
+def test_exports_of_an_unmoved_warp(tmp_path):
+    spec_path = _spec(tmp_path, "version: 1\nunits: voxel\ncapture: {lattice: 6, oversample: 1}"
+                                "\nsteps:\n  - move:\n      - {index: [2, 2, 2], by: [0, 0, 0]}\n")
+    doc, spec, cap = _opened(spec_path)
+    warp = IntensityWarp(cap, doc, spec, WarpOptions(crop=True))
+    assert not ExportRequests()
+    req = ExportRequests(jacobian=str(tmp_path / "j.nrrd"),
+                         displacement=str(tmp_path / "d.nrrd"))
+    assert req
+    stats = write_exports(req, warp, meta={"volwarp_command": "warp"}, mesh_meta={})
+    assert stats["jacobian"]["min"] == pytest.approx(1.0, abs=1e-5)
+    assert stats["jacobian"]["max"] == pytest.approx(1.0, abs=1e-5)
+    assert stats["displacement"]["folded"] == 0 and stats["displacement"]["voxels"] == 30 ** 3
+    det = read_volume(tmp_path / "j.nrrd")
+    assert det.meta["volwarp_field"] == "jacobian" and det.shape_xyz == (30, 30, 30)
+    for axis in range(3):
+        field = read_volume(tmp_path / "d.nrrd", volume_index=axis)
+        assert np.nanmax(np.abs(field.data)) < 1e-4

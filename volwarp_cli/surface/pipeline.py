@@ -1,0 +1,139 @@
+"""The mesh chain: a volume to its cleaned-up isosurface, and a label map to its labels'.
+
+:func:`surface_mesh` is ``volwarp mesh``'s core: the isosurface at a level
+(the middle of the value range unless given), refused or kept empty when the
+level is never crossed, then the optional clean-ups in a fixed order
+(largest component, smoothing, decimation). :func:`label_indicator` and
+:func:`label_meshes` do the same for a segmentation, one label at a time (each
+label's indicator at 0.5, closed at the volume's border). Nothing here reads
+or writes files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import VolwarpError
+from ..progress import log, timed
+from ..volume import Volume
+from .mesh import Mesh
+
+
+@dataclass(frozen=True)
+class Cleanup:
+    """What is done to a surface after it is extracted, in this order.
+
+    ``largest_component``: keep only the connected piece with the most
+    triangles; ``smooth``: windowed-sinc iterations (0: none); ``decimate``:
+    the fraction of triangles to remove (0: none).
+    """
+
+    largest_component: bool = False
+    smooth: int = 0
+    decimate: float = 0.0
+
+
+def surface_mesh(vol: Volume, iso: float | None = None, *, inside: str = "above",
+                 cap: bool = False, allow_empty: bool = False, cleanup: Cleanup = Cleanup(),
+                 name: str = "the volume") -> tuple[Mesh, float]:
+    """The isosurface of ``vol`` at ``iso`` after ``cleanup``: ``(mesh, iso)``.
+
+    ``iso`` None: the middle of the value range (the level used is returned).
+    ``inside``: which side of the level is the shape (``"above"`` or
+    ``"below"``), which sets the outward normals; ``cap``: close the surface
+    where the shape touches the volume's border. A level outside the data
+    range, or never crossed, is a :class:`VolwarpError` naming ``name``
+    unless ``allow_empty`` (then an empty mesh, and a warning). NaN samples
+    are refused.
+    """
+    from .isosurface import default_iso, isosurface, touches_border
+
+    lo, hi = float(np.min(vol.data)), float(np.max(vol.data))  # NaN if any sample is NaN
+    if np.isnan(lo) or np.isnan(hi):
+        raise VolwarpError(f"{name}: the volume contains NaN samples; an isosurface is not "
+                           "defined there")
+    if iso is None:
+        iso = default_iso(vol.data)
+        log.info("iso level not given: using the middle of the value range, %g", iso)
+    empty_reason = None
+    if not lo <= iso <= hi:
+        empty_reason = f"iso level {iso:g} is outside the data range [{lo:g}, {hi:g}] of {name}"
+        mesh = Mesh.empty()
+    else:
+        mesh = isosurface(vol, iso, inside=inside, cap=cap)
+        if mesh.is_empty:
+            empty_reason = f"no surface at level {iso:g} in {name} (the level is never crossed)"
+        elif not cap and touches_border(vol.data, iso, inside):
+            log.warning("the shape touches the volume's border, where its surface is open "
+                        "(use --cap to close it)")
+    if empty_reason:
+        if not allow_empty:
+            raise VolwarpError(f"{empty_reason}; nothing written (--allow-empty writes an "
+                               "empty mesh)")
+        log.warning("%s: the mesh is empty", empty_reason)
+    return clean(mesh, cleanup), iso
+
+
+def clean(mesh: Mesh, cleanup: Cleanup) -> Mesh:
+    """``mesh`` after ``cleanup`` (largest component, smoothing, decimation, in order)."""
+    from . import ops
+
+    if cleanup.largest_component and not mesh.is_empty:
+        with timed("largest component"):
+            mesh = ops.largest_component(mesh)
+    if cleanup.smooth:
+        with timed(f"smooth ({cleanup.smooth} iterations)"):
+            mesh = ops.smooth(mesh, cleanup.smooth)
+    if cleanup.decimate:
+        with timed(f"decimate ({cleanup.decimate:g})"):
+            mesh = ops.decimate(mesh, cleanup.decimate)
+    return mesh
+
+
+def check_label_map(vol: Volume, name: str, what: str) -> None:
+    """Refuse a volume that is not a label map (integer samples) for ``what``."""
+    if np.dtype(vol.dtype).kind not in "iu":
+        raise VolwarpError(f"{name}: {what} needs a label map (integer samples), got {vol.dtype}")
+
+
+def label_indicator(vol: Volume, label: int, *, name: str = "the volume",
+                    what: str = "--label") -> Volume:
+    """The indicator of ``label`` in the label map ``vol`` (1 inside, 0 elsewhere), float32,
+    the same geometry; its surface is the isosurface at 0.5."""
+    check_label_map(vol, name, what)
+    ind = vol.data == label
+    if not ind.any():
+        raise VolwarpError(f"{name}: label {label} does not occur in the volume")
+    return vol.with_data(ind.astype(np.float32))
+
+
+def labels_of(vol: Volume, *, name: str = "the volume", what: str = "--labels") -> list[int]:
+    """The label map's labels other than 0, ascending (none: a :class:`VolwarpError`)."""
+    check_label_map(vol, name, what)
+    values = [int(v) for v in np.unique(vol.data) if v != 0]
+    if not values:
+        raise VolwarpError(f"{name}: no label other than 0 in the volume")
+    return values
+
+
+def label_surface(vol: Volume, label: int, *, allow_empty: bool = False,
+                  cleanup: Cleanup = Cleanup(), name: str = "the volume",
+                  what: str = "--label") -> Mesh:
+    """The closed surface of ``label`` (its indicator at 0.5, capped at the border)."""
+    ind = label_indicator(vol, label, name=name, what=what)
+    mesh, _ = surface_mesh(ind, 0.5, inside="above", cap=True, allow_empty=allow_empty,
+                           cleanup=cleanup, name=f"{name} label {label}")
+    return mesh
+
+
+def label_meshes(vol: Volume, *, allow_empty: bool = False, cleanup: Cleanup = Cleanup(),
+                 name: str = "the volume") -> Iterator[tuple[int, Mesh]]:
+    """``(label, surface)`` for every label of ``vol`` other than 0, ascending."""
+    values = labels_of(vol, name=name)
+    log.info("%d labels: %s", len(values), " ".join(map(str, values[:20])))
+    for label in values:
+        yield label, label_surface(vol, label, allow_empty=allow_empty, cleanup=cleanup,
+                                   name=name, what="--labels")
