@@ -24,6 +24,7 @@ from .options import (
     parse_view,
     render_size_option,
 )
+from .view_options import camera_options, orientation_labels_for
 
 
 def image_path(value):
@@ -117,11 +118,13 @@ def _format_stats(d: dict) -> str:
               help="Print counts, area, enclosed volume, bounding box, components, closed.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the statistics as one JSON object (implies --stats).")
+@camera_options
 @input_options
 @common_options
 def command(input, output, iso, inside, cap, smooth, decimate, largest_component, allow_empty,
             render, view, render_size, color, background_color, turntable, label, labels,
-            show_stats, as_json, raw, volume_index, dicom):
+            show_stats, as_json, raw, volume_index, dicom, camera_from, camera_to,
+            orientation_labels):
     """Isosurface INPUT at level --iso and write it to OUTPUT (world coordinates).
 
     Triangles are wound counter-clockwise seen from outside and normals point
@@ -149,6 +152,10 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
                                "where the label is)")
     if labels and render is not None:
         raise click.UsageError("--render does not apply to --labels (render one --label N)")
+    if render is None and (camera_from is not None or camera_to is not None
+                           or orientation_labels is not None):
+        raise click.UsageError("--camera-from, --camera-to and --orientation-labels need "
+                               "--render OUT.png")
     # Fail on bad outputs before any work (their extensions are checked by the options).
     if output is not None:
         check_mesh_output(_label_pattern(output) if labels else output)
@@ -187,18 +194,26 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
     if render is not None:
         from ..io.images import write_image
         from ..render import surface as rs
+        from ..render.camera import write_camera
+        letters = orientation_labels_for(orientation_labels, vol)
         if turntable is None:
             with timed(f"render {render}"):
-                image = rs.render_mesh(mesh, view=view, size=render_size, color=color,
-                                       background=background_color)
+                image, camera = rs.render_mesh(mesh, view=view, size=render_size, color=color,
+                                               background=background_color, camera=camera_from,
+                                               orientation_labels=letters, return_camera=True)
                 write_image(render, image)
         else:
             paths = turntable_paths(render, turntable)
             with timed(f"render {turntable} turntable views"):
-                images = rs.render_turntable(mesh, turntable, view=view, size=render_size,
-                                             color=color, background=background_color)
+                images, cameras = rs.render_turntable(
+                    mesh, turntable, view=view, size=render_size, color=color,
+                    background=background_color, camera=camera_from,
+                    orientation_labels=letters, return_cameras=True)
                 for path, image in zip(paths, images, strict=True):
                     write_image(path, image)
+            camera = cameras[0]
+        if camera_to is not None:
+            write_camera(camera, camera_to, source=str(input))
 
 
 def _mesh_labels(vol, input, output, cleanup, allow_empty, show_stats, as_json):

@@ -30,6 +30,7 @@ from .options import (
     render_size_option,
     write_options,
 )
+from .view_options import camera_options
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
@@ -116,9 +117,11 @@ def _attribute_name(frame_path: str, name: str) -> str:
 @click.option("--view", default="iso", show_default=True,
               callback=core_parser(parse_view), help=VIEW_HELP)
 @write_options
+@camera_options
 @common_options
 def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, times, iso, inside,
-            metric, grid_choice, as_density, render_size, view, dtype, compress, byte_order):
+            metric, grid_choice, as_density, render_size, view, dtype, compress, byte_order,
+            camera_from, camera_to, orientation_labels):
     """Morph SOURCE into TARGET: frame t is the zero level set of (1-t) d_source + t d_target.
 
     Give a --spec, or SOURCE TARGET with --frames (or --times) and --iso.
@@ -168,11 +171,17 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
                        grid=grid_choice)
     if sheet_path is not None and render_to is None:
         raise click.UsageError("--sheet needs --render-to")
+    if render_to is None and (camera_from is not None or camera_to is not None
+                              or orientation_labels is not None):
+        raise click.UsageError("--camera-from, --camera-to and --orientation-labels need "
+                               "--render-to")
     _run(job, output, mesh_to, render_to, sheet_path, render_size, view, spec_path,
-         dict(dtype=dtype, compress=compress, byte_order=byte_order))
+         dict(dtype=dtype, compress=compress, byte_order=byte_order),
+         (camera_from, camera_to, orientation_labels))
 
 
-def _run(job, output, mesh_to, render_to, sheet_path, size, view, spec_path, write_kw):
+def _run(job, output, mesh_to, render_to, sheet_path, size, view, spec_path, write_kw,
+         cameras=(None, None, None)):
     from ..io import check_output_path, read_volume, write_volume
     from ..morph.frames import RenderSettings, morph_frames
     from ..morph.grid import GridError
@@ -213,7 +222,14 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, spec_path, wri
         raise SpecError(str(exc), file=str(spec_path), key=".".join(exc.key)) from None
     meta = {"volwarp_morph": f"metric={job.metric} output={job.output}",
             **provenance("morph", [job.source.path, job.target.path], spec_path)}
-    render = RenderSettings(view, size) if render_paths else None
+    camera_from, camera_to, labels_flag = cameras
+    render = None
+    if render_paths:
+        from .view_options import orientation_labels_for
+
+        render = RenderSettings(view, size, camera=camera_from,
+                                orientation_labels=orientation_labels_for(labels_flag, source,
+                                                                          target))
     attr_kw = {k: v for k, v in write_kw.items() if k != "dtype"}  # their own types
     renders = []
     for frame in morph_frames(job, prep, source, attrs, meta=meta, meshes=bool(mesh_paths),
@@ -232,6 +248,10 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, spec_path, wri
             write_image(render_paths[i], frame.image)
             if sheet_path:
                 renders.append(frame.image)
+    if camera_to is not None and render is not None:
+        from ..render.camera import write_camera
+
+        write_camera(frame.camera, camera_to, source=str(job.source.path))
     if sheet_path:
         from ..io.images import write_image
         from ..render.sheet import contact_sheet

@@ -17,6 +17,8 @@ checks this list against the commands; ``(every command)``: from
     --background-color        mesh
     --background-value        warp
     --byte-order              warp morph sweep distance convert
+    --camera-from             morph sweep mesh
+    --camera-to               morph sweep mesh
     --cap                     mesh
     --color                   mesh
     --compress/--no-compress  warp morph sweep distance convert
@@ -53,6 +55,7 @@ checks this list against the commands; ``(every command)``: from
     --method                  sweep
     --metric                  morph distance
     --multi                   sweep
+    --orientation-labels/--no-orientation-labels  morph sweep mesh
     -o/--output               capture warp morph sweep distance mesh convert
     --oversample              capture
     --pad                     capture
@@ -115,6 +118,7 @@ from ..errors import VolwarpError
 from ..io import SUPPORTED_DTYPES, RawLayout
 from ..io.common import ALLOW_OUTSIDE_DATA
 from ..progress import configure, log
+from .view_options import VIEW_HELP  # noqa: F401  (--view's help, for every command)
 
 
 def _configure_verbosity(ctx, param, value):
@@ -342,11 +346,6 @@ def write_options(f):
     return f
 
 
-#: --view of every command that renders (mesh, morph, sweep): one convention
-VIEW_HELP = ("Render view: iso, x, y, z, front, back, left, right, top, bottom (looking from "
-             "there) or AZIMUTH,ELEVATION in degrees (azimuth from +x towards +y, z up). "
-             "front looks from -y, right from +x: for LPS scans, the face and the "
-             "patient's left side.")
 
 
 #: --render-size's default, for every command that renders (mesh, morph, sweep)

@@ -18,6 +18,7 @@ from .options import (
     render_size_option,
     write_options,
 )
+from .view_options import camera_options
 
 
 def _render_size(value):
@@ -131,10 +132,11 @@ def scale_to_dtype(data, dtype):
 @click.option("--tau", type=click.FloatRange(min=0, min_open=True), default=None,
               help="Largest distance between neighbouring templates, world units "
                    "(default: the spec's, else half a voxel).")
+@camera_options
 @write_options
 @common_options
 def command(spec, output, multi, render_path, view, render_size, shape, spacing, method, tau,
-            dtype, compress, byte_order):
+            dtype, compress, byte_order, camera_from, camera_to, orientation_labels):
     """Sweep 2-D image templates along the trajectory of SPEC into one volume per field.
 
     Fields are float32 (--dtype uint8 scales 0..1 to 0..255, other integer
@@ -155,6 +157,10 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
 
     if shape is not None and spacing is not None:
         raise click.UsageError("give --shape or --spacing, not both")
+    if render_path is None and (camera_from is not None or camera_to is not None
+                                or orientation_labels is not None):
+        raise click.UsageError("--camera-from, --camera-to and --orientation-labels need "
+                               "--render OUT.png")
     if multi:  # the output's form is checked before the spec and its templates are read
         output_paths(output, [], multi)
     with timed("read spec and templates"):
@@ -207,7 +213,15 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
         colour = None
         if all(c in fields for c in ("red", "green", "blue")):
             colour = [fields["red"], fields["green"], fields["blue"]]
+        from ..render.camera import write_camera
+        from .view_options import orientation_labels_for
+
         with timed(f"render {render_path}"):
-            img = render_volume(fields["opacity"], colour=colour, geometry=fields.get("geometry"),
-                                spacing=grid.spacing, view=view, size=render_size)
+            img, camera = render_volume(
+                fields["opacity"], colour=colour, geometry=fields.get("geometry"),
+                spacing=grid.spacing, origin=grid.origin, view=view, size=render_size,
+                camera=camera_from, orientation_labels=orientation_labels_for(orientation_labels),
+                return_camera=True)
             write_image(render_path, np.ascontiguousarray(img))
+        if camera_to is not None:
+            write_camera(camera, camera_to, source=str(spec))

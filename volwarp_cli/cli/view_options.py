@@ -27,7 +27,7 @@ CAMERA_FROM_HELP = (
     "Use the camera in FILE (written by --camera-to: JSON with position, focal point, view "
     "up, parallel scale and picture size, in LPS world coordinates) instead of fitting one "
     "to this object, so that before/after pictures compare pixel for pixel. It fixes the "
-    "view (no --view) and the picture size; a --size given keeps the camera's view and its "
+    "view (no --view) and the picture size; a --render-size given keeps the camera's view and its "
     "height in world units.")
 
 CAMERA_TO_HELP = ("Write the camera of this render to FILE (JSON, for --camera-from; pyvista "
@@ -64,7 +64,7 @@ def _given(ctx, name: str) -> bool:
                       click.core.ParameterSource.ENVIRONMENT)
 
 
-#: names of a command's picture-size option (mesh/morph --size, sweep --render-size)
+#: names of a command's picture-size parameter (--render-size; the old --size)
 _SIZE_PARAMS = ("size", "render_size")
 
 

@@ -29,10 +29,15 @@ from .spec import MorphJob
 @dataclass(frozen=True)
 class RenderSettings:
     """How the frames' surfaces are rendered: a view (a name or (azimuth, elevation)) and
-    a (width, height) in pixels; one camera, fitted to both shapes, for every frame."""
+    a (width, height) in pixels; one camera, fitted to both shapes, for every frame, or
+    ``camera`` (a :class:`volwarp_cli.render.camera.Camera`, e.g. one read back to compare
+    with another run); ``orientation_labels``: the anatomical letters at the edges.
+    """
 
     view: object = "iso"
     size: tuple[int, int] = (800, 600)
+    camera: object = None
+    orientation_labels: bool = False
 
 
 @dataclass
@@ -42,7 +47,8 @@ class Frame:
     ``volume``: the frame's field (float32 SDF, negative inside) or occupancy,
     with the frame's key/values (``volwarp_morph_t``); ``attributes``: name ->
     the attribute at ``t`` in its output type; ``mesh``: the zero-level surface
-    (when meshes or renders were asked for); ``image``: its ``(H, W, 3)`` render.
+    (when meshes or renders were asked for); ``image``: its ``(H, W, 3)`` render,
+    ``camera`` the camera of every frame's render.
     The arrays may be reused by the next frame: use (write) a frame before
     asking for the next.
     """
@@ -53,11 +59,13 @@ class Frame:
     attributes: dict[str, Volume] = field(default_factory=dict)
     mesh: object = None
     image: np.ndarray | None = None
+    camera: object = None
 
 
 def shape_box(prep: Prepared) -> np.ndarray:
     """World corners ``(8, 3)`` of the box holding source and target shapes on the frame
-    grid (for one fixed camera)."""
+    grid (for one fixed camera).
+    """
     inside = (prep.morph.source < 0) | (prep.morph.target < 0)
     if not inside.any():
         raise VolwarpError("neither shape has any voxel inside on the frame grid")
@@ -105,7 +113,7 @@ def morph_frames(job: MorphJob, prep: Prepared, source: Volume,
              for a in job.attributes}
     if job.output == "density" and job.density_range == "source":
         lo, hi = float(np.nanmin(source.data)), float(np.nanmax(source.data))
-    camera = None
+    camera = None if render is None else render.camera
     with progress(len(job.times), "morph frames") as bar:
         buf = np.empty(grid.shape_zyx, np.float32)
         for i, t in enumerate(job.times):
@@ -132,6 +140,8 @@ def morph_frames(job: MorphJob, prep: Prepared, source: Volume,
 
                     if camera is None:
                         camera = fit_camera(shape_box(prep), render.view, render.size)
-                    frame.image = render_mesh(frame.mesh, camera=camera)
+                    frame.image = render_mesh(frame.mesh, camera=camera,
+                                              orientation_labels=render.orientation_labels)
+                    frame.camera = camera
             yield frame
             bar.advance()
