@@ -112,7 +112,7 @@ def main(quick: bool = False) -> None:
         peer_cold, peer_warm = _pyvista_render(mesh, size)
         row(f"render {tri} 1024x768 (core)", ours, peer_warm, "pyvista EGL")
         png = tmp / "r.png"
-        cmd = [str(rpath), "--iso", "0", "--render", str(png), "--size", "1024x768", "-q"]
+        cmd = [str(rpath), "--iso", "0", "--render", str(png), "--render-size", "1024x768", "-q"]
         _run_cmd(cmd)
         whole = median_time(lambda: _run_cmd(cmd), repeat=max(2, repeats - 2), warmup=0)
         row(f"volwarp mesh --render {tri} (whole)", whole, peer_cold,
