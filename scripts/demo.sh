@@ -28,7 +28,7 @@ else
   echo "round trip changed the volume" >&2; exit 1
 fi
 
-step "capture + warp: raise the crown by 20 mm, push the left side in (specs/warp-head.yaml)"
+step "capture + warp: raise the crown by 20 mm, push the patient's left side in (specs/warp-head.yaml)"
 volwarp capture "$SCAN" -o "$DEMO/head.vwc" --lattice 9 --oversample 1
 volwarp warp "$DEMO/head.vwc" --spec specs/warp-head.yaml -o "$DEMO/head_warped.nrrd" -v
 
