@@ -217,3 +217,22 @@ def test_version_1_capture_files_from_a_ras_input_are_refused(run, data_dir, tmp
     if not refused:
         d = json.loads(run("info", old, "--json").stdout)
         assert d["space"] == (None if space is None else "left-posterior-superior")
+
+
+def test_info_says_where_the_control_points_lie(run, tmp_path):
+    """info SCENE.vwc: the index convention, the corners, each index step as a world
+    vector (the coronal head's j runs up the head, world +z) and which indices lie inside
+    the volume; the figures agree with --json's lattice_points."""
+    from pathlib import Path
+
+    src = Path(__file__).parent / "data" / "mri_t1_head_coronal_2x2x3mm.nrrd"
+    vwc = tmp_path / "h.vwc"
+    assert run("capture", src, "-o", vwc, "--lattice", 9, "--oversample", 1).code == 0
+    text = run("info", vwc).stdout
+    pts = np.array(json.loads(run("info", vwc, "--json").stdout)["lattice_points"])
+    assert "along the input's voxel axes x y z" in text
+    step_j = pts[0, 1, 0] - pts[0, 0, 0]
+    assert np.allclose(step_j, [0, 0, 44])  # j +1 is 44 mm up the head
+    assert "j +1 = world 0 0 44 mm" in text
+    assert f"[8, 8, 8]: world {' '.join(f'{v:g}' for v in pts[8, 8, 8])} mm" in text
+    assert "lattice inside: [2..6, 2..6, 2..6]" in text

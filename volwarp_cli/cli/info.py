@@ -81,10 +81,62 @@ def command(file, as_json, raw, volume_index, dicom):
         lo = [min(p[a] for p in flat) for a in range(3)]
         hi = [max(p[a] for p in flat) for a in range(3)]
         click.echo(_format_text(desc))
+        for line in _lattice_lines(desc, pts):
+            click.echo(line)
         click.echo(f"lattice_points: {len(flat)} points, world x {lo[0]:g}..{hi[0]:g}, "
                    f"y {lo[1]:g}..{hi[1]:g}, z {lo[2]:g}..{hi[2]:g} (all of them: --json)")
     else:
         click.echo(_format_text(desc))
+
+
+def _lattice_lines(desc: dict, pts) -> list[str]:
+    """Where a capture file's control points lie, in words a spec's ``move.index`` can use.
+
+    ``pts[i][j][k]`` is the world position of control point ``[i, j, k]``. The index
+    runs along the input's voxel axes (the shape's x y z), which are world axes only
+    for an identity direction: the lines give each index step as a world vector, and
+    which indices lie inside the volume's voxel box.
+    """
+    import numpy as np
+
+    p = np.asarray(pts, dtype=np.float64)  # [i, j, k, 3]
+    n = p.shape[:3]
+    fmt = " ".join
+    lines = [f"lattice index: [i, j, k], 0-based (0..{n[0] - 1} 0..{n[1] - 1} 0..{n[2] - 1}), "
+             "along the input's voxel axes x y z (not world x y z)",
+             f"lattice [0, 0, 0]: world {fmt(f'{v:g}' for v in p[0, 0, 0])} mm; "
+             f"[{n[0] - 1}, {n[1] - 1}, {n[2] - 1}]: world "
+             f"{fmt(f'{v:g}' for v in p[-1, -1, -1])} mm"]
+    steps = [np.diff(p, axis=a) for a in range(3)]
+    uniform = all(np.allclose(st, st.reshape(-1, 3)[0], atol=1e-6) for st in steps)
+    if uniform:
+        parts = [f"{name} +1 = world {fmt(f'{v:g}' for v in st.reshape(-1, 3)[0])} mm"
+                 for name, st in zip("ijk", steps, strict=True)]
+        lines.append("lattice steps: " + "; ".join(parts))
+        spacing = [float(np.linalg.norm(st.reshape(-1, 3)[0])) for st in steps]
+        lines.append(f"lattice reach: a moved control point changes the model within 2 steps "
+                     f"of it along i, j, k ({fmt(f'{2 * h:g}' for h in spacing)} mm)")
+    else:  # the tripled placement: positions along each axis, in input voxel indices
+        origin = np.asarray(desc["origin"], dtype=np.float64)
+        m = np.asarray(desc["direction"], dtype=np.float64) * np.asarray(desc["spacing"])
+        idx = np.linalg.solve(m, (p.reshape(-1, 3) - origin).T).T.reshape(p.shape)
+        for a, name in enumerate("ijk"):
+            axis = [idx[t, 0, 0, 0] if a == 0 else idx[0, t, 0, 1] if a == 1 else idx[0, 0, t, 2]
+                    for t in range(n[a])]
+            lines.append(f"lattice {name} (input voxel {'xyz'[a]}): "
+                         f"{fmt(f'{v:.6g}' for v in axis)}")
+    shape = np.asarray(desc["shape"], dtype=np.float64)
+    origin = np.asarray(desc["origin"], dtype=np.float64)
+    m = np.asarray(desc["direction"], dtype=np.float64) * np.asarray(desc["spacing"])
+    idx = np.linalg.solve(m, (p.reshape(-1, 3) - origin).T).T.reshape(p.shape)
+    inside = []
+    for a in range(3):
+        axis = idx[:, 0, 0, 0] if a == 0 else idx[0, :, 0, 1] if a == 1 else idx[0, 0, :, 2]
+        ok = np.flatnonzero((axis >= -0.5 - 1e-6) & (axis <= shape[a] - 0.5 + 1e-6))
+        inside.append(f"{ok[0]}..{ok[-1]}" if ok.size else "none")
+    lines.append(f"lattice inside: [{', '.join(inside)}] lie within the volume's voxel box; "
+                 "the others outside it")
+    return lines
 
 
 def _label_hint(desc: dict, vol) -> None:
