@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba-cache"))
 
 import common  # noqa: E402
-from bench_warp import volume, volwarp_bin  # noqa: E402
+from bench_warp import volume, volwarp_bin, vtk_bspline_resample  # noqa: E402
 
 
 def paired(argv_a, argv_b, pairs):
@@ -74,36 +74,8 @@ def general_spec(path, dq):
 
 
 def vtk_general(data, dq):
-    import vtk
-    from vtk.util import numpy_support as ns
-
-    n = data.shape[0]
-    img = vtk.vtkImageData()
-    img.SetDimensions(n, n, n)
-    img.GetPointData().SetScalars(ns.numpy_to_vtk(data.ravel(), deep=False))
-    c = dq.shape[0]
-    h = n / (c - 3.0)
-    cimg = vtk.vtkImageData()
-    cimg.SetDimensions(c, c, c)
-    cimg.SetSpacing(h, h, h)
-    cimg.SetOrigin(-0.5 - h, -0.5 - h, -0.5 - h)
-    coeff = (-dq).astype(np.float32)  # reslice pulls back: about the inverse displacement
-    cimg.GetPointData().SetScalars(ns.numpy_to_vtk(coeff.reshape(-1, 3), deep=True))
-    tr = vtk.vtkBSplineTransform()
-    tr.SetCoefficientData(cimg)
-    tr.SetBorderModeToZero()
-    rs = vtk.vtkImageReslice()
-    rs.SetInputData(img)
-    rs.SetResliceTransform(tr)
-    rs.SetInterpolationModeToLinear()
-    rs.SetOutputExtent(0, n - 1, 0, n - 1, 0, n - 1)
-
-    def go():
-        rs.Modified()
-        rs.Update()
-        return rs.GetOutput()
-
-    return go
+    """VTK's reslice through the same lattice (about the inverse: its coefficients pull back)."""
+    return vtk_bspline_resample(data, -dq)
 
 
 def sitk_general(data, dq):

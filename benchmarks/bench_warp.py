@@ -66,6 +66,16 @@ def volwarp_bin():
 
 
 def vtk_resample(data, disp_index, shift):
+    """vtkImageReslice through a 9^3 vtkBSplineTransform with one coefficient moved."""
+    coeff = np.zeros((9, 9, 9, 3))
+    i, j, k = disp_index
+    coeff[k, j, i] = -np.asarray(shift)  # reslice pulls back: inverse displacement
+    return vtk_bspline_resample(data, coeff)
+
+
+def vtk_bspline_resample(data, coeff):
+    """vtkImageReslice of ``data`` (n^3) through the uniform cubic B-spline whose
+    coefficients (voxels, ``[k, j, i, 3]``, a c^3 grid spanning the volume) are ``coeff``."""
     import vtk
     from vtk.util import numpy_support as ns
 
@@ -73,17 +83,13 @@ def vtk_resample(data, disp_index, shift):
     img = vtk.vtkImageData()
     img.SetDimensions(n, n, n)
     img.GetPointData().SetScalars(ns.numpy_to_vtk(data.ravel(), deep=False))
-    # 9^3 coefficient grid spanning the volume (uniform cubic B-spline)
-    c = 9
-    h = n / 6.0
-    coeff = np.zeros((c, c, c, 3), np.float32)
-    i, j, k = disp_index
-    coeff[k, j, i] = -np.asarray(shift)  # reslice pulls back: inverse displacement
+    c = coeff.shape[0]
+    h = n / (c - 3.0)
     cimg = vtk.vtkImageData()
     cimg.SetDimensions(c, c, c)
     cimg.SetSpacing(h, h, h)
     cimg.SetOrigin(-0.5 - h, -0.5 - h, -0.5 - h)
-    arr = ns.numpy_to_vtk(coeff.reshape(-1, 3), deep=True)
+    arr = ns.numpy_to_vtk(np.asarray(coeff, np.float32).reshape(-1, 3), deep=True)
     cimg.GetPointData().SetScalars(arr)
     tr = vtk.vtkBSplineTransform()
     tr.SetCoefficientData(cimg)
