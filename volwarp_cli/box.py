@@ -105,8 +105,11 @@ class Box:
         return Box(lo, hi)
 
     def union_hull(self, other: Box) -> Box:
-        """The smallest box holding both (an empty box adds nothing; two empty boxes give
-        the empty box at the origin, ``Box((0, 0, 0), (0, 0, 0))``)."""
+        """The smallest box holding both.
+
+        An empty box adds nothing; two empty boxes give the empty box at the origin,
+        ``Box((0, 0, 0), (0, 0, 0))``.
+        """
         if self.empty and other.empty:
             return Box((0, 0, 0), (0, 0, 0))
         if other.empty:
@@ -117,8 +120,10 @@ class Box:
                    tuple(max(a, b) for a, b in zip(self.hi, other.hi, strict=True)))
 
     def contains(self, other) -> bool:
-        """True when ``other`` (a Box, or one index (z, y, x)) lies inside; an empty box
-        lies inside every box."""
+        """True when ``other`` (a Box, or one index (z, y, x)) lies inside.
+
+        An empty box lies inside every box.
+        """
         if isinstance(other, Box):
             if other.empty:
                 return True
@@ -128,8 +133,10 @@ class Box:
         return all(a <= v < b for a, b, v in zip(self.lo, self.hi, p, strict=True))
 
     def grow(self, n, within: Box | None = None) -> Box:
-        """The box widened by ``n`` voxels on both sides (one int, or per axis (z, y, x));
-        negative ``n`` shrinks it. ``within``: clamped to that enclosing box."""
+        """The box widened by ``n`` voxels on both sides (one int, or per axis (z, y, x)).
+
+        Negative ``n`` shrinks it. ``within``: clamped to that enclosing box.
+        """
         n = _ints3(n, "n")
         box = Box(tuple(a - k for a, k in zip(self.lo, n, strict=True)),
                   tuple(b + k for b, k in zip(self.hi, n, strict=True)))
@@ -142,8 +149,10 @@ class Box:
                    tuple(b + k for b, k in zip(self.hi, d, strict=True)))
 
     def relative_to(self, outer: Box) -> Box:
-        """The box in the index frame of ``outer`` (whose ``lo`` becomes 0): where the
-        block sits in the array ``data[outer.slices]``."""
+        """The box in the index frame of ``outer`` (whose ``lo`` becomes 0).
+
+        That is where the block sits in the array ``data[outer.slices]``.
+        """
         return self.shift(tuple(-v for v in outer.lo))
 
     # -- tilings --------------------------------------------------------------------
@@ -167,8 +176,10 @@ class Box:
         return out
 
     def blocks(self, block_shape) -> list[Box]:
-        """Tiles of ``block_shape`` (z, y, x) covering the box exactly, in C order (x
-        fastest); the last tile along an axis is cut short at the box's end."""
+        """Tiles of ``block_shape`` (z, y, x) covering the box exactly, in C order (x fastest).
+
+        The last tile along an axis is cut short at the box's end.
+        """
         step = _ints3(block_shape, "block_shape")
         if min(step) < 1:
             raise ValueError(f"block_shape must be positive, got {step}")

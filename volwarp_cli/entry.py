@@ -13,6 +13,7 @@ import sys
 
 
 def main() -> int:
+    """Run the ``volwarp`` command line; its exit code."""
     # A command-line run, before numpy is imported: BLAS's own threads stay at one.
     # volwarp's kernels take the cores with their own threads (--threads) and make no
     # large dense products; OpenBLAS's threads, woken by the small products of the

@@ -42,8 +42,10 @@ class SpecError(VolwarpError):
 
 
 class ChoiceNeeded(VolwarpError):
-    """An input that holds several things where one is needed, and only the user can say
-    which (a DICOM folder with several series): a usage error, since an option chooses."""
+    """An input that holds several things where one is needed, and only the user can say which.
+
+    For example a DICOM folder with several series: a usage error, since an option chooses.
+    """
 
 
 class OutOfMemoryError(VolwarpError):

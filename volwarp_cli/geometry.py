@@ -73,8 +73,11 @@ class Geometry:
 
     @classmethod
     def of(cls, volume) -> Geometry:
-        """The geometry of a :class:`~.volume.Volume` (or anything with ``data`` or
-        ``shape`` (z, y, x), ``spacing``, ``origin`` and ``direction``)."""
+        """The geometry of a :class:`~.volume.Volume`, or of anything alike.
+
+        That is anything with ``data`` or ``shape`` (z, y, x), ``spacing``, ``origin``
+        and ``direction``.
+        """
         shape = volume.data.shape if hasattr(volume, "data") else volume.shape
         return cls(tuple(shape), volume.spacing, volume.origin, volume.direction)
 
@@ -87,6 +90,7 @@ class Geometry:
     # -- sizes ----------------------------------------------------------------------
     @property
     def shape_xyz(self) -> tuple[int, int, int]:
+        """The size written (x, y, z), as specs and metadata have it."""
         return tuple(zyx_to_xyz(self.shape))
 
     @property
@@ -102,14 +106,17 @@ class Geometry:
     # -- coordinates ----------------------------------------------------------------
     @property
     def spacing_array(self) -> np.ndarray:
+        """Spacing (x, y, z) as a numpy array."""
         return np.array(self.spacing)
 
     @property
     def origin_array(self) -> np.ndarray:
+        """Origin (x, y, z) as a numpy array."""
         return np.array(self.origin)
 
     @property
     def direction_array(self) -> np.ndarray:
+        """Direction as a 3x3 numpy array (columns: the index axes x, y, z)."""
         return np.array(self.direction)
 
     @property
@@ -136,8 +143,10 @@ class Geometry:
         return (xyz - self.origin_array) @ np.linalg.inv(self.matrix).T
 
     def bounds_world(self, *, voxel_boxes: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Axis-aligned world bounding box ``(min, max)`` of the voxel centres, or with
-        ``voxel_boxes`` of the voxels' boxes (half a voxel beyond the centres)."""
+        """Axis-aligned world bounding box ``(min, max)`` of the voxel centres.
+
+        With ``voxel_boxes``: of the voxels' boxes (half a voxel beyond the centres).
+        """
         if min(self.shape) == 0:
             raise VolwarpError(f"a grid of shape {self.shape} has no voxels, hence no bounds")
         n = np.array(self.shape_xyz, dtype=np.float64) - 1
@@ -150,16 +159,20 @@ class Geometry:
 
     # -- blocks ---------------------------------------------------------------------
     def sub(self, box: Box) -> Geometry:
-        """The geometry of block ``box`` (array order): its shape, and the origin at its
-        first voxel, ``origin + direction @ (spacing * lo_xyz)``; spacing and direction
-        unchanged. The box may reach beyond the grid (a halo): the grid's lattice
-        simply continues."""
+        """The geometry of block ``box`` (array order).
+
+        Its shape, and the origin at its first voxel,
+        ``origin + direction @ (spacing * lo_xyz)``; spacing and direction unchanged.
+        The box may reach beyond the grid (a halo): the grid's lattice simply continues.
+        """
         lo_xyz, _ = box.xyz()
         return Geometry(box.shape, self.spacing, self.index_to_world(lo_xyz), self.direction)
 
     def volume(self, data: np.ndarray, **kwargs):
-        """A :class:`~.volume.Volume` of ``data`` (its shape must be ``shape``) on this grid;
-        ``kwargs`` (meta, ...) pass through (a ``space`` other than LPS would move it)."""
+        """A :class:`~.volume.Volume` of ``data`` (its shape must be ``shape``) on this grid.
+
+        ``kwargs`` (meta, ...) pass through (a ``space`` other than LPS would move it).
+        """
         from .volume import Volume
 
         data = np.asarray(data)

@@ -56,8 +56,9 @@ _budget: contextvars.ContextVar[tuple[int, str] | None] = contextvars.ContextVar
 # -- sizes ----------------------------------------------------------------------------
 
 def parse_size(text) -> int:
-    """Bytes in a memory size: ``"8G"``, ``"512M"``, ``"1.5GiB"``, ``"2g"``, ``"300MB"``,
-    ``"123456"``.
+    """Bytes in a memory size.
+
+    For example ``"8G"``, ``"512M"``, ``"1.5GiB"``, ``"2g"``, ``"300MB"``, ``"123456"``.
 
     A number (decimals and exponents allowed) with an optional unit k, M, G or T,
     case-insensitive, optionally followed by ``B`` or ``iB``. **Every unit is a
@@ -223,7 +224,7 @@ def _env_limit() -> int | None:
 
 
 def process_rss() -> int:
-    """This process's resident memory now (bytes; 0 where /proc is not there)."""
+    """The resident memory of this process now (bytes; 0 where /proc is not there)."""
     text = _read_text("/proc/self/statm")
     try:
         return int(text.split()[1]) * os.sysconf("SC_PAGE_SIZE") if text else 0
@@ -267,9 +268,10 @@ def _limit() -> tuple[int, str]:
 
 
 def available_memory() -> int:
-    """Bytes this process may still allocate: the lower of ``MemAvailable`` and its
-    cgroup's limit less usage, capped by ``VOLWARP_MEMORY_LIMIT`` and by the budget in
-    effect (:func:`use_memory_limit`).
+    """Bytes this process may still allocate.
+
+    The lower of ``MemAvailable`` and its cgroup's limit less usage, capped by
+    ``VOLWARP_MEMORY_LIMIT`` and by the budget in effect (:func:`use_memory_limit`).
 
     A bad ``VOLWARP_MEMORY_LIMIT`` is a :class:`~volwarp_cli.errors.VolwarpError`
     naming the variable.
@@ -304,8 +306,11 @@ def use_memory_limit(nbytes: int | None, *, source: str = "--memory-limit"):
 
 
 def memory_limit() -> int:
-    """The memory budget in effect: the lower of :func:`use_memory_limit`'s (if any) and
-    :func:`available_memory` (which is already capped by it)."""
+    """The memory budget in effect.
+
+    The lower of :func:`use_memory_limit`'s (if any) and :func:`available_memory`
+    (which is already capped by it).
+    """
     return _limit()[0]
 
 

@@ -42,7 +42,7 @@ def _read(path: str) -> str | None:
 
 
 def _cgroup_paths() -> dict[str, str]:
-    """This process's cgroup per controller (``""`` for the v2 unified hierarchy)."""
+    """The cgroup of this process per controller (``""`` for the v2 unified hierarchy)."""
     out = {}
     text = _read("/proc/self/cgroup") or ""
     for line in text.splitlines():
@@ -185,8 +185,7 @@ def run_blocks(task: Callable, blocks: Sequence | Iterable, n: int | None = None
 
 @contextlib.contextmanager
 def library_threads(n: int | None = None):
-    """Run the block inside with ``n`` threads (default :func:`threads`), VTK's too, and
-    BLAS held to one thread.
+    """Run the block inside with ``n`` threads (default :func:`threads`), VTK's too; BLAS at one.
 
     VTK's SMP tools (the mesh filters) take ``n``. BLAS (through threadpoolctl)
     gets one: volwarp's kernels already spread over the ``n`` threads and make

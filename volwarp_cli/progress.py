@@ -70,6 +70,7 @@ class Progress:
         self._last_draw = 0.0
 
     def advance(self, n: int = 1) -> None:
+        """Count ``n`` more steps done (at most ``total``); the bar redrawn every 0.1 s at most."""
         self.done = min(self.done + n, self.total)
         if self.enabled:
             now = time.perf_counter()
@@ -97,6 +98,7 @@ class Progress:
 
 
 def progress(total: int, label: str) -> Progress:
+    """A :class:`Progress` bar of ``total`` steps labelled ``label`` (drawn if bars are on)."""
     return Progress(total, label)
 
 

@@ -44,9 +44,11 @@ def _check_inside(out_box: Box, whole: Box, what: str) -> None:
 
 # -- mesh -------------------------------------------------------------------------------
 def mesh_cells(shape) -> Box:
-    """The cells of a volume of ``shape`` (z, y, x): cell ``(k, j, i)`` is the cube whose
-    corners are the samples ``[k, k + 1] x [j, j + 1] x [i, i + 1]``; ``shape - 1`` of
-    them per axis."""
+    """The cells of a volume of ``shape`` (z, y, x): ``shape - 1`` of them per axis.
+
+    Cell ``(k, j, i)`` is the cube whose corners are the samples
+    ``[k, k + 1] x [j, j + 1] x [i, i + 1]``.
+    """
     return Box.from_shape(tuple(max(n - 1, 0) for n in shape))
 
 
@@ -192,8 +194,9 @@ def distance_pass_input(out_box: Box, shape, axis: int) -> Box:
 
 # -- warp -------------------------------------------------------------------------------
 def warp_input(out_box: Box, dq, grid, pad) -> Box:
-    """The domain voxels (a box of the ``[Dz, Dy, Dx]`` voxmap) whose images can reach
-    target block ``out_box`` (``[z, y, x]`` of the padded target).
+    """The domain voxels (a box of the ``[Dz, Dy, Dx]`` voxmap) whose images can reach ``out_box``.
+
+    ``out_box`` is a target block (``[z, y, x]`` of the padded target).
 
     Parameters
     ----------

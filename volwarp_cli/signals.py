@@ -79,9 +79,11 @@ def _raise_when_safe(frame) -> None:
 
 @contextlib.contextmanager
 def blocked():
-    """Hold SIGINT, SIGTERM (and the deferred stop's SIGALRM) back for a few steps that
-    must not be cut in two: a temporary made and registered, several files renamed
-    together. A stop asked meanwhile is handled as soon as the block ends."""
+    """Hold SIGINT, SIGTERM (and the deferred stop's SIGALRM) back for a few steps.
+
+    Steps that must not be cut in two: a temporary made and registered, several
+    files renamed together. A stop asked meanwhile is handled as soon as the block ends.
+    """
     if threading.current_thread() is not threading.main_thread():
         yield  # Python runs its handlers in the main thread only
         return

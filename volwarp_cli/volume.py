@@ -148,6 +148,7 @@ class Volume:
 
     @property
     def dtype(self) -> np.dtype:
+        """The sample type of ``data``."""
         return self.data.dtype
 
     # -- coordinates ----------------------------------------------------------

@@ -36,6 +36,8 @@ _MESH_EXTENSIONS = (".ply", ".stl", ".obj", ".vtp", ".vtk")
 
 @dataclass(frozen=True)
 class Step:
+    """One step of the manifest's chain: the subcommand it runs, on what, into which pattern."""
+
     index: int
     name: str
     run: str
@@ -47,6 +49,8 @@ class Step:
 
 @dataclass(frozen=True)
 class Scan:
+    """One input scan: its file, and the stem and folder its outputs are named by."""
+
     id: str  # relpath/stem, posix: the scan's name in progress lines and the report
     path: Path
     stem: str
@@ -55,6 +59,8 @@ class Scan:
 
 @dataclass
 class Manifest:
+    """A loaded, checked manifest: its steps, output folder, and the sha256 of it and its specs."""
+
     path: Path
     base: Path  # the manifest's folder
     output_dir: Path
@@ -90,6 +96,7 @@ def placeholders(text: str) -> list[str] | None:
 
 
 def fill(text: str, scan: Scan) -> str:
+    """``text`` with ``{stem}`` and ``{relpath}`` (``.`` at the root) of ``scan`` filled in."""
     return text.format(stem=scan.stem, relpath=scan.relpath or ".")
 
 
@@ -272,6 +279,8 @@ def find_scans(manifest: Manifest) -> list[Scan]:
 
 
 def shard(scans: list[Scan], index: int, count: int) -> list[Scan]:
-    """Shard ``index`` of ``count`` (0-based): every ``count``-th scan of the sorted list,
-    so the shards together hold every scan exactly once, and are of even size."""
+    """Shard ``index`` of ``count`` (0-based): every ``count``-th scan of the sorted list.
+
+    The shards thus together hold every scan exactly once, and are of even size.
+    """
     return scans[index::count]

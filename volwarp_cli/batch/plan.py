@@ -28,6 +28,8 @@ STAMPING = ("warp", "distance")
 
 @dataclass
 class StepPlan:
+    """One step for one scan, concretely: its input, its outputs and its command line."""
+
     step: Step
     input: Path
     output: Path
@@ -36,12 +38,15 @@ class StepPlan:
 
     @property
     def outputs(self) -> list[Path]:
+        """Every file the step writes: ``-o`` first, then the placeholder option values."""
         return [self.output, *self.extra_outputs]
 
 
 def output_path(manifest: Manifest, scan: Scan, pattern: str) -> Path:
-    """A pattern filled for ``scan``, under the output folder (mirroring the scan's folder
-    unless the pattern places ``{relpath}`` itself)."""
+    """A pattern filled for ``scan``, under the output folder.
+
+    The scan's folder is mirrored there, unless the pattern places ``{relpath}`` itself.
+    """
     filled = fill(pattern, scan)
     if "relpath" in (placeholders(pattern) or ()):
         return manifest.output_dir / filled
@@ -49,6 +54,7 @@ def output_path(manifest: Manifest, scan: Scan, pattern: str) -> Path:
 
 
 def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
+    """The plans of the manifest's steps for ``scan``, in step order (absolute paths)."""
     plans: dict[str, StepPlan] = {}
     for step in manifest.steps:
         source = scan.path if step.input == SCAN else plans[step.input].output
@@ -81,8 +87,10 @@ STATE_NAME = ".volwarp-batch-state.json"
 
 
 def command_digest(manifest: Manifest, plan: StepPlan) -> str:
-    """The step as the manifest defines it (run, input, output pattern, spec, options),
-    hashed; paths relative to the manifest, so a tree moved elsewhere is still up to date."""
+    """The step as the manifest defines it (run, input, output pattern, spec, options), hashed.
+
+    Paths are relative to the manifest, so a tree moved elsewhere is still up to date.
+    """
     import hashlib
     import json
 
@@ -93,9 +101,12 @@ def command_digest(manifest: Manifest, plan: StepPlan) -> str:
 
 
 class CommandRecord:
-    """Which command made each output (``STATE_NAME``): options changed since an output
-    was made (``--crop`` added, ``--iso 20`` to 60) make it stale, which neither times
-    nor the outputs' provenance (it names the command, not its options) would show."""
+    """Which command made each output (``STATE_NAME``).
+
+    Options changed since an output was made (``--crop`` added, ``--iso 20`` to 60)
+    make it stale, which neither times nor the outputs' provenance (it names the
+    command, not its options) would show.
+    """
 
     def __init__(self, manifest: Manifest):
         import json
@@ -113,10 +124,12 @@ class CommandRecord:
         return os.path.relpath(path.absolute(), self.manifest.output_dir)
 
     def matches(self, plan: StepPlan) -> bool:
+        """True when every output of ``plan`` was made by the step as it is defined now."""
         digest = command_digest(self.manifest, plan)
         return all(self.made.get(self._key(p)) == digest for p in plan.outputs)
 
     def record(self, plan: StepPlan) -> None:
+        """Note that the step made the outputs of ``plan`` (the state file rewritten atomically)."""
         import json
 
         from ..io.atomic import write_bytes_atomic

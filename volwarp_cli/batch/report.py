@@ -45,6 +45,7 @@ def short_error(error: str | None, result: ScanResult) -> str:
 
 
 def progress_line(result: ScanResult) -> str:
+    """The progress line of a scan that ended: status, scan, seconds and, if failed, why."""
     if result.status in ("skipped", "not started"):
         return f"{result.status} {result.scan.id}"
     line = f"{result.status} {result.scan.id} {result.seconds:.1f} s"
@@ -54,6 +55,7 @@ def progress_line(result: ScanResult) -> str:
 
 
 def counts(results: list[ScanResult]) -> dict[str, int]:
+    """The number of scans, and of scans per status (``not started`` as ``not_started``)."""
     out = {"scans": len(results)}
     for status in ("ok", "skipped", "failed", "stopped", "not started"):
         out[status.replace(" ", "_")] = sum(r.status == status for r in results)
@@ -88,6 +90,7 @@ def summary_line(results: list[ScanResult], *, stop: int | None = None,
 
 def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | None,
                 shard: tuple[int, int, int] | None, exit_code: int) -> dict:
+    """The JSON run report: the provenance key/values, the run's figures, each scan's steps."""
     from ..cli.common import provenance
 
     meta = provenance("batch", manifest.path)
@@ -118,6 +121,7 @@ def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | N
 
 
 def write_report(path: str | Path, report: dict) -> None:
+    """Write ``report`` to ``path`` as indented JSON, atomically."""
     from ..io.atomic import write_bytes_atomic
 
     text = json.dumps(report, indent=2, sort_keys=False) + "\n"

@@ -43,6 +43,8 @@ _STOP_CODES = (128 + signal.SIGINT, 128 + signal.SIGTERM)
 
 @dataclass
 class StepResult:
+    """How one step of one scan went: status, time, attempts, exit code, error line, command."""
+
     name: str
     run: str
     status: str  # ok | skipped | failed | not run | stopped
@@ -57,6 +59,8 @@ class StepResult:
 
 @dataclass
 class ScanResult:
+    """How one scan went: its status, time and the result of each of its steps."""
+
     scan: Scan
     status: str  # ok | skipped | failed | stopped | not started
     seconds: float = 0.0
@@ -64,6 +68,7 @@ class ScanResult:
 
     @property
     def error(self) -> str | None:
+        """The error line of the scan's first failed step, or None."""
         return next((s.error for s in self.steps if s.status == "failed"), None)
 
 
@@ -73,11 +78,14 @@ def volwarp_argv(argv: list[str]) -> list[str]:
 
 
 def last_line(text: str) -> str | None:
+    """The last non-blank line of ``text`` (stripped; a failed step's error), or None."""
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     return lines[-1] if lines else None
 
 
 class Batch:
+    """The scans of a manifest run through its steps by a pool of ``jobs`` workers."""
+
     def __init__(self, manifest: Manifest, scans: list[Scan], *, jobs: int, force: bool = False,
                  fail_fast: bool = False, retries: int = 0, on_scan=None):
         self.manifest = manifest
@@ -259,16 +267,21 @@ class Batch:
 
 
 def default_jobs() -> int:
-    """The threads in effect (``--threads``, ``VOLWARP_THREADS``, else the cores this process
-    may use: its affinity and cgroup quota), one scan per thread."""
+    """The threads in effect, one scan per thread.
+
+    That is ``--threads``, ``VOLWARP_THREADS``, else the cores this process may use:
+    its affinity and cgroup quota.
+    """
     from .. import parallel
 
     return parallel.threads()
 
 
 def child_threads(jobs: int) -> int:
-    """Threads each scan's command gets: the threads in effect shared by ``jobs`` scans at once
-    (at least one), so that a batch never runs more threads than it was given."""
+    """Threads each scan's command gets: the threads in effect shared by ``jobs`` scans at once.
+
+    At least one, so that a batch never runs more threads than it was given.
+    """
     from .. import parallel
 
     return max(1, parallel.threads() // max(1, jobs))

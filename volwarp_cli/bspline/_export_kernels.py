@@ -129,7 +129,7 @@ def _det3(J):
 
 @njit(cache=True, nogil=True, inline="always")
 def _solve3(J, det, r, out):
-    """out = J^-1 r (Cramer's rule; det = det J, nonzero)."""
+    """``out`` = J^-1 r (Cramer's rule; ``det`` = det J, nonzero)."""
     inv = 1.0 / det
     out[0] = inv * (r[0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1])
                     - J[0, 1] * (r[1] * J[2, 2] - J[1, 2] * r[2])
@@ -145,10 +145,12 @@ def _solve3(J, det, r, out):
 @njit(cache=True, nogil=True, inline="always")
 def _newton(dq, org, h, regions, y, s, iterations, tol, val, jac, J, r, step, new,
             wx, wy, wz, dx, dy, dz):
-    """Damped Newton for W(s) = org + h s + val(s) = y from ``s`` (updated in place), the
-    reference's iteration step for step. Returns the residual (inf when singular or held
-    at the extrapolation box's edge) and whether ``val`` and ``jac`` are those at the
-    returned ``s`` (converged: the last evaluation was at ``s``)."""
+    """Damped Newton for W(s) = org + h s + val(s) = y from ``s`` (updated in place).
+
+    It is the reference's iteration step for step. Returns the residual (inf when
+    singular or held at the extrapolation box's edge) and whether ``val`` and ``jac``
+    are those at the returned ``s`` (converged: the last evaluation was at ``s``).
+    """
     res = math.inf
     for _ in range(iterations):
         _spline(dq, s, regions, val, jac, wx, wy, wz, dx, dy, dz)
@@ -189,11 +191,14 @@ def _newton(dq, org, h, regions, y, s, iterations, tol, val, jac, J, r, step, ne
 @njit(cache=True, nogil=True)
 def invert_rows(dq, org, h, regions, shift, box_lo, box_hi, matrix, nx, ny, z0, z1,
                 iterations, tol, accept, warm, out, status):
-    """Fill ``out[z, y, x, 3]`` (float32, world mm: M (F^-1(y) - y), NaN without one) and
-    ``status[z, y, x]`` (FOUND, NO_INVERSE, FOLDED) for the output slices [z0, z1).
+    """Fill ``out[z, y, x, 3]`` and ``status[z, y, x]`` for the output slices [z0, z1).
+
+    ``out``: float32, world mm: M (F^-1(y) - y), NaN without one; ``status``: FOUND,
+    NO_INVERSE, FOLDED.
 
     ``warm``: start each voxel from its row neighbour's solution (else every voxel
-    starts from the identity's parameters, as the reference)."""
+    starts from the identity's parameters, as the reference).
+    """
     s = np.empty(3)
     start = np.empty(3)
     prev = np.empty(3)
@@ -303,9 +308,11 @@ def invert_rows(dq, org, h, regions, shift, box_lo, box_hi, matrix, nx, ny, z0, 
 
 @njit(cache=True, nogil=True)
 def jacobian_rows(dq, org, h, regions, nx, ny, z0, z1, out):
-    """det dF/dx (float32) of the input grid's slices [z0, z1) into ``out[z, y, x]``: the
-    values of :meth:`.export.ForwardMap.jacobian`, row by row (the y and z weights of a
-    row contracted once per control column)."""
+    """The det dF/dx (float32) of the input grid's slices [z0, z1) into ``out[z, y, x]``.
+
+    These are the values of :meth:`.export.ForwardMap.jacobian`, row by row (the y and z
+    weights of a row contracted once per control column).
+    """
     cx = dq.shape[2]
     wx = np.empty(4)
     wy = np.empty(4)

@@ -131,12 +131,11 @@ SPLIT_MIN_WORK = 1 << 18
 
 
 def run_split(job_for, lo_z: int, hi_z: int, work: int) -> list:
-    """Run ``job_for(z0, z1).run()`` (a :mod:`.jobs` kernel call) over slabs of [lo_z, hi_z),
-    one per thread.
+    """Run ``job_for(z0, z1).run()`` (a :mod:`.jobs` kernel call) over slabs of [lo_z, hi_z).
 
-    As many slabs as :func:`volwarp_cli.parallel.threads` allows, each with at
-    least ``SPLIT_MIN_WORK`` of ``work`` (one slab, in this thread, when
-    ``work`` is 0 or small). The kernels release the GIL (numba ``nogil``, or
+    One slab per thread: as many slabs as :func:`volwarp_cli.parallel.threads`
+    allows, each with at least ``SPLIT_MIN_WORK`` of ``work`` (one slab, in this
+    thread, when ``work`` is 0 or small). The kernels release the GIL (numba ``nogil``, or
     the compiled ones of ``_warpkernels.c``); the slabs write disjoint output.
     (Python threads instead of numba's ``prange``, whose threading layer
     costs time to start in every process.)

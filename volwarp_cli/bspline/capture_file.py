@@ -1,8 +1,8 @@
-"""The ``.vwc`` capture file: a captured domain voxmap and its set-up, versioned.
+r"""The ``.vwc`` capture file: a captured domain voxmap and its set-up, versioned.
 
 Layout (all integers little-endian)::
 
-    offset 0   16 bytes  magic  b"VOLWARP-CAPTURE\\n"
+    offset 0   16 bytes  magic  b"VOLWARP-CAPTURE\n"
     offset 16  uint32    format version (currently 2; 1 is read too)
     offset 20  uint32    n, the length of the JSON header
     offset 24  n bytes   JSON header (UTF-8, sorted keys, no timestamps)
@@ -148,9 +148,11 @@ def read_header(path: str | os.PathLike) -> tuple[dict, int]:
 
 
 def _refuse_unconverted_frame(head: dict, path) -> None:
-    """A version 1 file captured from a RAS or LAS input holds the input's numbers in that
-    frame (volwarp converted frames only later) and its key/values (a NRRD measurement
-    frame) too: refused, rather than half converted."""
+    """Refuse a version 1 file captured from a RAS or LAS input, rather than half convert it.
+
+    Such a file holds the input's numbers in that frame (volwarp converted frames
+    only later) and its key/values (a NRRD measurement frame) too.
+    """
     from ..volume import LPS, SPACE_NAMES, frame_to_lps
 
     space = head.get("input", {}).get("space")

@@ -97,20 +97,25 @@ class ForwardMap:
 
     # ---- index <-> world -------------------------------------------------------------
     def to_index(self, p) -> np.ndarray:
+        """Input voxel indices (x, y, z) of world (LPS mm) points ``p`` (..., 3)."""
         return (np.asarray(p, dtype=np.float64) - self.geometry.origin) @ self.inverse.T
 
     def to_world(self, x) -> np.ndarray:
+        """World (LPS mm) points of input voxel indices ``x`` (..., 3)."""
         return np.asarray(x, dtype=np.float64) @ self.matrix.T + self.geometry.origin
 
     # ---- support ---------------------------------------------------------------------
     def params(self, x) -> np.ndarray:
+        """The spline parameters ``s = (x - grid.origin) / h`` of input indices ``x``."""
         return (np.asarray(x, dtype=np.float64) - self.org) / self.h
 
     def inside(self, x, tol: float = 1e-9) -> np.ndarray:
+        """Which input indices ``x`` (..., 3) lie in the support ``[0, R]^3`` (within ``tol``)."""
         s = self.params(x)
         return np.all((s >= -tol) & (s <= self.regions + tol), axis=-1)
 
     def support_world_box(self):
+        """``(lo, hi)``: the world (LPS mm) bounding box of the lattice's support."""
         lo = self.org
         hi = self.org + self.h * self.regions
         corners = np.array([[a[0], b[1], c[2]] for a in (lo, hi) for b in (lo, hi)
@@ -158,8 +163,10 @@ class ForwardMap:
         return out
 
     def map_world(self, p) -> tuple[np.ndarray, np.ndarray]:
-        """F of world points (N, 3); points outside the lattice's support are returned
-        unmoved. Returns (mapped, inside mask)."""
+        """F of world points (N, 3); points outside the lattice's support are returned unmoved.
+
+        Returns (mapped, inside mask).
+        """
         p = np.atleast_2d(np.asarray(p, dtype=np.float64)).reshape(-1, 3)
         x = self.to_index(p)
         ok = self.inside(x)
@@ -205,7 +212,7 @@ class ForwardMap:
         return out
 
     def jacobian(self) -> np.ndarray:
-        """det dF/dx on the input grid, [z, y, x] float32."""
+        """The det dF/dx on the input grid, [z, y, x] float32."""
         nx, ny, nz = self.grid.input_shape
         wy, wx = self._axis_weights(1, ny, False), self._axis_weights(0, nx, False)
         dwy, dwx = self._axis_weights(1, ny, True), self._axis_weights(0, nx, True)
@@ -219,9 +226,11 @@ class ForwardMap:
 
     # ---- inverse ------------------------------------------------------------------------------
     def invert_index(self, y) -> tuple[np.ndarray, np.ndarray]:
-        """x with F(x) = y for input-index points y (N, 3); NaN where none is found in the
-        support or the map folds there (det <= 0). Returns (x, status): status 0 found,
-        1 no inverse in the support, 2 folded."""
+        """The x with F(x) = y for input-index points y (N, 3).
+
+        NaN where none is found in the support or the map folds there (det <= 0).
+        Returns (x, status): status 0 found, 1 no inverse in the support, 2 folded.
+        """
         y = np.atleast_2d(np.asarray(y, dtype=np.float64))
         x = np.full_like(y, np.nan)
         status = np.zeros(len(y), np.int8)
@@ -286,15 +295,17 @@ class ForwardMap:
 
     def resampling_field(self, shape_xyz, shift, *, warm: bool = True,
                          threads: int | None = None) -> tuple[np.ndarray, dict]:
-        """F^-1(y) - y on an output grid of ``shape_xyz`` voxels, world mm, [z, y, x, 3]
-        float32, NaN where there is none. The output grid is the input's, shifted:
-        output voxel t is the input-index point ``t + shift``.
+        """F^-1(y) - y on an output grid of ``shape_xyz`` voxels, world mm, [z, y, x, 3] float32.
+
+        NaN where there is none. The output grid is the input's, shifted: output
+        voxel t is the input-index point ``t + shift``.
 
         The numba kernel of :mod:`._export_kernels` (the same Newton iteration as
         :meth:`_invert_chunk`, per voxel, warm-started along output rows unless
         ``warm`` is false), the output's z slices split over ``threads`` threads
         (default: the CPUs). :meth:`_resampling_field_numpy` is the vectorised
-        reference it is tested against."""
+        reference it is tested against.
+        """
         from ._export_kernels import invert_rows
 
         nx, ny, nz = (int(v) for v in shape_xyz)
@@ -322,9 +333,11 @@ class ForwardMap:
         return out, counts
 
     def _resampling_field_numpy(self, shape_xyz, shift) -> tuple[np.ndarray, dict]:
-        """F^-1(y) - y on an output grid of ``shape_xyz`` voxels, world mm, [z, y, x, 3]
-        float32, NaN where there is none: the vectorised reference of
-        :meth:`resampling_field` (about 40 us per voxel; the tests' yardstick)."""
+        """F^-1(y) - y on an output grid of ``shape_xyz`` voxels, world mm, [z, y, x, 3] float32.
+
+        NaN where there is none: the vectorised reference of :meth:`resampling_field`
+        (about 40 us per voxel; the tests' yardstick).
+        """
         nx, ny, nz = (int(v) for v in shape_xyz)
         shift = np.asarray(shift, dtype=np.float64)
         out = np.empty((nz * ny * nx, 3), np.float32)
@@ -350,8 +363,10 @@ class ForwardMap:
 
 
     def _jacobian_fast(self, threads: int | None = None) -> np.ndarray:
-        """:meth:`jacobian` by the numba kernel of :mod:`._export_kernels` (the same
-        values to rounding; what the fold test of :meth:`resampling_field` uses)."""
+        """:meth:`jacobian` by the numba kernel of :mod:`._export_kernels`.
+
+        The same values to rounding; what the fold test of :meth:`resampling_field` uses.
+        """
         from ._export_kernels import jacobian_rows
 
         nx, ny, nz = self.grid.input_shape
@@ -363,10 +378,12 @@ class ForwardMap:
         return out
 
     def _fold_image(self, shape_xyz, shift, fast: bool = False, threads: int | None = None):
-        """Output voxels (flat bool) that the folded part of the input (det <= 0) maps
-        onto, where the map has several preimages; None when nothing folds. Sampled at
-        27 points per input voxel near the fold, each marking the 8 output voxels
-        around its image. (``fast``: det on the input grid by the numba kernel.)"""
+        """Output voxels (flat bool) that the folded part of the input (det <= 0) maps onto.
+
+        There the map has several preimages; None when nothing folds. Sampled at 27
+        points per input voxel near the fold, each marking the 8 output voxels around
+        its image. (``fast``: det on the input grid by the numba kernel.)
+        """
         det = self._jacobian_fast(threads) if fast else self.jacobian()
         neg = det <= 0
         if not neg.any():
@@ -395,10 +412,12 @@ class ForwardMap:
 
 
 def _run_slabs(part, nz: int, per_slice: int, threads: int | None) -> None:
-    """``part(z0, z1)`` over [0, nz) in slabs of a few slices, spread over ``threads`` threads
-    (default: :func:`volwarp_cli.parallel.threads`; the kernels release the GIL and write
-    disjoint slices). Threads instead of numba's ``prange``, whose threading layer costs
-    time to start in every process (see :func:`.basis.run_split`)."""
+    """``part(z0, z1)`` over [0, nz) in slabs of a few slices, spread over ``threads`` threads.
+
+    The default is :func:`volwarp_cli.parallel.threads`; the kernels release the GIL
+    and write disjoint slices. Threads instead of numba's ``prange``, whose threading
+    layer costs time to start in every process (see :func:`.basis.run_split`).
+    """
     from .. import parallel
 
     n = threads if threads is not None else parallel.threads()
@@ -497,6 +516,7 @@ def tfm_text(fmap: ForwardMap, meta: dict) -> str:
 
 
 def write_tfm(fmap: ForwardMap, path: str, meta: dict) -> None:
+    """Write the forward map as an ITK ``.tfm`` file, atomically, noted as a forward map."""
     from ..io.atomic import write_bytes_atomic
 
     meta = dict(meta)
@@ -522,6 +542,7 @@ class PointsFile:
 
 
 def read_points(path: str) -> PointsFile:
+    """Read a CSV or Slicer markups points file (a VolwarpError naming the file if bad)."""
     kind = points_format(path)
     try:
         text = Path(path).read_text(encoding="utf-8-sig")
@@ -599,6 +620,7 @@ def points_text(pf: PointsFile, moved: np.ndarray) -> str:
 
 
 def write_points(pf: PointsFile, moved: np.ndarray, path: str) -> None:
+    """Write ``pf`` with its points replaced by ``moved``, in its own format, atomically."""
     from ..io.atomic import write_bytes_atomic
 
     write_bytes_atomic(path, points_text(pf, moved).encode("utf-8"))
@@ -615,6 +637,7 @@ def report_outside(what: str, inside: np.ndarray, fmap: ForwardMap) -> int:
 
 
 def jacobian_stats(det: np.ndarray) -> dict:
+    """The min and max of ``det``, and the fractions of voxels below 0 and below 0.1."""
     d = det.astype(np.float64, copy=False)
     return {"min": float(d.min()), "max": float(d.max()),
             "below_0": float(np.count_nonzero(d < 0) / d.size),

@@ -41,10 +41,12 @@ class ExportRequests:
 
 
 def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict) -> dict:
-    """Write the exports of ``warp`` (a rendered :class:`.run.IntensityWarp`, whose
-    final lattice they describe) and return their figures, keyed as ``warp --json``
-    reports them: ``jacobian`` {path, min, max, below_0, below_0_1}, ``displacement``
-    {path, voxels, folded, no_preimage}, ``points`` / ``mesh`` {path, count, outside}.
+    """Write the exports of ``warp`` and return their figures, keyed as ``warp --json`` has them.
+
+    ``warp`` is a rendered :class:`.run.IntensityWarp`, whose final lattice they
+    describe. The figures: ``jacobian`` {path, min, max, below_0, below_0_1},
+    ``displacement`` {path, voxels, folded, no_preimage}, ``points`` / ``mesh``
+    {path, count, outside}.
 
     ``meta``: the key/values (provenance) of the field, Jacobian and transform
     files; ``mesh_meta``: the moved mesh's comments.

@@ -110,8 +110,10 @@ class ScatterJob:
         s(self, "inv_vmax", float(self.inv_vmax))
 
     def run(self) -> np.ndarray:
-        """Scatter; returns the touched target box ``[x0, y0, z0, x1, y1, z1]`` (inclusive;
-        x1 < 0 when nothing landed or ``bounds`` is off)."""
+        """Scatter; returns the touched target box ``[x0, y0, z0, x1, y1, z1]``.
+
+        The box is inclusive; x1 < 0 when nothing landed or ``bounds`` is off.
+        """
         two = self.u_new is not None
         return np.array(_warpkernels.scatter(
             self.u, self.u_new if two else self.u, 2 if two else 1, self.origin, self.values,
@@ -144,6 +146,7 @@ class SeparableJob:
         object.__setattr__(self, "origin", _ints("origin", self.origin))
 
     def run(self) -> None:
+        """Evaluate the offsets into ``out`` (the compiled kernel of ``_warpkernels.c``)."""
         wx, wy, wz = self.weights
         _warpkernels.separable(self.dq, wx, wy, wz, *self.x, *self.y, *self.z, self.out,
                                *self.origin)
@@ -170,6 +173,7 @@ class TableJob:
         object.__setattr__(self, "origin", np.asarray(_ints("origin", self.origin), np.int64))
 
     def run(self) -> None:
+        """Evaluate the offsets into ``out`` (the numba table kernel)."""
         from .basis import table_kernel
 
         table_kernel()(self.dq, self.table, *self.x, *self.y, *self.z, self.out, self.origin)
@@ -177,8 +181,10 @@ class TableJob:
 
 @dataclass(frozen=True, kw_only=True)
 class SampleJob:
-    """The capture's gather of domain planes [g0, g1) into ``out`` (whose first plane is g0
-    when ``relative``, else plane 0 of the domain)."""
+    """The capture's gather of domain planes [g0, g1) into ``out``.
+
+    The first plane of ``out`` is g0 when ``relative``, else plane 0 of the domain.
+    """
 
     data: np.ndarray
     x: tuple[np.ndarray, np.ndarray, np.ndarray]  # lower index, upper index, weight
@@ -210,8 +216,10 @@ class SampleJob:
 
 @dataclass(frozen=True, kw_only=True)
 class FinalizeJob:
-    """``out = v / w`` (blended with the background on the silhouette) on target block
-    [lo, hi) (x, y, z); ``clear`` zeroes the block's accumulators in the same pass."""
+    """``out = v / w`` (blended with the background on the silhouette) on target block [lo, hi).
+
+    The block is in (x, y, z); ``clear`` zeroes the block's accumulators in the same pass.
+    """
 
     acc: np.ndarray
     vmax: float
@@ -232,5 +240,6 @@ class FinalizeJob:
             raise TypeError(f"clear must be a bool, got {self.clear!r}")
 
     def run(self) -> None:
+        """Finalize the block into ``out`` (and clear its accumulators if asked)."""
         _warpkernels.finalize(self.acc, self.vmax, self.lo, self.hi, self.out, self.background,
                               bool(self.clear))

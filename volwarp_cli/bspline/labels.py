@@ -90,8 +90,10 @@ def label_map_hint(data: np.ndarray) -> dict | None:
 
 
 def _distinct(data: np.ndarray, limit: int) -> np.ndarray | None:
-    """The sorted distinct values of an integer array, or None if there are more than
-    ``limit`` (a count table for small ranges, else a sort)."""
+    """The sorted distinct values of an integer array, or None if there are more than ``limit``.
+
+    Found by a count table for small ranges, else a sort.
+    """
     lo, hi = int(data.min()), int(data.max())
     if hi - lo < 1 << 24:
         # shifted in intp: in the map's own type, 100 - (-100) wraps (int8)
@@ -103,8 +105,10 @@ def _distinct(data: np.ndarray, limit: int) -> np.ndarray | None:
 
 
 class _NoSamples:
-    """The Scene's domain for a label warp: only its shape (the label passes give their
-    own indicator samples; nothing else may gather)."""
+    """The Scene's domain for a label warp: only its shape.
+
+    The label passes give their own indicator samples; nothing else may gather.
+    """
 
     dtype = np.dtype(np.float32)
 
@@ -153,16 +157,21 @@ def capture_labels(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
 
 @dataclass
 class LabelWarp:
-    """The result of :func:`warp_labels`: the target labels ``[z, y, x]`` (the input's
-    dtype) and the per-label report."""
+    """The result of :func:`warp_labels`: the target labels and the per-label report.
+
+    The target labels are ``[z, y, x]``, of the input's dtype.
+    """
 
     target: np.ndarray
     report: dict = field(default_factory=dict)
 
 
 def _bounding_boxes(data: np.ndarray):
-    """``(labels, counts, boxes)``: the distinct non-zero labels (sorted), their voxel
-    counts and input bounding boxes ``(lo, hi)`` (x y z, hi exclusive); ``(count of 0)``."""
+    """``(labels, counts, boxes)`` of the label map's non-zero labels; ``(count of 0)``.
+
+    The distinct non-zero labels (sorted), their voxel counts and input bounding
+    boxes ``(lo, hi)`` (x y z, hi exclusive).
+    """
     from scipy import ndimage
 
     lo, hi = int(data.min()), int(data.max())
@@ -202,8 +211,11 @@ def _bounding_boxes(data: np.ndarray):
 
 
 class _Stream:
-    """One thread's share of the target (z planes [t_lo, t_hi)): its buffers, and one
-    label pass at a time streamed into a rolling accumulator of its target block."""
+    """One thread's share of the target (z planes [t_lo, t_hi)).
+
+    Its buffers, and one label pass at a time streamed into a rolling accumulator
+    of its target block.
+    """
 
     def __init__(self, scene: Scene, dq, labels_in: np.ndarray, t_lo: int, t_hi: int,
                  best_w: np.ndarray, best_l: np.ndarray):
@@ -223,9 +235,11 @@ class _Stream:
         self.scratch = Scratch()
 
     def run(self, label, box, on_planes) -> None:
-        """Scatter label ``label``'s indicator (0 for ``label != 0``) over input box ``box``;
-        ``on_planes(z0, weights [k, y, x, 2], (x0, x1, y0, y1))`` for the finished target
-        planes of its block in this thread's share."""
+        """Scatter label ``label``'s indicator (0 for ``label != 0``) over input box ``box``.
+
+        ``on_planes(z0, weights [k, y, x, 2], (x0, x1, y0, y1))`` is called for the
+        finished target planes of its block in this thread's share.
+        """
         sc, k = self.scene, self.k
         vlo = self.lead + k * box[0]
         vhi = self.lead + k * box[1]
@@ -409,8 +423,11 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
 
 
 def _stronger(w: int, at, w_best: int, at_best) -> bool:
-    """Whether weight ``w`` at voxel ``at`` beats the best so far: larger, or as large
-    and first in (z, y, x) order, so the winner does not depend on the blocks' order."""
+    """Whether weight ``w`` at voxel ``at`` beats the best so far.
+
+    It does when larger, or as large and first in (z, y, x) order, so the winner does
+    not depend on the blocks' order.
+    """
     return w > w_best or (w == w_best and at_best is not None and at < at_best)
 
 
@@ -433,9 +450,12 @@ def _counts(target: np.ndarray, labels) -> dict:
 
 def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
                    source: str = "input", allow_growth: bool = False):
-    """``(cap, scene, frames)`` for warping the label map ``vol`` with a checked spec
-    (``doc``, ``spec``): its :func:`capture_labels` capture and :func:`.warp.prepare`'s
-    scene and frames (the frames' lattices are applied by :func:`warp_labels`)."""
+    """``(cap, scene, frames)`` for warping the label map ``vol`` with a checked spec.
+
+    The spec: ``doc``, ``spec``. Returned: the :func:`capture_labels` capture of
+    ``vol`` and :func:`.warp.prepare`'s scene and frames (the frames' lattices are
+    applied by :func:`warp_labels`).
+    """
     from .warp import prepare
 
     if background not in (None, 0, 0.0):
@@ -455,8 +475,10 @@ def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, backg
 
 def label_warp(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
                crop: bool = False, preserve: bool = False, source: str = "input"):
-    """The whole ``warp --labels``: ``(output Volume, report)`` for the label map ``vol``
-    and a checked spec (``doc``, ``spec``), as :mod:`..cli.warp` does for intensities."""
+    """The whole ``warp --labels``: ``(output Volume, report)`` for the label map ``vol``.
+
+    With a checked spec (``doc``, ``spec``), as :mod:`..cli.warp` does for intensities.
+    """
     from .warp import output_volume
 
     cap, scene, frames = prepare_labels(vol, doc, spec, method=method, evaluator=evaluator,

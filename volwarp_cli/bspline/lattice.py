@@ -59,8 +59,11 @@ def granularity(size: int, regions: int, oversample: float) -> int:
 
 
 def subdivision_of(oversample: float, placement: str = "uniform") -> int:
-    """The domain's subdivision of the input voxels: ``k`` for an integer oversample ``k``
-    with the uniform placement, else 0 (the spanning grid, see the module notes)."""
+    """The domain's subdivision of the input voxels.
+
+    ``k`` for an integer oversample ``k`` with the uniform placement, else 0 (the
+    spanning grid, see the module notes).
+    """
     k = float(oversample)
     if placement == "uniform" and k >= 1 and k.is_integer():
         return int(k)
@@ -82,6 +85,7 @@ class Grid:
 
     @classmethod
     def create(cls, input_shape, lattice, oversample: float, placement: str = "uniform") -> Grid:
+        """The grid of an input shape, lattice and oversample (a VolwarpError if invalid)."""
         input_shape = tuple(int(v) for v in input_shape)
         lattice = tuple(int(v) for v in lattice)
         if len(lattice) != 3 or min(lattice) < 4:
@@ -93,10 +97,12 @@ class Grid:
 
     @property
     def regions(self) -> tuple[int, int, int]:
+        """Spline regions per axis, ``R = C - 3``."""
         return tuple(c - 3 for c in self.lattice)
 
     @property
     def domain_shape(self) -> tuple[int, int, int]:
+        """Domain voxels per axis, ``D = G * R`` (x, y, z)."""
         return tuple(g * r for g, r in zip(self.granularity, self.regions, strict=False))
 
     @property
@@ -115,8 +121,11 @@ class Grid:
 
     @property
     def data_hi(self) -> tuple[int, int, int]:
-        """End (exclusive) of the domain voxels inside the input, per axis (x, y, z): the
-        pushforward scatters only [data_lo, data_hi); the whole domain on a spanning grid."""
+        """End (exclusive) of the domain voxels inside the input, per axis (x, y, z).
+
+        The pushforward scatters only [data_lo, data_hi); the whole domain on a
+        spanning grid.
+        """
         k = self.subdivision
         if not k:
             return self.domain_shape
@@ -138,8 +147,10 @@ class Grid:
 
     @property
     def spacing_h(self) -> np.ndarray:
-        """Uniform control-point spacing in input voxels (x, y, z): ``G / k`` on a
-        subdivision grid, ``I / R`` on a spanning one."""
+        """Uniform control-point spacing in input voxels (x, y, z).
+
+        ``G / k`` on a subdivision grid, ``I / R`` on a spanning one.
+        """
         if self.subdivision:
             return np.array([g / self.subdivision for g in self.granularity])
         return np.array([i / r for i, r in zip(self.input_shape, self.regions, strict=False)])
@@ -198,10 +209,12 @@ def capture_offsets(grid: Grid, placement: str) -> np.ndarray:
 
 
 def window_reduce(a: np.ndarray, width: int, ufunc) -> np.ndarray:
-    """``ufunc`` (np.minimum, np.logical_and, ...) over every ``width``^3 window of the
-    first three axes of ``a`` (shape ``(n0 - width + 1, ...)``): per axis, ``width - 1``
-    elementwise calls on shifted slices (a reduce over a sliding-window view of
-    a small lattice is ~50x slower)."""
+    """``ufunc`` (np.minimum, np.logical_and, ...) over every ``width``^3 window of ``a``.
+
+    The windows are of the first three axes of ``a`` (shape ``(n0 - width + 1, ...)``):
+    per axis, ``width - 1`` elementwise calls on shifted slices (a reduce over a
+    sliding-window view of a small lattice is ~50x slower).
+    """
     for axis in range(3):
         n = a.shape[axis] - width + 1
         shifted = [slice(None)] * a.ndim

@@ -27,6 +27,8 @@ from .lattice import Grid
 
 @dataclass
 class CaptureSettings:
+    """The spec's ``capture`` settings: lattice, placement, oversample, pad, sampling."""
+
     lattice: tuple[int, int, int] = (9, 9, 9)
     placement: str = "uniform"
     oversample: float = 2.0
@@ -51,6 +53,8 @@ class Frame:
 
 @dataclass
 class WarpSpec:
+    """Typed settings of a warp spec (see :func:`read_warp_spec`); the steps as given."""
+
     units: str = "world"
     capture: CaptureSettings = field(default_factory=CaptureSettings)
     capture_given: set = field(default_factory=set)
@@ -107,14 +111,17 @@ class Geometry:
         self.inverse = np.linalg.inv(self.matrix)
 
     def point(self, p) -> np.ndarray:
+        """Input voxel indices of spec point ``p`` (given in the spec's units)."""
         p = np.asarray(p, dtype=np.float64)
         return p if self.units == "voxel" else self.vol.world_to_index(p)
 
     def vector(self, v) -> np.ndarray:
+        """Spec displacement ``v`` (in the spec's units) in input voxels."""
         v = np.asarray(v, dtype=np.float64)
         return v if self.units == "voxel" else self.inverse @ v
 
     def world(self, idx) -> np.ndarray:
+        """World (LPS mm) points of input voxel indices ``idx``."""
         return self.vol.index_to_world(idx)
 
 

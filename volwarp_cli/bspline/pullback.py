@@ -55,8 +55,10 @@ def capture_coordinates(grid: Grid, placement: str) -> list[np.ndarray]:
 
 
 def _subdivision_indices(grid: Grid, axis: int):
-    """Input voxel of each domain voxel on one axis of a subdivision grid (clamped to the
-    input outside it), as lower/upper sample index and a zero weight."""
+    """Input voxel of each domain voxel on one axis of a subdivision grid.
+
+    Clamped to the input outside it; as lower/upper sample index and a zero weight.
+    """
     d, n, k = grid.domain_shape[axis], grid.input_shape[axis], grid.subdivision
     i0 = np.clip((np.arange(d) - grid.lead[axis]) // k, 0, n - 1).astype(np.int64)
     return i0, i0, np.zeros(d)

@@ -172,7 +172,10 @@ def still_regions(dqs) -> np.ndarray | None:
 
 
 def still_mask(dq) -> np.ndarray:
-    """bool ``[Rz, Ry, Rx]``: the regions of lattice ``dq`` whose 4^3 control points are unmoved."""
+    """A bool ``[Rz, Ry, Rx]``: the still regions of lattice ``dq``.
+
+    A region is still when its 4^3 control points are all unmoved.
+    """
     from .lattice import window_reduce
 
     return window_reduce(np.all(np.asarray(dq) == 0, axis=-1), 4, np.logical_and)

@@ -24,8 +24,11 @@ OFFSET_SLACK = 0.01
 
 @dataclass(frozen=True)
 class Reach:
-    """The write map's affine base ``A(g) = offset + scale * g`` (target index of domain
-    voxel g, x y z) into a target of ``target_shape`` (x, y, z), on ``grid``."""
+    """The write map's affine base ``A(g) = offset + scale * g`` on ``grid``.
+
+    ``A(g)`` is the target index of domain voxel g (x y z) in a target of
+    ``target_shape`` (x, y, z).
+    """
 
     grid: Grid
     offset: np.ndarray
@@ -63,8 +66,10 @@ class Reach:
         return max(g0, 0), min(g1, dz)
 
     def region_range(self, axis: int, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
-        """Per region along ``axis`` (0 = x): its voxels within [lo, hi), as [a, b)
-        (empty where b <= a)."""
+        """Per region along ``axis`` (0 = x): its voxels within [lo, hi), as [a, b).
+
+        A region's range is empty where b <= a.
+        """
         g = self.grid.granularity[axis]
         r = np.arange(self.grid.regions[axis])
         return np.maximum(r * g, lo), np.minimum((r + 1) * g, hi)
@@ -134,8 +139,10 @@ class Reach:
 
 
 def offset_bounds(dq) -> tuple[np.ndarray, np.ndarray]:
-    """``(lo, hi)``, each ``[Rz, Ry, Rx, 3]``: bounds of the offsets any voxel of a region
-    and its neighbours can have (x y z components), from the lattice alone.
+    """``(lo, hi)``, each ``[Rz, Ry, Rx, 3]``: bounds of the offsets of a region's voxels.
+
+    They bound the offsets any voxel of a region and its neighbours can have (x y z
+    components), from the lattice alone.
 
     A voxel's offset is a convex combination of its region's 4^3 control
     points, so a voxel and its neighbours (in the next region at most) stay

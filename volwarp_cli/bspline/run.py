@@ -94,8 +94,10 @@ def capture_input(vol: Volume, settings, name: str, *, defer: bool = False):
 
 
 def _capture_early(reading, settings, name, defer):
-    """The capture, started before the spec is checked; None where it cannot be made
-    (the capture after the check then reports why, in order)."""
+    """The capture, started before the spec is checked; None where it cannot be made.
+
+    The capture after the check then reports why, in order.
+    """
     if settings is None:
         return None
     try:
@@ -166,8 +168,9 @@ class WarpInput(AbstractContextManager):
         return doc, read_warp_spec(doc)
 
     def source(self, doc, spec, *, labels: bool = False):
-        """What to warp: the :class:`.capture.Capture`, or with ``labels`` the label map
-        Volume itself (it is captured by :class:`LabelMapWarp`).
+        """What to warp: the :class:`.capture.Capture`, or with ``labels`` the label map Volume.
+
+        The label map is captured by :class:`LabelMapWarp`.
 
         A capture file's settings are checked against the spec's (a spec error);
         a volume's read error comes here, after every spec error.
@@ -192,9 +195,11 @@ class WarpInput(AbstractContextManager):
 
 
 def handle_report(cap, frames) -> list[dict]:
-    """How far each drag handle missed its target, world mm (logged at -v); one dict per
-    handle: ``{step, index, from, to, reached, miss_mm}`` (world LPS mm, ``step``
-    0-based)."""
+    """How far each drag handle missed its target, world mm (logged at -v).
+
+    One dict per handle: ``{step, index, from, to, reached, miss_mm}`` (world LPS mm,
+    ``step`` 0-based).
+    """
     g = cap.geometry
     matrix = g.direction * g.spacing[None, :]
     out = []
@@ -260,8 +265,10 @@ class IntensityWarp:
         return self.output(run(self.scene, self.frames))
 
     def render_frames(self, on_frame: OnFrame) -> Volume:
-        """Every frame (0: unwarped, then each increment), incrementally, each handed to
-        ``on_frame`` before the next is made; returns the last (the output)."""
+        """Every frame (0: unwarped, then each increment), incrementally; returns the last.
+
+        Each is handed to ``on_frame`` before the next is made; the last is the output.
+        """
         from .warp import run
 
         def each(n, fr, target):
@@ -293,8 +300,9 @@ class IntensityWarp:
 
 
 class LabelMapWarp:
-    """The warp of a label map (segmentation) by a checked spec: every output voxel an
-    input label (see :mod:`.labels`).
+    """The warp of a label map (segmentation) by a checked spec.
+
+    Every output voxel is an input label (see :mod:`.labels`).
 
     Each rendered lattice is the whole label warp from the input map, exact (not
     incremental): :meth:`render` for the final lattice, :meth:`render_frames`
@@ -341,8 +349,10 @@ class LabelMapWarp:
         return self.warp(self.frames[-1].dq if self.frames else self.cap.dq)
 
     def render_frames(self, on_frame: OnFrame) -> tuple[Volume, dict]:
-        """Every frame's label map, each handed to ``on_frame``; returns the last one (the
-        output) and its report."""
+        """Every frame's label map, each handed to ``on_frame``.
+
+        Returns the last one (the output) and its report.
+        """
         last = None
         count = len(self.frames)
         for fields, lattice in self.lattices():

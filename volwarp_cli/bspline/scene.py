@@ -286,8 +286,9 @@ class Scene:
         return self.out
 
     def render_once(self, sink=None, block_planes: int | None = None) -> np.ndarray | None:
-        """The same target as :meth:`render`, streamed in z blocks over the threads without
-        keeping accumulators for later updates (see :mod:`.stream`; later
+        """The same target as :meth:`render`, streamed in z blocks over the threads.
+
+        No accumulators are kept for later updates (see :mod:`.stream`; later
         :meth:`set_lattice` calls start from scratch). ``sink`` receives the
         finished planes instead (None is returned); ``block_planes`` forces the
         blocks' size (tests).
@@ -361,9 +362,11 @@ class Scene:
         self.last_touched = (tuple(int(v) for v in tlo), tuple(int(v) for v in thi))
 
     def _facts(self, dq) -> dict:
-        """A dict of values derived from lattice ``dq`` alone (still regions, offset
-        bounds), kept for the last few lattices: an update needs both the old
-        lattice's and the new one's, and the old one was the previous update's new."""
+        """A dict of values derived from lattice ``dq`` alone (still regions, offset bounds).
+
+        Kept for the last few lattices: an update needs both the old lattice's and
+        the new one's, and the old one was the previous update's new.
+        """
         key = np.asarray(dq).tobytes()
         with self._facts_lock:
             facts = self._lattice_facts.pop(key, None)
@@ -375,8 +378,10 @@ class Scene:
         return facts
 
     def _still(self, dqs) -> np.ndarray | None:
-        """:func:`pushforward.still_regions` of ``dqs`` (None for the nearest method, which
-        has no still shortcut), from cached per-lattice masks."""
+        """:func:`pushforward.still_regions` of ``dqs``, from cached per-lattice masks.
+
+        None for the nearest method, which has no still shortcut.
+        """
         if self.method != "box":
             return None
         masks = []
@@ -389,8 +394,10 @@ class Scene:
         return np.ascontiguousarray(still, dtype=np.uint8) if still.any() else None
 
     def _offset_bounds(self, dq) -> tuple[np.ndarray, np.ndarray]:
-        """``(lo, hi)``, each ``[Rz, Ry, Rx, 3]``: bounds of the offsets any voxel of a region
-        and its neighbours can have (x y z components), from the lattice alone.
+        """``(lo, hi)``, each ``[Rz, Ry, Rx, 3]``: bounds of the offsets of a region's voxels.
+
+        They bound the offsets any voxel of a region and its neighbours can have (x y z
+        components), from the lattice alone.
 
         :func:`.reach.offset_bounds`, cached per lattice.
         """

@@ -1,5 +1,6 @@
-"""The one-shot render by streaming: the target in z blocks, one per thread, each through a
-rolling accumulator of a few planes.
+"""The one-shot render by streaming: the target in z blocks, one per thread.
+
+Each block goes through a rolling accumulator of a few planes.
 
 Each block streams on its own: domain z chunks in order, scattered into a
 ring of target planes; a plane is finalized and dropped as soon as no later

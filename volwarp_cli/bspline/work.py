@@ -1,5 +1,6 @@
-"""How much a scatter costs, and the choices made from it: how an update is done and how
-a block's work is split over threads.
+"""How much a scatter costs, and the choices made from it.
+
+The choices: how an update is done and how a block's work is split over threads.
 
 The measure counts domain voxels: one in a still region (all its control
 points unmoved, the scatter's shortcut) costs 1, any other ``GENERAL_COST``.
@@ -38,8 +39,10 @@ def region_voxels(reach: Reach, vlo, vhi) -> list[np.ndarray]:
 
 
 def plane_work(reach: Reach, still, vlo, vhi) -> np.ndarray:
-    """:func:`scatter_work`'s measure of each domain z plane of block [vlo, vhi), all passes
-    (``still``: uint8 ``[passes, Rz, Ry, Rx]``)."""
+    """:func:`scatter_work`'s measure of each domain z plane of block [vlo, vhi), all passes.
+
+    ``still``: uint8 ``[passes, Rz, Ry, Rx]``.
+    """
     grid = reach.grid
     cx, cy, _ = region_voxels(reach, vlo, vhi)
     cost = np.where(still, 1.0, GENERAL_COST).sum(axis=0)  # [Rz, Ry, Rx]
@@ -50,8 +53,10 @@ def plane_work(reach: Reach, still, vlo, vhi) -> np.ndarray:
 
 
 def scatter_work(reach: Reach, still, passes: int, vlo, vhi) -> float:
-    """Scatter work over domain voxels [vlo, vhi) (x, y, z) in ``passes`` passes (lattices),
-    ``still`` their still regions (or None)."""
+    """Scatter work over domain voxels [vlo, vhi) (x, y, z) in ``passes`` passes (lattices).
+
+    ``still``: their still regions (or None).
+    """
     counts = region_voxels(reach, vlo, vhi)
     n = np.einsum("k,j,i->kji", counts[2], counts[1], counts[0])  # [Rz, Ry, Rx]
     total = float(n.sum()) * passes
@@ -67,8 +72,9 @@ def choose_update(work: dict[str, float], forced: str | None = None) -> str:
 
 
 def thread_parts(reach: Reach, dq, lo, hi, tzo=0, tz_hi=None, still=None, threads=None):
-    """``[(t0, t1, g0, g1), ...]``: block [lo, hi)'s work split by target planes over threads
-    (for :func:`.pushforward.scatter`).
+    """``[(t0, t1, g0, g1), ...]``: block [lo, hi)'s work split by target planes over threads.
+
+    For :func:`.pushforward.scatter`.
 
     Target planes [t0, t1) cover the planes held, [tzo, tz_hi); domain z
     range [g0, g1) holds every voxel that can reach them. The cuts fall where

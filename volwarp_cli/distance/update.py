@@ -175,7 +175,7 @@ def _translate(src: np.ndarray, offset, fill_value) -> np.ndarray:
 
 
 def _affine_threaded(src: np.ndarray, m_zyx: np.ndarray, fill_value) -> np.ndarray:
-    """scipy's trilinear affine resampling, split in z slabs over the threads in effect."""
+    """SciPy's trilinear affine resampling, split in z slabs over the threads in effect."""
     from scipy import ndimage
 
     from .. import parallel

@@ -124,8 +124,10 @@ _inputs: set[tuple[int, int]] = set()
 
 
 def note_input(file) -> None:
-    """Record an input (an open file or a path), so that no output of this process
-    replaces it behind the user's back."""
+    """Record an input (an open file or a path).
+
+    Then no output of this process replaces it behind the user's back.
+    """
     st = os.fstat(file.fileno()) if hasattr(file, "fileno") else os.stat(file)
     _inputs.add((st.st_dev, st.st_ino))
 
@@ -237,6 +239,7 @@ def ascii_values(text: str, dtype: np.dtype, count: int, where: str) -> np.ndarr
 
 
 def is_number(token: str) -> bool:
+    """True when ``token`` reads as a float (as ``float()`` takes it: ``nan``, ``1e3``)."""
     try:
         float(token)
     except ValueError:

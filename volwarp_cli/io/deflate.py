@@ -42,6 +42,9 @@ def zlib_bytes(data, level: int = 1) -> bytes:
 
 
 def decompressobj(wbits: int = AUTO_HEADER):
-    """A streaming inflater with zlib's interface (``decompress(data, max_length)``,
-    ``unconsumed_tail``, ``unused_data``, ``eof``); its errors are in :data:`ERRORS`."""
+    """A streaming inflater with zlib's interface; its errors are in :data:`ERRORS`.
+
+    The interface: ``decompress(data, max_length)``, ``unconsumed_tail``,
+    ``unused_data``, ``eof``.
+    """
     return _zlib_impl.decompressobj(wbits)

@@ -22,8 +22,10 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".bmp")
 
 
 def check_image_extension(path: str | os.PathLike) -> str | os.PathLike:
-    """``path`` itself when its extension is a known image one, else raise listing them
-    (an option's check, before any work)."""
+    """``path`` itself when its extension is a known image one, else raise listing them.
+
+    An option's check, before any work.
+    """
     ext = Path(path).suffix.lower()
     if ext not in IMAGE_EXTENSIONS:
         raise VolwarpError(f"{path}: unknown image extension {ext or '(none)'} "

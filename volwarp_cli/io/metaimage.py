@@ -97,8 +97,10 @@ def looks_like_metaimage(head: bytes) -> bool:
 # -- header ---------------------------------------------------------------------
 
 def _referenced_data_files(header_path: Path) -> list[str]:
-    """The data file an existing ``.mhd`` names (a single file; none for LOCAL, LIST or a
-    pattern, which volwarp does not write)."""
+    """The data file an existing ``.mhd`` names.
+
+    A single file; none for LOCAL, LIST or a pattern, which volwarp does not write.
+    """
     with open(header_path, "rb") as fh:
         value = dict(read_header(fh, str(header_path))).get("ElementDataFile", "")
     return [] if value in ("LOCAL", "Local", "local") or "%" in value or value.startswith(
@@ -531,8 +533,10 @@ def metaimage_header(vol: Volume, dtype: np.dtype, *, byte_order: str, data_file
 
 def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
                     byte_order: str = "little", level: int = 1) -> None:
-    """Write ``vol`` as MetaImage: ``.mhd`` writes a header plus ``.raw`` (``.zraw``
-    when compressed, as ITK names it) next to it, any other name one ``.mha``.
+    """Write ``vol`` as MetaImage: a ``.mhd`` header and its data file, or one ``.mha``.
+
+    ``.mhd`` writes a header plus ``.raw`` (``.zraw`` when compressed, as ITK names it)
+    next to it, any other name one ``.mha``.
 
     Compressed data is one zlib stream (as MetaIO writes it), ``level`` 1..9.
     """

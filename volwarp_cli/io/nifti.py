@@ -149,8 +149,10 @@ def _choose_affine(header, where: str) -> tuple[np.ndarray, str]:
 
 
 def _read_header_block(path) -> bytes | None:
-    """The first 560 bytes of the (possibly gzipped) file, or None when they cannot be read
-    (nibabel then says why)."""
+    """The first 560 bytes of the (possibly gzipped) file, or None when they cannot be read.
+
+    nibabel then says why.
+    """
     try:
         with open(path, "rb") as fh:
             if fh.read(2) == b"\x1f\x8b":
@@ -164,9 +166,11 @@ def _read_header_block(path) -> bytes | None:
 
 
 def _check_raw_header(path, where: str) -> None:
-    """Refuse, before nibabel reads them, a vox_offset inside the header and an invalid
-    quaternion: nibabel would read header bytes as samples, or fail with a traceback-like
-    message that names no field."""
+    """Refuse, before nibabel reads them, a vox_offset inside the header and an invalid quaternion.
+
+    nibabel would read header bytes as samples, or fail with a traceback-like message
+    that names no field.
+    """
     block = _read_header_block(path)
     if not block or len(block) < 348:
         return
@@ -205,6 +209,7 @@ def _check_raw_header(path, where: str) -> None:
 
 
 def read_nifti(path: str | os.PathLike, volume_index: int | None = None) -> Volume:
+    """Read a NIfTI file into LPS (module notes); ``volume_index`` picks one of a 4-D file."""
     where = str(path)
     _check_raw_header(path, where)
     with np.errstate(all="ignore"):  # an all-zero matrix: an error below, not a warning
@@ -418,7 +423,7 @@ def _form_codes(meta: dict, ras: np.ndarray, spacing: np.ndarray) -> tuple[int, 
 
 
 def _extension(meta: dict):
-    """volwarp's header extension for the meta that is not a header field, or None."""
+    """The volwarp header extension for the meta that is not a header field, or None."""
     from nibabel.nifti1 import Nifti1Extension
 
     rest = {str(k): v for k, v in meta.items() if k not in HEADER_KEYS}
@@ -430,6 +435,7 @@ def _extension(meta: dict):
 
 
 def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
+    """Write ``vol`` as NIfTI-1 (gzipped for ``.gz``), atomically, keeping the meta it can."""
     import nibabel as nib
 
     path = Path(path)

@@ -261,8 +261,10 @@ def _data_files(fields: dict[str, str], header_path: Path, fh, where: str, sizes
 
 
 def _referenced_data_files(header_path: Path) -> list[str]:
-    """The data file an existing detached header names (a single file; none for LIST or a
-    pattern, which volwarp does not write)."""
+    """The data file an existing detached header names.
+
+    A single file; none for LIST or a pattern, which volwarp does not write.
+    """
     with open(header_path, "rb") as fh:
         fields, _ = read_header(fh, str(header_path))
     spec = fields.get("data file", fields.get("datafile", ""))

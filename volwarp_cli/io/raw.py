@@ -35,6 +35,7 @@ class RawLayout:
 
 
 def read_raw(path: str | os.PathLike, layout: RawLayout | None) -> Volume:
+    """Read a headerless file as ``layout`` describes it (a VolwarpError without one)."""
     where = str(path)
     if layout is None:
         raise VolwarpError(f"{where}: a raw file needs --raw-shape and --raw-dtype "

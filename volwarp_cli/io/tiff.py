@@ -209,10 +209,12 @@ def _declared_pages(tif, pages, ij, where: str) -> tuple[int, str] | None:
 
 
 def _ome_pixels(tif) -> tuple[list[dict], bool] | None:
-    """The attributes of each OME ``Pixels`` element, and whether the file is one of a
-    multi-file OME set; None without readable OME metadata.
+    """The attributes of each OME ``Pixels`` element, and whether the file is of a multi-file set.
 
-    The OME-XML is parsed once per open file (the result is kept on ``tif``)."""
+    None without readable OME metadata.
+
+    The OME-XML is parsed once per open file (the result is kept on ``tif``).
+    """
     cached = getattr(tif, "_volwarp_ome_pixels", _NOT_PARSED)
     if cached is _NOT_PARSED:
         cached = _parse_ome_pixels(tif)
@@ -257,8 +259,10 @@ def _ome_pages(tif) -> tuple[int, str] | None:
 
 
 def _ome_extra_axes(tif) -> tuple[str, int] | None:
-    """``("channels", n)`` or ``("time points", n)`` where an OME image has more than one
-    (its planes would otherwise be read as z slices), else None."""
+    """``("channels", n)`` or ``("time points", n)`` where an OME image has more than one.
+
+    Else None. Such an image's planes would otherwise be read as z slices.
+    """
     ome = _ome_pixels(tif)
     for pixels in ome[0] if ome else ():
         for key, name in (("SizeC", "channels"), ("SizeT", "time points")):
@@ -272,6 +276,7 @@ def _ome_extra_axes(tif) -> tuple[str, int] | None:
 
 
 def read_tiff(path: str | os.PathLike) -> Volume:
+    """Read a TIFF stack, its spacing as the module notes say (OME, ImageJ, resolution tags)."""
     import tifffile
 
     where = str(path)
@@ -293,7 +298,7 @@ def read_tiff(path: str | os.PathLike) -> Volume:
 
 
 def _reason(exc: Exception) -> str:
-    """tifffile's (or struct's, numpy's) complaint about a damaged file, in one short line."""
+    """The complaint of tifffile (or struct, numpy) about a damaged file, in one short line."""
     text = " ".join(str(exc).split())[:200]
     if isinstance(exc, struct.error):
         return f"file ends too early: {text}"
@@ -375,8 +380,10 @@ def _read_tiff(tif, where: str, records) -> Volume:
 
 
 def _ome_spacing(tif, where: str) -> list[float | None] | None:
-    """The OME ``PhysicalSizeX/Y/Z`` of the first image in mm (None for an axis without a
-    usable size), or None when the file has no OME metadata."""
+    """The OME ``PhysicalSizeX/Y/Z`` of the first image in mm, or None without OME metadata.
+
+    An axis without a usable size is None.
+    """
     ome = _ome_pixels(tif)
     if ome is None or not ome[0]:
         return None
@@ -471,6 +478,7 @@ def _geometry(tif, first, ij, data, where: str) -> Volume:
 
 def write_tiff(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
                byte_order: str = "little") -> None:
+    """Write ``vol`` as a TIFF stack (ImageJ where its type allows), atomically."""
     import tifffile
 
     path = Path(path)

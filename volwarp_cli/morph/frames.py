@@ -1,5 +1,6 @@
-"""The morph's frames: from a prepared morph to each frame's volume, attributes, surface
-and picture (Dinh & Carvalho 2004, section 0.3).
+"""The morph's frames: each frame's volume, attributes, surface and picture from a prepared morph.
+
+After Dinh & Carvalho 2004, section 0.3.
 
 :func:`morph_frames` walks the job's times over a
 :class:`~.pipeline.Prepared` morph and yields one :class:`Frame` per time:
@@ -28,10 +29,12 @@ from .spec import MorphJob
 
 @dataclass(frozen=True)
 class RenderSettings:
-    """How the frames' surfaces are rendered: a view (a name or (azimuth, elevation)) and
-    a (width, height) in pixels; one camera, fitted to both shapes, for every frame, or
-    ``camera`` (a :class:`volwarp_cli.render.camera.Camera`, e.g. one read back to compare
-    with another run); ``orientation_labels``: the anatomical letters at the edges.
+    """How the frames' surfaces are rendered.
+
+    A view (a name or (azimuth, elevation)) and a (width, height) in pixels; one
+    camera, fitted to both shapes, for every frame, or ``camera`` (a
+    :class:`volwarp_cli.render.camera.Camera`, e.g. one read back to compare with
+    another run); ``orientation_labels``: the anatomical letters at the edges.
     """
 
     view: object = "iso"
@@ -63,8 +66,9 @@ class Frame:
 
 
 def shape_box(prep: Prepared) -> np.ndarray:
-    """World corners ``(8, 3)`` of the box holding source and target shapes on the frame
-    grid (for one fixed camera).
+    """World corners ``(8, 3)`` of the box holding source and target shapes on the frame grid.
+
+    For one fixed camera.
     """
     inside = (prep.morph.source < 0) | (prep.morph.target < 0)
     if not inside.any():

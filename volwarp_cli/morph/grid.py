@@ -25,9 +25,12 @@ from ..volume import Volume, xyz_to_zyx
 
 
 class GridError(VolwarpError):
-    """Source and target cannot be put on one grid without more information, or the
-    grid the spec asks for cannot be made; ``key``: the spec key at fault (a path such
-    as ``("align", "target")``), reported by the command line with its line."""
+    """The frame grid cannot be made.
+
+    Source and target cannot be put on one grid without more information, or the
+    grid the spec asks for cannot be made; ``key``: the spec key at fault (a path
+    such as ``("align", "target")``), reported by the command line with its line.
+    """
 
     def __init__(self, message: str, key: tuple = ("grid",)):
         super().__init__(message)
@@ -41,6 +44,8 @@ MAX_AXIS = 1 << 31
 
 @dataclass
 class Grid:
+    """A frame grid: size (x, y, z), spacing, origin and direction, LPS mm."""
+
     shape_xyz: tuple[int, int, int]
     spacing: np.ndarray
     origin: np.ndarray
@@ -48,19 +53,23 @@ class Grid:
 
     @classmethod
     def of(cls, vol: Volume) -> Grid:
+        """The grid of ``vol`` (copies of its arrays)."""
         return cls(tuple(vol.shape_xyz), vol.spacing.copy(), vol.origin.copy(),
                    vol.direction.copy())
 
     @property
     def shape_zyx(self) -> tuple[int, int, int]:
+        """The size in array order (z, y, x)."""
         return tuple(int(n) for n in xyz_to_zyx(self.shape_xyz))
 
     @property
     def spacing_zyx(self) -> tuple[float, float, float]:
+        """The spacing in array order (z, y, x)."""
         return tuple(float(s) for s in xyz_to_zyx(self.spacing))
 
     @property
     def index_to_world(self) -> np.ndarray:
+        """The 4x4 matrix from voxel indices (x, y, z, 1) to world points."""
         m = np.eye(4)
         m[:3, :3] = self.direction * self.spacing[None, :]
         m[:3, 3] = self.origin
@@ -68,9 +77,11 @@ class Grid:
 
     @property
     def voxels(self) -> int:
+        """The number of voxels."""
         return int(np.prod(self.shape_xyz))
 
     def volume(self, data: np.ndarray, meta: dict | None = None) -> Volume:
+        """A :class:`Volume` of ``data`` (``[z, y, x]``) on this grid, with ``meta``."""
         return Volume(data, spacing=self.spacing, origin=self.origin, direction=self.direction,
                       meta=meta or {})
 
@@ -110,6 +121,7 @@ def union_grid(source: Grid, target: Grid, source_matrix: np.ndarray,
 
 
 def explicit_grid(spec: dict) -> Grid:
+    """The grid a spec gives as ``{origin, spacing, size, direction}`` (a GridError if singular)."""
     spacing = np.asarray(spec["spacing"], dtype=np.float64)
     spacing = np.full(3, float(spacing)) if spacing.shape == () else spacing
     direction = np.asarray(spec.get("direction", np.eye(3)), dtype=np.float64)

@@ -179,6 +179,7 @@ class Morph:
 
 
 def check_time(t: float) -> None:
+    """Refuse a morph time outside [0, 1] (a VolwarpError)."""
     if not (0.0 <= t <= 1.0):
         raise VolwarpError(f"time t = {t:g} is outside [0, 1]")
 

@@ -108,5 +108,6 @@ class LandmarkWarp:
         return self.interpolator(flat).reshape(x.shape)
 
     def __call__(self, points) -> np.ndarray:
+        """``W(x)`` for (..., 3) world points."""
         x = np.asarray(points, dtype=np.float64)
         return x + self.displacement(x)

@@ -24,6 +24,13 @@ from .spec import MorphJob
 
 @dataclass
 class Prepared:
+    """A morph ready for its frames (:func:`prepare`).
+
+    Both fields on the frame grid, the alignment matrices, the landmark warp back,
+    the voxels of each field's grid its input did not cover, and each attribute's
+    source and target on the grid.
+    """
+
     morph: Morph
     grid: Grid
     source_matrix: np.ndarray
@@ -91,6 +98,7 @@ def prepare(job: MorphJob, source: Volume, target: Volume,
 
 
 def ref_path(job: MorphJob, name: str):
+    """The input path of the job's ``name`` shape (``"source"`` or ``"target"``)."""
     return getattr(job, name).path
 
 

@@ -18,6 +18,8 @@ from .align import affine_from_params
 
 @dataclass
 class ShapeRef:
+    """A shape of the morph: its volume file, the iso level and which side is inside."""
+
     path: Path
     iso: float
     inside: str = "above"
@@ -25,6 +27,8 @@ class ShapeRef:
 
 @dataclass
 class AttributeRef:
+    """An attribute blended along with the shapes: its source and target volumes, output type."""
+
     name: str
     source: Path
     target: Path
@@ -33,6 +37,8 @@ class AttributeRef:
 
 @dataclass
 class MorphJob:
+    """A morph as the spec or the options give it: shapes, times, alignment, warp, grid, output."""
+
     source: ShapeRef
     target: ShapeRef
     times: list[float]
@@ -55,6 +61,7 @@ class MorphJob:
 
     @property
     def moved(self) -> bool:
+        """True when an alignment or a landmark warp is given."""
         return bool(self.align_source or self.align_target
                     or self.warp_source_points is not None)
 

@@ -103,6 +103,7 @@ class Camera:
 
     @property
     def direction_of_projection(self) -> np.ndarray:
+        """The world direction the camera looks along, ``-back``."""
         return -np.asarray(self.back, dtype=np.float64)
 
     def position(self) -> np.ndarray:

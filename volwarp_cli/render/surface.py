@@ -489,8 +489,10 @@ def turntable_views(n: int, view="iso") -> list[tuple[float, float]]:
 
 
 def turntable_cameras(camera: Camera, n: int) -> list[Camera]:
-    """``n`` copies of ``camera`` turned about the vertical (world z) axis through its focal
-    point, by 360 k / n degrees (frame 0 is ``camera`` itself)."""
+    """``n`` copies of ``camera`` turned about the vertical (world z) axis through its focal point.
+
+    Copy k is turned by 360 k / n degrees (frame 0 is ``camera`` itself).
+    """
     from dataclasses import replace
 
     if n < 1:

@@ -87,12 +87,15 @@ class Function:
 
     @property
     def is_constant(self) -> bool:
+        """True when the function is a constant (the same value at every ``u``)."""
         return self.kind == "constant"
 
     def error(self, message: str) -> SpecError:
+        """A :class:`SpecError` at the spec key the function came from (raise it)."""
         return spec_error(self.doc, self.path, message)
 
     def __call__(self, u) -> np.ndarray:
+        """The values at ``u`` (``(N,)`` or ``(N, dim)``); a SpecError where one is not finite."""
         u = np.atleast_1d(np.asarray(u, dtype=np.float64))
         with np.errstate(all="ignore"):
             out = np.asarray(self._impl(u), dtype=np.float64)

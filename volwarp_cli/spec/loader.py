@@ -99,6 +99,7 @@ class SpecDoc:
                          line=self.line(path))
 
     def get(self, path: Key, default=None):
+        """The value at key ``path`` of the data, or ``default`` where the path leaves it."""
         node = self.data
         for part in path:
             try:
@@ -114,8 +115,11 @@ class SpecDoc:
 
 
 def _node_line(node: yaml.Node, path: Key) -> int:
-    """The line of ``path`` in a node tree: of its key in a mapping, of the item in a
-    list; of the nearest ancestor found when the path leaves the tree."""
+    """The line of ``path`` in a node tree.
+
+    That of its key in a mapping, of the item in a list; of the nearest ancestor
+    found when the path leaves the tree.
+    """
     line = node.start_mark.line + 1
     for part in path:
         found = None
@@ -335,7 +339,7 @@ def load_schema(kind: str) -> dict:
 
 
 def _message(err) -> str:
-    """jsonschema's wording of ``err``, with the value it quotes cut short."""
+    """The jsonschema wording of ``err``, with the value it quotes cut short."""
     message = err.message
     try:
         full = repr(err.instance)

@@ -36,7 +36,7 @@ class _Undecidable(Exception):
 
 
 def is_valid(instance, schema: dict) -> bool | None:
-    """jsonschema's 2020-12 verdict on ``instance``, or None if this subset cannot tell."""
+    """The jsonschema 2020-12 verdict on ``instance``, or None if this subset cannot tell."""
     try:
         _check(schema, schema, set())
         return _valid(instance, schema, schema)
@@ -97,7 +97,10 @@ def _is_type(x, t):
 
 
 def _equal(a, b):
-    """jsonschema's ``_utils.equal``: 1 == 1.0, True != 1, lists and dicts recursively."""
+    """Equality as jsonschema's ``_utils.equal`` has it: 1 == 1.0, True != 1.
+
+    Lists and dicts are compared recursively.
+    """
     if a is b:
         return True
     if isinstance(a, str) or isinstance(b, str):

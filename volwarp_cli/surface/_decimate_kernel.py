@@ -116,7 +116,7 @@ def _rebuild_refs(faces, n_faces, n_vertices, tstart, tcount, refs_t, refs_v):
 
 @njit(cache=True, nogil=True)
 def _flipped(verts, faces, normals, deleted, refs_t, refs_v, start, count, i_other, p):
-    """Would moving the vertex of these refs to ``p`` flip or squash a triangle?"""
+    """Whether moving the vertex of these refs to ``p`` would flip or squash a triangle."""
     for r in range(start, start + count):
         t = refs_t[r]
         if deleted[t]:

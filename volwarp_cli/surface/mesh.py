@@ -55,18 +55,22 @@ class Mesh:
 
     @property
     def n_vertices(self) -> int:
+        """The number of vertices."""
         return int(len(self.vertices))
 
     @property
     def n_faces(self) -> int:
+        """The number of triangles."""
         return int(len(self.faces))
 
     @property
     def is_empty(self) -> bool:
+        """True for a mesh without triangles."""
         return self.n_faces == 0
 
     @classmethod
     def empty(cls) -> Mesh:
+        """A mesh with no vertices and no triangles (normals empty too)."""
         return cls(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64),
                    np.zeros((0, 3), dtype=np.float32))
 

@@ -343,9 +343,11 @@ def _ply_header_lines(data: bytes):
 
 
 def _ply_elements(body: bytes, fmt: str, elements) -> dict[str, dict[str, np.ndarray]]:
-    """Each element's properties as arrays: lists as (N, k) arrays when every record
-    has k items, else as a 1-D object array of rows (the caller refuses faces that
-    are not triangles)."""
+    """Each element's properties as arrays.
+
+    Lists as (N, k) arrays when every record has k items, else as a 1-D object
+    array of rows (the caller refuses faces that are not triangles).
+    """
     if fmt == "ascii":
         return _ply_ascii(body, elements)
     order = "<" if fmt == "binary_little_endian" else ">"

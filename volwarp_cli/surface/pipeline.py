@@ -101,8 +101,10 @@ def check_label_map(vol: Volume, name: str, what: str) -> None:
 
 def label_indicator(vol: Volume, label: int, *, name: str = "the volume",
                     what: str = "--label") -> Volume:
-    """The indicator of ``label`` in the label map ``vol`` (1 inside, 0 elsewhere), float32,
-    the same geometry; its surface is the isosurface at 0.5."""
+    """The indicator of ``label`` in the label map ``vol`` (1 inside, 0 elsewhere).
+
+    Float32, the same geometry; its surface is the isosurface at 0.5.
+    """
     check_label_map(vol, name, what)
     ind = vol.data == label
     if not ind.any():

@@ -35,18 +35,22 @@ BLEND_FLOOR = 1e-6
 
 
 def union(a, b):
+    """``max(a, b)``."""
     return np.maximum(a, b)
 
 
 def intersection(a, b):
+    """``min(a, b)``."""
     return np.minimum(a, b)
 
 
 def difference(a, b):
+    """``max(a - b, 0)`` (a field minus itself is empty)."""
     return np.maximum(np.subtract(a, b), 0)
 
 
 def sum_clamped(a, b):
+    """The ``sum`` operator: ``clip(a + b, 0, 1)``."""
     return np.clip(np.add(a, b), 0, 1)
 
 
@@ -58,6 +62,7 @@ def blend(a, b, oa=None, ob=None):
 
 
 def first(a, b):
+    """A copy of ``a`` (CVG's "select": the first operand's attribute)."""
     return np.array(a, copy=True)
 
 
@@ -168,6 +173,7 @@ class Accumulator:
         self.covered[idx] = True
 
     def result(self) -> dict[str, np.ndarray]:
+        """The fields accumulated so far, by name (see :func:`finish_fields`)."""
         return finish_fields(self.names, self.ops, self.acc, self.wsum, self.covered)
 
 

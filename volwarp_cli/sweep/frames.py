@@ -82,6 +82,7 @@ class Secondary:
     path: tuple
 
     def for_segment(self, index: int) -> Segment:
+        """The secondary segment of main segment ``index`` (the only one, if one for all)."""
         return self.segments[index if len(self.segments) > 1 else 0]
 
 
@@ -118,11 +119,13 @@ class Frames:
         return np.stack([P - hx - hy, P + hx - hy, P + hx + hy, P - hx + hy, P], axis=1)
 
     def take(self, idx) -> Frames:
+        """The frames at ``idx`` (an index array or mask into the N frames)."""
         return Frames(*(getattr(self, f)[idx] for f in
                         ("s", "u", "P", "EX", "EY", "EZ", "SX", "SY")))
 
     @staticmethod
     def concat(parts: list[Frames]) -> Frames:
+        """The frames of ``parts`` one after the other."""
         return Frames(*(np.concatenate([getattr(p, f) for p in parts]) for f in
                         ("s", "u", "P", "EX", "EY", "EZ", "SX", "SY")))
 
@@ -230,8 +233,11 @@ def transport(r: np.ndarray, t0: np.ndarray, tm: np.ndarray, t1: np.ndarray,
 
 
 def _transport_table(r0: np.ndarray, T: np.ndarray, TM: np.ndarray, H: np.ndarray) -> np.ndarray:
-    """:func:`transport` from entry to entry of a table, ``R[0] = r0`` (a scalar loop: the
-    steps depend on each other, and numpy's per-call overhead would dominate)."""
+    """:func:`transport` from entry to entry of a table, ``R[0] = r0``.
+
+    A scalar loop: the steps depend on each other, and numpy's per-call overhead
+    would dominate.
+    """
     R = np.empty_like(T)
     R[0] = r0
     r = [float(v) for v in r0]
@@ -352,8 +358,10 @@ def _up_error(seg: Segment, fns: SweepFunctions, index: int, s: float, ez, zero:
 
 
 def _closeness(seg, fns, s, index, scale, left=False):
-    """``|ez x up| / |up|`` (0 where up is zero) and ``|ez x up| / scale`` at ``s``; the
-    unit directions and ``|up|``."""
+    """``|ez x up| / |up|`` (0 where up is zero) and ``|ez x up| / scale`` at ``s``.
+
+    Also the unit directions and ``|up|``.
+    """
     s = np.asarray(s, dtype=np.float64)
     ez = _unit_directions(seg, fns, s, index, left=left)
     if isinstance(fns.up, Secondary):
@@ -405,8 +413,11 @@ def check_up(seg: Segment, fns: SweepFunctions, index: int, samples: int = 1025)
 
 
 def _minimum(f, a: float, b: float, iterations: int = 26) -> float:
-    """Where the vectorised ``f`` is smallest on [a, b] (a local minimum; nine samples
-    a round, keeping the two intervals about the smallest: a quarter of the bracket)."""
+    """Where the vectorised ``f`` is smallest on [a, b] (a local minimum).
+
+    Nine samples a round, keeping the two intervals about the smallest: a quarter
+    of the bracket.
+    """
     x = np.array([a])
     j = 0
     for _ in range(iterations):

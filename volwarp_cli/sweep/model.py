@@ -31,6 +31,12 @@ DEFAULT_LONGEST_SIDE = 128
 
 @dataclass
 class Sweep:
+    """One sweep: a template per field, the trajectory's segments and their functions.
+
+    ``ops``: the per-field operators where the sweep meets itself; ``tau``: its own
+    voxelising step, if given.
+    """
+
     templates: dict[str, Template]
     segments: list[Segment]
     functions: list[SweepFunctions]
@@ -55,22 +61,27 @@ class Sweep:
         return p.min(axis=0), p.max(axis=0)
 
     def frames(self, index: int, s) -> Frames:
+        """The template frames of segment ``index`` at normalised parameters ``s``."""
         return compute_frames(self.segments[index], self.functions[index], np.asarray(s), index)
 
 
 @dataclass
 class SceneNode:
+    """A node of a scene's CVG operator tree: its children combined per field by ``ops``."""
+
     ops: dict[str, str]
     children: list  # Sweep | SceneNode
     key: tuple = ()
 
     def sweeps(self) -> list[Sweep]:
+        """Every sweep under this node, depth first, in order."""
         out = []
         for c in self.children:
             out.extend(c.sweeps() if isinstance(c, SceneNode) else [c])
         return out
 
     def field_names(self) -> list[str]:
+        """The fields of the sweeps under this node, each once, in order of appearance."""
         names: list[str] = []
         for sw in self.sweeps():
             for n in sw.templates:
@@ -81,6 +92,8 @@ class SceneNode:
 
 @dataclass
 class SweepSpec:
+    """A parsed sweep spec: one sweep or a scene, the grid settings, ``tau``, the method."""
+
     root: Sweep | SceneNode
     grid: dict = field(default_factory=dict)
     tau: float | None = None
@@ -88,14 +101,17 @@ class SweepSpec:
     doc: object = None
 
     def sweeps(self) -> list[Sweep]:
+        """Every sweep of the spec, in order."""
         return self.root.sweeps() if isinstance(self.root, SceneNode) else [self.root]
 
     def field_names(self) -> list[str]:
+        """The output fields, each once, in order of appearance."""
         if isinstance(self.root, SceneNode):
             return self.root.field_names()
         return list(self.root.templates)
 
     def bounds(self):
+        """World bounding box ``(min, max)`` of all the sweeps' template squares."""
         los, his = zip(*(sw.bounds() for sw in self.sweeps()), strict=True)
         return np.min(los, axis=0), np.max(his, axis=0)
 
@@ -118,6 +134,7 @@ def _urange(doc, path, body) -> tuple[float, float]:
 
 
 def parse_segment(doc, path: tuple, item: dict) -> Segment:
+    """One trajectory segment from the spec (a SpecError for a degenerate one)."""
     kind = next(iter(item))
     body = item[kind]
     bp = path + (kind,)
@@ -158,6 +175,7 @@ def parse_segment(doc, path: tuple, item: dict) -> Segment:
 
 
 def parse_trajectory(doc, path: tuple, items) -> list[Segment]:
+    """The segments of a spec trajectory (a SpecError if it has none)."""
     if not isinstance(items, list) or not items:
         raise spec_error(doc, path, "the trajectory needs at least one segment")
     return [parse_segment(doc, path + (i,), it) for i, it in enumerate(items)]
@@ -257,6 +275,7 @@ def _ops(doc, path, value, names) -> dict[str, str]:
 
 
 def parse_scene(doc, path: tuple, node: dict, loader: TemplateLoader):
+    """A :class:`Sweep` or, for an ``of`` node, a :class:`SceneNode` of its children."""
     if "sweep" in node:
         return parse_sweep(doc, path + ("sweep",), node["sweep"], loader)
     children = [parse_scene(doc, path + ("of", i), c, loader) for i, c in enumerate(node["of"])]

@@ -46,6 +46,7 @@ class Template:
 
     @property
     def n_slices(self) -> int:
+        """The template's number of slices (1 for a single image)."""
         return int(self.data.shape[0])
 
     def slice_coords(self, seg, s: np.ndarray) -> np.ndarray:

@@ -43,12 +43,15 @@ class Segment:
     kind = "segment"
 
     def u_of(self, s):
+        """The user's parameter ``u`` in [u0, u1] at normalised parameters ``s``."""
         return self.u0 + np.asarray(s, dtype=np.float64) * (self.u1 - self.u0)
 
     def s_of(self, u):
+        """The normalised parameter ``s`` of the user's ``u`` (the inverse of :meth:`u_of`)."""
         return (np.asarray(u, dtype=np.float64) - self.u0) / (self.u1 - self.u0)
 
     def point(self, s: np.ndarray) -> np.ndarray:  # (N, 3)
+        """The trajectory point a(s), (N, 3)."""
         raise NotImplementedError
 
     def d1(self, s: np.ndarray) -> np.ndarray:
@@ -64,27 +67,34 @@ class Segment:
         return np.zeros(0)
 
     def sample_points(self, n: int = 257) -> np.ndarray:
+        """``n`` points at evenly spaced ``s`` from 0 to 1, (n, 3)."""
         return self.point(np.linspace(0.0, 1.0, n))
 
 
 @dataclass
 class Line(Segment):
+    """A straight segment from ``start`` to ``stop``."""
+
     start: np.ndarray = None
     stop: np.ndarray = None
     kind = "line"
 
     def point(self, s):
+        """``start + s (stop - start)``, (N, 3)."""
         s = np.asarray(s, dtype=np.float64)[:, None]
         return self.start + s * (self.stop - self.start)
 
     def d1(self, s):
+        """``stop - start`` at every ``s``, (N, 3)."""
         return np.broadcast_to(self.stop - self.start, (np.size(s), 3)).copy()
 
     def d2(self, s):
+        """Zero, (N, 3)."""
         return np.zeros((np.size(s), 3))
 
     @property
     def length(self) -> float:
+        """The distance from ``start`` to ``stop``."""
         return float(np.linalg.norm(self.stop - self.start))
 
 
@@ -99,6 +109,8 @@ def arc_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @dataclass
 class Arc(Segment):
+    """A circle segment about ``axis`` through ``center``, from ``start_deg`` to ``end_deg``."""
+
     center: np.ndarray = None
     radius: float = 1.0
     axis: np.ndarray = None
@@ -112,21 +124,26 @@ class Arc(Segment):
         self.t1 = math.radians(self.end_deg)
 
     def angle(self, s):
+        """The angle (radians) at normalised parameters ``s``."""
         return self.t0 + np.asarray(s, dtype=np.float64) * (self.t1 - self.t0)
 
     def s_of_angle(self, theta):
+        """The normalised parameter ``s`` of angle ``theta`` (radians)."""
         return (theta - self.t0) / (self.t1 - self.t0)
 
     def point(self, s):
+        """The circle's points at ``s``, (N, 3)."""
         th = self.angle(s)[:, None]
         return self.center + self.radius * (np.cos(th) * self.e1 + np.sin(th) * self.e2)
 
     def d1(self, s):
+        """Derivative d a / d s, (N, 3)."""
         th = self.angle(s)[:, None]
         k = self.radius * (self.t1 - self.t0)
         return k * (-np.sin(th) * self.e1 + np.cos(th) * self.e2)
 
     def d2(self, s):
+        """Second derivative d2 a / d s2, (N, 3)."""
         th = self.angle(s)[:, None]
         k = self.radius * (self.t1 - self.t0) ** 2
         return -k * (np.cos(th) * self.e1 + np.sin(th) * self.e2)
@@ -134,6 +151,8 @@ class Arc(Segment):
 
 @dataclass
 class Bezier(Segment):
+    """An n-degree Bezier curve of ``n + 1`` control points."""
+
     points: np.ndarray = None  # (n + 1, 3) control points
     kind = "bezier"
 
@@ -143,18 +162,22 @@ class Bezier(Segment):
 
     @property
     def degree(self) -> int:
+        """The degree n (control points less one)."""
         return self.points.shape[0] - 1
 
     def point(self, s):
+        """The curve's points at ``s`` (de Casteljau), (N, 3)."""
         return _de_casteljau(self.points, np.asarray(s, dtype=np.float64))
 
     def d1(self, s):
+        """Derivative d a / d s, (N, 3) (zero for degree 0)."""
         n = self.degree
         if n < 1:
             return np.zeros((np.size(s), 3))
         return n * _de_casteljau(np.diff(self.points, axis=0), np.asarray(s, dtype=np.float64))
 
     def d2(self, s):
+        """Second derivative d2 a / d s2, (N, 3) (zero below degree 2)."""
         n = self.degree
         if n < 2:
             return np.zeros((np.size(s), 3))
@@ -185,6 +208,8 @@ def bezier_to_monomial(ctrl: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Polyline(Segment):
+    """Points joined by straight pieces, parameterised by arc length."""
+
     points: np.ndarray = None  # (m, 3), m >= 2
     kind = "polyline"
 
@@ -200,23 +225,30 @@ class Polyline(Segment):
         return s, idx
 
     def point(self, s):
+        """The points at arc-length parameters ``s``, (N, 3)."""
         s, idx = self._piece(s)
         a, b = self.points[idx], self.points[idx + 1]
         w = ((s - self.cum[idx]) / (self.cum[idx + 1] - self.cum[idx]))[:, None]
         return a + w * (b - a)
 
     def d1(self, s):
-        # right-hand derivative (left-hand at s = 1), in units of d a / d s
+        """The right-hand derivative d a / d s (left-hand at s = 1), (N, 3)."""
         s, idx = self._piece(s)
         return (self.points[idx + 1] - self.points[idx]) / (self.cum[idx + 1] - self.cum[idx])[:, None]
 
     def d1_left(self, s):
+        """The left-hand derivative d a / d s (right-hand at s = 0), (N, 3).
+
+        At a vertex, that of the piece ending there.
+        """
         s = np.clip(np.asarray(s, dtype=np.float64), 0.0, 1.0)
         idx = np.clip(np.searchsorted(self.cum, s, side="left") - 1, 0, len(self.cum) - 2)
         return (self.points[idx + 1] - self.points[idx]) / (self.cum[idx + 1] - self.cum[idx])[:, None]
 
     def d2(self, s):
+        """Zero on every piece, (N, 3)."""
         return np.zeros((np.size(s), 3))
 
     def breaks(self):
+        """The parameters of the interior vertices, where the tangent jumps."""
         return self.cum[1:-1].copy()

@@ -65,10 +65,12 @@ class Grid:
 
     @property
     def shape_zyx(self):
+        """The shape in array order (z, y, x)."""
         return self.shape[::-1]
 
     @property
     def n_voxels(self) -> int:
+        """The number of voxels."""
         return int(np.prod(self.shape))
 
     def __repr__(self):
