@@ -1,7 +1,7 @@
 """`volwarp batch MANIFEST.yaml`: every scan of a manifest through its chain of steps.
 
-    volwarp batch MANIFEST.yaml [--jobs N] [--shard I/N] [--force] [--fail-fast]
-        [--retries N] [--report-json REPORT.json] [-q]
+volwarp batch MANIFEST.yaml [--jobs N] [--shard I/N] [--force] [--fail-fast]
+[--retries N] [--report-json REPORT.json] [-q]
 """
 
 from __future__ import annotations

@@ -14,6 +14,7 @@ class LatticeOption(click.Option):
     """``--lattice 9`` or ``--lattice 9 7 9`` (one size for every axis, or x y z)."""
 
     def add_to_parser(self, parser, ctx):
+        """Let the option take one or three values (click's nargs is fixed)."""
         ret = super().add_to_parser(parser, ctx)
         for name in self.opts:
             opt = parser._long_opt.get(name) or parser._short_opt.get(name)
@@ -48,6 +49,7 @@ def _lattice(ctx, param, value):
 
 
 def lattice_option(default="9"):
+    """``--lattice``, one size or three (x y z), as a tuple of three ints."""
     return click.option("--lattice", cls=LatticeOption, default=default, callback=_lattice,
                         metavar="N | NX NY NZ", show_default=True,
                         help="Control points per axis: one count for all three, or x y z; at "

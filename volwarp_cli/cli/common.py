@@ -11,8 +11,10 @@ from ..volume import Volume
 
 
 def load_input(path, raw=None, volume_index=None, mmap=False, dicom=None) -> Volume:
-    """Read a command's input; options that do not apply to its format are usage errors
-    (a file with a header describes itself: the options would be ignored)."""
+    """Read a command's input; options that do not apply to its format are usage errors.
+
+    A file with a header describes itself: the options would be ignored.
+    """
     if raw is not None and not str(path).lower().endswith((".raw", ".bin")):
         raise click.UsageError(f"--raw-* options describe headerless .raw/.bin inputs, "
                                f"not {path}")
@@ -28,7 +30,8 @@ def describe_volume(vol: Volume, fmt: str) -> dict:
 
     min, max and mean are those of the finite samples; ``nonfinite`` (only
     when there are any) counts the NaN and infinite ones, so the JSON stays
-    strict (no NaN or Infinity tokens)."""
+    strict (no NaN or Infinity tokens).
+    """
     import itertools
     import math
 

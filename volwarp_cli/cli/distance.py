@@ -1,9 +1,9 @@
 """`volwarp distance`: signed distance fields, and updates of a field through an affine move.
 
-    volwarp distance INPUT -o SDF.nrrd --iso V [--inside above|below]
-        [--metric euclidean|minnorm|chessboard|taxicab] [--surface auto|voxel|subvoxel]
-        [--unsigned] [--max-distance D]
-    volwarp distance --update OLD_SDF.nrrd --transform affine.yaml -o NEW.nrrd [--metric ...]
+volwarp distance INPUT -o SDF.nrrd --iso V [--inside above|below]
+[--metric euclidean|minnorm|chessboard|taxicab] [--surface auto|voxel|subvoxel]
+[--unsigned] [--max-distance D]
+volwarp distance --update OLD_SDF.nrrd --transform affine.yaml -o NEW.nrrd [--metric ...]
 """
 
 from __future__ import annotations

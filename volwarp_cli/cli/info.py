@@ -140,9 +140,11 @@ def _lattice_lines(desc: dict, pts) -> list[str]:
 
 
 def _label_hint(desc: dict, vol) -> None:
-    """Add ``label_map`` (distinct values, the first 16) when an integer volume looks like a
-    segmentation: at most 256 distinct values and piecewise constant (see
-    :func:`volwarp_cli.bspline.labels.label_map_hint`)."""
+    """Add ``label_map`` (distinct values, the first 16) when an integer volume looks like one.
+
+    A segmentation: at most 256 distinct values and piecewise constant (see
+    :func:`volwarp_cli.bspline.labels.label_map_hint`).
+    """
     if vol.data.dtype.kind in "iu":
         from ..bspline.labels import label_map_hint
 
@@ -152,9 +154,11 @@ def _label_hint(desc: dict, vol) -> None:
 
 
 def _describe_dicom(file, raw, volume_index, dicom) -> dict:
-    """A DICOM input: the chosen (or only) volume with the list of candidates, or, when it
-    holds several and ``--series`` chose none, the candidates alone (UID, description,
-    size, spacing, why split) so that the user can choose."""
+    """A DICOM input: the chosen (or only) volume with the list of candidates.
+
+    When it holds several and ``--series`` chose none, the candidates alone (UID,
+    description, size, spacing, why split) so that the user can choose.
+    """
     from ..io.dicom import scan_dicom
 
     if raw is not None or volume_index is not None:

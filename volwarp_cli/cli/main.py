@@ -63,9 +63,11 @@ class VolwarpGroup(click.Group):
     """A group that loads subcommands lazily and maps errors to exit codes."""
 
     def list_commands(self, ctx):
+        """The subcommands, in the order of ``COMMANDS``."""
         return list(COMMANDS)
 
     def get_command(self, ctx, name):
+        """Subcommand ``name``, its module imported only now (None if there is none)."""
         if name not in COMMANDS:
             return None
         import importlib
@@ -74,11 +76,13 @@ class VolwarpGroup(click.Group):
         return module.command
 
     def format_commands(self, ctx, formatter):
+        """The commands' list in ``--help``, without importing them."""
         rows = [(name, _SHORT_HELP[name]) for name in COMMANDS]
         with formatter.section("Commands"):
             formatter.write_dl(rows)
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        """Run the command line; returns (or exits with) the exit code of DESIGN.md."""
         if args is None:
             args = sys.argv[1:]
         args = list(args)
@@ -175,6 +179,7 @@ def cli(debug):
 
 
 def main(argv=None) -> int:
+    """Run ``volwarp`` with ``argv`` (default: the process's); ends the process when run from it."""
     install_signal_handlers()
     try:
         code = cli.main(args=argv, prog_name="volwarp", standalone_mode=False)

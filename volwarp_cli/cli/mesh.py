@@ -28,8 +28,10 @@ from .view_options import camera_options, orientation_labels_for
 
 
 def image_path(value):
-    """An image output's extension, checked when the option is parsed (a usage error,
-    before any work); shared by every command that renders."""
+    """An image output's extension, checked when the option is parsed.
+
+    A usage error, before any work; shared by every command that renders.
+    """
     from ..io.images import check_image_extension
 
     return check_image_extension(value)

@@ -48,9 +48,11 @@ def _expand(pattern: str, times: list[float], option: str) -> list[str]:
 
 
 def _pattern_check(kind: str):
-    """A click callback checking a frame pattern's extension (``kind``: volume, mesh or
-    image) on its first frame's name, when the option is parsed: an unknown extension
-    is a usage error found before any input or spec is read."""
+    """A click callback checking a frame pattern's extension on its first frame's name.
+
+    ``kind``: volume, mesh or image. Checked when the option is parsed: an unknown
+    extension is a usage error found before any input or spec is read.
+    """
     def check(name: str) -> None:
         if kind == "volume":
             from ..io import volume_format

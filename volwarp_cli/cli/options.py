@@ -197,8 +197,10 @@ def option(*decls, was: str | None = None, **attrs):
 
 
 def examples(*lines: str) -> str:
-    """A command's epilog: the example command lines that end its ``--help``
-    (``tests/test_cli_help.py`` parses each against the command)."""
+    """A command's epilog: the example command lines that end its ``--help``.
+
+    ``tests/test_cli_help.py`` parses each against the command.
+    """
     body = "\n".join(f"  {line}" for line in lines)
     return f"Examples:\n\n\b\n{body}"
 
@@ -239,8 +241,10 @@ def _volume_output(ctx, param, value):
 
 def output_option(help_text: str = "Output file (format by extension).", volume: bool = True,
                   callback=None):
-    """-o/--output; ``volume``: a volume file, its extension checked at once;
-    ``callback``: a check of its own instead (e.g. of a pattern of volume files)."""
+    """-o/--output; ``volume``: a volume file, its extension checked at once.
+
+    ``callback``: a check of its own instead (e.g. of a pattern of volume files).
+    """
     if callback is None and volume:
         callback = _volume_output
     return click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
@@ -354,9 +358,11 @@ DEFAULT_RENDER_SIZE = "800x600"
 
 def render_size_option(parse=None, help_text: str = "Render size in pixels.",
                        was: str | None = "--size"):
-    """--render-size WxH, the same default everywhere; ``parse``: the value's core parser
-    (default :func:`parse_size`); ``was``: the command's old spelling (mesh and morph
-    said --size)."""
+    """--render-size WxH, the same default everywhere.
+
+    ``parse``: the value's core parser (default :func:`parse_size`); ``was``: the
+    command's old spelling (mesh and morph said --size).
+    """
     return option("--render-size", "render_size", was=was, default=DEFAULT_RENDER_SIZE,
                   show_default=True, metavar="WxH", callback=core_parser(parse or parse_size),
                   help=help_text)
@@ -380,15 +386,18 @@ def core_parser(fn):
 
 # the render parsers, imported when an option is parsed (not at start-up)
 def parse_view(value):
+    """:func:`volwarp_cli.render.surface.parse_view`, imported when first used."""
     from ..render.surface import parse_view
     return parse_view(value)
 
 
 def parse_size(value):
+    """:func:`volwarp_cli.render.surface.parse_size`, imported when first used."""
     from ..render.surface import parse_size
     return parse_size(value)
 
 
 def parse_color(value):
+    """:func:`volwarp_cli.render.surface.parse_color`, imported when first used."""
     from ..render.surface import parse_color
     return parse_color(value)

@@ -60,8 +60,10 @@ MAX_AXIS = 1 << 31
 
 
 def _check_grid(grid, doc, from_options: bool, lo, hi, margin=None) -> None:
-    """Refuse a grid whose numbers are absurd (a spacing of 1e-300, a margin of 1e300):
-    a spec error at ``grid`` (a usage error when --shape/--spacing made it)."""
+    """Refuse a grid whose numbers are absurd (a spacing of 1e-300, a margin of 1e300).
+
+    A spec error at ``grid`` (a usage error when --shape/--spacing made it).
+    """
     import numpy as np
 
     shape = np.asarray(grid.shape, dtype=np.float64)

@@ -273,8 +273,10 @@ def _check_label_spec(doc, spec, background) -> None:
 
 
 def _jsonable(v):
-    """``v`` as strict JSON values: numpy scalars and arrays to Python ones, a float
-    that is not finite to None."""
+    """``v`` as strict JSON values.
+
+    numpy scalars and arrays become Python ones, a float that is not finite None.
+    """
     import math
 
     import numpy as np
@@ -311,9 +313,12 @@ def _labels_json(report: dict) -> dict:
 
 def _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to, points_in,
                    points_to, mesh_in, mesh_to):
-    """The export options, checked before any work (usage errors), and their inputs read
-    (a points or mesh file that does not parse fails here, before any output), as
-    :class:`~volwarp_cli.bspline.export_outputs.ExportRequests`."""
+    """The export options, checked before any work, as an ``ExportRequests``.
+
+    Bad options are usage errors, and their inputs are read here (a points or mesh
+    file that does not parse fails before any output); see
+    :class:`~volwarp_cli.bspline.export_outputs.ExportRequests`.
+    """
     from ..bspline.export import field_format, points_format, read_points
     from ..bspline.export_outputs import ExportRequests
 
