@@ -486,3 +486,16 @@ def test_json_counts_the_frames_written(run, tmp_path, data_dir):
     # without --json: nothing on stdout
     res = run("warp", src, "--spec", SPECS / "warp-ball.yaml", "-o", tmp_path / "p.nrrd")
     assert res.code == 0 and res.stdout == ""
+
+
+def test_a_drag_outside_the_model_is_reported_in_the_specs_own_numbers(run, data_dir, tmp_path):
+    """The spec says mm: the error quotes the point as written, in mm (not input voxels)."""
+    spec = tmp_path / "s.yaml"
+    spec.write_text("version: 1\ncapture: {lattice: 9, oversample: 1}\nsteps:\n  - drag:\n"
+                    "      - {from: [127.0, 162.0, 270.0], to: [127.0, 162.0, 280.0]}\n")
+    res = run("warp", data_dir / "mri_t1_head_coronal_2x2x3mm.nrrd", "--spec", spec,
+              "-o", tmp_path / "o.nrrd")
+    assert res.code == 2
+    assert "steps[0].drag[0].from" in res.stderr
+    assert "[127.0, 162.0, 270.0] (LPS mm) is outside" in res.stderr
+    assert not (tmp_path / "o.nrrd").exists()

@@ -12,8 +12,9 @@ when the system is solvable, unless that would move control points far more
 than the handles move (handles closer together than the control points,
 pulled apart): then the pseudoinverse is truncated (see
 :func:`_bounded_least_norm`) and the handles are met as a compromise. An
-optional ``radius`` (world units) limits the unknowns to control points
-within that distance of a handle's ``from`` point.
+optional ``radius`` (the spec's units: world mm, or voxels with ``units: voxel``)
+limits the unknowns to control points within that distance of a handle's
+``from`` point.
 
 All positions here are input voxel indices (x, y, z); the caller converts
 world coordinates.

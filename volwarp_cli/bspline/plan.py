@@ -169,7 +169,14 @@ def plan(doc, spec: WarpSpec, grid: Grid, dq0: np.ndarray, geom: Geometry) -> li
             try:
                 delta, params, residual = solve(work, grid, src, dst, free)
             except HandleError as exc:
-                raise doc.error(("steps", s, "drag", exc.index, "from"), str(exc)) from None
+                message = str(exc)
+                if "outside the region" in message:  # in the spec's own numbers and units
+                    given = [float(v) for v in drags[exc.index]["from"]]
+                    units = "LPS mm" if geom.units == "world" else "input voxels x y z"
+                    message = (f"point {[round(v, 4) for v in given]} ({units}) is outside "
+                               "the region the warped model covers (the input's voxel box, "
+                               "carried by the earlier steps)")
+                raise doc.error(("steps", s, "drag", exc.index, "from"), message) from None
             if residual > 1e-3:
                 log.warning("steps[%d]: the handles cannot all be reached (largest miss %.3g "
                             "voxel): they conflict, or lie closer together than the control "
