@@ -65,6 +65,26 @@ class Reach:
         g1 = int(np.ceil((t1 - 0.5 - o + below) / s)) + 1
         return max(g0, 0), min(g1, dz)
 
+    def planes(self, bounds) -> PlaneReach:
+        """The target z planes each domain z plane can reach, from :func:`offset_bounds`.
+
+        Tighter than :meth:`target_z_reach` (one bound for the whole lattice,
+        widened everywhere by the halo's extrapolation): each plane takes the
+        bounds of its own layer of regions, whose faces alone are widened.
+        """
+        lo_u, hi_u = bounds
+        gz = self.grid.granularity[2]
+        dz = self.grid.domain_shape[2]
+        layer = np.minimum(np.arange(dz) // gz, lo_u.shape[0] - 1)
+        lo_z = lo_u[..., 2].min(axis=(1, 2))[layer]
+        hi_z = hi_u[..., 2].max(axis=(1, 2))[layer]
+        s, o = float(self.scale[2]), float(self.offset[2])
+        base = o + s * np.arange(dz)
+        half = 0.5 * s
+        t_lo = np.floor(base + lo_z - half - 0.5).astype(np.int64)
+        t_hi = np.ceil(base + hi_z + half + 0.5).astype(np.int64) + 1
+        return PlaneReach(t_lo, t_hi)
+
     def region_range(self, axis: int, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
         """Per region along ``axis`` (0 = x): its voxels within [lo, hi), as [a, b).
 
@@ -136,6 +156,34 @@ class Reach:
         dlo = np.array([int(v[inside].min()) for v in d_lo])
         dhi = np.array([int(v[inside].max()) for v in d_hi])
         return tlo, thi, dlo, dhi
+
+
+@dataclass(frozen=True)
+class PlaneReach:
+    """Per domain z plane g: the target z planes [t_lo[g], t_hi[g]) its voxels can reach."""
+
+    t_lo: np.ndarray
+    t_hi: np.ndarray
+
+    def __post_init__(self):
+        # the lowest plane any plane from g on can reach: what a stream in g order may
+        # finalize below (the per-plane bounds need not grow with g)
+        object.__setattr__(self, "floor_from", np.minimum.accumulate(self.t_lo[::-1])[::-1])
+
+    def target_reach(self, g0: int, g1: int) -> tuple[int, int]:
+        """``(t0, t1)``: the target planes domain planes [g0, g1) leave open.
+
+        No domain plane from ``g0`` on reaches below t0; planes [g0, g1) reach
+        nothing from t1 on.
+        """
+        return int(self.floor_from[g0]), int(self.t_hi[g0:g1].max())
+
+    def domain_window(self, t0: int, t1: int) -> tuple[int, int]:
+        """Domain z range [g0, g1) holding every plane that can reach target planes [t0, t1)."""
+        hit = np.flatnonzero((self.t_hi > t0) & (self.t_lo < t1))
+        if hit.size == 0:
+            return 0, 0
+        return int(hit[0]), int(hit[-1]) + 1
 
 
 def offset_bounds(dq) -> tuple[np.ndarray, np.ndarray]:
