@@ -90,7 +90,7 @@ def render_streaming(scene, sink=None, block_planes: int | None = None) -> np.nd
     slot[shared] = np.arange(len(shared))
     shared_acc = np.zeros((len(shared), ty, tx, 2), dtype=np.int64)
     remaining = count.copy()  # slabs still to add into each shared plane
-    lock = threading.Lock()
+    locks = [threading.Lock() for _ in shared]
 
     def finish(t0, acc_planes, done, clear):
         """Finalize accumulator planes of target planes [t0, t0 + len) into out or the sink."""
@@ -129,14 +129,17 @@ def render_streaming(scene, sink=None, block_planes: int | None = None) -> np.nd
                 if mine:
                     finish(base, acc[s0:s0 + run], done, clear=True)
                 else:
-                    sl = slice(slot[base], slot[base] + run)
-                    with lock:
-                        shared_acc[sl] += acc[s0:s0 + run]
-                        remaining[base:base + run] -= 1
-                        ready = np.flatnonzero(remaining[base:base + run] == 0)
+                    ready = []
+                    for r in range(run):  # one lock per plane: cuts far apart add at once
+                        t = base + r
+                        with locks[slot[t]]:
+                            shared_acc[slot[t]] += acc[s0 + r]
+                            remaining[t] -= 1
+                            if remaining[t] == 0:
+                                ready.append(r)
                     acc[s0:s0 + run] = 0
                     for r0, r1 in _runs(ready):
-                        finish(base + r0, shared_acc[sl.start + r0:sl.start + r1], done,
+                        finish(base + r0, shared_acc[slot[base] + r0:slot[base] + r1], done,
                                clear=False)
                 base += run
 
