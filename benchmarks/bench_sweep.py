@@ -63,7 +63,6 @@ def bench_sweep(quick: bool):
         lo, hi = spec.bounds()
         shape = [150, 75, 75] if quick else [300, 150, 150]
         grid = fit_grid({"shape": shape}, lo, hi)
-        grid = type(grid)(shape, grid.origin, grid.spacing)
         evaluate(spec, grid)  # warm the numba cache
         nvox = int(np.prod(shape))
         tv, fv = _median(lambda: evaluate(spec, grid), 3)

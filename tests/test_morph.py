@@ -79,13 +79,13 @@ def test_translation_alignment_moves_frame0_by_exactly_that_translation():
     prep = prepare(j, src, tgt)
     frame0 = prep.morph.field(0.0) < 0
     g = prep.grid
-    world0 = np.argwhere(frame0)[:, ::-1] @ (g.direction * g.spacing).T + g.origin
+    world0 = np.argwhere(frame0)[:, ::-1] @ g.matrix.T + g.origin_array
     world_src = np.argwhere(mask > 0)[:, ::-1] @ (src.direction * src.spacing).T + src.origin
     moved = world_src + [6.0, -4.0, 8.0]
     key = lambda p: set(map(tuple, np.round(p, 6)))  # noqa: E731
     assert key(world0) == key(moved)
     frame1 = prep.morph.field(1.0) < 0
-    world1 = np.argwhere(frame1)[:, ::-1] @ (g.direction * g.spacing).T + g.origin
+    world1 = np.argwhere(frame1)[:, ::-1] @ g.matrix.T + g.origin_array
     assert key(world1) == key(world_src)
 
 
@@ -98,7 +98,7 @@ def test_rotation_and_scale_alignment_of_target():
     prep = prepare(j, src, tgt)
     f = prep.morph.field(1.0)
     # the 12 x 6 x 6 ellipsoid, halved and turned: 3 along x, 6 along y
-    c = np.array(prep.grid.shape_zyx) // 2
+    c = np.array(prep.grid.shape) // 2
     row_x = f[c[0], c[1]]
     row_y = f[c[0], :, c[2]]
     assert 4 <= np.count_nonzero(row_x < 0) <= 7
@@ -247,7 +247,7 @@ def test_explicit_grid_and_static_warp_of_attributes():
     j = job([0.0, 1.0], grid=grid, warp_source_points=np.array([[19.5, 19.5, 19.5]]),
             warp_target_points=np.array([[23.5, 19.5, 19.5]]))
     prep = prepare(j, src, tgt, {"x": (attr, attr)})
-    assert prep.grid.shape_zyx == (16, 16, 16)
+    assert prep.grid.shape == (16, 16, 16)
     np.testing.assert_allclose(prep.grid.origin, 4.0)
     a0 = prep.morph.attribute(0.0, *prep.attributes["x"])
     a1 = prep.morph.attribute(1.0, *prep.attributes["x"])

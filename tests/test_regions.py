@@ -151,14 +151,13 @@ def sweep_spec(tmp_path_factory):
 @pytest.mark.parametrize("method", ["voxelize", "direct"])
 def test_sweep_block_needs_only_its_geometry(sweep_spec, method):
     from volwarp_cli.sweep import evaluate
-    from volwarp_cli.sweep.voxelize import Grid as SweepGrid
 
     # dyadic origin and spacing: a block's voxel centres origin + s lo + s i are the
     # whole's origin + s (lo + i) to the last bit
     geom = Geometry.from_xyz((20, 20, 10), spacing=0.5, origin=(-5, -5, -2.5))
 
     def fields(g):
-        return evaluate(sweep_spec, SweepGrid(g.shape_xyz, g.origin, g.spacing), method=method)
+        return evaluate(sweep_spec, g, method=method)
 
     whole = fields(geom)
     assert whole["density"].max() > 0.5

@@ -13,6 +13,11 @@ block's shape, and the origin moved to the block's first voxel through the
 direction matrix, so that every voxel of the block keeps its world point (as
 SimpleITK's ``image[x0:x1, y0:y1, z0:z1]`` and RegionOfInterestImageFilter
 have it).
+
+It is every sampling grid's one type: a volume's, a block's, the morph's frame
+grid (:mod:`.morph.grid`) and the sweep's output grid (:func:`.sweep.model.fit_grid`,
+always with the identity direction). The B-spline lattice's layout is another
+concept (:class:`.bspline.lattice.Grid`).
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from .errors import VolwarpError
 from .volume import xyz_to_zyx, zyx_to_xyz
 
 Floats3 = tuple[float, float, float]
+_IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
 def _floats3(value, name: str) -> Floats3:
@@ -50,8 +56,7 @@ class Geometry:
     shape: tuple[int, int, int]
     spacing: Floats3 = (1.0, 1.0, 1.0)
     origin: Floats3 = (0.0, 0.0, 0.0)
-    direction: tuple[Floats3, Floats3, Floats3] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0),
-                                                   (0.0, 0.0, 1.0))
+    direction: tuple[Floats3, Floats3, Floats3] = _IDENTITY
 
     def __post_init__(self):
         shape = tuple(int(v) for v in self.shape)
@@ -94,6 +99,12 @@ class Geometry:
         return tuple(zyx_to_xyz(self.shape))
 
     @property
+    def size(self) -> int:
+        """Number of voxels (exact, as :attr:`.box.Box.size`)."""
+        z, y, x = self.shape
+        return z * y * x
+
+    @property
     def box(self) -> Box:
         """Every voxel: ``Box.from_shape(shape)``."""
         return Box.from_shape(self.shape)
@@ -120,6 +131,15 @@ class Geometry:
         return np.array(self.direction)
 
     @property
+    def identity_direction(self) -> bool:
+        """True when ``direction`` is exactly the identity (index axes along world x, y, z).
+
+        Then a voxel's centre is ``origin + spacing * (i, j, k)``, the form the
+        axis-aligned samplers (the sweep's) take.
+        """
+        return self.direction == _IDENTITY
+
+    @property
     def matrix(self) -> np.ndarray:
         """3x3 ``direction @ diag(spacing)``: index steps (x, y, z) to world vectors."""
         return self.direction_array * self.spacing_array[None, :]
@@ -142,6 +162,22 @@ class Geometry:
         xyz = np.asarray(xyz, dtype=np.float64)
         return (xyz - self.origin_array) @ np.linalg.inv(self.matrix).T
 
+    def corner_indices(self, *, voxel_boxes: bool = False) -> np.ndarray:
+        """The 8 corner indices (i, j, k) = (x, y, z) of the grid, shape (8, 3), float.
+
+        The first and last voxel centre along each axis (``0`` and ``n - 1``),
+        x varying slowest and z fastest; with ``voxel_boxes`` the corners of the
+        voxels' boxes (``-0.5`` and ``n - 0.5``). :meth:`index_to_world` of them
+        (or ``index_to_world_matrix`` of them with a 1 appended) are the world corners.
+        """
+        if min(self.shape) == 0:
+            raise VolwarpError(f"a grid of shape {self.shape} has no voxels, hence no corners")
+        n = np.array(self.shape_xyz, dtype=np.float64) - 1
+        a, b = (-0.5, n + 0.5) if voxel_boxes else (0.0, n)
+        lo = np.broadcast_to(a, 3)
+        return np.array([[x, y, z] for x in (lo[0], b[0]) for y in (lo[1], b[1])
+                         for z in (lo[2], b[2])])
+
     def bounds_world(self, *, voxel_boxes: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned world bounding box ``(min, max)`` of the voxel centres.
 
@@ -149,13 +185,20 @@ class Geometry:
         """
         if min(self.shape) == 0:
             raise VolwarpError(f"a grid of shape {self.shape} has no voxels, hence no bounds")
-        n = np.array(self.shape_xyz, dtype=np.float64) - 1
-        a, b = (-0.5, n + 0.5) if voxel_boxes else (0.0, n)
-        lo = np.broadcast_to(a, 3)
-        corners = np.array([[x, y, z] for x in (lo[0], b[0]) for y in (lo[1], b[1])
-                            for z in (lo[2], b[2])])
-        pts = self.index_to_world(corners)
+        pts = self.index_to_world(self.corner_indices(voxel_boxes=voxel_boxes))
         return pts.min(axis=0), pts.max(axis=0)
+
+    def same_grid(self, other: Geometry, atol: float = 1e-6) -> bool:
+        """True when both grids sample the same world points (as :meth:`.volume.Volume.same_grid`).
+
+        The same shape, and spacing, origin and direction equal within ``atol``
+        (``numpy.allclose``); ``other`` may be anything :meth:`of` takes.
+        """
+        other = other if isinstance(other, Geometry) else Geometry.of(other)
+        return (self.shape == other.shape
+                and np.allclose(self.spacing, other.spacing, atol=atol)
+                and np.allclose(self.origin, other.origin, atol=atol)
+                and np.allclose(self.direction, other.direction, atol=atol))
 
     # -- blocks ---------------------------------------------------------------------
     def sub(self, box: Box) -> Geometry:

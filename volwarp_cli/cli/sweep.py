@@ -59,26 +59,29 @@ def output_paths(pattern: str, names: list[str], multi: bool) -> dict[str, str]:
 MAX_AXIS = 1 << 31
 
 
-def _check_grid(grid, doc, from_options: bool, lo, hi, margin=None) -> None:
+def _check_grid(shape_xyz, origin, spacing, doc, from_options: bool, lo, hi,
+                margin=None) -> None:
     """Refuse a grid whose numbers are absurd (a spacing of 1e-300, a margin of 1e300).
 
-    A spec error at ``grid`` (a usage error when --shape/--spacing made it).
+    ``shape_xyz``, ``origin``, ``spacing``: the fitted grid's numbers, before they
+    make a :class:`~volwarp_cli.geometry.Geometry`. A spec error at ``grid`` (a
+    usage error when --shape/--spacing made it).
     """
     import numpy as np
 
-    shape = np.asarray(grid.shape, dtype=np.float64)
-    values = np.concatenate([np.asarray(grid.origin, np.float64).ravel(),
-                             np.asarray(grid.spacing, np.float64).ravel()])
+    shape = np.asarray(shape_xyz, dtype=np.float64)
+    spacing = np.asarray(spacing, np.float64)
+    values = np.concatenate([np.asarray(origin, np.float64).ravel(), spacing.ravel()])
     bounds = np.concatenate([np.ravel(lo), np.ravel(hi)]).astype(np.float64)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         across = (np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
-                  + 2 * float(margin or 0.0)) / grid.spacing
+                  + 2 * float(margin or 0.0)) / spacing
         ok = (np.all(np.isfinite(values)) and np.all((shape >= 1) & (shape <= MAX_AXIS))
               and np.all(np.abs(values) <= 1e15) and np.all(across <= MAX_AXIS))
     if ok:
         return
     what = (f"the output grid ({'x'.join(str(int(v)) if 0 <= v < 1e18 else '?' for v in shape)}"
-            f" samples, spacing {' '.join(f'{v:g}' for v in np.ravel(grid.spacing))}) is "
+            f" samples, spacing {' '.join(f'{v:g}' for v in np.ravel(spacing))}) is "
             f"absurd: at most {MAX_AXIS} samples per axis and coordinates within 1e15")
     if from_options:
         raise click.UsageError(f"--shape/--spacing: {what}")
@@ -153,8 +156,7 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     from ..progress import timed
     from ..spec.loader import load_spec
     from ..sweep import evaluate
-    from ..sweep.model import fit_grid, parse_sweep_spec
-    from ..volume import Volume
+    from ..sweep.model import fit_grid_values, parse_sweep_spec, sweep_geometry
     from .common import provenance
 
     if shape is not None and spacing is not None:
@@ -185,10 +187,12 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     grid_spec = {k: v for k, v in grid_spec.items() if v is not None}
     lo, hi = sspec.bounds()
     with np.errstate(over="ignore", invalid="ignore"):
-        grid = fit_grid(grid_spec, lo, hi)
-    _check_grid(grid, doc, shape is not None or spacing is not None, lo, hi,
+        grid_values = fit_grid_values(grid_spec, lo, hi)  # shape (x, y, z), origin, spacing
+    _check_grid(*grid_values, doc, shape is not None or spacing is not None, lo, hi,
                 grid_spec.get("margin"))
-    with timed(f"sweep {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} ({method or sspec.method})"):
+    grid = sweep_geometry(*grid_values)
+    nx, ny, nz = grid.shape_xyz
+    with timed(f"sweep {nx}x{ny}x{nz} ({method or sspec.method})"):
         fields = evaluate(sspec, grid, method=method, tau=tau)
     out_dtype = dtype or "float32"
     stamp_meta = provenance("sweep", [spec], spec)
@@ -196,7 +200,7 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     def as_volume(data, name=None):
         data = cast_samples(scale_to_dtype(data, out_dtype), out_dtype, what=str(name))
         meta = dict(stamp_meta, volwarp_sweep_field=name) if name else dict(stamp_meta)
-        return Volume(data, spacing=grid.spacing, origin=grid.origin, meta=meta)
+        return grid.volume(data, meta=meta)
 
     with timed("write"):
         if multi:
@@ -221,7 +225,7 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
         with timed(f"render {render_path}"):
             img, camera = render_volume(
                 fields["opacity"], colour=colour, geometry=fields.get("geometry"),
-                spacing=grid.spacing, origin=grid.origin, view=view, size=render_size,
+                spacing=grid.spacing_array, origin=grid.origin_array, view=view, size=render_size,
                 camera=camera_from, orientation_labels=orientation_labels_for(orientation_labels),
                 return_camera=True)
             write_image(render_path, np.ascontiguousarray(img))

@@ -78,7 +78,7 @@ def shape_box(prep: Prepared) -> np.ndarray:
     hi = np.array([idx[2][-1], idx[1][-1], idx[0][-1]], dtype=np.float64)
     corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
                         for c in (lo[2], hi[2])])
-    m = prep.grid.index_to_world
+    m = prep.grid.index_to_world_matrix
     return corners @ m[:3, :3].T + m[:3, 3]
 
 
@@ -119,7 +119,7 @@ def morph_frames(job: MorphJob, prep: Prepared, source: Volume,
         lo, hi = float(np.nanmin(source.data)), float(np.nanmax(source.data))
     camera = None if render is None else render.camera
     with progress(len(job.times), "morph frames") as bar:
-        buf = np.empty(grid.shape_zyx, np.float32)
+        buf = np.empty(grid.shape, np.float32)
         for i, t in enumerate(job.times):
             sdf = prep.morph.field(t, out=buf)
             data = sdf
@@ -129,12 +129,12 @@ def morph_frames(job: MorphJob, prep: Prepared, source: Volume,
                     data = occupancy_to_range(data, lo, job.source.iso, hi, job.source.inside,
                                               source.data.dtype)
             frame_meta = dict(meta, volwarp_morph_t=f"{t:.9g}")
-            frame = Frame(i, t, grid.volume(data, frame_meta))
+            frame = Frame(i, t, grid.volume(data, meta=frame_meta))
             for a in job.attributes:
                 va, vb = prep.attributes[a.name]
                 values = cast_samples(prep.morph.attribute(t, va, vb), types[a.name],
                                       what=f"attribute {a.name} at t = {t:g}")
-                frame.attributes[a.name] = grid.volume(values, dict(frame_meta))
+                frame.attributes[a.name] = grid.volume(values, meta=dict(frame_meta))
             if meshes or render is not None:
                 from ..surface.isosurface import isosurface
 

@@ -40,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VolwarpError
-from .grid import Grid
+from ..geometry import Geometry
 from .landmarks import LandmarkWarp
 
 
@@ -50,26 +50,26 @@ def _perm() -> np.ndarray:
     return p
 
 
-def resample_to_grid(values: np.ndarray, values_i2w: np.ndarray, matrix: np.ndarray, grid: Grid,
-                     *, outside: str = "nan") -> np.ndarray:
+def resample_to_grid(values: np.ndarray, values_i2w: np.ndarray, matrix: np.ndarray,
+                     grid: Geometry, *, outside: str = "nan") -> np.ndarray:
     """``values`` (on the grid ``values_i2w``) moved by world ``matrix``, sampled on ``grid``.
 
     ``outside``: ``"nan"`` (marks uncovered voxels) or ``"nearest"``.
     """
     from scipy import ndimage
 
-    m_idx = np.linalg.inv(values_i2w) @ np.linalg.inv(matrix) @ grid.index_to_world
+    m_idx = np.linalg.inv(values_i2w) @ np.linalg.inv(matrix) @ grid.index_to_world_matrix
     p = _perm()
     m = p @ m_idx @ p
     src = np.asarray(values, dtype=np.float32)
-    if (src.shape == grid.shape_zyx and np.allclose(m, np.eye(4), atol=1e-9)):
+    if (src.shape == grid.shape and np.allclose(m, np.eye(4), atol=1e-9)):
         return src.copy()
     kwargs = {"mode": "constant", "cval": np.nan} if outside == "nan" else {"mode": "nearest"}
     return ndimage.affine_transform(src, m[:3, :3], offset=m[:3, 3], order=1,
-                                    output_shape=grid.shape_zyx, output=np.float32, **kwargs)
+                                    output_shape=grid.shape, output=np.float32, **kwargs)
 
 
-def grid_field(field: np.ndarray, field_i2w: np.ndarray, matrix: np.ndarray, grid: Grid,
+def grid_field(field: np.ndarray, field_i2w: np.ndarray, matrix: np.ndarray, grid: Geometry,
                metric: str) -> tuple[np.ndarray, int]:
     """A signed field brought onto ``grid`` through ``matrix``, uncovered parts filled."""
     from ..distance.update import fill_uncovered
@@ -91,14 +91,14 @@ def grid_field(field: np.ndarray, field_i2w: np.ndarray, matrix: np.ndarray, gri
     return out, uncovered
 
 
-def warp_on_grid(values: np.ndarray, grid: Grid, displacement: np.ndarray,
+def warp_on_grid(values: np.ndarray, grid: Geometry, displacement: np.ndarray,
                  fraction: float = 1.0) -> np.ndarray:
     """``values(x + fraction * displacement(x))`` on ``grid`` (world displacement, [3,Z,Y,X] xyz)."""
     from scipy import ndimage
 
     if fraction == 0.0:
         return values.copy()
-    inv = np.linalg.inv(grid.direction * grid.spacing[None, :])  # world offset -> index offset
+    inv = np.linalg.inv(grid.matrix)  # world offset -> index offset
     nz, ny, nx = values.shape
     out = np.empty_like(values, dtype=np.float32)
     base = np.mgrid[0:ny, 0:nx].astype(np.float32)
@@ -110,12 +110,12 @@ def warp_on_grid(values: np.ndarray, grid: Grid, displacement: np.ndarray,
     return out
 
 
-def displacement_field(warp: LandmarkWarp, grid: Grid) -> np.ndarray:
+def displacement_field(warp: LandmarkWarp, grid: Geometry) -> np.ndarray:
     """The warp's world displacement at every grid voxel, (3, Z, Y, X) float32, x first."""
-    nz, ny, nx = grid.shape_zyx
+    nz, ny, nx = grid.shape
     out = np.empty((3, nz, ny, nx), np.float32)
     j, i = np.mgrid[0:ny, 0:nx]
-    m = grid.index_to_world
+    m = grid.index_to_world_matrix
     for z in range(nz):
         ijk = np.stack([i.ravel(), j.ravel(), np.full(i.size, z)], axis=1).astype(np.float64)
         world = ijk @ m[:3, :3].T + m[:3, 3]
@@ -129,17 +129,18 @@ class Morph:
     Parameters
     ----------
     source, target : (Z, Y, X) float32 arrays on ``grid`` (already aligned).
-    grid : Grid
+    grid : Geometry
+        The frame grid.
     warp_back, warp_fwd : LandmarkWarp or None
         ``V`` (target landmarks -> source landmarks) and ``W`` (source -> target),
         in the frame grid's world coordinates.
     mode : {"static", "progressive"}
     """
 
-    def __init__(self, source: np.ndarray, target: np.ndarray, grid: Grid, *,
+    def __init__(self, source: np.ndarray, target: np.ndarray, grid: Geometry, *,
                  warp_back: LandmarkWarp | None = None, warp_fwd: LandmarkWarp | None = None,
                  mode: str = "static"):
-        if source.shape != grid.shape_zyx or target.shape != grid.shape_zyx:
+        if source.shape != grid.shape or target.shape != grid.shape:
             raise VolwarpError("morph fields must lie on the frame grid")
         if mode not in ("static", "progressive"):
             raise VolwarpError(f"unknown warp mode {mode!r} (static or progressive)")

@@ -12,11 +12,12 @@ import numpy as np
 
 from ..distance.field import inside_mask, signed_distance
 from ..errors import VolwarpError
+from ..geometry import Geometry
 from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
 from ..volume import Volume, xyz_to_zyx
 from .align import affine_from_params, shape_centroid
-from .grid import Grid, GridError, choose_grid
+from .grid import GridError, choose_grid
 from .interpolate import Morph, grid_field, resample_to_grid
 from .landmarks import LandmarkWarp
 from .spec import MorphJob
@@ -32,7 +33,7 @@ class Prepared:
     """
 
     morph: Morph
-    grid: Grid
+    grid: Geometry
     source_matrix: np.ndarray
     target_matrix: np.ndarray
     warp_back: LandmarkWarp | None
@@ -63,12 +64,12 @@ def prepare(job: MorphJob, source: Volume, target: Volume,
                 raise VolwarpError(f"{ref.path}: {exc}") from None
     a_s = _matrix(job.align_source, source, job.source.iso, job.source.inside)
     a_t = _matrix(job.align_target, target, job.target.iso, job.target.inside)
-    grid = choose_grid(job.grid, Grid.of(source), Grid.of(target), a_s, a_t, moved=job.moved,
+    grid = choose_grid(job.grid, Geometry.of(source), Geometry.of(target), a_s, a_t, moved=job.moved,
                        margin=job.margin)
-    ensure_fits_in_memory(grid.voxels * 4 * (5 if job.warp_mode == "static" else 11),
+    ensure_fits_in_memory(grid.size * 4 * (5 if job.warp_mode == "static" else 11),
                           f"a morph on a {'x'.join(map(str, grid.shape_xyz))} grid")
-    log.info("frame grid %s, spacing %s, origin %s", grid.shape_xyz, grid.spacing.tolist(),
-             grid.origin.tolist())
+    log.info("frame grid %s, spacing %s, origin %s", grid.shape_xyz, list(grid.spacing),
+             list(grid.origin))
     uncovered = {}
     on_grid = {}
     for name, vol, mat in (("source", source, a_s), ("target", target, a_t)):

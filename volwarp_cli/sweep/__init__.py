@@ -16,7 +16,7 @@ from ..progress import timed
 
 def evaluate_sweep(sweep, grid, method: str = "voxelize", tau: float | None = None,
                    default_tau: float | None = None) -> dict:
-    """Fields of one sweep on ``grid``.
+    """Fields of one sweep on ``grid`` (an axis-aligned :class:`~volwarp_cli.geometry.Geometry`).
 
     ``tau`` (e.g. from the command line) wins over the sweep's own ``tau``,
     which wins over ``default_tau`` (the spec's top-level one), which defaults
@@ -33,7 +33,11 @@ def evaluate_sweep(sweep, grid, method: str = "voxelize", tau: float | None = No
 
 
 def evaluate(spec, grid, method: str | None = None, tau: float | None = None) -> dict:
-    """All output fields of a :class:`~.model.SweepSpec` on ``grid``, ``{name: [z, y, x]}``."""
+    """All output fields of a :class:`~.model.SweepSpec` on ``grid``, ``{name: [z, y, x]}``.
+
+    ``grid``: an axis-aligned :class:`~volwarp_cli.geometry.Geometry` (identity
+    direction), e.g. :func:`.model.fit_grid`'s.
+    """
     from .cvg import combine_objects
     from .model import SceneNode
 
@@ -43,7 +47,7 @@ def evaluate(spec, grid, method: str | None = None, tau: float | None = None) ->
         if isinstance(node, SceneNode):
             objects = [run(c) for c in node.children]
             with timed("sweep: combine scene"):
-                return combine_objects(node.ops, objects, grid.shape_zyx)
+                return combine_objects(node.ops, objects, grid.shape)
         return evaluate_sweep(node, grid, method, tau, spec.tau)
 
     return run(spec.root)

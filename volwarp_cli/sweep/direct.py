@@ -48,12 +48,14 @@ from __future__ import annotations
 import numpy as np
 
 from .. import parallel
+from ..geometry import Geometry
 from ..memory import ensure_fits_in_memory
 from ..progress import progress
 from ..spec.functions import Function, spec_error
 from .cvg import Accumulator
 from .templates import sample_template
 from .trajectory import Arc, Bezier, Line, Polyline
+from .voxelize import check_axis_aligned
 
 CHUNK = 1 << 17
 
@@ -175,13 +177,14 @@ def _polyval(coef, s):
     return out
 
 
-def _segment_box(sweep, index: int, grid):
+def _segment_box(sweep, index: int, grid: Geometry):
     fr = sweep.frames(index, np.linspace(0.0, 1.0, 513))
     c = fr.corners().reshape(-1, 3)
-    lo = np.floor((c.min(axis=0) - grid.origin) / grid.spacing).astype(int) - 1
-    hi = np.ceil((c.max(axis=0) - grid.origin) / grid.spacing).astype(int) + 1
+    origin, spacing = grid.origin_array, grid.spacing_array
+    lo = np.floor((c.min(axis=0) - origin) / spacing).astype(int) - 1
+    hi = np.ceil((c.max(axis=0) - origin) / spacing).astype(int) + 1
     lo = np.maximum(lo, 0)
-    hi = np.minimum(hi, np.array(grid.shape) - 1)
+    hi = np.minimum(hi, np.array(grid.shape_xyz) - 1)
     return lo, hi
 
 
@@ -207,17 +210,22 @@ def _near_curve(sweep, index: int, samples: int = 257):
     return keep
 
 
-def direct_sweep(sweep, grid) -> dict[str, np.ndarray]:
-    """Evaluate ``sweep``'s fields at every voxel centre of ``grid`` by inverse mapping."""
+def direct_sweep(sweep, grid: Geometry) -> dict[str, np.ndarray]:
+    """Evaluate ``sweep``'s fields at every voxel centre of ``grid`` by inverse mapping.
+
+    ``grid`` is axis-aligned (:func:`.voxelize.check_axis_aligned`).
+    """
+    check_axis_aligned(grid)
     check_direct(sweep)
     names = list(sweep.templates)
     templates = [sweep.templates[n] for n in names]
-    nx, ny, nz = grid.shape
-    ensure_fits_in_memory(grid.n_voxels * (4 * len(names) + 5),
+    nx, ny, nz = grid.shape_xyz
+    ensure_fits_in_memory(grid.size * (4 * len(names) + 5),
                           f"sweep output {nx}x{ny}x{nz} x {len(names)} fields")
-    accum = Accumulator(names, sweep.ops, grid.n_voxels)
+    accum = Accumulator(names, sweep.ops, grid.size)
     boxes = [_segment_box(sweep, i, grid) for i in range(len(sweep.segments))]
     plane_tol = 0.01 * float(np.min(grid.spacing))
+    origin, spacing = grid.origin_array, grid.spacing_array
     total = sum(int(np.prod(np.maximum(hi - lo + 1, 0))) for lo, hi in boxes)
     with progress(max(total // CHUNK, 1), "sweep (direct)") as bar:
         for i, seg in enumerate(sweep.segments):
@@ -232,7 +240,7 @@ def direct_sweep(sweep, grid) -> dict[str, np.ndarray]:
                 kk, jj, ii = np.unravel_index(np.arange(start, min(start + CHUNK, n_box)), box)
                 kk, jj, ii = kk + lo[2], jj + lo[1], ii + lo[0]
                 idx = (kk * ny + jj) * nx + ii
-                p = grid.origin + np.stack([ii, jj, kk], axis=1) * grid.spacing
+                p = origin + np.stack([ii, jj, kk], axis=1) * spacing
                 if near is not None:
                     keep = near(p)
                     idx, p = idx[keep], p[keep]

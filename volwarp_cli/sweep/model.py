@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..geometry import Geometry
 from ..spec.functions import Function, parse_function, spec_error
 from .cvg import OPERATORS, resolve_ops
 from .frames import (
@@ -24,7 +25,6 @@ from .frames import (
 )
 from .templates import Template, TemplateLoader
 from .trajectory import Arc, Bezier, Line, Polyline, Segment
-from .voxelize import Grid
 
 DEFAULT_LONGEST_SIDE = 128
 
@@ -309,14 +309,35 @@ def _three(v):
     return np.full(3, float(arr)) if arr.ndim == 0 else arr
 
 
-def fit_grid(spec: dict, lo: np.ndarray, hi: np.ndarray) -> Grid:
+def fit_grid(spec: dict, lo: np.ndarray, hi: np.ndarray) -> Geometry:
     """The output grid from ``grid`` keys (shape, origin, spacing, margin) and the bounds.
 
     Given keys are kept; missing ones are fitted so the grid covers
     ``[lo - margin, hi + margin]``: without spacing the longest side gets
     ``shape`` (or 128) samples at isotropic spacing; without shape it is the
     count that covers the box; without origin the grid is centred on the box.
-    The default margin is two voxels.
+    The default margin is two voxels. The grid is axis-aligned (identity
+    direction), as the sweep's samplers take it.
+    """
+    return sweep_geometry(*fit_grid_values(spec, lo, hi))
+
+
+def sweep_geometry(shape_xyz, origin, spacing) -> Geometry:
+    """The axis-aligned :class:`~volwarp_cli.geometry.Geometry` of a sweep's output grid.
+
+    ``shape_xyz`` (x, y, z), ``origin`` and ``spacing``; the direction is the identity.
+    """
+    grid = Geometry.from_xyz(shape_xyz, spacing, origin)
+    assert grid.identity_direction  # the sweep's samplers ignore direction
+    return grid
+
+
+def fit_grid_values(spec: dict, lo: np.ndarray,
+                    hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The numbers of :func:`fit_grid`, not yet checked: shape (x, y, z), origin, spacing.
+
+    For a caller that refuses absurd numbers (a spacing of 1e-300, a margin of
+    1e300) with its own message before they make a grid.
     """
     shape = spec.get("shape")
     origin = spec.get("origin")
@@ -349,4 +370,4 @@ def fit_grid(spec: dict, lo: np.ndarray, hi: np.ndarray) -> Grid:
     if origin is None:
         centre = 0.5 * (glo + ghi)
         origin = centre - spacing * (shape - 1) / 2
-    return Grid(shape, _three(origin), spacing)
+    return shape, _three(origin), spacing

@@ -45,6 +45,7 @@ import numpy as np
 
 from .. import parallel
 from ..errors import VolwarpError
+from ..geometry import Geometry
 from ..memory import ensure_fits_in_memory
 from ..progress import log, progress, timed
 from .cvg import OP_CODES, finish_fields
@@ -55,27 +56,15 @@ from .trajectory import Polyline
 MAX_KNOTS = 2_000_000
 
 
-class Grid:
-    """An axis-aligned output grid: ``shape`` (x, y, z), ``origin``, ``spacing``."""
+def check_axis_aligned(grid: Geometry) -> None:
+    """Refuse a grid with a direction other than the identity.
 
-    def __init__(self, shape, origin, spacing):
-        self.shape = tuple(int(v) for v in shape)
-        self.origin = np.asarray(origin, dtype=np.float64)
-        self.spacing = np.asarray(spacing, dtype=np.float64)
-
-    @property
-    def shape_zyx(self):
-        """The shape in array order (z, y, x)."""
-        return self.shape[::-1]
-
-    @property
-    def n_voxels(self) -> int:
-        """The number of voxels."""
-        return int(np.prod(self.shape))
-
-    def __repr__(self):
-        return (f"Grid(shape={self.shape}, origin={self.origin.tolist()}, "
-                f"spacing={self.spacing.tolist()})")
+    The sweep's samplers (this one and :mod:`.direct`) place voxel ``(i, j, k)``
+    at ``origin + spacing * (i, j, k)``: they ignore ``direction``.
+    """
+    if not grid.identity_direction:
+        raise VolwarpError(f"a sweep is sampled on an axis-aligned grid (identity direction), "
+                           f"got direction {[list(r) for r in grid.direction]}")
 
 
 # -- subdivision --------------------------------------------------------------------
@@ -208,21 +197,22 @@ def pack_templates(templates):
     return tex, off, h, w, n
 
 
-def voxelize_sweep(sweep, grid: Grid, tau: float, progress_label: str = "sweep") -> dict:
+def voxelize_sweep(sweep, grid: Geometry, tau: float, progress_label: str = "sweep") -> dict:
     """Voxelise ``sweep`` (a :class:`~volwarp_cli.sweep.model.Sweep`) onto ``grid``.
 
-    Returns ``{field name: float32 array [z, y, x]}`` in the order of
-    ``sweep.templates``.
+    ``grid`` is axis-aligned (:func:`check_axis_aligned`). Returns
+    ``{field name: float32 array [z, y, x]}`` in the order of ``sweep.templates``.
     """
+    check_axis_aligned(grid)
     names = list(sweep.templates)
     templates = [sweep.templates[n] for n in names]
     ops = [sweep.ops[n] for n in names]
     F = len(names)
-    nz, ny, nx = grid.shape_zyx
-    nvox = grid.n_voxels
+    nz, ny, nx = grid.shape
+    nvox = grid.size
     blend = "blend" in ops
     ensure_fits_in_memory(nvox * (4 * F + 1 + (4 if blend else 0)),
-                          f"sweep output {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} "
+                          f"sweep output {nx}x{ny}x{nz} "
                           f"x {F} fields")
     knots, slices, sub_a, sub_b, closed = [], [], [], [], []
     base = 0
@@ -250,9 +240,10 @@ def voxelize_sweep(sweep, grid: Grid, tau: float, progress_label: str = "sweep")
     corners = fr.corners()  # (K, 5, 3)
     lo = np.minimum(corners[sub_a].min(axis=1), corners[sub_b].min(axis=1))
     hi = np.maximum(corners[sub_a].max(axis=1), corners[sub_b].max(axis=1))
-    ilo = np.floor((lo - grid.origin) / grid.spacing).astype(np.int64) - 1
-    ihi = np.ceil((hi - grid.origin) / grid.spacing).astype(np.int64) + 1
-    shp = np.array(grid.shape, dtype=np.int64)
+    origin, spacing = grid.origin_array, grid.spacing_array
+    ilo = np.floor((lo - origin) / spacing).astype(np.int64) - 1
+    ihi = np.ceil((hi - origin) / spacing).astype(np.int64) + 1
+    shp = np.array(grid.shape_xyz, dtype=np.int64)
     ilo = np.maximum(ilo, 0)
     ihi = np.minimum(ihi, shp - 1)
     keep = np.all(ilo <= ihi, axis=1)
@@ -269,8 +260,8 @@ def voxelize_sweep(sweep, grid: Grid, tau: float, progress_label: str = "sweep")
     parallel.numba_threads()
     c64 = np.ascontiguousarray
     args = (c64(fr.P), c64(fr.EX), c64(fr.EY), c64(fr.EZ), c64(fr.SX), c64(fr.SY), SL,
-            sub_a, sub_b, closed, boxes, grid.origin, grid.spacing,
-            tex, off, th, tw, tn, op_codes, opac, 1e-6 * float(grid.spacing.min()),
+            sub_a, sub_b, closed, boxes, origin, spacing,
+            tex, off, th, tw, tn, op_codes, opac, 1e-6 * float(spacing.min()),
             acc, wsum, covered)
     # z slabs, so that a progress bar can move (each slab is split over the threads)
     n_slabs = max(1, min(16, nz // 8))
