@@ -134,6 +134,7 @@ def test_one_shot_sink_gets_every_plane_once_from_several_threads(monkeypatch):
             calls.append((z0, z1, threading.get_ident()))
             assert np.all(np.isnan(got[z0:z1]))  # each range once
             got[z0:z1] = planes
+        time.sleep(0.002)  # (so that one thread does not finish the small slabs alone)
 
     with parallel.use_threads(3):
         assert Scene(cap.domain, cap.grid, dq, 3).render_once(sink=sink, block_planes=5) is None
