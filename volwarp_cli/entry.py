@@ -20,7 +20,7 @@ def main() -> int:
     # spline bases, would only spin beside them (about 5% of a warp's CPU) or, inside a
     # cluster worker, oversubscribe it. A user's own setting wins. (Set here, for the
     # command's process only: importing volwarp as a library changes no environment.)
-    for name in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
+    for name in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(name, "1")
     from . import signals
 

@@ -24,7 +24,7 @@ from . import scene as scene_module
 from .scene import Scratch
 
 #: Target z planes covered by one step of a block's stream.
-STREAM_PLANES = 8
+STREAM_PLANES = 16
 
 
 def render_streaming(scene, sink=None, block_planes: int | None = None) -> np.ndarray | None:
