@@ -32,11 +32,11 @@ step "capture + warp: raise the crown by 20 mm, push the patient's left side in 
 volwarp capture "$SCAN" -o "$DEMO/head.vwc" --lattice 9 --oversample 1
 volwarp warp "$DEMO/head.vwc" --spec specs/warp-head.yaml -o "$DEMO/head_warped.nrrd" -v
 
-step "mesh: skin surfaces (iso 60) of the scan and of the warp, with renders"
-volwarp mesh "$SCAN" --iso 60 --cap --largest-component -o "$DEMO/head.ply" --view x --color skin \
-  --render "$DEMO/head.png" --stats
-volwarp mesh "$DEMO/head_warped.nrrd" --iso 60 --cap --largest-component -o "$DEMO/head_warped.ply" --view x \
-  --color skin --render "$DEMO/head_warped.png" --stats
+step "mesh: skin surfaces (iso 60) of the scan and of the warp, rendered by one camera"
+volwarp mesh "$SCAN" --iso 60 --cap --largest-component -o "$DEMO/head.ply" --view patient-left \
+  --color skin --render "$DEMO/head.png" --camera-to "$DEMO/head_camera.json" --stats
+volwarp mesh "$DEMO/head_warped.nrrd" --iso 60 --cap --largest-component -o "$DEMO/head_warped.ply" \
+  --camera-from "$DEMO/head_camera.json" --color skin --render "$DEMO/head_warped.png" --stats
 
 step "distance: signed distance to the skin (mm, negative inside), and its zero level"
 volwarp distance "$SCAN" --iso 40 -o "$DEMO/head_sdf.nrrd" -v
