@@ -153,3 +153,47 @@ def test_a_detached_pair_is_both_old_or_both_new_after_a_stop(tmp_path):
         assert sorted(os.listdir(out.parent)) == ["out.mhd", "out.raw"], (delay, "temporary")
         stopped += code in (143, -15)
     assert stopped >= 1
+
+
+def test_a_stop_landing_on_the_way_out_changes_nothing():
+    """The exit of a command-line run, once its code is decided: a stop raising there (a
+    deferred stop's re-check timer, a second Ctrl-C) is absorbed; the process ends with
+    the decided code, one line, no traceback (an escaping stop used to skip the fast
+    exit: a traceback, and the interpreter's tear-down with numba's threads alive could
+    crash with SIGSEGV)."""
+    script = (
+        "import signal, time\n"
+        "from volwarp_cli import signals\n"
+        "from volwarp_cli.cli import main as m\n"
+        "signals.install()\n"
+        "signals._stop.append(signal.SIGTERM)\n"
+        "real = m.settle_signals\n"
+        "calls = []\n"
+        "def landing():\n"
+        "    calls.append(1)\n"
+        "    if len(calls) < 3:\n"
+        "        raise signals.Interrupted(signal.SIGTERM)\n"
+        "    real()\n"
+        "m.settle_signals = landing\n"
+        "m._end_process(143)\n"
+        "print('not reached')\n")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 143, proc
+    assert "Traceback" not in proc.stderr and "not reached" not in proc.stdout
+
+
+def test_a_deferred_stops_timer_is_cancelled_once_the_work_is_over():
+    script = (
+        "import signal, time\n"
+        "from volwarp_cli import signals\n"
+        "signals.install()\n"
+        "signals._stop.append(signal.SIGINT)\n"
+        "signal.signal(signal.SIGALRM, lambda s, f: signals._raise_when_safe(f))\n"
+        "signal.setitimer(signal.ITIMER_REAL, 0.05)\n"
+        "signals.cancel_deferred()\n"
+        "time.sleep(0.2)\n"
+        "print('no late raise')\n")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0 and "no late raise" in proc.stdout, proc

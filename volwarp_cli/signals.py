@@ -73,6 +73,7 @@ def _raise_when_safe(frame) -> None:
         signal.signal(signal.SIGALRM, lambda s, f: _raise_when_safe(f))
         signal.setitimer(signal.ITIMER_REAL, _RECHECK)
         return
+    cancel_deferred()
     _remove_temporaries()  # (again: some may have been made while the raise waited)
     raise Interrupted(_stop[0])
 
@@ -125,6 +126,30 @@ def install() -> None:
         hook = _unraisable(sys.unraisablehook)
         hook._volwarp = True
         sys.unraisablehook = hook
+
+
+def cancel_deferred() -> None:
+    """Cancel the re-check timer of a stop deferred by an import (if one is armed).
+
+    Once the stop has been raised, or the work is over and the stop is being
+    reported, a late re-check would only raise again somewhere else.
+    """
+    if threading.current_thread() is threading.main_thread() and _stop:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+
+
+def settle() -> None:
+    """Let no stop raise any more: hold SIGINT, SIGTERM and SIGALRM back, cancel a deferred stop.
+
+    For the end of a command-line run, once its exit code is decided: a stop
+    deferred by an import (the re-check timer) or a second Ctrl-C must not raise
+    out of the exit itself, which would skip the fast exit and print a traceback
+    (the interpreter's tear-down with numba's and VTK's threads alive can then
+    crash). A stop that lands while this runs raises :class:`Interrupted` once,
+    before the mask is in place: call it again.
+    """
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM, signal.SIGALRM})
+    signal.setitimer(signal.ITIMER_REAL, 0)
 
 
 def stop_requested() -> int | None:

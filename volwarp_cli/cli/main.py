@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import os
-import signal
 import sys
 import warnings
 
@@ -18,7 +17,9 @@ import click
 from .. import __version__
 from ..errors import ChoiceNeeded, SpecError, VolwarpError
 from ..signals import Interrupted, stop_requested
+from ..signals import cancel_deferred as cancel_deferred_stop
 from ..signals import install as install_signal_handlers
+from ..signals import settle as settle_signals
 
 # subcommand name -> module under volwarp_cli.cli; imported when used, so that
 # `volwarp --help` stays fast and one broken command cannot break the others.
@@ -50,8 +51,13 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+#: whether this command-line run has printed its error line (one line, never two)
+_reported: list[bool] = []
+
+
 def _fail(message: str, code: int) -> int:
     click.echo(f"volwarp: error: {_one_line(message)}", err=True)
+    _reported.append(True)
     return code
 
 
@@ -104,7 +110,9 @@ class VolwarpGroup(click.Group):
         try:
             result = super().main(args=args, prog_name=prog_name, standalone_mode=False, **extra)
             code = result if isinstance(result, int) else 0
+            cancel_deferred_stop()  # the work is over: a deferred stop is reported below
         except BaseException as exc:
+            cancel_deferred_stop()
             stop = stop_requested()
             if stop is not None and not debug:
                 # whatever the stop became on its way out (a reader's "file damaged",
@@ -181,12 +189,18 @@ def cli(debug):
 def main(argv=None) -> int:
     """Run ``volwarp`` with ``argv`` (default: the process's); ends the process when run from it."""
     install_signal_handlers()
+    _reported.clear()
     try:
         code = cli.main(args=argv, prog_name="volwarp", standalone_mode=False)
     except Interrupted as exc:  # a second stop while the first was being reported
         code = 128 + exc.signum
-    if argv is None:  # a command-line run, not a call from Python
-        _end_process(code)
+        if not _reported:  # (or a deferred one landing before the report)
+            _stopped(exc.signum)
+    while argv is None:  # a command-line run, not a call from Python: end the process
+        try:
+            _end_process(code)  # (never returns)
+        except Interrupted:  # a stop landing on the way out: the code is decided
+            continue
     return code
 
 
@@ -198,8 +212,14 @@ def _end_process(code: int) -> None:
     objects in a `distance`), and OpenImageIO's nanobind bindings would print a
     "leaked" report for each of their objects still alive.
     """
-    # the run is over (its code decided): a stop arriving now changes nothing
-    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    # the run is over (its code decided): a stop arriving now changes nothing, and a
+    # stop deferred by an import (its re-check timer) must not raise out of the exit
+    for _ in range(100):
+        try:
+            settle_signals()
+            break
+        except Interrupted:
+            continue
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
