@@ -216,8 +216,21 @@ def _envelope_idx(f, fi, n, h2, v, zb, outd, outi):
         while zb[j + 1] < p:
             j += 1
         r = v[j]
-        outd[p] = h2 * (p - r) * (p - r) + f[r]
-        outi[p] = fi[r]
+        best = h2 * (p - r) * (p - r) + f[r]
+        bi = fi[r]
+        # at a breakpoint the neighbouring parabolas can tie with this one, and which one
+        # the rounding of the breakpoint picks depends on where the line starts (a block's
+        # line, the whole's): among equal distances the smaller seed id wins, whatever
+        # the block (the distances themselves depend only on p - r)
+        for jj in (j - 1, j + 1):
+            if 0 <= jj <= k:
+                r2 = v[jj]
+                d2 = h2 * (p - r2) * (p - r2) + f[r2]
+                if d2 < best or (d2 == best and fi[r2] < bi):
+                    best = d2
+                    bi = fi[r2]
+        outd[p] = best
+        outi[p] = bi
 
 @nb.njit(cache=True, parallel=True)
 def _feature(ids, hz, hy, hx, dist):
