@@ -499,3 +499,21 @@ def test_a_drag_outside_the_model_is_reported_in_the_specs_own_numbers(run, data
     assert "steps[0].drag[0].from" in res.stderr
     assert "[127.0, 162.0, 270.0] (LPS mm) is outside" in res.stderr
     assert not (tmp_path / "o.nrrd").exists()
+
+
+@pytest.mark.parametrize("radius, warned", [(3, True), (8, False), (None, False)])
+def test_a_radius_that_makes_a_drag_stronger_is_warned_about(run, data_dir, tmp_path, radius,
+                                                             warned):
+    """On the 30 mm ball (control points 5 mm apart) a 4 mm drag with radius 3 frees one
+    point, which must move 13.7 mm: a warning says a smaller radius is stronger, not gentler;
+    radius 8 (19 points, 9.4 mm) and no radius do not warn. The output is written either way."""
+    spec = tmp_path / "s.yaml"
+    text = ("version: 1\ncapture: {lattice: 9}\nsteps:\n  - drag:\n"
+            "      - {from: [14.5, 14.5, 24.0], to: [14.5, 14.5, 28.0]}\n")
+    spec.write_text(text + (f"    radius: {radius}\n" if radius else ""))
+    res = run("warp", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", tmp_path / "o.nrrd")
+    assert res.code == 0, res.stderr
+    assert ("stronger, not gentler" in res.stderr) == warned, res.stderr
+    if warned:
+        assert "13.7 mm, 3.4 times the largest drag (4 mm)" in res.stderr
+    assert (tmp_path / "o.nrrd").exists()

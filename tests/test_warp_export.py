@@ -114,7 +114,7 @@ def test_tfm_matches_the_forward_map_at_random_points(run, scene, tmp_path):
     t = sitk.ReadTransform(str(tfm))
     assert "BSplineTransform" in t.GetName() or "BSpline" in str(t)
     # volwarp's forward map, independently: the lattice from the planned spec
-    from volwarp_cli.bspline.plan import Geometry, plan, read_warp_spec
+    from volwarp_cli.bspline.plan import SpecUnits, plan, read_warp_spec
     from volwarp_cli.spec.loader import load_schema, load_spec, validate
 
     vol = read_volume(src)
@@ -122,7 +122,7 @@ def test_tfm_matches_the_forward_map_at_random_points(run, scene, tmp_path):
     validate(doc, load_schema("warp"))
     ws = read_warp_spec(doc)
     grid = Grid.create(vol.shape_xyz, ws.capture.lattice, ws.capture.oversample)
-    dq = plan(doc, ws, grid, np.zeros(grid.lattice[::-1] + (3,)), Geometry(vol))[-1].dq
+    dq = plan(doc, ws, grid, np.zeros(grid.lattice[::-1] + (3,)), SpecUnits(vol))[-1].dq
     rng = np.random.default_rng(7)
     lo, hi = grid.origin, grid.origin + grid.spacing_h * np.array(grid.regions)
     s = rng.uniform(0, np.array(grid.regions), size=(10_000, 3))

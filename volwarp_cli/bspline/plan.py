@@ -101,8 +101,8 @@ def read_warp_spec(doc) -> WarpSpec:
                     background=background, steps=steps, values=d.get("values", "intensity"))
 
 
-class Geometry:
-    """World <-> input voxel conversions of the input volume."""
+class SpecUnits:
+    """A spec's points and displacements in input voxels (world LPS mm or voxel units)."""
 
     def __init__(self, vol: Volume, units: str = "world"):
         self.vol = vol
@@ -137,7 +137,7 @@ def check_indices(doc, spec: WarpSpec, lattice) -> None:
                                 f"0..{lattice[1] - 1}, 0..{lattice[2] - 1})")
 
 
-def plan(doc, spec: WarpSpec, grid: Grid, dq0: np.ndarray, geom: Geometry) -> list[Frame]:
+def plan(doc, spec: WarpSpec, grid: Grid, dq0: np.ndarray, geom: SpecUnits) -> list[Frame]:
     """The lattice after every increment of every step, in order."""
     check_indices(doc, spec, grid.lattice)
     uniform = grid.uniform_positions()
@@ -183,6 +183,8 @@ def plan(doc, spec: WarpSpec, grid: Grid, dq0: np.ndarray, geom: Geometry) -> li
                             "points and pull apart; used a bounded least-squares compromise",
                             s, residual)
 
+            if free is not None:
+                _warn_strong_radius(s, float(step["radius"]), delta, src, dst, geom)
             work = work + delta
             reached = map_params(work, grid, params)
             handles = [(src[i], dst[i], reached[i]) for i in range(len(src))]
@@ -195,6 +197,34 @@ def plan(doc, spec: WarpSpec, grid: Grid, dq0: np.ndarray, geom: Geometry) -> li
             frames.append(Frame(dq, s + 1, f, handles if f == n else []))
         current = work
     return frames
+
+
+#: A radius whose freed control points must move this many times as far as the handles
+#: gets a warning (none: about 2.4 times; a one-point radius: 3.4 times and more).
+STRONG_RADIUS = 3.0
+
+
+def _warn_strong_radius(s: int, radius: float, delta, src, dst, geom) -> None:
+    """Warn when ``radius`` left so few control points free that they move far past the drag.
+
+    A smaller radius makes a drag stronger, not gentler: the fewer free points
+    must move farther to carry the handles (and still reach two lattice
+    spacings around themselves). Lengths in world mm (the spec's voxels with
+    ``units: voxel``).
+    """
+    to_len = (lambda v: v) if geom.units == "voxel" else (lambda v: v @ geom.matrix.T)
+    moved = np.linalg.norm(to_len(np.asarray(delta).reshape(-1, 3)), axis=1)
+    drag = np.linalg.norm(to_len(np.asarray(dst) - np.asarray(src)), axis=1)
+    if drag.max() <= 0:
+        return
+    ratio = float(moved.max() / drag.max())
+    if ratio > STRONG_RADIUS:
+        unit = "voxels" if geom.units == "voxel" else "mm"
+        log.warning("steps[%d]: with radius %g, %d free control point(s) move up to %.3g %s, "
+                    "%.1f times the largest drag (%.3g %s): a smaller radius makes a drag "
+                    "stronger, not gentler; for a local, smooth edit give a larger radius or "
+                    "a finer lattice", s, radius, int(np.count_nonzero(moved > 0)),
+                    moved.max(), unit, ratio, drag.max(), unit)
 
 
 def default_pad(frames: list[Frame], dq0: np.ndarray) -> tuple[int, int, int]:

@@ -18,7 +18,7 @@ from ..progress import log, progress, timed
 from ..samples import cast_samples
 from ..volume import Volume
 from .capture import Capture
-from .plan import Geometry, WarpSpec, default_pad, plan
+from .plan import SpecUnits, WarpSpec, default_pad, plan
 from .scene import Scene
 
 
@@ -52,7 +52,7 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     ``MAX_GROWTH`` times the input along an axis (refused otherwise, before
     anything of that size is made).
     """
-    geom = Geometry(cap.geometry, spec.units)
+    geom = SpecUnits(cap.geometry, spec.units)
     dq0 = cap.dq
     with timed("plan lattice moves"):
         frames = plan(doc, spec, cap.grid, dq0, geom)
