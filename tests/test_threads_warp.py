@@ -11,6 +11,7 @@ import pytest
 
 from volwarp_cli import parallel
 from volwarp_cli.bspline import basis, jobs, work
+from volwarp_cli.bspline import scene as scene_mod
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.volume import Volume
@@ -270,3 +271,21 @@ def test_per_plane_reach_holds_every_box_and_is_tighter_than_the_global_one():
         assert not need or (a <= min(need) and max(need) < b)
     assert np.all(pr.floor_from <= pr.t_lo)
     assert np.all(np.diff(pr.floor_from) >= 0)
+
+
+def test_chunks_follow_the_memory_budget_and_change_nothing():
+    """The deformation buffers of a chunk take the budget's share of a thread (at most
+    CHUNK_BYTES): a tight budget makes them smaller, the target stays the same bit for bit."""
+    from volwarp_cli import memory
+
+    data = blob((30, 24, 26))
+    cap = capture_volume(Volume(data), lattice=(6, 6, 6), oversample=2)
+    dq = moved_lattice(cap, seed=2)
+    free = Scene(cap.domain, cap.grid, dq, 3)
+    assert free.chunk_bytes == min(scene_mod.CHUNK_BYTES, memory.block_bytes())
+    reference = free.render().copy()
+    with memory.use_memory_limit(memory.process_rss() + (40 << 20)), parallel.use_threads(2):
+        tight = Scene(cap.domain, cap.grid, dq, 3)
+        assert tight.chunk_bytes == memory.block_bytes() < scene_mod.CHUNK_BYTES
+        assert np.array_equal(tight.render(), reference)
+        assert np.array_equal(Scene(cap.domain, cap.grid, dq, 3).render_once(), reference)

@@ -40,13 +40,14 @@ import threading
 import numpy as np
 
 from ..errors import VolwarpError
-from ..memory import ensure_fits_in_memory
+from ..memory import block_bytes, ensure_fits_in_memory
 from ..progress import log, timed
 from . import basis, pushforward, work
 from .lattice import Grid, affected_regions
 from .reach import Reach, offset_bounds
 
-#: Size of the deformation buffers of one z chunk (the array is never held whole).
+#: Largest size of the deformation buffers of one z chunk (the array is never held whole);
+#: smaller when the memory budget's share of one thread is (:func:`.memory.block_bytes`).
 CHUNK_BYTES = 32 << 20
 
 
@@ -165,6 +166,8 @@ class Scene:
         self.reach = Reach(grid, self.offset, self.scale, self.target_shape)
         self.acc = self.out = None
         self.last_touched = None
+        #: bytes of one chunk's deformation buffers: the cap, or the budget's share of a thread
+        self.chunk_bytes = min(CHUNK_BYTES, block_bytes())
         self.scratch = Scratch()
         self._lattice_facts = {}
         self._facts_lock = threading.Lock()  # render_once's threads share the cache
@@ -217,7 +220,7 @@ class Scene:
         ehi = np.minimum(vhi + 1, dshape)
         nx = int(ehi[0] - elo[0])
         ny = int(ehi[1] - elo[1])
-        cz = int(max(4, CHUNK_BYTES // ((nx + 2) * (ny + 2) * 12 * len(dqs))))
+        cz = int(max(4, self.chunk_bytes // ((nx + 2) * (ny + 2) * 12 * len(dqs))))
         evaluate = basis.EVALUATORS[self.evaluator]
         still = self._still(dqs)
         if values is None:
@@ -270,7 +273,7 @@ class Scene:
         """Full computation with the current lattice; returns the target ``[z, y, x]``."""
         tshape = self.target_shape[::-1]
         out_dtype = np.float64 if self.dtype == np.float64 else np.float32
-        nbytes = int(np.prod(tshape)) * (16 + np.dtype(out_dtype).itemsize) + 2 * CHUNK_BYTES
+        nbytes = int(np.prod(tshape)) * (16 + np.dtype(out_dtype).itemsize) + 2 * self.chunk_bytes
         ensure_fits_in_memory(nbytes, "the warp's target accumulators")
         if self.acc is None:
             self.acc = np.zeros(tshape + (2,), dtype=np.int64)

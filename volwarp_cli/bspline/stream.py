@@ -20,7 +20,6 @@ from .. import parallel
 from ..memory import ensure_fits_in_memory, memory_limit
 from ..progress import timed
 from . import pushforward
-from . import scene as scene_module
 from .scene import Scratch
 
 #: Target z planes covered by one step of a block's stream.
@@ -56,7 +55,7 @@ def render_streaming(scene, sink=None, block_planes: int | None = None) -> np.nd
     itemsize = np.dtype(out_dtype).itemsize
     plane_acc = tx * ty * 16
     # one block's accumulators and deformation buffers
-    ring = planes * plane_acc + 2 * scene_module.CHUNK_BYTES
+    ring = planes * plane_acc + 2 * scene.chunk_bytes
     # target planes held at a time: the whole target, or each block's finished
     # planes and their converted copy
     held = (lambda n: 4 * planes * n) if sink is not None else (lambda n: tz)
