@@ -10,10 +10,11 @@ threads (a Dask worker's, a test's) each have their own, and :func:`run_blocks`
 hands it to the tasks it runs. Every kernel sums exact integers or writes
 disjoint blocks, so results do not depend on the count or the block sizes.
 
-Libraries with thread pools of their own are matched to the count: VTK's
-SMP tools by :func:`library_threads` around a command (which also holds BLAS
-to one thread inside volwarp's), numba's ``prange`` kernels by
-:func:`numba_threads` before each call.
+Libraries with thread pools of their own are matched to the count when
+they run: numba's ``prange`` kernels by :func:`numba_threads`, VTK's SMP
+filters by ``surface.isosurface``. BLAS is held to one thread: by the command
+line's entry point (before numpy loads), or by :func:`library_threads` for a
+library caller.
 """
 
 from __future__ import annotations
@@ -185,35 +186,27 @@ def run_blocks(task: Callable, blocks: Sequence | Iterable, n: int | None = None
 
 @contextlib.contextmanager
 def library_threads(n: int | None = None):
-    """Run the block inside with ``n`` threads (default :func:`threads`), VTK's too; BLAS at one.
+    """Run the block inside with ``n`` threads (default :func:`threads`) and BLAS at one.
 
-    VTK's SMP tools (the mesh filters) take ``n``. BLAS (through threadpoolctl)
-    gets one: volwarp's kernels already spread over the ``n`` threads and make
-    only small dense products, so BLAS threads inside them would oversubscribe
-    the cores (the command line also sets ``OPENBLAS_NUM_THREADS=1`` before
-    numpy loads, for libraries loaded later). Both are process-wide (set here
-    and, for BLAS, put back after), which is why this wraps a command, not a
-    kernel. numba's count is per calling thread and starting its pool costs
-    ~50 ms, so the ``prange`` kernels' callers set it through
-    :func:`numba_threads` when they run.
+    For a library caller running volwarp's functions in a process of its own
+    (the command line does not need it: its entry point sets
+    ``OPENBLAS_NUM_THREADS=1`` before numpy loads). BLAS (through
+    threadpoolctl) gets one thread: volwarp's kernels already spread over the
+    ``n`` threads and make only small dense products, so BLAS threads inside
+    them would oversubscribe the cores. Its limit is process-wide (set here and
+    put back after), which is why this wraps a whole job, not a kernel. numba's
+    ``prange`` kernels (:func:`numba_threads`) and VTK's SMP filters
+    (``surface.isosurface``) take the count in effect when they run.
     """
-    n = threads() if n is None else int(n)
-    restore = None
-    try:
-        from threadpoolctl import threadpool_limits
+    from threadpoolctl import threadpool_limits
 
-        restore = threadpool_limits(limits=1, user_api="blas")
-    except ImportError:  # pragma: no cover - a dependency
-        pass
-    smp = _vtk_smp()
-    if smp is not None:
-        smp.Initialize(n)
+    n = threads() if n is None else int(n)
+    restore = threadpool_limits(limits=1, user_api="blas")
     try:
         with use_threads(n):
             yield n
     finally:
-        if restore is not None:
-            restore.restore_original_limits()
+        restore.restore_original_limits()
 
 
 def numba_threads() -> int:
@@ -227,18 +220,3 @@ def numba_threads() -> int:
     n = max(1, min(threads(), numba.config.NUMBA_NUM_THREADS))
     numba.set_num_threads(n)
     return n
-
-
-def _vtk_smp():
-    """VTK's ``vtkSMPTools`` when VTK is imported already (importing it costs ~0.3 s)."""
-    import sys
-
-    module = sys.modules.get("vtkmodules.vtkCommonCore")
-    return getattr(module, "vtkSMPTools", None) if module is not None else None
-
-
-def vtk_threads() -> None:
-    """Set VTK's SMP thread count to :func:`threads` (call after importing VTK)."""
-    smp = _vtk_smp()
-    if smp is not None:
-        smp.Initialize(threads())

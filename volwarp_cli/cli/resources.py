@@ -19,7 +19,9 @@ def _threads(ctx, param, value):
         n = parallel.parse_threads(value, "--threads") if value is not None else None
     except VolwarpError as exc:
         raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
-    ctx.with_resource(parallel.library_threads(n))
+    # (BLAS is held to one thread by the entry point already, and numba's and VTK's
+    # counts follow the count in effect where they run: nothing more to set here)
+    ctx.with_resource(parallel.use_threads(n))
     return n
 
 
