@@ -225,19 +225,13 @@ def _env_limit() -> int | None:
 
 def process_rss() -> int:
     """The resident memory of this process now (bytes; 0 where /proc is not there)."""
-    text = _read_text("/proc/self/statm")
+    from .parallel import _read
+
+    text = _read("/proc/self/statm")
     try:
         return int(text.split()[1]) * os.sysconf("SC_PAGE_SIZE") if text else 0
     except (IndexError, ValueError, OSError):  # pragma: no cover - not Linux
         return 0
-
-
-def _read_text(path: str) -> str | None:
-    try:
-        with open(path) as fh:
-            return fh.read()
-    except OSError:
-        return None
 
 
 def _limit() -> tuple[int, str]:
