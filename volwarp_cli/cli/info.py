@@ -107,6 +107,10 @@ def _lattice_lines(desc: dict, pts) -> list[str]:
              f"lattice [0, 0, 0]: world {fmt(f'{v:g}' for v in p[0, 0, 0])} mm; "
              f"[{n[0] - 1}, {n[1] - 1}, {n[2] - 1}]: world "
              f"{fmt(f'{v:g}' for v in p[-1, -1, -1])} mm"]
+    origin = np.asarray(desc["origin"], dtype=np.float64)
+    m = np.asarray(desc["direction"], dtype=np.float64) * np.asarray(desc["spacing"])
+    idx = np.linalg.solve(m, (p.reshape(-1, 3) - origin).T).T.reshape(p.shape)  # input voxels
+    axes = [idx[:, 0, 0, 0], idx[0, :, 0, 1], idx[0, 0, :, 2]]  # each index axis's positions
     steps = [np.diff(p, axis=a) for a in range(3)]
     uniform = all(np.allclose(st, st.reshape(-1, 3)[0], atol=1e-6) for st in steps)
     if uniform:
@@ -117,21 +121,12 @@ def _lattice_lines(desc: dict, pts) -> list[str]:
         lines.append(f"lattice reach: a moved control point changes the model within 2 steps "
                      f"of it along i, j, k ({fmt(f'{2 * h:g}' for h in spacing)} mm)")
     else:  # the tripled placement: positions along each axis, in input voxel indices
-        origin = np.asarray(desc["origin"], dtype=np.float64)
-        m = np.asarray(desc["direction"], dtype=np.float64) * np.asarray(desc["spacing"])
-        idx = np.linalg.solve(m, (p.reshape(-1, 3) - origin).T).T.reshape(p.shape)
-        for a, name in enumerate("ijk"):
-            axis = [idx[t, 0, 0, 0] if a == 0 else idx[0, t, 0, 1] if a == 1 else idx[0, 0, t, 2]
-                    for t in range(n[a])]
+        for a, (name, axis) in enumerate(zip("ijk", axes, strict=True)):
             lines.append(f"lattice {name} (input voxel {'xyz'[a]}): "
                          f"{fmt(f'{v:.6g}' for v in axis)}")
     shape = np.asarray(desc["shape"], dtype=np.float64)
-    origin = np.asarray(desc["origin"], dtype=np.float64)
-    m = np.asarray(desc["direction"], dtype=np.float64) * np.asarray(desc["spacing"])
-    idx = np.linalg.solve(m, (p.reshape(-1, 3) - origin).T).T.reshape(p.shape)
     inside = []
-    for a in range(3):
-        axis = idx[:, 0, 0, 0] if a == 0 else idx[0, :, 0, 1] if a == 1 else idx[0, 0, :, 2]
+    for a, axis in enumerate(axes):
         ok = np.flatnonzero((axis >= -0.5 - 1e-6) & (axis <= shape[a] - 0.5 + 1e-6))
         inside.append(f"{ok[0]}..{ok[-1]}" if ok.size else "none")
     lines.append(f"lattice inside: [{', '.join(inside)}] lie within the volume's voxel box; "
