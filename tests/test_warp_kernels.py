@@ -388,7 +388,8 @@ def test_vector_clones_give_the_baseline_results(tmp_path):
             mod.scatter(u, u, 1, (0, 0, 0), values, (0, 13), (1.5, 2.25, 1.75), (0.93, 1.07, 0.81),
                         (0, 0, 0), (17, 11, 13), 1, 0.2, method == "box", acc,
                         (0, 22, 0, 16, 0, 17), False,
-                        True, still if method == "box" else None, (1, 1, 1))
+                        True, still if method == "box" else None, (1, 1, 1), (0, 0), (-1, -1),
+                        (0, 0))
         assert np.array_equal(accs[0], accs[1]) and accs[0].any()
 
     for scale in (1.0, 4000.0):  # both conversions of finalize

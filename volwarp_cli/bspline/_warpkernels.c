@@ -346,10 +346,13 @@ typedef struct {
     Py_ssize_t cstride, nyb, nxb;
     int npass;
     Py_ssize_t ox, oy, oz; /* domain voxel of uh[:, 1, 1, 1] */
-    const void *values;   /* domain samples [planes, Dy, Dx]: domain plane g in values[g - voz] */
+    const void *values;   /* domain samples: voxel (e, f, g) at ((g - voz) vy + f) vx + e; the
+                           * pointer is shifted by the buffer's first (x, y), so that a buffer
+                           * of some columns and rows of the planes serves as whole ones */
     int values_f64;
     Py_ssize_t voz;
-    Py_ssize_t vy, vx;
+    Py_ssize_t vy, vx;   /* the values buffer's rows and columns per plane */
+    Py_ssize_t dvy, dvx; /* the domain's rows and columns */
     double off[3], scale[3];
     Py_ssize_t lo[3], hi[3];
     double sign;
@@ -360,7 +363,8 @@ typedef struct {
                                  * pass p's lattice, or NULL */
     Py_ssize_t regions[3], gran[3], vz;
     int64_t *acc; /* [nz, ty, tx, 2]: target planes [tz_lo, tz_hi), plane z in slot z - rb,
-                   * less nz from nz on (a ring when rb is a multiple of nz below tz_lo) */
+                   * less nz from nz on (a ring when rb is a multiple of nz below tz_lo);
+                   * shifted like values: the buffer's first row and column may be any */
     Py_ssize_t nz, ty, tx, tz_lo, tz_hi, rb;
     Py_ssize_t tx_lo, tx_hi, ty_lo, ty_hi; /* contributions kept: x in [tx_lo, tx_hi), y in
                                             * [ty_lo, ty_hi) (and z in [tz_lo, tz_hi)) */
@@ -589,7 +593,7 @@ static Py_ssize_t row_still(const Scatter *s, int p, const Py_ssize_t cb[4], con
 {
     const Py_ssize_t gx = s->gran[0];
     const Py_ssize_t rx = s->regions[0], ry = s->regions[1];
-    const Py_ssize_t dx = s->vx;
+    const Py_ssize_t dx = s->dvx;
     const Py_ssize_t c0 = cb[0], c1 = cb[1], b0 = cb[2], b1 = cb[3];
     const Py_ssize_t e_lo = s->lo[0], n = s->hi[0] - e_lo;
     const Py_ssize_t a0 = MAX(e_lo - 1, 0) / gx, a1 = MIN(e_lo + n, dx - 1) / gx;
@@ -653,7 +657,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
             const double base = bx + sx * (int32_t)e;
             span_of(-hx + base, hx + base, tx0, tx1 - 1, &xstill[i]);
             ra[i] = (int32_t)(MAX(e - 1, 0) / gx - a0);
-            rb_[i] = (int32_t)(MIN(e + 1, s->vx - 1) / gx - a0);
+            rb_[i] = (int32_t)(MIN(e + 1, s->dvx - 1) / gx - a0);
         }
     }
     const double det_still = sx * (sy * sz);
@@ -674,7 +678,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                 cb[0] = MAX(g - 1, 0) / s->gran[2];
                 cb[1] = MIN(g + 1, s->vz - 1) / s->gran[2];
                 cb[2] = MAX(f - 1, 0) / s->gran[1];
-                cb[3] = MIN(f + 1, s->vy - 1) / s->gran[1];
+                cb[3] = MIN(f + 1, s->dvy - 1) / s->gran[1];
             }
             for (int p = 0; p < npass; p++) {
                 unsigned char *fast = fasts[p];
@@ -827,13 +831,15 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     long long sign;
     memset(&s, 0, sizeof s);
     int ring;
-    if (!PyArg_ParseTuple(args, "OOi(nnn)O(nn)(ddd)(ddd)(nnn)(nnn)LdpO(nnnnnn)ppO(nnn)", &o_uha,
+    Py_ssize_t vox, voy, ax, ay;
+    if (!PyArg_ParseTuple(args, "OOi(nnn)O(nn)(ddd)(ddd)(nnn)(nnn)LdpO(nnnnnn)ppO(nnn)(nn)(nn)(nn)",
+                          &o_uha,
                           &o_uhb, &npass, &s.ox, &s.oy, &s.oz, &o_values, &s.voz, &s.vz,
                           &s.off[0], &s.off[1],
                           &s.off[2], &s.scale[0], &s.scale[1], &s.scale[2], &s.lo[0], &s.lo[1],
                           &s.lo[2], &s.hi[0], &s.hi[1], &s.hi[2], &sign, &s.inv_vmax, &box,
                           &o_acc, &s.tx_lo, &s.tx_hi, &s.ty_lo, &s.ty_hi, &s.tz_lo, &s.tz_hi, &ring, &s.track, &o_still, &s.gran[0],
-                          &s.gran[1], &s.gran[2]))
+                          &s.gran[1], &s.gran[2], &vox, &voy, &s.dvx, &s.dvy, &ax, &ay))
         return NULL;
     if (get_buf(o_uha, &b[n++], 0, K_F32, 4, "uh") < 0 ||
         get_buf(o_uhb, &b[n++], 0, K_F32, 4, "uh_new") < 0 ||
@@ -856,28 +862,37 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     s.cstride = b[0].shape[1] * b[0].shape[2] * b[0].shape[3];
     s.nyb = b[0].shape[2];
     s.nxb = b[0].shape[3];
-    s.values = b[2].buf;
     s.values_f64 = buf_kind(&b[2]) == K_F64;
     s.vy = b[2].shape[1];
     s.vx = b[2].shape[2];
-    s.acc = b[3].buf;
+    if (s.dvx < 0) /* the values are whole planes */
+        s.dvx = s.vx;
+    if (s.dvy < 0)
+        s.dvy = s.vy;
+    /* (the shifts are integers, applied as addresses: only in-range entries are read) */
+    s.values = (const void *)((uintptr_t)b[2].buf -
+                              (uintptr_t)((voy * s.vx + vox) * (s.values_f64 ? 8 : 4)));
     s.nz = b[3].shape[0];
     /* planes [tz_lo, tz_hi) held: from slot 0 on, or in a ring of nz slots (slot z mod nz) */
     s.rb = ring && s.nz > 0 ? s.tz_lo - s.tz_lo % s.nz : s.tz_lo;
     s.ty = b[3].shape[1];
     s.tx = b[3].shape[2];
+    s.acc = (int64_t *)((uintptr_t)b[3].buf - (uintptr_t)((ay * s.tx + ax) * 2 * 8));
     /* the block, its one-voxel margin in uh, and the domain */
     int bad = npass < 1 || npass > 2 || (sign != 1 && sign != -1) || b[3].shape[3] != 2 ||
               b[0].shape[0] != 3 || s.tz_lo < 0 || s.tz_hi < s.tz_lo ||
-              s.tz_hi - s.tz_lo > s.nz || s.tx_lo < 0 || s.tx_hi < s.tx_lo ||
-              s.tx_hi > s.tx || s.ty_lo < 0 || s.ty_hi < s.ty_lo || s.ty_hi > s.ty;
+              s.tz_hi - s.tz_lo > s.nz || s.tx_lo < ax || s.tx_hi < s.tx_lo ||
+              s.tx_hi > ax + s.tx || s.ty_lo < ay || s.ty_hi < s.ty_lo || s.ty_hi > ay + s.ty ||
+              ax < 0 || ay < 0 || vox < 0 || voy < 0;
     for (int k = 0; k < 4 && !bad; k++)
         bad = b[1].shape[k] != b[0].shape[k];
     Py_ssize_t org[3] = {s.ox, s.oy, s.oz};
     Py_ssize_t ub[3] = {b[0].shape[3], b[0].shape[2], b[0].shape[1]};
-    Py_ssize_t vb[3] = {b[2].shape[2], b[2].shape[1], s.vz}; /* the domain */
-    /* the block's planes are among those given */
+    Py_ssize_t vb[3] = {s.dvx, s.dvy, s.vz}; /* the domain */
+    /* the block's planes, rows and columns are among those given */
     bad = bad || (s.lo[2] < s.hi[2] && (s.lo[2] < s.voz || s.hi[2] > s.voz + b[2].shape[0]));
+    bad = bad || (s.lo[0] < s.hi[0] && (s.lo[0] < vox || s.hi[0] > vox + s.vx));
+    bad = bad || (s.lo[1] < s.hi[1] && (s.lo[1] < voy || s.hi[1] > voy + s.vy));
     for (int k = 0; k < 3 && !bad; k++)
         bad = s.lo[k] < s.hi[k] && (s.lo[k] < 0 || s.hi[k] > vb[k] || s.lo[k] - org[k] < 0 ||
                                     s.hi[k] - org[k] + 2 > ub[k]);
@@ -1022,7 +1037,8 @@ static PyMethodDef methods[] = {
     {"scatter", py_scatter, METH_VARARGS,
      "scatter(uh, uh_new, npass, origin, values, (voz, dz), off, scale, lo, hi, sign, inv_vmax, "
      "box, "
-     "acc, (tx_lo, tx_hi, ty_lo, ty_hi, tz_lo, tz_hi), ring, track, still, granularity) -> "
+     "acc, (tx_lo, tx_hi, ty_lo, ty_hi, tz_lo, tz_hi), ring, track, still, granularity, "
+     "(values x0, y0), (domain columns, rows: -1 for the values'), (acc x0, y0)) -> "
      "touched box (x0, y0, z0, x1, y1, z1), empty unless track: add a block's pushforward to "
      "the target voxels in the window (still: uint8 [npass, Rz, Ry, Rx], regions whose "
      "control points have zero offsets, or None)."},

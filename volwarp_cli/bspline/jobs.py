@@ -64,6 +64,12 @@ class ScatterJob:
     See :func:`.pushforward.scatter` for the meaning of each field; ``clip``
     is the target window ``(x0, x1, y0, y1, z0, z1)`` kept, ``acc`` holding
     plane ``z0`` first (or, with ``ring``, plane z at ``z % len(acc)``).
+
+    ``values`` and ``acc`` may hold some columns and rows of their planes
+    only (an out-of-core block's): ``values_xy`` and ``acc_xy`` are the (x, y)
+    of their ``[:, 0, 0]``, and ``domain_xy`` the domain's columns and rows
+    (default: the values' own, whole planes). The block [lo, hi) and the
+    window must lie inside them.
     """
 
     u: np.ndarray
@@ -84,6 +90,9 @@ class ScatterJob:
     bounds: bool = False
     still: np.ndarray | None = None
     granularity: tuple[int, int, int] = (1, 1, 1)
+    values_xy: tuple[int, int] = (0, 0)
+    domain_xy: tuple[int, int] | None = None
+    acc_xy: tuple[int, int] = (0, 0)
 
     def __post_init__(self):
         s = object.__setattr__
@@ -102,6 +111,10 @@ class ScatterJob:
         s(self, "hi", _ints("hi", self.hi))
         s(self, "clip", _ints("clip", self.clip, 6))
         s(self, "granularity", _ints("granularity", self.granularity))
+        s(self, "values_xy", _ints("values_xy", self.values_xy, 2))
+        if self.domain_xy is not None:
+            s(self, "domain_xy", _ints("domain_xy", self.domain_xy, 2))
+        s(self, "acc_xy", _ints("acc_xy", self.acc_xy, 2))
         if self.sign not in (1, -1):
             raise TypeError(f"sign must be +1 or -1, got {self.sign!r}")
         for name in ("box", "ring", "bounds"):
@@ -119,7 +132,8 @@ class ScatterJob:
             self.u, self.u_new if two else self.u, 2 if two else 1, self.origin, self.values,
             self.planes, self.offset, self.scale, self.lo, self.hi, self.sign, self.inv_vmax,
             bool(self.box), self.acc, self.clip, bool(self.ring), bool(self.bounds), self.still,
-            self.granularity))
+            self.granularity, self.values_xy,
+            (-1, -1) if self.domain_xy is None else self.domain_xy, self.acc_xy))
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -90,7 +90,7 @@ def fill_halo(uh, faces=None):
 
 def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
             origin=(0, 0, 0), tzo=0, u_new=None, bounds=True, still=None, granularity=None,
-            tz_hi=None, ring=False, window=None, planes=None):
+            tz_hi=None, ring=False, window=None, planes=None, values_xy=None, acc_xy=(0, 0)):
     """Add (``sign`` +1) or remove (-1) the contributions of domain block [lo, hi) (x, y, z).
 
     With ``u_new`` (deformation offsets of another lattice, same layout as
@@ -109,7 +109,11 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
     [x0, x1) and rows [y0, y1) too.
     ``values`` holds the domain's samples ``[z, y, x]``, or with ``planes``
     ``(z0, dz)`` only some z planes of a domain of ``dz`` planes, plane ``g``
-    in ``values[g - z0]`` (those of the block at least).
+    in ``values[g - z0]`` (those of the block at least); with ``values_xy``
+    ``(x0, y0, dx, dy)`` only some columns and rows of them too, voxel
+    ``(e, f)`` of a plane at ``[f - y0, e - x0]`` in a domain of ``dx`` by
+    ``dy``. ``acc_xy``: the target column and row of ``acc[:, 0, 0]`` (an
+    out-of-core block's accumulators hold its own columns and rows only).
     ``parts``: ``[(t0, t1, g0, g1), ...]``, target plane ranges covering the
     planes held, each with the domain z range [g0, g1) holding every voxel
     that can reach it: one thread per part then scatters those voxels,
@@ -129,13 +133,17 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
     lo = np.asarray(lo, np.int64)
     hi = np.asarray(hi, np.int64)
     tz_end = tzo + len(acc) if tz_hi is None else tz_hi
-    (x0, x1), (y0, y1) = ((0, acc.shape[2]), (0, acc.shape[1])) if window is None else window
+    ax, ay = (int(v) for v in acc_xy)
+    (x0, x1), (y0, y1) = (((ax, ax + acc.shape[2]), (ay, ay + acc.shape[1])) if window is None
+                          else window)
+    vxy = {} if values_xy is None else {"values_xy": values_xy[:2], "domain_xy": values_xy[2:]}
     job = ScatterJob(u=u, u_new=u_new, origin=origin, values=values,
                      planes=(0, values.shape[0]) if planes is None else planes,
                      offset=off, scale=scale, lo=lo, hi=hi, sign=int(sign),
                      inv_vmax=1.0 / vmax if vmax > 0 else 0.0, box=method == "box", acc=acc,
                      clip=(x0, x1, y0, y1, tzo, tz_end), ring=bool(ring), bounds=bool(bounds),
-                     still=still, granularity=(1, 1, 1) if granularity is None else granularity)
+                     still=still, granularity=(1, 1, 1) if granularity is None else granularity,
+                     acc_xy=(ax, ay), **vxy)
 
     if parts is None or ring or len(parts) < 2:
         boxes = [job.run()]

@@ -187,7 +187,8 @@ class Scene:
         return tuple(int(i + 2 * p) for i, p in zip(self.grid.input_shape, self.pad, strict=False))
 
     def contribute(self, dqs, vlo, vhi, sign, acc=None, tzo=0, parallel=True, scratch=None,
-                    bounds=False, tz_hi=None, ring=False, window=None, values=None):
+                    bounds=False, tz_hi=None, ring=False, window=None, values=None,
+                    acc_xy=(0, 0)):
         """Add (``sign`` +1) or remove (-1) the contributions of domain voxels [vlo, vhi).
 
         ``dqs``: one lattice, or two (old, new) whose contributions are
@@ -201,7 +202,9 @@ class Scene:
         ``window`` ``((x0, x1), (y0, y1))`` also leaves out target voxels
         outside those columns and rows. ``values``: ``(array, z0)``, the
         samples of domain planes from ``z0`` on (those of [vlo, vhi) at
-        least), instead of the domain's.
+        least), instead of the domain's; ``(array, z0, (x0, y0))``: of the
+        columns from x0 and rows from y0 of those planes only (an out-of-core
+        block's). ``acc_xy``: the target column and row of ``acc[:, 0, 0]``.
         ``parallel`` lets large blocks use the threads in effect. ``scratch`` (a
         :class:`Scratch`, default the scene's) holds the deformation buffers.
         Returns the touched target bounding box with ``bounds``, else None.
@@ -227,6 +230,8 @@ class Scene:
             samples, planes = self.domain, None
         else:
             samples, planes = values[0], (values[1], grid.domain_shape[2])
+        values_xy = (None if values is None or len(values) < 3
+                     else (*values[2], grid.domain_shape[0], grid.domain_shape[1]))
         boxes = []
         for z0 in range(int(vlo[2]), int(vhi[2]), cz):
             z1 = min(z0 + cz, int(vhi[2]))
@@ -262,7 +267,8 @@ class Scene:
                                      origin=origin, tzo=tzo, tz_hi=tz_hi, ring=ring,
                                      u_new=planar[1] if len(planar) > 1 else None,
                                      bounds=bounds, still=still, window=window,
-                                     granularity=grid.granularity, planes=planes)
+                                     granularity=grid.granularity, planes=planes,
+                                     values_xy=values_xy, acc_xy=acc_xy)
             if bb is not None:
                 boxes.append(bb)
         if not boxes:
