@@ -79,9 +79,7 @@ def check_value_range(data: np.ndarray, lo: float, hi: float) -> None:
     vmax = max(-lo, hi)
     if vmax <= 0:
         return
-    # 16 planes, each on a 64 x 64 grid: a view reading about 1 MiB of a 256^3 input
-    nz, ny, nx = data.shape
-    sample = data[::max(1, nz // 16), ::max(1, ny // 64), ::max(1, nx // 64)]
+    sample = value_sample(data)
     mags = np.abs(sample, dtype=np.float64).ravel()
     k = int(0.99 * (mags.size - 1))
     bulk = float(np.partition(mags, k)[k])  # (np.percentile's first call imports ~60 ms)
@@ -91,6 +89,71 @@ def check_value_range(data: np.ndarray, lo: float, hi: float) -> None:
             f"the bulk of the values (99% have |value| <= {bulk:.3g}): the warp's exact "
             f"sums resolve about {vmax * 2.0 ** -40:.2g}, too coarse for the rest; clip or "
             "mask those samples first (a no-data value?)")
+
+
+def value_sample(data) -> np.ndarray:
+    """The evenly strided sample :func:`check_value_range` looks at.
+
+    16 planes, each on a 64 x 64 grid: about 1 MiB of a 256^3 input. ``data``
+    may be any sliceable array (a zarr array, a lazy volume): the planes are
+    read one by one.
+    """
+    nz, ny, nx = data.shape
+    steps = (max(1, nz // 16), max(1, ny // 64), max(1, nx // 64))
+    if isinstance(data, np.ndarray):
+        return data[::steps[0], ::steps[1], ::steps[2]]
+    return np.stack([np.asarray(data[z])[::steps[1], ::steps[2]]
+                     for z in range(0, nz, steps[0])])
+
+
+def source_range(source, *, slab_bytes: int = 64 << 20) -> tuple[float, float]:
+    """(min, max) of a sliceable ``source`` read slab by slab (never whole); NaN/inf refused."""
+    from .. import parallel
+
+    nz, ny, nx = source.shape
+    step = max(1, slab_bytes // max(1, ny * nx * np.dtype(source.dtype).itemsize))
+
+    def slab(z0):
+        part = np.asarray(source[z0:min(z0 + step, nz)])
+        return float(part.min()), float(part.max())
+
+    parts = parallel.run_blocks(slab, range(0, nz, step), parallel.threads())
+    lo, hi = min(p[0] for p in parts), max(p[1] for p in parts)
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        raise VolwarpError("the volume has NaN or infinite samples; warping needs finite ones "
+                           "(replace them first)")
+    return lo, hi
+
+
+def capture_source(template: Volume, source, *, lattice=(9, 9, 9), placement: str = "uniform",
+                   oversample: float = 2.0, sampling: str = "linear") -> Capture:
+    """A deferred capture of an input that is not held (:class:`.pullback.BoxSampler`).
+
+    ``template``: the input's Volume for its geometry and meta (its samples are
+    not read: a placeholder will do); ``source``: its samples, sliceable
+    ``[z, y, x]``. The input's range comes from one pass over it, slab by
+    slab; the gather runs later, box by box, in the blocks' tasks.
+    """
+    from .pullback import BoxSampler
+
+    if placement not in PLACEMENTS:
+        raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
+    if sampling not in SAMPLINGS:
+        raise VolwarpError(f"unknown sampling {sampling!r} (use linear or nearest)")
+    if tuple(source.shape) != tuple(template.data.shape):
+        raise VolwarpError(f"samples of shape {tuple(source.shape)} do not match the volume's "
+                           f"{tuple(template.data.shape)}")
+    lo, hi = source_range(source)
+    check_value_range(source, lo, hi)
+    lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
+    grid = Grid.create(template.shape_xyz, lattice, oversample, placement)
+    ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,
+                          f"the {'x'.join(map(str, grid.lattice))} control lattice")
+    capture_offsets(grid, placement)
+    sampler = BoxSampler(source, grid, placement, sampling, domain_dtype(template.dtype))
+    geometry = template.with_data(np.zeros((1, 1, 1), dtype=template.dtype))
+    return Capture(None, grid, placement, float(oversample), sampling, None, geometry,
+                   np.dtype(template.dtype), (lo, hi, None), sampler)
 
 
 def domain_dtype(dtype) -> np.dtype:

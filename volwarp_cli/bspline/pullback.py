@@ -75,6 +75,25 @@ def _axis_weights(coords: np.ndarray, n: int, sampling: str):
     return i0, i1, c - i0
 
 
+def gather_tables(grid: Grid, placement: str, sampling: str):
+    """The capture map per axis: ``(x, y, z)``, each (lower index, upper index, weight).
+
+    One entry per domain voxel of the axis, int32 / int32 / float64: the input
+    samples a domain voxel blends (the same two with weight 0 where it takes one).
+    """
+    if sampling not in SAMPLINGS:
+        raise VolwarpError(f"unknown sampling {sampling!r} (use linear or nearest)")
+    if grid.subdivision and placement == "uniform":
+        axes = [_subdivision_indices(grid, axis) for axis in range(3)]
+    else:
+        coords = capture_coordinates(grid, placement)
+        axes = [_axis_weights(c, n, sampling)
+                for c, n in zip(coords, grid.input_shape, strict=False)]
+    return tuple(tuple(np.ascontiguousarray(a, t) for a, t in
+                       ((i0, np.int32), (i1, np.int32), (w, np.float64)))
+                 for i0, i1, w in axes)
+
+
 class Sampler:
     """The capture's gather, set up once: domain z planes on demand.
 
@@ -86,28 +105,14 @@ class Sampler:
 
     def __init__(self, data: np.ndarray, grid: Grid, placement: str = "uniform",
                  sampling: str = "linear", dtype=np.float32):
-        if sampling not in SAMPLINGS:
-            raise VolwarpError(f"unknown sampling {sampling!r} (use linear or nearest)")
         if tuple(data.shape[::-1]) != tuple(grid.input_shape):
             raise VolwarpError(f"input shape {data.shape[::-1]} does not match the grid "
                                f"{grid.input_shape}")
-        if grid.subdivision and placement == "uniform":
-            axes = [_subdivision_indices(grid, axis) for axis in range(3)]
-        else:
-            coords = capture_coordinates(grid, placement)
-            axes = [_axis_weights(c, n, sampling)
-                    for c, n in zip(coords, grid.input_shape, strict=False)]
-        (x0, x1, fx), (y0, y1, fy), (z0, z1, fz) = axes
+        self._x, self._y, self._z = gather_tables(grid, placement, sampling)
         self.shape = tuple(grid.domain_shape[::-1])
         self.dtype = np.dtype(dtype)
         src = np.ascontiguousarray(data)
         self._src = src if src.dtype == self.dtype else src.astype(self.dtype)
-        self._x = tuple(np.ascontiguousarray(a, t) for a, t in
-                        ((x0, np.int32), (x1, np.int32), (fx, np.float64)))
-        self._y = tuple(np.ascontiguousarray(a, t) for a, t in
-                        ((y0, np.int32), (y1, np.int32), (fy, np.float64)))
-        self._z = tuple(np.ascontiguousarray(a, t) for a, t in
-                        ((z0, np.int32), (z1, np.int32), (fz, np.float64)))
 
     def planes(self, g0: int, g1: int, out: np.ndarray | None = None) -> np.ndarray:
         """Domain planes [g0, g1) into ``out`` (``(g1 - g0, Dy, Dx)``, default new)."""
@@ -124,6 +129,73 @@ class Sampler:
                         g1=out.shape[0])
         parts = run_split(lambda g0, g1: replace(job, g0=g0, g1=g1), 0, out.shape[0], out.size)
         return out, (min(p[0] for p in parts), max(p[1] for p in parts))
+
+
+class BoxSampler:
+    """The capture's gather from an input that is not held: any box of domain voxels.
+
+    ``source`` is anything numpy-sliceable with a ``shape`` ``[z, y, x]`` (a zarr
+    array, a memory map, a lazy volume); a box reads only the input samples its
+    voxels blend (the capture map is separable, so they form a box too) and
+    converts only those to the domain's type. A voxel's sample depends on its
+    own input samples and weights alone, so any box equals the same voxels of
+    :meth:`Sampler.whole` bit for bit. Safe to use from several threads.
+    """
+
+    def __init__(self, source, grid: Grid, placement: str = "uniform",
+                 sampling: str = "linear", dtype=np.float32):
+        if tuple(source.shape[::-1]) != tuple(grid.input_shape):
+            raise VolwarpError(f"input shape {tuple(source.shape[::-1])} does not match the "
+                               f"grid {grid.input_shape}")
+        self.source = source
+        self.tables = gather_tables(grid, placement, sampling)  # x, y, z
+        self.shape = tuple(grid.domain_shape[::-1])
+        self.dtype = np.dtype(dtype)
+
+    def input_box(self, box):
+        """The input box (z, y, x) that the domain voxels of ``box`` (a Box, z y x) read."""
+        from ..box import Box
+
+        lo, hi = [], []
+        for axis, (a, b) in zip((2, 1, 0), zip(box.lo, box.hi, strict=True), strict=True):
+            low, up, _ = self.tables[axis]
+            lo.append(int(low[a:b].min()))
+            hi.append(int(up[a:b].max()) + 1)
+        return Box(lo, hi)
+
+    def box(self, box) -> np.ndarray:
+        """The domain samples of ``box`` (a :class:`~volwarp_cli.box.Box`, z y x), contiguous."""
+        out = np.empty(box.shape, dtype=self.dtype)
+        if box.empty:
+            return out
+        src_box = self.input_box(box)
+        data = np.ascontiguousarray(np.asarray(self.source[src_box.slices]), dtype=self.dtype)
+        axes = []
+        for axis, (a, b), first in zip((0, 1, 2), zip(box.lo[::-1], box.hi[::-1], strict=True),
+                                        src_box.lo[::-1], strict=True):
+            low, up, w = self.tables[axis]
+            axes.append((np.ascontiguousarray(low[a:b] - first, np.int32),
+                         np.ascontiguousarray(up[a:b] - first, np.int32), w[a:b]))
+        SampleJob(data=data, x=axes[0], y=axes[1], z=axes[2], out=out, g0=0,
+                  g1=out.shape[0]).run()
+        return out
+
+    def whole(self) -> tuple[np.ndarray, tuple[float, float]]:
+        """The whole voxmap and the (min, max) of its samples (:meth:`Sampler.whole`)."""
+        from ..box import Box
+
+        out = self.box(Box.from_shape(self.shape))
+        return out, (float(out.min()), float(out.max()))
+
+    def planes(self, g0: int, g1: int, out: np.ndarray | None = None) -> np.ndarray:
+        """Domain planes [g0, g1), whole (:meth:`Sampler.planes`)."""
+        from ..box import Box
+
+        planes = self.box(Box((g0, 0, 0), (g1, *self.shape[1:])))
+        if out is None:
+            return planes
+        out[...] = planes
+        return out
 
 
 def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",

@@ -46,7 +46,8 @@ class WarpOptions:
     ``crop``: cut the output back to the input's extent. ``dtype``: the
     output's sample type (default the input's). ``allow_growth``: let the
     padding the moves need grow the output past twice the input (see
-    :func:`.warp.prepare`).
+    :func:`.warp.prepare`). ``blocks``: the warp runs by output blocks
+    (:meth:`IntensityWarp.block_job`), the target never held whole.
     """
 
     pushforward: str | None = None
@@ -55,6 +56,7 @@ class WarpOptions:
     crop: bool = False
     dtype: str | None = None
     allow_growth: bool = False
+    blocks: bool = False
 
 
 def frame_fields(n: int, frame) -> dict[str, int]:
@@ -238,7 +240,8 @@ class IntensityWarp:
         try:
             self.scene, self.frames = prepare(
                 cap, doc, spec, method=options.pushforward, evaluator=options.evaluator,
-                background=options.background, allow_growth=options.allow_growth)
+                background=options.background, allow_growth=options.allow_growth,
+                whole_target=not options.blocks)
         except OutOfMemoryError as exc:  # the target this input and spec ask for
             raise OutOfMemoryError(f"{name}: {exc}") from None
 
@@ -275,6 +278,26 @@ class IntensityWarp:
             on_frame(frame_fields(n, fr), self.output(target))
 
         return self.output(run(self.scene, self.frames, each))
+
+    def block_job(self, source):
+        """The final lattice's output as independent blocks: ``(template, WarpBlocks)``.
+
+        ``template`` is the output Volume with a zero-strided placeholder of its
+        shape and dtype; :meth:`.blocks.WarpBlocks.output_block` computes any
+        block of it (a picklable job: the tasks may run in other processes).
+        ``source``: the input's samples, sliceable (the capture's own, or a
+        :class:`.blocks.LazySource` for other processes to reopen).
+        """
+        from .blocks import WarpBlocks
+        from .warp import output_planes, output_window_box
+
+        if self.frames:
+            self.scene.set_lattice(self.frames[-1].dq)
+        template, _ = output_planes(self.cap, self.scene, crop=self.options.crop,
+                                    dtype=self.options.dtype)
+        window = output_window_box(self.cap, self.scene, self.options.crop)
+        return template, WarpBlocks(self.scene, source, self.cap.placement, self.cap.sampling,
+                                    window, template.dtype)
 
     def stream(self, open_writer: Callable[[Volume], AbstractContextManager]) -> Volume:
         """The final lattice's output, plane by plane, to a writer; returns its template.

@@ -44,13 +44,14 @@ MIN_GROWTH_VOXELS = 64
 
 def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
             evaluator: str | None = None, background: float | None = None,
-            allow_growth: bool = False):
+            allow_growth: bool = False, whole_target: bool = True):
     """The scene (with its target padding) and the planned frames.
 
     ``method``, ``evaluator``, ``background``: override the spec's.
     ``allow_growth``: let the padding the moves need make the output more than
     ``MAX_GROWTH`` times the input along an axis (refused otherwise, before
-    anything of that size is made).
+    anything of that size is made). ``whole_target``: the target will be held
+    (refused here when it cannot fit); False for a warp by blocks.
     """
     geom = SpecUnits(cap.geometry, spec.units)
     dq0 = cap.dq
@@ -80,9 +81,10 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     def size(v):
         return str(v) if v < 10**9 else f"{v:.3g}"
 
-    ensure_fits_in_memory(math.prod(tshape) * 4,
-                          f"the warped target ({'x'.join(map(size, tshape))} voxels, "
-                          f"pad {' '.join(size(int(p)) for p in pad)})")
+    if whole_target:
+        ensure_fits_in_memory(math.prod(tshape) * 4,
+                              f"the warped target ({'x'.join(map(size, tshape))} voxels, "
+                              f"pad {' '.join(size(int(p)) for p in pad)})")
     if any(p < n - 1 for p, n in zip(pad, needed, strict=False)):
         log.warning("pad %s is smaller than the largest displacement %s: material moved "
                     "outside the padded grid is cut off", list(pad), [max(n - 1, 0) for n in needed])
@@ -156,6 +158,14 @@ def output_planes(cap: Capture, scene: Scene, *, crop: bool = False, dtype=None)
         return a - wz.start, cast_samples(part, out_dtype, what="warped volume")
 
     return template, convert
+
+
+def output_window_box(cap: Capture, scene: Scene, crop: bool):
+    """The output's part of the target as a :class:`~volwarp_cli.box.Box` (z, y, x)."""
+    from ..box import Box
+
+    window, _ = _output_window(cap, scene, crop)
+    return Box([w.start for w in window], [w.stop for w in window])
 
 
 def _output_window(cap: Capture, scene: Scene, crop: bool):

@@ -1,0 +1,172 @@
+"""The warp by output blocks equals the in-memory warp bit for bit.
+
+Each block is computed from the domain voxels :func:`volwarp_cli.regions.warp_input`
+says can reach it, gathered from the input box they read, into accumulators of the
+block's own size; the exact integer sums make the blocks put together equal the
+whole render, whatever the block shape.
+"""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from volwarp_cli.box import Box
+from volwarp_cli.bspline import blocks
+from volwarp_cli.bspline.capture import capture_source, capture_volume
+from volwarp_cli.bspline.pullback import BoxSampler, Sampler
+from volwarp_cli.bspline.scene import Scene
+from volwarp_cli.volume import Volume
+
+
+def _blob(shape_zyx, seed=0):
+    rng = np.random.default_rng(seed)
+    z, y, x = np.meshgrid(*[np.linspace(-1, 1, n) for n in shape_zyx], indexing="ij")
+    smooth = 100.0 * np.exp(-(x * x + y * y + z * z) / 0.3)
+    return (smooth + rng.uniform(0, 5, shape_zyx)).astype(np.float32)
+
+
+def _general(cap, seed=1, scale=1.5):
+    rng = np.random.default_rng(seed)
+    return cap.dq + rng.normal(scale=scale, size=cap.dq.shape)
+
+
+def _by_blocks(scene, sampler, block_shape):
+    whole = blocks.target_box(scene)
+    out = np.full(whole.shape, np.nan, np.float32)
+    for b in whole.blocks(block_shape):
+        out[b.slices] = blocks.render_block(scene, sampler, b)
+    return out
+
+
+@pytest.mark.parametrize("oversample,method,sampling", [
+    (1.5, "box", "linear"), (2, "box", "linear"), (1.0, "nearest", "linear"),
+    (1.0, "box", "nearest"), (1.3, "box", "nearest")])
+@pytest.mark.parametrize("block_shape", [(10, 7, 13), (16, 32, 9)])
+def test_blocks_equal_the_whole_render(oversample, method, sampling, block_shape):
+    data = _blob((37, 29, 41))
+    cap = capture_volume(Volume(data), lattice=(6, 7, 5), oversample=oversample,
+                         sampling=sampling)
+    dq = _general(cap)
+    full = Scene(cap.domain, cap.grid, dq, 5, method=method,
+                 domain_range=cap.stats[:2]).render()
+    scene = Scene(cap.domain, cap.grid, dq, 5, method=method, domain_range=cap.stats[:2])
+    sampler = BoxSampler(data, cap.grid, cap.placement, cap.sampling, cap.domain.dtype)
+    out = _by_blocks(scene, sampler, block_shape)
+    assert np.array_equal(out, full)
+    assert np.any(out != 0)
+
+
+def test_a_block_missing_domain_voxels_differs():
+    """The domain box is what the block needs: one plane less on a side changes it.
+
+    (Tight where the map is locally a translation, as here: the hull is a point.)
+    """
+    data = _blob((30, 30, 30))
+    cap = capture_volume(Volume(data), lattice=(5, 5, 5), oversample=1.0)
+    dq = cap.dq + np.array([2.3, -1.7, 0.6])
+    scene = Scene(cap.domain, cap.grid, dq, 3, method="box", domain_range=cap.stats[:2])
+    sampler = BoxSampler(data, cap.grid, cap.placement, cap.sampling, cap.domain.dtype)
+    full = scene.render()
+    box = Box((8, 8, 8), (20, 20, 20))
+    assert np.array_equal(blocks.render_block(scene, sampler, box), full[box.slices])
+    need = blocks.domain_box(scene, box)
+    for axis in range(3):
+        lo = list(need.lo)
+        lo[axis] += 1
+        cut = Box(lo, need.hi)
+        acc = np.zeros(box.shape + (2,), np.int64)
+        (tx0, ty0, tz0), (tx1, ty1, tz1) = box.xyz()
+        (a, b, c), (d, e, f) = cut.xyz()
+        scene.contribute([scene.dq], (a, b, c), (d, e, f), 1, acc=acc, tzo=tz0, tz_hi=tz1,
+                         window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0), parallel=False,
+                         values=(sampler.box(cut), c, (a, b)))
+        part = np.empty(box.shape, np.float32)
+        from volwarp_cli.bspline import pushforward
+        pushforward.finalize(acc, scene.vmax, (0, 0, 0), box.shape[::-1], part,
+                             parallel=False)
+        assert not np.array_equal(part, full[box.slices])
+
+
+@settings(max_examples=25, deadline=None)
+@given(lo=st.tuples(*[st.integers(0, 20)] * 3), size=st.tuples(*[st.integers(1, 12)] * 3),
+       sampling=st.sampled_from(["linear", "nearest"]), oversample=st.sampled_from([1.0, 1.7, 2]))
+def test_box_sampler_equals_the_whole_gather(lo, size, sampling, oversample):
+    data = _blob((19, 23, 17), seed=3)
+    cap = capture_volume(Volume(data), lattice=(5, 6, 4), oversample=oversample,
+                         sampling=sampling, defer=True)
+    whole, _ = Sampler(data, cap.grid, "uniform", sampling).whole()
+    box = Box(lo, tuple(a + b for a, b in zip(lo, size, strict=True))).intersect(
+        Box.from_shape(whole.shape))
+    got = BoxSampler(data, cap.grid, "uniform", sampling).box(box)
+    assert np.array_equal(got, whole[box.slices])
+
+
+def test_capture_source_matches_the_in_memory_capture():
+    data = (_blob((21, 18, 25)) * 100).astype(np.int16)
+    vol = Volume(data, spacing=np.array([0.7, 0.9, 1.3]))
+    mem = capture_volume(vol, lattice=(5, 5, 6), oversample=1.5, mean=False)
+    lazy = capture_source(vol, data, lattice=(5, 5, 6), oversample=1.5)
+    assert lazy.domain is None and lazy.stats[:2] == mem.stats[:2]
+    assert lazy.grid.domain_shape == mem.grid.domain_shape
+    assert np.array_equal(lazy.sampler.box(Box.from_shape(lazy.sampler.shape)), mem.domain)
+
+
+def test_capture_source_refuses_nan():
+    data = _blob((9, 10, 11))
+    data[4, 5, 6] = np.nan
+    with pytest.raises(Exception, match="NaN"):
+        capture_source(Volume(data), data)
+
+
+def test_warp_blocks_pickle_without_samples_and_render_the_same(tmp_path):
+    """A worker process gets the job pickled: the input is reopened from its path there."""
+    from volwarp_cli.io import write_volume
+
+    data = (_blob((23, 19, 27)) * 50).astype(np.int16)
+    path = tmp_path / "in.nrrd"
+    write_volume(Volume(data), path)
+    source = blocks.LazySource(path)
+    cap = capture_source(Volume(data), source, lattice=(5, 5, 5), oversample=1.0)
+    dq = _general(cap, scale=1.0)
+    scene = Scene(cap.sampler, cap.grid, dq, 4, domain_range=cap.stats[:2])
+    window = blocks.target_box(scene)
+    job = blocks.WarpBlocks(scene, source, cap.placement, cap.sampling, window, np.float32)
+    blob = pickle.dumps(job)
+    assert len(blob) < 64 * 1024  # the lattice and tables, not the samples
+    copy = pickle.loads(blob)
+    assert copy.source._array is None
+    full = Scene(cap.sampler, cap.grid, dq, 4, domain_range=cap.stats[:2]).render()
+    box = Box((3, 4, 5), (20, 17, 26))
+    assert np.array_equal(copy.output_block(box), full[box.slices])
+
+
+def test_kernel_partial_values_and_accumulators_equal_whole_planes():
+    """The scatter's values and accumulators may hold some columns and rows only."""
+    data = _blob((20, 22, 24), seed=5)
+    cap = capture_volume(Volume(data), lattice=(5, 5, 5), oversample=1.0)
+    dq = _general(cap, scale=1.0)
+    scene = Scene(cap.domain, cap.grid, dq, 4, domain_range=cap.stats[:2])
+    tshape = scene.target_shape[::-1]
+    acc_whole = np.zeros(tshape + (2,), np.int64)
+    lo, hi = (3, 5, 2), (19, 20, 17)  # x, y, z domain voxels
+    scene.contribute([dq], lo, hi, 1, acc=acc_whole, parallel=False)
+    win = Box((4, 6, 9), (20, 19, 25))  # z, y, x target window
+    (tx0, ty0, tz0), (tx1, ty1, tz1) = win.xyz()
+    acc = np.zeros(win.shape + (2,), np.int64)
+    dbox = Box.from_xyz(lo, hi)
+    scene.contribute([dq], lo, hi, 1, acc=acc, tzo=tz0, tz_hi=tz1,
+                     window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0), parallel=False,
+                     values=(np.ascontiguousarray(cap.domain[dbox.slices]), lo[2],
+                             (lo[0], lo[1])))
+    assert np.array_equal(acc, acc_whole[win.slices])
+    assert acc.any()
+    with pytest.raises(ValueError, match="outside"):  # a block outside the values given
+        scene.contribute([dq], (2, 5, 2), hi, 1, acc=acc, tzo=tz0, tz_hi=tz1,
+                         window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0), parallel=False,
+                         values=(np.ascontiguousarray(cap.domain[dbox.slices]), lo[2],
+                                 (lo[0], lo[1])))

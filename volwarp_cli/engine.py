@@ -1,0 +1,334 @@
+"""The Dask engine: which scheduler runs a block graph, and what it reports.
+
+volwarp has no scheduler of its own. A chunked operation builds a Dask graph
+whose last tasks each compute and write one output block; this module picks
+who runs it, from ``--scheduler`` (else ``DASK_SCHEDULER_ADDRESS``, else the
+threaded scheduler):
+
+==================  ================================================================
+``threads``         Dask's threaded scheduler in this process (the default: volwarp's
+                    kernels release the GIL), ``--threads`` threads
+``processes``       Dask's multiprocessing scheduler, ``--threads`` processes
+``synchronous``     one task at a time in the calling thread (debugging, tests)
+``local``           a ``distributed.LocalCluster`` of ``--workers`` processes with
+                    ``--threads-per-worker`` threads each, the memory budget split
+                    among them
+``tcp://HOST:PORT`` an existing cluster's scheduler (also ``tls://``, ``ucx://``,
+                    ``inproc://``)
+``file:PATH``       an existing cluster whose scheduler wrote PATH (``dask
+                    scheduler --scheduler-file PATH``)
+==================  ================================================================
+
+Every scheduler runs the same block tasks, so outputs are identical on all of
+them. A block task runs its kernels on one thread (:func:`block_task`): the
+scheduler's threads are the parallelism, and numba's workqueue layer must not
+see two parallel kernels at once.
+
+Nothing here is imported by the in-memory path; dask and distributed are the
+``[scale]`` extra, imported when a graph is built.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+from .errors import VolwarpError
+
+#: Dask's own variable naming the scheduler of an existing cluster.
+SCHEDULER_ENV = "DASK_SCHEDULER_ADDRESS"
+#: The schedulers named by a word (the others are addresses or ``file:PATH``).
+LOCAL_SCHEDULERS = ("threads", "processes", "synchronous", "local")
+_ADDRESS_PREFIXES = ("tcp://", "tls://", "ucx://", "inproc://", "ws://", "wss://")
+
+
+@dataclass(frozen=True)
+class SchedulerChoice:
+    """A parsed ``--scheduler``: its kind and, for a cluster, where it is."""
+
+    kind: str  # threads | processes | synchronous | local | address | file
+    where: str | None = None
+
+    @property
+    def distributed(self) -> bool:
+        """True when the graph runs on a ``distributed`` cluster (local or remote)."""
+        return self.kind in ("local", "address", "file")
+
+    def describe(self) -> str:
+        """The scheduler as a user names it."""
+        return self.where if self.kind == "address" else (
+            f"file:{self.where}" if self.kind == "file" else self.kind)
+
+
+def parse_scheduler(value: str | None, environ=None) -> SchedulerChoice:
+    """The scheduler ``value`` names (None: ``DASK_SCHEDULER_ADDRESS``, else threads)."""
+    environ = os.environ if environ is None else environ
+    if value is None or not str(value).strip():
+        env = environ.get(SCHEDULER_ENV, "").strip()
+        if not env:
+            return SchedulerChoice("threads")
+        value = env
+    value = str(value).strip()
+    word = value.lower()
+    if word in ("sync", "single-threaded"):
+        word = "synchronous"
+    if word in LOCAL_SCHEDULERS:
+        return SchedulerChoice(word)
+    if word.startswith(_ADDRESS_PREFIXES):
+        return SchedulerChoice("address", value)
+    if word.startswith("file:"):
+        path = value[5:]
+        if not path:
+            raise VolwarpError("--scheduler file: needs the scheduler file's path "
+                               "(file:PATH)")
+        return SchedulerChoice("file", path)
+    raise VolwarpError(f"unknown scheduler {value!r} (known: {', '.join(LOCAL_SCHEDULERS)}, "
+                       "tcp://HOST:PORT, file:PATH)")
+
+
+# -- progress --------------------------------------------------------------------------
+class JsonlProgress:
+    """One JSON object per line, per block or scan event: start, done, failed.
+
+    Each line has ``event``, ``kind`` (block or scan), ``id``, ``t`` (seconds
+    since the run started) and, on done and failed, the task's own
+    ``seconds`` and its process's ``peak_rss`` (bytes); failed lines add
+    ``error``. Lines are written whole under a lock, so threads never mix them.
+    """
+
+    def __init__(self, stream=None):
+        self.stream = stream
+        self._start = time.perf_counter()
+        self._lock = threading.Lock()
+
+    def emit(self, event: str, kind: str, ident, **fields) -> None:
+        """Write one event line."""
+        record = {"event": event, "kind": kind, "id": ident,
+                  "t": round(time.perf_counter() - self._start, 4)}
+        record.update({k: v for k, v in fields.items() if v is not None})
+        line = json.dumps(record, separators=(",", ":")) + "\n"
+        stream = self.stream if self.stream is not None else sys.stderr
+        with self._lock:
+            stream.write(line)
+            stream.flush()
+
+
+def peak_rss() -> int:
+    """The peak resident set of this process so far, in bytes (ru_maxrss is KiB on Linux)."""
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
+@dataclass(frozen=True)
+class BlockStats:
+    """What a block task returns: its id, its seconds and its process's peak memory."""
+
+    id: str
+    seconds: float
+    peak_rss: int
+
+
+def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | None = None,
+               **kwargs) -> BlockStats:
+    """Run ``fn(*args, **kwargs)`` as one block task; its :class:`BlockStats`.
+
+    The task's kernels get ``threads`` threads (the scheduler's are the
+    parallelism) and the memory budget ``memory`` (the command's, passed in:
+    a worker process has no command line to read it from).
+    """
+    from . import memory as memory_mod
+    from . import parallel
+
+    start = time.perf_counter()
+    with parallel.use_threads(threads), (memory_mod.use_memory_limit(memory)
+                                         if memory is not None else contextlib.nullcontext()):
+        fn(*args, **kwargs)
+    return BlockStats(ident, time.perf_counter() - start, peak_rss())
+
+
+# -- running a graph -------------------------------------------------------------------
+@dataclass
+class Engine:
+    """A scheduler opened for one command: :meth:`run` computes block tasks on it."""
+
+    choice: SchedulerChoice
+    workers: int
+    client: object | None = None  # a distributed.Client for a cluster
+    progress: JsonlProgress | None = None
+    _cluster: object | None = field(default=None, repr=False)
+
+    def run(self, tasks, *, label: str = "blocks") -> list[BlockStats]:
+        """Compute ``tasks`` (dask delayed objects returning :class:`BlockStats`).
+
+        Failures propagate as the task's own exception (a VolwarpError stays
+        one); a bar is drawn on a terminal, JSON lines with ``progress``.
+        """
+        import dask
+
+        from .progress import progress
+
+        tasks = list(tasks)
+        if not tasks:
+            return []
+        results: list[BlockStats] = []
+        with progress(len(tasks), label) as bar:
+            if self.client is not None:
+                from distributed import as_completed
+
+                futures = self.client.compute(tasks)
+                keys = {f.key: i for i, f in enumerate(futures)}
+                names = {f.key: _key_name(f.key) for f in futures}
+                ordered: list[BlockStats | None] = [None] * len(futures)
+                for fut in as_completed(futures):
+                    try:
+                        stats = fut.result()
+                    except BaseException as exc:
+                        self._failed(names[fut.key], exc)
+                        for other in futures:
+                            other.cancel()
+                        raise
+                    ordered[keys[fut.key]] = stats
+                    self._done(stats)
+                    bar.advance()
+                results = [s for s in ordered if s is not None]
+            else:
+                with _LocalCallbacks(self, bar):
+                    results = list(dask.compute(*tasks, scheduler=self.choice.kind,
+                                                num_workers=self.workers))
+        return results
+
+    def _done(self, stats: BlockStats) -> None:
+        if self.progress is not None:
+            self.progress.emit("done", "block", stats.id, seconds=round(stats.seconds, 4),
+                               peak_rss=stats.peak_rss)
+
+    def _failed(self, ident: str, exc: BaseException) -> None:
+        if self.progress is not None:
+            self.progress.emit("failed", "block", ident, error=_one_line(exc))
+
+    def close(self) -> None:
+        """Close the client and the cluster this engine started (not a remote one)."""
+        if self.client is not None:
+            self.client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[-1] if text else type(exc).__name__
+
+
+class _LocalCallbacks:
+    """Dask callbacks of the local schedulers: start lines and the bar, per block task."""
+
+    def __init__(self, engine: Engine, bar):
+        from dask.callbacks import Callback
+
+        self.engine = engine
+        outer = self
+
+        class _Cb(Callback):
+            def _pretask(self, key, dsk, state):
+                if outer.engine.progress is not None and _is_block_key(key):
+                    outer.engine.progress.emit("start", "block", _key_name(key))
+
+            def _posttask(self, key, result, dsk, state, worker_id):
+                if isinstance(result, BlockStats):
+                    outer.engine._done(result)
+                    bar.advance()
+
+        self._cb = _Cb()
+
+    def __enter__(self):
+        self._cb.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        return self._cb.__exit__(*exc)
+
+
+#: key-name prefix of block tasks (see :func:`block_delayed`)
+BLOCK_PREFIX = "volwarp-block-"
+
+
+def _key_name(key) -> str:
+    name = key[0] if isinstance(key, tuple) else key
+    name = str(name)
+    return name[len(BLOCK_PREFIX):] if name.startswith(BLOCK_PREFIX) else name
+
+
+def _is_block_key(key) -> bool:
+    name = key[0] if isinstance(key, tuple) else key
+    return str(name).startswith(BLOCK_PREFIX)
+
+
+def block_delayed(fn: Callable, ident: str, *args, threads: int = 1,
+                  memory: int | None = None, **kwargs):
+    """A dask delayed :func:`block_task` named after the block (its progress lines' id)."""
+    import dask
+
+    return dask.delayed(block_task, pure=False)(
+        fn, ident, *args, threads=threads, memory=memory, dask_key_name=BLOCK_PREFIX + ident,
+        **kwargs)
+
+
+@contextlib.contextmanager
+def open_engine(scheduler: str | SchedulerChoice | None = None, *, workers: int | None = None,
+                threads_per_worker: int | None = None, memory_limit: int | None = None,
+                progress: str | None = None) -> Iterator[Engine]:
+    """The engine for ``scheduler`` (see the module notes), closed on exit.
+
+    ``workers``: threads or processes of a local scheduler, worker processes
+    of a LocalCluster (default: the cores this process may use, divided by
+    ``threads_per_worker``); ``memory_limit``: the LocalCluster's total,
+    split among its workers; ``progress``: ``"jsonl"`` for JSON lines on stderr.
+    """
+    from . import parallel
+
+    choice = scheduler if isinstance(scheduler, SchedulerChoice) else parse_scheduler(scheduler)
+    reporter = JsonlProgress() if progress == "jsonl" else None
+    if not choice.distributed:
+        yield Engine(choice, workers=workers or parallel.threads(), progress=reporter)
+        return
+    try:
+        from distributed import Client
+    except ImportError:  # pragma: no cover - the [scale] extra is installed with volwarp's tests
+        raise VolwarpError(f"--scheduler {choice.describe()} needs the 'distributed' package "
+                           "(pip install 'volwarp-cli[scale]')") from None
+    cluster = None
+    if choice.kind == "local":
+        from distributed import LocalCluster
+
+        per = threads_per_worker or 1
+        n = workers or max(1, parallel.threads() // per)
+        cluster = LocalCluster(n_workers=n, threads_per_worker=per, processes=True,
+                               memory_limit=(memory_limit // n) if memory_limit else "auto",
+                               dashboard_address=None, silence_logs=50)
+        client = Client(cluster)
+    else:
+        try:
+            if choice.kind == "file":
+                if not os.path.isfile(choice.where):
+                    raise VolwarpError(f"{choice.where}: no such scheduler file")
+                client = Client(scheduler_file=choice.where, timeout="30s")
+            else:
+                client = Client(choice.where, timeout="30s")
+        except VolwarpError:
+            raise
+        except (OSError, TimeoutError) as exc:
+            raise VolwarpError(f"cannot reach the Dask scheduler at {choice.describe()} "
+                               f"({_one_line(exc)})") from None
+        n = sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values())
+    engine = Engine(choice, workers=n, client=client, progress=reporter, _cluster=cluster)
+    try:
+        yield engine
+    finally:
+        engine.close()
