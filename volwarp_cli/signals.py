@@ -54,7 +54,12 @@ def _remove_temporaries() -> None:
     # temporary file" still holds, and the rename will find none.
     for tmp in list(temporaries):
         with contextlib.suppress(OSError):
-            os.unlink(tmp)
+            if os.path.isdir(tmp) and not os.path.islink(tmp):  # an OME-Zarr store's
+                import shutil
+
+                shutil.rmtree(tmp, ignore_errors=True)
+            else:
+                os.unlink(tmp)
     temporaries.clear()
 
 

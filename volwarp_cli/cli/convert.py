@@ -26,9 +26,10 @@ from .options import (
 @write_options
 @input_options
 @common_options
-def command(input, output, dtype, compress, byte_order, raw, volume_index, dicom):
+def command(input, output, dtype, compress, byte_order, raw, volume_index, dicom, ome_zarr):
     """Convert INPUT to OUTPUT (format by extension), keeping geometry and key/values."""
     check_output_path(output)
     vol = load_input(input, raw, volume_index, dicom=dicom)
     with timed(f"write {output}"):
-        write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order)
+        write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
+                     **ome_zarr)

@@ -123,7 +123,7 @@ def _attribute_name(frame_path: str, name: str) -> str:
 @common_options
 def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, times, iso, inside,
             metric, grid_choice, as_density, render_size, view, dtype, compress, byte_order,
-            camera_from, camera_to, orientation_labels):
+            camera_from, camera_to, orientation_labels, ome_zarr):
     """Morph SOURCE into TARGET: frame t is the zero level set of (1-t) d_source + t d_target.
 
     Give a --spec, or SOURCE TARGET with --frames (or --times) and --iso.
@@ -178,7 +178,7 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
         raise click.UsageError("--camera-from, --camera-to and --orientation-labels need "
                                "--render-to")
     _run(job, output, mesh_to, render_to, sheet_path, render_size, view, spec_path,
-         dict(dtype=dtype, compress=compress, byte_order=byte_order),
+         dict(dtype=dtype, compress=compress, byte_order=byte_order, **ome_zarr),
          (camera_from, camera_to, orientation_labels))
 
 

@@ -9,7 +9,8 @@ Every option, and the commands that take it (``tests/test_cli_help.py``
 checks this list against the commands; ``(every command)``: from
 :func:`common_options`; the ``--raw-*``, DICOM, ``--volume-index`` and
 ``--allow-outside-data`` options from :func:`input_options`; ``--dtype``,
-``--compress`` and ``--byte-order`` from :func:`write_options`)::
+``--compress``, ``--byte-order``, ``--ome-zarr-version`` and ``--pyramid`` from
+:func:`write_options`)::
 
     --allow-empty             mesh
     --allow-growth            warp
@@ -55,6 +56,7 @@ checks this list against the commands; ``(every command)``: from
     --method                  sweep
     --metric                  morph distance
     --multi                   sweep
+    --ome-zarr-version        warp morph sweep distance convert
     --orientation-labels/--no-orientation-labels  morph sweep mesh
     -o/--output               capture warp morph sweep distance mesh convert
     --oversample              capture
@@ -64,6 +66,7 @@ checks this list against the commands; ``(every command)``: from
     --points-to               warp
     --preserve-labels         warp
     --pushforward             warp
+    --pyramid                 warp morph sweep distance convert
     -q/--quiet                (every command)
     --raw-dtype               capture warp distance mesh info convert
     --raw-endian              capture warp distance mesh info convert
@@ -115,7 +118,7 @@ import click
 from click.core import ParameterSource
 
 from ..errors import VolwarpError
-from ..io import SUPPORTED_DTYPES, RawLayout
+from ..io import FOLDER_FORMATS, SUPPORTED_DTYPES, RawLayout
 from ..io.common import ALLOW_OUTSIDE_DATA
 from ..progress import configure, log
 from .view_options import VIEW_HELP  # noqa: F401  (--view's help, for every command)
@@ -233,9 +236,11 @@ def _volume_output(ctx, param, value):
 
     if value is not None:
         try:
-            volume_format(value)
+            fmt = volume_format(value)
         except VolwarpError as exc:
             raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+        if fmt not in FOLDER_FORMATS and os.path.isdir(value):  # (a store may be replaced)
+            raise click.BadParameter(f"{value!r} is a directory.", ctx=ctx, param=param)
     return value
 
 
@@ -247,8 +252,10 @@ def output_option(help_text: str = "Output file (format by extension).", volume:
     """
     if callback is None and volume:
         callback = _volume_output
-    return click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
-                        callback=callback, help=help_text)
+    # a volume output may be a folder (an OME-Zarr store): _volume_output refuses other folders
+    kind = click.Path(dir_okay=callback is _volume_output)
+    return click.option("-o", "--output", required=True, type=kind, callback=callback,
+                        help=help_text)
 
 
 def _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi) -> dict | None:
@@ -338,16 +345,47 @@ def input_options(f):
 
 
 def write_options(f):
-    """--dtype, --compress and --byte-order for volume outputs."""
-    f = click.option("--dtype", type=click.Choice(SUPPORTED_DTYPES), default=None,
-                     help="Output sample type (default: the input's). Integers are rounded "
-                          "and clipped to the type's range.")(f)
-    f = click.option("--compress/--no-compress", default=False, show_default=True,
-                     help="gzip NRRD data, zlib MetaImage data and TIFF pages (.nii.gz is "
-                          "always gzip).")(f)
-    f = click.option("--byte-order", type=click.Choice(["little", "big"]), default="little",
-                     show_default=True, help="Byte order of NRRD, TIFF and raw outputs.")(f)
-    return f
+    """--dtype, --compress, --byte-order, --ome-zarr-version and --pyramid for volume outputs.
+
+    The first three reach the command as ``dtype``, ``compress`` and
+    ``byte_order``. The OME-Zarr ones reach it as one keyword, ``ome_zarr``:
+    a dict of :func:`~volwarp_cli.io.write_volume`'s keyword arguments
+    (``ome_zarr_version``, ``pyramid``) to pass on with ``**ome_zarr``. A
+    command that does not take ``ome_zarr`` yet refuses values other than the
+    defaults (a usage error) rather than ignore them.
+    """
+    import inspect
+
+    takes = "ome_zarr" in inspect.signature(f).parameters
+
+    @functools.wraps(f)
+    def wrapper(*args, ome_zarr_version, pyramid, **kwargs):
+        if takes:
+            kwargs["ome_zarr"] = {"ome_zarr_version": ome_zarr_version, "pyramid": pyramid}
+        elif ome_zarr_version != "0.5" or pyramid:
+            raise click.UsageError("--ome-zarr-version and --pyramid are not passed on by "
+                                   "this command yet")
+        return f(*args, **kwargs)
+
+    wrapper = click.option(
+        "--pyramid", type=click.IntRange(min=0), default=0, show_default=True, metavar="N",
+        help="OME-Zarr output: N extra levels, each half the size of the last (label "
+             "maps by the most frequent label, others by the mean).")(wrapper)
+    wrapper = click.option(
+        "--ome-zarr-version", type=click.Choice(["0.4", "0.5"]), default="0.5",
+        show_default=True,
+        help="OME-Zarr output (.ome.zarr): NGFF 0.5 (Zarr v3, sharded) or 0.4 (Zarr v2, "
+             "for older viewers).")(wrapper)
+    wrapper = click.option("--dtype", type=click.Choice(SUPPORTED_DTYPES), default=None,
+                           help="Output sample type (default: the input's). Integers are "
+                                "rounded and clipped to the type's range.")(wrapper)
+    wrapper = click.option("--compress/--no-compress", default=False, show_default=True,
+                           help="gzip NRRD data, zlib MetaImage data and TIFF pages (.nii.gz "
+                                "is always gzip; OME-Zarr always zstd).")(wrapper)
+    wrapper = click.option("--byte-order", type=click.Choice(["little", "big"]),
+                           default="little", show_default=True,
+                           help="Byte order of NRRD, TIFF, raw and OME-Zarr outputs.")(wrapper)
+    return wrapper
 
 
 

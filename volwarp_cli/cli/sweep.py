@@ -141,7 +141,7 @@ def scale_to_dtype(data, dtype):
 @write_options
 @common_options
 def command(spec, output, multi, render_path, view, render_size, shape, spacing, method, tau,
-            dtype, compress, byte_order, camera_from, camera_to, orientation_labels):
+            dtype, compress, byte_order, camera_from, camera_to, orientation_labels, ome_zarr):
     """Sweep 2-D image templates along the trajectory of SPEC into one volume per field.
 
     Fields are float32 (--dtype uint8 scales 0..1 to 0..255, other integer
@@ -212,7 +212,7 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
         else:
             for n in names:
                 write_volume(as_volume(fields[n], n), paths[n], compress=compress,
-                             byte_order=byte_order)
+                             byte_order=byte_order, **ome_zarr)
     if render_path is not None:
         from ..io.images import write_image
         from ..render.raycast import render_volume

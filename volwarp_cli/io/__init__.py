@@ -19,7 +19,7 @@ from .common import SUPPORTED_DTYPES, cast_samples, note_input
 from .raw import RawLayout
 
 __all__ = ["read_volume", "write_volume", "volume_format", "RawLayout", "atomic_output",
-           "check_output_path", "SUPPORTED_DTYPES", "VOLUME_EXTENSIONS"]
+           "check_output_path", "SUPPORTED_DTYPES", "VOLUME_EXTENSIONS", "FOLDER_FORMATS"]
 
 #: extension -> format name
 VOLUME_EXTENSIONS = {
@@ -29,7 +29,10 @@ VOLUME_EXTENSIONS = {
     ".raw": "raw", ".bin": "raw",
     ".nii": "nifti", ".nii.gz": "nifti",
     ".dcm": "dicom",
+    ".zarr": "omezarr",  # also .ome.zarr; a store is a folder
 }
+#: the formats whose files are folders
+FOLDER_FORMATS = frozenset({"omezarr"})
 #: the formats volwarp reads but does not write
 READ_ONLY_FORMATS = frozenset({"dicom"})
 
@@ -41,7 +44,7 @@ _MAGIC_CHECK = {
     "metaimage": lambda head: _metaimage_head(head),
 }
 _FORMAT_NAMES = {"nrrd": "NRRD", "tiff": "TIFF", "nifti": "NIfTI", "raw": "raw",
-                 "metaimage": "MetaImage", "dicom": "DICOM"}
+                 "metaimage": "MetaImage", "dicom": "DICOM", "omezarr": "OME-Zarr"}
 
 
 def volume_format(path: str | os.PathLike, *, reading: bool = False) -> str:
@@ -50,9 +53,11 @@ def volume_format(path: str | os.PathLike, *, reading: bool = False) -> str:
     ``reading``: DICOM is also recognised without an extension (scanners name
     files ``IM000001``, folders of them, ``DICOMDIR``), by content.
     """
+    name = Path(path).name.lower()
+    if name.endswith(".zarr"):
+        return "omezarr"  # a folder (OME-Zarr store), read or written
     if reading and Path(path).is_dir():
         return "dicom"  # read_volume says so when it holds none
-    name = Path(path).name.lower()
     if name.endswith(".nii.gz"):
         return "nifti"
     fmt = VOLUME_EXTENSIONS.get(Path(name).suffix)
@@ -113,6 +118,9 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
     input only (the command line refuses them for others).
     """
     path = Path(path)
+    if volume_format(path, reading=True) == "omezarr":  # a folder: the reader checks it
+        from .omezarr import read_omezarr
+        return read_omezarr(path, volume_index)
     if path.is_dir():  # a folder is DICOM or nothing
         if not _is_dicom(path):
             raise FormatError(f"{path}: is a folder with no DICOM files, not a volume file")
@@ -148,20 +156,35 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
 
 
 def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: bool = False,
-                 byte_order: str = "little") -> None:
+                 byte_order: str = "little", ome_zarr_version: str = "0.5", pyramid: int = 0,
+                 labels="auto") -> None:
     """Write ``vol`` atomically, converting samples to ``dtype`` when given.
 
     Integer outputs from float samples are rounded and clipped to the type's
     range; NaN is refused for integer types.
+
+    OME-Zarr outputs (``.ome.zarr``, ``.zarr``: folders) take
+    ``ome_zarr_version`` (``"0.5"``: Zarr v3, sharded; ``"0.4"``: Zarr v2),
+    ``pyramid`` (extra half-size levels) and ``labels`` (True, False or
+    ``"auto"``: whether levels take the most frequent label rather than the
+    mean); their chunks are always zstd-compressed (``compress`` changes
+    nothing). Other formats have one level: ``pyramid`` must be 0.
     """
     path = Path(path)
     fmt = volume_format(path)
     check_output_path(path)
+    if pyramid and fmt != "omezarr":
+        raise VolwarpError(f"{path}: --pyramid writes extra levels of OME-Zarr outputs "
+                           "(.ome.zarr); a " + _FORMAT_NAMES[fmt] + " file has one")
     if dtype is not None:
         vol = vol.with_data(cast_samples(vol.data, dtype, what=str(path)))
     if not np.issubdtype(vol.data.dtype, np.number):
         raise VolwarpError(f"{path}: cannot write samples of type {vol.data.dtype}")
-    if fmt == "nrrd":
+    if fmt == "omezarr":
+        from .omezarr import write_omezarr
+        write_omezarr(vol, path, version=ome_zarr_version, pyramid=pyramid, labels=labels,
+                      byte_order=byte_order)
+    elif fmt == "nrrd":
         from .nrrd import write_nrrd
         write_nrrd(vol, path, compress=compress, byte_order=byte_order)
     elif fmt == "tiff":

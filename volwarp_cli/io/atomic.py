@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import shutil
 import socket
 import tempfile
 from pathlib import Path
@@ -20,8 +21,12 @@ from ..errors import VolwarpError
 from ..signals import Interrupted, blocked, check_stop, install, temporaries
 from .mapped import check_unchanged, sync_temporaries
 
-__all__ = ["Interrupted", "atomic_output", "atomic_outputs", "check_output_path",
-           "install_signal_handlers", "write_bytes_atomic"]
+__all__ = ["Interrupted", "atomic_folder", "atomic_output", "atomic_outputs",
+           "check_output_path", "install_signal_handlers", "is_folder_output", "is_zarr_store",
+           "write_bytes_atomic"]
+
+#: extensions of outputs that are folders (OME-Zarr stores)
+FOLDER_EXTENSIONS = (".zarr",)
 
 #: the registry the signal handler empties (see :mod:`volwarp_cli.signals`)
 _live_temporaries = temporaries
@@ -32,17 +37,112 @@ def install_signal_handlers() -> None:
     install()
 
 
+def is_folder_output(path: str | os.PathLike) -> bool:
+    """True when ``path`` names an output that is a folder (``.zarr``, ``.ome.zarr``)."""
+    return Path(path).name.lower().endswith(FOLDER_EXTENSIONS)
+
+
+def is_zarr_store(path: str | os.PathLike) -> bool:
+    """True when ``path`` is a folder holding a Zarr group or array (v2 or v3)."""
+    path = Path(path)
+    return path.is_dir() and any((path / name).is_file() for name in
+                                 ("zarr.json", ".zgroup", ".zarray", ".zattrs"))
+
+
 def check_output_path(path: str | os.PathLike) -> Path:
-    """Fail early (before any work) when ``path`` cannot be written."""
+    """Fail early (before any work) when ``path`` cannot be written.
+
+    A folder output (``.zarr``) may replace an existing Zarr store, never a
+    folder that is not one (nor a file of that name: that is someone else's).
+    """
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise VolwarpError(f"{path}: output folder {str(folder)!r} does not exist")
     if not os.access(folder, os.W_OK):
         raise VolwarpError(f"{path}: output folder {str(folder)!r} is not writable")
+    if is_folder_output(path):
+        if path.is_dir() and not is_zarr_store(path):
+            raise VolwarpError(f"{path}: is a folder that is not a Zarr store; volwarp "
+                               "replaces only an earlier store (remove it or choose another name)")
+        if path.exists() and not path.is_dir():
+            raise VolwarpError(f"{path}: is a file; an OME-Zarr output is a folder (remove it "
+                               "or choose another name)")
+        return path
     if path.is_dir():
         raise VolwarpError(f"{path}: is a folder, not a file")
     return path
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | os.PathLike):
+    """Yield a temporary folder next to ``path``; rename it onto ``path`` on success.
+
+    For outputs that are folders (OME-Zarr stores). The temporary is
+    registered with the signal handler's temporaries and removed on any
+    error or stop; an existing store at ``path`` is untouched until the new
+    one is complete. Then, with SIGINT and SIGTERM held back, the old store is
+    renamed aside, the new one renamed in, and only then the old one removed:
+    at every moment one of the two is at ``path``. (A folder cannot be
+    renamed over another in one step, as a file can.)
+    """
+    path = check_output_path(path)
+    _remove_stale_temporaries(path)
+    with blocked():  # made and registered at once: a stop cannot leak it
+        tmp = tempfile.mkdtemp(prefix=_temporary_prefix(path.name), suffix=".partdir",
+                               dir=path.parent)
+        _live_temporaries.add(tmp)
+    aside = None
+    try:
+        sync_temporaries()
+        yield Path(tmp)
+        _chmod_tree(tmp)
+        with blocked():
+            check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
+            check_unchanged()  # an input mapped for this output changed: no rename
+            if path.is_dir():
+                aside = tempfile.mkdtemp(prefix=_temporary_prefix(path.name), suffix=".old",
+                                         dir=path.parent)
+                os.rmdir(aside)  # (only the unique name was wanted)
+                os.rename(path, aside)
+                try:
+                    os.rename(tmp, path)
+                except BaseException:
+                    os.rename(aside, path)  # put the old store back
+                    aside = None
+                    raise
+            else:
+                os.rename(tmp, path)
+            _live_temporaries.discard(tmp)
+    except BaseException as exc:
+        _remove_tree(tmp)
+        if isinstance(exc, OSError) and (exc.filename is None
+                                         or str(exc.filename).startswith(tmp)):
+            raise VolwarpError(f"{path}: cannot write ({exc.strerror or exc})") from exc
+        raise
+    finally:
+        _live_temporaries.discard(tmp)
+        sync_temporaries()
+    if aside is not None:
+        _remove_tree(aside)
+
+
+def _chmod_tree(root: str) -> None:
+    """Give the output the usual modes (mkdtemp makes folders 0700)."""
+    os.chmod(root, 0o777 & ~_UMASK)
+    for folder, dirs, files in os.walk(root):
+        for d in dirs:
+            os.chmod(os.path.join(folder, d), 0o777 & ~_UMASK)
+        for f in files:
+            os.chmod(os.path.join(folder, f), 0o666 & ~_UMASK)
+
+
+def _remove_tree(root) -> None:
+    """Remove a temporary folder (again, if a writer thread still added files meanwhile)."""
+    for _ in range(5):
+        shutil.rmtree(root, ignore_errors=True)
+        if not os.path.lexists(root):
+            return
 
 
 @contextlib.contextmanager
@@ -133,16 +233,22 @@ def _remove_stale_temporaries(path: Path) -> None:
     """
     pattern = re.compile(re.escape(f".{path.name}.vw-") + r"(\d+)@" + re.escape(_host())
                          + r"\.[A-Za-z0-9_]{8}\.part")
+    folders = re.compile(re.escape(f".{path.name}.vw-") + r"(\d+)@" + re.escape(_host())
+                         + r"\.[A-Za-z0-9_]{8}\.(partdir|old)$")
     try:
         names = os.listdir(path.parent if str(path.parent) else ".")
     except OSError:
         return
     for name in names:
-        m = pattern.match(name)
+        m = pattern.match(name) or folders.match(name)
         if m is None or _alive(int(m.group(1))):
             continue
+        stale = path.parent / name
+        if stale.is_dir() and not stale.is_symlink():
+            _remove_tree(stale)  # a folder output's temporary (or an old store set aside)
+            continue
         with contextlib.suppress(OSError):
-            os.unlink(path.parent / name)
+            os.unlink(stale)
 
 
 def _alive(pid: int) -> bool:

@@ -1,0 +1,406 @@
+"""Outputs written block by block, for results that do not fit in memory.
+
+:func:`open_block_output` makes a :class:`BlockOutput` for a grid, a sample
+type and an output path; the engine (Dask, threads) computes blocks and
+hands each to :meth:`BlockOutput.write`, then calls :meth:`BlockOutput.commit`
+(or :meth:`BlockOutput.abort`). The output appears at its path only on
+commit, atomically, as every volwarp output (:mod:`.atomic`); an error, an
+abort or a stop leaves no temporary behind and an existing output untouched.
+
+Blocks must lie on the output's block grid, :attr:`BlockOutput.chunks`:
+a write covers whole blocks (the last block of an axis may be cut short at
+the grid's end), so that two writes never share a block. For OME-Zarr that is
+the shard shape (0.5) or the chunk shape (0.4): zarr-python reads, modifies
+and writes back a whole shard for a partial write, and two threads doing so
+at once lose one's data silently. :func:`aligned_chunks` gives the chunk
+sizes a Dask array should be rechunked to.
+
+Formats:
+
+- **OME-Zarr** (``.ome.zarr``, ``.zarr``): zarr writes into the temporary
+  store; commit builds the pyramid (``pyramid`` levels, block by block from
+  the level above), writes the metadata and renames the store into place. The
+  store is the one :func:`~.omezarr.write_omezarr` writes for the same volume.
+- **NRRD** (``.nrrd``, raw encoding), **MetaImage** (``.mha``) and **raw**:
+  the header goes into the temporary file and the samples through a
+  ``np.memmap`` of the data region; the file is byte for byte the one
+  :func:`~volwarp_cli.io.write_volume` writes for the same volume.
+- Compressed NRRD/NIfTI/MetaImage, TIFF and detached headers (``.nhdr``,
+  ``.mhd``) are refused: their bytes cannot be placed block by block.
+
+Computing is left to the engine: this module only places blocks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from ..box import Box
+from ..errors import VolwarpError
+from ..geometry import Geometry
+from ..samples import check_dtype
+
+__all__ = ["BlockOutput", "BlockWriter", "aligned_chunks", "block_indices", "open_block_output"]
+
+
+class _Aborted(Exception):
+    """Thrown into the atomic-output context to make it remove its temporary."""
+
+
+def _placeholder_volume(geometry: Geometry, dtype, space, metadata):
+    from ..volume import Volume
+
+    data = np.broadcast_to(np.zeros((), dtype=dtype), geometry.shape)
+    return Volume(data, spacing=geometry.spacing_array, origin=geometry.origin_array,
+                  direction=geometry.direction_array, space=space, meta=dict(metadata or {}))
+
+
+def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chunks_zyx=None,
+                      version: str = "0.5", compress: bool = False, byte_order: str = "little",
+                      metadata: dict | None = None, space: str | None = None,
+                      pyramid: int = 0, labels: bool = False) -> BlockOutput:
+    """A :class:`BlockOutput` writing a volume of ``geometry`` and ``dtype`` to ``path``.
+
+    ``chunks_zyx``: the block shape the engine prefers (OME-Zarr: the chunk
+    shape inside shards; others: the block grid, default 64 planes of the
+    whole y, x extent). ``version``, ``pyramid``, ``labels``: OME-Zarr (see
+    :mod:`.omezarr`; ``labels`` must be given: no data is seen in advance).
+    ``metadata``: the volume's key/values (provenance); ``space``: its world
+    frame (``"left-posterior-superior"``, or None), as the Volume would have.
+    ``compress``: refused except for OME-Zarr (always compressed).
+    """
+    from . import volume_format
+
+    path = Path(path)
+    fmt = volume_format(path)
+    dtype = check_dtype(dtype, str(path))
+    if pyramid and fmt != "omezarr":
+        raise VolwarpError(f"{path}: --pyramid writes extra levels of OME-Zarr outputs only")
+    if fmt == "omezarr":
+        return _ZarrOutput(path, geometry, dtype, chunks_zyx, version, byte_order, metadata,
+                           space, pyramid, labels)
+    name = path.name.lower()
+    hint = "write .ome.zarr or uncompressed .nrrd for block-wise outputs"
+    if compress or fmt in ("tiff", "nifti"):
+        raise VolwarpError(f"{path}: a compressed or {fmt} output cannot be written block by "
+                           f"block; {hint}")
+    if name.endswith((".nhdr", ".mhd")):
+        raise VolwarpError(f"{path}: detached headers are not written block by block; {hint}")
+    if fmt not in ("nrrd", "metaimage", "raw"):
+        raise VolwarpError(f"{path}: {fmt} outputs cannot be written block by block; {hint}")
+    return _MappedOutput(path, geometry, dtype, chunks_zyx, fmt, byte_order, metadata, space)
+
+
+def aligned_chunks(shape_zyx, out: BlockOutput) -> tuple[tuple[int, ...], ...]:
+    """Dask-style chunks (per axis, the block lengths) of ``shape_zyx`` on ``out``'s block grid.
+
+    ``darr.rechunk(aligned_chunks(darr.shape, out))`` makes every Dask block one
+    aligned write.
+    """
+    out_chunks = []
+    for n, b in zip(shape_zyx, out.chunks, strict=True):
+        n = int(n)
+        sizes = [b] * (n // b) + ([n % b] if n % b else [])
+        out_chunks.append(tuple(sizes) if sizes else (0,))
+    return tuple(out_chunks)
+
+
+def block_indices(box: Box, shape, chunks) -> list[tuple[int, int, int]]:
+    """The indices of the blocks of grid ``chunks`` that ``box`` covers (whole blocks only).
+
+    ValueError when ``box`` is not aligned to the grid (the last block of an
+    axis may end at the grid's end) or reaches outside ``shape``.
+    """
+    for lo, hi, n, c, axis in zip(box.lo, box.hi, shape, chunks, "zyx", strict=True):
+        if lo < 0 or hi > n:
+            raise ValueError(f"block {box} reaches outside the grid of shape {shape}")
+        if lo % c or (hi % c and hi != n):
+            raise ValueError(f"block {box} is not aligned to the output's blocks of "
+                             f"{tuple(chunks)} (axis {axis}: {lo}..{hi}); rechunk with "
+                             "aligned_chunks()")
+    if box.empty:
+        return []
+    ranges = [range(lo // c, math.ceil(hi / c)) for lo, hi, c in zip(box.lo, box.hi, chunks,
+                                                                       strict=True)]
+    return [(a, b, d) for a in ranges[0] for b in ranges[1] for d in ranges[2]]
+
+
+class BlockWriter:
+    """Writes aligned blocks into an output's temporary: picklable, usable in any process.
+
+    Made by :meth:`BlockOutput.writer`; ``target()`` opens what the samples go
+    into (a zarr array, a memory map of the temporary file), once per process.
+    """
+
+    def __init__(self, shape, chunks, dtype, where: str):
+        self.shape = tuple(shape)
+        self.chunks = tuple(chunks)
+        self.dtype = np.dtype(dtype)
+        self.where = where
+        self._opened = None
+
+    def _open(self):  # pragma: no cover - every format has one
+        raise NotImplementedError
+
+    def write(self, box: Box, array) -> None:
+        """Write ``array`` at ``box`` (whole blocks of the grid)."""
+        array = np.asarray(array)
+        if tuple(array.shape) != box.shape:
+            raise ValueError(f"block of shape {array.shape} written at {box}")
+        block_indices(box, self.shape, self.chunks)
+        if box.empty:
+            return
+        if self._opened is None:
+            self._opened = self._open()
+        self._opened[box.slices] = array
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_opened"] = None
+        return state
+
+
+class _ZarrWriter(BlockWriter):
+    def __init__(self, array, shape, chunks, dtype, where):
+        super().__init__(shape, chunks, dtype, where)
+        self.array = array  # a zarr array pickles as its store and path
+
+    def _open(self):
+        return self.array
+
+
+class _MappedWriter(BlockWriter):
+    def __init__(self, file, file_dtype, offset, shape, chunks, dtype, where):
+        super().__init__(shape, chunks, dtype, where)
+        self.file, self.file_dtype, self.offset = str(file), np.dtype(file_dtype), int(offset)
+
+    def _open(self):
+        return np.memmap(self.file, dtype=self.file_dtype, mode="r+", offset=self.offset,
+                         shape=self.shape)
+
+
+class BlockOutput:
+    """An output volume being written block by block (made by :func:`open_block_output`).
+
+    Attributes
+    ----------
+    path : Path
+        Where the output appears on :meth:`commit`.
+    geometry : Geometry
+        The output grid.
+    dtype : numpy.dtype
+        The sample type (native order; writes are converted to it).
+    chunks : tuple of 3 ints
+        The block grid (z, y, x): every write covers whole blocks.
+    """
+
+    def __init__(self, path: Path, geometry: Geometry, dtype: np.dtype, chunks):
+        self.path = path
+        self.geometry = geometry
+        self.dtype = np.dtype(dtype)
+        self.chunks = tuple(int(c) for c in chunks)
+        self._lock = threading.Lock()
+        self._written: set[tuple[int, int, int]] = set()
+        self._state = "open"
+        self._stack = contextlib.ExitStack()
+
+    # -- blocks -----------------------------------------------------------------------
+    def _blocks_of(self, box: Box) -> list[tuple[int, int, int]]:
+        """The block indices ``box`` covers; ValueError unless it covers whole blocks."""
+        return block_indices(box, self.geometry.shape, self.chunks)
+
+    def writer(self) -> BlockWriter:
+        """A picklable handle that writes blocks into this output's temporary, in any process.
+
+        For tasks in other processes (Dask's process and distributed
+        schedulers): their writes are not counted here; :meth:`mark_written`
+        the blocks whose tasks succeeded before :meth:`commit`.
+        """
+        raise NotImplementedError  # pragma: no cover - every format has one
+
+    def mark_written(self, boxes) -> None:
+        """Count the blocks of ``boxes`` as written (by :meth:`writer` handles)."""
+        with self._lock:
+            for box in boxes:
+                self._written.update(self._blocks_of(box))
+
+    def write(self, box: Box, array) -> None:
+        """Write ``array`` (shape ``box.shape``) at ``box`` (whole blocks; thread-safe)."""
+        if not isinstance(box, Box):
+            box = Box(*box)
+        array = np.asarray(array)
+        if tuple(array.shape) != box.shape:
+            raise ValueError(f"block of shape {array.shape} written at {box} "
+                             f"(shape {box.shape})")
+        blocks = self._blocks_of(box)
+        with self._lock:
+            if self._state != "open":
+                raise ValueError(f"{self.path}: the output is {self._state}: no more writes")
+        self._write(box, array)
+        with self._lock:
+            self._written.update(blocks)
+
+    def _write(self, box: Box, array: np.ndarray) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def missing(self) -> int:
+        """How many blocks have not been written yet."""
+        total = 1
+        for n, c in zip(self.geometry.shape, self.chunks, strict=True):
+            total *= math.ceil(n / c) if n else 0
+        return total - len(self._written)
+
+    # -- ending -----------------------------------------------------------------------
+    def commit(self) -> None:
+        """Finish (pyramid, header) and rename the output into place.
+
+        Every block must have been written (else a VolwarpError, and the
+        output is abandoned).
+        """
+        with self._lock:
+            if self._state != "open":
+                raise VolwarpError(f"{self.path}: the output is {self._state} already")
+            self._state = "committing"
+        try:
+            left = self.missing()
+            if left:
+                raise VolwarpError(f"{self.path}: {left} block{'s' if left != 1 else ''} of "
+                                   f"{self.chunks} not written; the output is not made")
+            self._finish()
+            stack, self._stack = self._stack, contextlib.ExitStack()
+            stack.close()  # the atomic rename
+        except BaseException:
+            self._state = "committing"
+            self.abort()
+            raise
+        self._state = "committed"
+
+    def _finish(self) -> None:
+        """Hook: complete the temporary before the rename."""
+
+    def _release(self) -> None:
+        """Hook: close maps and files before the temporary is removed or renamed."""
+
+    def abort(self) -> None:
+        """Remove the temporary output (an existing output at ``path`` is kept)."""
+        if self._state in ("committed", "aborted"):
+            return
+        self._state = "aborted"
+        with contextlib.suppress(Exception):
+            self._release()
+        stack, self._stack = self._stack, contextlib.ExitStack()
+        stack.__exit__(_Aborted, _Aborted(), None)
+
+    def __enter__(self) -> BlockOutput:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is not None:
+            self.abort()
+        return False
+
+
+class _ZarrOutput(BlockOutput):
+    def __init__(self, path, geometry, dtype, chunks_zyx, version, byte_order, metadata, space,
+                 pyramid, labels):
+        from . import omezarr
+        from .atomic import atomic_folder
+
+        version = omezarr.check_version(version)
+        chunk, shard = omezarr.store_layout(geometry.shape, version, chunks_zyx)
+        super().__init__(path, geometry, dtype, shard or chunk)
+        self._labels = bool(labels)
+        self._method = ("mode" if labels else "mean") if pyramid else None
+        vol = _placeholder_volume(geometry, dtype, space, metadata)
+        if omezarr.signed_permutation(vol.direction) is not None and not np.array_equal(
+                vol.direction, np.eye(3)):
+            raise VolwarpError(f"{path}: a block-wise OME-Zarr output needs an identity (or "
+                               "oblique) direction; reindex flipped or permuted grids first "
+                               "(omezarr.reindex_to_identity)")
+        self._attrs = omezarr.group_attributes(
+            omezarr.multiscales_metadata(vol, pyramid, version, self._method),
+            omezarr.volwarp_attribute(vol, vol, self._method), version)
+        try:
+            tmp = self._stack.enter_context(atomic_folder(path))
+            group = omezarr.open_group_for_writing(tmp, version)
+            self._arrays = omezarr.create_arrays(group, omezarr.level_shapes(geometry.shape,
+                                                                             pyramid),
+                                                 dtype, version, chunks_zyx, byte_order)
+            self._group = group
+        except BaseException:
+            self.abort()
+            raise
+
+    def _write(self, box, array):
+        self._arrays[0][box.slices] = array
+
+    def writer(self):
+        return _ZarrWriter(self._arrays[0], self.geometry.shape, self.chunks, self.dtype,
+                           str(self.path))
+
+    def _finish(self):
+        from . import omezarr
+
+        omezarr.write_levels(self._arrays, None, self._labels)
+        self._group.attrs.update(self._attrs)
+
+
+class _MappedOutput(BlockOutput):
+    def __init__(self, path, geometry, dtype, chunks_zyx, fmt, byte_order, metadata, space):
+        from .atomic import atomic_output
+        from .common import with_byte_order
+
+        chunks = chunks_zyx or (64, geometry.shape[1], geometry.shape[2])
+        chunks = tuple(max(1, min(int(c), max(int(n), 1)))
+                       for c, n in zip(chunks, geometry.shape, strict=True))
+        super().__init__(path, geometry, dtype, chunks)
+        with_byte_order(np.zeros(0, dtype), byte_order)  # checks the name
+        vol = _placeholder_volume(geometry, dtype, space, metadata)
+        if fmt == "nrrd":
+            from .nrrd import nrrd_header
+
+            header = nrrd_header(vol, self.dtype, encoding="raw", byte_order=byte_order)
+        elif fmt == "metaimage":
+            from .metaimage import metaimage_header
+
+            header = metaimage_header(vol, self.dtype, byte_order=byte_order,
+                                      data_file="LOCAL")
+        else:
+            header = b""
+        file_dtype = self.dtype.newbyteorder("<" if byte_order == "little" else ">")
+        nbytes = geometry.size * self.dtype.itemsize
+        self._map = None
+        self._file_dtype, self._offset = file_dtype, len(header)
+        try:
+            tmp = self._tmp = self._stack.enter_context(atomic_output(path))
+            with open(tmp, "r+b") as fh:
+                fh.write(header)
+                fh.truncate(len(header) + nbytes)
+            if nbytes:
+                self._map = np.memmap(tmp, dtype=file_dtype, mode="r+", offset=len(header),
+                                      shape=geometry.shape)
+        except BaseException:
+            self.abort()
+            raise
+
+    def _write(self, box, array):
+        if self._map is not None:
+            self._map[box.slices] = array
+
+    def writer(self):
+        return _MappedWriter(self._tmp, self._file_dtype, self._offset, self.geometry.shape,
+                             self.chunks, self.dtype, str(self.path))
+
+    def _finish(self):
+        self._release()
+
+    def _release(self):
+        if self._map is not None:
+            self._map.flush()
+            self._map = None  # (the map closes once no view of it is left)

@@ -1,0 +1,401 @@
+"""Big inputs without loading them: a volume's geometry and an array read on slicing.
+
+:func:`open_volume_lazy` gives ``(Geometry, array)``, where ``array`` has
+``shape`` (z, y, x), ``dtype`` and numpy slicing ``array[z0:z1, y0:y1, x0:x1]``
+that reads only the samples asked for; the geometry is the one
+:func:`~volwarp_cli.io.read_volume` gives for the same file (the readers'
+own header parsers are used). Per format:
+
+- **OME-Zarr**: level 0 through zarr (chunks read on demand).
+- **NRRD** raw encoding (attached, or detached with one data file), **MetaImage**
+  uncompressed (``.mha`` or ``.mhd`` with one data file) and headerless
+  **raw**: a read-only ``np.memmap`` in the file's byte order (a big-endian
+  file gives e.g. a ``>i2`` map; slices convert on use). The file is watched
+  as ``read_volume(..., mmap=True)`` watches it: truncated meanwhile, the run
+  stops with one line instead of a crash.
+- **TIFF** 3-D stacks of one sample per pixel: tifffile's zarr interface
+  (``imread(aszarr=True)``), pages decoded on demand.
+- **NIfTI** uncompressed, unscaled: nibabel's data proxy, whose ``[x, y, z]``
+  samples are the ``[z, y, x]`` array transposed (volwarp's reader does
+  nothing else to them: the direction matrix holds the reflections).
+
+Anything else (gzip/bzip2/ascii encodings, compressed NIfTI or MetaImage,
+scaled NIfTI, 4-D files with several volumes or components, DICOM) is read
+whole by ``read_volume``, unless ``require_lazy`` asks for an error instead.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, VolwarpError
+from ..geometry import Geometry
+from ..samples import check_dtype, voxel_count
+from ..volume import xyz_to_zyx
+
+__all__ = ["open_volume_lazy", "open_volume_template", "NotLazy"]
+
+
+class NotLazy(Exception):
+    """Raised inside: this file cannot be read lazily (the reason is the message)."""
+
+
+def open_volume_lazy(path: str | os.PathLike, *, raw=None, volume_index: int | None = None,
+                     require_lazy: bool = False):
+    """``(Geometry, array_like)`` of the volume file at ``path`` (module notes).
+
+    ``raw``: the :class:`~volwarp_cli.io.raw.RawLayout` of a headerless file;
+    ``volume_index``: as for ``read_volume`` (OME-Zarr; other 4-D files are
+    read whole). ``require_lazy``: raise a VolwarpError naming the reason
+    when the file would have to be read whole.
+    """
+    template, array = open_volume_template(path, raw=raw, volume_index=volume_index,
+                                           require_lazy=require_lazy)
+    return Geometry.of(template), array
+
+
+def open_volume_template(path: str | os.PathLike, *, raw=None, volume_index: int | None = None,
+                         require_lazy: bool = False):
+    """:func:`open_volume_lazy` with the Volume for the geometry: ``(template, array_like)``.
+
+    ``template`` is the Volume ``read_volume`` would give, but for its samples,
+    a zero-strided placeholder of their shape and type: its frame (``space``,
+    ``file_space``) and key/values are the file's, for the outputs made from it.
+    """
+    from . import read_volume, volume_format
+
+    path = Path(path)
+    fmt = volume_format(path, reading=True)
+    try:
+        if fmt == "omezarr":
+            from .common import make_volume
+            from .omezarr import LazyOmeZarr, open_omezarr
+
+            opened = open_omezarr(path, volume_index)
+            lazy = LazyOmeZarr(opened)
+            return make_volume(opened.where, _placeholder(lazy.shape, lazy.dtype),
+                               spacing=opened.spacing, origin=opened.origin,
+                               direction=opened.direction, space=opened.space,
+                               file_space=opened.file_space, meta=opened.meta), lazy
+        if volume_index not in (None, 0):
+            raise NotLazy("a volume of a 4-D file is read whole")
+        if fmt == "nrrd":
+            return _nrrd(path)
+        if fmt == "metaimage":
+            return _metaimage(path)
+        if fmt == "raw":
+            return _raw(path, raw)
+        if fmt == "tiff":
+            return _tiff(path)
+        if fmt == "nifti":
+            return _nifti(path)
+        raise NotLazy(f"{fmt} files are read whole")
+    except NotLazy as why:
+        if require_lazy:
+            raise VolwarpError(f"{path}: cannot be read without loading it ({why}); write it "
+                               "as .ome.zarr or uncompressed .nrrd first") from None
+    vol = read_volume(path, raw=raw, volume_index=volume_index)
+    return vol, vol.data
+
+
+def _placeholder(shape_zyx, dtype) -> np.ndarray:
+    """A zero-strided array of the volume's shape (no memory): to build a Volume's geometry."""
+    return np.broadcast_to(np.zeros((), dtype=dtype), tuple(int(n) for n in shape_zyx))
+
+
+def _geometry(where: str, shape_zyx, dtype, **geometry):
+    """The placeholder Volume (geometry, frame, key/values) of a file's samples."""
+    from .common import make_volume
+
+    return make_volume(where, _placeholder(shape_zyx, dtype), **geometry)
+
+
+def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str) -> np.memmap:
+    from .common import note_input
+    from .mapped import guard
+
+    nbytes = voxel_count(shape_zyx) * dtype.itemsize
+    with open(file, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if offset < 0 or size - offset < nbytes:
+            raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of samples, "
+                              f"found {max(size - max(offset, 0), 0)}")
+        note_input(fh)
+        guard(fh, str(file))
+        return np.memmap(fh, dtype=dtype, mode="r", offset=offset, shape=tuple(shape_zyx))
+
+
+# -- NRRD -------------------------------------------------------------------------------
+
+def _nrrd(path: Path):
+    from . import nrrd
+    from .common import open_data_file
+
+    where = str(path)
+    with open(path, "rb") as fh:
+        fields, keyvals = nrrd.read_header(fh, where)
+        for req in ("type", "dimension", "sizes", "encoding"):
+            if req not in fields:
+                raise NotLazy(f"no '{req}' field")
+        if nrrd._ENCODINGS.get(fields["encoding"].lower()) != "raw":
+            raise NotLazy(f"encoding {fields['encoding']} is read whole")
+        try:
+            dim = int(fields["dimension"])
+            sizes = [int(s) for s in fields["sizes"].split()]
+        except ValueError:
+            raise NotLazy("bad sizes") from None
+        if dim != 3 or len(sizes) != 3 or min(sizes) <= 0:
+            raise NotLazy("only 3-D files are mapped")
+        type_name = fields["type"].lower()
+        if type_name not in nrrd._TYPES:
+            raise NotLazy("unknown type")
+        dtype = check_dtype(nrrd._TYPES[type_name], where)
+        endian = fields.get("endian", "little").lower()
+        file_dtype = dtype.newbyteorder("<" if endian == "little" else ">")
+        spacing, origin, direction, space = nrrd._geometry(fields, dim, where)
+        files = nrrd._data_files(fields, path, fh, where, sizes)
+        lineskip = nrrd._whole(fields, ("line skip", "lineskip"), where)
+        byteskip = nrrd._whole(fields, ("byte skip", "byteskip"), where, minimum=-1)
+        if files is not None and len(files) != 1:
+            raise NotLazy("data split over several files")
+        nbytes = voxel_count(sizes) * dtype.itemsize
+        if files is None:
+            data_path, dfh = path, fh
+        else:
+            data_path = files[0]
+            dfh = open_data_file(path, data_path, where)
+        try:
+            if files is not None:
+                dfh.seek(0)
+            for _ in range(lineskip):
+                if not dfh.readline():
+                    raise FormatError(f"{where}: file ends inside 'line skip'")
+            size = os.fstat(dfh.fileno()).st_size
+            start = size - nbytes if byteskip == -1 else dfh.tell() + byteskip
+        finally:
+            if dfh is not fh:
+                dfh.close()
+    if byteskip != -1 and size - start > nbytes:
+        raise FormatError(f"{data_path}: file has {size - start} bytes of samples, expected "
+                          f"{nbytes} (wrong sizes or type in the header?)")
+    shape = xyz_to_zyx(sizes)
+    meta = dict(keyvals)
+    geom = _geometry(where, shape, dtype, spacing=spacing, origin=origin, direction=direction,
+                     space=space, meta=meta)
+    return geom, _memmap(data_path, file_dtype, start, shape, str(data_path))
+
+
+# -- MetaImage ------------------------------------------------------------------------------
+
+def _metaimage(path: Path):
+    from . import metaimage as mi
+    from .common import open_data_file
+
+    where = str(path)
+    with open(path, "rb") as fh:
+        pairs = mi.read_header(fh, where)
+        header_end = fh.tell()
+    fields = {}
+    for key, value in pairs:
+        fields[mi._SYNONYMS.get(key, key)] = (key, value)
+    for req in ("NDims", "DimSize", "ElementType"):
+        if req not in fields:
+            raise NotLazy(f"no '{req}' field")
+    if mi._int(fields, "NDims", 0, where) != 3:
+        raise NotLazy("only 3-D files are mapped")
+    if mi._int(fields, "ElementNumberOfChannels", 1, where) != 1:
+        raise NotLazy("several channels per voxel")
+    if not mi._bool(fields, "BinaryData", True, where) or mi._bool(fields, "CompressedData",
+                                                                    False, where):
+        raise NotLazy("compressed or ascii data is read whole")
+    sizes = mi._numbers(fields, "DimSize", 3, where, int)
+    type_name = fields["ElementType"][1]
+    if type_name not in mi._TYPES or min(sizes) <= 0:
+        raise NotLazy("unknown type or sizes")
+    dtype = check_dtype(mi._TYPES[type_name], where)
+    msb = mi._bool(fields, "BinaryDataByteOrderMSB", False, where)
+    file_dtype = dtype.newbyteorder(">" if msb else "<")
+    spacing, origin, direction = mi._geometry(fields, 3, where)
+    header_size = mi._int(fields, "HeaderSize", 0, where)
+    spec = fields["ElementDataFile"][1]
+    nbytes = voxel_count(sizes) * dtype.itemsize
+    if spec in ("LOCAL", "Local", "local"):
+        data_path, start = path, header_end
+    else:
+        if spec.split()[:1] == ["LIST"] or "%" in spec:
+            raise NotLazy("data split over several files")
+        data_path, start = path.parent / spec, 0
+        open_data_file(path, data_path, where).close()  # (the folder rule, as the reader)
+    size = os.path.getsize(data_path)
+    if header_size > 0:
+        start = header_size
+    elif header_size == -1:
+        start = size - nbytes
+    if size - start > nbytes:
+        raise FormatError(f"{data_path}: file has {size - start} bytes of samples, expected "
+                          f"{nbytes} (wrong DimSize or ElementType in the header?)")
+    shape = xyz_to_zyx(sizes)
+    geom = _geometry(where, shape, dtype, spacing=spacing, origin=origin, direction=direction,
+                     space="left-posterior-superior", file_space="left-posterior-superior")
+    return geom, _memmap(data_path, file_dtype, start, shape, str(data_path))
+
+
+# -- raw --------------------------------------------------------------------------------
+
+def _raw(path: Path, layout):
+    where = str(path)
+    if layout is None:
+        raise VolwarpError(f"{where}: a raw file needs --raw-shape and --raw-dtype "
+                           "(or a detached .nhdr header pointing at it)")
+    dtype = check_dtype(layout.dtype, where)
+    shape = xyz_to_zyx(tuple(int(s) for s in layout.shape))
+    nbytes = voxel_count(shape) * dtype.itemsize
+    try:
+        size = os.path.getsize(path)
+    except OSError as exc:
+        raise FormatError(f"{where}: cannot open ({exc.strerror})") from None
+    if size != nbytes + layout.header_bytes:
+        raise FormatError(f"{where}: file is {size} bytes but {'x'.join(map(str, layout.shape))}"
+                          f" {dtype.name} needs {nbytes + layout.header_bytes} bytes")
+    geom = _geometry(where, shape, dtype, error=VolwarpError, spacing=layout.spacing,
+                     origin=layout.origin)
+    file_dtype = dtype.newbyteorder("<" if layout.endian == "little" else ">")
+    return geom, _memmap(path, file_dtype, layout.header_bytes, shape, where)
+
+
+# -- TIFF -------------------------------------------------------------------------------
+
+def _tiff(path: Path):
+    import tifffile
+    import zarr
+
+    from . import tiff as tiff_io
+
+    where = str(path)
+    try:
+        tif = tifffile.TiffFile(path)
+    except Exception as exc:  # tifffile raises many types for damaged files
+        raise NotLazy(f"tifffile cannot open it ({exc})") from None
+    with tif:
+        pages = tif.pages
+        first = pages.first
+        if first.samplesperpixel > 1 or first.dtype is None:
+            raise NotLazy("not a one-channel stack")
+        series = tif.series[0] if tif.series else None
+        nz = len(pages)
+        if series is None or len(tif.series) != 1 or series.dtype != first.dtype:
+            raise NotLazy("not one series")
+        shape = tuple(int(n) for n in series.shape)
+        ny, nx = first.shape[-2:]
+        if int(np.prod(shape)) != nz * ny * nx or nz < 1:
+            raise NotLazy("pages do not make one stack")
+        check_dtype(first.dtype, where)
+        ij = tif.imagej_metadata
+        vol = tiff_io._geometry(tif, first, ij, _placeholder((nz, ny, nx), first.dtype), where)
+    store = tifffile.imread(path, aszarr=True)
+    arr = zarr.open(store, mode="r")
+    if tuple(arr.shape) != shape or arr.ndim < 3:
+        raise NotLazy(f"tifffile's zarr view has shape {arr.shape}")
+    return vol, _ZarrView(arr, (nz, ny, nx))
+
+
+class _ZarrView:
+    """A 3-D zarr array (extra leading axes of size 1 dropped) with numpy's negative steps."""
+
+    def __init__(self, arr, shape):
+        self._arr = arr
+        self.shape = tuple(shape)
+        self.dtype = arr.dtype
+        self.ndim = 3
+        self._lead = arr.ndim - 3
+
+    def __getitem__(self, key):
+        key = key if isinstance(key, tuple) else (key,)
+        if any(k is Ellipsis for k in key):
+            i = next(j for j, k in enumerate(key) if k is Ellipsis)
+            key = key[:i] + (slice(None),) * (3 - len(key) + 1) + key[i + 1:]
+        key = key + (slice(None),) * (3 - len(key))
+        forward, flips, axis = [], [], 0
+        for k, n in zip(key, self.shape, strict=True):
+            if isinstance(k, slice) and (k.step or 1) < 0:
+                idx = range(*k.indices(n))
+                forward.append(slice(idx[-1], idx[0] + 1, -idx.step) if len(idx)
+                               else slice(0, 0))
+                flips.append(axis)
+            else:
+                forward.append(k)
+            axis += isinstance(k, slice)
+        out = np.asarray(self._arr[(0,) * self._lead + tuple(forward)])
+        return np.flip(out, axis=tuple(flips)) if flips else out
+
+    def __array__(self, dtype=None, copy=None):
+        out = np.asarray(self[...])
+        return out if dtype is None else out.astype(dtype)
+
+
+# -- NIfTI ------------------------------------------------------------------------------
+
+def _nifti(path: Path):
+    import nibabel as nib
+
+    from . import nifti
+
+    where = str(path)
+    if path.name.lower().endswith(".gz"):
+        raise NotLazy("gzip-compressed NIfTI is read whole")
+    nifti._check_raw_header(path, where)
+    with nifti._quiet_nibabel():
+        try:
+            img = nib.load(str(path), mmap=False)
+        except Exception as exc:  # nibabel raises several types for damaged headers
+            raise NotLazy(f"nibabel cannot open it ({exc})") from None
+    shape = tuple(int(s) for s in img.shape)
+    if len(shape) != 3 or min(shape) <= 0:
+        raise NotLazy("only 3-D files are mapped")
+    proxy = img.dataobj
+    slope = float(getattr(proxy, "slope", 1.0))
+    inter = float(getattr(proxy, "inter", 0.0))
+    if np.isfinite(slope) and slope != 0 and not (slope == 1 and not inter):
+        raise NotLazy("scaled samples are read whole")
+    dtype = check_dtype(img.get_data_dtype(), where)
+    header = img.header
+    with np.errstate(all="ignore"):
+        aff, _ = nifti.choose_affine(header, where)
+    aff = np.array(aff, dtype=np.float64)
+    aff[:3, :] *= nifti._SPACE_UNIT_TO_MM.get(int(header["xyzt_units"]) & 7, 1.0)
+    lin = nifti._RAS_TO_LPS @ aff[:3, :3]
+    if not np.all(np.isfinite(lin)):
+        raise FormatError(f"{where}: NIfTI matrix has values that are not finite numbers")
+    spacing = np.linalg.norm(lin, axis=0)
+    if np.any(spacing == 0):
+        raise FormatError(f"{where}: NIfTI matrix has a zero-length axis")
+    geom = _geometry(where, xyz_to_zyx(shape), dtype, spacing=spacing,
+                     origin=nifti._RAS_TO_LPS @ aff[:3, 3], direction=lin / spacing[None, :],
+                     space="left-posterior-superior", file_space="right-anterior-superior")
+    return geom, _NiftiView(proxy, xyz_to_zyx(shape), dtype)
+
+
+class _NiftiView:
+    """nibabel's ``[x, y, z]`` proxy as a ``[z, y, x]`` array (reads only the slices asked)."""
+
+    def __init__(self, proxy, shape_zyx, dtype):
+        self._proxy = proxy
+        self.shape = tuple(shape_zyx)
+        self.dtype = np.dtype(dtype)
+        self.ndim = 3
+
+    def __getitem__(self, key):
+        key = key if isinstance(key, tuple) else (key,)
+        if any(k is Ellipsis for k in key):
+            i = next(j for j, k in enumerate(key) if k is Ellipsis)
+            key = key[:i] + (slice(None),) * (3 - len(key) + 1) + key[i + 1:]
+        key = key + (slice(None),) * (3 - len(key))
+        out = np.asarray(self._proxy[key[::-1]])
+        return np.ascontiguousarray(out.T) if out.ndim > 1 else out
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[...]
+        return out if dtype is None else out.astype(dtype)

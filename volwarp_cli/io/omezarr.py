@@ -1,0 +1,746 @@
+"""OME-Zarr (OME-NGFF 0.5 on Zarr v3 with sharding, or 0.4 on Zarr v2) reading and writing.
+
+A store (``scan.ome.zarr``, ``scan.zarr``) is a folder: a Zarr group whose
+``multiscales`` metadata names one array per resolution level (``0`` the
+full one), each with axes ``z, y, x`` (``unit: millimeter``) and a ``scale``
+then a ``translation`` transformation: the voxel ``[k, j, i]`` lies at
+``translation + scale * (k, j, i)`` (array order).
+
+NGFF 0.4/0.5 cannot store a rotation, so volwarp writes
+
+- a volume whose direction is a *signed permutation* (axis flips, axis swaps:
+  every scan in RAS, LPS, coronal or sagittal order) reindexed by
+  ``np.flip``/``np.transpose`` (exact, no interpolation) so that the stored
+  direction is the identity; the origin is the world point of the new first
+  voxel. Every sample keeps its world point, and any NGFF reader sees it
+  where it lies (in volwarp's world frame, LPS). Reading gives back that
+  identity-direction volume, not the source's index order.
+- an *oblique* volume as it is, with the scale and the translation (the
+  origin) of its own index frame: readers that know only NGFF get the image in
+  its own frame (the rotation about the origin is missing).
+
+Either way the group's namespaced ``volwarp`` attribute keeps origin, spacing
+and direction at full precision, the world frame, the volume's key/values
+(provenance) and how the pyramid was made. volwarp reads that attribute first
+and checks it against the multiscales' scale and translation (and the array's
+shape): a store edited by another program so that the two disagree is refused,
+naming both.
+
+Choices:
+
+- **Levels.** Reading uses level 0. ``pyramid=N`` writes N more levels, each
+  half the previous (sizes rounded up; the last block of an odd axis is
+  partial), with scale ``spacing * 2**l`` and translation
+  ``origin + spacing * (2**l - 1) / 2`` (half a coarse voxel minus half a fine
+  one). Intensities are averaged (in float64, rounded back for integer types);
+  label maps take the most frequent label of each 2x2x2 block (the smallest
+  of equally frequent labels), so a coarse level holds only labels of level 0.
+  ``labels``: True, False, or ``"auto"``: an integer volume that looks like a
+  label map (2 to 256 distinct values, piecewise constant:
+  :func:`volwarp_cli.bspline.labels.label_map_hint`).
+- **Other axes.** Space axes ``z, y, x`` (any order, by name) are required;
+  time and channel axes of size 1 are dropped, and one such axis of larger
+  size is selected with ``volume_index`` (``--volume-index``), as a 4-D NIfTI.
+- **Units.** Space units are converted to millimetres (micrometer, nanometer,
+  angstrom, centimeter, meter, ...); an axis without a unit is taken as
+  millimetres; an unknown unit is an error.
+- **Completeness.** volwarp writes every chunk (also those of fill value), so
+  a chunk missing from a volwarp store is damage and is refused; in stores of
+  other writers a missing chunk is the fill value, as Zarr defines. Chunks are
+  zstd-compressed with checksums (and shard indexes carry CRC32C), so a
+  truncated or altered chunk is an error, not wrong samples.
+- **Determinism.** No timestamps or host names; chunks and JSON are the same
+  bytes for the same volume.
+
+The zarr imports stay inside this module (imported lazily by the dispatch).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError, VolwarpError
+from ..samples import check_dtype
+from ..volume import Volume, xyz_to_zyx, zyx_to_xyz
+from .common import make_volume, native
+
+#: NGFF versions volwarp writes (and reads)
+VERSIONS = ("0.4", "0.5")
+#: chunk edge (voxels) inside shards, and shard edge, before clipping to the shape
+CHUNK = 64
+SHARD = 256
+#: the zstd level of the chunks
+ZSTD_LEVEL = 3
+#: version of volwarp's own attribute
+ATTRIBUTE_VERSION = 1
+
+#: millimetres per unit (UDUNITS-2 names used by NGFF, and common short forms)
+MM_PER_UNIT = {
+    "millimeter": 1.0, "mm": 1.0, "micrometer": 1e-3, "micron": 1e-3, "um": 1e-3,
+    "\u00b5m": 1e-3, "nanometer": 1e-6, "nm": 1e-6, "picometer": 1e-9, "angstrom": 1e-7,
+    "centimeter": 10.0, "cm": 10.0, "decimeter": 100.0, "meter": 1000.0, "m": 1000.0,
+    "kilometer": 1e6, "inch": 25.4, "foot": 304.8, "yard": 914.4,
+}
+
+_PERMUTATION_TOLERANCE = 1e-12
+
+
+# -- geometry ---------------------------------------------------------------------------
+
+def signed_permutation(direction) -> tuple[list[int], list[float]] | None:
+    """``(perm, signs)`` when ``direction`` is a signed permutation, else None.
+
+    Index axis ``a`` (x, y, z) runs along world axis ``perm[a]`` with sign
+    ``signs[a]`` (``direction[perm[a], a] == signs[a]``).
+    """
+    d = np.asarray(direction, dtype=np.float64)
+    perm, signs = [], []
+    for a in range(3):
+        col = d[:, a]
+        b = int(np.argmax(np.abs(col)))
+        if abs(abs(col[b]) - 1.0) > _PERMUTATION_TOLERANCE:
+            return None
+        if np.any(np.abs(np.delete(col, b)) > _PERMUTATION_TOLERANCE):
+            return None
+        perm.append(b)
+        signs.append(1.0 if col[b] > 0 else -1.0)
+    if sorted(perm) != [0, 1, 2]:
+        return None
+    return perm, signs
+
+
+def reindex_to_identity(vol: Volume) -> Volume:
+    """``vol`` with identity direction, by flips and transposes only (signed permutations).
+
+    Every sample keeps its world point; the origin becomes the world point of
+    the new first voxel. A volume whose direction is not a signed permutation
+    is returned as it is.
+    """
+    found = signed_permutation(vol.direction)
+    if found is None:
+        return vol
+    perm, signs = found
+    if perm == [0, 1, 2] and signs == [1.0, 1.0, 1.0]:
+        if np.array_equal(vol.direction, np.eye(3)):
+            return vol
+        return vol.with_data(vol.data, direction=np.eye(3))
+    data = vol.data
+    n = np.array(vol.shape_xyz)
+    first = np.array([0 if s > 0 else n[a] - 1 for a, s in enumerate(signs)], dtype=np.float64)
+    flips = tuple(2 - a for a in range(3) if signs[a] < 0)
+    if flips:
+        data = np.flip(data, axis=flips)
+    # new index axis b (x, y, z) is old axis a with perm[a] == b; array axes are 2 - axis
+    old_of_new = [perm.index(b) for b in range(3)]
+    data = np.ascontiguousarray(data.transpose([2 - old_of_new[2 - c] for c in range(3)]))
+    origin = vol.index_to_world(first)
+    spacing = np.array([vol.spacing[old_of_new[b]] for b in range(3)])
+    return vol.with_data(data, spacing=spacing, origin=origin + 0.0, direction=np.eye(3))
+
+
+# -- layout -----------------------------------------------------------------------------
+
+def store_layout(shape_zyx, version: str = "0.5", chunks=None) -> tuple[tuple, tuple | None]:
+    """``(chunks, shards)`` for an array of ``shape_zyx``; shards None for NGFF 0.4 (Zarr v2).
+
+    Chunks are ``chunks`` (default 64 per axis) clipped to the shape; shards
+    (0.5) are 256 per axis rounded up to whole chunks and clipped to the
+    shape rounded up to whole chunks, so every shard is a whole number of chunks.
+    """
+    check_version(version)
+    chunk = tuple(CHUNK for _ in range(3)) if chunks is None else tuple(int(c) for c in chunks)
+    if len(chunk) != 3 or min(chunk) < 1:
+        raise VolwarpError(f"OME-Zarr chunks must be 3 positive sizes (z, y, x), got {chunks}")
+    chunk = tuple(max(1, min(c, int(n))) for c, n in zip(chunk, shape_zyx, strict=True))
+    if version == "0.4":
+        return chunk, None
+    shard = []
+    for c, n in zip(chunk, shape_zyx, strict=True):
+        whole = math.ceil(max(int(n), 1) / c) * c
+        shard.append(min(math.ceil(SHARD / c) * c, whole))
+    return chunk, tuple(shard)
+
+
+def check_version(version: str) -> str:
+    """The NGFF version, or raise naming the ones volwarp writes."""
+    if str(version) not in VERSIONS:
+        raise VolwarpError(f"OME-Zarr version must be one of {', '.join(VERSIONS)}, "
+                           f"got {version!r}")
+    return str(version)
+
+
+def level_shapes(shape_zyx, levels: int) -> list[tuple[int, int, int]]:
+    """The array shape of each level (level 0 first): halved, rounded up."""
+    shapes = [tuple(int(n) for n in shape_zyx)]
+    for _ in range(levels):
+        shapes.append(tuple(max(1, math.ceil(n / 2)) for n in shapes[-1]))
+    return shapes
+
+
+def level_transform(spacing_xyz, origin_xyz, level: int) -> tuple[list[float], list[float]]:
+    """NGFF ``(scale, translation)`` of a level, array order (z, y, x)."""
+    f = float(2 ** level)
+    spacing = np.asarray(spacing_xyz, dtype=np.float64)
+    scale = spacing * f
+    translation = np.asarray(origin_xyz, dtype=np.float64) + spacing * (f - 1.0) / 2.0
+    return ([float(v) for v in xyz_to_zyx(scale)],
+            [float(v) + 0.0 for v in xyz_to_zyx(translation)])
+
+
+# -- downsampling -----------------------------------------------------------------------
+
+def _parts(data: np.ndarray):
+    """The up to 8 sub-grids ``data[dz::2, dy::2, dx::2]``, padded to the coarse shape, and masks."""
+    coarse = tuple(math.ceil(n / 2) for n in data.shape)
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                part = data[dz::2, dy::2, dx::2]
+                if min(part.shape) == 0:
+                    continue
+                if part.shape == coarse:
+                    yield part, None
+                    continue
+                pad = [(0, c - p) for c, p in zip(coarse, part.shape, strict=True)]
+                valid = np.zeros(coarse, dtype=bool)
+                valid[tuple(slice(0, p) for p in part.shape)] = True
+                yield np.pad(part, pad), valid
+
+
+def downsample(data: np.ndarray, labels: bool = False) -> np.ndarray:
+    """One pyramid step: each 2x2x2 block (partial at odd ends) to one sample, same dtype.
+
+    ``labels``: the most frequent value of the block (the smallest of equally
+    frequent ones); else the mean, in float64, rounded for integer types.
+    """
+    data = np.asarray(data)
+    if labels:
+        return _mode(data)
+    total = None
+    count = None
+    for part, valid in _parts(data):
+        v = part.astype(np.float64)
+        total = v if total is None else total + v
+        w = np.ones(part.shape) if valid is None else valid.astype(np.float64)
+        count = w if count is None else count + w
+    mean = total / count
+    if data.dtype.kind in "iu":
+        info = np.iinfo(data.dtype)
+        return np.clip(np.rint(mean), info.min, info.max).astype(data.dtype)
+    return mean.astype(data.dtype)
+
+
+def _mode(data: np.ndarray) -> np.ndarray:
+    parts = list(_parts(data))
+    values = [p for p, _ in parts]
+    valid = [np.ones(p.shape, dtype=bool) if m is None else m for p, m in parts]
+    best = values[0].copy()
+    best_count = np.zeros(best.shape, dtype=np.int8)
+    for k, (cand, ok) in enumerate(zip(values, valid, strict=True)):
+        count = np.zeros(best.shape, dtype=np.int8)
+        for other, ok2 in zip(values, valid, strict=True):
+            count += (other == cand) & ok2
+        count[~ok] = 0
+        better = (count > best_count) | ((count == best_count) & (cand < best) & ok)
+        if k == 0:
+            better = ok.copy()
+        best = np.where(better, cand, best)
+        best_count = np.where(better, count, best_count)
+    return best.astype(data.dtype)
+
+
+def resolve_labels(labels, data: np.ndarray) -> bool:
+    """``labels`` True/False as given; ``"auto"`` (or None): an integer volume that looks like labels."""
+    if labels is None or labels == "auto":
+        if np.dtype(data.dtype).kind not in "iu":
+            return False
+        from ..bspline.labels import label_map_hint
+
+        return label_map_hint(data) is not None
+    return bool(labels)
+
+
+# -- metadata ---------------------------------------------------------------------------
+
+def _axes() -> list[dict]:
+    return [{"name": n, "type": "space", "unit": "millimeter"} for n in ("z", "y", "x")]
+
+
+def multiscales_metadata(vol_geom, levels: int, version: str, method: str | None) -> dict:
+    """The ``multiscales`` entry for a volume of ``vol_geom`` (spacing/origin xyz) and its levels."""
+    datasets = []
+    for level in range(levels + 1):
+        scale, translation = level_transform(vol_geom.spacing, vol_geom.origin, level)
+        datasets.append({"path": str(level), "coordinateTransformations": [
+            {"type": "scale", "scale": scale},
+            {"type": "translation", "translation": translation}]})
+    entry = {"name": "image", "axes": _axes(), "datasets": datasets}
+    if version == "0.4":
+        entry = {"version": "0.4", **entry}
+    if levels:
+        entry["type"] = method
+        entry["metadata"] = {"method": "volwarp_cli.io.omezarr.downsample",
+                             "description": "2x2x2 " + method + (
+                                 " (most frequent label)" if method == "mode" else "")}
+    return entry
+
+
+def volwarp_attribute(vol: Volume, source: Volume, method: str | None) -> dict:
+    """The namespaced ``volwarp`` attribute: exact geometry, frame, key/values, provenance."""
+    attr = {
+        "version": ATTRIBUTE_VERSION,
+        "shape": [int(n) for n in vol.shape_xyz],
+        "spacing": [float(v) for v in vol.spacing],
+        "origin": [float(v) + 0.0 for v in vol.origin],
+        "direction": [[float(v) + 0.0 for v in row] for row in vol.direction],
+        "space": vol.space,
+        "file_space": vol.file_space,
+        "complete": True,
+        "meta": {str(k): str(v) for k, v in sorted(vol.meta.items())},
+    }
+    if source is not vol and not np.array_equal(source.direction, vol.direction):
+        attr["reindexed_from"] = {
+            "shape": [int(n) for n in source.shape_xyz],
+            "spacing": [float(v) for v in source.spacing],
+            "origin": [float(v) + 0.0 for v in source.origin],
+            "direction": [[float(v) + 0.0 for v in row] for row in source.direction],
+        }
+    if method is not None:
+        attr["downsampling"] = method
+    return attr
+
+
+def group_attributes(multiscales: dict, volwarp: dict, version: str) -> dict:
+    """The group's attributes for ``version``."""
+    if version == "0.5":
+        return {"ome": {"version": "0.5", "multiscales": [multiscales]}, "volwarp": volwarp}
+    return {"multiscales": [multiscales], "volwarp": volwarp}
+
+
+# -- writing ----------------------------------------------------------------------------
+
+def create_arrays(group, shapes, dtype: np.dtype, version: str, chunks=None,
+                  byte_order: str = "little"):
+    """Create one empty array per level in ``group`` (chunks and shards per level)."""
+    import zarr  # noqa: F401  (imported here only: the in-memory path stays free of it)
+
+    arrays = []
+    for level, shape in enumerate(shapes):
+        chunk, shard = store_layout(shape, version, chunks)
+        code = "<" if byte_order == "little" else ">"
+        if version == "0.5":
+            from zarr.codecs import BytesCodec, ZstdCodec
+
+            arr = group.create_array(
+                str(level), shape=shape, chunks=chunk, shards=shard, dtype=dtype,
+                serializer=BytesCodec(endian=byte_order),
+                compressors=[ZstdCodec(level=ZSTD_LEVEL, checksum=True)], fill_value=0,
+                dimension_names=["z", "y", "x"], config={"write_empty_chunks": True})
+        else:
+            from numcodecs import Zstd
+
+            arr = group.create_array(
+                str(level), shape=shape, chunks=chunk, dtype=dtype.newbyteorder(code),
+                compressors=Zstd(level=ZSTD_LEVEL), fill_value=0,
+                chunk_key_encoding={"name": "v2", "separator": "/"},
+                config={"write_empty_chunks": True})
+        arrays.append(arr)
+    return arrays
+
+
+def open_group_for_writing(folder: Path, version: str):
+    """A new Zarr group in the (empty, temporary) ``folder``."""
+    import zarr
+
+    return zarr.open_group(str(folder), mode="w", zarr_format=3 if version == "0.5" else 2)
+
+
+def write_levels(arrays, first: np.ndarray | None, labels: bool) -> None:
+    """Fill level 0 with ``first`` (unless None: already written) and each next level from the last.
+
+    Each level is made shard by shard from the level above (the 2x region of
+    each coarse shard), so no level needs to fit in memory once written.
+    """
+    if first is not None:
+        arrays[0][...] = first
+    for prev, arr in zip(arrays[:-1], arrays[1:], strict=True):
+        block = arr.shards or arr.chunks
+        for box in _boxes(arr.shape, block):
+            src = tuple(slice(2 * s.start, min(2 * s.stop, n))
+                        for s, n in zip(box, prev.shape, strict=True))
+            arr[box] = downsample(np.asarray(prev[src]), labels)
+
+
+def _boxes(shape, block):
+    import itertools
+
+    ranges = [range(0, n, b) for n, b in zip(shape, block, strict=True)]
+    for lo in itertools.product(*ranges):
+        yield tuple(slice(a, min(a + b, n)) for a, b, n in zip(lo, block, shape, strict=True))
+
+
+def write_omezarr(vol: Volume, path: str | os.PathLike, *, version: str = "0.5",
+                  pyramid: int = 0, labels="auto", chunks=None,
+                  byte_order: str = "little") -> None:
+    """Write ``vol`` as an OME-Zarr store at ``path``, atomically (module notes).
+
+    ``version``: ``"0.5"`` (Zarr v3, sharded) or ``"0.4"`` (Zarr v2);
+    ``pyramid``: extra levels; ``labels``: True, False or ``"auto"`` (how the
+    levels are made); ``chunks``: chunk shape (z, y, x), default 64 per axis.
+    """
+    from .atomic import atomic_folder
+
+    path = Path(path)
+    version = check_version(version)
+    pyramid = int(pyramid)
+    if pyramid < 0:
+        raise VolwarpError(f"{path}: --pyramid must be 0 or more, got {pyramid}")
+    check_dtype(vol.data.dtype, str(path))
+    stored = reindex_to_identity(vol)
+    data = native(stored.data)
+    is_labels = resolve_labels(labels, data) if pyramid else False
+    method = ("mode" if is_labels else "mean") if pyramid else None
+    shapes = level_shapes(data.shape, pyramid)
+    attrs = group_attributes(multiscales_metadata(stored, pyramid, version, method),
+                             volwarp_attribute(stored, vol, method), version)
+    with atomic_folder(path) as tmp:
+        group = open_group_for_writing(tmp, version)
+        arrays = create_arrays(group, shapes, data.dtype, version, chunks, byte_order)
+        write_levels(arrays, data, is_labels)
+        group.attrs.update(attrs)
+
+
+# -- reading ----------------------------------------------------------------------------
+
+def _load_json(path: Path, where: str) -> dict:
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise FormatError(f"{where}: cannot read {path.name} ({exc.strerror})") from None
+    except ValueError as exc:
+        raise FormatError(f"{where}: {path.name} is not valid JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise FormatError(f"{where}: {path.name} is not a JSON object")
+    return doc
+
+
+def group_metadata(path: Path) -> tuple[int, dict]:
+    """``(zarr_format, attributes)`` of the group at ``path`` (FormatError if it is none)."""
+    where = str(path)
+    if not path.exists():
+        raise FormatError(f"{where}: no such store")
+    if not path.is_dir():
+        raise FormatError(f"{where}: is a file, not an OME-Zarr store (a folder)")
+    if (path / "zarr.json").is_file():
+        doc = _load_json(path / "zarr.json", where)
+        if doc.get("node_type") != "group":
+            raise FormatError(f"{where}: zarr.json describes a {doc.get('node_type')!r}, "
+                              "not a group (an OME-Zarr image is a group)")
+        attrs = doc.get("attributes", {})
+        return 3, attrs if isinstance(attrs, dict) else {}
+    if (path / ".zgroup").is_file() or (path / ".zattrs").is_file():
+        attrs = _load_json(path / ".zattrs", where) if (path / ".zattrs").is_file() else {}
+        return 2, attrs
+    raise FormatError(f"{where}: not a Zarr store (no zarr.json, .zgroup or .zattrs)")
+
+
+def _multiscales(attrs: dict, where: str) -> dict:
+    ome = attrs.get("ome")
+    found = None
+    if isinstance(ome, dict) and "multiscales" in ome:
+        found = ome["multiscales"]
+    elif "multiscales" in attrs:
+        found = attrs["multiscales"]
+    if not isinstance(found, list) or not found or not isinstance(found[0], dict):
+        raise FormatError(f"{where}: no OME-NGFF 'multiscales' metadata (not an OME-Zarr image)")
+    return found[0]
+
+
+def _transforms(items, n: int, where: str, what: str) -> tuple[np.ndarray, np.ndarray]:
+    scale = np.ones(n)
+    translation = np.zeros(n)
+    for t in items or []:
+        if not isinstance(t, dict):
+            raise FormatError(f"{where}: {what}: a coordinateTransformation is not an object")
+        kind = t.get("type")
+        if kind == "identity":
+            continue
+        if kind not in ("scale", "translation"):
+            raise FormatError(f"{where}: {what}: coordinateTransformation {kind!r} is not "
+                              "supported (scale, translation)")
+        if kind not in t:
+            raise FormatError(f"{where}: {what}: the {kind} transformation has no values "
+                              "(given by path?)")
+        try:
+            v = np.array([float(x) for x in t[kind]], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise FormatError(f"{where}: {what}: {kind} must be numbers") from None
+        if v.shape != (n,) or not np.all(np.isfinite(v)):
+            raise FormatError(f"{where}: {what}: {kind} must be {n} finite numbers, "
+                              f"got {t[kind]}")
+        if kind == "scale":
+            scale, translation = scale * v, translation * v
+        else:
+            translation = translation + v
+    return scale, translation
+
+
+class Opened:
+    """A store opened for reading: level 0 (zarr array), its selection, and its geometry."""
+
+    def __init__(self, array, index, view_shape, spacing, origin, direction, space, file_space,
+                 meta, where):
+        self.array = array
+        self.view_shape = tuple(view_shape)
+        self.index = index  # the numpy index taking the stored array to [z, y, x]
+        self.spacing, self.origin, self.direction = spacing, origin, direction
+        self.space, self.file_space, self.meta = space, file_space, meta
+        self.where = where
+
+    def geometry(self):
+        """The :class:`~volwarp_cli.geometry.Geometry` of the volume."""
+        from ..geometry import Geometry
+
+        return Geometry(self.view_shape, self.spacing, self.origin, self.direction)
+
+
+def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Opened:
+    """Open the store at ``path``: level 0 and the geometry volwarp gives it (module notes)."""
+    import zarr
+
+    path = Path(path)
+    where = str(path)
+    fmt, attrs = group_metadata(path)
+    ms = _multiscales(attrs, where)
+    axes = ms.get("axes")
+    if not isinstance(axes, list) or not axes:
+        raise FormatError(f"{where}: multiscales has no 'axes'")
+    names = []
+    kinds = []
+    units = []
+    for ax in axes:
+        if isinstance(ax, str):  # NGFF 0.3 spelled axes as names
+            ax = {"name": ax, "type": "space" if ax in "zyx" else None}
+        if not isinstance(ax, dict) or "name" not in ax:
+            raise FormatError(f"{where}: multiscales 'axes' entry {ax!r} has no name")
+        names.append(str(ax["name"]))
+        kind = ax.get("type")
+        if kind is None and str(ax["name"]).lower() in ("x", "y", "z"):
+            kind = "space"
+        kinds.append(kind)
+        units.append(ax.get("unit"))
+    space_axes = [i for i, k in enumerate(kinds) if k == "space"]
+    by_name = {names[i].lower(): i for i in space_axes}
+    if len(space_axes) != 3 or sorted(by_name) != ["x", "y", "z"]:
+        raise FormatError(f"{where}: volwarp reads 3-D images with space axes z, y, x; this "
+                          f"one has axes {names}")
+    datasets = ms.get("datasets")
+    if not isinstance(datasets, list) or not datasets or not isinstance(datasets[0], dict) \
+            or "path" not in datasets[0]:
+        raise FormatError(f"{where}: multiscales has no datasets")
+    n = len(axes)
+    s0, t0 = _transforms(datasets[0].get("coordinateTransformations"), n, where,
+                         f"dataset {datasets[0]['path']!r}")
+    s1, t1 = _transforms(ms.get("coordinateTransformations"), n, where, "multiscales")
+    scale, translation = s0 * s1, t0 * s1 + t1
+    factors = []
+    for i in (by_name["z"], by_name["y"], by_name["x"]):
+        unit = units[i]
+        if unit is None:
+            factors.append(1.0)
+            continue
+        factor = MM_PER_UNIT.get(str(unit).lower()) or MM_PER_UNIT.get(str(unit))
+        if factor is None:
+            raise FormatError(f"{where}: axis {names[i]!r} has unit {unit!r}, which volwarp "
+                              f"cannot convert to millimetres (known: "
+                              f"{', '.join(sorted(k for k in MM_PER_UNIT if len(k) > 3))})")
+        factors.append(factor)
+    order = [by_name["z"], by_name["y"], by_name["x"]]
+    spacing_zyx = np.array([scale[i] for i in order]) * factors
+    origin_zyx = np.array([translation[i] for i in order]) * factors
+    array_path = path / str(datasets[0]["path"])
+    try:
+        arr = zarr.open_array(str(array_path), mode="r", zarr_format=fmt)
+    except Exception as exc:  # zarr raises several types for missing or bad metadata
+        raise FormatError(f"{where}: cannot open level 0 ({datasets[0]['path']!r}: "
+                          f"{type(exc).__name__}: {_one_line(exc)})") from None
+    if arr.ndim != n:
+        raise FormatError(f"{where}: level 0 has {arr.ndim} axes, the multiscales name {n}")
+    # the selection: other axes (time, channel) dropped or chosen by volume_index
+    index: list = []
+    others = [i for i in range(n) if kinds[i] != "space"]
+    big = [i for i in others if arr.shape[i] > 1]
+    if len(big) > 1:
+        raise FormatError(f"{where}: has axes {[names[i] for i in big]} of sizes "
+                          f"{[arr.shape[i] for i in big]}; volwarp reads one volume, selected "
+                          "along at most one of them with --volume-index")
+    if big:
+        count = arr.shape[big[0]]
+        if volume_index is None:
+            raise FormatError(f"{where}: has {count} entries along axis {names[big[0]]!r}; "
+                              f"select one with --volume-index 0..{count - 1}")
+        if not 0 <= volume_index < count:
+            raise FormatError(f"{where}: --volume-index {volume_index} is out of range: axis "
+                              f"{names[big[0]]!r} has {count} entries")
+    elif volume_index not in (None, 0):
+        raise FormatError(f"{where}: --volume-index {volume_index} given, but the image holds "
+                          "one volume")
+    for i in range(n):
+        if kinds[i] == "space":
+            index.append(slice(None))
+        else:
+            index.append(volume_index or 0)
+    remaining = [i for i in range(n) if kinds[i] == "space"]  # axes left after the selection
+    transpose = [remaining.index(i) for i in order]
+    check_dtype(arr.dtype, where)
+    shape_zyx = tuple(int(arr.shape[i]) for i in order)
+    vw = attrs.get("volwarp")
+    spacing = np.array(zyx_to_xyz(spacing_zyx), dtype=np.float64)
+    origin = np.array(zyx_to_xyz(origin_zyx), dtype=np.float64) + 0.0
+    direction = np.eye(3)
+    space = file_space = None
+    meta: dict = {}
+    if isinstance(vw, dict):
+        spacing, origin, direction, space, file_space, meta = _check_volwarp(
+            vw, spacing, origin, shape_zyx, where)
+        if vw.get("complete"):
+            _check_complete(arr, array_path, where)
+    elif vw is not None:
+        raise FormatError(f"{where}: the 'volwarp' attribute is not an object")
+    return Opened(arr, (tuple(index), transpose), shape_zyx, spacing, origin, direction, space,
+                  file_space, meta, where)
+
+
+def _check_volwarp(vw: dict, spacing, origin, shape_zyx, where: str):
+    """The geometry in volwarp's attribute, checked against the multiscales (module notes)."""
+    try:
+        a_spacing = np.array(vw["spacing"], dtype=np.float64)
+        a_origin = np.array(vw["origin"], dtype=np.float64)
+        a_direction = np.array(vw["direction"], dtype=np.float64)
+        a_shape = tuple(int(v) for v in vw["shape"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FormatError(f"{where}: the 'volwarp' attribute is damaged ({exc!r})") from None
+    if a_spacing.shape != (3,) or a_origin.shape != (3,) or a_direction.shape != (3, 3):
+        raise FormatError(f"{where}: the 'volwarp' attribute is damaged (shapes of spacing, "
+                          "origin, direction)")
+    if a_shape != tuple(zyx_to_xyz(shape_zyx)):
+        raise FormatError(f"{where}: the 'volwarp' attribute says shape {list(a_shape)}, level "
+                          f"0 has {list(zyx_to_xyz(shape_zyx))} (x, y, z)")
+    tol = 1e-9
+    if not np.allclose(a_spacing, spacing, rtol=tol, atol=0):
+        raise FormatError(f"{where}: the 'volwarp' attribute's spacing {a_spacing.tolist()} "
+                          f"disagrees with the multiscales scale {spacing.tolist()} (x, y, z; "
+                          "edited by another program?)")
+    scale_len = float(np.max(np.abs(a_spacing) * np.array(a_shape))) + float(
+        np.max(np.abs(a_origin)))
+    if not np.allclose(a_origin, origin, rtol=0, atol=tol * max(1.0, scale_len)):
+        raise FormatError(f"{where}: the 'volwarp' attribute's origin {a_origin.tolist()} "
+                          f"disagrees with the multiscales translation {origin.tolist()} "
+                          "(x, y, z; edited by another program?)")
+    meta = vw.get("meta", {})
+    if not isinstance(meta, dict):
+        raise FormatError(f"{where}: the 'volwarp' attribute's meta is not an object")
+    return (a_spacing, a_origin, a_direction, vw.get("space"), vw.get("file_space"),
+            {str(k): str(v) for k, v in meta.items()})
+
+
+def _check_complete(arr, array_path: Path, where: str) -> None:
+    """Refuse a volwarp store missing one of its chunk (or shard) files."""
+    import itertools
+
+    block = arr.shards or arr.chunks
+    grid = [range(math.ceil(n / b)) for n, b in zip(arr.shape, block, strict=True)]
+    md = arr.metadata
+    for coords in itertools.product(*grid):
+        key = md.encode_chunk_key(coords)
+        if not (array_path / key).is_file():
+            raise FormatError(f"{where}: chunk {key!r} of level 0 is missing (the store is "
+                              "incomplete or damaged)")
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0] if text else type(exc).__name__
+
+
+def read_region(opened: Opened, region) -> np.ndarray:
+    """Samples of the [z, y, x] ``region`` (a tuple of slices) of an opened store, native order."""
+    sel, transpose = opened.index
+    # the region in stored axis order
+    stored = list(sel)
+    space_positions = [i for i, s in enumerate(sel) if isinstance(s, slice)]
+    for out_axis, src in enumerate(transpose):
+        stored[space_positions[src]] = region[out_axis]
+    try:
+        block = np.asarray(opened.array[tuple(stored)])
+    except Exception as exc:  # a damaged chunk: checksums, zstd, shard index
+        raise FormatError(f"{opened.where}: chunk data is damaged ({type(exc).__name__}: "
+                          f"{_one_line(exc)})") from None
+    return native(block.transpose(transpose)) if transpose != [0, 1, 2] else native(block)
+
+
+def read_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Volume:
+    """Read level 0 of the OME-Zarr store at ``path`` (module notes)."""
+    from ..memory import ensure_fits_in_memory
+
+    opened = open_omezarr(path, volume_index)
+    shape = opened.view_shape
+    ensure_fits_in_memory(int(np.prod(shape, dtype=np.int64)) * opened.array.dtype.itemsize,
+                          f"{opened.where} ({'x'.join(map(str, zyx_to_xyz(shape)))})")
+    data = read_region(opened, tuple(slice(0, n) for n in shape))
+    return make_volume(opened.where, data, spacing=opened.spacing, origin=opened.origin,
+                       direction=opened.direction, space=opened.space,
+                       file_space=opened.file_space, meta=opened.meta)
+
+
+class LazyOmeZarr:
+    """The level 0 of a store as a read-only array: ``[z0:z1, y0:y1, x0:x1]`` reads only that."""
+
+    def __init__(self, opened: Opened):
+        self._opened = opened
+        self.shape = tuple(opened.view_shape)
+        self.dtype = native(np.zeros(0, dtype=opened.array.dtype)).dtype
+        self.ndim = 3
+
+    def __getitem__(self, key):
+        if not isinstance(key, tuple):
+            key = (key,)
+        if any(k is Ellipsis for k in key):
+            i = next(j for j, k in enumerate(key) if k is Ellipsis)
+            key = key[:i] + (slice(None),) * (3 - len(key) + 1) + key[i + 1:]
+        if len(key) > 3:
+            raise IndexError(f"too many indices for a 3-D volume: {len(key)}")
+        key = key + (slice(None),) * (3 - len(key))
+        region, post, squeeze = [], [], []
+        for axis, (k, n) in enumerate(zip(key, self.shape, strict=True)):
+            if isinstance(k, slice):
+                idx = range(*k.indices(n))
+                if len(idx) == 0:
+                    region.append(slice(0, 0))
+                    post.append(None)
+                    continue
+                lo, hi = min(idx), max(idx) + 1
+                region.append(slice(lo, hi))
+                post.append(None if idx.step == 1 else np.array(idx) - lo)
+            else:
+                i = int(k)
+                i = i + n if i < 0 else i
+                if not 0 <= i < n:
+                    raise IndexError(f"index {k} is out of bounds for axis {axis} of size {n}")
+                region.append(slice(i, i + 1))
+                post.append(None)
+                squeeze.append(axis)
+        out = read_region(self._opened, tuple(region))
+        for axis, p in enumerate(post):
+            if p is not None:
+                out = np.take(out, p, axis=axis)
+        return out.squeeze(axis=tuple(squeeze)) if squeeze else out
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[:, :, :]
+        return out if dtype is None else out.astype(dtype)
