@@ -122,42 +122,83 @@ def _plane_pass(plane, labels, m, n, h2, sign):
                 plane[i, c] = tmp[i]
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def _x_rows(mask, out, z, hx2):
+    # Pass 1 (x) on the rows of slice z: distance along the row to the nearest voxel
+    # of the other label (inf when the row has none).
+    ny, nx = mask.shape[1], mask.shape[2]
+    for y in range(ny):
+        last = -1
+        for x in range(nx):
+            if x > 0 and mask[z, y, x] != mask[z, y, x - 1]:
+                last = x - 1
+            out[z, y, x] = np.inf if last < 0 else hx2 * (x - last) * (x - last)
+        last = -1
+        for x in range(nx - 1, -1, -1):
+            if x < nx - 1 and mask[z, y, x] != mask[z, y, x + 1]:
+                last = x + 1
+            if last >= 0:
+                d = hx2 * (last - x) * (last - x)
+                if d < out[z, y, x]:
+                    out[z, y, x] = d
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _z_plane(out, mask, y, hz2):
+    # Pass 3 (z) on the (z, x) plane of one y, copied out (rows are contiguous),
+    # processed in cache and copied back with the signed square root.
+    nz, nx = out.shape[0], out.shape[2]
+    plane = np.empty((nz, nx), np.float32)
+    labels = np.empty((nz, nx), np.uint8)
+    for z in range(nz):
+        for x in range(nx):
+            plane[z, x] = out[z, y, x]
+            labels[z, x] = mask[z, y, x]
+    _plane_pass(plane, labels, nx, nz, hz2, True)
+    for z in range(nz):
+        for x in range(nx):
+            out[z, y, x] = plane[z, x]
+
+
 @nb.njit(cache=True, parallel=True)
 def _signed_edt_kernel(mask, hz, hy, hx, out):
     nz, ny, nx = mask.shape
-    hx2 = hx * hx
-    # pass 1 (x): distance along the row to the nearest voxel of the other label
+    # pass 1 (x): a z slice per task
     for z in nb.prange(nz):
-        for y in range(ny):
-            last = -1
-            for x in range(nx):
-                if x > 0 and mask[z, y, x] != mask[z, y, x - 1]:
-                    last = x - 1
-                out[z, y, x] = np.inf if last < 0 else hx2 * (x - last) * (x - last)
-            last = -1
-            for x in range(nx - 1, -1, -1):
-                if x < nx - 1 and mask[z, y, x] != mask[z, y, x + 1]:
-                    last = x + 1
-                if last >= 0:
-                    d = hx2 * (last - x) * (last - x)
-                    if d < out[z, y, x]:
-                        out[z, y, x] = d
+        _x_rows(mask, out, z, hx * hx)
     # pass 2 (y): a z slice (contiguous, cache-sized) per task
     for z in nb.prange(nz):
         _plane_pass(out[z], mask[z], nx, ny, hy * hy, False)
-    # pass 3 (z): the (z, x) plane of one y copied out (rows are contiguous),
-    # processed in cache and copied back with the signed square root
+    # pass 3 (z): the (z, x) plane of one y per task
     for y in nb.prange(ny):
-        plane = np.empty((nz, nx), np.float32)
-        labels = np.empty((nz, nx), np.uint8)
-        for z in range(nz):
-            for x in range(nx):
-                plane[z, x] = out[z, y, x]
-                labels[z, x] = mask[z, y, x]
-        _plane_pass(plane, labels, nx, nz, hz * hz, True)
-        for z in range(nz):
-            for x in range(nx):
-                out[z, y, x] = plane[z, x]
+        _z_plane(out, mask, y, hz * hz)
+
+
+# The three passes, serial, on a block of whole lines along the pass's axis (the
+# other two axes may be any part of the volume): the block tasks of
+# :mod:`.chunked`, run by Dask's threads (numba's workqueue layer must not see two
+# parallel kernels at once). They are the parallel kernel's loop bodies, so the
+# arithmetic is the same; the mask is uint8 (0/1), the field float32 squared
+# distances until the last pass's signed square root.
+@nb.njit(cache=True, nogil=True)
+def x_pass(mask, hx, out):
+    """Pass 1 (x) of a (Z, Y, X) block of whole x rows into ``out`` (float32)."""
+    for z in range(mask.shape[0]):
+        _x_rows(mask, out, z, hx * hx)
+
+
+@nb.njit(cache=True, nogil=True)
+def y_pass(field, mask, hy):
+    """Pass 2 (y), in place, on a (Z, Y, X) block of whole y columns."""
+    for z in range(mask.shape[0]):
+        _plane_pass(field[z], mask[z], mask.shape[2], mask.shape[1], hy * hy, False)
+
+
+@nb.njit(cache=True, nogil=True)
+def z_pass(field, mask, hz):
+    """Pass 3 (z) and the signed square root, in place, on a block of whole z lines."""
+    for y in range(mask.shape[1]):
+        _z_plane(field, mask, y, hz * hz)
 
 
 def signed_edt(mask: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, out: np.ndarray | None = None

@@ -1,0 +1,437 @@
+"""Signed distance fields out of core, on Dask arrays.
+
+Two ways, both equal to the in-memory field bit for bit:
+
+**Passes** (:func:`signed_edt_dask`): the exact Euclidean transform of
+:mod:`.exact` is three separable passes (x, y, z), and a pass sets each value
+from the whole line through it along its axis and nothing else
+(:func:`~volwarp_cli.regions.distance_pass_input`). So each pass is a
+``map_blocks`` over blocks holding whole lines along its axis, with a Dask
+rechunk between passes; the block kernels (:func:`.exact.x_pass`,
+:func:`.exact.y_pass`, :func:`.exact.z_pass`) are the loop bodies of the
+in-memory parallel kernel, and a line sees the same values at the same
+indices, so the arithmetic is the same. The float32 squared distances of a
+pass are what the in-memory kernel stores between its passes too.
+
+**Band** (:func:`banded_signed_distance_dask`): clipped to ``±D``
+(``--max-distance``), a voxel's value depends only on the samples within a
+halo of it (:func:`~volwarp_cli.regions.distance_band_input`), so the field
+is a ``map_overlap``: the in-memory kernel on each block grown by the halo,
+clipped, cropped. Exact inside the band ``|d| <= D``, ``±D`` outside, as
+``finish_field(field, max_distance=D)`` of the whole. The sub-voxel field
+(smooth inputs) bands the same way with its own, wider halo.
+
+What cannot be done out of core is refused (:func:`signed_distance_dask`):
+the min-norm, taxicab and chessboard metrics, and a sub-voxel field without a
+band (its nearest-seed transform carries seed ids and foot points through the
+passes, which the block kernels here do not).
+
+Every kernel a block task calls is serial (``parallel=False, nogil=True``):
+Dask's threads give the parallelism across blocks, and numba's workqueue
+threading layer aborts the process when two threads run ``parallel=True``
+kernels at once.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import dask
+import dask.array as da
+import numpy as np
+
+from ..errors import VolwarpError
+from .exact import x_pass, y_pass, z_pass
+from .field import METRICS, SURFACES, finish_field, inside_mask
+
+#: Bytes per voxel a pass block holds: the float32 field in, a float32 copy out, the mask.
+PASS_BYTES_PER_VOXEL = 9
+
+_F32 = np.empty((0, 0, 0), np.float32)
+_U8 = np.empty((0, 0, 0), np.uint8)
+
+
+# -- chunk choice ---------------------------------------------------------------------
+def line_chunks(shape, axis: int, block_bytes: int, *, bytes_per_voxel: int = PASS_BYTES_PER_VOXEL,
+                min_blocks: int = 1) -> tuple[int, int, int]:
+    """Block shape (z, y, x) holding whole lines along ``axis`` within ``block_bytes``.
+
+    The other two axes are split, the faster one (the later array axis) kept
+    as long as the budget allows, so a block is few long contiguous runs. A
+    single line longer than the budget still makes a block (a pass needs it
+    whole). With fewer than ``min_blocks`` blocks the slower axis is cut
+    further so that the threads all have work.
+    """
+    shape = tuple(int(n) for n in shape)
+    others = [a for a in range(3) if a != axis]
+    slow, fast = others
+    n_line = max(1, shape[axis])
+    voxels = max(1, int(block_bytes) // (bytes_per_voxel * n_line))
+    c = [0, 0, 0]
+    c[axis] = shape[axis]
+    c[fast] = max(1, min(shape[fast], voxels))
+    c[slow] = max(1, min(shape[slow], voxels // c[fast]))
+    n_fast = math.ceil(shape[fast] / c[fast]) if shape[fast] else 1
+    n_slow = math.ceil(shape[slow] / c[slow]) if shape[slow] else 1
+    if n_fast * n_slow < min_blocks and shape[slow] > 1:
+        want = min(shape[slow], math.ceil(min_blocks / n_fast))
+        c[slow] = max(1, math.ceil(shape[slow] / want))
+    return tuple(max(1, v) for v in c)
+
+
+def _default_block_bytes(block_bytes):
+    if block_bytes is not None:
+        return int(block_bytes)
+    from ..memory import block_bytes as budget
+
+    return budget()
+
+
+def _threads() -> int:
+    from ..parallel import threads
+
+    return threads()
+
+
+# -- block tasks -------------------------------------------------------------------------
+def _as_u8(block):
+    if block.dtype == bool:
+        return np.ascontiguousarray(block).view(np.uint8)
+    return (block != 0).view(np.uint8)
+
+
+def _x_block(mask, hx):
+    out = np.empty(mask.shape, np.float32)
+    x_pass(np.ascontiguousarray(mask), hx, out)
+    return out
+
+
+def _y_block(field, mask, hy):
+    field = np.array(field, dtype=np.float32, order="C")  # a copy: Dask's blocks are shared
+    y_pass(field, np.ascontiguousarray(mask), hy)
+    return field
+
+
+def _z_block(field, mask, hz):
+    field = np.array(field, dtype=np.float32, order="C")
+    z_pass(field, np.ascontiguousarray(mask), hz)
+    return field
+
+
+def _edt_block(mask, hz, hy, hx, max_distance):
+    # the in-memory transform, serial, on one overlapped block; then --max-distance
+    mask = np.ascontiguousarray(mask)
+    out = np.empty(mask.shape, np.float32)
+    x_pass(mask, hx, out)
+    y_pass(out, mask, hy)
+    z_pass(out, mask, hz)
+    return finish_field(out, max_distance=max_distance)
+
+
+# -- exact by passes ---------------------------------------------------------------------
+def _mask_u8(mask) -> da.Array:
+    mask = da.asarray(mask)
+    if mask.ndim != 3:
+        raise VolwarpError(f"signed_edt needs a 3-D mask, got shape {mask.shape}")
+    if mask.dtype == np.uint8 or mask.dtype == bool:
+        return mask.map_blocks(_as_u8, dtype=np.uint8, meta=_U8)
+    return (mask != 0).map_blocks(_as_u8, dtype=np.uint8, meta=_U8)
+
+
+def signed_edt_dask(mask, spacing_zyx=(1.0, 1.0, 1.0), *, block_bytes: int | None = None,
+                    min_blocks: int | None = None) -> da.Array:
+    """Exact signed Euclidean distance of a Dask mask, by passes: :func:`.exact.signed_edt`.
+
+    Parameters
+    ----------
+    mask : (Z, Y, X) dask (or numpy) array, bool or integer
+        The shape (nonzero inside), in any chunks.
+    spacing_zyx : 3 floats
+        Sample spacing along the array axes.
+    block_bytes : int, optional
+        One pass block's working memory (:data:`PASS_BYTES_PER_VOXEL` a voxel);
+        default :func:`volwarp_cli.memory.block_bytes`. Each pass rechunks to
+        whole lines along its axis (:func:`line_chunks`).
+    min_blocks : int, optional
+        Cut each pass into at least this many blocks where the lines allow
+        (default: the thread count, :func:`volwarp_cli.parallel.threads`).
+
+    Returns
+    -------
+    (Z, Y, X) float32 dask array
+        Equal to ``signed_edt(mask.compute(), spacing_zyx)`` bit for bit,
+        ``±inf`` included for an empty or full mask (callers check first).
+    """
+    m = _mask_u8(mask)
+    budget = _default_block_bytes(block_bytes)
+    nb_min = _threads() if min_blocks is None else int(min_blocks)
+    hz, hy, hx = (float(s) for s in spacing_zyx)
+    c_x, c_y, c_z = (line_chunks(m.shape, a, budget, min_blocks=nb_min) for a in (2, 1, 0))
+    d = m.rechunk(c_x).map_blocks(_x_block, hx, dtype=np.float32, meta=_F32)
+    d = da.map_blocks(_y_block, d.rechunk(c_y), m.rechunk(c_y), hy, dtype=np.float32,
+                      meta=_F32)
+    return da.map_blocks(_z_block, d.rechunk(c_z), m.rechunk(c_z), hz, dtype=np.float32,
+                         meta=_F32)
+
+
+# -- band by overlapping blocks --------------------------------------------------------------
+def band_halo(spacing_zyx, max_distance: float, surface: str = "voxel") -> tuple[int, int, int]:
+    """The halo (z, y, x voxels) a block of the field clipped to ``±max_distance`` needs.
+
+    :func:`volwarp_cli.regions.distance_band_input`'s rule, and for voxel
+    surfaces at least ``ceil(D / h)`` per axis: the rule takes ``floor(D / h)``
+    (a site farther along an axis is farther than ``D`` in exact arithmetic),
+    the one voxel more keeps a site just past ``D`` out of reach of float32
+    rounding too.
+    """
+    from ..box import Box
+    from ..regions import distance_band_input
+    from ..volume import zyx_to_xyz
+
+    h = [float(s) for s in spacing_zyx]
+    d = float(max_distance)
+    if not d > 0:
+        raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
+    big = [10**9] * 3  # a volume large enough that the rule's box is not clamped
+    out = Box((big[0] // 2,) * 3, (big[0] // 2 + 1,) * 3)
+    region = distance_band_input(out, big, zyx_to_xyz(tuple(h)), d, surface=surface)
+    halo = [out.lo[a] - region.lo[a] for a in range(3)]
+    if surface == "voxel":
+        halo = [max(k, math.ceil(d / v)) for k, v in zip(halo, h, strict=True)]
+    return tuple(int(k) for k in halo)
+
+
+def _serial_subvoxel():
+    """Serial (``nogil``) builds of :mod:`.subvoxel`'s three parallel kernels, once.
+
+    The same Python functions compiled without ``parallel`` (``prange`` runs as
+    ``range``): the same arithmetic, safe in Dask's threads. Not cached on disk:
+    numba's cache index does not tell a serial build of a function from its
+    parallel one.
+    """
+    global _SUBVOXEL_KERNELS
+    if _SUBVOXEL_KERNELS is None:
+        import numba as nb
+
+        from . import subvoxel as sv
+
+        build = nb.njit(nogil=True, cache=False)
+        _SUBVOXEL_KERNELS = (build(sv._seeds.py_func), build(sv._feature.py_func),
+                             build(sv._finish.py_func))
+    return _SUBVOXEL_KERNELS
+
+
+_SUBVOXEL_KERNELS = None
+
+
+def _subvoxel_block(values, iso, above, hz, hy, hx, max_distance):
+    # subvoxel.subvoxel_signed_distance with serial kernels, on one overlapped block;
+    # a block without a crossing is farther than the band from the surface: ±D by side
+    from .subvoxel import DISC_RADIUS, REFINE_STEPS
+
+    seeds, feature, finish = _serial_subvoxel()
+    vals = np.ascontiguousarray(values)
+    if vals.dtype.kind not in "f":
+        vals = vals.astype(np.float32)
+    nz = vals.shape[0]
+    hs = np.array([hx, hy, hz])
+    counts = np.zeros(nz, np.int64)
+    idtype = np.int32 if vals.size < 2**31 else np.int64
+    seeds(vals, float(iso), above, hs, counts, False, np.empty((1, 1, 1), idtype),
+          np.empty((1, 6)))
+    total = int(counts.sum())
+    if total == 0:
+        inside = (vals >= iso) if above else (vals < iso)
+        return np.where(inside, np.float32(-max_distance), np.float32(max_distance))
+    offsets = np.zeros(nz, np.int64)
+    offsets[1:] = np.cumsum(counts)[:-1]
+    ids = np.full(vals.shape, -1, idtype)
+    cps = np.empty((total, 6), np.float64)
+    seeds(vals, float(iso), above, hs, offsets, True, ids, cps)
+    dist = np.empty(vals.shape, np.float32)
+    feature(ids, hz, hy, hx, dist)
+    r0 = DISC_RADIUS * float(max(hs))
+    other = np.empty_like(ids)
+    for _ in range(REFINE_STEPS):
+        finish(vals, float(iso), above, hs, r0, 1e-6 * float(min(hs)), ids, other, cps, dist)
+        ids, other = other, ids
+    return finish_field(dist, max_distance=max_distance)
+
+
+def banded_signed_distance_dask(data_or_mask, spacing_zyx, max_distance: float, *,
+                                iso: float | None = None, inside: str = "above",
+                                surface: str = "voxel") -> da.Array:
+    """The signed distance clipped to ``±max_distance``, as overlapping blocks.
+
+    Parameters
+    ----------
+    data_or_mask : (Z, Y, X) dask (or numpy) array
+        The shape (nonzero inside) when ``iso`` is None; else samples, the shape
+        being those {above|below} ``iso`` (:func:`.field.inside_mask`).
+    spacing_zyx : 3 floats
+    max_distance : float
+        The band ``D``.
+    iso, inside : the shape's definition; ``surface="subvoxel"`` needs ``iso``.
+    surface : {"voxel", "subvoxel"}
+        ``voxel``: the exact field between voxel centres (:mod:`.exact`);
+        ``subvoxel``: the distance to the samples' iso-surface (:mod:`.subvoxel`).
+
+    Returns
+    -------
+    (Z, Y, X) float32 dask array
+        In the input's chunks; each block computed from itself grown by
+        :func:`band_halo` (``map_overlap``, no padding at the volume's faces).
+        Equal bit for bit to ``finish_field(field_of_whole, max_distance=D)``:
+        exact where ``|d| <= D``, ``±D`` beyond. For ``subvoxel`` this rests on
+        :func:`~volwarp_cli.regions.distance_band_input`'s bound (a bound
+        checked on smooth data by ``tests/test_regions.py``).
+    """
+    if surface not in ("voxel", "subvoxel"):
+        raise VolwarpError(f"unknown surface mode {surface!r} (known: voxel, subvoxel)")
+    data = da.asarray(data_or_mask)
+    if data.ndim != 3:
+        raise VolwarpError(f"the distance needs a 3-D volume, got shape {data.shape}")
+    d = float(max_distance)
+    halo = band_halo(spacing_zyx, d, surface)
+    hz, hy, hx = (float(s) for s in spacing_zyx)
+    depth = {a: min(k, max(0, n - 1)) for a, (k, n) in enumerate(zip(halo, data.shape,
+                                                                       strict=True))}
+    if surface == "subvoxel":
+        if iso is None:
+            raise VolwarpError("sub-voxel distances need the iso level of the samples")
+        if inside not in ("above", "below"):
+            raise VolwarpError(f"inside must be 'above' or 'below', got {inside!r}")
+        task = functools.partial(_subvoxel_block, iso=float(iso), above=inside == "above",
+                                 hz=hz, hy=hy, hx=hx, max_distance=d)
+        return data.map_overlap(task, depth=depth, boundary="none", trim=True, dtype=np.float32,
+                                meta=_F32)
+    mask = data if iso is None else inside_mask(data, iso, inside)
+    m = _mask_u8(mask)
+    task = functools.partial(_edt_block, hz=hz, hy=hy, hx=hx, max_distance=d)
+    return m.map_overlap(task, depth=depth, boundary="none", trim=True,
+                         dtype=np.float32, meta=_F32)
+
+
+_SUBVOXEL_NEEDS_BAND = ("sub-voxel distances (smooth samples) out of core need --max-distance "
+                        "(overlapping blocks); give one, or use --surface voxel for the exact "
+                        "field between voxel centres")
+
+
+# -- the chunked signed_distance --------------------------------------------------------------
+def _block_stats(block, iso, inside):
+    # (NaNs, inside count, nanmin, nanmax, binary, lo, hi) of one block
+    b = np.asarray(block)
+    if b.size == 0:
+        return 0, 0, np.nan, np.nan, True, None, None
+    nans = int(np.count_nonzero(np.isnan(b))) if b.dtype.kind == "f" else 0
+    count = int(np.count_nonzero(inside_mask(b, iso, inside)))
+    if b.dtype == bool:
+        return nans, count, float(b.min()), float(b.max()), True, bool(b.min()), bool(b.max())
+    lo, hi = b.min(), b.max()
+    if nans == b.size:
+        fmin = fmax = np.nan
+    elif nans:
+        fmin, fmax = float(np.nanmin(b)), float(np.nanmax(b))
+    else:
+        fmin, fmax = float(lo), float(hi)
+    binary = bool(lo == hi) or int(np.count_nonzero((b == lo) | (b == hi))) == b.size
+    return nans, count, fmin, fmax, binary, lo.item(), hi.item()
+
+
+def _scan(data, iso, inside):
+    """One pass over the samples: NaN count, inside count, range, and whether binary."""
+    blocks = data.to_delayed().ravel()
+    stats = dask.compute(*[dask.delayed(_block_stats)(b, iso, inside) for b in blocks])
+    nans = sum(s[0] for s in stats)
+    count = sum(s[1] for s in stats)
+    mins = [s[2] for s in stats if not np.isnan(s[2])]
+    maxs = [s[3] for s in stats if not np.isnan(s[3])]
+    values = {v for s in stats for v in s[5:] if v is not None}
+    binary = data.dtype == bool or (all(s[4] for s in stats) and len(values) <= 2)
+    return (nans, count, min(mins) if mins else np.nan, max(maxs) if maxs else np.nan,
+            binary)
+
+
+def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
+                         inside: str = "above", metric: str = "euclidean",
+                         surface: str = "auto", max_distance: float | None = None,
+                         block_bytes: int | None = None) -> tuple[da.Array, dict]:
+    """The chunked counterpart of :func:`.field.signed_distance`, for what runs out of core.
+
+    Parameters
+    ----------
+    data : (Z, Y, X) dask (or numpy) array
+    spacing_zyx : 3 floats
+    iso, inside, metric, surface : as :func:`.field.signed_distance`.
+    max_distance : float, optional
+        ``--max-distance``: the field clipped to ``±D``, computed as overlapping
+        blocks (:func:`banded_signed_distance_dask`); else the exact field by
+        passes (:func:`signed_edt_dask`).
+    block_bytes : int, optional
+        The passes' block budget (:func:`signed_edt_dask`).
+
+    Returns
+    -------
+    field : (Z, Y, X) float32 dask array
+        Equal bit for bit to the in-memory ``signed_distance`` (and, with
+        ``max_distance``, to ``finish_field(field, max_distance=D)``).
+    info : dict
+        ``{"metric", "surface", "chunked", "max_distance"}``: ``chunked`` is
+        ``"passes"`` or ``"band"``, for the output's metadata.
+
+    Raises
+    ------
+    VolwarpError
+        The shape is empty or fills the grid (the messages of
+        ``signed_distance``); or the field cannot be done out of core: the
+        ``minnorm``, ``taxicab`` and ``chessboard`` metrics, a sub-voxel surface
+        without ``max_distance``.
+    """
+    if metric not in METRICS:
+        raise VolwarpError(f"unknown metric {metric!r} (known: {', '.join(METRICS)})")
+    if surface not in SURFACES:
+        raise VolwarpError(f"unknown surface mode {surface!r} (known: {', '.join(SURFACES)})")
+    if surface == "subvoxel" and metric != "euclidean":
+        raise VolwarpError(f"sub-voxel surfaces need the euclidean metric, not {metric!r}")
+    if metric != "euclidean":
+        raise VolwarpError(f"the {metric} metric has no out-of-core (chunked) form: use "
+                           "--metric euclidean, or run it in memory")
+    if inside not in ("above", "below"):
+        raise VolwarpError(f"inside must be 'above' or 'below', got {inside!r}")
+    if max_distance is not None and not max_distance > 0:
+        raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
+    data = da.asarray(data)
+    if data.dtype.kind == "c" or data.dtype.kind not in "biuf":
+        raise VolwarpError(f"cannot take the distance of samples of type {data.dtype}")
+    if data.ndim != 3:
+        raise VolwarpError(f"the distance needs a 3-D volume, got shape {data.shape}")
+    if surface == "subvoxel" and max_distance is None:
+        raise VolwarpError(_SUBVOXEL_NEEDS_BAND)
+    nans, count, lo, hi, binary = _scan(data, iso, inside)
+    if nans:
+        from ..progress import log
+
+        log.warning("%d NaN samples (%.2g%%) count as outside the shape", nans,
+                    100.0 * nans / data.size)
+    if count == 0:
+        raise VolwarpError(f"the shape is empty: no sample is {inside} the iso level {iso:g} "
+                           f"(samples range {float(lo):g} to {float(hi):g})")
+    if count == data.size:
+        raise VolwarpError(f"the shape fills the whole grid: every sample is {inside} the iso "
+                           f"level {iso:g}, so there is no surface")
+    spacing_zyx = tuple(float(s) for s in spacing_zyx)
+    sub = surface == "subvoxel" or (surface == "auto" and not binary)
+    info = {"metric": metric, "surface": "subvoxel" if sub else "voxel",
+            "chunked": "band" if max_distance is not None else "passes",
+            "max_distance": None if max_distance is None else float(max_distance)}
+    if sub:
+        if max_distance is None:
+            raise VolwarpError(_SUBVOXEL_NEEDS_BAND)
+        return banded_signed_distance_dask(data, spacing_zyx, max_distance, iso=iso,
+                                           inside=inside, surface="subvoxel"), info
+    if max_distance is not None:
+        return banded_signed_distance_dask(data, spacing_zyx, max_distance, iso=iso,
+                                           inside=inside), info
+    return signed_edt_dask(inside_mask(data, iso, inside), spacing_zyx,
+                           block_bytes=block_bytes), info
