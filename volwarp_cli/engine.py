@@ -204,6 +204,11 @@ class Engine:
                                                 num_workers=self.workers))
         return results
 
+    @staticmethod
+    def block_delayed(fn: Callable, ident: str, *args, **kwargs):
+        """:func:`block_delayed` (a task for :meth:`run`)."""
+        return block_delayed(fn, ident, *args, **kwargs)
+
     def _done(self, stats: BlockStats) -> None:
         if self.progress is not None:
             self.progress.emit("done", "block", stats.id, seconds=round(stats.seconds, 4),

@@ -218,9 +218,11 @@ def warp_by_blocks(job: WarpBlocks, out, engine, *, memory: int | None = None):
     import dask
 
     job_node = dask.delayed(job, pure=False)
-    out_node = dask.delayed(out, pure=False)
+    out_node = dask.delayed(out.writer(), pure=False)
     boxes = Box.from_shape(job.window.shape).blocks(out.chunks)
     tasks = [engine.block_delayed(write_block, f"warp-{'-'.join(map(str, b.lo))}", job_node,
                                   out_node, b, memory=memory)
              for b in boxes]
-    return engine.run(tasks, label="warp blocks")
+    stats = engine.run(tasks, label="warp blocks")
+    out.mark_written(boxes)  # (every task succeeded: a failure raised)
+    return stats

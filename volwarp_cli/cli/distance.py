@@ -58,7 +58,7 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 @input_options
 @common_options
 def command(input, output, iso, inside, metric, surface, unsigned, max_distance, update,
-            transform, dtype, compress, byte_order, raw, volume_index, dicom):
+            transform, dtype, compress, byte_order, raw, volume_index, dicom, ome_zarr):
     """Signed distance field of the shape in INPUT: negative inside, world units.
 
     The output is float32 (whatever the input's type) unless --dtype says
@@ -80,7 +80,7 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
         if metric not in ("euclidean", "minnorm"):
             raise click.UsageError("--update propagates euclidean or minnorm fields only")
         _update(update, transform, output, metric, max_distance, dtype, compress, byte_order,
-                raw, volume_index, dicom)
+                raw, volume_index, dicom, ome_zarr)
         return
     if transform is not None:
         raise click.UsageError("--transform goes with --update OLD_SDF")
@@ -104,7 +104,8 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
     out.meta["volwarp_distance"] = (f"metric={metric} surface={info['surface']} iso={iso:g} "
                                     f"inside={inside}" + (" unsigned" if unsigned else ""))
     with timed(f"write {output}"):
-        write_volume(out, output, dtype=dtype, compress=compress, byte_order=byte_order)
+        write_volume(out, output, dtype=dtype, compress=compress, byte_order=byte_order,
+                     **ome_zarr)
 
 
 @contextlib.contextmanager
@@ -127,7 +128,7 @@ def _collector_paused():
 
 
 def _update(old_path, transform_path, output, metric, max_distance, dtype, compress, byte_order,
-            raw, volume_index, dicom):
+            raw, volume_index, dicom, ome_zarr):
     import numpy as np
 
     from ..distance.field import finish_field
@@ -164,4 +165,5 @@ def _update(old_path, transform_path, output, metric, max_distance, dtype, compr
     finish_field(new, max_distance=max_distance)
     with timed(f"write {output}"):
         write_volume(stamp(vol.with_data(new), "distance --update", old_path, transform_path),
-                     output, dtype=dtype, compress=compress, byte_order=byte_order)
+                     output, dtype=dtype, compress=compress, byte_order=byte_order,
+                     **ome_zarr)

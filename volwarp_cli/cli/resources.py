@@ -52,3 +52,113 @@ def resource_options(f):
                           "CPU affinity and cgroup quota honoured; also VOLWARP_THREADS). "
                           "Results are identical for any count.")(f)
     return f
+
+
+# -- out of core, on Dask -------------------------------------------------------------------
+#: ``ctx.meta`` key of the command's :class:`ScaleSettings`
+SCALE_META = "volwarp.scale"
+
+
+class ScaleSettings:
+    """How a command runs by blocks: ``--chunked``, ``--scheduler`` and the rest.
+
+    ``chunked``: True (``--chunked``), False (``--no-chunked``) or None (by
+    blocks only when the work cannot fit in memory).
+    """
+
+    def __init__(self):
+        self.chunked: bool | None = None
+        self.scheduler: str | None = None
+        self.workers: int | None = None
+        self.threads_per_worker: int | None = None
+        self.progress: str = "auto"
+        self.block: tuple[int, int, int] | None = None
+
+    def open_engine(self):
+        """The Dask engine these settings name (:func:`volwarp_cli.engine.open_engine`)."""
+        from .. import memory
+        from ..engine import open_engine
+
+        limit = memory.memory_limit() if self.scheduler == "local" else None
+        return open_engine(self.scheduler, workers=self.workers,
+                           threads_per_worker=self.threads_per_worker, memory_limit=limit,
+                           progress="jsonl" if self.progress == "jsonl" else None)
+
+
+def scale_settings() -> ScaleSettings:
+    """The current command's :class:`ScaleSettings` (defaults outside a command)."""
+    ctx = click.get_current_context(silent=True)
+    if ctx is None:
+        return ScaleSettings()
+    return ctx.find_root().meta.setdefault(SCALE_META, ScaleSettings())
+
+
+def _setting(name, convert=None):
+    def callback(ctx, param, value):
+        if value is None:
+            return None
+        if convert is not None:
+            try:
+                value = convert(value)
+            except (ValueError, VolwarpError) as exc:
+                raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+        setattr(scale_settings(), name, value)
+        return value
+    return callback
+
+
+def _scheduler(value):
+    from ..engine import parse_scheduler
+
+    parse_scheduler(value)  # a usage error now, not after the input is read
+    return value
+
+
+def _block(value):
+    parts = value.lower().replace("x", ",").split(",")
+    try:
+        sizes = [int(p) for p in parts if p.strip()]
+    except ValueError:
+        raise ValueError(f"expected N or Z,Y,X block sizes, got {value!r}") from None
+    if len(sizes) == 1:
+        sizes *= 3
+    if len(sizes) != 3 or min(sizes) < 1:
+        raise ValueError(f"expected N or Z,Y,X positive block sizes, got {value!r}")
+    return tuple(sizes)
+
+
+def scale_options(f):
+    """--chunked, --block, --scheduler, --workers, --threads-per-worker and --progress.
+
+    For the commands that can run by blocks (warp, distance, mesh, sweep);
+    the values go to :func:`scale_settings`, not to the command's arguments.
+    """
+    f = click.option("--progress", type=click.Choice(["auto", "jsonl"]), default=None,
+                     expose_value=False, callback=_setting("progress"),
+                     help="auto: a bar on a terminal; jsonl: one JSON line per block on "
+                          "stderr (start, done, failed, seconds, peak memory), for logs.")(f)
+    f = click.option("--threads-per-worker", type=click.IntRange(min=1), default=None,
+                     metavar="N", expose_value=False, callback=_setting("threads_per_worker"),
+                     help="With --scheduler local: threads of each worker process "
+                          "[default: 1].")(f)
+    f = click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
+                     expose_value=False, callback=_setting("workers"),
+                     help="With --scheduler local: worker processes [default: the cores "
+                          "this process may use]; threads or processes of the local "
+                          "schedulers [default: --threads].")(f)
+    f = click.option("--scheduler", default=None, metavar="NAME", expose_value=False,
+                     callback=_setting("scheduler", _scheduler),
+                     help="Who runs the blocks (with --chunked): threads [default], "
+                          "processes, synchronous, local (a Dask LocalCluster), "
+                          "tcp://HOST:PORT or file:PATH (an existing Dask cluster; also "
+                          "DASK_SCHEDULER_ADDRESS). The output is the same on every one.")(f)
+    f = click.option("--block", default=None, metavar="N|Z,Y,X", expose_value=False,
+                     callback=_setting("block", _block),
+                     help="With --chunked: the output block's size in voxels [default: "
+                          "the largest the memory budget holds for the tasks run at once].")(f)
+    f = click.option("--chunked/--no-chunked", default=None, expose_value=False,
+                     callback=_setting("chunked"),
+                     help="Run by output blocks on Dask, the input read and the output "
+                          "written block by block (out of core; the output is identical). "
+                          "Default: only when the work does not fit the memory budget.")(f)
+    return f

@@ -10,7 +10,7 @@ import string
 
 import click
 
-from ..errors import VolwarpError
+from ..errors import OutOfMemoryError, VolwarpError
 from ..io import check_output_path, volume_format, write_volume
 from ..progress import timed
 from .common import load_input, provenance, stamp
@@ -24,6 +24,7 @@ from .options import (
     output_option,
     write_options,
 )
+from .resources import scale_options, scale_settings
 
 #: the fields of a --frames-to pattern (:data:`volwarp_cli.bspline.run.FRAME_FIELDS`)
 _FIELDS = ("frame", "step", "spec_step", "sub")
@@ -142,11 +143,12 @@ def _check_pattern(pattern: str) -> None:
 @click.option("--json", "as_json", is_flag=True, help=JSON_HELP)
 @write_options
 @input_options
+@scale_options
 @common_options
 def command(input, spec_path, output, frames_to, pushforward, evaluator, background, crop,
             labels, preserve_labels, displacement_to, forward_field_to, jacobian_to,
             transform_to, points_in, points_to, mesh_in, mesh_to, allow_growth, as_json, dtype,
-            compress, byte_order, raw, volume_index, dicom):
+            compress, byte_order, raw, volume_index, dicom, ome_zarr):
     """Warp INPUT (a volume, or a capture file .vwc) as the spec says.
 
     A plain volume is captured on the fly with the spec's `capture` settings
@@ -154,7 +156,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     --help`). The output keeps the input's dtype, spacing, direction and
     key/values; it is padded (origin shifted, anatomy in place) unless --crop.
     """
-    from ..bspline.run import IntensityWarp, LabelMapWarp, WarpInput, WarpOptions
+    from ..bspline.run import WarpOptions
 
     check_output_path(output)
     is_capture = input.lower().endswith(".vwc")
@@ -172,6 +174,101 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     if is_capture and (raw is not None or volume_index is not None or dicom is not None):
         raise click.UsageError("--raw-*, --volume-index and the DICOM options describe volume "
                                f"inputs, not the capture file {input}")
+    options = WarpOptions(pushforward=pushforward, evaluator=evaluator, background=background,
+                          crop=crop, dtype=dtype, allow_growth=allow_growth)
+    blocks_refused = _blocks_refused(is_capture, labels, frames_to, exports, dicom)
+    chunked = scale_settings().chunked
+    if chunked and blocks_refused:
+        raise click.UsageError(f"--chunked warps a volume's intensities to one output: "
+                               f"not {blocks_refused} (these run in memory)")
+    write_kw = dict(compress=compress, byte_order=byte_order, **ome_zarr)
+    if chunked:
+        summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
+                                  write_kw)
+    else:
+        try:
+            summary = _warp_in_memory(input, spec_path, output, options, frames_to, labels,
+                                      preserve_labels, exports, is_capture, raw, volume_index,
+                                      dicom, write_kw)
+        except OutOfMemoryError as exc:
+            if blocks_refused or chunked is False:
+                raise
+            summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
+                                      write_kw, fallback=exc)
+    if as_json:
+        _print_json(summary)
+
+
+def _blocks_refused(is_capture, labels, frames_to, exports, dicom) -> str | None:
+    """Why this warp cannot run by blocks (a phrase), or None."""
+    for why, given in (("a capture file (.vwc)", is_capture), ("--labels", labels),
+                       ("--frames-to", frames_to), ("the deformation's exports", exports),
+                       ("a DICOM input", dicom is not None)):
+        if given:
+            return why
+    return None
+
+
+def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw, *,
+                    fallback: OutOfMemoryError | None = None) -> dict:
+    """The warp by output blocks on Dask (:mod:`volwarp_cli.bspline.blocks`).
+
+    ``fallback``: the in-memory warp's refusal, when this runs instead of it
+    (no --chunked given); raised again where the blocks cannot help either
+    (an output format not written by blocks, an output larger than the disk).
+    """
+    from dataclasses import replace
+
+    from .. import memory
+    from ..bspline.blocks import warp_by_blocks
+    from ..bspline.capture import capture_source
+    from ..bspline.plan import read_warp_spec
+    from ..bspline.run import IntensityWarp
+    from ..spec.loader import load_schema, load_spec, validate
+    from .chunked import block_output, lazy_input
+
+    if write_kw.get("pyramid"):
+        raise click.UsageError("--pyramid with a warp by blocks: write the output, then "
+                               "`volwarp convert OUT.ome.zarr --pyramid N`")
+    doc = load_spec(spec_path)
+    validate(doc, load_schema("warp"))
+    spec = read_warp_spec(doc)
+    if spec.values == "labels":
+        raise doc.error(("values",), "a label map is warped in memory (not by blocks)")
+    template, source = lazy_input(input, raw, volume_index)
+    c = spec.capture
+    with timed("input range (one pass)"):
+        try:
+            cap = capture_source(template, source, lattice=c.lattice, placement=c.placement,
+                                 oversample=c.oversample, sampling=c.sampling)
+        except VolwarpError as exc:
+            raise VolwarpError(f"{input}: {exc}") from None
+    warp = IntensityWarp(cap, doc, spec, replace(options, blocks=True), name=input)
+    if fallback is not None:
+        from .chunked import blocks_can_write, wants_blocks
+
+        shape = warp.scene.target_shape[::-1]
+        if not blocks_can_write(output, shape, options.dtype or cap.input_dtype, write_kw):
+            raise fallback
+        wants_blocks(str(fallback))  # says why, on stderr
+    out_template, job = warp.block_job(source)
+    settings = scale_settings()
+    with settings.open_engine() as engine:
+        budget = max(1, memory.memory_limit() - memory.process_rss())
+        per_task = budget // max(1, engine.workers)
+        block = settings.block or job.choose_blocks(budget, engine.workers)
+        with block_output(output, stamp(out_template, "warp", input, spec_path), block=block,
+                          compress=write_kw["compress"], byte_order=write_kw["byte_order"],
+                          version=write_kw.get("ome_zarr_version", "0.5")) as out:
+            stats = warp_by_blocks(job, out, engine, memory=per_task)
+    return {"output": str(output), "shape": list(out_template.shape_xyz),
+            "handles": warp.handles(), "blocks": len(stats), "block": list(block[::-1])}
+
+
+def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preserve_labels,
+                    exports, is_capture, raw, volume_index, dicom, write_kw) -> dict:
+    """The warp in memory (the default): every mode, frames and exports."""
+    from ..bspline.run import IntensityWarp, LabelMapWarp, WarpInput
     if is_capture:
         from ..bspline.capture_file import read_capture
 
@@ -183,7 +280,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         doc, spec = source.load_spec(spec_path)
         if spec.values == "labels" and not labels:  # the spec says what --labels says
             for clash, given in (("a capture file", is_capture),
-                                 ("--dtype", dtype is not None),
+                                 ("--dtype", options.dtype is not None),
                                  ("the deformation's exports", bool(exports))):
                 if given:
                     raise doc.error(("values",), f"labels are warped from a volume, "
@@ -193,17 +290,15 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             raise click.UsageError("--preserve-labels needs --labels (or the spec's "
                                    "values: labels)")
         if labels:  # what a label map cannot have: usage or spec errors, before any work
-            _check_label_spec(doc, spec, background)
+            _check_label_spec(doc, spec, options.background)
         what = source.source(doc, spec, labels=labels)
-    options = WarpOptions(pushforward=pushforward, evaluator=evaluator, background=background,
-                          crop=crop, dtype=dtype, allow_growth=allow_growth)
 
     def stamped(vol):
         return stamp(vol, "warp", input, spec_path)
 
     def write(vol, path):
         with timed(f"write {path}"):
-            write_volume(stamped(vol), path, compress=compress, byte_order=byte_order)
+            write_volume(stamped(vol), path, **write_kw)
 
     written = [0]  # frame files
 
@@ -230,13 +325,13 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             from ..bspline.export import check_exportable
 
             check_exportable(warp.cap.placement, warp.cap.dq, input)
-        if not frames_to and output.lower().endswith(".nrrd") and not compress:
+        if not frames_to and output.lower().endswith(".nrrd") and not write_kw["compress"]:
             # raw NRRD: the warp's planes go to the file as they are finished (the
             # whole target is never held, and the writing runs in the warp's threads)
             from ..io.nrrd import nrrd_plane_writer
 
             template = warp.stream(lambda t: nrrd_plane_writer(stamped(t), output,
-                                                               byte_order=byte_order))
+                                                               byte_order=write_kw["byte_order"]))
             shape = list(template.shape_xyz)
         else:
             out = warp.render_frames(write_frame) if frames_to else warp.render()
@@ -251,11 +346,10 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
             stats = write_exports(exports, warp, meta=provenance("warp", input, spec_path),
                                   mesh_meta=provenance("warp", [input, *mesh_src], spec_path))
-    if as_json:
-        summary = {"output": str(output), "shape": shape}
-        if frames_to:
-            summary["frames"] = written[0]
-        _print_json({**summary, "handles": handles, **stats})
+    summary = {"output": str(output), "shape": shape}
+    if frames_to:
+        summary["frames"] = written[0]
+    return {**summary, "handles": handles, **stats}
 
 
 def _check_label_spec(doc, spec, background) -> None:

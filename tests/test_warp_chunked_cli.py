@@ -1,0 +1,148 @@
+"""`volwarp warp --chunked`: by output blocks on Dask, the same bytes as in memory.
+
+Inputs with odd sizes and a direction that is not the identity, blocks that do not
+divide the output, every local scheduler and a LocalCluster; the automatic switch
+when the in-memory warp does not fit the budget; what the block path refuses.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.volume import Volume
+
+SPEC = """version: 1
+capture: {lattice: 6, oversample: 1.5}
+steps:
+  - move:
+      - {index: [2, 3, 2], by: [3, -2, 4]}
+      - {index: [3, 2, 3], by: [-2, 1.5, -3]}
+      - {index: [1, 4, 2], by: [0.5, 2.5, 1]}
+"""
+
+ROTATED = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture
+def scan(tmp_path):
+    z, y, x = np.meshgrid(*[np.linspace(-1, 1, n) for n in (37, 41, 29)], indexing="ij")
+    rng = np.random.default_rng(2)
+    data = (1000 * np.exp(-(x * x + y * y + z * z) / 0.3) + rng.integers(0, 40, x.shape))
+    vol = Volume(data.astype(np.int16), spacing=np.array([0.8, 0.9, 1.1]),
+                 origin=np.array([10.0, -5.0, 3.0]), direction=ROTATED)
+    path = tmp_path / "in.nrrd"
+    write_volume(vol, path)
+    spec = tmp_path / "warp.yaml"
+    spec.write_text(SPEC)
+    return path, spec
+
+
+def test_chunked_nrrd_equals_the_in_memory_file(run, scan, tmp_path):
+    src, spec = scan
+    mem, blk = tmp_path / "mem.nrrd", tmp_path / "blk.nrrd"
+    assert run("warp", src, "--spec", spec, "-o", mem).code == 0
+    res = run("warp", src, "--spec", spec, "-o", blk, "--chunked", "--block", "10,7,13",
+              "--json")
+    assert res.code == 0, res.stderr
+    summary = json.loads(res.stdout)
+    assert summary["blocks"] > 50 and summary["block"] == [13, 7, 10]
+    assert blk.read_bytes() == mem.read_bytes()
+    out = read_volume(blk)
+    assert np.array_equal(out.direction, ROTATED)  # the geometry is the input's
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "processes", "synchronous"])
+def test_chunked_ome_zarr_is_the_same_on_every_scheduler(run, scan, tmp_path, scheduler):
+    src, spec = scan
+    zin = tmp_path / "in.ome.zarr"
+    assert run("convert", src, "-o", zin).code == 0
+    mem = tmp_path / "mem.nrrd"
+    assert run("warp", zin, "--spec", spec, "-o", mem).code == 0
+    blk = tmp_path / "blk.ome.zarr"
+    res = run("warp", zin, "--spec", spec, "-o", blk, "--chunked", "--block", "16",
+              "--scheduler", scheduler)
+    assert res.code == 0, res.stderr
+    a, b = read_volume(mem), read_volume(blk)
+    assert np.array_equal(a.data, b.data) and a.data.dtype == b.data.dtype
+    assert np.allclose(a.origin, b.origin) and np.allclose(a.spacing, b.spacing)
+
+
+def test_chunked_on_a_local_cluster_with_jsonl_progress(run, scan, tmp_path):
+    src, spec = scan
+    mem, blk = tmp_path / "mem.nrrd", tmp_path / "blk.nrrd"
+    assert run("warp", src, "--spec", spec, "-o", mem).code == 0
+    res = run("warp", src, "--spec", spec, "-o", blk, "--chunked", "--block", "24",
+              "--scheduler", "local", "--workers", "2", "--progress", "jsonl")
+    assert res.code == 0, res.stderr
+    assert blk.read_bytes() == mem.read_bytes()
+    events = [json.loads(line) for line in res.stderr.splitlines() if line.startswith("{")]
+    done = [e for e in events if e["event"] == "done"]
+    assert done and all(e["kind"] == "block" and e["seconds"] >= 0 and e["peak_rss"] > 0
+                        for e in done)
+    assert len({e["id"] for e in done}) == len(done)  # one line per block
+
+
+def test_a_warp_too_big_for_the_budget_runs_by_blocks(run, scan, tmp_path, monkeypatch):
+    """No --chunked: the in-memory warp's own refusal switches to blocks, with one warning."""
+    from volwarp_cli import memory
+
+    src, spec = scan
+    mem, blk = tmp_path / "mem.nrrd", tmp_path / "blk.nrrd"
+    assert run("warp", src, "--spec", spec, "-o", mem).code == 0
+    monkeypatch.setattr(memory, "process_rss", lambda: 0)
+    res = run("warp", src, "--spec", spec, "-o", blk, "--memory-limit", "150K")
+    assert res.code == 0, res.stderr
+    assert "running by blocks" in res.stderr
+    assert blk.read_bytes() == mem.read_bytes()
+    # --no-chunked: the refusal stands, the old output untouched
+    blk.write_bytes(b"old")
+    res = run("warp", src, "--spec", spec, "-o", blk, "--memory-limit", "150K",
+              "--no-chunked")
+    assert res.code == 1 and "needs" in res.stderr and blk.read_bytes() == b"old"
+
+
+def test_what_the_block_path_refuses(run, scan, tmp_path):
+    src, spec = scan
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--labels")
+    assert res.code == 2 and "--labels" in res.stderr
+    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--frames-to",
+              str(tmp_path / "f_{frame}.nrrd"))
+    assert res.code == 2 and "--frames-to" in res.stderr
+    gz = tmp_path / "o.nii.gz"
+    res = run("warp", src, "--spec", spec, "-o", gz, "--chunked")
+    assert res.code == 1 and "block" in res.stderr and not gz.exists()
+    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--block", "0")
+    assert res.code == 2
+    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--scheduler", "nope")
+    assert res.code == 2 and "unknown scheduler" in res.stderr
+    assert not out.exists()
+
+
+def test_a_failing_block_leaves_no_output(run, scan, tmp_path, monkeypatch):
+    """A block task that fails (a worker's error): one line, exit 1, nothing at -o."""
+    from volwarp_cli.bspline import blocks
+    from volwarp_cli.errors import VolwarpError
+
+    src, spec = scan
+    out = tmp_path / "o.nrrd"
+    out.write_bytes(b"old")
+    calls = []
+
+    def broken(self, box):
+        calls.append(box)
+        if len(calls) == 5:
+            raise VolwarpError("disk full (test)")
+        return original(self, box)
+
+    original = blocks.WarpBlocks.output_block
+    monkeypatch.setattr(blocks.WarpBlocks, "output_block", broken)
+    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--block", "12",
+              "--scheduler", "synchronous")
+    assert res.code == 1 and "disk full (test)" in res.stderr
+    assert out.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir() if "part" in p.name] == []
