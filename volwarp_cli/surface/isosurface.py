@@ -52,22 +52,46 @@ def touches_border(data: np.ndarray, iso: float, inside: str = "above") -> bool:
                                              data[:, :, 0], data[:, :, -1]))
 
 
+def cap_value(lo: float, hi: float, iso: float, inside: str) -> float:
+    """The "outside" value ``--cap`` pads with, from the data's range ``[lo, hi]``.
+
+    The data's own background (its minimum for ``inside="above"``, its
+    maximum for ``"below"``) when that lies outside the shape, else one unit
+    beyond the level.
+    """
+    if inside == "above":
+        return lo if lo < iso else iso - 1.0
+    return hi if hi >= iso else iso + 1.0
+
+
+def cap_dtype(dtype) -> np.dtype:
+    """The sample type of the padded volume ``--cap`` contours (float32 or float64)."""
+    dtype = np.dtype(dtype)
+    wide = dtype == np.float64 or (dtype.itemsize >= 4 and dtype.kind in "iu")
+    return np.dtype(np.float64 if wide else np.float32)
+
+
+def work_dtype(dtype, cap: bool = False) -> np.dtype:
+    """The sample type flying edges runs on: native byte order, float16 widened.
+
+    With ``cap``, :func:`cap_dtype`. A blocked run converts every block to it,
+    so that VTK's arithmetic (which is done in the sample type) is the whole's.
+    """
+    dtype = np.dtype(dtype)
+    if cap:
+        return cap_dtype(dtype)
+    dtype = dtype.newbyteorder("=")
+    return np.dtype(np.float32) if dtype == np.float16 else dtype
+
+
 def _pad_for_cap(data: np.ndarray, iso: float, inside: str) -> np.ndarray:
     """Surround ``data`` with one layer of "outside" samples so the surface closes.
 
-    The padding value is the data's own background (its minimum for
-    ``inside="above"``, its maximum for ``"below"``) when that lies outside
-    the shape, else one unit beyond the level. The cap then sits where the
+    The padding value is :func:`cap_value`. The cap then sits where the
     volume would have met that background one voxel beyond its border.
     """
-    if inside == "above":
-        lo = float(np.min(data))
-        pad = lo if lo < iso else iso - 1.0
-    else:
-        hi = float(np.max(data))
-        pad = hi if hi >= iso else iso + 1.0
-    wide = data.dtype == np.float64 or (data.dtype.itemsize >= 4 and data.dtype.kind in "iu")
-    dtype = np.float64 if wide else np.float32
+    pad = cap_value(float(np.min(data)), float(np.max(data)), iso, inside)
+    dtype = cap_dtype(data.dtype)
     nz, ny, nx = data.shape
     ensure_fits_in_memory((nz + 2) * (ny + 2) * (nx + 2) * np.dtype(dtype).itemsize,
                           "the padded volume for --cap")
@@ -89,16 +113,59 @@ def _level_off_samples(data: np.ndarray, iso: float) -> float:
     if not np.any(data == iso):
         return iso
     below = data[data < iso]
-    gap = iso - float(below.max()) if below.size else 1.0
+    return level_off(iso, True, float(below.max()) if below.size else None)
+
+
+def level_off(iso: float, hit: bool, below_max: float | None) -> float:
+    """:func:`_level_off_samples` from its two whole-volume facts.
+
+    ``hit``: some sample equals ``iso``; ``below_max``: the largest sample
+    below ``iso`` (None: there is none). A blocked run gathers both by a
+    reduction over its blocks and gets the whole's level.
+    """
+    if not hit:
+        return iso
+    gap = iso - below_max if below_max is not None else 1.0
     return iso - 1e-3 * gap
 
 
-def _flying_edges(data: np.ndarray, iso: float, normals: bool):
+def crossing_edges(data: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """The cell edges the level cuts, in flying edges' vertex order.
+
+    Returns ``(lower sample (N, 3) int64 (i, j, k), axis (N,) int64)``: the
+    edges whose two samples lie on different sides of ``level`` (``>=`` is
+    above). Flying edges makes one vertex per such edge and numbers them by
+    x-row: rows in (k, j) order, in each row its x-edges, then its y-edges,
+    then its z-edges, each by increasing i (VTK's pass 3 prefix sum over the
+    rows' edge counts), whatever the thread count. :func:`_flying_edges`
+    checks its points against this order, so a VTK that numbered them
+    otherwise would be caught, not trusted.
+    """
+    above = data >= level
+    nz, ny, nx = data.shape
+    keys = []
+    for axis in range(3):
+        hi = [slice(None)] * 3
+        lo = [slice(None)] * 3
+        hi[2 - axis], lo[2 - axis] = slice(1, None), slice(None, -1)
+        k, j, i = np.nonzero(above[tuple(lo)] != above[tuple(hi)])
+        keys.append(((k * ny + j) * 3 + axis) * nx + i)
+    key = np.sort(np.concatenate(keys))
+    i, rest = key % nx, key // nx
+    axis, row = rest % 3, rest // 3
+    lower = np.stack([i, row % ny, row // ny], axis=1).astype(np.int64)
+    return lower, axis.astype(np.int64)
+
+
+def _flying_edges(data: np.ndarray, iso: float, normals: bool, *, edges: bool = False):
     """Flying edges on ``data[z, y, x]``.
 
-    Returns (points in index (i, j, k) float32, faces int64, normals or None):
-    the normals are VTK's unit gradient normals in index space, pointing
-    towards lower values.
+    Returns (points in index (i, j, k) float32, faces int64, normals or None,
+    edges or None): the normals are VTK's unit gradient normals in index
+    space, pointing towards lower values; with ``edges``, each vertex's cell
+    edge ``(lower sample (N, 3) int64 (i, j, k), axis (N,) int64)``
+    (:func:`crossing_edges`), checked: :func:`edge_points` of those edges
+    must be VTK's points, bit for bit.
     """
     from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
     from vtkmodules.vtkCommonDataModel import vtkImageData
@@ -120,17 +187,67 @@ def _flying_edges(data: np.ndarray, iso: float, normals: bool):
     fe.Update()
     out = fe.GetOutput()
     if out.GetNumberOfPoints() == 0 or out.GetNumberOfCells() == 0:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64), None
+        empty = (np.zeros((0, 3), np.int64), np.zeros(0, np.int64)) if edges else None
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64), None, empty
     # vtk_to_numpy's arrays view VTK's memory through a buffer export that
     # keeps the VTK arrays alive: no copies of these big outputs are needed
-    points = vtk_to_numpy(out.GetPoints().GetData())
+    points = vtk_to_numpy(out.GetPoints().GetData()).astype(np.float32, copy=False)
     polys = out.GetPolys()
     conn = vtk_to_numpy(polys.GetConnectivityArray())
     faces = conn.reshape(-1, 3).astype(np.int64, copy=False)
     grad = None
     if normals:
         grad = vtk_to_numpy(out.GetPointData().GetNormals()).astype(np.float32, copy=False)
-    return points.astype(np.float32, copy=False), faces, grad
+    found = None
+    if edges:
+        found = _checked_edges(data, iso, points)
+    return points, faces, grad, found
+
+
+def _checked_edges(data: np.ndarray, level: float, points: np.ndarray):
+    """:func:`crossing_edges`, after checking they are where VTK put its ``points``."""
+    lower, axis = crossing_edges(data, level)
+    ok = len(lower) == len(points)
+    if ok:
+        upper = lower.copy()
+        upper[np.arange(len(axis)), axis] += 1
+        s0 = data[lower[:, 2], lower[:, 1], lower[:, 0]]
+        s1 = data[upper[:, 2], upper[:, 1], upper[:, 0]]
+        mine = edge_points(lower, axis, s0, s1, level)
+        ok = np.array_equal(mine.view(np.int32), points.view(np.int32))
+    if not ok:
+        raise VolwarpError("internal error: VTK's flying-edges vertices are not where the "
+                           "blocked isosurface expects them (a VTK version with another "
+                           "vertex order or formula)")
+    return lower, axis
+
+
+def _sample_diff(s1: np.ndarray, s0: np.ndarray) -> np.ndarray:
+    """``s1 - s0`` as VTK's flying edges computes it, in C arithmetic on the sample type."""
+    if s0.dtype.kind in "iu" and s0.dtype.itemsize < 4:  # C promotes to int
+        s0 = s0.astype(np.int32)
+        s1 = s1.astype(np.int32)
+    with np.errstate(over="ignore"):
+        return (s1 - s0).astype(np.float64)
+
+
+def edge_points(lower: np.ndarray, axis: np.ndarray, s0: np.ndarray, s1: np.ndarray,
+                level: float) -> np.ndarray:
+    """Float32 index points of the level's crossings of cell edges, as flying edges makes them.
+
+    The edge from sample ``lower`` (N, 3) (i, j, k) along ``axis`` (N,), whose
+    samples are ``s0`` (at ``lower``) and ``s1``: ``t = (level - s0) / (s1 -
+    s0)`` in double (the difference in the sample type, as VTK's C++ has it),
+    the point ``lower + t`` along the axis, rounded once to float32. This is
+    VTK's own formula for a volume whose extent starts at 0 (the in-memory
+    path), written on global indices: a block's vertex depends on its edge
+    and two samples only, not on where the block starts.
+    """
+    t = (float(level) - s0.astype(np.float64)) / _sample_diff(s1, s0)
+    points = lower.astype(np.float32)  # exact: indices below 2^24
+    rows = np.arange(len(lower))
+    points[rows, axis] = (lower[rows, axis].astype(np.float64) + t).astype(np.float32)
+    return points
 
 
 def isosurface(vol: Volume, iso: float, *, inside: str = "above", cap: bool = False,
@@ -170,39 +287,63 @@ def isosurface(vol: Volume, iso: float, *, inside: str = "above", cap: bool = Fa
     is lowered by a thousandth of the gap to the next lower sample, so
     those vertices move by at most 0.001 voxel instead of collapsing into
     zero-area triangles with duplicate vertices and undefined normals.
+    The blocked form (:mod:`.chunked`) gives the same mesh bit for bit.
     """
-    if inside not in INSIDE_CHOICES:
-        raise VolwarpError(f"inside must be one of {', '.join(INSIDE_CHOICES)}, got {inside!r}")
-    iso = float(iso)
-    if not np.isfinite(iso):
-        raise VolwarpError(f"isosurface level must be finite, got {iso}")
-    data = vol.data
-    if data.dtype.kind not in "uif":
-        raise VolwarpError(f"cannot isosurface samples of type {data.dtype}")
+    data, iso = _prepared(vol.data, iso, inside)
+    if cap:
+        data = _pad_for_cap(data, iso, inside)
+    with timed("isosurface (flying edges)"):
+        points, faces, grad, _ = _flying_edges(data, _level_off_samples(data, iso), normals)
+    if len(faces) == 0:
+        return Mesh.empty()
+    log.debug("isosurface: %d vertices, %d triangles", len(points), len(faces))
+    return to_world(points, faces, grad, vol, inside=inside, cap=cap)
+
+
+def _prepared(data: np.ndarray, iso: float, inside: str) -> tuple[np.ndarray, float]:
+    """The checked arguments: samples as flying edges takes them, and the level as a float."""
+    check_arguments(data.dtype, iso, inside)
     # a reduction propagates NaN: one pass, no temporary array
     if data.dtype.kind == "f" and np.isnan(np.min(data)):
         raise VolwarpError("the volume contains NaN samples; an isosurface is not defined there")
-    data = np.ascontiguousarray(data, dtype=data.dtype.newbyteorder("="))
-    if data.dtype == np.float16:
-        data = data.astype(np.float32)
-    shift = 0.0
-    if cap:
-        data = _pad_for_cap(data, iso, inside)
-        shift = 1.0
-    with timed("isosurface (flying edges)"):
-        points, faces, grad = _flying_edges(data, _level_off_samples(data, iso), normals)
-    if len(faces) == 0:
-        return Mesh.empty()
-    matrix = vol.direction * vol.spacing[None, :]
-    vertices = _index_to_world(points, matrix, vol.origin - shift * matrix.sum(axis=1))
+    return np.ascontiguousarray(data, dtype=work_dtype(data.dtype)), float(iso)
+
+
+def check_arguments(dtype, iso: float, inside: str) -> None:
+    """Refuse an unknown ``inside``, a level that is not finite, samples that are not numbers."""
+    if inside not in INSIDE_CHOICES:
+        raise VolwarpError(f"inside must be one of {', '.join(INSIDE_CHOICES)}, got {inside!r}")
+    if not np.isfinite(float(iso)):
+        raise VolwarpError(f"isosurface level must be finite, got {float(iso)}")
+    if np.dtype(dtype).kind not in "uif":
+        raise VolwarpError(f"cannot isosurface samples of type {dtype}")
+
+
+def to_world(points: np.ndarray, faces: np.ndarray, grad: np.ndarray | None, geometry, *,
+             inside: str = "above", cap: bool = False) -> Mesh:
+    """The mesh of flying edges' index-space output on ``geometry``'s grid.
+
+    ``points`` (float32 (i, j, k), in the padded volume's indices with
+    ``cap``), ``faces`` as flying edges winds them (outwards from the high
+    side; modified in place), ``grad`` its index-space normals or None.
+    ``geometry``: anything with ``spacing``, ``origin`` and ``direction`` (a
+    :class:`~.volume.Volume` or a :class:`~.geometry.Geometry`). Every step is
+    per vertex or per face, so the blocked path's welded output maps to the
+    same bits as the whole's.
+    """
+    spacing = np.asarray(geometry.spacing, dtype=np.float64)
+    direction = np.asarray(geometry.direction, dtype=np.float64)
+    origin = np.asarray(geometry.origin, dtype=np.float64)
+    shift = 1.0 if cap else 0.0
+    matrix = direction * spacing[None, :]
+    vertices = _index_to_world(points, matrix, origin - shift * matrix.sum(axis=1))
     # Flying edges winds triangles outwards from the high side. A left-handed
     # index-to-world map mirrors the winding; "below" swaps the sides.
-    flip = (inside == "below") != (np.linalg.det(vol.direction) < 0)
+    flip = (inside == "below") != (np.linalg.det(direction) < 0)
     if flip:  # swap two corners in place (the faces are ours, no copy needed)
         first = faces[:, 0].copy()
         faces[:, 0] = faces[:, 2]
         faces[:, 2] = first
-    log.debug("isosurface: %d vertices, %d triangles", len(vertices), len(faces))
     mesh = Mesh(vertices, faces)
     if grad is not None:
         mesh.normals = _world_normals(grad, matrix, inside)
@@ -213,7 +354,8 @@ def _index_to_world(points: np.ndarray, matrix: np.ndarray, origin: np.ndarray) 
     """``origin + matrix @ p`` for (N, 3) float32 index points, as (N, 3) float64.
 
     Written column by column, skipping zero entries: a numpy matmul with a
-    3x3 matrix is four times slower on millions of points.
+    3x3 matrix is four times slower on millions of points. Every vertex gets
+    the same operations in the same order, wherever it sits in the array.
     """
     out = np.empty(points.shape, dtype=np.float64)
     for r in range(3):
@@ -226,6 +368,22 @@ def _index_to_world(points: np.ndarray, matrix: np.ndarray, origin: np.ndarray) 
             for m, c in terms:
                 col += m * points[:, c].astype(np.float64)
         col += origin[r]
+    return out
+
+
+def _times3(vectors: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """``vectors @ m`` for (N, 3) float32 rows and a 3x3 float32 matrix, element by element.
+
+    Not a BLAS product: its kernels may round a row differently depending on
+    where it sits in the array, and the blocked path needs every row's bits
+    to depend on that row alone.
+    """
+    out = np.empty(vectors.shape, dtype=np.float32)
+    for c in range(3):
+        col = out[:, c]
+        np.multiply(vectors[:, 0], m[0, c], out=col)
+        col += vectors[:, 1] * m[1, c]
+        col += vectors[:, 2] * m[2, c]
     return out
 
 
@@ -242,8 +400,8 @@ def _world_normals(grad: np.ndarray, matrix: np.ndarray, inside: str) -> np.ndar
     if np.allclose(gram, gram[0, 0] * np.eye(3), rtol=1e-12, atol=0):
         if np.allclose(inv, inv[0, 0] * np.eye(3), rtol=1e-12, atol=0) and sign > 0:
             return grad
-        return (grad @ (sign * inv / np.sqrt(gram[0, 0])).astype(np.float32)).astype(np.float32)
-    n = grad @ (sign * inv).astype(np.float32)
-    length = np.sqrt(np.einsum("ij,ij->i", n, n))[:, None]
+        return _times3(grad, (sign * inv / np.sqrt(gram[0, 0])).astype(np.float32))
+    n = _times3(grad, (sign * inv).astype(np.float32))
+    length = np.sqrt(n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1] + n[:, 2] * n[:, 2])[:, None]
     np.divide(n, length, out=n, where=length > 0)
     return n
