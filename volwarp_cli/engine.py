@@ -128,20 +128,26 @@ def peak_rss() -> int:
 
 @dataclass(frozen=True)
 class BlockStats:
-    """What a block task returns: its id, its seconds and its process's peak memory."""
+    """What a block task returns: its id, its seconds, its process's peak memory.
+
+    ``value``: what the task's function returned, when it is kept
+    (:meth:`Engine.map`; a block written to an output store returns nothing).
+    """
 
     id: str
     seconds: float
     peak_rss: int
+    value: object = None
 
 
 def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | None = None,
-               **kwargs) -> BlockStats:
+               keep: bool = False, **kwargs) -> BlockStats:
     """Run ``fn(*args, **kwargs)`` as one block task; its :class:`BlockStats`.
 
     The task's kernels get ``threads`` threads (the scheduler's are the
     parallelism) and the memory budget ``memory`` (the command's, passed in:
-    a worker process has no command line to read it from).
+    a worker process has no command line to read it from). ``keep``: return
+    ``fn``'s result too, as the stats' ``value``.
     """
     from . import memory as memory_mod
     from . import parallel
@@ -149,8 +155,9 @@ def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | 
     start = time.perf_counter()
     with parallel.use_threads(threads), (memory_mod.use_memory_limit(memory)
                                          if memory is not None else contextlib.nullcontext()):
-        fn(*args, **kwargs)
-    return BlockStats(ident, time.perf_counter() - start, peak_rss())
+        value = fn(*args, **kwargs)
+    return BlockStats(ident, time.perf_counter() - start, peak_rss(),
+                      value if keep else None)
 
 
 # -- running a graph -------------------------------------------------------------------
@@ -208,6 +215,17 @@ class Engine:
     def block_delayed(fn: Callable, ident: str, *args, **kwargs):
         """:func:`block_delayed` (a task for :meth:`run`)."""
         return block_delayed(fn, ident, *args, **kwargs)
+
+    def map(self, fn: Callable, items, *, label: str, memory: int | None = None) -> list:
+        """``[fn(item) for item in items]``, one block task per item, on this engine.
+
+        For block results gathered in the caller (a mesh's parts), not
+        written to a store. Items are numbered in the progress lines.
+        """
+        tasks = [block_delayed(fn, f"{label}-{i}", item, memory=memory, keep=True)
+                 for i, item in enumerate(items)]
+        by_id = {s.id: s.value for s in self.run(tasks, label=label)}
+        return [by_id[f"{label}-{i}"] for i in range(len(tasks))]
 
     def _done(self, stats: BlockStats) -> None:
         if self.progress is not None:

@@ -24,6 +24,7 @@ from .options import (
     output_option,
     write_options,
 )
+from .resources import scale_options, scale_settings
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
@@ -56,6 +57,7 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
               help="With --update: the move (transform spec, see specs/transform.schema.json).")
 @write_options
 @input_options
+@scale_options
 @common_options
 def command(input, output, iso, inside, metric, surface, unsigned, max_distance, update,
             transform, dtype, compress, byte_order, raw, volume_index, dicom, ome_zarr):
@@ -90,13 +92,38 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
         raise click.UsageError("--iso V is required: the shape is the samples "
                                f"{inside} V")
     from ..distance.field import finish_field, signed_distance
+    from ..errors import OutOfMemoryError
     from ..volume import xyz_to_zyx
 
     check_output_path(output)
-    vol = load_input(input, raw, volume_index, dicom=dicom)
-    with timed(f"distance ({metric})"), _collector_paused():
-        field, info = signed_distance(vol.data, xyz_to_zyx(vol.spacing), iso=iso, inside=inside,
-                                      metric=metric, surface=surface)
+    blocks = dict(iso=iso, inside=inside, metric=metric, surface=surface, unsigned=unsigned,
+                  max_distance=max_distance, dtype=dtype, compress=compress,
+                  byte_order=byte_order, **ome_zarr)
+    chunked = scale_settings().chunked
+    if chunked:
+        if dicom is not None:
+            raise click.UsageError("--chunked reads volume files by blocks, not DICOM series")
+        _by_blocks(input, output, raw, volume_index, **blocks)
+        return
+    try:
+        vol = load_input(input, raw, volume_index, dicom=dicom)
+        with timed(f"distance ({metric})"), _collector_paused():
+            field, info = signed_distance(vol.data, xyz_to_zyx(vol.spacing), iso=iso,
+                                          inside=inside, metric=metric, surface=surface)
+    except OutOfMemoryError as exc:
+        from .chunked import blocks_can_write, wants_blocks
+
+        if chunked is False or dicom is not None or metric != "euclidean":
+            raise
+        from ..io.lazy import open_volume_lazy
+
+        geometry, array = open_volume_lazy(input, raw=raw, volume_index=volume_index)
+        if not blocks_can_write(output, geometry.shape, dtype or "float32", blocks):
+            raise
+        wants_blocks(str(exc))
+        del geometry, array
+        _by_blocks(input, output, raw, volume_index, **blocks)
+        return
     if info["passes"]:
         log.info("min-norm: %d shift-and-min passes", info["passes"])
     finish_field(field, unsigned=unsigned, max_distance=max_distance)
@@ -106,6 +133,58 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
     with timed(f"write {output}"):
         write_volume(out, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      **ome_zarr)
+
+
+def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface, unsigned,
+               max_distance, dtype, compress, byte_order, ome_zarr_version="0.5", pyramid=0):
+    """The distance field by blocks on Dask (:mod:`volwarp_cli.distance.chunked`)."""
+    import numpy as np
+
+    from ..distance.chunked import line_chunks, signed_distance_dask
+    from ..distance.field import finish_field
+    from ..samples import cast_samples
+    from ..volume import xyz_to_zyx
+    from .chunked import block_output, dask_input, lazy_input, write_blocks
+
+    settings = scale_settings()
+    template, source = lazy_input(input, raw, volume_index)
+    spacing = xyz_to_zyx(template.spacing)
+    from .. import memory
+
+    with settings.open_engine() as engine:
+        budget = max(1, memory.memory_limit() - memory.process_rss())
+        per_task = budget // max(1, engine.workers)
+        # the input in blocks of whole x lines (the first pass's), within a task's share
+        chunks = settings.block or line_chunks(template.data.shape, 2, per_task // 4,
+                                               min_blocks=engine.workers)
+        data = dask_input(source, chunks)
+        with timed(f"distance ({metric}) by blocks: scan"), _collector_paused():
+            field, info = signed_distance_dask(data, spacing, iso=iso, inside=inside,
+                                               metric=metric, surface=surface,
+                                               max_distance=max_distance,
+                                               block_bytes=per_task // 4)
+        if unsigned:
+            field = field.map_blocks(finish_field, unsigned=True, dtype=np.float32)
+        out_dtype = np.dtype(dtype or "float32")
+        if dtype is not None:
+            field = field.map_blocks(cast_samples, out_dtype, what=str(output), dtype=out_dtype)
+        out = stamp(template.with_data(np.broadcast_to(np.zeros((), out_dtype),
+                                                       template.data.shape)),
+                    "distance", input)
+        out.meta["volwarp_distance"] = (
+            f"metric={metric} surface={info['surface']} iso={iso:g} inside={inside}"
+            + (" unsigned" if unsigned else "")
+            + (f" chunked={info['chunked']}" if info.get("chunked") else "")
+            + (f" max_distance={max_distance:g} (exact inside the band, clamped outside)"
+               if max_distance is not None else ""))
+        if pyramid:
+            raise click.UsageError("--pyramid with a distance by blocks: write the field, "
+                                   "then `volwarp convert SDF.ome.zarr --pyramid N`")
+        with block_output(output, out, out_dtype, block=settings.block or chunks,
+                          compress=compress, byte_order=byte_order,
+                          version=ome_zarr_version) as sink, \
+                timed(f"distance ({metric}) by blocks"):
+            write_blocks(field, sink, engine, label="distance", memory=per_task)
 
 
 @contextlib.contextmanager

@@ -24,6 +24,7 @@ from .options import (
     parse_view,
     render_size_option,
 )
+from .resources import scale_options, scale_settings
 from .view_options import camera_options, orientation_labels_for
 
 
@@ -122,6 +123,7 @@ def _format_stats(d: dict) -> str:
               help="Print the statistics as one JSON object (implies --stats).")
 @camera_options
 @input_options
+@scale_options
 @common_options
 def command(input, output, iso, inside, cap, smooth, decimate, largest_component, allow_empty,
             render, view, render_size, color, background_color, turntable, label, labels,
@@ -164,16 +166,36 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
     if render is not None:
         check_output_path(render)
 
-    vol = load_input(input, raw, volume_index, dicom=dicom)
     cleanup = Cleanup(largest_component=largest_component, smooth=smooth, decimate=decimate)
+    chunked = scale_settings().chunked
+    if chunked and (labels or label is not None or dicom is not None):
+        raise click.UsageError("--chunked meshes a volume file at --iso by blocks: not "
+                               + ("--label/--labels" if dicom is None else "a DICOM series"))
+    if chunked:
+        vol, mesh, iso = _mesh_by_blocks(input, raw, volume_index, iso, inside, cap,
+                                         allow_empty, cleanup)
+    else:
+        from ..errors import OutOfMemoryError
 
-    if labels:
+        try:
+            vol = load_input(input, raw, volume_index, dicom=dicom)
+            mesh = None
+        except OutOfMemoryError as exc:
+            from .chunked import wants_blocks
+
+            if chunked is False or labels or label is not None or dicom is not None:
+                raise
+            wants_blocks(str(exc))
+            vol, mesh, iso = _mesh_by_blocks(input, raw, volume_index, iso, inside, cap,
+                                             allow_empty, cleanup)
+    if mesh is None and labels:
         _mesh_labels(vol, input, output, cleanup, allow_empty, show_stats or as_json, as_json)
         return
-    if label is not None:
-        vol, iso, inside, cap = label_indicator(vol, label, name=input), 0.5, "above", True
-    mesh, iso = surface_mesh(vol, iso, inside=inside, cap=cap, allow_empty=allow_empty,
-                             cleanup=cleanup, name=input)
+    if mesh is None:
+        if label is not None:
+            vol, iso, inside, cap = label_indicator(vol, label, name=input), 0.5, "above", True
+        mesh, iso = surface_mesh(vol, iso, inside=inside, cap=cap, allow_empty=allow_empty,
+                                 cleanup=cleanup, name=input)
     log.info("mesh: %d vertices, %d triangles", mesh.n_vertices, mesh.n_faces)
 
     if output is not None:
@@ -216,6 +238,36 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
             camera = cameras[0]
         if camera_to is not None:
             write_camera(camera, camera_to, source=str(input))
+
+
+def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cleanup):
+    """The isosurface by blocks (:mod:`volwarp_cli.surface.chunked`): ``(template, mesh, iso)``.
+
+    Blocks run on the Dask scheduler when one is named (VTK holds the GIL:
+    processes or a cluster run them in parallel), else on this process's threads.
+    """
+    from .. import memory, parallel
+    from ..geometry import Geometry
+    from ..surface.chunked import DEFAULT_BLOCK, surface_mesh_blocks
+    from .chunked import lazy_input
+
+    settings = scale_settings()
+    template, source = lazy_input(input, raw, volume_index)
+    block = settings.block or DEFAULT_BLOCK
+    common = dict(block_shape=block, inside=inside, cap=cap, allow_empty=allow_empty,
+                  cleanup=cleanup, name=input)
+    if settings.scheduler is None:
+        mesh, iso = surface_mesh_blocks(source, Geometry.of(template), iso,
+                                        threads=parallel.threads(), **common)
+        return template, mesh, iso
+    with settings.open_engine() as engine:
+        per_task = max(1, memory.memory_limit() - memory.process_rss()) // max(1, engine.workers)
+
+        def run(task, blocks):
+            return engine.map(task, blocks, label="mesh", memory=per_task)
+
+        mesh, iso = surface_mesh_blocks(source, Geometry.of(template), iso, run=run, **common)
+    return template, mesh, iso
 
 
 def _mesh_labels(vol, input, output, cleanup, allow_empty, show_stats, as_json):

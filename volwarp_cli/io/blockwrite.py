@@ -320,9 +320,10 @@ class _ZarrOutput(BlockOutput):
         vol = _placeholder_volume(geometry, dtype, space, metadata)
         if omezarr.signed_permutation(vol.direction) is not None and not np.array_equal(
                 vol.direction, np.eye(3)):
-            raise VolwarpError(f"{path}: a block-wise OME-Zarr output needs an identity (or "
-                               "oblique) direction; reindex flipped or permuted grids first "
-                               "(omezarr.reindex_to_identity)")
+            raise VolwarpError(f"{path}: the grid's axes are flipped or permuted, which an "
+                               "OME-Zarr store written by blocks cannot reindex; write an "
+                               "uncompressed .nrrd instead, or convert the input to .ome.zarr "
+                               "first (its axes then run along the world's)")
         self._attrs = omezarr.group_attributes(
             omezarr.multiscales_metadata(vol, pyramid, version, self._method),
             omezarr.volwarp_attribute(vol, vol, self._method), version)

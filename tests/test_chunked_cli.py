@@ -1,0 +1,109 @@
+"""`volwarp distance --chunked` and `volwarp mesh --chunked`: the same results as in memory.
+
+Odd sizes, blocks that do not divide them, a rotated direction, NRRD and OME-Zarr
+inputs and outputs, several schedulers; the metadata of a banded field; refusals.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.surface.mesh_io import read_mesh
+from volwarp_cli.volume import Volume
+
+ROTATED = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture
+def scan(tmp_path):
+    z, y, x = np.meshgrid(*[np.linspace(-1, 1, n) for n in (37, 41, 29)], indexing="ij")
+    blob = 1000 * np.exp(-((x - 0.2) ** 2 + y * y + z * z) / 0.2)
+    blob += 800 * np.exp(-((x + 0.5) ** 2 + (y - 0.4) ** 2 + (z + 0.3) ** 2) / 0.05)
+    vol = Volume(blob.astype(np.int16), spacing=np.array([0.8, 0.9, 1.1]),
+                 origin=np.array([10.0, -5.0, 3.0]), direction=ROTATED)
+    path = tmp_path / "in.nrrd"
+    write_volume(vol, path)
+    return path
+
+
+@pytest.mark.parametrize("extra", [["--surface", "voxel"], ["--max-distance", "4.5"],
+                                   ["--surface", "voxel", "--max-distance", "3", "--unsigned"],
+                                   ["--surface", "voxel", "--dtype", "int16"]])
+def test_distance_by_blocks_equals_in_memory(run, scan, tmp_path, extra):
+    mem, blk = tmp_path / "m.nrrd", tmp_path / "b.nrrd"
+    assert run("distance", scan, "-o", mem, "--iso", "300", *extra).code == 0
+    res = run("distance", scan, "-o", blk, "--iso", "300", "--chunked", "--block", "10,7,13",
+              *extra)
+    assert res.code == 0, res.stderr
+    a, b = read_volume(mem), read_volume(blk)
+    assert a.data.dtype == b.data.dtype and np.array_equal(a.data, b.data)
+    assert np.array_equal(b.direction, ROTATED)
+    note = b.meta["volwarp_distance"]
+    assert ("chunked=band" in note) == ("--max-distance" in extra)
+    if "--max-distance" in extra:
+        assert "clamped outside" in note
+
+
+@pytest.mark.parametrize("scheduler", ["processes", "synchronous"])
+def test_distance_to_ome_zarr_on_other_schedulers(run, scan, tmp_path, scheduler):
+    zin = tmp_path / "in.ome.zarr"
+    assert run("convert", scan, "-o", zin).code == 0
+    mem, blk = tmp_path / "m.nrrd", tmp_path / "b.ome.zarr"
+    assert run("distance", zin, "-o", mem, "--iso", "300", "--surface", "voxel").code == 0
+    res = run("distance", zin, "-o", blk, "--iso", "300", "--surface", "voxel", "--chunked",
+              "--scheduler", scheduler)
+    assert res.code == 0, res.stderr
+    assert np.array_equal(read_volume(mem).data, read_volume(blk).data)
+
+
+def test_distance_refusals_by_blocks(run, scan, tmp_path):
+    out = tmp_path / "o.nrrd"
+    res = run("distance", scan, "-o", out, "--iso", "300", "--chunked")  # smooth: sub-voxel
+    assert res.code == 1 and "--max-distance" in res.stderr
+    res = run("distance", scan, "-o", out, "--iso", "300", "--chunked", "--metric", "minnorm")
+    assert res.code == 1 and "no out-of-core" in res.stderr
+    flipped = tmp_path / "o.ome.zarr"  # a permuted grid cannot be reindexed by blocks
+    res = run("distance", scan, "-o", flipped, "--iso", "300", "--chunked", "--surface",
+              "voxel")
+    assert res.code == 1 and ".nrrd" in res.stderr and not flipped.exists()
+    assert not out.exists() and not any("part" in p.name for p in tmp_path.iterdir())
+
+
+def _canonical(mesh):
+    v = mesh.vertices
+    order = np.lexsort(v.T[::-1])
+    inv = np.empty_like(order)
+    inv[order] = np.arange(len(order))
+    f = inv[mesh.faces]
+    f = np.stack([np.roll(t, -int(np.argmin(t))) for t in f])
+    return v[order], f[np.lexsort(f.T[::-1])]
+
+
+@pytest.mark.parametrize("extra", [[], ["--cap"], ["--largest-component"]])
+def test_mesh_by_blocks_equals_in_memory(run, scan, tmp_path, extra):
+    mem, blk = tmp_path / "m.ply", tmp_path / "b.ply"
+    assert run("mesh", scan, "-o", mem, "--iso", "300", *extra).code == 0
+    res = run("mesh", scan, "-o", blk, "--iso", "300", "--chunked", "--block", "10,7,13",
+              *extra)
+    assert res.code == 0, res.stderr
+    a, b = read_mesh(mem), read_mesh(blk)
+    assert (a.n_vertices, a.n_faces) == (b.n_vertices, b.n_faces) and a.n_faces > 1000
+    va, fa = _canonical(a)
+    vb, fb = _canonical(b)
+    assert np.array_equal(va, vb) and np.array_equal(fa, fb)
+
+
+def test_mesh_blocks_are_the_same_on_processes(run, scan, tmp_path):
+    a, b = tmp_path / "a.ply", tmp_path / "b.ply"
+    assert run("mesh", scan, "-o", a, "--iso", "300", "--chunked", "--block", "12").code == 0
+    res = run("mesh", scan, "-o", b, "--iso", "300", "--chunked", "--block", "12",
+              "--scheduler", "processes")
+    assert res.code == 0, res.stderr
+    assert a.read_bytes() == b.read_bytes()
+
+
+def test_mesh_by_blocks_refuses_labels(run, scan, tmp_path):
+    res = run("mesh", scan, "-o", tmp_path / "o.ply", "--label", "1", "--chunked")
+    assert res.code == 2 and "--label" in res.stderr
