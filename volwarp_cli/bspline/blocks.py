@@ -27,6 +27,8 @@ update reuses the previous frame's accumulators, which blocks do not keep.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..box import Box
@@ -41,21 +43,52 @@ def render_block(scene: Scene, sampler, box: Box) -> np.ndarray:
     ``sampler`` (a :class:`.pullback.BoxSampler`) gathers the domain voxels'
     samples; the scene's own domain is not used. Equal to the same block of
     :meth:`.scene.Scene.render` bit for bit.
+
+    The block is streamed as the in-memory one-shot render streams the whole
+    target (:mod:`.stream`): the domain box's z planes a few at a time, each
+    slab gathered just before it is scattered into a ring of the block's
+    target planes, and a plane finished as soon as no later slab can reach
+    it. So a block may be tall (its accumulators are a ring of planes of its
+    own columns and rows, not the whole block), and only its sides cost a
+    halo of domain voxels scattered by two blocks.
     """
+    from .stream import STREAM_PLANES, _ring_planes
+
     out_dtype = np.float64 if scene.dtype == np.float64 else np.float32
     out = np.empty(box.shape, dtype=out_dtype)
-    acc = np.zeros(box.shape + (2,), dtype=np.int64)
     (tx0, ty0, tz0), (tx1, ty1, tz1) = box.xyz()
     need = domain_box(scene, box)
+    reach = scene.reach.planes(scene._offset_bounds(scene.dq))
+    chunk = max(1, int(STREAM_PLANES / float(scene.scale[2])))  # domain planes per step
+    planes = max(1, min(_ring_planes(reach, chunk), box.shape[0]))
+    acc = np.zeros((planes,) + box.shape[1:] + (2,), dtype=np.int64)
+    base = tz0  # target planes [base, ...) accumulate; those below are in out
+
+    def flush(upto):
+        nonlocal base
+        while base < upto:
+            s0 = base % planes
+            k = min(upto - base, planes - s0)  # contiguous slots of the ring
+            pushforward.finalize(acc[s0:s0 + k], scene.vmax, (0, 0, 0),
+                                 (box.shape[2], box.shape[1], k),
+                                 out[base - tz0:base - tz0 + k], parallel=False,
+                                 background=scene.background, clear=True)
+            base += k
+
     if not need.empty:
-        values = sampler.box(need)
         (dx0, dy0, dz0), (dx1, dy1, dz1) = need.xyz()
-        scene.contribute([scene.dq], (dx0, dy0, dz0), (dx1, dy1, dz1), 1, acc=acc, tzo=tz0,
-                         tz_hi=tz1, window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0),
-                         parallel=False, scratch=Scratch(), values=(values, dz0, (dx0, dy0)))
-    shape_xyz = box.shape[::-1]
-    pushforward.finalize(acc, scene.vmax, (0, 0, 0), shape_xyz, out, parallel=False,
-                         background=scene.background)
+        # the lowest target plane the domain planes from g on can reach
+        floor = np.minimum.accumulate(reach.t_lo[dz0:dz1][::-1])[::-1]
+        scratch = Scratch()
+        for g0 in range(dz0, dz1, chunk):
+            g1 = min(g0 + chunk, dz1)
+            flush(min(max(int(floor[g0 - dz0]), base), tz1))
+            values = sampler.box(Box((g0, dy0, dx0), (g1, dy1, dx1)))
+            scene.contribute([scene.dq], (dx0, dy0, g0), (dx1, dy1, g1), 1, acc=acc,
+                             tzo=base, tz_hi=min(base + planes, tz1), ring=True,
+                             window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0),
+                             parallel=False, scratch=scratch, values=(values, g0, (dx0, dy0)))
+    flush(tz1)
     return out
 
 
@@ -178,31 +211,53 @@ class WarpBlocks:
         return cast_samples(target, self.dtype, what="warped volume")
 
     def block_bytes(self, box: Box) -> int:
-        """Memory a task of output block ``box`` holds at its peak (bytes, an upper bound)."""
+        """Memory a task of output block ``box`` holds at its peak (bytes, an upper bound).
+
+        The ring of target planes, the block's target and its cast, one slab
+        of the domain box's samples with the input they read, and the
+        deformation buffers (see :func:`render_block`).
+        """
+        from .stream import STREAM_PLANES, _ring_planes
+
         scene, sampler = self._scene()
-        need = domain_box(scene, box.shift(self.window.lo))
-        inputs = sampler.input_box(need).size if not need.empty else 0
+        target = box.shift(self.window.lo)
+        need = domain_box(scene, target)
+        reach = scene.reach.planes(scene._offset_bounds(scene.dq))
+        chunk = max(1, int(STREAM_PLANES / float(scene.scale[2])))
+        planes = max(1, min(_ring_planes(reach, chunk), box.shape[0]))
         item = np.dtype(self.domain_dtype).itemsize
-        return (box.size * (16 + item + self.dtype.itemsize)  # accumulators, target, cast
-                + need.size * item  # the domain box's samples
-                + inputs * (item + np.dtype(sampler.source.dtype).itemsize)  # its input box
-                + 2 * scene.chunk_bytes)  # the deformation buffers
+        slab = 0
+        if not need.empty:
+            z0 = need.lo[0]
+            part = Box((z0, need.lo[1], need.lo[2]), (min(z0 + chunk, need.hi[0]), *need.hi[1:]))
+            inputs = sampler.input_box(part).size
+            slab = part.size * item + inputs * (item + np.dtype(sampler.source.dtype).itemsize)
+        return (planes * box.shape[1] * box.shape[2] * 16
+                + box.size * (item + self.dtype.itemsize) + slab + 2 * scene.chunk_bytes)
 
     def choose_blocks(self, budget: int, tasks_at_once: int) -> tuple[int, int, int]:
-        """The largest cubic block (z, y, x) whose tasks, ``tasks_at_once`` of them, fit ``budget``.
+        """Output blocks (z, y, x) for ``tasks_at_once`` tasks within ``budget`` bytes.
 
-        Larger blocks scatter fewer halo voxels twice; the output's size clips them.
+        Columns of the whole depth (a block streams its planes, so depth costs
+        no halo) in k x k tiles of equal size, with the fewest tiles that give
+        each task two blocks (for balance) and fit; shallower where no column
+        does.
         """
         shape = self.window.shape
-        centre = [n // 2 for n in shape]
-        for edge in (512, 384, 256, 192, 128, 96, 64, 48, 32, 24, 16):
-            block = tuple(min(edge, n) for n in shape)
-            lo = [max(0, min(c - b // 2, n - b)) for c, b, n in zip(centre, block, shape,
-                                                                     strict=True)]
-            box = Box(lo, [a + b for a, b in zip(lo, block, strict=True)])
-            if self.block_bytes(box) * tasks_at_once <= budget:
-                return block
-        return tuple(min(16, n) for n in shape)
+        want = 2 * max(1, tasks_at_once)
+        for depth in (shape[0], (shape[0] + 1) // 2, (shape[0] + 3) // 4, 64, 32, 16, 8):
+            for k in range(1, 129):
+                block = (min(depth, shape[0]), math.ceil(shape[1] / k), math.ceil(shape[2] / k))
+                tiles = math.ceil(shape[1] / block[1]) * math.ceil(shape[2] / block[2])
+                if tiles < want and min(block[1:]) > 8:
+                    continue
+                box = Box((0, 0, 0), block).shift([(n - b) // 2 for n, b in
+                                                   zip(shape, block, strict=True)])
+                if self.block_bytes(box) * tasks_at_once <= budget:
+                    return block
+                if min(block[1:]) <= 8:
+                    break
+        return tuple(min(8, n) for n in shape)
 
 
 def write_block(job: WarpBlocks, out, box: Box) -> None:
