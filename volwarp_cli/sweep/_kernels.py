@@ -2,11 +2,20 @@
 
 Imported lazily: numba costs about 0.3 s to import and the kernel is cached
 on disk (``cache=True``; set ``NUMBA_CACHE_DIR`` when the package is read-only).
+
+Each kernel is compiled twice from one Python function: ``parallel=True``
+(``prange`` over the threads of numba's pool, for the whole-grid path) and a
+``_serial`` variant (``parallel=False, nogil=True``) for block tasks that run
+in threads of their own (:mod:`.chunked` under Dask): numba's default
+workqueue threading layer aborts the process when two Python threads run
+parallel kernels at once. ``prange`` is ``range`` in the serial variant, and
+every iteration writes its own outputs, so both give the same bits.
 """
 
 from __future__ import annotations
 
 import math
+import types
 
 import numpy as np
 from numba import njit, prange
@@ -75,9 +84,32 @@ def _half_line(c, g, strict, positive, lo, hi):
     return lo, hi
 
 
-@njit(cache=True, parallel=True)
+def _twice(py_func, name: str):
+    """``(parallel, serial)`` dispatchers of ``py_func``, the serial one named ``name``.
+
+    The serial one is compiled from a copy of the function under its own
+    qualified name: numba's on-disk cache keys an entry by the function's name
+    and bytecode, not by the ``parallel`` flag, so two dispatchers of one
+    function would read each other's machine code.
+    """
+    twin = types.FunctionType(py_func.__code__, py_func.__globals__, name,
+                              py_func.__defaults__, py_func.__closure__)
+    twin.__qualname__ = name
+    twin.__doc__ = py_func.__doc__
+    return (njit(cache=True, parallel=True)(py_func),
+            njit(cache=True, parallel=False, nogil=True)(twin))
+
+
 def sweep_voxelize(P, EX, EY, EZ, SX, SY, SL, sub_a, sub_b, closed, boxes, origin, spacing,
-                   tex, off, th, tw, tn, ops, opac, tol, acc, wsum, covered, zlo, zhi):
+                   tex, off, th, tw, tn, ops, opac, tol, acc, wsum, covered, zlo, zhi,
+                   oz, oy, ox):
+    """Voxelise the sub-segments into the accumulators, z slices ``[zlo, zhi)``.
+
+    Indices (``boxes``, ``zlo``, ``zhi``, the loops) are the whole grid's, so a
+    voxel's world point is computed from its grid index alone; the arrays
+    ``acc``, ``wsum`` and ``covered`` hold the block whose first voxel is
+    ``(oz, oy, ox)`` (all 0 for the whole grid).
+    """
     F = ops.shape[0]
     S = sub_a.shape[0]
     has_blend = False
@@ -86,6 +118,7 @@ def sweep_voxelize(P, EX, EY, EZ, SX, SY, SL, sub_a, sub_b, closed, boxes, origi
             has_blend = True
     for zz in prange(zhi - zlo):
         z = zlo + zz
+        zl = z - oz
         vals = np.empty(F)
         wz = origin[2] + spacing[2] * z
         for s in range(S):
@@ -98,6 +131,7 @@ def sweep_voxelize(P, EX, EY, EZ, SX, SY, SL, sub_a, sub_b, closed, boxes, origi
             ta = tol if (closed[s] & 1) != 0 else 0.0
             tb = tol if last else 0.0
             for y in range(boxes[s, 2], boxes[s, 3] + 1):
+                yl = y - oy
                 wy = origin[1] + spacing[1] * y
                 # plane distances as functions of the x index: c + g * i
                 dax = origin[0] - P[a, 0]
@@ -167,33 +201,37 @@ def sweep_voxelize(P, EX, EY, EZ, SX, SY, SL, sub_a, sub_b, closed, boxes, origi
                             if w < 0.0:
                                 w = 0.0
                             w += BLEND_FLOOR
-                        cov = covered[z, y, x] != 0
+                        xl = x - ox
+                        cov = covered[zl, yl, xl] != 0
                         for f in range(F):
                             v = vals[f]
                             op = ops[f]
                             if op == BLEND:
-                                acc[f, z, y, x] += w * v
+                                acc[f, zl, yl, xl] += w * v
                             elif not cov:
-                                acc[f, z, y, x] = v
+                                acc[f, zl, yl, xl] = v
                             elif op == UNION:
-                                if v > acc[f, z, y, x]:
-                                    acc[f, z, y, x] = v
+                                if v > acc[f, zl, yl, xl]:
+                                    acc[f, zl, yl, xl] = v
                             elif op == INTERSECTION:
-                                if v < acc[f, z, y, x]:
-                                    acc[f, z, y, x] = v
+                                if v < acc[f, zl, yl, xl]:
+                                    acc[f, zl, yl, xl] = v
                             elif op == DIFFERENCE:
-                                d = acc[f, z, y, x] - v
-                                acc[f, z, y, x] = d if d > 0.0 else 0.0
+                                d = acc[f, zl, yl, xl] - v
+                                acc[f, zl, yl, xl] = d if d > 0.0 else 0.0
                             elif op == SUM:
-                                d = acc[f, z, y, x] + v
+                                d = acc[f, zl, yl, xl] + v
                                 if d > 1.0:
                                     d = 1.0
                                 elif d < 0.0:
                                     d = 0.0
-                                acc[f, z, y, x] = d
+                                acc[f, zl, yl, xl] = d
                         if has_blend:
-                            wsum[z, y, x] += w
-                        covered[z, y, x] = 1
+                            wsum[zl, yl, xl] += w
+                        covered[zl, yl, xl] = 1
+
+
+sweep_voxelize, sweep_voxelize_serial = _twice(sweep_voxelize, "sweep_voxelize_serial")
 
 
 @njit(cache=True)
@@ -204,7 +242,6 @@ def _horner(c, deg, x):
     return v
 
 
-@njit(cache=True, parallel=True)
 def real_roots_unit(coef, out):
     """Real roots in [0, 1] of many polynomials (ascending ``coef[N, D + 1]``).
 
@@ -276,3 +313,6 @@ def real_roots_unit(coef, out):
             ncrit = nroots
         for j in range(D):
             out[v, j] = crit[j] if j < ncrit else np.nan
+
+
+real_roots_unit, real_roots_unit_serial = _twice(real_roots_unit, "real_roots_unit_serial")

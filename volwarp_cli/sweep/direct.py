@@ -45,9 +45,12 @@ whose inverse has no closed form here; use ``method: voxelize`` for them.
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 from .. import parallel
+from ..box import Box
 from ..geometry import Geometry
 from ..memory import ensure_fits_in_memory
 from ..progress import progress
@@ -142,14 +145,20 @@ def polynomial_roots(coef: np.ndarray) -> np.ndarray:
         return np.concatenate(list(pool.map(np.linalg.eigvals, np.array_split(comp, workers))))
 
 
-def _bezier_candidates(seg: Bezier, p: np.ndarray) -> np.ndarray:
-    """Real roots in [0, 1] of ``(p - a(s)) . a'(s)`` per point, NaN-padded (N, 2n - 1)."""
-    from ._kernels import real_roots_unit
+def _bezier_candidates(seg: Bezier, p: np.ndarray, serial: bool = False) -> np.ndarray:
+    """Real roots in [0, 1] of ``(p - a(s)) . a'(s)`` per point, NaN-padded (N, 2n - 1).
+
+    ``serial``: the root finder's serial twin (a block task in a thread of its own).
+    """
+    from ._kernels import real_roots_unit, real_roots_unit_serial
 
     coef = np.ascontiguousarray(bezier_f_coefficients(seg, p))
     roots = np.empty((coef.shape[0], coef.shape[1] - 1))
-    parallel.numba_threads()
-    real_roots_unit(coef, roots)
+    if serial:
+        real_roots_unit_serial(coef, roots)
+    else:
+        parallel.numba_threads()
+        real_roots_unit(coef, roots)
     return roots
 
 
@@ -188,7 +197,7 @@ def _segment_box(sweep, index: int, grid: Geometry):
     return lo, hi
 
 
-def _near_curve(sweep, index: int, samples: int = 257):
+def _near_curve(sweep, index: int, samples: int = 257, workers: int = -1):
     """A test that keeps the points that may lie within a template's reach of the curve.
 
     A conservative pre-filter ahead of the root finder (a departure for speed;
@@ -205,7 +214,7 @@ def _near_curve(sweep, index: int, samples: int = 257):
     tree = cKDTree(fr.P)
 
     def keep(p):
-        d, _ = tree.query(p, k=1, distance_upper_bound=reach, workers=-1)
+        d, _ = tree.query(p, k=1, distance_upper_bound=reach, workers=workers)
         return np.isfinite(d)
     return keep
 
@@ -217,17 +226,44 @@ def direct_sweep(sweep, grid: Geometry) -> dict[str, np.ndarray]:
     """
     check_axis_aligned(grid)
     check_direct(sweep)
+    nx, ny, nz = grid.shape_xyz
+    ensure_fits_in_memory(grid.size * (4 * len(sweep.templates) + 5),
+                          f"sweep output {nx}x{ny}x{nz} x {len(sweep.templates)} fields")
+    return _evaluate_box(sweep, grid, grid.box, serial=False)
+
+
+def direct_block(sweep, grid: Geometry, box: Box) -> dict[str, np.ndarray]:
+    """The fields of ``sweep`` on the voxels ``box`` of ``grid``, bit for bit :func:`direct_sweep`'s.
+
+    Every voxel is mapped back from its own world point (computed from its
+    grid index, as the whole does), its candidates are met in the same order
+    (segment, then root), and the serial root finder runs (no numba thread
+    pool: safe in any thread).
+    """
+    check_axis_aligned(grid)
+    check_direct(sweep)
+    return _evaluate_box(sweep, grid, box, serial=True)
+
+
+def _evaluate_box(sweep, grid: Geometry, out: Box, serial: bool) -> dict[str, np.ndarray]:
+    """Inverse mapping of the voxels ``out`` of ``grid`` (fields of ``out``'s shape)."""
     names = list(sweep.templates)
     templates = [sweep.templates[n] for n in names]
-    nx, ny, nz = grid.shape_xyz
-    ensure_fits_in_memory(grid.size * (4 * len(names) + 5),
-                          f"sweep output {nx}x{ny}x{nz} x {len(names)} fields")
-    accum = Accumulator(names, sweep.ops, grid.size)
-    boxes = [_segment_box(sweep, i, grid) for i in range(len(sweep.segments))]
+    bz, by, bx = out.shape
+    oz, oy, ox = out.lo
+    accum = Accumulator(names, sweep.ops, out.size)
+    olo = np.array(out.xyz()[0])
+    ohi = np.array(out.xyz()[1]) - 1
+    boxes = []
+    for i in range(len(sweep.segments)):
+        lo, hi = _segment_box(sweep, i, grid)
+        boxes.append((np.maximum(lo, olo), np.minimum(hi, ohi)))
     plane_tol = 0.01 * float(np.min(grid.spacing))
     origin, spacing = grid.origin_array, grid.spacing_array
     total = sum(int(np.prod(np.maximum(hi - lo + 1, 0))) for lo, hi in boxes)
-    with progress(max(total // CHUNK, 1), "sweep (direct)") as bar:
+    bar_ctx = contextlib.nullcontext(None) if serial else \
+        progress(max(total // CHUNK, 1), "sweep (direct)")
+    with bar_ctx as bar:
         for i, seg in enumerate(sweep.segments):
             lo, hi = boxes[i]
             if np.any(hi < lo):
@@ -235,24 +271,26 @@ def direct_sweep(sweep, grid: Geometry) -> dict[str, np.ndarray]:
             fns = sweep.functions[i]
             box = tuple(int(v) for v in (hi - lo + 1)[::-1])  # (z, y, x) sizes
             n_box = box[0] * box[1] * box[2]
-            near = _near_curve(sweep, i) if isinstance(seg, Bezier) else None
+            near = (_near_curve(sweep, i, workers=1 if serial else -1)
+                    if isinstance(seg, Bezier) else None)
             for start in range(0, n_box, CHUNK):
                 kk, jj, ii = np.unravel_index(np.arange(start, min(start + CHUNK, n_box)), box)
                 kk, jj, ii = kk + lo[2], jj + lo[1], ii + lo[0]
-                idx = (kk * ny + jj) * nx + ii
+                idx = ((kk - oz) * by + (jj - oy)) * bx + (ii - ox)
                 p = origin + np.stack([ii, jj, kk], axis=1) * spacing
                 if near is not None:
                     keep = near(p)
                     idx, p = idx[keep], p[keep]
                     if idx.size == 0:
-                        bar.advance()
+                        if bar is not None:
+                            bar.advance()
                         continue
                 if isinstance(seg, Line):
                     cand = _line_candidates(seg, fns, p)
                 elif isinstance(seg, Arc):
                     cand = _arc_candidates(seg, p)
                 else:
-                    cand = _bezier_candidates(seg, p)
+                    cand = _bezier_candidates(seg, p, serial)
                 for j in range(cand.shape[1]):
                     s = cand[:, j]
                     ok = np.isfinite(s) & (s >= -1e-12) & (s <= 1 + 1e-12)
@@ -285,6 +323,7 @@ def direct_sweep(sweep, grid: Geometry) -> dict[str, np.ndarray]:
                         sl = t.slice_coords(seg, s_sel) if t.n_slices > 1 else None
                         vals[f] = sample_template(t.data, x, y, sl)
                     accum.add(idx[sel], vals)
-                bar.advance()
+                if bar is not None:
+                    bar.advance()
     fields = accum.result()
-    return {n: fields[n].reshape(nz, ny, nx) for n in names}
+    return {n: fields[n].reshape(bz, by, bx) for n in names}

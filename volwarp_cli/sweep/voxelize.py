@@ -36,14 +36,21 @@ part), so no wedge is left open on the outer side of a corner.
 
 The kernel works on z slices of the output in parallel (numba ``prange``):
 each slice belongs to one thread and sees the sub-segments in trajectory
-order, so the result does not depend on the number of threads.
+order, so the result does not depend on the number of threads. The same
+holds for any block of the output (:func:`voxelize_block`, for
+:mod:`.chunked`): the subdivision (:func:`plan_voxelize`) depends on the
+sweep and ``tau`` alone, the kernel's loops run the whole grid's indices
+clamped to the block, and every voxel's value comes from its own world point.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .. import parallel
+from ..box import Box
 from ..errors import VolwarpError
 from ..geometry import Geometry
 from ..memory import ensure_fits_in_memory
@@ -173,15 +180,16 @@ def _joint(a: Frames, b: Frames, sl: np.ndarray, tau: float, what: str, fns):
 
 
 # -- the kernel ---------------------------------------------------------------------
-_KERNEL = None
+_KERNELS: dict[bool, object] = {}
 
 
-def _get_kernel():
-    global _KERNEL
-    if _KERNEL is None:
-        from ._kernels import sweep_voxelize
-        _KERNEL = sweep_voxelize
-    return _KERNEL
+def _get_kernel(serial: bool = False):
+    """The voxelising kernel: numba ``prange`` over z, or its serial twin (block tasks)."""
+    if serial not in _KERNELS:
+        from ._kernels import sweep_voxelize, sweep_voxelize_serial
+        _KERNELS[False] = sweep_voxelize
+        _KERNELS[True] = sweep_voxelize_serial
+    return _KERNELS[serial]
 
 
 def pack_templates(templates):
@@ -197,23 +205,53 @@ def pack_templates(templates):
     return tex, off, h, w, n
 
 
-def voxelize_sweep(sweep, grid: Geometry, tau: float, progress_label: str = "sweep") -> dict:
-    """Voxelise ``sweep`` (a :class:`~volwarp_cli.sweep.model.Sweep`) onto ``grid``.
+@dataclass
+class VoxelPlan:
+    """A sweep's subdivision, ready for the kernel: everything but the grid.
 
-    ``grid`` is axis-aligned (:func:`check_axis_aligned`). Returns
-    ``{field name: float32 array [z, y, x]}`` in the order of ``sweep.templates``.
+    The templates (frames ``P``, ``EX``, ``EY``, ``EZ``, scales ``SX``, ``SY``,
+    slice coordinates ``SL``), the sub-segments (``sub_a``, ``sub_b``,
+    ``closed``) with their world bounding boxes (``lo``, ``hi``), the packed
+    template images and the per-field operators. It depends on the sweep and
+    ``tau`` alone, so a blocked run makes it once and hands it to every block
+    (:func:`voxelize_block`).
     """
-    check_axis_aligned(grid)
+
+    names: list
+    ops: list
+    tau: float
+    P: np.ndarray
+    EX: np.ndarray
+    EY: np.ndarray
+    EZ: np.ndarray
+    SX: np.ndarray
+    SY: np.ndarray
+    SL: np.ndarray
+    sub_a: np.ndarray
+    sub_b: np.ndarray
+    closed: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    tex: np.ndarray
+    off: np.ndarray
+    th: np.ndarray
+    tw: np.ndarray
+    tn: np.ndarray
+    op_codes: np.ndarray
+    opac: int
+
+    @property
+    def blend(self) -> bool:
+        """True when a field blends (the kernel then keeps a weight sum)."""
+        return "blend" in self.ops
+
+
+def plan_voxelize(sweep, tau: float) -> VoxelPlan:
+    """Subdivide ``sweep`` to ``tau`` (:func:`segment_knots`): the :class:`VoxelPlan`."""
     names = list(sweep.templates)
     templates = [sweep.templates[n] for n in names]
     ops = [sweep.ops[n] for n in names]
     F = len(names)
-    nz, ny, nx = grid.shape
-    nvox = grid.size
-    blend = "blend" in ops
-    ensure_fits_in_memory(nvox * (4 * F + 1 + (4 if blend else 0)),
-                          f"sweep output {nx}x{ny}x{nz} "
-                          f"x {F} fields")
     knots, slices, sub_a, sub_b, closed = [], [], [], [], []
     base = 0
     with timed("sweep: subdivide"):
@@ -236,44 +274,94 @@ def voxelize_sweep(sweep, grid: Geometry, tau: float, progress_label: str = "swe
     sub_b = np.concatenate(sub_b).astype(np.int64)
     closed = np.concatenate(closed)
     log.info("sweep: %d templates, %d sub-segments, tau %.4g", len(fr.s), len(sub_a), tau)
-    # voxel-index bounding boxes of the sub-segments
+    # world bounding boxes of the sub-segments
     corners = fr.corners()  # (K, 5, 3)
     lo = np.minimum(corners[sub_a].min(axis=1), corners[sub_b].min(axis=1))
     hi = np.maximum(corners[sub_a].max(axis=1), corners[sub_b].max(axis=1))
-    origin, spacing = grid.origin_array, grid.spacing_array
-    ilo = np.floor((lo - origin) / spacing).astype(np.int64) - 1
-    ihi = np.ceil((hi - origin) / spacing).astype(np.int64) + 1
-    shp = np.array(grid.shape_xyz, dtype=np.int64)
-    ilo = np.maximum(ilo, 0)
-    ihi = np.minimum(ihi, shp - 1)
-    keep = np.all(ilo <= ihi, axis=1)
-    boxes = np.ascontiguousarray(np.stack([ilo[:, 0], ihi[:, 0], ilo[:, 1], ihi[:, 1],
-                                           ilo[:, 2], ihi[:, 2]], axis=1)[keep])
-    sub_a, sub_b, closed = sub_a[keep], sub_b[keep], closed[keep]
     tex, off, th, tw, tn = pack_templates(templates)
     op_codes = np.array([OP_CODES[o] for o in ops], dtype=np.int64)
     opac = names.index("opacity") if "opacity" in names else -1
-    acc = np.zeros((F, nz, ny, nx), dtype=np.float32)
-    covered = np.zeros((nz, ny, nx), dtype=np.uint8)
-    wsum = np.zeros((nz, ny, nx) if blend else (1, 1, 1), dtype=np.float32)
+    c64 = np.ascontiguousarray
+    return VoxelPlan(names, ops, float(tau), c64(fr.P), c64(fr.EX), c64(fr.EY), c64(fr.EZ),
+                     c64(fr.SX), c64(fr.SY), SL, sub_a, sub_b, closed, lo, hi,
+                     tex, off, th, tw, tn, op_codes, opac)
+
+
+def _kernel_args(plan: VoxelPlan, grid: Geometry, box: Box):
+    """The kernel's arguments for the voxels of ``box`` (accumulators of its shape).
+
+    The sub-segments' voxel-index boxes are the whole grid's, clamped to ``box``
+    (the kernel tests every voxel of that range exactly; the clamp only skips
+    voxels outside the block).
+    """
+    origin, spacing = grid.origin_array, grid.spacing_array
+    ilo = np.floor((plan.lo - origin) / spacing).astype(np.int64) - 1
+    ihi = np.ceil((plan.hi - origin) / spacing).astype(np.int64) + 1
+    blo_xyz, bhi_xyz = box.xyz()
+    ilo = np.maximum(ilo, np.array(blo_xyz, dtype=np.int64))
+    ihi = np.minimum(ihi, np.array(bhi_xyz, dtype=np.int64) - 1)
+    keep = np.all(ilo <= ihi, axis=1)
+    boxes = np.ascontiguousarray(np.stack([ilo[:, 0], ihi[:, 0], ilo[:, 1], ihi[:, 1],
+                                           ilo[:, 2], ihi[:, 2]], axis=1)[keep])
+    F = len(plan.names)
+    shape = box.shape
+    acc = np.zeros((F,) + shape, dtype=np.float32)
+    covered = np.zeros(shape, dtype=np.uint8)
+    wsum = np.zeros(shape if plan.blend else (1, 1, 1), dtype=np.float32)
+    args = (plan.P, plan.EX, plan.EY, plan.EZ, plan.SX, plan.SY, plan.SL,
+            plan.sub_a[keep], plan.sub_b[keep], plan.closed[keep], boxes, origin, spacing,
+            plan.tex, plan.off, plan.th, plan.tw, plan.tn, plan.op_codes, plan.opac,
+            1e-6 * float(spacing.min()), acc, wsum, covered)
+    return args, acc, wsum, covered
+
+
+def _finish(plan: VoxelPlan, acc, wsum, covered) -> dict:
+    F = len(plan.names)
+    shape = covered.shape
+    fields = finish_fields(plan.names, plan.ops, acc.reshape(F, -1),
+                           wsum.reshape(-1) if plan.blend else None,
+                           covered.reshape(-1).astype(bool))
+    return {n: fields[n].reshape(shape) for n in plan.names}
+
+
+def voxelize_sweep(sweep, grid: Geometry, tau: float, progress_label: str = "sweep") -> dict:
+    """Voxelise ``sweep`` (a :class:`~volwarp_cli.sweep.model.Sweep`) onto ``grid``.
+
+    ``grid`` is axis-aligned (:func:`check_axis_aligned`). Returns
+    ``{field name: float32 array [z, y, x]}`` in the order of ``sweep.templates``.
+    """
+    check_axis_aligned(grid)
+    F = len(sweep.templates)
+    nz, ny, nx = grid.shape
+    blend = "blend" in sweep.ops.values()
+    ensure_fits_in_memory(grid.size * (4 * F + 1 + (4 if blend else 0)),
+                          f"sweep output {nx}x{ny}x{nz} "
+                          f"x {F} fields")
+    plan = plan_voxelize(sweep, tau)
+    args, acc, wsum, covered = _kernel_args(plan, grid, grid.box)
     kernel = _get_kernel()
     parallel.numba_threads()
-    c64 = np.ascontiguousarray
-    args = (c64(fr.P), c64(fr.EX), c64(fr.EY), c64(fr.EZ), c64(fr.SX), c64(fr.SY), SL,
-            sub_a, sub_b, closed, boxes, origin, spacing,
-            tex, off, th, tw, tn, op_codes, opac, 1e-6 * float(spacing.min()),
-            acc, wsum, covered)
     # z slabs, so that a progress bar can move (each slab is split over the threads)
     n_slabs = max(1, min(16, nz // 8))
     edges = np.linspace(0, nz, n_slabs + 1).astype(int)
     with timed("sweep: voxelise"), progress(n_slabs, progress_label) as bar:
         for z0, z1 in zip(edges[:-1], edges[1:], strict=True):
             if z1 > z0:
-                kernel(*args, int(z0), int(z1))
+                kernel(*args, int(z0), int(z1), 0, 0, 0)
             bar.advance()
-    if not blend:
-        wsum = None
-    fields = finish_fields(names, ops, acc.reshape(F, -1),
-                           None if wsum is None else wsum.reshape(-1),
-                           covered.reshape(-1).astype(bool))
-    return {n: fields[n].reshape(nz, ny, nx) for n in names}
+    return _finish(plan, acc, wsum, covered)
+
+
+def voxelize_block(plan: VoxelPlan, grid: Geometry, box: Box) -> dict:
+    """The fields of ``plan`` on the voxels ``box`` of ``grid``, bit for bit the whole's.
+
+    One call of the serial kernel (no numba thread pool: safe in any thread);
+    each voxel's value comes from its own world point and the sub-segments in
+    trajectory order, exactly as in :func:`voxelize_sweep`.
+    """
+    check_axis_aligned(grid)
+    args, acc, wsum, covered = _kernel_args(plan, grid, box)
+    if not box.empty:
+        _get_kernel(serial=True)(*args, *(int(v) for v in (box.lo[0], box.hi[0])),
+                                 *(int(v) for v in box.lo))
+    return _finish(plan, acc, wsum, covered)
