@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from volwarp_cli import __version__
 from volwarp_cli.batch.manifest import find_scans, load_manifest, shard, stem_of
@@ -360,7 +362,7 @@ def test_list_and_csv_inputs(tmp_path):
 
 
 def test_retries_only_for_a_dead_worker(tmp_path, monkeypatch):
-    from volwarp_cli.batch.run import Batch
+    from volwarp_cli.batch.run import Batch, ScanRunner
 
     manifest = load_manifest(make_tree(tmp_path, CONVERT_MANIFEST))
     scans = find_scans(manifest)[:1]
@@ -373,20 +375,20 @@ def test_retries_only_for_a_dead_worker(tmp_path, monkeypatch):
             if code == 0:
                 for out in (Path(argv[argv.index("-o") + 1]),):
                     write_volume(scan_volume(0), out)
-            return code, "volwarp: error: x: went wrong\n" if code > 0 else ""
+            return code, "volwarp: error: x: went wrong\n" if code > 0 else "", 1 << 20
         return call
 
-    monkeypatch.setattr(Batch, "_call", fake([-signal.SIGKILL, -signal.SIGSEGV, 0, 0]))
+    monkeypatch.setattr(ScanRunner, "_call", fake([-signal.SIGKILL, -signal.SIGSEGV, 0, 0]))
     (result,), stop = Batch(manifest, scans, jobs=1, retries=2).run()
     assert stop is None and result.status == "ok"
     assert [s.attempts for s in result.steps] == [3, 1] and calls == ["convert"] * 3 + [
         "distance"]
     calls.clear()
-    monkeypatch.setattr(Batch, "_call", fake([-signal.SIGKILL, -signal.SIGKILL]))
+    monkeypatch.setattr(ScanRunner, "_call", fake([-signal.SIGKILL, -signal.SIGKILL]))
     (result,), _ = Batch(manifest, scans, jobs=1, retries=1, force=True).run()
     assert result.status == "failed" and result.steps[0].error == "killed by SIGKILL"
     assert result.steps[0].attempts == 2
-    monkeypatch.setattr(Batch, "_call", fake([1]))
+    monkeypatch.setattr(ScanRunner, "_call", fake([1]))
     (result,), _ = Batch(manifest, scans, jobs=1, retries=5, force=True).run()
     assert result.status == "failed" and result.steps[0].attempts == 1
     assert result.error == "volwarp: error: x: went wrong"
@@ -436,3 +438,18 @@ def test_changed_options_redo_the_step(warped, tmp_path):
                        hand).returncode == 0
         assert (root / "out" / f"{scan_id}_sdf.nrrd").read_bytes() != b"" and np.array_equal(
             sdf.data, read_volume(hand).data)
+
+
+@settings(max_examples=200, deadline=None)
+@given(count=st.integers(min_value=0, max_value=60), n=st.integers(min_value=1, max_value=20))
+def test_shards_are_a_partition(count, n):
+    """Over I = 0..N-1 the shards hold every scan exactly once, in even sizes, in order."""
+    from volwarp_cli.batch.manifest import Scan
+
+    scans = [Scan(id=f"s{k:03d}", path=Path(f"s{k:03d}.nrrd"), stem=f"s{k:03d}", relpath="")
+             for k in range(count)]
+    parts = [shard(scans, i, n) for i in range(n)]
+    flat = [s.id for p in parts for s in p]
+    assert sorted(flat) == [s.id for s in scans] and len(flat) == len(set(flat))
+    assert max(map(len, parts)) - min(map(len, parts)) <= 1
+    assert all([s.id for s in p] == sorted(s.id for s in p) for p in parts)

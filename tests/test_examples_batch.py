@@ -143,3 +143,20 @@ def test_corrupt_scan_fails_alone(first_run, tmp_path):
     leftovers = [p.name for p in (bad / "processed").rglob("*") if ".tmp" in p.name
                  or p.name.startswith(".")]
     assert leftovers == []
+
+
+def test_slurm_script_and_readme_use_real_options():
+    """Every option the SLURM script, the cron line and the README give `volwarp batch` exists."""
+    import re
+
+    folder = Path(__file__).parent.parent / "examples" / "batch"
+    text = (folder / "volwarp-batch.slurm").read_text() + (folder / "README.md").read_text()
+    lines = [line for line in text.replace("\\\n", " ").splitlines() if " batch " in line
+             and ("volwarp" in line or "VOLWARP" in line)]
+    used = {opt for line in lines for opt in re.findall(r"(?<![\w-])(--[a-z][a-z-]+|-[jq])\b",
+                                                        line.split(" batch ", 1)[1])}
+    assert {"--shard", "--retries", "--report", "--scheduler", "--progress"} <= used
+    help_text = subprocess.run([sys.executable, "-m", "volwarp_cli", "batch", "--help"],
+                               capture_output=True, text=True, timeout=60).stdout
+    for opt in used:
+        assert re.search(rf"(?<![\w-]){re.escape(opt)}\b", help_text), opt

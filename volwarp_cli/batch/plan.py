@@ -130,16 +130,48 @@ class CommandRecord:
 
     def record(self, plan: StepPlan) -> None:
         """Note that the step made the outputs of ``plan`` (the state file rewritten atomically)."""
+        self.record_many([plan])
+
+    def record_many(self, plans: list[StepPlan]) -> None:
+        """Note that the steps made the outputs of ``plans`` (one rewrite of the state file)."""
         import json
 
         from ..io.atomic import write_bytes_atomic
 
+        if not plans:
+            return
         with self.lock:
-            for p in plan.outputs:
-                self.made[self._key(p)] = command_digest(self.manifest, plan)
+            for plan in plans:
+                for p in plan.outputs:
+                    self.made[self._key(p)] = command_digest(self.manifest, plan)
             self.path.parent.mkdir(parents=True, exist_ok=True)
             write_bytes_atomic(self.path, json.dumps(self.made, sort_keys=True,
                                                      indent=1).encode())
+
+    def snapshot(self, plans: list[StepPlan]) -> dict[str, str]:
+        """The record's entries for the outputs of ``plans`` (what a cluster task needs)."""
+        keys = {self._key(p) for plan in plans for p in plan.outputs}
+        with self.lock:
+            return {k: v for k, v in self.made.items() if k in keys}
+
+
+class RecordSnapshot(CommandRecord):
+    """A :class:`CommandRecord` read from a snapshot (a cluster task's), noting nothing.
+
+    The batch process records the steps a task ran when its result arrives: one
+    writer of the state file, however many workers.
+    """
+
+    def __init__(self, manifest: Manifest, made: dict[str, str]):
+        import threading
+
+        self.manifest = manifest
+        self.path = manifest.output_dir / STATE_NAME
+        self.lock = threading.Lock()
+        self.made = dict(made)
+
+    def record_many(self, plans: list[StepPlan]) -> None:
+        """Nothing: the batch process records."""
 
 
 def check_outputs(manifest: Manifest, scans: list[Scan]) -> None:

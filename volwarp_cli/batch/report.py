@@ -1,16 +1,25 @@
 """What a batch says: a progress line per scan, one summary line, the JSON run report.
 
-Progress (stderr, unless ``--quiet``), as each scan ends::
+Progress (stderr, unless ``--quiet``; :class:`ScanProgress`): on a terminal a
+bar, with a line for each failed scan; elsewhere (a log, a pipe) a line as each
+scan ends::
 
     ok site-a/p01 3.2 s
     skipped site-a/p02
     failed site-b/p17 0.4 s: truncated gzip stream
 
+and with ``--progress jsonl`` one JSON object a line (the block lines' format,
+:class:`volwarp_cli.engine.JsonlProgress`): ``{"event": "start", "kind":
+"scan", "id": "site-a/p01", "t": ...}`` as a scan starts (on a cluster: as its
+task starts on the worker, with ``worker`` and ``pid``), ``done`` (with
+``status`` ok or skipped) or ``failed`` (with ``error``) or ``stopped`` as it
+ends, with its ``seconds`` and ``peak_rss`` (bytes, its steps' largest).
+
 The summary (stderr, always), e.g.::
 
     volwarp batch: 412 scans, 409 ok, 2 skipped, 1 failed: site-b/p17 (truncated gzip stream)
 
-The report (``--report-json``): per scan and per step its status, seconds,
+The report (``--report-json``, or ``--report`` with a ``.json`` name): per scan and per step its status, seconds,
 attempts, exit code, error line, command and outputs, with the provenance
 key/values every volwarp output carries (``volwarp_input``: the manifest's
 name, ``volwarp_spec_sha256``: its sha256). Written atomically.
@@ -89,8 +98,16 @@ def summary_line(results: list[ScanResult], *, stop: int | None = None,
 
 
 def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | None,
-                shard: tuple[int, int, int] | None, exit_code: int) -> dict:
-    """The JSON run report: the provenance key/values, the run's figures, each scan's steps."""
+                shard: tuple[int, int, int] | None, exit_code: int,
+                scheduler: str = "pool") -> dict:
+    """The JSON run report: the provenance key/values, the run's figures, each scan's steps.
+
+    ``jobs``: scans at once (the pool's threads, the cluster's worker threads);
+    ``scheduler``: ``pool`` or the cluster as ``--scheduler`` named it. Per
+    scan its ``attempts`` (runs of its task: more than one when a worker
+    died), its ``worker`` (on a cluster) and ``peak_rss`` (bytes, the largest
+    of its steps'); per step the step process's ``peak_rss``.
+    """
     from ..cli.common import provenance
 
     meta = provenance("batch", manifest.path)
@@ -99,6 +116,7 @@ def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | N
         **meta,
         "manifest": str(manifest.path),
         "output_dir": str(manifest.output_dir),
+        "scheduler": scheduler,
         "jobs": jobs,
         "shard": None if shard is None else f"{shard[0]}/{shard[1]}",
         "stopped_by": None if stop is None else signal.Signals(stop).name,
@@ -110,10 +128,13 @@ def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | N
             "status": r.status,
             "seconds": round(r.seconds, 3),
             "error": r.error,
+            "attempts": r.attempts,
+            "worker": r.worker,
+            "peak_rss": r.peak_rss,
             "steps": [{
                 "name": s.name, "run": s.run, "status": s.status,
                 "seconds": round(s.seconds, 3), "error": s.error, "attempts": s.attempts,
-                "exit_code": s.exit_code, "reason": s.reason,
+                "exit_code": s.exit_code, "reason": s.reason, "peak_rss": s.peak_rss,
                 "command": s.command, "outputs": s.outputs,
             } for s in r.steps],
         } for r in results],
@@ -126,3 +147,60 @@ def write_report(path: str | Path, report: dict) -> None:
 
     text = json.dumps(report, indent=2, sort_keys=False) + "\n"
     write_bytes_atomic(path, text.encode("utf-8"))
+
+
+class ScanProgress:
+    """What is said as scans start and end: ``mode`` is ``bar``, ``lines``, ``jsonl`` or ``none``.
+
+    Its methods may be called from any thread (the pool's, the client's).
+    """
+
+    def __init__(self, mode: str, total: int, stream=None):
+        import sys
+        import threading
+
+        self.mode = mode
+        self.stream = stream if stream is not None else sys.stderr
+        self._lock = threading.Lock()
+        self._bar = None
+        self._jsonl = None
+        if mode == "jsonl":
+            from ..engine import JsonlProgress
+
+            self._jsonl = JsonlProgress(self.stream)
+        elif mode == "bar":
+            from ..progress import Progress
+
+            self._bar = Progress(total, "volwarp batch")
+            self._bar.enabled = True
+
+    def start(self, scan, worker: str | None = None, pid: int | None = None) -> None:
+        """A scan started (on ``worker``, process ``pid``: a cluster's)."""
+        if self._jsonl is not None:
+            self._jsonl.emit("start", "scan", scan.id, worker=worker, pid=pid)
+
+    def end(self, result: ScanResult) -> None:
+        """A scan ended."""
+        with self._lock:
+            if self._jsonl is not None:
+                event = {"ok": "done", "skipped": "done", "failed": "failed"}.get(
+                    result.status, "stopped" if result.status == "stopped" else None)
+                if event is not None:
+                    self._jsonl.emit(event, "scan", result.scan.id, status=result.status,
+                                     seconds=round(result.seconds, 4),
+                                     peak_rss=result.peak_rss, worker=result.worker,
+                                     error=(short_error(result.error, result)
+                                            if result.status == "failed" else None))
+            elif self.mode == "lines":
+                self.stream.write(progress_line(result) + "\n")
+                self.stream.flush()
+            elif self._bar is not None:
+                if result.status == "failed":  # above the bar, which is drawn again
+                    self.stream.write("\r\x1b[2K" + progress_line(result) + "\n")
+                self._bar.advance()
+
+    def close(self) -> None:
+        """End the bar's line."""
+        if self._bar is not None:
+            self._bar.__exit__(None, None, None)
+            self._bar = None

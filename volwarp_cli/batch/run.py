@@ -1,11 +1,19 @@
-"""Running the scans: a local pool, one subprocess per step, stops and retries.
+"""Running the scans: one scan's steps (the same code on a local pool and on a cluster).
 
-Each scan is one task of a pool of ``jobs`` workers (threads of the batch
-process, each waiting on its own child): every step runs as ``python -m
+A scan's steps are run by a :class:`ScanRunner`: every step as ``python -m
 volwarp_cli RUN ...`` in a child process (in the manifest's folder, so relative
 paths in options are the manifest's), so a crash, a memory blow-up or a stop of
 one scan cannot take the others down. The last line of a failed step's stderr is
-its error.
+its error; the child's peak resident memory comes from ``wait4`` (its own
+``ru_maxrss``). A child is asked to stop (SIGTERM: it removes its temporaries)
+when the thread that started it dies with its process (``PR_SET_PDEATHSIG``):
+a killed batch or a killed cluster worker leaves no step running on and no
+partial file.
+
+:class:`Batch` is the local pool: each scan one task of a pool of ``jobs``
+threads of the batch process, each waiting on its own child. The cluster form
+(:mod:`.cluster`) submits each scan as one task whose worker runs the same
+:class:`ScanRunner`.
 
 - Up-to-date steps are skipped (:func:`..plan.stale_reason`) unless ``force``; a
   step whose input step ran, runs.
@@ -39,6 +47,17 @@ from .plan import CommandRecord, StepPlan, plan_scan, stale_reason
 #: seconds a stopped child is given before it is killed
 STOP_GRACE = 20.0
 _STOP_CODES = (128 + signal.SIGINT, 128 + signal.SIGTERM)
+#: Linux's prctl option asking for a signal when the parent (thread) dies
+_PR_SET_PDEATHSIG = 1
+#: the child's first lines: SIGTERM when its parent dies, then ``volwarp`` itself
+_BOOT = (
+    "import ctypes, os, signal, sys\n"
+    "ppid = int(sys.argv.pop(1))\n"
+    "ctypes.CDLL(None, use_errno=True).prctl(" + str(_PR_SET_PDEATHSIG) + ", signal.SIGTERM)\n"
+    "if os.getppid() != ppid: os.kill(os.getpid(), signal.SIGTERM)\n"
+    "import runpy\n"
+    "runpy.run_module({module!r}, run_name='__main__', alter_sys=True)\n"
+)
 
 
 @dataclass
@@ -55,6 +74,7 @@ class StepResult:
     command: list[str] = field(default_factory=list)
     outputs: list[str] = field(default_factory=list)
     reason: str | None = None  # why it ran (or None: forced, or skipped)
+    peak_rss: int | None = None  # bytes: the step process's peak resident memory
 
 
 @dataclass
@@ -65,16 +85,34 @@ class ScanResult:
     status: str  # ok | skipped | failed | stopped | not started
     seconds: float = 0.0
     steps: list[StepResult] = field(default_factory=list)
+    attempts: int = 1  # runs of the scan's task (more than one: its worker died)
+    worker: str | None = None  # the cluster worker that ran it (None: the local pool)
+    #: ``{"input": PNG bytes or None, "outputs": [(name, PNG bytes), ...]}`` (--report html)
+    thumbnails: dict | None = None
 
     @property
     def error(self) -> str | None:
         """The error line of the scan's first failed step, or None."""
         return next((s.error for s in self.steps if s.status == "failed"), None)
 
+    @property
+    def peak_rss(self) -> int | None:
+        """The largest peak resident memory of the scan's step processes (bytes), or None."""
+        peaks = [s.peak_rss for s in self.steps if s.peak_rss is not None]
+        return max(peaks) if peaks else None
+
 
 def volwarp_argv(argv: list[str]) -> list[str]:
     """The command line that runs ``volwarp ARGV`` with this interpreter."""
     return [sys.executable, "-m", "volwarp_cli", *argv]
+
+
+def child_argv(argv: list[str], module: str = "volwarp_cli") -> list[str]:
+    """``python -m MODULE ARGV``, made to stop (SIGTERM) if this process dies first (Linux)."""
+    if not sys.platform.startswith("linux"):
+        return [sys.executable, "-m", module, *argv]
+    return [sys.executable, "-c", _BOOT.replace("{module!r}", repr(module)), str(os.getpid()),
+            *argv]
 
 
 def last_line(text: str) -> str | None:
@@ -83,98 +121,110 @@ def last_line(text: str) -> str | None:
     return lines[-1] if lines else None
 
 
-class Batch:
-    """The scans of a manifest run through its steps by a pool of ``jobs`` workers."""
+class Children:
+    """The child processes of one batch (or of one run on one cluster worker), to stop them.
 
-    def __init__(self, manifest: Manifest, scans: list[Scan], *, jobs: int, force: bool = False,
-                 fail_fast: bool = False, retries: int = 0, on_scan=None):
-        self.manifest = manifest
-        self.scans = scans
-        self.jobs = max(1, jobs)
-        #: VOLWARP_THREADS of each scan's commands (a step's own --threads wins)
-        self.child_threads = child_threads(self.jobs)
-        self.force = force
-        self.fail_fast = fail_fast
-        self.retries = retries
-        self.on_scan = on_scan  # called with each ScanResult as it ends (any thread)
-        self._lock = threading.Lock()
-        self._running: set[subprocess.Popen] = set()
-        self._stopping: int | None = None
-        self._failed = False
-        self._signals: list[int] = []  # appended by the signal handler only
-        self._record = CommandRecord(manifest)
+    A child is reaped with ``wait4`` for its peak memory; it leaves the set of
+    running children before it is reaped, so a stop never signals a reused pid.
+    """
 
-    # --- the main thread -----------------------------------------------------------------
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.running: set[subprocess.Popen] = set()
+        self.stopping: int | None = None
 
-    def run(self) -> tuple[list[ScanResult], int | None]:
-        """Run every scan; ``(results in scan order, the stop's signal number or None)``."""
-        handlers = self._install()
+    def start(self, cmd: list[str], **popen) -> subprocess.Popen | None:
+        """Start ``cmd`` (stdin and stdout closed, stderr piped), or None when stopping."""
+        with self.lock:
+            if self.stopping is not None:
+                return None
+            popen.setdefault("stdout", subprocess.DEVNULL)
+            proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                    **popen)
+            self.running.add(proc)
+        return proc
+
+    def finish(self, proc: subprocess.Popen) -> tuple[int, bytes, bytes, int | None]:
+        """Wait for ``proc``: ``(exit code, stdout, stderr, peak resident bytes)``."""
         try:
-            results = self._pool()
+            out = b""
+            if proc.stdout is not None:  # (communicate would reap the child itself)
+                got: list[bytes] = []
+                reader = threading.Thread(target=lambda: got.append(proc.stderr.read()),
+                                          daemon=True)
+                reader.start()
+                out = proc.stdout.read()
+                reader.join()
+                err = got[0] if got else b""
+            else:
+                err = proc.stderr.read()
+            os.waitid(os.P_PID, proc.pid, os.WEXITED | os.WNOWAIT)
         finally:
-            self._restore(handlers)
-        return results, self._stopping
-
-    def _install(self):
-        if threading.current_thread() is not threading.main_thread():
-            return None
-        old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-        for s in old:
-            signal.signal(s, lambda signum, frame: self._signals.append(signum))
-        return old
-
-    @staticmethod
-    def _restore(handlers) -> None:
-        for s, h in (handlers or {}).items():
-            signal.signal(s, h)
-
-    def _pool(self) -> list[ScanResult]:
-        killed_at = None
-        with ThreadPoolExecutor(max_workers=min(self.jobs, max(1, len(self.scans))),
-                                thread_name_prefix="volwarp-batch") as pool:
-            futures = [pool.submit(self._guarded, scan) for scan in self.scans]
-            pending = set(futures)
-            while pending:
-                _, pending = wait(pending, timeout=0.05)
-                if self._signals and self._stopping is None:
-                    self._stop(self._signals[0])
-                    killed_at = time.monotonic() + STOP_GRACE
-                if self._stopping is not None and (
-                        len(self._signals) > 1 or time.monotonic() > killed_at):
-                    self._signal_children(signal.SIGKILL)
-        return [f.result() for f in futures]
-
-    def _stop(self, signum: int) -> None:
-        with self._lock:
-            self._stopping = signum
-        self._signal_children(signum)
-
-    def _signal_children(self, signum: int) -> None:
-        with self._lock:
-            children = list(self._running)
-        for proc in children:
-            try:
-                proc.send_signal(signum)
-            except OSError:  # already gone
-                pass
-
-    # --- the workers -----------------------------------------------------------------------
-
-    def _guarded(self, scan: Scan) -> ScanResult:
+            with self.lock:
+                self.running.discard(proc)
+        peak = None
         try:
-            result = self._run_scan(scan)
-        except Exception as exc:  # a bug of the batch itself: that scan fails, not the batch
-            result = ScanResult(scan, "failed", steps=[StepResult(
-                "-", "-", "failed", error=f"internal error: {type(exc).__name__}: {exc}")])
-        if result.status == "failed":
-            self._failed = True
-        if self.on_scan is not None:
-            self.on_scan(result)
-        return result
+            _, status, usage = os.wait4(proc.pid, 0)
+            proc.returncode = os.waitstatus_to_exitcode(status)
+            peak = int(usage.ru_maxrss) * 1024  # KiB on Linux
+        except ChildProcessError:  # reaped elsewhere
+            proc.wait()
+        for pipe in (proc.stdout, proc.stderr):
+            if pipe is not None:
+                pipe.close()
+        return proc.returncode, out or b"", err or b"", peak
 
-    def _run_scan(self, scan: Scan) -> ScanResult:
-        if self._stopping is not None or (self.fail_fast and self._failed):
+    def signal(self, signum: int) -> None:
+        """Send ``signum`` to every running child."""
+        with self.lock:
+            for proc in self.running:
+                try:
+                    os.kill(proc.pid, signum)
+                except OSError:  # already gone
+                    pass
+
+    def stop(self, signum: int) -> None:
+        """No new child starts; the running ones get ``signum``."""
+        with self.lock:
+            if self.stopping is None:
+                self.stopping = signum
+        self.signal(signum)
+
+
+class ScanRunner:
+    """One scan's steps, run in order as child processes (the local pool's and a worker's).
+
+    ``record`` tells which outputs the manifest's steps as they are now made
+    (:class:`..plan.CommandRecord`, or a snapshot of it on a worker) and
+    notes each step that ran; ``thumbnails``: after the steps, small PNG
+    renders of the scan and of its outputs for the HTML report (in a child
+    process too, see :mod:`.thumbs`); ``on_start``: called with the scan as
+    its first step is considered.
+    """
+
+    def __init__(self, manifest: Manifest, *, force: bool = False, retries: int = 0,
+                 child_threads: int = 1, record: CommandRecord | None = None,
+                 children: Children | None = None, thumbnails: bool = False, on_start=None):
+        self.manifest = manifest
+        self.force = force
+        self.retries = retries
+        self.child_threads = child_threads
+        self.record = record if record is not None else CommandRecord(manifest)
+        self.children = children if children is not None else Children()
+        self.thumbnails = thumbnails
+        self.on_start = on_start
+
+    @property
+    def stopping(self) -> int | None:
+        """The stop's signal number, once the batch is stopping."""
+        return self.children.stopping
+
+    def run(self, scan: Scan) -> ScanResult:
+        """Run (or skip) each of the scan's steps; the scan's :class:`ScanResult`."""
+        if self.stopping is not None:
             return ScanResult(scan, "not started")
+        if self.on_start is not None:
+            self.on_start(scan)
         start = time.monotonic()
         plans = plan_scan(self.manifest, scan)
         results: dict[str, StepResult] = {}
@@ -187,18 +237,18 @@ class Batch:
             upstream = results.get(step.input) if step.input != SCAN else None
             if upstream is not None and upstream.status in ("failed", "not run", "stopped"):
                 continue  # its input was not made
-            if self._stopping is not None:
+            if self.stopping is not None:
                 res.status = "stopped"
                 continue
             if not self.force and step.input not in ran:
-                res.reason = stale_reason(self.manifest, plan, self._record)
+                res.reason = stale_reason(self.manifest, plan, self.record)
                 if res.reason is None:
                     res.status = "skipped"
                     continue
             self._run_step(plan, res)
             if res.status == "ok":
                 ran.add(step.name)
-                self._record.record(plan)
+                self.record.record(plan)
         steps = list(results.values())
         statuses = {s.status for s in steps}
         if "failed" in statuses:
@@ -209,7 +259,10 @@ class Batch:
             status = "ok"
         else:
             status = "skipped"
-        return ScanResult(scan, status, time.monotonic() - start, steps)
+        result = ScanResult(scan, status, time.monotonic() - start, steps)
+        if self.thumbnails and status != "stopped" and self.stopping is None:
+            result.thumbnails = self._thumbnails(scan, plans)
+        return result
 
     def _run_step(self, plan: StepPlan, res: StepResult) -> None:
         for out in plan.outputs:
@@ -221,9 +274,11 @@ class Batch:
         start = time.monotonic()
         while True:
             res.attempts += 1
-            code, stderr = self._call(plan.argv)
+            code, stderr, peak = self._call(plan.argv)
             res.exit_code = code
             res.seconds = time.monotonic() - start
+            if peak is not None:
+                res.peak_rss = max(peak, res.peak_rss or 0)
             if code is None:  # not started: the batch is stopping
                 res.status = "stopped"
                 return
@@ -234,7 +289,7 @@ class Batch:
                 # a terminal's Ctrl-C reaches the children with the batch: give the
                 # batch's own handler a moment to say it was a stop
                 for _ in range(20):
-                    if self._stopping is not None:
+                    if self.stopping is not None:
                         res.status, res.error = "stopped", None
                         return
                     time.sleep(0.01)
@@ -249,21 +304,119 @@ class Batch:
                 res.error = f"exit code {code}"
             return
 
-    def _call(self, argv: list[str]) -> tuple[int | None, str]:
-        with self._lock:
-            if self._stopping is not None:
-                return None, ""
-            env = dict(os.environ, **{THREADS_ENV: str(self.child_threads)})
-            proc = subprocess.Popen(volwarp_argv(argv), cwd=self.manifest.base, env=env,
-                                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                    stderr=subprocess.PIPE)
-            self._running.add(proc)
+    def _call(self, argv: list[str]) -> tuple[int | None, str, int | None]:
+        """Run ``volwarp ARGV``: ``(exit code or None if not started, stderr, peak bytes)``."""
+        env = dict(os.environ, **{THREADS_ENV: str(self.child_threads)})
+        proc = self.children.start(child_argv(argv), cwd=self.manifest.base, env=env)
+        if proc is None:
+            return None, "", None
+        code, _, err, peak = self.children.finish(proc)
+        return code, err.decode("utf-8", "replace"), peak
+
+    def _thumbnails(self, scan: Scan, plans: list[StepPlan]) -> dict | None:
+        from . import thumbs
+
+        files = [str(scan.path.absolute())]
+        names = []
+        for plan in plans:
+            for out in plan.outputs:
+                if thumbs.can_preview(out) and out.is_file():
+                    files.append(str(out.absolute()))
+                    names.append(os.path.relpath(out, self.manifest.output_dir))
+        env = dict(os.environ, **{THREADS_ENV: "1"})
+        proc = self.children.start(thumbs.command(files), cwd=self.manifest.base, env=env,
+                                   stdout=subprocess.PIPE)
+        if proc is None:
+            return None
+        code, out, _, _ = self.children.finish(proc)
+        pngs = thumbs.parse_output(out) if code == 0 else [None] * len(files)
+        return {"input": pngs[0], "outputs": [(n, p) for n, p in zip(names, pngs[1:],
+                                                                    strict=True)]}
+
+
+class Batch:
+    """The scans of a manifest run through its steps by a local pool of ``jobs`` workers."""
+
+    def __init__(self, manifest: Manifest, scans: list[Scan], *, jobs: int, force: bool = False,
+                 fail_fast: bool = False, retries: int = 0, on_scan=None, on_start=None,
+                 thumbnails: bool = False):
+        self.manifest = manifest
+        self.scans = scans
+        self.jobs = max(1, jobs)
+        self.fail_fast = fail_fast
+        self.on_scan = on_scan  # called with each ScanResult as it ends (any thread)
+        self._children = Children()
+        self._failed = False
+        self._signals: list[int] = []  # appended by the signal handler only
+        #: VOLWARP_THREADS of each scan's commands (a step's own --threads wins)
+        self.runner = ScanRunner(manifest, force=force, retries=retries,
+                                 child_threads=child_threads(self.jobs),
+                                 record=CommandRecord(manifest), children=self._children,
+                                 thumbnails=thumbnails, on_start=on_start)
+
+    @property
+    def _stopping(self) -> int | None:
+        return self._children.stopping
+
+    # --- the main thread -----------------------------------------------------------------
+
+    def run(self) -> tuple[list[ScanResult], int | None]:
+        """Run every scan; ``(results in scan order, the stop's signal number or None)``."""
+        handlers = install_stop_handlers(self._signals)
         try:
-            _, err = proc.communicate()
+            results = self._pool()
         finally:
-            with self._lock:
-                self._running.discard(proc)
-        return proc.returncode, err.decode("utf-8", "replace")
+            restore_handlers(handlers)
+        return results, self._stopping
+
+    def _pool(self) -> list[ScanResult]:
+        killed_at = None
+        with ThreadPoolExecutor(max_workers=min(self.jobs, max(1, len(self.scans))),
+                                thread_name_prefix="volwarp-batch") as pool:
+            futures = [pool.submit(self._guarded, scan) for scan in self.scans]
+            pending = set(futures)
+            while pending:
+                _, pending = wait(pending, timeout=0.05)
+                if self._signals and self._stopping is None:
+                    self._children.stop(self._signals[0])
+                    killed_at = time.monotonic() + STOP_GRACE
+                if self._stopping is not None and (
+                        len(self._signals) > 1 or time.monotonic() > killed_at):
+                    self._children.signal(signal.SIGKILL)
+        return [f.result() for f in futures]
+
+    # --- the workers -----------------------------------------------------------------------
+
+    def _guarded(self, scan: Scan) -> ScanResult:
+        try:
+            if self.fail_fast and self._failed:
+                result = ScanResult(scan, "not started")
+            else:
+                result = self.runner.run(scan)
+        except Exception as exc:  # a bug of the batch itself: that scan fails, not the batch
+            result = ScanResult(scan, "failed", steps=[StepResult(
+                "-", "-", "failed", error=f"internal error: {type(exc).__name__}: {exc}")])
+        if result.status == "failed":
+            self._failed = True
+        if self.on_scan is not None:
+            self.on_scan(result)
+        return result
+
+
+def install_stop_handlers(signals: list[int]):
+    """SIGINT and SIGTERM append their number to ``signals`` (main thread only); the old ones."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    for s in old:
+        signal.signal(s, lambda signum, frame: signals.append(signum))
+    return old
+
+
+def restore_handlers(handlers) -> None:
+    """Put back the handlers :func:`install_stop_handlers` replaced."""
+    for s, h in (handlers or {}).items():
+        signal.signal(s, h)
 
 
 def default_jobs() -> int:

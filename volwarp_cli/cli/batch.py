@@ -1,16 +1,24 @@
 """`volwarp batch MANIFEST.yaml`: every scan of a manifest through its chain of steps.
 
-volwarp batch MANIFEST.yaml [--jobs N] [--shard I/N] [--force] [--fail-fast]
-[--retries N] [--report-json REPORT.json] [-q]
+volwarp batch MANIFEST.yaml [--jobs N] [--scheduler pool|local|tcp://...|file:PATH|env]
+[--workers N] [--threads-per-worker N] [--shard I/N] [--force] [--fail-fast]
+[--retries N] [--progress bar|lines|jsonl|none] [--report REPORT.html|.json]
+[--report-json REPORT.json] [-q]
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
 
 import click
 
 from .options import INPUT_PATH, common_options, examples
+
+#: ``--scheduler`` words of the batch (the engine's others name clusters)
+POOL = "pool"
+ENV = "env"
 
 
 def _shard(ctx, param, value):
@@ -23,13 +31,58 @@ def _shard(ctx, param, value):
     return int(m.group(1)), int(m.group(2))
 
 
+def _scheduler(ctx, param, value):
+    """``pool`` (None), or the engine's :class:`SchedulerChoice` of a cluster."""
+    if value is None or value.strip().lower() == POOL:
+        return None
+    from ..engine import SCHEDULER_ENV, parse_scheduler
+    from ..errors import VolwarpError
+
+    text = value.strip()
+    if text.lower() == ENV:
+        text = os.environ.get(SCHEDULER_ENV, "").strip()
+        if not text:
+            raise click.BadParameter(f"'env' names the cluster in ${SCHEDULER_ENV}, "
+                                     "which is not set", ctx=ctx, param=param)
+    try:
+        choice = parse_scheduler(text)
+    except VolwarpError as exc:
+        raise click.BadParameter(str(exc).replace("(known: ", "(known here: pool, env, "),
+                                 ctx=ctx, param=param) from None
+    if not choice.distributed:
+        raise click.BadParameter(
+            f"{choice.kind!r} is a scheduler of block graphs; a batch runs its scans on "
+            "'pool' (the default: threads of this process, --jobs), 'local' (a LocalCluster, "
+            "--workers), tcp://HOST:PORT, file:PATH or env", ctx=ctx, param=param)
+    return choice
+
+
+def _reports(ctx, param, value):
+    for path in value:
+        if not path.lower().endswith((".html", ".htm", ".json")):
+            raise click.BadParameter(f"{path!r}: a report is .html (the page with previews) "
+                                     "or .json (the run report)", ctx=ctx, param=param)
+    return value
+
+
 @click.command(name="batch", epilog=examples(
-    "volwarp batch scans.yaml --jobs 4 --report-json report.json",
-    "volwarp batch scans.yaml --shard 0/8 --retries 1",
+    "volwarp batch scans.yaml --jobs 4 --report night.html --report night.json",
+    "volwarp batch scans.yaml --scheduler local --workers 4 --retries 2 --progress jsonl",
 ))
 @click.argument("manifest", type=INPUT_PATH)
 @click.option("-j", "--jobs", type=click.IntRange(min=1), default=None, metavar="N",
-              help="Scans processed at once (default: the CPUs this process may use).")
+              help="Scans processed at once by the local pool (default: the CPUs this "
+                   "process may use).")
+@click.option("--scheduler", callback=_scheduler, default=None, metavar="SCHED",
+              help="Where scans run, one task each: 'pool' (default: this machine, --jobs "
+                   "at once), 'local' (a Dask LocalCluster of --workers processes), "
+                   "tcp://HOST:PORT or file:PATH (an existing Dask cluster), 'env' (the "
+                   "cluster in $DASK_SCHEDULER_ADDRESS, read only when asked so).")
+@click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
+              help="--scheduler local: worker processes (default: the CPUs this process "
+                   "may use, divided by --threads-per-worker).")
+@click.option("--threads-per-worker", type=click.IntRange(min=1), default=None, metavar="N",
+              help="--scheduler local: scans each worker runs at once (default 1).")
 @click.option("--shard", callback=_shard, default=None, metavar="I/N",
               help="Process only shard I (0-based) of N: every N-th of the sorted scans "
                    "(SLURM/PBS arrays: --shard $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT).")
@@ -38,31 +91,58 @@ def _shard(ctx, param, value):
               help="Start no new scan after one failed (running ones finish).")
 @click.option("--retries", type=click.IntRange(min=0), default=0, show_default=True,
               metavar="N", help="Run a step again up to N times when its process died of a "
-                                "signal (never for a scan that failed).")
+                                "signal, and a scan whose cluster worker died (--scheduler "
+                                "local; never for a scan that failed).")
+@click.option("--progress", "progress_mode", default=None,
+              type=click.Choice(["bar", "lines", "jsonl", "none"]),
+              help="Progress on stderr: a bar (the default on a terminal), a line per scan "
+                   "(the default elsewhere), JSON lines (start, done, failed: seconds, peak "
+                   "memory, error) or none.")
+@click.option("--report", "reports", multiple=True, callback=_reports,
+              type=click.Path(dir_okay=False), metavar="REPORT.html|.json",
+              help="Write a run report: .html a self-contained page with previews of each "
+                   "scan and its outputs, .json the run report (may be given twice).")
 @click.option("--report-json", type=click.Path(dir_okay=False), default=None,
               metavar="REPORT.json", help="Write the run report (per scan, per step) here.")
 @common_options
-def command(manifest, jobs, shard, force, fail_fast, retries, report_json):
+def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force, fail_fast,
+            retries, progress_mode, reports, report_json):
     """Run every scan of MANIFEST through its chain of volwarp steps.
 
-    Each scan is one task of a local pool; each step is a volwarp command run
-    in its own process. Up-to-date scans are skipped (their outputs exist,
-    are newer than their inputs and specs, and their provenance matches);
-    a failed scan does not stop the others. One line per scan and a summary
-    line go to stderr. Exit 0 when every scan is ok or skipped, 1 when any
-    failed, 2 for a malformed manifest, 130/143 when stopped.
+    Each scan is one task, of a local pool by default or of a Dask cluster
+    (--scheduler); each step is a volwarp command run in its own process.
+    Up-to-date scans are skipped (their outputs exist, are newer than their
+    inputs and specs, and their provenance matches); a failed scan does not
+    stop the others. Progress and a summary line go to stderr. Exit 0 when
+    every scan is ok or skipped, 1 when any failed, 2 for a malformed
+    manifest, 130/143 when stopped.
     """
+    import sys
+
     from ..batch.manifest import find_scans, load_manifest
     from ..batch.manifest import shard as take_shard
     from ..batch.plan import check_outputs
-    from ..batch.report import progress_line, report_dict, summary_line, write_report
-    from ..batch.run import Batch, default_jobs
+    from ..batch.report import ScanProgress, report_dict, summary_line, write_report
     from ..io import check_output_path
 
-    quiet = click.get_current_context().meta.get("volwarp.verbosity", 0) < 0
+    ctx = click.get_current_context()
+    if scheduler is None and (workers or threads_per_worker):
+        raise click.UsageError("--workers and --threads-per-worker are for --scheduler local "
+                               "(the local pool's count is --jobs)", ctx=ctx)
+    if scheduler is not None and jobs is not None:
+        raise click.UsageError("--jobs is the local pool's; on a cluster its worker threads "
+                               "run the scans (--workers, --threads-per-worker)", ctx=ctx)
+    if scheduler is not None and scheduler.kind != "local" and (workers or threads_per_worker):
+        raise click.UsageError("--workers and --threads-per-worker start a --scheduler local "
+                               "cluster; an existing cluster has its own", ctx=ctx)
+    quiet = ctx.meta.get("volwarp.verbosity", 0) < 0
     m = load_manifest(manifest)
+    json_reports = [p for p in reports if p.lower().endswith(".json")]
+    html_reports = [p for p in reports if not p.lower().endswith(".json")]
     if report_json is not None:
-        check_output_path(report_json)
+        json_reports.append(report_json)
+    for path in json_reports + html_reports:
+        check_output_path(path)
     scans = find_scans(m)
     check_outputs(m, scans)  # all of them, whatever the shard: an error is the manifest's
     total = len(scans)
@@ -70,21 +150,73 @@ def command(manifest, jobs, shard, force, fail_fast, retries, report_json):
     if shard is not None:
         scans = take_shard(scans, *shard)
         shard_info = (shard[0], shard[1], total)
-    jobs = jobs or default_jobs()
 
-    def on_scan(result):
-        if not quiet:
-            click.echo(progress_line(result), err=True)
+    mode = progress_mode or ("bar" if sys.stderr.isatty() else "lines")
+    if quiet and progress_mode is None:
+        mode = "none"
+    sink = ScanProgress(mode, len(scans))
+    options = dict(force=force, fail_fast=fail_fast, retries=retries,
+                   thumbnails=bool(html_reports), on_scan=sink.end)
+    try:
+        if scheduler is None:
+            from ..batch.run import Batch, default_jobs
 
-    results, stop = Batch(m, scans, jobs=jobs, force=force, fail_fast=fail_fast,
-                          retries=retries, on_scan=on_scan).run()
+            jobs = jobs or default_jobs()
+            results, stop = Batch(m, scans, jobs=jobs, on_start=sink.start, **options).run()
+            where = "pool"
+        else:
+            results, stop, jobs = _on_cluster(m, scans, scheduler, workers, threads_per_worker,
+                                              sink, options)
+            where = scheduler.describe()
+    finally:
+        sink.close()
     if stop is not None:
         code = 128 + stop
     else:
         code = 1 if any(r.status == "failed" for r in results) else 0
-    if report_json is not None:
-        write_report(report_json, report_dict(m, results, jobs=jobs, stop=stop,
-                                              shard=shard_info, exit_code=code))
+    if json_reports:
+        report = report_dict(m, results, jobs=jobs, stop=stop, shard=shard_info,
+                             exit_code=code, scheduler=where)
+        for path in json_reports:
+            write_report(path, report)
+    if html_reports:
+        from ..batch.report_html import report_html, write_html
+
+        page = report_html(m, results, stop=stop, shard=shard_info, scheduler=where)
+        for path in html_reports:
+            write_html(path, page)
     click.echo(summary_line(results, stop=stop, shard=shard_info), err=True)
     if code:
         raise click.exceptions.Exit(code)
+
+
+def _on_cluster(manifest, scans, choice, workers, threads_per_worker, sink, options):
+    """Run the scans on the cluster ``choice`` names: ``(results, stop, scans at once)``.
+
+    A ``local`` cluster is started for the batch, with the scheduler's
+    ``allowed-failures`` set to ``--retries`` and a worker sent no more scans than
+    it has threads (an existing cluster keeps its own settings).
+    """
+    import dask
+
+    from .. import parallel
+    from ..batch.cluster import ClusterBatch
+    from ..engine import open_engine
+
+    local = choice.kind == "local"
+    per = threads_per_worker or 1
+    config = ({"distributed.scheduler.allowed-failures": options["retries"],
+               "distributed.scheduler.worker-saturation": 1.0} if local else {})
+    with dask.config.set(config), open_engine(choice, workers=workers,
+                                              threads_per_worker=per) as engine:
+        if local:
+            at_once = engine.workers * per
+            child = max(1, parallel.threads() // at_once)
+        else:
+            at_once, child = engine.workers, None  # (the worker shares its own cores)
+        with contextlib.suppress(Exception):
+            engine.client.wait_for_workers(1, timeout=60)
+        results, stop = ClusterBatch(manifest, scans, client=engine.client,
+                                     child_threads=child, on_start=sink.start,
+                                     **options).run()
+    return results, stop, at_once
