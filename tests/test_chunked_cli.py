@@ -107,3 +107,57 @@ def test_mesh_blocks_are_the_same_on_processes(run, scan, tmp_path):
 def test_mesh_by_blocks_refuses_labels(run, scan, tmp_path):
     res = run("mesh", scan, "-o", tmp_path / "o.ply", "--label", "1", "--chunked")
     assert res.code == 2 and "--label" in res.stderr
+
+
+SWEEP = """version: 1
+grid: {spacing: 0.5}
+fields:
+  opacity: {value: 0.8}
+  red: 0.25
+trajectory:
+  - line: {from: [0, 0, 0], to: [6, 1, 0]}
+  - arc: {center: [6, 4, 0], radius: 3, axis: [0, 0, 1], start: -90, end: 0}
+scale: [3, 2]
+"""
+
+
+@pytest.mark.parametrize("method,extra", [("voxelize", []), ("direct", []),
+                                          ("voxelize", ["--dtype", "uint8"])])
+def test_sweep_by_blocks_equals_in_memory(run, tmp_path, method, extra):
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SWEEP if method == "voxelize" else SWEEP.split("  - arc")[0]
+                    + "scale: [3, 2]\nup: [0, 0, 1]\n")
+    args = ["--method", method, *extra]
+    assert run("sweep", spec, "-o", tmp_path / "m_{field}.nrrd", *args).code == 0
+    res = run("sweep", spec, "-o", tmp_path / "b_{field}.nrrd", "--chunked", "--block",
+              "10,7,13", *args)
+    assert res.code == 0, res.stderr
+    for field in ("opacity", "red"):
+        a = read_volume(tmp_path / f"m_{field}.nrrd")
+        b = read_volume(tmp_path / f"b_{field}.nrrd")
+        assert a.data.dtype == b.data.dtype and np.array_equal(a.data, b.data)
+        assert a.data.any()
+        assert (tmp_path / f"m_{field}.nrrd").read_bytes() == \
+            (tmp_path / f"b_{field}.nrrd").read_bytes()
+
+
+def test_sweep_by_blocks_to_ome_zarr_on_processes(run, tmp_path):
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SWEEP)
+    assert run("sweep", spec, "-o", tmp_path / "m_{field}.nrrd").code == 0
+    res = run("sweep", spec, "-o", tmp_path / "b_{field}.ome.zarr", "--chunked",
+              "--scheduler", "processes", "--block", "16")
+    assert res.code == 0, res.stderr
+    for field in ("opacity", "red"):
+        assert np.array_equal(read_volume(tmp_path / f"m_{field}.nrrd").data,
+                              read_volume(tmp_path / f"b_{field}.ome.zarr").data)
+
+
+def test_sweep_by_blocks_refuses_what_needs_the_whole_fields(run, tmp_path):
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SWEEP)
+    res = run("sweep", spec, "-o", tmp_path / "o.nrrd", "--multi", "--chunked")
+    assert res.code == 2 and "--multi" in res.stderr
+    res = run("sweep", spec, "-o", tmp_path / "o_{field}.nrrd", "--render",
+              tmp_path / "r.png", "--chunked")
+    assert res.code == 2 and "--render" in res.stderr

@@ -46,7 +46,7 @@ def _by_blocks(scene, sampler, block_shape):
 @pytest.mark.parametrize("oversample,method,sampling", [
     (1.5, "box", "linear"), (2, "box", "linear"), (1.0, "nearest", "linear"),
     (1.0, "box", "nearest"), (1.3, "box", "nearest")])
-@pytest.mark.parametrize("block_shape", [(10, 7, 13), (16, 32, 9)])
+@pytest.mark.parametrize("block_shape", [(10, 7, 13), (16, 32, 9), (500, 9, 11), (3, 500, 500)])
 def test_blocks_equal_the_whole_render(oversample, method, sampling, block_shape):
     data = _blob((37, 29, 41))
     cap = capture_volume(Volume(data), lattice=(6, 7, 5), oversample=oversample,

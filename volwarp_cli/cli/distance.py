@@ -135,55 +135,85 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
                      **ome_zarr)
 
 
-def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface, unsigned,
-               max_distance, dtype, compress, byte_order, ome_zarr_version="0.5", pyramid=0):
-    """The distance field by blocks on Dask (:mod:`volwarp_cli.distance.chunked`)."""
-    import numpy as np
-
-    from ..distance.chunked import line_chunks, signed_distance_dask
+def _finish_block(field, *, unsigned, dtype, what):
+    """--unsigned and --dtype on one block of the field (a block task's last step)."""
     from ..distance.field import finish_field
     from ..samples import cast_samples
+
+    if unsigned:
+        finish_field(field, unsigned=True)
+    return cast_samples(field, dtype, what=what) if dtype is not None else field
+
+
+def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface, unsigned,
+               max_distance, dtype, compress, byte_order, ome_zarr_version="0.5", pyramid=0):
+    """The distance field by blocks on Dask (:mod:`volwarp_cli.distance.chunked`).
+
+    The exact field runs as three passes whose fields go to a scratch folder
+    next to the output between passes (memory: the blocks in flight); a
+    banded one (--max-distance) as overlapping blocks.
+    """
+    import functools
+
+    import numpy as np
+
+    from .. import memory
+    from ..box import Box
+    from ..distance.chunked import (
+        MaskSource,
+        line_chunks,
+        pass_blocks,
+        signed_distance_dask,
+        signed_edt_staged,
+    )
+    from ..io.atomic import scratch_folder
     from ..volume import xyz_to_zyx
     from .chunked import block_output, dask_input, lazy_input, write_blocks
 
+    if pyramid:
+        raise click.UsageError("--pyramid with a distance by blocks: write the field, "
+                               "then `volwarp convert SDF.ome.zarr --pyramid N`")
     settings = scale_settings()
     template, source = lazy_input(input, raw, volume_index)
     spacing = xyz_to_zyx(template.spacing)
-    from .. import memory
-
+    shape = template.data.shape
+    out_dtype = np.dtype(dtype or "float32")
+    finish = functools.partial(_finish_block, unsigned=unsigned,
+                               dtype=None if dtype is None else out_dtype, what=str(output))
     with settings.open_engine() as engine:
         budget = max(1, memory.memory_limit() - memory.process_rss())
         per_task = budget // max(1, engine.workers)
-        # the input in blocks of whole x lines (the first pass's), within a task's share
-        chunks = settings.block or line_chunks(template.data.shape, 2, per_task // 4,
+        chunks = settings.block or line_chunks(shape, 2, per_task // 4,
                                                min_blocks=engine.workers)
         data = dask_input(source, chunks)
-        with timed(f"distance ({metric}) by blocks: scan"), _collector_paused():
+        with timed("distance by blocks: one pass over the samples"), _collector_paused():
             field, info = signed_distance_dask(data, spacing, iso=iso, inside=inside,
                                                metric=metric, surface=surface,
                                                max_distance=max_distance,
                                                block_bytes=per_task // 4)
-        if unsigned:
-            field = field.map_blocks(finish_field, unsigned=True, dtype=np.float32)
-        out_dtype = np.dtype(dtype or "float32")
-        if dtype is not None:
-            field = field.map_blocks(cast_samples, out_dtype, what=str(output), dtype=out_dtype)
-        out = stamp(template.with_data(np.broadcast_to(np.zeros((), out_dtype),
-                                                       template.data.shape)),
+        out = stamp(template.with_data(np.broadcast_to(np.zeros((), out_dtype), shape)),
                     "distance", input)
         out.meta["volwarp_distance"] = (
             f"metric={metric} surface={info['surface']} iso={iso:g} inside={inside}"
-            + (" unsigned" if unsigned else "")
-            + (f" chunked={info['chunked']}" if info.get("chunked") else "")
+            + (" unsigned" if unsigned else "") + f" chunked={info['chunked']}"
             + (f" max_distance={max_distance:g} (exact inside the band, clamped outside)"
                if max_distance is not None else ""))
-        if pyramid:
-            raise click.UsageError("--pyramid with a distance by blocks: write the field, "
-                                   "then `volwarp convert SDF.ome.zarr --pyramid N`")
-        with block_output(output, out, out_dtype, block=settings.block or chunks,
-                          compress=compress, byte_order=byte_order,
-                          version=ome_zarr_version) as sink, \
-                timed(f"distance ({metric}) by blocks"):
+        kw = dict(compress=compress, byte_order=byte_order, version=ome_zarr_version)
+        if info["chunked"] == "passes":
+            last = pass_blocks(shape, 0, per_task // 4, engine.workers)
+            grid = last[0].shape if len(last) else shape
+            with block_output(output, out, out_dtype, block=grid, **kw) as sink, \
+                    scratch_folder(output) as scratch, timed("distance by blocks: passes"):
+                writer = sink.writer()
+                signed_edt_staged(MaskSource(source, iso, inside), spacing, engine,
+                                  writer.write, scratch, block_bytes=per_task // 4,
+                                  finish=finish, memory=per_task,
+                                  last_blocks=Box.from_shape(shape).blocks(sink.chunks))
+                sink.mark_written(Box.from_shape(shape).blocks(sink.chunks))
+            return
+        field = field.map_blocks(finish, dtype=out_dtype)
+        with block_output(output, out, out_dtype, block=settings.block or chunks, **kw) as sink, \
+                timed("distance by blocks: band"):
             write_blocks(field, sink, engine, label="distance", memory=per_task)
 
 

@@ -17,10 +17,12 @@ checks this list against the commands; ``(every command)``: from
     --allow-outside-data      capture warp distance mesh info convert
     --background-color        mesh
     --background-value        warp
+    --block                   warp sweep distance mesh
     --byte-order              warp morph sweep distance convert
     --camera-from             morph sweep mesh
     --camera-to               morph sweep mesh
     --cap                     mesh
+    --chunked/--no-chunked    warp sweep distance mesh
     --color                   mesh
     --compress/--no-compress  warp morph sweep distance convert
     --crop                    warp
@@ -65,6 +67,7 @@ checks this list against the commands; ``(every command)``: from
     --points-in               warp
     --points-to               warp
     --preserve-labels         warp
+    --progress                warp sweep distance mesh batch
     --pushforward             warp
     --pyramid                 warp morph sweep distance convert
     -q/--quiet                (every command)
@@ -77,9 +80,11 @@ checks this list against the commands; ``(every command)``: from
     --render                  sweep mesh
     --render-size             morph sweep mesh
     --render-to               morph
+    --report                  batch
     --report-json             batch
     --retries                 batch
     --sampling                capture
+    --scheduler               warp sweep distance mesh batch
     --series                  capture warp distance mesh info convert
     --shape                   sweep
     --shard                   batch
@@ -91,6 +96,7 @@ checks this list against the commands; ``(every command)``: from
     --surface                 distance
     --tau                     sweep
     --threads                 (every command)
+    --threads-per-worker      warp sweep distance mesh batch
     --times                   morph
     --transform               distance
     --transform-to            warp
@@ -100,6 +106,7 @@ checks this list against the commands; ``(every command)``: from
     -v/--verbose              (every command)
     --view                    morph sweep mesh
     --volume-index            capture warp distance mesh info convert
+    --workers                 warp sweep distance mesh batch
 
 Old spellings, hidden, still accepted with a warning::
 

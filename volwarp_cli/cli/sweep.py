@@ -18,6 +18,7 @@ from .options import (
     render_size_option,
     write_options,
 )
+from .resources import scale_options, scale_settings
 from .view_options import camera_options
 
 
@@ -139,6 +140,7 @@ def scale_to_dtype(data, dtype):
                    "(default: the spec's, else half a voxel).")
 @camera_options
 @write_options
+@scale_options
 @common_options
 def command(spec, output, multi, render_path, view, render_size, shape, spacing, method, tau,
             dtype, compress, byte_order, camera_from, camera_to, orientation_labels, ome_zarr):
@@ -192,10 +194,32 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
                 grid_spec.get("margin"))
     grid = sweep_geometry(*grid_values)
     nx, ny, nz = grid.shape_xyz
-    with timed(f"sweep {nx}x{ny}x{nz} ({method or sspec.method})"):
-        fields = evaluate(sspec, grid, method=method, tau=tau)
     out_dtype = dtype or "float32"
     stamp_meta = provenance("sweep", [spec], spec)
+    chunked = scale_settings().chunked
+    refused = "--multi" if multi else ("--render" if render_path is not None else None)
+    if chunked and refused:
+        raise click.UsageError(f"--chunked writes one volume per field by blocks: not {refused}")
+    by_blocks = dict(paths=paths, names=names, method=method, tau=tau, dtype=out_dtype,
+                     meta=stamp_meta, compress=compress, byte_order=byte_order, **ome_zarr)
+    if chunked:
+        _sweep_by_blocks(sspec, grid, **by_blocks)
+        return
+    from ..errors import OutOfMemoryError
+
+    try:
+        with timed(f"sweep {nx}x{ny}x{nz} ({method or sspec.method})"):
+            fields = evaluate(sspec, grid, method=method, tau=tau)
+    except OutOfMemoryError as exc:
+        from .chunked import blocks_can_write, wants_blocks
+
+        if chunked is False or refused or not all(
+                blocks_can_write(p, grid.shape, out_dtype, {"compress": compress})
+                for p in paths.values()):
+            raise
+        wants_blocks(str(exc))
+        _sweep_by_blocks(sspec, grid, **by_blocks)
+        return
 
     def as_volume(data, name=None):
         data = cast_samples(scale_to_dtype(data, out_dtype), out_dtype, what=str(name))
@@ -231,3 +255,71 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
             write_image(render_path, np.ascontiguousarray(img))
         if camera_to is not None:
             write_camera(camera, camera_to, source=str(spec))
+
+
+def _sweep_block_task(plan, box, writers, names, dtype):
+    """One output block of every field, each written to its own output (a block task)."""
+    from ..samples import cast_samples
+    from ..sweep.chunked import sweep_block
+
+    fields = sweep_block(plan.root, plan.geometry, box, plan=plan)
+    for i, name in enumerate(names):
+        data = cast_samples(scale_to_dtype(fields[i], dtype), dtype, what=str(name))
+        writers[name].write(box, data)
+
+
+def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, compress,
+                     byte_order, ome_zarr_version="0.5", pyramid=0):
+    """The sweep by output blocks on Dask (:mod:`volwarp_cli.sweep.chunked`).
+
+    Each block task computes every field's block once and writes it to that
+    field's output.
+    """
+    import contextlib
+    import math
+
+    import dask
+    import numpy as np
+
+    from .. import memory
+    from ..box import Box
+    from ..sweep.chunked import prepare_sweep
+    from .chunked import block_output
+
+    if pyramid:
+        raise click.UsageError("--pyramid with a sweep by blocks: write the fields, then "
+                               "`volwarp convert FIELD.ome.zarr --pyramid N`")
+    settings = scale_settings()
+    plan = prepare_sweep(sspec, grid, method=method, tau=tau)
+    shape = grid.shape
+    with settings.open_engine() as engine, contextlib.ExitStack() as stack:
+        budget = max(1, memory.memory_limit() - memory.process_rss())
+        per_task = budget // max(1, engine.workers)
+        # the fields as float32 and their casts, per voxel of a block
+        per_voxel = len(names) * (4 + np.dtype(dtype).itemsize) + 16
+        edge = max(8, int((per_task // per_voxel) ** (1 / 3)))
+        want = 2 * engine.workers
+        while edge > 16 and math.prod(math.ceil(n / min(edge, n)) for n in shape) < want:
+            edge = edge * 3 // 4
+        block = settings.block or tuple(min(edge, n) for n in shape)
+        outs = {}
+        for name in names:
+            template = grid.volume(np.broadcast_to(np.zeros((), dtype), shape),
+                                   meta=dict(meta, volwarp_sweep_field=name))
+            outs[name] = stack.enter_context(block_output(
+                paths[name], template, dtype, block=block, compress=compress,
+                byte_order=byte_order, version=ome_zarr_version))
+        grid_chunks = next(iter(outs.values())).chunks
+        if any(o.chunks != grid_chunks for o in outs.values()):  # pragma: no cover - one layout
+            raise click.UsageError("--chunked fields of different output formats: give one "
+                                   "extension for every field")
+        boxes = Box.from_shape(shape).blocks(grid_chunks)
+        plan_node = dask.delayed(plan, pure=False)
+        writers = dask.delayed({n: o.writer() for n, o in outs.items()}, pure=False)
+        tasks = [engine.block_delayed(_sweep_block_task, f"sweep-{'-'.join(map(str, b.lo))}",
+                                      plan_node, b, writers, names, np.dtype(dtype),
+                                      memory=per_task)
+                 for b in boxes]
+        engine.run(tasks, label="sweep blocks")
+        for out in outs.values():
+            out.mark_written(boxes)

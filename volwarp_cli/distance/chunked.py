@@ -175,6 +175,106 @@ def signed_edt_dask(mask, spacing_zyx=(1.0, 1.0, 1.0), *, block_bytes: int | Non
                          meta=_F32)
 
 
+# -- exact by passes, each pass's field on disk ------------------------------------------------
+#: Edge of the scratch stores' chunks: every pass block is a union of whole chunks.
+SCRATCH_CHUNK = 64
+
+
+class MaskSource:
+    """The shape's mask of any box of a sliceable source, for block tasks (picklable)."""
+
+    def __init__(self, source, iso: float, inside: str):
+        self.source, self.iso, self.inside = source, float(iso), inside
+        self.shape = tuple(source.shape)
+
+    def box(self, box) -> np.ndarray:
+        """uint8 mask (1 inside) of ``box`` (z, y, x)."""
+        data = np.asarray(self.source[box.slices])
+        return inside_mask(data, self.iso, self.inside).view(np.uint8)
+
+
+def pass_blocks(shape, axis: int, block_bytes: int, min_blocks: int = 1):
+    """The blocks (Boxes) of one pass: whole lines along ``axis``.
+
+    The other axes are cut at multiples of :data:`SCRATCH_CHUNK`, so that
+    the blocks read and write whole scratch chunks.
+    """
+    from ..box import Box
+
+    c = list(line_chunks(shape, axis, block_bytes, min_blocks=min_blocks))
+    for a in range(3):
+        if a != axis and c[a] < shape[a]:
+            c[a] = max(SCRATCH_CHUNK, c[a] // SCRATCH_CHUNK * SCRATCH_CHUNK)
+    return Box.from_shape(shape).blocks(tuple(c))
+
+
+def _scratch_array(folder, name: str, shape):
+    import zarr
+
+    return zarr.create_array(store=str(folder / name), shape=tuple(shape),
+                             chunks=(SCRATCH_CHUNK,) * 3, dtype=np.float32, compressors=None,
+                             fill_value=0, config={"write_empty_chunks": True})
+
+
+def _pass_x(masks, box, hx, dest):
+    out = np.empty(box.shape, np.float32)
+    x_pass(masks.box(box), hx, out)
+    dest[box.slices] = out
+
+
+def _pass_y(masks, box, hy, src, dest):
+    field = np.ascontiguousarray(src[box.slices], dtype=np.float32)
+    y_pass(field, masks.box(box), hy)
+    dest[box.slices] = field
+
+
+def _pass_z(masks, box, hz, src, write, finish):
+    field = np.ascontiguousarray(src[box.slices], dtype=np.float32)
+    z_pass(field, masks.box(box), hz)
+    write(box, finish(field) if finish is not None else field)
+
+
+def signed_edt_staged(masks: MaskSource, spacing_zyx, engine, write, scratch, *,
+                      block_bytes: int, finish=None, memory: int | None = None,
+                      last_blocks=None) -> int:
+    """The exact field by passes, each pass's float32 field stored in ``scratch`` between passes.
+
+    Memory is the blocks in flight, never the field: the x pass writes its
+    squared distances to a scratch store (chunks of :data:`SCRATCH_CHUNK`),
+    the y pass reads them by whole y lines and writes a second store, the z
+    pass reads that by whole z lines and hands each finished block to
+    ``write(box, field)`` (after ``finish(field)``: --unsigned, the output
+    type). The same kernels on the same lines as :func:`signed_edt_dask` and
+    the in-memory transform: equal bit for bit. ``last_blocks``: the z
+    pass's blocks (the output's block grid), default whole z lines within
+    ``block_bytes``. Returns the number of block tasks run.
+    """
+    shape = masks.shape
+    hz, hy, hx = (float(s) for s in spacing_zyx)
+    n = max(1, engine.workers)
+    a = _scratch_array(scratch, "x", shape)
+    tasks = [engine.block_delayed(_pass_x, f"distance-x-{'-'.join(map(str, b.lo))}", masks, b,
+                                  hx, a, memory=memory)
+             for b in pass_blocks(shape, 2, block_bytes, n)]
+    count = len(tasks)
+    engine.run(tasks, label="distance pass x")
+    b_arr = _scratch_array(scratch, "y", shape)
+    tasks = [engine.block_delayed(_pass_y, f"distance-y-{'-'.join(map(str, b.lo))}", masks, b,
+                                  hy, a, b_arr, memory=memory)
+             for b in pass_blocks(shape, 1, block_bytes, n)]
+    count += len(tasks)
+    engine.run(tasks, label="distance pass y")
+    import shutil
+
+    shutil.rmtree(scratch / "x", ignore_errors=True)
+    blocks = last_blocks if last_blocks is not None else pass_blocks(shape, 0, block_bytes, n)
+    tasks = [engine.block_delayed(_pass_z, f"distance-z-{'-'.join(map(str, b.lo))}", masks, b,
+                                  hz, b_arr, write, finish, memory=memory)
+             for b in blocks]
+    engine.run(tasks, label="distance pass z")
+    return count + len(tasks)
+
+
 # -- band by overlapping blocks --------------------------------------------------------------
 def band_halo(spacing_zyx, max_distance: float, surface: str = "voxel") -> tuple[int, int, int]:
     """The halo (z, y, x voxels) a block of the field clipped to ``±max_distance`` needs.

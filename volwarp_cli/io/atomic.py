@@ -217,6 +217,29 @@ def _host() -> str:
     return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname()) or "host"
 
 
+@contextlib.contextmanager
+def scratch_folder(near: str | os.PathLike):
+    """A temporary folder next to the output ``near``, removed on exit, on error or on a stop.
+
+    For intermediate results too large for memory (a distance's passes by
+    blocks); named and cleaned like the output's own temporaries.
+    """
+    import shutil
+
+    path = Path(near)
+    _remove_stale_temporaries(path)
+    with blocked():
+        tmp = tempfile.mkdtemp(prefix=_temporary_prefix(path.name), suffix=".scratch",
+                               dir=path.parent if str(path.parent) else ".")
+        _live_temporaries.add(tmp)
+    try:
+        yield Path(tmp)
+    finally:
+        with blocked():
+            shutil.rmtree(tmp, ignore_errors=True)
+            _live_temporaries.discard(tmp)
+
+
 def _temporary_prefix(name: str) -> str:
     """``.NAME.vw-PID@HOST.``: a temporary says whose it is (mkstemp adds 8 random characters)."""
     return f".{name}.vw-{os.getpid()}@{_host()}."
@@ -234,7 +257,7 @@ def _remove_stale_temporaries(path: Path) -> None:
     pattern = re.compile(re.escape(f".{path.name}.vw-") + r"(\d+)@" + re.escape(_host())
                          + r"\.[A-Za-z0-9_]{8}\.part")
     folders = re.compile(re.escape(f".{path.name}.vw-") + r"(\d+)@" + re.escape(_host())
-                         + r"\.[A-Za-z0-9_]{8}\.(partdir|old)$")
+                         + r"\.[A-Za-z0-9_]{8}\.(partdir|old|scratch)$")
     try:
         names = os.listdir(path.parent if str(path.parent) else ".")
     except OSError:

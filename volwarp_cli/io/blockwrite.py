@@ -67,9 +67,9 @@ def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chu
                       pyramid: int = 0, labels: bool = False) -> BlockOutput:
     """A :class:`BlockOutput` writing a volume of ``geometry`` and ``dtype`` to ``path``.
 
-    ``chunks_zyx``: the block shape the engine prefers (OME-Zarr: the chunk
-    shape inside shards; others: the block grid, default 64 planes of the
-    whole y, x extent). ``version``, ``pyramid``, ``labels``: OME-Zarr (see
+    ``chunks_zyx``: the block shape the engine writes (OME-Zarr 0.5: one shard
+    per block, :func:`block_layout`; 0.4: the chunks; others: the block grid,
+    default 64 planes of the whole y, x extent). ``version``, ``pyramid``, ``labels``: OME-Zarr (see
     :mod:`.omezarr`; ``labels`` must be given: no data is seen in advance).
     ``metadata``: the volume's key/values (provenance); ``space``: its world
     frame (``"left-posterior-superior"``, or None), as the Volume would have.
@@ -306,6 +306,25 @@ class BlockOutput:
         return False
 
 
+def block_layout(shape_zyx, version: str, block=None):
+    """``(chunks, shards)`` of a store written in blocks of ``block`` (z, y, x).
+
+    NGFF 0.5: one shard per block (the unit of a write), inner chunks of 64
+    along an axis whose block is a multiple of 64, else of the whole block;
+    0.4: the blocks are the chunks. No block: :func:`.omezarr.store_layout`.
+    """
+    from . import omezarr
+
+    if block is None:
+        return omezarr.store_layout(shape_zyx, version, None)
+    block = tuple(max(1, min(int(b), max(int(n), 1))) for b, n in zip(block, shape_zyx,
+                                                                       strict=True))
+    if version == "0.4":
+        return block, None
+    inner = tuple(omezarr.CHUNK if b % omezarr.CHUNK == 0 else b for b in block)
+    return inner, block
+
+
 class _ZarrOutput(BlockOutput):
     def __init__(self, path, geometry, dtype, chunks_zyx, version, byte_order, metadata, space,
                  pyramid, labels):
@@ -313,7 +332,8 @@ class _ZarrOutput(BlockOutput):
         from .atomic import atomic_folder
 
         version = omezarr.check_version(version)
-        chunk, shard = omezarr.store_layout(geometry.shape, version, chunks_zyx)
+        layout = block_layout(geometry.shape, version, chunks_zyx)
+        chunk, shard = layout
         super().__init__(path, geometry, dtype, shard or chunk)
         self._labels = bool(labels)
         self._method = ("mode" if labels else "mean") if pyramid else None
@@ -332,7 +352,8 @@ class _ZarrOutput(BlockOutput):
             group = omezarr.open_group_for_writing(tmp, version)
             self._arrays = omezarr.create_arrays(group, omezarr.level_shapes(geometry.shape,
                                                                              pyramid),
-                                                 dtype, version, chunks_zyx, byte_order)
+                                                 dtype, version, chunks_zyx, byte_order,
+                                                 layout0=layout)
             self._group = group
         except BaseException:
             self.abort()

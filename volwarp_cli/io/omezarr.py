@@ -325,13 +325,18 @@ def group_attributes(multiscales: dict, volwarp: dict, version: str) -> dict:
 # -- writing ----------------------------------------------------------------------------
 
 def create_arrays(group, shapes, dtype: np.dtype, version: str, chunks=None,
-                  byte_order: str = "little"):
-    """Create one empty array per level in ``group`` (chunks and shards per level)."""
+                  byte_order: str = "little", layout0=None):
+    """Create one empty array per level in ``group`` (chunks and shards per level).
+
+    ``layout0``: ``(chunks, shards)`` of level 0 instead of :func:`store_layout`'s
+    (a store written by blocks: one shard per block).
+    """
     import zarr  # noqa: F401  (imported here only: the in-memory path stays free of it)
 
     arrays = []
     for level, shape in enumerate(shapes):
-        chunk, shard = store_layout(shape, version, chunks)
+        chunk, shard = (layout0 if level == 0 and layout0 is not None
+                        else store_layout(shape, version, chunks))
         code = "<" if byte_order == "little" else ">"
         if version == "0.5":
             from zarr.codecs import BytesCodec, ZstdCodec
