@@ -93,7 +93,10 @@ def test_a_warp_too_big_for_the_budget_runs_by_blocks(run, scan, tmp_path, monke
     src, spec = scan
     mem, blk = tmp_path / "mem.nrrd", tmp_path / "blk.nrrd"
     assert run("warp", src, "--spec", spec, "-o", mem).code == 0
+    from volwarp_cli.cli import chunked
+
     monkeypatch.setattr(memory, "process_rss", lambda: 0)
+    monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
     res = run("warp", src, "--spec", spec, "-o", blk, "--memory-limit", "150K")
     assert res.code == 0, res.stderr
     assert "running by blocks" in res.stderr
@@ -103,6 +106,18 @@ def test_a_warp_too_big_for_the_budget_runs_by_blocks(run, scan, tmp_path, monke
     res = run("warp", src, "--spec", spec, "-o", blk, "--memory-limit", "150K",
               "--no-chunked")
     assert res.code == 1 and "needs" in res.stderr and blk.read_bytes() == b"old"
+
+
+def test_a_budget_the_process_itself_fills_is_refused(run, scan, tmp_path):
+    """A limit the interpreter already fills leaves no room for blocks: the in-memory
+    refusal stands (no fallback that would crawl in tiny blocks); --chunked says why."""
+    src, spec = scan
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", spec, "-o", out, "--memory-limit", "40M")
+    assert res.code == 1 and "needs" in res.stderr and "running by blocks" not in res.stderr
+    res = run("warp", src, "--spec", spec, "-o", out, "--memory-limit", "40M", "--chunked")
+    assert res.code == 1 and "memory limit" in res.stderr and "\n" not in res.stderr.strip()
+    assert not out.exists()
 
 
 def test_what_the_block_path_refuses(run, scan, tmp_path):

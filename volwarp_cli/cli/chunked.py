@@ -16,17 +16,45 @@ import numpy as np
 
 from ..progress import log
 
+#: the least memory worth running blocks in (below it, refuse: tiny blocks take forever)
+MIN_BLOCK_BUDGET = 32 << 20
+
+
+def block_budget() -> int:
+    """The memory blocks may use: the budget less what the process already holds.
+
+    An OutOfMemoryError when that is below :data:`MIN_BLOCK_BUDGET` (the
+    interpreter and its libraries take most of a small limit).
+    """
+    from .. import memory
+    from ..errors import OutOfMemoryError
+
+    limit, held = memory.memory_limit(), memory.process_rss()
+    if limit - held < MIN_BLOCK_BUDGET:
+        raise OutOfMemoryError(
+            f"the memory limit ({memory.human_bytes(limit)}) leaves "
+            f"{memory.human_bytes(max(0, limit - held))} for blocks beside the "
+            f"{memory.human_bytes(held)} this process holds; at least "
+            f"{memory.human_bytes(MIN_BLOCK_BUDGET)} is needed (raise --memory-limit)")
+    return limit - held
+
 
 def wants_blocks(reason: str | None = None) -> bool:
     """Whether the command runs by blocks.
 
     Yes with ``--chunked``; with neither ``--chunked`` nor ``--no-chunked``,
-    when ``reason`` (why the work does not fit in memory) is given.
+    when ``reason`` (why the work does not fit in memory) is given and the
+    budget leaves room for blocks (:func:`block_budget`), said on stderr.
     """
+    from ..errors import OutOfMemoryError
     from .resources import scale_settings
 
     chunked = scale_settings().chunked
     if chunked is None and reason is not None:
+        try:
+            block_budget()
+        except OutOfMemoryError:  # no room for blocks either: the refusal stands
+            return False
         log.warning("%s: running by blocks (--no-chunked to refuse instead)", reason)
         return True
     return bool(chunked)

@@ -120,8 +120,9 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
         geometry, array = open_volume_lazy(input, raw=raw, volume_index=volume_index)
         if not blocks_can_write(output, geometry.shape, dtype or "float32", blocks):
             raise
-        wants_blocks(str(exc))
         del geometry, array
+        if not wants_blocks(str(exc)):
+            raise
         _by_blocks(input, output, raw, volume_index, **blocks)
         return
     if info["passes"]:
@@ -157,7 +158,6 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
 
     import numpy as np
 
-    from .. import memory
     from ..box import Box
     from ..distance.chunked import (
         MaskSource,
@@ -168,7 +168,7 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
     )
     from ..io.atomic import scratch_folder
     from ..volume import xyz_to_zyx
-    from .chunked import block_output, dask_input, lazy_input, write_blocks
+    from .chunked import block_budget, block_output, dask_input, lazy_input, write_blocks
 
     if pyramid:
         raise click.UsageError("--pyramid with a distance by blocks: write the field, "
@@ -181,7 +181,7 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
     finish = functools.partial(_finish_block, unsigned=unsigned,
                                dtype=None if dtype is None else out_dtype, what=str(output))
     with settings.open_engine() as engine:
-        budget = max(1, memory.memory_limit() - memory.process_rss())
+        budget = block_budget()
         per_task = budget // max(1, engine.workers)
         chunks = settings.block or line_chunks(shape, 2, per_task // 4,
                                                min_blocks=engine.workers)

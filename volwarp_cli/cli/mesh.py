@@ -185,7 +185,8 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
 
             if chunked is False or labels or label is not None or dicom is not None:
                 raise
-            wants_blocks(str(exc))
+            if not wants_blocks(str(exc)):
+                raise
             vol, mesh, iso = _mesh_by_blocks(input, raw, volume_index, iso, inside, cap,
                                              allow_empty, cleanup)
     if mesh is None and labels:
@@ -246,10 +247,10 @@ def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cle
     Blocks run on the Dask scheduler when one is named (VTK holds the GIL:
     processes or a cluster run them in parallel), else on this process's threads.
     """
-    from .. import memory, parallel
+    from .. import parallel
     from ..geometry import Geometry
     from ..surface.chunked import DEFAULT_BLOCK, surface_mesh_blocks
-    from .chunked import lazy_input
+    from .chunked import block_budget, lazy_input
 
     settings = scale_settings()
     template, source = lazy_input(input, raw, volume_index)
@@ -261,7 +262,7 @@ def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cle
                                         threads=parallel.threads(), **common)
         return template, mesh, iso
     with settings.open_engine() as engine:
-        per_task = max(1, memory.memory_limit() - memory.process_rss()) // max(1, engine.workers)
+        per_task = block_budget() // max(1, engine.workers)
 
         def run(task, blocks):
             return engine.map(task, blocks, label="mesh", memory=per_task)

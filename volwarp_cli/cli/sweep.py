@@ -217,7 +217,8 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
                 blocks_can_write(p, grid.shape, out_dtype, {"compress": compress})
                 for p in paths.values()):
             raise
-        wants_blocks(str(exc))
+        if not wants_blocks(str(exc)):
+            raise
         _sweep_by_blocks(sspec, grid, **by_blocks)
         return
 
@@ -281,10 +282,9 @@ def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, com
     import dask
     import numpy as np
 
-    from .. import memory
     from ..box import Box
     from ..sweep.chunked import prepare_sweep
-    from .chunked import block_output
+    from .chunked import block_budget, block_output
 
     if pyramid:
         raise click.UsageError("--pyramid with a sweep by blocks: write the fields, then "
@@ -293,7 +293,7 @@ def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, com
     plan = prepare_sweep(sspec, grid, method=method, tau=tau)
     shape = grid.shape
     with settings.open_engine() as engine, contextlib.ExitStack() as stack:
-        budget = max(1, memory.memory_limit() - memory.process_rss())
+        budget = block_budget()
         per_task = budget // max(1, engine.workers)
         # the fields as float32 and their casts, per voxel of a block
         per_voxel = len(names) * (4 + np.dtype(dtype).itemsize) + 16

@@ -219,13 +219,12 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
     """
     from dataclasses import replace
 
-    from .. import memory
     from ..bspline.blocks import warp_by_blocks
     from ..bspline.capture import capture_source
     from ..bspline.plan import read_warp_spec
     from ..bspline.run import IntensityWarp
     from ..spec.loader import load_schema, load_spec, validate
-    from .chunked import block_output, lazy_input
+    from .chunked import block_budget, block_output, lazy_input
 
     if write_kw.get("pyramid"):
         raise click.UsageError("--pyramid with a warp by blocks: write the output, then "
@@ -250,11 +249,12 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
         shape = warp.scene.target_shape[::-1]
         if not blocks_can_write(output, shape, options.dtype or cap.input_dtype, write_kw):
             raise fallback
-        wants_blocks(str(fallback))  # says why, on stderr
+        if not wants_blocks(str(fallback)):  # (says why, on stderr)
+            raise fallback
     out_template, job = warp.block_job(source)
     settings = scale_settings()
     with settings.open_engine() as engine:
-        budget = max(1, memory.memory_limit() - memory.process_rss())
+        budget = block_budget()
         per_task = budget // max(1, engine.workers)
         block = settings.block or job.choose_blocks(budget, engine.workers)
         with block_output(output, stamp(out_template, "warp", input, spec_path), block=block,
