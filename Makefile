@@ -30,6 +30,7 @@ $(STAMP): pyproject.toml volwarp_cli/bspline/_warpkernels.c volwarp_cli/io/_mapg
 
 # Headless rendering goes through Mesa's software EGL (no display, no GPU).
 # Install the Debian packages when they are missing and we are allowed to.
+# Chromium checks the batch HTML report in a real browser (the test skips without it).
 system-deps:
 	@if ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so.0' && ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1; then \
 	  :; \
@@ -38,6 +39,12 @@ system-deps:
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null; \
 	else \
 	  echo "warning: libEGL/Mesa not found and cannot install it: renders will fail" >&2; \
+	fi
+	@# the batch report's browser test (skipped without one): Debian's Chromium, best effort
+	@if ! command -v chromium >/dev/null && [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  echo "installing Chromium for the HTML report's browser test"; \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+	    || echo "warning: Chromium not installed: the report's browser test is skipped" >&2; \
 	fi
 
 demo: $(STAMP)
