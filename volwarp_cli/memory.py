@@ -299,6 +299,11 @@ def use_memory_limit(nbytes: int | None, *, source: str = "--memory-limit"):
         _budget.reset(token)
 
 
+def limit_and_source() -> tuple[int, str]:
+    """:func:`memory_limit` and where it comes from, as the refusals word it."""
+    return _limit()
+
+
 def memory_limit() -> int:
     """The memory budget in effect.
 

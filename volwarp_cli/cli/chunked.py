@@ -21,22 +21,20 @@ MIN_BLOCK_BUDGET = 32 << 20
 
 
 def block_budget() -> int:
-    """The memory blocks may use: the budget less what the process already holds.
+    """The memory blocks may use: :func:`~volwarp_cli.memory.memory_limit`.
 
-    An OutOfMemoryError when that is below :data:`MIN_BLOCK_BUDGET` (the
+    (Net of what the process holds, for an explicit limit.) An OutOfMemoryError when that is below :data:`MIN_BLOCK_BUDGET` (the
     interpreter and its libraries take most of a small limit).
     """
     from .. import memory
     from ..errors import OutOfMemoryError
 
-    limit, held = memory.memory_limit(), memory.process_rss()
-    if limit - held < MIN_BLOCK_BUDGET:
-        raise OutOfMemoryError(
-            f"the memory limit ({memory.human_bytes(limit)}) leaves "
-            f"{memory.human_bytes(max(0, limit - held))} for blocks beside the "
-            f"{memory.human_bytes(held)} this process holds; at least "
-            f"{memory.human_bytes(MIN_BLOCK_BUDGET)} is needed (raise --memory-limit)")
-    return limit - held
+    left, where = memory.limit_and_source()
+    if left < MIN_BLOCK_BUDGET:
+        raise OutOfMemoryError(f"{memory.human_bytes(left)} is left for blocks under {where}; "
+                               f"they need {memory.human_bytes(MIN_BLOCK_BUDGET)} at least "
+                               "(raise --memory-limit)")
+    return left
 
 
 def wants_blocks(reason: str | None = None) -> bool:
