@@ -11,6 +11,7 @@ import tifffile
 from volwarp_cli.errors import VolwarpError
 from volwarp_cli.geometry import Geometry
 from volwarp_cli.io import RawLayout, read_volume, write_volume
+from volwarp_cli.io.filearray import FileArray
 from volwarp_cli.io.lazy import open_volume_lazy
 from volwarp_cli.volume import Volume
 
@@ -46,8 +47,8 @@ def oblique_volume(space="LPS"):
 def test_nrrd_and_metaimage_are_mapped(tmp_path, name, byte_order):
     path = tmp_path / name
     write_volume(oblique_volume(), path, byte_order=byte_order)
-    _, arr = check(path, lazy_type=np.memmap, require_lazy=True)
-    assert not arr.flags.writeable
+    _, arr = check(path, lazy_type=FileArray, require_lazy=True)
+    assert not arr.writable
 
 
 def test_a_ras_nrrd_from_simpleitk_and_pynrrd_like_headers(tmp_path):
@@ -58,7 +59,7 @@ def test_a_ras_nrrd_from_simpleitk_and_pynrrd_like_headers(tmp_path):
               "kinds: domain domain domain\nendian: little\nencoding: raw\n"
               "space origin: (10,-20,30)\nline skip: 0\n\n")
     path.write_bytes(header.encode() + body)
-    geom, _ = check(path, lazy_type=np.memmap, require_lazy=True)
+    geom, _ = check(path, lazy_type=FileArray, require_lazy=True)
     img = sitk.ReadImage(str(path))
     for ijk in [(0, 0, 0), (8, 6, 5), (3, 2, 1)]:
         np.testing.assert_allclose(geom.index_to_world(ijk),
@@ -70,7 +71,7 @@ def test_raw_is_mapped_in_its_byte_order(tmp_path):
     path.write_bytes(b"\0" * 16 + DATA.astype(">i2").tobytes())
     layout = RawLayout(shape=(9, 7, 6), dtype="int16", endian="big", spacing=(1, 2, 3),
                        origin=(4, 5, 6), header_bytes=16)
-    _, arr = check(path, lazy_type=np.memmap, raw=layout, require_lazy=True)
+    _, arr = check(path, lazy_type=FileArray, raw=layout, require_lazy=True)
     assert arr.dtype == np.dtype(">i2")
 
 
@@ -114,3 +115,32 @@ def test_compressed_inputs_are_read_whole_or_refused(tmp_path, name):
     assert isinstance(arr, np.ndarray) and not isinstance(arr, np.memmap)
     with pytest.raises(VolwarpError, match="without loading"):
         open_volume_lazy(path, require_lazy=True)
+
+
+def test_file_array_reads_and_writes_boxes_and_pickles(tmp_path):
+    """The pread/pwrite array: any slicing reads as numpy's, boxes write in place (whole
+    rows or row segments), a pickled copy reopens the file, a short file is an error."""
+    import pickle
+
+    from volwarp_cli.errors import FormatError
+
+    rng = np.random.default_rng(4)
+    data = rng.integers(-300, 300, (7, 9, 11)).astype(">i2")
+    path = tmp_path / "a.raw"
+    path.write_bytes(b"H" * 10 + data.tobytes())
+    arr = FileArray(path, ">i2", 10, data.shape, writable=True)
+    for s in SLICES + [np.s_[-1, -2, -3], np.s_[..., 4], np.s_[3:1, :, :]]:
+        assert np.array_equal(arr[s], data[s]), s
+    block = rng.integers(-9, 9, (3, 4, 5)).astype(np.int16)
+    arr[2:5, 1:5, 3:8] = block  # row segments
+    data[2:5, 1:5, 3:8] = block
+    arr[6:7, :, :] = data[6:7] + 1  # whole rows at once
+    data[6:7] += 1
+    copy = pickle.loads(pickle.dumps(arr))
+    assert copy._fd is None and np.array_equal(copy[:, :, :], data)
+    assert path.read_bytes()[:10] == b"H" * 10
+    with pytest.raises(IndexError):
+        arr[::2, :, :] = 0
+    path.write_bytes(path.read_bytes()[:-7])
+    with pytest.raises(FormatError, match="truncated"):
+        FileArray(path, ">i2", 10, data.shape)[6]

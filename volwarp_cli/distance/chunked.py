@@ -43,7 +43,7 @@ import numpy as np
 
 from ..errors import VolwarpError
 from .exact import x_pass, y_pass, z_pass
-from .field import METRICS, SURFACES, finish_field, inside_mask
+from .field import check_method, finish_field, inside_mask
 
 #: Bytes per voxel a pass block holds: the float32 field in, a float32 copy out, the mask.
 PASS_BYTES_PER_VOXEL = 9
@@ -488,12 +488,7 @@ def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
         ``minnorm``, ``taxicab`` and ``chessboard`` metrics, a sub-voxel surface
         without ``max_distance``.
     """
-    if metric not in METRICS:
-        raise VolwarpError(f"unknown metric {metric!r} (known: {', '.join(METRICS)})")
-    if surface not in SURFACES:
-        raise VolwarpError(f"unknown surface mode {surface!r} (known: {', '.join(SURFACES)})")
-    if surface == "subvoxel" and metric != "euclidean":
-        raise VolwarpError(f"sub-voxel surfaces need the euclidean metric, not {metric!r}")
+    check_method(metric, surface)
     if metric != "euclidean":
         raise VolwarpError(f"the {metric} metric has no out-of-core (chunked) form: use "
                            "--metric euclidean, or run it in memory")

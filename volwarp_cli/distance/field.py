@@ -52,6 +52,16 @@ def is_binary(data: np.ndarray) -> bool:
     return int(np.count_nonzero((data == lo) | (data == hi))) == data.size
 
 
+def check_method(metric: str, surface: str) -> None:
+    """Refuse an unknown metric or surface mode, or a sub-voxel surface of another metric."""
+    if metric not in METRICS:
+        raise VolwarpError(f"unknown metric {metric!r} (known: {', '.join(METRICS)})")
+    if surface not in SURFACES:
+        raise VolwarpError(f"unknown surface mode {surface!r} (known: {', '.join(SURFACES)})")
+    if surface == "subvoxel" and metric != "euclidean":
+        raise VolwarpError(f"sub-voxel surfaces need the euclidean metric, not {metric!r}")
+
+
 def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
                     inside: str = "above", metric: str = "euclidean",
                     surface: str = "auto") -> tuple[np.ndarray, dict]:
@@ -73,12 +83,7 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
     info : dict
         ``{"metric", "surface", "passes"}`` (passes for ``minnorm``).
     """
-    if metric not in METRICS:
-        raise VolwarpError(f"unknown metric {metric!r} (known: {', '.join(METRICS)})")
-    if surface not in SURFACES:
-        raise VolwarpError(f"unknown surface mode {surface!r} (known: {', '.join(SURFACES)})")
-    if surface == "subvoxel" and metric != "euclidean":
-        raise VolwarpError(f"sub-voxel surfaces need the euclidean metric, not {metric!r}")
+    check_method(metric, surface)
     data = np.asarray(data)
     if data.dtype.kind == "c" or data.dtype.kind not in "biuf":
         raise VolwarpError(f"cannot take the distance of samples of type {data.dtype}")

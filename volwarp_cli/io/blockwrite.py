@@ -22,8 +22,9 @@ Formats:
   the level above), writes the metadata and renames the store into place. The
   store is the one :func:`~.omezarr.write_omezarr` writes for the same volume.
 - **NRRD** (``.nrrd``, raw encoding), **MetaImage** (``.mha``) and **raw**:
-  the header goes into the temporary file and the samples through a
-  ``np.memmap`` of the data region; the file is byte for byte the one
+  the header goes into the temporary file and the samples into its data
+  region with ``pwrite`` (:mod:`.filearray`; a memory map's pages would count
+  in the writer's memory); the file is byte for byte the one
   :func:`~volwarp_cli.io.write_volume` writes for the same volume.
 - Compressed NRRD/NIfTI/MetaImage, TIFF and detached headers (``.nhdr``,
   ``.mhd``) are refused: their bytes cannot be placed block by block.
@@ -135,7 +136,7 @@ class BlockWriter:
     """Writes aligned blocks into an output's temporary: picklable, usable in any process.
 
     Made by :meth:`BlockOutput.writer`; ``target()`` opens what the samples go
-    into (a zarr array, a memory map of the temporary file), once per process.
+    into (a zarr array, the temporary file), once per process.
     """
 
     def __init__(self, shape, chunks, dtype, where: str):
@@ -181,8 +182,10 @@ class _MappedWriter(BlockWriter):
         self.file, self.file_dtype, self.offset = str(file), np.dtype(file_dtype), int(offset)
 
     def _open(self):
-        return np.memmap(self.file, dtype=self.file_dtype, mode="r+", offset=self.offset,
-                         shape=self.shape)
+        from .filearray import FileArray
+
+        # pwrite, not a memory map: mapped pages would count in the task's memory
+        return FileArray(self.file, self.file_dtype, self.offset, self.shape, writable=True)
 
 
 class BlockOutput:
@@ -405,8 +408,10 @@ class _MappedOutput(BlockOutput):
                 fh.write(header)
                 fh.truncate(len(header) + nbytes)
             if nbytes:
-                self._map = np.memmap(tmp, dtype=file_dtype, mode="r+", offset=len(header),
-                                      shape=geometry.shape)
+                from .filearray import FileArray
+
+                self._map = FileArray(tmp, file_dtype, len(header), geometry.shape,
+                                      writable=True)
         except BaseException:
             self.abort()
             raise
@@ -424,5 +429,5 @@ class _MappedOutput(BlockOutput):
 
     def _release(self):
         if self._map is not None:
-            self._map.flush()
-            self._map = None  # (the map closes once no view of it is left)
+            self._map.close()
+            self._map = None

@@ -9,10 +9,10 @@ own header parsers are used). Per format:
 - **OME-Zarr**: level 0 through zarr (chunks read on demand).
 - **NRRD** raw encoding (attached, or detached with one data file), **MetaImage**
   uncompressed (``.mha`` or ``.mhd`` with one data file) and headerless
-  **raw**: a read-only ``np.memmap`` in the file's byte order (a big-endian
-  file gives e.g. a ``>i2`` map; slices convert on use). The file is watched
-  as ``read_volume(..., mmap=True)`` watches it: truncated meanwhile, the run
-  stops with one line instead of a crash.
+  **raw**: a :class:`.filearray.FileArray` in the file's byte order, read with
+  ``pread`` box by box (slices come back in the machine's order). Not a memory
+  map: mapped pages would count in the process's memory as they are touched.
+  Truncated meanwhile, a read stops the run with one line.
 - **TIFF** 3-D stacks of one sample per pixel: tifffile's zarr interface
   (``imread(aszarr=True)``), pages decoded on demand.
 - **NIfTI** uncompressed, unscaled: nibabel's data proxy, whose ``[x, y, z]``
@@ -113,9 +113,14 @@ def _geometry(where: str, shape_zyx, dtype, **geometry):
     return make_volume(where, _placeholder(shape_zyx, dtype), **geometry)
 
 
-def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str) -> np.memmap:
+def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str):
+    """The samples in ``file`` as a :class:`.filearray.FileArray` (read by pread, not mapped).
+
+    Checked for truncation first; the file is noted as an input (an output is not
+    renamed into place when an input changed meanwhile).
+    """
     from .common import note_input
-    from .mapped import guard
+    from .filearray import FileArray
 
     nbytes = voxel_count(shape_zyx) * dtype.itemsize
     with open(file, "rb") as fh:
@@ -124,8 +129,7 @@ def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str) -> 
             raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of samples, "
                               f"found {max(size - max(offset, 0), 0)}")
         note_input(fh)
-        guard(fh, str(file))
-        return np.memmap(fh, dtype=dtype, mode="r", offset=offset, shape=tuple(shape_zyx))
+    return FileArray(file, dtype, offset, shape_zyx)
 
 
 # -- NRRD -------------------------------------------------------------------------------

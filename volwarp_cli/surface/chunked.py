@@ -494,7 +494,7 @@ def surface_mesh_blocks(source, geometry=None, iso: float | None = None, *,
     ties differently in another order.
     """
     from .isosurface import touches_border
-    from .pipeline import Cleanup, clean
+    from .pipeline import Cleanup, finish_surface
 
     cleanup = Cleanup() if cleanup is None else cleanup
     data, geometry = _source(source, geometry)
@@ -519,12 +519,7 @@ def surface_mesh_blocks(source, geometry=None, iso: float | None = None, *,
         elif not cap and _border_touched(data, iso, inside, touches_border):
             log.warning("the shape touches the volume's border, where its surface is open "
                         "(use --cap to close it)")
-    if empty_reason:
-        if not allow_empty:
-            raise VolwarpError(f"{empty_reason}; nothing written (--allow-empty writes an "
-                               "empty mesh)")
-        log.warning("%s: the mesh is empty", empty_reason)
-    return clean(mesh, cleanup), iso
+    return finish_surface(mesh, empty_reason, allow_empty, cleanup), iso
 
 
 def _source(source, geometry):

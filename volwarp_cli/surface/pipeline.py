@@ -69,12 +69,18 @@ def surface_mesh(vol: Volume, iso: float | None = None, *, inside: str = "above"
         elif not cap and touches_border(vol.data, iso, inside):
             log.warning("the shape touches the volume's border, where its surface is open "
                         "(use --cap to close it)")
+    return finish_surface(mesh, empty_reason, allow_empty, cleanup), iso
+
+
+def finish_surface(mesh: Mesh, empty_reason: str | None, allow_empty: bool,
+                   cleanup: Cleanup) -> Mesh:
+    """The surface's last step: refuse an empty one (unless ``allow_empty``), or clean it."""
     if empty_reason:
         if not allow_empty:
             raise VolwarpError(f"{empty_reason}; nothing written (--allow-empty writes an "
                                "empty mesh)")
         log.warning("%s: the mesh is empty", empty_reason)
-    return clean(mesh, cleanup), iso
+    return clean(mesh, cleanup)
 
 
 def clean(mesh: Mesh, cleanup: Cleanup) -> Mesh:

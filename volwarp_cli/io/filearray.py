@@ -1,0 +1,151 @@
+"""A volume's raw samples in a file, read and written by box with pread/pwrite.
+
+For inputs and outputs larger than memory. A memory map would do the same
+with less code, but every page it touches counts in the process's resident
+set (and in a cluster worker's memory accounting) until it is unmapped: a
+block task writing a column of a memory-mapped output holds pages of every
+plane it crosses, many times the block's own bytes when its rows are short.
+Reads and writes through the file descriptor leave the data in the page
+cache only, which the kernel reclaims as it needs.
+
+Samples are C order ``[z, y, x]`` from byte ``offset``, of a fixed-endian
+``dtype``. A box of planes is read a plane's row range at a time (one
+``pread`` of the rows, the columns cut after); a box is written one row
+segment at a time (whole rows together when the box spans them).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ..errors import FormatError
+
+
+class FileArray:
+    """``shape`` (z, y, x) samples of ``dtype`` at ``offset`` in ``path``: numpy slicing reads.
+
+    Picklable (the path, not an open file): a worker process opens the file
+    itself. ``writable``: ``array[z0:z1, y0:y1, x0:x1] = block`` writes too.
+    """
+
+    def __init__(self, path, dtype, offset: int, shape, *, writable: bool = False):
+        self.path = str(path)
+        self.dtype = np.dtype(dtype)
+        self.offset = int(offset)
+        self.shape = tuple(int(n) for n in shape)
+        self.ndim = 3
+        self.writable = writable
+        self._fd = None
+
+    # -- the file ----------------------------------------------------------------------------
+    def _file(self) -> int:
+        if self._fd is None:
+            self._fd = os.open(self.path, os.O_RDWR if self.writable else os.O_RDONLY)
+        return self._fd
+
+    def close(self) -> None:
+        """Close the file (reopened by the next access)."""
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # pragma: no cover - interpreter shutdown
+            pass
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_fd"] = None
+        return state
+
+    # -- indexing ------------------------------------------------------------------------------
+    def _ranges(self, key):
+        """``key`` as the box it reads and what is then picked from that box.
+
+        Per axis the index range ``(lo, hi)``, and a slice of it or an int
+        (which drops the axis).
+        """
+        if not isinstance(key, tuple):
+            key = (key,)
+        if any(k is Ellipsis for k in key):
+            i = next(j for j, k in enumerate(key) if k is Ellipsis)
+            key = key[:i] + (slice(None),) * (3 - len(key) + 1) + key[i + 1:]
+        if len(key) > 3:
+            raise IndexError(f"too many indices for a 3-D volume: {len(key)}")
+        key = key + (slice(None),) * (3 - len(key))
+        box, pick = [], []
+        for axis, (k, n) in enumerate(zip(key, self.shape, strict=True)):
+            if isinstance(k, slice):
+                idx = range(*k.indices(n))
+                if len(idx) == 0:
+                    box.append((0, 0))
+                    pick.append(slice(0, 0))
+                    continue
+                lo, hi = min(idx), max(idx) + 1
+                box.append((lo, hi))
+                stop = idx.stop - lo
+                pick.append(slice(idx.start - lo, stop if stop >= 0 else None, idx.step))
+            else:
+                i = int(k)
+                i = i + n if i < 0 else i
+                if not 0 <= i < n:
+                    raise IndexError(f"index {k} is out of bounds for axis {axis} of size {n}")
+                box.append((i, i + 1))
+                pick.append(0)
+        return box, tuple(pick)
+
+    def __getitem__(self, key) -> np.ndarray:
+        ((z0, z1), (y0, y1), (x0, x1)), pick = self._ranges(key)
+        _, ny, nx = self.shape
+        item = self.dtype.itemsize
+        out = np.empty((z1 - z0, y1 - y0, x1 - x0), dtype=self.dtype.newbyteorder("="))
+        if out.size:
+            fd = self._file()
+            rows = y1 - y0
+            nbytes = rows * nx * item
+            for z in range(z0, z1):
+                start = self.offset + ((z * ny + y0) * nx) * item
+                raw = os.pread(fd, nbytes, start)
+                if len(raw) != nbytes:
+                    raise FormatError(f"{self.path}: file is truncated (plane {z} ends "
+                                      f"{nbytes - len(raw)} bytes short)")
+                out[z - z0] = np.frombuffer(raw, dtype=self.dtype).reshape(rows, nx)[:, x0:x1]
+        return out[pick]
+
+    def __setitem__(self, key, value) -> None:
+        if not self.writable:
+            raise ValueError(f"{self.path}: opened read-only")
+        ((z0, z1), (y0, y1), (x0, x1)), pick = self._ranges(key)
+        if any(not isinstance(p, slice) or p.step != 1 for p in pick):
+            raise IndexError("writes take boxes (slices without steps)")
+        block = np.asarray(value)
+        shape = (z1 - z0, y1 - y0, x1 - x0)
+        block = np.ascontiguousarray(np.broadcast_to(block, shape), dtype=self.dtype)
+        if block.size == 0:
+            return
+        fd = self._file()
+        _, ny, nx = self.shape
+        item = self.dtype.itemsize
+        whole_rows = x0 == 0 and x1 == nx
+        for i, z in enumerate(range(z0, z1)):
+            if whole_rows:  # the plane's rows are contiguous in the file
+                _write_all(fd, block[i].tobytes(), self.offset + (z * ny + y0) * nx * item)
+                continue
+            for j, y in enumerate(range(y0, y1)):
+                _write_all(fd, block[i, j].tobytes(), self.offset + ((z * ny + y) * nx + x0) * item)
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[:, :, :]
+        return out if dtype is None else out.astype(dtype)
+
+
+def _write_all(fd: int, data: bytes, offset: int) -> None:
+    view = memoryview(data)
+    while view:
+        n = os.pwrite(fd, view, offset)
+        view = view[n:]
+        offset += n
