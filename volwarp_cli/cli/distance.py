@@ -165,7 +165,9 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
         pass_blocks,
         signed_distance_dask,
         signed_edt_staged,
+        staged_check,
     )
+    from ..distance.field import check_method
     from ..io.atomic import scratch_folder
     from ..volume import xyz_to_zyx
     from .chunked import block_budget, block_output, dask_input, lazy_input, write_blocks
@@ -186,11 +188,19 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
         chunks = settings.block or line_chunks(shape, 2, per_task // 4,
                                                min_blocks=engine.workers)
         data = dask_input(source, chunks)
-        with timed("distance by blocks: one pass over the samples"), _collector_paused():
-            field, info = signed_distance_dask(data, spacing, iso=iso, inside=inside,
-                                               metric=metric, surface=surface,
-                                               max_distance=max_distance,
-                                               block_bytes=per_task // 4)
+        if max_distance is None and surface != "subvoxel":
+            # the exact field by passes: the samples are scanned in the first pass (the
+            # checks run before the last one), not in a pass of their own
+            check_method(metric, surface)
+            if metric != "euclidean":
+                signed_distance_dask(data, spacing, iso=iso, inside=inside, metric=metric)
+            field, info = None, {"metric": metric, "surface": "voxel", "chunked": "passes"}
+        else:
+            with timed("distance by blocks: one pass over the samples"), _collector_paused():
+                field, info = signed_distance_dask(data, spacing, iso=iso, inside=inside,
+                                                   metric=metric, surface=surface,
+                                                   max_distance=max_distance,
+                                                   block_bytes=per_task // 4)
         out = stamp(template.with_data(np.broadcast_to(np.zeros((), out_dtype), shape)),
                     "distance", input)
         out.meta["volwarp_distance"] = (
@@ -200,15 +210,18 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
                if max_distance is not None else ""))
         kw = dict(compress=compress, byte_order=byte_order, version=ome_zarr_version)
         if info["chunked"] == "passes":
-            last = pass_blocks(shape, 0, per_task // 4, engine.workers)
+            last = pass_blocks(shape, 0, per_task // 4, 4 * engine.workers)
             grid = last[0].shape if len(last) else shape
             with block_output(output, out, out_dtype, block=grid, **kw) as sink, \
                     scratch_folder(output) as scratch, timed("distance by blocks: passes"):
                 writer = sink.writer()
-                signed_edt_staged(MaskSource(source, iso, inside), spacing, engine,
-                                  writer.write, scratch, block_bytes=per_task // 4,
-                                  finish=finish, memory=per_task,
-                                  last_blocks=Box.from_shape(shape).blocks(sink.chunks))
+                check = staged_check(size=int(np.prod(shape)), iso=iso, inside=inside,
+                                     surface=surface, is_bool=source.dtype == bool)
+                with _collector_paused():
+                    signed_edt_staged(MaskSource(source, iso, inside), spacing, engine,
+                                      writer.write, scratch, block_bytes=per_task // 4,
+                                      finish=finish, memory=per_task, check=check,
+                                      last_blocks=Box.from_shape(shape).blocks(sink.chunks))
                 sink.mark_written(Box.from_shape(shape).blocks(sink.chunks))
             return
         field = field.map_blocks(finish, dtype=out_dtype)

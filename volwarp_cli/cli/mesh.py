@@ -249,12 +249,17 @@ def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cle
     """
     from .. import parallel
     from ..geometry import Geometry
-    from ..surface.chunked import DEFAULT_BLOCK, surface_mesh_blocks
+    from ..surface.chunked import surface_mesh_blocks
     from .chunked import block_budget, lazy_input
 
     settings = scale_settings()
     template, source = lazy_input(input, raw, volume_index)
-    block = settings.block or DEFAULT_BLOCK
+    nz, ny, nx = template.data.shape
+    tasks = parallel.threads() if settings.scheduler is None else max(1, settings.workers or 1)
+    # slabs of whole planes (whole rows read, no halo at the sides): the samples, their
+    # float copy and the flying edges' working arrays, about 24 bytes a voxel
+    depth = block_budget() // max(1, tasks) // max(1, 24 * ny * nx)
+    block = settings.block or (max(8, min(nz, depth, 256)), ny, nx)
     common = dict(block_shape=block, inside=inside, cap=cap, allow_empty=allow_empty,
                   cleanup=cleanup, name=input)
     if settings.scheduler is None:

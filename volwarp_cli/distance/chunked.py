@@ -176,10 +176,6 @@ def signed_edt_dask(mask, spacing_zyx=(1.0, 1.0, 1.0), *, block_bytes: int | Non
 
 
 # -- exact by passes, each pass's field on disk ------------------------------------------------
-#: Edge of the scratch stores' chunks: every pass block is a union of whole chunks.
-SCRATCH_CHUNK = 64
-
-
 class MaskSource:
     """The shape's mask of any box of a sliceable source, for block tasks (picklable)."""
 
@@ -192,34 +188,51 @@ class MaskSource:
         data = np.asarray(self.source[box.slices])
         return inside_mask(data, self.iso, self.inside).view(np.uint8)
 
+    def box_and_stats(self, box):
+        """:meth:`box` and the block's :func:`_block_stats` (the scan, in the first pass)."""
+        data = np.asarray(self.source[box.slices])
+        return (inside_mask(data, self.iso, self.inside).view(np.uint8),
+                _block_stats(data, self.iso, self.inside))
+
 
 def pass_blocks(shape, axis: int, block_bytes: int, min_blocks: int = 1):
-    """The blocks (Boxes) of one pass: whole lines along ``axis``.
+    """The blocks (Boxes) of one pass: whole lines along ``axis`` (:func:`line_chunks`).
 
-    The other axes are cut at multiples of :data:`SCRATCH_CHUNK`, so that
-    the blocks read and write whole scratch chunks.
+    The rows (x) are kept whole where the budget allows, so that each block
+    reads and writes its scratch file in long contiguous runs.
     """
     from ..box import Box
 
-    c = list(line_chunks(shape, axis, block_bytes, min_blocks=min_blocks))
-    for a in range(3):
-        if a != axis and c[a] < shape[a]:
-            c[a] = max(SCRATCH_CHUNK, c[a] // SCRATCH_CHUNK * SCRATCH_CHUNK)
-    return Box.from_shape(shape).blocks(tuple(c))
+    return Box.from_shape(shape).blocks(line_chunks(shape, axis, block_bytes,
+                                                    min_blocks=min_blocks))
 
 
 def _scratch_array(folder, name: str, shape):
-    import zarr
+    """A float32 scratch file of ``shape`` (sparse until written), read and written by box."""
+    from ..io.filearray import FileArray
 
-    return zarr.create_array(store=str(folder / name), shape=tuple(shape),
-                             chunks=(SCRATCH_CHUNK,) * 3, dtype=np.float32, compressors=None,
-                             fill_value=0, config={"write_empty_chunks": True})
+    path = folder / f"{name}.f32"
+    with open(path, "wb") as fh:
+        fh.truncate(int(np.prod(shape)) * 4)
+    return FileArray(path, np.dtype(np.float32), 0, shape, writable=True)
 
 
 def _pass_x(masks, box, hx, dest):
+    mask, stats = masks.box_and_stats(box)
     out = np.empty(box.shape, np.float32)
-    x_pass(masks.box(box), hx, out)
+    x_pass(mask, hx, out)
     dest[box.slices] = out
+    return stats
+
+
+def _pass_xy(masks, box, hx, hy, dest):
+    # a slab of whole planes holds whole x lines and whole y lines: both passes at once
+    mask, stats = masks.box_and_stats(box)
+    out = np.empty(box.shape, np.float32)
+    x_pass(mask, hx, out)
+    y_pass(out, mask, hy)
+    dest[box.slices] = out
+    return stats
 
 
 def _pass_y(masks, box, hy, src, dest):
@@ -234,42 +247,88 @@ def _pass_z(masks, box, hz, src, write, finish):
     write(box, finish(field) if finish is not None else field)
 
 
+def _slabs(shape, block_bytes: int, min_blocks: int):
+    """Slabs of whole planes within ``block_bytes``, at least ``min_blocks`` of them.
+
+    None when one plane does not fit the budget.
+    """
+    from ..box import Box
+
+    nz, ny, nx = shape
+    plane = PASS_BYTES_PER_VOXEL * ny * nx
+    if plane > block_bytes:
+        return None
+    depth = max(1, min(block_bytes // plane, math.ceil(nz / max(1, min_blocks))))
+    return Box.from_shape(shape).blocks((depth, ny, nx))
+
+
+def staged_check(*, size: int, iso: float, inside: str, surface: str, is_bool: bool):
+    """The ``check`` of :func:`signed_edt_staged`: the whole's scan from its blocks' stats.
+
+    Refuses what :func:`signed_distance_dask` refuses after its own scan: an
+    empty or full shape, and smooth samples under ``surface="auto"`` (their
+    sub-voxel field needs a band).
+    """
+    def check(stats):
+        nans, count, lo, hi, binary = merge_stats(stats, is_bool)
+        check_shape(nans, count, size, lo, hi, iso, inside)
+        if surface == "auto" and not binary:
+            raise VolwarpError(_SUBVOXEL_NEEDS_BAND)
+
+    return check
+
+
 def signed_edt_staged(masks: MaskSource, spacing_zyx, engine, write, scratch, *,
                       block_bytes: int, finish=None, memory: int | None = None,
-                      last_blocks=None) -> int:
-    """The exact field by passes, each pass's float32 field stored in ``scratch`` between passes.
+                      last_blocks=None, check=None) -> int:
+    """The exact field by passes, the field stored in ``scratch`` between them.
 
-    Memory is the blocks in flight, never the field: the x pass writes its
-    squared distances to a scratch store (chunks of :data:`SCRATCH_CHUNK`),
-    the y pass reads them by whole y lines and writes a second store, the z
-    pass reads that by whole z lines and hands each finished block to
-    ``write(box, field)`` (after ``finish(field)``: --unsigned, the output
-    type). The same kernels on the same lines as :func:`signed_edt_dask` and
-    the in-memory transform: equal bit for bit. ``last_blocks``: the z
-    pass's blocks (the output's block grid), default whole z lines within
-    ``block_bytes``. Returns the number of block tasks run.
+    Memory is the blocks in flight, never the field. The x and y passes run
+    together on slabs of whole planes (or, where a plane does not fit the
+    budget, the x pass on blocks of whole x lines and the y pass on blocks of
+    whole y lines, through a second scratch file) and write their squared
+    distances to a float32 scratch file (read and written in whole rows,
+    :mod:`volwarp_cli.io.filearray`); the z pass reads it by whole z lines
+    and hands each finished block to ``write(box, field)`` (after
+    ``finish(field)``: --unsigned, the output type). The same kernels on the
+    same lines as :func:`signed_edt_dask` and the in-memory transform: equal
+    bit for bit. ``last_blocks``: the z pass's blocks (the output's block
+    grid), default whole z lines within ``block_bytes``. ``check``: called
+    with the first pass's blocks' :func:`_block_stats` (the scan of the
+    samples, made as they are read) before the last pass, to refuse an
+    empty shape or one that needs another method. Returns the number of
+    block tasks run.
     """
     shape = masks.shape
     hz, hy, hx = (float(s) for s in spacing_zyx)
-    n = max(1, engine.workers)
-    a = _scratch_array(scratch, "x", shape)
-    tasks = [engine.block_delayed(_pass_x, f"distance-x-{'-'.join(map(str, b.lo))}", masks, b,
-                                  hx, a, memory=memory)
-             for b in pass_blocks(shape, 2, block_bytes, n)]
-    count = len(tasks)
-    engine.run(tasks, label="distance pass x")
-    b_arr = _scratch_array(scratch, "y", shape)
-    tasks = [engine.block_delayed(_pass_y, f"distance-y-{'-'.join(map(str, b.lo))}", masks, b,
-                                  hy, a, b_arr, memory=memory)
-             for b in pass_blocks(shape, 1, block_bytes, n)]
-    count += len(tasks)
-    engine.run(tasks, label="distance pass y")
-    import shutil
-
-    shutil.rmtree(scratch / "x", ignore_errors=True)
+    n = 4 * max(1, engine.workers)  # blocks per pass: four a task, for balance
+    field = _scratch_array(scratch, "xy", shape)
+    slabs = _slabs(shape, block_bytes, n)
+    if slabs is not None:
+        tasks = [engine.block_delayed(_pass_xy, f"distance-xy-{'-'.join(map(str, b.lo))}",
+                                      masks, b, hx, hy, field, memory=memory, keep=True)
+                 for b in slabs]
+        count = len(tasks)
+        stats = engine.run(tasks, label="distance passes x, y")
+    else:
+        first = _scratch_array(scratch, "x", shape)
+        tasks = [engine.block_delayed(_pass_x, f"distance-x-{'-'.join(map(str, b.lo))}", masks,
+                                      b, hx, first, memory=memory, keep=True)
+                 for b in pass_blocks(shape, 2, block_bytes, n)]
+        stats = engine.run(tasks, label="distance pass x")
+        count = len(tasks)
+        tasks = [engine.block_delayed(_pass_y, f"distance-y-{'-'.join(map(str, b.lo))}", masks,
+                                      b, hy, first, field, memory=memory)
+                 for b in pass_blocks(shape, 1, block_bytes, n)]
+        count += len(tasks)
+        engine.run(tasks, label="distance pass y")
+        first.close()
+        (scratch / "x.f32").unlink(missing_ok=True)
+    if check is not None:
+        check([s.value for s in stats])
     blocks = last_blocks if last_blocks is not None else pass_blocks(shape, 0, block_bytes, n)
     tasks = [engine.block_delayed(_pass_z, f"distance-z-{'-'.join(map(str, b.lo))}", masks, b,
-                                  hz, b_arr, write, finish, memory=memory)
+                                  hz, field, write, finish, memory=memory)
              for b in blocks]
     engine.run(tasks, label="distance pass z")
     return count + len(tasks)
@@ -443,14 +502,37 @@ def _scan(data, iso, inside):
     """One pass over the samples: NaN count, inside count, range, and whether binary."""
     blocks = data.to_delayed().ravel()
     stats = dask.compute(*[dask.delayed(_block_stats)(b, iso, inside) for b in blocks])
+    return merge_stats(stats, data.dtype == bool)
+
+
+def merge_stats(stats, is_bool: bool = False):
+    """The blocks' :func:`_block_stats` as the whole's ``(nans, count, lo, hi, binary)``."""
     nans = sum(s[0] for s in stats)
     count = sum(s[1] for s in stats)
     mins = [s[2] for s in stats if not np.isnan(s[2])]
     maxs = [s[3] for s in stats if not np.isnan(s[3])]
     values = {v for s in stats for v in s[5:] if v is not None}
-    binary = data.dtype == bool or (all(s[4] for s in stats) and len(values) <= 2)
+    binary = is_bool or (all(s[4] for s in stats) and len(values) <= 2)
     return (nans, count, min(mins) if mins else np.nan, max(maxs) if maxs else np.nan,
             binary)
+
+
+def check_shape(nans: int, count: int, size: int, lo, hi, iso: float, inside: str) -> None:
+    """The refusals and the warning of the whole's scan (:func:`.field.signed_distance`'s words).
+
+    NaN samples are warned about; an empty shape, or one filling the grid, refused.
+    """
+    if nans:
+        from ..progress import log
+
+        log.warning("%d NaN samples (%.2g%%) count as outside the shape", nans,
+                    100.0 * nans / size)
+    if count == 0:
+        raise VolwarpError(f"the shape is empty: no sample is {inside} the iso level {iso:g} "
+                           f"(samples range {float(lo):g} to {float(hi):g})")
+    if count == size:
+        raise VolwarpError(f"the shape fills the whole grid: every sample is {inside} the iso "
+                           f"level {iso:g}, so there is no surface")
 
 
 def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
@@ -504,17 +586,7 @@ def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
     if surface == "subvoxel" and max_distance is None:
         raise VolwarpError(_SUBVOXEL_NEEDS_BAND)
     nans, count, lo, hi, binary = _scan(data, iso, inside)
-    if nans:
-        from ..progress import log
-
-        log.warning("%d NaN samples (%.2g%%) count as outside the shape", nans,
-                    100.0 * nans / data.size)
-    if count == 0:
-        raise VolwarpError(f"the shape is empty: no sample is {inside} the iso level {iso:g} "
-                           f"(samples range {float(lo):g} to {float(hi):g})")
-    if count == data.size:
-        raise VolwarpError(f"the shape fills the whole grid: every sample is {inside} the iso "
-                           f"level {iso:g}, so there is no surface")
+    check_shape(nans, count, data.size, lo, hi, iso, inside)
     spacing_zyx = tuple(float(s) for s in spacing_zyx)
     sub = surface == "subvoxel" or (surface == "auto" and not binary)
     info = {"metric": metric, "surface": "subvoxel" if sub else "voxel",

@@ -9,9 +9,10 @@ Reads and writes through the file descriptor leave the data in the page
 cache only, which the kernel reclaims as it needs.
 
 Samples are C order ``[z, y, x]`` from byte ``offset``, of a fixed-endian
-``dtype``. A box of planes is read a plane's row range at a time (one
-``pread`` of the rows, the columns cut after); a box is written one row
-segment at a time (whole rows together when the box spans them).
+``dtype``. A box is read a plane's row range at a time (one ``pread`` of the
+rows, the columns cut after), or a row segment at a time where that would
+skip long stretches of the rows (:data:`ROW_SKIP`); it is written one row segment at a time (whole rows together when
+the box spans them).
 """
 
 from __future__ import annotations
@@ -21,6 +22,10 @@ import os
 import numpy as np
 
 from ..errors import FormatError
+
+#: bytes of a row a read may skip over rather than make a read per row (a system call
+#: costs about what copying this many bytes does)
+ROW_SKIP = 16 << 10
 
 
 class FileArray:
@@ -106,15 +111,34 @@ class FileArray:
         if out.size:
             fd = self._file()
             rows = y1 - y0
-            nbytes = rows * nx * item
-            for z in range(z0, z1):
-                start = self.offset + ((z * ny + y0) * nx) * item
-                raw = os.pread(fd, nbytes, start)
-                if len(raw) != nbytes:
-                    raise FormatError(f"{self.path}: file is truncated (plane {z} ends "
-                                      f"{nbytes - len(raw)} bytes short)")
-                out[z - z0] = np.frombuffer(raw, dtype=self.dtype).reshape(rows, nx)[:, x0:x1]
+            native = self.dtype == out.dtype
+            whole = x0 == 0 and x1 == nx
+            if (nx - (x1 - x0)) * item <= ROW_SKIP:  # the rows in one read, cut after
+                rows_buf = None if (whole and native) else np.empty((rows, nx), self.dtype)
+                for z in range(z0, z1):
+                    dest = out[z - z0] if rows_buf is None else rows_buf
+                    self._read_into(fd, dest, self.offset + ((z * ny + y0) * nx) * item, z)
+                    if rows_buf is not None:
+                        out[z - z0] = rows_buf[:, x0:x1]
+            else:  # a narrow box of long rows: each row's segment, a read per row
+                row = np.empty(x1 - x0, self.dtype)
+                for z in range(z0, z1):
+                    for y in range(y0, y1):
+                        self._read_into(fd, row, self.offset + ((z * ny + y) * nx + x0) * item,
+                                        z)
+                        out[z - z0, y - y0] = row
         return out[pick]
+
+    def _read_into(self, fd: int, dest: np.ndarray, offset: int, z: int) -> None:
+        """Fill the contiguous ``dest`` from ``offset`` (no intermediate bytes object)."""
+        view = memoryview(dest).cast("B")
+        done = 0
+        while done < len(view):
+            n = os.preadv(fd, [view[done:]], offset + done)
+            if n == 0:
+                raise FormatError(f"{self.path}: file is truncated (plane {z} ends "
+                                  f"{len(view) - done} bytes short)")
+            done += n
 
     def __setitem__(self, key, value) -> None:
         if not self.writable:
@@ -133,18 +157,19 @@ class FileArray:
         whole_rows = x0 == 0 and x1 == nx
         for i, z in enumerate(range(z0, z1)):
             if whole_rows:  # the plane's rows are contiguous in the file
-                _write_all(fd, block[i].tobytes(), self.offset + (z * ny + y0) * nx * item)
+                _write_all(fd, block[i], self.offset + (z * ny + y0) * nx * item)
                 continue
             for j, y in enumerate(range(y0, y1)):
-                _write_all(fd, block[i, j].tobytes(), self.offset + ((z * ny + y) * nx + x0) * item)
+                _write_all(fd, block[i, j], self.offset + ((z * ny + y) * nx + x0) * item)
 
     def __array__(self, dtype=None, copy=None):
         out = self[:, :, :]
         return out if dtype is None else out.astype(dtype)
 
 
-def _write_all(fd: int, data: bytes, offset: int) -> None:
-    view = memoryview(data)
+def _write_all(fd: int, data: np.ndarray, offset: int) -> None:
+    """Write the contiguous ``data`` at ``offset`` (its own buffer, not a copy)."""
+    view = memoryview(np.ascontiguousarray(data)).cast("B")
     while view:
         n = os.pwrite(fd, view, offset)
         view = view[n:]
