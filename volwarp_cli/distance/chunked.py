@@ -231,8 +231,20 @@ def _pass_xy(masks, box, hx, hy, dest):
     out = np.empty(box.shape, np.float32)
     x_pass(mask, hx, out)
     y_pass(out, mask, hy)
+    # the mask rides along as the sign: a squared distance to the other label is never 0
+    # (at least one spacing) and negating is exact, so the z pass needs no second read
+    np.negative(out, out=out, where=mask.view(bool))
     dest[box.slices] = out
     return stats
+
+
+def _pass_z_signed(box, hz, src, write, finish):
+    # the z pass of a field whose sign carries the mask (_pass_xy)
+    field = np.ascontiguousarray(src[box.slices], dtype=np.float32)
+    mask = np.signbit(field)
+    np.abs(field, out=field)
+    z_pass(field, mask.view(np.uint8), hz)
+    write(box, finish(field) if finish is not None else field)
 
 
 def _pass_y(masks, box, hy, src, dest):
@@ -327,9 +339,14 @@ def signed_edt_staged(masks: MaskSource, spacing_zyx, engine, write, scratch, *,
     if check is not None:
         check([s.value for s in stats])
     blocks = last_blocks if last_blocks is not None else pass_blocks(shape, 0, block_bytes, n)
-    tasks = [engine.block_delayed(_pass_z, f"distance-z-{'-'.join(map(str, b.lo))}", masks, b,
-                                  hz, field, write, finish, memory=memory)
-             for b in blocks]
+    if slabs is not None:
+        tasks = [engine.block_delayed(_pass_z_signed, f"distance-z-{'-'.join(map(str, b.lo))}",
+                                      b, hz, field, write, finish, memory=memory)
+                 for b in blocks]
+    else:
+        tasks = [engine.block_delayed(_pass_z, f"distance-z-{'-'.join(map(str, b.lo))}", masks,
+                                      b, hz, field, write, finish, memory=memory)
+                 for b in blocks]
     engine.run(tasks, label="distance pass z")
     return count + len(tasks)
 
