@@ -341,13 +341,17 @@ def open_engine(scheduler: str | SchedulerChoice | None = None, *, workers: int 
                            "(pip install 'volwarp-cli[scale]')") from None
     cluster = None
     if choice.kind == "local":
+        import dask
         from distributed import LocalCluster
 
         per = threads_per_worker or 1
         n = workers or max(1, parallel.threads() // per)
-        cluster = LocalCluster(n_workers=n, threads_per_worker=per, processes=True,
-                               memory_limit=(memory_limit // n) if memory_limit else "auto",
-                               dashboard_address=None, silence_logs=50)
+        # the workers' statistical profiler samples every thread's stack every 10 ms: a
+        # cost on every task and nothing volwarp reads (its workers get this config)
+        with dask.config.set({"distributed.worker.profile.enabled": False}):
+            cluster = LocalCluster(n_workers=n, threads_per_worker=per, processes=True,
+                                   memory_limit=(memory_limit // n) if memory_limit else "auto",
+                                   dashboard_address=None, silence_logs=50)
         client = Client(cluster)
     else:
         try:

@@ -169,7 +169,7 @@ class WarpBlocks:
     """
 
     def __init__(self, scene: Scene, source, placement: str, sampling: str, window: Box,
-                 dtype):
+                 dtype, sampler=None):
         self.grid = scene.grid
         self.dq = scene.dq
         self.pad = tuple(int(p) for p in scene.pad)
@@ -183,14 +183,15 @@ class WarpBlocks:
         self.sampling = sampling
         self.window = window  # the output's box of the target
         self.dtype = np.dtype(dtype)
+        self._sampler = sampler  # (given: in this process only; dropped when pickled)
         self._built = None
 
     def _scene(self):
         if self._built is None:
             from .pullback import BoxSampler
 
-            sampler = BoxSampler(self.source, self.grid, self.placement, self.sampling,
-                                 self.domain_dtype)
+            sampler = self._sampler if self._sampler is not None else BoxSampler(
+                self.source, self.grid, self.placement, self.sampling, self.domain_dtype)
             scene = Scene(sampler, self.grid, self.dq, self.pad, method=self.method,
                           evaluator=self.evaluator, background=self.background,
                           domain_range=(-self.vmax, self.vmax))
@@ -198,8 +199,11 @@ class WarpBlocks:
         return self._built
 
     def __getstate__(self):
+        if self.source is None:
+            raise TypeError("a warp job of a held domain runs in this process only")
         state = dict(self.__dict__)
         state["_built"] = None
+        state["_sampler"] = None
         return state
 
     def output_block(self, out_box: Box) -> np.ndarray:
@@ -238,31 +242,54 @@ class WarpBlocks:
     def choose_blocks(self, budget: int, tasks_at_once: int) -> tuple[int, int, int]:
         """Output blocks (z, y, x) for ``tasks_at_once`` tasks within ``budget`` bytes.
 
-        Columns of the whole depth (a block streams its planes, so depth costs
-        no halo) in k x k tiles of equal size, with the fewest tiles that give
-        each task two blocks (for balance) and fit; shallower where no column
-        does.
+        Slabs of whole rows (x) and the whole depth, cut along y into equal
+        parts: a block streams its planes (depth costs no halo), its rows are
+        contiguous in the output file (one write a plane) and its halo is on
+        two sides only. The fewest parts that give each task two blocks (for
+        balance) and fit; shallower where no slab of one row does.
         """
         shape = self.window.shape
         want = 2 * max(1, tasks_at_once)
         for depth in (shape[0], (shape[0] + 1) // 2, (shape[0] + 3) // 4, 64, 32, 16, 8):
-            for k in range(1, 129):
-                block = (min(depth, shape[0]), math.ceil(shape[1] / k), math.ceil(shape[2] / k))
-                tiles = math.ceil(shape[1] / block[1]) * math.ceil(shape[2] / block[2])
-                if tiles < want and min(block[1:]) > 8:
-                    continue
+            for parts in range(min(want, shape[1]), shape[1] + 1):
+                block = (min(depth, shape[0]), math.ceil(shape[1] / parts), shape[2])
                 box = Box((0, 0, 0), block).shift([(n - b) // 2 for n, b in
                                                    zip(shape, block, strict=True)])
                 if self.block_bytes(box) * tasks_at_once <= budget:
                     return block
-                if min(block[1:]) <= 8:
+                if block[1] == 1:
                     break
-        return tuple(min(8, n) for n in shape)
+        return (min(8, shape[0]), 1, shape[2])
 
 
 def write_block(job: WarpBlocks, out, box: Box) -> None:
     """Compute output block ``box`` and write it to ``out`` (a block output)."""
     out.write(box, job.output_block(box))
+
+
+def warp_by_tiles(job: WarpBlocks, out, *, threads: int | None = None) -> int:
+    """Every block of ``out`` on this process's threads (no Dask): the in-memory warp's way.
+
+    Whole-depth columns stream their planes through a ring of their own
+    columns and rows (:func:`render_block`): less memory, and more of it in
+    cache, than one ring of whole target planes per thread. Returns the
+    number of blocks.
+    """
+    from .. import parallel
+    from ..progress import progress
+
+    boxes = Box.from_shape(job.window.shape).blocks(out.chunks)
+    writer = out.writer()
+    n = parallel.threads() if threads is None else threads
+    with progress(len(boxes), "warp") as bar:
+        def task(box):
+            with parallel.use_threads(1):
+                writer.write(box, job.output_block(box))
+            bar.advance()
+
+        parallel.run_blocks(task, boxes, n)
+    out.mark_written(boxes)
+    return len(boxes)
 
 
 def warp_by_blocks(job: WarpBlocks, out, engine, *, memory: int | None = None):

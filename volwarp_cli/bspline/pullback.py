@@ -198,6 +198,29 @@ class BoxSampler:
         return out
 
 
+class DomainSampler:
+    """A captured domain voxmap (a capture file's) served box by box.
+
+    As a BoxSampler serves an input's: the block warp's source when the
+    domain is already held.
+    """
+
+    def __init__(self, domain: np.ndarray):
+        self.domain = self.source = domain
+        self.shape = tuple(domain.shape)
+        self.dtype = np.dtype(domain.dtype)
+
+    def input_box(self, box):
+        """No input is read for a held domain (an empty Box: the memory estimate's term)."""
+        from ..box import Box
+
+        return Box((0, 0, 0), (0, 0, 0))
+
+    def box(self, box) -> np.ndarray:
+        """The domain samples of ``box`` (z, y, x), contiguous."""
+        return np.ascontiguousarray(self.domain[box.slices])
+
+
 def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",
              sampling: str = "linear", dtype=np.float32) -> tuple[np.ndarray, tuple[float, float]]:
     """Domain voxmap ``[Dz, Dy, Dx]`` sampled from ``data[z, y, x]`` through the capture map.

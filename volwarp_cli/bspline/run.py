@@ -279,14 +279,15 @@ class IntensityWarp:
 
         return self.output(run(self.scene, self.frames, each))
 
-    def block_job(self, source):
+    def block_job(self, source, sampler=None):
         """The final lattice's output as independent blocks: ``(template, WarpBlocks)``.
 
         ``template`` is the output Volume with a zero-strided placeholder of its
         shape and dtype; :meth:`.blocks.WarpBlocks.output_block` computes any
         block of it (a picklable job: the tasks may run in other processes).
         ``source``: the input's samples, sliceable (the capture's own, or a
-        :class:`.blocks.LazySource` for other processes to reopen).
+        :class:`.blocks.LazySource` for other processes to reopen); or
+        ``sampler``, a held domain's (:meth:`tile_sampler`), for this process.
         """
         from .blocks import WarpBlocks
         from .warp import output_planes, output_window_box
@@ -297,7 +298,23 @@ class IntensityWarp:
                                     dtype=self.options.dtype)
         window = output_window_box(self.cap, self.scene, self.options.crop)
         return template, WarpBlocks(self.scene, source, self.cap.placement, self.cap.sampling,
-                                    window, template.dtype)
+                                    window, template.dtype, sampler=sampler)
+
+    def tile_sampler(self):
+        """The capture's samples box by box, for :func:`.blocks.warp_by_tiles` in this process.
+
+        A captured domain (a capture file's) as it is; a deferred capture's
+        gather from the input it already holds in the domain's type.
+        """
+        from .pullback import BoxSampler, DomainSampler
+
+        if self.cap.domain is not None:
+            return DomainSampler(self.cap.domain)
+        src = self.cap.sampler
+        if isinstance(src, BoxSampler):
+            return src
+        return BoxSampler(src._src, self.cap.grid, self.cap.placement, self.cap.sampling,
+                          src.dtype)
 
     def stream(self, open_writer: Callable[[Volume], AbstractContextManager]) -> Volume:
         """The final lattice's output, plane by plane, to a writer; returns its template.

@@ -326,12 +326,19 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preser
 
             check_exportable(warp.cap.placement, warp.cap.dq, input)
         if not frames_to and output.lower().endswith(".nrrd") and not write_kw["compress"]:
-            # raw NRRD: the warp's planes go to the file as they are finished (the
-            # whole target is never held, and the writing runs in the warp's threads)
-            from ..io.nrrd import nrrd_plane_writer
+            # raw NRRD: written by whole-depth columns as the threads finish them (the
+            # whole target is never held; each column streams a ring of its own planes)
+            from .. import memory, parallel
+            from ..bspline.blocks import warp_by_tiles
+            from .chunked import block_output
 
-            template = warp.stream(lambda t: nrrd_plane_writer(stamped(t), output,
-                                                               byte_order=write_kw["byte_order"]))
+            template, job = warp.block_job(None, sampler=warp.tile_sampler())
+            threads = parallel.threads()
+            block = job.choose_blocks(memory.memory_limit(), threads)
+            with timed("warp (deformation + pushforward, by columns)"), \
+                    block_output(output, stamped(template), block=block,
+                                 byte_order=write_kw["byte_order"]) as out:
+                warp_by_tiles(job, out, threads=threads)
             shape = list(template.shape_xyz)
         else:
             out = warp.render_frames(write_frame) if frames_to else warp.render()
