@@ -270,8 +270,8 @@ def write_block(job: WarpBlocks, out, box: Box) -> None:
 def warp_by_tiles(job: WarpBlocks, out, *, threads: int | None = None) -> int:
     """Every block of ``out`` on this process's threads (no Dask): the in-memory warp's way.
 
-    Whole-depth columns stream their planes through a ring of their own
-    columns and rows (:func:`render_block`): less memory, and more of it in
+    Whole-depth slabs stream their planes through a ring of their own
+    rows (:func:`render_block`): less memory, and more of it in
     cache, than one ring of whole target planes per thread. Returns the
     number of blocks.
     """

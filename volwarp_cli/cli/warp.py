@@ -326,8 +326,8 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preser
 
             check_exportable(warp.cap.placement, warp.cap.dq, input)
         if not frames_to and output.lower().endswith(".nrrd") and not write_kw["compress"]:
-            # raw NRRD: written by whole-depth columns as the threads finish them (the
-            # whole target is never held; each column streams a ring of its own planes)
+            # raw NRRD: written by slabs (whole depth, whole rows) as the threads finish them
+            # (the whole target is never held; each slab streams a ring of its own planes)
             from .. import memory, parallel
             from ..bspline.blocks import warp_by_tiles
             from .chunked import block_output
@@ -335,7 +335,7 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preser
             template, job = warp.block_job(None, sampler=warp.tile_sampler())
             threads = parallel.threads()
             block = job.choose_blocks(memory.memory_limit(), threads)
-            with timed("warp (deformation + pushforward, by columns)"), \
+            with timed("warp (deformation + pushforward, by slabs)"), \
                     block_output(output, stamped(template), block=block,
                                  byte_order=write_kw["byte_order"]) as out:
                 warp_by_tiles(job, out, threads=threads)
