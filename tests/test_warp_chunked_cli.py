@@ -161,3 +161,51 @@ def test_a_failing_block_leaves_no_output(run, scan, tmp_path, monkeypatch):
     assert res.code == 1 and "disk full (test)" in res.stderr
     assert out.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir() if "part" in p.name] == []
+
+
+def test_a_worker_killed_in_a_chunked_warp_loses_nothing(tmp_path):
+    """A cluster worker SIGKILLed while it computes blocks: Dask runs its blocks again on
+    the other worker; the output is byte for byte the in-memory warp's and no temporary is
+    left (a block task writes whole blocks at fixed places, so a rerun rewrites the same
+    bytes, and the output appears only when every block is in)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    pytest.importorskip("distributed")
+    from distributed import Client, LocalCluster
+
+    z, y, x = np.meshgrid(*[np.linspace(-1, 1, n) for n in (48, 52, 44)], indexing="ij")
+    data = (1000 * np.exp(-(x * x + y * y + z * z) / 0.3)).astype(np.int16)
+    src = tmp_path / "in.nrrd"
+    write_volume(Volume(data, spacing=np.array([0.8, 0.9, 1.1])), src)
+    spec = tmp_path / "warp.yaml"
+    spec.write_text(SPEC)
+    mem, blk = tmp_path / "mem.nrrd", tmp_path / "blk.nrrd"
+    cmd = [sys.executable, "-m", "volwarp_cli", "warp", str(src), "--spec", str(spec)]
+    assert subprocess.run(cmd + ["-o", str(mem)], capture_output=True).returncode == 0
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None, silence_logs=50) as cluster, \
+            Client(cluster) as client:
+        pids = client.run(os.getpid)
+        proc = subprocess.Popen(cmd + ["-o", str(blk), "--chunked", "--block", "10",
+                                       "--scheduler", cluster.scheduler_address,
+                                       "--progress", "jsonl"],
+                                stderr=subprocess.PIPE, text=True)
+        killed, done, other = None, 0, []
+        for line in proc.stderr:
+            if not line.startswith("{"):
+                other.append(line)
+                continue
+            done += '"done"' in line
+            if killed is None and done == 3:
+                killed = next(iter(pids.values()))
+                os.kill(killed, signal.SIGKILL)
+        code = proc.wait(timeout=300)
+    assert killed is not None, "the warp ended before a worker could be killed"
+    assert code == 0, "".join(other)
+    assert blk.read_bytes() == mem.read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["blk.nrrd", "in.nrrd", "mem.nrrd",
+                                                         "warp.yaml"]
+    assert done >= 3
