@@ -404,34 +404,15 @@ _SUBVOXEL_KERNELS = None
 def _subvoxel_block(values, iso, above, hz, hy, hx, max_distance):
     # subvoxel.subvoxel_signed_distance with serial kernels, on one overlapped block;
     # a block without a crossing is farther than the band from the surface: ±D by side
-    from .subvoxel import DISC_RADIUS, REFINE_STEPS
+    from .subvoxel import subvoxel_field
 
-    seeds, feature, finish = _serial_subvoxel()
     vals = np.ascontiguousarray(values)
     if vals.dtype.kind not in "f":
         vals = vals.astype(np.float32)
-    nz = vals.shape[0]
-    hs = np.array([hx, hy, hz])
-    counts = np.zeros(nz, np.int64)
-    idtype = np.int32 if vals.size < 2**31 else np.int64
-    seeds(vals, float(iso), above, hs, counts, False, np.empty((1, 1, 1), idtype),
-          np.empty((1, 6)))
-    total = int(counts.sum())
-    if total == 0:
+    dist = subvoxel_field(vals, iso, above, (hz, hy, hx), kernels=_serial_subvoxel())
+    if dist is None:
         inside = (vals >= iso) if above else (vals < iso)
         return np.where(inside, np.float32(-max_distance), np.float32(max_distance))
-    offsets = np.zeros(nz, np.int64)
-    offsets[1:] = np.cumsum(counts)[:-1]
-    ids = np.full(vals.shape, -1, idtype)
-    cps = np.empty((total, 6), np.float64)
-    seeds(vals, float(iso), above, hs, offsets, True, ids, cps)
-    dist = np.empty(vals.shape, np.float32)
-    feature(ids, hz, hy, hx, dist)
-    r0 = DISC_RADIUS * float(max(hs))
-    other = np.empty_like(ids)
-    for _ in range(REFINE_STEPS):
-        finish(vals, float(iso), above, hs, r0, 1e-6 * float(min(hs)), ids, other, cps, dist)
-        ids, other = other, ids
     return finish_field(dist, max_distance=max_distance)
 
 

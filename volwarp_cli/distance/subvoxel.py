@@ -398,29 +398,42 @@ def subvoxel_signed_distance(values: np.ndarray, iso: float, *, inside: str = "a
     vals = np.ascontiguousarray(values)
     if vals.dtype.kind not in "f":
         vals = vals.astype(np.float32)
+    parallel.numba_threads()
+    dist = subvoxel_field(vals, iso, inside == "above", spacing_zyx)
+    if dist is None:
+        raise VolwarpError(f"the samples never cross the iso level {iso:g}: there is no surface")
+    return dist
+
+
+def subvoxel_field(vals: np.ndarray, iso: float, above: bool, spacing_zyx,
+                   kernels=None) -> np.ndarray | None:
+    """The sub-voxel field of float samples ``vals``; None where they never cross ``iso``.
+
+    ``kernels``: ``(seeds, feature, finish)``, builds of this module's kernels
+    other than the parallel ones (an out-of-core block's serial builds); the
+    same arithmetic either way.
+    """
+    seeds, feature, finish = (_seeds, _feature, _finish) if kernels is None else kernels
     hz, hy, hx = (float(s) for s in spacing_zyx)
-    above = inside == "above"
     nz = vals.shape[0]
     hs = np.array([hx, hy, hz])
     counts = np.zeros(nz, np.int64)
     idtype = np.int32 if vals.size < 2**31 else np.int64
-    parallel.numba_threads()
-    _seeds(vals, float(iso), above, hs, counts, False, np.empty((1, 1, 1), idtype),
-               np.empty((1, 6)))
+    seeds(vals, float(iso), above, hs, counts, False, np.empty((1, 1, 1), idtype),
+          np.empty((1, 6)))
     total = int(counts.sum())
     if total == 0:
-        raise VolwarpError(f"the samples never cross the iso level {iso:g}: there is no surface")
+        return None
     offsets = np.zeros(nz, np.int64)
     offsets[1:] = np.cumsum(counts)[:-1]
     ids = np.full(vals.shape, -1, idtype)
     cps = np.empty((total, 6), np.float64)
-    _seeds(vals, float(iso), above, hs, offsets, True, ids, cps)
+    seeds(vals, float(iso), above, hs, offsets, True, ids, cps)
     dist = np.empty(vals.shape, np.float32)
-    _feature(ids, hz, hy, hx, dist)
+    feature(ids, hz, hy, hx, dist)
     r0 = DISC_RADIUS * float(max(hs))
     other = np.empty_like(ids)
     for _ in range(REFINE_STEPS):
-        _finish(vals, float(iso), above, hs, r0, 1e-6 * float(min(hs)), ids, other, cps,
-                dist)
+        finish(vals, float(iso), above, hs, r0, 1e-6 * float(min(hs)), ids, other, cps, dist)
         ids, other = other, ids
     return dist

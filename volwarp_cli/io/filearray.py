@@ -69,39 +69,7 @@ class FileArray:
 
     # -- indexing ------------------------------------------------------------------------------
     def _ranges(self, key):
-        """``key`` as the box it reads and what is then picked from that box.
-
-        Per axis the index range ``(lo, hi)``, and a slice of it or an int
-        (which drops the axis).
-        """
-        if not isinstance(key, tuple):
-            key = (key,)
-        if any(k is Ellipsis for k in key):
-            i = next(j for j, k in enumerate(key) if k is Ellipsis)
-            key = key[:i] + (slice(None),) * (3 - len(key) + 1) + key[i + 1:]
-        if len(key) > 3:
-            raise IndexError(f"too many indices for a 3-D volume: {len(key)}")
-        key = key + (slice(None),) * (3 - len(key))
-        box, pick = [], []
-        for axis, (k, n) in enumerate(zip(key, self.shape, strict=True)):
-            if isinstance(k, slice):
-                idx = range(*k.indices(n))
-                if len(idx) == 0:
-                    box.append((0, 0))
-                    pick.append(slice(0, 0))
-                    continue
-                lo, hi = min(idx), max(idx) + 1
-                box.append((lo, hi))
-                stop = idx.stop - lo
-                pick.append(slice(idx.start - lo, stop if stop >= 0 else None, idx.step))
-            else:
-                i = int(k)
-                i = i + n if i < 0 else i
-                if not 0 <= i < n:
-                    raise IndexError(f"index {k} is out of bounds for axis {axis} of size {n}")
-                box.append((i, i + 1))
-                pick.append(0)
-        return box, tuple(pick)
+        return box_of_key(key, self.shape)
 
     def __getitem__(self, key) -> np.ndarray:
         ((z0, z1), (y0, y1), (x0, x1)), pick = self._ranges(key)
@@ -165,6 +133,44 @@ class FileArray:
     def __array__(self, dtype=None, copy=None):
         out = self[:, :, :]
         return out if dtype is None else out.astype(dtype)
+
+
+def box_of_key(key, shape):
+    """A numpy index of a 3-D volume of ``shape`` as the box to read and what to pick from it.
+
+    ``(box, pick)``: per axis the index range ``(lo, hi)`` covering every
+    index asked for, and ``pick``, the index that takes the answer from that
+    box (a slice of it, any step; an int drops the axis): ``read(box)[pick]``
+    equals ``whole[key]``. For lazy arrays that read boxes (files, zarr stores).
+    """
+    if not isinstance(key, tuple):
+        key = (key,)
+    if any(k is Ellipsis for k in key):
+        i = next(j for j, k in enumerate(key) if k is Ellipsis)
+        key = key[:i] + (slice(None),) * (3 - len(key) + 1) + key[i + 1:]
+    if len(key) > 3:
+        raise IndexError(f"too many indices for a 3-D volume: {len(key)}")
+    key = key + (slice(None),) * (3 - len(key))
+    box, pick = [], []
+    for axis, (k, n) in enumerate(zip(key, shape, strict=True)):
+        if isinstance(k, slice):
+            idx = range(*k.indices(n))
+            if len(idx) == 0:
+                box.append((0, 0))
+                pick.append(slice(0, 0))
+                continue
+            lo, hi = min(idx), max(idx) + 1
+            box.append((lo, hi))
+            stop = idx.stop - lo
+            pick.append(slice(idx.start - lo, stop if stop >= 0 else None, idx.step))
+        else:
+            i = int(k)
+            i = i + n if i < 0 else i
+            if not 0 <= i < n:
+                raise IndexError(f"index {k} is out of bounds for axis {axis} of size {n}")
+            box.append((i, i + 1))
+            pick.append(0)
+    return box, tuple(pick)
 
 
 def _write_all(fd: int, data: np.ndarray, offset: int) -> None:

@@ -713,38 +713,10 @@ class LazyOmeZarr:
         self.ndim = 3
 
     def __getitem__(self, key):
-        if not isinstance(key, tuple):
-            key = (key,)
-        if any(k is Ellipsis for k in key):
-            i = next(j for j, k in enumerate(key) if k is Ellipsis)
-            key = key[:i] + (slice(None),) * (3 - len(key) + 1) + key[i + 1:]
-        if len(key) > 3:
-            raise IndexError(f"too many indices for a 3-D volume: {len(key)}")
-        key = key + (slice(None),) * (3 - len(key))
-        region, post, squeeze = [], [], []
-        for axis, (k, n) in enumerate(zip(key, self.shape, strict=True)):
-            if isinstance(k, slice):
-                idx = range(*k.indices(n))
-                if len(idx) == 0:
-                    region.append(slice(0, 0))
-                    post.append(None)
-                    continue
-                lo, hi = min(idx), max(idx) + 1
-                region.append(slice(lo, hi))
-                post.append(None if idx.step == 1 else np.array(idx) - lo)
-            else:
-                i = int(k)
-                i = i + n if i < 0 else i
-                if not 0 <= i < n:
-                    raise IndexError(f"index {k} is out of bounds for axis {axis} of size {n}")
-                region.append(slice(i, i + 1))
-                post.append(None)
-                squeeze.append(axis)
-        out = read_region(self._opened, tuple(region))
-        for axis, p in enumerate(post):
-            if p is not None:
-                out = np.take(out, p, axis=axis)
-        return out.squeeze(axis=tuple(squeeze)) if squeeze else out
+        from .filearray import box_of_key
+
+        box, pick = box_of_key(key, self.shape)
+        return read_region(self._opened, tuple(slice(lo, hi) for lo, hi in box))[pick]
 
     def __array__(self, dtype=None, copy=None):
         out = self[:, :, :]
