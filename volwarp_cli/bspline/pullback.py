@@ -112,20 +112,21 @@ class Sampler:
         self.shape = tuple(grid.domain_shape[::-1])
         self.dtype = np.dtype(dtype)
         src = np.ascontiguousarray(data)
-        self._src = src if src.dtype == self.dtype else src.astype(self.dtype)
+        #: the input's samples in the domain's type (what the gather reads)
+        self.samples = src if src.dtype == self.dtype else src.astype(self.dtype)
 
     def planes(self, g0: int, g1: int, out: np.ndarray | None = None) -> np.ndarray:
         """Domain planes [g0, g1) into ``out`` (``(g1 - g0, Dy, Dx)``, default new)."""
         if out is None:
             out = np.empty((g1 - g0,) + self.shape[1:], dtype=self.dtype)
-        SampleJob(data=self._src, x=self._x, y=self._y, z=tuple(a[g0:g1] for a in self._z),
+        SampleJob(data=self.samples, x=self._x, y=self._y, z=tuple(a[g0:g1] for a in self._z),
                   out=out, g0=0, g1=g1 - g0).run()
         return out
 
     def whole(self) -> tuple[np.ndarray, tuple[float, float]]:
         """The whole voxmap (two threads) and the (min, max) of its samples."""
         out = np.empty(self.shape, dtype=self.dtype)
-        job = SampleJob(data=self._src, x=self._x, y=self._y, z=self._z, out=out, g0=0,
+        job = SampleJob(data=self.samples, x=self._x, y=self._y, z=self._z, out=out, g0=0,
                         g1=out.shape[0])
         parts = run_split(lambda g0, g1: replace(job, g0=g0, g1=g1), 0, out.shape[0], out.size)
         return out, (min(p[0] for p in parts), max(p[1] for p in parts))

@@ -313,7 +313,7 @@ class IntensityWarp:
         src = self.cap.sampler
         if isinstance(src, BoxSampler):
             return src
-        return BoxSampler(src._src, self.cap.grid, self.cap.placement, self.cap.sampling,
+        return BoxSampler(src.samples, self.cap.grid, self.cap.placement, self.cap.sampling,
                           src.dtype)
 
     def stream(self, open_writer: Callable[[Volume], AbstractContextManager]) -> Volume:

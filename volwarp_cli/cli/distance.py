@@ -161,13 +161,13 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
     from ..box import Box
     from ..distance.chunked import (
         MaskSource,
+        check_out_of_core,
         line_chunks,
         pass_blocks,
         signed_distance_dask,
         signed_edt_staged,
         staged_check,
     )
-    from ..distance.field import check_method
     from ..io.atomic import scratch_folder
     from ..volume import xyz_to_zyx
     from .chunked import block_budget, block_output, dask_input, lazy_input, write_blocks
@@ -191,9 +191,7 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
         if max_distance is None and surface != "subvoxel":
             # the exact field by passes: the samples are scanned in the first pass (the
             # checks run before the last one), not in a pass of their own
-            check_method(metric, surface)
-            if metric != "euclidean":
-                signed_distance_dask(data, spacing, iso=iso, inside=inside, metric=metric)
+            check_out_of_core(metric, surface)
             field, info = None, {"metric": metric, "surface": "voxel", "chunked": "passes"}
         else:
             with timed("distance by blocks: one pass over the samples"), _collector_paused():

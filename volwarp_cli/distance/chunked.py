@@ -533,6 +533,14 @@ def check_shape(nans: int, count: int, size: int, lo, hi, iso: float, inside: st
                            f"level {iso:g}, so there is no surface")
 
 
+def check_out_of_core(metric: str, surface: str) -> None:
+    """Refuse a metric or surface mode with no out-of-core form (before any pass)."""
+    check_method(metric, surface)
+    if metric != "euclidean":
+        raise VolwarpError(f"the {metric} metric has no out-of-core (chunked) form: use "
+                           "--metric euclidean, or run it in memory")
+
+
 def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
                          inside: str = "above", metric: str = "euclidean",
                          surface: str = "auto", max_distance: float | None = None,
@@ -568,10 +576,7 @@ def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
         ``minnorm``, ``taxicab`` and ``chessboard`` metrics, a sub-voxel surface
         without ``max_distance``.
     """
-    check_method(metric, surface)
-    if metric != "euclidean":
-        raise VolwarpError(f"the {metric} metric has no out-of-core (chunked) form: use "
-                           "--metric euclidean, or run it in memory")
+    check_out_of_core(metric, surface)
     if inside not in ("above", "below"):
         raise VolwarpError(f"inside must be 'above' or 'below', got {inside!r}")
     if max_distance is not None and not max_distance > 0:
