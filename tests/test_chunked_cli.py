@@ -161,3 +161,21 @@ def test_sweep_by_blocks_refuses_what_needs_the_whole_fields(run, tmp_path):
     res = run("sweep", spec, "-o", tmp_path / "o_{field}.nrrd", "--render",
               tmp_path / "r.png", "--chunked")
     assert res.code == 2 and "--render" in res.stderr
+
+
+def test_distance_passes_take_the_block_size(run, scan, tmp_path):
+    """--block Z,Y,X for the exact field: slabs of Z planes for the x/y passes, columns of
+    Y by X for the z pass (whole lines either way); the same field as in memory."""
+    import json
+
+    mem, blk = tmp_path / "m.nrrd", tmp_path / "b.nrrd"
+    assert run("distance", scan, "-o", mem, "--iso", "300", "--surface", "voxel").code == 0
+    res = run("distance", scan, "-o", blk, "--iso", "300", "--surface", "voxel", "--chunked",
+              "--block", "10,7,13", "--progress", "jsonl", "--scheduler", "synchronous")
+    assert res.code == 0, res.stderr
+    ids = {json.loads(line)["id"] for line in res.stderr.splitlines() if line.startswith("{")}
+    assert {i for i in ids if i.startswith("distance-xy-")} == {
+        f"distance-xy-{z}-0-0" for z in range(0, 37, 10)}
+    assert {i for i in ids if i.startswith("distance-z-")} == {
+        f"distance-z-0-{y}-{x}" for y in range(0, 41, 7) for x in range(0, 29, 13)}
+    assert np.array_equal(read_volume(mem).data, read_volume(blk).data)

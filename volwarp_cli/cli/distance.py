@@ -208,8 +208,11 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
                if max_distance is not None else ""))
         kw = dict(compress=compress, byte_order=byte_order, version=ome_zarr_version)
         if info["chunked"] == "passes":
-            last = pass_blocks(shape, 0, per_task // 4, 4 * engine.workers)
-            grid = last[0].shape if len(last) else shape
+            if settings.block is not None:  # the slabs' depth, the z pass's columns
+                grid = (shape[0], *settings.block[1:])
+            else:
+                last = pass_blocks(shape, 0, per_task // 4, 4 * engine.workers)
+                grid = last[0].shape if len(last) else shape
             with block_output(output, out, out_dtype, block=grid, **kw) as sink, \
                     scratch_folder(output) as scratch, timed("distance by blocks: passes"):
                 writer = sink.writer()
@@ -219,7 +222,8 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
                     signed_edt_staged(MaskSource(source, iso, inside), spacing, engine,
                                       writer.write, scratch, block_bytes=per_task // 4,
                                       finish=finish, memory=per_task, check=check,
-                                      last_blocks=Box.from_shape(shape).blocks(sink.chunks))
+                                      last_blocks=Box.from_shape(shape).blocks(sink.chunks),
+                                      slab_depth=settings.block[0] if settings.block else None)
                 sink.mark_written(Box.from_shape(shape).blocks(sink.chunks))
             return
         field = field.map_blocks(finish, dtype=out_dtype)

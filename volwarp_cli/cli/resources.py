@@ -155,7 +155,9 @@ def scale_options(f):
     f = click.option("--block", default=None, metavar="N|Z,Y,X", expose_value=False,
                      callback=_setting("block", _block),
                      help="With --chunked: the output block's size in voxels [default: "
-                          "the largest the memory budget holds for the tasks run at once].")(f)
+                          "the largest the memory budget holds for the tasks run at once]; "
+                          "the exact distance, whose passes need whole lines, takes Z as "
+                          "its x/y passes' slab depth and Y,X as its z pass's columns.")(f)
     f = click.option("--chunked/--no-chunked", default=None, expose_value=False,
                      callback=_setting("chunked"),
                      help="Run by output blocks on Dask, the input read and the output "

@@ -41,6 +41,7 @@ import dask
 import dask.array as da
 import numpy as np
 
+from ..box import Box
 from ..errors import VolwarpError
 from .exact import x_pass, y_pass, z_pass
 from .field import check_method, finish_field, inside_mask
@@ -201,8 +202,6 @@ def pass_blocks(shape, axis: int, block_bytes: int, min_blocks: int = 1):
     The rows (x) are kept whole where the budget allows, so that each block
     reads and writes its scratch file in long contiguous runs.
     """
-    from ..box import Box
-
     return Box.from_shape(shape).blocks(line_chunks(shape, axis, block_bytes,
                                                     min_blocks=min_blocks))
 
@@ -264,8 +263,6 @@ def _slabs(shape, block_bytes: int, min_blocks: int):
 
     None when one plane does not fit the budget.
     """
-    from ..box import Box
-
     nz, ny, nx = shape
     plane = PASS_BYTES_PER_VOXEL * ny * nx
     if plane > block_bytes:
@@ -292,7 +289,7 @@ def staged_check(*, size: int, iso: float, inside: str, surface: str, is_bool: b
 
 def signed_edt_staged(masks: MaskSource, spacing_zyx, engine, write, scratch, *,
                       block_bytes: int, finish=None, memory: int | None = None,
-                      last_blocks=None, check=None) -> int:
+                      last_blocks=None, check=None, slab_depth: int | None = None) -> int:
     """The exact field by passes, the field stored in ``scratch`` between them.
 
     Memory is the blocks in flight, never the field. The x and y passes run
@@ -305,7 +302,9 @@ def signed_edt_staged(masks: MaskSource, spacing_zyx, engine, write, scratch, *,
     ``finish(field)``: --unsigned, the output type). The same kernels on the
     same lines as :func:`signed_edt_dask` and the in-memory transform: equal
     bit for bit. ``last_blocks``: the z pass's blocks (the output's block
-    grid), default whole z lines within ``block_bytes``. ``check``: called
+    grid), default whole z lines within ``block_bytes``; ``slab_depth``: the
+    x and y passes' slabs, that many planes deep (default from
+    ``block_bytes``). ``check``: called
     with the first pass's blocks' :func:`_block_stats` (the scan of the
     samples, made as they are read) before the last pass, to refuse an
     empty shape or one that needs another method. Returns the number of
@@ -315,7 +314,8 @@ def signed_edt_staged(masks: MaskSource, spacing_zyx, engine, write, scratch, *,
     hz, hy, hx = (float(s) for s in spacing_zyx)
     n = 4 * max(1, engine.workers)  # blocks per pass: four a task, for balance
     field = _scratch_array(scratch, "xy", shape)
-    slabs = _slabs(shape, block_bytes, n)
+    slabs = (_slabs(shape, block_bytes, n) if slab_depth is None
+             else Box.from_shape(shape).blocks((int(slab_depth), shape[1], shape[2])))
     if slabs is not None:
         tasks = [engine.block_delayed(_pass_xy, f"distance-xy-{'-'.join(map(str, b.lo))}",
                                       masks, b, hx, hy, field, memory=memory, keep=True)
@@ -361,7 +361,6 @@ def band_halo(spacing_zyx, max_distance: float, surface: str = "voxel") -> tuple
     the one voxel more keeps a site just past ``D`` out of reach of float32
     rounding too.
     """
-    from ..box import Box
     from ..regions import distance_band_input
     from ..volume import zyx_to_xyz
 
