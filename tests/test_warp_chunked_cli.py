@@ -209,3 +209,14 @@ def test_a_worker_killed_in_a_chunked_warp_loses_nothing(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["blk.nrrd", "in.nrrd", "mem.nrrd",
                                                          "warp.yaml"]
     assert done >= 3
+
+
+def test_scale_options_that_do_not_apply_are_refused(run, scan, tmp_path):
+    src, spec = scan
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--threads-per-worker", "2")
+    assert res.code == 2 and "--threads-per-worker" in res.stderr
+    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--workers", "2",
+              "--scheduler", "tcp://127.0.0.1:1")
+    assert res.code == 2 and "--workers" in res.stderr
+    assert not out.exists()

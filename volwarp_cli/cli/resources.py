@@ -77,9 +77,16 @@ class ScaleSettings:
     def open_engine(self):
         """The Dask engine these settings name (:func:`volwarp_cli.engine.open_engine`)."""
         from .. import memory
-        from ..engine import open_engine
+        from ..engine import open_engine, parse_scheduler
 
-        limit = memory.memory_limit() if self.scheduler == "local" else None
+        kind = parse_scheduler(self.scheduler).kind
+        if self.threads_per_worker is not None and kind != "local":
+            raise click.UsageError("--threads-per-worker sets a --scheduler local cluster's "
+                                   "workers (the others' threads are their own)")
+        if self.workers is not None and kind in ("address", "file"):
+            raise click.UsageError("--workers does not apply to an existing cluster (it has "
+                                   "its own workers)")
+        limit = memory.memory_limit() if kind == "local" else None
         return open_engine(self.scheduler, workers=self.workers,
                            threads_per_worker=self.threads_per_worker, memory_limit=limit,
                            progress="jsonl" if self.progress == "jsonl" else None)
