@@ -372,3 +372,46 @@ def open_engine(scheduler: str | SchedulerChoice | None = None, *, workers: int 
         yield engine
     finally:
         engine.close()
+
+
+# -- graph pieces shared by the chunked operations ---------------------------------------
+def dask_input(source, chunks):
+    """``source`` (a sliceable array: a :class:`~volwarp_cli.bspline.blocks.LazySource`) in Dask."""
+    import dask.array as da
+    import numpy as np
+
+    return da.from_array(source, chunks=chunks, asarray=True, lock=False,
+                         meta=np.empty((0, 0, 0), dtype=source.dtype), name=False)
+
+
+def _write(block, out, box):
+    out.write(box, block)
+
+
+def write_blocks(darr, out, engine, *, label: str, memory: int | None = None):
+    """Compute Dask array ``darr`` block by block on ``engine``, each block written to ``out``.
+
+    ``darr`` is rechunked to the output's block grid first, so every write is
+    one aligned block; returns the tasks' stats.
+    """
+    import dask
+    import numpy as np
+
+    from .box import Box
+    from .io.blockwrite import aligned_chunks
+
+    darr = darr.rechunk(aligned_chunks(darr.shape, out))
+    out_node = dask.delayed(out.writer(), pure=False)
+    starts = [np.concatenate([[0], np.cumsum(c)[:-1]]).astype(int) for c in darr.chunks]
+    tasks, boxes = [], []
+    for index, part in zip(np.ndindex(*darr.numblocks), darr.to_delayed().ravel(),
+                           strict=True):
+        lo = [int(s[i]) for s, i in zip(starts, index, strict=True)]
+        hi = [a + int(c[i]) for a, c, i in zip(lo, darr.chunks, index, strict=True)]
+        box = Box(lo, hi)
+        boxes.append(box)
+        tasks.append(engine.block_delayed(_write, f"{label}-{'-'.join(map(str, lo))}", part,
+                                          out_node, box, memory=memory))
+    stats = engine.run(tasks, label=label)
+    out.mark_written(boxes)  # (every task succeeded: a failure raised)
+    return stats

@@ -5,12 +5,12 @@ the memory budget) opens its input lazily (:func:`lazy_input`: a memory map,
 a zarr array, pages of a TIFF; reopened by path in a worker process), builds
 its result as a Dask array or as block tasks, and writes every block straight
 into a :class:`~volwarp_cli.io.blockwrite.BlockOutput` (:func:`write_blocks`),
-which appears at its path only when every block is in.
+which appears at its path only when every block is in. The graph pieces
+(:func:`~volwarp_cli.engine.dask_input`, :func:`~volwarp_cli.engine.write_blocks`)
+are the engine's, shared with the cores that build graphs themselves.
 """
 
 from __future__ import annotations
-
-import contextlib
 
 import numpy as np
 
@@ -68,13 +68,12 @@ def blocks_can_write(path, shape_zyx, dtype, write_kw) -> bool:
     import shutil
     from pathlib import Path
 
-    from ..io import volume_format
+    from ..errors import VolwarpError
+    from ..io.blockwrite import check_block_format
 
-    fmt = volume_format(path)
-    if fmt not in ("omezarr", "nrrd", "metaimage", "raw") or (
-            write_kw.get("compress") and fmt != "omezarr"):
-        return False
-    if str(path).lower().endswith((".nhdr", ".mhd")):
+    try:
+        check_block_format(path, bool(write_kw.get("compress")))
+    except VolwarpError:
         return False
     nbytes = math.prod(int(n) for n in shape_zyx) * np.dtype(dtype).itemsize
     folder = Path(path).parent if str(Path(path).parent) else Path(".")
@@ -99,15 +98,6 @@ def lazy_input(path, raw=None, volume_index=None):
     return template, LazySource(path, raw=raw, volume_index=volume_index, array=array)
 
 
-def dask_input(source, chunks):
-    """``source`` (a :class:`~volwarp_cli.bspline.blocks.LazySource`) as a Dask array."""
-    import dask.array as da
-
-    return da.from_array(source, chunks=chunks, asarray=True, lock=False,
-                         meta=np.empty((0, 0, 0), dtype=source.dtype), name=False)
-
-
-@contextlib.contextmanager
 def block_output(path, template, dtype=None, *, block=None, compress=False,
                  byte_order="little", pyramid=0, version="0.5", labels=False):
     """The :class:`~volwarp_cli.io.blockwrite.BlockOutput` of ``template`` at ``path``.
@@ -116,47 +106,10 @@ def block_output(path, template, dtype=None, *, block=None, compress=False,
     ``path``, an existing file untouched) otherwise.
     """
     from ..geometry import Geometry
-    from ..io.blockwrite import open_block_output
+    from ..io.blockwrite import committed, open_block_output
 
     out = open_block_output(path, Geometry.of(template), dtype or template.dtype,
                             chunks_zyx=block, version=version, compress=compress,
                             byte_order=byte_order, metadata=template.meta, space=template.space,
                             pyramid=pyramid, labels=labels)
-    try:
-        yield out
-    except BaseException:
-        out.abort()
-        raise
-    out.commit()
-
-
-def _write(block, out, box):
-    out.write(box, block)
-
-
-def write_blocks(darr, out, engine, *, label: str, memory: int | None = None):
-    """Compute Dask array ``darr`` block by block on ``engine``, each block written to ``out``.
-
-    ``darr`` is rechunked to the output's block grid first, so every write is
-    one aligned block; returns the tasks' stats.
-    """
-    import dask
-
-    from ..box import Box
-    from ..io.blockwrite import aligned_chunks
-
-    darr = darr.rechunk(aligned_chunks(darr.shape, out))
-    out_node = dask.delayed(out.writer(), pure=False)
-    starts = [np.concatenate([[0], np.cumsum(c)[:-1]]).astype(int) for c in darr.chunks]
-    tasks, boxes = [], []
-    for index, part in zip(np.ndindex(*darr.numblocks), darr.to_delayed().ravel(),
-                           strict=True):
-        lo = [int(s[i]) for s, i in zip(starts, index, strict=True)]
-        hi = [a + int(c[i]) for a, c, i in zip(lo, darr.chunks, index, strict=True)]
-        box = Box(lo, hi)
-        boxes.append(box)
-        tasks.append(engine.block_delayed(_write, f"{label}-{'-'.join(map(str, lo))}", part,
-                                          out_node, box, memory=memory))
-    stats = engine.run(tasks, label=label)
-    out.mark_written(boxes)  # (every task succeeded: a failure raised)
-    return stats
+    return committed(out)

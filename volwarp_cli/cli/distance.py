@@ -158,47 +158,22 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
 
     import numpy as np
 
-    from ..box import Box
-    from ..distance.chunked import (
-        MaskSource,
-        check_out_of_core,
-        line_chunks,
-        pass_blocks,
-        signed_distance_dask,
-        signed_edt_staged,
-        staged_check,
-    )
-    from ..io.atomic import scratch_folder
+    from ..distance.chunked import field_by_blocks
     from ..volume import xyz_to_zyx
-    from .chunked import block_budget, block_output, dask_input, lazy_input, write_blocks
+    from .chunked import block_budget, block_output, lazy_input
 
     if pyramid:
         raise click.UsageError("--pyramid with a distance by blocks: write the field, "
                                "then `volwarp convert SDF.ome.zarr --pyramid N`")
     settings = scale_settings()
     template, source = lazy_input(input, raw, volume_index)
-    spacing = xyz_to_zyx(template.spacing)
     shape = template.data.shape
     out_dtype = np.dtype(dtype or "float32")
     finish = functools.partial(_finish_block, unsigned=unsigned,
                                dtype=None if dtype is None else out_dtype, what=str(output))
-    with settings.open_engine() as engine:
-        budget = block_budget()
-        per_task = budget // max(1, engine.workers)
-        chunks = settings.block or line_chunks(shape, 2, per_task // 4,
-                                               min_blocks=engine.workers)
-        data = dask_input(source, chunks)
-        if max_distance is None and surface != "subvoxel":
-            # the exact field by passes: the samples are scanned in the first pass (the
-            # checks run before the last one), not in a pass of their own
-            check_out_of_core(metric, surface)
-            field, info = None, {"metric": metric, "surface": "voxel", "chunked": "passes"}
-        else:
-            with timed("distance by blocks: one pass over the samples"), _collector_paused():
-                field, info = signed_distance_dask(data, spacing, iso=iso, inside=inside,
-                                                   metric=metric, surface=surface,
-                                                   max_distance=max_distance,
-                                                   block_bytes=per_task // 4)
+    kw = dict(compress=compress, byte_order=byte_order, version=ome_zarr_version)
+
+    def open_output(grid, info):
         out = stamp(template.with_data(np.broadcast_to(np.zeros((), out_dtype), shape)),
                     "distance", input)
         out.meta["volwarp_distance"] = (
@@ -206,30 +181,15 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
             + (" unsigned" if unsigned else "") + f" chunked={info['chunked']}"
             + (f" max_distance={max_distance:g} (exact inside the band, clamped outside)"
                if max_distance is not None else ""))
-        kw = dict(compress=compress, byte_order=byte_order, version=ome_zarr_version)
-        if info["chunked"] == "passes":
-            if settings.block is not None:  # the slabs' depth, the z pass's columns
-                grid = (shape[0], *settings.block[1:])
-            else:
-                last = pass_blocks(shape, 0, per_task // 4, 4 * engine.workers)
-                grid = last[0].shape if len(last) else shape
-            with block_output(output, out, out_dtype, block=grid, **kw) as sink, \
-                    scratch_folder(output) as scratch, timed("distance by blocks: passes"):
-                writer = sink.writer()
-                check = staged_check(size=int(np.prod(shape)), iso=iso, inside=inside,
-                                     surface=surface, is_bool=source.dtype == bool)
-                with _collector_paused():
-                    signed_edt_staged(MaskSource(source, iso, inside), spacing, engine,
-                                      writer.write, scratch, block_bytes=per_task // 4,
-                                      finish=finish, memory=per_task, check=check,
-                                      last_blocks=Box.from_shape(shape).blocks(sink.chunks),
-                                      slab_depth=settings.block[0] if settings.block else None)
-                sink.mark_written(Box.from_shape(shape).blocks(sink.chunks))
-            return
-        field = field.map_blocks(finish, dtype=out_dtype)
-        with block_output(output, out, out_dtype, block=settings.block or chunks, **kw) as sink, \
-                timed("distance by blocks: band"):
-            write_blocks(field, sink, engine, label="distance", memory=per_task)
+        return block_output(output, out, out_dtype, block=grid, **kw)
+
+    with settings.open_engine() as engine, _collector_paused(), \
+            timed("distance by blocks"):
+        field_by_blocks(source, xyz_to_zyx(template.spacing), engine, open_output, iso=iso,
+                        inside=inside, metric=metric, surface=surface,
+                        max_distance=max_distance, finish=finish, out_dtype=out_dtype,
+                        block_bytes=block_budget() // max(1, engine.workers),
+                        block=settings.block, scratch_near=output)
 
 
 @contextlib.contextmanager

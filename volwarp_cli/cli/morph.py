@@ -30,6 +30,7 @@ from .options import (
     render_size_option,
     write_options,
 )
+from .resources import scale_options, scale_settings
 from .view_options import camera_options
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
@@ -113,6 +114,9 @@ def _attribute_name(frame_path: str, name: str) -> str:
               help="Short form: distance metric (default euclidean).")
 @click.option("--grid", "grid_choice", type=click.Choice(["source", "target", "union"]),
               default=None, help="Short form: the frame grid when the inputs' grids differ.")
+@click.option("--max-distance", type=click.FloatRange(min=0, min_open=True), default=None,
+              metavar="D", help="Short form: clamp both fields to [-D, D] (world units); lets "
+                                "smooth samples (scans) morph by blocks (--chunked).")
 @click.option("--density", "as_density", is_flag=True,
               help="Short form: write a 0..1 occupancy (0.5 on the surface) instead of the SDF.")
 @render_size_option(help_text="Render size in pixels, for --render-to.")
@@ -120,10 +124,11 @@ def _attribute_name(frame_path: str, name: str) -> str:
               callback=core_parser(parse_view), help=VIEW_HELP)
 @write_options
 @camera_options
+@scale_options
 @common_options
 def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, times, iso, inside,
-            metric, grid_choice, as_density, render_size, view, dtype, compress, byte_order,
-            camera_from, camera_to, orientation_labels, ome_zarr):
+            metric, grid_choice, max_distance, as_density, render_size, view, dtype, compress,
+            byte_order, camera_from, camera_to, orientation_labels, ome_zarr):
     """Morph SOURCE into TARGET: frame t is the zero level set of (1-t) d_source + t d_target.
 
     Give a --spec, or SOURCE TARGET with --frames (or --times) and --iso.
@@ -131,6 +136,12 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
     occupancy with --density / output: density (--dtype converts them; a
     spec's attributes keep their own types). Source and target on different
     grids need an alignment or a grid (spec 'grid', --grid).
+
+    With --chunked (or when the morph does not fit the memory budget) the
+    fields are computed and kept on disk and every frame is written block by
+    block, identical to the in-memory frames: for shapes on one grid that
+    nothing moves (no alignment or landmark warp), binary shapes or a
+    --max-distance band, uncompressed NRRD/MetaImage/raw or OME-Zarr frames.
     """
     from ..morph.spec import MorphJob, ShapeRef
 
@@ -140,6 +151,7 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
         for flag, given in (("--frames", frames is not None), ("--times", times is not None),
                             ("--iso", iso is not None), ("--metric", metric is not None),
                             ("--grid", grid_choice is not None), ("--density", as_density),
+                            ("--max-distance", max_distance is not None),
                             ("--inside", inside != "above")):
             if given:
                 raise click.UsageError(f"{flag} belongs to the short form; with --spec, set it "
@@ -170,7 +182,7 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
         job = MorphJob(source=ShapeRef(Path(shapes[0]), iso, inside),
                        target=ShapeRef(Path(shapes[1]), iso, inside), times=tlist,
                        metric=metric or "euclidean", output="density" if as_density else "sdf",
-                       grid=grid_choice)
+                       grid=grid_choice, max_distance=max_distance)
     if sheet_path is not None and render_to is None:
         raise click.UsageError("--sheet needs --render-to")
     if render_to is None and (camera_from is not None or camera_to is not None
@@ -182,32 +194,114 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
          (camera_from, camera_to, orientation_labels))
 
 
+class _Outputs:
+    """Every output path of a morph, expanded from the patterns and checked before any work."""
+
+    def __init__(self, job, output, mesh_to, render_to, sheet_path):
+        from ..io import check_output_path
+
+        self.frames = _expand(output, job.times, "-o")
+        self.meshes = _expand(mesh_to, job.times, "--mesh-to") if mesh_to else None
+        self.renders = _expand(render_to, job.times, "--render-to") if render_to else None
+        self.sheet = sheet_path
+        self.attributes = {a.name: [_attribute_name(p, a.name) for p in self.frames]
+                           for a in job.attributes}
+        for p in self.frames:
+            check_output_path(p)
+        for paths in self.attributes.values():
+            for p in paths:
+                check_output_path(p)
+        if self.meshes:
+            from ..surface.mesh_io import check_mesh_output
+
+            for p in self.meshes:
+                check_mesh_output(p)
+        if self.renders:
+            for p in self.renders:
+                check_output_path(p)
+            if sheet_path:
+                check_output_path(sheet_path)
+
+    def write_surface(self, frame, comments, renders: list) -> None:
+        """Frame's mesh and render, as asked (the render kept for the sheet)."""
+        i = frame.index
+        if self.meshes:
+            from ..surface.mesh_io import write_mesh
+
+            write_mesh(frame.mesh, self.meshes[i], comments=comments)
+        if self.renders:
+            from ..io.images import write_image
+
+            write_image(self.renders[i], frame.image)
+            if self.sheet:
+                renders.append(frame.image)
+
+    def finish(self, job, frame, render, camera_to, renders: list) -> None:
+        """The camera file and the contact sheet, after the last frame."""
+        if camera_to is not None and render is not None:
+            from ..render.camera import write_camera
+
+            write_camera(frame.camera, camera_to, source=str(job.source.path))
+        if self.sheet:
+            from ..io.images import write_image
+            from ..render.sheet import contact_sheet
+
+            titles = [f"t = {t:.3g}" for t in job.times]
+            write_image(self.sheet, contact_sheet(renders, titles=titles))
+
+
+def _grid_error(job, spec_path, exc):
+    """The frame grid's error as the command reports it (a usage or spec error)."""
+    if spec_path is None:
+        return click.UsageError(f"{exc} (short form: --grid union|source|target)")
+    if job.doc is not None:
+        return job.doc.error(exc.key, str(exc))
+    from ..errors import SpecError
+
+    return SpecError(str(exc), file=str(spec_path), key=".".join(exc.key))
+
+
+def _morph_note(job, chunked: str | None = None) -> str:
+    note = f"metric={job.metric} output={job.output}"
+    if job.max_distance is not None:
+        note += f" max_distance={job.max_distance:g} (each field clamped)"
+    return note + (f" chunked={chunked}" if chunked else "")
+
+
+def _render_settings(job, render_paths, view, size, camera_from, labels_flag, volumes):
+    if not render_paths:
+        return None
+    from ..morph.frames import RenderSettings
+    from .view_options import orientation_labels_for
+
+    return RenderSettings(view, size, camera=camera_from,
+                          orientation_labels=orientation_labels_for(labels_flag, *volumes))
+
+
 def _run(job, output, mesh_to, render_to, sheet_path, size, view, spec_path, write_kw,
          cameras=(None, None, None)):
-    from ..io import check_output_path, read_volume, write_volume
-    from ..morph.frames import RenderSettings, morph_frames
+    from ..errors import OutOfMemoryError
+
+    outputs = _Outputs(job, output, mesh_to, render_to, sheet_path)
+    chunked = scale_settings().chunked
+    if chunked:
+        _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras)
+        return
+    try:
+        _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras)
+    except OutOfMemoryError as exc:
+        if chunked is False:
+            raise
+        _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, fallback=exc)
+
+
+def _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras):
+    from ..io import read_volume, write_volume
+    from ..morph.frames import morph_frames
     from ..morph.grid import GridError
     from ..morph.pipeline import prepare
     from .common import provenance
 
-    frame_paths = _expand(output, job.times, "-o")
-    mesh_paths = _expand(mesh_to, job.times, "--mesh-to") if mesh_to else None
-    render_paths = _expand(render_to, job.times, "--render-to") if render_to else None
-    for p in frame_paths:
-        check_output_path(p)
-    for a in job.attributes:
-        for p in frame_paths:
-            check_output_path(_attribute_name(p, a.name))
-    if mesh_paths:
-        from ..surface.mesh_io import check_mesh_output
-
-        for p in mesh_paths:
-            check_mesh_output(p)
-    if render_paths:
-        for p in render_paths:
-            check_output_path(p)
-        if sheet_path:
-            check_output_path(sheet_path)
     with timed("read inputs"):
         source = read_volume(job.source.path)
         target = read_volume(job.target.path)
@@ -215,50 +309,143 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, spec_path, wri
     try:
         prep = prepare(job, source, target, attrs)
     except GridError as exc:
-        if spec_path is None:
-            raise click.UsageError(f"{exc} (short form: --grid union|source|target)") from None
-        if job.doc is not None:
-            raise job.doc.error(exc.key, str(exc)) from None
-        from ..errors import SpecError
-
-        raise SpecError(str(exc), file=str(spec_path), key=".".join(exc.key)) from None
-    meta = {"volwarp_morph": f"metric={job.metric} output={job.output}",
+        raise _grid_error(job, spec_path, exc) from None
+    meta = {"volwarp_morph": _morph_note(job),
             **provenance("morph", [job.source.path, job.target.path], spec_path)}
     camera_from, camera_to, labels_flag = cameras
-    render = None
-    if render_paths:
-        from .view_options import orientation_labels_for
-
-        render = RenderSettings(view, size, camera=camera_from,
-                                orientation_labels=orientation_labels_for(labels_flag, source,
-                                                                          target))
+    render = _render_settings(job, outputs.renders, view, size, camera_from, labels_flag,
+                              (source, target))
     attr_kw = {k: v for k, v in write_kw.items() if k != "dtype"}  # their own types
     renders = []
-    for frame in morph_frames(job, prep, source, attrs, meta=meta, meshes=bool(mesh_paths),
-                              render=render):
+    for frame in morph_frames(job, prep, source, attrs, meta=meta,
+                              meshes=bool(outputs.meshes), render=render):
         i = frame.index
-        write_volume(frame.volume, frame_paths[i], **write_kw)
+        write_volume(frame.volume, outputs.frames[i], **write_kw)
         for name, vol in frame.attributes.items():
-            write_volume(vol, _attribute_name(frame_paths[i], name), **attr_kw)
-        if mesh_paths:
-            from ..surface.mesh_io import write_mesh
-
-            write_mesh(frame.mesh, mesh_paths[i], comments=frame.volume.meta)
-        if render_paths:
-            from ..io.images import write_image
-
-            write_image(render_paths[i], frame.image)
-            if sheet_path:
-                renders.append(frame.image)
-    if camera_to is not None and render is not None:
-        from ..render.camera import write_camera
-
-        write_camera(frame.camera, camera_to, source=str(job.source.path))
-    if sheet_path:
-        from ..io.images import write_image
-        from ..render.sheet import contact_sheet
-
-        titles = [f"t = {t:.3g}" for t in job.times]
-        write_image(sheet_path, contact_sheet(renders, titles=titles))
+            write_volume(vol, outputs.attributes[name][i], **attr_kw)
+        outputs.write_surface(frame, frame.volume.meta, renders)
+    outputs.finish(job, frame, render, camera_to, renders)
     log.info("wrote %d frames on a %s grid", len(job.times),
              "x".join(map(str, prep.grid.shape_xyz)))
+
+
+def _cast_block(block, *, dtype, what):
+    from ..samples import cast_samples
+
+    return cast_samples(block, dtype, what=what)
+
+
+def _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, *,
+                   fallback=None):
+    """The morph by blocks (:mod:`volwarp_cli.morph.chunked`): fields on disk, frames by blocks.
+
+    ``fallback``: the in-memory morph's refusal, when this runs instead of it
+    (no --chunked); raised again where blocks cannot help either.
+    """
+    import functools
+
+    import numpy as np
+
+    from .. import parallel
+    from ..engine import write_blocks
+    from ..errors import VolwarpError
+    from ..geometry import Geometry
+    from ..io.atomic import scratch_folder
+    from ..morph.chunked import (
+        block_frames,
+        block_grid,
+        fields_by_blocks,
+        frame_chunks,
+        mesh_block_shape,
+    )
+    from ..morph.grid import GridError
+    from .chunked import block_budget, block_output, blocks_can_write, lazy_input, wants_blocks
+    from .common import provenance
+
+    def refuse(message, usage=True):
+        if fallback is not None:
+            raise fallback
+        raise (click.UsageError if usage else VolwarpError)(message)
+
+    if write_kw.get("pyramid"):
+        refuse("--pyramid with a morph by blocks: write the frames, then "
+               "`volwarp convert FRAME.ome.zarr --pyramid N`")
+    try:
+        source = lazy_input(job.source.path)
+        target = lazy_input(job.target.path)
+        attrs = {a.name: (lazy_input(a.source), lazy_input(a.target)) for a in job.attributes}
+    except VolwarpError:
+        if fallback is not None:
+            raise fallback from None
+        raise
+    geometry = {name: (Geometry.of(a[0]), Geometry.of(b[0])) for name, (a, b) in attrs.items()}
+    try:
+        grid, why = block_grid(job, Geometry.of(source[0]), Geometry.of(target[0]), geometry)
+    except GridError as exc:
+        raise _grid_error(job, spec_path, exc) from None
+    if why:
+        refuse(f"--chunked morphs shapes on one grid that nothing moves: not {why} "
+               "(that morph runs in memory)")
+    dtype = write_kw.get("dtype")
+    source_type = np.dtype(source[1].dtype)
+    frame_type = (source_type if job.output == "density" and job.density_range == "source"
+                  else np.dtype(np.float32))
+    types = {a.name: np.dtype(a.dtype or attrs[a.name][0][1].dtype) for a in job.attributes}
+    checks = [(p, np.dtype(dtype or frame_type)) for p in outputs.frames]
+    for a in job.attributes:
+        checks += [(p, types[a.name]) for p in outputs.attributes[a.name]]
+    for path, out_type in checks:
+        if not blocks_can_write(path, grid.shape, out_type, write_kw):
+            from ..io.blockwrite import check_block_format
+
+            if fallback is not None:
+                raise fallback
+            check_block_format(path, write_kw.get("compress", False))
+            raise VolwarpError(f"{path}: the frames do not fit the free space of its folder")
+    if fallback is not None and not wants_blocks(str(fallback)):
+        raise fallback
+    settings = scale_settings()
+    camera_from, camera_to, labels_flag = cameras
+    render = _render_settings(job, outputs.renders, view, size, camera_from, labels_flag,
+                              (source[0], target[0]))
+    kw = dict(compress=write_kw.get("compress", False),
+              byte_order=write_kw.get("byte_order", "little"),
+              version=write_kw.get("ome_zarr_version", "0.5"))
+    with settings.open_engine() as engine, scratch_folder(outputs.frames[0]) as scratch:
+        per_task = block_budget() // max(1, engine.workers)
+        with timed("morph by blocks: both fields"):
+            bm = fields_by_blocks(job, {"source": source, "target": target}, engine, scratch,
+                                  block_bytes=per_task, block=settings.block)
+        meta = {"volwarp_morph": _morph_note(job, bm.info["chunked"]),
+                **provenance("morph", [job.source.path, job.target.path], spec_path)}
+        chunks = frame_chunks(grid.shape, per_task, engine.workers, settings.block)
+        run = functools.partial(engine.map, label="morph", memory=per_task)
+        mesh_run = None
+        if settings.scheduler is not None:  # (VTK holds the GIL: threads otherwise)
+            mesh_run = functools.partial(engine.map, label="mesh", memory=per_task)
+        attr_samples = {a.name: (attrs[a.name][0][1], attrs[a.name][1][1], types[a.name].name)
+                        for a in job.attributes}
+        renders = []
+        frame = None
+        for frame in block_frames(job, bm, source[1], attr_samples, meta=meta, chunks=chunks,
+                                  run=run, mesh_block=mesh_block_shape(grid.shape, per_task,
+                                                                       settings.block),
+                                  meshes=bool(outputs.meshes), render=render,
+                                  mesh_run=mesh_run, mesh_threads=parallel.threads()):
+            i = frame.index
+            path = outputs.frames[i]
+            data = frame.data
+            if dtype is not None:
+                data = data.map_blocks(functools.partial(_cast_block, dtype=dtype,
+                                                         what=str(path)),
+                                       dtype=np.dtype(dtype))
+            with block_output(path, frame.template, data.dtype, block=chunks, **kw) as sink:
+                write_blocks(data, sink, engine, label=f"frame-{i}", memory=per_task)
+            for name, (template, values) in frame.attributes.items():
+                with block_output(outputs.attributes[name][i], template, values.dtype,
+                                  block=chunks, **kw) as sink:
+                    write_blocks(values, sink, engine, label=f"{name}-{i}", memory=per_task)
+            outputs.write_surface(frame, frame.template.meta, renders)
+        outputs.finish(job, frame, render, camera_to, renders)
+    log.info("wrote %d frames on a %s grid, by blocks", len(job.times),
+             "x".join(map(str, grid.shape_xyz)))

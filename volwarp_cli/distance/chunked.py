@@ -604,3 +604,60 @@ def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
                                            inside=inside), info
     return signed_edt_dask(inside_mask(data, iso, inside), spacing_zyx,
                            block_bytes=block_bytes), info
+
+
+# -- the whole operation ---------------------------------------------------------------
+def field_by_blocks(source, spacing_zyx, engine, open_output, *, iso: float, inside: str,
+                    metric: str, surface: str, max_distance: float | None = None,
+                    finish=None, out_dtype=np.float32, block_bytes: int,
+                    block=None, scratch_near) -> dict:
+    """The signed field of ``source`` computed and written by blocks on ``engine``.
+
+    ``source``: a sliceable input (a :class:`~volwarp_cli.bspline.blocks.LazySource`);
+    ``open_output(block_zyx, info)``: a context manager giving the
+    :class:`~volwarp_cli.io.blockwrite.BlockOutput` the field goes to, with
+    that block grid (``info``: :func:`signed_distance_dask`'s, for the
+    metadata). The exact field runs as :func:`signed_edt_staged`'s passes,
+    their scratch files in a folder next to ``scratch_near``; with
+    ``max_distance``, or a sub-voxel surface, as overlapping blocks.
+    ``finish(field)``: a block's last step (--unsigned, the output type,
+    ``out_dtype``). ``block_bytes``: one task's memory; ``block``: the
+    user's block shape (for the passes: Z the x/y slabs' depth, Y,X the z
+    pass's columns). Returns ``info``.
+    """
+    from ..engine import dask_input, write_blocks
+    from ..io.atomic import scratch_folder
+
+    shape = tuple(source.shape)
+    spacing_zyx = tuple(float(s) for s in spacing_zyx)
+    if max_distance is None and surface != "subvoxel":
+        # the exact field by passes: the samples are scanned in the first pass (the
+        # checks run before the last one), not in a pass of their own
+        check_out_of_core(metric, surface)
+        info = {"metric": metric, "surface": "voxel", "chunked": "passes",
+                "max_distance": None}
+        if block is not None:  # the slabs' depth, the z pass's columns
+            grid = (shape[0], *block[1:])
+        else:
+            last = pass_blocks(shape, 0, block_bytes // 4, 4 * engine.workers)
+            grid = last[0].shape if len(last) else shape
+        with open_output(grid, info) as sink, scratch_folder(scratch_near) as scratch:
+            check = staged_check(size=int(np.prod(shape)), iso=iso, inside=inside,
+                                 surface=surface, is_bool=source.dtype == bool)
+            every = Box.from_shape(shape).blocks(sink.chunks)
+            signed_edt_staged(MaskSource(source, iso, inside), spacing_zyx, engine,
+                              sink.writer().write, scratch, block_bytes=block_bytes // 4,
+                              finish=finish, memory=block_bytes, check=check,
+                              last_blocks=every, slab_depth=block[0] if block else None)
+            sink.mark_written(every)
+        return info
+    chunks = block or line_chunks(shape, 2, block_bytes // 4, min_blocks=engine.workers)
+    field, info = signed_distance_dask(dask_input(source, chunks), spacing_zyx, iso=iso,
+                                       inside=inside, metric=metric, surface=surface,
+                                       max_distance=max_distance,
+                                       block_bytes=block_bytes // 4)
+    if finish is not None:
+        field = field.map_blocks(finish, dtype=np.dtype(out_dtype))
+    with open_output(block or chunks, info) as sink:
+        write_blocks(field, sink, engine, label="distance", memory=block_bytes)
+    return info

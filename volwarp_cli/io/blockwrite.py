@@ -76,16 +76,29 @@ def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chu
     frame (``"left-posterior-superior"``, or None), as the Volume would have.
     ``compress``: refused except for OME-Zarr (always compressed).
     """
+    path = Path(path)
+    fmt = check_block_format(path, compress, pyramid)
+    dtype = check_dtype(dtype, str(path))
+    if fmt == "omezarr":
+        return _ZarrOutput(path, geometry, dtype, chunks_zyx, version, byte_order, metadata,
+                           space, pyramid, labels)
+    return _MappedOutput(path, geometry, dtype, chunks_zyx, fmt, byte_order, metadata, space)
+
+
+def check_block_format(path: str | os.PathLike, compress: bool = False, pyramid: int = 0) -> str:
+    """The format of ``path`` if it is written block by block, else a VolwarpError saying why.
+
+    OME-Zarr (compressed, and ``pyramid`` levels), or uncompressed NRRD,
+    MetaImage and raw with attached headers (written in place by offset).
+    """
     from . import volume_format
 
     path = Path(path)
     fmt = volume_format(path)
-    dtype = check_dtype(dtype, str(path))
     if pyramid and fmt != "omezarr":
         raise VolwarpError(f"{path}: --pyramid writes extra levels of OME-Zarr outputs only")
     if fmt == "omezarr":
-        return _ZarrOutput(path, geometry, dtype, chunks_zyx, version, byte_order, metadata,
-                           space, pyramid, labels)
+        return fmt
     name = path.name.lower()
     hint = "write .ome.zarr or uncompressed .nrrd for block-wise outputs"
     if compress or fmt in ("tiff", "nifti"):
@@ -95,7 +108,7 @@ def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chu
         raise VolwarpError(f"{path}: detached headers are not written block by block; {hint}")
     if fmt not in ("nrrd", "metaimage", "raw"):
         raise VolwarpError(f"{path}: {fmt} outputs cannot be written block by block; {hint}")
-    return _MappedOutput(path, geometry, dtype, chunks_zyx, fmt, byte_order, metadata, space)
+    return fmt
 
 
 def aligned_chunks(shape_zyx, out: BlockOutput) -> tuple[tuple[int, ...], ...]:
@@ -307,6 +320,20 @@ class BlockOutput:
         if exc_type is not None:
             self.abort()
         return False
+
+
+@contextlib.contextmanager
+def committed(out: BlockOutput):
+    """``out`` as a context: committed when the block exits cleanly, aborted otherwise.
+
+    (Aborted: nothing left at its path, an existing file there untouched.)
+    """
+    try:
+        yield out
+    except BaseException:
+        out.abort()
+        raise
+    out.commit()
 
 
 def block_layout(shape_zyx, version: str, block=None):

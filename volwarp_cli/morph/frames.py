@@ -71,15 +71,62 @@ def shape_box(prep: Prepared) -> np.ndarray:
     For one fixed camera.
     """
     inside = (prep.morph.source < 0) | (prep.morph.target < 0)
-    if not inside.any():
+    return box_corners([inside.any(axis=a) for a in ((1, 2), (0, 2), (0, 1))], prep.grid)
+
+
+def box_corners(occupied_zyx, grid) -> np.ndarray:
+    """World corners ``(8, 3)`` of the index box spanned by per-axis occupancy.
+
+    ``occupied_zyx``: three boolean arrays, along z, y and x, true where a
+    plane holds a voxel inside either shape (the shapes' projections).
+    """
+    idx = [np.flatnonzero(a) for a in occupied_zyx]  # z, y, x
+    if not all(len(i) for i in idx):
         raise VolwarpError("neither shape has any voxel inside on the frame grid")
-    idx = [np.flatnonzero(inside.any(axis=a)) for a in ((1, 2), (0, 2), (0, 1))]  # z, y, x
     lo = np.array([idx[2][0], idx[1][0], idx[0][0]], dtype=np.float64)
     hi = np.array([idx[2][-1], idx[1][-1], idx[0][-1]], dtype=np.float64)
     corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1])
                         for c in (lo[2], hi[2])])
-    m = prep.grid.index_to_world_matrix
+    m = grid.index_to_world_matrix
     return corners @ m[:3, :3].T + m[:3, 3]
+
+
+@dataclass(frozen=True)
+class FrameValues:
+    """What a frame's field becomes in its volume: the SDF, an occupancy, or source values.
+
+    Elementwise (a block of the field gives the block of the frame), so the
+    in-memory frames and the frames by blocks share it. ``range_lo, range_hi``:
+    the source's value range, for a density ``range: source``.
+    """
+
+    output: str = "sdf"
+    width: float = 1.0
+    range_source: bool = False
+    range_lo: float = 0.0
+    range_hi: float = 1.0
+    iso: float = 0.0
+    inside: str = "above"
+    dtype: str = "float32"
+
+    @staticmethod
+    def of(job: MorphJob, grid, source_dtype, value_range=None) -> FrameValues:
+        """The values of ``job``'s frames on ``grid``; ``value_range``: the source's (lo, hi)."""
+        ranged = job.output == "density" and job.density_range == "source"
+        lo, hi = value_range if ranged else (0.0, 1.0)
+        return FrameValues(job.output, float(job.density_width or min(grid.spacing)), ranged,
+                           float(lo), float(hi), float(job.source.iso), job.source.inside,
+                           np.dtype(source_dtype).name)
+
+    def __call__(self, sdf: np.ndarray) -> np.ndarray:
+        """The frame's samples from its field ``sdf`` (``sdf`` itself for an SDF output)."""
+        if self.output != "density":
+            return sdf
+        data = density(sdf, self.width)
+        if self.range_source:
+            data = occupancy_to_range(data, self.range_lo, self.iso, self.range_hi,
+                                      self.inside, self.dtype)
+        return data
 
 
 def morph_frames(job: MorphJob, prep: Prepared, source: Volume,
@@ -111,30 +158,26 @@ def morph_frames(job: MorphJob, prep: Prepared, source: Volume,
         Render each frame's surface (:attr:`Frame.image`).
     """
     grid = prep.grid
-    width = job.density_width or float(min(grid.spacing))
     meta = dict(meta or {})
     types = {a.name: a.dtype or np.dtype(attributes[a.name][0].data.dtype).name
              for a in job.attributes}
+    value_range = None
     if job.output == "density" and job.density_range == "source":
-        lo, hi = float(np.nanmin(source.data)), float(np.nanmax(source.data))
+        value_range = float(np.nanmin(source.data)), float(np.nanmax(source.data))
+    values = FrameValues.of(job, grid, source.data.dtype, value_range)
     camera = None if render is None else render.camera
     with progress(len(job.times), "morph frames") as bar:
         buf = np.empty(grid.shape, np.float32)
         for i, t in enumerate(job.times):
             sdf = prep.morph.field(t, out=buf)
-            data = sdf
-            if job.output == "density":
-                data = density(sdf, width)
-                if job.density_range == "source":
-                    data = occupancy_to_range(data, lo, job.source.iso, hi, job.source.inside,
-                                              source.data.dtype)
+            data = values(sdf)
             frame_meta = dict(meta, volwarp_morph_t=f"{t:.9g}")
             frame = Frame(i, t, grid.volume(data, meta=frame_meta))
             for a in job.attributes:
                 va, vb = prep.attributes[a.name]
-                values = cast_samples(prep.morph.attribute(t, va, vb), types[a.name],
-                                      what=f"attribute {a.name} at t = {t:g}")
-                frame.attributes[a.name] = grid.volume(values, meta=dict(frame_meta))
+                blended = cast_samples(prep.morph.attribute(t, va, vb), types[a.name],
+                                       what=f"attribute {a.name} at t = {t:g}")
+                frame.attributes[a.name] = grid.volume(blended, meta=dict(frame_meta))
             if meshes or render is not None:
                 from ..surface.isosurface import isosurface
 

@@ -50,6 +50,24 @@ def _perm() -> np.ndarray:
     return p
 
 
+def _index_map(values_i2w: np.ndarray, matrix: np.ndarray, grid: Geometry) -> np.ndarray:
+    """Grid voxel (z, y, x) -> values voxel (z, y, x), homogeneous 4x4."""
+    m_idx = np.linalg.inv(values_i2w) @ np.linalg.inv(matrix) @ grid.index_to_world_matrix
+    p = _perm()
+    return p @ m_idx @ p
+
+
+def lands_on_grid(shape_zyx, values_i2w: np.ndarray, matrix: np.ndarray,
+                  grid: Geometry) -> bool:
+    """Whether samples of ``shape_zyx`` on ``values_i2w``, moved by ``matrix``, are ``grid``'s.
+
+    Then :func:`resample_to_grid` is a copy (no interpolation), which is what
+    lets a morph run by blocks.
+    """
+    return (tuple(shape_zyx) == tuple(grid.shape)
+            and np.allclose(_index_map(values_i2w, matrix, grid), np.eye(4), atol=1e-9))
+
+
 def resample_to_grid(values: np.ndarray, values_i2w: np.ndarray, matrix: np.ndarray,
                      grid: Geometry, *, outside: str = "nan") -> np.ndarray:
     """``values`` (on the grid ``values_i2w``) moved by world ``matrix``, sampled on ``grid``.
@@ -58,11 +76,9 @@ def resample_to_grid(values: np.ndarray, values_i2w: np.ndarray, matrix: np.ndar
     """
     from scipy import ndimage
 
-    m_idx = np.linalg.inv(values_i2w) @ np.linalg.inv(matrix) @ grid.index_to_world_matrix
-    p = _perm()
-    m = p @ m_idx @ p
+    m = _index_map(values_i2w, matrix, grid)
     src = np.asarray(values, dtype=np.float32)
-    if (src.shape == grid.shape and np.allclose(m, np.eye(4), atol=1e-9)):
+    if lands_on_grid(src.shape, values_i2w, matrix, grid):
         return src.copy()
     kwargs = {"mode": "constant", "cval": np.nan} if outside == "nan" else {"mode": "nearest"}
     return ndimage.affine_transform(src, m[:3, :3], offset=m[:3, 3], order=1,

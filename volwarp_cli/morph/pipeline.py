@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..distance.field import inside_mask, signed_distance
-from ..errors import VolwarpError
+from ..distance.field import finish_field, inside_mask, signed_distance
+from ..errors import OutOfMemoryError, VolwarpError
 from ..geometry import Geometry
 from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
@@ -60,8 +60,10 @@ def prepare(job: MorphJob, source: Volume, target: Volume,
                 fields[name], _ = signed_distance(vol.data, xyz_to_zyx(vol.spacing), iso=ref.iso,
                                                   inside=ref.inside, metric=job.metric,
                                                   surface=job.surface)
-            except VolwarpError as exc:
-                raise VolwarpError(f"{ref.path}: {exc}") from None
+                finish_field(fields[name], max_distance=job.max_distance)
+            except VolwarpError as exc:  # (an OutOfMemoryError stays one: blocks may do it)
+                kind = OutOfMemoryError if isinstance(exc, OutOfMemoryError) else VolwarpError
+                raise kind(f"{ref.path}: {exc}") from None
     a_s = _matrix(job.align_source, source, job.source.iso, job.source.inside)
     a_t = _matrix(job.align_target, target, job.target.iso, job.target.inside)
     grid = choose_grid(job.grid, Geometry.of(source), Geometry.of(target), a_s, a_t, moved=job.moved,

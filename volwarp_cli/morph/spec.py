@@ -56,6 +56,7 @@ class MorphJob:
     warp_target_points: np.ndarray | None = None
     grid: object = None
     margin: float = 2.0
+    max_distance: float | None = None
     attributes: list[AttributeRef] = field(default_factory=list)
     doc: object = None  # the spec document (SpecDoc) it came from, for errors found later
 
@@ -182,6 +183,9 @@ def job_from_spec(doc) -> MorphJob:
         except GridError as exc:
             raise doc.error(exc.key, str(exc)) from None
     job.margin = float(d.get("margin", 2.0))
+    if "max_distance" in d:
+        _check_bounded(doc, ("max_distance",), d["max_distance"])
+        job.max_distance = float(d["max_distance"])
     names = set()
     for i, a in enumerate(d.get("attributes", [])):
         if a["name"] in names:

@@ -1,0 +1,234 @@
+"""`volwarp morph --chunked`: fields kept on disk, frames by blocks, the in-memory bytes.
+
+Odd sizes, blocks that do not divide them, a rotated direction; binary shapes
+(the exact passes) and smooth ones (a --max-distance band, sub-voxel); SDF,
+density and source-range frames, attributes, meshes and renders; several
+schedulers; the switch when the in-memory morph does not fit; what is refused.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.surface.chunked import canonical_faces
+from volwarp_cli.surface.mesh_io import read_mesh
+from volwarp_cli.volume import Volume
+
+ROTATED = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+GEOMETRY = dict(spacing=np.array([0.8, 0.9, 1.1]), origin=np.array([10.0, -5.0, 3.0]),
+                direction=ROTATED)
+
+
+def _grid():
+    return np.meshgrid(*[np.linspace(-1, 1, n) for n in (23, 27, 19)], indexing="ij")
+
+
+@pytest.fixture
+def shapes(tmp_path):
+    """Binary ball and box, smooth int16 blobs, and a float attribute pair."""
+    z, y, x = _grid()
+    ball = (x * x + y * y + z * z < 0.5).astype(np.uint8)
+    box = ((np.abs(x) < 0.6) & (np.abs(y) < 0.3) & (np.abs(z) < 0.7)).astype(np.uint8)
+    blob_a = 1000 * np.exp(-((x - 0.2) ** 2 + y * y + z * z) / 0.2)
+    blob_b = 900 * np.exp(-(x * x + (y - 0.2) ** 2 + (z + 0.1) ** 2) / 0.15)
+    paths = {}
+    for name, data in (("ball", ball), ("box", box), ("blob_a", blob_a.astype(np.int16)),
+                       ("blob_b", blob_b.astype(np.int16)),
+                       ("heat_a", (x + 2 * y).astype(np.float32)),
+                       ("heat_b", (z * z * 40).astype(np.uint8))):
+        paths[name] = tmp_path / f"{name}.nrrd"
+        write_volume(Volume(data, **GEOMETRY), paths[name])
+    return paths
+
+
+def _frames(prefix, n):
+    return [read_volume(f"{prefix}_{i}.nrrd") for i in range(n)]
+
+
+def _same_frames(mem, blk):
+    for a, b in zip(mem, blk, strict=True):
+        assert a.data.dtype == b.data.dtype and np.array_equal(a.data, b.data)
+        assert np.array_equal(b.direction, ROTATED)
+        assert np.allclose(a.index_to_world_matrix, b.index_to_world_matrix)
+        assert a.meta["volwarp_morph_t"] == b.meta["volwarp_morph_t"]
+
+
+@pytest.mark.parametrize("case", ["binary", "band", "density", "source-range", "dtype"])
+def test_frames_by_blocks_equal_the_in_memory_frames(run, shapes, tmp_path, case):
+    args = {
+        "binary": [shapes["ball"], shapes["box"], "--iso", "0.5"],
+        "band": [shapes["blob_a"], shapes["blob_b"], "--iso", "300", "--max-distance", "3.5"],
+        "density": [shapes["ball"], shapes["box"], "--iso", "0.5", "--density"],
+        "source-range": None,
+        "dtype": [shapes["ball"], shapes["box"], "--iso", "0.5", "--dtype", "int16"],
+    }[case]
+    if case == "source-range":  # density mapped to the source's int16 range: a spec
+        spec = tmp_path / "m.yaml"
+        spec.write_text(f"version: 1\nsource: {{volume: {shapes['blob_a']}, iso: 300}}\n"
+                        f"target: {{volume: {shapes['blob_b']}, iso: 300}}\nframes: 4\n"
+                        "output: density\ndensity: {range: source, width: 1.5}\n"
+                        "max_distance: 4\n")
+        args = ["--spec", spec]
+    else:
+        args += ["--frames", "4"]
+    assert run("morph", *args, "-o", tmp_path / "m_{i}.nrrd").code == 0
+    res = run("morph", *args, "-o", tmp_path / "b_{i}.nrrd", "--chunked", "--block", "7,10,6")
+    assert res.code == 0, res.stderr
+    mem, blk = _frames(tmp_path / "m", 4), _frames(tmp_path / "b", 4)
+    _same_frames(mem, blk)
+    note = blk[0].meta["volwarp_morph"]
+    assert ("chunked=band" in note) == (case in ("band", "source-range"))
+    assert ("chunked=passes" in note) == (case not in ("band", "source-range"))
+    if case == "source-range":
+        assert blk[1].data.dtype == np.int16  # the source's type
+    if case == "dtype":
+        assert blk[1].data.dtype == np.int16
+    # frames really move from source to target (not four copies of one field)
+    assert not np.array_equal(blk[0].data, blk[3].data)
+
+
+def test_meshes_and_renders_by_blocks_equal_the_in_memory_ones(run, shapes, tmp_path):
+    common = [shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "3"]
+    assert run("morph", *common, "-o", tmp_path / "m_{i}.nrrd", "--mesh-to",
+               tmp_path / "m_{i}.ply", "--render-to", tmp_path / "m_{i}.png",
+               "--render-size", "160x120").code == 0
+    res = run("morph", *common, "-o", tmp_path / "b_{i}.nrrd", "--mesh-to",
+              tmp_path / "b_{i}.ply", "--render-to", tmp_path / "b_{i}.png",
+              "--render-size", "160x120", "--chunked", "--block", "9")
+    assert res.code == 0, res.stderr
+
+    def canonical(mesh):
+        v = np.asarray(mesh.vertices)
+        order = np.lexsort(v.T[::-1])
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        return v[order], canonical_faces(rank[np.asarray(mesh.faces)]), mesh.normals[order]
+
+    for i in range(3):
+        a, b = read_mesh(tmp_path / f"m_{i}.ply"), read_mesh(tmp_path / f"b_{i}.ply")
+        assert a.n_faces > 100 and (a.n_vertices, a.n_faces) == (b.n_vertices, b.n_faces)
+        for x, y in zip(canonical(a), canonical(b), strict=True):
+            assert np.array_equal(x, y)
+        # one camera for all frames, fitted to both shapes: the pictures are the same
+        assert (tmp_path / f"m_{i}.png").read_bytes() == (tmp_path / f"b_{i}.png").read_bytes()
+
+
+def test_attributes_by_blocks(run, shapes, tmp_path):
+    spec = tmp_path / "m.yaml"
+    spec.write_text(f"version: 1\nsource: {{volume: {shapes['ball']}, iso: 0.5}}\n"
+                    f"target: {{volume: {shapes['box']}, iso: 0.5}}\ntimes: [0, 0.4, 1]\n"
+                    f"attributes:\n  - {{name: heat, source: {shapes['heat_a']}, "
+                    f"target: {shapes['heat_b']}}}\n"
+                    f"  - {{name: code, source: {shapes['heat_b']}, target: {shapes['heat_b']},"
+                    " dtype: uint8}\n")
+    assert run("morph", "--spec", spec, "-o", tmp_path / "m_{i}.nrrd").code == 0
+    res = run("morph", "--spec", spec, "-o", tmp_path / "b_{i}.nrrd", "--chunked",
+              "--block", "5,27,19")
+    assert res.code == 0, res.stderr
+    for name, dtype in (("heat", np.float32), ("code", np.uint8)):
+        for i in range(3):
+            a = read_volume(tmp_path / f"m_{i}_{name}.nrrd")
+            b = read_volume(tmp_path / f"b_{i}_{name}.nrrd")
+            assert b.data.dtype == dtype and np.array_equal(a.data, b.data)
+    heat = read_volume(tmp_path / "b_1_heat.nrrd").data
+    z, y, x = _grid()
+    expected = 0.6 * (x + 2 * y).astype(np.float32) + 0.4 * (z * z * 40).astype(np.uint8)
+    assert np.allclose(heat, expected, atol=1e-5)  # (1 - t) a + t b at t = 0.4
+
+
+@pytest.mark.parametrize("scheduler", ["processes", "synchronous"])
+def test_other_schedulers_and_ome_zarr_frames(run, shapes, tmp_path, scheduler):
+    common = [shapes["blob_a"], shapes["blob_b"], "--iso", "300", "--max-distance", "3",
+              "--times", "0,0.5,1"]
+    assert run("morph", *common, "-o", tmp_path / "m_{i}.nrrd").code == 0
+    res = run("morph", *common, "-o", tmp_path / "b_{i}.ome.zarr", "--chunked",
+              "--scheduler", scheduler, "--block", "12")
+    assert res.code == 0, res.stderr
+    for i in range(3):
+        a, b = read_volume(tmp_path / f"m_{i}.nrrd"), read_volume(tmp_path / f"b_{i}.ome.zarr")
+        assert np.array_equal(a.data, b.data)
+        assert np.allclose(a.index_to_world_matrix, b.index_to_world_matrix)
+
+
+def test_the_band_clamps_each_field_as_distance_does(run, shapes, tmp_path):
+    """Frame 0 with --max-distance D is `volwarp distance --max-distance D` of the source."""
+    sdf = tmp_path / "sdf.nrrd"
+    assert run("distance", shapes["blob_a"], "-o", sdf, "--iso", "300",
+               "--max-distance", "2.5").code == 0
+    assert run("morph", shapes["blob_a"], shapes["blob_b"], "--iso", "300", "--frames", "2",
+               "--max-distance", "2.5", "-o", tmp_path / "m_{i}.nrrd").code == 0
+    frame0 = read_volume(tmp_path / "m_0.nrrd").data
+    assert np.array_equal(frame0, read_volume(sdf).data)
+    assert frame0.min() == -2.5 and frame0.max() == 2.5
+    assert "max_distance=2.5" in read_volume(tmp_path / "m_1.nrrd").meta["volwarp_morph"]
+
+
+def test_a_morph_too_big_for_the_budget_runs_by_blocks(run, shapes, tmp_path, monkeypatch):
+    from volwarp_cli import memory
+    from volwarp_cli.cli import chunked
+
+    common = [shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "3"]
+    assert run("morph", *common, "-o", tmp_path / "m_{i}.nrrd").code == 0
+    monkeypatch.setattr(memory, "process_rss", lambda: 0)
+    monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
+    res = run("morph", *common, "-o", tmp_path / "b_{i}.nrrd", "--memory-limit", "150K")
+    assert res.code == 0, res.stderr
+    assert "running by blocks" in res.stderr
+    _same_frames(_frames(tmp_path / "m", 3), _frames(tmp_path / "b", 3))
+    # --no-chunked: the refusal stands, an existing frame untouched
+    (tmp_path / "c_0.nrrd").write_bytes(b"old")
+    res = run("morph", *common, "-o", tmp_path / "c_{i}.nrrd", "--memory-limit", "150K",
+              "--no-chunked")
+    assert res.code == 1 and "needs" in res.stderr
+    assert (tmp_path / "c_0.nrrd").read_bytes() == b"old"
+    assert not (tmp_path / "c_1.nrrd").exists()
+
+
+def test_what_the_block_path_refuses(run, shapes, tmp_path):
+    out = tmp_path / "o_{i}.nrrd"
+    spec = tmp_path / "m.yaml"
+    spec.write_text(f"version: 1\nsource: {{volume: {shapes['ball']}, iso: 0.5}}\n"
+                    f"target: {{volume: {shapes['box']}, iso: 0.5}}\nframes: 2\n"
+                    "align: {target: {translate: [1, 0, 0]}}\n")
+    res = run("morph", "--spec", spec, "-o", out, "--chunked")
+    assert res.code == 2 and "alignment" in res.stderr
+    res = run("morph", shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "2",
+              "--metric", "minnorm", "-o", out, "--chunked")
+    assert res.code == 2 and "minnorm" in res.stderr
+    # smooth samples need a band out of core (their sub-voxel field)
+    res = run("morph", shapes["blob_a"], shapes["blob_b"], "--iso", "300", "--frames", "2",
+              "-o", out, "--chunked")
+    assert res.code == 1 and "max-distance" in res.stderr
+    # a compressed frame format: refused before any work
+    res = run("morph", shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "2",
+              "-o", tmp_path / "o_{i}.nii.gz", "--chunked")
+    assert res.code == 1 and "block by block" in res.stderr
+    res = run("morph", shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "2",
+              "-o", tmp_path / "o_{i}.ome.zarr", "--chunked", "--pyramid", "2")
+    assert res.code == 2 and "--pyramid" in res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("o_")) == []
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no scratch left
+
+
+def test_a_failing_block_leaves_no_frame_and_no_scratch(run, shapes, tmp_path, monkeypatch):
+    from volwarp_cli.morph import chunked
+
+    real = chunked._frame_block
+    calls = []
+
+    def flaky(a, b, *, t, values):
+        calls.append(t)
+        if t > 0.5 and len(calls) > 3:
+            raise OSError("disk on fire")
+        return real(a, b, t=t, values=values)
+
+    monkeypatch.setattr(chunked, "_frame_block", flaky)
+    res = run("morph", shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "3",
+              "-o", tmp_path / "o_{i}.nrrd", "--chunked", "--block", "8",
+              "--scheduler", "synchronous")
+    assert res.code == 1 and "disk on fire" in res.stderr
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(("o_", ".")))
+    # frames 0 and 1 were complete and committed; the failed frame 2 left nothing
+    assert left == ["o_0.nrrd", "o_1.nrrd"]
