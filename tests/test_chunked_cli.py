@@ -64,11 +64,37 @@ def test_distance_refusals_by_blocks(run, scan, tmp_path):
     assert res.code == 1 and "--max-distance" in res.stderr
     res = run("distance", scan, "-o", out, "--iso", "300", "--chunked", "--metric", "minnorm")
     assert res.code == 1 and "no out-of-core" in res.stderr
-    flipped = tmp_path / "o.ome.zarr"  # a permuted grid cannot be reindexed by blocks
-    res = run("distance", scan, "-o", flipped, "--iso", "300", "--chunked", "--surface",
-              "voxel")
-    assert res.code == 1 and ".nrrd" in res.stderr and not flipped.exists()
+    res = run("distance", scan, "-o", tmp_path / "o.nii.gz", "--iso", "300", "--chunked",
+              "--surface", "voxel")
+    assert res.code == 1 and "block by block" in res.stderr
     assert not out.exists() and not any("part" in p.name for p in tmp_path.iterdir())
+    assert not (tmp_path / "o.nii.gz").exists()
+
+
+@pytest.mark.parametrize("version", ["0.5", "0.4"])
+def test_ome_zarr_by_blocks_on_a_permuted_grid_is_stored_reindexed(run, scan, tmp_path,
+                                                                   version):
+    """The rotated grid's store is the in-memory writer's: flipped and transposed to the
+    identity direction, block by block, on the store's own grid (counted from the far end
+    along the reversed axis), with blocks that do not divide the sizes."""
+    mem, blk = tmp_path / "m.ome.zarr", tmp_path / "b.ome.zarr"
+    common = ["--iso", "300", "--surface", "voxel", "--ome-zarr-version", version]
+    assert run("distance", scan, "-o", mem, *common).code == 0
+    res = run("distance", scan, "-o", blk, *common, "--chunked", "--block", "10,7,13",
+              "--scheduler", "processes")
+    assert res.code == 0, res.stderr
+    a, b = read_volume(mem), read_volume(blk)
+    assert np.array_equal(b.direction, np.eye(3)) and b.data.shape == (37, 29, 41)
+    assert np.array_equal(a.data, b.data)
+    assert np.allclose(a.index_to_world_matrix, b.index_to_world_matrix)
+    # the same world point holds the same value as the NRRD field of the original grid
+    ref = tmp_path / "r.nrrd"
+    assert run("distance", scan, "-o", ref, "--iso", "300", "--surface", "voxel").code == 0
+    r = read_volume(ref)
+    ijk = np.array([3, 30, 17, 1.0])  # x, y, z of the original grid
+    world = r.index_to_world_matrix @ ijk
+    back = np.rint(np.linalg.inv(b.index_to_world_matrix) @ world).astype(int)
+    assert r.data[17, 30, 3] == b.data[back[2], back[1], back[0]]
 
 
 def _canonical(mesh):

@@ -21,7 +21,12 @@ from volwarp_cli.box import Box
 from volwarp_cli.errors import FormatError, VolwarpError
 from volwarp_cli.geometry import Geometry
 from volwarp_cli.io import SUPPORTED_DTYPES, omezarr, read_volume, write_volume
-from volwarp_cli.io.blockwrite import aligned_chunks, open_block_output
+from volwarp_cli.io.blockwrite import (
+    aligned_chunks,
+    block_indices,
+    grid_boxes,
+    open_block_output,
+)
 from volwarp_cli.volume import Volume
 
 RNG = np.random.default_rng(19)
@@ -380,7 +385,7 @@ def test_pyramid_is_refused_for_other_formats(tmp_path):
 # -- block outputs --------------------------------------------------------------------------
 
 def _threads_in_random_order(out, data, seed=0):
-    boxes = Box.from_shape(data.shape).blocks(out.chunks)
+    boxes = out.blocks()
     random.Random(seed).shuffle(boxes)
     lock = threading.Lock()
 
@@ -424,6 +429,55 @@ def test_block_output_store_equals_write_volume(tmp_path, version):
             assert np.array_equal(a[level][...], b[level][...])
         assert a["0"].shards == (8, 8, 8) and a["0"].chunks == (8, 8, 8)
     assert leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("version", ["0.4", "0.5"])
+@pytest.mark.parametrize("name", ["flipped", "permuted", "ras_coronal", "oblique"])
+def test_block_output_of_any_direction_is_the_stores_write_volume_makes(tmp_path, version,
+                                                                        name):
+    """Flipped and permuted grids are stored reindexed, block by block (each block moved
+    into the store's orientation, on the store's grid); oblique ones as they are."""
+    import zarr
+
+    geom = Geometry((13, 22, 17), (0.5, 0.6, 0.7), (1.0, -2.0, 3.0), DIRECTIONS[name])
+    data = samples("int16", geom.shape)
+    meta = {"volwarp_command": "test"}
+    out = open_block_output(tmp_path / "b.ome.zarr", geom, "int16", chunks_zyx=(5, 8, 6),
+                            version=version, metadata=meta, space="LPS", pyramid=1,
+                            labels=False)
+    boxes = out.blocks()
+    assert sum(b.size for b in boxes) == geom.size  # the grid tiles the volume
+    _threads_in_random_order(out, data, seed=5)
+    out.commit()
+    omezarr.write_omezarr(geom.volume(data, meta=meta, space="LPS"), tmp_path / "w.ome.zarr",
+                          version=version, pyramid=1, labels=False)
+    a, b = zarr.open_group(tmp_path / "b.ome.zarr"), zarr.open_group(tmp_path / "w.ome.zarr")
+    assert dict(a.attrs) == dict(b.attrs)
+    for level in ("0", "1"):
+        assert np.array_equal(a[level][...], b[level][...])
+    back = read_volume(tmp_path / "b.ome.zarr")
+    ref = omezarr.reindex_to_identity(geom.volume(data))
+    assert np.array_equal(back.data, ref.data)
+    assert np.allclose(back.index_to_world_matrix, ref.index_to_world_matrix)
+    assert leftovers(tmp_path) == []
+
+
+@pytest.mark.parametrize("shape,chunks,phase", [((10, 7, 1), (4, 3, 1), (2, 0, 0)),
+                                                ((9, 9, 9), (4, 4, 4), (1, 3, 0)),
+                                                ((5, 6, 7), (8, 8, 8), (5, 6, 7))])
+def test_a_shifted_block_grid_tiles_and_indexes_its_blocks(shape, chunks, phase):
+    boxes = grid_boxes(shape, chunks, phase)
+    cover = np.zeros(shape, int)
+    seen = set()
+    for box in boxes:
+        cover[box.slices] += 1
+        (index,) = block_indices(box, shape, chunks, phase)  # one block each
+        seen.add(index)
+    assert (cover == 1).all() and len(seen) == len(boxes)
+    if phase[0] and shape[0] > phase[0]:
+        assert boxes[0].hi[0] == phase[0]  # the first block of a shifted axis is short
+        with pytest.raises(ValueError, match="not aligned"):
+            block_indices(Box((0, 0, 0), (chunks[0], shape[1], shape[2])), shape, chunks, phase)
 
 
 @pytest.mark.parametrize("name", ["b.nrrd", "b.mha", "b.raw"])

@@ -278,7 +278,7 @@ def warp_by_tiles(job: WarpBlocks, out, *, threads: int | None = None) -> int:
     from .. import parallel
     from ..progress import progress
 
-    boxes = Box.from_shape(job.window.shape).blocks(out.chunks)
+    boxes = out.blocks()
     writer = out.writer()
     n = parallel.threads() if threads is None else threads
     with progress(len(boxes), "warp") as bar:
@@ -301,7 +301,7 @@ def warp_by_blocks(job: WarpBlocks, out, engine, *, memory: int | None = None):
 
     job_node = dask.delayed(job, pure=False)
     out_node = dask.delayed(out.writer(), pure=False)
-    boxes = Box.from_shape(job.window.shape).blocks(out.chunks)
+    boxes = out.blocks()
     tasks = [engine.block_delayed(write_block, f"warp-{'-'.join(map(str, b.lo))}", job_node,
                                   out_node, b, memory=memory)
              for b in boxes]

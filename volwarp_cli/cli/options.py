@@ -17,12 +17,12 @@ checks this list against the commands; ``(every command)``: from
     --allow-outside-data      capture warp distance mesh info convert
     --background-color        mesh
     --background-value        warp
-    --block                   warp sweep distance mesh
+    --block                   warp morph sweep distance mesh
     --byte-order              warp morph sweep distance convert
     --camera-from             morph sweep mesh
     --camera-to               morph sweep mesh
     --cap                     mesh
-    --chunked/--no-chunked    warp sweep distance mesh
+    --chunked/--no-chunked    warp morph sweep distance mesh
     --color                   mesh
     --compress/--no-compress  warp morph sweep distance convert
     --crop                    warp
@@ -51,7 +51,7 @@ checks this list against the commands; ``(every command)``: from
     --labels                  warp mesh
     --largest-component       mesh
     --lattice                 capture
-    --max-distance            distance
+    --max-distance            morph distance
     --memory-limit            (every command)
     --mesh-in                 warp
     --mesh-to                 warp morph
@@ -67,7 +67,7 @@ checks this list against the commands; ``(every command)``: from
     --points-in               warp
     --points-to               warp
     --preserve-labels         warp
-    --progress                warp sweep distance mesh batch
+    --progress                warp morph sweep distance mesh batch
     --pushforward             warp
     --pyramid                 warp morph sweep distance convert
     -q/--quiet                (every command)
@@ -84,7 +84,7 @@ checks this list against the commands; ``(every command)``: from
     --report-json             batch
     --retries                 batch
     --sampling                capture
-    --scheduler               warp sweep distance mesh batch
+    --scheduler               warp morph sweep distance mesh batch
     --series                  capture warp distance mesh info convert
     --shape                   sweep
     --shard                   batch
@@ -96,7 +96,7 @@ checks this list against the commands; ``(every command)``: from
     --surface                 distance
     --tau                     sweep
     --threads                 (every command)
-    --threads-per-worker      warp sweep distance mesh batch
+    --threads-per-worker      warp morph sweep distance mesh batch
     --times                   morph
     --transform               distance
     --transform-to            warp
@@ -106,7 +106,7 @@ checks this list against the commands; ``(every command)``: from
     -v/--verbose              (every command)
     --view                    morph sweep mesh
     --volume-index            capture warp distance mesh info convert
-    --workers                 warp sweep distance mesh batch
+    --workers                 warp morph sweep distance mesh batch
 
 Old spellings, hidden, still accepted with a warning::
 

@@ -137,7 +137,7 @@ def _block(value):
 def scale_options(f):
     """--chunked, --block, --scheduler, --workers, --threads-per-worker and --progress.
 
-    For the commands that can run by blocks (warp, distance, mesh, sweep);
+    For the commands that can run by blocks (warp, distance, mesh, sweep, morph);
     the values go to :func:`scale_settings`, not to the command's arguments.
     """
     f = click.option("--progress", type=click.Choice(["auto", "jsonl"]), default=None,

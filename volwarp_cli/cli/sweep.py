@@ -282,7 +282,6 @@ def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, com
     import dask
     import numpy as np
 
-    from ..box import Box
     from ..sweep.chunked import prepare_sweep
     from .chunked import block_budget, block_output
 
@@ -309,11 +308,10 @@ def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, com
             outs[name] = stack.enter_context(block_output(
                 paths[name], template, dtype, block=block, compress=compress,
                 byte_order=byte_order, version=ome_zarr_version))
-        grid_chunks = next(iter(outs.values())).chunks
-        if any(o.chunks != grid_chunks for o in outs.values()):  # pragma: no cover - one layout
+        boxes = next(iter(outs.values())).blocks()
+        if any(o.blocks() != boxes for o in outs.values()):  # pragma: no cover - one layout
             raise click.UsageError("--chunked fields of different output formats: give one "
                                    "extension for every field")
-        boxes = Box.from_shape(shape).blocks(grid_chunks)
         plan_node = dask.delayed(plan, pure=False)
         writers = dask.delayed({n: o.writer() for n, o in outs.items()}, pure=False)
         tasks = [engine.block_delayed(_sweep_block_task, f"sweep-{'-'.join(map(str, b.lo))}",

@@ -644,7 +644,7 @@ def field_by_blocks(source, spacing_zyx, engine, open_output, *, iso: float, ins
         with open_output(grid, info) as sink, scratch_folder(scratch_near) as scratch:
             check = staged_check(size=int(np.prod(shape)), iso=iso, inside=inside,
                                  surface=surface, is_bool=source.dtype == bool)
-            every = Box.from_shape(shape).blocks(sink.chunks)
+            every = sink.blocks()
             signed_edt_staged(MaskSource(source, iso, inside), spacing_zyx, engine,
                               sink.writer().write, scratch, block_bytes=block_bytes // 4,
                               finish=finish, memory=block_bytes, check=check,

@@ -35,6 +35,7 @@ Computing is left to the engine: this module only places blocks.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import math
 import os
 import threading
@@ -111,6 +112,22 @@ def check_block_format(path: str | os.PathLike, compress: bool = False, pyramid:
     return fmt
 
 
+def _edges(n: int, c: int, phase: int) -> list[int]:
+    """Block boundaries of an axis of ``n`` samples: ``0, phase + k c, n`` (phase < c)."""
+    n, c, phase = int(n), int(c), int(phase) % int(c)
+    inner = range(phase if phase else c, n, c)
+    return [0, *inner, n] if n else [0]
+
+
+def grid_boxes(shape_zyx, chunks, phase=(0, 0, 0)) -> list[Box]:
+    """The blocks of a block grid (``chunks``, shifted by ``phase``) over ``shape_zyx``."""
+    edges = [_edges(n, c, p) for n, c, p in zip(shape_zyx, chunks, phase, strict=True)]
+    return [Box((z0, y0, x0), (z1, y1, x1))
+            for z0, z1 in itertools.pairwise(edges[0])
+            for y0, y1 in itertools.pairwise(edges[1])
+            for x0, x1 in itertools.pairwise(edges[2])]
+
+
 def aligned_chunks(shape_zyx, out: BlockOutput) -> tuple[tuple[int, ...], ...]:
     """Dask-style chunks (per axis, the block lengths) of ``shape_zyx`` on ``out``'s block grid.
 
@@ -118,31 +135,76 @@ def aligned_chunks(shape_zyx, out: BlockOutput) -> tuple[tuple[int, ...], ...]:
     aligned write.
     """
     out_chunks = []
-    for n, b in zip(shape_zyx, out.chunks, strict=True):
-        n = int(n)
-        sizes = [b] * (n // b) + ([n % b] if n % b else [])
-        out_chunks.append(tuple(sizes) if sizes else (0,))
+    for n, c, p in zip(shape_zyx, out.chunks, out.phase, strict=True):
+        edges = _edges(n, c, p)
+        sizes = tuple(b - a for a, b in itertools.pairwise(edges))
+        out_chunks.append(sizes if sizes else (0,))
     return tuple(out_chunks)
 
 
-def block_indices(box: Box, shape, chunks) -> list[tuple[int, int, int]]:
+def block_indices(box: Box, shape, chunks, phase=(0, 0, 0)) -> list[tuple[int, int, int]]:
     """The indices of the blocks of grid ``chunks`` that ``box`` covers (whole blocks only).
 
-    ValueError when ``box`` is not aligned to the grid (the last block of an
-    axis may end at the grid's end) or reaches outside ``shape``.
+    The grid's boundaries lie at ``phase + k * chunks`` along each axis (and
+    at 0 and the grid's end: the first and last block of an axis may be
+    short). ValueError when ``box`` is not aligned to the grid or reaches
+    outside ``shape``.
     """
-    for lo, hi, n, c, axis in zip(box.lo, box.hi, shape, chunks, "zyx", strict=True):
+    shift = [(c - p % c) % c for c, p in zip(chunks, phase, strict=True)]
+    for lo, hi, n, c, s, axis in zip(box.lo, box.hi, shape, chunks, shift, "zyx", strict=True):
         if lo < 0 or hi > n:
             raise ValueError(f"block {box} reaches outside the grid of shape {shape}")
-        if lo % c or (hi % c and hi != n):
+        if ((lo + s) % c and lo != 0) or ((hi + s) % c and hi != n):
             raise ValueError(f"block {box} is not aligned to the output's blocks of "
                              f"{tuple(chunks)} (axis {axis}: {lo}..{hi}); rechunk with "
                              "aligned_chunks()")
     if box.empty:
         return []
-    ranges = [range(lo // c, math.ceil(hi / c)) for lo, hi, c in zip(box.lo, box.hi, chunks,
-                                                                       strict=True)]
+    ranges = [range((lo + s) // c, math.ceil((hi + s) / c))
+              for lo, hi, c, s in zip(box.lo, box.hi, chunks, shift, strict=True)]
     return [(a, b, d) for a in ranges[0] for b in ranges[1] for d in ranges[2]]
+
+
+class _Reindex:
+    """Blocks of the volume's index grid -> blocks of a store reindexed to it (picklable).
+
+    The store holds the samples flipped along the array axes ``flips`` and then
+    transposed by ``order`` (:func:`.omezarr.reindex_axes`), so that its
+    direction is the identity.
+    """
+
+    def __init__(self, shape_zyx, flips, order):
+        self.shape = tuple(int(n) for n in shape_zyx)
+        self.flips, self.order = tuple(flips), tuple(order)
+
+    @property
+    def stored_shape(self) -> tuple[int, int, int]:
+        """The store's array shape."""
+        return tuple(self.shape[o] for o in self.order)
+
+    def volume_axes(self, stored) -> tuple[int, int, int]:
+        """A stored per-axis triple (chunks) in the volume's array axes."""
+        out = [0, 0, 0]
+        for c, o in enumerate(self.order):
+            out[o] = int(stored[c])
+        return tuple(out)
+
+    def stored_axes(self, values) -> tuple[int, int, int]:
+        """A per-axis triple of the volume's array axes in the store's."""
+        return tuple(int(values[o]) for o in self.order)
+
+    def box(self, box: Box) -> Box:
+        """Where the volume's ``box`` lies in the store."""
+        lo, hi = list(box.lo), list(box.hi)
+        for a in self.flips:
+            lo[a], hi[a] = self.shape[a] - hi[a], self.shape[a] - lo[a]
+        return Box(self.stored_axes(lo), self.stored_axes(hi))
+
+    def array(self, array: np.ndarray) -> np.ndarray:
+        """A block's samples in the store's orientation."""
+        if self.flips:
+            array = np.flip(array, axis=self.flips)
+        return array.transpose(self.order)
 
 
 class BlockWriter:
@@ -152,9 +214,10 @@ class BlockWriter:
     into (a zarr array, the temporary file), once per process.
     """
 
-    def __init__(self, shape, chunks, dtype, where: str):
+    def __init__(self, shape, chunks, dtype, where: str, phase=(0, 0, 0)):
         self.shape = tuple(shape)
         self.chunks = tuple(chunks)
+        self.phase = tuple(phase)
         self.dtype = np.dtype(dtype)
         self.where = where
         self._opened = None
@@ -167,11 +230,14 @@ class BlockWriter:
         array = np.asarray(array)
         if tuple(array.shape) != box.shape:
             raise ValueError(f"block of shape {array.shape} written at {box}")
-        block_indices(box, self.shape, self.chunks)
+        block_indices(box, self.shape, self.chunks, self.phase)
         if box.empty:
             return
         if self._opened is None:
             self._opened = self._open()
+        self._place(box, array)
+
+    def _place(self, box: Box, array: np.ndarray) -> None:
         self._opened[box.slices] = array
 
     def __getstate__(self):
@@ -181,12 +247,19 @@ class BlockWriter:
 
 
 class _ZarrWriter(BlockWriter):
-    def __init__(self, array, shape, chunks, dtype, where):
-        super().__init__(shape, chunks, dtype, where)
+    def __init__(self, array, shape, chunks, dtype, where, phase, reindex):
+        super().__init__(shape, chunks, dtype, where, phase)
         self.array = array  # a zarr array pickles as its store and path
+        self.reindex = reindex
 
     def _open(self):
         return self.array
+
+    def _place(self, box, array):
+        if self.reindex is None:
+            self._opened[box.slices] = array
+        else:
+            self._opened[self.reindex.box(box).slices] = self.reindex.array(array)
 
 
 class _MappedWriter(BlockWriter):
@@ -214,13 +287,20 @@ class BlockOutput:
         The sample type (native order; writes are converted to it).
     chunks : tuple of 3 ints
         The block grid (z, y, x): every write covers whole blocks.
+    phase : tuple of 3 ints
+        Where the grid's boundaries start along each axis (``phase + k *
+        chunks``): 0, but for a store whose axes run reversed, where the grid
+        is the store's own, counted from the other end. :meth:`blocks` lists
+        the grid's blocks.
     """
 
-    def __init__(self, path: Path, geometry: Geometry, dtype: np.dtype, chunks):
+    def __init__(self, path: Path, geometry: Geometry, dtype: np.dtype, chunks,
+                 phase=(0, 0, 0)):
         self.path = path
         self.geometry = geometry
         self.dtype = np.dtype(dtype)
         self.chunks = tuple(int(c) for c in chunks)
+        self.phase = tuple(int(p) for p in phase)
         self._lock = threading.Lock()
         self._written: set[tuple[int, int, int]] = set()
         self._state = "open"
@@ -229,7 +309,11 @@ class BlockOutput:
     # -- blocks -----------------------------------------------------------------------
     def _blocks_of(self, box: Box) -> list[tuple[int, int, int]]:
         """The block indices ``box`` covers; ValueError unless it covers whole blocks."""
-        return block_indices(box, self.geometry.shape, self.chunks)
+        return block_indices(box, self.geometry.shape, self.chunks, self.phase)
+
+    def blocks(self) -> list[Box]:
+        """Every block of the output's block grid, in order."""
+        return grid_boxes(self.geometry.shape, self.chunks, self.phase)
 
     def writer(self) -> BlockWriter:
         """A picklable handle that writes blocks into this output's temporary, in any process.
@@ -268,8 +352,8 @@ class BlockOutput:
     def missing(self) -> int:
         """How many blocks have not been written yet."""
         total = 1
-        for n, c in zip(self.geometry.shape, self.chunks, strict=True):
-            total *= math.ceil(n / c) if n else 0
+        for n, c, p in zip(self.geometry.shape, self.chunks, self.phase, strict=True):
+            total *= len(_edges(n, c, p)) - 1
         return total - len(self._written)
 
     # -- ending -----------------------------------------------------------------------
@@ -362,27 +446,39 @@ class _ZarrOutput(BlockOutput):
         from .atomic import atomic_folder
 
         version = omezarr.check_version(version)
-        layout = block_layout(geometry.shape, version, chunks_zyx)
+        vol = _placeholder_volume(geometry, dtype, space, metadata)
+        # a grid whose axes are flipped or permuted is stored reindexed to the identity
+        # direction, as write_omezarr stores it: each block is moved into place, on the
+        # store's own block grid (counted from the far end along a reversed axis)
+        stored = omezarr.reindex_to_identity(vol, samples=False)
+        found = omezarr.reindex_axes(vol.direction)
+        reindex = None
+        if found is not None and (found[0] or found[1] != (0, 1, 2)):
+            reindex = _Reindex(geometry.shape, *found)
+        block = chunks_zyx
+        if reindex is not None and block is not None:
+            block = reindex.stored_axes(block)
+        layout = block_layout(stored.data.shape, version, block)
         chunk, shard = layout
-        super().__init__(path, geometry, dtype, shard or chunk)
+        grid = shard or chunk
+        phase = (0, 0, 0)
+        if reindex is not None:
+            grid = reindex.volume_axes(grid)
+            phase = tuple(int(n) % c if a in reindex.flips else 0
+                          for a, (n, c) in enumerate(zip(geometry.shape, grid, strict=True)))
+        super().__init__(path, geometry, dtype, grid, phase)
+        self._reindex = reindex
         self._labels = bool(labels)
         self._method = ("mode" if labels else "mean") if pyramid else None
-        vol = _placeholder_volume(geometry, dtype, space, metadata)
-        if omezarr.signed_permutation(vol.direction) is not None and not np.array_equal(
-                vol.direction, np.eye(3)):
-            raise VolwarpError(f"{path}: the grid's axes are flipped or permuted, which an "
-                               "OME-Zarr store written by blocks cannot reindex; write an "
-                               "uncompressed .nrrd instead, or convert the input to .ome.zarr "
-                               "first (its axes then run along the world's)")
         self._attrs = omezarr.group_attributes(
-            omezarr.multiscales_metadata(vol, pyramid, version, self._method),
-            omezarr.volwarp_attribute(vol, vol, self._method), version)
+            omezarr.multiscales_metadata(stored, pyramid, version, self._method),
+            omezarr.volwarp_attribute(stored, vol, self._method), version)
         try:
             tmp = self._stack.enter_context(atomic_folder(path))
             group = omezarr.open_group_for_writing(tmp, version)
-            self._arrays = omezarr.create_arrays(group, omezarr.level_shapes(geometry.shape,
+            self._arrays = omezarr.create_arrays(group, omezarr.level_shapes(stored.data.shape,
                                                                              pyramid),
-                                                 dtype, version, chunks_zyx, byte_order,
+                                                 dtype, version, block, byte_order,
                                                  layout0=layout)
             self._group = group
         except BaseException:
@@ -390,11 +486,14 @@ class _ZarrOutput(BlockOutput):
             raise
 
     def _write(self, box, array):
-        self._arrays[0][box.slices] = array
+        if self._reindex is None:
+            self._arrays[0][box.slices] = array
+        else:
+            self._arrays[0][self._reindex.box(box).slices] = self._reindex.array(array)
 
     def writer(self):
         return _ZarrWriter(self._arrays[0], self.geometry.shape, self.chunks, self.dtype,
-                           str(self.path))
+                           str(self.path), self.phase, self._reindex)
 
     def _finish(self):
         from . import omezarr

@@ -114,33 +114,58 @@ def signed_permutation(direction) -> tuple[list[int], list[float]] | None:
     return perm, signs
 
 
-def reindex_to_identity(vol: Volume) -> Volume:
+def reindex_to_identity(vol: Volume, *, samples: bool = True) -> Volume:
     """``vol`` with identity direction, by flips and transposes only (signed permutations).
 
     Every sample keeps its world point; the origin becomes the world point of
     the new first voxel. A volume whose direction is not a signed permutation
-    is returned as it is.
+    is returned as it is. ``samples=False``: the geometry only, the samples a
+    zero-strided placeholder (a store written by blocks moves each block).
     """
-    found = signed_permutation(vol.direction)
+    found = reindex_axes(vol.direction)
     if found is None:
         return vol
-    perm, signs = found
-    if perm == [0, 1, 2] and signs == [1.0, 1.0, 1.0]:
+    flips, order = found
+    if not flips and order == (0, 1, 2):
         if np.array_equal(vol.direction, np.eye(3)):
             return vol
         return vol.with_data(vol.data, direction=np.eye(3))
     data = vol.data
-    n = np.array(vol.shape_xyz)
-    first = np.array([0 if s > 0 else n[a] - 1 for a, s in enumerate(signs)], dtype=np.float64)
+    if not samples:
+        shape = tuple(data.shape[o] for o in order)
+        data = np.broadcast_to(np.zeros((), data.dtype), shape)
+    else:
+        if flips:
+            data = np.flip(data, axis=flips)
+        data = np.ascontiguousarray(data.transpose(order))
+    return vol.with_data(data, **reindexed_geometry(vol, flips, order))
+
+
+def reindex_axes(direction) -> tuple[tuple[int, ...], tuple[int, int, int]] | None:
+    """How :func:`reindex_to_identity` moves samples: ``(flips, order)``, or None.
+
+    The array (z, y, x) axes ``flips`` are reversed, then the array is
+    transposed by ``order`` (stored axis ``c`` is array axis ``order[c]``).
+    None when ``direction`` is not a signed permutation.
+    """
+    found = signed_permutation(direction)
+    if found is None:
+        return None
+    perm, signs = found
     flips = tuple(2 - a for a in range(3) if signs[a] < 0)
-    if flips:
-        data = np.flip(data, axis=flips)
     # new index axis b (x, y, z) is old axis a with perm[a] == b; array axes are 2 - axis
     old_of_new = [perm.index(b) for b in range(3)]
-    data = np.ascontiguousarray(data.transpose([2 - old_of_new[2 - c] for c in range(3)]))
-    origin = vol.index_to_world(first)
-    spacing = np.array([vol.spacing[old_of_new[b]] for b in range(3)])
-    return vol.with_data(data, spacing=spacing, origin=origin + 0.0, direction=np.eye(3))
+    return flips, tuple(2 - old_of_new[2 - c] for c in range(3))
+
+
+def reindexed_geometry(vol: Volume, flips, order) -> dict:
+    """Spacing, origin and (identity) direction of ``vol`` reindexed by ``(flips, order)``."""
+    n = np.array(vol.shape_xyz)
+    first = np.array([n[a] - 1 if 2 - a in flips else 0 for a in range(3)], dtype=np.float64)
+    # stored index axis b (x) is array axis 2 - b, which came from array axis order[2 - b]
+    spacing = np.array([vol.spacing[2 - order[2 - b]] for b in range(3)])
+    return {"spacing": spacing, "origin": vol.index_to_world(first) + 0.0,
+            "direction": np.eye(3)}
 
 
 # -- layout -----------------------------------------------------------------------------
