@@ -71,6 +71,28 @@ def test_distance_refusals_by_blocks(run, scan, tmp_path):
     assert not (tmp_path / "o.nii.gz").exists()
 
 
+@pytest.mark.parametrize("dtype,method", [("float32", "mean"), ("int16", "mode")])
+def test_distance_by_blocks_with_a_pyramid_equals_in_memory(run, scan, tmp_path, dtype,
+                                                            method):
+    """The levels are built on commit from the blocks written, as the in-memory writer
+    builds them; whether an integer output's levels take the mode is decided from the
+    samples written, as in memory (an int16 field of whole voxel distances is piecewise
+    constant enough to look like labels there too)."""
+    import zarr
+
+    common = ["--iso", "300", "--surface", "voxel", "--pyramid", "2", "--dtype", dtype]
+    mem, blk = tmp_path / "m.ome.zarr", tmp_path / "b.ome.zarr"
+    assert run("distance", scan, "-o", mem, *common).code == 0
+    res = run("distance", scan, "-o", blk, *common, "--chunked", "--block", "10,7,13")
+    assert res.code == 0, res.stderr
+    a, b = zarr.open_group(mem), zarr.open_group(blk)
+    for level in ("0", "1", "2"):
+        assert a[level].dtype == b[level].dtype and np.array_equal(a[level][...], b[level][...])
+    assert a.attrs["volwarp"] == b.attrs["volwarp"] | {"meta": a.attrs["volwarp"]["meta"]}
+    assert b.attrs["volwarp"]["downsampling"] == method
+    assert a.attrs["ome"]["multiscales"] == b.attrs["ome"]["multiscales"]
+
+
 @pytest.mark.parametrize("version", ["0.5", "0.4"])
 def test_ome_zarr_by_blocks_on_a_permuted_grid_is_stored_reindexed(run, scan, tmp_path,
                                                                    version):

@@ -465,3 +465,24 @@ def test_labels_over_frames_are_each_frames_exact_label_warp(run, tmp_path):
     res = run("warp", tmp_path / "s.vwc", "--spec", spec("c.yaml", [1.0, 0, 0], 1), "-o",
               tmp_path / "x.nrrd", "--labels")
     assert res.code == 2 and not (tmp_path / "x.nrrd").exists()
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(1, 300), st.sampled_from(["int16", "uint8", "int32"]),
+       st.tuples(st.integers(1, 9), st.integers(1, 9), st.integers(1, 9)),
+       st.integers(0, 2**31 - 1), st.booleans())
+def test_label_map_hint_by_blocks_is_the_whole_arrays(levels, dtype, block, seed, smooth):
+    """Read box by box (any block grid), the hint is the one of the whole array: the
+    distinct values merged, the neighbour pairs counted on the same planes."""
+    from volwarp_cli.box import Box
+    from volwarp_cli.bspline.labels import label_map_hint_by_blocks
+
+    rng = np.random.default_rng(seed)
+    shape = (int(rng.integers(1, 140)), int(rng.integers(1, 12)), int(rng.integers(1, 12)))
+    if smooth:  # piecewise constant slabs of labels
+        data = np.repeat(rng.integers(0, levels, (shape[0], shape[1], 1)), shape[2], axis=2)
+    else:
+        data = rng.integers(0, levels, shape)
+    data = data.astype(dtype)
+    boxes = Box.from_shape(shape).blocks(block)
+    assert label_map_hint_by_blocks(data, boxes) == label_map_hint(data)

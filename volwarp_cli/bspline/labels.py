@@ -77,14 +77,43 @@ def label_map_hint(data: np.ndarray) -> dict | None:
     if np.dtype(data.dtype).kind not in "iu" or data.size == 0:
         return None
     values = _distinct(data, HINT_MAX_LABELS + 1)
+    return _hint(values, data.shape, lambda z: data[z])
+
+
+def label_map_hint_by_blocks(source, boxes) -> dict | None:
+    """:func:`label_map_hint` of a sliceable ``source``, read box by box (``boxes`` tile it).
+
+    The same answer, never holding more than a box and a plane: the distinct
+    values are merged from the boxes, the neighbour pairs counted on the same
+    planes.
+    """
+    shape = tuple(source.shape)
+    if np.dtype(source.dtype).kind not in "iu" or 0 in shape:
+        return None
+    values = np.empty(0, np.int64)
+    for box in boxes:
+        part = _distinct(np.asarray(source[box.slices]), HINT_MAX_LABELS + 1)
+        if part is None:
+            return None
+        values = np.union1d(values, part.astype(np.int64))
+        if len(values) > HINT_MAX_LABELS:
+            return None
+    return _hint(values, shape, lambda z: np.asarray(source[z]))
+
+
+def _hint(values, shape, plane) -> dict | None:
+    """The hint from the distinct ``values`` and the planes ``plane(z)`` (module notes)."""
     if values is None or not 2 <= len(values) <= HINT_MAX_LABELS:
         return None
-    if data.shape[-1] > 1:
-        step = max(1, data.shape[0] // 64)  # about 64 planes are enough
-        a, b = data[::step, :, :-1], data[::step, :, 1:]
-        some = (a != 0) | (b != 0)
-        n = int(some.sum())
-        if n and int((some & (a == b)).sum()) < HINT_MIN_EQUAL * n:
+    if shape[-1] > 1:
+        n = equal = 0
+        for z in range(0, shape[0], max(1, shape[0] // 64)):  # about 64 planes are enough
+            p = plane(z)
+            a, b = p[:, :-1], p[:, 1:]
+            some = (a != 0) | (b != 0)
+            n += int(some.sum())
+            equal += int((some & (a == b)).sum())
+        if n and equal < HINT_MIN_EQUAL * n:
             return None
     return {"labels": int(len(values)), "values": [int(v) for v in values[:16]]}
 

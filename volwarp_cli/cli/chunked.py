@@ -99,7 +99,7 @@ def lazy_input(path, raw=None, volume_index=None):
 
 
 def block_output(path, template, dtype=None, *, block=None, compress=False,
-                 byte_order="little", pyramid=0, version="0.5", labels=False):
+                 byte_order="little", pyramid=0, version="0.5", labels="auto"):
     """The :class:`~volwarp_cli.io.blockwrite.BlockOutput` of ``template`` at ``path``.
 
     Committed when the block exits without an error, aborted (nothing left at

@@ -162,16 +162,14 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
     from ..volume import xyz_to_zyx
     from .chunked import block_budget, block_output, lazy_input
 
-    if pyramid:
-        raise click.UsageError("--pyramid with a distance by blocks: write the field, "
-                               "then `volwarp convert SDF.ome.zarr --pyramid N`")
     settings = scale_settings()
     template, source = lazy_input(input, raw, volume_index)
     shape = template.data.shape
     out_dtype = np.dtype(dtype or "float32")
     finish = functools.partial(_finish_block, unsigned=unsigned,
                                dtype=None if dtype is None else out_dtype, what=str(output))
-    kw = dict(compress=compress, byte_order=byte_order, version=ome_zarr_version)
+    kw = dict(compress=compress, byte_order=byte_order, version=ome_zarr_version,
+              pyramid=pyramid)
 
     def open_output(grid, info):
         out = stamp(template.with_data(np.broadcast_to(np.zeros((), out_dtype), shape)),

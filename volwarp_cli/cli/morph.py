@@ -367,9 +367,6 @@ def _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, *,
             raise fallback
         raise (click.UsageError if usage else VolwarpError)(message)
 
-    if write_kw.get("pyramid"):
-        refuse("--pyramid with a morph by blocks: write the frames, then "
-               "`volwarp convert FRAME.ome.zarr --pyramid N`")
     try:
         source = lazy_input(job.source.path)
         target = lazy_input(job.target.path)
@@ -410,7 +407,8 @@ def _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, *,
                               (source[0], target[0]))
     kw = dict(compress=write_kw.get("compress", False),
               byte_order=write_kw.get("byte_order", "little"),
-              version=write_kw.get("ome_zarr_version", "0.5"))
+              version=write_kw.get("ome_zarr_version", "0.5"),
+              pyramid=write_kw.get("pyramid", 0))
     with settings.open_engine() as engine, scratch_folder(outputs.frames[0]) as scratch:
         per_task = block_budget() // max(1, engine.workers)
         with timed("morph by blocks: both fields"):

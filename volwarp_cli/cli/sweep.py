@@ -285,9 +285,6 @@ def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, com
     from ..sweep.chunked import prepare_sweep
     from .chunked import block_budget, block_output
 
-    if pyramid:
-        raise click.UsageError("--pyramid with a sweep by blocks: write the fields, then "
-                               "`volwarp convert FIELD.ome.zarr --pyramid N`")
     settings = scale_settings()
     plan = prepare_sweep(sspec, grid, method=method, tau=tau)
     shape = grid.shape
@@ -307,7 +304,7 @@ def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, com
                                    meta=dict(meta, volwarp_sweep_field=name))
             outs[name] = stack.enter_context(block_output(
                 paths[name], template, dtype, block=block, compress=compress,
-                byte_order=byte_order, version=ome_zarr_version))
+                byte_order=byte_order, version=ome_zarr_version, pyramid=pyramid))
         boxes = next(iter(outs.values())).blocks()
         if any(o.blocks() != boxes for o in outs.values()):  # pragma: no cover - one layout
             raise click.UsageError("--chunked fields of different output formats: give one "

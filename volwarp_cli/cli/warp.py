@@ -226,9 +226,6 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
     from ..spec.loader import load_schema, load_spec, validate
     from .chunked import block_budget, block_output, lazy_input
 
-    if write_kw.get("pyramid"):
-        raise click.UsageError("--pyramid with a warp by blocks: write the output, then "
-                               "`volwarp convert OUT.ome.zarr --pyramid N`")
     doc = load_spec(spec_path)
     validate(doc, load_schema("warp"))
     spec = read_warp_spec(doc)
@@ -259,7 +256,8 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
         block = settings.block or job.choose_blocks(budget, engine.workers)
         with block_output(output, stamp(out_template, "warp", input, spec_path), block=block,
                           compress=write_kw["compress"], byte_order=write_kw["byte_order"],
-                          version=write_kw.get("ome_zarr_version", "0.5")) as out:
+                          version=write_kw.get("ome_zarr_version", "0.5"),
+                          pyramid=write_kw.get("pyramid", 0)) as out:
             stats = warp_by_blocks(job, out, engine, memory=per_task)
     return {"output": str(output), "shape": list(out_template.shape_xyz),
             "handles": warp.handles(), "blocks": len(stats), "block": list(block[::-1])}

@@ -66,13 +66,15 @@ def _placeholder_volume(geometry: Geometry, dtype, space, metadata):
 def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chunks_zyx=None,
                       version: str = "0.5", compress: bool = False, byte_order: str = "little",
                       metadata: dict | None = None, space: str | None = None,
-                      pyramid: int = 0, labels: bool = False) -> BlockOutput:
+                      pyramid: int = 0, labels="auto") -> BlockOutput:
     """A :class:`BlockOutput` writing a volume of ``geometry`` and ``dtype`` to ``path``.
 
     ``chunks_zyx``: the block shape the engine writes (OME-Zarr 0.5: one shard
     per block, :func:`block_layout`; 0.4: the chunks; others: the block grid,
-    default 64 planes of the whole y, x extent). ``version``, ``pyramid``, ``labels``: OME-Zarr (see
-    :mod:`.omezarr`; ``labels`` must be given: no data is seen in advance).
+    default 64 planes of the whole y, x extent). ``version``, ``pyramid``,
+    ``labels``: OME-Zarr (see :mod:`.omezarr`; ``labels="auto"``, as
+    :func:`~volwarp_cli.io.write_volume`'s: an integer output's levels are
+    decided on commit from the samples written, read shard by shard).
     ``metadata``: the volume's key/values (provenance); ``space``: its world
     frame (``"left-posterior-superior"``, or None), as the Volume would have.
     ``compress``: refused except for OME-Zarr (always compressed).
@@ -468,11 +470,12 @@ class _ZarrOutput(BlockOutput):
                           for a, (n, c) in enumerate(zip(geometry.shape, grid, strict=True)))
         super().__init__(path, geometry, dtype, grid, phase)
         self._reindex = reindex
-        self._labels = bool(labels)
-        self._method = ("mode" if labels else "mean") if pyramid else None
-        self._attrs = omezarr.group_attributes(
-            omezarr.multiscales_metadata(stored, pyramid, version, self._method),
-            omezarr.volwarp_attribute(stored, vol, self._method), version)
+        self._stored, self._vol, self._version, self._pyramid = stored, vol, version, pyramid
+        # labels "auto" (write_volume's default) of an integer output: decided on commit,
+        # from the samples written (their pyramid levels take the mode or the mean)
+        if labels == "auto" or labels is None:
+            labels = None if pyramid and self.dtype.kind in "iu" else False
+        self._labels = labels if labels is None else bool(labels)
         try:
             tmp = self._stack.enter_context(atomic_folder(path))
             group = omezarr.open_group_for_writing(tmp, version)
@@ -498,8 +501,17 @@ class _ZarrOutput(BlockOutput):
     def _finish(self):
         from . import omezarr
 
+        if self._labels is None:
+            from ..bspline.labels import label_map_hint_by_blocks
+
+            level0 = self._arrays[0]
+            boxes = grid_boxes(level0.shape, level0.shards or level0.chunks)
+            self._labels = label_map_hint_by_blocks(level0, boxes) is not None
+        method = ("mode" if self._labels else "mean") if self._pyramid else None
         omezarr.write_levels(self._arrays, None, self._labels)
-        self._group.attrs.update(self._attrs)
+        self._group.attrs.update(omezarr.group_attributes(
+            omezarr.multiscales_metadata(self._stored, self._pyramid, self._version, method),
+            omezarr.volwarp_attribute(self._stored, self._vol, method), self._version))
 
 
 class _MappedOutput(BlockOutput):
