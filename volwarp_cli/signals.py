@@ -68,13 +68,16 @@ _RECHECK = 0.02
 
 
 def _raise_when_safe(frame) -> None:
-    """Raise :class:`Interrupted` now, or, inside an import, as soon as it is over.
+    """Raise :class:`Interrupted` now, or, inside an import or a JIT compile, once it is over.
 
     An exception raised while an extension module initialises (VTK's
     ``vtkCommonCore``) crashed the process with SIGSEGV in about one run in
-    ten stopped there; a timer looks again every few milliseconds instead.
+    ten stopped there, and one raised while numba compiles or loads a kernel
+    from its cache (its Python code calling LLVM through llvmlite) crashed
+    it in most runs stopped there (``mesh --decimate``); a timer looks again
+    every few milliseconds instead.
     """
-    if _importing(frame):
+    if _importing(frame) or _compiling(frame):
         signal.signal(signal.SIGALRM, lambda s, f: _raise_when_safe(f))
         signal.setitimer(signal.ITIMER_REAL, _RECHECK)
         return
@@ -99,6 +102,19 @@ def blocked():
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+#: code whose Python frames hold native state (LLVM's) that an exception would leave torn
+_JIT_PACKAGES = (f"{os.sep}numba{os.sep}", f"{os.sep}llvmlite{os.sep}")
+
+
+def _compiling(frame) -> bool:
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if any(p in name for p in _JIT_PACKAGES):
+            return True
+        frame = frame.f_back
+    return False
 
 
 def _importing(frame) -> bool:
