@@ -205,3 +205,19 @@ def test_pool_ignores_the_dask_variable_and_imports_no_dask(tmp_path):
                                                DASK_SCHEDULER_ADDRESS="tcp://127.0.0.1:1"))
     assert res.stdout.strip() == "0 []", res.stdout + res.stderr
     assert res.stderr.strip() == "volwarp batch: 6 scans, 6 ok, 0 skipped, 0 failed"
+
+
+def test_workers_on_one_host_share_its_cores():
+    """`dask worker --nworkers 4 --nthreads 2` on a 16-core host: 8 scans at once there,
+    2 threads for each scan's steps (not 8: each worker alone would think it had 16)."""
+    from volwarp_cli.batch.cluster import host_threads, share_of_cores
+
+    info = {"workers": {
+        f"tcp://10.0.0.1:{4000 + i}": {"host": "10.0.0.1", "nthreads": 2} for i in range(4)}
+        | {"tcp://10.0.0.2:4000": {"host": "10.0.0.2", "nthreads": 3}}}
+    hosts = host_threads(info)
+    assert hosts == {"10.0.0.1": 8, "10.0.0.2": 3}
+    assert share_of_cores(16, "10.0.0.1", hosts, 2) == 2
+    assert share_of_cores(16, "10.0.0.2", hosts, 3) == 5
+    assert share_of_cores(16, "10.0.0.9", hosts, 2) == 8  # joined later: its own threads
+    assert share_of_cores(2, "10.0.0.1", hosts, 2) == 1  # never below one

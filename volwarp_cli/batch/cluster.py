@@ -66,11 +66,33 @@ def _children(run_id: str) -> Children:
         return _runs.setdefault(run_id, Children())
 
 
+def share_of_cores(cores: int, host: str, host_threads: dict | None, nthreads: int) -> int:
+    """Threads for one scan's steps on a worker: its host's cores over the scans run there at once.
+
+    ``host_threads``: the cluster's worker threads per host (several worker
+    processes on one machine share its cores: ``dask worker --nworkers 4``);
+    a host not in it (a worker that joined later) counts its own ``nthreads``.
+    """
+    at_once = (host_threads or {}).get(host) or nthreads
+    return max(1, int(cores) // max(1, int(at_once)))
+
+
+def host_threads(scheduler_info: dict) -> dict[str, int]:
+    """Worker threads per host, from ``client.scheduler_info()``."""
+    out: dict[str, int] = {}
+    for w in scheduler_info.get("workers", {}).values():
+        host = w.get("host")
+        if host:
+            out[host] = out.get(host, 0) + int(w.get("nthreads", 1))
+    return out
+
+
 def scan_task(manifest: Manifest, scan: Scan, made: dict[str, str], run_id: str, *,
               force: bool, step_retries: int, child_threads: int | None,
-              thumbnails: bool) -> ScanResult:
+              thumbnails: bool, hosts: dict | None = None) -> ScanResult:
     """One scan's steps on this worker (a distributed task); its :class:`ScanResult`."""
     from distributed import get_worker
+    from distributed.comm import get_address_host
 
     from .. import parallel
 
@@ -78,10 +100,11 @@ def scan_task(manifest: Manifest, scan: Scan, made: dict[str, str], run_id: str,
     children = _children(run_id)
     if children.stopping is not None:
         return ScanResult(scan, "not started", worker=worker.address)
-    if child_threads is None:  # the worker's cores shared by its threads (its scans at once)
+    if child_threads is None:  # the host's cores shared by the scans it runs at once
         nthreads = getattr(getattr(worker, "state", None), "nthreads", None) or getattr(
             worker, "nthreads", 1)
-        child_threads = max(1, parallel.threads() // max(1, int(nthreads)))
+        child_threads = share_of_cores(parallel.threads(), get_address_host(worker.address),
+                                       hosts, nthreads)
 
     def started(scan):
         worker.log_event(f"{TOPIC}-{run_id}", {"scan": scan.id, "worker": worker.address,
@@ -174,7 +197,7 @@ class ClusterBatch:
         return self.client.submit(
             scan_task, self.manifest, scan, self.record.snapshot(plans), self.run_id,
             force=self.force, step_retries=self.retries, child_threads=self.child_threads,
-            thumbnails=self.thumbnails, key=f"volwarp-scan-{self.run_id}-{i:06d}-{again}",
+            thumbnails=self.thumbnails, hosts=self._hosts, key=f"volwarp-scan-{self.run_id}-{i:06d}-{again}",
             priority=-i, pure=False)
 
     def _never_ran(self, i: int, future) -> bool:
@@ -189,6 +212,12 @@ class ClusterBatch:
 
     def _run(self) -> list[ScanResult]:
         self._by_id = {s.id: s for s in self.scans}
+        self._hosts = None
+        if self.child_threads is None:
+            try:
+                self._hosts = host_threads(self.client.scheduler_info())
+            except Exception:  # noqa: BLE001 - then each worker counts its own threads
+                self._hosts = None
         futures = [self._submit(i) for i in range(len(self.scans))]
         results: list[ScanResult | None] = [None] * len(futures)
         again = [0] * len(futures)

@@ -213,7 +213,7 @@ def _on_cluster(manifest, scans, choice, workers, threads_per_worker, sink, opti
             at_once = engine.workers * per
             child = max(1, parallel.threads() // at_once)
         else:
-            at_once, child = engine.workers, None  # (the worker shares its own cores)
+            at_once, child = engine.workers, None  # (each host shares its cores: cluster.py)
         with contextlib.suppress(Exception):
             engine.client.wait_for_workers(1, timeout=60)
         results, stop = ClusterBatch(manifest, scans, client=engine.client,
