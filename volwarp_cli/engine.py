@@ -325,7 +325,9 @@ def open_engine(scheduler: str | SchedulerChoice | None = None, *, workers: int 
     ``workers``: threads or processes of a local scheduler, worker processes
     of a LocalCluster (default: the cores this process may use, divided by
     ``threads_per_worker``); ``memory_limit``: the LocalCluster's total,
-    split among its workers; ``progress``: ``"jsonl"`` for JSON lines on stderr.
+    split among its workers (0: none, and no memory monitor in its workers, for
+    tasks whose memory is their child processes'); ``progress``: ``"jsonl"``
+    for JSON lines on stderr.
     """
     from . import parallel
 
@@ -346,11 +348,16 @@ def open_engine(scheduler: str | SchedulerChoice | None = None, *, workers: int 
 
         per = threads_per_worker or 1
         n = workers or max(1, parallel.threads() // per)
-        # the workers' statistical profiler samples every thread's stack every 10 ms: a
-        # cost on every task and nothing volwarp reads (its workers get this config)
-        with dask.config.set({"distributed.worker.profile.enabled": False}):
+        # the workers' statistical profiler samples every thread's stack every 10 ms, the
+        # event loops' blocking check ticks every 20 ms and the system monitor (for a
+        # dashboard) every 0.5 s: costs on every process, read by nothing volwarp runs
+        # (on 2 cores their ticks alone took 3-4% of one core while the cluster idled)
+        with dask.config.set({"distributed.worker.profile.enabled": False,
+                              "distributed.admin.tick.interval": "1s",
+                              "distributed.admin.system-monitor.interval": "5s"}):
             cluster = LocalCluster(n_workers=n, threads_per_worker=per, processes=True,
-                                   memory_limit=(memory_limit // n) if memory_limit else "auto",
+                                   memory_limit=("auto" if memory_limit is None
+                                                 else memory_limit // n),
                                    dashboard_address=None, silence_logs=50)
         client = Client(cluster)
     else:

@@ -207,8 +207,10 @@ def _on_cluster(manifest, scans, choice, workers, threads_per_worker, sink, opti
     per = threads_per_worker or 1
     config = ({"distributed.scheduler.allowed-failures": options["retries"],
                "distributed.scheduler.worker-saturation": 1.0} if local else {})
-    with dask.config.set(config), open_engine(choice, workers=workers,
-                                              threads_per_worker=per) as engine:
+    # (a scan's memory is its steps' processes', which a worker's memory monitor never
+    # sees: no limit, and no monitor polling every 100 ms beside the steps)
+    with dask.config.set(config), open_engine(choice, workers=workers, threads_per_worker=per,
+                                              memory_limit=0 if local else None) as engine:
         if local:
             at_once = engine.workers * per
             child = max(1, parallel.threads() // at_once)
