@@ -123,8 +123,6 @@ def test_a_budget_the_process_itself_fills_is_refused(run, scan, tmp_path):
 def test_what_the_block_path_refuses(run, scan, tmp_path):
     src, spec = scan
     out = tmp_path / "o.nrrd"
-    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--labels")
-    assert res.code == 2 and "--labels" in res.stderr
     res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--frames-to",
               str(tmp_path / "f_{frame}.nrrd"))
     assert res.code == 2 and "--frames-to" in res.stderr

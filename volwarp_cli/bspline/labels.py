@@ -248,7 +248,7 @@ class _Stream:
 
     def __init__(self, scene: Scene, dq, labels_in: np.ndarray, t_lo: int, t_hi: int,
                  best_w: np.ndarray, best_l: np.ndarray):
-        self.scene, self.dq, self.data = scene, dq, labels_in
+        self.scene, self.dq, self.data = scene, dq, labels_in  # (any sliceable map)
         self.t_lo, self.t_hi = t_lo, t_hi
         self.best_w, self.best_l = best_w, best_l
         grid = scene.grid
@@ -318,7 +318,10 @@ class _Stream:
             # the indicator of the label on domain planes [g0, g1) (the box's voxels;
             # the rest of the buffer stays 0): each domain voxel takes its input voxel's
             zi = (np.arange(g0, g1) - self.lead[2]) // k
-            src = self.data[zi, by0:by1, bx0:bx1]
+            # (one contiguous read of the input planes, then repeated: the map may be a
+            # file read by boxes, which takes no index arrays)
+            src = np.asarray(self.data[int(zi[0]):int(zi[-1]) + 1, by0:by1, bx0:bx1])[
+                zi - zi[0]]
             ind = (src != 0) if label == 0 else (src == label)
             view = self.values[:g1 - g0, ys, xs].reshape(g1 - g0, by1 - by0, k, bx1 - bx0, k)
             np.copyto(view, ind[:, :, None, :, None])
@@ -372,51 +375,99 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
     predicted = {L: 0 for L in labels}  # exact integer sums: the same for any thread count
     peak = {L: (0, None) for L in labels}  # (weight, target index z y x)
     lock = threading.Lock()
-    # negative labels first, descending, winning ties (>=: the smaller id wins), then the
-    # positive ones ascending, losing ties
-    order = [L for L in labels if L < 0][::-1] + [L for L in labels if L > 0]
-    where = {L: i for i, L in enumerate(labels)}
 
     def share(i):
-        st = _Stream(scene, dq, labels_in, cuts[i], cuts[i + 1], best_w, best_l)
-        full = (np.zeros(3, np.int64), np.array(grid.input_shape, np.int64))
-
-        def background(z0, acc, win):
-            x0, x1, y0, y1 = win
-            w_all, w_fg = acc[..., 0], acc[..., 1]
-            best_w[z0:z0 + len(acc), y0:y1, x0:x1] = np.maximum(w_all, _Q) - w_fg
-
-        st.run(0, full, background)
-        for L in order:
-            total = [0]
-            top = [0, None]
-
-            def keep(z0, acc, win, L=L, total=total, top=top):
-                x0, x1, y0, y1 = win
-                w = acc[..., 1]
-                bw = best_w[z0:z0 + len(acc), y0:y1, x0:x1]
-                bl = best_l[z0:z0 + len(acc), y0:y1, x0:x1]
-                better = (w >= bw) if L < 0 else (w > bw)
-                np.copyto(bw, w, where=better)
-                np.copyto(bl, L, where=better, casting="unsafe")
-                total[0] += int(w.sum(dtype=np.int64))  # < 2^63: a few planes of 2^40 each
-                if preserve:
-                    j = int(np.argmax(w))
-                    kz, ky, kx = np.unravel_index(j, w.shape)
-                    at = (z0 + int(kz), y0 + int(ky), x0 + int(kx))
-                    if _stronger(int(w.flat[j]), at, *top):
-                        top[0], top[1] = int(w.flat[j]), at
-
-            st.run(L, boxes[where[L]], keep)
-            with lock:
-                predicted[L] += total[0]
-                if top[1] is not None and _stronger(top[0], top[1], *peak[L]):
-                    peak[L] = (top[0], top[1])
+        got, top = label_passes(scene, dq, labels_in, labels, boxes, cuts[i], cuts[i + 1],
+                                best_w, best_l, preserve=preserve)
+        with lock:
+            merge_passes(predicted, peak, got, top)
 
     with timed(f"labels: {len(labels)} label passes + background ({workers} threads)"):
         parallel.run_blocks(share, range(len(cuts) - 1), workers)
     best_w = None  # (freed before the counts)
     out_counts = _counts(best_l, labels)
+
+    def label_at(at):
+        return best_l[at]
+
+    def set_label(at, L):
+        best_l[at] = L
+
+    report = label_report(labels, nvox, predicted, peak, out_counts, vol_voxel,
+                          preserve=preserve, label_at=label_at, set_label=set_label)
+    return LabelWarp(best_l, report)
+
+
+def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: int,
+                 best_w: np.ndarray, best_l: np.ndarray, *, preserve: bool = False,
+                 z_base: int = 0):
+    """The background's and every label's pass over target planes ``[t_lo, t_hi)``.
+
+    Into ``best_w``/``best_l``, whose plane 0 is target plane ``z_base`` (the
+    whole target, or one slab of it: the result does not depend on the cut).
+    ``labels``/``boxes``: the map's non-zero labels and their input bounding
+    boxes (:func:`_bounding_boxes`). Returns ``(predicted, peak)``: per label,
+    its total weight in these planes and (with ``preserve``) its voxel of
+    largest weight ``(w, (z, y, x))`` (target indices).
+    """
+    st = _Stream(scene, dq, labels_in, t_lo, t_hi, best_w, best_l)
+    full = (np.zeros(3, np.int64), np.array(scene.grid.input_shape, np.int64))
+    predicted = {}
+    peak = {}
+
+    def background(z0, acc, win):
+        x0, x1, y0, y1 = win
+        w_all, w_fg = acc[..., 0], acc[..., 1]
+        best_w[z0 - z_base:z0 - z_base + len(acc), y0:y1, x0:x1] = np.maximum(w_all, _Q) - w_fg
+
+    st.run(0, full, background)
+    # negative labels first, descending, winning ties (>=: the smaller id wins), then the
+    # positive ones ascending, losing ties
+    order = [L for L in labels if L < 0][::-1] + [L for L in labels if L > 0]
+    where = {L: i for i, L in enumerate(labels)}
+    for L in order:
+        total = [0]
+        top = [0, None]
+
+        def keep(z0, acc, win, L=L, total=total, top=top):
+            x0, x1, y0, y1 = win
+            w = acc[..., 1]
+            bw = best_w[z0 - z_base:z0 - z_base + len(acc), y0:y1, x0:x1]
+            bl = best_l[z0 - z_base:z0 - z_base + len(acc), y0:y1, x0:x1]
+            better = (w >= bw) if L < 0 else (w > bw)
+            np.copyto(bw, w, where=better)
+            np.copyto(bl, L, where=better, casting="unsafe")
+            total[0] += int(w.sum(dtype=np.int64))  # < 2^63: a few planes of 2^40 each
+            if preserve:
+                j = int(np.argmax(w))
+                kz, ky, kx = np.unravel_index(j, w.shape)
+                at = (z0 + int(kz), y0 + int(ky), x0 + int(kx))
+                if _stronger(int(w.flat[j]), at, *top):
+                    top[0], top[1] = int(w.flat[j]), at
+
+        st.run(L, boxes[where[L]], keep)
+        predicted[L] = total[0]
+        peak[L] = (top[0], top[1])
+    return predicted, peak
+
+
+def merge_passes(predicted: dict, peak: dict, got: dict, top: dict) -> None:
+    """Add one share's :func:`label_passes` result to the totals (in place)."""
+    for L, total in got.items():
+        predicted[L] = predicted.get(L, 0) + total
+    for L, (w, at) in top.items():
+        if at is not None and _stronger(w, at, *peak.get(L, (0, None))):
+            peak[L] = (w, at)
+
+
+def label_report(labels, nvox, predicted, peak, out_counts, vol_voxel: float, *,
+                 preserve: bool, label_at, set_label) -> dict:
+    """The per-label report, after keeping (``preserve``) the labels that would vanish.
+
+    ``out_counts``: output voxels per label (updated in place);
+    ``label_at(at)``/``set_label(at, L)``: read and change one target voxel,
+    for the labels kept at their voxel of largest weight (``peak``).
+    """
     vanished = [L for L in labels if out_counts[L] == 0]
     preserved = []
     if preserve and vanished:
@@ -425,10 +476,10 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
             w, at = peak[L]
             if at is None or w <= 0:
                 continue
-            old = best_l[at]
+            old = label_at(at)
             if old in vanished and old in preserved:
                 continue
-            best_l[at] = L
+            set_label(at, L)
             preserved.append(L)
             if old != 0 and old in out_counts:
                 out_counts[old] -= 1
@@ -448,7 +499,7 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
         log.warning("label %d vanished in the warp (%d input voxels)%s", L,
                     report["labels"][L]["input_voxels"],
                     "" if preserve else ": --preserve-labels keeps one voxel of it")
-    return LabelWarp(best_l, report)
+    return report
 
 
 def _stronger(w: int, at, w_best: int, at_best) -> bool:

@@ -179,12 +179,12 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     blocks_refused = _blocks_refused(is_capture, labels, frames_to, exports, dicom)
     chunked = scale_settings().chunked
     if chunked and blocks_refused:
-        raise click.UsageError(f"--chunked warps a volume's intensities to one output: "
-                               f"not {blocks_refused} (these run in memory)")
+        raise click.UsageError(f"--chunked warps a volume (intensities or labels) to one "
+                               f"output: not {blocks_refused} (these run in memory)")
     write_kw = dict(compress=compress, byte_order=byte_order, **ome_zarr)
     if chunked:
         summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
-                                  write_kw)
+                                  write_kw, labels=labels, preserve=preserve_labels)
     else:
         try:
             summary = _warp_in_memory(input, spec_path, output, options, frames_to, labels,
@@ -194,14 +194,15 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             if blocks_refused or chunked is False:
                 raise
             summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
-                                      write_kw, fallback=exc)
+                                      write_kw, fallback=exc, labels=labels,
+                                      preserve=preserve_labels)
     if as_json:
         _print_json(summary)
 
 
 def _blocks_refused(is_capture, labels, frames_to, exports, dicom) -> str | None:
     """Why this warp cannot run by blocks (a phrase), or None."""
-    for why, given in (("a capture file (.vwc)", is_capture), ("--labels", labels),
+    for why, given in (("a capture file (.vwc)", is_capture),
                        ("--frames-to", frames_to), ("the deformation's exports", exports),
                        ("a DICOM input", dicom is not None)):
         if given:
@@ -210,7 +211,8 @@ def _blocks_refused(is_capture, labels, frames_to, exports, dicom) -> str | None
 
 
 def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw, *,
-                    fallback: OutOfMemoryError | None = None) -> dict:
+                    fallback: OutOfMemoryError | None = None, labels: bool = False,
+                    preserve: bool = False) -> dict:
     """The warp by output blocks on Dask (:mod:`volwarp_cli.bspline.blocks`).
 
     ``fallback``: the in-memory warp's refusal, when this runs instead of it
@@ -229,8 +231,17 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
     doc = load_spec(spec_path)
     validate(doc, load_schema("warp"))
     spec = read_warp_spec(doc)
-    if spec.values == "labels":
-        raise doc.error(("values",), "a label map is warped in memory (not by blocks)")
+    if spec.values == "labels" and not labels:  # the spec says what --labels says
+        if options.dtype is not None:
+            raise doc.error(("values",), "labels are warped from a volume, without --dtype")
+        labels = True
+    if preserve and not labels:
+        raise click.UsageError("--preserve-labels needs --labels (or the spec's "
+                               "values: labels)")
+    if labels:
+        _check_label_spec(doc, spec, options.background)
+        return _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index,
+                                      write_kw, doc, spec, fallback=fallback, preserve=preserve)
     template, source = lazy_input(input, raw, volume_index)
     c = spec.capture
     with timed("input range (one pass)"):
@@ -261,6 +272,70 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
             stats = warp_by_blocks(job, out, engine, memory=per_task)
     return {"output": str(output), "shape": list(out_template.shape_xyz),
             "handles": warp.handles(), "blocks": len(stats), "block": list(block[::-1])}
+
+
+def _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw,
+                           doc, spec, *, fallback=None, preserve=False) -> dict:
+    """``warp --labels`` by slabs of target planes (:mod:`volwarp_cli.bspline.label_blocks`).
+
+    The same output and per-label report as in memory; the label map is read
+    by boxes, the target never held.
+    """
+    import functools
+
+    from ..bspline.label_blocks import (
+        LabelBlocks,
+        bounding_boxes_by_blocks,
+        warp_labels_by_blocks,
+    )
+    from ..bspline.labels import format_report, prepare_labels
+    from ..bspline.run import handle_report
+    from ..bspline.warp import output_planes, output_window_box
+    from ..progress import log
+    from .chunked import block_budget, block_output, blocks_can_write, lazy_input, wants_blocks
+
+    template, source = lazy_input(input, raw, volume_index)
+    cap, scene, frames = prepare_labels(template, doc, spec, method=options.pushforward,
+                                        evaluator=options.evaluator,
+                                        background=options.background, source=input,
+                                        allow_growth=options.allow_growth)
+    if frames:
+        scene.set_lattice(frames[-1].dq)
+    out_template, _ = output_planes(cap, scene, crop=options.crop)
+    window = output_window_box(cap, scene, options.crop)
+    if fallback is not None:
+        if not blocks_can_write(output, out_template.data.shape, out_template.dtype, write_kw):
+            raise fallback
+        if not wants_blocks(str(fallback)):
+            raise fallback
+    settings = scale_settings()
+    with settings.open_engine() as engine:
+        budget = block_budget()
+        per_task = budget // max(1, engine.workers)
+        run = functools.partial(engine.map, label="label boxes", memory=per_task)
+        nz, ny, nx = template.data.shape
+        item = template.dtype.itemsize
+        depth = max(1, min(nz, per_task // max(1, ny * nx * (item + 16))))
+        with timed("labels: bounding boxes (one pass)"):
+            labels, nvox, boxes = bounding_boxes_by_blocks(source, run, depth)
+        job = LabelBlocks(scene, source, labels, boxes, window, template.dtype,
+                          preserve=preserve)
+        if settings.block is not None:
+            slab = settings.block[0]
+        else:
+            slab = job.choose_depth(budget, engine.workers)
+        shape = out_template.data.shape
+        with block_output(output, stamp(out_template, "warp", input, spec_path),
+                          block=(slab, shape[1], shape[2]), compress=write_kw["compress"],
+                          byte_order=write_kw["byte_order"],
+                          version=write_kw.get("ome_zarr_version", "0.5"),
+                          pyramid=write_kw.get("pyramid", 0), labels=True) as out, \
+                timed(f"labels: {len(labels)} label passes + background, by slabs"):
+            report = warp_labels_by_blocks(job, out, engine, nvox=nvox,
+                                           spacing=template.spacing, memory=per_task)
+    log.info("per-label volumes (mm^3):\n%s", format_report(report))
+    return {"output": str(output), "shape": list(out_template.shape_xyz),
+            "handles": handle_report(cap, frames), **_labels_json(report)}
 
 
 def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preserve_labels,

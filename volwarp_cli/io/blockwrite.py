@@ -208,6 +208,11 @@ class _Reindex:
             array = np.flip(array, axis=self.flips)
         return array.transpose(self.order)
 
+    def unarray(self, stored: np.ndarray) -> np.ndarray:
+        """A block of the store in the volume's orientation (:meth:`array` undone)."""
+        array = stored.transpose(np.argsort(self.order))
+        return np.flip(array, axis=self.flips) if self.flips else array
+
 
 class BlockWriter:
     """Writes aligned blocks into an output's temporary: picklable, usable in any process.
@@ -349,6 +354,20 @@ class BlockOutput:
             self._written.update(blocks)
 
     def _write(self, box: Box, array: np.ndarray) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def read(self, box: Box) -> np.ndarray:
+        """The samples written at ``box`` so far (to change a few voxels before commit).
+
+        Call it with no writes in flight: a block read while another process
+        writes it may be torn.
+        """
+        with self._lock:
+            if self._state != "open":
+                raise ValueError(f"{self.path}: the output is {self._state}: nothing to read")
+        return self._read(box)
+
+    def _read(self, box: Box) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def missing(self) -> int:
@@ -494,6 +513,12 @@ class _ZarrOutput(BlockOutput):
         else:
             self._arrays[0][self._reindex.box(box).slices] = self._reindex.array(array)
 
+    def _read(self, box):
+        if self._reindex is None:
+            return np.asarray(self._arrays[0][box.slices])
+        return np.ascontiguousarray(self._reindex.unarray(
+            np.asarray(self._arrays[0][self._reindex.box(box).slices])))
+
     def writer(self):
         return _ZarrWriter(self._arrays[0], self.geometry.shape, self.chunks, self.dtype,
                            str(self.path), self.phase, self._reindex)
@@ -557,6 +582,11 @@ class _MappedOutput(BlockOutput):
     def _write(self, box, array):
         if self._map is not None:
             self._map[box.slices] = array
+
+    def _read(self, box):
+        if self._map is None:
+            return np.zeros(box.shape, self.dtype)
+        return np.asarray(self._map[box.slices]).astype(self.dtype, copy=False)
 
     def writer(self):
         return _MappedWriter(self._tmp, self._file_dtype, self._offset, self.geometry.shape,

@@ -1,0 +1,143 @@
+"""`volwarp warp --labels --chunked`: label maps by slabs of target planes, the in-memory bytes.
+
+A map of several labels (a negative one, one that vanishes under a squeeze) on a rotated
+grid with odd sizes; slab depths that do not divide the target; crop, --preserve-labels,
+OME-Zarr with a pyramid on another scheduler; the per-label report; the switch when
+the in-memory warp does not fit; the bounding boxes read in slabs.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.volume import Volume
+
+ROTATED = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture
+def seg(tmp_path):
+    """A segmentation, and a spec that moves it and squeezes label 5 out of existence."""
+    z, y, x = np.meshgrid(*[np.linspace(-1, 1, n) for n in (19, 23, 17)], indexing="ij")
+    lab = np.zeros(x.shape, np.int16)
+    lab[x * x + y * y + z * z < 0.6] = 3
+    lab[(np.abs(x - 0.3) < 0.25) & (np.abs(y) < 0.3) & (np.abs(z) < 0.4)] = 7
+    lab[(np.abs(x + 0.4) < 0.12) & (np.abs(y + 0.1) < 0.12) & (np.abs(z) < 0.12)] = -2
+    lab[9, 11, 8] = 5  # one voxel in the middle of the squeeze below
+    path = tmp_path / "seg.nrrd"
+    write_volume(Volume(lab, spacing=np.array([0.8, 0.9, 1.1]),
+                        origin=np.array([10.0, -5.0, 3.0]), direction=ROTATED), path)
+    moves = "\n".join(f"      - {{index: [{i}, {j}, {k}], by: [{-2.5 * (i - 2)}, "
+                      f"{-2.5 * (j - 2)}, {-2.5 * (k - 2)}]}}"
+                      for i in range(5) for j in range(5) for k in range(5))
+    spec = tmp_path / "w.yaml"
+    spec.write_text(f"version: 1\nunits: voxel\ncapture: {{lattice: 5}}\nsteps:\n  - move:\n"
+                    f"{moves}\n      - {{index: [1, 3, 2], by: [1.5, -1, 0.5]}}\n")
+    return path, spec
+
+
+def _report(stdout):
+    doc = json.loads(stdout)
+    doc.pop("output")
+    return doc
+
+
+@pytest.mark.parametrize("extra", [[], ["--crop"], ["--preserve-labels"],
+                                   ["--crop", "--preserve-labels"]])
+@pytest.mark.parametrize("block", ["1", "4", "7"])
+def test_label_warp_by_slabs_equals_the_in_memory_one(run, seg, tmp_path, extra, block):
+    src, spec = seg
+    mem, blk = tmp_path / "m.nrrd", tmp_path / "b.nrrd"
+    a = run("warp", src, "--spec", spec, "--labels", "-o", mem, "--json", *extra)
+    assert a.code == 0, a.stderr
+    b = run("warp", src, "--spec", spec, "--labels", "-o", blk, "--json", "--chunked",
+            "--block", block, *extra)
+    assert b.code == 0, b.stderr
+    assert blk.read_bytes() == mem.read_bytes()
+    assert _report(a.stdout) == _report(b.stdout)
+    doc = json.loads(b.stdout)
+    if "--preserve-labels" in extra:  # the squeezed label is kept, at one voxel
+        assert doc["preserved"] == [5] and doc["vanished"] == []
+        assert (read_volume(blk).data == 5).sum() == 1
+    else:
+        assert doc["vanished"] == [5] and not (read_volume(blk).data == 5).any()
+    out = read_volume(blk).data
+    assert set(np.unique(out)) <= {0, -2, 3, 5, 7}  # no invented ids
+    assert {-2, 3, 7} <= set(np.unique(out))
+
+
+@pytest.mark.parametrize("scheduler", ["processes", "synchronous"])
+def test_label_warp_by_slabs_to_a_pyramid_on_other_schedulers(run, seg, tmp_path, scheduler):
+    import zarr
+
+    src, spec = seg
+    mem, blk = tmp_path / "m.ome.zarr", tmp_path / "b.ome.zarr"
+    common = ["--spec", spec, "--labels", "--preserve-labels", "--pyramid", "2"]
+    assert run("warp", src, *common, "-o", mem).code == 0
+    res = run("warp", src, *common, "-o", blk, "--chunked", "--block", "5", "--scheduler",
+              scheduler)
+    assert res.code == 0, res.stderr
+    a, b = zarr.open_group(mem), zarr.open_group(blk)
+    for level in ("0", "1", "2"):
+        assert np.array_equal(a[level][...], b[level][...])
+    assert b.attrs["volwarp"]["downsampling"] == "mode"  # labels are never averaged
+
+
+def test_a_label_warp_too_big_for_the_budget_runs_by_slabs(run, seg, tmp_path, monkeypatch):
+    """The switch itself: at this size a slab's stream buffers (a domain chunk, about
+    1 MiB) outweigh the whole target (300 KiB), so the slab estimate is scaled down
+    to let a budget refuse the in-memory warp and still hold a slab."""
+    from volwarp_cli import memory
+    from volwarp_cli.bspline.label_blocks import LabelBlocks
+    from volwarp_cli.cli import chunked
+
+    real = LabelBlocks.slab_bytes
+    monkeypatch.setattr(LabelBlocks, "slab_bytes", lambda self, depth: real(self, depth) // 16)
+    src, spec = seg
+    mem, blk = tmp_path / "m.nrrd", tmp_path / "b.nrrd"
+    assert run("warp", src, "--spec", spec, "--labels", "-o", mem).code == 0
+    monkeypatch.setattr(memory, "process_rss", lambda: 0)
+    monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
+    res = run("warp", src, "--spec", spec, "--labels", "-o", blk, "--memory-limit", "300K")
+    assert res.code == 0, res.stderr
+    assert "running by blocks" in res.stderr
+    assert blk.read_bytes() == mem.read_bytes()
+
+
+def test_the_label_block_path_refusals(run, seg, tmp_path):
+    src, spec = seg
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", spec, "--labels", "-o", out, "--chunked", "--frames-to",
+              str(tmp_path / "f_{frame}.nrrd"))
+    assert res.code == 2 and "--frames-to" in res.stderr
+    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--preserve-labels")
+    assert res.code == 2 and "--labels" in res.stderr
+    res = run("warp", src, "--spec", spec, "--labels", "-o", tmp_path / "o.nii.gz", "--chunked")
+    assert res.code == 1 and "block" in res.stderr
+    assert not out.exists() and not (tmp_path / "o.nii.gz").exists()
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 9))
+def test_bounding_boxes_read_in_slabs_are_the_whole_maps(seed, depth):
+    from volwarp_cli.bspline.label_blocks import bounding_boxes_by_blocks
+    from volwarp_cli.bspline.labels import _bounding_boxes
+
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(v) for v in rng.integers(1, 14, 3))
+    lab = rng.choice([0, 0, 0, 1, 4, -3, 90], size=shape).astype(np.int16)
+
+    def run(task, items):
+        return [task(item) for item in items]
+
+    labels, nvox, boxes = bounding_boxes_by_blocks(lab, run, depth)
+    want_labels, want_nvox, want_boxes, _ = _bounding_boxes(lab)
+    assert labels == want_labels and nvox == want_nvox
+    for (lo, hi), (wlo, whi) in zip(boxes, want_boxes, strict=True):
+        assert np.array_equal(lo, wlo) and np.array_equal(hi, whi)

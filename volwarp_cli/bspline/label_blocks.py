@@ -1,0 +1,258 @@
+"""Label maps warped by blocks: slabs of target planes, each the in-memory label passes.
+
+The in-memory label warp (:func:`.labels.warp_labels`) already cuts the target
+into z ranges, one per thread, each running the background's and every
+label's pass over its own planes (:func:`.labels.label_passes`); the result
+does not depend on the cut. By blocks, each task is one such slab of whole
+target planes, computed from the lattice and the label map read box by box
+(reopened by path in a worker process). It writes the output's part of its
+slab and returns its totals: each label's predicted weight and output
+voxels, and its voxel of largest weight with the label that voxel ended with.
+The report, and ``--preserve-labels``' fix-up of the labels that would
+vanish (a few voxels changed in the output before it is committed), come
+from those totals, so the output and the report are the in-memory ones, bit
+for bit. Target planes outside a cropped output are computed too (the
+report counts the whole target, as in memory) but written nowhere.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from ..box import Box
+from ..errors import OutOfMemoryError
+from .labels import _Q, _bounding_boxes, _counts, _NoSamples, _stronger, label_passes
+from .scene import Scene
+from .stream import STREAM_PLANES
+
+_BUILD = threading.Lock()  # one scene per process, even when two threads ask at once
+
+
+class LabelBlocks:
+    """A label warp's job for block tasks: picklable, its scene rebuilt where it runs.
+
+    ``source``: the label map, sliceable ``[z, y, x]`` (a
+    :class:`~.blocks.LazySource`); ``labels``, ``boxes``: its non-zero labels
+    and their input bounding boxes (:func:`bounding_boxes_by_blocks`);
+    ``window``: the output's box of the target.
+    """
+
+    def __init__(self, scene: Scene, source, labels, boxes, window: Box, dtype, *,
+                 preserve: bool = False):
+        self.grid = scene.grid
+        self.dq = scene.dq
+        self.pad = tuple(int(p) for p in scene.pad)
+        self.method = scene.method
+        self.evaluator = scene.evaluator
+        self.vmax = scene.vmax
+        self.source = source
+        self.labels = [int(v) for v in labels]
+        self.boxes = [(np.asarray(lo, np.int64), np.asarray(hi, np.int64)) for lo, hi in boxes]
+        self.window = window
+        self.dtype = np.dtype(dtype)
+        self.preserve = bool(preserve)
+        self._scene = None
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_scene"] = None
+        return state
+
+    def scene(self) -> Scene:
+        """The warp's scene (built once per process)."""
+        with _BUILD:
+            if self._scene is None:
+                domain = _NoSamples(tuple(self.grid.domain_shape[::-1]))
+                self._scene = Scene(domain, self.grid, self.dq, self.pad, method=self.method,
+                                    evaluator=self.evaluator, background=0.0,
+                                    domain_range=(-self.vmax, self.vmax))
+        return self._scene
+
+    @property
+    def target_shape(self) -> tuple[int, int, int]:
+        """The whole target's shape (z, y, x)."""
+        tx, ty, tz = self.scene().target_shape
+        return tz, ty, tx
+
+    def slab(self, t_lo: int, t_hi: int):
+        """Target planes ``[t_lo, t_hi)``: ``(labels, predicted, peak, counts, peak_labels)``.
+
+        ``labels``: the slab's output labels; ``predicted``, ``peak``:
+        :func:`.labels.label_passes`'; ``counts``: output voxels per label;
+        ``peak_labels``: the label each peak voxel ended with.
+        """
+        scene = self.scene()
+        _, ty, tx = self.target_shape
+        best_w = np.full((t_hi - t_lo, ty, tx), _Q, dtype=np.int64)
+        best_l = np.zeros((t_hi - t_lo, ty, tx), dtype=self.dtype)
+        predicted, peak = label_passes(scene, scene.dq, self.source, self.labels, self.boxes,
+                                       t_lo, t_hi, best_w, best_l, preserve=self.preserve,
+                                       z_base=t_lo)
+        del best_w
+        peak_labels = {L: int(best_l[at[0] - t_lo, at[1], at[2]])
+                       for L, (_, at) in peak.items() if at is not None}
+        return best_l, predicted, peak, _counts(best_l, self.labels), peak_labels
+
+    def slab_bytes(self, depth: int) -> int:
+        """Memory a task of ``depth`` target planes holds at its peak (an upper bound).
+
+        The slab's weights and labels, a label pass's rolling accumulator and
+        its domain planes, and the input planes they read.
+        """
+        scene = self.scene()
+        _, ty, tx = self.target_shape
+        k = self.grid.subdivision
+        chunk = max(1, int(STREAM_PLANES * k))
+        r_lo, r_hi = scene.reach.target_z_reach(self.dq, 0, chunk)
+        ring = (r_hi - r_lo + 2) * ty * tx * 16
+        dx, dy, _ = self.grid.domain_shape
+        nx, ny, _ = self.grid.input_shape
+        item = np.dtype(self.source.dtype).itemsize
+        inputs = (chunk // max(1, k) + 1) * ny * nx * (item + 1)
+        return depth * ty * tx * (8 + self.dtype.itemsize) + ring + chunk * dy * dx * 4 + inputs
+
+    def choose_depth(self, budget: int, tasks_at_once: int) -> int:
+        """Slab depth for ``tasks_at_once`` tasks within ``budget`` bytes (two slabs a task)."""
+        tz = self.target_shape[0]
+        want = max(1, -(-tz // (2 * max(1, tasks_at_once))))
+        depth = want
+        while depth > 1 and self.slab_bytes(depth) * tasks_at_once > budget:
+            depth = max(1, depth // 2)
+        if self.slab_bytes(depth) * tasks_at_once > budget:
+            from ..memory import human_bytes
+
+            raise OutOfMemoryError(
+                f"a label warp's slab of one target plane needs "
+                f"{human_bytes(self.slab_bytes(1))} a task, {tasks_at_once} at once: more "
+                f"than the {human_bytes(budget)} the memory budget leaves (raise "
+                "--memory-limit, or run fewer tasks: --workers)")
+        return depth
+
+
+def bounding_boxes_by_blocks(source, run, depth: int):
+    """:func:`.labels._bounding_boxes` of a sliceable map read in slabs of ``depth`` planes.
+
+    ``run(task, items)``: who runs the slabs (an engine's ``map``). Returns
+    ``(labels, voxel counts, boxes)``: the same as the whole map's.
+    """
+    import functools
+
+    nz = source.shape[0]
+    task = functools.partial(_slab_boxes, source=source)
+    found: dict[int, list] = {}
+    for z0, labels, nvox, boxes in run(task, [(z, min(z + depth, nz))
+                                             for z in range(0, nz, depth)]):
+        for L, n, (lo, hi) in zip(labels, nvox, boxes, strict=True):
+            lo, hi = lo.copy(), hi.copy()
+            lo[2] += z0
+            hi[2] += z0
+            if L in found:
+                had = found[L]
+                had[0] += n
+                had[1] = np.minimum(had[1], lo)
+                had[2] = np.maximum(had[2], hi)
+            else:
+                found[L] = [n, lo, hi]
+    labels = sorted(found)
+    return labels, [found[L][0] for L in labels], [(found[L][1], found[L][2]) for L in labels]
+
+
+def _slab_boxes(zs, source):
+    z0, z1 = zs
+    labels, nvox, boxes, _ = _bounding_boxes(np.asarray(source[z0:z1]))
+    return z0, labels, nvox, boxes
+
+
+def label_slab_task(job: LabelBlocks, writer, t_lo: int, t_hi: int, out_boxes) -> tuple:
+    """One slab's task: write its part of the output, return its totals."""
+    best_l, predicted, peak, counts, peak_labels = job.slab(t_lo, t_hi)
+    for box in out_boxes:
+        part = box.shift(job.window.lo)  # (target indices)
+        writer.write(box, best_l[part.lo[0] - t_lo:part.hi[0] - t_lo, part.lo[1]:part.hi[1],
+                                 part.lo[2]:part.hi[2]])
+    return predicted, peak, counts, peak_labels
+
+
+def slab_plan(job: LabelBlocks, out, depth: int) -> list[tuple[int, int, list[Box]]]:
+    """The slabs ``(t_lo, t_hi, output boxes)`` covering the whole target.
+
+    The output's blocks (whole output planes) each give the slab of their
+    target planes; the target planes the output does not keep (a crop) go
+    in slabs of ``depth`` that write nothing.
+    """
+    tz = job.target_shape[0]
+    w0 = job.window.lo[0]
+    slabs = {}
+    for box in out.blocks():
+        key = (box.lo[0] + w0, box.hi[0] + w0)
+        slabs.setdefault(key, []).append(box)
+    for lo, hi in ((0, w0), (job.window.hi[0], tz)):
+        for z in range(lo, hi, depth):
+            slabs[(z, min(z + depth, hi))] = []
+    return [(a, b, slabs[(a, b)]) for a, b in sorted(slabs)]
+
+
+def warp_labels_by_blocks(job: LabelBlocks, out, engine, *, nvox, spacing,
+                          memory: int | None = None):
+    """The label warp into ``out`` (a :class:`~volwarp_cli.io.blockwrite.BlockOutput`).
+
+    One task per slab on ``engine``; then the labels that would vanish are
+    kept (``job.preserve``) by changing their voxels in ``out``, and the
+    report is made as :func:`.labels.warp_labels` makes it. Returns the
+    report. ``out``'s blocks must be whole output planes.
+    """
+    import dask
+
+    from .labels import label_report
+
+    depth = max(b.shape[0] for b in out.blocks()) if out.blocks() else 1
+    plan = slab_plan(job, out, depth)
+    job_node = dask.delayed(job, pure=False)
+    out_node = dask.delayed(out.writer(), pure=False)
+    tasks = [engine.block_delayed(label_slab_task, f"labels-{a}", job_node, out_node, a, b,
+                                  boxes, memory=memory, keep=True)
+             for a, b, boxes in plan]
+    stats = engine.run(tasks, label="label slabs")
+    out.mark_written([box for _, _, boxes in plan for box in boxes])
+    predicted = {L: 0 for L in job.labels}
+    peak = {L: (0, None) for L in job.labels}
+    counts = {L: 0 for L in job.labels}
+    initial = {}  # peak voxel -> the label it ended with
+    for s in stats:
+        got, top, n, ended = s.value
+        for L, total in got.items():
+            predicted[L] += total
+        for L, c in n.items():
+            counts[L] += c
+        for L, (w, at) in top.items():
+            if at is not None and _stronger(w, at, *peak[L]):
+                peak[L] = (w, at)
+                initial[at] = ended[L]
+    changed: dict[tuple, int] = {}
+
+    def label_at(at):
+        return changed.get(at, initial.get(at, 0))
+
+    def set_label(at, L):
+        changed[at] = L
+
+    report = label_report(job.labels, nvox, predicted, peak, counts, float(np.prod(spacing)),
+                          preserve=job.preserve, label_at=label_at, set_label=set_label)
+    _patch(out, job.window, changed)
+    return report
+
+
+def _patch(out, window: Box, changed: dict) -> None:
+    """Set the voxels ``changed`` (target index -> label) that the output keeps."""
+    blocks = out.blocks()
+    for at, label in changed.items():
+        local = [a - lo for a, lo in zip(at, window.lo, strict=True)]
+        if not all(0 <= v < n for v, n in zip(local, window.shape, strict=True)):
+            continue  # (outside a cropped output: counted, not written, as in memory)
+        box = next(b for b in blocks if all(lo <= v < hi for v, lo, hi in
+                                            zip(local, b.lo, b.hi, strict=True)))
+        data = out.read(box).copy()
+        data[tuple(v - lo for v, lo in zip(local, box.lo, strict=True))] = label
+        out.write(box, data)
