@@ -90,9 +90,10 @@ def test_label_warp_by_slabs_to_a_pyramid_on_other_schedulers(run, seg, tmp_path
 
 
 def test_a_label_warp_too_big_for_the_budget_runs_by_slabs(run, seg, tmp_path, monkeypatch):
-    """The switch itself: at this size a slab's stream buffers (a domain chunk, about
-    1 MiB) outweigh the whole target (300 KiB), so the slab estimate is scaled down
-    to let a budget refuse the in-memory warp and still hold a slab."""
+    """The switch itself: at this size the buffers a slab shares with the in-memory warp
+    (the deformation's chunks, a domain chunk) outweigh the whole target, so the slab
+    estimate is scaled down to let a budget refuse the in-memory warp and still hold
+    two slabs."""
     from volwarp_cli import memory
     from volwarp_cli.bspline.label_blocks import LabelBlocks
     from volwarp_cli.cli import chunked
@@ -104,7 +105,7 @@ def test_a_label_warp_too_big_for_the_budget_runs_by_slabs(run, seg, tmp_path, m
     assert run("warp", src, "--spec", spec, "--labels", "-o", mem).code == 0
     monkeypatch.setattr(memory, "process_rss", lambda: 0)
     monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
-    res = run("warp", src, "--spec", spec, "--labels", "-o", blk, "--memory-limit", "300K")
+    res = run("warp", src, "--spec", spec, "--labels", "-o", blk, "--memory-limit", "8M")
     assert res.code == 0, res.stderr
     assert "running by blocks" in res.stderr
     assert blk.read_bytes() == mem.read_bytes()

@@ -23,9 +23,16 @@ import numpy as np
 
 from ..box import Box
 from ..errors import OutOfMemoryError
-from .labels import _Q, _bounding_boxes, _counts, _NoSamples, _stronger, label_passes
+from .labels import (
+    _Q,
+    _bounding_boxes,
+    _counts,
+    _NoSamples,
+    _stronger,
+    label_passes,
+    stream_bytes,
+)
 from .scene import Scene
-from .stream import STREAM_PLANES
 
 _BUILD = threading.Lock()  # one scene per process, even when two threads ask at once
 
@@ -98,20 +105,13 @@ class LabelBlocks:
     def slab_bytes(self, depth: int) -> int:
         """Memory a task of ``depth`` target planes holds at its peak (an upper bound).
 
-        The slab's weights and labels, a label pass's rolling accumulator and
-        its domain planes, and the input planes they read.
+        The slab's weights and labels, and a label pass's buffers
+        (:func:`.labels.stream_bytes`).
         """
         scene = self.scene()
         _, ty, tx = self.target_shape
-        k = self.grid.subdivision
-        chunk = max(1, int(STREAM_PLANES * k))
-        r_lo, r_hi = scene.reach.target_z_reach(self.dq, 0, chunk)
-        ring = (r_hi - r_lo + 2) * ty * tx * 16
-        dx, dy, _ = self.grid.domain_shape
-        nx, ny, _ = self.grid.input_shape
-        item = np.dtype(self.source.dtype).itemsize
-        inputs = (chunk // max(1, k) + 1) * ny * nx * (item + 1)
-        return depth * ty * tx * (8 + self.dtype.itemsize) + ring + chunk * dy * dx * 4 + inputs
+        return (depth * ty * tx * (8 + self.dtype.itemsize)
+                + stream_bytes(scene, self.dq, self.source.dtype))
 
     def choose_depth(self, budget: int, tasks_at_once: int) -> int:
         """Slab depth for ``tasks_at_once`` tasks within ``budget`` bytes (two slabs a task)."""

@@ -362,14 +362,16 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
         scene.set_lattice(frames[-1].dq)
     dq = scene.dq
     tx, ty, tz = scene.target_shape
-    ensure_fits_in_memory(tx * ty * tz * (8 + labels_in.dtype.itemsize), "the warped labels")
+    workers = max(1, min(parallel.threads(), tz // 4))
+    ensure_fits_in_memory(tx * ty * tz * (8 + labels_in.dtype.itemsize)
+                          + workers * stream_bytes(scene, dq, labels_in.dtype),
+                          "the warped labels")
     with timed("labels: bounding boxes"):
         labels, nvox, boxes, _ = _bounding_boxes(labels_in)
     best_w = np.empty((tz, ty, tx), dtype=np.int64)
     best_l = np.zeros((tz, ty, tx), dtype=labels_in.dtype)
     # the background's weight where nothing of the model lands: all of it
     best_w.fill(_Q)
-    workers = max(1, min(parallel.threads(), tz // 4))
     cuts = parallel.cuts(0, tz, workers)
     vol_voxel = float(np.prod(spacing))
     predicted = {L: 0 for L in labels}  # exact integer sums: the same for any thread count
@@ -396,6 +398,25 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
     report = label_report(labels, nvox, predicted, peak, out_counts, vol_voxel,
                           preserve=preserve, label_at=label_at, set_label=set_label)
     return LabelWarp(best_l, report)
+
+
+def stream_bytes(scene: Scene, dq, dtype) -> int:
+    """Memory one share of :func:`label_passes` holds beside its target planes (an upper bound).
+
+    A label pass's rolling accumulator (whole target planes, for the
+    background's), its domain planes, the input planes they read, and the
+    deformation's buffers.
+    """
+    grid = scene.grid
+    k = grid.subdivision
+    chunk = max(1, int(STREAM_PLANES * k))
+    r_lo, r_hi = scene.reach.target_z_reach(dq, 0, chunk)
+    tx, ty, _ = scene.target_shape
+    dx, dy, _ = grid.domain_shape
+    nx, ny, _ = grid.input_shape
+    inputs = (chunk // max(1, k) + 1) * ny * nx * (np.dtype(dtype).itemsize + 1)
+    return ((r_hi - r_lo + 2) * ty * tx * 16 + chunk * dy * dx * 4 + inputs
+            + 2 * scene.chunk_bytes)
 
 
 def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: int,
