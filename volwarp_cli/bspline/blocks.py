@@ -161,6 +161,29 @@ class LazySource:
                 "_array": None}
 
 
+class SceneRecipe:
+    """What rebuilds a :class:`~.scene.Scene` where block tasks run: all of it but its samples.
+
+    Picklable (the lattice is its only array): a task in another process
+    builds its own scene from it, with the domain it has there.
+    """
+
+    def __init__(self, scene: Scene):
+        self.grid = scene.grid
+        self.dq = scene.dq
+        self.pad = tuple(int(p) for p in scene.pad)
+        self.method = scene.method
+        self.evaluator = scene.evaluator
+        self.background = scene.background
+        self.vmax = scene.vmax
+
+    def build(self, domain) -> Scene:
+        """The scene over ``domain`` (a sampler, or a stand-in with only a shape)."""
+        return Scene(domain, self.grid, self.dq, self.pad, method=self.method,
+                     evaluator=self.evaluator, background=self.background,
+                     domain_range=(-self.vmax, self.vmax))
+
+
 class WarpBlocks:
     """Everything a block task needs, and nothing that cannot be pickled.
 
@@ -170,13 +193,7 @@ class WarpBlocks:
 
     def __init__(self, scene: Scene, source, placement: str, sampling: str, window: Box,
                  dtype, sampler=None):
-        self.grid = scene.grid
-        self.dq = scene.dq
-        self.pad = tuple(int(p) for p in scene.pad)
-        self.method = scene.method
-        self.evaluator = scene.evaluator
-        self.background = scene.background
-        self.vmax = scene.vmax
+        self.recipe = SceneRecipe(scene)
         self.domain_dtype = scene.dtype
         self.source = source
         self.placement = placement
@@ -191,10 +208,9 @@ class WarpBlocks:
             from .pullback import BoxSampler
 
             sampler = self._sampler if self._sampler is not None else BoxSampler(
-                self.source, self.grid, self.placement, self.sampling, self.domain_dtype)
-            scene = Scene(sampler, self.grid, self.dq, self.pad, method=self.method,
-                          evaluator=self.evaluator, background=self.background,
-                          domain_range=(-self.vmax, self.vmax))
+                self.source, self.recipe.grid, self.placement, self.sampling,
+                self.domain_dtype)
+            scene = self.recipe.build(sampler)
             self._built = (scene, sampler)
         return self._built
 

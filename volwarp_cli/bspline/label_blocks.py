@@ -23,6 +23,7 @@ import numpy as np
 
 from ..box import Box
 from ..errors import OutOfMemoryError
+from .blocks import SceneRecipe
 from .labels import (
     _Q,
     _bounding_boxes,
@@ -48,12 +49,7 @@ class LabelBlocks:
 
     def __init__(self, scene: Scene, source, labels, boxes, window: Box, dtype, *,
                  preserve: bool = False):
-        self.grid = scene.grid
-        self.dq = scene.dq
-        self.pad = tuple(int(p) for p in scene.pad)
-        self.method = scene.method
-        self.evaluator = scene.evaluator
-        self.vmax = scene.vmax
+        self.recipe = SceneRecipe(scene)  # (background 0: a label map's)
         self.source = source
         self.labels = [int(v) for v in labels]
         self.boxes = [(np.asarray(lo, np.int64), np.asarray(hi, np.int64)) for lo, hi in boxes]
@@ -71,10 +67,8 @@ class LabelBlocks:
         """The warp's scene (built once per process)."""
         with _BUILD:
             if self._scene is None:
-                domain = _NoSamples(tuple(self.grid.domain_shape[::-1]))
-                self._scene = Scene(domain, self.grid, self.dq, self.pad, method=self.method,
-                                    evaluator=self.evaluator, background=0.0,
-                                    domain_range=(-self.vmax, self.vmax))
+                grid = self.recipe.grid
+                self._scene = self.recipe.build(_NoSamples(tuple(grid.domain_shape[::-1])))
         return self._scene
 
     @property
@@ -111,7 +105,7 @@ class LabelBlocks:
         scene = self.scene()
         _, ty, tx = self.target_shape
         return (depth * ty * tx * (8 + self.dtype.itemsize)
-                + stream_bytes(scene, self.dq, self.source.dtype))
+                + stream_bytes(scene, scene.dq, self.source.dtype))
 
     def choose_depth(self, budget: int, tasks_at_once: int) -> int:
         """Slab depth for ``tasks_at_once`` tasks within ``budget`` bytes (two slabs a task)."""
