@@ -1,6 +1,7 @@
 """Out of core: a 1024^3 int16 volume by blocks under --memory-limit, against 512^3 in memory.
 
-For warp (9^3 lattice, every control point moved), the exact distance and the mesh:
+For warp (9^3 lattice, every control point moved), the exact distance, the mesh and a
+morph (the volume into itself, both fields in a band of 8 mm, two frames):
 the time and peak RSS (/usr/bin/time -v) of the command on a 1024^3 int16 volume
 (generated here, 2 GiB, not shipped) with ``--chunked --memory-limit 4G``, and its
 throughput per voxel against the in-memory command on 512^3. Targets (issue 19):
@@ -9,6 +10,7 @@ peak RSS within the limit plus 0.5 GB; throughput at least 0.7 of the in-memory 
     python benchmarks/bench_scale.py            # 1024^3 against 512^3 (about 15 min)
     python benchmarks/bench_scale.py --quick    # 256^3 against 128^3, limit 256M
     python benchmarks/bench_scale.py --keep DIR # keep the generated volumes in DIR
+    python benchmarks/bench_scale.py --only morph,distance
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ def timed(argv: list[str]) -> tuple[float, int, str]:
     return seconds, rss * 1024, res.stderr
 
 
-def main(quick: bool = False, keep: str | None = None) -> None:
+def main(quick: bool = False, keep: str | None = None, only=()) -> None:
     big, small, limit = (256, 128, "256M") if quick else (1024, 512, "4G")
     from volwarp_cli.memory import parse_size
 
@@ -84,7 +86,13 @@ def main(quick: bool = False, keep: str | None = None) -> None:
                 "distance", str(src), "-o", str(out) + ".nrrd", "--iso", "300",
                 "--surface", "voxel"],
             "mesh": lambda src, out: ["mesh", str(src), "-o", str(out) + ".ply", "--iso", "300"],
+            # the volume into itself: both fields (a band, for smooth samples) and two frames
+            "morph (2 frames, band 8)": lambda src, out: [
+                "morph", str(src), str(src), "--iso", "300", "--frames", "2",
+                "--max-distance", "8", "-o", str(out) + "_{i}.nrrd"],
         }
+        if only:
+            jobs = {k: v for k, v in jobs.items() if k.split()[0] in only}
         print(f"  {'':<30} {'in memory ' + str(small) + '^3':>24} "
               f"{'by blocks ' + str(big) + '^3, limit ' + limit:>34}  throughput  RSS target",
               flush=True)
@@ -93,7 +101,7 @@ def main(quick: bool = False, keep: str | None = None) -> None:
             t_mem, rss_mem, _ = timed(volwarp_argv(*args(vols[small], out), "-q"))
             t_blk, rss_blk, _ = timed(volwarp_argv(*args(vols[big], out), "--chunked",
                                                    "--memory-limit", limit, "-q"))
-            for f in tmp.glob("out.*"):
+            for f in tmp.glob("out[._]*"):
                 f.unlink()
             per_mem = small ** 3 / t_mem
             per_blk = big ** 3 / t_blk
@@ -108,5 +116,7 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--keep", default=None, metavar="DIR")
+    parser.add_argument("--only", default="", metavar="CMD,...",
+                        help="only these commands (warp, distance, mesh, morph)")
     a = parser.parse_args()
-    main(quick=a.quick, keep=a.keep)
+    main(quick=a.quick, keep=a.keep, only=tuple(c for c in a.only.split(",") if c))

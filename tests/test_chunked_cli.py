@@ -152,9 +152,46 @@ def test_mesh_blocks_are_the_same_on_processes(run, scan, tmp_path):
     assert a.read_bytes() == b.read_bytes()
 
 
-def test_mesh_by_blocks_refuses_labels(run, scan, tmp_path):
-    res = run("mesh", scan, "-o", tmp_path / "o.ply", "--label", "1", "--chunked")
-    assert res.code == 2 and "--label" in res.stderr
+@pytest.fixture
+def seg(tmp_path):
+    z, y, x = np.meshgrid(*[np.linspace(-1, 1, n) for n in (21, 25, 19)], indexing="ij")
+    lab = np.zeros(x.shape, np.int16)
+    lab[x * x + y * y + z * z < 0.6] = 3
+    lab[(np.abs(x - 0.3) < 0.25) & (np.abs(y) < 0.3) & (np.abs(z) < 0.4)] = 7
+    lab[(np.abs(x + 0.4) < 0.12) & (np.abs(y + 0.1) < 0.12) & (np.abs(z) < 0.12)] = -2
+    lab[0, 3:6, 4:9] = 5  # on the border: capped
+    path = tmp_path / "seg.nrrd"
+    write_volume(Volume(lab, spacing=np.array([0.8, 0.9, 1.1]),
+                        origin=np.array([10.0, -5.0, 3.0]), direction=ROTATED), path)
+    return path
+
+
+@pytest.mark.parametrize("scheduler", [None, "processes"])
+def test_label_meshes_by_blocks_equal_in_memory(run, seg, tmp_path, scheduler):
+    """--labels and --label N by blocks: each label's indicator meshed at 0.5 and capped,
+    the same vertices and faces as in memory (canonical order); absent labels refused."""
+    extra = ["--chunked", "--block", "7,9,5"] + (["--scheduler", scheduler] if scheduler else [])
+    assert run("mesh", seg, "--labels", "-o", tmp_path / "m_{label}.ply").code == 0
+    res = run("mesh", seg, "--labels", "-o", tmp_path / "b_{label}.ply", *extra)
+    assert res.code == 0, res.stderr
+    for label in (-2, 3, 5, 7):
+        a = read_mesh(tmp_path / f"m_{label}.ply")
+        b = read_mesh(tmp_path / f"b_{label}.ply")
+        assert a.n_faces > 10
+        for x, y in zip(_canonical(a), _canonical(b), strict=True):
+            assert np.array_equal(x, y)
+    assert not (tmp_path / "b_0.ply").exists()
+    one = tmp_path / "one.ply"
+    res = run("mesh", seg, "--label", "7", "-o", one, *extra)
+    assert res.code == 0, res.stderr
+    for x, y in zip(_canonical(read_mesh(one)), _canonical(read_mesh(tmp_path / "m_7.ply")),
+                    strict=True):
+        assert np.array_equal(x, y)
+    res = run("mesh", seg, "--label", "4", "-o", tmp_path / "none.ply", *extra)
+    assert res.code == 1 and "label 4 does not occur" in res.stderr
+    res = run("mesh", seg, "--labels", "-o",
+              tmp_path / "x.ply", *extra)
+    assert res.code == 2 and "{label}" in res.stderr
 
 
 SWEEP = """version: 1

@@ -168,12 +168,17 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
 
     cleanup = Cleanup(largest_component=largest_component, smooth=smooth, decimate=decimate)
     chunked = scale_settings().chunked
-    if chunked and (labels or label is not None or dicom is not None):
-        raise click.UsageError("--chunked meshes a volume file at --iso by blocks: not "
-                               + ("--label/--labels" if dicom is None else "a DICOM series"))
+    if chunked and dicom is not None:
+        raise click.UsageError("--chunked reads volume files by blocks, not a DICOM series")
+
+    def write_labels(meshes):
+        _mesh_labels(meshes, input, output, show_stats or as_json, as_json)
+
+    blocks = dict(label=label, labels=write_labels if labels else None)
+    by_blocks = bool(chunked)
     if chunked:
         vol, mesh, iso = _mesh_by_blocks(input, raw, volume_index, iso, inside, cap,
-                                         allow_empty, cleanup)
+                                         allow_empty, cleanup, **blocks)
     else:
         from ..errors import OutOfMemoryError
 
@@ -183,14 +188,19 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         except OutOfMemoryError as exc:
             from .chunked import wants_blocks
 
-            if chunked is False or labels or label is not None or dicom is not None:
+            if chunked is False or dicom is not None:
                 raise
             if not wants_blocks(str(exc)):
                 raise
+            by_blocks = True
             vol, mesh, iso = _mesh_by_blocks(input, raw, volume_index, iso, inside, cap,
-                                             allow_empty, cleanup)
-    if mesh is None and labels:
-        _mesh_labels(vol, input, output, cleanup, allow_empty, show_stats or as_json, as_json)
+                                             allow_empty, cleanup, **blocks)
+    if labels:  # (by blocks, the meshes were written as they came)
+        if not by_blocks:
+            from ..surface.pipeline import label_meshes
+
+            write_labels(label_meshes(vol, allow_empty=allow_empty, cleanup=cleanup,
+                                      name=input))
         return
     if mesh is None:
         if label is not None:
@@ -241,15 +251,25 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
             write_camera(camera, camera_to, source=str(input))
 
 
-def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cleanup):
+def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cleanup, *,
+                    label=None, labels=None):
     """The isosurface by blocks (:mod:`volwarp_cli.surface.chunked`): ``(template, mesh, iso)``.
 
-    Blocks run on the Dask scheduler when one is named (VTK holds the GIL:
-    processes or a cluster run them in parallel), else on this process's threads.
+    ``label``: the surface of that label of a label map (its indicator at
+    0.5, capped), as ``--label``; ``labels``: a callable that gets the
+    ``(label, mesh)`` of every non-zero label (``--labels``; the mesh is then
+    None). Blocks run on the Dask scheduler when one is named (VTK holds the
+    GIL: processes or a cluster run them in parallel), else on this process's
+    threads.
     """
+    import contextlib
+
     from .. import parallel
+    from ..errors import VolwarpError
     from ..geometry import Geometry
-    from ..surface.chunked import surface_mesh_blocks
+    from ..progress import log, timed
+    from ..surface.chunked import label_meshes_blocks, label_values, surface_mesh_blocks
+    from ..surface.pipeline import check_label_map
     from .chunked import block_budget, lazy_input
 
     settings = scale_settings()
@@ -260,29 +280,48 @@ def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cle
     # float copy and the flying edges' working arrays, about 24 bytes a voxel
     depth = block_budget() // max(1, tasks) // max(1, 24 * ny * nx)
     block = settings.block or (max(8, min(nz, depth, 256)), ny, nx)
-    common = dict(block_shape=block, inside=inside, cap=cap, allow_empty=allow_empty,
-                  cleanup=cleanup, name=input)
-    if settings.scheduler is None:
-        mesh, iso = surface_mesh_blocks(source, Geometry.of(template), iso,
-                                        threads=parallel.threads(), **common)
-        return template, mesh, iso
-    with settings.open_engine() as engine:
-        per_task = block_budget() // max(1, engine.workers)
+    with contextlib.ExitStack() as stack:
+        how = {"threads": parallel.threads()}
+        if settings.scheduler is not None:
+            engine = stack.enter_context(settings.open_engine())
+            per_task = block_budget() // max(1, engine.workers)
 
-        def run(task, blocks):
-            return engine.map(task, blocks, label="mesh", memory=per_task)
+            def run(task, blocks):
+                return engine.map(task, blocks, label="mesh", memory=per_task)
 
-        mesh, iso = surface_mesh_blocks(source, Geometry.of(template), iso, run=run, **common)
+            how = {"run": run}
+        geometry = Geometry.of(template)
+        if label is not None or labels is not None:
+            what = "--label" if label is not None else "--labels"
+            check_label_map(template, input, what)
+            with timed("labels (one pass)"):
+                values = label_values(source, block, **how)
+            if label is not None and label not in values:
+                raise VolwarpError(f"{input}: label {label} does not occur in the volume")
+            if labels is not None:
+                found = [v for v in values if v != 0]
+                if not found:
+                    raise VolwarpError(f"{input}: no label other than 0 in the volume")
+                log.info("%d labels: %s", len(found), " ".join(map(str, found[:20])))
+                labels(label_meshes_blocks(source, geometry, found, block_shape=block,
+                                           allow_empty=allow_empty, cleanup=cleanup,
+                                           name=input, **how))
+                return template, None, None
+            from ..surface.chunked import LabelIndicator
+
+            source, iso, inside, cap = LabelIndicator(source, label), 0.5, "above", True
+        mesh, iso = surface_mesh_blocks(source, geometry, iso, block_shape=block, inside=inside,
+                                        cap=cap, allow_empty=allow_empty, cleanup=cleanup,
+                                        name=input, **how)
     return template, mesh, iso
 
 
-def _mesh_labels(vol, input, output, cleanup, allow_empty, show_stats, as_json):
-    """``mesh --labels``: one mesh per non-zero label, to ``output.format(label=L)``."""
+def _mesh_labels(meshes, input, output, show_stats, as_json):
+    """``mesh --labels``: write ``meshes`` (``(label, mesh)``) to ``output.format(label=L)``."""
     from ..progress import timed
-    from ..surface.pipeline import label_meshes
 
     all_stats = {}
-    for label, mesh in label_meshes(vol, allow_empty=allow_empty, cleanup=cleanup, name=input):
+    for label, mesh in meshes:
         if output is not None:
             from ..surface.mesh_io import write_mesh
             from .common import provenance

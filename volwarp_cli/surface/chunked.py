@@ -539,3 +539,52 @@ def _border_touched(data, iso: float, inside: str, touches_border) -> bool:
     faces = [data[0:1], data[nz - 1:nz], data[:, 0:1], data[:, ny - 1:ny],
              data[:, :, 0:1], data[:, :, nx - 1:nx]]
     return any(touches_border(np.asarray(f), iso, inside) for f in faces)
+
+
+# -- label maps -----------------------------------------------------------------------------
+class LabelIndicator:
+    """The indicator of one label of a sliceable label map (1 inside, float32), read by boxes.
+
+    Picklable when the map is (a :class:`~volwarp_cli.bspline.blocks.LazySource`);
+    its surface is the isosurface at 0.5, as :func:`.pipeline.label_indicator`'s.
+    """
+
+    def __init__(self, source, label: int):
+        self.source, self.label = source, int(label)
+        self.shape = tuple(source.shape)
+        self.dtype = np.dtype(np.float32)
+        self.ndim = 3
+
+    def __getitem__(self, key) -> np.ndarray:
+        return (np.asarray(self.source[key]) == self.label).astype(np.float32)
+
+
+def label_values(source, block_shape, *, threads: int | None = 1, run=None) -> list[int]:
+    """The distinct values of a sliceable integer map, ascending, read block by block.
+
+    ``threads``, ``run``: as :func:`isosurface_blocks`'.
+    """
+    boxes = _sample_blocks(source.shape, block_shape)
+
+    def task(box):
+        return np.unique(np.asarray(source[box.slices]))
+
+    parts = parallel.run_blocks(task, boxes, threads) if run is None else run(task, boxes)
+    values = np.unique(np.concatenate(parts)) if parts else np.empty(0, np.int64)
+    return [int(v) for v in values]
+
+
+def label_meshes_blocks(source, geometry, labels, *, block_shape=DEFAULT_BLOCK,
+                        allow_empty: bool = False, cleanup=None, name: str = "the volume",
+                        threads: int | None = 1, run=None):
+    """:func:`.pipeline.label_meshes` out of core: ``(label, surface)`` for each of ``labels``.
+
+    Each label's indicator (:class:`LabelIndicator`) meshed by
+    :func:`surface_mesh_blocks` at 0.5, capped at the border, as in memory.
+    """
+    for label in labels:
+        mesh, _ = surface_mesh_blocks(LabelIndicator(source, label), geometry, 0.5,
+                                      block_shape=block_shape, inside="above", cap=True,
+                                      allow_empty=allow_empty, cleanup=cleanup,
+                                      name=f"{name} label {label}", threads=threads, run=run)
+        yield label, mesh
