@@ -138,9 +138,11 @@ def test_a_detached_pair_is_both_old_or_both_new_after_a_stop(tmp_path):
     rng = np.random.default_rng(4)
     from volwarp_cli.io import write_volume
     from volwarp_cli.volume import Volume
-    write_volume(Volume(rng.random((96, 96, 96), dtype=np.float32)), big)
-    write_volume(Volume(rng.random((96, 96, 96), dtype=np.float32) * 0.5, origin=(5, 0, 0)),
-                 other)
+    # (big enough that a convert lasts long enough for stops to land: 96^3 took 0.12 s, and
+    # in one CI run all twelve stops came after the end)
+    write_volume(Volume(rng.random((160, 160, 160), dtype=np.float32)), big)
+    write_volume(Volume(rng.random((160, 160, 160), dtype=np.float32) * 0.5,
+                        origin=(5, 0, 0)), other)
     out = tmp_path / "o" / "out.mhd"
     out.parent.mkdir()
     refs = {}
@@ -149,7 +151,7 @@ def test_a_detached_pair_is_both_old_or_both_new_after_a_stop(tmp_path):
         assert code == 0, err
         refs[src] = (out.read_bytes(), out.with_suffix(".raw").read_bytes())
     stopped = 0
-    for delay in np.linspace(0.1, length * 1.1, 12):
+    for delay in np.linspace(0.05, max(length * 1.1, 0.3), 12):
         code, err, _ = _run(["convert", other, "-o", out], os.environ)
         assert code == 0, err
         code, err, _ = _run(["convert", big, "-o", out], os.environ, float(delay),
