@@ -238,11 +238,30 @@ def test_sweep_by_blocks_to_ome_zarr_on_processes(run, tmp_path):
                               read_volume(tmp_path / f"b_{field}.ome.zarr").data)
 
 
+@pytest.mark.parametrize("scheduler", [None, "processes"])
+def test_multi_component_sweep_by_blocks_is_the_in_memory_file(run, tmp_path, scheduler):
+    """--multi by blocks: every block's fields interleaved in place, the same bytes."""
+    spec = tmp_path / "s.yaml"
+    spec.write_text(SWEEP)
+    mem, blk = tmp_path / "m.nrrd", tmp_path / "b.nrrd"
+    assert run("sweep", spec, "-o", mem, "--multi").code == 0
+    extra = ["--scheduler", scheduler] if scheduler else []
+    res = run("sweep", spec, "-o", blk, "--multi", "--chunked", "--block", "10,7,13", *extra)
+    assert res.code == 0, res.stderr
+    assert blk.read_bytes() == mem.read_bytes()
+    from volwarp_cli.io.nrrd import read_nrrd
+
+    assert run("sweep", spec, "-o", tmp_path / "m_{field}.nrrd").code == 0
+    for i, field in enumerate(("opacity", "red")):  # each component is that field's file
+        a = read_nrrd(blk, component=i).data
+        assert a.any() and np.array_equal(a, read_volume(tmp_path / f"m_{field}.nrrd").data)
+    res = run("sweep", spec, "-o", tmp_path / "o.nhdr", "--multi", "--chunked")
+    assert res.code == 1 and "block" in res.stderr
+
+
 def test_sweep_by_blocks_refuses_what_needs_the_whole_fields(run, tmp_path):
     spec = tmp_path / "s.yaml"
     spec.write_text(SWEEP)
-    res = run("sweep", spec, "-o", tmp_path / "o.nrrd", "--multi", "--chunked")
-    assert res.code == 2 and "--multi" in res.stderr
     res = run("sweep", spec, "-o", tmp_path / "o_{field}.nrrd", "--render",
               tmp_path / "r.png", "--chunked")
     assert res.code == 2 and "--render" in res.stderr

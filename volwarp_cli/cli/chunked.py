@@ -99,7 +99,8 @@ def lazy_input(path, raw=None, volume_index=None):
 
 
 def block_output(path, template, dtype=None, *, block=None, compress=False,
-                 byte_order="little", pyramid=0, version="0.5", labels="auto"):
+                 byte_order="little", pyramid=0, version="0.5", labels="auto",
+                 components=None):
     """The :class:`~volwarp_cli.io.blockwrite.BlockOutput` of ``template`` at ``path``.
 
     Committed when the block exits without an error, aborted (nothing left at
@@ -111,5 +112,5 @@ def block_output(path, template, dtype=None, *, block=None, compress=False,
     out = open_block_output(path, Geometry.of(template), dtype or template.dtype,
                             chunks_zyx=block, version=version, compress=compress,
                             byte_order=byte_order, metadata=template.meta, space=template.space,
-                            pyramid=pyramid, labels=labels)
+                            pyramid=pyramid, labels=labels, components=components)
     return committed(out)

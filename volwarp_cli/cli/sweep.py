@@ -197,11 +197,13 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     out_dtype = dtype or "float32"
     stamp_meta = provenance("sweep", [spec], spec)
     chunked = scale_settings().chunked
-    refused = "--multi" if multi else ("--render" if render_path is not None else None)
+    refused = "--render" if render_path is not None else None
     if chunked and refused:
-        raise click.UsageError(f"--chunked writes one volume per field by blocks: not {refused}")
+        raise click.UsageError(f"--chunked writes the fields by blocks: not {refused} (a "
+                               "render of the whole volume: render the written fields)")
     by_blocks = dict(paths=paths, names=names, method=method, tau=tau, dtype=out_dtype,
-                     meta=stamp_meta, compress=compress, byte_order=byte_order, **ome_zarr)
+                     meta=stamp_meta, compress=compress, byte_order=byte_order, multi=multi,
+                     **ome_zarr)
     if chunked:
         _sweep_by_blocks(sspec, grid, **by_blocks)
         return
@@ -213,8 +215,10 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     except OutOfMemoryError as exc:
         from .chunked import blocks_can_write, wants_blocks
 
+        nz, ny, nx = grid.shape
+        size = (nz, ny, nx * (len(names) if multi else 1))  # (--multi: one file of them all)
         if chunked is False or refused or not all(
-                blocks_can_write(p, grid.shape, out_dtype, {"compress": compress})
+                blocks_can_write(p, size, out_dtype, {"compress": compress})
                 for p in paths.values()):
             raise
         if not wants_blocks(str(exc)):
@@ -259,22 +263,33 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
 
 
 def _sweep_block_task(plan, box, writers, names, dtype):
-    """One output block of every field, each written to its own output (a block task)."""
+    """One output block of every field, each written to its own output (a block task).
+
+    ``writers``: name -> writer, or ``{None: writer}`` for one output holding
+    every field as its components (--multi).
+    """
+    import numpy as np
+
     from ..samples import cast_samples
     from ..sweep.chunked import sweep_block
 
     fields = sweep_block(plan.root, plan.geometry, box, plan=plan)
-    for i, name in enumerate(names):
-        data = cast_samples(scale_to_dtype(fields[i], dtype), dtype, what=str(name))
+    blocks = [cast_samples(scale_to_dtype(fields[i], dtype), dtype, what=str(name))
+              for i, name in enumerate(names)]
+    if None in writers:
+        writers[None].write(box, np.stack(blocks, axis=-1))
+        return
+    for name, data in zip(names, blocks, strict=True):
         writers[name].write(box, data)
 
 
 def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, compress,
-                     byte_order, ome_zarr_version="0.5", pyramid=0):
+                     byte_order, multi=False, ome_zarr_version="0.5", pyramid=0):
     """The sweep by output blocks on Dask (:mod:`volwarp_cli.sweep.chunked`).
 
     Each block task computes every field's block once and writes it to that
-    field's output.
+    field's output, or (``multi``) all of them as the components of one
+    multi-component NRRD.
     """
     import contextlib
     import math
@@ -299,9 +314,13 @@ def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, com
             edge = edge * 3 // 4
         block = settings.block or tuple(min(edge, n) for n in shape)
         outs = {}
-        for name in names:
-            template = grid.volume(np.broadcast_to(np.zeros((), dtype), shape),
-                                   meta=dict(meta, volwarp_sweep_field=name))
+        placeholder = np.broadcast_to(np.zeros((), dtype), shape)
+        if multi:  # (the in-memory file's key/values: the first field's, without its name)
+            outs[None] = stack.enter_context(block_output(
+                paths[None], grid.volume(placeholder, meta=dict(meta)), dtype, block=block,
+                compress=compress, byte_order=byte_order, components=list(names)))
+        for name in [] if multi else names:
+            template = grid.volume(placeholder, meta=dict(meta, volwarp_sweep_field=name))
             outs[name] = stack.enter_context(block_output(
                 paths[name], template, dtype, block=block, compress=compress,
                 byte_order=byte_order, version=ome_zarr_version, pyramid=pyramid))

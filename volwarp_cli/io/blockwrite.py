@@ -66,7 +66,8 @@ def _placeholder_volume(geometry: Geometry, dtype, space, metadata):
 def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chunks_zyx=None,
                       version: str = "0.5", compress: bool = False, byte_order: str = "little",
                       metadata: dict | None = None, space: str | None = None,
-                      pyramid: int = 0, labels="auto") -> BlockOutput:
+                      pyramid: int = 0, labels="auto",
+                      components: list[str] | None = None) -> BlockOutput:
     """A :class:`BlockOutput` writing a volume of ``geometry`` and ``dtype`` to ``path``.
 
     ``chunks_zyx``: the block shape the engine writes (OME-Zarr 0.5: one shard
@@ -78,14 +79,21 @@ def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chu
     ``metadata``: the volume's key/values (provenance); ``space``: its world
     frame (``"left-posterior-superior"``, or None), as the Volume would have.
     ``compress``: refused except for OME-Zarr (always compressed).
+    ``components``: names of the components each voxel holds (a
+    multi-component NRRD, components interleaved, as :func:`.nrrd.write_nrrd`
+    writes it); each block is then written with them last, ``box.shape + (C,)``.
     """
     path = Path(path)
     fmt = check_block_format(path, compress, pyramid)
     dtype = check_dtype(dtype, str(path))
+    if components and fmt != "nrrd":
+        raise VolwarpError(f"{path}: samples with several components are written by blocks "
+                           "to an uncompressed .nrrd only")
     if fmt == "omezarr":
         return _ZarrOutput(path, geometry, dtype, chunks_zyx, version, byte_order, metadata,
                            space, pyramid, labels)
-    return _MappedOutput(path, geometry, dtype, chunks_zyx, fmt, byte_order, metadata, space)
+    return _MappedOutput(path, geometry, dtype, chunks_zyx, fmt, byte_order, metadata, space,
+                         components)
 
 
 def check_block_format(path: str | os.PathLike, compress: bool = False, pyramid: int = 0) -> str:
@@ -221,12 +229,13 @@ class BlockWriter:
     into (a zarr array, the temporary file), once per process.
     """
 
-    def __init__(self, shape, chunks, dtype, where: str, phase=(0, 0, 0)):
+    def __init__(self, shape, chunks, dtype, where: str, phase=(0, 0, 0), components: int = 0):
         self.shape = tuple(shape)
         self.chunks = tuple(chunks)
         self.phase = tuple(phase)
         self.dtype = np.dtype(dtype)
         self.where = where
+        self.components = int(components)
         self._opened = None
 
     def _open(self):  # pragma: no cover - every format has one
@@ -235,7 +244,7 @@ class BlockWriter:
     def write(self, box: Box, array) -> None:
         """Write ``array`` at ``box`` (whole blocks of the grid)."""
         array = np.asarray(array)
-        if tuple(array.shape) != box.shape:
+        if tuple(array.shape) != _block_shape(box, self.components):
             raise ValueError(f"block of shape {array.shape} written at {box}")
         block_indices(box, self.shape, self.chunks, self.phase)
         if box.empty:
@@ -270,15 +279,40 @@ class _ZarrWriter(BlockWriter):
 
 
 class _MappedWriter(BlockWriter):
-    def __init__(self, file, file_dtype, offset, shape, chunks, dtype, where):
-        super().__init__(shape, chunks, dtype, where)
+    def __init__(self, file, file_dtype, offset, shape, chunks, dtype, where, components=0):
+        super().__init__(shape, chunks, dtype, where, components=components)
         self.file, self.file_dtype, self.offset = str(file), np.dtype(file_dtype), int(offset)
 
     def _open(self):
         from .filearray import FileArray
 
         # pwrite, not a memory map: mapped pages would count in the task's memory
-        return FileArray(self.file, self.file_dtype, self.offset, self.shape, writable=True)
+        return FileArray(self.file, self.file_dtype, self.offset,
+                         _file_shape(self.shape, self.components), writable=True)
+
+    def _place(self, box, array):
+        key, flat = _flat(box, array, self.components)
+        self._opened[key] = flat
+
+
+def _block_shape(box: Box, components: int) -> tuple:
+    """The shape of a block's samples: the box's, and the components last (if any)."""
+    return box.shape + ((components,) if components else ())
+
+
+def _file_shape(shape, components: int) -> tuple:
+    """A file of interleaved components read as (z, y, x * components) samples."""
+    nz, ny, nx = shape
+    return (nz, ny, nx * max(1, components))
+
+
+def _flat(box: Box, array: np.ndarray, components: int):
+    """``(slices, samples)`` of a block in a file of interleaved components."""
+    if not components:
+        return box.slices, array
+    (z0, y0, x0), (z1, y1, x1) = box.lo, box.hi
+    key = (slice(z0, z1), slice(y0, y1), slice(x0 * components, x1 * components))
+    return key, np.ascontiguousarray(array).reshape(z1 - z0, y1 - y0, -1)
 
 
 class BlockOutput:
@@ -302,12 +336,13 @@ class BlockOutput:
     """
 
     def __init__(self, path: Path, geometry: Geometry, dtype: np.dtype, chunks,
-                 phase=(0, 0, 0)):
+                 phase=(0, 0, 0), components: int = 0):
         self.path = path
         self.geometry = geometry
         self.dtype = np.dtype(dtype)
         self.chunks = tuple(int(c) for c in chunks)
         self.phase = tuple(int(p) for p in phase)
+        self.components = int(components)
         self._lock = threading.Lock()
         self._written: set[tuple[int, int, int]] = set()
         self._state = "open"
@@ -342,9 +377,9 @@ class BlockOutput:
         if not isinstance(box, Box):
             box = Box(*box)
         array = np.asarray(array)
-        if tuple(array.shape) != box.shape:
+        if tuple(array.shape) != _block_shape(box, self.components):
             raise ValueError(f"block of shape {array.shape} written at {box} "
-                             f"(shape {box.shape})")
+                             f"(shape {_block_shape(box, self.components)})")
         blocks = self._blocks_of(box)
         with self._lock:
             if self._state != "open":
@@ -540,20 +575,22 @@ class _ZarrOutput(BlockOutput):
 
 
 class _MappedOutput(BlockOutput):
-    def __init__(self, path, geometry, dtype, chunks_zyx, fmt, byte_order, metadata, space):
+    def __init__(self, path, geometry, dtype, chunks_zyx, fmt, byte_order, metadata, space,
+                 components=None):
         from .atomic import atomic_output
         from .common import with_byte_order
 
         chunks = chunks_zyx or (64, geometry.shape[1], geometry.shape[2])
         chunks = tuple(max(1, min(int(c), max(int(n), 1)))
                        for c, n in zip(chunks, geometry.shape, strict=True))
-        super().__init__(path, geometry, dtype, chunks)
+        super().__init__(path, geometry, dtype, chunks, components=len(components or ()))
         with_byte_order(np.zeros(0, dtype), byte_order)  # checks the name
         vol = _placeholder_volume(geometry, dtype, space, metadata)
         if fmt == "nrrd":
             from .nrrd import nrrd_header
 
-            header = nrrd_header(vol, self.dtype, encoding="raw", byte_order=byte_order)
+            header = nrrd_header(vol, self.dtype, encoding="raw", byte_order=byte_order,
+                                 components=list(components) if components else None)
         elif fmt == "metaimage":
             from .metaimage import metaimage_header
 
@@ -562,7 +599,7 @@ class _MappedOutput(BlockOutput):
         else:
             header = b""
         file_dtype = self.dtype.newbyteorder("<" if byte_order == "little" else ">")
-        nbytes = geometry.size * self.dtype.itemsize
+        nbytes = geometry.size * self.dtype.itemsize * max(1, self.components)
         self._map = None
         self._file_dtype, self._offset = file_dtype, len(header)
         try:
@@ -573,7 +610,8 @@ class _MappedOutput(BlockOutput):
             if nbytes:
                 from .filearray import FileArray
 
-                self._map = FileArray(tmp, file_dtype, len(header), geometry.shape,
+                self._map = FileArray(tmp, file_dtype, len(header),
+                                      _file_shape(geometry.shape, self.components),
                                       writable=True)
         except BaseException:
             self.abort()
@@ -581,16 +619,19 @@ class _MappedOutput(BlockOutput):
 
     def _write(self, box, array):
         if self._map is not None:
-            self._map[box.slices] = array
+            key, flat = _flat(box, array, self.components)
+            self._map[key] = flat
 
     def _read(self, box):
+        shape = _block_shape(box, self.components)
         if self._map is None:
-            return np.zeros(box.shape, self.dtype)
-        return np.asarray(self._map[box.slices]).astype(self.dtype, copy=False)
+            return np.zeros(shape, self.dtype)
+        key, _ = _flat(box, np.zeros(shape, self.dtype), self.components)
+        return np.asarray(self._map[key]).astype(self.dtype, copy=False).reshape(shape)
 
     def writer(self):
         return _MappedWriter(self._tmp, self._file_dtype, self._offset, self.geometry.shape,
-                             self.chunks, self.dtype, str(self.path))
+                             self.chunks, self.dtype, str(self.path), self.components)
 
     def _finish(self):
         self._release()
