@@ -127,10 +127,11 @@ class LazySource:
     array) is dropped from a pickled copy and opened again where it is used.
     """
 
-    def __init__(self, path, *, raw=None, volume_index=None, array=None):
+    def __init__(self, path, *, raw=None, volume_index=None, array=None, dicom=None):
         self.path = str(path)
         self.raw = raw
         self.volume_index = volume_index
+        self.dicom = dicom
         self._array = array
 
     @property
@@ -140,7 +141,8 @@ class LazySource:
             from ..io.lazy import open_volume_lazy
 
             _, self._array = open_volume_lazy(self.path, raw=self.raw,
-                                              volume_index=self.volume_index)
+                                              volume_index=self.volume_index,
+                                              dicom=self.dicom)
         return self._array
 
     @property
@@ -157,8 +159,11 @@ class LazySource:
         return self.array[key]
 
     def __getstate__(self):
+        # an array that carries all it reads (a DICOM stack's frames) goes along: reopening
+        # by path would scan the folder's headers again in every process
+        keep = self._array if getattr(self._array, "portable", False) else None
         return {"path": self.path, "raw": self.raw, "volume_index": self.volume_index,
-                "_array": None}
+                "dicom": self.dicom, "_array": keep}
 
 
 class SceneRecipe:

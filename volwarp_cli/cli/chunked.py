@@ -84,7 +84,7 @@ def blocks_can_write(path, shape_zyx, dtype, write_kw) -> bool:
     return nbytes <= free
 
 
-def lazy_input(path, raw=None, volume_index=None):
+def lazy_input(path, raw=None, volume_index=None, dicom=None):
     """``(template, source)`` of an input read by blocks.
 
     ``template``: the input's Volume with a zero-strided placeholder (its
@@ -93,9 +93,13 @@ def lazy_input(path, raw=None, volume_index=None):
     """
     from ..bspline.blocks import LazySource
     from ..io.lazy import open_volume_template
+    from .common import check_input_options
 
-    template, array = open_volume_template(path, raw=raw, volume_index=volume_index)
-    return template, LazySource(path, raw=raw, volume_index=volume_index, array=array)
+    check_input_options(path, raw, dicom)
+    template, array = open_volume_template(path, raw=raw, volume_index=volume_index,
+                                           dicom=dicom)
+    return template, LazySource(path, raw=raw, volume_index=volume_index, array=array,
+                                dicom=dicom)
 
 
 def block_output(path, template, dtype=None, *, block=None, compress=False,

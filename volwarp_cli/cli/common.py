@@ -15,14 +15,19 @@ def load_input(path, raw=None, volume_index=None, mmap=False, dicom=None) -> Vol
 
     A file with a header describes itself: the options would be ignored.
     """
+    check_input_options(path, raw, dicom)
+    with timed(f"read {path}"):
+        return read_volume(path, raw=raw, volume_index=volume_index, mmap=mmap, dicom=dicom)
+
+
+def check_input_options(path, raw=None, dicom=None) -> None:
+    """Usage errors for ``--raw-*`` or DICOM options given for an input of another format."""
     if raw is not None and not str(path).lower().endswith((".raw", ".bin")):
         raise click.UsageError(f"--raw-* options describe headerless .raw/.bin inputs, "
                                f"not {path}")
     if dicom is not None and volume_format(path, reading=True) != "dicom":
         given = " ".join(f"--{k.replace('_', '-')}" for k in sorted(dicom))
         raise click.UsageError(f"{given} applies to DICOM inputs, and {path} is not one")
-    with timed(f"read {path}"):
-        return read_volume(path, raw=raw, volume_index=volume_index, mmap=mmap, dicom=dicom)
 
 
 def describe_volume(vol: Volume, fmt: str) -> dict:

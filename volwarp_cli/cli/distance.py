@@ -101,9 +101,7 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
                   byte_order=byte_order, **ome_zarr)
     chunked = scale_settings().chunked
     if chunked:
-        if dicom is not None:
-            raise click.UsageError("--chunked reads volume files by blocks, not DICOM series")
-        _by_blocks(input, output, raw, volume_index, **blocks)
+        _by_blocks(input, output, raw, volume_index, dicom, **blocks)
         return
     try:
         vol = load_input(input, raw, volume_index, dicom=dicom)
@@ -113,17 +111,18 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
     except OutOfMemoryError as exc:
         from .chunked import blocks_can_write, wants_blocks
 
-        if chunked is False or dicom is not None or metric != "euclidean":
+        if chunked is False or metric != "euclidean":
             raise
         from ..io.lazy import open_volume_lazy
 
-        geometry, array = open_volume_lazy(input, raw=raw, volume_index=volume_index)
+        geometry, array = open_volume_lazy(input, raw=raw, volume_index=volume_index,
+                                           dicom=dicom)
         if not blocks_can_write(output, geometry.shape, dtype or "float32", blocks):
             raise
         del geometry, array
         if not wants_blocks(str(exc)):
             raise
-        _by_blocks(input, output, raw, volume_index, **blocks)
+        _by_blocks(input, output, raw, volume_index, dicom, **blocks)
         return
     if info["passes"]:
         log.info("min-norm: %d shift-and-min passes", info["passes"])
@@ -146,7 +145,7 @@ def _finish_block(field, *, unsigned, dtype, what):
     return cast_samples(field, dtype, what=what) if dtype is not None else field
 
 
-def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface, unsigned,
+def _by_blocks(input, output, raw, volume_index, dicom=None, *, iso, inside, metric, surface, unsigned,
                max_distance, dtype, compress, byte_order, ome_zarr_version="0.5", pyramid=0):
     """The distance field by blocks on Dask (:mod:`volwarp_cli.distance.chunked`).
 
@@ -163,7 +162,7 @@ def _by_blocks(input, output, raw, volume_index, *, iso, inside, metric, surface
     from .chunked import block_budget, block_output, lazy_input
 
     settings = scale_settings()
-    template, source = lazy_input(input, raw, volume_index)
+    template, source = lazy_input(input, raw, volume_index, dicom)
     shape = template.data.shape
     out_dtype = np.dtype(dtype or "float32")
     finish = functools.partial(_finish_block, unsigned=unsigned,

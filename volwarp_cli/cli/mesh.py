@@ -168,13 +168,11 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
 
     cleanup = Cleanup(largest_component=largest_component, smooth=smooth, decimate=decimate)
     chunked = scale_settings().chunked
-    if chunked and dicom is not None:
-        raise click.UsageError("--chunked reads volume files by blocks, not a DICOM series")
 
     def write_labels(meshes):
         _mesh_labels(meshes, input, output, show_stats or as_json, as_json)
 
-    blocks = dict(label=label, labels=write_labels if labels else None)
+    blocks = dict(label=label, labels=write_labels if labels else None, dicom=dicom)
     by_blocks = bool(chunked)
     if chunked:
         vol, mesh, iso = _mesh_by_blocks(input, raw, volume_index, iso, inside, cap,
@@ -188,7 +186,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         except OutOfMemoryError as exc:
             from .chunked import wants_blocks
 
-            if chunked is False or dicom is not None:
+            if chunked is False:
                 raise
             if not wants_blocks(str(exc)):
                 raise
@@ -252,7 +250,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
 
 
 def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cleanup, *,
-                    label=None, labels=None):
+                    label=None, labels=None, dicom=None):
     """The isosurface by blocks (:mod:`volwarp_cli.surface.chunked`): ``(template, mesh, iso)``.
 
     ``label``: the surface of that label of a label map (its indicator at
@@ -273,7 +271,7 @@ def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cle
     from .chunked import block_budget, lazy_input
 
     settings = scale_settings()
-    template, source = lazy_input(input, raw, volume_index)
+    template, source = lazy_input(input, raw, volume_index, dicom)
     nz, ny, nx = template.data.shape
     tasks = parallel.threads() if settings.scheduler is None else max(1, settings.workers or 1)
     # slabs of whole planes (whole rows read, no halo at the sides): the samples, their

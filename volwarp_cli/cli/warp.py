@@ -176,7 +176,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                                f"inputs, not the capture file {input}")
     options = WarpOptions(pushforward=pushforward, evaluator=evaluator, background=background,
                           crop=crop, dtype=dtype, allow_growth=allow_growth)
-    blocks_refused = _blocks_refused(is_capture, labels, frames_to, exports, dicom)
+    blocks_refused = _blocks_refused(is_capture, frames_to, exports)
     chunked = scale_settings().chunked
     if chunked and blocks_refused:
         raise click.UsageError(f"--chunked warps a volume (intensities or labels) to one "
@@ -184,7 +184,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     write_kw = dict(compress=compress, byte_order=byte_order, **ome_zarr)
     if chunked:
         summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
-                                  write_kw, labels=labels, preserve=preserve_labels)
+                                  write_kw, labels=labels, preserve=preserve_labels,
+                                  dicom=dicom)
     else:
         try:
             summary = _warp_in_memory(input, spec_path, output, options, frames_to, labels,
@@ -195,16 +196,15 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                 raise
             summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
                                       write_kw, fallback=exc, labels=labels,
-                                      preserve=preserve_labels)
+                                      preserve=preserve_labels, dicom=dicom)
     if as_json:
         _print_json(summary)
 
 
-def _blocks_refused(is_capture, labels, frames_to, exports, dicom) -> str | None:
+def _blocks_refused(is_capture, frames_to, exports) -> str | None:
     """Why this warp cannot run by blocks (a phrase), or None."""
     for why, given in (("a capture file (.vwc)", is_capture),
-                       ("--frames-to", frames_to), ("the deformation's exports", exports),
-                       ("a DICOM input", dicom is not None)):
+                       ("--frames-to", frames_to), ("the deformation's exports", exports)):
         if given:
             return why
     return None
@@ -212,7 +212,7 @@ def _blocks_refused(is_capture, labels, frames_to, exports, dicom) -> str | None
 
 def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw, *,
                     fallback: OutOfMemoryError | None = None, labels: bool = False,
-                    preserve: bool = False) -> dict:
+                    preserve: bool = False, dicom=None) -> dict:
     """The warp by output blocks on Dask (:mod:`volwarp_cli.bspline.blocks`).
 
     ``fallback``: the in-memory warp's refusal, when this runs instead of it
@@ -241,8 +241,9 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
     if labels:
         _check_label_spec(doc, spec, options.background)
         return _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index,
-                                      write_kw, doc, spec, fallback=fallback, preserve=preserve)
-    template, source = lazy_input(input, raw, volume_index)
+                                      write_kw, doc, spec, fallback=fallback, preserve=preserve,
+                                      dicom=dicom)
+    template, source = lazy_input(input, raw, volume_index, dicom)
     c = spec.capture
     with timed("input range (one pass)"):
         try:
@@ -275,7 +276,7 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
 
 
 def _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw,
-                           doc, spec, *, fallback=None, preserve=False) -> dict:
+                           doc, spec, *, fallback=None, preserve=False, dicom=None) -> dict:
     """``warp --labels`` by slabs of target planes (:mod:`volwarp_cli.bspline.label_blocks`).
 
     The same output and per-label report as in memory; the label map is read
@@ -294,7 +295,7 @@ def _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index,
     from ..progress import log
     from .chunked import block_budget, block_output, blocks_can_write, lazy_input, wants_blocks
 
-    template, source = lazy_input(input, raw, volume_index)
+    template, source = lazy_input(input, raw, volume_index, dicom)
     cap, scene, frames = prepare_labels(template, doc, spec, method=options.pushforward,
                                         evaluator=options.evaluator,
                                         background=options.background, source=input,

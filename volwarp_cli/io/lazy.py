@@ -44,7 +44,7 @@ class NotLazy(Exception):
 
 
 def open_volume_lazy(path: str | os.PathLike, *, raw=None, volume_index: int | None = None,
-                     require_lazy: bool = False):
+                     require_lazy: bool = False, dicom: dict | None = None):
     """``(Geometry, array_like)`` of the volume file at ``path`` (module notes).
 
     ``raw``: the :class:`~volwarp_cli.io.raw.RawLayout` of a headerless file;
@@ -53,12 +53,12 @@ def open_volume_lazy(path: str | os.PathLike, *, raw=None, volume_index: int | N
     when the file would have to be read whole.
     """
     template, array = open_volume_template(path, raw=raw, volume_index=volume_index,
-                                           require_lazy=require_lazy)
+                                           require_lazy=require_lazy, dicom=dicom)
     return Geometry.of(template), array
 
 
 def open_volume_template(path: str | os.PathLike, *, raw=None, volume_index: int | None = None,
-                         require_lazy: bool = False):
+                         require_lazy: bool = False, dicom: dict | None = None):
     """:func:`open_volume_lazy` with the Volume for the geometry: ``(template, array_like)``.
 
     ``template`` is the Volume ``read_volume`` would give, but for its samples,
@@ -70,6 +70,19 @@ def open_volume_template(path: str | os.PathLike, *, raw=None, volume_index: int
     path = Path(path)
     fmt = volume_format(path, reading=True)
     try:
+        if fmt == "dicom":  # a stack of files: slabs read from their frames' files
+            from .dicom import is_dicom_path
+
+            if path.is_dir() and not is_dicom_path(path):
+                raise NotLazy("no DICOM files")  # (read_volume says so, as in memory)
+            if volume_index is not None:
+                raise NotLazy("a DICOM input has one volume")  # (read_volume says so)
+            from .dicom._read import open_dicom_lazy
+
+            opened = open_dicom_lazy(path, **(dicom or {}))
+            if opened is None:
+                raise NotLazy("its stack is resampled (a gantry tilt or irregular spacing)")
+            return opened
         if fmt == "omezarr":
             from .common import make_volume
             from .omezarr import LazyOmeZarr, open_omezarr
@@ -97,7 +110,7 @@ def open_volume_template(path: str | os.PathLike, *, raw=None, volume_index: int
         if require_lazy:
             raise VolwarpError(f"{path}: cannot be read without loading it ({why}); write it "
                                "as .ome.zarr or uncompressed .nrrd first") from None
-    vol = read_volume(path, raw=raw, volume_index=volume_index)
+    vol = read_volume(path, raw=raw, volume_index=volume_index, dicom=dicom)
     return vol, vol.data
 
 

@@ -52,6 +52,25 @@ def read_dicom(path: str | os.PathLike, *, series: str | int | None = None,
     ``"resample"``; ``duplicates``: ``"error"``, ``"first"`` or ``"last"``.
     ``candidates``: :func:`scan_dicom` of ``path``, when the caller has it already.
     """
+    where = str(path)
+    plan, dtype, meta = _plan(path, series=series, irregular=irregular, duplicates=duplicates,
+                              keep_shear=keep_shear, keep_phi=keep_phi, candidates=candidates)
+    rows, cols = plan.frames[0].file.rows, plan.frames[0].file.columns
+    n_in = len(plan.frames)
+    nbytes = n_in * rows * cols * dtype.itemsize
+    if plan.resampled:
+        nbytes += 2 * plan.n_out * rows * cols * 4
+    ensure_fits_in_memory(nbytes, f"{where} ({cols}x{rows}x{plan.n_out} {dtype.name})")
+    data = np.empty((n_in, rows, cols), dtype=dtype)
+    read_frames(plan.frames, dtype, data)
+    if plan.resampled:
+        data = resample(plan, data)
+    return make_volume(where, data, spacing=plan.spacing, origin=plan.origin,
+                       direction=plan.direction, space=_LPS, file_space=_LPS, meta=meta)
+
+
+def _plan(path, *, series, irregular, duplicates, keep_shear, keep_phi, candidates=None):
+    """``(plan, sample type, key/values)`` of the volume ``path`` holds (checked options)."""
     if irregular not in ("error", "resample"):
         raise VolwarpError(f"irregular must be error or resample, got {irregular!r}")
     if duplicates not in ("error", "first", "last"):
@@ -63,20 +82,57 @@ def read_dicom(path: str | os.PathLike, *, series: str | int | None = None,
         raise FormatError(f"{f0.file.path}: {f0.problem}")
     plan = plan_stack(list(cand.frames), where, irregular=irregular, duplicates=duplicates,
                       keep_shear=keep_shear)
-    rows, cols = f0.file.rows, f0.file.columns
-    dtype = output_dtype(plan.frames)
-    n_in = len(plan.frames)
-    nbytes = n_in * rows * cols * dtype.itemsize
+    return plan, output_dtype(plan.frames), _meta(cand, plan, keep_phi)
+
+
+class LazyDicom:
+    """A DICOM stack's samples, read slab by slab from its frames' files on demand.
+
+    Sliceable ``[z, y, x]`` as the array :func:`read_dicom` returns, and
+    picklable: a worker process reads the same files, without scanning the
+    folder again. Only for stacks that need no resampling (the tilt and the
+    irregular-spacing resampling read the whole stack).
+    """
+
+    portable = True  # (its pickled state is all it needs: no path to reopen)
+
+    def __init__(self, frames, dtype, rows: int, cols: int):
+        self.frames = list(frames)
+        self.dtype = np.dtype(dtype)
+        self.shape = (len(self.frames), int(rows), int(cols))
+        self.ndim = 3
+
+    def __getitem__(self, key) -> np.ndarray:
+        from ..filearray import box_of_key
+
+        ((z0, z1), (y0, y1), (x0, x1)), pick = box_of_key(key, self.shape)
+        out = np.empty((z1 - z0,) + self.shape[1:], self.dtype)
+        if z1 > z0:
+            read_frames(self.frames[z0:z1], self.dtype, out)
+        return np.ascontiguousarray(out[:, y0:y1, x0:x1])[pick]
+
+    def __array__(self, dtype=None, copy=None):
+        data = self[...]
+        return data if dtype is None else data.astype(dtype)
+
+
+def open_dicom_lazy(path: str | os.PathLike, *, series=None, irregular: str = "error",
+                    duplicates: str = "error", keep_shear: bool = False, keep_phi: bool = False):
+    """``(template, LazyDicom)``: :func:`read_dicom`'s Volume with a placeholder, and its samples.
+
+    None when the stack must be resampled (a gantry tilt, irregular spacing
+    with ``irregular="resample"``): that is read whole.
+    """
+    where = str(path)
+    plan, dtype, meta = _plan(path, series=series, irregular=irregular, duplicates=duplicates,
+                              keep_shear=keep_shear, keep_phi=keep_phi)
     if plan.resampled:
-        nbytes += 2 * plan.n_out * rows * cols * 4
-    ensure_fits_in_memory(nbytes, f"{where} ({cols}x{rows}x{plan.n_out} {dtype.name})")
-    data = np.empty((n_in, rows, cols), dtype=dtype)
-    read_frames(plan.frames, dtype, data)
-    if plan.resampled:
-        data = resample(plan, data)
-    meta = _meta(cand, plan, keep_phi)
-    return make_volume(where, data, spacing=plan.spacing, origin=plan.origin,
-                       direction=plan.direction, space=_LPS, file_space=_LPS, meta=meta)
+        return None
+    rows, cols = plan.frames[0].file.rows, plan.frames[0].file.columns
+    lazy = LazyDicom(plan.frames, dtype, rows, cols)
+    placeholder = np.broadcast_to(np.zeros((), dtype), lazy.shape)
+    return make_volume(where, placeholder, spacing=plan.spacing, origin=plan.origin,
+                       direction=plan.direction, space=_LPS, file_space=_LPS, meta=meta), lazy
 
 
 def _meta(cand: Candidate, plan, keep_phi: bool) -> dict[str, str]:
