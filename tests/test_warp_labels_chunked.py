@@ -142,3 +142,23 @@ def test_bounding_boxes_read_in_slabs_are_the_whole_maps(seed, depth):
     assert labels == want_labels and nvox == want_nvox
     for (lo, hi), (wlo, whi) in zip(boxes, want_boxes, strict=True):
         assert np.array_equal(lo, wlo) and np.array_equal(hi, whi)
+
+
+def test_a_label_pyramid_takes_the_mode_in_memory_too(run, tmp_path):
+    """Random labels fail the label-map hint; their levels must still not be averaged."""
+    import zarr
+
+    rng = np.random.default_rng(5)
+    src = tmp_path / "r.nrrd"
+    write_volume(Volume(rng.integers(1, 5, (16, 18, 14)).astype(np.int16)), src)
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nunits: voxel\ncapture: {lattice: 4}\nsteps:\n  - move:\n"
+                    "      - {index: [1, 1, 1], by: [0.3, 0, 0]}\n")
+    for name, extra in (("m", []), ("b", ["--chunked", "--block", "4"])):
+        res = run("warp", src, "--spec", spec, "--labels", "--pyramid", "1",
+                  "-o", tmp_path / f"{name}.ome.zarr", *extra)
+        assert res.code == 0, res.stderr
+    a, b = zarr.open_group(tmp_path / "m.ome.zarr"), zarr.open_group(tmp_path / "b.ome.zarr")
+    assert a.attrs["volwarp"]["downsampling"] == "mode"
+    assert np.array_equal(a["1"][...], b["1"][...])
+    assert set(np.unique(a["1"][...])) <= {0, 1, 2, 3, 4}

@@ -105,13 +105,21 @@ def blocked():
 
 
 #: code whose Python frames hold native state (LLVM's) that an exception would leave torn
-_JIT_PACKAGES = (f"{os.sep}numba{os.sep}", f"{os.sep}llvmlite{os.sep}")
+_JIT_PACKAGES = ("numba", "llvmlite")
 
 
 def _compiling(frame) -> bool:
+    # frames inside the imported packages' own folders only (a path that merely contains
+    # "numba" would defer every stop for good)
+    roots = []
+    for name in _JIT_PACKAGES:
+        where = getattr(sys.modules.get(name), "__file__", None)
+        if where:
+            roots.append(os.path.dirname(where) + os.sep)
+    if not roots:
+        return False
     while frame is not None:
-        name = frame.f_code.co_filename
-        if any(p in name for p in _JIT_PACKAGES):
+        if frame.f_code.co_filename.startswith(tuple(roots)):
             return True
         frame = frame.f_back
     return False

@@ -72,7 +72,8 @@ def blocks_can_write(path, shape_zyx, dtype, write_kw) -> bool:
     from ..io.blockwrite import check_block_format
 
     try:
-        check_block_format(path, bool(write_kw.get("compress")))
+        check_block_format(path, bool(write_kw.get("compress")),
+                           int(write_kw.get("pyramid", 0) or 0))
     except VolwarpError:
         return False
     nbytes = math.prod(int(n) for n in shape_zyx) * np.dtype(dtype).itemsize

@@ -372,7 +372,8 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preser
 
     def write(vol, path):
         with timed(f"write {path}"):
-            write_volume(stamped(vol), path, **write_kw)
+            # (a label map's pyramid levels take the mode, as by blocks: never averaged ids)
+            write_volume(stamped(vol), path, **write_kw, **({"labels": True} if labels else {}))
 
     written = [0]  # frame files
 
