@@ -180,16 +180,18 @@ class Stats:
     @staticmethod
     def of(samples: np.ndarray, dtype, iso: float | None) -> Stats:
         """The stats of one block (converted to the type flying edges runs on)."""
+        from ._stats_kernel import stats_of
+
         a = np.asarray(samples).astype(dtype, copy=False)
         if a.size == 0:
             return Stats(np.inf, -np.inf, False)
-        lo, hi = float(np.min(a)), float(np.max(a))
-        nan = bool(np.isnan(lo) or np.isnan(hi))
-        if iso is None or nan:
-            return Stats(lo, hi, nan)
-        below = a[a < iso]
-        return Stats(lo, hi, nan, bool(np.any(a == iso)),
-                     float(below.max()) if below.size else None)
+        lo, hi, nan, hit, has_below, below = stats_of(a, iso)
+        if nan:
+            return Stats(np.nan, np.nan, True)
+        if iso is None:
+            return Stats(float(lo), float(hi), False)
+        return Stats(float(lo), float(hi), False, bool(hit),
+                     float(below) if has_below else None)
 
     @staticmethod
     def merge(parts) -> Stats:
@@ -339,16 +341,25 @@ def _sample_blocks(shape, block_shape) -> list[Box]:
     return Box.from_shape(shape).blocks(block_shape)
 
 
-def source_stats(source, block_shape, iso: float | None, cap: bool = False) -> Stats:
-    """:class:`Stats` of an array-like ``source`` (z, y, x), read block by block."""
+def source_stats(source, block_shape, iso: float | None, cap: bool = False, *,
+                 threads: int | None = 1, run=None) -> Stats:
+    """:class:`Stats` of an array-like ``source`` (z, y, x), read block by block.
+
+    ``threads`` and ``run`` as :func:`isosurface_blocks` has them.
+    """
     dtype = work_dtype(source.dtype, cap)
-    return Stats.merge(Stats.of(source[b.slices], dtype, iso)
-                       for b in _sample_blocks(source.shape, block_shape))
+
+    def task(box):
+        return Stats.of(source[box.slices], dtype, iso)
+
+    blocks = _sample_blocks(source.shape, block_shape)
+    return Stats.merge(parallel.run_blocks(task, blocks, threads) if run is None
+                       else run(task, blocks))
 
 
 def isosurface_blocks(source, geometry, level: float, *, block_shape=DEFAULT_BLOCK,
                       inside: str = "above", cap: bool = False, normals: bool = False,
-                      threads: int | None = 1, run=None) -> Mesh:
+                      threads: int | None = 1, run=None, stats: Stats | None = None) -> Mesh:
     """The isosurface of ``source`` at ``level``, computed block by block, in canonical order.
 
     Parameters
@@ -371,6 +382,9 @@ def isosurface_blocks(source, geometry, level: float, *, block_shape=DEFAULT_BLO
     run : callable, optional
         ``run(task, blocks)`` -> the tasks' results in order, instead of
         threads: e.g. :meth:`volwarp_cli.engine.Engine.map` on a Dask scheduler.
+    stats : Stats, optional
+        :func:`source_stats` of ``source`` at ``level`` with ``cap``, when the
+        caller has them (saves a pass over the volume).
 
     Returns
     -------
@@ -382,8 +396,10 @@ def isosurface_blocks(source, geometry, level: float, *, block_shape=DEFAULT_BLO
     if inside not in INSIDE_CHOICES:
         raise VolwarpError(f"inside must be one of {', '.join(INSIDE_CHOICES)}, got {inside!r}")
     check_arguments(data.dtype, level, inside)
-    with timed("isosurface blocks: whole-volume stats"):
-        stats = source_stats(data, block_shape, float(level), cap)
+    if stats is None:
+        with timed("isosurface blocks: whole-volume stats"):
+            stats = source_stats(data, block_shape, float(level), cap, threads=threads,
+                                 run=run)
     plan = mesh_plan(stats, data.shape, data.dtype, level, inside=inside, cap=cap,
                      normals=normals)
     blocks = cell_blocks(plan, block_shape)
@@ -499,7 +515,12 @@ def surface_mesh_blocks(source, geometry=None, iso: float | None = None, *,
     cleanup = Cleanup() if cleanup is None else cleanup
     data, geometry = _source(source, geometry)
     check_arguments(data.dtype, 0.0 if iso is None else iso, inside)
-    first = source_stats(data, block_shape, None)
+    given = iso is not None
+    with timed("isosurface blocks: whole-volume stats"):
+        # a given level: one pass gives the range and the level's facts, in the type flying
+        # edges runs on (the range is the same values in either type)
+        first = source_stats(data, block_shape, float(iso) if given else None, cap,
+                             threads=threads, run=run)
     if first.nan:
         raise VolwarpError(f"{name}: the volume contains NaN samples; an isosurface is not "
                            "defined there")
@@ -513,7 +534,8 @@ def surface_mesh_blocks(source, geometry=None, iso: float | None = None, *,
         mesh = Mesh.empty()
     else:
         mesh = isosurface_blocks(data, geometry, iso, block_shape=block_shape, inside=inside,
-                                 cap=cap, threads=threads, run=run)
+                                 cap=cap, threads=threads, run=run,
+                                 stats=first if given else None)
         if mesh.is_empty:
             empty_reason = f"no surface at level {iso:g} in {name} (the level is never crossed)"
         elif not cap and _border_touched(data, iso, inside, touches_border):
