@@ -196,7 +196,7 @@ class ForwardMap:
 
     def _slabs(self):
         nx, ny, nz = self.grid.input_shape
-        step = max(1, CHUNK * 8 // max(1, nx * ny))
+        step = self.slab_depth()
         wz_all = self._axis_weights(2, nz, False)
         dwz_all = self._axis_weights(2, nz, True)
         for z0 in range(0, nz, step):
@@ -205,24 +205,40 @@ class ForwardMap:
     def forward_field(self) -> np.ndarray:
         """F(x) - x on the input grid, world mm, [z, y, x, 3] float32."""
         nx, ny, nz = self.grid.input_shape
-        wy, wx = self._axis_weights(1, ny, False), self._axis_weights(0, nx, False)
         out = np.empty((nz, ny, nx, 3), np.float32)
-        for z0, wz, _ in self._slabs():
-            out[z0:z0 + len(wz)] = self._grid(wz, wy, wx) @ self.matrix.T
+        for z0, part in self.forward_field_slabs():
+            out[z0:z0 + len(part)] = part
         return out
+
+    def forward_field_slabs(self):
+        """:meth:`forward_field` slab by slab: ``(z0, planes [k, y, x, 3] float32)`` in order of z.
+
+        The slabs of :meth:`_slabs` (a few MB of samples each, whatever the grid's
+        size); :meth:`forward_field` is their concatenation, value for value.
+        """
+        nx, ny, nz = self.grid.input_shape
+        wy, wx = self._axis_weights(1, ny, False), self._axis_weights(0, nx, False)
+        for z0, wz, _ in self._slabs():
+            yield z0, (self._grid(wz, wy, wx) @ self.matrix.T).astype(np.float32)
 
     def jacobian(self) -> np.ndarray:
         """The det dF/dx on the input grid, [z, y, x] float32."""
         nx, ny, nz = self.grid.input_shape
+        out = np.empty((nz, ny, nx), np.float32)
+        for z0, part in self.jacobian_slabs():
+            out[z0:z0 + len(part)] = part
+        return out
+
+    def jacobian_slabs(self):
+        """:meth:`jacobian` slab by slab: ``(z0, planes [k, y, x] float32)`` in order of z."""
+        nx, ny, nz = self.grid.input_shape
         wy, wx = self._axis_weights(1, ny, False), self._axis_weights(0, nx, False)
         dwy, dwx = self._axis_weights(1, ny, True), self._axis_weights(0, nx, True)
-        out = np.empty((nz, ny, nx), np.float32)
         for z0, wz, dwz in self._slabs():
             cols = [self._grid(wz, wy, dwx), self._grid(wz, dwy, wx), self._grid(dwz, wy, wx)]
             j = np.stack(cols, axis=-1)  # [..., m, axis]
             j += np.eye(3)
-            out[z0:z0 + len(wz)] = np.linalg.det(j)
-        return out
+            yield z0, np.linalg.det(j).astype(np.float32)
 
     # ---- inverse ------------------------------------------------------------------------------
     def invert_index(self, y) -> tuple[np.ndarray, np.ndarray]:
@@ -391,9 +407,19 @@ class ForwardMap:
         from scipy.ndimage import binary_dilation
 
         near = np.argwhere(binary_dilation(neg, iterations=1))[:, ::-1].astype(np.float64)
+        mark = np.zeros(int(np.prod(shape_xyz)), bool)
+        for idx in self._fold_marks_of(near, shape_xyz, shift):
+            mark[idx] = True
+        return mark
+
+    def _fold_marks_of(self, near, shape_xyz, shift) -> np.ndarray:
+        """The flat output voxels the fold's samples around input voxels ``near`` map onto.
+
+        ``near``: (N, 3: x, y, z); see :meth:`_fold_image`. Yields int64 arrays, a chunk
+        of ``near`` at a time (unsorted, repeated).
+        """
         offs = np.stack(np.meshgrid(*[np.array([-1, 0, 1]) / 3.0] * 3, indexing="ij"),
                         -1).reshape(-1, 3)
-        mark = np.zeros(int(np.prod(shape_xyz)), bool)
         nx, ny, nz = shape_xyz
         for a in range(0, len(near), CHUNK // 27 + 1):
             x = (near[a:a + CHUNK // 27 + 1, None, :] + offs[None]).reshape(-1, 3)
@@ -407,8 +433,125 @@ class ForwardMap:
                 q = base + np.array(c)
                 ok = np.all((q >= 0) & (q < np.array([nx, ny, nz])), axis=1)
                 q = q[ok]
-                mark[(q[:, 2] * ny + q[:, 1]) * nx + q[:, 0]] = True
-        return mark
+                yield (q[:, 2] * ny + q[:, 1]) * nx + q[:, 0]
+
+    # ---- by slabs (out of core) ----------------------------------------------------------------
+    def slab_depth(self) -> int:
+        """The depth (input z planes) of the fields' slabs on the input grid.
+
+        Those of :meth:`forward_field_slabs` and :meth:`jacobian_slabs`: about ``CHUNK``
+        voxels (one plane, if larger), some 250 bytes of scratch a voxel for the Jacobian's.
+        """
+        nx, ny, _ = self.grid.input_shape
+        return max(1, CHUNK // max(1, nx * ny))
+
+    def _jacobian_fast_planes(self, z0: int, z1: int, threads: int | None = None) -> np.ndarray:
+        """:meth:`_jacobian_fast`'s planes [z0, z1) only, the same values (the same kernel)."""
+        from numpy.lib.stride_tricks import as_strided
+
+        from .. import parallel
+        from ._export_kernels import jacobian_rows
+
+        nx, ny, nz = self.grid.input_shape
+        out = np.empty((z1 - z0, ny, nx), np.float32)
+        dq = np.ascontiguousarray(self.dq)
+        regions = np.ascontiguousarray(self.regions, dtype=np.int64)
+
+        def plane(z):
+            # the kernel fills out[z] of a volume of nz planes: a view of nz planes that
+            # all lie on this one (z stride 0), of which it writes plane z only
+            p = out[z - z0]
+            view = as_strided(p, shape=(nz, ny, nx), strides=(0, *p.strides))
+            jacobian_rows(dq, self.org, self.h, regions, nx, ny, z, z + 1, view)
+
+        n = threads if threads is not None else parallel.threads()
+        n = max(1, min(int(n), z1 - z0))
+        if n == 1:
+            for z in range(z0, z1):
+                plane(z)
+        else:
+            parallel.run_blocks(plane, range(z0, z1), n)
+        return out
+
+    def fold_marks(self, shape_xyz, shift, *, depth: int | None = None,
+                   threads: int | None = None) -> np.ndarray | None:
+        """The fold image of :meth:`resampling_field` as sorted flat output voxel indices.
+
+        ``_fold_image(fast=True)``'s voxels (int64), computed by input slabs of ``depth``
+        planes. None when nothing folds. Memory: one slab of det, and the marks (as many as
+        the fold's image has voxels, none for a map that does not fold).
+        """
+        from scipy.ndimage import binary_dilation
+
+        nx, ny, nz = self.grid.input_shape
+        shift = np.asarray(shift, dtype=np.float64)
+        depth = max(1, int(depth or self.slab_depth()))
+        any_neg = False
+        marks = [np.zeros(0, np.int64)]
+        for z0 in range(0, nz, depth):
+            z1 = min(nz, z0 + depth)
+            a, b = max(0, z0 - 1), min(nz, z1 + 1)  # one plane more each side: the dilation's
+            neg = self._jacobian_fast_planes(a, b, threads) <= 0
+            if not neg.any():
+                continue
+            any_neg = True
+            core = binary_dilation(neg, iterations=1)[z0 - a:z1 - a]
+            near = np.argwhere(core)
+            if not len(near):
+                continue
+            near[:, 0] += z0
+            near = near[:, ::-1].astype(np.float64)
+            for idx in self._fold_marks_of(near, tuple(int(v) for v in shape_xyz), shift):
+                marks = [np.union1d(np.concatenate(marks), idx)]
+        if not any_neg:
+            return None
+        return marks[0]
+
+    def resampling_field_slabs(self, shape_xyz, shift, depth: int, *, warm: bool = True,
+                               threads: int | None = None):
+        """:meth:`resampling_field` by output slabs of ``depth`` planes, in order of z.
+
+        Yields ``(z0, planes [k, y, x, 3] float32, counts)``: the same values as the
+        whole field's planes (the same kernel, row by row), and each slab's counts
+        (they add up to the whole field's). Memory: one slab, and :meth:`fold_marks`.
+        """
+        from ._export_kernels import invert_rows
+
+        nx, ny, nz = (int(v) for v in shape_xyz)
+        shift = np.ascontiguousarray(shift, dtype=np.float64)
+        if np.any(shift != np.round(shift)):  # the slabs shift it by whole planes, exactly
+            raise ValueError("the output grid's shift must be whole voxels")
+        box_lo, box_hi = self._image_box()
+        marks = self.fold_marks((nx, ny, nz), shift, threads=threads)
+        dq = np.ascontiguousarray(self.dq)
+        regions = np.ascontiguousarray(self.regions, dtype=np.int64)
+        matrix = np.ascontiguousarray(self.matrix, dtype=np.float64)
+        depth = max(1, int(depth))
+        plane = nx * ny
+        for z0 in range(0, nz, depth):
+            z1 = min(nz, z0 + depth)
+            k = z1 - z0
+            out = np.empty((k, ny, nx, 3), np.float32)
+            status = np.empty((k, ny, nx), np.int8)
+            sh = shift.copy()
+            sh[2] += z0  # slab plane i is output plane z0 + i
+
+            def part(a, b, sh=sh, out=out, status=status):
+                invert_rows(dq, self.org, self.h, regions, sh, box_lo, box_hi, matrix, nx, ny,
+                            a, b, INVERSE_ITERATIONS, INVERSE_TOL, INVERSE_ACCEPT, bool(warm),
+                            out, status)
+
+            _run_slabs(part, k, plane, threads)
+            if marks is not None:
+                lo, hi = np.searchsorted(marks, [z0 * plane, z1 * plane])
+                folds = np.zeros(k * plane, bool)
+                folds[marks[lo:hi] - z0 * plane] = True
+                hit = (status == 0) & folds.reshape(k, ny, nx)
+                status[hit] = 2
+                out[hit] = np.nan
+            counts = {"voxels": k * plane, "no_inverse": int(np.count_nonzero(status == 1)),
+                      "folded": int(np.count_nonzero(status == 2))}
+            yield z0, out, counts
 
 
 def _run_slabs(part, nz: int, per_slice: int, threads: int | None) -> None:
@@ -458,6 +601,33 @@ def write_field(field: np.ndarray, geometry: Volume, path: str, meta: dict, kind
                    components=[field[..., m] for m in range(3)], component_names=["x", "y", "z"])
         return
     _write_nifti_field(field, vol, path, kind)
+
+
+def field_block_output(path: str, geometry: Volume, meta: dict, kind: str, depth: int):
+    """The block output of a displacement field written by slabs: an uncompressed NRRD.
+
+    A :class:`~volwarp_cli.io.blockwrite.BlockOutput` of blocks of ``depth`` z planes.
+
+    The header is :func:`write_field`'s (``kinds: vector domain domain domain``, LPS,
+    the same key/values) but for ``encoding: raw``: the gzip stream of the in-memory
+    file cannot be placed slab by slab. A NIfTI path is a VolwarpError.
+    """
+    from ..geometry import Geometry
+    from ..io.blockwrite import open_block_output
+
+    if field_format(path) != "nrrd":
+        raise VolwarpError(f"{path}: a NIfTI displacement field cannot be written by blocks "
+                           "(write .nrrd: uncompressed by blocks)")
+    meta = dict(meta)
+    meta["volwarp_field"] = kind
+    meta["volwarp_field_units"] = "mm (LPS)"
+    if kind == "resampling":
+        meta["displacement field type"] = "resampling"
+    meta.pop("volwarp_components", None)
+    nz, ny, nx = geometry.data.shape
+    return open_block_output(path, Geometry.of(geometry), np.float32,
+                             chunks_zyx=(max(1, int(depth)), ny, nx), metadata=meta, space=LPS,
+                             components=["x", "y", "z"])
 
 
 def _write_nifti_field(field, vol: Volume, path: str, kind: str) -> None:

@@ -8,6 +8,17 @@ input grid, the ITK transform (``--transform-to``), and moved points and
 meshes (``--points-in``/``--points-to``, ``--mesh-in``/``--mesh-to``).
 :func:`write_exports` writes the requested ones (each file atomic on its
 own) and returns their figures.
+
+By blocks (``warp --chunked``, :class:`FieldBlocks`): the small exports
+(transform, points, meshes) depend on the final lattice only and are made
+as in memory; the volume-sized fields are computed and written slab by slab
+of z planes (their values are per voxel: the same float32 values as in
+memory, and the same figures, the slabs' counts added and their extremes
+combined) into block outputs (:mod:`volwarp_cli.io.blockwrite`), so that
+no whole field is held. A field is then an uncompressed NRRD (the in-memory
+one is gzip NRRD or NIfTI, which cannot be placed by slabs:
+:func:`block_export_problem` says so before any work), the Jacobian any
+format written by blocks (uncompressed NRRD, MetaImage, raw, OME-Zarr).
 """
 
 from __future__ import annotations
@@ -40,7 +51,91 @@ class ExportRequests:
         return any(getattr(self, f.name) is not None for f in fields(self))
 
 
-def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict) -> dict:
+#: the most field samples (bytes) a slab of the displacement field holds by blocks
+SLAB_BYTES = 16 << 20
+
+
+@dataclass(frozen=True)
+class FieldBlocks:
+    """How :func:`write_exports` writes the volume-sized fields by slabs.
+
+    ``memory``: the bytes a slab of the displacement field may take (its
+    depth is chosen from it, and :data:`SLAB_BYTES` at most, unless ``depth``
+    is given: output z planes per slab). The forward field and the Jacobian go by the slabs of
+    :meth:`.export.ForwardMap.slab_depth` (about 131 000 voxels each, the
+    in-memory export's own slabs); ``threads`` for the inversion (None: the CPUs).
+    """
+
+    memory: int
+    depth: int | None = None
+    threads: int | None = None
+
+    def displacement_depth(self, plane_voxels: int) -> int:
+        """The output z planes of a slab of the displacement field, planes of ``plane_voxels``."""
+        # a slab's field (12 bytes a voxel), status (1), the fold mask (1) and the
+        # slab being placed (12, at most one more): about 40 bytes a voxel
+        if self.depth is not None:
+            return max(1, int(self.depth))
+        # no more than SLAB_BYTES of field a slab: a larger one saves nothing
+        most = min(int(self.memory) // 40, SLAB_BYTES // 12)
+        return max(1, most // max(1, int(plane_voxels)))
+
+
+def block_export_problem(requests: ExportRequests) -> str | None:
+    """Why ``requests`` cannot be written by blocks (a sentence naming the option), or None.
+
+    The fields are written by blocks as uncompressed NRRD only (not NIfTI), the
+    Jacobian in a format written by blocks (:func:`~volwarp_cli.io.blockwrite.check_block_format`).
+    """
+    from ..errors import VolwarpError
+    from ..io.blockwrite import check_block_format
+    from .export import field_format
+
+    for name, path in (("--displacement-to", requests.displacement),
+                       ("--forward-field-to", requests.forward)):
+        if path is not None and field_format(path) != "nrrd":
+            return (f"{name} {path}: a NIfTI field cannot be written by blocks; write .nrrd "
+                    "(by blocks it is written uncompressed)")
+    if requests.jacobian is not None:
+        try:
+            check_block_format(requests.jacobian)
+        except VolwarpError as exc:
+            return f"--jacobian-to {exc}"
+    return None
+
+
+def _place_slabs(out, slabs, counts=None) -> None:
+    """Write ``(z0, planes, ...)`` slabs (in order of z, covering the grid) into ``out``.
+
+    ``out``'s blocks span whole planes (any z edges: a store's grid may start
+    at the far end); a slab is cut or joined to its blocks, at most one slab
+    more held. ``counts``: each slab's third item is added into it (a dict).
+    """
+    from ..box import Box
+
+    nz, ny, nx = out.geometry.shape
+    edges = sorted({(b.lo[0], b.hi[0]) for b in out.blocks()})
+    if any((b.lo[1:], b.hi[1:]) != ((0, 0), (ny, nx)) for b in out.blocks()):
+        raise ValueError("slabs are placed into blocks of whole planes")  # pragma: no cover
+    it = iter(slabs)
+    buf, start = None, 0  # buf: planes [start, start + len(buf))
+    for b0, b1 in edges:
+        while buf is None or start + len(buf) < b1:
+            item = next(it)
+            z0, planes = item[0], item[1]
+            if counts is not None:
+                for k, v in item[2].items():
+                    counts[k] = counts.get(k, 0) + v
+            if buf is None or not len(buf):
+                buf, start = planes, z0
+            else:
+                buf = np.concatenate([buf, planes])
+        out.write(Box((b0, 0, 0), (b1, ny, nx)), buf[b0 - start:b1 - start])
+        buf, start = buf[b1 - start:], b1
+
+
+def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict,
+                  blocks: FieldBlocks | None = None) -> dict:
     """Write the exports of ``warp`` and return their figures, keyed as ``warp --json`` has them.
 
     ``warp`` is a rendered :class:`.run.IntensityWarp`, whose final lattice they
@@ -50,6 +145,11 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
 
     ``meta``: the key/values (provenance) of the field, Jacobian and transform
     files; ``mesh_meta``: the moved mesh's comments.
+
+    ``blocks``: write the fields by slabs (:class:`FieldBlocks`; check the paths
+    with :func:`block_export_problem` first). ``warp`` then needs no rendering:
+    its capture, scene and frames (a warp made with ``WarpOptions(blocks=True)``).
+    The same values and figures as in memory.
     """
     from .export import (
         ForwardMap,
@@ -76,33 +176,62 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
         out_grid = Volume(np.zeros(shape, np.uint8), spacing=g.spacing, origin=origin,
                           direction=g.direction, space=g.space)
         shift = np.array([window[2].start, window[1].start, window[0].start]) - np.array(scene.pad)
-        with timed(f"invert the map on {shape[2]}x{shape[1]}x{shape[0]} voxels"):
-            field, counts = fmap.resampling_field(shape[::-1], shift)
+        if blocks is None:
+            with timed(f"invert the map on {shape[2]}x{shape[1]}x{shape[0]} voxels"):
+                field, counts = fmap.resampling_field(shape[::-1], shift)
+        else:
+            from ..io.blockwrite import committed
+            from .export import field_block_output
+
+            depth = blocks.displacement_depth(shape[1] * shape[2])
+            counts = {}
+            with timed(f"invert the map on {shape[2]}x{shape[1]}x{shape[0]} voxels and write "
+                       f"{path}, by slabs of {depth} planes"), \
+                    committed(field_block_output(path, out_grid, meta, "resampling",
+                                                 depth)) as out:
+                _place_slabs(out, fmap.resampling_field_slabs(shape[::-1], shift, depth,
+                                                              threads=blocks.threads),
+                             counts)
         log.info("%s: %s", path, field_stats_ok(counts))
         if counts["folded"]:
             log.warning("%s: the map folds: %d voxels have no single inverse (NaN)", path,
                         counts["folded"])
-        with timed(f"write {path}"):
-            write_field(field, out_grid, path, meta, "resampling")
+        if blocks is None:
+            with timed(f"write {path}"):
+                write_field(field, out_grid, path, meta, "resampling")
+            del field
         stats["displacement"] = {"path": str(path), "voxels": counts["voxels"],
                                  "folded": counts["folded"],
                                  "no_preimage": counts["no_inverse"]}
-        del field
     if requests.forward is not None:
         path = requests.forward
-        with timed(f"write {path}"):
-            write_field(fmap.forward_field(), in_grid, path, meta, "forward")
+        if blocks is None:
+            with timed(f"write {path}"):
+                write_field(fmap.forward_field(), in_grid, path, meta, "forward")
+        else:
+            from ..io.blockwrite import committed
+            from .export import field_block_output
+
+            with timed(f"write {path}, by slabs"), \
+                    committed(field_block_output(path, in_grid, meta, "forward",
+                                                 fmap.slab_depth())) as out:
+                _place_slabs(out, fmap.forward_field_slabs())
     if requests.jacobian is not None:
         path = requests.jacobian
-        det = fmap.jacobian()
-        st = jacobian_stats(det)
+        jmeta = {**dict(g.meta), **meta, "volwarp_field": "jacobian"}
+        if blocks is None:
+            det = fmap.jacobian()
+            st = jacobian_stats(det)
+        else:
+            st = _jacobian_by_slabs(fmap, in_grid, path, jmeta)
         log.info("%s: det dF/dx min %.4g, max %.4g; %.3g%% of voxels below 0, %.3g%% below 0.1",
                  path, st["min"], st["max"], 100 * st["below_0"], 100 * st["below_0.1"])
         stats["jacobian"] = {"path": str(path), "min": st["min"], "max": st["max"],
                              "below_0": st["below_0"], "below_0_1": st["below_0.1"]}
-        jmeta = {**dict(g.meta), **meta, "volwarp_field": "jacobian"}
-        with timed(f"write {path}"):
-            write_volume(in_grid.with_data(det, meta=jmeta), path)
+        if blocks is None:
+            with timed(f"write {path}"):
+                write_volume(in_grid.with_data(det, meta=jmeta), path)
+            del det
     if requests.transform is not None:
         path = requests.transform
         with timed(f"write {path}"):
@@ -126,3 +255,34 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
             write_mesh(out, path, comments={**mesh_meta, "volwarp_field": "forward"})
         stats["mesh"] = {"path": str(path), "count": len(inside), "outside": outside}
     return stats
+
+
+def _jacobian_by_slabs(fmap, in_grid: Volume, path: str, jmeta: dict) -> dict:
+    """Write det dF/dx to ``path`` slab by slab; its :func:`.export.jacobian_stats`.
+
+    The figures of the whole map, reduced exactly: the extremes combined, the
+    counts below 0 and 0.1 added, then divided by the voxels.
+    """
+    from ..geometry import Geometry
+    from ..io.blockwrite import committed, open_block_output
+
+    nz, ny, nx = in_grid.data.shape
+    acc = {"min": np.inf, "max": -np.inf, "neg": 0, "low": 0, "n": 0}
+
+    def slabs():
+        for z0, det in fmap.jacobian_slabs():
+            d = det.astype(np.float64, copy=False)
+            acc["min"] = min(acc["min"], float(d.min()))
+            acc["max"] = max(acc["max"], float(d.max()))
+            acc["neg"] += int(np.count_nonzero(d < 0))
+            acc["low"] += int(np.count_nonzero(d < 0.1))
+            acc["n"] += d.size
+            yield z0, det
+
+    out = open_block_output(path, Geometry.of(in_grid), np.float32,
+                            chunks_zyx=(fmap.slab_depth(), ny, nx), metadata=jmeta,
+                            space=in_grid.space)
+    with timed(f"write {path}, by slabs"), committed(out):
+        _place_slabs(out, slabs())
+    return {"min": acc["min"], "max": acc["max"], "below_0": float(acc["neg"] / acc["n"]),
+            "below_0.1": float(acc["low"] / acc["n"])}

@@ -1,0 +1,234 @@
+"""`volwarp warp --chunked` with the deformation's exports: the same values as in memory.
+
+The fields (displacement, forward, Jacobian) are computed and written by slabs; the
+transform, points and mesh come from the by-blocks warp's lattice. Odd sizes, an
+oblique and a flipped direction, slabs that do not divide the grid, a folding map;
+the NIfTI refusal and a failing slab that leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from volwarp_cli.bspline import export
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.volume import Volume
+
+ANG = np.deg2rad(25)
+OBLIQUE = np.array([[np.cos(ANG), -np.sin(ANG), 0], [np.sin(ANG), np.cos(ANG), 0], [0, 0, 1]])
+FLIPPED = np.array([[-1.0, 0, 0], [0, 1.0, 0], [0, 0, -1.0]])
+
+SPEC = """version: 1
+units: voxel
+capture: {lattice: [6, 5, 7]}
+steps:
+  - move:
+      - {index: [2, 2, 3], by: [2.5, -1.5, 2.0]}
+      - {index: [3, 2, 2], by: [-1.5, 1.0, -2.5]}
+"""
+FOLD = """version: 1
+units: voxel
+capture: {lattice: 6}
+steps:
+  - move:
+      - {index: [3, 3, 3], by: [30.0, 0.0, 0.0]}
+"""
+
+
+def _volume(direction, shape=(18, 20, 24)):
+    nz, ny, nx = shape
+    z, y, x = np.mgrid[:nz, :ny, :nx].astype(float)
+    data = (100 * np.exp(-((x - 11.5) ** 2 / 40 + (y - 9.5) ** 2 / 30 + (z - 8.5) ** 2 / 20))
+            ).astype(np.float32)
+    return Volume(data, spacing=(1.0, 1.2, 1.5), origin=(-10, 5, 3), direction=direction)
+
+
+def _inputs(tmp_path, direction, spec_text=SPEC, shape=(18, 20, 24)):
+    vol = _volume(direction, shape)
+    src = tmp_path / "in.nrrd"
+    write_volume(vol, src)
+    spec = tmp_path / "w.yaml"
+    spec.write_text(spec_text)
+    pts = tmp_path / "p.csv"
+    c = vol.index_to_world([[3, 4, 5], [11.5, 9.5, 8.5], [20, 15, 2], [-30, 0, 0]])
+    pts.write_text("name,x,y,z\n" + "".join(f"p{i},{float(a)!r},{float(b)!r},{float(d)!r}\n"
+                                          for i, (a, b, d) in enumerate(c)))
+    mesh = tmp_path / "m.ply"
+    v = vol.index_to_world([[5, 5, 5], [15, 5, 5], [5, 15, 5], [5, 5, 12]])
+    mesh.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\n"
+                    "property float y\nproperty float z\nelement face 4\n"
+                    "property list uchar int vertex_indices\nend_header\n"
+                    + "".join(f"{float(a)} {float(b)} {float(d)}\n" for a, b, d in v)
+                    + "3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n")
+    return src, spec, pts, mesh
+
+
+def _exports(d, pts, mesh, jac=".nrrd"):
+    return ["--displacement-to", d / "disp.nrrd", "--forward-field-to", d / "fwd.nrrd",
+            "--jacobian-to", d / f"jac{jac}", "--transform-to", d / "t.tfm",
+            "--points-in", pts, "--points-to", d / "q.csv", "--mesh-in", mesh,
+            "--mesh-to", d / "m2.ply", "--json"]
+
+
+def _header(path):
+    raw = path.read_bytes()
+    head = raw[:raw.index(b"\n\n")].decode("latin-1").splitlines()
+    return [line for line in head if not line.startswith("encoding:")]
+
+
+def _same_exports(mem, blk, jac=".nrrd"):
+    for name in ("disp.nrrd", "fwd.nrrd"):
+        fa, fb = _field(mem / name), _field(blk / name)
+        assert fa.dtype == fb.dtype == np.float32
+        assert np.array_equal(fa, fb, equal_nan=True), name
+        assert _header(mem / name) == _header(blk / name)
+        assert b"encoding: raw" in (blk / name).read_bytes()[:2000]
+    ja, jb = read_volume(mem / f"jac{jac}"), read_volume(blk / f"jac{jac}")
+    assert np.array_equal(ja.data, jb.data) and jb.data.dtype == np.float32
+    assert np.allclose(ja.origin, jb.origin) and np.allclose(ja.direction, jb.direction)
+    if jac == ".nrrd":  # the in-memory Jacobian is a raw NRRD too: the same bytes
+        assert (mem / "jac.nrrd").read_bytes() == (blk / "jac.nrrd").read_bytes()
+    for name in ("t.tfm", "q.csv", "m2.ply"):
+        assert (mem / name).read_bytes() == (blk / name).read_bytes(), name
+
+
+def _field(path):
+    sitk = pytest.importorskip("SimpleITK")
+    img = sitk.ReadImage(str(path))
+    assert img.GetNumberOfComponentsPerPixel() == 3
+    return sitk.GetArrayFromImage(img)
+
+
+def _figures(summary):
+    out = {k: summary[k] for k in ("jacobian", "displacement", "points", "mesh", "handles",
+                                   "shape")}
+    for k in ("jacobian", "displacement", "points", "mesh"):
+        out[k] = {**out[k], "path": out[k]["path"].rsplit("/", 1)[-1]}
+    return out
+
+
+@pytest.mark.parametrize("direction, crop", [(OBLIQUE, False), (FLIPPED, True)])
+def test_chunked_exports_equal_the_in_memory_ones(run, tmp_path, direction, crop):
+    src, spec, pts, mesh = _inputs(tmp_path, direction)
+    mem, blk = tmp_path / "mem", tmp_path / "blk"
+    mem.mkdir(), blk.mkdir()
+    extra = ["--crop"] if crop else []
+    a = run("warp", src, "--spec", spec, "-o", mem / "o.nrrd", *extra, *_exports(mem, pts, mesh))
+    assert a.code == 0, a.stderr
+    b = run("warp", src, "--spec", spec, "-o", blk / "o.nrrd", *extra, "--chunked",
+            "--block", "7,13,17", *_exports(blk, pts, mesh))
+    assert b.code == 0, b.stderr
+    sa, sb = json.loads(a.stdout), json.loads(b.stdout)
+    assert _figures(sa) == _figures(sb)
+    assert sb["displacement"]["voxels"] == int(np.prod(sb["shape"]))
+    assert sb["points"]["outside"] == 1
+    assert (mem / "o.nrrd").read_bytes() == (blk / "o.nrrd").read_bytes()
+    _same_exports(mem, blk)
+
+
+def test_slabs_of_a_folding_map_to_an_ome_zarr_jacobian(run, tmp_path, monkeypatch):
+    """Several slabs of every field (a small CHUNK), a fold, a Jacobian store."""
+    monkeypatch.setattr(export, "CHUNK", 2048)  # forward/Jacobian slabs of 4 planes
+    src, spec, pts, mesh = _inputs(tmp_path, FLIPPED, FOLD)
+    mem, blk = tmp_path / "mem", tmp_path / "blk"
+    mem.mkdir(), blk.mkdir()
+    a = run("warp", src, "--spec", spec, "-o", mem / "o.nrrd",
+            *_exports(mem, pts, mesh, ".ome.zarr"))
+    assert a.code == 0, a.stderr
+    b = run("warp", src, "--spec", spec, "-o", blk / "o.nrrd", "--chunked", "--block", "5",
+            *_exports(blk, pts, mesh, ".ome.zarr"))
+    assert b.code == 0, b.stderr
+    sa, sb = json.loads(a.stdout), json.loads(b.stdout)
+    assert sb["displacement"]["folded"] > 0 and sb["jacobian"]["below_0"] > 0
+    assert _figures(sa) == _figures(sb)
+    _same_exports(mem, blk, ".ome.zarr")
+
+
+def test_fold_marks_by_slabs_are_the_fold_image():
+    vol = _volume(OBLIQUE)
+    rng = np.random.default_rng(1)
+    grid = _grid_of(vol)
+    dq = rng.normal(0, 2.0, grid.lattice[::-1] + (3,))  # folds (det <= 0) in places
+    fmap = export.ForwardMap(grid, dq, vol)
+    shape, shift = (27, 22, 19), np.array([-2.0, -1.0, -1.0])
+    whole = fmap._fold_image(shape, shift, fast=True)
+    assert whole is not None and whole.any()
+    for depth in (1, 4, 7, 100):
+        marks = fmap.fold_marks(shape, shift, depth=depth)
+        assert np.array_equal(marks, np.flatnonzero(whole))
+    field, counts = fmap.resampling_field(shape, shift)
+    got = np.empty_like(field)
+    total = {}
+    for z0, part, c in fmap.resampling_field_slabs(shape, shift, 4):
+        got[z0:z0 + len(part)] = part
+        for k, v in c.items():
+            total[k] = total.get(k, 0) + v
+    assert np.array_equal(got, field, equal_nan=True) and total == counts
+
+
+def _grid_of(vol):
+    from volwarp_cli.bspline.lattice import Grid
+
+    return Grid.create(vol.shape_xyz, (9, 9, 9), 2)
+
+
+def test_nifti_fields_are_refused_by_blocks_before_any_work(run, tmp_path):
+    src, spec, _, _ = _inputs(tmp_path, OBLIQUE)
+    for opt, name in (("--displacement-to", "d.nii.gz"), ("--forward-field-to", "f.nii"),
+                      ("--jacobian-to", "j.nii.gz")):
+        res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--chunked",
+                  opt, tmp_path / name)
+        assert res.code == 2, res.stderr
+        assert opt in res.stderr and "block" in res.stderr
+        assert not (tmp_path / "o.nrrd").exists() and not (tmp_path / name).exists()
+
+
+def test_a_failing_slab_leaves_no_partial_export(run, tmp_path, monkeypatch):
+    src, spec, pts, mesh = _inputs(tmp_path, OBLIQUE)
+    disp = tmp_path / "disp.nrrd"
+    disp.write_bytes(b"old")
+    calls = []
+    original = export.ForwardMap.resampling_field_slabs
+
+    def broken(self, *args, **kw):
+        for item in original(self, *args, **kw):
+            calls.append(item[0])
+            if len(calls) == 2:
+                raise export.VolwarpError("disk full (test)")
+            yield item
+
+    monkeypatch.setattr(export.ForwardMap, "resampling_field_slabs", broken)
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--chunked",
+              "--block", "3,64,64", "--displacement-to", disp)
+    assert res.code == 1 and "disk full (test)" in res.stderr
+    assert disp.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir() if "part" in p.name or "tmp" in p.name] == []
+
+
+def test_a_warp_too_big_for_memory_writes_its_exports_by_blocks(run, tmp_path, monkeypatch):
+    """No --chunked: the in-memory refusal switches to blocks, exports and all; a NIfTI
+    field keeps the refusal (it cannot be written by blocks)."""
+    from volwarp_cli import memory
+    from volwarp_cli.cli import chunked
+
+    src, spec, pts, mesh = _inputs(tmp_path, OBLIQUE, shape=(33, 35, 37))
+    mem, blk = tmp_path / "mem", tmp_path / "blk"
+    mem.mkdir(), blk.mkdir()
+    a = run("warp", src, "--spec", spec, "-o", mem / "o.nrrd", *_exports(mem, pts, mesh))
+    assert a.code == 0, a.stderr
+    monkeypatch.setattr(memory, "process_rss", lambda: 0)
+    monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
+    b = run("warp", src, "--spec", spec, "-o", blk / "o.nrrd", "--memory-limit", "200K",
+            *_exports(blk, pts, mesh))
+    assert b.code == 0, b.stderr
+    assert "running by blocks" in b.stderr
+    assert _figures(json.loads(a.stdout)) == _figures(json.loads(b.stdout))
+    _same_exports(mem, blk)
+    nii = tmp_path / "d.nii.gz"
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o2.nrrd", "--memory-limit", "200K",
+              "--displacement-to", nii)
+    assert res.code == 1 and "needs" in res.stderr and "running by blocks" not in res.stderr
+    assert not nii.exists() and not (tmp_path / "o2.nrrd").exists()
