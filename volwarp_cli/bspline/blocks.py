@@ -205,7 +205,9 @@ class WarpBlocks:
         self.sampling = sampling
         self.window = window  # the output's box of the target
         self.dtype = np.dtype(dtype)
-        self._sampler = sampler  # (given: in this process only; dropped when pickled)
+        # given: in this process only, dropped when pickled, unless it is ``portable``
+        # (a capture file's stored domain: its path travels, the worker reads the file)
+        self._sampler = sampler
         self._built = None
 
     def _scene(self):
@@ -220,11 +222,13 @@ class WarpBlocks:
         return self._built
 
     def __getstate__(self):
-        if self.source is None:
+        portable = getattr(self._sampler, "portable", False)
+        if self.source is None and not portable:
             raise TypeError("a warp job of a held domain runs in this process only")
         state = dict(self.__dict__)
         state["_built"] = None
-        state["_sampler"] = None
+        if not portable:
+            state["_sampler"] = None
         return state
 
     def output_block(self, out_box: Box) -> np.ndarray:

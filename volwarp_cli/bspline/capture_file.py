@@ -237,6 +237,12 @@ def read_capture(path: str | os.PathLike) -> Capture:
         raise FormatError(f"{path}: capture file is corrupt (payload checksum mismatch)")
     domain = np.frombuffer(buf, dtype=dtype).reshape(shape)
     domain = domain.astype(dtype.newbyteorder("="), copy=False)
+    return _capture_of(head, domain, path)
+
+
+def _capture_of(head: dict, domain, path, sampler=None) -> Capture:
+    """The :class:`~.capture.Capture` a checked header describes, over ``domain`` or ``sampler``."""
+    pl = head["payload"]
     try:
         inp = head["input"]
         capd = head["capture"]
@@ -250,11 +256,83 @@ def read_capture(path: str | os.PathLike) -> Capture:
         pad = capd["pad"]
         return Capture(domain, grid, capd["placement"], float(capd["oversample"]),
                        capd["sampling"], tuple(pad) if pad is not None else None, geometry,
-                       np.dtype(inp["dtype"]), (inp["min"], inp["max"], inp["mean"]))
+                       np.dtype(inp["dtype"]), (inp["min"], inp["max"], inp["mean"]),
+                       sampler)
     except (ValueError, KeyError, TypeError) as exc:
         raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
     except Exception as exc:  # a Volume check failing on bad geometry
         raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
+
+
+class StoredDomain:
+    """A capture file's domain voxmap, read box by box from the file (never held whole).
+
+    The sampler of :func:`open_capture_lazy`'s deferred capture: the same
+    interface as :class:`.pullback.BoxSampler` (``box``, ``input_box``,
+    ``planes``, ``shape``, ``dtype``, ``source``), but each domain voxel is
+    stored, not gathered. ``portable``: picklable as the file's path and
+    offset, so a block task in another process reads the file itself.
+    """
+
+    portable = True
+
+    def __init__(self, array):
+        self.source = array  # a FileArray of the payload (z, y, x)
+        self.shape = tuple(array.shape)
+        self.dtype = np.dtype(array.dtype).newbyteorder("=")
+
+    def input_box(self, box):
+        """The stored voxels ``box`` reads: its own."""
+        return box
+
+    def box(self, box) -> np.ndarray:
+        """The domain samples of ``box`` (a :class:`~volwarp_cli.box.Box`, z y x), contiguous."""
+        if box.empty:
+            return np.empty(box.shape, dtype=self.dtype)
+        return np.ascontiguousarray(self.source[box.slices], dtype=self.dtype)
+
+    def planes(self, g0: int, g1: int, out: np.ndarray | None = None) -> np.ndarray:
+        """Domain planes [g0, g1), whole."""
+        planes = self.source[g0:g1]
+        if out is None:
+            return np.ascontiguousarray(planes, dtype=self.dtype)
+        out[...] = planes
+        return out
+
+
+#: payload bytes the checksum pass reads at a time
+_CRC_CHUNK = 64 << 20
+
+
+def open_capture_lazy(path: str | os.PathLike) -> Capture:
+    """A capture file as a deferred :class:`~.capture.Capture`: its domain left in the file.
+
+    The same checks as :func:`read_capture` (magic, version, header, size,
+    and the payload's CRC-32, in one streamed pass of bounded memory); the
+    capture's ``sampler`` is a :class:`StoredDomain` reading boxes of the
+    payload, so a warp by blocks never holds the domain.
+    """
+    from ..io.filearray import FileArray
+
+    head, offset = read_header(path)
+    pl = head["payload"]
+    nbytes = int(pl["nbytes"])
+    crc = 0
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        left = nbytes
+        while left:
+            chunk = fh.read(min(left, _CRC_CHUNK))
+            if not chunk:
+                raise FormatError(f"{path}: capture file is truncated")
+            crc = zlib.crc32(chunk, crc)
+            left -= len(chunk)
+    if crc != int(pl["crc32"]):
+        raise FormatError(f"{path}: capture file is corrupt (payload checksum mismatch)")
+    dtype = np.dtype(pl["dtype"]).newbyteorder("<")
+    shape = tuple(int(v) for v in pl["shape"])[::-1]
+    sampler = StoredDomain(FileArray(path, dtype, offset, shape))
+    return _capture_of(head, None, path, sampler=sampler)
 
 
 def describe_capture(path: str | os.PathLike) -> dict:

@@ -117,12 +117,15 @@ def _check_pattern(pattern: str) -> None:
 @click.option("--displacement-to", default=None, metavar="FIELD",
               help="Write the resampling displacement field y -> F^-1(y) - y (LPS mm) on the "
                    "output grid, as ITK, ANTs and Slicer resample with (.nii.gz or .nrrd); "
-                   "NaN where the map folds or has no inverse.")
+                   "NaN where the map folds or has no inverse. With --chunked: written by slabs, "
+                   "as .nrrd only, uncompressed (the same values).")
 @click.option("--forward-field-to", default=None, metavar="FIELD",
               help="Write the forward (modelling) field x -> F(x) - x (LPS mm) on the input "
-                   "grid (.nii.gz or .nrrd).")
+                   "grid (.nii.gz or .nrrd; with --chunked: by slabs, .nrrd only, uncompressed).")
 @click.option("--jacobian-to", default=None, metavar="MAP",
-              help="Write det dF/dx on the input grid (float32, any volume format).")
+              help="Write det dF/dx on the input grid (float32, any volume format; with "
+                   "--chunked: by slabs, a format written by blocks: uncompressed .nrrd, "
+                   ".mha, raw or .ome.zarr).")
 @click.option("--transform-to", default=None, metavar="F.tfm",
               help="Write the forward map as an ITK BSplineTransform (.tfm), for moving "
                    "points; ITK tools read it as a resampling transform: do not resample "
@@ -176,48 +179,65 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                                f"inputs, not the capture file {input}")
     options = WarpOptions(pushforward=pushforward, evaluator=evaluator, background=background,
                           crop=crop, dtype=dtype, allow_growth=allow_growth)
-    blocks_refused = _blocks_refused(is_capture, frames_to, exports)
+    blocks_refused = _blocks_refused(frames_to)
     chunked = scale_settings().chunked
     if chunked and blocks_refused:
-        raise click.UsageError(f"--chunked warps a volume (intensities or labels) to one "
-                               f"output: not {blocks_refused} (these run in memory)")
+        raise click.UsageError(f"--chunked warps a volume or a capture file to one output: "
+                               f"not {blocks_refused} (these run in memory)")
+    exports_refused = None
+    if exports:
+        from ..bspline.export_outputs import block_export_problem
+
+        exports_refused = block_export_problem(exports)
+        if chunked and exports_refused:
+            raise click.UsageError(f"--chunked: {exports_refused}")
     write_kw = dict(compress=compress, byte_order=byte_order, **ome_zarr)
     if chunked:
         summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
                                   write_kw, labels=labels, preserve=preserve_labels,
-                                  dicom=dicom)
+                                  dicom=dicom, exports=exports, is_capture=is_capture)
     else:
         try:
             summary = _warp_in_memory(input, spec_path, output, options, frames_to, labels,
                                       preserve_labels, exports, is_capture, raw, volume_index,
                                       dicom, write_kw)
         except OutOfMemoryError as exc:
-            if blocks_refused or chunked is False:
+            if blocks_refused or exports_refused or chunked is False:
                 raise
             summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
                                       write_kw, fallback=exc, labels=labels,
-                                      preserve=preserve_labels, dicom=dicom)
+                                      preserve=preserve_labels, dicom=dicom, exports=exports,
+                                      is_capture=is_capture)
     if as_json:
         _print_json(summary)
 
 
-def _blocks_refused(is_capture, frames_to, exports) -> str | None:
-    """Why this warp cannot run by blocks (a phrase), or None."""
-    for why, given in (("a capture file (.vwc)", is_capture),
-                       ("--frames-to", frames_to), ("the deformation's exports", exports)):
-        if given:
-            return why
-    return None
+def _blocks_refused(frames_to) -> str | None:
+    """Why this warp cannot run by blocks (a phrase), or None.
+
+    (The deformation's exports run by blocks too, but for a NIfTI field or a
+    Jacobian in a format not written by blocks:
+    :func:`~volwarp_cli.bspline.export_outputs.block_export_problem`.)
+    """
+    return "--frames-to" if frames_to else None
 
 
 def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw, *,
                     fallback: OutOfMemoryError | None = None, labels: bool = False,
-                    preserve: bool = False, dicom=None) -> dict:
+                    preserve: bool = False, dicom=None, exports=None,
+                    is_capture: bool = False) -> dict:
     """The warp by output blocks on Dask (:mod:`volwarp_cli.bspline.blocks`).
 
     ``fallback``: the in-memory warp's refusal, when this runs instead of it
     (no --chunked given); raised again where the blocks cannot help either
     (an output format not written by blocks, an output larger than the disk).
+
+    ``exports`` (checked by the caller with ``block_export_problem``): written
+    after the output, as in memory, the fields by slabs
+    (:func:`volwarp_cli.bspline.export_outputs.write_exports` with ``blocks``).
+
+    ``is_capture``: ``input`` is a capture file, whose domain each block reads
+    from the file (:class:`~volwarp_cli.bspline.capture_file.StoredDomain`).
     """
     from dataclasses import replace
 
@@ -232,8 +252,14 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
     validate(doc, load_schema("warp"))
     spec = read_warp_spec(doc)
     if spec.values == "labels" and not labels:  # the spec says what --labels says
+        if is_capture:
+            raise doc.error(("values",), "labels are warped from a volume, without a capture "
+                            "file")
         if options.dtype is not None:
             raise doc.error(("values",), "labels are warped from a volume, without --dtype")
+        if exports:
+            raise doc.error(("values",), "labels are warped from a volume, without the "
+                            "deformation's exports")
         labels = True
     if preserve and not labels:
         raise click.UsageError("--preserve-labels needs --labels (or the spec's "
@@ -243,15 +269,29 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
         return _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index,
                                       write_kw, doc, spec, fallback=fallback, preserve=preserve,
                                       dicom=dicom)
-    template, source = lazy_input(input, raw, volume_index, dicom)
-    c = spec.capture
-    with timed("input range (one pass)"):
-        try:
-            cap = capture_source(template, source, lattice=c.lattice, placement=c.placement,
-                                 oversample=c.oversample, sampling=c.sampling)
-        except VolwarpError as exc:
-            raise VolwarpError(f"{input}: {exc}") from None
+    if is_capture:
+        from ..bspline.capture_file import open_capture_lazy
+        from ..bspline.warp import check_capture_settings
+
+        with timed(f"check {input} (one pass)"):
+            cap = open_capture_lazy(input)
+        check_capture_settings(doc, spec, cap, input)
+        source = None
+    else:
+        template, source = lazy_input(input, raw, volume_index, dicom)
+        c = spec.capture
+        with timed("input range (one pass)"):
+            try:
+                cap = capture_source(template, source, lattice=c.lattice,
+                                     placement=c.placement, oversample=c.oversample,
+                                     sampling=c.sampling)
+            except VolwarpError as exc:
+                raise VolwarpError(f"{input}: {exc}") from None
     warp = IntensityWarp(cap, doc, spec, replace(options, blocks=True), name=input)
+    if exports:  # refused before any work where they cannot be exact
+        from ..bspline.export import check_exportable
+
+        check_exportable(warp.cap.placement, warp.cap.dq, input)
     if fallback is not None:
         from .chunked import blocks_can_write, wants_blocks
 
@@ -260,7 +300,7 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
             raise fallback
         if not wants_blocks(str(fallback)):  # (says why, on stderr)
             raise fallback
-    out_template, job = warp.block_job(source)
+    out_template, job = warp.block_job(source, sampler=cap.sampler if is_capture else None)
     settings = scale_settings()
     with settings.open_engine() as engine:
         budget = block_budget()
@@ -271,8 +311,19 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
                           version=write_kw.get("ome_zarr_version", "0.5"),
                           pyramid=write_kw.get("pyramid", 0)) as out:
             stats = warp_by_blocks(job, out, engine, memory=per_task)
-    return {"output": str(output), "shape": list(out_template.shape_xyz),
-            "handles": warp.handles(), "blocks": len(stats), "block": list(block[::-1])}
+    summary = {"output": str(output), "shape": list(out_template.shape_xyz),
+               "handles": warp.handles(), "blocks": len(stats), "block": list(block[::-1])}
+    if exports:
+        # after -o, as in memory (each export atomic on its own); the fields by slabs
+        from ..bspline.export_outputs import FieldBlocks, write_exports
+
+        mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
+        fields = FieldBlocks(memory=block_budget(),
+                             depth=settings.block[0] if settings.block else None)
+        summary.update(write_exports(exports, warp, meta=provenance("warp", input, spec_path),
+                                     mesh_meta=provenance("warp", [input, *mesh_src],
+                                                          spec_path), blocks=fields))
+    return summary
 
 
 def _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw,
