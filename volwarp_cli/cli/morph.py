@@ -139,9 +139,10 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
 
     With --chunked (or when the morph does not fit the memory budget) the
     fields are computed and kept on disk and every frame is written block by
-    block, identical to the in-memory frames: for shapes on one grid that
-    nothing moves (no alignment or landmark warp), binary shapes or a
-    --max-distance band, uncompressed NRRD/MetaImage/raw or OME-Zarr frames.
+    block, identical to the in-memory frames: for shapes on any grids, moved
+    by an alignment or not, as long as the aligned inputs cover the frame
+    grid (no landmark warp), binary shapes or a --max-distance band,
+    uncompressed NRRD/MetaImage/raw or OME-Zarr frames.
     """
     from ..morph.spec import MorphJob, ShapeRef
 
@@ -352,13 +353,18 @@ def _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, *,
     from ..geometry import Geometry
     from ..io.atomic import scratch_folder
     from ..morph.chunked import (
+        attributes_by_blocks,
         block_frames,
         block_grid,
+        block_matrices,
+        check_covered,
         fields_by_blocks,
         frame_chunks,
         mesh_block_shape,
+        resample_chunks,
     )
     from ..morph.grid import GridError
+    from ..morph.interpolate import index_map, lands_on_grid
     from .chunked import block_budget, block_output, blocks_can_write, lazy_input, wants_blocks
     from .common import provenance
 
@@ -378,29 +384,18 @@ def _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, *,
     geometry = {name: (Geometry.of(a[0]), Geometry.of(b[0])) for name, (a, b) in attrs.items()}
     try:
         grid, why = block_grid(job, Geometry.of(source[0]), Geometry.of(target[0]), geometry)
-    except GridError as exc:
-        raise _grid_error(job, spec_path, exc) from None
+    except GridError as exc:  # (the unaligned grid's error: the aligned one's is below)
+        if not job.moved:
+            raise _grid_error(job, spec_path, exc) from None
+        why = None
     if why:
-        refuse(f"--chunked morphs shapes on one grid that nothing moves: not {why} "
-               "(that morph runs in memory)")
+        refuse(f"--chunked does not run a morph with {why} by blocks (that morph runs "
+               "in memory)")
     dtype = write_kw.get("dtype")
     source_type = np.dtype(source[1].dtype)
     frame_type = (source_type if job.output == "density" and job.density_range == "source"
                   else np.dtype(np.float32))
     types = {a.name: np.dtype(a.dtype or attrs[a.name][0][1].dtype) for a in job.attributes}
-    checks = [(p, np.dtype(dtype or frame_type)) for p in outputs.frames]
-    for a in job.attributes:
-        checks += [(p, types[a.name]) for p in outputs.attributes[a.name]]
-    for path, out_type in checks:
-        if not blocks_can_write(path, grid.shape, out_type, write_kw):
-            from ..io.blockwrite import check_block_format
-
-            if fallback is not None:
-                raise fallback
-            check_block_format(path, write_kw.get("compress", False))
-            raise VolwarpError(f"{path}: the frames do not fit the free space of its folder")
-    if fallback is not None and not wants_blocks(str(fallback)):
-        raise fallback
     settings = scale_settings()
     camera_from, camera_to, labels_flag = cameras
     render = _render_settings(job, outputs.renders, view, size, camera_from, labels_flag,
@@ -409,41 +404,94 @@ def _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, *,
               byte_order=write_kw.get("byte_order", "little"),
               version=write_kw.get("ome_zarr_version", "0.5"),
               pyramid=write_kw.get("pyramid", 0))
-    with settings.open_engine() as engine, scratch_folder(outputs.frames[0]) as scratch:
+    with settings.open_engine() as engine:
         per_task = block_budget() // max(1, engine.workers)
-        with timed("morph by blocks: both fields"):
-            bm = fields_by_blocks(job, {"source": source, "target": target}, engine, scratch,
-                                  block_bytes=per_task, block=settings.block)
-        meta = {"volwarp_morph": _morph_note(job, bm.info["chunked"]),
-                **provenance("morph", [job.source.path, job.target.path], spec_path)}
-        chunks = frame_chunks(grid.shape, per_task, engine.workers, settings.block)
         run = functools.partial(engine.map, label="morph", memory=per_task)
-        mesh_run = None
-        if settings.scheduler is not None:  # (VTK holds the GIL: threads otherwise)
-            mesh_run = functools.partial(engine.map, label="mesh", memory=per_task)
-        attr_samples = {a.name: (attrs[a.name][0][1], attrs[a.name][1][1], types[a.name].name)
-                        for a in job.attributes}
-        renders = []
-        frame = None
-        for frame in block_frames(job, bm, source[1], attr_samples, meta=meta, chunks=chunks,
-                                  run=run, mesh_block=mesh_block_shape(grid.shape, per_task,
-                                                                       settings.block),
-                                  meshes=bool(outputs.meshes), render=render,
-                                  mesh_run=mesh_run, mesh_threads=parallel.threads()):
-            i = frame.index
-            path = outputs.frames[i]
-            data = frame.data
-            if dtype is not None:
-                data = data.map_blocks(functools.partial(_cast_block, dtype=dtype,
-                                                         what=str(path)),
-                                       dtype=np.dtype(dtype))
-            with block_output(path, frame.template, data.dtype, block=chunks, **kw) as sink:
-                write_blocks(data, sink, engine, label=f"frame-{i}", memory=per_task)
-            for name, (template, values) in frame.attributes.items():
-                with block_output(outputs.attributes[name][i], template, values.dtype,
-                                  block=chunks, **kw) as sink:
-                    write_blocks(values, sink, engine, label=f"{name}-{i}", memory=per_task)
-            outputs.write_surface(frame, frame.template.meta, renders)
-        outputs.finish(job, frame, render, camera_to, renders)
+        inputs = {"source": source, "target": target}
+        if job.moved:
+            a_s, a_t = block_matrices(job, inputs, run, frame_chunks(
+                Geometry.of(source[0]).shape, per_task, engine.workers, settings.block))
+            try:
+                grid, why = block_grid(job, Geometry.of(source[0]), Geometry.of(target[0]),
+                                       geometry, a_s, a_t)
+            except GridError as exc:
+                raise _grid_error(job, spec_path, exc) from None
+            if why:
+                refuse(f"--chunked does not run a morph with {why} by blocks (that morph "
+                       "runs in memory)")
+        else:
+            a_s = a_t = np.eye(4)
+        matrices = {"source": a_s, "target": a_t}
+        chunks = frame_chunks(grid.shape, per_task, engine.workers, settings.block)
+        maps = []
+        for (template, _), mat in ((source, a_s), (target, a_t), *(
+                (pair, m) for a, b in attrs.values() for pair, m in ((a, a_s), (b, a_t)))):
+            geo = Geometry.of(template)
+            if not lands_on_grid(geo.shape, geo.index_to_world_matrix, mat, grid):
+                maps.append((index_map(geo.index_to_world_matrix, mat, grid), geo.shape))
+        rchunks = chunks
+        if maps:
+            try:
+                rchunks = resample_chunks(grid.shape, chunks, maps, per_task)
+            except VolwarpError as exc:
+                refuse(str(exc), usage=False)
+            why = check_covered(job, {"source": Geometry.of(source[0]),
+                                      "target": Geometry.of(target[0])}, matrices, grid, run,
+                                rchunks)
+            if why:
+                refuse(f"--chunked does not run a morph with {why} by blocks (that morph "
+                       "runs in memory)")
+        checks = [(p, np.dtype(dtype or frame_type)) for p in outputs.frames]
+        for a in job.attributes:
+            checks += [(p, types[a.name]) for p in outputs.attributes[a.name]]
+        for path, out_type in checks:
+            if not blocks_can_write(path, grid.shape, out_type, write_kw):
+                from ..io.blockwrite import check_block_format
+
+                if fallback is not None:
+                    raise fallback
+                check_block_format(path, write_kw.get("compress", False))
+                raise VolwarpError(f"{path}: the frames do not fit the free space of its "
+                                   "folder")
+        if fallback is not None and not wants_blocks(str(fallback)):
+            raise fallback
+        with scratch_folder(outputs.frames[0]) as scratch:
+            with timed("morph by blocks: both fields"):
+                bm = fields_by_blocks(job, inputs, engine, scratch, block_bytes=per_task,
+                                      block=settings.block, grid=grid, matrices=matrices,
+                                      chunks=rchunks)
+            meta = {"volwarp_morph": _morph_note(job, bm.info["chunked"]),
+                    **provenance("morph", [job.source.path, job.target.path], spec_path)}
+            mesh_run = None
+            if settings.scheduler is not None:  # (VTK holds the GIL: threads otherwise)
+                mesh_run = functools.partial(engine.map, label="mesh", memory=per_task)
+            attr_samples = attributes_by_blocks(
+                {a.name: (attrs[a.name][0], attrs[a.name][1], types[a.name].name)
+                 for a in job.attributes}, matrices, grid, engine, scratch,
+                block_bytes=per_task, chunks=rchunks)
+            renders = []
+            frame = None
+            for frame in block_frames(job, bm, source[1], attr_samples, meta=meta,
+                                      chunks=chunks, run=run,
+                                      mesh_block=mesh_block_shape(grid.shape, per_task,
+                                                                  settings.block),
+                                      meshes=bool(outputs.meshes), render=render,
+                                      mesh_run=mesh_run, mesh_threads=parallel.threads()):
+                i = frame.index
+                path = outputs.frames[i]
+                data = frame.data
+                if dtype is not None:
+                    data = data.map_blocks(functools.partial(_cast_block, dtype=dtype,
+                                                             what=str(path)),
+                                           dtype=np.dtype(dtype))
+                with block_output(path, frame.template, data.dtype, block=chunks, **kw) as sink:
+                    write_blocks(data, sink, engine, label=f"frame-{i}", memory=per_task)
+                for name, (template, values) in frame.attributes.items():
+                    with block_output(outputs.attributes[name][i], template, values.dtype,
+                                      block=chunks, **kw) as sink:
+                        write_blocks(values, sink, engine, label=f"{name}-{i}",
+                                     memory=per_task)
+                outputs.write_surface(frame, frame.template.meta, renders)
+            outputs.finish(job, frame, render, camera_to, renders)
     log.info("wrote %d frames on a %s grid, by blocks", len(job.times),
              "x".join(map(str, grid.shape_xyz)))

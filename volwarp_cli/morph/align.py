@@ -77,13 +77,31 @@ def affine_from_params(params: dict, default_center=None) -> np.ndarray:
 
 def shape_centroid(mask: np.ndarray, index_to_world: np.ndarray) -> np.ndarray:
     """World centroid (x, y, z) of the ``True`` voxels of a ``[z, y, x]`` mask."""
-    count = int(np.count_nonzero(mask))
+    return centroid_from_counts(axis_counts(mask), index_to_world)
+
+
+def axis_counts(mask: np.ndarray) -> list[np.ndarray]:
+    """The mask's ``True`` voxels per index along x, y and z (int64 arrays).
+
+    Integer counts: those of a mask's blocks add up (placed at the blocks'
+    offsets) to exactly the whole mask's, so :func:`centroid_from_counts` of
+    the sums is the whole mask's :func:`shape_centroid`, bit for bit.
+    """
+    out = []
+    for axis in (2, 1, 0):  # x, y, z index sums without building coordinate arrays
+        other = tuple(a for a in range(3) if a != axis)
+        out.append(np.count_nonzero(mask, axis=other).astype(np.int64))
+    return out
+
+
+def centroid_from_counts(counts, index_to_world: np.ndarray) -> np.ndarray:
+    """World centroid (x, y, z) from :func:`axis_counts` ``[per x, per y, per z]``."""
+    count = int(np.asarray(counts[0]).sum())
     if count == 0:
         raise VolwarpError("the shape is empty: it has no centre")
     sums = []
-    for axis in (2, 1, 0):  # x, y, z index sums without building coordinate arrays
-        other = tuple(a for a in range(3) if a != axis)
-        per = np.count_nonzero(mask, axis=other).astype(np.float64)
+    for per in counts:
+        per = np.asarray(per).astype(np.float64)
         sums.append(float(per @ np.arange(per.size)))
     ijk = np.array(sums) / count
     return index_to_world[:3, :3] @ ijk + index_to_world[:3, 3]

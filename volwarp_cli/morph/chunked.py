@@ -12,9 +12,24 @@ and nothing more (no halo); the frame's surface is the mesh by blocks
 read box by box (:class:`FrameField`). The frames equal the in-memory
 frames bit for bit, their meshes after a canonical ordering.
 
-What runs by blocks is the morph in which nothing moves: source, target
-and attributes on the frame grid, no alignment and no landmark warp (those
-resample whole fields; :func:`blocks_refusal` says why not).
+Inputs on other grids than the frame grid, and affine alignments, run by
+blocks too: each field is computed by blocks on its own input's grid, as
+above, then resampled onto the frame grid block by block into a second
+scratch file (:func:`resample_by_blocks`), each frame-grid block reading only
+the box of the field its voxels' coordinates reach
+(:func:`.interpolate.needed_box`: the hull of the block's 8 corners' images
+plus the trilinear support, clipped to the input) through the very function
+the in-memory morph resamples with (:func:`.interpolate.resample_box`), so
+the values are the in-memory ones bit for bit. Attributes likewise (their
+border samples beyond their grid). The alignment's centre (a shape's
+centroid) is summed by blocks in integers (:func:`block_matrices`).
+
+Refused (:func:`block_grid` and :func:`check_covered` say why): a landmark
+warp; a frame grid reaching beyond an aligned input's grid (those voxels are
+filled in memory by the shift-and-increment propagation across the whole
+field, :func:`volwarp_cli.distance.update.fill_uncovered`, which has no
+by-blocks form); an input box too big for one task's memory (a strong
+scaling, when even the smallest blocks would need it).
 """
 
 from __future__ import annotations
@@ -32,7 +47,14 @@ from ..geometry import Geometry
 from ..samples import cast_samples
 from .frames import FrameValues, RenderSettings, box_corners
 from .grid import choose_grid
-from .interpolate import blend, check_time, lands_on_grid
+from .interpolate import (
+    blend,
+    check_time,
+    index_map,
+    lands_on_grid,
+    needed_box,
+    resample_box,
+)
 from .spec import MorphJob
 
 #: Bytes per voxel a frame block holds at most: both fields (8), their blend (4), the
@@ -40,31 +62,166 @@ from .spec import MorphJob
 FRAME_BYTES_PER_VOXEL = 64
 #: ... and a mesh block: the frame field (12 with both inputs) and the flying edges' arrays
 MESH_BYTES_PER_VOXEL = 36
+#: ... a resampling block: its coordinates (24), the output (4), slack for the interpolation
+RESAMPLE_BYTES_PER_VOXEL = 32
+#: ... and per input sample it reads: the stored samples and their float32 copy
+INPUT_BYTES_PER_VOXEL = 12
 
 
 def block_grid(job: MorphJob, source: Geometry, target: Geometry,
-               attributes: dict[str, tuple[Geometry, Geometry]] | None = None
+               attributes: dict[str, tuple[Geometry, Geometry]] | None = None,
+               source_matrix: np.ndarray | None = None, target_matrix: np.ndarray | None = None
                ) -> tuple[Geometry, str | None]:
     """``(frame grid, why the morph cannot run by blocks or None)``.
 
-    The grid by the in-memory rules (:func:`.grid.choose_grid`: its GridError
-    is the in-memory one); the morph runs by blocks when every input's samples
-    land on that grid unmoved (:func:`.interpolate.lands_on_grid`).
+    The grid by the in-memory rules (:func:`.grid.choose_grid` with the
+    alignment matrices, :func:`block_matrices`: its GridError is the
+    in-memory one). Inputs on other grids, moved or not, are resampled by
+    blocks; a landmark warp is not run by blocks. ``attributes`` is kept for
+    the callers (every attribute is resampled as its shape is).
     """
     eye = np.eye(4)
-    grid = choose_grid(job.grid, source, target, eye, eye, moved=job.moved, margin=job.margin)
-    if job.moved:
-        return grid, "an alignment or a landmark warp (they resample whole fields)"
+    a_s = eye if source_matrix is None else source_matrix
+    a_t = eye if target_matrix is None else target_matrix
+    grid = choose_grid(job.grid, source, target, a_s, a_t, moved=job.moved, margin=job.margin)
+    if job.warp_source_points is not None:
+        return grid, ("a landmark warp (its thin-plate/Gaussian map is evaluated through "
+                      "matrix products whose rounding is not guaranteed to be the same block "
+                      "by block)")
     if job.metric != "euclidean":
         return grid, f"the {job.metric} metric (its passes have no out-of-core form)"
-    inputs = [("source", source), ("target", target)]
-    for name, (a, b) in (attributes or {}).items():
-        inputs += [(f"attribute {name}'s source", a), (f"attribute {name}'s target", b)]
-    for what, geo in inputs:
-        if not lands_on_grid(geo.shape, geo.index_to_world_matrix, eye, grid):
-            return grid, (f"a frame grid that is not the {what}'s own (its samples would be "
-                          "resampled)")
     return grid, None
+
+
+def _counts(box: Box, samples, iso: float, inside: str):
+    from ..distance.field import inside_mask
+    from .align import axis_counts
+
+    return box, axis_counts(inside_mask(np.asarray(samples[box.slices]), iso, inside))
+
+
+def block_matrices(job: MorphJob, inputs: dict, run, chunks) -> tuple[np.ndarray, np.ndarray]:
+    """The alignment matrices of source and target, as :func:`.pipeline.prepare` makes them.
+
+    ``inputs``: ``{"source": (template, samples), ...}``; ``run``: an engine's
+    map; ``chunks``: the block shape of the centroid's pass (the shape's voxels
+    counted per index in integers, block by block: the in-memory centroid
+    bit for bit).
+    """
+    from .align import affine_from_params, centroid_from_counts
+
+    out = []
+    for name, ref in (("source", job.source), ("target", job.target)):
+        params = getattr(job, f"align_{name}")
+        if not params:
+            out.append(np.eye(4))
+            continue
+        template, samples = inputs[name]
+        geo = Geometry.of(template)
+        center = None
+        if "center" not in params and "matrix" not in params:
+            shape = geo.shape
+            counts = [np.zeros(n, np.int64) for n in (shape[2], shape[1], shape[0])]
+            task = functools.partial(_counts, samples=samples, iso=ref.iso, inside=ref.inside)
+            for box, parts in run(task, Box.from_shape(shape).blocks(chunks)):
+                for k, axis in enumerate((2, 1, 0)):
+                    counts[k][box.lo[axis]:box.hi[axis]] += parts[k]
+            try:
+                center = centroid_from_counts(counts, geo.index_to_world_matrix)
+            except VolwarpError as exc:
+                raise VolwarpError(f"{ref.path}: {exc}") from None
+        out.append(affine_from_params(params, default_center=center))
+    return out[0], out[1]
+
+
+def resample_chunks(shape, chunks, maps, block_bytes: int) -> tuple[int, int, int]:
+    """Blocks of the frame grid whose resampling fits ``block_bytes``: ``chunks`` or halves.
+
+    ``maps``: ``(index map, input shape)`` of every input resampled. A block
+    holds its coordinates and output (:data:`RESAMPLE_BYTES_PER_VOXEL`) and
+    the input box it reads (:data:`INPUT_BYTES_PER_VOXEL`,
+    :func:`.interpolate.needed_box`); where some block's does not fit, the
+    blocks' longest side is halved, until single voxels. A VolwarpError when
+    even those do not fit (a strong scaling: one frame voxel reaching a huge
+    input box).
+    """
+    c = [max(1, min(int(a), int(n))) for a, n in zip(chunks, shape, strict=True)]
+    whole = Box.from_shape(shape)
+    while True:
+        worst = 0
+        for box in whole.blocks(tuple(c)):
+            for m, values_shape in maps:
+                need = needed_box(m, box, values_shape).size * INPUT_BYTES_PER_VOXEL
+                worst = max(worst, need + box.size * RESAMPLE_BYTES_PER_VOXEL)
+            if worst > block_bytes:
+                break
+        if worst <= block_bytes:
+            return tuple(c)
+        if max(c) == 1:
+            raise VolwarpError(
+                f"resampling an input onto the frame grid needs {worst / 2**20:.1f} MiB for a "
+                f"single voxel (the alignment scales it strongly), more than a block's "
+                f"{block_bytes / 2**20:.1f} MiB: raise --memory-limit or run in memory")
+        axis = int(np.argmax(c))
+        c[axis] = (c[axis] + 1) // 2
+
+
+def _resample_task(block_info=None, *, values, m, values_shape, outside: str, scale: float):
+    loc = block_info[None]["array-location"]
+    box = Box(tuple(a for a, _ in loc), tuple(b for _, b in loc))
+    need = needed_box(m, box, values_shape)
+    out = resample_box(values[need.slices], need, m, box, outside=outside)
+    if scale != 1.0:
+        out *= np.float32(scale)
+    return out
+
+
+def resampled(values, values_i2w: np.ndarray, matrix: np.ndarray, grid: Geometry, chunks, *,
+              outside: str, scale: float = 1.0):
+    """``values`` resampled onto ``grid`` through ``matrix``, as a Dask array of ``chunks``.
+
+    Each block is :func:`.interpolate.resample_box` of the input box it
+    needs, read from ``values`` (sliceable ``[z, y, x]``, picklable), times
+    ``scale`` (a field's alignment scale, applied as the in-memory morph does).
+    """
+    import dask.array as da
+
+    m = index_map(values_i2w, matrix, grid)
+    dchunks = da.core.normalize_chunks(tuple(chunks), grid.shape)
+    return da.map_blocks(_resample_task, values=values, m=m, values_shape=tuple(values.shape),
+                         outside=outside, scale=float(scale), chunks=dchunks, dtype=np.float32,
+                         meta=np.empty((0, 0, 0), np.float32))
+
+
+def _uncovered_task(box: Box, *, m, values_shape):
+    need = needed_box(m, box, values_shape)
+    ones = np.ones(need.shape, np.float32)  # finite samples: NaN exactly where uncovered
+    return int(np.isnan(resample_box(ones, need, m, box, outside="nan")).sum())
+
+
+def check_covered(job: MorphJob, geometries: dict, matrices: dict, grid: Geometry, run,
+                  chunks) -> str | None:
+    """Why the fields cannot be resampled by blocks (a frame voxel they do not cover), or None.
+
+    ``geometries``, ``matrices``: ``{"source": ..., "target": ...}``. A frame
+    voxel outside a moved input's grid gets its field from the in-memory
+    fill (a propagation across the whole field); counted block by block,
+    with the in-memory resampling's NaN rule, before any field is computed.
+    """
+    for name in ("source", "target"):
+        geo, mat = geometries[name], matrices[name]
+        if lands_on_grid(geo.shape, geo.index_to_world_matrix, mat, grid):
+            continue
+        m = index_map(geo.index_to_world_matrix, mat, grid)
+        task = functools.partial(_uncovered_task, m=m, values_shape=tuple(geo.shape))
+        count = sum(run(task, Box.from_shape(grid.shape).blocks(chunks)))
+        if count:
+            return (f"a frame grid reaching beyond the {name}'s grid through its alignment or "
+                    f"grid ({count} of {grid.size} frame voxels uncovered: the in-memory morph "
+                    "fills them by a propagation across the whole field, which has no "
+                    "by-blocks form; choose a grid the aligned inputs cover, e.g. grid: "
+                    "source with a target that covers it, or an explicit grid)")
+    return None
 
 
 class FrameField:
@@ -106,19 +263,29 @@ class BlockMorph:
 
 
 def fields_by_blocks(job: MorphJob, inputs: dict, engine, scratch: Path, *, block_bytes: int,
-                     block=None) -> BlockMorph:
+                     block=None, grid: Geometry | None = None, matrices: dict | None = None,
+                     chunks=None) -> BlockMorph:
     """Both shapes' signed fields computed by blocks on ``engine`` into ``scratch``.
 
     ``inputs``: ``{"source": (template, samples), "target": ...}``, each a
     template Volume (the geometry) and a sliceable, picklable reader of its
     samples (:class:`~volwarp_cli.bspline.blocks.LazySource`); ``block_bytes``:
-    one task's memory; ``block``: the user's block shape.
+    one task's memory; ``block``: the user's block shape. ``grid``: the
+    frame grid (default the source's); ``matrices``: each shape's alignment
+    (default none); a field not landing on the grid unmoved is resampled onto
+    it by blocks of ``chunks`` (:func:`resampled`; :func:`check_covered`
+    first) into a second scratch file.
     """
     from ..distance.chunked import field_by_blocks
+    from ..engine import write_blocks
     from ..io.blockwrite import committed, open_block_output
     from ..io.lazy import open_volume_lazy
     from ..volume import xyz_to_zyx
+    from .align import linear_scale
 
+    if grid is None:
+        grid = Geometry.of(inputs["source"][0])
+    matrices = matrices or {"source": np.eye(4), "target": np.eye(4)}
     fields, info = {}, {}
     for name, ref in (("source", job.source), ("target", job.target)):
         template, samples = inputs[name]
@@ -141,8 +308,49 @@ def fields_by_blocks(job: MorphJob, inputs: dict, engine, scratch: Path, *, bloc
         except VolwarpError as exc:
             raise VolwarpError(f"{ref.path}: {exc}") from None
         _, fields[name] = open_volume_lazy(path)
-    grid = Geometry.of(inputs["source"][0])
+        mat = matrices[name]
+        if not lands_on_grid(geometry.shape, geometry.index_to_world_matrix, mat, grid):
+            on_grid = Path(scratch) / f"{name}-on-grid.nrrd"
+            rchunks = chunks or grid.shape
+            data = resampled(fields[name], geometry.index_to_world_matrix, mat, grid, rchunks,
+                             outside="nan", scale=linear_scale(mat))
+            with committed(open_block_output(on_grid, grid, np.float32,
+                                             chunks_zyx=rchunks)) as sink:
+                write_blocks(data, sink, engine, label=f"{name}-onto-grid", memory=block_bytes)
+            _, fields[name] = open_volume_lazy(on_grid)
     return BlockMorph(fields["source"], fields["target"], grid, info["source"])
+
+
+def attributes_by_blocks(attributes: dict, matrices: dict, grid: Geometry, engine,
+                         scratch: Path, *, block_bytes: int, chunks) -> dict:
+    """Attributes on the frame grid: ``name -> (source samples, target samples, type)``.
+
+    ``attributes``: ``name -> ((template, samples), (template, samples), type
+    name)``. A pair landing on the grid unmoved is read as it is; another is
+    resampled by blocks (the border sample beyond its grid, as in memory)
+    into float32 scratch files.
+    """
+    from ..engine import write_blocks
+    from ..io.blockwrite import committed, open_block_output
+    from ..io.lazy import open_volume_lazy
+
+    out = {}
+    for name, (a, b, type_name) in attributes.items():
+        pair = []
+        for side, (template, samples) in (("source", a), ("target", b)):
+            geo, mat = Geometry.of(template), matrices[side]
+            if lands_on_grid(geo.shape, geo.index_to_world_matrix, mat, grid):
+                pair.append(samples)
+                continue
+            path = Path(scratch) / f"attribute-{len(out)}-{side}.nrrd"
+            data = resampled(samples, geo.index_to_world_matrix, mat, grid, chunks,
+                             outside="nearest")
+            with committed(open_block_output(path, grid, np.float32, chunks_zyx=chunks)) as sink:
+                write_blocks(data, sink, engine, label=f"{name}-{side}-onto-grid",
+                             memory=block_bytes)
+            pair.append(open_volume_lazy(path)[1])
+        out[name] = (pair[0], pair[1], type_name)
+    return out
 
 
 def _clamp(field: np.ndarray, *, max_distance: float) -> np.ndarray:

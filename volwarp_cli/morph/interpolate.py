@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..box import Box
 from ..errors import VolwarpError
 from ..geometry import Geometry
 from .landmarks import LandmarkWarp
@@ -68,21 +69,129 @@ def lands_on_grid(shape_zyx, values_i2w: np.ndarray, matrix: np.ndarray,
             and np.allclose(_index_map(values_i2w, matrix, grid), np.eye(4), atol=1e-9))
 
 
+#: Voxels of the target grid one :func:`resample_to_grid` slab covers (its coordinates:
+#: 24 bytes a voxel, on top of the output's 4)
+_SLAB_VOXELS = 1 << 20
+
+#: The interpolation of every resampling onto the frame grid (trilinear) and its support:
+#: a coordinate ``c`` reads samples ``floor(c)`` .. ``floor(c) + SUPPORT`` on each axis
+ORDER = 1
+SUPPORT = ORDER
+
+
+def index_map(values_i2w: np.ndarray, matrix: np.ndarray, grid: Geometry) -> np.ndarray:
+    """Frame grid voxel (z, y, x) -> values voxel (z, y, x), homogeneous 4x4."""
+    return _index_map(values_i2w, matrix, grid)
+
+
+def sample_coordinates(m: np.ndarray, box: Box) -> np.ndarray:
+    """Values-grid coordinates (3, *box.shape) float64 of the target voxels of ``box``.
+
+    Each voxel's coordinate is computed from its integer index alone, by the
+    same float operations wherever the box lies (``m[i, 0] z + m[i, 1] y +
+    m[i, 2] x + m[i, 3]``, left to right): a box of the grid gets exactly the
+    coordinates the whole grid gets there.
+    """
+    return _coordinates(m, *(np.arange(a, b, dtype=np.float64)
+                             for a, b in zip(box.lo, box.hi, strict=True)))
+
+
+def _coordinates(m: np.ndarray, z: np.ndarray, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """:func:`sample_coordinates` of the voxels at indices ``z x y x x`` (1-D float64 each)."""
+    z, y, x = z[:, None, None], y[None, :, None], x[None, None, :]
+    out = np.empty((3, z.shape[0], y.shape[1], x.shape[2]), np.float64)
+    for i in range(3):
+        out[i] = m[i, 0] * z
+        out[i] += m[i, 1] * y
+        out[i] += m[i, 2] * x
+        out[i] += m[i, 3]
+    return out
+
+
+def needed_box(m: np.ndarray, box: Box, values_shape) -> Box:
+    """The box of values samples that resampling target ``box`` through ``m`` reads.
+
+    The image of a box under an affine map is the hull of its corners'
+    images: their min/max coordinates, floored, widened by the
+    interpolation's support (:data:`SUPPORT`), clipped to the values' grid
+    (never empty: a box wholly outside keeps the nearest border sample, which
+    ``outside="nearest"`` reads). The corners' coordinates are computed as
+    :func:`sample_coordinates` computes them, and a voxel's coordinate, an
+    affine combination of the corners', lies within their hull up to
+    rounding: a relative slack of 1e-9 covers that.
+    """
+    c = _coordinates(m, *(np.array([a, b - 1], dtype=np.float64)
+                          for a, b in zip(box.lo, box.hi, strict=True))).reshape(3, 8).T
+    slack = 1e-9 * np.maximum(1.0, np.abs(c).max(axis=0))
+    first = np.floor(c.min(axis=0) - slack)
+    last = np.floor(c.max(axis=0) + slack) + SUPPORT
+    return clip_box(first, last, values_shape)
+
+
+def coordinates_box(coords: np.ndarray, values_shape) -> Box:
+    """The values box sampled at ``coords`` (3, ...): exact min/max, floored, plus the support."""
+    flat = coords.reshape(3, -1)
+    return clip_box(np.floor(flat.min(axis=1)), np.floor(flat.max(axis=1)) + SUPPORT,
+                    values_shape)
+
+
+def clip_box(first, last, values_shape) -> Box:
+    """``[first, last]`` (inclusive, per axis) clipped to ``values_shape``, at least one sample."""
+    n = np.asarray(values_shape, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        lo = np.clip(np.nan_to_num(first, nan=0.0), 0, n - 1)
+        hi = np.clip(np.nan_to_num(last, nan=0.0) + 1, lo + 1, n)
+    return Box(tuple(int(v) for v in lo), tuple(int(v) for v in hi))
+
+
+def resample_box(values, values_box: Box, m: np.ndarray, box: Box, *,
+                 outside: str = "nan") -> np.ndarray:
+    """Target ``box`` of the frame grid sampled from the values in ``values_box`` through ``m``.
+
+    ``values``: the samples of ``values_box`` of the whole values grid (an
+    array of its shape; the whole grid when ``values_box`` is all of it),
+    which must hold every sample the box's coordinates read
+    (:func:`needed_box`) and end only where the values grid ends or where no
+    coordinate reaches. The result is then that of the whole grid's: the
+    coordinates are the whole grid's (:func:`sample_coordinates`), shifted
+    by whole voxels (exact), so the trilinear weights and the samples
+    weighed, hence every float operation, are the same. ``outside``:
+    ``"nan"`` (uncovered voxels are NaN) or ``"nearest"`` (the border sample).
+    """
+    from scipy import ndimage
+
+    coords = sample_coordinates(m, box)
+    src = np.asarray(values, dtype=np.float32)
+    if tuple(src.shape) != tuple(values_box.shape):
+        raise VolwarpError(f"resample_box: samples of shape {src.shape} for a box of "
+                           f"shape {values_box.shape}")
+    for axis in range(3):
+        if values_box.lo[axis]:
+            coords[axis] -= values_box.lo[axis]  # exact: a whole number off a coordinate
+    kwargs = {"mode": "constant", "cval": np.nan} if outside == "nan" else {"mode": "nearest"}
+    return ndimage.map_coordinates(src, coords, order=ORDER, output=np.float32, **kwargs)
+
+
 def resample_to_grid(values: np.ndarray, values_i2w: np.ndarray, matrix: np.ndarray,
                      grid: Geometry, *, outside: str = "nan") -> np.ndarray:
     """``values`` (on the grid ``values_i2w``) moved by world ``matrix``, sampled on ``grid``.
 
-    ``outside``: ``"nan"`` (marks uncovered voxels) or ``"nearest"``.
+    ``outside``: ``"nan"`` (marks uncovered voxels) or ``"nearest"``. The
+    whole grid is :func:`resample_box` on the whole values box, slab by slab
+    of the grid (what the morph by blocks evaluates block by block).
     """
-    from scipy import ndimage
-
     m = _index_map(values_i2w, matrix, grid)
     src = np.asarray(values, dtype=np.float32)
     if lands_on_grid(src.shape, values_i2w, matrix, grid):
         return src.copy()
-    kwargs = {"mode": "constant", "cval": np.nan} if outside == "nan" else {"mode": "nearest"}
-    return ndimage.affine_transform(src, m[:3, :3], offset=m[:3, 3], order=1,
-                                    output_shape=grid.shape, output=np.float32, **kwargs)
+    out = np.empty(grid.shape, np.float32)
+    whole = Box.from_shape(src.shape)
+    nz, ny, nx = grid.shape
+    depth = max(1, _SLAB_VOXELS // max(1, ny * nx))
+    for z0 in range(0, nz, depth):
+        slab = Box((z0, 0, 0), (min(nz, z0 + depth), ny, nx))
+        out[slab.slices] = resample_box(src, whole, m, slab, outside=outside)
+    return out
 
 
 def grid_field(field: np.ndarray, field_i2w: np.ndarray, matrix: np.ndarray, grid: Geometry,
