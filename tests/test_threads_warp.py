@@ -166,15 +166,16 @@ def test_parts_cover_the_target_planes_and_each_voxel_that_reaches_them(small_sp
     dq = moved_lattice(cap, scale=2.5)
     sc = Scene(cap.domain, cap.grid, dq, 4)
     dshape = cap.grid.domain_shape
+    planes = sc.reach.planes(sc._offset_bounds(dq))
     with parallel.use_threads(4):
-        parts = work.thread_parts(sc.reach, dq, (0, 0, 0), dshape, 0, None, None)
+        parts = work.thread_parts(sc.reach, planes, (0, 0, 0), dshape, 0, None, None)
     assert parts is not None and len(parts) >= 2
     edges = [p[0] for p in parts] + [parts[-1][1]]
     assert edges[0] == 0 and edges[-1] == sc.target_shape[2]
     assert all(a < b for a, b in zip(edges[:-1], edges[1:], strict=True))
     for t0, t1, g0, g1 in parts:
         for g in range(dshape[2]):
-            r0, r1 = sc.reach.target_z_reach(dq, g, g + 1)
+            r0, r1 = int(planes.t_lo[g]), int(planes.t_hi[g])
             if r0 < t1 and r1 > t0:  # plane g can reach the part
                 assert g0 <= g < g1
 

@@ -27,6 +27,8 @@ Ints3 = tuple[int, int, int]
 
 def _ints3(values, name: str) -> Ints3:
     """Three ints from a sequence, or the same int three times from a scalar."""
+    if type(values) is tuple and len(values) == 3 and all(type(v) is int for v in values):
+        return values  # (the common case, as fast as can be: boxes are made in inner loops)
     if isinstance(values, int) or (hasattr(values, "__index__") and not hasattr(values, "__len__")):
         return (int(values),) * 3
     out = tuple(int(v) for v in values)

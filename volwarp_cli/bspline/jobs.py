@@ -7,6 +7,11 @@ fields, checks their types and shapes once, and calls its kernel in the
 kernel's order, so a misplaced argument is a ``TypeError`` at construction.
 ``dataclasses.replace(job, lo=..., hi=...)`` derives a job's parts (the
 threads' slabs, a block's planes).
+
+Regions are :class:`~volwarp_cli.box.Box` es (array order z, y, x) up to
+here: the scatter's target window is one, and :meth:`ScatterJob.run` turns it
+into the kernel's ``(x0, x1, y0, y1, z0, z1)``, the one place the raw
+integers are made (:func:`clip_ints`).
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..box import Box
 from . import _warpkernels
 
 __all__ = ["ScatterJob", "SeparableJob", "TableJob", "SampleJob", "FinalizeJob", "replace"]
@@ -52,6 +58,24 @@ def _array(name: str, value, ndim: int, dtypes: tuple) -> np.ndarray:
     return value
 
 
+def _clip_box(value) -> Box:
+    """The target window kept, as a Box (z, y, x).
+
+    A Box as is; 6 integers are the kernel's own order ``(x0, x1, y0, y1, z0,
+    z1)`` (a window with an end before its start keeps nothing: made empty).
+    """
+    if isinstance(value, Box):
+        return value
+    x0, x1, y0, y1, z0, z1 = _ints("clip", value, 6)
+    return Box((z0, y0, x0), (max(z0, z1), max(y0, y1), max(x0, x1)))
+
+
+def clip_ints(box: Box) -> tuple[int, int, int, int, int, int]:
+    """The kernels' clip ``(x0, x1, y0, y1, z0, z1)`` of target window ``box`` (z, y, x)."""
+    (z0, y0, x0), (z1, y1, x1) = box.lo, box.hi
+    return (x0, x1, y0, y1, z0, z1)
+
+
 _F32 = (np.dtype(np.float32),)
 _FLOAT = (np.dtype(np.float32), np.dtype(np.float64))
 _I64 = (np.dtype(np.int64),)
@@ -62,8 +86,9 @@ class ScatterJob:
     """The box (or nearest) pushforward of domain block [lo, hi) (x, y, z) into ``acc``.
 
     See :func:`.pushforward.scatter` for the meaning of each field; ``clip``
-    is the target window ``(x0, x1, y0, y1, z0, z1)`` kept, ``acc`` holding
-    plane ``z0`` first (or, with ``ring``, plane z at ``z % len(acc)``).
+    is the target window kept, a :class:`~volwarp_cli.box.Box` (z, y, x; 6
+    integers ``(x0, x1, y0, y1, z0, z1)`` are taken as one), ``acc`` holding
+    its plane ``clip.lo[0]`` first (or, with ``ring``, plane z at ``z % len(acc)``).
 
     ``values`` and ``acc`` may hold some columns and rows of their planes
     only (an out-of-core block's): ``values_xy`` and ``acc_xy`` are the (x, y)
@@ -85,7 +110,7 @@ class ScatterJob:
     inv_vmax: float
     box: bool
     acc: np.ndarray
-    clip: tuple[int, int, int, int, int, int]
+    clip: Box
     ring: bool = False
     bounds: bool = False
     still: np.ndarray | None = None
@@ -109,7 +134,7 @@ class ScatterJob:
         s(self, "scale", _floats("scale", self.scale))
         s(self, "lo", _ints("lo", self.lo))
         s(self, "hi", _ints("hi", self.hi))
-        s(self, "clip", _ints("clip", self.clip, 6))
+        s(self, "clip", _clip_box(self.clip))
         s(self, "granularity", _ints("granularity", self.granularity))
         s(self, "values_xy", _ints("values_xy", self.values_xy, 2))
         if self.domain_xy is not None:
@@ -131,8 +156,8 @@ class ScatterJob:
         return np.array(_warpkernels.scatter(
             self.u, self.u_new if two else self.u, 2 if two else 1, self.origin, self.values,
             self.planes, self.offset, self.scale, self.lo, self.hi, self.sign, self.inv_vmax,
-            bool(self.box), self.acc, self.clip, bool(self.ring), bool(self.bounds), self.still,
-            self.granularity, self.values_xy,
+            bool(self.box), self.acc, clip_ints(self.clip), bool(self.ring), bool(self.bounds),
+            self.still, self.granularity, self.values_xy,
             (-1, -1) if self.domain_xy is None else self.domain_xy, self.acc_xy))
 
 

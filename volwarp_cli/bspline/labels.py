@@ -53,7 +53,7 @@ from .capture import LATTICE_ARRAYS, Capture
 from .lattice import PLACEMENTS, Grid, capture_offsets
 from .pushforward import QUANTUM
 from .scene import Scene
-from .stream import STREAM_PLANES
+from .stream import STREAM_PLANES, _ring_planes
 
 #: ``info``'s label-map hint: an integer volume with at most this many distinct values...
 HINT_MAX_LABELS = 256
@@ -255,8 +255,9 @@ class _Stream:
         self.k = grid.subdivision
         self.lead = np.array(grid.lead)
         self.chunk = max(1, int(STREAM_PLANES * self.k))  # domain planes per step
-        r_lo, r_hi = scene.reach.target_z_reach(dq, 0, self.chunk)
-        self.planes = r_hi - r_lo + 2
+        # each domain plane's reach, from its own layer of the lattice (as the stream's)
+        self.reach = scene._plane_reach([dq])
+        self.planes = _ring_planes(self.reach, self.chunk)
         dz, dy, dx = grid.domain_shape[::-1]
         self.values = np.zeros((self.chunk, dy, dx), dtype=np.float32)
         self.acc = np.zeros(0, dtype=np.int64)
@@ -291,7 +292,7 @@ class _Stream:
             self.acc = np.zeros(need + need // 4, dtype=np.int64)
         acc = self.acc[:need].reshape(self.planes, wy, wx, 2)
         acc.fill(0)
-        g_lo, g_hi = sc.reach.domain_z_window(self.dq, z_lo, z_hi)
+        g_lo, g_hi = self.reach.domain_window(z_lo, z_hi)
         g_lo, g_hi = max(g_lo, int(vlo[2])), min(g_hi, int(vhi[2]))
         base = z_lo
         planes = self.planes
@@ -311,7 +312,7 @@ class _Stream:
         ys = slice(int(vlo[1]), int(vhi[1]))
         for g0 in range(g_lo, g_hi, self.chunk):
             g1 = min(g0 + self.chunk, g_hi)
-            r_lo, r_hi = sc.reach.target_z_reach(self.dq, g0, g1)
+            r_lo, r_hi = self.reach.target_reach(g0, g1)  # r_lo: of every plane from g0 on
             flush(min(max(r_lo, base), z_hi))
             if min(r_hi, z_hi) - base > planes:  # pragma: no cover - cannot happen
                 raise AssertionError("rolling accumulator too small")
@@ -410,12 +411,12 @@ def stream_bytes(scene: Scene, dq, dtype) -> int:
     grid = scene.grid
     k = grid.subdivision
     chunk = max(1, int(STREAM_PLANES * k))
-    r_lo, r_hi = scene.reach.target_z_reach(dq, 0, chunk)
+    planes = _ring_planes(scene._plane_reach([dq]), chunk)  # as _Stream's
     tx, ty, _ = scene.target_shape
     dx, dy, _ = grid.domain_shape
     nx, ny, _ = grid.input_shape
     inputs = (chunk // max(1, k) + 1) * ny * nx * (np.dtype(dtype).itemsize + 1)
-    return ((r_hi - r_lo + 2) * ty * tx * 16 + chunk * dy * dx * 4 + inputs
+    return (planes * ty * tx * 16 + chunk * dy * dx * 4 + inputs
             + 2 * scene.chunk_bytes)
 
 

@@ -105,8 +105,9 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
     ``acc`` holds the target z planes ``[tzo, tz_hi)`` (default ``tzo +
     len(acc)``), plane ``z`` in ``acc[z - tzo]``, or with ``ring`` in
     ``acc[z % len(acc)]``; contributions to other planes are left out, and
-    with ``window`` ``((x0, x1), (y0, y1))`` those outside target columns
-    [x0, x1) and rows [y0, y1) too.
+    with ``window`` ``((x0, x1), (y0, y1))`` (or a
+    :class:`~volwarp_cli.box.Box`, whose y and x ranges count) those outside
+    target columns [x0, x1) and rows [y0, y1) too.
     ``values`` holds the domain's samples ``[z, y, x]``, or with ``planes``
     ``(z0, dz)`` only some z planes of a domain of ``dz`` planes, plane ``g``
     in ``values[g - z0]`` (those of the block at least); with ``values_xy``
@@ -134,14 +135,13 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
     hi = np.asarray(hi, np.int64)
     tz_end = tzo + len(acc) if tz_hi is None else tz_hi
     ax, ay = (int(v) for v in acc_xy)
-    (x0, x1), (y0, y1) = (((ax, ax + acc.shape[2]), (ay, ay + acc.shape[1])) if window is None
-                          else window)
+    clip = target_clip(window, (ax, ay), acc.shape[1:3], tzo, tz_end)
     vxy = {} if values_xy is None else {"values_xy": values_xy[:2], "domain_xy": values_xy[2:]}
     job = ScatterJob(u=u, u_new=u_new, origin=origin, values=values,
                      planes=(0, values.shape[0]) if planes is None else planes,
                      offset=off, scale=scale, lo=lo, hi=hi, sign=int(sign),
                      inv_vmax=1.0 / vmax if vmax > 0 else 0.0, box=method == "box", acc=acc,
-                     clip=(x0, x1, y0, y1, tzo, tz_end), ring=bool(ring), bounds=bool(bounds),
+                     clip=clip, ring=bool(ring), bounds=bool(bounds),
                      still=still, granularity=(1, 1, 1) if granularity is None else granularity,
                      acc_xy=(ax, ay), **vxy)
 
@@ -157,7 +157,7 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
             if t1 <= t0 or b[2] <= a[2]:
                 return np.array([0, 0, 0, -1, -1, -1])
             return replace(job, lo=a, hi=b, acc=acc[t0 - tzo:],
-                           clip=job.clip[:4] + (t0, t1)).run()
+                           clip=with_planes(clip, t0, t1)).run()
 
         boxes = parallel.run_blocks(part, parts, len(parts))
     boxes = [b for b in boxes if b[3] >= 0]
@@ -165,6 +165,34 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
         return None
     return (np.min([b[:3] for b in boxes], axis=0),
             np.max([b[3:] for b in boxes], axis=0) + 1)
+
+
+def target_clip(window, acc_xy, acc_yx, z0, z1):
+    """The target window a scatter keeps: a :class:`~volwarp_cli.box.Box` (z, y, x).
+
+    Planes [z0, z1); columns and rows from ``window``: a Box (its y and x
+    ranges), ``((x0, x1), (y0, y1))``, or None: the accumulator's own
+    (``acc_yx`` of them from ``acc_xy``). A range ending before its start is
+    empty (the kernel keeps nothing there either).
+    """
+    from ..box import Box
+
+    if isinstance(window, Box):
+        (_, y0, x0), (_, y1, x1) = window.lo, window.hi
+    elif window is None:
+        ax, ay = (int(v) for v in acc_xy)
+        x0, x1, y0, y1 = ax, ax + int(acc_yx[1]), ay, ay + int(acc_yx[0])
+    else:
+        (x0, x1), (y0, y1) = window
+    lo = (int(z0), int(y0), int(x0))
+    return Box(lo, tuple(max(a, int(b)) for a, b in zip(lo, (z1, y1, x1), strict=True)))
+
+
+def with_planes(box, z0, z1):
+    """``box`` (z, y, x) cut to planes [z0, z1) (empty if z1 <= z0)."""
+    from ..box import Box
+
+    return Box((z0, *box.lo[1:]), (max(z0, z1), *box.hi[1:]))
 
 
 def still_regions(dqs) -> np.ndarray | None:

@@ -71,6 +71,9 @@ class Reach:
         Tighter than :meth:`target_z_reach` (one bound for the whole lattice,
         widened everywhere by the halo's extrapolation): each plane takes the
         bounds of its own layer of regions, whose faces alone are widened.
+        The streamed render's rings, the threads' parts
+        (:func:`.work.thread_parts`) and the label warp's rings and windows
+        are sized from it.
         """
         lo_u, hi_u = bounds
         gz = self.grid.granularity[2]

@@ -39,12 +39,13 @@ import threading
 
 import numpy as np
 
+from ..box import Box
 from ..errors import VolwarpError
 from ..memory import block_bytes, ensure_fits_in_memory
 from ..progress import log, timed
 from . import basis, pushforward, work
 from .lattice import Grid, affected_regions
-from .reach import Reach, offset_bounds
+from .reach import PlaneReach, Reach, offset_bounds
 
 #: Largest size of the deformation buffers of one z chunk (the array is never held whole);
 #: smaller when the memory budget's share of one thread is (:func:`.memory.block_bytes`).
@@ -73,30 +74,32 @@ class Scratch:
         return [self.flat[i * size:(i + 1) * size].reshape(shape) for i in range(n)]
 
 
-def _to_evaluate(still, grid: Grid, lo, hi, elo, ehi):
-    """The voxel ranges ``((x0, x1), (y0, y1))`` of block [lo, hi) whose offsets the scatter reads.
+def _to_evaluate(still, grid: Grid, block: Box, ext: Box):
+    """The voxel ranges ``((x0, x1), (y0, y1))`` of ``block`` whose offsets the scatter reads.
 
     Those of its voxels outside the still regions (in some pass) and their
-    neighbours, within the evaluated extent [elo, ehi) (x, y); everything
-    without ``still``; None when every voxel takes the still shortcut, which
-    reads no offsets.
+    neighbours, within the evaluated extent ``ext`` (both boxes of the domain,
+    z y x); everything without ``still``; None when every voxel takes the
+    still shortcut, which reads no offsets.
     """
-    full = ((int(elo[0]), int(ehi[0])), (int(elo[1]), int(ehi[1])))
+    (_, ey0, ex0), (_, ey1, ex1) = ext.lo, ext.hi
+    full = ((ex0, ex1), (ey0, ey1))
     if still is None:
         return full
     gx, gy, gz = grid.granularity
     dz = grid.domain_shape[2]
-    cz = slice(max(lo[2] - 1, 0) // gz, min(hi[2], dz - 1) // gz + 1)
+    cz = slice(max(block.lo[0] - 1, 0) // gz, min(block.hi[0], dz - 1) // gz + 1)
     moving = ~still[:, cz].all(axis=(0, 1))  # [Ry, Rx]: not still in some pass and plane
     if not moving.any():
         return None
     out = []
-    for axis, g, profile in ((0, gx, moving.any(axis=0)), (1, gy, moving.any(axis=1))):
+    for (e0, e1), g, profile in ((full[0], gx, moving.any(axis=0)),
+                                 (full[1], gy, moving.any(axis=1))):
         idx = np.flatnonzero(profile)
         # general voxels lie within one voxel of a moving region; the scatter reads
         # their neighbours too
-        a = max(int(idx[0]) * g - 2, int(elo[axis]))
-        b = min((int(idx[-1]) + 1) * g + 2, int(ehi[axis]))
+        a = max(int(idx[0]) * g - 2, e0)
+        b = min((int(idx[-1]) + 1) * g + 2, e1)
         out.append((a, max(a, b)))
     return tuple(out)
 
@@ -164,6 +167,7 @@ class Scene:
         self.offset = grid.affine_offset(self.pad)
         self.scale = grid.scale
         self.reach = Reach(grid, self.offset, self.scale, self.target_shape)
+        self._domain_box = Box.from_xyz((0, 0, 0), grid.domain_shape)
         self.acc = self.out = None
         self.last_touched = None
         #: bytes of one chunk's deformation buffers: the cap, or the budget's share of a thread
@@ -212,17 +216,16 @@ class Scene:
         acc = self.acc if acc is None else acc
         scratch = self.scratch if scratch is None else scratch
         grid = self.grid
-        dshape = np.array(grid.domain_shape)
+        dshape = grid.domain_shape
         # only the domain voxels inside the input are the model (a subdivision grid's
         # others, around it, carry nothing: the space there is the background)
         vlo = np.maximum(np.asarray(vlo, dtype=np.int64), grid.data_lo)
         vhi = np.minimum(np.asarray(vhi, dtype=np.int64), grid.data_hi)
         if np.any(vhi <= vlo):
             return None
-        elo = np.maximum(vlo - 1, 0)  # the voxels and their neighbours
-        ehi = np.minimum(vhi + 1, dshape)
-        nx = int(ehi[0] - elo[0])
-        ny = int(ehi[1] - elo[1])
+        block = Box.from_xyz(vlo.tolist(), vhi.tolist())  # domain voxels, z y x
+        ext = block.grow(1, within=self._domain_box)  # and their neighbours
+        _, ny, nx = ext.shape
         cz = int(max(4, self.chunk_bytes // ((nx + 2) * (ny + 2) * 12 * len(dqs))))
         evaluate = basis.EVALUATORS[self.evaluator]
         still = self._still(dqs)
@@ -232,19 +235,23 @@ class Scene:
             samples, planes = values[0], (values[1], grid.domain_shape[2])
         values_xy = (None if values is None or len(values) < 3
                      else (*values[2], grid.domain_shape[0], grid.domain_shape[1]))
+        if window is not None:
+            window = pushforward.target_clip(window, acc_xy, acc.shape[1:3], 0, 0)
+        parts_reach = self._plane_reach(dqs) if parallel and not ring else None
         boxes = []
-        for z0 in range(int(vlo[2]), int(vhi[2]), cz):
-            z1 = min(z0 + cz, int(vhi[2]))
-            e0, e1 = max(z0 - 1, 0), min(z1 + 1, int(dshape[2]))
+        for z0 in range(block.lo[0], block.hi[0], cz):
+            chunk = pushforward.with_planes(block, z0, min(z0 + cz, block.hi[0]))
+            z1 = chunk.hi[0]
+            e0, e1 = max(z0 - 1, 0), min(z1 + 1, dshape[2])
             # planar buffers [3, z, y, x] (the scatter reads each component's rows as
             # vectors), seen by the evaluator and fill_halo as [z, y, x, 3]
             planar = scratch.arrays((3, e1 - e0 + 2, ny + 2, nx + 2), len(dqs))
             ubs = [np.moveaxis(buf, 0, -1) for buf in planar]
-            origin = (int(elo[0]), int(elo[1]), e0)
-            lo = (int(vlo[0]), int(vlo[1]), z0)
+            origin = (ext.lo[2], ext.lo[1], e0)
+            lo, hi = chunk.xyz()
             # voxels in still regions take the scatter's shortcut, which reads no
             # offsets: only the rest (and their neighbours) are evaluated
-            sub = _to_evaluate(still, grid, lo, (int(vhi[0]), int(vhi[1]), z1), elo, ehi)
+            sub = _to_evaluate(still, grid, chunk, ext)
             if sub is not None:
                 for dq, ub in zip(dqs, ubs, strict=True):
                     evaluate(dq, grid, ub[1:-1, 1:-1, 1:-1], x=sub[0], y=sub[1], z=(e0, e1),
@@ -252,16 +259,15 @@ class Scene:
                 faces = [(0, 0)] if e0 == 0 else []
                 if e1 == dshape[2]:
                     faces.append((0, 1))
-                for axis_xyz, axis in ((0, 2), (1, 1)):
-                    if elo[axis_xyz] == 0:
+                for axis in (2, 1):  # the array's x and y
+                    if ext.lo[axis] == 0:
                         faces.append((axis, 0))
-                    if ehi[axis_xyz] == dshape[axis_xyz]:
+                    if ext.hi[axis] == dshape[2 - axis]:
                         faces.append((axis, 1))
                 for ub in ubs:
                     pushforward.fill_halo(ub, faces)
-            hi = (int(vhi[0]), int(vhi[1]), z1)
-            parts = (work.thread_parts(self.reach, np.stack(dqs), lo, hi, tzo, tz_hi, still)
-                     if parallel and not ring else None)
+            parts = (work.thread_parts(self.reach, parts_reach, lo, hi, tzo, tz_hi, still)
+                     if parts_reach is not None else None)
             bb = pushforward.scatter(planar[0], samples, self.offset, self.scale, lo, hi,
                                      sign, self.vmax, self.method, acc, parts=parts,
                                      origin=origin, tzo=tzo, tz_hi=tz_hi, ring=ring,
@@ -352,11 +358,11 @@ class Scene:
             self.render()
             return
         if how == "rebuild":
-            (t0x, t0y, t0z), (t1x, t1y, t1z), dlo, dhi = block
-            part = self.acc[t0z:t1z]  # the block's planes, a view
-            part[:, t0y:t1y, t0x:t1x] = 0
-            self.contribute([dq], dlo, dhi, 1, acc=part, tzo=t0z, tz_hi=t1z,
-                             window=((t0x, t1x), (t0y, t1y)))
+            target = Box.from_xyz(block[0], block[1])  # zeroed, then rebuilt
+            self.acc[target.slices] = 0
+            t0z, t1z = target.lo[0], target.hi[0]
+            self.contribute([dq], block[2], block[3], 1, acc=self.acc[t0z:t1z], tzo=t0z,
+                             tz_hi=t1z, window=target)
             tlo, thi = block[0], block[1]
         else:
             bb = self.contribute([self.dq, dq], vlo, vhi, -1, bounds=True)
@@ -414,6 +420,22 @@ class Scene:
         if "bounds" not in facts:
             facts["bounds"] = offset_bounds(dq)
         return facts["bounds"]
+
+    def _plane_reach(self, dqs):
+        """:meth:`.reach.Reach.planes` of the lattices ``dqs`` together (cached per lattice).
+
+        Per domain z plane, the target planes its voxels can reach under any of them.
+        """
+        reaches = []
+        for dq in dqs:
+            facts = self._facts(dq)
+            if "planes" not in facts:
+                facts["planes"] = self.reach.planes(self._offset_bounds(dq))
+            reaches.append(facts["planes"])
+        if len(reaches) == 1:
+            return reaches[0]
+        return PlaneReach(np.minimum.reduce([r.t_lo for r in reaches]),
+                          np.maximum.reduce([r.t_hi for r in reaches]))
 
     def _work(self, dqs, vlo, vhi) -> float:
         """:func:`.work.scatter_work` of domain voxels [vlo, vhi), one pass per lattice of ``dqs``."""

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .reach import Reach
+from .reach import PlaneReach, Reach
 
 #: Cost of a voxel outside the still regions (evaluated, boxed, scattered) relative
 #: to one inside (the shortcut); fitted on timed updates (see the README's notes).
@@ -71,13 +71,16 @@ def choose_update(work: dict[str, float], forced: str | None = None) -> str:
     return forced or min(UPDATES, key=work.get)
 
 
-def thread_parts(reach: Reach, dq, lo, hi, tzo=0, tz_hi=None, still=None, threads=None):
+def thread_parts(reach: Reach, planes: PlaneReach, lo, hi, tzo=0, tz_hi=None, still=None, threads=None):
     """``[(t0, t1, g0, g1), ...]``: block [lo, hi)'s work split by target planes over threads.
 
     For :func:`.pushforward.scatter`.
 
     Target planes [t0, t1) cover the planes held, [tzo, tz_hi); domain z
-    range [g0, g1) holds every voxel that can reach them. The cuts fall where
+    range [g0, g1) holds every voxel that can reach them, by ``planes``, a
+    :class:`.reach.PlaneReach` (each domain plane's reach, from its own layer
+    of the lattice, as the streamed render uses; :meth:`.scene.Scene.contribute`
+    passes one, of its lattices together). The cuts fall where
     the cumulative work (``still``: the scatter's still regions, or None)
     reaches k/n of the whole, mapped to the target plane its domain plane's
     centre goes to. Voxels whose boxes straddle a cut are scattered by both
@@ -103,6 +106,7 @@ def thread_parts(reach: Reach, dq, lo, hi, tzo=0, tz_hi=None, still=None, thread
     total = cum[-1]
     if total <= 0:
         return None
+    window = planes.domain_window
     tz_end = reach.target_shape[2] if tz_hi is None else tz_hi
     s, o = float(reach.scale[2]), float(reach.offset[2])
     best, best_time = None, total * SPLIT_MAX_SHARE
@@ -118,7 +122,7 @@ def thread_parts(reach: Reach, dq, lo, hi, tzo=0, tz_hi=None, still=None, thread
         edges = [int(tzo), *cuts, int(tz_end)]
         parts, longest = [], 0.0
         for t0, t1 in zip(edges[:-1], edges[1:], strict=True):
-            g0, g1 = reach.domain_z_window(dq, t0, t1)
+            g0, g1 = window(t0, t1)
             g0, g1 = max(g0, z0), min(g1, int(hi[2]))
             parts.append((t0, t1, g0, g1))
             if g1 > g0:
@@ -126,3 +130,4 @@ def thread_parts(reach: Reach, dq, lo, hi, tzo=0, tz_hi=None, still=None, thread
         if longest < best_time:
             best, best_time = parts, longest
     return best
+
