@@ -239,7 +239,7 @@ def test_blocks_run_vtk_on_one_thread(monkeypatch):
 
 
 def _numpy_stats(samples, dtype, iso):
-    """The block statistics by plain numpy: the reference of the one-pass kernel."""
+    """The block statistics by the plain numpy formulas: the reference of Stats.of."""
     a = np.asarray(samples).astype(dtype, copy=False)
     lo, hi = float(np.min(a)), float(np.max(a))
     if np.isnan(lo) or np.isnan(hi):
@@ -255,7 +255,7 @@ def _numpy_stats(samples, dtype, iso):
        seed=st.integers(0, 2**31), iso=st.sampled_from([None, 0.5, 3.0, 3, 0.1, -2.0, 1e30]),
        nan=st.booleans(), cap=st.booleans())
 def test_block_stats_equal_numpys(dtype, seed, iso, nan, cap):
-    """The one-pass kernel gives numpy's range, hit and largest sample below the level, in
+    """Stats.of gives the plain formulas' range, hit and largest sample below the level, in
     the type flying edges runs on (float32 compares a level rounded to float32), on strided
     blocks, with NaNs found anywhere."""
     from volwarp_cli.surface.chunked import Stats

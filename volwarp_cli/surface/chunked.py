@@ -180,18 +180,19 @@ class Stats:
     @staticmethod
     def of(samples: np.ndarray, dtype, iso: float | None) -> Stats:
         """The stats of one block (converted to the type flying edges runs on)."""
-        from ._stats_kernel import stats_of
-
         a = np.asarray(samples).astype(dtype, copy=False)
         if a.size == 0:
             return Stats(np.inf, -np.inf, False)
-        lo, hi, nan, hit, has_below, below = stats_of(a, iso)
-        if nan:
+        if a.dtype.kind == "b":
+            a = a.view(np.uint8)
+        lo, hi = a.min(), a.max()  # (NaN reaches both)
+        if np.isnan(lo) or np.isnan(hi):
             return Stats(np.nan, np.nan, True)
         if iso is None:
             return Stats(float(lo), float(hi), False)
-        return Stats(float(lo), float(hi), False, bool(hit),
-                     float(below) if has_below else None)
+        level = np.result_type(a.dtype, iso).type(iso)  # compared as numpy compares them
+        hit = bool(lo <= level <= hi and np.any(a == level))
+        return Stats(float(lo), float(hi), False, hit, _below_max(a, lo, hi, level))
 
     @staticmethod
     def merge(parts) -> Stats:
@@ -202,6 +203,22 @@ class Stats:
                      max((p.hi for p in parts), default=-np.inf),
                      any(p.nan for p in parts), any(p.hit for p in parts),
                      max(belows) if belows else None)
+
+
+def _below_max(a: np.ndarray, lo, hi, level) -> float | None:
+    """The largest sample of ``a`` below ``level`` (None: none), in few passes.
+
+    For integers the candidate is the largest integer below the level: where
+    it occurs (smooth data around an integer level: nearly always) one
+    comparison settles it; else, and for floats, a masked maximum.
+    """
+    if not lo < level:
+        return None
+    if a.dtype.kind in "iu" and a.dtype.itemsize <= 4:  # exact in float64
+        below = int(np.ceil(float(level))) - 1
+        if lo <= below <= hi and np.any(a == a.dtype.type(below)):
+            return float(below)
+    return float(np.max(a, where=a < level, initial=lo))
 
 
 def mesh_plan(stats: Stats, shape, dtype, iso: float, *, inside: str = "above",
