@@ -111,7 +111,7 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
     except OutOfMemoryError as exc:
         from .chunked import blocks_can_write, wants_blocks
 
-        if chunked is False or metric != "euclidean":
+        if chunked is False:
             raise
         from ..io.lazy import open_volume_lazy
 
@@ -182,11 +182,13 @@ def _by_blocks(input, output, raw, volume_index, dicom=None, *, iso, inside, met
 
     with settings.open_engine() as engine, _collector_paused(), \
             timed("distance by blocks"):
-        field_by_blocks(source, xyz_to_zyx(template.spacing), engine, open_output, iso=iso,
+        info = field_by_blocks(source, xyz_to_zyx(template.spacing), engine, open_output, iso=iso,
                         inside=inside, metric=metric, surface=surface,
                         max_distance=max_distance, finish=finish, out_dtype=out_dtype,
                         block_bytes=block_budget() // max(1, engine.workers),
                         block=settings.block, scratch_near=output)
+    if info.get("passes"):
+        log.info("min-norm: %d shift-and-min passes", info["passes"])
 
 
 @contextlib.contextmanager

@@ -21,10 +21,18 @@ clipped, cropped. Exact inside the band ``|d| <= D``, ``±D`` outside, as
 ``finish_field(field, max_distance=D)`` of the whole. The sub-voxel field
 (smooth inputs) bands the same way with its own, wider halo.
 
+**Line metrics** (:func:`line_metric_staged`, through :func:`field_by_blocks`):
+``minnorm``, ``taxicab`` and ``chessboard`` are per-axis passes too, each
+pass elementwise along the lines of its axis (:func:`.minnorm.axis_pass`, the
+in-memory passes' own function; :func:`.minnorm.chessboard_axis_pass`), so
+they run on blocks of whole lines with the outside and inside fields in two
+scratch files between passes; equal bit for bit to the in-memory field, and
+with ``--max-distance`` the same passes, clamped. They have no Dask-array
+form (:func:`signed_distance_dask` refuses them).
+
 What cannot be done out of core is refused (:func:`signed_distance_dask`):
-the min-norm, taxicab and chessboard metrics, and a sub-voxel field without a
-band (its nearest-seed transform carries seed ids and foot points through the
-passes, which the block kernels here do not).
+a sub-voxel field without a band (its nearest-seed transform carries seed ids
+and foot points through the passes, which the block kernels here do not).
 
 Every kernel a block task calls is serial (``parallel=False, nogil=True``):
 Dask's threads give the parallelism across blocks, and numba's workqueue
@@ -196,13 +204,15 @@ class MaskSource:
                 _block_stats(data, self.iso, self.inside))
 
 
-def pass_blocks(shape, axis: int, block_bytes: int, min_blocks: int = 1):
+def pass_blocks(shape, axis: int, block_bytes: int, min_blocks: int = 1, *,
+                bytes_per_voxel: int = PASS_BYTES_PER_VOXEL):
     """The blocks (Boxes) of one pass: whole lines along ``axis`` (:func:`line_chunks`).
 
     The rows (x) are kept whole where the budget allows, so that each block
     reads and writes its scratch file in long contiguous runs.
     """
     return Box.from_shape(shape).blocks(line_chunks(shape, axis, block_bytes,
+                                                    bytes_per_voxel=bytes_per_voxel,
                                                     min_blocks=min_blocks))
 
 
@@ -258,13 +268,13 @@ def _pass_z(masks, box, hz, src, write, finish):
     write(box, finish(field) if finish is not None else field)
 
 
-def _slabs(shape, block_bytes: int, min_blocks: int):
+def _slabs(shape, block_bytes: int, min_blocks: int, bytes_per_voxel: int = PASS_BYTES_PER_VOXEL):
     """Slabs of whole planes within ``block_bytes``, at least ``min_blocks`` of them.
 
     None when one plane does not fit the budget.
     """
     nz, ny, nx = shape
-    plane = PASS_BYTES_PER_VOXEL * ny * nx
+    plane = bytes_per_voxel * ny * nx
     if plane > block_bytes:
         return None
     depth = max(1, min(block_bytes // plane, math.ceil(nz / max(1, min_blocks))))
@@ -348,6 +358,131 @@ def signed_edt_staged(masks: MaskSource, spacing_zyx, engine, write, scratch, *,
                                       b, hz, field, write, finish, memory=memory)
                  for b in blocks]
     engine.run(tasks, label="distance pass z")
+    return count + len(tasks)
+
+
+# -- minnorm, taxicab, chessboard by per-axis line passes -----------------------------------
+#: Bytes per voxel a line-metric block holds: the mask, the outside and inside float32
+#: fields, the shift scratch and a read copy.
+LINE_BYTES_PER_VOXEL = 17
+
+
+def _line_passes(metric, fields, axes, spacing_zyx):
+    from .minnorm import line_metric_pass
+
+    scratch = np.empty(fields[0].size, np.float32) if metric != "chessboard" else None
+    for f in fields:
+        for axis in axes:
+            line_metric_pass(metric, f, axis, spacing_zyx[axis], scratch)
+
+
+def _line_first(masks, box, metric, axes, spacing_zyx, out_f, in_f):
+    # the outside field (0 on the shape, +inf off it) and the inside one, through the
+    # passes along ``axes`` (the block holds whole lines along each)
+    mask, stats = masks.box_and_stats(box)
+    m = mask.view(bool)
+    out = np.where(m, np.float32(0), np.float32(np.inf))
+    inn = np.where(m, np.float32(np.inf), np.float32(0))
+    del mask, m
+    _line_passes(metric, (out, inn), axes, spacing_zyx)
+    out_f[box.slices] = out
+    in_f[box.slices] = inn
+    return stats
+
+
+def _line_middle(box, metric, axis, spacing_zyx, out_f, in_f):
+    # in place: the blocks of one pass are disjoint, and each reads only its own box
+    out = np.ascontiguousarray(out_f[box.slices], dtype=np.float32)
+    inn = np.ascontiguousarray(in_f[box.slices], dtype=np.float32)
+    _line_passes(metric, (out, inn), (axis,), spacing_zyx)
+    out_f[box.slices] = out
+    in_f[box.slices] = inn
+
+
+def _line_last(box, metric, spacing_zyx, out_f, in_f, scale, max_distance, write, finish):
+    out = np.ascontiguousarray(out_f[box.slices], dtype=np.float32)
+    inn = np.ascontiguousarray(in_f[box.slices], dtype=np.float32)
+    _line_passes(metric, (out, inn), (0,), spacing_zyx)
+    # the shape is where the outside field is 0 (every other value is at least one step),
+    # combined as minnorm_signed / signed_distance do: -inside on the shape
+    mask = out == 0
+    np.negative(inn, out=inn)
+    np.copyto(out, inn, where=mask)
+    del inn, mask
+    if scale is not None:
+        out *= np.float32(scale)
+    if max_distance is not None:
+        finish_field(out, max_distance=max_distance)
+    write(box, finish(out) if finish is not None else out)
+
+
+def line_metric_staged(masks: MaskSource, spacing_zyx, engine, write, scratch, *, metric: str,
+                       block_bytes: int, finish=None, max_distance: float | None = None,
+                       memory: int | None = None, last_blocks=None, check=None,
+                       slab_depth: int | None = None) -> int:
+    """The signed ``minnorm``, ``taxicab`` or ``chessboard`` field by per-axis line passes.
+
+    :func:`signed_edt_staged`'s structure for the metrics of
+    :func:`.field.signed_distance` that are separable per axis: the outside
+    and inside fields go through the passes along x, y, z on blocks holding
+    whole lines along each pass's axis, stored in two float32 scratch files
+    between passes (x and y together on slabs of whole planes where a plane
+    fits ``block_bytes``); the z pass combines them into the signed field,
+    scales taxicab and chessboard by the (isotropic) spacing, clamps to
+    ``±max_distance``, and hands each block to ``write(box, finish(field))``.
+
+    Bit for bit the in-memory field: ``minnorm`` runs
+    :func:`.minnorm.axis_pass` (the in-memory passes' own function) on whole
+    lines, elementwise along them; ``taxicab`` is the same with unit spacing
+    (integers, exact in float32: ``distance_transform_cdt``'s values);
+    ``chessboard`` the L-infinity line passes of
+    :func:`.minnorm.chessboard_axis_pass` (integers, equal to scipy's
+    chessboard ``distance_transform_cdt``). Returns the number of block tasks.
+    """
+    from .field import check_isotropic
+
+    if metric not in ("minnorm", "taxicab", "chessboard"):
+        raise VolwarpError(f"no per-line passes for the {metric!r} metric")
+    spacing_zyx = tuple(float(s) for s in spacing_zyx)
+    check_isotropic(metric, spacing_zyx)
+    scale = None if metric == "minnorm" or spacing_zyx[0] == 1.0 else spacing_zyx[0]
+    shape = masks.shape
+    bpv = LINE_BYTES_PER_VOXEL
+    n = 4 * max(1, engine.workers)
+    out_f = _scratch_array(scratch, "outside", shape)
+    in_f = _scratch_array(scratch, "inside", shape)
+    slabs = (_slabs(shape, block_bytes, n, bpv) if slab_depth is None
+             else Box.from_shape(shape).blocks((int(slab_depth), shape[1], shape[2])))
+    if slabs is not None:
+        tasks = [engine.block_delayed(_line_first, f"distance-xy-{'-'.join(map(str, b.lo))}",
+                                      masks, b, metric, (2, 1), spacing_zyx, out_f, in_f,
+                                      memory=memory, keep=True)
+                 for b in slabs]
+        count = len(tasks)
+        stats = engine.run(tasks, label="distance passes x, y")
+    else:
+        tasks = [engine.block_delayed(_line_first, f"distance-x-{'-'.join(map(str, b.lo))}",
+                                      masks, b, metric, (2,), spacing_zyx, out_f, in_f,
+                                      memory=memory, keep=True)
+                 for b in pass_blocks(shape, 2, block_bytes, n, bytes_per_voxel=bpv)]
+        count = len(tasks)
+        stats = engine.run(tasks, label="distance pass x")
+        tasks = [engine.block_delayed(_line_middle, f"distance-y-{'-'.join(map(str, b.lo))}",
+                                      b, metric, 1, spacing_zyx, out_f, in_f, memory=memory)
+                 for b in pass_blocks(shape, 1, block_bytes, n, bytes_per_voxel=bpv)]
+        count += len(tasks)
+        engine.run(tasks, label="distance pass y")
+    if check is not None:
+        check([s.value for s in stats])
+    blocks = (last_blocks if last_blocks is not None
+              else pass_blocks(shape, 0, block_bytes, n, bytes_per_voxel=bpv))
+    tasks = [engine.block_delayed(_line_last, f"distance-z-{'-'.join(map(str, b.lo))}", b,
+                                  metric, spacing_zyx, out_f, in_f, scale, max_distance, write,
+                                  finish, memory=memory)
+             for b in blocks]
+    engine.run(tasks, label="distance pass z")
+    out_f.close()
+    in_f.close()
     return count + len(tasks)
 
 
@@ -533,11 +668,17 @@ def check_shape(nans: int, count: int, size: int, lo, hi, iso: float, inside: st
 
 
 def check_out_of_core(metric: str, surface: str) -> None:
-    """Refuse a metric or surface mode with no out-of-core form (before any pass)."""
+    """Refuse a metric or surface mode with no form as one Dask array (before any pass).
+
+    The minnorm, taxicab and chessboard metrics run out of core by staged
+    passes (:func:`line_metric_staged`, through :func:`field_by_blocks`), not
+    as a Dask graph.
+    """
     check_method(metric, surface)
     if metric != "euclidean":
-        raise VolwarpError(f"the {metric} metric has no out-of-core (chunked) form: use "
-                           "--metric euclidean, or run it in memory")
+        raise VolwarpError(f"the {metric} metric has no out-of-core form as a Dask array: "
+                           "its passes run by blocks through field_by_blocks "
+                           "(volwarp distance --chunked)")
 
 
 def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
@@ -571,9 +712,10 @@ def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
     ------
     VolwarpError
         The shape is empty or fills the grid (the messages of
-        ``signed_distance``); or the field cannot be done out of core: the
-        ``minnorm``, ``taxicab`` and ``chessboard`` metrics, a sub-voxel surface
-        without ``max_distance``.
+        ``signed_distance``); or the field has no form as a Dask array: the
+        ``minnorm``, ``taxicab`` and ``chessboard`` metrics (they run by blocks
+        through :func:`field_by_blocks`), a sub-voxel surface without
+        ``max_distance``.
     """
     check_out_of_core(metric, surface)
     if inside not in ("above", "below"):
@@ -617,7 +759,9 @@ def field_by_blocks(source, spacing_zyx, engine, open_output, *, iso: float, ins
     ``open_output(block_zyx, info)``: a context manager giving the
     :class:`~volwarp_cli.io.blockwrite.BlockOutput` the field goes to, with
     that block grid (``info``: :func:`signed_distance_dask`'s, for the
-    metadata). The exact field runs as :func:`signed_edt_staged`'s passes,
+    metadata). ``minnorm``, ``taxicab`` and ``chessboard`` run as
+    :func:`line_metric_staged`'s passes (with ``max_distance`` too: the
+    passes, then clamped); the exact Euclidean field as :func:`signed_edt_staged`'s passes,
     their scratch files in a folder next to ``scratch_near``; with
     ``max_distance``, or a sub-voxel surface, as overlapping blocks.
     ``finish(field)``: a block's last step (--unsigned, the output type,
@@ -630,6 +774,12 @@ def field_by_blocks(source, spacing_zyx, engine, open_output, *, iso: float, ins
 
     shape = tuple(source.shape)
     spacing_zyx = tuple(float(s) for s in spacing_zyx)
+    if metric != "euclidean":
+        return _line_metric_by_blocks(source, spacing_zyx, engine, open_output, iso=iso,
+                                      inside=inside, metric=metric, surface=surface,
+                                      max_distance=max_distance, finish=finish,
+                                      block_bytes=block_bytes, block=block,
+                                      scratch_near=scratch_near)
     if max_distance is None and surface != "subvoxel":
         # the exact field by passes: the samples are scanned in the first pass (the
         # checks run before the last one), not in a pass of their own
@@ -660,4 +810,48 @@ def field_by_blocks(source, spacing_zyx, engine, open_output, *, iso: float, ins
         field = field.map_blocks(finish, dtype=np.dtype(out_dtype))
     with open_output(block or chunks, info) as sink:
         write_blocks(field, sink, engine, label="distance", memory=block_bytes)
+    return info
+
+
+def _pass_grid(shape, block, block_bytes, workers, bytes_per_voxel=PASS_BYTES_PER_VOXEL):
+    # the output's block grid = the z pass's blocks: whole z lines
+    if block is not None:  # the slabs' depth, the z pass's columns
+        return (shape[0], *block[1:])
+    last = pass_blocks(shape, 0, block_bytes // 4, 4 * workers, bytes_per_voxel=bytes_per_voxel)
+    return last[0].shape if len(last) else shape
+
+
+def _line_metric_by_blocks(source, spacing_zyx, engine, open_output, *, iso, inside, metric,
+                           surface, max_distance, finish, block_bytes, block,
+                           scratch_near) -> dict:
+    """:func:`field_by_blocks` for minnorm, taxicab, chessboard: :func:`line_metric_staged`.
+
+    With ``max_distance`` the same passes, then clamped (as ``finish_field``
+    clamps the in-memory field): no halo, the whole field is exact anyway.
+    """
+    from ..io.atomic import scratch_folder
+    from .field import check_isotropic
+    from .minnorm import signed_pass_count
+
+    check_method(metric, surface)
+    check_isotropic(metric, spacing_zyx)
+    if inside not in ("above", "below"):
+        raise VolwarpError(f"inside must be 'above' or 'below', got {inside!r}")
+    if max_distance is not None and not max_distance > 0:
+        raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
+    shape = tuple(source.shape)
+    info = {"metric": metric, "surface": "voxel", "chunked": "passes",
+            "max_distance": None if max_distance is None else float(max_distance),
+            "passes": signed_pass_count(shape) if metric == "minnorm" else 0}
+    grid = _pass_grid(shape, block, block_bytes, engine.workers, LINE_BYTES_PER_VOXEL)
+    with open_output(grid, info) as sink, scratch_folder(scratch_near) as scratch:
+        check = staged_check(size=int(np.prod(shape)), iso=iso, inside=inside, surface="voxel",
+                             is_bool=source.dtype == bool)
+        every = sink.blocks()
+        line_metric_staged(MaskSource(source, iso, inside), spacing_zyx, engine,
+                           sink.writer().write, scratch, metric=metric,
+                           block_bytes=block_bytes // 4, finish=finish,
+                           max_distance=max_distance, memory=block_bytes, check=check,
+                           last_blocks=every, slab_depth=block[0] if block else None)
+        sink.mark_written(every)
     return info

@@ -62,6 +62,17 @@ def check_method(metric: str, surface: str) -> None:
         raise VolwarpError(f"sub-voxel surfaces need the euclidean metric, not {metric!r}")
 
 
+def check_isotropic(metric: str, spacing_zyx) -> None:
+    """Refuse anisotropic spacing for the voxel-step metrics (taxicab, chessboard)."""
+    if metric not in ("taxicab", "chessboard"):
+        return
+    spacing_zyx = tuple(float(s) for s in spacing_zyx)
+    if not np.allclose(spacing_zyx, spacing_zyx[0], rtol=1e-6):
+        raise VolwarpError(f"the {metric} metric counts voxel steps and needs isotropic "
+                           f"spacing, got {list(spacing_zyx[::-1])} (x, y, z); use euclidean "
+                           "or minnorm (spacing-weighted taxicab)")
+
+
 def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
                     inside: str = "above", metric: str = "euclidean",
                     surface: str = "auto") -> tuple[np.ndarray, dict]:
@@ -127,10 +138,7 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
         field, passes = minnorm_signed(mask, spacing_zyx)
         info["passes"] = passes
         return field, info
-    if not np.allclose(spacing_zyx, spacing_zyx[0], rtol=1e-6):
-        raise VolwarpError(f"the {metric} metric counts voxel steps and needs isotropic "
-                           f"spacing, got {list(spacing_zyx[::-1])} (x, y, z); use euclidean "
-                           "or minnorm (spacing-weighted taxicab)")
+    check_isotropic(metric, spacing_zyx)
     from scipy import ndimage
 
     out = ndimage.distance_transform_cdt(~mask, metric=metric).astype(np.float32)

@@ -68,6 +68,36 @@ def shift_min(field: np.ndarray, axis: int, step: int, increment: float,
     np.minimum(field[lo], t, out=field[lo])
 
 
+def doubling_steps(n: int) -> list[int]:
+    """The shifts of one axis' doubling passes over ``n`` samples: 1, 2, 4, ... below ``n``."""
+    steps = []
+    step = 1
+    while step < n:
+        steps.append(step)
+        step *= 2
+    return steps
+
+
+def axis_pass(field: np.ndarray, axis: int, h: float, scratch: np.ndarray | None = None) -> int:
+    """All doubling passes along ``axis`` (spacing ``h``), in place; returns their count.
+
+    Each pass only mixes samples along lines of ``axis`` (elementwise along
+    them), so on any block that holds whole lines along ``axis`` it makes the
+    same float32 operations, in the same order, as on the whole array: the
+    out-of-core passes (:mod:`.chunked`) call this same function on blocks.
+    """
+    h = float(h)
+    steps = doubling_steps(field.shape[axis])
+    for step in steps:
+        shift_min(field, axis, step, step * h, scratch)
+    return len(steps)
+
+
+def signed_pass_count(shape) -> int:
+    """The passes :func:`minnorm_signed` makes on a grid of ``shape`` (outside and inside)."""
+    return 2 * sum(len(doubling_steps(int(n))) for n in shape)
+
+
 def propagate(field: np.ndarray, spacing_zyx, axes=(2, 1, 0)) -> int:
     """Doubling shift-increment-min passes along ``axes`` (x, y, z), in place.
 
@@ -78,14 +108,101 @@ def propagate(field: np.ndarray, spacing_zyx, axes=(2, 1, 0)) -> int:
     count = 0
     scratch = np.empty(field.size, field.dtype)
     for axis in axes:
-        h = float(spacing_zyx[axis])
-        step = 1
-        n = field.shape[axis]
-        while step < n:
-            shift_min(field, axis, step, step * h, scratch)
-            step *= 2
-            count += 1
+        count += axis_pass(field, axis, float(spacing_zyx[axis]), scratch)
     return count
+
+
+# -- chessboard (L-infinity) by per-axis line passes -------------------------------------
+def _chessboard_kernel():
+    global _CHESSBOARD
+    if _CHESSBOARD is None:
+        import numba as nb
+
+        @nb.njit(cache=True, nogil=True)
+        def _chessboard_lines(f):
+            # f: (a, b, n) float32 of integers or +inf, any strides. Each line becomes
+            # g(u) = min_i max(|u - i|, f(i)): Meijster, Roerdink & Hesselink (2000)'s
+            # lower envelope with the chessboard Sep, in int64 (+inf as a sentinel)
+            a, b, n = f.shape
+            big = np.int64(1) << 40
+            g = np.empty(n, np.int64)
+            s = np.empty(n, np.int64)
+            t = np.empty(n, np.int64)
+            for i0 in range(a):
+                for j0 in range(b):
+                    finite = False
+                    for k in range(n):
+                        v = f[i0, j0, k]
+                        if v < np.inf:
+                            g[k] = np.int64(v)
+                            finite = True
+                        else:
+                            g[k] = big
+                    if not finite:
+                        continue
+                    q = 0
+                    s[0] = 0
+                    t[0] = 0
+                    for u in range(1, n):
+                        while q >= 0 and (max(abs(t[q] - s[q]), g[s[q]])
+                                          > max(abs(t[q] - u), g[u])):
+                            q -= 1
+                        if q < 0:
+                            q = 0
+                            s[0] = u
+                        else:
+                            i = s[q]
+                            if g[i] <= g[u]:
+                                sep = max(i + g[u], (i + u) // 2)
+                            else:
+                                sep = min(u - g[i], (i + u) // 2)
+                            w = 1 + sep
+                            if w < n:
+                                q += 1
+                                s[q] = u
+                                t[q] = w
+                    for u in range(n - 1, -1, -1):
+                        d = max(abs(u - s[q]), g[s[q]])
+                        f[i0, j0, u] = np.float32(d) if d < big else np.float32(np.inf)
+                        if u == t[q]:
+                            q -= 1
+
+        _CHESSBOARD = _chessboard_lines
+    return _CHESSBOARD
+
+
+_CHESSBOARD = None
+
+
+def chessboard_axis_pass(field: np.ndarray, axis: int) -> None:
+    """One L-infinity line pass along ``axis``, in place: ``g(i) = min_j max(|i - j|, f(j))``.
+
+    ``field``: float32, 0 on the sites, +inf elsewhere (or the result of
+    passes along other axes). After passes along x, y and z in turn it is the
+    chessboard distance ``min over sites max(|dx|, |dy|, |dz|)`` in voxel
+    steps, what ``scipy.ndimage.distance_transform_cdt(metric="chessboard")``
+    gives (``tests/test_distance_metrics_chunked.py`` checks the equality).
+    Values must be integers (or inf), exact in float32. A serial numba kernel
+    (``nogil``), for block tasks, linear in the line's length (Meijster et al.
+    2000's chessboard lower envelope); it only reads and writes lines of ``axis``.
+    """
+    if field.dtype != np.float32:
+        raise VolwarpError(f"the chessboard pass needs a float32 field, got {field.dtype}")
+    _chessboard_kernel()(np.moveaxis(field, axis, -1))
+
+
+def line_metric_pass(metric: str, field: np.ndarray, axis: int, h: float,
+                     scratch: np.ndarray | None = None) -> int:
+    """One axis of the per-line passes of ``metric`` (minnorm, taxicab, chessboard), in place.
+
+    ``minnorm``: :func:`axis_pass` with spacing ``h``; ``taxicab``: the same
+    with unit spacing (integer voxel steps; the caller scales by the spacing);
+    ``chessboard``: :func:`chessboard_axis_pass`. Returns the doubling passes made.
+    """
+    if metric == "chessboard":
+        chessboard_axis_pass(field, axis)
+        return 0
+    return axis_pass(field, axis, 1.0 if metric == "taxicab" else h, scratch)
 
 
 def minnorm_unsigned(sites: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0)) -> tuple[np.ndarray, int]:

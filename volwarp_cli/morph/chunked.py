@@ -88,8 +88,6 @@ def block_grid(job: MorphJob, source: Geometry, target: Geometry,
         return grid, ("a landmark warp (its thin-plate/Gaussian map is evaluated through "
                       "matrix products whose rounding is not guaranteed to be the same block "
                       "by block)")
-    if job.metric != "euclidean":
-        return grid, f"the {job.metric} metric (its passes have no out-of-core form)"
     return grid, None
 
 
