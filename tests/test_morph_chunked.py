@@ -92,6 +92,15 @@ def test_frames_by_blocks_equal_the_in_memory_frames(run, shapes, tmp_path, case
     assert not np.array_equal(blk[0].data, blk[3].data)
 
 
+def canonical(mesh):
+    """A mesh's vertices in order of position, its faces re-indexed and canonical, normals."""
+    v = np.asarray(mesh.vertices)
+    order = np.lexsort(v.T[::-1])
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return v[order], canonical_faces(rank[np.asarray(mesh.faces)]), mesh.normals[order]
+
+
 def test_meshes_and_renders_by_blocks_equal_the_in_memory_ones(run, shapes, tmp_path):
     common = [shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "3"]
     assert run("morph", *common, "-o", tmp_path / "m_{i}.nrrd", "--mesh-to",
@@ -101,13 +110,6 @@ def test_meshes_and_renders_by_blocks_equal_the_in_memory_ones(run, shapes, tmp_
               tmp_path / "b_{i}.ply", "--render-to", tmp_path / "b_{i}.png",
               "--render-size", "160x120", "--chunked", "--block", "9")
     assert res.code == 0, res.stderr
-
-    def canonical(mesh):
-        v = np.asarray(mesh.vertices)
-        order = np.lexsort(v.T[::-1])
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        return v[order], canonical_faces(rank[np.asarray(mesh.faces)]), mesh.normals[order]
 
     for i in range(3):
         a, b = read_mesh(tmp_path / f"m_{i}.ply"), read_mesh(tmp_path / f"b_{i}.ply")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_morph_chunked import canonical  # (the same canonical order as the unmoved morph's tests)
 
 from volwarp_cli.box import Box
 from volwarp_cli.geometry import Geometry
@@ -21,7 +22,6 @@ from volwarp_cli.morph.interpolate import (
     resample_box,
     resample_to_grid,
 )
-from volwarp_cli.surface.chunked import canonical_faces
 from volwarp_cli.surface.mesh_io import read_mesh
 from volwarp_cli.volume import Volume
 
@@ -78,14 +78,6 @@ def _same(tmp_path, n, names=("",)):
             assert a.meta["volwarp_morph_t"] == b.meta["volwarp_morph_t"]
 
 
-def _canonical(mesh):
-    v = np.asarray(mesh.vertices)
-    order = np.lexsort(v.T[::-1])
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return v[order], canonical_faces(rank[np.asarray(mesh.faces)]), mesh.normals[order]
-
-
 @pytest.mark.parametrize("scheduler", [None, "processes"])
 def test_inputs_on_different_grids_by_blocks(run, inputs, tmp_path, scheduler):
     """Source on a flipped grid of other spacing and origin, resampled onto the target's grid."""
@@ -104,7 +96,7 @@ def test_inputs_on_different_grids_by_blocks(run, inputs, tmp_path, scheduler):
         for i in range(3):
             a, b = read_mesh(tmp_path / f"m_{i}.ply"), read_mesh(tmp_path / f"b_{i}.ply")
             assert a.n_faces > 50 and (a.n_vertices, a.n_faces) == (b.n_vertices, b.n_faces)
-            for x, y in zip(_canonical(a), _canonical(b), strict=True):
+            for x, y in zip(canonical(a), canonical(b), strict=True):
                 assert np.array_equal(x, y)
 
 
