@@ -260,14 +260,6 @@ def test_multi_component_sweep_by_blocks_is_the_in_memory_file(run, tmp_path, sc
     assert res.code == 1 and "block" in res.stderr
 
 
-def test_sweep_by_blocks_refuses_what_needs_the_whole_fields(run, tmp_path):
-    spec = tmp_path / "s.yaml"
-    spec.write_text(SWEEP)
-    res = run("sweep", spec, "-o", tmp_path / "o_{field}.nrrd", "--render",
-              tmp_path / "r.png", "--chunked")
-    assert res.code == 2 and "--render" in res.stderr
-
-
 def test_distance_passes_take_the_block_size(run, scan, tmp_path):
     """--block Z,Y,X for the exact field: slabs of Z planes for the x/y passes, columns of
     Y by X for the z pass (whole lines either way); the same field as in memory."""

@@ -197,13 +197,16 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     out_dtype = dtype or "float32"
     stamp_meta = provenance("sweep", [spec], spec)
     chunked = scale_settings().chunked
-    refused = "--render" if render_path is not None else None
-    if chunked and refused:
-        raise click.UsageError(f"--chunked writes the fields by blocks: not {refused} (a "
-                               "render of the whole volume: render the written fields)")
+    render = None
+    if render_path is not None:
+        from .view_options import orientation_labels_for
+
+        render = dict(path=render_path, view=view, size=render_size, camera_from=camera_from,
+                      camera_to=camera_to, spec=spec,
+                      orientation_labels=orientation_labels_for(orientation_labels))
     by_blocks = dict(paths=paths, names=names, method=method, tau=tau, dtype=out_dtype,
                      meta=stamp_meta, compress=compress, byte_order=byte_order, multi=multi,
-                     **ome_zarr)
+                     render=render, **ome_zarr)
     if chunked:
         _sweep_by_blocks(sspec, grid, **by_blocks)
         return
@@ -217,7 +220,7 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
 
         nz, ny, nx = grid.shape
         size = (nz, ny, nx * (len(names) if multi else 1))  # (--multi: one file of them all)
-        if chunked is False or refused or not all(
+        if chunked is False or not all(
                 blocks_can_write(p, size, out_dtype, {"compress": compress})
                 for p in paths.values()):
             raise
@@ -242,24 +245,68 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
             for n in names:
                 write_volume(as_volume(fields[n], n), paths[n], compress=compress,
                              byte_order=byte_order, **ome_zarr)
-    if render_path is not None:
-        from ..io.images import write_image
+    if render is not None:
         from ..render.raycast import render_volume
+
         colour = None
         if all(c in fields for c in ("red", "green", "blue")):
             colour = [fields["red"], fields["green"], fields["blue"]]
-        from ..render.camera import write_camera
-        from .view_options import orientation_labels_for
-
         with timed(f"render {render_path}"):
             img, camera = render_volume(
                 fields["opacity"], colour=colour, geometry=fields.get("geometry"),
                 spacing=grid.spacing_array, origin=grid.origin_array, view=view, size=render_size,
-                camera=camera_from, orientation_labels=orientation_labels_for(orientation_labels),
+                camera=camera_from, orientation_labels=render["orientation_labels"],
                 return_camera=True)
-            write_image(render_path, np.ascontiguousarray(img))
-        if camera_to is not None:
-            write_camera(camera, camera_to, source=str(spec))
+        _write_render(render, img, camera)
+
+
+def _write_render(render, img, camera) -> None:
+    """The render's PNG (and ``--camera-to``'s camera), once the fields are written."""
+    import numpy as np
+
+    from ..io.images import write_image
+    from ..render.camera import write_camera
+
+    write_image(render["path"], np.ascontiguousarray(img))
+    if render["camera_to"] is not None:
+        write_camera(camera, render["camera_to"], source=str(render["spec"]))
+
+
+def _render_by_slabs(render, grid, outs, names, dtype, plan, slab):
+    """Ray-cast the fields written by blocks, slab by slab of z planes (the in-memory picture).
+
+    Float32/float64 outputs hold the sweep's float32 fields exactly: their planes
+    are read back. Other types (scaled, rounded) do not: the planes' fields are
+    computed again (:func:`~volwarp_cli.sweep.chunked.sweep_block`, the in-memory
+    sweep's samples), so that the picture is the in-memory render's either way.
+    """
+    import numpy as np
+
+    from ..box import Box
+    from ..progress import timed
+    from ..render.raycast import render_volume_slabs
+    from ..sweep.chunked import sweep_block
+
+    nz, ny, nx = grid.shape
+    exact = np.dtype(dtype) in (np.dtype(np.float32), np.dtype(np.float64))
+
+    def read_slab(z0, z1, wanted):
+        box = Box((z0, 0, 0), (z1, ny, nx))
+        if not exact:
+            fields = sweep_block(plan.root, plan.geometry, box, plan=plan)
+            return [fields[names.index(n)] for n in wanted]
+        if None in outs:  # --multi: the fields are the components of one output
+            both = outs[None].read(box)
+            return [np.asarray(both[..., names.index(n)], dtype=np.float32) for n in wanted]
+        return [np.asarray(outs[n].read(box), dtype=np.float32) for n in wanted]
+
+    colour = all(c in names for c in ("red", "green", "blue"))
+    with timed(f"render {render['path']} by slabs of {slab} z cells"):
+        return render_volume_slabs(
+            read_slab, (nz, ny, nx), colour=colour, geometry="geometry" in names, slab=slab,
+            spacing=grid.spacing_array, origin=grid.origin_array, view=render["view"],
+            size=render["size"], camera=render["camera_from"],
+            orientation_labels=render["orientation_labels"], return_camera=True)
 
 
 def _sweep_block_task(plan, box, writers, names, dtype):
@@ -284,12 +331,14 @@ def _sweep_block_task(plan, box, writers, names, dtype):
 
 
 def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, compress,
-                     byte_order, multi=False, ome_zarr_version="0.5", pyramid=0):
+                     byte_order, multi=False, ome_zarr_version="0.5", pyramid=0, render=None):
     """The sweep by output blocks on Dask (:mod:`volwarp_cli.sweep.chunked`).
 
     Each block task computes every field's block once and writes it to that
     field's output, or (``multi``) all of them as the components of one
-    multi-component NRRD.
+    multi-component NRRD. With ``render`` (--render), the written fields are
+    then ray-cast slab by slab (:func:`_render_by_slabs`) and the PNG written
+    once the fields are committed.
     """
     import contextlib
     import math
@@ -337,3 +386,10 @@ def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, com
         engine.run(tasks, label="sweep blocks")
         for out in outs.values():
             out.mark_written(boxes)
+        if render is not None:
+            from ..render.raycast import slab_depth
+
+            slab = settings.block[0] if settings.block else slab_depth(shape, budget // 2)
+            img, camera = _render_by_slabs(render, grid, outs, names, dtype, plan, slab)
+    if render is not None:
+        _write_render(render, img, camera)

@@ -9,44 +9,71 @@ from numba import njit, prange
 
 
 @njit(cache=True, parallel=True)
-def gradient(v):
-    """Central-difference gradient (x, y, z components, per voxel) of ``v[z, y, x]``."""
+def gradient_slab(v, zoff, nzg):
+    """Central-difference gradient (x, y, z components) of the planes ``v`` holds.
+
+    ``v[z, y, x]`` holds the planes ``zoff .. zoff + len(v) - 1`` of a volume of
+    ``nzg`` planes: the one-sided differences are taken at the volume's real
+    ends (planes 0 and ``nzg - 1``). A plane whose central difference needs a
+    plane ``v`` does not hold (the first or last one held, not at the volume's
+    end) gets a one-sided difference within ``v``: a halo plane, not to be used.
+    """
     nz, ny, nx = v.shape
     g = np.zeros((nz, ny, nx, 3), dtype=np.float32)
-    for z in prange(nz):
+    for zl in prange(nz):
+        z = zl + zoff
         z0 = z - 1 if z > 0 else 0
-        z1 = z + 1 if z < nz - 1 else nz - 1
+        z1 = z + 1 if z < nzg - 1 else nzg - 1
+        if z0 < zoff:
+            z0 = zoff
+        if z1 > zoff + nz - 1:
+            z1 = zoff + nz - 1
         for y in range(ny):
             y0 = y - 1 if y > 0 else 0
             y1 = y + 1 if y < ny - 1 else ny - 1
             for x in range(nx):
                 x0 = x - 1 if x > 0 else 0
                 x1 = x + 1 if x < nx - 1 else nx - 1
-                g[z, y, x, 0] = (v[z, y, x1] - v[z, y, x0]) / max(x1 - x0, 1)
-                g[z, y, x, 1] = (v[z, y1, x] - v[z, y0, x]) / max(y1 - y0, 1)
-                g[z, y, x, 2] = (v[z1, y, x] - v[z0, y, x]) / max(z1 - z0, 1)
+                g[zl, y, x, 0] = (v[zl, y, x1] - v[zl, y, x0]) / max(x1 - x0, 1)
+                g[zl, y, x, 1] = (v[zl, y1, x] - v[zl, y0, x]) / max(y1 - y0, 1)
+                g[zl, y, x, 2] = (v[z1 - zoff, y, x] - v[z0 - zoff, y, x]) / max(z1 - z0, 1)
     return g
 
 
+def gradient(v):
+    """Central-difference gradient (x, y, z components, per voxel) of ``v[z, y, x]``."""
+    return gradient_slab(v, 0, v.shape[0])
+
+
 @njit(cache=True, parallel=True)
-def block_max(v, b):
-    """Maximum of ``v`` over each block's voxels [k b, k b + b] (one voxel of overlap)."""
+def block_max_slab(v, b, zoff, nzg, k0, k1):
+    """:func:`block_max`'s rows ``k0 .. k1 - 1`` (along z) from the planes ``v`` holds.
+
+    ``v`` holds the planes ``zoff ..`` of a volume of ``nzg`` planes, at least
+    ``k0 b .. min(k1 b + 1, nzg) - 1`` (a block's planes and the next block's first).
+    """
     nz, ny, nx = v.shape
-    bz = (nz + b - 1) // b
     by = (ny + b - 1) // b
     bx = (nx + b - 1) // b
-    out = np.zeros((bz, by, bx), dtype=np.float32)
-    for k in prange(bz):
+    out = np.zeros((k1 - k0, by, bx), dtype=np.float32)
+    for kk in prange(k1 - k0):
+        k = kk + k0
         for j in range(by):
             for i in range(bx):
                 m = np.float32(0.0)
-                for z in range(k * b, min(k * b + b + 1, nz)):
+                for z in range(k * b, min(k * b + b + 1, nzg)):
                     for y in range(j * b, min(j * b + b + 1, ny)):
                         for x in range(i * b, min(i * b + b + 1, nx)):
-                            if v[z, y, x] > m:
-                                m = v[z, y, x]
-                out[k, j, i] = m
+                            if v[z - zoff, y, x] > m:
+                                m = v[z - zoff, y, x]
+                out[kk, j, i] = m
     return out
+
+
+def block_max(v, b):
+    """Maximum of ``v`` over each block's voxels [k b, k b + b] (one voxel of overlap)."""
+    nz = v.shape[0]
+    return block_max_slab(v, b, 0, nz, 0, (nz + b - 1) // b)
 
 
 @njit(cache=True, inline="always")
@@ -73,11 +100,10 @@ def _cell(p, n):
 
 
 @njit(cache=True)
-def _march_row(row, op, cr_, cg_, cb_, grad, bmax, B, spacing, centre, fwd, right, up, half_w, half_h,
-               pix, radius, hstep, step, light, halfway, background, shading, img):
-    nz, ny, nx = op.shape
-    w = img.shape[1]
-    const_col = cr_.size == 1
+def _march_row(row, op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze, first, bmax, B,
+               spacing, centre, fwd, right, up, half_w, half_h, pix, radius, hstep, step, light,
+               halfway, shading, state):
+    w = state.shape[1]
     dx = fwd[0] / spacing[0]
     dy = fwd[1] / spacing[1]
     dz = fwd[2] / spacing[2]
@@ -112,18 +138,30 @@ def _march_row(row, op, cr_, cg_, cb_, grad, bmax, B, spacing, centre, fwd, righ
                     t0 = ta
                 if tb < t1:
                     t1 = tb
-        cr = 0.0
-        cg = 0.0
-        cb = 0.0
-        A = 0.0
-        # a fixed per-pixel offset of the first sample (a hash of the pixel) turns the
-        # rings of regular sampling into fine noise; renders stay deterministic
-        hsh = ((row * 73856093) ^ (c * 19349663)) & 1023
-        t = t0 + hstep * (hsh / 1024.0)
+        if first:
+            cr = 0.0
+            cg = 0.0
+            cb = 0.0
+            A = 0.0
+            # a fixed per-pixel offset of the first sample (a hash of the pixel) turns the
+            # rings of regular sampling into fine noise; renders stay deterministic
+            hsh = ((row * 73856093) ^ (c * 19349663)) & 1023
+            t = t0 + hstep * (hsh / 1024.0)
+        else:
+            t = state[row, c, 0]
+            cr = state[row, c, 1]
+            cg = state[row, c, 2]
+            cb = state[row, c, 3]
+            A = state[row, c, 4]
         while t <= t1 and A < 0.995:
             x = px + t * dx
             y = py + t * dy
             z = pz + t * dz
+            # the sample belongs to the slab of its cell's first plane (z0): another
+            # slab's, met later along every ray (z is monotonic in t), stops it here
+            z0, z1, fz = _cell(z, nz)
+            if z0 < zs or z0 >= ze:
+                break
             bxi = min(max(int(x) // B, 0), bmax.shape[2] - 1)
             byi = min(max(int(y) // B, 0), bmax.shape[1] - 1)
             bzi = min(max(int(z) // B, 0), bmax.shape[0] - 1)
@@ -152,7 +190,8 @@ def _march_row(row, op, cr_, cg_, cb_, grad, bmax, B, spacing, centre, fwd, righ
                 continue
             x0, x1, fx = _cell(x, nx)
             y0, y1, fy = _cell(y, ny)
-            z0, z1, fz = _cell(z, nz)
+            z0 -= zoff
+            z1 -= zoff
             w000 = (1 - fx) * (1 - fy) * (1 - fz)
             w100 = fx * (1 - fy) * (1 - fz)
             w010 = (1 - fx) * fy * (1 - fz)
@@ -218,14 +257,38 @@ def _march_row(row, op, cr_, cg_, cb_, grad, bmax, B, spacing, centre, fwd, righ
                 cb += k * (b * shade + spec)
                 A += k
             t += hstep
-        img[row, c, 0] = cr + (1.0 - A) * background[0]
-        img[row, c, 1] = cg + (1.0 - A) * background[1]
-        img[row, c, 2] = cb + (1.0 - A) * background[2]
+        state[row, c, 0] = t
+        state[row, c, 1] = cr
+        state[row, c, 2] = cg
+        state[row, c, 3] = cb
+        state[row, c, 4] = A
 
 
 @njit(cache=True, parallel=True)
-def march(op, cr_, cg_, cb_, grad, bmax, B, spacing, centre, fwd, right, up, half_w, half_h, pix, radius,
-          hstep, step, light, halfway, background, shading, img):
-    for row in prange(img.shape[0]):
-        _march_row(row, op, cr_, cg_, cb_, grad, bmax, B, spacing, centre, fwd, right, up, half_w, half_h,
-                   pix, radius, hstep, step, light, halfway, background, shading, img)
+def march_slab(op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze, first, bmax, B,
+               spacing, centre, fwd, right, up, half_w, half_h, pix, radius, hstep, step, light,
+               halfway, shading, state):
+    """March every pixel's ray through the samples whose cell starts at a plane in [zs, ze).
+
+    ``op``, ``cr_``/``cg_``/``cb_`` (or 1x1x1 with ``const_col``) and ``grad``
+    hold the planes ``zoff ..`` of a volume of ``(nz, ny, nx)`` samples (the
+    planes ``zs .. ze`` at least); ``bmax`` is the whole volume's
+    :func:`block_max`. ``state[row, col]`` = (t, red, green, blue, A), set on
+    the ``first`` slab and carried from slab to slab (then :func:`finish`): the
+    slabs in the rays' z order make, sample for sample, the one-slab march.
+    """
+    for row in prange(state.shape[0]):
+        _march_row(row, op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze, first, bmax,
+                   B, spacing, centre, fwd, right, up, half_w, half_h, pix, radius, hstep, step,
+                   light, halfway, shading, state)
+
+
+@njit(cache=True, parallel=True)
+def finish(state, background, img):
+    """The picture of the marched rays: their colour over ``background`` (what is left of A)."""
+    for row in prange(state.shape[0]):
+        for c in range(state.shape[1]):
+            A = state[row, c, 4]
+            img[row, c, 0] = state[row, c, 1] + (1.0 - A) * background[0]
+            img[row, c, 1] = state[row, c, 2] + (1.0 - A) * background[1]
+            img[row, c, 2] = state[row, c, 3] + (1.0 - A) * background[2]

@@ -15,6 +15,12 @@ normalised central-difference gradient of the geometry field (or of the
 opacity), a light over the viewer's shoulder, and ``shade = 1`` where the
 gradient vanishes. Empty 8^3 blocks are skipped whole.
 
+Every ray has the same direction, so every ray crosses the volume's z planes
+in the same order: :func:`render_volume_slabs` marches the rays slab after
+slab of z planes (a volume read by slabs, e.g. written by blocks), carrying
+each pixel's state across, and makes the same picture bit for bit;
+:func:`render_volume` is its one slab of the whole volume.
+
 The camera looks at the centre of the volume's box from the view's azimuth
 ``az`` (in the x-y plane from +x towards +y: 0 looks from +x along -x, 90
 from +y along -y, -90 from -y along +y) and elevation ``el`` (above the x-y
@@ -91,22 +97,107 @@ def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None
     return_camera : bool
         Return ``(image, camera)``: the camera used, for :func:`.camera.write_camera`.
 
+    The whole volume is :func:`render_volume_slabs`'s one slab (the same march).
+
     References
     ----------
     Winter & Chen, "Image-swept volumes", §5.1; Levoy, "Display of surfaces
     from volume data", 1988.
     """
+    if np.ndim(opacity) != 3:
+        raise VolwarpError(f"opacity must be a 3-D array, got shape {np.shape(opacity)}")
+    shape = tuple(int(n) for n in np.shape(opacity))
+    if colour is not None and (len(colour) != 3
+                               or any(np.shape(c) != shape for c in colour)):
+        raise VolwarpError("colour must be three arrays shaped like the opacity")
+    fields = {"opacity": opacity, "geometry": geometry}
+    if colour is not None:
+        fields.update(zip(("red", "green", "blue"), colour, strict=True))
+
+    def read_slab(z0, z1, names):
+        return [fields[n][z0:z1] for n in names]
+
+    return _render(read_slab, shape, colour is not None, geometry is not None, None,
+                   spacing=spacing, view=view, size=size, background=background, step=step,
+                   shading=shading, zoom=zoom, origin=origin, direction=direction, camera=camera,
+                   orientation_labels=orientation_labels, return_camera=return_camera)
+
+
+#: bytes a voxel of a slab takes (clipped opacity, colours, geometry, its gradient, and the
+#: slab as read, up to 8 bytes a sample of 5 fields)
+SLAB_BYTES_PER_VOXEL = 4 * 8 + 5 * 8
+
+
+def slab_depth(shape, budget: int) -> int:
+    """How many cells along z a slab of :func:`render_volume_slabs` takes within ``budget`` bytes.
+
+    At least 4 (a slab holds its cells' planes, and the gradient's one more on each side).
+    """
+    nz, ny, nx = shape
+    per_plane = max(1, ny * nx * SLAB_BYTES_PER_VOXEL)
+    return int(max(4, min(max(nz - 1, 1), budget // per_plane - 3)))
+
+
+def render_volume_slabs(read_slab, shape, *, colour: bool = False, geometry: bool = False,
+                        slab: int | None = None, spacing=(1.0, 1.0, 1.0), view="iso",
+                        size=(512, 512), background=(0.0, 0.0, 0.0), step: float = 0.5,
+                        shading: bool = True, zoom: float = 1.0, origin=None, direction=None,
+                        camera: Camera | None = None, orientation_labels: bool = False,
+                        return_camera: bool = False):
+    """:func:`render_volume` of a volume read by slabs of z planes: the same picture, bit for bit.
+
+    Every ray has the same direction, so all rays cross the z planes in the same
+    order: the rays are marched slab after slab, in that order, each pixel's
+    state (its sample position, colour sums and opacity) carried across; each
+    sample is taken by the slab holding its cell's first plane, with the whole
+    volume's empty-block map (made by a first pass over the opacity, by slabs
+    of whole 8-plane blocks).
+
+    Parameters
+    ----------
+    read_slab : callable
+        ``read_slab(z0, z1, names)``: the planes ``z0 .. z1 - 1`` of each field
+        named (``"opacity"``, ``"red"``, ``"green"``, ``"blue"``, ``"geometry"``),
+        arrays ``(z1 - z0, ny, nx)`` in the order of ``names``.
+    shape : (nz, ny, nx)
+        The volume's shape.
+    colour, geometry : bool
+        Whether the volume has red/green/blue and geometry fields (read by
+        ``read_slab``): as :func:`render_volume`'s ``colour`` and ``geometry``.
+    slab : int, optional
+        Cells along z per slab (at least 1; a slab holds one more plane, and
+        with shading one more on each side). Default: from the memory budget
+        (:func:`slab_depth`).
+    Others
+        As :func:`render_volume`'s.
+    """
+    shape = tuple(int(n) for n in shape)
+    if len(shape) != 3 or min(shape) < 1:
+        raise VolwarpError(f"the volume's shape must be 3 positive sizes, got {shape}")
+    if slab is not None and int(slab) < 1:
+        raise VolwarpError(f"a slab takes 1 cell along z at least, got {slab}")
+    if slab is None:
+        from ..memory import memory_limit
+
+        slab = slab_depth(shape, memory_limit() // 2)
+    return _render(read_slab, shape, bool(colour), bool(geometry), int(slab),
+                   spacing=spacing, view=view, size=size, background=background, step=step,
+                   shading=shading, zoom=zoom, origin=origin, direction=direction, camera=camera,
+                   orientation_labels=orientation_labels, return_camera=return_camera)
+
+
+def _render(read_slab, shape, has_colour, has_geometry, slab, *, spacing, view, size, background,
+            step, shading, zoom, origin, direction, camera, orientation_labels, return_camera):
+    """The ray caster, by slabs of ``slab`` cells along z (None: one slab of the whole)."""
     from ..memory import ensure_fits_in_memory
-    from ._raycast_kernels import block_max, gradient, march
+    from ._raycast_kernels import block_max_slab, finish, gradient_slab, march_slab
 
     parallel.numba_threads()
 
-    if np.ndim(opacity) != 3:
-        raise VolwarpError(f"opacity must be a 3-D array, got shape {np.shape(opacity)}")
     if step <= 0:
         raise VolwarpError("step must be positive")
     spacing = np.asarray(spacing, dtype=np.float64)
-    nz, ny, nx = np.shape(opacity)
+    nz, ny, nx = shape
     ext = spacing * (np.array([nx, ny, nz]) - 1)
     centre = 0.5 * ext  # box of voxel centres in the volume's own frame, min corner at 0
     origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
@@ -150,20 +241,37 @@ def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None
     if w < 1 or h < 1 or w * h > MAX_PIXELS:
         raise VolwarpError(f"image size must be at least 1x1 and at most {MAX_PIXELS} pixels, "
                            f"got {w}x{h}")
-    # clipped opacity, its gradient (3 floats) and the geometry copy
-    ensure_fits_in_memory(int(np.size(opacity)) * 4 * 5, "volume render")
-    op = np.ascontiguousarray(np.clip(np.nan_to_num(opacity), 0.0, 1.0), dtype=np.float32)
-    if colour is None:
-        col = tuple(np.ones((1, 1, 1), dtype=np.float32) for _ in range(3))
-    else:
-        if len(colour) != 3 or any(np.shape(c) != op.shape for c in colour):
-            raise VolwarpError("colour must be three arrays shaped like the opacity")
+    ncell = max(nz - 1, 1)  # the samples' cells along z, by their first plane (z0)
+    whole = slab is None or slab >= ncell
+    depth = ncell if whole else slab
+    halo = 1 if shading else 0
+    held = min(nz, depth + 1 + 2 * halo)  # planes a slab holds
+    # clipped opacity, its gradient (3 floats) and the geometry copy; the pixels' state
+    ensure_fits_in_memory((nz if whole else held) * ny * nx * 4 * 5 + w * h * 8 * 6,
+                          "volume render")
+    names = ["opacity"] + (["red", "green", "blue"] if has_colour else []) \
+        + (["geometry"] if has_geometry and shading else [])
+    # one colour for every sample: white, or a single voxel's
+    const_col = not has_colour or nz * ny * nx == 1
+    ones = np.ones((1, 1, 1), dtype=np.float32)
+    no_grad = np.zeros((1, 1, 1, 3), dtype=np.float32)
+
+    def prepared(z0, z1, which):
+        arrays = dict(zip(which, read_slab(z0, z1, which), strict=True))
+        for n, a in arrays.items():
+            if np.shape(a) != (z1 - z0, ny, nx):
+                raise VolwarpError(f"the {n} field's planes {z0}..{z1 - 1} are shaped "
+                                   f"{np.shape(a)}, not {(z1 - z0, ny, nx)}")
+        op = np.ascontiguousarray(np.clip(np.nan_to_num(arrays["opacity"]), 0.0, 1.0),
+                                  dtype=np.float32)
         # no copy for float32 fields (the kernel clips to [0, 1] and treats NaN as 0)
-        col = tuple(np.ascontiguousarray(c, dtype=np.float32) for c in colour)
-    geo = op if geometry is None else np.ascontiguousarray(np.nan_to_num(geometry),
-                                                           dtype=np.float32)
-    grad = gradient(geo) if shading else np.zeros((1, 1, 1, 3), dtype=np.float32)
-    bmax = block_max(op, BLOCK)
+        col = tuple(np.ascontiguousarray(arrays[c], dtype=np.float32) if c in arrays else ones
+                    for c in ("red", "green", "blue"))
+        if const_col and has_colour:
+            col = tuple(c.reshape(1, 1, 1) for c in col)
+        return op, col, arrays.get("geometry")
+
+    bz = (nz + BLOCK - 1) // BLOCK
     right, up = to_frame(right_w), to_frame(up_w)
     fwd = -to_frame(back_w)
     half_w = half_h * w / h
@@ -173,11 +281,43 @@ def render_volume(opacity: np.ndarray, *, colour: list[np.ndarray] | None = None
     light /= np.linalg.norm(light)
     halfway = light - fwd
     halfway /= np.linalg.norm(halfway)
-    img = np.zeros((h, w, 3), dtype=np.float32)
     hstep = float(step) * float(spacing.min())
-    march(op, col[0], col[1], col[2], grad, bmax, BLOCK, spacing, centre, fwd, right, up, half_w, half_h, pix,
-          radius, hstep, float(step), light, halfway, np.asarray(background, dtype=np.float32),
-          bool(shading), img)
+    state = np.zeros((h, w, 5), dtype=np.float64)
+    # every ray crosses the planes in one order: that of fwd's z step (any, when it is 0)
+    slabs = [(c0, min(c0 + depth, ncell)) for c0 in range(0, ncell, depth)]
+    if fwd[2] / spacing[2] < 0:
+        slabs.reverse()
+    if whole:
+        op, col, geo = prepared(0, nz, names)
+        bmax = block_max_slab(op, BLOCK, 0, nz, 0, bz)
+        pre = (0, op, col, geo)
+    else:  # the whole volume's empty-block map, by slabs of whole blocks (and one plane more)
+        per = max(1, depth // BLOCK)
+        bmax = np.concatenate([
+            block_max_slab(prepared(k * BLOCK, min((k1 * BLOCK) + 1, nz), ["opacity"])[0],
+                           BLOCK, k * BLOCK, nz, k, k1)
+            for k in range(0, bz, per) for k1 in [min(k + per, bz)]])
+        pre = None
+    for i, (zs, ze) in enumerate(slabs):
+        if pre is None:
+            g0, g1 = max(zs - halo, 0), min(ze + 1 + halo, nz)
+            op, col, geo = prepared(g0, g1, names)
+        else:
+            g0, op, col, geo = pre
+        if shading:
+            geo = op if geo is None else np.ascontiguousarray(np.nan_to_num(geo),
+                                                              dtype=np.float32)
+            grad = gradient_slab(geo, g0, nz)
+        else:
+            grad = no_grad
+        del geo
+        march_slab(op, col[0], col[1], col[2], const_col, grad, g0, nz, ny, nx, zs, ze,
+                   i == 0, bmax, BLOCK, spacing, centre, fwd, right, up, half_w, half_h, pix,
+                   radius, hstep, float(step), light, halfway, bool(shading), state)
+        del op, col, grad
+    pre = None
+    img = np.zeros((h, w, 3), dtype=np.float32)
+    finish(state, np.asarray(background, dtype=np.float32), img)
     out = np.rint(np.clip(img, 0.0, 1.0) * 255.0).astype(np.uint8)
     if orientation_labels:
         bg = np.clip(np.asarray(background, dtype=np.float64), 0.0, 1.0) * 255.0
