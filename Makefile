@@ -53,7 +53,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BYTECODE)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=20
 
 bench: $(STAMP)
 	$(BYTECODE)
