@@ -51,9 +51,13 @@ demo: $(STAMP)
 	$(BYTECODE)
 	DEMO=$(DEMO) BIN=$(BIN) bash scripts/demo.sh
 
+# one pytest worker per core this process may use (affinity, cgroup quota), at most 8
+# (each worker holds its own numpy/VTK/dask); a test file runs in one worker
+TEST_WORKERS ?= $(shell $(BIN)/python -c "from volwarp_cli.parallel import available_cores as c; print(min(c(), 8))")
+
 test: $(STAMP)
 	$(BYTECODE)
-	$(BIN)/python -m pytest -q --durations=20
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=20
 
 bench: $(STAMP)
 	$(BYTECODE)

@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import os
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from volwarp_cli import parallel
 from volwarp_cli.io import write_volume
@@ -178,3 +181,53 @@ def test_blas_held_to_one_thread_and_vtk_follows_the_count():
     t.start()
     t.join()
     assert done == [parallel.threads()]
+
+
+@settings(max_examples=60, deadline=None)
+@given(length=st.integers(0, 40), n=st.integers(1, 6), parts=st.none() | st.integers(1, 12))
+def test_run_ranges_covers_every_index_once(length, n, parts):
+    hits = np.zeros(length, np.int64)
+    lock = threading.Lock()
+
+    def task(a, b):
+        assert 0 <= a < b <= length
+        with lock:
+            hits[a:b] += 1
+
+    parallel.run_ranges(task, length, n, parts)
+    assert np.all(hits == 1)
+
+
+@pytest.mark.parametrize("command", ["distance", "sweep-render", "subvoxel"])
+def test_numba_kernels_run_on_the_commands_threads(run, inputs, tmp_path, monkeypatch, command):
+    """The numba kernels (no prange pool) split their ranges over --threads, in that many
+    threads at once, and the PNG or field is the one thread's."""
+    seen, idents = [], set()
+    real = parallel.run_blocks
+
+    def spy(task, blocks, n=None):
+        blocks = list(blocks)
+        seen.append((n, len(blocks)))
+
+        def tracked(b):
+            idents.add(threading.get_ident())
+            return task(b)
+
+        return real(tracked, blocks, n)
+
+    monkeypatch.setattr(parallel, "run_blocks", spy)
+    args = {"distance": ("distance", inputs / "ball.nrrd", "--iso", "100", "--surface", "voxel"),
+            "subvoxel": ("distance", inputs / "ball.nrrd", "--iso", "100", "--surface",
+                         "subvoxel"),
+            "sweep-render": ("sweep", inputs / "sweep.yaml", "--render", tmp_path / "{t}.png")}
+    outs = []
+    for t in ("1", "3"):
+        out = tmp_path / (f"{t}_{{field}}.nrrd" if command == "sweep-render" else f"{t}.nrrd")
+        argv = [str(a).replace("{t}", t) for a in args[command]]
+        res = run(*argv, "-o", out, "--threads", t)
+        assert res.code == 0, res.stderr
+        outs.append((tmp_path / f"{t}.png") if command == "sweep-render"
+                    else Path(str(out)))
+    assert outs[0].read_bytes() == outs[1].read_bytes()
+    assert any(n == 3 and k > 1 for n, k in seen)  # the kernels' ranges were split
+    assert len(idents) >= 3  # in threads of their own (the main thread runs none)

@@ -21,8 +21,7 @@ threaded scheduler):
 
 Every scheduler runs the same block tasks, so outputs are identical on all of
 them. A block task runs its kernels on one thread (:func:`block_task`): the
-scheduler's threads are the parallelism, and numba's workqueue layer must not
-see two parallel kernels at once.
+scheduler's threads are the parallelism, not threads inside the tasks.
 
 Nothing here is imported by the in-memory path; dask and distributed are the
 ``[scale]`` extra, imported when a graph is built.

@@ -10,9 +10,10 @@ threads (a Dask worker's, a test's) each have their own, and :func:`run_blocks`
 hands it to the tasks it runs. Every kernel sums exact integers or writes
 disjoint blocks, so results do not depend on the count or the block sizes.
 
-Libraries with thread pools of their own are matched to the count when
-they run: numba's ``prange`` kernels by :func:`numba_threads`, VTK's SMP
-filters by ``surface.isosurface``. BLAS is held to one thread: by the command
+volwarp's numba kernels are ``nogil`` ones over ranges, run by
+:func:`run_blocks` (none uses numba's ``prange`` pool). Libraries with thread
+pools of their own are matched to the count when they run: VTK's SMP filters
+by ``surface.isosurface``. BLAS is held to one thread: by the command
 line's entry point (before numpy loads), or by :func:`library_threads` for a
 library caller.
 """
@@ -184,6 +185,21 @@ def run_blocks(task: Callable, blocks: Sequence | Iterable, n: int | None = None
         return [f.result() for f in futures]
 
 
+
+def run_ranges(task: Callable, length: int, n: int | None = None, parts: int | None = None
+               ) -> None:
+    """``task(a, b)`` over near-equal ranges covering [0, ``length``), on ``n`` threads.
+
+    ``parts`` ranges (default one per thread; more balance tasks of uneven
+    cost); the numba kernels' way of using the threads (see the module notes).
+    """
+    n = threads() if n is None else max(1, int(n))
+    if length <= 0:
+        return
+    edges = cuts(0, int(length), n if parts is None else parts)
+    run_blocks(lambda ab: task(*ab), list(zip(edges[:-1], edges[1:], strict=True)), n)
+
+
 @contextlib.contextmanager
 def library_threads(n: int | None = None):
     """Run the block inside with ``n`` threads (default :func:`threads`) and BLAS at one.
@@ -194,8 +210,8 @@ def library_threads(n: int | None = None):
     threadpoolctl) gets one thread: volwarp's kernels already spread over the
     ``n`` threads and make only small dense products, so BLAS threads inside
     them would oversubscribe the cores. Its limit is process-wide (set here and
-    put back after), which is why this wraps a whole job, not a kernel. numba's
-    ``prange`` kernels (:func:`numba_threads`) and VTK's SMP filters
+    put back after), which is why this wraps a whole job, not a kernel. The
+    numba kernels' ranges (:func:`run_blocks`) and VTK's SMP filters
     (``surface.isosurface``) take the count in effect when they run.
     """
     from threadpoolctl import threadpool_limits
@@ -208,15 +224,3 @@ def library_threads(n: int | None = None):
     finally:
         restore.restore_original_limits()
 
-
-def numba_threads() -> int:
-    """Set numba's ``prange`` thread count for the calling thread to :func:`threads`.
-
-    Capped by ``NUMBA_NUM_THREADS`` (the pool's size, fixed at numba's first
-    parallel call). Returns the count set.
-    """
-    import numba
-
-    n = max(1, min(threads(), numba.config.NUMBA_NUM_THREADS))
-    numba.set_num_threads(n)
-    return n

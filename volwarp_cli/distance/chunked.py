@@ -34,10 +34,9 @@ What cannot be done out of core is refused (:func:`signed_distance_dask`):
 a sub-voxel field without a band (its nearest-seed transform carries seed ids
 and foot points through the passes, which the block kernels here do not).
 
-Every kernel a block task calls is serial (``parallel=False, nogil=True``):
-Dask's threads give the parallelism across blocks, and numba's workqueue
-threading layer aborts the process when two threads run ``parallel=True``
-kernels at once.
+Every kernel a block task calls is a serial ``nogil`` one, run in the task's
+own thread: Dask's threads give the parallelism across blocks (volwarp has no
+numba ``prange`` kernel, whose workqueue layer aborts when two threads run one).
 """
 
 from __future__ import annotations
@@ -512,38 +511,15 @@ def band_halo(spacing_zyx, max_distance: float, surface: str = "voxel") -> tuple
     return tuple(int(k) for k in halo)
 
 
-def _serial_subvoxel():
-    """Serial (``nogil``) builds of :mod:`.subvoxel`'s three parallel kernels, once.
-
-    The same Python functions compiled without ``parallel`` (``prange`` runs as
-    ``range``): the same arithmetic, safe in Dask's threads. Not cached on disk:
-    numba's cache index does not tell a serial build of a function from its
-    parallel one.
-    """
-    global _SUBVOXEL_KERNELS
-    if _SUBVOXEL_KERNELS is None:
-        import numba as nb
-
-        from . import subvoxel as sv
-
-        build = nb.njit(nogil=True, cache=False)
-        _SUBVOXEL_KERNELS = (build(sv._seeds.py_func), build(sv._feature.py_func),
-                             build(sv._finish.py_func))
-    return _SUBVOXEL_KERNELS
-
-
-_SUBVOXEL_KERNELS = None
-
-
 def _subvoxel_block(values, iso, above, hz, hy, hx, max_distance):
-    # subvoxel.subvoxel_signed_distance with serial kernels, on one overlapped block;
+    # subvoxel.subvoxel_signed_distance in this thread alone, on one overlapped block;
     # a block without a crossing is farther than the band from the surface: ±D by side
     from .subvoxel import subvoxel_field
 
     vals = np.ascontiguousarray(values)
     if vals.dtype.kind not in "f":
         vals = vals.astype(np.float32)
-    dist = subvoxel_field(vals, iso, above, (hz, hy, hx), kernels=_serial_subvoxel())
+    dist = subvoxel_field(vals, iso, above, (hz, hy, hx), threads=1)
     if dist is None:
         inside = (vals >= iso) if above else (vals < iso)
         return np.where(inside, np.float32(-max_distance), np.float32(max_distance))

@@ -160,26 +160,11 @@ def _z_plane(out, mask, y, hz2):
             out[z, y, x] = plane[z, x]
 
 
-@nb.njit(cache=True, parallel=True)
-def _signed_edt_kernel(mask, hz, hy, hx, out):
-    nz, ny, nx = mask.shape
-    # pass 1 (x): a z slice per task
-    for z in nb.prange(nz):
-        _x_rows(mask, out, z, hx * hx)
-    # pass 2 (y): a z slice (contiguous, cache-sized) per task
-    for z in nb.prange(nz):
-        _plane_pass(out[z], mask[z], nx, ny, hy * hy, False)
-    # pass 3 (z): the (z, x) plane of one y per task
-    for y in nb.prange(ny):
-        _z_plane(out, mask, y, hz * hz)
-
-
 # The three passes, serial, on a block of whole lines along the pass's axis (the
-# other two axes may be any part of the volume): the block tasks of
-# :mod:`.chunked`, run by Dask's threads (numba's workqueue layer must not see two
-# parallel kernels at once). They are the parallel kernel's loop bodies, so the
-# arithmetic is the same; the mask is uint8 (0/1), the field float32 squared
-# distances until the last pass's signed square root.
+# other two axes may be any part of the volume): the in-memory transform runs
+# ranges of slices over the threads (:func:`signed_edt`), the block tasks of
+# :mod:`.chunked` one block each in their own thread. The mask is uint8 (0/1), the
+# field float32 squared distances until the last pass's signed square root.
 @nb.njit(cache=True, nogil=True)
 def x_pass(mask, hx, out):
     """Pass 1 (x) of a (Z, Y, X) block of whole x rows into ``out`` (float32)."""
@@ -195,10 +180,15 @@ def y_pass(field, mask, hy):
 
 
 @nb.njit(cache=True, nogil=True)
+def z_planes(field, mask, hz, y0, y1):
+    """Pass 3 (z) and the signed square root, in place, on the (z, x) planes y0 .. y1 - 1."""
+    for y in range(y0, y1):
+        _z_plane(field, mask, y, hz * hz)
+
+
 def z_pass(field, mask, hz):
     """Pass 3 (z) and the signed square root, in place, on a block of whole z lines."""
-    for y in range(mask.shape[1]):
-        _z_plane(field, mask, y, hz * hz)
+    z_planes(field, mask, hz, 0, mask.shape[1])
 
 
 def signed_edt(mask: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, out: np.ndarray | None = None
@@ -230,6 +220,8 @@ def signed_edt(mask: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, out: np.ndarray
     if out is None:
         out = np.empty(mask.shape, np.float32)
     hz, hy, hx = (float(s) for s in spacing_zyx)
-    parallel.numba_threads()
-    _signed_edt_kernel(mask, hz, hy, hx, out)
+    nz, ny = mask.shape[:2]
+    parallel.run_ranges(lambda a, b: x_pass(mask[a:b], hx, out[a:b]), nz)
+    parallel.run_ranges(lambda a, b: y_pass(out[a:b], mask[a:b], hy), nz)
+    parallel.run_ranges(lambda a, b: z_planes(out, mask, hz, a, b), ny)
     return out

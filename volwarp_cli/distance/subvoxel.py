@@ -150,12 +150,14 @@ def _foot(vals, z, y, x, hs, best, side, c):
                 c[ax] += side[ax] * d2 / best[ax] / hs[ax]
                 c[3 + ax] = side[ax] * np.sqrt(d2) / best[ax]
 
-@nb.njit(cache=True, parallel=True)
-def _seeds(vals, iso, above, hs, offsets, fill, ids, cps):
-    # Count (fill=False) or fill (fill=True) the seeds of each z slice.
+# The kernels below do a range of z slices (or of y planes), without the GIL;
+# :func:`subvoxel_field` runs ranges over the threads. Every slice is computed on
+# its own, so the field does not depend on the split.
+@nb.njit(cache=True, nogil=True)
+def _seeds(vals, iso, above, hs, offsets, fill, ids, cps, z0, z1):
+    # Count (fill=False) or fill (fill=True) the seeds of z slices [z0, z1).
     nz, ny, nx = vals.shape
-    for zp in nb.prange(nz):
-        z = np.int64(zp)  # prange indices are unsigned: uint64 + int64 is float64
+    for z in range(z0, z1):
         best = np.empty(3)
         side = np.empty(3)
         k = offsets[z]
@@ -232,12 +234,13 @@ def _envelope_idx(f, fi, n, h2, v, zb, outd, outi):
         outd[p] = best
         outi[p] = bi
 
-@nb.njit(cache=True, parallel=True)
-def _feature(ids, hz, hy, hx, dist):
-    # In place: ids (seed id or -1) becomes the id of the nearest seed.
+@nb.njit(cache=True, nogil=True)
+def _feature_x(ids, hx, dist, z0, z1):
+    # Pass 1 of the feature transform, z slices [z0, z1): in place, ids (seed id or -1)
+    # becomes the id of the nearest seed along x, dist its squared distance.
     nz, ny, nx = ids.shape
     hx2 = hx * hx
-    for z in nb.prange(nz):
+    for z in range(z0, z1):
         for y in range(ny):
             last = -1
             lid = -1
@@ -261,11 +264,23 @@ def _feature(ids, hz, hy, hx, dist):
                     if d < dist[z, y, x]:
                         dist[z, y, x] = d
                         ids[z, y, x] = lid
-    for z in nb.prange(nz):
+
+
+@nb.njit(cache=True, nogil=True)
+def _feature_y(ids, hy, dist, z0, z1):
+    # Pass 2 (y), z slices [z0, z1).
+    nz, ny, nx = ids.shape
+    for z in range(z0, z1):
         _feature_plane(dist[z], ids[z], nx, ny, hy * hy)
-    for y in nb.prange(ny):
-        plane = np.empty((nz, nx), np.float32)
-        pids = np.empty((nz, nx), ids.dtype)
+
+
+@nb.njit(cache=True, nogil=True)
+def _feature_z(ids, hz, dist, y0, y1):
+    # Pass 3 (z), the (z, x) planes of y in [y0, y1).
+    nz, ny, nx = ids.shape
+    plane = np.empty((nz, nx), np.float32)
+    pids = np.empty((nz, nx), ids.dtype)
+    for y in range(y0, y1):
         for z in range(nz):
             for x in range(nx):
                 plane[z, x] = dist[z, y, x]
@@ -310,16 +325,15 @@ def _disc_d2(x, y, z, s, cps, hs, r0):
     return dn * dn + t * t
 
 
-@nb.njit(cache=True, parallel=True)
-def _finish(vals, iso, above, hs, r0, eps, ids, new_ids, cps, out):
+@nb.njit(cache=True, nogil=True)
+def _finish(vals, iso, above, hs, r0, eps, ids, new_ids, cps, out, z0, z1):
     # Each seed stands for a small disc of the surface (foot point, unit
     # normal, radius r0). Each voxel keeps the nearest of the discs chosen
     # by itself and its 6 neighbours (one Jacobi step of closest-feature
     # propagation) and gets its signed distance to it. Far from the surface
     # neighbours mostly chose the same seed: only different ones are tried.
     nz, ny, nx = vals.shape
-    for zp in nb.prange(nz):
-        z = np.int64(zp)
+    for z in range(z0, z1):
         for y in range(ny):
             for x in range(nx):
                 bid = ids[z, y, x]
@@ -398,7 +412,6 @@ def subvoxel_signed_distance(values: np.ndarray, iso: float, *, inside: str = "a
     vals = np.ascontiguousarray(values)
     if vals.dtype.kind not in "f":
         vals = vals.astype(np.float32)
-    parallel.numba_threads()
     dist = subvoxel_field(vals, iso, inside == "above", spacing_zyx)
     if dist is None:
         raise VolwarpError(f"the samples never cross the iso level {iso:g}: there is no surface")
@@ -406,21 +419,25 @@ def subvoxel_signed_distance(values: np.ndarray, iso: float, *, inside: str = "a
 
 
 def subvoxel_field(vals: np.ndarray, iso: float, above: bool, spacing_zyx,
-                   kernels=None) -> np.ndarray | None:
+                   threads: int | None = None) -> np.ndarray | None:
     """The sub-voxel field of float samples ``vals``; None where they never cross ``iso``.
 
-    ``kernels``: ``(seeds, feature, finish)``, builds of this module's kernels
-    other than the parallel ones (an out-of-core block's serial builds); the
-    same arithmetic either way.
+    Each kernel's slices run over ``threads`` (default :func:`.parallel.threads`;
+    1 for an out-of-core block task, in a thread of its own): the same numbers
+    for any count.
     """
-    seeds, feature, finish = (_seeds, _feature, _finish) if kernels is None else kernels
+    n = parallel.threads() if threads is None else max(1, int(threads))
+    nz, ny = vals.shape[0], vals.shape[1]
+
+    def over(kernel, length, *args):
+        parallel.run_ranges(lambda a, b: kernel(*args, a, b), length, n)
+
     hz, hy, hx = (float(s) for s in spacing_zyx)
-    nz = vals.shape[0]
     hs = np.array([hx, hy, hz])
     counts = np.zeros(nz, np.int64)
     idtype = np.int32 if vals.size < 2**31 else np.int64
-    seeds(vals, float(iso), above, hs, counts, False, np.empty((1, 1, 1), idtype),
-          np.empty((1, 6)))
+    over(_seeds, nz, vals, float(iso), above, hs, counts, False, np.empty((1, 1, 1), idtype),
+         np.empty((1, 6)))
     total = int(counts.sum())
     if total == 0:
         return None
@@ -428,12 +445,15 @@ def subvoxel_field(vals: np.ndarray, iso: float, above: bool, spacing_zyx,
     offsets[1:] = np.cumsum(counts)[:-1]
     ids = np.full(vals.shape, -1, idtype)
     cps = np.empty((total, 6), np.float64)
-    seeds(vals, float(iso), above, hs, offsets, True, ids, cps)
+    over(_seeds, nz, vals, float(iso), above, hs, offsets, True, ids, cps)
     dist = np.empty(vals.shape, np.float32)
-    feature(ids, hz, hy, hx, dist)
+    over(_feature_x, nz, ids, hx, dist)
+    over(_feature_y, nz, ids, hy, dist)
+    over(_feature_z, ny, ids, hz, dist)
     r0 = DISC_RADIUS * float(max(hs))
     other = np.empty_like(ids)
     for _ in range(REFINE_STEPS):
-        finish(vals, float(iso), above, hs, r0, 1e-6 * float(min(hs)), ids, other, cps, dist)
+        over(_finish, nz, vals, float(iso), above, hs, r0, 1e-6 * float(min(hs)), ids, other,
+             cps, dist)
         ids, other = other, ids
     return dist

@@ -1,26 +1,36 @@
-"""numba kernels of the volume ray caster (see :mod:`.raycast`)."""
+"""numba kernels of the volume ray caster (see :mod:`.raycast`).
+
+Each kernel does a range of planes, block rows or pixel rows, without the GIL;
+the wrappers run those ranges over volwarp's threads
+(:func:`~volwarp_cli.parallel.run_blocks`). Every plane, block and pixel is
+computed on its own, so the picture does not depend on the thread count.
+Plain ``nogil`` kernels, not ``prange`` ones: they compile several times
+faster (a cold numba cache made a first render wait ~17 s) and use the
+thread count volwarp sets, not numba's pool.
+"""
 
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
+
+from .. import parallel
+
+#: pixel rows per task of the march (rows differ in cost: many small tasks balance)
+MARCH_ROWS = 8
 
 
-@njit(cache=True, parallel=True)
-def gradient_slab(v, zoff, nzg):
-    """Central-difference gradient (x, y, z components) of the planes ``v`` holds.
+def _over_threads(task, n: int, per: int = 1) -> None:
+    """``task(a, b)`` over ranges covering [0, n), ``per`` items or more each, on the threads."""
+    parallel.run_ranges(task, n, parts=max(1, min(n // max(per, 1), 4 * parallel.threads())))
 
-    ``v[z, y, x]`` holds the planes ``zoff .. zoff + len(v) - 1`` of a volume of
-    ``nzg`` planes: the one-sided differences are taken at the volume's real
-    ends (planes 0 and ``nzg - 1``). A plane whose central difference needs a
-    plane ``v`` does not hold (the first or last one held, not at the volume's
-    end) gets a one-sided difference within ``v``: a halo plane, not to be used.
-    """
+
+@njit(cache=True, nogil=True)
+def _gradient_planes(v, zoff, nzg, g, a, b):
     nz, ny, nx = v.shape
-    g = np.zeros((nz, ny, nx, 3), dtype=np.float32)
-    for zl in prange(nz):
+    for zl in range(a, b):
         z = zl + zoff
         z0 = z - 1 if z > 0 else 0
         z1 = z + 1 if z < nzg - 1 else nzg - 1
@@ -37,26 +47,28 @@ def gradient_slab(v, zoff, nzg):
                 g[zl, y, x, 0] = (v[zl, y, x1] - v[zl, y, x0]) / max(x1 - x0, 1)
                 g[zl, y, x, 1] = (v[zl, y1, x] - v[zl, y0, x]) / max(y1 - y0, 1)
                 g[zl, y, x, 2] = (v[z1 - zoff, y, x] - v[z0 - zoff, y, x]) / max(z1 - z0, 1)
+
+
+def gradient_slab(v, zoff, nzg):
+    """Central-difference gradient (x, y, z components) of the planes ``v`` holds.
+
+    ``v[z, y, x]`` holds the planes ``zoff .. zoff + len(v) - 1`` of a volume of
+    ``nzg`` planes: the one-sided differences are taken at the volume's real
+    ends (planes 0 and ``nzg - 1``). A plane whose central difference needs a
+    plane ``v`` does not hold (the first or last one held, not at the volume's
+    end) gets a one-sided difference within ``v``: a halo plane, not to be used.
+    """
+    g = np.empty(v.shape + (3,), dtype=np.float32)
+    _over_threads(lambda a, b: _gradient_planes(v, zoff, nzg, g, a, b), v.shape[0])
     return g
 
 
-def gradient(v):
-    """Central-difference gradient (x, y, z components, per voxel) of ``v[z, y, x]``."""
-    return gradient_slab(v, 0, v.shape[0])
-
-
-@njit(cache=True, parallel=True)
-def block_max_slab(v, b, zoff, nzg, k0, k1):
-    """:func:`block_max`'s rows ``k0 .. k1 - 1`` (along z) from the planes ``v`` holds.
-
-    ``v`` holds the planes ``zoff ..`` of a volume of ``nzg`` planes, at least
-    ``k0 b .. min(k1 b + 1, nzg) - 1`` (a block's planes and the next block's first).
-    """
+@njit(cache=True, nogil=True)
+def _block_max_rows(v, b, zoff, nzg, k0, out, a, c):
     nz, ny, nx = v.shape
-    by = (ny + b - 1) // b
-    bx = (nx + b - 1) // b
-    out = np.zeros((k1 - k0, by, bx), dtype=np.float32)
-    for kk in prange(k1 - k0):
+    by = out.shape[1]
+    bx = out.shape[2]
+    for kk in range(a, c):
         k = kk + k0
         for j in range(by):
             for i in range(bx):
@@ -67,13 +79,19 @@ def block_max_slab(v, b, zoff, nzg, k0, k1):
                             if v[z - zoff, y, x] > m:
                                 m = v[z - zoff, y, x]
                 out[kk, j, i] = m
+
+
+def block_max_slab(v, b, zoff, nzg, k0, k1):
+    """The maximum of ``v`` over each block's voxels [k b, k b + b] (one voxel of overlap).
+
+    For the block rows ``k0 .. k1 - 1`` (along z), from the planes ``v`` holds:
+    ``v`` holds the planes ``zoff ..`` of a volume of ``nzg`` planes, at least
+    ``k0 b .. min(k1 b + 1, nzg) - 1`` (a block's planes and the next block's first).
+    """
+    _, ny, nx = v.shape
+    out = np.empty((k1 - k0, (ny + b - 1) // b, (nx + b - 1) // b), dtype=np.float32)
+    _over_threads(lambda a, c: _block_max_rows(v, b, zoff, nzg, k0, out, a, c), k1 - k0)
     return out
-
-
-def block_max(v, b):
-    """Maximum of ``v`` over each block's voxels [k b, k b + b] (one voxel of overlap)."""
-    nz = v.shape[0]
-    return block_max_slab(v, b, 0, nz, 0, (nz + b - 1) // b)
 
 
 @njit(cache=True, inline="always")
@@ -264,7 +282,16 @@ def _march_row(row, op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze
         state[row, c, 4] = A
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True)
+def _march_rows(r0, r1, op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze, first,
+                bmax, B, spacing, centre, fwd, right, up, half_w, half_h, pix, radius, hstep,
+                step, light, halfway, shading, state):
+    for row in range(r0, r1):
+        _march_row(row, op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze, first, bmax,
+                   B, spacing, centre, fwd, right, up, half_w, half_h, pix, radius, hstep, step,
+                   light, halfway, shading, state)
+
+
 def march_slab(op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze, first, bmax, B,
                spacing, centre, fwd, right, up, half_w, half_h, pix, radius, hstep, step, light,
                halfway, shading, state):
@@ -273,20 +300,22 @@ def march_slab(op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze, fir
     ``op``, ``cr_``/``cg_``/``cb_`` (or 1x1x1 with ``const_col``) and ``grad``
     hold the planes ``zoff ..`` of a volume of ``(nz, ny, nx)`` samples (the
     planes ``zs .. ze`` at least); ``bmax`` is the whole volume's
-    :func:`block_max`. ``state[row, col]`` = (t, red, green, blue, A), set on
+    :func:`block_max_slab`. ``state[row, col]`` = (t, red, green, blue, A), set on
     the ``first`` slab and carried from slab to slab (then :func:`finish`): the
     slabs in the rays' z order make, sample for sample, the one-slab march.
     """
-    for row in prange(state.shape[0]):
-        _march_row(row, op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze, first, bmax,
-                   B, spacing, centre, fwd, right, up, half_w, half_h, pix, radius, hstep, step,
-                   light, halfway, shading, state)
+    def rows(r0, r1):
+        _march_rows(r0, r1, op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze, first,
+                    bmax, B, spacing, centre, fwd, right, up, half_w, half_h, pix, radius, hstep,
+                    step, light, halfway, shading, state)
+
+    _over_threads(rows, state.shape[0], MARCH_ROWS)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True)
 def finish(state, background, img):
     """The picture of the marched rays: their colour over ``background`` (what is left of A)."""
-    for row in prange(state.shape[0]):
+    for row in range(state.shape[0]):
         for c in range(state.shape[1]):
             A = state[row, c, 4]
             img[row, c, 0] = state[row, c, 1] + (1.0 - A) * background[0]

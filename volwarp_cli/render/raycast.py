@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import parallel
 from ..errors import VolwarpError
 from .camera import Camera, bounds_of, sees_any
 from .orientation import draw_orientation_labels, screen_letters
@@ -191,8 +190,6 @@ def _render(read_slab, shape, has_colour, has_geometry, slab, *, spacing, view, 
     """The ray caster, by slabs of ``slab`` cells along z (None: one slab of the whole)."""
     from ..memory import ensure_fits_in_memory
     from ._raycast_kernels import block_max_slab, finish, gradient_slab, march_slab
-
-    parallel.numba_threads()
 
     if step <= 0:
         raise VolwarpError("step must be positive")

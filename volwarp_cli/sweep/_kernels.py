@@ -1,24 +1,22 @@
-"""numba kernel of the sweep voxeliser (see :mod:`.voxelize` for the method).
+"""numba kernels of the sweep voxeliser (see :mod:`.voxelize` for the method).
 
-Imported lazily: numba costs about 0.3 s to import and the kernel is cached
+Imported lazily: numba costs about 0.3 s to import and the kernels are cached
 on disk (``cache=True``; set ``NUMBA_CACHE_DIR`` when the package is read-only).
 
-Each kernel is compiled twice from one Python function: ``parallel=True``
-(``prange`` over the threads of numba's pool, for the whole-grid path) and a
-``_serial`` variant (``parallel=False, nogil=True``) for block tasks that run
-in threads of their own (:mod:`.chunked` under Dask): numba's default
-workqueue threading layer aborts the process when two Python threads run
-parallel kernels at once. ``prange`` is ``range`` in the serial variant, and
-every iteration writes its own outputs, so both give the same bits.
+Plain ``nogil`` kernels over a range of z slices or of polynomials: the
+callers run ranges over volwarp's threads (:func:`~volwarp_cli.parallel.run_blocks`),
+a block task runs one range in its own thread. Every slice and polynomial is
+computed on its own, so the result does not depend on the split. (They were
+``prange`` kernels with serial twins: those compiled several times slower,
+and numba's workqueue layer aborts when two threads run ``prange`` at once.)
 """
 
 from __future__ import annotations
 
 import math
-import types
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 UNION, INTERSECTION, DIFFERENCE, BLEND, SUM, FIRST = range(6)
 BLEND_FLOOR = 1e-6
@@ -84,22 +82,7 @@ def _half_line(c, g, strict, positive, lo, hi):
     return lo, hi
 
 
-def _twice(py_func, name: str):
-    """``(parallel, serial)`` dispatchers of ``py_func``, the serial one named ``name``.
-
-    The serial one is compiled from a copy of the function under its own
-    qualified name: numba's on-disk cache keys an entry by the function's name
-    and bytecode, not by the ``parallel`` flag, so two dispatchers of one
-    function would read each other's machine code.
-    """
-    twin = types.FunctionType(py_func.__code__, py_func.__globals__, name,
-                              py_func.__defaults__, py_func.__closure__)
-    twin.__qualname__ = name
-    twin.__doc__ = py_func.__doc__
-    return (njit(cache=True, parallel=True)(py_func),
-            njit(cache=True, parallel=False, nogil=True)(twin))
-
-
+@njit(cache=True, nogil=True)
 def sweep_voxelize(P, EX, EY, EZ, SX, SY, SL, sub_a, sub_b, closed, boxes, origin, spacing,
                    tex, off, th, tw, tn, ops, opac, tol, acc, wsum, covered, zlo, zhi,
                    oz, oy, ox):
@@ -116,7 +99,7 @@ def sweep_voxelize(P, EX, EY, EZ, SX, SY, SL, sub_a, sub_b, closed, boxes, origi
     for f in range(F):
         if ops[f] == BLEND:
             has_blend = True
-    for zz in prange(zhi - zlo):
+    for zz in range(zhi - zlo):
         z = zlo + zz
         zl = z - oz
         vals = np.empty(F)
@@ -231,8 +214,6 @@ def sweep_voxelize(P, EX, EY, EZ, SX, SY, SL, sub_a, sub_b, closed, boxes, origi
                         covered[zl, yl, xl] = 1
 
 
-sweep_voxelize, sweep_voxelize_serial = _twice(sweep_voxelize, "sweep_voxelize_serial")
-
 
 @njit(cache=True)
 def _horner(c, deg, x):
@@ -242,6 +223,7 @@ def _horner(c, deg, x):
     return v
 
 
+@njit(cache=True, nogil=True)
 def real_roots_unit(coef, out):
     """Real roots in [0, 1] of many polynomials (ascending ``coef[N, D + 1]``).
 
@@ -253,7 +235,7 @@ def real_roots_unit(coef, out):
     """
     n, m = coef.shape
     D = m - 1
-    for v in prange(n):
+    for v in range(n):
         c = np.empty(m)
         dc = np.empty(m)
         crit = np.empty(m + 1)
@@ -314,5 +296,3 @@ def real_roots_unit(coef, out):
         for j in range(D):
             out[v, j] = crit[j] if j < ncrit else np.nan
 
-
-real_roots_unit, real_roots_unit_serial = _twice(real_roots_unit, "real_roots_unit_serial")

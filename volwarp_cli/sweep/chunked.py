@@ -25,10 +25,9 @@ at ``origin + spacing * (i, j, k)``, :func:`.voxelize.check_axis_aligned`),
 and for ``method: direct``, polyline segments and directions it cannot invert
 (:func:`.direct.check_direct`).
 
-Block tasks call the kernels' serial twins (numba ``parallel=False,
-nogil=True``): a Dask scheduler runs tasks in threads of its own, and numba's
-workqueue threading layer aborts the process when two threads run
-``parallel=True`` kernels at once; the parallelism is across blocks.
+Block tasks call the kernels in their own thread (numba ``nogil`` kernels,
+no ``prange``): a Dask scheduler runs tasks in threads of its own, and the
+parallelism is across blocks.
 
 Only :func:`sweep_dask` imports dask.
 """

@@ -148,17 +148,14 @@ def polynomial_roots(coef: np.ndarray) -> np.ndarray:
 def _bezier_candidates(seg: Bezier, p: np.ndarray, serial: bool = False) -> np.ndarray:
     """Real roots in [0, 1] of ``(p - a(s)) . a'(s)`` per point, NaN-padded (N, 2n - 1).
 
-    ``serial``: the root finder's serial twin (a block task in a thread of its own).
+    ``serial``: in the calling thread only (a block task in a thread of its own).
     """
-    from ._kernels import real_roots_unit, real_roots_unit_serial
+    from ._kernels import real_roots_unit
 
     coef = np.ascontiguousarray(bezier_f_coefficients(seg, p))
     roots = np.empty((coef.shape[0], coef.shape[1] - 1))
-    if serial:
-        real_roots_unit_serial(coef, roots)
-    else:
-        parallel.numba_threads()
-        real_roots_unit(coef, roots)
+    parallel.run_ranges(lambda a, b: real_roots_unit(coef[a:b], roots[a:b]), len(coef),
+                        1 if serial else None)
     return roots
 
 

@@ -34,7 +34,7 @@ vertices get a rotational joint: the template turns about the vertex from the
 incoming to the outgoing direction (subdivided to ``tau`` like any other
 part), so no wedge is left open on the outer side of a corner.
 
-The kernel works on z slices of the output in parallel (numba ``prange``):
+The kernel works on z slices of the output, ranges of them over the threads:
 each slice belongs to one thread and sees the sub-segments in trajectory
 order, so the result does not depend on the number of threads. The same
 holds for any block of the output (:func:`voxelize_block`, for
@@ -180,16 +180,11 @@ def _joint(a: Frames, b: Frames, sl: np.ndarray, tau: float, what: str, fns):
 
 
 # -- the kernel ---------------------------------------------------------------------
-_KERNELS: dict[bool, object] = {}
+def _get_kernel():
+    """The voxelising kernel (numba, ``nogil``: z slices ``[zlo, zhi)`` per call)."""
+    from ._kernels import sweep_voxelize
 
-
-def _get_kernel(serial: bool = False):
-    """The voxelising kernel: numba ``prange`` over z, or its serial twin (block tasks)."""
-    if serial not in _KERNELS:
-        from ._kernels import sweep_voxelize, sweep_voxelize_serial
-        _KERNELS[False] = sweep_voxelize
-        _KERNELS[True] = sweep_voxelize_serial
-    return _KERNELS[serial]
+    return sweep_voxelize
 
 
 def pack_templates(templates):
@@ -340,14 +335,13 @@ def voxelize_sweep(sweep, grid: Geometry, tau: float, progress_label: str = "swe
     plan = plan_voxelize(sweep, tau)
     args, acc, wsum, covered = _kernel_args(plan, grid, grid.box)
     kernel = _get_kernel()
-    parallel.numba_threads()
     # z slabs, so that a progress bar can move (each slab is split over the threads)
     n_slabs = max(1, min(16, nz // 8))
     edges = np.linspace(0, nz, n_slabs + 1).astype(int)
     with timed("sweep: voxelise"), progress(n_slabs, progress_label) as bar:
         for z0, z1 in zip(edges[:-1], edges[1:], strict=True):
-            if z1 > z0:
-                kernel(*args, int(z0), int(z1), 0, 0, 0)
+            parallel.run_ranges(lambda a, b, z0=int(z0): kernel(*args, z0 + a, z0 + b, 0, 0, 0),
+                                int(z1 - z0))
             bar.advance()
     return _finish(plan, acc, wsum, covered)
 
@@ -355,13 +349,13 @@ def voxelize_sweep(sweep, grid: Geometry, tau: float, progress_label: str = "swe
 def voxelize_block(plan: VoxelPlan, grid: Geometry, box: Box) -> dict:
     """The fields of ``plan`` on the voxels ``box`` of ``grid``, bit for bit the whole's.
 
-    One call of the serial kernel (no numba thread pool: safe in any thread);
+    One call of the kernel, in the calling thread (safe in any thread);
     each voxel's value comes from its own world point and the sub-segments in
     trajectory order, exactly as in :func:`voxelize_sweep`.
     """
     check_axis_aligned(grid)
     args, acc, wsum, covered = _kernel_args(plan, grid, box)
     if not box.empty:
-        _get_kernel(serial=True)(*args, *(int(v) for v in (box.lo[0], box.hi[0])),
+        _get_kernel()(*args, *(int(v) for v in (box.lo[0], box.hi[0])),
                                  *(int(v) for v in box.lo))
     return _finish(plan, acc, wsum, covered)
