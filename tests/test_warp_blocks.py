@@ -106,6 +106,42 @@ def test_box_sampler_equals_the_whole_gather(lo, size, sampling, oversample):
     assert np.array_equal(got, whole[box.slices])
 
 
+
+@settings(max_examples=25, deadline=None)
+@given(shape=st.tuples(*[st.integers(2, 14)] * 3), seed=st.integers(0, 99),
+       dtype=st.sampled_from(["float32", "float64"]),
+       sampling=st.sampled_from(["linear", "nearest"]), oversample=st.sampled_from([1.0, 1.6]))
+def test_gather_is_the_blend_of_its_tables_signed_zeros_included(shape, seed, dtype, sampling,
+                                                                 oversample):
+    """The compiled gather (a plain copy where every weight is 0, as at oversample 1) equals
+    numpy's blend of the capture tables: v0 + w (v1 - v0) per axis, so -0.0 comes out +0.0."""
+    from volwarp_cli.bspline.pullback import gather_tables
+
+    rng = np.random.default_rng(seed)
+    data = rng.normal(size=shape).astype(dtype)
+    data[rng.random(shape) < 0.3] = -0.0
+    cap = capture_volume(Volume(data), lattice=(4, 4, 4), oversample=oversample,
+                         sampling=sampling, defer=True)
+    (x0, x1, wx), (y0, y1, wy), (z0, z1, wz) = gather_tables(cap.grid, "uniform", sampling)
+    d = data.astype(np.float64)
+
+    def lerp(a, b, w):
+        return a + w * (b - a)
+
+    def along_x(p):
+        return lerp(p[..., x0], p[..., x1], wx)
+
+    def along_y(p):
+        return lerp(along_x(p[:, y0]), along_x(p[:, y1]), wy[:, None])
+
+    want = lerp(along_y(d[z0]), along_y(d[z1]), wz[:, None, None]).astype(dtype)
+    got, (lo, hi) = Sampler(data, cap.grid, "uniform", sampling, dtype=dtype).whole()
+    assert got.tobytes() == want.tobytes()
+    assert (lo, hi) == (want.min(), want.max())
+    if oversample == 1.0:
+        assert not (wx.any() or wy.any() or wz.any())  # the copy's case
+
+
 def test_capture_source_matches_the_in_memory_capture():
     data = (_blob((21, 18, 25)) * 100).astype(np.int16)
     vol = Volume(data, spacing=np.array([0.7, 0.9, 1.3]))
