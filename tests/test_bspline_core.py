@@ -251,8 +251,10 @@ def test_rebuild_block_covers_what_an_update_touches():
         g = np.array(cap.grid.granularity)
         vlo = np.maximum(rlo * g - 1, 0)
         vhi = np.minimum(rhi * g + 1, np.array(cap.grid.domain_shape))
-        tlo, thi, dlo, dhi = scene.reach.rebuild_block(scene._offset_bounds(scene.dq),
-                                                       scene._offset_bounds(dq), vlo, vhi)
+        block = scene.reach.rebuild_block(scene._offset_bounds(scene.dq),
+                                          scene._offset_bounds(dq), vlo, vhi)
+        (tlo, thi), (dlo, dhi) = (np.array(v) for v in block.target.xyz()), \
+            (np.array(v) for v in block.domain.xyz())
         scene.set_lattice(dq)
         touched_lo, touched_hi = scene.last_touched
         assert np.all(tlo <= touched_lo) and np.all(touched_hi <= thi)

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from volwarp_cli.box import Box
 from volwarp_cli.bspline import pushforward
 from volwarp_cli.bspline.lattice import Grid
+from volwarp_cli.bspline.pushforward import HeldPlanes
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.distance.exact import signed_edt
 from volwarp_cli.distance.field import finish_field
@@ -319,7 +320,7 @@ def warp_block(domain, grid, dq, region: Box, out: Box, method="box"):
     acc = np.zeros((t1z - t0z, ty, tx, 2), np.int64)
     if not region.empty:
         lo, hi = region.xyz()
-        scene.contribute([dq], lo, hi, 1, acc=acc, tzo=t0z, tz_hi=t1z,
+        scene.contribute([dq], lo, hi, 1, acc=acc, held=HeldPlanes(t0z, t1z),
                           window=((t0x, t1x), (t0y, t1y)))
     block = np.zeros(acc.shape[:3], np.float32)
     pushforward.finalize(acc, scene.vmax, (t0x, t0y, 0), (t1x, t1y, t1z - t0z), block)

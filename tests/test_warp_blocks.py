@@ -19,6 +19,7 @@ from volwarp_cli.box import Box
 from volwarp_cli.bspline import blocks
 from volwarp_cli.bspline.capture import capture_source, capture_volume
 from volwarp_cli.bspline.pullback import BoxSampler, Sampler
+from volwarp_cli.bspline.pushforward import HeldPlanes
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.volume import Volume
 
@@ -82,7 +83,7 @@ def test_a_block_missing_domain_voxels_differs():
         acc = np.zeros(box.shape + (2,), np.int64)
         (tx0, ty0, tz0), (tx1, ty1, tz1) = box.xyz()
         (a, b, c), (d, e, f) = cut.xyz()
-        scene.contribute([scene.dq], (a, b, c), (d, e, f), 1, acc=acc, tzo=tz0, tz_hi=tz1,
+        scene.contribute([scene.dq], (a, b, c), (d, e, f), 1, acc=acc, held=HeldPlanes(tz0, tz1),
                          window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0), parallel=False,
                          values=(sampler.box(cut), c, (a, b)))
         part = np.empty(box.shape, np.float32)
@@ -195,14 +196,14 @@ def test_kernel_partial_values_and_accumulators_equal_whole_planes():
     (tx0, ty0, tz0), (tx1, ty1, tz1) = win.xyz()
     acc = np.zeros(win.shape + (2,), np.int64)
     dbox = Box.from_xyz(lo, hi)
-    scene.contribute([dq], lo, hi, 1, acc=acc, tzo=tz0, tz_hi=tz1,
+    scene.contribute([dq], lo, hi, 1, acc=acc, held=HeldPlanes(tz0, tz1),
                      window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0), parallel=False,
                      values=(np.ascontiguousarray(cap.domain[dbox.slices]), lo[2],
                              (lo[0], lo[1])))
     assert np.array_equal(acc, acc_whole[win.slices])
     assert acc.any()
     with pytest.raises(ValueError, match="outside"):  # a block outside the values given
-        scene.contribute([dq], (2, 5, 2), hi, 1, acc=acc, tzo=tz0, tz_hi=tz1,
+        scene.contribute([dq], (2, 5, 2), hi, 1, acc=acc, held=HeldPlanes(tz0, tz1),
                          window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0), parallel=False,
                          values=(np.ascontiguousarray(cap.domain[dbox.slices]), lo[2],
                                  (lo[0], lo[1])))

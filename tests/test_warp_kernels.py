@@ -184,7 +184,8 @@ def test_window_keeps_exactly_the_contributions_inside_it(method):
                                          ((7, 8), (0, 13), (8, 10))]:
         part = np.zeros_like(whole)
         pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 2.0, method,
-                            part[z0:z1], tzo=z0, window=((x0, x1), (y0, y1)))
+                            part[z0:z1], held=pushforward.HeldPlanes(z0),
+                            window=((x0, x1), (y0, y1)))
         inside = np.zeros(whole.shape[:3], bool)
         inside[z0:z1, y0:y1, x0:x1] = True
         assert np.array_equal(part[inside], whole[inside])

@@ -23,6 +23,7 @@ from volwarp_cli.box import Box
 from volwarp_cli.bspline import basis, blocks, jobs, labels, pushforward, work
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.labels import capture_labels, warp_labels
+from volwarp_cli.bspline.pushforward import HeldPlanes
 from volwarp_cli.bspline.reach import PlaneReach, offset_bounds
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.volume import Volume
@@ -50,7 +51,7 @@ def _block_sums(scene, box: Box, need: Box) -> np.ndarray:
     acc = np.zeros(box.shape + (2,), np.int64)
     (tx0, ty0, tz0), (_, _, tz1) = box.xyz()
     lo, hi = need.xyz()
-    scene.contribute([scene.dq], lo, hi, 1, acc=acc, tzo=tz0, tz_hi=tz1, window=box,
+    scene.contribute([scene.dq], lo, hi, 1, acc=acc, held=HeldPlanes(tz0, tz1), window=box,
                      acc_xy=(tx0, ty0), parallel=False)
     return acc
 

@@ -85,7 +85,7 @@ def render_block(scene: Scene, sampler, box: Box) -> np.ndarray:
             flush(min(max(int(floor[g0 - dz0]), base), tz1))
             values = sampler.box(Box((g0, dy0, dx0), (g1, dy1, dx1)))
             scene.contribute([scene.dq], (dx0, dy0, g0), (dx1, dy1, g1), 1, acc=acc,
-                             tzo=base, tz_hi=min(base + planes, tz1), ring=True,
+                             held=pushforward.HeldPlanes(base, min(base + planes, tz1), ring=True),
                              window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0),
                              parallel=False, scratch=scratch, values=(values, g0, (dx0, dy0)))
     flush(tz1)

@@ -45,13 +45,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import parallel
+from ..box import Box
 from ..errors import VolwarpError
 from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
 from ..volume import Volume
 from .capture import LATTICE_ARRAYS, Capture
 from .lattice import PLACEMENTS, Grid, capture_offsets
-from .pushforward import QUANTUM
+from .pushforward import QUANTUM, HeldPlanes
 from .scene import Scene
 from .stream import STREAM_PLANES, _ring_planes
 
@@ -267,8 +268,9 @@ class _Stream:
     def run(self, label, box, on_planes) -> None:
         """Scatter label ``label``'s indicator (0 for ``label != 0``) over input box ``box``.
 
-        ``on_planes(z0, weights [k, y, x, 2], (x0, x1, y0, y1))`` is called for the
-        finished target planes of its block in this thread's share.
+        ``on_planes(target, weights)`` is called for the finished target planes of its
+        block in this thread's share: ``weights[k, y, x, 2]`` of the target voxels
+        ``target`` (a :class:`~volwarp_cli.box.Box`, z y x).
         """
         sc, k = self.scene, self.k
         vlo = self.lead + k * box[0]
@@ -277,12 +279,11 @@ class _Stream:
         block = sc.reach.rebuild_block(bounds, bounds, vlo, vhi)
         if block is None:
             return
-        tlo, thi = block[0], block[1]
-        z_lo, z_hi = max(int(tlo[2]), self.t_lo), min(int(thi[2]), self.t_hi)
+        (tz0, y0, x0), (tz1, y1, x1) = block.target.lo, block.target.hi
+        z_lo, z_hi = max(tz0, self.t_lo), min(tz1, self.t_hi)
         if z_lo >= z_hi:
             return
-        x0, y0 = int(tlo[0]), int(tlo[1])
-        wx, wy = int(thi[0]) - x0, int(thi[1]) - y0
+        wx, wy = x1 - x0, y1 - y0
         # target coordinates relative to the block's corner in x and y: a small ring
         sub = copy.copy(sc)
         sub.offset = sc.offset - np.array([x0, y0, 0.0])
@@ -296,14 +297,13 @@ class _Stream:
         g_lo, g_hi = max(g_lo, int(vlo[2])), min(g_hi, int(vhi[2]))
         base = z_lo
         planes = self.planes
-        window = (x0, x0 + wx, y0, y0 + wy)
 
         def flush(upto):
             nonlocal base
             while base < upto:
                 s0 = base % planes
                 n = min(upto - base, planes - s0)
-                on_planes(base, acc[s0:s0 + n], window)
+                on_planes(Box((base, y0, x0), (base + n, y1, x1)), acc[s0:s0 + n])
                 acc[s0:s0 + n] = 0
                 base += n
 
@@ -327,8 +327,9 @@ class _Stream:
             view = self.values[:g1 - g0, ys, xs].reshape(g1 - g0, by1 - by0, k, bx1 - bx0, k)
             np.copyto(view, ind[:, :, None, :, None])
             sub.contribute([self.dq], (int(vlo[0]), int(vlo[1]), g0),
-                            (int(vhi[0]), int(vhi[1]), g1), 1, acc=acc, tzo=base,
-                            tz_hi=min(base + planes, z_hi), ring=True, parallel=False,
+                            (int(vhi[0]), int(vhi[1]), g1), 1, acc=acc,
+                            held=HeldPlanes(base, min(base + planes, z_hi), ring=True),
+                            parallel=False,
                             scratch=self.scratch, values=(self.values[:g1 - g0], g0),
                             window=((0, wx), (0, wy)))
             self.values[:g1 - g0, ys, xs] = 0
@@ -437,10 +438,9 @@ def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: in
     predicted = {}
     peak = {}
 
-    def background(z0, acc, win):
-        x0, x1, y0, y1 = win
+    def background(target, acc):
         w_all, w_fg = acc[..., 0], acc[..., 1]
-        best_w[z0 - z_base:z0 - z_base + len(acc), y0:y1, x0:x1] = np.maximum(w_all, _Q) - w_fg
+        best_w[target.shift((-z_base, 0, 0)).slices] = np.maximum(w_all, _Q) - w_fg
 
     st.run(0, full, background)
     # negative labels first, descending, winning ties (>=: the smaller id wins), then the
@@ -451,11 +451,10 @@ def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: in
         total = [0]
         top = [0, None]
 
-        def keep(z0, acc, win, L=L, total=total, top=top):
-            x0, x1, y0, y1 = win
+        def keep(target, acc, L=L, total=total, top=top):
             w = acc[..., 1]
-            bw = best_w[z0 - z_base:z0 - z_base + len(acc), y0:y1, x0:x1]
-            bl = best_l[z0 - z_base:z0 - z_base + len(acc), y0:y1, x0:x1]
+            here = target.shift((-z_base, 0, 0)).slices
+            bw, bl = best_w[here], best_l[here]
             better = (w >= bw) if L < 0 else (w > bw)
             np.copyto(bw, w, where=better)
             np.copyto(bl, L, where=better, casting="unsafe")
@@ -463,7 +462,7 @@ def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: in
             if preserve:
                 j = int(np.argmax(w))
                 kz, ky, kx = np.unravel_index(j, w.shape)
-                at = (z0 + int(kz), y0 + int(ky), x0 + int(kx))
+                at = tuple(a + int(b) for a, b in zip(target.lo, (kz, ky, kx), strict=True))
                 if _stronger(int(w.flat[j]), at, *top):
                     top[0], top[1] = int(w.flat[j]), at
 

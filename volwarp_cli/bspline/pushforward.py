@@ -48,6 +48,8 @@ path (tested).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 # The kernels' constants, defined once in _warpkernels.c:
@@ -61,6 +63,24 @@ import numpy as np
 from ._warpkernels import COVERED_HI, COVERED_LO, QUANTUM, ROUND  # noqa: F401
 
 METHODS = ("box", "nearest")
+
+
+@dataclass(frozen=True)
+class HeldPlanes:
+    """The target z planes an accumulator buffer ``acc`` holds.
+
+    Planes ``[lo, hi)`` (``hi`` None: ``lo + len(acc)``), plane ``z`` in
+    ``acc[z - lo]``; or, a ``ring``, plane ``z`` in ``acc[z % len(acc)]``, the
+    planes ``[lo, hi)`` being those still accumulating (a stream's).
+    """
+
+    lo: int = 0
+    hi: int | None = None
+    ring: bool = False
+
+    def end(self, acc) -> int:
+        """The plane after the last one held in ``acc``."""
+        return self.lo + len(acc) if self.hi is None else self.hi
 
 
 def fill_halo(uh, faces=None):
@@ -89,8 +109,9 @@ def fill_halo(uh, faces=None):
 
 
 def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
-            origin=(0, 0, 0), tzo=0, u_new=None, bounds=True, still=None, granularity=None,
-            tz_hi=None, ring=False, window=None, planes=None, values_xy=None, acc_xy=(0, 0)):
+            origin=(0, 0, 0), held: HeldPlanes | None = None, u_new=None, bounds=True,
+            still=None, granularity=None, window=None, planes=None, values_xy=None,
+            acc_xy=(0, 0)):
     """Add (``sign`` +1) or remove (-1) the contributions of domain block [lo, hi) (x, y, z).
 
     With ``u_new`` (deformation offsets of another lattice, same layout as
@@ -102,9 +123,9 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
     voxel (e, f, g) is ``u[c, g - oz + 1, f - oy + 1, e - ox + 1]`` with
     ``origin = (ox, oy, oz)``; the margin and every neighbour of the block's
     voxels must be filled.
-    ``acc`` holds the target z planes ``[tzo, tz_hi)`` (default ``tzo +
-    len(acc)``), plane ``z`` in ``acc[z - tzo]``, or with ``ring`` in
-    ``acc[z % len(acc)]``; contributions to other planes are left out, and
+    ``acc`` holds the target z planes ``held`` (a :class:`HeldPlanes`;
+    default: from plane 0, ``len(acc)`` of them); contributions to other
+    planes are left out, and
     with ``window`` ``((x0, x1), (y0, y1))`` (or a
     :class:`~volwarp_cli.box.Box`, whose y and x ranges count) those outside
     target columns [x0, x1) and rows [y0, y1) too.
@@ -120,7 +141,7 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
     that can reach it: one thread per part then scatters those voxels,
     keeping only their contributions to planes [t0, t1) (the voxels whose
     boxes straddle two parts are done by both; integer sums: the result does
-    not depend on the parts). Not with ``ring``.
+    not depend on the parts). Not with a ring.
     ``still`` (uint8 ``[passes, Rz, Ry, Rx]``, with the lattice's
     ``granularity`` (x, y, z)) marks the regions whose control points all
     have zero offset, for ``u`` and (second) ``u_new``: voxels there take a
@@ -131,21 +152,21 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
     """
     from .jobs import ScatterJob, replace
 
+    held = HeldPlanes() if held is None else held
     lo = np.asarray(lo, np.int64)
     hi = np.asarray(hi, np.int64)
-    tz_end = tzo + len(acc) if tz_hi is None else tz_hi
     ax, ay = (int(v) for v in acc_xy)
-    clip = target_clip(window, (ax, ay), acc.shape[1:3], tzo, tz_end)
+    clip = target_clip(window, (ax, ay), acc.shape[1:3], held.lo, held.end(acc))
     vxy = {} if values_xy is None else {"values_xy": values_xy[:2], "domain_xy": values_xy[2:]}
     job = ScatterJob(u=u, u_new=u_new, origin=origin, values=values,
                      planes=(0, values.shape[0]) if planes is None else planes,
                      offset=off, scale=scale, lo=lo, hi=hi, sign=int(sign),
                      inv_vmax=1.0 / vmax if vmax > 0 else 0.0, box=method == "box", acc=acc,
-                     clip=clip, ring=bool(ring), bounds=bool(bounds),
+                     clip=clip, ring=held.ring, bounds=bool(bounds),
                      still=still, granularity=(1, 1, 1) if granularity is None else granularity,
                      acc_xy=(ax, ay), **vxy)
 
-    if parts is None or ring or len(parts) < 2:
+    if parts is None or held.ring or len(parts) < 2:
         boxes = [job.run()]
     else:
         from .. import parallel
@@ -156,7 +177,7 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
             a[2], b[2] = max(g0, lo[2]), min(g1, hi[2])
             if t1 <= t0 or b[2] <= a[2]:
                 return np.array([0, 0, 0, -1, -1, -1])
-            return replace(job, lo=a, hi=b, acc=acc[t0 - tzo:],
+            return replace(job, lo=a, hi=b, acc=acc[t0 - held.lo:],
                            clip=with_planes(clip, t0, t1)).run()
 
         boxes = parallel.run_blocks(part, parts, len(parts))

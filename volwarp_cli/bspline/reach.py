@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..box import Box
 from .lattice import Grid, window_reduce
 
 #: Slack for float32 deformation offsets in bounds derived from the lattice.
@@ -97,14 +98,14 @@ class Reach:
         r = np.arange(self.grid.regions[axis])
         return np.maximum(r * g, lo), np.minimum((r + 1) * g, hi)
 
-    def rebuild_block(self, old_bounds, new_bounds, vlo, vhi):
-        """``(tlo, thi, dlo, dhi)`` (x y z) for an update of domain voxels [vlo, vhi).
+    def rebuild_block(self, old_bounds, new_bounds, vlo, vhi) -> RebuildBlock | None:
+        """The blocks an update of domain voxels [vlo, vhi) (x y z) rebuilds.
 
         ``old_bounds``, ``new_bounds``: :func:`offset_bounds` of the lattice
-        before and after. Target block [tlo, thi): every target voxel the old
-        or new image of those voxels can reach; domain block [dlo, dhi):
-        every voxel whose new image can reach that target block; region by
-        region. None when the images miss the target.
+        before and after. The target block: every target voxel the old or new
+        image of those voxels can reach; the domain block: every voxel whose
+        new image can reach that target block; region by region. None when
+        the images miss the target.
         """
         grid = self.grid
         tshape = np.array(self.target_shape)
@@ -156,9 +157,21 @@ class Reach:
             d_hi.append(last)
         if not inside.any():  # pragma: no cover - the moved voxels' images reach it
             return None
-        dlo = np.array([int(v[inside].min()) for v in d_lo])
-        dhi = np.array([int(v[inside].max()) for v in d_hi])
-        return tlo, thi, dlo, dhi
+        dlo = [int(v[inside].min()) for v in d_lo]
+        dhi = [int(v[inside].max()) for v in d_hi]
+        return RebuildBlock(Box.from_xyz(tlo.tolist(), thi.tolist()), Box.from_xyz(dlo, dhi))
+
+
+@dataclass(frozen=True)
+class RebuildBlock:
+    """What a local rebuild recomputes (:meth:`Reach.rebuild_block`).
+
+    The ``target`` block and the ``domain`` block whose voxels can reach it,
+    :class:`~volwarp_cli.box.Box` es (z y x).
+    """
+
+    target: Box
+    domain: Box
 
 
 @dataclass(frozen=True)

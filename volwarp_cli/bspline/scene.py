@@ -190,9 +190,8 @@ class Scene:
         """Target size (x, y, z)."""
         return tuple(int(i + 2 * p) for i, p in zip(self.grid.input_shape, self.pad, strict=False))
 
-    def contribute(self, dqs, vlo, vhi, sign, acc=None, tzo=0, parallel=True, scratch=None,
-                    bounds=False, tz_hi=None, ring=False, window=None, values=None,
-                    acc_xy=(0, 0)):
+    def contribute(self, dqs, vlo, vhi, sign, acc=None, held=None, parallel=True, scratch=None,
+                    bounds=False, window=None, values=None, acc_xy=(0, 0)):
         """Add (``sign`` +1) or remove (-1) the contributions of domain voxels [vlo, vhi).
 
         ``dqs``: one lattice, or two (old, new) whose contributions are
@@ -201,8 +200,8 @@ class Scene:
         z, into a small buffer covering the voxels and their neighbours (the
         evaluators give a voxel the same value whatever block it is computed
         in, so removing a contribution recomputes exactly what was added).
-        ``acc`` (default the scene's) holds target z planes from ``tzo`` on
-        (up to ``tz_hi``; with ``ring``, plane z in ``acc[z % len(acc)]``);
+        ``acc`` (default the scene's) holds the target z planes ``held`` (a
+        :class:`.pushforward.HeldPlanes`, default: ``len(acc)`` from plane 0);
         ``window`` ``((x0, x1), (y0, y1))`` also leaves out target voxels
         outside those columns and rows. ``values``: ``(array, z0)``, the
         samples of domain planes from ``z0`` on (those of [vlo, vhi) at
@@ -237,7 +236,8 @@ class Scene:
                      else (*values[2], grid.domain_shape[0], grid.domain_shape[1]))
         if window is not None:
             window = pushforward.target_clip(window, acc_xy, acc.shape[1:3], 0, 0)
-        parts_reach = self._plane_reach(dqs) if parallel and not ring else None
+        held = pushforward.HeldPlanes() if held is None else held
+        parts_reach = self._plane_reach(dqs) if parallel and not held.ring else None
         boxes = []
         for z0 in range(block.lo[0], block.hi[0], cz):
             chunk = pushforward.with_planes(block, z0, min(z0 + cz, block.hi[0]))
@@ -266,11 +266,11 @@ class Scene:
                         faces.append((axis, 1))
                 for ub in ubs:
                     pushforward.fill_halo(ub, faces)
-            parts = (work.thread_parts(self.reach, parts_reach, lo, hi, tzo, tz_hi, still)
+            parts = (work.thread_parts(self.reach, parts_reach, lo, hi, held.lo, held.hi, still)
                      if parts_reach is not None else None)
             bb = pushforward.scatter(planar[0], samples, self.offset, self.scale, lo, hi,
                                      sign, self.vmax, self.method, acc, parts=parts,
-                                     origin=origin, tzo=tzo, tz_hi=tz_hi, ring=ring,
+                                     origin=origin, held=held,
                                      u_new=planar[1] if len(planar) > 1 else None,
                                      bounds=bounds, still=still, window=window,
                                      granularity=grid.granularity, planes=planes,
@@ -348,7 +348,7 @@ class Scene:
             self.last_touched = None
             return
         cost = {"subtract": self._work([self.dq, dq], vlo, vhi),
-                "rebuild": self._work([dq], *block[2:]),
+                "rebuild": self._work([dq], *block.domain.xyz()),
                 "full": self._work([dq], (0, 0, 0), dshape)}
         how = work.choose_update(cost, self.update)
         log.debug("update of regions %s..%s by %s (work: %s)", rlo.tolist(), rhi.tolist(),
@@ -358,12 +358,12 @@ class Scene:
             self.render()
             return
         if how == "rebuild":
-            target = Box.from_xyz(block[0], block[1])  # zeroed, then rebuilt
+            target = block.target  # zeroed, then rebuilt
             self.acc[target.slices] = 0
             t0z, t1z = target.lo[0], target.hi[0]
-            self.contribute([dq], block[2], block[3], 1, acc=self.acc[t0z:t1z], tzo=t0z,
-                             tz_hi=t1z, window=target)
-            tlo, thi = block[0], block[1]
+            self.contribute([dq], *block.domain.xyz(), 1, acc=self.acc[t0z:t1z],
+                             held=pushforward.HeldPlanes(t0z, t1z), window=target)
+            tlo, thi = target.xyz()
         else:
             bb = self.contribute([self.dq, dq], vlo, vhi, -1, bounds=True)
             if bb is None:

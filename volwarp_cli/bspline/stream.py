@@ -152,7 +152,8 @@ def render_streaming(scene, sink=None, block_planes: int | None = None) -> np.nd
             if sampler is not None:
                 values = (sampler.planes(g0, g1, out=gathered[:g1 - g0]), g0)
             scene.contribute([dq], (0, 0, g0), (dshape[0], dshape[1], g1), 1, acc=acc,
-                             tzo=base, tz_hi=min(base + planes, t_hi), ring=True,
+                             held=pushforward.HeldPlanes(base, min(base + planes, t_hi),
+                                                         ring=True),
                              parallel=False, scratch=scratch, values=values)
         flush(t_hi)
 
