@@ -49,7 +49,7 @@ def median_time(fn, repeats):
 
 def step_kind(scene) -> str:
     """How the scene did its last step: a local update, or a full pass where that was cheaper."""
-    whole = scene.last_touched == ((0, 0, 0), scene.target_shape)
+    whole = scene.last_touched == scene.target_box
     return "full recomputation, cheaper than an update" if whole else "local update"
 
 

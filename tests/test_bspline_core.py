@@ -8,6 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from volwarp_cli.box import Box
 from volwarp_cli.bspline import basis
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.handles import map_params, solve
@@ -249,16 +250,14 @@ def test_rebuild_block_covers_what_an_update_touches():
         dq[point] += rng.normal(scale=2.0, size=3)
         rlo, rhi = affected_regions(np.array([point[::-1]]), cap.grid)
         g = np.array(cap.grid.granularity)
-        vlo = np.maximum(rlo * g - 1, 0)
-        vhi = np.minimum(rhi * g + 1, np.array(cap.grid.domain_shape))
+        voxels = Box.from_xyz(np.maximum(rlo * g - 1, 0).tolist(),
+                              np.minimum(rhi * g + 1, np.array(cap.grid.domain_shape)).tolist())
         block = scene.reach.rebuild_block(scene._offset_bounds(scene.dq),
-                                          scene._offset_bounds(dq), vlo, vhi)
-        (tlo, thi), (dlo, dhi) = (np.array(v) for v in block.target.xyz()), \
-            (np.array(v) for v in block.domain.xyz())
+                                          scene._offset_bounds(dq), voxels)
         scene.set_lattice(dq)
-        touched_lo, touched_hi = scene.last_touched
-        assert np.all(tlo <= touched_lo) and np.all(touched_hi <= thi)
-        assert np.all(dlo <= vlo) and np.all(vhi <= dhi)
+        assert not scene.last_touched.empty
+        assert block.target.contains(scene.last_touched)
+        assert block.domain.contains(voxels)
 
 
 def test_handles_reach_targets_with_least_norm():
@@ -388,7 +387,7 @@ def test_update_touching_most_of_the_lattice_recomputes_in_full(caplog):
     assert "by full" in caplog.text
     with pytest.raises(VolwarpError, match="unknown update"):  # the papers' approximation
         Scene(cap.domain, cap.grid, cap.dq, 4, update="zero")  # is not one of the ways
-    assert scene.last_touched == ((0, 0, 0), scene.target_shape)
+    assert scene.last_touched == Box.from_xyz((0, 0, 0), scene.target_shape)
     assert np.array_equal(scene.out, Scene(cap.domain, cap.grid, dq, 4).render())
 
 

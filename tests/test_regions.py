@@ -319,11 +319,10 @@ def warp_block(domain, grid, dq, region: Box, out: Box, method="box"):
     tx, ty, _ = scene.target_shape
     acc = np.zeros((t1z - t0z, ty, tx, 2), np.int64)
     if not region.empty:
-        lo, hi = region.xyz()
-        scene.contribute([dq], lo, hi, 1, acc=acc, held=HeldPlanes(t0z, t1z),
-                          window=((t0x, t1x), (t0y, t1y)))
+        scene.contribute([dq], region, 1, acc=acc, held=HeldPlanes(t0z, t1z),
+                         window=((t0x, t1x), (t0y, t1y)))
     block = np.zeros(acc.shape[:3], np.float32)
-    pushforward.finalize(acc, scene.vmax, (t0x, t0y, 0), (t1x, t1y, t1z - t0z), block)
+    pushforward.finalize(acc, scene.vmax, Box((0, t0y, t0x), (t1z - t0z, t1y, t1x)), block)
     return block[:, t0y:t1y, t0x:t1x], acc[:, t0y:t1y, t0x:t1x, 0]
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from volwarp_cli import parallel
+from volwarp_cli.box import Box
 from volwarp_cli.bspline import basis, jobs, work
 from volwarp_cli.bspline import scene as scene_mod
 from volwarp_cli.bspline.capture import capture_volume
@@ -168,12 +169,14 @@ def test_parts_cover_the_target_planes_and_each_voxel_that_reaches_them(small_sp
     dshape = cap.grid.domain_shape
     planes = sc.reach.planes(sc._offset_bounds(dq))
     with parallel.use_threads(4):
-        parts = work.thread_parts(sc.reach, planes, (0, 0, 0), dshape, 0, None, None)
+        parts = work.thread_parts(sc.reach, planes, Box.from_xyz((0, 0, 0), dshape), 0, None,
+                                  None)
     assert parts is not None and len(parts) >= 2
-    edges = [p[0] for p in parts] + [parts[-1][1]]
+    edges = [p.target.lo[0] for p in parts] + [parts[-1].target.hi[0]]
     assert edges[0] == 0 and edges[-1] == sc.target_shape[2]
     assert all(a < b for a, b in zip(edges[:-1], edges[1:], strict=True))
-    for t0, t1, g0, g1 in parts:
+    for p in parts:
+        (t0, g0), (t1, g1) = (p.target.lo[0], p.domain.lo[0]), (p.target.hi[0], p.domain.hi[0])
         for g in range(dshape[2]):
             r0, r1 = int(planes.t_lo[g]), int(planes.t_hi[g])
             if r0 < t1 and r1 > t0:  # plane g can reach the part
@@ -255,11 +258,11 @@ def test_per_plane_reach_holds_every_box_and_is_tighter_than_the_global_one():
     acc = np.zeros(tuple(sc.target_shape[::-1]) + (2,), np.int64)
     looser = 0
     for g in range(dshape[2]):
-        bb = sc.contribute([dq], (0, 0, g), (dshape[0], dshape[1], g + 1), 1, acc=acc,
+        bb = sc.contribute([dq], Box((g, 0, 0), (g + 1, dshape[1], dshape[0])), 1, acc=acc,
                            bounds=True, parallel=False)
         if bb is None:
             continue
-        assert pr.t_lo[g] <= bb[0][2] and bb[1][2] <= pr.t_hi[g], g
+        assert pr.t_lo[g] <= bb.lo[0] and bb.hi[0] <= pr.t_hi[g], g
         g0, g1 = sc.reach.target_z_reach(dq, g, g + 1)
         assert g0 <= pr.t_lo[g] and pr.t_hi[g] <= g1
         looser += (g1 - g0) - (pr.t_hi[g] - pr.t_lo[g])

@@ -82,14 +82,13 @@ def test_a_block_missing_domain_voxels_differs():
         cut = Box(lo, need.hi)
         acc = np.zeros(box.shape + (2,), np.int64)
         (tx0, ty0, tz0), (tx1, ty1, tz1) = box.xyz()
-        (a, b, c), (d, e, f) = cut.xyz()
-        scene.contribute([scene.dq], (a, b, c), (d, e, f), 1, acc=acc, held=HeldPlanes(tz0, tz1),
+        (a, b, c), _ = cut.xyz()
+        scene.contribute([scene.dq], cut, 1, acc=acc, held=HeldPlanes(tz0, tz1),
                          window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0), parallel=False,
                          values=(sampler.box(cut), c, (a, b)))
         part = np.empty(box.shape, np.float32)
         from volwarp_cli.bspline import pushforward
-        pushforward.finalize(acc, scene.vmax, (0, 0, 0), box.shape[::-1], part,
-                             parallel=False)
+        pushforward.finalize(acc, scene.vmax, Box.from_shape(box.shape), part, parallel=False)
         assert not np.array_equal(part, full[box.slices])
 
 
@@ -191,19 +190,20 @@ def test_kernel_partial_values_and_accumulators_equal_whole_planes():
     tshape = scene.target_shape[::-1]
     acc_whole = np.zeros(tshape + (2,), np.int64)
     lo, hi = (3, 5, 2), (19, 20, 17)  # x, y, z domain voxels
-    scene.contribute([dq], lo, hi, 1, acc=acc_whole, parallel=False)
+    dbox = Box.from_xyz(lo, hi)
+    scene.contribute([dq], dbox, 1, acc=acc_whole, parallel=False)
     win = Box((4, 6, 9), (20, 19, 25))  # z, y, x target window
     (tx0, ty0, tz0), (tx1, ty1, tz1) = win.xyz()
     acc = np.zeros(win.shape + (2,), np.int64)
-    dbox = Box.from_xyz(lo, hi)
-    scene.contribute([dq], lo, hi, 1, acc=acc, held=HeldPlanes(tz0, tz1),
+    scene.contribute([dq], dbox, 1, acc=acc, held=HeldPlanes(tz0, tz1),
                      window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0), parallel=False,
                      values=(np.ascontiguousarray(cap.domain[dbox.slices]), lo[2],
                              (lo[0], lo[1])))
     assert np.array_equal(acc, acc_whole[win.slices])
     assert acc.any()
     with pytest.raises(ValueError, match="outside"):  # a block outside the values given
-        scene.contribute([dq], (2, 5, 2), hi, 1, acc=acc, held=HeldPlanes(tz0, tz1),
+        scene.contribute([dq], Box.from_xyz((2, 5, 2), hi), 1, acc=acc,
+                         held=HeldPlanes(tz0, tz1),
                          window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0), parallel=False,
                          values=(np.ascontiguousarray(cap.domain[dbox.slices]), lo[2],
                                  (lo[0], lo[1])))

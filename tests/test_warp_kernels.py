@@ -18,9 +18,11 @@ import pytest
 from scipy import ndimage
 
 from volwarp_cli import parallel
+from volwarp_cli.box import Box
 from volwarp_cli.bspline import _warpkernels as K
 from volwarp_cli.bspline import pushforward
 from volwarp_cli.bspline.pushforward import COVERED_HI, COVERED_LO, QUANTUM
+from volwarp_cli.bspline.reach import TargetBlock
 
 
 def random_offsets(shape_zyx, rng, amplitude=0.6):
@@ -92,13 +94,12 @@ def test_box_pushforward_matches_its_definition():
     tshape = (9, 10, 11)
     vmax = float(np.abs(values).max())
     acc = np.zeros(tshape + (2,), np.int64)
-    bb = pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, vmax, "box", acc)
+    bb = pushforward.scatter(u, values, off, scale, Box.from_xyz((0, 0, 0), (dx, dy, dz)), 1, vmax, "box", acc)
     w, v = brute_force_box(u, values, off, scale, tshape, vmax)
     assert np.abs(acc[..., 0] / QUANTUM - w).max() < 1e-9
     assert np.abs(acc[..., 1] / QUANTUM - v).max() < 1e-9
     touched = np.argwhere(w > 0)
-    assert np.array_equal(bb[0], touched.min(0)[::-1])
-    assert np.array_equal(bb[1], touched.max(0)[::-1] + 1)
+    assert bb == Box(tuple(touched.min(0).tolist()), tuple((touched.max(0) + 1).tolist()))
 
 
 @pytest.mark.parametrize("method", ["box", "nearest"])
@@ -115,25 +116,25 @@ def test_contributions_do_not_depend_on_the_block(method):
     scale = (256.0 / 258.0, 0.77, 1.0 / 3.0 + 0.5)
     tshape = (14, 15, 145)
     whole = np.zeros(tshape + (2,), np.int64)
-    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method, whole)
+    pushforward.scatter(u, values, off, scale, Box.from_xyz((0, 0, 0), (dx, dy, dz)), 1, 1.0, method, whole)
     parts = np.zeros_like(whole)
     cuts = [(0, 7, 23, 40), (0, 4, 11), (0, 6, 13)]  # x, y, z
     for x0, x1 in pairwise(cuts[0]):
         for y0, y1 in pairwise(cuts[1]):
             for z0, z1 in pairwise(cuts[2]):
-                pushforward.scatter(u, values, off, scale, (x0, y0, z0), (x1, y1, z1), 1, 1.0,
+                pushforward.scatter(u, values, off, scale, Box.from_xyz((x0, y0, z0), (x1, y1, z1)), 1, 1.0,
                                     method, parts)
     assert np.array_equal(whole, parts)
     assert whole[..., 0].sum() > 0
     # removing what was added leaves exactly nothing
-    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), -1, 1.0, method, parts)
+    pushforward.scatter(u, values, off, scale, Box.from_xyz((0, 0, 0), (dx, dy, dz)), -1, 1.0, method, parts)
     assert not parts.any()
 
 
 @pytest.mark.parametrize("method", ["box", "nearest"])
 def test_split_by_target_planes_gives_the_same_sums(method):
-    """parts=[(t0, t1, g0, g1), ...]: one thread per part takes target planes [t0, t1)
-    from domain planes [g0, g1); voxels whose boxes straddle a cut are done by both parts,
+    """parts (TargetBlocks): one thread per part takes its target planes from its domain
+    block; voxels whose boxes straddle a cut are done by both parts,
     each keeping its side. The sums equal one unsplit run's; a part whose domain range
     misses some straddling voxels loses their contributions."""
     rng = np.random.default_rng(8)
@@ -143,7 +144,7 @@ def test_split_by_target_planes_gives_the_same_sums(method):
     off, scale = (1.3, 0.7, 2.2), (1.0, 1.0, 0.9)
     tshape = (26, 12, 13)
     whole = np.zeros(tshape + (2,), np.int64)
-    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method, whole)
+    pushforward.scatter(u, values, off, scale, Box.from_xyz((0, 0, 0), (dx, dy, dz)), 1, 1.0, method, whole)
     # a box reaches at most r planes from its base position 2.2 + 0.9 g
     r = float(np.abs(u[2]).max()) + 1.0
 
@@ -152,18 +153,24 @@ def test_split_by_target_planes_gives_the_same_sums(method):
                 min(dz, int(np.ceil((t1 + r - 2.2) / 0.9)) + 1))
 
     edges = [0, 8, 12, 19, tshape[0]]
-    parts = [(a, b, *window(a, b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
-    assert parts[1][2] < parts[0][3]  # the straddling voxels are in both ranges
+
+    def part(t0, t1, g0, g1):
+        return TargetBlock(Box((t0, 0, 0), (t1, tshape[1], tshape[2])),
+                           Box((g0, 0, 0), (g1, dy, dx)))
+
+    parts = [part(a, b, *window(a, b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    assert parts[1].domain.lo[0] < parts[0].domain.hi[0]  # straddling voxels in both ranges
     with parallel.use_threads(len(parts)):
         split = np.zeros_like(whole)
-        pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method,
-                            split, parts=parts)
+        pushforward.scatter(u, values, off, scale, Box.from_xyz((0, 0, 0), (dx, dy, dz)), 1,
+                            1.0, method, split, parts=parts)
         assert np.array_equal(whole, split)
-        assert all(whole[a:b, ..., 0].any() for a, b, _, _ in parts)
+        assert all(whole[p.target.lo[0]:p.target.hi[0], ..., 0].any() for p in parts)
         short = np.zeros_like(whole)  # the third part starting too late misses some
-        t0, t1, g0, g1 = parts[2]
-        bad = parts[:2] + [(t0, t1, parts[1][3], g1)] + parts[3:]
-        pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 1.0, method,
+        third = parts[2]
+        bad = parts[:2] + [part(third.target.lo[0], third.target.hi[0], parts[1].domain.hi[0],
+                                third.domain.hi[0])] + parts[3:]
+        pushforward.scatter(u, values, off, scale, Box.from_xyz((0, 0, 0), (dx, dy, dz)), 1, 1.0, method,
                             short, parts=bad)
         assert not np.array_equal(whole, short)
 
@@ -179,11 +186,11 @@ def test_window_keeps_exactly_the_contributions_inside_it(method):
     values = rng.uniform(-1, 2, (dz, dy, dx)).astype(np.float32)
     off, scale = (2.2, 1.7, 2.4), (0.8, 0.9, 0.7)
     whole = np.zeros((12, 13, 14, 2), np.int64)
-    pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 2.0, method, whole)
+    pushforward.scatter(u, values, off, scale, Box.from_xyz((0, 0, 0), (dx, dy, dz)), 1, 2.0, method, whole)
     for (x0, x1), (y0, y1), (z0, z1) in [((3, 9), (2, 11), (4, 8)), ((0, 14), (5, 6), (0, 12)),
                                          ((7, 8), (0, 13), (8, 10))]:
         part = np.zeros_like(whole)
-        pushforward.scatter(u, values, off, scale, (0, 0, 0), (dx, dy, dz), 1, 2.0, method,
+        pushforward.scatter(u, values, off, scale, Box.from_xyz((0, 0, 0), (dx, dy, dz)), 1, 2.0, method,
                             part[z0:z1], held=pushforward.HeldPlanes(z0),
                             window=((x0, x1), (y0, y1)))
         inside = np.zeros(whole.shape[:3], bool)
@@ -207,15 +214,17 @@ def test_values_may_hold_only_the_blocks_planes(method):
     parts = np.zeros_like(whole)
     for z0, z1 in [(0, 5), (5, 6), (6, 12)]:
         kw = dict(still=still if method == "box" else None, granularity=(2, 3, 3))
-        pushforward.scatter(u, values, (1.2, 1.4, 1.1), (0.9, 1.1, 0.95), (0, 0, z0),
-                            (dx, dy, z1), 1, 2.0, method, whole, **kw)
+        pushforward.scatter(u, values, (1.2, 1.4, 1.1), (0.9, 1.1, 0.95),
+                            Box.from_xyz((0, 0, z0), (dx, dy, z1)), 1, 2.0, method, whole, **kw)
         pushforward.scatter(u, values[z0:z1].copy(), (1.2, 1.4, 1.1), (0.9, 1.1, 0.95),
-                            (0, 0, z0), (dx, dy, z1), 1, 2.0, method, parts, planes=(z0, dz),
+                            Box.from_xyz((0, 0, z0), (dx, dy, z1)), 1, 2.0, method, parts,
+                            planes=(z0, dz),
                             **kw)
     assert np.array_equal(whole, parts) and whole.any()
     with pytest.raises(ValueError, match="outside"):  # a plane of the block not given
         pushforward.scatter(u, values[2:5].copy(), (1.2, 1.4, 1.1), (0.9, 1.1, 0.95),
-                            (0, 0, 1), (dx, dy, 5), 1, 2.0, method, parts, planes=(2, dz))
+                            Box.from_xyz((0, 0, 1), (dx, dy, 5)), 1, 2.0, method, parts,
+                            planes=(2, dz))
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
@@ -285,7 +294,7 @@ def test_wrong_buffers_are_errors():
     u = np.zeros((3, 4, 4, 4), np.float32)
     vals = np.zeros((2, 2, 2), np.float32)
     with pytest.raises(ValueError, match="block outside"):
-        pushforward.scatter(u, vals, (0, 0, 0), (1, 1, 1), (0, 0, 0), (3, 2, 2), 1, 1.0, "box",
+        pushforward.scatter(u, vals, (0, 0, 0), (1, 1, 1), Box.from_xyz((0, 0, 0), (3, 2, 2)), 1, 1.0, "box",
                             acc)
     i = np.array([0, 9], np.int32)
     f = np.zeros(2)
@@ -410,18 +419,19 @@ def test_kernel_jobs_refuse_misplaced_arguments():
     values = np.zeros((2, 2, 2), np.float32)
     acc = np.zeros((4, 4, 4, 2), np.int64)
     good = dict(u=u, u_new=None, origin=(0, 0, 0), values=values, planes=(0, 2),
-                offset=(1.0, 1.0, 1.0), scale=(1.0, 1.0, 1.0), lo=(0, 0, 0), hi=(2, 2, 2),
+                offset=(1.0, 1.0, 1.0), scale=(1.0, 1.0, 1.0), block=Box((0, 0, 0), (2, 2, 2)),
                 sign=1, inv_vmax=1.0, box=True, acc=acc, clip=(0, 4, 0, 4, 0, 4))
     ScatterJob(**good)
-    for change in [{"lo": (0.5, 0, 0)}, {"clip": (0, 4, 0, 4)}, {"offset": (1.0, 1.0)},
+    for change in [{"block": ((0, 0, 0), (2, 2, 2))}, {"clip": (0, 4, 0, 4)},
+                   {"offset": (1.0, 1.0)},
                    {"acc": acc.astype(np.int32)}, {"u": u[0]}, {"sign": 2},
                    {"box": "box"}, {"planes": (0, 2, 5)}]:
         with pytest.raises(TypeError):
             ScatterJob(**{**good, **change})
     with pytest.raises(TypeError):
         ScatterJob(u, None, (0, 0, 0))  # positional: keyword-only
-    with pytest.raises(TypeError, match="lo"):
-        FinalizeJob(acc=acc, vmax=1.0, lo=(0, 0), hi=(4, 4, 4),
+    with pytest.raises(TypeError, match="block"):
+        FinalizeJob(acc=acc, vmax=1.0, block=((0, 0, 0), (4, 4, 4)),
                     out=np.zeros((4, 4, 4), np.float32))
     with pytest.raises(TypeError, match="weights"):
         SeparableJob(dq=np.zeros((4, 4, 4, 3)), weights=(np.zeros((1, 4)),) * 2, x=(0, 1),

@@ -140,8 +140,7 @@ def test_bounding_boxes_read_in_slabs_are_the_whole_maps(seed, depth):
     labels, nvox, boxes = bounding_boxes_by_blocks(lab, run, depth)
     want_labels, want_nvox, want_boxes, _ = _bounding_boxes(lab)
     assert labels == want_labels and nvox == want_nvox
-    for (lo, hi), (wlo, whi) in zip(boxes, want_boxes, strict=True):
-        assert np.array_equal(lo, wlo) and np.array_equal(hi, whi)
+    assert boxes == want_boxes
 
 
 def test_a_label_pyramid_takes_the_mode_in_memory_too(run, tmp_path):

@@ -50,10 +50,14 @@ def _block_sums(scene, box: Box, need: Box) -> np.ndarray:
     """The integer sums on target block ``box`` from domain voxels ``need`` (z y x) alone."""
     acc = np.zeros(box.shape + (2,), np.int64)
     (tx0, ty0, tz0), (_, _, tz1) = box.xyz()
-    lo, hi = need.xyz()
-    scene.contribute([scene.dq], lo, hi, 1, acc=acc, held=HeldPlanes(tz0, tz1), window=box,
+    scene.contribute([scene.dq], need, 1, acc=acc, held=HeldPlanes(tz0, tz1), window=box,
                      acc_xy=(tx0, ty0), parallel=False)
     return acc
+
+
+def _plane(dshape, g) -> Box:
+    """Domain plane ``g`` of a domain of ``dshape`` (x, y, z), as a Box."""
+    return Box((g, 0, 0), (g + 1, dshape[1], dshape[0]))
 
 
 def _cut(box: Box, axis: int, side: int, n: int) -> Box:
@@ -141,14 +145,13 @@ def test_plane_reach_holds_every_voxel_footprint(seed, scale, lift, oversample):
     tz = sc.target_shape[2]
     footprint = []
     for g in range(dshape[2]):
-        bb = sc.contribute([dq], (0, 0, g), (dshape[0], dshape[1], g + 1), 1, acc=acc,
-                           bounds=True, parallel=False)
+        bb = sc.contribute([dq], _plane(dshape, g), 1, acc=acc, bounds=True, parallel=False)
         if bb is None:
             footprint.append(None)
             continue
-        assert pr.t_lo[g] <= bb[0][2] and bb[1][2] <= pr.t_hi[g], (g, bb, pr.t_lo[g],
-                                                                     pr.t_hi[g])
-        footprint.append((int(bb[0][2]), int(bb[1][2])))
+        assert pr.t_lo[g] <= bb.lo[0] and bb.hi[0] <= pr.t_hi[g], (g, bb, pr.t_lo[g],
+                                                                   pr.t_hi[g])
+        footprint.append((bb.lo[0], bb.hi[0]))
     for t0 in range(0, tz, 3):
         t1 = min(t0 + 3, tz)
         a, b = pr.domain_window(t0, t1)
@@ -166,18 +169,20 @@ def test_thread_parts_use_the_per_plane_reach(small_splits):
     sc = Scene(cap.domain, cap.grid, dq, 4)
     dshape = cap.grid.domain_shape
     with parallel.use_threads(4):
-        parts = work.thread_parts(sc.reach, sc._plane_reach([dq]), (0, 0, 0), dshape, 0)
+        parts = work.thread_parts(sc.reach, sc._plane_reach([dq]),
+                                  Box.from_xyz((0, 0, 0), dshape), 0)
     assert parts is not None and len(parts) >= 2
     narrower = 0
     acc = np.zeros(tuple(sc.target_shape[::-1]) + (2,), np.int64)
-    boxes = [sc.contribute([dq], (0, 0, g), (dshape[0], dshape[1], g + 1), 1, acc=acc,
-                           bounds=True, parallel=False) for g in range(dshape[2])]
-    for t0, t1, g0, g1 in parts:
+    boxes = [sc.contribute([dq], _plane(dshape, g), 1, acc=acc, bounds=True, parallel=False)
+             for g in range(dshape[2])]
+    for p in parts:
+        (t0, g0), (t1, g1) = (p.target.lo[0], p.domain.lo[0]), (p.target.hi[0], p.domain.hi[0])
         w0, w1 = sc.reach.domain_z_window(dq, t0, t1)
         assert w0 <= g0 and g1 <= w1
         narrower += (w1 - w0) - (g1 - g0)
         for g, bb in enumerate(boxes):
-            if bb is not None and bb[0][2] < t1 and bb[1][2] > t0:
+            if bb is not None and bb.lo[0] < t1 and bb.hi[0] > t0:
                 assert g0 <= g < g1
     assert narrower > 0
 
@@ -259,21 +264,22 @@ def test_label_warp_identical_for_any_thread_count_with_the_per_plane_ring():
 
 
 def test_scatter_job_clip_is_a_box():
-    """The scatter's target window is a Box; a Box where a triple belongs is a TypeError,
-    and the kernel's raw clip is made from it in one place."""
+    """The scatter's domain block and target window are Boxes; a pair of triples where a
+    Box belongs is a TypeError, and the kernel's raw clip is made from it in one place."""
     u = np.zeros((3, 4, 4, 4), np.float32)
     values = np.zeros((2, 2, 2), np.float32)
     acc = np.zeros((4, 4, 4, 2), np.int64)
     clip = Box((0, 1, 2), (4, 3, 4))  # z y x
     good = dict(u=u, u_new=None, origin=(0, 0, 0), values=values, planes=(0, 2),
-                offset=(1.0, 1.0, 1.0), scale=(1.0, 1.0, 1.0), lo=(0, 0, 0), hi=(2, 2, 2),
-                sign=1, inv_vmax=1.0, box=True, acc=acc, clip=clip)
+                offset=(1.0, 1.0, 1.0), scale=(1.0, 1.0, 1.0),
+                block=Box((0, 0, 0), (2, 2, 2)), sign=1, inv_vmax=1.0, box=True, acc=acc,
+                clip=clip)
     job = jobs.ScatterJob(**good)
     assert job.clip == clip
     assert jobs.clip_ints(clip) == (2, 4, 1, 3, 0, 4)
     assert jobs.ScatterJob(**{**good, "clip": (2, 4, 1, 3, 0, 4)}).clip == clip
     with pytest.raises(TypeError):
-        jobs.ScatterJob(**{**good, "lo": Box((0, 0, 0), (2, 2, 2))})
+        jobs.ScatterJob(**{**good, "block": ((0, 0, 0), (2, 2, 2))})
     with pytest.raises(TypeError):
         jobs.ScatterJob(**{**good, "clip": ((0, 4), (1, 3))})
     assert pushforward.target_clip(((2, 4), (1, 3)), (0, 0), (4, 4), 0, 4) == clip

@@ -56,7 +56,7 @@ def render_block(scene: Scene, sampler, box: Box) -> np.ndarray:
 
     out_dtype = np.float64 if scene.dtype == np.float64 else np.float32
     out = np.empty(box.shape, dtype=out_dtype)
-    (tx0, ty0, tz0), (tx1, ty1, tz1) = box.xyz()
+    (tx0, ty0, tz0), (_, _, tz1) = box.xyz()
     need = domain_box(scene, box)
     reach = scene.reach.planes(scene._offset_bounds(scene.dq))
     chunk = max(1, int(STREAM_PLANES / float(scene.scale[2])))  # domain planes per step
@@ -69,8 +69,7 @@ def render_block(scene: Scene, sampler, box: Box) -> np.ndarray:
         while base < upto:
             s0 = base % planes
             k = min(upto - base, planes - s0)  # contiguous slots of the ring
-            pushforward.finalize(acc[s0:s0 + k], scene.vmax, (0, 0, 0),
-                                 (box.shape[2], box.shape[1], k),
+            pushforward.finalize(acc[s0:s0 + k], scene.vmax, Box((0, 0, 0), (k, *box.shape[1:])),
                                  out[base - tz0:base - tz0 + k], parallel=False,
                                  background=scene.background, clear=True)
             base += k
@@ -83,11 +82,12 @@ def render_block(scene: Scene, sampler, box: Box) -> np.ndarray:
         for g0 in range(dz0, dz1, chunk):
             g1 = min(g0 + chunk, dz1)
             flush(min(max(int(floor[g0 - dz0]), base), tz1))
-            values = sampler.box(Box((g0, dy0, dx0), (g1, dy1, dx1)))
-            scene.contribute([scene.dq], (dx0, dy0, g0), (dx1, dy1, g1), 1, acc=acc,
+            voxels = Box((g0, dy0, dx0), (g1, dy1, dx1))
+            scene.contribute([scene.dq], voxels, 1, acc=acc,
                              held=pushforward.HeldPlanes(base, min(base + planes, tz1), ring=True),
-                             window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0),
-                             parallel=False, scratch=scratch, values=(values, g0, (dx0, dy0)))
+                             window=box, acc_xy=(tx0, ty0),
+                             parallel=False, scratch=scratch,
+                             values=(sampler.box(voxels), g0, (dx0, dy0)))
     flush(tz1)
     return out
 

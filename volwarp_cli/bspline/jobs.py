@@ -5,13 +5,14 @@ scatter 19 of them, several of them triples of the same type); a triple in
 the wrong place would run, on the wrong voxels. Each job here names its
 fields, checks their types and shapes once, and calls its kernel in the
 kernel's order, so a misplaced argument is a ``TypeError`` at construction.
-``dataclasses.replace(job, lo=..., hi=...)`` derives a job's parts (the
+``dataclasses.replace(job, block=..., clip=...)`` derives a job's parts (the
 threads' slabs, a block's planes).
 
 Regions are :class:`~volwarp_cli.box.Box` es (array order z, y, x) up to
-here: the scatter's target window is one, and :meth:`ScatterJob.run` turns it
-into the kernel's ``(x0, x1, y0, y1, z0, z1)``, the one place the raw
-integers are made (:func:`clip_ints`).
+here: a scatter's domain block and target window, a finalize's target block.
+The ``run`` methods turn them into the kernels' integers, the one place those
+are made (:func:`clip_ints` for the scatter's window, :meth:`Box.xyz` for the
+blocks).
 """
 
 from __future__ import annotations
@@ -58,6 +59,13 @@ def _array(name: str, value, ndim: int, dtypes: tuple) -> np.ndarray:
     return value
 
 
+def _box(name: str, value) -> Box:
+    """``value`` if it is a :class:`~volwarp_cli.box.Box`, else a TypeError naming the field."""
+    if not isinstance(value, Box):
+        raise TypeError(f"{name} must be a Box (z, y, x), got {value!r}")
+    return value
+
+
 def _clip_box(value) -> Box:
     """The target window kept, as a Box (z, y, x).
 
@@ -83,18 +91,19 @@ _I64 = (np.dtype(np.int64),)
 
 @dataclass(frozen=True, kw_only=True)
 class ScatterJob:
-    """The box (or nearest) pushforward of domain block [lo, hi) (x, y, z) into ``acc``.
+    """The box (or nearest) pushforward of the domain voxels ``block`` into ``acc``.
 
-    See :func:`.pushforward.scatter` for the meaning of each field; ``clip``
-    is the target window kept, a :class:`~volwarp_cli.box.Box` (z, y, x; 6
-    integers ``(x0, x1, y0, y1, z0, z1)`` are taken as one), ``acc`` holding
-    its plane ``clip.lo[0]`` first (or, with ``ring``, plane z at ``z % len(acc)``).
+    See :func:`.pushforward.scatter` for the meaning of each field; ``block``
+    (domain voxels) and ``clip`` (the target window kept) are
+    :class:`~volwarp_cli.box.Box` es (z, y, x; 6 integers ``(x0, x1, y0, y1,
+    z0, z1)`` are taken as a clip), ``acc`` holding the window's plane
+    ``clip.lo[0]`` first (or, with ``ring``, plane z at ``z % len(acc)``).
 
     ``values`` and ``acc`` may hold some columns and rows of their planes
     only (an out-of-core block's): ``values_xy`` and ``acc_xy`` are the (x, y)
     of their ``[:, 0, 0]``, and ``domain_xy`` the domain's columns and rows
-    (default: the values' own, whole planes). The block [lo, hi) and the
-    window must lie inside them.
+    (default: the values' own, whole planes). The block and the window must
+    lie inside them.
     """
 
     u: np.ndarray
@@ -104,8 +113,7 @@ class ScatterJob:
     planes: tuple[int, int]
     offset: tuple[float, float, float]
     scale: tuple[float, float, float]
-    lo: tuple[int, int, int]
-    hi: tuple[int, int, int]
+    block: Box
     sign: int
     inv_vmax: float
     box: bool
@@ -132,8 +140,7 @@ class ScatterJob:
         s(self, "planes", _ints("planes", self.planes, 2))
         s(self, "offset", _floats("offset", self.offset))
         s(self, "scale", _floats("scale", self.scale))
-        s(self, "lo", _ints("lo", self.lo))
-        s(self, "hi", _ints("hi", self.hi))
+        _box("block", self.block)
         s(self, "clip", _clip_box(self.clip))
         s(self, "granularity", _ints("granularity", self.granularity))
         s(self, "values_xy", _ints("values_xy", self.values_xy, 2))
@@ -153,9 +160,10 @@ class ScatterJob:
         The box is inclusive; x1 < 0 when nothing landed or ``bounds`` is off.
         """
         two = self.u_new is not None
+        lo, hi = self.block.xyz()
         return np.array(_warpkernels.scatter(
             self.u, self.u_new if two else self.u, 2 if two else 1, self.origin, self.values,
-            self.planes, self.offset, self.scale, self.lo, self.hi, self.sign, self.inv_vmax,
+            self.planes, self.offset, self.scale, lo, hi, self.sign, self.inv_vmax,
             bool(self.box), self.acc, clip_ints(self.clip), bool(self.ring), bool(self.bounds),
             self.still, self.granularity, self.values_xy,
             (-1, -1) if self.domain_xy is None else self.domain_xy, self.acc_xy))
@@ -255,15 +263,15 @@ class SampleJob:
 
 @dataclass(frozen=True, kw_only=True)
 class FinalizeJob:
-    """``out = v / w`` (blended with the background on the silhouette) on target block [lo, hi).
+    """``out = v / w`` (blended with the background on the silhouette) on target ``block``.
 
-    The block is in (x, y, z); ``clear`` zeroes the block's accumulators in the same pass.
+    ``block``: a :class:`~volwarp_cli.box.Box` (z, y, x) of ``acc`` and ``out``;
+    ``clear`` zeroes the block's accumulators in the same pass.
     """
 
     acc: np.ndarray
     vmax: float
-    lo: tuple[int, int, int]
-    hi: tuple[int, int, int]
+    block: Box
     out: np.ndarray
     background: float = 0.0
     clear: bool = False
@@ -271,8 +279,7 @@ class FinalizeJob:
     def __post_init__(self):
         _array("acc", self.acc, 4, _I64)
         _array("out", self.out, 3, _FLOAT)
-        object.__setattr__(self, "lo", _ints("lo", self.lo))
-        object.__setattr__(self, "hi", _ints("hi", self.hi))
+        _box("block", self.block)
         object.__setattr__(self, "vmax", float(self.vmax))
         object.__setattr__(self, "background", float(self.background))
         if not isinstance(self.clear, (bool, np.bool_)):
@@ -280,5 +287,6 @@ class FinalizeJob:
 
     def run(self) -> None:
         """Finalize the block into ``out`` (and clear its accumulators if asked)."""
-        _warpkernels.finalize(self.acc, self.vmax, self.lo, self.hi, self.out, self.background,
+        lo, hi = self.block.xyz()
+        _warpkernels.finalize(self.acc, self.vmax, lo, hi, self.out, self.background,
                               bool(self.clear))

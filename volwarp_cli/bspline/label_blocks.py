@@ -52,7 +52,7 @@ class LabelBlocks:
         self.recipe = SceneRecipe(scene)  # (background 0: a label map's)
         self.source = source
         self.labels = [int(v) for v in labels]
-        self.boxes = [(np.asarray(lo, np.int64), np.asarray(hi, np.int64)) for lo, hi in boxes]
+        self.boxes = list(boxes)
         self.window = window
         self.dtype = np.dtype(dtype)
         self.preserve = bool(preserve)
@@ -138,19 +138,15 @@ def bounding_boxes_by_blocks(source, run, depth: int):
     found: dict[int, list] = {}
     for z0, labels, nvox, boxes in run(task, [(z, min(z + depth, nz))
                                              for z in range(0, nz, depth)]):
-        for L, n, (lo, hi) in zip(labels, nvox, boxes, strict=True):
-            lo, hi = lo.copy(), hi.copy()
-            lo[2] += z0
-            hi[2] += z0
+        for L, n, box in zip(labels, nvox, boxes, strict=True):
+            box = box.shift((z0, 0, 0))
             if L in found:
-                had = found[L]
-                had[0] += n
-                had[1] = np.minimum(had[1], lo)
-                had[2] = np.maximum(had[2], hi)
+                found[L][0] += n
+                found[L][1] = found[L][1].union_hull(box)
             else:
-                found[L] = [n, lo, hi]
+                found[L] = [n, box]
     labels = sorted(found)
-    return labels, [found[L][0] for L in labels], [(found[L][1], found[L][2]) for L in labels]
+    return labels, [found[L][0] for L in labels], [found[L][1] for L in labels]
 
 
 def _slab_boxes(zs, source):

@@ -200,7 +200,7 @@ def _bounding_boxes(data: np.ndarray):
     """``(labels, counts, boxes)`` of the label map's non-zero labels; ``(count of 0)``.
 
     The distinct non-zero labels (sorted), their voxel counts and input bounding
-    boxes ``(lo, hi)`` (x y z, hi exclusive).
+    boxes (:class:`~volwarp_cli.box.Box` es, z y x).
     """
     from scipy import ndimage
 
@@ -235,8 +235,7 @@ def _bounding_boxes(data: np.ndarray):
             continue
         labels.append(int(v))
         nvox.append(int(c))
-        boxes.append((np.array([sl[2].start, sl[1].start, sl[0].start]),
-                      np.array([sl[2].stop, sl[1].stop, sl[0].stop])))
+        boxes.append(Box(tuple(s.start for s in sl), tuple(s.stop for s in sl)))
     return labels, nvox, boxes, zero
 
 
@@ -265,18 +264,22 @@ class _Stream:
         from .scene import Scratch
         self.scratch = Scratch()
 
-    def run(self, label, box, on_planes) -> None:
+    def run(self, label, box: Box, on_planes) -> None:
         """Scatter label ``label``'s indicator (0 for ``label != 0``) over input box ``box``.
+
+        ``box``: a :class:`~volwarp_cli.box.Box` (z y x) of the input.
 
         ``on_planes(target, weights)`` is called for the finished target planes of its
         block in this thread's share: ``weights[k, y, x, 2]`` of the target voxels
         ``target`` (a :class:`~volwarp_cli.box.Box`, z y x).
         """
         sc, k = self.scene, self.k
-        vlo = self.lead + k * box[0]
-        vhi = self.lead + k * box[1]
+        box_lo, box_hi = (np.array(v, np.int64) for v in box.xyz())
+        vlo = self.lead + k * box_lo
+        vhi = self.lead + k * box_hi
+        voxels = Box.from_xyz(vlo.tolist(), vhi.tolist())  # the domain's
         bounds = sc._offset_bounds(self.dq)
-        block = sc.reach.rebuild_block(bounds, bounds, vlo, vhi)
+        block = sc.reach.rebuild_block(bounds, bounds, voxels)
         if block is None:
             return
         (tz0, y0, x0), (tz1, y1, x1) = block.target.lo, block.target.hi
@@ -307,7 +310,7 @@ class _Stream:
                 acc[s0:s0 + n] = 0
                 base += n
 
-        (bx0, by0, bz0), (bx1, by1, bz1) = box
+        (_, by0, bx0), (_, by1, bx1) = box.lo, box.hi
         xs = slice(int(vlo[0]), int(vhi[0]))
         ys = slice(int(vlo[1]), int(vhi[1]))
         for g0 in range(g_lo, g_hi, self.chunk):
@@ -326,9 +329,8 @@ class _Stream:
             ind = (src != 0) if label == 0 else (src == label)
             view = self.values[:g1 - g0, ys, xs].reshape(g1 - g0, by1 - by0, k, bx1 - bx0, k)
             np.copyto(view, ind[:, :, None, :, None])
-            sub.contribute([self.dq], (int(vlo[0]), int(vlo[1]), g0),
-                            (int(vhi[0]), int(vhi[1]), g1), 1, acc=acc,
-                            held=HeldPlanes(base, min(base + planes, z_hi), ring=True),
+            sub.contribute([self.dq], Box((g0, *voxels.lo[1:]), (g1, *voxels.hi[1:])), 1,
+                           acc=acc, held=HeldPlanes(base, min(base + planes, z_hi), ring=True),
                             parallel=False,
                             scratch=self.scratch, values=(self.values[:g1 - g0], g0),
                             window=((0, wx), (0, wy)))
@@ -434,7 +436,7 @@ def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: in
     largest weight ``(w, (z, y, x))`` (target indices).
     """
     st = _Stream(scene, dq, labels_in, t_lo, t_hi, best_w, best_l)
-    full = (np.zeros(3, np.int64), np.array(scene.grid.input_shape, np.int64))
+    full = Box.from_xyz((0, 0, 0), scene.grid.input_shape)
     predicted = {}
     peak = {}
 

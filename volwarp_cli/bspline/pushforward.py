@@ -108,11 +108,13 @@ def fill_halo(uh, faces=None):
             uh[sl(n + 1)] = 2 * uh[sl(n)] - uh[sl(n - 1)]
 
 
-def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
+def scatter(u, values, off, scale, block, sign, vmax, method, acc, parts=None,
             origin=(0, 0, 0), held: HeldPlanes | None = None, u_new=None, bounds=True,
             still=None, granularity=None, window=None, planes=None, values_xy=None,
             acc_xy=(0, 0)):
-    """Add (``sign`` +1) or remove (-1) the contributions of domain block [lo, hi) (x, y, z).
+    """Add (``sign`` +1) or remove (-1) the contributions of the domain voxels ``block``.
+
+    ``block``: a :class:`~volwarp_cli.box.Box` (z, y, x) of domain voxels.
 
     With ``u_new`` (deformation offsets of another lattice, same layout as
     ``u``) the block's ``u_new`` contributions are added with ``-sign`` in the
@@ -136,31 +138,30 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
     ``(e, f)`` of a plane at ``[f - y0, e - x0]`` in a domain of ``dx`` by
     ``dy``. ``acc_xy``: the target column and row of ``acc[:, 0, 0]`` (an
     out-of-core block's accumulators hold its own columns and rows only).
-    ``parts``: ``[(t0, t1, g0, g1), ...]``, target plane ranges covering the
-    planes held, each with the domain z range [g0, g1) holding every voxel
-    that can reach it: one thread per part then scatters those voxels,
-    keeping only their contributions to planes [t0, t1) (the voxels whose
+    ``parts``: :class:`~.reach.TargetBlock` s (:func:`.work.thread_parts`),
+    target planes covering the planes held, each with the domain voxels that
+    can reach them: one thread per part then scatters those of ``block``,
+    keeping only their contributions to its target planes (the voxels whose
     boxes straddle two parts are done by both; integer sums: the result does
     not depend on the parts). Not with a ring.
     ``still`` (uint8 ``[passes, Rz, Ry, Rx]``, with the lattice's
     ``granularity`` (x, y, z)) marks the regions whose control points all
     have zero offset, for ``u`` and (second) ``u_new``: voxels there take a
     faster path with the same result (see :func:`still_regions`).
-    Returns the touched target bounding box ``(lo_xyz, hi_xyz)`` (hi
-    exclusive), or None when nothing landed in the target; always None
-    without ``bounds`` (which saves a few percent of the scatter).
+    Returns the touched target block (a Box, z y x), or None when nothing
+    landed in the target; always None without ``bounds`` (which saves a few
+    percent of the scatter).
     """
+    from ..box import Box
     from .jobs import ScatterJob, replace
 
     held = HeldPlanes() if held is None else held
-    lo = np.asarray(lo, np.int64)
-    hi = np.asarray(hi, np.int64)
     ax, ay = (int(v) for v in acc_xy)
     clip = target_clip(window, (ax, ay), acc.shape[1:3], held.lo, held.end(acc))
     vxy = {} if values_xy is None else {"values_xy": values_xy[:2], "domain_xy": values_xy[2:]}
     job = ScatterJob(u=u, u_new=u_new, origin=origin, values=values,
                      planes=(0, values.shape[0]) if planes is None else planes,
-                     offset=off, scale=scale, lo=lo, hi=hi, sign=int(sign),
+                     offset=off, scale=scale, block=block, sign=int(sign),
                      inv_vmax=1.0 / vmax if vmax > 0 else 0.0, box=method == "box", acc=acc,
                      clip=clip, ring=held.ring, bounds=bool(bounds),
                      still=still, granularity=(1, 1, 1) if granularity is None else granularity,
@@ -172,20 +173,19 @@ def scatter(u, values, off, scale, lo, hi, sign, vmax, method, acc, parts=None,
         from .. import parallel
 
         def part(p):
-            t0, t1, g0, g1 = (int(v) for v in p)
-            a, b = lo.copy(), hi.copy()
-            a[2], b[2] = max(g0, lo[2]), min(g1, hi[2])
-            if t1 <= t0 or b[2] <= a[2]:
+            t0, t1 = p.target.lo[0], p.target.hi[0]
+            voxels = block.intersect(p.domain)
+            if t1 <= t0 or voxels.empty:
                 return np.array([0, 0, 0, -1, -1, -1])
-            return replace(job, lo=a, hi=b, acc=acc[t0 - held.lo:],
+            return replace(job, block=voxels, acc=acc[t0 - held.lo:],
                            clip=with_planes(clip, t0, t1)).run()
 
         boxes = parallel.run_blocks(part, parts, len(parts))
     boxes = [b for b in boxes if b[3] >= 0]
     if not boxes:
         return None
-    return (np.min([b[:3] for b in boxes], axis=0),
-            np.max([b[3:] for b in boxes], axis=0) + 1)
+    return Box.from_xyz(np.min([b[:3] for b in boxes], axis=0).tolist(),
+                        (np.max([b[3:] for b in boxes], axis=0) + 1).tolist())
 
 
 def target_clip(window, acc_xy, acc_yx, z0, z1):
@@ -238,10 +238,11 @@ def still_mask(dq) -> np.ndarray:
     return window_reduce(np.all(np.asarray(dq) == 0, axis=-1), 4, np.logical_and)
 
 
-def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0, clear=False):
-    """``out = v / w`` inside the model, ``v + b (1 - w)`` on its silhouette, on [lo, hi).
+def finalize(acc, vmax, block, out, parallel=True, background=0.0, clear=False):
+    """``out = v / w`` inside the model, ``v + b (1 - w)`` on its silhouette, on ``block``.
 
-    (x, y, z) block; see the module notes for the two weight levels.
+    ``block``: a :class:`~volwarp_cli.box.Box` (z, y, x) of ``acc`` and ``out``;
+    see the module notes for the two weight levels.
 
     ``acc[z, y, x, 0]`` is the fixed-point weight, ``acc[..., 1]`` the weighted value;
     ``parallel`` lets large blocks use the threads in effect. ``background`` ``b`` is the
@@ -253,12 +254,9 @@ def finalize(acc, vmax, lo, hi, out, parallel=True, background=0.0, clear=False)
     from .basis import run_split
     from .jobs import FinalizeJob
 
-    lo = np.asarray(lo, np.int64)
-    hi = np.asarray(hi, np.int64)
-
     def job(z0, z1):
-        return FinalizeJob(acc=acc, vmax=vmax, lo=(lo[0], lo[1], z0), hi=(hi[0], hi[1], z1),
-                           out=out, background=background, clear=bool(clear))
+        return FinalizeJob(acc=acc, vmax=vmax, block=with_planes(block, z0, z1), out=out,
+                           background=background, clear=bool(clear))
 
-    run_split(job, int(lo[2]), int(hi[2]), int(np.prod(hi - lo)) if parallel else 0)
+    run_split(job, block.lo[0], block.hi[0], block.size if parallel else 0)
     return out

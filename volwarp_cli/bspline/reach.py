@@ -98,8 +98,8 @@ class Reach:
         r = np.arange(self.grid.regions[axis])
         return np.maximum(r * g, lo), np.minimum((r + 1) * g, hi)
 
-    def rebuild_block(self, old_bounds, new_bounds, vlo, vhi) -> RebuildBlock | None:
-        """The blocks an update of domain voxels [vlo, vhi) (x y z) rebuilds.
+    def rebuild_block(self, old_bounds, new_bounds, voxels: Box) -> TargetBlock | None:
+        """The blocks an update of the domain voxels ``voxels`` (a Box, z y x) rebuilds.
 
         ``old_bounds``, ``new_bounds``: :func:`offset_bounds` of the lattice
         before and after. The target block: every target voxel the old or new
@@ -108,6 +108,7 @@ class Reach:
         the images miss the target.
         """
         grid = self.grid
+        vlo, vhi = voxels.xyz()
         tshape = np.array(self.target_shape)
         half = 0.5 * self.scale
 
@@ -159,15 +160,16 @@ class Reach:
             return None
         dlo = [int(v[inside].min()) for v in d_lo]
         dhi = [int(v[inside].max()) for v in d_hi]
-        return RebuildBlock(Box.from_xyz(tlo.tolist(), thi.tolist()), Box.from_xyz(dlo, dhi))
+        return TargetBlock(Box.from_xyz(tlo.tolist(), thi.tolist()), Box.from_xyz(dlo, dhi))
 
 
 @dataclass(frozen=True)
-class RebuildBlock:
-    """What a local rebuild recomputes (:meth:`Reach.rebuild_block`).
+class TargetBlock:
+    """A ``target`` block and the ``domain`` block whose voxels can reach it.
 
-    The ``target`` block and the ``domain`` block whose voxels can reach it,
-    :class:`~volwarp_cli.box.Box` es (z y x).
+    Both :class:`~volwarp_cli.box.Box` es (z y x). What a local rebuild
+    recomputes (:meth:`Reach.rebuild_block`), and a thread's part of a
+    scatter (:func:`.work.thread_parts`).
     """
 
     target: Box

@@ -168,7 +168,11 @@ class Scene:
         self.scale = grid.scale
         self.reach = Reach(grid, self.offset, self.scale, self.target_shape)
         self._domain_box = Box.from_xyz((0, 0, 0), grid.domain_shape)
+        self._data_box = Box.from_xyz(tuple(grid.data_lo), tuple(grid.data_hi))
+        #: the whole target, a Box (z, y, x)
+        self.target_box = Box.from_xyz((0, 0, 0), self.target_shape)
         self.acc = self.out = None
+        #: the target block the last render or update recomputed (a Box), or None
         self.last_touched = None
         #: bytes of one chunk's deformation buffers: the cap, or the budget's share of a thread
         self.chunk_bytes = min(CHUNK_BYTES, block_bytes())
@@ -190,9 +194,11 @@ class Scene:
         """Target size (x, y, z)."""
         return tuple(int(i + 2 * p) for i, p in zip(self.grid.input_shape, self.pad, strict=False))
 
-    def contribute(self, dqs, vlo, vhi, sign, acc=None, held=None, parallel=True, scratch=None,
-                    bounds=False, window=None, values=None, acc_xy=(0, 0)):
-        """Add (``sign`` +1) or remove (-1) the contributions of domain voxels [vlo, vhi).
+    def contribute(self, dqs, block: Box, sign, acc=None, held=None, parallel=True,
+                   scratch=None, bounds=False, window=None, values=None, acc_xy=(0, 0)):
+        """Add (``sign`` +1) or remove (-1) the contributions of the domain voxels ``block``.
+
+        ``block``: a :class:`~volwarp_cli.box.Box` (z, y, x) of the domain.
 
         ``dqs``: one lattice, or two (old, new) whose contributions are
         removed and added in one pass (``sign`` -1).
@@ -204,13 +210,13 @@ class Scene:
         :class:`.pushforward.HeldPlanes`, default: ``len(acc)`` from plane 0);
         ``window`` ``((x0, x1), (y0, y1))`` also leaves out target voxels
         outside those columns and rows. ``values``: ``(array, z0)``, the
-        samples of domain planes from ``z0`` on (those of [vlo, vhi) at
+        samples of domain planes from ``z0`` on (those of ``block`` at
         least), instead of the domain's; ``(array, z0, (x0, y0))``: of the
         columns from x0 and rows from y0 of those planes only (an out-of-core
         block's). ``acc_xy``: the target column and row of ``acc[:, 0, 0]``.
         ``parallel`` lets large blocks use the threads in effect. ``scratch`` (a
         :class:`Scratch`, default the scene's) holds the deformation buffers.
-        Returns the touched target bounding box with ``bounds``, else None.
+        Returns the touched target block (a Box) with ``bounds``, else None.
         """
         acc = self.acc if acc is None else acc
         scratch = self.scratch if scratch is None else scratch
@@ -218,11 +224,9 @@ class Scene:
         dshape = grid.domain_shape
         # only the domain voxels inside the input are the model (a subdivision grid's
         # others, around it, carry nothing: the space there is the background)
-        vlo = np.maximum(np.asarray(vlo, dtype=np.int64), grid.data_lo)
-        vhi = np.minimum(np.asarray(vhi, dtype=np.int64), grid.data_hi)
-        if np.any(vhi <= vlo):
+        block = block.intersect(self._data_box)
+        if block.empty:
             return None
-        block = Box.from_xyz(vlo.tolist(), vhi.tolist())  # domain voxels, z y x
         ext = block.grow(1, within=self._domain_box)  # and their neighbours
         _, ny, nx = ext.shape
         cz = int(max(4, self.chunk_bytes // ((nx + 2) * (ny + 2) * 12 * len(dqs))))
@@ -248,7 +252,6 @@ class Scene:
             planar = scratch.arrays((3, e1 - e0 + 2, ny + 2, nx + 2), len(dqs))
             ubs = [np.moveaxis(buf, 0, -1) for buf in planar]
             origin = (ext.lo[2], ext.lo[1], e0)
-            lo, hi = chunk.xyz()
             # voxels in still regions take the scatter's shortcut, which reads no
             # offsets: only the rest (and their neighbours) are evaluated
             sub = _to_evaluate(still, grid, chunk, ext)
@@ -266,9 +269,9 @@ class Scene:
                         faces.append((axis, 1))
                 for ub in ubs:
                     pushforward.fill_halo(ub, faces)
-            parts = (work.thread_parts(self.reach, parts_reach, lo, hi, held.lo, held.hi, still)
+            parts = (work.thread_parts(self.reach, parts_reach, chunk, held.lo, held.hi, still)
                      if parts_reach is not None else None)
-            bb = pushforward.scatter(planar[0], samples, self.offset, self.scale, lo, hi,
+            bb = pushforward.scatter(planar[0], samples, self.offset, self.scale, chunk,
                                      sign, self.vmax, self.method, acc, parts=parts,
                                      origin=origin, held=held,
                                      u_new=planar[1] if len(planar) > 1 else None,
@@ -279,7 +282,10 @@ class Scene:
                 boxes.append(bb)
         if not boxes:
             return None
-        return (np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0))
+        touched = boxes[0]
+        for bb in boxes[1:]:
+            touched = touched.union_hull(bb)
+        return touched
 
     def render(self) -> np.ndarray:
         """Full computation with the current lattice; returns the target ``[z, y, x]``."""
@@ -293,11 +299,11 @@ class Scene:
         else:
             self.acc.fill(0)
         with timed(f"deformation + {self.method} pushforward"):
-            self.contribute([self.dq], (0, 0, 0), self.grid.domain_shape, 1)
+            self.contribute([self.dq], self._domain_box, 1)
         with timed("finalize"):
-            pushforward.finalize(self.acc, self.vmax, (0, 0, 0), self.target_shape, self.out,
+            pushforward.finalize(self.acc, self.vmax, self.target_box, self.out,
                                  background=self.background)
-        self.last_touched = ((0, 0, 0), self.target_shape)
+        self.last_touched = self.target_box
         return self.out
 
     def render_once(self, sink=None, block_planes: int | None = None) -> np.ndarray | None:
@@ -313,7 +319,7 @@ class Scene:
         out = render_streaming(self, sink, block_planes)
         self.acc = None
         self.out = out
-        self.last_touched = ((0, 0, 0), self.target_shape)
+        self.last_touched = self.target_box
         return out
 
     def result(self) -> np.ndarray:
@@ -338,18 +344,18 @@ class Scene:
             return
         rlo, rhi = affected_regions(moved[:, ::-1], self.grid)
         g = np.array(self.grid.granularity)
-        dshape = np.array(self.grid.domain_shape)
-        vlo = np.maximum(rlo * g - 1, 0)  # the regions' voxels and their neighbours
-        vhi = np.minimum(rhi * g + 1, dshape)
+        # the regions' voxels and their neighbours
+        voxels = Box.from_xyz((rlo * g - 1).tolist(), (rhi * g + 1).tolist()).intersect(
+            self._domain_box)
         block = self.reach.rebuild_block(self._offset_bounds(self.dq), self._offset_bounds(dq),
-                                         vlo, vhi)
+                                         voxels)
         if block is None:  # neither image reaches the target: nothing changes there
             self.dq = dq.copy()
             self.last_touched = None
             return
-        cost = {"subtract": self._work([self.dq, dq], vlo, vhi),
-                "rebuild": self._work([dq], *block.domain.xyz()),
-                "full": self._work([dq], (0, 0, 0), dshape)}
+        cost = {"subtract": self._work([self.dq, dq], voxels),
+                "rebuild": self._work([dq], block.domain),
+                "full": self._work([dq], self._domain_box)}
         how = work.choose_update(cost, self.update)
         log.debug("update of regions %s..%s by %s (work: %s)", rlo.tolist(), rhi.tolist(),
                   how, {k: round(v) for k, v in cost.items()})
@@ -361,20 +367,17 @@ class Scene:
             target = block.target  # zeroed, then rebuilt
             self.acc[target.slices] = 0
             t0z, t1z = target.lo[0], target.hi[0]
-            self.contribute([dq], *block.domain.xyz(), 1, acc=self.acc[t0z:t1z],
-                             held=pushforward.HeldPlanes(t0z, t1z), window=target)
-            tlo, thi = target.xyz()
+            self.contribute([dq], block.domain, 1, acc=self.acc[t0z:t1z],
+                            held=pushforward.HeldPlanes(t0z, t1z), window=target)
         else:
-            bb = self.contribute([self.dq, dq], vlo, vhi, -1, bounds=True)
-            if bb is None:
+            target = self.contribute([self.dq, dq], voxels, -1, bounds=True)
+            if target is None:
                 self.dq = dq.copy()
                 self.last_touched = None
                 return
-            tlo, thi = bb
         self.dq = dq.copy()
-        pushforward.finalize(self.acc, self.vmax, tlo, thi, self.out,
-                             background=self.background)
-        self.last_touched = (tuple(int(v) for v in tlo), tuple(int(v) for v in thi))
+        pushforward.finalize(self.acc, self.vmax, target, self.out, background=self.background)
+        self.last_touched = target
 
     def _facts(self, dq) -> dict:
         """A dict of values derived from lattice ``dq`` alone (still regions, offset bounds).
@@ -437,9 +440,9 @@ class Scene:
         return PlaneReach(np.minimum.reduce([r.t_lo for r in reaches]),
                           np.maximum.reduce([r.t_hi for r in reaches]))
 
-    def _work(self, dqs, vlo, vhi) -> float:
-        """:func:`.work.scatter_work` of domain voxels [vlo, vhi), one pass per lattice of ``dqs``."""
-        return work.scatter_work(self.reach, self._still(dqs), len(dqs), vlo, vhi)
+    def _work(self, dqs, block: Box) -> float:
+        """:func:`.work.scatter_work` of the domain voxels ``block``, one pass per lattice of ``dqs``."""
+        return work.scatter_work(self.reach, self._still(dqs), len(dqs), block)
 
     def map_points(self, param) -> np.ndarray:
         """Target indices (x, y, z) of spline parameters (N, 3) under the current map."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import parallel
+from ..box import Box
 from ..memory import ensure_fits_in_memory, memory_limit
 from ..progress import timed
 from . import pushforward
@@ -95,7 +96,7 @@ def render_streaming(scene, sink=None, block_planes: int | None = None) -> np.nd
         """Finalize accumulator planes of target planes [t0, t0 + len) into out or the sink."""
         k = len(acc_planes)
         dest = out[t0:t0 + k] if sink is None else done[:k]
-        pushforward.finalize(acc_planes, scene.vmax, (0, 0, 0), (tx, ty, k), dest,
+        pushforward.finalize(acc_planes, scene.vmax, Box((0, 0, 0), (k, ty, tx)), dest,
                              parallel=False, background=scene.background, clear=clear)
         if sink is not None:
             sink(t0, t0 + k, dest)
@@ -151,7 +152,7 @@ def render_streaming(scene, sink=None, block_planes: int | None = None) -> np.nd
             values = None
             if sampler is not None:
                 values = (sampler.planes(g0, g1, out=gathered[:g1 - g0]), g0)
-            scene.contribute([dq], (0, 0, g0), (dshape[0], dshape[1], g1), 1, acc=acc,
+            scene.contribute([dq], Box((g0, 0, 0), (g1, dshape[1], dshape[0])), 1, acc=acc,
                              held=pushforward.HeldPlanes(base, min(base + planes, t_hi),
                                                          ring=True),
                              parallel=False, scratch=scratch, values=values)
@@ -191,9 +192,8 @@ def _domain_cuts(scene, dq, n: int, block_planes: int | None) -> list[int]:
     from . import work
 
     still = scene._still([dq])
-    lo, hi = (0, 0, 0), scene.grid.domain_shape
     if still is not None:
-        per_plane = work.plane_work(scene.reach, still, lo, hi)
+        per_plane = work.plane_work(scene.reach, still, Box.from_xyz((0, 0, 0), scene.grid.domain_shape))
     else:
         z = np.arange(dz)
         per_plane = ((z >= scene.grid.data_lo[2]) & (z < scene.grid.data_hi[2])).astype(float)

@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .reach import PlaneReach, Reach
+from ..box import Box
+from .reach import PlaneReach, Reach, TargetBlock
 
 #: Cost of a voxel outside the still regions (evaluated, boxed, scattered) relative
 #: to one inside (the shortcut); fitted on timed updates (see the README's notes).
@@ -27,9 +28,10 @@ SPLIT_MAX_SHARE = 0.8
 UPDATES = ("full", "rebuild", "subtract")
 
 
-def region_voxels(reach: Reach, vlo, vhi) -> list[np.ndarray]:
-    """Per axis (x, y, z): how many voxels of each region lie in [vlo, vhi), inside the input."""
+def region_voxels(reach: Reach, block: Box) -> list[np.ndarray]:
+    """Per axis (x, y, z): how many voxels of each region lie in ``block``, inside the input."""
     grid = reach.grid
+    vlo, vhi = block.xyz()
     counts = []
     for axis in range(3):
         a, b = reach.region_range(axis, max(int(vlo[axis]), grid.data_lo[axis]),
@@ -38,26 +40,26 @@ def region_voxels(reach: Reach, vlo, vhi) -> list[np.ndarray]:
     return counts
 
 
-def plane_work(reach: Reach, still, vlo, vhi) -> np.ndarray:
-    """:func:`scatter_work`'s measure of each domain z plane of block [vlo, vhi), all passes.
+def plane_work(reach: Reach, still, block: Box) -> np.ndarray:
+    """:func:`scatter_work`'s measure of each domain z plane of ``block``, all passes.
 
     ``still``: uint8 ``[passes, Rz, Ry, Rx]``.
     """
     grid = reach.grid
-    cx, cy, _ = region_voxels(reach, vlo, vhi)
+    cx, cy, _ = region_voxels(reach, block)
     cost = np.where(still, 1.0, GENERAL_COST).sum(axis=0)  # [Rz, Ry, Rx]
     per_region_plane = np.einsum("kji,j,i->k", cost, cy, cx)
-    planes = np.arange(int(vlo[2]), int(vhi[2]))
+    planes = np.arange(block.lo[0], block.hi[0])
     inside = (planes >= grid.data_lo[2]) & (planes < grid.data_hi[2])
     return np.where(inside, per_region_plane[planes // grid.granularity[2]], 0.0)
 
 
-def scatter_work(reach: Reach, still, passes: int, vlo, vhi) -> float:
-    """Scatter work over domain voxels [vlo, vhi) (x, y, z) in ``passes`` passes (lattices).
+def scatter_work(reach: Reach, still, passes: int, block: Box) -> float:
+    """Scatter work over the domain voxels ``block`` in ``passes`` passes (lattices).
 
     ``still``: their still regions (or None).
     """
-    counts = region_voxels(reach, vlo, vhi)
+    counts = region_voxels(reach, block)
     n = np.einsum("k,j,i->kji", counts[2], counts[1], counts[0])  # [Rz, Ry, Rx]
     total = float(n.sum()) * passes
     if still is None:
@@ -71,13 +73,14 @@ def choose_update(work: dict[str, float], forced: str | None = None) -> str:
     return forced or min(UPDATES, key=work.get)
 
 
-def thread_parts(reach: Reach, planes: PlaneReach, lo, hi, tzo=0, tz_hi=None, still=None, threads=None):
-    """``[(t0, t1, g0, g1), ...]``: block [lo, hi)'s work split by target planes over threads.
+def thread_parts(reach: Reach, planes: PlaneReach, block: Box, tzo=0, tz_hi=None, still=None,
+                 threads=None) -> list[TargetBlock] | None:
+    """The domain voxels ``block``'s work split by target planes over threads.
 
-    For :func:`.pushforward.scatter`.
-
-    Target planes [t0, t1) cover the planes held, [tzo, tz_hi); domain z
-    range [g0, g1) holds every voxel that can reach them, by ``planes``, a
+    For :func:`.pushforward.scatter`: a :class:`~.reach.TargetBlock` per
+    thread. Their targets' planes cover the planes held, [tzo, tz_hi); each
+    domain block (of ``block``) holds every voxel that can reach its planes,
+    by ``planes``, a
     :class:`.reach.PlaneReach` (each domain plane's reach, from its own layer
     of the lattice, as the streamed render uses; :meth:`.scene.Scene.contribute`
     passes one, of its lattices together). The cuts fall where
@@ -92,16 +95,14 @@ def thread_parts(reach: Reach, planes: PlaneReach, lo, hi, tzo=0, tz_hi=None, st
     """
     from .. import parallel
 
-    lo = np.asarray(lo)
-    hi = np.asarray(hi)
-    size = int(np.prod(hi - lo))
     threads = parallel.threads() if threads is None else threads
-    n_max = min(threads, size // max(PARALLEL_MIN_VOXELS, 1))
+    n_max = min(threads, block.size // max(PARALLEL_MIN_VOXELS, 1))
     if n_max < 2:
         return None
-    z0 = int(lo[2])
+    z0, z_end = block.lo[0], block.hi[0]
+    tx, ty, _ = reach.target_shape
     # general voxels cost more: balance by work, not planes
-    work = plane_work(reach, still, lo, hi) if still is not None else np.ones(hi[2] - z0)
+    work = plane_work(reach, still, block) if still is not None else np.ones(z_end - z0)
     cum = np.concatenate([[0.0], np.cumsum(work)])  # work of planes [lo, lo + i)
     total = cum[-1]
     if total <= 0:
@@ -123,8 +124,9 @@ def thread_parts(reach: Reach, planes: PlaneReach, lo, hi, tzo=0, tz_hi=None, st
         parts, longest = [], 0.0
         for t0, t1 in zip(edges[:-1], edges[1:], strict=True):
             g0, g1 = window(t0, t1)
-            g0, g1 = max(g0, z0), min(g1, int(hi[2]))
-            parts.append((t0, t1, g0, g1))
+            g0, g1 = max(g0, z0), max(min(g1, z_end), max(g0, z0))
+            parts.append(TargetBlock(Box((t0, 0, 0), (t1, ty, tx)),
+                                     Box((g0, *block.lo[1:]), (g1, *block.hi[1:]))))
             if g1 > g0:
                 longest = max(longest, cum[g1 - z0] - cum[g0 - z0])
         if longest < best_time:
