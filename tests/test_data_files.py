@@ -171,12 +171,13 @@ def test_an_input_truncated_while_a_warp_maps_it_fails_cleanly(tmp_path):
 def test_an_input_rewritten_in_place_while_mapped_is_not_used(tmp_path):
     """The same size rewritten in place (no fault, but a mix of two files): refused at the
     output's rename."""
-    from volwarp_cli.io import mapped, write_volume
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.runscope import run_scope
 
     src = tmp_path / "in.nrrd"
     _big_nrrd(src, n=16)
-    vol = read_volume(src, mmap=True)
-    try:
+    with run_scope():  # (this process goes on with other tests: the mapped file is this run's)
+        vol = read_volume(src, mmap=True)
         with open(src, "r+b") as fh:  # rewrite a sample in place, as `cp` onto it would
             fh.seek(-4, os.SEEK_END)
             fh.write(b"\0\0\0\0")
@@ -187,8 +188,6 @@ def test_an_input_rewritten_in_place_while_mapped_is_not_used(tmp_path):
                            match=r"in\.nrrd: the file changed while it was being read"):
             write_volume(vol, out)
         assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["in.nrrd"]
-    finally:
-        mapped._mapped.clear()  # this process goes on with other tests
 
 
 def test_a_truncation_between_the_size_check_and_the_map_is_a_file_error(tmp_path):
@@ -196,7 +195,7 @@ def test_a_truncation_between_the_size_check_and_the_map_is_a_file_error(tmp_pat
     size" came out as an internal error."""
     from unittest import mock
 
-    from volwarp_cli.io import mapped
+    from volwarp_cli.runscope import run_scope
 
     src = tmp_path / "in.nrrd"
     _big_nrrd(src, n=8)
@@ -206,9 +205,6 @@ def test_a_truncation_between_the_size_check_and_the_map_is_a_file_error(tmp_pat
         os.truncate(src, 100)
         return real(fh, **kwargs)
 
-    try:
-        with mock.patch("volwarp_cli.io.nrrd.np.memmap", side_effect=shrink_then_map), \
-                pytest.raises(FormatError, match=r"in\.nrrd: the file was truncated while"):
-            read_volume(src, mmap=True)
-    finally:
-        mapped._mapped.clear()  # this process goes on with other tests
+    with run_scope(), mock.patch("volwarp_cli.io.nrrd.np.memmap", side_effect=shrink_then_map), \
+            pytest.raises(FormatError, match=r"in\.nrrd: the file was truncated while"):
+        read_volume(src, mmap=True)  # (the mapped file is this scope's: other tests go on)

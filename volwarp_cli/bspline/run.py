@@ -21,6 +21,7 @@ it gets. Progress and timings go to :data:`volwarp_cli.progress.log`.
 
 from __future__ import annotations
 
+import contextvars
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager
@@ -142,8 +143,8 @@ class WarpInput(AbstractContextManager):
 
     def __enter__(self):
         self._pool = ThreadPoolExecutor(1)
-        if self._read_volume is not None:
-            self._reading = self._pool.submit(self._read_volume)
+        if self._read_volume is not None:  # in this run's context (its files, threads, budget)
+            self._reading = self._pool.submit(contextvars.copy_context().run, self._read_volume)
         return self
 
     def __exit__(self, *exc_info):
@@ -164,8 +165,9 @@ class WarpInput(AbstractContextManager):
         doc = load_spec(spec_path)
         if self._reading is not None:
             self._settings = None if self._labels else _unchecked_capture_settings(doc)
-            self._early = self._pool.submit(_capture_early, self._reading, self._settings,
-                                            self.name, self._stream)
+            self._early = self._pool.submit(contextvars.copy_context().run, _capture_early,
+                                            self._reading, self._settings, self.name,
+                                            self._stream)
         validate(doc, load_schema("warp"))
         return doc, read_warp_spec(doc)
 

@@ -16,6 +16,7 @@ import click
 
 from .. import __version__
 from ..errors import ChoiceNeeded, SpecError, VolwarpError
+from ..runscope import run_scope
 from ..signals import Interrupted, stop_requested
 from ..signals import cancel_deferred as cancel_deferred_stop
 from ..signals import install as install_signal_handlers
@@ -99,6 +100,12 @@ class VolwarpGroup(click.Group):
         return code
 
     def _run(self, args, prog_name, debug, extra) -> int:
+        # the run's own inputs and permissions, and its warning filters, end with it (a
+        # caller may run several commands in one process)
+        with run_scope(), warnings.catch_warnings():
+            return self._run_scoped(args, prog_name, debug, extra)
+
+    def _run_scoped(self, args, prog_name, debug, extra) -> int:
         if not debug:
             # numpy's "overflow encountered in multiply" and the like are not messages for
             # the user (the contract is one line, and volwarp checks what it computes for

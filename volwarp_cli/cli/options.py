@@ -126,8 +126,8 @@ from click.core import ParameterSource
 
 from ..errors import VolwarpError
 from ..io import FOLDER_FORMATS, SUPPORTED_DTYPES, RawLayout
-from ..io.common import ALLOW_OUTSIDE_DATA
 from ..progress import configure, log
+from ..runscope import run_files
 from .view_options import VIEW_HELP  # noqa: F401  (--view's help, for every command)
 
 
@@ -294,8 +294,8 @@ def input_options(f):
                 raw_header_bytes, volume_index, series, irregular, duplicates, keep_shear,
                 keep_phi, allow_outside_data, **kwargs):
         dicom = _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi)
-        if allow_outside_data:  # read where the readers open data files (io.common)
-            os.environ[ALLOW_OUTSIDE_DATA] = "1"
+        if allow_outside_data:  # this run's readers may open such data files (io.common)
+            run_files().allow_outside_data = True
         layout = None
         if raw_shape is not None or raw_dtype is not None:
             if raw_shape is None or raw_dtype is None:

@@ -129,12 +129,13 @@ def atomic_folder(path: str | os.PathLike):
 
 def _chmod_tree(root: str) -> None:
     """Give the output the usual modes (mkdtemp makes folders 0700)."""
-    os.chmod(root, 0o777 & ~_UMASK)
+    mask = current_umask()
+    os.chmod(root, 0o777 & ~mask)
     for folder, dirs, files in os.walk(root):
         for d in dirs:
-            os.chmod(os.path.join(folder, d), 0o777 & ~_UMASK)
+            os.chmod(os.path.join(folder, d), 0o777 & ~mask)
         for f in files:
-            os.chmod(os.path.join(folder, f), 0o666 & ~_UMASK)
+            os.chmod(os.path.join(folder, f), 0o666 & ~mask)
 
 
 def _remove_tree(root) -> None:
@@ -181,8 +182,9 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
             os.close(fd)
         sync_temporaries()
         yield [Path(t) for t in tmps]
+        mask = current_umask()
         for tmp in tmps:  # mkstemp makes files 0600: give the outputs the usual mode
-            os.chmod(tmp, 0o666 & ~_UMASK)
+            os.chmod(tmp, 0o666 & ~mask)
         with blocked():
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
             check_unchanged()  # an input mapped for these outputs changed: no rename
@@ -203,14 +205,23 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
         sync_temporaries()
 
 
-def _read_umask() -> int:
+def current_umask() -> int:
+    """The process's umask, read without changing it where the system tells it.
+
+    Linux (4.7 on) shows it in /proc/self/status; elsewhere ``os.umask`` can
+    only be read by setting it, which is racy under threads (another thread
+    creating a file in between gets the wrong mode), so that is the fallback.
+    """
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
     mask = os.umask(0)
     os.umask(mask)
     return mask
-
-
-#: read once, at import (os.umask can only be read by setting it: racy under threads)
-_UMASK = _read_umask()
 
 
 def _host() -> str:

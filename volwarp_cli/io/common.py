@@ -16,6 +16,7 @@ import numpy as np
 from ..errors import FormatError, VolwarpError
 from ..memory import available_memory, ensure_fits_in_memory  # noqa: F401
 from ..memory import human_bytes as _human  # noqa: F401
+from ..runscope import run_files
 from ..samples import SUPPORTED_DTYPES, cast_samples, check_dtype, voxel_count  # noqa: F401
 
 
@@ -119,26 +120,24 @@ def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
 
 #: set to 1 to let detached headers read data files outside their own folder
 ALLOW_OUTSIDE_DATA = "VOLWARP_ALLOW_OUTSIDE_DATA"
-#: (device, inode) of every file this process has read as an input
-_inputs: set[tuple[int, int]] = set()
 
 
 def note_input(file) -> None:
-    """Record an input (an open file or a path).
+    """Record an input of this run (an open file or a path; :mod:`volwarp_cli.runscope`).
 
-    Then no output of this process replaces it behind the user's back.
+    Then no output of the run replaces it behind the user's back.
     """
     st = os.fstat(file.fileno()) if hasattr(file, "fileno") else os.stat(file)
-    _inputs.add((st.st_dev, st.st_ino))
+    run_files().inputs.add((st.st_dev, st.st_ino))
 
 
 def is_input(path: str | os.PathLike) -> bool:
-    """True when ``path`` is (the same file as) one this process read as an input."""
+    """True when ``path`` is (the same file as) one this run read as an input."""
     try:
         st = os.stat(path)
     except OSError:
         return False
-    return (st.st_dev, st.st_ino) in _inputs
+    return (st.st_dev, st.st_ino) in run_files().inputs
 
 
 def open_data_file(header: Path, path: Path, where: str):
@@ -148,10 +147,12 @@ def open_data_file(header: Path, path: Path, where: str):
     (``data file: /etc/shadow``, ``../../x``, a symbolic link or a ``LIST`` or
     ``%d`` name leading out) copy other files into its outputs: after every
     link is followed, the data file must lie inside the header's own folder,
-    unless ``VOLWARP_ALLOW_OUTSIDE_DATA=1`` (the command line's
-    ``--allow-outside-data``) says otherwise.
+    unless ``VOLWARP_ALLOW_OUTSIDE_DATA=1`` or the run's
+    ``--allow-outside-data`` (:class:`volwarp_cli.runscope.RunFiles`) says otherwise.
     """
-    if os.environ.get(ALLOW_OUTSIDE_DATA, "") not in ("1", "yes", "true"):
+    allowed = (run_files().allow_outside_data
+               or os.environ.get(ALLOW_OUTSIDE_DATA, "") in ("1", "yes", "true"))
+    if not allowed:
         base = os.path.realpath(header.parent)
         real = os.path.realpath(path)
         if os.path.commonpath([base, real]) != base:

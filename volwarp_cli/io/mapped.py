@@ -15,10 +15,9 @@ from __future__ import annotations
 import os
 
 from ..errors import FormatError
+from ..runscope import run_files
 from ..signals import temporaries
 
-#: path -> (size, mtime_ns, inode) of each mapped input when it was mapped
-_mapped: dict[str, tuple[int, int, int]] = {}
 _guard = None  # the _mapguard module, once a file is mapped
 
 
@@ -29,7 +28,7 @@ def _identity(st: os.stat_result) -> tuple[int, int, int]:
 def guard(fh, where: str) -> None:
     """Watch the open file ``fh`` (about to be mapped; ``where`` names it)."""
     global _guard
-    _mapped[where] = _identity(os.fstat(fh.fileno()))
+    run_files().mapped[where] = _identity(os.fstat(fh.fileno()))
     if _guard is None:
         from . import _mapguard
 
@@ -46,8 +45,8 @@ def sync_temporaries() -> None:
 
 
 def check_unchanged() -> None:
-    """Raise if a mapped input changed since it was mapped (before an output is renamed)."""
-    for where, ident in _mapped.items():
+    """Raise if a mapped input of this run changed since it was mapped (before a rename)."""
+    for where, ident in list(run_files().mapped.items()):
         try:
             now = _identity(os.stat(where))
         except OSError:

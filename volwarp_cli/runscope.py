@@ -1,0 +1,56 @@
+"""What one run of a command knows about its files: its inputs and the permissions it was given.
+
+A command must not write an output over one of its own inputs, nor rename
+an output made from a mapped input that another program changed meanwhile
+(:mod:`.io.mapped`), and ``--allow-outside-data`` lets its readers open a
+detached header's data file elsewhere. These facts belong to one run, not
+to the process: a caller that runs several commands (a test session, a Dask
+worker, a library user's threads) must not carry one run's inputs or
+permission into the next. :func:`run_scope` gives a run its own
+:class:`RunFiles`, in a context variable; code outside any scope shares the
+process's (a library call that reads and writes volumes directly).
+
+Standard library only: the command line enters a scope before it imports
+numpy.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+from dataclasses import dataclass, field
+
+
+@dataclass
+class RunFiles:
+    """The files of one run.
+
+    ``inputs``: (device, inode) of every file read as an input; ``mapped``:
+    path -> (size, mtime_ns, inode) of each input read through a memory map,
+    when it was mapped; ``allow_outside_data``: detached headers may read data
+    files outside their own folder.
+    """
+
+    inputs: set[tuple[int, int]] = field(default_factory=set)
+    mapped: dict[str, tuple[int, int, int]] = field(default_factory=dict)
+    allow_outside_data: bool = False
+
+
+_process = RunFiles()
+_current: contextvars.ContextVar[RunFiles | None] = contextvars.ContextVar(
+    "volwarp_run_files", default=None)
+
+
+def run_files() -> RunFiles:
+    """The current run's files (the process's outside any :func:`run_scope`)."""
+    return _current.get() or _process
+
+
+@contextlib.contextmanager
+def run_scope():
+    """A fresh :class:`RunFiles` for the code inside (and the threads it hands its context to)."""
+    token = _current.set(RunFiles())
+    try:
+        yield _current.get()
+    finally:
+        _current.reset(token)
