@@ -16,6 +16,7 @@ import click
 
 from .. import __version__
 from ..errors import ChoiceNeeded, SpecError, VolwarpError
+from ..progress import log
 from ..runscope import run_scope
 from ..signals import Interrupted, stop_requested
 from ..signals import cancel_deferred as cancel_deferred_stop
@@ -191,6 +192,18 @@ def cli(debug):
     (-x, -y, z). Exit codes: 0 success, 2 usage or spec error, 1 other
     failures.
     """
+
+
+@cli.result_callback()
+def _after_command(result, **_):
+    """A command's options for work by blocks that it never used: said, not silently ignored."""
+    from .resources import scale_settings
+
+    unused = scale_settings().unused()
+    if unused:
+        log.warning("warning: %s applied to work by blocks, and this command ran in memory "
+                    "(give --chunked to run it by blocks)", ", ".join(unused))
+    return result
 
 
 def main(argv=None) -> int:

@@ -73,6 +73,16 @@ class ScaleSettings:
         self.threads_per_worker: int | None = None
         self.progress: str = "auto"
         self.block: tuple[int, int, int] | None = None
+        self.engine_opened = False  # the command ran (some of its work) by blocks
+
+    def unused(self) -> list[str]:
+        """The options given for work by blocks, when the command ran none by blocks."""
+        if self.engine_opened:
+            return []
+        given = [("--block", self.block), ("--scheduler", self.scheduler),
+                 ("--workers", self.workers), ("--threads-per-worker", self.threads_per_worker),
+                 ("--progress jsonl", True if self.progress == "jsonl" else None)]
+        return [name for name, value in given if value is not None]
 
     def open_engine(self):
         """The Dask engine these settings name (:func:`volwarp_cli.engine.open_engine`)."""
@@ -87,6 +97,7 @@ class ScaleSettings:
             raise click.UsageError("--workers does not apply to an existing cluster (it has "
                                    "its own workers)")
         limit = memory.memory_limit() if kind == "local" else None
+        self.engine_opened = True
         return open_engine(self.scheduler, workers=self.workers,
                            threads_per_worker=self.threads_per_worker, memory_limit=limit,
                            progress="jsonl" if self.progress == "jsonl" else None)

@@ -1,0 +1,50 @@
+"""Options for work by blocks (--block, --scheduler, --workers, --threads-per-worker,
+--progress jsonl) are never silently ignored: a command that ran in memory says so."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volwarp_cli.io import write_volume
+from volwarp_cli.volume import Volume
+
+
+@pytest.fixture
+def ball(tmp_path):
+    z, y, x = np.mgrid[:16, :17, :18]
+    data = (((x - 9) ** 2 + (y - 8) ** 2 + (z - 8) ** 2) < 36).astype(np.uint8) * 100
+    path = tmp_path / "ball.nrrd"
+    write_volume(Volume(data), path)
+    return path
+
+
+@pytest.mark.parametrize("options,named", [
+    (["--block", "8"], "--block"),
+    (["--scheduler", "processes"], "--scheduler"),
+    (["--workers", "3", "--threads-per-worker", "2"], "--workers, --threads-per-worker"),
+    (["--progress", "jsonl"], "--progress jsonl"),
+])
+def test_block_options_of_an_in_memory_run_are_reported(run, ball, tmp_path, options, named):
+    res = run("distance", ball, "--iso", "50", "-o", tmp_path / "d.nrrd", *options)
+    assert res.code == 0, res.stderr
+    assert f"warning: {named} applied to work by blocks" in res.stderr
+    assert "ran in memory" in res.stderr
+
+
+def test_no_warning_when_they_were_used(run, ball, tmp_path):
+    out = tmp_path / "d.nrrd"
+    res = run("distance", ball, "--iso", "50", "-o", out, "--surface", "voxel", "--chunked",
+              "--block", "5", "--scheduler", "synchronous")
+    assert res.code == 0, res.stderr
+    assert "warning" not in res.stderr
+    plain = run("distance", ball, "--iso", "50", "-o", tmp_path / "plain.nrrd", "--surface",
+                "voxel")
+    assert plain.code == 0 and "warning" not in plain.stderr
+
+
+def test_a_failed_run_prints_its_error_line_only(run, tmp_path):
+    res = run("distance", tmp_path / "missing.nrrd", "--iso", "50", "-o", tmp_path / "d.nrrd",
+              "--block", "8")
+    assert res.code == 1
+    assert res.stderr.strip().count("\n") == 0 and "error" in res.stderr
