@@ -100,6 +100,13 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
         raise VolwarpError(f"cannot take the distance of samples of type {data.dtype}")
     from ..memory import ensure_fits_in_memory
 
+    # What the work loads is loaded first: an explicit budget is the whole process's, and
+    # what the process holds when it is checked must count the kernels' libraries (numba,
+    # scipy: about 80 MiB) and their compiled code (the sub-voxel kernels another 60 MiB)
+    sub = metric == "euclidean" and (surface == "subvoxel"
+                                     or (surface == "auto" and not is_binary(data)))
+    if data.size > _WARM_SIZE ** 3:
+        _warm_kernels(metric, "subvoxel" if sub else "voxel", data.dtype, iso, inside)
     # mask + float32 field (+ seed ids, a second id buffer and float32 samples, sub-voxel)
     ensure_fits_in_memory(data.size * (18 if metric == "euclidean" else 13),
                           f"the distance field of {data.size} samples")
@@ -122,7 +129,6 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
     spacing_zyx = tuple(float(s) for s in spacing_zyx)
     info = {"metric": metric, "surface": "voxel", "passes": 0}
     if metric == "euclidean":
-        sub = surface == "subvoxel" or (surface == "auto" and not is_binary(data))
         if sub:
             from .subvoxel import subvoxel_signed_distance
 
@@ -147,6 +153,30 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
     if spacing_zyx[0] != 1.0:
         out *= np.float32(spacing_zyx[0])
     return out, info
+
+
+#: Inputs larger than this cubed load their kernels on a small field first.
+_WARM_SIZE = 8
+
+
+def _warm_kernels(metric: str, surface: str, dtype, iso: float, inside: str) -> None:
+    """Run the field's kernels once on a small ball of ``dtype`` (a surface between its samples).
+
+    Loads their modules, libraries and compiled code, as the real input's field will.
+    """
+    n = _WARM_SIZE
+    z, y, x = np.ogrid[:n, :n, :n]
+    r2 = ((x - n / 2) ** 2 + (y - n / 2) ** 2 + (z - n / 2) ** 2).astype(np.float64)
+    up = inside == "above"
+    hi, lo = (iso + 1.0, iso - 1.0) if up else (iso - 1.0, iso + 1.0)
+    ball = np.where(r2 < (n / 4) ** 2, hi, lo)
+    if surface == "subvoxel":  # smooth samples, crossing the level between voxel centres
+        ball = iso + (1.0 if up else -1.0) * ((n / 4) ** 2 - r2) / (n / 4) ** 2
+    ball = ball.astype(dtype) if np.dtype(dtype).kind == "f" else ball.round().astype(dtype)
+    try:
+        signed_distance(ball, iso=iso, inside=inside, metric=metric, surface=surface)
+    except VolwarpError:  # (a level the dtype cannot hold around it: the real input tells)
+        pass
 
 
 def finish_field(field: np.ndarray, *, unsigned: bool = False,
