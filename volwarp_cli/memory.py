@@ -329,6 +329,29 @@ def ensure_fits_in_memory(nbytes: int, what: str) -> None:
                                f"{human_bytes(limit)} of memory is {where}")
 
 
+#: More than what a command's libraries and compiled kernels take when they load (VTK's
+#: filters, numba and its kernels: 60-250 MiB): see :func:`ensure_fits_once_loaded`.
+LOAD_MARGIN = 512 << 20
+
+
+def ensure_fits_once_loaded(nbytes: int, what: str, load) -> None:
+    """:func:`ensure_fits_in_memory` for work whose libraries may not be loaded yet.
+
+    An explicit limit is the whole process's, so what the work will load
+    (libraries, compiled kernels) must count. Where the budget leaves
+    :data:`LOAD_MARGIN` beyond ``nbytes`` that is so whatever they take, and
+    nothing more is done; otherwise ``load()`` loads them first (it runs the
+    work's kernels on something small; None: nothing to load), and the check
+    counts what the process then holds.
+    """
+    limit, _ = _limit()
+    if nbytes + LOAD_MARGIN <= limit:
+        return
+    if load is not None:
+        load()
+    ensure_fits_in_memory(nbytes, what)
+
+
 #: :func:`block_bytes`'s bounds.
 BLOCK_FLOOR = 8 << 20
 BLOCK_CEILING = 256 << 20

@@ -98,18 +98,19 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
     data = np.asarray(data)
     if data.dtype.kind == "c" or data.dtype.kind not in "biuf":
         raise VolwarpError(f"cannot take the distance of samples of type {data.dtype}")
-    from ..memory import ensure_fits_in_memory
+    from ..memory import ensure_fits_once_loaded
 
-    # What the work loads is loaded first: an explicit budget is the whole process's, and
-    # what the process holds when it is checked must count the kernels' libraries (numba,
-    # scipy: about 80 MiB) and their compiled code (the sub-voxel kernels another 60 MiB)
+    # An explicit budget is the whole process's: where it is tight, what the work loads
+    # (numba, scipy: about 80 MiB; the sub-voxel kernels' code another 60 MiB) is loaded
+    # before the check, so that what the process holds counts it
     sub = metric == "euclidean" and (surface == "subvoxel"
                                      or (surface == "auto" and not is_binary(data)))
-    if data.size > _WARM_SIZE ** 3:
-        _warm_kernels(metric, "subvoxel" if sub else "voxel", data.dtype, iso, inside)
     # mask + float32 field (+ seed ids, a second id buffer and float32 samples, sub-voxel)
-    ensure_fits_in_memory(data.size * (18 if metric == "euclidean" else 13),
-                          f"the distance field of {data.size} samples")
+    ensure_fits_once_loaded(
+        data.size * (18 if metric == "euclidean" else 13),
+        f"the distance field of {data.size} samples",
+        None if data.size <= _WARM_SIZE ** 3 else  # (the small field itself: loads them)
+        lambda: _warm_kernels(metric, "subvoxel" if sub else "voxel", data.dtype, iso, inside))
     if data.dtype.kind == "f":
         nans = int(np.count_nonzero(np.isnan(data)))
         if nans:
@@ -155,7 +156,7 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
     return out, info
 
 
-#: Inputs larger than this cubed load their kernels on a small field first.
+#: The side of the ball the field's kernels run on to load (:func:`_warm_kernels`).
 _WARM_SIZE = 8
 
 
