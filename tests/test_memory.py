@@ -403,3 +403,28 @@ def test_the_budget_counts_the_kernels_the_work_loads(tmp_path):
             assert code == 1 and err.strip().count("\n") <= 1, err  # (a fallback's warning)
             assert "memory limit" in err and not out.exists()
     assert 320 in ran
+
+
+def test_the_sweep_counts_its_kernel(tmp_path):
+    """The sweep's voxeliser (numba's, over 100 MiB once loaded) runs on a corner of the
+    grid first where the budget is tight: under 150M a 190x145x55 sweep is refused with
+    nothing written (it used to run and peak at 173 MiB), under 320M it peaks below."""
+    spec = tmp_path / "s.yaml"
+    spec.write_text("version: 1\ngrid: {spacing: 0.1}\nfields:\n  opacity: {value: 0.8}\n"
+                    "trajectory:\n  - line: {from: [0, 0, 0], to: [12, 2, 1]}\n"
+                    "  - arc: {center: [12, 6, 1], radius: 4, axis: [0, 0, 1], start: -90, "
+                    "end: 90}\nup: [0, 0, 1]\nscale: [4, 4]\n")
+    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
+    for limit in (150, 320):
+        out = tmp_path / f"s{limit}_{{field}}.nrrd"
+        proc = subprocess.run([sys.executable, "-c", _WRAPPER, sys.executable, "-m",
+                               "volwarp_cli", "sweep", str(spec), "-o", str(out),
+                               "--memory-limit", f"{limit}M"],
+                              capture_output=True, text=True, env=env, timeout=120)
+        peak = int(proc.stdout.split()[-1])
+        written = tmp_path / f"s{limit}_opacity.nrrd"
+        if limit == 150:
+            assert proc.returncode == 1 and not written.exists()
+        else:
+            assert proc.returncode == 0 and written.exists()
+            assert peak < limit * M, f"peak RSS {peak / M:.0f} MiB"

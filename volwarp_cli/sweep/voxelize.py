@@ -53,7 +53,7 @@ from .. import parallel
 from ..box import Box
 from ..errors import VolwarpError
 from ..geometry import Geometry
-from ..memory import ensure_fits_in_memory
+from ..memory import ensure_fits_once_loaded
 from ..progress import log, progress, timed
 from .cvg import OP_CODES, finish_fields
 from .frames import Frames, compute_frames
@@ -329,9 +329,13 @@ def voxelize_sweep(sweep, grid: Geometry, tau: float, progress_label: str = "swe
     F = len(sweep.templates)
     nz, ny, nx = grid.shape
     blend = "blend" in sweep.ops.values()
-    ensure_fits_in_memory(grid.size * (4 * F + 1 + (4 if blend else 0)),
-                          f"sweep output {nx}x{ny}x{nz} "
-                          f"x {F} fields")
+    # where the budget is tight, the kernel (numba's: over 100 MiB once loaded) first
+    # voxelises a corner of the grid, so that the check counts it
+    corner = grid.sub(Box((0, 0, 0), tuple(min(s, 4) for s in grid.shape)))
+    ensure_fits_once_loaded(grid.size * (4 * F + 1 + (4 if blend else 0)),
+                            f"sweep output {nx}x{ny}x{nz} x {F} fields",
+                            (lambda: voxelize_sweep(sweep, corner, tau, progress_label))
+                            if grid.size > corner.size else None)
     plan = plan_voxelize(sweep, tau)
     args, acc, wsum, covered = _kernel_args(plan, grid, grid.box)
     kernel = _get_kernel()
