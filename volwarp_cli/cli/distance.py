@@ -128,11 +128,22 @@ def command(input, output, iso, inside, metric, surface, unsigned, max_distance,
         log.info("min-norm: %d shift-and-min passes", info["passes"])
     finish_field(field, unsigned=unsigned, max_distance=max_distance)
     out = stamp(vol.with_data(field), "distance", input)
-    out.meta["volwarp_distance"] = (f"metric={metric} surface={info['surface']} iso={iso:g} "
-                                    f"inside={inside}" + (" unsigned" if unsigned else ""))
+    out.meta["volwarp_distance"] = _note(metric, info["surface"], iso, inside, unsigned,
+                                         max_distance)
     with timed(f"write {output}"):
         write_volume(out, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      **ome_zarr)
+
+
+def _note(metric, surface, iso, inside, unsigned, max_distance) -> str:
+    """The output's ``volwarp_distance`` key: how the field was defined.
+
+    The same however it was computed, in memory or by blocks (the samples are the same).
+    """
+    return (f"metric={metric} surface={surface} iso={iso:g} inside={inside}"
+            + (" unsigned" if unsigned else "")
+            + (f" max_distance={max_distance:g} (exact inside the band, clamped outside)"
+               if max_distance is not None else ""))
 
 
 def _finish_block(field, *, unsigned, dtype, what):
@@ -173,11 +184,9 @@ def _by_blocks(input, output, raw, volume_index, dicom=None, *, iso, inside, met
     def open_output(grid, info):
         out = stamp(template.with_data(np.broadcast_to(np.zeros((), out_dtype), shape)),
                     "distance", input)
-        out.meta["volwarp_distance"] = (
-            f"metric={metric} surface={info['surface']} iso={iso:g} inside={inside}"
-            + (" unsigned" if unsigned else "") + f" chunked={info['chunked']}"
-            + (f" max_distance={max_distance:g} (exact inside the band, clamped outside)"
-               if max_distance is not None else ""))
+        out.meta["volwarp_distance"] = _note(metric, info["surface"], iso, inside, unsigned,
+                                             max_distance)
+        log.info("distance by blocks: %s", info["chunked"])
         return block_output(output, out, out_dtype, block=grid, **kw)
 
     with settings.open_engine() as engine, _collector_paused(), \
