@@ -213,6 +213,28 @@ def test_cgroup_quota_files(monkeypatch, tmp_path):
     assert parallel.cgroup_cpu_quota(str(v1)) is None
 
 
+def test_cgroup_quota_of_an_ancestor_counts(monkeypatch, tmp_path):
+    """A Slurm job's (or a pod's) quota sits above the task's own cgroup: the smallest
+    quota of the cgroup and its ancestors holds (v2 and v1)."""
+    v2 = tmp_path / "v2"
+    (v2 / "job" / "step" / "task").mkdir(parents=True)
+    (v2 / "job" / "cpu.max").write_text("150000 100000\n")
+    (v2 / "job" / "step" / "cpu.max").write_text("max 100000\n")
+    (v2 / "job" / "step" / "task" / "cpu.max").write_text("400000 100000\n")
+    monkeypatch.setattr(parallel, "_read", lambda p, real=parallel._read: "0::/job/step/task"
+                        if p == "/proc/self/cgroup" else real(p))
+    assert parallel.cgroup_cpu_quota(str(v2)) == 1.5
+    v1 = tmp_path / "v1"
+    (v1 / "cpu" / "slurm" / "job").mkdir(parents=True)
+    (v1 / "cpu" / "slurm" / "cpu.cfs_quota_us").write_text("200000")
+    (v1 / "cpu" / "slurm" / "cpu.cfs_period_us").write_text("100000")
+    (v1 / "cpu" / "slurm" / "job" / "cpu.cfs_quota_us").write_text("-1")
+    (v1 / "cpu" / "slurm" / "job" / "cpu.cfs_period_us").write_text("100000")
+    monkeypatch.setattr(parallel, "_read", lambda p, real=parallel._read: "4:cpu:/slurm/job"
+                        if p == "/proc/self/cgroup" else real(p))
+    assert parallel.cgroup_cpu_quota(str(v1)) == 2.0
+
+
 def test_thread_count_sources(monkeypatch):
     monkeypatch.delenv(parallel.THREADS_ENV, raising=False)
     monkeypatch.setattr(parallel, "available_cores", lambda: 7)

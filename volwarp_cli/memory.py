@@ -117,12 +117,6 @@ def _stat(text: str | None, *keys: str) -> int:
     return 0
 
 
-def _levels(path: str) -> list[str]:
-    """A cgroup and its ancestors, leaf first: ``/a/b`` -> ``/a/b``, ``/a``, ``/``."""
-    parts = [p for p in path.split("/") if p]
-    return ["/" + "/".join(parts[:n]) for n in range(len(parts), -1, -1)]
-
-
 def cgroup_memory_limit(root: str = "/sys/fs/cgroup",
                         cgroups: Mapping[str, str] | None = None) -> tuple[int, int] | None:
     """``(limit, usage)`` in bytes of this process's cgroup memory limit, or None if none.
@@ -150,6 +144,7 @@ def cgroup_memory_limit(root: str = "/sys/fs/cgroup",
     tests' fake trees.
     """
     from .parallel import _cgroup_paths, _under
+    from .parallel import cgroup_levels as _levels
 
     paths = _cgroup_paths() if cgroups is None else dict(cgroups)
     # v2 first; a hybrid system's v2 tree (at <root>/unified) has no memory files

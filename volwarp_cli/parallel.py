@@ -56,6 +56,12 @@ def _cgroup_paths() -> dict[str, str]:
     return out
 
 
+def cgroup_levels(path: str) -> list[str]:
+    """A cgroup and its ancestors, leaf first: ``/a/b`` -> ``/a/b``, ``/a``, ``/``."""
+    parts = [p for p in path.split("/") if p]
+    return ["/" + "/".join(parts[:n]) for n in range(len(parts), -1, -1)]
+
+
 def _under(mount: str, path: str, name: str) -> str | None:
     """The file ``name`` of cgroup ``path`` under ``mount``, or at the mount's root.
 
@@ -73,31 +79,40 @@ def cgroup_cpu_quota(root: str = "/sys/fs/cgroup") -> float | None:
     """The CPUs this process's cgroup may use per period (quota / period), or None.
 
     cgroup v2 ``cpu.max`` (``"max 100000"`` or ``"200000 100000"``), else v1
-    ``cpu.cfs_quota_us`` / ``cpu.cfs_period_us`` (-1: no quota).
+    ``cpu.cfs_quota_us`` / ``cpu.cfs_period_us`` (-1: no quota). The cgroup's
+    ancestors count too (a Slurm job's or a pod's quota may sit above the
+    process's own cgroup): the smallest quota of any level.
     """
     paths = _cgroup_paths()
+    quotas = []
     if "" in paths:
-        text = _under(root, paths[""], "cpu.max")
-        if text:
+        for level in cgroup_levels(paths[""]):
+            text = _under(root, level, "cpu.max")
+            if not text:
+                continue
             quota, _, period = text.partition(" ")
             if quota != "max":
                 try:
-                    return int(quota) / int(period or 100000)
-                except ValueError:
-                    return None
+                    quotas.append(int(quota) / int(period or 100000))
+                except (ValueError, ZeroDivisionError):
+                    continue
+        if quotas:
+            return min(quotas)
     for controller in ("cpu", "cpu,cpuacct"):
         if controller in paths or controller == "cpu":
             path = paths.get(controller, "/")
             for mount in (os.path.join(root, "cpu"), os.path.join(root, "cpu,cpuacct")):
-                quota = _under(mount, path, "cpu.cfs_quota_us")
-                period = _under(mount, path, "cpu.cfs_period_us")
-                if quota is None or period is None:
-                    continue
-                try:
-                    q, p = int(quota), int(period)
-                except ValueError:
-                    return None
-                return q / p if q > 0 and p > 0 else None
+                for level in cgroup_levels(path):
+                    quota = _under(mount, level, "cpu.cfs_quota_us")
+                    period = _under(mount, level, "cpu.cfs_period_us")
+                    try:
+                        q, p = int(quota), int(period)
+                    except (TypeError, ValueError):
+                        continue
+                    if q > 0 and p > 0:
+                        quotas.append(q / p)
+                if quotas:
+                    return min(quotas)
     return None
 
 
