@@ -219,3 +219,80 @@ def test_exports_of_an_unmoved_warp(tmp_path):
     for axis in range(3):
         field = read_volume(tmp_path / "d.nrrd", volume_index=axis)
         assert np.nanmax(np.abs(field.data)) < 1e-4
+
+
+def _block_writer(path):
+    """``open_output(template, block)`` writing a NRRD by blocks (what the command passes)."""
+    from volwarp_cli.geometry import Geometry
+    from volwarp_cli.io.blockwrite import committed, open_block_output
+
+    seen = []
+
+    def open_output(template, block):
+        seen.append(tuple(block))
+        return committed(open_block_output(path, Geometry.of(template), template.dtype,
+                                           chunks_zyx=block))
+
+    return open_output, seen
+
+
+@pytest.mark.parametrize("block", [None, (5, 7, 6)])
+def test_render_blocks_writes_the_rendered_volume(tmp_path, block):
+    """IntensityWarp.render_blocks, called without the command line: the output by blocks
+    of the engine's tasks equals render()'s samples, block by block in the block asked."""
+    from volwarp_cli.bspline.blocks import LazySource
+    from volwarp_cli.bspline.capture import capture_source
+    from volwarp_cli.engine import open_engine
+    from volwarp_cli.io.lazy import open_volume_template
+
+    spec_path = _spec(tmp_path)
+    doc = load_spec(spec_path, "warp")
+    spec = read_warp_spec(doc)
+    whole = IntensityWarp(*_opened(spec_path)[2:], doc, spec).render()
+    template, array = open_volume_template(BALL)
+    source = LazySource(BALL, array=array)
+    s = spec.capture
+    cap = capture_source(template, source, lattice=s.lattice, placement=s.placement,
+                         oversample=s.oversample, sampling=s.sampling)
+    warp = IntensityWarp(cap, doc, spec, WarpOptions(blocks=True))
+    out = tmp_path / "b.nrrd"
+    open_output, seen = _block_writer(out)
+    with open_engine("threads", workers=2) as engine:
+        summary = warp.render_blocks(source, engine, open_output, 64 << 20, block=block)
+    got = read_volume(out)
+    assert np.array_equal(got.data, whole.data) and got.data.dtype == whole.data.dtype
+    assert summary["shape"] == list(whole.shape_xyz) and summary["blocks"] >= 1
+    assert seen == [block] if block else len(seen) == 1
+    if block:
+        assert summary["block"] == list(block[::-1]) and summary["blocks"] > 1
+
+
+def test_label_map_blocks_equal_the_label_warp(tmp_path):
+    """LabelMapBlocks.render, without the command line: the same map and per-label report
+    as LabelMapWarp, by slabs of the asked depth."""
+    from volwarp_cli.bspline.blocks import LazySource
+    from volwarp_cli.bspline.run import LabelMapBlocks
+    from volwarp_cli.engine import open_engine
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.io.lazy import open_volume_template
+
+    lab = np.zeros((20, 21, 22), np.int16)
+    lab[4:10, 5:15, 3:12] = 3
+    lab[11:17, 2:9, 8:18] = -7
+    src = tmp_path / "lab.nrrd"
+    write_volume(Volume(lab), src)
+    spec_path = _spec(tmp_path, "version: 1\nunits: voxel\ncapture: {lattice: 6, oversample: 1}"
+                                "\nsteps:\n  - move:\n      - {index: [2, 2, 2], by: [2, 1, 0]}\n")
+    doc = load_spec(spec_path, "warp")
+    spec = read_warp_spec(doc)
+    want, want_report = LabelMapWarp(Volume(lab), doc, spec).render()
+    template, array = open_volume_template(src)
+    warp = LabelMapBlocks(template, LazySource(src, array=array), doc, spec)
+    assert warp.template.data.shape == want.data.shape
+    out = tmp_path / "o.nrrd"
+    open_output, seen = _block_writer(out)
+    with open_engine("threads", workers=2) as engine:
+        summary = warp.render(engine, open_output, 64 << 20, slab=3)
+    assert np.array_equal(read_volume(out).data, want.data)
+    assert summary["report"] == want_report
+    assert seen == [(3, want.data.shape[1], want.data.shape[2])]

@@ -92,6 +92,8 @@ def capture_input(vol: Volume, settings, name: str, *, defer: bool = False):
                                              pad=None, mean=False, defer=defer)
     except SpecError:
         raise
+    except OutOfMemoryError as exc:  # (its type kept: a command may run by blocks instead)
+        raise OutOfMemoryError(f"{name}: {exc}") from None
     except VolwarpError as exc:
         raise VolwarpError(f"{name}: {exc}") from None
 
@@ -302,6 +304,29 @@ class IntensityWarp:
         return template, WarpBlocks(self.scene, source, self.cap.placement, self.cap.sampling,
                                     window, template.dtype, sampler=sampler)
 
+    def render_blocks(self, source, engine, open_output, budget: int, *, block=None,
+                      sampler=None) -> dict:
+        """The final lattice's output by blocks on ``engine``, the target never held whole.
+
+        ``source``/``sampler``: as :meth:`block_job` takes them.
+        ``open_output(template, block)``: a context manager giving the block output
+        (:class:`~volwarp_cli.io.blockwrite.BlockOutput`) for the output's
+        template and block shape (z, y, x), committed when it exits without an
+        error. ``budget``: the bytes the tasks may hold together; ``block``:
+        the output's block, default the largest the budget holds for the
+        engine's tasks at once. Returns the run's summary: the output's shape
+        (x y z), the drags' report, the count and shape (x y z) of the blocks.
+        """
+        from .blocks import warp_by_blocks
+
+        template, job = self.block_job(source, sampler=sampler)
+        per_task = budget // max(1, engine.workers)
+        block = block or job.choose_blocks(budget, engine.workers)
+        with open_output(template, block) as out:
+            stats = warp_by_blocks(job, out, engine, memory=per_task)
+        return {"shape": list(template.shape_xyz), "handles": self.handles(),
+                "blocks": len(stats), "block": list(block[::-1])}
+
     def tile_sampler(self):
         """The capture's samples box by box, for :func:`.blocks.warp_by_tiles` in this process.
 
@@ -339,6 +364,66 @@ class IntensityWarp:
 
             run(self.scene, self.frames, sink=sink)
         return template
+
+
+class LabelMapBlocks:
+    """The warp of a label map read by boxes, by slabs of target planes (never held whole).
+
+    ``template``: the map's Volume with a placeholder of its shape and dtype;
+    ``source``: its samples, sliceable ``[z, y, x]`` (a lazy source, reopened
+    by path in worker processes). The output and the per-label report equal
+    :class:`LabelMapWarp`'s (:mod:`.label_blocks`). Construction plans the
+    lattice and the output (:attr:`template`, refused before any work when
+    the spec cannot apply); :meth:`render` runs it.
+    """
+
+    def __init__(self, template: Volume, source, doc, spec,
+                 options: WarpOptions = WarpOptions(), *, preserve: bool = False,
+                 name: str = "input"):
+        from .labels import prepare_labels
+        from .warp import output_planes, output_window_box
+
+        self.source = source
+        self.input = template
+        self.preserve = preserve
+        self.cap, self.scene, self.frames = prepare_labels(
+            template, doc, spec, method=options.pushforward, evaluator=options.evaluator,
+            background=options.background, source=name, allow_growth=options.allow_growth)
+        if self.frames:
+            self.scene.set_lattice(self.frames[-1].dq)
+        #: the output's Volume, a placeholder of its shape and dtype
+        self.template, _ = output_planes(self.cap, self.scene, crop=options.crop)
+        self.window = output_window_box(self.cap, self.scene, options.crop)
+
+    def render(self, engine, open_output, budget: int, *, slab: int | None = None) -> dict:
+        """Warp by slabs on ``engine``; returns the output's shape, the drags' and the labels' report.
+
+        ``open_output(template, block)``: as :meth:`IntensityWarp.render_blocks`
+        takes it (a slab's block: ``(slab, y, x)`` of the output); ``budget``:
+        the bytes the tasks may hold together; ``slab``: target planes per
+        task (default: as many as the budget holds).
+        """
+        import functools
+
+        from .label_blocks import LabelBlocks, bounding_boxes_by_blocks, warp_labels_by_blocks
+
+        per_task = budget // max(1, engine.workers)
+        run = functools.partial(engine.map, label="label boxes", memory=per_task)
+        nz, ny, nx = self.input.data.shape
+        # slabs of the map read for its labels' boxes: each one's samples and counts
+        depth = max(1, min(nz, per_task // max(1, ny * nx * (self.input.dtype.itemsize + 16))))
+        with timed("labels: bounding boxes (one pass)"):
+            labels, nvox, boxes = bounding_boxes_by_blocks(self.source, run, depth)
+        job = LabelBlocks(self.scene, self.source, labels, boxes, self.window,
+                          self.input.dtype, preserve=self.preserve)
+        slab = slab or job.choose_depth(budget, engine.workers)
+        shape = self.template.data.shape
+        with open_output(self.template, (slab, shape[1], shape[2])) as out, \
+                timed(f"labels: {len(labels)} label passes + background, by slabs"):
+            report = warp_labels_by_blocks(job, out, engine, nvox=nvox,
+                                           spacing=self.input.spacing, memory=per_task)
+        return {"shape": list(self.template.shape_xyz),
+                "handles": handle_report(self.cap, self.frames), "report": report}
 
 
 class LabelMapWarp:

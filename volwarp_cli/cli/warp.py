@@ -241,12 +241,11 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
     """
     from dataclasses import replace
 
-    from ..bspline.blocks import warp_by_blocks
     from ..bspline.capture import capture_source
     from ..bspline.plan import read_warp_spec
     from ..bspline.run import IntensityWarp
     from ..spec.loader import load_schema, load_spec, validate
-    from .chunked import block_budget, block_output, lazy_input
+    from .chunked import block_budget, lazy_input
 
     doc = load_spec(spec_path)
     validate(doc, load_schema("warp"))
@@ -300,19 +299,12 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
             raise fallback
         if not wants_blocks(str(fallback)):  # (says why, on stderr)
             raise fallback
-    out_template, job = warp.block_job(source, sampler=cap.sampler if is_capture else None)
     settings = scale_settings()
     with settings.open_engine() as engine:
-        budget = block_budget()
-        per_task = budget // max(1, engine.workers)
-        block = settings.block or job.choose_blocks(budget, engine.workers)
-        with block_output(output, stamp(out_template, "warp", input, spec_path), block=block,
-                          compress=write_kw["compress"], byte_order=write_kw["byte_order"],
-                          version=write_kw.get("ome_zarr_version", "0.5"),
-                          pyramid=write_kw.get("pyramid", 0)) as out:
-            stats = warp_by_blocks(job, out, engine, memory=per_task)
-    summary = {"output": str(output), "shape": list(out_template.shape_xyz),
-               "handles": warp.handles(), "blocks": len(stats), "block": list(block[::-1])}
+        summary = warp.render_blocks(
+            source, engine, _block_writer(output, input, spec_path, write_kw), block_budget(),
+            block=settings.block, sampler=cap.sampler if is_capture else None)
+    summary = {"output": str(output), **summary}
     if exports:
         # after -o, as in memory (each export atomic on its own); the fields by slabs
         from ..bspline.export_outputs import FieldBlocks, write_exports
@@ -328,66 +320,46 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
 
 def _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw,
                            doc, spec, *, fallback=None, preserve=False, dicom=None) -> dict:
-    """``warp --labels`` by slabs of target planes (:mod:`volwarp_cli.bspline.label_blocks`).
+    """``warp --labels`` by slabs of target planes (:class:`~volwarp_cli.bspline.run.LabelMapBlocks`).
 
     The same output and per-label report as in memory; the label map is read
     by boxes, the target never held.
     """
-    import functools
-
-    from ..bspline.label_blocks import (
-        LabelBlocks,
-        bounding_boxes_by_blocks,
-        warp_labels_by_blocks,
-    )
-    from ..bspline.labels import format_report, prepare_labels
-    from ..bspline.run import handle_report
-    from ..bspline.warp import output_planes, output_window_box
+    from ..bspline.labels import format_report
+    from ..bspline.run import LabelMapBlocks
     from ..progress import log
-    from .chunked import block_budget, block_output, blocks_can_write, lazy_input, wants_blocks
+    from .chunked import block_budget, blocks_can_write, lazy_input, wants_blocks
 
     template, source = lazy_input(input, raw, volume_index, dicom)
-    cap, scene, frames = prepare_labels(template, doc, spec, method=options.pushforward,
-                                        evaluator=options.evaluator,
-                                        background=options.background, source=input,
-                                        allow_growth=options.allow_growth)
-    if frames:
-        scene.set_lattice(frames[-1].dq)
-    out_template, _ = output_planes(cap, scene, crop=options.crop)
-    window = output_window_box(cap, scene, options.crop)
+    warp = LabelMapBlocks(template, source, doc, spec, options, preserve=preserve, name=input)
     if fallback is not None:
-        if not blocks_can_write(output, out_template.data.shape, out_template.dtype, write_kw):
+        if not blocks_can_write(output, warp.template.data.shape, warp.template.dtype,
+                                write_kw):
             raise fallback
         if not wants_blocks(str(fallback)):
             raise fallback
     settings = scale_settings()
     with settings.open_engine() as engine:
-        budget = block_budget()
-        per_task = budget // max(1, engine.workers)
-        run = functools.partial(engine.map, label="label boxes", memory=per_task)
-        nz, ny, nx = template.data.shape
-        item = template.dtype.itemsize
-        depth = max(1, min(nz, per_task // max(1, ny * nx * (item + 16))))
-        with timed("labels: bounding boxes (one pass)"):
-            labels, nvox, boxes = bounding_boxes_by_blocks(source, run, depth)
-        job = LabelBlocks(scene, source, labels, boxes, window, template.dtype,
-                          preserve=preserve)
-        if settings.block is not None:
-            slab = settings.block[0]
-        else:
-            slab = job.choose_depth(budget, engine.workers)
-        shape = out_template.data.shape
-        with block_output(output, stamp(out_template, "warp", input, spec_path),
-                          block=(slab, shape[1], shape[2]), compress=write_kw["compress"],
-                          byte_order=write_kw["byte_order"],
-                          version=write_kw.get("ome_zarr_version", "0.5"),
-                          pyramid=write_kw.get("pyramid", 0), labels=True) as out, \
-                timed(f"labels: {len(labels)} label passes + background, by slabs"):
-            report = warp_labels_by_blocks(job, out, engine, nvox=nvox,
-                                           spacing=template.spacing, memory=per_task)
+        summary = warp.render(engine, _block_writer(output, input, spec_path, write_kw,
+                                                    labels=True), block_budget(),
+                              slab=settings.block[0] if settings.block else None)
+    report = summary.pop("report")
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
-    return {"output": str(output), "shape": list(out_template.shape_xyz),
-            "handles": handle_report(cap, frames), **_labels_json(report)}
+    return {"output": str(output), **summary, **_labels_json(report)}
+
+
+def _block_writer(output, input, spec_path, write_kw, *, labels: bool = False):
+    """``open_output(template, block)`` for the warp's blocks: the output file, stamped."""
+    from .chunked import block_output
+
+    def open_output(template, block):
+        return block_output(output, stamp(template, "warp", input, spec_path), block=block,
+                            compress=write_kw["compress"], byte_order=write_kw["byte_order"],
+                            version=write_kw.get("ome_zarr_version", "0.5"),
+                            pyramid=write_kw.get("pyramid", 0),
+                            labels=True if labels else "auto")
+
+    return open_output
 
 
 def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preserve_labels,
