@@ -6,8 +6,9 @@
 
 Patterns are Python format strings with ``{i}`` (frame number) and ``{t}``
 (its time), e.g. ``frame_{i:03d}.nrrd`` or ``m_{t:.2f}.nrrd``. The frames
-come from :func:`volwarp_cli.morph.frames.morph_frames`; this module parses,
-reads, calls and writes.
+come from :func:`volwarp_cli.morph.frames.morph_frames`, or by blocks from
+:func:`volwarp_cli.morph.run.morph_by_blocks`; this module parses, reads,
+calls and writes.
 """
 
 from __future__ import annotations
@@ -262,13 +263,6 @@ def _grid_error(job, spec_path, exc):
     return SpecError(str(exc), file=str(spec_path), key=".".join(exc.key))
 
 
-def _morph_note(job, chunked: str | None = None) -> str:
-    note = f"metric={job.metric} output={job.output}"
-    if job.max_distance is not None:
-        note += f" max_distance={job.max_distance:g} (each field clamped)"
-    return note + (f" chunked={chunked}" if chunked else "")
-
-
 def _render_settings(job, render_paths, view, size, camera_from, labels_flag, volumes):
     if not render_paths:
         return None
@@ -301,6 +295,7 @@ def _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras):
     from ..morph.frames import morph_frames
     from ..morph.grid import GridError
     from ..morph.pipeline import prepare
+    from ..morph.run import morph_note
     from .common import provenance
 
     with timed("read inputs"):
@@ -311,7 +306,7 @@ def _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras):
         prep = prepare(job, source, target, attrs)
     except GridError as exc:
         raise _grid_error(job, spec_path, exc) from None
-    meta = {"volwarp_morph": _morph_note(job),
+    meta = {"volwarp_morph": morph_note(job),
             **provenance("morph", [job.source.path, job.target.path], spec_path)}
     camera_from, camera_to, labels_flag = cameras
     render = _render_settings(job, outputs.renders, view, size, camera_from, labels_flag,
@@ -330,48 +325,20 @@ def _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras):
              "x".join(map(str, prep.grid.shape_xyz)))
 
 
-def _cast_block(block, *, dtype, what):
-    from ..samples import cast_samples
-
-    return cast_samples(block, dtype, what=what)
-
-
 def _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, *,
                    fallback=None):
-    """The morph by blocks (:mod:`volwarp_cli.morph.chunked`): fields on disk, frames by blocks.
+    """The morph by blocks (:func:`volwarp_cli.morph.run.morph_by_blocks`): frames by blocks.
 
     ``fallback``: the in-memory morph's refusal, when this runs instead of it
     (no --chunked); raised again where blocks cannot help either.
     """
-    import functools
+    import contextlib
 
-    import numpy as np
-
-    from .. import parallel
-    from ..engine import write_blocks
-    from ..errors import VolwarpError
     from ..geometry import Geometry
-    from ..io.atomic import scratch_folder
-    from ..morph.chunked import (
-        attributes_by_blocks,
-        block_frames,
-        block_grid,
-        block_matrices,
-        check_covered,
-        fields_by_blocks,
-        frame_chunks,
-        mesh_block_shape,
-        resample_chunks,
-    )
     from ..morph.grid import GridError
-    from ..morph.interpolate import index_map, lands_on_grid
+    from ..morph.run import BlocksRefused, morph_by_blocks
     from .chunked import block_budget, block_output, blocks_can_write, lazy_input, wants_blocks
     from .common import provenance
-
-    def refuse(message, usage=True):
-        if fallback is not None:
-            raise fallback
-        raise (click.UsageError if usage else VolwarpError)(message)
 
     try:
         source = lazy_input(job.source.path)
@@ -381,21 +348,6 @@ def _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, *,
         if fallback is not None:
             raise fallback from None
         raise
-    geometry = {name: (Geometry.of(a[0]), Geometry.of(b[0])) for name, (a, b) in attrs.items()}
-    try:
-        grid, why = block_grid(job, Geometry.of(source[0]), Geometry.of(target[0]), geometry)
-    except GridError as exc:  # (the unaligned grid's error: the aligned one's is below)
-        if not job.moved:
-            raise _grid_error(job, spec_path, exc) from None
-        why = None
-    if why:
-        refuse(f"--chunked does not run a morph with {why} by blocks (that morph runs "
-               "in memory)")
-    dtype = write_kw.get("dtype")
-    source_type = np.dtype(source[1].dtype)
-    frame_type = (source_type if job.output == "density" and job.density_range == "source"
-                  else np.dtype(np.float32))
-    types = {a.name: np.dtype(a.dtype or attrs[a.name][0][1].dtype) for a in job.attributes}
     settings = scale_settings()
     camera_from, camera_to, labels_flag = cameras
     render = _render_settings(job, outputs.renders, view, size, camera_from, labels_flag,
@@ -404,94 +356,35 @@ def _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, *,
               byte_order=write_kw.get("byte_order", "little"),
               version=write_kw.get("ome_zarr_version", "0.5"),
               pyramid=write_kw.get("pyramid", 0))
-    with settings.open_engine() as engine:
-        per_task = block_budget() // max(1, engine.workers)
-        run = functools.partial(engine.map, label="morph", memory=per_task)
-        inputs = {"source": source, "target": target}
-        if job.moved:
-            a_s, a_t = block_matrices(job, inputs, run, frame_chunks(
-                Geometry.of(source[0]).shape, per_task, engine.workers, settings.block))
-            try:
-                grid, why = block_grid(job, Geometry.of(source[0]), Geometry.of(target[0]),
-                                       geometry, a_s, a_t)
-            except GridError as exc:
-                raise _grid_error(job, spec_path, exc) from None
-            if why:
-                refuse(f"--chunked does not run a morph with {why} by blocks (that morph "
-                       "runs in memory)")
-        else:
-            a_s = a_t = np.eye(4)
-        matrices = {"source": a_s, "target": a_t}
-        chunks = frame_chunks(grid.shape, per_task, engine.workers, settings.block)
-        maps = []
-        for (template, _), mat in ((source, a_s), (target, a_t), *(
-                (pair, m) for a, b in attrs.values() for pair, m in ((a, a_s), (b, a_t)))):
-            geo = Geometry.of(template)
-            if not lands_on_grid(geo.shape, geo.index_to_world_matrix, mat, grid):
-                maps.append((index_map(geo.index_to_world_matrix, mat, grid), geo.shape))
-        rchunks = chunks
-        if maps:
-            try:
-                rchunks = resample_chunks(grid.shape, chunks, maps, per_task)
-            except VolwarpError as exc:
-                refuse(str(exc), usage=False)
-            why = check_covered(job, {"source": Geometry.of(source[0]),
-                                      "target": Geometry.of(target[0])}, matrices, grid, run,
-                                rchunks)
-            if why:
-                refuse(f"--chunked does not run a morph with {why} by blocks (that morph "
-                       "runs in memory)")
-        checks = [(p, np.dtype(dtype or frame_type)) for p in outputs.frames]
-        for a in job.attributes:
-            checks += [(p, types[a.name]) for p in outputs.attributes[a.name]]
-        for path, out_type in checks:
-            if not blocks_can_write(path, grid.shape, out_type, write_kw):
-                from ..io.blockwrite import check_block_format
 
-                if fallback is not None:
-                    raise fallback
-                check_block_format(path, write_kw.get("compress", False))
-                raise VolwarpError(f"{path}: the frames do not fit the free space of its "
-                                   "folder")
-        if fallback is not None and not wants_blocks(str(fallback)):
-            raise fallback
-        with scratch_folder(outputs.frames[0]) as scratch:
-            with timed("morph by blocks: both fields"):
-                bm = fields_by_blocks(job, inputs, engine, scratch, block_bytes=per_task,
-                                      block=settings.block, grid=grid, matrices=matrices,
-                                      chunks=rchunks)
-            meta = {"volwarp_morph": _morph_note(job, bm.info["chunked"]),
-                    **provenance("morph", [job.source.path, job.target.path], spec_path)}
-            mesh_run = None
-            if settings.scheduler is not None:  # (VTK holds the GIL: threads otherwise)
-                mesh_run = functools.partial(engine.map, label="mesh", memory=per_task)
-            attr_samples = attributes_by_blocks(
-                {a.name: (attrs[a.name][0], attrs[a.name][1], types[a.name].name)
-                 for a in job.attributes}, matrices, grid, engine, scratch,
-                block_bytes=per_task, chunks=rchunks)
-            renders = []
-            frame = None
-            for frame in block_frames(job, bm, source[1], attr_samples, meta=meta,
-                                      chunks=chunks, run=run,
-                                      mesh_block=mesh_block_shape(grid.shape, per_task,
-                                                                  settings.block),
-                                      meshes=bool(outputs.meshes), render=render,
-                                      mesh_run=mesh_run, mesh_threads=parallel.threads()):
-                i = frame.index
-                path = outputs.frames[i]
-                data = frame.data
-                if dtype is not None:
-                    data = data.map_blocks(functools.partial(_cast_block, dtype=dtype,
-                                                             what=str(path)),
-                                           dtype=np.dtype(dtype))
-                with block_output(path, frame.template, data.dtype, block=chunks, **kw) as sink:
-                    write_blocks(data, sink, engine, label=f"frame-{i}", memory=per_task)
-                for name, (template, values) in frame.attributes.items():
-                    with block_output(outputs.attributes[name][i], template, values.dtype,
-                                      block=chunks, **kw) as sink:
-                        write_blocks(values, sink, engine, label=f"{name}-{i}",
-                                     memory=per_task)
+    def open_output(path, template, dtype, block):
+        return block_output(path, template, dtype, block=block, **kw)
+
+    def check_output(path, shape, dtype):
+        if not blocks_can_write(path, shape, dtype, write_kw):
+            from ..io.blockwrite import check_block_format
+
+            check_block_format(path, write_kw.get("compress", False))
+            raise VolwarpError(f"{path}: the frames do not fit the free space of its folder")
+
+    frames = morph_by_blocks(
+        job, source, target, attrs, frame_paths=outputs.frames,
+        attribute_paths=outputs.attributes,
+        meta=provenance("morph", [job.source.path, job.target.path], spec_path),
+        dtype=write_kw.get("dtype"), meshes=bool(outputs.meshes), render=render,
+        open_engine=settings.open_engine, budget=block_budget, block=settings.block,
+        scheduler=settings.scheduler, open_output=open_output, check_output=check_output,
+        fallback=fallback, confirm=wants_blocks)
+    renders = []
+    frame = None
+    try:
+        with contextlib.closing(frames):
+            for frame in frames:
                 outputs.write_surface(frame, frame.template.meta, renders)
-            outputs.finish(job, frame, render, camera_to, renders)
+    except GridError as exc:
+        raise _grid_error(job, spec_path, exc) from None
+    except BlocksRefused as exc:
+        raise click.UsageError(str(exc)) from None
+    outputs.finish(job, frame, render, camera_to, renders)
     log.info("wrote %d frames on a %s grid, by blocks", len(job.times),
-             "x".join(map(str, grid.shape_xyz)))
+             "x".join(map(str, Geometry.of(frame.template).shape_xyz)))

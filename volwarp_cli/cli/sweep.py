@@ -1,4 +1,9 @@
-"""`volwarp sweep SPEC.yaml -o 'OUT_{field}.nrrd'`: image-swept volumes (Winter & Chen 2002)."""
+"""`volwarp sweep SPEC.yaml -o 'OUT_{field}.nrrd'`: image-swept volumes (Winter & Chen 2002).
+
+The fields come from :func:`volwarp_cli.sweep.evaluate`, or by blocks from
+:func:`volwarp_cli.sweep.run.sweep_by_blocks`; this module parses, reads the
+spec, calls and writes.
+"""
 
 from __future__ import annotations
 
@@ -103,15 +108,6 @@ def _check_grid(shape_xyz, origin, spacing, doc, from_options: bool, lo, hi,
     raise doc.error(("grid", names[0]) if names else ("grid",), what)
 
 
-def scale_to_dtype(data, dtype):
-    """Float fields in [0, 1] scaled to an integer type's full range (floats unchanged)."""
-    import numpy as np
-
-    if dtype is None or np.dtype(dtype).kind == "f":
-        return data
-    return data.astype(np.float64) * np.iinfo(np.dtype(dtype)).max
-
-
 @click.command(name="sweep", epilog=examples(
     "volwarp sweep sweep-bottle.yaml -o 'bottle_{field}.nrrd' --render bottle.png --view -70,25",
     "volwarp sweep sweep-at-bezier.yaml -o at.nrrd --multi --spacing 0.5 --method direct",
@@ -154,11 +150,11 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     import numpy as np
 
     from ..io import check_output_path, write_volume
-    from ..io.common import cast_samples
     from ..progress import timed
     from ..spec.loader import load_spec
     from ..sweep import evaluate
     from ..sweep.model import fit_grid_values, parse_sweep_spec, sweep_geometry
+    from ..sweep.run import VolumeRender, render_fields, sweep_volume
     from .common import provenance
 
     if shape is not None and spacing is not None:
@@ -201,12 +197,13 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     if render_path is not None:
         from .view_options import orientation_labels_for
 
-        render = dict(path=render_path, view=view, size=render_size, camera_from=camera_from,
-                      camera_to=camera_to, spec=spec,
-                      orientation_labels=orientation_labels_for(orientation_labels))
+        render = VolumeRender(view, render_size, camera=camera_from,
+                              orientation_labels=orientation_labels_for(orientation_labels),
+                              what=str(render_path))
+    render_to = (render_path, camera_to, spec)  # where the picture and its camera go
     by_blocks = dict(paths=paths, names=names, method=method, tau=tau, dtype=out_dtype,
-                     meta=stamp_meta, compress=compress, byte_order=byte_order, multi=multi,
-                     render=render, **ome_zarr)
+                     meta=stamp_meta, compress=compress, byte_order=byte_order, render=render,
+                     render_to=render_to, **ome_zarr)
     if chunked:
         _sweep_by_blocks(sspec, grid, **by_blocks)
         return
@@ -229,167 +226,59 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
         _sweep_by_blocks(sspec, grid, **by_blocks)
         return
 
-    def as_volume(data, name=None):
-        data = cast_samples(scale_to_dtype(data, out_dtype), out_dtype, what=str(name))
-        meta = dict(stamp_meta, volwarp_sweep_field=name) if name else dict(stamp_meta)
-        return grid.volume(data, meta=meta)
-
     with timed("write"):
         if multi:
             from ..io.nrrd import write_nrrd
-            comps = [as_volume(fields[n]).data for n in names]
-            write_nrrd(as_volume(fields[names[0]]),
+            comps = [sweep_volume(fields[n], grid, out_dtype, stamp_meta).data for n in names]
+            write_nrrd(sweep_volume(fields[names[0]], grid, out_dtype, stamp_meta),
                        paths[None], compress=compress, byte_order=byte_order,
                        components=comps, component_names=names)
         else:
             for n in names:
-                write_volume(as_volume(fields[n], n), paths[n], compress=compress,
-                             byte_order=byte_order, **ome_zarr)
+                write_volume(sweep_volume(fields[n], grid, out_dtype, stamp_meta, n), paths[n],
+                             compress=compress, byte_order=byte_order, **ome_zarr)
     if render is not None:
-        from ..render.raycast import render_volume
-
-        colour = None
-        if all(c in fields for c in ("red", "green", "blue")):
-            colour = [fields["red"], fields["green"], fields["blue"]]
         with timed(f"render {render_path}"):
-            img, camera = render_volume(
-                fields["opacity"], colour=colour, geometry=fields.get("geometry"),
-                spacing=grid.spacing_array, origin=grid.origin_array, view=view, size=render_size,
-                camera=camera_from, orientation_labels=render["orientation_labels"],
-                return_camera=True)
-        _write_render(render, img, camera)
+            img, camera = render_fields(fields, grid, render)
+        _write_render(render_to, img, camera)
 
 
-def _write_render(render, img, camera) -> None:
+def _write_render(render_to, img, camera) -> None:
     """The render's PNG (and ``--camera-to``'s camera), once the fields are written."""
     import numpy as np
 
     from ..io.images import write_image
     from ..render.camera import write_camera
 
-    write_image(render["path"], np.ascontiguousarray(img))
-    if render["camera_to"] is not None:
-        write_camera(camera, render["camera_to"], source=str(render["spec"]))
-
-
-def _render_by_slabs(render, grid, outs, names, dtype, plan, slab):
-    """Ray-cast the fields written by blocks, slab by slab of z planes (the in-memory picture).
-
-    Float32/float64 outputs hold the sweep's float32 fields exactly: their planes
-    are read back. Other types (scaled, rounded) do not: the planes' fields are
-    computed again (:func:`~volwarp_cli.sweep.chunked.sweep_block`, the in-memory
-    sweep's samples), so that the picture is the in-memory render's either way.
-    """
-    import numpy as np
-
-    from ..box import Box
-    from ..progress import timed
-    from ..render.raycast import render_volume_slabs
-    from ..sweep.chunked import sweep_block
-
-    nz, ny, nx = grid.shape
-    exact = np.dtype(dtype) in (np.dtype(np.float32), np.dtype(np.float64))
-
-    def read_slab(z0, z1, wanted):
-        box = Box((z0, 0, 0), (z1, ny, nx))
-        if not exact:
-            fields = sweep_block(plan.root, plan.geometry, box, plan=plan)
-            return [fields[names.index(n)] for n in wanted]
-        if None in outs:  # --multi: the fields are the components of one output
-            both = outs[None].read(box)
-            return [np.asarray(both[..., names.index(n)], dtype=np.float32) for n in wanted]
-        return [np.asarray(outs[n].read(box), dtype=np.float32) for n in wanted]
-
-    colour = all(c in names for c in ("red", "green", "blue"))
-    with timed(f"render {render['path']} by slabs of {slab} z cells"):
-        return render_volume_slabs(
-            read_slab, (nz, ny, nx), colour=colour, geometry="geometry" in names, slab=slab,
-            spacing=grid.spacing_array, origin=grid.origin_array, view=render["view"],
-            size=render["size"], camera=render["camera_from"],
-            orientation_labels=render["orientation_labels"], return_camera=True)
-
-
-def _sweep_block_task(plan, box, writers, names, dtype):
-    """One output block of every field, each written to its own output (a block task).
-
-    ``writers``: name -> writer, or ``{None: writer}`` for one output holding
-    every field as its components (--multi).
-    """
-    import numpy as np
-
-    from ..samples import cast_samples
-    from ..sweep.chunked import sweep_block
-
-    fields = sweep_block(plan.root, plan.geometry, box, plan=plan)
-    blocks = [cast_samples(scale_to_dtype(fields[i], dtype), dtype, what=str(name))
-              for i, name in enumerate(names)]
-    if None in writers:
-        writers[None].write(box, np.stack(blocks, axis=-1))
-        return
-    for name, data in zip(names, blocks, strict=True):
-        writers[name].write(box, data)
+    path, camera_to, spec = render_to
+    write_image(path, np.ascontiguousarray(img))
+    if camera_to is not None:
+        write_camera(camera, camera_to, source=str(spec))
 
 
 def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, compress,
-                     byte_order, multi=False, ome_zarr_version="0.5", pyramid=0, render=None):
-    """The sweep by output blocks on Dask (:mod:`volwarp_cli.sweep.chunked`).
+                     byte_order, ome_zarr_version="0.5", pyramid=0, render=None,
+                     render_to=None):
+    """The sweep by output blocks (:func:`volwarp_cli.sweep.run.sweep_by_blocks`).
 
-    Each block task computes every field's block once and writes it to that
-    field's output, or (``multi``) all of them as the components of one
-    multi-component NRRD. With ``render`` (--render), the written fields are
-    then ray-cast slab by slab (:func:`_render_by_slabs`) and the PNG written
-    once the fields are committed.
+    Its outputs are block outputs (one multi-component NRRD for ``paths``
+    keyed by None, --multi); the render's PNG is written once they are
+    committed.
     """
-    import contextlib
-    import math
-
-    import dask
-    import numpy as np
-
-    from ..sweep.chunked import prepare_sweep
+    from ..sweep.run import sweep_by_blocks
     from .chunked import block_budget, block_output
 
-    settings = scale_settings()
-    plan = prepare_sweep(sspec, grid, method=method, tau=tau)
-    shape = grid.shape
-    with settings.open_engine() as engine, contextlib.ExitStack() as stack:
-        budget = block_budget()
-        per_task = budget // max(1, engine.workers)
-        # the fields as float32 and their casts, per voxel of a block
-        per_voxel = len(names) * (4 + np.dtype(dtype).itemsize) + 16
-        edge = max(8, int((per_task // per_voxel) ** (1 / 3)))
-        want = 2 * engine.workers
-        while edge > 16 and math.prod(math.ceil(n / min(edge, n)) for n in shape) < want:
-            edge = edge * 3 // 4
-        block = settings.block or tuple(min(edge, n) for n in shape)
-        outs = {}
-        placeholder = np.broadcast_to(np.zeros((), dtype), shape)
-        if multi:  # (the in-memory file's key/values: the first field's, without its name)
-            outs[None] = stack.enter_context(block_output(
-                paths[None], grid.volume(placeholder, meta=dict(meta)), dtype, block=block,
-                compress=compress, byte_order=byte_order, components=list(names)))
-        for name in [] if multi else names:
-            template = grid.volume(placeholder, meta=dict(meta, volwarp_sweep_field=name))
-            outs[name] = stack.enter_context(block_output(
-                paths[name], template, dtype, block=block, compress=compress,
-                byte_order=byte_order, version=ome_zarr_version, pyramid=pyramid))
-        boxes = next(iter(outs.values())).blocks()
-        if any(o.blocks() != boxes for o in outs.values()):  # pragma: no cover - one layout
-            raise click.UsageError("--chunked fields of different output formats: give one "
-                                   "extension for every field")
-        plan_node = dask.delayed(plan, pure=False)
-        writers = dask.delayed({n: o.writer() for n, o in outs.items()}, pure=False)
-        tasks = [engine.block_delayed(_sweep_block_task, f"sweep-{'-'.join(map(str, b.lo))}",
-                                      plan_node, b, writers, names, np.dtype(dtype),
-                                      memory=per_task)
-                 for b in boxes]
-        engine.run(tasks, label="sweep blocks")
-        for out in outs.values():
-            out.mark_written(boxes)
-        if render is not None:
-            from ..render.raycast import slab_depth
+    def open_output(path, template, dtype, block, components):
+        if components is not None:  # (a multi-component NRRD)
+            return block_output(path, template, dtype, block=block, compress=compress,
+                                byte_order=byte_order, components=components)
+        return block_output(path, template, dtype, block=block, compress=compress,
+                            byte_order=byte_order, version=ome_zarr_version, pyramid=pyramid)
 
-            slab = settings.block[0] if settings.block else slab_depth(shape, budget // 2)
-            img, camera = _render_by_slabs(render, grid, outs, names, dtype, plan, slab)
+    settings = scale_settings()
+    picture = sweep_by_blocks(sspec, grid, paths=paths, names=names, dtype=dtype, meta=meta,
+                              open_output=open_output, open_engine=settings.open_engine,
+                              budget=block_budget, block=settings.block, method=method,
+                              tau=tau, render=render)
     if render is not None:
-        _write_render(render, img, camera)
+        _write_render(render_to, *picture)

@@ -30,6 +30,7 @@ filled in memory by the shift-and-increment propagation across the whole
 field, :func:`volwarp_cli.distance.update.fill_uncovered`, which has no
 by-blocks form); an input box too big for one task's memory (a strong
 scaling, when even the smallest blocks would need it).
+:func:`volwarp_cli.morph.run.morph_by_blocks` runs these steps in order.
 """
 
 from __future__ import annotations
@@ -272,7 +273,8 @@ def fields_by_blocks(job: MorphJob, inputs: dict, engine, scratch: Path, *, bloc
     frame grid (default the source's); ``matrices``: each shape's alignment
     (default none); a field not landing on the grid unmoved is resampled onto
     it by blocks of ``chunks`` (:func:`resampled`; :func:`check_covered`
-    first) into a second scratch file.
+    first) into a second scratch file. The distance's errors name the shape's
+    file (smooth samples without a band: in the morph's settings).
     """
     from ..distance.chunked import field_by_blocks
     from ..engine import write_blocks
@@ -304,7 +306,7 @@ def fields_by_blocks(job: MorphJob, inputs: dict, engine, scratch: Path, *, bloc
                                          block_bytes=block_bytes, block=block,
                                          scratch_near=path)
         except VolwarpError as exc:
-            raise VolwarpError(f"{ref.path}: {exc}") from None
+            raise VolwarpError(f"{ref.path}: {_in_morph_terms(job, exc)}") from None
         _, fields[name] = open_volume_lazy(path)
         mat = matrices[name]
         if not lands_on_grid(geometry.shape, geometry.index_to_world_matrix, mat, grid):
@@ -317,6 +319,21 @@ def fields_by_blocks(job: MorphJob, inputs: dict, engine, scratch: Path, *, bloc
                 write_blocks(data, sink, engine, label=f"{name}-onto-grid", memory=block_bytes)
             _, fields[name] = open_volume_lazy(on_grid)
     return BlockMorph(fields["source"], fields["target"], grid, info["source"])
+
+
+def _in_morph_terms(job: MorphJob, exc: VolwarpError) -> str:
+    """The distance's refusal as a morph's: the morph's settings, not ``volwarp distance``'s."""
+    from ..distance.chunked import _SUBVOXEL_NEEDS_BAND
+
+    if str(exc) != _SUBVOXEL_NEEDS_BAND:
+        return str(exc)
+    if job.doc is not None:  # a spec
+        how = ("set max_distance: D in the spec (each field clamped to [-D, D]), or surface: "
+               "voxel for the exact field between voxel centres")
+    else:
+        how = ("give --max-distance D (each field clamped to [-D, D]), or use a spec with "
+               "surface: voxel for the exact field between voxel centres")
+    return f"smooth samples (a sub-voxel surface) morph by blocks only within a band: {how}"
 
 
 def attributes_by_blocks(attributes: dict, matrices: dict, grid: Geometry, engine,

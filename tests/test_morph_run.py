@@ -1,0 +1,165 @@
+"""The morph by blocks' core (volwarp_cli.morph.run.morph_by_blocks), called without click.
+
+The frames it writes by blocks are the in-memory frames
+(:func:`~volwarp_cli.morph.frames.morph_frames`) bit for bit; what it refuses
+it refuses with the right error class and message, before any work, or
+raises the in-memory refusal it stands in for.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+import numpy as np
+import pytest
+
+from volwarp_cli.bspline.blocks import LazySource
+from volwarp_cli.engine import open_engine
+from volwarp_cli.errors import OutOfMemoryError, VolwarpError
+from volwarp_cli.geometry import Geometry
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.io.blockwrite import committed, open_block_output
+from volwarp_cli.io.lazy import open_volume_template
+from volwarp_cli.morph.frames import morph_frames
+from volwarp_cli.morph.pipeline import prepare
+from volwarp_cli.morph.run import BlocksRefused, morph_by_blocks, morph_note
+from volwarp_cli.morph.spec import AttributeRef, MorphJob, ShapeRef
+from volwarp_cli.volume import Volume
+
+GEOMETRY = dict(spacing=np.array([0.8, 0.9, 1.1]), origin=np.array([10.0, -5.0, 3.0]))
+
+
+@pytest.fixture
+def shapes(tmp_path):
+    """A binary ball and box, two smooth int16 blobs and a float attribute pair (files)."""
+    z, y, x = np.meshgrid(*[np.linspace(-1, 1, n) for n in (17, 21, 15)], indexing="ij")
+    data = {
+        "ball": (x * x + y * y + z * z < 0.5).astype(np.uint8),
+        "box": ((np.abs(x) < 0.6) & (np.abs(y) < 0.3) & (np.abs(z) < 0.7)).astype(np.uint8),
+        "blob_a": (1000 * np.exp(-((x - 0.2) ** 2 + y * y + z * z) / 0.2)).astype(np.int16),
+        "blob_b": (900 * np.exp(-(x * x + (y - 0.2) ** 2 + z * z) / 0.15)).astype(np.int16),
+        "heat_a": (x + 2 * y).astype(np.float32),
+        "heat_b": (z * z * 40).astype(np.float32),
+    }
+    paths = {}
+    for name, values in data.items():
+        paths[name] = tmp_path / f"{name}.nrrd"
+        write_volume(Volume(values, **GEOMETRY), paths[name])
+    return paths
+
+
+def _lazy(path):
+    template, array = open_volume_template(path)
+    return template, LazySource(path, array=array)
+
+
+def _open_output(path, template, dtype, block):
+    return committed(open_block_output(path, Geometry.of(template), dtype, chunks_zyx=block,
+                                       metadata=template.meta, space=template.space))
+
+
+def _run(job, tmp_path, *, fallback=None, confirm=None, engine_opened=None, **kw):
+    """Every frame of ``job`` by blocks into ``tmp_path/b_{i}.nrrd``: the yielded frames."""
+
+    @contextlib.contextmanager
+    def engine():
+        if engine_opened is not None:
+            engine_opened.append(True)
+        with open_engine("synchronous") as e:
+            yield e
+
+    attrs = {a.name: (_lazy(a.source), _lazy(a.target)) for a in job.attributes}
+    frames = [str(tmp_path / f"b_{i}.nrrd") for i in range(len(job.times))]
+    paths = {a.name: [str(tmp_path / f"b_{i}_{a.name}.nrrd") for i in range(len(job.times))]
+             for a in job.attributes}
+    gen = morph_by_blocks(job, _lazy(job.source.path), _lazy(job.target.path), attrs,
+                          frame_paths=frames, attribute_paths=paths, meta={"who": "test"},
+                          open_engine=engine, budget=lambda: 64 << 20, block=(5, 8, 6),
+                          open_output=_open_output, check_output=lambda *a: None,
+                          fallback=fallback, confirm=confirm, **kw)
+    return list(gen)
+
+
+def _job(shapes, source="ball", target="box", iso=0.5, **kw):
+    return MorphJob(source=ShapeRef(shapes[source], iso, "above"),
+                    target=ShapeRef(shapes[target], iso, "above"), **kw)
+
+
+@pytest.mark.parametrize("case", ["sdf", "band-density", "attribute"])
+def test_frames_by_blocks_are_the_in_memory_frames(shapes, tmp_path, case):
+    job = {
+        "sdf": lambda: _job(shapes, times=[0.0, 0.3, 1.0]),
+        "band-density": lambda: _job(shapes, "blob_a", "blob_b", iso=300.0, times=[0.0, 0.6],
+                                     output="density", max_distance=2.5),
+        "attribute": lambda: _job(shapes, times=[0.0, 0.4, 1.0], attributes=[
+            AttributeRef("heat", shapes["heat_a"], shapes["heat_b"])]),
+    }[case]()
+    yielded = _run(job, tmp_path)
+    assert [f.index for f in yielded] == list(range(len(job.times)))
+
+    source, target = read_volume(job.source.path), read_volume(job.target.path)
+    attrs = {a.name: (read_volume(a.source), read_volume(a.target)) for a in job.attributes}
+    meta = {"volwarp_morph": morph_note(job),
+            "who": "test"}
+    for frame in morph_frames(job, prepare(job, source, target, attrs), source, attrs, meta=meta):
+        written = read_volume(tmp_path / f"b_{frame.index}.nrrd")
+        assert written.data.dtype == frame.volume.data.dtype
+        assert np.array_equal(written.data, frame.volume.data)
+        assert np.allclose(written.index_to_world_matrix, frame.volume.index_to_world_matrix)
+        for key, value in frame.volume.meta.items():
+            assert written.meta[key] == value
+        for name, vol in frame.attributes.items():
+            assert np.array_equal(read_volume(tmp_path / f"b_{frame.index}_{name}.nrrd").data,
+                                  vol.data)
+    # the frames move from source to target
+    assert not np.array_equal(read_volume(tmp_path / "b_0.nrrd").data,
+                              read_volume(tmp_path / f"b_{len(job.times) - 1}.nrrd").data)
+
+
+def test_a_landmark_warp_is_refused_before_any_work(shapes, tmp_path):
+    job = _job(shapes, times=[0.0, 1.0], grid="source",
+               warp_source_points=np.array([[12.0, -9.0, 10.0]]),
+               warp_target_points=np.array([[13.0, -9.0, 10.0]]))
+    opened = []
+    with pytest.raises(BlocksRefused, match=r"^--chunked does not run a morph with a landmark "
+                                            r"warp .* by blocks \(that morph runs in memory\)$"):
+        _run(job, tmp_path, engine_opened=opened)
+    assert not opened and not list(tmp_path.glob("b_*"))
+    # standing in for a refused in-memory morph: that refusal is raised, as it was
+    fallback = OutOfMemoryError("the morph needs more memory")
+    with pytest.raises(OutOfMemoryError) as info:
+        _run(job, tmp_path, fallback=fallback, engine_opened=opened)
+    assert info.value is fallback and not opened
+
+
+def test_the_fallback_runs_only_when_confirmed(shapes, tmp_path):
+    job = _job(shapes, times=[0.0, 1.0])
+    fallback = OutOfMemoryError("the morph needs more memory")
+    asked = []
+
+    def confirm(message):
+        asked.append(message)
+        return False
+
+    with pytest.raises(OutOfMemoryError) as info:
+        _run(job, tmp_path, fallback=fallback, confirm=confirm)
+    assert info.value is fallback and asked == ["the morph needs more memory"]
+    assert not list(tmp_path.glob("b_*")) and not list(tmp_path.glob(".*"))
+    assert len(_run(job, tmp_path, fallback=fallback, confirm=lambda m: True)) == 2
+    assert sorted(p.name for p in tmp_path.glob("b_*")) == ["b_0.nrrd", "b_1.nrrd"]
+
+
+@pytest.mark.parametrize("spec", [False, True])
+def test_smooth_samples_without_a_band_are_refused_in_morph_terms(shapes, tmp_path, spec):
+    """The distance's refusal names the morph's settings, not `volwarp distance --surface`."""
+    job = _job(shapes, "blob_a", "blob_b", iso=300.0, times=[0.0, 1.0])
+    if spec:
+        job.doc = object()  # (a spec's job carries its document)
+    with pytest.raises(VolwarpError) as info:
+        _run(job, tmp_path)
+    message = str(info.value)
+    assert message.startswith(f"{shapes['blob_a']}: smooth samples")
+    assert "--surface" not in message and "surface: voxel" in message
+    assert ("max_distance: D in the spec" in message) == spec
+    assert ("--max-distance D" in message) == (not spec)
+    assert not list(tmp_path.glob("b_*")) and not list(tmp_path.glob(".*"))
