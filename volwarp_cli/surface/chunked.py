@@ -551,8 +551,8 @@ def surface_mesh_blocks(source, geometry=None, iso: float | None = None, *,
         mesh = Mesh.empty()
     else:
         mesh = isosurface_blocks(data, geometry, iso, block_shape=block_shape, inside=inside,
-                                 cap=cap, threads=threads, run=run,
-                                 stats=first if given else None)
+                                 cap=cap, normals=True, threads=threads, run=run,
+                                 stats=first if given else None)  # (normals: as in memory)
         if mesh.is_empty:
             empty_reason = f"no surface at level {iso:g} in {name} (the level is never crossed)"
         elif not cap and _border_touched(data, iso, inside, touches_border):
