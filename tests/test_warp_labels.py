@@ -15,9 +15,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from volwarp_cli.bspline.capture import capture_volume
-from volwarp_cli.bspline.labels import capture_labels, label_map_hint, warp_labels
+from volwarp_cli.bspline.labels import capture_labels, warp_labels
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.errors import VolwarpError
+from volwarp_cli.labelmap import label_map_hint
 from volwarp_cli.volume import Volume
 
 BIG = 2 ** 25 + 1  # not representable in float32 (2^24 + odd)
@@ -475,7 +476,7 @@ def test_label_map_hint_by_blocks_is_the_whole_arrays(levels, dtype, block, seed
     """Read box by box (any block grid), the hint is the one of the whole array: the
     distinct values merged, the neighbour pairs counted on the same planes."""
     from volwarp_cli.box import Box
-    from volwarp_cli.bspline.labels import label_map_hint_by_blocks
+    from volwarp_cli.labelmap import label_map_hint_by_blocks
 
     rng = np.random.default_rng(seed)
     shape = (int(rng.integers(1, 140)), int(rng.integers(1, 12)), int(rng.integers(1, 12)))

@@ -138,10 +138,10 @@ def _label_hint(desc: dict, vol) -> None:
     """Add ``label_map`` (distinct values, the first 16) when an integer volume looks like one.
 
     A segmentation: at most 256 distinct values and piecewise constant (see
-    :func:`volwarp_cli.bspline.labels.label_map_hint`).
+    :func:`volwarp_cli.labelmap.label_map_hint`).
     """
     if vol.data.dtype.kind in "iu":
-        from ..bspline.labels import label_map_hint
+        from ..labelmap import label_map_hint
 
         hint = label_map_hint(vol.data)
         if hint is not None:

@@ -70,6 +70,7 @@ checks this list against the commands; ``(every command)``: from
     --progress                warp morph sweep distance mesh batch
     --pushforward             warp
     --pyramid                 warp morph sweep distance convert
+    --pyramid-method          convert
     -q/--quiet                (every command)
     --raw-dtype               capture warp distance mesh info convert
     --raw-endian              capture warp distance mesh info convert

@@ -561,12 +561,12 @@ class _ZarrOutput(BlockOutput):
     def _finish(self):
         from . import omezarr
 
-        if self._labels is None:
-            from ..bspline.labels import label_map_hint_by_blocks
+        if self._labels is None:  # (the whole array's rule, read box by box)
+            from ..labelmap import looks_like_labels_by_blocks
 
             level0 = self._arrays[0]
             boxes = grid_boxes(level0.shape, level0.shards or level0.chunks)
-            self._labels = label_map_hint_by_blocks(level0, boxes) is not None
+            self._labels = looks_like_labels_by_blocks(level0, boxes)
         method = ("mode" if self._labels else "mean") if self._pyramid else None
         omezarr.write_levels(self._arrays, None, self._labels)
         self._group.attrs.update(omezarr.group_attributes(

@@ -36,8 +36,10 @@ Choices:
   label maps take the most frequent label of each 2x2x2 block (the smallest
   of equally frequent labels), so a coarse level holds only labels of level 0.
   ``labels``: True, False, or ``"auto"``: an integer volume that looks like a
-  label map (2 to 256 distinct values, piecewise constant:
-  :func:`volwarp_cli.bspline.labels.label_map_hint`).
+  label map (piecewise constant: :func:`volwarp_cli.labelmap.looks_like_labels`, which is
+  :func:`volwarp_cli.labelmap.label_map_hint` up to 256 distinct
+  values and goes on above them, so that no segmentation is averaged for
+  having many labels).
 - **Other axes.** Space axes ``z, y, x`` (any order, by name) are required;
   time and channel axes of size 1 are dropped, and one such axis of larger
   size is selected with ``volume_index`` (``--volume-index``), as a 4-D NIfTI.
@@ -47,8 +49,15 @@ Choices:
 - **Completeness.** volwarp writes every chunk (also those of fill value), so
   a chunk missing from a volwarp store is damage and is refused; in stores of
   other writers a missing chunk is the fill value, as Zarr defines. Chunks are
-  zstd-compressed with checksums (and shard indexes carry CRC32C), so a
-  truncated or altered chunk is an error, not wrong samples.
+  zstd frames with their content checksum, in NGFF 0.5 and 0.4 alike (and
+  shard indexes carry CRC32C), so a truncated or altered chunk is an error,
+  not wrong samples, in every reader. (In 0.4 the ``.zarray`` says
+  ``{"id": "zstd", "level": 3}``: a ``checksum`` key there is refused by
+  some readers, and the frames carry the flag anyway:
+  :func:`_plain_zstd_metadata`.) Stores of other writers are read whatever
+  their codecs (numcodecs' default zstd, blosc: an altered byte there may go
+  unnoticed); a volwarp store whose chunks have no checksums (NGFF 0.4
+  written by an older volwarp) is read with a warning (:func:`_check_chunks`).
 - **Determinism.** No timestamps or host names; chunks and JSON are the same
   bytes for the same volume.
 
@@ -58,6 +67,7 @@ The zarr imports stay inside this module (imported lazily by the dispatch).
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from pathlib import Path
@@ -65,6 +75,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError, VolwarpError
+from ..labelmap import looks_like_labels
 from ..samples import check_dtype
 from ..volume import Volume, xyz_to_zyx, zyx_to_xyz
 from .common import make_volume, native
@@ -88,6 +99,8 @@ MM_PER_UNIT = {
 }
 
 _PERMUTATION_TOLERANCE = 1e-12
+
+log = logging.getLogger("volwarp")
 
 
 # -- geometry ---------------------------------------------------------------------------
@@ -280,13 +293,9 @@ def _mode(data: np.ndarray) -> np.ndarray:
 
 
 def resolve_labels(labels, data: np.ndarray) -> bool:
-    """``labels`` True/False as given; ``"auto"`` (or None): an integer volume that looks like labels."""
+    """``labels`` True/False as given; ``"auto"`` (or None): :func:`looks_like_labels`."""
     if labels is None or labels == "auto":
-        if np.dtype(data.dtype).kind not in "iu":
-            return False
-        from ..bspline.labels import label_map_hint
-
-        return label_map_hint(data) is not None
+        return looks_like_labels(data)
     return bool(labels)
 
 
@@ -376,11 +385,32 @@ def create_arrays(group, shapes, dtype: np.dtype, version: str, chunks=None,
 
             arr = group.create_array(
                 str(level), shape=shape, chunks=chunk, dtype=dtype.newbyteorder(code),
-                compressors=Zstd(level=ZSTD_LEVEL), fill_value=0,
+                compressors=Zstd(level=ZSTD_LEVEL, checksum=True), fill_value=0,
                 chunk_key_encoding={"name": "v2", "separator": "/"},
                 config={"write_empty_chunks": True})
+            _plain_zstd_metadata(group, arr)
         arrays.append(arr)
     return arrays
+
+
+def _plain_zstd_metadata(group, arr) -> None:
+    """Describe ``arr``'s compressor (zstd with frame checksums) as ``{"id": "zstd", "level": L}``.
+
+    The array object keeps encoding with ``checksum=True``: every chunk is a
+    zstd frame ending with the checksum of its content, which every zstd
+    decoder verifies whatever the metadata says (numcodecs for zarr-python
+    and ome-zarr-py, libzstd for zarrista/ngff-zarr), so an altered chunk is
+    an error in any reader. Only the *key* goes: ``checksum`` is an encoder
+    setting, and some readers refuse it (ngff-zarr's zarrista: "unknown field
+    `checksum`, expected `level`"; zarr-python itself leaves out
+    ``"checksum": false`` for such readers). Reading, volwarp checks the
+    frames themselves (:func:`_check_chunks`).
+    """
+    path = Path(str(group.store.root)) / arr.path / ".zarray"
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    comp = doc.get("compressor") or {}
+    if comp.get("id") == "zstd" and comp.pop("checksum", None) is not None:
+        path.write_text(json.dumps(doc, indent=2), encoding="utf-8")
 
 
 def open_group_for_writing(folder: Path, version: str):
@@ -638,8 +668,10 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
     if isinstance(vw, dict):
         spacing, origin, direction, space, file_space, meta = _check_volwarp(
             vw, spacing, origin, shape_zyx, where)
-        if vw.get("complete"):
-            _check_complete(arr, array_path, where)
+        if not _check_chunks(arr, array_path, where, bool(vw.get("complete"))):
+            log.warning("%s: this volwarp store's chunks carry no checksum (written by an "
+                        "older volwarp): a damaged chunk cannot be told from good samples; "
+                        "rewrite it with volwarp convert", where)
     elif vw is not None:
         raise FormatError(f"{where}: the 'volwarp' attribute is not an object")
     return Opened(arr, (tuple(index), transpose), shape_zyx, spacing, origin, direction, space,
@@ -679,18 +711,92 @@ def _check_volwarp(vw: dict, spacing, origin, shape_zyx, where: str):
             {str(k): str(v) for k, v in meta.items()})
 
 
-def _check_complete(arr, array_path: Path, where: str) -> None:
-    """Refuse a volwarp store missing one of its chunk (or shard) files."""
+#: numcodecs (Zarr v2) codecs whose decoding checks the data: checksum filters, and gzip
+#: (its trailer's CRC-32); zstd only with its frame checksum
+_V2_CHECKED = frozenset(("crc32", "crc32c", "adler32", "fletcher32", "gzip"))
+#: the magic number that starts a zstd frame, and the Content_Checksum_flag of the byte after
+_ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+_ZSTD_CHECKSUM_FLAG = 0x04
+
+
+def chunks_are_checksummed(arr) -> bool:
+    """Whether the metadata of the zarr array ``arr`` say that reading a chunk verifies it.
+
+    Zarr v3: zstd with ``checksum`` or CRC32C (and, sharded, a CRC32C on the
+    shard index, as volwarp writes); Zarr v2: zstd with ``checksum``, a
+    checksum filter or gzip. volwarp's own Zarr v2 stores leave the
+    ``checksum`` key out (:func:`_plain_zstd_metadata`): their frames say it,
+    and :func:`_check_chunks` reads it there.
+    """
+    md = arr.metadata
+    if getattr(md, "zarr_format", 3) == 2:
+        codecs = list(md.filters or ()) + ([md.compressor] if md.compressor is not None else [])
+        return any(_v2_checked(c) for c in codecs)
+    return _v3_checked(md.codecs)
+
+
+def _v2_checked(codec) -> bool:
+    name = str(getattr(codec, "codec_id", "")).lower()
+    if name == "zstd":
+        return bool(getattr(codec, "checksum", False))
+    return name in _V2_CHECKED
+
+
+def _v3_checked(codecs) -> bool:
+    for codec in codecs:
+        name = type(codec).__name__
+        if name == "ShardingCodec":
+            return (_v3_checked(codec.codecs)
+                    and any(type(c).__name__ == "Crc32cCodec" for c in codec.index_codecs))
+        if name in ("Crc32cCodec", "GzipCodec"):
+            return True
+        if name == "ZstdCodec" and getattr(codec, "checksum", False):
+            return True
+    return False
+
+
+def _check_chunks(arr, array_path: Path, where: str, complete: bool) -> bool:
+    """Check the chunk files of level 0 of a volwarp store; True when all are checksummed.
+
+    ``complete`` (volwarp writes every chunk): a missing chunk (or shard) file
+    is refused. The checksums: from the metadata (:func:`chunks_are_checksummed`),
+    or, for zstd in Zarr v2, from each chunk's frame header (its
+    Content_Checksum_flag), read here as the files are checked: a store of an
+    older volwarp (0.4 without checksums) answers False.
+    """
     import itertools
 
+    frames = (getattr(arr.metadata, "zarr_format", 3) == 2
+              and getattr(arr.metadata.compressor, "codec_id", None) == "zstd"
+              and not chunks_are_checksummed(arr))
+    if not complete and not frames:
+        return chunks_are_checksummed(arr)
     block = arr.shards or arr.chunks
     grid = [range(math.ceil(n / b)) for n, b in zip(arr.shape, block, strict=True)]
     md = arr.metadata
+    checked = True
     for coords in itertools.product(*grid):
         key = md.encode_chunk_key(coords)
-        if not (array_path / key).is_file():
-            raise FormatError(f"{where}: chunk {key!r} of level 0 is missing (the store is "
-                              "incomplete or damaged)")
+        if not frames:
+            if not (array_path / key).is_file():
+                raise FormatError(f"{where}: chunk {key!r} of level 0 is missing (the store is "
+                                  "incomplete or damaged)")
+            continue
+        try:
+            with open(array_path / key, "rb") as fh:
+                head = fh.read(5)
+        except FileNotFoundError:
+            if complete:
+                raise FormatError(f"{where}: chunk {key!r} of level 0 is missing (the store "
+                                  "is incomplete or damaged)") from None
+            continue
+        except OSError as exc:
+            raise FormatError(f"{where}: cannot read chunk {key!r} ({exc.strerror})") from None
+        if len(head) < 5 or head[:4] != _ZSTD_MAGIC:
+            raise FormatError(f"{where}: chunk data is damaged (chunk {key!r} of level 0 is "
+                              "not a zstd frame)")
+        checked = checked and bool(head[4] & _ZSTD_CHECKSUM_FLAG)
+    return checked if frames else chunks_are_checksummed(arr)
 
 
 def _one_line(exc: BaseException) -> str:
