@@ -2,9 +2,11 @@
 
 Reads NRRD0001-5 headers with encodings raw, gzip, bzip2 and ascii, either
 endian, ``space``/``space directions``/``space origin`` or ``spacings``/``axis
-mins`` geometry, detached data (one file, ``LIST`` or a ``%d`` pattern), line
-and byte skips. Key/value pairs (``key:=value``) are kept in ``Volume.meta``;
-the descriptive fields ``content``, ``space units`` and ``measurement frame``
+mins``/``axis maxs``/``centerings`` geometry (placed as ITK places it: cell
+centering unless ``node`` is given, see :func:`_axis_geometry`), detached
+data (one file, ``LIST`` or a ``%d`` pattern), line and byte skips.
+Key/value pairs (``key:=value``) are kept in ``Volume.meta``; the
+descriptive fields ``content``, ``space units`` and ``measurement frame``
 are kept as ``NRRD_content`` etc. (ITK's names), and written back.
 
 Writes deterministic files (no timestamp, gzip with mtime 0) that pynrrd,
@@ -194,22 +196,89 @@ def _geometry(fields: dict[str, str], dim: int, where: str):
             if origin.shape != (3,):
                 raise FormatError(f"{where}: 'space origin' must have 3 components")
     else:
-        if "spacings" in fields:
-            vals = [v for v in _numbers(fields, "spacings", where) if not np.isnan(v)]
-            if len(vals) == 3:
-                spacing = np.array(vals)
-            if np.any(spacing <= 0) or not np.all(np.isfinite(spacing)):
-                raise FormatError(f"{where}: 'spacings' must be positive and finite")
-        for name in ("axis mins", "axismins"):
-            if name not in fields:
-                continue
-            vals = [v for v in _numbers(fields, name, where) if not np.isnan(v)]
-            if len(vals) == 3:
-                origin = np.array(vals)
-                cent = fields.get("centerings", fields.get("centers", "")).split()
-                if len(cent) == 3:
-                    origin += np.array([0.5 if c == "cell" else 0.0 for c in cent]) * spacing
+        spacing, origin = _axis_geometry(fields, dim, where)
     return spacing, origin, direction, space
+
+
+#: teem's centerings: "???" and "none" are unknown (then ITK takes cell)
+_CENTERS = {"cell": "cell", "node": "node", "???": None, "none": None}
+
+
+def _axis_values(fields: dict[str, str], names: tuple[str, ...], dim: int, where: str):
+    """A per-axis number field under any of its spellings: ``dim`` numbers (NaN: none), or None."""
+    for name in names:
+        if name in fields:
+            vals = _numbers(fields, name, where)
+            if len(vals) != dim:
+                raise FormatError(f"{where}: '{name}' has {len(vals)} entries, 'dimension' "
+                                  f"is {dim}")
+            if any(np.isinf(v) for v in vals):
+                raise FormatError(f"{where}: '{name}' must be finite (or nan), got "
+                                  f"{_short(fields[name])!r}")
+            return vals
+    return None
+
+
+def _axis_geometry(fields: dict[str, str], dim: int, where: str):
+    """Spacing and origin (x, y, z) of a header without ``space directions``, as ITK reads it.
+
+    ITK (``NrrdImageIO``) takes each domain axis' ``spacings`` entry (1 when
+    there is none: ``axis maxs`` do not give a spacing) and teem's
+    ``nrrdOriginCalculate`` with cell centering by default: per axis, with
+    its ``centerings`` entry (``???`` or ``none``: cell; ``node``: none of this)
+    and its spacing, or else ``(max - min) / size``, the origin is
+    ``min + spacing / 2`` for cells, ``min`` for nodes. The origin is 0 when
+    the first domain axis has no ``axis mins``, or some axis has neither a
+    spacing nor an ``axis maxs`` entry (teem's NoMin and NoMaxOrSpacing: ITK
+    then leaves the origin at 0); an axis without a min after a first one that
+    has it would be NaN in ITK, and is an error here.
+    """
+    try:
+        sizes = [int(v) for v in fields.get("sizes", "").split()]
+    except ValueError:
+        sizes = []
+    if dim == 3:
+        axes = [0, 1, 2]
+    else:
+        comp = _component_axis(fields, dim, sizes, where)
+        axes = [a for a in range(dim) if a != comp]
+    spacings = _axis_values(fields, ("spacings",), dim, where)
+    mins = _axis_values(fields, ("axis mins", "axismins"), dim, where)
+    maxs = _axis_values(fields, ("axis maxs", "axismaxs"), dim, where)
+    centers: list = [None] * dim
+    for name in ("centerings", "centers"):
+        if name in fields:
+            words = fields[name].split()
+            if len(words) != dim:
+                raise FormatError(f"{where}: '{name}' has {len(words)} entries, 'dimension' "
+                                  f"is {dim}")
+            for a, w in enumerate(words):
+                if w.lower() not in _CENTERS:
+                    raise FormatError(f"{where}: '{name}' entry {w!r} is not cell, node, "
+                                      "??? or none")
+                centers[a] = _CENTERS[w.lower()]
+            break
+    given = [spacings[a] if spacings is not None and not np.isnan(spacings[a]) else None
+             for a in axes]
+    if any(g is not None and not g > 0 for g in given):
+        raise FormatError(f"{where}: 'spacings' must be positive and finite")
+    spacing = np.array([1.0 if g is None else g for g in given])
+    origin = np.zeros(3)
+    if mins is None or np.isnan(mins[axes[0]]):
+        return spacing, origin  # teem: nrrdOriginStatusNoMin
+    if any(given[i] is None and (maxs is None or np.isnan(maxs[a]))
+           for i, a in enumerate(axes)):
+        return spacing, origin  # teem: nrrdOriginStatusNoMaxOrSpacing
+    for i, a in enumerate(axes):
+        lo = mins[a]
+        if np.isnan(lo):
+            raise FormatError(f"{where}: 'axis mins' has no value (nan) for axis {a} but has "
+                              f"one for axis {axes[0]}: the origin is undefined")
+        if (centers[a] or "cell") == "cell":
+            step = given[i] if given[i] is not None else (maxs[a] - lo) / sizes[a]
+            lo = lo + step / 2.0
+        origin[i] = lo
+    return spacing, origin
 
 
 def _data_files(fields: dict[str, str], header_path: Path, fh, where: str, sizes: list[int]):
