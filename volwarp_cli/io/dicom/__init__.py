@@ -69,7 +69,8 @@ Meta
 Pixel data is read once per file, after the header scan, into one
 preallocated array: uncompressed little-endian files straight from disk,
 everything else through pydicom's decoders (gdcm, pylibjpeg-openjpeg,
-pylibjpeg-rle).
+pylibjpeg-rle); Deflated Explicit VR Little Endian files are inflated by
+pydicom's ``dcmread`` first.
 """
 
 from __future__ import annotations

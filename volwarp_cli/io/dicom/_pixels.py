@@ -2,7 +2,8 @@
 
 Uncompressed little-endian files are read straight from disk at the offset
 the header scan found (``readinto`` the output slice when no rescale is
-needed); every other transfer syntax goes through pydicom's decoders. The
+needed); every other transfer syntax goes through pydicom's decoders
+(deflated files from the dataset ``dcmread`` inflates). The
 modality rescale is computed in int64 or float64 and then cast, so that
 ``uint16 + (-1024)`` cannot wrap.
 """
@@ -18,6 +19,8 @@ from ...errors import FormatError
 
 #: transfer syntaxes whose pixel data lies raw in the file, little-endian
 NATIVE_LE = frozenset(("1.2.840.10008.1.2", "1.2.840.10008.1.2.1"))
+#: Deflated Explicit VR Little Endian: the whole data set after the file meta is deflated
+DEFLATED = "1.2.840.10008.1.2.1.99"
 
 #: who decodes what, for the error naming a missing decoder
 _DECODER_PACKAGES = {
@@ -181,6 +184,21 @@ def _read_native(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
         raise FormatError(f"{fi.path}: cannot read ({exc.strerror})") from None
 
 
+def _source(fi):
+    """What pydicom's pixel functions read: the path, or the dataset of a deflated file.
+
+    Given a path they parse the file themselves, without inflating a Deflated
+    Explicit VR Little Endian body (they find no Pixel Data in it); ``dcmread``
+    inflates it, so those files are read whole into a dataset first (their
+    pixel data is in memory anyway: it lies inside the deflated stream).
+    """
+    if fi.transfer_syntax != DEFLATED:
+        return fi.path
+    import pydicom
+
+    return pydicom.dcmread(fi.path, force=True)
+
+
 def _read_decoded(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
     from pydicom.pixels import iter_pixels, pixel_array
 
@@ -188,10 +206,11 @@ def _read_decoded(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
+            src = _source(fi)
             if fi.n_frames == 1:
-                arrays = [pixel_array(fi.path, raw=True)]
+                arrays = [pixel_array(src, raw=True)]
             else:
-                arrays = iter_pixels(fi.path, indices=[t[0] for t in items], raw=True)
+                arrays = iter_pixels(src, indices=[t[0] for t in items], raw=True)
             for (frame, slot, fr), arr in zip(items, arrays, strict=False):
                 if arr.shape != (fi.rows, fi.columns):
                     raise FormatError(f"{fi.path}: frame {frame + 1} decodes to shape "

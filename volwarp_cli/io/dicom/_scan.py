@@ -12,6 +12,7 @@ import logging
 import os
 import struct
 import warnings
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -188,6 +189,9 @@ def _read_dataset(path: str, *, force: bool = False, stop: bool = True):
         raise FormatError(f"{path}: not a DICOM file ({_one_line(exc)})") from None
     except OSError as exc:
         raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except zlib.error as exc:  # a Deflated Explicit VR Little Endian body
+        raise FormatError(f"{path}: the deflated data set is truncated or damaged "
+                          f"({_one_line(exc)})") from None
     except Exception as exc:  # truncated or damaged headers raise many types in pydicom
         raise FormatError(f"{path}: damaged DICOM header ({type(exc).__name__}: "
                           f"{_one_line(exc)})") from None
