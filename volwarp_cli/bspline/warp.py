@@ -49,8 +49,9 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
 
     ``method``, ``evaluator``, ``background``: override the spec's.
     ``allow_growth``: let the padding the moves need make the output more than
-    ``MAX_GROWTH`` times the input along an axis (refused otherwise, before
-    anything of that size is made). ``whole_target``: the target will be held
+    ``MAX_GROWTH`` times the input, and more than ``MIN_GROWTH_VOXELS`` voxels
+    larger, along an axis (refused otherwise, before anything of that size is
+    made). ``whole_target``: the target will be held
     (refused here when it cannot fit); False for a warp by blocks.
     """
     geom = SpecUnits(cap.geometry, spec.units)
