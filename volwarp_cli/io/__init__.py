@@ -110,7 +110,8 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
     """Read a volume file; ``raw`` describes headerless ``.raw``/``.bin`` files.
 
     ``volume_index`` selects one volume of a 4-D NIfTI or MetaImage file or
-    one component of a multi-component (4-D) NRRD file. ``mmap``: where the
+    one component of a multi-component (4-D) NRRD file or of a vector NIfTI
+    field (x, y, z, 1, C). ``mmap``: where the
     samples lie raw in the machine's byte order in an attached NRRD, map them
     read-only instead of copying (a command that only reads its input).
     ``dicom``: keyword arguments of :func:`~volwarp_cli.io.dicom.read_dicom`

@@ -15,9 +15,18 @@ own header parsers are used). Per format:
   Truncated meanwhile, a read stops the run with one line.
 - **TIFF** 3-D stacks of one sample per pixel: tifffile's zarr interface
   (``imread(aszarr=True)``), pages decoded on demand.
-- **NIfTI** uncompressed, unscaled: nibabel's data proxy, whose ``[x, y, z]``
-  samples are the ``[z, y, x]`` array transposed (volwarp's reader does
-  nothing else to them: the direction matrix holds the reflections).
+- **NIfTI** uncompressed, unscaled, 3-D: a :class:`.filearray.FileArray` of
+  the samples (nibabel's ``[x, y, z]`` in Fortran order are ``[z, y, x]`` in
+  C order; volwarp's reader does nothing else to them: the direction matrix
+  holds the reflections), opened by :func:`.nifti.open_nifti` as
+  ``read_volume`` opens it (CIFTI refused, a file shorter than its samples
+  refused before any work).
+
+The template's key/values are ``read_volume``'s, from the same functions of
+the readers where they have them (NIfTI header fields and extension,
+MetaImage fields; for NRRD the key/values and ``NRRD_content``,
+``NRRD_space units``, ``NRRD_measurement frame`` as :func:`.nrrd.read_nrrd`
+makes them), so that an output by blocks carries what the in-memory one does.
 
 Anything else (gzip/bzip2/ascii encodings, compressed NIfTI or MetaImage,
 scaled NIfTI, 4-D files with several volumes or components, DICOM) is read
@@ -35,6 +44,7 @@ from ..errors import FormatError, VolwarpError
 from ..geometry import Geometry
 from ..samples import check_dtype, voxel_count
 from ..volume import xyz_to_zyx
+from .filearray import FileArray
 
 __all__ = ["open_volume_lazy", "open_volume_template", "NotLazy"]
 
@@ -126,14 +136,14 @@ def _geometry(where: str, shape_zyx, dtype, **geometry):
     return make_volume(where, _placeholder(shape_zyx, dtype), **geometry)
 
 
-def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str):
+def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str, *,
+            kind=FileArray):
     """The samples in ``file`` as a :class:`.filearray.FileArray` (read by pread, not mapped).
 
     Checked for truncation first; the file is noted as an input (an output is not
     renamed into place when an input changed meanwhile).
     """
     from .common import note_input
-    from .filearray import FileArray
 
     nbytes = voxel_count(shape_zyx) * dtype.itemsize
     with open(file, "rb") as fh:
@@ -142,7 +152,7 @@ def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str):
             raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of samples, "
                               f"found {max(size - max(offset, 0), 0)}")
         note_input(fh)
-    return FileArray(file, dtype, offset, shape_zyx)
+    return kind(file, dtype, offset, shape_zyx)
 
 
 # -- NRRD -------------------------------------------------------------------------------
@@ -199,10 +209,16 @@ def _nrrd(path: Path):
         raise FormatError(f"{data_path}: file has {size - start} bytes of samples, expected "
                           f"{nbytes} (wrong sizes or type in the header?)")
     shape = xyz_to_zyx(sizes)
-    meta = dict(keyvals)
     geom = _geometry(where, shape, dtype, spacing=spacing, origin=origin, direction=direction,
-                     space=space, meta=meta)
+                     space=space, meta=_nrrd_meta(fields, keyvals, space, where))
     return geom, _memmap(data_path, file_dtype, start, shape, str(data_path))
+
+
+def _nrrd_meta(fields: dict, keyvals: dict, space, where: str) -> dict:
+    """The key/values :func:`~volwarp_cli.io.nrrd.read_nrrd` gives a 3-D file."""
+    from .nrrd import kept_fields
+
+    return {**keyvals, **kept_fields(fields, space, where)}
 
 
 # -- MetaImage ------------------------------------------------------------------------------
@@ -221,6 +237,8 @@ def _metaimage(path: Path):
     for req in ("NDims", "DimSize", "ElementType"):
         if req not in fields:
             raise NotLazy(f"no '{req}' field")
+    if "ObjectType" in fields and fields["ObjectType"][1] != "Image":
+        raise NotLazy("not an image")  # (read_volume says so)
     if mi._int(fields, "NDims", 0, where) != 3:
         raise NotLazy("only 3-D files are mapped")
     if mi._int(fields, "ElementNumberOfChannels", 1, where) != 1:
@@ -256,7 +274,8 @@ def _metaimage(path: Path):
                           f"{nbytes} (wrong DimSize or ElementType in the header?)")
     shape = xyz_to_zyx(sizes)
     geom = _geometry(where, shape, dtype, spacing=spacing, origin=origin, direction=direction,
-                     space="left-posterior-superior", file_space="left-posterior-superior")
+                     space="left-posterior-superior", file_space="left-posterior-superior",
+                     meta=mi._meta(pairs, direction))
     return geom, _memmap(data_path, file_dtype, start, shape, str(data_path))
 
 
@@ -356,63 +375,28 @@ class _ZarrView:
 # -- NIfTI ------------------------------------------------------------------------------
 
 def _nifti(path: Path):
-    import nibabel as nib
-
-    from . import nifti
+    from . import _check_content, nifti
 
     where = str(path)
-    if path.name.lower().endswith(".gz"):
+    _check_content(path, "nifti")  # (read_volume's own messages for a missing file)
+    nf = nifti.open_nifti(path)  # checked as read_volume does: class, sizes, file length
+    if nf.gzipped:
         raise NotLazy("gzip-compressed NIfTI is read whole")
-    nifti._check_raw_header(path, where)
-    with nifti._quiet_nibabel():
-        try:
-            img = nib.load(str(path), mmap=False)
-        except Exception as exc:  # nibabel raises several types for damaged headers
-            raise NotLazy(f"nibabel cannot open it ({exc})") from None
-    shape = tuple(int(s) for s in img.shape)
-    if len(shape) != 3 or min(shape) <= 0:
+    if len(nf.shape) != 3:
         raise NotLazy("only 3-D files are mapped")
-    proxy = img.dataobj
-    slope = float(getattr(proxy, "slope", 1.0))
-    inter = float(getattr(proxy, "inter", 0.0))
-    if np.isfinite(slope) and slope != 0 and not (slope == 1 and not inter):
+    if nf.scaled:
         raise NotLazy("scaled samples are read whole")
-    dtype = check_dtype(img.get_data_dtype(), where)
-    header = img.header
-    with np.errstate(all="ignore"):
-        aff, _ = nifti.choose_affine(header, where)
-    aff = np.array(aff, dtype=np.float64)
-    aff[:3, :] *= nifti._SPACE_UNIT_TO_MM.get(int(header["xyzt_units"]) & 7, 1.0)
-    lin = nifti._RAS_TO_LPS @ aff[:3, :3]
-    if not np.all(np.isfinite(lin)):
-        raise FormatError(f"{where}: NIfTI matrix has values that are not finite numbers")
-    spacing = np.linalg.norm(lin, axis=0)
-    if np.any(spacing == 0):
-        raise FormatError(f"{where}: NIfTI matrix has a zero-length axis")
-    geom = _geometry(where, xyz_to_zyx(shape), dtype, spacing=spacing,
-                     origin=nifti._RAS_TO_LPS @ aff[:3, 3], direction=lin / spacing[None, :],
-                     space="left-posterior-superior", file_space="right-anterior-superior")
-    return geom, _NiftiView(proxy, xyz_to_zyx(shape), dtype)
+    dtype = check_dtype(nf.file_dtype, where)
+    geometry, chosen = nifti.nifti_geometry(nf.header, where)
+    shape = xyz_to_zyx(nf.shape)
+    geom = _geometry(where, shape, dtype, meta=nifti.nifti_meta(nf, chosen), **geometry)
+    return geom, _memmap(path, nf.file_dtype, nf.offset, shape, where, kind=_NiftiView)
 
 
-class _NiftiView:
-    """nibabel's ``[x, y, z]`` proxy as a ``[z, y, x]`` array (reads only the slices asked)."""
+class _NiftiView(FileArray):
+    """The samples of an uncompressed NIfTI file, read by ``pread`` as a ``[z, y, x]`` array.
 
-    def __init__(self, proxy, shape_zyx, dtype):
-        self._proxy = proxy
-        self.shape = tuple(shape_zyx)
-        self.dtype = np.dtype(dtype)
-        self.ndim = 3
-
-    def __getitem__(self, key):
-        key = key if isinstance(key, tuple) else (key,)
-        if any(k is Ellipsis for k in key):
-            i = next(j for j, k in enumerate(key) if k is Ellipsis)
-            key = key[:i] + (slice(None),) * (3 - len(key) + 1) + key[i + 1:]
-        key = key + (slice(None),) * (3 - len(key))
-        out = np.asarray(self._proxy[key[::-1]])
-        return np.ascontiguousarray(out.T) if out.ndim > 1 else out
-
-    def __array__(self, dtype=None, copy=None):
-        out = self[...]
-        return out if dtype is None else out.astype(dtype)
+    nibabel's ``[x, y, z]`` (Fortran order, x fastest) are these samples in C
+    order; volwarp's reader does nothing else to them (the direction matrix
+    holds the reflections).
+    """

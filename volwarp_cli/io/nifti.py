@@ -26,15 +26,34 @@ Header fields kept on a round trip, as ``Volume.meta`` strings (each only where
 it differs from what the writer does by default: codes 1 and 1, mm):
 
 * ``NIfTI_sform_code``, ``NIfTI_qform_code`` (integers; e.g. 4 for an MNI152
-  template, 2 for an aligned space). volwarp writes its one matrix into both
-  forms; each form gets the code it had in the input, so a form the input
-  left uncoded (code 0) stays uncoded, and readers keep using the same form.
-  Without these keys (an NRRD or TIFF input) both codes are 1 (scanner).
-  Two exceptions, so that the written geometry is always the one readers
-  use: when both codes are 0 but the geometry is no longer the one "method
-  1" gives (origin 0, identity direction in LPS), both are written as 1;
-  when only the qform is coded but the matrix has a shear a quaternion
-  cannot hold, the sform gets the qform's code.
+  template, 2 for an aligned space). A code names the world frame of its own
+  form's matrix, and volwarp carries one matrix: the one the rule above reads.
+  So the rule of the codes is: **a written NIfTI never pairs a form's code
+  with a matrix that is not that form's.**
+
+  - Reading: a form keeps its code when its matrix is the one read (the
+    form read, and the other form where it places every corner of the grid
+    within 0.01 voxel of it, or agrees within ITK's 1e-4 entry by entry:
+    the usual file, both forms written from one matrix, the qform's
+    quaternion rounded). A coded form whose matrix differs (an MNI sform
+    beside a scanner qform that ITK's rule reads, a skewed sform beside its
+    qform) gets code 0 in ``meta``, with a warning: volwarp does not carry
+    its matrix, so no output can hold it.
+  - Writing: volwarp writes its one matrix into both forms, each with its
+    code in ``meta``; a form coded 0 is ignored by every reader. The
+    geometry volwarp writes is the read matrix moved with the grid (a crop,
+    a resample: still in the same world frame, so its code still applies);
+    a form whose matrix was not read is not re-created after an operation
+    (its relation to the grid would be stale after a warp).
+  - Without these keys (an NRRD or TIFF input) both codes are 1 (scanner).
+    Two exceptions, so that the written geometry is always the one readers
+    use: when both codes are 0 but the geometry is no longer the one
+    "method 1" gives (origin 0, identity direction in LPS), both are
+    written as 1; when only the qform is coded but the matrix has a shear a
+    quaternion cannot hold, the sform gets the qform's code.
+
+  So nibabel, FSL and SPM (the sform whenever its code is above 0), ITK and
+  SimpleITK (the rule above) and volwarp read a written file alike.
 * ``NIfTI_xyzt_units`` (the byte: space units | time units; default 2, mm);
 * ``NIfTI_intent_code``, ``NIfTI_intent_p1`` .. ``p3``, ``NIfTI_intent_name``
   (only when the file has an intent);
@@ -63,8 +82,24 @@ qform whose ``quatern_b, quatern_c, quatern_d`` have a sum of squares above
 1. An all-zero or otherwise degenerate matrix is an error, never a numpy
 warning on stderr.
 
-Files with a 4th dimension longer than 1 are refused unless ``volume_index``
-picks one volume.
+Samples: a ``.nii.gz`` is decompressed to the end of its gzip stream (ISA-L
+where installed) whatever part of it is read, so that its CRC-32 and length
+are checked: a damaged or truncated file is a FormatError naming it ("cannot
+read NIfTI data (...)"), never samples silently wrong. An uncompressed file
+shorter than its header's samples is refused before any is read (the lazy
+reader of :mod:`.lazy` opens files through :func:`open_nifti` too, with the
+same checks, geometry and key/values).
+
+Files with a 4th dimension (time) longer than 1 are refused unless
+``volume_index`` picks one volume. A 5-D file whose 4th dimension is 1 holds
+several components per voxel in its 5th (SimpleITK's vector images, volwarp's
+own ``--displacement-to`` fields, any intent): ``volume_index`` picks one
+component, as for a multi-component NRRD, read as stored (no change of frame:
+SimpleITK and volwarp store LPS components); its intent is not kept (it
+describes the 5th axis), and its name goes to ``volwarp_component`` (``x``,
+``y``, ``z`` for volwarp's fields). Larger dimensions, or several volumes of
+several components, are refused. Files nibabel reads as another image class
+than a NIfTI-1/2 volume (CIFTI-2's surface and grayordinate data) are refused.
 """
 
 from __future__ import annotations
@@ -82,9 +117,16 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError, VolwarpError
-from ..volume import Volume
+from ..volume import Volume, xyz_to_zyx
 from .atomic import atomic_output
-from .common import check_dtype, ensure_fits_in_memory, make_volume, native, voxel_count
+from .common import (
+    check_dtype,
+    ensure_fits_in_memory,
+    make_volume,
+    native,
+    read_exact,
+    voxel_count,
+)
 from .deflate import gzip_bytes
 
 log = logging.getLogger("volwarp")
@@ -208,77 +250,259 @@ def _check_raw_header(path, where: str) -> None:
                               f"give b^2+c^2+d^2 = {norm2:.6g}, more than 1")
 
 
-def read_nifti(path: str | os.PathLike, volume_index: int | None = None) -> Volume:
-    """Read a NIfTI file into LPS (module notes); ``volume_index`` picks one of a 4-D file."""
-    where = str(path)
-    _check_raw_header(path, where)
-    with np.errstate(all="ignore"):  # an all-zero matrix: an error below, not a warning
-        return _read_nifti(path, where, volume_index)
+_LPS = "left-posterior-superior"
+_RAS = "right-anterior-superior"
+#: decompressed bytes per inflate call, and compressed bytes per read
+_INFLATE_PIECE = 1 << 23
+_READ_PIECE = 1 << 22
+#: a form whose matrix places every corner of the grid within this fraction of a voxel of
+#: the matrix volwarp reads holds the same geometry (float32 storage, a quaternion's rounding)
+_SAME_FORM_VOXELS = 1e-2
 
 
-def _read_nifti(path, where: str, volume_index: int | None) -> Volume:
+class NiftiFile:
+    """A NIfTI file opened and checked by :func:`open_nifti`; its samples are not read yet.
+
+    ``shape`` is the file's (x, y, z, ...) sizes (at least 3), ``volumes`` the
+    size of the 4th axis (time), ``components`` that of the 5th (the values of
+    a vector per voxel). ``file_dtype`` keeps the file's byte order; ``offset``
+    is where the samples start (in the decompressed stream of a ``.nii.gz``).
+    """
+
+    def __init__(self, path: Path, where: str, img):
+        self.path = path
+        self.where = where
+        self.header = img.header
+        proxy = img.dataobj
+        self.file_dtype = np.dtype(proxy.dtype)
+        self.offset = int(proxy.offset)
+        # nibabel moves scl_slope/scl_inter from the header to the data proxy on loading
+        self.slope, self.inter = proxy.slope, proxy.inter
+        self.scaled = (float(self.slope), float(self.inter)) != (1.0, 0.0)
+        shape = tuple(int(s) for s in img.shape)
+        if not shape or any(s <= 0 for s in shape):
+            dims = [int(d) for d in img.header["dim"]]
+            raise FormatError(f"{where}: NIfTI sizes must be positive, got {shape} "
+                              f"(header dim {dims})")
+        self.shape = shape + (1,) * (3 - len(shape))
+        extra = self.shape[3:]
+        self.volumes = extra[0] if extra else 1
+        self.components = extra[1] if len(extra) > 1 else 1
+        if any(s > 1 for s in extra[2:]):
+            raise FormatError(f"{where}: NIfTI with shape {self.shape} has more than 5 "
+                              "dimensions")
+        if self.volumes > 1 and self.components > 1:
+            raise FormatError(f"{where}: NIfTI with shape {self.shape} has {self.volumes} "
+                              f"volumes of {self.components} components each; volwarp reads "
+                              "one volume of a 4-D file or one component of a 5-D file with "
+                              "one volume")
+        self.block_bytes = voxel_count(self.shape[:3]) * self.file_dtype.itemsize
+        self.data_bytes = voxel_count(self.shape) * self.file_dtype.itemsize
+        with open(path, "rb") as fh:
+            self.gzipped = fh.read(2) == b"\x1f\x8b"
+            size = os.fstat(fh.fileno()).st_size
+        if not self.gzipped and size - self.offset < self.data_bytes:
+            raise FormatError(f"{where}: cannot read NIfTI data (truncated: "
+                              f"{self._layout()} need {self.data_bytes} bytes from byte "
+                              f"{self.offset}, the file has {max(size - self.offset, 0)})")
+
+    def _layout(self) -> str:
+        return f"{'x'.join(map(str, self.shape))} {self.file_dtype.name} samples"
+
+    def sample_dtype(self) -> np.dtype:
+        """The (native) type of the samples read: float for scaled ones, else the file's."""
+        dt = self.file_dtype
+        if self.scaled and dt.kind in "iuf":
+            return np.dtype(np.float32 if dt.itemsize <= 2 else np.float64)
+        return check_dtype(dt, self.where)
+
+    def select(self, volume_index: int | None) -> tuple[int, int | None]:
+        """The sample block to read for ``volume_index``, and the component it is (or None)."""
+        where = self.where
+        count = max(self.volumes, self.components)
+        if count > 1 and volume_index is None:
+            if self.components > 1:
+                try:
+                    intent = self.header.get_intent()[0]
+                except (KeyError, ValueError):  # a code nibabel does not know
+                    intent = str(int(self.header["intent_code"]))
+                raise FormatError(f"{where}: NIfTI with {self.components} components per voxel "
+                                  f"(intent {intent}, shape {self.shape}); choose one with "
+                                  f"--volume-index 0..{self.components - 1}")
+            raise FormatError(f"{where}: 4-D NIfTI with {self.volumes} volumes; choose one with "
+                              "--volume-index N")
+        if volume_index is not None and not 0 <= volume_index < count:
+            raise VolwarpError(f"{where}: --volume-index {volume_index} is outside "
+                               f"0..{count - 1}")
+        k = volume_index or 0
+        return k, (k if self.components > 1 else None)
+
+    def read_block(self, k: int) -> np.ndarray:
+        """The raw bytes of sample block ``k`` (a 3-D volume: x fastest), as uint8.
+
+        A ``.nii.gz`` is decompressed to its end whatever the block, so that gzip
+        checks the stream's CRC-32 and length: a damaged or truncated file is a
+        FormatError, never samples read silently wrong.
+        """
+        start = self.offset + k * self.block_bytes
+        if self.gzipped:
+            return _gunzip_range(self.path, start, self.block_bytes,
+                                 self.offset + self.data_bytes, self.where, self._layout())
+        with open(self.path, "rb") as fh:
+            fh.seek(start)
+            try:
+                return read_exact(fh, self.block_bytes, self.where)
+            except FormatError as exc:  # shortened since it was opened
+                raise FormatError(f"{self.where}: cannot read NIfTI data "
+                                  f"({str(exc).removeprefix(self.where + ': ')})") from None
+
+
+def _gunzip_range(path: Path, start: int, count: int, need: int, where: str,
+                  layout: str) -> np.ndarray:
+    """Bytes ``[start, start + count)`` of a gzip file's decompressed stream, as uint8.
+
+    The whole stream is decompressed (other bytes dropped as they come): zlib then
+    checks every member's CRC-32 and length. ``need``: the decompressed bytes the
+    header asks for. Members may follow one another (as gzip allows), and NUL
+    padding may end the file; anything else after a member is corrupt.
+    """
+    from .deflate import ERRORS, decompressobj
+
+    out = np.empty(count, dtype=np.uint8)
+    dest = memoryview(out)
+    end = start + count
+    pos = 0  # decompressed bytes so far
+    dec = decompressobj()
+
+    def fail(why: str):
+        return FormatError(f"{where}: cannot read NIfTI data ({why})")
+
+    try:
+        with open(path, "rb") as fh:
+            while chunk := fh.read(_READ_PIECE):
+                while chunk:
+                    if dec.eof:  # a member ended: padding, or the next member
+                        chunk = chunk.lstrip(b"\0")
+                        if not chunk:
+                            break
+                        dec = decompressobj()
+                    piece = dec.decompress(chunk, _INFLATE_PIECE)
+                    lo, hi = max(pos, start), min(pos + len(piece), end)
+                    if hi > lo:
+                        dest[lo - start:hi - start] = memoryview(piece)[lo - pos:hi - pos]
+                    pos += len(piece)
+                    chunk = dec.unused_data if dec.eof else dec.unconsumed_tail
+    except ERRORS as exc:
+        raise fail(f"the gzip stream is corrupt: {_one_line(exc)}") from None
+    except OSError as exc:
+        raise fail(f"cannot read the file: {exc.strerror or exc}") from None
+    if not dec.eof:
+        raise fail(f"the gzip stream is truncated: it ends after {pos} decompressed bytes, "
+                   "before its end-of-stream marker")
+    if pos < need:
+        raise fail(f"truncated: {layout} end at decompressed byte {need}, the stream "
+                   f"holds {pos}")
+    return out
+
+
+def open_nifti(path: str | os.PathLike) -> NiftiFile:
+    """Open a NIfTI-1/2 file and check its header (the samples are read later).
+
+    A FormatError naming the file for anything volwarp cannot read as a volume:
+    a damaged header (:func:`_check_raw_header`, nibabel's checks), a file nibabel
+    reads as another image class (CIFTI-2: data on surfaces and grayordinates),
+    empty axes, axes beyond the 5th, an uncompressed file shorter than its samples.
+    """
     import nibabel as nib
     from nibabel.filebasedimages import ImageFileError
 
+    where = str(path)
+    _check_raw_header(path, where)
     with _quiet_nibabel():
         try:
-            img = nib.load(str(path))
+            img = nib.load(str(path), mmap=False)
         except (ImageFileError, OSError, EOFError, ValueError) as exc:
             raise FormatError(f"{where}: not a readable NIfTI file ({_one_line(exc)})") from None
         except Exception as exc:  # nibabel's HeaderDataError and others, for damaged headers
             raise FormatError(f"{where}: not a readable NIfTI file "
                               f"({type(exc).__name__}: {_one_line(exc)})") from None
-    shape = tuple(int(s) for s in img.shape)
-    if not shape or any(s <= 0 for s in shape):
-        dims = [int(d) for d in img.header["dim"]]
-        raise FormatError(f"{where}: NIfTI sizes must be positive, got {shape} "
-                          f"(header dim {dims})")
-    if len(shape) < 3:
-        shape = shape + (1,) * (3 - len(shape))
-    extra = shape[3:]
-    if any(s > 1 for s in extra[1:]):
-        raise FormatError(f"{where}: NIfTI with shape {shape} has more than 4 dimensions")
-    nvol = extra[0] if extra else 1
-    if nvol > 1 and volume_index is None:
-        raise FormatError(f"{where}: 4-D NIfTI with {nvol} volumes; choose one with "
-                          "--volume-index N")
-    if volume_index is not None and not 0 <= volume_index < nvol:
-        raise VolwarpError(f"{where}: --volume-index {volume_index} is outside 0..{nvol - 1}")
-    dtype = img.get_data_dtype()
-    # nibabel moves scl_slope/scl_inter from the header to the data proxy on loading
-    slope = float(getattr(img.dataobj, "slope", 1.0))
-    inter = float(getattr(img.dataobj, "inter", 0.0))
-    scaled = np.isfinite(slope) and slope != 0 and not (slope == 1 and not inter)
-    item = 8 if scaled else np.dtype(dtype).itemsize
-    ensure_fits_in_memory(voxel_count(shape[:3]) * item, f"{where} ({shape[:3]})")
-    try:
-        proxy = img.dataobj
-        if len(img.shape) >= 4:
-            index = (slice(None),) * 3 + (volume_index or 0,) + (0,) * (len(img.shape) - 4)
-            arr = np.asanyarray(proxy[index])
-        else:
-            arr = np.asanyarray(proxy)
-    except (OSError, EOFError, ValueError) as exc:
-        raise FormatError(f"{where}: cannot read NIfTI data ({exc})") from None
-    arr = arr.reshape(shape[:3], order="A") if arr.ndim != 3 else arr
-    if scaled:
-        arr = arr.astype(np.float32) if np.dtype(dtype).itemsize <= 2 else arr.astype(np.float64)
-    check_dtype(arr.dtype, where)
-    data = native(np.ascontiguousarray(arr.transpose(2, 1, 0)))
-    header = img.header
-    aff, _ = choose_affine(header, where)
-    aff = np.array(aff, dtype=np.float64)
-    aff[:3, :] *= _SPACE_UNIT_TO_MM.get(int(header["xyzt_units"]) & 7, 1.0)  # as ITK: in mm
-    lin = _RAS_TO_LPS @ aff[:3, :3]
-    spacing = np.linalg.norm(lin, axis=0)
-    if not np.all(np.isfinite(lin)):
-        raise FormatError(f"{where}: NIfTI matrix has values that are not finite numbers")
-    if np.any(spacing == 0):
-        raise FormatError(f"{where}: NIfTI matrix has a zero-length axis")
-    meta = {**_extension_meta(header, where), **_header_meta(header)}
-    return make_volume(where, data, spacing=spacing, origin=_RAS_TO_LPS @ aff[:3, 3],
-                       direction=lin / spacing[None, :], space="left-posterior-superior",
-                       file_space="right-anterior-superior", meta=meta)
+    if type(img) not in (nib.Nifti1Image, nib.Nifti2Image):
+        kind = type(img).__name__
+        what = (f"a CIFTI-2 file ({kind}: data on surface vertices and grayordinates)"
+                if "cifti" in kind.lower() else f"read by nibabel as a {kind}")
+        raise FormatError(f"{where}: is {what}, not a NIfTI-1/2 volume; volwarp reads "
+                          "NIfTI volumes only")
+    return NiftiFile(Path(path), where, img)
+
+
+def nifti_geometry(header, where: str) -> tuple[dict, tuple[np.ndarray, str]]:
+    """The Volume geometry (LPS, mm) of a NIfTI header, and the matrix chosen and its name.
+
+    The keyword arguments of :class:`~volwarp_cli.volume.Volume` but ``data`` and
+    ``meta``; the matrix is :func:`choose_affine`'s (the file's units, RAS).
+    """
+    with np.errstate(all="ignore"):  # an all-zero matrix: an error below, not a warning
+        chosen = choose_affine(header, where)
+        aff = np.array(chosen[0], dtype=np.float64)
+        aff[:3, :] *= _SPACE_UNIT_TO_MM.get(int(header["xyzt_units"]) & 7, 1.0)  # as ITK: mm
+        lin = _RAS_TO_LPS @ aff[:3, :3]
+        if not np.all(np.isfinite(lin)):
+            raise FormatError(f"{where}: NIfTI matrix has values that are not finite numbers")
+        spacing = np.linalg.norm(lin, axis=0)
+        if np.any(spacing == 0):
+            raise FormatError(f"{where}: NIfTI matrix has a zero-length axis")
+        return dict(spacing=spacing, origin=_RAS_TO_LPS @ aff[:3, 3],
+                    direction=lin / spacing[None, :], space=_LPS, file_space=_RAS), chosen
+
+
+def nifti_meta(nf: NiftiFile, chosen: tuple[np.ndarray, str],
+               component: int | None = None) -> dict:
+    """``Volume.meta`` of a NIfTI file (module docstring), ``chosen`` its matrix and name.
+
+    ``component``: the component of a 5-D file that is read; its intent (vector,
+    displacement, ...) describes the 5th axis, so it is not kept, and the
+    component's name is ``volwarp_component`` as for a NRRD component.
+    """
+    header = nf.header
+    meta = {**_extension_meta(header, nf.where), **_header_meta(header, nf.where, chosen,
+                                                                 nf.shape[:3])}
+    if component is not None:
+        for key in _INTENT_KEYS:
+            meta.pop(key, None)
+        names = str(meta.pop("volwarp_components", "")).split()
+        if len(names) == nf.components:
+            meta["volwarp_component"] = names[component]
+        elif "volwarp_field" in meta and nf.components == 3:  # write_field's x, y, z (LPS)
+            meta["volwarp_component"] = "xyz"[component]
+    return meta
+
+
+def read_nifti(path: str | os.PathLike, volume_index: int | None = None) -> Volume:
+    """Read a NIfTI file into LPS (module notes).
+
+    ``volume_index`` picks a volume of a 4-D file or a component of a 5-D file.
+    """
+    nf = open_nifti(path)
+    geometry, chosen = nifti_geometry(nf.header, nf.where)
+    k, component = nf.select(volume_index)
+    with np.errstate(all="ignore"):  # a degenerate matrix: an error below, not a warning
+        return _read_samples(nf, k, geometry, nifti_meta(nf, chosen, component))
+
+
+def _read_samples(nf: NiftiFile, k: int, geometry: dict, meta: dict) -> Volume:
+    dtype = nf.sample_dtype()
+    nvox = voxel_count(nf.shape[:3])
+    ensure_fits_in_memory(nf.block_bytes + (nvox * 8 if nf.scaled else 0),
+                          f"{nf.where} ({nf.shape[:3]})")
+    data = np.frombuffer(nf.read_block(k), dtype=nf.file_dtype).reshape(xyz_to_zyx(nf.shape[:3]))
+    if nf.scaled:  # as nibabel's data proxy scales, then in float32 or float64
+        from nibabel.volumeutils import apply_read_scaling
+
+        data = apply_read_scaling(data, np.asanyarray(nf.slope), np.asanyarray(nf.inter))
+        data = data.astype(dtype)
+    data = native(np.ascontiguousarray(data))  # [z, y, x]: the file's x-fastest order
+    check_dtype(data.dtype, nf.where)
+    return make_volume(nf.where, data, meta=meta, **geometry)
 
 
 def _text_field(header, name: str) -> str:
@@ -288,12 +512,54 @@ def _text_field(header, name: str) -> str:
     return bytes(np.asarray(value).tobytes()).split(b"\0", 1)[0].decode("latin-1").strip()
 
 
-def _header_meta(header) -> dict[str, str]:
+def _same_form(other: np.ndarray, chosen: np.ndarray, shape_xyz) -> bool:
+    """True when ``other`` places every corner of the grid where ``chosen`` does.
+
+    Within :data:`_SAME_FORM_VOXELS` of the smallest voxel size, or within ITK's
+    1e-4 for every matrix entry.
+    """
+    other = np.asarray(other, dtype=np.float64)
+    if np.allclose(other, chosen, rtol=0, atol=1e-4):
+        return True
+    corners = np.array([[i, j, k, 1.0] for i in (0, shape_xyz[0] - 1)
+                        for j in (0, shape_xyz[1] - 1) for k in (0, shape_xyz[2] - 1)])
+    gap = np.abs(corners @ (other - chosen)[:3].T).max()
+    voxel = np.linalg.norm(chosen[:3, :3], axis=0).min()
+    return bool(gap <= _SAME_FORM_VOXELS * voxel)
+
+
+def _form_codes_read(header, where: str, chosen: tuple[np.ndarray, str],
+                     shape_xyz) -> tuple[int, int]:
+    """The sform and qform codes kept: a coded form whose matrix is not the one read is 0.
+
+    volwarp carries one geometry, the matrix ITK's rule chose (module docstring);
+    a code labels the world frame of its form's matrix, so only the forms holding
+    that matrix keep theirs.
+    """
+    scode, qcode = int(header["sform_code"]), int(header["qform_code"])
+    aff, name = chosen
+    if name not in ("sform", "qform") or not (scode and qcode):
+        return scode, qcode
+    other = header.get_qform() if name == "sform" else header.get_sform()
+    with np.errstate(all="ignore"):
+        if _same_form(other, np.asarray(aff, dtype=np.float64), shape_xyz):
+            return scode, qcode
+    dropped = "qform" if name == "sform" else "sform"
+    log.warning("%s: the NIfTI %s (code %d) places the image elsewhere than the %s "
+                "(code %d) volwarp reads (ITK's rule); volwarp keeps the %s only (a NIfTI "
+                "output gets %s code 0)", where, dropped,
+                qcode if dropped == "qform" else scode, name,
+                scode if name == "sform" else qcode, name, dropped)
+    return (scode, 0) if name == "sform" else (0, qcode)
+
+
+def _header_meta(header, where: str, chosen: tuple[np.ndarray, str],
+                 shape_xyz) -> dict[str, str]:
     """The header fields volwarp keeps (module docstring), as meta strings."""
     # only what differs from what the writer does anyway (codes 1 and 1, mm): a plain
     # scanner-coded file's key/values stay empty through NIfTI -> NRRD -> NIfTI
     meta = {}
-    codes = (int(header["sform_code"]), int(header["qform_code"]))
+    codes = _form_codes_read(header, where, chosen, shape_xyz)
     if codes != (1, 1):
         meta["NIfTI_sform_code"], meta["NIfTI_qform_code"] = (str(c) for c in codes)
     if int(header["xyzt_units"]) != _DEFAULT_XYZT_UNITS:

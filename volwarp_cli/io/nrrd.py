@@ -462,13 +462,17 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
         if len(names) == n_comp:
             meta["volwarp_component"] = names[index]
     data = native(np.ascontiguousarray(data.reshape(xyz_to_zyx(sizes))))
-    for name in _KEPT_FIELDS:
-        if name in fields:
-            meta[f"NRRD_{name}"] = fields[name]
-    if "measurement frame" in fields and space is not None:
-        meta["NRRD_measurement frame"] = _measurement_frame_lps(fields, space, where)
+    meta.update(kept_fields(fields, space, where))
     return make_volume(where, data, spacing=spacing, origin=origin, direction=direction,
                        space=space, meta=meta)
+
+
+def kept_fields(fields: dict, space, where: str) -> dict:
+    """The header's kept fields as key/values ``NRRD_<field>`` (the measurement frame in LPS)."""
+    meta = {f"NRRD_{name}": fields[name] for name in _KEPT_FIELDS if name in fields}
+    if "measurement frame" in fields and space is not None:
+        meta["NRRD_measurement frame"] = _measurement_frame_lps(fields, space, where)
+    return meta
 
 
 def _measurement_frame_lps(fields: dict[str, str], space: str, where: str) -> str:
