@@ -19,7 +19,7 @@ import SimpleITK as sitk
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from volwarp_cli.errors import FormatError, VolwarpError
+from volwarp_cli.errors import ChoiceNeeded, FormatError, VolwarpError
 from volwarp_cli.io.metaimage import (
     anatomical_orientation,
     looks_like_metaimage,
@@ -354,7 +354,7 @@ def test_four_d_and_multichannel_files_need_a_volume_index(tmp_path):
     p4 = tmp_path / "t.mha"
     sitk.WriteImage(sitk.JoinSeries([sitk.GetImageFromArray(v) for v in four]), str(p4))
     assert b"NDims = 4\n" in p4.read_bytes()
-    with pytest.raises(FormatError, match=r"t\.mha: has 3 volumes; select one with "
+    with pytest.raises(ChoiceNeeded, match=r"t\.mha: has 3 volumes; select one with "
                                           r"--volume-index 0\.\.2"):
         read_metaimage(p4)
     with pytest.raises(FormatError, match=r"t\.mha: --volume-index 3 is out of range"):
@@ -363,7 +363,7 @@ def test_four_d_and_multichannel_files_need_a_volume_index(tmp_path):
     vec = _samples("uint8", (2, 4, 5, 3), seed=7)  # [z, y, x, channel]
     pv = tmp_path / "v.mha"
     sitk.WriteImage(sitk.GetImageFromArray(vec, isVector=True), str(pv), True)
-    with pytest.raises(FormatError, match=r"v\.mha: has 3 components per voxel"):
+    with pytest.raises(ChoiceNeeded, match=r"v\.mha: has 3 components per voxel"):
         read_metaimage(pv)
     for c in range(3):
         np.testing.assert_array_equal(read_metaimage(pv, c).data, vec[..., c])

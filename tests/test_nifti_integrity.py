@@ -18,7 +18,7 @@ import pytest
 import SimpleITK as sitk
 from nibabel.testing import data_path
 
-from volwarp_cli.errors import FormatError, VolwarpError
+from volwarp_cli.errors import ChoiceNeeded, FormatError, VolwarpError
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.io.lazy import open_volume_lazy
 
@@ -32,9 +32,9 @@ steps:
 """
 
 
-def one_error_line(res, path) -> str:
+def one_error_line(res, path, code: int = 1) -> str:
     """The run failed with one line naming ``path`` (no internal error, no traceback)."""
-    assert res.code == 1, res
+    assert res.code == code, res
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1, lines
     assert lines[0].startswith(f"volwarp: error: {path}: "), lines
@@ -329,9 +329,9 @@ def test_volwarps_nifti_field_reads_like_its_nrrd_field(fields, k):
 
 def test_a_field_without_volume_index_asks_for_one(run, fields):
     nii, _ = fields
-    with pytest.raises(FormatError, match=r"3 components per voxel .*--volume-index 0\.\.2"):
+    with pytest.raises(ChoiceNeeded, match=r"3 components per voxel .*--volume-index 0\.\.2"):
         read_volume(nii)
-    line = one_error_line(run("info", nii), nii)
+    line = one_error_line(run("info", nii), nii, code=2)  # (a usage error: an option chooses)
     assert "choose one with --volume-index" in line
     with pytest.raises(VolwarpError, match=r"--volume-index 3 is outside 0\.\.2"):
         read_volume(nii, volume_index=3)

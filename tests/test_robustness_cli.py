@@ -292,3 +292,22 @@ def test_numpy_warnings_never_reach_stderr(data_dir, tmp_path):
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "steps[0].drag[0].from" in lines[0], res.stderr
+
+
+def test_a_file_of_several_volumes_asks_for_one_as_a_usage_error(run, tmp_path):
+    """A 4-D NIfTI or MetaImage, a multi-component NRRD: the user must say which volume
+    (--volume-index), as a DICOM folder of several series asks for --series: exit 2."""
+    import nibabel as nib
+
+    four = tmp_path / "t.nii"
+    nib.save(nib.Nifti1Image(np.zeros((4, 5, 6, 3), np.float32), np.eye(4)), four)
+    field = tmp_path / "f.nrrd"
+    field.write_text("NRRD0004\ntype: float\ndimension: 4\nsizes: 3 4 5 6\n"
+                     "kinds: vector domain domain domain\nendian: little\nencoding: raw\n"
+                     "data file: f.raw\n")
+    (tmp_path / "f.raw").write_bytes(np.zeros(3 * 4 * 5 * 6, "<f4").tobytes())
+    for path in (four, field):
+        res = run("convert", path, "-o", tmp_path / "o.nrrd")
+        assert res.code == 2, (path, res.stderr)
+        assert "--volume-index" in res.stderr and res.stderr.strip().count("\n") == 0
+        assert run("convert", path, "-o", tmp_path / "o.nrrd", "--volume-index", "1").code == 0

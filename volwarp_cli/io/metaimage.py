@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, VolwarpError
+from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..volume import LPS, Volume, xyz_to_zyx
 from .atomic import atomic_output, atomic_outputs
 from .common import (
@@ -271,7 +271,7 @@ def _selection(where, ndims, sizes, channels, index) -> list[tuple[int, int]]:
                           "volume of one component")
     if n > 1 and index is None:
         noun = "components per voxel" if what == "component" else "volumes"
-        raise FormatError(f"{where}: has {n} {noun}; select one with --volume-index "
+        raise ChoiceNeeded(f"{where}: has {n} {noun}; select one with --volume-index "
                           f"0..{n - 1}")
     if n > 1 and not 0 <= index < n:
         raise FormatError(f"{where}: --volume-index {index} is out of range: the file has "

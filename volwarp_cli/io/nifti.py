@@ -116,7 +116,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, VolwarpError
+from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..volume import Volume, xyz_to_zyx
 from .atomic import atomic_output
 from .common import (
@@ -326,10 +326,10 @@ class NiftiFile:
                     intent = self.header.get_intent()[0]
                 except (KeyError, ValueError):  # a code nibabel does not know
                     intent = str(int(self.header["intent_code"]))
-                raise FormatError(f"{where}: NIfTI with {self.components} components per voxel "
+                raise ChoiceNeeded(f"{where}: NIfTI with {self.components} components per voxel "
                                   f"(intent {intent}, shape {self.shape}); choose one with "
                                   f"--volume-index 0..{self.components - 1}")
-            raise FormatError(f"{where}: 4-D NIfTI with {self.volumes} volumes; choose one with "
+            raise ChoiceNeeded(f"{where}: 4-D NIfTI with {self.volumes} volumes; choose one with "
                               "--volume-index N")
         if volume_index is not None and not 0 <= volume_index < count:
             raise VolwarpError(f"{where}: --volume-index {volume_index} is outside "

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, VolwarpError
+from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..volume import Volume, frame_to_lps, xyz_to_zyx
 from .atomic import atomic_output, atomic_outputs
 from .common import (
@@ -416,7 +416,7 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
                               "has one component")
         if comp_axis is not None and component is None and n_comp > 1:
             names = keyvals.get("volwarp_components", "")
-            raise FormatError(f"{where}: has {n_comp} components per voxel"
+            raise ChoiceNeeded(f"{where}: has {n_comp} components per voxel"
                               f"{f' ({names})' if names else ''}; "
                               f"select one with --volume-index 0..{n_comp - 1}")
         if component is not None and component >= n_comp:

@@ -74,7 +74,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, VolwarpError
+from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..labelmap import looks_like_labels
 from ..samples import check_dtype
 from ..volume import Volume, xyz_to_zyx, zyx_to_xyz
@@ -642,7 +642,7 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
     if big:
         count = arr.shape[big[0]]
         if volume_index is None:
-            raise FormatError(f"{where}: has {count} entries along axis {names[big[0]]!r}; "
+            raise ChoiceNeeded(f"{where}: has {count} entries along axis {names[big[0]]!r}; "
                               f"select one with --volume-index 0..{count - 1}")
         if not 0 <= volume_index < count:
             raise FormatError(f"{where}: --volume-index {volume_index} is out of range: axis "
