@@ -304,6 +304,22 @@ class StoredDomain:
 _CRC_CHUNK = 64 << 20
 
 
+def _check_payload(path, payload: dict, offset: int) -> None:
+    """Refuse a truncated or altered payload: its CRC-32 in one streamed pass (bounded memory)."""
+    crc = 0
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        left = int(payload["nbytes"])
+        while left:
+            chunk = fh.read(min(left, _CRC_CHUNK))
+            if not chunk:
+                raise FormatError(f"{path}: capture file is truncated")
+            crc = zlib.crc32(chunk, crc)
+            left -= len(chunk)
+    if crc != int(payload["crc32"]):
+        raise FormatError(f"{path}: capture file is corrupt (payload checksum mismatch)")
+
+
 def open_capture_lazy(path: str | os.PathLike) -> Capture:
     """A capture file as a deferred :class:`~.capture.Capture`: its domain left in the file.
 
@@ -316,19 +332,7 @@ def open_capture_lazy(path: str | os.PathLike) -> Capture:
 
     head, offset = read_header(path)
     pl = head["payload"]
-    nbytes = int(pl["nbytes"])
-    crc = 0
-    with open(path, "rb") as fh:
-        fh.seek(offset)
-        left = nbytes
-        while left:
-            chunk = fh.read(min(left, _CRC_CHUNK))
-            if not chunk:
-                raise FormatError(f"{path}: capture file is truncated")
-            crc = zlib.crc32(chunk, crc)
-            left -= len(chunk)
-    if crc != int(pl["crc32"]):
-        raise FormatError(f"{path}: capture file is corrupt (payload checksum mismatch)")
+    _check_payload(path, pl, offset)
     dtype = np.dtype(pl["dtype"]).newbyteorder("<")
     shape = tuple(int(v) for v in pl["shape"])[::-1]
     sampler = StoredDomain(FileArray(path, dtype, offset, shape))
@@ -344,9 +348,11 @@ def describe_capture(path: str | os.PathLike) -> dict:
     point (i, j, k) at ``lattice_points[i][j][k]``), ``placement``,
     ``oversample``, ``sampling``, ``pad``, ``granularity``, ``subdivision``
     (domain voxels per input voxel, 0 for a spanning grid), ``domain_shape``
-    and ``domain_dtype``.
+    and ``domain_dtype``. A truncated or altered payload is refused, as a warp
+    refuses it (the checksum in one streamed pass).
     """
-    head, _ = read_header(path)
+    head, offset = read_header(path)
+    _check_payload(path, head["payload"], offset)
     inp = head["input"]
     capd = head["capture"]
     # (as read_capture builds it: a version 1 file's frame name normalised to LPS)
