@@ -48,3 +48,23 @@ def test_a_failed_run_prints_its_error_line_only(run, tmp_path):
               "--block", "8")
     assert res.code == 1
     assert res.stderr.strip().count("\n") == 0 and "error" in res.stderr
+
+
+def test_no_warning_for_any_command_that_ran_by_blocks(run, ball, tmp_path):
+    """Each command's block path counts as having used them (the mesh's blocks run on this
+    process's threads without an engine unless a scheduler is named)."""
+    spec = tmp_path / "s.yaml"
+    spec.write_text("version: 1\ngrid: {spacing: 0.5}\nfields:\n  opacity: {value: 0.8}\n"
+                    "trajectory:\n  - line: {from: [0, 0, 0], to: [6, 1, 1]}\n"
+                    "up: [0, 0, 1]\nscale: [2, 2]\n")
+    warp = tmp_path / "w.yaml"
+    warp.write_text("version: 1\ncapture: {lattice: 5, oversample: 1}\nsteps:\n"
+                    "  - move:\n      - {index: [2, 2, 2], by: [0.5, 0, 0]}\n")
+    for args in (["mesh", ball, "--iso", "50", "-o", tmp_path / "m.ply"],
+                 ["sweep", spec, "-o", tmp_path / "s_{field}.nrrd"],
+                 ["warp", ball, "--spec", warp, "-o", tmp_path / "w.nrrd"],
+                 ["morph", ball, ball, "--frames", "2", "--iso", "50",
+                  "-o", tmp_path / "f_{i}.nrrd"]):
+        res = run(*args, "--chunked", "--block", "7")
+        assert res.code == 0, (args[0], res.stderr)
+        assert "warning" not in res.stderr, (args[0], res.stderr)

@@ -266,18 +266,20 @@ def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cle
     from ..errors import VolwarpError
     from ..geometry import Geometry
     from ..progress import log, timed
-    from ..surface.chunked import label_meshes_blocks, label_values, surface_mesh_blocks
+    from ..surface.chunked import (
+        label_meshes_blocks,
+        label_values,
+        slab_block,
+        surface_mesh_blocks,
+    )
     from ..surface.pipeline import check_label_map
     from .chunked import block_budget, lazy_input
 
     settings = scale_settings()
+    settings.by_blocks = True  # (on this process's threads unless a scheduler is named)
     template, source = lazy_input(input, raw, volume_index, dicom)
-    nz, ny, nx = template.data.shape
     tasks = parallel.threads() if settings.scheduler is None else max(1, settings.workers or 1)
-    # slabs of whole planes (whole rows read, no halo at the sides): the samples, their
-    # float copy and the flying edges' working arrays, about 24 bytes a voxel
-    depth = block_budget() // max(1, tasks) // max(1, 24 * ny * nx)
-    block = settings.block or (max(8, min(nz, depth, 256)), ny, nx)
+    block = settings.block or slab_block(template.data.shape, block_budget(), tasks)
     with contextlib.ExitStack() as stack:
         how = {"threads": parallel.threads()}
         if settings.scheduler is not None:

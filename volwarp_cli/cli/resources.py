@@ -73,11 +73,11 @@ class ScaleSettings:
         self.threads_per_worker: int | None = None
         self.progress: str = "auto"
         self.block: tuple[int, int, int] | None = None
-        self.engine_opened = False  # the command ran (some of its work) by blocks
+        self.by_blocks = False  # the command ran (some of its work) by blocks
 
     def unused(self) -> list[str]:
         """The options given for work by blocks, when the command ran none by blocks."""
-        if self.engine_opened:
+        if self.by_blocks:
             return []
         given = [("--block", self.block), ("--scheduler", self.scheduler),
                  ("--workers", self.workers), ("--threads-per-worker", self.threads_per_worker),
@@ -97,7 +97,7 @@ class ScaleSettings:
             raise click.UsageError("--workers does not apply to an existing cluster (it has "
                                    "its own workers)")
         limit = memory.memory_limit() if kind == "local" else None
-        self.engine_opened = True
+        self.by_blocks = True
         return open_engine(self.scheduler, workers=self.workers,
                            threads_per_worker=self.threads_per_worker, memory_limit=limit,
                            progress="jsonl" if self.progress == "jsonl" else None)

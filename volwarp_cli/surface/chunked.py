@@ -512,6 +512,18 @@ def isosurface_edge_ids(vol, iso: float, *, inside: str = "above",
     return edge_ids(lower, axis, data.shape)
 
 
+def slab_block(shape, budget: int, tasks: int) -> tuple[int, int, int]:
+    """The block of a mesh by blocks: slabs of whole planes of a volume of ``shape`` (z y x).
+
+    Whole rows read, no halo at the sides; as deep as ``tasks`` of them fit
+    ``budget`` at about 24 bytes a voxel (the samples, their float copy and
+    flying edges' working arrays), within 8 to 256 planes.
+    """
+    nz, ny, nx = shape
+    depth = budget // max(1, tasks) // max(1, 24 * ny * nx)
+    return (max(8, min(nz, depth, 256)), ny, nx)
+
+
 def surface_mesh_blocks(source, geometry=None, iso: float | None = None, *,
                         block_shape=DEFAULT_BLOCK, inside: str = "above", cap: bool = False,
                         allow_empty: bool = False, cleanup=None, name: str = "the volume",
