@@ -7,6 +7,14 @@ Rows: ``name  1 thread X s  N threads Y s  speedup``: whole commands (a new proc
 each run, start-up, reading and writing included), paired runs (1, N, 1, N, ...).
 The first line says how many cores this process may use: figures from a bigger
 machine read right. The outputs of both counts are compared byte for byte.
+
+Then, for the two warp rows, the part no thread count changes (the same command
+on a 16^3 volume: start-up, imports, the spec, the output's file) and the
+speedup that bounds (Amdahl: every other part scaled perfectly); and the general
+warp against the peers three ways: the whole command against their bare
+in-process resample, the whole command against their whole job as a process
+(``peer_bspline_script.py``: read the NRRD, resample, write), and volwarp's core
+in process against their bare resample.
 """
 
 from __future__ import annotations
@@ -56,6 +64,20 @@ def scaling_row(name, argv, outputs, cores, pairs):
     print(f"  {name:<44} 1 thread {t1:7.3f} s   {cores} threads {tn:7.3f} s   "
           f"speedup {r:5.2f}x   {'identical' if same else 'OUTPUTS DIFFER'}", flush=True)
     return t1, tn
+
+
+def amdahl_row(name, fixed, t1, tn, cores):
+    """The speedup a command can reach at ``cores`` threads, given what no thread changes.
+
+    ``fixed``: the same command on a 16^3 volume (start-up, imports, the spec, the
+    output's file): were everything else to scale perfectly, the speedup would be
+    t1 / (fixed + (t1 - fixed) / cores).
+    """
+    bound = t1 / (fixed + max(t1 - fixed, 0.0) / cores)
+    rest1, restn = t1 - fixed, tn - fixed
+    scaled = f"{rest1 / restn:5.2f}x" if restn > 0 else "  n/a"
+    print(f"  {name:<44} fixed part (16^3) {fixed:6.3f} s of {t1:6.3f} s: at most "
+          f"{bound:4.2f}x at {cores} threads; the rest scaled {scaled}", flush=True)
 
 
 def general_coefficients(c, amplitude, seed=1):
@@ -144,11 +166,23 @@ def main(quick: bool = False):
             ("sweep 0.1 mm grid", v + ["sweep", str(sweep), "-o", o + "_{field}.nrrd"],
              [o + "_opacity.nrrd"]),
         ]
+        timed = {}
         for name, argv, outputs in rows:
             try:
-                scaling_row(name, argv, outputs, cores, pairs)
+                timed[name] = scaling_row(name, argv, outputs, cores, pairs)
             except subprocess.CalledProcessError as exc:
                 print(f"  {name:<44} failed: {exc}", flush=True)
+        # what no thread count changes: the same warp commands on a 16^3 volume
+        small = tmp / "small.nrrd"
+        write_volume(Volume(volume(16)), small)
+        for name, spec in ((f"warp {n}^3, one point moved", one),
+                           (f"warp {n}^3, every point of 9^3 moved", general)):
+            if name not in timed:
+                continue
+            fixed = common.command_time(v + ["warp", str(small), "--spec", str(spec), "-o",
+                                             str(tmp / "small_out.nrrd"), "--threads", "1"],
+                                        repeat=pairs)
+            amdahl_row(name, fixed, *timed[name], cores)
         # the general deformation against the peers, everything on every core
         cmd = v + ["warp", str(src), "--spec", str(general), "-o", str(tmp / "g.nrrd")]
         subprocess.run(cmd, check=True)
@@ -160,6 +194,16 @@ def main(quick: bool = False):
         ours, peer, r = common.paired_times(lambda: subprocess.run(cmd, check=True), go_sitk,
                                             1 if quick else 3)
         common.row(f"general warp {n}^3 vs SimpleITK Resample", ours, peer, "sitk", r)
+        # like for like: the peers' whole job as a process too (reading and writing)
+        np.save(tmp / "dq.npy", dq)
+        for kind, out in (("vtk", "peer.mha"), ("sitk", "peer.nrrd")):
+            script = [sys.executable, str(Path(__file__).with_name("peer_bspline_script.py")),
+                      kind, str(src), str(tmp / "dq.npy"), str(tmp / out)]
+            ours, peer, r = common.paired_times(lambda: subprocess.run(cmd, check=True),
+                                                lambda s=script: subprocess.run(s, check=True),
+                                                pairs if kind == "vtk" else (1 if quick else 3))
+            common.row(f"general warp {n}^3 command vs {kind} script", ours, peer,
+                       f"{kind} script", r)
         # the same work in process, no start-up, reading or writing: what the peers' figures are
         from volwarp_cli.bspline.capture import capture_volume
         from volwarp_cli.bspline.scene import Scene
