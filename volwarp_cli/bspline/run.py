@@ -366,6 +366,15 @@ class IntensityWarp:
         return template
 
 
+def _prepare_labels(vol: Volume, doc, spec, options: WarpOptions, name: str):
+    """:func:`.labels.prepare_labels` with the options' overrides: ``(cap, scene, frames)``."""
+    from .labels import prepare_labels
+
+    return prepare_labels(vol, doc, spec, method=options.pushforward,
+                          evaluator=options.evaluator, background=options.background,
+                          source=name, allow_growth=options.allow_growth)
+
+
 class LabelMapBlocks:
     """The warp of a label map read by boxes, by slabs of target planes (never held whole).
 
@@ -380,15 +389,12 @@ class LabelMapBlocks:
     def __init__(self, template: Volume, source, doc, spec,
                  options: WarpOptions = WarpOptions(), *, preserve: bool = False,
                  name: str = "input"):
-        from .labels import prepare_labels
         from .warp import output_planes, output_window_box
 
         self.source = source
         self.input = template
         self.preserve = preserve
-        self.cap, self.scene, self.frames = prepare_labels(
-            template, doc, spec, method=options.pushforward, evaluator=options.evaluator,
-            background=options.background, source=name, allow_growth=options.allow_growth)
+        self.cap, self.scene, self.frames = _prepare_labels(template, doc, spec, options, name)
         if self.frames:
             self.scene.set_lattice(self.frames[-1].dq)
         #: the output's Volume, a placeholder of its shape and dtype
@@ -439,16 +445,12 @@ class LabelMapWarp:
 
     def __init__(self, vol: Volume, doc, spec, options: WarpOptions = WarpOptions(), *,
                  preserve: bool = False, name: str = "input"):
-        from .labels import prepare_labels
-
         if options.dtype is not None:
             raise VolwarpError("a label map keeps its own integer type (no dtype)")
         self.vol = vol
         self.options = options
         self.preserve = preserve
-        self.cap, self.scene, self.frames = prepare_labels(
-            vol, doc, spec, method=options.pushforward, evaluator=options.evaluator,
-            background=options.background, source=name, allow_growth=options.allow_growth)
+        self.cap, self.scene, self.frames = _prepare_labels(vol, doc, spec, options, name)
 
     def handles(self) -> list[dict]:
         """:func:`handle_report` of this warp's drags."""
