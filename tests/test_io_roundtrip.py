@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from volwarp_cli.errors import FormatError
+from volwarp_cli.errors import ChoiceNeeded, FormatError
 from volwarp_cli.io import RawLayout, read_volume, write_volume
 from volwarp_cli.io.common import SUPPORTED_DTYPES
 from volwarp_cli.volume import Volume
@@ -245,8 +245,8 @@ def test_nifti_4d_needs_volume_index(tmp_path):
 
     data = np.arange(4 * 5 * 6 * 3, dtype=np.int16).reshape(4, 5, 6, 3)
     nib.save(nib.Nifti1Image(data, np.eye(4)), tmp_path / "t.nii.gz")
-    from volwarp_cli.errors import FormatError
-    with pytest.raises(FormatError, match="4-D NIfTI with 3 volumes"):
+    from volwarp_cli.errors import ChoiceNeeded
+    with pytest.raises(ChoiceNeeded, match="4-D NIfTI with 3 volumes"):
         read_volume(tmp_path / "t.nii.gz")
     vol = read_volume(tmp_path / "t.nii.gz", volume_index=2)
     np.testing.assert_array_equal(vol.data, data[..., 2].transpose(2, 1, 0))
@@ -322,7 +322,7 @@ def test_multi_component_nrrd_reads_one_component(tmp_path):
         np.testing.assert_allclose(vol.spacing, (0.5, 0.7, 2.0))
         np.testing.assert_allclose(vol.origin, (1.0, -2.0, 3.0))
         assert vol.meta["volwarp_component"] == name
-    with pytest.raises(FormatError, match=r"3 components per voxel \(opacity red green\)"):
+    with pytest.raises(ChoiceNeeded, match=r"3 components per voxel \(opacity red green\)"):
         read_volume(tmp_path / "m.nrrd")
     with pytest.raises(FormatError, match="out of range"):
         read_volume(tmp_path / "m.nrrd", volume_index=3)

@@ -342,9 +342,10 @@ def ensure_fits_once_loaded(nbytes: int, what: str, load) -> None:
     limit, _ = _limit()
     if nbytes + LOAD_MARGIN <= limit:
         return
+    ensure_fits_in_memory(nbytes, what)  # (what cannot fit even now: refused before loading)
     if load is not None:
         load()
-    ensure_fits_in_memory(nbytes, what)
+        ensure_fits_in_memory(nbytes, what)
 
 
 #: :func:`block_bytes`'s bounds.
