@@ -101,3 +101,24 @@ def test_outputs_follow_the_umask_in_effect_now(tmp_path):
         assert stat.S_IMODE(os.stat(tmp_path / "b.nrrd").st_mode) == 0o664
     finally:
         os.umask(old)
+
+
+def test_allow_outside_data_reaches_the_block_workers(run, tmp_path, monkeypatch):
+    """--allow-outside-data by blocks on worker processes: each reopens the input itself,
+    with the run's permission (it was an environment variable the workers inherited)."""
+    monkeypatch.delenv("VOLWARP_ALLOW_OUTSIDE_DATA", raising=False)
+    data = (np.arange(20 * 21 * 22) % 97).astype(np.int16).reshape(22, 21, 20)
+    (tmp_path / "secret.raw").write_bytes(data.astype("<i2").tobytes())
+    (tmp_path / "hdr").mkdir()
+    hdr = tmp_path / "hdr" / "h.nhdr"
+    hdr.write_text("NRRD0004\ntype: short\ndimension: 3\nsizes: 20 21 22\nendian: little\n"
+                   "encoding: raw\ndata file: ../secret.raw\n")
+    mem, blk = tmp_path / "m.nrrd", tmp_path / "b.nrrd"
+    args = ("distance", hdr, "--iso", "40", "--surface", "voxel", "--allow-outside-data")
+    assert run(*args, "-o", mem).code == 0
+    res = run(*args, "-o", blk, "--chunked", "--block", "7", "--scheduler", "processes")
+    assert res.code == 0, res.stderr
+    assert blk.read_bytes() == mem.read_bytes()
+    res = run("distance", hdr, "--iso", "40", "--surface", "voxel", "-o", tmp_path / "x.nrrd",
+              "--chunked", "--scheduler", "processes")
+    assert res.code == 1 and "outside the header's folder" in res.stderr
