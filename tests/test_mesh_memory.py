@@ -19,18 +19,29 @@ from volwarp_cli.surface.pipeline import crossing_count
 M = 1 << 20
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(st.tuples(*[st.integers(2, 24)] * 3), st.integers(0, 2**31 - 1), st.booleans(),
-       st.integers(1, 3))
-def test_crossing_count_is_flying_edges_vertex_count(shape, seed, cap, threads):
-    """One vertex per crossed edge, with and without the cap's outside layer, for any
-    slab split over threads (samples equal to the level count as above it)."""
+       st.sampled_from(["above", "below"]), st.integers(1, 3))
+def test_crossing_count_is_flying_edges_vertex_count(shape, seed, cap, inside, threads):
+    """One vertex per crossed edge, with and without the cap's outside layer (on the side
+    ``inside`` says is outside), for any slab split over threads (samples equal to the
+    level count as above it)."""
     rng = np.random.default_rng(seed)
     data = (np.round(rng.random(shape) * 4) / 4).astype(np.float32)
-    grid = _pad_for_cap(data, 0.5, "above") if cap else data
+    grid = _pad_for_cap(data, 0.5, inside) if cap else data
     points, _, _, _ = _flying_edges(grid, _level_off_samples(grid, 0.5), False)
     with parallel.use_threads(threads):
-        assert crossing_count(data, 0.5, cap) == len(points)
+        assert crossing_count(data, 0.5, cap, inside) == len(points)
+
+
+def test_crossing_count_of_a_hollow_cube_capped_below():
+    """The reviewer's case: ones around a cube of zeros, the shape below 0.5, capped: the
+    cube's 600 vertices (the ones on the faces are outside, no cap edges)."""
+    data = np.ones((20, 20, 20), np.float32)
+    data[5:15, 5:15, 5:15] = 0
+    grid = _pad_for_cap(data, 0.5, "below")
+    points, _, _, _ = _flying_edges(grid, _level_off_samples(grid, 0.5), False)
+    assert len(points) == 600 == crossing_count(data, 0.5, True, "below")
 
 
 _WRAPPER = """

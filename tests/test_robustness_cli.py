@@ -311,3 +311,15 @@ def test_a_file_of_several_volumes_asks_for_one_as_a_usage_error(run, tmp_path):
         assert res.code == 2, (path, res.stderr)
         assert "--volume-index" in res.stderr and res.stderr.strip().count("\n") == 0
         assert run("convert", path, "-o", tmp_path / "o.nrrd", "--volume-index", "1").code == 0
+
+
+def test_morph_of_a_file_of_several_volumes_says_how_to_extract_one(run, tmp_path):
+    """morph has no --volume-index: a 4-D input is the input's fault (exit 1), and the
+    message says how to take one volume out of it."""
+    import nibabel as nib
+
+    four = tmp_path / "v.nii.gz"
+    nib.save(nib.Nifti1Image(np.zeros((8, 9, 10, 2), np.float32), np.eye(4)), four)
+    res = run("morph", four, four, "--frames", "2", "--iso", "0.5", "-o", tmp_path / "f{i}.nrrd")
+    assert res.code == 1 and res.stderr.strip().count("\n") == 0, res.stderr
+    assert "volwarp convert IN --volume-index N" in res.stderr

@@ -28,7 +28,7 @@ def ball(tmp_path):
 def test_block_options_of_an_in_memory_run_are_reported(run, ball, tmp_path, options, named):
     res = run("distance", ball, "--iso", "50", "-o", tmp_path / "d.nrrd", *options)
     assert res.code == 0, res.stderr
-    assert f"warning: {named} applied to work by blocks" in res.stderr
+    assert f"warning: {named} not used" in res.stderr
     assert "ran in memory" in res.stderr
 
 
@@ -68,3 +68,13 @@ def test_no_warning_for_any_command_that_ran_by_blocks(run, ball, tmp_path):
         res = run(*args, "--chunked", "--block", "7")
         assert res.code == 0, (args[0], res.stderr)
         assert "warning" not in res.stderr, (args[0], res.stderr)
+
+
+def test_mesh_by_blocks_on_its_own_threads_uses_only_block(run, ball, tmp_path):
+    """Without --scheduler the mesh's blocks run on its threads: --block is used, the
+    engine's options are said unused."""
+    res = run("mesh", ball, "--iso", "50", "-o", tmp_path / "m.ply", "--chunked", "--block",
+              "7", "--workers", "1", "--progress", "jsonl")
+    assert res.code == 0, res.stderr
+    assert "warning: --workers, --progress jsonl not used" in res.stderr
+    assert "--block" not in res.stderr.split("not used")[0]

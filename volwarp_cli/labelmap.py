@@ -6,8 +6,9 @@ piecewise constant (at least :data:`HINT_MIN_EQUAL` of the pairs of x
 neighbours that are not both 0 are equal: a scan with few grey levels varies
 from voxel to voxel, a segmentation does not). :func:`looks_like_labels`,
 the choice of a pyramid's downsampling (mode or mean), which also takes maps
-with more labels (see there). Each has a form that reads a sliceable source
-box by box and gives the whole array's answer.
+with more labels (see there), which also has a form that reads a sliceable
+source box by box and gives the whole array's answer (outputs written by
+blocks).
 
 Core code (numpy only): the writers of :mod:`volwarp_cli.io` (pyramids) and
 ``info`` use it.
@@ -36,24 +37,6 @@ def label_map_hint(data: np.ndarray) -> dict | None:
         return None
     values, _ = value_counts(data)
     return _hint(values, data.shape, lambda z: data[z])
-
-
-def label_map_hint_by_blocks(source, boxes) -> dict | None:
-    """:func:`label_map_hint` of a sliceable ``source``, read box by box (``boxes`` tile it).
-
-    The same answer, never holding more than a box and a plane: the distinct
-    values are merged from the boxes, the neighbour pairs counted on the same
-    planes.
-    """
-    shape = tuple(source.shape)
-    if np.dtype(source.dtype).kind not in "iu" or 0 in shape:
-        return None
-    values = np.empty(0, np.int64)
-    for box in boxes:
-        values = np.union1d(values, value_counts(np.asarray(source[box.slices]))[0])
-        if len(values) > HINT_MAX_LABELS:
-            return None
-    return _hint(values, shape, lambda z: np.asarray(source[z]))
 
 
 def looks_like_labels(data: np.ndarray) -> bool:
@@ -98,23 +81,23 @@ def looks_like_labels_by_blocks(source, boxes) -> bool:
     shape = tuple(source.shape)
     if np.dtype(source.dtype).kind not in "iu" or 0 in shape:
         return False
-    values = np.empty(0, np.int64)
-    counts = np.empty(0, np.int64)
-    for box in boxes:
-        v, c = value_counts(np.asarray(source[box.slices]))
-        values, inverse = np.unique(np.concatenate([values, v]), return_inverse=True)
-        counts = np.bincount(inverse, weights=np.concatenate([counts, c]),
-                             minlength=len(values)).astype(np.int64)
+    parts = [value_counts(np.asarray(source[box.slices])) for box in boxes]
+    values, inverse = np.unique(np.concatenate([v for v, _ in parts]), return_inverse=True)
+    counts = np.bincount(inverse, weights=np.concatenate([c for _, c in parts]),
+                         minlength=len(values)).astype(np.int64)
     return _labels(values, counts, shape, lambda z: np.asarray(source[z]))
 
 
 def value_counts(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The sorted distinct values of an integer array (int64) and how often each occurs.
 
-    A count table for ranges under 2**24, else a sort.
+    A count table where the range of values is small (at most 65536, or four
+    times the samples, and under 2**24), else a sort: a box of a map with a
+    few labels spread over a wide range makes no table of the range's size.
     """
     lo, hi = int(data.min()), int(data.max())
-    if hi - lo < 1 << 24:
+    span = hi - lo + 1
+    if span < 1 << 24 and span <= max(1 << 16, 4 * data.size):
         # shifted in intp: in the array's own type 100 - (-100) wraps (int8)
         table = np.bincount(data.ravel().astype(np.intp) - lo, minlength=hi - lo + 1)
         where = np.flatnonzero(table)

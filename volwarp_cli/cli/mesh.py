@@ -276,7 +276,7 @@ def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cle
     from .chunked import block_budget, lazy_input
 
     settings = scale_settings()
-    settings.by_blocks = True  # (on this process's threads unless a scheduler is named)
+    settings.used.add("--block")  # (on this process's threads unless a scheduler is named)
     template, source = lazy_input(input, raw, volume_index, dicom)
     tasks = parallel.threads() if settings.scheduler is None else max(1, settings.workers or 1)
     block = settings.block or slab_block(template.data.shape, block_budget(), tasks)

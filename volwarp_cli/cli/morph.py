@@ -13,6 +13,7 @@ calls and writes.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import click
@@ -290,6 +291,22 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, spec_path, wri
         _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, fallback=exc)
 
 
+@contextlib.contextmanager
+def _one_volume_inputs():
+    """A morph input that holds several volumes is the input's fault (exit 1).
+
+    Morph has no ``--volume-index`` nor ``--series`` to choose one with: the
+    reader's usage error becomes a file error saying how to extract one.
+    """
+    from ..errors import ChoiceNeeded, FormatError
+
+    try:
+        yield
+    except ChoiceNeeded as exc:
+        raise FormatError(f"{exc} (morph takes one volume per input: extract it first, e.g. "
+                          "volwarp convert IN --volume-index N -o one.nrrd)") from None
+
+
 def _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras):
     from ..io import read_volume, write_volume
     from ..morph.frames import morph_frames
@@ -298,7 +315,7 @@ def _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras):
     from ..morph.run import morph_note
     from .common import provenance
 
-    with timed("read inputs"):
+    with timed("read inputs"), _one_volume_inputs():
         source = read_volume(job.source.path)
         target = read_volume(job.target.path)
         attrs = {a.name: (read_volume(a.source), read_volume(a.target)) for a in job.attributes}
@@ -341,9 +358,11 @@ def _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras, *,
     from .common import provenance
 
     try:
-        source = lazy_input(job.source.path)
-        target = lazy_input(job.target.path)
-        attrs = {a.name: (lazy_input(a.source), lazy_input(a.target)) for a in job.attributes}
+        with _one_volume_inputs():
+            source = lazy_input(job.source.path)
+            target = lazy_input(job.target.path)
+            attrs = {a.name: (lazy_input(a.source), lazy_input(a.target))
+                     for a in job.attributes}
     except VolwarpError:
         if fallback is not None:
             raise fallback from None

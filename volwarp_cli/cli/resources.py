@@ -73,16 +73,15 @@ class ScaleSettings:
         self.threads_per_worker: int | None = None
         self.progress: str = "auto"
         self.block: tuple[int, int, int] | None = None
-        self.by_blocks = False  # the command ran (some of its work) by blocks
+        #: the options above that the command's work used (an engine uses them all)
+        self.used: set[str] = set()
 
     def unused(self) -> list[str]:
-        """The options given for work by blocks, when the command ran none by blocks."""
-        if self.by_blocks:
-            return []
+        """The options given for work by blocks that the command's work did not use."""
         given = [("--block", self.block), ("--scheduler", self.scheduler),
                  ("--workers", self.workers), ("--threads-per-worker", self.threads_per_worker),
                  ("--progress jsonl", True if self.progress == "jsonl" else None)]
-        return [name for name, value in given if value is not None]
+        return [name for name, value in given if value is not None and name not in self.used]
 
     def open_engine(self):
         """The Dask engine these settings name (:func:`volwarp_cli.engine.open_engine`)."""
@@ -97,7 +96,8 @@ class ScaleSettings:
             raise click.UsageError("--workers does not apply to an existing cluster (it has "
                                    "its own workers)")
         limit = memory.memory_limit() if kind == "local" else None
-        self.by_blocks = True
+        self.used |= {"--block", "--scheduler", "--workers", "--threads-per-worker",
+                      "--progress jsonl"}
         return open_engine(self.scheduler, workers=self.workers,
                            threads_per_worker=self.threads_per_worker, memory_limit=limit,
                            progress="jsonl" if self.progress == "jsonl" else None)

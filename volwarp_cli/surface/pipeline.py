@@ -48,14 +48,17 @@ CLEANUP_BYTES_PER_TRIANGLE = {"largest_component": 64, "smooth": 128, "decimate"
 _WARM_SIZE = 8
 
 
-def crossing_count(data: np.ndarray, level: float, cap: bool = False) -> int:
+def crossing_count(data: np.ndarray, level: float, cap: bool = False,
+                   inside: str = "above") -> int:
     """How many cell edges the level crosses: the vertex count of the isosurface.
 
     Flying edges makes one vertex per edge whose samples lie on different
     sides of ``level`` (``>=`` is above); with ``cap`` the layer of outside
-    samples around the volume adds one per inside sample on its faces. By z
-    slabs over the threads, each slab's mask its own (a few MiB).
+    samples around the volume adds one per inside sample (``inside``: above
+    or below the level) on its faces. By z slabs over the threads, each
+    slab's mask its own (a few MiB).
     """
+    below = inside == "below"
     from .. import parallel
 
     nz = data.shape[0]
@@ -69,9 +72,10 @@ def crossing_count(data: np.ndarray, level: float, cap: bool = False) -> int:
              + np.count_nonzero(own[:, 1:] != own[:, :-1])
              + np.count_nonzero(m[1:] != m[:-1]))
         if cap:  # an edge to the outside layer from every inside sample on each face
-            n += int(np.count_nonzero(own[:, :, [0, -1]]) + np.count_nonzero(own[:, [0, -1]]))
-            n += int(np.count_nonzero(own[0])) if z0 == 0 else 0
-            n += int(np.count_nonzero(own[-1])) if z1 == nz else 0
+            ins = ~own if below else own
+            n += int(np.count_nonzero(ins[:, :, [0, -1]]) + np.count_nonzero(ins[:, [0, -1]]))
+            n += int(np.count_nonzero(ins[0])) if z0 == 0 else 0
+            n += int(np.count_nonzero(ins[-1])) if z1 == nz else 0
         return n
 
     if data.size == 0:
@@ -109,7 +113,7 @@ def _check_chain_memory(data: np.ndarray, iso: float, inside: str, cap: bool,
         surface_mesh(Volume(ball.astype(np.float32)), 0.5, inside=inside, cap=cap,
                      cleanup=cleanup)
 
-    vertices = crossing_count(data, iso, cap)
+    vertices = crossing_count(data, iso, cap, inside)
     need = chain_bytes(data.shape, (9 * vertices) // 4 + 8, cleanup)
     converted = np.dtype(data.dtype).newbyteorder("=") != data.dtype or data.dtype == np.float16
     if converted or not data.flags.c_contiguous:
