@@ -1,7 +1,7 @@
 """Errors raised by the volwarp core.
 
 The core never imports click: the command line maps these to exit codes
-(``SpecError`` and ``ChoiceNeeded`` -> 2, every other ``VolwarpError`` -> 1)
+(``SpecError`` and ``BadUsage`` -> 2, every other ``VolwarpError`` -> 1)
 and prints them as one line, ``volwarp: error: ...``.
 """
 
@@ -41,7 +41,16 @@ class SpecError(VolwarpError):
         return f"{where}{key}{self.message}"
 
 
-class ChoiceNeeded(VolwarpError):
+class BadUsage(VolwarpError):
+    """A usage mistake the core finds (exit 2, as click's own usage errors).
+
+    The command line was well formed but asks for something that must not
+    run: an output that is one of the command's inputs, an option that
+    contradicts the input it was given. Nothing has been written.
+    """
+
+
+class ChoiceNeeded(BadUsage):
     """An input that holds several things where one is needed, and only the user can say which.
 
     For example a DICOM folder with several series: a usage error, since an option chooses.

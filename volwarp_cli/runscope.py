@@ -25,13 +25,17 @@ from dataclasses import dataclass, field
 class RunFiles:
     """The files of one run.
 
-    ``inputs``: (device, inode) of every file read as an input; ``mapped``:
-    path -> (size, mtime_ns, inode) of each input read through a memory map,
-    when it was mapped; ``allow_outside_data``: detached headers may read data
-    files outside their own folder.
+    ``inputs``: (device, inode) of every file read as an input; ``declared``:
+    the input paths the command line and the specs named, before any was
+    read (:mod:`volwarp_cli.io.inputs`), and ``expanded``: each one's files;
+    ``mapped``: path -> (size, mtime_ns, inode) of each input read through a
+    memory map, when it was mapped; ``allow_outside_data``: detached headers
+    may read data files outside their own folder.
     """
 
     inputs: set[tuple[int, int]] = field(default_factory=set)
+    declared: dict[str, None] = field(default_factory=dict)
+    expanded: dict[str, list] = field(default_factory=dict)
     mapped: dict[str, tuple[int, int, int]] = field(default_factory=dict)
     allow_outside_data: bool = False
 

@@ -15,7 +15,7 @@ import warnings
 import click
 
 from .. import __version__
-from ..errors import ChoiceNeeded, SpecError, VolwarpError
+from ..errors import BadUsage, SpecError, VolwarpError
 from ..progress import log
 from ..runscope import run_scope
 from ..signals import Interrupted, stop_requested
@@ -141,6 +141,11 @@ class VolwarpGroup(click.Group):
             return exc.exit_code
         except click.exceptions.Abort:
             return _fail("aborted", 1)
+        except click.exceptions.NoArgsIsHelpError as exc:
+            # bare `volwarp` (or a group without its command): the help itself, as click
+            # prints it (on stderr, exit 2: a script that lost its arguments still fails)
+            click.echo(exc.ctx.get_help(), err=True)
+            return exc.exit_code
         except click.ClickException as exc:
             hint = ""
             ctx = getattr(exc, "ctx", None)
@@ -151,7 +156,7 @@ class VolwarpGroup(click.Group):
             if debug:
                 raise
             return _fail(str(exc), 128 + exc.signum)
-        except (SpecError, ChoiceNeeded) as exc:
+        except (SpecError, BadUsage) as exc:
             if debug:
                 raise
             return _fail(str(exc), 2)

@@ -233,9 +233,31 @@ def _positive(ctx, param, value):
     return value
 
 
-#: An input path: no checks by click (whose "not readable" or "is a directory" would exit
-#: 2); the readers report a missing, unreadable or folder input as a file error (exit 1).
-INPUT_PATH = click.Path(readable=False)
+class InputPath(click.Path):
+    """An input path, declared as the run's input as it is parsed.
+
+    No checks by click (whose "not readable" or "is a directory" would exit
+    2): the readers report a missing, unreadable or folder input as a file
+    error (exit 1). Declared (:func:`volwarp_cli.io.inputs.declare_input`)
+    so that every output check of the run, made before any work, refuses an
+    output that would replace it or a data file its header names.
+    """
+
+    def __init__(self, **kwargs):
+        super().__init__(readable=False, **kwargs)
+
+    def convert(self, value, param, ctx):
+        """The path, declared as an input of this run."""
+        from ..io.inputs import declare_input
+
+        value = super().convert(value, param, ctx)
+        if value is not None:
+            declare_input(value)
+        return value
+
+
+#: An input path (see :class:`InputPath`).
+INPUT_PATH = InputPath()
 
 
 def _volume_output(ctx, param, value):

@@ -84,6 +84,7 @@ def camera_options(f):
     * ``orientation_labels``: True or False when given, None when not: resolve
       it with :func:`orientation_labels_for` once the input volume is known.
     """
+    from .options import InputPath  # (options imports this module)
 
     @functools.wraps(f)
     def wrapper(*args, camera_from, camera_to, orientation_labels, **kwargs):
@@ -103,7 +104,7 @@ def camera_options(f):
                  orientation_labels=orientation_labels, **kwargs)
 
     opts = [
-        click.option("--camera-from", "camera_from", type=click.Path(dir_okay=False),
+        click.option("--camera-from", "camera_from", type=InputPath(dir_okay=False),
                      default=None, metavar="FILE", callback=_read_camera,
                      help=CAMERA_FROM_HELP),
         click.option("--camera-to", "camera_to", type=click.Path(dir_okay=False), default=None,

@@ -17,7 +17,7 @@ import socket
 import tempfile
 from pathlib import Path
 
-from ..errors import VolwarpError
+from ..errors import BadUsage, VolwarpError
 from ..signals import Interrupted, blocked, check_stop, install, temporaries
 from .mapped import check_unchanged, sync_temporaries
 
@@ -49,13 +49,25 @@ def is_zarr_store(path: str | os.PathLike) -> bool:
                                  ("zarr.json", ".zgroup", ".zarray", ".zattrs"))
 
 
-def check_output_path(path: str | os.PathLike) -> Path:
+def check_output_path(path: str | os.PathLike, option: str | None = None) -> Path:
     """Fail early (before any work) when ``path`` cannot be written.
 
+    An output that would replace one of the run's inputs (the files its
+    command line and specs named, :mod:`.inputs`, and every file its readers
+    opened) is a usage error (:class:`~volwarp_cli.errors.BadUsage`): the
+    commands check each output before any work, and every write checks again.
+    ``option`` names the output's option in that message.
     A folder output (``.zarr``) may replace an existing Zarr store, never a
     folder that is not one (nor a file of that name: that is someone else's).
     """
+    from .inputs import opened_as_input, refuse_output_over_input
+
     path = Path(path)
+    refuse_output_over_input(path, option=option)
+    if opened_as_input(path):  # a file a reader opened (a header's data file, a template)
+        raise BadUsage(f"{option + ' ' if option else ''}{path} would overwrite a file this "
+                       "command read as an input; volwarp never replaces an input: choose "
+                       "another output name")
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise VolwarpError(f"{path}: output folder {str(folder)!r} does not exist")

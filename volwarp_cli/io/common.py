@@ -131,15 +131,6 @@ def note_input(file) -> None:
     run_files().inputs.add((st.st_dev, st.st_ino))
 
 
-def is_input(path: str | os.PathLike) -> bool:
-    """True when ``path`` is (the same file as) one this run read as an input."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return False
-    return (st.st_dev, st.st_ino) in run_files().inputs
-
-
 def open_data_file(header: Path, path: Path, where: str):
     """Open a detached header's data file for reading, refusing one outside its folder.
 
@@ -173,13 +164,13 @@ def check_data_output(data_path: Path, header_path: Path, referenced) -> None:
     ``-o scan.nhdr`` also writes ``scan.raw``, a file the user did not name:
     it may replace an earlier run's data file (the existing header at
     ``header_path`` names it: ``referenced(header_path)`` lists the data file
-    names it refers to, or raises), never an input of this command (unless the
-    header is the input too: the pair rewritten in place, as asked) and never
+    names it refers to, or raises), never an input of this command
+    (:func:`~volwarp_cli.io.atomic.check_output_path`, a usage error) and never
     any other existing file.
     """
-    if is_input(data_path) and not is_input(header_path):
-        raise VolwarpError(f"{header_path}: its data file {data_path} is an input of this "
-                           "command; choose another output name")
+    from .atomic import check_output_path
+
+    check_output_path(data_path)
     if not data_path.exists():
         return
     try:

@@ -113,6 +113,17 @@ class SpecDoc:
         p = Path(name).expanduser()
         return p if p.is_absolute() else self.base / p
 
+    def input_file(self, name: str) -> Path:
+        """:meth:`resolve` for a file the spec reads, declared as the run's input.
+
+        Then no output of the run may replace it (:mod:`volwarp_cli.io.inputs`).
+        """
+        from ..io.inputs import declare_input
+
+        path = self.resolve(name)
+        declare_input(path)
+        return path
+
 
 def _node_line(node: yaml.Node, path: Key) -> int:
     """The line of ``path`` in a node tree.

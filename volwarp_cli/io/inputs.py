@@ -1,0 +1,223 @@
+"""The files an input stands for, and the rule that no output may be one of them.
+
+A scan given as ``scan.nhdr`` is two files (the header and the data file it
+names), a DICOM series is a folder of files, a NRRD ``LIST`` header is as
+many files as it lists. ``distance scan.nii.gz -o scan.nii.gz`` or ``-o
+scan_data.raw`` would replace the scan (atomically, so with exit 0 and
+nothing on stderr): the one mistake a tool that reprocesses scans overnight
+must never make. So every output of every command is checked against every
+input's files, symbolic links followed and hard links seen, before any work
+(the command line declares its inputs as it parses them, the spec loaders
+as they resolve the files a spec names) and again when the output is
+written (:func:`volwarp_cli.io.atomic.check_output_path`, which also knows
+every file a reader actually opened).
+
+Only headers are read here, never samples: the check is cheap and runs
+before anything else. A header that cannot be parsed stands for itself
+alone (its reader will report what is wrong with it).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from ..errors import BadUsage
+from ..runscope import run_files
+
+#: extensions of detached headers, whose data files are inputs too
+_NRRD = (".nhdr", ".nrrd")
+_METAIMAGE = (".mhd", ".mha")
+
+
+def declare_input(path: str | os.PathLike) -> None:
+    """Record ``path`` as an input of this run, before it is read.
+
+    Then :func:`refuse_output_over_input` (every output check of the run)
+    refuses an output that is one of its files.
+    """
+    run_files().declared.setdefault(str(path), None)
+
+
+def opened_as_input(path: str | os.PathLike) -> bool:
+    """True when ``path`` is (the same file as) one this run's readers opened."""
+    ident = _identity(path)
+    return ident is not None and ident in run_files().inputs
+
+
+def input_files(path: str | os.PathLike) -> list[Path]:
+    """``path`` and the data files its header names (detached NRRD and MetaImage).
+
+    ``LIST`` headers and ``%d`` patterns name several. A folder (a DICOM
+    series, an OME-Zarr store) is itself: :func:`refuse_output_over_input`
+    treats every file inside it as the input's. A header that does not parse
+    gives ``[path]``.
+    """
+    path = Path(path)
+    files = [path]
+    if not path.is_file():
+        return files
+    name = path.name.lower()
+    try:
+        if name.endswith(_NRRD):
+            files += _nrrd_data_files(path)
+        elif name.endswith(_METAIMAGE):
+            files += _metaimage_data_files(path)
+    except Exception:  # noqa: BLE001 - a header its reader will refuse: the read says why
+        pass
+    return files
+
+
+def _nrrd_data_files(path: Path) -> list[Path]:
+    from .nrrd import _data_files, read_header
+
+    with open(path, "rb") as fh:
+        fields, _ = read_header(fh, str(path))
+        sizes = [int(v) for v in fields.get("sizes", "").split()]
+        return list(_data_files(fields, path, fh, str(path), sizes) or [])
+
+
+def _metaimage_data_files(path: Path) -> list[Path]:
+    from .metaimage import _data_files, read_header
+
+    with open(path, "rb") as fh:
+        fields = dict(read_header(fh, str(path)))
+        spec = fields.get("ElementDataFile", "").strip()
+        if not spec or spec.lower() == "local":
+            return []
+        sizes = [int(v) for v in fields.get("DimSize", "").split()]
+        return list(_data_files(spec, path, fh, str(path), sizes))
+
+
+def output_files(path: str | os.PathLike) -> list[Path]:
+    """The files writing ``path`` may create or replace.
+
+    A detached header writes its data file beside it: ``scan.nhdr`` also
+    ``scan.raw`` (``scan.raw.gz`` compressed), ``scan.mhd`` also ``scan.raw``
+    (``scan.zraw``).
+    """
+    path = Path(path)
+    name = path.name.lower()
+    if name.endswith(".nhdr"):
+        return [path, path.with_suffix(".raw"), path.with_suffix(".raw.gz")]
+    if name.endswith(".mhd"):
+        return [path, path.with_suffix(".raw"), path.with_suffix(".zraw")]
+    return [path]
+
+
+def refuse_output_over_input(output: str | os.PathLike,
+                             inputs: list[str | os.PathLike] | None = None,
+                             *, option: str | None = None) -> None:
+    """Raise :class:`~volwarp_cli.errors.BadUsage` when ``output`` would replace an input.
+
+    ``inputs``: the input paths to check against (default: this run's
+    declared inputs, :func:`declare_input`). An output collides with an
+    input when, symbolic links followed, it is one of the input's files
+    (:func:`input_files`), the same file under another name (a hard link),
+    a file inside an input folder, or a folder (an OME-Zarr store it would
+    replace) holding an input. ``option`` names the output's option in the
+    message (``--frames-to``); the message names both files, on one line.
+    """
+    if inputs is None:
+        inputs = list(run_files().declared)
+    if not inputs:
+        return
+    targets = [(p, _real(p), _identity(p)) for p in output_files(output)]
+    for given in inputs:
+        for file in _expanded(given):
+            real = _real(file)
+            ident = _identity(file)
+            for target, target_real, target_ident in targets:
+                if _collide(target_real, target_ident, real, ident, Path(file).is_dir()):
+                    raise BadUsage(_message(output, target, given, file, option))
+
+
+def _expanded(given) -> list[Path]:
+    """:func:`input_files` of ``given``, once per run (headers are read once)."""
+    cache = run_files().expanded
+    key = str(given)
+    if key not in cache:
+        cache[key] = input_files(given)
+    return cache[key]
+
+
+def _collide(target_real: str, target_ident, real: str, ident, folder: bool) -> bool:
+    if target_real == real:
+        return True
+    if target_ident is not None and target_ident == ident:
+        return True  # another name of the same file (a hard link)
+    if folder and target_ident is not None and _inside(target_real, real):
+        return True  # an existing file of an input folder (a DICOM series' file)
+    if os.path.isdir(target_real) and _inside(real, target_real):
+        return True  # a folder output (a store) that would replace the input inside it
+    return False
+
+
+def _message(output, target: Path, given, file: Path, option: str | None) -> str:
+    what = f"{option} {output}" if option else str(output)
+    if Path(target) != Path(output):
+        what += f" (its data file {target})"
+    if Path(file) != Path(given):
+        is_what = f"the data file {file} of the input {given}"
+    elif Path(given).is_dir() and _real(target) != _real(given):
+        is_what = f"a file of the input folder {given}"
+    elif os.path.isdir(target) and _real(target) != _real(given):
+        is_what = f"the input {given} inside it"
+    else:
+        is_what = f"the input {given}"
+    if _real(target) != str(Path(target).absolute()) and _identity(target) is not None:
+        is_what += f" (links followed: {_real(target)})"
+    return (f"{what} would overwrite {is_what}; volwarp never replaces an input: "
+            "choose another output name")
+
+
+def _real(path) -> str:
+    return os.path.realpath(path)
+
+
+def _identity(path) -> tuple[int, int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _inside(path: str, folder: str) -> bool:
+    try:
+        return path != folder and os.path.commonpath([path, folder]) == folder
+    except ValueError:
+        return False
+
+
+def refuse_pattern_over_input(pattern: str, *, option: str | None = None,
+                              inputs: list[str | os.PathLike] | None = None) -> None:
+    """:func:`refuse_output_over_input` for every name a ``str.format`` pattern can give.
+
+    For outputs numbered by fields (``--frames-to 'f_{frame:03d}.nrrd'``)
+    whose count is not known before the work: any input file whose path
+    (links followed) the pattern could produce is refused, whatever the
+    fields' values.
+    """
+    import re
+    import string
+
+    if inputs is None:
+        inputs = list(run_files().declared)
+    folder, name = os.path.split(pattern)
+    if any(f is not None for _, f, _, _ in string.Formatter().parse(folder)):
+        base, name = "", pattern  # fields in the folder too: match whole paths
+    else:
+        base = os.path.realpath(folder or ".")
+    regex = "".join(re.escape(text) + ("" if field is None else "(.+)")
+                    for text, field, _, _ in string.Formatter().parse(name))
+    for given in inputs:
+        for file in _expanded(given):
+            real = _real(file)
+            if base:
+                head, tail = os.path.split(real)
+                hit = head == base and re.fullmatch(regex, tail)
+            else:
+                hit = re.fullmatch(regex, real) or re.fullmatch(regex, str(file))
+            if hit:
+                raise BadUsage(_message(pattern, Path(pattern), given, file, option))
