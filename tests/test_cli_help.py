@@ -66,6 +66,15 @@ def test_group_help_lists_every_command(run):
         assert f"\n  {name} " in res.stdout
 
 
+def test_bare_volwarp_prints_the_whole_help(run):
+    """Not a one-line error: the help a newcomer needs (on stderr, exit 2, as click's own)."""
+    res = run()
+    assert res.code == 2
+    assert res.stderr.startswith("Usage: volwarp") and "volwarp: error" not in res.stderr
+    for name in COMMANDS:
+        assert f"\n  {name} " in res.stderr
+
+
 # ---- the option registry ----------------------------------------------------------------------
 
 def _registry_rows(section: str) -> dict[str, str]:
