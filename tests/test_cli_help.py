@@ -70,7 +70,7 @@ def test_bare_volwarp_prints_the_whole_help(run):
     """Not a one-line error: the help a newcomer needs (on stderr, exit 2, as click's own)."""
     res = run()
     assert res.code == 2
-    assert res.stderr.startswith("Usage: volwarp") and "volwarp: error" not in res.stderr
+    assert res.stderr.startswith("Usage: ") and "volwarp: error" not in res.stderr
     for name in COMMANDS:
         assert f"\n  {name} " in res.stderr
 
