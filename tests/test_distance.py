@@ -160,12 +160,19 @@ def test_cli_real_scan_subvoxel_is_close_to_voxel_mode(run, tmp_path, data_dir):
 def test_cli_errors(run, tmp_path):
     write_ball(tmp_path / "b.nrrd")
     out = tmp_path / "d.nrrd"
+    # the ball (0/200 uint8) is a label map: an --iso that selects other voxels than its
+    # label is a usage error; as intensities, the shape's own errors
     r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", 250)
+    assert r.code == 2 and "looks like a label map" in r.stderr and not out.exists()
+    r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", 250, "--values", "intensity")
     assert r.code == 1 and "empty" in r.stderr and not out.exists()
-    r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", -1)
+    r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", -1, "--values", "intensity")
     assert r.code == 1 and "fills the whole grid" in r.stderr
-    r = run("distance", tmp_path / "b.nrrd", "-o", out)
+    r = run("distance", tmp_path / "b.nrrd", "-o", out, "--values", "intensity")
     assert r.code == 2 and "--iso" in r.stderr
+    write_volume(Volume(ball(12).astype(np.float32)), tmp_path / "f.nrrd")  # no label map
+    r = run("distance", tmp_path / "f.nrrd", "-o", out)
+    assert r.code == 2 and "--iso" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", 1, "--metric", "chessboard")
     assert r.code == 1 and "isotropic" in r.stderr
     r = run("distance", tmp_path / "missing.nrrd", "-o", out, "--iso", 1)

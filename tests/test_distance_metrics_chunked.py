@@ -204,7 +204,11 @@ def test_command_refusals(run, vol, tmp_path):
         assert mem.code == blk.code == 1
         assert "needs isotropic spacing" in blk.stderr
         assert blk.stderr.strip().splitlines()[-1] == mem.stderr.strip().splitlines()[-1]
+    # (the input, 0/1000 int16 blobs, is a label map: --iso 5000 selects other voxels)
     res = run("distance", src, "-o", out, "--iso", "5000", "--metric", "minnorm", "--chunked")
+    assert res.code == 2 and "looks like a label map" in res.stderr
+    res = run("distance", src, "-o", out, "--iso", "5000", "--metric", "minnorm", "--chunked",
+              "--values", "intensity")
     assert res.code == 1 and "the shape is empty" in res.stderr
     res = run("distance", src, "-o", out, "--iso", "500", "--metric", "minnorm", "--chunked",
               "--surface", "subvoxel")

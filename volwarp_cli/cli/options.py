@@ -47,7 +47,7 @@ checks this list against the commands; ``(every command)``: from
     --json                    warp mesh info
     --keep-phi                capture warp distance mesh info convert
     --keep-shear              capture warp distance mesh info convert
-    --label                   mesh
+    --label                   distance mesh
     --labels                  warp mesh
     --largest-component       mesh
     --lattice                 capture
@@ -104,6 +104,7 @@ checks this list against the commands; ``(every command)``: from
     --turntable               mesh
     --unsigned                distance
     --update                  distance
+    --values                  warp distance
     -v/--verbose              (every command)
     --view                    morph sweep mesh
     --volume-index            capture warp distance mesh info convert

@@ -203,6 +203,29 @@ class MaskSource:
                 _block_stats(data, self.iso, self.inside))
 
 
+class LabelMaskSource(MaskSource):
+    """A label map's shape of any box (:func:`.labels.label_mask`): its voxels, never its ids.
+
+    ``label``: one label's voxels; None: every non-zero id's. The checks are
+    made before the passes (:func:`.labels.choose_shape`), so a block's stats
+    are None.
+    """
+
+    def __init__(self, source, label: int | None = None):
+        self.source, self.label = source, label
+        self.shape = tuple(source.shape)
+
+    def box(self, box) -> np.ndarray:
+        """uint8 mask (1 inside) of ``box`` (z, y, x)."""
+        from .labels import label_mask
+
+        return label_mask(np.asarray(self.source[box.slices]), self.label).view(np.uint8)
+
+    def box_and_stats(self, box):
+        """:meth:`box`, and None for the stats."""
+        return self.box(box), None
+
+
 def pass_blocks(shape, axis: int, block_bytes: int, min_blocks: int = 1, *,
                 bytes_per_voxel: int = PASS_BYTES_PER_VOXEL):
     """The blocks (Boxes) of one pass: whole lines along ``axis`` (:func:`line_chunks`).
@@ -725,10 +748,10 @@ def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
 
 
 # -- the whole operation ---------------------------------------------------------------
-def field_by_blocks(source, spacing_zyx, engine, open_output, *, iso: float, inside: str,
-                    metric: str, surface: str, max_distance: float | None = None,
-                    finish=None, out_dtype=np.float32, block_bytes: int,
-                    block=None, scratch_near) -> dict:
+def field_by_blocks(source, spacing_zyx, engine, open_output, *, iso: float | None,
+                    inside: str, metric: str, surface: str,
+                    max_distance: float | None = None, finish=None, out_dtype=np.float32,
+                    block_bytes: int, block=None, scratch_near, rule=None) -> dict:
     """The signed field of ``source`` computed and written by blocks on ``engine``.
 
     ``source``: a sliceable input (a :class:`~volwarp_cli.bspline.blocks.LazySource`);
@@ -743,50 +766,71 @@ def field_by_blocks(source, spacing_zyx, engine, open_output, *, iso: float, ins
     ``finish(field)``: a block's last step (--unsigned, the output type,
     ``out_dtype``). ``block_bytes``: one task's memory; ``block``: the
     user's block shape (for the passes: Z the x/y slabs' depth, Y,X the z
-    pass's columns). Returns ``info``.
+    pass's columns). ``rule``: a :class:`.labels.ShapeRule`; a label rule's
+    voxels are the shape (:class:`LabelMaskSource`: ``iso`` and ``inside``
+    unused, the voxel surface, its checks already made by
+    :func:`.labels.choose_shape`). Returns ``info``.
     """
     from ..engine import dask_input, write_blocks
     from ..io.atomic import scratch_folder
 
     shape = tuple(source.shape)
     spacing_zyx = tuple(float(s) for s in spacing_zyx)
+    labels = rule is not None and rule.labels
+    if labels:
+        surface = "voxel"
+    masks = LabelMaskSource(source, rule.label) if labels else MaskSource(source, iso, inside)
     if metric != "euclidean":
-        return _line_metric_by_blocks(source, spacing_zyx, engine, open_output, iso=iso,
+        return _line_metric_by_blocks(masks, spacing_zyx, engine, open_output, iso=iso,
                                       inside=inside, metric=metric, surface=surface,
                                       max_distance=max_distance, finish=finish,
                                       block_bytes=block_bytes, block=block,
-                                      scratch_near=scratch_near)
+                                      scratch_near=scratch_near, checked=labels,
+                                      is_bool=source.dtype == bool)
     if max_distance is None and surface != "subvoxel":
         # the exact field by passes: the samples are scanned in the first pass (the
         # checks run before the last one), not in a pass of their own
         check_out_of_core(metric, surface)
         info = {"metric": metric, "surface": "voxel", "chunked": "passes",
                 "max_distance": None}
-        if block is not None:  # the slabs' depth, the z pass's columns
-            grid = (shape[0], *block[1:])
-        else:
-            last = pass_blocks(shape, 0, block_bytes // 4, 4 * engine.workers)
-            grid = last[0].shape if len(last) else shape
+        grid = _pass_grid(shape, block, block_bytes, engine.workers)
         with open_output(grid, info) as sink, scratch_folder(scratch_near) as scratch:
-            check = staged_check(size=int(np.prod(shape)), iso=iso, inside=inside,
-                                 surface=surface, is_bool=source.dtype == bool)
+            check = None if labels else staged_check(
+                size=int(np.prod(shape)), iso=iso, inside=inside, surface=surface,
+                is_bool=source.dtype == bool)
             every = sink.blocks()
-            signed_edt_staged(MaskSource(source, iso, inside), spacing_zyx, engine,
+            signed_edt_staged(masks, spacing_zyx, engine,
                               sink.writer().write, scratch, block_bytes=block_bytes // 4,
                               finish=finish, memory=block_bytes, check=check,
                               last_blocks=every, slab_depth=block[0] if block else None)
             sink.mark_written(every)
         return info
     chunks = block or line_chunks(shape, 2, block_bytes // 4, min_blocks=engine.workers)
-    field, info = signed_distance_dask(dask_input(source, chunks), spacing_zyx, iso=iso,
-                                       inside=inside, metric=metric, surface=surface,
-                                       max_distance=max_distance,
-                                       block_bytes=block_bytes // 4)
+    if labels:  # the band of the labels' voxels (checked): no scan of its own
+        check_method(metric, surface)
+        if not max_distance > 0:
+            raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
+        mask = dask_input(source, chunks).map_blocks(_label_block, rule.label, dtype=bool,
+                                                      meta=np.empty((0, 0, 0), bool))
+        field = banded_signed_distance_dask(mask, spacing_zyx, max_distance)
+        info = {"metric": metric, "surface": "voxel", "chunked": "band",
+                "max_distance": float(max_distance)}
+    else:
+        field, info = signed_distance_dask(dask_input(source, chunks), spacing_zyx, iso=iso,
+                                           inside=inside, metric=metric, surface=surface,
+                                           max_distance=max_distance,
+                                           block_bytes=block_bytes // 4)
     if finish is not None:
         field = field.map_blocks(finish, dtype=np.dtype(out_dtype))
     with open_output(block or chunks, info) as sink:
         write_blocks(field, sink, engine, label="distance", memory=block_bytes)
     return info
+
+
+def _label_block(block, label):
+    from .labels import label_mask
+
+    return label_mask(block, label)
 
 
 def _pass_grid(shape, block, block_bytes, workers, bytes_per_voxel=PASS_BYTES_PER_VOXEL):
@@ -797,13 +841,15 @@ def _pass_grid(shape, block, block_bytes, workers, bytes_per_voxel=PASS_BYTES_PE
     return last[0].shape if len(last) else shape
 
 
-def _line_metric_by_blocks(source, spacing_zyx, engine, open_output, *, iso, inside, metric,
+def _line_metric_by_blocks(masks, spacing_zyx, engine, open_output, *, iso, inside, metric,
                            surface, max_distance, finish, block_bytes, block,
-                           scratch_near) -> dict:
+                           scratch_near, checked=False, is_bool=False) -> dict:
     """:func:`field_by_blocks` for minnorm, taxicab, chessboard: :func:`line_metric_staged`.
 
     With ``max_distance`` the same passes, then clamped (as ``finish_field``
     clamps the in-memory field): no halo, the whole field is exact anyway.
+    ``masks``: the shape's :class:`MaskSource`; ``checked``: its checks made
+    already (a label map's), so the first pass's stats are not checked.
     """
     from ..io.atomic import scratch_folder
     from .field import check_isotropic
@@ -815,16 +861,16 @@ def _line_metric_by_blocks(source, spacing_zyx, engine, open_output, *, iso, ins
         raise VolwarpError(f"inside must be 'above' or 'below', got {inside!r}")
     if max_distance is not None and not max_distance > 0:
         raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
-    shape = tuple(source.shape)
+    shape = tuple(masks.shape)
     info = {"metric": metric, "surface": "voxel", "chunked": "passes",
             "max_distance": None if max_distance is None else float(max_distance),
             "passes": signed_pass_count(shape) if metric == "minnorm" else 0}
     grid = _pass_grid(shape, block, block_bytes, engine.workers, LINE_BYTES_PER_VOXEL)
     with open_output(grid, info) as sink, scratch_folder(scratch_near) as scratch:
-        check = staged_check(size=int(np.prod(shape)), iso=iso, inside=inside, surface="voxel",
-                             is_bool=source.dtype == bool)
+        check = None if checked else staged_check(
+            size=int(np.prod(shape)), iso=iso, inside=inside, surface="voxel", is_bool=is_bool)
         every = sink.blocks()
-        line_metric_staged(MaskSource(source, iso, inside), spacing_zyx, engine,
+        line_metric_staged(masks, spacing_zyx, engine,
                            sink.writer().write, scratch, metric=metric,
                            block_bytes=block_bytes // 4, finish=finish,
                            max_distance=max_distance, memory=block_bytes, check=check,
