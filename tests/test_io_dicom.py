@@ -223,7 +223,8 @@ def test_segmentation_multiframe_with_functional_groups():
     np.testing.assert_array_equal(vol.data, sitk.GetArrayFromImage(img) > 0)
 
 
-def test_rtdose_scaled_to_gy():
+def test_rtdose_scaled_by_dose_grid_scaling_in_the_files_units():
+    """The values are stored x DoseGridScaling in the file's DoseUnits: RELATIVE here, not Gy."""
     path = get_testdata_file("rtdose.dcm")
     vol = read_dicom(path)
     img = sitk.ReadImage(path)
@@ -234,7 +235,7 @@ def test_rtdose_scaled_to_gy():
     assert vol.dtype == np.float32
     np.testing.assert_array_equal(vol.data, expected)
     np.testing.assert_array_equal(sitk.GetArrayFromImage(img), ds.pixel_array)
-    assert vol.meta["DICOM_DoseUnits"] == str(ds.DoseUnits)
+    assert vol.meta["DICOM_DoseUnits"] == str(ds.DoseUnits) == "RELATIVE"
     assert vol.meta["DICOM_Modality"] == "RTDOSE"
 
 

@@ -429,7 +429,7 @@ def test_missing_data_files(tmp_path):
     ("Offset = 1 2 nan\n", r"Offset: values must be finite"),
     ("Origin = 1 2\n", r"Origin: expected 3 values, got 2"),
     ("TransformMatrix = 1 0 0 0 1 0 0 0\n", r"TransformMatrix: expected 9 values, got 8"),
-    ("Rotation = 1 0 0 1 0 0 0 0 1\n", r"Rotation: the direction matrix is singular"),
+    ("Rotation = 1 0 0 1 0 0 0 0 1\n", r"Rotation: direction matrix is singular"),
     ("HeaderSize = big\n", r"HeaderSize: 'big' is not 1 whole numbers"),
     ("HeaderSize = -4\n", r"HeaderSize must be -1"),
     ("BinaryData = maybe\n", r"BinaryData: 'maybe' is not True or False"),

@@ -103,15 +103,16 @@ def test_malformed_numeric_fields_name_the_field(tmp_path, field, value, match):
         read_volume(path)
 
 
-def test_huge_space_directions_read_without_numpy_warnings(tmp_path, recwarn):
-    # the axis' length overflowed (a RuntimeWarning on stderr, then an internal error)
+def test_huge_space_directions_are_refused_without_numpy_warnings(tmp_path, recwarn):
+    # the axis' length overflowed (a RuntimeWarning on stderr, then an internal error); a
+    # length of 1.4e200 is finite, but distances and mesh vertices of it are not
     path = tmp_path / "big.nrrd"
     extra = "space: LPS\nspace directions: (1e200,1e200,0) (0,1,0) (0,0,1)\n"
     text = _header("raw", extra).decode().replace("spacings: 1 2 3\n", "")
     path.write_bytes(text.encode() + DATA.astype("<i2").tobytes())
-    vol = read_volume(path)
-    np.testing.assert_allclose(vol.spacing, [np.sqrt(2) * 1e200, 1, 1], rtol=1e-15)
-    np.testing.assert_allclose(vol.direction[:, 0], [np.sqrt(0.5), np.sqrt(0.5), 0])
+    with pytest.raises(FormatError, match=r"big\.nrrd: 'space directions': spacing 1\.41421e\+200 "
+                       "along x is outside"):
+        read_volume(path)
     assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
 
 

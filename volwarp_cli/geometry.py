@@ -18,6 +18,11 @@ It is every sampling grid's one type: a volume's, a block's, the morph's frame
 grid (:mod:`.morph.grid`) and the sweep's output grid (:func:`.sweep.model.fit_grid`,
 always with the identity direction). The B-spline lattice's layout is another
 concept (:class:`.bspline.lattice.Grid`).
+
+:func:`check_placement` is the one rule every grid's placement obeys (finite,
+positive and bounded spacing, a finite and bounded origin, a non-singular
+direction): Volume and Geometry apply it, and every reader calls it with the
+names of its file's own fields, so that a refusal says which field is wrong.
 """
 
 from __future__ import annotations
@@ -27,20 +32,120 @@ from dataclasses import dataclass
 import numpy as np
 
 from .box import Box
-from .errors import VolwarpError
+from .errors import FormatError, VolwarpError
 from .volume import xyz_to_zyx, zyx_to_xyz
 
 Floats3 = tuple[float, float, float]
 _IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
+#: Bound on a grid's spacing (1/LIMIT..LIMIT) and world coordinates (|x| <= LIMIT), in the
+#: file's units. volwarp writes distances and mesh vertices in float32 and squares
+#: distances in it (edt): a spacing of 1e20 gives distances of inf, one of 1e-40 of 0.
+#: Within the bound the squares of every distance stay normal float32 numbers.
+PLACEMENT_LIMIT = 1e15
 
-def _floats3(value, name: str) -> Floats3:
-    arr = np.asarray(value, dtype=np.float64)
+_AXES = "xyz"
+
+
+def check_placement(spacing, origin, direction, shape_xyz=None, *, where: str | None = None,
+                    fields: dict | None = None, error=FormatError):
+    """``(spacing, origin, direction)`` as float64 arrays, or an error naming the bad field.
+
+    The one rule for where a grid may lie (finite numbers, a positive spacing
+    and a non-singular direction, all within :data:`PLACEMENT_LIMIT`; with
+    ``shape_xyz``, the grid's corners too), so that no command meets an
+    infinity or a division by zero later. ``fields`` maps ``spacing``, ``origin``
+    and ``direction`` to the file's own names (``spacing`` may give one name
+    per axis); with ``where`` (the file) the error is ``error`` (a FormatError:
+    the file's fault) ``where: field: what``, else a VolwarpError.
+    """
+    names = {"spacing": None, "origin": None, "direction": None, **(fields or {})}
+
+    def fail(key, message, axis=None):
+        name = names[key]
+        if isinstance(name, list | tuple):
+            name = name[axis if axis is not None else 0]
+        text = f"{name}: {message}" if name else message
+        if where is None:
+            raise VolwarpError(text)
+        raise error(f"{where}: {text}")
+
+    spacing = _vector3(spacing, "spacing", fail)
+    _check_spacing(spacing, fail)
+    origin = _vector3(origin, "origin", fail)
+    _check_bounded(origin, "origin", fail)
+    direction = np.asarray(direction, dtype=np.float64)
+    if direction.shape != (3, 3) or not np.all(np.isfinite(direction)):
+        fail("direction", f"direction must be a finite 3x3 matrix, got {direction.tolist()}")
+    _check_direction(direction, spacing, fail)
+    if shape_xyz is not None and min(int(n) for n in shape_xyz) > 0:
+        _check_corners(spacing, origin, direction, shape_xyz, fail)
+    return spacing, origin, direction
+
+
+def _vector3(value, key, fail) -> np.ndarray:
+    """Three finite numbers (a scalar stands for all three)."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        fail(key, f"{key} must be 3 numbers (x, y, z), got {value!r}")
     if arr.shape == ():
         arr = np.full(3, float(arr))
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
-        raise VolwarpError(f"{name} must be 3 finite values (x, y, z), got {np.asarray(value)}")
-    return tuple(float(v) for v in arr)
+    if arr.shape != (3,):
+        fail(key, f"{key} must have 3 values (x, y, z), got {arr.shape}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        fail(key, f"{key} must be finite, got {arr.tolist()}", int(np.argmax(bad)))
+    return arr
+
+
+def _check_spacing(spacing, fail) -> None:
+    """Positive, and within 1/LIMIT..LIMIT (else float32 distances under- or overflow)."""
+    for a, s in enumerate(spacing):
+        if not s > 0:
+            fail("spacing", f"spacing must be positive, got {spacing.tolist()}", a)
+        if not 1.0 / PLACEMENT_LIMIT <= s <= PLACEMENT_LIMIT:
+            fail("spacing", f"spacing {s:.6g} along {_AXES[a]} is outside "
+                 f"{1 / PLACEMENT_LIMIT:g}..{PLACEMENT_LIMIT:g} (volwarp's float32 distances "
+                 "and mesh vertices would overflow or vanish)", a)
+
+
+def _check_bounded(values, key, fail) -> None:
+    for a, v in enumerate(values):
+        if abs(v) > PLACEMENT_LIMIT:
+            fail(key, f"{key} {v:.6g} along {_AXES[a]} is beyond {PLACEMENT_LIMIT:g} in "
+                 "magnitude (volwarp's float32 mesh vertices and distances would overflow)", a)
+
+
+def _check_direction(direction, spacing, fail) -> None:
+    """Every axis a non-zero vector (its step within the bound), the three not in one plane."""
+    scale = np.abs(direction).max(axis=0)
+    if np.any(scale == 0):
+        a = int(np.argmin(scale))
+        fail("direction", f"direction matrix is singular: its axis {_AXES[a]} is zero "
+             f"({direction[:, a].tolist()})")
+    norms = scale * np.linalg.norm(direction / scale[None, :], axis=0)  # (no overflow)
+    for a, step in enumerate(norms * spacing):
+        if not 1.0 / PLACEMENT_LIMIT <= step <= PLACEMENT_LIMIT:
+            fail("direction", f"direction axis {_AXES[a]} ({direction[:, a].tolist()}) times "
+                 f"the spacing {spacing[a]:.6g} is a step of {step:.6g}, outside "
+                 f"{1 / PLACEMENT_LIMIT:g}..{PLACEMENT_LIMIT:g}")
+    if abs(np.linalg.det(direction / norms[None, :])) < 1e-9:
+        fail("direction", "direction matrix is singular (its axes lie in one plane)")
+
+
+def _check_corners(spacing, origin, direction, shape_xyz, fail) -> None:
+    """The farthest voxel centre within LIMIT of 0 along each world axis."""
+    lengths = spacing * (np.asarray(shape_xyz, dtype=np.float64) - 1)
+    steps = np.abs(direction) * lengths[None, :]
+    reach = np.abs(origin) + steps.sum(axis=1)
+    if reach.max() > PLACEMENT_LIMIT:
+        w = int(np.argmax(reach))
+        a = int(np.argmax(steps[w]))
+        size = "x".join(str(int(n)) for n in shape_xyz)
+        fail("spacing", f"the grid ({size} voxels of spacing {spacing.tolist()}) reaches "
+             f"{reach[w]:.6g} along world {_AXES[w]}, beyond {PLACEMENT_LIMIT:g} in magnitude "
+             "(volwarp's float32 mesh vertices and distances would overflow)", a)
 
 
 @dataclass(frozen=True)
@@ -62,17 +167,11 @@ class Geometry:
         shape = tuple(int(v) for v in self.shape)
         if len(shape) != 3 or min(shape) < 0:
             raise VolwarpError(f"a grid shape is 3 non-negative sizes (z, y, x), got {shape}")
-        spacing = _floats3(self.spacing, "spacing")
-        if min(spacing) <= 0:
-            raise VolwarpError(f"spacing must be positive, got {list(spacing)}")
-        direction = np.asarray(self.direction, dtype=np.float64)
-        if direction.shape != (3, 3) or not np.all(np.isfinite(direction)):
-            raise VolwarpError("direction must be a finite 3x3 matrix")
-        if abs(np.linalg.det(direction)) < 1e-9:
-            raise VolwarpError("direction matrix is singular")
+        spacing, origin, direction = check_placement(self.spacing, self.origin,
+                                                     self.direction, zyx_to_xyz(shape))
         object.__setattr__(self, "shape", shape)
-        object.__setattr__(self, "spacing", spacing)
-        object.__setattr__(self, "origin", _floats3(self.origin, "origin"))
+        object.__setattr__(self, "spacing", tuple(float(v) for v in spacing))
+        object.__setattr__(self, "origin", tuple(float(v) for v in origin))
         object.__setattr__(self, "direction", tuple(tuple(float(v) for v in row)
                                                     for row in direction))
 

@@ -78,17 +78,6 @@ def zyx_to_xyz(values):
     return tuple(values)[::-1]
 
 
-def _vec3(value, name: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.shape == ():
-        arr = np.full(3, float(arr))
-    if arr.shape != (3,):
-        raise VolwarpError(f"{name} must have 3 values (x, y, z), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise VolwarpError(f"{name} must be finite, got {arr.tolist()}")
-    return arr
-
-
 @dataclass
 class Volume:
     """Samples ``data[z, y, x]`` with spacing, origin and direction, all (x, y, z).
@@ -103,6 +92,10 @@ class Volume:
     NRRD's ``right-anterior-superior``) converts its origin and direction to
     LPS here, once, and keeps the file's frame in ``file_space``: no other
     code converts frames, and every writer starts from LPS.
+
+    Spacing, origin and direction obey :func:`volwarp_cli.geometry.check_placement`
+    (finite, positive, non-singular and within its bound): the readers call it
+    first with their files' own field names, so that a refusal names the field.
     """
 
     data: np.ndarray
@@ -119,16 +112,10 @@ class Volume:
         if data.ndim != 3:
             raise VolwarpError(f"a volume has 3 axes, got an array of shape {data.shape}")
         self.data = data
-        self.spacing = _vec3(self.spacing, "spacing")
-        if np.any(self.spacing <= 0):
-            raise VolwarpError(f"spacing must be positive, got {self.spacing.tolist()}")
-        self.origin = _vec3(self.origin, "origin")
-        direction = np.asarray(self.direction, dtype=np.float64)
-        if direction.shape != (3, 3) or not np.all(np.isfinite(direction)):
-            raise VolwarpError("direction must be a finite 3x3 matrix")
-        if abs(np.linalg.det(direction)) < 1e-9:
-            raise VolwarpError("direction matrix is singular")
-        self.direction = direction
+        from .geometry import check_placement  # (geometry imports this module)
+
+        self.spacing, self.origin, self.direction = check_placement(
+            self.spacing, self.origin, self.direction, zyx_to_xyz(data.shape))
         to_lps = frame_to_lps(self.space)
         if to_lps is not None:  # the one conversion of a file's frame to LPS
             frame = SPACE_NAMES[str(self.space).lower()]

@@ -296,8 +296,10 @@ def _raw(path: Path, layout):
     if size != nbytes + layout.header_bytes:
         raise FormatError(f"{where}: file is {size} bytes but {'x'.join(map(str, layout.shape))}"
                           f" {dtype.name} needs {nbytes + layout.header_bytes} bytes")
-    geom = _geometry(where, shape, dtype, error=VolwarpError, spacing=layout.spacing,
-                     origin=layout.origin)
+    from .raw import raw_placement
+
+    geom = _geometry(where, shape, dtype, error=VolwarpError,
+                     **raw_placement(layout, where, shape))
     file_dtype = dtype.newbyteorder("<" if layout.endian == "little" else ">")
     return geom, _memmap(path, file_dtype, layout.header_bytes, shape, where)
 

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
+from ..geometry import check_placement
 from ..volume import LPS, Volume, xyz_to_zyx
 from .atomic import atomic_output, atomic_outputs
 from .common import (
@@ -301,10 +302,27 @@ def _geometry(fields, ndims: int, where: str):
     else:
         # axis i's unit vector is numbers [i*n, i*n + n): rows of the reshape, columns here
         direction = np.array(matrix).reshape(ndims, ndims).T[:3, :3].copy()
-        if abs(np.linalg.det(direction)) < 1e-9:
-            raise FormatError(f"{where}: {fields['TransformMatrix'][0]}: the direction "
-                              "matrix is singular")
-    return spacing, origin, direction
+    return check_placement(spacing, origin, direction, _sizes(fields, ndims), where=where,
+                           fields=_field_names(fields))
+
+
+def _field_names(fields) -> dict[str, str]:
+    """The header's own names of the geometry's fields (for the errors that name them)."""
+    def name(key, default):
+        return fields[key][0] if key in fields else default
+
+    return {"spacing": name("ElementSpacing", name("ElementSize", "ElementSpacing")),
+            "origin": name("Offset", "Offset"), "direction": name("TransformMatrix",
+                                                                  "TransformMatrix")}
+
+
+def _sizes(fields, ndims: int) -> list[int] | None:
+    """DimSize of the three space axes, or None when it is not readable here."""
+    try:
+        sizes = [int(v) for v in fields["DimSize"][1].split()]
+    except (KeyError, ValueError):
+        return None
+    return sizes[:3] if len(sizes) == ndims else None
 
 
 class _Layout:

@@ -117,6 +117,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
+from ..geometry import check_placement
 from ..volume import Volume, xyz_to_zyx
 from .atomic import atomic_output
 from .common import (
@@ -136,6 +137,12 @@ _RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 #: NIfTI space units (``xyzt_units & 7``) -> millimetres, as ITK converts them
 #: (1 metre, 3 micron; 2 is mm, 0 unknown, taken as mm)
 _SPACE_UNIT_TO_MM = {1: 1000.0, 3: 1e-3}
+#: the header fields each of the three matrices (choose_affine's names) comes from
+_SFORM = "sform (srow_x, srow_y, srow_z)"
+_FIELDS = {"sform": {"spacing": _SFORM, "origin": _SFORM, "direction": _SFORM},
+           "qform": {"spacing": "pixdim", "origin": "qform (qoffset_x, qoffset_y, qoffset_z)",
+                     "direction": "qform (quatern_b, quatern_c, quatern_d, pixdim[0])"},
+           "pixdim": {"spacing": "pixdim", "origin": "pixdim", "direction": "pixdim"}}
 #: ``xyzt_units`` of a file written from a volume that names none: mm, no time unit
 _DEFAULT_XYZT_UNITS = 2
 
@@ -446,13 +453,19 @@ def nifti_geometry(header, where: str) -> tuple[dict, tuple[np.ndarray, str]]:
         aff = np.array(chosen[0], dtype=np.float64)
         aff[:3, :] *= _SPACE_UNIT_TO_MM.get(int(header["xyzt_units"]) & 7, 1.0)  # as ITK: mm
         lin = _RAS_TO_LPS @ aff[:3, :3]
-        if not np.all(np.isfinite(lin)):
-            raise FormatError(f"{where}: NIfTI matrix has values that are not finite numbers")
         spacing = np.linalg.norm(lin, axis=0)
-        if np.any(spacing == 0):
-            raise FormatError(f"{where}: NIfTI matrix has a zero-length axis")
-        return dict(spacing=spacing, origin=_RAS_TO_LPS @ aff[:3, 3],
-                    direction=lin / spacing[None, :], space=_LPS, file_space=_RAS), chosen
+        direction = lin / np.where(spacing > 0, spacing, 1.0)[None, :]
+        spacing, origin, direction = check_placement(
+            spacing, _RAS_TO_LPS @ aff[:3, 3], direction, _space_sizes(header),
+            where=where, fields=_FIELDS[chosen[1]])
+        return dict(spacing=spacing, origin=origin, direction=direction, space=_LPS,
+                    file_space=_RAS), chosen
+
+
+def _space_sizes(header) -> tuple[int, ...]:
+    """The sizes of the three space axes (a 2-D image has one slice)."""
+    shape = tuple(int(n) for n in header.get_data_shape()[:3])
+    return shape + (1,) * (3 - len(shape))
 
 
 def nifti_meta(nf: NiftiFile, chosen: tuple[np.ndarray, str],

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
+from ..geometry import check_placement
 from ..volume import Volume, frame_to_lps, xyz_to_zyx
 from .atomic import atomic_output, atomic_outputs
 from .common import (
@@ -157,7 +158,42 @@ def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
 
 
 def _geometry(fields: dict[str, str], dim: int, where: str):
-    """Return (spacing, origin, direction, space) in (x, y, z) for a 3-D header."""
+    """Return (spacing, origin, direction, space) in (x, y, z) for a 3-D header.
+
+    Checked by :func:`~volwarp_cli.geometry.check_placement`: a refusal names
+    the header field the bad number came from.
+    """
+    spacing, origin, direction, space = _header_geometry(fields, dim, where)
+    if "space directions" in fields:
+        names = {"spacing": "'space directions'", "direction": "'space directions'",
+                 "origin": "'space origin'"}
+    else:
+        names = {"spacing": "'spacings'", "origin": "'axis mins'"}
+    spacing, origin, direction = check_placement(spacing, origin, direction,
+                                                 _spatial_sizes(fields, dim, where),
+                                                 where=where, fields=names)
+    return spacing, origin, direction, space
+
+
+def _spatial_sizes(fields: dict[str, str], dim: int, where: str) -> list[int] | None:
+    """The sizes of the three space axes (x, y, z), or None when ``sizes`` does not say."""
+    try:
+        sizes = [int(v) for v in fields.get("sizes", "").split()]
+    except ValueError:
+        return None
+    if len(sizes) != dim:
+        return None
+    if "space directions" in fields:
+        entries = fields["space directions"].split()
+        keep = [a for a, e in enumerate(entries) if e.lower() != "none"]
+    else:
+        comp = None if dim == 3 else _component_axis(fields, dim, sizes, where)
+        keep = [a for a in range(dim) if a != comp]
+    return [sizes[a] for a in keep] if len(keep) == 3 else None
+
+
+def _header_geometry(fields: dict[str, str], dim: int, where: str):
+    """(spacing, origin, direction, space) as the header gives them (not yet checked)."""
     space = fields.get("space")
     spacing = np.ones(3)
     origin = np.zeros(3)

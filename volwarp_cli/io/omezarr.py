@@ -75,6 +75,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
+from ..geometry import check_placement
 from ..labelmap import looks_like_labels
 from ..samples import check_dtype
 from ..volume import Volume, xyz_to_zyx, zyx_to_xyz
@@ -674,8 +675,16 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
                         "rewrite it with volwarp convert", where)
     elif vw is not None:
         raise FormatError(f"{where}: the 'volwarp' attribute is not an object")
+    spacing, origin, direction = check_placement(
+        spacing, origin, direction, zyx_to_xyz(shape_zyx), where=where, fields=_FIELDS)
     return Opened(arr, (tuple(index), transpose), shape_zyx, spacing, origin, direction, space,
                   file_space, meta, where)
+
+
+#: the metadata each part of the geometry comes from (for the errors that name it)
+_FIELDS = {"spacing": "multiscales coordinateTransformations scale",
+           "origin": "multiscales coordinateTransformations translation",
+           "direction": "the 'volwarp' attribute's direction"}
 
 
 def _check_volwarp(vw: dict, spacing, origin, shape_zyx, where: str):

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError, VolwarpError
-from ..volume import Volume, xyz_to_zyx
+from ..geometry import check_placement
+from ..volume import Volume, xyz_to_zyx, zyx_to_xyz
 from .atomic import atomic_output
 from .common import (
     check_dtype,
@@ -63,9 +64,20 @@ def read_raw(path: str | os.PathLike, layout: RawLayout | None) -> Volume:
         fh.seek(layout.header_bytes)
         buf = read_exact(fh, nbytes, where)
     data = np.frombuffer(buf, dtype=file_dtype).reshape(xyz_to_zyx(layout.shape))
-    # the geometry comes from the command line: a bad one is not the file's fault
-    return make_volume(where, native(data), error=VolwarpError, spacing=layout.spacing,
-                       origin=layout.origin)
+    return make_volume(where, native(data), error=VolwarpError,
+                       **raw_placement(layout, where, data.shape))
+
+
+def raw_placement(layout: RawLayout, where: str, shape_zyx) -> dict:
+    """The spacing and origin a raw file's options give, checked (naming the option).
+
+    The geometry comes from the command line: a bad one is not the file's
+    fault, hence a VolwarpError rather than a FormatError (exit 1 both).
+    """
+    spacing, origin, _ = check_placement(
+        layout.spacing, layout.origin, np.eye(3), zyx_to_xyz(shape_zyx), where=where,
+        fields={"spacing": "--raw-spacing", "origin": "--raw-origin"}, error=VolwarpError)
+    return {"spacing": spacing, "origin": origin}
 
 
 def write_raw(vol: Volume, path: str | os.PathLike, *, byte_order: str = "little") -> None:

@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError, VolwarpError
-from ..volume import Volume
+from ..geometry import check_placement
+from ..volume import Volume, zyx_to_xyz
 from .atomic import atomic_output
 from .common import (
     check_dtype,
@@ -422,6 +423,7 @@ def _is_imagej_big_stack(tif, first, count: int) -> bool:
 def _geometry(tif, first, ij, data, where: str) -> Volume:
     meta: dict = {}
     spacing = [1.0, 1.0, 1.0]
+    names = ["XResolution", "YResolution", "z spacing"]  # where each axis' spacing came from
     origin = [0.0, 0.0, 0.0]
     direction = np.eye(3)
     extra = {}
@@ -430,7 +432,8 @@ def _geometry(tif, first, ij, data, where: str) -> Volume:
         if ij.get("unit"):
             meta["unit"] = str(ij["unit"])
         if "spacing" in ij:
-            spacing[2] = float(ij["spacing"])
+            spacing[2] = _floats([ij["spacing"]], 1, where, "ImageJ spacing")[0]
+            names[2] = "ImageJ spacing"
     elif tif.shaped_metadata:
         extra = tif.shaped_metadata[0]
         if "unit" in extra:
@@ -449,13 +452,16 @@ def _geometry(tif, first, ij, data, where: str) -> Volume:
                 spacing[axis] = scale * den / num
     if "volwarp_spacing" in extra:
         spacing = _floats(extra["volwarp_spacing"], 3, where, "volwarp_spacing")
+        names = ["volwarp_spacing"] * 3
     elif "spacing" in extra and not ij and not isinstance(extra["spacing"], (int, float)):
         spacing = _floats(extra["spacing"], 3, where, "spacing")
+        names = ["spacing"] * 3
     ome = _ome_spacing(tif, where) if "volwarp_spacing" not in extra else None
     if ome and any(v is not None for v in ome):
         for axis, value in enumerate(ome):
             if value is not None:
                 spacing[axis] = value
+                names[axis] = f"OME PhysicalSize{'XYZ'[axis]}"
         meta["unit"] = "mm"
         if ome[2] is None and data.shape[0] > 1:
             log.warning("%s: the OME metadata give no PhysicalSizeZ: z spacing is %g", where,
@@ -472,6 +478,9 @@ def _geometry(tif, first, ij, data, where: str) -> Volume:
             meta = dict(json.loads(extra.get("volwarp_meta", "{}")))
         except (TypeError, ValueError):
             raise FormatError(f"{where}: volwarp_meta is not valid JSON") from None
+    spacing, origin, direction = check_placement(
+        spacing, origin, direction, zyx_to_xyz(data.shape), where=where,
+        fields={"spacing": names, "origin": "volwarp_origin", "direction": "volwarp_direction"})
     return make_volume(where, native(data), spacing=spacing, origin=origin,
                        direction=direction, space=space, meta=meta)
 

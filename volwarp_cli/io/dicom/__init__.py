@@ -12,11 +12,18 @@ Finding files
     read when it is named explicitly and ends in ``.dcm`` (old files).
 
 Candidates (:func:`scan_dicom`)
+    A file that is an exact copy of another (the same SOPInstanceUID, frames
+    and pixel data, as ``cp`` leaves it) is one image stored twice: dropped
+    (the first in path order kept) with one warning saying how many.
     Images are grouped by SeriesInstanceUID, and a series is split where its
     geometry differs: FrameOfReferenceUID, ImageOrientationPatient, Rows /
     Columns, PixelSpacing, EchoNumbers; and, when a stack has several images
-    at one position, by TemporalPositionIdentifier or AcquisitionNumber
-    (only then: some scanners give every slice its own AcquisitionNumber).
+    at one position, by TemporalPositionIdentifier or AcquisitionNumber when
+    that gives whole stacks at the same positions, one image per position
+    (time points, repeated acquisitions). Any other split would cut one
+    volume into partial ones (a re-acquired slice; scanners giving every
+    slice its own AcquisitionNumber): its images at one position are
+    duplicates, resolved by ``duplicates`` below.
     Localizer images (ImageType ``LOCALIZER``) in another orientation than the
     series' main stack are dropped, and the main stack's ``why`` says so.
     Every other split part is a candidate of its own with ``why`` saying why.
@@ -41,9 +48,9 @@ Geometry
     names the gap (a multiple of the spacing is reported as missing slices),
     unless ``irregular="resample"``: then the stack is linearly interpolated
     onto a uniform grid of the smallest gap, along the normal, with a warning.
-    Images at one position: an error, or ``duplicates="first"``/``"last"``
-    keeps the first/last of them in file order (files sorted by path, frames
-    by frame number). One slice: z spacing is SpacingBetweenSlices, else 1
+    Images at one position (exact copies dropped before): an error, or
+    ``duplicates="first"``/``"last"`` keeps the first/last of them in file
+    order (files sorted by path, frames by frame number), at every position. One slice: z spacing is SpacingBetweenSlices, else 1
     (what ITK does: it ignores SliceThickness). A gantry-tilted stack (slice
     origins moving in-plane along the stack) is by default resampled onto the
     orthogonal grid that has the normal as third axis, slice by slice in the
@@ -57,8 +64,12 @@ Values
     is 1 and intercept 0, else int16 or int32 when every slope and intercept is
     an integer and the whole stored range (BitsStored, PixelRepresentation)
     maps into the type, else float32; computed in int64/float64 first. RT Dose
-    is ``stored * DoseGridScaling`` as float32 (SimpleITK leaves it unscaled).
+    is ``stored * DoseGridScaling`` as float32 (SimpleITK leaves it unscaled),
+    in the file's DoseUnits (``GY``, or ``RELATIVE`` to a reference dose: never
+    taken for Gy), kept as ``DICOM_DoseUnits``.
     Resampled volumes (tilt, irregular) are float32. Colour images are refused.
+    The grid's spacing, origin and direction obey
+    :func:`volwarp_cli.geometry.check_placement` (a refusal names the tag).
 
 Meta
     ``DICOM_<Keyword>`` for Modality, SeriesDescription, PatientPosition,

@@ -7,6 +7,7 @@ import os
 import numpy as np
 
 from ...errors import FormatError, VolwarpError
+from ...geometry import check_placement
 from ...volume import Volume
 from ..common import ensure_fits_in_memory, make_volume
 from ._geometry import plan_stack, resample
@@ -82,7 +83,29 @@ def _plan(path, *, series, irregular, duplicates, keep_shear, keep_phi, candidat
         raise FormatError(f"{f0.file.path}: {f0.problem}")
     plan = plan_stack(list(cand.frames), where, irregular=irregular, duplicates=duplicates,
                       keep_shear=keep_shear)
+    _check_plan(plan)
     return plan, output_dtype(plan.frames), _meta(cand, plan, keep_phi)
+
+
+def _check_plan(plan) -> None:
+    """The grid's placement by the one rule (:func:`~volwarp_cli.geometry.check_placement`).
+
+    A refusal names the first slice's file and the tag the number came from:
+    the slice spacing is the positions' (one slice: SpacingBetweenSlices; RT
+    Dose: GridFrameOffsetVector).
+    """
+    f0 = plan.frames[0]
+    if plan.n_out == 1:
+        z_name = "SpacingBetweenSlices"
+    elif f0.file.dose_scaling is not None and f0.file.n_frames > 1:
+        z_name = "GridFrameOffsetVector"
+    else:
+        z_name = "ImagePositionPatient"
+    shape = (f0.file.columns, f0.file.rows, plan.n_out)
+    plan.spacing, plan.origin, plan.direction = check_placement(
+        plan.spacing, plan.origin, plan.direction, shape, where=f0.file.path,
+        fields={"spacing": ("PixelSpacing", "PixelSpacing", z_name),
+                "origin": "ImagePositionPatient", "direction": "ImageOrientationPatient"})
 
 
 class LazyDicom:

@@ -75,6 +75,7 @@ class FileInfo:
     pixel_length: int | None
     dose_scaling: float | None
     meta: dict
+    sop_uid: str = ""
 
 
 @dataclass
@@ -386,7 +387,7 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
                     signed=signed, samples=samples, n_frames=n_frames, pixel_offset=offset,
                     pixel_length=length,
                     dose_scaling=_float(ds, "DoseGridScaling", 1.0, where) if is_dose else None,
-                    meta=meta)
+                    meta=meta, sop_uid=_text(ds, "SOPInstanceUID"))
     series_uid = _text(ds, "SeriesInstanceUID") or "(no SeriesInstanceUID)"
     common = {"FrameOfReferenceUID": _text(ds, "FrameOfReferenceUID"),
               "Rows/Columns": (rows, cols)}
@@ -575,6 +576,33 @@ def _has_duplicates(frames: list[Frame]) -> bool:
     return bool(np.any(np.diff(d) <= 0.01))
 
 
+def _whole_stacks(members: list[Frame]) -> list[tuple[list[Frame], str]] | None:
+    """Parts by TemporalPositionIdentifier or AcquisitionNumber, when they are whole stacks.
+
+    Time points and repeated acquisitions are whole stacks at the same positions,
+    each with one image per position: candidates of their own. Any other split
+    (a re-acquired slice, scanners giving every slice its own AcquisitionNumber)
+    would cut one volume into partial ones: None, and the images sharing a
+    position are duplicates, which ``duplicates="first"|"last"`` resolves.
+    """
+    for name in ("TemporalPositionIdentifier", "AcquisitionNumber"):
+        values = sorted({m.split_keys.get(name, "") for m in members})
+        if len(values) < 2:
+            continue
+        parts = [[m for m in members if m.split_keys.get(name, "") == v] for v in values]
+        if not any(_has_duplicates(p) for p in parts) and _same_positions(parts):
+            return [(p, f"{name} {v or '(none)'} of {len(values)} at the same positions")
+                    for p, v in zip(parts, values, strict=True)]
+    return None
+
+
+def _same_positions(parts: list[list[Frame]]) -> bool:
+    """True when every part has its images at the same positions along the normal (0.01 mm)."""
+    normal = np.cross(parts[0][0].row, parts[0][0].col)
+    ds = [np.sort(np.array([f.position @ normal for f in p])) for p in parts]
+    return all(len(d) == len(ds[0]) and np.allclose(d, ds[0], rtol=0, atol=0.01) for d in ds)
+
+
 def _split(frames: list[Frame]) -> list[tuple[list[Frame], str]]:
     """Geometry groups of one series' frames, each with why it was split (or "")."""
     groups: list[tuple[dict, list[Frame]]] = []
@@ -587,15 +615,7 @@ def _split(frames: list[Frame]) -> list[tuple[list[Frame], str]]:
             groups.append((f.keys, [f]))
     out = []
     for keys, members in groups:
-        parts = [(members, "")]
-        if _has_duplicates(members):
-            for name in ("TemporalPositionIdentifier", "AcquisitionNumber"):
-                values = sorted({m.split_keys.get(name, "") for m in members})
-                if len(values) > 1:
-                    parts = [([m for m in members if m.split_keys.get(name, "") == v],
-                              f"{name} {v or '(none)'} of {len(values)} at the same positions")
-                             for v in values]
-                    break
+        parts = (_has_duplicates(members) and _whole_stacks(members)) or [(members, "")]
         out.extend((keys, p, why) for p, why in parts)
     if len(out) == 1:
         return [(out[0][1], out[0][2])]
@@ -612,6 +632,89 @@ def _split(frames: list[Frame]) -> list[tuple[list[Frame], str]]:
             why = "own file without per-frame positions"
         result.append((members, why))
     return result
+
+
+# -- exact copies ---------------------------------------------------------------------
+
+def _drop_exact_copies(frames: list[Frame], where: str) -> list[Frame]:
+    """The frames without those of files that are exact copies of another (``cp`` leaves them).
+
+    A copy has the SOPInstanceUID of its original, the same frames (positions,
+    orientation, spacing, rescale) and the same pixel data: one image stored
+    twice, not a second image at its position. The first file (path order) is
+    kept and one warning says how many were dropped; a file with another's
+    SOPInstanceUID but other pixels or geometry stays (then a duplicate position,
+    or a slice of its own).
+    """
+    by_uid: dict[str, list[FileInfo]] = {}
+    signatures: dict[int, list[tuple]] = {}
+    for f in frames:
+        if f.file.sop_uid and id(f.file) not in signatures:
+            by_uid.setdefault(f.file.sop_uid, []).append(f.file)
+        signatures.setdefault(id(f.file), []).append(_frame_signature(f))
+    copies: dict[int, tuple[FileInfo, FileInfo]] = {}
+    for files in by_uid.values():
+        kept: list[FileInfo] = []
+        for info in files:
+            original = next((k for k in kept if signatures[id(k)] == signatures[id(info)]
+                             and _same_pixels(k, info)), None)
+            if original is None:
+                kept.append(info)
+            else:
+                copies[id(info)] = (info, original)
+    if not copies:
+        return frames
+    copy, original = next(iter(copies.values()))
+    more = f" (and {len(copies) - 1} more)" if len(copies) > 1 else ""
+    log.warning("warning: %s: %d exact duplicate file(s) dropped (the same SOPInstanceUID and "
+                "pixel data as another file): %s repeats %s%s", where, len(copies),
+                copy.label, original.label, more)
+    return [f for f in frames if id(f.file) not in copies]
+
+
+def _frame_signature(f: Frame) -> tuple:
+    """What places a frame and maps its values: equal for a frame and its copy."""
+    def tup(v):
+        return None if v is None else tuple(np.round(np.asarray(v, dtype=float), 6).tolist())
+
+    return (f.frame, tup(f.position), tup(f.row), tup(f.col), f.pixel_spacing, f.slope,
+            f.intercept, f.single_spacing, f.series_uid)
+
+
+def _same_pixels(a: FileInfo, b: FileInfo) -> bool:
+    """True when two files hold the same pixel data (the stored bytes, or decoded values)."""
+    layout = ("rows", "columns", "n_frames", "bits_allocated", "bits_stored", "signed", "samples")
+    if any(getattr(a, k) != getattr(b, k) for k in layout):
+        return False
+    if a.pixel_offset is not None and b.pixel_offset is not None:
+        return a.transfer_syntax == b.transfer_syntax and _same_stored(a, b)
+    try:
+        if a.transfer_syntax == b.transfer_syntax:
+            return _dataset(a).PixelData == _dataset(b).PixelData
+        return bool(np.array_equal(_dataset(a).pixel_array, _dataset(b).pixel_array))
+    except Exception:  # an unreadable file is not shown to be a copy: kept, read as usual
+        return False
+
+
+def _same_stored(a: FileInfo, b: FileInfo, chunk: int = 1 << 22) -> bool:
+    """Byte-for-byte equal raw PixelData values, compared a chunk at a time."""
+    if a.pixel_length != b.pixel_length:
+        return False
+    with open(a.path, "rb") as fa, open(b.path, "rb") as fb:
+        fa.seek(a.pixel_offset)
+        fb.seek(b.pixel_offset)
+        left = a.pixel_length or 0
+        while left > 0:
+            n = min(chunk, left)
+            if fa.read(n) != fb.read(n):
+                return False
+            left -= n
+    return True
+
+
+def _dataset(info: FileInfo):
+    """The whole data set of a file (compressed or deflated pixel data)."""
+    return _read_dataset(info.path, force=not _has_preamble(info.path), stop=False)[0]
 
 
 def _drop_localizers(parts):
@@ -657,6 +760,7 @@ def scan_dicom(path) -> list[Candidate]:
             else:
                 log.debug("%s: skipped (%s)", full, reason)
         frames.extend(got)
+    frames = _drop_exact_copies(frames, str(path))
     for kind, names in stubs.items():  # one line per kind, not one per file
         more = f" and {len(names) - 1} more" if len(names) > 1 else ""
         log.warning("%s%s: %s without PixelData (truncated file?): skipped", names[0], more,
