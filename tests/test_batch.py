@@ -23,9 +23,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from volwarp_cli import __version__
+from volwarp_cli.batch.lock import BOOK_DIR
 from volwarp_cli.batch.manifest import find_scans, load_manifest, shard, stem_of
-from volwarp_cli.batch.plan import STATE_NAME
 from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.runscope import run_scope
 from volwarp_cli.volume import Volume
 
 # relative path under scans/ -> scan id
@@ -87,10 +88,15 @@ def summary(res) -> str:
     return lines[0]
 
 
+def bookkeeping(path: Path) -> bool:
+    """The batch's own files (its state and locks, in OUT/.volwarp-batch/)."""
+    return BOOK_DIR in path.parts
+
+
 def snapshot(folder: Path) -> dict:
     return {str(p.relative_to(folder)): (p.stat().st_mtime_ns,
                                          hashlib.sha256(p.read_bytes()).hexdigest())
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+            for p in sorted(folder.rglob("*")) if p.is_file() and not bookkeeping(p)}
 
 
 @pytest.fixture(scope="module")
@@ -125,7 +131,7 @@ def test_chain_outputs_mirror_folders_and_equal_hand_runs(warped, tmp_path):
         assert meta["volwarp_input"] == Path(rel).name
         assert read_volume(out / s.name).meta["volwarp_input"] == w.name
     assert sorted(str(p.relative_to(root / "out")) for p in (root / "out").rglob("*")
-                  if p.is_file() and p.name != STATE_NAME) == sorted(
+                  if p.is_file() and not bookkeeping(p)) == sorted(
         f"{sid}{suffix}" for sid in SCANS.values() for suffix in ("_sdf.nrrd", "_warped.nrrd"))
 
 
@@ -179,12 +185,12 @@ def test_changed_spec_or_force_redoes(warped, tmp_path):
     steps = [s for scan in json.loads((root / "r.json").read_text())["scans"]
              for s in scan["steps"]]
     assert {s["status"] for s in steps} == {"ok"}
-    # a touched spec (same bytes, newer): redone too, as Make does
+    # a touched spec (same bytes, newer): up to date (the content decides, not the date)
     assert volwarp("batch", root / "manifest.yaml").returncode == 0
     future = time.time() + 5
     os.utime(spec, (future, future))
     res = volwarp("batch", root / "manifest.yaml")
-    assert summary(res) == "volwarp batch: 3 scans, 3 ok, 0 skipped, 0 failed", res.stderr
+    assert summary(res) == "volwarp batch: 3 scans, 0 ok, 3 skipped, 0 failed", res.stderr
     # --force redoes what is up to date, with the same bytes
     before = {k: v[1] for k, v in snapshot(root / "out").items()}
     res = volwarp("batch", root / "manifest.yaml", "--force")
@@ -197,7 +203,8 @@ def test_output_with_other_provenance_is_redone(warped, tmp_path):
     shutil.copytree(warped[0], root)
     # a newer output made from another spec: its times say "up to date", its provenance not
     victim = root / "out" / "site-b" / "p03_warped.nrrd"
-    vol = read_volume(victim)
+    with run_scope():  # (read here, written in another scope: no output over an input)
+        vol = read_volume(victim)
     write_volume(vol.with_data(vol.data, meta={**vol.meta, "volwarp_spec_sha256": "0" * 64}),
                  victim)
     res = volwarp("batch", root / "manifest.yaml")
@@ -223,7 +230,7 @@ def test_bad_scan_fails_alone(tmp_path):
         assert (tmp_path / "out" / f"{scan_id}_sdf.nrrd").is_file()
     assert not (tmp_path / "out" / "site-a" / "p01.nrrd").exists()
     assert not [p for p in (tmp_path / "out").rglob(".*")
-                if p.name != STATE_NAME]  # no temporary left
+                if not bookkeeping(p)]  # no temporary left
     report = json.loads((tmp_path / "r.json").read_text())
     bad = next(s for s in report["scans"] if s["scan"] == "site-a/p01")
     assert bad["status"] == "failed" and bad["error"].startswith("volwarp: error: ")
@@ -236,7 +243,7 @@ def test_bad_scan_fails_alone(tmp_path):
     assert res.returncode == 1, res.stderr
     assert summary(res).startswith(
         "volwarp batch: 3 scans, 0 ok, 0 skipped, 1 failed, 2 not started: site-a/p01 (")
-    assert not any(p.is_file() for p in (tmp_path / "out").rglob("*"))
+    assert not any(p.is_file() and not bookkeeping(p) for p in (tmp_path / "out").rglob("*"))
 
 
 def test_shards_cover_every_scan_once(tmp_path):
@@ -302,7 +309,8 @@ MALFORMED = {
         "version: 1\ninputs: {list: [scans/site-a/p02.nrrd], root: scans}\noutput_dir: scans\n"
         "steps:\n  - {name: conv, run: convert, output: \"{stem}.nrrd\", "
         "options: [\"--dtype\", \"uint8\"]}\n",
-        r"manifest\.yaml:5: steps\[0\]\.output: .*p02\.nrrd is the scan 'site-a/p02' itself"),
+        r"manifest\.yaml:5: steps\[0\]\.output: scan site-a/p02: -o .*p02\.nrrd would "
+        r"overwrite the input .*p02\.nrrd; volwarp never replaces an input"),
     "two steps, one output": (
         CONVERT_MANIFEST.replace('output: "{stem}_sdf.nrrd"', 'output: "{stem}.nrrd"'),
         r"manifest\.yaml:6: steps\[1\]\.output: .* also written by step 'conv'"),
@@ -412,7 +420,7 @@ def test_sigterm_stops_the_batch(tmp_path):
     assert report["stopped_by"] == "SIGTERM" and report["exit_code"] == 143
     assert report["scans"][0]["status"] == "ok"
     assert not [p for p in (tmp_path / "out").rglob(".*")
-                if p.name != STATE_NAME]  # no temporary left
+                if not bookkeeping(p)]  # no temporary left
     # a rerun finishes the job, skipping what was done
     res = volwarp("batch", manifest)
     assert res.returncode == 0

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from volwarp_cli.batch.plan import STATE_NAME
+from volwarp_cli.batch.lock import BOOK_DIR
 from volwarp_cli.io import write_volume
 
 pytest.importorskip("distributed")
@@ -46,13 +46,13 @@ def make_tree(root: Path) -> Path:
 
 def outputs(root: Path) -> dict[str, bytes]:
     return {str(p.relative_to(root / "out")): p.read_bytes()
-            for p in sorted((root / "out").rglob("*")) if p.is_file() and p.name != STATE_NAME}
+            for p in sorted((root / "out").rglob("*")) if p.is_file() and BOOK_DIR not in p.parts}
 
 
 def leftovers(root: Path) -> list[Path]:
     """Temporaries (hidden files, ``.part``) anywhere under the output folder."""
     return [p for p in (root / "out").rglob("*")
-            if p.name != STATE_NAME and (p.name.startswith(".") or p.suffix == ".part")]
+            if BOOK_DIR not in p.parts and (p.name.startswith(".") or p.suffix == ".part")]
 
 
 @pytest.fixture(scope="module")

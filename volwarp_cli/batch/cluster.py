@@ -3,9 +3,10 @@
 Each scan is one ``distributed`` task (:func:`scan_task`) that runs the
 scan's steps as child processes on its worker with :class:`.run.ScanRunner`,
 the local pool's code, and returns the picklable :class:`.run.ScanResult`.
-The batch process stays the only writer of the command record: a task reads
-a snapshot of the record's entries for its scan, and the steps it ran are
-recorded when its result arrives.
+The batch process stays the only writer of the record: a task reads a
+snapshot of the record's entries for its scan (and of the file hash cache),
+and what the steps it ran made, with the hashes it computed, is kept when
+its result arrives.
 
 - A worker that dies (killed, out of memory, its machine gone) loses its
   tasks; the scheduler runs them again elsewhere, up to its
@@ -87,7 +88,7 @@ def host_threads(scheduler_info: dict) -> dict[str, int]:
     return out
 
 
-def scan_task(manifest: Manifest, scan: Scan, made: dict[str, str], run_id: str, *,
+def scan_task(manifest: Manifest, scan: Scan, made: tuple[dict, dict], run_id: str, *,
               force: bool, step_retries: int, child_threads: int | None,
               thumbnails: bool, hosts: dict | None = None) -> ScanResult:
     """One scan's steps on this worker (a distributed task); its :class:`ScanResult`."""
@@ -113,7 +114,7 @@ def scan_task(manifest: Manifest, scan: Scan, made: dict[str, str], run_id: str,
     runner = ScanRunner(manifest, force=force, retries=step_retries,
                         child_threads=child_threads,
                         record=RecordSnapshot(manifest, made), children=children,
-                        thumbnails=thumbnails, on_start=started)
+                        thumbnails=thumbnails, on_start=started, ships_hashes=True)
     result = runner.run(scan)
     result.worker = worker.address
     return result
@@ -173,6 +174,7 @@ class ClusterBatch:
             results = self._run()
         finally:
             restore_handlers(handlers)
+            self.record.flush()
             try:
                 self.client.unsubscribe_topic(topic)
                 self.client.run(forget_run, self.run_id)
@@ -287,10 +289,9 @@ class ClusterBatch:
                 result = _failed(scan, WORKER_DIED)
             else:
                 result = _failed(scan, f"internal error: {type(exc).__name__}: {exc}")
-        if result.status in ("ok", "failed"):
-            plans = {p.step.name: p for p in plan_scan(self.manifest, scan)}
-            self.record.record_many([plans[s.name] for s in result.steps
-                                     if s.status == "ok" and s.name in plans])
+        made = {k: v for step in result.steps if step.status == "ok" and step.made
+                for k, v in step.made.items()}
+        self.record.keep(made, result.hashed)
         if self.on_scan is not None:
             self.on_scan(result)
         return result

@@ -6,7 +6,8 @@ through. Everything that can be wrong with it is a :class:`SpecError` (exit 2)
 naming the key path and its line: an unknown subcommand, a step reading a
 step that does not come before it, a missing output pattern, an unknown
 placeholder, an option the manifest sets itself (``-o``, ``--spec``), an
-output extension the step cannot write. The scans are found here too
+output extension the step cannot write, an option or a spec the step's own
+command refuses (:mod:`.steps`). The scans are found here too
 (:func:`find_scans`), so two scans that would share outputs are refused before
 anything runs.
 """
@@ -45,6 +46,8 @@ class Step:
     output: str  # the pattern
     spec: Path | None
     options: tuple[str, ...]
+    #: the files the step reads besides its input (its spec, its options' files), absolute
+    inputs: tuple[Path, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -197,6 +200,9 @@ def load_manifest(path: str | Path) -> Manifest:
     manifest = Manifest(path=path, base=base,
                         output_dir=doc.resolve(doc.data["output_dir"]).absolute(),
                         steps=steps, doc=doc)
+    from .steps import check_steps
+
+    manifest.steps = check_steps(manifest)  # each step's options and spec, by its command
     manifest.sha256 = hashlib.sha256(path.read_bytes()).hexdigest()
     for step in steps:
         if step.spec is not None and str(step.spec) not in manifest.specs:
@@ -222,7 +228,8 @@ def find_scans(manifest: Manifest) -> list[Scan]:
     paths: list[tuple[Path, tuple]] = []  # (file, the key that named it)
     if "glob" in inputs:
         pattern = str(doc.resolve(inputs["glob"]))
-        root = doc.resolve(inputs.get("root", _glob_root(pattern)))
+        # (the pattern is resolved already: its root is not resolved again)
+        root = doc.resolve(inputs["root"]) if "root" in inputs else Path(_glob_root(pattern))
         out = manifest.output_dir.resolve()
         for name in sorted(glob.glob(pattern, recursive=True)):
             p = Path(name)

@@ -1,29 +1,45 @@
-"""What each scan's steps are, concretely, and whether they are up to date (Make's habit).
+"""What each scan's steps are, concretely, and whether they are up to date (by content).
 
 A step's plan is its command line (``volwarp RUN INPUT [--spec S] -o OUT
 OPTIONS -q``), its input (the scan, or an earlier step's output) and its
 outputs: ``-o`` and every option value holding a placeholder (a mesh's
 ``--render {stem}.png``), all under the output folder.
 
-A step is up to date when every output exists, none is older than the step's
-input and spec, and, for a volume written by a command that stamps its
-provenance (warp, distance), the provenance read back with volwarp's own
-reader records the same input name, spec sha256, command and volwarp version.
-Meshes, renders, capture files and converted volumes (convert keeps its
-input's key/values) carry less: for them the modification times decide.
+A step is up to date when what its outputs were made from is what it would
+be made from now, and its outputs are still what it made. "Made from" is
+volwarp's version, the step as the manifest defines it (its options) and the
+sha256 of every file it reads (its input with the data files its header
+names, its spec, the files its options name): :func:`made_from`. The record
+(:class:`CommandRecord`, ``OUT/.volwarp-batch/state.json``) keeps that for
+each output with the output's own sha256. Dates decide nothing: a scan
+replaced by an older-dated one (``rsync -a``, ``cp -p``) is redone, a touched
+one is not. Hashes are cached by each file's inode, size, mtime and ctime
+(:mod:`.content`), so an unchanged tree is not read again.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
+import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from .. import __version__
+from .content import FileHashes, content_digest
+from .lock import BOOK_DIR
 from .manifest import SCAN, Manifest, Scan, Step, fill, placeholders
 
-#: the subcommands whose volume outputs carry volwarp_* provenance of their own
-STAMPING = ("warp", "distance")
+#: in the output folder: what each output was made from, and the file hash cache
+STATE_NAME = f"{BOOK_DIR}/state.json"
+#: held while the state file is merged and rewritten (shards share the file)
+STATE_LOCK_NAME = f"{BOOK_DIR}/state.lock"
+#: the state file's format (an older one is ignored: its outputs are made again)
+STATE_VERSION = 2
+#: seconds between rewrites of the state file during a run (and once at its end)
+FLUSH_SECONDS = 1.0
 
 
 @dataclass
@@ -35,11 +51,17 @@ class StepPlan:
     output: Path
     extra_outputs: list[Path] = field(default_factory=list)
     argv: list[str] = field(default_factory=list)  # after ``volwarp``
+    extra_options: list[str] = field(default_factory=list)  # the option of each extra output
 
     @property
     def outputs(self) -> list[Path]:
         """Every file the step writes: ``-o`` first, then the placeholder option values."""
         return [self.output, *self.extra_outputs]
+
+    @property
+    def output_options(self) -> list[str]:
+        """The option naming each of :attr:`outputs` (``-o``, ``--render``...)."""
+        return ["-o", *self.extra_options]
 
 
 def output_path(manifest: Manifest, scan: Scan, pattern: str) -> Path:
@@ -59,11 +81,13 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
     for step in manifest.steps:
         source = scan.path if step.input == SCAN else plans[step.input].output
         output = output_path(manifest, scan, step.output)
-        options, extra = [], []
-        for value in step.options:
+        options, extra, flags = [], [], []
+        for k, value in enumerate(step.options):
             if placeholders(value):
                 path = output_path(manifest, scan, value)
                 extra.append(path)
+                flags.append(step.options[k - 1] if k and step.options[k - 1].startswith("-")
+                             else "an output")
                 options.append(str(path.absolute()))
             else:
                 options.append(value)
@@ -71,19 +95,8 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
         if step.spec is not None:
             argv += ["--spec", str(step.spec.absolute())]
         argv += ["-o", str(output.absolute()), *options, "-q"]
-        plans[step.name] = StepPlan(step, Path(source), output, extra, argv)
+        plans[step.name] = StepPlan(step, Path(source), output, extra, argv, flags)
     return list(plans.values())
-
-
-def _mtime(path: Path) -> int | None:
-    try:
-        return os.stat(path).st_mtime_ns
-    except OSError:
-        return None
-
-
-#: in the output folder: each output's command (sha256 of its argv), written as steps end
-STATE_NAME = ".volwarp-batch-state.json"
 
 
 def command_digest(manifest: Manifest, plan: StepPlan) -> str:
@@ -91,154 +104,235 @@ def command_digest(manifest: Manifest, plan: StepPlan) -> str:
 
     Paths are relative to the manifest, so a tree moved elsewhere is still up to date.
     """
-    import hashlib
-    import json
-
     step = plan.step
     spec = None if step.spec is None else os.path.relpath(step.spec, manifest.base)
     text = json.dumps([step.run, step.input, step.output, spec, list(step.options)])
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-class CommandRecord:
-    """Which command made each output (``STATE_NAME``).
+def step_files(manifest: Manifest, plan: StepPlan) -> list[tuple[str, Path]]:
+    """``(name, path)`` of every file the step reads: its input, then its spec and option files.
 
-    Options changed since an output was made (``--crop`` added, ``--iso 20`` to 60)
-    make it stale, which neither times nor the outputs' provenance (it names the
-    command, not its options) would show.
+    The input is named by its file name (as its outputs' provenance names it),
+    the others relative to the manifest (a moved tree keeps its names).
+    """
+    fixed = list(plan.step.inputs) or ([plan.step.spec] if plan.step.spec else [])
+    out = [(plan.input.name, plan.input)]
+    out += [(os.path.relpath(p, manifest.base), Path(p)) for p in fixed
+            if Path(p).absolute() != plan.input.absolute()]
+    return out
+
+
+def made_from(manifest: Manifest, plan: StepPlan, hashes: FileHashes) -> dict:
+    """What the step's outputs would be made from now (raises OSError for a missing input)."""
+    return {"volwarp": __version__, "command": command_digest(manifest, plan),
+            "inputs": [[name, content_digest(path, hashes)]
+                       for name, path in step_files(manifest, plan)]}
+
+
+def _difference(old: dict, new: dict) -> str | None:
+    """Why an output made from ``old`` is stale now that it would be made from ``new``."""
+    if old.get("volwarp") != new["volwarp"]:
+        return f"volwarp's version changed ({old.get('volwarp')} -> {new['volwarp']})"
+    if old.get("command") != new["command"]:
+        return "its options changed"
+    before = {name: digest for name, digest in old.get("inputs", [])}
+    for name, digest in new["inputs"]:
+        if before.get(name) != digest:
+            return f"{name} changed" if name in before else f"it reads {name} now"
+    if len(before) != len(new["inputs"]):
+        return "it reads other files now"
+    return None
+
+
+def stale_reason(manifest: Manifest, plan: StepPlan, record: CommandRecord, made: dict
+                 ) -> str | None:
+    """Why ``plan``'s outputs must be (re)made from ``made``, or None when they are up to date."""
+    for out in plan.outputs:
+        entry = record.entry(out)
+        if entry is None:
+            return f"{out.name}: not made by this batch before"
+        why = _difference(entry, made)
+        if why is not None:
+            return why
+        try:
+            now = content_digest(out, record.hashes)
+        except OSError:
+            return f"{out.name} is missing"
+        if now != entry.get("sha256"):
+            return f"{out.name} was changed since it was made"
+    return None
+
+
+def _read_state(path: Path) -> tuple[dict, dict]:
+    """``(outputs, files)`` of a state file; empty for a missing, damaged or older one."""
+    try:
+        data = json.loads(path.read_text())
+        if data.get("version") == STATE_VERSION:
+            return dict(data["outputs"]), dict(data["files"])
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        pass
+    return {}, {}
+
+
+class CommandRecord:
+    """What each output was made from, and the file hash cache (``STATE_NAME``).
+
+    One writer per process; shards of one folder merge theirs under a lock
+    (:meth:`flush`). Written at most every :data:`FLUSH_SECONDS` and at the
+    end of the run: a batch killed outright loses a second of records at most,
+    whose steps run again next time.
     """
 
     def __init__(self, manifest: Manifest):
-        import json
-        import threading
-
         self.manifest = manifest
         self.path = manifest.output_dir / STATE_NAME
         self.lock = threading.Lock()
-        try:
-            self.made = dict(json.loads(self.path.read_text()))
-        except (OSError, ValueError, TypeError):
-            self.made = {}
+        self.outputs, files = _read_state(self.path)
+        self.hashes = FileHashes(files)
+        self._dirty: dict[str, dict] = {}
+        self._flushed = time.monotonic()
 
     def _key(self, path: Path) -> str:
-        return os.path.relpath(path.absolute(), self.manifest.output_dir)
+        return os.path.relpath(Path(path).absolute(), self.manifest.output_dir)
 
-    def matches(self, plan: StepPlan) -> bool:
-        """True when every output of ``plan`` was made by the step as it is defined now."""
-        digest = command_digest(self.manifest, plan)
-        return all(self.made.get(self._key(p)) == digest for p in plan.outputs)
+    def entry(self, path: Path) -> dict | None:
+        """What the output ``path`` was recorded as made from, or None."""
+        with self.lock:
+            entry = self.outputs.get(self._key(path))
+        return entry if isinstance(entry, dict) else None
 
-    def record(self, plan: StepPlan) -> None:
-        """Note that the step made the outputs of ``plan`` (the state file rewritten atomically)."""
-        self.record_many([plan])
+    def entries(self, plan: StepPlan, made: dict) -> dict[str, dict] | None:
+        """The record of ``plan``'s outputs just made from ``made`` (None: one is missing)."""
+        out = {}
+        for path in plan.outputs:
+            try:
+                out[self._key(path)] = {**made, "sha256": content_digest(path, self.hashes)}
+            except OSError:
+                return None
+        return out
 
-    def record_many(self, plans: list[StepPlan]) -> None:
-        """Note that the steps made the outputs of ``plans`` (one rewrite of the state file)."""
-        import json
+    def keep(self, entries: dict[str, dict], files: dict[str, list] | None = None) -> None:
+        """Note ``entries`` (and hashes a cluster task computed); written now and then."""
+        with self.lock:
+            self.outputs.update(entries)
+            self._dirty.update(entries)
+            if files:
+                self.hashes.entries.update(files)
+                self.hashes.fresh.update(files)
+            due = time.monotonic() - self._flushed >= FLUSH_SECONDS
+        if due:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the state file, merged with what other shards wrote meanwhile."""
+        import fcntl
 
         from ..io.atomic import write_bytes_atomic
 
-        if not plans:
-            return
         with self.lock:
-            for plan in plans:
-                for p in plan.outputs:
-                    self.made[self._key(p)] = command_digest(self.manifest, plan)
+            if not self._dirty and not self.hashes.fresh:
+                return
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            write_bytes_atomic(self.path, json.dumps(self.made, sort_keys=True,
-                                                     indent=1).encode())
+            fd = os.open(self.manifest.output_dir / STATE_LOCK_NAME,
+                         os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+                outputs, files = _read_state(self.path)
+                outputs.update(self._dirty)
+                files.update(self.hashes.fresh)
+                write_bytes_atomic(self.path, json.dumps(
+                    {"version": STATE_VERSION, "outputs": outputs, "files": files},
+                    sort_keys=True, separators=(",", ":")).encode())
+            finally:
+                os.close(fd)
+            self._dirty.clear()
+            self.hashes.fresh.clear()
+            self._flushed = time.monotonic()
 
-    def snapshot(self, plans: list[StepPlan]) -> dict[str, str]:
-        """The record's entries for the outputs of ``plans`` (what a cluster task needs)."""
+    def snapshot(self, plans: list[StepPlan]) -> tuple[dict, dict]:
+        """The record's entries for ``plans``' outputs and files (what a cluster task needs)."""
         keys = {self._key(p) for plan in plans for p in plan.outputs}
+        roots = [os.path.abspath(path) for plan in plans
+                 for path in [*plan.outputs, *(p for _, p in step_files(self.manifest, plan))]]
+        roots += [str(f) for plan in plans for f in _data_files(plan.input)]
         with self.lock:
-            return {k: v for k, v in self.made.items() if k in keys}
+            outputs = {k: v for k, v in self.outputs.items() if k in keys}
+        return outputs, self.hashes.subset(roots)
+
+
+def _data_files(path: Path) -> list[str]:
+    from ..io.inputs import input_files
+
+    return [os.path.abspath(f) for f in input_files(path)[1:]]
 
 
 class RecordSnapshot(CommandRecord):
-    """A :class:`CommandRecord` read from a snapshot (a cluster task's), noting nothing.
+    """A :class:`CommandRecord` read from a snapshot (a cluster task's), writing nothing.
 
-    The batch process records the steps a task ran when its result arrives: one
+    The batch process keeps what a task made when its result arrives: one
     writer of the state file, however many workers.
     """
 
-    def __init__(self, manifest: Manifest, made: dict[str, str]):
-        import threading
-
+    def __init__(self, manifest: Manifest, snapshot: tuple[dict, dict]):
         self.manifest = manifest
         self.path = manifest.output_dir / STATE_NAME
         self.lock = threading.Lock()
-        self.made = dict(made)
+        self.outputs = dict(snapshot[0])
+        self.hashes = FileHashes(snapshot[1])
+        self._dirty = {}
+        self._flushed = time.monotonic()
 
-    def record_many(self, plans: list[StepPlan]) -> None:
-        """Nothing: the batch process records."""
+    def keep(self, entries: dict[str, dict], files: dict[str, list] | None = None) -> None:
+        """Only in memory: the batch process writes."""
+        with self.lock:
+            self.outputs.update(entries)
+
+    def flush(self) -> None:
+        """Nothing: the batch process writes."""
+
+
+def _located(manifest: Manifest, key: tuple, message: str):
+    """A spec error at ``key`` of the manifest, its message whole (both paths in it)."""
+    from ..errors import SpecError
+    from ..spec.loader import format_key
+
+    return SpecError(message, file=manifest.doc.file, key=format_key(key),
+                     line=manifest.doc.line(key))
 
 
 def check_outputs(manifest: Manifest, scans: list[Scan]) -> None:
-    """Refuse, before any work, an output that is a scan or that two steps both write."""
-    inputs = {str(s.path.resolve()): s for s in scans}
-    writers: dict[str, tuple[Scan, Step]] = {}
+    """Refuse, before any work, an output over an input or that two steps both write.
+
+    An input is a scan (any scan's files, a detached header's data files too)
+    or a file a step reads (its spec, an option's file); symbolic and hard
+    links are followed (:func:`..io.inputs.refuse_output_over_input`).
+    """
+    from ..errors import BadUsage
+    from ..io.inputs import input_files, output_files, refuse_output_over_input
+
+    scan_files = {os.path.realpath(f): s for s in scans for f in input_files(s.path)}
+    fixed = sorted({str(p) for step in manifest.steps for p in step.inputs})
+    writers: dict[str, Step] = {}
     for scan in scans:
         for plan in plan_scan(manifest, scan):
             key = ("steps", plan.step.index, "output")
-            for out in plan.outputs:
-                real = str(out.resolve())
-                if real in inputs:
-                    raise manifest.doc.error(key, f"{out} is the scan {inputs[real].id!r} "
-                                                  "itself: an output never replaces an input")
+            for out, option in zip(plan.outputs, plan.output_options, strict=True):
+                try:
+                    refuse_output_over_input(out, inputs=[str(scan.path), *fixed],
+                                             option=option)
+                except BadUsage as exc:
+                    raise _located(manifest, key, f"scan {scan.id}: {exc}") from None
+                for target in output_files(out):
+                    other = scan_files.get(os.path.realpath(target))
+                    if other is not None:
+                        raise _located(manifest, key, f"{option} {out} would overwrite the "
+                                                      f"scan {other.id!r} ({other.path}); "
+                                                      "volwarp never replaces an input")
+                real = os.path.realpath(out)
                 if real in writers:
-                    other = writers[real][1]
+                    other_step = writers[real]
                     raise manifest.doc.error(key, f"{out} is also written by step "
-                                                  f"{other.name!r} (steps[{other.index}])")
-                writers[real] = (scan, plan.step)
-
-
-def stale_reason(manifest: Manifest, plan: StepPlan, record: CommandRecord | None = None
-                 ) -> str | None:
-    """Why ``plan``'s outputs must be (re)made, or None when they are up to date."""
-    if record is not None and not record.matches(plan):
-        return "its command (options) changed, or this batch did not make it"
-    sources = [plan.input] + ([plan.step.spec] if plan.step.spec is not None else [])
-    newest = 0
-    for src in sources:
-        t = _mtime(src)
-        if t is None:
-            return f"{src} is missing"  # the step runs, and says what is wrong
-        newest = max(newest, t)
-    for out in plan.outputs:
-        t = _mtime(out)
-        if t is None:
-            return f"{out.name} is missing"
-        if t < newest:
-            return f"{out.name} is older than its input or spec"
-    if plan.step.run in STAMPING and _is_volume(plan.output):
-        return _provenance_differs(manifest, plan)
-    return None
-
-
-def _is_volume(path: Path) -> bool:
-    from ..errors import VolwarpError
-    from ..io import volume_format
-
-    try:
-        volume_format(path)
-    except VolwarpError:
-        return False
-    return True
-
-
-def _provenance_differs(manifest: Manifest, plan: StepPlan) -> str | None:
-    from ..io import read_volume
-
-    try:
-        meta = read_volume(plan.output).meta
-    except Exception:  # unreadable: remake it  # noqa: BLE001
-        return f"{plan.output.name} cannot be read"
-    spec = plan.step.spec
-    want = {"volwarp_version": __version__, "volwarp_command": plan.step.run,
-            "volwarp_input": plan.input.name,
-            "volwarp_spec_sha256": manifest.specs[str(spec)] if spec is not None else None}
-    for key, value in want.items():
-        if meta.get(key) != value:
-            return f"{plan.output.name}: {key} differs"
-    return None
+                                                  f"{other_step.name!r} "
+                                                  f"(steps[{other_step.index}])")
+                writers[real] = plan.step

@@ -15,8 +15,9 @@ threads of the batch process, each waiting on its own child. The cluster form
 (:mod:`.cluster`) submits each scan as one task whose worker runs the same
 :class:`ScanRunner`.
 
-- Up-to-date steps are skipped (:func:`..plan.stale_reason`) unless ``force``; a
-  step whose input step ran, runs.
+- Up-to-date steps are skipped (:func:`..plan.stale_reason`: by the content of
+  what they read, never by dates) unless ``force``; a step whose input step ran
+  runs when that input's bytes changed.
 - A failed step fails its scan; the steps that depend on it are not run, the
   scan's other steps are (``make -k``). ``fail_fast``: no new scan starts after a
   failure; running ones finish.
@@ -42,7 +43,7 @@ from dataclasses import dataclass, field
 
 from ..parallel import THREADS_ENV
 from .manifest import SCAN, Manifest, Scan
-from .plan import CommandRecord, StepPlan, plan_scan, stale_reason
+from .plan import CommandRecord, StepPlan, made_from, plan_scan, stale_reason
 
 #: seconds a stopped child is given before it is killed
 STOP_GRACE = 20.0
@@ -75,6 +76,7 @@ class StepResult:
     outputs: list[str] = field(default_factory=list)
     reason: str | None = None  # why it ran (or None: forced, or skipped)
     peak_rss: int | None = None  # bytes: the step process's peak resident memory
+    made: dict | None = None  # the record of its outputs, when it ran and made them all
 
 
 @dataclass
@@ -89,6 +91,8 @@ class ScanResult:
     worker: str | None = None  # the cluster worker that ran it (None: the local pool)
     #: ``{"input": PNG bytes or None, "outputs": [(name, PNG bytes), ...]}`` (--report html)
     thumbnails: dict | None = None
+    #: file hashes computed on a cluster worker, for the batch process's cache
+    hashed: dict | None = None
 
     @property
     def error(self) -> str | None:
@@ -100,6 +104,15 @@ class ScanResult:
         """The largest peak resident memory of the scan's step processes (bytes), or None."""
         peaks = [s.peak_rss for s in self.steps if s.peak_rss is not None]
         return max(peaks) if peaks else None
+
+
+def _scan_status(steps: list[StepResult]) -> str:
+    """A scan's status from its steps': failed, stopped, ok (one ran) or skipped."""
+    statuses = {s.status for s in steps}
+    for status in ("failed", "stopped", "ok"):
+        if status in statuses:
+            return status
+    return "skipped"
 
 
 def volwarp_argv(argv: list[str]) -> list[str]:
@@ -194,9 +207,11 @@ class Children:
 class ScanRunner:
     """One scan's steps, run in order as child processes (the local pool's and a worker's).
 
-    ``record`` tells which outputs the manifest's steps as they are now made
-    (:class:`..plan.CommandRecord`, or a snapshot of it on a worker) and
-    notes each step that ran; ``thumbnails``: after the steps, small PNG
+    ``record`` tells what each output was made from and keeps the file hash
+    cache (:class:`..plan.CommandRecord`, or a snapshot of it on a worker),
+    and notes each step that ran; ``ships_hashes``: the result carries the
+    hashes this runner computed (a cluster task's, for the batch process's
+    cache); ``thumbnails``: after the steps, small PNG
     renders of the scan and of its outputs for the HTML report (in a child
     process too, see :mod:`.thumbs`); ``on_start``: called with the scan as
     its first step is considered.
@@ -204,8 +219,10 @@ class ScanRunner:
 
     def __init__(self, manifest: Manifest, *, force: bool = False, retries: int = 0,
                  child_threads: int = 1, record: CommandRecord | None = None,
-                 children: Children | None = None, thumbnails: bool = False, on_start=None):
+                 children: Children | None = None, thumbnails: bool = False, on_start=None,
+                 ships_hashes: bool = False):
         self.manifest = manifest
+        self.ships_hashes = ships_hashes  # (a cluster task: its result carries its hashes)
         self.force = force
         self.retries = retries
         self.child_threads = child_threads
@@ -228,7 +245,6 @@ class ScanRunner:
         start = time.monotonic()
         plans = plan_scan(self.manifest, scan)
         results: dict[str, StepResult] = {}
-        ran: set[str] = set()
         for plan in plans:
             step = plan.step
             res = StepResult(step.name, step.run, "not run", command=["volwarp", *plan.argv],
@@ -240,29 +256,33 @@ class ScanRunner:
             if self.stopping is not None:
                 res.status = "stopped"
                 continue
-            if not self.force and step.input not in ran:
-                res.reason = stale_reason(self.manifest, plan, self.record)
-                if res.reason is None:
-                    res.status = "skipped"
-                    continue
+            made = self._consider(plan, res)
+            if res.status == "skipped":
+                continue
             self._run_step(plan, res)
-            if res.status == "ok":
-                ran.add(step.name)
-                self.record.record(plan)
+            if res.status == "ok" and made is not None:
+                res.made = self.record.entries(plan, made)
+                if res.made is not None:
+                    self.record.keep(res.made)
         steps = list(results.values())
-        statuses = {s.status for s in steps}
-        if "failed" in statuses:
-            status = "failed"
-        elif "stopped" in statuses:
-            status = "stopped"
-        elif "ok" in statuses:
-            status = "ok"
-        else:
-            status = "skipped"
-        result = ScanResult(scan, status, time.monotonic() - start, steps)
-        if self.thumbnails and status != "stopped" and self.stopping is None:
+        result = ScanResult(scan, _scan_status(steps), time.monotonic() - start, steps)
+        if self.thumbnails and result.status != "stopped" and self.stopping is None:
             result.thumbnails = self._thumbnails(scan, plans)
+        result.hashed = dict(self.record.hashes.fresh) if self.ships_hashes else None
         return result
+
+    def _consider(self, plan: StepPlan, res: StepResult) -> dict | None:
+        """What the step would be made from (None: an input is missing); skips it when current."""
+        try:
+            made = made_from(self.manifest, plan, self.record.hashes)
+        except OSError as exc:  # the step runs, and says what is wrong
+            res.reason = f"{exc.filename or exc}: {exc.strerror or 'cannot be read'}"
+            return None
+        if not self.force:
+            res.reason = stale_reason(self.manifest, plan, self.record, made)
+            if res.reason is None:
+                res.status = "skipped"
+        return made
 
     def _run_step(self, plan: StepPlan, res: StepResult) -> None:
         for out in plan.outputs:
@@ -367,6 +387,7 @@ class Batch:
             results = self._pool()
         finally:
             restore_handlers(handlers)
+            self.runner.record.flush()
         return results, self._stopping
 
     def _pool(self) -> list[ScanResult]:

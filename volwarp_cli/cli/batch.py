@@ -3,7 +3,7 @@
 volwarp batch MANIFEST.yaml [--jobs N] [--scheduler pool|local|tcp://...|file:PATH|env]
 [--workers N] [--threads-per-worker N] [--shard I/N] [--force] [--fail-fast]
 [--retries N] [--progress bar|lines|jsonl|none] [--report REPORT.html|.json]
-[--report-json REPORT.json] [-q]
+[--report-json REPORT.json] [--wait] [-q]
 """
 
 from __future__ import annotations
@@ -104,25 +104,30 @@ def _reports(ctx, param, value):
                    "scan and its outputs, .json the run report (may be given twice).")
 @click.option("--report-json", type=click.Path(dir_okay=False), default=None,
               metavar="REPORT.json", help="Write the run report (per scan, per step) here.")
+@click.option("--wait", is_flag=True,
+              help="When another batch is processing the output folder, wait for it to end "
+                   "(default: stop at once with exit 75).")
 @common_options
 def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force, fail_fast,
-            retries, progress_mode, reports, report_json):
+            retries, progress_mode, reports, report_json, wait):
     """Run every scan of MANIFEST through its chain of volwarp steps.
 
     Each scan is one task, of a local pool by default or of a Dask cluster
     (--scheduler); each step is a volwarp command run in its own process.
-    Up-to-date scans are skipped (their outputs exist, are newer than their
-    inputs and specs, and their provenance matches); a failed scan does not
-    stop the others. Progress and a summary line go to stderr. Exit 0 when
-    every scan is ok or skipped, 1 when any failed, 2 for a malformed
-    manifest, 130/143 when stopped.
+    Every step's options and spec are checked first. Up-to-date steps are
+    skipped: what their outputs were made from (the sha256 of the scan and
+    every file the step reads, its options, volwarp's version) is what was
+    recorded, and the outputs are unchanged; dates decide nothing. One batch
+    at a time holds an output folder (--wait to wait for it). A failed scan
+    does not stop the others. Progress and a summary line go to stderr.
+    Exit 0 when every scan is ok or skipped, 1 when any failed, 2 for a
+    malformed manifest or step option, 75 when another batch holds the
+    output folder, 130/143 when stopped.
     """
-    import sys
-
+    from ..batch.lock import Busy, check_writable, hold
     from ..batch.manifest import find_scans, load_manifest
     from ..batch.manifest import shard as take_shard
     from ..batch.plan import check_outputs
-    from ..batch.report import ScanProgress, report_dict, summary_line, write_report
     from ..io import check_output_path
 
     ctx = click.get_current_context()
@@ -151,12 +156,37 @@ def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force
         scans = take_shard(scans, *shard)
         shard_info = (shard[0], shard[1], total)
 
+    check_writable(m.output_dir)  # once, up front: not once per scan
+    try:
+        with hold(m.output_dir, shard=shard, wait=wait,
+                  on_wait=None if quiet else _say_waiting):
+            code = _run(m, scans, shard_info, scheduler, jobs, workers, threads_per_worker,
+                        dict(force=force, fail_fast=fail_fast, retries=retries,
+                             thumbnails=bool(html_reports)),
+                        progress_mode, quiet, json_reports, html_reports)
+    except Busy as exc:
+        click.echo(f"volwarp: error: {exc}", err=True)
+        raise click.exceptions.Exit(exc.exit_code) from None
+    if code:
+        raise click.exceptions.Exit(code)
+
+
+def _say_waiting(holder: str) -> None:
+    click.echo(f"volwarp: waiting: {holder}", err=True)
+
+
+def _run(m, scans, shard_info, scheduler, jobs, workers, threads_per_worker, options,
+         progress_mode, quiet, json_reports, html_reports) -> int:
+    """Run the scans (the output folder held), write the reports: the exit code."""
+    import sys
+
+    from ..batch.report import ScanProgress, report_dict, summary_line, write_report
+
     mode = progress_mode or ("bar" if sys.stderr.isatty() else "lines")
     if quiet and progress_mode is None:
         mode = "none"
     sink = ScanProgress(mode, len(scans))
-    options = dict(force=force, fail_fast=fail_fast, retries=retries,
-                   thumbnails=bool(html_reports), on_scan=sink.end)
+    options = dict(options, on_scan=sink.end)
     try:
         if scheduler is None:
             from ..batch.run import Batch, default_jobs
@@ -186,8 +216,7 @@ def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force
         for path in html_reports:
             write_html(path, page)
     click.echo(summary_line(results, stop=stop, shard=shard_info), err=True)
-    if code:
-        raise click.exceptions.Exit(code)
+    return code
 
 
 def _on_cluster(manifest, scans, choice, workers, threads_per_worker, sink, options):

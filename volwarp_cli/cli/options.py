@@ -108,6 +108,7 @@ checks this list against the commands; ``(every command)``: from
     -v/--verbose              (every command)
     --view                    morph sweep mesh
     --volume-index            capture warp distance mesh info convert
+    --wait                    batch
     --workers                 warp morph sweep distance mesh batch
 
 Old spellings, hidden, still accepted with a warning::

@@ -1,0 +1,126 @@
+"""One `volwarp batch` at a time per output folder (the shards of one array side by side).
+
+Two runs on one folder both did all the work before: now the second stops at
+once (exit 75, one line naming the first's pid and host) or, with ``--wait``,
+waits and then finds everything up to date.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import re
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from volwarp_cli.batch.lock import BOOK_DIR, LOCK_NAME
+from volwarp_cli.io import write_volume
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_batch import scan_volume, summary, volwarp  # noqa: E402
+
+MANIFEST = """version: 1
+inputs: {glob: "scans/*.nrrd"}
+output_dir: out
+steps:
+  - {name: conv, run: convert, output: "{stem}.nrrd", options: ["--dtype", "float32"]}
+"""
+
+
+def make_tree(root: Path, scans: int) -> Path:
+    (root / "scans").mkdir()
+    for i in range(scans):
+        write_volume(scan_volume(i % 3), root / "scans" / f"p{i:02d}.nrrd")
+    (root / "manifest.yaml").write_text(MANIFEST)
+    return root / "manifest.yaml"
+
+
+def start(manifest: Path, *args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "volwarp_cli", "batch", str(manifest),
+                             "-j", "1", *args], stderr=subprocess.PIPE, text=True)
+
+
+def held(path: Path) -> bool:
+    """True when another process holds ``path`` locked."""
+    if not path.exists():
+        return False
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+def wait_until_held(proc: subprocess.Popen, path: Path) -> None:
+    deadline = time.monotonic() + 60
+    while not held(path):
+        assert proc.poll() is None, proc.stderr.read()
+        assert time.monotonic() < deadline, "the first run never took the lock"
+        time.sleep(0.01)
+
+
+def finish(proc: subprocess.Popen) -> tuple[int, str]:
+    _, err = proc.communicate(timeout=120)
+    return proc.returncode, err
+
+
+def test_second_run_stops_with_75_naming_the_first(tmp_path):
+    manifest = make_tree(tmp_path, 5)
+    first = start(manifest)
+    try:
+        wait_until_held(first, tmp_path / "out" / BOOK_DIR / LOCK_NAME)
+        second = volwarp("batch", manifest)
+    finally:
+        code, err = finish(first)
+    assert second.returncode == 75, second.stderr
+    assert second.stderr.strip() == (
+        f"volwarp: error: {tmp_path / 'out'} is being processed by another batch "
+        f"(pid {first.pid} on {socket.gethostname()}); give --wait to wait")
+    assert code == 0, err
+    assert summary(subprocess.CompletedProcess([], code, "", err)) == (
+        "volwarp batch: 5 scans, 5 ok, 0 skipped, 0 failed")
+
+
+def test_wait_waits_then_finds_everything_up_to_date(tmp_path):
+    manifest = make_tree(tmp_path, 4)
+    first = start(manifest)
+    try:
+        wait_until_held(first, tmp_path / "out" / BOOK_DIR / LOCK_NAME)
+        second = volwarp("batch", manifest, "--wait")
+    finally:
+        code, err = finish(first)
+    assert code == 0 and "4 ok" in err, err
+    assert second.returncode == 0, second.stderr
+    assert re.search(rf"^volwarp: waiting: \S+ is being processed by another batch "
+                     rf"\(pid {first.pid} on ", second.stderr, re.M), second.stderr
+    assert summary(second) == "volwarp batch: 4 scans, 0 ok, 4 skipped, 0 failed"
+
+
+def test_shards_share_the_folder_and_its_record(tmp_path):
+    """The tasks of a SLURM array run side by side; a whole run waits for them."""
+    manifest = make_tree(tmp_path, 6)
+    shard0 = start(manifest, "--shard", "0/2")
+    try:
+        wait_until_held(shard0, tmp_path / "out" / BOOK_DIR / "shard-0-of-2.lock")
+        whole = volwarp("batch", manifest)
+        again = volwarp("batch", manifest, "--shard", "0/2")
+        shard1 = volwarp("batch", manifest, "--shard", "1/2")
+    finally:
+        code, err = finish(shard0)
+    if whole.returncode == 0:  # (shard 0 ended first on a busy machine)
+        pytest.skip("shard 0 ended before the whole run started")
+    assert whole.returncode == 75 and re.search(
+        rf"\(pid {shard0.pid} on \S+, shard 0/2\); give --wait", whole.stderr), whole.stderr
+    assert again.returncode == 75 or "0 ok, 3 skipped" in again.stderr, again.stderr
+    assert shard1.returncode == 0 and "3 ok" in summary(shard1), shard1.stderr
+    assert code == 0 and "3 ok" in err, err
+    res = volwarp("batch", manifest)  # both shards' records were kept
+    assert summary(res) == "volwarp batch: 6 scans, 0 ok, 6 skipped, 0 failed", res.stderr

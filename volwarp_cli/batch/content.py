@@ -1,0 +1,117 @@
+"""What a file holds, by its sha256, hashed once per change (the batch's "up to date" is by content).
+
+A scan replaced by ``rsync -a`` or ``cp -p`` may carry an older modification
+time than the outputs made from it; only its bytes tell. Hashing a 2 GB scan
+on every run costs seconds, so each digest is kept with the file's
+``(device, inode, size, mtime_ns, ctime_ns)``: while all five are the same,
+the bytes are taken to be the same. A replaced file changes its ctime (which
+no program can set back) and, when renamed into place, its inode, whatever
+mtime it was given; a file changed within :data:`RACY_SECONDS` of being
+hashed is hashed again next time (a timestamp's granularity could hide a
+second change, as git's "racily clean" index entries).
+
+An input is all its files (:func:`content_digest`): a detached header with its
+data files, a folder (a DICOM series, a Zarr store) with every file in it,
+by name and content.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import threading
+import time
+from pathlib import Path
+
+#: a file whose ctime is this close to its hashing is not trusted to the cache
+RACY_SECONDS = 2.0
+#: bytes read at once while hashing
+_CHUNK = 1 << 20
+
+
+def stat_key(st: os.stat_result) -> list[int]:
+    """The identity of a file's current bytes, as far as its metadata tells."""
+    return [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns]
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """The sha256 of a file's bytes (hex)."""
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+class FileHashes:
+    """sha256 of files, cached by :func:`stat_key` (shared by the scans of one batch).
+
+    ``entries``: absolute path -> ``[*stat_key, sha256]``; ``fresh``: the
+    entries computed since this object was made (what a cluster task sends
+    back for the batch process to keep). A file hashed too soon after its
+    last change is remembered for this process only (``_racy``): a step's
+    output is hashed once when it is recorded, not again when the next step
+    reads it, and hashed again by the next run.
+    """
+
+    def __init__(self, entries: dict[str, list] | None = None):
+        self.entries: dict[str, list] = dict(entries or {})
+        self.fresh: dict[str, list] = {}
+        self._racy: dict[str, list] = {}
+        self.lock = threading.Lock()
+        self.hashed_bytes = 0  # (what the cache did not spare: for the measurements)
+
+    def sha256(self, path: str | os.PathLike) -> str:
+        """The sha256 of ``path``'s bytes; raises OSError when it cannot be read."""
+        name = os.path.abspath(path)
+        st = os.stat(name)
+        key = stat_key(st)
+        with self.lock:
+            known = self.entries.get(name) or self._racy.get(name)
+        if known is not None and known[:-1] == key:
+            return known[-1]
+        digest = file_sha256(name)
+        if stat_key(os.stat(name)) != key:  # changed while hashed: trust it nowhere
+            return digest
+        with self.lock:
+            self.hashed_bytes += st.st_size
+            if time.time() - st.st_ctime_ns / 1e9 > RACY_SECONDS:
+                self.entries[name] = self.fresh[name] = [*key, digest]
+                self._racy.pop(name, None)
+            else:
+                self._racy[name] = [*key, digest]
+        return digest
+
+    def subset(self, roots: list[str]) -> dict[str, list]:
+        """The entries of the files at or under ``roots`` (absolute paths)."""
+        want = set(roots)
+        prefixes = tuple(r.rstrip("/") + "/" for r in roots)
+        with self.lock:
+            return {k: v for k, v in self.entries.items()
+                    if k in want or k.startswith(prefixes)}
+
+
+def _folder_files(folder: Path) -> list[Path]:
+    """Every file under ``folder``, in a fixed order (hidden temporaries too: they are content)."""
+    out = []
+    for dirpath, dirnames, filenames in os.walk(folder):
+        dirnames.sort()
+        out += [Path(dirpath) / f for f in sorted(filenames)]
+    return out
+
+
+def content_digest(path: str | os.PathLike, hashes: FileHashes) -> str:
+    """The sha256 of everything ``path`` stands for: its files' names and bytes.
+
+    A file with the data files its header names (:func:`..io.inputs.input_files`),
+    a folder with every file in it. Raises OSError when one is missing.
+    """
+    from ..io.inputs import input_files
+
+    path = Path(path)
+    if path.is_dir():
+        files = _folder_files(path)
+        base = path
+    else:
+        files = input_files(path)
+        base = path.parent
+    parts = [(os.path.relpath(f, base), hashes.sha256(f)) for f in files]
+    return hashlib.sha256(json.dumps(parts).encode()).hexdigest()

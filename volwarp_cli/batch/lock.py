@@ -1,0 +1,140 @@
+"""One batch at a time per output folder: its bookkeeping folder, checked writable, and locked.
+
+Two ``volwarp batch`` runs on one output folder (a cron job still going when
+the next starts, a user's run beside it) would both do all the work and
+write the same outputs. A run holds ``OUT/.volwarp-batch/lock`` with
+``flock`` for its whole length: exclusively, or shared by the shards of a
+SLURM array (``--shard I/N``), each of which also holds its own
+``shard-I-of-N.lock`` exclusively (the shards share the folder, never a
+scan). The holder writes its pid and host into the file it holds
+exclusively, so a second run can say whom it waits for. The lock ends with
+the process (the kernel drops it, even after SIGKILL); the files stay
+(removing a lock file another run has open would let a third run in).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import json
+import os
+import socket
+import tempfile
+from pathlib import Path
+
+from ..errors import VolwarpError
+
+#: the batch's own files, in the output folder
+BOOK_DIR = ".volwarp-batch"
+LOCK_NAME = "lock"
+
+
+class Busy(VolwarpError):
+    """The output folder is held by another batch (exit 75, EX_TEMPFAIL)."""
+
+    exit_code = 75
+
+
+def book_dir(output_dir: Path) -> Path:
+    """The folder of the batch's bookkeeping (state, locks) in ``output_dir``."""
+    return Path(output_dir) / BOOK_DIR
+
+
+def check_writable(output_dir: Path) -> None:
+    """Make the output folder and fail once, before any work, when it cannot be written."""
+    folder = Path(output_dir)
+    try:
+        book_dir(folder).mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(prefix=".volwarp-batch-probe-", dir=folder)
+        os.close(fd)
+        os.unlink(name)
+    except OSError as exc:
+        raise VolwarpError(f"{folder}: cannot write in the output folder "
+                           f"({exc.strerror or exc}); nothing was run") from None
+
+
+def _owner(path: Path) -> str:
+    """``pid N on HOST`` from a lock file its holder wrote, or a vaguer phrase."""
+    try:
+        info = json.loads(path.read_text())
+        text = f"pid {int(info['pid'])} on {info['host']}"
+        return text + (f", shard {info['shard']}" if info.get("shard") else "")
+    except (OSError, ValueError, KeyError, TypeError):
+        return "its pid unknown"
+
+
+def _try(fd: int, mode: int) -> bool:
+    try:
+        fcntl.flock(fd, mode | fcntl.LOCK_NB)
+    except OSError as exc:
+        if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            return False
+        raise
+    return True
+
+
+def _holder(folder: Path, fd: int) -> str:
+    """Who holds the main lock: an exclusive holder wrote it; else the shards' files say."""
+    if not _try(fd, fcntl.LOCK_SH):
+        return _owner(folder / LOCK_NAME)
+    fcntl.flock(fd, fcntl.LOCK_UN)
+    for shard in sorted(folder.glob("shard-*.lock")):
+        probe = os.open(shard, os.O_RDONLY)
+        try:
+            if not _try(probe, fcntl.LOCK_EX):
+                return _owner(shard)
+        finally:
+            os.close(probe)
+    return "its pid unknown"
+
+
+def _acquire(fd: int, mode: int, wait: bool, who, on_wait) -> None:
+    if _try(fd, mode):
+        return
+    if not wait:
+        raise Busy(f"{who()}; give --wait to wait")
+    if on_wait is not None:
+        on_wait(who())
+    fcntl.flock(fd, mode)
+
+
+def _open(path: Path) -> int:
+    return os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+
+
+def _sign(fd: int, shard: str | None) -> None:
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                              "shard": shard}).encode() + b"\n", 0)
+
+
+@contextlib.contextmanager
+def hold(output_dir: Path, *, shard: tuple[int, int] | None = None, wait: bool = False,
+         on_wait=None):
+    """Hold the output folder for this run (raises :class:`Busy` when another run has it).
+
+    ``wait``: wait for it instead, calling ``on_wait(holder)`` once first.
+    """
+    folder = book_dir(output_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    busy = f"{output_dir} is being processed by another batch"
+    fds = []
+    try:
+        main = _open(folder / LOCK_NAME)
+        fds.append(main)
+        label = f"{shard[0]}/{shard[1]}" if shard else None
+        _acquire(main, fcntl.LOCK_SH if shard else fcntl.LOCK_EX, wait,
+                 lambda: f"{busy} ({_holder(folder, main)})", on_wait)
+        mine = main
+        if shard:
+            path = folder / f"shard-{shard[0]}-of-{shard[1]}.lock"
+            mine = _open(path)
+            fds.append(mine)
+            _acquire(mine, fcntl.LOCK_EX, wait,
+                     lambda: f"{busy} ({_owner(path)})", on_wait)
+        _sign(mine, label)
+        yield
+    finally:
+        for fd in reversed(fds):
+            os.close(fd)
