@@ -1,11 +1,23 @@
 # volwarp: make demo | make test | make bench | make lint | make examples
 # Every target installs what it needs into .venv first; nothing else is assumed.
+#
+# Two installs into the one .venv, each with its own stamp:
+#   make install (make demo, make examples): volwarp with its DICOM and Dask/OME-Zarr
+#     extras, `.[dicom,scale]`; no system package (volwarp renders without OpenGL).
+#   make install-test (make test, make bench, make lint): the test extras, `.[test]` (the
+#     peers the suite and the benchmarks check against: about 2 GB), and, as root on
+#     Debian, Mesa's EGL and Chromium for the checks that need them.
+# Running one after the other adds what is missing to the same .venv: no reinstall.
 
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
-STAMP  := $(VENV)/.installed
 DEMO   ?= demo-output
+DEMO_STAMP := $(VENV)/.installed-demo
+TEST_STAMP := $(VENV)/.installed-test
+# what a change of reinstalls: the package's metadata, the warp kernels and the SIGBUS
+# guard compiled at install
+INSTALLED_FROM := pyproject.toml volwarp_cli/bspline/_warpkernels.c volwarp_cli/io/_mapguard.c
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba-cache
 # The package's bytecode, written ahead (only changed modules are recompiled): where
@@ -15,58 +27,77 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba-cache
 BYTECODE = $(BIN)/python -m compileall -q volwarp_cli && $(BIN)/python -c \
   "import compileall, glob, sysconfig; [compileall.compile_file(f, quiet=1) for f in glob.glob(sysconfig.get_paths()['purelib'] + '/__editable__*.py')]"
 
-.PHONY: install system-deps demo test bench lint examples clean
+.PHONY: install install-test system-deps system-deps-render system-deps-browser \
+        demo test bench lint examples clean
 
-install: $(STAMP)
+install: $(DEMO_STAMP)
 
-# the compiled warp kernels and the SIGBUS guard are built by the install: rebuild when they change
-$(STAMP): pyproject.toml volwarp_cli/bspline/_warpkernels.c volwarp_cli/io/_mapguard.c
-	@$(MAKE) --no-print-directory system-deps
+install-test: $(TEST_STAMP)
+
+# the virtual environment itself, once
+$(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test]'
+
+$(DEMO_STAMP): $(INSTALLED_FROM) | $(BIN)/python
+	$(BIN)/pip install --quiet -e '.[dicom,scale]'
 	$(BYTECODE)
 	touch $@
 
-# Headless rendering goes through Mesa's software EGL (no display, no GPU).
-# Install the Debian packages when they are missing and we are allowed to.
-# Chromium checks the batch HTML report in a real browser (the test skips without it).
-system-deps:
+# the test extras include the demo's (volwarp-cli[dicom,scale]): one install stamps both
+$(TEST_STAMP): $(INSTALLED_FROM) | $(BIN)/python
+	@$(MAKE) --no-print-directory system-deps
+	$(BIN)/pip install --quiet -e '.[test]'
+	$(BYTECODE)
+	touch $@ $(DEMO_STAMP)
+
+system-deps: system-deps-render system-deps-browser
+
+# Mesa's software EGL (no display, no GPU), for what renders through VTK's OpenGL: the
+# test suite's pyvista cross-checks and the benchmarks' VTK peers. volwarp's own renders
+# (mesh --render, morph --render-to, sweep --render, the demo) need no OpenGL.
+# Installed when missing and we are allowed to: make test only.
+system-deps-render:
 	@if ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so.0' && ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1; then \
 	  :; \
 	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
-	  echo "installing Mesa EGL for headless rendering"; \
+	  echo "installing Mesa EGL for the tests' and benchmarks' VTK renders"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null; \
 	else \
-	  echo "warning: libEGL/Mesa not found and cannot install it: renders will fail" >&2; \
+	  echo "warning: libEGL/Mesa not found and cannot install it: VTK's renders in the tests will fail" >&2; \
 	fi
-	@# the batch report's browser test (skipped without one): Debian's Chromium, best effort
+
+# Chromium checks the batch HTML report in a real browser (the test skips without one):
+# Debian's, best effort, as root: make test only.
+system-deps-browser:
 	@if ! command -v chromium >/dev/null && [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 	  echo "installing Chromium for the HTML report's browser test"; \
 	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
 	    || echo "warning: Chromium not installed: the report's browser test is skipped" >&2; \
 	fi
 
-demo: $(STAMP)
+# (the venv's bin first on PATH: scripts/demo.sh finds it there whether VENV is relative or
+# absolute)
+demo: $(DEMO_STAMP)
 	$(BYTECODE)
-	DEMO=$(DEMO) BIN=$(BIN) bash scripts/demo.sh
+	PATH=$(abspath $(BIN)):$$PATH DEMO=$(DEMO) BIN=$(BIN) bash scripts/demo.sh
 
 # one pytest worker per core this process may use (affinity, cgroup quota), at most 8
 # (each worker holds its own numpy/VTK/dask); a test file runs in one worker
 TEST_WORKERS ?= $(shell $(BIN)/python -c "from volwarp_cli.parallel import available_cores as c; print(min(c(), 8))")
 
-test: $(STAMP)
+test: $(TEST_STAMP)
 	$(BYTECODE)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=20
 
-bench: $(STAMP)
+bench: $(TEST_STAMP)
 	$(BYTECODE)
 	$(BIN)/python benchmarks/run.py
 
-lint: $(STAMP)
+lint: $(TEST_STAMP)
 	$(BIN)/ruff check volwarp_cli tests benchmarks examples
 
-examples: $(STAMP)
+examples: $(DEMO_STAMP)
 	$(BYTECODE)
 	PATH=$(CURDIR)/$(BIN):$$PATH $(MAKE) -C examples
 

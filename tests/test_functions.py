@@ -126,3 +126,30 @@ def test_dimension_checks():
         parse_function([1, 2], ("up",), dim=3)
     with pytest.raises(SpecError, match="single number"):
         parse_function([1, 2], ("path",), dim=None)
+
+
+# The checker's messages, whole: each refused construct with the right verb (the message
+# used to say "attribute access are not allowed"), operators as written (not Python's
+# class names), argument counts before the expression.
+@pytest.mark.parametrize("expr, message", [
+    ("u.real", "attribute access is not allowed in expression 'u.real'"),
+    ("await u", "await is not allowed in expression 'await u'"),
+    ("u[0]", "subscripts are not allowed in expression 'u[0]'"),
+    ("u < 1", "comparisons are not allowed in expression 'u < 1'"),
+    ("(1, 2)", "tuples are not allowed in expression '(1, 2)'"),
+    ("f'{u}'", "f-strings are not allowed in expression \"f'{u}'\""),
+    ("(x := 1)", "assignments are not allowed in expression '(x := 1)'"),
+    ("u // 2", "operator '//' is not allowed in expression 'u // 2' (allowed: + - * / ** %)"),
+    ("u @ u", "operator '@' is not allowed in expression 'u @ u' (allowed: + - * / ** %)"),
+    ("~u", "operator '~' is not allowed in expression '~u' (allowed: unary - and +)"),
+    ("not u", "operator 'not' is not allowed in expression 'not u' (allowed: unary - and +)"),
+    ("cos(u, 2)", "cos() takes 1 argument (2 given) in expression 'cos(u, 2)'"),
+    ("min(u)", "min() takes two or more arguments (1 given) in expression 'min(u)'"),
+    ("None", "only numbers are allowed as constants, got None in expression 'None'"),
+    ("1e999", "number too large in expression '1e999' (the limit is 1.798e+308)"),
+])
+def test_rejection_messages_read_as_english(expr, message):
+    with pytest.raises(SpecError) as exc:
+        parse_function({"expr": expr}, ("scale",))
+    assert str(exc.value) == f"scale.expr: {message}"
+

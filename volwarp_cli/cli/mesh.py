@@ -18,6 +18,7 @@ from .options import (
     common_options,
     core_parser,
     examples,
+    finite,
     input_options,
     option,
     parse_color,
@@ -76,7 +77,7 @@ def _format_stats(d: dict) -> str:
               callback=core_parser(mesh_path),
               help="Mesh file: .ply .stl .obj .vtp .vtk (binary where the format has it). "
                    "May be left out when --render or --stats is given.")
-@click.option("--iso", type=float, default=None,
+@click.option("--iso", type=float, default=None, callback=finite,
               help="Isosurface level (default: the middle of the value range).")
 @click.option("--inside", type=click.Choice(["above", "below"]), default="above",
               show_default=True,

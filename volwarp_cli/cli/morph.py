@@ -27,6 +27,7 @@ from .options import (
     common_options,
     core_parser,
     examples,
+    finite,
     output_option,
     parse_view,
     render_size_option,
@@ -109,7 +110,8 @@ def _attribute_name(frame_path: str, name: str) -> str:
               help="Short form: number of frames (t = 0 .. 1).")
 @click.option("--times", default=None, metavar="T1,T2,...",
               help="Short form: explicit times in [0, 1] instead of --frames.")
-@click.option("--iso", type=float, default=None, help="Short form: iso level of both shapes.")
+@click.option("--iso", type=float, default=None, callback=finite,
+              help="Short form: iso level of both shapes.")
 @click.option("--inside", type=click.Choice(["above", "below"]), default="above",
               show_default=True, help="Short form: which side of the iso level is inside.")
 @click.option("--metric", type=click.Choice(_METRICS), default=None,
@@ -279,12 +281,14 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, spec_path, wri
     from ..errors import OutOfMemoryError
 
     outputs = _Outputs(job, output, mesh_to, render_to, sheet_path)
+    loaded = _refuse_unmakeable_frames(job, outputs, spec_path, write_kw)
     chunked = scale_settings().chunked
     if chunked:
+        loaded.clear()  # (the block path opens its inputs itself)
         _run_by_blocks(job, outputs, size, view, spec_path, write_kw, cameras)
         return
     try:
-        _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras)
+        _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras, loaded)
     except OutOfMemoryError as exc:
         if chunked is False:
             raise
@@ -307,7 +311,60 @@ def _one_volume_inputs():
                           "volwarp convert IN --volume-index N -o one.nrrd)") from None
 
 
-def _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras):
+def _input_header(path, loaded: dict):
+    """The Volume of ``path`` without its samples where the format allows, else read whole.
+
+    A volume read whole goes into ``loaded`` (by path), for the in-memory morph.
+    """
+    from ..io import read_volume
+    from ..io.lazy import open_volume_template
+
+    try:
+        return open_volume_template(path, require_lazy=True)[0]
+    except VolwarpError:  # (compressed, or not a volume: read_volume says what is wrong)
+        loaded[str(path)] = read_volume(path)
+        return loaded[str(path)]
+
+
+def _refuse_unmakeable_frames(job, outputs, spec_path, write_kw) -> dict:
+    """Refuse, before any sample is read, frames that fit neither the memory nor the disk.
+
+    The frame grid from the spec and the inputs' headers (exact, or its least
+    size where an alignment turns about a centroid:
+    :func:`~volwarp_cli.morph.grid.least_frame_shape`), checked as ``sweep``
+    checks its grid (:func:`.sweep.refuse_unmakeable_grid`). Returns the inputs
+    it had to read whole (compressed files), by path.
+    """
+    import math
+
+    import numpy as np
+
+    from ..geometry import Geometry
+    from ..morph.grid import GridError, least_frame_shape
+    from .sweep import refuse_unmakeable_grid
+
+    loaded = {}
+    with _one_volume_inputs():
+        source = _input_header(job.source.path, loaded)
+        target = _input_header(job.target.path, loaded)
+    try:
+        shape = least_frame_shape(job, Geometry.of(source), Geometry.of(target))
+    except GridError as exc:
+        raise _grid_error(job, spec_path, exc) from None
+    n = math.prod(shape)
+    frame_type = np.dtype(write_kw.get("dtype") or (
+        source.dtype if job.output == "density" and job.density_range == "source"
+        else np.float32))
+    sizes = [(p, n * frame_type.itemsize) for p in outputs.frames]
+    for a in job.attributes:  # (an attribute's own type: one byte at least)
+        sizes += [(p, n * np.dtype(a.dtype or np.uint8).itemsize)
+                  for p in outputs.attributes[a.name]]
+    refuse_unmakeable_grid(f"a morph on a {'x'.join(map(str, shape))} grid", 8 * n, sizes,
+                           write_kw)
+    return loaded
+
+
+def _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras, loaded=None):
     from ..io import read_volume, write_volume
     from ..morph.frames import morph_frames
     from ..morph.grid import GridError
@@ -315,9 +372,14 @@ def _run_in_memory(job, outputs, size, view, spec_path, write_kw, cameras):
     from ..morph.run import morph_note
     from .common import provenance
 
+    loaded = {} if loaded is None else loaded
+
+    def read(path):  # (taken out: the caller keeps none of them)
+        vol = loaded.pop(str(path), None)
+        return read_volume(path) if vol is None else vol
     with timed("read inputs"), _one_volume_inputs():
-        source = read_volume(job.source.path)
-        target = read_volume(job.target.path)
+        source = read(job.source.path)
+        target = read(job.target.path)
         attrs = {a.name: (read_volume(a.source), read_volume(a.target)) for a in job.attributes}
     try:
         prep = prepare(job, source, target, attrs)

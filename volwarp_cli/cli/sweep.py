@@ -108,6 +108,69 @@ def _check_grid(shape_xyz, origin, spacing, doc, from_options: bool, lo, hi,
     raise doc.error(("grid", names[0]) if names else ("grid",), what)
 
 
+def refuse_unmakeable_grid(what: str, memory_bytes: int, outputs, write_kw: dict) -> None:
+    """Refuse, before any work, a grid that fits neither the memory nor, by blocks, the disk.
+
+    ``what``: the work and its sizes, for the message; ``memory_bytes``: the
+    least the work holds in memory; ``outputs``: ``[(path, nbytes)]``, every
+    output of the grid. Each way of running checks its own need exactly,
+    later; this only ends at once, with the sizes, what neither way can run (a
+    10^15-voxel grid was otherwise allocated, or tiled into blocks, until
+    killed). ``sweep`` and ``morph`` call it once their grid is known.
+    """
+    from ..errors import OutOfMemoryError
+    from ..memory import ensure_fits_in_memory
+
+    chunked = scale_settings().chunked
+    in_memory = None
+    if not chunked:
+        try:
+            ensure_fits_in_memory(memory_bytes, what)
+            return
+        except OutOfMemoryError as exc:
+            if chunked is False:
+                raise
+            in_memory = exc
+    by_blocks = _blocks_refusal(outputs, write_kw)
+    if by_blocks is None:
+        return
+    raise OutOfMemoryError(f"{in_memory}, and by blocks {by_blocks}" if in_memory
+                           else f"{what}: by blocks {by_blocks}")
+
+
+def _blocks_refusal(outputs, write_kw: dict) -> str | None:
+    """Why ``outputs`` (``[(path, nbytes)]``) cannot be written by blocks, or None.
+
+    Their formats, and their sizes against the free space of their folders
+    (outputs sharing a folder add up).
+    """
+    import shutil
+    from pathlib import Path
+
+    from ..errors import VolwarpError
+    from ..io.blockwrite import check_block_format
+    from ..memory import human_bytes
+
+    need: dict[Path, list[int]] = {}
+    for path, nbytes in outputs:
+        try:
+            check_block_format(path, bool(write_kw.get("compress")),
+                               int(write_kw.get("pyramid", 0) or 0))
+        except VolwarpError as exc:
+            return str(exc)
+        need.setdefault(Path(path).resolve().parent, []).append(int(nbytes))
+    for folder, sizes in need.items():
+        try:
+            free = shutil.disk_usage(folder).free
+        except OSError as exc:
+            return f"{folder}: {exc.strerror}"
+        if sum(sizes) > free:
+            each = "" if len(sizes) == 1 else f" ({len(sizes)} files)"
+            return (f"the outputs need {human_bytes(sum(sizes))}{each} where {folder} has "
+                    f"{human_bytes(free)} free")
+    return None
+
+
 @click.command(name="sweep", epilog=examples(
     "volwarp sweep sweep-bottle.yaml -o 'bottle_{field}.nrrd' --render bottle.png --view -70,25",
     "volwarp sweep sweep-at-bezier.yaml -o at.nrrd --multi --spacing 0.5 --method direct",
@@ -191,6 +254,11 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     grid = sweep_geometry(*grid_values)
     nx, ny, nz = grid.shape_xyz
     out_dtype = dtype or "float32"
+    each = grid.size * np.dtype(out_dtype).itemsize
+    refuse_unmakeable_grid(f"sweep output {nx}x{ny}x{nz} x {len(names)} fields",
+                           grid.size * 4 * len(names),
+                           [(p, each * (len(names) if multi else 1)) for p in paths.values()],
+                           {"compress": compress, "pyramid": ome_zarr.get("pyramid", 0)})
     stamp_meta = provenance("sweep", [spec], spec)
     chunked = scale_settings().chunked
     render = None

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import VolwarpError
 from ..geometry import Geometry
+from .align import affine_from_params
 
 
 class GridError(VolwarpError):
@@ -46,17 +47,26 @@ def _corners(grid: Geometry) -> np.ndarray:
     return c @ grid.index_to_world_matrix.T
 
 
-def union_geometry(source: Geometry, target: Geometry, source_matrix: np.ndarray,
-                   target_matrix: np.ndarray, margin: float = 2.0) -> Geometry:
-    """Source spacing/direction, on the source lattice, covering both moved input boxes."""
+def _lattice_bounds(source: Geometry, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and last index (x, y, z) of ``source``'s lattice covering world points ``pts``."""
     to_idx = np.linalg.inv(source.index_to_world_matrix)
-    pts = np.vstack([_corners(source) @ source_matrix.T, _corners(target) @ target_matrix.T])
     with np.errstate(over="ignore", invalid="ignore"):
         idx = pts @ to_idx.T
         lo = np.floor(idx[:, :3].min(axis=0) + 1e-6)
         hi = np.ceil(idx[:, :3].max(axis=0) - 1e-6)
-        span = hi - lo + 1
-    if not np.all(np.isfinite(span)) or span.max() > MAX_AXIS:
+    return lo, hi
+
+
+def _check_span(span: np.ndarray, margin: float, source_matrix: np.ndarray,
+                target_matrix: np.ndarray) -> None:
+    """Refuse a union grid of ``span`` voxels (x, y, z) before its margin: a GridError.
+
+    ``span`` beyond :data:`MAX_AXIS` (or not finite) is the alignment's fault,
+    a margin that takes it there the margin's.
+    """
+    with np.errstate(over="ignore", invalid="ignore"):
+        finite = bool(np.all(np.isfinite(span)))
+    if not finite or span.max() > MAX_AXIS:
         key = (("align", "target") if not np.allclose(target_matrix, np.eye(4))
                else ("align", "source") if not np.allclose(source_matrix, np.eye(4))
                else ("grid",))
@@ -64,10 +74,20 @@ def union_geometry(source: Geometry, target: Geometry, source_matrix: np.ndarray
         raise GridError(f"the aligned shapes would need a frame grid {float(span.max()):.3g} "
                         f"voxels long along {axis} (the limit is {MAX_AXIS}): the alignment is "
                         "far too large or too far away", key=key)
-    pad = float(np.ceil(margin))
-    if span.max() + 2 * pad > MAX_AXIS:
+    if span.max() + 2 * float(np.ceil(margin)) > MAX_AXIS:
         raise GridError(f"a margin of {margin:g} voxels makes the frame grid longer than "
                         f"{MAX_AXIS} voxels", key=("margin",))
+
+
+def union_geometry(source: Geometry, target: Geometry, source_matrix: np.ndarray,
+                   target_matrix: np.ndarray, margin: float = 2.0) -> Geometry:
+    """Source spacing/direction, on the source lattice, covering both moved input boxes."""
+    pts = np.vstack([_corners(source) @ source_matrix.T, _corners(target) @ target_matrix.T])
+    lo, hi = _lattice_bounds(source, pts)
+    with np.errstate(over="ignore", invalid="ignore"):
+        span = hi - lo + 1
+    _check_span(span, margin, source_matrix, target_matrix)
+    pad = float(np.ceil(margin))
     lo, hi = lo - pad, hi + pad
     shape = tuple(int(v) for v in (hi - lo + 1))
     origin = source.matrix @ lo + source.origin_array
@@ -111,3 +131,48 @@ def choose_grid(grid_spec, source: Geometry, target: Geometry, source_matrix: np
         f"{list(source.origin)}; target {'x'.join(map(str, target.shape_xyz))} at spacing "
         f"{list(target.spacing)}, origin {list(target.origin)}) and no align or grid is "
         "given: say grid: union (or source/target, or explicit geometry)")
+
+
+def header_matrix(params) -> np.ndarray | None:
+    """An alignment's matrix where its parameters fix it; None where it needs the samples.
+
+    A scale or rotation without ``center`` turns about the shape's centroid,
+    which only the samples give.
+    """
+    if not params:
+        return np.eye(4)
+    try:
+        return affine_from_params(params)
+    except VolwarpError:
+        return None
+
+
+def least_frame_shape(job, source: Geometry, target: Geometry) -> tuple[int, int, int]:
+    """The frame grid's shape (x, y, z) before any sample is read: exact, or a lower bound.
+
+    Exact where the spec and the inputs' headers fix the grid. Where an
+    alignment turns or scales about its shape's centroid, the union grid still
+    holds each aligned input's whole box wherever the centroid lies (a box's
+    extent does not depend on where it is moved): the larger box, less one
+    voxel for where the lattice cuts it, is the bound. For refusing, before
+    any work, a grid that cannot be made (:func:`choose_grid`'s GridError too).
+    """
+    params = {"source": job.align_source, "target": job.align_target}
+    matrices = {k: header_matrix(v) for k, v in params.items()}
+    union = job.grid == "union" or (job.grid is None and job.moved)
+    if not union or all(m is not None for m in matrices.values()):
+        eye = np.eye(4)
+        return choose_grid(job.grid, source, target, *(eye if m is None else m
+                                                       for m in matrices.values()),
+                           moved=job.moved, margin=job.margin).shape_xyz
+    for name, m in matrices.items():
+        if m is None:  # (any centre: the moved box's extent is the same)
+            matrices[name] = affine_from_params(params[name], default_center=(0.0, 0.0, 0.0))
+    spans = []
+    for m, geo in zip(matrices.values(), (source, target), strict=True):
+        lo, hi = _lattice_bounds(source, _corners(geo) @ m.T)
+        with np.errstate(over="ignore", invalid="ignore"):
+            spans.append(hi - lo)
+    span = np.maximum(np.maximum(*spans), 1.0)  # (NaN stays NaN: refused below)
+    _check_span(span, job.margin, *matrices.values())  # (the union's, which is larger)
+    return tuple(int(v + 2 * np.ceil(job.margin)) for v in span)

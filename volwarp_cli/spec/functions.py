@@ -48,13 +48,22 @@ _MAX_FLOAT = float(np.finfo(np.float64).max)
 _BINOPS = {ast.Add: np.add, ast.Sub: np.subtract, ast.Mult: np.multiply,
            ast.Div: np.divide, ast.Pow: np.power, ast.Mod: np.mod}
 _UNARY = {ast.USub: np.negative, ast.UAdd: np.positive}
+#: what the checker calls each refused construct, with its verb (so that the message's
+#: grammar does not depend on how the words happen to end)
 _NODE_WORDS = {
-    ast.Attribute: "attribute access", ast.Subscript: "subscripts", ast.Lambda: "lambdas",
-    ast.Compare: "comparisons", ast.BoolOp: "boolean operators", ast.IfExp: "conditional expressions",
-    ast.ListComp: "comprehensions", ast.GeneratorExp: "comprehensions",
-    ast.DictComp: "comprehensions", ast.SetComp: "comprehensions", ast.Starred: "starred arguments",
-    ast.List: "lists", ast.Tuple: "tuples", ast.Dict: "dictionaries", ast.Set: "sets",
-    ast.JoinedStr: "strings", ast.NamedExpr: "assignments", ast.Await: "await",
+    ast.Attribute: "attribute access is", ast.Subscript: "subscripts are",
+    ast.Lambda: "lambdas are", ast.Compare: "comparisons are",
+    ast.BoolOp: "boolean operators are", ast.IfExp: "conditional expressions are",
+    ast.ListComp: "comprehensions are", ast.GeneratorExp: "comprehensions are",
+    ast.DictComp: "comprehensions are", ast.SetComp: "comprehensions are",
+    ast.Starred: "starred arguments are", ast.List: "lists are", ast.Tuple: "tuples are",
+    ast.Dict: "dictionaries are", ast.Set: "sets are", ast.JoinedStr: "f-strings are",
+    ast.NamedExpr: "assignments are", ast.Await: "await is",
+}
+#: refused operators as the user wrote them (not Python's class names: FloorDiv, Invert)
+_OPERATOR_SYMBOLS = {
+    ast.FloorDiv: "//", ast.MatMult: "@", ast.LShift: "<<", ast.RShift: ">>",
+    ast.BitOr: "|", ast.BitXor: "^", ast.BitAnd: "&", ast.Not: "not", ast.Invert: "~",
 }
 
 
@@ -262,12 +271,14 @@ def _check(node, path, doc, text) -> None:
     where = f" in expression {text!r}"
     if isinstance(node, ast.Constant):
         if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
-            _raise(doc, path, f"only numbers are allowed as constants{where}, got {node.value!r}")
+            _raise(doc, path, f"only numbers are allowed as constants, got {node.value!r}{where}")
         if isinstance(node.value, int) and not abs(node.value) <= _MAX_FLOAT:
             digits = len(str(abs(node.value))) if abs(node.value).bit_length() < 20000 else None
-            _raise(doc, path, "number too large in expression"
-                   + (f" ({digits} digits)" if digits else "")
-                   + f" (the limit is {_MAX_FLOAT:.4g})")
+            _raise(doc, path, f"number too large{where} ("
+                   + (f"{digits} digits; " if digits else "")
+                   + f"the limit is {_MAX_FLOAT:.4g})")
+        if isinstance(node.value, float) and not np.isfinite(node.value):
+            _raise(doc, path, f"number too large{where} (the limit is {_MAX_FLOAT:.4g})")
         return
     if isinstance(node, ast.Name):
         if node.id not in ALLOWED_NAMES:
@@ -278,14 +289,15 @@ def _check(node, path, doc, text) -> None:
         return
     if isinstance(node, ast.BinOp):
         if type(node.op) not in _BINOPS:
-            _raise(doc, path, f"operator {type(node.op).__name__} is not allowed{where} "
+            _raise(doc, path, f"operator {_operator(node.op)} is not allowed{where} "
                    "(allowed: + - * / ** %)")
         _check(node.left, path, doc, text)
         _check(node.right, path, doc, text)
         return
     if isinstance(node, ast.UnaryOp):
         if type(node.op) not in _UNARY:
-            _raise(doc, path, f"operator {type(node.op).__name__} is not allowed{where}")
+            _raise(doc, path, f"operator {_operator(node.op)} is not allowed{where} "
+                   "(allowed: unary - and +)")
         _check(node.operand, path, doc, text)
         return
     if isinstance(node, ast.Call):
@@ -303,15 +315,19 @@ def _check(node, path, doc, text) -> None:
         arity = ALLOWED_FUNCTIONS[name][1]
         nargs = len(node.args)
         if arity is None and nargs < 2:
-            _raise(doc, path, f"{name}() takes two or more arguments{where}")
+            _raise(doc, path, f"{name}() takes two or more arguments ({nargs} given){where}")
         if arity is not None and nargs != arity:
-            _raise(doc, path, f"{name}() takes {arity} argument{where}, got {nargs}")
+            _raise(doc, path, f"{name}() takes {arity} argument ({nargs} given){where}")
         for arg in node.args:
             _check(arg, path, doc, text)
         return
-    what = _NODE_WORDS.get(type(node), type(node).__name__)
-    _raise(doc, path, f"{what} are not allowed{where}" if what.endswith("s")
-           else f"{what} is not allowed{where}")
+    what = _NODE_WORDS.get(type(node), f"{type(node).__name__} is")
+    _raise(doc, path, f"{what} not allowed{where}")
+
+
+def _operator(op) -> str:
+    """An operator as written in the expression, for messages."""
+    return repr(_OPERATOR_SYMBOLS.get(type(op), type(op).__name__))
 
 
 def _eval(node, u: np.ndarray):

@@ -25,7 +25,7 @@ bit (vertices, faces and normals; ``tests/test_mesh_chunked.py``).
 
 Whole-volume numbers are not regions: the level shifted off the samples
 (:func:`.isosurface.level_off`), the ``cap`` padding value, the default
-level and the NaN check come from a reduction over the blocks first
+level and the NaN/infinity check come from a reduction over the blocks first
 (:func:`mesh_plan`); ``cap`` pads virtually (a block reads the volume and
 fills the padding layer itself).
 
@@ -34,8 +34,8 @@ After welding, the mesh is the whole mesh in memory, so every clean-up of
 (:func:`surface_mesh_blocks`): largest component, smoothing, decimation,
 in that order, and the same result as the in-memory chain. Nothing of the
 mesh chain needs the whole *volume* in memory, so nothing is refused for an
-out-of-core input; what is refused is what the in-memory path refuses (NaN
-samples, a level outside the range or never crossed unless allowed, samples
+out-of-core input; what is refused is what the in-memory path refuses (NaN or
+infinite samples, a level outside the range or never crossed unless allowed, samples
 that are not numbers) and a block or a mesh that does not fit the memory
 budget.
 
@@ -60,6 +60,7 @@ from .isosurface import (
     _flying_edges,
     cap_value,
     check_arguments,
+    check_finite_range,
     edge_points,
     level_off,
     to_world,
@@ -229,8 +230,7 @@ def mesh_plan(stats: Stats, shape, dtype, iso: float, *, inside: str = "above",
     samples converted to :func:`.isosurface.work_dtype` ``(dtype, cap)``.
     """
     check_arguments(dtype, iso, inside)
-    if stats.nan:
-        raise VolwarpError("the volume contains NaN samples; an isosurface is not defined there")
+    check_finite_range(stats.lo, stats.hi)
     iso = float(iso)
     hit, below = stats.hit, stats.below_max
     pad = None
@@ -550,9 +550,7 @@ def surface_mesh_blocks(source, geometry=None, iso: float | None = None, *,
         # edges runs on (the range is the same values in either type)
         first = source_stats(data, block_shape, float(iso) if given else None, cap,
                              threads=threads, run=run)
-    if first.nan:
-        raise VolwarpError(f"{name}: the volume contains NaN samples; an isosurface is not "
-                           "defined there")
+    check_finite_range(first.lo, first.hi, name)
     lo, hi = first.lo, first.hi
     if iso is None:
         iso = 0.5 * (lo + hi)

@@ -303,10 +303,27 @@ def isosurface(vol: Volume, iso: float, *, inside: str = "above", cap: bool = Fa
 def _prepared(data: np.ndarray, iso: float, inside: str) -> tuple[np.ndarray, float]:
     """The checked arguments: samples as flying edges takes them, and the level as a float."""
     check_arguments(data.dtype, iso, inside)
-    # a reduction propagates NaN: one pass, no temporary array
-    if data.dtype.kind == "f" and np.isnan(np.min(data)):
-        raise VolwarpError("the volume contains NaN samples; an isosurface is not defined there")
+    if data.dtype.kind == "f":  # reductions: no temporary array (NaN reaches both)
+        check_finite_range(np.min(data), np.max(data))
     return np.ascontiguousarray(data, dtype=work_dtype(data.dtype)), float(iso)
+
+
+def check_finite_range(lo, hi, name: str | None = None) -> None:
+    """Refuse samples no isosurface goes through: NaN, +inf or -inf anywhere in the volume.
+
+    ``lo``, ``hi``: the samples' minimum and maximum (a NaN sample makes both
+    NaN). A vertex on an edge to an infinite sample would be NaN (inf / inf),
+    and the default level (the middle of the range) infinite: the file is
+    refused by name, in one line, before any surface is made.
+    """
+    where = f"{name}: " if name else ""
+    if np.isnan(lo) or np.isnan(hi):
+        raise VolwarpError(f"{where}the volume contains NaN samples; an isosurface is not "
+                           "defined there")
+    signs = [s for s, bad in (("-inf", lo == -np.inf), ("+inf", hi == np.inf)) if bad]
+    if signs:
+        raise VolwarpError(f"{where}the volume contains infinite samples "
+                           f"({' and '.join(signs)}); an isosurface is not defined there")
 
 
 def check_arguments(dtype, iso: float, inside: str) -> None:

@@ -132,15 +132,13 @@ def surface_mesh(vol: Volume, iso: float | None = None, *, inside: str = "above"
     ``"below"``), which sets the outward normals; ``cap``: close the surface
     where the shape touches the volume's border. A level outside the data
     range, or never crossed, is a :class:`VolwarpError` naming ``name``
-    unless ``allow_empty`` (then an empty mesh, and a warning). NaN samples
-    are refused.
+    unless ``allow_empty`` (then an empty mesh, and a warning). NaN and
+    infinite samples are refused (:func:`.isosurface.check_finite_range`).
     """
-    from .isosurface import default_iso, isosurface, touches_border
+    from .isosurface import check_finite_range, default_iso, isosurface, touches_border
 
     lo, hi = float(np.min(vol.data)), float(np.max(vol.data))  # NaN if any sample is NaN
-    if np.isnan(lo) or np.isnan(hi):
-        raise VolwarpError(f"{name}: the volume contains NaN samples; an isosurface is not "
-                           "defined there")
+    check_finite_range(lo, hi, name)
     if iso is None:
         iso = default_iso(vol.data)
         log.info("iso level not given: using the middle of the value range, %g", iso)
