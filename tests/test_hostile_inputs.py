@@ -143,7 +143,8 @@ def test_one_sign_of_infinity_is_named(run, tmp_path):
 
 
 @pytest.mark.parametrize("command", [["mesh", BALL, "-o", "x.ply"],
-                                     ["morph", BALL, BALL, "--frames", "2", "-o", "f{i}.nrrd"]])
+                                     ["morph", BALL, BALL, "--frames", "2", "-o", "f{i}.nrrd"],
+                                     ["distance", BALL, "--values", "intensity", "-o", "d.nrrd"]])
 @pytest.mark.parametrize("level", ["inf", "nan"])
 def test_a_non_finite_iso_option_is_a_usage_error(run, tmp_path, monkeypatch, command, level):
     monkeypatch.chdir(tmp_path)

@@ -270,3 +270,26 @@ def test_a_pattern_is_refused_when_it_can_name_an_input(tmp_path, monkeypatch, p
             refuse_pattern_over_input(pattern, inputs=["f_002.nrrd"])
     else:
         refuse_pattern_over_input(pattern, inputs=["f_002.nrrd"])
+
+
+def test_a_file_a_spec_names_is_an_input(run, tmp_path, monkeypatch):
+    """A morph spec's shapes and a sweep's template images are inputs too (named by the spec)."""
+    import shutil
+
+    specs = Path(__file__).parent.parent / "specs"
+    monkeypatch.chdir(tmp_path)
+    _volume(tmp_path / "f_1.nrrd")  # truncated: read first, it would fail with exit 1
+    _volume(tmp_path / "b.nrrd")
+    (tmp_path / "m.yaml").write_text("version: 1\nsource: {volume: f_1.nrrd, iso: 0.5}\n"
+                                     "target: {volume: b.nrrd, iso: 0.5}\nframes: 3\n")
+    (tmp_path / "templates").mkdir()
+    for name in ("bottle_opacity.png", "bottle_colour.png", "bottle_geometry.png"):
+        shutil.copy(specs / "templates" / name, tmp_path / "templates" / name)
+    shutil.copy(specs / "sweep-bottle.yaml", tmp_path / "s.yaml")
+    before = _snapshot(tmp_path), _snapshot(tmp_path / "templates")
+    res = run("morph", "--spec", "m.yaml", "-o", "f_{i}.nrrd")
+    assert res.code == 2 and "f_1.nrrd would overwrite the input" in res.stderr, res
+    res = run("sweep", "s.yaml", "-o", "x_{field}.nrrd", "--render",
+              "templates/bottle_colour.png")
+    assert res.code == 2 and "bottle_colour.png would overwrite the input" in res.stderr, res
+    assert (_snapshot(tmp_path), _snapshot(tmp_path / "templates")) == before

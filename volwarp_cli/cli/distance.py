@@ -20,6 +20,7 @@ from .options import (
     INPUT_PATH,
     common_options,
     examples,
+    finite,
     input_options,
     output_option,
     write_options,
@@ -35,7 +36,7 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 ))
 @click.argument("input", required=False, type=INPUT_PATH)
 @output_option("Output distance field: float32 samples (unless --dtype); format by extension.")
-@click.option("--iso", type=float, default=None, metavar="V",
+@click.option("--iso", type=float, default=None, metavar="V", callback=finite,
               help="Iso level: the shape is the samples on the inside of V (needed unless "
                    "INPUT is a label map).")
 @click.option("--inside", type=click.Choice(["above", "below"]), default="above",

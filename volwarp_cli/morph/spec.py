@@ -109,7 +109,7 @@ def job_from_spec(doc) -> MorphJob:
 
     def shape(key):
         s = d[key]
-        return ShapeRef(doc.resolve(s["volume"]), float(s["iso"]), s.get("inside", "above"))
+        return ShapeRef(doc.input_file(s["volume"]), float(s["iso"]), s.get("inside", "above"))
 
     if "times" in d:
         times = [float(t) for t in d["times"]]
@@ -191,7 +191,7 @@ def job_from_spec(doc) -> MorphJob:
         if a["name"] in names:
             raise doc.error(("attributes", i, "name"), f"attribute name {a['name']!r} repeats")
         names.add(a["name"])
-        job.attributes.append(AttributeRef(a["name"], doc.resolve(a["source"]),
-                                           doc.resolve(a["target"]), a.get("dtype")))
+        job.attributes.append(AttributeRef(a["name"], doc.input_file(a["source"]),
+                                           doc.input_file(a["target"]), a.get("dtype")))
     job.doc = doc
     return job

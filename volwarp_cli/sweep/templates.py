@@ -32,6 +32,7 @@ import numpy as np
 
 from ..errors import VolwarpError
 from ..io.images import read_image
+from ..io.inputs import declare_input
 from ..spec.functions import Function, spec_error
 
 
@@ -106,6 +107,7 @@ class TemplateLoader:
 
     def _image(self, name: str, path: tuple, resolved: bool = False) -> np.ndarray:
         file = self.doc.resolve(name) if self.doc is not None and not resolved else name
+        declare_input(file)  # no output of the run may replace it
         key = str(file)
         if key not in self._images:
             try:
@@ -154,6 +156,7 @@ class TemplateLoader:
 
             resolved = True
             file = self.doc.resolve(frames) if self.doc is not None else Path(frames)
+            declare_input(file)
             lower = str(file).lower()
             if not any(lower.endswith(ext) for ext in VOLUME_EXTENSIONS):
                 files = [str(file)]
