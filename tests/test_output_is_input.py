@@ -80,6 +80,8 @@ def _folder(tmp: Path) -> Path:
     os.symlink("vol.nrrd", tmp / "link.png")
     os.symlink("vol.nrrd", tmp / "link.ply")
     os.symlink("vol.nrrd", tmp / "m_1.ply")
+    os.symlink("vol.nrrd", tmp / "seg_1.ply")
+    os.symlink("vol.nrrd", tmp / "t-001.png")
     os.symlink("vol.nrrd", tmp / "r_1.png")
     os.symlink("vol.nrrd", tmp / "link.vwc")
     os.symlink("spec.yaml", tmp / "spec_link.nrrd")
@@ -117,6 +119,10 @@ CASES = [
      "link.png"),
     ("mesh-camera", ["mesh", "vol.nrrd", "--iso", "0.5", "--render", "r.png", "--camera-from",
                      "cam.json", "--camera-to", "cam.json"], "cam.json", "cam.json"),
+    ("mesh-labels-pattern", ["mesh", "vol.nrrd", "--labels", "-o", "seg_{label}.ply"],
+     "vol.nrrd", "seg_1.ply"),
+    ("mesh-turntable", ["mesh", "vol.nrrd", "--iso", "0.5", "--render", "t.png", "--turntable",
+                        "3"], "vol.nrrd", "t-001.png"),
     # warp
     ("warp-same", ["warp", "vol.nrrd", "--spec", "spec.yaml", "-o", "vol.nrrd"], "vol.nrrd",
      "vol.nrrd"),

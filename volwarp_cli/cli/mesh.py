@@ -139,6 +139,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
     is written, unless --allow-empty.
     """
     from ..io.atomic import check_output_path
+    from ..io.inputs import refuse_pattern_over_input
     from ..progress import log, timed
     from ..surface.mesh_io import check_mesh_output
     from ..surface.pipeline import Cleanup, label_indicator, surface_mesh
@@ -164,8 +165,11 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
     # Fail on bad outputs before any work (their extensions are checked by the options).
     if output is not None:
         check_mesh_output(_label_pattern(output) if labels else output)
+        if labels:  # every name the pattern can give, against the inputs
+            refuse_pattern_over_input(output, option="-o")
     if render is not None:
-        check_output_path(render)
+        for path in [render] if turntable is None else turntable_paths(render, turntable):
+            check_output_path(path, option="--render")
 
     cleanup = Cleanup(largest_component=largest_component, smooth=smooth, decimate=decimate)
     chunked = scale_settings().chunked

@@ -197,7 +197,8 @@ def refuse_pattern_over_input(pattern: str, *, option: str | None = None,
     For outputs numbered by fields (``--frames-to 'f_{frame:03d}.nrrd'``)
     whose count is not known before the work: any input file whose path
     (links followed) the pattern could produce is refused, whatever the
-    fields' values.
+    fields' values, and so is any existing file of such a name that is an
+    input under another name (a link to it, a hard link).
     """
     import re
     import string
@@ -221,3 +222,11 @@ def refuse_pattern_over_input(pattern: str, *, option: str | None = None,
                 hit = re.fullmatch(regex, real) or re.fullmatch(regex, str(file))
             if hit:
                 raise BadUsage(_message(pattern, Path(pattern), given, file, option))
+    if base:  # names the pattern gives that exist already: links, hard links to an input
+        try:
+            names = sorted(os.listdir(folder or "."))
+        except OSError:
+            return
+        for entry in names:
+            if re.fullmatch(regex, entry):
+                refuse_output_over_input(os.path.join(folder, entry), inputs, option=option)
