@@ -196,9 +196,11 @@ def test_warp_background_value_and_its_old_spelling(run, data_dir, tmp_path):
                     "  - move:\n      - {index: [2, 2, 2], by: [1.5, 0, 0]}\n")
     src = data_dir / "ball_30_uint8.nrrd"
     new, old = tmp_path / "new.nrrd", tmp_path / "old.nrrd"
-    res = run("warp", src, "--spec", spec, "-o", new, "--background-value", "250")
+    # (the ball is a 0/200 mask: as intensities, on a grown grid, so [0, 0, 0] is padding)
+    as_density = ("--values", "intensity", "--grid", "grow")
+    res = run("warp", src, "--spec", spec, "-o", new, "--background-value", "250", *as_density)
     assert res.code == 0 and res.stderr == "", res.stderr
-    res = run("warp", src, "--spec", spec, "-o", old, "--background", "250")
+    res = run("warp", src, "--spec", spec, "-o", old, "--background", "250", *as_density)
     assert res.code == 0, res.stderr
     assert "volwarp: warning: --background is now --background-value" in res.stderr
     assert read_volume(new).data[0, 0, 0] == 250

@@ -128,7 +128,7 @@ CASES = [
      "vol.nrrd"),
     ("warp-over-spec", ["warp", "vol.nrrd", "--spec", "spec.yaml", "-o", "spec_link.nrrd"],
      "spec.yaml", "spec_link.nrrd"),
-    ("warp-frames-to", ["warp", "other.nrrd", "--spec", "spec.yaml", "-o", "o.nrrd",
+    ("warp-frames-to", ["warp", "f_002.nrrd", "--spec", "spec.yaml", "-o", "o.nrrd",
                         "--frames-to", "f_{frame:03d}.nrrd"], "f_002.nrrd",
      "f_{frame:03d}.nrrd"),
     ("warp-displacement-to", ["warp", "vol.nrrd", "--spec", "spec.yaml", "-o", "o.nrrd",

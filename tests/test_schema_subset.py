@@ -267,7 +267,7 @@ WARP_BALL = ROOT / "specs" / "warp-ball.yaml"
 BAD = {  # message recorded from validate() before the fast path existed
     ("colour: red\n", None):
         "bad.yaml:17: colour: unknown key 'colour' (allowed: background, capture, "
-        "evaluator, pushforward, steps, units, values, version)",
+        "evaluator, grid, pushforward, steps, units, values, version)",
     ("version: 1", "version: '1'"): "bad.yaml:3: version: 1 was expected",
     ("frames: 4", "frames: true"): "bad.yaml:16: steps[1].frames: True is not of type 'integer'",
     ("[4, 6, 5]", "[4, 6.5, 5]"):

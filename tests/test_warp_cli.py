@@ -59,15 +59,18 @@ def test_world_move_shifts_the_model_by_the_world_amount(run, tmp_path):
     spec = _spec(tmp_path, f"version: 1\ncapture: {{lattice: 7}}\nsteps:\n  - move:\n{moves}\n")
     empty = _spec(tmp_path, "version: 1\ncapture: {lattice: 7}\nsteps: []\n", "e.yaml")
     out, ident = tmp_path / "o.nrrd", tmp_path / "i.nrrd"
-    assert run("warp", src, "--spec", spec, "-o", out).code == 0
-    assert run("warp", src, "--spec", empty, "-o", ident).code == 0
+    # (the ellipsoid is a 0/200 mask: warped as intensities here, on a grid grown to hold
+    # the moved model)
+    grow = ("--values", "intensity", "--grid", "grow")
+    assert run("warp", src, "--spec", spec, "-o", out, *grow).code == 0
+    assert run("warp", src, "--spec", empty, "-o", ident, *grow).code == 0
     vo, vi = read_volume(out), read_volume(ident)
     assert vo.meta.get("patient") == "x" and vo.dtype == np.uint8
     assert np.allclose(_centroid_world(vi), _centroid_world(vol), atol=0.05)
     assert np.allclose(_centroid_world(vo) - _centroid_world(vol), shift, atol=0.1)
     # --crop cuts back to the input grid
     crop = tmp_path / "c.nrrd"
-    assert run("warp", src, "--spec", empty, "-o", crop, "--crop").code == 0
+    assert run("warp", src, "--spec", empty, "-o", crop, "--crop", *grow[:2]).code == 0
     vc = read_volume(crop)
     assert vc.same_grid(vol)
     diff = np.abs(vc.data.astype(int) - data)
@@ -237,7 +240,8 @@ def test_background_from_spec_and_command_line(run, data_dir, tmp_path):
     outs = {}
     for name, extra in (("spec", []), ("cli", ["--background", "250"])):
         outs[name] = tmp_path / f"{name}.nrrd"
-        res = run("warp", src, "--spec", spec, "-o", outs[name], *extra)
+        res = run("warp", src, "--spec", spec, "-o", outs[name], "--values", "intensity",
+                  *extra)
         assert res.code == 0, res.stderr
     a, b = read_volume(outs["spec"]).data, read_volume(outs["cli"]).data
     assert a[0, 0, 0] == 7 and b[0, 0, 0] == 250
@@ -261,12 +265,13 @@ def test_capture_made_while_the_spec_is_checked_is_used_once(run, data_dir, tmp_
     spec = _spec(tmp_path, "version: 1\ncapture: {lattice: 6, oversample: 1}\nsteps:\n"
                  "  - move:\n      - {index: [2, 2, 2], by: [1.5, 0, 0]}\n")
     out = tmp_path / "o.nrrd"
-    res = run("warp", "-vv", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out)
+    res = run("warp", "-vv", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out,
+              "--values", "intensity")
     assert res.code == 0, res.stderr
     assert calls == [True] and "capture (pullback)" not in res.stderr
     framed = tmp_path / "framed.nrrd"
     res = run("warp", "-vv", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", framed,
-              "--frames-to", str(tmp_path / "f{frame}.nrrd"))
+              "--frames-to", str(tmp_path / "f{frame}.nrrd"), "--values", "intensity")
     assert res.code == 0, res.stderr
     assert calls == [True, False] and res.stderr.count("capture (pullback)") == 1
     from volwarp_cli.bspline.capture import capture_volume
@@ -330,6 +335,7 @@ def test_streamed_nrrd_output_is_the_whole_targets_file(run, data_dir, tmp_path,
     spec = SPECS / "warp-ball.yaml"
     src = data_dir / "ball_30_uint8.nrrd"
     streamed, whole = tmp_path / "streamed.nrrd", tmp_path / "whole.nrrd"
+    extra = [*extra, "--values", "intensity"]  # (the ball is a 0/200 mask)
     assert run("warp", src, "--spec", spec, "-o", streamed, *extra).code == 0
     res = run("warp", src, "--spec", spec, "-o", whole, *extra,
               "--frames-to", str(tmp_path / "f{frame}.nrrd"))
@@ -377,7 +383,7 @@ def test_a_target_too_big_to_make_is_refused_naming_the_input(run, data_dir, tmp
     out = tmp_path / "o.nrrd"
     out.write_bytes(b"old")
     # (a displacement's own padding past 2x the input is refused first: --allow-growth)
-    res = run("warp", src, "--spec", spec, "-o", out, "--allow-growth")
+    res = run("warp", src, "--spec", spec, "-o", out, "--allow-growth", "--grid", "grow")
     assert res.code == 1, res.stderr
     line = res.stderr.strip()
     assert "\n" not in line and len(line) < 400
@@ -397,10 +403,10 @@ def test_a_move_that_would_grow_the_output_past_twice_needs_allow_growth(run, da
                            f"steps:\n  - move:\n      - {{index: [2, 2, 2], by: {move}}}\n")
     out = tmp_path / "o.nrrd"
     out.write_bytes(b"old")
-    res = run("warp", src, "--spec", spec, "-o", out)
+    res = run("warp", src, "--spec", spec, "-o", out, "--grid", "grow")
     assert res.code == 2 and "--allow-growth" in res.stderr and "times the input" in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1 and out.read_bytes() == b"old"
-    res = run("warp", src, "--spec", spec, "-o", out, "--allow-growth")
+    res = run("warp", src, "--spec", spec, "-o", out, "--allow-growth", "--grid", "grow")
     assert res.code == 0, res
     assert max(read_volume(out).shape_xyz) > 94  # grown past 30 + 64 voxels
 

@@ -135,11 +135,12 @@ def test_slabs_of_a_folding_map_to_an_ome_zarr_jacobian(run, tmp_path, monkeypat
     src, spec, pts, mesh = _inputs(tmp_path, FLIPPED, FOLD)
     mem, blk = tmp_path / "mem", tmp_path / "blk"
     mem.mkdir(), blk.mkdir()
-    a = run("warp", src, "--spec", spec, "-o", mem / "o.nrrd",
+    # (on a grid grown to hold the moved part: the fold lies outside the input's grid)
+    a = run("warp", src, "--spec", spec, "-o", mem / "o.nrrd", "--grid", "grow",
             *_exports(mem, pts, mesh, ".ome.zarr"))
     assert a.code == 0, a.stderr
     b = run("warp", src, "--spec", spec, "-o", blk / "o.nrrd", "--chunked", "--block", "5",
-            *_exports(blk, pts, mesh, ".ome.zarr"))
+            "--grid", "grow", *_exports(blk, pts, mesh, ".ome.zarr"))
     assert b.code == 0, b.stderr
     sa, sb = json.loads(a.stdout), json.loads(b.stdout)
     assert sb["displacement"]["folded"] > 0 and sb["jacobian"]["below_0"] > 0
@@ -217,18 +218,20 @@ def test_a_warp_too_big_for_memory_writes_its_exports_by_blocks(run, tmp_path, m
     src, spec, pts, mesh = _inputs(tmp_path, OBLIQUE, shape=(33, 35, 37))
     mem, blk = tmp_path / "mem", tmp_path / "blk"
     mem.mkdir(), blk.mkdir()
-    a = run("warp", src, "--spec", spec, "-o", mem / "o.nrrd", *_exports(mem, pts, mesh))
+    # (the grown grid: a target larger than the input's, which 200K cannot hold)
+    a = run("warp", src, "--spec", spec, "-o", mem / "o.nrrd", "--grid", "grow",
+            *_exports(mem, pts, mesh))
     assert a.code == 0, a.stderr
     monkeypatch.setattr(memory, "process_rss", lambda: 0)
     monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
     b = run("warp", src, "--spec", spec, "-o", blk / "o.nrrd", "--memory-limit", "200K",
-            *_exports(blk, pts, mesh))
+            "--grid", "grow", *_exports(blk, pts, mesh))
     assert b.code == 0, b.stderr
     assert "running by blocks" in b.stderr
     assert _figures(json.loads(a.stdout)) == _figures(json.loads(b.stdout))
     _same_exports(mem, blk)
     nii = tmp_path / "d.nii.gz"
     res = run("warp", src, "--spec", spec, "-o", tmp_path / "o2.nrrd", "--memory-limit", "200K",
-              "--displacement-to", nii)
+              "--grid", "grow", "--displacement-to", nii)
     assert res.code == 1 and "needs" in res.stderr and "running by blocks" not in res.stderr
     assert not nii.exists() and not (tmp_path / "o2.nrrd").exists()

@@ -225,12 +225,23 @@ def test_warp_labels_through_the_command_line(run, tmp_path):
     assert got.dtype == np.uint32
     assert set(np.unique(got.data)) <= {0, 3, 2 ** 25 + 1}
     assert (got.data == 2 ** 25 + 1).sum() > 50 and not np.array_equal(got.data, seg)
-    for extra in (["--preserve-labels"], ["--labels", "--dtype", "uint8"],
-                  ["--labels", "--jacobian-to", tmp_path / "j.nrrd"]):
+    for extra in (["--preserve-labels", "--values", "intensity"],
+                  ["--labels", "--dtype", "uint8"], ["--dtype", "uint8"]):
         args = [a for a in extra]
         res = run("warp", src, "--spec", spec, "-o", tmp_path / "x.nrrd", *args)
         assert res.code == 2, (extra, res)
         assert not (tmp_path / "x.nrrd").exists()
+    # the map looks like labels: the defaults warp it as --labels does (--preserve-labels
+    # needs no --labels), and the deformation's exports are those of the intensity warp
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "d.nrrd", "--crop",
+              "--preserve-labels", "--jacobian-to", tmp_path / "j.nrrd")
+    assert res.code == 0, res
+    assert (tmp_path / "d.nrrd").read_bytes() == out.read_bytes()
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "i.nrrd", "--values", "intensity",
+              "--jacobian-to", tmp_path / "ji.nrrd")
+    assert res.code == 0, res
+    assert np.array_equal(read_volume(tmp_path / "j.nrrd").data,
+                          read_volume(tmp_path / "ji.nrrd").data)
 
 
 def test_the_spec_can_say_values_labels(run, tmp_path):

@@ -117,8 +117,9 @@ def test_the_label_block_path_refusals(run, seg, tmp_path):
     res = run("warp", src, "--spec", spec, "--labels", "-o", out, "--chunked", "--frames-to",
               str(tmp_path / "f_{frame}.nrrd"))
     assert res.code == 2 and "--frames-to" in res.stderr
-    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--preserve-labels")
-    assert res.code == 2 and "--labels" in res.stderr
+    res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--preserve-labels",
+              "--values", "intensity")
+    assert res.code == 2 and "--values intensity" in res.stderr
     res = run("warp", src, "--spec", spec, "--labels", "-o", tmp_path / "o.nii.gz", "--chunked")
     assert res.code == 1 and "block" in res.stderr
     assert not out.exists() and not (tmp_path / "o.nii.gz").exists()

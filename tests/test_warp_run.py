@@ -45,9 +45,11 @@ def _spec(tmp_path, text=MOVE) -> Path:
 
 
 def _opened(spec_path, read=lambda: read_volume(BALL), **kw):
+    if not kw.get("labels"):  # (the ball is a 0/200 mask: the label rule takes it for labels)
+        kw.setdefault("values", "intensity")
     with WarpInput(str(BALL), read_volume=read, **kw) as w:
         doc, spec = w.load_spec(spec_path)
-        return doc, spec, w.source(doc, spec, labels=kw.get("labels", False))
+        return doc, spec, w.source(doc, spec)
 
 
 def _reference(spec_path, **prepare_kw):
@@ -170,7 +172,8 @@ def test_label_map_warp_of_an_unmoved_lattice_is_the_map(tmp_path):
                                 "\nsteps:\n  - move:\n      - {index: [2, 2, 2], by: [0, 0, 0]}\n")
     with WarpInput("lab", read_volume=lambda: Volume(lab), labels=True) as w:
         doc, spec = w.load_spec(spec_path)
-        vol = w.source(doc, spec, labels=True)
+        vol = w.source(doc, spec)
+        assert w.choice.values == "labels" and w.choice.why == "given"
     warp = LabelMapWarp(vol, doc, spec, WarpOptions(crop=True))
     frames = []
     out, report = warp.render_frames(lambda f, v: frames.append(v.data.copy()))

@@ -88,6 +88,70 @@ def looks_like_labels_by_blocks(source, boxes) -> bool:
     return _labels(values, counts, shape, lambda z: np.asarray(source[z]))
 
 
+#: Voxels of one box of :func:`scan_labels` (its counting takes about 10 bytes a voxel).
+SCAN_BOX_VOXELS = 1 << 22
+
+
+def scan_boxes(shape, box_voxels: int = SCAN_BOX_VOXELS):
+    """Boxes of whole rows, planes where they fit, of about ``box_voxels`` at most, tiling ``shape``."""
+    from .box import Box
+
+    nz, ny, nx = (int(n) for n in shape)
+    plane = max(1, ny * nx)
+    if plane <= box_voxels:
+        chunk = (max(1, min(nz, box_voxels // plane)), ny, nx)
+    else:
+        chunk = (1, max(1, min(ny, box_voxels // max(1, nx))), nx)
+    return Box.from_shape(shape).blocks(chunk)
+
+
+class _Counted:
+    """A sliceable source that keeps the value counts of the boxes read through it.
+
+    :func:`looks_like_labels_by_blocks` reads every box once; counting them
+    as they pass gives the distinct values without a second read.
+    """
+
+    def __init__(self, source):
+        self.source = source
+        self.shape = tuple(int(n) for n in source.shape)
+        self.dtype = np.dtype(source.dtype)
+        self.parts: list = []
+        self.voxels = 0
+
+    def __getitem__(self, key):
+        block = np.asarray(self.source[key])
+        if isinstance(key, tuple) and block.ndim == 3 and block.size:
+            self.parts.append(value_counts(block))
+            self.voxels += block.size
+        return block
+
+
+def scan_labels(source, *, detect: bool = True, box_voxels: int = SCAN_BOX_VOXELS):
+    """``(looks like labels, distinct values, their counts)`` of ``source``, read once by boxes.
+
+    What the commands that follow the rule need before any work (``warp``'s
+    and ``distance``'s choice, a label's presence, the count for ``-v``), in
+    memory as by blocks: ``source`` is an array or a sliceable lazy source,
+    read box by box (:func:`scan_boxes`), so the answer is the same either
+    way. ``detect=False`` only counts. Samples that are not integers (or
+    bool) are not read: ``(False, None, None)``.
+    """
+    shape = tuple(int(n) for n in source.shape)
+    if np.dtype(source.dtype).kind not in "iub" or 0 in shape:
+        return False, None, None
+    boxes = scan_boxes(shape, box_voxels)
+    counted = _Counted(source)
+    looks = bool(looks_like_labels_by_blocks(counted, boxes)) if detect else False
+    parts = counted.parts
+    if counted.voxels != int(np.prod(shape)):  # (the rule read otherwise: count here)
+        parts = [value_counts(np.asarray(source[box.slices])) for box in boxes]
+    values, inverse = np.unique(np.concatenate([v for v, _ in parts]), return_inverse=True)
+    counts = np.bincount(inverse, weights=np.concatenate([c for _, c in parts]),
+                         minlength=len(values)).astype(np.int64)
+    return looks, values.astype(np.int64), counts
+
+
 def value_counts(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The sorted distinct values of an integer array (int64) and how often each occurs.
 

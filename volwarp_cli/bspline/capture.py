@@ -15,6 +15,7 @@ from ..errors import VolwarpError
 from ..memory import ensure_fits_in_memory
 from ..progress import timed
 from ..volume import Volume
+from .defaults import border_value
 from .lattice import PLACEMENTS, Grid, capture_offsets
 from .pullback import SAMPLINGS, Sampler
 
@@ -31,6 +32,9 @@ class Capture:
     nearest edge voxel's, which the pushforward leaves out) or a convex
     combination of eight. A deferred capture has no
     ``domain`` array but a ``sampler`` that gathers its planes on demand.
+    ``border``: the most frequent value on the input's faces
+    (:func:`.defaults.border_value`), the warp's default background; None
+    when not known.
     """
 
     domain: np.ndarray | None
@@ -43,6 +47,7 @@ class Capture:
     input_dtype: np.dtype
     stats: tuple[float, float, float | None]
     sampler: Sampler | None = None
+    border: float | None = None
 
     @property
     def voxmap(self) -> np.ndarray | Sampler:
@@ -57,6 +62,49 @@ class Capture:
     def lattice_points_index(self) -> np.ndarray:
         """Capture control points in input voxel indices, (Cz, Cy, Cx, 3)."""
         return self.grid.uniform_positions() + self.dq
+
+
+class NoSamples:
+    """The domain of a capture without samples: only its shape (z, y, x).
+
+    What a warp's lattice and scene need when no volume is computed (a label
+    map's passes gather their own indicators; exports need the deformation
+    only); anything that would gather samples is an error.
+    """
+
+    dtype = np.dtype(np.float32)
+
+    def __init__(self, shape):
+        self.shape = tuple(shape)
+
+    def planes(self, *a, **k):  # pragma: no cover - nothing asks
+        """Refused: there are no samples to gather."""
+        raise VolwarpError("this capture has no samples (only its lattice)")
+
+    whole = planes
+
+
+def geometry_capture(template: Volume, *, lattice=(9, 9, 9), placement: str = "uniform",
+                     oversample: float = 2.0, sampling: str = "linear", pad=None) -> Capture:
+    """A capture of ``template``'s geometry alone: its lattice and grid, no samples read.
+
+    For what depends on the deformation only (moved points and meshes, the
+    fields): the same grid and capture offsets as :func:`capture_volume`
+    makes from the same settings, so the same lattice moves and maps.
+    """
+    if placement not in PLACEMENTS:
+        raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
+    lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
+    grid = Grid.create(template.shape_xyz, lattice, oversample, placement)
+    ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,
+                          f"the {'x'.join(map(str, grid.lattice))} control lattice")
+    capture_offsets(grid, placement)
+    if pad is not None:
+        pad = tuple(int(v) for v in np.broadcast_to(np.asarray(pad), (3,)))
+    geometry = template.with_data(np.zeros((1, 1, 1), dtype=template.dtype))
+    return Capture(None, grid, placement, float(oversample), sampling, pad, geometry,
+                   np.dtype(template.dtype), (0.0, 1.0, None),
+                   NoSamples(tuple(grid.domain_shape[::-1])))
 
 
 #: float64 (x, y, z) arrays of the control lattice's size held at a time (positions,
@@ -153,7 +201,8 @@ def capture_source(template: Volume, source, *, lattice=(9, 9, 9), placement: st
     sampler = BoxSampler(source, grid, placement, sampling, domain_dtype(template.dtype))
     geometry = template.with_data(np.zeros((1, 1, 1), dtype=template.dtype))
     return Capture(None, grid, placement, float(oversample), sampling, None, geometry,
-                   np.dtype(template.dtype), (lo, hi, None), sampler)
+                   np.dtype(template.dtype), (lo, hi, None), sampler,
+                   border=border_value(source))
 
 
 def domain_dtype(dtype) -> np.dtype:
@@ -207,4 +256,74 @@ def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
     if pad is not None:
         pad = tuple(int(v) for v in np.broadcast_to(np.asarray(pad), (3,)))
     return Capture(domain, grid, placement, float(oversample), sampling, pad, geometry,
-                   np.dtype(vol.dtype), stats, sampler)
+                   np.dtype(vol.dtype), stats, sampler, border=border_value(data))
+
+
+class CapturedInput:
+    """The input's samples as a subdivision capture holds them: a sliceable ``[z, y, x]`` view.
+
+    On the subdivision grid (the uniform placement, an integer oversample k)
+    every domain voxel inside the input holds exactly its input voxel's value
+    (either sampling), so input voxel ``i`` is domain voxel ``lead + k i``
+    (per axis), cast back to the input's type: a capture file gives back the
+    volume it was made from, which the label rule, the border value and a
+    label warp read. ``domain``: the domain, sliceable ``[z, y, x]`` (an
+    array, or a capture file's payload read box by box: picklable when it is).
+    """
+
+    def __init__(self, domain, grid: Grid, dtype):
+        if not grid.subdivision:
+            raise ValueError("only a subdivision capture holds its input's samples")
+        self.domain = domain
+        self.k = int(grid.subdivision)
+        self.lead = tuple(grid.lead[::-1])  # z, y, x
+        self.shape = tuple(int(n) for n in grid.input_shape[::-1])
+        self.dtype = np.dtype(dtype)
+        self.ndim = 3
+
+    def __getitem__(self, key) -> np.ndarray:
+        from ..io.filearray import box_of_key
+
+        box, pick = box_of_key(key, self.shape)
+        k = self.k
+        if any(hi <= lo for lo, hi in box):
+            part = np.empty(tuple(max(0, hi - lo) for lo, hi in box), dtype=self.dtype)
+            return part[pick]
+        index = tuple(slice(d + k * lo, d + k * (hi - 1) + 1, k)
+                      for d, (lo, hi) in zip(self.lead, box, strict=True))
+        part = np.asarray(self.domain[index])
+        return part.astype(self.dtype)[pick]
+
+
+def captured_input(cap: Capture) -> CapturedInput | None:
+    """The input's samples held in ``cap`` (:class:`CapturedInput`), or None.
+
+    None on the spanning grid (a non-integer oversample, the tripled
+    placement: each domain voxel blends input voxels) and for a capture
+    without samples.
+    """
+    if not cap.grid.subdivision:
+        return None
+    if cap.domain is not None:
+        return CapturedInput(cap.domain, cap.grid, cap.input_dtype)
+    source = getattr(cap.sampler, "stored", None)  # a capture file's payload, read by boxes
+    return None if source is None else CapturedInput(source, cap.grid, cap.input_dtype)
+
+
+def capture_border(cap: Capture) -> float:
+    """The input's border value (:func:`.defaults.border_value`) from what ``cap`` holds.
+
+    A subdivision capture holds the input's samples (:class:`CapturedInput`);
+    on the spanning grid the domain's faces are the input's faces,
+    interpolated (rounded for an integer input).
+    """
+    view = captured_input(cap)
+    if view is not None:
+        return border_value(view)
+    if cap.domain is not None:
+        value = border_value(cap.domain)
+    elif getattr(cap.sampler, "stored", None) is not None:
+        value = border_value(cap.sampler.stored)
+    else:
+        return 0.0
+    return float(np.rint(value)) if cap.input_dtype.kind in "iu" else value

@@ -41,7 +41,7 @@ import numpy as np
 from ..errors import FormatError
 from ..io.atomic import atomic_output
 from ..volume import Volume
-from .capture import Capture
+from .capture import Capture, capture_border
 from .lattice import Grid
 
 MAGIC = b"VOLWARP-CAPTURE\n"
@@ -254,14 +254,16 @@ def _capture_of(head: dict, domain, path, sampler=None) -> Capture:
         if grid.domain_shape != tuple(int(v) for v in pl["shape"]):
             raise ValueError("domain shape does not match the lattice")
         pad = capd["pad"]
-        return Capture(domain, grid, capd["placement"], float(capd["oversample"]),
-                       capd["sampling"], tuple(pad) if pad is not None else None, geometry,
-                       np.dtype(inp["dtype"]), (inp["min"], inp["max"], inp["mean"]),
-                       sampler)
+        cap = Capture(domain, grid, capd["placement"], float(capd["oversample"]),
+                      capd["sampling"], tuple(pad) if pad is not None else None, geometry,
+                      np.dtype(inp["dtype"]), (inp["min"], inp["max"], inp["mean"]),
+                      sampler)
     except (ValueError, KeyError, TypeError) as exc:
         raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
     except Exception as exc:  # a Volume check failing on bad geometry
         raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
+    cap.border = capture_border(cap)  # the warp's default background, from the stored input
+    return cap
 
 
 class StoredDomain:
@@ -280,6 +282,11 @@ class StoredDomain:
         self.source = array  # a FileArray of the payload (z, y, x)
         self.shape = tuple(array.shape)
         self.dtype = np.dtype(array.dtype).newbyteorder("=")
+
+    @property
+    def stored(self):
+        """The payload, sliceable ``[z, y, x]`` (read box by box; picklable)."""
+        return self.source
 
     def input_box(self, box):
         """The stored voxels ``box`` reads: its own."""
@@ -337,6 +344,20 @@ def open_capture_lazy(path: str | os.PathLike) -> Capture:
     shape = tuple(int(v) for v in pl["shape"])[::-1]
     sampler = StoredDomain(FileArray(path, dtype, offset, shape))
     return _capture_of(head, None, path, sampler=sampler)
+
+
+def read_capture_lattice(path: str | os.PathLike) -> Capture:
+    """A capture file's set-up without its samples (the header only; the payload not read).
+
+    For what depends on the deformation alone (moved points and meshes, the
+    fields): the capture's grid, placement and pad, a domain of its shape only
+    (:class:`~.capture.NoSamples`). The file's size is checked, not its payload's checksum.
+    """
+    from .capture import NoSamples
+
+    head, _ = read_header(path)
+    shape = tuple(int(v) for v in head["payload"]["shape"])[::-1]
+    return _capture_of(head, None, path, sampler=NoSamples(shape))
 
 
 def describe_capture(path: str | os.PathLike) -> dict:

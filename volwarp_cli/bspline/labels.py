@@ -50,7 +50,7 @@ from ..errors import VolwarpError
 from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
 from ..volume import Volume
-from .capture import LATTICE_ARRAYS, Capture
+from .capture import LATTICE_ARRAYS, Capture, NoSamples
 from .lattice import PLACEMENTS, Grid, capture_offsets
 from .pushforward import QUANTUM, HeldPlanes
 from .scene import Scene
@@ -59,21 +59,9 @@ from .stream import STREAM_PLANES, _ring_planes
 _Q = int(QUANTUM)
 
 
-class _NoSamples:
-    """The Scene's domain for a label warp: only its shape.
-
-    The label passes give their own indicator samples; nothing else may gather.
-    """
-
-    dtype = np.dtype(np.float32)
-
-    def __init__(self, shape):
-        self.shape = shape
-
-    def planes(self, *a, **k):  # pragma: no cover - the label passes never ask
-        raise VolwarpError("a label map's scene has no samples of its own")
-
-    whole = planes
+#: the Scene's domain for a label warp: only its shape (the label passes give their own
+#: indicator samples; nothing else may gather)
+_NoSamples = NoSamples
 
 
 def capture_labels(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform",
@@ -477,12 +465,13 @@ def _counts(target: np.ndarray, labels) -> dict:
 
 
 def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
-                   source: str = "input", allow_growth: bool = False):
+                   source: str = "input", allow_growth: bool = False, grid: str | None = None):
     """``(cap, scene, frames)`` for warping the label map ``vol`` with a checked spec.
 
     The spec: ``doc``, ``spec``. Returned: the :func:`capture_labels` capture of
     ``vol`` and :func:`.warp.prepare`'s scene and frames (the frames' lattices are
-    applied by :func:`warp_labels`).
+    applied by :func:`warp_labels`). ``grid``: the output's, as
+    :func:`.warp.prepare` takes it.
     """
     from .warp import prepare
 
@@ -494,15 +483,16 @@ def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, backg
                              oversample=s.oversample, sampling=s.sampling)
     except VolwarpError as exc:
         raise VolwarpError(f"{source}: {exc}") from None
-    if spec.background != 0:
+    if spec.background not in (None, 0):
         raise doc.error(("background",), "does not apply to a label map (its background is 0)")
     scene, frames = prepare(cap, doc, spec, method=method, evaluator=evaluator, background=0.0,
-                            allow_growth=allow_growth)
+                            allow_growth=allow_growth, grid=grid)
     return cap, scene, frames
 
 
 def label_warp(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
-               crop: bool = False, preserve: bool = False, source: str = "input"):
+               crop: bool = False, preserve: bool = False, source: str = "input",
+               grid: str | None = None):
     """The whole ``warp --labels``: ``(output Volume, report)`` for the label map ``vol``.
 
     With a checked spec (``doc``, ``spec``), as :mod:`..cli.warp` does for intensities.
@@ -510,7 +500,8 @@ def label_warp(vol: Volume, doc, spec, *, method=None, evaluator=None, backgroun
     from .warp import output_volume
 
     cap, scene, frames = prepare_labels(vol, doc, spec, method=method, evaluator=evaluator,
-                                        background=background, source=source)
+                                        background=background, source=source,
+                                        grid="input" if crop else grid)
     res = warp_labels(vol.data, scene, frames, preserve=preserve, spacing=vol.spacing)
     return output_volume(cap, scene, res.target, crop=crop), res.report
 

@@ -53,16 +53,21 @@ class Frame:
 
 @dataclass
 class WarpSpec:
-    """Typed settings of a warp spec (see :func:`read_warp_spec`); the steps as given."""
+    """Typed settings of a warp spec (see :func:`read_warp_spec`); the steps as given.
+
+    ``background``, ``values`` and ``grid`` are None where the spec says
+    nothing (the warp then decides: :mod:`.defaults`).
+    """
 
     units: str = "world"
     capture: CaptureSettings = field(default_factory=CaptureSettings)
     capture_given: set = field(default_factory=set)
     pushforward: str = "box"
     evaluator: str = "separable"
-    background: float = 0.0
+    background: float | None = None
     steps: list = field(default_factory=list)
-    values: str = "intensity"
+    values: str | None = None
+    grid: str | None = None
 
 
 def _vec3(v):
@@ -91,14 +96,20 @@ def read_warp_spec(doc) -> WarpSpec:
     for s, step in enumerate(steps):
         if "radius" in step and "drag" not in step:
             raise doc.error(("steps", s, "radius"), "radius limits a drag; this step has none")
-    background = float(d.get("background", 0.0))
-    if not np.isfinite(background):
-        raise doc.error(("background",), f"the background must be a finite number, got "
-                        f"{background}")
+    background = d.get("background")
+    if background is not None:
+        background = float(background)
+        if not np.isfinite(background):
+            raise doc.error(("background",), f"the background must be a finite number, got "
+                            f"{background}")
+    grid = d.get("grid")
+    if grid == "input" and "pad" in cap:
+        raise doc.error(("capture", "pad"), "pads a grown grid, but the spec's grid is input "
+                        "(the output on the input's grid): remove one of them")
     return WarpSpec(units=d.get("units", "world"), capture=settings, capture_given=set(cap),
                     pushforward=d.get("pushforward", "box"),
                     evaluator=d.get("evaluator", "separable"),
-                    background=background, steps=steps, values=d.get("values", "intensity"))
+                    background=background, steps=steps, values=d.get("values"), grid=grid)
 
 
 class SpecUnits:

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import OutOfMemoryError, SpecError, VolwarpError
+from ..errors import BadUsage, OutOfMemoryError, SpecError, VolwarpError
 from ..progress import log, timed
 from ..volume import Volume
 
@@ -43,12 +43,16 @@ FRAME_FIELDS = ("frame", "step", "spec_step", "sub")
 class WarpOptions:
     """What a warp may override of its spec, and the output's form.
 
-    ``pushforward``, ``evaluator``, ``background``: the spec's unless given.
-    ``crop``: cut the output back to the input's extent. ``dtype``: the
-    output's sample type (default the input's). ``allow_growth``: let the
-    padding the moves need grow the output past twice the input (see
-    :func:`.warp.prepare`). ``blocks``: the warp runs by output blocks
-    (:meth:`IntensityWarp.block_job`), the target never held whole.
+    ``pushforward``, ``evaluator``: the spec's unless given; ``background``:
+    the spec's, else the input's border value (:func:`.warp.background_of`).
+    ``grid``: ``"input"`` (the output on the input's grid) or ``"grow"``
+    (grown to hold the moved model); None: the spec's, else input unless a
+    pad is given (:func:`.warp.grid_of`). ``crop``: the same as ``grid="input"``.
+    ``dtype``: the output's sample type (default the input's).
+    ``allow_growth``: let the padding the moves need grow the output past
+    twice the input (the grown grid; see :func:`.warp.prepare`). ``blocks``:
+    the warp runs by output blocks (:meth:`IntensityWarp.block_job`), the
+    target never held whole.
     """
 
     pushforward: str | None = None
@@ -58,6 +62,17 @@ class WarpOptions:
     dtype: str | None = None
     allow_growth: bool = False
     blocks: bool = False
+    grid: str | None = None
+
+    def __post_init__(self):
+        if self.crop and self.grid == "grow":
+            raise BadUsage("--crop puts the output on the input's grid: it does not go "
+                           "with --grid grow")
+
+    @property
+    def output_grid(self) -> str | None:
+        """The grid asked for: ``"input"`` (``grid``, or ``crop``), ``"grow"``, or None."""
+        return "input" if self.crop else self.grid
 
 
 def frame_fields(n: int, frame) -> dict[str, int]:
@@ -66,15 +81,14 @@ def frame_fields(n: int, frame) -> dict[str, int]:
             "sub": frame.sub if frame else 0}
 
 
-def _unchecked_capture_settings(doc):
-    """The spec's capture settings read before its schema check; None if they cannot be."""
+def _unchecked_spec(doc):
+    """The spec's settings read before its schema check; None if they cannot be."""
     from .plan import read_warp_spec
 
     try:
-        spec = read_warp_spec(doc)
+        return read_warp_spec(doc)
     except Exception:  # an invalid spec: the schema check reports it
         return None
-    return None if spec.values == "labels" else spec.capture  # labels: their own capture
 
 
 def capture_input(vol: Volume, settings, name: str, *, defer: bool = False):
@@ -98,17 +112,43 @@ def capture_input(vol: Volume, settings, name: str, *, defer: bool = False):
         raise VolwarpError(f"{name}: {exc}") from None
 
 
-def _capture_early(reading, settings, name, defer):
-    """The capture, started before the spec is checked; None where it cannot be made.
+def _capture_early(reading, given, settings, name, defer):
+    """``(values choice, capture)``, started before the spec is checked.
 
-    The capture after the check then reports why, in order.
+    The choice (:func:`.defaults.choose_values` with the values ``given``) and,
+    for intensities, the capture with ``settings``: each None where it cannot
+    be made (the work after the check then reports why, in order).
     """
-    if settings is None:
-        return None
+    from .defaults import choose_values
+
     try:
-        return capture_input(reading.result(), settings, name, defer=defer)
+        vol = reading.result()
+        choice = choose_values(vol.data, given, name=name)
     except Exception:
-        return None
+        return None, None
+    if choice.is_labels or settings is None:  # (labels: their own capture)
+        return choice, None
+    try:
+        return choice, capture_input(vol, settings, name, defer=defer)
+    except Exception:
+        return choice, None
+
+
+def capture_spec(spec, cap):
+    """``spec`` with the capture settings of ``cap`` (a capture file), for a label warp of it.
+
+    The label warp makes its own capture from the spec's settings; a capture
+    file's are its own (the spec's given ones were checked to agree), its
+    pad the spec's if given, else the file's.
+    """
+    from dataclasses import replace
+
+    from .plan import CaptureSettings
+
+    pad = spec.capture.pad if "pad" in spec.capture_given else cap.pad
+    return replace(spec, capture=CaptureSettings(
+        lattice=tuple(cap.grid.lattice), placement=cap.placement, oversample=cap.oversample,
+        pad=pad, sampling=cap.sampling))
 
 
 class WarpInput(AbstractContextManager):
@@ -117,11 +157,15 @@ class WarpInput(AbstractContextManager):
     Give ``read_volume`` (a volume input: called on a worker thread at once; a
     mapped, not copied, volume is best, the warp only reads it) or
     ``read_capture`` (a capture file, read when :meth:`source` asks for it).
-    ``labels``: the input is a label map (no intensity capture is made early);
-    ``stream``: the warp renders only its final lattice (the capture's gather
-    is deferred to it). ``name`` (the input's file) prefixes the capture's
-    errors. Use it as a context manager; :meth:`load_spec` first, then
-    :meth:`source`::
+    ``values``: the command line's ``--values`` (``"intensity"``,
+    ``"labels"``; ``labels=True`` is ``"labels"``), else the spec's, else the
+    label rule decides (:func:`.defaults.choose_values`, on the worker
+    thread, before any intensity capture is made). ``stream``: the warp
+    renders only its final lattice (the capture's gather is deferred to it).
+    ``name`` (the input's file) prefixes the capture's errors. Use it as a
+    context manager; :meth:`load_spec` first, then :meth:`source`, after
+    which :attr:`choice` says how the samples are warped and :attr:`spec`
+    is the spec to warp with::
 
         with WarpInput(path, read_volume=lambda: read_volume(path, mmap=True)) as w:
             doc, spec = w.load_spec(spec_path)
@@ -130,18 +174,23 @@ class WarpInput(AbstractContextManager):
 
     def __init__(self, name: str, *, read_volume: Callable[[], Volume] | None = None,
                  read_capture: Callable[[], object] | None = None, labels: bool = False,
-                 stream: bool = False):
+                 values: str | None = None, stream: bool = False):
         if (read_volume is None) == (read_capture is None):
             raise ValueError("give read_volume or read_capture (one of them)")
         self.name = name
         self._read_volume = read_volume
         self._read_capture = read_capture
-        self._labels = labels
+        self._values = "labels" if labels else values
         self._stream = stream
         self._pool = None
         self._reading = None
         self._early = None
+        self._early_given = None
         self._settings = None
+        #: how the samples are warped (:class:`.defaults.ValuesChoice`), after :meth:`source`
+        self.choice = None
+        #: the spec to warp with, after :meth:`source` (a capture file's labels: its settings)
+        self.spec = None
 
     def __enter__(self):
         self._pool = ThreadPoolExecutor(1)
@@ -166,38 +215,96 @@ class WarpInput(AbstractContextManager):
 
         doc = load_spec(spec_path)
         if self._reading is not None:
-            self._settings = None if self._labels else _unchecked_capture_settings(doc)
+            early = _unchecked_spec(doc)
+            self._settings = early.capture if early is not None else None
+            self._early_given = self._values or (early.values if early is not None else None)
             self._early = self._pool.submit(contextvars.copy_context().run, _capture_early,
-                                            self._reading, self._settings, self.name,
-                                            self._stream)
+                                            self._reading, self._early_given, self._settings,
+                                            self.name, self._stream)
         validate(doc, load_schema("warp"))
         return doc, read_warp_spec(doc)
 
-    def source(self, doc, spec, *, labels: bool = False):
-        """What to warp: the :class:`.capture.Capture`, or with ``labels`` the label map Volume.
+    def source(self, doc, spec):
+        """What to warp: the :class:`.capture.Capture`, or for labels the label map Volume.
 
-        The label map is captured by :class:`LabelMapWarp`.
+        Labels (:attr:`choice`): the label map is captured by
+        :class:`LabelMapWarp`; a capture file's is the volume it holds
+        (:class:`.capture.CapturedInput`, on the subdivision grid only), to
+        be warped with :attr:`spec` (the file's capture settings).
 
         A capture file's settings are checked against the spec's (a spec error);
         a volume's read error comes here, after every spec error.
         """
+        from .defaults import choose_values
         from .warp import check_capture_settings
 
+        given = self._values or spec.values
+        self.spec = spec
         if self._read_capture is not None:
             with timed(f"read {self.name}"):
                 cap = self._read_capture()
             check_capture_settings(doc, spec, cap, self.name)
-            return cap
+            return self._capture_source(cap, spec, given)
         if self._reading is None:
             raise RuntimeError("WarpInput.source needs load_spec first, inside the with")
         vol = self._reading.result()  # a read error, after any spec error
-        early = self._early.result() if self._settings == spec.capture else None
+        choice, early = self._early.result() if given == self._early_given else (None, None)
+        if self._settings != spec.capture:
+            early = None
         self._reading = self._early = None  # the futures hold the volume and the capture
-        if labels:
+        if choice is None:
+            choice = choose_values(vol.data, given, name=self.name)
+        self._chose(choice)
+        if choice.is_labels:
             return vol
         if early is not None:
             return early
         return capture_input(vol, spec.capture, self.name, defer=self._stream)
+
+    def _chose(self, choice) -> None:
+        from .defaults import warn_once
+
+        self.choice = choice
+        warn_once(choice.warning)
+        log.info("%s: %s", self.name, choice.describe())
+
+    def _capture_source(self, cap, spec, given):
+        """:meth:`source` of a capture file: the capture, or the label map it holds."""
+        choice, view = capture_values(cap, given, self.name)
+        self._chose(choice)
+        if not choice.is_labels:
+            return cap
+        self.spec = capture_spec(spec, cap)
+        with timed(f"labels: the map {self.name} holds"):
+            return cap.geometry.with_data(view[:, :, :])
+
+
+def capture_values(cap, given: str | None, name: str):
+    """How a capture file's samples are warped: ``(ValuesChoice, CapturedInput or None)``.
+
+    On the subdivision grid the capture holds its input's samples
+    (:class:`.capture.CapturedInput`): the label rule reads them, as it reads
+    a volume. On the spanning grid they are blends of the input's: warped as
+    intensities, and labels asked for (``given``) are a usage error.
+    """
+    from .capture import captured_input
+    from .defaults import ValuesChoice, choose_values
+
+    view = captured_input(cap)
+    if view is not None:
+        return choose_values(view, given, name=name), view
+    if cap.placement != "uniform":
+        how = "the tripled placement"
+    elif float(cap.oversample).is_integer():
+        how = "a spanning grid (capture file version 1)"
+    else:
+        how = f"oversample {cap.oversample:g}"
+    if given == "labels":
+        raise BadUsage(f"{name}: a capture with {how} holds blended samples, not labels: "
+                       "capture the label map with the uniform placement and an integer "
+                       "oversample")
+    return ValuesChoice("intensity", "given" if given else
+                        f"a capture with {how}: its samples blended"), None
 
 
 def handle_report(cap, frames) -> list[dict]:
@@ -237,17 +344,29 @@ class IntensityWarp:
 
     def __init__(self, cap, doc, spec, options: WarpOptions = WarpOptions(), *,
                  name: str = "input"):
-        from .warp import prepare
+        from .defaults import resampling_warning, warn_once
+        from .warp import background_of, grid_of, prepare
 
         self.cap = cap
         self.options = options
+        #: the output's grid ("input" or "grow") and why
+        self.grid, self.grid_why = grid_of(spec, cap, options.output_grid)
+        #: the value where nothing lands, and why
+        self.background, self.background_why = background_of(spec, cap, options.background)
         try:
             self.scene, self.frames = prepare(
                 cap, doc, spec, method=options.pushforward, evaluator=options.evaluator,
-                background=options.background, allow_growth=options.allow_growth,
-                whole_target=not options.blocks)
+                background=self.background, allow_growth=options.allow_growth,
+                whole_target=not options.blocks, grid=self.grid)
         except OutOfMemoryError as exc:  # the target this input and spec ask for
             raise OutOfMemoryError(f"{name}: {exc}") from None
+        log.info("output grid: %s (%s)", self.grid, self.grid_why)
+        log.info("background: %.9g (%s)", self.background, self.background_why)
+        warn_once(resampling_warning(cap.placement, cap.oversample, cap.grid.subdivision))
+
+    def summary(self) -> dict:
+        """The ``--json`` keys of the choices made: grid, background."""
+        return {"grid": self.grid, "background": self.background}
 
     @property
     def final_lattice(self) -> np.ndarray:
@@ -367,12 +486,53 @@ class IntensityWarp:
 
 
 def _prepare_labels(vol: Volume, doc, spec, options: WarpOptions, name: str):
-    """:func:`.labels.prepare_labels` with the options' overrides: ``(cap, scene, frames)``."""
-    from .labels import prepare_labels
+    """:func:`.labels.prepare_labels` with the options' overrides.
 
-    return prepare_labels(vol, doc, spec, method=options.pushforward,
-                          evaluator=options.evaluator, background=options.background,
-                          source=name, allow_growth=options.allow_growth)
+    Returns ``(cap, scene, frames, grid)``, ``grid`` the output's and why.
+    """
+    from .labels import prepare_labels
+    from .warp import grid_of
+
+    grid = grid_of(spec, None, options.output_grid)
+    try:
+        cap, scene, frames = prepare_labels(vol, doc, spec, method=options.pushforward,
+                                            evaluator=options.evaluator,
+                                            background=options.background, source=name,
+                                            allow_growth=options.allow_growth, grid=grid[0])
+    except OutOfMemoryError as exc:  # the target this input and spec ask for
+        raise OutOfMemoryError(f"{name}: {exc}") from None
+    log.info("output grid: %s (%s)", *grid)
+    return cap, scene, frames, grid
+
+
+class Deformation:
+    """A warp's lattice moves and nothing else: what its exports need, no volume computed.
+
+    ``cap``: a capture without samples (:func:`.capture.geometry_capture`,
+    :func:`.capture_file.read_capture_lattice`) or any other. The same
+    lattice, frames and output grid as the warp of the same input, spec
+    and options would have, so moved points, meshes and fields are the same.
+    """
+
+    def __init__(self, cap, doc, spec, options: WarpOptions = WarpOptions()):
+        from .warp import grid_of, prepare
+
+        self.cap = cap
+        self.options = options
+        self.grid, self.grid_why = grid_of(spec, cap, options.output_grid)
+        self.scene, self.frames = prepare(
+            cap, doc, spec, method=options.pushforward, evaluator=options.evaluator,
+            background=0.0, allow_growth=options.allow_growth, whole_target=False,
+            grid=self.grid)
+
+    @property
+    def final_lattice(self) -> np.ndarray:
+        """The control-point offsets after the last step."""
+        return self.frames[-1].dq if self.frames else self.cap.dq
+
+    def handles(self) -> list[dict]:
+        """:func:`handle_report` of this warp's drags."""
+        return handle_report(self.cap, self.frames)
 
 
 class LabelMapBlocks:
@@ -394,7 +554,9 @@ class LabelMapBlocks:
         self.source = source
         self.input = template
         self.preserve = preserve
-        self.cap, self.scene, self.frames = _prepare_labels(template, doc, spec, options, name)
+        self.options = options
+        self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
+            template, doc, spec, options, name)
         if self.frames:
             self.scene.set_lattice(self.frames[-1].dq)
         #: the output's Volume, a placeholder of its shape and dtype
@@ -429,7 +591,13 @@ class LabelMapBlocks:
             report = warp_labels_by_blocks(job, out, engine, nvox=nvox,
                                            spacing=self.input.spacing, memory=per_task)
         return {"shape": list(self.template.shape_xyz),
-                "handles": handle_report(self.cap, self.frames), "report": report}
+                "handles": handle_report(self.cap, self.frames), "report": report,
+                "grid": self.grid}
+
+    @property
+    def final_lattice(self) -> np.ndarray:
+        """The control-point offsets after the last step (for the exports)."""
+        return self.frames[-1].dq if self.frames else self.cap.dq
 
 
 class LabelMapWarp:
@@ -450,11 +618,21 @@ class LabelMapWarp:
         self.vol = vol
         self.options = options
         self.preserve = preserve
-        self.cap, self.scene, self.frames = _prepare_labels(vol, doc, spec, options, name)
+        self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
+            vol, doc, spec, options, name)
 
     def handles(self) -> list[dict]:
         """:func:`handle_report` of this warp's drags."""
         return handle_report(self.cap, self.frames)
+
+    def summary(self) -> dict:
+        """The ``--json`` keys of the choices made: the grid."""
+        return {"grid": self.grid}
+
+    @property
+    def final_lattice(self) -> np.ndarray:
+        """The control-point offsets after the last step (for the exports)."""
+        return self.frames[-1].dq if self.frames else self.cap.dq
 
     def warp(self, lattice: np.ndarray) -> tuple[Volume, dict]:
         """The label warp for control-point offsets ``lattice``."""

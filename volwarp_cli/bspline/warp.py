@@ -12,12 +12,13 @@ import math
 
 import numpy as np
 
-from ..errors import SpecError
+from ..errors import BadUsage, SpecError
 from ..memory import ensure_fits_in_memory
 from ..progress import log, progress, timed
 from ..samples import cast_samples
 from ..volume import Volume
 from .capture import Capture
+from .defaults import GRIDS, output_grid
 from .plan import SpecUnits, WarpSpec, default_pad, plan
 from .scene import Scene
 
@@ -42,23 +43,70 @@ MAX_GROWTH = 2.0
 MIN_GROWTH_VOXELS = 64
 
 
+def pad_given(spec: WarpSpec, cap: Capture | None) -> str | None:
+    """Where a target padding was given (which asks for the grown grid), or None."""
+    if "pad" in spec.capture_given:
+        return "capture.pad"
+    if spec.capture.pad is not None or (cap is not None and cap.pad is not None):
+        return "the capture file's pad"
+    return None
+
+
+def grid_of(spec: WarpSpec, cap: Capture | None, option: str | None = None) -> tuple[str, str]:
+    """The output grid (``"input"`` or ``"grow"``) and why: :func:`.defaults.output_grid`."""
+    return output_grid(option, spec.grid, pad_given(spec, cap))
+
+
+def background_of(spec: WarpSpec, cap: Capture, option: float | None = None
+                  ) -> tuple[float, str]:
+    """The background value and why: the option's, the spec's, else the input's border.
+
+    The border (:func:`.defaults.border_value`: what the scan has outside its
+    anatomy) where the capture knows it, else 0.
+    """
+    if option is not None:
+        return float(option), "given"
+    if spec.background is not None:
+        return float(spec.background), "the spec's background"
+    if cap.border is not None:
+        return float(cap.border), "the most frequent value on the input's border"
+    return 0.0, "default"
+
+
 def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
             evaluator: str | None = None, background: float | None = None,
-            allow_growth: bool = False, whole_target: bool = True):
+            allow_growth: bool = False, whole_target: bool = True, grid: str | None = None):
     """The scene (with its target padding) and the planned frames.
 
-    ``method``, ``evaluator``, ``background``: override the spec's.
-    ``allow_growth``: let the padding the moves need make the output more than
-    ``MAX_GROWTH`` times the input, and more than ``MIN_GROWTH_VOXELS`` voxels
-    larger, along an axis (refused otherwise, before anything of that size is
-    made). ``whole_target``: the target will be held
-    (refused here when it cannot fit); False for a warp by blocks.
+    ``method``, ``evaluator``: override the spec's; ``background``: the
+    spec's, else the input's border (:func:`background_of`). ``grid``:
+    ``"input"``, the output on the input's grid (no padding: what moves
+    past it is cut off), or ``"grow"``, a target padded to hold every move
+    (the spec's or the capture's pad, else the largest displacement + 1);
+    None: :func:`grid_of` (input unless the spec or a pad asks for growth).
+    ``allow_growth`` (the grown grid only): let the padding the moves need
+    make the output more than ``MAX_GROWTH`` times the input, and more than
+    ``MIN_GROWTH_VOXELS`` voxels larger, along an axis (refused otherwise,
+    before anything of that size is made). ``whole_target``: the target will
+    be held (refused here when it cannot fit); False for a warp by blocks.
     """
+    if grid is None:
+        grid, _ = grid_of(spec, cap)
+    if grid not in GRIDS:
+        raise ValueError(f"grid must be one of {', '.join(GRIDS)}, got {grid!r}")
+    if allow_growth and grid == "input":
+        raise BadUsage("--allow-growth lets a grown grid grow past twice the input, but the "
+                       "output is on the input's grid (give --grid grow)")
     geom = SpecUnits(cap.geometry, spec.units)
     dq0 = cap.dq
     with timed("plan lattice moves"):
         frames = plan(doc, spec, cap.grid, dq0, geom)
-    if spec.capture.pad is not None:
+    if grid == "input":
+        pad = (0, 0, 0)
+        given = pad_given(spec, cap)
+        if given is not None:
+            log.info("%s not used: the output is on the input's grid", given)
+    elif spec.capture.pad is not None:
         pad = spec.capture.pad
     elif cap.pad is not None:
         pad = cap.pad
@@ -86,12 +134,12 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
         ensure_fits_in_memory(math.prod(tshape) * 4,
                               f"the warped target ({'x'.join(map(size, tshape))} voxels, "
                               f"pad {' '.join(size(int(p)) for p in pad)})")
-    if any(p < n - 1 for p, n in zip(pad, needed, strict=False)):
+    if grid == "grow" and any(p < n - 1 for p, n in zip(pad, needed, strict=False)):
         log.warning("pad %s is smaller than the largest displacement %s: material moved "
                     "outside the padded grid is cut off", list(pad), [max(n - 1, 0) for n in needed])
     scene = Scene(cap.voxmap, cap.grid, dq0, pad, method=method or spec.pushforward,
                   evaluator=evaluator or spec.evaluator,
-                  background=spec.background if background is None else background,
+                  background=background_of(spec, cap, background)[0],
                   domain_range=cap.stats[:2])
     return scene, frames
 

@@ -84,8 +84,10 @@ def lattice_option(default="9"):
                    "1/oversample of an input voxel, so what a warp leaves unmoved stays exact.")
 @click.option("--pad", type=click.IntRange(min=0), default=None,
               help="Output padding in voxels per side, room for material moved past the "
-                   "input's box, for later warps whose spec sets none [default: each warp's "
-                   "largest displacement + 1]; material moved beyond it is cut off.")
+                   "input's box, for later warps whose spec sets none: it asks them for a "
+                   "grown grid (warp --grid grow) [default: none; a warp with --grid grow "
+                   "pads by its largest displacement + 1]; material moved beyond it is cut "
+                   "off. `warp --grid input` leaves it unused.")
 @click.option("--sampling", type=click.Choice(["linear", "nearest"]), default="linear",
               show_default=True,
               help="How each domain voxel takes its value from the input (the pullback): "
@@ -114,6 +116,7 @@ def command(input, output, lattice, placement, oversample, pad, sampling, raw, v
         raise click.BadParameter("the tripled placement needs at least 6 points per axis",
                                  param_hint="'--lattice'")
     vol = load_input(input, raw, volume_index, dicom=dicom)
+    _warn_blended_labels(vol, input, placement, oversample)
     try:
         cap = capture_volume(vol, lattice=lattice, placement=placement, oversample=oversample,
                              sampling=sampling, pad=pad)
@@ -121,3 +124,27 @@ def command(input, output, lattice, placement, oversample, pad, sampling, raw, v
         raise VolwarpError(f"{input}: {exc}") from None
     with timed(f"write {output}"):
         write_capture(cap, output)
+
+
+def _warn_blended_labels(vol, name, placement, oversample) -> None:
+    """Say when a label map is captured on the spanning grid, which blends its ids.
+
+    On the subdivision grid (the uniform placement, an integer oversample) a
+    capture holds its input's samples, and `warp` takes a label map's capture
+    for labels as it takes the map; on the spanning grid its ids are blended
+    for good, and a warp of it can only average them.
+    """
+    from ..bspline.defaults import choose_values
+    from ..bspline.lattice import subdivision_of
+    from ..progress import log
+
+    if subdivision_of(oversample, placement):
+        return
+    choice = choose_values(vol.data)
+    if choice.is_labels:
+        how = ("the tripled placement" if placement != "uniform"
+               else f"oversample {oversample:g}")
+        log.warning("warning: %s looks like a label map (%d labels), and %s blends its ids "
+                    "(a warp of this capture averages them); capture it with the uniform "
+                    "placement and an integer --oversample to warp it as labels", name,
+                    choice.labels, how)

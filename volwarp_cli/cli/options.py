@@ -38,7 +38,7 @@ checks this list against the commands; ``(every command)``: from
     --forward-field-to        warp
     --frames                  morph
     --frames-to               warp
-    --grid                    morph
+    --grid                    warp morph
     --inside                  morph distance mesh
     --irregular               capture warp distance mesh info convert
     --iso                     morph distance mesh

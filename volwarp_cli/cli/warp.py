@@ -9,19 +9,22 @@ from __future__ import annotations
 import string
 
 import click
+import numpy as np
+from click.core import ParameterSource
 
-from ..errors import OutOfMemoryError, VolwarpError
+from ..bspline.defaults import GRIDS, VALUES
+from ..errors import BadUsage, OutOfMemoryError, VolwarpError
 from ..io import check_output_path, volume_format, write_volume
 from ..progress import timed
 from .common import load_input, provenance, stamp
 from .options import (
     INPUT_PATH,
+    _volume_output,
     common_options,
     examples,
     finite,
     input_options,
     option,
-    output_option,
     write_options,
 )
 from .resources import scale_options, scale_settings
@@ -40,8 +43,11 @@ PUSHFORWARD_HELP = (
 
 JSON_HELP = (
     "After a successful run, print one JSON object on stdout (nothing else goes there; "
-    "logs and progress go to stderr). Keys: output (path), shape (x y z voxels of the "
-    "written output), frames (frame files written, with --frames-to), handles (one per "
+    "logs and progress go to stderr). Keys: output (path; null without -o), shape (x y z "
+    "voxels of the warped volume), frames (frame files written, with --frames-to), values "
+    "and values_why (intensity or labels, and why: given, looks like a label map: N "
+    "labels, not a label map), grid (input or grow), background (intensities: the value "
+    "where nothing lands), handles (one per "
     "drag handle: step (0-based spec step), index (within the step's drag list), from, "
     "to, reached (world LPS mm; reached: where the solved lattice sends from), miss_mm "
     "(|reached - to|)); with --jacobian-to: jacobian {path, min, max, below_0, below_0_1} "
@@ -50,8 +56,8 @@ JSON_HELP = (
     "counts: folded = NaN, no_preimage = without an inverse in the lattice's support); "
     "with --points-in / --mesh-in: points / mesh {path, count, outside}; with labels: "
     "labels (one per input label: label, input_voxels, output_voxels, input_mm3, "
-    "output_mm3, predicted_mm3; output_*: the warped map before --crop; with --frames-to: "
-    "the last frame's), vanished and preserved (label ids). A value that is "
+    "output_mm3, predicted_mm3; with --frames-to: the last frame's), vanished and "
+    "preserved (label ids). A value that is "
     "not a finite number is null.")
 
 
@@ -78,21 +84,64 @@ def _check_pattern(pattern: str) -> None:
         volume_format(a)
     except VolwarpError as exc:
         raise click.BadParameter(str(exc), param_hint="'--frames-to'") from None
-    check_output_path(a)
+    from ..io.inputs import refuse_pattern_over_input
+
+    refuse_pattern_over_input(pattern, option="--frames-to")  # any frame's name an input's
+    check_output_path(a, option="--frames-to")
+
+VALUES_HELP = (
+    "How INPUT's samples are warped [default: the spec's values, else labels when INPUT "
+    "looks like a label map (integer, piecewise constant: `volwarp info` says so), else "
+    "intensity]. intensity: box-filtered and blended (scans, densities, distance fields). "
+    "labels: each output voxel takes the label of largest box-filter weight (the background "
+    "0 competes); ids are never averaged. -v prints each label's volume before and after "
+    "(--json: the labels key); with --frames-to, those of the last frame. A capture file "
+    "(.vwc) of the uniform placement at an integer oversample holds its input's samples, and "
+    "the same rule applies to them. -v and --json say which, and why.")
+
+GRID_HELP = (
+    "The output's grid [default: the spec's grid, else input; a pad given (the spec's "
+    "capture.pad, `capture --pad`) asks for grow]. input: the input's own grid (shape, "
+    "origin, spacing): a scan stays where it was, and what moves past its box is cut off. "
+    "grow: padded to hold the whole moved model (the papers' modelling case), the origin "
+    "shifted so that unmoved anatomy stays in place; the padding is the spec's capture.pad, "
+    "else the largest displacement + 1.")
+
+BACKGROUND_HELP = (
+    "Value of the space around the model, given to uncovered output voxels and blended into "
+    "partly covered ones [default: the spec's background, else the most frequent value on "
+    "INPUT's border (its six faces): what the scan has outside its anatomy, e.g. -1024 for a "
+    "CT, 0 for an MRI; -v prints it]; e.g. a large positive distance for a signed distance "
+    "field. Intensities only (a label map's background is the label 0).")
+
+#: options that shape the warped volume only: refused when no volume is written
+_VOLUME_ONLY = (("--values", "values"), ("--labels", "labels"), ("--pushforward", "pushforward"),
+                ("--evaluator", "evaluator"), ("--background-value", "background"),
+                ("--preserve-labels", "preserve_labels"), ("--dtype", "dtype"),
+                ("--compress", "compress"), ("--byte-order", "byte_order"),
+                ("--ome-zarr-version", "ome_zarr_version"), ("--pyramid", "pyramid"))
+#: what --grid and --crop change without a volume: the displacement field's grid
+_GRID_OPTIONS = (("--grid", "grid"), ("--crop", "crop"), ("--allow-growth", "allow_growth"))
+
 
 @click.command(name="warp", epilog=examples(
-    "volwarp warp head.nrrd --spec bend.yaml -o bent.nrrd --crop",
-    "volwarp warp head.vwc --spec bend.yaml -o bent.nrrd --frames-to 'bent_{frame:03d}.nrrd'",
+    "volwarp warp head.nrrd --spec bend.yaml -o bent.nrrd --points-in p.csv --points-to q.csv",
+    "volwarp warp block.vwc --spec pull.yaml -o pulled.nrrd --grid grow "
+    "--frames-to 'pulled_{frame:03d}.nrrd'",
 ))
 @click.argument("input", type=INPUT_PATH)
 @click.option("--spec", "spec_path", required=True, type=INPUT_PATH,
               help="Warp spec (YAML; schema specs/warp.schema.json).")
-@output_option("Warped volume (format by extension).")
+@click.option("-o", "--output", default=None, type=click.Path(dir_okay=True),
+              callback=_volume_output,
+              help="Warped volume (format by extension). Without it (and --frames-to) no "
+                   "volume is computed: the exports alone are written (--points-to, "
+                   "--mesh-to, --transform-to, the fields); at least one output is needed.")
 @click.option("--frames-to", default=None, metavar="PATTERN",
               help="Also write every animation frame, e.g. 'out_{frame:03d}.nrrd' "
                    "({frame} and its alias {step}: 0 = unwarped, then one per increment; "
-                   "{spec_step}, {sub}: the spec step and the increment within it). With "
-                   "--labels every frame is the label warp recomputed exactly from the input "
+                   "{spec_step}, {sub}: the spec step and the increment within it). A label "
+                   "map's frames are each the label warp recomputed exactly from the input "
                    "map for that frame's lattice (not incremental: each frame costs a whole "
                    "label warp).")
 @click.option("--pushforward", type=click.Choice(["box", "nearest"]), default=None,
@@ -102,23 +151,18 @@ def _check_pattern(pattern: str) -> None:
                    "(three 1-D passes) or table (the papers' tabulated tensor-product "
                    "weights); both give the same output.")
 @option("--background-value", "background", was="--background", type=float, default=None,
-        metavar="B", callback=finite,
-        help="Value of the space around the model, given to uncovered output voxels "
-             "and blended into partly covered ones [default: the spec's, else 0]; "
-             "e.g. a large positive distance for a signed distance field.")
-@click.option("--crop", is_flag=True, help="Cut the output back to the input's extent.")
-@click.option("--labels", is_flag=True,
-              help="INPUT is a label map (segmentation): each output voxel takes the label of "
-                   "largest box-filter weight (the background 0 competes); ids are never "
-                   "averaged. -v prints each label's volume before and after (--json: the "
-                   "labels key); with --frames-to, those of the last frame.")
+        metavar="B", callback=finite, help=BACKGROUND_HELP)
+@click.option("--grid", type=click.Choice(GRIDS), default=None, help=GRID_HELP)
+@click.option("--crop", is_flag=True, help="The same as --grid input.")
+@click.option("--values", type=click.Choice(VALUES), default=None, help=VALUES_HELP)
+@click.option("--labels", is_flag=True, help="The same as --values labels.")
 @click.option("--preserve-labels", is_flag=True,
-              help="With --labels: a label that would vanish keeps its voxel of largest weight.")
+              help="Labels: a label that would vanish keeps its voxel of largest weight.")
 @click.option("--displacement-to", default=None, metavar="FIELD",
               help="Write the resampling displacement field y -> F^-1(y) - y (LPS mm) on the "
-                   "output grid, as ITK, ANTs and Slicer resample with (.nii.gz or .nrrd); "
-                   "NaN where the map folds or has no inverse. With --chunked: written by slabs, "
-                   "as .nrrd only, uncompressed (the same values).")
+                   "output grid (see --grid), as ITK, ANTs and Slicer resample with (.nii.gz "
+                   "or .nrrd); NaN where the map folds or has no inverse. With --chunked: "
+                   "written by slabs, as .nrrd only, uncompressed (the same values).")
 @click.option("--forward-field-to", default=None, metavar="FIELD",
               help="Write the forward (modelling) field x -> F(x) - x (LPS mm) on the input "
                    "grid (.nii.gz or .nrrd; with --chunked: by slabs, .nrrd only, uncompressed).")
@@ -140,45 +184,64 @@ def _check_pattern(pattern: str) -> None:
 @click.option("--mesh-to", default=None, metavar="M2.ply",
               help="The moved mesh, normals recomputed (.ply .stl .obj .vtp .vtk).")
 @click.option("--allow-growth", is_flag=True,
-              help="Let the padding the moves need make the output more than 2x the input "
-                   "(and more than 64 voxels larger) along an axis; refused otherwise, naming "
-                   "the sizes (a mistyped 320 mm drag made a 181x217x1701 volume).")
+              help="With --grid grow: let the padding the moves need make the output more "
+                   "than 2x the input (and more than 64 voxels larger) along an axis; refused "
+                   "otherwise, naming the sizes (a mistyped 320 mm drag made a 181x217x1701 "
+                   "volume).")
 @click.option("--json", "as_json", is_flag=True, help=JSON_HELP)
 @write_options
 @input_options
 @scale_options
 @common_options
-def command(input, spec_path, output, frames_to, pushforward, evaluator, background, crop,
-            labels, preserve_labels, displacement_to, forward_field_to, jacobian_to,
-            transform_to, points_in, points_to, mesh_in, mesh_to, allow_growth, as_json, dtype,
-            compress, byte_order, raw, volume_index, dicom, ome_zarr):
+def command(input, spec_path, output, frames_to, pushforward, evaluator, background, grid,
+            crop, values, labels, preserve_labels, displacement_to, forward_field_to,
+            jacobian_to, transform_to, points_in, points_to, mesh_in, mesh_to, allow_growth,
+            as_json, dtype, compress, byte_order, raw, volume_index, dicom, ome_zarr):
     """Warp INPUT (a volume, or a capture file .vwc) as the spec says.
 
     A plain volume is captured on the fly with the spec's `capture` settings
     (lattice, placement, oversample, pad, sampling: see `volwarp capture
-    --help`). The output keeps the input's dtype, spacing, direction and
-    key/values; it is padded (origin shifted, anatomy in place) unless --crop.
+    --help`). By default the output is on the input's grid (--grid grow for
+    a grid that holds the whole moved model), where nothing lands it takes
+    the input's border value, and a label map (as `volwarp info` hints) is
+    warped as labels: -v prints these choices. The output keeps the input's
+    dtype, spacing, direction and key/values.
     """
+    from ..bspline.defaults import new_run
     from ..bspline.run import WarpOptions
 
-    check_output_path(output)
+    new_run()
+    values = _given_values(values, labels)
+    if crop and grid == "grow":
+        raise click.UsageError("--crop puts the output on the input's grid: it does not go "
+                               "with --grid grow")
+    if allow_growth and (crop or grid == "input"):
+        raise click.UsageError("--allow-growth lets a grown grid grow: give --grid grow")
+    if output is not None:
+        check_output_path(output)
     is_capture = input.lower().endswith(".vwc")
-    if labels and is_capture:
-        raise click.UsageError("--labels warps a label-map volume (not a capture file)")
-    if labels and dtype is not None:
-        raise click.UsageError("--labels keeps the label map's own integer type (no --dtype)")
+    if values == "labels" and dtype is not None:
+        raise click.UsageError("labels keep the label map's own integer type (no --dtype)")
+    if values == "labels" and background not in (None, 0):
+        raise click.UsageError("--background-value does not apply to a label map (its "
+                               "background is the label 0)")
+    if preserve_labels and values == "intensity":
+        raise click.UsageError("--preserve-labels keeps labels: it does not go with "
+                               "--values intensity")
     if frames_to:
         _check_pattern(frames_to)
     exports = _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to,
                              points_in, points_to, mesh_in, mesh_to)
-    if labels and exports:
-        raise click.UsageError("--labels with the deformation's exports: export them from a "
-                               "warp without --labels (the deformation is the same)")
+    if output is None and not frames_to and not exports:
+        raise click.UsageError("nothing to write: give -o OUT (the warped volume), "
+                               "--frames-to, or an export (--points-to, --mesh-to, "
+                               "--transform-to, --displacement-to, --forward-field-to, "
+                               "--jacobian-to)")
     if is_capture and (raw is not None or volume_index is not None or dicom is not None):
         raise click.UsageError("--raw-*, --volume-index and the DICOM options describe volume "
                                f"inputs, not the capture file {input}")
     options = WarpOptions(pushforward=pushforward, evaluator=evaluator, background=background,
-                          crop=crop, dtype=dtype, allow_growth=allow_growth)
+                          crop=crop, dtype=dtype, allow_growth=allow_growth, grid=grid)
     blocks_refused = _blocks_refused(frames_to)
     chunked = scale_settings().chunked
     if chunked and blocks_refused:
@@ -191,25 +254,64 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         exports_refused = block_export_problem(exports)
         if chunked and exports_refused:
             raise click.UsageError(f"--chunked: {exports_refused}")
+    if output is None and not frames_to:  # the exports alone: no volume is computed
+        _refuse_volume_options(bool(displacement_to))
+        summary = _exports_only(input, spec_path, options, exports, is_capture, raw,
+                                volume_index, dicom)
+        if as_json:
+            _print_json(summary)
+        return
     write_kw = dict(compress=compress, byte_order=byte_order, **ome_zarr)
     if chunked:
         summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
-                                  write_kw, labels=labels, preserve=preserve_labels,
+                                  write_kw, values=values, preserve=preserve_labels,
                                   dicom=dicom, exports=exports, is_capture=is_capture)
     else:
         try:
-            summary = _warp_in_memory(input, spec_path, output, options, frames_to, labels,
+            summary = _warp_in_memory(input, spec_path, output, options, frames_to, values,
                                       preserve_labels, exports, is_capture, raw, volume_index,
                                       dicom, write_kw)
         except OutOfMemoryError as exc:
             if blocks_refused or exports_refused or chunked is False:
                 raise
             summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
-                                      write_kw, fallback=exc, labels=labels,
+                                      write_kw, fallback=exc, values=values,
                                       preserve=preserve_labels, dicom=dicom, exports=exports,
                                       is_capture=is_capture)
     if as_json:
         _print_json(summary)
+
+
+def _given_values(values, labels) -> str | None:
+    """``--values``, with ``--labels`` as ``--values labels``; None: not given."""
+    if labels:
+        if values == "intensity":
+            raise click.UsageError("--labels is --values labels: it does not go with "
+                                   "--values intensity")
+        return "labels"
+    return values
+
+
+def _refuse_volume_options(displacement: bool) -> None:
+    """Without a volume output: the options that shape only the volume are usage errors.
+
+    (No option is parsed and ignored.) ``displacement``: a displacement
+    field is written, on the output grid that --grid and --crop choose.
+    """
+    ctx = click.get_current_context()
+    given = []
+    for name, key in _VOLUME_ONLY + (() if displacement else _GRID_OPTIONS):
+        value = ctx.params.get(key)
+        if key in ("byte_order", "ome_zarr_version", "pyramid"):
+            if ctx.get_parameter_source(key) in (ParameterSource.COMMANDLINE,
+                                                 ParameterSource.ENVIRONMENT):
+                given.append(name)
+        elif value not in (None, False):
+            given.append(name)
+    if given:
+        raise click.UsageError(f"{', '.join(given)} shape{'s' if len(given) == 1 else ''} "
+                               "the warped volume, and none is written: give -o OUT, or "
+                               "leave them out")
 
 
 def _blocks_refused(frames_to) -> str | None:
@@ -222,8 +324,109 @@ def _blocks_refused(frames_to) -> str | None:
     return "--frames-to" if frames_to else None
 
 
+def _exports_only(input, spec_path, options, exports, is_capture, raw, volume_index,
+                  dicom) -> dict:
+    """The exports of a warp whose volume is not asked for: the lattice planned, no volume.
+
+    Only the input's geometry is read (a volume's header, a capture file's
+    header); the moved points, meshes, transform and fields are those of the
+    warp with the same spec and options.
+    """
+    from ..bspline.export import check_exportable
+    from ..bspline.export_outputs import FieldBlocks, write_exports
+    from ..bspline.plan import read_warp_spec
+    from ..bspline.run import Deformation
+    from ..bspline.warp import check_capture_settings
+    from ..spec.loader import load_schema, load_spec, validate
+
+    doc = load_spec(spec_path)
+    validate(doc, load_schema("warp"))
+    spec = read_warp_spec(doc)
+    if is_capture:
+        from ..bspline.capture_file import read_capture_lattice
+
+        with timed(f"read {input} (header)"):
+            cap = read_capture_lattice(input)
+        check_capture_settings(doc, spec, cap, input)
+    else:
+        from ..bspline.capture import geometry_capture
+        from .chunked import lazy_input
+
+        template, _ = lazy_input(input, raw, volume_index, dicom)
+        c = spec.capture
+        try:
+            cap = geometry_capture(template, lattice=c.lattice, placement=c.placement,
+                                   oversample=c.oversample, sampling=c.sampling)
+        except VolwarpError as exc:
+            raise VolwarpError(f"{input}: {exc}") from None
+    check_exportable(cap.placement, cap.dq, input)
+    warp = Deformation(cap, doc, spec, options)
+    mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
+    blocks = None
+    if scale_settings().chunked:
+        from .chunked import block_budget
+
+        settings = scale_settings()
+        blocks = FieldBlocks(memory=block_budget(),
+                             depth=settings.block[0] if settings.block else None)
+    stats = write_exports(exports, warp, meta=provenance("warp", input, spec_path),
+                          mesh_meta=provenance("warp", [input, *mesh_src], spec_path),
+                          blocks=blocks)
+    return {"output": None, "handles": warp.handles(), "grid": warp.grid, **stats}
+
+
+def _values_choice_json(choice) -> dict:
+    """The --json keys of the values choice."""
+    return {"values": choice.values, "values_why": choice.why}
+
+
+def _check_labels_fit(choice, doc, spec, options, preserve: bool, name, values) -> None:
+    """What a warp as labels, or as intensities, cannot have: usage or spec errors.
+
+    Found once the values are chosen (the rule reads the samples), before
+    any work. Where the rule chose, the message names the way out; where the
+    spec's ``values: labels`` chose (``values``, the command line's, None),
+    a clash is the spec's error at that key.
+    """
+    if choice.is_labels:
+        if choice.ruled:
+            way = f"{name} looks like a label map ({choice.labels} labels) and is warped as labels"
+        else:
+            way = "labels are warped"
+
+        def out(what):
+            return (f"{what}; --values intensity warps its samples as intensities"
+                    if choice.ruled else what)
+
+        def clash(what):
+            if values is None and not choice.ruled:  # the spec's values: labels
+                return doc.error(("values",), what)
+            return BadUsage(out(what))
+
+        if options.dtype is not None:
+            raise clash(f"{way} in the map's own integer type: --dtype does not apply")
+        if options.background not in (None, 0, 0.0):
+            raise clash(f"{way} with the label 0 as their background: --background-value "
+                        "does not apply")
+        if spec.background not in (None, 0):
+            raise doc.error(("background",), out(f"does not apply: {way} with the label 0 as "
+                                                 "their background"))
+        c = spec.capture
+        if c.placement != "uniform" and "placement" in spec.capture_given:
+            raise doc.error(("capture", "placement"), out(
+                f"{way} with the uniform placement (each domain voxel one input voxel's "
+                "label)"))
+        if c.oversample != int(c.oversample):
+            raise doc.error(("capture", "oversample"), out(
+                f"{way} with an integer oversample (each domain voxel one input voxel's "
+                "label)"))
+    elif preserve:
+        raise BadUsage(f"--preserve-labels keeps labels, but {name} is warped as intensities "
+                       f"({choice.why}): give --values labels")
+
+
 def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw, *,
-                    fallback: OutOfMemoryError | None = None, labels: bool = False,
+                    fallback: OutOfMemoryError | None = None, values: str | None = None,
                     preserve: bool = False, dicom=None, exports=None,
                     is_capture: bool = False) -> dict:
     """The warp by output blocks on Dask (:mod:`volwarp_cli.bspline.blocks`).
@@ -232,9 +435,11 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
     (no --chunked given); raised again where the blocks cannot help either
     (an output format not written by blocks, an output larger than the disk).
 
-    ``exports`` (checked by the caller with ``block_export_problem``): written
-    after the output, as in memory, the fields by slabs
-    (:func:`volwarp_cli.bspline.export_outputs.write_exports` with ``blocks``).
+    ``values``: the command line's (None: the spec's, else the label rule on
+    the input read box by box). ``exports`` (checked by the caller with
+    ``block_export_problem``): written after the output, as in memory, the
+    fields by slabs (:func:`volwarp_cli.bspline.export_outputs.write_exports`
+    with ``blocks``).
 
     ``is_capture``: ``input`` is a capture file, whose domain each block reads
     from the file (:class:`~volwarp_cli.bspline.capture_file.StoredDomain`).
@@ -242,32 +447,17 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
     from dataclasses import replace
 
     from ..bspline.capture import capture_source
+    from ..bspline.defaults import choose_values, warn_once
     from ..bspline.plan import read_warp_spec
-    from ..bspline.run import IntensityWarp
+    from ..bspline.run import IntensityWarp, capture_spec, capture_values
+    from ..progress import log
     from ..spec.loader import load_schema, load_spec, validate
     from .chunked import block_budget, lazy_input
 
     doc = load_spec(spec_path)
     validate(doc, load_schema("warp"))
     spec = read_warp_spec(doc)
-    if spec.values == "labels" and not labels:  # the spec says what --labels says
-        if is_capture:
-            raise doc.error(("values",), "labels are warped from a volume, without a capture "
-                            "file")
-        if options.dtype is not None:
-            raise doc.error(("values",), "labels are warped from a volume, without --dtype")
-        if exports:
-            raise doc.error(("values",), "labels are warped from a volume, without the "
-                            "deformation's exports")
-        labels = True
-    if preserve and not labels:
-        raise click.UsageError("--preserve-labels needs --labels (or the spec's "
-                               "values: labels)")
-    if labels:
-        _check_label_spec(doc, spec, options.background)
-        return _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index,
-                                      write_kw, doc, spec, fallback=fallback, preserve=preserve,
-                                      dicom=dicom)
+    given = values or spec.values
     if is_capture:
         from ..bspline.capture_file import open_capture_lazy
         from ..bspline.warp import check_capture_settings
@@ -275,9 +465,26 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
         with timed(f"check {input} (one pass)"):
             cap = open_capture_lazy(input)
         check_capture_settings(doc, spec, cap, input)
-        source = None
+        template = source = None
+        with timed(f"labels? (the rule, one pass over {input})"):
+            choice, view = capture_values(cap, given, input)
+        if choice.is_labels:  # the label map the capture holds, read box by box
+            template = cap.geometry.with_data(np.broadcast_to(
+                np.zeros((), cap.input_dtype), view.shape))
+            source, spec = view, capture_spec(spec, cap)
     else:
         template, source = lazy_input(input, raw, volume_index, dicom)
+        with timed("labels? (the rule, one pass)"):
+            choice = choose_values(source, given, name=input)
+    warn_once(choice.warning)
+    log.info("%s: %s", input, choice.describe())
+    _check_labels_fit(choice, doc, spec, options, preserve, input, values)
+    if choice.is_labels:
+        summary = _warp_labels_by_blocks(template, source, input, spec_path, output, options,
+                                         write_kw, doc, spec, fallback=fallback,
+                                         preserve=preserve, exports=exports)
+        return {**summary, **_values_choice_json(choice)}
+    if not is_capture:
         c = spec.capture
         with timed("input range (one pass)"):
             try:
@@ -286,11 +493,13 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
                                      sampling=c.sampling)
             except VolwarpError as exc:
                 raise VolwarpError(f"{input}: {exc}") from None
-    warp = IntensityWarp(cap, doc, spec, replace(options, blocks=True), name=input)
+    else:
+        source = None
     if exports:  # refused before any work where they cannot be exact
         from ..bspline.export import check_exportable
 
-        check_exportable(warp.cap.placement, warp.cap.dq, input)
+        check_exportable(cap.placement, cap.dq, input)
+    warp = IntensityWarp(cap, doc, spec, replace(options, blocks=True), name=input)
     if fallback is not None:
         from .chunked import blocks_can_write, wants_blocks
 
@@ -304,33 +513,41 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
         summary = warp.render_blocks(
             source, engine, _block_writer(output, input, spec_path, write_kw), block_budget(),
             block=settings.block, sampler=cap.sampler if is_capture else None)
-    summary = {"output": str(output), **summary}
+    summary = {"output": str(output), **summary, **_values_choice_json(choice),
+               **warp.summary()}
     if exports:
-        # after -o, as in memory (each export atomic on its own); the fields by slabs
-        from ..bspline.export_outputs import FieldBlocks, write_exports
-
-        mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
-        fields = FieldBlocks(memory=block_budget(),
-                             depth=settings.block[0] if settings.block else None)
-        summary.update(write_exports(exports, warp, meta=provenance("warp", input, spec_path),
-                                     mesh_meta=provenance("warp", [input, *mesh_src],
-                                                          spec_path), blocks=fields))
+        summary.update(_exports_by_blocks(exports, warp, input, spec_path))
     return summary
 
 
-def _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw,
-                           doc, spec, *, fallback=None, preserve=False, dicom=None) -> dict:
-    """``warp --labels`` by slabs of target planes (:class:`~volwarp_cli.bspline.run.LabelMapBlocks`).
+def _exports_by_blocks(exports, warp, input, spec_path) -> dict:
+    """The exports after a warp by blocks, the fields by slabs; their --json figures."""
+    # after -o, as in memory (each export atomic on its own)
+    from ..bspline.export_outputs import FieldBlocks, write_exports
+    from .chunked import block_budget
 
-    The same output and per-label report as in memory; the label map is read
-    by boxes, the target never held.
+    settings = scale_settings()
+    mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
+    fields = FieldBlocks(memory=block_budget(),
+                         depth=settings.block[0] if settings.block else None)
+    return write_exports(exports, warp, meta=provenance("warp", input, spec_path),
+                         mesh_meta=provenance("warp", [input, *mesh_src], spec_path),
+                         blocks=fields)
+
+
+def _warp_labels_by_blocks(template, source, input, spec_path, output, options, write_kw,
+                           doc, spec, *, fallback=None, preserve=False, exports=None) -> dict:
+    """A label map's warp by slabs of target planes (:class:`~volwarp_cli.bspline.run.LabelMapBlocks`).
+
+    The same output and per-label report as in memory; the label map
+    (``source``, sliceable: the input read by boxes, or the samples a
+    capture file holds) is read by boxes, the target never held.
     """
     from ..bspline.labels import format_report
     from ..bspline.run import LabelMapBlocks
     from ..progress import log
-    from .chunked import block_budget, blocks_can_write, lazy_input, wants_blocks
+    from .chunked import block_budget, blocks_can_write, wants_blocks
 
-    template, source = lazy_input(input, raw, volume_index, dicom)
     warp = LabelMapBlocks(template, source, doc, spec, options, preserve=preserve, name=input)
     if fallback is not None:
         if not blocks_can_write(output, warp.template.data.shape, warp.template.dtype,
@@ -345,7 +562,10 @@ def _warp_labels_by_blocks(input, spec_path, output, options, raw, volume_index,
                               slab=settings.block[0] if settings.block else None)
     report = summary.pop("report")
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
-    return {"output": str(output), **summary, **_labels_json(report)}
+    summary = {"output": str(output), **summary, **_labels_json(report)}
+    if exports:
+        summary.update(_exports_by_blocks(exports, warp, input, spec_path))
+    return summary
 
 
 def _block_writer(output, input, spec_path, write_kw, *, labels: bool = False):
@@ -362,33 +582,26 @@ def _block_writer(output, input, spec_path, write_kw, *, labels: bool = False):
     return open_output
 
 
-def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preserve_labels,
+def _warp_in_memory(input, spec_path, output, options, frames_to, values, preserve_labels,
                     exports, is_capture, raw, volume_index, dicom, write_kw) -> dict:
-    """The warp in memory (the default): every mode, frames and exports."""
+    """The warp in memory (the default): every mode, frames and exports.
+
+    ``output`` None: the frames only (--frames-to).
+    """
     from ..bspline.run import IntensityWarp, LabelMapWarp, WarpInput
     if is_capture:
         from ..bspline.capture_file import read_capture
 
-        source = WarpInput(input, read_capture=lambda: read_capture(input))
+        source = WarpInput(input, values=values, read_capture=lambda: read_capture(input))
     else:  # mapped, not copied, where it can be: the warp only reads it
-        source = WarpInput(input, labels=labels, stream=not frames_to,
+        source = WarpInput(input, values=values, stream=not frames_to,
                            read_volume=lambda: load_input(input, raw, volume_index, True, dicom))
     with source:
         doc, spec = source.load_spec(spec_path)
-        if spec.values == "labels" and not labels:  # the spec says what --labels says
-            for clash, given in (("a capture file", is_capture),
-                                 ("--dtype", options.dtype is not None),
-                                 ("the deformation's exports", bool(exports))):
-                if given:
-                    raise doc.error(("values",), f"labels are warped from a volume, "
-                                    f"without {clash}")
-            labels = True
-        if preserve_labels and not labels:
-            raise click.UsageError("--preserve-labels needs --labels (or the spec's "
-                                   "values: labels)")
-        if labels:  # what a label map cannot have: usage or spec errors, before any work
-            _check_label_spec(doc, spec, options.background)
-        what = source.source(doc, spec, labels=labels)
+        what = source.source(doc, spec)
+        choice, spec = source.choice, source.spec
+        _check_labels_fit(choice, doc, spec, options, preserve_labels, input, values)
+    labels = choice.is_labels
 
     def stamped(vol):
         return stamp(vol, "warp", input, spec_path)
@@ -404,6 +617,7 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preser
         write(vol, frames_to.format(**fields))
         written[0] += 1
 
+    shape = None
     if labels:
         from ..bspline.labels import format_report
         from ..progress import log
@@ -412,18 +626,21 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preser
         del what
         handles = warp.handles()
         out, report = warp.render_frames(write_frame) if frames_to else warp.render()
-        write(out, output)
+        if output is not None:
+            write(out, output)
         log.info("per-label volumes (mm^3):\n%s", format_report(report))
         shape, stats = list(out.shape_xyz), _labels_json(report)
     else:
-        warp = IntensityWarp(what, doc, spec, options, name=input)
-        del what
-        handles = warp.handles()
         if exports:  # refused before any work where they cannot be exact
             from ..bspline.export import check_exportable
 
-            check_exportable(warp.cap.placement, warp.cap.dq, input)
-        if not frames_to and output.lower().endswith(".nrrd") and not write_kw["compress"]:
+            check_exportable(what.placement, what.dq, input)
+        warp = IntensityWarp(what, doc, spec, options, name=input)
+        del what
+        handles = warp.handles()
+        stats = {}
+        if (not frames_to and output.lower().endswith(".nrrd")
+                and not write_kw["compress"]):
             # raw NRRD: written by slabs (whole depth, whole rows) as the threads finish them
             # (the whole target is never held; each slab streams a ring of its own planes)
             from .. import memory, parallel
@@ -440,35 +657,23 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, labels, preser
             shape = list(template.shape_xyz)
         else:
             out = warp.render_frames(write_frame) if frames_to else warp.render()
-            write(out, output)
+            if output is not None:
+                write(out, output)
             shape = list(out.shape_xyz)
-        stats = {}
-        if exports:
-            # after -o: a run that fails or is stopped before its output leaves the old
-            # exports as they were (each export file is atomic on its own)
-            from ..bspline.export_outputs import write_exports
+    if exports:
+        # after -o: a run that fails or is stopped before its output leaves the old
+        # exports as they were (each export file is atomic on its own)
+        from ..bspline.export_outputs import write_exports
 
-            mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
-            stats = write_exports(exports, warp, meta=provenance("warp", input, spec_path),
-                                  mesh_meta=provenance("warp", [input, *mesh_src], spec_path))
-    summary = {"output": str(output), "shape": shape}
+        mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
+        stats.update(write_exports(exports, warp, meta=provenance("warp", input, spec_path),
+                                   mesh_meta=provenance("warp", [input, *mesh_src],
+                                                        spec_path)))
+    summary = {"output": None if output is None else str(output), "shape": shape}
     if frames_to:
         summary["frames"] = written[0]
-    return {**summary, "handles": handles, **stats}
-
-
-def _check_label_spec(doc, spec, background) -> None:
-    """What a label map cannot have, as usage or spec errors before any work."""
-    if background not in (None, 0, 0.0):
-        raise click.UsageError("--background-value does not apply to a label map (its "
-                               "background is the label 0)")
-    c = spec.capture
-    if c.placement != "uniform" and "placement" in spec.capture_given:
-        raise doc.error(("capture", "placement"), "a label map is warped with the "
-                        "uniform placement (each domain voxel one input voxel's label)")
-    if c.oversample != int(c.oversample):
-        raise doc.error(("capture", "oversample"), "a label map needs an integer "
-                        "oversample (each domain voxel one input voxel's label)")
+    return {**summary, "handles": handles, **_values_choice_json(choice), **warp.summary(),
+            **stats}
 
 
 def _jsonable(v):

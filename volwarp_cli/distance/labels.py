@@ -30,13 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BadUsage, VolwarpError
+from ..labelmap import SCAN_BOX_VOXELS
 from .field import inside_mask, signed_distance
 
 #: ``--values``: the samples as intensities (an iso level) or as label ids.
 VALUES = ("intensity", "labels")
-
-#: Voxels of one box of the value scan (its counting takes about 10 bytes a voxel).
-SCAN_BOX_VOXELS = 1 << 22
 
 
 @dataclass(frozen=True)
@@ -107,43 +105,6 @@ class ValueScan:
     dtype: np.dtype
 
 
-class _Counted:
-    """A sliceable source that keeps the value counts of the boxes read from it.
-
-    :func:`~volwarp_cli.labelmap.looks_like_labels_by_blocks` reads every box
-    once; counting them as they pass saves a second read of the input.
-    """
-
-    def __init__(self, source):
-        self.source = source
-        self.shape = tuple(source.shape)
-        self.dtype = np.dtype(source.dtype)
-        self.parts: list = []
-        self.voxels = 0
-
-    def __getitem__(self, key):
-        from ..labelmap import value_counts
-
-        block = np.asarray(self.source[key])
-        if isinstance(key, tuple) and block.ndim == 3 and block.size:
-            self.parts.append(value_counts(block))
-            self.voxels += block.size
-        return block
-
-
-def scan_boxes(shape, box_voxels: int = SCAN_BOX_VOXELS):
-    """Boxes of whole rows, planes where they fit, of about ``box_voxels`` at most, tiling ``shape``."""
-    from ..box import Box
-
-    nz, ny, nx = (int(n) for n in shape)
-    plane = max(1, ny * nx)
-    if plane <= box_voxels:
-        chunk = (max(1, min(nz, box_voxels // plane)), ny, nx)
-    else:
-        chunk = (1, max(1, min(ny, box_voxels // max(1, nx))), nx)
-    return Box.from_shape(shape).blocks(chunk)
-
-
 def scan_values(source, *, detect: bool = True,
                 box_voxels: int = SCAN_BOX_VOXELS) -> ValueScan:
     """The label rule's answer for ``source`` (``detect``) and its distinct values, box by box.
@@ -151,23 +112,15 @@ def scan_values(source, *, detect: bool = True,
     ``source``: an array or a sliceable lazy source. Integer (or bool)
     samples only are counted; others are no label map and are not read.
     """
-    from ..labelmap import looks_like_labels_by_blocks, value_counts
+    from ..labelmap import scan_labels
 
     shape = tuple(int(n) for n in source.shape)
     dtype = np.dtype(source.dtype)
     size = int(np.prod(shape))
     if dtype.kind not in "iub" or size == 0:
         return ValueScan(False, None, None, size, dtype)
-    boxes = scan_boxes(shape, box_voxels)
-    counted = _Counted(source)
-    looks = bool(looks_like_labels_by_blocks(counted, boxes)) if detect else False
-    parts = counted.parts
-    if counted.voxels != size:  # (the rule read otherwise: count here)
-        parts = [value_counts(np.asarray(source[box.slices])) for box in boxes]
-    values, inverse = np.unique(np.concatenate([v for v, _ in parts]), return_inverse=True)
-    counts = np.bincount(inverse, weights=np.concatenate([c for _, c in parts]),
-                         minlength=len(values)).astype(np.int64)
-    return ValueScan(looks, values.astype(np.int64), counts, size, dtype)
+    looks, values, counts = scan_labels(source, detect=detect, box_voxels=box_voxels)
+    return ValueScan(looks, values, counts, size, dtype)
 
 
 _SUBVOXEL = ("its distance is that of its labels' voxel surface (between voxel centres): "
