@@ -7,7 +7,8 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 DEMO=${DEMO:-demo-output}
 BIN=${BIN:-.venv/bin}
-export PATH="$PWD/$BIN:$PATH"
+case "$BIN" in /*) ;; *) BIN="$PWD/$BIN" ;; esac  # (make passes a relative or an absolute one)
+export PATH="$BIN:$PATH"
 mkdir -p "$DEMO"
 SCAN=tests/data/mri_t1_head_coronal_2x2x3mm.nrrd
 BRAIN=tests/data/mri_colin27_brain_1mm.nrrd
@@ -32,11 +33,13 @@ step "capture + warp: raise the crown by 20 mm, push the patient's left side in 
 volwarp capture "$SCAN" -o "$DEMO/head.vwc" --lattice 9 --oversample 1
 volwarp warp "$DEMO/head.vwc" --spec specs/warp-head.yaml -o "$DEMO/head_warped.nrrd" -v
 
-step "mesh: skin surfaces (iso 60) of the scan and of the warp, rendered by one camera"
-volwarp mesh "$SCAN" --iso 60 --cap --largest-component -o "$DEMO/head.ply" --view patient-left \
-  --color skin --render "$DEMO/head.png" --camera-to "$DEMO/head_camera.json" --stats
+step "mesh: skin surfaces (iso 60) of the warp and of the scan, rendered by one camera"
+# (the warp first: its camera frames the raised crown, which leaves the scan's box)
 volwarp mesh "$DEMO/head_warped.nrrd" --iso 60 --cap --largest-component -o "$DEMO/head_warped.ply" \
-  --camera-from "$DEMO/head_camera.json" --color skin --render "$DEMO/head_warped.png" --stats
+  --view patient-left --color skin --render "$DEMO/head_warped.png" \
+  --camera-to "$DEMO/head_camera.json" --stats
+volwarp mesh "$SCAN" --iso 60 --cap --largest-component -o "$DEMO/head.ply" \
+  --camera-from "$DEMO/head_camera.json" --color skin --render "$DEMO/head.png" --stats
 
 step "distance: signed distance to the skin (mm, negative inside), and its zero level"
 volwarp distance "$SCAN" --iso 40 -o "$DEMO/head_sdf.nrrd" -v
@@ -50,9 +53,7 @@ volwarp morph --spec specs/morph-head-brain.yaml -o "$DEMO/morph_{i:02d}.nrrd" \
 
 step "sweep: a milk bottle by rotational sweep (Winter & Chen Fig. 1)"
 mkdir -p "$DEMO/sweep"
-python examples/sweep-at/make_templates.py "$DEMO/sweep/templates" >/dev/null
-cp specs/sweep-bottle.yaml "$DEMO/sweep/"
-volwarp sweep "$DEMO/sweep/sweep-bottle.yaml" -o "$DEMO/sweep/bottle_{field}.nrrd" \
+volwarp sweep specs/sweep-bottle.yaml -o "$DEMO/sweep/bottle_{field}.nrrd" \
   --spacing 0.3 --render "$DEMO/bottle.png" --view -70,25
 
 step "one picture of it all: demo-output/demo.png"

@@ -145,6 +145,14 @@ CASES = {
         lambda d, p: ("distance", d / "ball.nrrd", "--iso", "100", "--max-distance", "3.5",
                       "-o", p / "d.nrrd"),
         lambda p: [p / "d.nrrd"]),
+    "distance-labels": Case(
+        lambda d, p: ("distance", d / "labels.nrrd", "-o", p / "d.nrrd"),
+        lambda p: [p / "d.nrrd"],
+        grid=lambda shape, block: (shape[0], *block[1:])),
+    "distance-labels-band": Case(
+        lambda d, p: ("distance", d / "labels.nrrd", "--label", "3", "--max-distance", "3",
+                      "-o", p / "d.nrrd"),
+        lambda p: [p / "d.nrrd"]),
     "mesh": Case(
         lambda d, p: ("mesh", d / "ball.nrrd", "--iso", "100", "-o", p / "m.ply"),
         lambda p: [], mesh=lambda p: p / "m.ply"),
