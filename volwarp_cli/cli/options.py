@@ -277,17 +277,18 @@ def _volume_output(ctx, param, value):
 
 
 def output_option(help_text: str = "Output file (format by extension).", volume: bool = True,
-                  callback=None):
+                  callback=None, required: bool = True):
     """-o/--output; ``volume``: a volume file, its extension checked at once.
 
-    ``callback``: a check of its own instead (e.g. of a pattern of volume files).
+    ``callback``: a check of its own instead (e.g. of a pattern of volume files);
+    ``required``: False where the command has other outputs (``warp``'s exports).
     """
     if callback is None and volume:
         callback = _volume_output
     # a volume output may be a folder (an OME-Zarr store): _volume_output refuses other folders
     kind = click.Path(dir_okay=callback is _volume_output)
-    return click.option("-o", "--output", required=True, type=kind, callback=callback,
-                        help=help_text)
+    return click.option("-o", "--output", required=required, default=None, type=kind,
+                        callback=callback, help=help_text)
 
 
 def _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi) -> dict | None:

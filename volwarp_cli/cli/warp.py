@@ -19,12 +19,12 @@ from ..progress import timed
 from .common import load_input, provenance, stamp
 from .options import (
     INPUT_PATH,
-    _volume_output,
     common_options,
     examples,
     finite,
     input_options,
     option,
+    output_option,
     write_options,
 )
 from .resources import scale_options, scale_settings
@@ -132,11 +132,10 @@ _GRID_OPTIONS = (("--grid", "grid"), ("--crop", "crop"), ("--allow-growth", "all
 @click.argument("input", type=INPUT_PATH)
 @click.option("--spec", "spec_path", required=True, type=INPUT_PATH,
               help="Warp spec (YAML; schema specs/warp.schema.json).")
-@click.option("-o", "--output", default=None, type=click.Path(dir_okay=True),
-              callback=_volume_output,
-              help="Warped volume (format by extension). Without it (and --frames-to) no "
-                   "volume is computed: the exports alone are written (--points-to, "
-                   "--mesh-to, --transform-to, the fields); at least one output is needed.")
+@output_option("Warped volume (format by extension). Without it (and --frames-to) no "
+               "volume is computed: the exports alone are written (--points-to, "
+               "--mesh-to, --transform-to, the fields); at least one output is needed.",
+               required=False)
 @click.option("--frames-to", default=None, metavar="PATTERN",
               help="Also write every animation frame, e.g. 'out_{frame:03d}.nrrd' "
                    "({frame} and its alias {step}: 0 = unwarped, then one per increment; "
