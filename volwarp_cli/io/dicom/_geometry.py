@@ -86,7 +86,7 @@ def plan_stack(frames, where: str, *, irregular: str = "error", duplicates: str 
         ks = np.clip(np.searchsorted(d, targets, side="right") - 1, 0, n - 2)
         ws = np.clip((targets - d[ks]) / (d[ks + 1] - d[ks]), 0.0, 1.0)
         planes = list(zip(ks.tolist(), ws.tolist(), strict=True))
-        log.warning("%s: irregular slice spacing (gaps %.4g..%.4g mm): resampled linearly onto "
+        log.warning("warning: %s: irregular slice spacing (gaps %.4g..%.4g mm): resampled linearly onto "
                     "%d slices %.4g mm apart along the slice normal", where, gaps.min(),
                     gaps.max(), n_out, step)
     else:
@@ -107,7 +107,7 @@ def plan_stack(frames, where: str, *, irregular: str = "error", duplicates: str 
                         planes=planes)
         q = inplane
         shifts = np.column_stack([q @ col / sy, q @ row / sx])
-        log.warning("%s: gantry tilt of %.3g degrees: resampled onto an orthogonal grid "
+        log.warning("warning: %s: gantry tilt of %.3g degrees: resampled onto an orthogonal grid "
                     "(keep the sheared geometry with --keep-shear)", where, angle)
     return Plan(frames, pos[0], direction, np.array([sx, sy, step]), n_out, shifts=shifts,
                 planes=planes)

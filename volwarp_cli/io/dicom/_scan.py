@@ -763,7 +763,7 @@ def scan_dicom(path) -> list[Candidate]:
     frames = _drop_exact_copies(frames, str(path))
     for kind, names in stubs.items():  # one line per kind, not one per file
         more = f" and {len(names) - 1} more" if len(names) > 1 else ""
-        log.warning("%s%s: %s without PixelData (truncated file?): skipped", names[0], more,
+        log.warning("warning: %s%s: %s without PixelData (truncated file?): skipped", names[0], more,
                     kind)
     if not frames:
         if not files:
