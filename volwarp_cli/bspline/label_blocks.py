@@ -24,11 +24,11 @@ import numpy as np
 from ..box import Box
 from ..errors import OutOfMemoryError
 from .blocks import SceneRecipe
+from .capture import NoSamples
 from .labels import (
     _Q,
     _bounding_boxes,
     _counts,
-    _NoSamples,
     _stronger,
     label_passes,
     stream_bytes,
@@ -68,7 +68,7 @@ class LabelBlocks:
         with _BUILD:
             if self._scene is None:
                 grid = self.recipe.grid
-                self._scene = self.recipe.build(_NoSamples(tuple(grid.domain_shape[::-1])))
+                self._scene = self.recipe.build(NoSamples(tuple(grid.domain_shape[::-1])))
         return self._scene
 
     @property

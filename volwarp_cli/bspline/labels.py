@@ -50,18 +50,13 @@ from ..errors import VolwarpError
 from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
 from ..volume import Volume
-from .capture import LATTICE_ARRAYS, Capture, NoSamples
-from .lattice import PLACEMENTS, Grid, capture_offsets
+from .capture import Capture, geometry_capture
+from .lattice import PLACEMENTS
 from .pushforward import QUANTUM, HeldPlanes
 from .scene import Scene
 from .stream import STREAM_PLANES, _ring_planes
 
 _Q = int(QUANTUM)
-
-
-#: the Scene's domain for a label warp: only its shape (the label passes give their own
-#: indicator samples; nothing else may gather)
-_NoSamples = NoSamples
 
 
 def capture_labels(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform",
@@ -84,16 +79,8 @@ def capture_labels(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
                            "voxel takes one input voxel's label: use an integer oversample "
                            f"(1, 2, ...) and the uniform placement (got oversample {oversample:g}, "
                            f"placement {placement})")
-    lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
-    grid = Grid.create(vol.shape_xyz, lattice, k, placement)
-    ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,
-                          f"the {'x'.join(map(str, grid.lattice))} control lattice")
-    capture_offsets(grid, placement)
-    if pad is not None:
-        pad = tuple(int(v) for v in np.broadcast_to(np.asarray(pad), (3,)))
-    geometry = vol.with_data(np.zeros((1, 1, 1), dtype=vol.dtype))
-    cap = Capture(None, grid, placement, k, sampling, pad, geometry, np.dtype(vol.dtype),
-                  (0.0, 1.0, None), _NoSamples(tuple(grid.domain_shape[::-1])))
+    cap = geometry_capture(vol, lattice=lattice, placement=placement, oversample=k,
+                           sampling=sampling, pad=pad)
     cap.labels = data
     return cap
 
