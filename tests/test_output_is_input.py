@@ -244,7 +244,8 @@ def test_list_and_pattern_headers_stand_for_every_data_file(tmp_path):
 
 
 def test_a_dicom_series_folder_owns_its_files(tmp_path):
-    """An existing file inside an input folder (a DICOM series) is the input's; a new one is not."""
+    """Inside an input folder (a DICOM series, a store) no output may go: an existing file is
+    the input's, and a new one would be read with it next time (a rerun would then refuse)."""
     from volwarp_cli.errors import BadUsage
     from volwarp_cli.io.inputs import refuse_output_over_input
 
@@ -257,12 +258,16 @@ def test_a_dicom_series_folder_owns_its_files(tmp_path):
     (tmp_path / "store.zarr" / "x.nrrd").write_bytes(b"x")
     with pytest.raises(BadUsage, match="inside it"):  # replacing the store would delete it
         refuse_output_over_input(tmp_path / "store.zarr", [tmp_path / "store.zarr" / "x.nrrd"])
-    refuse_output_over_input(series / "new.nrrd", [series])  # a new file: allowed
+    with pytest.raises(BadUsage, match="an output inside it"):
+        refuse_output_over_input(series / "new.nrrd", [series])
+    refuse_output_over_input(tmp_path / "new.nrrd", [series])  # beside it: fine
 
 
 @pytest.mark.parametrize("pattern, hit", [
     ("f_{frame:03d}.nrrd", True), ("f_{frame}.nrrd", True), ("g_{frame:03d}.nrrd", False),
     ("f_{frame:03d}.nii.gz", False), ("sub/f_{frame}.nrrd", False),
+    ("f_{frame:4d}.nrrd", True), ("f{frame}.nrrd", False),  # (a number never gives "_002")
+    ("{frame}/f_002.nrrd", False),  # (the folder part is a number, not the whole path)
 ])
 def test_a_pattern_is_refused_when_it_can_name_an_input(tmp_path, monkeypatch, pattern, hit):
     from volwarp_cli.errors import BadUsage
@@ -298,4 +303,29 @@ def test_a_file_a_spec_names_is_an_input(run, tmp_path, monkeypatch):
     res = run("sweep", "s.yaml", "-o", "x_{field}.nrrd", "--render",
               "templates/bottle_colour.png")
     assert res.code == 2 and "bottle_colour.png would overwrite the input" in res.stderr, res
+    # --camera-to is checked again once the spec has named its inputs: before any work
+    res = run("sweep", "s.yaml", "-o", "x_{field}.nrrd", "--render", "x.png", "--camera-to",
+              "templates/bottle_colour.png")
+    assert res.code == 2 and "--camera-to templates/bottle_colour.png would" in res.stderr, res
+    res = run("morph", "--spec", "m.yaml", "-o", "g_{i}.nrrd", "--render-to", "g_{i}.png",
+              "--camera-to", "b.nrrd")
+    assert res.code == 2 and "--camera-to b.nrrd would overwrite the input" in res.stderr, res
     assert (_snapshot(tmp_path), _snapshot(tmp_path / "templates")) == before
+
+
+def test_a_pattern_of_numbers_never_names_an_input_of_letters(run, tmp_path, monkeypatch):
+    """`head_{frame:03d}.nrrd` gives head_000.nrrd, head_001.nrrd...: never head_t1.nrrd."""
+    monkeypatch.chdir(tmp_path)
+    _volume(tmp_path / "head_t1.nrrd", truncate=False)
+    (tmp_path / "spec.yaml").write_text(WARP_SPEC)
+    res = run("warp", "head_t1.nrrd", "--spec", "spec.yaml", "-o", "w.nrrd", "--frames-to",
+              "head_{frame:03d}.nrrd")
+    assert res.code == 0, res
+    assert (tmp_path / "head_000.nrrd").exists() and (tmp_path / "head_001.nrrd").exists()
+
+
+def test_the_message_names_the_option(run, tmp_path, monkeypatch):
+    monkeypatch.chdir(_folder(tmp_path))
+    res = run("warp", "vol.nrrd", "--spec", "spec.yaml", "-o", "o.nrrd", "--jacobian-to",
+              "vol.nrrd")
+    assert res.code == 2 and "error: --jacobian-to vol.nrrd would overwrite" in res.stderr, res

@@ -111,7 +111,7 @@ def command(input, output, lattice, placement, oversample, pad, sampling, raw, v
 
     if not output.lower().endswith(".vwc"):
         raise click.BadParameter("a capture file must end in .vwc", param_hint="'-o'")
-    check_output_path(output)
+    check_output_path(output, option="-o")
     if placement == "tripled" and min(lattice) < 6:
         raise click.BadParameter("the tripled placement needs at least 6 points per axis",
                                  param_hint="'--lattice'")

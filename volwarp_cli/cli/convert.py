@@ -41,7 +41,7 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, raw, vol
     if pyramid_method != "auto" and not ome_zarr.get("pyramid"):
         raise click.UsageError(f"--pyramid-method {pyramid_method} chooses how --pyramid "
                                "levels are made: give --pyramid N (N >= 1) with it")
-    check_output_path(output)
+    check_output_path(output, option="-o")
     vol = load_input(input, raw, volume_index, dicom=dicom)
     with timed(f"write {output}"):
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,

@@ -113,7 +113,7 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
 
     check_method(metric, surface)
     check_options(values=values, label=label, iso=iso, surface=surface)
-    check_output_path(output)
+    check_output_path(output, option="-o")
     given = dict(values=values, label=label, iso=iso, inside=inside, surface=surface,
                  name=str(input))
     blocks = dict(given=given, metric=metric, surface=surface, unsigned=unsigned,
@@ -276,7 +276,7 @@ def _update(old_path, transform_path, output, metric, max_distance, dtype, compr
     from ..volume import xyz_to_zyx
 
     doc = load_spec(transform_path, "transform")
-    check_output_path(output)
+    check_output_path(output, option="-o")
     vol = load_input(old_path, raw, volume_index, dicom=dicom)
     field = np.asarray(vol.data, dtype=np.float32)
     if not np.all(np.isfinite(field)):

@@ -164,7 +164,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
                                "--render OUT.png")
     # Fail on bad outputs before any work (their extensions are checked by the options).
     if output is not None:
-        check_mesh_output(_label_pattern(output) if labels else output)
+        check_mesh_output(_label_pattern(output) if labels else output, option="-o")
         if labels:  # every name the pattern can give, against the inputs
             refuse_pattern_over_input(output, option="-o")
     if render is not None:

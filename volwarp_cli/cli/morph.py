@@ -212,20 +212,20 @@ class _Outputs:
         self.attributes = {a.name: [_attribute_name(p, a.name) for p in self.frames]
                            for a in job.attributes}
         for p in self.frames:
-            check_output_path(p)
+            check_output_path(p, option="-o")
         for paths in self.attributes.values():
             for p in paths:
-                check_output_path(p)
+                check_output_path(p, option="attributes")
         if self.meshes:
             from ..surface.mesh_io import check_mesh_output
 
             for p in self.meshes:
-                check_mesh_output(p)
+                check_mesh_output(p, option="--mesh-to")
         if self.renders:
             for p in self.renders:
-                check_output_path(p)
+                check_output_path(p, option="--render-to")
             if sheet_path:
-                check_output_path(sheet_path)
+                check_output_path(sheet_path, option="--sheet")
 
     def write_surface(self, frame, comments, renders: list) -> None:
         """Frame's mesh and render, as asked (the render kept for the sheet)."""
@@ -281,6 +281,10 @@ def _run(job, output, mesh_to, render_to, sheet_path, size, view, spec_path, wri
     from ..errors import OutOfMemoryError
 
     outputs = _Outputs(job, output, mesh_to, render_to, sheet_path)
+    if cameras[1] is not None:  # (again, now that the spec's inputs are known)
+        from ..io import check_output_path
+
+        check_output_path(cameras[1], option="--camera-to")
     loaded = _refuse_unmakeable_frames(job, outputs, spec_path, write_kw)
     chunked = scale_settings().chunked
     if chunked:

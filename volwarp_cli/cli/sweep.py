@@ -234,12 +234,14 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     names = sspec.field_names()
     paths = output_paths(output, names, multi)
     for p in paths.values():
-        check_output_path(p)
+        check_output_path(p, option="-o")
     if render_path is not None:
         if "opacity" not in names:
             raise click.UsageError(f"--render needs an 'opacity' field; {spec} has "
                                    f"{', '.join(names)}")
-        check_output_path(render_path)
+        check_output_path(render_path, option="--render")
+    if camera_to is not None:  # (again, now that the spec's templates are known inputs)
+        check_output_path(camera_to, option="--camera-to")
     grid_spec = dict(sspec.grid)
     if shape is not None:
         grid_spec = {"shape": list(shape), "margin": grid_spec.get("margin")}

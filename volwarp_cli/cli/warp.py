@@ -217,7 +217,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     if allow_growth and (crop or grid == "input"):
         raise click.UsageError("--allow-growth lets a grown grid grow: give --grid grow")
     if output is not None:
-        check_output_path(output)
+        check_output_path(output, option="-o")
     is_capture = input.lower().endswith(".vwc")
     if values == "labels" and dtype is not None:
         raise click.UsageError("labels keep the label map's own integer type (no --dtype)")
@@ -732,18 +732,18 @@ def _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to,
                 field_format(path)
             except VolwarpError as exc:
                 raise click.BadParameter(str(exc), param_hint=f"'{name}'") from None
-            check_output_path(path)
+            check_output_path(path, option=name)
     if jacobian_to is not None:
         try:
             volume_format(jacobian_to)
         except VolwarpError as exc:
             raise click.BadParameter(str(exc), param_hint="'--jacobian-to'") from None
-        check_output_path(jacobian_to)
+        check_output_path(jacobian_to, option="--jacobian-to")
     if transform_to is not None:
         if not transform_to.lower().endswith(".tfm"):
             raise click.BadParameter(f"{transform_to}: the ITK transform is written as .tfm",
                                      param_hint="'--transform-to'")
-        check_output_path(transform_to)
+        check_output_path(transform_to, option="--transform-to")
     if (points_in is None) != (points_to is None):
         raise click.UsageError("--points-in and --points-to go together")
     if (mesh_in is None) != (mesh_to is None):
@@ -756,7 +756,7 @@ def _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to,
         if kinds[0] != kinds[1]:
             raise click.UsageError(f"--points-to {points_to}: write the points in the format "
                                    f"they were read in ({'.csv' if kinds[0] == 'csv' else '.mrk.json'})")
-        check_output_path(points_to)
+        check_output_path(points_to, option="--points-to")
     if mesh_in is not None:
         from ..surface.mesh_io import check_mesh_output
 
@@ -764,7 +764,7 @@ def _check_exports(displacement_to, forward_field_to, jacobian_to, transform_to,
             raise click.BadParameter(f"{mesh_in}: volwarp reads meshes from PLY files only",
                                      param_hint="'--mesh-in'")
         try:
-            check_mesh_output(mesh_to)
+            check_mesh_output(mesh_to, option="--mesh-to")
         except VolwarpError as exc:
             raise click.BadParameter(str(exc), param_hint="'--mesh-to'") from None
     points = mesh = None

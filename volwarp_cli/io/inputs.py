@@ -146,8 +146,10 @@ def _collide(target_real: str, target_ident, real: str, ident, folder: bool) -> 
         return True
     if target_ident is not None and target_ident == ident:
         return True  # another name of the same file (a hard link)
-    if folder and target_ident is not None and _inside(target_real, real):
-        return True  # an existing file of an input folder (a DICOM series' file)
+    if folder and _inside(target_real, real):
+        # inside an input folder (a DICOM series, a store): an existing file is one of the
+        # input's, and a new one would be read with it next time (a rerun would refuse it)
+        return True
     if os.path.isdir(target_real) and _inside(real, target_real):
         return True  # a folder output (a store) that would replace the input inside it
     return False
@@ -160,12 +162,13 @@ def _message(output, target: Path, given, file: Path, option: str | None) -> str
     if Path(file) != Path(given):
         is_what = f"the data file {file} of the input {given}"
     elif Path(given).is_dir() and _real(target) != _real(given):
-        is_what = f"a file of the input folder {given}"
+        is_what = (f"a file of the input folder {given}" if _identity(target) is not None
+                   else f"the input folder {given} (an output inside it)")
     elif os.path.isdir(target) and _real(target) != _real(given):
         is_what = f"the input {given} inside it"
     else:
         is_what = f"the input {given}"
-    if _real(target) != str(Path(target).absolute()) and _identity(target) is not None:
+    if _real(target) != os.path.abspath(target) and _identity(target) is not None:
         is_what += f" (links followed: {_real(target)})"
     return (f"{what} would overwrite {is_what}; volwarp never replaces an input: "
             "choose another output name")
@@ -191,14 +194,17 @@ def _inside(path: str, folder: str) -> bool:
 
 
 def refuse_pattern_over_input(pattern: str, *, option: str | None = None,
-                              inputs: list[str | os.PathLike] | None = None) -> None:
+                              inputs: list[str | os.PathLike] | None = None,
+                              numbers: bool = True) -> None:
     """:func:`refuse_output_over_input` for every name a ``str.format`` pattern can give.
 
     For outputs numbered by fields (``--frames-to 'f_{frame:03d}.nrrd'``)
     whose count is not known before the work: any input file whose path
     (links followed) the pattern could produce is refused, whatever the
     fields' values, and so is any existing file of such a name that is an
-    input under another name (a link to it, a hard link).
+    input under another name (a link to it, a hard link). ``numbers``: the
+    fields are integers (frame and label numbers: digits, a sign, padding),
+    so ``head_{frame}.nrrd`` can never name ``head_t1.nrrd``.
     """
     import re
     import string
@@ -210,7 +216,8 @@ def refuse_pattern_over_input(pattern: str, *, option: str | None = None,
         base, name = "", pattern  # fields in the folder too: match whole paths
     else:
         base = os.path.realpath(folder or ".")
-    regex = "".join(re.escape(text) + ("" if field is None else "(.+)")
+    value = r"[-+ ]*\d+" if numbers else r"[^/]+"
+    regex = "".join(re.escape(text) + ("" if field is None else f"({value})")
                     for text, field, _, _ in string.Formatter().parse(name))
     for given in inputs:
         for file in _expanded(given):

@@ -37,10 +37,13 @@ def mesh_format(path: str | os.PathLike) -> str:
     return fmt
 
 
-def check_mesh_output(path: str | os.PathLike) -> str:
-    """Fail early for an unknown extension or an unwritable place; return the format."""
+def check_mesh_output(path: str | os.PathLike, option: str | None = None) -> str:
+    """Fail early for an unknown extension or an unwritable place; return the format.
+
+    ``option``: the output's option, for :func:`~volwarp_cli.io.atomic.check_output_path`.
+    """
     fmt = mesh_format(path)
-    check_output_path(path)
+    check_output_path(path, option=option)
     return fmt
 
 
