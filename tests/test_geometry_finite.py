@@ -106,6 +106,12 @@ CASES = {
     "nrrd-spacings": ("h.nrrd", lambda p: p.write_bytes(nrrd("spacings: 1e-300 1 1\n")),
                       "'spacings'"),
     "nifti-pixdim": ("h.nii", lambda p: p.write_bytes(nifti(pixdim=(3e38, 1, 1))), "pixdim"),
+    # no form names a matrix: the voxel sizes alone (NaN was read as 1)
+    "nifti-pixdim-nan": ("h.nii", lambda p: p.write_bytes(nifti(pixdim=(float("nan"), 1, 1))),
+                         "NIfTI pixdim[1] = nan"),
+    "nifti-sform-nan": ("h.nii", lambda p: p.write_bytes(nifti(
+        sform=[[1, 0, 0, float("nan")], [0, 1, 0, 0], [0, 0, 1, 0]])),
+        "NIfTI sform matrix has non-finite numbers (1 0 0 nan;"),
     "nifti-sform": ("h.nii", lambda p: p.write_bytes(nifti(
         sform=[[1e30, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]])), "sform (srow_x"),
     "nifti-qoffset": ("h.nii", lambda p: p.write_bytes(nifti(qform=(0, 0, 0, 1e30, 0, 0))),

@@ -164,7 +164,12 @@ def choose_affine(header, where: str = "") -> tuple[np.ndarray, str]:
 
 
 def _choose_affine(header, where: str) -> tuple[np.ndarray, str]:
-    zooms = np.array([float(z) if z > 0 else 1.0 for z in header["pixdim"][1:4]])
+    pixdim = [float(z) for z in header["pixdim"][1:4]]
+    bad = [f"pixdim[{i + 1}] = {z}" for i, z in enumerate(pixdim) if not np.isfinite(z)]
+    if bad:  # (NaN failed "> 0" and was read as 1 where no form names a matrix)
+        prefix = f"{where}: " if where else ""
+        raise FormatError(f"{prefix}NIfTI {', '.join(bad)}: voxel sizes must be finite")
+    zooms = np.array([z if z > 0 else 1.0 for z in pixdim])  # (0: 1, as ITK and nibabel)
     sform, scode = header.get_sform(coded=True)
     try:
         qform, qcode = header.get_qform(coded=True)
@@ -451,6 +456,10 @@ def nifti_geometry(header, where: str) -> tuple[dict, tuple[np.ndarray, str]]:
     with np.errstate(all="ignore"):  # an all-zero matrix: an error below, not a warning
         chosen = choose_affine(header, where)
         aff = np.array(chosen[0], dtype=np.float64)
+        if not np.all(np.isfinite(aff[:3])):  # the numbers as the file has them, not derived
+            rows = "; ".join(" ".join(f"{v:g}" for v in row) for row in aff[:3])
+            raise FormatError(f"{where}: NIfTI {_FIELDS[chosen[1]]['origin'].split(' (')[0]}"
+                              f" matrix has non-finite numbers ({rows})")
         aff[:3, :] *= _SPACE_UNIT_TO_MM.get(int(header["xyzt_units"]) & 7, 1.0)  # as ITK: mm
         lin = _RAS_TO_LPS @ aff[:3, :3]
         spacing = np.linalg.norm(lin, axis=0)
