@@ -54,6 +54,16 @@ def test_morph_onto_a_huge_explicit_grid_is_refused_at_once(tmp_path, mode):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["huge.yaml"]
 
 
+@pytest.mark.parametrize("spacing, key", [("1e-300", "grid.spacing:"),
+                                          ("[1, 1, 0.0]", "grid.spacing[2]:")])
+def test_a_morph_grid_spacing_no_volume_keeps_is_a_spec_error(run, tmp_path, spacing, key):
+    """As a too large one is: exit 2 with the key path (it was exit 1 without one)."""
+    spec = _morph_spec(tmp_path, f"grid: {{origin: [0, 0, 0], spacing: {spacing}, "
+                                 "size: [10, 10, 10]}\n")
+    res = run("morph", "--spec", spec, "-o", tmp_path / "f_{i}.nrrd")
+    assert res.code == 2 and f"huge.yaml:5: {key}" in res.stderr, res
+
+
 def test_morph_aligned_far_beyond_memory_is_refused_before_its_fields(tmp_path):
     """A scale about the shape's centroid (known only from the samples): the grid's least size."""
     spec = _morph_spec(tmp_path, "align: {target: {scale: 4000}}\n")

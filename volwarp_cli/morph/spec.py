@@ -83,6 +83,22 @@ def _check_bounded(doc, path: tuple, value) -> None:
                                   f"are at most {MAX_COORD:g})")
 
 
+def _check_spacing(doc, sp) -> None:
+    """The grid's spacing within the bounds every volume keeps (a spec error with its key).
+
+    (The geometry's own check said it without the key and with exit 1.)
+    """
+    from ..geometry import PLACEMENT_LIMIT
+
+    values = sp if isinstance(sp, list) else [sp]
+    for i, a in enumerate(values):
+        if isinstance(a, (int, float)) and not isinstance(a, bool) and not (
+                1.0 / PLACEMENT_LIMIT <= a <= PLACEMENT_LIMIT):
+            path = ("grid", "spacing", i) if isinstance(sp, list) else ("grid", "spacing")
+            raise doc.error(path, f"{a:g} is not a voxel size volwarp keeps (positive, "
+                                  f"{1 / PLACEMENT_LIMIT:g} to {PLACEMENT_LIMIT:g})")
+
+
 def job_from_spec(doc) -> MorphJob:
     """A :class:`MorphJob` from a loaded, schema-valid spec document."""
     d = doc.data
@@ -96,6 +112,7 @@ def job_from_spec(doc) -> MorphJob:
         for name in ("origin", "spacing"):
             _check_bounded(doc, ("grid", name), d["grid"].get(name))
         sp = d["grid"].get("spacing")
+        _check_spacing(doc, sp)
         size = d["grid"].get("size")
         if isinstance(sp, (int, float)) and isinstance(size, list) and size:
             sp = [sp] * len(size)
