@@ -67,12 +67,13 @@ def test_group_help_lists_every_command(run):
 
 
 def test_bare_volwarp_prints_the_whole_help(run):
-    """Not a one-line error: the help a newcomer needs (on stderr, exit 2, as click's own)."""
+    """Not a one-line error: the help a newcomer needs (on stdout, so `volwarp | less` shows
+    it; exit 2: a script that lost its arguments still fails)."""
     res = run()
     assert res.code == 2
-    assert res.stderr.startswith("Usage: ") and "volwarp: error" not in res.stderr
+    assert res.stdout.startswith("Usage: ") and res.stderr == ""
     for name in COMMANDS:
-        assert f"\n  {name} " in res.stderr
+        assert f"\n  {name} " in res.stdout
 
 
 # ---- the option registry ----------------------------------------------------------------------

@@ -142,9 +142,9 @@ class VolwarpGroup(click.Group):
         except click.exceptions.Abort:
             return _fail("aborted", 1)
         except click.exceptions.NoArgsIsHelpError as exc:
-            # bare `volwarp` (or a group without its command): the help itself, as click
-            # prints it (on stderr, exit 2: a script that lost its arguments still fails)
-            click.echo(exc.ctx.get_help(), err=True)
+            # bare `volwarp` (or a group without its command): the help itself, on stdout
+            # (`volwarp | less` shows it), exit 2 (a script that lost its arguments fails)
+            click.echo(exc.ctx.get_help())
             return exc.exit_code
         except click.ClickException as exc:
             hint = ""

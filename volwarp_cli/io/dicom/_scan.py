@@ -667,8 +667,8 @@ def _drop_exact_copies(frames: list[Frame], where: str) -> list[Frame]:
     copy, original = next(iter(copies.values()))
     more = f" (and {len(copies) - 1} more)" if len(copies) > 1 else ""
     log.warning("warning: %s: %d exact duplicate file(s) dropped (the same SOPInstanceUID and "
-                "pixel data as another file): %s repeats %s%s", where, len(copies),
-                copy.label, original.label, more)
+                "pixel data as another file): %s and %s are the same, the first kept%s", where,
+                len(copies), original.label, copy.label, more)
     return [f for f in frames if id(f.file) not in copies]
 
 
