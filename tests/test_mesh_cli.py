@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -333,3 +334,15 @@ def test_mesh_label_usage_errors(run, two_labels, tmp_path, sphere_file):
     assert res.code != 0 and "does not occur" in res.stderr
     res = run("mesh", sphere_file[0], "--label", "1", "--stats")
     assert res.code != 0 and "integer" in res.stderr
+
+
+def test_a_tiff_render_carries_no_time_stamp(run, tmp_path):
+    """Identical runs give identical bytes: the TIFF writer stamped the time of writing."""
+    import tifffile
+
+    src = Path(__file__).parent / "data" / "ball_30_uint8.nrrd"
+    out = tmp_path / "r.tif"
+    assert run("mesh", src, "--iso", "100", "--render", out, "--render-size", "60x40").code == 0
+    with tifffile.TiffFile(out) as tif:
+        tags = tif.pages[0].tags
+        assert "DateTime" not in tags and "XMP" not in tags, sorted(t.name for t in tags)

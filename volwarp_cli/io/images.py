@@ -102,6 +102,9 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     # our colours are not premultiplied by alpha: without this, PNG's writer
     # would divide them by alpha (read_image reads them back the same way)
     spec.attribute("oiio:UnassociatedAlpha", 1)
+    # no time stamp: the TIFF writer adds the time of writing (DateTime, and XMP's
+    # CreateDate) unless it is given; empty, it writes none (identical runs, same bytes)
+    spec.attribute("DateTime", "")
     with atomic_output(path) as tmp:
         _write_checked(oiio, path, tmp, spec, arr)
 
