@@ -1,10 +1,13 @@
-"""The sweep by output blocks (issue 19): chunked = in-memory, bit for bit.
+"""The sweep by output blocks: any block is the whole grid's, bit for bit.
 
-Odd grid sizes (37 x 41 x 29, x y z) with chunk shapes that do not divide them,
-every method the CLI offers (voxelize, direct), single sweeps with every segment
-kind and a scene of CVG operators, Dask's threaded (2 threads) and synchronous
-schedulers; random chunkings (hypothesis); block tasks in parallel threads under
-numba's workqueue layer (which aborts on concurrent parallel kernels).
+One evaluation (:func:`volwarp_cli.sweep.chunked.block_fields`): the whole grid
+on volwarp's threads (:func:`~volwarp_cli.sweep.evaluate`) and any block of it in
+one thread give the same samples. Odd grid sizes (37 x 41 x 29, x y z) with
+block shapes that do not divide them, every method the CLI offers (voxelize,
+direct), single sweeps with every segment kind and a scene of CVG operators; the
+executor's blocks on a Dask threaded engine; random partitions (hypothesis);
+block tasks in parallel threads under numba's workqueue layer (which aborts on
+concurrent parallel kernels).
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from volwarp_cli.io import write_volume
 from volwarp_cli.io.images import write_image
 from volwarp_cli.spec.loader import load_schema, parse_spec_text, validate
 from volwarp_cli.sweep import evaluate
-from volwarp_cli.sweep.chunked import field_names, prepare_sweep, sweep_block, sweep_dask
+from volwarp_cli.sweep.chunked import field_names, prepare_sweep, sweep_block
 from volwarp_cli.sweep.model import fit_grid, parse_sweep_spec
 from volwarp_cli.volume import Volume
 
@@ -126,18 +129,41 @@ def whole(case_dir):
     return out
 
 
-@pytest.mark.parametrize("scheduler", ["threads", "sync"])
+def _by_blocks(spec, grid, method, boxes) -> np.ndarray:
+    """The fields assembled from blocks each computed alone (one thread), ``[F, z, y, x]``."""
+    plan = prepare_sweep(spec, grid, method=method)
+    out = np.full((len(plan.names),) + grid.shape, np.nan, dtype=np.float32)
+    for box in boxes:
+        out[(slice(None),) + box.slices] = sweep_block(spec, grid, box, plan=plan)
+    return out
+
+
 @pytest.mark.parametrize("case", list(CASES))
-def test_dask_equals_in_memory_bit_for_bit(whole, case, scheduler):
+def test_blocks_equal_the_whole_bit_for_bit(whole, case):
     spec, grid, method, ref = whole[case]
     assert grid.shape == (29, 41, 37)
     assert np.count_nonzero(ref[0]) > 1000 and np.count_nonzero(ref[0] == 0) > 1000
-    arr = sweep_dask(spec, grid, chunks=CHUNKS, method=method)
-    assert arr.shape == ref.shape and arr.numblocks == (1, 3, 6, 3)
-    kw = {"num_workers": 2} if scheduler == "threads" else {}
-    got = arr.compute(scheduler=scheduler, **kw)
+    got = _by_blocks(spec, grid, method, grid.box.blocks(CHUNKS))
     assert got.dtype == ref.dtype == np.float32
     assert np.array_equal(got, ref)
+
+
+def test_the_executor_by_blocks_on_threads_writes_the_whole(whole, tmp_path):
+    """The sweep operation by blocks on a threaded engine: the in-memory fields' bytes."""
+    from volwarp_cli import execute
+    from volwarp_cli.engine import open_engine
+    from volwarp_cli.io import read_volume
+    from volwarp_cli.sweep.run import SweepOperation
+
+    spec, grid, method, ref = whole["scene-voxelize"]
+    names = field_names(spec)
+    op = SweepOperation(spec, grid, {n: tmp_path / f"{n}.nrrd" for n in names}, "float32",
+                        {}, {}, method=method)
+    ran = execute.run(op, execute.How(chunked=True, block=CHUNKS,
+                                      open_engine=lambda: open_engine("threads", workers=2)))
+    assert ran.by_blocks and ran.block == CHUNKS
+    for i, n in enumerate(names):
+        assert np.array_equal(read_volume(tmp_path / f"{n}.nrrd").data, ref[i])
 
 
 def test_each_block_alone_and_without_a_plan(whole):
@@ -164,7 +190,7 @@ def test_a_grid_with_a_direction_is_refused_as_in_memory(whole):
         with pytest.raises(VolwarpError, match="identity direction") as whole_err:
             evaluate(spec, turned, method=method)
         with pytest.raises(VolwarpError, match="identity direction") as block_err:
-            sweep_dask(spec, turned, chunks=CHUNKS, method=method)
+            prepare_sweep(spec, turned, method=method)
         assert str(block_err.value) == str(whole_err.value)
         with pytest.raises(VolwarpError, match="identity direction"):
             sweep_block(spec, turned, Box((0, 0, 0), (2, 2, 2)), method=method)
@@ -173,7 +199,7 @@ def test_a_grid_with_a_direction_is_refused_as_in_memory(whole):
 def test_direct_refuses_a_polyline_before_any_block_runs(whole):
     spec, grid, _, _ = whole["voxelize"]  # it has a polyline segment
     with pytest.raises(VolwarpError, match="polyline"):
-        sweep_dask(spec, grid, chunks=CHUNKS, method="direct")
+        prepare_sweep(spec, grid, method="direct")
 
 
 # -- random chunkings --------------------------------------------------------------------
@@ -209,34 +235,31 @@ def _partition(n):
 def test_any_chunking_equals_in_memory(small, data, method):
     spec, grid, refs = small
     chunks = tuple(data.draw(_partition(n), label=f"axis {a}") for a, n in enumerate(grid.shape))
-    got = sweep_dask(spec, grid, chunks=chunks, method=method).compute(scheduler="sync")
+    edges = [np.cumsum((0,) + c) for c in chunks]
+    boxes = [Box((z0, y0, x0), (z1, y1, x1))
+             for z0, z1 in zip(edges[0][:-1], edges[0][1:], strict=True)
+             for y0, y1 in zip(edges[1][:-1], edges[1][1:], strict=True)
+             for x0, x1 in zip(edges[2][:-1], edges[2][1:], strict=True)]
+    got = _by_blocks(spec, grid, method, boxes)
     assert got.dtype == np.float32 and np.array_equal(got, refs[method])
 
 
 # -- block tasks in parallel threads -----------------------------------------------------------
 PARALLEL_SCRIPT = textwrap.dedent("""
     import sys, threading, time
+    from concurrent.futures import ThreadPoolExecutor
     import numpy as np
     sys.path.insert(0, sys.argv[1])
     sys.path.insert(0, sys.argv[2])
     from test_sweep_chunked import CASES, make_spec, write_templates
     from pathlib import Path
     from volwarp_cli.sweep import chunked, evaluate
-    from volwarp_cli.sweep.chunked import field_names, sweep_dask
+    from volwarp_cli.sweep.chunked import field_names, prepare_sweep
     from volwarp_cli.sweep.model import fit_grid
 
     d = Path(sys.argv[3])
     write_templates(d)
     spans = []
-    block = chunked.sweep_block
-
-    def timed_block(*args, **kwargs):  # when and in which thread each block task ran
-        t0 = time.perf_counter()
-        out = block(*args, **kwargs)
-        spans.append((t0, time.perf_counter(), threading.get_ident()))
-        return out
-
-    chunked.sweep_block = timed_block
 
     for name, method in (("voxelize", None), ("direct", None)):
         body = dict(CASES[name][0])
@@ -244,9 +267,19 @@ PARALLEL_SCRIPT = textwrap.dedent("""
         grid = fit_grid(spec.grid, *spec.bounds())
         ref = evaluate(spec, grid)  # the whole grid, in the main thread and its pool
         ref = np.stack([ref[n] for n in field_names(spec)])
+        plan = prepare_sweep(spec, grid)
+        got = np.empty_like(ref)
+
+        def task(box):  # a block task: when and in which thread it ran
+            t0 = time.perf_counter()
+            fields = chunked.block_fields(plan, box)
+            spans.append((t0, time.perf_counter(), threading.get_ident()))
+            for i, n in enumerate(field_names(spec)):
+                got[(i,) + box.slices] = fields[n]
+
         spans.clear()
-        got = sweep_dask(spec, grid, chunks=(13, 17, 19)).compute(
-            scheduler="threads", num_workers=2)
+        with ThreadPoolExecutor(2) as pool:
+            list(pool.map(task, grid.box.blocks((13, 17, 19))))
         assert np.array_equal(got, ref), name
         threads = {s[2] for s in spans}
         overlap = sum(1 for a in spans for b in spans

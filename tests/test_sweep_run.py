@@ -1,34 +1,26 @@
-"""The sweep's output core (volwarp_cli.sweep.run), called without click.
+"""The sweep as an operation of the executor (volwarp_cli.sweep.run), called without click.
 
-:func:`~volwarp_cli.sweep.run.sweep_by_blocks` writes, block by block, the
-volumes the in-memory sweep writes (:func:`~volwarp_cli.sweep.evaluate`, then
-:func:`~volwarp_cli.sweep.run.sweep_volume`), one file per field or one
-multi-component file, and its render by slabs is the in-memory render
-(:func:`~volwarp_cli.sweep.run.render_fields`) bit for bit.
+:class:`~volwarp_cli.sweep.run.SweepOperation` run in memory (one block, the calling
+threads) and by blocks (an engine's tasks) writes the same bytes, one file per field or
+one multi-component file, and :func:`~volwarp_cli.sweep.run.render` of either is the same
+picture.
 """
 
 from __future__ import annotations
 
-import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 from test_sweep_chunked import make_spec, write_templates
 
+from volwarp_cli import execute
 from volwarp_cli.engine import open_engine
-from volwarp_cli.geometry import Geometry
 from volwarp_cli.io import read_volume
-from volwarp_cli.io.blockwrite import committed, open_block_output
-from volwarp_cli.io.nrrd import read_nrrd, write_nrrd
+from volwarp_cli.io.nrrd import read_nrrd
 from volwarp_cli.sweep import evaluate
 from volwarp_cli.sweep.model import fit_grid
-from volwarp_cli.sweep.run import (
-    VolumeRender,
-    block_shape,
-    render_fields,
-    sweep_by_blocks,
-    sweep_volume,
-)
+from volwarp_cli.sweep.run import SweepOperation, VolumeRender, render, scale_to_dtype
 
 BODY = {
     "fields": {"opacity": {"image": "disc.png"}, "red": {"image": "ramp.png"},
@@ -38,46 +30,49 @@ BODY = {
                             "start": -90, "end": 30}}],
     "scale": [4, 3]}
 META = {"volwarp_command": "sweep"}
+BLOCKS = execute.How(chunked=True, block=(5, 6, 7),
+                     open_engine=lambda: open_engine("threads", workers=2))
+IN_MEMORY = execute.How(chunked=False)
 
 
 @pytest.fixture(scope="module")
 def swept(tmp_path_factory):
-    """(spec, grid, in-memory fields) of a two-segment sweep on an odd grid."""
+    """(spec, grid) of a two-segment sweep on an odd grid."""
     d = tmp_path_factory.mktemp("sweep_run")
     write_templates(d)
     spec = make_spec(d, {"grid": {"shape": [31, 27, 13]}, **BODY}, "s.yaml")
-    grid = fit_grid(spec.grid, *spec.bounds())
-    return spec, grid, evaluate(spec, grid)
+    return spec, fit_grid(spec.grid, *spec.bounds())
 
 
-def _open_output(path, template, dtype, block, components):
-    return committed(open_block_output(path, Geometry.of(template), dtype, chunks_zyx=block,
-                                       metadata=template.meta, space=template.space,
-                                       components=components))
-
-
-def _by_blocks(spec, grid, paths, dtype, render=None, block=(5, 6, 7)):
-    return sweep_by_blocks(spec, grid, paths=paths, names=spec.field_names(), dtype=dtype,
-                           meta=META, open_output=_open_output,
-                           open_engine=lambda: open_engine("threads", workers=2),
-                           budget=lambda: 64 << 20, block=block, render=render)
+def _op(spec, grid, folder: Path, dtype, multi=False):
+    names = spec.field_names()
+    paths = {None: folder / "all.nrrd"} if multi else {n: folder / f"{n}.nrrd" for n in names}
+    return SweepOperation(spec, grid, paths, dtype, META, {})
 
 
 @pytest.mark.parametrize("dtype", ["float32", "uint8"])
-def test_fields_and_render_by_blocks_are_the_in_memory_ones(swept, tmp_path, dtype):
-    spec, grid, fields = swept
-    names = spec.field_names()
-    render = VolumeRender((30, 20), (41, 33), orientation_labels=True)
-    paths = {n: str(tmp_path / f"{n}.nrrd") for n in names}
-    image, camera = _by_blocks(spec, grid, paths, dtype, render=render)
-    for name in names:
-        expected = sweep_volume(fields[name], grid, dtype, META, name)
-        written = read_volume(paths[name])
+def test_in_memory_and_by_blocks_write_the_same_bytes_and_picture(swept, tmp_path, dtype):
+    spec, grid = swept
+    look = VolumeRender((30, 20), (41, 33), orientation_labels=True)
+    runs = {}
+    for name, how in (("memory", IN_MEMORY), ("blocks", BLOCKS)):
+        (tmp_path / name).mkdir()
+        op = _op(spec, grid, tmp_path / name, dtype)
+        runs[name] = execute.run(op, how, after=lambda ran, op=op: render(ran, op, look))
+    assert not runs["memory"].by_blocks and runs["blocks"].by_blocks
+    fields = evaluate(spec, grid)  # the library's whole-grid evaluation
+    for n in spec.field_names():
+        mem, blk = tmp_path / "memory" / f"{n}.nrrd", tmp_path / "blocks" / f"{n}.nrrd"
+        assert mem.read_bytes() == blk.read_bytes()
+        written = read_volume(blk)
         assert written.data.dtype == np.dtype(dtype)
-        assert np.array_equal(written.data, expected.data)
-        assert written.meta["volwarp_sweep_field"] == name
-    assert np.asarray(read_volume(paths["opacity"]).data).any()
-    ref_image, ref_camera = render_fields(fields, grid, render)
+        assert written.meta["volwarp_sweep_field"] == n
+        expected = scale_to_dtype(fields[n], dtype)
+        if dtype == "uint8":
+            expected = np.clip(np.rint(expected), 0, 255).astype(np.uint8)
+        assert np.array_equal(written.data, expected)
+    assert np.asarray(read_volume(tmp_path / "blocks" / "opacity.nrrd").data).any()
+    (image, camera), (ref_image, ref_camera) = runs["blocks"].after, runs["memory"].after
     assert image.shape == (33, 41, 3) and image.any()
     assert np.array_equal(image, ref_image)  # (a rounded dtype: the fields computed again)
     for key in ("center", "right", "up", "back"):
@@ -86,25 +81,13 @@ def test_fields_and_render_by_blocks_are_the_in_memory_ones(swept, tmp_path, dty
 
 
 def test_one_multi_component_file_by_blocks_is_the_in_memory_file(swept, tmp_path):
-    spec, grid, fields = swept
+    spec, grid = swept
     names = spec.field_names()
-    mem, blk = tmp_path / "m.nrrd", tmp_path / "b.nrrd"
-    comps = [sweep_volume(fields[n], grid, "uint16", META).data for n in names]
-    write_nrrd(sweep_volume(fields[names[0]], grid, "uint16", META), mem, components=comps,
-               component_names=names)
-    assert _by_blocks(spec, grid, {None: str(blk)}, "uint16") is None  # (no render asked)
+    for name, how in (("memory", IN_MEMORY), ("blocks", BLOCKS)):
+        (tmp_path / name).mkdir()
+        assert execute.run(_op(spec, grid, tmp_path / name, "uint16", multi=True), how).after \
+            is None  # (no render asked)
+    mem, blk = tmp_path / "memory" / "all.nrrd", tmp_path / "blocks" / "all.nrrd"
     assert blk.read_bytes() == mem.read_bytes()
-    assert np.array_equal(read_nrrd(blk, component=1).data, comps[1])
-
-
-def test_blocks_fit_the_task_memory_and_feed_every_worker():
-    shape = (40, 50, 60)
-    for workers in (1, 2, 8, 64):  # (plenty of memory: the blocks shrink for the workers only)
-        block = block_shape(shape, 1 << 30, workers, 4, "float32")
-        count = math.prod(math.ceil(n / b) for n, b in zip(shape, block, strict=True))
-        assert count >= 2 * workers or min(block) <= 16
-    per_voxel = 4 * (4 + 1) + 16  # four fields as float32 and as uint8, and slack
-    for per_task in (per_voxel * 9 ** 3, per_voxel * 23 ** 3 + 5, per_voxel * 30 ** 3):
-        edge = block_shape(shape, per_task, 1, 4, "uint8")[0]
-        assert edge ** 3 * per_voxel <= per_task < (edge + 2) ** 3 * per_voxel  # (a float root)
-    assert block_shape(shape, 1, 1, 4, "float32") == (8, 8, 8)  # never below 8
+    red = read_nrrd(blk, component=names.index("red")).data
+    assert red.dtype == np.uint16 and red.any()

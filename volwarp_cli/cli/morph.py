@@ -336,16 +336,16 @@ def _refuse_unmakeable_frames(job, outputs, spec_path, write_kw) -> dict:
     The frame grid from the spec and the inputs' headers (exact, or its least
     size where an alignment turns about a centroid:
     :func:`~volwarp_cli.morph.grid.least_frame_shape`), checked as ``sweep``
-    checks its grid (:func:`.sweep.refuse_unmakeable_grid`). Returns the inputs
+    checks its grid (:func:`volwarp_cli.execute.refuse_unmakeable`). Returns the inputs
     it had to read whole (compressed files), by path.
     """
     import math
 
     import numpy as np
 
+    from ..execute import refuse_unmakeable
     from ..geometry import Geometry
     from ..morph.grid import GridError, least_frame_shape
-    from .sweep import refuse_unmakeable_grid
 
     loaded = {}
     with _one_volume_inputs():
@@ -363,8 +363,9 @@ def _refuse_unmakeable_frames(job, outputs, spec_path, write_kw) -> dict:
     for a in job.attributes:  # (an attribute's own type: one byte at least)
         sizes += [(p, n * np.dtype(a.dtype or np.uint8).itemsize)
                   for p in outputs.attributes[a.name]]
-    refuse_unmakeable_grid(f"a morph on a {'x'.join(map(str, shape))} grid", 8 * n, sizes,
-                           write_kw)
+    refuse_unmakeable(f"a morph on a {'x'.join(map(str, shape))} grid", 8 * n, sizes,
+                      chunked=scale_settings().chunked, compress=bool(write_kw.get("compress")),
+                      pyramid=int(write_kw.get("pyramid", 0) or 0))
     return loaded
 
 

@@ -1,8 +1,9 @@
 """`volwarp sweep SPEC.yaml -o 'OUT_{field}.nrrd'`: image-swept volumes (Winter & Chen 2002).
 
-The fields come from :func:`volwarp_cli.sweep.evaluate`, or by blocks from
-:func:`volwarp_cli.sweep.run.sweep_by_blocks`; this module parses, reads the
-spec, calls and writes.
+Parse, read the spec, fit the grid, then one operation
+(:class:`volwarp_cli.sweep.run.SweepOperation`) run by the executor
+(:func:`volwarp_cli.execute.run`: in memory or by blocks, the same bytes),
+and the render of its fields.
 """
 
 from __future__ import annotations
@@ -108,69 +109,6 @@ def _check_grid(shape_xyz, origin, spacing, doc, from_options: bool, lo, hi,
     raise doc.error(("grid", names[0]) if names else ("grid",), what)
 
 
-def refuse_unmakeable_grid(what: str, memory_bytes: int, outputs, write_kw: dict) -> None:
-    """Refuse, before any work, a grid that fits neither the memory nor, by blocks, the disk.
-
-    ``what``: the work and its sizes, for the message; ``memory_bytes``: the
-    least the work holds in memory; ``outputs``: ``[(path, nbytes)]``, every
-    output of the grid. Each way of running checks its own need exactly,
-    later; this only ends at once, with the sizes, what neither way can run (a
-    10^15-voxel grid was otherwise allocated, or tiled into blocks, until
-    killed). ``sweep`` and ``morph`` call it once their grid is known.
-    """
-    from ..errors import OutOfMemoryError
-    from ..memory import ensure_fits_in_memory
-
-    chunked = scale_settings().chunked
-    in_memory = None
-    if not chunked:
-        try:
-            ensure_fits_in_memory(memory_bytes, what)
-            return
-        except OutOfMemoryError as exc:
-            if chunked is False:
-                raise
-            in_memory = exc
-    by_blocks = _blocks_refusal(outputs, write_kw)
-    if by_blocks is None:
-        return
-    raise OutOfMemoryError(f"{in_memory}, and by blocks {by_blocks}" if in_memory
-                           else f"{what}: by blocks {by_blocks}")
-
-
-def _blocks_refusal(outputs, write_kw: dict) -> str | None:
-    """Why ``outputs`` (``[(path, nbytes)]``) cannot be written by blocks, or None.
-
-    Their formats, and their sizes against the free space of their folders
-    (outputs sharing a folder add up).
-    """
-    import shutil
-    from pathlib import Path
-
-    from ..errors import VolwarpError
-    from ..io.blockwrite import check_block_format
-    from ..memory import human_bytes
-
-    need: dict[Path, list[int]] = {}
-    for path, nbytes in outputs:
-        try:
-            check_block_format(path, bool(write_kw.get("compress")),
-                               int(write_kw.get("pyramid", 0) or 0))
-        except VolwarpError as exc:
-            return str(exc)
-        need.setdefault(Path(path).resolve().parent, []).append(int(nbytes))
-    for folder, sizes in need.items():
-        try:
-            free = shutil.disk_usage(folder).free
-        except OSError as exc:
-            return f"{folder}: {exc.strerror}"
-        if sum(sizes) > free:
-            each = "" if len(sizes) == 1 else f" ({len(sizes)} files)"
-            return (f"the outputs need {human_bytes(sum(sizes))}{each} where {folder} has "
-                    f"{human_bytes(free)} free")
-    return None
-
-
 @click.command(name="sweep", epilog=examples(
     "volwarp sweep sweep-bottle.yaml -o 'bottle_{field}.nrrd' --render bottle.png --view -70,25",
     "volwarp sweep sweep-at-bezier.yaml -o at.nrrd --multi --spacing 0.5 --method direct",
@@ -212,12 +150,12 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     """
     import numpy as np
 
-    from ..io import check_output_path, write_volume
+    from .. import execute
+    from ..io import check_output_path
     from ..progress import timed
     from ..spec.loader import load_spec
-    from ..sweep import evaluate
     from ..sweep.model import fit_grid_values, parse_sweep_spec, sweep_geometry
-    from ..sweep.run import VolumeRender, render_fields, sweep_volume
+    from ..sweep.run import SweepOperation, VolumeRender, render
     from .common import provenance
 
     if shape is not None and spacing is not None:
@@ -254,63 +192,27 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     _check_grid(*grid_values, doc, shape is not None or spacing is not None, lo, hi,
                 grid_spec.get("margin"))
     grid = sweep_geometry(*grid_values)
-    nx, ny, nz = grid.shape_xyz
-    out_dtype = dtype or "float32"
-    each = grid.size * np.dtype(out_dtype).itemsize
-    refuse_unmakeable_grid(f"sweep output {nx}x{ny}x{nz} x {len(names)} fields",
-                           grid.size * 4 * len(names),
-                           [(p, each * (len(names) if multi else 1)) for p in paths.values()],
-                           {"compress": compress, "pyramid": ome_zarr.get("pyramid", 0)})
-    stamp_meta = provenance("sweep", [spec], spec)
-    chunked = scale_settings().chunked
-    render = None
+    write = {"compress": compress, "byte_order": byte_order,
+             "version": ome_zarr["ome_zarr_version"], "pyramid": ome_zarr["pyramid"]}
+    op = SweepOperation(sspec, grid, paths, dtype or "float32",
+                        provenance("sweep", [spec], spec), write, method=method, tau=tau)
+    settings = scale_settings()
+    how = execute.How(chunked=settings.chunked, block=settings.block,
+                      open_engine=settings.open_engine)
+    picture = None
     if render_path is not None:
         from .view_options import orientation_labels_for
 
-        render = VolumeRender(view, render_size, camera=camera_from,
-                              orientation_labels=orientation_labels_for(orientation_labels),
-                              what=str(render_path))
-    render_to = (render_path, camera_to, spec)  # where the picture and its camera go
-    by_blocks = dict(paths=paths, names=names, method=method, tau=tau, dtype=out_dtype,
-                     meta=stamp_meta, compress=compress, byte_order=byte_order, render=render,
-                     render_to=render_to, **ome_zarr)
-    if chunked:
-        _sweep_by_blocks(sspec, grid, **by_blocks)
-        return
-    from ..errors import OutOfMemoryError
+        look = VolumeRender(view, render_size, camera=camera_from,
+                            orientation_labels=orientation_labels_for(orientation_labels),
+                            what=str(render_path))
 
-    try:
-        with timed(f"sweep {nx}x{ny}x{nz} ({method or sspec.method})"):
-            fields = evaluate(sspec, grid, method=method, tau=tau)
-    except OutOfMemoryError as exc:
-        from .chunked import blocks_can_write, wants_blocks
-
-        nz, ny, nx = grid.shape
-        size = (nz, ny, nx * (len(names) if multi else 1))  # (--multi: one file of them all)
-        if chunked is False or not all(
-                blocks_can_write(p, size, out_dtype, {"compress": compress})
-                for p in paths.values()):
-            raise
-        if not wants_blocks(str(exc)):
-            raise
-        _sweep_by_blocks(sspec, grid, **by_blocks)
-        return
-
-    with timed("write"):
-        if multi:
-            from ..io.nrrd import write_nrrd
-            comps = [sweep_volume(fields[n], grid, out_dtype, stamp_meta).data for n in names]
-            write_nrrd(sweep_volume(fields[names[0]], grid, out_dtype, stamp_meta),
-                       paths[None], compress=compress, byte_order=byte_order,
-                       components=comps, component_names=names)
-        else:
-            for n in names:
-                write_volume(sweep_volume(fields[n], grid, out_dtype, stamp_meta, n), paths[n],
-                             compress=compress, byte_order=byte_order, **ome_zarr)
-    if render is not None:
-        with timed(f"render {render_path}"):
-            img, camera = render_fields(fields, grid, render)
-        _write_render(render_to, img, camera)
+        def picture(ran):
+            by_slabs = ran.results is None and not settings.block  # (else: the block's depth)
+            return render(ran, op, look, execute.block_budget() // 2 if by_slabs else None)
+    ran = execute.run(op, how, after=picture)
+    if render_path is not None:
+        _write_render((render_path, camera_to, spec), *ran.after)
 
 
 def _write_render(render_to, img, camera) -> None:
@@ -324,31 +226,3 @@ def _write_render(render_to, img, camera) -> None:
     write_image(path, np.ascontiguousarray(img))
     if camera_to is not None:
         write_camera(camera, camera_to, source=str(spec))
-
-
-def _sweep_by_blocks(sspec, grid, *, paths, names, method, tau, dtype, meta, compress,
-                     byte_order, ome_zarr_version="0.5", pyramid=0, render=None,
-                     render_to=None):
-    """The sweep by output blocks (:func:`volwarp_cli.sweep.run.sweep_by_blocks`).
-
-    Its outputs are block outputs (one multi-component NRRD for ``paths``
-    keyed by None, --multi); the render's PNG is written once they are
-    committed.
-    """
-    from ..sweep.run import sweep_by_blocks
-    from .chunked import block_budget, block_output
-
-    def open_output(path, template, dtype, block, components):
-        if components is not None:  # (a multi-component NRRD)
-            return block_output(path, template, dtype, block=block, compress=compress,
-                                byte_order=byte_order, components=components)
-        return block_output(path, template, dtype, block=block, compress=compress,
-                            byte_order=byte_order, version=ome_zarr_version, pyramid=pyramid)
-
-    settings = scale_settings()
-    picture = sweep_by_blocks(sspec, grid, paths=paths, names=names, dtype=dtype, meta=meta,
-                              open_output=open_output, open_engine=settings.open_engine,
-                              budget=block_budget, block=settings.block, method=method,
-                              tau=tau, render=render)
-    if render is not None:
-        _write_render(render_to, *picture)

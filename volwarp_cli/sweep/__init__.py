@@ -9,45 +9,18 @@ frames), ``templates`` (images and image stacks on [0, 1]^2), ``voxelize``
 
 from __future__ import annotations
 
-import numpy as np
-
-from ..progress import timed
-
-
-def evaluate_sweep(sweep, grid, method: str = "voxelize", tau: float | None = None,
-                   default_tau: float | None = None) -> dict:
-    """Fields of one sweep on ``grid`` (an axis-aligned :class:`~volwarp_cli.geometry.Geometry`).
-
-    ``tau`` (e.g. from the command line) wins over the sweep's own ``tau``,
-    which wins over ``default_tau`` (the spec's top-level one), which defaults
-    to half the smallest voxel side.
-    """
-    if method == "direct":
-        from .direct import direct_sweep
-        return direct_sweep(sweep, grid)
-    from .voxelize import voxelize_sweep
-    for t in (tau, sweep.tau, default_tau, 0.5 * float(np.min(grid.spacing))):
-        if t is not None:
-            break
-    return voxelize_sweep(sweep, grid, float(t))
-
 
 def evaluate(spec, grid, method: str | None = None, tau: float | None = None) -> dict:
     """All output fields of a :class:`~.model.SweepSpec` on ``grid``, ``{name: [z, y, x]}``.
 
     ``grid``: an axis-aligned :class:`~volwarp_cli.geometry.Geometry` (identity
-    direction), e.g. :func:`.model.fit_grid`'s.
+    direction), e.g. :func:`.model.fit_grid`'s. The whole grid as one block
+    of :func:`.chunked.block_fields` on volwarp's threads: the same
+    evaluation as any block of it (``volwarp sweep`` runs it through the
+    executor, :class:`.run.SweepOperation`).
     """
-    from .cvg import combine_objects
-    from .model import SceneNode
+    from .. import parallel
+    from .chunked import block_fields, prepare_sweep
 
-    method = method or spec.method or "voxelize"
-
-    def run(node):
-        if isinstance(node, SceneNode):
-            objects = [run(c) for c in node.children]
-            with timed("sweep: combine scene"):
-                return combine_objects(node.ops, objects, grid.shape)
-        return evaluate_sweep(node, grid, method, tau, spec.tau)
-
-    return run(spec.root)
+    plan = prepare_sweep(spec, grid, method=method, tau=tau)
+    return block_fields(plan, grid.box, threads=parallel.threads())

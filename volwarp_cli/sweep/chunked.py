@@ -1,4 +1,4 @@
-"""The sweep by output blocks: any block of the output grid, bit for bit the whole's.
+"""The sweep's one evaluation, on any block of the output grid: the whole grid is one block.
 
 A sweep has no input volume (:func:`~volwarp_cli.regions.sweep_input`): every
 output voxel is computed from its own world point and the swept model alone,
@@ -29,13 +29,11 @@ Block tasks call the kernels in their own thread (numba ``nogil`` kernels,
 no ``prange``): a Dask scheduler runs tasks in threads of its own, and the
 parallelism is across blocks.
 
-Only :func:`sweep_dask` imports dask.
+Nothing here imports dask: the executor (:mod:`volwarp_cli.execute`) runs the blocks.
 """
 
 from __future__ import annotations
 
-import functools
-import uuid
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -131,16 +129,23 @@ def prepare_sweep(model, geometry: Geometry, *, method: str | None = None,
     return SweepPlan(root, method, names, geometry, plans)
 
 
-def _block_fields(plan: SweepPlan, box: Box) -> dict[str, np.ndarray]:
-    """``{field: [z, y, x] block}`` of the sweep tree, as :func:`~volwarp_cli.sweep.evaluate`."""
+def block_fields(plan: SweepPlan, box: Box, *, threads: int = 1) -> dict[str, np.ndarray]:
+    """``{field: float32 [z, y, x]}`` of the sweep tree on the voxels ``box``.
+
+    The one evaluation of a sweep: the whole grid is the box
+    ``plan.geometry.box`` (:func:`volwarp_cli.sweep.evaluate`), a block any
+    box inside it, with the whole's values bit for bit. ``threads``: 1 in a
+    block task (the calling thread only), more for the whole grid's run.
+    """
     index = {id(sw): i for i, sw in enumerate(_sweeps(plan.root))}
 
     def run(node):
         if isinstance(node, SceneNode):
             return combine_objects(node.ops, [run(c) for c in node.children], box.shape)
         if plan.method == "direct":
-            return direct_block(node, plan.geometry, box)
-        return voxelize_block(plan.voxel_plans[index[id(node)]], plan.geometry, box)
+            return direct_block(node, plan.geometry, box, threads=threads)
+        return voxelize_block(plan.voxel_plans[index[id(node)]], plan.geometry, box,
+                              threads=threads)
 
     return run(plan.root)
 
@@ -177,55 +182,17 @@ def sweep_block(model, geometry: Geometry, box: Box, *, method: str | None = Non
         raise VolwarpError("the sweep plan was made for another grid")
     if not geometry.box.contains(box):
         raise VolwarpError(f"block {box} lies outside the sweep's grid of shape {geometry.shape}")
-    fields = _block_fields(plan, box)
+    fields = block_fields(plan, box)
     out = np.empty((len(plan.names),) + box.shape, dtype=np.float32)
     for f, name in enumerate(plan.names):
         out[f] = fields[name]
     return out
 
 
-def _dask_block(plan: SweepPlan, block_info=None) -> np.ndarray:
-    """One block task: the box from Dask's ``array-location`` (the field axis is whole)."""
-    loc = block_info[None]["array-location"][1:]
-    box = Box(tuple(a for a, _ in loc), tuple(b for _, b in loc))
-    return sweep_block(plan.root, plan.geometry, box, plan=plan)
-
-
-def sweep_dask(model, geometry: Geometry, *, chunks, method: str | None = None,
-               tau: float | None = None):
-    """The sweep's output as a Dask array of blocks, each computed by :func:`sweep_block`.
-
-    Parameters
-    ----------
-    model, geometry, method, tau
-        As :func:`prepare_sweep`'s (the plan is made here, once, and shared by
-        the block tasks).
-    chunks
-        The output's chunks over (z, y, x), in any form
-        :func:`dask.array.core.normalize_chunks` takes (an int, a block shape,
-        per-axis tuples); the field axis is one chunk.
-
-    Returns
-    -------
-    dask.array.Array
-        float32 ``[F, z, y, x]`` in :attr:`SweepPlan.names` order, bit for bit
-        the in-memory sweep's fields stacked, under any scheduler.
-    """
-    import dask.array as da
-    from dask.array.core import normalize_chunks
-
-    plan = prepare_sweep(model, geometry, method=method, tau=tau)
-    grid_chunks = normalize_chunks(chunks, shape=geometry.shape, dtype=np.float32)
-    return da.map_blocks(functools.partial(_dask_block, plan), dtype=np.float32,
-                         chunks=((len(plan.names),),) + tuple(grid_chunks),
-                         meta=np.empty((0, 0, 0, 0), dtype=np.float32),
-                         name="volwarp-sweep-" + uuid.uuid4().hex)
-
-
 def field_names(model) -> list[str]:
     """The output fields of ``model`` (a SweepSpec, Sweep, SceneNode or SweepPlan), in order.
 
-    The order of the first axis of :func:`sweep_block`'s and :func:`sweep_dask`'s arrays.
+    The order of the first axis of :func:`sweep_block`'s arrays.
     """
     if isinstance(model, SweepPlan):
         return list(model.names)

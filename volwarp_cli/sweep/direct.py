@@ -52,7 +52,6 @@ import numpy as np
 from .. import parallel
 from ..box import Box
 from ..geometry import Geometry
-from ..memory import ensure_fits_in_memory
 from ..progress import progress
 from ..spec.functions import Function, spec_error
 from .cvg import Accumulator
@@ -216,30 +215,19 @@ def _near_curve(sweep, index: int, samples: int = 257, workers: int = -1):
     return keep
 
 
-def direct_sweep(sweep, grid: Geometry) -> dict[str, np.ndarray]:
-    """Evaluate ``sweep``'s fields at every voxel centre of ``grid`` by inverse mapping.
+def direct_block(sweep, grid: Geometry, box: Box, *, threads: int = 1) -> dict[str, np.ndarray]:
+    """The fields of ``sweep`` on the voxels ``box`` of ``grid`` by inverse mapping.
 
-    ``grid`` is axis-aligned (:func:`.voxelize.check_axis_aligned`).
+    The one evaluation, for the whole grid as for a block: every voxel is
+    mapped back from its own world point (computed from its grid index), its
+    candidates met in the same order (segment, then root), so any box gives
+    the whole grid's values bit for bit. ``threads``: 1 runs the serial root
+    finder in the calling thread (safe in any thread: a block task); more use
+    volwarp's threads (the whole grid's run, with a progress bar).
     """
     check_axis_aligned(grid)
     check_direct(sweep)
-    nx, ny, nz = grid.shape_xyz
-    ensure_fits_in_memory(grid.size * (4 * len(sweep.templates) + 5),
-                          f"sweep output {nx}x{ny}x{nz} x {len(sweep.templates)} fields")
-    return _evaluate_box(sweep, grid, grid.box, serial=False)
-
-
-def direct_block(sweep, grid: Geometry, box: Box) -> dict[str, np.ndarray]:
-    """The fields of ``sweep`` on the voxels ``box`` of ``grid``, bit for bit :func:`direct_sweep`'s.
-
-    Every voxel is mapped back from its own world point (computed from its
-    grid index, as the whole does), its candidates are met in the same order
-    (segment, then root), and the serial root finder runs (no numba thread
-    pool: safe in any thread).
-    """
-    check_axis_aligned(grid)
-    check_direct(sweep)
-    return _evaluate_box(sweep, grid, box, serial=True)
+    return _evaluate_box(sweep, grid, box, serial=threads <= 1)
 
 
 def _evaluate_box(sweep, grid: Geometry, out: Box, serial: bool) -> dict[str, np.ndarray]:

@@ -53,7 +53,6 @@ from .. import parallel
 from ..box import Box
 from ..errors import VolwarpError
 from ..geometry import Geometry
-from ..memory import ensure_fits_once_loaded
 from ..progress import log, progress, timed
 from .cvg import OP_CODES, finish_fields
 from .frames import Frames, compute_frames
@@ -319,47 +318,33 @@ def _finish(plan: VoxelPlan, acc, wsum, covered) -> dict:
     return {n: fields[n].reshape(shape) for n in plan.names}
 
 
-def voxelize_sweep(sweep, grid: Geometry, tau: float, progress_label: str = "sweep") -> dict:
-    """Voxelise ``sweep`` (a :class:`~volwarp_cli.sweep.model.Sweep`) onto ``grid``.
+def voxelize_block(plan: VoxelPlan, grid: Geometry, box: Box, *, threads: int = 1) -> dict:
+    """The fields of ``plan`` on the voxels ``box`` of ``grid``, ``{name: float32 [z, y, x]}``.
 
-    ``grid`` is axis-aligned (:func:`check_axis_aligned`). Returns
-    ``{field name: float32 array [z, y, x]}`` in the order of ``sweep.templates``.
-    """
-    check_axis_aligned(grid)
-    F = len(sweep.templates)
-    nz, ny, nx = grid.shape
-    blend = "blend" in sweep.ops.values()
-    # where the budget is tight, the kernel (numba's: over 100 MiB once loaded) first
-    # voxelises a corner of the grid, so that the check counts it
-    corner = grid.sub(Box((0, 0, 0), tuple(min(s, 4) for s in grid.shape)))
-    ensure_fits_once_loaded(grid.size * (4 * F + 1 + (4 if blend else 0)),
-                            f"sweep output {nx}x{ny}x{nz} x {F} fields",
-                            (lambda: voxelize_sweep(sweep, corner, tau, progress_label))
-                            if grid.size > corner.size else None)
-    plan = plan_voxelize(sweep, tau)
-    args, acc, wsum, covered = _kernel_args(plan, grid, grid.box)
-    kernel = _get_kernel()
-    # z slabs, so that a progress bar can move (each slab is split over the threads)
-    n_slabs = max(1, min(16, nz // 8))
-    edges = np.linspace(0, nz, n_slabs + 1).astype(int)
-    with timed("sweep: voxelise"), progress(n_slabs, progress_label) as bar:
-        for z0, z1 in zip(edges[:-1], edges[1:], strict=True):
-            parallel.run_ranges(lambda a, b, z0=int(z0): kernel(*args, z0 + a, z0 + b, 0, 0, 0),
-                                int(z1 - z0))
-            bar.advance()
-    return _finish(plan, acc, wsum, covered)
-
-
-def voxelize_block(plan: VoxelPlan, grid: Geometry, box: Box) -> dict:
-    """The fields of ``plan`` on the voxels ``box`` of ``grid``, bit for bit the whole's.
-
-    One call of the kernel, in the calling thread (safe in any thread);
-    each voxel's value comes from its own world point and the sub-segments in
-    trajectory order, exactly as in :func:`voxelize_sweep`.
+    The one evaluation, for the whole grid as for a block of it: each voxel's
+    value comes from its own world point and the sub-segments in trajectory
+    order, so any box gives the whole grid's values bit for bit. ``threads``:
+    the box's z planes are split over that many threads (1: one call of the
+    kernel in the calling thread, safe in any thread; more: the whole grid's
+    run, in z slabs so that a progress bar moves).
     """
     check_axis_aligned(grid)
     args, acc, wsum, covered = _kernel_args(plan, grid, box)
-    if not box.empty:
-        _get_kernel()(*args, *(int(v) for v in (box.lo[0], box.hi[0])),
-                                 *(int(v) for v in box.lo))
+    if box.empty:
+        return _finish(plan, acc, wsum, covered)
+    kernel = _get_kernel()
+    (z_lo, y_lo, x_lo), (z_hi, _, _) = box.lo, box.hi
+    if threads <= 1:
+        kernel(*args, int(z_lo), int(z_hi), int(z_lo), int(y_lo), int(x_lo))
+        return _finish(plan, acc, wsum, covered)
+    nz = int(z_hi - z_lo)
+    n_slabs = max(1, min(16, nz // 8))
+    edges = np.linspace(0, nz, n_slabs + 1).astype(int)
+    with timed("sweep: voxelise"), progress(n_slabs, "sweep") as bar:
+        for a, b in zip(edges[:-1], edges[1:], strict=True):
+            z0 = int(z_lo + a)
+            parallel.run_ranges(
+                lambda p, q, z0=z0: kernel(*args, z0 + p, z0 + q, int(z_lo), int(y_lo),
+                                           int(x_lo)), int(b - a), threads)
+            bar.advance()
     return _finish(plan, acc, wsum, covered)

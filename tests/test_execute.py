@@ -1,0 +1,189 @@
+"""The one executor (volwarp_cli.execute): the in-memory run is the one-block case.
+
+A synthetic operation whose every sample is known (``100 z + 10 y + x`` in world-free
+index arithmetic, and a second output of its squares) is run in memory and by blocks of
+odd shapes on threads and synchronously: the files are the same bytes and hold the
+analytic values. The decision is made by arithmetic before any work (a budget that the
+whole exceeds runs blocks, with one warning; ``--no-chunked`` then refuses with the
+sizes; an output format written whole refuses blocks), and a refusal or a failing block
+leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volwarp_cli import execute, memory
+from volwarp_cli.box import Box
+from volwarp_cli.engine import open_engine
+from volwarp_cli.errors import OutOfMemoryError, VolwarpError
+from volwarp_cli.geometry import Geometry
+from volwarp_cli.io import read_volume
+from volwarp_cli.io.nrrd import read_nrrd
+
+SHAPE = (11, 13, 17)  # z, y, x: no block shape below divides them
+
+
+class Ramp(execute.Operation):
+    """``v = 100 z + 10 y + x`` (int32) and its square (float64): analytic samples."""
+
+    def __init__(self, folder, *, fail_at=None, multi=False, suffix=".nrrd", bytes_per=12):
+        self.grid = Geometry(SHAPE, (1.0, 2.0, 3.0), (5.0, 6.0, 7.0))
+        self.what = "ramp 17x13x11"
+        self.fail_at = fail_at
+        self.bytes_per = bytes_per
+        self.computed = []
+        empty = np.broadcast_to(np.zeros((), np.int32), SHAPE)
+        if multi:
+            self.targets = {None: execute.Target(folder / f"both{suffix}", self.grid.volume(
+                empty, meta={"k": "v"}), np.dtype(np.float64), components=("v", "sq"))}
+        else:
+            self.targets = {
+                "v": execute.Target(folder / f"v{suffix}", self.grid.volume(
+                    empty, meta={"k": "v"}), np.dtype(np.int32)),
+                "sq": execute.Target(folder / f"sq{suffix}", self.grid.volume(
+                    empty, meta={"k": "sq"}), np.dtype(np.float64))}
+
+    def memory(self, box):
+        return int(box.size) * self.bytes_per
+
+    def compute(self, box, *, threads):
+        self.computed.append((box, threads))
+        if self.fail_at is not None and box.contains(self.fail_at):
+            raise VolwarpError("a block failed")
+        z, y, x = np.meshgrid(*(np.arange(a, b) for a, b in zip(box.lo, box.hi, strict=True)),
+                              indexing="ij")
+        v = (100 * z + 10 * y + x).astype(np.int32)
+        return {"v": v, "sq": v.astype(np.float64) ** 2}
+
+    def output(self, results, key):
+        if key is None:
+            return np.stack([results["v"].astype(np.float64), results["sq"]], axis=-1)
+        return results[key]
+
+
+def _expected():
+    z, y, x = np.meshgrid(*(np.arange(n) for n in SHAPE), indexing="ij")
+    v = (100 * z + 10 * y + x).astype(np.int32)
+    return v, v.astype(np.float64) ** 2
+
+
+def _blocks(block=(4, 5, 6), scheduler="threads"):
+    return execute.How(chunked=True, block=block,
+                       open_engine=lambda: open_engine(scheduler, workers=2))
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "synchronous"])
+@pytest.mark.parametrize("block", [(4, 5, 6), (11, 1, 17), (3, 13, 2)])
+def test_by_blocks_writes_the_in_memory_bytes(tmp_path, scheduler, block):
+    (tmp_path / "m").mkdir()
+    (tmp_path / "b").mkdir()
+    mem = execute.run(Ramp(tmp_path / "m"), execute.How(chunked=False))
+    op = Ramp(tmp_path / "b")
+    blk = execute.run(op, _blocks(block, scheduler))
+    assert not mem.by_blocks and blk.by_blocks and blk.block == block
+    v, sq = _expected()
+    for name, want in (("v", v), ("sq", sq)):
+        a, b = tmp_path / "m" / f"{name}.nrrd", tmp_path / "b" / f"{name}.nrrd"
+        assert a.read_bytes() == b.read_bytes()
+        vol = read_volume(b)
+        assert np.array_equal(vol.data, want) and vol.meta["k"] == name
+        assert tuple(vol.origin) == (5.0, 6.0, 7.0) and tuple(vol.spacing) == (1.0, 2.0, 3.0)
+    if scheduler == "synchronous":  # (the tasks ran here: each block once, on one thread)
+        boxes = [b for b, _ in op.computed]
+        assert sorted(b.lo for b in boxes) == sorted(b.lo for b in Box.from_shape(SHAPE)
+                                                     .blocks(block))
+        assert {t for _, t in op.computed} == {1}
+
+
+def test_in_memory_is_one_block_on_the_calling_threads(tmp_path):
+    op = Ramp(tmp_path)
+    ran = execute.run(op, execute.How(threads=3))
+    assert not ran.by_blocks
+    assert op.computed == [(Box.from_shape(SHAPE), 3)]
+    assert np.array_equal(ran.results["v"], _expected()[0])
+
+
+def test_a_multi_component_output_by_blocks_is_the_in_memory_file(tmp_path):
+    (tmp_path / "m").mkdir()
+    (tmp_path / "b").mkdir()
+    execute.run(Ramp(tmp_path / "m", multi=True), execute.How(chunked=False))
+    execute.run(Ramp(tmp_path / "b", multi=True), _blocks())
+    assert (tmp_path / "m/both.nrrd").read_bytes() == (tmp_path / "b/both.nrrd").read_bytes()
+    assert np.array_equal(read_nrrd(tmp_path / "b/both.nrrd", component=1).data, _expected()[1])
+
+
+def test_the_whole_over_the_budget_runs_by_blocks_with_one_warning(tmp_path, caplog):
+    op = Ramp(tmp_path, bytes_per=1 << 30)  # (the whole: terabytes)
+    how = execute.How(block=(6, 7, 8), open_engine=lambda: open_engine("threads", workers=2))
+    with memory.use_memory_limit(2 << 30):
+        ran = execute.run(op, how)
+    assert ran.by_blocks
+    assert [r.getMessage() for r in caplog.records
+            if "running by blocks" in r.getMessage()] == [
+        "ramp 17x13x11 needs 2.4 TiB: running by blocks (--no-chunked to refuse instead)"]
+    assert np.array_equal(read_volume(tmp_path / "v.nrrd").data, _expected()[0])
+
+
+def test_no_chunked_refuses_with_the_sizes_and_writes_nothing(tmp_path):
+    op = Ramp(tmp_path, bytes_per=1 << 30)
+    with memory.use_memory_limit(2 << 30), pytest.raises(OutOfMemoryError) as err:
+        execute.run(op, execute.How(chunked=False))
+    assert "ramp 17x13x11 needs 2.4 TiB but only" in str(err.value)
+    assert op.computed == [] and list(tmp_path.iterdir()) == []
+
+
+def test_an_output_written_whole_refuses_blocks_with_both_reasons(tmp_path):
+    op = Ramp(tmp_path, bytes_per=1 << 30, suffix=".nii.gz")  # (NIfTI: written whole)
+    how = execute.How(open_engine=lambda: open_engine("threads", workers=2))
+    with memory.use_memory_limit(2 << 30), pytest.raises(OutOfMemoryError) as err:
+        execute.run(op, how)
+    message = str(err.value)
+    assert message.startswith("ramp 17x13x11 needs 2.4 TiB") and ", and by blocks " in message
+    assert "cannot be written block by block" in message
+    assert op.computed == [] and list(tmp_path.iterdir()) == []
+
+
+def test_a_failing_block_leaves_nothing_and_an_old_output_untouched(tmp_path):
+    old = tmp_path / "v.nrrd"
+    old.write_bytes(b"an earlier output")
+    with pytest.raises(VolwarpError, match="a block failed"):
+        execute.run(Ramp(tmp_path, fail_at=(7, 7, 7)), _blocks())
+    assert old.read_bytes() == b"an earlier output"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.nrrd"]
+
+
+def test_the_after_hook_reads_what_was_written(tmp_path):
+    """In memory it gets the results; by blocks it reads the outputs back, before the commit."""
+    box = Box((2, 3, 4), (9, 10, 11))
+
+    def peek(ran):
+        got = ran.results["v"][box.slices] if ran.results is not None else ran.read("v", box)
+        assert not (tmp_path / "b" / "v.nrrd").exists()  # (by blocks: not committed yet)
+        return np.array(got)
+
+    (tmp_path / "m").mkdir()
+    (tmp_path / "b").mkdir()
+    a = execute.run(Ramp(tmp_path / "m"), execute.How(chunked=False), after=peek).after
+    b = execute.run(Ramp(tmp_path / "b"), _blocks(), after=peek).after
+    assert np.array_equal(a, b) and np.array_equal(a, _expected()[0][box.slices])
+
+
+def test_the_default_blocks_fit_the_task_and_feed_every_worker():
+    class Big(execute.Operation):
+        grid = Geometry((40, 50, 60))
+        what = "big"
+
+        def memory(self, box):
+            return int(box.size) * 36
+
+    op = Big()
+    for workers in (1, 2, 8, 64):
+        block = op.block_shape(1 << 30, workers)
+        count = np.prod([-(-n // b) for n, b in zip(op.grid.shape, block, strict=True)])
+        assert count >= 2 * workers or min(block) <= 16
+    for per_task in (36 * 9 ** 3, 36 * 23 ** 3 + 5, 36 * 30 ** 3):
+        edge = op.block_shape(per_task, 1)[0]
+        assert edge ** 3 * 36 <= per_task < (edge + 2) ** 3 * 36
+    assert op.block_shape(1, 1) == (8, 8, 8)  # never below 8

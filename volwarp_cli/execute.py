@@ -1,0 +1,360 @@
+"""One executor: an operation is written once, against a block; the whole output is one block.
+
+ITK's streaming pipeline is the model (``itkStreamingImageFilter``: the
+splitter cuts the output region and the same filter runs on each piece; the
+whole image is one piece), and rasterio's ``merge`` for the decision (the
+library, not the command line, decides ``[whole] if it fits else
+subdivide``). An :class:`Operation` states, before any sample is read:
+
+- its output grid and its outputs (:class:`Target`: where each goes, its
+  type, key/values and write options);
+- the memory computing a block of them takes (:meth:`Operation.memory`);
+- how to compute a block (:meth:`Operation.compute`), from the block's
+  :class:`~volwarp_cli.box.Box` alone (inputs it reads, it reads for that
+  block: :mod:`volwarp_cli.regions` says which region).
+
+:func:`run` then decides by arithmetic, before any work: when the whole
+output's memory fits the budget (and ``--chunked`` did not ask otherwise),
+the whole output is computed as one block on the calling threads and written
+with :func:`~volwarp_cli.io.write_volume` (any format); otherwise it is
+computed as many blocks on an engine (threads, processes or a Dask cluster),
+each written straight into the outputs
+(:class:`~volwarp_cli.io.blockwrite.BlockOutput`). The same
+:meth:`Operation.compute` runs either way, so the outputs are the same bytes.
+
+No click here: the command line says how it wants to run (:class:`How`) and
+gets back what ran (:class:`Ran`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .box import Box
+from .errors import OutOfMemoryError, VolwarpError
+from .progress import log, timed
+
+#: the least memory worth running blocks in (below it, refuse: tiny blocks take forever)
+MIN_BLOCK_BUDGET = 32 << 20
+
+
+@dataclass(frozen=True)
+class Target:
+    """One output of an operation: its file, its samples' type, and how it is written.
+
+    ``template``: a Volume with the output's geometry, frame and key/values
+    (its samples a placeholder); ``components``: the names of the components
+    of a multi-component output (NRRD; a block's samples then have them on
+    their last axis), else None. The rest are
+    :func:`~volwarp_cli.io.write_volume`'s options.
+    """
+
+    path: Path
+    template: object
+    dtype: np.dtype
+    compress: bool = False
+    byte_order: str = "little"
+    version: str = "0.5"
+    pyramid: int = 0
+    components: tuple[str, ...] | None = None
+
+    def write_whole(self, data: np.ndarray) -> None:
+        """Write the whole output's ``data`` (the in-memory run), in any format."""
+        from .io import write_volume
+
+        if self.components is not None:
+            from .io.nrrd import write_nrrd
+
+            comps = [np.ascontiguousarray(data[..., i]) for i in range(data.shape[-1])]
+            write_nrrd(self.template.with_data(comps[0]), self.path, compress=self.compress,
+                       byte_order=self.byte_order, components=comps,
+                       component_names=list(self.components))
+            return
+        write_volume(self.template.with_data(data), self.path, compress=self.compress,
+                     byte_order=self.byte_order, ome_zarr_version=self.version,
+                     pyramid=self.pyramid)
+
+    def open_blocks(self, block):
+        """The :class:`~volwarp_cli.io.blockwrite.BlockOutput` written block by block.
+
+        A context manager: committed (renamed into place) on a clean exit,
+        aborted (nothing left, an existing file untouched) on an error.
+        """
+        from .geometry import Geometry
+        from .io.blockwrite import committed, open_block_output
+
+        out = open_block_output(self.path, Geometry.of(self.template), self.dtype,
+                                chunks_zyx=block, version=self.version, compress=self.compress,
+                                byte_order=self.byte_order, metadata=self.template.meta,
+                                space=self.template.space, pyramid=self.pyramid,
+                                components=list(self.components) if self.components else None)
+        return committed(out)
+
+    def nbytes(self, shape) -> int:
+        """The bytes of the whole output (its components included)."""
+        n = math.prod(int(v) for v in shape) * np.dtype(self.dtype).itemsize
+        return n * (len(self.components) if self.components else 1)
+
+
+class Operation:
+    """What an operation states before any sample is read (see the module notes).
+
+    Subclasses set ``grid`` (the output :class:`~volwarp_cli.geometry.Geometry`),
+    ``targets`` (key -> :class:`Target`) and ``what`` (the work and its sizes,
+    for messages), and define :meth:`memory` and :meth:`compute`.
+    """
+
+    grid = None
+    targets: dict = {}
+    what: str = "the work"
+
+    def memory(self, box: Box) -> int:
+        """The bytes computing ``box`` holds at its peak (its results included)."""
+        raise NotImplementedError
+
+    def compute(self, box: Box, *, threads: int) -> dict:
+        """The results of ``box``: key -> array (at least one per target's key).
+
+        ``threads``: how many threads the computation may use (1 in a block
+        task: the engine's tasks are the parallelism).
+        """
+        raise NotImplementedError
+
+    def output(self, results: dict, key) -> np.ndarray:
+        """Target ``key``'s samples (its type) from a block's results (default: ``results[key]``)."""
+        return results[key]
+
+    def prepare(self) -> None:  # noqa: B027 - optional
+        """What every block shares, made once the run is decided (before any block runs)."""
+
+    def load(self) -> None:  # noqa: B027 - optional: most operations load nothing
+        """Run the kernels once on something small, so the budget counts what they load."""
+
+    def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
+        """The blocks' shape (z, y, x): cubes within ``per_task`` bytes, two per worker at least."""
+        shape = self.grid.shape
+        per_voxel = max(1, self.memory(Box((0, 0, 0), (1, 1, 1))))
+        edge = max(8, int((per_task // per_voxel) ** (1 / 3)))
+        want = 2 * workers
+        while edge > 16 and math.prod(math.ceil(n / min(edge, n)) for n in shape) < want:
+            edge = edge * 3 // 4
+        return tuple(min(edge, n) for n in shape)
+
+
+@dataclass(frozen=True)
+class How:
+    """How the command asked to run.
+
+    ``chunked``: True (by blocks), False (in memory or refused) or None (by
+    blocks only when the whole does not fit); ``block``: the user's block
+    shape (z, y, x); ``open_engine()``: a context manager giving the engine
+    the blocks run on; ``threads``: the in-memory run's threads (None:
+    :func:`volwarp_cli.parallel.threads`).
+    """
+
+    chunked: bool | None = None
+    block: tuple[int, int, int] | None = None
+    open_engine: Callable | None = None
+    threads: int | None = None
+
+
+@dataclass
+class Ran:
+    """What :func:`run` did.
+
+    ``by_blocks``; ``results``: the in-memory run's results (the whole's
+    :meth:`Operation.compute`; None by blocks); ``block``: the blocks' shape;
+    ``after``: what the ``after`` hook returned.
+    """
+
+    by_blocks: bool
+    results: dict | None = None
+    block: tuple[int, int, int] | None = None
+    after: object = None
+    _outs: dict = field(default_factory=dict, repr=False)
+
+    def read(self, key, box: Box) -> np.ndarray:
+        """Target ``key``'s samples in ``box`` as written (by blocks: before the commit).
+
+        For ``after`` hooks that read the outputs back (a render of them):
+        in memory the whole's results are at hand, by blocks the outputs are
+        read in whole blocks of the written file.
+        """
+        if self.results is not None:
+            raise VolwarpError("in memory, the results are at hand")
+        return self._outs[key].read(box)
+
+
+def fits(nbytes: int, load=None) -> bool:
+    """Whether ``nbytes`` fits the memory budget, what the work loads counted.
+
+    Where the budget leaves :data:`~volwarp_cli.memory.LOAD_MARGIN` beyond
+    ``nbytes``, yes at once; otherwise ``load()`` (the kernels on something
+    small) runs first, so that the answer counts what the process then holds.
+    """
+    from . import memory
+
+    limit = memory.memory_limit()
+    if nbytes + memory.LOAD_MARGIN <= limit:
+        return True
+    if nbytes > limit:
+        return False
+    if load is not None:
+        load()
+    return nbytes <= memory.memory_limit()
+
+
+def block_budget() -> int:
+    """The memory blocks may use; an OutOfMemoryError below :data:`MIN_BLOCK_BUDGET`."""
+    from . import memory
+
+    left, where = memory.limit_and_source()
+    if left < MIN_BLOCK_BUDGET:
+        raise OutOfMemoryError(f"{memory.human_bytes(left)} is left for blocks under {where}; "
+                               f"they need {memory.human_bytes(MIN_BLOCK_BUDGET)} at least "
+                               "(raise --memory-limit)")
+    return left
+
+
+def blocks_refusal(outputs, compress: bool = False, pyramid: int = 0) -> str | None:
+    """Why ``outputs`` (``[(path, nbytes)]``) cannot be written by blocks, or None.
+
+    Their formats (:func:`~volwarp_cli.io.blockwrite.check_block_format`), and
+    their sizes against the free space of their folders (outputs sharing a
+    folder add up).
+    """
+    import shutil
+
+    from .io.blockwrite import check_block_format
+    from .memory import human_bytes
+
+    need: dict[Path, list[int]] = {}
+    for path, nbytes in outputs:
+        try:
+            check_block_format(path, bool(compress), int(pyramid or 0))
+        except VolwarpError as exc:
+            return str(exc)
+        need.setdefault(Path(path).resolve().parent, []).append(int(nbytes))
+    for folder, sizes in need.items():
+        try:
+            free = shutil.disk_usage(folder).free
+        except OSError as exc:
+            return f"{folder}: {exc.strerror}"
+        if sum(sizes) > free:
+            each = "" if len(sizes) == 1 else f" ({len(sizes)} files)"
+            return (f"the outputs need {human_bytes(sum(sizes))}{each} where {folder} has "
+                    f"{human_bytes(free)} free")
+    return None
+
+
+def refuse_unmakeable(what: str, memory_bytes: int, outputs, *, chunked: bool | None = None,
+                      compress: bool = False, pyramid: int = 0) -> None:
+    """Refuse, before any work, what fits neither the memory nor, by blocks, the disk.
+
+    ``what``: the work and its sizes, for the message; ``memory_bytes``: what
+    the work holds in memory at the least; ``outputs``: ``[(path, nbytes)]``.
+    One line with the sizes of both ways (an absurd grid was otherwise
+    allocated, or tiled into blocks, until killed). ``chunked``: as
+    :class:`How`'s (False: memory only; True: blocks only).
+    """
+    from .memory import ensure_fits_in_memory
+
+    in_memory = None
+    if not chunked:
+        try:
+            ensure_fits_in_memory(memory_bytes, what)
+            return
+        except OutOfMemoryError as exc:
+            if chunked is False:
+                raise
+            in_memory = exc
+    by_blocks = blocks_refusal(outputs, compress, pyramid)
+    if by_blocks is None:
+        return
+    raise OutOfMemoryError(f"{in_memory}, and by blocks {by_blocks}" if in_memory
+                           else f"{what}: by blocks {by_blocks}")
+
+
+def run(op: Operation, how: How = How(), after: Callable | None = None) -> Ran:
+    """Run ``op``: in memory as one block when it fits, else by blocks (module notes).
+
+    ``after(ran)``: called once the outputs are written (by blocks: before they
+    are committed, so that it can read them back with :meth:`Ran.read`); what
+    it returns is ``Ran.after``. An error in it leaves no output by blocks.
+
+    Raises the in-memory refusal (:class:`~volwarp_cli.errors.OutOfMemoryError`,
+    with the sizes) where the whole does not fit and blocks may not or cannot
+    run (``--no-chunked``, an output format written whole, a full disk).
+    """
+    from . import memory, parallel
+
+    whole = op.grid.box
+    need = op.memory(whole)
+    if how.chunked is not True and fits(need, op.load):
+        op.prepare()
+        threads = how.threads or parallel.threads()
+        with timed(op.what):
+            results = op.compute(whole, threads=threads)
+        for key, target in op.targets.items():
+            with timed(f"write {target.path}"):
+                target.write_whole(op.output(results, key))
+        ran = Ran(False, results=results)
+        if after is not None:
+            ran.after = after(ran)
+        return ran
+    first = next(iter(op.targets.values()))
+    refuse_unmakeable(op.what, need,
+                      [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()],
+                      chunked=how.chunked, compress=first.compress, pyramid=first.pyramid)
+    if how.chunked is None:
+        try:
+            block_budget()
+        except OutOfMemoryError:
+            memory.ensure_fits_in_memory(need, op.what)  # no room for blocks either
+            raise
+        log.warning("%s needs %s: running by blocks (--no-chunked to refuse instead)",
+                    op.what, memory.human_bytes(need))
+    return _run_blocks(op, how, after)
+
+
+def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
+    """``op`` by blocks on the engine, every block written into the outputs, then committed."""
+    import dask
+
+    if how.open_engine is None:
+        raise VolwarpError(f"{op.what}: no engine to run blocks on")
+    op.prepare()  # (once, here: the blocks' tasks get it made)
+    with how.open_engine() as engine, contextlib.ExitStack() as stack:
+        per_task = block_budget() // max(1, engine.workers)
+        block = how.block or op.block_shape(per_task, engine.workers)
+        outs = {key: stack.enter_context(t.open_blocks(block)) for key, t in op.targets.items()}
+        boxes = next(iter(outs.values())).blocks()
+        if any(o.blocks() != boxes for o in outs.values()):
+            raise VolwarpError(f"{op.what}: outputs of different formats split into different "
+                               "blocks: give them one format")
+        op_node = dask.delayed(op, pure=False)
+        writers = dask.delayed({k: o.writer() for k, o in outs.items()}, pure=False)
+        tasks = [engine.block_delayed(_block_task, f"block-{'-'.join(map(str, b.lo))}",
+                                      op_node, b, writers, memory=per_task)
+                 for b in boxes]
+        with timed(f"{op.what} by {len(boxes)} blocks"):
+            engine.run(tasks, label="blocks")
+        for out in outs.values():
+            out.mark_written(boxes)
+        ran = Ran(True, block=tuple(block), _outs=outs)
+        if after is not None:
+            ran.after = after(ran)
+    return ran
+
+
+def _block_task(op: Operation, box: Box, writers: dict) -> None:
+    """One block: computed on this task's thread, each target's samples written."""
+    results = op.compute(box, threads=1)
+    for key, writer in writers.items():
+        writer.write(box, op.output(results, key))
