@@ -30,7 +30,9 @@ class RunFiles:
     read (:mod:`volwarp_cli.io.inputs`), and ``expanded``: each one's files;
     ``mapped``: path -> (size, mtime_ns, inode) of each input read through a
     memory map, when it was mapped; ``allow_outside_data``: detached headers
-    may read data files outside their own folder.
+    may read data files outside their own folder; ``dry_run``: the command runs
+    its checks only, and stops at its first read of an input
+    (:func:`stop_if_dry_run`).
     """
 
     inputs: set[tuple[int, int]] = field(default_factory=set)
@@ -38,6 +40,25 @@ class RunFiles:
     expanded: dict[str, list] = field(default_factory=dict)
     mapped: dict[str, tuple[int, int, int]] = field(default_factory=dict)
     allow_outside_data: bool = False
+    dry_run: bool = False
+
+
+class DryRunStop(BaseException):  # noqa: N818 - a stop, not an error
+    """A dry run reached its first read of an input: every check before it passed.
+
+    A BaseException, so that no ``except Exception`` of a command takes it for
+    a failure of the read (``volwarp batch`` checks each step this way).
+    """
+
+
+def stop_if_dry_run(path) -> None:
+    """At each reader's entry: a dry run ends here, before anything is read.
+
+    So a command run for its checks only (its options' cross-checks, its
+    outputs' names) never reads a volume, and never gets to write one.
+    """
+    if run_files().dry_run:
+        raise DryRunStop(str(path))
 
 
 _process = RunFiles()

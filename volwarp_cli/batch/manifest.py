@@ -48,6 +48,8 @@ class Step:
     options: tuple[str, ...]
     #: the files the step reads besides its input (its spec, its options' files), absolute
     inputs: tuple[Path, ...] = ()
+    #: ``(index in options, option)`` of each option value naming a file the step writes
+    writes: tuple[tuple[int, str], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,12 @@ class Manifest:
     doc: SpecDoc
     sha256: str = ""
     specs: dict[str, str] = field(default_factory=dict)  # spec path -> sha256
+    #: the scans :func:`find_scans` found (looked for once; not sent with cluster tasks)
+    scans: list[Scan] | None = field(default=None, repr=False, compare=False)
+
+    def __getstate__(self) -> dict:
+        """Pickled for a cluster task without the scan list (a task gets its own scan)."""
+        return {**self.__dict__, "scans": None}
 
 
 def stem_of(name: str) -> str:
@@ -222,7 +230,43 @@ def _glob_root(pattern: str) -> str:
 
 
 def find_scans(manifest: Manifest) -> list[Scan]:
-    """The manifest's scans, sorted by id; two scans with one id are a spec error."""
+    """The manifest's scans, sorted by id; two scans with one id are a spec error.
+
+    Looked for once per manifest (the step checks need the first scan, the
+    batch all of them): a second call gives the same list.
+    """
+    if manifest.scans is None:
+        manifest.scans = _find_scans(manifest)
+    return list(manifest.scans)
+
+
+def _glob_scans(manifest: Manifest, pattern: str) -> list[tuple[Path, tuple]]:
+    """The files a glob matches, but for those under the output folder (outputs are not scans).
+
+    An output folder that is the scans' folder, or holds it, is refused: every
+    scan would be taken for an output (and its outputs, beside the scans, for
+    scans the next time).
+    """
+    out = manifest.output_dir.resolve()
+    folder = Path(_glob_root(pattern)).resolve()
+    if folder.is_relative_to(out):
+        how = "is" if folder == out else "holds"
+        raise manifest.doc.error(("output_dir",), (
+            f"{manifest.output_dir} {how} the scans' folder {folder} (inputs.glob "
+            f"{pattern!r}): outputs there would be taken for scans; choose an output_dir "
+            "outside the scans' folder (a folder inside it is fine: it is left out of the glob)"))
+    paths = []
+    for name in sorted(glob.glob(pattern, recursive=True)):
+        p = Path(name)
+        if not p.is_file():  # (DICOM folders: convert them first, or list them)
+            continue
+        if p.resolve().is_relative_to(out):  # our own outputs are not scans
+            continue
+        paths.append((p, ("inputs", "glob")))
+    return paths
+
+
+def _find_scans(manifest: Manifest) -> list[Scan]:
     doc = manifest.doc
     inputs = doc.data["inputs"]
     paths: list[tuple[Path, tuple]] = []  # (file, the key that named it)
@@ -230,14 +274,7 @@ def find_scans(manifest: Manifest) -> list[Scan]:
         pattern = str(doc.resolve(inputs["glob"]))
         # (the pattern is resolved already: its root is not resolved again)
         root = doc.resolve(inputs["root"]) if "root" in inputs else Path(_glob_root(pattern))
-        out = manifest.output_dir.resolve()
-        for name in sorted(glob.glob(pattern, recursive=True)):
-            p = Path(name)
-            if not p.is_file():  # (DICOM folders: convert them first, or list them)
-                continue
-            if p.resolve().is_relative_to(out):  # our own outputs are not scans
-                continue
-            paths.append((p, ("inputs", "glob")))
+        paths = _glob_scans(manifest, pattern)
         if not paths:
             raise VolwarpError(f"{manifest.path}: inputs.glob: no scan matches {pattern!r} "
                                "(empty or not mounted?)")

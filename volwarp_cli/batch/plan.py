@@ -1,9 +1,11 @@
 """What each scan's steps are, concretely, and whether they are up to date (by content).
 
-A step's plan is its command line (``volwarp RUN INPUT [--spec S] -o OUT
-OPTIONS -q``), its input (the scan, or an earlier step's output) and its
+A step's plan is its command line (``volwarp RUN INPUT [--spec S] -o OUT -q
+OPTIONS``), its input (the scan, or an earlier step's output) and its
 outputs: ``-o`` and every option value holding a placeholder (a mesh's
-``--render {stem}.png``), all under the output folder.
+``--render {stem}.png``), all under the output folder, and the output
+options' values without one (``--camera-to cam.json``: one file, in the
+manifest's folder, which :func:`check_outputs` allows for one scan only).
 
 A step is up to date when what its outputs were made from is what it would
 be made from now, and its outputs are still what it made. "Made from" is
@@ -52,16 +54,24 @@ class StepPlan:
     extra_outputs: list[Path] = field(default_factory=list)
     argv: list[str] = field(default_factory=list)  # after ``volwarp``
     extra_options: list[str] = field(default_factory=list)  # the option of each extra output
+    #: ``(option, path)`` of each output option without a placeholder (one name for all
+    #: scans, in the manifest's folder: ``--camera-to cam.json``); not in :attr:`outputs`
+    fixed_outputs: list[tuple[str, Path]] = field(default_factory=list)
 
     @property
     def outputs(self) -> list[Path]:
-        """Every file the step writes: ``-o`` first, then the placeholder option values."""
+        """The files the step makes per scan: ``-o`` first, then the placeholder option values."""
         return [self.output, *self.extra_outputs]
 
     @property
     def output_options(self) -> list[str]:
         """The option naming each of :attr:`outputs` (``-o``, ``--render``...)."""
         return ["-o", *self.extra_options]
+
+    @property
+    def writes(self) -> list[tuple[str, Path]]:
+        """``(option, path)`` of every file the step writes: :attr:`outputs`, fixed outputs."""
+        return [*zip(self.output_options, self.outputs, strict=True), *self.fixed_outputs]
 
 
 def output_path(manifest: Manifest, scan: Scan, pattern: str) -> Path:
@@ -94,9 +104,23 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
         argv = [step.run, str(Path(source).absolute())]
         if step.spec is not None:
             argv += ["--spec", str(step.spec.absolute())]
-        argv += ["-o", str(output.absolute()), *options, "-q"]
-        plans[step.name] = StepPlan(step, Path(source), output, extra, argv, flags)
+        # (-q before the step's own options: an option missing its value says so, not '-q')
+        argv += ["-o", str(output.absolute()), "-q", *options]
+        plans[step.name] = StepPlan(step, Path(source), output, extra, argv, flags,
+                                    _fixed_outputs(manifest, step))
     return list(plans.values())
+
+
+def _fixed_outputs(manifest: Manifest, step: Step) -> list[tuple[str, Path]]:
+    """The output option values of ``step`` without a placeholder, from the manifest's folder."""
+    out = []
+    for k, option in step.writes:
+        text = step.options[k]
+        value = text.split("=", 1)[1] if text.startswith("--") and "=" in text else text
+        if not placeholders(value):
+            p = Path(value)
+            out.append((option, p if p.is_absolute() else manifest.base / p))
+    return out
 
 
 def command_digest(manifest: Manifest, plan: StepPlan) -> str:
@@ -301,38 +325,152 @@ def _located(manifest: Manifest, key: tuple, message: str):
                      line=manifest.doc.line(key))
 
 
-def check_outputs(manifest: Manifest, scans: list[Scan]) -> None:
-    """Refuse, before any work, an output over an input or that two steps both write.
+def batch_reads(manifest: Manifest) -> dict[str, str]:
+    """The files the batch reads besides its scans, each with who reads it.
 
-    An input is a scan (any scan's files, a detached header's data files too)
-    or a file a step reads (its spec, an option's file); symbolic and hard
-    links are followed (:func:`..io.inputs.refuse_output_over_input`).
+    The steps' own files (specs, option files), the manifest, the scans' table.
+    """
+    files: dict[str, str] = {}
+    for step in manifest.steps:
+        for p in step.inputs:
+            files.setdefault(str(p), f"read by step {step.name!r}, steps[{step.index}]")
+    files.setdefault(str(manifest.path.absolute()), "the manifest")
+    table = manifest.doc.data["inputs"].get("csv")
+    if table is not None:
+        files.setdefault(str(manifest.doc.resolve(table).absolute()), "the scans' table")
+    return files
+
+
+def _is_pattern(path: Path) -> bool:
+    """Whether an output name still holds fields after its placeholders (``{frame:03d}``)."""
+    import string
+
+    try:
+        return any(f is not None for _, f, _, _ in string.Formatter().parse(str(path)))
+    except ValueError:
+        return False
+
+
+def _refuse_over(out: Path, option: str, inputs: list, readers: dict[str, str]) -> None:
+    """:func:`..io.inputs.refuse_output_over_input` (or its pattern form) for one output.
+
+    The message says who reads the input (``readers``: path -> who), when it is known.
     """
     from ..errors import BadUsage
-    from ..io.inputs import input_files, output_files, refuse_output_over_input
+    from ..io.inputs import refuse_output_over_input, refuse_pattern_over_input
+
+    def refuse(given):
+        if _is_pattern(out):
+            refuse_pattern_over_input(str(out), option=option, inputs=given)
+        else:
+            refuse_output_over_input(out, inputs=given, option=option)
+
+    try:
+        refuse(inputs)
+    except BadUsage as exc:
+        for given in inputs:  # (on the way out only: which one it was)
+            try:
+                refuse([given])
+            except BadUsage:
+                if str(given) in readers:
+                    raise BadUsage(f"{exc} ({readers[str(given)]})") from None
+                break
+        raise
+
+
+@dataclass
+class _Writer:
+    """Who writes a file: a step of a scan through one of its options, or a report."""
+
+    what: str  # "step 'conv' (steps[0])", "--report-json"
+    step: Step | None = None
+    scan: Scan | None = None
+    option: str = ""
+
+
+def _clash(path: Path, new: _Writer, old: _Writer) -> str:
+    """Why two writers of one file are refused (one line)."""
+    if new.step is not None and old.step is new.step and new.scan != old.scan:
+        return (f"{new.option} {path} would be written by every scan ({old.scan.id}, "
+                f"{new.scan.id}, ...): put {{stem}} in its name")
+    if new.step is not None and old.step is new.step:
+        return f"{new.option} {path} is also the step's {old.option} output"
+    return f"{path} is also written by {old.what}"
+
+
+def check_outputs(manifest: Manifest, scans: list[Scan],
+                  reports: list[tuple[str, str]] = ()) -> None:
+    """Refuse, before any work, an output over an input, or a file written twice.
+
+    An output is every file a step writes (its ``-o``, every output option)
+    and the batch's reports (``reports``: ``(option, path)``). An input is a
+    scan (any scan's files, a detached header's data files too), a file a
+    step reads (its spec, an option's file), the manifest, the scans' table;
+    symbolic and hard links are followed
+    (:func:`..io.inputs.refuse_output_over_input`). Two steps, two scans or a
+    step and a report writing one file are refused too.
+    """
+    from ..errors import BadUsage
+    from ..io.inputs import input_files
 
     scan_files = {os.path.realpath(f): s for s in scans for f in input_files(s.path)}
-    fixed = sorted({str(p) for step in manifest.steps for p in step.inputs})
-    writers: dict[str, Step] = {}
+    fixed = batch_reads(manifest)
+    writers: dict[str, _Writer] = {}
     for scan in scans:
         for plan in plan_scan(manifest, scan):
-            key = ("steps", plan.step.index, "output")
-            for out, option in zip(plan.outputs, plan.output_options, strict=True):
+            step = plan.step
+            for option, out in plan.writes:
+                key = ("steps", step.index, "output" if option == "-o" else "options")
                 try:
-                    refuse_output_over_input(out, inputs=[str(scan.path), *fixed],
-                                             option=option)
+                    _refuse_over(out, option, [str(scan.path), *fixed], fixed)
                 except BadUsage as exc:
-                    raise _located(manifest, key, f"scan {scan.id}: {exc}") from None
-                for target in output_files(out):
-                    other = scan_files.get(os.path.realpath(target))
-                    if other is not None:
-                        raise _located(manifest, key, f"{option} {out} would overwrite the "
-                                                      f"scan {other.id!r} ({other.path}); "
-                                                      "volwarp never replaces an input")
-                real = os.path.realpath(out)
-                if real in writers:
-                    other_step = writers[real]
-                    raise manifest.doc.error(key, f"{out} is also written by step "
-                                                  f"{other_step.name!r} "
-                                                  f"(steps[{other_step.index}])")
-                writers[real] = plan.step
+                    fixed_name = (option, out) in plan.fixed_outputs  # (every scan's)
+                    raise _located(manifest, key, f"{'' if fixed_name else f'scan {scan.id}: '}"
+                                                  f"{exc}") from None
+                _refuse_over_scans(manifest, key, out, option, scan_files)
+                writer = _Writer(f"step {step.name!r} (steps[{step.index}])", step, scan, option)
+                _refuse_twice(manifest, key, out, writer, writers)
+    _check_reports(manifest, reports, fixed, scan_files, writers)
+
+
+def _refuse_over_scans(manifest, key, out: Path, option: str, scan_files: dict) -> None:
+    """An output over any scan's file (not only its own scan's)."""
+    from ..io.inputs import output_files
+
+    for target in output_files(out):
+        other = scan_files.get(os.path.realpath(target))
+        if other is not None:
+            raise _located(manifest, key, f"{option} {out} would overwrite the scan "
+                                          f"{other.id!r} ({other.path}); volwarp never "
+                                          "replaces an input")
+
+
+def _refuse_twice(manifest, key, out: Path, writer: _Writer, writers: dict) -> None:
+    """Note ``writer`` of ``out`` (and of the data file it writes); refuse a second writer."""
+    from ..io.inputs import output_files
+
+    for target in output_files(out):
+        real = os.path.realpath(target)
+        old = writers.get(real)
+        if old is not None and not (old.step is writer.step and old.scan == writer.scan
+                                    and old.option == writer.option):
+            raise manifest.doc.error(key, _clash(target, writer, old))
+        writers[real] = writer
+
+
+def _check_reports(manifest, reports, fixed, scan_files, writers) -> None:
+    """The batch's reports: never over an input, never a file a step (or another report) writes."""
+    from ..errors import BadUsage
+
+    for option, path in reports:
+        out = Path(path).absolute()
+        _refuse_over(out, option, list(fixed), fixed)
+        other = scan_files.get(os.path.realpath(out))
+        if other is not None:
+            raise BadUsage(f"{option} {path} would overwrite the scan {other.id!r} "
+                           f"({other.path}); volwarp never replaces an input")
+        old = writers.get(os.path.realpath(out))
+        if old is not None:
+            raise BadUsage(f"{option} {path} is also written by {old.what}"
+                           + (f" for scan {old.scan.id}" if old.scan is not None else ""))
+        writers[os.path.realpath(out)] = _Writer(f"{option} {path}")

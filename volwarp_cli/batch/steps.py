@@ -1,18 +1,29 @@
-"""Each step's options and spec, checked by the step's own command before any scan runs.
+"""Each step checked by its own command before any scan runs: options, spec, and cross-checks.
 
-A typo in a step's options (``--isoo 50``) would otherwise surface once per
-scan, as each scan's step process failed, after the earlier steps of every
-scan had run. Here each step's command line is parsed once by the click
-command that will run it (``make_context``: its options, types and
-callbacks, never its body), and its spec is checked against its schema:
-one usage error (exit 2) naming the manifest's key and line, before any
-work. Option values are the same for every scan but for ``{stem}`` and
-``{relpath}``, which only change names, so one parse per step suffices.
+A typo in a step's options (``--isoo 50``), or options that do not go together
+(``--crop --grid grow``), would otherwise surface once per scan, as each
+scan's step process failed, after the earlier steps of every scan had run.
+Here each step's command runs once, in this process, as a **dry run**: its
+command line parsed by its click command (options, types, callbacks), its
+spec checked against its schema, then its body run up to its first read of an
+input, where :func:`..runscope.stop_if_dry_run` stops it (every reader's
+entry checks the run's ``dry_run`` flag). What a command refuses before it
+reads (a usage error, a bad spec) is one error (exit 2) naming the manifest's
+line, before any work; anything else it raises is left to the real run, which
+reports it per scan. Options are the same for every scan but for ``{stem}``
+and ``{relpath}``, which only change names, so one dry run per step suffices.
 
-The parse also tells which files the step reads besides its input (its
-spec, ``--points-in``, ``--transform``...): the command line declares them as
-it parses (:func:`..io.inputs.declare_input`). They go into what the step's
-outputs are made from (:mod:`.plan`).
+The dry run sees what the real run will: the first scan as the input (an
+earlier step's output does not exist yet: its reader stops first), outputs
+in a fresh temporary folder (nothing is written; the batch makes its output
+folders), and every relative file name of the step's options taken from the
+manifest's folder, where the step will run; this process's working folder is
+never changed.
+
+It also tells which files the step reads besides its input (its spec,
+``--points-in``, ``--camera-from``...): the command declares them
+(:func:`..io.inputs.declare_input`). They go into what the step's outputs are
+made from (:mod:`.plan`), and no output may replace them.
 """
 
 from __future__ import annotations
@@ -20,73 +31,249 @@ from __future__ import annotations
 import contextvars
 import dataclasses
 import importlib
+import tempfile
 from pathlib import Path
 
 import click
 
-from .manifest import Manifest, Scan, Step
+from .manifest import Manifest, Scan, Step, placeholders
 
 #: spec files a step's command reads, by command and parameter: the schema they follow
 SPEC_PARAMS = {"warp": {"spec_path": "warp"}, "distance": {"transform": "transform"}}
-#: the stand-in for a step's input while its command line is parsed (it is not read)
-_STAND_IN = "volwarp-batch-step-input"
+#: the stand-in for the scan when the manifest finds none (its reader is never reached)
+_STAND_IN = "volwarp-batch-step-input.nrrd"
+#: options that print and end the command instead of running it
+_ENDING = ("-h", "--help", "-V", "--version")
+#: long options writing a file whose type is not a click.Path (besides every ``--*-to``)
+_OUTPUT_NAMES = ("--sheet",)
 
 
 def check_steps(manifest: Manifest) -> list[Step]:
-    """The manifest's steps, each checked and given the files it reads (``Step.inputs``)."""
+    """The manifest's steps, each dry-run by its command, with the files it reads and writes."""
     from .plan import plan_scan
 
-    stand_in = Scan(id="scan", path=manifest.base / f"{_STAND_IN}.nrrd", stem="scan",
-                    relpath="")
-    plans = plan_scan(manifest, stand_in)
+    sample = _sample_scan(manifest)
     steps = []
-    for plan in plans:
-        argv = list(plan.argv)
-        argv[1] = str(manifest.base / f"{_STAND_IN}-{plan.step.name}")  # (not read)
-        declared, params = _parse(manifest, plan.step, argv)
-        _check_specs(manifest, plan.step, params)
-        files = tuple(_resolve(manifest, p) for p in declared if _STAND_IN not in p)
-        steps.append(dataclasses.replace(plan.step, inputs=files))
+    with tempfile.TemporaryDirectory(prefix="volwarp-batch-check-") as tmp:
+        dry = dataclasses.replace(manifest, output_dir=Path(tmp))
+        for plan in plan_scan(dry, sample):
+            step = plan.step
+            command = importlib.import_module(f"volwarp_cli.cli.{step.run}").command
+            values = option_values(command, step.options)
+            _check_tokens(manifest, step, values)
+            argv = _absolute(manifest, _apart(plan, Path(tmp)), step.options, values)
+            declared, params, problem = _dry_run(manifest, step, command, argv)
+            inputs = [Path(p) for p in declared if _is_read(p, plan.input, tmp)]
+            _check_inputs_exist(manifest, step, inputs)
+            _check_specs(manifest, step, params)
+            if problem is not None:
+                raise problem
+            writes = tuple((k, opt) for k, opt, kind in values if kind == "output")
+            steps.append(dataclasses.replace(step, inputs=tuple(inputs), writes=writes))
     return steps
+
+
+def _apart(plan, tmp: Path) -> list[str]:
+    """The plan's command line with each output in a folder of its own under ``tmp``.
+
+    No output of the dry run is then its input or another's: those clashes are
+    the batch's to name, with the real names (:func:`..plan.check_outputs`).
+    """
+    argv = list(plan.argv)
+    options = plan.step.options
+    start = len(argv) - len(options)
+    where = [argv.index("-o") + 1] + [start + k for k, v in enumerate(options) if placeholders(v)]
+    for k, (i, out) in enumerate(zip(where, plan.outputs, strict=True)):
+        folder = tmp / f"{plan.step.index}-{k}"
+        folder.mkdir()
+        argv[i] = str(folder / out.name)
+    return argv
+
+
+def _sample_scan(manifest: Manifest) -> Scan:
+    """The first scan (its outputs at the top of the output folder), or a stand-in."""
+    from ..errors import VolwarpError
+    from .manifest import find_scans
+
+    try:
+        scans = find_scans(manifest)
+    except VolwarpError:  # (said again, with its key, when the batch looks for its scans)
+        scans = []
+    if scans:
+        return dataclasses.replace(scans[0], relpath="")
+    return Scan(id="scan", path=manifest.base / _STAND_IN, stem="scan", relpath="")
+
+
+def path_kind(param: click.Parameter) -> str | None:
+    """``"input"``, ``"output"`` or None: what a value of the option ``param`` names.
+
+    An input is declared by its type (:class:`..cli.options.InputPath`); an
+    output is any other file name (a ``click.Path``), or the value of a
+    ``--*-to`` option (``--frames-to``, ``--points-to``...).
+    """
+    from ..cli.options import InputPath
+
+    if isinstance(param.type, InputPath):
+        return "input"
+    names = [o for o in (*param.opts, *param.secondary_opts) if o.startswith("--")]
+    if isinstance(param.type, click.Path) or any(
+            o.endswith("-to") or o in _OUTPUT_NAMES for o in names):
+        return "output"
+    return None
+
+
+def option_values(command: click.Command, options) -> list[tuple[int, str, str | None]]:
+    """``(index, option, path kind)`` of each option value in a step's ``options``.
+
+    As click reads them: ``--opt VALUE`` and ``--opt=VALUE`` (its index is the
+    item's; the value after ``=``), flags taking none, ``nargs`` values taking
+    several; ``--`` ends the options. An unknown option is left to the parse.
+    """
+    table = {o: p for p in command.params if isinstance(p, click.Option)
+             for o in (*p.opts, *p.secondary_opts)}
+    out, k = [], 0
+    while k < len(options) and options[k] != "--":
+        name, eq, _ = options[k].partition("=")
+        param = table.get(name if eq and name.startswith("--") else options[k])
+        takes = 0 if param is None or param.is_flag or param.count else param.nargs
+        if takes and eq and name.startswith("--"):
+            out.append((k, name, path_kind(param)))
+        elif takes:
+            count = min(takes, len(options) - k - 1)  # (a value missing: the parse says so)
+            out += [(k + 1 + j, options[k], path_kind(param)) for j in range(count)]
+            k += count
+        k += 1
+    return out
+
+
+def _check_tokens(manifest: Manifest, step: Step, values) -> None:
+    """Options that would end the command (``--help``), placeholders where no output is named."""
+    taken = {k for k, _, _ in values}
+    for k, text in enumerate(step.options):
+        key = ("steps", step.index, "options", k)
+        if k not in taken and text.split("=", 1)[0] in _ENDING:
+            raise manifest.doc.error(key, f"{text} prints and ends the command instead of "
+                                          "running it: not a step's option")
+    for k, option, kind in values:
+        if kind != "output" and placeholders(_value(step.options[k])):
+            raise manifest.doc.error(
+                ("steps", step.index, "options", k),
+                f"{option} {_value(step.options[k])!r}: {{stem}} and {{relpath}} name outputs "
+                "(placed under output_dir); only an output option (-o, --render, --*-to) "
+                "holds them")
+
+
+def _value(text: str) -> str:
+    """The value of an options item: ``--opt=VALUE`` -> ``VALUE``; else the item."""
+    name, eq, value = text.partition("=")
+    return value if eq and name.startswith("--") else text
+
+
+def _absolute(manifest: Manifest, argv: list[str], options, values) -> list[str]:
+    """``argv`` with each relative file name of the step's options taken from the manifest's folder.
+
+    The step runs there; the dry run runs here, with this process's working
+    folder left alone. (Placeholder names are absolute already: under output_dir.)
+    """
+    argv = list(argv)
+    start = len(argv) - len(options)
+    for k, _, kind in values:
+        text = options[k]
+        value = _value(text)
+        if kind is None or placeholders(value) or Path(value).is_absolute() or not value:
+            continue
+        resolved = str(manifest.base / value)
+        argv[start + k] = resolved if value == text else f"{text.split('=', 1)[0]}={resolved}"
+    return argv
+
+
+def _dry_run(manifest: Manifest, step: Step, command, argv: list[str]):
+    """Parse and run ``volwarp ARGV`` up to its first read: ``(declared inputs, params, problem)``.
+
+    ``problem``: the usage or spec error the command raised before it read,
+    as the manifest's error (None: none). A parse error is raised at once.
+    In a run scope of its own, in a copy of this context, with the log level
+    put back: the run's side effects (``-q`` sets the level, ``--threads`` a
+    context variable) stay there.
+    """
+    from ..progress import log
+    from ..runscope import run_scope
+
+    level = log.level
+
+    def run():
+        with run_scope() as files:
+            files.dry_run = True
+            try:
+                ctx = command.make_context(f"volwarp {step.run}", argv[1:],
+                                           resilient_parsing=False)
+            except click.exceptions.Exit:  # (an eager option that prints and ends)
+                raise manifest.doc.error(("steps", step.index, "options"),
+                                         f"{step.run}: its options end the command before "
+                                         "it runs") from None
+            params = dict(ctx.params)
+            problem = _invoke(manifest, step, command, ctx)
+            return list(files.declared), params, problem
+
+    try:
+        return contextvars.copy_context().run(run)
+    except click.ClickException as exc:
+        raise _options_error(manifest, step, exc) from None
+    finally:
+        log.setLevel(level)
+
+
+def _invoke(manifest: Manifest, step: Step, command, ctx):
+    """Run the parsed command until its first read; its usage or spec error, or None."""
+    from ..errors import BadUsage, SpecError
+    from ..runscope import DryRunStop
+
+    try:
+        with ctx:
+            command.invoke(ctx)
+    except DryRunStop:
+        return None
+    except click.ClickException as exc:  # (UsageError, BadParameter)
+        return _options_error(manifest, step, exc)
+    except BadUsage as exc:
+        return _options_error(manifest, step, exc)
+    except SpecError as exc:  # a spec's own error: its file and line, and the step's
+        return SpecError(f"{exc.message} (step {step.name!r} of {manifest.path.name})",
+                         file=exc.file, key=exc.key, line=exc.line)
+    except Exception:  # noqa: BLE001 - not the options': the real run says it, per scan
+        return None
+    return None  # (a command that read nothing: the checks passed)
+
+
+def _options_error(manifest: Manifest, step: Step, exc: Exception):
+    """An error of the step's options, at ``steps[i].options`` of the manifest."""
+    text = exc.format_message() if isinstance(exc, click.ClickException) else str(exc)
+    return manifest.doc.error(("steps", step.index, "options"),
+                              f"{step.run}: {_one_line(text)}")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _is_read(path: str, step_input: Path, tmp: str) -> bool:
+    """Whether a declared input is one of the step's own files (not its input, not an output)."""
+    p = Path(path).absolute()
+    return p != Path(step_input).absolute() and not p.is_relative_to(Path(tmp).absolute())
+
+
+def _check_inputs_exist(manifest: Manifest, step: Step, inputs: list[Path]) -> None:
+    """A file the step reads that is missing: one error now, not one per scan later."""
+    for path in inputs:
+        if not path.exists():
+            raise manifest.doc.error(("steps", step.index, "options"),
+                                     f"{step.run}: {path}: no such file (the step reads it)")
 
 
 def _resolve(manifest: Manifest, path: str) -> Path:
     """A path as the step's process sees it (it runs in the manifest's folder)."""
     p = Path(path).expanduser()
     return p if p.is_absolute() else manifest.base / p
-
-
-def _parse(manifest: Manifest, step: Step, argv: list[str]) -> tuple[list[str], dict]:
-    """Parse ``volwarp ARGV`` with the step's command: ``(declared inputs, params)``.
-
-    In a run scope of its own, in a copy of this context, with the log level
-    put back: the parse's side effects (``-q`` sets the level, ``--threads``
-    a context variable) stay there.
-    """
-    from ..progress import log
-    from ..runscope import run_files, run_scope
-
-    command = importlib.import_module(f"volwarp_cli.cli.{step.run}").command
-    level = log.level
-
-    def parse():
-        with run_scope():
-            ctx = command.make_context(f"volwarp {step.run}", argv[1:],
-                                       resilient_parsing=False)
-            ctx.close()
-            return list(run_files().declared), dict(ctx.params)
-
-    try:
-        return contextvars.copy_context().run(parse)
-    except click.ClickException as exc:
-        raise manifest.doc.error(("steps", step.index, "options"),
-                                 f"{step.run}: {_one_line(exc.format_message())}") from None
-    finally:
-        log.setLevel(level)
-
-
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
 
 
 def _check_specs(manifest: Manifest, step: Step, params: dict) -> None:

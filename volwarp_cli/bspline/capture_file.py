@@ -100,6 +100,9 @@ def write_capture(cap: Capture, path: str | os.PathLike) -> None:
 
 def read_header(path: str | os.PathLike) -> tuple[dict, int]:
     """The checked JSON header of a capture file and the payload's byte offset."""
+    from ..runscope import stop_if_dry_run
+
+    stop_if_dry_run(path)  # (every capture reader starts here; volwarp batch's checks end)
     path = Path(path)
     try:
         size = path.stat().st_size

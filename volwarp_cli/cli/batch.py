@@ -146,10 +146,13 @@ def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force
     html_reports = [p for p in reports if not p.lower().endswith(".json")]
     if report_json is not None:
         json_reports.append(report_json)
-    for path in json_reports + html_reports:
-        check_output_path(path)
+    given = [("--report", p) for p in reports]
+    given += [("--report-json", report_json)] if report_json is not None else []
     scans = find_scans(m)
-    check_outputs(m, scans)  # all of them, whatever the shard: an error is the manifest's
+    # all of them, whatever the shard: an error is the manifest's
+    check_outputs(m, scans, reports=given)
+    for option, path in given:
+        check_output_path(path, option=option)
     total = len(scans)
     shard_info = None
     if shard is not None:

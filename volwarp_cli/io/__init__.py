@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError, VolwarpError
+from ..runscope import stop_if_dry_run
 from ..volume import Volume
 from .atomic import atomic_output, check_output_path
 from .common import SUPPORTED_DTYPES, cast_samples, note_input
@@ -118,6 +119,7 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
     (series, irregular, duplicates, keep_shear, keep_phi); used for a DICOM
     input only (the command line refuses them for others).
     """
+    stop_if_dry_run(path)  # (volwarp batch's checks of a step end here)
     path = Path(path)
     if volume_format(path, reading=True) == "omezarr":  # a folder: the reader checks it
         from .omezarr import read_omezarr

@@ -75,8 +75,10 @@ def open_volume_template(path: str | os.PathLike, *, raw=None, volume_index: int
     a zero-strided placeholder of their shape and type: its frame (``space``,
     ``file_space``) and key/values are the file's, for the outputs made from it.
     """
+    from ..runscope import stop_if_dry_run
     from . import read_volume, volume_format
 
+    stop_if_dry_run(path)  # (volwarp batch's checks of a step end here)
     path = Path(path)
     fmt = volume_format(path, reading=True)
     try:
