@@ -224,3 +224,12 @@ def test_cli_nan_samples_are_outside_and_reported(run, tmp_path):
     c = tuple(n // 2 for n in data.shape)
     assert out[c] > 0  # the NaN centre is a one-voxel hole: outside
     assert np.isfinite(out).all()
+
+
+def test_options_that_contradict_each_other_are_a_usage_error(run, data_dir, tmp_path):
+    """Exit 2 before any read (a batch's dry run then catches it up front): it was exit 1."""
+    res = run("distance", data_dir / "ball_30_uint8.nrrd", "--iso", "100", "--values",
+              "intensity", "--surface", "subvoxel", "--metric", "minnorm", "-o",
+              tmp_path / "d.nrrd")
+    assert res.code == 2 and "need the euclidean metric" in res.stderr, res
+    assert not (tmp_path / "d.nrrd").exists()

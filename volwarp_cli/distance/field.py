@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import VolwarpError
+from ..errors import BadUsage, VolwarpError
 
 METRICS = ("euclidean", "minnorm", "chessboard", "taxicab")
 SURFACES = ("auto", "voxel", "subvoxel")
@@ -53,13 +53,17 @@ def is_binary(data: np.ndarray) -> bool:
 
 
 def check_method(metric: str, surface: str) -> None:
-    """Refuse an unknown metric or surface mode, or a sub-voxel surface of another metric."""
+    """Refuse an unknown metric or surface mode, or a sub-voxel surface of another metric.
+
+    Usage errors (:class:`~volwarp_cli.errors.BadUsage`, exit 2): the options
+    contradict each other whatever the input.
+    """
     if metric not in METRICS:
-        raise VolwarpError(f"unknown metric {metric!r} (known: {', '.join(METRICS)})")
+        raise BadUsage(f"unknown metric {metric!r} (known: {', '.join(METRICS)})")
     if surface not in SURFACES:
-        raise VolwarpError(f"unknown surface mode {surface!r} (known: {', '.join(SURFACES)})")
+        raise BadUsage(f"unknown surface mode {surface!r} (known: {', '.join(SURFACES)})")
     if surface == "subvoxel" and metric != "euclidean":
-        raise VolwarpError(f"sub-voxel surfaces need the euclidean metric, not {metric!r}")
+        raise BadUsage(f"sub-voxel surfaces need the euclidean metric, not {metric!r}")
 
 
 def check_isotropic(metric: str, spacing_zyx) -> None:
