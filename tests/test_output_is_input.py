@@ -329,3 +329,25 @@ def test_the_message_names_the_option(run, tmp_path, monkeypatch):
     res = run("warp", "vol.nrrd", "--spec", "spec.yaml", "-o", "o.nrrd", "--jacobian-to",
               "vol.nrrd")
     assert res.code == 2 and "error: --jacobian-to vol.nrrd would overwrite" in res.stderr, res
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["warp", "b.nrrd", "--spec", "spec.yaml", "-o", "q.nrrd", "--jacobian-to", "q.nrrd"],
+     "--jacobian-to q.nrrd and -o name the same file"),
+    (["mesh", "b.nrrd", "--iso", "0.5", "-o", "m.ply", "--render", "r.png", "--camera-to",
+      "m.ply"], "name the same file m.ply"),
+    (["morph", "b.nrrd", "b.nrrd", "--iso", "0.5", "--frames", "2", "-o", "f{i}.nrrd",
+      "--render-to", "r{i}.png", "--sheet", "r0.png"], "--sheet r0.png and --render-to"),
+    (["warp", "b.nrrd", "--spec", "spec.yaml", "-o", "q.nhdr", "--jacobian-to", "q.raw"],
+     "name the same file"),  # (q.nhdr's data file)
+])
+def test_two_outputs_of_one_command_at_one_path_are_refused(run, tmp_path, monkeypatch, argv,
+                                                           message):
+    """The last write won, silently (the volume lost): now a usage error before any work."""
+    monkeypatch.chdir(tmp_path)
+    _volume(tmp_path / "b.nrrd", truncate=False)
+    (tmp_path / "spec.yaml").write_text(WARP_SPEC)
+    before = _snapshot(tmp_path)
+    res = run(*argv)
+    assert res.code == 2 and message in res.stderr, res
+    assert _snapshot(tmp_path) == before

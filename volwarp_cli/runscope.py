@@ -38,6 +38,8 @@ class RunFiles:
     inputs: set[tuple[int, int]] = field(default_factory=set)
     declared: dict[str, None] = field(default_factory=dict)
     expanded: dict[str, list] = field(default_factory=dict)
+    #: each output file (links followed) and the option that named it, as checked
+    claimed: dict[str, str] = field(default_factory=dict)
     mapped: dict[str, tuple[int, int, int]] = field(default_factory=dict)
     allow_outside_data: bool = False
     dry_run: bool = False

@@ -56,14 +56,17 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
     command line and specs named, :mod:`.inputs`, and every file its readers
     opened) is a usage error (:class:`~volwarp_cli.errors.BadUsage`): the
     commands check each output before any work, and every write checks again.
-    ``option`` names the output's option in that message.
+    ``option`` names the output's option in that message; given, the file is
+    claimed for it, and a file another option claimed is a usage error too.
     A folder output (``.zarr``) may replace an existing Zarr store, never a
     folder that is not one (nor a file of that name: that is someone else's).
     """
-    from .inputs import opened_as_input, refuse_output_over_input
+    from .inputs import claim_output, opened_as_input, refuse_output_over_input
 
     path = Path(path)
     refuse_output_over_input(path, option=option)
+    if option is not None:  # (the commands' checks before any work name their option)
+        claim_output(path, option)
     if opened_as_input(path):  # a file a reader opened (a header's data file, a template)
         raise BadUsage(f"{option + ' ' if option else ''}{path} would overwrite a file this "
                        "command read as an input; volwarp never replaces an input: choose "

@@ -237,3 +237,22 @@ def refuse_pattern_over_input(pattern: str, *, option: str | None = None,
         for entry in names:
             if re.fullmatch(regex, entry):
                 refuse_output_over_input(os.path.join(folder, entry), inputs, option=option)
+
+
+def claim_output(output: str | os.PathLike, option: str) -> None:
+    """Record that ``option`` writes ``output``; refuse a file two options would write.
+
+    ``-o x.nrrd --jacobian-to x.nrrd`` kept the last write, silently (the
+    volume lost); a detached header's data file counts as written by its
+    header's option. The same option naming a file again is fine (a check
+    made twice).
+    """
+    claims = run_files().claimed
+    for target in output_files(output):
+        real = _real(target)
+        other = claims.get(real)
+        if other is not None and other != option:
+            raise BadUsage(f"{option} {output} and {other} name the same file {target}: one "
+                           "would overwrite the other; give each output its own name")
+    for target in output_files(output):
+        claims.setdefault(_real(target), option)
