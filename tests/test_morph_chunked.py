@@ -196,12 +196,11 @@ def test_the_band_clamps_each_field_as_distance_does(run, shapes, tmp_path):
 
 def test_a_morph_too_big_for_the_budget_runs_by_blocks(run, shapes, tmp_path, monkeypatch):
     from volwarp_cli import memory
-    from volwarp_cli.cli import chunked
 
     common = [shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "3"]
     assert run("morph", *common, "-o", tmp_path / "m_{i}.nrrd").code == 0
     monkeypatch.setattr(memory, "process_rss", lambda: 0)
-    monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
+    monkeypatch.setattr("volwarp_cli.execute.MIN_BLOCK_BUDGET", 64 << 10)
     res = run("morph", *common, "-o", tmp_path / "b_{i}.nrrd", "--memory-limit", "150K")
     assert res.code == 0, res.stderr
     assert "running by blocks" in res.stderr

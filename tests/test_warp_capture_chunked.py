@@ -105,13 +105,12 @@ def test_a_capture_file_too_big_for_the_budget_runs_by_blocks(run, scene, tmp_pa
                                                               monkeypatch):
     """No --chunked: reading the domain would not fit, so the warp runs by blocks."""
     from volwarp_cli import memory
-    from volwarp_cli.cli import chunked
 
     _, spec, vwc = scene
     mem, blk = tmp_path / "mem.nrrd", tmp_path / "blk.nrrd"
     assert run("warp", vwc, "--spec", spec, "-o", mem).code == 0
     monkeypatch.setattr(memory, "process_rss", lambda: 0)
-    monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
+    monkeypatch.setattr("volwarp_cli.execute.MIN_BLOCK_BUDGET", 64 << 10)
     res = run("warp", vwc, "--spec", spec, "-o", blk, "--memory-limit", "200K")
     assert res.code == 0, res.stderr
     assert "running by blocks" in res.stderr

@@ -93,10 +93,9 @@ def test_a_warp_too_big_for_the_budget_runs_by_blocks(run, scan, tmp_path, monke
     src, spec = scan
     mem, blk = tmp_path / "mem.nrrd", tmp_path / "blk.nrrd"
     assert run("warp", src, "--spec", spec, "-o", mem).code == 0
-    from volwarp_cli.cli import chunked
 
     monkeypatch.setattr(memory, "process_rss", lambda: 0)
-    monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
+    monkeypatch.setattr("volwarp_cli.execute.MIN_BLOCK_BUDGET", 64 << 10)
     res = run("warp", src, "--spec", spec, "-o", blk, "--memory-limit", "150K")
     assert res.code == 0, res.stderr
     assert "running by blocks" in res.stderr

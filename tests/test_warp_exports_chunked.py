@@ -213,7 +213,6 @@ def test_a_warp_too_big_for_memory_writes_its_exports_by_blocks(run, tmp_path, m
     """No --chunked: the in-memory refusal switches to blocks, exports and all; a NIfTI
     field keeps the refusal (it cannot be written by blocks)."""
     from volwarp_cli import memory
-    from volwarp_cli.cli import chunked
 
     src, spec, pts, mesh = _inputs(tmp_path, OBLIQUE, shape=(33, 35, 37))
     mem, blk = tmp_path / "mem", tmp_path / "blk"
@@ -223,7 +222,7 @@ def test_a_warp_too_big_for_memory_writes_its_exports_by_blocks(run, tmp_path, m
             *_exports(mem, pts, mesh))
     assert a.code == 0, a.stderr
     monkeypatch.setattr(memory, "process_rss", lambda: 0)
-    monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
+    monkeypatch.setattr("volwarp_cli.execute.MIN_BLOCK_BUDGET", 64 << 10)
     b = run("warp", src, "--spec", spec, "-o", blk / "o.nrrd", "--memory-limit", "200K",
             "--grid", "grow", *_exports(blk, pts, mesh))
     assert b.code == 0, b.stderr

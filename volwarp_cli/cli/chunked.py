@@ -14,27 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..execute import MIN_BLOCK_BUDGET, block_budget  # noqa: F401  (the executor's, shared)
 from ..progress import log
-
-#: the least memory worth running blocks in (below it, refuse: tiny blocks take forever)
-MIN_BLOCK_BUDGET = 32 << 20
-
-
-def block_budget() -> int:
-    """The memory blocks may use: :func:`~volwarp_cli.memory.memory_limit`.
-
-    (Net of what the process holds, for an explicit limit.) An OutOfMemoryError when that is below :data:`MIN_BLOCK_BUDGET` (the
-    interpreter and its libraries take most of a small limit).
-    """
-    from .. import memory
-    from ..errors import OutOfMemoryError
-
-    left, where = memory.limit_and_source()
-    if left < MIN_BLOCK_BUDGET:
-        raise OutOfMemoryError(f"{memory.human_bytes(left)} is left for blocks under {where}; "
-                               f"they need {memory.human_bytes(MIN_BLOCK_BUDGET)} at least "
-                               "(raise --memory-limit)")
-    return left
 
 
 def wants_blocks(reason: str | None = None) -> bool:
@@ -62,27 +43,15 @@ def blocks_can_write(path, shape_zyx, dtype, write_kw) -> bool:
     """Whether samples of ``shape_zyx`` and ``dtype`` can be written by blocks to ``path``.
 
     A format written block by block (not compressed), and an output that fits
-    the free space of its folder.
+    the free space of its folder (:func:`volwarp_cli.execute.blocks_refusal`).
     """
     import math
-    import shutil
-    from pathlib import Path
 
-    from ..errors import VolwarpError
-    from ..io.blockwrite import check_block_format
+    from ..execute import blocks_refusal
 
-    try:
-        check_block_format(path, bool(write_kw.get("compress")),
-                           int(write_kw.get("pyramid", 0) or 0))
-    except VolwarpError:
-        return False
     nbytes = math.prod(int(n) for n in shape_zyx) * np.dtype(dtype).itemsize
-    folder = Path(path).parent if str(Path(path).parent) else Path(".")
-    try:
-        free = shutil.disk_usage(folder).free
-    except OSError:
-        return False
-    return nbytes <= free
+    return blocks_refusal([(path, nbytes)], bool(write_kw.get("compress")),
+                          int(write_kw.get("pyramid", 0) or 0)) is None
 
 
 def lazy_input(path, raw=None, volume_index=None, dicom=None):

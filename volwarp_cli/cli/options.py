@@ -287,8 +287,10 @@ def output_option(help_text: str = "Output file (format by extension).", volume:
         callback = _volume_output
     # a volume output may be a folder (an OME-Zarr store): _volume_output refuses other folders
     kind = click.Path(dir_okay=callback is _volume_output)
-    return click.option("-o", "--output", required=required, default=None, type=kind,
-                        callback=callback, help=help_text)
+    # (click 8.2+: an explicit default, even None, satisfies `required`: none when required)
+    extra = {} if required else {"default": None}
+    return click.option("-o", "--output", required=required, type=kind, callback=callback,
+                        help=help_text, **extra)
 
 
 def _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi) -> dict | None:
