@@ -162,8 +162,8 @@ def test_output_folder_holding_the_scans(tmp_path, output_dir, glob, how):
                          .replace("scans/**/*.n*", glob))
     res = volwarp("batch", manifest)
     assert res.returncode == 2, res.stderr
-    assert re.search(rf"manifest\.yaml:3: output_dir: \S+ {how} the scans' folder \S+scans "
-                     r"\(inputs\.glob .*\): outputs there would be taken for scans",
+    assert re.search(r"manifest\.yaml:3: output_dir: outputs there would be taken for scans: "
+                     rf"it {how} the folder inputs\.glob searches",
                      _one_error_line(res)), res.stderr
     # a folder inside the scans' folder is left out of the glob, as before
     inside = MANIFEST.replace("output_dir: out", "output_dir: scans/out")

@@ -170,7 +170,7 @@ def test_cli_errors(run, tmp_path):
     assert r.code == 1 and "fills the whole grid" in r.stderr
     r = run("distance", tmp_path / "b.nrrd", "-o", out, "--values", "intensity")
     assert r.code == 2 and "--iso" in r.stderr
-    write_volume(Volume(ball(12).astype(np.float32)), tmp_path / "f.nrrd")  # no label map
+    write_volume(Volume(ball(12) * np.float32(0.5)), tmp_path / "f.nrrd")  # no label map
     r = run("distance", tmp_path / "f.nrrd", "-o", out)
     assert r.code == 2 and "--iso" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", 1, "--metric", "chessboard")

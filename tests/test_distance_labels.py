@@ -103,7 +103,9 @@ def test_scan_by_boxes_is_the_whole_arrays_answer():
         scan = scan_values(seg, box_voxels=box_voxels)
         assert scan.looks_like == looks_like_labels(seg) is True
         assert np.array_equal(scan.values, values) and np.array_equal(scan.counts, counts)
-    assert scan_values(seg.astype(np.float32)).values is None  # not read
+    floats = scan_values(seg.astype(np.float32))  # a segmentation stored as floats
+    assert floats.looks_like and np.array_equal(floats.values, values)
+    assert scan_values(seg + np.float32(0.5)).values is None  # fractions: no ids
 
 
 @settings(max_examples=25, deadline=None)
@@ -147,10 +149,13 @@ def test_refusals_in_the_core():
         choose_shape(seg, inside="below")
     with pytest.raises(BadUsage, match="does not go with --values intensity"):
         choose_shape(seg, values="intensity", label=1, iso=0.5)
-    with pytest.raises(BadUsage, match="needs a label map \\(integer samples\\), got float32"):
-        choose_shape(seg.astype(np.float32), label=1)
+    fraction = seg + np.float32(0.5)  # (floats that are all integers are a label map)
+    with pytest.raises(BadUsage, match="needs a label map \\(integer ids\\), got float32 "
+                                       "samples that are not all integers"):
+        choose_shape(fraction, label=1)
     with pytest.raises(BadUsage, match="--iso V is required"):
-        choose_shape(seg.astype(np.float32))
+        choose_shape(fraction)
+    assert choose_shape(seg.astype(np.float32)) == choose_shape(seg)
     with pytest.raises(VolwarpError, match="label 9 does not occur"):
         choose_shape(seg, label=9)
     full = seg + 1  # no background: all non-zero
@@ -228,7 +233,8 @@ def test_cli_binary_mask_at_half_is_todays_field(run, tmp_path, high):
 def test_cli_usage_errors_are_one_line_and_write_nothing(run, tmp_path):
     seg = segmentation()
     write_volume(Volume(seg, spacing=SPACING), tmp_path / "s.nrrd")
-    write_volume(Volume(seg.astype(np.float32), spacing=SPACING), tmp_path / "f.nrrd")
+    # (floats with fractions: integer-valued floats are a label map)
+    write_volume(Volume(seg + np.float32(0.25), spacing=SPACING), tmp_path / "f.nrrd")
     out = tmp_path / "o.nrrd"
     cases = [
         (["s.nrrd", "--iso", "2"], 2, ["looks like a label map", "--label N",
@@ -239,7 +245,7 @@ def test_cli_usage_errors_are_one_line_and_write_nothing(run, tmp_path):
         (["s.nrrd", "--values", "intensity"], 2, ["needs --iso V"]),
         (["s.nrrd", "--values", "intensity", "--label", "1", "--iso", "1"], 2,
          ["does not go with --values intensity"]),
-        (["f.nrrd", "--values", "labels"], 2, ["needs a label map"]),
+        (["f.nrrd", "--values", "labels"], 2, ["needs a label map", "not all integers"]),
         (["f.nrrd"], 2, ["--iso V is required", "does not look like a label map"]),
         (["s.nrrd", "--label", "9"], 1, ["label 9 does not occur"]),
     ]
@@ -253,6 +259,27 @@ def test_cli_usage_errors_are_one_line_and_write_nothing(run, tmp_path):
     res = run("distance", "--update", tmp_path / "f.nrrd", "--transform", tmp_path / "t.yaml",
               "--label", "1", "-o", out)
     assert res.code == 2 and "--label does not apply to --update" in res.stderr
+
+
+def test_cli_a_float32_segmentation_is_measured_by_its_labels(run, tmp_path, kmeans):
+    """A segmentation written as float32 (`convert --dtype float32`, as nibabel and MONAI
+    write them) demanded --iso; it is a label map: the integer map's field, in memory and
+    by blocks the same bytes."""
+    src = tmp_path / "seg.nrrd"
+    write_volume(kmeans, src)
+    floats = tmp_path / "seg_f.nii.gz"
+    assert run("convert", src, "-o", floats, "--dtype", "float32").code == 0
+    ints, mem, blk = tmp_path / "i.nrrd", tmp_path / "m.nrrd", tmp_path / "b.nrrd"
+    assert run("distance", src, "-o", ints).code == 0
+    res = run("distance", floats, "-o", mem, "-v")
+    assert res.code == 0, res.stderr
+    assert "values: labels (looks like a label map: 4 labels)" in res.stderr
+    assert np.array_equal(read_volume(mem).data, read_volume(ints).data)
+    res = run("distance", floats, "-o", blk, "--chunked", "--block", "7,6,9")
+    assert res.code == 0, res.stderr
+    assert blk.read_bytes() == mem.read_bytes()
+    res = run("distance", floats, "--label", "2", "-o", tmp_path / "two.nrrd")
+    assert res.code == 0, res.stderr
 
 
 def test_cli_verbose_says_the_choice(run, tmp_path):

@@ -212,7 +212,7 @@ def test_command_refusals(run, vol, tmp_path):
     assert res.code == 1 and "the shape is empty" in res.stderr
     res = run("distance", src, "-o", out, "--iso", "500", "--metric", "minnorm", "--chunked",
               "--surface", "subvoxel")
-    assert res.code == 1 and "need the euclidean metric" in res.stderr
+    assert res.code == 2 and "need the euclidean metric" in res.stderr  # (options clash)
     assert not out.exists()
 
 

@@ -1,7 +1,8 @@
 """By blocks at --threads 1, 2, 3, 5 and forced small odd blocks: the in-memory outputs.
 
 Every command that runs by blocks (distance exact and banded sub-voxel, mesh, sweep
-with --render, morph by exact passes and by a band, warp and warp --labels, one-shot)
+with --render, morph by exact passes and by a band, warp and warp --labels, one-shot;
+a label map without 0 on the grown grid, whose empty space is its border's label)
 runs once in memory at ``--threads 1`` (the reference),
 then ``--chunked`` with ``--block 5`` at 1, 2, 3 and 5 threads and ``--block 7,6,9``
 (neither divides the odd input sizes) at 2 threads. Every output must be the
@@ -88,6 +89,8 @@ def inputs(tmp_path_factory):
     write_volume(Volume((egg >= 100).astype(np.uint8), **GEOMETRY), d / "egg_mask.nrrd")
     labels = (ball >= 100).astype(np.uint8) + 2 * (egg >= 150).astype(np.uint8)  # 0, 1, 3
     write_volume(Volume(labels, **GEOMETRY), d / "labels.nrrd")
+    # ids 2 to 4 and 1 around them (no 0): where nothing lands, 1 (the border's label)
+    write_volume(Volume(labels + 1, **GEOMETRY), d / "labels_no0.nrrd")
     (d / "warp.yaml").write_text(WARP)
     (d / "sweep.yaml").write_text(SWEEP)
     return d
@@ -176,6 +179,11 @@ CASES = {
                       "-o", p / "w.nrrd"),
         lambda p: [p / "w.nrrd"],
         # slabs of Z whole output planes
+        grid=lambda shape, block: (block[0], *shape[1:])),
+    "warp-labels-no0-grow": Case(
+        lambda d, p: ("warp", d / "labels_no0.nrrd", "--spec", d / "warp.yaml", "--grid",
+                      "grow", "-o", p / "w.nrrd"),
+        lambda p: [p / "w.nrrd"],
         grid=lambda shape, block: (block[0], *shape[1:])),
 }
 
@@ -481,3 +489,12 @@ def test_mesh_by_blocks_keeps_the_normals(references, first_blocks):
     assert nb is not None, "mesh --chunked wrote no vertex normals"
     assert header(blk) == header(mem), "mesh --chunked: another PLY header than in memory"
     assert np.array_equal(na, nb)
+
+
+def test_a_map_without_0_on_the_grown_grid_gains_no_0(references, first_blocks):
+    """The no-0 case is what it says: grown, and only the map's ids (the margin: 1), in
+    memory and by blocks."""
+    for (path,) in (references("warp-labels-no0-grow"), first_blocks("warp-labels-no0-grow")):
+        got = read_volume(path).data
+        assert got.shape != SHAPE and set(np.unique(got).tolist()) == {1, 2, 3, 4}
+        assert (got[0] == 1).all() or (got[-1] == 1).all()

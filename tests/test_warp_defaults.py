@@ -19,7 +19,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from volwarp_cli.bspline.defaults import border_value, choose_values, output_grid
+from volwarp_cli.bspline.defaults import border_label, border_value, choose_values, output_grid
+from volwarp_cli.errors import VolwarpError
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.volume import Volume
 
@@ -183,6 +184,13 @@ def test_choose_values_reads_nothing_for_intensity_and_counts_labels():
     assert not choose_values(ct_like().data).is_labels
     assert not choose_values(ct_like().data.astype(np.float32)).is_labels
     assert choose_values(ct_like().data, "labels").warning
+    # a segmentation stored as floats (nibabel's, MONAI's): labels; a fraction is no id
+    floats = frog_like().data.astype(np.float32)
+    assert choose_values(floats).is_labels and choose_values(floats).labels == 6
+    floats[0, 0, 0] = 0.5
+    assert not choose_values(floats).is_labels
+    with pytest.raises(VolwarpError, match="not all integers"):
+        choose_values(floats, "labels")
 
 
 # -- item 3: a scan stays where it was ------------------------------------------------------
@@ -195,7 +203,7 @@ def test_a_ct_keeps_its_grid_and_gets_air_where_nothing_lands(run, files):
     res = run("warp", files["ct"], "--spec", files["ct_spec"], "-o", d / "o.nrrd", "-v",
               "--json")
     assert res.code == 0, res.stderr
-    assert "background: -1024 (the most frequent value on the input's border)" in res.stderr
+    assert "background: -1024 (the median of the input's border)" in res.stderr
     assert "output grid: input (default)" in res.stderr
     summary = json.loads(res.stdout)
     assert summary["grid"] == "input" and summary["background"] == -1024
@@ -251,36 +259,119 @@ def test_border_value_of_scans():
     data[:] = np.nan
     data[0, 0, :] = 2.5
     assert border_value(data) == 2.5  # NaN never wins over a number
+    data[:] = np.nan
+    assert np.isnan(border_value(data))  # (only when there is nothing else)
 
 
-def _faces_counter(a: np.ndarray) -> Counter:
+def slab_distance_field(shape=(20, 20, 20), depth=6) -> np.ndarray:
+    """The signed distance (negative inside) of the slab z < ``depth``: it touches a face.
+
+    Its z = 0 face is one value inside the shape (the most frequent on the border),
+    while most of the border lies outside.
+    """
+    z = np.arange(shape[0], dtype=np.float32)[:, None, None]
+    return np.broadcast_to(z + 0.5 - depth, shape).astype(np.float32).copy()
+
+
+def noisy_ct(seed=2) -> np.ndarray:
+    """A 16x16x5 CT whose body touches its border: air with wide noise around a body
+    with narrow noise (a body value is the border's most frequent)."""
+    rng = np.random.default_rng(seed)
+    data = np.round(rng.normal(-1000, 40, (5, 16, 16))).astype(np.int16)
+    data[:, :, 10:] = np.round(rng.normal(-5, 3, (5, 16, 6)))
+    return data
+
+
+def test_a_distance_fields_background_is_outside_and_a_noisy_airs_is_air():
+    """The border's most frequent value was inside a distance field (the face it touches)
+    and a body value for a CT with a noisy air border: the median is outside and air."""
+    field = slab_distance_field()
+    assert Counter(_faces(field).tolist()).most_common(1)[0][0] < 0  # (the old answer)
+    assert border_value(field) > 0
+    ct = noisy_ct()
+    assert -20 < Counter(_faces(ct).tolist()).most_common(1)[0][0] < 10  # (the old answer)
+    assert border_value(ct) < -900
+
+
+def test_a_grown_distance_fields_margin_stays_outside(run, tmp_path):
+    """A distance field warped on the grown grid: where nothing lands it is outside."""
+    src, spec = tmp_path / "sdf.nrrd", tmp_path / "w.yaml"
+    write_volume(Volume(slab_distance_field()), src)
+    spec.write_text("version: 1\ncapture: {lattice: 5}\nsteps:\n  - drag:\n"
+                    "      - {from: [10, 10, 12], to: [13, 10, 14]}\n")
+    out = tmp_path / "o.nrrd"
+    res = run("warp", src, "--spec", spec, "--grid", "grow", "-o", out, "-v", "--json")
+    assert res.code == 0, res.stderr
+    background = json.loads(res.stdout)["background"]
+    assert background > 0 and f"background: {background:.9g} (the median" in res.stderr
+    sentinel = tmp_path / "s.nrrd"
+    assert run("warp", src, "--spec", spec, "--grid", "grow", "-o", sentinel,
+               "--background-value", "1000").code == 0
+    empty = read_volume(sentinel).data == 1000
+    got = read_volume(out).data
+    assert empty.sum() > 1000 and np.all(got[empty] == background)
+
+
+def _faces(a: np.ndarray) -> np.ndarray:
     nz, ny, nx = a.shape
     faces = [a[0], a[nz - 1], a[:, 0], a[:, ny - 1], a[:, :, 0], a[:, :, nx - 1]]
-    return Counter(int(v) for f in faces for v in np.ravel(f))
+    return np.concatenate([np.ravel(f) for f in faces])
+
+
+class _Lazy:
+    """``a`` read only through slicing (as a file read box by box)."""
+
+    def __init__(self, a):
+        self.a, self.shape, self.dtype = a, a.shape, a.dtype
+
+    def __getitem__(self, key):
+        return np.array(self.a[key])
+
+
+SHAPES = hnp.array_shapes(min_dims=3, max_dims=3, min_side=1, max_side=6)
 
 
 @settings(max_examples=80, deadline=None)
-@given(a=hnp.arrays(np.int16, hnp.array_shapes(min_dims=3, max_dims=3, min_side=1,
-                                                max_side=6),
-                    elements=st.integers(-3, 3)),
+@given(a=hnp.arrays(np.int16, SHAPES, elements=st.integers(-3, 3)),
        inside=st.integers(-100, 100))
-def test_border_value_is_the_faces_mode(a, inside):
-    """The most frequent value of the six faces (each face's voxels counted), the
-    smallest of a tie; the inside changes nothing; a lazy source gives the same."""
-    count = _faces_counter(a)
-    top = max(count.values())
-    assert border_value(a) == min(v for v, c in count.items() if c == top)
+def test_border_value_is_the_faces_lower_median(a, inside):
+    """The lower median of the six faces' samples (each face's voxels counted); the inside
+    changes nothing; a lazy source gives the same; the mode where it covers more than
+    half of the border."""
+    faces = np.sort(_faces(a))
+    got = border_value(a)
+    assert got == faces[(faces.size - 1) // 2]
+    value, count = Counter(faces.tolist()).most_common(1)[0]
+    if 2 * count > faces.size:
+        assert got == value
     b = a.copy()
     b[1:-1, 1:-1, 1:-1] = inside
-    assert border_value(b) == border_value(a)
+    assert border_value(b) == got
+    assert border_value(_Lazy(a)) == got
 
-    class Lazy:
-        shape, dtype = a.shape, a.dtype
 
-        def __getitem__(self, key):
-            return np.array(a[key])
+@settings(max_examples=60, deadline=None)
+@given(a=hnp.arrays(np.float32, SHAPES,
+                    elements=st.one_of(st.floats(-1e6, 1e6, width=32), st.just(np.nan))))
+def test_border_value_is_never_nan_while_a_number_is_there(a):
+    faces = _faces(a)
+    got = border_value(a)
+    if np.isnan(faces).all():
+        assert np.isnan(got)
+    else:
+        finite = np.sort(faces[~np.isnan(faces)])
+        assert got == finite[(finite.size - 1) // 2]
 
-    assert border_value(Lazy()) == border_value(a)
+
+@settings(max_examples=60, deadline=None)
+@given(a=hnp.arrays(np.int16, SHAPES, elements=st.integers(-3, 3)))
+def test_border_label_is_the_faces_mode(a):
+    """A label map's background: the most frequent label of the faces, the smallest of a
+    tie; a lazy source gives the same."""
+    count = Counter(_faces(a).tolist())
+    top = max(count.values())
+    assert border_label(a) == min(v for v, c in count.items() if c == top)
+    assert border_label(_Lazy(a)) == border_label(a)
 
 
 def test_output_grid_rule():

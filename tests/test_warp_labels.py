@@ -129,18 +129,18 @@ def test_report_scales_by_spacing():
     assert r["input_mm3"] == pytest.approx(3.0 * r["input_voxels"])
 
 
-def _reference(lab, dq, pad, lattice):
-    """Each label's indicator (and the background's, 1 around the model) pushed with the
-    intensity warp; argmax, ties to the smaller label."""
-    labels = [0] + sorted(int(v) for v in np.unique(lab) if v != 0)
+def _reference(lab, dq, pad, lattice, background=0):
+    """Each label's indicator (and the background label's, 1 around the model) pushed with
+    the intensity warp; argmax, ties to the first (``background`` the smallest label)."""
+    labels = [background] + sorted(int(v) for v in np.unique(lab) if v != background)
     best = None
     for L in labels:
         ind = (lab == L).astype(np.float32)
         cap = capture_volume(Volume(ind), lattice=lattice, oversample=2)
-        img = Scene(cap.domain, cap.grid, dq, pad, background=1.0 if L == 0 else 0.0,
+        img = Scene(cap.domain, cap.grid, dq, pad, background=1.0 if L == background else 0.0,
                     domain_range=(0.0, 1.0)).render_once()
         if best is None:
-            best, out = img, np.zeros(img.shape, lab.dtype)
+            best, out = img, np.full(img.shape, background, lab.dtype)
         else:
             better = img > best
             best = np.where(better, img, best)
@@ -161,6 +161,62 @@ def test_matches_an_argmax_of_intensity_warps():
         a, b = res.target == L, ref == L
         dice = 2 * (a & b).sum() / (a.sum() + b.sum())
         assert dice >= 0.95, (L, dice)
+
+
+def test_a_map_without_0_gains_no_0():
+    """Ids 1 to 4, 1 around the anatomy: where nothing lands the warp wrote 0, an id the
+    map does not have; it writes its border's label, which competes as 0 did (the
+    argmax of intensity warps, with label 1 the background)."""
+    lab = _blobs((40, 36, 38), [2, 3, 4], seed=9).astype(np.uint8)
+    lab[lab == 0] = 1
+    lattice = (7, 7, 7)
+    cap, res = _warp(lab, _smooth_move, pad=6, lattice=lattice)
+    assert res.report["background"] == 1
+    assert sorted(res.report["labels"]) == [2, 3, 4]
+    assert set(np.unique(res.target).tolist()) <= {1, 2, 3, 4}
+    assert (res.target[:6] == 1).all()  # the grown margin, where nothing lands
+    dq = cap.dq.copy()
+    _smooth_move(dq)
+    ref = _reference(lab, dq, 6, lattice, background=1)
+    for L in (1, 2, 3, 4):
+        a, b = res.target == L, ref == L
+        assert 2 * (a & b).sum() / (a.sum() + b.sum()) >= 0.95, L
+    # the background is the map's most frequent border label, wherever its id lies
+    for b, ids in ((2, (-3, 5, 9)), (0, (-7, 1, 2))):
+        lab = _blobs((14, 15, 16), list(ids), seed=4).astype(np.int16)
+        lab[lab == 0] = b
+
+        def move(dq):
+            dq[..., :] += (2, -1, 1)
+
+        _, res = _warp(lab, move, pad=3)
+        assert res.report["background"] == b and b not in res.report["labels"]
+        got = res.target[4:4 + lab.shape[0], 2:2 + lab.shape[1], 5:5 + lab.shape[2]]
+        assert np.array_equal(got, lab)  # a whole-voxel shift: every label exactly
+        assert (res.target == b).sum() == res.target.size - (lab != b).sum()
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(labels=st.lists(st.integers(-5, 40), min_size=1, max_size=4, unique=True),
+       seed=st.integers(0, 2 ** 16),
+       moves=st.lists(st.tuples(st.integers(0, 5), st.integers(0, 5), st.integers(0, 5),
+                                st.floats(-3, 3), st.floats(-3, 3), st.floats(-3, 3)),
+                      min_size=1, max_size=4))
+def test_random_warps_write_only_the_maps_own_ids(labels, seed, moves):
+    """Whatever ids a map has (0 or not), every output voxel holds one of them (the space
+    nothing reaches: the map's most frequent border label)."""
+    from volwarp_cli.bspline.defaults import border_label
+
+    rng = np.random.default_rng(seed)
+    lab = np.asarray(labels, dtype=np.int16)[rng.integers(0, len(labels), (9, 8, 10))]
+
+    def move(dq):
+        for i, j, k, *d in moves:
+            dq[k, j, i] += d
+
+    _, res = _warp(lab, move, pad=4)
+    assert set(np.unique(res.target).tolist()) <= set(labels)
+    assert res.report["background"] == border_label(lab)
 
 
 def test_preserve_keeps_a_vanishing_label():
@@ -185,7 +241,12 @@ def test_preserve_keeps_a_vanishing_label():
 
 def test_refusals():
     with pytest.raises(VolwarpError, match="integer"):
-        capture_labels(Volume(np.zeros((8, 8, 8), np.float32)))
+        capture_labels(Volume(np.zeros((8, 8, 8), np.complex64)))
+    fraction = np.zeros((8, 8, 8), np.float32)
+    fraction[4, 4, 4] = 0.5  # a float map is warped when every sample is an integer
+    cap = capture_labels(Volume(fraction), lattice=(5, 5, 5))
+    with pytest.raises(VolwarpError, match="not all integers"):
+        warp_labels(fraction, _scene(cap, cap.dq, 1))
     with pytest.raises(VolwarpError, match="integer oversample"):
         capture_labels(Volume(np.zeros((8, 8, 8), np.uint8)), lattice=(5, 5, 5), oversample=1.5)
     with pytest.raises(VolwarpError, match="uniform placement"):
@@ -199,8 +260,24 @@ def test_label_map_hint():
     assert hint == {"labels": 4, "values": [0, 1, 2, 3]}
     noisy = np.random.default_rng(0).integers(0, 120, (20, 20, 20)).astype(np.uint8)
     assert label_map_hint(noisy) is None  # few grey levels but not piecewise constant
-    assert label_map_hint(lab.astype(np.float32)) is None
+    assert label_map_hint(lab.astype(np.float32)) == hint  # a float map of integer ids
+    assert label_map_hint(lab + np.float32(0.5)) is None  # fractions are no ids
     assert label_map_hint(np.arange(8000, dtype=np.int16).reshape(20, 20, 20)) is None
+
+
+def test_info_says_the_defaults_take_a_label_map_as_labels(run, tmp_path):
+    """The hint said "warp it with --labels", which is the default now."""
+    from volwarp_cli.io import write_volume
+
+    path = tmp_path / "seg.nrrd"
+    write_volume(Volume(_blobs((20, 20, 20), [1, 2, 3], seed=2).astype(np.uint8)), path)
+    res = run("info", path)
+    assert res.code == 0
+    (hint,) = [line for line in res.stdout.splitlines() if line.startswith("hint:")]
+    assert "looks like a label map (4 distinct values: 0 1 2 3)" in hint
+    assert "with --labels," not in hint
+    assert "warp and distance take it as labels by default" in hint
+    assert "--values intensity" in hint
 
 
 def test_warp_labels_through_the_command_line(run, tmp_path):

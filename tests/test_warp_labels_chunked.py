@@ -96,7 +96,6 @@ def test_a_label_warp_too_big_for_the_budget_runs_by_slabs(run, seg, tmp_path, m
     two slabs."""
     from volwarp_cli import memory
     from volwarp_cli.bspline.label_blocks import LabelBlocks
-    from volwarp_cli.cli import chunked
 
     real = LabelBlocks.slab_bytes
     monkeypatch.setattr(LabelBlocks, "slab_bytes", lambda self, depth: real(self, depth) // 16)
@@ -104,7 +103,7 @@ def test_a_label_warp_too_big_for_the_budget_runs_by_slabs(run, seg, tmp_path, m
     mem, blk = tmp_path / "m.nrrd", tmp_path / "b.nrrd"
     assert run("warp", src, "--spec", spec, "--labels", "-o", mem).code == 0
     monkeypatch.setattr(memory, "process_rss", lambda: 0)
-    monkeypatch.setattr(chunked, "MIN_BLOCK_BUDGET", 64 << 10)
+    monkeypatch.setattr("volwarp_cli.execute.MIN_BLOCK_BUDGET", 64 << 10)
     res = run("warp", src, "--spec", spec, "--labels", "-o", blk, "--memory-limit", "8M")
     assert res.code == 0, res.stderr
     assert "running by blocks" in res.stderr
@@ -162,3 +161,51 @@ def test_a_label_pyramid_takes_the_mode_in_memory_too(run, tmp_path):
     assert a.attrs["volwarp"]["downsampling"] == "mode"
     assert np.array_equal(a["1"][...], b["1"][...])
     assert set(np.unique(a["1"][...])) <= {0, 1, 2, 3, 4}
+
+
+def test_a_float32_segmentation_is_warped_as_labels(run, seg, tmp_path):
+    """nibabel and MONAI write segmentations as floats: the defaults warped them as
+    intensities (138,582 invented values on a real map). Now as labels, in memory and by
+    slabs the same bytes: the integer map's ids, in the input's float type."""
+    src, spec = seg
+    floats = tmp_path / "seg_f.nrrd"
+    assert run("convert", src, "-o", floats, "--dtype", "float32").code == 0
+    ints, mem, blk = tmp_path / "i.nrrd", tmp_path / "m.nrrd", tmp_path / "b.nrrd"
+    assert run("warp", src, "--spec", spec, "-o", ints).code == 0
+    a = run("warp", floats, "--spec", spec, "-o", mem, "--json")
+    assert a.code == 0, a.stderr
+    assert json.loads(a.stdout)["values_why"] == "looks like a label map: 5 labels"
+    b = run("warp", floats, "--spec", spec, "-o", blk, "--json", "--chunked", "--block", "4")
+    assert b.code == 0, b.stderr
+    assert blk.read_bytes() == mem.read_bytes()
+    assert _report(a.stdout)["labels"] == _report(b.stdout)["labels"]
+    got = read_volume(mem).data
+    assert got.dtype == np.float32
+    assert np.array_equal(got, read_volume(ints).data.astype(np.float32))
+    nii = tmp_path / "seg_f.nii.gz"  # (as the reviewer made it)
+    assert run("convert", src, "-o", nii, "--dtype", "float32").code == 0
+    res = run("warp", nii, "--spec", spec, "-o", tmp_path / "n.nii.gz")
+    assert res.code == 0, res.stderr
+    assert set(np.unique(read_volume(tmp_path / "n.nii.gz").data)) <= {0, -2, 3, 5, 7}
+
+
+def test_a_map_without_0_gains_no_0_by_slabs_either(run, seg, tmp_path):
+    """Ids 1, 3, 6, 8, 10 (3 around the anatomy), warped on the grown grid: where nothing
+    lands it was 0, an id the map does not have; now its border's label 3, the same bytes
+    by slabs."""
+    src, spec = seg
+    lab = read_volume(src)
+    shifted = tmp_path / "no0.nrrd"
+    write_volume(lab.with_data((lab.data + 3).astype(np.int16)), shifted)  # ids 1, 3, 6, 8, 10
+    mem, blk = tmp_path / "m.nrrd", tmp_path / "b.nrrd"
+    a = run("warp", shifted, "--spec", spec, "--grid", "grow", "-o", mem, "--json")
+    assert a.code == 0, a.stderr
+    b = run("warp", shifted, "--spec", spec, "--grid", "grow", "-o", blk, "--json",
+            "--chunked", "--block", "5")
+    assert b.code == 0, b.stderr
+    assert blk.read_bytes() == mem.read_bytes()
+    assert _report(a.stdout) == _report(b.stdout)
+    got = read_volume(mem).data
+    assert got.shape != lab.data.shape  # (grown: there is empty space)
+    assert 0 not in got and set(np.unique(got)) <= {1, 3, 6, 8, 10}
+    assert [e["label"] for e in json.loads(a.stdout)["labels"]] == [1, 6, 8, 10]

@@ -191,7 +191,7 @@ def test_handle_report_is_in_world_mm(tmp_path):
     spec_path = _spec(tmp_path, "version: 1\ncapture: {lattice: 7, oversample: 1}\nsteps:\n"
                                 "  - drag:\n      - {from: [33, 23, 23], to: [37, 23, 23]}\n"
                                 "    radius: 20\n")
-    with WarpInput("ball", read_volume=lambda: vol) as w:
+    with WarpInput("ball", read_volume=lambda: vol, values="intensity") as w:
         doc, spec = w.load_spec(spec_path)
         cap = w.source(doc, spec)
     warp = IntensityWarp(cap, doc, spec)

@@ -1,91 +1,166 @@
-"""Whether an integer volume looks like a label map (a segmentation).
+"""Whether a volume looks like a label map (a segmentation): the one rule.
 
-Two answers with one rule. :func:`label_map_hint`, ``info``'s hint: an
-integer volume with 2 to :data:`HINT_MAX_LABELS` distinct values that is
-piecewise constant (at least :data:`HINT_MIN_EQUAL` of the pairs of x
-neighbours that are not both 0 are equal: a scan with few grey levels varies
-from voxel to voxel, a segmentation does not). :func:`looks_like_labels`,
-the choice of a pyramid's downsampling (mode or mean), which also takes maps
-with more labels (see there), which also has a form that reads a sliceable
-source box by box and gives the whole array's answer (outputs written by
-blocks).
+``warp`` and ``distance`` follow it by default, pyramids take their levels'
+mode by it, ``info`` hints it. Three functions give its answer:
+:func:`looks_like_labels` (an array), :func:`looks_like_labels_by_blocks` (a
+sliceable source read box by box: the same answer, for outputs written by
+blocks) and :func:`scan_labels` (the answer and the distinct values, what
+the commands need); :func:`label_map_hint` is ``info``'s form (at most
+:data:`HINT_MAX_LABELS` values, listed).
 
-Core code (numpy only): the writers of :mod:`volwarp_cli.io` (pyramids) and
-``info`` use it.
+**Candidates.** Integer samples, and float samples whose values are all
+finite integers within the type's exact range (2**24 for float32): nibabel's
+``get_fdata`` and MONAI write segmentations as float32/float64 with integer
+ids, and an intensity warp of those wrote 138,582 distinct values. Floats
+with any fraction (a distance field, a resampled scan) are not read further
+than the first box that has one.
+
+**The rule.** A candidate with at least 2 distinct values is a label map
+when both hold, on about :data:`SAMPLED_PLANES` sampled planes ``z``, each
+with its next plane ``z + 1``:
+
+1. *Piecewise constant where it is not background*: at least
+   :data:`MIN_EQUAL_PAIRS` of the neighbour pairs (along x, y and z) whose
+   two voxels are both neither 0 nor the most frequent value are equal.
+   Leaving out every pair that touches 0 or the mode (not only the pairs
+   that are both 0, as before) is what lets small structures in: 20
+   landmarks of 2x2x2 voxels in a large 0 background scored 0.34 when a
+   landmark/0 pair counted as unequal, and 1.00 now; leaving out the mode
+   is what keeps a CT clipped at -1024 HU out, its air pairs all equal
+   (0.66 with them, 0.01 without).
+2. *Its values occupy regions*: at least :data:`MIN_IN_REGIONS` of the
+   sampled voxels whose value is not one of the two most frequent ones
+   have a neighbour (x +-1, y +-1, z + 1) of their own value. A label map's
+   smaller labels are regions too (0.97 to 1.00 of their voxels); an
+   antialiased (smooth-edged) density is two dominant values, background and
+   plateau, and intermediate values that live only on a 1-voxel shell
+   between them, each voxel with its own blend (0.15 to 0.22). Test 1 alone
+   takes such a density for labels: its plateau's pairs are equal (0.75 to
+   0.86). With two values only, nothing is left for this test: every
+   2-valued candidate is a label map (a mask: an intensity warp would blend
+   it into values it does not have).
+
+Measured (``S``: test 1; ``R``: test 2; ``before``: the rule before, the
+share of equal x pairs that are not both 0, at least 0.5, with the mode's
+pairs left out too above 256 values; ``*``: it gave the wrong answer):
+
+=========================================  ======  =====  =====  ======
+data                                       before  S      R      labels
+=========================================  ======  =====  =====  ======
+colin27 brain (uint8, bundled)             0.12    0.12   0.40   no
+T1 head (int16, bundled)                   0.03    0.03   0.14   no
+block_int16_aniso (a ramp, bundled)        0.00    0.00   0.00   no
+nibabel anatomical.nii                     0.00    0.00   0.00   no
+nibabel example4d (volume 0)               0.01    0.01   0.05   no
+nibabel example_nifti2 (volume 0)          0.01    0.01   0.06   no
+nibabel example4d+orig BRIK (volume 0)     0.00    0.00   0.01   no
+pydicom CT_small                           0.02    0.02   0.06   no
+pydicom MR_small                           0.01    0.01   0.04   no
+pydicom emri_small                         0.02    0.01   0.07   no
+CT_small in HU, -1024 outside its FOV      0.31    0.02   0.06   no
+CT, -1024 air around a noisy body          0.66    0.01   0.04   no
+that CT windowed to [-160, 240] (clipped)  0.73*   0.05   0.05   no
+  the same as float64                      (no)    0.05   0.05   no
+Gaussian-smoothed mask (uint8)             0.11    0.12   0.19   no
+antialiased warped ball (132 values)       0.75*   0.86   0.21   no
+supersampled ball x3 (16 values)           0.65*   0.75   0.22   no
+supersampled ball x4 (57 values)           0.79*   0.85   0.15   no
+frog-like map warped as intensity          0.38    0.45   0.56   no
+k-means map, wide ids, warped as intensity 0.23    0.23   0.20   no
+Voronoi atlas warped as intensity          0.35    0.37   0.54   no
+landmarks warped as intensity              0.01    0.09   0.28   no
+k-means (4 labels) of the bundled T1       0.63    0.71   0.97   yes
+  its ids permuted (uint16, up to 60000)   0.63    0.71   0.97   yes
+  its ids 1-4, 1 the background (no 0)     0.91    0.71   0.97   yes
+  as float32                               (no)*   0.71   0.97   yes
+343 blocks (int16)                         0.85    0.85   1.00   yes
+Voronoi atlas (652 ids of 1000, int16)     0.73    0.77   1.00   yes
+frog-like tissue map                       0.74    0.92   1.00   yes
+20 landmarks of 2x2x2 (ids 10..200)        0.34*   1.00   1.00   yes
+1-voxel-wide random walks (3 ids)          0.31*   0.94   0.99   yes
+the bundled 0/200 ball                     0.86    1.00   --     yes
+nibabel standard.nii.gz (random 0/255)     0.13    1.00   --     yes
+integer-rounded distance field (35 values) 0.51    0.52   0.99   yes
+=========================================  ======  =====  =====  ======
+
+A distance field (float, not integers) and a float fMRI volume are not
+candidates. Ambiguous by nature, and taken for labels: an integer-rounded
+distance field (its levels are shells, regions along the surface), a
+random 0/255 pattern (two values) and an antialiased box aligned with the
+axes (its faces' partial voxels are flat regions of one value). Single-voxel
+landmarks are no regions: not a label map (a sparse noise is no different).
+
+**Cost.** One pass over the samples to count the distinct values (a count
+table for ranges under 2**24, else a sort; box by box, so that memory does
+not grow with the volume) and about 2 x :data:`SAMPLED_PLANES` planes for
+the neighbours; no cap on the number of values is needed for speed. The
+value counts are merged over any boxes, and the planes are the same, so the
+answer never depends on how the source was read.
+
+Core code (numpy only): the writers of :mod:`volwarp_cli.io` (pyramids),
+``warp``, ``distance`` and ``info`` use it.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-#: ``info``'s label-map hint: an integer volume with at most this many distinct values...
+#: ``info``'s hint lists label maps with at most this many distinct values
 HINT_MAX_LABELS = 256
-#: ...where at least this share of the x-neighbour pairs that are not both 0 are equal
-#: (piecewise constant: a label map; the bundled scans have 0.03 and 0.12, their
-#: binary ball 0.86).
-HINT_MIN_EQUAL = 0.5
+#: test 1: at least this share of the neighbour pairs that are both neither 0 nor the
+#: mode are equal (scans 0.00 to 0.12, label maps 0.71 and more)
+MIN_EQUAL_PAIRS = 0.5
+#: test 2: at least this share of the voxels of values other than the two most frequent
+#: have a neighbour of their own value (antialiased densities 0.15 to 0.22, label maps
+#: 0.97 and more)
+MIN_IN_REGIONS = 0.5
+#: about this many planes are sampled for the neighbour tests (each with its next plane)
+SAMPLED_PLANES = 64
 
 
 def label_map_hint(data: np.ndarray) -> dict | None:
-    """``{"labels": n, "values": [...]}`` when an integer volume looks like a label map.
+    """``{"labels": n, "values": [...]}`` when ``data`` looks like a label map (``info``).
 
-    An integer dtype, 2 to :data:`HINT_MAX_LABELS` distinct values, and
-    piecewise constant (module notes). None otherwise (the values: the first 16).
+    The rule (module notes) with 2 to :data:`HINT_MAX_LABELS` distinct
+    values; None otherwise (the values: the first 16).
     """
     data = np.asarray(data)
-    if np.dtype(data.dtype).kind not in "iu" or data.size == 0:
+    if not _candidate(data) or data.size == 0:
         return None
-    values, _ = value_counts(data)
-    return _hint(values, data.shape, lambda z: data[z])
+    counted = _count(data, scan_boxes(data.shape))
+    if counted is None or not 2 <= len(counted[0]) <= HINT_MAX_LABELS:
+        return None
+    values, counts = counted
+    if not _rule(values, counts, data.shape, lambda z: data[z]):
+        return None
+    return {"labels": int(len(values)), "values": [int(v) for v in values[:16]]}
 
 
 def looks_like_labels(data: np.ndarray) -> bool:
-    """Whether ``labels="auto"`` takes ``data`` for a label map (its levels: the mode).
+    """Whether the rule (module notes) takes the array ``data`` (``[z, y, x]``) for a label map.
 
-    Up to :data:`HINT_MAX_LABELS` (256) distinct
-    values this is ``info``'s hint, :func:`label_map_hint`:
-    an integer volume with 2 to 256 values, piecewise constant (at least
-    :data:`HINT_MIN_EQUAL` of the pairs of x
-    neighbours that are not both 0 are equal). Above 256 values that cap alone
-    made every parcellation or instance segmentation with more labels
-    averaged, and the mean invents labels: between 10 and 30 lies 20, another
-    structure's id. So above 256 values an integer volume is a label map too
-    when it is piecewise constant, with the pairs that are both 0 *or both
-    its most frequent value* left out of the share. That second exclusion is
-    what keeps scans out: a CT clipped at -1024 HU has a large constant
-    background that is not 0 and would pass the test on its own, while its
-    body, which the test then sees alone, varies from voxel to voxel. Why
-    lean towards the mode at all: the two mistakes are not alike. The mode of
-    an intensity image still gives each coarse voxel one of its block's own
-    values (a blockier preview); the mean of a segmentation writes ids that
-    are not there. Other cases a caller knows better (``--pyramid-method``).
-
-    Cost: as the hint's, one pass to count the distinct values (a count table
-    for ranges under 2**24, else a sort; the most frequent value comes with
-    it) and about 64 planes for the neighbour pairs; no cap on the number of
-    values is needed for speed.
+    Why lean towards labels for a pyramid: the two mistakes are not alike.
+    The mode of an intensity image still gives each coarse voxel one of its
+    block's own values (a blockier preview); the mean of a segmentation
+    writes ids that are not there (between 10 and 30 lies 20, another
+    structure's). Other cases a caller knows better (``--pyramid-method``).
     """
     data = np.asarray(data)
-    if np.dtype(data.dtype).kind not in "iu" or data.size == 0:
-        return False
-    values, counts = value_counts(data)
-    return _labels(values, counts, data.shape, lambda z: data[z])
+    return looks_like_labels_by_blocks(data, scan_boxes(data.shape))
 
 
 def looks_like_labels_by_blocks(source, boxes) -> bool:
     """:func:`looks_like_labels` of a sliceable ``source`` read box by box (``boxes`` tile it).
 
-    The same answer without holding more than a box and a plane (for outputs
-    written by blocks): the value counts are merged over the boxes.
+    The same answer without holding more than a box and two planes (for
+    outputs written by blocks): the value counts are merged over the boxes.
     """
-    shape = tuple(source.shape)
-    if np.dtype(source.dtype).kind not in "iu" or 0 in shape:
+    if not _candidate(source) or 0 in tuple(source.shape):
         return False
-    parts = [value_counts(np.asarray(source[box.slices])) for box in boxes]
-    values, inverse = np.unique(np.concatenate([v for v, _ in parts]), return_inverse=True)
-    counts = np.bincount(inverse, weights=np.concatenate([c for _, c in parts]),
-                         minlength=len(values)).astype(np.int64)
-    return _labels(values, counts, shape, lambda z: np.asarray(source[z]))
+    counted = _count(source, boxes)
+    if counted is None:
+        return False
+    return _rule(*counted, tuple(source.shape), lambda z: np.asarray(source[z]))
 
 
 #: Voxels of one box of :func:`scan_labels` (its counting takes about 10 bytes a voxel).
@@ -105,28 +180,6 @@ def scan_boxes(shape, box_voxels: int = SCAN_BOX_VOXELS):
     return Box.from_shape(shape).blocks(chunk)
 
 
-class _Counted:
-    """A sliceable source that keeps the value counts of the boxes read through it.
-
-    :func:`looks_like_labels_by_blocks` reads every box once; counting them
-    as they pass gives the distinct values without a second read.
-    """
-
-    def __init__(self, source):
-        self.source = source
-        self.shape = tuple(int(n) for n in source.shape)
-        self.dtype = np.dtype(source.dtype)
-        self.parts: list = []
-        self.voxels = 0
-
-    def __getitem__(self, key):
-        block = np.asarray(self.source[key])
-        if isinstance(key, tuple) and block.ndim == 3 and block.size:
-            self.parts.append(value_counts(block))
-            self.voxels += block.size
-        return block
-
-
 def scan_labels(source, *, detect: bool = True, box_voxels: int = SCAN_BOX_VOXELS):
     """``(looks like labels, distinct values, their counts)`` of ``source``, read once by boxes.
 
@@ -134,22 +187,46 @@ def scan_labels(source, *, detect: bool = True, box_voxels: int = SCAN_BOX_VOXEL
     and ``distance``'s choice, a label's presence, the count for ``-v``), in
     memory as by blocks: ``source`` is an array or a sliceable lazy source,
     read box by box (:func:`scan_boxes`), so the answer is the same either
-    way. ``detect=False`` only counts. Samples that are not integers (or
-    bool) are not read: ``(False, None, None)``.
+    way. ``detect=False`` only counts. Samples that cannot be labels (floats
+    with a fraction, or not finite) give ``(False, None, None)``, read no
+    further than the first box that shows it; bool samples are counted but
+    are no label map.
     """
     shape = tuple(int(n) for n in source.shape)
-    if np.dtype(source.dtype).kind not in "iub" or 0 in shape:
+    kind = np.dtype(source.dtype).kind
+    if (kind != "b" and not _candidate(source)) or 0 in shape:
         return False, None, None
-    boxes = scan_boxes(shape, box_voxels)
-    counted = _Counted(source)
-    looks = bool(looks_like_labels_by_blocks(counted, boxes)) if detect else False
-    parts = counted.parts
-    if counted.voxels != int(np.prod(shape)):  # (the rule read otherwise: count here)
-        parts = [value_counts(np.asarray(source[box.slices])) for box in boxes]
-    values, inverse = np.unique(np.concatenate([v for v, _ in parts]), return_inverse=True)
-    counts = np.bincount(inverse, weights=np.concatenate([c for _, c in parts]),
-                         minlength=len(values)).astype(np.int64)
-    return looks, values.astype(np.int64), counts
+    counted = _count(source, scan_boxes(shape, box_voxels))
+    if counted is None:
+        return False, None, None
+    values, counts = counted
+    looks = detect and kind != "b" and _rule(values, counts, shape,
+                                             lambda z: np.asarray(source[z]))
+    return bool(looks), values, counts
+
+
+def integer_samples(block) -> np.ndarray | None:
+    """``block`` as integers: integer (or bool) samples as they are; None when they are not ids.
+
+    Float samples are ids when every one is a finite integer within the
+    type's exact range (2**24 for float32, 2**53 for float64): then as
+    int64. Otherwise None (a fraction, a NaN, an infinity).
+    """
+    block = np.asarray(block)
+    kind = block.dtype.kind
+    if kind in "iub":
+        return block
+    if kind != "f":
+        return None
+    if block.size == 0:
+        return block.astype(np.int64)
+    if not np.isfinite(block).all():
+        return None
+    exact = 2.0 ** (np.finfo(block.dtype).nmant + 1)
+    if float(np.abs(block).max()) > exact:
+        return None
+    ints = block.astype(np.int64)
+    return ints if np.array_equal(ints, block) else None
 
 
 def value_counts(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -158,7 +235,13 @@ def value_counts(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     A count table where the range of values is small (at most 65536, or four
     times the samples, and under 2**24), else a sort: a box of a map with a
     few labels spread over a wide range makes no table of the range's size.
+    Integer-valued floats are counted as their integers (ValueError for
+    others: :func:`integer_samples`).
     """
+    ints = integer_samples(data)
+    if ints is None:
+        raise ValueError(f"samples of type {np.asarray(data).dtype} that are not all integers")
+    data = ints
     lo, hi = int(data.min()), int(data.max())
     span = hi - lo + 1
     if span < 1 << 24 and span <= max(1 << 16, 4 * data.size):
@@ -170,35 +253,83 @@ def value_counts(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return values.astype(np.int64), counts.astype(np.int64)
 
 
-def _hint(values, shape, plane) -> dict | None:
-    """The hint from the distinct ``values`` and the planes ``plane(z)`` (module notes)."""
-    if not 2 <= len(values) <= HINT_MAX_LABELS or not _piecewise_constant(shape, plane):
-        return None
-    return {"labels": int(len(values)), "values": [int(v) for v in values[:16]]}
+def _candidate(source) -> bool:
+    """Whether ``source``'s sample type can hold ids: integers, or floats (their values decide)."""
+    return np.dtype(source.dtype).kind in "iuf"
 
 
-def _labels(values, counts, shape, plane) -> bool:
-    """:func:`looks_like_labels` from the value counts and the planes ``plane(z)``."""
+def _count(source, boxes):
+    """``(values, counts)`` of ``source`` read box by box, merged; None when they are not ids."""
+    parts = []
+    for box in boxes:
+        block = integer_samples(source[box.slices])
+        if block is None:
+            return None
+        if block.size:
+            parts.append(value_counts(block))
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    values, inverse = np.unique(np.concatenate([v for v, _ in parts]), return_inverse=True)
+    counts = np.bincount(inverse.ravel(), weights=np.concatenate([c for _, c in parts]),
+                         minlength=len(values)).astype(np.int64)
+    return values, counts
+
+
+def _rule(values, counts, shape, plane) -> bool:
+    """The rule (module notes) from the value counts and the planes ``plane(z)``."""
     if len(values) < 2:
         return False
-    common = values[int(np.argmax(counts))] if len(values) > HINT_MAX_LABELS else None
-    return _piecewise_constant(shape, plane, also_skip=common)
+    order = np.lexsort((values, -counts))  # most frequent first; a tie: the smaller value
+    top = values[order[:2]]
+    pairs, equal, minor, in_regions = _neighbours(shape, plane, skip=(0, int(top[0])),
+                                                  top=tuple(int(v) for v in top))
+    piecewise = not pairs or equal >= MIN_EQUAL_PAIRS * pairs
+    regions = not minor or in_regions >= MIN_IN_REGIONS * minor
+    return piecewise and regions
 
 
-def _piecewise_constant(shape, plane, also_skip=None) -> bool:
-    """At least :data:`HINT_MIN_EQUAL` of the x-neighbour pairs are equal, on about 64 planes.
+def _neighbours(shape, plane, *, skip, top) -> tuple[int, int, int, int]:
+    """The counts of the two tests on about :data:`SAMPLED_PLANES` planes, each with the next.
 
-    Pairs that are both 0 (or both ``also_skip``) are left out.
+    ``(pairs, equal pairs, minor voxels, minor voxels with a neighbour of their
+    value)``: pairs along x, y, z whose voxels are both none of ``skip``;
+    minor voxels: those whose value is none of ``top``.
     """
-    if shape[-1] <= 1:
-        return True
-    n = equal = 0
-    for z in range(0, shape[0], max(1, shape[0] // 64)):  # about 64 planes are enough
-        p = plane(z)
-        a, b = p[:, :-1], p[:, 1:]
-        some = (a != 0) | (b != 0)
-        if also_skip is not None:
-            some &= (a != also_skip) | (b != also_skip)
-        n += int(some.sum())
-        equal += int((some & (a == b)).sum())
-    return not (n and equal < HINT_MIN_EQUAL * n)
+    nz = int(shape[0])
+    pairs = equal = minor = in_regions = 0
+    for z in range(0, nz, max(1, nz // SAMPLED_PLANES)):
+        p = np.asarray(plane(z))
+        q = np.asarray(plane(z + 1)) if z + 1 < nz else None
+        keep = _none_of(p, skip)
+        same = np.zeros(p.shape, dtype=bool)  # a neighbour of the same value
+        for a, b, ka, kb, sa, sb in _pairs(p, keep, same):
+            eq = a == b
+            both = ka & kb
+            pairs += int(np.count_nonzero(both))
+            equal += int(np.count_nonzero(both & eq))
+            sa |= eq
+            sb |= eq
+        if q is not None:
+            eq = p == q
+            both = keep & _none_of(q, skip)
+            pairs += int(np.count_nonzero(both))
+            equal += int(np.count_nonzero(both & eq))
+            same |= eq
+        small = _none_of(p, top)
+        minor += int(np.count_nonzero(small))
+        in_regions += int(np.count_nonzero(small & same))
+    return pairs, equal, minor, in_regions
+
+
+def _pairs(p, keep, same):
+    """The x and y neighbour pairs of plane ``p``: both sides of it, of ``keep``, of ``same``."""
+    yield p[:, :-1], p[:, 1:], keep[:, :-1], keep[:, 1:], same[:, :-1], same[:, 1:]
+    yield p[:-1], p[1:], keep[:-1], keep[1:], same[:-1], same[1:]
+
+
+def _none_of(p: np.ndarray, values) -> np.ndarray:
+    """Where ``p`` is none of ``values`` (a bool array)."""
+    out = np.ones(p.shape, dtype=bool)
+    for v in set(values):
+        out &= p != v
+    return out

@@ -252,9 +252,9 @@ def _glob_scans(manifest: Manifest, pattern: str) -> list[tuple[Path, tuple]]:
     if folder.is_relative_to(out):
         how = "is" if folder == out else "holds"
         raise manifest.doc.error(("output_dir",), (
-            f"{manifest.output_dir} {how} the scans' folder {folder} (inputs.glob "
-            f"{pattern!r}): outputs there would be taken for scans; choose an output_dir "
-            "outside the scans' folder (a folder inside it is fine: it is left out of the glob)"))
+            f"outputs there would be taken for scans: it {how} the folder inputs.glob "
+            "searches; choose an output_dir outside it (a folder inside it is fine: it is "
+            f"left out of the glob) ({folder})"))
     paths = []
     for name in sorted(glob.glob(pattern, recursive=True)):
         p = Path(name)

@@ -14,8 +14,10 @@ DESIGN.md's "label maps are labels" and "a scan stays where it was":
   given: ``capture.pad``, ``capture --pad``), the papers' modelling case,
   where the grid grows to hold the whole moved model.
 - **Background** (:func:`border_value`): where nothing of the model lands,
-  the output gets what the scan has outside its anatomy, the most frequent
-  value on its border (-1024 in a CT, 0 in an MRI), not 0 (0 HU is water).
+  the output gets what the scan has outside its anatomy, the (lower) median
+  of its border samples (-1024 in a CT, 0 in an MRI, a positive distance in
+  a distance field), not 0 (0 HU is water). A label map's is its most
+  frequent border label (:func:`border_label`), one of its own ids.
 - **Resampling** (:func:`resampling_warning`): a capture on the spanning
   grid (a non-integer oversample, the tripled placement) changes voxels the
   warp does not move; said once per run.
@@ -41,29 +43,93 @@ GRIDS = ("input", "grow")
 
 
 def border_value(source) -> float:
-    """The most frequent sample on the six faces of ``source`` (``[z, y, x]``).
+    """The lower median of the samples on the six faces of ``source`` (``[z, y, x]``), no NaN.
 
-    Why: it is what a scan has outside its anatomy (air: -1024 HU in a CT, 0
-    in an MRI, a large distance in a distance field), so it is what a warp
-    writes where nothing of the model lands. 0 there would be water in a CT.
+    Why: it is what a scan has outside its anatomy, so it is what a warp
+    writes where nothing of the model lands (0 there would be water in a
+    CT). Why the median and not the most frequent value (the rule before):
+    where one value covers more than half of the border (-1024 HU of a CT's
+    padding, an MRI's 0) the two are that value, but the mode of a float
+    field or a noisy border is a coincidence. A distance field's border mode
+    was -2e-06, a value inside the shape (its faces hold thousands of
+    distinct distances, one of them twice): the grown margin of its warp
+    became inside (614,588 voxels); a 16x16x5 CT with a noisy air border got
+    -7, which 13 of its 832 border samples had. The median of a distance
+    field's border is a distance outside the shape (positive), and that of
+    a noisy air border is air. The lower median is a sample of the border
+    (never a mean of two): an integer scan gets one of its own values.
 
     ``source``: an array or a sliceable lazy source (only its faces are
-    read). A voxel on an edge counts once per face it lies on; a tie goes to
-    the smallest value. NaN never wins while another value is there.
+    read). A voxel on an edge counts once per face it lies on. NaN only
+    when every border sample is NaN.
+    """
+    samples = border_samples(source)
+    if samples.dtype.kind == "f":
+        samples = samples[~np.isnan(samples)]
+        if not samples.size:
+            return float("nan")
+    if not samples.size:
+        return 0.0
+    k = (samples.size - 1) // 2
+    return float(np.partition(samples, k)[k])
+
+
+def border_label(source) -> int:
+    """The most frequent label on the six faces of the label map ``source``: its background.
+
+    Where nothing of the model lands a label warp writes this label (0 in
+    the usual map; a map whose ids are 1 to 4 with 1 around the anatomy
+    gained 1,093 voxels of an id 0 it does not have). The mode, not the
+    median: labels are names, and the background is the one that surrounds
+    the map. A voxel on an edge counts once per face it lies on; a tie goes
+    to the smallest label. ``source``: integer (or integer-valued) samples,
+    an array or a sliceable lazy source (only its faces are read).
+    """
+    from ..errors import VolwarpError
+    from ..labelmap import integer_samples, value_counts
+
+    samples = border_samples(source)
+    if not samples.size:
+        return 0
+    if integer_samples(samples) is None:
+        raise VolwarpError(f"a label map needs integer ids, and its {samples.dtype} samples "
+                           "are not all integers (a fraction, a NaN or an infinity): warp it "
+                           "as intensities")
+    values, counts = value_counts(samples)
+    return int(values[int(np.argmax(counts))])  # (sorted: the first maximum is the smallest)
+
+
+def border_samples(source) -> np.ndarray:
+    """The samples of the six faces of ``source`` (``[z, y, x]``), one flat array.
+
+    A voxel on an edge comes once per face it lies on.
     """
     nz, ny, nx = (int(n) for n in source.shape)
     if 0 in (nz, ny, nx):
-        return 0.0
+        return np.zeros(0, dtype=source.dtype)
     faces = [source[0:1], source[nz - 1:nz], source[:, 0:1], source[:, ny - 1:ny],
              source[:, :, 0:1], source[:, :, nx - 1:nx]]
-    parts = [np.unique(np.asarray(f).ravel(), return_counts=True) for f in faces]
-    values, inverse = np.unique(np.concatenate([v for v, _ in parts]), return_inverse=True)
-    counts = np.bincount(inverse.ravel(), weights=np.concatenate([c for _, c in parts]))
-    if values.dtype.kind == "f":
-        nan = np.isnan(values)
-        if nan.any() and not nan.all():
-            counts[nan] = -1
-    return float(values[int(np.argmax(counts))])  # (sorted: the first maximum is the smallest)
+    return np.concatenate([np.asarray(f).ravel() for f in faces])
+
+
+#: why the default background is what it is (``-v``: ``background: -1024 (...)``)
+BORDER_WHY = "the median of the input's border"
+
+
+def background_choice(option: float | None, spec_background: float | None,
+                      border: float | None) -> tuple[float, str]:
+    """An intensity warp's background and why: the option's, the spec's, else the border's.
+
+    ``border``: :func:`border_value` of the input where the capture knows
+    it (None: 0, the default).
+    """
+    if option is not None:
+        return float(option), "given"
+    if spec_background is not None:
+        return float(spec_background), "the spec's background"
+    if border is not None:
+        return float(border), BORDER_WHY
+    return 0.0, "default"
 
 
 @dataclass(frozen=True)
@@ -102,12 +168,13 @@ def label_scan(source, *, box_voxels: int = SCAN_BOX_VOXELS) -> tuple[bool, int 
 
     The rule is :func:`~volwarp_cli.labelmap.looks_like_labels` (by boxes:
     :func:`~volwarp_cli.labelmap.scan_labels`, the same answer in memory as
-    by blocks). Samples that are not integers are no label map and are not
-    read: ``(False, None)``.
+    by blocks). Samples that cannot be ids (floats with a fraction, a NaN;
+    other types) are no label map: ``(False, None)``, read no further than
+    the first box that shows it.
     """
     from ..labelmap import scan_labels
 
-    if np.dtype(source.dtype).kind not in "iu":
+    if np.dtype(source.dtype).kind not in "iuf":
         return False, None
     looks, values, _ = scan_labels(source, box_voxels=box_voxels)
     return looks, None if values is None else int(len(values))
@@ -119,18 +186,26 @@ def choose_values(source, given: str | None = None, *, name: str = "the input") 
     ``given``: the user's choice (``--values``, ``--labels``, the spec's
     ``values:``), or None for the rule. ``"intensity"`` reads nothing; the
     rule, and ``"labels"`` (to say when the volume does not look like a
-    label map), read the samples once (integers only). ``name`` (the input's
-    file) goes into the warning.
+    label map), read the samples once (integers, and floats that may hold
+    integer ids). Labels asked for on float samples that are not all
+    integers are an error (:class:`~volwarp_cli.errors.VolwarpError`): a
+    fraction is no id. ``name`` (the input's file) goes into the messages.
     """
     if given is not None and given not in VALUES:
         raise ValueError(f"values must be one of {', '.join(VALUES)}, got {given!r}")
     if given == "intensity":
         return ValuesChoice("intensity", "given")
-    integer = np.dtype(source.dtype).kind in "iu"
-    if given == "labels" and not integer:  # (the label warp says why it cannot)
+    kind = np.dtype(source.dtype).kind
+    if given == "labels" and kind not in "iuf":  # (the label warp says why it cannot)
         return ValuesChoice("labels", "given")
     looks, n = label_scan(source)
     if given == "labels":
+        if n is None:
+            from ..errors import VolwarpError
+
+            raise VolwarpError(f"{name}: a label map needs integer ids, and its "
+                               f"{np.dtype(source.dtype)} samples are not all integers (a "
+                               "fraction, a NaN or an infinity): warp it without --labels")
         warning = None
         if not looks:
             warning = (f"warning: {name} does not look like a label map ({n} distinct "

@@ -42,14 +42,17 @@ class LabelBlocks:
     """A label warp's job for block tasks: picklable, its scene rebuilt where it runs.
 
     ``source``: the label map, sliceable ``[z, y, x]`` (a
-    :class:`~.blocks.LazySource`); ``labels``, ``boxes``: its non-zero labels
-    and their input bounding boxes (:func:`bounding_boxes_by_blocks`);
-    ``window``: the output's box of the target.
+    :class:`~.blocks.LazySource`); ``labels``, ``boxes``: its labels but
+    ``background`` and their input bounding boxes
+    (:func:`bounding_boxes_by_blocks`); ``window``: the output's box of the
+    target; ``background``: the label where nothing lands (the map's most
+    frequent border label, :func:`.defaults.border_label`).
     """
 
     def __init__(self, scene: Scene, source, labels, boxes, window: Box, dtype, *,
-                 preserve: bool = False):
-        self.recipe = SceneRecipe(scene)  # (background 0: a label map's)
+                 preserve: bool = False, background: int = 0):
+        self.recipe = SceneRecipe(scene)  # (the scene's background 0: unused by labels)
+        self.background = int(background)
         self.source = source
         self.labels = [int(v) for v in labels]
         self.boxes = list(boxes)
@@ -87,14 +90,15 @@ class LabelBlocks:
         scene = self.scene()
         _, ty, tx = self.target_shape
         best_w = np.full((t_hi - t_lo, ty, tx), _Q, dtype=np.int64)
-        best_l = np.zeros((t_hi - t_lo, ty, tx), dtype=self.dtype)
+        best_l = np.full((t_hi - t_lo, ty, tx), self.background, dtype=self.dtype)
         predicted, peak = label_passes(scene, scene.dq, self.source, self.labels, self.boxes,
                                        t_lo, t_hi, best_w, best_l, preserve=self.preserve,
-                                       z_base=t_lo)
+                                       z_base=t_lo, background=self.background)
         del best_w
         peak_labels = {L: int(best_l[at[0] - t_lo, at[1], at[2]])
                        for L, (_, at) in peak.items() if at is not None}
-        return best_l, predicted, peak, _counts(best_l, self.labels), peak_labels
+        return (best_l, predicted, peak, _counts(best_l, self.labels, self.background),
+                peak_labels)
 
     def slab_bytes(self, depth: int) -> int:
         """Memory a task of ``depth`` target planes holds at its peak (an upper bound).
@@ -125,16 +129,17 @@ class LabelBlocks:
         return depth
 
 
-def bounding_boxes_by_blocks(source, run, depth: int):
+def bounding_boxes_by_blocks(source, run, depth: int, background: int = 0):
     """:func:`.labels._bounding_boxes` of a sliceable map read in slabs of ``depth`` planes.
 
     ``run(task, items)``: who runs the slabs (an engine's ``map``). Returns
-    ``(labels, voxel counts, boxes)``: the same as the whole map's.
+    ``(labels, voxel counts, boxes)`` of the labels but ``background``: the
+    same as the whole map's.
     """
     import functools
 
     nz = source.shape[0]
-    task = functools.partial(_slab_boxes, source=source)
+    task = functools.partial(_slab_boxes, source=source, background=int(background))
     found: dict[int, list] = {}
     for z0, labels, nvox, boxes in run(task, [(z, min(z + depth, nz))
                                              for z in range(0, nz, depth)]):
@@ -149,9 +154,9 @@ def bounding_boxes_by_blocks(source, run, depth: int):
     return labels, [found[L][0] for L in labels], [found[L][1] for L in labels]
 
 
-def _slab_boxes(zs, source):
+def _slab_boxes(zs, source, background=0):
     z0, z1 = zs
-    labels, nvox, boxes, _ = _bounding_boxes(np.asarray(source[z0:z1]))
+    labels, nvox, boxes, _ = _bounding_boxes(np.asarray(source[z0:z1]), background)
     return z0, labels, nvox, boxes
 
 
@@ -223,13 +228,14 @@ def warp_labels_by_blocks(job: LabelBlocks, out, engine, *, nvox, spacing,
     changed: dict[tuple, int] = {}
 
     def label_at(at):
-        return changed.get(at, initial.get(at, 0))
+        return changed.get(at, initial.get(at, job.background))
 
     def set_label(at, L):
         changed[at] = L
 
     report = label_report(job.labels, nvox, predicted, peak, counts, float(np.prod(spacing)),
                           preserve=job.preserve, label_at=label_at, set_label=set_label)
+    report["background"] = job.background
     _patch(out, job.window, changed)
     return report
 

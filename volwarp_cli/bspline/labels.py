@@ -12,16 +12,23 @@ output voxel instead, and the output voxel takes the label of largest weight:
   label's image can reach (bounded from the lattice alone, region by region:
   :meth:`.reach.Reach.rebuild_block`), so memory does not grow with the
   number of labels: the output holds the best weight and label so far.
-- The background (label 0) competes like any label: its weight is that of
-  the input's 0 voxels plus the empty space around the model, ``max(w, 1) -
-  w_fg`` (``w`` all the model's weight, ``w_fg`` that of its non-zero voxels;
-  one full pass of the indicator ``label != 0``), so labels do not grow into
-  empty space: a label is kept on the model's silhouette only where it
-  covers more than the space around it.
-- Ties go to the smaller label (0 before positive ids, negative ids before
-  0), deterministically. Every output value is an input label or 0, and ids
-  stay integers end to end (the input's integer dtype; only the weights are
-  numbers): ids above 2^24 survive.
+- The background label ``b`` is the map's most frequent label on its border
+  (:func:`.defaults.border_label`: 0 in the usual map), what surrounds the
+  anatomy. It competes like any label: its weight is that of the input's
+  ``b`` voxels plus the empty space around the model, ``max(w, 1) - w_fg``
+  (``w`` all the model's weight, ``w_fg`` that of its voxels of other
+  labels; one full pass of the indicator ``label != b``), so labels do not
+  grow into empty space: a label is kept on the model's silhouette only
+  where it covers more than the space around it, and where nothing lands
+  the output is ``b``. Why not always 0: a map whose ids are 1 to 4 (1
+  around the anatomy) gained 1,093 voxels of an id 0 it does not have; 0,
+  when the map has it and it is not ``b``, is a label like the others.
+- Ties go to the smaller label, deterministically. Every output value is an
+  input label, and ids keep the input's type end to end (only the weights
+  are numbers): integer ids above 2^24 survive. Float samples are a label
+  map when every one is an integer (nibabel's and MONAI's segmentations):
+  their ids are compared as the floats they are (exact for integers), and
+  the output has the input's float type.
 
 Labels need the subdivision grid (an integer oversample with the uniform
 placement, see :mod:`.lattice`): there every domain voxel lies inside one
@@ -63,12 +70,14 @@ def capture_labels(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
                    oversample: float = 2.0, sampling: str = "linear", pad=None) -> Capture:
     """A :class:`Capture` of a label map (no float voxmap: the label passes gather their own).
 
-    Refuses a non-integer volume and the spanning grid (a non-integer
-    oversample or the tripled placement: its capture would blend ids). The
-    returned capture keeps the labels as ``labels`` (``vol.data``, not copied).
+    Refuses samples that cannot be ids (not integers or floats; a float's
+    values are checked by the label passes, which read them all) and the
+    spanning grid (a non-integer oversample or the tripled placement: its
+    capture would blend ids). The returned capture keeps the labels as
+    ``labels`` (``vol.data``, not copied).
     """
     data = vol.data
-    if np.dtype(data.dtype).kind not in "iu":
+    if np.dtype(data.dtype).kind not in "iuf":
         raise VolwarpError(f"a label map needs integer samples, got {data.dtype} (convert it "
                            "with --dtype, or warp it without --labels)")
     if placement not in PLACEMENTS:
@@ -96,14 +105,33 @@ class LabelWarp:
     report: dict = field(default_factory=dict)
 
 
-def _bounding_boxes(data: np.ndarray):
-    """``(labels, counts, boxes)`` of the label map's non-zero labels; ``(count of 0)``.
+def check_ids(data, name: str = "the label map") -> None:
+    """Refuse float samples that are not all integers (:class:`VolwarpError`); read by slabs.
 
-    The distinct non-zero labels (sorted), their voxel counts and input bounding
-    boxes (:class:`~volwarp_cli.box.Box` es, z y x).
+    Integer samples pass unread. A fraction, a NaN or an infinity is no id.
+    """
+    from ..labelmap import integer_samples
+
+    if np.dtype(data.dtype).kind in "iu":
+        return
+    step = max(1, (1 << 20) // max(1, int(np.prod(data.shape[1:]))))
+    for z in range(0, len(data), step):
+        if integer_samples(np.asarray(data[z:z + step])) is None:
+            raise VolwarpError(f"{name}: a label map needs integer ids, and its {data.dtype} "
+                               "samples are not all integers (a fraction, a NaN or an "
+                               "infinity): warp it as intensities")
+
+
+def _bounding_boxes(data: np.ndarray, background: int = 0):
+    """``(labels, counts, boxes)`` of the label map's labels other than ``background``.
+
+    The distinct labels (sorted) but ``background``, their voxel counts and
+    input bounding boxes (:class:`~volwarp_cli.box.Box` es, z y x); and the
+    count of ``background``. Float samples must hold integers (:func:`check_ids`).
     """
     from scipy import ndimage
 
+    check_ids(data)
     lo, hi = int(data.min()), int(data.max())
     if hi - lo < 1 << 24:
         # a count table and a compact index (1..n), a few planes at a time: no
@@ -128,15 +156,15 @@ def _bounding_boxes(data: np.ndarray):
         values, inverse, counts = np.unique(data, return_inverse=True, return_counts=True)
         index = (inverse.reshape(data.shape) + 1).astype(np.int32)
     objects = ndimage.find_objects(index)
-    zero = int(counts[values == 0].sum())
+    kept = int(counts[values == background].sum())
     labels, nvox, boxes = [], [], []
     for v, c, sl in zip(values, counts, objects, strict=True):
-        if v == 0 or sl is None:
+        if v == background or sl is None:
             continue
         labels.append(int(v))
         nvox.append(int(c))
         boxes.append(Box(tuple(s.start for s in sl), tuple(s.stop for s in sl)))
-    return labels, nvox, boxes, zero
+    return labels, nvox, boxes, kept
 
 
 class _Stream:
@@ -147,8 +175,9 @@ class _Stream:
     """
 
     def __init__(self, scene: Scene, dq, labels_in: np.ndarray, t_lo: int, t_hi: int,
-                 best_w: np.ndarray, best_l: np.ndarray):
+                 best_w: np.ndarray, best_l: np.ndarray, background: int = 0):
         self.scene, self.dq, self.data = scene, dq, labels_in  # (any sliceable map)
+        self.background = background
         self.t_lo, self.t_hi = t_lo, t_hi
         self.best_w, self.best_l = best_w, best_l
         grid = scene.grid
@@ -165,7 +194,10 @@ class _Stream:
         self.scratch = Scratch()
 
     def run(self, label, box: Box, on_planes) -> None:
-        """Scatter label ``label``'s indicator (0 for ``label != 0``) over input box ``box``.
+        """Scatter label ``label``'s indicator (None: the background's) over input box ``box``.
+
+        The background's indicator is ``label != background``: the weight of the
+        model's other labels, from which its own is found.
 
         ``box``: a :class:`~volwarp_cli.box.Box` (z y x) of the input.
 
@@ -226,7 +258,7 @@ class _Stream:
             # file read by boxes, which takes no index arrays)
             src = np.asarray(self.data[int(zi[0]):int(zi[-1]) + 1, by0:by1, bx0:bx1])[
                 zi - zi[0]]
-            ind = (src != 0) if label == 0 else (src == label)
+            ind = (src != self.background) if label is None else (src == label)
             view = self.values[:g1 - g0, ys, xs].reshape(g1 - g0, by1 - by0, k, bx1 - bx0, k)
             np.copyto(view, ind[:, :, None, :, None])
             sub.contribute([self.dq], Box((g0, *voxels.lo[1:]), (g1, *voxels.hi[1:])), 1,
@@ -239,29 +271,36 @@ class _Stream:
 
 
 def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: bool = False,
-                spacing=(1.0, 1.0, 1.0)) -> LabelWarp:
-    """Warp the label map ``labels_in`` ``[z, y, x]`` (integer) with ``scene``'s lattice.
+                spacing=(1.0, 1.0, 1.0), background: int | None = None) -> LabelWarp:
+    """Warp the label map ``labels_in`` ``[z, y, x]`` (integer ids) with ``scene``'s lattice.
 
     ``scene``: from :func:`.warp.prepare` on a :func:`capture_labels` capture;
     the last of ``frames`` (if any) is the lattice applied. ``spacing``
-    (x y z, mm) scales the report's volumes. Returns the target labels
-    (padded like the intensity warp's target: crop with
-    :func:`.warp.output_volume`) and a report::
+    (x y z, mm) scales the report's volumes. ``background``: the label
+    written where nothing lands (None: :func:`.defaults.border_label`, the
+    most frequent on the map's border). Returns the target labels (padded
+    like the intensity warp's target: crop with :func:`.warp.output_volume`)
+    and a report::
 
         {"labels": {L: {"input_voxels", "output_voxels", "input_mm3",
                         "output_mm3", "predicted_mm3", "preserved"}},
-         "vanished": [...], "preserved": [...]}
+         "vanished": [...], "preserved": [...], "background": b}
+
+    (every label but the background ``b``).
     """
+    from .defaults import border_label
+
     grid = scene.grid
     if not grid.subdivision:
         raise VolwarpError("label maps are warped on the subdivision grid (integer oversample, "
                            "uniform placement)")
-    if np.dtype(labels_in.dtype).kind not in "iu":
+    if np.dtype(labels_in.dtype).kind not in "iuf":
         raise VolwarpError(f"a label map needs integer samples, got {labels_in.dtype}")
     if tuple(labels_in.shape[::-1]) != tuple(grid.input_shape):
         raise VolwarpError("the label map does not match the lattice's input")
     if scene.background != 0:
-        raise VolwarpError("a label map's background is label 0 (no --background)")
+        raise VolwarpError("a label map's background is one of its labels (no --background)")
+    b = border_label(labels_in) if background is None else int(background)
     if frames:
         scene.set_lattice(frames[-1].dq)
     dq = scene.dq
@@ -271,9 +310,9 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
                           + workers * stream_bytes(scene, dq, labels_in.dtype),
                           "the warped labels")
     with timed("labels: bounding boxes"):
-        labels, nvox, boxes, _ = _bounding_boxes(labels_in)
+        labels, nvox, boxes, _ = _bounding_boxes(labels_in, b)
     best_w = np.empty((tz, ty, tx), dtype=np.int64)
-    best_l = np.zeros((tz, ty, tx), dtype=labels_in.dtype)
+    best_l = np.full((tz, ty, tx), b, dtype=labels_in.dtype)
     # the background's weight where nothing of the model lands: all of it
     best_w.fill(_Q)
     cuts = parallel.cuts(0, tz, workers)
@@ -284,14 +323,14 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
 
     def share(i):
         got, top = label_passes(scene, dq, labels_in, labels, boxes, cuts[i], cuts[i + 1],
-                                best_w, best_l, preserve=preserve)
+                                best_w, best_l, preserve=preserve, background=b)
         with lock:
             merge_passes(predicted, peak, got, top)
 
     with timed(f"labels: {len(labels)} label passes + background ({workers} threads)"):
         parallel.run_blocks(share, range(len(cuts) - 1), workers)
     best_w = None  # (freed before the counts)
-    out_counts = _counts(best_l, labels)
+    out_counts = _counts(best_l, labels, b)
 
     def label_at(at):
         return best_l[at]
@@ -301,6 +340,7 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
 
     report = label_report(labels, nvox, predicted, peak, out_counts, vol_voxel,
                           preserve=preserve, label_at=label_at, set_label=set_label)
+    report["background"] = b
     return LabelWarp(best_l, report)
 
 
@@ -325,29 +365,31 @@ def stream_bytes(scene: Scene, dq, dtype) -> int:
 
 def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: int,
                  best_w: np.ndarray, best_l: np.ndarray, *, preserve: bool = False,
-                 z_base: int = 0):
+                 z_base: int = 0, background: int = 0):
     """The background's and every label's pass over target planes ``[t_lo, t_hi)``.
 
     Into ``best_w``/``best_l``, whose plane 0 is target plane ``z_base`` (the
-    whole target, or one slab of it: the result does not depend on the cut).
-    ``labels``/``boxes``: the map's non-zero labels and their input bounding
-    boxes (:func:`_bounding_boxes`). Returns ``(predicted, peak)``: per label,
-    its total weight in these planes and (with ``preserve``) its voxel of
-    largest weight ``(w, (z, y, x))`` (target indices).
+    whole target, or one slab of it: the result does not depend on the cut);
+    ``best_l`` holds the ``background`` label where no label wins.
+    ``labels``/``boxes``: the map's labels but ``background`` and their input
+    bounding boxes (:func:`_bounding_boxes`). Returns ``(predicted, peak)``:
+    per label, its total weight in these planes and (with ``preserve``) its
+    voxel of largest weight ``(w, (z, y, x))`` (target indices).
     """
-    st = _Stream(scene, dq, labels_in, t_lo, t_hi, best_w, best_l)
+    st = _Stream(scene, dq, labels_in, t_lo, t_hi, best_w, best_l, background)
     full = Box.from_xyz((0, 0, 0), scene.grid.input_shape)
     predicted = {}
     peak = {}
 
-    def background(target, acc):
+    def on_background(target, acc):
         w_all, w_fg = acc[..., 0], acc[..., 1]
         best_w[target.shift((-z_base, 0, 0)).slices] = np.maximum(w_all, _Q) - w_fg
 
-    st.run(0, full, background)
-    # negative labels first, descending, winning ties (>=: the smaller id wins), then the
-    # positive ones ascending, losing ties
-    order = [L for L in labels if L < 0][::-1] + [L for L in labels if L > 0]
+    st.run(None, full, on_background)
+    # the labels below the background first, descending, winning ties (>=: the smaller id
+    # wins), then those above it ascending, losing ties: the smallest label wins a tie
+    b = background
+    order = [L for L in labels if L < b][::-1] + [L for L in labels if L > b]
     where = {L: i for i, L in enumerate(labels)}
     for L in order:
         total = [0]
@@ -357,7 +399,7 @@ def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: in
             w = acc[..., 1]
             here = target.shift((-z_base, 0, 0)).slices
             bw, bl = best_w[here], best_l[here]
-            better = (w >= bw) if L < 0 else (w > bw)
+            better = (w >= bw) if L < b else (w > bw)
             np.copyto(bw, w, where=better)
             np.copyto(bl, L, where=better, casting="unsafe")
             total[0] += int(w.sum(dtype=np.int64))  # < 2^63: a few planes of 2^40 each
@@ -404,7 +446,7 @@ def label_report(labels, nvox, predicted, peak, out_counts, vol_voxel: float, *,
                 continue
             set_label(at, L)
             preserved.append(L)
-            if old != 0 and old in out_counts:
+            if old in out_counts:  # (not the background: it is no reported label)
                 out_counts[old] -= 1
             out_counts[L] = 1
         for L in preserved:
@@ -434,11 +476,14 @@ def _stronger(w: int, at, w_best: int, at_best) -> bool:
     return w > w_best or (w == w_best and at_best is not None and at < at_best)
 
 
-def _counts(target: np.ndarray, labels) -> dict:
-    """Voxels of each label in ``target`` (a few planes at a time: no whole-size copy)."""
+def _counts(target: np.ndarray, labels, background: int = 0) -> dict:
+    """Voxels of each label in ``target`` (a few planes at a time: no whole-size copy).
+
+    ``target`` holds ``labels`` and the ``background`` label only.
+    """
     if not labels:
         return {}
-    lo, hi = min(min(labels), 0), max(max(labels), 0)
+    lo, hi = min(min(labels), background), max(max(labels), background)
     if hi - lo >= 1 << 24:
         values, counts = np.unique(target, return_counts=True)
         have = dict(zip(values.tolist(), counts.tolist(), strict=True))
@@ -463,7 +508,8 @@ def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, backg
     from .warp import prepare
 
     if background not in (None, 0, 0.0):
-        raise VolwarpError("--background does not apply to a label map (its background is 0)")
+        raise VolwarpError("--background does not apply to a label map (its background is "
+                           "its most frequent border label)")
     s = spec.capture
     try:
         cap = capture_labels(vol, lattice=s.lattice, placement=s.placement,
@@ -471,7 +517,8 @@ def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, backg
     except VolwarpError as exc:
         raise VolwarpError(f"{source}: {exc}") from None
     if spec.background not in (None, 0):
-        raise doc.error(("background",), "does not apply to a label map (its background is 0)")
+        raise doc.error(("background",), "does not apply to a label map (its background is "
+                        "its most frequent border label)")
     scene, frames = prepare(cap, doc, spec, method=method, evaluator=evaluator, background=0.0,
                             allow_growth=allow_growth, grid=grid)
     return cap, scene, frames

@@ -44,7 +44,7 @@ class WarpOptions:
     """What a warp may override of its spec, and the output's form.
 
     ``pushforward``, ``evaluator``: the spec's unless given; ``background``:
-    the spec's, else the input's border value (:func:`.warp.background_of`).
+    the spec's, else the input's border value (:func:`.defaults.background_choice`).
     ``grid``: ``"input"`` (the output on the input's grid) or ``"grow"``
     (grown to hold the moved model); None: the spec's, else input unless a
     pad is given (:func:`.warp.grid_of`). ``crop``: the same as ``grid="input"``.
@@ -344,15 +344,16 @@ class IntensityWarp:
 
     def __init__(self, cap, doc, spec, options: WarpOptions = WarpOptions(), *,
                  name: str = "input"):
-        from .defaults import resampling_warning, warn_once
-        from .warp import background_of, grid_of, prepare
+        from .defaults import background_choice, resampling_warning, warn_once
+        from .warp import grid_of, prepare
 
         self.cap = cap
         self.options = options
         #: the output's grid ("input" or "grow") and why
         self.grid, self.grid_why = grid_of(spec, cap, options.output_grid)
         #: the value where nothing lands, and why
-        self.background, self.background_why = background_of(spec, cap, options.background)
+        self.background, self.background_why = background_choice(
+            options.background, spec.background, cap.border)
         try:
             self.scene, self.frames = prepare(
                 cap, doc, spec, method=options.pushforward, evaluator=options.evaluator,
@@ -549,6 +550,7 @@ class LabelMapBlocks:
     def __init__(self, template: Volume, source, doc, spec,
                  options: WarpOptions = WarpOptions(), *, preserve: bool = False,
                  name: str = "input"):
+        from .defaults import border_label
         from .warp import output_planes, output_window_box
 
         self.source = source
@@ -557,6 +559,10 @@ class LabelMapBlocks:
         self.options = options
         self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
             template, doc, spec, options, name)
+        #: the label where nothing lands: the most frequent on the map's border
+        self.background = border_label(source)
+        log.info("labels: background label %d (the most frequent on the map's border)",
+                 self.background)
         if self.frames:
             self.scene.set_lattice(self.frames[-1].dq)
         #: the output's Volume, a placeholder of its shape and dtype
@@ -581,9 +587,10 @@ class LabelMapBlocks:
         # slabs of the map read for its labels' boxes: each one's samples and counts
         depth = max(1, min(nz, per_task // max(1, ny * nx * (self.input.dtype.itemsize + 16))))
         with timed("labels: bounding boxes (one pass)"):
-            labels, nvox, boxes = bounding_boxes_by_blocks(self.source, run, depth)
+            labels, nvox, boxes = bounding_boxes_by_blocks(self.source, run, depth,
+                                                           self.background)
         job = LabelBlocks(self.scene, self.source, labels, boxes, self.window,
-                          self.input.dtype, preserve=self.preserve)
+                          self.input.dtype, preserve=self.preserve, background=self.background)
         slab = slab or job.choose_depth(budget, engine.workers)
         shape = self.template.data.shape
         with open_output(self.template, (slab, shape[1], shape[2])) as out, \
@@ -615,11 +622,17 @@ class LabelMapWarp:
                  preserve: bool = False, name: str = "input"):
         if options.dtype is not None:
             raise VolwarpError("a label map keeps its own integer type (no dtype)")
+        from .defaults import border_label
+
         self.vol = vol
         self.options = options
         self.preserve = preserve
         self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
             vol, doc, spec, options, name)
+        #: the label where nothing lands: the most frequent on the map's border
+        self.background = border_label(vol.data)
+        log.info("labels: background label %d (the most frequent on the map's border)",
+                 self.background)
 
     def handles(self) -> list[dict]:
         """:func:`handle_report` of this warp's drags."""
@@ -641,7 +654,7 @@ class LabelMapWarp:
 
         self.scene.set_lattice(lattice)
         res = warp_labels(self.vol.data, self.scene, (), preserve=self.preserve,
-                          spacing=self.vol.spacing)
+                          spacing=self.vol.spacing, background=self.background)
         return output_volume(self.cap, self.scene, res.target, crop=self.options.crop), \
             res.report
 

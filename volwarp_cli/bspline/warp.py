@@ -69,7 +69,9 @@ def background_of(spec: WarpSpec, cap: Capture, option: float | None = None
     if spec.background is not None:
         return float(spec.background), "the spec's background"
     if cap.border is not None:
-        return float(cap.border), "the most frequent value on the input's border"
+        from .defaults import BORDER_WHY
+
+        return float(cap.border), BORDER_WHY
     return 0.0, "default"
 
 

@@ -47,7 +47,7 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 @click.option("--values", "values", type=click.Choice(["intensity", "labels"]), default=None,
               help="Take the samples as intensities (the shape: --iso V) or as label ids "
                    "(the labels' voxels). Default: labels when INPUT looks like a label map "
-                   "(integer samples, piecewise constant, as `volwarp info` hints), else intensity.")
+                   "(integer ids whose values are regions, as `volwarp info` hints), else intensity.")
 @click.option("--metric", type=click.Choice(_METRICS), default="euclidean", show_default=True,
               help="euclidean (exact); minnorm (the paper's shift-and-min passes; equals the "
                    "spacing-weighted taxicab distance); chessboard/taxicab (chamfer scans, "
@@ -79,8 +79,9 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
     The shape is the samples on one side of --iso V; a label map's is its
     labels' voxels: every voxel with a non-zero label, or label N's with
     --label N, on the voxel surface (the ids' values never count; --iso is
-    not needed). A label map is an integer volume that is piecewise constant
-    (as `volwarp info` hints); --values intensity|labels overrides. -v prints
+    not needed). A label map is a volume of integer ids (floats that are all
+    integers too) whose values are regions (as `volwarp info` hints);
+    --values intensity|labels overrides. -v prints
     the choice; the output's volwarp_distance key records it.
 
     With --update OLD_SDF --transform AFFINE.yaml, move an existing field by

@@ -39,7 +39,9 @@ def _format_text(d: dict) -> str:
             vals = " ".join(map(str, v["values"])) + (" ..." if v["labels"] > len(v["values"])
                                                          else "")
             lines.append(f"hint:      looks like a label map ({v['labels']} distinct values: "
-                         f"{vals}): warp it with --labels, mesh it with --label N or --labels")
+                         f"{vals}): warp and distance take it as labels by default "
+                         "(--values intensity to take its samples as intensities); mesh it "
+                         "with --label N or --labels")
         elif k == "candidates":
             lines.append(f"candidates: {len(v)} volume{'s' if len(v) > 1 else ''} in the input")
         elif k not in ("format", "shape", "dtype", "spacing", "origin", "direction", "space",
@@ -135,12 +137,13 @@ def _lattice_lines(desc: dict, pts) -> list[str]:
 
 
 def _label_hint(desc: dict, vol) -> None:
-    """Add ``label_map`` (distinct values, the first 16) when an integer volume looks like one.
+    """Add ``label_map`` (distinct values, the first 16) when the volume looks like one.
 
-    A segmentation: at most 256 distinct values and piecewise constant (see
+    The rule ``warp`` and ``distance`` follow (integer ids, or floats that are
+    all integers), listed up to 256 distinct values (see
     :func:`volwarp_cli.labelmap.label_map_hint`).
     """
-    if vol.data.dtype.kind in "iu":
+    if vol.data.dtype.kind in "iuf":
         from ..labelmap import label_map_hint
 
         hint = label_map_hint(vol.data)

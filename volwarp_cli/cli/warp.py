@@ -91,10 +91,10 @@ def _check_pattern(pattern: str) -> None:
 
 VALUES_HELP = (
     "How INPUT's samples are warped [default: the spec's values, else labels when INPUT "
-    "looks like a label map (integer, piecewise constant: `volwarp info` says so), else "
-    "intensity]. intensity: box-filtered and blended (scans, densities, distance fields). "
-    "labels: each output voxel takes the label of largest box-filter weight (the background "
-    "0 competes); ids are never averaged. -v prints each label's volume before and after "
+    "looks like a label map (integer ids whose values are regions, floats that are all "
+    "integers too: `volwarp info` says so), else intensity]. intensity: box-filtered and blended (scans, densities, distance fields). "
+    "labels: each output voxel takes the label of largest box-filter weight (the map's most "
+    "frequent border label, its background, competes); ids are never averaged. -v prints each label's volume before and after "
     "(--json: the labels key); with --frames-to, those of the last frame. A capture file "
     "(.vwc) of the uniform placement at an integer oversample holds its input's samples, and "
     "the same rule applies to them. -v and --json say which, and why.")
@@ -109,10 +109,11 @@ GRID_HELP = (
 
 BACKGROUND_HELP = (
     "Value of the space around the model, given to uncovered output voxels and blended into "
-    "partly covered ones [default: the spec's background, else the most frequent value on "
-    "INPUT's border (its six faces): what the scan has outside its anatomy, e.g. -1024 for a "
-    "CT, 0 for an MRI; -v prints it]; e.g. a large positive distance for a signed distance "
-    "field. Intensities only (a label map's background is the label 0).")
+    "partly covered ones [default: the spec's background, else the median of INPUT's border "
+    "samples (its six faces, NaN left out): what the scan has outside its anatomy, e.g. "
+    "-1024 for a CT, 0 for an MRI; -v prints it]; e.g. a large positive distance for a "
+    "signed distance field. Intensities only (a label map's background is its most "
+    "frequent border label).")
 
 #: options that shape the warped volume only: refused when no volume is written
 _VOLUME_ONLY = (("--values", "values"), ("--labels", "labels"), ("--pushforward", "pushforward"),
@@ -221,9 +222,9 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     is_capture = input.lower().endswith(".vwc")
     if values == "labels" and dtype is not None:
         raise click.UsageError("labels keep the label map's own integer type (no --dtype)")
-    if values == "labels" and background not in (None, 0):
+    if values == "labels" and background is not None:
         raise click.UsageError("--background-value does not apply to a label map (its "
-                               "background is the label 0)")
+                               "background is its most frequent border label)")
     if preserve_labels and values == "intensity":
         raise click.UsageError("--preserve-labels keeps labels: it does not go with "
                                "--values intensity")
@@ -404,12 +405,12 @@ def _check_labels_fit(choice, doc, spec, options, preserve: bool, name, values) 
 
         if options.dtype is not None:
             raise clash(f"{way} in the map's own integer type: --dtype does not apply")
-        if options.background not in (None, 0, 0.0):
-            raise clash(f"{way} with the label 0 as their background: --background-value "
-                        "does not apply")
-        if spec.background not in (None, 0):
-            raise doc.error(("background",), out(f"does not apply: {way} with the label 0 as "
-                                                 "their background"))
+        if options.background is not None:
+            raise clash(f"{way} with their most frequent border label as their background: "
+                        "--background-value does not apply")
+        if spec.background is not None:
+            raise doc.error(("background",), out(f"does not apply: {way} with their most "
+                                                 "frequent border label as their background"))
         c = spec.capture
         if c.placement != "uniform" and "placement" in spec.capture_given:
             raise doc.error(("capture", "placement"), out(

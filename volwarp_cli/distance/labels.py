@@ -1,8 +1,9 @@
 """What a distance field is of: a label map's labels, or the samples on one side of a level.
 
 DESIGN.md's "label maps are labels". When :func:`volwarp_cli.labelmap.looks_like_labels`
-takes the input for a label map (or the user says so: ``values="labels"``, or
-one ``label``), its distance is that of its labels' voxel surface: the shape
+takes the input for a label map (integer ids, or floats that are all integers, as
+nibabel and MONAI write segmentations), or the user says so (``values="labels"``,
+or one ``label``), its distance is that of its labels' voxel surface: the shape
 is every voxel with a non-zero id (or, with ``label``, the voxels of that id)
 and the field is the one between voxel centres. The ids' values never enter:
 renaming them (a bijection of the non-zero ids, 0 kept) gives the same field,
@@ -110,14 +111,17 @@ def scan_values(source, *, detect: bool = True,
     """The label rule's answer for ``source`` (``detect``) and its distinct values, box by box.
 
     ``source``: an array or a sliceable lazy source. Integer (or bool)
-    samples only are counted; others are no label map and are not read.
+    samples are counted, and float samples that are all integers (a
+    segmentation written as floats, as nibabel and MONAI do); floats with a
+    fraction are no label map (read no further than the first box that
+    shows it), and other types are not read.
     """
     from ..labelmap import scan_labels
 
     shape = tuple(int(n) for n in source.shape)
     dtype = np.dtype(source.dtype)
     size = int(np.prod(shape))
-    if dtype.kind not in "iub" or size == 0:
+    if dtype.kind not in "iubf" or size == 0:
         return ValueScan(False, None, None, size, dtype)
     looks, values, counts = scan_labels(source, detect=detect, box_voxels=box_voxels)
     return ValueScan(looks, values, counts, size, dtype)
@@ -168,8 +172,10 @@ def choose_shape(source, *, values: str | None = None, label: int | None = None,
         return ShapeRule("intensity", "not a label map", iso=iso, inside=inside)
     given = "--values labels" if values == "labels" else "--label N"
     if scan.values is None:
-        raise BadUsage(f"{name}: {given} needs a label map (integer samples), got "
-                       f"{scan.dtype}; give --iso V for the samples' level")
+        what = ("samples that are not all integers" if scan.dtype.kind == "f"
+                else "samples")
+        raise BadUsage(f"{name}: {given} needs a label map (integer ids), got {scan.dtype} "
+                       f"{what}; give --iso V for the samples' level")
     ids = scan.values[scan.values != 0]
     if values != "labels" and scan.looks_like:
         # (as warp counts them: the distinct values, 0 included)

@@ -525,10 +525,11 @@ class _ZarrOutput(BlockOutput):
         super().__init__(path, geometry, dtype, grid, phase)
         self._reindex = reindex
         self._stored, self._vol, self._version, self._pyramid = stored, vol, version, pyramid
-        # labels "auto" (write_volume's default) of an integer output: decided on commit,
-        # from the samples written (their pyramid levels take the mode or the mean)
+        # labels "auto" (write_volume's default) of an integer output, or a float one (a
+        # float map of integer ids is one too): decided on commit, from the samples written
+        # (their pyramid levels take the mode or the mean), as in memory
         if labels == "auto" or labels is None:
-            labels = None if pyramid and self.dtype.kind in "iu" else False
+            labels = None if pyramid and self.dtype.kind in "iuf" else False
         self._labels = labels if labels is None else bool(labels)
         try:
             tmp = self._stack.enter_context(atomic_folder(path))
