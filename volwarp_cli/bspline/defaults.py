@@ -254,12 +254,12 @@ def resampling_warning(placement: str, oversample: float, subdivision: int) -> s
     """
     if subdivision:
         return None
+    causes = []
     if placement != "uniform":
-        why = "the tripled placement"
-    elif float(oversample).is_integer():
-        why = "a capture file of version 1 (its grid spans the input)"
-    else:
-        why = f"oversample {oversample:g} (not an integer)"
+        causes.append("the tripled placement")
+    if not float(oversample).is_integer():
+        causes.append(f"oversample {oversample:g} (not an integer)")
+    why = " and ".join(causes) or "a capture file of version 1 (its grid spans the input)"
     return (f"warning: {why}: the capture resamples, so voxels the warp does not move change "
             "too; the uniform placement with an integer oversample keeps them exact")
 

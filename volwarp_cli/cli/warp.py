@@ -372,7 +372,8 @@ def _exports_only(input, spec_path, options, exports, is_capture, raw, volume_in
     stats = write_exports(exports, warp, meta=provenance("warp", input, spec_path),
                           mesh_meta=provenance("warp", [input, *mesh_src], spec_path),
                           blocks=blocks)
-    return {"output": None, "handles": warp.handles(), "grid": warp.grid, **stats}
+    # (no volume: no grid of its own; the exports are on the input's)
+    return {"output": None, "handles": warp.handles(), "grid": None, **stats}
 
 
 def _values_choice_json(choice) -> dict:
