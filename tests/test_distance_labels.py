@@ -12,6 +12,8 @@ segmentation: SimpleITK's k-means of the bundled T1 scan (the issue's case).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from conftest import DATA
@@ -338,3 +340,14 @@ def test_help_says_float32(run):
     head = res.stdout.split("Options:")[0]
     assert "float32" in head.split("\n\n")[1]  # the first line of the description
     assert "default: float32" in " ".join(res.stdout.split("--dtype", 1)[1].split())
+
+
+def test_labels_asked_of_a_scan_say_so_once(run, tmp_path):
+    """As warp says it: --label N on a volume that does not look like a label map warns."""
+    scan = Path(__file__).parent / "data" / "mri_t1_head_coronal_2x2x3mm.nrrd"
+    res = run("distance", scan, "--label", "40", "-o", tmp_path / "d.nrrd")
+    assert res.code == 0
+    assert res.stderr.count("does not look like a label map") == 1, res.stderr
+    ball = Path(__file__).parent / "data" / "ball_30_uint8.nrrd"
+    res = run("distance", ball, "--label", "200", "-o", tmp_path / "b.nrrd")
+    assert res.code == 0 and res.stderr == "", res.stderr

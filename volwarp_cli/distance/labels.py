@@ -163,7 +163,7 @@ def choose_shape(source, *, values: str | None = None, label: int | None = None,
     check_options(values=values, label=label, iso=iso, surface=surface)
     if values == "intensity":
         return ShapeRule("intensity", "given", iso=iso, inside=inside)
-    scan = scan_values(source, detect=values is None, box_voxels=box_voxels)
+    scan = scan_values(source, box_voxels=box_voxels)  # (detected: to say so when asked)
     if values is None and label is None and not scan.looks_like:
         if iso is None:
             raise BadUsage(f"--iso V is required: {name} does not look like a label map, so "
@@ -184,6 +184,11 @@ def choose_shape(source, *, values: str | None = None, label: int | None = None,
     else:
         why = "given"
         what = f"{name} is taken as a label map ({given})"
+        if not scan.looks_like:  # (as warp says it: once, and the work goes on as asked)
+            from ..progress import log
+
+            log.warning("warning: %s does not look like a label map (%d distinct values): its "
+                        "ids taken as labels as asked (%s)", name, len(scan.values), given)
     if surface == "subvoxel":
         raise BadUsage(f"{what}: {_SUBVOXEL}")
     chosen = ids if label is None else scan.values[scan.values == label]
