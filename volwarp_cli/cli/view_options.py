@@ -99,7 +99,8 @@ def camera_options(f):
         if camera_to is not None:
             from ..io.atomic import check_output_path
 
-            check_output_path(camera_to, option="--camera-to")  # a missing or read-only folder: before any work
+            # a missing or read-only folder, or an input: before any work
+            check_output_path(camera_to, option="--camera-to")
         return f(*args, camera_from=camera_from, camera_to=camera_to,
                  orientation_labels=orientation_labels, **kwargs)
 

@@ -89,12 +89,14 @@ def _check_pattern(pattern: str) -> None:
     refuse_pattern_over_input(pattern, option="--frames-to")  # any frame's name an input's
     check_output_path(a, option="--frames-to")
 
+
 VALUES_HELP = (
     "How INPUT's samples are warped [default: the spec's values, else labels when INPUT "
     "looks like a label map (integer ids whose values are regions, floats that are all "
-    "integers too: `volwarp info` says so), else intensity]. intensity: box-filtered and blended (scans, densities, distance fields). "
-    "labels: each output voxel takes the label of largest box-filter weight (the map's most "
-    "frequent border label, its background, competes); ids are never averaged. -v prints each label's volume before and after "
+    "integers too: `volwarp info` says so), else intensity]. intensity: box-filtered and "
+    "blended (scans, densities, distance fields). labels: each output voxel takes the label "
+    "of largest box-filter weight (the map's most frequent border label, its background, "
+    "competes); ids are never averaged. -v prints each label's volume before and after "
     "(--json: the labels key); with --frames-to, those of the last frame. A capture file "
     "(.vwc) of the uniform placement at an integer oversample holds its input's samples, and "
     "the same rule applies to them. -v and --json say which, and why.")
@@ -333,7 +335,6 @@ def _exports_only(input, spec_path, options, exports, is_capture, raw, volume_in
     warp with the same spec and options.
     """
     from ..bspline.export import check_exportable
-    from ..bspline.export_outputs import FieldBlocks, write_exports
     from ..bspline.plan import read_warp_spec
     from ..bspline.run import Deformation
     from ..bspline.warp import check_capture_settings
@@ -361,17 +362,8 @@ def _exports_only(input, spec_path, options, exports, is_capture, raw, volume_in
             raise VolwarpError(f"{input}: {exc}") from None
     check_exportable(cap.placement, cap.dq, input)
     warp = Deformation(cap, doc, spec, options)
-    mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
-    blocks = None
-    if scale_settings().chunked:
-        from .chunked import block_budget
-
-        settings = scale_settings()
-        blocks = FieldBlocks(memory=block_budget(),
-                             depth=settings.block[0] if settings.block else None)
-    stats = write_exports(exports, warp, meta=provenance("warp", input, spec_path),
-                          mesh_meta=provenance("warp", [input, *mesh_src], spec_path),
-                          blocks=blocks)
+    stats = _write_exports(exports, warp, input, spec_path,
+                           by_slabs=bool(scale_settings().chunked))
     # (no volume: no grid of its own; the exports are on the input's)
     return {"output": None, "handles": warp.handles(), "grid": None, **stats}
 
@@ -517,23 +509,31 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
     summary = {"output": str(output), **summary, **_values_choice_json(choice),
                **warp.summary()}
     if exports:
-        summary.update(_exports_by_blocks(exports, warp, input, spec_path))
+        summary.update(_write_exports(exports, warp, input, spec_path, by_slabs=True))
     return summary
 
 
-def _exports_by_blocks(exports, warp, input, spec_path) -> dict:
-    """The exports after a warp by blocks, the fields by slabs; their --json figures."""
-    # after -o, as in memory (each export atomic on its own)
-    from ..bspline.export_outputs import FieldBlocks, write_exports
-    from .chunked import block_budget
+def _write_exports(exports, warp, input, spec_path, *, by_slabs: bool) -> dict:
+    """The deformation's exports, stamped with their provenance; their --json figures.
 
-    settings = scale_settings()
+    Written after -o: a run that fails or is stopped before its output leaves
+    the old exports as they were (each export file is atomic on its own).
+    ``by_slabs``: the fields computed and written by slabs of z planes within
+    the block budget (a warp by blocks).
+    """
+    from ..bspline.export_outputs import FieldBlocks, write_exports
+
+    blocks = None
+    if by_slabs:
+        from .chunked import block_budget
+
+        settings = scale_settings()
+        blocks = FieldBlocks(memory=block_budget(),
+                             depth=settings.block[0] if settings.block else None)
     mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
-    fields = FieldBlocks(memory=block_budget(),
-                         depth=settings.block[0] if settings.block else None)
     return write_exports(exports, warp, meta=provenance("warp", input, spec_path),
                          mesh_meta=provenance("warp", [input, *mesh_src], spec_path),
-                         blocks=fields)
+                         blocks=blocks)
 
 
 def _warp_labels_by_blocks(template, source, input, spec_path, output, options, write_kw,
@@ -565,7 +565,7 @@ def _warp_labels_by_blocks(template, source, input, spec_path, output, options, 
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
     summary = {"output": str(output), **summary, **_labels_json(report)}
     if exports:
-        summary.update(_exports_by_blocks(exports, warp, input, spec_path))
+        summary.update(_write_exports(exports, warp, input, spec_path, by_slabs=True))
     return summary
 
 
@@ -662,14 +662,7 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, values, preser
                 write(out, output)
             shape = list(out.shape_xyz)
     if exports:
-        # after -o: a run that fails or is stopped before its output leaves the old
-        # exports as they were (each export file is atomic on its own)
-        from ..bspline.export_outputs import write_exports
-
-        mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
-        stats.update(write_exports(exports, warp, meta=provenance("warp", input, spec_path),
-                                   mesh_meta=provenance("warp", [input, *mesh_src],
-                                                        spec_path)))
+        stats.update(_write_exports(exports, warp, input, spec_path, by_slabs=False))
     summary = {"output": None if output is None else str(output), "shape": shape}
     if frames_to:
         summary["frames"] = written[0]
