@@ -242,6 +242,20 @@ def output_grid(option: str | None, spec_grid: str | None,
     return "input", "default"
 
 
+def spanning_cause(placement: str, oversample: float) -> str:
+    """Why a capture is on the spanning grid (its samples blends of the input's), in words.
+
+    Every cause: the tripled placement, a non-integer oversample; neither: a
+    capture file of version 1, whose grid spans the input at any oversample.
+    """
+    causes = []
+    if placement != "uniform":
+        causes.append("the tripled placement")
+    if not float(oversample).is_integer():
+        causes.append(f"oversample {oversample:g} (not an integer)")
+    return " and ".join(causes) or "a capture file of version 1 (its grid spans the input)"
+
+
 def resampling_warning(placement: str, oversample: float, subdivision: int) -> str | None:
     """The line to say when a capture does not keep unmoved voxels exact, or None.
 
@@ -254,13 +268,7 @@ def resampling_warning(placement: str, oversample: float, subdivision: int) -> s
     """
     if subdivision:
         return None
-    causes = []
-    if placement != "uniform":
-        causes.append("the tripled placement")
-    if not float(oversample).is_integer():
-        causes.append(f"oversample {oversample:g} (not an integer)")
-    why = " and ".join(causes) or "a capture file of version 1 (its grid spans the input)"
-    return (f"warning: {why}: the capture resamples, so voxels the warp does not move change "
+    return (f"warning: {spanning_cause(placement, oversample)}: the capture resamples, so voxels the warp does not move change "
             "too; the uniform placement with an integer oversample keeps them exact")
 
 

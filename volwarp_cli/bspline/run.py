@@ -288,17 +288,12 @@ def capture_values(cap, given: str | None, name: str):
     intensities, and labels asked for (``given``) are a usage error.
     """
     from .capture import captured_input
-    from .defaults import ValuesChoice, choose_values
+    from .defaults import ValuesChoice, choose_values, spanning_cause
 
     view = captured_input(cap)
     if view is not None:
         return choose_values(view, given, name=name), view
-    if cap.placement != "uniform":
-        how = "the tripled placement"
-    elif float(cap.oversample).is_integer():
-        how = "a spanning grid (capture file version 1)"
-    else:
-        how = f"oversample {cap.oversample:g}"
+    how = spanning_cause(cap.placement, cap.oversample)
     if given == "labels":
         raise BadUsage(f"{name}: a capture with {how} holds blended samples, not labels: "
                        "capture the label map with the uniform placement and an integer "
@@ -333,7 +328,24 @@ def handle_report(cap, frames) -> list[dict]:
 OnFrame = Callable[[dict, Volume], None]
 
 
-class IntensityWarp:
+class _LatticeMoves:
+    """What every warp of a capture ``cap`` through planned ``frames`` gives its exports.
+
+    The final lattice (the moved points, meshes and fields are its map) and
+    the drag handles' report.
+    """
+
+    @property
+    def final_lattice(self) -> np.ndarray:
+        """The control-point offsets after the last step."""
+        return self.frames[-1].dq if self.frames else self.cap.dq
+
+    def handles(self) -> list[dict]:
+        """:func:`handle_report` of this warp's drags."""
+        return handle_report(self.cap, self.frames)
+
+
+class IntensityWarp(_LatticeMoves):
     """The warp of a captured volume (:class:`.capture.Capture`) by a checked spec.
 
     Construction plans every lattice state and builds the scene (its padded
@@ -369,14 +381,7 @@ class IntensityWarp:
         """The ``--json`` keys of the choices made: grid, background."""
         return {"grid": self.grid, "background": self.background}
 
-    @property
-    def final_lattice(self) -> np.ndarray:
-        """The control-point offsets after the last step."""
-        return self.frames[-1].dq if self.frames else self.cap.dq
 
-    def handles(self) -> list[dict]:
-        """:func:`handle_report` of this warp's drags."""
-        return handle_report(self.cap, self.frames)
 
     def output(self, target: np.ndarray) -> Volume:
         """A target array as the output Volume (cropped and cast as the options say)."""
@@ -506,7 +511,16 @@ def _prepare_labels(vol: Volume, doc, spec, options: WarpOptions, name: str):
     return cap, scene, frames, grid
 
 
-class Deformation:
+def _background_label(samples) -> int:
+    """A label map's background (:func:`.defaults.border_label`), said at -v."""
+    from .defaults import border_label
+
+    label = border_label(samples)
+    log.info("labels: background label %d (the most frequent on the map's border)", label)
+    return label
+
+
+class Deformation(_LatticeMoves):
     """A warp's lattice moves and nothing else: what its exports need, no volume computed.
 
     ``cap``: a capture without samples (:func:`.capture.geometry_capture`,
@@ -526,17 +540,10 @@ class Deformation:
             background=0.0, allow_growth=options.allow_growth, whole_target=False,
             grid=self.grid)
 
-    @property
-    def final_lattice(self) -> np.ndarray:
-        """The control-point offsets after the last step."""
-        return self.frames[-1].dq if self.frames else self.cap.dq
-
-    def handles(self) -> list[dict]:
-        """:func:`handle_report` of this warp's drags."""
-        return handle_report(self.cap, self.frames)
 
 
-class LabelMapBlocks:
+
+class LabelMapBlocks(_LatticeMoves):
     """The warp of a label map read by boxes, by slabs of target planes (never held whole).
 
     ``template``: the map's Volume with a placeholder of its shape and dtype;
@@ -550,7 +557,6 @@ class LabelMapBlocks:
     def __init__(self, template: Volume, source, doc, spec,
                  options: WarpOptions = WarpOptions(), *, preserve: bool = False,
                  name: str = "input"):
-        from .defaults import border_label
         from .warp import output_planes, output_window_box
 
         self.source = source
@@ -560,9 +566,7 @@ class LabelMapBlocks:
         self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
             template, doc, spec, options, name)
         #: the label where nothing lands: the most frequent on the map's border
-        self.background = border_label(source)
-        log.info("labels: background label %d (the most frequent on the map's border)",
-                 self.background)
+        self.background = _background_label(source)
         if self.frames:
             self.scene.set_lattice(self.frames[-1].dq)
         #: the output's Volume, a placeholder of its shape and dtype
@@ -601,13 +605,9 @@ class LabelMapBlocks:
                 "handles": handle_report(self.cap, self.frames), "report": report,
                 "grid": self.grid}
 
-    @property
-    def final_lattice(self) -> np.ndarray:
-        """The control-point offsets after the last step (for the exports)."""
-        return self.frames[-1].dq if self.frames else self.cap.dq
 
 
-class LabelMapWarp:
+class LabelMapWarp(_LatticeMoves):
     """The warp of a label map (segmentation) by a checked spec.
 
     Every output voxel is an input label (see :mod:`.labels`).
@@ -622,30 +622,19 @@ class LabelMapWarp:
                  preserve: bool = False, name: str = "input"):
         if options.dtype is not None:
             raise VolwarpError("a label map keeps its own integer type (no dtype)")
-        from .defaults import border_label
-
         self.vol = vol
         self.options = options
         self.preserve = preserve
         self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
             vol, doc, spec, options, name)
         #: the label where nothing lands: the most frequent on the map's border
-        self.background = border_label(vol.data)
-        log.info("labels: background label %d (the most frequent on the map's border)",
-                 self.background)
+        self.background = _background_label(vol.data)
 
-    def handles(self) -> list[dict]:
-        """:func:`handle_report` of this warp's drags."""
-        return handle_report(self.cap, self.frames)
 
     def summary(self) -> dict:
         """The ``--json`` keys of the choices made: the grid."""
         return {"grid": self.grid}
 
-    @property
-    def final_lattice(self) -> np.ndarray:
-        """The control-point offsets after the last step (for the exports)."""
-        return self.frames[-1].dq if self.frames else self.cap.dq
 
     def warp(self, lattice: np.ndarray) -> tuple[Volume, dict]:
         """The label warp for control-point offsets ``lattice``."""
