@@ -210,7 +210,7 @@ def choose_values(source, given: str | None = None, *, name: str = "the input") 
         if not looks:
             warning = (f"warning: {name} does not look like a label map ({n} distinct "
                        f"value{'s' if n != 1 else ''}"
-                       f"{'' if n is not None and n < 2 else ', not piecewise constant'}): "
+                       f"{'' if n < 2 else ', not piecewise constant'}): "
                        "warped as labels as asked (each output voxel one of its values, "
                        "never a blend)")
         return ValuesChoice("labels", "given", n, warning)
@@ -268,8 +268,9 @@ def resampling_warning(placement: str, oversample: float, subdivision: int) -> s
     """
     if subdivision:
         return None
-    return (f"warning: {spanning_cause(placement, oversample)}: the capture resamples, so voxels the warp does not move change "
-            "too; the uniform placement with an integer oversample keeps them exact")
+    return (f"warning: {spanning_cause(placement, oversample)}: the capture resamples, so "
+            "voxels the warp does not move change too; the uniform placement with an integer "
+            "oversample keeps them exact")
 
 
 _said: contextvars.ContextVar[set | None] = contextvars.ContextVar("volwarp_warp_said",

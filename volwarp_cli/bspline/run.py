@@ -356,16 +356,15 @@ class IntensityWarp(_LatticeMoves):
 
     def __init__(self, cap, doc, spec, options: WarpOptions = WarpOptions(), *,
                  name: str = "input"):
-        from .defaults import background_choice, resampling_warning, warn_once
-        from .warp import grid_of, prepare
+        from .defaults import resampling_warning, warn_once
+        from .warp import background_of, grid_of, prepare
 
         self.cap = cap
         self.options = options
         #: the output's grid ("input" or "grow") and why
         self.grid, self.grid_why = grid_of(spec, cap, options.output_grid)
         #: the value where nothing lands, and why
-        self.background, self.background_why = background_choice(
-            options.background, spec.background, cap.border)
+        self.background, self.background_why = background_of(spec, cap, options.background)
         try:
             self.scene, self.frames = prepare(
                 cap, doc, spec, method=options.pushforward, evaluator=options.evaluator,

@@ -59,20 +59,14 @@ def grid_of(spec: WarpSpec, cap: Capture | None, option: str | None = None) -> t
 
 def background_of(spec: WarpSpec, cap: Capture, option: float | None = None
                   ) -> tuple[float, str]:
-    """The background value and why: the option's, the spec's, else the input's border.
+    """The background value and why: :func:`.defaults.background_choice` of ``cap``'s border.
 
-    The border (:func:`.defaults.border_value`: what the scan has outside its
-    anatomy) where the capture knows it, else 0.
+    (The option's, the spec's, else what the scan has outside its anatomy
+    where the capture knows it, else 0.)
     """
-    if option is not None:
-        return float(option), "given"
-    if spec.background is not None:
-        return float(spec.background), "the spec's background"
-    if cap.border is not None:
-        from .defaults import BORDER_WHY
+    from .defaults import background_choice
 
-        return float(cap.border), BORDER_WHY
-    return 0.0, "default"
+    return background_choice(option, spec.background, cap.border)
 
 
 def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
