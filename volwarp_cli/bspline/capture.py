@@ -32,7 +32,7 @@ class Capture:
     nearest edge voxel's, which the pushforward leaves out) or a convex
     combination of eight. A deferred capture has no
     ``domain`` array but a ``sampler`` that gathers its planes on demand.
-    ``border``: the most frequent value on the input's faces
+    ``border``: the median of the input's border samples
     (:func:`.defaults.border_value`), the warp's default background; None
     when not known.
     """
