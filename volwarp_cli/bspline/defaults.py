@@ -85,18 +85,24 @@ def border_label(source) -> int:
     to the smallest label. ``source``: integer (or integer-valued) samples,
     an array or a sliceable lazy source (only its faces are read).
     """
-    from ..errors import VolwarpError
     from ..labelmap import integer_samples, value_counts
 
     samples = border_samples(source)
     if not samples.size:
         return 0
     if integer_samples(samples) is None:
-        raise VolwarpError(f"a label map needs integer ids, and its {samples.dtype} samples "
-                           "are not all integers (a fraction, a NaN or an infinity): warp it "
-                           "as intensities")
+        raise not_ids("the label map", samples.dtype)
     values, counts = value_counts(samples)
     return int(values[int(np.argmax(counts))])  # (sorted: the first maximum is the smallest)
+
+
+def not_ids(name: str, dtype) -> Exception:
+    """The error for float samples taken as labels that are not all integers (raise it)."""
+    from ..errors import VolwarpError
+
+    return VolwarpError(f"{name}: a label map needs integer ids, and its {np.dtype(dtype)} "
+                        "samples are not all integers (a fraction, a NaN or an infinity): "
+                        "warp it as intensities (--values intensity)")
 
 
 def border_samples(source) -> np.ndarray:
@@ -201,11 +207,7 @@ def choose_values(source, given: str | None = None, *, name: str = "the input") 
     looks, n = label_scan(source)
     if given == "labels":
         if n is None:
-            from ..errors import VolwarpError
-
-            raise VolwarpError(f"{name}: a label map needs integer ids, and its "
-                               f"{np.dtype(source.dtype)} samples are not all integers (a "
-                               "fraction, a NaN or an infinity): warp it without --labels")
+            raise not_ids(name, source.dtype)
         warning = None
         if not looks:
             warning = (f"warning: {name} does not look like a label map ({n} distinct "

@@ -111,15 +111,14 @@ def check_ids(data, name: str = "the label map") -> None:
     Integer samples pass unread. A fraction, a NaN or an infinity is no id.
     """
     from ..labelmap import integer_samples
+    from .defaults import not_ids
 
     if np.dtype(data.dtype).kind in "iu":
         return
     step = max(1, (1 << 20) // max(1, int(np.prod(data.shape[1:]))))
     for z in range(0, len(data), step):
         if integer_samples(np.asarray(data[z:z + step])) is None:
-            raise VolwarpError(f"{name}: a label map needs integer ids, and its {data.dtype} "
-                               "samples are not all integers (a fraction, a NaN or an "
-                               "infinity): warp it as intensities")
+            raise not_ids(name, data.dtype)
 
 
 def _bounding_boxes(data: np.ndarray, background: int = 0):
