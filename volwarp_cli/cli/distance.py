@@ -47,7 +47,8 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 @click.option("--values", "values", type=click.Choice(["intensity", "labels"]), default=None,
               help="Take the samples as intensities (the shape: --iso V) or as label ids "
                    "(the labels' voxels). Default: labels when INPUT looks like a label map "
-                   "(integer ids whose values are regions, as `volwarp info` hints), else intensity.")
+                   "(integer ids whose values are regions, as `volwarp info` hints), else "
+                   "intensity.")
 @click.option("--metric", type=click.Choice(_METRICS), default="euclidean", show_default=True,
               help="euclidean (exact); minnorm (the paper's shift-and-min passes; equals the "
                    "spacing-weighted taxicab distance); chessboard/taxicab (chamfer scans, "
@@ -65,7 +66,7 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
               metavar="OLD_SDF", help="Update an existing signed field instead (needs --transform).")
 @click.option("--transform", type=INPUT_PATH, default=None, metavar="AFFINE.yaml",
               help="With --update: the move (transform spec, see specs/transform.schema.json).")
-@write_options
+@write_options(dtype_default="float32, whatever the input's type")
 @input_options
 @scale_options
 @common_options
@@ -155,13 +156,6 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
     with timed(f"write {output}"):
         write_volume(out, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      **ome_zarr)
-
-
-# the shared --dtype says "default: the input's"; a distance field's is float32
-for _param in command.params:
-    if _param.name == "dtype":
-        _param.help = ("Output sample type (default: float32, whatever the input's type). "
-                       "Integers are rounded and clipped to the type's range.")
 
 
 def _chosen(rule):

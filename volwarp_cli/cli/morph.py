@@ -126,7 +126,7 @@ def _attribute_name(frame_path: str, name: str) -> str:
 @render_size_option(help_text="Render size in pixels, for --render-to.")
 @click.option("--view", default="iso", show_default=True,
               callback=core_parser(parse_view), help=VIEW_HELP)
-@write_options
+@write_options(dtype_default="float32; a density whose range is the source's: its type")
 @camera_options
 @scale_options
 @common_options

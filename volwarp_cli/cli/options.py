@@ -379,8 +379,11 @@ def input_options(f):
     return wrapper
 
 
-def write_options(f):
+def write_options(f=None, *, dtype_default: str = "the input's"):
     """--dtype, --compress, --byte-order, --ome-zarr-version and --pyramid for volume outputs.
+
+    ``@write_options``, or ``@write_options(dtype_default="float32, ...")`` where
+    the output's type is not the input's (its ``--help`` says so).
 
     The first three reach the command as ``dtype``, ``compress`` and
     ``byte_order``. The OME-Zarr ones reach it as one keyword, ``ome_zarr``:
@@ -391,6 +394,8 @@ def write_options(f):
     """
     import inspect
 
+    if f is None:
+        return functools.partial(write_options, dtype_default=dtype_default)
     takes = "ome_zarr" in inspect.signature(f).parameters
 
     @functools.wraps(f)
@@ -412,7 +417,7 @@ def write_options(f):
         help="OME-Zarr output (.ome.zarr): NGFF 0.5 (Zarr v3, sharded) or 0.4 (Zarr v2, "
              "for older viewers).")(wrapper)
     wrapper = click.option("--dtype", type=click.Choice(SUPPORTED_DTYPES), default=None,
-                           help="Output sample type (default: the input's). Integers are "
+                           help=f"Output sample type (default: {dtype_default}). Integers are "
                                 "rounded and clipped to the type's range.")(wrapper)
     wrapper = click.option("--compress/--no-compress", default=False, show_default=True,
                            help="gzip NRRD data, zlib MetaImage data and TIFF pages (.nii.gz "

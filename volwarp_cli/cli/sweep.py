@@ -136,7 +136,7 @@ def _check_grid(shape_xyz, origin, spacing, doc, from_options: bool, lo, hi,
               help="Largest distance between neighbouring templates, world units "
                    "(default: the spec's, else half a voxel).")
 @camera_options
-@write_options
+@write_options(dtype_default="float32; an integer type scales 0..1 to its maximum")
 @scale_options
 @common_options
 def command(spec, output, multi, render_path, view, render_size, shape, spacing, method, tau,
