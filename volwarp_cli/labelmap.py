@@ -105,6 +105,10 @@ from __future__ import annotations
 
 import numpy as np
 
+#: ``--values`` of the commands that follow the rule (warp, distance): the samples taken as
+#: intensities, or as label ids
+VALUES = ("intensity", "labels")
+
 #: ``info``'s hint lists label maps with at most this many distinct values
 HINT_MAX_LABELS = 256
 #: test 1: at least this share of the neighbour pairs that are both neither 0 nor the

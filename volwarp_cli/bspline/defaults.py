@@ -33,11 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..labelmap import SCAN_BOX_VOXELS
+from ..labelmap import SCAN_BOX_VOXELS, VALUES  # noqa: F401  (warp's --values)
 from ..progress import log
 
-#: ``--values``: the samples as intensities (box-filtered, blended) or as label ids
-VALUES = ("intensity", "labels")
 #: ``--grid``: the input's grid, or grown to hold the whole moved model
 GRIDS = ("input", "grow")
 

@@ -14,6 +14,7 @@ import gc
 import click
 
 from ..io import check_output_path, write_volume
+from ..labelmap import VALUES
 from ..progress import log, timed
 from .common import load_input, stamp
 from .options import (
@@ -44,7 +45,7 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 @click.option("--label", "label", type=int, default=None, metavar="N",
               help="A label map: the distance of label N's voxels (default: of every voxel "
                    "with a non-zero label).")
-@click.option("--values", "values", type=click.Choice(["intensity", "labels"]), default=None,
+@click.option("--values", "values", type=click.Choice(VALUES), default=None,
               help="Take the samples as intensities (the shape: --iso V) or as label ids "
                    "(the labels' voxels). Default: labels when INPUT looks like a label map "
                    "(integer ids whose values are regions, as `volwarp info` hints), else "

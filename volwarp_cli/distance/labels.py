@@ -31,11 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BadUsage, VolwarpError
-from ..labelmap import SCAN_BOX_VOXELS
+from ..labelmap import SCAN_BOX_VOXELS, VALUES
 from .field import inside_mask, signed_distance
-
-#: ``--values``: the samples as intensities (an iso level) or as label ids.
-VALUES = ("intensity", "labels")
 
 
 @dataclass(frozen=True)
