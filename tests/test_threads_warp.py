@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 import pytest
+from one_shot import one_shot
 
 from volwarp_cli import parallel
 from volwarp_cli.box import Box
@@ -102,46 +103,48 @@ def test_full_render_and_local_updates_identical_for_any_thread_count(monkeypatc
         assert np.array_equal(reference[1], got[1])
 
 
+def _operation(cap, dq, pad):
+    """The one-shot warp of ``cap`` with lattice ``dq`` as the executor's operation."""
+    from volwarp_cli.bspline.blocks import WarpOperation, target_box
+    from volwarp_cli.bspline.pullback import DomainSampler
+    from volwarp_cli.execute import Target
+
+    scene = Scene(cap.voxmap, cap.grid, dq, pad, domain_range=cap.stats[:2])
+    window = target_box(scene)
+    template = Volume(np.broadcast_to(np.zeros((), np.float32), window.shape))
+    sampler = scene.sampler if scene.sampler is not None else DomainSampler(scene.domain)
+    return WarpOperation(scene, None, cap.placement, cap.sampling, window,
+                         Target(None, template, np.float32), sampler=sampler)
+
+
 @pytest.mark.parametrize("oversample", [1, 2])
 def test_one_shot_render_identical_for_any_threads_and_block_size(monkeypatch, oversample):
+    """The whole output over any thread count, and any cut into blocks computed one by
+    one, are the full render bit for bit; several threads really run."""
     probe = KernelThreads(monkeypatch)
     data = blob((40, 24, 26))
     cap = capture_volume(Volume(data), lattice=(6, 6, 7), oversample=oversample)
     dq = moved_lattice(cap)
-
-    def scene():
-        return Scene(cap.domain, cap.grid, dq, 3, domain_range=cap.stats[:2])
-
-    full = scene().render().copy()
+    full = Scene(cap.domain, cap.grid, dq, 3, domain_range=cap.stats[:2]).render().copy()
     for n in THREADS:
-        for block in (None, 1, 3, 7):
-            probe.reset()
-            with parallel.use_threads(n):
-                out = scene().render_once(block_planes=block)
-            assert np.array_equal(out, full), (n, block)
-            if n > 1 and block is not None:
-                assert len(probe.seen) > 1
-
-
-def test_one_shot_sink_gets_every_plane_once_from_several_threads(monkeypatch):
-    data = blob((36, 20, 22))
-    cap = capture_volume(Volume(data), lattice=(6, 6, 6), oversample=1)
-    dq = moved_lattice(cap, seed=9)
-    full = Scene(cap.domain, cap.grid, dq, 3).render().copy()
-    got = np.full_like(full, np.nan)
-    calls, lock = [], threading.Lock()
-
-    def sink(z0, z1, planes):
-        with lock:
-            calls.append((z0, z1, threading.get_ident()))
-            assert np.all(np.isnan(got[z0:z1]))  # each range once
-            got[z0:z1] = planes
-        time.sleep(0.002)  # (so that one thread does not finish the small slabs alone)
-
-    with parallel.use_threads(3):
-        assert Scene(cap.domain, cap.grid, dq, 3).render_once(sink=sink, block_planes=5) is None
-    assert np.array_equal(got, full)
-    assert len({t for _, _, t in calls}) > 1
+        probe.reset()
+        op = _operation(cap, dq, 3)
+        with parallel.use_threads(n):
+            out = op.compute(op.grid.box, threads=n)[op.KEY]
+        assert np.array_equal(out, full), n
+        if n > 1:
+            assert len(probe.seen) > 1
+    op = _operation(cap, dq, 3)
+    for block in ((1, 46, 32), (7, 5, 32), (13, 17, 9)):
+        got = np.full_like(full, np.nan)
+        for z in range(0, full.shape[0], block[0]):
+            for y in range(0, full.shape[1], block[1]):
+                for x in range(0, full.shape[2], block[2]):
+                    box = Box((z, y, x), (min(z + block[0], full.shape[0]),
+                                          min(y + block[1], full.shape[1]),
+                                          min(x + block[2], full.shape[2])))
+                    got[box.slices] = op.compute(box, threads=1)[op.KEY]
+        assert np.array_equal(got, full), block
 
 
 def test_deferred_gather_identical_for_any_thread_count():
@@ -152,11 +155,12 @@ def test_deferred_gather_identical_for_any_thread_count():
     full = Scene(ref.domain, ref.grid, dq, 2, domain_range=ref.stats[:2]).render().copy()
     for n in THREADS:
         cap = capture_volume(vol, lattice=(6, 6, 6), oversample=2, defer=True)
-        assert cap.domain is None  # gathered plane by plane as the blocks stream
+        assert cap.domain is None  # gathered box by box as the blocks stream
+        op = _operation(cap, dq, 2)
         with parallel.use_threads(n):
-            out = Scene(cap.voxmap, cap.grid, dq, 2,
-                        domain_range=ref.stats[:2]).render_once(block_planes=4)
+            out = op.compute(op.grid.box, threads=n)[op.KEY]
         assert np.array_equal(out, full), n
+        assert cap.domain is None
 
 
 def test_parts_cover_the_target_planes_and_each_voxel_that_reaches_them(small_splits):
@@ -314,4 +318,4 @@ def test_chunks_follow_the_memory_budget_and_change_nothing():
         tight = Scene(cap.domain, cap.grid, dq, 3)
         assert tight.chunk_bytes == memory.block_bytes() < scene_mod.CHUNK_BYTES
         assert np.array_equal(tight.render(), reference)
-        assert np.array_equal(Scene(cap.domain, cap.grid, dq, 3).render_once(), reference)
+        assert np.array_equal(one_shot(Scene(cap.domain, cap.grid, dq, 3)), reference)

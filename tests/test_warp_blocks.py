@@ -21,6 +21,7 @@ from volwarp_cli.bspline.capture import capture_source, capture_volume
 from volwarp_cli.bspline.pullback import BoxSampler, Sampler
 from volwarp_cli.bspline.pushforward import HeldPlanes
 from volwarp_cli.bspline.scene import Scene
+from volwarp_cli.execute import Target
 from volwarp_cli.volume import Volume
 
 
@@ -159,7 +160,7 @@ def test_capture_source_refuses_nan():
         capture_source(Volume(data), data)
 
 
-def test_warp_blocks_pickle_without_samples_and_render_the_same(tmp_path):
+def test_warp_operation_pickles_without_samples_and_renders_the_same(tmp_path):
     """A worker process gets the job pickled: the input is reopened from its path there."""
     from volwarp_cli.io import write_volume
 
@@ -171,11 +172,13 @@ def test_warp_blocks_pickle_without_samples_and_render_the_same(tmp_path):
     dq = _general(cap, scale=1.0)
     scene = Scene(cap.sampler, cap.grid, dq, 4, domain_range=cap.stats[:2])
     window = blocks.target_box(scene)
-    job = blocks.WarpBlocks(scene, source, cap.placement, cap.sampling, window, np.float32)
+    template = Volume(np.broadcast_to(np.zeros((), np.float32), window.shape))
+    job = blocks.WarpOperation(scene, source, cap.placement, cap.sampling, window,
+                               Target(tmp_path / "o.nrrd", template, np.float32))
     blob = pickle.dumps(job)
     assert len(blob) < 64 * 1024  # the lattice and tables, not the samples
     copy = pickle.loads(blob)
-    assert copy.source._array is None
+    assert copy.source._array is None and copy.targets == {}  # (the writers are the tasks')
     full = Scene(cap.sampler, cap.grid, dq, 4, domain_range=cap.stats[:2]).render()
     box = Box((3, 4, 5), (20, 17, 26))
     assert np.array_equal(copy.output_block(box), full[box.slices])

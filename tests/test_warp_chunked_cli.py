@@ -151,8 +151,8 @@ def test_a_failing_block_leaves_no_output(run, scan, tmp_path, monkeypatch):
             raise VolwarpError("disk full (test)")
         return original(self, box)
 
-    original = blocks.WarpBlocks.output_block
-    monkeypatch.setattr(blocks.WarpBlocks, "output_block", broken)
+    original = blocks.WarpOperation.output_block
+    monkeypatch.setattr(blocks.WarpOperation, "output_block", broken)
     res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--block", "12",
               "--scheduler", "synchronous")
     assert res.code == 1 and "disk full (test)" in res.stderr

@@ -252,28 +252,28 @@ def test_background_from_spec_and_command_line(run, data_dir, tmp_path):
 
 def test_capture_made_while_the_spec_is_checked_is_used_once(run, data_dir, tmp_path,
                                                             monkeypatch):
-    """The volume is captured with the spec's settings before the schema check; the
-    command uses that capture (made once) and writes the output of capturing, then
-    warping. A one-shot warp defers the gather: its planes are gathered as they are
-    streamed, the whole domain never; with frames the whole domain is gathered once."""
+    """With frames, the volume is captured with the spec's settings before the schema
+    check; the command uses that capture (made once) and writes the output of capturing,
+    then warping. A one-shot warp gathers the domain box by box as its blocks stream it
+    (a deferred capture of the input read lazily), the whole domain never."""
     from volwarp_cli.bspline import capture as capture_mod
 
     calls = []
     real = capture_mod.capture_volume
     monkeypatch.setattr(capture_mod, "capture_volume",
-                        lambda *a, **k: calls.append(k.get("defer")) or real(*a, **k))
+                        lambda *a, **k: calls.append(1) or real(*a, **k))
     spec = _spec(tmp_path, "version: 1\ncapture: {lattice: 6, oversample: 1}\nsteps:\n"
                  "  - move:\n      - {index: [2, 2, 2], by: [1.5, 0, 0]}\n")
     out = tmp_path / "o.nrrd"
     res = run("warp", "-vv", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out,
               "--values", "intensity")
     assert res.code == 0, res.stderr
-    assert calls == [True] and "capture (pullback)" not in res.stderr
+    assert calls == [] and "capture (pullback)" not in res.stderr
     framed = tmp_path / "framed.nrrd"
     res = run("warp", "-vv", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", framed,
               "--frames-to", str(tmp_path / "f{frame}.nrrd"), "--values", "intensity")
     assert res.code == 0, res.stderr
-    assert calls == [True, False] and res.stderr.count("capture (pullback)") == 1
+    assert calls == [1] and res.stderr.count("capture (pullback)") == 1
     from volwarp_cli.bspline.capture import capture_volume
     from volwarp_cli.bspline.plan import read_warp_spec
     from volwarp_cli.bspline.warp import output_volume, prepare
@@ -285,7 +285,7 @@ def test_capture_made_while_the_spec_is_checked_is_used_once(run, data_dir, tmp_
     cap = capture_volume(read_volume(data_dir / "ball_30_uint8.nrrd"), lattice=6,
                          oversample=1)
     scene, frames = prepare(cap, doc, read_warp_spec(doc))
-    expected = output_volume(cap, scene, run_warp(scene, frames)).data
+    expected = output_volume(cap, scene, run_warp(scene, frames, lambda *a: None)).data
     assert np.array_equal(read_volume(out).data, expected)
     assert np.array_equal(read_volume(framed).data, expected)
 
@@ -330,8 +330,9 @@ def test_a_failed_early_capture_is_reported_after_the_spec_check(run, tmp_path):
 @pytest.mark.parametrize("extra", [[], ["--crop"], ["--dtype", "int16", "--byte-order", "big"],
                                    ["--crop", "--dtype", "float32"]])
 def test_streamed_nrrd_output_is_the_whole_targets_file(run, data_dir, tmp_path, extra):
-    """A one-shot warp to raw NRRD writes its planes as the warp finishes them; the file
-    is byte for byte the one written from the whole target (the --frames-to path)."""
+    """A one-shot warp (the final lattice's output, block by block) writes the file
+    that the incremental frames' last target gives, byte for byte (the --frames-to
+    path: frame 0 in full, then local updates)."""
     spec = SPECS / "warp-ball.yaml"
     src = data_dir / "ball_30_uint8.nrrd"
     streamed, whole = tmp_path / "streamed.nrrd", tmp_path / "whole.nrrd"
@@ -345,8 +346,8 @@ def test_streamed_nrrd_output_is_the_whole_targets_file(run, data_dir, tmp_path,
 
 def test_a_warp_failing_midway_leaves_the_existing_output(run, data_dir, tmp_path,
                                                           monkeypatch):
+    from volwarp_cli.bspline import blocks as blocks_mod
     from volwarp_cli.bspline import scene as scene_mod
-    from volwarp_cli.bspline import stream as stream_mod
 
     spec = SPECS / "warp-ball.yaml"
     out = tmp_path / "o.nrrd"
@@ -361,7 +362,7 @@ def test_a_warp_failing_midway_leaves_the_existing_output(run, data_dir, tmp_pat
         return real(self, *a, **k)
 
     monkeypatch.setattr(scene_mod.Scene, "contribute", failing)
-    monkeypatch.setattr(stream_mod, "STREAM_PLANES", 1)  # many chunks: some planes written
+    monkeypatch.setattr(blocks_mod, "STREAM_PLANES", 1)  # many chunks: some planes done
     res = run("warp", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out)
     assert len(calls) >= 3 and res.code == 1 and "memory" in res.stderr
     assert out.read_bytes() == b"an earlier result"

@@ -7,7 +7,6 @@ overlap and the plumbing.
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -62,13 +61,25 @@ def _reference(spec_path, **prepare_kw):
     return cap, scene, frames
 
 
-@pytest.mark.parametrize("stream", [False, True])
-def test_render_is_capture_prepare_run(tmp_path, stream):
+def _last(scene, frames):
+    """The incremental frames' last target (frame 0 in full, then local updates)."""
+    return run_warp(scene, frames, lambda *a: None)
+
+
+@pytest.mark.parametrize("defer", [False, True])
+def test_render_is_capture_prepare_run(tmp_path, defer):
+    """The one-shot render (the operation's whole output, block by block) is the last
+    frame of the incremental warp, of a captured domain or of a deferred capture."""
     spec_path = _spec(tmp_path)
-    doc, spec, cap = _opened(spec_path, stream=stream)
+    doc, spec, cap = _opened(spec_path)
+    if defer:
+        s = spec.capture
+        cap = capture_volume(read_volume(BALL), lattice=s.lattice, oversample=s.oversample,
+                             defer=True)
+        assert cap.domain is None
     out = IntensityWarp(cap, doc, spec).render()
     rcap, scene, frames = _reference(spec_path)
-    expected = output_volume(rcap, scene, run_warp(scene, frames))
+    expected = output_volume(rcap, scene, _last(scene, frames))
     assert np.array_equal(out.data, expected.data)
     assert out.data.dtype == np.uint8
     np.testing.assert_allclose(out.origin, expected.origin)
@@ -80,31 +91,27 @@ def test_options_override_the_spec(tmp_path):
     opts = WarpOptions(pushforward="nearest", background=9.0, crop=True, dtype="float32")
     out = IntensityWarp(cap, doc, spec, opts).render()
     rcap, scene, frames = _reference(spec_path, method="nearest", background=9.0)
-    expected = output_volume(rcap, scene, run_warp(scene, frames), crop=True, dtype="float32")
+    expected = output_volume(rcap, scene, _last(scene, frames), crop=True, dtype="float32")
     assert out.data.dtype == np.float32 and out.shape_xyz == (30, 30, 30)
     assert np.array_equal(out.data, expected.data)
 
 
-def test_stream_writes_the_planes_of_render(tmp_path):
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_the_operations_blocks_are_the_whole_outputs_parts(tmp_path, threads):
+    """Any block of the operation, computed alone, is that part of the whole output, and
+    the whole computed over any thread count is the same bytes."""
+    from volwarp_cli.box import Box
+
     spec_path = _spec(tmp_path)
-    doc, spec, cap = _opened(spec_path, stream=True)
+    doc, spec, cap = _opened(spec_path)
     whole = IntensityWarp(cap, doc, spec, WarpOptions(crop=True)).render()
-    doc, spec, cap = _opened(spec_path, stream=True)
-    seen = {}
-
-    @contextlib.contextmanager
-    def writer(template):
-        seen["template"] = template
-        planes = np.zeros(template.data.shape, template.data.dtype)
-
-        def write_planes(z0, samples):
-            planes[z0:z0 + len(samples)] = samples
-        yield write_planes
-        seen["planes"] = planes
-
-    template = IntensityWarp(cap, doc, spec, WarpOptions(crop=True)).stream(writer)
-    assert template is seen["template"] and template.shape_xyz == whole.shape_xyz
-    assert np.array_equal(seen["planes"], whole.data)
+    op = IntensityWarp(cap, doc, spec, WarpOptions(crop=True)).operation()
+    assert op.grid.shape == whole.data.shape
+    got = op.compute(op.grid.box, threads=threads)[op.KEY]
+    assert got.dtype == whole.data.dtype and np.array_equal(got, whole.data)
+    for box in (Box((0, 0, 0), (30, 30, 30)), Box((3, 0, 7), (29, 11, 30)),
+                Box((13, 14, 15), (14, 15, 16))):
+        assert np.array_equal(op.compute(box, threads=1)[op.KEY], whole.data[box.slices])
 
 
 def test_render_frames_hands_over_every_frame_and_returns_the_last(tmp_path):
@@ -142,11 +149,11 @@ def test_the_early_capture_is_used_when_it_matches(tmp_path, monkeypatch):
     calls = []
     real = capture_module.capture_volume
     monkeypatch.setattr(capture_module, "capture_volume",
-                        lambda *a, **k: calls.append(k["defer"]) or real(*a, **k))
-    _opened(_spec(tmp_path), stream=True)
-    assert calls == [True]
+                        lambda *a, **k: calls.append(1) or real(*a, **k))
+    _opened(_spec(tmp_path))
+    assert calls == [1]
     _opened(_spec(tmp_path), labels=True)  # a label map: no intensity capture at all
-    assert calls == [True]
+    assert calls == [1]
 
 
 def test_warp_input_needs_one_reader():
@@ -240,9 +247,11 @@ def _block_writer(path):
 
 
 @pytest.mark.parametrize("block", [None, (5, 7, 6)])
-def test_render_blocks_writes_the_rendered_volume(tmp_path, block):
-    """IntensityWarp.render_blocks, called without the command line: the output by blocks
-    of the engine's tasks equals render()'s samples, block by block in the block asked."""
+def test_the_operation_by_blocks_writes_the_rendered_volume(tmp_path, block):
+    """The warp's operation run by the executor without the command line, the input read
+    lazily: by blocks on an engine's tasks (in the block asked, else the operation's
+    choice), and whole, the file is render()'s samples."""
+    from volwarp_cli import execute
     from volwarp_cli.bspline.blocks import LazySource
     from volwarp_cli.bspline.capture import capture_source
     from volwarp_cli.engine import open_engine
@@ -257,17 +266,21 @@ def test_render_blocks_writes_the_rendered_volume(tmp_path, block):
     s = spec.capture
     cap = capture_source(template, source, lattice=s.lattice, placement=s.placement,
                          oversample=s.oversample, sampling=s.sampling)
-    warp = IntensityWarp(cap, doc, spec, WarpOptions(blocks=True))
-    out = tmp_path / "b.nrrd"
-    open_output, seen = _block_writer(out)
-    with open_engine("threads", workers=2) as engine:
-        summary = warp.render_blocks(source, engine, open_output, 64 << 20, block=block)
-    got = read_volume(out)
-    assert np.array_equal(got.data, whole.data) and got.data.dtype == whole.data.dtype
-    assert summary["shape"] == list(whole.shape_xyz) and summary["blocks"] >= 1
-    assert seen == [block] if block else len(seen) == 1
+    warp = IntensityWarp(cap, doc, spec)
+    ran = {}
+    for chunked, name in ((True, "b.nrrd"), (False, "m.nrrd")):
+        out = tmp_path / name
+        target = execute.Target(out, warp.output_template(), whole.data.dtype)
+        how = execute.How(chunked=chunked, block=block,
+                          open_engine=lambda: open_engine("threads", workers=2))
+        ran[chunked] = execute.run(warp.operation(target, source=source), how)
+        got = read_volume(out)
+        assert np.array_equal(got.data, whole.data) and got.data.dtype == whole.data.dtype
+        assert ran[chunked].by_blocks == chunked
+    assert ran[False].results is not None and ran[True].results is None
+    assert ran[True].blocks >= (2 if block else 1)
     if block:
-        assert summary["block"] == list(block[::-1]) and summary["blocks"] > 1
+        assert ran[True].block == block
 
 
 def test_label_map_blocks_equal_the_label_warp(tmp_path):
@@ -295,7 +308,10 @@ def test_label_map_blocks_equal_the_label_warp(tmp_path):
     out = tmp_path / "o.nrrd"
     open_output, seen = _block_writer(out)
     with open_engine("threads", workers=2) as engine:
-        summary = warp.render(engine, open_output, 64 << 20, slab=3)
+        report = warp.render(engine, open_output, 64 << 20, slab=3)
     assert np.array_equal(read_volume(out).data, want.data)
-    assert summary["report"] == want_report
+    assert report == want_report
+    assert seen == [(3, 21, 22)]
+    got, got_report = warp.render_whole()  # (the map read whole: the same)
+    assert np.array_equal(got.data, want.data) and got_report == want_report
     assert seen == [(3, want.data.shape[1], want.data.shape[2])]

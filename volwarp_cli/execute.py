@@ -169,13 +169,15 @@ class Ran:
     """What :func:`run` did.
 
     ``by_blocks``; ``results``: the in-memory run's results (the whole's
-    :meth:`Operation.compute`; None by blocks); ``block``: the blocks' shape;
-    ``after``: what the ``after`` hook returned.
+    :meth:`Operation.compute`; None by blocks); ``block``: the blocks' shape
+    and ``blocks`` their count (by blocks); ``after``: what the ``after`` hook
+    returned.
     """
 
     by_blocks: bool
     results: dict | None = None
     block: tuple[int, int, int] | None = None
+    blocks: int = 0
     after: object = None
     _outs: dict = field(default_factory=dict, repr=False)
 
@@ -347,7 +349,7 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
             engine.run(tasks, label="blocks")
         for out in outs.values():
             out.mark_written(boxes)
-        ran = Ran(True, block=tuple(block), _outs=outs)
+        ran = Ran(True, block=tuple(block), blocks=len(boxes), _outs=outs)
         if after is not None:
             ran.after = after(ran)
     return ran

@@ -25,6 +25,11 @@ def check_dtype(dtype, where: str = "") -> np.dtype:
     return native
 
 
+#: the most samples a volume may have along an axis (2^31: beyond it no memory or disk
+#: holds a volume, and numpy may not even make its shape)
+MAX_AXIS = 1 << 31
+
+
 def voxel_count(shape) -> int:
     """The number of samples of a grid of ``shape`` (any axis order), as a Python int.
 

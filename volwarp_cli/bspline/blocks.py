@@ -1,8 +1,10 @@
-"""The warp by output blocks: each block of the target from the domain voxels that reach it.
+"""The one-shot warp, written once against a block of the output (:class:`WarpOperation`).
 
-For a warp too large for memory (or ``--chunked``), the target is cut into
-blocks and each is computed on its own, by a task that holds only what that
-block needs:
+Any block of the target is computed on its own, by a task that holds only
+what that block needs; the in-memory warp is the one-block case (the whole
+output, cut into slabs over the calling threads), a warp too large for
+memory (or ``--chunked``) runs many blocks on an engine
+(:mod:`volwarp_cli.execute`). A block needs:
 
 1. the domain voxels whose images can reach the block,
    :func:`volwarp_cli.regions.warp_input` (the lattice's convex hull, region
@@ -19,7 +21,11 @@ range (a global min/max pass, made before any block): each target voxel gets
 the same sums, whichever block computes it and whichever other voxels that
 block scatters, so the blocks put together equal the in-memory warp bit for
 bit. A voxel near a block's side is scattered by each block it reaches, which
-is the price of independent blocks (see :func:`block_work`).
+is the price of independent blocks (see :func:`block_work`): measured on a
+256^3 warp with every control point of a 9^3 lattice moved, the whole output
+on one thread is one block (no halo, within 5% of the former whole-target
+stream), on two threads four slabs scatter 1.42 times the domain voxels and
+took the stream's time (the halo's cost hidden by the balance it buys).
 
 Local updates (animations, ``--frames-to``) stay in memory: each frame's
 update reuses the previous frame's accumulators, which blocks do not keep.
@@ -28,12 +34,16 @@ update reuses the previous frame's accumulators, which blocks do not keep.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
+from .. import parallel
 from ..box import Box
+from ..execute import Operation
 from ..regions import warp_input
 from . import pushforward
+from .reach import STREAM_PLANES, ring_planes
 from .scene import Scene, Scratch
 
 
@@ -44,23 +54,18 @@ def render_block(scene: Scene, sampler, box: Box) -> np.ndarray:
     samples; the scene's own domain is not used. Equal to the same block of
     :meth:`.scene.Scene.render` bit for bit.
 
-    The block is streamed as the in-memory one-shot render streams the whole
-    target (:mod:`.stream`): the domain box's z planes a few at a time, each
+    The block is streamed: the domain box's z planes a few at a time, each
     slab gathered just before it is scattered into a ring of the block's
     target planes, and a plane finished as soon as no later slab can reach
     it. So a block may be tall (its accumulators are a ring of planes of its
     own columns and rows, not the whole block), and only its sides cost a
     halo of domain voxels scattered by two blocks.
     """
-    from .stream import STREAM_PLANES, _ring_planes
-
     out_dtype = np.float64 if scene.dtype == np.float64 else np.float32
     out = np.empty(box.shape, dtype=out_dtype)
     (tx0, ty0, tz0), (_, _, tz1) = box.xyz()
     need = domain_box(scene, box)
-    reach = scene.reach.planes(scene._offset_bounds(scene.dq))
-    chunk = max(1, int(STREAM_PLANES / float(scene.scale[2])))  # domain planes per step
-    planes = max(1, min(_ring_planes(reach, chunk), box.shape[0]))
+    reach, chunk, planes = _stream(scene, box)
     acc = np.zeros((planes,) + box.shape[1:] + (2,), dtype=np.int64)
     base = tz0  # target planes [base, ...) accumulate; those below are in out
 
@@ -90,6 +95,17 @@ def render_block(scene: Scene, sampler, box: Box) -> np.ndarray:
                              values=(sampler.box(voxels), g0, (dx0, dy0)))
     flush(tz1)
     return out
+
+
+def _stream(scene: Scene, box: Box):
+    """``(reach, chunk, planes)`` of block ``box``'s stream (:func:`render_block`).
+
+    Each domain plane's target reach, the domain planes gathered and
+    scattered a step, and the ring's target planes.
+    """
+    reach = scene.reach.planes(scene._offset_bounds(scene.dq))
+    chunk = max(1, int(STREAM_PLANES / float(scene.scale[2])))  # domain planes per step
+    return reach, chunk, max(1, min(ring_planes(reach, chunk), box.shape[0]))
 
 
 def domain_box(scene: Scene, box: Box) -> Box:
@@ -199,47 +215,68 @@ class SceneRecipe:
                      domain_range=(-self.vmax, self.vmax))
 
 
-class WarpBlocks:
-    """Everything a block task needs, and nothing that cannot be pickled.
+class WarpOperation(Operation):
+    """The one-shot warp of intensities as an operation of :mod:`volwarp_cli.execute`.
 
-    No locks and no arrays but the lattice's: the scene is rebuilt, once per
-    process, where the tasks run.
+    Any block of the output is :func:`render_block` of the final lattice over
+    that block's box of the target, cast to the output's type: in memory the
+    whole output is one block (cut into whole-depth slabs over the calling
+    threads, :meth:`compute`), by blocks each task computes its own; the same
+    code, so the same bytes. Picklable (for tasks in other processes): the
+    scene is rebuilt from its recipe where the tasks run, and the input is
+    read box by box there.
+
+    ``source``: the input's samples, sliceable (a :class:`LazySource`), or
+    None with ``sampler``, a capture file's stored domain
+    (:class:`~.capture_file.StoredDomain`, reopened by path in another
+    process). ``window``: the output's box of the target; ``target``: the
+    output (:class:`~volwarp_cli.execute.Target`, dropped when pickled: the
+    tasks write through the executor's writers); ``name``: the input's, in
+    messages.
     """
 
+    KEY = "warped"
+
     def __init__(self, scene: Scene, source, placement: str, sampling: str, window: Box,
-                 dtype, sampler=None):
+                 target, *, sampler=None, name: str = "input"):
+        from ..geometry import Geometry
+
         self.recipe = SceneRecipe(scene)
         self.domain_dtype = scene.dtype
         self.source = source
         self.placement = placement
         self.sampling = sampling
         self.window = window  # the output's box of the target
-        self.dtype = np.dtype(dtype)
-        # given: in this process only, dropped when pickled, unless it is ``portable``
-        # (a capture file's stored domain: its path travels, the worker reads the file)
+        self.dtype = np.dtype(target.dtype)
+        self.grid = Geometry.of(target.template)
+        self.targets = {self.KEY: target}
+        nx, ny, nz = self.grid.shape_xyz
+        self.what = (f"the warp of {name} to {nx}x{ny}x{nz} voxels (deformation + "
+                     f"{scene.method} pushforward)")
         self._sampler = sampler
         self._built = None
+        self._lock = threading.Lock()
 
     def _scene(self):
-        if self._built is None:
-            from .pullback import BoxSampler
+        with self._lock:  # (one scene for the threads of an in-memory run)
+            if self._built is None:
+                from .pullback import BoxSampler
 
-            sampler = self._sampler if self._sampler is not None else BoxSampler(
-                self.source, self.recipe.grid, self.placement, self.sampling,
-                self.domain_dtype)
-            scene = self.recipe.build(sampler)
-            self._built = (scene, sampler)
+                sampler = self._sampler if self._sampler is not None else BoxSampler(
+                    self.source, self.recipe.grid, self.placement, self.sampling,
+                    self.domain_dtype)
+                self._built = (self.recipe.build(sampler), sampler)
         return self._built
 
     def __getstate__(self):
-        portable = getattr(self._sampler, "portable", False)
-        if self.source is None and not portable:
-            raise TypeError("a warp job of a held domain runs in this process only")
         state = dict(self.__dict__)
-        state["_built"] = None
-        if not portable:
-            state["_sampler"] = None
+        state["_built"] = state["_lock"] = None
+        state["targets"] = {}
         return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
 
     def output_block(self, out_box: Box) -> np.ndarray:
         """Output block ``out_box`` (z, y, x of the output), cast to the output's type."""
@@ -249,21 +286,59 @@ class WarpBlocks:
         target = render_block(scene, sampler, out_box.shift(self.window.lo))
         return cast_samples(target, self.dtype, what="warped volume")
 
+    def slabs(self, box: Box, threads: int) -> list[Box]:
+        """``box`` cut for ``threads`` threads: whole depth and rows, two parts along y a thread.
+
+        A part streams its planes (depth costs no halo) and its halo is on two
+        sides only; one thread takes the box whole (no halo at all).
+        """
+        if threads <= 1:
+            return [box]
+        cuts = parallel.cuts(box.lo[1], box.hi[1], 2 * threads)
+        return [Box((box.lo[0], a, box.lo[2]), (box.hi[0], b, box.hi[2]))
+                for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+
+    def compute(self, box: Box, *, threads: int) -> dict:
+        """``{KEY: samples}`` of output block ``box``, over ``threads`` threads."""
+        from ..progress import progress
+
+        parts = self.slabs(box, threads)
+        if len(parts) == 1:
+            return {self.KEY: self.output_block(box)}
+        out = np.empty(box.shape, dtype=self.dtype)
+        with progress(len(parts), "warp") as bar:
+            def task(part):
+                with parallel.use_threads(1):
+                    out[part.shift([-v for v in box.lo]).slices] = self.output_block(part)
+                bar.advance()
+
+            parallel.run_blocks(task, parts, threads)
+        return {self.KEY: out}
+
+    def memory(self, box: Box) -> int:
+        """The bytes computing ``box`` holds at its peak, over the threads in effect.
+
+        The output's samples, and each thread's part at its peak
+        (:meth:`block_bytes`).
+        """
+        threads = parallel.threads()
+        parts = self.slabs(box, threads)
+        if len(parts) == 1:
+            return self.block_bytes(box)
+        return box.size * self.dtype.itemsize + min(threads, len(parts)) * max(
+            self.block_bytes(p) for p in parts)
+
     def block_bytes(self, box: Box) -> int:
-        """Memory a task of output block ``box`` holds at its peak (bytes, an upper bound).
+        """Memory one thread computing output block ``box`` holds at its peak (an upper bound).
 
         The ring of target planes, the block's target and its cast, one slab
         of the domain box's samples with the input they read, and the
         deformation buffers (see :func:`render_block`).
         """
-        from .stream import STREAM_PLANES, _ring_planes
-
         scene, sampler = self._scene()
         target = box.shift(self.window.lo)
         need = domain_box(scene, target)
-        reach = scene.reach.planes(scene._offset_bounds(scene.dq))
-        chunk = max(1, int(STREAM_PLANES / float(scene.scale[2])))
-        planes = max(1, min(_ring_planes(reach, chunk), box.shape[0]))
+        _, chunk, planes = _stream(scene, box)
         item = np.dtype(self.domain_dtype).itemsize
         slab = 0
         if not need.empty:
@@ -274,8 +349,8 @@ class WarpBlocks:
         return (planes * box.shape[1] * box.shape[2] * 16
                 + box.size * (item + self.dtype.itemsize) + slab + 2 * scene.chunk_bytes)
 
-    def choose_blocks(self, budget: int, tasks_at_once: int) -> tuple[int, int, int]:
-        """Output blocks (z, y, x) for ``tasks_at_once`` tasks within ``budget`` bytes.
+    def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
+        """Output blocks (z, y, x) for ``workers`` tasks of ``per_task`` bytes each.
 
         Slabs of whole rows (x) and the whole depth, cut along y into equal
         parts: a block streams its planes (depth costs no halo), its rows are
@@ -284,62 +359,14 @@ class WarpBlocks:
         balance) and fit; shallower where no slab of one row does.
         """
         shape = self.window.shape
-        want = 2 * max(1, tasks_at_once)
+        want = 2 * max(1, workers)
         for depth in (shape[0], (shape[0] + 1) // 2, (shape[0] + 3) // 4, 64, 32, 16, 8):
             for parts in range(min(want, shape[1]), shape[1] + 1):
                 block = (min(depth, shape[0]), math.ceil(shape[1] / parts), shape[2])
                 box = Box((0, 0, 0), block).shift([(n - b) // 2 for n, b in
                                                    zip(shape, block, strict=True)])
-                if self.block_bytes(box) * tasks_at_once <= budget:
+                if self.block_bytes(box) <= per_task:
                     return block
                 if block[1] == 1:
                     break
         return (min(8, shape[0]), 1, shape[2])
-
-
-def write_block(job: WarpBlocks, out, box: Box) -> None:
-    """Compute output block ``box`` and write it to ``out`` (a block output)."""
-    out.write(box, job.output_block(box))
-
-
-def warp_by_tiles(job: WarpBlocks, out, *, threads: int | None = None) -> int:
-    """Every block of ``out`` on this process's threads (no Dask): the in-memory warp's way.
-
-    Whole-depth slabs stream their planes through a ring of their own
-    rows (:func:`render_block`): less memory, and more of it in
-    cache, than one ring of whole target planes per thread. Returns the
-    number of blocks.
-    """
-    from .. import parallel
-    from ..progress import progress
-
-    boxes = out.blocks()
-    writer = out.writer()
-    n = parallel.threads() if threads is None else threads
-    with progress(len(boxes), "warp") as bar:
-        def task(box):
-            with parallel.use_threads(1):
-                writer.write(box, job.output_block(box))
-            bar.advance()
-
-        parallel.run_blocks(task, boxes, n)
-    out.mark_written(boxes)
-    return len(boxes)
-
-
-def warp_by_blocks(job: WarpBlocks, out, engine, *, memory: int | None = None):
-    """Every block of ``out`` (a :class:`~volwarp_cli.io.blockwrite.BlockOutput`) on ``engine``.
-
-    One task per block of the output's block grid; returns the tasks' stats.
-    """
-    import dask
-
-    job_node = dask.delayed(job, pure=False)
-    out_node = dask.delayed(out.writer(), pure=False)
-    boxes = out.blocks()
-    tasks = [engine.block_delayed(write_block, f"warp-{'-'.join(map(str, b.lo))}", job_node,
-                                  out_node, b, memory=memory)
-             for b in boxes]
-    stats = engine.run(tasks, label="warp blocks")
-    out.mark_written(boxes)  # (every task succeeded: a failure raised)
-    return stats

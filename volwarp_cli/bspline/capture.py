@@ -159,13 +159,15 @@ def source_range(source, *, slab_bytes: int = 64 << 20) -> tuple[float, float]:
     from .. import parallel
 
     nz, ny, nx = source.shape
-    step = max(1, slab_bytes // max(1, ny * nx * np.dtype(source.dtype).itemsize))
+    threads = parallel.threads()
+    step = max(1, min(slab_bytes // max(1, ny * nx * np.dtype(source.dtype).itemsize),
+                      -(-nz // (2 * threads))))  # (two slabs a thread at least)
 
     def slab(z0):
         part = np.asarray(source[z0:min(z0 + step, nz)])
         return float(part.min()), float(part.max())
 
-    parts = parallel.run_blocks(slab, range(0, nz, step), parallel.threads())
+    parts = parallel.run_blocks(slab, range(0, nz, step), threads)
     lo, hi = min(p[0] for p in parts), max(p[1] for p in parts)
     if not (np.isfinite(lo) and np.isfinite(hi)):
         raise VolwarpError("the volume has NaN or infinite samples; warping needs finite ones "

@@ -274,7 +274,7 @@ class StoredDomain:
 
     The sampler of :func:`open_capture_lazy`'s deferred capture: the same
     interface as :class:`.pullback.BoxSampler` (``box``, ``input_box``,
-    ``planes``, ``shape``, ``dtype``, ``source``), but each domain voxel is
+    ``shape``, ``dtype``, ``source``), but each domain voxel is
     stored, not gathered. ``portable``: picklable as the file's path and
     offset, so a block task in another process reads the file itself.
     """
@@ -300,14 +300,6 @@ class StoredDomain:
         if box.empty:
             return np.empty(box.shape, dtype=self.dtype)
         return np.ascontiguousarray(self.source[box.slices], dtype=self.dtype)
-
-    def planes(self, g0: int, g1: int, out: np.ndarray | None = None) -> np.ndarray:
-        """Domain planes [g0, g1), whole."""
-        planes = self.source[g0:g1]
-        if out is None:
-            return np.ascontiguousarray(planes, dtype=self.dtype)
-        out[...] = planes
-        return out
 
 
 #: payload bytes the checksum pass reads at a time

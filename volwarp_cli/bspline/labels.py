@@ -60,8 +60,8 @@ from ..volume import Volume
 from .capture import Capture, geometry_capture
 from .lattice import PLACEMENTS
 from .pushforward import QUANTUM, HeldPlanes
+from .reach import STREAM_PLANES, ring_planes
 from .scene import Scene
-from .stream import STREAM_PLANES, _ring_planes
 
 _Q = int(QUANTUM)
 
@@ -185,7 +185,7 @@ class _Stream:
         self.chunk = max(1, int(STREAM_PLANES * self.k))  # domain planes per step
         # each domain plane's reach, from its own layer of the lattice (as the stream's)
         self.reach = scene._plane_reach([dq])
-        self.planes = _ring_planes(self.reach, self.chunk)
+        self.planes = ring_planes(self.reach, self.chunk)
         dz, dy, dx = grid.domain_shape[::-1]
         self.values = np.zeros((self.chunk, dy, dx), dtype=np.float32)
         self.acc = np.zeros(0, dtype=np.int64)
@@ -353,7 +353,7 @@ def stream_bytes(scene: Scene, dq, dtype) -> int:
     grid = scene.grid
     k = grid.subdivision
     chunk = max(1, int(STREAM_PLANES * k))
-    planes = _ring_planes(scene._plane_reach([dq]), chunk)  # as _Stream's
+    planes = ring_planes(scene._plane_reach([dq]), chunk)  # as _Stream's
     tx, ty, _ = scene.target_shape
     dx, dy, _ = grid.domain_shape
     nx, ny, _ = grid.input_shape

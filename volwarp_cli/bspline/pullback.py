@@ -94,44 +94,6 @@ def gather_tables(grid: Grid, placement: str, sampling: str):
                  for i0, i1, w in axes)
 
 
-class Sampler:
-    """The capture's gather, set up once: domain z planes on demand.
-
-    ``shape`` ``(Dz, Dy, Dx)`` and ``dtype`` are the domain voxmap's. A
-    plane's samples do not depend on which planes are gathered with it, so
-    planes gathered a few at a time (:meth:`planes`, what a one-shot warp
-    streams) equal the whole voxmap's (:meth:`whole`) bit for bit.
-    """
-
-    def __init__(self, data: np.ndarray, grid: Grid, placement: str = "uniform",
-                 sampling: str = "linear", dtype=np.float32):
-        if tuple(data.shape[::-1]) != tuple(grid.input_shape):
-            raise VolwarpError(f"input shape {data.shape[::-1]} does not match the grid "
-                               f"{grid.input_shape}")
-        self._x, self._y, self._z = gather_tables(grid, placement, sampling)
-        self.shape = tuple(grid.domain_shape[::-1])
-        self.dtype = np.dtype(dtype)
-        src = np.ascontiguousarray(data)
-        #: the input's samples in the domain's type (what the gather reads)
-        self.samples = src if src.dtype == self.dtype else src.astype(self.dtype)
-
-    def planes(self, g0: int, g1: int, out: np.ndarray | None = None) -> np.ndarray:
-        """Domain planes [g0, g1) into ``out`` (``(g1 - g0, Dy, Dx)``, default new)."""
-        if out is None:
-            out = np.empty((g1 - g0,) + self.shape[1:], dtype=self.dtype)
-        SampleJob(data=self.samples, x=self._x, y=self._y, z=tuple(a[g0:g1] for a in self._z),
-                  out=out, g0=0, g1=g1 - g0).run()
-        return out
-
-    def whole(self) -> tuple[np.ndarray, tuple[float, float]]:
-        """The whole voxmap (two threads) and the (min, max) of its samples."""
-        out = np.empty(self.shape, dtype=self.dtype)
-        job = SampleJob(data=self.samples, x=self._x, y=self._y, z=self._z, out=out, g0=0,
-                        g1=out.shape[0])
-        parts = run_split(lambda g0, g1: replace(job, g0=g0, g1=g1), 0, out.shape[0], out.size)
-        return out, (min(p[0] for p in parts), max(p[1] for p in parts))
-
-
 class BoxSampler:
     """The capture's gather from an input that is not held: any box of domain voxels.
 
@@ -188,15 +150,35 @@ class BoxSampler:
         out = self.box(Box.from_shape(self.shape))
         return out, (float(out.min()), float(out.max()))
 
-    def planes(self, g0: int, g1: int, out: np.ndarray | None = None) -> np.ndarray:
-        """Domain planes [g0, g1), whole (:meth:`Sampler.planes`)."""
-        from ..box import Box
 
-        planes = self.box(Box((g0, 0, 0), (g1, *self.shape[1:])))
-        if out is None:
-            return planes
-        out[...] = planes
-        return out
+class Sampler(BoxSampler):
+    """The capture's gather from a held input: any box (:class:`BoxSampler`), or the whole.
+
+    ``shape`` ``(Dz, Dy, Dx)`` and ``dtype`` are the domain voxmap's. A
+    voxel's sample does not depend on which voxels are gathered with it, so
+    boxes (what a one-shot warp's blocks stream) equal the whole voxmap's
+    (:meth:`whole`, on the threads) bit for bit.
+    """
+
+    def __init__(self, data: np.ndarray, grid: Grid, placement: str = "uniform",
+                 sampling: str = "linear", dtype=np.float32):
+        if tuple(data.shape[::-1]) != tuple(grid.input_shape):
+            raise VolwarpError(f"input shape {data.shape[::-1]} does not match the grid "
+                               f"{grid.input_shape}")
+        dtype = np.dtype(dtype)
+        src = np.ascontiguousarray(data)
+        super().__init__(src if src.dtype == dtype else src.astype(dtype), grid, placement,
+                         sampling, dtype)
+        #: the input's samples in the domain's type (what the gather reads)
+        self.samples = self.source
+
+    def whole(self) -> tuple[np.ndarray, tuple[float, float]]:
+        """The whole voxmap (two threads) and the (min, max) of its samples."""
+        out = np.empty(self.shape, dtype=self.dtype)
+        x, y, z = self.tables
+        job = SampleJob(data=self.samples, x=x, y=y, z=z, out=out, g0=0, g1=out.shape[0])
+        parts = run_split(lambda g0, g1: replace(job, g0=g0, g1=g1), 0, out.shape[0], out.size)
+        return out, (min(p[0] for p in parts), max(p[1] for p in parts))
 
 
 class DomainSampler:

@@ -163,6 +163,26 @@ class Reach:
         return TargetBlock(Box.from_xyz(tlo.tolist(), thi.tolist()), Box.from_xyz(dlo, dhi))
 
 
+#: Target z planes covered by one step of a stream (:func:`.blocks.render_block`: the
+#: domain planes gathered and scattered at a time are this many over the scale along z).
+STREAM_PLANES = 16
+
+
+def ring_planes(reach, chunk: int) -> int:
+    """Target planes a block's ring must hold.
+
+    The most that one step of ``chunk`` domain planes, starting anywhere, can
+    reach above what is already final (+ rounding).
+    """
+    dz = len(reach.t_hi)
+    if dz == 0:
+        return 2
+    k = min(chunk, dz)
+    windows = np.lib.stride_tricks.sliding_window_view(
+        np.concatenate([reach.t_hi, np.full(k - 1, reach.t_hi[-1])]), k)
+    return int((windows.max(axis=1) - reach.floor_from).max()) + 2
+
+
 @dataclass(frozen=True)
 class TargetBlock:
     """A ``target`` block and the ``domain`` block whose voxels can reach it.

@@ -2,17 +2,21 @@
 
 The command (:mod:`volwarp_cli.cli.warp`) parses and checks its options, then:
 
-1. :class:`WarpInput` reads the input on a worker thread while the warp modules
-   are imported and the spec is loaded, and captures it (with the capture
-   settings the spec gives, read before the spec is checked) while the spec is
-   checked against its schema: reading and capturing release the GIL. Errors
-   keep their order: a spec error first, then the input's. The early capture
-   is used only if it matches the checked spec.
-2. :class:`IntensityWarp` (a volume or capture file) or :class:`LabelMapWarp`
-   (a label map) plans the lattice moves and renders: every frame (handed to a
-   callback as a Volume), the final volume whole, or (intensities) streamed
-   plane by plane to a writer as the warp finishes them, so that the whole
-   target is never held.
+- the final lattice alone (no frames): :class:`IntensityWarp` plans the
+  lattice moves of a deferred capture (the input or capture file read box
+  by box) and gives the output as an operation of the executor
+  (:meth:`IntensityWarp.operation`, :mod:`volwarp_cli.execute`: whole or by
+  blocks, the same bytes); a label map's is :class:`LabelMapBlocks` (whole
+  or by slabs of target planes);
+- every frame (``--frames-to``): :class:`WarpInput` reads the input on a
+  worker thread while the warp modules are imported and the spec is
+  loaded, and captures it (with the capture settings the spec gives, read
+  before the spec is checked) while the spec is checked against its schema:
+  reading and capturing release the GIL. Errors keep their order: a spec
+  error first, then the input's. The early capture is used only if it
+  matches the checked spec. :class:`IntensityWarp` renders the frames
+  incrementally, :class:`LabelMapWarp` each frame's exact label warp, each
+  handed to a callback as a Volume.
 
 Nothing here parses options or writes files: the caller passes the readers
 (:class:`WarpInput`) and the writers (callbacks), and stamps and writes what
@@ -50,9 +54,7 @@ class WarpOptions:
     pad is given (:func:`.warp.grid_of`). ``crop``: the same as ``grid="input"``.
     ``dtype``: the output's sample type (default the input's).
     ``allow_growth``: let the padding the moves need grow the output past
-    twice the input (the grown grid; see :func:`.warp.prepare`). ``blocks``:
-    the warp runs by output blocks (:meth:`IntensityWarp.block_job`), the
-    target never held whole.
+    twice the input (the grown grid; see :func:`.warp.prepare`).
     """
 
     pushforward: str | None = None
@@ -61,7 +63,6 @@ class WarpOptions:
     crop: bool = False
     dtype: str | None = None
     allow_growth: bool = False
-    blocks: bool = False
     grid: str | None = None
 
     def __post_init__(self):
@@ -91,19 +92,15 @@ def _unchecked_spec(doc):
         return None
 
 
-def capture_input(vol: Volume, settings, name: str, *, defer: bool = False):
-    """``vol`` captured with ``settings`` (a spec's ``capture``); errors name ``name``.
-
-    ``defer``: leave the gather to the warp (a one-shot warp gathers the planes as
-    it streams them).
-    """
+def capture_input(vol: Volume, settings, name: str):
+    """``vol`` captured with ``settings`` (a spec's ``capture``); errors name ``name``."""
     from . import capture as capture_module
 
     s = settings
     try:
         return capture_module.capture_volume(vol, lattice=s.lattice, placement=s.placement,
                                              oversample=s.oversample, sampling=s.sampling,
-                                             pad=None, mean=False, defer=defer)
+                                             pad=None, mean=False)
     except SpecError:
         raise
     except OutOfMemoryError as exc:  # (its type kept: a command may run by blocks instead)
@@ -112,7 +109,7 @@ def capture_input(vol: Volume, settings, name: str, *, defer: bool = False):
         raise VolwarpError(f"{name}: {exc}") from None
 
 
-def _capture_early(reading, given, settings, name, defer):
+def _capture_early(reading, given, settings, name):
     """``(values choice, capture)``, started before the spec is checked.
 
     The choice (:func:`.defaults.choose_values` with the values ``given``) and,
@@ -129,7 +126,7 @@ def _capture_early(reading, given, settings, name, defer):
     if choice.is_labels or settings is None:  # (labels: their own capture)
         return choice, None
     try:
-        return choice, capture_input(vol, settings, name, defer=defer)
+        return choice, capture_input(vol, settings, name)
     except Exception:
         return choice, None
 
@@ -160,8 +157,7 @@ class WarpInput(AbstractContextManager):
     ``values``: the command line's ``--values`` (``"intensity"``,
     ``"labels"``; ``labels=True`` is ``"labels"``), else the spec's, else the
     label rule decides (:func:`.defaults.choose_values`, on the worker
-    thread, before any intensity capture is made). ``stream``: the warp
-    renders only its final lattice (the capture's gather is deferred to it).
+    thread, before any intensity capture is made).
     ``name`` (the input's file) prefixes the capture's errors. Use it as a
     context manager; :meth:`load_spec` first, then :meth:`source`, after
     which :attr:`choice` says how the samples are warped and :attr:`spec`
@@ -174,14 +170,13 @@ class WarpInput(AbstractContextManager):
 
     def __init__(self, name: str, *, read_volume: Callable[[], Volume] | None = None,
                  read_capture: Callable[[], object] | None = None, labels: bool = False,
-                 values: str | None = None, stream: bool = False):
+                 values: str | None = None):
         if (read_volume is None) == (read_capture is None):
             raise ValueError("give read_volume or read_capture (one of them)")
         self.name = name
         self._read_volume = read_volume
         self._read_capture = read_capture
         self._values = "labels" if labels else values
-        self._stream = stream
         self._pool = None
         self._reading = None
         self._early = None
@@ -220,7 +215,7 @@ class WarpInput(AbstractContextManager):
             self._early_given = self._values or (early.values if early is not None else None)
             self._early = self._pool.submit(contextvars.copy_context().run, _capture_early,
                                             self._reading, self._early_given, self._settings,
-                                            self.name, self._stream)
+                                            self.name)
         validate(doc, load_schema("warp"))
         return doc, read_warp_spec(doc)
 
@@ -259,7 +254,7 @@ class WarpInput(AbstractContextManager):
             return vol
         if early is not None:
             return early
-        return capture_input(vol, spec.capture, self.name, defer=self._stream)
+        return capture_input(vol, spec.capture, self.name)
 
     def _chose(self, choice) -> None:
         from .defaults import warn_once
@@ -348,10 +343,10 @@ class _LatticeMoves:
 class IntensityWarp(_LatticeMoves):
     """The warp of a captured volume (:class:`.capture.Capture`) by a checked spec.
 
-    Construction plans every lattice state and builds the scene (its padded
-    target refused before it is made when it cannot fit); then render once,
-    with :meth:`render` (the whole output), :meth:`stream` (the output plane by
-    plane) or :meth:`render_frames` (every frame, incrementally).
+    Construction plans every lattice state and builds the scene; then the
+    final lattice's output is an :meth:`operation` of the executor (by blocks
+    or whole), :meth:`render` computes it whole here, and
+    :meth:`render_frames` renders every frame, incrementally.
     """
 
     def __init__(self, cap, doc, spec, options: WarpOptions = WarpOptions(), *,
@@ -361,6 +356,7 @@ class IntensityWarp(_LatticeMoves):
 
         self.cap = cap
         self.options = options
+        self.name = name  # (the input's file: in messages)
         #: the output's grid ("input" or "grow") and why
         self.grid, self.grid_why = grid_of(spec, cap, options.output_grid)
         #: the value where nothing lands, and why
@@ -368,8 +364,7 @@ class IntensityWarp(_LatticeMoves):
         try:
             self.scene, self.frames = prepare(
                 cap, doc, spec, method=options.pushforward, evaluator=options.evaluator,
-                background=self.background, allow_growth=options.allow_growth,
-                whole_target=not options.blocks, grid=self.grid)
+                background=self.background, allow_growth=options.allow_growth, grid=self.grid)
         except OutOfMemoryError as exc:  # the target this input and spec ask for
             raise OutOfMemoryError(f"{name}: {exc}") from None
         log.info("output grid: %s (%s)", self.grid, self.grid_why)
@@ -389,11 +384,44 @@ class IntensityWarp(_LatticeMoves):
         return output_volume(self.cap, self.scene, target, crop=self.options.crop,
                              dtype=self.options.dtype)
 
-    def render(self) -> Volume:
-        """The final lattice's output, rendered in one pass."""
-        from .warp import run
+    def output_template(self) -> Volume:
+        """The output's Volume with a zero-strided placeholder of its shape and dtype."""
+        from .warp import output_planes
 
-        return self.output(run(self.scene, self.frames))
+        template, _ = output_planes(self.cap, self.scene, crop=self.options.crop,
+                                    dtype=self.options.dtype)
+        return template
+
+    def operation(self, target=None, source=None):
+        """The final lattice's output as an operation (:class:`.blocks.WarpOperation`).
+
+        ``target``: the output (:class:`~volwarp_cli.execute.Target`; default
+        one at no path, for :meth:`render`). ``source``: the input's samples,
+        sliceable, read box by box by the blocks (a
+        :class:`~.blocks.LazySource`, reopened by path in other processes);
+        None: the capture's own samples (:meth:`sampler`).
+        """
+        from ..execute import Target
+        from .blocks import WarpOperation
+        from .warp import output_window_box
+
+        if self.frames:
+            self.scene.set_lattice(self.frames[-1].dq)
+        if target is None:
+            template = self.output_template()
+            target = Target(None, template, template.dtype)
+        window = output_window_box(self.cap, self.scene, self.options.crop)
+        return WarpOperation(self.scene, source, self.cap.placement, self.cap.sampling, window,
+                             target, sampler=self.sampler() if source is None else None,
+                             name=self.name)
+
+    def render(self) -> Volume:
+        """The final lattice's output, computed whole on this process's threads."""
+        from .. import parallel
+
+        op = self.operation()
+        data = op.compute(op.grid.box, threads=parallel.threads())[op.KEY]
+        return op.targets[op.KEY].template.with_data(data)
 
     def render_frames(self, on_frame: OnFrame) -> Volume:
         """Every frame (0: unwarped, then each increment), incrementally; returns the last.
@@ -407,87 +435,18 @@ class IntensityWarp(_LatticeMoves):
 
         return self.output(run(self.scene, self.frames, each))
 
-    def block_job(self, source, sampler=None):
-        """The final lattice's output as independent blocks: ``(template, WarpBlocks)``.
+    def sampler(self):
+        """The capture's samples box by box (:func:`.blocks.render_block`'s ``sampler``).
 
-        ``template`` is the output Volume with a zero-strided placeholder of its
-        shape and dtype; :meth:`.blocks.WarpBlocks.output_block` computes any
-        block of it (a picklable job: the tasks may run in other processes).
-        ``source``: the input's samples, sliceable (the capture's own, or a
-        :class:`.blocks.LazySource` for other processes to reopen); or
-        ``sampler``, a held domain's (:meth:`tile_sampler`), for this process.
+        A captured domain as it is; a deferred capture's gather, from the
+        input it holds or reads; a capture file's stored domain, read from
+        the file.
         """
-        from .blocks import WarpBlocks
-        from .warp import output_planes, output_window_box
-
-        if self.frames:
-            self.scene.set_lattice(self.frames[-1].dq)
-        template, _ = output_planes(self.cap, self.scene, crop=self.options.crop,
-                                    dtype=self.options.dtype)
-        window = output_window_box(self.cap, self.scene, self.options.crop)
-        return template, WarpBlocks(self.scene, source, self.cap.placement, self.cap.sampling,
-                                    window, template.dtype, sampler=sampler)
-
-    def render_blocks(self, source, engine, open_output, budget: int, *, block=None,
-                      sampler=None) -> dict:
-        """The final lattice's output by blocks on ``engine``, the target never held whole.
-
-        ``source``/``sampler``: as :meth:`block_job` takes them.
-        ``open_output(template, block)``: a context manager giving the block output
-        (:class:`~volwarp_cli.io.blockwrite.BlockOutput`) for the output's
-        template and block shape (z, y, x), committed when it exits without an
-        error. ``budget``: the bytes the tasks may hold together; ``block``:
-        the output's block, default the largest the budget holds for the
-        engine's tasks at once. Returns the run's summary: the output's shape
-        (x y z), the drags' report, the count and shape (x y z) of the blocks.
-        """
-        from .blocks import warp_by_blocks
-
-        template, job = self.block_job(source, sampler=sampler)
-        per_task = budget // max(1, engine.workers)
-        block = block or job.choose_blocks(budget, engine.workers)
-        with open_output(template, block) as out:
-            stats = warp_by_blocks(job, out, engine, memory=per_task)
-        return {"shape": list(template.shape_xyz), "handles": self.handles(),
-                "blocks": len(stats), "block": list(block[::-1])}
-
-    def tile_sampler(self):
-        """The capture's samples box by box, for :func:`.blocks.warp_by_tiles` in this process.
-
-        A captured domain (a capture file's) as it is; a deferred capture's
-        gather from the input it already holds in the domain's type.
-        """
-        from .pullback import BoxSampler, DomainSampler
+        from .pullback import DomainSampler
 
         if self.cap.domain is not None:
             return DomainSampler(self.cap.domain)
-        src = self.cap.sampler
-        if isinstance(src, BoxSampler):
-            return src
-        return BoxSampler(src.samples, self.cap.grid, self.cap.placement, self.cap.sampling,
-                          src.dtype)
-
-    def stream(self, open_writer: Callable[[Volume], AbstractContextManager]) -> Volume:
-        """The final lattice's output, plane by plane, to a writer; returns its template.
-
-        ``open_writer(template)`` gets the output Volume with a zero-strided
-        placeholder of its shape and dtype (for the file's header) and returns a
-        context manager giving ``write_planes(z0, samples)``; the planes arrive in
-        order of z as the warp finishes them (from the warp's threads) and the
-        writer commits when the context exits without an error.
-        """
-        from .warp import output_planes, run
-
-        template, convert = output_planes(self.cap, self.scene, crop=self.options.crop,
-                                          dtype=self.options.dtype)
-        with open_writer(template) as write_planes:
-            def sink(z0, z1, planes):
-                part = convert(z0, planes)
-                if part is not None:
-                    write_planes(*part)
-
-            run(self.scene, self.frames, sink=sink)
-        return template
+        return self.cap.sampler
 
 
 def _prepare_labels(vol: Volume, doc, spec, options: WarpOptions, name: str):
@@ -536,21 +495,23 @@ class Deformation(_LatticeMoves):
         self.grid, self.grid_why = grid_of(spec, cap, options.output_grid)
         self.scene, self.frames = prepare(
             cap, doc, spec, method=options.pushforward, evaluator=options.evaluator,
-            background=0.0, allow_growth=options.allow_growth, whole_target=False,
-            grid=self.grid)
+            background=0.0, allow_growth=options.allow_growth, grid=self.grid)
 
 
 
 
 class LabelMapBlocks(_LatticeMoves):
-    """The warp of a label map read by boxes, by slabs of target planes (never held whole).
+    """A label map's warp for the final lattice: whole, or by slabs of target planes.
 
     ``template``: the map's Volume with a placeholder of its shape and dtype;
     ``source``: its samples, sliceable ``[z, y, x]`` (a lazy source, reopened
-    by path in worker processes). The output and the per-label report equal
-    :class:`LabelMapWarp`'s (:mod:`.label_blocks`). Construction plans the
-    lattice and the output (:attr:`template`, refused before any work when
-    the spec cannot apply); :meth:`render` runs it.
+    by path in worker processes). Construction plans the lattice and the
+    output (:attr:`template`, refused before any work when the spec cannot
+    apply) and reads the map's border (its background label);
+    :meth:`render_whole` reads the map whole and warps it here
+    (:func:`.labels.warp_labels`, within :meth:`memory_whole`), :meth:`render`
+    by slabs on an engine, the map read box by box (:mod:`.label_blocks`):
+    the same output and per-label report.
     """
 
     def __init__(self, template: Volume, source, doc, spec,
@@ -572,11 +533,40 @@ class LabelMapBlocks(_LatticeMoves):
         self.template, _ = output_planes(self.cap, self.scene, crop=options.crop)
         self.window = output_window_box(self.cap, self.scene, options.crop)
 
-    def render(self, engine, open_output, budget: int, *, slab: int | None = None) -> dict:
-        """Warp by slabs on ``engine``; returns the output's shape, the drags' and the labels' report.
+    def memory_whole(self) -> int:
+        """The bytes :meth:`render_whole` holds at its peak (an upper bound).
 
-        ``open_output(template, block)``: as :meth:`IntensityWarp.render_blocks`
-        takes it (a slab's block: ``(slab, y, x)`` of the output); ``budget``:
+        The map read whole, the target's weights and labels, each thread's
+        label pass (:func:`.labels.stream_bytes`) and the output's copy.
+        """
+        from .. import parallel
+        from .labels import stream_bytes
+
+        tx, ty, tz = self.scene.target_shape
+        item = self.input.dtype.itemsize
+        workers = max(1, min(parallel.threads(), tz // 4))
+        return (self.input.data.size * item + tx * ty * tz * (8 + item)
+                + workers * stream_bytes(self.scene, self.scene.dq, self.input.dtype)
+                + self.template.data.size * item)
+
+    def render_whole(self) -> tuple[Volume, dict]:
+        """The output and the per-label report, the map read whole and warped here."""
+        from .labels import warp_labels
+        from .warp import output_volume
+
+        with timed("labels: read the map"):
+            data = np.asarray(self.source[:, :, :])
+        res = warp_labels(data, self.scene, (), preserve=self.preserve,
+                          spacing=self.input.spacing, background=self.background)
+        return output_volume(self.cap, self.scene, res.target, crop=self.options.crop), \
+            res.report
+
+    def render(self, engine, open_output, budget: int, *, slab: int | None = None) -> dict:
+        """Warp by slabs on ``engine``; returns the per-label report.
+
+        ``open_output(template, block)``: a context manager giving the block
+        output (:class:`~volwarp_cli.io.blockwrite.BlockOutput`) for the
+        output's template and block shape (z, y, x), committed on a clean exit (a slab's block: ``(slab, y, x)`` of the output); ``budget``:
         the bytes the tasks may hold together; ``slab``: target planes per
         task (default: as many as the budget holds).
         """
@@ -600,9 +590,7 @@ class LabelMapBlocks(_LatticeMoves):
                 timed(f"labels: {len(labels)} label passes + background, by slabs"):
             report = warp_labels_by_blocks(job, out, engine, nvox=nvox,
                                            spacing=self.input.spacing, memory=per_task)
-        return {"shape": list(self.template.shape_xyz),
-                "handles": handle_report(self.cap, self.frames), "report": report,
-                "grid": self.grid}
+        return report
 
 
 

@@ -25,8 +25,8 @@ chunk by chunk along z into a small buffer with a one-voxel margin, for the
 old lattice when subtracting and the new one when adding (both in one pass
 over the block). The evaluators give every voxel the same value whatever block
 it is computed in, so this is exact, and it saves 12 bytes per domain voxel
-(200 MiB for a 256^3 domain). :meth:`Scene.render_once`, for a warp without
-later updates, also never holds the target accumulators whole.
+(200 MiB for a 256^3 domain). A warp without later updates (the one-shot
+warp, :func:`.blocks.render_block`) never holds the target accumulators whole.
 
 Only the domain voxels inside the input are the model: on a subdivision grid
 (an integer oversample, see :mod:`.lattice`) those around it carry nothing, so
@@ -111,8 +111,8 @@ class Scene:
     ----------
     domain : (Dz, Dy, Dx) float32 or float64, or a :class:`~.pullback.Sampler`
         The captured (pulled back) density; a sampler's planes are gathered
-        as :meth:`render_once` streams them (never whole), and in full the
-        first time anything else needs them.
+        box by box as :func:`.blocks.render_block` streams them (never whole),
+        and in full the first time anything else needs them.
     grid : lattice.Grid
     dq : (Cz, Cy, Cx, 3) float64
         Control-point offsets from the uniform lattice (input voxels, x y z).
@@ -144,7 +144,7 @@ class Scene:
             raise VolwarpError(f"unknown evaluator {evaluator!r} (use separable or table)")
         if tuple(domain.shape[::-1]) != grid.domain_shape:
             raise VolwarpError("domain voxmap does not match the lattice")
-        deferred = hasattr(domain, "planes")  # a Sampler
+        deferred = not isinstance(domain, np.ndarray)  # a sampler (:mod:`.pullback`)
         self.sampler = domain if deferred else None
         self._domain = None if deferred else domain
         self.dtype = np.dtype(domain.dtype)
@@ -178,7 +178,7 @@ class Scene:
         self.chunk_bytes = min(CHUNK_BYTES, block_bytes())
         self.scratch = Scratch()
         self._lattice_facts = {}
-        self._facts_lock = threading.Lock()  # render_once's threads share the cache
+        self._facts_lock = threading.Lock()  # (threads sharing a scene share the cache)
 
     @property
     def domain(self) -> np.ndarray:
@@ -305,22 +305,6 @@ class Scene:
                                  background=self.background)
         self.last_touched = self.target_box
         return self.out
-
-    def render_once(self, sink=None, block_planes: int | None = None) -> np.ndarray | None:
-        """The same target as :meth:`render`, streamed in z blocks over the threads.
-
-        No accumulators are kept for later updates (see :mod:`.stream`; later
-        :meth:`set_lattice` calls start from scratch). ``sink`` receives the
-        finished planes instead (None is returned); ``block_planes`` forces the
-        blocks' size (tests).
-        """
-        from .stream import render_streaming
-
-        out = render_streaming(self, sink, block_planes)
-        self.acc = None
-        self.out = out
-        self.last_touched = self.target_box
-        return out
 
     def result(self) -> np.ndarray:
         """The target for the current lattice (computed in full on first use)."""

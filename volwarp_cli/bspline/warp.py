@@ -8,12 +8,9 @@ state (see :mod:`.plan`) and builds the :class:`~.scene.Scene`;
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ..errors import BadUsage, SpecError
-from ..memory import ensure_fits_in_memory
 from ..progress import log, progress, timed
 from ..samples import cast_samples
 from ..volume import Volume
@@ -71,7 +68,7 @@ def background_of(spec: WarpSpec, cap: Capture, option: float | None = None
 
 def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
             evaluator: str | None = None, background: float | None = None,
-            allow_growth: bool = False, whole_target: bool = True, grid: str | None = None):
+            allow_growth: bool = False, grid: str | None = None):
     """The scene (with its target padding) and the planned frames.
 
     ``method``, ``evaluator``: override the spec's; ``background``: the
@@ -83,8 +80,10 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     ``allow_growth`` (the grown grid only): let the padding the moves need
     make the output more than ``MAX_GROWTH`` times the input, and more than
     ``MIN_GROWTH_VOXELS`` voxels larger, along an axis (refused otherwise,
-    before anything of that size is made). ``whole_target``: the target will
-    be held (refused here when it cannot fit); False for a warp by blocks.
+    before anything of that size is made). The target is not made here: the
+    one-shot warp computes it block by block (:class:`.blocks.WarpOperation`,
+    the executor deciding whether the whole fits), the frames in full
+    (:meth:`.scene.Scene.render` refuses what does not fit).
     """
     if grid is None:
         grid, _ = grid_of(spec, cap)
@@ -121,15 +120,8 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
                             "mistyped move or drag? Give --allow-growth (or the spec's "
                             "capture.pad) to make it", file=getattr(doc, "file", None))
     needed = default_pad(frames, dq0)
-    # the padded target, before anything of its size (or a shape numpy cannot make)
-    tshape = [int(i) + 2 * int(p) for i, p in zip(cap.grid.input_shape, pad, strict=True)]
-    def size(v):
-        return str(v) if v < 10**9 else f"{v:.3g}"
-
-    if whole_target:
-        ensure_fits_in_memory(math.prod(tshape) * 4,
-                              f"the warped target ({'x'.join(map(size, tshape))} voxels, "
-                              f"pad {' '.join(size(int(p)) for p in pad)})")
+    _check_target_shape([int(i) + 2 * int(p) for i, p in zip(cap.grid.input_shape, pad,
+                                                             strict=True)], pad)
     if grid == "grow" and any(p < n - 1 for p, n in zip(pad, needed, strict=False)):
         log.warning("pad %s is smaller than the largest displacement %s: material moved "
                     "outside the padded grid is cut off", list(pad), [max(n - 1, 0) for n in needed])
@@ -140,21 +132,36 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     return scene, frames
 
 
-def run(scene: Scene, frames, on_frame=None, sink=None) -> np.ndarray | None:
-    """Apply the frames; ``on_frame(n, frame_or_None, target)`` after each (incremental).
+def _check_target_shape(tshape, pad) -> None:
+    """Refuse a padded target longer than :data:`~volwarp_cli.samples.MAX_AXIS` along an axis.
 
-    Without ``on_frame`` only the final lattice is rendered (in full, without
-    keeping accumulators), which gives the same target as the incremental
-    sequence; with ``sink`` too, its planes go to ``sink`` as they are
-    finished (see :meth:`Scene.render_once`) and None is returned.
+    Before anything of its size, or its shape, is made (numpy cannot make
+    some); a target within it is the executor's to fit in memory or blocks.
     """
-    if on_frame is None:
-        if frames:
-            scene.set_lattice(frames[-1].dq)
-        with timed("warp (deformation + pushforward)"):
-            return scene.render_once(sink)
-    if sink is not None:
-        raise ValueError("frames are rendered whole: no sink")
+    from ..errors import OutOfMemoryError
+    from ..memory import human_bytes
+    from ..samples import MAX_AXIS, voxel_count
+
+    if max(tshape) <= MAX_AXIS:
+        return
+
+    def size(v):
+        return str(v) if v < 10**9 else f"{v:.3g}"
+
+    raise OutOfMemoryError(f"the warped target ({'x'.join(map(size, tshape))} voxels, pad "
+                           f"{' '.join(size(int(p)) for p in pad)}) needs "
+                           f"{human_bytes(voxel_count(tshape) * 4)}: more than {MAX_AXIS} "
+                           "voxels along an axis, which no memory or disk holds")
+
+
+def run(scene: Scene, frames, on_frame) -> np.ndarray:
+    """Render every frame, incrementally: ``on_frame(n, frame_or_None, target)`` after each.
+
+    Frame 0 (the unmoved lattice) is rendered in full, keeping the
+    accumulators; each later frame is a local update of them (see
+    :meth:`Scene.set_lattice`). Returns the last target. (The final lattice
+    alone is the one-shot warp, :class:`.blocks.WarpOperation`.)
+    """
     with timed("warp frame 0 (full)"):
         on_frame(0, None, scene.render())
     with progress(len(frames), "warp") as bar:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import click
 
 from ..errors import VolwarpError
+from ..samples import MAX_AXIS
 from .mesh import image_path
 from .options import (
     INPUT_PATH,
@@ -59,11 +60,6 @@ def output_paths(pattern: str, names: list[str], multi: bool) -> dict[str, str]:
                 "output name (e.g. 'out_{field}.nrrd') or use --multi", param_hint="'-o'")
         return {names[0]: pattern}
     return {n: pattern.replace("{field}", n) for n in names}
-
-
-#: most samples along one axis of a sweep's grid: beyond it a spacing, margin or size is
-#: many orders of magnitude off (and the sizes overflow)
-MAX_AXIS = 1 << 31
 
 
 def _check_grid(shape_xyz, origin, spacing, doc, from_options: bool, lo, hi,

@@ -13,7 +13,7 @@ import numpy as np
 from click.core import ParameterSource
 
 from ..bspline.defaults import GRIDS, VALUES
-from ..errors import BadUsage, OutOfMemoryError, VolwarpError
+from ..errors import BadUsage, VolwarpError
 from ..io import check_output_path, volume_format, write_volume
 from ..progress import timed
 from .common import load_input, provenance, stamp
@@ -57,8 +57,8 @@ JSON_HELP = (
     "with --points-in / --mesh-in: points / mesh {path, count, outside}; with labels: "
     "labels (one per input label: label, input_voxels, output_voxels, input_mm3, "
     "output_mm3, predicted_mm3; with --frames-to: the last frame's), vanished and "
-    "preserved (label ids). A value that is "
-    "not a finite number is null.")
+    "preserved (label ids); an intensity warp run by blocks: blocks (their count) and "
+    "block (x y z voxels of one). A value that is not a finite number is null.")
 
 
 def _check_pattern(pattern: str) -> None:
@@ -264,22 +264,15 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
             _print_json(summary)
         return
     write_kw = dict(compress=compress, byte_order=byte_order, **ome_zarr)
-    if chunked:
-        summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
-                                  write_kw, values=values, preserve=preserve_labels,
-                                  dicom=dicom, exports=exports, is_capture=is_capture)
+    if frames_to:
+        summary = _warp_frames(input, spec_path, output, options, frames_to, values,
+                               preserve_labels, exports, is_capture, raw, volume_index, dicom,
+                               write_kw)
     else:
-        try:
-            summary = _warp_in_memory(input, spec_path, output, options, frames_to, values,
-                                      preserve_labels, exports, is_capture, raw, volume_index,
-                                      dicom, write_kw)
-        except OutOfMemoryError as exc:
-            if blocks_refused or exports_refused or chunked is False:
-                raise
-            summary = _warp_by_blocks(input, spec_path, output, options, raw, volume_index,
-                                      write_kw, fallback=exc, values=values,
-                                      preserve=preserve_labels, dicom=dicom, exports=exports,
-                                      is_capture=is_capture)
+        summary = _warp_once(input, spec_path, output, options, raw, volume_index, write_kw,
+                             values=values, preserve=preserve_labels, dicom=dicom,
+                             exports=exports, is_capture=is_capture,
+                             blocks_refused=exports_refused)
     if as_json:
         _print_json(summary)
 
@@ -418,34 +411,27 @@ def _check_labels_fit(choice, doc, spec, options, preserve: bool, name, values) 
                        f"({choice.why}): give --values labels")
 
 
-def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_kw, *,
-                    fallback: OutOfMemoryError | None = None, values: str | None = None,
-                    preserve: bool = False, dicom=None, exports=None,
-                    is_capture: bool = False) -> dict:
-    """The warp by output blocks on Dask (:mod:`volwarp_cli.bspline.blocks`).
+def _warp_once(input, spec_path, output, options, raw, volume_index, write_kw, *,
+               values: str | None = None, preserve: bool = False, dicom=None, exports=None,
+               is_capture: bool = False, blocks_refused: str | None = None) -> dict:
+    """The final lattice's warp (no frames): one operation, run whole or by blocks.
 
-    ``fallback``: the in-memory warp's refusal, when this runs instead of it
-    (no --chunked given); raised again where the blocks cannot help either
-    (an output format not written by blocks, an output larger than the disk).
-
-    ``values``: the command line's (None: the spec's, else the label rule on
-    the input read box by box). ``exports`` (checked by the caller with
-    ``block_export_problem``): written after the output, as in memory, the
-    fields by slabs (:func:`volwarp_cli.bspline.export_outputs.write_exports`
-    with ``blocks``).
-
-    ``is_capture``: ``input`` is a capture file, whose domain each block reads
-    from the file (:class:`~volwarp_cli.bspline.capture_file.StoredDomain`).
+    The input is opened lazily (a capture file's domain left in the file),
+    the values chosen (``values``: the command line's; None: the spec's,
+    else the label rule in one pass over the samples), the lattice planned;
+    then :func:`volwarp_cli.execute.run` decides, from the output's and the
+    blocks' sizes, whether the output is computed whole here or by blocks on
+    the engine (the same code, the same bytes). ``blocks_refused``: why the
+    run may not go by blocks (exports written whole), or None.
     """
-    from dataclasses import replace
-
+    from .. import execute
     from ..bspline.capture import capture_source
     from ..bspline.defaults import choose_values, warn_once
     from ..bspline.plan import read_warp_spec
     from ..bspline.run import IntensityWarp, capture_spec, capture_values
     from ..progress import log
     from ..spec.loader import load_schema, load_spec, validate
-    from .chunked import block_budget, lazy_input
+    from .chunked import lazy_input
 
     doc = load_spec(spec_path)
     validate(doc, load_schema("warp"))
@@ -472,10 +458,12 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
     warn_once(choice.warning)
     log.info("%s: %s", input, choice.describe())
     _check_labels_fit(choice, doc, spec, options, preserve, input, values)
+    settings = scale_settings()
+    how = execute.How(chunked=False if blocks_refused else settings.chunked,
+                      block=settings.block, open_engine=settings.open_engine)
     if choice.is_labels:
-        summary = _warp_labels_by_blocks(template, source, input, spec_path, output, options,
-                                         write_kw, doc, spec, fallback=fallback,
-                                         preserve=preserve, exports=exports)
+        summary = _warp_labels(template, source, input, spec_path, output, options, write_kw,
+                               doc, spec, how, preserve=preserve, exports=exports)
         return {**summary, **_values_choice_json(choice)}
     if not is_capture:
         c = spec.capture
@@ -486,30 +474,23 @@ def _warp_by_blocks(input, spec_path, output, options, raw, volume_index, write_
                                      sampling=c.sampling)
             except VolwarpError as exc:
                 raise VolwarpError(f"{input}: {exc}") from None
-    else:
-        source = None
     if exports:  # refused before any work where they cannot be exact
         from ..bspline.export import check_exportable
 
         check_exportable(cap.placement, cap.dq, input)
-    warp = IntensityWarp(cap, doc, spec, replace(options, blocks=True), name=input)
-    if fallback is not None:
-        from .chunked import blocks_can_write, wants_blocks
-
-        shape = warp.scene.target_shape[::-1]
-        if not blocks_can_write(output, shape, options.dtype or cap.input_dtype, write_kw):
-            raise fallback
-        if not wants_blocks(str(fallback)):  # (says why, on stderr)
-            raise fallback
-    settings = scale_settings()
-    with settings.open_engine() as engine:
-        summary = warp.render_blocks(
-            source, engine, _block_writer(output, input, spec_path, write_kw), block_budget(),
-            block=settings.block, sampler=cap.sampler if is_capture else None)
-    summary = {"output": str(output), **summary, **_values_choice_json(choice),
-               **warp.summary()}
+    warp = IntensityWarp(cap, doc, spec, options, name=input)
+    target = execute.Target(output, stamp(warp.output_template(), "warp", input, spec_path),
+                            warp.output_template().dtype, compress=write_kw["compress"],
+                            byte_order=write_kw["byte_order"],
+                            version=write_kw.get("ome_zarr_version", "0.5"),
+                            pyramid=write_kw.get("pyramid", 0))
+    ran = execute.run(warp.operation(target, source=source), how)
+    summary = {"output": str(output), "shape": list(target.template.shape_xyz),
+               "handles": warp.handles(), **_values_choice_json(choice), **warp.summary()}
+    if ran.by_blocks:
+        summary.update(blocks=ran.blocks, block=list(ran.block[::-1]))
     if exports:
-        summary.update(_write_exports(exports, warp, input, spec_path, by_slabs=True))
+        summary.update(_write_exports(exports, warp, input, spec_path, by_slabs=ran.by_blocks))
     return summary
 
 
@@ -536,58 +517,74 @@ def _write_exports(exports, warp, input, spec_path, *, by_slabs: bool) -> dict:
                          blocks=blocks)
 
 
-def _warp_labels_by_blocks(template, source, input, spec_path, output, options, write_kw,
-                           doc, spec, *, fallback=None, preserve=False, exports=None) -> dict:
-    """A label map's warp by slabs of target planes (:class:`~volwarp_cli.bspline.run.LabelMapBlocks`).
+def _warp_labels(template, source, input, spec_path, output, options, write_kw, doc, spec,
+                 how, *, preserve=False, exports=None) -> dict:
+    """A label map's warp (:class:`~volwarp_cli.bspline.run.LabelMapBlocks`): whole or by slabs.
 
-    The same output and per-label report as in memory; the label map
-    (``source``, sliceable: the input read by boxes, or the samples a
-    capture file holds) is read by boxes, the target never held.
+    ``source``: the map's samples, sliceable (read whole when the warp fits the
+    memory budget, else box by box by slabs of target planes); ``how``: as
+    :func:`volwarp_cli.execute.run` takes it, and decided the same way, by
+    the sizes, before the map is read. The same output and per-label report
+    either way.
     """
+    from .. import execute
     from ..bspline.labels import format_report
     from ..bspline.run import LabelMapBlocks
+    from ..memory import human_bytes
     from ..progress import log
-    from .chunked import block_budget, blocks_can_write, wants_blocks
 
     warp = LabelMapBlocks(template, source, doc, spec, options, preserve=preserve, name=input)
-    if fallback is not None:
-        if not blocks_can_write(output, warp.template.data.shape, warp.template.dtype,
-                                write_kw):
-            raise fallback
-        if not wants_blocks(str(fallback)):
-            raise fallback
-    settings = scale_settings()
-    with settings.open_engine() as engine:
-        summary = warp.render(engine, _block_writer(output, input, spec_path, write_kw,
-                                                    labels=True), block_budget(),
-                              slab=settings.block[0] if settings.block else None)
-    report = summary.pop("report")
+    stamped = stamp(warp.template, "warp", input, spec_path)
+    need = warp.memory_whole()
+    if how.chunked is not True and execute.fits(need):
+        out, report = warp.render_whole()
+        with timed(f"write {output}"):  # (pyramid levels take the mode: never averaged ids)
+            write_volume(stamped.with_data(out.data, origin=out.origin), output, **write_kw,
+                         labels=True)
+        by_slabs = False
+    else:
+        what = f"the warp of {input}'s labels"
+        nbytes = warp.template.data.size * warp.template.dtype.itemsize
+        execute.refuse_unmakeable(what, need, [(output, nbytes)], chunked=how.chunked,
+                                  compress=write_kw["compress"],
+                                  pyramid=write_kw.get("pyramid", 0))
+        if how.chunked is None:
+            log.warning("%s needs %s: running by blocks (--no-chunked to refuse instead)",
+                        what, human_bytes(need))
+        settings = scale_settings()
+        with how.open_engine() as engine:
+            report = warp.render(engine, _label_output(output, stamped, write_kw),
+                                 execute.block_budget(),
+                                 slab=settings.block[0] if settings.block else None)
+        by_slabs = True
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
-    summary = {"output": str(output), **summary, **_labels_json(report)}
+    summary = {"output": str(output), "shape": list(warp.template.shape_xyz),
+               "handles": warp.handles(), "grid": warp.grid, **_labels_json(report)}
     if exports:
-        summary.update(_write_exports(exports, warp, input, spec_path, by_slabs=True))
+        summary.update(_write_exports(exports, warp, input, spec_path, by_slabs=by_slabs))
     return summary
 
 
-def _block_writer(output, input, spec_path, write_kw, *, labels: bool = False):
-    """``open_output(template, block)`` for the warp's blocks: the output file, stamped."""
+def _label_output(output, stamped, write_kw):
+    """``open_output(template, block)`` for a label warp's slabs: the output file, stamped."""
     from .chunked import block_output
 
     def open_output(template, block):
-        return block_output(output, stamp(template, "warp", input, spec_path), block=block,
-                            compress=write_kw["compress"], byte_order=write_kw["byte_order"],
+        return block_output(output, stamped, block=block, compress=write_kw["compress"],
+                            byte_order=write_kw["byte_order"],
                             version=write_kw.get("ome_zarr_version", "0.5"),
-                            pyramid=write_kw.get("pyramid", 0),
-                            labels=True if labels else "auto")
+                            pyramid=write_kw.get("pyramid", 0), labels=True)
 
     return open_output
 
 
-def _warp_in_memory(input, spec_path, output, options, frames_to, values, preserve_labels,
-                    exports, is_capture, raw, volume_index, dicom, write_kw) -> dict:
-    """The warp in memory (the default): every mode, frames and exports.
+def _warp_frames(input, spec_path, output, options, frames_to, values, preserve_labels,
+                 exports, is_capture, raw, volume_index, dicom, write_kw) -> dict:
+    """Every frame of the warp (--frames-to), in memory; ``output`` (if given) the last.
 
-    ``output`` None: the frames only (--frames-to).
+    Intensities: frame 0 in full, then each frame a local update of the last
+    (the accumulators kept). Labels: each frame the label warp of the input
+    map for that frame's lattice.
     """
     from ..bspline.run import IntensityWarp, LabelMapWarp, WarpInput
     if is_capture:
@@ -595,7 +592,7 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, values, preser
 
         source = WarpInput(input, values=values, read_capture=lambda: read_capture(input))
     else:  # mapped, not copied, where it can be: the warp only reads it
-        source = WarpInput(input, values=values, stream=not frames_to,
+        source = WarpInput(input, values=values,
                            read_volume=lambda: load_input(input, raw, volume_index, True, dicom))
     with source:
         doc, spec = source.load_spec(spec_path)
@@ -604,13 +601,11 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, values, preser
         _check_labels_fit(choice, doc, spec, options, preserve_labels, input, values)
     labels = choice.is_labels
 
-    def stamped(vol):
-        return stamp(vol, "warp", input, spec_path)
-
     def write(vol, path):
         with timed(f"write {path}"):
             # (a label map's pyramid levels take the mode, as by blocks: never averaged ids)
-            write_volume(stamped(vol), path, **write_kw, **({"labels": True} if labels else {}))
+            write_volume(stamp(vol, "warp", input, spec_path), path, **write_kw,
+                         **({"labels": True} if labels else {}))
 
     written = [0]  # frame files
 
@@ -618,19 +613,15 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, values, preser
         write(vol, frames_to.format(**fields))
         written[0] += 1
 
-    shape = None
     if labels:
         from ..bspline.labels import format_report
         from ..progress import log
 
         warp = LabelMapWarp(what, doc, spec, options, preserve=preserve_labels, name=input)
         del what
-        handles = warp.handles()
-        out, report = warp.render_frames(write_frame) if frames_to else warp.render()
-        if output is not None:
-            write(out, output)
+        out, report = warp.render_frames(write_frame)
         log.info("per-label volumes (mm^3):\n%s", format_report(report))
-        shape, stats = list(out.shape_xyz), _labels_json(report)
+        stats = _labels_json(report)
     else:
         if exports:  # refused before any work where they cannot be exact
             from ..bspline.export import check_exportable
@@ -638,36 +629,14 @@ def _warp_in_memory(input, spec_path, output, options, frames_to, values, preser
             check_exportable(what.placement, what.dq, input)
         warp = IntensityWarp(what, doc, spec, options, name=input)
         del what
-        handles = warp.handles()
-        stats = {}
-        if (not frames_to and output.lower().endswith(".nrrd")
-                and not write_kw["compress"]):
-            # raw NRRD: written by slabs (whole depth, whole rows) as the threads finish them
-            # (the whole target is never held; each slab streams a ring of its own planes)
-            from .. import memory, parallel
-            from ..bspline.blocks import warp_by_tiles
-            from .chunked import block_output
-
-            template, job = warp.block_job(None, sampler=warp.tile_sampler())
-            threads = parallel.threads()
-            block = job.choose_blocks(memory.memory_limit(), threads)
-            with timed("warp (deformation + pushforward, by slabs)"), \
-                    block_output(output, stamped(template), block=block,
-                                 byte_order=write_kw["byte_order"]) as out:
-                warp_by_tiles(job, out, threads=threads)
-            shape = list(template.shape_xyz)
-        else:
-            out = warp.render_frames(write_frame) if frames_to else warp.render()
-            if output is not None:
-                write(out, output)
-            shape = list(out.shape_xyz)
+        out, stats = warp.render_frames(write_frame), {}
+    if output is not None:
+        write(out, output)
     if exports:
         stats.update(_write_exports(exports, warp, input, spec_path, by_slabs=False))
-    summary = {"output": None if output is None else str(output), "shape": shape}
-    if frames_to:
-        summary["frames"] = written[0]
-    return {**summary, "handles": handles, **_values_choice_json(choice), **warp.summary(),
-            **stats}
+    return {"output": None if output is None else str(output), "shape": list(out.shape_xyz),
+            "frames": written[0], "handles": warp.handles(), **_values_choice_json(choice),
+            **warp.summary(), **stats}
 
 
 def _jsonable(v):

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import VolwarpError
 from ..geometry import Geometry
+from ..samples import MAX_AXIS
 from .align import affine_from_params
 
 
@@ -34,11 +35,6 @@ class GridError(VolwarpError):
     def __init__(self, message: str, key: tuple = ("grid",)):
         super().__init__(message)
         self.key = tuple(key)
-
-
-#: most voxels along one axis of a frame grid (beyond it the sizes are absurd: a scale
-#: or translation many orders of magnitude off, or a margin of 1e300 voxels)
-MAX_AXIS = 1 << 31
 
 
 def _corners(grid: Geometry) -> np.ndarray:

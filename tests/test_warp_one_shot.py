@@ -1,12 +1,14 @@
-"""The one-shot streamed render and the voxel-range evaluators give exactly the full results."""
+"""The one-shot render (the whole target as one block) and the voxel-range evaluators give
+exactly the full results."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from one_shot import one_shot
 
 from volwarp_cli.bspline import basis
-from volwarp_cli.bspline import stream as stream_module
+from volwarp_cli.bspline import blocks as blocks_module
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.lattice import Grid
 from volwarp_cli.bspline.scene import Scene
@@ -21,26 +23,25 @@ def _blob(shape_zyx):
 @pytest.mark.parametrize("method", ["box", "nearest"])
 @pytest.mark.parametrize("shift", [(0.0, 0.0, 0.0), (2.0, -1.0, 9.0), (-3.0, 2.5, -14.0)])
 @pytest.mark.parametrize("stream_planes", [1, 8])
-def test_render_once_equals_render(method, shift, stream_planes, monkeypatch):
-    # tall in z so that the stream runs on two threads and wraps its ring of planes
-    # (many times with 1 plane per step); large z moves stretch and fold the map
-    # along the streamed axis
-    monkeypatch.setattr(stream_module, "STREAM_PLANES", stream_planes)
+def test_one_shot_equals_render(method, shift, stream_planes, monkeypatch):
+    # tall in z so that the block's stream wraps its ring of planes (many times with 1
+    # plane per step); large z moves stretch and fold the map along the streamed axis
+    monkeypatch.setattr(blocks_module, "STREAM_PLANES", stream_planes)
     cap = capture_volume(Volume(_blob((90, 20, 24))), lattice=(6, 6, 12), oversample=1.5)
     dq = cap.dq.copy()
     dq[5, 2, 3] += shift
     dq[6, 3, 2] -= np.array(shift) * 0.5
     full = Scene(cap.domain, cap.grid, dq, 16, method=method).render()
-    once = Scene(cap.domain, cap.grid, dq, 16, method=method).render_once()
+    once = one_shot(Scene(cap.domain, cap.grid, dq, 16, method=method))
     assert np.array_equal(once, full)
-    # a deferred capture: planes gathered chunk by chunk as the stream needs them
-    # (overlapping chunks of the two threads included), the whole domain never
+    # a deferred capture: boxes gathered chunk by chunk as the stream needs them, the
+    # whole domain never
     lazy = capture_volume(Volume(_blob((90, 20, 24))), lattice=(6, 6, 12), oversample=1.5,
                           defer=True)
     assert lazy.domain is None
     value_range = (float(cap.domain.min()), float(cap.domain.max()))
     scene = Scene(lazy.voxmap, lazy.grid, dq, 16, method=method, domain_range=value_range)
-    assert np.array_equal(scene.render_once(), full)
+    assert np.array_equal(one_shot(scene), full)
     assert scene.sampler is not None  # still not gathered whole
     assert np.array_equal(scene.render(), full)  # gathers it whole
     assert np.array_equal(scene.domain, cap.domain) and scene.sampler is None
@@ -49,14 +50,15 @@ def test_render_once_equals_render(method, shift, stream_planes, monkeypatch):
 @pytest.mark.parametrize("method", ["box", "nearest"])
 def test_subdivision_grid_paths_agree(method, local_updates, monkeypatch):
     """On a subdivision grid with domain voxels outside the input on every axis (lead 1,
-    1, 1 at oversample 2), the streamed render (whole or deferred capture), the full
+    1, 1 at oversample 2), the one-shot render (whole or deferred capture), the full
     render and local updates give the same target bit for bit, and an unmoved lattice
     gives back the input."""
-    monkeypatch.setattr(stream_module, "STREAM_PLANES", 4)
+    monkeypatch.setattr(blocks_module, "STREAM_PLANES", 4)
     data = _blob((65, 20, 23))
     cap = capture_volume(Volume(data), lattice=(6, 6, 10), oversample=2)
     assert cap.grid.lead == (1, 1, 1) and cap.grid.data_hi == (47, 41, 131)
-    ident = Scene(cap.domain, cap.grid, cap.dq, 2, method=method, update=local_updates).render_once()
+    ident = one_shot(Scene(cap.domain, cap.grid, cap.dq, 2, method=method,
+                           update=local_updates))
     assert np.max(np.abs(ident[2:-2, 2:-2, 2:-2] - data)) <= 8 * 2.0 ** -39 * data.max()
     assert np.all(ident[:2] == 0) and np.all(ident[:, :, -2:] == 0)
     scene = Scene(cap.domain, cap.grid, cap.dq, 6, method=method, update=local_updates)
@@ -69,22 +71,12 @@ def test_subdivision_grid_paths_agree(method, local_updates, monkeypatch):
         scene.set_lattice(dq)
     full = Scene(cap.domain, cap.grid, dq, 6, method=method, update=local_updates).render()
     assert np.array_equal(scene.out, full)
-    once = Scene(cap.domain, cap.grid, dq, 6, method=method, update=local_updates).render_once()
+    once = one_shot(Scene(cap.domain, cap.grid, dq, 6, method=method, update=local_updates))
     assert np.array_equal(once, full)
     lazy = capture_volume(Volume(data), lattice=(6, 6, 10), oversample=2, defer=True)
-    deferred = Scene(lazy.voxmap, lazy.grid, dq, 6, method=method,
-                     domain_range=lazy.stats[:2], update=local_updates).render_once()
+    deferred = one_shot(Scene(lazy.voxmap, lazy.grid, dq, 6, method=method,
+                              domain_range=lazy.stats[:2], update=local_updates))
     assert np.array_equal(deferred, full)
-
-
-def test_render_once_then_updates_start_from_scratch():
-    cap = capture_volume(Volume(_blob((40, 20, 24))), lattice=7, oversample=1)
-    scene = Scene(cap.domain, cap.grid, cap.dq, 3)
-    scene.render_once()
-    dq = cap.dq.copy()
-    dq[3, 3, 3] += [1.0, 0.5, -1.0]
-    scene.set_lattice(dq)
-    assert np.array_equal(scene.result(), Scene(cap.domain, cap.grid, dq, 3).render())
 
 
 @pytest.mark.parametrize("evaluate", [basis.evaluate_separable, basis.evaluate_table])
@@ -101,7 +93,7 @@ def test_voxel_range_evaluation_is_bit_identical(evaluate):
 @pytest.mark.parametrize("method", ["box", "nearest"])
 def test_background_is_the_value_of_the_space_around_the_model(method, local_updates):
     """Warping with background b equals warping data - b with background 0, plus b
-    (the pushforward is linear), in the full, streamed and incremental paths; an
+    (the pushforward is linear), in the full, one-shot and incremental paths; an
     uncovered voxel (in the padding) gets b exactly."""
     data = _blob((30, 20, 24)) - 40.0  # like a signed field: negative inside, positive around
     b = 37.5
@@ -111,7 +103,8 @@ def test_background_is_the_value_of_the_space_around_the_model(method, local_upd
     dq[4, 3, 3] += [2.0, -1.5, 3.0]
     ref = Scene(shifted.domain, shifted.grid, dq, 5, method=method, update=local_updates).render() + b
     full = Scene(cap.domain, cap.grid, dq, 5, method=method, background=b, update=local_updates).render()
-    once = Scene(cap.domain, cap.grid, dq, 5, method=method, background=b, update=local_updates).render_once()
+    once = one_shot(Scene(cap.domain, cap.grid, dq, 5, method=method, background=b,
+                          update=local_updates))
     scene = Scene(cap.domain, cap.grid, cap.dq, 5, method=method, background=b, update=local_updates)
     scene.render()
     scene.set_lattice(dq)
@@ -134,7 +127,7 @@ def test_rotated_constant_stays_constant_inside(background, degrees):
     pts = cap.grid.uniform_positions() + cap.dq
     dq = (pts - c) @ rot.T + c - cap.grid.uniform_positions()
     pad = 8
-    out = Scene(cap.domain, cap.grid, dq, pad, background=background).render_once()
+    out = one_shot(Scene(cap.domain, cap.grid, dq, pad, background=background))
     z, y, x = np.indices(out.shape)
     centre = c + pad
     inside = ((x - centre[0]) ** 2 + (y - centre[1]) ** 2 < 10 ** 2) & (abs(z - centre[2]) < 12)
