@@ -108,7 +108,7 @@ def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | N
     died), its ``worker`` (on a cluster) and ``peak_rss`` (bytes, the largest
     of its steps'); per step the step process's ``peak_rss``.
     """
-    from ..cli.common import provenance
+    from ..provenance import provenance
 
     meta = provenance("batch", manifest.path)
     meta["volwarp_spec_sha256"] = manifest.sha256

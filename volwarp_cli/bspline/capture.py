@@ -168,11 +168,10 @@ def source_range(source, *, slab_bytes: int = 64 << 20) -> tuple[float, float]:
         return float(part.min()), float(part.max())
 
     parts = parallel.run_blocks(slab, range(0, nz, step), threads)
-    lo, hi = min(p[0] for p in parts), max(p[1] for p in parts)
-    if not (np.isfinite(lo) and np.isfinite(hi)):
+    if not np.all(np.isfinite(parts)):  # (each slab's: min() skips a NaN among numbers)
         raise VolwarpError("the volume has NaN or infinite samples; warping needs finite ones "
                            "(replace them first)")
-    return lo, hi
+    return min(p[0] for p in parts), max(p[1] for p in parts)
 
 
 def capture_source(template: Volume, source, *, lattice=(9, 9, 9), placement: str = "uniform",

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..execute import MIN_BLOCK_BUDGET, block_budget  # noqa: F401  (the executor's, shared)
+from ..io.blockwrite import open_volume_blocks as block_output  # noqa: F401  (the commands')
 from ..progress import log
 
 
@@ -70,21 +71,3 @@ def lazy_input(path, raw=None, volume_index=None, dicom=None):
                                            dicom=dicom)
     return template, LazySource(path, raw=raw, volume_index=volume_index, array=array,
                                 dicom=dicom)
-
-
-def block_output(path, template, dtype=None, *, block=None, compress=False,
-                 byte_order="little", pyramid=0, version="0.5", labels="auto",
-                 components=None):
-    """The :class:`~volwarp_cli.io.blockwrite.BlockOutput` of ``template`` at ``path``.
-
-    Committed when the block exits without an error, aborted (nothing left at
-    ``path``, an existing file untouched) otherwise.
-    """
-    from ..geometry import Geometry
-    from ..io.blockwrite import committed, open_block_output
-
-    out = open_block_output(path, Geometry.of(template), dtype or template.dtype,
-                            chunks_zyx=block, version=version, compress=compress,
-                            byte_order=byte_order, metadata=template.meta, space=template.space,
-                            pyramid=pyramid, labels=labels, components=components)
-    return committed(out)

@@ -96,6 +96,22 @@ def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chu
                          components)
 
 
+def open_volume_blocks(path, template, dtype=None, *, block=None, compress=False,
+                       byte_order="little", pyramid=0, version="0.5", labels="auto",
+                       components=None):
+    """The :class:`BlockOutput` of the volume ``template`` (its geometry, frame, key/values).
+
+    A context manager: committed when it exits without an error, aborted
+    (nothing left at ``path``, an existing file untouched) otherwise. The
+    options are :func:`open_block_output`'s.
+    """
+    out = open_block_output(path, Geometry.of(template), dtype or template.dtype,
+                            chunks_zyx=block, version=version, compress=compress,
+                            byte_order=byte_order, metadata=template.meta, space=template.space,
+                            pyramid=pyramid, labels=labels, components=components)
+    return committed(out)
+
+
 def check_block_format(path: str | os.PathLike, compress: bool = False, pyramid: int = 0) -> str:
     """The format of ``path`` if it is written block by block, else a VolwarpError saying why.
 

@@ -1,0 +1,399 @@
+"""``volwarp warp`` without click: the files a warp reads and writes, and what it did.
+
+The command (:mod:`volwarp_cli.cli.warp`) checks its options and hands a
+:class:`WarpFiles` to :func:`warp_files`, which reads the spec and the input,
+chooses how the samples are warped, plans the lattice moves and writes the
+outputs; the summary it returns is what ``--json`` prints. How the work runs
+is the command line's :class:`~volwarp_cli.execute.How`: the final lattice's
+warp is one operation of the executor (whole, or by blocks when the sizes
+say so), every frame (``--frames-to``) in memory, and the exports alone plan
+the lattice and read no sample.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import BadUsage, VolwarpError
+from ..progress import log, timed
+from ..provenance import provenance, stamp
+from .run import WarpOptions
+
+
+@dataclass(frozen=True)
+class WarpFiles:
+    """A warp's files and choices, checked by the command line.
+
+    ``input``: a volume or a capture file (``is_capture``), opened with
+    ``read_volume()`` (whole, mapped where it can be: the frames) or
+    ``open_lazy()`` (``(template, source)``: its geometry and its samples
+    read box by box, reopened by path in other processes). ``spec``: the
+    spec file. ``output``: the warped volume (None: ``frames_to`` or the
+    exports alone); ``frames_to``: the frames' name pattern
+    (:data:`.run.FRAME_FIELDS`); ``exports``: an
+    :class:`~.export_outputs.ExportRequests` or None. ``values``: the command
+    line's ``--values`` (None: the spec's, else the label rule);
+    ``preserve``: ``--preserve-labels``; ``write``: the volume writer's
+    options (``compress``, ``byte_order``, ``ome_zarr_version``, ``pyramid``).
+    """
+
+    input: str
+    spec: str
+    output: str | None
+    read_volume: Callable
+    open_lazy: Callable
+    is_capture: bool = False
+    frames_to: str | None = None
+    exports: object = None
+    options: WarpOptions = WarpOptions()
+    values: str | None = None
+    preserve: bool = False
+    write: dict = field(default_factory=lambda: {"compress": False, "byte_order": "little"})
+
+    def stamped(self, vol, inputs=None):
+        """``vol`` with this warp's provenance (inputs: the input, unless given)."""
+        return stamp(vol, "warp", self.input if inputs is None else inputs, self.spec)
+
+
+def warp_files(req: WarpFiles, how) -> dict:
+    """Run the warp ``req`` asks for, ``how`` (:class:`~volwarp_cli.execute.How`) says.
+
+    Returns the ``--json`` summary (see the command's help).
+    """
+    if req.output is None and not req.frames_to:
+        return _exports_only(req, how)
+    if req.frames_to:
+        return _warp_frames(req)
+    return _warp_once(req, how)
+
+
+def _load_spec(path):
+    """The spec: ``(doc, WarpSpec)``, checked against its schema."""
+    from ..spec.loader import load_schema, load_spec, validate
+    from .plan import read_warp_spec
+
+    doc = load_spec(path)
+    validate(doc, load_schema("warp"))
+    return doc, read_warp_spec(doc)
+
+
+def _exports_only(req: WarpFiles, how) -> dict:
+    """The exports of a warp whose volume is not asked for: the lattice planned, no volume.
+
+    Only the input's geometry is read (a volume's header, a capture file's
+    header); the moved points, meshes, transform and fields are those of the
+    warp with the same spec and options.
+    """
+    from .export import check_exportable
+    from .run import Deformation
+    from .warp import check_capture_settings
+
+    doc, spec = _load_spec(req.spec)
+    if req.is_capture:
+        from .capture_file import read_capture_lattice
+
+        with timed(f"read {req.input} (header)"):
+            cap = read_capture_lattice(req.input)
+        check_capture_settings(doc, spec, cap, req.input)
+    else:
+        from .capture import geometry_capture
+
+        template, _ = req.open_lazy()
+        c = spec.capture
+        try:
+            cap = geometry_capture(template, lattice=c.lattice, placement=c.placement,
+                                   oversample=c.oversample, sampling=c.sampling)
+        except VolwarpError as exc:
+            raise VolwarpError(f"{req.input}: {exc}") from None
+    check_exportable(cap.placement, cap.dq, req.input)
+    warp = Deformation(cap, doc, spec, req.options)
+    stats = _write_exports(req, warp, how, by_slabs=bool(how.chunked))
+    # (no volume: no grid of its own; the exports are on the input's)
+    return {"output": None, "handles": warp.handles(), "grid": None, **stats}
+
+
+def _open_values(req: WarpFiles, doc, spec):
+    """The input opened lazily and how its samples are warped.
+
+    Returns ``(choice, cap, template, source, spec)``: the values choice
+    (:class:`.defaults.ValuesChoice`); a capture file's deferred capture
+    (else None); for a volume, or a capture file's labels, its template and
+    sliceable samples; the spec to warp with (a capture file's labels: its
+    own capture settings).
+    """
+    from .defaults import choose_values, warn_once
+    from .run import capture_spec, capture_values
+
+    given = req.values or spec.values
+    cap = template = source = None
+    if req.is_capture:
+        from .capture_file import open_capture_lazy
+        from .warp import check_capture_settings
+
+        with timed(f"check {req.input} (one pass)"):
+            cap = open_capture_lazy(req.input)
+        check_capture_settings(doc, spec, cap, req.input)
+        with timed(f"labels? (the rule, one pass over {req.input})"):
+            choice, view = capture_values(cap, given, req.input)
+        if choice.is_labels:  # the label map the capture holds, read box by box
+            template = cap.geometry.with_data(np.broadcast_to(
+                np.zeros((), cap.input_dtype), view.shape))
+            source, spec = view, capture_spec(spec, cap)
+    else:
+        template, source = req.open_lazy()
+        with timed("labels? (the rule, one pass)"):
+            choice = choose_values(source, given, name=req.input)
+    warn_once(choice.warning)
+    log.info("%s: %s", req.input, choice.describe())
+    check_values_fit(choice, doc, spec, req.options, req.preserve, req.input, req.values)
+    return choice, cap, template, source, spec
+
+
+def _warp_once(req: WarpFiles, how) -> dict:
+    """The final lattice's warp (no frames): one operation, run whole or by blocks.
+
+    The input is opened lazily (a capture file's domain left in the file),
+    the values chosen (the label rule in one pass over the samples), the
+    lattice planned; then :func:`volwarp_cli.execute.run` decides, from the
+    output's and the blocks' sizes, whether the output is computed whole here
+    or by blocks on the engine (the same code, the same bytes).
+    """
+    from .. import execute
+    from .capture import capture_source
+    from .run import IntensityWarp
+
+    doc, spec = _load_spec(req.spec)
+    choice, cap, template, source, spec = _open_values(req, doc, spec)
+    if choice.is_labels:
+        return {**_warp_labels(req, template, source, doc, spec, how),
+                **values_json(choice)}
+    if cap is None:
+        c = spec.capture
+        with timed("input range (one pass)"):
+            try:
+                cap = capture_source(template, source, lattice=c.lattice,
+                                     placement=c.placement, oversample=c.oversample,
+                                     sampling=c.sampling)
+            except VolwarpError as exc:
+                raise VolwarpError(f"{req.input}: {exc}") from None
+    if req.exports:  # refused before any work where they cannot be exact
+        from .export import check_exportable
+
+        check_exportable(cap.placement, cap.dq, req.input)
+    warp = IntensityWarp(cap, doc, spec, req.options, name=req.input)
+    template = warp.output_template()
+    w = req.write
+    target = execute.Target(req.output, req.stamped(template), template.dtype,
+                            compress=w["compress"], byte_order=w["byte_order"],
+                            version=w.get("ome_zarr_version", "0.5"),
+                            pyramid=w.get("pyramid", 0))
+    ran = execute.run(warp.operation(target, source=source), how)
+    summary = {"output": str(req.output), "shape": list(template.shape_xyz),
+               "handles": warp.handles(), **values_json(choice), **warp.summary()}
+    if ran.by_blocks:
+        summary.update(blocks=ran.blocks, block=list(ran.block[::-1]))
+    if req.exports:
+        summary.update(_write_exports(req, warp, how, by_slabs=ran.by_blocks))
+    return summary
+
+
+def _warp_labels(req: WarpFiles, template, source, doc, spec, how) -> dict:
+    """A label map's warp (:class:`.run.LabelMapBlocks`): whole or by slabs of target planes.
+
+    ``source``: the map's samples, sliceable (read whole when the warp fits
+    the memory budget, else box by box by slabs); decided as
+    :func:`volwarp_cli.execute.run` decides, by the sizes, before the map is
+    read. The same output and per-label report either way.
+    """
+    from .. import execute
+    from ..io import write_volume
+    from ..memory import human_bytes
+    from .labels import format_report
+    from .run import LabelMapBlocks
+
+    warp = LabelMapBlocks(template, source, doc, spec, req.options, preserve=req.preserve,
+                          name=req.input)
+    stamped = req.stamped(warp.template)
+    need = warp.memory_whole()
+    w = req.write
+    if how.chunked is not True and execute.fits(need):
+        out, report = warp.render_whole()
+        with timed(f"write {req.output}"):  # (pyramid levels take the mode: never averaged ids)
+            write_volume(stamped.with_data(out.data, origin=out.origin), req.output, **w,
+                         labels=True)
+        by_slabs = False
+    else:
+        what = f"the warp of {req.input}'s labels"
+        nbytes = warp.template.data.size * warp.template.dtype.itemsize
+        execute.refuse_unmakeable(what, need, [(req.output, nbytes)], chunked=how.chunked,
+                                  compress=w["compress"], pyramid=w.get("pyramid", 0))
+        if how.chunked is None:
+            log.warning("%s needs %s: running by blocks (--no-chunked to refuse instead)",
+                        what, human_bytes(need))
+
+        def open_output(template, block):
+            from ..io.blockwrite import open_volume_blocks
+
+            return open_volume_blocks(req.output, stamped, block=block, compress=w["compress"],
+                                      byte_order=w["byte_order"],
+                                      version=w.get("ome_zarr_version", "0.5"),
+                                      pyramid=w.get("pyramid", 0), labels=True)
+
+        with how.open_engine() as engine:
+            report = warp.render(engine, open_output, execute.block_budget(),
+                                 slab=how.block[0] if how.block else None)
+        by_slabs = True
+    log.info("per-label volumes (mm^3):\n%s", format_report(report))
+    summary = {"output": str(req.output), "shape": list(warp.template.shape_xyz),
+               "handles": warp.handles(), "grid": warp.grid, **labels_json(report)}
+    if req.exports:
+        summary.update(_write_exports(req, warp, how, by_slabs=by_slabs))
+    return summary
+
+
+def _warp_frames(req: WarpFiles) -> dict:
+    """Every frame of the warp (``frames_to``), in memory; ``output`` (if given) the last.
+
+    Intensities: frame 0 in full, then each frame a local update of the last
+    (the accumulators kept). Labels: each frame the label warp of the input
+    map for that frame's lattice.
+    """
+    from ..io import write_volume
+    from .run import IntensityWarp, LabelMapWarp, WarpInput
+
+    if req.is_capture:
+        from .capture_file import read_capture
+
+        source = WarpInput(req.input, values=req.values,
+                           read_capture=lambda: read_capture(req.input))
+    else:  # mapped, not copied, where it can be: the warp only reads it
+        source = WarpInput(req.input, values=req.values, read_volume=req.read_volume)
+    with source:
+        doc, spec = source.load_spec(req.spec)
+        what = source.source(doc, spec)
+        choice, spec = source.choice, source.spec
+        check_values_fit(choice, doc, spec, req.options, req.preserve, req.input, req.values)
+    labels = choice.is_labels
+
+    def write(vol, path):
+        with timed(f"write {path}"):
+            # (a label map's pyramid levels take the mode, as by blocks: never averaged ids)
+            write_volume(req.stamped(vol), path, **req.write,
+                         **({"labels": True} if labels else {}))
+
+    written = [0]  # frame files
+
+    def write_frame(fields, vol):
+        write(vol, req.frames_to.format(**fields))
+        written[0] += 1
+
+    if labels:
+        from .labels import format_report
+
+        warp = LabelMapWarp(what, doc, spec, req.options, preserve=req.preserve,
+                            name=req.input)
+        del what
+        out, report = warp.render_frames(write_frame)
+        log.info("per-label volumes (mm^3):\n%s", format_report(report))
+        stats = labels_json(report)
+    else:
+        if req.exports:  # refused before any work where they cannot be exact
+            from .export import check_exportable
+
+            check_exportable(what.placement, what.dq, req.input)
+        warp = IntensityWarp(what, doc, spec, req.options, name=req.input)
+        del what
+        out, stats = warp.render_frames(write_frame), {}
+    if req.output is not None:
+        write(out, req.output)
+    if req.exports:
+        stats.update(_write_exports(req, warp, None, by_slabs=False))
+    return {"output": None if req.output is None else str(req.output),
+            "shape": list(out.shape_xyz), "frames": written[0], "handles": warp.handles(),
+            **values_json(choice), **warp.summary(), **stats}
+
+
+def _write_exports(req: WarpFiles, warp, how, *, by_slabs: bool) -> dict:
+    """The deformation's exports, stamped with their provenance; their --json figures.
+
+    Written after the volume: a run that fails or is stopped before its
+    output leaves the old exports as they were (each export file is atomic
+    on its own). ``by_slabs``: the fields computed and written by slabs of z
+    planes within the block budget (a warp by blocks; ``how.block``'s depth
+    when given).
+    """
+    from .export_outputs import FieldBlocks, write_exports
+
+    blocks = None
+    if by_slabs:
+        from ..execute import block_budget
+
+        blocks = FieldBlocks(memory=block_budget(),
+                             depth=how.block[0] if how is not None and how.block else None)
+    exports = req.exports
+    mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
+    return write_exports(exports, warp, meta=provenance("warp", req.input, req.spec),
+                         mesh_meta=provenance("warp", [req.input, *mesh_src], req.spec),
+                         blocks=blocks)
+
+
+def check_values_fit(choice, doc, spec, options, preserve: bool, name, values) -> None:
+    """What a warp as labels, or as intensities, cannot have: usage or spec errors.
+
+    Found once the values are chosen (the rule reads the samples), before
+    any work. Where the rule chose, the message names the way out; where the
+    spec's ``values: labels`` chose (``values``, the command line's, None),
+    a clash is the spec's error at that key.
+    """
+    if choice.is_labels:
+        if choice.ruled:
+            way = f"{name} looks like a label map ({choice.labels} labels) and is warped as labels"
+        else:
+            way = "labels are warped"
+
+        def out(what):
+            return (f"{what}; --values intensity warps its samples as intensities"
+                    if choice.ruled else what)
+
+        def clash(what):
+            if values is None and not choice.ruled:  # the spec's values: labels
+                return doc.error(("values",), what)
+            return BadUsage(out(what))
+
+        if options.dtype is not None:
+            raise clash(f"{way} in the map's own integer type: --dtype does not apply")
+        if options.background is not None:
+            raise clash(f"{way} with their most frequent border label as their background: "
+                        "--background-value does not apply")
+        if spec.background is not None:
+            raise doc.error(("background",), out(f"does not apply: {way} with their most "
+                                                 "frequent border label as their background"))
+        c = spec.capture
+        if c.placement != "uniform" and "placement" in spec.capture_given:
+            raise doc.error(("capture", "placement"), out(
+                f"{way} with the uniform placement (each domain voxel one input voxel's "
+                "label)"))
+        if c.oversample != int(c.oversample):
+            raise doc.error(("capture", "oversample"), out(
+                f"{way} with an integer oversample (each domain voxel one input voxel's "
+                "label)"))
+    elif preserve:
+        raise BadUsage(f"--preserve-labels keeps labels, but {name} is warped as intensities "
+                       f"({choice.why}): give --values labels")
+
+
+def values_json(choice) -> dict:
+    """The ``--json`` keys of the values choice."""
+    return {"values": choice.values, "values_why": choice.why}
+
+
+def labels_json(report: dict) -> dict:
+    """The per-label report (:func:`.labels.warp_labels`) as ``--json`` keys."""
+    keys = ("input_voxels", "output_voxels", "input_mm3", "output_mm3", "predicted_mm3")
+    return {"labels": [{"label": int(L), **{k: r[k] for k in keys}}
+                       for L, r in report["labels"].items()],
+            "vanished": [int(L) for L in report["vanished"]],
+            "preserved": [int(L) for L in report["preserved"]]}
