@@ -393,44 +393,6 @@ def test_nrrd_mapped_read_gives_the_same_samples_read_only(tmp_path):
         assert mapped.data.flags.writeable == (name != "little.nrrd")
 
 
-@pytest.mark.parametrize("dtype, order", [("float32", "little"), ("int16", "big"),
-                                          ("uint8", "little")])
-def test_nrrd_written_plane_by_plane_is_the_whole_files_bytes(tmp_path, dtype, order):
-    """Planes written from two threads, out of order, give write_nrrd's file byte for
-    byte; the file appears only when the writer closes without an error."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from volwarp_cli.io.nrrd import nrrd_plane_writer
-
-    rng = np.random.default_rng(4)
-    data = (rng.uniform(0, 100, (11, 6, 7))).astype(dtype)
-    vol = Volume(data, spacing=(0.5, 1.5, 2.0), origin=(1, 2, 3), space="LPS",
-                 meta={"key": "value"})
-    whole = tmp_path / "whole.nrrd"
-    write_volume(vol, whole, byte_order=order)
-    streamed = tmp_path / "streamed.nrrd"
-    template = vol.with_data(np.broadcast_to(np.zeros((), dtype), data.shape))
-    ranges = [(7, 11), (0, 3), (3, 4), (4, 7)]
-    with nrrd_plane_writer(template, streamed, byte_order=order) as write:
-        assert not streamed.exists()
-        with ThreadPoolExecutor(2) as pool:
-            list(pool.map(lambda r: write(r[0], data[r[0]:r[1]]), ranges))
-        with pytest.raises(ValueError):
-            write(10, data[:2])  # beyond the last plane
-        with pytest.raises(ValueError):
-            write(0, data[:1].astype(np.float64))
-    assert streamed.read_bytes() == whole.read_bytes()
-    with pytest.raises(ValueError, match="closed"):  # a straggler thread writes nothing
-        write(0, data[:1])
-    assert streamed.read_bytes() == whole.read_bytes()
-    # an error inside the block: no file, and an existing one is left as it was
-    with pytest.raises(RuntimeError), nrrd_plane_writer(template, whole) as write:
-        write(0, data[:5])
-        raise RuntimeError("the warp failed")
-    assert streamed.read_bytes() == whole.read_bytes()
-    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
-
-
 def test_a_chain_through_every_format_keeps_key_values_exactly(tmp_path, data_dir):
     """NRRD -> NIfTI -> MetaImage -> TIFF -> NRRD (what `make demo` checks): samples,
     geometry and key/values come back as they were; no format adds keys of its own where

@@ -17,7 +17,6 @@ here rather than by pynrrd so that every error names the field and the file.
 from __future__ import annotations
 
 import bz2
-import contextlib
 import gzip
 import os
 import re
@@ -715,80 +714,6 @@ def _write_payload(fh, data: np.ndarray, encoding: str, level: int) -> None:
         fh.write(memoryview(data).cast("B"))
         return
     fh.write(gzip_bytes(memoryview(data).cast("B"), level))
-
-
-@contextlib.contextmanager
-def nrrd_plane_writer(vol: Volume, path: str | os.PathLike, *, byte_order: str = "little"):
-    """Write a raw single-file NRRD whose z planes arrive one range at a time.
-
-    ``vol`` gives the header: geometry, meta, and ``data`` of the output's
-    shape and dtype (a zero-strided placeholder will do). Yields
-    ``write(z0, planes)``, which puts ``planes`` (``[k, y, x]``, that dtype)
-    at planes [z0, z0 + k) with ``pwrite``: callable from several threads at
-    once, in any order. The file is the same, byte for byte, as
-    :func:`write_nrrd` of the whole volume, once every plane is written; it
-    appears at ``path`` only if the block ends without an error (atomic).
-    """
-    import threading
-
-    dtype = check_dtype(vol.data.dtype, str(path))
-    header = nrrd_header(vol, dtype, encoding="raw", byte_order=byte_order)
-    nz, ny, nx = vol.data.shape
-    plane_bytes = ny * nx * dtype.itemsize
-    # The descriptor is closed once no write is under way, and later writes are
-    # refused: a writer thread still running when the block is left (a second
-    # Ctrl-C while the threads are joined) cannot write through a number the
-    # system has given another file. Writes themselves run side by side.
-    state = {"closed": False, "busy": 0}
-    cond = threading.Condition()
-    with atomic_output(path) as tmp:
-        fd = os.open(tmp, os.O_WRONLY)
-        try:
-            _pwrite_all(fd, header, 0)
-            os.ftruncate(fd, len(header) + nz * plane_bytes)
-
-            def write(z0: int, planes: np.ndarray) -> None:
-                if planes.dtype != dtype or planes.shape[1:] != (ny, nx) or not (
-                        0 <= z0 and z0 + len(planes) <= nz):
-                    raise ValueError("planes outside the volume or of another type")
-                payload = with_byte_order(planes, byte_order)
-                offset = len(header) + z0 * plane_bytes
-                with cond:
-                    if state["closed"]:
-                        raise ValueError("the plane writer is closed")
-                    state["busy"] += 1
-                try:
-                    _pwrite_all(fd, memoryview(payload).cast("B"), offset)
-                    if _START_WRITEBACK:
-                        with contextlib.suppress(OSError):  # only a hint
-                            os.posix_fadvise(fd, offset, payload.nbytes,
-                                             os.POSIX_FADV_DONTNEED)
-                finally:
-                    with cond:
-                        state["busy"] -= 1
-                        cond.notify_all()
-
-            yield write
-        finally:
-            with cond:
-                state["closed"] = True
-                cond.wait_for(lambda: state["busy"] == 0)
-            os.close(fd)
-
-
-#: Start writing finished planes back to disk as they are written (Linux: DONTNEED
-#: starts writeback, and pages still dirty or under writeback stay cached). Renaming
-#: onto an existing output makes ext4 write the new file's data back at once
-#: (auto_da_alloc, for crash safety): 0.05 s of a 256^3 warp command's tail, done
-#: here in the warp's threads instead (paired A/B of the command: 0.97).
-_START_WRITEBACK = hasattr(os, "posix_fadvise")
-
-
-def _pwrite_all(fd: int, data, offset: int) -> None:
-    view = memoryview(data)
-    while len(view):
-        n = os.pwrite(fd, view, offset)
-        view, offset = view[n:], offset + n
 
 
 def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
