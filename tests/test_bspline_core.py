@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from volwarp_cli.box import Box
 from volwarp_cli.bspline import basis
 from volwarp_cli.bspline.capture import capture_volume
+from volwarp_cli.bspline.evaluate import LatticeSpline
 from volwarp_cli.bspline.handles import map_params, solve
 from volwarp_cli.bspline.lattice import Grid, affected_regions, capture_offsets, window_reduce
 from volwarp_cli.bspline.pullback import capture_coordinates
@@ -52,8 +53,39 @@ def test_table_equals_separable_and_blocks_are_bit_identical():
     # and equals a direct evaluation of eq. 2 at a voxel centre
     e, f, g = 17, 5, 33
     prm = [(e + 0.5) / 10, (f + 0.5) / 10, (g + 0.5) / 10]
-    val, _ = basis.spline_point(dq, grid, prm)
+    val = LatticeSpline(dq, grid.regions).offsets([prm])[0]
     assert np.allclose(val, sep[g, f, e], atol=1e-5)
+
+
+def test_the_scattered_evaluator_is_the_papers_tensor_product():
+    """Offsets at scattered parameters are sum B_i(s) B_j(t) B_k(u) dq_kji over the 4^3
+    control points of the region (the paper's eq. 2 with its blending functions), the
+    Jacobian is that sum's derivative (central differences), the weights' rows are those
+    products (64 a point, summing to 1) and give the offsets as weights @ dq."""
+    grid = Grid.create((40, 30, 20), (8, 7, 6), 1)
+    rng = np.random.default_rng(5)
+    dq = rng.normal(scale=2.0, size=grid.lattice[::-1] + (3,))
+    regions = np.array(grid.regions)
+    params = rng.uniform(0, 1, (40, 3)) * regions
+    params[0] = regions  # the far corner: the last region's polynomial
+    spline = LatticeSpline(dq, grid.regions)
+    want = np.empty((len(params), 3))
+    for n, s in enumerate(params):
+        a = np.clip(np.floor(s), 0, regions - 1).astype(int)
+        w = [basis.basis(np.array([s[d] - a[d]]))[0] for d in range(3)]
+        block = dq[a[2]:a[2] + 4, a[1]:a[1] + 4, a[0]:a[0] + 4]
+        want[n] = np.einsum("k,j,i,kjim->m", w[2], w[1], w[0], block)
+    assert np.allclose(spline.offsets(params), want, atol=1e-12)
+    eps = 1e-6
+    jac = spline.jacobian(params[1:])
+    for axis in range(3):
+        step = np.zeros(3)
+        step[axis] = eps
+        fd = (spline.offsets(params[1:] + step) - spline.offsets(params[1:] - step)) / (2 * eps)
+        assert np.allclose(jac[:, :, axis], fd, atol=1e-6)
+    rows = spline.weights(params)
+    assert np.all(np.count_nonzero(rows, axis=1) <= 64) and np.allclose(rows.sum(axis=1), 1)
+    assert np.allclose(rows @ dq.reshape(-1, 3), want, atol=1e-12)
 
 
 @pytest.mark.parametrize("placement", ["uniform", "tripled"])
@@ -272,10 +304,7 @@ def test_handles_reach_targets_with_least_norm():
     assert np.max(np.abs(after - dst)) < 1e-3
     # least norm: delta lies in the row space of the weight matrix, so adding any
     # null-space change keeps the targets but makes the change larger
-    rows = np.zeros((3, int(np.prod(grid.lattice))))
-    for n, p in enumerate(params):
-        flat, w = basis.point_weights(grid, p)
-        rows[n, flat] = w
+    rows = LatticeSpline(dq, grid.regions).weights(params)
     flat_delta = delta.reshape(-1, 3)
     coef, *_ = np.linalg.lstsq(rows.T, flat_delta, rcond=None)
     assert np.allclose(rows.T @ coef, flat_delta, atol=1e-10)
@@ -311,11 +340,7 @@ def test_handles_pulling_against_each_other_stay_bounded():
 def _weight_rows(grid, points, dq):
     from volwarp_cli.bspline.handles import locate
 
-    rows = np.zeros((len(points), int(np.prod(grid.lattice))))
-    for n, p in enumerate(locate(dq, grid, points)):
-        flat, w = basis.point_weights(grid, p)
-        rows[n, flat] = w
-    return rows
+    return LatticeSpline(dq, grid.regions).weights(locate(dq, grid, points))
 
 
 def test_handle_on_warped_map_and_radius():

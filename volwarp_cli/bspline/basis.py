@@ -199,39 +199,3 @@ def evaluate_table(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, *, x
 
 
 EVALUATORS = {"separable": evaluate_separable, "table": evaluate_table}
-
-
-def spline_point(dq: np.ndarray, grid, param) -> tuple[np.ndarray, np.ndarray]:
-    """Offset value and its 3x3 Jacobian d(offset)/d(s, t, u) at one parameter point.
-
-    ``param`` is (s, t, u) in [0, R] per axis (x, y, z); outside, the end
-    regions' polynomials are extended.
-    """
-    regions = np.array(grid.regions)
-    param = np.asarray(param, dtype=np.float64)
-    a = np.clip(np.floor(param), 0, regions - 1).astype(int)
-    frac = param - a
-    w = [basis(frac[d]) for d in range(3)]
-    dw = [basis_derivative(frac[d]) for d in range(3)]
-    block = dq[a[2]:a[2] + 4, a[1]:a[1] + 4, a[0]:a[0] + 4]  # (k, j, i, 3)
-    val = np.einsum("k,j,i,kjim->m", w[2], w[1], w[0], block)
-    jac = np.empty((3, 3))
-    jac[:, 0] = np.einsum("k,j,i,kjim->m", w[2], w[1], dw[0], block)
-    jac[:, 1] = np.einsum("k,j,i,kjim->m", w[2], dw[1], w[0], block)
-    jac[:, 2] = np.einsum("k,j,i,kjim->m", dw[2], w[1], w[0], block)
-    return val, jac
-
-
-def point_weights(grid, param) -> tuple[np.ndarray, np.ndarray]:
-    """The 64 control points (flat indices into (Cz, Cy, Cx)) and weights at ``param``."""
-    regions = np.array(grid.regions)
-    param = np.asarray(param, dtype=np.float64)
-    a = np.clip(np.floor(param), 0, regions - 1).astype(int)
-    frac = param - a
-    w = [basis(frac[d]) for d in range(3)]
-    weights = np.einsum("k,j,i->kji", w[2], w[1], w[0]).ravel()
-    kk, jj, ii = np.meshgrid(np.arange(4) + a[2], np.arange(4) + a[1], np.arange(4) + a[0],
-                             indexing="ij")
-    cx, cy, _ = grid.lattice
-    flat = (kk * cy + jj) * cx + ii
-    return flat.ravel(), weights

@@ -36,6 +36,7 @@ from ..errors import VolwarpError
 from ..progress import log
 from ..volume import LPS, Volume
 from .basis import basis, basis_derivative
+from .evaluate import LatticeSpline
 from .lattice import Grid
 
 #: Newton's stopping residual for the inverse (input voxels) and the accepted one
@@ -93,7 +94,7 @@ class ForwardMap:
         self.h = np.asarray(self.grid.spacing_h, dtype=np.float64)
         self.org = np.asarray(self.grid.origin, dtype=np.float64)
         self.regions = np.array(self.grid.regions)
-        self._rows = np.ascontiguousarray(self.dq.reshape(-1, 3))
+        self._spline = LatticeSpline(self.dq, self.regions)  # (:mod:`.evaluate`)
 
     # ---- index <-> world -------------------------------------------------------------
     def to_index(self, p) -> np.ndarray:
@@ -126,32 +127,8 @@ class ForwardMap:
     # ---- scattered evaluation ----------------------------------------------------------
     def _eval_params(self, s, derivative: bool):
         """Offsets sum B dq (N, 3) at parameters s (N, 3), and d/ds (N, 3, 3) [m, axis]."""
-        a = np.clip(np.floor(s), 0, self.regions - 1).astype(np.intp)
-        frac = s - a
-        w = [basis(frac[:, d]) for d in range(3)]
-        dw = [basis_derivative(frac[:, d]) for d in range(3)] if derivative else None
-        cz, cy, cx = self.dq.shape[:3]
-        n = len(s)
-        val = np.zeros((n, 3))
-        jac = np.zeros((n, 3, 3)) if derivative else None
-        for dk in range(4):
-            for dj in range(4):
-                base = (a[:, 2] + dk) * (cy * cx) + (a[:, 1] + dj) * cx + a[:, 0]
-                ax = np.zeros((n, 3))
-                adx = np.zeros((n, 3)) if derivative else None
-                for di in range(4):
-                    idx = base + di
-                    u = np.take(self._rows, idx, axis=0)
-                    ax += w[0][:, di, None] * u
-                    if derivative:
-                        adx += dw[0][:, di, None] * u
-                wyz = (w[1][:, dj] * w[2][:, dk])[:, None]
-                val += wyz * ax
-                if derivative:
-                    jac[:, :, 0] += wyz * adx
-                    jac[:, :, 1] += (dw[1][:, dj] * w[2][:, dk])[:, None] * ax
-                    jac[:, :, 2] += (w[1][:, dj] * dw[2][:, dk])[:, None] * ax
-        return val, jac
+        return (self._spline.offsets(s),
+                self._spline.jacobian(s) if derivative else None)
 
     def map_index(self, x) -> np.ndarray:
         """F(x) for input indices x (N, 3) inside the support."""

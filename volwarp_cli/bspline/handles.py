@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VolwarpError
-from .basis import basis, basis_derivative, point_weights
+from .evaluate import LatticeSpline
 from .lattice import Grid
 
 #: Relative cut-offs tried for the handle system's singular values (see
@@ -42,40 +42,26 @@ class HandleError(VolwarpError):
         super().__init__(message)
 
 
-def _eval(dq, grid: Grid, params, derivative: bool):
+def _eval(spline: LatticeSpline, grid: Grid, params, derivative: bool):
+    """Positions (N, 3) of parameters ``params`` under ``spline``'s offsets, and d/ds (N, 3, 3)."""
     params = np.atleast_2d(np.asarray(params, dtype=np.float64))
-    regions = np.array(grid.regions)
-    a = np.clip(np.floor(params), 0, regions - 1).astype(np.intp)
-    frac = params - a
-    w = [basis(frac[:, d]) for d in range(3)]  # (N, 4) each
-    ar = np.arange(4)
-    kk = a[:, 2][:, None, None, None] + ar[None, :, None, None]
-    jj = a[:, 1][:, None, None, None] + ar[None, None, :, None]
-    ii = a[:, 0][:, None, None, None] + ar[None, None, None, :]
-    block = dq[kk, jj, ii]  # (N, 4k, 4j, 4i, 3)
     h = grid.spacing_h
-    val = np.einsum("nk,nj,ni,nkjim->nm", w[2], w[1], w[0], block) + (grid.origin + h * params)
+    val = spline.offsets(params) + (grid.origin + h * params)
     if not derivative:
         return val, None
-    dw = [basis_derivative(frac[:, d]) for d in range(3)]
-    jac = np.empty(params.shape + (3,))
-    jac[:, :, 0] = np.einsum("nk,nj,ni,nkjim->nm", w[2], w[1], dw[0], block)
-    jac[:, :, 1] = np.einsum("nk,nj,ni,nkjim->nm", w[2], dw[1], w[0], block)
-    jac[:, :, 2] = np.einsum("nk,nj,ni,nkjim->nm", dw[2], w[1], w[0], block)
-    jac += np.diag(h)[None]
-    return val, jac
+    return val, spline.jacobian(params) + np.diag(h)[None]
 
 
 def map_params(dq, grid: Grid, params) -> np.ndarray:
     """Positions (input voxels, x y z) of spline parameters (N, 3) under offsets ``dq``."""
-    return _eval(dq, grid, params, False)[0]
+    return _eval(LatticeSpline(dq, grid.regions), grid, params, False)[0]
 
 
-def _newton(dq, grid, point, start, iters=60):
+def _newton(spline, grid, point, start, iters=60):
     s = start.copy()
     regions = np.array(grid.regions, dtype=np.float64)
     for _ in range(iters):
-        val, jac = _eval(dq, grid, s[None], True)
+        val, jac = _eval(spline, grid, s[None], True)
         r = val[0] - point
         if np.max(np.abs(r)) < 1e-10:
             break
@@ -85,7 +71,7 @@ def _newton(dq, grid, point, start, iters=60):
             return s, np.inf
         # damp steps that would jump far outside the parameter box
         s = np.clip(s - step, -0.5, regions + 0.5)
-    val, _ = _eval(dq, grid, s[None], False)
+    val, _ = _eval(spline, grid, s[None], False)
     return s, float(np.max(np.abs(val[0] - point)))
 
 
@@ -97,6 +83,7 @@ def locate(dq, grid: Grid, points) -> np.ndarray:
     warped model does not cover.
     """
     points = np.atleast_2d(np.asarray(points, dtype=np.float64))
+    spline = LatticeSpline(dq, grid.regions)
     regions = np.array(grid.regions, dtype=np.float64)
     h = grid.spacing_h
     # the model's parameters: the domain voxels inside the input (all on a spanning grid)
@@ -109,7 +96,7 @@ def locate(dq, grid: Grid, points) -> np.ndarray:
         found = None
         for attempt in range(2):
             for st in starts:
-                s, res = _newton(dq, grid, p, st)
+                s, res = _newton(spline, grid, p, st)
                 if res < 1e-6 and np.all(s >= p_lo - 1e-9) and np.all(s <= p_hi + 1e-9):
                     found = np.clip(s, p_lo, p_hi)
                     break
@@ -118,7 +105,7 @@ def locate(dq, grid: Grid, points) -> np.ndarray:
             if coarse is None:
                 axes = [np.linspace(0, r, int(4 * r) + 1) for r in regions]
                 cs = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-                coarse = (cs, map_params(dq, grid, cs))
+                coarse = (cs, _eval(spline, grid, cs, False)[0])
             d = np.linalg.norm(coarse[1] - p, axis=1)
             starts = [coarse[0][i] for i in np.argsort(d)[:4]]
         if found is None:
@@ -152,10 +139,7 @@ def solve(dq, grid: Grid, sources, targets, free_mask=None):
     params = locate(dq, grid, sources)
     current = map_params(dq, grid, params)
     ncp = int(np.prod(grid.lattice))
-    rows = np.zeros((len(params), ncp))
-    for n, prm in enumerate(params):
-        flat, w = point_weights(grid, prm)
-        rows[n, flat] = w
+    rows = LatticeSpline(dq, grid.regions).weights(params)  # 64 weights a handle
     if free_mask is not None:
         free = np.flatnonzero(np.asarray(free_mask).ravel())
     else:
