@@ -33,9 +33,9 @@ from common import median_time, row  # noqa: E402
 
 
 def forward_map(n: int, sigma: float = 1.5, seed: int = 0):
-    from volwarp_cli.bspline.export import ForwardMap
     from volwarp_cli.bspline.lattice import Grid
     from volwarp_cli.volume import Volume
+    from volwarp_cli.warp.export import ForwardMap
 
     grid = Grid.create((n, n, n), (9, 9, 9), 2)
     dq = np.random.default_rng(seed).normal(0, sigma, grid.lattice[::-1] + (3,))

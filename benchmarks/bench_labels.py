@@ -56,9 +56,9 @@ def peak_rss_mib() -> float:
 
 def case(kind: str, n: int, cells: int, repeat: int) -> dict:
     from volwarp_cli.bspline.capture import capture_volume
-    from volwarp_cli.bspline.labels import capture_labels, warp_labels
     from volwarp_cli.bspline.scene import Scene
     from volwarp_cli.volume import Volume
+    from volwarp_cli.warp.labels import capture_labels, warp_labels
 
     lab = label_map(n, cells)
     vol = Volume(lab)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from volwarp_cli.bspline.capture import capture_volume
-from volwarp_cli.bspline.capture_file import read_capture
 from volwarp_cli.io import read_volume
+from volwarp_cli.warp.capture_file import read_capture
 
 
 def test_capture_writes_checked_file_and_info_lists_lattice(run, data_dir, tmp_path):
@@ -148,7 +148,7 @@ def test_version_1_capture_files_keep_their_spanning_grid(run, data_dir, tmp_pat
     read with the spanning grid it was captured on and warps as before."""
     import struct
 
-    from volwarp_cli.bspline.capture_file import VERSION
+    from volwarp_cli.warp.capture_file import VERSION
 
     src = data_dir / "ball_30_uint8.nrrd"
     new = tmp_path / "new.vwc"

@@ -13,13 +13,12 @@ import contextlib
 import numpy as np
 import pytest
 
-from volwarp_cli.bspline.blocks import LazySource
 from volwarp_cli.engine import open_engine
 from volwarp_cli.errors import OutOfMemoryError, VolwarpError
 from volwarp_cli.geometry import Geometry
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.io.blockwrite import committed, open_block_output
-from volwarp_cli.io.lazy import open_volume_template
+from volwarp_cli.io.lazy import LazySource, open_volume_template
 from volwarp_cli.morph.frames import morph_frames
 from volwarp_cli.morph.pipeline import prepare
 from volwarp_cli.morph.run import BlocksRefused, morph_by_blocks, morph_note

@@ -105,9 +105,9 @@ def test_full_render_and_local_updates_identical_for_any_thread_count(monkeypatc
 
 def _operation(cap, dq, pad):
     """The one-shot warp of ``cap`` with lattice ``dq`` as the executor's operation."""
-    from volwarp_cli.bspline.blocks import WarpOperation, target_box
     from volwarp_cli.bspline.pullback import DomainSampler
     from volwarp_cli.execute import Target
+    from volwarp_cli.warp.blocks import WarpOperation, target_box
 
     scene = Scene(cap.voxmap, cap.grid, dq, pad, domain_range=cap.stats[:2])
     window = target_box(scene)

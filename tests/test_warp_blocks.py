@@ -16,13 +16,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from volwarp_cli.box import Box
-from volwarp_cli.bspline import blocks
 from volwarp_cli.bspline.capture import capture_source, capture_volume
 from volwarp_cli.bspline.pullback import BoxSampler, Sampler
 from volwarp_cli.bspline.pushforward import HeldPlanes
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.execute import Target
+from volwarp_cli.io.lazy import LazySource
 from volwarp_cli.volume import Volume
+from volwarp_cli.warp import blocks
 
 
 def _blob(shape_zyx, seed=0):
@@ -167,7 +168,7 @@ def test_warp_operation_pickles_without_samples_and_renders_the_same(tmp_path):
     data = (_blob((23, 19, 27)) * 50).astype(np.int16)
     path = tmp_path / "in.nrrd"
     write_volume(Volume(data), path)
-    source = blocks.LazySource(path)
+    source = LazySource(path)
     cap = capture_source(Volume(data), source, lattice=(5, 5, 5), oversample=1.0)
     dq = _general(cap, scale=1.0)
     scene = Scene(cap.sampler, cap.grid, dq, 4, domain_range=cap.stats[:2])

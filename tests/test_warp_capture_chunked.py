@@ -47,7 +47,7 @@ def scene(tmp_path, run):
 def test_stored_domain_boxes_equal_the_read_capture(scene):
     """Any box of the file's domain is the held domain's box (hypothesis-free: every
     block of an odd tiling, which covers the domain)."""
-    from volwarp_cli.bspline.capture_file import open_capture_lazy, read_capture
+    from volwarp_cli.warp.capture_file import open_capture_lazy, read_capture
 
     _, _, vwc = scene
     held = read_capture(vwc)

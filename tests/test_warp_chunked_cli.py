@@ -137,8 +137,8 @@ def test_what_the_block_path_refuses(run, scan, tmp_path):
 
 def test_a_failing_block_leaves_no_output(run, scan, tmp_path, monkeypatch):
     """A block task that fails (a worker's error): one line, exit 1, nothing at -o."""
-    from volwarp_cli.bspline import blocks
     from volwarp_cli.errors import VolwarpError
+    from volwarp_cli.warp import blocks
 
     src, spec = scan
     out = tmp_path / "o.nrrd"

@@ -276,10 +276,10 @@ def test_capture_made_while_the_spec_is_checked_is_used_once(run, data_dir, tmp_
     assert calls == [1] and res.stderr.count("capture (pullback)") == 1
     from volwarp_cli.bspline.capture import capture_volume
     from volwarp_cli.bspline.plan import read_warp_spec
-    from volwarp_cli.bspline.warp import output_volume, prepare
-    from volwarp_cli.bspline.warp import run as run_warp
     from volwarp_cli.io import read_volume
     from volwarp_cli.spec.loader import load_spec
+    from volwarp_cli.warp.prepare import output_volume, prepare
+    from volwarp_cli.warp.prepare import run as run_warp
 
     doc = load_spec(spec, "warp")
     cap = capture_volume(read_volume(data_dir / "ball_30_uint8.nrrd"), lattice=6,
@@ -346,8 +346,8 @@ def test_streamed_nrrd_output_is_the_whole_targets_file(run, data_dir, tmp_path,
 
 def test_a_warp_failing_midway_leaves_the_existing_output(run, data_dir, tmp_path,
                                                           monkeypatch):
-    from volwarp_cli.bspline import blocks as blocks_mod
     from volwarp_cli.bspline import scene as scene_mod
+    from volwarp_cli.warp import blocks as blocks_mod
 
     spec = SPECS / "warp-ball.yaml"
     out = tmp_path / "o.nrrd"

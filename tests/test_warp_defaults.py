@@ -19,10 +19,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from volwarp_cli.bspline.defaults import border_label, border_value, choose_values, output_grid
+from volwarp_cli.border import border_label, border_value
 from volwarp_cli.errors import VolwarpError
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.volume import Volume
+from volwarp_cli.warp.defaults import choose_values, output_grid
 
 #: the frog-like map's ids: far apart, so that a blend of two is a third one's id
 IDS = (1, 5, 17, 23, 40)
@@ -408,9 +409,9 @@ def test_points_go_through_a_warp_without_a_volume(run, files, monkeypatch):
     """No -o: the moved points are those of the warp with -o, and no volume is read,
     captured or warped (for a volume input and a capture file)."""
     from volwarp_cli.bspline import capture as capture_mod
-    from volwarp_cli.bspline import capture_file
     from volwarp_cli.bspline.scene import Scene
     from volwarp_cli.cli import warp as warp_cli
+    from volwarp_cli.warp import capture_file
 
     d = files["dir"]
     pts = d / "p.csv"

@@ -171,8 +171,8 @@ def test_jacobian_against_finite_differences(run, scene, tmp_path):
 
 @pytest.mark.parametrize("scale", [1.0, 1.1, 0.8])
 def test_jacobian_of_affine_lattices(scale):
-    from volwarp_cli.bspline.export import ForwardMap
     from volwarp_cli.bspline.lattice import Grid
+    from volwarp_cli.warp.export import ForwardMap
 
     vol = smooth_volume()
     grid = Grid.create(vol.shape_xyz, (7, 8, 9), 2)
@@ -261,8 +261,8 @@ def test_tripled_placement_is_refused(run, tmp_path):
 
 
 def _random_map(n=40, sigma=1.5, seed=0, lattice=9, spacing=(1.0, 1.2, 1.5)):
-    from volwarp_cli.bspline.export import ForwardMap
     from volwarp_cli.bspline.lattice import Grid
+    from volwarp_cli.warp.export import ForwardMap
 
     grid = Grid.create((n, n + 4, n - 3), (lattice,) * 3, 2)
     dq = np.random.default_rng(seed).normal(0, sigma, grid.lattice[::-1] + (3,))

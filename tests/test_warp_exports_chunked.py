@@ -13,9 +13,9 @@ import json
 import numpy as np
 import pytest
 
-from volwarp_cli.bspline import export
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.volume import Volume
+from volwarp_cli.warp import export
 
 ANG = np.deg2rad(25)
 OBLIQUE = np.array([[np.cos(ANG), -np.sin(ANG), 0], [np.sin(ANG), np.cos(ANG), 0], [0, 0, 1]])

@@ -1,4 +1,4 @@
-"""Label-map warping (volwarp_cli.bspline.labels): labels stay labels.
+"""Label-map warping (volwarp_cli.warp.labels): labels stay labels.
 
 The warp path is exercised through its core (:func:`warp_labels` on a
 :func:`capture_labels` capture); the SimpleITK ``sitkLabelLinear`` comparison
@@ -15,11 +15,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from volwarp_cli.bspline.capture import capture_volume
-from volwarp_cli.bspline.labels import capture_labels, warp_labels
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.errors import VolwarpError
 from volwarp_cli.labelmap import label_map_hint
 from volwarp_cli.volume import Volume
+from volwarp_cli.warp.labels import capture_labels, warp_labels
 
 BIG = 2 ** 25 + 1  # not representable in float32 (2^24 + odd)
 
@@ -205,7 +205,7 @@ def test_a_map_without_0_gains_no_0():
 def test_random_warps_write_only_the_maps_own_ids(labels, seed, moves):
     """Whatever ids a map has (0 or not), every output voxel holds one of them (the space
     nothing reaches: the map's most frequent border label)."""
-    from volwarp_cli.bspline.defaults import border_label
+    from volwarp_cli.border import border_label
 
     rng = np.random.default_rng(seed)
     lab = np.asarray(labels, dtype=np.int16)[rng.integers(0, len(labels), (9, 8, 10))]

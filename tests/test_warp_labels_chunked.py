@@ -95,7 +95,7 @@ def test_a_label_warp_too_big_for_the_budget_runs_by_slabs(run, seg, tmp_path, m
     estimate is scaled down to let a budget refuse the in-memory warp and still hold
     two slabs."""
     from volwarp_cli import memory
-    from volwarp_cli.bspline.label_blocks import LabelBlocks
+    from volwarp_cli.warp.label_blocks import LabelBlocks
 
     real = LabelBlocks.slab_bytes
     monkeypatch.setattr(LabelBlocks, "slab_bytes", lambda self, depth: real(self, depth) // 16)
@@ -127,8 +127,8 @@ def test_the_label_block_path_refusals(run, seg, tmp_path):
 @settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**31 - 1), st.integers(1, 9))
 def test_bounding_boxes_read_in_slabs_are_the_whole_maps(seed, depth):
-    from volwarp_cli.bspline.label_blocks import bounding_boxes_by_blocks
-    from volwarp_cli.bspline.labels import _bounding_boxes
+    from volwarp_cli.warp.label_blocks import bounding_boxes_by_blocks
+    from volwarp_cli.warp.labels import _bounding_boxes
 
     rng = np.random.default_rng(seed)
     shape = tuple(int(v) for v in rng.integers(1, 14, 3))

@@ -8,11 +8,11 @@ import pytest
 from one_shot import one_shot
 
 from volwarp_cli.bspline import basis
-from volwarp_cli.bspline import blocks as blocks_module
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.lattice import Grid
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.volume import Volume
+from volwarp_cli.warp import blocks as blocks_module
 
 
 def _blob(shape_zyx):

@@ -20,13 +20,14 @@ from hypothesis import strategies as st
 
 from volwarp_cli import parallel
 from volwarp_cli.box import Box
-from volwarp_cli.bspline import basis, blocks, jobs, labels, pushforward, work
+from volwarp_cli.bspline import basis, jobs, pushforward, work
 from volwarp_cli.bspline.capture import capture_volume
-from volwarp_cli.bspline.labels import capture_labels, warp_labels
 from volwarp_cli.bspline.pushforward import HeldPlanes
 from volwarp_cli.bspline.reach import PlaneReach, offset_bounds
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.volume import Volume
+from volwarp_cli.warp import blocks, labels
+from volwarp_cli.warp.labels import capture_labels, warp_labels
 
 THREADS = [1, 2, 3, 5]
 

@@ -1,4 +1,4 @@
-"""The warp pipeline's core (volwarp_cli.bspline.run, .export_outputs), without click.
+"""The warp pipeline's core (volwarp_cli.warp.run, .export_outputs), without click.
 
 Each path is checked against the steps it strings together, called one by one
 (capture, prepare, run, output_volume): the pipeline must add nothing but the
@@ -13,9 +13,15 @@ import numpy as np
 import pytest
 
 from volwarp_cli.bspline.capture import capture_volume
-from volwarp_cli.bspline.export_outputs import ExportRequests, write_exports
 from volwarp_cli.bspline.plan import read_warp_spec
-from volwarp_cli.bspline.run import (
+from volwarp_cli.errors import SpecError, VolwarpError
+from volwarp_cli.io import read_volume
+from volwarp_cli.spec.loader import load_spec
+from volwarp_cli.volume import Volume
+from volwarp_cli.warp.export_outputs import ExportRequests, write_exports
+from volwarp_cli.warp.prepare import output_volume, prepare
+from volwarp_cli.warp.prepare import run as run_warp
+from volwarp_cli.warp.run import (
     IntensityWarp,
     LabelMapWarp,
     WarpInput,
@@ -23,12 +29,6 @@ from volwarp_cli.bspline.run import (
     frame_fields,
     handle_report,
 )
-from volwarp_cli.bspline.warp import output_volume, prepare
-from volwarp_cli.bspline.warp import run as run_warp
-from volwarp_cli.errors import SpecError, VolwarpError
-from volwarp_cli.io import read_volume
-from volwarp_cli.spec.loader import load_spec
-from volwarp_cli.volume import Volume
 
 DATA = Path(__file__).parent / "data"
 BALL = DATA / "ball_30_uint8.nrrd"
@@ -252,10 +252,9 @@ def test_the_operation_by_blocks_writes_the_rendered_volume(tmp_path, block):
     lazily: by blocks on an engine's tasks (in the block asked, else the operation's
     choice), and whole, the file is render()'s samples."""
     from volwarp_cli import execute
-    from volwarp_cli.bspline.blocks import LazySource
     from volwarp_cli.bspline.capture import capture_source
     from volwarp_cli.engine import open_engine
-    from volwarp_cli.io.lazy import open_volume_template
+    from volwarp_cli.io.lazy import LazySource, open_volume_template
 
     spec_path = _spec(tmp_path)
     doc = load_spec(spec_path, "warp")
@@ -286,11 +285,10 @@ def test_the_operation_by_blocks_writes_the_rendered_volume(tmp_path, block):
 def test_label_map_blocks_equal_the_label_warp(tmp_path):
     """LabelMapBlocks.render, without the command line: the same map and per-label report
     as LabelMapWarp, by slabs of the asked depth."""
-    from volwarp_cli.bspline.blocks import LazySource
-    from volwarp_cli.bspline.run import LabelMapBlocks
     from volwarp_cli.engine import open_engine
     from volwarp_cli.io import write_volume
-    from volwarp_cli.io.lazy import open_volume_template
+    from volwarp_cli.io.lazy import LazySource, open_volume_template
+    from volwarp_cli.warp.run import LabelMapBlocks
 
     lab = np.zeros((20, 21, 22), np.int16)
     lab[4:10, 5:15, 3:12] = 3

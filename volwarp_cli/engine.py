@@ -382,7 +382,7 @@ def open_engine(scheduler: str | SchedulerChoice | None = None, *, workers: int 
 
 # -- graph pieces shared by the chunked operations ---------------------------------------
 def dask_input(source, chunks):
-    """``source`` (a sliceable array: a :class:`~volwarp_cli.bspline.blocks.LazySource`) in Dask."""
+    """``source`` (a sliceable array: a :class:`~volwarp_cli.io.lazy.LazySource`) in Dask."""
     import dask.array as da
     import numpy as np
 

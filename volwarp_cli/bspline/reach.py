@@ -163,7 +163,7 @@ class Reach:
         return TargetBlock(Box.from_xyz(tlo.tolist(), thi.tolist()), Box.from_xyz(dlo, dhi))
 
 
-#: Target z planes covered by one step of a stream (:func:`.blocks.render_block`: the
+#: Target z planes covered by one step of a stream (:func:`~volwarp_cli.warp.blocks.render_block`: the
 #: domain planes gathered and scattered at a time are this many over the scale along z).
 STREAM_PLANES = 16
 

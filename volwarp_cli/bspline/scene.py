@@ -26,7 +26,7 @@ old lattice when subtracting and the new one when adding (both in one pass
 over the block). The evaluators give every voxel the same value whatever block
 it is computed in, so this is exact, and it saves 12 bytes per domain voxel
 (200 MiB for a 256^3 domain). A warp without later updates (the one-shot
-warp, :func:`.blocks.render_block`) never holds the target accumulators whole.
+warp, :func:`~volwarp_cli.warp.blocks.render_block`) never holds the target accumulators whole.
 
 Only the domain voxels inside the input are the model: on a subdivision grid
 (an integer oversample, see :mod:`.lattice`) those around it carry nothing, so
@@ -111,7 +111,7 @@ class Scene:
     ----------
     domain : (Dz, Dy, Dx) float32 or float64, or a :class:`~.pullback.Sampler`
         The captured (pulled back) density; a sampler's planes are gathered
-        box by box as :func:`.blocks.render_block` streams them (never whole),
+        box by box as :func:`~volwarp_cli.warp.blocks.render_block` streams them (never whole),
         and in full the first time anything else needs them.
     grid : lattice.Grid
     dq : (Cz, Cy, Cx, 3) float64

@@ -106,8 +106,8 @@ def command(input, output, lattice, placement, oversample, pad, sampling, raw, v
     lattice's world positions (lattice_points[i][j][k]).
     """
     from ..bspline.capture import capture_volume
-    from ..bspline.capture_file import write_capture
     from ..errors import VolwarpError
+    from ..warp.capture_file import write_capture
 
     if not output.lower().endswith(".vwc"):
         raise click.BadParameter("a capture file must end in .vwc", param_hint="'-o'")
@@ -134,9 +134,9 @@ def _warn_blended_labels(vol, name, placement, oversample) -> None:
     for labels as it takes the map; on the spanning grid its ids are blended
     for good, and a warp of it can only average them.
     """
-    from ..bspline.defaults import choose_values
     from ..bspline.lattice import subdivision_of
     from ..progress import log
+    from ..warp.defaults import choose_values
 
     if subdivision_of(oversample, placement):
         return

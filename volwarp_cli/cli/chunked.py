@@ -60,10 +60,9 @@ def lazy_input(path, raw=None, volume_index=None, dicom=None):
 
     ``template``: the input's Volume with a zero-strided placeholder (its
     geometry, frame and key/values); ``source``: a picklable
-    :class:`~volwarp_cli.bspline.blocks.LazySource` of its samples.
+    :class:`~volwarp_cli.io.lazy.LazySource` of its samples.
     """
-    from ..bspline.blocks import LazySource
-    from ..io.lazy import open_volume_template
+    from ..io.lazy import LazySource, open_volume_template
     from .common import check_input_options
 
     check_input_options(path, raw, dicom)

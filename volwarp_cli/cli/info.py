@@ -64,7 +64,7 @@ def _format_text(d: dict) -> str:
 def command(file, as_json, raw, volume_index, dicom):
     """Print FILE's format, size (x y z), type, geometry, value range and key/values."""
     if file.lower().endswith(".vwc"):
-        from ..bspline.capture_file import describe_capture
+        from ..warp.capture_file import describe_capture
         desc = describe_capture(file)
     elif volume_format(file, reading=True) == "dicom":
         desc = _describe_dicom(file, raw, volume_index, dicom)

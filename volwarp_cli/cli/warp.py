@@ -1,7 +1,7 @@
 """`volwarp warp INPUT|SCENE.vwc --spec WARP.yaml -o OUT`: B-spline volume warping.
 
 Parses and checks the options (:mod:`.warp_options`), then hands the files
-to :func:`volwarp_cli.bspline.request.warp_files` with how to run (whole or
+to :func:`volwarp_cli.warp.request.warp_files` with how to run (whole or
 by blocks: the executor decides by the sizes unless --chunked or
 --no-chunked says) and prints its summary.
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import click
 
-from ..bspline.defaults import GRIDS, VALUES
 from ..io import check_output_path
+from ..warp.defaults import GRIDS, VALUES
 from .common import load_input
 from .options import (
     INPUT_PATH,
@@ -121,9 +121,9 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     dtype, spacing, direction and key/values.
     """
     from .. import execute
-    from ..bspline.defaults import new_run
-    from ..bspline.request import WarpFiles, warp_files
-    from ..bspline.run import WarpOptions
+    from ..warp.defaults import new_run
+    from ..warp.request import WarpFiles, warp_files
+    from ..warp.run import WarpOptions
     from .chunked import lazy_input
 
     new_run()
@@ -165,7 +165,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
                                "not --frames-to (these run in memory)")
     exports_refused = None  # (the fields run by slabs, but not to NIfTI or every format)
     if exports:
-        from ..bspline.export_outputs import block_export_problem
+        from ..warp.export_outputs import block_export_problem
 
         exports_refused = block_export_problem(exports)
         if chunked and exports_refused:

@@ -15,7 +15,7 @@ from click.core import ParameterSource
 from ..errors import VolwarpError
 from ..io import check_output_path, volume_format
 
-#: the fields of a --frames-to pattern (:data:`volwarp_cli.bspline.run.FRAME_FIELDS`)
+#: the fields of a --frames-to pattern (:data:`volwarp_cli.warp.run.FRAME_FIELDS`)
 _FIELDS = ("frame", "step", "spec_step", "sub")
 
 PUSHFORWARD_HELP = (
@@ -181,10 +181,10 @@ def check_exports(displacement_to, forward_field_to, jacobian_to, transform_to, 
 
     Bad options are usage errors, and their inputs are read here (a points or mesh
     file that does not parse fails before any output); see
-    :class:`~volwarp_cli.bspline.export_outputs.ExportRequests`.
+    :class:`~volwarp_cli.warp.export_outputs.ExportRequests`.
     """
-    from ..bspline.export import field_format, points_format, read_points
-    from ..bspline.export_outputs import ExportRequests
+    from ..warp.export import field_format, points_format, read_points
+    from ..warp.export_outputs import ExportRequests
 
     for name, path in (("--displacement-to", displacement_to),
                        ("--forward-field-to", forward_field_to)):

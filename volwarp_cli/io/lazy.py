@@ -46,7 +46,7 @@ from ..samples import check_dtype, voxel_count
 from ..volume import xyz_to_zyx
 from .filearray import FileArray
 
-__all__ = ["open_volume_lazy", "open_volume_template", "NotLazy"]
+__all__ = ["open_volume_lazy", "open_volume_template", "NotLazy", "LazySource"]
 
 
 class NotLazy(Exception):
@@ -404,3 +404,58 @@ class _NiftiView(FileArray):
     order; volwarp's reader does nothing else to them (the direction matrix
     holds the reflections).
     """
+
+
+class LazySource:
+    """An input opened on demand: picklable, so a worker process opens it itself.
+
+    ``path`` and the reader's options; the opened array (a memory map, a zarr
+    array) is dropped from a pickled copy and opened again where it is used,
+    with the permission the run that made it had to read a detached header's
+    data file outside its folder (``--allow-outside-data``: a worker process
+    or thread has its own run scope, :mod:`volwarp_cli.runscope`).
+    """
+
+    def __init__(self, path, *, raw=None, volume_index=None, array=None, dicom=None):
+        from ..runscope import run_files
+
+        self.path = str(path)
+        self.raw = raw
+        self.volume_index = volume_index
+        self.dicom = dicom
+        self.allow_outside_data = run_files().allow_outside_data
+        self._array = array
+
+    @property
+    def array(self):
+        """The input's samples, sliceable ``[z, y, x]`` (opened on first use)."""
+        if self._array is None:
+            from ..runscope import run_scope
+
+            with run_scope() as files:  # (this thread's own: the permission it was given)
+                files.allow_outside_data = self.allow_outside_data
+                _, self._array = open_volume_lazy(self.path, raw=self.raw,
+                                                  volume_index=self.volume_index,
+                                                  dicom=self.dicom)
+        return self._array
+
+    @property
+    def shape(self):
+        """The input's shape (z, y, x)."""
+        return tuple(self.array.shape)
+
+    @property
+    def dtype(self) -> np.dtype:
+        """The input's sample type."""
+        return np.dtype(self.array.dtype)
+
+    def __getitem__(self, key):
+        return self.array[key]
+
+    def __getstate__(self):
+        # an array that carries all it reads (a DICOM stack's frames) goes along: reopening
+        # by path would scan the folder's headers again in every process
+        keep = self._array if getattr(self._array, "portable", False) else None
+        return {"path": self.path, "raw": self.raw, "volume_index": self.volume_index,
+                "dicom": self.dicom, "allow_outside_data": self.allow_outside_data,
+                "_array": keep}

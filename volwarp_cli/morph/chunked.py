@@ -268,7 +268,7 @@ def fields_by_blocks(job: MorphJob, inputs: dict, engine, scratch: Path, *, bloc
 
     ``inputs``: ``{"source": (template, samples), "target": ...}``, each a
     template Volume (the geometry) and a sliceable, picklable reader of its
-    samples (:class:`~volwarp_cli.bspline.blocks.LazySource`); ``block_bytes``:
+    samples (:class:`~volwarp_cli.io.lazy.LazySource`); ``block_bytes``:
     one task's memory; ``block``: the user's block shape. ``grid``: the
     frame grid (default the source's); ``matrices``: each shape's alignment
     (default none); a field not landing on the grid unmoved is resampled onto

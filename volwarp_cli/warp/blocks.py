@@ -11,7 +11,7 @@ memory (or ``--chunked``) runs many blocks on an engine
    by region, never the block's corners mapped back, which under-bounds a
    non-linear map);
 2. their samples, gathered from the input region they read
-   (:class:`.pullback.BoxSampler`: the capture runs inside the task, the
+   (:class:`~volwarp_cli.bspline.pullback.BoxSampler`: the capture runs inside the task, the
    domain is never held);
 3. their pushforward clipped to the block, into accumulators of the block's
    own size, then finalized.
@@ -40,19 +40,19 @@ import numpy as np
 
 from .. import parallel
 from ..box import Box
+from ..bspline import pushforward
+from ..bspline.reach import STREAM_PLANES, ring_planes
+from ..bspline.scene import Scene, Scratch
 from ..execute import Operation
 from ..regions import warp_input
-from . import pushforward
-from .reach import STREAM_PLANES, ring_planes
-from .scene import Scene, Scratch
 
 
 def render_block(scene: Scene, sampler, box: Box) -> np.ndarray:
     """The target block ``box`` (z, y, x of the padded target) of ``scene``'s current lattice.
 
-    ``sampler`` (a :class:`.pullback.BoxSampler`) gathers the domain voxels'
+    ``sampler`` (a :class:`~volwarp_cli.bspline.pullback.BoxSampler`) gathers the domain voxels'
     samples; the scene's own domain is not used. Equal to the same block of
-    :meth:`.scene.Scene.render` bit for bit.
+    :meth:`~volwarp_cli.bspline.scene.Scene.render` bit for bit.
 
     The block is streamed: the domain box's z planes a few at a time, each
     slab gathered just before it is scattered into a ring of the block's
@@ -135,65 +135,8 @@ def block_work(scene: Scene, blocks) -> float:
     return sum(domain_box(scene, b).size for b in blocks) / whole
 
 
-# -- the out-of-core warp: blocks as tasks ------------------------------------------------
-class LazySource:
-    """An input opened on demand: picklable, so a worker process opens it itself.
-
-    ``path`` and the reader's options; the opened array (a memory map, a zarr
-    array) is dropped from a pickled copy and opened again where it is used,
-    with the permission the run that made it had to read a detached header's
-    data file outside its folder (``--allow-outside-data``: a worker process
-    or thread has its own run scope, :mod:`volwarp_cli.runscope`).
-    """
-
-    def __init__(self, path, *, raw=None, volume_index=None, array=None, dicom=None):
-        from ..runscope import run_files
-
-        self.path = str(path)
-        self.raw = raw
-        self.volume_index = volume_index
-        self.dicom = dicom
-        self.allow_outside_data = run_files().allow_outside_data
-        self._array = array
-
-    @property
-    def array(self):
-        """The input's samples, sliceable ``[z, y, x]`` (opened on first use)."""
-        if self._array is None:
-            from ..io.lazy import open_volume_lazy
-            from ..runscope import run_scope
-
-            with run_scope() as files:  # (this thread's own: the permission it was given)
-                files.allow_outside_data = self.allow_outside_data
-                _, self._array = open_volume_lazy(self.path, raw=self.raw,
-                                                  volume_index=self.volume_index,
-                                                  dicom=self.dicom)
-        return self._array
-
-    @property
-    def shape(self):
-        """The input's shape (z, y, x)."""
-        return tuple(self.array.shape)
-
-    @property
-    def dtype(self) -> np.dtype:
-        """The input's sample type."""
-        return np.dtype(self.array.dtype)
-
-    def __getitem__(self, key):
-        return self.array[key]
-
-    def __getstate__(self):
-        # an array that carries all it reads (a DICOM stack's frames) goes along: reopening
-        # by path would scan the folder's headers again in every process
-        keep = self._array if getattr(self._array, "portable", False) else None
-        return {"path": self.path, "raw": self.raw, "volume_index": self.volume_index,
-                "dicom": self.dicom, "allow_outside_data": self.allow_outside_data,
-                "_array": keep}
-
-
 class SceneRecipe:
-    """What rebuilds a :class:`~.scene.Scene` where block tasks run: all of it but its samples.
+    """What rebuilds a :class:`~~volwarp_cli.bspline.scene.Scene` where block tasks run: all of it but its samples.
 
     Picklable (the lattice is its only array): a task in another process
     builds its own scene from it, with the domain it has there.
@@ -226,7 +169,7 @@ class WarpOperation(Operation):
     scene is rebuilt from its recipe where the tasks run, and the input is
     read box by box there.
 
-    ``source``: the input's samples, sliceable (a :class:`LazySource`), or
+    ``source``: the input's samples, sliceable (a :class:`~volwarp_cli.io.lazy.LazySource`), or
     None with ``sampler``, a capture file's stored domain
     (:class:`~.capture_file.StoredDomain`, reopened by path in another
     process). ``window``: the output's box of the target; ``target``: the
@@ -260,7 +203,7 @@ class WarpOperation(Operation):
     def _scene(self):
         with self._lock:  # (one scene for the threads of an in-memory run)
             if self._built is None:
-                from .pullback import BoxSampler
+                from ..bspline.pullback import BoxSampler
 
                 sampler = self._sampler if self._sampler is not None else BoxSampler(
                     self.source, self.recipe.grid, self.placement, self.sampling,

@@ -22,9 +22,10 @@ import threading
 import numpy as np
 
 from ..box import Box
+from ..bspline.capture import NoSamples
+from ..bspline.scene import Scene
 from ..errors import OutOfMemoryError
 from .blocks import SceneRecipe
-from .capture import NoSamples
 from .labels import (
     _Q,
     _bounding_boxes,
@@ -33,7 +34,6 @@ from .labels import (
     label_passes,
     stream_bytes,
 )
-from .scene import Scene
 
 _BUILD = threading.Lock()  # one scene per process, even when two threads ask at once
 
@@ -42,11 +42,11 @@ class LabelBlocks:
     """A label warp's job for block tasks: picklable, its scene rebuilt where it runs.
 
     ``source``: the label map, sliceable ``[z, y, x]`` (a
-    :class:`~.blocks.LazySource`); ``labels``, ``boxes``: its labels but
+    :class:`~volwarp_cli.io.lazy.LazySource`); ``labels``, ``boxes``: its labels but
     ``background`` and their input bounding boxes
     (:func:`bounding_boxes_by_blocks`); ``window``: the output's box of the
     target; ``background``: the label where nothing lands (the map's most
-    frequent border label, :func:`.defaults.border_label`).
+    frequent border label, :func:`~volwarp_cli.border.border_label`).
     """
 
     def __init__(self, scene: Scene, source, labels, boxes, window: Box, dtype, *,

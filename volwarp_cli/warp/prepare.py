@@ -1,7 +1,7 @@
 """The ``volwarp warp`` core: a captured volume, a spec, and the warped frames.
 
 :func:`prepare` checks the spec against the capture, plans every lattice
-state (see :mod:`.plan`) and builds the :class:`~.scene.Scene`;
+state (see :mod:`.plan`) and builds the :class:`~~volwarp_cli.bspline.scene.Scene`;
 :func:`run` renders the frames (incremental updates between them) and
 :func:`output_volume` turns a target array into a Volume in the right place.
 """
@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..bspline.capture import Capture
+from ..bspline.plan import SpecUnits, WarpSpec, default_pad, plan
+from ..bspline.scene import Scene
 from ..errors import BadUsage, SpecError
 from ..progress import log, progress, timed
 from ..samples import cast_samples
 from ..volume import Volume
-from .capture import Capture
 from .defaults import GRIDS, output_grid
-from .plan import SpecUnits, WarpSpec, default_pad, plan
-from .scene import Scene
 
 
 def check_capture_settings(doc, spec: WarpSpec, cap: Capture, source: str) -> None:
@@ -83,7 +83,7 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     before anything of that size is made). The target is not made here: the
     one-shot warp computes it block by block (:class:`.blocks.WarpOperation`,
     the executor deciding whether the whole fits), the frames in full
-    (:meth:`.scene.Scene.render` refuses what does not fit).
+    (:meth:`~volwarp_cli.bspline.scene.Scene.render` refuses what does not fit).
     """
     if grid is None:
         grid, _ = grid_of(spec, cap)

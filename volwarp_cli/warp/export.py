@@ -32,12 +32,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bspline.basis import basis, basis_derivative
+from ..bspline.evaluate import LatticeSpline
+from ..bspline.lattice import Grid
 from ..errors import VolwarpError
 from ..progress import log
 from ..volume import LPS, Volume
-from .basis import basis, basis_derivative
-from .evaluate import LatticeSpline
-from .lattice import Grid
 
 #: Newton's stopping residual for the inverse (input voxels) and the accepted one
 INVERSE_TOL = 1e-8
@@ -536,7 +536,7 @@ def _run_slabs(part, nz: int, per_slice: int, threads: int | None) -> None:
 
     The default is :func:`volwarp_cli.parallel.threads`; the kernels release the GIL
     and write disjoint slices. Threads instead of numba's ``prange``, whose threading
-    layer costs time to start in every process (see :func:`.basis.run_split`).
+    layer costs time to start in every process (see :func:`~volwarp_cli.bspline.basis.run_split`).
     """
     from .. import parallel
 

@@ -23,7 +23,7 @@ voxels at an integer oversample (``subdivision`` k; see :mod:`.lattice`);
 version 1 files have the spanning grid (the domain's box the input's), and
 are warped as they were captured.
 
-It lives in ``bspline/``, not ``io/``, because it stores a :class:`~.capture.Capture`, not a
+It lives in ``bspline/``, not ``io/``, because it stores a :class:`~~volwarp_cli.bspline.capture.Capture`, not a
 volume: reading one builds the B-spline ``Grid`` and ``Capture`` and checks their placement
 and sampling names, and ``io/`` imports nothing of the numeric core.
 """
@@ -38,11 +38,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bspline.capture import Capture, capture_border
+from ..bspline.lattice import Grid
 from ..errors import FormatError
 from ..io.atomic import atomic_output
 from ..volume import Volume
-from .capture import Capture, capture_border
-from .lattice import Grid
 
 MAGIC = b"VOLWARP-CAPTURE\n"
 VERSION = 2
@@ -172,9 +172,9 @@ def _refuse_unconverted_frame(head: dict, path) -> None:
 
 def _header_problem(head: dict) -> str | None:
     """What is wrong with a header's fields (the JSON is not checksummed), or None."""
+    from ..bspline.lattice import PLACEMENTS
+    from ..bspline.pullback import SAMPLINGS
     from ..samples import SUPPORTED_DTYPES
-    from .lattice import PLACEMENTS
-    from .pullback import SAMPLINGS
 
     def ints(v, n, least):
         return (isinstance(v, list) and len(v) == n
@@ -244,7 +244,7 @@ def read_capture(path: str | os.PathLike) -> Capture:
 
 
 def _capture_of(head: dict, domain, path, sampler=None) -> Capture:
-    """The :class:`~.capture.Capture` a checked header describes, over ``domain`` or ``sampler``."""
+    """The :class:`~~volwarp_cli.bspline.capture.Capture` a checked header describes, over ``domain`` or ``sampler``."""
     pl = head["payload"]
     try:
         inp = head["input"]
@@ -273,7 +273,7 @@ class StoredDomain:
     """A capture file's domain voxmap, read box by box from the file (never held whole).
 
     The sampler of :func:`open_capture_lazy`'s deferred capture: the same
-    interface as :class:`.pullback.BoxSampler` (``box``, ``input_box``,
+    interface as :class:`~volwarp_cli.bspline.pullback.BoxSampler` (``box``, ``input_box``,
     ``shape``, ``dtype``, ``source``), but each domain voxel is
     stored, not gathered. ``portable``: picklable as the file's path and
     offset, so a block task in another process reads the file itself.
@@ -323,7 +323,7 @@ def _check_payload(path, payload: dict, offset: int) -> None:
 
 
 def open_capture_lazy(path: str | os.PathLike) -> Capture:
-    """A capture file as a deferred :class:`~.capture.Capture`: its domain left in the file.
+    """A capture file as a deferred :class:`~~volwarp_cli.bspline.capture.Capture`: its domain left in the file.
 
     The same checks as :func:`read_capture` (magic, version, header, size,
     and the payload's CRC-32, in one streamed pass of bounded memory); the
@@ -346,9 +346,9 @@ def read_capture_lattice(path: str | os.PathLike) -> Capture:
 
     For what depends on the deformation alone (moved points and meshes, the
     fields): the capture's grid, placement and pad, a domain of its shape only
-    (:class:`~.capture.NoSamples`). The file's size is checked, not its payload's checksum.
+    (:class:`~~volwarp_cli.bspline.capture.NoSamples`). The file's size is checked, not its payload's checksum.
     """
-    from .capture import NoSamples
+    from ..bspline.capture import NoSamples
 
     head, _ = read_header(path)
     shape = tuple(int(v) for v in head["payload"]["shape"])[::-1]
@@ -376,7 +376,7 @@ def describe_capture(path: str | os.PathLike) -> dict:
                       direction=inp["direction"], space=inp["space"])
     grid = Grid(tuple(inp["shape"]), tuple(capd["lattice"]), tuple(capd["granularity"]),
                 int(capd["subdivision"]))
-    from .lattice import capture_offsets
+    from ..bspline.lattice import capture_offsets
     pts = grid.uniform_positions() + capture_offsets(grid, capd["placement"])  # (k, j, i, 3)
     world = geometry.index_to_world(pts.reshape(-1, 3)).reshape(pts.shape)
     world = np.transpose(world, (2, 1, 0, 3))  # [i][j][k]

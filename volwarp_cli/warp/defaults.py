@@ -13,11 +13,11 @@ DESIGN.md's "label maps are labels" and "a scan stays where it was":
   is asked for (``--grid grow``, the spec's ``grid: grow``, or a padding
   given: ``capture.pad``, ``capture --pad``), the papers' modelling case,
   where the grid grows to hold the whole moved model.
-- **Background** (:func:`border_value`): where nothing of the model lands,
+- **Background** (:func:`~volwarp_cli.border.border_value`): where nothing of the model lands,
   the output gets what the scan has outside its anatomy, the (lower) median
   of its border samples (-1024 in a CT, 0 in an MRI, a positive distance in
   a distance field), not 0 (0 HU is water). A label map's is its most
-  frequent border label (:func:`border_label`), one of its own ids.
+  frequent border label (:func:`~volwarp_cli.border.border_label`), one of its own ids.
 - **Resampling** (:func:`resampling_warning`): a capture on the spanning
   grid (a non-integer oversample, the tripled placement) changes voxels the
   warp does not move; said once per run.
@@ -33,87 +33,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..border import not_ids
 from ..labelmap import SCAN_BOX_VOXELS, VALUES  # noqa: F401  (warp's --values)
 from ..progress import log
 
 #: ``--grid``: the input's grid, or grown to hold the whole moved model
 GRIDS = ("input", "grow")
-
-
-def border_value(source) -> float:
-    """The lower median of the samples on the six faces of ``source`` (``[z, y, x]``), no NaN.
-
-    Why: it is what a scan has outside its anatomy, so it is what a warp
-    writes where nothing of the model lands (0 there would be water in a
-    CT). Why the median and not the most frequent value (the rule before):
-    where one value covers more than half of the border (-1024 HU of a CT's
-    padding, an MRI's 0) the two are that value, but the mode of a float
-    field or a noisy border is a coincidence. A distance field's border mode
-    was -2e-06, a value inside the shape (its faces hold thousands of
-    distinct distances, one of them twice): the grown margin of its warp
-    became inside (614,588 voxels); a 16x16x5 CT with a noisy air border got
-    -7, which 13 of its 832 border samples had. The median of a distance
-    field's border is a distance outside the shape (positive), and that of
-    a noisy air border is air. The lower median is a sample of the border
-    (never a mean of two): an integer scan gets one of its own values.
-
-    ``source``: an array or a sliceable lazy source (only its faces are
-    read). A voxel on an edge counts once per face it lies on. NaN only
-    when every border sample is NaN.
-    """
-    samples = border_samples(source)
-    if samples.dtype.kind == "f":
-        samples = samples[~np.isnan(samples)]
-        if not samples.size:
-            return float("nan")
-    if not samples.size:
-        return 0.0
-    k = (samples.size - 1) // 2
-    return float(np.partition(samples, k)[k])
-
-
-def border_label(source) -> int:
-    """The most frequent label on the six faces of the label map ``source``: its background.
-
-    Where nothing of the model lands a label warp writes this label (0 in
-    the usual map; a map whose ids are 1 to 4 with 1 around the anatomy
-    gained 1,093 voxels of an id 0 it does not have). The mode, not the
-    median: labels are names, and the background is the one that surrounds
-    the map. A voxel on an edge counts once per face it lies on; a tie goes
-    to the smallest label. ``source``: integer (or integer-valued) samples,
-    an array or a sliceable lazy source (only its faces are read).
-    """
-    from ..labelmap import integer_samples, value_counts
-
-    samples = border_samples(source)
-    if not samples.size:
-        return 0
-    if integer_samples(samples) is None:
-        raise not_ids("the label map", samples.dtype)
-    values, counts = value_counts(samples)
-    return int(values[int(np.argmax(counts))])  # (sorted: the first maximum is the smallest)
-
-
-def not_ids(name: str, dtype) -> Exception:
-    """The error for float samples taken as labels that are not all integers (raise it)."""
-    from ..errors import VolwarpError
-
-    return VolwarpError(f"{name}: a label map needs integer ids, and its {np.dtype(dtype)} "
-                        "samples are not all integers (a fraction, a NaN or an infinity): "
-                        "warp it as intensities (--values intensity)")
-
-
-def border_samples(source) -> np.ndarray:
-    """The samples of the six faces of ``source`` (``[z, y, x]``), one flat array.
-
-    A voxel on an edge comes once per face it lies on.
-    """
-    nz, ny, nx = (int(n) for n in source.shape)
-    if 0 in (nz, ny, nx):
-        return np.zeros(0, dtype=source.dtype)
-    faces = [source[0:1], source[nz - 1:nz], source[:, 0:1], source[:, ny - 1:ny],
-             source[:, :, 0:1], source[:, :, nx - 1:nx]]
-    return np.concatenate([np.asarray(f).ravel() for f in faces])
 
 
 #: why the default background is what it is (``-v``: ``background: -1024 (...)``)
@@ -124,7 +49,7 @@ def background_choice(option: float | None, spec_background: float | None,
                       border: float | None) -> tuple[float, str]:
     """An intensity warp's background and why: the option's, the spec's, else the border's.
 
-    ``border``: :func:`border_value` of the input where the capture knows
+    ``border``: :func:`~volwarp_cli.border.border_value` of the input where the capture knows
     it (None: 0, the default).
     """
     if option is not None:

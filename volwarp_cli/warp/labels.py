@@ -6,14 +6,14 @@ output voxel instead, and the output voxel takes the label of largest weight:
 
 - ``L``'s weight is the box pushforward's accumulated weight of its indicator
   (1 inside ``L``, 0 elsewhere): the exact fixed-point sums of the intensity
-  warp (:meth:`.scene.Scene.contribute`), read before the ``v / w``
+  warp (:meth:`~volwarp_cli.bspline.scene.Scene.contribute`), read before the ``v / w``
   normalisation. One pass per label, over the domain block of its bounding
   box, into a rolling accumulator that covers only the target block the
   label's image can reach (bounded from the lattice alone, region by region:
-  :meth:`.reach.Reach.rebuild_block`), so memory does not grow with the
+  :meth:`~volwarp_cli.bspline.reach.Reach.rebuild_block`), so memory does not grow with the
   number of labels: the output holds the best weight and label so far.
 - The background label ``b`` is the map's most frequent label on its border
-  (:func:`.defaults.border_label`: 0 in the usual map), what surrounds the
+  (:func:`~volwarp_cli.border.border_label`: 0 in the usual map), what surrounds the
   anatomy. It competes like any label: its weight is that of the input's
   ``b`` voxels plus the empty space around the model, ``max(w, 1) - w_fg``
   (``w`` all the model's weight, ``w_fg`` that of its voxels of other
@@ -53,15 +53,15 @@ import numpy as np
 
 from .. import parallel
 from ..box import Box
+from ..bspline.capture import Capture, geometry_capture
+from ..bspline.lattice import PLACEMENTS
+from ..bspline.pushforward import QUANTUM, HeldPlanes
+from ..bspline.reach import STREAM_PLANES, ring_planes
+from ..bspline.scene import Scene
 from ..errors import VolwarpError
 from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
 from ..volume import Volume
-from .capture import Capture, geometry_capture
-from .lattice import PLACEMENTS
-from .pushforward import QUANTUM, HeldPlanes
-from .reach import STREAM_PLANES, ring_planes
-from .scene import Scene
 
 _Q = int(QUANTUM)
 
@@ -110,8 +110,8 @@ def check_ids(data, name: str = "the label map") -> None:
 
     Integer samples pass unread. A fraction, a NaN or an infinity is no id.
     """
+    from ..border import not_ids
     from ..labelmap import integer_samples
-    from .defaults import not_ids
 
     if np.dtype(data.dtype).kind in "iu":
         return
@@ -189,7 +189,7 @@ class _Stream:
         dz, dy, dx = grid.domain_shape[::-1]
         self.values = np.zeros((self.chunk, dy, dx), dtype=np.float32)
         self.acc = np.zeros(0, dtype=np.int64)
-        from .scene import Scratch
+        from ..bspline.scene import Scratch
         self.scratch = Scratch()
 
     def run(self, label, box: Box, on_planes) -> None:
@@ -273,12 +273,12 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
                 spacing=(1.0, 1.0, 1.0), background: int | None = None) -> LabelWarp:
     """Warp the label map ``labels_in`` ``[z, y, x]`` (integer ids) with ``scene``'s lattice.
 
-    ``scene``: from :func:`.warp.prepare` on a :func:`capture_labels` capture;
+    ``scene``: from :func:`.prepare.prepare` on a :func:`capture_labels` capture;
     the last of ``frames`` (if any) is the lattice applied. ``spacing``
     (x y z, mm) scales the report's volumes. ``background``: the label
-    written where nothing lands (None: :func:`.defaults.border_label`, the
+    written where nothing lands (None: :func:`~volwarp_cli.border.border_label`, the
     most frequent on the map's border). Returns the target labels (padded
-    like the intensity warp's target: crop with :func:`.warp.output_volume`)
+    like the intensity warp's target: crop with :func:`.prepare.output_volume`)
     and a report::
 
         {"labels": {L: {"input_voxels", "output_voxels", "input_mm3",
@@ -287,7 +287,7 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
 
     (every label but the background ``b``).
     """
-    from .defaults import border_label
+    from ..border import border_label
 
     grid = scene.grid
     if not grid.subdivision:
@@ -500,11 +500,11 @@ def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, backg
     """``(cap, scene, frames)`` for warping the label map ``vol`` with a checked spec.
 
     The spec: ``doc``, ``spec``. Returned: the :func:`capture_labels` capture of
-    ``vol`` and :func:`.warp.prepare`'s scene and frames (the frames' lattices are
+    ``vol`` and :func:`.prepare.prepare`'s scene and frames (the frames' lattices are
     applied by :func:`warp_labels`). ``grid``: the output's, as
-    :func:`.warp.prepare` takes it.
+    :func:`.prepare.prepare` takes it.
     """
-    from .warp import prepare
+    from .prepare import prepare
 
     if background not in (None, 0, 0.0):
         raise VolwarpError("--background does not apply to a label map (its background is "
@@ -530,7 +530,7 @@ def label_warp(vol: Volume, doc, spec, *, method=None, evaluator=None, backgroun
 
     With a checked spec (``doc``, ``spec``), as :mod:`..cli.warp` does for intensities.
     """
-    from .warp import output_volume
+    from .prepare import output_volume
 
     cap, scene, frames = prepare_labels(vol, doc, spec, method=method, evaluator=evaluator,
                                         background=background, source=source,

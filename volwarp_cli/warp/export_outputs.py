@@ -160,7 +160,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
         write_points,
         write_tfm,
     )
-    from .warp import _output_window
+    from .prepare import _output_window
 
     cap, scene = warp.cap, warp.scene
     stats = {}

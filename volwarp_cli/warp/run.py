@@ -51,10 +51,10 @@ class WarpOptions:
     the spec's, else the input's border value (:func:`.defaults.background_choice`).
     ``grid``: ``"input"`` (the output on the input's grid) or ``"grow"``
     (grown to hold the moved model); None: the spec's, else input unless a
-    pad is given (:func:`.warp.grid_of`). ``crop``: the same as ``grid="input"``.
+    pad is given (:func:`.prepare.grid_of`). ``crop``: the same as ``grid="input"``.
     ``dtype``: the output's sample type (default the input's).
     ``allow_growth``: let the padding the moves need grow the output past
-    twice the input (the grown grid; see :func:`.warp.prepare`).
+    twice the input (the grown grid; see :func:`.prepare.prepare`).
     """
 
     pushforward: str | None = None
@@ -84,7 +84,7 @@ def frame_fields(n: int, frame) -> dict[str, int]:
 
 def _unchecked_spec(doc):
     """The spec's settings read before its schema check; None if they cannot be."""
-    from .plan import read_warp_spec
+    from ..bspline.plan import read_warp_spec
 
     try:
         return read_warp_spec(doc)
@@ -94,7 +94,7 @@ def _unchecked_spec(doc):
 
 def capture_input(vol: Volume, settings, name: str):
     """``vol`` captured with ``settings`` (a spec's ``capture``); errors name ``name``."""
-    from . import capture as capture_module
+    from ..bspline import capture as capture_module
 
     s = settings
     try:
@@ -140,7 +140,7 @@ def capture_spec(spec, cap):
     """
     from dataclasses import replace
 
-    from .plan import CaptureSettings
+    from ..bspline.plan import CaptureSettings
 
     pad = spec.capture.pad if "pad" in spec.capture_given else cap.pad
     return replace(spec, capture=CaptureSettings(
@@ -204,9 +204,9 @@ class WarpInput(AbstractContextManager):
         While the schema check runs, the volume (once read) is captured with the
         settings the spec gives (unless it is a label map).
         """
+        from ..bspline.plan import read_warp_spec
         from ..spec.loader import load_schema, load_spec, validate
-        from . import warp as _warp  # noqa: F401 - imported while the volume is read
-        from .plan import read_warp_spec
+        from . import prepare as _prepare  # noqa: F401 - imported while the volume is read
 
         doc = load_spec(spec_path)
         if self._reading is not None:
@@ -220,18 +220,18 @@ class WarpInput(AbstractContextManager):
         return doc, read_warp_spec(doc)
 
     def source(self, doc, spec):
-        """What to warp: the :class:`.capture.Capture`, or for labels the label map Volume.
+        """What to warp: the :class:`~volwarp_cli.bspline.capture.Capture`, or for labels the label map Volume.
 
         Labels (:attr:`choice`): the label map is captured by
         :class:`LabelMapWarp`; a capture file's is the volume it holds
-        (:class:`.capture.CapturedInput`, on the subdivision grid only), to
+        (:class:`~volwarp_cli.bspline.capture.CapturedInput`, on the subdivision grid only), to
         be warped with :attr:`spec` (the file's capture settings).
 
         A capture file's settings are checked against the spec's (a spec error);
         a volume's read error comes here, after every spec error.
         """
         from .defaults import choose_values
-        from .warp import check_capture_settings
+        from .prepare import check_capture_settings
 
         given = self._values or spec.values
         self.spec = spec
@@ -278,11 +278,11 @@ def capture_values(cap, given: str | None, name: str):
     """How a capture file's samples are warped: ``(ValuesChoice, CapturedInput or None)``.
 
     On the subdivision grid the capture holds its input's samples
-    (:class:`.capture.CapturedInput`): the label rule reads them, as it reads
+    (:class:`~volwarp_cli.bspline.capture.CapturedInput`): the label rule reads them, as it reads
     a volume. On the spanning grid they are blends of the input's: warped as
     intensities, and labels asked for (``given``) are a usage error.
     """
-    from .capture import captured_input
+    from ..bspline.capture import captured_input
     from .defaults import ValuesChoice, choose_values, spanning_cause
 
     view = captured_input(cap)
@@ -341,7 +341,7 @@ class _LatticeMoves:
 
 
 class IntensityWarp(_LatticeMoves):
-    """The warp of a captured volume (:class:`.capture.Capture`) by a checked spec.
+    """The warp of a captured volume (:class:`~volwarp_cli.bspline.capture.Capture`) by a checked spec.
 
     Construction plans every lattice state and builds the scene; then the
     final lattice's output is an :meth:`operation` of the executor (by blocks
@@ -352,7 +352,7 @@ class IntensityWarp(_LatticeMoves):
     def __init__(self, cap, doc, spec, options: WarpOptions = WarpOptions(), *,
                  name: str = "input"):
         from .defaults import resampling_warning, warn_once
-        from .warp import background_of, grid_of, prepare
+        from .prepare import background_of, grid_of, prepare
 
         self.cap = cap
         self.options = options
@@ -379,14 +379,14 @@ class IntensityWarp(_LatticeMoves):
 
     def output(self, target: np.ndarray) -> Volume:
         """A target array as the output Volume (cropped and cast as the options say)."""
-        from .warp import output_volume
+        from .prepare import output_volume
 
         return output_volume(self.cap, self.scene, target, crop=self.options.crop,
                              dtype=self.options.dtype)
 
     def output_template(self) -> Volume:
         """The output's Volume with a zero-strided placeholder of its shape and dtype."""
-        from .warp import output_planes
+        from .prepare import output_planes
 
         template, _ = output_planes(self.cap, self.scene, crop=self.options.crop,
                                     dtype=self.options.dtype)
@@ -398,12 +398,12 @@ class IntensityWarp(_LatticeMoves):
         ``target``: the output (:class:`~volwarp_cli.execute.Target`; default
         one at no path, for :meth:`render`). ``source``: the input's samples,
         sliceable, read box by box by the blocks (a
-        :class:`~.blocks.LazySource`, reopened by path in other processes);
+        :class:`~volwarp_cli.io.lazy.LazySource`, reopened by path in other processes);
         None: the capture's own samples (:meth:`sampler`).
         """
         from ..execute import Target
         from .blocks import WarpOperation
-        from .warp import output_window_box
+        from .prepare import output_window_box
 
         if self.frames:
             self.scene.set_lattice(self.frames[-1].dq)
@@ -428,7 +428,7 @@ class IntensityWarp(_LatticeMoves):
 
         Each is handed to ``on_frame`` before the next is made; the last is the output.
         """
-        from .warp import run
+        from .prepare import run
 
         def each(n, fr, target):
             on_frame(frame_fields(n, fr), self.output(target))
@@ -442,7 +442,7 @@ class IntensityWarp(_LatticeMoves):
         input it holds or reads; a capture file's stored domain, read from
         the file.
         """
-        from .pullback import DomainSampler
+        from ..bspline.pullback import DomainSampler
 
         if self.cap.domain is not None:
             return DomainSampler(self.cap.domain)
@@ -455,7 +455,7 @@ def _prepare_labels(vol: Volume, doc, spec, options: WarpOptions, name: str):
     Returns ``(cap, scene, frames, grid)``, ``grid`` the output's and why.
     """
     from .labels import prepare_labels
-    from .warp import grid_of
+    from .prepare import grid_of
 
     grid = grid_of(spec, None, options.output_grid)
     try:
@@ -470,8 +470,8 @@ def _prepare_labels(vol: Volume, doc, spec, options: WarpOptions, name: str):
 
 
 def _background_label(samples) -> int:
-    """A label map's background (:func:`.defaults.border_label`), said at -v."""
-    from .defaults import border_label
+    """A label map's background (:func:`~volwarp_cli.border.border_label`), said at -v."""
+    from ..border import border_label
 
     label = border_label(samples)
     log.info("labels: background label %d (the most frequent on the map's border)", label)
@@ -481,14 +481,14 @@ def _background_label(samples) -> int:
 class Deformation(_LatticeMoves):
     """A warp's lattice moves and nothing else: what its exports need, no volume computed.
 
-    ``cap``: a capture without samples (:func:`.capture.geometry_capture`,
+    ``cap``: a capture without samples (:func:`~volwarp_cli.bspline.capture.geometry_capture`,
     :func:`.capture_file.read_capture_lattice`) or any other. The same
     lattice, frames and output grid as the warp of the same input, spec
     and options would have, so moved points, meshes and fields are the same.
     """
 
     def __init__(self, cap, doc, spec, options: WarpOptions = WarpOptions()):
-        from .warp import grid_of, prepare
+        from .prepare import grid_of, prepare
 
         self.cap = cap
         self.options = options
@@ -517,7 +517,7 @@ class LabelMapBlocks(_LatticeMoves):
     def __init__(self, template: Volume, source, doc, spec,
                  options: WarpOptions = WarpOptions(), *, preserve: bool = False,
                  name: str = "input"):
-        from .warp import output_planes, output_window_box
+        from .prepare import output_planes, output_window_box
 
         self.source = source
         self.input = template
@@ -552,7 +552,7 @@ class LabelMapBlocks(_LatticeMoves):
     def render_whole(self) -> tuple[Volume, dict]:
         """The output and the per-label report, the map read whole and warped here."""
         from .labels import warp_labels
-        from .warp import output_volume
+        from .prepare import output_volume
 
         with timed("labels: read the map"):
             data = np.asarray(self.source[:, :, :])
@@ -626,7 +626,7 @@ class LabelMapWarp(_LatticeMoves):
     def warp(self, lattice: np.ndarray) -> tuple[Volume, dict]:
         """The label warp for control-point offsets ``lattice``."""
         from .labels import warp_labels
-        from .warp import output_volume
+        from .prepare import output_volume
 
         self.scene.set_lattice(lattice)
         res = warp_labels(self.vol.data, self.scene, (), preserve=self.preserve,

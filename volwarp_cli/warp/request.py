@@ -72,8 +72,8 @@ def warp_files(req: WarpFiles, how) -> dict:
 
 def _load_spec(path):
     """The spec: ``(doc, WarpSpec)``, checked against its schema."""
+    from ..bspline.plan import read_warp_spec
     from ..spec.loader import load_schema, load_spec, validate
-    from .plan import read_warp_spec
 
     doc = load_spec(path)
     validate(doc, load_schema("warp"))
@@ -88,8 +88,8 @@ def _exports_only(req: WarpFiles, how) -> dict:
     warp with the same spec and options.
     """
     from .export import check_exportable
+    from .prepare import check_capture_settings
     from .run import Deformation
-    from .warp import check_capture_settings
 
     doc, spec = _load_spec(req.spec)
     if req.is_capture:
@@ -99,7 +99,7 @@ def _exports_only(req: WarpFiles, how) -> dict:
             cap = read_capture_lattice(req.input)
         check_capture_settings(doc, spec, cap, req.input)
     else:
-        from .capture import geometry_capture
+        from ..bspline.capture import geometry_capture
 
         template, _ = req.open_lazy()
         c = spec.capture
@@ -131,7 +131,7 @@ def _open_values(req: WarpFiles, doc, spec):
     cap = template = source = None
     if req.is_capture:
         from .capture_file import open_capture_lazy
-        from .warp import check_capture_settings
+        from .prepare import check_capture_settings
 
         with timed(f"check {req.input} (one pass)"):
             cap = open_capture_lazy(req.input)
@@ -162,7 +162,7 @@ def _warp_once(req: WarpFiles, how) -> dict:
     or by blocks on the engine (the same code, the same bytes).
     """
     from .. import execute
-    from .capture import capture_source
+    from ..bspline.capture import capture_source
     from .run import IntensityWarp
 
     doc, spec = _load_spec(req.spec)
