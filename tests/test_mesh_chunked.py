@@ -1,4 +1,10 @@
-"""The blocked isosurface equals the in-memory one bit for bit (after canonical ordering)."""
+"""The isosurface by blocks is the whole volume's, bit for bit and in its order.
+
+The whole volume is the one-block case (:func:`volwarp_cli.surface.isosurface.isosurface`);
+any blocks weld to the same arrays (vertices, faces, normals), and ``volwarp mesh``
+writes the same PLY bytes in memory and by blocks, for every option that runs by
+blocks (clean-ups, labels, a named scheduler).
+"""
 
 from __future__ import annotations
 
@@ -11,20 +17,21 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
+from volwarp_cli.box import Box
 from volwarp_cli.errors import VolwarpError
 from volwarp_cli.geometry import Geometry
+from volwarp_cli.io import write_volume
+from volwarp_cli.regions import mesh_cells
 from volwarp_cli.surface import chunked
 from volwarp_cli.surface.chunked import (
-    canonical_mesh,
+    MeshPart,
     edge_ids,
     edge_of,
     isosurface_blocks,
-    isosurface_dask,
-    isosurface_edge_ids,
-    surface_mesh_blocks,
+    weld,
 )
-from volwarp_cli.surface.isosurface import isosurface
-from volwarp_cli.surface.pipeline import Cleanup, surface_mesh
+from volwarp_cli.surface.isosurface import crossing_edges, isosurface
+from volwarp_cli.volume import Volume
 
 _C, _S = np.cos(0.7), np.sin(0.7)
 ROTATED = [[_C, -_S, 0.0], [_S, _C, 0.0], [0.0, 0.0, 1.0]]
@@ -54,33 +61,24 @@ def geometry(shape, direction):
                     direction=np.eye(3) if direction is None else direction)
 
 
-def canonical(mesh, ids):
-    return canonical_mesh(mesh.vertices, mesh.faces, ids, mesh.normals)
-
-
 def assert_bitwise(a, b):
     assert a.shape == b.shape and a.dtype == b.dtype
     assert np.array_equal(a.view(np.uint8), b.view(np.uint8))
 
 
-def assert_same_as_memory(data, geom, level, block_shape, *, normals=False, inside="above",
-                          cap=False, blocked=None):
-    vol = geom.volume(data)
-    ref = isosurface(vol, level, inside=inside, cap=cap, normals=normals)
-    ids = isosurface_edge_ids(vol, level, inside=inside, cap=cap)
-    assert len(ids) == ref.n_vertices and ref.n_faces > 0
-    if blocked is None:
-        blocked = isosurface_blocks(data, geom, level, block_shape=block_shape, inside=inside,
-                                    cap=cap, normals=normals)
-    assert (blocked.n_vertices, blocked.n_faces) == (ref.n_vertices, ref.n_faces)
-    rv, rf, rn = canonical(ref, ids)
-    # the blocked mesh is already canonical: vertices by edge id, faces sorted
-    assert_bitwise(blocked.vertices, rv)
-    assert_bitwise(blocked.faces, rf)
+def assert_same_as_whole(data, geom, level, block_shape, *, normals=False, inside="above",
+                         cap=False, threads=1):
+    """Blocks of ``block_shape`` give the whole volume's arrays, in its order."""
+    ref = isosurface(geom.volume(data), level, inside=inside, cap=cap, normals=normals)
+    assert ref.n_faces > 0
+    blocked = isosurface_blocks(data, geom, level, block_shape=block_shape, inside=inside,
+                                cap=cap, normals=normals, threads=threads)
+    assert_bitwise(blocked.vertices, ref.vertices)
+    assert_bitwise(blocked.faces, ref.faces)
     if normals:
-        assert_bitwise(blocked.normals, rn)
+        assert_bitwise(blocked.normals, ref.normals)
     else:
-        assert blocked.normals is None
+        assert blocked.normals is None and ref.normals is None
     return blocked
 
 
@@ -98,8 +96,8 @@ def edge_count_closed(faces) -> bool:
 @pytest.mark.parametrize("normals", [False, True])
 def test_sphere_bit_for_bit_and_closed(direction, normals):
     data = sphere(SHAPE, 11.3)
-    mesh = assert_same_as_memory(data, geometry(SHAPE, direction), 0.0, (10, 7, 13),
-                                 normals=normals)
+    mesh = assert_same_as_whole(data, geometry(SHAPE, direction), 0.0, (10, 7, 13),
+                                normals=normals)
     assert edge_count_closed(mesh.faces)
     # outward: face normals point away from the centre
     geom = geometry(SHAPE, direction)
@@ -113,8 +111,8 @@ def test_sphere_bit_for_bit_and_closed(direction, normals):
                                               (3, (28, 40, 36)), (4, (1, 40, 9))])
 def test_blobs_several_components(seed, block_shape):
     data = blobs(SHAPE, seed)
-    mesh = assert_same_as_memory(data, geometry(SHAPE, FLIPPED), 0.5, block_shape,
-                                 normals=True)
+    mesh = assert_same_as_whole(data, geometry(SHAPE, FLIPPED), 0.5, block_shape,
+                                normals=True)
     assert edge_count_closed(mesh.faces)
     from volwarp_cli.surface.topology import connected_components
 
@@ -124,9 +122,9 @@ def test_blobs_several_components(seed, block_shape):
 def test_inside_below_cap_and_border():
     data = -sphere(SHAPE, 16.0)  # negative inside, cut by the border
     geom = geometry(SHAPE, ROTATED)
-    assert_same_as_memory(data, geom, 0.0, (10, 7, 13), inside="below", normals=True)
-    capped = assert_same_as_memory(data, geom, 0.0, (10, 7, 13), inside="below", cap=True,
-                                   normals=True)
+    assert_same_as_whole(data, geom, 0.0, (10, 7, 13), inside="below", normals=True)
+    capped = assert_same_as_whole(data, geom, 0.0, (10, 7, 13), inside="below", cap=True,
+                                  normals=True)
     assert edge_count_closed(capped.faces)
 
 
@@ -135,9 +133,28 @@ def test_integer_samples_equal_to_the_level():
     # the samples by a whole-volume decision the blocks must share
     data = (sphere(SHAPE, 9.0) > 0).astype(np.uint8)
     for cap in (False, True):
-        mesh = assert_same_as_memory(data, geometry(SHAPE, None), 1.0, (6, 9, 8), cap=cap,
-                                     normals=True)
+        mesh = assert_same_as_whole(data, geometry(SHAPE, None), 1.0, (6, 9, 8), cap=cap,
+                                    normals=True)
         assert edge_count_closed(mesh.faces)
+        # the shifted level keeps every vertex off the samples: no zero-area triangle
+        assert mesh.n_vertices == len(np.unique(mesh.vertices, axis=0))
+
+
+def test_whole_volume_order_is_flying_edges_order_of_edges_and_cells():
+    """What the weld rests on: VTK numbers the whole volume's vertices in edge-id order
+    and makes its triangles cell by cell; so does every block (a box of rows)."""
+    data = blobs(SHAPE, 8)
+    from volwarp_cli.surface.isosurface import _flying_edges
+
+    for box in (Box.from_shape(SHAPE), Box((3, 5, 7), (20, 33, 30))):
+        part = data[box.slices]
+        points, faces, _, _ = _flying_edges(part, 0.5, False)
+        lower, axis = crossing_edges(part, 0.5)
+        ids = edge_ids(lower, axis, part.shape)
+        assert len(ids) == len(points) > 1000 and np.all(np.diff(ids) > 0)
+        cell = lower[faces].min(axis=1)
+        key = (cell[:, 2] * part.shape[1] + cell[:, 1]) * part.shape[2] + cell[:, 0]
+        assert np.all(np.diff(key) >= 0)
 
 
 def test_float_keys_would_not_do_and_ids_round_trip():
@@ -145,70 +162,74 @@ def test_float_keys_would_not_do_and_ids_round_trip():
     # the edge still comes back exactly (no position-based key could tell the edges)
     data = sphere(SHAPE, 11.0)
     data[14, 20, 18 + 11] = 1e-7  # x-edge crossings a hair away from this sample
-    mesh = assert_same_as_memory(data, geometry(SHAPE, ROTATED), 0.0, (10, 7, 13))
+    mesh = assert_same_as_whole(data, geometry(SHAPE, ROTATED), 0.0, (10, 7, 13))
     assert edge_count_closed(mesh.faces)
     shape = (5, 6, 7)
     lower = np.array([[0, 0, 0], [6, 5, 4], [3, 2, 1]])
     ids = edge_ids(lower, np.array([2, 0, 1]), shape)
     back, axis = edge_of(ids, shape)
     assert np.array_equal(back, lower) and axis.tolist() == [2, 0, 1]
+    # ids sort by row (k, j), then axis, then i
+    assert edge_ids(np.array([[6, 0, 0], [0, 0, 0]]), np.array([0, 1]), shape).tolist() == [
+        6, 7]
 
 
-def test_dask_chunks_and_threads_same_mesh():
-    da = pytest.importorskip("dask.array")
+def test_weld_refuses_blocks_that_disagree_on_a_shared_vertex():
+    one = MeshPart(np.zeros((3, 3), np.float32), np.array([[0, 1, 2]], np.int32), None,
+                   np.array([1, 2, 3]), np.array([0]))
+    other = MeshPart(np.ones((3, 3), np.float32), np.array([[0, 1, 2]], np.int32), None,
+                     np.array([3, 4, 5]), np.array([1]))
+    with pytest.raises(VolwarpError, match="different vertices"):
+        weld([one, other])
+    other.points[0] = 0.0  # now they agree on edge 3: welded to 5 vertices, faces by cell
+    welded = weld([other, one])
+    assert len(welded.points) == 5
+    assert welded.faces.tolist() == [[0, 1, 2], [2, 3, 4]]
+
+
+def test_threads_and_blocks_same_mesh():
     data = blobs(SHAPE, 5)
     geom = geometry(SHAPE, ROTATED)
-    darr = da.from_array(data, chunks=(11, 9, 14))  # do not divide 28 x 40 x 36 cells
-    mesh = isosurface_dask(darr, geom, 0.5, normals=True, scheduler="threads", num_workers=2)
-    assert_same_as_memory(data, geom, 0.5, None, normals=True, blocked=mesh)
-    capped = isosurface_dask(darr, geom, 0.5, block_shape=(7, 30, 8), cap=True,
-                             scheduler="sync")
-    assert_same_as_memory(data, geom, 0.5, None, cap=True, blocked=capped)
-    loop = isosurface_blocks(data, geom, 0.5, block_shape=(9, 9, 9), normals=True, threads=2)
-    assert_same_as_memory(data, geom, 0.5, None, normals=True, blocked=loop)
+    from volwarp_cli import parallel
+
+    with parallel.use_threads(1):
+        one = isosurface(geom.volume(data), 0.5)
+    with parallel.use_threads(2):
+        two = isosurface(geom.volume(data), 0.5)
+    for a, b in ((one.vertices, two.vertices), (one.faces, two.faces),
+                 (one.normals, two.normals)):
+        assert_bitwise(a, b)
+    assert_same_as_whole(data, geom, 0.5, (9, 9, 9), normals=True, threads=2)
+    assert_same_as_whole(data, geom, 0.5, (7, 30, 8), cap=True, threads=2)
 
 
 SMALL = ndimage.gaussian_filter(np.random.default_rng(7).normal(size=(9, 12, 10)), 1.2)
 SMALL = (SMALL / SMALL.std()).astype(np.float32)
 SMALL_GEOM = geometry(SMALL.shape, FLIPPED)
-SMALL_REF = {n: canonical(isosurface(SMALL_GEOM.volume(SMALL), 0.3, normals=n),
-                          isosurface_edge_ids(SMALL_GEOM.volume(SMALL), 0.3)) for n in (0, 1)}
+SMALL_REF = {n: isosurface(SMALL_GEOM.volume(SMALL), 0.3, normals=bool(n)) for n in (0, 1)}
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.tuples(st.integers(1, 9), st.integers(1, 12), st.integers(1, 10)), st.booleans())
 def test_property_any_block_shape(block_shape, normals):
     mesh = isosurface_blocks(SMALL, SMALL_GEOM, 0.3, block_shape=block_shape, normals=normals)
-    rv, rf, rn = SMALL_REF[int(normals)]
-    assert_bitwise(mesh.vertices, rv)
-    assert_bitwise(mesh.faces, rf)
+    ref = SMALL_REF[int(normals)]
+    assert_bitwise(mesh.vertices, ref.vertices)
+    assert_bitwise(mesh.faces, ref.faces)
     if normals:
-        assert_bitwise(mesh.normals, rn)
+        assert_bitwise(mesh.normals, ref.normals)
 
 
-def test_surface_mesh_blocks_matches_the_chain_and_refusals():
+def test_refusals():
     data = blobs(SHAPE, 6)
     vol = geometry(SHAPE, ROTATED).volume(data)
-    for cleanup in (Cleanup(), Cleanup(largest_component=True)):
-        ref, iso = surface_mesh(vol, 0.5, cleanup=cleanup)
-        mesh, iso_b = surface_mesh_blocks(vol, None, 0.5, block_shape=(10, 7, 13),
-                                          cleanup=cleanup)
-        assert iso == iso_b and (mesh.n_vertices, mesh.n_faces) == (ref.n_vertices, ref.n_faces)
-        assert np.allclose(np.sort(mesh.vertices, axis=0), np.sort(ref.vertices, axis=0),
-                           rtol=0, atol=0)
-    _, iso = surface_mesh_blocks(vol, None, None, block_shape=(10, 7, 13))
-    assert iso == surface_mesh(vol)[1]
-    with pytest.raises(VolwarpError, match="outside the data range"):
-        surface_mesh_blocks(vol, None, 99.0)
     bad = data.copy()
     bad[3, 3, 3] = np.nan
     with pytest.raises(VolwarpError, match="NaN"):
-        surface_mesh_blocks(bad, vol, 0.5)
-    with pytest.raises(VolwarpError, match="NaN"):
-        isosurface_blocks(bad, vol, 0.5)
+        isosurface_blocks(bad, vol, 0.5, block_shape=(10, 7, 13))
     with pytest.raises(VolwarpError, match="inside must be"):
         isosurface_blocks(data, vol, 0.5, inside="out")
-    assert isosurface_blocks(data, vol, 50.0).is_empty
+    assert isosurface_blocks(data, vol, 50.0, block_shape=(10, 7, 13)).is_empty
 
 
 def test_in_memory_and_loop_paths_do_not_import_dask():
@@ -235,7 +256,7 @@ def test_blocks_run_vtk_on_one_thread(monkeypatch):
 
     monkeypatch.setattr(chunked, "_flying_edges", spy)
     isosurface_blocks(SMALL, SMALL_GEOM, 0.3, block_shape=5, threads=2)
-    assert seen and set(seen) == {1}
+    assert len(seen) > 1 and set(seen) == {1}
 
 
 def _numpy_stats(samples, dtype, iso):
@@ -274,3 +295,107 @@ def test_block_stats_equal_numpys(dtype, seed, iso, nan, cap):
     got = (True,) if s.nan else ((s.lo, s.hi) if iso is None
                                  else (s.lo, s.hi, s.hit, s.below_max))
     assert got == _numpy_stats(a, work, iso)
+
+
+# -- the command: the same PLY bytes ------------------------------------------------------
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    """A rotated float field, an integer mask (its level on the samples) and a label map."""
+    folder = tmp_path_factory.mktemp("mesh-blocks")
+    geom = dict(spacing=(0.8, 1.1, 1.7), origin=(-4.0, 12.5, 3.25), direction=ROTATED)
+    write_volume(Volume(blobs(SHAPE, 11) + 0.4 * sphere(SHAPE, 12.0) / 12.0, **geom),
+                 folder / "field.nrrd")
+    write_volume(Volume((sphere(SHAPE, 9.0) > 0).astype(np.uint8) * 3, **geom),
+                 folder / "mask.nrrd")
+    z, y, x = np.indices(SHAPE)
+    lab = np.zeros(SHAPE, np.int16)
+    lab[(x - 12) ** 2 + (y - 14) ** 2 + (z - 15) ** 2 <= 64] = 7
+    lab[5:25, 4:24, 26:] = 300  # on the border: capped
+    lab[3:9, 30:38, 4:11] = -2
+    write_volume(Volume(lab, **geom), folder / "seg.nrrd")
+    return folder
+
+
+CASES = {
+    "plain": ("field.nrrd", ["--iso", "0.2"]),
+    "default-level": ("field.nrrd", []),
+    "cap-below": ("field.nrrd", ["--iso", "0.2", "--inside", "below", "--cap"]),
+    "largest-component": ("field.nrrd", ["--iso", "0.2", "--largest-component"]),
+    "smooth": ("field.nrrd", ["--iso", "0.2", "--smooth", "8"]),
+    "decimate": ("field.nrrd", ["--iso", "0.2", "--decimate", "0.6"]),
+    "integer-level": ("mask.nrrd", ["--iso", "3", "--cap"]),
+    "label": ("seg.nrrd", ["--label", "300"]),
+}
+
+
+def _mesh_blocks_spied(monkeypatch):
+    """The blocks flying edges ran on: (cells, whether the block was the whole volume)."""
+    seen = []
+    real = chunked.mesh_block
+
+    def spy(raw, region, cells, plan):
+        seen.append(cells == mesh_cells(plan.shape))
+        return real(raw, region, cells, plan)
+
+    monkeypatch.setattr(chunked, "mesh_block", spy)
+    return seen
+
+
+@pytest.mark.parametrize("name", list(CASES))
+@pytest.mark.parametrize("threads", [1, 2])
+def test_ply_by_blocks_is_the_in_memory_file(run, inputs, tmp_path, monkeypatch, name,
+                                             threads):
+    source, args = CASES[name]
+    mem, blk = tmp_path / "m.ply", tmp_path / "b.ply"
+    seen = _mesh_blocks_spied(monkeypatch)
+    res = run("mesh", inputs / source, "-o", mem, *args, "--threads", threads)
+    assert res.code == 0, res.stderr
+    assert seen == [True]  # in memory: one block, the whole volume
+    seen.clear()
+    res = run("mesh", inputs / source, "-o", blk, *args, "--threads", threads, "--chunked",
+              "--block", "7,9,5")
+    assert res.code == 0, res.stderr
+    assert len(seen) >= 8 and not any(seen)  # by blocks: many, none the whole
+    data = mem.read_bytes()
+    assert b"element face 0\n" not in data and len(data) > 20000
+    assert blk.read_bytes() == data
+
+
+@pytest.mark.parametrize("scheduler", [None, "processes"])
+def test_label_plys_by_blocks_are_the_in_memory_files(run, inputs, tmp_path, scheduler):
+    extra = ["--chunked", "--block", "8"] + (["--scheduler", scheduler] if scheduler else [])
+    res = run("mesh", inputs / "seg.nrrd", "--labels", "-o", tmp_path / "m_{label}.ply")
+    assert res.code == 0, res.stderr
+    res = run("mesh", inputs / "seg.nrrd", "--labels", "-o", tmp_path / "b_{label}.ply", *extra)
+    assert res.code == 0, res.stderr
+    names = sorted(p.name for p in tmp_path.glob("*.ply"))
+    assert names == sorted(f"{w}_{v}.ply" for w in "bm" for v in (-2, 7, 300))
+    for label in (-2, 7, 300):
+        data = (tmp_path / f"m_{label}.ply").read_bytes()
+        assert f"volwarp_label={label}\n".encode() in data
+        assert (tmp_path / f"b_{label}.ply").read_bytes() == data
+
+
+def test_the_whole_not_fitting_runs_by_blocks_by_itself(run, inputs, tmp_path, monkeypatch):
+    """Without --chunked the choice is the memory's arithmetic, before any sample is read:
+    a whole that does not fit runs by blocks, and writes the in-memory bytes;
+    --no-chunked refuses it instead, and writes nothing."""
+    from volwarp_cli.surface.run import MeshOperation
+
+    mem, blk = tmp_path / "m.ply", tmp_path / "b.ply"
+    assert run("mesh", inputs / "field.nrrd", "-o", mem, "--iso", "0.2").code == 0
+    real = MeshOperation.memory
+
+    def memory(self, box):  # the whole volume needs a petabyte; its blocks what they need
+        return 1 << 50 if box == Box.from_shape(self.shape) else real(self, box)
+
+    monkeypatch.setattr(MeshOperation, "memory", memory)
+    seen = _mesh_blocks_spied(monkeypatch)
+    res = run("mesh", inputs / "field.nrrd", "-o", blk, "--iso", "0.2")
+    assert res.code == 0, res.stderr
+    assert seen and not any(seen)
+    assert blk.read_bytes() == mem.read_bytes()
+    refused = tmp_path / "r.ply"
+    res = run("mesh", inputs / "field.nrrd", "-o", refused, "--iso", "0.2", "--no-chunked")
+    assert res.code == 1 and "needs" in res.stderr and not refused.exists()
+

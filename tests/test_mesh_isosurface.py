@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from volwarp_cli.errors import VolwarpError
-from volwarp_cli.surface.isosurface import isosurface, touches_border
+from volwarp_cli.surface.isosurface import isosurface
 from volwarp_cli.surface.stats import enclosed_volume, is_closed, mesh_stats, surface_area
 from volwarp_cli.volume import Volume
 
@@ -113,7 +113,12 @@ def test_border_shape_is_open_without_cap_and_closed_with_it():
     data = np.zeros((10, 12, 14), dtype=np.float32)
     data[2:8, 3:9, 0:6] = 1.0   # a box touching the x = 0 face
     vol = Volume(data, spacing=(1.0, 1.0, 1.0))
-    assert touches_border(data, 0.5)
+    from volwarp_cli.box import Box
+    from volwarp_cli.surface.chunked import volume_facts
+
+    # the inside samples on the volume's faces: the box's 6 x 6 on the x = 0 face
+    facts = volume_facts(data, 0.5, boxes=[Box.from_shape(data.shape)], count=True)
+    assert facts.border == 36
     open_mesh = isosurface(vol, 0.5)
     assert not is_closed(open_mesh)
     capped = isosurface(vol, 0.5, cap=True)

@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 from volwarp_cli.io import read_volume, write_volume
-from volwarp_cli.surface.chunked import canonical_faces
 from volwarp_cli.surface.mesh_io import read_mesh
 from volwarp_cli.volume import Volume
 
@@ -91,15 +90,6 @@ def test_frames_by_blocks_equal_the_in_memory_frames(run, shapes, tmp_path, case
     assert not np.array_equal(blk[0].data, blk[3].data)
 
 
-def canonical(mesh):
-    """A mesh's vertices in order of position, its faces re-indexed and canonical, normals."""
-    v = np.asarray(mesh.vertices)
-    order = np.lexsort(v.T[::-1])
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    return v[order], canonical_faces(rank[np.asarray(mesh.faces)]), mesh.normals[order]
-
-
 def test_meshes_and_renders_by_blocks_equal_the_in_memory_ones(run, shapes, tmp_path):
     common = [shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "3"]
     assert run("morph", *common, "-o", tmp_path / "m_{i}.nrrd", "--mesh-to",
@@ -111,10 +101,8 @@ def test_meshes_and_renders_by_blocks_equal_the_in_memory_ones(run, shapes, tmp_
     assert res.code == 0, res.stderr
 
     for i in range(3):
-        a, b = read_mesh(tmp_path / f"m_{i}.ply"), read_mesh(tmp_path / f"b_{i}.ply")
-        assert a.n_faces > 100 and (a.n_vertices, a.n_faces) == (b.n_vertices, b.n_faces)
-        for x, y in zip(canonical(a), canonical(b), strict=True):
-            assert np.array_equal(x, y)
+        assert read_mesh(tmp_path / f"m_{i}.ply").n_faces > 100
+        assert (tmp_path / f"m_{i}.ply").read_bytes() == (tmp_path / f"b_{i}.ply").read_bytes()
         # one camera for all frames, fitted to both shapes: the pictures are the same
         assert (tmp_path / f"m_{i}.png").read_bytes() == (tmp_path / f"b_{i}.png").read_bytes()
 

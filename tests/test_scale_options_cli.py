@@ -51,8 +51,7 @@ def test_a_failed_run_prints_its_error_line_only(run, tmp_path):
 
 
 def test_no_warning_for_any_command_that_ran_by_blocks(run, ball, tmp_path):
-    """Each command's block path counts as having used them (the mesh's blocks run on this
-    process's threads without an engine unless a scheduler is named)."""
+    """Each command's block path counts as having used them."""
     spec = tmp_path / "s.yaml"
     spec.write_text("version: 1\ngrid: {spacing: 0.5}\nfields:\n  opacity: {value: 0.8}\n"
                     "trajectory:\n  - line: {from: [0, 0, 0], to: [6, 1, 1]}\n"
@@ -70,11 +69,14 @@ def test_no_warning_for_any_command_that_ran_by_blocks(run, ball, tmp_path):
         assert "warning" not in res.stderr, (args[0], res.stderr)
 
 
-def test_mesh_by_blocks_on_its_own_threads_uses_only_block(run, ball, tmp_path):
-    """Without --scheduler the mesh's blocks run on its threads: --block is used, the
-    engine's options are said unused."""
+def test_mesh_by_blocks_runs_on_the_engine_and_uses_its_options(run, ball, tmp_path):
+    """The mesh's blocks run on the executor's engine as every command's do: --workers and
+    --progress jsonl apply (one JSON line per block task on stderr), nothing is said
+    unused, and the PLY is the in-memory one byte for byte."""
     res = run("mesh", ball, "--iso", "50", "-o", tmp_path / "m.ply", "--chunked", "--block",
               "7", "--workers", "1", "--progress", "jsonl")
     assert res.code == 0, res.stderr
-    assert "warning: --workers, --progress jsonl not used" in res.stderr
-    assert "--block" not in res.stderr.split("not used")[0]
+    assert "not used" not in res.stderr
+    assert '"kind":"block"' in res.stderr
+    assert run("mesh", ball, "--iso", "50", "-o", tmp_path / "whole.ply").code == 0
+    assert (tmp_path / "m.ply").read_bytes() == (tmp_path / "whole.ply").read_bytes()

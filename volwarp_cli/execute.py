@@ -22,6 +22,12 @@ each written straight into the outputs
 (:class:`~volwarp_cli.io.blockwrite.BlockOutput`). The same
 :meth:`Operation.compute` runs either way, so the outputs are the same bytes.
 
+An output that is not a volume (a mesh) is a :class:`Reduction`: its blocks
+make parts and the operation reduces them to its output (the weld of a
+mesh's blocks), written once at the end; :func:`run` decides the same way,
+and hands the operation the :class:`Blocks` it runs on (the whole as one
+block on the calling threads, or blocks of one shape on the engine).
+
 No click here: the command line says how it wants to run (:class:`How`) and
 gets back what ran (:class:`Ran`).
 """
@@ -171,7 +177,7 @@ class Ran:
     ``by_blocks``; ``results``: the in-memory run's results (the whole's
     :meth:`Operation.compute`; None by blocks); ``block``: the blocks' shape
     and ``blocks`` their count (by blocks); ``after``: what the ``after`` hook
-    returned.
+    returned; ``output``: a :class:`Reduction`'s output (either way).
     """
 
     by_blocks: bool
@@ -179,6 +185,7 @@ class Ran:
     block: tuple[int, int, int] | None = None
     blocks: int = 0
     after: object = None
+    output: object = None
     _outs: dict = field(default_factory=dict, repr=False)
 
     def read(self, key, box: Box) -> np.ndarray:
@@ -294,26 +301,41 @@ def run(op: Operation, how: How = How(), after: Callable | None = None) -> Ran:
     with the sizes) where the whole does not fit and blocks may not or cannot
     run (``--no-chunked``, an output format written whole, a full disk).
     """
-    from . import memory, parallel
+    from . import parallel
 
-    whole = op.grid.box
-    need = op.memory(whole)
-    if how.chunked is not True and fits(need, op.load):
-        op.prepare()
-        threads = how.threads or parallel.threads()
-        with timed(op.what):
-            results = op.compute(whole, threads=threads)
-        for key, target in op.targets.items():
-            with timed(f"write {target.path}"):
-                target.write_whole(op.output(results, key))
-        ran = Ran(False, results=results)
-        if after is not None:
-            ran.after = after(ran)
-        return ran
+    if isinstance(op, Reduction):
+        return _reduce(op, how, after)
     first = next(iter(op.targets.values()))
-    refuse_unmakeable(op.what, need,
-                      [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()],
-                      chunked=how.chunked, compress=first.compress, pyramid=first.pyramid)
+    outputs = [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()]
+    if not _in_memory(op, how, outputs, compress=first.compress, pyramid=first.pyramid):
+        return _run_blocks(op, how, after)
+    op.prepare()
+    threads = how.threads or parallel.threads()
+    with timed(op.what):
+        results = op.compute(op.grid.box, threads=threads)
+    for key, target in op.targets.items():
+        with timed(f"write {target.path}"):
+            target.write_whole(op.output(results, key))
+    ran = Ran(False, results=results)
+    if after is not None:
+        ran.after = after(ran)
+    return ran
+
+
+def _in_memory(op: Operation, how: How, outputs, *, compress: bool = False,
+               pyramid: int = 0) -> bool:
+    """Whether ``op`` runs as one block: its whole's memory against the budget, before any work.
+
+    False: by blocks (said on stderr where the command did not ask for
+    them); :func:`refuse_unmakeable`'s refusal where neither way can run.
+    """
+    from . import memory
+
+    need = op.memory(op.grid.box)
+    if how.chunked is not True and fits(need, op.load):
+        return True
+    refuse_unmakeable(op.what, need, outputs, chunked=how.chunked, compress=compress,
+                      pyramid=pyramid)
     if how.chunked is None:
         try:
             block_budget()
@@ -322,7 +344,7 @@ def run(op: Operation, how: How = How(), after: Callable | None = None) -> Ran:
             raise
         log.warning("%s needs %s: running by blocks (--no-chunked to refuse instead)",
                     op.what, memory.human_bytes(need))
-    return _run_blocks(op, how, after)
+    return False
 
 
 def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
@@ -360,3 +382,84 @@ def _block_task(op: Operation, box: Box, writers: dict) -> None:
     results = op.compute(box, threads=1)
     for key, writer in writers.items():
         writer.write(box, op.output(results, key))
+
+
+# -- reductions: outputs that are not volumes ------------------------------------------
+@dataclass(frozen=True)
+class Blocks:
+    """Where a :class:`Reduction`'s blocks run, as :func:`run` decided.
+
+    ``shape``: the blocks' shape (z, y, x), None in memory (one block, the
+    whole); ``threads``: the threads one block's computation may use (the
+    calling threads in memory, 1 in a block task); by blocks, the
+    ``engine`` and each task's ``memory``.
+    """
+
+    shape: tuple[int, int, int] | None = None
+    threads: int = 1
+    engine: object = None
+    memory: int | None = None
+
+    @property
+    def whole(self) -> bool:
+        """True in memory: the whole is the one block."""
+        return self.shape is None
+
+    @property
+    def in_flight(self) -> int:
+        """The bytes the blocks running at once may hold (in memory 0: the caller counts its one)."""
+        return 0 if self.engine is None else int(self.memory or 0) * self.engine.workers
+
+    def split(self, box: Box) -> list[Box]:
+        """``box`` cut into the blocks (in memory: ``[box]``)."""
+        return [box] if self.shape is None else box.blocks(self.shape)
+
+    def map(self, task: Callable, items, *, label: str = "blocks") -> list:
+        """``[task(item) for item in items]``: here in memory, as block tasks on the engine."""
+        items = list(items)
+        if self.engine is None:
+            return [task(item) for item in items]
+        return self.engine.map(task, items, label=label, memory=self.memory)
+
+
+class Reduction(Operation):
+    """An operation whose output is not a volume: its blocks make parts that it reduces.
+
+    A mesh is the example: each block's triangles are a part, their weld is
+    the output, written once at the end. No ``targets``; :meth:`reduce` runs
+    the operation's passes over the :class:`Blocks` :func:`run` gives it and
+    returns the output (:attr:`Ran.output`). :meth:`memory` is a block's, as
+    for every operation; ``blocks_share``: by blocks, the share of what is
+    left of the budget that the blocks in flight may take (the rest holds
+    the parts they return and their reduction).
+    """
+
+    targets: dict = {}
+    blocks_share: float = 0.5
+
+    def reduce(self, blocks: Blocks):
+        """The output, its passes' blocks run where ``blocks`` says."""
+        raise NotImplementedError
+
+
+def _reduce(op: Reduction, how: How, after: Callable | None) -> Ran:
+    """``op`` in memory (one block on the calling threads) or by blocks on the engine."""
+    from . import parallel
+
+    if _in_memory(op, how, []):
+        op.prepare()
+        with timed(op.what):
+            ran = Ran(False, output=op.reduce(Blocks(threads=how.threads or parallel.threads())))
+    else:
+        if how.open_engine is None:
+            raise VolwarpError(f"{op.what}: no engine to run blocks on")
+        op.prepare()
+        with how.open_engine() as engine:
+            per_task = int(block_budget() * op.blocks_share) // max(1, engine.workers)
+            block = tuple(how.block or op.block_shape(per_task, engine.workers))
+            with timed(f"{op.what} by blocks of {'x'.join(map(str, block))}"):
+                ran = Ran(True, block=block,
+                          output=op.reduce(Blocks(block, 1, engine, per_task)))
+    if after is not None:
+        ran.after = after(ran)
+    return ran

@@ -71,8 +71,9 @@ def mesh_input(out_box: Box, shape, *, normals: bool = False) -> Box:
     whole volume ends, the one-sided difference is the whole's too).
 
     Not a region: a sample exactly at the level shifts the level of the
-    whole volume a little (``_level_off_samples``), and ``cap`` pads with a
-    value from the whole volume's range; give a block the whole's level.
+    whole volume a little (the first pass over the volume finds the shift),
+    and ``cap`` pads with a value from the whole volume's range; give a block
+    the whole's level.
     """
     whole = Box.from_shape(shape)
     _check_inside(out_box, mesh_cells(shape), "cells of the volume")

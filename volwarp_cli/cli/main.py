@@ -206,11 +206,8 @@ def _after_command(result, **_):
 
     unused = scale_settings().unused()
     if unused:
-        log.warning("warning: %s not used: %s", ", ".join(unused),
-                    "they apply to work by blocks on an engine (mesh by blocks runs on its "
-                    "own threads unless --scheduler names one)" if scale_settings().used else
-                    "they apply to work by blocks, and this command ran in memory (give "
-                    "--chunked to run it by blocks)")
+        log.warning("warning: %s not used: they apply to work by blocks, and this command "
+                    "ran in memory (give --chunked to run it by blocks)", ", ".join(unused))
     return result
 
 

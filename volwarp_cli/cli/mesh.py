@@ -1,7 +1,8 @@
 """`volwarp mesh`: isosurface a volume to a mesh file, measure it, render it to PNG.
 
-The surface comes from :mod:`volwarp_cli.surface.pipeline`; this module parses,
-reads, calls and writes.
+Parse, then one operation (:class:`volwarp_cli.surface.run.MeshOperation`) run by
+the executor (:func:`volwarp_cli.execute.run`: in memory or by blocks, the same
+bytes), then print and render.
 """
 
 from __future__ import annotations
@@ -11,7 +12,6 @@ from pathlib import Path
 
 import click
 
-from .common import load_input
 from .options import (
     INPUT_PATH,
     VIEW_HELP,
@@ -138,11 +138,14 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
     outside the data range, or never crossed) is an error, exit 1, and nothing
     is written, unless --allow-empty.
     """
+    from .. import execute
     from ..io.atomic import check_output_path
     from ..io.inputs import refuse_pattern_over_input
-    from ..progress import log, timed
     from ..surface.mesh_io import check_mesh_output
-    from ..surface.pipeline import Cleanup, label_indicator, surface_mesh
+    from ..surface.ops import Cleanup
+    from ..surface.run import ALL_LABELS, Level, MeshFile, MeshOperation
+    from .chunked import lazy_input
+    from .common import provenance
 
     if output is None and render is None and not (show_stats or as_json):
         raise click.UsageError("nothing to do: give -o/--output, --render or --stats")
@@ -171,178 +174,65 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         for path in [render] if turntable is None else turntable_paths(render, turntable):
             check_output_path(path, option="--render")
 
-    cleanup = Cleanup(largest_component=largest_component, smooth=smooth, decimate=decimate)
-    chunked = scale_settings().chunked
-
-    def write_labels(meshes):
-        _mesh_labels(meshes, input, output, show_stats or as_json, as_json)
-
-    blocks = dict(label=label, labels=write_labels if labels else None, dicom=dicom)
-    by_blocks = bool(chunked)
-    if chunked:
-        vol, mesh, iso = _mesh_by_blocks(input, raw, volume_index, iso, inside, cap,
-                                         allow_empty, cleanup, **blocks)
-    else:
-        from ..errors import OutOfMemoryError
-
-        try:
-            vol = load_input(input, raw, volume_index, dicom=dicom)
-            mesh = None
-        except OutOfMemoryError as exc:
-            from .chunked import wants_blocks
-
-            if chunked is False:
-                raise
-            if not wants_blocks(str(exc)):
-                raise
-            by_blocks = True
-            vol, mesh, iso = _mesh_by_blocks(input, raw, volume_index, iso, inside, cap,
-                                             allow_empty, cleanup, **blocks)
-    if labels:  # (by blocks, the meshes were written as they came)
-        if not by_blocks:
-            from ..surface.pipeline import label_meshes
-
-            write_labels(label_meshes(vol, allow_empty=allow_empty, cleanup=cleanup,
-                                      name=input))
-        return
-    if mesh is None:
-        if label is not None:
-            vol, iso, inside, cap = label_indicator(vol, label, name=input), 0.5, "above", True
-        mesh, iso = surface_mesh(vol, iso, inside=inside, cap=cap, allow_empty=allow_empty,
-                                 cleanup=cleanup, name=input)
-    log.info("mesh: %d vertices, %d triangles", mesh.n_vertices, mesh.n_faces)
-
-    if output is not None:
-        from ..surface.mesh_io import write_mesh
-        from .common import provenance
-        with timed(f"write {output}"):
-            write_mesh(mesh, output, comments=dict(provenance("mesh", input),
-                                                   volwarp_iso=f"{iso:.9g}"))
-
-    if show_stats or as_json:
-        from ..surface.stats import mesh_stats
-        with timed("statistics"):
-            stats = mesh_stats(mesh)
-        stats["iso"] = iso
-        if as_json:
-            click.echo(json.dumps(stats, sort_keys=True))
-        else:
-            click.echo(_format_stats(stats))
-
-    if render is not None:
-        from ..io.images import write_image
-        from ..render import surface as rs
-        from ..render.camera import write_camera
-        letters = orientation_labels_for(orientation_labels, vol)
-        if turntable is None:
-            with timed(f"render {render}"):
-                image, camera = rs.render_mesh(mesh, view=view, size=render_size, color=color,
-                                               background=background_color, camera=camera_from,
-                                               orientation_labels=letters, return_camera=True)
-                write_image(render, image)
-        else:
-            paths = turntable_paths(render, turntable)
-            with timed(f"render {turntable} turntable views"):
-                images, cameras = rs.render_turntable(
-                    mesh, turntable, view=view, size=render_size, color=color,
-                    background=background_color, camera=camera_from,
-                    orientation_labels=letters, return_cameras=True)
-                for path, image in zip(paths, images, strict=True):
-                    write_image(path, image)
-            camera = cameras[0]
-        if camera_to is not None:
-            write_camera(camera, camera_to, source=str(input))
-
-
-def _mesh_by_blocks(input, raw, volume_index, iso, inside, cap, allow_empty, cleanup, *,
-                    label=None, labels=None, dicom=None):
-    """The isosurface by blocks (:mod:`volwarp_cli.surface.chunked`): ``(template, mesh, iso)``.
-
-    ``label``: the surface of that label of a label map (its indicator at
-    0.5, capped), as ``--label``; ``labels``: a callable that gets the
-    ``(label, mesh)`` of every non-zero label (``--labels``; the mesh is then
-    None). Blocks run on the Dask scheduler when one is named (VTK holds the
-    GIL: processes or a cluster run them in parallel), else on this process's
-    threads.
-    """
-    import contextlib
-
-    from .. import parallel
-    from ..errors import VolwarpError
-    from ..geometry import Geometry
-    from ..progress import log, timed
-    from ..surface.chunked import (
-        label_meshes_blocks,
-        label_values,
-        slab_block,
-        surface_mesh_blocks,
-    )
-    from ..surface.pipeline import check_label_map
-    from .chunked import block_budget, lazy_input
-
-    settings = scale_settings()
-    settings.used.add("--block")  # (on this process's threads unless a scheduler is named)
     template, source = lazy_input(input, raw, volume_index, dicom)
-    tasks = parallel.threads() if settings.scheduler is None else max(1, settings.workers or 1)
-    block = settings.block or slab_block(template.data.shape, block_budget(), tasks)
-    with contextlib.ExitStack() as stack:
-        how = {"threads": parallel.threads()}
-        if settings.scheduler is not None:
-            engine = stack.enter_context(settings.open_engine())
-            per_task = block_budget() // max(1, engine.workers)
-
-            def run(task, blocks):
-                return engine.map(task, blocks, label="mesh", memory=per_task)
-
-            how = {"run": run}
-        geometry = Geometry.of(template)
-        if label is not None or labels is not None:
-            what = "--label" if label is not None else "--labels"
-            check_label_map(template, input, what)
-            with timed("labels (one pass)"):
-                values = label_values(source, block, **how)
-            if label is not None and label not in values:
-                raise VolwarpError(f"{input}: label {label} does not occur in the volume")
-            if labels is not None:
-                found = [v for v in values if v != 0]
-                if not found:
-                    raise VolwarpError(f"{input}: no label other than 0 in the volume")
-                log.info("%d labels: %s", len(found), " ".join(map(str, found[:20])))
-                labels(label_meshes_blocks(source, geometry, found, block_shape=block,
-                                           allow_empty=allow_empty, cleanup=cleanup,
-                                           name=input, **how))
-                return template, None, None
-            from ..surface.chunked import LabelIndicator
-
-            source, iso, inside, cap = LabelIndicator(source, label), 0.5, "above", True
-        mesh, iso = surface_mesh_blocks(source, geometry, iso, block_shape=block, inside=inside,
-                                        cap=cap, allow_empty=allow_empty, cleanup=cleanup,
-                                        name=input, **how)
-    return template, mesh, iso
+    op = MeshOperation(template, source, Level(iso, inside, cap),
+                       cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
+                                       decimate=decimate),
+                       labels=ALL_LABELS if labels else label, allow_empty=allow_empty,
+                       name=input, stats=show_stats or as_json,
+                       to=None if output is None else MeshFile(output,
+                                                                provenance("mesh", input)))
+    settings = scale_settings()
+    surfaces = execute.run(op, execute.How(chunked=settings.chunked, block=settings.block,
+                                           open_engine=settings.open_engine)).output
+    if labels:
+        if show_stats or as_json:
+            _print_stats({s.label: s.stats for s in surfaces}, as_json, label_lines=True)
+        return
+    (surface,) = surfaces
+    if show_stats or as_json:
+        _print_stats(dict(surface.stats, iso=surface.iso), as_json)
+    if render is not None:
+        _render(surface.mesh, render, turntable, orientation_labels_for(orientation_labels,
+                                                                        template),
+                dict(view=view, size=render_size, color=color, background=background_color,
+                     camera=camera_from), (camera_to, input))
 
 
-def _mesh_labels(meshes, input, output, show_stats, as_json):
-    """``mesh --labels``: write ``meshes`` (``(label, mesh)``) to ``output.format(label=L)``."""
-    from ..progress import timed
-
-    all_stats = {}
-    for label, mesh in meshes:
-        if output is not None:
-            from ..surface.mesh_io import write_mesh
-            from .common import provenance
-            path = output.format(label=label)
-            with timed(f"write {path}"):
-                write_mesh(mesh, path, comments=dict(provenance("mesh", input),
-                                                     volwarp_label=str(label)))
-        if show_stats:
-            from ..surface.stats import mesh_stats
-            all_stats[label] = mesh_stats(mesh)
+def _print_stats(stats: dict, as_json: bool, label_lines: bool = False) -> None:
+    """Statistics on stdout: one JSON object, or lines (``label_lines``: per label)."""
     if as_json:
-        click.echo(json.dumps({str(k): v for k, v in all_stats.items()}, sort_keys=True))
-    elif show_stats:
-        for label, st in all_stats.items():
+        click.echo(json.dumps({str(k): v for k, v in stats.items()} if label_lines else stats,
+                              sort_keys=True))
+    elif label_lines:
+        for label, st in stats.items():
             click.echo(f"label:      {label}")
             click.echo(_format_stats(st))
+    else:
+        click.echo(_format_stats(stats))
+
+
+def _render(mesh, render, turntable, letters, look: dict, camera_to) -> None:
+    """``--render``: the shaded mesh (or ``--turntable`` frames) and ``--camera-to``'s camera."""
+    from ..io.images import write_image
+    from ..progress import timed
+    from ..render import surface as rs
+    from ..render.camera import write_camera
+
+    look = dict(look, orientation_labels=letters)
+    if turntable is None:
+        with timed(f"render {render}"):
+            image, camera = rs.render_mesh(mesh, return_camera=True, **look)
+            write_image(render, image)
+    else:
+        with timed(f"render {turntable} turntable views"):
+            images, cameras = rs.render_turntable(mesh, turntable, return_cameras=True, **look)
+            for path, image in zip(turntable_paths(render, turntable), images, strict=True):
+                write_image(path, image)
+        camera = cameras[0]
+    path, source = camera_to
+    if path is not None:
+        write_camera(camera, path, source=str(source))
 
 
 def _label_pattern(output):

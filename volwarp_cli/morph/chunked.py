@@ -10,7 +10,7 @@ elementwise function of the two fields (:func:`.interpolate.blend`, then
 and nothing more (no halo); the frame's surface is the mesh by blocks
 (:func:`volwarp_cli.surface.chunked.isosurface_blocks`) of the same field
 read box by box (:class:`FrameField`). The frames equal the in-memory
-frames bit for bit, their meshes after a canonical ordering.
+frames bit for bit, their meshes byte for byte.
 
 Inputs on other grids than the frame grid, and affine alignments, run by
 blocks too: each field is computed by blocks on its own input's grid, as

@@ -1,47 +1,42 @@
-"""Isosurfaces out of core: flying edges block by block, welded by edge ids.
+"""Isosurfaces by blocks: flying edges on each block, welded into the whole volume's mesh.
 
 The cells of the volume (:func:`~.regions.mesh_cells`) are cut into blocks
-(:meth:`~.box.Box.blocks`, or a Dask array's chunks); each block runs the
-very flying edges of :func:`.isosurface.isosurface` on the samples
-:func:`~.regions.mesh_input` gives it (its cells' corners: one sample of
-overlap on the high side; with normals one more layer around, for VTK's
-central-difference gradients, and the triangles of those extra cells are
-dropped). A vertex lies on one cell edge, the edge from its lower sample
-``(i, j, k)`` along one axis; its **edge id** packs the two into an int64
-(:func:`edge_ids`), in the indices of the whole volume. VTK tells which edge
-each vertex is on exactly (:func:`.isosurface._edge_attribute`), and the
-vertex is recomputed from that edge and its two samples by
-:func:`.isosurface.edge_points`, VTK's own formula on global indices: two
-blocks sharing an edge make the same float32 vertex, and the in-memory path
-makes it too. Welding is then an integer join (``np.unique`` of the ids),
-with no float comparison; faces are carried as triples of edge ids and
-re-indexed to the welded vertices.
+(:meth:`~.box.Box.blocks`); each block runs the very flying edges of
+:func:`.isosurface.isosurface` on the samples :func:`~.regions.mesh_input`
+gives it (its cells' corners: one sample of overlap on the high side; with
+normals one more layer around, for VTK's central-difference gradients, and
+the triangles of those extra cells are dropped). The whole volume is the
+one-block case: :func:`.isosurface.isosurface` is this module on one block.
 
-The welded mesh is put in the canonical order (:func:`canonical_mesh`):
-vertices by edge id, each face rotated so that its smallest vertex comes
-first (the winding kept), faces sorted. So the output does not depend on
-the block shape, and equals the in-memory mesh in canonical order bit for
-bit (vertices, faces and normals; ``tests/test_mesh_chunked.py``).
+**The order is flying edges' own on the whole volume**, whatever the blocks.
+Flying edges numbers its vertices by x-row of samples (rows in (k, j)
+order; in each row its x-edges, then its y-edges, then its z-edges, each by
+increasing i: :func:`.isosurface.crossing_edges`) and makes its triangles
+cell by cell in (k, j, i) order. A vertex lies on one cell edge, the edge
+from its lower sample ``(i, j, k)`` along one axis; its **edge id**
+(:func:`edge_ids`) is its place in that order, in the indices of the whole
+volume, and a block's vertices come out in the order of their ids (a box of
+rows, in the same row order). VTK tells which edge each vertex is on
+(:func:`.isosurface._checked_edges`), and the vertex is recomputed from that
+edge and its two samples by :func:`.isosurface.edge_points`, VTK's own
+formula on global indices: two blocks sharing an edge make the same float32
+vertex, the whole volume's. Welding (:func:`weld`) is then an integer join
+(``np.unique`` of the ids: the whole's vertex order), with no float
+comparison; the faces are put in the order of their cells (a stable sort:
+a cell's triangles come from one block, in the whole's order). One block
+has nothing to weld: its vertices and faces are already in that order, and
+the whole volume's are VTK's own, as they come.
 
 Whole-volume numbers are not regions: the level shifted off the samples
 (:func:`.isosurface.level_off`), the ``cap`` padding value, the default
 level and the NaN/infinity check come from a reduction over the blocks first
-(:func:`mesh_plan`); ``cap`` pads virtually (a block reads the volume and
-fills the padding layer itself).
+(:class:`Facts`, :func:`volume_facts`), which also counts the vertices to
+come (the cell edges the level crosses), so that a mesh too big for the
+memory is refused before it is made; ``cap`` pads virtually (a block reads
+the volume and fills the padding layer itself).
 
-After welding, the mesh is the whole mesh in memory, so every clean-up of
-:func:`.pipeline.clean` is valid on it and is done there
-(:func:`surface_mesh_blocks`): largest component, smoothing, decimation,
-in that order, and the same result as the in-memory chain. Nothing of the
-mesh chain needs the whole *volume* in memory, so nothing is refused for an
-out-of-core input; what is refused is what the in-memory path refuses (NaN or
-infinite samples, a level outside the range or never crossed unless allowed, samples
-that are not numbers) and a block or a mesh that does not fit the memory
-budget.
-
-Threads: each block task runs VTK's SMP filter on one thread
-(:func:`mesh_block`), so a pool of block tasks does not oversubscribe the
-cores. Only :func:`isosurface_dask` imports dask.
+Threads: a block task runs VTK's SMP filter on one thread; the whole volume,
+one block, runs it on the threads in effect.
 """
 
 from __future__ import annotations
@@ -53,10 +48,8 @@ import numpy as np
 from .. import parallel
 from ..box import Box
 from ..errors import VolwarpError
-from ..progress import log, timed
 from ..regions import mesh_cells, mesh_input
 from .isosurface import (
-    INSIDE_CHOICES,
     _flying_edges,
     cap_value,
     check_arguments,
@@ -68,74 +61,29 @@ from .isosurface import (
 )
 from .mesh import Mesh
 
-#: Default block of cells (z, y, x) for :func:`isosurface_blocks`.
-DEFAULT_BLOCK = (64, 64, 64)
-
 
 # -- edge ids ----------------------------------------------------------------------------
 def edge_ids(lower: np.ndarray, axis: np.ndarray, shape) -> np.ndarray:
     """The int64 id of the cell edge from sample ``lower`` (N, 3) (i, j, k) along ``axis``.
 
     ``shape`` (z, y, x) is the contoured volume's (the padded one with
-    ``cap``); the id is ``3 * (linear index of lower) + axis``, so ids sort
-    by lower sample (x fastest), then axis (x, y, z).
+    ``cap``); the id is ``((k * ny + j) * 3 + axis) * nx + i``: ids sort as
+    flying edges numbers the vertices of the whole volume (by row (k, j),
+    then axis (x, y, z), then i).
     """
     _, ny, nx = (int(v) for v in shape)
     lower = np.asarray(lower, dtype=np.int64)
-    return ((lower[:, 2] * ny + lower[:, 1]) * nx + lower[:, 0]) * 3 + np.asarray(axis, np.int64)
+    axis = np.asarray(axis, np.int64)
+    return ((lower[:, 2] * ny + lower[:, 1]) * 3 + axis) * nx + lower[:, 0]
 
 
 def edge_of(ids: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
     """The inverse of :func:`edge_ids`: ``(lower (N, 3) int64 (i, j, k), axis (N,))``."""
     _, ny, nx = (int(v) for v in shape)
     ids = np.asarray(ids, dtype=np.int64)
-    axis, lin = ids % 3, ids // 3
-    lower = np.stack([lin % nx, (lin // nx) % ny, lin // (nx * ny)], axis=1)
-    return lower, axis
-
-
-def canonical_faces(faces: np.ndarray) -> np.ndarray:
-    """Faces rotated so each starts at its smallest vertex (winding kept), then sorted."""
-    faces = np.asarray(faces, dtype=np.int64)
-    if len(faces) == 0:
-        return faces.reshape(0, 3)
-    a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
-    at_a = (a <= b) & (a <= c)
-    at_b = ~at_a & (b <= c)
-    rotated = np.empty_like(faces)  # (a, b, c), (b, c, a) or (c, a, b): the winding kept
-    rotated[:, 0] = np.where(at_a, a, np.where(at_b, b, c))
-    rotated[:, 1] = np.where(at_a, b, np.where(at_b, c, a))
-    rotated[:, 2] = np.where(at_a, c, np.where(at_b, a, b))
-    n = int(faces.max()) + 1
-    if n ** 3 < 2 ** 63:  # one packed key: a plain sort, no gather
-        key = (rotated[:, 0] * n + rotated[:, 1]) * n + rotated[:, 2]
-        key.sort()
-        out = np.empty_like(rotated)
-        out[:, 0], rest = np.divmod(key, n * n)
-        out[:, 1], out[:, 2] = np.divmod(rest, n)
-        return out
-    order = np.lexsort((rotated[:, 2], rotated[:, 1], rotated[:, 0]))
-    return np.ascontiguousarray(rotated[order])
-
-
-def canonical_mesh(vertices: np.ndarray, faces: np.ndarray, ids: np.ndarray,
-                   normals: np.ndarray | None = None):
-    """``(vertices, faces, normals)`` in the canonical order of the vertices' edge ``ids``.
-
-    Vertices (and normals) sorted by edge id, faces re-indexed to that order
-    and put in :func:`canonical_faces` order. Two meshes with the same edge
-    ids and the same triangles get the same arrays, whatever order their
-    blocks or VTK's threads made them in.
-    """
-    ids = np.asarray(ids, dtype=np.int64)
-    if len(np.unique(ids)) != len(ids):
-        raise VolwarpError("two vertices of the mesh have the same edge id")
-    order = np.argsort(ids, kind="stable")
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    out_normals = None if normals is None else np.asarray(normals)[order]
-    return (np.asarray(vertices)[order], canonical_faces(rank[np.asarray(faces, np.int64)]),
-            out_normals)
+    i, rest = ids % nx, ids // nx
+    axis, row = rest % 3, rest // 3
+    return np.stack([i, row % ny, row // ny], axis=1), axis
 
 
 # -- the whole-volume numbers -------------------------------------------------------------
@@ -179,8 +127,12 @@ class Stats:
     below_max: float | None = None
 
     @staticmethod
-    def of(samples: np.ndarray, dtype, iso: float | None) -> Stats:
-        """The stats of one block (converted to the type flying edges runs on)."""
+    def of(samples: np.ndarray, dtype, iso: float | None, below: bool = True) -> Stats:
+        """The stats of one block (converted to the type flying edges runs on).
+
+        ``below``: find the largest sample below ``iso`` too (a pass of its
+        own, needed only where some sample equals the level).
+        """
         a = np.asarray(samples).astype(dtype, copy=False)
         if a.size == 0:
             return Stats(np.inf, -np.inf, False)
@@ -193,17 +145,19 @@ class Stats:
             return Stats(float(lo), float(hi), False)
         level = np.result_type(a.dtype, iso).type(iso)  # compared as numpy compares them
         hit = bool(lo <= level <= hi and np.any(a == level))
-        return Stats(float(lo), float(hi), False, hit, _below_max(a, lo, hi, level))
+        return Stats(float(lo), float(hi), False, hit,
+                     _below_max(a, lo, hi, level) if below else None)
 
     @staticmethod
     def merge(parts) -> Stats:
-        """The stats of the union of the blocks."""
+        """The stats of the union of the blocks (a NaN anywhere: NaN, as :meth:`of`'s)."""
         parts = list(parts)
+        if any(p.nan for p in parts):
+            return Stats(np.nan, np.nan, True)
         belows = [p.below_max for p in parts if p.below_max is not None]
         return Stats(min((p.lo for p in parts), default=np.inf),
-                     max((p.hi for p in parts), default=-np.inf),
-                     any(p.nan for p in parts), any(p.hit for p in parts),
-                     max(belows) if belows else None)
+                     max((p.hi for p in parts), default=-np.inf), False,
+                     any(p.hit for p in parts), max(belows) if belows else None)
 
 
 def _below_max(a: np.ndarray, lo, hi, level) -> float | None:
@@ -220,6 +174,108 @@ def _below_max(a: np.ndarray, lo, hi, level) -> float | None:
         if lo <= below <= hi and np.any(a == a.dtype.type(below)):
             return float(below)
     return float(np.max(a, where=a < level, initial=lo))
+
+
+@dataclass(frozen=True)
+class Facts:
+    """What the mesh needs from the whole volume, reduced over its blocks.
+
+    ``stats`` (:class:`Stats`); ``crossings``: the cell edges the level
+    crosses (flying edges' vertices without ``cap``'s); ``border``: the
+    samples on the volume's faces inside the shape, once per face they are on
+    (``cap``'s vertices; more than 0: the shape touches the border). The
+    counts are 0 unless counted (:func:`volume_facts`' ``count``).
+    """
+
+    stats: Stats
+    crossings: int = 0
+    border: int = 0
+
+    def vertices(self, cap: bool) -> int:
+        """The isosurface's vertex count (with ``cap``, the padded volume's)."""
+        return self.crossings + (self.border if cap else 0)
+
+    @staticmethod
+    def merge(parts) -> Facts:
+        """The facts of the union of the blocks."""
+        parts = list(parts)
+        return Facts(Stats.merge(p.stats for p in parts), sum(p.crossings for p in parts),
+                     sum(p.border for p in parts))
+
+
+def block_facts(samples: np.ndarray, box: Box, shape, dtype, iso: float | None, *,
+                inside: str = "above", count: bool = False, below: bool = False) -> Facts:
+    """The :class:`Facts` of the samples of ``box`` of a volume of ``shape`` (z, y, x).
+
+    ``samples``: the volume's samples in ``box`` grown by one on its high
+    sides (within the volume): a block counts the cell edges whose lower
+    sample is its own, so that every edge is counted once. ``dtype``: the
+    type flying edges runs on; ``iso`` None: the range alone; ``below``:
+    :class:`Stats`' largest sample below the level too.
+    """
+    samples = np.asarray(samples).astype(dtype, copy=False)
+    own = samples[tuple(slice(0, n) for n in box.shape)]
+    stats = Stats.of(own, dtype, iso, below)
+    if iso is None or not count or stats.nan:
+        return Facts(stats)
+    above = samples >= iso  # (a sample equal to the level is above it)
+    crossings = 0
+    for axis in range(3):  # (z, y, x): the edges from own samples to the next one
+        reach = min(box.shape[axis], samples.shape[axis] - 1)
+        lo = [slice(0, n) for n in box.shape]
+        hi = list(lo)
+        lo[axis], hi[axis] = slice(0, reach), slice(1, reach + 1)
+        crossings += int(np.count_nonzero(above[tuple(lo)] != above[tuple(hi)]))
+    inner = above[tuple(slice(0, n) for n in box.shape)]
+    if inside == "below":
+        inner = ~inner
+    border = 0
+    for axis in range(3):  # an inside sample on a face: an edge to the cap's layer
+        for end, on_face in ((0, box.lo[axis] == 0), (-1, box.hi[axis] == shape[axis])):
+            if on_face:
+                border += int(np.count_nonzero(np.take(inner, end, axis=axis)))
+    return Facts(stats, crossings, border)
+
+
+def slabs(box: Box, threads: int, nbytes: int = 4 << 20) -> list[Box]:
+    """``box`` as z-slabs of about ``nbytes`` voxels for ``threads`` threads (one for one)."""
+    if threads <= 1:
+        return [box]
+    _, ny, nx = box.shape
+    depth = max(1, nbytes // max(1, ny * nx))
+    return box.blocks((depth, ny, nx))
+
+
+def volume_facts(source, iso: float | None, *, boxes, threads: int = 1, run=None,
+                 cap: bool = False, inside: str = "above", count: bool = False) -> Facts:
+    """The :class:`Facts` of ``source`` (a sliceable (z, y, x)), read block by block.
+
+    ``boxes``: the blocks of samples; each runs on ``threads`` threads (by
+    z-slabs), the blocks one after the other here or by ``run(task,
+    boxes)`` (an engine's map). ``cap`` sets the type the samples are taken
+    in (:func:`.isosurface.work_dtype`); ``count``: count the vertices.
+    Where a sample equals the level, a second pass finds the largest sample
+    below it (the level's shift).
+    """
+    shape = tuple(source.shape)
+    dtype = work_dtype(source.dtype, cap)
+    whole = Box.from_shape(shape)
+
+    def facts(**what):
+        def part(box):
+            region = Box(box.lo, tuple(v + 1 for v in box.hi)).intersect(whole)
+            return block_facts(source[region.slices], box, shape, dtype, iso, inside=inside,
+                               **what)
+
+        def task(box):
+            return Facts.merge(parallel.run_blocks(part, slabs(box, threads), threads))
+
+        return Facts.merge(run(task, boxes) if run is not None else [task(b) for b in boxes])
+
+    found = facts(count=count)
+    if iso is None or not found.stats.hit:
+        return found
+    return Facts(facts(below=True).stats, found.crossings, found.border)
 
 
 def mesh_plan(stats: Stats, shape, dtype, iso: float, *, inside: str = "above",
@@ -247,6 +303,30 @@ def mesh_plan(stats: Stats, shape, dtype, iso: float, *, inside: str = "above",
 
 
 # -- one block ----------------------------------------------------------------------------
+@dataclass
+class MeshPart:
+    """A block's isosurface: float32 index ``points``, ``faces`` into them, ``normals``.
+
+    The points are in the whole (padded) volume's indices, the normals VTK's
+    index-space ones (or None), the faces wound as flying edges winds them.
+    A block that is not the whole volume also carries its vertices' edge
+    ``ids`` and its faces' ``cells`` (a key that sorts as the cells do), for
+    :func:`weld`.
+    """
+
+    points: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray | None
+    ids: np.ndarray | None = None
+    cells: np.ndarray | None = None
+
+    @staticmethod
+    def empty(normals: bool) -> MeshPart:
+        """A block without triangles."""
+        return MeshPart(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64),
+                        np.zeros((0, 3), np.float32) if normals else None)
+
+
 def block_samples(raw: np.ndarray, region: Box, plan: MeshPlan) -> np.ndarray:
     """The contoured volume's samples in ``region``, from the input's ``plan.source_box(region)``.
 
@@ -262,35 +342,35 @@ def block_samples(raw: np.ndarray, region: Box, plan: MeshPlan) -> np.ndarray:
     return out
 
 
-def mesh_block(raw: np.ndarray, region: Box, cells: Box, plan: MeshPlan):
-    """The isosurface of ``cells`` as ``(edge ids, float32 index points, normals, faces)``.
+def mesh_block(raw: np.ndarray, region: Box, cells: Box, plan: MeshPlan) -> MeshPart:
+    """The isosurface of ``cells`` (a :class:`MeshPart`), VTK on the threads in effect.
 
     A pure function of the input samples ``raw`` (``plan.source_box(region)``
     of the input volume, ``region = mesh_input(cells, plan.shape, normals=...)``),
-    fit for a Dask task. ``faces`` (T, 3) index the block's own vertices
-    (their edge ids are ``ids[faces]``: an int32 index is a third of an id's
-    bytes and welding gathers instead of searching), wound as flying edges
-    winds them; the points are in the whole (padded) volume's indices and the
-    normals VTK's index-space ones (or None). VTK runs on one SMP thread.
+    fit for a Dask task. The whole volume is VTK's output as it is (its
+    points are :func:`.isosurface.edge_points` of their edges, in id order);
+    a block's points are recomputed from their edges on the whole's indices.
     """
     samples = block_samples(raw, region, plan)
-    with parallel.use_threads(1):
-        _, faces, grad, found = _flying_edges(samples, plan.level, plan.normals, edges=True)
-    empty = (np.zeros(0, np.int64), np.zeros((0, 3), np.float32),
-             np.zeros((0, 3), np.float32) if plan.normals else None, np.zeros((0, 3), np.int64))
+    whole = cells == mesh_cells(plan.shape)
+    points, faces, grad, found = _flying_edges(samples, plan.level, plan.normals,
+                                               edges=not whole)
     if len(faces) == 0:
-        return empty
+        return MeshPart.empty(plan.normals)
+    if whole:
+        return MeshPart(points, faces, grad)
     lower, axis = found
     offset = np.array(region.lo[::-1], dtype=np.int64)  # (x, y, z)
+    # a triangle's cell: the least lower sample of its edges per axis (no triangle lies
+    # in a cell face)
+    cell = lower[faces].min(axis=1) + offset
     if region != Box(cells.lo, tuple(v + 1 for v in cells.hi)):
-        # a halo for the normals: keep the triangles of our cells (a triangle's cell is
-        # the least lower sample of its edges per axis: no triangle lies in a cell face)
-        cell = lower[faces].min(axis=1) + offset
+        # a halo for the normals: keep the triangles of our cells
         keep = np.all((cell >= np.array(cells.lo[::-1])) & (cell < np.array(cells.hi[::-1])),
                       axis=1)
-        faces = faces[keep]
+        faces, cell = faces[keep], cell[keep]
         if len(faces) == 0:
-            return empty
+            return MeshPart.empty(plan.normals)
         used = np.zeros(len(lower), bool)
         used[faces] = True
         remap = np.cumsum(used) - 1
@@ -303,337 +383,129 @@ def mesh_block(raw: np.ndarray, region: Box, cells: Box, plan: MeshPlan):
     s0 = samples[lower[:, 2], lower[:, 1], lower[:, 0]]
     s1 = samples[upper[:, 2], upper[:, 1], upper[:, 0]]
     lower_g = lower + offset
-    points = edge_points(lower_g, axis, s0, s1, plan.level)
-    ids = edge_ids(lower_g, axis, plan.shape)
-    normals = None if grad is None else np.ascontiguousarray(grad)
-    return ids, points, normals, faces.astype(np.int32)
+    _, ny, nx = plan.shape
+    return MeshPart(edge_points(lower_g, axis, s0, s1, plan.level),
+                    faces.astype(np.int32),  # (a third of an id's bytes: ids[faces] welds)
+                    None if grad is None else np.ascontiguousarray(grad),
+                    edge_ids(lower_g, axis, plan.shape),
+                    (cell[:, 2] * ny + cell[:, 1]) * nx + cell[:, 0])
 
 
-def weld(parts):
-    """Weld block outputs of :func:`mesh_block`: ``(ids, points, normals, faces)``.
+def weld(parts) -> MeshPart:
+    """The blocks' :class:`MeshPart` s as one, in the whole volume's order.
 
-    Vertices sorted by edge id (one per id: the integer join, ``np.unique``
-    of the ids), faces as indices into them (in block order). Every copy of a shared edge's vertex
-    and normal must be the same bits; a difference is an internal error.
+    Vertices by edge id (one per id: the integer join, ``np.unique`` of the
+    ids), faces by cell (stable: a cell's triangles keep their order). Every
+    copy of a shared edge's vertex and normal must be the same bits; a
+    difference is an internal error. One part is its own weld.
     """
-    parts = [p for p in parts if len(p[3])]
+    parts = [p for p in parts if len(p.faces)]
     if not parts:
-        return (np.zeros(0, np.int64), np.zeros((0, 3), np.float32), None,
-                np.zeros((0, 3), np.int64))
-    ids = np.concatenate([p[0] for p in parts])
-    points = np.concatenate([p[1] for p in parts])
-    uniq, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
-    welded = points[first]
-    if not np.array_equal(welded[inverse].view(np.int32), points.view(np.int32)):
-        raise VolwarpError("internal error: blocks made different vertices on a shared edge")
-    normals = None
-    if parts[0][2] is not None:
-        allnormals = np.concatenate([p[2] for p in parts])
-        normals = allnormals[first]
-        if not np.array_equal(normals[inverse].view(np.int32), allnormals.view(np.int32)):
-            raise VolwarpError("internal error: blocks made different normals on a shared edge")
-    start = np.cumsum([0] + [len(p[0]) for p in parts])
-    faces = np.concatenate([inverse[p[3] + s] for p, s in zip(parts, start, strict=False)])
-    return uniq, welded, normals, faces
+        return MeshPart.empty(False)
+    if len(parts) == 1:
+        return parts[0]
+    ids = np.concatenate([p.ids for p in parts])
+    _, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
+    copies = np.ones(len(ids), bool)  # the second copies of shared edges' vertices
+    copies[first] = False
+
+    def joined(name, what):
+        values = np.concatenate([getattr(p, name) for p in parts])
+        kept = values[first]
+        if not np.array_equal(kept[inverse[copies]].view(np.int32),
+                              values[copies].view(np.int32)):
+            raise VolwarpError(f"internal error: blocks made different {what} on a shared "
+                               "edge")
+        return kept
+
+    points = joined("points", "vertices")
+    normals = None if parts[0].normals is None else joined("normals", "normals")
+    start = np.cumsum([0] + [len(p.ids) for p in parts])
+    faces = np.concatenate([inverse[p.faces + s] for p, s in zip(parts, start, strict=False)])
+    cells = np.concatenate([p.cells for p in parts])
+    if np.any(cells[1:] < cells[:-1]):  # (slabs of whole planes come in order)
+        faces = faces[np.argsort(cells, kind="stable")]
+    return MeshPart(points, faces, normals)
 
 
 def welded_mesh(parts, plan: MeshPlan, geometry, *, inside: str = "above") -> Mesh:
-    """The world mesh of the welded ``parts`` on ``geometry``, in canonical order."""
-    _, points, grad, faces = weld(parts)
-    if len(faces) == 0:
+    """The world mesh of the :func:`weld` of ``parts`` on ``geometry``."""
+    part = weld(parts)
+    if len(part.faces) == 0:
         return Mesh.empty()
-    mesh = to_world(points, faces, grad, geometry, inside=inside, cap=plan.pad is not None)
-    mesh.faces = canonical_faces(mesh.faces)
-    return mesh
+    return to_world(part.points, part.faces, part.normals, geometry, inside=inside,
+                    cap=plan.pad is not None)
+
+
+def mesh_parts(source, plan: MeshPlan, split, *, threads: int = 1, run=None) -> list[MeshPart]:
+    """The :class:`MeshPart` of every block of cells of ``source`` (a sliceable (z, y, x)).
+
+    ``split(box)``: the cells' box cut into blocks; each block runs with
+    ``threads`` threads, here one after the other or by ``run(task,
+    blocks)`` (an engine's map).
+    """
+    blocks = [(cells, mesh_input(cells, plan.shape, normals=plan.normals))
+              for cells in split(mesh_cells(plan.shape))]
+
+    def task(block):
+        cells, region = block
+        with parallel.use_threads(threads):
+            return mesh_block(source[plan.source_box(region).slices], region, cells, plan)
+
+    return run(task, blocks) if run is not None else [task(b) for b in blocks]
 
 
 # -- whole runs ---------------------------------------------------------------------------
-def cell_blocks(plan: MeshPlan, block_shape) -> list[tuple[Box, Box]]:
-    """``(cells, region)`` of every block of ``block_shape`` cells (z, y, x), in C order."""
-    return [(cells, mesh_input(cells, plan.shape, normals=plan.normals))
-            for cells in mesh_cells(plan.shape).blocks(block_shape)]
-
-
-def _sample_blocks(shape, block_shape) -> list[Box]:
-    return Box.from_shape(shape).blocks(block_shape)
-
-
-def source_stats(source, block_shape, iso: float | None, cap: bool = False, *,
-                 threads: int | None = 1, run=None) -> Stats:
-    """:class:`Stats` of an array-like ``source`` (z, y, x), read block by block.
-
-    ``threads`` and ``run`` as :func:`isosurface_blocks` has them.
-    """
-    dtype = work_dtype(source.dtype, cap)
-
-    def task(box):
-        return Stats.of(source[box.slices], dtype, iso)
-
-    blocks = _sample_blocks(source.shape, block_shape)
-    return Stats.merge(parallel.run_blocks(task, blocks, threads) if run is None
-                       else run(task, blocks))
-
-
-def isosurface_blocks(source, geometry, level: float, *, block_shape=DEFAULT_BLOCK,
+def isosurface_blocks(source, geometry, level: float, *, block_shape=None,
                       inside: str = "above", cap: bool = False, normals: bool = False,
-                      threads: int | None = 1, run=None, stats: Stats | None = None) -> Mesh:
-    """The isosurface of ``source`` at ``level``, computed block by block, in canonical order.
+                      threads: int | None = None, run=None) -> Mesh:
+    """The isosurface of ``source`` at ``level``, block by block, in the whole volume's order.
 
     Parameters
     ----------
-    source : array-like (z, y, x) or Volume
+    source : array-like (z, y, x)
         Anything with ``shape``, ``dtype`` and numpy slicing (an ndarray, a
-        ``np.memmap``, a zarr or h5py array); a :class:`~.volume.Volume` gives
-        its data (and its geometry when ``geometry`` is None).
-    geometry : Geometry, Volume or None
+        ``np.memmap``, a zarr array).
+    geometry : Geometry or Volume
         Spacing, origin and direction of the grid.
     level : float
         The isosurface level (as :func:`.isosurface.isosurface`'s ``iso``).
-    block_shape : int or (z, y, x) ints
-        Cells per block; need not divide the cell counts.
+    block_shape : int or (z, y, x) ints, optional
+        Cells per block; need not divide the cell counts. None: one block,
+        the whole volume, on ``threads`` threads.
     inside, cap, normals
         As :func:`.isosurface.isosurface`.
     threads : int or None
-        Block tasks run at once (:func:`.parallel.run_blocks`; 1: a plain
-        loop, None: the thread count in effect).
+        The threads of the one block, or the block tasks run at once
+        (:func:`.parallel.run_blocks`, each on one thread); None: the
+        thread count in effect.
     run : callable, optional
         ``run(task, blocks)`` -> the tasks' results in order, instead of
         threads: e.g. :meth:`volwarp_cli.engine.Engine.map` on a Dask scheduler.
-    stats : Stats, optional
-        :func:`source_stats` of ``source`` at ``level`` with ``cap``, when the
-        caller has them (saves a pass over the volume).
 
     Returns
     -------
     Mesh
-        The in-memory :func:`.isosurface.isosurface` mesh in
-        :func:`canonical_mesh` order, bit for bit.
+        :func:`.isosurface.isosurface`'s mesh, bit for bit and in its order,
+        whatever the blocks.
     """
-    data, geometry = _source(source, geometry)
-    if inside not in INSIDE_CHOICES:
-        raise VolwarpError(f"inside must be one of {', '.join(INSIDE_CHOICES)}, got {inside!r}")
-    check_arguments(data.dtype, level, inside)
-    if stats is None:
-        with timed("isosurface blocks: whole-volume stats"):
-            stats = source_stats(data, block_shape, float(level), cap, threads=threads,
-                                 run=run)
-    plan = mesh_plan(stats, data.shape, data.dtype, level, inside=inside, cap=cap,
-                     normals=normals)
-    blocks = cell_blocks(plan, block_shape)
-
-    def task(block):
-        cells, region = block
-        return mesh_block(data[plan.source_box(region).slices], region, cells, plan)
-
-    with timed(f"isosurface blocks: flying edges on {len(blocks)} blocks"):
-        parts = (parallel.run_blocks(task, blocks, threads) if run is None
-                 else run(task, blocks))
-    with timed("isosurface blocks: weld"):
-        mesh = welded_mesh(parts, plan, geometry, inside=inside)
-    log.debug("isosurface blocks: %d vertices, %d triangles", mesh.n_vertices, mesh.n_faces)
-    return mesh
-
-
-def _dask_cell_blocks(plan: MeshPlan, chunks, block_shape) -> list[tuple[Box, Box]]:
-    """Cell blocks cut where the Dask array's chunks are cut (or by ``block_shape``)."""
-    if block_shape is not None:
-        return cell_blocks(plan, block_shape)
-    ncells = mesh_cells(plan.shape).hi
-    shift = plan.data_box.lo
-    cuts = []
-    for axis in range(3):
-        starts = np.cumsum((0,) + tuple(chunks[axis]))[:-1] + shift[axis]
-        c = sorted({0, ncells[axis], *(int(s) for s in starts if 0 < s < ncells[axis])})
-        cuts.append(c)
-    out = []
-    for z0, z1 in zip(cuts[0][:-1], cuts[0][1:], strict=True):
-        for y0, y1 in zip(cuts[1][:-1], cuts[1][1:], strict=True):
-            for x0, x1 in zip(cuts[2][:-1], cuts[2][1:], strict=True):
-                cells = Box((z0, y0, x0), (z1, y1, x1))
-                out.append((cells, mesh_input(cells, plan.shape, normals=plan.normals)))
-    return out
-
-
-def _stats_of_block(block, dtype, iso):
-    return Stats.of(block, dtype, iso)
-
-
-def isosurface_dask(darr, geometry, level: float, *, block_shape=None, inside: str = "above",
-                    cap: bool = False, normals: bool = False, compute: bool = True,
-                    **compute_kwargs):
-    """The blocked isosurface of a Dask array: per-block delayed tasks and a welding reduce.
-
-    ``darr`` (z, y, x); blocks of cells cut at its chunks, or of
-    ``block_shape`` cells. The whole-volume stats are a first computed
-    reduction (per chunk, then merged); the mesh is one delayed
-    :func:`welded_mesh` over the :func:`mesh_block` tasks, each reading its
-    region's samples (a slice of ``darr`` with the one-sample overlap).
-    ``compute``: return the :class:`~.mesh.Mesh` (``compute_kwargs`` go to
-    ``dask.compute``, e.g. ``scheduler="threads", num_workers=2``), else the
-    ``dask.delayed`` object. The same mesh as :func:`isosurface_blocks`.
-    """
-    import dask
-
-    if inside not in INSIDE_CHOICES:
-        raise VolwarpError(f"inside must be one of {', '.join(INSIDE_CHOICES)}, got {inside!r}")
-    check_arguments(darr.dtype, level, inside)
-    dtype = work_dtype(darr.dtype, cap)
-    stats_tasks = [dask.delayed(_stats_of_block)(blk, dtype, float(level))
-                   for blk in darr.to_delayed().ravel()]
-    (parts_stats,) = dask.compute(stats_tasks, **compute_kwargs)
-    plan = mesh_plan(Stats.merge(parts_stats), darr.shape, darr.dtype, level, inside=inside,
-                     cap=cap, normals=normals)
-    tasks = [dask.delayed(mesh_block)(darr[plan.source_box(region).slices], region, cells, plan)
-             for cells, region in _dask_cell_blocks(plan, darr.chunks, block_shape)]
-    result = dask.delayed(welded_mesh)(tasks, plan, geometry, inside=inside)
-    if not compute:
-        return result
-    (mesh,) = dask.compute(result, **compute_kwargs)
-    return mesh
-
-
-def isosurface_edge_ids(vol, iso: float, *, inside: str = "above",
-                        cap: bool = False) -> np.ndarray:
-    """The edge id of every vertex of ``isosurface(vol, iso, inside=..., cap=...)``, in its order.
-
-    The same flying edges on the same samples and level (VTK's output order
-    does not depend on the edge attribute), so :func:`canonical_mesh` can
-    put the in-memory mesh in the blocked mesh's order.
-    """
-    from .isosurface import _level_off_samples, _pad_for_cap, _prepared
-
-    data, iso = _prepared(vol.data, iso, inside)
-    if cap:
-        data = _pad_for_cap(data, iso, inside)
-    _, faces, _, (lower, axis) = _flying_edges(data, _level_off_samples(data, iso), False,
-                                               edges=True)
-    if len(faces) == 0:
-        return np.zeros(0, np.int64)
-    return edge_ids(lower, axis, data.shape)
-
-
-def slab_block(shape, budget: int, tasks: int) -> tuple[int, int, int]:
-    """The block of a mesh by blocks: slabs of whole planes of a volume of ``shape`` (z y x).
-
-    Whole rows read, no halo at the sides; as deep as ``tasks`` of them fit
-    ``budget`` at about 24 bytes a voxel (the samples, their float copy and
-    flying edges' working arrays), within 8 to 256 planes.
-    """
-    nz, ny, nx = shape
-    depth = budget // max(1, tasks) // max(1, 24 * ny * nx)
-    return (max(8, min(nz, depth, 256)), ny, nx)
-
-
-def surface_mesh_blocks(source, geometry=None, iso: float | None = None, *,
-                        block_shape=DEFAULT_BLOCK, inside: str = "above", cap: bool = False,
-                        allow_empty: bool = False, cleanup=None, name: str = "the volume",
-                        threads: int | None = 1, run=None) -> tuple[Mesh, float]:
-    """:func:`.pipeline.surface_mesh` out of core: ``(mesh, iso)``.
-
-    The same checks, level and messages, the isosurface by
-    :func:`isosurface_blocks`, then :func:`.pipeline.clean` on the welded
-    mesh (every clean-up is a mesh operation, valid after welding). The
-    result equals the in-memory chain's up to the order of vertices and
-    faces (canonical here), which the clean-ups see: largest component and
-    smoothing give the same geometry; decimation's greedy choices may break
-    ties differently in another order.
-    """
-    from .isosurface import touches_border
-    from .pipeline import Cleanup, finish_surface
-
-    cleanup = Cleanup() if cleanup is None else cleanup
-    data, geometry = _source(source, geometry)
-    check_arguments(data.dtype, 0.0 if iso is None else iso, inside)
-    given = iso is not None
-    with timed("isosurface blocks: whole-volume stats"):
-        # a given level: one pass gives the range and the level's facts, in the type flying
-        # edges runs on (the range is the same values in either type)
-        first = source_stats(data, block_shape, float(iso) if given else None, cap,
-                             threads=threads, run=run)
-    check_finite_range(first.lo, first.hi, name)
-    lo, hi = first.lo, first.hi
-    if iso is None:
-        iso = 0.5 * (lo + hi)
-        log.info("iso level not given: using the middle of the value range, %g", iso)
-    empty_reason = None
-    if not lo <= iso <= hi:
-        empty_reason = f"iso level {iso:g} is outside the data range [{lo:g}, {hi:g}] of {name}"
-        mesh = Mesh.empty()
+    check_arguments(source.dtype, level, inside)
+    threads = parallel.threads() if threads is None else int(threads)
+    if block_shape is None:
+        def split(box):
+            return [box]
+        inner = threads
     else:
-        mesh = isosurface_blocks(data, geometry, iso, block_shape=block_shape, inside=inside,
-                                 cap=cap, normals=True, threads=threads, run=run,
-                                 stats=first if given else None)  # (normals: as in memory)
-        if mesh.is_empty:
-            empty_reason = f"no surface at level {iso:g} in {name} (the level is never crossed)"
-        elif not cap and _border_touched(data, iso, inside, touches_border):
-            log.warning("the shape touches the volume's border, where its surface is open "
-                        "(use --cap to close it)")
-    return finish_surface(mesh, empty_reason, allow_empty, cleanup), iso
-
-
-def _source(source, geometry):
-    """``(samples, geometry)`` of an array-like and a geometry, or of a Volume."""
-    is_volume = hasattr(source, "spacing") and hasattr(source, "data")
-    data = source.data if is_volume else source
-    if geometry is None:
-        if not is_volume:
-            raise VolwarpError("a geometry is needed for an array without one")
-        geometry = source
-    return data, geometry
-
-
-def _border_touched(data, iso: float, inside: str, touches_border) -> bool:
-    """:func:`.isosurface.touches_border` reading only the six outer faces."""
-    nz, ny, nx = data.shape
-    faces = [data[0:1], data[nz - 1:nz], data[:, 0:1], data[:, ny - 1:ny],
-             data[:, :, 0:1], data[:, :, nx - 1:nx]]
-    return any(touches_border(np.asarray(f), iso, inside) for f in faces)
-
-
-# -- label maps -----------------------------------------------------------------------------
-class LabelIndicator:
-    """The indicator of one label of a sliceable label map (1 inside, float32), read by boxes.
-
-    Picklable when the map is (a :class:`~volwarp_cli.bspline.blocks.LazySource`);
-    its surface is the isosurface at 0.5, as :func:`.pipeline.label_indicator`'s.
-    """
-
-    def __init__(self, source, label: int):
-        self.source, self.label = source, int(label)
-        self.shape = tuple(source.shape)
-        self.dtype = np.dtype(np.float32)
-        self.ndim = 3
-
-    def __getitem__(self, key) -> np.ndarray:
-        return (np.asarray(self.source[key]) == self.label).astype(np.float32)
-
-
-def label_values(source, block_shape, *, threads: int | None = 1, run=None) -> list[int]:
-    """The distinct values of a sliceable integer map, ascending, read block by block.
-
-    ``threads``, ``run``: as :func:`isosurface_blocks`'.
-    """
-    boxes = _sample_blocks(source.shape, block_shape)
-
-    def task(box):
-        return np.unique(np.asarray(source[box.slices]))
-
-    parts = parallel.run_blocks(task, boxes, threads) if run is None else run(task, boxes)
-    values = np.unique(np.concatenate(parts)) if parts else np.empty(0, np.int64)
-    return [int(v) for v in values]
-
-
-def label_meshes_blocks(source, geometry, labels, *, block_shape=DEFAULT_BLOCK,
-                        allow_empty: bool = False, cleanup=None, name: str = "the volume",
-                        threads: int | None = 1, run=None):
-    """:func:`.pipeline.label_meshes` out of core: ``(label, surface)`` for each of ``labels``.
-
-    Each label's indicator (:class:`LabelIndicator`) meshed by
-    :func:`surface_mesh_blocks` at 0.5, capped at the border, as in memory.
-    """
-    for label in labels:
-        mesh, _ = surface_mesh_blocks(LabelIndicator(source, label), geometry, 0.5,
-                                      block_shape=block_shape, inside="above", cap=True,
-                                      allow_empty=allow_empty, cleanup=cleanup,
-                                      name=f"{name} label {label}", threads=threads, run=run)
-        yield label, mesh
+        def split(box):
+            return box.blocks(block_shape)
+        inner = 1
+        if run is None:
+            def run(task, blocks):
+                return parallel.run_blocks(task, blocks, threads)
+    facts = volume_facts(source, float(level), boxes=split(Box.from_shape(source.shape)),
+                         threads=inner, run=run, cap=cap)
+    check_finite_range(facts.stats.lo, facts.stats.hi)
+    plan = mesh_plan(facts.stats, source.shape, source.dtype, level, inside=inside, cap=cap,
+                     normals=normals)
+    parts = mesh_parts(source, plan, split, threads=inner, run=run)
+    return welded_mesh(parts, plan, geometry, inside=inside)

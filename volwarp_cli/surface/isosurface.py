@@ -20,8 +20,6 @@ import numpy as np
 
 from .. import parallel
 from ..errors import VolwarpError
-from ..memory import ensure_fits_in_memory
-from ..progress import log, timed
 from ..volume import Volume
 from .mesh import Mesh
 
@@ -35,21 +33,6 @@ def _use_threads() -> None:
     if vtkSMPTools.GetBackend() != "STDThread":
         vtkSMPTools.SetBackend("STDThread")
     vtkSMPTools.Initialize(parallel.threads())
-
-
-def default_iso(data: np.ndarray) -> float:
-    """The middle of the value range, the default isosurface level."""
-    lo = float(np.min(data))
-    hi = float(np.max(data))
-    return 0.5 * (lo + hi)
-
-
-def touches_border(data: np.ndarray, iso: float, inside: str = "above") -> bool:
-    """True when a sample on the volume's outer faces is inside the shape."""
-    def inside_any(a):
-        return bool(np.any(a >= iso)) if inside == "above" else bool(np.any(a < iso))
-    return any(inside_any(face) for face in (data[0], data[-1], data[:, 0], data[:, -1],
-                                             data[:, :, 0], data[:, :, -1]))
 
 
 def cap_value(lo: float, hi: float, iso: float, inside: str) -> float:
@@ -84,23 +67,7 @@ def work_dtype(dtype, cap: bool = False) -> np.dtype:
     return np.dtype(np.float32) if dtype == np.float16 else dtype
 
 
-def _pad_for_cap(data: np.ndarray, iso: float, inside: str) -> np.ndarray:
-    """Surround ``data`` with one layer of "outside" samples so the surface closes.
-
-    The padding value is :func:`cap_value`. The cap then sits where the
-    volume would have met that background one voxel beyond its border.
-    """
-    pad = cap_value(float(np.min(data)), float(np.max(data)), iso, inside)
-    dtype = cap_dtype(data.dtype)
-    nz, ny, nx = data.shape
-    ensure_fits_in_memory((nz + 2) * (ny + 2) * (nx + 2) * np.dtype(dtype).itemsize,
-                          "the padded volume for --cap")
-    out = np.full((nz + 2, ny + 2, nx + 2), pad, dtype=dtype)
-    out[1:-1, 1:-1, 1:-1] = data
-    return out
-
-
-def _level_off_samples(data: np.ndarray, iso: float) -> float:
+def level_off(iso: float, hit: bool, below_max: float | None) -> float:
     """A level that classifies every sample as ``iso`` does but equals none of them.
 
     A sample exactly at the level (common with integer data and an integer
@@ -108,20 +75,10 @@ def _level_off_samples(data: np.ndarray, iso: float) -> float:
     zero-area triangles, duplicate vertices and undefined normals. Lowering
     the level by a thousandth of the gap to the next lower sample keeps the
     classification (a sample equal to ``iso`` is still above it) and moves
-    those vertices by at most a thousandth of a voxel.
-    """
-    if not np.any(data == iso):
-        return iso
-    below = data[data < iso]
-    return level_off(iso, True, float(below.max()) if below.size else None)
-
-
-def level_off(iso: float, hit: bool, below_max: float | None) -> float:
-    """:func:`_level_off_samples` from its two whole-volume facts.
-
-    ``hit``: some sample equals ``iso``; ``below_max``: the largest sample
-    below ``iso`` (None: there is none). A blocked run gathers both by a
-    reduction over its blocks and gets the whole's level.
+    those vertices by at most a thousandth of a voxel. From two whole-volume
+    facts: ``hit``, some sample equals ``iso``; ``below_max``, the largest
+    sample below ``iso`` (None: there is none), a reduction over the blocks
+    (:class:`.chunked.Stats`).
     """
     if not hit:
         return iso
@@ -138,8 +95,9 @@ def crossing_edges(data: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarr
     x-row: rows in (k, j) order, in each row its x-edges, then its y-edges,
     then its z-edges, each by increasing i (VTK's pass 3 prefix sum over the
     rows' edge counts), whatever the thread count. :func:`_flying_edges`
-    checks its points against this order, so a VTK that numbered them
-    otherwise would be caught, not trusted.
+    checks a block's points against this order, so a VTK that numbered them
+    otherwise would stop a run by blocks, not give other bytes than in memory
+    (``tests/test_mesh_chunked.py`` checks the whole volume's order).
     """
     above = data >= level
     nz, ny, nx = data.shape
@@ -287,25 +245,13 @@ def isosurface(vol: Volume, iso: float, *, inside: str = "above", cap: bool = Fa
     is lowered by a thousandth of the gap to the next lower sample, so
     those vertices move by at most 0.001 voxel instead of collapsing into
     zero-area triangles with duplicate vertices and undefined normals.
-    The blocked form (:mod:`.chunked`) gives the same mesh bit for bit.
+    The whole volume is the one block of :func:`.chunked.isosurface_blocks`
+    (on the threads in effect), which gives this mesh, in this order, for
+    any blocks.
     """
-    data, iso = _prepared(vol.data, iso, inside)
-    if cap:
-        data = _pad_for_cap(data, iso, inside)
-    with timed("isosurface (flying edges)"):
-        points, faces, grad, _ = _flying_edges(data, _level_off_samples(data, iso), normals)
-    if len(faces) == 0:
-        return Mesh.empty()
-    log.debug("isosurface: %d vertices, %d triangles", len(points), len(faces))
-    return to_world(points, faces, grad, vol, inside=inside, cap=cap)
+    from .chunked import isosurface_blocks
 
-
-def _prepared(data: np.ndarray, iso: float, inside: str) -> tuple[np.ndarray, float]:
-    """The checked arguments: samples as flying edges takes them, and the level as a float."""
-    check_arguments(data.dtype, iso, inside)
-    if data.dtype.kind == "f":  # reductions: no temporary array (NaN reaches both)
-        check_finite_range(np.min(data), np.max(data))
-    return np.ascontiguousarray(data, dtype=work_dtype(data.dtype)), float(iso)
+    return isosurface_blocks(vol.data, vol, iso, inside=inside, cap=cap, normals=normals)
 
 
 def check_finite_range(lo, hi, name: str | None = None) -> None:

@@ -8,18 +8,50 @@ shrink the surface, so the enclosed volume of a closed isosurface is kept
 quadric error metric ("Surface simplification using quadric error
 metrics", SIGGRAPH 1997), implemented here with checks that keep a closed
 surface closed (see :mod:`volwarp_cli.surface._decimate_kernel`).
+:func:`clean` chains them after an isosurface, as :class:`Cleanup` says.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..errors import VolwarpError
+from ..progress import timed
 from .mesh import Mesh, vertex_normals
 from .topology import connected_components
 
-__all__ = ["smooth", "decimate", "largest_component", "connected_components", "compact",
-           "drop_degenerate"]
+__all__ = ["Cleanup", "clean", "smooth", "decimate", "largest_component",
+           "connected_components", "compact", "drop_degenerate"]
+
+
+@dataclass(frozen=True)
+class Cleanup:
+    """What is done to a surface after it is extracted, in this order.
+
+    ``largest_component``: keep only the connected piece with the most
+    triangles; ``smooth``: windowed-sinc iterations (0: none); ``decimate``:
+    the fraction of triangles to remove (0: none).
+    """
+
+    largest_component: bool = False
+    smooth: int = 0
+    decimate: float = 0.0
+
+
+def clean(mesh: Mesh, cleanup: Cleanup) -> Mesh:
+    """``mesh`` after ``cleanup`` (largest component, smoothing, decimation, in order)."""
+    if cleanup.largest_component and not mesh.is_empty:
+        with timed("largest component"):
+            mesh = largest_component(mesh)
+    if cleanup.smooth:
+        with timed(f"smooth ({cleanup.smooth} iterations)"):
+            mesh = smooth(mesh, cleanup.smooth)
+    if cleanup.decimate:
+        with timed(f"decimate ({cleanup.decimate:g})"):
+            mesh = decimate(mesh, cleanup.decimate)
+    return mesh
 
 
 def _to_polydata(mesh: Mesh):
