@@ -115,61 +115,38 @@ def _exports_only(req: WarpFiles, how) -> dict:
     return {"output": None, "handles": warp.handles(), "grid": None, **stats}
 
 
-def _open_values(req: WarpFiles, doc, spec):
-    """The input opened lazily and how its samples are warped.
+def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions(), *,
+               values: str | None = None, preserve: bool = False, name: str = "input",
+               cap=None, choice=None, exportable: bool = False):
+    """The final lattice's warp of an input, planned: ``(choice, warp)``; no output computed.
 
-    Returns ``(choice, cap, template, source, spec)``: the values choice
-    (:class:`.defaults.ValuesChoice`); a capture file's deferred capture
-    (else None); for a volume, or a capture file's labels, its template and
-    sliceable samples; the spec to warp with (a capture file's labels: its
-    own capture settings).
+    ``template``: the input's Volume (its samples may be a placeholder);
+    ``source``: its samples, sliceable (an array, or a lazy source read box
+    by box); ``cap``: a capture file's deferred capture instead (its
+    ``template``/``source`` None unless its labels are warped, and ``spec``
+    then the one with its capture settings: :func:`open_capture_values`).
+    ``values``: the command line's (None: the spec's, else the label rule,
+    one pass over the samples), unless ``choice`` was made (a capture
+    file's). Returns the values choice
+    (:class:`.defaults.ValuesChoice`, already said at ``-v``) and the warp:
+    a :class:`.run.LabelMapBlocks` for labels, else an
+    :class:`.run.IntensityWarp` whose :meth:`~.run.IntensityWarp.operation`
+    computes the output. ``exportable``: refuse, before any work, a warp
+    whose exports cannot be exact.
     """
-    from .defaults import choose_values, warn_once
-    from .run import capture_spec, capture_values
-
-    given = req.values or spec.values
-    cap = template = source = None
-    if req.is_capture:
-        from .capture_file import open_capture_lazy
-        from .prepare import check_capture_settings
-
-        with timed(f"check {req.input} (one pass)"):
-            cap = open_capture_lazy(req.input)
-        check_capture_settings(doc, spec, cap, req.input)
-        with timed(f"labels? (the rule, one pass over {req.input})"):
-            choice, view = capture_values(cap, given, req.input)
-        if choice.is_labels:  # the label map the capture holds, read box by box
-            template = cap.geometry.with_data(np.broadcast_to(
-                np.zeros((), cap.input_dtype), view.shape))
-            source, spec = view, capture_spec(spec, cap)
-    else:
-        template, source = req.open_lazy()
-        with timed("labels? (the rule, one pass)"):
-            choice = choose_values(source, given, name=req.input)
-    warn_once(choice.warning)
-    log.info("%s: %s", req.input, choice.describe())
-    check_values_fit(choice, doc, spec, req.options, req.preserve, req.input, req.values)
-    return choice, cap, template, source, spec
-
-
-def _warp_once(req: WarpFiles, how) -> dict:
-    """The final lattice's warp (no frames): one operation, run whole or by blocks.
-
-    The input is opened lazily (a capture file's domain left in the file),
-    the values chosen (the label rule in one pass over the samples), the
-    lattice planned; then :func:`volwarp_cli.execute.run` decides, from the
-    output's and the blocks' sizes, whether the output is computed whole here
-    or by blocks on the engine (the same code, the same bytes).
-    """
-    from .. import execute
     from ..bspline.capture import capture_source
-    from .run import IntensityWarp
+    from .defaults import choose_values, warn_once
+    from .run import IntensityWarp, LabelMapBlocks
 
-    doc, spec = _load_spec(req.spec)
-    choice, cap, template, source, spec = _open_values(req, doc, spec)
+    if choice is None:
+        with timed("labels? (the rule, one pass)"):
+            choice = choose_values(source, values or spec.values, name=name)
+    warn_once(choice.warning)
+    log.info("%s: %s", name, choice.describe())
+    check_values_fit(choice, doc, spec, options, preserve, name, values)
     if choice.is_labels:
-        return {**_warp_labels(req, template, source, doc, spec, how),
-                **values_json(choice)}
+        return choice, LabelMapBlocks(template, source, doc, spec, options, preserve=preserve,
+                                      name=name)
     if cap is None:
         c = spec.capture
         with timed("input range (one pass)"):
@@ -178,12 +155,62 @@ def _warp_once(req: WarpFiles, how) -> dict:
                                      placement=c.placement, oversample=c.oversample,
                                      sampling=c.sampling)
             except VolwarpError as exc:
-                raise VolwarpError(f"{req.input}: {exc}") from None
-    if req.exports:  # refused before any work where they cannot be exact
+                raise VolwarpError(f"{name}: {exc}") from None
+    if exportable:  # refused before any work where they cannot be exact
         from .export import check_exportable
 
-        check_exportable(cap.placement, cap.dq, req.input)
-    warp = IntensityWarp(cap, doc, spec, req.options, name=req.input)
+        check_exportable(cap.placement, cap.dq, name)
+    return choice, IntensityWarp(cap, doc, spec, options, name=name)
+
+
+def open_capture_values(path, doc, spec, values: str | None = None):
+    """A capture file opened lazily for :func:`plan_final`: ``(choice, cap, template, source, spec)``.
+
+    Its settings checked against the spec's; how its samples are warped
+    chosen (``values``: the command line's, else the spec's, else the label
+    rule over the input samples it holds). For labels, the map it holds
+    (template, samples read box by box; ``cap`` None) and the spec with its
+    capture settings; else ``template``, ``source`` None.
+    """
+    from .capture_file import open_capture_lazy
+    from .prepare import check_capture_settings
+    from .run import capture_spec, capture_values
+
+    with timed(f"check {path} (one pass)"):
+        cap = open_capture_lazy(path)
+    check_capture_settings(doc, spec, cap, path)
+    with timed(f"labels? (the rule, one pass over {path})"):
+        choice, view = capture_values(cap, values or spec.values, path)
+    if not choice.is_labels:
+        return choice, cap, None, None, spec
+    template = cap.geometry.with_data(np.broadcast_to(np.zeros((), cap.input_dtype),
+                                                      view.shape))
+    return choice, None, template, view, capture_spec(spec, cap)
+
+
+def _warp_once(req: WarpFiles, how) -> dict:
+    """The final lattice's warp (no frames): one operation, run whole or by blocks.
+
+    The input is opened lazily (a capture file's domain left in the file),
+    the warp planned (:func:`plan_final`); then :func:`volwarp_cli.execute.run`
+    decides, from the output's and the blocks' sizes, whether the output is
+    computed whole here or by blocks on the engine (the same code, the same
+    bytes).
+    """
+    from .. import execute
+
+    doc, spec = _load_spec(req.spec)
+    cap = choice = None
+    if req.is_capture:
+        choice, cap, template, source, spec = open_capture_values(req.input, doc, spec,
+                                                                  req.values)
+    else:
+        template, source = req.open_lazy()
+    choice, warp = plan_final(template, source, doc, spec, req.options, values=req.values,
+                              preserve=req.preserve, name=req.input, cap=cap, choice=choice,
+                              exportable=bool(req.exports))
+    if choice.is_labels:
+        return {**_warp_labels(req, warp, how), **values_json(choice)}
     template = warp.output_template()
     w = req.write
     target = execute.Target(req.output, req.stamped(template), template.dtype,
@@ -200,22 +227,19 @@ def _warp_once(req: WarpFiles, how) -> dict:
     return summary
 
 
-def _warp_labels(req: WarpFiles, template, source, doc, spec, how) -> dict:
+def _warp_labels(req: WarpFiles, warp, how) -> dict:
     """A label map's warp (:class:`.run.LabelMapBlocks`): whole or by slabs of target planes.
 
-    ``source``: the map's samples, sliceable (read whole when the warp fits
-    the memory budget, else box by box by slabs); decided as
-    :func:`volwarp_cli.execute.run` decides, by the sizes, before the map is
-    read. The same output and per-label report either way.
+    The map (read whole when the warp fits the memory budget, else box by
+    box by slabs); decided as :func:`volwarp_cli.execute.run` decides, by the
+    sizes, before the map is read. The same output and per-label report
+    either way.
     """
     from .. import execute
     from ..io import write_volume
     from ..memory import human_bytes
     from .labels import format_report
-    from .run import LabelMapBlocks
 
-    warp = LabelMapBlocks(template, source, doc, spec, req.options, preserve=req.preserve,
-                          name=req.input)
     stamped = req.stamped(warp.template)
     need = warp.memory_whole()
     w = req.write
