@@ -255,7 +255,7 @@ def test_unknown_extension_and_usage_errors(run, data_dir, tmp_path):
 def test_debug_shows_traceback(tmp_path):
     out = subprocess.run(VOLWARP + ["info", str(tmp_path / "nope.nrrd"), "--debug"],
                          capture_output=True, text=True)
-    assert out.returncode != 0
+    assert out.returncode == 1
     assert "Traceback" in out.stderr
 
 

@@ -441,12 +441,16 @@ class Reduction(Operation):
         """The output, its passes' blocks run where ``blocks`` says."""
         raise NotImplementedError
 
+    def outputs(self) -> list:
+        """``[(path, nbytes)]`` of the files the operation writes by blocks (the disk's check)."""
+        return []
+
 
 def _reduce(op: Reduction, how: How, after: Callable | None) -> Ran:
     """``op`` in memory (one block on the calling threads) or by blocks on the engine."""
     from . import parallel
 
-    if _in_memory(op, how, []):
+    if _in_memory(op, how, op.outputs()):
         op.prepare()
         with timed(op.what):
             ran = Ran(False, output=op.reduce(Blocks(threads=how.threads or parallel.threads())))

@@ -25,6 +25,7 @@ from ..box import Box
 from ..bspline.capture import NoSamples
 from ..bspline.scene import Scene
 from ..errors import OutOfMemoryError
+from ..execute import Blocks, Reduction
 from .blocks import SceneRecipe
 from .labels import (
     _Q,
@@ -252,3 +253,71 @@ def _patch(out, window: Box, changed: dict) -> None:
         data = out.read(box).copy()
         data[tuple(v - lo for v, lo in zip(local, box.lo, strict=True))] = label
         out.write(box, data)
+
+
+class LabelWarpOperation(Reduction):
+    """A label map's warp on the executor: whole, or by slabs of target planes.
+
+    ``warp``: the planned :class:`.run.LabelMapBlocks`; ``path``,
+    ``template``: the output file and its Volume (key/values stamped, its
+    samples a placeholder); ``write``: :func:`~volwarp_cli.io.write_volume`'s
+    options. In memory the map is read whole and warped here
+    (:meth:`.run.LabelMapBlocks.render_whole`, :meth:`memory` its peak); by
+    blocks, each task is a slab of whole target planes read box by box
+    (:meth:`.run.LabelMapBlocks.render`). The output (:attr:`Ran.output`
+    of the run) is the per-label report; the file is the same either way.
+    """
+
+    blocks_share = 1.0  # (a slab returns its totals only: nothing to hold beside the tasks)
+
+    def __init__(self, warp, path, template, write: dict):
+        from ..geometry import Geometry
+
+        self.warp, self.path, self.template, self.write = warp, path, template, dict(write)
+        self.grid = Geometry.of(template)
+        self.what = f"the warp of {warp.name}'s labels"
+
+    def outputs(self) -> list:
+        """The output file and its size (checked against the disk by blocks)."""
+        return [(self.path, self.template.data.size * self.template.dtype.itemsize)]
+
+    def _job(self) -> LabelBlocks:
+        """The slabs' job without the labels (for its sizes; the labels come by blocks)."""
+        w = self.warp
+        return LabelBlocks(w.scene, w.source, [], [], w.window, w.input.dtype,
+                           preserve=w.preserve, background=w.background)
+
+    def memory(self, box: Box) -> int:
+        """The whole in memory (:meth:`.run.LabelMapBlocks.memory_whole`), else a slab's."""
+        if box == self.grid.box:
+            return self.warp.memory_whole()
+        return self._job().slab_bytes(box.shape[0])
+
+    def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
+        """Slabs of whole output planes, as deep as ``per_task`` holds (two slabs a task)."""
+        _, ny, nx = self.grid.shape
+        return (self._job().choose_depth(per_task * workers, workers), ny, nx)
+
+    def reduce(self, blocks: Blocks) -> dict:
+        """Warp and write; returns the per-label report."""
+        from ..io import write_volume
+        from ..io.blockwrite import open_volume_blocks
+        from ..progress import timed
+
+        if blocks.whole:
+            out, report = self.warp.render_whole()
+            with timed(f"write {self.path}"):  # (pyramid levels take the mode: never averaged ids)
+                write_volume(self.template.with_data(out.data, origin=out.origin), self.path,
+                             **self.write, labels=True)
+            return report
+        w = self.write
+
+        def open_output(template, block):
+            return open_volume_blocks(self.path, self.template, block=block,
+                                      compress=w.get("compress", False),
+                                      byte_order=w.get("byte_order", "little"),
+                                      version=w.get("ome_zarr_version", "0.5"),
+                                      pyramid=w.get("pyramid", 0), labels=True)
+
+        return self.warp.render(blocks.engine, open_output, blocks.memory * blocks.engine.workers,
+                                slab=blocks.shape[0])

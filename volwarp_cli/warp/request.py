@@ -228,48 +228,20 @@ def _warp_once(req: WarpFiles, how) -> dict:
 
 
 def _warp_labels(req: WarpFiles, warp, how) -> dict:
-    """A label map's warp (:class:`.run.LabelMapBlocks`): whole or by slabs of target planes.
+    """A label map's warp (:class:`.label_blocks.LabelWarpOperation`): whole or by slabs.
 
-    The map (read whole when the warp fits the memory budget, else box by
-    box by slabs); decided as :func:`volwarp_cli.execute.run` decides, by the
-    sizes, before the map is read. The same output and per-label report
-    either way.
+    The map is read whole when the warp fits the memory budget, else box by
+    box by slabs of target planes; :func:`volwarp_cli.execute.run` decides,
+    by the sizes, before the map is read. The same output and per-label
+    report either way.
     """
     from .. import execute
-    from ..io import write_volume
-    from ..memory import human_bytes
+    from .label_blocks import LabelWarpOperation
     from .labels import format_report
 
-    stamped = req.stamped(warp.template)
-    need = warp.memory_whole()
-    w = req.write
-    if how.chunked is not True and execute.fits(need):
-        out, report = warp.render_whole()
-        with timed(f"write {req.output}"):  # (pyramid levels take the mode: never averaged ids)
-            write_volume(stamped.with_data(out.data, origin=out.origin), req.output, **w,
-                         labels=True)
-        by_slabs = False
-    else:
-        what = f"the warp of {req.input}'s labels"
-        nbytes = warp.template.data.size * warp.template.dtype.itemsize
-        execute.refuse_unmakeable(what, need, [(req.output, nbytes)], chunked=how.chunked,
-                                  compress=w["compress"], pyramid=w.get("pyramid", 0))
-        if how.chunked is None:
-            log.warning("%s needs %s: running by blocks (--no-chunked to refuse instead)",
-                        what, human_bytes(need))
-
-        def open_output(template, block):
-            from ..io.blockwrite import open_volume_blocks
-
-            return open_volume_blocks(req.output, stamped, block=block, compress=w["compress"],
-                                      byte_order=w["byte_order"],
-                                      version=w.get("ome_zarr_version", "0.5"),
-                                      pyramid=w.get("pyramid", 0), labels=True)
-
-        with how.open_engine() as engine:
-            report = warp.render(engine, open_output, execute.block_budget(),
-                                 slab=how.block[0] if how.block else None)
-        by_slabs = True
+    ran = execute.run(LabelWarpOperation(warp, req.output, req.stamped(warp.template),
+                                         req.write), how)
+    report, by_slabs = ran.output, ran.by_blocks
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
     summary = {"output": str(req.output), "shape": list(warp.template.shape_xyz),
                "handles": warp.handles(), "grid": warp.grid, **labels_json(report)}

@@ -523,6 +523,7 @@ class LabelMapBlocks(_LatticeMoves):
         self.input = template
         self.preserve = preserve
         self.options = options
+        self.name = name  # (the input's file: in messages)
         self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
             template, doc, spec, options, name)
         #: the label where nothing lands: the most frequent on the map's border
@@ -566,9 +567,10 @@ class LabelMapBlocks(_LatticeMoves):
 
         ``open_output(template, block)``: a context manager giving the block
         output (:class:`~volwarp_cli.io.blockwrite.BlockOutput`) for the
-        output's template and block shape (z, y, x), committed on a clean exit (a slab's block: ``(slab, y, x)`` of the output); ``budget``:
-        the bytes the tasks may hold together; ``slab``: target planes per
-        task (default: as many as the budget holds).
+        output's template and block shape (a slab's: ``(slab, y, x)`` of the
+        output), committed on a clean exit; ``budget``: the bytes the tasks
+        may hold together; ``slab``: target planes per task (default: as many
+        as the budget holds).
         """
         import functools
 
@@ -591,7 +593,6 @@ class LabelMapBlocks(_LatticeMoves):
             report = warp_labels_by_blocks(job, out, engine, nvox=nvox,
                                            spacing=self.input.spacing, memory=per_task)
         return report
-
 
 
 class LabelMapWarp(_LatticeMoves):
