@@ -119,6 +119,14 @@ def domain_box(scene: Scene, box: Box) -> Box:
     return need.intersect(model)
 
 
+def _makespan(work, threads: int) -> float:
+    """The time ``threads`` threads take over parts of ``work``, dealt largest first."""
+    loads = [0.0] * max(1, threads)
+    for w in sorted(work, reverse=True):
+        loads[loads.index(min(loads))] += w
+    return max(loads)
+
+
 def target_box(scene: Scene) -> Box:
     """The whole padded target as a Box (z, y, x)."""
     return Box.from_shape(scene.target_shape[::-1])
@@ -230,16 +238,37 @@ class WarpOperation(Operation):
         return cast_samples(target, self.dtype, what="warped volume")
 
     def slabs(self, box: Box, threads: int) -> list[Box]:
-        """``box`` cut for ``threads`` threads: whole depth and rows, two parts along y a thread.
+        """``box`` cut for ``threads`` threads: parts of whole rows, cut along z and y.
 
-        A part streams its planes (depth costs no halo) and its halo is on two
-        sides only; one thread takes the box whole (no halo at all).
+        One thread takes the box whole (no halo at all). Otherwise each part
+        streams its planes through a ring of its own rows, and a domain voxel
+        whose image reaches two parts is scattered by both (the halo, which
+        grows with the parts' surface): of the cuts into ``threads`` or twice
+        as many parts (z times y), the one whose estimated time is least,
+        each part's scatter work (:func:`.work.scatter_work` of the domain
+        voxels that reach it) dealt to the threads largest first. On a 256^3
+        warp with every point of a 9^3 lattice moved, 16 threads: 4 x 4
+        parts scatter 2.1 times the domain voxels, 32 slabs along y 5.3 times.
         """
         if threads <= 1:
             return [box]
-        cuts = parallel.cuts(box.lo[1], box.hi[1], 2 * threads)
-        return [Box((box.lo[0], a, box.lo[2]), (box.hi[0], b, box.hi[2]))
-                for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+        scene, _ = self._scene()
+        best = None
+        for parts in (threads, 2 * threads):
+            for nz in range(1, parts + 1):
+                if parts % nz or nz > box.shape[0] or parts // nz > box.shape[1]:
+                    continue
+                zc = parallel.cuts(box.lo[0], box.hi[0], nz)
+                yc = parallel.cuts(box.lo[1], box.hi[1], parts // nz)
+                cut = [Box((z0, y0, box.lo[2]), (z1, y1, box.hi[2]))
+                       for z0, z1 in zip(zc[:-1], zc[1:], strict=True)
+                       for y0, y1 in zip(yc[:-1], yc[1:], strict=True)]
+                cost = _makespan([scene._work([scene.dq],
+                                              domain_box(scene, b.shift(self.window.lo)))
+                                  for b in cut], threads)
+                if best is None or cost < best[0]:
+                    best = (cost, cut)
+        return best[1] if best is not None else [box]
 
     def compute(self, box: Box, *, threads: int) -> dict:
         """``{KEY: samples}`` of output block ``box``, over ``threads`` threads."""
