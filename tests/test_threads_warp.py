@@ -12,7 +12,7 @@ from one_shot import one_shot
 
 from volwarp_cli import parallel
 from volwarp_cli.box import Box
-from volwarp_cli.bspline import basis, jobs, work
+from volwarp_cli.bspline import jobs, work
 from volwarp_cli.bspline import scene as scene_mod
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.scene import Scene
@@ -65,7 +65,7 @@ def moved_lattice(cap, seed=3, scale=1.5):
 @pytest.fixture
 def small_splits(monkeypatch):
     """Splits taken on test sizes (the production thresholds keep small blocks whole)."""
-    monkeypatch.setattr(basis, "SPLIT_MIN_WORK", 1)
+    monkeypatch.setattr(parallel, "SPLIT_MIN_WORK", 1)
     monkeypatch.setattr(work, "PARALLEL_MIN_VOXELS", 1)
     monkeypatch.setattr(work, "SPLIT_MAX_SHARE", 1.01)
 

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 from volwarp_cli import parallel
 from volwarp_cli.box import Box
-from volwarp_cli.bspline import basis, jobs, pushforward, work
+from volwarp_cli.bspline import jobs, pushforward, work
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.pushforward import HeldPlanes
 from volwarp_cli.bspline.reach import PlaneReach, offset_bounds
@@ -42,7 +42,7 @@ def _blob(shape_zyx, seed=0):
 @pytest.fixture
 def small_splits(monkeypatch):
     """Splits taken on test sizes (the production thresholds keep small blocks whole)."""
-    monkeypatch.setattr(basis, "SPLIT_MIN_WORK", 1)
+    monkeypatch.setattr(parallel, "SPLIT_MIN_WORK", 1)
     monkeypatch.setattr(work, "PARALLEL_MIN_VOXELS", 1)
     monkeypatch.setattr(work, "SPLIT_MAX_SHARE", 1.01)
 

@@ -239,3 +239,26 @@ def library_threads(n: int | None = None):
     finally:
         restore.restore_original_limits()
 
+
+#: work (voxels) from which the kernels split over threads: each thread gets this much at least
+SPLIT_MIN_WORK = 1 << 18
+
+
+def run_split(job_for, lo_z: int, hi_z: int, work: int) -> list:
+    """Run ``job_for(z0, z1).run()`` (a compiled kernel's call) over slabs of [lo_z, hi_z).
+
+    One slab per thread: as many slabs as :func:`threads` allows, each with at
+    least ``SPLIT_MIN_WORK`` of ``work`` (one slab, in this thread, when
+    ``work`` is 0 or small). The kernels release the GIL (numba ``nogil``, or
+    the compiled ones of ``_warpkernels.c``); the slabs write disjoint output.
+    (Python threads instead of numba's ``prange``, whose threading layer
+    costs time to start in every process.) Returns the kernel's results, one
+    per slab.
+    """
+    if work <= 0:
+        return [job_for(lo_z, hi_z).run()]
+    parts = min(threads(), max(1, work // max(SPLIT_MIN_WORK, 1)), hi_z - lo_z)
+    if parts <= 1:
+        return [job_for(lo_z, hi_z).run()]
+    edges = cuts(lo_z, hi_z, parts)
+    return run_blocks(lambda i: job_for(edges[i], edges[i + 1]).run(), range(len(edges) - 1))

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..parallel import run_split
+
 #: b[i][p]: coefficient of t**p in the i-th basis function (paper §4).
 POWER_COEFFS = np.array([
     [1.0, -3.0, 3.0, -1.0],
@@ -124,33 +126,6 @@ def _block(grid, lo, hi, x, y, z):
         r = given if given is not None else (int(lo[axis]) * g, int(hi[axis]) * g)
         ranges.append((int(r[0]), int(r[1])))
     return ranges
-
-
-#: Work (voxels) from which the kernels split over threads; each thread gets this much at least.
-SPLIT_MIN_WORK = 1 << 18
-
-
-def run_split(job_for, lo_z: int, hi_z: int, work: int) -> list:
-    """Run ``job_for(z0, z1).run()`` (a :mod:`.jobs` kernel call) over slabs of [lo_z, hi_z).
-
-    One slab per thread: as many slabs as :func:`volwarp_cli.parallel.threads`
-    allows, each with at least ``SPLIT_MIN_WORK`` of ``work`` (one slab, in this
-    thread, when ``work`` is 0 or small). The kernels release the GIL (numba ``nogil``, or
-    the compiled ones of ``_warpkernels.c``); the slabs write disjoint output.
-    (Python threads instead of numba's ``prange``, whose threading layer
-    costs time to start in every process.)
-    Returns the kernel's results, one per slab.
-    """
-    from .. import parallel
-
-    if work <= 0:
-        return [job_for(lo_z, hi_z).run()]
-    parts = min(parallel.threads(), max(1, work // max(SPLIT_MIN_WORK, 1)), hi_z - lo_z)
-    if parts <= 1:
-        return [job_for(lo_z, hi_z).run()]
-    edges = parallel.cuts(lo_z, hi_z, parts)
-    return parallel.run_blocks(lambda i: job_for(edges[i], edges[i + 1]).run(),
-                               range(len(edges) - 1))
 
 
 def evaluate_separable(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, *, x=None, y=None,

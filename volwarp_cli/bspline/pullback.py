@@ -33,7 +33,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import VolwarpError
-from .basis import region_weights, run_split
+from ..parallel import run_split
+from .basis import region_weights
 from .jobs import SampleJob, replace
 from .lattice import Grid, capture_axis_positions
 from .pushforward import ROUND

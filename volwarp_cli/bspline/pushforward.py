@@ -251,7 +251,7 @@ def finalize(acc, vmax, block, out, parallel=True, background=0.0, clear=False):
     pushing ``data - b`` and adding ``b`` would give.
     ``clear`` also sets the block's accumulators back to zero (in the same pass).
     """
-    from .basis import run_split
+    from ..parallel import run_split
     from .jobs import FinalizeJob
 
     def job(z0, z1):

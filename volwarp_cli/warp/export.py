@@ -536,7 +536,7 @@ def _run_slabs(part, nz: int, per_slice: int, threads: int | None) -> None:
 
     The default is :func:`volwarp_cli.parallel.threads`; the kernels release the GIL
     and write disjoint slices. Threads instead of numba's ``prange``, whose threading
-    layer costs time to start in every process (see :func:`~volwarp_cli.bspline.basis.run_split`).
+    layer costs time to start in every process (see :func:`~volwarp_cli.parallel.run_split`).
     """
     from .. import parallel
 
