@@ -301,18 +301,13 @@ def run(op: Operation, how: How = How(), after: Callable | None = None) -> Ran:
     with the sizes) where the whole does not fit and blocks may not or cannot
     run (``--no-chunked``, an output format written whole, a full disk).
     """
-    from . import parallel
-
     if isinstance(op, Reduction):
         return _reduce(op, how, after)
     first = next(iter(op.targets.values()))
     outputs = [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()]
     if not _in_memory(op, how, outputs, compress=first.compress, pyramid=first.pyramid):
         return _run_blocks(op, how, after)
-    op.prepare()
-    threads = how.threads or parallel.threads()
-    with timed(op.what):
-        results = op.compute(op.grid.box, threads=threads)
+    results = compute_whole(op, how.threads)
     for key, target in op.targets.items():
         with timed(f"write {target.path}"):
             target.write_whole(op.output(results, key))
@@ -320,6 +315,20 @@ def run(op: Operation, how: How = How(), after: Callable | None = None) -> Ran:
     if after is not None:
         ran.after = after(ran)
     return ran
+
+
+def compute_whole(op: Operation, threads: int | None = None) -> dict:
+    """``op``'s whole output as one block on the calling threads: its results by key.
+
+    The in-memory run's computation (:func:`run` decides that it fits and
+    writes the targets; a Python caller, :mod:`volwarp_cli.api`, keeps the
+    arrays). ``threads``: default :func:`volwarp_cli.parallel.threads`.
+    """
+    from . import parallel
+
+    op.prepare()
+    with timed(op.what):
+        return op.compute(op.grid.box, threads=threads or parallel.threads())
 
 
 def _in_memory(op: Operation, how: How, outputs, *, compress: bool = False,

@@ -105,8 +105,7 @@ def command(input, output, lattice, placement, oversample, pad, sampling, raw, v
     spans a little more, centred on it). `volwarp info SCENE.vwc --json` lists the
     lattice's world positions (lattice_points[i][j][k]).
     """
-    from ..bspline.capture import capture_volume
-    from ..errors import VolwarpError
+    from ..api import capture
     from ..warp.capture_file import write_capture
 
     if not output.lower().endswith(".vwc"):
@@ -116,35 +115,7 @@ def command(input, output, lattice, placement, oversample, pad, sampling, raw, v
         raise click.BadParameter("the tripled placement needs at least 6 points per axis",
                                  param_hint="'--lattice'")
     vol = load_input(input, raw, volume_index, dicom=dicom)
-    _warn_blended_labels(vol, input, placement, oversample)
-    try:
-        cap = capture_volume(vol, lattice=lattice, placement=placement, oversample=oversample,
-                             sampling=sampling, pad=pad)
-    except VolwarpError as exc:
-        raise VolwarpError(f"{input}: {exc}") from None
+    cap = capture(vol, lattice=lattice, placement=placement, oversample=oversample,
+                  sampling=sampling, pad=pad, name=input)
     with timed(f"write {output}"):
         write_capture(cap, output)
-
-
-def _warn_blended_labels(vol, name, placement, oversample) -> None:
-    """Say when a label map is captured on the spanning grid, which blends its ids.
-
-    On the subdivision grid (the uniform placement, an integer oversample) a
-    capture holds its input's samples, and `warp` takes a label map's capture
-    for labels as it takes the map; on the spanning grid its ids are blended
-    for good, and a warp of it can only average them.
-    """
-    from ..bspline.lattice import subdivision_of
-    from ..progress import log
-    from ..warp.defaults import choose_values
-
-    if subdivision_of(oversample, placement):
-        return
-    choice = choose_values(vol.data)
-    if choice.is_labels:
-        how = ("the tripled placement" if placement != "uniform"
-               else f"oversample {oversample:g}")
-        log.warning("warning: %s looks like a label map (%d labels), and %s blends its ids "
-                    "(a warp of this capture averages them); capture it with the uniform "
-                    "placement and an integer --oversample to warp it as labels", name,
-                    choice.labels, how)

@@ -10,8 +10,7 @@ from __future__ import annotations
 
 import click
 
-from ..errors import VolwarpError
-from ..samples import MAX_AXIS
+from ..errors import BadUsage, VolwarpError
 from .mesh import image_path
 from .options import (
     INPUT_PATH,
@@ -40,69 +39,13 @@ def _render_size(value):
 
 
 def output_paths(pattern: str, names: list[str], multi: bool) -> dict[str, str]:
-    """Output file per field from ``pattern`` (``{field}`` is replaced by the field name).
+    """:func:`volwarp_cli.sweep.run.field_paths`, its refusals usage errors of ``-o``."""
+    from ..sweep.run import field_paths
 
-    With ``multi`` one multi-component NRRD holds every field (key ``None``).
-    """
-    if multi:
-        if "{field}" in pattern:
-            raise click.BadParameter("with --multi all fields go into one file: drop {field}",
-                                     param_hint="'-o'")
-        low = pattern.lower()
-        if not (low.endswith(".nrrd") or low.endswith(".nhdr")):
-            raise click.BadParameter("--multi writes a multi-component NRRD: use .nrrd or .nhdr",
-                                     param_hint="'-o'")
-        return {None: pattern}
-    if "{field}" not in pattern:
-        if len(names) > 1:
-            raise click.BadParameter(
-                f"the spec has {len(names)} fields ({', '.join(names)}): put {{field}} in the "
-                "output name (e.g. 'out_{field}.nrrd') or use --multi", param_hint="'-o'")
-        return {names[0]: pattern}
-    return {n: pattern.replace("{field}", n) for n in names}
-
-
-def _check_grid(shape_xyz, origin, spacing, doc, from_options: bool, lo, hi,
-                margin=None) -> None:
-    """Refuse a grid whose numbers are absurd (a spacing of 1e-300, a margin of 1e300).
-
-    ``shape_xyz``, ``origin``, ``spacing``: the fitted grid's numbers, before they
-    make a :class:`~volwarp_cli.geometry.Geometry`. A spec error at ``grid`` (a
-    usage error when --shape/--spacing made it).
-    """
-    import numpy as np
-
-    shape = np.asarray(shape_xyz, dtype=np.float64)
-    spacing = np.asarray(spacing, np.float64)
-    values = np.concatenate([np.asarray(origin, np.float64).ravel(), spacing.ravel()])
-    bounds = np.concatenate([np.ravel(lo), np.ravel(hi)]).astype(np.float64)
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        across = (np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
-                  + 2 * float(margin or 0.0)) / spacing
-        ok = (np.all(np.isfinite(values)) and np.all((shape >= 1) & (shape <= MAX_AXIS))
-              and np.all(np.abs(values) <= 1e15) and np.all(across <= MAX_AXIS))
-    if ok:
-        return
-    what = (f"the output grid ({'x'.join(str(int(v)) if 0 <= v < 1e18 else '?' for v in shape)}"
-            f" samples, spacing {' '.join(f'{v:g}' for v in np.ravel(spacing))}) is "
-            f"absurd: at most {MAX_AXIS} samples per axis and coordinates within 1e15")
-    if from_options:
-        raise click.UsageError(f"--shape/--spacing: {what}")
-    given = doc.data.get("grid") or {}
-
-    def extreme(name):
-        v = np.abs(np.asarray(given[name], dtype=np.float64))
-        return bool(np.any(v > 1e15) or (name == "spacing" and np.any(v < 1e-9)))
-    names = [n for n in ("spacing", "margin", "origin", "shape") if n in given]
-    bad = [n for n in names if extreme(n)]
-    if bad:
-        raise doc.error(("grid", bad[0]), what)
-    if not np.all(np.abs(bounds) <= 1e15):  # the sweep itself: its trajectory or scale
-        for name in ("scale", "trajectory", "scene"):
-            if name in doc.data:
-                raise doc.error((name,), f"the sweep reaches {np.abs(bounds).max():.3g} world "
-                                "units from the origin (at most 1e15)")
-    raise doc.error(("grid", names[0]) if names else ("grid",), what)
+    try:
+        return field_paths(pattern, names, multi)
+    except BadUsage as exc:
+        raise click.BadParameter(str(exc), param_hint="'-o'") from None
 
 
 @click.command(name="sweep", epilog=examples(
@@ -144,13 +87,11 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
     around the sweep with a margin. A multi-component file (--multi) reads back
     one field at a time with `--volume-index N` in the other commands.
     """
-    import numpy as np
-
     from .. import execute
     from ..io import check_output_path
     from ..progress import timed
     from ..spec.loader import load_spec
-    from ..sweep.model import fit_grid_values, parse_sweep_spec, sweep_geometry
+    from ..sweep.model import output_grid, parse_sweep_spec
     from ..sweep.run import SweepOperation, VolumeRender, render
     from .common import provenance
 
@@ -176,18 +117,10 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
         check_output_path(render_path, option="--render")
     if camera_to is not None:  # (again, now that the spec's templates are known inputs)
         check_output_path(camera_to, option="--camera-to")
-    grid_spec = dict(sspec.grid)
-    if shape is not None:
-        grid_spec = {"shape": list(shape), "margin": grid_spec.get("margin")}
-    elif spacing is not None:
-        grid_spec = {"spacing": spacing, "margin": grid_spec.get("margin")}
-    grid_spec = {k: v for k, v in grid_spec.items() if v is not None}
-    lo, hi = sspec.bounds()
-    with np.errstate(over="ignore", invalid="ignore"):
-        grid_values = fit_grid_values(grid_spec, lo, hi)  # shape (x, y, z), origin, spacing
-    _check_grid(*grid_values, doc, shape is not None or spacing is not None, lo, hi,
-                grid_spec.get("margin"))
-    grid = sweep_geometry(*grid_values)
+    try:
+        grid = output_grid(sspec, shape=shape, spacing=spacing)
+    except BadUsage as exc:  # (--shape/--spacing made an absurd grid)
+        raise click.UsageError(str(exc)) from None
     write = {"compress": compress, "byte_order": byte_order,
              "version": ome_zarr["ome_zarr_version"], "pyramid": ome_zarr["pyramid"]}
     op = SweepOperation(sspec, grid, paths, dtype or "float32",

@@ -461,3 +461,89 @@ def load_spec(path: str | Path, kind: str | None = None) -> SpecDoc:
     if kind is not None:
         validate(doc, load_schema(kind))
     return doc
+
+
+# -- specs given as Python values (volwarp_cli.api) -------------------------------------
+def load_spec_data(data: Any, kind: str | None = None, *, file: str = "<spec>",
+                   base: str | Path | None = None) -> SpecDoc:
+    """A :class:`SpecDoc` of a spec given as Python values, as :func:`load_spec` reads a file.
+
+    ``data``: the document a YAML file would give (a mapping of keys to
+    values). It passes the checks a file's text passes (:func:`_check_tree`:
+    finite numbers, no value inside itself, at most :data:`MAX_VALUES` values
+    and :data:`MAX_DEPTH` levels, names as keys), then ``kind``'s schema when
+    given, and its errors name the same key paths (``steps[2].move[0].index``);
+    they have no line (``file``, default ``<spec>``, names the document in
+    them). Tuples are read as lists, numpy scalars and arrays as the numbers
+    and lists they hold, paths as strings; the data is copied, never kept.
+    ``base``: the folder relative file names in the spec are relative to
+    (default: the current folder).
+    """
+    from collections.abc import Mapping
+
+    if not isinstance(data, Mapping):
+        raise SpecError("a spec must be a mapping of keys to values", file=file)
+    plain = _plain(data, (), file, set(), [0])
+    doc = SpecDoc(plain, {}, file, Path(base) if base is not None else Path("."))
+    if kind is not None:
+        validate(doc, load_schema(kind))
+    return doc
+
+
+def _plain(value: Any, path: Key, file: str, open_: set, count: list) -> Any:
+    """``value`` as the plain data YAML gives (a copy), or a :class:`SpecError` at ``path``.
+
+    ``open_``: the ids of the collections being copied (a value inside itself);
+    ``count``: the values copied so far, in a list (shared values count each
+    time, as a YAML alias does: refused past :data:`MAX_VALUES`, in time).
+    """
+    from collections.abc import Mapping
+
+    import numpy as np
+
+    def fail(message):
+        raise SpecError(clip(message, MAX_MESSAGE), file=file, key=_error_key(path))
+
+    count[0] += 1
+    if count[0] > MAX_VALUES:
+        fail(f"spec too large (over {MAX_VALUES} values)")
+
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    elif isinstance(value, Path):
+        value = str(value)
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, int):
+        if not -_MAX_FLOAT <= value <= _MAX_FLOAT:
+            fail(f"number too large: {clip(value)} (the limit is {_MAX_FLOAT:.4g})")
+        return value
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            fail(f"must be a finite number, got {value}")
+        return value
+    if not isinstance(value, (Mapping, list, tuple)):
+        fail(f"cannot read a {type(value).__name__} (a spec holds mappings, lists, strings, "
+             "numbers, booleans and null)")
+    if len(path) >= MAX_DEPTH:
+        fail(f"nested more than {MAX_DEPTH} levels deep")
+    if id(value) in open_:
+        fail("this value contains itself (a recursive value)")
+    open_.add(id(value))
+    try:
+        if isinstance(value, Mapping):
+            out = {}
+            for key, item in value.items():
+                if isinstance(key, np.generic):
+                    key = key.item()
+                if not (key is None or isinstance(key, (str, int, float, bool))):
+                    fail(f"a key must be a name, not a {type(key).__name__}")
+                count[0] += 1  # (the key)
+                out[key] = _plain(item, path + (key,), file, open_, count)
+            return out
+        return [_plain(item, path + (i,), file, open_, count) for i, item in enumerate(value)]
+    finally:
+        open_.discard(id(value))
+

@@ -371,3 +371,83 @@ def fit_grid_values(spec: dict, lo: np.ndarray,
         centre = 0.5 * (glo + ghi)
         origin = centre - spacing * (shape - 1) / 2
     return shape, _three(origin), spacing
+
+
+def output_grid(spec: SweepSpec, *, shape=None, spacing=None) -> Geometry:
+    """The sweep's output grid: the spec's ``grid``, or ``shape`` or ``spacing`` instead.
+
+    ``shape`` (x, y, z samples; the spacing fitted) or ``spacing`` (isotropic;
+    the shape fitted) replace the spec's grid, keeping its margin
+    (``volwarp sweep --shape/--spacing``); then :func:`fit_grid_values` fits
+    what is missing around the sweep's bounds. Absurd numbers (a spacing of
+    1e-300, a margin of 1e300, over :data:`~volwarp_cli.samples.MAX_AXIS`
+    samples an axis) are refused before they make a grid: a
+    :class:`~volwarp_cli.errors.SpecError` at the spec's key that made them,
+    a :class:`~volwarp_cli.errors.BadUsage` when ``shape`` or ``spacing`` did.
+    """
+    from ..errors import BadUsage
+
+    if shape is not None and spacing is not None:
+        raise BadUsage("give --shape or --spacing, not both")
+    if shape is not None and (np.ndim(shape) != 1 or len(shape) != 3
+                              or any(int(v) != v or v < 1 for v in shape)):
+        raise BadUsage(f"--shape: three whole numbers of samples (x y z), got {shape!r}")
+    if spacing is not None and not (np.ndim(spacing) == 0 and np.isfinite(spacing)
+                                    and spacing > 0):
+        raise BadUsage(f"--spacing: a positive number, got {spacing!r}")
+    grid_spec = dict(spec.grid)
+    if shape is not None:
+        grid_spec = {"shape": [int(v) for v in shape], "margin": grid_spec.get("margin")}
+    elif spacing is not None:
+        grid_spec = {"spacing": float(spacing), "margin": grid_spec.get("margin")}
+    grid_spec = {k: v for k, v in grid_spec.items() if v is not None}
+    lo, hi = spec.bounds()
+    with np.errstate(over="ignore", invalid="ignore"):
+        values = fit_grid_values(grid_spec, lo, hi)  # shape (x, y, z), origin, spacing
+    _check_grid(*values, spec.doc, shape is not None or spacing is not None, lo, hi,
+                grid_spec.get("margin"))
+    return sweep_geometry(*values)
+
+
+def _check_grid(shape_xyz, origin, spacing, doc, from_options: bool, lo, hi,
+                margin=None) -> None:
+    """Refuse a grid whose numbers are absurd (a spacing of 1e-300, a margin of 1e300).
+
+    ``shape_xyz``, ``origin``, ``spacing``: the fitted grid's numbers, before they
+    make a :class:`~volwarp_cli.geometry.Geometry`. A spec error at ``grid`` (a
+    usage error when --shape/--spacing made it).
+    """
+    from ..errors import BadUsage
+    from ..samples import MAX_AXIS
+
+    shape = np.asarray(shape_xyz, dtype=np.float64)
+    spacing = np.asarray(spacing, np.float64)
+    values = np.concatenate([np.asarray(origin, np.float64).ravel(), spacing.ravel()])
+    bounds = np.concatenate([np.ravel(lo), np.ravel(hi)]).astype(np.float64)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        across = (np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
+                  + 2 * float(margin or 0.0)) / spacing
+        ok = (np.all(np.isfinite(values)) and np.all((shape >= 1) & (shape <= MAX_AXIS))
+              and np.all(np.abs(values) <= 1e15) and np.all(across <= MAX_AXIS))
+    if ok:
+        return
+    what = (f"the output grid ({'x'.join(str(int(v)) if 0 <= v < 1e18 else '?' for v in shape)}"
+            f" samples, spacing {' '.join(f'{v:g}' for v in np.ravel(spacing))}) is "
+            f"absurd: at most {MAX_AXIS} samples per axis and coordinates within 1e15")
+    if from_options:
+        raise BadUsage(f"--shape/--spacing: {what}")
+    given = doc.data.get("grid") or {}
+
+    def extreme(name):
+        v = np.abs(np.asarray(given[name], dtype=np.float64))
+        return bool(np.any(v > 1e15) or (name == "spacing" and np.any(v < 1e-9)))
+    names = [n for n in ("spacing", "margin", "origin", "shape") if n in given]
+    bad = [n for n in names if extreme(n)]
+    if bad:
+        raise doc.error(("grid", bad[0]), what)
+    if not np.all(np.abs(bounds) <= 1e15):  # the sweep itself: its trajectory or scale
+        for name in ("scale", "trajectory", "scene"):
+            if name in doc.data:
+                raise doc.error((name,), f"the sweep reaches {np.abs(bounds).max():.3g} world "
+                                "units from the origin (at most 1e15)")
+    raise doc.error(("grid", names[0]) if names else ("grid",), what)

@@ -40,6 +40,32 @@ class VolumeRender:
     what: str = "render"
 
 
+def field_paths(pattern: str, names: list[str], multi: bool = False) -> dict:
+    """The output file of each field from ``pattern`` (``{field}``: the field's name).
+
+    With ``multi`` one multi-component NRRD holds every field (key ``None``):
+    ``pattern`` then has no ``{field}`` and ends in ``.nrrd`` or ``.nhdr``.
+    Without it, a pattern without ``{field}`` names the one field of a spec
+    that has one. A :class:`~volwarp_cli.errors.BadUsage` otherwise.
+    """
+    from ..errors import BadUsage
+
+    if multi:
+        if "{field}" in pattern:
+            raise BadUsage("with --multi all fields go into one file: drop {field}")
+        low = pattern.lower()
+        if not (low.endswith(".nrrd") or low.endswith(".nhdr")):
+            raise BadUsage("--multi writes a multi-component NRRD: use .nrrd or .nhdr")
+        return {None: pattern}
+    if "{field}" not in pattern:
+        if len(names) > 1:
+            raise BadUsage(f"the spec has {len(names)} fields ({', '.join(names)}): put "
+                           "{field} in the output name (e.g. 'out_{field}.nrrd') or use "
+                           "--multi")
+        return {names[0]: pattern}
+    return {n: pattern.replace("{field}", n) for n in names}
+
+
 def scale_to_dtype(data, dtype):
     """Float fields in [0, 1] scaled to an integer type's full range (floats unchanged)."""
     if dtype is None or np.dtype(dtype).kind == "f":

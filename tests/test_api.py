@@ -1,0 +1,186 @@
+"""volwarp_cli.api: what a function returns, written with api.write, is its command's output.
+
+Byte for byte, file against file, for each operation (capture, warp of
+intensities, of a label map and of a capture file, sweep, mesh); a spec
+given as a dict is the spec given as a file, and a bad one fails the same
+way, at the same key.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from volwarp_cli import api
+from volwarp_cli.errors import BadUsage, SpecError
+from volwarp_cli.runscope import run_scope
+
+ROOT = Path(__file__).resolve().parent.parent
+BALL = ROOT / "tests" / "data" / "ball_30_uint8.nrrd"
+SPECS = ROOT / "specs"
+#: the bundled ball warped as intensities (the tripled placement resamples every voxel)
+INTENSITY_SPEC = SPECS / "warp-ball-voxel.yaml"
+#: the bundled ball (a 0/200 mask) warped as labels, the grid grown by the spec's pad
+LABELS_SPEC = SPECS / "warp-ball.yaml"
+
+
+@pytest.fixture(autouse=True)
+def _own_run():
+    """Each test is a run of its own: the inputs its API calls read end with it."""
+    with run_scope():
+        yield
+
+
+def _same_bytes(a: Path, b: Path) -> None:
+    assert a.read_bytes() == b.read_bytes(), (a, b)
+
+
+def test_capture_writes_the_command_s_capture_file(run, tmp_path):
+    cli, mine = tmp_path / "cli.vwc", tmp_path / "api.vwc"
+    res = run("capture", BALL, "-o", cli, "--lattice", "6", "7", "8", "--oversample", "2",
+              "--pad", "3")
+    assert res.code == 0, res.stderr
+    cap = api.capture(BALL, lattice=(6, 7, 8), oversample=2, pad=3)
+    api.write(cap, mine)
+    _same_bytes(cli, mine)
+    # the same volume given as a Volume makes the same capture (a capture records no input name)
+    api.write(api.capture(api.read(BALL), lattice=(6, 7, 8), oversample=2, pad=3),
+              tmp_path / "vol.vwc")
+    _same_bytes(cli, tmp_path / "vol.vwc")
+
+
+def test_warp_of_intensities_is_the_command_s_output(run, tmp_path):
+    cli, mine = tmp_path / "cli.nrrd", tmp_path / "api.nrrd"
+    assert run("warp", BALL, "--spec", INTENSITY_SPEC, "-o", cli).code == 0
+    out = api.warp(BALL, INTENSITY_SPEC)
+    api.write(out, mine)
+    _same_bytes(cli, mine)
+    assert out.meta["volwarp_input"] == BALL.name and "volwarp_spec_sha256" in out.meta
+
+
+def test_warp_of_a_label_map_is_the_command_s_output(run, tmp_path):
+    cli, mine = tmp_path / "cli.nrrd", tmp_path / "api.nrrd"
+    res = run("warp", BALL, "--spec", LABELS_SPEC, "-o", cli, "--json")
+    assert res.code == 0, res.stderr
+    assert '"values": "labels"' in res.stdout
+    out = api.warp(BALL, LABELS_SPEC)
+    assert set(np.unique(out.data)) <= {0, 200}  # labels, never a blend of them
+    api.write(out, mine)
+    _same_bytes(cli, mine)
+
+
+@pytest.mark.parametrize("spec, capture_args", [
+    (INTENSITY_SPEC, ["--lattice", "7", "8", "9", "--placement", "tripled", "--oversample",
+                      "1.5", "--sampling", "nearest"]),
+    (LABELS_SPEC, ["--lattice", "9", "--oversample", "2"]),  # its labels, held exactly
+], ids=["intensity", "labels"])
+def test_warp_of_a_capture_file_is_the_command_s_output(run, tmp_path, spec, capture_args):
+    scene = tmp_path / "ball.vwc"
+    assert run("capture", BALL, "-o", scene, *capture_args).code == 0
+    cli, mine = tmp_path / "cli.nrrd", tmp_path / "api.nrrd"
+    res = run("warp", scene, "--spec", spec, "-o", cli)
+    assert res.code == 0, res.stderr
+    out = api.warp(scene, spec)
+    api.write(out, mine)
+    _same_bytes(cli, mine)
+    assert out.meta["volwarp_input"] == "ball.vwc"
+
+
+def test_sweep_fields_are_the_command_s_files(run, tmp_path):
+    spec = SPECS / "sweep-at-size.yaml"
+    res = run("sweep", spec, "-o", tmp_path / "cli_{field}.nrrd", "--shape", 20, 16, 12,
+              "--dtype", "uint8")
+    assert res.code == 0, res.stderr
+    fields = api.sweep(spec, shape=(20, 16, 12), dtype="uint8")
+    assert list(fields) == ["opacity", "red", "green", "blue", "geometry"]
+    api.write(fields, tmp_path / "api_{field}.nrrd")
+    for name in fields:
+        _same_bytes(tmp_path / f"cli_{name}.nrrd", tmp_path / f"api_{name}.nrrd")
+    assert fields["opacity"].data.any()
+
+
+def test_mesh_is_the_command_s_file(run, tmp_path):
+    cli, mine = tmp_path / "cli.ply", tmp_path / "api.ply"
+    res = run("mesh", BALL, "-o", cli, "--iso", "100", "--smooth", "5", "--cap")
+    assert res.code == 0, res.stderr
+    surface = api.mesh(BALL, iso=100, smooth=5, cap=True)
+    api.write(surface, mine)
+    _same_bytes(cli, mine)
+    # a Volume: the same surface; the file records no input name
+    again = api.mesh(api.read(BALL), iso=100, smooth=5, cap=True)
+    assert np.array_equal(again.vertices, surface.vertices)
+    assert np.array_equal(again.faces, surface.faces)
+    assert "volwarp_input" not in again.meta and surface.meta["volwarp_input"] == BALL.name
+
+
+def test_a_spec_dict_is_the_spec_file():
+    ball = api.read(BALL)
+    data = yaml.safe_load(INTENSITY_SPEC.read_text())
+    data["capture"]["lattice"] = tuple(data["capture"]["lattice"])  # tuples read as lists
+    from_file = api.warp(ball, INTENSITY_SPEC)
+    from_dict = api.warp(ball, data)
+    assert from_dict.data.dtype == from_file.data.dtype
+    assert np.array_equal(from_dict.data, from_file.data)
+    assert from_dict.same_grid(from_file, atol=0)
+    # provenance: what is known (no file to hash, no input file's name)
+    assert "volwarp_spec_sha256" in from_file.meta and "volwarp_input" not in from_file.meta
+    assert {k: v for k, v in from_file.meta.items() if k != "volwarp_spec_sha256"} == \
+        from_dict.meta
+
+
+@pytest.mark.parametrize("breaking", [
+    lambda d: d["steps"][1]["drag"][0].__setitem__("to", [12.0, "x", 14.5]),  # the schema
+    lambda d: d["steps"][0]["move"][0].__setitem__("index", [3, 30, 4]),  # past the lattice
+    lambda d: d.__setitem__("capture", dict(d["capture"], placement="tripled",
+                                            lattice=[5, 8, 9])),  # a rule of the spec
+], ids=["schema", "lattice-index", "tripled-lattice"])
+def test_a_bad_spec_dict_fails_as_its_file(run, tmp_path, breaking):
+    data = yaml.safe_load(INTENSITY_SPEC.read_text())
+    breaking(data)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(SpecError) as from_file:
+        api.warp(BALL, path)
+    with pytest.raises(SpecError) as from_dict:
+        api.warp(BALL, data)
+    assert type(from_dict.value) is type(from_file.value)
+    assert from_dict.value.key == from_file.value.key is not None
+    assert from_dict.value.message == from_file.value.message
+    assert from_file.value.line is not None and from_dict.value.line is None
+    res = run("warp", BALL, "--spec", path, "-o", tmp_path / "out.nrrd")
+    assert res.code == 2 and f"{from_file.value.key}: " in res.stderr
+
+
+@pytest.mark.parametrize("value, what", [
+    (math.nan, "must be a finite number"),
+    (object(), "cannot read a object"),
+], ids=["nan", "object"])
+def test_a_spec_dict_holds_plain_finite_data(value, what):
+    data = yaml.safe_load(INTENSITY_SPEC.read_text())
+    data["steps"][0]["move"][0]["by"][1] = value
+    with pytest.raises(SpecError, match=what) as err:
+        api.warp(BALL, data)
+    assert err.value.key == "steps[0].move[0].by[1]"
+
+
+def test_a_recursive_spec_dict_is_refused():
+    data = yaml.safe_load(INTENSITY_SPEC.read_text())
+    data["steps"][0]["move"].append(data["steps"])
+    with pytest.raises(SpecError, match="contains itself") as err:
+        api.warp(BALL, data)
+    assert err.value.key == "steps[0].move[1]"  # (where the value holds itself)
+
+
+def test_write_never_replaces_an_input(tmp_path):
+    copy = tmp_path / "ball.nrrd"
+    copy.write_bytes(BALL.read_bytes())
+    vol = api.read(copy)
+    with pytest.raises(BadUsage, match="never replaces an input"):
+        api.write(vol, copy)
+    assert copy.read_bytes() == BALL.read_bytes()
+    with pytest.raises(BadUsage, match="must end in .vwc"):
+        api.write(api.capture(vol, lattice=6), tmp_path / "scene.nrrd")

@@ -1,0 +1,676 @@
+"""volwarp from Python: the commands' own code, with volumes, specs and meshes as values.
+
+Each function runs the code its command runs (the same reading, planning
+and computing, as the one-block case of :mod:`volwarp_cli.execute`) and
+returns what the command would write; :func:`write` writes it, atomically,
+with the command's writer, so that the file is the command's output byte for
+byte::
+
+    from volwarp_cli import api
+
+    ball = "tests/data/ball_30_uint8.nrrd"
+    dent = {"version": 1, "units": "voxel", "values": "intensity",
+            "steps": [{"move": [{"index": [4, 6, 4], "by": [0, -3, 0]}]}]}
+    warped = api.warp(ball, dent)              # a Volume
+    api.write(warped, "dented.nrrd")           # = volwarp warp BALL --spec dent.yaml ...
+    surface = api.mesh(warped, iso=100)        # a Mesh (world coordinates)
+    api.write(surface, "dented.ply")
+    scene = api.capture(ball, lattice=6)       # a Capture (.vwc)
+    api.write(scene, "ball.vwc")
+
+Inputs: a volume is a :class:`~volwarp_cli.volume.Volume` or a path (read
+as the command reads it: the read options of :func:`read` are keyword
+arguments of every function that takes a path, e.g. ``raw_shape``,
+``volume_index``, ``series``); a spec is a path or a ``dict`` of the same
+schema (``specs/*.schema.json``), checked the same way: its errors are
+:class:`~volwarp_cli.errors.SpecError` naming the same key paths (a
+``dict`` has no line numbers; its relative file names are relative to the
+current folder). Errors are the commands' (:mod:`volwarp_cli.errors`):
+``SpecError`` and ``BadUsage`` where the command exits 2, another
+``VolwarpError`` where it exits 1.
+
+Provenance: the commands record in their outputs' key/values the command,
+its inputs' file names and the spec's SHA-256
+(:func:`volwarp_cli.provenance.provenance`). Given paths, these functions
+record exactly the same; given values, what is known: no
+``volwarp_input`` for a Volume (nor for a dict spec of ``sweep``), no
+``volwarp_spec_sha256`` for a dict spec (a file's bytes are hashed, and a
+dict has none). An earlier step's provenance keys are replaced either way.
+
+Inputs are never overwritten: a path read through this module (and every
+file its header names) is an input of the current run
+(:mod:`volwarp_cli.runscope`; outside any :func:`~volwarp_cli.runscope.run_scope`,
+the process's), and :func:`write` refuses to replace one, as every command
+does. Nothing here prints: warnings (and ``-v``'s steps, at INFO) go to
+the ``volwarp`` logger (:data:`volwarp_cli.progress.log`).
+How the work runs: on :func:`volwarp_cli.parallel.threads` threads, within
+:func:`volwarp_cli.memory.memory_limit` (work that cannot fit is refused
+before it starts, an :class:`~volwarp_cli.errors.OutOfMemoryError`; the
+commands would run it by blocks, into their files).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from .errors import BadUsage
+from .surface.mesh import Mesh as _Mesh
+from .volume import Volume
+
+__all__ = ["Mesh", "READ_OPTIONS", "capture", "mesh", "read", "sweep", "warp", "write"]
+
+#: The keyword options of :func:`read` (those of ``volwarp convert``, snake_case); every
+#: function that takes a volume path takes them too.
+READ_OPTIONS = ("raw_shape", "raw_dtype", "raw_endian", "raw_spacing", "raw_origin",
+                "raw_header_bytes", "volume_index", "series", "irregular", "duplicates",
+                "keep_shear", "keep_phi", "allow_outside_data")
+
+
+@dataclass
+class Mesh(_Mesh):
+    """A :class:`volwarp_cli.surface.mesh.Mesh` with the key/values its file records.
+
+    ``meta``: what :func:`write` puts where the format has room for text
+    (PLY and OBJ comments, a VTP comment): the provenance and the level,
+    as ``volwarp mesh`` writes them.
+    """
+
+    meta: dict = field(default_factory=dict)
+
+
+# -- files -------------------------------------------------------------------------------
+def read(path: str | os.PathLike, **options) -> Volume:
+    """The volume file ``path``, read as ``volwarp convert`` reads its input.
+
+    Parameters
+    ----------
+    path : path
+        A volume file (NRRD, NIfTI, MetaImage, TIFF, raw, OME-Zarr) or a DICOM
+        file, folder or DICOMDIR.
+    raw_shape, raw_dtype : optional
+        A headerless ``.raw``/``.bin`` file: its samples along (x, y, z) and
+        their type (the two go together); ``raw_endian`` (``"little"``),
+        ``raw_spacing`` and ``raw_origin`` ((x, y, z)), ``raw_header_bytes``.
+    volume_index : int, optional
+        A 4-D NIfTI or MetaImage: which volume; a multi-component NRRD: which
+        component.
+    series, irregular, duplicates, keep_shear, keep_phi : optional
+        DICOM inputs: as the commands' ``--series`` (a SeriesInstanceUID or
+        its number), ``--irregular resample``, ``--duplicates first|last``,
+        ``--keep-shear``, ``--keep-phi``.
+    allow_outside_data : bool
+        Let a detached header read data files outside its folder.
+
+    Returns
+    -------
+    Volume
+        Samples ``[z, y, x]``, geometry (x, y, z) in LPS, the file's key/values.
+    """
+    from .io import read_volume
+    from .io.inputs import declare_input
+
+    raw, volume_index, dicom, outside = _read_arguments(path, options)
+    declare_input(path)
+    with _outside_data(outside):
+        return read_volume(path, raw=raw, volume_index=volume_index, dicom=dicom)
+
+
+def write(obj, path: str | os.PathLike, *, dtype: str | None = None, compress: bool = False,
+          byte_order: str = "little", ome_zarr_version: str = "0.5", pyramid: int = 0,
+          labels="auto") -> None:
+    """Write ``obj`` to ``path`` atomically, with the writer its command uses.
+
+    Parameters
+    ----------
+    obj : Volume, dict of Volume, Mesh or Capture
+        A Volume (format by extension: :func:`volwarp_cli.io.write_volume`);
+        :func:`sweep`'s fields (``path`` a pattern with ``{field}``, or the
+        name of a spec's one field); a mesh (``.ply .stl .obj .vtp .vtk``,
+        its :attr:`Mesh.meta` as comments); a capture (``.vwc``).
+    dtype, compress, byte_order, ome_zarr_version, pyramid : optional
+        Volumes: as the commands' ``--dtype``, ``--compress``,
+        ``--byte-order``, ``--ome-zarr-version`` and ``--pyramid``.
+    labels : True, False or ``"auto"``
+        OME-Zarr pyramids: whether levels take the most frequent label (True)
+        or the mean; ``"auto"``: the label-map rule. ``volwarp warp`` writes a
+        label map's warp with True: give it for a label warp's pyramid.
+
+    Notes
+    -----
+    The output is written to a temporary file in its folder and renamed into
+    place; an output that would replace an input of this run (a path read
+    here, a file its header names) is refused (:class:`~volwarp_cli.errors.BadUsage`)
+    before anything is written.
+    """
+    from .bspline.capture import Capture
+
+    volume_options = dict(dtype=dtype, compress=compress, byte_order=byte_order,
+                          ome_zarr_version=ome_zarr_version, pyramid=pyramid)
+    defaults = dict(dtype=None, compress=False, byte_order="little", ome_zarr_version="0.5",
+                    pyramid=0)
+    if isinstance(obj, Volume):
+        from .io import write_volume
+
+        write_volume(obj, path, labels=labels, **volume_options)
+        return
+    if isinstance(obj, Mapping) and obj and all(isinstance(v, Volume) for v in obj.values()):
+        from .sweep.run import field_paths
+
+        paths = field_paths(str(path), [str(k) for k in obj])
+        for name, vol in obj.items():
+            write(vol, paths[str(name)], labels=labels, **volume_options)
+        return
+    given = [k for k, v in volume_options.items() if v != defaults[k]]
+    if labels != "auto":
+        given.append("labels")
+    if isinstance(obj, (_Mesh, Capture)) and given:
+        raise BadUsage(f"{', '.join(given)} apply to volume outputs, not to a "
+                       f"{'mesh' if isinstance(obj, _Mesh) else 'capture'}")
+    if isinstance(obj, _Mesh):
+        from .surface.mesh_io import write_mesh
+
+        write_mesh(obj, path, comments=getattr(obj, "meta", None))
+    elif isinstance(obj, Capture):
+        from .warp.capture_file import write_capture
+
+        if not str(path).lower().endswith(".vwc"):
+            raise BadUsage(f"{path}: a capture file must end in .vwc")
+        write_capture(obj, path)
+    else:
+        raise TypeError(f"api.write writes a Volume, a dict of Volumes (a sweep's fields), a "
+                        f"Mesh or a Capture, not {type(obj).__name__}")
+
+
+# -- operations --------------------------------------------------------------------------
+def capture(volume, *, lattice=9, placement: str = "uniform", oversample: float = 2.0,
+            pad=None, sampling: str = "linear", name: str | None = None, **read_options):
+    """``volwarp capture``: ``volume`` pulled back into a B-spline domain voxmap.
+
+    Parameters
+    ----------
+    volume : Volume or path
+        The volume to capture (a path is read with ``read_options``, as
+        :func:`read` reads it).
+    lattice : int or (int, int, int)
+        Control points per axis (x, y, z), 4 at least (6 with ``tripled``).
+    placement : {"uniform", "tripled"}
+        Where the capture lattice's points go (``volwarp capture --help``).
+    oversample : float
+        Domain voxels per input voxel along each axis, in (0, 16].
+    pad : int or (int, int, int), optional
+        Output padding in voxels per side, for later warps.
+    sampling : {"linear", "nearest"}
+        How a domain voxel takes its value from the input.
+    name : str, optional
+        The input in messages (default: its path, else "the volume").
+
+    Returns
+    -------
+    Capture
+        :class:`volwarp_cli.bspline.capture.Capture`; :func:`write` it to a
+        ``.vwc`` file, or keep it. A label map captured on the spanning grid
+        (``tripled``, or a non-integer ``oversample``) is warned about: its
+        ids are blended for good.
+
+    References
+    ----------
+    Hughes, "Volume warping", 1992, sections 3, 5 and 7.
+    """
+    import math
+    import numbers
+
+    from .bspline.capture import capture_volume
+    from .errors import VolwarpError
+
+    _check_keys(read_options)
+    if not (isinstance(oversample, numbers.Real) and math.isfinite(oversample)
+            and 0 < oversample <= 16):
+        raise BadUsage(f"oversample must be a number in (0, 16], got {oversample!r}")
+    path = _path_of(volume)
+    vol = read(volume, **read_options) if path is not None else _volume(volume, read_options)
+    name = str(name or path or "the volume")
+    _warn_blended_labels(vol, name, placement, oversample)
+    try:
+        return capture_volume(vol, lattice=_three_ints(lattice, "lattice"),
+                              placement=placement, oversample=oversample, sampling=sampling,
+                              pad=pad)
+    except VolwarpError as exc:
+        raise VolwarpError(f"{name}: {exc}") from None
+
+
+def warp(volume, spec, *, values: str | None = None, pushforward: str | None = None,
+         evaluator: str | None = None, background_value: float | None = None,
+         grid: str | None = None, crop: bool = False, preserve_labels: bool = False,
+         dtype: str | None = None, allow_growth: bool = False, **read_options) -> Volume:
+    """``volwarp warp``: ``volume`` warped as ``spec`` says (its final lattice).
+
+    Parameters
+    ----------
+    volume : Volume or path
+        A volume, a volume file, or a capture file (``.vwc``, as
+        :func:`capture` and ``volwarp capture`` write them).
+    spec : path or dict
+        A warp spec (schema ``specs/warp.schema.json``).
+    values : {"intensity", "labels"}, optional
+        How the samples are warped (default: the spec's, else labels for what
+        looks like a label map).
+    pushforward, evaluator, background_value, grid, crop, preserve_labels, dtype, allow_growth
+        As the command's ``--pushforward``, ``--evaluator``,
+        ``--background-value``, ``--grid``, ``--crop``, ``--preserve-labels``,
+        ``--dtype`` and ``--allow-growth``.
+
+    Returns
+    -------
+    Volume
+        The warped volume, with ``volwarp warp``'s provenance (see the module
+        notes). A label map's warp keeps its labels: write its OME-Zarr
+        pyramid with ``labels=True``, as the command does.
+
+    Notes
+    -----
+    The command's own planning (:func:`volwarp_cli.warp.request.plan_final`),
+    and its output computed whole, as :func:`volwarp_cli.execute.run` does in
+    memory (a label map's: :meth:`~volwarp_cli.warp.run.LabelMapBlocks.render_whole`).
+    The frames (``--frames-to``) and the exports are not made here.
+
+    References
+    ----------
+    Hughes, "Volume warping", 1992, sections 4 to 7.
+    """
+    import math
+
+    from .bspline.plan import read_warp_spec
+    from .io import SUPPORTED_DTYPES
+    from .warp.defaults import GRIDS, VALUES, new_run
+    from .warp.request import open_capture_values, plan_final
+    from .warp.run import WarpOptions
+
+    _check_keys(read_options)
+    _choice(values, VALUES, "values")
+    _choice(pushforward, ("box", "nearest"), "pushforward")
+    _choice(evaluator, ("separable", "table"), "evaluator")
+    _choice(grid, GRIDS, "grid")
+    _choice(dtype, SUPPORTED_DTYPES, "dtype")
+    if background_value is not None and not math.isfinite(background_value):
+        raise BadUsage(f"background_value must be a finite number, got {background_value!r}")
+    if allow_growth and (crop or grid == "input"):
+        raise BadUsage("--allow-growth lets a grown grid grow: give --grid grow")
+    options = WarpOptions(pushforward=pushforward, evaluator=evaluator,
+                          background=background_value, crop=crop, dtype=dtype,
+                          allow_growth=allow_growth, grid=grid)
+    new_run()
+    doc, spec_path = _spec(spec, "warp")
+    wspec = read_warp_spec(doc)
+    path = _path_of(volume)
+    name = str(path) if path is not None else "the volume"
+    cap = choice = None
+    with _outside_data(read_options.get("allow_outside_data", False)):
+        if path is not None and str(path).lower().endswith(".vwc"):
+            if _given(read_options):
+                raise BadUsage("--raw-*, --volume-index and the DICOM options describe volume "
+                               f"inputs, not the capture file {path}")
+            from .io.inputs import declare_input
+
+            declare_input(path)
+            choice, cap, template, source, wspec = open_capture_values(path, doc, wspec,
+                                                                       values)
+        elif path is not None:
+            template, source = _open_lazy(path, read_options)
+        else:
+            template = _volume(volume, read_options)
+            source = template.data
+        choice, planned = plan_final(template, source, doc, wspec, options, values=values,
+                                     preserve=preserve_labels, name=name, cap=cap,
+                                     choice=choice)
+        if choice.is_labels:
+            return _warp_labels(planned, name, path, spec_path)
+        out = planned.output_template()
+        op = planned.operation(_target(_stamped(out, "warp", path, spec_path)), source=source)
+        (result,) = _compute_whole(op).values()
+        return result
+
+
+def sweep(spec, *, shape=None, spacing: float | None = None, method: str | None = None,
+          tau: float | None = None, dtype: str | None = None) -> dict[str, Volume]:
+    """``volwarp sweep``: the image-swept volume of ``spec``, one Volume per field.
+
+    Parameters
+    ----------
+    spec : path or dict
+        A sweep spec (schema ``specs/sweep.schema.json``); its template images
+        are relative to its folder (a dict's: to the current folder).
+    shape : (int, int, int), optional
+        The output grid's samples (x, y, z); the spacing is fitted.
+    spacing : float, optional
+        The output grid's (isotropic) spacing; the shape is fitted. Neither:
+        the spec's ``grid``, else fitted around the sweep.
+    method : {"voxelize", "direct"}, optional
+        Adaptive subdivision or inverse mapping (default: the spec's).
+    tau : float, optional
+        The largest distance between neighbouring templates (world units).
+    dtype : str, optional
+        The fields' type (default float32; an integer type scales 0..1 to its
+        maximum).
+
+    Returns
+    -------
+    dict of str to Volume
+        Field name to field; :func:`write` them with a ``{field}`` pattern
+        (the command's ``-o``; ``--multi``'s one file is not made here).
+
+    References
+    ----------
+    Winter and Chen, "Image-swept volumes", 2002, sections 3 to 5.
+    """
+    from .io import SUPPORTED_DTYPES
+    from .sweep.model import output_grid, parse_sweep_spec
+    from .sweep.run import SweepOperation
+
+    _choice(method, ("voxelize", "direct"), "method")
+    _choice(dtype, SUPPORTED_DTYPES, "dtype")
+    if tau is not None and not tau > 0:
+        raise BadUsage(f"tau must be a positive number, got {tau!r}")
+    doc, spec_path = _spec(spec, "sweep")
+    sspec = parse_sweep_spec(doc)
+    geometry = output_grid(sspec, shape=shape, spacing=spacing)
+    meta = _provenance("sweep", [spec_path], spec_path)
+    names = sspec.field_names()
+    op = SweepOperation(sspec, geometry, dict.fromkeys(names), dtype or "float32", meta, {},
+                        method=method, tau=tau)
+    return _compute_whole(op)
+
+
+def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool = False,
+         smooth: int = 0, decimate: float = 0.0, largest_component: bool = False,
+         allow_empty: bool = False, label: int | None = None, **read_options) -> Mesh:
+    """``volwarp mesh``: the isosurface of ``volume`` at ``iso``, in world coordinates.
+
+    Parameters
+    ----------
+    volume : Volume or path
+        The volume (a path is read as the command reads it).
+    iso : float, optional
+        The level (default: the middle of the value range).
+    inside : {"above", "below"}
+        Which side of the level is the shape (the outward normals).
+    cap : bool
+        Close the surface where the shape touches the volume's border.
+    smooth, decimate, largest_component
+        As the command's ``--smooth``, ``--decimate`` and ``--largest-component``.
+    allow_empty : bool
+        An empty surface gives an empty mesh (a warning) instead of an error.
+    label : int, optional
+        A label map: the surface of label ``label`` (no ``iso`` or ``inside``).
+
+    Returns
+    -------
+    Mesh
+        Triangles counter-clockwise seen from outside, outward normals; its
+        :attr:`Mesh.meta` the provenance and level ``volwarp mesh`` records.
+        (``--labels``, one file per label, is not made here: call this for
+        each label.)
+    """
+    import math
+    import numbers
+
+    from . import execute
+    from .surface.ops import Cleanup
+    from .surface.run import Level, MeshOperation
+
+    _check_keys(read_options)
+    _choice(inside, ("above", "below"), "inside")
+    if not (isinstance(smooth, numbers.Integral) and smooth >= 0):
+        raise BadUsage(f"smooth must be a whole number of iterations (0: none), got {smooth!r}")
+    if not (isinstance(decimate, numbers.Real) and 0 <= decimate < 1):
+        raise BadUsage(f"decimate must be a fraction in [0, 1), got {decimate!r}")
+    if iso is not None and not (isinstance(iso, numbers.Real) and math.isfinite(iso)):
+        raise BadUsage(f"iso must be a finite number, got {iso!r}")
+    if label is not None and iso is not None:
+        raise BadUsage("--iso does not apply to --label/--labels (the level is 0.5 of "
+                       "each label's indicator)")
+    if label is not None and inside != "above":
+        raise BadUsage("--inside does not apply to --label/--labels (inside is where the "
+                       "label is)")
+    path = _path_of(volume)
+    with _outside_data(read_options.get("allow_outside_data", False)):
+        if path is not None:
+            template, source = _open_lazy(path, read_options)
+        else:
+            template = _volume(volume, read_options)
+            source = template.data
+        op = MeshOperation(template, source, Level(iso, inside, cap),
+                           cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
+                                           decimate=decimate),
+                           labels=label, allow_empty=allow_empty,
+                           name=str(path) if path is not None else "the volume")
+        (surface,) = execute.run(op, execute.How(chunked=False)).output
+    meta = _provenance("mesh", [path], None)
+    # (as MeshOperation writes one surface: its level, to 9 digits)
+    meta["volwarp_iso"] = f"{surface.iso:.9g}"
+    m = surface.mesh
+    return Mesh(m.vertices, m.faces, m.normals, meta=meta)
+
+
+# -- the pieces --------------------------------------------------------------------------
+def _path_of(volume) -> str | os.PathLike | None:
+    """``volume`` when it is a path, else None (a Volume)."""
+    if isinstance(volume, (str, os.PathLike)):
+        return volume
+    if isinstance(volume, Volume):
+        return None
+    raise TypeError(f"a volume is a Volume or a path, not {type(volume).__name__}")
+
+
+def _volume(vol: Volume, read_options: dict) -> Volume:
+    """A Volume input: read options do not apply."""
+    given = _given(read_options)
+    if given:
+        raise BadUsage(f"{', '.join(sorted(given))}: read options apply to a path input, "
+                       "not to a Volume")
+    return vol
+
+
+def _check_keys(read_options: dict) -> None:
+    """A TypeError, as Python's own, for a keyword that is not a read option (a typo)."""
+    unknown = sorted(set(read_options) - set(READ_OPTIONS))
+    if unknown:
+        raise TypeError(f"unexpected keyword argument {unknown[0]!r} (the read options: "
+                        f"{', '.join(READ_OPTIONS)})")
+
+
+def _given(read_options: dict) -> dict:
+    """The read options given a value (not None, not False)."""
+    return {k: v for k, v in read_options.items() if v is not None and v is not False}
+
+
+def _read_arguments(path, options: dict):
+    """``(raw, volume_index, dicom, allow_outside_data)`` of :func:`read`'s keyword options.
+
+    As the commands' ``--raw-*`` and DICOM options combine
+    (``volwarp_cli.cli.options.input_options``), refused as they refuse them
+    (``volwarp_cli.cli.common.check_input_options``): an option for another
+    format than ``path``'s is a usage error.
+    """
+    from .io import RawLayout, volume_format
+
+    _check_keys(options)
+    o = dict.fromkeys(READ_OPTIONS)
+    o.update(options)
+    raw = None
+    if o["raw_shape"] is not None or o["raw_dtype"] is not None:
+        if o["raw_shape"] is None or o["raw_dtype"] is None:
+            raise BadUsage("--raw-shape and --raw-dtype go together")
+        raw = RawLayout(shape=tuple(int(v) for v in o["raw_shape"]), dtype=o["raw_dtype"],
+                        endian=o["raw_endian"] or "little",
+                        spacing=tuple(o["raw_spacing"] or (1.0, 1.0, 1.0)),
+                        origin=tuple(o["raw_origin"] or (0.0, 0.0, 0.0)),
+                        header_bytes=int(o["raw_header_bytes"] or 0))
+    elif o["raw_spacing"] or o["raw_origin"] or o["raw_header_bytes"]:
+        raise BadUsage("--raw-spacing/--raw-origin/--raw-header-bytes need --raw-shape and "
+                       "--raw-dtype")
+    dicom = {}
+    series = o["series"]
+    if series is not None:
+        dicom["series"] = int(series) if str(series).isdigit() else series
+    for key in ("irregular", "duplicates"):
+        if o[key] is not None:
+            dicom[key] = o[key]
+    for key in ("keep_shear", "keep_phi"):
+        if o[key]:
+            dicom[key] = True
+    dicom = dicom or None
+    if raw is not None and not str(path).lower().endswith((".raw", ".bin")):
+        raise BadUsage(f"--raw-* options describe headerless .raw/.bin inputs, not {path}")
+    if dicom is not None and volume_format(path, reading=True) != "dicom":
+        given = " ".join(f"--{k.replace('_', '-')}" for k in sorted(dicom))
+        raise BadUsage(f"{given} applies to DICOM inputs, and {path} is not one")
+    return raw, o["volume_index"], dicom, bool(o["allow_outside_data"])
+
+
+@contextlib.contextmanager
+def _outside_data(allowed: bool):
+    """The run's readers may open data files outside a detached header's folder, for a while."""
+    from .runscope import run_files
+
+    files = run_files()
+    before = files.allow_outside_data
+    if allowed:
+        files.allow_outside_data = True
+    try:
+        yield
+    finally:
+        files.allow_outside_data = before
+
+
+def _open_lazy(path, read_options: dict):
+    """``(template, source)`` of a volume path, opened as the commands open it by blocks.
+
+    (``volwarp_cli.cli.chunked.lazy_input``: the geometry read, the samples
+    read box by box.)
+    """
+    from .io.inputs import declare_input
+    from .io.lazy import LazySource, open_volume_template
+
+    raw, volume_index, dicom, _ = _read_arguments(path, read_options)
+    declare_input(path)
+    template, array = open_volume_template(path, raw=raw, volume_index=volume_index,
+                                           dicom=dicom)
+    return template, LazySource(path, raw=raw, volume_index=volume_index, array=array,
+                                dicom=dicom)
+
+
+def _spec(spec, kind: str):
+    """``(doc, path or None)``: a spec file or dict, checked against ``kind``'s schema."""
+    from .io.inputs import declare_input
+    from .spec.loader import load_spec, load_spec_data
+
+    if isinstance(spec, Mapping):
+        return load_spec_data(spec, kind), None
+    if not isinstance(spec, (str, os.PathLike)):
+        raise TypeError(f"a spec is a path or a dict, not {type(spec).__name__}")
+    declare_input(spec)
+    return load_spec(spec, kind), spec
+
+
+def _provenance(command: str, inputs: list, spec) -> dict:
+    """:func:`volwarp_cli.provenance.provenance` of what is known (see the module notes)."""
+    from .provenance import provenance
+
+    known = [p for p in inputs if p is not None]
+    meta = provenance(command, known, spec)
+    if len(known) < len(inputs) or not known:
+        del meta["volwarp_input"]
+    return meta
+
+
+def _stamped(vol: Volume, command: str, path, spec_path) -> Volume:
+    """``vol`` with its provenance (:func:`volwarp_cli.provenance.stamp`'s, of what is known)."""
+    from .provenance import PROVENANCE_KEYS
+
+    meta = {k: v for k, v in vol.meta.items() if k not in PROVENANCE_KEYS}
+    meta.update(_provenance(command, [path], spec_path))
+    return vol.with_data(vol.data, meta=meta)
+
+
+def _target(template: Volume):
+    """An output at no path (:class:`volwarp_cli.execute.Target`): computed, not written."""
+    from .execute import Target
+
+    return Target(None, template, template.dtype)
+
+
+def _compute_whole(op) -> dict:
+    """``op``'s outputs as Volumes, computed as :func:`volwarp_cli.execute.run` does in memory.
+
+    The whole grid as one block on this process's threads (refused before any
+    work where it cannot fit the memory budget); key -> the Volume its
+    target's file would hold.
+    """
+    from .execute import compute_whole
+    from .memory import ensure_fits_once_loaded
+
+    ensure_fits_once_loaded(op.memory(op.grid.box), op.what, op.load)
+    results = compute_whole(op)
+    return {key: target.template.with_data(op.output(results, key))
+            for key, target in op.targets.items()}
+
+
+def _warp_labels(planned, name: str, path, spec_path) -> Volume:
+    """A label map's warp, whole (as ``volwarp warp`` makes it in memory)."""
+    from .memory import ensure_fits_once_loaded
+    from .progress import log
+    from .warp.labels import format_report
+
+    ensure_fits_once_loaded(planned.memory_whole(), f"the warp of {name}'s labels", None)
+    out, report = planned.render_whole()
+    log.info("per-label volumes (mm^3):\n%s", format_report(report))
+    stamped = _stamped(planned.template, "warp", path, spec_path)
+    return stamped.with_data(out.data, origin=out.origin)
+
+
+def _warn_blended_labels(vol: Volume, name: str, placement: str, oversample: float) -> None:
+    """Say when a label map is captured on the spanning grid, which blends its ids.
+
+    On the subdivision grid (the uniform placement, an integer oversample) a
+    capture holds its input's samples, and ``warp`` takes a label map's
+    capture for labels as it takes the map; on the spanning grid its ids are
+    blended for good, and a warp of it can only average them.
+    """
+    from .bspline.lattice import subdivision_of
+    from .progress import log
+    from .warp.defaults import choose_values
+
+    if subdivision_of(oversample, placement):
+        return
+    choice = choose_values(vol.data)
+    if choice.is_labels:
+        how = ("the tripled placement" if placement != "uniform"
+               else f"oversample {oversample:g}")
+        log.warning("warning: %s looks like a label map (%d labels), and %s blends its ids "
+                    "(a warp of this capture averages them); capture it with the uniform "
+                    "placement and an integer --oversample to warp it as labels", name,
+                    choice.labels, how)
+
+
+def _choice(value, choices, name: str) -> None:
+    """A usage error for an option whose value is not one of ``choices`` (None: not given)."""
+    if value is not None and value not in choices:
+        raise BadUsage(f"{name} must be one of {', '.join(map(str, choices))}, got {value!r}")
+
+
+def _three_ints(value, name: str) -> tuple[int, int, int]:
+    """One int or three (x, y, z), as three ints."""
+    import numbers
+
+    try:
+        sizes = ([int(value)] * 3 if isinstance(value, numbers.Integral)
+                 else [int(v) for v in value])
+    except (TypeError, ValueError):
+        sizes = []
+    if len(sizes) != 3:
+        raise BadUsage(f"{name}: give one size or three (x y z), got {value!r}")
+    return tuple(sizes)
+
