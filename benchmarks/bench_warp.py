@@ -141,7 +141,7 @@ def core_figures(quick):
     dq = cap.dq.copy()
     dq[4, 4, 4] += [3.0, 2.0, 1.0]
     scene = Scene(cap.domain, cap.grid, dq, 4)
-    scene.render()
+    scene.compute()
     t = median_time(scene.render, 2 if quick else 3)
     scene.render_once()
     t_once = median_time(scene.render_once, 2 if quick else 3)
@@ -158,13 +158,13 @@ def oversample2_figures():
     from volwarp_cli.volume import Volume
 
     warm = capture_volume(Volume(np.ones((8, 8, 8), np.float32)), lattice=5)
-    Scene(warm.domain, warm.grid, warm.dq, 1).render()  # load numba's cached kernels
+    Scene(warm.domain, warm.grid, warm.dq, 1).compute()  # load numba's cached kernels
     data = volume(128)
     t0 = time.perf_counter()
     cap = capture_volume(Volume(data))  # 9^3, oversample 2 -> 258^3 domain
     tcap = time.perf_counter() - t0
     scene = Scene(cap.domain, cap.grid, cap.dq, 4)
-    scene.render()  # the captured state (no point moved)
+    scene.compute()  # the captured state (no point moved)
     dq = cap.dq.copy()
     dq[4, 4, 4] += [2.0, 1.0, -1.0]
     t0 = time.perf_counter()
@@ -173,7 +173,7 @@ def oversample2_figures():
     peak = peak_rss_mib()
     moved = Scene(cap.domain, cap.grid, dq, 4)
     t0 = time.perf_counter()
-    moved.render()
+    moved.compute()
     tfull = time.perf_counter() - t0
     print(f"128^3 oversample 2 (domain {cap.grid.domain_shape}): capture {tcap:.3f} s, "
           f"full warp {tfull:.3f} s, one-point warp step {tstep:.3f} s ({step_kind(scene)}), "
@@ -202,8 +202,8 @@ def incremental_figures():
     deformed = cap.dq + rng.normal(scale=0.3, size=cap.dq.shape)
     for name, start in (("from the capture", cap.dq), ("deformed lattice", deformed)):
         scene = Scene(cap.domain, cap.grid, start, 4)
-        scene.render()
-        scene.render()  # warm
+        scene.compute()
+        scene.compute()  # warm
         dq = start.copy()
         steps, fulls, kinds = [], [], set()
         # pairs: an update, then a full recomputation of the same lattice (which
@@ -215,7 +215,7 @@ def incremental_figures():
             scene.set_lattice(dq)
             t1 = time.perf_counter()
             kinds.add(step_kind(scene))
-            scene.render()
+            scene.compute()
             t2 = time.perf_counter()
             steps.append(t1 - t0)
             fulls.append(t2 - t1)
@@ -235,7 +235,7 @@ def papers_size():
     data = (255 * ((x - 14.5) ** 2 + (y - 14.5) ** 2 + (z - 14.5) ** 2 <= 100)).astype(np.uint8)
     cap = capture_volume(Volume(data), lattice=(9, 9, 9), oversample=2)
     scene = Scene(cap.domain, cap.grid, cap.dq, 4)
-    scene.render()
+    scene.compute()
     dq = cap.dq.copy()
     times = []
     for s in range(5):

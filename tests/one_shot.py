@@ -1,6 +1,6 @@
 """The one-shot warp of a bare Scene, for tests: the whole target as one block.
 
-(:func:`volwarp_cli.warp.blocks.render_block` over the whole target, the
+(:func:`volwarp_cli.warp.blocks.warp_block` over the whole target, the
 domain served by the scene's own sampler: what the command's warp computes
 for its whole output on one thread.)
 """
@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 
 from volwarp_cli.bspline.pullback import DomainSampler
-from volwarp_cli.warp.blocks import render_block, target_box
+from volwarp_cli.warp.blocks import target_box, warp_block
 
 
 def one_shot(scene) -> np.ndarray:
     """``scene``'s target for its current lattice, computed as one block."""
     sampler = scene.sampler if scene.sampler is not None else DomainSampler(scene.domain)
-    return render_block(scene, sampler, target_box(scene))
+    return warp_block(scene, sampler, target_box(scene))

@@ -146,7 +146,7 @@ def test_identity_exact_with_nearest_at_oversample_1(size):
     data = rng.integers(0, 255, size=(size, size - 3, size + 2)).astype(np.uint8)
     cap = capture_volume(Volume(data), lattice=(9, 8, 7), oversample=1, sampling="nearest")
     scene = Scene(cap.domain, cap.grid, cap.dq, 0, method="nearest")
-    out = np.rint(scene.render()).astype(np.uint8)
+    out = np.rint(scene.compute()).astype(np.uint8)
     assert np.array_equal(out, data)
 
 
@@ -154,12 +154,12 @@ def test_identity_default_settings_smooth_model():
     data = smooth_blob((64, 64, 64))
     cap = capture_volume(Volume(data))  # 9^3, uniform, oversample 2, linear
     scene = Scene(cap.domain, cap.grid, cap.dq, 3)  # box
-    out = scene.render()[3:-3, 3:-3, 3:-3]
+    out = scene.compute()[3:-3, 3:-3, 3:-3]
     err = out - data
     rng_ = data.max() - data.min()
     assert np.sqrt(np.mean(err ** 2)) < 0.01 * rng_
     assert np.max(np.abs(err)) < 0.05 * rng_
-    assert np.all(scene.render()[:3] == 0)
+    assert np.all(scene.compute()[:3] == 0)
 
 
 @pytest.mark.parametrize("degrees", [12.0, 33.0])
@@ -178,7 +178,7 @@ def test_affine_precision_against_scipy(degrees):
     moved = (pts - c) @ m.T + c + shift
     pad = 12
     scene = Scene(cap.domain, cap.grid, moved - cap.grid.uniform_positions(), pad)
-    out = scene.render()
+    out = scene.compute()
     # reference: out(p) = data(M^-1 (p - pad - c - shift) + c), in (x, y, z) then [z, y, x]
     minv = np.linalg.inv(m)
     mat_xyz = minv
@@ -206,7 +206,7 @@ def _moved_scene(method="box"):
 @pytest.mark.parametrize("method", ["box", "nearest"])
 def test_local_control_bit_identical_outside(method, local_updates):
     cap, scene = _moved_scene(method)
-    before = scene.render().copy()
+    before = scene.compute().copy()
     i, j, k = 4, 3, 5
     dq = scene.dq.copy()
     dq[k, j, i] += [2.0, -1.5, 1.0]
@@ -245,13 +245,13 @@ def test_incremental_equals_full(moves, method, oversample, local_updates):
     data = smooth_blob((14, 16, 18))
     cap = capture_volume(Volume(data), lattice=(7, 6, 5), oversample=oversample)
     scene = Scene(cap.domain, cap.grid, cap.dq, 4, method=method, update=local_updates)
-    scene.render()
+    scene.compute()
     dq = cap.dq.copy()
     for i, j, k, dx, dy, dz in moves:
         dq = dq.copy()
         dq[k, j, i] += [dx, dy, dz]
         scene.set_lattice(dq)
-    full = Scene(cap.domain, cap.grid, dq, 4, method=method, update=local_updates).render()
+    full = Scene(cap.domain, cap.grid, dq, 4, method=method, update=local_updates).compute()
     # fixed-point accumulators: exact, not merely within 1e-4 of the range
     assert np.array_equal(scene.out, full)
 
@@ -275,7 +275,7 @@ def test_rebuild_block_covers_what_an_update_touches():
     cap = capture_volume(Volume(data), lattice=(8, 7, 9), oversample=1.5)
     rng = np.random.default_rng(2)
     scene = Scene(cap.domain, cap.grid, cap.dq, 3, update="subtract")
-    scene.render()
+    scene.compute()
     dq = cap.dq.copy()
     for point in [(2, 3, 1), (4, 0, 6), (5, 5, 5), (0, 6, 7), (3, 3, 3)]:
         dq = dq.copy()
@@ -380,7 +380,7 @@ def test_small_deformation_chunks_change_nothing(monkeypatch, local_updates):
     def run_all():
         cap = capture_volume(Volume(data), lattice=(7, 8, 6), oversample=1.5)
         sc = Scene(cap.domain, cap.grid, cap.dq, 4, update=local_updates)
-        sc.render()
+        sc.compute()
         dq = cap.dq.copy()
         outs = []
         for (i, j, k), d in moves:
@@ -404,7 +404,7 @@ def test_update_touching_most_of_the_lattice_recomputes_in_full(caplog):
     data = smooth_blob((20, 22, 24))
     cap = capture_volume(Volume(data), lattice=(7, 6, 5), oversample=1)
     scene = Scene(cap.domain, cap.grid, cap.dq, 4)
-    scene.render()
+    scene.compute()
     dq = cap.dq.copy()
     dq[2, 2, 3] += [1.5, -1.0, 0.5]  # its 4^3 regions cover the whole 4 x 3 x 2 lattice
     with caplog.at_level("DEBUG", logger="volwarp"):
@@ -413,7 +413,7 @@ def test_update_touching_most_of_the_lattice_recomputes_in_full(caplog):
     with pytest.raises(VolwarpError, match="unknown update"):  # the papers' approximation
         Scene(cap.domain, cap.grid, cap.dq, 4, update="zero")  # is not one of the ways
     assert scene.last_touched == Box.from_xyz((0, 0, 0), scene.target_shape)
-    assert np.array_equal(scene.out, Scene(cap.domain, cap.grid, dq, 4).render())
+    assert np.array_equal(scene.out, Scene(cap.domain, cap.grid, dq, 4).compute())
 
 
 def test_samples_far_above_the_rest_are_refused_before_they_wipe_it_out():
@@ -433,7 +433,7 @@ def test_samples_far_above_the_rest_are_refused_before_they_wipe_it_out():
     cap = capture_volume(Volume(ok), lattice=5, oversample=1, sampling="nearest")
     scene = Scene(cap.domain, cap.grid, cap.dq, 0, method="nearest",
                   domain_range=cap.stats[:2])
-    assert np.abs(scene.render()[4:12, 4:12, 4:12] - 100).max() < 1e-4
+    assert np.abs(scene.compute()[4:12, 4:12, 4:12] - 100).max() < 1e-4
     spike = ball.copy()
     spike[0, 0, 0] = 1e10  # 10^8 times the rest: about 1e-4 of it lost, still accepted
     capture_volume(Volume(spike), lattice=5, oversample=1)

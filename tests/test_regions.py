@@ -327,7 +327,7 @@ def warp_block(domain, grid, dq, region: Box, out: Box, method="box"):
 
 
 def whole_warp(domain, grid, dq, method="box"):
-    return Scene(domain, grid, dq, PAD, method=method, domain_range=(0.0, 1.0)).render()
+    return Scene(domain, grid, dq, PAD, method=method, domain_range=(0.0, 1.0)).compute()
 
 
 def reaching_planes(domain, grid, dq, out: Box, method="box") -> Box:
@@ -373,7 +373,7 @@ def test_warp_block_from_its_region_with_a_deformed_lattice(oversample, method):
     dq[4:7, 3:6, 4:7] = rng.normal(scale=0.7, size=(3, 3, 3, 3))  # the other regions still
     dq[5, 4, 5] = (1.5, -1.0, 1.2)
     scene = Scene(domain, grid, dq, PAD, method=method, domain_range=(0.0, 1.0))
-    full = scene.render()
+    full = scene.compute()
     whole_domain = Box.from_shape(domain.shape)
     target = Box.from_shape(full.shape)
     for out in (Box((8, 7, 9), (14, 12, 15)), Box((2, 2, 2), (6, 6, 6)),

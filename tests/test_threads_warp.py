@@ -81,7 +81,7 @@ def test_full_render_and_local_updates_identical_for_any_thread_count(monkeypatc
     def run_all():
         cap = capture_volume(Volume(data), lattice=(7, 8, 6), oversample=1.5)
         sc = Scene(cap.domain, cap.grid, cap.dq, 4, update=local_updates)
-        outs = [sc.render().copy()]
+        outs = [sc.compute().copy()]
         dq = cap.dq.copy()
         for (i, j, k), d in moves:
             dq = dq.copy()
@@ -125,7 +125,7 @@ def test_one_shot_render_identical_for_any_threads_and_block_size(monkeypatch, o
     data = blob((40, 24, 26))
     cap = capture_volume(Volume(data), lattice=(6, 6, 7), oversample=oversample)
     dq = moved_lattice(cap)
-    full = Scene(cap.domain, cap.grid, dq, 3, domain_range=cap.stats[:2]).render().copy()
+    full = Scene(cap.domain, cap.grid, dq, 3, domain_range=cap.stats[:2]).compute().copy()
     for n in THREADS:
         probe.reset()
         op = _operation(cap, dq, 3)
@@ -152,7 +152,7 @@ def test_deferred_gather_identical_for_any_thread_count():
     vol = Volume(data)
     ref = capture_volume(vol, lattice=(6, 6, 6), oversample=2)
     dq = moved_lattice(ref, seed=4)
-    full = Scene(ref.domain, ref.grid, dq, 2, domain_range=ref.stats[:2]).render().copy()
+    full = Scene(ref.domain, ref.grid, dq, 2, domain_range=ref.stats[:2]).compute().copy()
     for n in THREADS:
         cap = capture_volume(vol, lattice=(6, 6, 6), oversample=2, defer=True)
         assert cap.domain is None  # gathered box by box as the blocks stream
@@ -313,9 +313,9 @@ def test_chunks_follow_the_memory_budget_and_change_nothing():
     dq = moved_lattice(cap, seed=2)
     free = Scene(cap.domain, cap.grid, dq, 3)
     assert free.chunk_bytes == min(scene_mod.CHUNK_BYTES, memory.block_bytes())
-    reference = free.render().copy()
+    reference = free.compute().copy()
     with memory.use_memory_limit(memory.process_rss() + (40 << 20)), parallel.use_threads(2):
         tight = Scene(cap.domain, cap.grid, dq, 3)
         assert tight.chunk_bytes == memory.block_bytes() < scene_mod.CHUNK_BYTES
-        assert np.array_equal(tight.render(), reference)
+        assert np.array_equal(tight.compute(), reference)
         assert np.array_equal(one_shot(Scene(cap.domain, cap.grid, dq, 3)), reference)

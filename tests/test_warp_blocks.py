@@ -42,7 +42,7 @@ def _by_blocks(scene, sampler, block_shape):
     whole = blocks.target_box(scene)
     out = np.full(whole.shape, np.nan, np.float32)
     for b in whole.blocks(block_shape):
-        out[b.slices] = blocks.render_block(scene, sampler, b)
+        out[b.slices] = blocks.warp_block(scene, sampler, b)
     return out
 
 
@@ -56,7 +56,7 @@ def test_blocks_equal_the_whole_render(oversample, method, sampling, block_shape
                          sampling=sampling)
     dq = _general(cap)
     full = Scene(cap.domain, cap.grid, dq, 5, method=method,
-                 domain_range=cap.stats[:2]).render()
+                 domain_range=cap.stats[:2]).compute()
     scene = Scene(cap.domain, cap.grid, dq, 5, method=method, domain_range=cap.stats[:2])
     sampler = BoxSampler(data, cap.grid, cap.placement, cap.sampling, cap.domain.dtype)
     out = _by_blocks(scene, sampler, block_shape)
@@ -74,9 +74,9 @@ def test_a_block_missing_domain_voxels_differs():
     dq = cap.dq + np.array([2.3, -1.7, 0.6])
     scene = Scene(cap.domain, cap.grid, dq, 3, method="box", domain_range=cap.stats[:2])
     sampler = BoxSampler(data, cap.grid, cap.placement, cap.sampling, cap.domain.dtype)
-    full = scene.render()
+    full = scene.compute()
     box = Box((8, 8, 8), (20, 20, 20))
-    assert np.array_equal(blocks.render_block(scene, sampler, box), full[box.slices])
+    assert np.array_equal(blocks.warp_block(scene, sampler, box), full[box.slices])
     need = blocks.domain_box(scene, box)
     for axis in range(3):
         lo = list(need.lo)
@@ -180,7 +180,7 @@ def test_warp_operation_pickles_without_samples_and_renders_the_same(tmp_path):
     assert len(blob) < 64 * 1024  # the lattice and tables, not the samples
     copy = pickle.loads(blob)
     assert copy.source._array is None and copy.targets == {}  # (the writers are the tasks')
-    full = Scene(cap.sampler, cap.grid, dq, 4, domain_range=cap.stats[:2]).render()
+    full = Scene(cap.sampler, cap.grid, dq, 4, domain_range=cap.stats[:2]).compute()
     box = Box((3, 4, 5), (20, 17, 26))
     assert np.array_equal(copy.output_block(box), full[box.slices])
 

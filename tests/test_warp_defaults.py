@@ -431,7 +431,7 @@ def test_points_go_through_a_warp_without_a_volume(run, files, monkeypatch):
         monkeypatch.setattr(capture_mod, name, refuse)
     for name in ("read_capture", "open_capture_lazy"):
         monkeypatch.setattr(capture_file, name, refuse)
-    for name in ("render", "contribute"):
+    for name in ("compute", "contribute"):
         monkeypatch.setattr(Scene, name, refuse)
     for src in (files["ct"], vwc):
         out = d / f"without_{src.suffix[1:]}.csv"

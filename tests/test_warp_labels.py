@@ -138,7 +138,7 @@ def _reference(lab, dq, pad, lattice, background=0):
         ind = (lab == L).astype(np.float32)
         cap = capture_volume(Volume(ind), lattice=lattice, oversample=2)
         img = Scene(cap.domain, cap.grid, dq, pad, background=1.0 if L == background else 0.0,
-                    domain_range=(0.0, 1.0)).render()
+                    domain_range=(0.0, 1.0)).compute()
         if best is None:
             best, out = img, np.full(img.shape, background, lab.dtype)
         else:

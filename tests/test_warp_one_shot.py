@@ -31,7 +31,7 @@ def test_one_shot_equals_render(method, shift, stream_planes, monkeypatch):
     dq = cap.dq.copy()
     dq[5, 2, 3] += shift
     dq[6, 3, 2] -= np.array(shift) * 0.5
-    full = Scene(cap.domain, cap.grid, dq, 16, method=method).render()
+    full = Scene(cap.domain, cap.grid, dq, 16, method=method).compute()
     once = one_shot(Scene(cap.domain, cap.grid, dq, 16, method=method))
     assert np.array_equal(once, full)
     # a deferred capture: boxes gathered chunk by chunk as the stream needs them, the
@@ -43,7 +43,7 @@ def test_one_shot_equals_render(method, shift, stream_planes, monkeypatch):
     scene = Scene(lazy.voxmap, lazy.grid, dq, 16, method=method, domain_range=value_range)
     assert np.array_equal(one_shot(scene), full)
     assert scene.sampler is not None  # still not gathered whole
-    assert np.array_equal(scene.render(), full)  # gathers it whole
+    assert np.array_equal(scene.compute(), full)  # gathers it whole
     assert np.array_equal(scene.domain, cap.domain) and scene.sampler is None
 
 
@@ -62,14 +62,14 @@ def test_subdivision_grid_paths_agree(method, local_updates, monkeypatch):
     assert np.max(np.abs(ident[2:-2, 2:-2, 2:-2] - data)) <= 8 * 2.0 ** -39 * data.max()
     assert np.all(ident[:2] == 0) and np.all(ident[:, :, -2:] == 0)
     scene = Scene(cap.domain, cap.grid, cap.dq, 6, method=method, update=local_updates)
-    scene.render()
+    scene.compute()
     dq = cap.dq.copy()
     for point, move in (((0, 2, 1), (1.5, -2.0, 3.0)), ((3, 5, 9), (-2.5, 1.0, -4.0)),
                         ((2, 2, 5), (0.5, 0.5, 6.0))):
         dq = dq.copy()
         dq[point[::-1]] += move
         scene.set_lattice(dq)
-    full = Scene(cap.domain, cap.grid, dq, 6, method=method, update=local_updates).render()
+    full = Scene(cap.domain, cap.grid, dq, 6, method=method, update=local_updates).compute()
     assert np.array_equal(scene.out, full)
     once = one_shot(Scene(cap.domain, cap.grid, dq, 6, method=method, update=local_updates))
     assert np.array_equal(once, full)
@@ -101,12 +101,12 @@ def test_background_is_the_value_of_the_space_around_the_model(method, local_upd
     shifted = capture_volume(Volume(data - b), lattice=7, oversample=1.5)
     dq = cap.dq.copy()
     dq[4, 3, 3] += [2.0, -1.5, 3.0]
-    ref = Scene(shifted.domain, shifted.grid, dq, 5, method=method, update=local_updates).render() + b
-    full = Scene(cap.domain, cap.grid, dq, 5, method=method, background=b, update=local_updates).render()
+    ref = Scene(shifted.domain, shifted.grid, dq, 5, method=method, update=local_updates).compute() + b
+    full = Scene(cap.domain, cap.grid, dq, 5, method=method, background=b, update=local_updates).compute()
     once = one_shot(Scene(cap.domain, cap.grid, dq, 5, method=method, background=b,
                           update=local_updates))
     scene = Scene(cap.domain, cap.grid, cap.dq, 5, method=method, background=b, update=local_updates)
-    scene.render()
+    scene.compute()
     scene.set_lattice(dq)
     for got in (full, once, scene.result()):
         np.testing.assert_allclose(got, ref, atol=1e-4)

@@ -87,7 +87,7 @@ def test_domain_box_is_exact_tight_where_the_hull_is_a_point_and_its_slack_bound
     cx = dq.shape[2]
     dq[:, :, cx // 2 + 1:] += rng.normal(scale=1.2, size=dq[:, :, cx // 2 + 1:].shape)
     scene = Scene(cap.domain, cap.grid, dq, 3, method="box", domain_range=cap.stats[:2])
-    scene.render()
+    scene.compute()
     box = Box((10, 9, 7), (22, 21, 30))
     need = blocks.domain_box(scene, box)
     whole = scene.acc[box.slices]
@@ -209,7 +209,7 @@ def test_renders_and_updates_identical_bytes_for_any_thread_count(monkeypatch, s
         cap = capture_volume(Volume(data), lattice=(6, 7, 6), oversample=1.5)
         dq = _random_lattice(cap, 1, 0.3, 3.0)
         sc = Scene(cap.domain, cap.grid, dq, 4, update=update)
-        outs = [sc.render().copy()]
+        outs = [sc.compute().copy()]
         for idx, d in moves:
             dq = dq.copy()
             dq[idx] += d

@@ -77,7 +77,7 @@ def test_render_is_capture_prepare_run(tmp_path, defer):
         cap = capture_volume(read_volume(BALL), lattice=s.lattice, oversample=s.oversample,
                              defer=True)
         assert cap.domain is None
-    out = IntensityWarp(cap, doc, spec).render()
+    out = IntensityWarp(cap, doc, spec).compute()
     rcap, scene, frames = _reference(spec_path)
     expected = output_volume(rcap, scene, _last(scene, frames))
     assert np.array_equal(out.data, expected.data)
@@ -89,7 +89,7 @@ def test_options_override_the_spec(tmp_path):
     spec_path = _spec(tmp_path)
     doc, spec, cap = _opened(spec_path)
     opts = WarpOptions(pushforward="nearest", background=9.0, crop=True, dtype="float32")
-    out = IntensityWarp(cap, doc, spec, opts).render()
+    out = IntensityWarp(cap, doc, spec, opts).compute()
     rcap, scene, frames = _reference(spec_path, method="nearest", background=9.0)
     expected = output_volume(rcap, scene, _last(scene, frames), crop=True, dtype="float32")
     assert out.data.dtype == np.float32 and out.shape_xyz == (30, 30, 30)
@@ -104,7 +104,7 @@ def test_the_operations_blocks_are_the_whole_outputs_parts(tmp_path, threads):
 
     spec_path = _spec(tmp_path)
     doc, spec, cap = _opened(spec_path)
-    whole = IntensityWarp(cap, doc, spec, WarpOptions(crop=True)).render()
+    whole = IntensityWarp(cap, doc, spec, WarpOptions(crop=True)).compute()
     op = IntensityWarp(cap, doc, spec, WarpOptions(crop=True)).operation()
     assert op.grid.shape == whole.data.shape
     got = op.compute(op.grid.box, threads=threads)[op.KEY]
@@ -119,13 +119,13 @@ def test_render_frames_hands_over_every_frame_and_returns_the_last(tmp_path):
     doc, spec, cap = _opened(spec_path)
     got = []
     warp = IntensityWarp(cap, doc, spec)
-    last = warp.render_frames(lambda fields, vol: got.append((fields, vol.data.copy())))
+    last = warp.compute_frames(lambda fields, vol: got.append((fields, vol.data.copy())))
     assert [f for f, _ in got] == [frame_fields(n, fr) for n, fr in
                                    enumerate([None, *warp.frames])]
     assert [f["spec_step"] for f, _ in got] == [0, 1, 1] and len(got) == 3
     assert np.array_equal(got[-1][1], last.data)
     doc, spec, cap = _opened(spec_path)
-    assert np.array_equal(IntensityWarp(cap, doc, spec).render().data, last.data)
+    assert np.array_equal(IntensityWarp(cap, doc, spec).compute().data, last.data)
     # frame 0 is the unmoved lattice: at oversample 1 the input, exactly, inside the pad
     pad = warp.scene.pad
     inner = got[0][1][pad[2]:pad[2] + 30, pad[1]:pad[1] + 30, pad[0]:pad[0] + 30]
@@ -183,7 +183,7 @@ def test_label_map_warp_of_an_unmoved_lattice_is_the_map(tmp_path):
         assert w.choice.values == "labels" and w.choice.why == "given"
     warp = LabelMapWarp(vol, doc, spec, WarpOptions(crop=True))
     frames = []
-    out, report = warp.render_frames(lambda f, v: frames.append(v.data.copy()))
+    out, report = warp.compute_frames(lambda f, v: frames.append(v.data.copy()))
     assert out.data.dtype == np.int16 and np.array_equal(out.data, lab)
     assert len(frames) == 2 and all(np.array_equal(f, lab) for f in frames)
     assert report["labels"][3]["output_voxels"] == int((lab == 3).sum())
@@ -259,7 +259,7 @@ def test_the_operation_by_blocks_writes_the_rendered_volume(tmp_path, block):
     spec_path = _spec(tmp_path)
     doc = load_spec(spec_path, "warp")
     spec = read_warp_spec(doc)
-    whole = IntensityWarp(*_opened(spec_path)[2:], doc, spec).render()
+    whole = IntensityWarp(*_opened(spec_path)[2:], doc, spec).compute()
     template, array = open_volume_template(BALL)
     source = LazySource(BALL, array=array)
     s = spec.capture
@@ -299,17 +299,17 @@ def test_label_map_blocks_equal_the_label_warp(tmp_path):
                                 "\nsteps:\n  - move:\n      - {index: [2, 2, 2], by: [2, 1, 0]}\n")
     doc = load_spec(spec_path, "warp")
     spec = read_warp_spec(doc)
-    want, want_report = LabelMapWarp(Volume(lab), doc, spec).render()
+    want, want_report = LabelMapWarp(Volume(lab), doc, spec).compute()
     template, array = open_volume_template(src)
     warp = LabelMapBlocks(template, LazySource(src, array=array), doc, spec)
     assert warp.template.data.shape == want.data.shape
     out = tmp_path / "o.nrrd"
     open_output, seen = _block_writer(out)
     with open_engine("threads", workers=2) as engine:
-        report = warp.render(engine, open_output, 64 << 20, slab=3)
+        report = warp.compute_by_slabs(engine, open_output, 64 << 20, slab=3)
     assert np.array_equal(read_volume(out).data, want.data)
     assert report == want_report
     assert seen == [(3, 21, 22)]
-    got, got_report = warp.render_whole()  # (the map read whole: the same)
+    got, got_report = warp.compute_whole()  # (the map read whole: the same)
     assert np.array_equal(got.data, want.data) and got_report == want_report
     assert seen == [(3, want.data.shape[1], want.data.shape[2])]

@@ -273,7 +273,7 @@ def warp(volume, spec, *, values: str | None = None, pushforward: str | None = N
     -----
     The command's own planning (:func:`volwarp_cli.warp.request.plan_final`),
     and its output computed whole, as :func:`volwarp_cli.execute.run` does in
-    memory (a label map's: :meth:`~volwarp_cli.warp.run.LabelMapBlocks.render_whole`).
+    memory (a label map's: :meth:`~volwarp_cli.warp.run.LabelMapBlocks.compute_whole`).
     The frames (``--frames-to``) and the exports are not made here.
 
     References
@@ -625,7 +625,7 @@ def _warp_labels(planned, name: str, path, spec_path) -> Volume:
     from .warp.labels import format_report
 
     ensure_fits_once_loaded(planned.memory_whole(), f"the warp of {name}'s labels", None)
-    out, report = planned.render_whole()
+    out, report = planned.compute_whole()
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
     stamped = _stamped(planned.template, "warp", path, spec_path)
     return stamped.with_data(out.data, origin=out.origin)

@@ -6,7 +6,7 @@ offsets, so the image of a region lies within the hull of those points, widened
 by the box filter's half voxel (and, at the domain's faces, by the linear
 extrapolation of the deformation's halo). They decide which target planes a
 domain block can touch and which domain voxels a target block needs: the
-streaming render's rolling window, the threads' parts, the local updates'
+one-shot warp's stream (its rolling window), the threads' parts, the local updates'
 blocks.
 """
 
@@ -72,7 +72,7 @@ class Reach:
         Tighter than :meth:`target_z_reach` (one bound for the whole lattice,
         widened everywhere by the halo's extrapolation): each plane takes the
         bounds of its own layer of regions, whose faces alone are widened.
-        The streamed render's rings, the threads' parts
+        The one-shot warp's rings, the threads' parts
         (:func:`.work.thread_parts`) and the label warp's rings and windows
         are sized from it.
         """
@@ -163,7 +163,7 @@ class Reach:
         return TargetBlock(Box.from_xyz(tlo.tolist(), thi.tolist()), Box.from_xyz(dlo, dhi))
 
 
-#: Target z planes covered by one step of a stream (:func:`~volwarp_cli.warp.blocks.render_block`: the
+#: Target z planes covered by one step of a stream (:func:`~volwarp_cli.warp.blocks.warp_block`: the
 #: domain planes gathered and scattered at a time are this many over the scale along z).
 STREAM_PLANES = 16
 

@@ -26,7 +26,7 @@ old lattice when subtracting and the new one when adding (both in one pass
 over the block). The evaluators give every voxel the same value whatever block
 it is computed in, so this is exact, and it saves 12 bytes per domain voxel
 (200 MiB for a 256^3 domain). A warp without later updates (the one-shot
-warp, :func:`~volwarp_cli.warp.blocks.render_block`) never holds the target accumulators whole.
+warp, :func:`~volwarp_cli.warp.blocks.warp_block`) never holds the target accumulators whole.
 
 Only the domain voxels inside the input are the model: on a subdivision grid
 (an integer oversample, see :mod:`.lattice`) those around it carry nothing, so
@@ -111,7 +111,7 @@ class Scene:
     ----------
     domain : (Dz, Dy, Dx) float32 or float64, or a :class:`~.pullback.Sampler`
         The captured (pulled back) density; a sampler's planes are gathered
-        box by box as :func:`~volwarp_cli.warp.blocks.render_block` streams them (never whole),
+        box by box as :func:`~volwarp_cli.warp.blocks.warp_block` streams them (never whole),
         and in full the first time anything else needs them.
     grid : lattice.Grid
     dq : (Cz, Cy, Cx, 3) float64
@@ -128,7 +128,7 @@ class Scene:
         must get the same (a capture's: the input's range).
 
     update : {None, "subtract", "rebuild", "full"}
-        How :meth:`set_lattice` updates rendered accumulators: None (default)
+        How :meth:`set_lattice` updates computed accumulators: None (default)
         takes the cheapest by a work estimate; tests and benchmarks force one.
     """
 
@@ -172,7 +172,7 @@ class Scene:
         #: the whole target, a Box (z, y, x)
         self.target_box = Box.from_xyz((0, 0, 0), self.target_shape)
         self.acc = self.out = None
-        #: the target block the last render or update recomputed (a Box), or None
+        #: the target block the last computation or update recomputed (a Box), or None
         self.last_touched = None
         #: bytes of one chunk's deformation buffers: the cap, or the budget's share of a thread
         self.chunk_bytes = min(CHUNK_BYTES, block_bytes())
@@ -287,7 +287,7 @@ class Scene:
             touched = touched.union_hull(bb)
         return touched
 
-    def render(self) -> np.ndarray:
+    def compute(self) -> np.ndarray:
         """Full computation with the current lattice; returns the target ``[z, y, x]``."""
         tshape = self.target_shape[::-1]
         out_dtype = np.float64 if self.dtype == np.float64 else np.float32
@@ -309,15 +309,15 @@ class Scene:
     def result(self) -> np.ndarray:
         """The target for the current lattice (computed in full on first use)."""
         if self.out is None:
-            return self.render()
+            return self.compute()
         return self.out
 
     def set_lattice(self, dq) -> None:
-        """Move control points to offsets ``dq``, updating the target locally when rendered."""
+        """Move control points to offsets ``dq``, updating the target locally once computed."""
         dq = np.asarray(dq, dtype=np.float64)
         if dq.shape != self.dq.shape:
             raise VolwarpError("lattice shape changed")
-        if self.acc is None:  # nothing rendered, or rendered once: no local update
+        if self.acc is None:  # nothing computed with accumulators kept: no local update
             if np.any(dq != self.dq):
                 self.out = None
             self.dq = dq.copy()
@@ -345,7 +345,7 @@ class Scene:
                   how, {k: round(v) for k, v in cost.items()})
         if how == "full":
             self.dq = dq.copy()
-            self.render()
+            self.compute()
             return
         if how == "rebuild":
             target = block.target  # zeroed, then rebuilt

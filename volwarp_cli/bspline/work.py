@@ -82,7 +82,7 @@ def thread_parts(reach: Reach, planes: PlaneReach, block: Box, tzo=0, tz_hi=None
     domain block (of ``block``) holds every voxel that can reach its planes,
     by ``planes``, a
     :class:`.reach.PlaneReach` (each domain plane's reach, from its own layer
-    of the lattice, as the streamed render uses; :meth:`.scene.Scene.contribute`
+    of the lattice, as a block's stream uses; :meth:`.scene.Scene.contribute`
     passes one, of its lattices together). The cuts fall where
     the cumulative work (``still``: the scatter's still regions, or None)
     reaches k/n of the whole, mapped to the target plane its domain plane's

@@ -8,7 +8,7 @@ Modules, one idea each:
 - :mod:`.run`: the warp of an input (intensities, a label map's labels,
   the lattice moves alone for exports) and its frames.
 - :mod:`.prepare`: the spec checked against a capture, the frames planned,
-  the scene built; the frames rendered incrementally; a target as the
+  the scene built; the frames computed incrementally; a target as the
   output Volume.
 - :mod:`.blocks`: the one-shot warp as an operation of the executor (any
   block of the output; the in-memory warp is its one-block case).

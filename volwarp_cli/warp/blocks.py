@@ -47,12 +47,12 @@ from ..execute import Operation
 from ..regions import warp_input
 
 
-def render_block(scene: Scene, sampler, box: Box) -> np.ndarray:
+def warp_block(scene: Scene, sampler, box: Box) -> np.ndarray:
     """The target block ``box`` (z, y, x of the padded target) of ``scene``'s current lattice.
 
     ``sampler`` (a :class:`~volwarp_cli.bspline.pullback.BoxSampler`) gathers the domain voxels'
     samples; the scene's own domain is not used. Equal to the same block of
-    :meth:`~volwarp_cli.bspline.scene.Scene.render` bit for bit.
+    :meth:`~volwarp_cli.bspline.scene.Scene.compute` bit for bit.
 
     The block is streamed: the domain box's z planes a few at a time, each
     slab gathered just before it is scattered into a ring of the block's
@@ -98,7 +98,7 @@ def render_block(scene: Scene, sampler, box: Box) -> np.ndarray:
 
 
 def _stream(scene: Scene, box: Box):
-    """``(reach, chunk, planes)`` of block ``box``'s stream (:func:`render_block`).
+    """``(reach, chunk, planes)`` of block ``box``'s stream (:func:`warp_block`).
 
     Each domain plane's target reach, the domain planes gathered and
     scattered a step, and the ring's target planes.
@@ -169,7 +169,7 @@ class SceneRecipe:
 class WarpOperation(Operation):
     """The one-shot warp of intensities as an operation of :mod:`volwarp_cli.execute`.
 
-    Any block of the output is :func:`render_block` of the final lattice over
+    Any block of the output is :func:`warp_block` of the final lattice over
     that block's box of the target, cast to the output's type: in memory the
     whole output is one block (cut into whole-depth slabs over the calling
     threads, :meth:`compute`), by blocks each task computes its own; the same
@@ -234,7 +234,7 @@ class WarpOperation(Operation):
         from ..samples import cast_samples
 
         scene, sampler = self._scene()
-        target = render_block(scene, sampler, out_box.shift(self.window.lo))
+        target = warp_block(scene, sampler, out_box.shift(self.window.lo))
         return cast_samples(target, self.dtype, what="warped volume")
 
     def slabs(self, box: Box, threads: int) -> list[Box]:
@@ -305,7 +305,7 @@ class WarpOperation(Operation):
 
         The ring of target planes, the block's target and its cast, one slab
         of the domain box's samples with the input they read, and the
-        deformation buffers (see :func:`render_block`).
+        deformation buffers (see :func:`warp_block`).
         """
         scene, sampler = self._scene()
         target = box.shift(self.window.lo)

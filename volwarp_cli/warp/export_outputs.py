@@ -138,7 +138,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
                   blocks: FieldBlocks | None = None) -> dict:
     """Write the exports of ``warp`` and return their figures, keyed as ``warp --json`` has them.
 
-    ``warp`` is a rendered :class:`.run.IntensityWarp`, whose final lattice they
+    ``warp`` is a planned :class:`.run.IntensityWarp`, whose final lattice they
     describe. The figures: ``jacobian`` {path, min, max, below_0, below_0_1},
     ``displacement`` {path, voxels, folded, no_preimage}, ``points`` / ``mesh``
     {path, count, outside}.
@@ -147,7 +147,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
     files; ``mesh_meta``: the moved mesh's comments.
 
     ``blocks``: write the fields by slabs (:class:`FieldBlocks`; check the paths
-    with :func:`block_export_problem` first). ``warp`` then needs no rendering:
+    with :func:`block_export_problem` first). ``warp`` then needs no volume computed:
     its capture, scene and frames (a warp made with ``WarpOptions(blocks=True)``).
     The same values and figures as in memory.
     """

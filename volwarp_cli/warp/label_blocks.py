@@ -262,9 +262,9 @@ class LabelWarpOperation(Reduction):
     ``template``: the output file and its Volume (key/values stamped, its
     samples a placeholder); ``write``: :func:`~volwarp_cli.io.write_volume`'s
     options. In memory the map is read whole and warped here
-    (:meth:`.run.LabelMapBlocks.render_whole`, :meth:`memory` its peak); by
+    (:meth:`.run.LabelMapBlocks.compute_whole`, :meth:`memory` its peak); by
     blocks, each task is a slab of whole target planes read box by box
-    (:meth:`.run.LabelMapBlocks.render`). The output (:attr:`Ran.output`
+    (:meth:`.run.LabelMapBlocks.compute_by_slabs`). The output (:attr:`Ran.output`
     of the run) is the per-label report; the file is the same either way.
     """
 
@@ -305,7 +305,7 @@ class LabelWarpOperation(Reduction):
         from ..progress import timed
 
         if blocks.whole:
-            out, report = self.warp.render_whole()
+            out, report = self.warp.compute_whole()
             with timed(f"write {self.path}"):  # (pyramid levels take the mode: never averaged ids)
                 write_volume(self.template.with_data(out.data, origin=out.origin), self.path,
                              **self.write, labels=True)
@@ -319,5 +319,5 @@ class LabelWarpOperation(Reduction):
                                       version=w.get("ome_zarr_version", "0.5"),
                                       pyramid=w.get("pyramid", 0), labels=True)
 
-        return self.warp.render(blocks.engine, open_output, blocks.memory * blocks.engine.workers,
+        return self.warp.compute_by_slabs(blocks.engine, open_output, blocks.memory * blocks.engine.workers,
                                 slab=blocks.shape[0])

@@ -2,7 +2,7 @@
 
 :func:`prepare` checks the spec against the capture, plans every lattice
 state (see :mod:`.plan`) and builds the :class:`~~volwarp_cli.bspline.scene.Scene`;
-:func:`run` renders the frames (incremental updates between them) and
+:func:`run` computes the frames (incremental updates between them) and
 :func:`output_volume` turns a target array into a Volume in the right place.
 """
 
@@ -83,7 +83,7 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     before anything of that size is made). The target is not made here: the
     one-shot warp computes it block by block (:class:`.blocks.WarpOperation`,
     the executor deciding whether the whole fits), the frames in full
-    (:meth:`~volwarp_cli.bspline.scene.Scene.render` refuses what does not fit).
+    (:meth:`~volwarp_cli.bspline.scene.Scene.compute` refuses what does not fit).
     """
     if grid is None:
         grid, _ = grid_of(spec, cap)
@@ -157,13 +157,13 @@ def _check_target_shape(tshape, pad) -> None:
 def run(scene: Scene, frames, on_frame) -> np.ndarray:
     """Render every frame, incrementally: ``on_frame(n, frame_or_None, target)`` after each.
 
-    Frame 0 (the unmoved lattice) is rendered in full, keeping the
+    Frame 0 (the unmoved lattice) is computed in full, keeping the
     accumulators; each later frame is a local update of them (see
     :meth:`Scene.set_lattice`). Returns the last target. (The final lattice
     alone is the one-shot warp, :class:`.blocks.WarpOperation`.)
     """
     with timed("warp frame 0 (full)"):
-        on_frame(0, None, scene.render())
+        on_frame(0, None, scene.compute())
     with progress(len(frames), "warp") as bar:
         for n, fr in enumerate(frames, start=1):
             with timed(f"warp frame {n} (step {fr.step}, increment {fr.sub})"):

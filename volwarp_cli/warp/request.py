@@ -292,7 +292,7 @@ def _warp_frames(req: WarpFiles) -> dict:
         warp = LabelMapWarp(what, doc, spec, req.options, preserve=req.preserve,
                             name=req.input)
         del what
-        out, report = warp.render_frames(write_frame)
+        out, report = warp.compute_frames(write_frame)
         log.info("per-label volumes (mm^3):\n%s", format_report(report))
         stats = labels_json(report)
     else:
@@ -302,7 +302,7 @@ def _warp_frames(req: WarpFiles) -> dict:
             check_exportable(what.placement, what.dq, req.input)
         warp = IntensityWarp(what, doc, spec, req.options, name=req.input)
         del what
-        out, stats = warp.render_frames(write_frame), {}
+        out, stats = warp.compute_frames(write_frame), {}
     if req.output is not None:
         write(out, req.output)
     if req.exports:

@@ -14,7 +14,7 @@ The command (:mod:`volwarp_cli.cli.warp`) parses and checks its options, then:
   before the spec is checked) while the spec is checked against its schema:
   reading and capturing release the GIL. Errors keep their order: a spec
   error first, then the input's. The early capture is used only if it
-  matches the checked spec. :class:`IntensityWarp` renders the frames
+  matches the checked spec. :class:`IntensityWarp` computes the frames
   incrementally, :class:`LabelMapWarp` each frame's exact label warp, each
   handed to a callback as a Volume.
 
@@ -345,8 +345,8 @@ class IntensityWarp(_LatticeMoves):
 
     Construction plans every lattice state and builds the scene; then the
     final lattice's output is an :meth:`operation` of the executor (by blocks
-    or whole), :meth:`render` computes it whole here, and
-    :meth:`render_frames` renders every frame, incrementally.
+    or whole), :meth:`compute` computes it whole here, and
+    :meth:`compute_frames` every frame, incrementally.
     """
 
     def __init__(self, cap, doc, spec, options: WarpOptions = WarpOptions(), *,
@@ -396,7 +396,7 @@ class IntensityWarp(_LatticeMoves):
         """The final lattice's output as an operation (:class:`.blocks.WarpOperation`).
 
         ``target``: the output (:class:`~volwarp_cli.execute.Target`; default
-        one at no path, for :meth:`render`). ``source``: the input's samples,
+        one at no path, for :meth:`compute`). ``source``: the input's samples,
         sliceable, read box by box by the blocks (a
         :class:`~volwarp_cli.io.lazy.LazySource`, reopened by path in other processes);
         None: the capture's own samples (:meth:`sampler`).
@@ -415,7 +415,7 @@ class IntensityWarp(_LatticeMoves):
                              target, sampler=self.sampler() if source is None else None,
                              name=self.name)
 
-    def render(self) -> Volume:
+    def compute(self) -> Volume:
         """The final lattice's output, computed whole on this process's threads."""
         from .. import parallel
 
@@ -423,7 +423,7 @@ class IntensityWarp(_LatticeMoves):
         data = op.compute(op.grid.box, threads=parallel.threads())[op.KEY]
         return op.targets[op.KEY].template.with_data(data)
 
-    def render_frames(self, on_frame: OnFrame) -> Volume:
+    def compute_frames(self, on_frame: OnFrame) -> Volume:
         """Every frame (0: unwarped, then each increment), incrementally; returns the last.
 
         Each is handed to ``on_frame`` before the next is made; the last is the output.
@@ -436,7 +436,7 @@ class IntensityWarp(_LatticeMoves):
         return self.output(run(self.scene, self.frames, each))
 
     def sampler(self):
-        """The capture's samples box by box (:func:`.blocks.render_block`'s ``sampler``).
+        """The capture's samples box by box (:func:`.blocks.warp_block`'s ``sampler``).
 
         A captured domain as it is; a deferred capture's gather, from the
         input it holds or reads; a capture file's stored domain, read from
@@ -508,8 +508,8 @@ class LabelMapBlocks(_LatticeMoves):
     by path in worker processes). Construction plans the lattice and the
     output (:attr:`template`, refused before any work when the spec cannot
     apply) and reads the map's border (its background label);
-    :meth:`render_whole` reads the map whole and warps it here
-    (:func:`.labels.warp_labels`, within :meth:`memory_whole`), :meth:`render`
+    :meth:`compute_whole` reads the map whole and warps it here
+    (:func:`.labels.warp_labels`, within :meth:`memory_whole`), :meth:`compute_by_slabs`
     by slabs on an engine, the map read box by box (:mod:`.label_blocks`):
     the same output and per-label report.
     """
@@ -535,7 +535,7 @@ class LabelMapBlocks(_LatticeMoves):
         self.window = output_window_box(self.cap, self.scene, options.crop)
 
     def memory_whole(self) -> int:
-        """The bytes :meth:`render_whole` holds at its peak (an upper bound).
+        """The bytes :meth:`compute_whole` holds at its peak (an upper bound).
 
         The map read whole, the target's weights and labels, each thread's
         label pass (:func:`.labels.stream_bytes`) and the output's copy.
@@ -550,7 +550,7 @@ class LabelMapBlocks(_LatticeMoves):
                 + workers * stream_bytes(self.scene, self.scene.dq, self.input.dtype)
                 + self.template.data.size * item)
 
-    def render_whole(self) -> tuple[Volume, dict]:
+    def compute_whole(self) -> tuple[Volume, dict]:
         """The output and the per-label report, the map read whole and warped here."""
         from .labels import warp_labels
         from .prepare import output_volume
@@ -562,7 +562,7 @@ class LabelMapBlocks(_LatticeMoves):
         return output_volume(self.cap, self.scene, res.target, crop=self.options.crop), \
             res.report
 
-    def render(self, engine, open_output, budget: int, *, slab: int | None = None) -> dict:
+    def compute_by_slabs(self, engine, open_output, budget: int, *, slab: int | None = None) -> dict:
         """Warp by slabs on ``engine``; returns the per-label report.
 
         ``open_output(template, block)``: a context manager giving the block
@@ -600,8 +600,8 @@ class LabelMapWarp(_LatticeMoves):
 
     Every output voxel is an input label (see :mod:`.labels`).
 
-    Each rendered lattice is the whole label warp from the input map, exact (not
-    incremental): :meth:`render` for the final lattice, :meth:`render_frames`
+    Each frame's lattice gives the whole label warp from the input map, exact (not
+    incremental): :meth:`compute` for the final lattice, :meth:`compute_frames`
     for every frame. Both return ``(Volume, report)``, the report per label
     (:func:`.labels.warp_labels`).
     """
@@ -641,11 +641,11 @@ class LabelMapWarp(_LatticeMoves):
         for n, fr in enumerate(self.frames, start=1):
             yield frame_fields(n, fr), fr.dq
 
-    def render(self) -> tuple[Volume, dict]:
+    def compute(self) -> tuple[Volume, dict]:
         """The final lattice's label map and report."""
         return self.warp(self.frames[-1].dq if self.frames else self.cap.dq)
 
-    def render_frames(self, on_frame: OnFrame) -> tuple[Volume, dict]:
+    def compute_frames(self, on_frame: OnFrame) -> tuple[Volume, dict]:
         """Every frame's label map, each handed to ``on_frame``.
 
         Returns the last one (the output) and its report.
