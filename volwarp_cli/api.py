@@ -296,11 +296,10 @@ def warp(volume, spec, *, values: str | None = None, pushforward: str | None = N
     _choice(dtype, SUPPORTED_DTYPES, "dtype")
     if background_value is not None and not math.isfinite(background_value):
         raise BadUsage(f"background_value must be a finite number, got {background_value!r}")
-    if allow_growth and (crop or grid == "input"):
-        raise BadUsage("--allow-growth lets a grown grid grow: give --grid grow")
     options = WarpOptions(pushforward=pushforward, evaluator=evaluator,
                           background=background_value, crop=crop, dtype=dtype,
-                          allow_growth=allow_growth, grid=grid)
+                          allow_growth=allow_growth, grid=grid, values=values,
+                          preserve=preserve_labels)
     new_run()
     doc, spec_path = _spec(spec, "warp")
     wspec = read_warp_spec(doc)
@@ -322,9 +321,8 @@ def warp(volume, spec, *, values: str | None = None, pushforward: str | None = N
         else:
             template = _volume(volume, read_options)
             source = template.data
-        choice, planned = plan_final(template, source, doc, wspec, options, values=values,
-                                     preserve=preserve_labels, name=name, cap=cap,
-                                     choice=choice)
+        choice, planned = plan_final(template, source, doc, wspec, options, name=name,
+                                     cap=cap, choice=choice)
         if choice.is_labels:
             return _warp_labels(planned, name, path, spec_path)
         out = planned.output_template()

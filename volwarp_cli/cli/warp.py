@@ -127,23 +127,12 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     from .chunked import lazy_input
 
     new_run()
-    values = given_values(values, labels)
-    if crop and grid == "grow":
-        raise click.UsageError("--crop puts the output on the input's grid: it does not go "
-                               "with --grid grow")
-    if allow_growth and (crop or grid == "input"):
-        raise click.UsageError("--allow-growth lets a grown grid grow: give --grid grow")
+    options = WarpOptions(pushforward=pushforward, evaluator=evaluator, background=background,
+                          crop=crop, dtype=dtype, allow_growth=allow_growth, grid=grid,
+                          values=given_values(values, labels), preserve=preserve_labels)
     if output is not None:
         check_output_path(output, option="-o")
     is_capture = input.lower().endswith(".vwc")
-    if values == "labels" and dtype is not None:
-        raise click.UsageError("labels keep the label map's own integer type (no --dtype)")
-    if values == "labels" and background is not None:
-        raise click.UsageError("--background-value does not apply to a label map (its "
-                               "background is its most frequent border label)")
-    if preserve_labels and values == "intensity":
-        raise click.UsageError("--preserve-labels keeps labels: it does not go with "
-                               "--values intensity")
     if frames_to:
         check_pattern(frames_to)
     exports = check_exports(displacement_to, forward_field_to, jacobian_to, transform_to,
@@ -156,8 +145,6 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     if is_capture and (raw is not None or volume_index is not None or dicom is not None):
         raise click.UsageError("--raw-*, --volume-index and the DICOM options describe volume "
                                f"inputs, not the capture file {input}")
-    options = WarpOptions(pushforward=pushforward, evaluator=evaluator, background=background,
-                          crop=crop, dtype=dtype, allow_growth=allow_growth, grid=grid)
     settings = scale_settings()
     chunked = settings.chunked
     if chunked and frames_to:  # (each frame updates the last one's accumulators)
@@ -173,8 +160,7 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     if output is None and not frames_to:  # the exports alone: no volume is computed
         refuse_volume_options(bool(displacement_to))
     req = WarpFiles(input, spec_path, output, is_capture=is_capture, frames_to=frames_to,
-                    exports=exports or None, options=options, values=values,
-                    preserve=preserve_labels,
+                    exports=exports or None, options=options,
                     write=dict(compress=compress, byte_order=byte_order, **ome_zarr),
                     read_volume=lambda: load_input(input, raw, volume_index, True, dicom),
                     open_lazy=lambda: lazy_input(input, raw, volume_index, dicom))

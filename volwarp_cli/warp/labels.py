@@ -523,22 +523,6 @@ def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, backg
     return cap, scene, frames
 
 
-def label_warp(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
-               crop: bool = False, preserve: bool = False, source: str = "input",
-               grid: str | None = None):
-    """The whole ``warp --labels``: ``(output Volume, report)`` for the label map ``vol``.
-
-    With a checked spec (``doc``, ``spec``), as :mod:`..cli.warp` does for intensities.
-    """
-    from .prepare import output_volume
-
-    cap, scene, frames = prepare_labels(vol, doc, spec, method=method, evaluator=evaluator,
-                                        background=background, source=source,
-                                        grid="input" if crop else grid)
-    res = warp_labels(vol.data, scene, frames, preserve=preserve, spacing=vol.spacing)
-    return output_volume(cap, scene, res.target, crop=crop), res.report
-
-
 def format_report(report: dict) -> str:
     """The per-label report as text lines (``warp --labels -v``)."""
     lines = ["label  input_mm3  output_mm3  predicted_mm3  output/predicted"]

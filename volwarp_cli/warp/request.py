@@ -34,9 +34,9 @@ class WarpFiles:
     spec file. ``output``: the warped volume (None: ``frames_to`` or the
     exports alone); ``frames_to``: the frames' name pattern
     (:data:`.run.FRAME_FIELDS`); ``exports``: an
-    :class:`~.export_outputs.ExportRequests` or None. ``values``: the command
-    line's ``--values`` (None: the spec's, else the label rule);
-    ``preserve``: ``--preserve-labels``; ``write``: the volume writer's
+    :class:`~.export_outputs.ExportRequests` or None; ``options``: the
+    command line's (:class:`.run.WarpOptions`: ``--values``,
+    ``--preserve-labels`` among them); ``write``: the volume writer's
     options (``compress``, ``byte_order``, ``ome_zarr_version``, ``pyramid``).
     """
 
@@ -49,8 +49,6 @@ class WarpFiles:
     frames_to: str | None = None
     exports: object = None
     options: WarpOptions = WarpOptions()
-    values: str | None = None
-    preserve: bool = False
     write: dict = field(default_factory=lambda: {"compress": False, "byte_order": "little"})
 
     def stamped(self, vol, inputs=None):
@@ -116,8 +114,7 @@ def _exports_only(req: WarpFiles, how) -> dict:
 
 
 def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions(), *,
-               values: str | None = None, preserve: bool = False, name: str = "input",
-               cap=None, choice=None, exportable: bool = False):
+               name: str = "input", cap=None, choice=None, exportable: bool = False):
     """The final lattice's warp of an input, planned: ``(choice, warp)``; no output computed.
 
     ``template``: the input's Volume (its samples may be a placeholder);
@@ -125,9 +122,9 @@ def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions()
     by box); ``cap``: a capture file's deferred capture instead (its
     ``template``/``source`` None unless its labels are warped, and ``spec``
     then the one with its capture settings: :func:`open_capture_values`).
-    ``values``: the command line's (None: the spec's, else the label rule,
-    one pass over the samples), unless ``choice`` was made (a capture
-    file's). Returns the values choice
+    How the samples are warped: ``options.values`` (None: the spec's, else
+    the label rule, one pass over the samples), unless ``choice`` was made
+    (a capture file's). Returns the values choice
     (:class:`.defaults.ValuesChoice`, already said at ``-v``) and the warp:
     a :class:`.run.LabelMapBlocks` for labels, else an
     :class:`.run.IntensityWarp` whose :meth:`~.run.IntensityWarp.operation`
@@ -140,13 +137,12 @@ def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions()
 
     if choice is None:
         with timed("labels? (the rule, one pass)"):
-            choice = choose_values(source, values or spec.values, name=name)
+            choice = choose_values(source, options.values or spec.values, name=name)
     warn_once(choice.warning)
     log.info("%s: %s", name, choice.describe())
-    check_values_fit(choice, doc, spec, options, preserve, name, values)
+    check_values_fit(choice, doc, spec, options, name)
     if choice.is_labels:
-        return choice, LabelMapBlocks(template, source, doc, spec, options, preserve=preserve,
-                                      name=name)
+        return choice, LabelMapBlocks(template, source, doc, spec, options, name=name)
     if cap is None:
         c = spec.capture
         with timed("input range (one pass)"):
@@ -203,12 +199,11 @@ def _warp_once(req: WarpFiles, how) -> dict:
     cap = choice = None
     if req.is_capture:
         choice, cap, template, source, spec = open_capture_values(req.input, doc, spec,
-                                                                  req.values)
+                                                                  req.options.values)
     else:
         template, source = req.open_lazy()
-    choice, warp = plan_final(template, source, doc, spec, req.options, values=req.values,
-                              preserve=req.preserve, name=req.input, cap=cap, choice=choice,
-                              exportable=bool(req.exports))
+    choice, warp = plan_final(template, source, doc, spec, req.options, name=req.input,
+                              cap=cap, choice=choice, exportable=bool(req.exports))
     if choice.is_labels:
         return {**_warp_labels(req, warp, how), **values_json(choice)}
     template = warp.output_template()
@@ -263,15 +258,15 @@ def _warp_frames(req: WarpFiles) -> dict:
     if req.is_capture:
         from .capture_file import read_capture
 
-        source = WarpInput(req.input, values=req.values,
+        source = WarpInput(req.input, values=req.options.values,
                            read_capture=lambda: read_capture(req.input))
     else:  # mapped, not copied, where it can be: the warp only reads it
-        source = WarpInput(req.input, values=req.values, read_volume=req.read_volume)
+        source = WarpInput(req.input, values=req.options.values, read_volume=req.read_volume)
     with source:
         doc, spec = source.load_spec(req.spec)
         what = source.source(doc, spec)
         choice, spec = source.choice, source.spec
-        check_values_fit(choice, doc, spec, req.options, req.preserve, req.input, req.values)
+        check_values_fit(choice, doc, spec, req.options, req.input)
     labels = choice.is_labels
 
     def write(vol, path):
@@ -289,8 +284,7 @@ def _warp_frames(req: WarpFiles) -> dict:
     if labels:
         from .labels import format_report
 
-        warp = LabelMapWarp(what, doc, spec, req.options, preserve=req.preserve,
-                            name=req.input)
+        warp = LabelMapWarp(what, doc, spec, req.options, name=req.input)
         del what
         out, report = warp.compute_frames(write_frame)
         log.info("per-label volumes (mm^3):\n%s", format_report(report))
@@ -336,14 +330,15 @@ def _write_exports(req: WarpFiles, warp, how, *, by_slabs: bool) -> dict:
                          blocks=blocks)
 
 
-def check_values_fit(choice, doc, spec, options, preserve: bool, name, values) -> None:
+def check_values_fit(choice, doc, spec, options: WarpOptions, name) -> None:
     """What a warp as labels, or as intensities, cannot have: usage or spec errors.
 
     Found once the values are chosen (the rule reads the samples), before
     any work. Where the rule chose, the message names the way out; where the
-    spec's ``values: labels`` chose (``values``, the command line's, None),
-    a clash is the spec's error at that key.
+    spec's ``values: labels`` chose (``options.values``, the command line's,
+    None), a clash is the spec's error at that key.
     """
+    values = options.values
     if choice.is_labels:
         if choice.ruled:
             way = f"{name} looks like a label map ({choice.labels} labels) and is warped as labels"
@@ -376,7 +371,7 @@ def check_values_fit(choice, doc, spec, options, preserve: bool, name, values) -
             raise doc.error(("capture", "oversample"), out(
                 f"{way} with an integer oversample (each domain voxel one input voxel's "
                 "label)"))
-    elif preserve:
+    elif options.preserve:
         raise BadUsage(f"--preserve-labels keeps labels, but {name} is warped as intensities "
                        f"({choice.why}): give --values labels")
 

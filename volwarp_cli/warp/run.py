@@ -55,6 +55,9 @@ class WarpOptions:
     ``dtype``: the output's sample type (default the input's).
     ``allow_growth``: let the padding the moves need grow the output past
     twice the input (the grown grid; see :func:`.prepare.prepare`).
+    ``values``: how the samples are warped, ``"intensity"`` or ``"labels"``
+    (None: the spec's, else the label rule); ``preserve``: a label that
+    would vanish keeps its voxel of largest weight (labels only).
     """
 
     pushforward: str | None = None
@@ -64,11 +67,23 @@ class WarpOptions:
     dtype: str | None = None
     allow_growth: bool = False
     grid: str | None = None
+    values: str | None = None
+    preserve: bool = False
 
     def __post_init__(self):
         if self.crop and self.grid == "grow":
             raise BadUsage("--crop puts the output on the input's grid: it does not go "
                            "with --grid grow")
+        if self.allow_growth and self.output_grid == "input":
+            raise BadUsage("--allow-growth lets a grown grid grow: give --grid grow")
+        if self.preserve and self.values == "intensity":
+            raise BadUsage("--preserve-labels keeps labels: it does not go with "
+                           "--values intensity")
+        if self.values == "labels" and self.dtype is not None:
+            raise BadUsage("labels keep the label map's own integer type (no --dtype)")
+        if self.values == "labels" and self.background is not None:
+            raise BadUsage("--background-value does not apply to a label map (its "
+                           "background is its most frequent border label)")
 
     @property
     def output_grid(self) -> str | None:
@@ -515,13 +530,12 @@ class LabelMapBlocks(_LatticeMoves):
     """
 
     def __init__(self, template: Volume, source, doc, spec,
-                 options: WarpOptions = WarpOptions(), *, preserve: bool = False,
-                 name: str = "input"):
+                 options: WarpOptions = WarpOptions(), *, name: str = "input"):
         from .prepare import output_planes, output_window_box
 
         self.source = source
         self.input = template
-        self.preserve = preserve
+        self.preserve = options.preserve
         self.options = options
         self.name = name  # (the input's file: in messages)
         self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
@@ -607,12 +621,12 @@ class LabelMapWarp(_LatticeMoves):
     """
 
     def __init__(self, vol: Volume, doc, spec, options: WarpOptions = WarpOptions(), *,
-                 preserve: bool = False, name: str = "input"):
+                 name: str = "input"):
         if options.dtype is not None:
             raise VolwarpError("a label map keeps its own integer type (no dtype)")
         self.vol = vol
         self.options = options
-        self.preserve = preserve
+        self.preserve = options.preserve
         self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
             vol, doc, spec, options, name)
         #: the label where nothing lands: the most frequent on the map's border
