@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_morph_chunked import canonical  # (the same canonical order as the unmoved morph's tests)
 
 from volwarp_cli.box import Box
 from volwarp_cli.geometry import Geometry
@@ -95,10 +94,8 @@ def test_inputs_on_different_grids_by_blocks(run, inputs, tmp_path, scheduler):
     assert read_volume(tmp_path / "b_0.nrrd").data.shape == (13, 15, 17)
     if mesh:
         for i in range(3):
-            a, b = read_mesh(tmp_path / f"m_{i}.ply"), read_mesh(tmp_path / f"b_{i}.ply")
-            assert a.n_faces > 50 and (a.n_vertices, a.n_faces) == (b.n_vertices, b.n_faces)
-            for x, y in zip(canonical(a), canonical(b), strict=True):
-                assert np.array_equal(x, y)
+            assert read_mesh(tmp_path / f"m_{i}.ply").n_faces > 50
+            assert (tmp_path / f"m_{i}.ply").read_bytes() == (tmp_path / f"b_{i}.ply").read_bytes()
 
 
 @pytest.mark.parametrize("align", [

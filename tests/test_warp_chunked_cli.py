@@ -200,6 +200,7 @@ def test_a_worker_killed_in_a_chunked_warp_loses_nothing(tmp_path):
                 killed = next(iter(pids.values()))
                 os.kill(killed, signal.SIGKILL)
         code = proc.wait(timeout=300)
+        proc.stderr.close()
     assert killed is not None, "the warp ended before a worker could be killed"
     assert code == 0, "".join(other)
     assert blk.read_bytes() == mem.read_bytes()

@@ -33,7 +33,7 @@ class Capture:
     combination of eight. A deferred capture has no
     ``domain`` array but a ``sampler`` that gathers its planes on demand.
     ``border``: the median of the input's border samples
-    (:func:`~volwarp_cli.warp.defaults.border_value`), the warp's default background; None
+    (:func:`~volwarp_cli.border.border_value`), the warp's default background; None
     when not known.
     """
 
@@ -312,7 +312,7 @@ def captured_input(cap: Capture) -> CapturedInput | None:
 
 
 def capture_border(cap: Capture) -> float:
-    """The input's border value (:func:`~volwarp_cli.warp.defaults.border_value`) from what ``cap`` holds.
+    """The input's border value (:func:`~volwarp_cli.border.border_value`) from what ``cap`` holds.
 
     A subdivision capture holds the input's samples (:class:`CapturedInput`);
     on the spanning grid the domain's faces are the input's faces,

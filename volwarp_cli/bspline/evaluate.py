@@ -19,7 +19,6 @@ so the spline's axes are taken z, y, x and the parameters reversed.
 from __future__ import annotations
 
 import numpy as np
-from scipy.interpolate import NdBSpline
 
 #: the B-spline's degree
 DEGREE = 3
@@ -34,6 +33,8 @@ class LatticeSpline:
     """The offsets ``dq`` ``(Cz, Cy, Cx, 3)`` of a lattice of ``regions`` (x y z) as a spline."""
 
     def __init__(self, dq, regions):
+        from scipy.interpolate import NdBSpline  # (here: scipy.interpolate costs 0.25 s to import)
+
         self.t = knots(regions)
         self.spline = NdBSpline(self.t, np.asarray(dq, dtype=np.float64), DEGREE,
                                 extrapolate=True)

@@ -341,4 +341,6 @@ class WarpOperation(Operation):
                     return block
                 if block[1] == 1:
                     break
-        return (min(8, shape[0]), 1, shape[2])
+        # none fits the task's share (its fixed deformation buffers alone may not): the
+        # whole-depth slabs two a task, not thousands of one-row blocks that fit no better
+        return (shape[0], math.ceil(shape[1] / min(want, shape[1])), shape[2])

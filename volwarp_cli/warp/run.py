@@ -118,7 +118,7 @@ def capture_input(vol: Volume, settings, name: str):
                                              pad=None, mean=False)
     except SpecError:
         raise
-    except OutOfMemoryError as exc:  # (its type kept: a command may run by blocks instead)
+    except OutOfMemoryError as exc:  # (its type kept: exit 1 names the memory)
         raise OutOfMemoryError(f"{name}: {exc}") from None
     except VolwarpError as exc:
         raise VolwarpError(f"{name}: {exc}") from None
