@@ -1,31 +1,38 @@
-"""`distance` out of core on Dask: chunked = in-memory, bit for bit (issue 19)."""
+"""`distance` by blocks = in memory, bit for bit, and both right (issues 19 and 29).
+
+The band (:class:`~volwarp_cli.distance.band.BandedDistance`): any block grid
+gives the one block's bytes, and the one block is the reference field clipped
+(scipy's exact transform, the analytic distance of a smooth ball). The exact
+passes (:func:`~volwarp_cli.distance.chunked.signed_edt_staged`): the in-memory
+transform's bytes. The whole's scan (:mod:`~volwarp_cli.distance.scan`): the
+in-memory checks and surface choice.
+"""
 
 from __future__ import annotations
 
 import subprocess
 import sys
 
-import dask
-import dask.array as da
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
+from test_distance_metrics_chunked import FieldSink
 
-from volwarp_cli.distance import chunked
-from volwarp_cli.distance.chunked import (
-    band_halo,
-    banded_signed_distance_dask,
-    line_chunks,
-    signed_distance_dask,
-    signed_edt_dask,
-)
-from volwarp_cli.distance.exact import signed_edt
+from volwarp_cli.box import Box
+from volwarp_cli.distance.band import BandedDistance
+from volwarp_cli.distance.chunked import MaskSource, field_by_blocks, signed_edt_staged
+from volwarp_cli.distance.exact import signed_edt, x_pass, y_pass, z_pass
 from volwarp_cli.distance.field import finish_field, signed_distance
+from volwarp_cli.distance.labels import ShapeRule
+from volwarp_cli.distance.scan import field_surface, scan_shape
 from volwarp_cli.distance.subvoxel import subvoxel_signed_distance
 from volwarp_cli.errors import VolwarpError
+from volwarp_cli.geometry import Geometry
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.volume import Volume, zyx_to_xyz
 
-SHAPE = (37, 41, 29)  # odd sizes; neither chunking below divides them
-CHUNKS = [(10, 7, 13), (16, 16, 16)]
+SHAPE = (37, 41, 29)  # odd sizes; neither block grid below divides them
+BLOCKS = [(10, 7, 13), (16, 16, 16), (37, 41, 5)]
 SPACING = (2.5, 1.0, 0.7)  # z, y, x
 
 
@@ -49,6 +56,7 @@ MASKS = {
     "blobs1": lambda: blobs(SHAPE, 1, sigma=1.2),
     "sphere": lambda: sphere(SHAPE, (17.3, 21.6, 13.1), 11.0),
 }
+INTENSITY = ShapeRule("intensity", "given", iso=0.5)
 
 
 def same(a, b):
@@ -56,185 +64,149 @@ def same(a, b):
     return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
-def compute(x, scheduler="threads"):
-    if scheduler == "threads":
-        return x.compute(scheduler="threads", num_workers=3)
-    return x.compute(scheduler="synchronous")
+def scipy_signed(mask, spacing):
+    """The reference: scipy's exact transform of both sides."""
+    return (ndi.distance_transform_edt(~mask, sampling=spacing)
+            - ndi.distance_transform_edt(mask, sampling=spacing))
 
 
-# -- exact by passes -------------------------------------------------------------------
-@pytest.mark.parametrize("name", list(MASKS))
-@pytest.mark.parametrize("chunks", CHUNKS)
-@pytest.mark.parametrize("spacing", [SPACING, (1.0, 1.0, 1.0)])
-def test_passes_equal_in_memory_bit_for_bit(name, chunks, spacing):
-    mask = MASKS[name]()
-    assert 0.05 < mask.mean() < 0.8
-    ref = signed_edt(mask, spacing)
-    # a small budget: each pass cuts the volume into many blocks of whole lines
-    got = compute(signed_edt_dask(da.from_array(mask, chunks=chunks), spacing,
-                                  block_bytes=20_000))
-    assert same(got, ref)
+def band_op(data, spacing, band, *, rule=INTENSITY, surface="voxel", unsigned=False):
+    grid = Geometry(data.shape, zyx_to_xyz(spacing))
+    return BandedDistance(data, grid, rule, surface=surface, max_distance=band,
+                          unsigned=unsigned)
 
 
-def test_passes_take_uint8_and_any_nonzero_and_keep_inf():
-    mask = blobs(SHAPE, 2)
-    ref = signed_edt(mask, SPACING)
-    labels = (mask * 7).astype(np.uint8)  # nonzero inside, not 0/1
-    assert same(compute(signed_edt_dask(da.from_array(labels, chunks=(9, 20, 8)), SPACING)), ref)
-    # empty and full masks: +inf / -inf everywhere, as in memory (the caller checks first)
-    for m in (np.zeros(SHAPE, bool), np.ones(SHAPE, bool)):
-        got = compute(signed_edt_dask(da.from_array(m, chunks=CHUNKS[0]), SPACING,
-                                      block_bytes=30_000))
-        assert same(got, signed_edt(m, SPACING))
-        assert np.isinf(got).all()
+def one_block(op, threads=2):
+    """The in-memory run's field: the whole as one block, on ``threads``."""
+    return op.compute(op.grid.box, threads=threads)["field"]
 
 
-def test_passes_depend_on_whole_lines():
-    """The test above can fail: a pass on blocks that cut its lines gives other values."""
-    mask = blobs(SHAPE, 0)
-    ref = signed_edt(mask, SPACING)
-    m = da.from_array(mask.view(np.uint8), chunks=(SHAPE[0], SHAPE[1], 13))  # x lines cut
-    d = m.map_blocks(chunked._x_block, SPACING[2], dtype=np.float32)
-    c_y = line_chunks(SHAPE, 1, 10**9)
-    d = da.map_blocks(chunked._y_block, d.rechunk(c_y), m.rechunk(c_y), SPACING[1],
-                      dtype=np.float32)
-    c_z = line_chunks(SHAPE, 0, 10**9)
-    d = da.map_blocks(chunked._z_block, d.rechunk(c_z), m.rechunk(c_z), SPACING[0],
-                      dtype=np.float32)
-    assert not np.array_equal(compute(d), ref)
+def by_blocks(op, block):
+    """The field computed block by block (as the engine's tasks do: one thread each)."""
+    out = np.full(op.grid.shape, np.nan, np.float32)
+    for box in op.grid.box.blocks(block):
+        out[box.slices] = op.compute(box, threads=1)["field"]
+    return out
 
 
-def test_threaded_and_synchronous_schedulers_give_the_same_bytes():
-    mask = sphere(SHAPE, (18.0, 20.5, 14.2), 12.5) | blobs(SHAPE, 3, level=0.56)
-    ref = signed_edt(mask, SPACING)
-    x = signed_edt_dask(da.from_array(mask, chunks=CHUNKS[0]), SPACING, block_bytes=50_000)
-    a = compute(x, "threads")
-    b = compute(x, "synchronous")
-    with dask.config.set(scheduler="threads", num_workers=2):
-        c = x.compute()
-    assert same(a, ref) and same(b, ref) and same(c, ref)
-    band = banded_signed_distance_dask(da.from_array(mask, chunks=CHUNKS[1]), SPACING, 3.3)
-    assert same(compute(band, "threads"), compute(band, "synchronous"))
-
-
-def test_line_chunks_keep_whole_lines_within_the_budget():
-    shape = (37, 41, 29)
-    for axis in range(3):
-        for budget in (1, 5_000, 60_000, 10**9):
-            c = line_chunks(shape, axis, budget)
-            assert c[axis] == shape[axis]
-            assert all(1 <= v <= n for v, n in zip(c, shape, strict=True))
-            voxels = c[0] * c[1] * c[2]
-            assert voxels == shape[axis] or voxels * chunked.PASS_BYTES_PER_VOXEL <= budget
-    assert line_chunks(shape, 0, 10**9) == shape
-    # enough blocks for the threads
-    c = line_chunks(shape, 2, 10**9, min_blocks=4)
-    assert c[2] == 29 and c[1] == 41 and -(-37 // c[0]) >= 4
-
-
-# -- band by overlapping blocks ------------------------------------------------------------
+# -- the band ---------------------------------------------------------------------------
 @pytest.mark.parametrize("name", ["blobs0", "sphere"])
-@pytest.mark.parametrize("band", [2.7, 4.0, 7.5])  # 7.5: halos (3, 8, 11) exceed the chunks
-@pytest.mark.parametrize("chunks", CHUNKS)
-def test_band_equals_the_clamped_whole(name, band, chunks):
+@pytest.mark.parametrize("band", [2.7, 4.0, 7.5])  # 7.5: halos (3, 7, 10) exceed the blocks
+def test_band_by_blocks_is_the_one_block_and_scipy_clipped(name, band):
     mask = MASKS[name]()
-    whole = signed_edt(mask, SPACING)
-    ref = finish_field(whole.copy(), max_distance=band)
-    got = compute(banded_signed_distance_dask(da.from_array(mask, chunks=chunks), SPACING,
-                                              band))
-    assert same(got, ref)
-    inner = np.abs(whole) <= band
+    op = band_op(mask, SPACING, band)
+    whole = one_block(op)
+    ref = scipy_signed(mask, SPACING)
+    inner = np.abs(ref) <= band
     assert inner.any() and (~inner).any()
-    assert same(got[inner], whole[inner])  # exact inside the band
-    assert np.all(np.abs(got[~inner]) == np.float32(band))  # clamped outside
-    assert np.all(np.sign(got[~inner]) == np.sign(whole[~inner]))
+    np.testing.assert_allclose(whole[inner], ref[inner], rtol=1e-6, atol=1e-5)
+    assert np.all(np.abs(whole[~inner]) == np.float32(band))  # clamped outside
+    assert np.all(np.sign(whole) == np.sign(ref))
+    assert same(whole, finish_field(signed_edt(mask, SPACING), max_distance=band))
+    for block in BLOCKS:
+        assert same(by_blocks(op, block), whole), block
 
 
-def test_band_halo_follows_the_region_rule():
-    # distance_band_input's floor(D / h) ... and at least ceil(D / h) for float32 rounding
-    assert band_halo((1.25, 0.8, 1.0), 2.7) == (3, 4, 3)
-    assert band_halo((0.1, 0.1, 0.1), 0.3) == (3, 3, 3)
-    assert band_halo((1.0, 1.0, 1.0), 4.0) == (4, 4, 4)
-    sub = band_halo((1.25, 0.8, 1.0), 1.5, "subvoxel")
-    assert all(s > v for s, v in zip(sub, band_halo((1.25, 0.8, 1.0), 1.5), strict=True))
-    with pytest.raises(VolwarpError, match="positive"):
-        band_halo((1, 1, 1), 0.0)
+def test_band_of_a_label_rule_and_unsigned():
+    labels = (blobs(SHAPE, 2) * 3 + sphere(SHAPE, (10, 10, 10), 6)).astype(np.uint8)
+    rule = ShapeRule("labels", "given", label=3)
+    op = band_op(labels, SPACING, 3.3, rule=rule, unsigned=True)
+    ref = finish_field(signed_edt(labels == 3, SPACING), unsigned=True, max_distance=3.3)
+    assert same(one_block(op), ref)
+    assert same(by_blocks(op, BLOCKS[0]), ref)
+    assert ref.min() == 0
 
 
 def test_band_is_tight_a_smaller_halo_differs():
-    """One site just inside the halo: blocks grown one voxel less miss it."""
-    spacing, band = (1.0, 1.0, 1.0), 3.5
-    shape = (24, 24, 24)
-    mask = np.zeros(shape, bool)
+    """One site just inside the rule's halo: blocks grown one voxel less miss it."""
+    band = 3.5
+    mask = np.zeros((24, 24, 24), bool)
     mask[12, 12, 10] = True  # 3 voxels (within D) from x = 7, the last of the block [0, 8)
-    ref = finish_field(signed_edt(mask, spacing), max_distance=band)
-    m = da.from_array(mask.view(np.uint8), chunks=8)
-
-    def task(block):
-        return chunked._edt_block(block, 1.0, 1.0, 1.0, band)
-
-    halo = band_halo(spacing, band)
-    assert halo == (4, 4, 4)  # floor(3.5) = 3 by the region rule, one more for rounding
-    for depth, equal in ((halo, True), ((4, 4, 3), True), ((4, 4, 2), False)):
-        got = compute(m.map_overlap(task, depth=depth, boundary="none", dtype=np.float32))
-        assert same(got, ref) is equal, depth
+    op = band_op(mask, (1.0, 1.0, 1.0), band)
+    assert op.region(Box((8, 8, 0), (16, 16, 8))) == Box((5, 5, 0), (19, 19, 11))
+    whole = one_block(op)
+    assert same(by_blocks(op, (8, 8, 8)), whole)
+    rule_region = op.region
+    op.region = lambda box: rule_region(box).intersect(box.grow((3, 3, 2)))
+    assert not same(by_blocks(op, (8, 8, 8)), whole)
 
 
 @pytest.mark.parametrize("seed", [0, 4])
-def test_subvoxel_band_equals_the_clamped_whole(seed):
+def test_subvoxel_band_by_blocks_is_the_one_block(seed):
     values = smooth(SHAPE, seed)
     band = 1.5
+    op = band_op(values, SPACING, band, rule=ShapeRule("intensity", "given", iso=0.0),
+                 surface="subvoxel")
+    whole = one_block(op)
     ref = finish_field(subvoxel_signed_distance(values, 0.0, spacing_zyx=SPACING),
                        max_distance=band)
-    got, info = signed_distance_dask(da.from_array(values, chunks=CHUNKS[0]), SPACING,
-                                     iso=0.0, max_distance=band)
-    assert info == {"metric": "euclidean", "surface": "subvoxel", "chunked": "band",
-                    "max_distance": band}
-    assert same(compute(got), ref)
+    assert same(whole, ref)
     assert (np.abs(ref) < band).any() and (np.abs(ref) == np.float32(band)).any()
+    for block in BLOCKS[:2]:
+        assert same(by_blocks(op, block), whole), block
+
+
+@pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (1.3, 0.9, 1.1)])
+def test_subvoxel_band_is_the_analytic_distance(spacing):
+    """A smooth ball (samples R - r): the band's field is r - R to a tenth of a voxel, and
+    the same bytes in blocks that start anywhere (the foot points are kept in the whole
+    grid's coordinates: in each block's own, blocks of this ball differed by up to 0.03)."""
+    shape, centre, radius = (30, 34, 32), np.array([14.3, 16.8, 15.2]), 9.3
+    z, y, x = np.indices(shape, dtype=np.float64)
+    r = np.sqrt(((z - centre[0]) * spacing[0]) ** 2 + ((y - centre[1]) * spacing[1]) ** 2
+                + ((x - centre[2]) * spacing[2]) ** 2)
+    op = band_op((radius - r).astype(np.float32), spacing, 2.0,
+                 rule=ShapeRule("intensity", "given", iso=0.0), surface="subvoxel")
+    whole = one_block(op)
+    near = np.abs(r - radius) <= 1.5
+    assert np.abs(whole[near] - (r - radius)[near]).max() < 0.1 * min(spacing)
+    assert np.all(whole[r - radius > 2.5] == np.float32(2.0))
+    for block in ((11, 9, 16), (30, 34, 16), (8, 8, 8)):
+        assert same(by_blocks(op, block), whole), block
 
 
 def test_subvoxel_band_block_without_crossing():
     # samples crossing 0 only near one corner: most blocks see no surface at all
     values = smooth(SHAPE, 1) - 2.2
     assert 0 < (values >= 0).sum() < 200
+    op = band_op(values, SPACING, 2.0, rule=ShapeRule("intensity", "given", iso=0.0),
+                 surface="subvoxel")
     ref = finish_field(subvoxel_signed_distance(values, 0.0, spacing_zyx=SPACING),
                        max_distance=2.0)
-    got = banded_signed_distance_dask(da.from_array(values, chunks=(8, 8, 8)), SPACING, 2.0,
-                                      iso=0.0, surface="subvoxel")
-    assert same(compute(got), ref)
+    assert same(by_blocks(op, (8, 8, 8)), ref)
 
 
-# -- the chunked signed_distance ---------------------------------------------------------------
-def test_signed_distance_dask_matches_signed_distance():
-    data = (200 - 150 * sphere(SHAPE, (17.3, 21.6, 13.1), 11.0)).astype(np.int16)
-    ref, _ = signed_distance(data, SPACING, iso=120, inside="below")
-    got, info = signed_distance_dask(da.from_array(data, chunks=CHUNKS[0]), SPACING, iso=120,
-                                     inside="below")
-    assert info == {"metric": "euclidean", "surface": "voxel", "chunked": "passes",
-                    "max_distance": None}
-    assert same(compute(got), ref)
-    got, info = signed_distance_dask(da.from_array(data, chunks=CHUNKS[1]), SPACING, iso=120,
-                                     inside="below", max_distance=3.0)
-    assert info["chunked"] == "band" and info["max_distance"] == 3.0
-    assert same(compute(got), finish_field(ref.copy(), max_distance=3.0))
-    # smooth samples forced to voxel surfaces: the threshold's exact field
-    values = smooth(SHAPE, 2)
-    ref, _ = signed_distance(values, SPACING, iso=0.3, surface="voxel")
-    got, info = signed_distance_dask(da.from_array(values, chunks=CHUNKS[0]), SPACING,
-                                     iso=0.3, surface="voxel")
-    assert info["surface"] == "voxel" and same(compute(got), ref)
+@pytest.mark.parametrize("surface,band", [("voxel", 2.5), ("subvoxel", 4.0)])
+def test_block_shape_fits_the_budget_and_gives_every_worker_a_block(surface, band):
+    op = band_op(smooth((90, 70, 80), 0), (1.0, 1.0, 1.0), band, surface=surface)
+    whole = op.memory(op.grid.box)
+    for per_task, workers in ((whole, 2), (whole // 5, 2), (whole // 40, 4), (1, 2)):
+        block = op.block_shape(per_task, workers)
+        boxes = op.grid.box.blocks(block)
+        assert len(boxes) >= workers
+        if per_task > 1:
+            assert max(op.memory(b) for b in boxes) <= per_task, (per_task, block)
+    # few blocks: slabs (a halo along one axis only)
+    assert sum(n > b for n, b in zip(op.grid.shape, op.block_shape(whole, 2),
+                                     strict=True)) == 1
 
 
+def test_band_refusals():
+    with pytest.raises(VolwarpError, match="positive"):
+        band_op(np.zeros((4, 4, 4), bool), (1, 1, 1), 0.0)
+    with pytest.raises(ValueError, match="surface"):
+        band_op(np.zeros((4, 4, 4), bool), (1, 1, 1), 1.0, surface="auto")
+
+
+# -- the whole's scan -------------------------------------------------------------------
 @pytest.mark.parametrize("kind", ["two-values", "three-values", "block-binary", "bool",
                                   "nan", "constant-blocks"])
-def test_binary_check_agrees_with_field(kind):
-    """The one-pass chunked is_binary picks the surface signed_distance picks."""
+def test_scan_picks_the_surface_signed_distance_picks(kind):
     rng = np.random.default_rng(5)
     data = np.where(blobs(SHAPE, 0), 9.0, 2.0).astype(np.float32)
     if kind == "three-values":
         data[3, 4, 5] = 5.0
-    elif kind == "block-binary":  # every block has two values, the volume three
+    elif kind == "block-binary":  # every box has two values, the volume three
         data[:, :, 16:] = np.where(data[:, :, 16:] == 9.0, 9.0, 4.0)
     elif kind == "bool":
         data = data > 5
@@ -245,74 +217,91 @@ def test_binary_check_agrees_with_field(kind):
         data = data.astype(np.uint16) * 300
     iso = 0.5 if data.dtype == bool else 5.0
     _, ref = signed_distance(data, SPACING, iso=iso, surface="auto")
-    for chunks in CHUNKS:
-        darr = da.from_array(data, chunks=chunks)
-        _, info = signed_distance_dask(darr, SPACING, iso=iso, max_distance=2.0)
-        assert info["surface"] == ref["surface"], (kind, chunks)
+    rule = ShapeRule("intensity", "given", iso=iso)
+    for box_voxels in (16 ** 3, 10 ** 6):
+        got = field_surface(data, rule, metric="euclidean", surface="auto", max_distance=2.0,
+                            box_voxels=box_voxels)
+        assert got == ref["surface"], (kind, box_voxels)
     expect = "subvoxel" if kind in ("three-values", "block-binary", "nan") else "voxel"
     assert ref["surface"] == expect
 
 
-def test_empty_full_and_nan_messages_are_the_in_memory_ones(caplog):
+def test_scan_refuses_and_warns_in_the_in_memory_words(caplog):
     data = smooth(SHAPE, 3)
-    darr = da.from_array(data, chunks=CHUNKS[0])
-    messages = []
     for iso in (50.0, -50.0):
         with pytest.raises(VolwarpError) as mem:
             signed_distance(data, SPACING, iso=iso)
-        with pytest.raises(VolwarpError) as out:
-            signed_distance_dask(darr, SPACING, iso=iso, max_distance=1.0)
-        assert str(out.value) == str(mem.value)
-        messages.append(str(out.value))
-    assert "empty" in messages[0] and "range" in messages[0] and "fills" in messages[1]
-    # all NaN: empty, with the range of nothing (nan), as in memory
+        with pytest.raises(VolwarpError) as scan:
+            scan_shape(data, iso, "above", box_voxels=5000)
+        assert str(scan.value) == str(mem.value)
     nans = np.full((5, 6, 7), np.nan, np.float32)
     with pytest.raises(VolwarpError) as mem, np.errstate(all="ignore"), \
             pytest.warns(RuntimeWarning, match="All-NaN"):  # field.py's nanmin of nothing
         signed_distance(nans, SPACING, iso=0.0)
-    with pytest.raises(VolwarpError) as out:
-        signed_distance_dask(da.from_array(nans, chunks=3), SPACING, iso=0.0)
-    assert str(out.value) == str(mem.value)
+    with pytest.raises(VolwarpError) as scan:
+        scan_shape(nans, 0.0, "above", box_voxels=20)
+    assert str(scan.value) == str(mem.value)
     data[1, 2, 3] = np.nan
-    darr = da.from_array(data, chunks=CHUNKS[0])
     caplog.clear()
     with caplog.at_level("WARNING", logger="volwarp"):
-        signed_distance_dask(darr, SPACING, iso=0.0, max_distance=1.0)
+        scan_shape(data, 0.0, "above", box_voxels=5000)
     assert "1 NaN samples" in caplog.text and "outside" in caplog.text
-    # a NaN sample is outside: below-the-iso with everything else inside is not full
-    filled = np.full(SHAPE, -1.0, np.float32)
-    filled[5, 5, 5] = np.nan
-    _, info = signed_distance_dask(da.from_array(filled, chunks=CHUNKS[1]), SPACING, iso=0.0,
-                                   inside="below", max_distance=2.0)
-    assert info["surface"] == "subvoxel"  # NaN makes the samples non-binary, as in memory
+    with pytest.raises(VolwarpError, match="type complex"):
+        scan_shape(np.zeros((4, 4, 4), complex), 0.0, "above", box_voxels=10)
+
+
+# -- the exact passes -------------------------------------------------------------------
+def threads_engine():
+    """An engine of three threads (a context manager)."""
+    from volwarp_cli.engine import open_engine
+
+    return open_engine("threads", workers=3)
+
+
+@pytest.mark.parametrize("name", list(MASKS))
+@pytest.mark.parametrize("budget", [2_000, 10**9])  # blocks of whole lines; slabs of planes
+@pytest.mark.parametrize("spacing", [SPACING, (1.0, 1.0, 1.0)])
+def test_passes_equal_in_memory_and_scipy(tmp_path, name, budget, spacing):
+    mask = MASKS[name]()
+    ref = signed_edt(mask, spacing)
+    np.testing.assert_allclose(ref, scipy_signed(mask, spacing), rtol=1e-6, atol=1e-5)
+    sink = FieldSink(SHAPE)
+    last = Box.from_shape(SHAPE).blocks((SHAPE[0], 6, 11))
+    with threads_engine() as engine:
+        signed_edt_staged(MaskSource(mask, 0.5, "above"), spacing, engine, sink.write,
+                          tmp_path, block_bytes=budget, last_blocks=last)
+    assert same(sink.field, ref)
+
+
+def test_passes_depend_on_whole_lines():
+    """The test above can fail: a pass on blocks that cut its lines gives other values."""
+    mask = blobs(SHAPE, 0).view(np.uint8)
+    field = np.empty(SHAPE, np.float32)
+    for box in Box.from_shape(SHAPE).blocks((SHAPE[0], SHAPE[1], 13)):  # x lines cut
+        out = np.empty(box.shape, np.float32)
+        x_pass(np.ascontiguousarray(mask[box.slices]), SPACING[2], out)
+        field[box.slices] = out
+    y_pass(field, mask, SPACING[1])
+    z_pass(field, mask, SPACING[0])
+    assert not np.array_equal(field, signed_edt(mask, SPACING))
 
 
 @pytest.mark.parametrize(("kwargs", "match"), [
-    ({"metric": "minnorm"}, "minnorm metric has no out-of-core"),
-    ({"metric": "taxicab"}, "taxicab metric has no out-of-core"),
-    ({"metric": "chessboard", "max_distance": 2.0}, "chessboard metric has no out-of-core"),
     ({"surface": "subvoxel"}, "need --max-distance"),
-    ({}, "need --max-distance"),  # smooth samples, auto: sub-voxel
     ({"metric": "nope"}, "unknown metric"),
     ({"surface": "subvoxel", "metric": "minnorm"}, "need the euclidean metric"),
     ({"max_distance": 0.0}, "positive"),
-    ({"inside": "left"}, "inside must be"),
+    ({"inside": "left", "max_distance": 1.0}, "inside must be"),
 ])
-def test_refusals(kwargs, match):
-    darr = da.from_array(smooth(SHAPE, 0), chunks=CHUNKS[0])
-    with pytest.raises(VolwarpError, match=match) as err:
-        signed_distance_dask(darr, SPACING, iso=0.0, **kwargs)
+def test_field_by_blocks_refusals(tmp_path, kwargs, match):
+    args = {"metric": "euclidean", "surface": "auto", "inside": "above", **kwargs}
+    with threads_engine() as engine, pytest.raises(VolwarpError, match=match) as err:
+        field_by_blocks(smooth(SHAPE, 0), SPACING, engine, None, iso=0.0, block_bytes=10**6,
+                        scratch_near=tmp_path / "f.nrrd", **args)
     assert "\n" not in str(err.value)
 
 
-def test_refuses_complex_and_non_3d():
-    with pytest.raises(VolwarpError, match="type complex"):
-        signed_distance_dask(da.zeros((4, 4, 4), dtype=complex, chunks=2), iso=0.0)
-    with pytest.raises(VolwarpError, match="3-D"):
-        signed_edt_dask(da.zeros((4, 4), bool, chunks=2))
-
-
-def test_hypothesis_random_masks_and_chunkings():
+def test_hypothesis_random_masks_and_blocks():
     from hypothesis import given, settings
     from hypothesis import strategies as st
     from hypothesis.extra.numpy import arrays
@@ -321,30 +310,81 @@ def test_hypothesis_random_masks_and_chunkings():
     def cases(draw):
         shape = draw(st.tuples(st.integers(1, 9), st.integers(1, 11), st.integers(1, 13)))
         mask = draw(arrays(bool, shape))
-        chunks = tuple(draw(st.integers(1, n)) for n in shape)
+        block = tuple(draw(st.integers(1, n)) for n in shape)
         spacing = draw(st.tuples(*[st.floats(0.25, 4.0)] * 3))
-        budget = draw(st.integers(1, 4000))
         band = draw(st.floats(0.3, 6.0))
-        return mask, chunks, spacing, budget, band
+        return mask, block, spacing, band
 
-    @settings(max_examples=40, deadline=None)
+    @settings(max_examples=60, deadline=None)
     @given(cases())
     def check(case):
-        mask, chunks, spacing, budget, band = case
-        ref = signed_edt(mask, spacing)
-        darr = da.from_array(mask, chunks=chunks)
-        got = signed_edt_dask(darr, spacing, block_bytes=budget).compute(scheduler="sync")
-        assert same(got, ref)
-        got = banded_signed_distance_dask(darr, spacing, band).compute(scheduler="sync")
-        assert same(got, finish_field(ref, max_distance=band))
+        mask, block, spacing, band = case
+        ref = finish_field(signed_edt(mask, spacing), max_distance=band)
+        op = band_op(mask, spacing, band)
+        assert same(one_block(op), ref)
+        assert same(by_blocks(op, block), ref)
 
     check()
 
 
-def test_in_memory_path_does_not_import_dask():
+# -- the command ------------------------------------------------------------------------
+@pytest.fixture
+def inputs(tmp_path):
+    mask = sphere(SHAPE, (17.3, 21.6, 13.1), 11.0) | blobs(SHAPE, 3, level=0.56)
+    spacing = np.array(zyx_to_xyz(SPACING))
+    write_volume(Volume(mask.astype(np.float32) * 7, spacing=spacing), tmp_path / "mask.nrrd")
+    write_volume(Volume(smooth(SHAPE, 2), spacing=spacing), tmp_path / "smooth.nrrd")
+    return tmp_path, mask
+
+
+@pytest.mark.parametrize("extra", [
+    ["mask.nrrd", "--iso", "3", "--max-distance", "4.5"],
+    ["mask.nrrd", "--iso", "3", "--max-distance", "3", "--unsigned", "--dtype", "int16"],
+    ["smooth.nrrd", "--iso", "0.2", "--max-distance", "2"],
+    ["smooth.nrrd", "--iso", "0.2", "--max-distance", "2", "--inside", "below"],
+])
+def test_command_by_blocks_writes_the_in_memory_bytes(run, inputs, extra):
+    folder, mask = inputs
+    mem, outs = folder / "m.nrrd", []
+    assert run("distance", folder / extra[0], "-o", mem, *extra[1:]).code == 0
+    for i, blocks in enumerate((["--block", "10,7,13"], ["--block", "37,41,4"], [])):
+        out = folder / f"b{i}.nrrd"
+        res = run("distance", folder / extra[0], "-o", out, *extra[1:], "--chunked", *blocks)
+        assert res.code == 0, res.stderr
+        outs.append(out)
+    for out in outs:
+        assert out.read_bytes() == mem.read_bytes(), out
+    field = read_volume(mem).data
+    if extra[0] == "mask.nrrd" and "--unsigned" not in extra:  # and the bytes are right
+        band = float(extra[extra.index("--max-distance") + 1])
+        ref = scipy_signed(mask, SPACING)
+        inner = np.abs(ref) <= band
+        np.testing.assert_allclose(field[inner], ref[inner], rtol=1e-6, atol=1e-5)
+        assert np.all(np.abs(field[~inner]) == np.float32(band))
+
+
+def test_command_subvoxel_without_a_band_runs_in_memory_only(run, inputs):
+    folder, _ = inputs
+    out = folder / "s.nrrd"
+    assert run("distance", folder / "smooth.nrrd", "-o", out, "--iso", "0.2").code == 0
+    ref = subvoxel_signed_distance(smooth(SHAPE, 2), 0.2, spacing_zyx=SPACING)
+    assert same(read_volume(out).data, ref)
+    assert "surface=subvoxel" in read_volume(out).meta["volwarp_distance"]
+    res = run("distance", folder / "smooth.nrrd", "-o", folder / "c.nrrd", "--iso", "0.2",
+              "--chunked")
+    assert res.code == 1 and "need --max-distance" in res.stderr
+    assert not (folder / "c.nrrd").exists()
+
+
+def test_in_memory_path_does_not_import_dask(tmp_path):
+    write_volume(Volume(smooth((12, 13, 14), 0)), tmp_path / "s.nrrd")
     code = ("import sys, numpy as np\n"
             "from volwarp_cli.distance.field import signed_distance\n"
             "d = np.zeros((8, 9, 10), np.uint8); d[3:6, 2:7, 4:8] = 1\n"
             "signed_distance(d, (1, 1, 1), iso=0.5)\n"
+            "from volwarp_cli.cli.main import cli\n"
+            f"cli(['distance', r'{tmp_path / 's.nrrd'}', '-o', r'{tmp_path / 'o.nrrd'}',"
+            " '--iso', '0', '--max-distance', '2'], standalone_mode=False)\n"
             "assert 'dask' not in sys.modules, 'dask imported'\n")
     subprocess.run([sys.executable, "-c", code], check=True)
+    assert (tmp_path / "o.nrrd").exists()

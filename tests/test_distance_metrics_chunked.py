@@ -75,7 +75,9 @@ def test_minnorm_pass_count_is_the_in_memory_one():
 
 
 # -- the staged passes, directly ----------------------------------------------------------------
-class _Sink:
+class FieldSink:
+    """A whole field written block by block (what the staged passes hand their blocks to)."""
+
     def __init__(self, shape):
         self.field = np.full(shape, np.nan, np.float32)
 
@@ -107,7 +109,7 @@ def test_staged_equals_in_memory(engine, tmp_path, metric, spacing, budget, max_
 
     data = blobs(SHAPE, 1).astype(np.float32)
     ref = _in_memory(data, spacing, metric, max_distance)
-    sink = _Sink(SHAPE)
+    sink = FieldSink(SHAPE)
     last = Box.from_shape(SHAPE).blocks((SHAPE[0], 5, 7))
     n = line_metric_staged(MaskSource(data, 0.5, "above"), spacing, engine, sink.write,
                            tmp_path, metric=metric, block_bytes=budget,
@@ -121,7 +123,7 @@ def test_field_by_blocks_on_a_sliceable_source(engine, tmp_path):
 
     data = blobs(SHAPE, 2).astype(np.int16) * 100
     ref = _in_memory(data, ANISO, "minnorm")
-    sink = _Sink(SHAPE)
+    sink = FieldSink(SHAPE)
     grids = []
 
     class _Out:

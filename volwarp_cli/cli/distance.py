@@ -16,6 +16,7 @@ import click
 from ..io import check_output_path, write_volume
 from ..labelmap import VALUES
 from ..progress import log, timed
+from ..volume import xyz_to_zyx
 from .common import load_input, stamp
 from .options import (
     INPUT_PATH,
@@ -109,73 +110,118 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
         raise click.UsageError("--transform goes with --update OLD_SDF")
     if input is None:
         raise click.UsageError("missing INPUT (or --update OLD_SDF)")
-    from ..distance.field import check_method, finish_field
-    from ..distance.labels import check_options, choose_shape, rule_signed_distance
-    from ..errors import OutOfMemoryError
-    from ..volume import xyz_to_zyx
+    from ..distance.field import check_method, field_note
+    from ..distance.labels import check_options, choose_shape
+    from ..distance.scan import field_surface, scan_box_voxels
+    from .chunked import lazy_input
 
     check_method(metric, surface)
     check_options(values=values, label=label, iso=iso, surface=surface)
     check_output_path(output, option="-o")
-    given = dict(values=values, label=label, iso=iso, inside=inside, surface=surface,
-                 name=str(input))
-    blocks = dict(given=given, metric=metric, surface=surface, unsigned=unsigned,
-                  max_distance=max_distance, dtype=dtype, compress=compress,
-                  byte_order=byte_order, **ome_zarr)
-    chunked = scale_settings().chunked
-    if chunked:
-        _by_blocks(input, output, raw, volume_index, dicom, **blocks)
-        return
-    rule = None
-    try:
-        vol = load_input(input, raw, volume_index, dicom=dicom)
-        rule = _chosen(choose_shape(vol.data, **given))
-        with timed(f"distance ({metric})"), _collector_paused():
-            field, info = rule_signed_distance(vol.data, xyz_to_zyx(vol.spacing), rule,
-                                               metric=metric, surface=surface)
-    except OutOfMemoryError as exc:
-        from .chunked import blocks_can_write, wants_blocks
-
-        if chunked is False:
-            raise
-        from ..io.lazy import open_volume_lazy
-
-        geometry, array = open_volume_lazy(input, raw=raw, volume_index=volume_index,
-                                           dicom=dicom)
-        if not blocks_can_write(output, geometry.shape, dtype or "float32", blocks):
-            raise
-        del geometry, array
-        if not wants_blocks(str(exc)):
-            raise
-        _by_blocks(input, output, raw, volume_index, dicom, rule=rule, **blocks)
-        return
-    if info["passes"]:
-        log.info("min-norm: %d shift-and-min passes", info["passes"])
-    finish_field(field, unsigned=unsigned, max_distance=max_distance)
-    out = stamp(vol.with_data(field), "distance", input)
-    out.meta["volwarp_distance"] = _note(metric, info["surface"], rule, unsigned, max_distance)
-    with timed(f"write {output}"):
-        write_volume(out, output, dtype=dtype, compress=compress, byte_order=byte_order,
-                     **ome_zarr)
-
-
-def _chosen(rule):
-    """Log the shape ``rule`` chose (-v) and return it."""
+    template, source = lazy_input(input, raw, volume_index, dicom)
+    box_voxels = scan_box_voxels()
+    with timed("label rule"):
+        rule = choose_shape(source, values=values, label=label, iso=iso, inside=inside,
+                            surface=surface, name=str(input), box_voxels=box_voxels)
     log.info("%s", rule.describe())
-    return rule
+    surface = field_surface(source, rule, metric=metric, surface=surface,
+                            max_distance=max_distance, box_voxels=box_voxels)
+    out = stamp(template, "distance", input)
+    out.meta["volwarp_distance"] = field_note(metric, surface, rule, unsigned, max_distance)
+    write = dict(dtype=dtype, compress=compress, byte_order=byte_order, **ome_zarr)
+    with _collector_paused():
+        if metric == "euclidean" and (max_distance is not None or surface == "subvoxel"):
+            _banded(source, out, output, rule, surface, max_distance, unsigned, write)
+        else:
+            _by_passes(source, out, output, rule, metric, max_distance, unsigned, write)
 
 
-def _note(metric, surface, rule, unsigned, max_distance) -> str:
-    """The output's ``volwarp_distance`` key: how the field was defined.
+def _target(out, output, write):
+    """The output as the executor writes it (whole, or block by block)."""
+    import numpy as np
 
-    The same however it was computed, in memory or by blocks (the samples are
-    the same); the shape's part says labels or intensity, and why
-    (:meth:`~volwarp_cli.distance.labels.ShapeRule.note`).
+    from ..execute import Target
+
+    dtype = np.dtype(write["dtype"] or "float32")
+    return Target(output, out.with_data(np.broadcast_to(np.zeros((), dtype), out.data.shape)),
+                  dtype, compress=write["compress"], byte_order=write["byte_order"],
+                  version=write["ome_zarr_version"], pyramid=write["pyramid"])
+
+
+def _banded(source, out, output, rule, surface, max_distance, unsigned, write):
+    """The euclidean field within a band, or sub-voxel: one operation, in memory or by blocks.
+
+    :class:`~volwarp_cli.distance.band.BandedDistance` run by the executor; a
+    sub-voxel field without a band runs in memory only.
     """
-    return (f"metric={metric} surface={surface} {rule.note()}"
-            + (" unsigned" if unsigned else "")
-            + (f" max_distance={max_distance:g} (exact inside the band, clamped outside)"
-               if max_distance is not None else ""))
+    from .. import execute
+    from ..distance.band import SUBVOXEL_NEEDS_BAND, BandedDistance
+    from ..errors import VolwarpError
+    from ..geometry import Geometry
+
+    op = BandedDistance(source, Geometry.of(out), rule, surface=surface,
+                        max_distance=max_distance, unsigned=unsigned,
+                        target=_target(out, output, write))
+    settings = scale_settings()
+    chunked = settings.chunked
+    if max_distance is None:
+        if chunked:
+            raise VolwarpError(SUBVOXEL_NEEDS_BAND)
+        chunked = False
+    execute.run(op, execute.How(chunked=chunked, block=settings.block,
+                                open_engine=settings.open_engine))
+
+
+def _by_passes(source, out, output, rule, metric, max_distance, unsigned, write):
+    """The exact field and the other metrics: in memory, or by passes where it does not fit.
+
+    Twins still, chosen by trying in memory first (issue 29: the executor has
+    no passes yet). By blocks (:func:`~volwarp_cli.distance.chunked.field_by_blocks`)
+    each pass's field goes to a scratch folder next to the output.
+    """
+    import functools
+
+    import numpy as np
+
+    from ..box import Box
+    from ..distance.chunked import field_by_blocks
+    from ..distance.field import finish_field
+    from ..distance.labels import rule_signed_distance
+    from ..errors import OutOfMemoryError
+    from ..execute import block_budget, blocks_refusal
+    from .chunked import wants_blocks
+
+    settings = scale_settings()
+    target = _target(out, output, write)
+    if not settings.chunked:
+        try:
+            data = np.asarray(source[Box.from_shape(source.shape).slices])
+            with timed(f"distance ({metric})"):
+                field, info = rule_signed_distance(data, xyz_to_zyx(out.spacing), rule,
+                                                   metric=metric, surface="voxel")
+        except OutOfMemoryError as exc:
+            if settings.chunked is False or blocks_refusal(
+                    [(output, target.nbytes(source.shape))], target.compress,
+                    target.pyramid) or not wants_blocks(str(exc)):
+                raise
+        else:
+            if info["passes"]:
+                log.info("min-norm: %d shift-and-min passes", info["passes"])
+            finish_field(field, unsigned=unsigned, max_distance=max_distance)
+            with timed(f"write {output}"):
+                write_volume(out.with_data(field), output, **write)
+            return
+    finish = functools.partial(_finish_block, unsigned=unsigned, dtype=write["dtype"],
+                               what=str(output))
+    with settings.open_engine() as engine, timed("distance by blocks"):
+        info = field_by_blocks(source, xyz_to_zyx(out.spacing), engine,
+                               lambda grid, _info: target.open_blocks(grid),
+                               iso=rule.iso, inside=rule.inside, metric=metric,
+                               surface="voxel", max_distance=max_distance, finish=finish,
+                               block_bytes=block_budget() // max(1, engine.workers),
+                               block=settings.block, scratch_near=output, rule=rule)
+    if info.get("passes"):
+        log.info("min-norm: %d shift-and-min passes", info["passes"])
 
 
 def _finish_block(field, *, unsigned, dtype, what):
@@ -186,59 +232,6 @@ def _finish_block(field, *, unsigned, dtype, what):
     if unsigned:
         finish_field(field, unsigned=True)
     return cast_samples(field, dtype, what=what) if dtype is not None else field
-
-
-def _by_blocks(input, output, raw, volume_index, dicom=None, *, given, metric, surface,
-               unsigned, max_distance, dtype, compress, byte_order, ome_zarr_version="0.5",
-               pyramid=0, rule=None):
-    """The distance field by blocks on Dask (:mod:`volwarp_cli.distance.chunked`).
-
-    The shape's rule read box by box (``given``: :func:`choose_shape`'s
-    options; ``rule``: already chosen). The exact field runs as three passes
-    whose fields go to a scratch folder next to the output between passes
-    (memory: the blocks in flight); a banded one (--max-distance) as
-    overlapping blocks.
-    """
-    import functools
-
-    import numpy as np
-
-    from ..distance.chunked import field_by_blocks
-    from ..distance.labels import choose_shape
-    from ..volume import xyz_to_zyx
-    from .chunked import block_budget, block_output, lazy_input
-
-    settings = scale_settings()
-    template, source = lazy_input(input, raw, volume_index, dicom)
-    shape = template.data.shape
-    if rule is None:
-        with timed("label rule by blocks"):
-            rule = _chosen(choose_shape(source, box_voxels=max(1, block_budget() // 16),
-                                        **given))
-    out_dtype = np.dtype(dtype or "float32")
-    finish = functools.partial(_finish_block, unsigned=unsigned,
-                               dtype=None if dtype is None else out_dtype, what=str(output))
-    kw = dict(compress=compress, byte_order=byte_order, version=ome_zarr_version,
-              pyramid=pyramid)
-
-    def open_output(grid, info):
-        out = stamp(template.with_data(np.broadcast_to(np.zeros((), out_dtype), shape)),
-                    "distance", input)
-        out.meta["volwarp_distance"] = _note(metric, info["surface"], rule, unsigned,
-                                             max_distance)
-        log.info("distance by blocks: %s", info["chunked"])
-        return block_output(output, out, out_dtype, block=grid, **kw)
-
-    with settings.open_engine() as engine, _collector_paused(), \
-            timed("distance by blocks"):
-        info = field_by_blocks(source, xyz_to_zyx(template.spacing), engine, open_output,
-                               iso=rule.iso, inside=rule.inside, metric=metric,
-                               surface=surface, max_distance=max_distance, finish=finish,
-                               out_dtype=out_dtype,
-                               block_bytes=block_budget() // max(1, engine.workers),
-                               block=settings.block, scratch_near=output, rule=rule)
-    if info.get("passes"):
-        log.info("min-norm: %d shift-and-min passes", info["passes"])
 
 
 @contextlib.contextmanager
@@ -269,7 +262,6 @@ def _update(old_path, transform_path, output, metric, max_distance, dtype, compr
     from ..errors import VolwarpError
     from ..morph.align import affine_from_params, shape_centroid
     from ..spec.loader import load_spec
-    from ..volume import xyz_to_zyx
 
     doc = load_spec(transform_path, "transform")
     check_output_path(output, option="-o")

@@ -1,63 +1,50 @@
-"""Signed distance fields out of core, on Dask arrays.
+"""Signed distance fields by passes, each pass's field in a scratch file between them.
 
-Two ways, both equal to the in-memory field bit for bit:
-
-**Passes** (:func:`signed_edt_dask`): the exact Euclidean transform of
+**Exact** (:func:`signed_edt_staged`): the exact Euclidean transform of
 :mod:`.exact` is three separable passes (x, y, z), and a pass sets each value
 from the whole line through it along its axis and nothing else
-(:func:`~volwarp_cli.regions.distance_pass_input`). So each pass is a
-``map_blocks`` over blocks holding whole lines along its axis, with a Dask
-rechunk between passes; the block kernels (:func:`.exact.x_pass`,
-:func:`.exact.y_pass`, :func:`.exact.z_pass`) are the loop bodies of the
-in-memory parallel kernel, and a line sees the same values at the same
-indices, so the arithmetic is the same. The float32 squared distances of a
-pass are what the in-memory kernel stores between its passes too.
+(:func:`~volwarp_cli.regions.distance_pass_input`). So each pass runs on
+blocks holding whole lines along its axis (x and y together on slabs of
+whole planes), its float32 squared distances stored in a scratch file for
+the next; the block kernels (:func:`.exact.x_pass`, :func:`.exact.y_pass`,
+:func:`.exact.z_pass`) are the loop bodies of the in-memory parallel kernel,
+and a line sees the same values at the same indices, so the arithmetic is
+the same: equal to the in-memory field bit for bit.
 
-**Band** (:func:`banded_signed_distance_dask`): clipped to ``±D``
-(``--max-distance``), a voxel's value depends only on the samples within a
-halo of it (:func:`~volwarp_cli.regions.distance_band_input`), so the field
-is a ``map_overlap``: the in-memory kernel on each block grown by the halo,
-clipped, cropped. Exact inside the band ``|d| <= D``, ``±D`` outside, as
-``finish_field(field, max_distance=D)`` of the whole. The sub-voxel field
-(smooth inputs) bands the same way with its own, wider halo.
+**Line metrics** (:func:`line_metric_staged`): ``minnorm``, ``taxicab`` and
+``chessboard`` are per-axis passes too, each pass elementwise along the lines
+of its axis (:func:`.minnorm.axis_pass`, the in-memory passes' own function;
+:func:`.minnorm.chessboard_axis_pass`), so they run on blocks of whole lines
+with the outside and inside fields in two scratch files between passes;
+equal bit for bit to the in-memory field, and with ``--max-distance`` the
+same passes, clamped.
 
-**Line metrics** (:func:`line_metric_staged`, through :func:`field_by_blocks`):
-``minnorm``, ``taxicab`` and ``chessboard`` are per-axis passes too, each
-pass elementwise along the lines of its axis (:func:`.minnorm.axis_pass`, the
-in-memory passes' own function; :func:`.minnorm.chessboard_axis_pass`), so
-they run on blocks of whole lines with the outside and inside fields in two
-scratch files between passes; equal bit for bit to the in-memory field, and
-with ``--max-distance`` the same passes, clamped. They have no Dask-array
-form (:func:`signed_distance_dask` refuses them).
-
-What cannot be done out of core is refused (:func:`signed_distance_dask`):
-a sub-voxel field without a band (its nearest-seed transform carries seed ids
-and foot points through the passes, which the block kernels here do not).
+:func:`field_by_blocks` runs either, or, for a band (``--max-distance``, or
+a sub-voxel surface with one), the blocks of :class:`.band.BandedDistance`
+(each block from itself grown by its halo). A sub-voxel field without a band
+has no form by blocks and is refused (:data:`_SUBVOXEL_NEEDS_BAND`).
 
 Every kernel a block task calls is a serial ``nogil`` one, run in the task's
-own thread: Dask's threads give the parallelism across blocks (volwarp has no
-numba ``prange`` kernel, whose workqueue layer aborts when two threads run one).
+own thread: the engine's threads give the parallelism across blocks (volwarp
+has no numba ``prange`` kernel, whose workqueue layer aborts when two threads
+run one).
 """
 
 from __future__ import annotations
 
-import functools
 import math
 
-import dask
-import dask.array as da
 import numpy as np
 
 from ..box import Box
 from ..errors import VolwarpError
+from .band import SUBVOXEL_NEEDS_BAND as _SUBVOXEL_NEEDS_BAND
 from .exact import x_pass, y_pass, z_pass
 from .field import check_method, finish_field, inside_mask
+from .scan import block_stats, check_shape, merge_stats
 
 #: Bytes per voxel a pass block holds: the float32 field in, a float32 copy out, the mask.
 PASS_BYTES_PER_VOXEL = 9
-
-_F32 = np.empty((0, 0, 0), np.float32)
-_U8 = np.empty((0, 0, 0), np.uint8)
 
 
 # -- chunk choice ---------------------------------------------------------------------
@@ -88,101 +75,6 @@ def line_chunks(shape, axis: int, block_bytes: int, *, bytes_per_voxel: int = PA
     return tuple(max(1, v) for v in c)
 
 
-def _default_block_bytes(block_bytes):
-    if block_bytes is not None:
-        return int(block_bytes)
-    from ..memory import block_bytes as budget
-
-    return budget()
-
-
-def _threads() -> int:
-    from ..parallel import threads
-
-    return threads()
-
-
-# -- block tasks -------------------------------------------------------------------------
-def _as_u8(block):
-    if block.dtype == bool:
-        return np.ascontiguousarray(block).view(np.uint8)
-    return (block != 0).view(np.uint8)
-
-
-def _x_block(mask, hx):
-    out = np.empty(mask.shape, np.float32)
-    x_pass(np.ascontiguousarray(mask), hx, out)
-    return out
-
-
-def _y_block(field, mask, hy):
-    field = np.array(field, dtype=np.float32, order="C")  # a copy: Dask's blocks are shared
-    y_pass(field, np.ascontiguousarray(mask), hy)
-    return field
-
-
-def _z_block(field, mask, hz):
-    field = np.array(field, dtype=np.float32, order="C")
-    z_pass(field, np.ascontiguousarray(mask), hz)
-    return field
-
-
-def _edt_block(mask, hz, hy, hx, max_distance):
-    # the in-memory transform, serial, on one overlapped block; then --max-distance
-    mask = np.ascontiguousarray(mask)
-    out = np.empty(mask.shape, np.float32)
-    x_pass(mask, hx, out)
-    y_pass(out, mask, hy)
-    z_pass(out, mask, hz)
-    return finish_field(out, max_distance=max_distance)
-
-
-# -- exact by passes ---------------------------------------------------------------------
-def _mask_u8(mask) -> da.Array:
-    mask = da.asarray(mask)
-    if mask.ndim != 3:
-        raise VolwarpError(f"signed_edt needs a 3-D mask, got shape {mask.shape}")
-    if mask.dtype == np.uint8 or mask.dtype == bool:
-        return mask.map_blocks(_as_u8, dtype=np.uint8, meta=_U8)
-    return (mask != 0).map_blocks(_as_u8, dtype=np.uint8, meta=_U8)
-
-
-def signed_edt_dask(mask, spacing_zyx=(1.0, 1.0, 1.0), *, block_bytes: int | None = None,
-                    min_blocks: int | None = None) -> da.Array:
-    """Exact signed Euclidean distance of a Dask mask, by passes: :func:`.exact.signed_edt`.
-
-    Parameters
-    ----------
-    mask : (Z, Y, X) dask (or numpy) array, bool or integer
-        The shape (nonzero inside), in any chunks.
-    spacing_zyx : 3 floats
-        Sample spacing along the array axes.
-    block_bytes : int, optional
-        One pass block's working memory (:data:`PASS_BYTES_PER_VOXEL` a voxel);
-        default :func:`volwarp_cli.memory.block_bytes`. Each pass rechunks to
-        whole lines along its axis (:func:`line_chunks`).
-    min_blocks : int, optional
-        Cut each pass into at least this many blocks where the lines allow
-        (default: the thread count, :func:`volwarp_cli.parallel.threads`).
-
-    Returns
-    -------
-    (Z, Y, X) float32 dask array
-        Equal to ``signed_edt(mask.compute(), spacing_zyx)`` bit for bit,
-        ``±inf`` included for an empty or full mask (callers check first).
-    """
-    m = _mask_u8(mask)
-    budget = _default_block_bytes(block_bytes)
-    nb_min = _threads() if min_blocks is None else int(min_blocks)
-    hz, hy, hx = (float(s) for s in spacing_zyx)
-    c_x, c_y, c_z = (line_chunks(m.shape, a, budget, min_blocks=nb_min) for a in (2, 1, 0))
-    d = m.rechunk(c_x).map_blocks(_x_block, hx, dtype=np.float32, meta=_F32)
-    d = da.map_blocks(_y_block, d.rechunk(c_y), m.rechunk(c_y), hy, dtype=np.float32,
-                      meta=_F32)
-    return da.map_blocks(_z_block, d.rechunk(c_z), m.rechunk(c_z), hz, dtype=np.float32,
-                         meta=_F32)
-
-
 # -- exact by passes, each pass's field on disk ------------------------------------------------
 class MaskSource:
     """The shape's mask of any box of a sliceable source, for block tasks (picklable)."""
@@ -197,10 +89,10 @@ class MaskSource:
         return inside_mask(data, self.iso, self.inside).view(np.uint8)
 
     def box_and_stats(self, box):
-        """:meth:`box` and the block's :func:`_block_stats` (the scan, in the first pass)."""
+        """:meth:`box` and the block's :func:`.scan.block_stats` (the scan, in the first pass)."""
         data = np.asarray(self.source[box.slices])
         return (inside_mask(data, self.iso, self.inside).view(np.uint8),
-                _block_stats(data, self.iso, self.inside))
+                block_stats(data, self.iso, self.inside))
 
 
 class LabelMaskSource(MaskSource):
@@ -306,9 +198,9 @@ def _slabs(shape, block_bytes: int, min_blocks: int, bytes_per_voxel: int = PASS
 def staged_check(*, size: int, iso: float, inside: str, surface: str, is_bool: bool):
     """The ``check`` of :func:`signed_edt_staged`: the whole's scan from its blocks' stats.
 
-    Refuses what :func:`signed_distance_dask` refuses after its own scan: an
-    empty or full shape, and smooth samples under ``surface="auto"`` (their
-    sub-voxel field needs a band).
+    Refuses what :func:`.scan.scan_shape` refuses: an empty or full shape;
+    and smooth samples under ``surface="auto"`` (their sub-voxel field needs
+    a band).
     """
     def check(stats):
         nans, count, lo, hi, binary = merge_stats(stats, is_bool)
@@ -332,12 +224,12 @@ def signed_edt_staged(masks: MaskSource, spacing_zyx, engine, write, scratch, *,
     :mod:`volwarp_cli.io.filearray`); the z pass reads it by whole z lines
     and hands each finished block to ``write(box, field)`` (after
     ``finish(field)``: --unsigned, the output type). The same kernels on the
-    same lines as :func:`signed_edt_dask` and the in-memory transform: equal
+    same lines as the in-memory transform: equal
     bit for bit. ``last_blocks``: the z pass's blocks (the output's block
     grid), default whole z lines within ``block_bytes``; ``slab_depth``: the
     x and y passes' slabs, that many planes deep (default from
     ``block_bytes``). ``check``: called
-    with the first pass's blocks' :func:`_block_stats` (the scan of the
+    with the first pass's blocks' :func:`.scan.block_stats` (the scan of the
     samples, made as they are read) before the last pass, to refuse an
     empty shape or one that needs another method. Returns the number of
     block tasks run.
@@ -508,270 +400,32 @@ def line_metric_staged(masks: MaskSource, spacing_zyx, engine, write, scratch, *
     return count + len(tasks)
 
 
-# -- band by overlapping blocks --------------------------------------------------------------
-def band_halo(spacing_zyx, max_distance: float, surface: str = "voxel") -> tuple[int, int, int]:
-    """The halo (z, y, x voxels) a block of the field clipped to ``±max_distance`` needs.
-
-    :func:`volwarp_cli.regions.distance_band_input`'s rule, and for voxel
-    surfaces at least ``ceil(D / h)`` per axis: the rule takes ``floor(D / h)``
-    (a site farther along an axis is farther than ``D`` in exact arithmetic),
-    the one voxel more keeps a site just past ``D`` out of reach of float32
-    rounding too.
-    """
-    from ..regions import distance_band_input
-    from ..volume import zyx_to_xyz
-
-    h = [float(s) for s in spacing_zyx]
-    d = float(max_distance)
-    if not d > 0:
-        raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
-    big = [10**9] * 3  # a volume large enough that the rule's box is not clamped
-    out = Box((big[0] // 2,) * 3, (big[0] // 2 + 1,) * 3)
-    region = distance_band_input(out, big, zyx_to_xyz(tuple(h)), d, surface=surface)
-    halo = [out.lo[a] - region.lo[a] for a in range(3)]
-    if surface == "voxel":
-        halo = [max(k, math.ceil(d / v)) for k, v in zip(halo, h, strict=True)]
-    return tuple(int(k) for k in halo)
-
-
-def _subvoxel_block(values, iso, above, hz, hy, hx, max_distance):
-    # subvoxel.subvoxel_signed_distance in this thread alone, on one overlapped block;
-    # a block without a crossing is farther than the band from the surface: ±D by side
-    from .subvoxel import subvoxel_field
-
-    vals = np.ascontiguousarray(values)
-    if vals.dtype.kind not in "f":
-        vals = vals.astype(np.float32)
-    dist = subvoxel_field(vals, iso, above, (hz, hy, hx), threads=1)
-    if dist is None:
-        inside = (vals >= iso) if above else (vals < iso)
-        return np.where(inside, np.float32(-max_distance), np.float32(max_distance))
-    return finish_field(dist, max_distance=max_distance)
-
-
-def banded_signed_distance_dask(data_or_mask, spacing_zyx, max_distance: float, *,
-                                iso: float | None = None, inside: str = "above",
-                                surface: str = "voxel") -> da.Array:
-    """The signed distance clipped to ``±max_distance``, as overlapping blocks.
-
-    Parameters
-    ----------
-    data_or_mask : (Z, Y, X) dask (or numpy) array
-        The shape (nonzero inside) when ``iso`` is None; else samples, the shape
-        being those {above|below} ``iso`` (:func:`.field.inside_mask`).
-    spacing_zyx : 3 floats
-    max_distance : float
-        The band ``D``.
-    iso, inside : the shape's definition; ``surface="subvoxel"`` needs ``iso``.
-    surface : {"voxel", "subvoxel"}
-        ``voxel``: the exact field between voxel centres (:mod:`.exact`);
-        ``subvoxel``: the distance to the samples' iso-surface (:mod:`.subvoxel`).
-
-    Returns
-    -------
-    (Z, Y, X) float32 dask array
-        In the input's chunks; each block computed from itself grown by
-        :func:`band_halo` (``map_overlap``, no padding at the volume's faces).
-        Equal bit for bit to ``finish_field(field_of_whole, max_distance=D)``:
-        exact where ``|d| <= D``, ``±D`` beyond. For ``subvoxel`` this rests on
-        :func:`~volwarp_cli.regions.distance_band_input`'s bound (a bound
-        checked on smooth data by ``tests/test_regions.py``).
-    """
-    if surface not in ("voxel", "subvoxel"):
-        raise VolwarpError(f"unknown surface mode {surface!r} (known: voxel, subvoxel)")
-    data = da.asarray(data_or_mask)
-    if data.ndim != 3:
-        raise VolwarpError(f"the distance needs a 3-D volume, got shape {data.shape}")
-    d = float(max_distance)
-    halo = band_halo(spacing_zyx, d, surface)
-    hz, hy, hx = (float(s) for s in spacing_zyx)
-    depth = {a: min(k, max(0, n - 1)) for a, (k, n) in enumerate(zip(halo, data.shape,
-                                                                       strict=True))}
-    if surface == "subvoxel":
-        if iso is None:
-            raise VolwarpError("sub-voxel distances need the iso level of the samples")
-        if inside not in ("above", "below"):
-            raise VolwarpError(f"inside must be 'above' or 'below', got {inside!r}")
-        task = functools.partial(_subvoxel_block, iso=float(iso), above=inside == "above",
-                                 hz=hz, hy=hy, hx=hx, max_distance=d)
-        return data.map_overlap(task, depth=depth, boundary="none", trim=True, dtype=np.float32,
-                                meta=_F32)
-    mask = data if iso is None else inside_mask(data, iso, inside)
-    m = _mask_u8(mask)
-    task = functools.partial(_edt_block, hz=hz, hy=hy, hx=hx, max_distance=d)
-    return m.map_overlap(task, depth=depth, boundary="none", trim=True,
-                         dtype=np.float32, meta=_F32)
-
-
-_SUBVOXEL_NEEDS_BAND = ("sub-voxel distances (smooth samples) out of core need --max-distance "
-                        "(overlapping blocks); give one, or use --surface voxel for the exact "
-                        "field between voxel centres")
-
-
-# -- the chunked signed_distance --------------------------------------------------------------
-def _block_stats(block, iso, inside):
-    # (NaNs, inside count, nanmin, nanmax, binary, lo, hi) of one block
-    b = np.asarray(block)
-    if b.size == 0:
-        return 0, 0, np.nan, np.nan, True, None, None
-    nans = int(np.count_nonzero(np.isnan(b))) if b.dtype.kind == "f" else 0
-    count = int(np.count_nonzero(inside_mask(b, iso, inside)))
-    if b.dtype == bool:
-        return nans, count, float(b.min()), float(b.max()), True, bool(b.min()), bool(b.max())
-    lo, hi = b.min(), b.max()
-    if nans == b.size:
-        fmin = fmax = np.nan
-    elif nans:
-        fmin, fmax = float(np.nanmin(b)), float(np.nanmax(b))
-    else:
-        fmin, fmax = float(lo), float(hi)
-    binary = bool(lo == hi) or int(np.count_nonzero((b == lo) | (b == hi))) == b.size
-    return nans, count, fmin, fmax, binary, lo.item(), hi.item()
-
-
-def _scan(data, iso, inside):
-    """One pass over the samples: NaN count, inside count, range, and whether binary."""
-    blocks = data.to_delayed().ravel()
-    stats = dask.compute(*[dask.delayed(_block_stats)(b, iso, inside) for b in blocks])
-    return merge_stats(stats, data.dtype == bool)
-
-
-def merge_stats(stats, is_bool: bool = False):
-    """The blocks' :func:`_block_stats` as the whole's ``(nans, count, lo, hi, binary)``."""
-    nans = sum(s[0] for s in stats)
-    count = sum(s[1] for s in stats)
-    mins = [s[2] for s in stats if not np.isnan(s[2])]
-    maxs = [s[3] for s in stats if not np.isnan(s[3])]
-    values = {v for s in stats for v in s[5:] if v is not None}
-    binary = is_bool or (all(s[4] for s in stats) and len(values) <= 2)
-    return (nans, count, min(mins) if mins else np.nan, max(maxs) if maxs else np.nan,
-            binary)
-
-
-def check_shape(nans: int, count: int, size: int, lo, hi, iso: float, inside: str) -> None:
-    """The refusals and the warning of the whole's scan (:func:`.field.signed_distance`'s words).
-
-    NaN samples are warned about; an empty shape, or one filling the grid, refused.
-    """
-    if nans:
-        from ..progress import log
-
-        log.warning("%d NaN samples (%.2g%%) count as outside the shape", nans,
-                    100.0 * nans / size)
-    if count == 0:
-        raise VolwarpError(f"the shape is empty: no sample is {inside} the iso level {iso:g} "
-                           f"(samples range {float(lo):g} to {float(hi):g})")
-    if count == size:
-        raise VolwarpError(f"the shape fills the whole grid: every sample is {inside} the iso "
-                           f"level {iso:g}, so there is no surface")
-
-
-def check_out_of_core(metric: str, surface: str) -> None:
-    """Refuse a metric or surface mode with no form as one Dask array (before any pass).
-
-    The minnorm, taxicab and chessboard metrics run out of core by staged
-    passes (:func:`line_metric_staged`, through :func:`field_by_blocks`), not
-    as a Dask graph.
-    """
-    check_method(metric, surface)
-    if metric != "euclidean":
-        raise VolwarpError(f"the {metric} metric has no out-of-core form as a Dask array: "
-                           "its passes run by blocks through field_by_blocks "
-                           "(volwarp distance --chunked)")
-
-
-def signed_distance_dask(data, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float,
-                         inside: str = "above", metric: str = "euclidean",
-                         surface: str = "auto", max_distance: float | None = None,
-                         block_bytes: int | None = None) -> tuple[da.Array, dict]:
-    """The chunked counterpart of :func:`.field.signed_distance`, for what runs out of core.
-
-    Parameters
-    ----------
-    data : (Z, Y, X) dask (or numpy) array
-    spacing_zyx : 3 floats
-    iso, inside, metric, surface : as :func:`.field.signed_distance`.
-    max_distance : float, optional
-        ``--max-distance``: the field clipped to ``±D``, computed as overlapping
-        blocks (:func:`banded_signed_distance_dask`); else the exact field by
-        passes (:func:`signed_edt_dask`).
-    block_bytes : int, optional
-        The passes' block budget (:func:`signed_edt_dask`).
-
-    Returns
-    -------
-    field : (Z, Y, X) float32 dask array
-        Equal bit for bit to the in-memory ``signed_distance`` (and, with
-        ``max_distance``, to ``finish_field(field, max_distance=D)``).
-    info : dict
-        ``{"metric", "surface", "chunked", "max_distance"}``: ``chunked`` is
-        ``"passes"`` or ``"band"``, for the output's metadata.
-
-    Raises
-    ------
-    VolwarpError
-        The shape is empty or fills the grid (the messages of
-        ``signed_distance``); or the field has no form as a Dask array: the
-        ``minnorm``, ``taxicab`` and ``chessboard`` metrics (they run by blocks
-        through :func:`field_by_blocks`), a sub-voxel surface without
-        ``max_distance``.
-    """
-    check_out_of_core(metric, surface)
-    if inside not in ("above", "below"):
-        raise VolwarpError(f"inside must be 'above' or 'below', got {inside!r}")
-    if max_distance is not None and not max_distance > 0:
-        raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
-    data = da.asarray(data)
-    if data.dtype.kind == "c" or data.dtype.kind not in "biuf":
-        raise VolwarpError(f"cannot take the distance of samples of type {data.dtype}")
-    if data.ndim != 3:
-        raise VolwarpError(f"the distance needs a 3-D volume, got shape {data.shape}")
-    if surface == "subvoxel" and max_distance is None:
-        raise VolwarpError(_SUBVOXEL_NEEDS_BAND)
-    nans, count, lo, hi, binary = _scan(data, iso, inside)
-    check_shape(nans, count, data.size, lo, hi, iso, inside)
-    spacing_zyx = tuple(float(s) for s in spacing_zyx)
-    sub = surface == "subvoxel" or (surface == "auto" and not binary)
-    info = {"metric": metric, "surface": "subvoxel" if sub else "voxel",
-            "chunked": "band" if max_distance is not None else "passes",
-            "max_distance": None if max_distance is None else float(max_distance)}
-    if sub:
-        if max_distance is None:
-            raise VolwarpError(_SUBVOXEL_NEEDS_BAND)
-        return banded_signed_distance_dask(data, spacing_zyx, max_distance, iso=iso,
-                                           inside=inside, surface="subvoxel"), info
-    if max_distance is not None:
-        return banded_signed_distance_dask(data, spacing_zyx, max_distance, iso=iso,
-                                           inside=inside), info
-    return signed_edt_dask(inside_mask(data, iso, inside), spacing_zyx,
-                           block_bytes=block_bytes), info
-
-
 # -- the whole operation ---------------------------------------------------------------
 def field_by_blocks(source, spacing_zyx, engine, open_output, *, iso: float | None,
                     inside: str, metric: str, surface: str,
-                    max_distance: float | None = None, finish=None, out_dtype=np.float32,
+                    max_distance: float | None = None, finish=None,
                     block_bytes: int, block=None, scratch_near, rule=None) -> dict:
     """The signed field of ``source`` computed and written by blocks on ``engine``.
 
-    ``source``: a sliceable input (a :class:`~volwarp_cli.bspline.blocks.LazySource`);
+    ``source``: a sliceable input (a :class:`~volwarp_cli.io.lazy.LazySource`);
     ``open_output(block_zyx, info)``: a context manager giving the
     :class:`~volwarp_cli.io.blockwrite.BlockOutput` the field goes to, with
-    that block grid (``info``: :func:`signed_distance_dask`'s, for the
+    that block grid (``info``: how the field was computed, for the
     metadata). ``minnorm``, ``taxicab`` and ``chessboard`` run as
     :func:`line_metric_staged`'s passes (with ``max_distance`` too: the
     passes, then clamped); the exact Euclidean field as :func:`signed_edt_staged`'s passes,
     their scratch files in a folder next to ``scratch_near``; with
-    ``max_distance``, or a sub-voxel surface, as overlapping blocks.
-    ``finish(field)``: a block's last step (--unsigned, the output type,
-    ``out_dtype``). ``block_bytes``: one task's memory; ``block``: the
+    ``max_distance``, as the blocks of :class:`.band.BandedDistance` (the
+    surface ``auto`` picks by a scan of the whole, :func:`.scan.field_surface`).
+    ``finish(field)``: a block's last step (--unsigned, the output type).
+    ``block_bytes``: one task's memory; ``block``: the
     user's block shape (for the passes: Z the x/y slabs' depth, Y,X the z
     pass's columns). ``rule``: a :class:`.labels.ShapeRule`; a label rule's
     voxels are the shape (:class:`LabelMaskSource`: ``iso`` and ``inside``
     unused, the voxel surface, its checks already made by
-    :func:`.labels.choose_shape`). Returns ``info``.
+    :func:`.labels.choose_shape`); default: the samples ``inside`` ``iso``.
+    Returns ``info``.
     """
-    from ..engine import dask_input, write_blocks
     from ..io.atomic import scratch_folder
 
     shape = tuple(source.shape)
@@ -787,50 +441,64 @@ def field_by_blocks(source, spacing_zyx, engine, open_output, *, iso: float | No
                                       block_bytes=block_bytes, block=block,
                                       scratch_near=scratch_near, checked=labels,
                                       is_bool=source.dtype == bool)
-    if max_distance is None and surface != "subvoxel":
-        # the exact field by passes: the samples are scanned in the first pass (the
-        # checks run before the last one), not in a pass of their own
-        check_out_of_core(metric, surface)
-        info = {"metric": metric, "surface": "voxel", "chunked": "passes",
-                "max_distance": None}
-        grid = _pass_grid(shape, block, block_bytes, engine.workers)
-        with open_output(grid, info) as sink, scratch_folder(scratch_near) as scratch:
-            check = None if labels else staged_check(
-                size=int(np.prod(shape)), iso=iso, inside=inside, surface=surface,
-                is_bool=source.dtype == bool)
-            every = sink.blocks()
-            signed_edt_staged(masks, spacing_zyx, engine,
-                              sink.writer().write, scratch, block_bytes=block_bytes // 4,
-                              finish=finish, memory=block_bytes, check=check,
-                              last_blocks=every, slab_depth=block[0] if block else None)
-            sink.mark_written(every)
-        return info
-    chunks = block or line_chunks(shape, 2, block_bytes // 4, min_blocks=engine.workers)
-    if labels:  # the band of the labels' voxels (checked): no scan of its own
-        check_method(metric, surface)
-        if not max_distance > 0:
-            raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
-        mask = dask_input(source, chunks).map_blocks(_label_block, rule.label, dtype=bool,
-                                                      meta=np.empty((0, 0, 0), bool))
-        field = banded_signed_distance_dask(mask, spacing_zyx, max_distance)
-        info = {"metric": metric, "surface": "voxel", "chunked": "band",
-                "max_distance": float(max_distance)}
-    else:
-        field, info = signed_distance_dask(dask_input(source, chunks), spacing_zyx, iso=iso,
-                                           inside=inside, metric=metric, surface=surface,
-                                           max_distance=max_distance,
-                                           block_bytes=block_bytes // 4)
-    if finish is not None:
-        field = field.map_blocks(finish, dtype=np.dtype(out_dtype))
-    with open_output(block or chunks, info) as sink:
-        write_blocks(field, sink, engine, label="distance", memory=block_bytes)
+    check_method(metric, surface)
+    if max_distance is not None:
+        return _band_by_blocks(source, spacing_zyx, engine, open_output, rule=rule, iso=iso,
+                               inside=inside, surface=surface, max_distance=max_distance,
+                               finish=finish, block_bytes=block_bytes, block=block)
+    if surface == "subvoxel":
+        raise VolwarpError(_SUBVOXEL_NEEDS_BAND)
+    # the exact field by passes: the samples are scanned in the first pass (the
+    # checks run before the last one), not in a pass of their own
+    info = {"metric": metric, "surface": "voxel", "chunked": "passes", "max_distance": None}
+    grid = _pass_grid(shape, block, block_bytes, engine.workers)
+    with open_output(grid, info) as sink, scratch_folder(scratch_near) as scratch:
+        check = None if labels else staged_check(
+            size=int(np.prod(shape)), iso=iso, inside=inside, surface=surface,
+            is_bool=source.dtype == bool)
+        every = sink.blocks()
+        signed_edt_staged(masks, spacing_zyx, engine,
+                          sink.writer().write, scratch, block_bytes=block_bytes // 4,
+                          finish=finish, memory=block_bytes, check=check,
+                          last_blocks=every, slab_depth=block[0] if block else None)
+        sink.mark_written(every)
     return info
 
 
-def _label_block(block, label):
-    from .labels import label_mask
+def _band_by_blocks(source, spacing_zyx, engine, open_output, *, rule, iso, inside, surface,
+                    max_distance, finish, block_bytes, block) -> dict:
+    """:func:`field_by_blocks` within a band: :class:`.band.BandedDistance`'s blocks on ``engine``."""
+    import dask
 
-    return label_mask(block, label)
+    from ..geometry import Geometry
+    from ..volume import zyx_to_xyz
+    from .band import BandedDistance
+    from .labels import ShapeRule
+    from .scan import field_surface, scan_box_voxels
+
+    if rule is None:
+        rule = ShapeRule("intensity", "given", iso=iso, inside=inside)
+    surface = field_surface(source, rule, metric="euclidean", surface=surface,
+                            max_distance=max_distance, box_voxels=scan_box_voxels())
+    grid = Geometry(tuple(source.shape), zyx_to_xyz(spacing_zyx))
+    op = BandedDistance(source, grid, rule, surface=surface, max_distance=max_distance)
+    info = {"metric": "euclidean", "surface": surface, "chunked": "band",
+            "max_distance": float(max_distance)}
+    with open_output(block or op.block_shape(block_bytes, engine.workers), info) as sink:
+        boxes = sink.blocks()
+        op_node = dask.delayed(op, pure=False)
+        writer = dask.delayed(sink.writer(), pure=False)
+        tasks = [engine.block_delayed(_band_block, f"distance-{'-'.join(map(str, b.lo))}",
+                                      op_node, b, writer, finish, memory=block_bytes)
+                 for b in boxes]
+        engine.run(tasks, label="distance")
+        sink.mark_written(boxes)
+    return info
+
+
+def _band_block(op, box, writer, finish):
+    field = op.compute(box, threads=1)["field"]
+    writer.write(box, finish(field) if finish is not None else field)
 
 
 def _pass_grid(shape, block, block_bytes, workers, bytes_per_voxel=PASS_BYTES_PER_VOXEL):

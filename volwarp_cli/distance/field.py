@@ -114,7 +114,7 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
         data.size * (18 if metric == "euclidean" else 13),
         f"the distance field of {data.size} samples",
         None if data.size <= _WARM_SIZE ** 3 else  # (the small field itself: loads them)
-        lambda: _warm_kernels(metric, "subvoxel" if sub else "voxel", data.dtype, iso, inside))
+        lambda: warm_kernels(metric, "subvoxel" if sub else "voxel", data.dtype, iso, inside))
     if data.dtype.kind == "f":
         nans = int(np.count_nonzero(np.isnan(data)))
         if nans:
@@ -160,11 +160,11 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
     return out, info
 
 
-#: The side of the ball the field's kernels run on to load (:func:`_warm_kernels`).
+#: The side of the ball the field's kernels run on to load (:func:`warm_kernels`).
 _WARM_SIZE = 8
 
 
-def _warm_kernels(metric: str, surface: str, dtype, iso: float, inside: str) -> None:
+def warm_kernels(metric: str, surface: str, dtype, iso: float, inside: str) -> None:
     """Run the field's kernels once on a small ball of ``dtype`` (a surface between its samples).
 
     Loads their modules, libraries and compiled code, as the real input's field will.
@@ -182,6 +182,20 @@ def _warm_kernels(metric: str, surface: str, dtype, iso: float, inside: str) -> 
         signed_distance(ball, iso=iso, inside=inside, metric=metric, surface=surface)
     except VolwarpError:  # (a level the dtype cannot hold around it: the real input tells)
         pass
+
+
+def field_note(metric: str, surface: str, rule, unsigned: bool = False,
+               max_distance: float | None = None) -> str:
+    """How a field was defined, for its ``volwarp_distance`` key.
+
+    The same however it was computed, in memory or by blocks (the samples are
+    the same); ``rule``'s part says labels or intensity, and why
+    (:meth:`.labels.ShapeRule.note`).
+    """
+    return (f"metric={metric} surface={surface} {rule.note()}"
+            + (" unsigned" if unsigned else "")
+            + (f" max_distance={max_distance:g} (exact inside the band, clamped outside)"
+               if max_distance is not None else ""))
 
 
 def finish_field(field: np.ndarray, *, unsigned: bool = False,

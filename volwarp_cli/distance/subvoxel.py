@@ -97,11 +97,11 @@ def _crossings(vals, z, y, x, iso, above, hs, best, side):
     return found
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _foot(vals, z, y, x, hs, best, side, c):
-    # Foot point (index coordinates) of the local surface plane: normal from
-    # central differences, through the crossing on the grid line most
-    # nearly normal to the surface; planes through the three crossings
-    # when the gradient vanishes.
+def _foot(vals, z, y, x, hs, best, side, c, origin):
+    # Foot point (index coordinates of the whole grid: ``origin`` is vals[0, 0, 0]'s) of
+    # the local surface plane: normal from central differences, through the crossing
+    # on the grid line most nearly normal to the surface; planes through the three
+    # crossings when the gradient vanishes.
     nz, ny, nx = vals.shape
     n = np.zeros(3)
     size = (nx, ny, nz)
@@ -120,9 +120,9 @@ def _foot(vals, z, y, x, hs, best, side, c):
         if span > 0:
             n[ax] = (vals[hi_z, hi_y, hi_x] - vals[lo_z, lo_y, lo_x]) / (span * hs[ax])
     g = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-    c[0] = x
-    c[1] = y
-    c[2] = z
+    c[0] = x + origin[2]
+    c[1] = y + origin[1]
+    c[2] = z + origin[0]
     c[3] = 0.0
     c[4] = 0.0
     c[5] = 0.0
@@ -154,7 +154,7 @@ def _foot(vals, z, y, x, hs, best, side, c):
 # :func:`subvoxel_field` runs ranges over the threads. Every slice is computed on
 # its own, so the field does not depend on the split.
 @nb.njit(cache=True, nogil=True)
-def _seeds(vals, iso, above, hs, offsets, fill, ids, cps, z0, z1):
+def _seeds(vals, iso, above, hs, offsets, fill, ids, cps, origin, z0, z1):
     # Count (fill=False) or fill (fill=True) the seeds of z slices [z0, z1).
     nz, ny, nx = vals.shape
     for z in range(z0, z1):
@@ -176,7 +176,7 @@ def _seeds(vals, iso, above, hs, offsets, fill, ids, cps, z0, z1):
                 if not _crossings(vals, z, y, x, iso, above, hs, best, side):
                     continue
                 if fill:
-                    _foot(vals, z, y, x, hs, best, side, cps[k + cnt])
+                    _foot(vals, z, y, x, hs, best, side, cps[k + cnt], origin)
                     ids[z, y, x] = k + cnt
                 cnt += 1
         if not fill:
@@ -326,20 +326,21 @@ def _disc_d2(x, y, z, s, cps, hs, r0):
 
 
 @nb.njit(cache=True, nogil=True)
-def _finish(vals, iso, above, hs, r0, eps, ids, new_ids, cps, out, z0, z1):
+def _finish(vals, iso, above, hs, r0, eps, ids, new_ids, cps, out, origin, z0, z1):
     # Each seed stands for a small disc of the surface (foot point, unit
     # normal, radius r0). Each voxel keeps the nearest of the discs chosen
     # by itself and its 6 neighbours (one Jacobi step of closest-feature
     # propagation) and gets its signed distance to it. Far from the surface
     # neighbours mostly chose the same seed: only different ones are tried.
     nz, ny, nx = vals.shape
+    oz, oy, ox = origin[0], origin[1], origin[2]
     for z in range(z0, z1):
         for y in range(ny):
             for x in range(nx):
                 bid = ids[z, y, x]
                 best = np.inf
                 if bid >= 0:
-                    best = _disc_d2(x, y, z, bid, cps, hs, r0)
+                    best = _disc_d2(x + ox, y + oy, z + oz, bid, cps, hs, r0)
                 own = bid
                 for k in range(6):
                     qx = x
@@ -372,7 +373,7 @@ def _finish(vals, iso, above, hs, r0, eps, ids, new_ids, cps, out, z0, z1):
                     s = ids[qz, qy, qx]
                     if s < 0 or s == own or s == bid:
                         continue
-                    d2 = _disc_d2(x, y, z, s, cps, hs, r0)
+                    d2 = _disc_d2(x + ox, y + oy, z + oz, s, cps, hs, r0)
                     if d2 < best or (d2 == best and s < bid):
                         best = d2
                         bid = s
@@ -419,14 +420,19 @@ def subvoxel_signed_distance(values: np.ndarray, iso: float, *, inside: str = "a
 
 
 def subvoxel_field(vals: np.ndarray, iso: float, above: bool, spacing_zyx,
-                   threads: int | None = None) -> np.ndarray | None:
+                   threads: int | None = None, origin=(0, 0, 0)) -> np.ndarray | None:
     """The sub-voxel field of float samples ``vals``; None where they never cross ``iso``.
 
     Each kernel's slices run over ``threads`` (default :func:`.parallel.threads`;
     1 for an out-of-core block task, in a thread of its own): the same numbers
-    for any count.
+    for any count. ``origin``: the index (z, y, x) of ``vals[0, 0, 0]`` in the
+    whole grid, where ``vals`` is a block's region: the foot points are kept
+    in the whole grid's coordinates, so that a block's arithmetic is the
+    whole's (in a block's own coordinates they round differently, and a
+    voxel between two nearly equidistant discs could pick the other one).
     """
     n = parallel.threads() if threads is None else max(1, int(threads))
+    origin = np.array([int(v) for v in origin], np.int64)
     nz, ny = vals.shape[0], vals.shape[1]
 
     def over(kernel, length, *args):
@@ -437,7 +443,7 @@ def subvoxel_field(vals: np.ndarray, iso: float, above: bool, spacing_zyx,
     counts = np.zeros(nz, np.int64)
     idtype = np.int32 if vals.size < 2**31 else np.int64
     over(_seeds, nz, vals, float(iso), above, hs, counts, False, np.empty((1, 1, 1), idtype),
-         np.empty((1, 6)))
+         np.empty((1, 6)), origin)
     total = int(counts.sum())
     if total == 0:
         return None
@@ -445,7 +451,7 @@ def subvoxel_field(vals: np.ndarray, iso: float, above: bool, spacing_zyx,
     offsets[1:] = np.cumsum(counts)[:-1]
     ids = np.full(vals.shape, -1, idtype)
     cps = np.empty((total, 6), np.float64)
-    over(_seeds, nz, vals, float(iso), above, hs, offsets, True, ids, cps)
+    over(_seeds, nz, vals, float(iso), above, hs, offsets, True, ids, cps, origin)
     dist = np.empty(vals.shape, np.float32)
     over(_feature_x, nz, ids, hx, dist)
     over(_feature_y, nz, ids, hy, dist)
@@ -454,6 +460,6 @@ def subvoxel_field(vals: np.ndarray, iso: float, above: bool, spacing_zyx,
     other = np.empty_like(ids)
     for _ in range(REFINE_STEPS):
         over(_finish, nz, vals, float(iso), above, hs, r0, 1e-6 * float(min(hs)), ids, other,
-             cps, dist)
+             cps, dist, origin)
         ids, other = other, ids
     return dist
