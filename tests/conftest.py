@@ -56,3 +56,21 @@ def ball(n: int = 30, radius: float | None = None, dtype=np.uint8) -> np.ndarray
     c = (n - 1) / 2
     z, y, x = np.mgrid[:n, :n, :n]
     return (((x - c) ** 2 + (y - c) ** 2 + (z - c) ** 2) <= radius ** 2).astype(dtype)
+
+
+def open_files(under: Path) -> list[str]:
+    """The files under ``under`` this process holds open (its descriptors in /proc/self/fd).
+
+    For tests that a reader closes what it opened, on its error paths too: a
+    batch of thousands of scans would otherwise run out of descriptors.
+    """
+    root = os.path.realpath(under) + os.sep
+    held = []
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:  # (the listing's own descriptor, closed meanwhile)
+            continue
+        if target.startswith(root):
+            held.append(target)
+    return sorted(held)

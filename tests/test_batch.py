@@ -404,15 +404,20 @@ def test_retries_only_for_a_dead_worker(tmp_path, monkeypatch):
 
 def test_sigterm_stops_the_batch(tmp_path):
     manifest = make_tree(tmp_path, WARP_MANIFEST)
-    proc = subprocess.Popen([sys.executable, "-m", "volwarp_cli", "batch", str(manifest),
-                             "-j", "1", "--report-json", str(tmp_path / "r.json")],
-                            stderr=subprocess.PIPE, text=True)
-    first = proc.stderr.readline()  # the first scan done; the second is running
-    assert first.startswith("ok site-a/p01"), first
-    time.sleep(0.3)
-    proc.send_signal(signal.SIGTERM)
-    rest = proc.stderr.read()
-    assert proc.wait(timeout=60) == 143, rest
+    with subprocess.Popen([sys.executable, "-m", "volwarp_cli", "batch", str(manifest),
+                           "-j", "1", "--report-json", str(tmp_path / "r.json")],
+                          stderr=subprocess.PIPE, text=True) as proc:  # (closes the pipe)
+        try:
+            first = proc.stderr.readline()  # the first scan done; the second is running
+            assert first.startswith("ok site-a/p01"), first
+            time.sleep(0.3)
+            proc.send_signal(signal.SIGTERM)
+            rest = proc.stderr.read()
+            code = proc.wait(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert code == 143, rest
     line = [x for x in rest.splitlines() if x.startswith("volwarp batch:")]
     assert line and line[0].startswith("volwarp batch: stopped by SIGTERM with "), rest
     assert "1 stopped" in line[0] or "1 not started" in line[0] or "2 ok" in line[0]

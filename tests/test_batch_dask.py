@@ -85,27 +85,27 @@ def run_and_kill(cmd: list[str], cwd: Path) -> tuple[int, list[dict], str, str]:
 
     ``(exit code, the JSON lines, other stderr, the killed scan)``.
     """
-    proc = subprocess.Popen(cmd, cwd=cwd, stderr=subprocess.PIPE, text=True)
     events, other, killed = [], [], None
-    try:
-        for line in proc.stderr:
-            if not line.startswith("{"):
-                other.append(line)
-                continue
-            event = json.loads(line)
-            events.append(event)
-            if killed is None and event["event"] == "start":
-                pid = event["pid"]
-                deadline = time.monotonic() + 30
-                while not _has_child(pid) and time.monotonic() < deadline:
-                    time.sleep(0.005)
-                assert _has_child(pid), "the scan's step never started"
-                os.kill(pid, signal.SIGKILL)  # the worker process, in the middle of a step
-                killed = event["id"]
-        code = proc.wait(timeout=300)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    with subprocess.Popen(cmd, cwd=cwd, stderr=subprocess.PIPE, text=True) as proc:
+        try:
+            for line in proc.stderr:
+                if not line.startswith("{"):
+                    other.append(line)
+                    continue
+                event = json.loads(line)
+                events.append(event)
+                if killed is None and event["event"] == "start":
+                    pid = event["pid"]
+                    deadline = time.monotonic() + 30
+                    while not _has_child(pid) and time.monotonic() < deadline:
+                        time.sleep(0.005)
+                    assert _has_child(pid), "the scan's step never started"
+                    os.kill(pid, signal.SIGKILL)  # the worker process, in the middle of a step
+                    killed = event["id"]
+            code = proc.wait(timeout=300)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
     return code, events, "".join(other), killed
 
 

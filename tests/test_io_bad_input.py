@@ -472,3 +472,69 @@ def test_geometry_a_format_cannot_hold_is_a_clear_error(run, tmp_path, name, spa
     assert not (tmp_path / name).exists()
     write_volume(read_volume(src), tmp_path / "ok.mha")
     np.testing.assert_array_equal(read_volume(tmp_path / "ok.mha").spacing, spacing)
+
+
+# -- descriptors --------------------------------------------------------------------------
+
+def _damaged(folder, name: str):
+    """A file (or folder) of format ``name`` cut short or with a garbled chunk."""
+    data = np.arange(6 * 7 * 8, dtype=np.int16).reshape(6, 7, 8)
+    path = folder / name
+    write_volume(Volume(data), path, compress=name.endswith((".gz", "z.nrrd")))
+    if name.endswith(".ome.zarr"):
+        chunk = max((p for p in path.rglob("*") if p.is_file() and "json" not in p.name
+                     and not p.name.startswith(".z")), key=lambda p: p.stat().st_size)
+        chunk.write_bytes(b"\x28\xb5\x2f\xfd" + b"\xff" * 40)  # a zstd frame of garbage
+        return path
+    cut = path.with_suffix(".raw") if name.endswith(".nhdr") else (
+        path.with_suffix(".raw") if name.endswith(".mhd") else path)
+    cut.write_bytes(cut.read_bytes()[:-50])
+    return path
+
+
+@pytest.mark.parametrize("name", ["a.nrrd", "gz.nrrd", "a.nhdr", "a.nii", "a.nii.gz", "a.mha",
+                                  "a.mhd", "a.tif", "a.ome.zarr"])
+def test_a_damaged_file_leaves_no_descriptor_open(tmp_path, name):
+    """Every reader closes what it opened on its error paths, before the error leaves it
+    (checked while the error's traceback, which holds the readers' frames, is alive): a
+    batch of thousands of scans would otherwise run out of descriptors."""
+    from conftest import open_files
+
+    from volwarp_cli.io.lazy import open_volume_lazy
+
+    path = _damaged(tmp_path, name)
+    for read in (read_volume, open_volume_lazy):
+        for _ in range(3):
+            try:
+                got = read(path)
+            except VolwarpError as exc:
+                assert str(exc).startswith(str(tmp_path)), str(exc)  # (naming the file)
+                assert open_files(tmp_path) == [], (read.__name__, exc)
+                continue
+            assert read is open_volume_lazy, f"{name}: a damaged file was read"
+            try:  # lazily opened: the damage may show on reading
+                np.asarray(got[1][...])
+            except VolwarpError as exc:
+                assert str(exc).startswith(str(tmp_path)), str(exc)
+                assert open_files(tmp_path) == [], exc
+            del got  # the array's file, open while the array lives, is closed with it
+            assert open_files(tmp_path) == [], read.__name__
+
+
+@pytest.mark.parametrize("name", ["a.nrrd", "a.nii", "a.mha", "a.tif", "a.ome.zarr"])
+def test_a_lazy_array_closes_its_file_when_dropped(tmp_path, name):
+    from conftest import open_files
+
+    from volwarp_cli.io.lazy import open_volume_lazy
+
+    data = np.arange(6 * 7 * 8, dtype=np.int16).reshape(6, 7, 8)
+    write_volume(Volume(data), tmp_path / name)
+    for _ in range(3):
+        _, arr = open_volume_lazy(tmp_path / name, require_lazy=True)
+        np.testing.assert_array_equal(arr[2:4, 1:5, 3:7], data[2:4, 1:5, 3:7])
+        if hasattr(arr, "close"):  # (an OME-Zarr store holds no file between reads)
+            arr.close()
+        assert open_files(tmp_path) == [], name
+        np.testing.assert_array_equal(arr[2:4], data[2:4])  # (reopened on the next read)
+        del arr
+        assert open_files(tmp_path) == [], name

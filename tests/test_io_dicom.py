@@ -512,9 +512,35 @@ def test_truncated_files(tmp_path, ramp, caplog):
     with pytest.raises(FormatError, match=r"S3.dcm: .*truncated"):  # ...refused on its own
         read_dicom(p)
     rle = tmp_path / "rle.dcm"
-    rle.write_bytes(open(get_testdata_file("MR_small_RLE.dcm"), "rb").read()[:3000])
+    rle.write_bytes(Path(get_testdata_file("MR_small_RLE.dcm")).read_bytes()[:3000])
     with pytest.raises(FormatError, match="rle.dcm"):
         read_dicom(rle)
+
+
+def test_truncated_files_leave_no_descriptor_open(tmp_path, ramp):
+    """read_dicom and the lazy DICOM reader close every file on their error paths, before
+    the error leaves them (checked while its traceback, which holds their frames, lives)."""
+    from conftest import open_files
+
+    from volwarp_cli.io.lazy import open_volume_lazy
+
+    write_series(tmp_path / "s", ramp, names=[f"S{k}.dcm" for k in range(6)])
+    p = tmp_path / "s" / "S3.dcm"
+    rle = tmp_path / "rle.dcm"
+    rle.write_bytes(Path(get_testdata_file("MR_small_RLE.dcm")).read_bytes()[:3000])
+    for cut in (-20, 300):
+        p.write_bytes(p.read_bytes()[:cut])
+        for path in (tmp_path / "s", p, rle):
+            for read in (read_dicom, open_volume_lazy):
+                for _ in range(2):
+                    try:
+                        got = read(path)
+                        if read is open_volume_lazy:  # the damage may show on reading
+                            np.asarray(got[1][...])
+                    except FormatError as exc:
+                        assert open_files(tmp_path) == [], (read.__name__, str(exc))
+                        continue
+                    raise AssertionError(f"{path}: a truncated file was read")
 
 
 @pytest.mark.parametrize("name", ["rtstruct.dcm", "rtplan.dcm", "test-SR.dcm"])

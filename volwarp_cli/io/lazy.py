@@ -335,22 +335,43 @@ def _tiff(path: Path):
         check_dtype(first.dtype, where)
         ij = tif.imagej_metadata
         vol = tiff_io._geometry(tif, first, ij, _placeholder((nz, ny, nx), first.dtype), where)
-    store = tifffile.imread(path, aszarr=True)
-    arr = zarr.open(store, mode="r")
-    if tuple(arr.shape) != shape or arr.ndim < 3:
-        raise NotLazy(f"tifffile's zarr view has shape {arr.shape}")
-    return vol, _ZarrView(arr, (nz, ny, nx))
+    store = tifffile.imread(path, aszarr=True)  # (it keeps the files it reads open)
+    try:
+        arr = zarr.open(store, mode="r")
+        if tuple(arr.shape) != shape or arr.ndim < 3:
+            raise NotLazy(f"tifffile's zarr view has shape {arr.shape}")
+    except BaseException:
+        store.close()
+        raise
+    return vol, _ZarrView(arr, (nz, ny, nx), store)
 
 
 class _ZarrView:
-    """A 3-D zarr array (extra leading axes of size 1 dropped) with numpy's negative steps."""
+    """A 3-D zarr array (extra leading axes of size 1 dropped) with numpy's negative steps.
 
-    def __init__(self, arr, shape):
+    ``store`` (tifffile's zarr store, which keeps the files it has read open) is
+    closed by :meth:`close` or when the view is dropped, as a
+    :class:`.filearray.FileArray` closes its file.
+    """
+
+    def __init__(self, arr, shape, store=None):
         self._arr = arr
+        self._store = store
         self.shape = tuple(shape)
         self.dtype = arr.dtype
         self.ndim = 3
         self._lead = arr.ndim - 3
+
+    def close(self) -> None:
+        """Close the store's open files (tifffile opens them again on the next read)."""
+        if self._store is not None:
+            self._store.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # pragma: no cover - interpreter shutdown
+            pass
 
     def __getitem__(self, key):
         key = key if isinstance(key, tuple) else (key,)
