@@ -100,7 +100,11 @@ def test_the_mesh_chain_is_held_to_its_budget(gyroid, tmp_path):
         peak = int(proc.stdout.split()[-1])
         if limit == 150:
             assert proc.returncode == 1, proc.stderr
-            assert "(623952 vertices) needs" in proc.stderr and not out.exists()
+            # refused by the mesh's exact count, or (where the libraries alone take more
+            # of the budget: a fresh install's newer wheels held 125 against 109 MiB) by
+            # the isosurface's input before it: one line, the budget named, nothing written
+            assert "needs" in proc.stderr and "memory limit" in proc.stderr, proc.stderr
+            assert proc.stderr.strip().count("\n") == 0 and not out.exists()
         else:
             assert proc.returncode == 0, proc.stderr
             assert peak < limit * M, f"peak RSS {peak / M:.0f} MiB"
