@@ -287,7 +287,7 @@ def refuse_unmakeable(what: str, memory_bytes: int, outputs, *, chunked: bool | 
     if by_blocks is None:
         return
     raise OutOfMemoryError(f"{in_memory}, and by blocks {by_blocks}" if in_memory
-                           else f"{what}: by blocks {by_blocks}")
+                           else f"{what}, by blocks: {by_blocks}")
 
 
 def run(op: Operation, how: How = How(), after: Callable | None = None) -> Ran:

@@ -10,7 +10,7 @@ is 6x faster on 20,000 points); :meth:`LatticeSpline.weights` gives the 64
 weights of a parameter point (a handle's row of the least-norm system). Handles, the moved points and the exported
 fields all evaluate the map here; the volume's dense evaluation is the
 separable or tabulated one of :mod:`.basis` (per voxel, in the kernels),
-and the field inverse's inner loop is compiled (:mod:`._export_kernels`).
+and the field inverse's inner loop is compiled (:mod:`volwarp_cli.warp._export_kernels`).
 
 Parameters are ``(N, 3)`` x y z; the lattice is ``dq`` ``(Cz, Cy, Cx, 3)``,
 so the spline's axes are taken z, y, x and the parameters reversed.

@@ -56,7 +56,7 @@ class WarpSpec:
     """Typed settings of a warp spec (see :func:`read_warp_spec`); the steps as given.
 
     ``background``, ``values`` and ``grid`` are None where the spec says
-    nothing (the warp then decides: :mod:`.defaults`).
+    nothing (the warp then decides: :mod:`volwarp_cli.warp.defaults`).
     """
 
     units: str = "world"

@@ -144,7 +144,7 @@ def block_work(scene: Scene, blocks) -> float:
 
 
 class SceneRecipe:
-    """What rebuilds a :class:`~~volwarp_cli.bspline.scene.Scene` where block tasks run: all of it but its samples.
+    """What rebuilds a :class:`~volwarp_cli.bspline.scene.Scene` where block tasks run: all of it but its samples.
 
     Picklable (the lattice is its only array): a task in another process
     builds its own scene from it, with the domain it has there.
@@ -245,7 +245,7 @@ class WarpOperation(Operation):
         whose image reaches two parts is scattered by both (the halo, which
         grows with the parts' surface): of the cuts into ``threads`` or twice
         as many parts (z times y), the one whose estimated time is least,
-        each part's scatter work (:func:`.work.scatter_work` of the domain
+        each part's scatter work (:func:`~volwarp_cli.bspline.work.scatter_work` of the domain
         voxels that reach it) dealt to the threads largest first. On a 256^3
         warp with every point of a 9^3 lattice moved, 16 threads: 4 x 4
         parts scatter 2.1 times the domain voxels, 32 slabs along y 5.3 times.

@@ -19,13 +19,14 @@ failure is a :class:`~volwarp_cli.errors.FormatError` naming the file.
 Identical captures give byte-identical files.
 
 Version 2 placed the domain on the input as an exact subdivision of its
-voxels at an integer oversample (``subdivision`` k; see :mod:`.lattice`);
+voxels at an integer oversample (``subdivision`` k; see :mod:`volwarp_cli.bspline.lattice`);
 version 1 files have the spanning grid (the domain's box the input's), and
 are warped as they were captured.
 
-It lives in ``bspline/``, not ``io/``, because it stores a :class:`~~volwarp_cli.bspline.capture.Capture`, not a
-volume: reading one builds the B-spline ``Grid`` and ``Capture`` and checks their placement
-and sampling names, and ``io/`` imports nothing of the numeric core.
+It lives in ``warp/``, not ``io/``, because it stores a
+:class:`~volwarp_cli.bspline.capture.Capture`, not a volume: reading one builds the
+B-spline ``Grid`` and ``Capture`` and checks their placement and sampling names, and
+``io/`` imports nothing of the numeric core.
 """
 
 from __future__ import annotations
@@ -244,7 +245,7 @@ def read_capture(path: str | os.PathLike) -> Capture:
 
 
 def _capture_of(head: dict, domain, path, sampler=None) -> Capture:
-    """The :class:`~~volwarp_cli.bspline.capture.Capture` a checked header describes, over ``domain`` or ``sampler``."""
+    """The :class:`~volwarp_cli.bspline.capture.Capture` a checked header describes, over ``domain`` or ``sampler``."""
     pl = head["payload"]
     try:
         inp = head["input"]
@@ -323,7 +324,7 @@ def _check_payload(path, payload: dict, offset: int) -> None:
 
 
 def open_capture_lazy(path: str | os.PathLike) -> Capture:
-    """A capture file as a deferred :class:`~~volwarp_cli.bspline.capture.Capture`: its domain left in the file.
+    """A capture file as a deferred :class:`~volwarp_cli.bspline.capture.Capture`: its domain left in the file.
 
     The same checks as :func:`read_capture` (magic, version, header, size,
     and the payload's CRC-32, in one streamed pass of bounded memory); the
@@ -346,7 +347,7 @@ def read_capture_lattice(path: str | os.PathLike) -> Capture:
 
     For what depends on the deformation alone (moved points and meshes, the
     fields): the capture's grid, placement and pad, a domain of its shape only
-    (:class:`~~volwarp_cli.bspline.capture.NoSamples`). The file's size is checked, not its payload's checksum.
+    (:class:`~volwarp_cli.bspline.capture.NoSamples`). The file's size is checked, not its payload's checksum.
     """
     from ..bspline.capture import NoSamples
 

@@ -3,7 +3,7 @@
 volwarp's native object is the forward (modelling) map ``F: input -> output``.
 With the uniform placement the capture map is the affine base map, so in
 input voxel indices ``F(x) = x + sum_i B_i(s(x)) dq_i`` with the spline
-parameter ``s(x) = (x - grid.origin) / h`` (see :mod:`.lattice`), defined on
+parameter ``s(x) = (x - grid.origin) / h`` (see :mod:`volwarp_cli.bspline.lattice`), defined on
 the lattice's support ``s in [0, R]^3``. The input's ``index_to_world`` is
 affine (``p = O + M x``, ``M = direction * spacing``), so in LPS millimetres
 ``F_w(p) = p + sum_i B_i(...) (M dq_i)``: a uniform cubic B-spline on a grid

@@ -31,7 +31,7 @@ output voxel instead, and the output voxel takes the label of largest weight:
   the output has the input's float type.
 
 Labels need the subdivision grid (an integer oversample with the uniform
-placement, see :mod:`.lattice`): there every domain voxel lies inside one
+placement, see :mod:`volwarp_cli.bspline.lattice`): there every domain voxel lies inside one
 input voxel and takes its label, with no blend of ids. The spanning grid
 (non-integer oversample, tripled placement) is refused.
 

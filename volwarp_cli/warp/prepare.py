@@ -1,7 +1,7 @@
 """The ``volwarp warp`` core: a captured volume, a spec, and the warped frames.
 
 :func:`prepare` checks the spec against the capture, plans every lattice
-state (see :mod:`.plan`) and builds the :class:`~~volwarp_cli.bspline.scene.Scene`;
+state (see :mod:`volwarp_cli.bspline.plan`) and builds the :class:`~volwarp_cli.bspline.scene.Scene`;
 :func:`run` computes the frames (incremental updates between them) and
 :func:`output_volume` turns a target array into a Volume in the right place.
 """
