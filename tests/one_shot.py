@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 
 from volwarp_cli.bspline.pullback import DomainSampler
-from volwarp_cli.warp.blocks import target_box, warp_block
+from volwarp_cli.warp.blocks import warp_block
 
 
 def one_shot(scene) -> np.ndarray:
     """``scene``'s target for its current lattice, computed as one block."""
     sampler = scene.sampler if scene.sampler is not None else DomainSampler(scene.domain)
-    return warp_block(scene, sampler, target_box(scene))
+    return warp_block(scene, sampler, scene.target_box)

@@ -107,10 +107,10 @@ def _operation(cap, dq, pad):
     """The one-shot warp of ``cap`` with lattice ``dq`` as the executor's operation."""
     from volwarp_cli.bspline.pullback import DomainSampler
     from volwarp_cli.execute import Target
-    from volwarp_cli.warp.blocks import WarpOperation, target_box
+    from volwarp_cli.warp.blocks import WarpOperation
 
     scene = Scene(cap.voxmap, cap.grid, dq, pad, domain_range=cap.stats[:2])
-    window = target_box(scene)
+    window = scene.target_box
     template = Volume(np.broadcast_to(np.zeros((), np.float32), window.shape))
     sampler = scene.sampler if scene.sampler is not None else DomainSampler(scene.domain)
     return WarpOperation(scene, None, cap.placement, cap.sampling, window,

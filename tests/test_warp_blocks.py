@@ -39,7 +39,7 @@ def _general(cap, seed=1, scale=1.5):
 
 
 def _by_blocks(scene, sampler, block_shape):
-    whole = blocks.target_box(scene)
+    whole = scene.target_box
     out = np.full(whole.shape, np.nan, np.float32)
     for b in whole.blocks(block_shape):
         out[b.slices] = blocks.warp_block(scene, sampler, b)
@@ -172,7 +172,7 @@ def test_warp_operation_pickles_without_samples_and_renders_the_same(tmp_path):
     cap = capture_source(Volume(data), source, lattice=(5, 5, 5), oversample=1.0)
     dq = _general(cap, scale=1.0)
     scene = Scene(cap.sampler, cap.grid, dq, 4, domain_range=cap.stats[:2])
-    window = blocks.target_box(scene)
+    window = scene.target_box
     template = Volume(np.broadcast_to(np.zeros((), np.float32), window.shape))
     job = blocks.WarpOperation(scene, source, cap.placement, cap.sampling, window,
                                Target(tmp_path / "o.nrrd", template, np.float32))

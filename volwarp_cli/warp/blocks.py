@@ -127,17 +127,12 @@ def _makespan(work, threads: int) -> float:
     return max(loads)
 
 
-def target_box(scene: Scene) -> Box:
-    """The whole padded target as a Box (z, y, x)."""
-    return Box.from_shape(scene.target_shape[::-1])
-
-
 def block_work(scene: Scene, blocks) -> float:
     """Domain voxels the blocks scatter, over the voxels the whole warp scatters once.
 
     1.0 when no voxel reaches two blocks; the extra is the blocks' halos.
     """
-    whole = domain_box(scene, target_box(scene)).size
+    whole = domain_box(scene, scene.target_box).size
     if whole == 0:
         return 1.0
     return sum(domain_box(scene, b).size for b in blocks) / whole
@@ -171,8 +166,8 @@ class WarpOperation(Operation):
 
     Any block of the output is :func:`warp_block` of the final lattice over
     that block's box of the target, cast to the output's type: in memory the
-    whole output is one block (cut into whole-depth slabs over the calling
-    threads, :meth:`compute`), by blocks each task computes its own; the same
+    whole output is one block (cut into parts over the calling threads,
+    :meth:`slabs`), by blocks each task computes its own; the same
     code, so the same bytes. Picklable (for tasks in other processes): the
     scene is rebuilt from its recipe where the tasks run, and the input is
     read box by box there.
