@@ -317,3 +317,40 @@ class ClusterBatch:
 
 def _failed(scan: Scan, error: str) -> ScanResult:
     return ScanResult(scan, "failed", steps=[StepResult("-", "-", "failed", error=error)])
+
+
+def run_on_cluster(manifest: Manifest, scans: list[Scan], where, **options):
+    """Run the scans on the cluster ``where`` names: ``(results, stop, scans at once)``.
+
+    ``where``: a :class:`.run.Where` with a scheduler; ``options``:
+    :class:`ClusterBatch`'s. A ``local`` cluster is started for the batch,
+    with the scheduler's ``allowed-failures`` set to ``retries`` and a
+    worker sent no more scans than it has threads (an existing cluster
+    keeps its own settings).
+    """
+    import contextlib
+
+    import dask
+
+    from .. import parallel
+    from ..engine import open_engine
+
+    local = where.scheduler.kind == "local"
+    per = where.threads_per_worker or 1
+    config = ({"distributed.scheduler.allowed-failures": options.get("retries", 0),
+               "distributed.scheduler.worker-saturation": 1.0} if local else {})
+    # (a scan's memory is its steps' processes', which a worker's memory monitor never
+    # sees: no limit, and no monitor polling every 100 ms beside the steps)
+    with dask.config.set(config), open_engine(where.scheduler, workers=where.workers,
+                                              threads_per_worker=per,
+                                              memory_limit=0 if local else None) as engine:
+        if local:
+            at_once = engine.workers * per
+            child = max(1, parallel.threads() // at_once)
+        else:
+            at_once, child = engine.workers, None  # (each host shares its cores: share_of_cores)
+        with contextlib.suppress(Exception):
+            engine.client.wait_for_workers(1, timeout=60)
+        results, stop = ClusterBatch(manifest, scans, client=engine.client,
+                                     child_threads=child, **options).run()
+    return results, stop, at_once

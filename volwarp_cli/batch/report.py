@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import signal
+from dataclasses import dataclass
 from pathlib import Path
 
 from .run import ScanResult
@@ -141,6 +142,50 @@ def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | N
     }
 
 
+@dataclass(frozen=True)
+class Report:
+    """What a batch run did, and the exit code that says it (as black's ``Report``).
+
+    ``results``: each scan's, in scan order; ``stop``: the signal number that
+    stopped the run, or None; ``jobs``: scans at once; ``scheduler``: ``pool``
+    or the cluster as ``--scheduler`` named it; ``shard``: ``(I, N, scans in
+    all)`` of a ``--shard I/N`` run.
+    """
+
+    results: list[ScanResult]
+    stop: int | None = None
+    jobs: int = 1
+    scheduler: str = "pool"
+    shard: tuple[int, int, int] | None = None
+
+    @property
+    def return_code(self) -> int:
+        """The batch's exit code: 128 + the signal when stopped, 1 when a scan failed, else 0."""
+        if self.stop is not None:
+            return 128 + self.stop
+        return 1 if any(r.status == "failed" for r in self.results) else 0
+
+    def summary_line(self) -> str:
+        """:func:`summary_line` of this run."""
+        return summary_line(self.results, stop=self.stop, shard=self.shard)
+
+    def write(self, manifest, json_paths=(), html_paths=()) -> None:
+        """The JSON run report (:func:`report_dict`) and the HTML page, each to its paths."""
+        if json_paths:
+            report = report_dict(manifest, self.results, jobs=self.jobs, stop=self.stop,
+                                 shard=self.shard, exit_code=self.return_code,
+                                 scheduler=self.scheduler)
+            for path in json_paths:
+                write_report(path, report)
+        if html_paths:
+            from .report_html import report_html, write_html
+
+            page = report_html(manifest, self.results, stop=self.stop, shard=self.shard,
+                               scheduler=self.scheduler)
+            for path in html_paths:
+                write_html(path, page)
+
+
 def write_report(path: str | Path, report: dict) -> None:
     """Write ``report`` to ``path`` as indented JSON, atomically."""
     from ..io.atomic import write_bytes_atomic
@@ -173,6 +218,15 @@ class ScanProgress:
 
             self._bar = Progress(total, "volwarp batch")
             self._bar.enabled = True
+
+    @classmethod
+    def chosen(cls, given: str | None, quiet: bool, total: int) -> ScanProgress:
+        """``--progress`` if given, else none when quiet, a bar on a terminal, lines elsewhere."""
+        import sys
+
+        if given is None:
+            given = "none" if quiet else "bar" if sys.stderr.isatty() else "lines"
+        return cls(given, total)
 
     def start(self, scan, worker: str | None = None, pid: int | None = None) -> None:
         """A scan started (on ``worker``, process ``pid``: a cluster's)."""

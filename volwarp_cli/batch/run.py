@@ -459,3 +459,48 @@ def child_threads(jobs: int) -> int:
     from .. import parallel
 
     return max(1, parallel.threads() // max(1, jobs))
+
+
+@dataclass(frozen=True)
+class Where:
+    """Where a batch's scans run.
+
+    ``scheduler`` None: the local pool of ``jobs`` threads (default
+    :func:`default_jobs`); else the cluster's
+    :class:`~volwarp_cli.engine.SchedulerChoice`, ``workers`` and
+    ``threads_per_worker`` those of a ``local`` one (:func:`.cluster.run_on_cluster`).
+    """
+
+    scheduler: object = None
+    jobs: int | None = None
+    workers: int | None = None
+    threads_per_worker: int | None = None
+
+
+def run_batch(manifest: Manifest, scans: list[Scan], where: Where, progress, *,
+              shard: tuple[int, int, int] | None = None, **options):
+    """Run ``scans`` where ``where`` says: the run's :class:`.report.Report`.
+
+    ``progress``: the :class:`.report.ScanProgress` told as scans start and
+    end (closed here); ``shard``: ``(I, N, scans in all)``, for the report;
+    ``options``: :class:`Batch`'s ``force``, ``fail_fast``, ``retries``,
+    ``thumbnails``.
+    """
+    from .report import Report
+
+    options = dict(options, on_scan=progress.end)
+    try:
+        if where.scheduler is None:
+            jobs = where.jobs or default_jobs()
+            results, stop = Batch(manifest, scans, jobs=jobs, on_start=progress.start,
+                                  **options).run()
+            scheduler = "pool"
+        else:
+            from .cluster import run_on_cluster
+
+            results, stop, jobs = run_on_cluster(manifest, scans, where,
+                                                 on_start=progress.start, **options)
+            scheduler = where.scheduler.describe()
+    finally:
+        progress.close()
+    return Report(results, stop, jobs=jobs, scheduler=scheduler, shard=shard)

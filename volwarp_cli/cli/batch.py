@@ -8,7 +8,6 @@ volwarp batch MANIFEST.yaml [--jobs N] [--scheduler pool|local|tcp://...|file:PA
 
 from __future__ import annotations
 
-import contextlib
 import os
 import re
 
@@ -128,6 +127,8 @@ def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force
     from ..batch.manifest import find_scans, load_manifest
     from ..batch.manifest import shard as take_shard
     from ..batch.plan import check_outputs
+    from ..batch.report import ScanProgress
+    from ..batch.run import Where, run_batch
     from ..io import check_output_path
 
     ctx = click.get_current_context()
@@ -163,94 +164,18 @@ def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force
     try:
         with hold(m.output_dir, shard=shard, wait=wait,
                   on_wait=None if quiet else _say_waiting):
-            code = _run(m, scans, shard_info, scheduler, jobs, workers, threads_per_worker,
-                        dict(force=force, fail_fast=fail_fast, retries=retries,
-                             thumbnails=bool(html_reports)),
-                        progress_mode, quiet, json_reports, html_reports)
+            report = run_batch(m, scans, Where(scheduler, jobs, workers, threads_per_worker),
+                               ScanProgress.chosen(progress_mode, quiet, len(scans)),
+                               shard=shard_info, force=force, fail_fast=fail_fast,
+                               retries=retries, thumbnails=bool(html_reports))
+            report.write(m, json_reports, html_reports)
+            click.echo(report.summary_line(), err=True)
     except Busy as exc:
         click.echo(f"volwarp: error: {exc}", err=True)
         raise click.exceptions.Exit(exc.exit_code) from None
-    if code:
-        raise click.exceptions.Exit(code)
+    if report.return_code:
+        raise click.exceptions.Exit(report.return_code)
 
 
 def _say_waiting(holder: str) -> None:
     click.echo(f"volwarp: waiting: {holder}", err=True)
-
-
-def _run(m, scans, shard_info, scheduler, jobs, workers, threads_per_worker, options,
-         progress_mode, quiet, json_reports, html_reports) -> int:
-    """Run the scans (the output folder held), write the reports: the exit code."""
-    import sys
-
-    from ..batch.report import ScanProgress, report_dict, summary_line, write_report
-
-    mode = progress_mode or ("bar" if sys.stderr.isatty() else "lines")
-    if quiet and progress_mode is None:
-        mode = "none"
-    sink = ScanProgress(mode, len(scans))
-    options = dict(options, on_scan=sink.end)
-    try:
-        if scheduler is None:
-            from ..batch.run import Batch, default_jobs
-
-            jobs = jobs or default_jobs()
-            results, stop = Batch(m, scans, jobs=jobs, on_start=sink.start, **options).run()
-            where = "pool"
-        else:
-            results, stop, jobs = _on_cluster(m, scans, scheduler, workers, threads_per_worker,
-                                              sink, options)
-            where = scheduler.describe()
-    finally:
-        sink.close()
-    if stop is not None:
-        code = 128 + stop
-    else:
-        code = 1 if any(r.status == "failed" for r in results) else 0
-    if json_reports:
-        report = report_dict(m, results, jobs=jobs, stop=stop, shard=shard_info,
-                             exit_code=code, scheduler=where)
-        for path in json_reports:
-            write_report(path, report)
-    if html_reports:
-        from ..batch.report_html import report_html, write_html
-
-        page = report_html(m, results, stop=stop, shard=shard_info, scheduler=where)
-        for path in html_reports:
-            write_html(path, page)
-    click.echo(summary_line(results, stop=stop, shard=shard_info), err=True)
-    return code
-
-
-def _on_cluster(manifest, scans, choice, workers, threads_per_worker, sink, options):
-    """Run the scans on the cluster ``choice`` names: ``(results, stop, scans at once)``.
-
-    A ``local`` cluster is started for the batch, with the scheduler's
-    ``allowed-failures`` set to ``--retries`` and a worker sent no more scans than
-    it has threads (an existing cluster keeps its own settings).
-    """
-    import dask
-
-    from .. import parallel
-    from ..batch.cluster import ClusterBatch
-    from ..engine import open_engine
-
-    local = choice.kind == "local"
-    per = threads_per_worker or 1
-    config = ({"distributed.scheduler.allowed-failures": options["retries"],
-               "distributed.scheduler.worker-saturation": 1.0} if local else {})
-    # (a scan's memory is its steps' processes', which a worker's memory monitor never
-    # sees: no limit, and no monitor polling every 100 ms beside the steps)
-    with dask.config.set(config), open_engine(choice, workers=workers, threads_per_worker=per,
-                                              memory_limit=0 if local else None) as engine:
-        if local:
-            at_once = engine.workers * per
-            child = max(1, parallel.threads() // at_once)
-        else:
-            at_once, child = engine.workers, None  # (each host shares its cores: cluster.py)
-        with contextlib.suppress(Exception):
-            engine.client.wait_for_workers(1, timeout=60)
-        results, stop = ClusterBatch(manifest, scans, client=engine.client,
-                                     child_threads=child, on_start=sink.start,
-                                     **options).run()
-    return results, stop, at_once
