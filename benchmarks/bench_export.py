@@ -33,11 +33,11 @@ from common import median_time, row  # noqa: E402
 
 
 def forward_map(n: int, sigma: float = 1.5, seed: int = 0):
-    from volwarp_cli.bspline.lattice import Grid
+    from volwarp_cli.bspline.lattice import Lattice
     from volwarp_cli.volume import Volume
     from volwarp_cli.warp.export import ForwardMap
 
-    grid = Grid.create((n, n, n), (9, 9, 9), 2)
+    grid = Lattice.create((n, n, n), (9, 9, 9), 2)
     dq = np.random.default_rng(seed).normal(0, sigma, grid.lattice[::-1] + (3,))
     return ForwardMap(grid, dq, Volume(np.zeros((n, n, n), np.uint8), spacing=(1.0, 1.2, 1.5)))
 

@@ -13,7 +13,7 @@ from volwarp_cli.bspline import basis
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.evaluate import LatticeSpline
 from volwarp_cli.bspline.handles import map_params, solve
-from volwarp_cli.bspline.lattice import Grid, affected_regions, capture_offsets, window_reduce
+from volwarp_cli.bspline.lattice import Lattice, affected_regions, capture_offsets, window_reduce
 from volwarp_cli.bspline.pullback import capture_coordinates
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.errors import VolwarpError
@@ -37,7 +37,7 @@ def test_basis_partition_of_unity_and_table():
 
 
 def test_table_equals_separable_and_blocks_are_bit_identical():
-    grid = Grid.create((30, 20, 25), (9, 7, 8), 2)
+    grid = Lattice.create((30, 20, 25), (9, 7, 8), 2)
     rng = np.random.default_rng(1)
     dq = rng.normal(scale=3.0, size=grid.lattice[::-1] + (3,))
     shape = grid.domain_shape[::-1] + (3,)
@@ -62,7 +62,7 @@ def test_the_scattered_evaluator_is_the_papers_tensor_product():
     control points of the region (the paper's eq. 2 with its blending functions), the
     Jacobian is that sum's derivative (central differences), the weights' rows are those
     products (64 a point, summing to 1) and give the offsets as weights @ dq."""
-    grid = Grid.create((40, 30, 20), (8, 7, 6), 1)
+    grid = Lattice.create((40, 30, 20), (8, 7, 6), 1)
     rng = np.random.default_rng(5)
     dq = rng.normal(scale=2.0, size=grid.lattice[::-1] + (3,))
     regions = np.array(grid.regions)
@@ -94,7 +94,7 @@ def test_capture_image_is_the_voxel_box(placement):
     with the uniform placement at an integer oversample k (a subdivision grid) the
     domain voxels [lead, lead + k I), each 1/k of an input voxel; with the tripled
     placement (a spanning grid) the whole domain box [0, D]."""
-    grid = Grid.create((30, 17, 11), (9, 6, 7), 2, placement)
+    grid = Lattice.create((30, 17, 11), (9, 6, 7), 2, placement)
     assert grid.subdivision == (2 if placement == "uniform" else 0)
     coords = capture_coordinates(grid, placement)
     dq = capture_offsets(grid, placement)
@@ -137,7 +137,7 @@ def test_capture_of_a_subdivision_grid_is_the_box_model():
             want = np.repeat(np.repeat(np.repeat(data, k, 0), k, 1), k, 2)
             assert np.array_equal(inside, want.astype(np.float32))
     assert capture_volume(Volume(data), lattice=5, oversample=1.5).grid.subdivision == 0
-    assert Grid.create((7, 9, 11), (5, 5, 5), 2, "tripled").subdivision == 0
+    assert Lattice.create((7, 9, 11), (5, 5, 5), 2, "tripled").subdivision == 0
 
 
 @pytest.mark.parametrize("size", [30, 31, 23])
@@ -293,7 +293,7 @@ def test_rebuild_block_covers_what_an_update_touches():
 
 
 def test_handles_reach_targets_with_least_norm():
-    grid = Grid.create((30, 24, 20), (9, 8, 7), 2)
+    grid = Lattice.create((30, 24, 20), (9, 8, 7), 2)
     dq = capture_offsets(grid, "uniform")
     src = np.array([[10.0, 12.0, 9.0], [20.0, 5.0, 12.0], [3.0, 20.0, 4.0]])
     dst = src + np.array([[2.0, -1.0, 0.5], [0.0, 1.5, -2.0], [-1.0, 0.0, 1.0]])
@@ -321,7 +321,7 @@ def test_handles_pulling_against_each_other_stay_bounded():
     """Two handles 0.05 voxel apart dragged in opposite directions: the exact
     solution would move control points by hundreds of voxels; the solve keeps
     them within reach of the handles' moves and reports the miss."""
-    grid = Grid.create((30, 30, 30), (9, 9, 9), 2)
+    grid = Lattice.create((30, 30, 30), (9, 9, 9), 2)
     dq = capture_offsets(grid, "uniform")
     src = np.array([[15.0, 15.0, 15.0], [15.05, 15.0, 15.0]])
     dst = src + np.array([[0.0, 0.0, 3.0], [0.0, 0.0, -3.0]])
@@ -344,7 +344,7 @@ def _weight_rows(grid, points, dq):
 
 
 def test_handle_on_warped_map_and_radius():
-    grid = Grid.create((30, 30, 30), (9, 9, 9), 2)
+    grid = Lattice.create((30, 30, 30), (9, 9, 9), 2)
     dq = capture_offsets(grid, "uniform").copy()
     dq[4, 4, 4] += [3.0, -2.0, 1.0]  # a non-affine current map
     src = np.array([[15.0, 14.0, 16.0]])
@@ -361,7 +361,7 @@ def test_handle_on_warped_map_and_radius():
 def test_handle_outside_model_is_an_error():
     from volwarp_cli.bspline.handles import HandleError
 
-    grid = Grid.create((20, 20, 20), (7, 7, 7), 1)
+    grid = Lattice.create((20, 20, 20), (7, 7, 7), 1)
     dq = capture_offsets(grid, "uniform")
     with pytest.raises(HandleError, match="outside"):
         solve(dq, grid, [[10.0, 10.0, 10.0], [40.0, 10.0, 10.0]], [[0, 0, 0], [0, 0, 0]])

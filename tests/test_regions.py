@@ -15,7 +15,7 @@ from scipy.spatial import cKDTree
 
 from volwarp_cli.box import Box
 from volwarp_cli.bspline import pushforward
-from volwarp_cli.bspline.lattice import Grid
+from volwarp_cli.bspline.lattice import Lattice
 from volwarp_cli.bspline.pushforward import HeldPlanes
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.distance.exact import signed_edt
@@ -300,7 +300,7 @@ PAD = 2
 
 
 def warp_setup(oversample, seed=0, shape=(12, 10, 14), lattice=(6, 6, 7)):
-    grid = Grid.create(shape, lattice, oversample)
+    grid = Lattice.create(shape, lattice, oversample)
     rng = np.random.default_rng(seed)
     domain = rng.random(grid.domain_shape[::-1]).astype(np.float32)
     return grid, domain

@@ -104,7 +104,7 @@ def test_field_files_say_their_direction_and_layout(run, scene, tmp_path):
 
 def test_tfm_matches_the_forward_map_at_random_points(run, scene, tmp_path):
     from volwarp_cli.bspline.handles import map_params
-    from volwarp_cli.bspline.lattice import Grid
+    from volwarp_cli.bspline.lattice import Lattice
 
     src, spec = scene
     tfm = tmp_path / "f.tfm"
@@ -121,7 +121,7 @@ def test_tfm_matches_the_forward_map_at_random_points(run, scene, tmp_path):
     doc = load_spec(spec)
     validate(doc, load_schema("warp"))
     ws = read_warp_spec(doc)
-    grid = Grid.create(vol.shape_xyz, ws.capture.lattice, ws.capture.oversample)
+    grid = Lattice.create(vol.shape_xyz, ws.capture.lattice, ws.capture.oversample)
     dq = plan(doc, ws, grid, np.zeros(grid.lattice[::-1] + (3,)), SpecUnits(vol))[-1].dq
     rng = np.random.default_rng(7)
     lo, hi = grid.origin, grid.origin + grid.spacing_h * np.array(grid.regions)
@@ -171,11 +171,11 @@ def test_jacobian_against_finite_differences(run, scene, tmp_path):
 
 @pytest.mark.parametrize("scale", [1.0, 1.1, 0.8])
 def test_jacobian_of_affine_lattices(scale):
-    from volwarp_cli.bspline.lattice import Grid
+    from volwarp_cli.bspline.lattice import Lattice
     from volwarp_cli.warp.export import ForwardMap
 
     vol = smooth_volume()
-    grid = Grid.create(vol.shape_xyz, (7, 8, 9), 2)
+    grid = Lattice.create(vol.shape_xyz, (7, 8, 9), 2)
     uni = grid.uniform_positions()
     centre = np.array(vol.shape_xyz) / 2.0
     dq = (scale - 1.0) * (uni - centre)  # every control point scaled about the centre
@@ -261,10 +261,10 @@ def test_tripled_placement_is_refused(run, tmp_path):
 
 
 def _random_map(n=40, sigma=1.5, seed=0, lattice=9, spacing=(1.0, 1.2, 1.5)):
-    from volwarp_cli.bspline.lattice import Grid
+    from volwarp_cli.bspline.lattice import Lattice
     from volwarp_cli.warp.export import ForwardMap
 
-    grid = Grid.create((n, n + 4, n - 3), (lattice,) * 3, 2)
+    grid = Lattice.create((n, n + 4, n - 3), (lattice,) * 3, 2)
     dq = np.random.default_rng(seed).normal(0, sigma, grid.lattice[::-1] + (3,))
     vol = Volume(np.zeros((n - 3, n + 4, n), np.uint8), spacing=spacing, direction=DIRECTION)
     return ForwardMap(grid, dq, vol)

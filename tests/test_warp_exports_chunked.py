@@ -171,9 +171,9 @@ def test_fold_marks_by_slabs_are_the_fold_image():
 
 
 def _grid_of(vol):
-    from volwarp_cli.bspline.lattice import Grid
+    from volwarp_cli.bspline.lattice import Lattice
 
-    return Grid.create(vol.shape_xyz, (9, 9, 9), 2)
+    return Lattice.create(vol.shape_xyz, (9, 9, 9), 2)
 
 
 def test_nifti_fields_are_refused_by_blocks_before_any_work(run, tmp_path):

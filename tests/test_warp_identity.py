@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from volwarp_cli.bspline.lattice import Grid
+from volwarp_cli.bspline.lattice import Lattice
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.volume import Volume
 
@@ -129,7 +129,7 @@ def test_unmoved_warp_is_exact_for_every_dtype(run, tmp_path, dtype, oversample)
             assert np.array_equal(got[big], data[big])
 
 
-def _support_box(grid: Grid, index, move, margin):
+def _support_box(grid: Lattice, index, move, margin):
     """Per axis (x, y, z), the input-index interval outside which no output voxel can
     be reached by the moved point's regions: the regions i - 3..i (clipped), widened
     by the move and by ``margin``."""
@@ -168,7 +168,7 @@ def test_one_moved_point_leaves_everything_else_exact(run, tmp_path, oversample,
             f"      - {{index: [{index[0]}, {index[1]}, {index[2]}], "
             f"by: [{move[0]}, {move[1]}, {move[2]}]}}\n")
     got = _warp(run, tmp_path, BRAIN, text, "--crop").data
-    grid = Grid.create(vin.shape_xyz, (9, 9, 9), oversample)
+    grid = Lattice.create(vin.shape_xyz, (9, 9, 9), oversample)
     lo, hi = _support_box(grid, index, move, margin=1.0)
     nz, ny, nx = vin.data.shape
     x, y, z = np.arange(nx), np.arange(ny), np.arange(nz)

@@ -95,10 +95,10 @@ def test_a_label_warp_too_big_for_the_budget_runs_by_slabs(run, seg, tmp_path, m
     estimate is scaled down to let a budget refuse the in-memory warp and still hold
     two slabs."""
     from volwarp_cli import memory
-    from volwarp_cli.warp.label_blocks import LabelBlocks
+    from volwarp_cli.warp.label_blocks import OneShotLabelWarp
 
-    real = LabelBlocks.slab_bytes
-    monkeypatch.setattr(LabelBlocks, "slab_bytes", lambda self, depth: real(self, depth) // 16)
+    real = OneShotLabelWarp.slab_bytes
+    monkeypatch.setattr(OneShotLabelWarp, "slab_bytes", lambda self, depth: real(self, depth) // 16)
     src, spec = seg
     mem, blk = tmp_path / "m.nrrd", tmp_path / "b.nrrd"
     assert run("warp", src, "--spec", spec, "--labels", "-o", mem).code == 0

@@ -9,7 +9,7 @@ from one_shot import one_shot
 
 from volwarp_cli.bspline import basis
 from volwarp_cli.bspline.capture import capture_volume
-from volwarp_cli.bspline.lattice import Grid
+from volwarp_cli.bspline.lattice import Lattice
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.volume import Volume
 from volwarp_cli.warp import blocks as blocks_module
@@ -81,7 +81,7 @@ def test_subdivision_grid_paths_agree(method, local_updates, monkeypatch):
 
 @pytest.mark.parametrize("evaluate", [basis.evaluate_separable, basis.evaluate_table])
 def test_voxel_range_evaluation_is_bit_identical(evaluate):
-    grid = Grid.create((30, 20, 25), (9, 7, 8), 2)
+    grid = Lattice.create((30, 20, 25), (9, 7, 8), 2)
     dq = np.random.default_rng(3).normal(scale=2.0, size=grid.lattice[::-1] + (3,))
     full = evaluate(dq, grid, np.zeros(grid.domain_shape[::-1] + (3,), np.float32))
     x, y, z = (7, 45), (3, 22), (11, 30)  # not aligned with the regions (G = 10)

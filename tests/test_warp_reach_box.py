@@ -253,14 +253,14 @@ def test_label_warp_identical_for_any_thread_count_with_the_per_plane_ring():
     wide = loose(sc)
     sc._plane_reach = lambda dqs: wide
     ref = warp_labels(lab, sc)
-    wide_ring = labels._Stream(sc, dq, lab, 0, sc.target_shape[2], None, None).planes
+    wide_ring = labels.LabelStream(sc, dq, lab, 0, sc.target_shape[2], None, None).planes
     for n in THREADS:
         sc = Scene(cap.voxmap, cap.grid, dq, 3, domain_range=(0.0, 1.0))
         with parallel.use_threads(n):
             got = warp_labels(lab, sc)
         assert got.target.tobytes() == ref.target.tobytes(), n
         assert got.report == ref.report
-    ring = labels._Stream(sc, dq, lab, 0, sc.target_shape[2], None, None).planes
+    ring = labels.LabelStream(sc, dq, lab, 0, sc.target_shape[2], None, None).planes
     assert ring < wide_ring
 
 

@@ -283,12 +283,12 @@ def test_the_operation_by_blocks_writes_the_rendered_volume(tmp_path, block):
 
 
 def test_label_map_blocks_equal_the_label_warp(tmp_path):
-    """LabelMapBlocks.render, without the command line: the same map and per-label report
+    """OneShotLabelWarp, without the command line: the same map and per-label report
     as LabelMapWarp, by slabs of the asked depth."""
     from volwarp_cli.engine import open_engine
     from volwarp_cli.io import write_volume
     from volwarp_cli.io.lazy import LazySource, open_volume_template
-    from volwarp_cli.warp.run import LabelMapBlocks
+    from volwarp_cli.warp.label_blocks import OneShotLabelWarp
 
     lab = np.zeros((20, 21, 22), np.int16)
     lab[4:10, 5:15, 3:12] = 3
@@ -301,7 +301,7 @@ def test_label_map_blocks_equal_the_label_warp(tmp_path):
     spec = read_warp_spec(doc)
     want, want_report = LabelMapWarp(Volume(lab), doc, spec).compute()
     template, array = open_volume_template(src)
-    warp = LabelMapBlocks(template, LazySource(src, array=array), doc, spec)
+    warp = OneShotLabelWarp(template, LazySource(src, array=array), doc, spec)
     assert warp.template.data.shape == want.data.shape
     out = tmp_path / "o.nrrd"
     open_output, seen = _block_writer(out)

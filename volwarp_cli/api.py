@@ -273,7 +273,7 @@ def warp(volume, spec, *, values: str | None = None, pushforward: str | None = N
     -----
     The command's own planning (:func:`volwarp_cli.warp.request.plan_final`),
     and its output computed whole, as :func:`volwarp_cli.execute.run` does in
-    memory (a label map's: :meth:`~volwarp_cli.warp.run.LabelMapBlocks.compute_whole`).
+    memory (a label map's: :meth:`~volwarp_cli.warp.label_blocks.OneShotLabelWarp.compute_whole`).
     The frames (``--frames-to``) and the exports are not made here.
 
     References

@@ -17,7 +17,7 @@ have it).
 It is every sampling grid's one type: a volume's, a block's, the morph's frame
 grid (:mod:`.morph.grid`) and the sweep's output grid (:func:`.sweep.model.fit_grid`,
 always with the identity direction). The B-spline lattice's layout is another
-concept (:class:`.bspline.lattice.Grid`).
+concept (:class:`.bspline.lattice.Lattice`).
 
 :func:`check_placement` is the one rule every grid's placement obeys (finite,
 positive and bounded spacing, a finite and bounded origin, a non-singular

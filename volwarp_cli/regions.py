@@ -205,7 +205,7 @@ def warp_input(out_box: Box, dq, grid, pad) -> Box:
         Target voxels (target index = input index + ``pad``).
     dq : (Cz, Cy, Cx, 3) float
         Control-point offsets from the uniform lattice (see :mod:`.bspline.lattice`).
-    grid : bspline.lattice.Grid
+    grid : bspline.lattice.Lattice
     pad : int or (x, y, z) ints
         The target's padding per side.
 
@@ -226,7 +226,7 @@ def warp_input(out_box: Box, dq, grid, pad) -> Box:
     target cells ``[tlo - 0.5, thi - 0.5]`` with positive length (a box that
     only touches a cell gives it no weight): per region, ``g > (tlo - 0.5 - o -
     half - hi_u) / s`` and ``g < (thi - 0.5 - o + half - lo_u) / s``, within the
-    region's voxels and the model's (``Grid.data_lo``/``data_hi``: on a
+    region's voxels and the model's (``Lattice.data_lo``/``data_hi``: on a
     subdivision grid the voxels around the input carry nothing); the answer is
     the bounding box of the regions' ranges. The ``nearest`` pushforward
     reaches less (the voxel's mapped centre), so the same box serves it.

@@ -136,7 +136,7 @@ def evaluate_separable(dq: np.ndarray, grid, out: np.ndarray, lo=None, hi=None, 
     ----------
     dq : (Cz, Cy, Cx, 3) float64
         Control-point offsets (x, y, z components) in input voxels.
-    grid : lattice.Grid
+    grid : lattice.Lattice
     out : (nz, ny, nx, 3) float32 or float64
         Deformation offsets; domain voxel (e, f, g) goes to
         ``out[g - origin[2], f - origin[1], e - origin[0]]``.

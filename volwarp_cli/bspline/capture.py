@@ -16,7 +16,7 @@ from ..errors import VolwarpError
 from ..memory import ensure_fits_in_memory
 from ..progress import timed
 from ..volume import Volume
-from .lattice import PLACEMENTS, Grid, capture_offsets
+from .lattice import PLACEMENTS, Lattice, capture_offsets
 from .pullback import SAMPLINGS, Sampler
 
 
@@ -38,7 +38,7 @@ class Capture:
     """
 
     domain: np.ndarray | None
-    grid: Grid
+    grid: Lattice
     placement: str
     oversample: float
     sampling: str
@@ -95,7 +95,7 @@ def geometry_capture(template: Volume, *, lattice=(9, 9, 9), placement: str = "u
     if placement not in PLACEMENTS:
         raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
     lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
-    grid = Grid.create(template.shape_xyz, lattice, oversample, placement)
+    grid = Lattice.create(template.shape_xyz, lattice, oversample, placement)
     ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,
                           f"the {'x'.join(map(str, grid.lattice))} control lattice")
     capture_offsets(grid, placement)
@@ -195,7 +195,7 @@ def capture_source(template: Volume, source, *, lattice=(9, 9, 9), placement: st
     lo, hi = source_range(source)
     check_value_range(source, lo, hi)
     lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
-    grid = Grid.create(template.shape_xyz, lattice, oversample, placement)
+    grid = Lattice.create(template.shape_xyz, lattice, oversample, placement)
     ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,
                           f"the {'x'.join(map(str, grid.lattice))} control lattice")
     capture_offsets(grid, placement)
@@ -234,7 +234,7 @@ def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
                            "(replace them first)")
     check_value_range(data, lo, hi)
     lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
-    grid = Grid.create(vol.shape_xyz, lattice, oversample, placement)
+    grid = Lattice.create(vol.shape_xyz, lattice, oversample, placement)
     # the lattice's own arrays (positions, offsets, the scene's bounds and masks) come
     # before the domain's: a lattice finer than the input can outgrow it
     ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,
@@ -272,7 +272,7 @@ class CapturedInput:
     array, or a capture file's payload read box by box: picklable when it is).
     """
 
-    def __init__(self, domain, grid: Grid, dtype):
+    def __init__(self, domain, grid: Lattice, dtype):
         if not grid.subdivision:
             raise ValueError("only a subdivision capture holds its input's samples")
         self.domain = domain

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import VolwarpError
 from .evaluate import LatticeSpline
-from .lattice import Grid
+from .lattice import Lattice
 
 #: Relative cut-offs tried for the handle system's singular values (see
 #: :func:`_bounded_least_norm`), and the bound on control-point moves.
@@ -42,7 +42,7 @@ class HandleError(VolwarpError):
         super().__init__(message)
 
 
-def _eval(spline: LatticeSpline, grid: Grid, params, derivative: bool):
+def _eval(spline: LatticeSpline, grid: Lattice, params, derivative: bool):
     """Positions (N, 3) of parameters ``params`` under ``spline``'s offsets, and d/ds (N, 3, 3)."""
     params = np.atleast_2d(np.asarray(params, dtype=np.float64))
     h = grid.spacing_h
@@ -52,7 +52,7 @@ def _eval(spline: LatticeSpline, grid: Grid, params, derivative: bool):
     return val, spline.jacobian(params) + np.diag(h)[None]
 
 
-def map_params(dq, grid: Grid, params) -> np.ndarray:
+def map_params(dq, grid: Lattice, params) -> np.ndarray:
     """Positions (input voxels, x y z) of spline parameters (N, 3) under offsets ``dq``."""
     return _eval(LatticeSpline(dq, grid.regions), grid, params, False)[0]
 
@@ -75,7 +75,7 @@ def _newton(spline, grid, point, start, iters=60):
     return s, float(np.max(np.abs(val[0] - point)))
 
 
-def locate(dq, grid: Grid, points) -> np.ndarray:
+def locate(dq, grid: Lattice, points) -> np.ndarray:
     """Parameters (N, 3) that the map sends to ``points`` (input voxels); Newton's method.
 
     Starts from the inverse of the affine base map, then from the nearest of
@@ -115,7 +115,7 @@ def locate(dq, grid: Grid, points) -> np.ndarray:
     return out
 
 
-def solve(dq, grid: Grid, sources, targets, free_mask=None):
+def solve(dq, grid: Lattice, sources, targets, free_mask=None):
     """Least-norm control-point change moving each source point to its target (bounded).
 
     Parameters

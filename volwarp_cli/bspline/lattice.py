@@ -21,7 +21,7 @@ place the domain on the input:
   input voxel per axis, ``h = G / k``. The ``D >= k I`` domain voxels are
   centred on the input, ``lead = (D - k I) // 2`` of them before it, so the
   input's voxel box ``[-0.5, I - 0.5]`` is the domain's voxels
-  ``[lead, lead + k I)`` (:attr:`Grid.data_lo`, :attr:`Grid.data_hi`) and the
+  ``[lead, lead + k I)`` (:attr:`Lattice.data_lo`, :attr:`Lattice.data_hi`) and the
   lattice spans ``R G / k >= I`` input voxels. Domain voxel ``e`` lies inside
   input voxel ``(e - lead) // k``; the voxels outside the input are no part of
   the model (the pushforward leaves them out: the space there is the
@@ -71,7 +71,7 @@ def subdivision_of(oversample: float, placement: str = "uniform") -> int:
 
 
 @dataclass(frozen=True)
-class Grid:
+class Lattice:
     """Sizes of one warp set-up, every tuple in (x, y, z) order.
 
     ``subdivision``: domain voxels per input voxel (per axis) of a subdivision
@@ -84,7 +84,7 @@ class Grid:
     subdivision: int = 0
 
     @classmethod
-    def create(cls, input_shape, lattice, oversample: float, placement: str = "uniform") -> Grid:
+    def create(cls, input_shape, lattice, oversample: float, placement: str = "uniform") -> Lattice:
         """The grid of an input shape, lattice and oversample (a VolwarpError if invalid)."""
         input_shape = tuple(int(v) for v in input_shape)
         lattice = tuple(int(v) for v in lattice)
@@ -174,11 +174,11 @@ class Grid:
         return out
 
 
-def capture_axis_positions(grid: Grid, axis: int, placement: str) -> np.ndarray:
+def capture_axis_positions(grid: Lattice, axis: int, placement: str) -> np.ndarray:
     """Capture control-point positions along one axis (0 = x), in input voxel indices.
 
     ``uniform``: evenly spaced with the end points outside the data (thesis
-    §5.5), an exactly affine map (:meth:`Grid.uniform_axis`). ``tripled``: the
+    §5.5), an exactly affine map (:meth:`Lattice.uniform_axis`). ``tripled``: the
     first and last points tripled on the ends of the voxel box, the interior
     evenly spaced (paper §7, Figure 5); it needs at least 6 points.
     """
@@ -196,7 +196,7 @@ def capture_axis_positions(grid: Grid, axis: int, placement: str) -> np.ndarray:
     raise VolwarpError(f"unknown placement {placement!r} (use {' or '.join(PLACEMENTS)})")
 
 
-def capture_offsets(grid: Grid, placement: str) -> np.ndarray:
+def capture_offsets(grid: Lattice, placement: str) -> np.ndarray:
     """Offsets ``dq`` of the capture lattice from the uniform one, shape (Cz, Cy, Cx, 3)."""
     uni = grid.uniform_positions()
     out = np.zeros_like(uni)
@@ -227,7 +227,7 @@ def window_reduce(a: np.ndarray, width: int, ufunc) -> np.ndarray:
     return a
 
 
-def affected_regions(indices, grid: Grid) -> tuple[np.ndarray, np.ndarray] | None:
+def affected_regions(indices, grid: Lattice) -> tuple[np.ndarray, np.ndarray] | None:
     """Region bounding box ``(lo, hi)`` (x, y, z, hi exclusive) touched by moved points.
 
     Control point ``i`` influences regions ``a`` with ``i - 3 <= a <= i``

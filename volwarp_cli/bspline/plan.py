@@ -22,7 +22,7 @@ import numpy as np
 from ..progress import log
 from ..volume import Volume
 from .handles import HandleError, map_params, solve
-from .lattice import Grid
+from .lattice import Lattice
 
 
 @dataclass
@@ -148,7 +148,7 @@ def check_indices(doc, spec: WarpSpec, lattice) -> None:
                                 f"0..{lattice[1] - 1}, 0..{lattice[2] - 1})")
 
 
-def plan(doc, spec: WarpSpec, grid: Grid, dq0: np.ndarray, geom: SpecUnits) -> list[Frame]:
+def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -> list[Frame]:
     """The lattice after every increment of every step, in order."""
     check_indices(doc, spec, grid.lattice)
     uniform = grid.uniform_positions()

@@ -36,13 +36,13 @@ from ..errors import VolwarpError
 from ..parallel import run_split
 from .basis import region_weights
 from .jobs import SampleJob, replace
-from .lattice import Grid, capture_axis_positions
+from .lattice import Lattice, capture_axis_positions
 from .pushforward import ROUND
 
 SAMPLINGS = ("linear", "nearest")
 
 
-def capture_coordinates(grid: Grid, placement: str) -> list[np.ndarray]:
+def capture_coordinates(grid: Lattice, placement: str) -> list[np.ndarray]:
     """Source coordinates (input voxel indices) of the domain voxel centres, per axis (x, y, z)."""
     out = []
     for axis in range(3):
@@ -55,7 +55,7 @@ def capture_coordinates(grid: Grid, placement: str) -> list[np.ndarray]:
     return out
 
 
-def _subdivision_indices(grid: Grid, axis: int):
+def _subdivision_indices(grid: Lattice, axis: int):
     """Input voxel of each domain voxel on one axis of a subdivision grid.
 
     Clamped to the input outside it; as lower/upper sample index and a zero weight.
@@ -76,7 +76,7 @@ def _axis_weights(coords: np.ndarray, n: int, sampling: str):
     return i0, i1, c - i0
 
 
-def gather_tables(grid: Grid, placement: str, sampling: str):
+def gather_tables(grid: Lattice, placement: str, sampling: str):
     """The capture map per axis: ``(x, y, z)``, each (lower index, upper index, weight).
 
     One entry per domain voxel of the axis, int32 / int32 / float64: the input
@@ -106,7 +106,7 @@ class BoxSampler:
     :meth:`Sampler.whole` bit for bit. Safe to use from several threads.
     """
 
-    def __init__(self, source, grid: Grid, placement: str = "uniform",
+    def __init__(self, source, grid: Lattice, placement: str = "uniform",
                  sampling: str = "linear", dtype=np.float32):
         if tuple(source.shape[::-1]) != tuple(grid.input_shape):
             raise VolwarpError(f"input shape {tuple(source.shape[::-1])} does not match the "
@@ -161,7 +161,7 @@ class Sampler(BoxSampler):
     (:meth:`whole`, on the threads) bit for bit.
     """
 
-    def __init__(self, data: np.ndarray, grid: Grid, placement: str = "uniform",
+    def __init__(self, data: np.ndarray, grid: Lattice, placement: str = "uniform",
                  sampling: str = "linear", dtype=np.float32):
         if tuple(data.shape[::-1]) != tuple(grid.input_shape):
             raise VolwarpError(f"input shape {data.shape[::-1]} does not match the grid "
@@ -205,7 +205,7 @@ class DomainSampler:
         return np.ascontiguousarray(self.domain[box.slices])
 
 
-def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",
+def pullback(data: np.ndarray, grid: Lattice, placement: str = "uniform",
              sampling: str = "linear", dtype=np.float32) -> tuple[np.ndarray, tuple[float, float]]:
     """Domain voxmap ``[Dz, Dy, Dx]`` sampled from ``data[z, y, x]`` through the capture map.
 
@@ -215,7 +215,7 @@ def pullback(data: np.ndarray, grid: Grid, placement: str = "uniform",
     ----------
     data : (Iz, Iy, Ix) array
         The input samples.
-    grid : lattice.Grid
+    grid : lattice.Lattice
     placement : {"uniform", "tripled"}
     sampling : {"linear", "nearest"}
     dtype : float32 or float64, the domain's sample type.

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..box import Box
-from .lattice import Grid, window_reduce
+from .lattice import Lattice, window_reduce
 
 #: Slack for float32 deformation offsets in bounds derived from the lattice.
 OFFSET_SLACK = 0.01
@@ -31,7 +31,7 @@ class Reach:
     ``target_shape`` (x, y, z).
     """
 
-    grid: Grid
+    grid: Lattice
     offset: np.ndarray
     scale: np.ndarray
     target_shape: tuple[int, int, int]

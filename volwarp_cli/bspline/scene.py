@@ -44,7 +44,7 @@ from ..errors import VolwarpError
 from ..memory import block_bytes, ensure_fits_in_memory
 from ..progress import log, timed
 from . import basis, pushforward, work
-from .lattice import Grid, affected_regions
+from .lattice import Lattice, affected_regions
 from .reach import PlaneReach, Reach, offset_bounds
 
 #: Largest size of the deformation buffers of one z chunk (the array is never held whole);
@@ -74,7 +74,7 @@ class Scratch:
         return [self.flat[i * size:(i + 1) * size].reshape(shape) for i in range(n)]
 
 
-def _to_evaluate(still, grid: Grid, block: Box, ext: Box):
+def _to_evaluate(still, grid: Lattice, block: Box, ext: Box):
     """The voxel ranges ``((x0, x1), (y0, y1))`` of ``block`` whose offsets the scatter reads.
 
     Those of its voxels outside the still regions (in some pass) and their
@@ -113,7 +113,7 @@ class Scene:
         The captured (pulled back) density; a sampler's planes are gathered
         box by box as :func:`~volwarp_cli.warp.blocks.warp_block` streams them (never whole),
         and in full the first time anything else needs them.
-    grid : lattice.Grid
+    grid : lattice.Lattice
     dq : (Cz, Cy, Cx, 3) float64
         Control-point offsets from the uniform lattice (input voxels, x y z).
     pad : (x, y, z) ints
@@ -132,7 +132,7 @@ class Scene:
         takes the cheapest by a work estimate; tests and benchmarks force one.
     """
 
-    def __init__(self, domain, grid: Grid, dq, pad, *, method: str = "box",
+    def __init__(self, domain, grid: Lattice, dq, pad, *, method: str = "box",
                  evaluator: str = "separable", background: float = 0.0, domain_range=None,
                  update: str | None = None):
         if update not in (None, *work.UPDATES):

@@ -13,7 +13,8 @@ Modules, one idea each:
 - :mod:`.blocks`: the one-shot warp as an operation of the executor (any
   block of the output; the in-memory warp is its one-block case).
 - :mod:`.labels`: a label map's warp (each output voxel the label of
-  largest weight); :mod:`.label_blocks`: its slabs of target planes.
+  largest weight); :mod:`.label_blocks`: its one-shot warp, whole or by
+  slabs of target planes, and its operation.
 - :mod:`.defaults`: what a warp does where its user says nothing (values,
   grid, background).
 - :mod:`.export`: the deformation as fields, Jacobian, ITK transform, moved

@@ -25,7 +25,7 @@ are warped as they were captured.
 
 It lives in ``warp/``, not ``io/``, because it stores a
 :class:`~volwarp_cli.bspline.capture.Capture`, not a volume: reading one builds the
-B-spline ``Grid`` and ``Capture`` and checks their placement and sampling names, and
+B-spline ``Lattice`` and ``Capture`` and checks their placement and sampling names, and
 ``io/`` imports nothing of the numeric core.
 """
 
@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from ..bspline.capture import Capture, capture_border
-from ..bspline.lattice import Grid
+from ..bspline.lattice import Lattice
 from ..errors import FormatError
 from ..io.atomic import atomic_output
 from ..volume import Volume
@@ -253,7 +253,7 @@ def _capture_of(head: dict, domain, path, sampler=None) -> Capture:
         geometry = Volume(np.zeros((1, 1, 1), dtype=np.dtype(inp["dtype"])),
                           spacing=inp["spacing"], origin=inp["origin"],
                           direction=inp["direction"], space=inp["space"], meta=inp["meta"])
-        grid = Grid(tuple(int(v) for v in inp["shape"]), tuple(int(v) for v in capd["lattice"]),
+        grid = Lattice(tuple(int(v) for v in inp["shape"]), tuple(int(v) for v in capd["lattice"]),
                     tuple(int(v) for v in capd["granularity"]), int(capd["subdivision"]))
         if grid.domain_shape != tuple(int(v) for v in pl["shape"]):
             raise ValueError("domain shape does not match the lattice")
@@ -375,7 +375,7 @@ def describe_capture(path: str | os.PathLike) -> dict:
     # (as read_capture builds it: a version 1 file's frame name normalised to LPS)
     geometry = Volume(np.zeros((1, 1, 1)), spacing=inp["spacing"], origin=inp["origin"],
                       direction=inp["direction"], space=inp["space"])
-    grid = Grid(tuple(inp["shape"]), tuple(capd["lattice"]), tuple(capd["granularity"]),
+    grid = Lattice(tuple(inp["shape"]), tuple(capd["lattice"]), tuple(capd["granularity"]),
                 int(capd["subdivision"]))
     from ..bspline.lattice import capture_offsets
     pts = grid.uniform_positions() + capture_offsets(grid, capd["placement"])  # (k, j, i, 3)

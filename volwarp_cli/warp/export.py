@@ -34,7 +34,7 @@ import numpy as np
 
 from ..bspline.basis import basis, basis_derivative
 from ..bspline.evaluate import LatticeSpline
-from ..bspline.lattice import Grid
+from ..bspline.lattice import Lattice
 from ..errors import VolwarpError
 from ..progress import log
 from ..volume import LPS, Volume
@@ -82,7 +82,7 @@ def check_exportable(placement: str, dq0: np.ndarray, what: str) -> None:
 class ForwardMap:
     """The forward map of one lattice state on one input geometry."""
 
-    grid: Grid
+    grid: Lattice
     dq: np.ndarray  # (Cz, Cy, Cx, 3) offsets from the uniform lattice, input voxels
     geometry: Volume  # the input's geometry (its samples unused: a capture's is a placeholder)
 

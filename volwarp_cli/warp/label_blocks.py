@@ -1,9 +1,13 @@
-"""Label maps warped by blocks: slabs of target planes, each the in-memory label passes.
+"""A label map's one-shot warp (the final lattice): whole, or by slabs of target planes.
+
+:class:`OneShotLabelWarp` is the computation, :class:`LabelWarpOperation` its
+operation for the executor (:mod:`volwarp_cli.execute`), which decides by the
+sizes, before the map is read, whether it runs whole or by slabs.
 
 The in-memory label warp (:func:`.labels.warp_labels`) already cuts the target
 into z ranges, one per thread, each running the background's and every
 label's pass over its own planes (:func:`.labels.label_passes`); the result
-does not depend on the cut. By blocks, each task is one such slab of whole
+does not depend on the cut. By slabs, each task is one such slab of whole
 target planes, computed from the lattice and the label map read box by box
 (reopened by path in a worker process). It writes the output's part of its
 slab and returns its totals: each label's predicted weight and output
@@ -26,79 +30,159 @@ from ..bspline.capture import NoSamples
 from ..bspline.scene import Scene
 from ..errors import OutOfMemoryError
 from ..execute import Blocks, Reduction
+from ..progress import timed
+from ..volume import Volume
 from .blocks import SceneRecipe
 from .labels import (
     _Q,
+    LabelStream,
     _bounding_boxes,
     _counts,
     _stronger,
     label_passes,
     stream_bytes,
 )
+from .run import LatticeMoves, WarpOptions, background_label, prepare_label_warp
 
 _BUILD = threading.Lock()  # one scene per process, even when two threads ask at once
 
+#: what a slab task needs where it runs: the only state pickled (the planned capture,
+#: frames and placeholder Volumes stay with the caller)
+_SLAB_STATE = ("recipe", "source", "window", "dtype", "preserve", "background",
+               "target_shape")
 
-class LabelBlocks:
-    """A label warp's job for block tasks: picklable, its scene rebuilt where it runs.
 
-    ``source``: the label map, sliceable ``[z, y, x]`` (a
-    :class:`~volwarp_cli.io.lazy.LazySource`); ``labels``, ``boxes``: its labels but
-    ``background`` and their input bounding boxes
-    (:func:`bounding_boxes_by_blocks`); ``window``: the output's box of the
-    target; ``background``: the label where nothing lands (the map's most
-    frequent border label, :func:`~volwarp_cli.border.border_label`).
+class OneShotLabelWarp(LatticeMoves):
+    """A label map's warp for the final lattice: whole, or by slabs of target planes.
+
+    ``template``: the map's Volume with a placeholder of its shape and dtype;
+    ``source``: its samples, sliceable ``[z, y, x]`` (a
+    :class:`~volwarp_cli.io.lazy.LazySource`, reopened by path in worker
+    processes). Construction plans the lattice and the output
+    (:attr:`template`, refused before any work when the spec cannot apply)
+    and reads the map's border (its background label,
+    :func:`~volwarp_cli.border.border_label`); :meth:`compute_whole` reads the
+    map whole and warps it here (:func:`.labels.warp_labels`, within
+    :meth:`memory_whole`), :meth:`compute_by_slabs` by slabs on an engine,
+    the map read box by box: the same output and per-label report.
+
+    By slabs, the instance is the tasks' job: pickled with what a slab needs
+    only (:data:`_SLAB_STATE`), its scene rebuilt from its recipe once per
+    process (:meth:`slab_scene`).
     """
 
-    def __init__(self, scene: Scene, source, labels, boxes, window: Box, dtype, *,
-                 preserve: bool = False, background: int = 0):
-        self.recipe = SceneRecipe(scene)  # (the scene's background 0: unused by labels)
-        self.background = int(background)
+    def __init__(self, template: Volume, source, doc, spec,
+                 options: WarpOptions = WarpOptions(), *, name: str = "input"):
+        from .prepare import output_planes, output_window_box
+
         self.source = source
-        self.labels = [int(v) for v in labels]
-        self.boxes = list(boxes)
-        self.window = window
-        self.dtype = np.dtype(dtype)
-        self.preserve = bool(preserve)
-        self._scene = None
+        self.input = template
+        self.dtype = np.dtype(template.dtype)
+        self.preserve = options.preserve
+        self.options = options
+        self.name = name  # (the input's file: in messages)
+        self.cap, self.scene, self.frames, (self.grid, self.grid_why) = prepare_label_warp(
+            template, doc, spec, options, name)
+        #: the label where nothing lands: the most frequent on the map's border
+        self.background = background_label(source)
+        if self.frames:
+            self.scene.set_lattice(self.frames[-1].dq)
+        #: the output's Volume, a placeholder of its shape and dtype
+        self.template, _ = output_planes(self.cap, self.scene, crop=options.crop)
+        #: the output's box of the target
+        self.window = output_window_box(self.cap, self.scene, options.crop)
+        #: the whole target's shape (z, y, x)
+        self.target_shape = tuple(self.scene.target_shape[::-1])
+        self.recipe = SceneRecipe(self.scene)  # (the scene's background 0: unused by labels)
+        self._slab_scene = None
 
     def __getstate__(self):
-        state = dict(self.__dict__)
-        state["_scene"] = None
+        state = {key: self.__dict__[key] for key in _SLAB_STATE}
+        state["_slab_scene"] = None
         return state
 
-    def scene(self) -> Scene:
-        """The warp's scene (built once per process)."""
+    def memory_whole(self) -> int:
+        """The bytes :meth:`compute_whole` holds at its peak (an upper bound).
+
+        The map read whole, the target's weights and labels, each thread's
+        label pass (:func:`.labels.stream_bytes`) and the output's copy.
+        """
+        from .. import parallel
+
+        tx, ty, tz = self.scene.target_shape
+        item = self.input.dtype.itemsize
+        workers = max(1, min(parallel.threads(), tz // 4))
+        return (self.input.data.size * item + tx * ty * tz * (8 + item)
+                + workers * stream_bytes(self.scene, self.scene.dq, self.input.dtype)
+                + self.template.data.size * item)
+
+    def compute_whole(self) -> tuple[Volume, dict]:
+        """The output and the per-label report, the map read whole and warped here."""
+        from .labels import warp_labels
+        from .prepare import output_volume
+
+        with timed("labels: read the map"):
+            data = np.asarray(self.source[:, :, :])
+        res = warp_labels(data, self.scene, (), preserve=self.preserve,
+                          spacing=self.input.spacing, background=self.background)
+        return output_volume(self.cap, self.scene, res.target, crop=self.options.crop), \
+            res.report
+
+    def compute_by_slabs(self, engine, open_output, budget: int, *,
+                         slab: int | None = None) -> dict:
+        """Warp by slabs on ``engine``; returns the per-label report.
+
+        ``open_output(template, block)``: a context manager giving the block
+        output (:class:`~volwarp_cli.io.blockwrite.BlockOutput`) for the
+        output's template and block shape (a slab's: ``(slab, y, x)`` of the
+        output), committed on a clean exit; ``budget``: the bytes the tasks
+        may hold together; ``slab``: target planes per task (default: as many
+        as the budget holds).
+        """
+        import functools
+
+        per_task = budget // max(1, engine.workers)
+        run = functools.partial(engine.map, label="label boxes", memory=per_task)
+        nz, ny, nx = self.input.data.shape
+        # slabs of the map read for its labels' boxes: each one's samples and counts
+        depth = max(1, min(nz, per_task // max(1, ny * nx * (self.input.dtype.itemsize + 16))))
+        with timed("labels: bounding boxes (one pass)"):
+            labels, nvox, boxes = bounding_boxes_by_blocks(self.source, run, depth,
+                                                           self.background)
+        slab = slab or self.choose_depth(budget, engine.workers)
+        shape = self.template.data.shape
+        with open_output(self.template, (slab, shape[1], shape[2])) as out, \
+                timed(f"labels: {len(labels)} label passes + background, by slabs"):
+            return self._warp_slabs(out, engine, labels, nvox, boxes, memory=per_task)
+
+    def slab_scene(self) -> Scene:
+        """The scene the slabs are computed with: rebuilt from the recipe, once per process."""
         with _BUILD:
-            if self._scene is None:
+            if self._slab_scene is None:
                 grid = self.recipe.grid
-                self._scene = self.recipe.build(NoSamples(tuple(grid.domain_shape[::-1])))
-        return self._scene
+                self._slab_scene = self.recipe.build(NoSamples(tuple(grid.domain_shape[::-1])))
+        return self._slab_scene
 
-    @property
-    def target_shape(self) -> tuple[int, int, int]:
-        """The whole target's shape (z, y, x)."""
-        tx, ty, tz = self.scene().target_shape
-        return tz, ty, tx
-
-    def slab(self, t_lo: int, t_hi: int):
+    def slab(self, t_lo: int, t_hi: int, labels, boxes):
         """Target planes ``[t_lo, t_hi)``: ``(labels, predicted, peak, counts, peak_labels)``.
 
-        ``labels``: the slab's output labels; ``predicted``, ``peak``:
+        ``labels``, ``boxes``: the map's labels but the background and their
+        input bounding boxes (:func:`bounding_boxes_by_blocks`). Returned:
+        the slab's output labels; ``predicted``, ``peak``:
         :func:`.labels.label_passes`'; ``counts``: output voxels per label;
         ``peak_labels``: the label each peak voxel ended with.
         """
-        scene = self.scene()
+        scene = self.slab_scene()
         _, ty, tx = self.target_shape
         best_w = np.full((t_hi - t_lo, ty, tx), _Q, dtype=np.int64)
         best_l = np.full((t_hi - t_lo, ty, tx), self.background, dtype=self.dtype)
-        predicted, peak = label_passes(scene, scene.dq, self.source, self.labels, self.boxes,
-                                       t_lo, t_hi, best_w, best_l, preserve=self.preserve,
-                                       z_base=t_lo, background=self.background)
-        del best_w
+        st = LabelStream(scene, scene.dq, self.source, t_lo, t_hi, best_w, best_l,
+                         self.background)
+        predicted, peak = label_passes(st, labels, boxes, preserve=self.preserve, z_base=t_lo)
+        del st, best_w  # (the stream's buffers and the weights, before the counts)
         peak_labels = {L: int(best_l[at[0] - t_lo, at[1], at[2]])
                        for L, (_, at) in peak.items() if at is not None}
-        return (best_l, predicted, peak, _counts(best_l, self.labels, self.background),
+        return (best_l, predicted, peak, _counts(best_l, labels, self.background),
                 peak_labels)
 
     def slab_bytes(self, depth: int) -> int:
@@ -107,7 +191,7 @@ class LabelBlocks:
         The slab's weights and labels, and a label pass's buffers
         (:func:`.labels.stream_bytes`).
         """
-        scene = self.scene()
+        scene = self.slab_scene()
         _, ty, tx = self.target_shape
         return (depth * ty * tx * (8 + self.dtype.itemsize)
                 + stream_bytes(scene, scene.dq, self.source.dtype))
@@ -128,6 +212,75 @@ class LabelBlocks:
                 f"than the {human_bytes(budget)} the memory budget leaves (raise "
                 "--memory-limit, or run fewer tasks: --workers)")
         return depth
+
+    def slab_plan(self, out, depth: int) -> list[tuple[int, int, list[Box]]]:
+        """The slabs ``(t_lo, t_hi, output boxes)`` covering the whole target.
+
+        The output's blocks (whole output planes) each give the slab of their
+        target planes; the target planes the output does not keep (a crop) go
+        in slabs of ``depth`` that write nothing.
+        """
+        tz = self.target_shape[0]
+        w0 = self.window.lo[0]
+        slabs = {}
+        for box in out.blocks():
+            key = (box.lo[0] + w0, box.hi[0] + w0)
+            slabs.setdefault(key, []).append(box)
+        for lo, hi in ((0, w0), (self.window.hi[0], tz)):
+            for z in range(lo, hi, depth):
+                slabs[(z, min(z + depth, hi))] = []
+        return [(a, b, slabs[(a, b)]) for a, b in sorted(slabs)]
+
+    def _warp_slabs(self, out, engine, labels, nvox, boxes, *, memory: int | None) -> dict:
+        """The label warp into ``out`` (a :class:`~volwarp_cli.io.blockwrite.BlockOutput`).
+
+        One task per slab on ``engine``; then the labels that would vanish are
+        kept (``preserve``) by changing their voxels in ``out``, and the
+        report is made as :func:`.labels.warp_labels` makes it. Returns the
+        report. ``out``'s blocks must be whole output planes.
+        """
+        import dask
+
+        from .labels import label_report
+
+        depth = max(b.shape[0] for b in out.blocks()) if out.blocks() else 1
+        plan = self.slab_plan(out, depth)
+        job_node = dask.delayed(self, pure=False)
+        out_node = dask.delayed(out.writer(), pure=False)
+        found_node = dask.delayed((labels, boxes), pure=False, traverse=False)
+        tasks = [engine.block_delayed(label_slab_task, f"labels-{a}", job_node, out_node,
+                                      found_node, a, b, out_boxes, memory=memory, keep=True)
+                 for a, b, out_boxes in plan]
+        stats = engine.run(tasks, label="label slabs")
+        out.mark_written([box for _, _, out_boxes in plan for box in out_boxes])
+        predicted = {L: 0 for L in labels}
+        peak = {L: (0, None) for L in labels}
+        counts = {L: 0 for L in labels}
+        initial = {}  # peak voxel -> the label it ended with
+        for s in stats:
+            got, top, n, ended = s.value
+            for L, total in got.items():
+                predicted[L] += total
+            for L, c in n.items():
+                counts[L] += c
+            for L, (w, at) in top.items():
+                if at is not None and _stronger(w, at, *peak[L]):
+                    peak[L] = (w, at)
+                    initial[at] = ended[L]
+        changed: dict[tuple, int] = {}
+
+        def label_at(at):
+            return changed.get(at, initial.get(at, self.background))
+
+        def set_label(at, L):
+            changed[at] = L
+
+        report = label_report(labels, nvox, predicted, peak, counts,
+                              float(np.prod(self.input.spacing)), preserve=self.preserve,
+                              label_at=label_at, set_label=set_label)
+        report["background"] = self.background
+        _patch(out, self.window, changed)
+        return report
 
 
 def bounding_boxes_by_blocks(source, run, depth: int, background: int = 0):
@@ -161,84 +314,18 @@ def _slab_boxes(zs, source, background=0):
     return z0, labels, nvox, boxes
 
 
-def label_slab_task(job: LabelBlocks, writer, t_lo: int, t_hi: int, out_boxes) -> tuple:
-    """One slab's task: write its part of the output, return its totals."""
-    best_l, predicted, peak, counts, peak_labels = job.slab(t_lo, t_hi)
+def label_slab_task(job: OneShotLabelWarp, writer, found, t_lo: int, t_hi: int,
+                    out_boxes) -> tuple:
+    """One slab's task: write its part of the output, return its totals.
+
+    ``found``: ``(labels, boxes)``, the map's labels and their input boxes.
+    """
+    best_l, predicted, peak, counts, peak_labels = job.slab(t_lo, t_hi, *found)
     for box in out_boxes:
         part = box.shift(job.window.lo)  # (target indices)
         writer.write(box, best_l[part.lo[0] - t_lo:part.hi[0] - t_lo, part.lo[1]:part.hi[1],
                                  part.lo[2]:part.hi[2]])
     return predicted, peak, counts, peak_labels
-
-
-def slab_plan(job: LabelBlocks, out, depth: int) -> list[tuple[int, int, list[Box]]]:
-    """The slabs ``(t_lo, t_hi, output boxes)`` covering the whole target.
-
-    The output's blocks (whole output planes) each give the slab of their
-    target planes; the target planes the output does not keep (a crop) go
-    in slabs of ``depth`` that write nothing.
-    """
-    tz = job.target_shape[0]
-    w0 = job.window.lo[0]
-    slabs = {}
-    for box in out.blocks():
-        key = (box.lo[0] + w0, box.hi[0] + w0)
-        slabs.setdefault(key, []).append(box)
-    for lo, hi in ((0, w0), (job.window.hi[0], tz)):
-        for z in range(lo, hi, depth):
-            slabs[(z, min(z + depth, hi))] = []
-    return [(a, b, slabs[(a, b)]) for a, b in sorted(slabs)]
-
-
-def warp_labels_by_blocks(job: LabelBlocks, out, engine, *, nvox, spacing,
-                          memory: int | None = None):
-    """The label warp into ``out`` (a :class:`~volwarp_cli.io.blockwrite.BlockOutput`).
-
-    One task per slab on ``engine``; then the labels that would vanish are
-    kept (``job.preserve``) by changing their voxels in ``out``, and the
-    report is made as :func:`.labels.warp_labels` makes it. Returns the
-    report. ``out``'s blocks must be whole output planes.
-    """
-    import dask
-
-    from .labels import label_report
-
-    depth = max(b.shape[0] for b in out.blocks()) if out.blocks() else 1
-    plan = slab_plan(job, out, depth)
-    job_node = dask.delayed(job, pure=False)
-    out_node = dask.delayed(out.writer(), pure=False)
-    tasks = [engine.block_delayed(label_slab_task, f"labels-{a}", job_node, out_node, a, b,
-                                  boxes, memory=memory, keep=True)
-             for a, b, boxes in plan]
-    stats = engine.run(tasks, label="label slabs")
-    out.mark_written([box for _, _, boxes in plan for box in boxes])
-    predicted = {L: 0 for L in job.labels}
-    peak = {L: (0, None) for L in job.labels}
-    counts = {L: 0 for L in job.labels}
-    initial = {}  # peak voxel -> the label it ended with
-    for s in stats:
-        got, top, n, ended = s.value
-        for L, total in got.items():
-            predicted[L] += total
-        for L, c in n.items():
-            counts[L] += c
-        for L, (w, at) in top.items():
-            if at is not None and _stronger(w, at, *peak[L]):
-                peak[L] = (w, at)
-                initial[at] = ended[L]
-    changed: dict[tuple, int] = {}
-
-    def label_at(at):
-        return changed.get(at, initial.get(at, job.background))
-
-    def set_label(at, L):
-        changed[at] = L
-
-    report = label_report(job.labels, nvox, predicted, peak, counts, float(np.prod(spacing)),
-                          preserve=job.preserve, label_at=label_at, set_label=set_label)
-    report["background"] = job.background
-    _patch(out, job.window, changed)
-    return report
 
 
 def _patch(out, window: Box, changed: dict) -> None:
@@ -258,19 +345,19 @@ def _patch(out, window: Box, changed: dict) -> None:
 class LabelWarpOperation(Reduction):
     """A label map's warp on the executor: whole, or by slabs of target planes.
 
-    ``warp``: the planned :class:`.run.LabelMapBlocks`; ``path``,
-    ``template``: the output file and its Volume (key/values stamped, its
-    samples a placeholder); ``write``: :func:`~volwarp_cli.io.write_volume`'s
-    options. In memory the map is read whole and warped here
-    (:meth:`.run.LabelMapBlocks.compute_whole`, :meth:`memory` its peak); by
+    ``warp``: the planned :class:`OneShotLabelWarp`; ``path``, ``template``:
+    the output file and its Volume (key/values stamped, its samples a
+    placeholder); ``write``: :func:`~volwarp_cli.io.write_volume`'s options.
+    In memory the map is read whole and warped here
+    (:meth:`OneShotLabelWarp.compute_whole`, :meth:`memory` its peak); by
     blocks, each task is a slab of whole target planes read box by box
-    (:meth:`.run.LabelMapBlocks.compute_by_slabs`). The output (:attr:`Ran.output`
+    (:meth:`OneShotLabelWarp.compute_by_slabs`). The output (:attr:`Ran.output`
     of the run) is the per-label report; the file is the same either way.
     """
 
     blocks_share = 1.0  # (a slab returns its totals only: nothing to hold beside the tasks)
 
-    def __init__(self, warp, path, template, write: dict):
+    def __init__(self, warp: OneShotLabelWarp, path, template, write: dict):
         from ..geometry import Geometry
 
         self.warp, self.path, self.template, self.write = warp, path, template, dict(write)
@@ -281,28 +368,21 @@ class LabelWarpOperation(Reduction):
         """The output file and its size (checked against the disk by blocks)."""
         return [(self.path, self.template.data.size * self.template.dtype.itemsize)]
 
-    def _job(self) -> LabelBlocks:
-        """The slabs' job without the labels (for its sizes; the labels come by blocks)."""
-        w = self.warp
-        return LabelBlocks(w.scene, w.source, [], [], w.window, w.input.dtype,
-                           preserve=w.preserve, background=w.background)
-
     def memory(self, box: Box) -> int:
-        """The whole in memory (:meth:`.run.LabelMapBlocks.memory_whole`), else a slab's."""
+        """The whole in memory (:meth:`OneShotLabelWarp.memory_whole`), else a slab's."""
         if box == self.grid.box:
             return self.warp.memory_whole()
-        return self._job().slab_bytes(box.shape[0])
+        return self.warp.slab_bytes(box.shape[0])
 
     def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
         """Slabs of whole output planes, as deep as ``per_task`` holds (two slabs a task)."""
         _, ny, nx = self.grid.shape
-        return (self._job().choose_depth(per_task * workers, workers), ny, nx)
+        return (self.warp.choose_depth(per_task * workers, workers), ny, nx)
 
     def reduce(self, blocks: Blocks) -> dict:
         """Warp and write; returns the per-label report."""
         from ..io import write_volume
         from ..io.blockwrite import open_volume_blocks
-        from ..progress import timed
 
         if blocks.whole:
             out, report = self.warp.compute_whole()
@@ -319,5 +399,6 @@ class LabelWarpOperation(Reduction):
                                       version=w.get("ome_zarr_version", "0.5"),
                                       pyramid=w.get("pyramid", 0), labels=True)
 
-        return self.warp.compute_by_slabs(blocks.engine, open_output, blocks.memory * blocks.engine.workers,
-                                slab=blocks.shape[0])
+        return self.warp.compute_by_slabs(blocks.engine, open_output,
+                                          blocks.memory * blocks.engine.workers,
+                                          slab=blocks.shape[0])

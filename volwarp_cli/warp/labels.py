@@ -166,11 +166,14 @@ def _bounding_boxes(data: np.ndarray, background: int = 0):
     return labels, nvox, boxes, kept
 
 
-class _Stream:
-    """One thread's share of the target (z planes [t_lo, t_hi)).
+class LabelStream:
+    """One share of the target (z planes [t_lo, t_hi)): what :func:`label_passes` fills.
 
-    Its buffers, and one label pass at a time streamed into a rolling accumulator
-    of its target block.
+    ``labels_in``: the label map, any sliceable ``[z, y, x]``; ``best_w``,
+    ``best_l``: the best weight and label so far of the share's planes (or
+    of more: see :func:`label_passes`); ``background``: the map's background
+    label. Its buffers, and one label pass at a time streamed into a rolling
+    accumulator of its target block.
     """
 
     def __init__(self, scene: Scene, dq, labels_in: np.ndarray, t_lo: int, t_hi: int,
@@ -321,8 +324,8 @@ def warp_labels(labels_in: np.ndarray, scene: Scene, frames=(), *, preserve: boo
     lock = threading.Lock()
 
     def share(i):
-        got, top = label_passes(scene, dq, labels_in, labels, boxes, cuts[i], cuts[i + 1],
-                                best_w, best_l, preserve=preserve, background=b)
+        st = LabelStream(scene, dq, labels_in, cuts[i], cuts[i + 1], best_w, best_l, b)
+        got, top = label_passes(st, labels, boxes, preserve=preserve)
         with lock:
             merge_passes(predicted, peak, got, top)
 
@@ -353,7 +356,7 @@ def stream_bytes(scene: Scene, dq, dtype) -> int:
     grid = scene.grid
     k = grid.subdivision
     chunk = max(1, int(STREAM_PLANES * k))
-    planes = ring_planes(scene._plane_reach([dq]), chunk)  # as _Stream's
+    planes = ring_planes(scene._plane_reach([dq]), chunk)  # as LabelStream's
     tx, ty, _ = scene.target_shape
     dx, dy, _ = grid.domain_shape
     nx, ny, _ = grid.input_shape
@@ -362,12 +365,10 @@ def stream_bytes(scene: Scene, dq, dtype) -> int:
             + 2 * scene.chunk_bytes)
 
 
-def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: int,
-                 best_w: np.ndarray, best_l: np.ndarray, *, preserve: bool = False,
-                 z_base: int = 0, background: int = 0):
-    """The background's and every label's pass over target planes ``[t_lo, t_hi)``.
+def label_passes(st: LabelStream, labels, boxes, *, preserve: bool = False, z_base: int = 0):
+    """The background's and every label's pass over the target planes of share ``st``.
 
-    Into ``best_w``/``best_l``, whose plane 0 is target plane ``z_base`` (the
+    Into its ``best_w``/``best_l``, whose plane 0 is target plane ``z_base`` (the
     whole target, or one slab of it: the result does not depend on the cut);
     ``best_l`` holds the ``background`` label where no label wins.
     ``labels``/``boxes``: the map's labels but ``background`` and their input
@@ -375,8 +376,8 @@ def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: in
     per label, its total weight in these planes and (with ``preserve``) its
     voxel of largest weight ``(w, (z, y, x))`` (target indices).
     """
-    st = _Stream(scene, dq, labels_in, t_lo, t_hi, best_w, best_l, background)
-    full = Box.from_xyz((0, 0, 0), scene.grid.input_shape)
+    best_w, best_l = st.best_w, st.best_l
+    full = Box.from_xyz((0, 0, 0), st.scene.grid.input_shape)
     predicted = {}
     peak = {}
 
@@ -387,7 +388,7 @@ def label_passes(scene: Scene, dq, labels_in, labels, boxes, t_lo: int, t_hi: in
     st.run(None, full, on_background)
     # the labels below the background first, descending, winning ties (>=: the smaller id
     # wins), then those above it ascending, losing ties: the smallest label wins a tie
-    b = background
+    b = st.background
     order = [L for L in labels if L < b][::-1] + [L for L in labels if L > b]
     where = {L: i for i, L in enumerate(labels)}
     for L in order:
@@ -504,17 +505,12 @@ def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, backg
     applied by :func:`warp_labels`). ``grid``: the output's, as
     :func:`.prepare.prepare` takes it.
     """
-    from .prepare import prepare
+    from .prepare import capture_as_spec, prepare
 
     if background not in (None, 0, 0.0):
         raise VolwarpError("--background does not apply to a label map (its background is "
                            "its most frequent border label)")
-    s = spec.capture
-    try:
-        cap = capture_labels(vol, lattice=s.lattice, placement=s.placement,
-                             oversample=s.oversample, sampling=s.sampling)
-    except VolwarpError as exc:
-        raise VolwarpError(f"{source}: {exc}") from None
+    cap = capture_as_spec(capture_labels, spec.capture, source, vol)
     if spec.background not in (None, 0):
         raise doc.error(("background",), "does not apply to a label map (its background is "
                         "its most frequent border label)")

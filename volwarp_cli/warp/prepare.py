@@ -13,11 +13,25 @@ import numpy as np
 from ..bspline.capture import Capture
 from ..bspline.plan import SpecUnits, WarpSpec, default_pad, plan
 from ..bspline.scene import Scene
-from ..errors import BadUsage, SpecError
+from ..errors import BadUsage, SpecError, VolwarpError
 from ..progress import log, progress, timed
 from ..samples import cast_samples
 from ..volume import Volume
 from .defaults import GRIDS, output_grid
+
+
+def capture_as_spec(capture, settings, name: str, *inputs):
+    """``capture(*inputs)`` with a spec's capture ``settings``; its errors name ``name``.
+
+    ``capture``: one of :mod:`volwarp_cli.bspline.capture`'s (or
+    :func:`.labels.capture_labels`), taking ``lattice``, ``placement``,
+    ``oversample`` and ``sampling``; ``name``: the input's file.
+    """
+    try:
+        return capture(*inputs, lattice=settings.lattice, placement=settings.placement,
+                       oversample=settings.oversample, sampling=settings.sampling)
+    except VolwarpError as exc:
+        raise VolwarpError(f"{name}: {exc}") from None
 
 
 def check_capture_settings(doc, spec: WarpSpec, cap: Capture, source: str) -> None:

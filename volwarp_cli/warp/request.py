@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import BadUsage, VolwarpError
+from ..errors import BadUsage
 from ..progress import log, timed
 from ..provenance import provenance, stamp
 from .run import WarpOptions
@@ -86,7 +86,7 @@ def _exports_only(req: WarpFiles, how) -> dict:
     warp with the same spec and options.
     """
     from .export import check_exportable
-    from .prepare import check_capture_settings
+    from .prepare import capture_as_spec, check_capture_settings
     from .run import Deformation
 
     doc, spec = _load_spec(req.spec)
@@ -100,12 +100,7 @@ def _exports_only(req: WarpFiles, how) -> dict:
         from ..bspline.capture import geometry_capture
 
         template, _ = req.open_lazy()
-        c = spec.capture
-        try:
-            cap = geometry_capture(template, lattice=c.lattice, placement=c.placement,
-                                   oversample=c.oversample, sampling=c.sampling)
-        except VolwarpError as exc:
-            raise VolwarpError(f"{req.input}: {exc}") from None
+        cap = capture_as_spec(geometry_capture, spec.capture, req.input, template)
     check_exportable(cap.placement, cap.dq, req.input)
     warp = Deformation(cap, doc, spec, req.options)
     stats = _write_exports(req, warp, how, by_slabs=bool(how.chunked))
@@ -126,14 +121,16 @@ def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions()
     the label rule, one pass over the samples), unless ``choice`` was made
     (a capture file's). Returns the values choice
     (:class:`.defaults.ValuesChoice`, already said at ``-v``) and the warp:
-    a :class:`.run.LabelMapBlocks` for labels, else an
+    a :class:`.label_blocks.OneShotLabelWarp` for labels, else an
     :class:`.run.IntensityWarp` whose :meth:`~.run.IntensityWarp.operation`
     computes the output. ``exportable``: refuse, before any work, a warp
     whose exports cannot be exact.
     """
     from ..bspline.capture import capture_source
     from .defaults import choose_values, warn_once
-    from .run import IntensityWarp, LabelMapBlocks
+    from .label_blocks import OneShotLabelWarp
+    from .prepare import capture_as_spec
+    from .run import IntensityWarp
 
     if choice is None:
         with timed("labels? (the rule, one pass)"):
@@ -142,16 +139,10 @@ def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions()
     log.info("%s: %s", name, choice.describe())
     check_values_fit(choice, doc, spec, options, name)
     if choice.is_labels:
-        return choice, LabelMapBlocks(template, source, doc, spec, options, name=name)
+        return choice, OneShotLabelWarp(template, source, doc, spec, options, name=name)
     if cap is None:
-        c = spec.capture
         with timed("input range (one pass)"):
-            try:
-                cap = capture_source(template, source, lattice=c.lattice,
-                                     placement=c.placement, oversample=c.oversample,
-                                     sampling=c.sampling)
-            except VolwarpError as exc:
-                raise VolwarpError(f"{name}: {exc}") from None
+            cap = capture_as_spec(capture_source, spec.capture, name, template, source)
     if exportable:  # refused before any work where they cannot be exact
         from .export import check_exportable
 

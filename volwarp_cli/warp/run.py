@@ -6,8 +6,8 @@ The command (:mod:`volwarp_cli.cli.warp`) parses and checks its options, then:
   lattice moves of a deferred capture (the input or capture file read box
   by box) and gives the output as an operation of the executor
   (:meth:`IntensityWarp.operation`, :mod:`volwarp_cli.execute`: whole or by
-  blocks, the same bytes); a label map's is :class:`LabelMapBlocks` (whole
-  or by slabs of target planes);
+  blocks, the same bytes); a label map's is
+  :class:`.label_blocks.OneShotLabelWarp` (whole or by slabs of target planes);
 - every frame (``--frames-to``): :class:`WarpInput` reads the input on a
   worker thread while the warp modules are imported and the spec is
   loaded, and captures it (with the capture settings the spec gives, read
@@ -338,7 +338,7 @@ def handle_report(cap, frames) -> list[dict]:
 OnFrame = Callable[[dict, Volume], None]
 
 
-class _LatticeMoves:
+class LatticeMoves:
     """What every warp of a capture ``cap`` through planned ``frames`` gives its exports.
 
     The final lattice (the moved points, meshes and fields are its map) and
@@ -355,7 +355,7 @@ class _LatticeMoves:
         return handle_report(self.cap, self.frames)
 
 
-class IntensityWarp(_LatticeMoves):
+class IntensityWarp(LatticeMoves):
     """The warp of a captured volume (:class:`~volwarp_cli.bspline.capture.Capture`) by a checked spec.
 
     Construction plans every lattice state and builds the scene; then the
@@ -464,7 +464,7 @@ class IntensityWarp(_LatticeMoves):
         return self.cap.sampler
 
 
-def _prepare_labels(vol: Volume, doc, spec, options: WarpOptions, name: str):
+def prepare_label_warp(vol: Volume, doc, spec, options: WarpOptions, name: str):
     """:func:`.labels.prepare_labels` with the options' overrides.
 
     Returns ``(cap, scene, frames, grid)``, ``grid`` the output's and why.
@@ -484,7 +484,7 @@ def _prepare_labels(vol: Volume, doc, spec, options: WarpOptions, name: str):
     return cap, scene, frames, grid
 
 
-def _background_label(samples) -> int:
+def background_label(samples) -> int:
     """A label map's background (:func:`~volwarp_cli.border.border_label`), said at -v."""
     from ..border import border_label
 
@@ -493,7 +493,7 @@ def _background_label(samples) -> int:
     return label
 
 
-class Deformation(_LatticeMoves):
+class Deformation(LatticeMoves):
     """A warp's lattice moves and nothing else: what its exports need, no volume computed.
 
     ``cap``: a capture without samples (:func:`~volwarp_cli.bspline.capture.geometry_capture`,
@@ -515,101 +515,7 @@ class Deformation(_LatticeMoves):
 
 
 
-class LabelMapBlocks(_LatticeMoves):
-    """A label map's warp for the final lattice: whole, or by slabs of target planes.
-
-    ``template``: the map's Volume with a placeholder of its shape and dtype;
-    ``source``: its samples, sliceable ``[z, y, x]`` (a lazy source, reopened
-    by path in worker processes). Construction plans the lattice and the
-    output (:attr:`template`, refused before any work when the spec cannot
-    apply) and reads the map's border (its background label);
-    :meth:`compute_whole` reads the map whole and warps it here
-    (:func:`.labels.warp_labels`, within :meth:`memory_whole`), :meth:`compute_by_slabs`
-    by slabs on an engine, the map read box by box (:mod:`.label_blocks`):
-    the same output and per-label report.
-    """
-
-    def __init__(self, template: Volume, source, doc, spec,
-                 options: WarpOptions = WarpOptions(), *, name: str = "input"):
-        from .prepare import output_planes, output_window_box
-
-        self.source = source
-        self.input = template
-        self.preserve = options.preserve
-        self.options = options
-        self.name = name  # (the input's file: in messages)
-        self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
-            template, doc, spec, options, name)
-        #: the label where nothing lands: the most frequent on the map's border
-        self.background = _background_label(source)
-        if self.frames:
-            self.scene.set_lattice(self.frames[-1].dq)
-        #: the output's Volume, a placeholder of its shape and dtype
-        self.template, _ = output_planes(self.cap, self.scene, crop=options.crop)
-        self.window = output_window_box(self.cap, self.scene, options.crop)
-
-    def memory_whole(self) -> int:
-        """The bytes :meth:`compute_whole` holds at its peak (an upper bound).
-
-        The map read whole, the target's weights and labels, each thread's
-        label pass (:func:`.labels.stream_bytes`) and the output's copy.
-        """
-        from .. import parallel
-        from .labels import stream_bytes
-
-        tx, ty, tz = self.scene.target_shape
-        item = self.input.dtype.itemsize
-        workers = max(1, min(parallel.threads(), tz // 4))
-        return (self.input.data.size * item + tx * ty * tz * (8 + item)
-                + workers * stream_bytes(self.scene, self.scene.dq, self.input.dtype)
-                + self.template.data.size * item)
-
-    def compute_whole(self) -> tuple[Volume, dict]:
-        """The output and the per-label report, the map read whole and warped here."""
-        from .labels import warp_labels
-        from .prepare import output_volume
-
-        with timed("labels: read the map"):
-            data = np.asarray(self.source[:, :, :])
-        res = warp_labels(data, self.scene, (), preserve=self.preserve,
-                          spacing=self.input.spacing, background=self.background)
-        return output_volume(self.cap, self.scene, res.target, crop=self.options.crop), \
-            res.report
-
-    def compute_by_slabs(self, engine, open_output, budget: int, *, slab: int | None = None) -> dict:
-        """Warp by slabs on ``engine``; returns the per-label report.
-
-        ``open_output(template, block)``: a context manager giving the block
-        output (:class:`~volwarp_cli.io.blockwrite.BlockOutput`) for the
-        output's template and block shape (a slab's: ``(slab, y, x)`` of the
-        output), committed on a clean exit; ``budget``: the bytes the tasks
-        may hold together; ``slab``: target planes per task (default: as many
-        as the budget holds).
-        """
-        import functools
-
-        from .label_blocks import LabelBlocks, bounding_boxes_by_blocks, warp_labels_by_blocks
-
-        per_task = budget // max(1, engine.workers)
-        run = functools.partial(engine.map, label="label boxes", memory=per_task)
-        nz, ny, nx = self.input.data.shape
-        # slabs of the map read for its labels' boxes: each one's samples and counts
-        depth = max(1, min(nz, per_task // max(1, ny * nx * (self.input.dtype.itemsize + 16))))
-        with timed("labels: bounding boxes (one pass)"):
-            labels, nvox, boxes = bounding_boxes_by_blocks(self.source, run, depth,
-                                                           self.background)
-        job = LabelBlocks(self.scene, self.source, labels, boxes, self.window,
-                          self.input.dtype, preserve=self.preserve, background=self.background)
-        slab = slab or job.choose_depth(budget, engine.workers)
-        shape = self.template.data.shape
-        with open_output(self.template, (slab, shape[1], shape[2])) as out, \
-                timed(f"labels: {len(labels)} label passes + background, by slabs"):
-            report = warp_labels_by_blocks(job, out, engine, nvox=nvox,
-                                           spacing=self.input.spacing, memory=per_task)
-        return report
-
-
-class LabelMapWarp(_LatticeMoves):
+class LabelMapWarp(LatticeMoves):
     """The warp of a label map (segmentation) by a checked spec.
 
     Every output voxel is an input label (see :mod:`.labels`).
@@ -627,10 +533,10 @@ class LabelMapWarp(_LatticeMoves):
         self.vol = vol
         self.options = options
         self.preserve = options.preserve
-        self.cap, self.scene, self.frames, (self.grid, self.grid_why) = _prepare_labels(
+        self.cap, self.scene, self.frames, (self.grid, self.grid_why) = prepare_label_warp(
             vol, doc, spec, options, name)
         #: the label where nothing lands: the most frequent on the map's border
-        self.background = _background_label(vol.data)
+        self.background = background_label(vol.data)
 
 
     def summary(self) -> dict:
