@@ -3,8 +3,7 @@
 The band (:class:`~volwarp_cli.distance.band.BandedDistance`): any block grid
 gives the one block's bytes, and the one block is the reference field clipped
 (scipy's exact transform, the analytic distance of a smooth ball). The exact
-passes (:func:`~volwarp_cli.distance.chunked.signed_edt_staged`): the in-memory
-transform's bytes. The whole's scan (:mod:`~volwarp_cli.distance.scan`): the
+passes: ``test_distance_passes.py``. The whole's scan (:mod:`~volwarp_cli.distance.scan`): the
 in-memory checks and surface choice.
 """
 
@@ -16,12 +15,10 @@ import sys
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
-from test_distance_metrics_chunked import FieldSink
 
 from volwarp_cli.box import Box
 from volwarp_cli.distance.band import BandedDistance
-from volwarp_cli.distance.chunked import MaskSource, field_by_blocks, signed_edt_staged
-from volwarp_cli.distance.exact import signed_edt, x_pass, y_pass, z_pass
+from volwarp_cli.distance.exact import signed_edt
 from volwarp_cli.distance.field import finish_field, signed_distance
 from volwarp_cli.distance.labels import ShapeRule
 from volwarp_cli.distance.scan import field_surface, scan_shape
@@ -235,8 +232,7 @@ def test_scan_refuses_and_warns_in_the_in_memory_words(caplog):
             scan_shape(data, iso, "above", box_voxels=5000)
         assert str(scan.value) == str(mem.value)
     nans = np.full((5, 6, 7), np.nan, np.float32)
-    with pytest.raises(VolwarpError) as mem, np.errstate(all="ignore"), \
-            pytest.warns(RuntimeWarning, match="All-NaN"):  # field.py's nanmin of nothing
+    with pytest.raises(VolwarpError) as mem:  # (the same scan: no numpy warning either)
         signed_distance(nans, SPACING, iso=0.0)
     with pytest.raises(VolwarpError) as scan:
         scan_shape(nans, 0.0, "above", box_voxels=20)
@@ -250,7 +246,7 @@ def test_scan_refuses_and_warns_in_the_in_memory_words(caplog):
         scan_shape(np.zeros((4, 4, 4), complex), 0.0, "above", box_voxels=10)
 
 
-# -- the exact passes -------------------------------------------------------------------
+# -- refusals --------------------------------------------------------------------------
 def threads_engine():
     """An engine of three threads (a context manager)."""
     from volwarp_cli.engine import open_engine
@@ -258,47 +254,25 @@ def threads_engine():
     return open_engine("threads", workers=3)
 
 
-@pytest.mark.parametrize("name", list(MASKS))
-@pytest.mark.parametrize("budget", [2_000, 10**9])  # blocks of whole lines; slabs of planes
-@pytest.mark.parametrize("spacing", [SPACING, (1.0, 1.0, 1.0)])
-def test_passes_equal_in_memory_and_scipy(tmp_path, name, budget, spacing):
-    mask = MASKS[name]()
-    ref = signed_edt(mask, spacing)
-    np.testing.assert_allclose(ref, scipy_signed(mask, spacing), rtol=1e-6, atol=1e-5)
-    sink = FieldSink(SHAPE)
-    last = Box.from_shape(SHAPE).blocks((SHAPE[0], 6, 11))
-    with threads_engine() as engine:
-        signed_edt_staged(MaskSource(mask, 0.5, "above"), spacing, engine, sink.write,
-                          tmp_path, block_bytes=budget, last_blocks=last)
-    assert same(sink.field, ref)
-
-
-def test_passes_depend_on_whole_lines():
-    """The test above can fail: a pass on blocks that cut its lines gives other values."""
-    mask = blobs(SHAPE, 0).view(np.uint8)
-    field = np.empty(SHAPE, np.float32)
-    for box in Box.from_shape(SHAPE).blocks((SHAPE[0], SHAPE[1], 13)):  # x lines cut
-        out = np.empty(box.shape, np.float32)
-        x_pass(np.ascontiguousarray(mask[box.slices]), SPACING[2], out)
-        field[box.slices] = out
-    y_pass(field, mask, SPACING[1])
-    z_pass(field, mask, SPACING[0])
-    assert not np.array_equal(field, signed_edt(mask, SPACING))
-
-
 @pytest.mark.parametrize(("kwargs", "match"), [
     ({"surface": "subvoxel"}, "need --max-distance"),
     ({"metric": "nope"}, "unknown metric"),
     ({"surface": "subvoxel", "metric": "minnorm"}, "need the euclidean metric"),
     ({"max_distance": 0.0}, "positive"),
-    ({"inside": "left", "max_distance": 1.0}, "inside must be"),
 ])
 def test_field_by_blocks_refusals(tmp_path, kwargs, match):
-    args = {"metric": "euclidean", "surface": "auto", "inside": "above", **kwargs}
-    with threads_engine() as engine, pytest.raises(VolwarpError, match=match) as err:
-        field_by_blocks(smooth(SHAPE, 0), SPACING, engine, None, iso=0.0, block_bytes=10**6,
-                        scratch_near=tmp_path / "f.nrrd", **args)
+    from volwarp_cli import execute
+    from volwarp_cli.distance.operation import field_operation
+
+    args = {"metric": "euclidean", "surface": "voxel", **kwargs}
+    data = smooth(SHAPE, 0)
+    target = execute.Target(tmp_path / "f.nrrd", Volume(data), np.dtype(np.float32))
+    with pytest.raises(VolwarpError, match=match) as err:
+        op = field_operation(data, Geometry(SHAPE, (1.0, 1.0, 1.0)),
+                             ShapeRule("intensity", "given", iso=0.0), target=target, **args)
+        execute.run(op, execute.How(chunked=True, open_engine=threads_engine))
     assert "\n" not in str(err.value)
+    assert not (tmp_path / "f.nrrd").exists()
 
 
 def test_hypothesis_random_masks_and_blocks():

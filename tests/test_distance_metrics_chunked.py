@@ -1,10 +1,9 @@
 """minnorm, taxicab and chessboard by blocks = in memory, bit for bit (issue 19).
 
 The per-axis line passes (:func:`volwarp_cli.distance.minnorm.line_metric_pass`)
-against scipy's ``distance_transform_cdt`` on random masks; the staged passes
-(:func:`volwarp_cli.distance.chunked.line_metric_staged`) and ``volwarp distance
+against scipy's ``distance_transform_cdt`` on random masks; ``volwarp distance
 --chunked`` against the in-memory field on odd shapes cut into several blocks
-per axis; the refusals.
+per axis (the operations themselves: ``test_distance_passes.py``); the refusals.
 """
 
 from __future__ import annotations
@@ -17,9 +16,7 @@ from hypothesis.extra import numpy as hnp
 from scipy import ndimage as ndi
 
 from volwarp_cli.distance import minnorm
-from volwarp_cli.distance.chunked import field_by_blocks, line_metric_staged
-from volwarp_cli.distance.field import finish_field, signed_distance
-from volwarp_cli.errors import VolwarpError
+from volwarp_cli.distance.field import signed_distance
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.volume import Volume
 
@@ -72,86 +69,6 @@ def test_minnorm_pass_count_is_the_in_memory_one():
     mask = blobs(SHAPE, 0)
     _, info = signed_distance(mask.astype(np.uint8), ANISO, iso=0.5, metric="minnorm")
     assert info["passes"] == minnorm.signed_pass_count(SHAPE) == 2 * (5 + 5 + 5)
-
-
-# -- the staged passes, directly ----------------------------------------------------------------
-class FieldSink:
-    """A whole field written block by block (what the staged passes hand their blocks to)."""
-
-    def __init__(self, shape):
-        self.field = np.full(shape, np.nan, np.float32)
-
-    def write(self, box, block):
-        self.field[box.slices] = block
-
-
-@pytest.fixture
-def engine():
-    from volwarp_cli.engine import open_engine
-
-    with open_engine("threads", workers=3) as eng:
-        yield eng
-
-
-def _in_memory(data, spacing, metric, max_distance=None):
-    ref, _ = signed_distance(data, spacing, iso=0.5, metric=metric)
-    return finish_field(ref, max_distance=max_distance)
-
-
-@pytest.mark.parametrize("metric,spacing", [("minnorm", ANISO), ("minnorm", (1.0,) * 3),
-                                            ("taxicab", (0.7,) * 3), ("chessboard", (1.3,) * 3),
-                                            ("chessboard", (1.0,) * 3)])
-@pytest.mark.parametrize("budget,max_distance", [(2_000, None), (2_000, 2.5), (10**9, None)])
-# 2_000 bytes: blocks of whole lines, several per axis; 10**9: x and y on slabs of planes
-def test_staged_equals_in_memory(engine, tmp_path, metric, spacing, budget, max_distance):
-    from volwarp_cli.box import Box
-    from volwarp_cli.distance.chunked import MaskSource
-
-    data = blobs(SHAPE, 1).astype(np.float32)
-    ref = _in_memory(data, spacing, metric, max_distance)
-    sink = FieldSink(SHAPE)
-    last = Box.from_shape(SHAPE).blocks((SHAPE[0], 5, 7))
-    n = line_metric_staged(MaskSource(data, 0.5, "above"), spacing, engine, sink.write,
-                           tmp_path, metric=metric, block_bytes=budget,
-                           max_distance=max_distance, last_blocks=last)
-    assert n > len(last)
-    assert same(sink.field, ref)
-
-
-def test_field_by_blocks_on_a_sliceable_source(engine, tmp_path):
-    from contextlib import contextmanager
-
-    data = blobs(SHAPE, 2).astype(np.int16) * 100
-    ref = _in_memory(data, ANISO, "minnorm")
-    sink = FieldSink(SHAPE)
-    grids = []
-
-    class _Out:
-        def __init__(self, grid):
-            from volwarp_cli.box import Box
-
-            self._blocks = Box.from_shape(SHAPE).blocks(grid)
-
-        def blocks(self):
-            return self._blocks
-
-        def writer(self):
-            return sink
-
-        def mark_written(self, blocks):
-            pass
-
-    @contextmanager
-    def open_output(grid, info):
-        grids.append((grid, info))
-        yield _Out(grid)
-
-    info = field_by_blocks(data, ANISO, engine, open_output, iso=50, inside="above",
-                           metric="minnorm", surface="auto", block_bytes=40_000,
-                           block=(4, 6, 5), scratch_near=tmp_path / "out.nrrd")
-    assert same(sink.field, ref)
-    assert info["passes"] == minnorm.signed_pass_count(SHAPE)
-    assert grids[0][0] == (SHAPE[0], 6, 5)
 
 
 # -- the command ----------------------------------------------------------------------------
@@ -216,12 +133,3 @@ def test_command_refusals(run, vol, tmp_path):
               "--surface", "subvoxel")
     assert res.code == 2 and "need the euclidean metric" in res.stderr  # (options clash)
     assert not out.exists()
-
-
-def test_staged_refuses_anisotropic_voxel_step_metrics(engine, tmp_path):
-    from volwarp_cli.distance.chunked import MaskSource
-
-    data = blobs(SHAPE, 1)
-    with pytest.raises(VolwarpError, match="needs isotropic spacing"):
-        line_metric_staged(MaskSource(data, 0.5, "above"), ANISO, engine, None, tmp_path,
-                           metric="chessboard", block_bytes=10**6)

@@ -119,6 +119,8 @@ class Operation:
     grid = None
     targets: dict = {}
     what: str = "the work"
+    #: why the operation has no form by blocks (it then runs in memory or not at all), or None
+    no_blocks: str | None = None
 
     def memory(self, box: Box) -> int:
         """The bytes computing ``box`` holds at its peak (its results included)."""
@@ -343,6 +345,14 @@ def _in_memory(op: Operation, how: How, outputs, *, compress: bool = False,
     need = op.memory(op.grid.box)
     if how.chunked is not True and fits(need, op.load):
         return True
+    if op.no_blocks is not None:
+        if how.chunked:
+            raise VolwarpError(op.no_blocks)
+        try:
+            memory.ensure_fits_in_memory(need, op.what)
+        except OutOfMemoryError as exc:
+            raise OutOfMemoryError(f"{exc}, and by blocks: {op.no_blocks}") from None
+        return True
     refuse_unmakeable(op.what, need, outputs, chunked=how.chunked, compress=compress,
                       pyramid=pyramid)
     if how.chunked is None:
@@ -363,24 +373,35 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
     if how.open_engine is None:
         raise VolwarpError(f"{op.what}: no engine to run blocks on")
     op.prepare()  # (once, here: the blocks' tasks get it made)
+    from .passes import Passes, last_pass_block, run_by_blocks
+
     with how.open_engine() as engine, contextlib.ExitStack() as stack:
         per_task = block_budget() // max(1, engine.workers)
-        block = how.block or op.block_shape(per_task, engine.workers)
+        if isinstance(op, Passes):  # the outputs' blocks are the last pass's
+            block = last_pass_block(op, block_bytes=per_task, workers=engine.workers,
+                                    block=how.block)
+        else:
+            block = how.block or op.block_shape(per_task, engine.workers)
         outs = {key: stack.enter_context(t.open_blocks(block)) for key, t in op.targets.items()}
         boxes = next(iter(outs.values())).blocks()
         if any(o.blocks() != boxes for o in outs.values()):
             raise VolwarpError(f"{op.what}: outputs of different formats split into different "
                                "blocks: give them one format")
-        op_node = dask.delayed(op, pure=False)
-        writers = dask.delayed({k: o.writer() for k, o in outs.items()}, pure=False)
-        tasks = [engine.block_delayed(_block_task, f"block-{'-'.join(map(str, b.lo))}",
-                                      op_node, b, writers, memory=per_task)
-                 for b in boxes]
-        with timed(f"{op.what} by {len(boxes)} blocks"):
-            engine.run(tasks, label="blocks")
-        for out in outs.values():
-            out.mark_written(boxes)
-        ran = Ran(True, block=tuple(block), blocks=len(boxes), _outs=outs)
+        if isinstance(op, Passes):
+            with timed(f"{op.what} by passes"):
+                count = run_by_blocks(op, engine, outs, block_bytes=per_task, block=how.block)
+        else:
+            op_node = dask.delayed(op, pure=False)
+            writers = dask.delayed({k: o.writer() for k, o in outs.items()}, pure=False)
+            tasks = [engine.block_delayed(_block_task, f"block-{'-'.join(map(str, b.lo))}",
+                                          op_node, b, writers, memory=per_task)
+                     for b in boxes]
+            with timed(f"{op.what} by {len(boxes)} blocks"):
+                engine.run(tasks, label="blocks")
+            count = len(boxes)
+            for out in outs.values():
+                out.mark_written(boxes)
+        ran = Ran(True, block=tuple(block), blocks=count, _outs=outs)
         if after is not None:
             ran.after = after(ran)
     return ran

@@ -110,9 +110,13 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
         raise click.UsageError("--transform goes with --update OLD_SDF")
     if input is None:
         raise click.UsageError("missing INPUT (or --update OLD_SDF)")
+    from .. import execute
     from ..distance.field import check_method, field_note
     from ..distance.labels import check_options, choose_shape
+    from ..distance.minnorm import signed_pass_count
+    from ..distance.operation import field_operation
     from ..distance.scan import field_surface, scan_box_voxels
+    from ..geometry import Geometry
     from .chunked import lazy_input
 
     check_method(metric, surface)
@@ -128,110 +132,28 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
                             max_distance=max_distance, box_voxels=box_voxels)
     out = stamp(template, "distance", input)
     out.meta["volwarp_distance"] = field_note(metric, surface, rule, unsigned, max_distance)
-    write = dict(dtype=dtype, compress=compress, byte_order=byte_order, **ome_zarr)
+    op = field_operation(source, Geometry.of(out), rule, metric=metric, surface=surface,
+                         max_distance=max_distance, unsigned=unsigned,
+                         target=_target(out, output, dtype, compress, byte_order, ome_zarr))
+    settings = scale_settings()
     with _collector_paused():
-        if metric == "euclidean" and (max_distance is not None or surface == "subvoxel"):
-            _banded(source, out, output, rule, surface, max_distance, unsigned, write)
-        else:
-            _by_passes(source, out, output, rule, metric, max_distance, unsigned, write)
+        execute.run(op, execute.How(chunked=settings.chunked, block=settings.block,
+                                    open_engine=settings.open_engine))
+    if metric == "minnorm":
+        log.info("min-norm: %d shift-and-min passes", signed_pass_count(source.shape))
 
 
-def _target(out, output, write):
+def _target(out, output, dtype, compress, byte_order, ome_zarr):
     """The output as the executor writes it (whole, or block by block)."""
     import numpy as np
 
-    from ..execute import Target
-
-    dtype = np.dtype(write["dtype"] or "float32")
-    return Target(output, out.with_data(np.broadcast_to(np.zeros((), dtype), out.data.shape)),
-                  dtype, compress=write["compress"], byte_order=write["byte_order"],
-                  version=write["ome_zarr_version"], pyramid=write["pyramid"])
-
-
-def _banded(source, out, output, rule, surface, max_distance, unsigned, write):
-    """The euclidean field within a band, or sub-voxel: one operation, in memory or by blocks.
-
-    :class:`~volwarp_cli.distance.band.BandedDistance` run by the executor; a
-    sub-voxel field without a band runs in memory only.
-    """
     from .. import execute
-    from ..distance.band import SUBVOXEL_NEEDS_BAND, BandedDistance
-    from ..errors import VolwarpError
-    from ..geometry import Geometry
 
-    op = BandedDistance(source, Geometry.of(out), rule, surface=surface,
-                        max_distance=max_distance, unsigned=unsigned,
-                        target=_target(out, output, write))
-    settings = scale_settings()
-    chunked = settings.chunked
-    if max_distance is None:
-        if chunked:
-            raise VolwarpError(SUBVOXEL_NEEDS_BAND)
-        chunked = False
-    execute.run(op, execute.How(chunked=chunked, block=settings.block,
-                                open_engine=settings.open_engine))
-
-
-def _by_passes(source, out, output, rule, metric, max_distance, unsigned, write):
-    """The exact field and the other metrics: in memory, or by passes where it does not fit.
-
-    Twins still, chosen by trying in memory first (issue 29: the executor has
-    no passes yet). By blocks (:func:`~volwarp_cli.distance.chunked.field_by_blocks`)
-    each pass's field goes to a scratch folder next to the output.
-    """
-    import functools
-
-    import numpy as np
-
-    from ..box import Box
-    from ..distance.chunked import field_by_blocks
-    from ..distance.field import finish_field
-    from ..distance.labels import rule_signed_distance
-    from ..errors import OutOfMemoryError
-    from ..execute import block_budget, blocks_refusal
-    from .chunked import wants_blocks
-
-    settings = scale_settings()
-    target = _target(out, output, write)
-    if not settings.chunked:
-        try:
-            data = np.asarray(source[Box.from_shape(source.shape).slices])
-            with timed(f"distance ({metric})"):
-                field, info = rule_signed_distance(data, xyz_to_zyx(out.spacing), rule,
-                                                   metric=metric, surface="voxel")
-        except OutOfMemoryError as exc:
-            if settings.chunked is False or blocks_refusal(
-                    [(output, target.nbytes(source.shape))], target.compress,
-                    target.pyramid) or not wants_blocks(str(exc)):
-                raise
-        else:
-            if info["passes"]:
-                log.info("min-norm: %d shift-and-min passes", info["passes"])
-            finish_field(field, unsigned=unsigned, max_distance=max_distance)
-            with timed(f"write {output}"):
-                write_volume(out.with_data(field), output, **write)
-            return
-    finish = functools.partial(_finish_block, unsigned=unsigned, dtype=write["dtype"],
-                               what=str(output))
-    with settings.open_engine() as engine, timed("distance by blocks"):
-        info = field_by_blocks(source, xyz_to_zyx(out.spacing), engine,
-                               lambda grid, _info: target.open_blocks(grid),
-                               iso=rule.iso, inside=rule.inside, metric=metric,
-                               surface="voxel", max_distance=max_distance, finish=finish,
-                               block_bytes=block_budget() // max(1, engine.workers),
-                               block=settings.block, scratch_near=output, rule=rule)
-    if info.get("passes"):
-        log.info("min-norm: %d shift-and-min passes", info["passes"])
-
-
-def _finish_block(field, *, unsigned, dtype, what):
-    """--unsigned and --dtype on one block of the field (a block task's last step)."""
-    from ..distance.field import finish_field
-    from ..samples import cast_samples
-
-    if unsigned:
-        finish_field(field, unsigned=True)
-    return cast_samples(field, dtype, what=what) if dtype is not None else field
+    dtype = np.dtype(dtype or "float32")
+    return execute.Target(output, out.with_data(np.broadcast_to(np.zeros((), dtype),
+                                                                out.data.shape)),
+                          dtype, compress=compress, byte_order=byte_order,
+                          version=ome_zarr["ome_zarr_version"], pyramid=ome_zarr["pyramid"])
 
 
 @contextlib.contextmanager
@@ -255,29 +177,17 @@ def _collector_paused():
 
 def _update(old_path, transform_path, output, metric, max_distance, dtype, compress, byte_order,
             raw, volume_index, dicom, ome_zarr):
-    import numpy as np
-
     from ..distance.field import finish_field
-    from ..distance.update import update_distance
+    from ..distance.update import field_and_centre, update_distance
     from ..errors import VolwarpError
-    from ..morph.align import affine_from_params, shape_centroid
+    from ..morph.align import affine_from_params
     from ..spec.loader import load_spec
 
     doc = load_spec(transform_path, "transform")
     check_output_path(output, option="-o")
     vol = load_input(old_path, raw, volume_index, dicom=dicom)
-    field = np.asarray(vol.data, dtype=np.float32)
-    if not np.all(np.isfinite(field)):
-        raise VolwarpError(f"{old_path}: the field has NaN or infinite samples")
-    params = dict(doc.data)
-    params.pop("version", None)
-    center = None
-    if "center" not in params and "matrix" not in params:
-        inside = field < 0
-        if not inside.any():
-            raise VolwarpError(f"{old_path}: the field has no negative (inside) samples, so the "
-                               "shape has no centroid; give 'center' in the transform")
-        center = shape_centroid(inside, vol.index_to_world_matrix)
+    params = {k: v for k, v in doc.data.items() if k != "version"}
+    field, center = field_and_centre(vol, params, where=str(old_path))
     try:
         matrix = affine_from_params(params, default_center=center)
     except VolwarpError as exc:

@@ -16,7 +16,7 @@ Two surfaces: ``voxel``, the exact field between voxel centres
 whose halo is wider. Without a band (``D`` None) the sub-voxel field needs the
 whole input for any block: it runs as the one block only
 (:data:`SUBVOXEL_NEEDS_BAND` by blocks); the exact field without a band runs
-by passes instead (:mod:`.chunked`).
+by passes instead (:mod:`.passes`).
 
 The whole's checks (an empty shape, NaNs, the surface ``auto`` picks) are
 made before, once (:mod:`.scan`); nothing here reads more than a block's region.
@@ -61,8 +61,8 @@ class BandedDistance(Operation):
     unsigned : bool
         Distance to the shape, 0 inside.
     target : Target, optional
-        The output (its ``dtype``: the samples cast to it); None: blocks are
-        computed for a caller's own writer (:func:`.chunked.field_by_blocks`).
+        The output (its ``dtype``: the samples cast to it); None: the
+        float32 field of a block, for a caller's own use.
     """
 
     def __init__(self, source, grid, rule, *, surface: str, max_distance: float | None,
@@ -72,6 +72,8 @@ class BandedDistance(Operation):
         if max_distance is not None and not max_distance > 0:
             raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
         self.source, self.grid, self.rule = source, grid, rule
+        if max_distance is None:  # the sub-voxel field of the whole needs the whole input
+            self.no_blocks = SUBVOXEL_NEEDS_BAND
         self.surface, self.unsigned = surface, unsigned
         self.max_distance = None if max_distance is None else float(max_distance)
         self.spacing_zyx = tuple(float(s) for s in grid.spacing_zyx)

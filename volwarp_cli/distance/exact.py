@@ -33,7 +33,6 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .. import parallel
 from ..errors import VolwarpError
 
 
@@ -113,10 +112,13 @@ def _plane_pass(plane, labels, m, n, h2, sign):
             lab[i] = labels[i, c]
         _envelope(f, lab, 1, n, h2, v, zb, tmp)
         _envelope(f, lab, 0, n, h2, v, zb, tmp)
-        if sign:
+        if sign == 1:  # the signed distance
             for i in range(n):
                 d = np.sqrt(tmp[i])
                 plane[i, c] = -d if lab[i] else d
+        elif sign == 2:  # the squared distance, negated inside (the mask as its sign)
+            for i in range(n):
+                plane[i, c] = -tmp[i] if lab[i] else tmp[i]
         else:
             for i in range(n):
                 plane[i, c] = tmp[i]
@@ -144,84 +146,80 @@ def _x_rows(mask, out, z, hx2):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _z_plane(out, mask, y, hz2):
-    # Pass 3 (z) on the (z, x) plane of one y, copied out (rows are contiguous),
-    # processed in cache and copied back with the signed square root.
+def _z_plane(out, y, hz2):
+    # Pass 3 (z) on the (z, x) plane of one y, copied out (rows are contiguous) with the
+    # mask taken from the sign, processed in cache and copied back with the signed root.
     nz, nx = out.shape[0], out.shape[2]
     plane = np.empty((nz, nx), np.float32)
     labels = np.empty((nz, nx), np.uint8)
     for z in range(nz):
         for x in range(nx):
-            plane[z, x] = out[z, y, x]
-            labels[z, x] = mask[z, y, x]
-    _plane_pass(plane, labels, nx, nz, hz2, True)
+            v = out[z, y, x]
+            if v < 0:
+                labels[z, x] = 1
+                plane[z, x] = -v
+            else:
+                labels[z, x] = 0
+                plane[z, x] = v
+    _plane_pass(plane, labels, nx, nz, hz2, 1)
     for z in range(nz):
         for x in range(nx):
             out[z, y, x] = plane[z, x]
 
 
 # The three passes, serial, on a block of whole lines along the pass's axis (the
-# other two axes may be any part of the volume): the in-memory transform runs
-# ranges of slices over the threads (:func:`signed_edt`), the block tasks of
-# :mod:`.chunked` one block each in their own thread. The mask is uint8 (0/1), the
-# field float32 squared distances until the last pass's signed square root.
+# other two axes may be any part of the volume): :class:`.passes.ExactDistance`
+# runs them on the blocks of its passes, in memory over the threads or as block
+# tasks. The mask is uint8 (0/1); between the passes the field is float32 squared
+# distances negated inside (the mask as their sign: a squared distance to the
+# other side is never 0), until the last pass's signed square root.
 @nb.njit(cache=True, nogil=True)
 def x_pass(mask, hx, out):
-    """Pass 1 (x) of a (Z, Y, X) block of whole x rows into ``out`` (float32)."""
+    """Pass 1 (x) of a (Z, Y, X) block of whole x rows into ``out`` (float32, unsigned)."""
     for z in range(mask.shape[0]):
         _x_rows(mask, out, z, hx * hx)
 
 
 @nb.njit(cache=True, nogil=True)
 def y_pass(field, mask, hy):
-    """Pass 2 (y), in place, on a (Z, Y, X) block of whole y columns."""
+    """Pass 2 (y), in place, on a (Z, Y, X) block of whole y columns; negated inside."""
     for z in range(mask.shape[0]):
-        _plane_pass(field[z], mask[z], mask.shape[2], mask.shape[1], hy * hy, False)
+        _plane_pass(field[z], mask[z], mask.shape[2], mask.shape[1], hy * hy, 2)
 
 
 @nb.njit(cache=True, nogil=True)
-def z_planes(field, mask, hz, y0, y1):
-    """Pass 3 (z) and the signed square root, in place, on the (z, x) planes y0 .. y1 - 1."""
-    for y in range(y0, y1):
-        _z_plane(field, mask, y, hz * hz)
+def z_pass(field, hz):
+    """Pass 3 (z) and the signed square root, in place, on a block of whole z lines.
+
+    ``field``: squared distances negated inside, as :func:`y_pass` leaves them.
+    """
+    for y in range(field.shape[1]):
+        _z_plane(field, y, hz * hz)
 
 
-def z_pass(field, mask, hz):
-    """Pass 3 (z) and the signed square root, in place, on a block of whole z lines."""
-    z_planes(field, mask, hz, 0, mask.shape[1])
-
-
-def signed_edt(mask: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, out: np.ndarray | None = None
-               ) -> np.ndarray:
+def signed_edt(mask: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0)) -> np.ndarray:
     """Signed Euclidean distance between voxel centres, negative inside.
 
     Parameters
     ----------
-    mask : (Z, Y, X) bool or uint8 array
-        The shape (True / nonzero inside).
+    mask : (Z, Y, X) array
+        The shape (nonzero inside).
     spacing_zyx : sequence of 3 floats
         Sample spacing along the array axes, in world units.
-    out : (Z, Y, X) float32 array, optional
-        Where to write the result.
 
     Returns
     -------
     (Z, Y, X) float32 array
         ``+inf`` everywhere (resp. ``-inf``) when the shape is empty (resp. fills
         the grid); callers check for that first.
+
+    The passes of :class:`.passes.ExactDistance` in memory, on the threads.
     """
-    mask = np.ascontiguousarray(mask)
+    from .passes import MaskSource, field_in_memory
+
+    mask = np.asarray(mask)
     if mask.ndim != 3:
         raise VolwarpError(f"signed_edt needs a 3-D mask, got shape {mask.shape}")
-    if mask.dtype != np.uint8:
-        mask = (mask != 0).view(np.uint8) if mask.dtype == bool else (mask != 0).astype(np.uint8)
-    elif mask.max(initial=0) > 1:
-        mask = (mask != 0).astype(np.uint8)
-    if out is None:
-        out = np.empty(mask.shape, np.float32)
-    hz, hy, hx = (float(s) for s in spacing_zyx)
-    nz, ny = mask.shape[:2]
-    parallel.run_ranges(lambda a, b: x_pass(mask[a:b], hx, out[a:b]), nz)
-    parallel.run_ranges(lambda a, b: y_pass(out[a:b], mask[a:b], hy), nz)
-    parallel.run_ranges(lambda a, b: z_planes(out, mask, hz, a, b), ny)
-    return out
+    if mask.dtype not in (np.uint8, np.bool_):
+        mask = mask != 0
+    return field_in_memory(MaskSource(mask, 0.5, "above", check=False), spacing_zyx)

@@ -115,49 +115,24 @@ def signed_distance(data: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0), *, iso: float
         f"the distance field of {data.size} samples",
         None if data.size <= _WARM_SIZE ** 3 else  # (the small field itself: loads them)
         lambda: warm_kernels(metric, "subvoxel" if sub else "voxel", data.dtype, iso, inside))
-    if data.dtype.kind == "f":
-        nans = int(np.count_nonzero(np.isnan(data)))
-        if nans:
-            from ..progress import log
-
-            log.warning("%d NaN samples (%.2g%%) count as outside the shape", nans,
-                        100.0 * nans / data.size)
-    mask = inside_mask(data, iso, inside)
-    count = int(np.count_nonzero(mask))
-    if count == 0:
-        raise VolwarpError(f"the shape is empty: no sample is {inside} the iso level {iso:g} "
-                           f"(samples range {float(np.nanmin(data)):g} to "
-                           f"{float(np.nanmax(data)):g})")
-    if count == mask.size:
-        raise VolwarpError(f"the shape fills the whole grid: every sample is {inside} the iso "
-                           f"level {iso:g}, so there is no surface")
+    # (the whole's checks, an empty or full shape and NaNs, are the passes' or the scan's)
     spacing_zyx = tuple(float(s) for s in spacing_zyx)
     info = {"metric": metric, "surface": "voxel", "passes": 0}
-    if metric == "euclidean":
-        if sub:
-            from .subvoxel import subvoxel_signed_distance
+    if sub:
+        from .scan import scan_shape
+        from .subvoxel import subvoxel_signed_distance
 
-            info["surface"] = "subvoxel"
-            return subvoxel_signed_distance(data, iso, inside=inside,
-                                            spacing_zyx=spacing_zyx), info
-        from .exact import signed_edt
+        scan_shape(data, iso, inside, box_voxels=data.size or 1)  # its checks
+        info["surface"] = "subvoxel"
+        return subvoxel_signed_distance(data, iso, inside=inside, spacing_zyx=spacing_zyx), info
+    from .passes import MaskSource, field_in_memory
 
-        return signed_edt(mask, spacing_zyx), info
+    field = field_in_memory(MaskSource(data, iso, inside), spacing_zyx, metric=metric)
     if metric == "minnorm":
-        from .minnorm import minnorm_signed
+        from .minnorm import signed_pass_count
 
-        field, passes = minnorm_signed(mask, spacing_zyx)
-        info["passes"] = passes
-        return field, info
-    check_isotropic(metric, spacing_zyx)
-    from scipy import ndimage
-
-    out = ndimage.distance_transform_cdt(~mask, metric=metric).astype(np.float32)
-    inner = ndimage.distance_transform_cdt(mask, metric=metric)
-    np.copyto(out, -inner.astype(np.float32), where=mask)
-    if spacing_zyx[0] != 1.0:
-        out *= np.float32(spacing_zyx[0])
-    return out, info
+        info["passes"] = signed_pass_count(data.shape)
+    return field, info
 
 
 #: The side of the ball the field's kernels run on to load (:func:`warm_kernels`).

@@ -84,7 +84,7 @@ def axis_pass(field: np.ndarray, axis: int, h: float, scratch: np.ndarray | None
     Each pass only mixes samples along lines of ``axis`` (elementwise along
     them), so on any block that holds whole lines along ``axis`` it makes the
     same float32 operations, in the same order, as on the whole array: the
-    out-of-core passes (:mod:`.chunked`) call this same function on blocks.
+    passes (:class:`.passes.LineMetricDistance`) call it on blocks, in memory and out of core.
     """
     h = float(h)
     steps = doubling_steps(field.shape[axis])
@@ -191,18 +191,65 @@ def chessboard_axis_pass(field: np.ndarray, axis: int) -> None:
     _chessboard_kernel()(np.moveaxis(field, axis, -1))
 
 
+def _taxicab_kernel():
+    global _TAXICAB
+    if _TAXICAB is None:
+        import numba as nb
+
+        @nb.njit(cache=True, nogil=True)
+        def _taxicab_lines(f):
+            # f: (a, b, n) float32 of integers or +inf, any strides. Each line becomes
+            # g(u) = min_i |u - i| + f(i): one sweep each way (a chamfer along the line;
+            # integer sums, exact in float32)
+            a, b, n = f.shape
+            for i0 in range(a):
+                for j0 in range(b):
+                    for k in range(1, n):
+                        v = f[i0, j0, k - 1] + np.float32(1)
+                        if v < f[i0, j0, k]:
+                            f[i0, j0, k] = v
+                    for k in range(n - 2, -1, -1):
+                        v = f[i0, j0, k + 1] + np.float32(1)
+                        if v < f[i0, j0, k]:
+                            f[i0, j0, k] = v
+
+        _TAXICAB = _taxicab_lines
+    return _TAXICAB
+
+
+_TAXICAB = None
+
+
+def taxicab_axis_pass(field: np.ndarray, axis: int) -> None:
+    """One taxicab line pass along ``axis``, in place: ``g(i) = min_j |i - j| + f(j)``.
+
+    In voxel steps (the caller scales by the isotropic spacing); after passes
+    along x, y and z, scipy's taxicab ``distance_transform_cdt``. The values
+    the doubling passes of :func:`axis_pass` give with unit spacing (integer
+    sums, exact in float32), in one forward and one backward sweep of each
+    line: linear where the doubling passes are ``n log n``.
+    """
+    if field.dtype != np.float32:
+        raise VolwarpError(f"the taxicab pass needs a float32 field, got {field.dtype}")
+    _taxicab_kernel()(np.moveaxis(field, axis, -1))
+
+
 def line_metric_pass(metric: str, field: np.ndarray, axis: int, h: float,
                      scratch: np.ndarray | None = None) -> int:
     """One axis of the per-line passes of ``metric`` (minnorm, taxicab, chessboard), in place.
 
-    ``minnorm``: :func:`axis_pass` with spacing ``h``; ``taxicab``: the same
-    with unit spacing (integer voxel steps; the caller scales by the spacing);
-    ``chessboard``: :func:`chessboard_axis_pass`. Returns the doubling passes made.
+    ``minnorm``: :func:`axis_pass` with spacing ``h`` (the paper's doubling
+    passes); ``taxicab``: :func:`taxicab_axis_pass` (integer voxel steps; the
+    caller scales by the spacing); ``chessboard``: :func:`chessboard_axis_pass`.
+    Returns the doubling passes made.
     """
     if metric == "chessboard":
         chessboard_axis_pass(field, axis)
         return 0
-    return axis_pass(field, axis, 1.0 if metric == "taxicab" else h, scratch)
+    if metric == "taxicab":
+        taxicab_axis_pass(field, axis)
+        return 0
+    return axis_pass(field, axis, h, scratch)
 
 
 def minnorm_unsigned(sites: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0)) -> tuple[np.ndarray, int]:
@@ -223,11 +270,11 @@ def minnorm_signed(mask: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0)) -> tuple[np.nd
     equals ``cdt(~mask) - cdt(mask)`` with ``distance_transform_cdt(metric='taxicab')``
     for unit spacing. Returns the field and the total number of passes.
     """
+    from .passes import MaskSource, field_in_memory
+
     mask = np.asarray(mask, dtype=bool)
     if mask.ndim != 3:
         raise VolwarpError(f"min-norm distance needs a 3-D mask, got shape {mask.shape}")
-    outside, n1 = minnorm_unsigned(mask, spacing_zyx)
-    inside, n2 = minnorm_unsigned(~mask, spacing_zyx)
-    np.negative(inside, out=inside)
-    np.copyto(outside, inside, where=mask)
-    return outside, n1 + n2
+    field = field_in_memory(MaskSource(mask, 0.5, "above", check=False), spacing_zyx,
+                            metric="minnorm")
+    return field, signed_pass_count(mask.shape)

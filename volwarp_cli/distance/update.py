@@ -225,3 +225,26 @@ def update_distance(field: np.ndarray, index_to_world: np.ndarray, matrix: np.nd
     passes = fill_uncovered(new, unknown, spacing_zyx, metric=metric,
                             steps=_steps_for_move(field.shape, index_to_world, matrix))
     return new, {"uncovered": int(unknown.sum()), "passes": passes}
+
+
+
+def field_and_centre(vol, params: dict, *, where: str):
+    """The float32 field of ``vol``, and the centre a move without one turns about.
+
+    A transform without ``center`` (or ``matrix``) turns about the shape's
+    centroid (the field's negative samples), the way a user moving a shape
+    means it; None where it states its own. Errors name ``where`` (the field's file).
+    """
+    from ..errors import VolwarpError
+    from ..morph.align import shape_centroid
+
+    field = np.asarray(vol.data, dtype=np.float32)
+    if not np.all(np.isfinite(field)):
+        raise VolwarpError(f"{where}: the field has NaN or infinite samples")
+    if "center" in params or "matrix" in params:
+        return field, None
+    inside = field < 0
+    if not inside.any():
+        raise VolwarpError(f"{where}: the field has no negative (inside) samples, so the "
+                           "shape has no centroid; give 'center' in the transform")
+    return field, shape_centroid(inside, vol.index_to_world_matrix)

@@ -3,8 +3,8 @@
 For a morph whose fields do not fit in memory (``volwarp morph --chunked``,
 or when the in-memory morph does not fit the budget). Each shape's signed
 distance field is computed out of core, once
-(:func:`volwarp_cli.distance.chunked.field_by_blocks`: the exact passes, or a
-band with ``max_distance``), into a float32 scratch file. A frame is an
+(:func:`volwarp_cli.distance.operation.field_operation` on the executor: the
+exact passes, or a band with ``max_distance``), into a float32 scratch file. A frame is an
 elementwise function of the two fields (:func:`.interpolate.blend`, then
 :class:`.frames.FrameValues`), so an output block needs its own box of both
 and nothing more (no halo); the frame's surface is the mesh by blocks
@@ -35,6 +35,7 @@ scaling, when even the smallest blocks would need it).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -247,8 +248,8 @@ class FrameField:
 class BlockMorph:
     """Both shapes' fields on disk (float32, the frame grid), ready for frames by blocks.
 
-    ``info``: how the fields were computed (:func:`field_by_blocks`'s, e.g.
-    ``chunked: passes``), for the frames' metadata.
+    ``info``: how the fields were computed (``chunked``: ``passes`` or
+    ``band``; ``surface``), for the log.
     """
 
     source: object
@@ -276,37 +277,39 @@ def fields_by_blocks(job: MorphJob, inputs: dict, engine, scratch: Path, *, bloc
     first) into a second scratch file. The distance's errors name the shape's
     file (smooth samples without a band: in the morph's settings).
     """
-    from ..distance.chunked import field_by_blocks
+    from .. import execute
+    from ..distance.labels import ShapeRule
+    from ..distance.operation import field_operation
+    from ..distance.scan import field_surface, scan_box_voxels
     from ..engine import write_blocks
     from ..io.blockwrite import committed, open_block_output
     from ..io.lazy import open_volume_lazy
-    from ..volume import xyz_to_zyx
+    from ..passes import Passes
     from .align import linear_scale
 
     if grid is None:
         grid = Geometry.of(inputs["source"][0])
     matrices = matrices or {"source": np.eye(4), "target": np.eye(4)}
+    on_engine = execute.How(chunked=True, block=block,
+                            open_engine=lambda: contextlib.nullcontext(engine))
     fields, info = {}, {}
     for name, ref in (("source", job.source), ("target", job.target)):
         template, samples = inputs[name]
         path = Path(scratch) / f"{name}.nrrd"
         geometry = Geometry.of(template)
-
-        def open_output(grid, _info, path=path, geometry=geometry):
-            return committed(open_block_output(path, geometry, np.float32, chunks_zyx=grid))
-
-        finish = None
-        if job.max_distance is not None:
-            finish = functools.partial(_clamp, max_distance=float(job.max_distance))
+        rule = ShapeRule("intensity", "given", iso=ref.iso, inside=ref.inside)
+        target = execute.Target(path, template, np.dtype(np.float32))
         try:
-            info[name] = field_by_blocks(samples, xyz_to_zyx(template.spacing), engine,
-                                         open_output, iso=ref.iso, inside=ref.inside,
-                                         metric=job.metric, surface=job.surface,
-                                         max_distance=job.max_distance, finish=finish,
-                                         block_bytes=block_bytes, block=block,
-                                         scratch_near=path)
+            surface = field_surface(samples, rule, metric=job.metric, surface=job.surface,
+                                    max_distance=job.max_distance,
+                                    box_voxels=scan_box_voxels())
+            op = field_operation(samples, geometry, rule, metric=job.metric, surface=surface,
+                                 max_distance=job.max_distance, target=target)
+            execute.run(op, on_engine)
         except VolwarpError as exc:
             raise VolwarpError(f"{ref.path}: {_in_morph_terms(job, exc)}") from None
+        info[name] = {"chunked": "passes" if isinstance(op, Passes) else "band",
+                      "surface": surface}
         _, fields[name] = open_volume_lazy(path)
         mat = matrices[name]
         if not lands_on_grid(geometry.shape, geometry.index_to_world_matrix, mat, grid):
@@ -323,9 +326,9 @@ def fields_by_blocks(job: MorphJob, inputs: dict, engine, scratch: Path, *, bloc
 
 def _in_morph_terms(job: MorphJob, exc: VolwarpError) -> str:
     """The distance's refusal as a morph's: the morph's settings, not ``volwarp distance``'s."""
-    from ..distance.chunked import _SUBVOXEL_NEEDS_BAND
+    from ..distance.band import SUBVOXEL_NEEDS_BAND
 
-    if str(exc) != _SUBVOXEL_NEEDS_BAND:
+    if str(exc) != SUBVOXEL_NEEDS_BAND:
         return str(exc)
     if job.doc is not None:  # a spec
         how = ("set max_distance: D in the spec (each field clamped to [-D, D]), or surface: "
@@ -368,13 +371,6 @@ def attributes_by_blocks(attributes: dict, matrices: dict, grid: Geometry, engin
     return out
 
 
-def _clamp(field: np.ndarray, *, max_distance: float) -> np.ndarray:
-    # the band is clamped already; the in-memory morph clamps with finish_field too
-    from ..distance.field import finish_field
-
-    return finish_field(field, max_distance=max_distance)
-
-
 @dataclass
 class BlockFrame:
     """One frame by blocks: its samples as a Dask array, to be written block by block.
@@ -411,12 +407,12 @@ def _attribute_block(a, b, *, t: float, out_type: str, what: str) -> np.ndarray:
 
 def frame_chunks(shape, block_bytes: int, workers: int, block=None):
     """The frames' output blocks: ``block``, else whole rows within ``block_bytes``."""
-    from ..distance.chunked import line_chunks
+    from ..passes import pass_boxes
 
     if block is not None:
         return tuple(block)
-    return line_chunks(shape, 2, block_bytes, bytes_per_voxel=FRAME_BYTES_PER_VOXEL,
-                       min_blocks=workers)
+    return pass_boxes(shape, (2,), block_bytes=block_bytes,
+                      bytes_per_voxel=FRAME_BYTES_PER_VOXEL, min_blocks=workers)[0].shape
 
 
 def mesh_block_shape(shape, block_bytes: int, block=None) -> tuple[int, int, int]:

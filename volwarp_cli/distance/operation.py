@@ -1,0 +1,33 @@
+"""Which operation computes a distance field: a band of blocks, or passes over whole lines.
+
+The euclidean field within ``--max-distance`` (or to a sub-voxel surface) is
+local: :class:`.band.BandedDistance` computes any block from itself grown by
+a halo. The exact field of the whole, and the line metrics, are not: they
+run in passes (:mod:`.passes`). Either is an operation of
+:mod:`volwarp_cli.execute`, run in memory or by blocks as the budget says.
+"""
+
+from __future__ import annotations
+
+from .band import BandedDistance
+from .field import check_method
+from .passes import ExactDistance, LineMetricDistance, mask_source
+
+
+def field_operation(source, grid, rule, *, metric: str, surface: str,
+                    max_distance: float | None = None, unsigned: bool = False, target=None):
+    """The operation computing ``rule``'s field of ``source`` on ``grid``.
+
+    ``rule``: a :class:`.labels.ShapeRule`; ``surface``: ``"voxel"`` or
+    ``"subvoxel"``, as :func:`.scan.field_surface` resolved it; ``target``:
+    the output (:class:`~volwarp_cli.execute.Target`).
+    """
+    check_method(metric, surface)
+    if metric == "euclidean" and (max_distance is not None or surface == "subvoxel"):
+        return BandedDistance(source, grid, rule, surface=surface, max_distance=max_distance,
+                              unsigned=unsigned, target=target)
+    masks = mask_source(source, rule)
+    if metric == "euclidean":
+        return ExactDistance(masks, grid, target=target, unsigned=unsigned)
+    return LineMetricDistance(masks, grid, metric=metric, target=target, unsigned=unsigned,
+                              max_distance=max_distance)
