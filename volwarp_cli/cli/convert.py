@@ -1,6 +1,12 @@
-"""`volwarp convert IN -o OUT`: any supported volume format to any other."""
+"""`volwarp convert IN -o OUT`: any supported volume format to any other.
+
+DICOM SEG and RTSTRUCT inputs are read as label maps; a label map is written
+as a SEG or RTSTRUCT against a reference series (``--dicom-type``).
+"""
 
 from __future__ import annotations
+
+import os
 
 import click
 
@@ -9,6 +15,7 @@ from ..progress import timed
 from .common import load_input
 from .options import (
     INPUT_PATH,
+    _volume_output,
     common_options,
     examples,
     input_options,
@@ -18,14 +25,26 @@ from .options import (
 
 #: --pyramid-method: write_volume's ``labels`` for each choice
 PYRAMID_METHODS = {"auto": "auto", "mode": True, "mean": False}
+#: --dicom-type choices
+DICOM_TYPES = ("seg", "labelmap-seg", "rtstruct")
+
+
+def _output(ctx, param, value):
+    """A volume output, or a ``.dcm`` file (a SEG or RTSTRUCT: ``--dicom-type`` says which)."""
+    if value is not None and value.lower().endswith(".dcm"):
+        if os.path.isdir(value):
+            raise click.BadParameter(f"{value!r} is a directory.", ctx=ctx, param=param)
+        return value
+    return _volume_output(ctx, param, value)
 
 
 @click.command(name="convert", epilog=examples(
     "volwarp convert ct_series/ -o ct.nrrd --compress",
-    "volwarp convert scan.raw --raw-shape 256 256 128 --raw-dtype int16 -o scan.nii.gz",
+    "volwarp convert labels.nrrd --reference ct_series/ --dicom-type seg -o seg.dcm",
 ))
 @click.argument("input", type=INPUT_PATH)
-@output_option()
+@output_option(help_text="Output file (format by extension; .dcm with --dicom-type).",
+               callback=_output, folders=True)
 @write_options
 @click.option("--pyramid-method", type=click.Choice(list(PYRAMID_METHODS)), default="auto",
               show_default=True,
@@ -33,16 +52,98 @@ PYRAMID_METHODS = {"auto": "auto", "mode": True, "mean": False}
                    "mode (the most frequent value: label maps, never an invented label), "
                    "mean (intensities), or auto (mode for integer volumes that are "
                    "piecewise constant, whatever their number of labels; else mean).")
+@click.option("--reference", type=INPUT_PATH, default=None, metavar="SERIES",
+              help="The image series (folder, DICOMDIR or file) a segmentation lies on. "
+                   "RTSTRUCT input: its ROIs are rasterised on that grid (required); SEG "
+                   "input: the label map is put on its whole grid (default: the SEG's own "
+                   "frames' grid); --dicom-type output: the series the SEG or RTSTRUCT "
+                   "references, whose grid the label map must lie on (required).")
+@click.option("--segment", type=click.IntRange(min=1), default=None, metavar="N",
+              help="DICOM SEG input: segment N alone, as a 0/1 mask (default: every segment, "
+                   "valued by its number; overlapping segments need this).")
+@click.option("--structure", default=None, metavar="NAME",
+              help="DICOM RTSTRUCT input: the ROI named NAME alone, as a 0/1 mask (default: "
+                   "every ROI, valued by its ROI Number; overlapping ROIs need this).")
+@click.option("--dicom-type", type=click.Choice(DICOM_TYPES), default=None,
+              help="Write the label map as a DICOM SEG (seg: BINARY, segments numbered 1..K "
+                   "in label order; labelmap-seg: LABELMAP, the label values kept) or "
+                   "RTSTRUCT (one ROI per label, ROI Number = label) to OUTPUT.dcm, "
+                   "against --reference.")
+@click.option("--segments", type=INPUT_PATH, default=None, metavar="CSV",
+              help="With --dicom-type: segment or ROI names, a CSV file of label,name rows "
+                   "(default: 'label N' for a SEG, 'label_N' for an RTSTRUCT).")
 @input_options
 @common_options
-def command(input, output, dtype, compress, byte_order, pyramid_method, raw, volume_index,
-            dicom, ome_zarr):
-    """Convert INPUT to OUTPUT (format by extension), keeping geometry and key/values."""
+def command(input, output, dtype, compress, byte_order, pyramid_method, reference, segment,
+            structure, dicom_type, segments, raw, volume_index, dicom, ome_zarr):
+    """Convert INPUT to OUTPUT (format by extension), keeping geometry and key/values.
+
+    DICOM SEG and RTSTRUCT inputs are read as label maps (--reference, --segment,
+    --structure); --dicom-type writes one (docs/segmentations.md).
+    """
     if pyramid_method != "auto" and not ome_zarr.get("pyramid"):
         raise click.UsageError(f"--pyramid-method {pyramid_method} chooses how --pyramid "
                                "levels are made: give --pyramid N (N >= 1) with it")
+    writing = _dicom_output(output, dicom_type, segments, reference, dtype, compress,
+                            byte_order, ome_zarr)
     check_output_path(output, option="-o")
+    picks = {k: v for k, v in (("segment", segment), ("structure", structure)) if v is not None}
+    if reference is not None and (not writing or _is_segmentation(input)):
+        picks["reference"] = reference  # (a segmentation input lies on the same series)
+    if picks:
+        dicom = {**(dicom or {}), **picks}
     vol = load_input(input, raw, volume_index, dicom=dicom)
+    if writing:
+        _write_segmentation(vol, output, dicom_type, reference, segments)
+        return
     with timed(f"write {output}"):
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      labels=PYRAMID_METHODS[pyramid_method], **ome_zarr)
+
+
+def _dicom_output(output, dicom_type, segments, reference, dtype, compress, byte_order,
+                  ome_zarr) -> bool:
+    """True when OUTPUT is a SEG or RTSTRUCT; usage errors for options that do not fit."""
+    is_dcm = output.lower().endswith(".dcm")
+    if not is_dcm:
+        if dicom_type or segments:
+            given = "--dicom-type" if dicom_type else "--segments"
+            raise click.UsageError(f"{given} writes a DICOM segmentation: give -o NAME.dcm")
+        return False
+    if dicom_type is None:
+        raise click.UsageError(f"-o {output}: volwarp reads DICOM images but does not write it; "
+                               "it writes DICOM segmentations: give --dicom-type "
+                               "seg|labelmap-seg|rtstruct and --reference SERIES")
+    if reference is None:
+        raise click.UsageError(f"--dicom-type {dicom_type} writes against the image series the "
+                               "label map lies on: give --reference SERIES")
+    if dtype or compress or byte_order != "little" or ome_zarr.get("pyramid") or \
+            ome_zarr.get("ome_zarr_version") != "0.5":
+        raise click.UsageError("--dtype, --compress, --byte-order, --pyramid and "
+                               "--ome-zarr-version describe volume outputs, not a DICOM "
+                               f"{dicom_type}")
+    return True
+
+
+def _is_segmentation(path) -> bool:
+    from ..io.dicom import segmentation_kind
+
+    return segmentation_kind(path) is not None
+
+
+def _write_segmentation(vol, output, dicom_type, reference, segments) -> None:
+    from ..io.dicom import read_reference
+    from ..io.dicom_seg import read_names, write_seg
+
+    names = read_names(segments) if segments else None
+    want = tuple(vol.meta.get(k) for k in ("DICOM_ReferencedSeriesInstanceUID",
+                                           "DICOM_SeriesInstanceUID") if vol.meta.get(k))
+    with timed(f"read {reference}"):
+        ref = read_reference(reference, want_series=want)
+    with timed(f"write {output}"):
+        if dicom_type == "rtstruct":
+            from ..io.rtstruct import write_rtstruct
+
+            write_rtstruct(vol, output, ref, names=names)
+        else:
+            write_seg(vol, output, ref, labelmap=dicom_type == "labelmap-seg", names=names)

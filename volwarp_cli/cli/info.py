@@ -42,6 +42,13 @@ def _format_text(d: dict) -> str:
                          f"{vals}): warp and distance take it as labels by default "
                          "(--values intensity to take its samples as intensities); mesh it "
                          "with --label N or --labels")
+        elif k == "segments":
+            lines.append(f"segments:  {len(v)} ({d.get('segmentation_type', '')})")
+            for seg in v:
+                what = " / ".join(c["meaning"] for c in (seg["category"], seg["type"]) if c)
+                lines.append(f"  [{seg['number']}] {seg['label']!r}" + (f": {what}" if what else ""))
+        elif k in ("dicom_type", "segmentation_type"):
+            continue
         elif k == "candidates":
             lines.append(f"candidates: {len(v)} volume{'s' if len(v) > 1 else ''} in the input")
         elif k not in ("format", "shape", "dtype", "spacing", "origin", "direction", "space",
@@ -72,7 +79,9 @@ def command(file, as_json, raw, volume_index, dicom):
         vol = load_input(file, raw, volume_index, dicom=dicom)
         desc = describe_volume(vol, volume_format(file, reading=True))
         _label_hint(desc, vol)
-    if desc.get("format") == "dicom" and "shape" not in desc:  # several volumes, none chosen
+    if "structures" in desc and "shape" not in desc:  # an RTSTRUCT: no grid of its own
+        click.echo(json.dumps(desc, indent=2) if as_json else _structures_text(desc))
+    elif desc.get("format") == "dicom" and "shape" not in desc:  # several volumes, none chosen
         click.echo(json.dumps(desc, indent=2) if as_json else _candidates_text(desc))
     elif as_json:
         click.echo(json.dumps(desc, indent=2, sort_keys=False, allow_nan=False))
@@ -157,16 +166,60 @@ def _describe_dicom(file, raw, volume_index, dicom) -> dict:
     When it holds several and ``--series`` chose none, the candidates alone (UID,
     description, size, spacing, why split) so that the user can choose.
     """
-    from ..io.dicom import scan_dicom
+    from ..io.dicom import scan_dicom, segmentation_kind
 
     if raw is not None or volume_index is not None:
         load_input(file, raw, volume_index)  # the usage error those options get
+    kind = segmentation_kind(file)
+    if kind is not None:
+        return _describe_segmentation(file, kind, dicom)
     scanned = scan_dicom(file)
     candidates = [c.describe() for c in scanned]
     if len(candidates) > 1 and not (dicom and "series" in dicom):
         return {"format": "dicom", "candidates": candidates}
     vol = load_input(file, dicom={**(dicom or {}), "candidates": scanned})
     return {**describe_volume(vol, "dicom"), "candidates": candidates}
+
+
+def _describe_segmentation(file, kind: str, dicom) -> dict:
+    """A SEG: its label map (its own grid) with ``segments``; an RTSTRUCT: its ``structures``.
+
+    An RTSTRUCT has no grid without the series it was drawn on (``convert
+    --reference``): its ROIs, the series and frame of reference it names.
+    """
+    if kind == "rtstruct":
+        from ..io.rtstruct import (
+            describe_structures,
+            frames_of_reference,
+            open_rtstruct,
+            referenced_series,
+        )
+
+        if dicom:
+            load_input(file, dicom=dicom)  # the usage error those options get without a grid
+        ds = open_rtstruct(file)
+        return {"format": "dicom", "dicom_type": "RTSTRUCT",
+                "referenced_series": list(referenced_series(ds)),
+                "frame_of_reference": list(frames_of_reference(ds)),
+                "structures": describe_structures(ds)}
+    from ..io.dicom_seg import describe_segments, open_seg, seg_type
+
+    seg = open_seg(file)
+    vol = load_input(file, dicom=dicom)
+    desc = describe_volume(vol, "dicom")
+    desc["dicom_type"] = "SEG"
+    desc["segmentation_type"] = seg_type(seg)
+    desc["segments"] = describe_segments(seg)
+    return desc
+
+
+def _structures_text(desc: dict) -> str:
+    lines = [f"format:    dicom RTSTRUCT, {len(desc['structures'])} structure(s) "
+             "(a grid needs the series it was drawn on: volwarp convert --reference)",
+             f"series:    {' '.join(desc['referenced_series']) or '-'}"]
+    for r in desc["structures"]:
+        lines.append(f"  [{r['number']}] {r['name']!r}: {r['contours']} contour(s)")
+    return "\n".join(lines)
 
 
 def _candidates_text(desc: dict) -> str:

@@ -29,6 +29,7 @@ checks this list against the commands; ``(every command)``: from
     --debug                   (every command)
     --decimate                mesh
     --density                 morph
+    --dicom-type              convert
     --displacement-to         warp
     --dtype                   warp morph sweep distance convert
     --duplicates              capture warp distance mesh info convert
@@ -78,6 +79,7 @@ checks this list against the commands; ``(every command)``: from
     --raw-origin              capture warp distance mesh info convert
     --raw-shape               capture warp distance mesh info convert
     --raw-spacing             capture warp distance mesh info convert
+    --reference               convert
     --render                  sweep mesh
     --render-size             morph sweep mesh
     --render-to               morph
@@ -86,6 +88,8 @@ checks this list against the commands; ``(every command)``: from
     --retries                 batch
     --sampling                capture
     --scheduler               warp morph sweep distance mesh batch
+    --segment                 convert
+    --segments                convert
     --series                  capture warp distance mesh info convert
     --shape                   sweep
     --shard                   batch
@@ -94,6 +98,7 @@ checks this list against the commands; ``(every command)``: from
     --spacing                 sweep
     --spec                    warp morph
     --stats                   mesh
+    --structure               convert
     --surface                 distance
     --tau                     sweep
     --threads                 (every command)
@@ -277,16 +282,19 @@ def _volume_output(ctx, param, value):
 
 
 def output_option(help_text: str = "Output file (format by extension).", volume: bool = True,
-                  callback=None, required: bool = True):
+                  callback=None, required: bool = True, folders: bool | None = None):
     """-o/--output; ``volume``: a volume file, its extension checked at once.
 
     ``callback``: a check of its own instead (e.g. of a pattern of volume files);
-    ``required``: False where the command has other outputs (``warp``'s exports).
+    ``required``: False where the command has other outputs (``warp``'s exports);
+    ``folders``: whether an existing folder may be given (default: for a volume,
+    an OME-Zarr store being replaced; the callback refuses other folders).
     """
     if callback is None and volume:
         callback = _volume_output
-    # a volume output may be a folder (an OME-Zarr store): _volume_output refuses other folders
-    kind = click.Path(dir_okay=callback is _volume_output)
+    if folders is None:
+        folders = callback is _volume_output
+    kind = click.Path(dir_okay=folders)
     # (click 8.2+: an explicit default, even None, satisfies `required`: none when required)
     extra = {} if required else {"default": None}
     return click.option("-o", "--output", required=required, type=kind, callback=callback,

@@ -77,6 +77,12 @@ Meta
     (RT Dose) DoseUnits, DoseType, DoseSummationType. Identifying tags
     (PatientName, PatientID, PatientBirthDate, ...) only with ``keep_phi``.
 
+Segmentations
+    A SEG file (BINARY, FRACTIONAL, LABELMAP) or an RTSTRUCT file is read as a
+    label map (:mod:`volwarp_cli.io.dicom_seg`, :mod:`volwarp_cli.io.rtstruct`):
+    an RTSTRUCT on the grid of the image series given as ``reference``, a SEG
+    on its own frames' grid or on the reference's.
+
 Pixel data is read once per file, after the header scan, into one
 preallocated array: uncompressed little-endian files straight from disk,
 everything else through pydicom's decoders (gdcm, pylibjpeg-openjpeg,
@@ -86,7 +92,8 @@ pydicom's ``dcmread`` first.
 
 from __future__ import annotations
 
-from ._read import read_dicom
+from ._read import ReferenceSeries, read_dicom, read_reference, segmentation_kind
 from ._scan import Candidate, DicomSeriesChoiceError, is_dicom_path, scan_dicom
 
-__all__ = ["Candidate", "DicomSeriesChoiceError", "is_dicom_path", "read_dicom", "scan_dicom"]
+__all__ = ["Candidate", "DicomSeriesChoiceError", "ReferenceSeries", "is_dicom_path",
+           "read_dicom", "read_reference", "scan_dicom", "segmentation_kind"]

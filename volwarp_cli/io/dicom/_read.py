@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
-from ...errors import FormatError, VolwarpError
+from ...errors import BadUsage, FormatError, VolwarpError
 from ...geometry import check_placement
 from ...volume import Volume
 from ..common import ensure_fits_in_memory, make_volume
@@ -45,15 +46,33 @@ def choose(candidates: list[Candidate], series, where: str) -> Candidate:
 
 def read_dicom(path: str | os.PathLike, *, series: str | int | None = None,
                irregular: str = "error", duplicates: str = "error", keep_shear: bool = False,
-               keep_phi: bool = False, candidates: list[Candidate] | None = None) -> Volume:
+               keep_phi: bool = False, candidates: list[Candidate] | None = None,
+               reference: str | os.PathLike | None = None, segment: int | None = None,
+               structure: str | None = None) -> Volume:
     """Read one volume from a DICOM folder, DICOMDIR or file (rules: the package docstring).
 
     ``series``: a SeriesInstanceUID or a 0-based candidate index (required when
     the path holds several candidates). ``irregular``: ``"error"`` or
     ``"resample"``; ``duplicates``: ``"error"``, ``"first"`` or ``"last"``.
     ``candidates``: :func:`scan_dicom` of ``path``, when the caller has it already.
+
+    A SEG or RTSTRUCT file is read as a label map (:func:`read_segmentation`):
+    ``reference`` is the image series it lies on (required for an RTSTRUCT;
+    ``series``, ``irregular`` and ``duplicates`` then choose how that is read),
+    ``segment`` one SEG segment and ``structure`` one RTSTRUCT ROI as 0/1 masks.
     """
     where = str(path)
+    kind = segmentation_kind(path)
+    if kind is not None:
+        return read_segmentation(path, kind, reference=reference, segment=segment,
+                                 structure=structure, series=series, irregular=irregular,
+                                 duplicates=duplicates, keep_shear=keep_shear,
+                                 keep_phi=keep_phi)
+    for name, value in (("--reference", reference), ("--segment", segment),
+                        ("--structure", structure)):
+        if value is not None:
+            raise BadUsage(f"{name} applies to DICOM SEG and RTSTRUCT inputs; {where} is an "
+                           "image series")
     plan, dtype, meta = _plan(path, series=series, irregular=irregular, duplicates=duplicates,
                               keep_shear=keep_shear, keep_phi=keep_phi, candidates=candidates)
     rows, cols = plan.frames[0].file.rows, plan.frames[0].file.columns
@@ -68,6 +87,67 @@ def read_dicom(path: str | os.PathLike, *, series: str | int | None = None,
         data = resample(plan, data)
     return make_volume(where, data, spacing=plan.spacing, origin=plan.origin,
                        direction=plan.direction, space=_LPS, file_space=_LPS, meta=meta)
+
+
+def segmentation_kind(path) -> str | None:
+    """``"seg"`` or ``"rtstruct"`` for a file holding that SOP class, else None."""
+    if os.path.isdir(path) or not os.path.isfile(path):
+        return None
+    import pydicom
+
+    from ..dicom_seg import SEG_SOPS
+    from ..rtstruct import RTSTRUCT_SOP
+
+    try:
+        ds = pydicom.dcmread(path, stop_before_pixels=True, specific_tags=["SOPClassUID"],
+                             force=path_has_dcm_suffix(path))
+    except Exception:  # not DICOM, or damaged: the image reader says what is wrong
+        return None
+    uid = ds.get("SOPClassUID") or getattr(ds, "file_meta", {}).get("MediaStorageSOPClassUID")
+    uid = str(uid or "")
+    if uid in SEG_SOPS:
+        return "seg"
+    if uid == RTSTRUCT_SOP:
+        return "rtstruct"
+    return None
+
+
+def path_has_dcm_suffix(path) -> bool:
+    return str(path).lower().endswith(".dcm")
+
+
+def read_segmentation(path, kind: str, *, reference=None, segment=None, structure=None,
+                      series=None, irregular="error", duplicates="error", keep_shear=False,
+                      keep_phi=False) -> Volume:
+    """A SEG or RTSTRUCT file as a label map (see :mod:`..dicom_seg`, :mod:`..rtstruct`)."""
+    where = str(path)
+    if keep_shear:
+        raise BadUsage(f"--keep-shear: the series a segmentation ({where}) lies on is read "
+                       "as stored (no tilt resampling to keep)")
+    if reference is None:
+        given = [n for n, v in (("--series", series is not None), ("--irregular", irregular != "error"),
+                                ("--duplicates", duplicates != "error")) if v]
+        if given:
+            raise BadUsage(f"{' '.join(given)} choose how the --reference series of {where} is "
+                           "read: give --reference")
+    if kind == "seg":
+        if structure is not None:
+            raise BadUsage(f"--structure names an RTSTRUCT ROI; {where} is a SEG (--segment N)")
+        from ..dicom_seg import open_seg, read_seg, referenced_series
+
+        seg = open_seg(path)
+        ref = None
+        if reference is not None:
+            ref = read_reference(reference, series=series, irregular=irregular,
+                                 duplicates=duplicates, want_series=referenced_series(seg))
+        return read_seg(path, segment=segment, reference=ref, keep_phi=keep_phi, seg=seg)
+    if segment is not None:
+        raise BadUsage(f"--segment numbers a SEG segment; {where} is an RTSTRUCT "
+                       "(--structure NAME)")
+    from ..rtstruct import read_rtstruct
+
+    return read_rtstruct(path, reference, structure=structure, series=series,
+                         irregular=irregular, duplicates=duplicates, keep_phi=keep_phi)
 
 
 def _plan(path, *, series, irregular, duplicates, keep_shear, keep_phi, candidates=None):
@@ -169,3 +249,60 @@ def _meta(cand: Candidate, plan, keep_phi: bool) -> dict[str, str]:
     return meta
 
 
+
+
+@dataclass(frozen=True)
+class ReferenceSeries:
+    """The image series a segmentation was drawn on: its grid and its images' identities.
+
+    ``grid`` is :func:`read_dicom`'s Volume geometry with a placeholder (no
+    pixels are read); ``files[k]`` and ``sop_uids[k]`` are the image of slice
+    ``k`` (z order).
+    """
+
+    path: str
+    grid: Volume
+    series_uid: str
+    frame_of_reference_uid: str
+    study_uid: str
+    sop_class_uid: str
+    sop_uids: tuple
+    files: tuple
+
+
+def read_reference(path: str | os.PathLike, *, series=None, want_series: tuple = (),
+                   irregular: str = "error", duplicates: str = "error") -> ReferenceSeries:
+    """The series of ``path`` a SEG or RTSTRUCT lies on (geometry only, no pixels).
+
+    ``want_series``: SeriesInstanceUIDs the segmentation references; when the
+    path holds several candidates and ``series`` chose none, the referenced one
+    is taken. A stack that must be resampled (gantry tilt, irregular gaps) is
+    refused: its slices are not the grid the contours or frames refer to.
+    """
+    where = str(path)
+    cands = scan_dicom(path)
+    if series is None and len(cands) > 1:
+        hits = [c for c in cands if c.series_uid in want_series]
+        if len(hits) == 1:
+            series = hits[0].index
+    plan, dtype, meta = _plan(path, series=series, irregular=irregular, duplicates=duplicates,
+                              keep_shear=False, keep_phi=False, candidates=cands)
+    if plan.resampled:
+        raise FormatError(f"{where}: the reference series must be read as it is stored (its "
+                          "slices are resampled: gantry tilt or irregular gaps), so a "
+                          "segmentation's frames or contours cannot be placed on it")
+    if plan.frames[0].synthetic:
+        raise FormatError(f"{where}: the reference series has no ImagePositionPatient / "
+                          "ImageOrientationPatient: nothing to place a segmentation on")
+    f0 = plan.frames[0]
+    rows, cols = f0.file.rows, f0.file.columns
+    grid = make_volume(where, np.broadcast_to(np.zeros((), np.uint8), (plan.n_out, rows, cols)),
+                       spacing=plan.spacing, origin=plan.origin, direction=plan.direction,
+                       space=_LPS, file_space=_LPS, meta=meta)
+    return ReferenceSeries(
+        path=where, grid=grid, series_uid=f0.file.meta.get("SeriesInstanceUID", ""),
+        frame_of_reference_uid=f0.file.meta.get("FrameOfReferenceUID", ""),
+        study_uid=f0.file.meta.get("StudyInstanceUID", ""),
+        sop_class_uid=f0.file.meta.get("SOPClassUID", ""),
+        sop_uids=tuple(f.file.sop_uid for f in plan.frames),
+        files=tuple(f.file.path for f in plan.frames))

@@ -1,0 +1,256 @@
+"""DICOM RTSTRUCT input: contours rasterised on the reference series' grid by the stated rule.
+
+The rule (even-odd; a voxel centre within 1e-3 voxel of a contour is inside) is
+checked on hand-drawn contours with holes, islands, contours through voxel centres
+(rt-utils' habit), 1- and 2-point contours, on an oblique series; and against a slow
+point-in-polygon reference on random polygons.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pydicom = pytest.importorskip("pydicom")
+
+from pydicom.data import get_testdata_file  # noqa: E402
+from pydicom.dataset import Dataset, FileMetaDataset  # noqa: E402
+from pydicom.sequence import Sequence  # noqa: E402
+from pydicom.uid import ExplicitVRLittleEndian, generate_uid  # noqa: E402
+from test_dicom_seg import write_ct  # noqa: E402
+
+from volwarp_cli.errors import FormatError  # noqa: E402
+from volwarp_cli.io import read_volume  # noqa: E402
+from volwarp_cli.io.dicom import read_dicom  # noqa: E402
+from volwarp_cli.io.rtstruct import RTSTRUCT_SOP, rasterize  # noqa: E402
+
+SHAPE = (5, 14, 16)  # z, y, x
+
+
+def write_rtstruct(path, ct_paths, rois, *, series_uid=None, frame_uid=None):
+    """An RTSTRUCT whose ``rois`` are {number: (name, [(type, points (n, 3) LPS mm), ...])}."""
+    ref = pydicom.dcmread(ct_paths[0])
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = RTSTRUCT_SOP
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID = RTSTRUCT_SOP
+    ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+    ds.Modality = "RTSTRUCT"
+    ds.StudyInstanceUID = ref.StudyInstanceUID
+    ds.SeriesInstanceUID = generate_uid()
+    ds.StructureSetLabel = "test"
+    frame = frame_uid or ref.FrameOfReferenceUID
+    se = Dataset()
+    se.SeriesInstanceUID = series_uid or ref.SeriesInstanceUID
+    st = Dataset()
+    st.ReferencedSOPInstanceUID = ref.StudyInstanceUID
+    st.RTReferencedSeriesSequence = Sequence([se])
+    fr = Dataset()
+    fr.FrameOfReferenceUID = frame
+    fr.RTReferencedStudySequence = Sequence([st])
+    ds.ReferencedFrameOfReferenceSequence = Sequence([fr])
+    ssroi, contours = [], []
+    for number, (name, items) in rois.items():
+        r = Dataset()
+        r.ROINumber = number
+        r.ROIName = name
+        r.ReferencedFrameOfReferenceUID = frame
+        ssroi.append(r)
+        c = Dataset()
+        c.ReferencedROINumber = number
+        seq = []
+        for kind, pts in items:
+            item = Dataset()
+            item.ContourGeometricType = kind
+            item.NumberOfContourPoints = len(pts)
+            item.ContourData = [f"{v:.6f}" for v in np.asarray(pts, float).ravel()]
+            seq.append(item)
+        c.ContourSequence = Sequence(seq)
+        contours.append(c)
+    ds.StructureSetROISequence = Sequence(ssroi)
+    ds.ROIContourSequence = Sequence(contours)
+    ds.save_as(path, enforce_file_format=True)
+    return path
+
+
+def world(vol, k, xy):
+    """LPS points of in-plane (x, y) voxel indices on slice k."""
+    xy = np.asarray(xy, float)
+    return vol.index_to_world(np.column_stack([xy, np.full(len(xy), float(k))]))
+
+
+def square(x0, y0, x1, y1):
+    return [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+
+
+@pytest.fixture
+def ct(tmp_path):
+    folder = tmp_path / "ct"
+    paths = write_ct(folder, SHAPE, spacing=(0.9, 0.6, 2.0))
+    return folder, paths, read_dicom(folder)
+
+
+def test_holes_islands_centres_and_short_contours(ct, tmp_path, run):
+    folder, paths, vol = ct
+    want = np.zeros(SHAPE, np.uint8)
+    # ROI 4 on slice 1: a ring on voxel edges (x 2..9, y 2..9) with a hole (x 4..7, y 4..7)
+    # and an island in the hole (x 5..6, y 5..6); the hole drawn the same way round
+    ring = [("CLOSED_PLANAR", world(vol, 1, square(1.5, 1.5, 9.5, 9.5))),
+            ("CLOSED_PLANAR", world(vol, 1, square(3.5, 3.5, 7.5, 7.5))),
+            ("CLOSED_PLANAR", world(vol, 1, square(4.5, 4.5, 6.5, 6.5)))]
+    want[1, 2:10, 2:10] = 4
+    want[1, 4:8, 4:8] = 0
+    want[1, 5:7, 5:7] = 4
+    # ROI 7 on slice 2: through the boundary voxels' centres (x 3..8, y 1..5), and a hole
+    # drawn through the centres of the voxels around it (x 5..6, y 3: those are inside)
+    centres = [("CLOSED_PLANAR", world(vol, 2, square(3, 1, 8, 5))),
+               ("CLOSED_PLANAR", world(vol, 2, square(4, 2, 7, 4)))]
+    want[2, 1:6, 3:9] = 7
+    want[2, 3, 5:7] = 0
+    # ROI 9 on slice 3: a 1-point contour, a 2-point contour along x, a diagonal 2-point one
+    short = [("POINT", world(vol, 3, [(12, 11)])),
+             ("CLOSED_PLANAR", world(vol, 3, [(1, 12), (4, 12)])),
+             ("OPEN_PLANAR", world(vol, 3, [(0, 0), (3, 3)]))]
+    want[3, 11, 12] = 9
+    want[3, 12, 1:5] = 9
+    want[3, [0, 1, 2, 3], [0, 1, 2, 3]] = 9
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths,
+                        {4: ("ring", ring), 7: ("centres", centres), 9: ("short", short)})
+    out = tmp_path / "labels.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 0, res.stderr
+    got = read_volume(out)
+    np.testing.assert_array_equal(got.data, want)
+    assert got.same_grid(vol)
+    np.testing.assert_allclose(got.origin, vol.origin, atol=1e-9)
+    np.testing.assert_allclose(got.direction, vol.direction, atol=1e-12)
+    assert got.meta["DICOM_ROI_7"] == "centres"
+    res = run("convert", rs, "--reference", folder, "--structure", "centres", "-o", out)
+    assert res.code == 0, res.stderr
+    np.testing.assert_array_equal(read_volume(out).data, (want == 7).astype(np.uint8))
+
+
+def test_contours_off_a_voxel_centre_by_less_than_the_tolerance(ct, tmp_path):
+    """A centre 0.5e-3 voxel off the contour (the file's decimals) is on it; 0.01 is not."""
+    folder, paths, vol = ct
+    near = [("CLOSED_PLANAR", world(vol, 0, square(3, 3 + 5e-4, 6, 6)))]
+    far = [("CLOSED_PLANAR", world(vol, 4, square(3, 3 + 1e-2, 6, 6)))]
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {1: ("near", near), 2: ("far", far)})
+    got = read_dicom(rs, reference=folder).data
+    assert got[0, 3:7, 3:7].all() and got[0].sum() == 16 * 1
+    assert not got[4, 3, 3:7].any() and (got[4, 4:7, 3:7] == 2).all()
+
+
+def test_rasterize_matches_a_slow_point_in_polygon_reference():
+    rng = np.random.default_rng(5)
+    ny, nx = 30, 34
+    jj, ii = np.mgrid[:ny, :nx]
+    centres = np.column_stack([ii.ravel(), jj.ravel()]).astype(float)
+    for _ in range(20):
+        polys = []
+        for _ in range(rng.integers(1, 4)):
+            n = int(rng.integers(3, 12))
+            angles = np.sort(rng.uniform(0, 2 * np.pi, n))
+            radii = rng.uniform(2, 12, n)
+            c = rng.uniform(5, 28, 2)
+            polys.append(c + np.column_stack([np.cos(angles), np.sin(angles)]) * radii[:, None])
+        got = rasterize([(0, p, True) for p in polys], (1, ny, nx))[0].ravel()
+        inside = np.zeros(len(centres), bool)
+        near = np.zeros(len(centres), bool)
+        for p in polys:
+            inside ^= _crossing_parity(centres, p)
+            near |= _distance_to_polygon(centres, p) <= 1e-3
+        np.testing.assert_array_equal(got, inside | near)
+
+
+def _crossing_parity(pts, poly):
+    """Ray casting towards +x, one edge at a time (the textbook loop)."""
+    out = np.zeros(len(pts), bool)
+    n = len(poly)
+    for m in range(n):
+        (x0, y0), (x1, y1) = poly[m], poly[(m + 1) % n]
+        for q, (px, py) in enumerate(pts):
+            if (y0 > py) != (y1 > py):
+                x = x0 + (py - y0) * (x1 - x0) / (y1 - y0)
+                if px < x:
+                    out[q] = not out[q]
+    return out
+
+
+def _distance_to_polygon(pts, poly):
+    best = np.full(len(pts), np.inf)
+    for m in range(len(poly)):
+        a, b = poly[m], poly[(m + 1) % len(poly)]
+        d = b - a
+        t = np.clip(((pts - a) @ d) / (d @ d), 0, 1)
+        best = np.minimum(best, np.linalg.norm(a + t[:, None] * d - pts, axis=1))
+    return best
+
+
+def test_overlapping_structures_need_the_option(ct, tmp_path, run):
+    folder, paths, vol = ct
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        1: ("body", [("CLOSED_PLANAR", world(vol, 2, square(0.5, 0.5, 12.5, 12.5)))]),
+        2: ("organ", [("CLOSED_PLANAR", world(vol, 2, square(3.5, 3.5, 5.5, 5.5)))])})
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 1 and "--structure NAME" in res.stderr and "'body'" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and not out.exists()
+    res = run("convert", rs, "--reference", folder, "--structure", "organ", "-o", out)
+    assert res.code == 0, res.stderr
+    assert read_volume(out).data.sum() == 4
+
+
+def test_bad_requests_are_one_line_and_write_nothing(ct, tmp_path, run):
+    folder, paths, vol = ct
+    rois = {1: ("a", [("CLOSED_PLANAR", world(vol, 1, square(1, 1, 3, 3)))])}
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, rois)
+    out = tmp_path / "o.nrrd"
+    out.write_bytes(b"keep")
+    cases = [
+        ((), 2, "--reference"),                                  # no reference
+        (("--structure", "nope"), 2, "no structure named 'nope'"),
+        (("--segment", 1), 2, "--structure NAME"),
+    ]
+    for args, code, words in cases:
+        ref = () if not args else ("--reference", folder)
+        res = run("convert", rs, *ref, *args, "-o", out)
+        assert res.code == code, (args, res.stderr)
+        assert len(res.stderr.strip().splitlines()) == 1 and words in res.stderr, res.stderr
+        assert out.read_bytes() == b"keep"
+    # the wrong series: another series of the same frame of reference, and another frame
+    other = tmp_path / "other"
+    f0 = pydicom.dcmread(paths[0])
+    write_ct(other, SHAPE, spacing=(0.9, 0.6, 2.0), frame_uid=f0.FrameOfReferenceUID)
+    res = run("convert", rs, "--reference", other, "-o", out)
+    assert res.code == 1 and "drawn on series" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and out.read_bytes() == b"keep"
+    off = write_rtstruct(tmp_path / "off.dcm", paths, rois, frame_uid=generate_uid())
+    res = run("convert", off, "--reference", folder, "-o", out)
+    assert res.code == 1 and "frame of reference" in res.stderr
+    # a contour between two slices
+    pts = world(vol, 1, square(1, 1, 3, 3))
+    pts = pts + 0.5 * vol.spacing[2] * vol.direction[:, 2]
+    between = write_rtstruct(tmp_path / "between.dcm", paths,
+                             {1: ("a", [("CLOSED_PLANAR", pts)])})
+    res = run("convert", between, "--reference", folder, "-o", out)
+    assert res.code == 1 and "slice plane" in res.stderr and "'a'" in res.stderr
+    assert out.read_bytes() == b"keep"
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".o.nrrd")) == []
+
+
+def test_pydicoms_rtstruct_file(run):
+    path = get_testdata_file("rtstruct.dcm")
+    with pytest.raises(FormatError, match="no PixelData.*--reference"):
+        read_dicom(path)
+    res = run("info", path, "--json")
+    assert res.code == 0, res.stderr
+    desc = json.loads(res.stdout)
+    assert [s["name"] for s in desc["structures"]] == ["patient", "Isocenter 1", "Isocenter 2"]
+    assert [s["contours"] for s in desc["structures"]] == [3, 1, 1]
+    assert desc["referenced_series"] == ["1.2.826.0.1.3680043.8.498.2010020400001.2.1.1"]

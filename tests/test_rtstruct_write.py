@@ -1,0 +1,100 @@
+"""Writing a label map as an RTSTRUCT (`convert --dicom-type rtstruct`), read back exactly.
+
+Holes, islands in holes and voxels touching only at a corner survive the round trip;
+the outlines also give the mask to an independent polygon filler (scikit-image's
+``polygon2mask``, XOR over a slice's loops); vertices lie within 0.05 voxel of voxel
+corners; each contour references an image the series has.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pydicom = pytest.importorskip("pydicom")
+
+from test_dicom_seg import write_ct  # noqa: E402
+
+from volwarp_cli.io import read_volume, write_volume  # noqa: E402
+from volwarp_cli.io.dicom import read_dicom  # noqa: E402
+from volwarp_cli.io.rtstruct import NUDGE, mask_outlines  # noqa: E402
+
+SHAPE = (4, 12, 13)
+
+
+def tricky_labels() -> np.ndarray:
+    lab = np.zeros(SHAPE, np.uint8)
+    lab[0, 1:10, 1:10] = 5
+    lab[0, 3:8, 3:8] = 0                 # a hole
+    lab[0, 5, 5] = 5                     # an island in the hole
+    lab[1, 2, 2] = lab[1, 3, 3] = 9      # corner-touching voxels
+    lab[1, 4, 2] = lab[1, 3, 3]          # and a third at the other corner
+    lab[1, 0, 0:13] = 9                  # a line along the whole edge of the grid
+    lab[2, 5:8, 5:8] = 5
+    lab[2, 6, 6] = 9                     # another label inside a label (not overlapping)
+    lab[3, 11, 12] = 200                 # the last voxel of the grid
+    return lab
+
+
+def test_outlines_give_the_mask_to_an_independent_filler():
+    from skimage.draw import polygon2mask
+
+    rng = np.random.default_rng(2)
+    for _ in range(25):
+        mask = rng.random((9, 11)) < rng.uniform(0.2, 0.7)
+        got = np.zeros(mask.shape, bool)
+        for loop in mask_outlines(mask):
+            # vertices within the nudge of a voxel corner (corners are at half indices)
+            corner = np.rint(loop - 0.5) + 0.5
+            assert np.abs(loop - corner).max() <= NUDGE + 1e-12 and NUDGE <= 0.05
+            got ^= polygon2mask(mask.shape, loop[:, ::-1])  # (row, column) vertices
+        np.testing.assert_array_equal(got, mask)
+
+
+def test_rtstruct_round_trip_is_exact(tmp_path, run):
+    folder = tmp_path / "ct"
+    paths = write_ct(folder, SHAPE, spacing=(0.7, 0.9, 3.0))
+    ref = read_dicom(folder)
+    lab = tricky_labels()
+    src = tmp_path / "labels.nrrd"
+    write_volume(ref.with_data(lab), src)
+    names = tmp_path / "names.csv"
+    names.write_text("label,name\n5,ring\n")
+    out = tmp_path / "rs.dcm"
+    res = run("convert", src, "--reference", folder, "--dicom-type", "rtstruct", "--segments",
+              names, "-o", out)
+    assert res.code == 0, res.stderr
+    back = tmp_path / "back.nrrd"
+    assert run("convert", out, "--reference", folder, "-o", back).code == 0
+    got = read_volume(back)
+    np.testing.assert_array_equal(got.data, lab)
+    assert got.same_grid(ref)
+    ds = pydicom.dcmread(out)
+    assert [(int(r.ROINumber), str(r.ROIName)) for r in ds.StructureSetROISequence] == \
+        [(5, "ring"), (9, "label_9"), (200, "label_200")]
+    ct = {str(pydicom.dcmread(p).SOPInstanceUID) for p in paths}
+    listed = ds.ReferencedFrameOfReferenceSequence[0].RTReferencedStudySequence[0] \
+        .RTReferencedSeriesSequence[0].ContourImageSequence
+    assert {str(i.ReferencedSOPInstanceUID) for i in listed} == ct
+    for roi in ds.ROIContourSequence:
+        for c in roi.ContourSequence:
+            (img,) = c.ContourImageSequence
+            assert str(img.ReferencedSOPInstanceUID) in ct
+            pts = np.array(c.ContourData, float).reshape(-1, 3)
+            k = ref.world_to_index(pts)[:, 2]
+            # the referenced image is the slice the contour lies on
+            assert str(img.ReferencedSOPInstanceUID) == \
+                str(pydicom.dcmread(_file_at(paths, ref, k[0])).SOPInstanceUID)
+    assert str(ds.SeriesInstanceUID) != str(pydicom.dcmread(paths[0]).SeriesInstanceUID)
+    again = tmp_path / "again.dcm"
+    assert run("convert", src, "--reference", folder, "--dicom-type", "rtstruct", "--segments",
+               names, "-o", again).code == 0
+    assert again.read_bytes() == out.read_bytes()
+
+
+def _file_at(paths, ref, k):
+    for p in paths:
+        pos = np.array(pydicom.dcmread(p).ImagePositionPatient, float)
+        if abs(ref.world_to_index(pos)[2] - k) < 1e-3:
+            return p
+    raise AssertionError(k)

@@ -1,0 +1,473 @@
+"""DICOM RTSTRUCT (planar contours) as label maps on a reference series' grid, read with pydicom.
+
+Reading (:func:`read_rtstruct`). Every ROI is rasterised on the grid of the
+image series the structure set was drawn on (``reference``), its voxels taking
+the ROI Number; ``structure=NAME`` gives one ROI as a 0/1 mask. Overlapping
+ROIs without ``structure`` are an error naming the option. The rule
+(:func:`rasterize`), slice by slice:
+
+- a contour lies in the slice whose plane it is in (every point within 0.05
+  voxel of it, else an error naming the ROI);
+- even-odd: a voxel centre is inside when a ray from it crosses the slice's
+  closed contours of the ROI an odd number of times, so holes and islands are
+  what the contours make them, whichever way round they are drawn;
+- a voxel centre on a contour (within 1e-3 voxel, measured in voxel units of the
+  slice) is inside: contours drawn through the boundary voxels' centres
+  (rt-utils' habit), 1-point (POINT, or one vertex) and 2-point contours, and
+  OPEN_PLANAR polylines give exactly the voxels they pass through.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ..errors import BadUsage, FormatError, VolwarpError
+from ..volume import LPS, Volume
+from .common import make_volume
+
+RTSTRUCT_SOP = "1.2.840.10008.5.1.4.1.1.481.3"
+
+
+class ReferenceNeeded(BadUsage, FormatError):
+    """An RTSTRUCT read without the series it lies on: a usage error (exit 2), and not an image."""
+
+#: a voxel centre this close to a contour (voxels) is inside
+ON_CONTOUR = 1e-3
+#: a contour's points must lie this close to one slice plane (voxels)
+IN_PLANE = 0.05
+
+
+def _one_line(exc) -> str:
+    return " ".join(str(exc).split())[:300]
+
+
+def open_rtstruct(path: str | os.PathLike):
+    """The pydicom data set of an RTSTRUCT file, or a FormatError naming it."""
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(str(path), force=str(path).lower().endswith(".dcm"))
+    except OSError as exc:
+        raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except Exception as exc:  # damaged files raise many types in pydicom
+        raise FormatError(f"{path}: not a readable RTSTRUCT ({type(exc).__name__}: "
+                          f"{_one_line(exc)})") from None
+    if str(ds.get("SOPClassUID", "")) != RTSTRUCT_SOP:
+        raise FormatError(f"{path}: not an RTSTRUCT (SOPClassUID {ds.get('SOPClassUID')})")
+    return ds
+
+
+def referenced_series(ds) -> tuple[str, ...]:
+    """The SeriesInstanceUIDs an RTSTRUCT's ReferencedFrameOfReferenceSequence names."""
+    out = []
+    for fr in ds.get("ReferencedFrameOfReferenceSequence", []):
+        for st in fr.get("RTReferencedStudySequence", []):
+            for se in st.get("RTReferencedSeriesSequence", []):
+                if "SeriesInstanceUID" in se:
+                    out.append(str(se.SeriesInstanceUID))
+    return tuple(dict.fromkeys(out))
+
+
+def frames_of_reference(ds) -> tuple[str, ...]:
+    """The FrameOfReferenceUIDs of an RTSTRUCT (its referenced frames, its ROIs')."""
+    out = [str(fr.FrameOfReferenceUID) for fr in ds.get("ReferencedFrameOfReferenceSequence", [])
+           if "FrameOfReferenceUID" in fr]
+    out += [str(r.ReferencedFrameOfReferenceUID) for r in ds.get("StructureSetROISequence", [])
+            if "ReferencedFrameOfReferenceUID" in r]
+    return tuple(dict.fromkeys(out))
+
+
+def describe_structures(ds) -> list[dict]:
+    """Each ROI's number, name and number of contours (for ``volwarp info``)."""
+    contours = {int(c.ReferencedROINumber): len(c.get("ContourSequence", []))
+                for c in ds.get("ROIContourSequence", []) if "ReferencedROINumber" in c}
+    return [{"number": int(r.ROINumber), "name": str(r.get("ROIName", "")),
+             "contours": contours.get(int(r.ROINumber), 0)}
+            for r in ds.get("StructureSetROISequence", [])]
+
+
+def _structure_number(ds, structure: str, where: str) -> int:
+    rois = describe_structures(ds)
+    hits = [r["number"] for r in rois if r["name"] == structure]
+    names = ", ".join(repr(r["name"]) for r in rois) or "none"
+    if not hits:
+        raise BadUsage(f"{where}: no structure named {structure!r} (--structure; the ROIs: "
+                       f"{names})")
+    if len(hits) > 1:
+        raise BadUsage(f"{where}: {len(hits)} structures are named {structure!r} (ROI numbers "
+                       f"{' '.join(map(str, hits))}): the name does not choose one")
+    return hits[0]
+
+
+def check_reference(ds, reference, where: str) -> None:
+    """The reference must be the series the RTSTRUCT names (or, naming none, its frame)."""
+    wanted = referenced_series(ds)
+    if wanted and reference.series_uid not in wanted:
+        raise VolwarpError(f"{where}: drawn on series {' '.join(wanted)}, but --reference "
+                           f"{reference.path} holds series {reference.series_uid}")
+    frames = frames_of_reference(ds)
+    if frames and reference.frame_of_reference_uid and \
+            reference.frame_of_reference_uid not in frames:
+        raise VolwarpError(f"{where}: its frame of reference {' '.join(frames)} is not that of "
+                           f"--reference {reference.path} ({reference.frame_of_reference_uid})")
+
+
+def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None = None,
+                  series=None, irregular: str = "error", duplicates: str = "error",
+                  keep_phi: bool = False) -> Volume:
+    """An RTSTRUCT rasterised on its reference series' grid (rules: the module docstring).
+
+    ``reference``: the image series' path (a folder, DICOMDIR or file);
+    ``series``, ``irregular`` and ``duplicates`` choose how it is read.
+    """
+    where = str(path)
+    if reference is None:
+        raise ReferenceNeeded(f"{where}: an RTSTRUCT holds contours, no PixelData: give the image "
+                       "series it was drawn on with --reference CT_DIR")
+    from .dicom import read_reference
+
+    ds = open_rtstruct(path)
+    ref = read_reference(reference, series=series, irregular=irregular, duplicates=duplicates,
+                         want_series=referenced_series(ds))
+    check_reference(ds, ref, where)
+    numbers = [r["number"] for r in describe_structures(ds)]
+    only = _structure_number(ds, structure, where) if structure is not None else None
+    grid = ref.grid
+    names = {r["number"]: r["name"] for r in describe_structures(ds)}
+    dtype = np.uint8 if only is not None else _label_dtype(max(numbers, default=0))
+    out = np.zeros(grid.data.shape, dtype)
+    for roi in ds.get("ROIContourSequence", []):
+        number = int(roi.get("ReferencedROINumber", -1))
+        if only is not None and number != only:
+            continue
+        label = f"ROI {number} {names.get(number, '')!r}"
+        contours = _contours_in_index(roi, grid, where, label)
+        mask = rasterize(contours, grid.data.shape)
+        if only is not None:
+            out[mask] = 1
+            continue
+        clash = out[mask]
+        if clash.any():
+            other = int(clash[clash != 0][0])
+            raise VolwarpError(f"{where}: structures {other} {names.get(other, '')!r} and "
+                               f"{number} {names.get(number, '')!r} overlap, so one label map "
+                               "cannot hold them: read one as a 0/1 mask with --structure NAME")
+        out[mask] = number
+    meta = _meta(ds, keep_phi, ref)
+    if only is not None:
+        meta["DICOM_Structure"] = f"{only} {names[only]}"
+    else:
+        meta.update({f"DICOM_ROI_{n}": names[n] for n in numbers})
+    return make_volume(where, out, spacing=grid.spacing, origin=grid.origin,
+                       direction=grid.direction, space=LPS, file_space=LPS, meta=meta)
+
+
+def _label_dtype(top: int):
+    for t in (np.uint8, np.uint16, np.uint32):
+        if top <= np.iinfo(t).max:
+            return t
+    raise VolwarpError(f"ROI Number {top} does not fit uint32")
+
+
+def _meta(ds, keep_phi: bool, ref) -> dict:
+    from .dicom._scan import PHI_TAGS
+
+    keys = ("Modality", "SeriesDescription", "SeriesNumber", "StudyInstanceUID",
+            "SeriesInstanceUID", "SOPClassUID", "StructureSetLabel") + \
+        (PHI_TAGS if keep_phi else ())
+    meta = {f"DICOM_{k}": str(ds.get(k)) for k in keys if ds.get(k) not in (None, "")}
+    meta["DICOM_FrameOfReferenceUID"] = ref.frame_of_reference_uid
+    meta["DICOM_ReferencedSeriesInstanceUID"] = ref.series_uid
+    return meta
+
+
+def _contours_in_index(roi, grid, where: str, label: str) -> list[tuple[int, np.ndarray, bool]]:
+    """``(slice k, points (n, 2) as continuous (x, y) indices, closed)`` of one ROI's contours."""
+    out = []
+    nz = grid.data.shape[0]
+    for m, c in enumerate(roi.get("ContourSequence", [])):
+        raw = c.get("ContourData")
+        if raw is None or len(raw) == 0:
+            continue
+        try:
+            pts = np.asarray([float(v) for v in raw], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise FormatError(f"{where}: {label} contour {m + 1}: ContourData is not "
+                              "numeric") from None
+        if pts.size % 3 or not np.all(np.isfinite(pts)):
+            raise FormatError(f"{where}: {label} contour {m + 1}: ContourData must be finite "
+                              f"x y z triples, got {pts.size} values")
+        ijk = grid.world_to_index(pts.reshape(-1, 3))
+        k = np.rint(ijk[:, 2])
+        if np.abs(ijk[:, 2] - k).max() > IN_PLANE or k.min() != k.max():
+            at = float(np.median(ijk[:, 2]))
+            raise FormatError(f"{where}: {label} contour {m + 1} does not lie in a slice plane "
+                              f"of the reference series (at slice index {at:.3f}, "
+                              f"{np.ptp(ijk[:, 2]):.3g} across)")
+        k = int(k[0])
+        if not 0 <= k < nz:
+            continue  # outside the reference's slices: nothing of it is on the grid
+        kind = str(c.get("ContourGeometricType", "CLOSED_PLANAR")).upper()
+        out.append((k, ijk[:, :2], kind == "CLOSED_PLANAR"))
+    return out
+
+
+def rasterize(contours, shape_zyx, *, tol: float = ON_CONTOUR) -> np.ndarray:
+    """A bool mask [z, y, x] of contours ``(k, points (n, 2) in (x, y) voxel indices, closed)``.
+
+    Even-odd over each slice's closed contours, plus every voxel centre within
+    ``tol`` voxel of any contour (its closing edge included when closed).
+    """
+    nz, ny, nx = shape_zyx
+    mask = np.zeros(shape_zyx, dtype=bool)
+    by_slice: dict[int, list] = {}
+    for k, pts, closed in contours:
+        by_slice.setdefault(int(k), []).append((np.asarray(pts, np.float64), bool(closed)))
+    for k, items in by_slice.items():
+        starts, ends = [], []
+        for pts, closed in items:
+            if closed and len(pts) >= 3:
+                starts.append(pts)
+                ends.append(np.roll(pts, -1, axis=0))
+        if starts:
+            mask[k] = _even_odd(np.concatenate(starts), np.concatenate(ends), ny, nx)
+        segs_a, segs_b = [], []
+        for pts, closed in items:
+            if len(pts) == 1:
+                segs_a.append(pts)
+                segs_b.append(pts)
+            else:
+                segs_a.append(pts[:-1])
+                segs_b.append(pts[1:])
+                if closed and len(pts) >= 3:
+                    segs_a.append(pts[-1:])
+                    segs_b.append(pts[:1])
+        _mark_on_segments(mask[k], np.concatenate(segs_a), np.concatenate(segs_b), tol)
+    return mask
+
+
+def _even_odd(a: np.ndarray, b: np.ndarray, ny: int, nx: int) -> np.ndarray:
+    """Voxel centres (x = i, y = j) an odd number of edges a->b lie to the left of."""
+    y0, y1 = a[:, 1], b[:, 1]
+    lo, hi = np.minimum(y0, y1), np.maximum(y0, y1)
+    # a row j crosses an edge when lo <= j < hi (half open: a vertex on the row counts once)
+    j0 = np.clip(np.ceil(lo), 0, ny).astype(np.int64)
+    j1 = np.clip(np.ceil(hi), 0, ny).astype(np.int64)
+    count = np.maximum(j1 - j0, 0)
+    keep = count > 0
+    if not keep.any():
+        return np.zeros((ny, nx), dtype=bool)
+    edge = np.repeat(np.flatnonzero(keep), count[keep])
+    first = np.repeat(j0[keep], count[keep])
+    offs = np.arange(edge.size) - np.repeat(np.cumsum(count[keep]) - count[keep], count[keep])
+    j = first + offs
+    xa, ya, xb, yb = a[edge, 0], a[edge, 1], b[edge, 0], b[edge, 1]
+    x = xa + (j - ya) * (xb - xa) / (yb - ya)
+    start = np.clip(np.floor(x).astype(np.int64) + 1, 0, nx)  # centres strictly right of x
+    toggles = np.bincount(j * (nx + 1) + start, minlength=ny * (nx + 1)).reshape(ny, nx + 1)
+    return (np.cumsum(toggles[:, :nx], axis=1) & 1).astype(bool)
+
+
+def _mark_on_segments(plane: np.ndarray, a: np.ndarray, b: np.ndarray, tol: float) -> None:
+    """Set the voxel centres of ``plane`` [y, x] within ``tol`` of a segment a->b."""
+    ny, nx = plane.shape
+    d = b - a
+    major = (np.abs(d[:, 1]) > np.abs(d[:, 0])).astype(np.int64)  # 0: x, 1: y
+    idx = np.arange(len(a))
+    am, bm = a[idx, major], b[idx, major]
+    t0 = np.ceil(np.minimum(am, bm) - tol).astype(np.int64)
+    t1 = np.floor(np.maximum(am, bm) + tol).astype(np.int64)
+    count = np.maximum(t1 - t0 + 1, 0)
+    if not count.any():
+        return
+    seg = np.repeat(idx, count)
+    offs = np.arange(seg.size) - np.repeat(np.cumsum(count) - count, count)
+    t = (t0[seg] + offs).astype(np.float64)
+    mj = major[seg]
+    dm = d[seg, mj]
+    s = np.where(dm != 0, (t - a[seg, mj]) / np.where(dm != 0, dm, 1.0), 0.0)
+    s = np.clip(s, 0.0, 1.0)
+    minor = np.rint(a[seg, 1 - mj] + s * d[seg, 1 - mj])
+    c = np.empty((seg.size, 2))
+    c[np.arange(seg.size), mj] = t
+    c[np.arange(seg.size), 1 - mj] = minor
+    # exact distance from the candidate centre to the segment
+    ds = d[seg]
+    dd = np.einsum("ij,ij->i", ds, ds)
+    p = np.where(dd > 0, np.einsum("ij,ij->i", c - a[seg], ds) / np.where(dd > 0, dd, 1.0), 0.0)
+    p = np.clip(p, 0.0, 1.0)
+    near = a[seg] + p[:, None] * ds
+    dist = np.hypot(*(near - c).T)
+    ok = (dist <= tol) & (c[:, 0] >= 0) & (c[:, 0] < nx) & (c[:, 1] >= 0) & (c[:, 1] < ny)
+    plane[c[ok, 1].astype(np.int64), c[ok, 0].astype(np.int64)] = True
+
+
+# -- writing -----------------------------------------------------------------------------
+
+#: how far (voxels) contours on voxel edges are moved into the voxels they outline
+NUDGE = 0.01
+
+
+def mask_outlines(mask: np.ndarray, *, nudge: float = NUDGE) -> list[np.ndarray]:
+    """Closed outlines (n, 2) of a 2-D bool mask [y, x] on its voxel edges, in (x, y) indices.
+
+    Each loop keeps the voxels it outlines on its right (y down), so outer
+    boundaries and holes run opposite ways; at a corner shared by two voxels
+    that touch only there the loop turns to stay with its voxel, so diagonal
+    neighbours get loops of their own. Every vertex is moved ``nudge`` voxel
+    into the outlined voxels (each edge's inward offset), so no loop touches
+    another and none passes through a voxel centre: the even-odd rule gives the
+    mask back exactly.
+    """
+    m = np.pad(np.asarray(mask, dtype=bool), 1)
+    out_edges = {}
+    # horizontal edges at corner row cy (between pixel rows cy - 1 and cy of the mask)
+    below, above = m[1:, 1:-1], m[:-1, 1:-1]
+    for cy, i in zip(*np.nonzero(below & ~above), strict=True):
+        out_edges.setdefault((int(i), int(cy)), []).append((1, 0))      # +x
+    for cy, i in zip(*np.nonzero(above & ~below), strict=True):
+        out_edges.setdefault((int(i) + 1, int(cy)), []).append((-1, 0))  # -x
+    left, right = m[1:-1, :-1], m[1:-1, 1:]
+    for j, cx in zip(*np.nonzero(left & ~right), strict=True):
+        out_edges.setdefault((int(cx), int(j)), []).append((0, 1))      # +y
+    for j, cx in zip(*np.nonzero(right & ~left), strict=True):
+        out_edges.setdefault((int(cx), int(j) + 1), []).append((0, -1))  # -y
+    loops = []
+    for start in sorted(out_edges):
+        while out_edges.get(start):
+            v, d = start, out_edges[start].pop(0)
+            pts, dirs = [], []
+            while True:
+                pts.append(v)
+                dirs.append(d)
+                v = (v[0] + d[0], v[1] + d[1])
+                choices = out_edges.get(v)
+                if not choices:
+                    break
+                right_turn = (-d[1], d[0])
+                d = right_turn if right_turn in choices else choices[0]
+                choices.remove(d)
+            loops.append(_corners(np.array(pts, float), np.array(dirs, float), nudge))
+    return loops
+
+
+def _corners(pts: np.ndarray, dirs: np.ndarray, nudge: float) -> np.ndarray:
+    """The loop's turning vertices, moved inward, in voxel-centre (x, y) indices."""
+    prev = np.roll(dirs, 1, axis=0)
+    turn = np.any(prev != dirs, axis=1)
+    inward = np.column_stack([-dirs[:, 1], dirs[:, 0]]) + np.column_stack([-prev[:, 1], prev[:, 0]])
+    return (pts[turn] - 0.5) + nudge * inward[turn]
+
+
+def _ds(values) -> list[str]:
+    return [f"{v:.6f}".rstrip("0").rstrip(".") if abs(v) < 1e9 else f"{v:.6e}" for v in values]
+
+
+def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = None,
+                   where: str = "RTSTRUCT"):
+    """A pydicom RTSTRUCT of a label map on ``reference``'s grid: one ROI per label.
+
+    ROI Number = label value, named from ``names`` or ``label_N``; contours on
+    voxel edges moved :data:`NUDGE` voxel inward (:func:`mask_outlines`), each
+    referencing its slice's image; new SOP and Series UIDs made from the content.
+    """
+    import pydicom
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.sequence import Sequence
+    from pydicom.uid import ExplicitVRLittleEndian
+
+    from .. import __version__
+    from .dicom_seg import _content_key, _stamp, check_on_reference_grid, label_values, new_uid
+
+    check_on_reference_grid(vol, reference, where)
+    values = label_values(vol, where)
+    names = dict(names or {})
+    key = _content_key(vol, reference, "rtstruct", names)
+    date, time = _stamp(reference)
+    src = pydicom.dcmread(reference.files[0], stop_before_pixels=True)
+    g = reference.grid
+    ds = Dataset()
+    ds.file_meta = FileMetaDataset()
+    ds.file_meta.MediaStorageSOPClassUID = RTSTRUCT_SOP
+    ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = new_uid(key, "sop")
+    ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds.SOPClassUID = RTSTRUCT_SOP
+    for kw in ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "StudyDate",
+               "StudyTime", "ReferringPhysicianName", "StudyID", "AccessionNumber",
+               "StudyInstanceUID"):
+        setattr(ds, kw, src.get(kw, ""))
+    ds.Modality = "RTSTRUCT"
+    ds.SeriesInstanceUID = new_uid(key, "series")
+    ds.SeriesNumber = 902
+    ds.InstanceNumber = 1
+    ds.Manufacturer = "volwarp"
+    ds.SoftwareVersions = str(__version__)
+    ds.StructureSetLabel = "VOLWARP"
+    ds.StructureSetDate, ds.StructureSetTime = date, time
+    ds.InstanceCreationDate, ds.InstanceCreationTime = date, time
+    sop_class = reference.sop_class_uid or str(src.SOPClassUID)
+
+    def image_ref(k):
+        item = Dataset()
+        item.ReferencedSOPClassUID = sop_class
+        item.ReferencedSOPInstanceUID = reference.sop_uids[k]
+        return item
+    series = Dataset()
+    series.SeriesInstanceUID = reference.series_uid
+    series.ContourImageSequence = Sequence([image_ref(k) for k in range(len(reference.sop_uids))])
+    study = Dataset()
+    study.ReferencedSOPClassUID = "1.2.840.10008.3.1.2.3.1"  # Study Component Management
+    study.ReferencedSOPInstanceUID = reference.study_uid
+    study.RTReferencedSeriesSequence = Sequence([series])
+    frame = Dataset()
+    frame.FrameOfReferenceUID = reference.frame_of_reference_uid
+    frame.RTReferencedStudySequence = Sequence([study])
+    ds.ReferencedFrameOfReferenceSequence = Sequence([frame])
+    rois, contours, observations = [], [], []
+    data = vol.data
+    for n, value in enumerate(values.tolist(), 1):
+        roi = Dataset()
+        roi.ROINumber = int(value)
+        roi.ReferencedFrameOfReferenceUID = reference.frame_of_reference_uid
+        roi.ROIName = names.get(int(value), f"label_{int(value)}")[:64]
+        roi.ROIGenerationAlgorithm = ""
+        rois.append(roi)
+        seq = []
+        for k in np.flatnonzero((data == value).any(axis=(1, 2))):
+            for loop in mask_outlines(data[k] == value):
+                xyz = g.index_to_world(np.column_stack([loop, np.full(len(loop), float(k))]))
+                item = Dataset()
+                item.ContourImageSequence = Sequence([image_ref(int(k))])
+                item.ContourGeometricType = "CLOSED_PLANAR"
+                item.NumberOfContourPoints = len(loop)
+                item.ContourData = _ds(xyz.ravel())
+                seq.append(item)
+        c = Dataset()
+        c.ReferencedROINumber = int(value)
+        c.ROIDisplayColor = [int((value * 67) % 256), int((value * 131 + 80) % 256),
+                             int((value * 29 + 160) % 256)]
+        c.ContourSequence = Sequence(seq)
+        contours.append(c)
+        obs = Dataset()
+        obs.ObservationNumber = n
+        obs.ReferencedROINumber = int(value)
+        obs.RTROIInterpretedType = ""
+        obs.ROIInterpreter = ""
+        observations.append(obs)
+    ds.StructureSetROISequence = Sequence(rois)
+    ds.ROIContourSequence = Sequence(contours)
+    ds.RTROIObservationsSequence = Sequence(observations)
+    return ds
+
+
+def write_rtstruct(vol: Volume, path: str | os.PathLike, reference, *,
+                   names: dict[int, str] | None = None) -> None:
+    """Write :func:`build_rtstruct`'s RTSTRUCT to ``path`` atomically."""
+    from .atomic import atomic_output, check_output_path
+
+    check_output_path(path)
+    ds = build_rtstruct(vol, reference, names=names, where=str(path))
+    with atomic_output(path) as tmp:
+        ds.save_as(tmp, enforce_file_format=True)
