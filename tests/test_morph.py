@@ -258,7 +258,7 @@ def test_explicit_grid_and_static_warp_of_attributes():
 
 
 def test_attribute_file_names():
-    from volwarp_cli.cli.morph import _attribute_name
+    from volwarp_cli.morph.outputs import attribute_name as _attribute_name
 
     assert _attribute_name("out/f_003.nrrd", "rgb") == "out/f_003_rgb.nrrd"
     assert _attribute_name("f_1.nii.gz", "grey") == "f_1_grey.nii.gz"

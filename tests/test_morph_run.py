@@ -15,13 +15,20 @@ import pytest
 
 from volwarp_cli.engine import open_engine
 from volwarp_cli.errors import OutOfMemoryError, VolwarpError
-from volwarp_cli.geometry import Geometry
+from volwarp_cli.execute import How
 from volwarp_cli.io import read_volume, write_volume
-from volwarp_cli.io.blockwrite import committed, open_block_output
 from volwarp_cli.io.lazy import LazySource, open_volume_template
 from volwarp_cli.morph.frames import morph_frames
+from volwarp_cli.morph.outputs import MorphOutputs
 from volwarp_cli.morph.pipeline import prepare
-from volwarp_cli.morph.run import BlocksRefused, morph_by_blocks, morph_note
+from volwarp_cli.morph.run import (
+    BlocksRefused,
+    FrameWrite,
+    morph_by_blocks,
+    morph_note,
+    plan_morph,
+    run_morph,
+)
 from volwarp_cli.morph.spec import AttributeRef, MorphJob, ShapeRef
 from volwarp_cli.volume import Volume
 
@@ -52,12 +59,11 @@ def _lazy(path):
     return template, LazySource(path, array=array)
 
 
-def _open_output(path, template, dtype, block):
-    return committed(open_block_output(path, Geometry.of(template), dtype, chunks_zyx=block,
-                                       metadata=template.meta, space=template.space))
+def _outputs(job, tmp_path):
+    return MorphOutputs(job, str(tmp_path / "b_{i}.nrrd"))
 
 
-def _run(job, tmp_path, *, fallback=None, confirm=None, engine_opened=None, **kw):
+def _run(job, tmp_path, *, engine_opened=None, **kw):
     """Every frame of ``job`` by blocks into ``tmp_path/b_{i}.nrrd``: the yielded frames."""
 
     @contextlib.contextmanager
@@ -68,14 +74,9 @@ def _run(job, tmp_path, *, fallback=None, confirm=None, engine_opened=None, **kw
             yield e
 
     attrs = {a.name: (_lazy(a.source), _lazy(a.target)) for a in job.attributes}
-    frames = [str(tmp_path / f"b_{i}.nrrd") for i in range(len(job.times))]
-    paths = {a.name: [str(tmp_path / f"b_{i}_{a.name}.nrrd") for i in range(len(job.times))]
-             for a in job.attributes}
     gen = morph_by_blocks(job, _lazy(job.source.path), _lazy(job.target.path), attrs,
-                          frame_paths=frames, attribute_paths=paths, meta={"who": "test"},
-                          open_engine=engine, budget=lambda: 64 << 20, block=(5, 8, 6),
-                          open_output=_open_output, check_output=lambda *a: None,
-                          fallback=fallback, confirm=confirm, **kw)
+                          outputs=_outputs(job, tmp_path), meta={"who": "test"},
+                          how=How(block=(5, 8, 6), open_engine=engine), **kw)
     return list(gen)
 
 
@@ -124,28 +125,48 @@ def test_a_landmark_warp_is_refused_before_any_work(shapes, tmp_path):
                                             r"warp .* by blocks \(that morph runs in memory\)$"):
         _run(job, tmp_path, engine_opened=opened)
     assert not opened and not list(tmp_path.glob("b_*"))
-    # standing in for a refused in-memory morph: that refusal is raised, as it was
-    fallback = OutOfMemoryError("the morph needs more memory")
-    with pytest.raises(OutOfMemoryError) as info:
-        _run(job, tmp_path, fallback=fallback, engine_opened=opened)
-    assert info.value is fallback and not opened
 
 
-def test_the_fallback_runs_only_when_confirmed(shapes, tmp_path):
+def test_the_run_is_decided_before_any_sample_is_read(shapes, tmp_path, monkeypatch):
+    """By the in-memory morph's memory against the budget: no try, no catch."""
+    from volwarp_cli import memory
+    from volwarp_cli.io import read_volume as real_read
+
     job = _job(shapes, times=[0.0, 1.0])
-    fallback = OutOfMemoryError("the morph needs more memory")
-    asked = []
+    outputs = _outputs(job, tmp_path)
+    read = []
+    monkeypatch.setattr("volwarp_cli.io.read_volume", lambda *a, **k: read.append(a) or
+                        real_read(*a, **k))
+    assert not plan_morph(job, outputs, FrameWrite(), None).by_blocks
+    monkeypatch.setattr(memory, "process_rss", lambda: 0)
+    monkeypatch.setattr("volwarp_cli.execute.MIN_BLOCK_BUDGET", 64 << 10)
+    with memory.use_memory_limit(150 << 10):
+        plan = plan_morph(job, outputs, FrameWrite(), None)
+        assert plan.by_blocks and "needs" in plan.in_memory_refusal
+        with pytest.raises(OutOfMemoryError, match="needs"):  # --no-chunked
+            plan_morph(job, outputs, FrameWrite(), False)
+        assert plan_morph(job, outputs, FrameWrite(), True).in_memory_refusal is None
+    assert not read  # (the headers only: nothing read whole)
 
-    def confirm(message):
-        asked.append(message)
-        return False
 
-    with pytest.raises(OutOfMemoryError) as info:
-        _run(job, tmp_path, fallback=fallback, confirm=confirm)
-    assert info.value is fallback and asked == ["the morph needs more memory"]
+def test_what_blocks_refuse_completes_the_in_memory_refusal(shapes, tmp_path, monkeypatch):
+    """Unasked blocks that cannot run: one refusal with both reasons, nothing written."""
+    from volwarp_cli import memory
+
+    job = _job(shapes, times=[0.0, 1.0], grid="source",
+               warp_source_points=np.array([[12.0, -9.0, 10.0]]),
+               warp_target_points=np.array([[13.0, -9.0, 10.0]]))
+    outputs = _outputs(job, tmp_path)
+    monkeypatch.setattr(memory, "process_rss", lambda: 0)
+    monkeypatch.setattr("volwarp_cli.execute.MIN_BLOCK_BUDGET", 64 << 10)
+    with memory.use_memory_limit(150 << 10):
+        plan = plan_morph(job, outputs, FrameWrite(), None)
+        with pytest.raises(OutOfMemoryError) as info:
+            run_morph(job, outputs, plan, meta={}, write_kw={},
+                      how=How(open_engine=lambda: open_engine("synchronous")))
+    assert str(info.value).startswith(plan.in_memory_refusal + ", and by blocks: ")
+    assert "landmark warp" in str(info.value)
     assert not list(tmp_path.glob("b_*")) and not list(tmp_path.glob(".*"))
-    assert len(_run(job, tmp_path, fallback=fallback, confirm=lambda m: True)) == 2
-    assert sorted(p.name for p in tmp_path.glob("b_*")) == ["b_0.nrrd", "b_1.nrrd"]
 
 
 @pytest.mark.parametrize("spec", [False, True])

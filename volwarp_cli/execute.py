@@ -163,13 +163,15 @@ class How:
     blocks only when the whole does not fit); ``block``: the user's block
     shape (z, y, x); ``open_engine()``: a context manager giving the engine
     the blocks run on; ``threads``: the in-memory run's threads (None:
-    :func:`volwarp_cli.parallel.threads`).
+    :func:`volwarp_cli.parallel.threads`); ``scheduler``: the scheduler the
+    user named, if any.
     """
 
     chunked: bool | None = None
     block: tuple[int, int, int] | None = None
     open_engine: Callable | None = None
     threads: int | None = None
+    scheduler: str | None = None
 
 
 @dataclass

@@ -1,19 +1,26 @@
-"""The morph by blocks, end to end: the checks, then the fields on disk and the frames by blocks.
+"""The morph end to end: decided before any sample is read, run in memory or by blocks.
 
-:func:`morph_by_blocks` strings together the steps of :mod:`.chunked` as
-``volwarp morph --chunked`` runs them (and the in-memory morph's fallback
-when it does not fit the memory budget): the frame grid and what the block
-path refuses, the alignment's matrices counted by blocks, the resampling's
-blocks and the aligned inputs' coverage, the outputs' checks, then both
-fields computed on disk and every frame written block by block. Nothing
-here parses options, opens inputs or names files: the caller passes the
-inputs opened lazily, the output paths, the engine and the block outputs.
+:func:`plan_morph` reads the inputs' headers, the frame grid's size and the
+outputs', and decides by arithmetic, as :func:`volwarp_cli.execute.run` does
+for every operation: the in-memory morph's memory against the budget
+(``--chunked``/``--no-chunked`` as asked), what neither way can make refused
+with both reasons. :func:`morph_in_memory` runs the frames of
+:mod:`.frames`; :func:`morph_by_blocks` strings together the steps of
+:mod:`.chunked`: the frame grid and what the block path refuses, the
+alignment's matrices counted by blocks, the resampling's blocks and the
+aligned inputs' coverage, the outputs' checks, then both fields on disk and
+every frame written block by block. Nothing here parses options: the command
+line passes the job, its outputs (:class:`.outputs.MorphOutputs`) and how to
+run (:class:`volwarp_cli.execute.How`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from collections.abc import Callable, Iterator
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -26,7 +33,18 @@ from .spec import MorphJob
 
 
 class BlocksRefused(VolwarpError):
-    """A morph the block path does not run (the in-memory morph does): a usage error."""
+    """A morph the block path cannot run, and why (said before any work).
+
+    ``usage``: the morph itself is one the block path does not run (a
+    landmark warp, a frame grid the aligned inputs do not cover: the
+    in-memory morph does); otherwise its outputs or its blocks cannot be
+    made (a format written whole, a full disk, a resampling too big for a
+    block).
+    """
+
+    def __init__(self, message: str, usage: bool = True):
+        super().__init__(message)
+        self.usage = usage
 
 
 def morph_note(job: MorphJob) -> str:
@@ -40,6 +58,155 @@ def morph_note(job: MorphJob) -> str:
     return note
 
 
+@dataclass(frozen=True)
+class FrameWrite:
+    """How the frames are written: their type and the writers' options.
+
+    ``dtype``: None for float32, or the source's for a density ``range:
+    source``; the attributes keep their own.
+    """
+
+    dtype: object = None
+    compress: bool = False
+    byte_order: str = "little"
+    version: str = "0.5"
+    pyramid: int = 0
+
+    @classmethod
+    def of(cls, write_kw: dict) -> FrameWrite:
+        """From the command's write options (``dtype``, ``compress``, ``ome_zarr_version``...)."""
+        return cls(write_kw.get("dtype"), bool(write_kw.get("compress")),
+                   write_kw.get("byte_order", "little"),
+                   write_kw.get("ome_zarr_version", "0.5"), int(write_kw.get("pyramid") or 0))
+
+    def open(self, path, template, dtype, block):
+        """The block output of ``path`` (committed on a clean exit)."""
+        from ..io.blockwrite import open_volume_blocks
+
+        return open_volume_blocks(path, template, dtype, block=block, compress=self.compress,
+                                  byte_order=self.byte_order, version=self.version,
+                                  pyramid=self.pyramid)
+
+    def refusal(self, path, shape_zyx, dtype) -> str | None:
+        """Why ``path`` cannot be written by blocks (its format, its folder's space), or None."""
+        import math
+
+        from ..execute import blocks_refusal
+
+        nbytes = math.prod(int(n) for n in shape_zyx) * np.dtype(dtype).itemsize
+        return blocks_refusal([(path, nbytes)], self.compress, self.pyramid)
+
+
+@dataclass
+class MorphPlan:
+    """:func:`plan_morph`'s decision.
+
+    ``by_blocks``; ``in_memory_refusal``: why the in-memory morph does not
+    fit, when blocks run instead of it unasked; ``loaded``: inputs read whole
+    to read their headers (compressed files), by path; ``headers``: the
+    source's and the target's Volumes, their samples placeholders or read.
+    """
+
+    by_blocks: bool
+    in_memory_refusal: str | None = None
+    loaded: dict = field(default_factory=dict)
+    headers: tuple = ()
+
+
+def _input_header(path, loaded: dict):
+    """The Volume of ``path`` without its samples where the format allows, else read whole."""
+    from ..io import read_volume
+    from ..io.lazy import open_volume_template
+
+    try:
+        return open_volume_template(path, require_lazy=True)[0]
+    except VolwarpError:  # (compressed, or not a volume: read_volume says what is wrong)
+        loaded[str(path)] = read_volume(path)
+        return loaded[str(path)]
+
+
+def in_memory_bytes(job: MorphJob, source, target, frame_voxels: int) -> int:
+    """What the in-memory morph holds at its peak, from the headers alone.
+
+    Both inputs read whole; one field's passes at a time on its input's grid
+    (the float32 field, the pass temporaries) and both fields kept; the
+    frame grid's arrays (:func:`.pipeline.prepare`'s count: 5 float32 a
+    voxel, 11 with a moving landmark warp); each attribute's pair on it.
+    """
+    from ..distance.passes import PASS_BYTES_PER_VOXEL
+
+    sizes = [math.prod(v.data.shape) for v in (source, target)]
+    items = [np.dtype(v.dtype).itemsize for v in (source, target)]
+    inputs = sum(n * i for n, i in zip(sizes, items, strict=True))
+    field_pass = max(n * (4 + PASS_BYTES_PER_VOXEL + i) for n, i in zip(sizes, items,
+                                                                         strict=True))
+    per_voxel = 4 * (5 if job.warp_mode == "static" else 11) + 8 * len(job.attributes)
+    return inputs + field_pass + 4 * sum(sizes) + frame_voxels * per_voxel
+
+
+def plan_morph(job: MorphJob, outputs, write: FrameWrite, chunked: bool | None) -> MorphPlan:
+    """In memory or by blocks, decided before any sample is read (module notes).
+
+    Refuses, before any work, frames that fit neither the memory nor the disk
+    (:func:`volwarp_cli.execute.refuse_unmakeable`); a
+    :class:`~.grid.GridError` for a frame grid that cannot be made.
+    """
+    from .. import execute, memory
+    from .grid import least_frame_shape
+
+    plan = MorphPlan(False)
+    with one_volume_inputs():
+        source = _input_header(job.source.path, plan.loaded)
+        target = _input_header(job.target.path, plan.loaded)
+    plan.headers = (source, target)
+    shape = least_frame_shape(job, Geometry.of(source), Geometry.of(target))
+    n = math.prod(shape)
+    frame_type = np.dtype(write.dtype or (
+        source.dtype if job.output == "density" and job.density_range == "source"
+        else np.float32))
+    sizes = [(p, n * frame_type.itemsize) for p in outputs.frames]
+    for a in job.attributes:  # (an attribute's own type: one byte at least)
+        sizes += [(p, n * np.dtype(a.dtype or np.uint8).itemsize)
+                  for p in outputs.attributes[a.name]]
+    what = f"a morph on a {'x'.join(map(str, shape))} grid"
+    need = in_memory_bytes(job, source, target, n)
+    if chunked is not True and execute.fits(need):
+        return plan
+    execute.refuse_unmakeable(what, need, sizes, chunked=chunked, compress=write.compress,
+                              pyramid=write.pyramid)
+    plan.by_blocks = True
+    plan.loaded.clear()  # (the block path opens its inputs itself)
+    if chunked is None:
+        try:
+            memory.ensure_fits_in_memory(need, what)
+        except VolwarpError as exc:
+            plan.in_memory_refusal = str(exc)
+        try:
+            execute.block_budget()
+        except VolwarpError:  # no room for blocks either: the in-memory refusal stands
+            memory.ensure_fits_in_memory(need, what)
+            raise
+        log.warning("%s needs %s: running by blocks (--no-chunked to refuse instead)", what,
+                    memory.human_bytes(need))
+    return plan
+
+
+@contextlib.contextmanager
+def one_volume_inputs():
+    """A morph input that holds several volumes is the input's fault (exit 1).
+
+    Morph has no ``--volume-index`` nor ``--series`` to choose one with: the
+    reader's usage error becomes a file error saying how to extract one.
+    """
+    from ..errors import ChoiceNeeded, FormatError
+
+    try:
+        yield
+    except ChoiceNeeded as exc:
+        raise FormatError(f"{exc} (morph takes one volume per input: extract it first, e.g. "
+                          "volwarp convert IN --volume-index N -o one.nrrd)") from None
+
+
 def _cast_block(block, *, dtype, what):
     from ..samples import cast_samples
 
@@ -47,13 +214,9 @@ def _cast_block(block, *, dtype, what):
 
 
 def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = None, *,
-                    frame_paths: list[str], attribute_paths: dict[str, list[str]] | None = None,
-                    meta: dict | None = None, dtype=None, meshes: bool = False,
-                    render: RenderSettings | None = None, open_engine: Callable,
-                    budget: Callable[[], int], block=None, scheduler: str | None = None,
-                    open_output: Callable, check_output: Callable,
-                    fallback: VolwarpError | None = None,
-                    confirm: Callable[[str], bool] | None = None) -> Iterator[BlockFrame]:
+                    outputs, meta: dict | None = None, write: FrameWrite = FrameWrite(),
+                    meshes: bool = False, render: RenderSettings | None = None,
+                    how) -> Iterator[BlockFrame]:
     """The frames of ``job`` computed and written by blocks, yielded in order once written.
 
     Parameters
@@ -65,38 +228,18 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
         sliceable, picklable reader of its samples.
     attributes : dict, optional
         name -> ((template, samples), (template, samples)) of each attribute.
-    frame_paths, attribute_paths
-        Each frame's output path; name -> each frame's path of that attribute.
+    outputs : MorphOutputs
+        Each frame's path (``frames``) and each attribute's (``attributes``).
     meta : dict, optional
         Key/values every frame carries after ``volwarp_morph`` (provenance).
-    dtype : optional
-        The frames' output type (default float32, or the source's for a
-        density ``range: source``); the attributes keep their own.
+    write : FrameWrite
+        The frames' type and the writers' options.
     meshes, render
         As :func:`.frames.morph_frames`' (the caller writes them).
-    open_engine : callable
-        ``open_engine()``: a context manager giving the engine the blocks run on.
-    budget : callable
-        ``budget()``: the memory the blocks may use, bytes (asked once the
-        engine is open).
-    block : (z, y, x) ints, optional
-        The user's block shape.
-    scheduler : str, optional
-        The engine's scheduler; the meshes run on it when one is named
-        (threads otherwise).
-    open_output : callable
-        ``open_output(path, template, dtype, block)``: a context manager giving
-        the :class:`~volwarp_cli.io.blockwrite.BlockOutput` of ``template``'s
-        geometry and key/values, committed on a clean exit.
-    check_output : callable
-        ``check_output(path, shape_zyx, dtype)``: a VolwarpError when that
-        output cannot be written by blocks (its format, its folder's space).
-    fallback : VolwarpError, optional
-        The in-memory morph's refusal, when this runs instead of it: raised
-        in place of every refusal here.
-    confirm : callable, optional
-        With ``fallback``: ``confirm(message)``, once every check has passed,
-        whether to run by blocks after all (False raises ``fallback``).
+    how : volwarp_cli.execute.How
+        The engine the blocks run on (``open_engine``), the user's ``block``
+        shape, and the ``scheduler`` named (the meshes run on it when one is;
+        threads otherwise).
 
     Yields
     ------
@@ -107,16 +250,17 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
     Raises
     ------
     BlocksRefused
-        A morph the block path does not run (a landmark warp, a frame grid the
-        aligned inputs do not cover), unless ``fallback``.
+        Before any work: a morph the block path does not run (a landmark
+        warp, a frame grid the aligned inputs do not cover), an output that
+        cannot be written by blocks, a resampling too big for a block.
     GridError
         The frame grid's error (the in-memory morph's).
     VolwarpError
-        An output that cannot be written by blocks, a resampling too big for a
-        block, or the work's errors.
+        The work's errors.
     """
     from .. import parallel
     from ..engine import write_blocks
+    from ..execute import block_budget
     from ..io.atomic import scratch_folder
     from .chunked import (
         attributes_by_blocks,
@@ -133,15 +277,12 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
     from .interpolate import index_map, lands_on_grid
 
     attrs = attributes or {}
-    attribute_paths = attribute_paths or {}
-
-    def refuse(message, usage=True):
-        if fallback is not None:
-            raise fallback
-        raise (BlocksRefused if usage else VolwarpError)(message)
+    frame_paths, attribute_paths = outputs.frames, outputs.attributes
+    block = how.block
 
     def refuse_why(why):
-        refuse(f"--chunked does not run a morph with {why} by blocks (that morph runs in memory)")
+        raise BlocksRefused(f"--chunked does not run a morph with {why} by blocks (that morph "
+                            "runs in memory)")
 
     geometry = {name: (Geometry.of(a[0]), Geometry.of(b[0])) for name, (a, b) in attrs.items()}
     try:
@@ -156,8 +297,8 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
     frame_type = (source_type if job.output == "density" and job.density_range == "source"
                   else np.dtype(np.float32))
     types = {a.name: np.dtype(a.dtype or attrs[a.name][0][1].dtype) for a in job.attributes}
-    with open_engine() as engine:
-        per_task = budget() // max(1, engine.workers)
+    with how.open_engine() as engine:
+        per_task = block_budget() // max(1, engine.workers)
         run = functools.partial(engine.map, label="morph", memory=per_task)
         inputs = {"source": source, "target": target}
         if job.moved:
@@ -182,24 +323,20 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
             try:
                 rchunks = resample_chunks(grid.shape, chunks, maps, per_task)
             except VolwarpError as exc:
-                refuse(str(exc), usage=False)
+                raise BlocksRefused(str(exc), usage=False) from None
             why = check_covered(job, {"source": Geometry.of(source[0]),
                                       "target": Geometry.of(target[0])}, matrices, grid, run,
                                 rchunks)
             if why:
                 refuse_why(why)
+        dtype = write.dtype
         checks = [(p, np.dtype(dtype or frame_type)) for p in frame_paths]
         for a in job.attributes:
             checks += [(p, types[a.name]) for p in attribute_paths[a.name]]
         for path, out_type in checks:
-            try:
-                check_output(path, grid.shape, out_type)
-            except VolwarpError:
-                if fallback is not None:
-                    raise fallback from None
-                raise
-        if fallback is not None and confirm is not None and not confirm(str(fallback)):
-            raise fallback
+            why = write.refusal(path, grid.shape, out_type)
+            if why is not None:
+                raise BlocksRefused(why, usage=False)
         with scratch_folder(frame_paths[0]) as scratch:
             with timed("morph by blocks: both fields"):
                 bm = fields_by_blocks(job, inputs, engine, scratch, block_bytes=per_task,
@@ -207,7 +344,7 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
             log.info("morph fields by blocks: %s", bm.info["chunked"])
             frame_meta = {"volwarp_morph": morph_note(job), **(meta or {})}
             mesh_run = None
-            if scheduler is not None:  # (VTK holds the GIL: threads otherwise)
+            if how.scheduler is not None:  # (VTK holds the GIL: threads otherwise)
                 mesh_run = functools.partial(engine.map, label="mesh", memory=per_task)
             attr_samples = attributes_by_blocks(
                 {a.name: (attrs[a.name][0], attrs[a.name][1], types[a.name].name)
@@ -225,11 +362,83 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
                     data = data.map_blocks(functools.partial(_cast_block, dtype=dtype,
                                                              what=str(path)),
                                            dtype=np.dtype(dtype))
-                with open_output(path, frame.template, data.dtype, chunks) as sink:
+                with write.open(path, frame.template, data.dtype, chunks) as sink:
                     write_blocks(data, sink, engine, label=f"frame-{i}", memory=per_task)
                 for name, (template, values) in frame.attributes.items():
-                    with open_output(attribute_paths[name][i], template, values.dtype,
-                                     chunks) as sink:
+                    with write.open(attribute_paths[name][i], template, values.dtype,
+                                    chunks) as sink:
                         write_blocks(values, sink, engine, label=f"{name}-{i}",
                                      memory=per_task)
                 yield frame
+
+
+def run_morph(job: MorphJob, outputs, plan: MorphPlan, *, meta: dict, write_kw: dict,
+              render: RenderSettings | None = None, camera_to=None, how) -> Geometry:
+    """Every frame of ``job`` and its surfaces written, as ``plan`` decided; the frame grid.
+
+    ``meta``: each frame's provenance; ``write_kw``: the write options;
+    ``render``, ``camera_to``: the renders' settings and the camera file.
+    By blocks where the in-memory morph did not fit (unasked), what the
+    block path refuses is that refusal's second half.
+    """
+    if not plan.by_blocks:
+        return _in_memory(job, outputs, plan.loaded, meta=meta, write_kw=write_kw,
+                          render=render, camera_to=camera_to)
+    from ..errors import OutOfMemoryError
+
+    try:
+        return _by_blocks(job, outputs, meta=meta, write=FrameWrite.of(write_kw), render=render,
+                          camera_to=camera_to, how=how)
+    except BlocksRefused as exc:
+        if plan.in_memory_refusal is None:
+            raise
+        raise OutOfMemoryError(f"{plan.in_memory_refusal}, and by blocks: {exc}") from None
+
+
+def _in_memory(job, outputs, loaded, *, meta, write_kw, render, camera_to) -> Geometry:
+    from ..io import read_volume, write_volume
+    from .frames import morph_frames
+    from .pipeline import prepare
+
+    def read(path):  # (taken out: the caller keeps none of them)
+        vol = loaded.pop(str(path), None)
+        return read_volume(path) if vol is None else vol
+    with timed("read inputs"), one_volume_inputs():
+        source = read(job.source.path)
+        target = read(job.target.path)
+        attrs = {a.name: (read_volume(a.source), read_volume(a.target)) for a in job.attributes}
+    prep = prepare(job, source, target, attrs)
+    meta = {"volwarp_morph": morph_note(job), **meta}
+    attr_kw = {k: v for k, v in write_kw.items() if k != "dtype"}  # their own types
+    renders = []
+    for frame in morph_frames(job, prep, source, attrs, meta=meta,
+                              meshes=bool(outputs.meshes), render=render):
+        i = frame.index
+        write_volume(frame.volume, outputs.frames[i], **write_kw)
+        for name, vol in frame.attributes.items():
+            write_volume(vol, outputs.attributes[name][i], **attr_kw)
+        outputs.write_surface(frame, frame.volume.meta, renders)
+    outputs.finish(job, frame, render, camera_to, renders)
+    return prep.grid
+
+
+def _lazy(path):
+    from ..io.lazy import LazySource, open_volume_template
+
+    template, array = open_volume_template(path)
+    return template, LazySource(path, array=array)
+
+
+def _by_blocks(job, outputs, *, meta, write, render, camera_to, how) -> Geometry:
+    with one_volume_inputs():
+        source, target = _lazy(job.source.path), _lazy(job.target.path)
+        attrs = {a.name: (_lazy(a.source), _lazy(a.target)) for a in job.attributes}
+    frames = morph_by_blocks(job, source, target, attrs, outputs=outputs, meta=meta,
+                             write=write, meshes=bool(outputs.meshes), render=render, how=how)
+    renders = []
+    frame = None
+    with contextlib.closing(frames):
+        for frame in frames:
+            outputs.write_surface(frame, frame.template.meta, renders)
+    outputs.finish(job, frame, render, camera_to, renders)
+    return Geometry.of(frame.template)
