@@ -1,7 +1,7 @@
 """volwarp_cli.api: what a function returns, written with api.write, is its command's output.
 
 Byte for byte, file against file, for each operation (capture, warp of
-intensities, of a label map and of a capture file, sweep, mesh); a spec
+intensities, of a label map and of a capture file, sweep, mesh, distance); a spec
 given as a dict is the spec given as a file, and a bad one fails the same
 way, at the same key.
 """
@@ -115,6 +115,23 @@ def test_mesh_is_the_command_s_file(run, tmp_path):
     assert np.array_equal(again.vertices, surface.vertices)
     assert np.array_equal(again.faces, surface.faces)
     assert "volwarp_input" not in again.meta and surface.meta["volwarp_input"] == BALL.name
+
+
+@pytest.mark.parametrize("options, kwargs", [
+    (["--iso", "100", "--surface", "voxel"], dict(iso=100, surface="voxel")),
+    (["--iso", "100", "--metric", "minnorm", "--unsigned"],
+     dict(iso=100, metric="minnorm", unsigned=True)),
+    (["--iso", "60", "--max-distance", "3"], dict(iso=60, max_distance=3)),
+    (["--values", "labels"], dict(values="labels")),
+], ids=["exact", "minnorm", "band", "labels"])
+def test_distance_is_the_command_s_file(run, tmp_path, options, kwargs):
+    cli, mine = tmp_path / "cli.nrrd", tmp_path / "api.nrrd"
+    res = run("distance", BALL, "-o", cli, *options)
+    assert res.code == 0, res.stderr
+    field = api.distance(BALL, **kwargs)
+    assert field.data.dtype == np.float32 and field.data.min() <= 0 < field.data.max()
+    api.write(field, mine)
+    _same_bytes(cli, mine)
 
 
 def test_a_spec_dict_is_the_spec_file():

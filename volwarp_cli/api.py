@@ -60,7 +60,8 @@ from .errors import BadUsage
 from .surface.mesh import Mesh as _Mesh
 from .volume import Volume
 
-__all__ = ["Mesh", "READ_OPTIONS", "capture", "mesh", "read", "sweep", "warp", "write"]
+__all__ = ["Mesh", "READ_OPTIONS", "capture", "distance", "mesh", "read", "sweep", "warp",
+           "write"]
 
 #: The keyword options of :func:`read` (those of ``volwarp convert``, snake_case); every
 #: function that takes a volume path takes them too.
@@ -379,6 +380,71 @@ def sweep(spec, *, shape=None, spacing: float | None = None, method: str | None 
     op = SweepOperation(sspec, geometry, dict.fromkeys(names), dtype or "float32", meta, {},
                         method=method, tau=tau)
     return _compute_whole(op)
+
+
+def distance(volume, iso: float | None = None, *, inside: str = "above",
+             label: int | None = None, values: str | None = None, metric: str = "euclidean",
+             surface: str = "auto", unsigned: bool = False,
+             max_distance: float | None = None, **read_options) -> Volume:
+    """``volwarp distance``: the signed distance field of a shape (float32, negative inside).
+
+    Parameters
+    ----------
+    volume : Volume or path
+        The volume (a path is read as the command reads it).
+    iso, inside : the shape, the samples on one side of ``iso``
+        (``inside="above"``: samples >= iso).
+    label, values : a label map's shape
+        Its voxels (every non-zero label's, or label ``label``'s); ``values``
+        ``"labels"`` or ``"intensity"`` overrides the label-map rule, as
+        ``--values`` does.
+    metric : {"euclidean", "minnorm", "chessboard", "taxicab"}
+    surface : {"auto", "voxel", "subvoxel"}
+        The euclidean field's: between voxel centres or to the sub-voxel surface.
+    unsigned, max_distance
+        As ``--unsigned`` and ``--max-distance``.
+
+    Returns
+    -------
+    Volume
+        The field on the input's grid, its ``volwarp_distance`` key and
+        provenance as the command writes them (float32: :func:`write`'s
+        ``dtype`` converts, as ``--dtype`` does).
+    """
+    import numpy as np
+
+    from .distance.field import check_method, field_note
+    from .distance.labels import check_options, choose_shape
+    from .distance.operation import field_operation
+    from .distance.scan import field_surface, scan_box_voxels
+    from .geometry import Geometry
+    from .progress import log
+
+    _check_keys(read_options)
+    _choice(inside, ("above", "below"), "inside")
+    check_method(metric, surface)
+    check_options(values=values, label=label, iso=iso, surface=surface)
+    path = _path_of(volume)
+    with _outside_data(read_options.get("allow_outside_data", False)):
+        if path is not None:
+            template, source = _open_lazy(path, read_options)
+        else:
+            template = _volume(volume, read_options)
+            source = template.data
+        box_voxels = scan_box_voxels()
+        name = str(path) if path is not None else "the volume"
+        rule = choose_shape(source, values=values, label=label, iso=iso, inside=inside,
+                            surface=surface, name=name, box_voxels=box_voxels)
+        log.info("%s", rule.describe())
+        surface = field_surface(source, rule, metric=metric, surface=surface,
+                                max_distance=max_distance, box_voxels=box_voxels)
+        out = _stamped(template, "distance", path, None)
+        out.meta["volwarp_distance"] = field_note(metric, surface, rule, unsigned, max_distance)
+        out = out.with_data(np.broadcast_to(np.zeros((), np.float32), template.data.shape))
+        op = field_operation(source, Geometry.of(out), rule, metric=metric, surface=surface,
+                             max_distance=max_distance, unsigned=unsigned, target=_target(out))
+        (field,) = _compute_whole(op).values()
+    return field
 
 
 def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool = False,
