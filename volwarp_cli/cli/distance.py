@@ -103,8 +103,9 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
                 raise click.UsageError(f"{flag} does not apply to --update (the field is given)")
         if metric not in ("euclidean", "minnorm"):
             raise click.UsageError("--update propagates euclidean or minnorm fields only")
-        _update(update, transform, output, metric, max_distance, dtype, compress, byte_order,
-                raw, volume_index, dicom, ome_zarr)
+        _update(update, transform, output, metric, max_distance,
+                write=dict(dtype=dtype, compress=compress, byte_order=byte_order, **ome_zarr),
+                read=dict(raw=raw, volume_index=volume_index, dicom=dicom))
         return
     if transform is not None:
         raise click.UsageError("--transform goes with --update OLD_SDF")
@@ -175,8 +176,8 @@ def _collector_paused():
             gc.enable()
 
 
-def _update(old_path, transform_path, output, metric, max_distance, dtype, compress, byte_order,
-            raw, volume_index, dicom, ome_zarr):
+def _update(old_path, transform_path, output, metric, max_distance, *, write, read):
+    """The field of ``old_path`` moved (``read``: its read options; ``write``: the output's)."""
     from ..distance.field import finish_field
     from ..distance.update import field_and_centre, update_distance
     from ..errors import VolwarpError
@@ -185,7 +186,7 @@ def _update(old_path, transform_path, output, metric, max_distance, dtype, compr
 
     doc = load_spec(transform_path, "transform")
     check_output_path(output, option="-o")
-    vol = load_input(old_path, raw, volume_index, dicom=dicom)
+    vol = load_input(old_path, read["raw"], read["volume_index"], dicom=read["dicom"])
     params = {k: v for k, v in doc.data.items() if k != "version"}
     field, center = field_and_centre(vol, params, where=str(old_path))
     try:
@@ -200,5 +201,4 @@ def _update(old_path, transform_path, output, metric, max_distance, dtype, compr
     finish_field(new, max_distance=max_distance)
     with timed(f"write {output}"):
         write_volume(stamp(vol.with_data(new), "distance --update", old_path, transform_path),
-                     output, dtype=dtype, compress=compress, byte_order=byte_order,
-                     **ome_zarr)
+                     output, **write)

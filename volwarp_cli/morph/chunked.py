@@ -440,10 +440,22 @@ def occupied_box(bm: BlockMorph, run, chunks) -> np.ndarray:
     return box_corners(occ, bm.grid)
 
 
+@dataclass(frozen=True)
+class MeshBlocks:
+    """How the frames' surfaces are meshed by blocks.
+
+    ``block``: the meshes' blocks; ``run``, ``threads``: who runs them
+    (:func:`volwarp_cli.surface.chunked.isosurface_blocks`' ``run`` and ``threads``).
+    """
+
+    block: tuple
+    run: object = None
+    threads: int | None = 1
+
+
 def block_frames(job: MorphJob, bm: BlockMorph, source, attributes: dict | None = None, *,
-                 meta: dict | None = None, chunks, run, mesh_block, meshes: bool = False,
-                 render: RenderSettings | None = None, mesh_run=None,
-                 mesh_threads: int | None = 1) -> Iterator[BlockFrame]:
+                 meta: dict | None = None, chunks, run, meshes: MeshBlocks | None = None,
+                 render: RenderSettings | None = None) -> Iterator[BlockFrame]:
     """The frames of ``job`` by blocks, in order: :func:`.frames.morph_frames`' counterpart.
 
     Parameters
@@ -463,11 +475,9 @@ def block_frames(job: MorphJob, bm: BlockMorph, source, attributes: dict | None 
     run : callable
         ``run(task, items)`` -> results in order (an engine's ``map``): the
         small passes over the fields (the render's box).
-    mesh_block, mesh_run, mesh_threads
-        The meshes' blocks and who runs them
-        (:func:`volwarp_cli.surface.chunked.isosurface_blocks`' ``run`` and
-        ``threads``).
-    meshes, render
+    meshes : MeshBlocks, optional
+        Mesh each frame's surface, so (None: no meshes, but for a render).
+    render
         As :func:`.frames.morph_frames`.
     """
     import dask.array as da
@@ -502,12 +512,12 @@ def block_frames(job: MorphJob, bm: BlockMorph, source, attributes: dict | None 
                 _attribute_block, a, b, t=t, out_type=adtype.name,
                 what=f"attribute {name} at t = {t:g}", dtype=adtype,
                 meta=np.empty((0, 0, 0), adtype)))
-        if meshes or render is not None:
+        if meshes is not None:
             from ..surface.chunked import isosurface_blocks
 
             frame.mesh = isosurface_blocks(bm.frame(t), bm.grid, 0.0, inside="below",
-                                           normals=True, block_shape=mesh_block, run=mesh_run,
-                                           threads=mesh_threads)
+                                           normals=True, block_shape=meshes.block,
+                                           run=meshes.run, threads=meshes.threads)
             if render is not None:
                 from ..render.surface import fit_camera, render_mesh
 

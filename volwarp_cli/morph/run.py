@@ -263,6 +263,7 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
     from ..execute import block_budget
     from ..io.atomic import scratch_folder
     from .chunked import (
+        MeshBlocks,
         attributes_by_blocks,
         block_frames,
         block_grid,
@@ -350,11 +351,12 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
                 {a.name: (attrs[a.name][0], attrs[a.name][1], types[a.name].name)
                  for a in job.attributes}, matrices, grid, engine, scratch,
                 block_bytes=per_task, chunks=rchunks)
+            surfaces = None
+            if meshes or render is not None:
+                surfaces = MeshBlocks(mesh_block_shape(grid.shape, per_task, block), mesh_run,
+                                      parallel.threads())
             for frame in block_frames(job, bm, source[1], attr_samples, meta=frame_meta,
-                                      chunks=chunks, run=run,
-                                      mesh_block=mesh_block_shape(grid.shape, per_task, block),
-                                      meshes=meshes, render=render, mesh_run=mesh_run,
-                                      mesh_threads=parallel.threads()):
+                                      chunks=chunks, run=run, meshes=surfaces, render=render):
                 i = frame.index
                 path = frame_paths[i]
                 data = frame.data
