@@ -426,11 +426,7 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
     check_options(values=values, label=label, iso=iso, surface=surface)
     path = _path_of(volume)
     with _outside_data(read_options.get("allow_outside_data", False)):
-        if path is not None:
-            template, source = _open_lazy(path, read_options)
-        else:
-            template = _volume(volume, read_options)
-            source = template.data
+        template, source = _template_and_source(volume, path, read_options)
         box_voxels = scan_box_voxels()
         name = str(path) if path is not None else "the volume"
         rule = choose_shape(source, values=values, label=label, iso=iso, inside=inside,
@@ -500,11 +496,7 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
                        "label is)")
     path = _path_of(volume)
     with _outside_data(read_options.get("allow_outside_data", False)):
-        if path is not None:
-            template, source = _open_lazy(path, read_options)
-        else:
-            template = _volume(volume, read_options)
-            source = template.data
+        template, source = _template_and_source(volume, path, read_options)
         op = MeshOperation(template, source, Level(iso, inside, cap),
                            cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
                                            decimate=decimate),
@@ -607,6 +599,14 @@ def _outside_data(allowed: bool):
         yield
     finally:
         files.allow_outside_data = before
+
+
+def _template_and_source(volume, path, read_options: dict):
+    """``(template, source)``: a path opened lazily (:func:`_open_lazy`), a Volume as it is."""
+    if path is not None:
+        return _open_lazy(path, read_options)
+    template = _volume(volume, read_options)
+    return template, template.data
 
 
 def _open_lazy(path, read_options: dict):
