@@ -115,15 +115,28 @@ def test_a_multi_component_output_by_blocks_is_the_in_memory_file(tmp_path):
 
 
 def test_the_whole_over_the_budget_runs_by_blocks_with_one_warning(tmp_path, caplog):
-    op = Ramp(tmp_path, bytes_per=1 << 30)  # (the whole: terabytes)
+    op = Ramp(tmp_path, bytes_per=2 << 20)  # (the whole: 4.7 GiB; a 6x7x8 block 672 MiB)
     how = execute.How(block=(6, 7, 8), open_engine=lambda: open_engine("threads", workers=2))
     with memory.use_memory_limit(2 << 30):
         ran = execute.run(op, how)
     assert ran.by_blocks
     assert [r.getMessage() for r in caplog.records
             if "running by blocks" in r.getMessage()] == [
-        "ramp 17x13x11 needs 2.4 TiB: running by blocks (--no-chunked to refuse instead)"]
+        "ramp 17x13x11 needs 4.7 GiB: running by blocks (--no-chunked to refuse instead)"]
     assert np.array_equal(read_volume(tmp_path / "v.nrrd").data, _expected()[0])
+
+
+def test_a_user_block_over_a_task_s_budget_is_refused_before_any_work(tmp_path):
+    old = tmp_path / "v.nrrd"
+    old.write_bytes(b"an earlier output")
+    op = Ramp(tmp_path, bytes_per=4 << 20)  # a 6x7x8 block: 1.3 GiB, a task has < 1 GiB
+    how = execute.How(block=(6, 7, 8), open_engine=lambda: open_engine("threads", workers=2))
+    with memory.use_memory_limit(2 << 30), pytest.raises(OutOfMemoryError) as err:
+        execute.run(op, how)
+    assert str(err.value).startswith("ramp 17x13x11: a block of 6x7x8 (z, y, x) needs 1.3 GiB")
+    assert "each of 2 workers may use" in str(err.value) and "\n" not in str(err.value)
+    assert op.computed == [] and old.read_bytes() == b"an earlier output"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.nrrd"]
 
 
 def test_no_chunked_refuses_with_the_sizes_and_writes_nothing(tmp_path):

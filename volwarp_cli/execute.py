@@ -384,6 +384,8 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
                                     block=how.block)
         else:
             block = how.block or op.block_shape(per_task, engine.workers)
+            if how.block is not None:
+                _check_user_block(op, block, per_task, engine.workers)
         outs = {key: stack.enter_context(t.open_blocks(block)) for key, t in op.targets.items()}
         boxes = next(iter(outs.values())).blocks()
         if any(o.blocks() != boxes for o in outs.values()):
@@ -407,6 +409,24 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
         if after is not None:
             ran.after = after(ran)
     return ran
+
+
+def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None:
+    """Refuse, before any work, a ``--block`` whose blocks need more than a task's budget.
+
+    The first, middle and last blocks are weighed (an operation's block memory
+    may depend on where the block lies: a warp's reach).
+    """
+    from .memory import human_bytes
+
+    boxes = op.grid.box.blocks(block)
+    need = max(op.memory(b) for b in {boxes[0], boxes[len(boxes) // 2], boxes[-1]})
+    if need > per_task:
+        raise OutOfMemoryError(
+            f"{op.what}: a block of {'x'.join(map(str, block))} (z, y, x) needs "
+            f"{human_bytes(need)}, more than the {human_bytes(per_task)} each of "
+            f"{workers} workers may use (give a smaller --block, fewer --workers or a larger "
+            "--memory-limit)")
 
 
 def _block_task(op: Operation, box: Box, writers: dict) -> None:
