@@ -46,6 +46,17 @@ def local_updates(request):
 
 
 @pytest.fixture
+def small_splits(monkeypatch):
+    """The warp's thread splits taken on test sizes (production keeps small blocks whole)."""
+    from volwarp_cli import parallel
+    from volwarp_cli.bspline import work
+
+    monkeypatch.setattr(parallel, "SPLIT_MIN_WORK", 1)
+    monkeypatch.setattr(work, "PARALLEL_MIN_VOXELS", 1)
+    monkeypatch.setattr(work, "SPLIT_MAX_SHARE", 1.01)
+
+
+@pytest.fixture
 def data_dir() -> Path:
     return DATA
 

@@ -62,14 +62,6 @@ def moved_lattice(cap, seed=3, scale=1.5):
     return dq
 
 
-@pytest.fixture
-def small_splits(monkeypatch):
-    """Splits taken on test sizes (the production thresholds keep small blocks whole)."""
-    monkeypatch.setattr(parallel, "SPLIT_MIN_WORK", 1)
-    monkeypatch.setattr(work, "PARALLEL_MIN_VOXELS", 1)
-    monkeypatch.setattr(work, "SPLIT_MAX_SHARE", 1.01)
-
-
 def test_full_render_and_local_updates_identical_for_any_thread_count(monkeypatch, small_splits,
                                                                        local_updates):
     probe = KernelThreads(monkeypatch)

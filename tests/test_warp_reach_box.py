@@ -39,14 +39,6 @@ def _blob(shape_zyx, seed=0):
     return (smooth + rng.uniform(1, 5, shape_zyx)).astype(np.float32)
 
 
-@pytest.fixture
-def small_splits(monkeypatch):
-    """Splits taken on test sizes (the production thresholds keep small blocks whole)."""
-    monkeypatch.setattr(parallel, "SPLIT_MIN_WORK", 1)
-    monkeypatch.setattr(work, "PARALLEL_MIN_VOXELS", 1)
-    monkeypatch.setattr(work, "SPLIT_MAX_SHARE", 1.01)
-
-
 def _block_sums(scene, box: Box, need: Box) -> np.ndarray:
     """The integer sums on target block ``box`` from domain voxels ``need`` (z y x) alone."""
     acc = np.zeros(box.shape + (2,), np.int64)
