@@ -234,3 +234,32 @@ def test_a_warp_too_big_for_memory_writes_its_exports_by_blocks(run, tmp_path, m
               "--grid", "grow", "--displacement-to", nii)
     assert res.code == 1 and "needs" in res.stderr and "running by blocks" not in res.stderr
     assert not nii.exists() and not (tmp_path / "o2.nrrd").exists()
+
+
+def test_exports_too_big_for_memory_go_by_slabs_while_the_warp_runs_whole(run, tmp_path,
+                                                                          monkeypatch):
+    """The fields' memory is in the decision, before any work: a warp that fits writes its
+    fields by slabs when they do not fit (the same values), and a field that cannot be
+    written by slabs is refused with both reasons, nothing written."""
+    from volwarp_cli.warp import export_outputs
+
+    src, spec, pts, mesh = _inputs(tmp_path, OBLIQUE)
+    mem, big = tmp_path / "mem", tmp_path / "big"
+    mem.mkdir(), big.mkdir()
+    a = run("warp", src, "--spec", spec, "-o", mem / "o.nrrd", *_exports(mem, pts, mesh))
+    assert a.code == 0, a.stderr
+    # (fields of a terabyte a voxel: far over any budget)
+    monkeypatch.setattr(export_outputs, "WHOLE_FIELD_BYTES",
+                        dict.fromkeys(("displacement", "forward", "jacobian"), 1 << 40))
+    b = run("warp", src, "--spec", spec, "-o", big / "o.nrrd", *_exports(big, pts, mesh))
+    assert b.code == 0, b.stderr
+    assert "field exports need" in b.stderr and "written by slabs" in b.stderr
+    assert "running by blocks" not in b.stderr  # (the warp itself ran whole)
+    assert (mem / "o.nrrd").read_bytes() == (big / "o.nrrd").read_bytes()
+    assert _figures(json.loads(a.stdout)) == _figures(json.loads(b.stdout))
+    _same_exports(mem, big)
+    nii = tmp_path / "d.nii.gz"
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o2.nrrd", "--displacement-to", nii)
+    assert res.code == 1, res.stderr
+    assert "fields whole needs" in res.stderr and ", and by slabs:" in res.stderr
+    assert not nii.exists() and not (tmp_path / "o2.nrrd").exists()

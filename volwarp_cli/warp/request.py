@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import BadUsage
+from ..errors import BadUsage, VolwarpError
 from ..progress import log, timed
 from ..provenance import provenance, stamp
 from .run import WarpOptions
@@ -103,7 +103,7 @@ def _exports_only(req: WarpFiles, how) -> dict:
         cap = capture_as_spec(geometry_capture, spec.capture, req.input, template)
     check_exportable(cap.placement, cap.dq, req.input)
     warp = Deformation(cap, doc, spec, req.options)
-    stats = _write_exports(req, warp, how, by_slabs=bool(how.chunked))
+    stats = _write_exports(req, warp, how, by_slabs=_exports_by_slabs(req, warp, how))
     # (no volume: no grid of its own; the exports are on the input's)
     return {"output": None, "handles": warp.handles(), "grid": None, **stats}
 
@@ -203,14 +203,43 @@ def _warp_once(req: WarpFiles, how) -> dict:
                             compress=w["compress"], byte_order=w["byte_order"],
                             version=w.get("ome_zarr_version", "0.5"),
                             pyramid=w.get("pyramid", 0))
+    slabs = _exports_by_slabs(req, warp, how, held=target.nbytes(template.data.shape))
     ran = execute.run(warp.operation(target, source=source), how)
     summary = {"output": str(req.output), "shape": list(template.shape_xyz),
                "handles": warp.handles(), **values_json(choice), **warp.summary()}
     if ran.by_blocks:
         summary.update(blocks=ran.blocks, block=list(ran.block[::-1]))
     if req.exports:
-        summary.update(_write_exports(req, warp, how, by_slabs=ran.by_blocks))
+        summary.update(_write_exports(req, warp, how, by_slabs=ran.by_blocks or slabs))
     return summary
+
+
+def _exports_by_slabs(req: WarpFiles, warp, how, *, held: int = 0) -> bool:
+    """Whether the field exports go by slabs although the warp may not: decided before any work.
+
+    By slabs where the warp runs by blocks anyway (``--chunked``), or where
+    the whole fields (with ``held``, the output the in-memory warp keeps
+    while they are made) do not fit the budget; refused, before any work,
+    where they fit neither whole nor by slabs (a NIfTI or compressed field).
+    """
+    from ..execute import fits
+    from ..memory import ensure_fits_in_memory, human_bytes
+    from .export_outputs import block_export_problem, whole_fields_bytes
+
+    need = whole_fields_bytes(req.exports, warp) if req.exports else 0
+    if not need or how.chunked:
+        return bool(need and how.chunked)
+    if fits(held + need):
+        return False
+    problem = block_export_problem(req.exports)
+    if problem is not None:
+        try:
+            ensure_fits_in_memory(held + need, "writing the deformation's fields whole")
+        except VolwarpError as exc:
+            raise type(exc)(f"{exc}, and by slabs: {problem}") from None
+    log.warning("the deformation's field exports need %s: written by slabs",
+                human_bytes(held + need))
+    return True
 
 
 def _warp_labels(req: WarpFiles, warp, how) -> dict:
@@ -225,9 +254,10 @@ def _warp_labels(req: WarpFiles, warp, how) -> dict:
     from .label_blocks import LabelWarpOperation
     from .labels import format_report
 
+    slabs = _exports_by_slabs(req, warp, how)
     ran = execute.run(LabelWarpOperation(warp, req.output, req.stamped(warp.template),
                                          req.write), how)
-    report, by_slabs = ran.output, ran.by_blocks
+    report, by_slabs = ran.output, ran.by_blocks or slabs
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
     summary = {"output": str(req.output), "shape": list(warp.template.shape_xyz),
                "handles": warp.handles(), "grid": warp.grid, **labels_json(report)}
