@@ -192,16 +192,52 @@ def _distance_to_polygon(pts, poly):
     return best
 
 
-def test_overlapping_structures_need_the_option(ct, tmp_path, run):
+def test_nested_structures_share_one_map(ct, tmp_path, run):
+    """A BODY holding organs, a GTV in a CTV in a PTV: each voxel takes the smallest ROI
+    holding it, whatever the ROIs' order in the file; each ROI alone is still its mask."""
+    folder, paths, vol = ct
+
+    def on(k, *box):
+        return ("CLOSED_PLANAR", world(vol, k, square(*box)))
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        5: ("GTV", [on(2, 3.5, 3.5, 4.5, 4.5)]),
+        1: ("BODY", [on(k, 0.5, 0.5, 14.5, 12.5) for k in (1, 2, 3)]),
+        4: ("PTV", [on(2, 1.5, 1.5, 7.5, 7.5), on(3, 1.5, 1.5, 7.5, 7.5)]),
+        3: ("CTV", [on(2, 2.5, 2.5, 5.5, 5.5)]),
+        2: ("Liver", [on(1, 9.5, 8.5, 12.5, 11.5)])})
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 0, res.stderr
+    got = read_volume(out)
+    want = np.zeros(SHAPE, np.uint8)
+    want[1:4, 1:13, 1:15] = 1
+    want[2:4, 2:8, 2:8] = 4
+    want[2, 3:6, 3:6] = 3
+    want[2, 4:5, 4:5] = 5
+    want[1, 9:12, 10:13] = 2
+    np.testing.assert_array_equal(got.data, want)
+    assert got.meta["DICOM_ROI_nested"] == "2 in 1; 3 in 1; 3 in 4; 4 in 1; 5 in 1; 5 in 3; 5 in 4"
+    res = run("convert", rs, "--reference", folder, "--structure", "BODY", "-o", out)
+    assert res.code == 0, res.stderr
+    assert read_volume(out).data.sum() == 3 * 12 * 14
+
+
+def test_partly_overlapping_structures_need_the_option(ct, tmp_path, run):
     folder, paths, vol = ct
     rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
         1: ("body", [("CLOSED_PLANAR", world(vol, 2, square(0.5, 0.5, 12.5, 12.5)))]),
-        2: ("organ", [("CLOSED_PLANAR", world(vol, 2, square(3.5, 3.5, 5.5, 5.5)))])})
+        2: ("PTV", [("CLOSED_PLANAR", world(vol, 2, square(3.5, 3.5, 5.5, 5.5)))]),
+        3: ("rectum", [("CLOSED_PLANAR", world(vol, 2, square(4.5, 4.5, 7.5, 7.5)))]),
+        4: ("copy", [("CLOSED_PLANAR", world(vol, 2, square(4.5, 4.5, 7.5, 7.5)))])})
     out = tmp_path / "o.nrrd"
     res = run("convert", rs, "--reference", folder, "-o", out)
-    assert res.code == 1 and "--structure NAME" in res.stderr and "'body'" in res.stderr
+    assert res.code == 1 and "--structure NAME" in res.stderr
+    assert "2 'PTV' and 3 'rectum' share 1 voxels" in res.stderr
+    assert "2 'PTV' and 4 'copy' share 1 voxels" in res.stderr
+    assert "3 'rectum' and 4 'copy' share 9 voxels (the same voxels)" in res.stderr
+    assert "'body' and" not in res.stderr  # (nested: not a clash)
     assert len(res.stderr.strip().splitlines()) == 1 and not out.exists()
-    res = run("convert", rs, "--reference", folder, "--structure", "organ", "-o", out)
+    res = run("convert", rs, "--reference", folder, "--structure", "PTV", "-o", out)
     assert res.code == 0, res.stderr
     assert read_volume(out).data.sum() == 4
 

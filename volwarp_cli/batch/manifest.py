@@ -7,7 +7,10 @@ naming the key path and its line: an unknown subcommand, a step reading a
 step that does not come before it, a missing output pattern, an unknown
 placeholder, an option the manifest sets itself (``-o``, ``--spec``), an
 output extension the step cannot write, an option or a spec the step's own
-command refuses (:mod:`.steps`). The scans are found here too
+command refuses (:mod:`.steps`). A scans' table (``inputs.csv``) may give each
+scan the image series it lies on in a ``reference`` column, which a step's
+input option takes as ``{reference}`` (``--reference {reference}``: a DICOM
+SEG or RTSTRUCT read on its series). The scans are found here too
 (:func:`find_scans`), so two scans that would share outputs are refused before
 anything runs.
 """
@@ -28,6 +31,10 @@ from ..spec.loader import SpecDoc, load_spec
 SCAN = "scan"
 #: the placeholders of output patterns and option values
 PLACEHOLDERS = ("stem", "relpath")
+#: an input option's whole value: the scan's series, from its row's ``reference`` cell
+REFERENCE = "{reference}"
+#: the scans' table column holding each scan's reference series
+REFERENCE_COLUMN = "reference"
 #: extensions a single extension's worth of stem stripping treats as one
 DOUBLE_EXTENSIONS = (".nii.gz", ".raw.gz")
 #: options the manifest's own keys set (given in ``options`` they would clash)
@@ -60,6 +67,8 @@ class Scan:
     path: Path
     stem: str
     relpath: str  # "" at the root
+    #: the image series the scan lies on (the table's ``reference`` cell), if any
+    reference: Path | None = None
 
 
 @dataclass
@@ -75,6 +84,11 @@ class Manifest:
     specs: dict[str, str] = field(default_factory=dict)  # spec path -> sha256
     #: the scans :func:`find_scans` found (looked for once; not sent with cluster tasks)
     scans: list[Scan] | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def uses_reference(self) -> bool:
+        """Whether a step's options take ``{reference}`` (each scan needs its series)."""
+        return any(is_reference(v) for step in self.steps for v in step.options)
 
     def __getstate__(self) -> dict:
         """Pickled for a cluster task without the scan list (a task gets its own scan)."""
@@ -104,6 +118,19 @@ def placeholders(text: str) -> list[str] | None:
             return None
         names.append(name)
     return names
+
+
+def is_reference(text: str) -> bool:
+    """Whether an options item (``VALUE`` or ``--opt=VALUE``) is the ``{reference}`` placeholder."""
+    name, eq, value = text.partition("=")
+    return (value if eq and name.startswith("--") else text) == REFERENCE
+
+
+def fill_reference(text: str, scan: Scan) -> str:
+    """An options item with ``{reference}`` replaced by the scan's series (absolute)."""
+    if scan.reference is None:  # (find_scans refuses an empty cell when a step needs it)
+        raise VolwarpError(f"scan {scan.id}: no reference series ({REFERENCE_COLUMN} column)")
+    return text.replace(REFERENCE, str(scan.reference.absolute()))
 
 
 def fill(text: str, scan: Scan) -> str:
@@ -140,6 +167,22 @@ def _check_output_extension(doc: SpecDoc, path: tuple, run: str, pattern: str) -
             volume_format(pattern)
         except VolwarpError as exc:
             raise doc.error(path, str(exc)) from None
+
+
+def _check_reference_source(doc: SpecDoc, key: tuple) -> None:
+    """``{reference}`` needs scans listed in a table (``inputs.csv``), each row naming its series."""
+    if "csv" not in doc.data["inputs"]:
+        raise doc.error(key, f"{REFERENCE} is each scan's series from the scans' table: list "
+                             f"the scans in inputs.csv with a {REFERENCE_COLUMN!r} column")
+    table = doc.resolve(doc.data["inputs"]["csv"])
+    try:
+        with open(table, newline="", encoding="utf-8-sig") as fh:
+            columns = next(csv.reader(fh), [])
+    except (OSError, UnicodeDecodeError):  # (said with its key when the scans are read)
+        return
+    if REFERENCE_COLUMN not in columns:
+        raise doc.error(key, f"{REFERENCE}: {table.name} has no {REFERENCE_COLUMN!r} column "
+                             f"(columns: {', '.join(columns) or 'none'})")
 
 
 def load_manifest(path: str | Path) -> Manifest:
@@ -200,7 +243,14 @@ def load_manifest(path: str | Path) -> Manifest:
                 raise doc.error(key + ("options", k),
                                 f"{flag} is set by the step's "
                                 f"{'spec' if flag == '--spec' else 'output'} key, not options")
-            _check_pattern(doc, key + ("options", k), text)
+            if is_reference(text):
+                _check_reference_source(doc, key + ("options", k))
+            elif "{reference}" in text:
+                raise doc.error(key + ("options", k),
+                                f"{text!r}: {REFERENCE} is a whole option value (the scan's "
+                                "series, e.g. --reference {reference})")
+            else:
+                _check_pattern(doc, key + ("options", k), text)
             options.append(text)
         step = Step(i, name, run, source, raw["output"], spec_path, tuple(options))
         steps.append(step)
@@ -270,6 +320,7 @@ def _find_scans(manifest: Manifest) -> list[Scan]:
     doc = manifest.doc
     inputs = doc.data["inputs"]
     paths: list[tuple[Path, tuple]] = []  # (file, the key that named it)
+    references: dict[int, Path | None] = {}  # (the table's reference cells, by row)
     if "glob" in inputs:
         pattern = str(doc.resolve(inputs["glob"]))
         # (the pattern is resolved already: its root is not resolved again)
@@ -292,12 +343,25 @@ def _find_scans(manifest: Manifest) -> list[Scan]:
                     raise doc.error(("inputs", "column"),
                                     f"{table.name} has no column {column!r} (columns: "
                                     f"{', '.join(reader.fieldnames or []) or 'none'})")
+                wants = manifest.uses_reference
+                if wants and REFERENCE_COLUMN not in (reader.fieldnames or []):
+                    raise doc.error(("inputs", "csv"),
+                                    f"{table.name} has no {REFERENCE_COLUMN!r} column, and "
+                                    f"a step's options take {REFERENCE} (each scan's series)")
                 for row in reader:
                     cell = (row.get(column) or "").strip()
                     if not cell:
                         raise SpecError(f"{column}: empty cell", file=str(table),
                                         line=reader.line_num)
                     p = Path(cell).expanduser()
+                    ref = (row.get(REFERENCE_COLUMN) or "").strip()
+                    if wants and not ref:
+                        raise SpecError(f"{REFERENCE_COLUMN}: empty cell (a step's options "
+                                        f"take {REFERENCE})", file=str(table),
+                                        line=reader.line_num)
+                    r = Path(ref).expanduser() if ref else None
+                    references[len(paths)] = (None if r is None else
+                                              r if r.is_absolute() else table.parent / r)
                     paths.append((p if p.is_absolute() else table.parent / p, ("inputs", "csv")))
         except OSError as exc:
             raise doc.error(("inputs", "csv"), f"cannot read {table}: "
@@ -305,7 +369,7 @@ def _find_scans(manifest: Manifest) -> list[Scan]:
         if not paths:
             raise VolwarpError(f"{table}: no scan listed")
     scans: dict[str, Scan] = {}
-    for p, key in paths:
+    for n, (p, key) in enumerate(paths):
         try:
             rel = Path(p).absolute().parent.relative_to(Path(root).absolute())
         except ValueError:
@@ -314,7 +378,7 @@ def _find_scans(manifest: Manifest) -> list[Scan]:
         relpath = "" if str(rel) == "." else rel.as_posix()
         stem = stem_of(Path(p).name)
         scan = Scan(id=f"{relpath}/{stem}" if relpath else stem, path=Path(p), stem=stem,
-                    relpath=relpath)
+                    relpath=relpath, reference=references.get(n))
         if scan.id in scans:
             raise doc.error(key, f"{scans[scan.id].path} and {p} would share outputs "
                                  f"(both are scan {scan.id!r})")

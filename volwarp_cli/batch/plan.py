@@ -6,6 +6,8 @@ outputs: ``-o`` and every option value holding a placeholder (a mesh's
 ``--render {stem}.png``), all under the output folder, and the output
 options' values without one (``--camera-to cam.json``: one file, in the
 manifest's folder, which :func:`check_outputs` allows for one scan only).
+An option value ``{reference}`` is the scan's series (its table row's
+``reference`` cell): a file the step reads for that scan, not an output.
 
 A step is up to date when what its outputs were made from is what it would
 be made from now, and its outputs are still what it made. "Made from" is
@@ -32,7 +34,7 @@ from pathlib import Path
 from .. import __version__
 from .content import FileHashes, content_digest
 from .lock import BOOK_DIR
-from .manifest import SCAN, Manifest, Scan, Step, fill, placeholders
+from .manifest import SCAN, Manifest, Scan, Step, fill, fill_reference, is_reference, placeholders
 
 #: in the output folder: what each output was made from, and the file hash cache
 STATE_NAME = f"{BOOK_DIR}/state.json"
@@ -57,6 +59,9 @@ class StepPlan:
     #: ``(option, path)`` of each output option without a placeholder (one name for all
     #: scans, in the manifest's folder: ``--camera-to cam.json``); not in :attr:`outputs`
     fixed_outputs: list[tuple[str, Path]] = field(default_factory=list)
+    #: the files this scan's step reads besides its input and the step's own files (the
+    #: scan's ``{reference}`` series)
+    reads: list[Path] = field(default_factory=list)
 
     @property
     def outputs(self) -> list[Path]:
@@ -91,9 +96,12 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
     for step in manifest.steps:
         source = scan.path if step.input == SCAN else plans[step.input].output
         output = output_path(manifest, scan, step.output)
-        options, extra, flags = [], [], []
+        options, extra, flags, reads = [], [], [], []
         for k, value in enumerate(step.options):
-            if placeholders(value):
+            if is_reference(value):
+                options.append(fill_reference(value, scan))
+                reads.append(scan.reference)
+            elif placeholders(value):
                 path = output_path(manifest, scan, value)
                 extra.append(path)
                 flags.append(step.options[k - 1] if k and step.options[k - 1].startswith("-")
@@ -107,7 +115,7 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
         # (-q before the step's own options: an option missing its value says so, not '-q')
         argv += ["-o", str(output.absolute()), "-q", *options]
         plans[step.name] = StepPlan(step, Path(source), output, extra, argv, flags,
-                                    _fixed_outputs(manifest, step))
+                                    _fixed_outputs(manifest, step), reads)
     return list(plans.values())
 
 
@@ -142,7 +150,7 @@ def step_files(manifest: Manifest, plan: StepPlan) -> list[tuple[str, Path]]:
     """
     fixed = list(plan.step.inputs) or ([plan.step.spec] if plan.step.spec else [])
     out = [(plan.input.name, plan.input)]
-    out += [(os.path.relpath(p, manifest.base), Path(p)) for p in fixed
+    out += [(os.path.relpath(p, manifest.base), Path(p)) for p in [*fixed, *plan.reads]
             if Path(p).absolute() != plan.input.absolute()]
     return out
 
@@ -422,7 +430,8 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
             for option, out in plan.writes:
                 key = ("steps", step.index, "output" if option == "-o" else "options")
                 try:
-                    _refuse_over(out, option, [str(scan.path), *fixed], fixed)
+                    _refuse_over(out, option, [str(scan.path), *map(str, plan.reads), *fixed],
+                                 fixed)
                 except BadUsage as exc:
                     fixed_name = (option, out) in plan.fixed_outputs  # (every scan's)
                     raise _located(manifest, key, f"{'' if fixed_name else f'scan {scan.id}: '}"

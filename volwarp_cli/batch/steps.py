@@ -36,7 +36,7 @@ from pathlib import Path
 
 import click
 
-from .manifest import Manifest, Scan, Step, placeholders
+from .manifest import REFERENCE, Manifest, Scan, Step, is_reference, placeholders
 
 #: spec files a step's command reads, by command and parameter: the schema they follow
 SPEC_PARAMS = {"warp": {"spec_path": "warp"}, "distance": {"transform": "transform"}}
@@ -63,7 +63,8 @@ def check_steps(manifest: Manifest) -> list[Step]:
             _check_tokens(manifest, step, values)
             argv = _absolute(manifest, _apart(plan, Path(tmp)), step.options, values)
             declared, params, problem = _dry_run(manifest, step, command, argv)
-            inputs = [Path(p) for p in declared if _is_read(p, plan.input, tmp)]
+            inputs = [Path(p) for p in declared if _is_read(p, plan.input, tmp)
+                      and Path(p).absolute() not in {r.absolute() for r in plan.reads}]
             _check_inputs_exist(manifest, step, inputs)
             _check_specs(manifest, step, params)
             if problem is not None:
@@ -101,7 +102,8 @@ def _sample_scan(manifest: Manifest) -> Scan:
         scans = []
     if scans:
         return dataclasses.replace(scans[0], relpath="")
-    return Scan(id="scan", path=manifest.base / _STAND_IN, stem="scan", relpath="")
+    return Scan(id="scan", path=manifest.base / _STAND_IN, stem="scan", relpath="",
+                reference=manifest.base / _STAND_IN)
 
 
 def path_kind(param: click.Parameter) -> str | None:
@@ -148,12 +150,15 @@ def option_values(command: click.Command, options) -> list[tuple[int, str, str |
 
 def _check_tokens(manifest: Manifest, step: Step, values) -> None:
     """Options that would end the command (``--help``), placeholders where no output is named."""
-    taken = {k for k, _, _ in values}
+    taken = {k: kind for k, _, kind in values}
     for k, text in enumerate(step.options):
         key = ("steps", step.index, "options", k)
         if k not in taken and text.split("=", 1)[0] in _ENDING:
             raise manifest.doc.error(key, f"{text} prints and ends the command instead of "
                                           "running it: not a step's option")
+        if is_reference(text) and taken.get(k) != "input":
+            raise manifest.doc.error(key, f"{REFERENCE} (each scan's series) is the value of "
+                                          "an input option, e.g. --reference {reference}")
     for k, option, kind in values:
         if kind != "output" and placeholders(_value(step.options[k])):
             raise manifest.doc.error(
@@ -180,8 +185,9 @@ def _absolute(manifest: Manifest, argv: list[str], options, values) -> list[str]
     for k, _, kind in values:
         text = options[k]
         value = _value(text)
-        if kind is None or placeholders(value) or Path(value).is_absolute() or not value:
-            continue
+        if kind is None or placeholders(value) or is_reference(text) or \
+                Path(value).is_absolute() or not value:
+            continue  # (placeholders are filled with absolute names already)
         resolved = str(manifest.base / value)
         argv[start + k] = resolved if value == text else f"{text.split('=', 1)[0]}={resolved}"
     return argv

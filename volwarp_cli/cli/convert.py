@@ -27,6 +27,12 @@ from .options import (
 PYRAMID_METHODS = {"auto": "auto", "mode": True, "mean": False}
 #: --dicom-type choices
 DICOM_TYPES = ("seg", "labelmap-seg", "rtstruct")
+#: --reference's help here: an input's series (as every command), or the output's
+REFERENCE_HELP = ("The image series (folder, DICOMDIR or file) a segmentation lies on. "
+                  "RTSTRUCT input: its ROIs are rasterised on that grid (required); SEG "
+                  "input: the label map is put on its whole grid (default: the SEG's own "
+                  "frames' grid); --dicom-type output: the series the SEG or RTSTRUCT "
+                  "references, whose grid the label map must lie on (required).")
 
 
 def _output(ctx, param, value):
@@ -52,30 +58,24 @@ def _output(ctx, param, value):
                    "mode (the most frequent value: label maps, never an invented label), "
                    "mean (intensities), or auto (mode for integer volumes that are "
                    "piecewise constant, whatever their number of labels; else mean).")
-@click.option("--reference", type=INPUT_PATH, default=None, metavar="SERIES",
-              help="The image series (folder, DICOMDIR or file) a segmentation lies on. "
-                   "RTSTRUCT input: its ROIs are rasterised on that grid (required); SEG "
-                   "input: the label map is put on its whole grid (default: the SEG's own "
-                   "frames' grid); --dicom-type output: the series the SEG or RTSTRUCT "
-                   "references, whose grid the label map must lie on (required).")
-@click.option("--segment", type=click.IntRange(min=1), default=None, metavar="N",
-              help="DICOM SEG input: segment N alone, as a 0/1 mask (default: every segment, "
-                   "valued by its number; overlapping segments need this).")
-@click.option("--structure", default=None, metavar="NAME",
-              help="DICOM RTSTRUCT input: the ROI named NAME alone, as a 0/1 mask (default: "
-                   "every ROI, valued by its ROI Number; overlapping ROIs need this).")
 @click.option("--dicom-type", type=click.Choice(DICOM_TYPES), default=None,
               help="Write the label map as a DICOM SEG (seg: BINARY, segments numbered 1..K "
                    "in label order; labelmap-seg: LABELMAP, the label values kept) or "
                    "RTSTRUCT (one ROI per label, ROI Number = label) to OUTPUT.dcm, "
                    "against --reference.")
+@click.option("--contours", type=click.Choice(["edges", "smooth"]), default=None,
+              help="With --dicom-type rtstruct: contours on the voxel edges (default; read "
+                   "back, the label map exactly), or smooth ones from each slice's sub-voxel distance "
+                   "field, for planning systems that want smooth outlines (read back by "
+                   "volwarp, also exact; their polygon areas are smaller: "
+                   "docs/segmentations.md).")
 @click.option("--segments", type=INPUT_PATH, default=None, metavar="CSV",
               help="With --dicom-type: segment or ROI names, a CSV file of label,name rows "
                    "(default: 'label N' for a SEG, 'label_N' for an RTSTRUCT).")
-@input_options
+@input_options(reference_help=REFERENCE_HELP)
 @common_options
-def command(input, output, dtype, compress, byte_order, pyramid_method, reference, segment,
-            structure, dicom_type, segments, raw, volume_index, dicom, ome_zarr):
+def command(input, output, dtype, compress, byte_order, pyramid_method, dicom_type, contours,
+            segments, raw, volume_index, dicom, reference, ome_zarr):
     """Convert INPUT to OUTPUT (format by extension), keeping geometry and key/values.
 
     DICOM SEG and RTSTRUCT inputs are read as label maps (--reference, --segment,
@@ -86,15 +86,15 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, referenc
                                "levels are made: give --pyramid N (N >= 1) with it")
     writing = _dicom_output(output, dicom_type, segments, reference, dtype, compress,
                             byte_order, ome_zarr)
+    if contours is not None and dicom_type != "rtstruct":
+        raise click.UsageError(f"--contours {contours} shapes the contours of an RTSTRUCT: "
+                               "give --dicom-type rtstruct")
     check_output_path(output, option="-o")
-    picks = {k: v for k, v in (("segment", segment), ("structure", structure)) if v is not None}
     if reference is not None and (not writing or _is_segmentation(input)):
-        picks["reference"] = reference  # (a segmentation input lies on the same series)
-    if picks:
-        dicom = {**(dicom or {}), **picks}
+        dicom = {**(dicom or {}), "reference": reference}  # (the input lies on that series)
     vol = load_input(input, raw, volume_index, dicom=dicom)
     if writing:
-        _write_segmentation(vol, output, dicom_type, reference, segments)
+        _write_segmentation(vol, output, dicom_type, reference, segments, contours)
         return
     with timed(f"write {output}"):
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
@@ -131,7 +131,7 @@ def _is_segmentation(path) -> bool:
     return segmentation_kind(path) is not None
 
 
-def _write_segmentation(vol, output, dicom_type, reference, segments) -> None:
+def _write_segmentation(vol, output, dicom_type, reference, segments, contours) -> None:
     from ..io.dicom import read_reference
     from ..io.dicom_seg import read_names, write_seg
 
@@ -144,6 +144,6 @@ def _write_segmentation(vol, output, dicom_type, reference, segments) -> None:
         if dicom_type == "rtstruct":
             from ..io.rtstruct import write_rtstruct
 
-            write_rtstruct(vol, output, ref, names=names)
+            write_rtstruct(vol, output, ref, names=names, contours=contours or "edges")
         else:
             write_seg(vol, output, ref, labelmap=dicom_type == "labelmap-seg", names=names)

@@ -184,8 +184,9 @@ def _describe_dicom(file, raw, volume_index, dicom) -> dict:
 def _describe_segmentation(file, kind: str, dicom) -> dict:
     """A SEG: its label map (its own grid) with ``segments``; an RTSTRUCT: its ``structures``.
 
-    An RTSTRUCT has no grid without the series it was drawn on (``convert
-    --reference``): its ROIs, the series and frame of reference it names.
+    An RTSTRUCT has no grid without the series it was drawn on: its ROIs, the
+    series and frame of reference it names; with ``--reference`` also the label
+    map rasterised on that series' grid.
     """
     if kind == "rtstruct":
         from ..io.rtstruct import (
@@ -195,10 +196,11 @@ def _describe_segmentation(file, kind: str, dicom) -> dict:
             referenced_series,
         )
 
-        if dicom:
-            load_input(file, dicom=dicom)  # the usage error those options get without a grid
+        desc = {"format": "dicom"}
+        if dicom:  # (without --reference: the usage error those options get without a grid)
+            desc = describe_volume(load_input(file, dicom=dicom), "dicom")
         ds = open_rtstruct(file)
-        return {"format": "dicom", "dicom_type": "RTSTRUCT",
+        return {**desc, "dicom_type": "RTSTRUCT",
                 "referenced_series": list(referenced_series(ds)),
                 "frame_of_reference": list(frames_of_reference(ds)),
                 "structures": describe_structures(ds)}

@@ -7,8 +7,9 @@ says, on stderr, ``volwarp: warning: --size is now --render-size``.
 
 Every option, and the commands that take it (``tests/test_cli_help.py``
 checks this list against the commands; ``(every command)``: from
-:func:`common_options`; the ``--raw-*``, DICOM, ``--volume-index`` and
-``--allow-outside-data`` options from :func:`input_options`; ``--dtype``,
+:func:`common_options`; the ``--raw-*``, DICOM (``--series`` ... ``--keep-phi``, and
+the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
+``--volume-index`` and ``--allow-outside-data`` options from :func:`input_options`; ``--dtype``,
 ``--compress``, ``--byte-order``, ``--ome-zarr-version`` and ``--pyramid`` from
 :func:`write_options`)::
 
@@ -25,6 +26,7 @@ checks this list against the commands; ``(every command)``: from
     --chunked/--no-chunked    warp morph sweep distance mesh
     --color                   mesh
     --compress/--no-compress  warp morph sweep distance convert
+    --contours                convert
     --crop                    warp
     --debug                   (every command)
     --decimate                mesh
@@ -79,7 +81,7 @@ checks this list against the commands; ``(every command)``: from
     --raw-origin              capture warp distance mesh info convert
     --raw-shape               capture warp distance mesh info convert
     --raw-spacing             capture warp distance mesh info convert
-    --reference               convert
+    --reference               capture warp distance mesh info convert
     --render                  sweep mesh
     --render-size             morph sweep mesh
     --render-to               morph
@@ -88,7 +90,7 @@ checks this list against the commands; ``(every command)``: from
     --retries                 batch
     --sampling                capture
     --scheduler               warp morph sweep distance mesh batch
-    --segment                 convert
+    --segment                 capture warp distance mesh info convert
     --segments                convert
     --series                  capture warp distance mesh info convert
     --shape                   sweep
@@ -98,7 +100,7 @@ checks this list against the commands; ``(every command)``: from
     --spacing                 sweep
     --spec                    warp morph
     --stats                   mesh
-    --structure               convert
+    --structure               capture warp distance mesh info convert
     --surface                 distance
     --tau                     sweep
     --threads                 (every command)
@@ -301,7 +303,8 @@ def output_option(help_text: str = "Output file (format by extension).", volume:
                         help=help_text, **extra)
 
 
-def _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi) -> dict | None:
+def _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi, reference=None,
+                   segment=None, structure=None) -> dict | None:
     """The DICOM options given, as keyword arguments of ``read_dicom`` (None: none given)."""
     given = {}
     if series is not None:
@@ -314,22 +317,51 @@ def _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi) -> dict 
         given["keep_shear"] = True
     if keep_phi:
         given["keep_phi"] = True
+    for key, value in (("reference", reference), ("segment", segment),
+                       ("structure", structure)):
+        if value is not None:
+            given[key] = value
     return given or None
 
 
-def input_options(f):
+#: --reference's help in every command reading a volume (convert adds its output's meaning)
+REFERENCE_HELP = ("DICOM SEG or RTSTRUCT input: the image series (folder, DICOMDIR or file) it "
+                  "lies on. RTSTRUCT: required, its ROIs are rasterised on that grid; SEG: "
+                  "the label map is put on that whole grid (default: the SEG's own frames' "
+                  "grid).")
+
+
+def input_options(f=None, *, reference_help: str = REFERENCE_HELP):
     """Options describing how to read a volume input.
 
     Headerless raw inputs (``--raw-*``, combined into ``raw: RawLayout``),
     ``--volume-index``, and the DICOM choices (combined into ``dicom``: the
-    keyword arguments of ``read_dicom``, or None).
+    keyword arguments of ``read_dicom``, or None). A DICOM SEG or RTSTRUCT is
+    a label map input of every command: ``--reference SERIES`` (the image
+    series it lies on; an RTSTRUCT needs it), ``--segment N`` and ``--structure
+    NAME`` (one segment or ROI as a 0/1 mask) go into ``dicom`` too, so that
+    :func:`~volwarp_cli.cli.common.load_input` and
+    :func:`~volwarp_cli.cli.chunked.lazy_input` read them for every command.
+
+    ``@input_options``, or ``@input_options(reference_help=...)``. A command
+    whose function takes ``reference`` itself (``convert``: also the series a
+    written SEG or RTSTRUCT references) gets ``--reference`` as that keyword
+    instead, and decides.
     """
+    import inspect
+
+    if f is None:
+        return functools.partial(input_options, reference_help=reference_help)
+    takes_reference = "reference" in inspect.signature(f).parameters
 
     @functools.wraps(f)
     def wrapper(*args, raw_shape, raw_dtype, raw_endian, raw_spacing, raw_origin,
                 raw_header_bytes, volume_index, series, irregular, duplicates, keep_shear,
-                keep_phi, allow_outside_data, **kwargs):
-        dicom = _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi)
+                keep_phi, allow_outside_data, reference, segment, structure, **kwargs):
+        if takes_reference:
+            kwargs["reference"] = reference
+        dicom = _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi,
+                               None if takes_reference else reference, segment, structure)
         if allow_outside_data:  # this run's readers may open such data files (io.common)
             run_files().allow_outside_data = True
         layout = None
@@ -381,6 +413,15 @@ def input_options(f):
         click.option("--keep-phi", is_flag=True, default=False,
                      help="DICOM input: keep identifying tags (patient name, ID, birth "
                           "date, ...) in the output's key/values (default: left out)."),
+        click.option("--reference", type=INPUT_PATH, default=None, metavar="SERIES",
+                     help=reference_help),
+        click.option("--segment", type=click.IntRange(min=1), default=None, metavar="N",
+                     help="DICOM SEG input: segment N alone, as a 0/1 mask (default: every "
+                          "segment, valued by its number; overlapping segments need this)."),
+        click.option("--structure", default=None, metavar="NAME",
+                     help="DICOM RTSTRUCT input: the ROI named NAME alone, as a 0/1 mask "
+                          "(default: every ROI, valued by its ROI Number; see "
+                          "docs/segmentations.md for overlapping ROIs)."),
     ]
     for opt in reversed(opts):
         wrapper = opt(wrapper)

@@ -12,6 +12,20 @@ FRACTIONAL voxel is in its segment when its value is at least half the
 maximum); a LABELMAP SEG gives its pixel values. ``segment=N`` gives segment N
 as a 0/1 mask; overlapping segments without it are an error naming the option.
 
+Speed (:func:`_fast_frames`). highdicom's ``segread`` builds a frame table from
+every per-frame functional group item through pydicom's attribute access, and
+``get_volume`` assembles the frames one by one: 2-3 s for a BINARY SEG of a few
+thousand frames (highdicom #202: minutes for 98 segments). The common SEG, an
+uncompressed multi-frame with a shared orientation and pixel spacing and one
+plane position per frame, is read from pydicom's data set directly: the frame
+positions by element tags, the grid by highdicom's own
+:func:`highdicom.spatial.get_volume_positions` (the rule ``get_volume`` uses,
+missing and repeated positions allowed, SpacingBetweenSlices as the hint), and
+a BINARY SEG's bit-packed frames unpacked only where a byte is non-zero, all
+frames at once. Anything else (compressed frames, tiled images, per-frame
+orientations) goes through highdicom; the two give the same label map
+(``tests/test_dicom_seg_fast.py``).
+
 Writing (:func:`write_seg`): one segment per non-zero label of a label map
 that lies on the reference series' grid, with new SOP and Series UIDs.
 """
@@ -42,15 +56,38 @@ def _one_line(exc) -> str:
 
 
 def open_seg(path: str | os.PathLike):
-    """The highdicom Segmentation of ``path``, or a FormatError naming the file."""
-    import highdicom as hd
+    """The pydicom data set of the SEG at ``path`` (pixels included), or a FormatError.
+
+    Its SOP class must be a SEG's and its SegmentSequence readable;
+    :func:`as_highdicom` makes highdicom's Segmentation of it where needed.
+    """
+    import pydicom
 
     try:
-        return hd.seg.segread(str(path))
+        ds = pydicom.dcmread(str(path), force=str(path).lower().endswith(".dcm"))
+        uid = str(ds.get("SOPClassUID", ""))
+        if uid not in SEG_SOPS:
+            raise ValueError(f"SOPClassUID {uid or 'missing'} is not a SEG's")
+        for item in ds.SegmentSequence:
+            int(item.SegmentNumber)
     except OSError as exc:
         raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except Exception as exc:  # malformed SEGs raise many types in highdicom and pydicom
+    except Exception as exc:  # malformed SEGs raise many types in pydicom
         raise FormatError(f"{path}: not a readable DICOM SEG ({type(exc).__name__}: "
+                          f"{_one_line(exc)})") from None
+    return ds
+
+
+def as_highdicom(ds, where: str):
+    """The highdicom Segmentation of a SEG data set, or a FormatError naming the file."""
+    import highdicom as hd
+
+    if isinstance(ds, hd.seg.Segmentation):
+        return ds
+    try:
+        return hd.seg.Segmentation.from_dataset(ds, copy=False)
+    except Exception as exc:  # malformed SEGs raise many types in highdicom and pydicom
+        raise FormatError(f"{where}: not a readable DICOM SEG ({type(exc).__name__}: "
                           f"{_one_line(exc)})") from None
 
 
@@ -94,6 +131,7 @@ def _frames_array(seg, where: str, segment: int | None) -> tuple[np.ndarray, np.
     if segment is not None and segment not in numbers:
         raise BadUsage(f"{where}: --segment {segment}: the SEG has segments "
                        f"{' '.join(map(str, numbers))}")
+    seg = as_highdicom(seg, where)
     try:
         if kind == "LABELMAP":
             vol = seg.get_volume(combine_segments=True)
@@ -124,6 +162,164 @@ def _frames_array(seg, where: str, segment: int | None) -> tuple[np.ndarray, np.
     if arr.ndim == 4:  # (a one-channel highdicom volume)
         arr = arr[..., 0]
     return np.ascontiguousarray(arr), np.asarray(vol.affine, dtype=np.float64)
+
+
+# tags of the per-frame functional groups read by _fast_frames
+_PLANE_POSITION = 0x00209113
+_IMAGE_POSITION = 0x00200032
+_SEGMENT_IDENTIFICATION = 0x0062000A
+_REFERENCED_SEGMENT = 0x0062000B
+
+
+def _fast_frames(ds, where: str, segment: int | None):
+    """``(data [z, y, x], spacing, origin, direction)`` of a common SEG, or None (use highdicom).
+
+    The module docstring says which SEGs, and why; the values and the grid are
+    those of :func:`_frames_array` and :func:`_to_volwarp_axes`.
+    """
+    from pydicom.uid import UID
+
+    kind = seg_type(ds)
+    numbers = [int(s.SegmentNumber) for s in ds.SegmentSequence]
+    if segment is not None and segment not in numbers:
+        raise BadUsage(f"{where}: --segment {segment}: the SEG has segments "
+                       f"{' '.join(map(str, numbers))}")
+    syntax = UID(str(getattr(ds, "file_meta", {}).get("TransferSyntaxUID", "")))
+    if kind not in ("BINARY", "FRACTIONAL", "LABELMAP") or not syntax or \
+            syntax.is_compressed or "PixelData" not in ds or \
+            "TotalPixelMatrixRows" in ds or int(ds.get("SamplesPerPixel", 1)) != 1:
+        return None
+    try:
+        shared = ds.SharedFunctionalGroupsSequence[0]
+        orientation = [float(v) for v in
+                       shared.PlaneOrientationSequence[0].ImageOrientationPatient]
+        measures = shared.PixelMeasuresSequence[0]
+        pixel_spacing = [float(v) for v in measures.PixelSpacing]
+        hint = measures.get("SpacingBetweenSlices")
+        hint = float(hint) if hint not in (None, "") and float(hint) > 0 else None
+        per_frame = ds.PerFrameFunctionalGroupsSequence
+        n_frames = int(ds.get("NumberOfFrames", 1))
+        if len(per_frame) != n_frames or len(orientation) != 6 or len(pixel_spacing) != 2:
+            return None
+        positions = np.empty((n_frames, 3))
+        seg_of = np.zeros(n_frames, np.int64)
+        for i, item in enumerate(per_frame):
+            positions[i] = [float(v) for v in item[_PLANE_POSITION].value[0][_IMAGE_POSITION].value]
+            if kind != "LABELMAP":
+                seg_of[i] = int(item[_SEGMENT_IDENTIFICATION].value[0][_REFERENCED_SEGMENT].value)
+    except (AttributeError, IndexError, KeyError, TypeError, ValueError):
+        return None  # (something less common: highdicom reads it, or says what is wrong)
+    rows, cols = int(ds.Rows), int(ds.Columns)
+    bits = int(ds.BitsAllocated)
+    if (kind == "BINARY") != (bits == 1) or bits not in (1, 8, 16) or not np.all(
+            np.isfinite(positions)):
+        return None
+    import highdicom as hd
+
+    spacing_z, index = hd.spatial.get_volume_positions(
+        positions, orientation, allow_missing_positions=True,
+        allow_duplicate_positions=kind != "LABELMAP", spacing_hint=hint)
+    if index is None:
+        return None  # (highdicom's get_volume says why these are not a volume)
+    index = np.asarray(index, np.int64)
+    row_cos, col_cos = np.array(orientation[:3]), np.array(orientation[3:])
+    row_cos /= np.linalg.norm(row_cos)
+    col_cos /= np.linalg.norm(col_cos)
+    normal = np.cross(row_cos, col_cos)
+    normal /= np.linalg.norm(normal)
+    n = int(index.max()) + 1
+    along = positions @ normal
+    if n > 1 and along[index == index.max()][0] < along[index == 0][0]:
+        index = (n - 1) - index  # volwarp's z runs along the normal
+    first = positions[index == 0][0]
+    spacing = np.array([pixel_spacing[1], pixel_spacing[0],
+                        spacing_z if n > 1 else _single_spacing(ds)], dtype=np.float64)
+    direction = np.column_stack([row_cos, col_cos, normal])
+    npix = rows * cols
+    raw = ds.PixelData
+    if kind == "BINARY":
+        data = _binary_labels(raw, n_frames, npix, n, index, seg_of, segment, numbers, where)
+    else:
+        dtype = np.dtype(f"<u{bits // 8}")
+        if len(raw) < n_frames * npix * dtype.itemsize:
+            return None
+        frames = np.frombuffer(raw, dtype, n_frames * npix).reshape(n_frames, npix)
+        if kind == "LABELMAP":
+            data = np.zeros((n, npix), _label_dtype(max(numbers, default=0)))
+            data[index] = frames
+            if segment is not None:
+                data = (data == segment).astype(np.uint8)
+        else:
+            data = _fractional_labels(ds, frames, n, index, seg_of, segment, numbers, where)
+    return data.reshape(n, rows, cols), spacing, first, direction
+
+
+def _binary_labels(raw: bytes, n_frames: int, npix: int, n: int, index, seg_of, segment,
+                   numbers, where: str) -> np.ndarray:
+    """A BINARY SEG's label map [slice, pixel] from its bit-packed frames.
+
+    The frames' bits run on from frame to frame, the first pixel in the lowest
+    bit of a byte (PS3.5 8.1.1). Frames of whole bytes (rows x columns a multiple
+    of 8, the usual case) are unpacked one by one over the span of their bytes
+    holding a set bit; others at once, only their bytes with a set bit.
+    """
+    buf = np.frombuffer(raw, np.uint8, -(-n_frames * npix // 8))
+    top = max(numbers, default=0)
+    out = np.zeros((n, npix), np.uint8 if segment is not None else _label_dtype(top))
+    if npix % 8 == 0:
+        frames = buf.reshape(n_frames, npix // 8)
+        for f in range(n_frames):
+            if segment is not None and seg_of[f] != segment:
+                continue
+            hit = np.flatnonzero(frames[f])
+            if not hit.size:
+                continue
+            lo, hi = int(hit[0]), int(hit[-1]) + 1
+            bits = np.unpackbits(frames[f, lo:hi], bitorder="little").view(bool)
+            target = out[index[f], lo * 8:hi * 8]
+            value = 1 if segment is not None else seg_of[f]
+            if segment is None:
+                was = target[bits]
+                if np.any((was != 0) & (was != value)):  # a voxel two segments set
+                    raise _overlap_error(where, numbers)
+            target[bits] = value
+        return out
+    hit = np.flatnonzero(buf)
+    bits = np.unpackbits(buf[hit], bitorder="little").reshape(-1, 8)
+    byte, bit = np.nonzero(bits)
+    g = hit[byte] * 8 + bit
+    g = g[g < n_frames * npix]
+    frame = g // npix
+    flat = index[frame] * npix + (g - frame * npix)
+    out = out.reshape(-1)
+    if segment is not None:
+        out[flat[seg_of[frame] == segment]] = 1
+        return out.reshape(n, npix)
+    label = seg_of[frame].astype(out.dtype)
+    out[flat] = label
+    if np.any(out[flat] != label):  # a voxel two segments set
+        raise _overlap_error(where, numbers)
+    return out.reshape(n, npix)
+
+
+def _fractional_labels(ds, frames, n: int, index, seg_of, segment, numbers,
+                       where: str) -> np.ndarray:
+    """A FRACTIONAL SEG's label map [slice, pixel]: a segment where its value >= half the maximum."""
+    top = int(ds.get("MaximumFractionalValue", 255))
+    inside = frames.astype(np.int64) * 2 >= top
+    if segment is not None:
+        out = np.zeros((n, frames.shape[1]), np.uint8)
+        for f in np.flatnonzero(seg_of == segment):
+            out[index[f]] |= inside[f]
+        return out
+    out = np.zeros((n, frames.shape[1]), _label_dtype(max(numbers, default=0)))
+    for f in range(len(frames)):
+        m = inside[f]
+        row = out[index[f]]
+        if np.any((row[m] != 0) & (row[m] != seg_of[f])):
+            raise _overlap_error(where, numbers)
+        row[m] = seg_of[f]
+    return out
 
 
 def _overlap_error(where: str, numbers) -> VolwarpError:
@@ -212,8 +408,12 @@ def read_seg(path: str | os.PathLike, *, segment: int | None = None, reference=N
     """
     where = str(path)
     seg = open_seg(path) if seg is None else seg
-    arr, affine = _frames_array(seg, where, segment)
-    data, spacing, origin, direction = _to_volwarp_axes(arr, affine, _single_spacing(seg))
+    fast = _fast_frames(seg, where, segment)
+    if fast is not None:
+        data, spacing, origin, direction = fast
+    else:
+        arr, affine = _frames_array(seg, where, segment)
+        data, spacing, origin, direction = _to_volwarp_axes(arr, affine, _single_spacing(seg))
     meta = _meta(seg, keep_phi)
     if segment is not None:
         meta["DICOM_Segment"] = str(segment)

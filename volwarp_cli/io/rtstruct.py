@@ -2,9 +2,15 @@
 
 Reading (:func:`read_rtstruct`). Every ROI is rasterised on the grid of the
 image series the structure set was drawn on (``reference``), its voxels taking
-the ROI Number; ``structure=NAME`` gives one ROI as a 0/1 mask. Overlapping
-ROIs without ``structure`` are an error naming the option. The rule
-(:func:`rasterize`), slice by slice:
+the ROI Number; ``structure=NAME`` gives one ROI as a 0/1 mask. ROIs that
+overlap (:func:`combine`): one lying wholly inside another (organs inside the
+BODY or External contour, a GTV inside its CTV inside its PTV) is *nested*,
+and a voxel takes the ROI Number of the smallest ROI holding it, so every
+ROI's own voxels keep its number and the outer one gets the rest; ROIs that
+overlap only in part (a PTV reaching into the rectum), or two ROIs with the
+same voxels, cannot share one label map: an error lists every such pair, with
+their shared voxels, and names ``--structure``. The rule (:func:`rasterize`),
+slice by slice:
 
 - a contour lies in the slice whose plane it is in (every point within 0.05
   voxel of it, else an error naming the ROI);
@@ -20,6 +26,7 @@ ROIs without ``structure`` are an error naming the option. The rule
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -138,30 +145,113 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
     names = {r["number"]: r["name"] for r in describe_structures(ds)}
     dtype = np.uint8 if only is not None else _label_dtype(max(numbers, default=0))
     out = np.zeros(grid.data.shape, dtype)
+    rois = []
     for roi in ds.get("ROIContourSequence", []):
         number = int(roi.get("ReferencedROINumber", -1))
         if only is not None and number != only:
             continue
         label = f"ROI {number} {names.get(number, '')!r}"
-        contours = _contours_in_index(roi, grid, where, label)
-        mask = rasterize(contours, grid.data.shape)
+        mask = RoiMask.of(number, names.get(number, ""),
+                          _contours_in_index(roi, grid, where, label), grid.data.shape)
         if only is not None:
-            out[mask] = 1
+            out[mask.slices()][mask.mask] = 1
             continue
-        clash = out[mask]
-        if clash.any():
-            other = int(clash[clash != 0][0])
-            raise VolwarpError(f"{where}: structures {other} {names.get(other, '')!r} and "
-                               f"{number} {names.get(number, '')!r} overlap, so one label map "
-                               "cannot hold them: read one as a 0/1 mask with --structure NAME")
-        out[mask] = number
+        rois.append(mask)
+    nested = [] if only is not None else combine(rois, out, where)
     meta = _meta(ds, keep_phi, ref)
     if only is not None:
         meta["DICOM_Structure"] = f"{only} {names[only]}"
     else:
         meta.update({f"DICOM_ROI_{n}": names[n] for n in numbers})
+        if nested:
+            meta["DICOM_ROI_nested"] = "; ".join(f"{a} in {b}" for a, b in nested)
     return make_volume(where, out, spacing=grid.spacing, origin=grid.origin,
                        direction=grid.direction, space=LPS, file_space=LPS, meta=meta)
+
+
+@dataclass(frozen=True)
+class RoiMask:
+    """One ROI's voxels: its number and name, its bounding box and its mask within it."""
+
+    number: int
+    name: str
+    box: tuple  # (z0, y0, x0), (z1, y1, x1): the box [start, stop) of its voxels
+    mask: np.ndarray  # bool, the box's shape
+    count: int
+
+    @classmethod
+    def of(cls, number: int, name: str, contours, shape_zyx) -> RoiMask:
+        """The ROI of ``contours`` (:func:`rasterize`'s) on a grid of ``shape_zyx``.
+
+        Rasterised in the box of the contours' points (widened by the on-contour
+        tolerance, within the grid): the voxels outside it cannot be inside.
+        """
+        if not contours:
+            return cls(number, name, ((0, 0, 0), (0, 0, 0)), np.zeros((0, 0, 0), bool), 0)
+        ks = [k for k, _, _ in contours]
+        pts = np.concatenate([p for _, p, _ in contours])
+        lo = np.array([min(ks), *np.floor(pts.min(axis=0)[::-1] - 1)], np.int64)
+        hi = np.array([max(ks) + 1, *np.ceil(pts.max(axis=0)[::-1] + 2)], np.int64)
+        lo = np.clip(lo, 0, shape_zyx)
+        hi = np.clip(hi, lo, shape_zyx)
+        shift = lo[:0:-1].astype(np.float64)  # (x0, y0)
+        mask = rasterize([(k - lo[0], p - shift, c) for k, p, c in contours], tuple(hi - lo))
+        return cls(number, name, (tuple(map(int, lo)), tuple(map(int, hi))), mask,
+                   int(np.count_nonzero(mask)))
+
+    def slices(self) -> tuple:
+        """The grid's slices of its box."""
+        return tuple(slice(a, b) for a, b in zip(*self.box, strict=True))
+
+    def shared(self, other: RoiMask) -> int:
+        """How many voxels this ROI and ``other`` share."""
+        lo = np.maximum(self.box[0], other.box[0])
+        hi = np.minimum(self.box[1], other.box[1])
+        if np.any(hi <= lo):
+            return 0
+        mine = self.mask[tuple(slice(a - b, c - b) for a, b, c in
+                               zip(lo, self.box[0], hi, strict=True))]
+        theirs = other.mask[tuple(slice(a - b, c - b) for a, b, c in
+                                  zip(lo, other.box[0], hi, strict=True))]
+        return int(np.count_nonzero(mine & theirs))
+
+    def title(self) -> str:
+        """``NUMBER 'NAME'``, for messages."""
+        return f"{self.number} {self.name!r}"
+
+
+def combine(rois: list[RoiMask], out: np.ndarray, where: str) -> list[tuple[int, int]]:
+    """Paint ``rois`` into the label map ``out``, nested ROIs over the ROIs holding them.
+
+    Every pair that shares voxels must be nested: one ROI's voxels all inside
+    the other's (the smaller is then painted after the larger, so a voxel
+    takes the smallest ROI holding it). A pair overlapping only in part, or two
+    ROIs with the same voxels, is an error listing every such pair with the
+    voxels it shares and naming ``--structure``. Returns the nested pairs
+    ``(inner ROI Number, outer ROI Number)``.
+    """
+    nested, clashes = [], []
+    for i, a in enumerate(rois):
+        for b in rois[i + 1:]:
+            common = a.shared(b)
+            if not common:
+                continue
+            if common == a.count and a.count < b.count:
+                nested.append((a.number, b.number))
+            elif common == b.count and b.count < a.count:
+                nested.append((b.number, a.number))
+            else:
+                clashes.append(f"{a.title()} and {b.title()} share {common} voxels"
+                               + (" (the same voxels)" if common == a.count == b.count else ""))
+    if clashes:
+        shown = "; ".join(clashes[:6]) + (f"; and {len(clashes) - 6} more pairs"
+                                          if len(clashes) > 6 else "")
+        raise VolwarpError(f"{where}: ROIs overlap without one lying inside the other, so one "
+                           f"label map cannot hold them ({shown}): read each as a 0/1 mask "
+                           "with --structure NAME")
+    for roi in sorted(rois, key=lambda r: (-r.count, r.number)):  # outer ROIs first
+        out[roi.slices()][roi.mask] = roi.number
+    return sorted(nested)
 
 
 def _label_dtype(top: int):
@@ -353,6 +443,53 @@ def mask_outlines(mask: np.ndarray, *, nudge: float = NUDGE) -> list[np.ndarray]
     return loops
 
 
+#: the contour styles :func:`build_rtstruct` writes
+CONTOUR_STYLES = ("edges", "smooth")
+#: margin (voxels) around a slice's mask where its distance field is computed
+_FIELD_MARGIN = 2
+
+
+def smooth_outlines(mask: np.ndarray) -> list[np.ndarray]:
+    """Closed outlines (n, 2) of a 2-D bool mask [y, x] from its sub-voxel distance field.
+
+    The field is the exact Euclidean distance between voxel centres, in voxels
+    (``scipy.ndimage.distance_transform_edt``), signed and moved half a voxel:
+    ``0.5 - d_in`` at a voxel of the mask (``d_in``: to the nearest centre
+    outside it), ``d_out - 0.5`` elsewhere, so its zero level runs along the
+    voxel faces where the boundary is straight and cuts across its staircases.
+    The outlines are that level by marching squares (scikit-image's
+    ``find_contours``, elements above the level fully connected, so voxels
+    touching only at a corner get loops of their own), with collinear vertices
+    dropped (``approximate_polygon``, tolerance 1e-3 voxel). Every voxel centre
+    lies at least 0.35 voxel from them, inside them exactly when its voxel is in
+    the mask: the even-odd rule reads the mask back exactly.
+
+    References
+    ----------
+    W. E. Lorensen and H. E. Cline, "Marching cubes: a high resolution 3D surface
+    construction algorithm", SIGGRAPH 1987, doi:10.1145/37402.37422 (its 2-D case).
+    """
+    from scipy import ndimage
+    from skimage.measure import approximate_polygon, find_contours
+
+    mask = np.asarray(mask, dtype=bool)
+    ys, xs = np.nonzero(mask)
+    if not ys.size:
+        return []
+    y0, x0 = ys.min() - _FIELD_MARGIN, xs.min() - _FIELD_MARGIN
+    crop = np.zeros((ys.max() - y0 + 1 + _FIELD_MARGIN, xs.max() - x0 + 1 + _FIELD_MARGIN),
+                    bool)
+    crop[ys - y0, xs - x0] = True  # (the margin is outside: every loop closes inside it)
+    d_in = ndimage.distance_transform_edt(crop)
+    d_out = ndimage.distance_transform_edt(~crop)
+    field = np.where(crop, 0.5 - d_in, d_out - 0.5)
+    loops = []
+    for c in find_contours(field, 0.0, fully_connected="high"):
+        c = approximate_polygon(c, tolerance=1e-3)  # (closed: its first point is its last)
+        loops.append(c[:-1, ::-1] + (x0, y0))
+    return loops
+
+
 def _corners(pts: np.ndarray, dirs: np.ndarray, nudge: float) -> np.ndarray:
     """The loop's turning vertices, moved inward, in voxel-centre (x, y) indices."""
     prev = np.roll(dirs, 1, axis=0)
@@ -366,13 +503,19 @@ def _ds(values) -> list[str]:
 
 
 def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = None,
-                   where: str = "RTSTRUCT"):
+                   where: str = "RTSTRUCT", contours: str = "edges"):
     """A pydicom RTSTRUCT of a label map on ``reference``'s grid: one ROI per label.
 
-    ROI Number = label value, named from ``names`` or ``label_N``; contours on
-    voxel edges moved :data:`NUDGE` voxel inward (:func:`mask_outlines`), each
-    referencing its slice's image; new SOP and Series UIDs made from the content.
+    ROI Number = label value, named from ``names`` or ``label_N``; contours
+    (``contours="edges"``) on voxel edges moved :data:`NUDGE` voxel inward
+    (:func:`mask_outlines`), or (``"smooth"``) the zero level of each slice's
+    sub-voxel distance field (:func:`smooth_outlines`), each referencing its
+    slice's image; new SOP and Series UIDs made from the content.
     """
+    if contours not in CONTOUR_STYLES:
+        raise VolwarpError(f"contours must be one of {', '.join(CONTOUR_STYLES)}, "
+                           f"got {contours!r}")
+    outlines = mask_outlines if contours == "edges" else smooth_outlines
     import pydicom
     from pydicom.dataset import Dataset, FileMetaDataset
     from pydicom.sequence import Sequence
@@ -384,7 +527,8 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     check_on_reference_grid(vol, reference, where)
     values = label_values(vol, where)
     names = dict(names or {})
-    key = _content_key(vol, reference, "rtstruct", names)
+    key = _content_key(vol, reference, "rtstruct" if contours == "edges" else
+                       f"rtstruct {contours}", names)
     date, time = _stamp(reference)
     src = pydicom.dcmread(reference.files[0], stop_before_pixels=True)
     g = reference.grid
@@ -436,7 +580,7 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
         rois.append(roi)
         seq = []
         for k in np.flatnonzero((data == value).any(axis=(1, 2))):
-            for loop in mask_outlines(data[k] == value):
+            for loop in outlines(data[k] == value):
                 xyz = g.index_to_world(np.column_stack([loop, np.full(len(loop), float(k))]))
                 item = Dataset()
                 item.ContourImageSequence = Sequence([image_ref(int(k))])
@@ -463,11 +607,11 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
 
 
 def write_rtstruct(vol: Volume, path: str | os.PathLike, reference, *,
-                   names: dict[int, str] | None = None) -> None:
+                   names: dict[int, str] | None = None, contours: str = "edges") -> None:
     """Write :func:`build_rtstruct`'s RTSTRUCT to ``path`` atomically."""
     from .atomic import atomic_output, check_output_path
 
     check_output_path(path)
-    ds = build_rtstruct(vol, reference, names=names, where=str(path))
+    ds = build_rtstruct(vol, reference, names=names, where=str(path), contours=contours)
     with atomic_output(path) as tmp:
         ds.save_as(tmp, enforce_file_format=True)

@@ -220,13 +220,24 @@ class LazyDicom:
 
 
 def open_dicom_lazy(path: str | os.PathLike, *, series=None, irregular: str = "error",
-                    duplicates: str = "error", keep_shear: bool = False, keep_phi: bool = False):
+                    duplicates: str = "error", keep_shear: bool = False, keep_phi: bool = False,
+                    reference=None, segment=None, structure=None):
     """``(template, LazyDicom)``: :func:`read_dicom`'s Volume with a placeholder, and its samples.
 
     None when the stack must be resampled (a gantry tilt, irregular spacing
-    with ``irregular="resample"``): that is read whole.
+    with ``irregular="resample"``): that is read whole. A SEG or RTSTRUCT (a
+    label map made from its frames or contours) is read whole too
+    (:class:`~volwarp_cli.io.lazy.NotLazy` says so), and so is an image series
+    given ``reference``, ``segment`` or ``structure`` (:func:`read_dicom` refuses them).
     """
+    from ..lazy import NotLazy
+
     where = str(path)
+    if segmentation_kind(path) is not None:
+        raise NotLazy("a DICOM SEG or RTSTRUCT is read whole (a label map made from its "
+                      "frames or contours)")
+    if reference is not None or segment is not None or structure is not None:
+        raise NotLazy("--reference, --segment and --structure read segmentations")
     plan, dtype, meta = _plan(path, series=series, irregular=irregular, duplicates=duplicates,
                               keep_shear=keep_shear, keep_phi=keep_phi)
     if plan.resampled:
