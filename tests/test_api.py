@@ -201,3 +201,24 @@ def test_write_never_replaces_an_input(tmp_path):
     assert copy.read_bytes() == BALL.read_bytes()
     with pytest.raises(BadUsage, match="must end in .vwc"):
         api.write(api.capture(vol, lattice=6), tmp_path / "scene.nrrd")
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(iso="0.5"), "iso must be a finite number"),
+    (dict(iso=float("nan")), "iso must be a finite number"),
+    (dict(iso=100, max_distance="3"), "max_distance must be a finite number"),
+    (dict(iso=100, max_distance=float("inf")), "max_distance must be a finite number"),
+    (dict(iso=100, max_distance=0), "max_distance must be positive"),
+    (dict(label="2"), "label must be a whole number"),
+    (dict(label=2.0), "label must be a whole number"),
+    (dict(iso=100, unsigned="no"), "unsigned must be True or False"),
+])
+def test_distance_refuses_wrong_arguments_as_the_command_does(kwargs, match):
+    with pytest.raises(BadUsage, match=match):
+        api.distance(BALL, **kwargs)
+
+
+def test_an_infinite_band_is_a_usage_error_of_the_command(run, tmp_path):
+    res = run("distance", BALL, "-o", tmp_path / "d.nrrd", "--iso", "100", "--max-distance",
+              "inf")
+    assert res.code == 2 and "finite" in res.stderr and not (tmp_path / "d.nrrd").exists()

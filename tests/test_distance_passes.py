@@ -168,3 +168,18 @@ def test_the_whole_is_checked_in_the_first_pass(tmp_path, chunked, caplog):
 def test_anisotropic_voxel_step_metrics_are_refused(tmp_path):
     with pytest.raises(VolwarpError, match="needs isotropic spacing"):
         _op(blobs(SHAPE, 1), ANISO, "chessboard", tmp_path / "c.nrrd")
+
+
+def test_a_block_task_pickles_small(tmp_path):
+    """By processes every pass task pickles the operation: its output's template (a
+    placeholder of the whole grid) must not travel as an array (it did: 64 MiB a task)."""
+    import pickle
+
+    shape = (96, 96, 96)
+    data = np.zeros(shape, np.uint8)
+    op = _op(data, (1.0, 1.0, 1.0), "euclidean", tmp_path / "o.nrrd")
+    op.masks.source = None  # (a lazy reader by blocks; here only the op's own weight)
+    size = len(pickle.dumps(op.passes(1 << 20)[-1].block))
+    assert size < 20_000, size
+    again = pickle.loads(pickle.dumps(op.targets["field"].template))
+    assert again.data.shape == shape and again.data.strides == (0, 0, 0)

@@ -141,6 +141,10 @@ def test_cli_update_spec_errors(run, tmp_path):
     r = run("distance", "--update", tmp_path / "d0.nrrd", "--transform", tmp_path / "bad.yaml",
             "-o", tmp_path / "d1.nrrd", "--iso", 3)
     assert r.code == 2
+    (tmp_path / "ok.yaml").write_text("version: 1\ntranslate: [1, 0, 0]\n")
+    r = run("distance", "--update", tmp_path / "d0.nrrd", "--transform", tmp_path / "ok.yaml",
+            "-o", tmp_path / "d1.nrrd", "--chunked")  # (was parsed and ignored)
+    assert r.code == 2 and "--update runs in memory" in r.stderr
     assert not (tmp_path / "d1.nrrd").exists()
 
 

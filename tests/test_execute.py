@@ -114,7 +114,9 @@ def test_a_multi_component_output_by_blocks_is_the_in_memory_file(tmp_path):
     assert np.array_equal(read_nrrd(tmp_path / "b/both.nrrd", component=1).data, _expected()[1])
 
 
-def test_the_whole_over_the_budget_runs_by_blocks_with_one_warning(tmp_path, caplog):
+def test_the_whole_over_the_budget_runs_by_blocks_with_one_warning(tmp_path, caplog,
+                                                                   monkeypatch):
+    monkeypatch.setattr(memory, "process_rss", lambda: 0)  # (a budget of its own: 2 GiB)
     op = Ramp(tmp_path, bytes_per=2 << 20)  # (the whole: 4.7 GiB; a 6x7x8 block 672 MiB)
     how = execute.How(block=(6, 7, 8), open_engine=lambda: open_engine("threads", workers=2))
     with memory.use_memory_limit(2 << 30):
@@ -126,7 +128,8 @@ def test_the_whole_over_the_budget_runs_by_blocks_with_one_warning(tmp_path, cap
     assert np.array_equal(read_volume(tmp_path / "v.nrrd").data, _expected()[0])
 
 
-def test_a_user_block_over_a_task_s_budget_is_refused_before_any_work(tmp_path):
+def test_a_user_block_over_a_task_s_budget_is_refused_before_any_work(tmp_path, monkeypatch):
+    monkeypatch.setattr(memory, "process_rss", lambda: 0)  # (a budget of its own: 2 GiB)
     old = tmp_path / "v.nrrd"
     old.write_bytes(b"an earlier output")
     op = Ramp(tmp_path, bytes_per=4 << 20)  # a 6x7x8 block: 1.3 GiB, a task has < 1 GiB

@@ -24,6 +24,7 @@ from volwarp_cli.morph.pipeline import prepare
 from volwarp_cli.morph.run import (
     BlocksRefused,
     FrameWrite,
+    MorphPlan,
     morph_by_blocks,
     morph_note,
     plan_morph,
@@ -149,8 +150,9 @@ def test_the_run_is_decided_before_any_sample_is_read(shapes, tmp_path, monkeypa
     assert not read  # (the headers only: nothing read whole)
 
 
-def test_what_blocks_refuse_completes_the_in_memory_refusal(shapes, tmp_path, monkeypatch):
-    """Unasked blocks that cannot run: one refusal with both reasons, nothing written."""
+def test_a_landmark_warp_that_does_not_fit_is_refused_with_both_reasons(shapes, tmp_path,
+                                                                         monkeypatch):
+    """Unasked blocks that cannot run: one refusal with both reasons, before any work."""
     from volwarp_cli import memory
 
     job = _job(shapes, times=[0.0, 1.0], grid="source",
@@ -159,13 +161,25 @@ def test_what_blocks_refuse_completes_the_in_memory_refusal(shapes, tmp_path, mo
     outputs = _outputs(job, tmp_path)
     monkeypatch.setattr(memory, "process_rss", lambda: 0)
     monkeypatch.setattr("volwarp_cli.execute.MIN_BLOCK_BUDGET", 64 << 10)
-    with memory.use_memory_limit(150 << 10):
-        plan = plan_morph(job, outputs, FrameWrite(), None)
-        with pytest.raises(OutOfMemoryError) as info:
-            run_morph(job, outputs, plan, meta={}, write_kw={},
-                      how=How(open_engine=lambda: open_engine("synchronous")))
-    assert str(info.value).startswith(plan.in_memory_refusal + ", and by blocks: ")
-    assert "landmark warp" in str(info.value)
+    with memory.use_memory_limit(150 << 10), pytest.raises(OutOfMemoryError) as info:
+        plan_morph(job, outputs, FrameWrite(), None)
+    message = str(info.value)
+    assert message.startswith("a morph on a 15x21x17 grid needs ")
+    assert message.endswith(", and by blocks: a morph with a landmark warp runs in memory only")
+    assert not list(tmp_path.glob("b_*")) and not list(tmp_path.glob(".*"))
+
+
+def test_what_blocks_refuse_completes_the_in_memory_refusal(shapes, tmp_path):
+    """A refusal found on the block path (an output written whole) after an unasked switch."""
+    job = _job(shapes, times=[0.0, 1.0])
+    outputs = MorphOutputs(job, str(tmp_path / "b_{i}.nrrd"))
+    plan = MorphPlan(True, in_memory_refusal="a morph on a 15x21x17 grid needs 1 TiB")
+    outputs.frames[1] = str(tmp_path / "b_1.nii.gz")  # (NIfTI: written whole)
+    with pytest.raises(OutOfMemoryError) as info:
+        run_morph(job, outputs, plan, meta={}, write_kw={},
+                  how=How(open_engine=lambda: open_engine("synchronous")))
+    assert str(info.value).startswith("a morph on a 15x21x17 grid needs 1 TiB, and by blocks: ")
+    assert "b_1.nii.gz" in str(info.value)
     assert not list(tmp_path.glob("b_*")) and not list(tmp_path.glob(".*"))
 
 

@@ -411,6 +411,8 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
         provenance as the command writes them (float32: :func:`write`'s
         ``dtype`` converts, as ``--dtype`` does).
     """
+    import numbers
+
     import numpy as np
 
     from .distance.field import check_method, field_note
@@ -424,6 +426,12 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
     _choice(inside, ("above", "below"), "inside")
     check_method(metric, surface)
     check_options(values=values, label=label, iso=iso, surface=surface)
+    _finite(iso, "iso")
+    _finite(max_distance, "max_distance", positive=True)
+    if label is not None and not isinstance(label, numbers.Integral):
+        raise BadUsage(f"label must be a whole number (a label's id), got {label!r}")
+    if not isinstance(unsigned, bool):
+        raise BadUsage(f"unsigned must be True or False, got {unsigned!r}")
     path = _path_of(volume)
     with _outside_data(read_options.get("allow_outside_data", False)):
         template, source = _template_and_source(volume, path, read_options)
@@ -717,6 +725,19 @@ def _warn_blended_labels(vol: Volume, name: str, placement: str, oversample: flo
                     "(a warp of this capture averages them); capture it with the uniform "
                     "placement and an integer --oversample to warp it as labels", name,
                     choice.labels, how)
+
+
+def _finite(value, name: str, *, positive: bool = False) -> None:
+    """A number option: finite (and positive), or None (a BadUsage, as the command's)."""
+    import math
+    import numbers
+
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise BadUsage(f"{name} must be a finite number, got {value!r}")
+    if positive and not value > 0:
+        raise BadUsage(f"{name} must be positive, got {value!r}")
 
 
 def _choice(value, choices, name: str) -> None:

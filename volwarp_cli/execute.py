@@ -309,6 +309,7 @@ def run(op: Operation, how: How = How(), after: Callable | None = None) -> Ran:
         return _reduce(op, how, after)
     first = next(iter(op.targets.values()))
     outputs = [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()]
+    outputs += getattr(op, "scratch_files", lambda: [])()  # (beside the outputs, by blocks)
     if not _in_memory(op, how, outputs, compress=first.compress, pyramid=first.pyramid):
         return _run_blocks(op, how, after)
     results = compute_whole(op, how.threads)
@@ -339,32 +340,49 @@ def _in_memory(op: Operation, how: How, outputs, *, compress: bool = False,
                pyramid: int = 0) -> bool:
     """Whether ``op`` runs as one block: its whole's memory against the budget, before any work.
 
-    False: by blocks (said on stderr where the command did not ask for
-    them); :func:`refuse_unmakeable`'s refusal where neither way can run.
+    :func:`decide` with the operation's own sizes.
+    """
+    return decide(op.memory(op.grid.box), op.what, outputs, how, load=op.load,
+                  no_blocks=op.no_blocks, compress=compress, pyramid=pyramid)
+
+
+def decide(need: int, what: str, outputs, how: How, *, load=None, no_blocks: str | None = None,
+           compress: bool = False, pyramid: int = 0) -> bool:
+    """In memory (True) or by blocks (False), by arithmetic, before any work.
+
+    ``need``: the whole's memory in one block; ``what``: the work and its
+    sizes, for messages; ``outputs``: ``[(path, nbytes)]`` written by blocks
+    (the disk's check); ``load()``: what the work loads (kernels), run before
+    a tight answer and before the blocks' budget is weighed (so that it counts
+    them); ``no_blocks``: why the work has no form by blocks, if it has none.
+    By blocks where the whole does not fit (said on stderr where the command
+    did not ask for them); one refusal with both reasons where neither way can
+    run (:func:`refuse_unmakeable`).
     """
     from . import memory
 
-    need = op.memory(op.grid.box)
-    if how.chunked is not True and fits(need, op.load):
+    if how.chunked is not True and fits(need, load):
         return True
-    if op.no_blocks is not None:
+    if no_blocks is not None:
         if how.chunked:
-            raise VolwarpError(op.no_blocks)
+            raise VolwarpError(no_blocks)
         try:
-            memory.ensure_fits_in_memory(need, op.what)
+            memory.ensure_fits_in_memory(need, what)
         except OutOfMemoryError as exc:
-            raise OutOfMemoryError(f"{exc}, and by blocks: {op.no_blocks}") from None
+            raise OutOfMemoryError(f"{exc}, and by blocks: {no_blocks}") from None
         return True
-    refuse_unmakeable(op.what, need, outputs, chunked=how.chunked, compress=compress,
+    refuse_unmakeable(what, need, outputs, chunked=how.chunked, compress=compress,
                       pyramid=pyramid)
     if how.chunked is None:
+        if load is not None:
+            load()  # (the blocks' budget is what is left once the kernels are loaded)
         try:
             block_budget()
         except OutOfMemoryError:
-            memory.ensure_fits_in_memory(need, op.what)  # no room for blocks either
+            memory.ensure_fits_in_memory(need, what)  # no room for blocks either
             raise
         log.warning("%s needs %s: running by blocks (--no-chunked to refuse instead)",
-                    op.what, memory.human_bytes(need))
+                    what, memory.human_bytes(need))
     return False
 
 

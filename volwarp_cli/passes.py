@@ -153,6 +153,12 @@ class Passes(Operation):
                 held += target.nbytes((1, 1, 1))
         return voxels * (held + max(p.bytes_per_voxel for p in self.passes(None)))
 
+    def scratch_files(self) -> list:
+        """``[(path, nbytes)]`` of the scratch files by blocks (beside the first output)."""
+        first = next(iter(self.targets.values()))
+        size = self.grid.size * sum(np.dtype(d).itemsize for d in self.scratch.values())
+        return [(first.path, size)] if size else []
+
     def _aliased(self, key) -> bool:
         name = self.aliases.get(key)
         return name is not None and np.dtype(self.scratch[name]) == np.dtype(self.targets[key].dtype)

@@ -78,6 +78,14 @@ def zyx_to_xyz(values):
     return tuple(values)[::-1]
 
 
+@dataclass(frozen=True)
+class _Broadcast:
+    """A zero-strided array's one value (a 1-element array) and its shape, for pickling."""
+
+    value: np.ndarray
+    shape: tuple
+
+
 @dataclass
 class Volume:
     """Samples ``data[z, y, x]`` with spacing, origin and direction, all (x, y, z).
@@ -126,6 +134,24 @@ class Volume:
                 self.direction = to_lps @ self.direction + 0.0
             self.space = LPS
         self.meta = dict(self.meta)
+
+    def __getstate__(self):
+        """Pickled for block tasks: a placeholder (one value broadcast) as its shape and value.
+
+        A template's samples are a zero-strided view (``np.broadcast_to``);
+        pickling it as an array would copy the whole grid into every task.
+        """
+        state = dict(self.__dict__)
+        data = state["data"]
+        if data.size > 1 and all(s == 0 for s in data.strides):
+            state["data"] = _Broadcast(data.reshape(-1)[:1].copy(), data.shape)
+        return state
+
+    def __setstate__(self, state):
+        data = state["data"]
+        if isinstance(data, _Broadcast):
+            state["data"] = np.broadcast_to(data.value.reshape(()), data.shape)
+        self.__dict__.update(state)
 
     # -- sizes --------------------------------------------------------------
     @property

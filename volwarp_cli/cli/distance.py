@@ -53,7 +53,7 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
                    "intensity.")
 @click.option("--metric", type=click.Choice(_METRICS), default="euclidean", show_default=True,
               help="euclidean (exact); minnorm (the paper's shift-and-min passes; equals the "
-                   "spacing-weighted taxicab distance); chessboard/taxicab (chamfer scans, "
+                   "spacing-weighted taxicab distance); chessboard/taxicab (voxel steps, per-line passes; "
                    "isotropic spacing only).")
 @click.option("--surface", type=click.Choice(["auto", "voxel", "subvoxel"]), default="auto",
               show_default=True,
@@ -63,6 +63,7 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 @click.option("--unsigned", is_flag=True,
               help="Distance to the shape (0 inside) instead of the signed field.")
 @click.option("--max-distance", type=click.FloatRange(min=0, min_open=True), default=None,
+              callback=finite,
               metavar="D", help="Clamp distances to [-D, D] (world units).")
 @click.option("--update", "update", type=INPUT_PATH, default=None,
               metavar="OLD_SDF", help="Update an existing signed field instead (needs --transform).")
@@ -103,6 +104,9 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
                 raise click.UsageError(f"{flag} does not apply to --update (the field is given)")
         if metric not in ("euclidean", "minnorm"):
             raise click.UsageError("--update propagates euclidean or minnorm fields only")
+        if scale_settings().chunked:
+            raise click.UsageError("--update runs in memory (its fill propagates across the "
+                                   "whole field): not --chunked")
         _update(update, transform, output, metric, max_distance,
                 write=dict(dtype=dtype, compress=compress, byte_order=byte_order, **ome_zarr),
                 read=dict(raw=raw, volume_index=volume_index, dicom=dicom))

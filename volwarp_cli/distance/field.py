@@ -18,8 +18,13 @@ Metrics
     The paper's shift-and-min scheme (:mod:`.minnorm`); it equals the
     spacing-weighted taxicab distance between voxel centres.
 ``taxicab``, ``chessboard``
-    ``scipy.ndimage.distance_transform_cdt`` (two-pass chamfer scans) between
-    voxel centres; voxel steps, so isotropic spacing only.
+    Per-line passes between voxel centres (:mod:`._line_kernels`: a sweep
+    each way for taxicab, Meijster et al.'s lower envelope for chessboard),
+    the values of ``scipy.ndimage.distance_transform_cdt``; voxel steps, so
+    isotropic spacing only.
+
+Every metric but the sub-voxel field is an operation in passes
+(:mod:`.passes`), in memory here as by blocks.
 """
 
 from __future__ import annotations

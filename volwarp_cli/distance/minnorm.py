@@ -170,16 +170,6 @@ def line_metric_pass(metric: str, field: np.ndarray, axis: int, h: float,
     return axis_pass(field, axis, h, scratch)
 
 
-def minnorm_unsigned(sites: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0)) -> tuple[np.ndarray, int]:
-    """Taxicab distance of every voxel to the nearest ``sites`` voxel, and the pass count.
-
-    ``+inf`` everywhere when there is no site.
-    """
-    field = np.where(sites, np.float32(0), np.float32(np.inf))
-    count = propagate(field, spacing_zyx)
-    return field, count
-
-
 def minnorm_signed(mask: np.ndarray, spacing_zyx=(1.0, 1.0, 1.0)) -> tuple[np.ndarray, int]:
     """Signed min-norm (taxicab) field between voxel centres: negative inside.
 

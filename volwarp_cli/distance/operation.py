@@ -31,3 +31,25 @@ def field_operation(source, grid, rule, *, metric: str, surface: str,
         return ExactDistance(masks, grid, target=target, unsigned=unsigned)
     return LineMetricDistance(masks, grid, metric=metric, target=target, unsigned=unsigned,
                               max_distance=max_distance)
+
+
+def field_memory(shape_zyx, dtype, *, metric: str = "euclidean", surface: str = "auto") -> int:
+    """The bytes the in-memory field of a grid of ``shape_zyx`` and ``dtype`` holds at its peak.
+
+    Its operation's own count (:meth:`~volwarp_cli.execute.Operation.memory`
+    of the whole, the field included), before any sample is read; under
+    ``surface="auto"`` the euclidean field's larger of the voxel and
+    sub-voxel ways (which one, the samples say).
+    """
+    import numpy as np
+
+    from ..geometry import Geometry
+    from .labels import ShapeRule
+
+    source = np.broadcast_to(np.zeros((), dtype), tuple(int(n) for n in shape_zyx))
+    grid = Geometry(source.shape, (1.0, 1.0, 1.0))
+    rule = ShapeRule("intensity", "given", iso=0.5)
+    surfaces = ["voxel", "subvoxel"] if metric == "euclidean" and surface == "auto" else [
+        "voxel" if surface == "auto" else surface]
+    return max(field_operation(source, grid, rule, metric=metric, surface=s).memory(grid.box)
+               for s in surfaces)

@@ -36,13 +36,19 @@ from .exact import x_pass, y_pass, z_pass
 from .field import check_isotropic, finish_field, inside_mask
 from .scan import block_stats, check_shape, merge_stats
 
-#: Bytes per voxel a block of a pass holds besides its input samples: a float32 field, a
-#: float32 copy, the mask and the stats' boolean temporaries.
+#: Bytes per voxel a block of a pass holds besides its input samples, by blocks: a
+#: float32 field, a float32 copy, the mask and the stats' boolean temporaries; in memory
+#: (the field a view of the scratch array) the mask and the stats' temporaries. (Measured
+#: in memory, 256^3 uint8: 10 bytes a voxel with the scratch, against 11 counted.)
 PASS_BYTES_PER_VOXEL = 13
+PASS_BYTES_IN_MEMORY = 6
 
-#: Bytes per voxel of a line-metric block besides its samples: the mask, the outside and
-#: inside float32 fields, the shift scratch and a read copy.
+#: Bytes per voxel of a line-metric block besides its samples, by blocks: the mask, the
+#: outside and inside float32 fields, the shift scratch and a read copy; in memory: the
+#: mask, a float32 temporary and the shift scratch. (Measured in memory, minnorm 256^3
+#: uint8: 14 bytes a voxel with both scratch arrays, against 18 counted.)
 LINE_BYTES_PER_VOXEL = 17
+LINE_BYTES_IN_MEMORY = 9
 
 
 # -- the shape, box by box -----------------------------------------------------------------
@@ -170,7 +176,8 @@ class ExactDistance(_FieldPasses):
 
     def passes(self, block_bytes):
         """The passes: x and y on slabs (x, then y, where a plane does not fit), then z."""
-        per = PASS_BYTES_PER_VOXEL + self._extra()
+        per = (PASS_BYTES_IN_MEMORY if block_bytes is None else PASS_BYTES_PER_VOXEL) \
+            + self._extra()
         nz, ny, nx = self.grid.shape
         if block_bytes is None or ny * nx * per <= block_bytes:
             first = [Pass("xy", (1, 2), per, self._xy, self.masks.after_first)]
@@ -214,8 +221,8 @@ class LineMetricDistance(_FieldPasses):
     planes where a plane fits), then combine: ``-inside`` on the shape; taxicab
     and chessboard (integer voxel steps) scaled by the isotropic spacing.
     ``minnorm`` runs :func:`.minnorm.axis_pass`, the paper's shift-and-min
-    passes; ``taxicab`` the same with unit steps (scipy's
-    ``distance_transform_cdt`` values); ``chessboard``
+    passes; ``taxicab`` :func:`.minnorm.taxicab_axis_pass` (a sweep each way,
+    scipy's ``distance_transform_cdt`` values); ``chessboard``
     :func:`.minnorm.chessboard_axis_pass`.
     """
 
@@ -233,7 +240,8 @@ class LineMetricDistance(_FieldPasses):
 
     def passes(self, block_bytes):
         """The passes: x and y on slabs (x, then y, where a plane does not fit), then z."""
-        per = LINE_BYTES_PER_VOXEL + self._extra()
+        per = (LINE_BYTES_IN_MEMORY if block_bytes is None else LINE_BYTES_PER_VOXEL) \
+            + self._extra()
         nz, ny, nx = self.grid.shape
         if block_bytes is None or ny * nx * per <= block_bytes:
             first = [Pass("xy", (1, 2), per, self._xy, self.masks.after_first)]

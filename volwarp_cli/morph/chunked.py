@@ -15,7 +15,7 @@ frames bit for bit, their meshes byte for byte.
 Inputs on other grids than the frame grid, and affine alignments, run by
 blocks too: each field is computed by blocks on its own input's grid, as
 above, then resampled onto the frame grid block by block into a second
-scratch file (:func:`resample_by_blocks`), each frame-grid block reading only
+scratch file (:func:`resampled`), each frame-grid block reading only
 the box of the field its voxels' coordinates reach
 (:func:`.interpolate.needed_box`: the hull of the block's 8 corners' images
 plus the trilinear support, clipped to the input) through the very function

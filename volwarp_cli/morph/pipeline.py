@@ -61,7 +61,7 @@ def prepare(job: MorphJob, source: Volume, target: Volume,
                                                   inside=ref.inside, metric=job.metric,
                                                   surface=job.surface)
                 finish_field(fields[name], max_distance=job.max_distance)
-            except VolwarpError as exc:  # (an OutOfMemoryError stays one: blocks may do it)
+            except VolwarpError as exc:  # (named after its input; a refusal stays one)
                 kind = OutOfMemoryError if isinstance(exc, OutOfMemoryError) else VolwarpError
                 raise kind(f"{ref.path}: {exc}") from None
     a_s = _matrix(job.align_source, source, job.source.iso, job.source.inside)

@@ -4,8 +4,8 @@
 outputs', and decides by arithmetic, as :func:`volwarp_cli.execute.run` does
 for every operation: the in-memory morph's memory against the budget
 (``--chunked``/``--no-chunked`` as asked), what neither way can make refused
-with both reasons. :func:`morph_in_memory` runs the frames of
-:mod:`.frames`; :func:`morph_by_blocks` strings together the steps of
+with both reasons. :func:`run_morph` runs it: in memory the frames of :mod:`.frames`, by
+blocks :func:`morph_by_blocks`, which strings together the steps of
 :mod:`.chunked`: the frame grid and what the block path refuses, the
 alignment's matrices counted by blocks, the resampling's blocks and the
 aligned inputs' coverage, the outputs' checks, then both fields on disk and
@@ -125,23 +125,32 @@ def _input_header(path, loaded: dict):
         return loaded[str(path)]
 
 
+#: Bytes a frame-grid voxel holds in the in-memory morph, measured (256^3 binary shapes,
+#: static: 23 bytes a voxel above the command's start): both fields on the grid, the
+#: frame's buffer and values, a field being resampled onto the grid and the writer's copy
+FRAME_BYTES = {"static": 24, "moving": 48}
+
+
 def in_memory_bytes(job: MorphJob, source, target, frame_voxels: int) -> int:
     """What the in-memory morph holds at its peak, from the headers alone.
 
-    Both inputs read whole; one field's passes at a time on its input's grid
-    (the float32 field, the pass temporaries) and both fields kept; the
-    frame grid's arrays (:func:`.pipeline.prepare`'s count: 5 float32 a
-    voxel, 11 with a moving landmark warp); each attribute's pair on it.
+    Both inputs read whole, and the larger of two phases: the fields on the
+    inputs' grids (the source's kept while the target's is computed, each as
+    its operation counts it: :func:`volwarp_cli.distance.operation.field_memory`),
+    and the frame grid's arrays (:data:`FRAME_BYTES` a voxel, twice as many
+    with a moving landmark warp; each attribute's pair).
     """
-    from ..distance.passes import PASS_BYTES_PER_VOXEL
+    from ..distance.operation import field_memory
 
-    sizes = [math.prod(v.data.shape) for v in (source, target)]
-    items = [np.dtype(v.dtype).itemsize for v in (source, target)]
-    inputs = sum(n * i for n, i in zip(sizes, items, strict=True))
-    field_pass = max(n * (4 + PASS_BYTES_PER_VOXEL + i) for n, i in zip(sizes, items,
-                                                                         strict=True))
-    per_voxel = 4 * (5 if job.warp_mode == "static" else 11) + 8 * len(job.attributes)
-    return inputs + field_pass + 4 * sum(sizes) + frame_voxels * per_voxel
+    def mem(v):
+        return field_memory(v.data.shape, v.dtype, metric=job.metric, surface=job.surface)
+
+    inputs = sum(math.prod(v.data.shape) * np.dtype(v.dtype).itemsize
+                 for v in (source, target))
+    fields = max(mem(source), 4 * math.prod(source.data.shape) + mem(target))
+    per_voxel = FRAME_BYTES["static" if job.warp_mode == "static" else "moving"]
+    frames = frame_voxels * (per_voxel + 8 * len(job.attributes))
+    return inputs + max(fields, frames)
 
 
 def plan_morph(job: MorphJob, outputs, write: FrameWrite, chunked: bool | None) -> MorphPlan:
@@ -169,11 +178,15 @@ def plan_morph(job: MorphJob, outputs, write: FrameWrite, chunked: bool | None) 
         sizes += [(p, n * np.dtype(a.dtype or np.uint8).itemsize)
                   for p in outputs.attributes[a.name]]
     what = f"a morph on a {'x'.join(map(str, shape))} grid"
-    need = in_memory_bytes(job, source, target, n)
-    if chunked is not True and execute.fits(need):
+    # (inputs read whole for their headers are held already: the budget left counts them)
+    need = in_memory_bytes(job, source, target, n) - sum(
+        v.data.nbytes for v in plan.loaded.values())
+    no_blocks = None
+    if job.warp_source_points is not None and chunked is None:  # (--chunked: a usage error)
+        no_blocks = "a morph with a landmark warp runs in memory only"
+    if execute.decide(need, what, sizes, execute.How(chunked=chunked), no_blocks=no_blocks,
+                      compress=write.compress, pyramid=write.pyramid):
         return plan
-    execute.refuse_unmakeable(what, need, sizes, chunked=chunked, compress=write.compress,
-                              pyramid=write.pyramid)
     plan.by_blocks = True
     plan.loaded.clear()  # (the block path opens its inputs itself)
     if chunked is None:
@@ -181,13 +194,6 @@ def plan_morph(job: MorphJob, outputs, write: FrameWrite, chunked: bool | None) 
             memory.ensure_fits_in_memory(need, what)
         except VolwarpError as exc:
             plan.in_memory_refusal = str(exc)
-        try:
-            execute.block_budget()
-        except VolwarpError:  # no room for blocks either: the in-memory refusal stands
-            memory.ensure_fits_in_memory(need, what)
-            raise
-        log.warning("%s needs %s: running by blocks (--no-chunked to refuse instead)", what,
-                    memory.human_bytes(need))
     return plan
 
 
