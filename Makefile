@@ -8,6 +8,9 @@
 #     peers the suite and the benchmarks check against: about 2 GB), and, as root on
 #     Debian, Mesa's EGL and Chromium for the checks that need them.
 # Running one after the other adds what is missing to the same .venv: no reinstall.
+# Both then compile and cache every numba kernel (python -m volwarp_cli.warmup, about a
+# minute on a fresh install; again only when the package's sources change), so that no
+# command, demo, test or cron job pays a kernel's compilation (3-7 s each) on its first run.
 
 PYTHON ?= python3
 VENV   ?= .venv
@@ -19,7 +22,11 @@ TEST_STAMP := $(VENV)/.installed-test
 # guard compiled at install
 INSTALLED_FROM := pyproject.toml volwarp_cli/bspline/_warpkernels.c volwarp_cli/io/_mapguard.c
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
-export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba-cache
+# The compiled kernels: where the commands themselves keep them (volwarp_cli/entry.py: the
+# package's __pycache__ folders, writable here), so that make's runs and direct runs of
+# .venv/bin/volwarp share them. A NUMBA_CACHE_DIR of the caller's own is passed through.
+WARM_STAMP := $(VENV)/.warmed-kernels
+WARM_SOURCES := $(shell find volwarp_cli -name '*.py' 2>/dev/null)
 # The package's bytecode, written ahead (only changed modules are recompiled): where
 # PYTHONDONTWRITEBYTECODE is set, as on this project's CI machines, Python would
 # otherwise compile every module it imports in every command (~0.08 s of a warp),
@@ -31,8 +38,16 @@ BYTECODE = $(BIN)/python -m compileall -q volwarp_cli && $(BIN)/python -c \
         demo test bench lint examples clean
 
 install: $(DEMO_STAMP)
+	@$(MAKE) --no-print-directory $(WARM_STAMP)
 
 install-test: $(TEST_STAMP)
+	@$(MAKE) --no-print-directory $(WARM_STAMP)
+
+# every numba kernel compiled and cached, with the signatures the commands use (after an
+# install: the recipes below call it once theirs is done)
+$(WARM_STAMP): $(WARM_SOURCES) $(INSTALLED_FROM)
+	$(BIN)/python -m volwarp_cli.warmup
+	touch $@
 
 # the virtual environment itself, once
 $(BIN)/python:
@@ -80,6 +95,7 @@ system-deps-browser:
 # absolute)
 demo: $(DEMO_STAMP)
 	$(BYTECODE)
+	@$(MAKE) --no-print-directory $(WARM_STAMP)
 	PATH=$(abspath $(BIN)):$$PATH DEMO=$(DEMO) BIN=$(BIN) bash scripts/demo.sh
 
 # one pytest worker per core this process may use (affinity, cgroup quota), at most 8
@@ -88,10 +104,12 @@ TEST_WORKERS ?= $(shell $(BIN)/python -c "from volwarp_cli.parallel import avail
 
 test: $(TEST_STAMP)
 	$(BYTECODE)
+	@$(MAKE) --no-print-directory $(WARM_STAMP)
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=20
 
 bench: $(TEST_STAMP)
 	$(BYTECODE)
+	@$(MAKE) --no-print-directory $(WARM_STAMP)
 	$(BIN)/python benchmarks/run.py
 
 lint: $(TEST_STAMP)
@@ -99,7 +117,8 @@ lint: $(TEST_STAMP)
 
 examples: $(DEMO_STAMP)
 	$(BYTECODE)
+	@$(MAKE) --no-print-directory $(WARM_STAMP)
 	PATH=$(CURDIR)/$(BIN):$$PATH $(MAKE) -C examples
 
 clean:
-	rm -rf $(DEMO) .pytest_cache .numba-cache
+	rm -rf $(DEMO) .pytest_cache .numba-cache $(WARM_STAMP)

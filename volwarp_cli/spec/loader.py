@@ -184,9 +184,12 @@ _FLOAT_12 = re.compile(r"^[-+]?(?:(?:\.[0-9]+|[0-9]+\.[0-9]*)(?:[eE][-+]?[0-9]+)
                        r"|[0-9]+[eE][-+]?[0-9]+)$")
 _SpecLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+.0123456789"))
 
-#: Specs from this size on are composed by libyaml (when PyYAML has it): a registration's
-#: 729 control-point moves (40 kB) take 0.24 s in the pure-Python composer, 0.04 s in C.
-FAST_MIN_BYTES = 8192
+#: Specs from this size on are composed by libyaml (when PyYAML has it): every spec. A
+#: registration's 729 control-point moves (40 kB) take 0.24 s in the pure-Python
+#: composer, 0.04 s in C; a one-move spec 0.9 ms, 0.25 ms (the depth check included).
+#: Any text libyaml finds fault with is read again by the Python loader, whose errors
+#: and their wording are the ones reported (``tests/test_spec_fast_path.py``).
+FAST_MIN_BYTES = 0
 
 if getattr(yaml, "__with_libyaml__", False):
     class _FastSpecLoader(yaml.CSafeLoader):
@@ -216,9 +219,9 @@ def _too_deep(text: str) -> bool:
 def _compose(text: str):
     """``(loader, node)``: the document's node tree.
 
-    Composed by libyaml for a large valid spec; by the pure-Python loader
-    otherwise, and for any text libyaml finds fault with (so that every error,
-    and its wording, is the Python loader's).
+    Composed by libyaml for a valid spec (of at least :data:`FAST_MIN_BYTES`);
+    by the pure-Python loader otherwise, and for any text libyaml finds fault
+    with (so that every error, and its wording, is the Python loader's).
     """
     if _FastSpecLoader is not None and len(text) >= FAST_MIN_BYTES:
         loader = None
