@@ -183,6 +183,9 @@ def check_exports(displacement_to, forward_field_to, jacobian_to, transform_to, 
     file that does not parse fails before any output); see
     :class:`~volwarp_cli.warp.export_outputs.ExportRequests`.
     """
+    if all(v is None for v in (displacement_to, forward_field_to, jacobian_to, transform_to,
+                               points_in, points_to, mesh_in, mesh_to)):
+        return None  # (nothing asked: the export modules are not imported)
     from ..warp.export import field_format, points_format, read_points
     from ..warp.export_outputs import ExportRequests
 

@@ -13,7 +13,6 @@ import contextlib
 import os
 import re
 import shutil
-import socket
 import tempfile
 from pathlib import Path
 
@@ -240,7 +239,8 @@ def current_umask() -> int:
 
 
 def _host() -> str:
-    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname()) or "host"
+    # (os.uname's node name: socket's gethostname costs its module's import, 2.5 ms a command)
+    return re.sub(r"[^A-Za-z0-9_-]", "_", os.uname().nodename) or "host"
 
 
 @contextlib.contextmanager

@@ -128,7 +128,6 @@ def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions()
     """
     from ..bspline.capture import capture_source
     from .defaults import choose_values, warn_once
-    from .label_blocks import OneShotLabelWarp
     from .prepare import capture_as_spec
     from .run import IntensityWarp
 
@@ -139,6 +138,8 @@ def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions()
     log.info("%s: %s", name, choice.describe())
     check_values_fit(choice, doc, spec, options, name)
     if choice.is_labels:
+        from .label_blocks import OneShotLabelWarp  # (a label map's only: not every warp's)
+
         return choice, OneShotLabelWarp(template, source, doc, spec, options, name=name)
     if cap is None:
         with timed("input range (one pass)"):
