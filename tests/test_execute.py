@@ -116,11 +116,22 @@ def test_a_multi_component_output_by_blocks_is_the_in_memory_file(tmp_path):
 
 def test_the_whole_over_the_budget_runs_by_blocks_with_one_warning(tmp_path, caplog,
                                                                    monkeypatch):
+    import logging
+
+    from volwarp_cli.progress import log
+
     monkeypatch.setattr(memory, "process_rss", lambda: 0)  # (a budget of its own: 2 GiB)
+    # (a command run earlier in this process keeps the volwarp logger to its own handler)
+    monkeypatch.setattr(log, "level", logging.WARNING)
+    monkeypatch.setattr(log, "propagate", False)
+    log.addHandler(caplog.handler)
     op = Ramp(tmp_path, bytes_per=2 << 20)  # (the whole: 4.7 GiB; a 6x7x8 block 672 MiB)
     how = execute.How(block=(6, 7, 8), open_engine=lambda: open_engine("threads", workers=2))
-    with memory.use_memory_limit(2 << 30):
-        ran = execute.run(op, how)
+    try:
+        with memory.use_memory_limit(2 << 30):
+            ran = execute.run(op, how)
+    finally:
+        log.removeHandler(caplog.handler)
     assert ran.by_blocks
     assert [r.getMessage() for r in caplog.records
             if "running by blocks" in r.getMessage()] == [
