@@ -28,6 +28,7 @@ from ..signals import settle as settle_signals
 COMMANDS = {
     "capture": "capture",
     "warp": "warp",
+    "apply": "apply",
     "morph": "morph",
     "sweep": "sweep",
     "distance": "distance",
@@ -39,6 +40,7 @@ COMMANDS = {
 _SHORT_HELP = {
     "capture": "Capture a volume into a B-spline domain voxmap (.vwc).",
     "warp": "Warp a volume by moving B-spline control points or dragging handles.",
+    "apply": "Resample a volume, points or a mesh through ITK/ANTs transforms.",
     "morph": "Morph one shape into another through signed distance fields.",
     "sweep": "Sweep 2-D image templates along a trajectory into volumes.",
     "distance": "Signed distance field of a shape (euclidean or min-norm).",

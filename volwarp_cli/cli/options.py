@@ -15,17 +15,17 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
 
     --allow-empty             mesh
     --allow-growth            warp
-    --allow-outside-data      capture warp distance mesh info convert
+    --allow-outside-data      capture warp apply distance mesh info convert
     --background-color        mesh
-    --background-value        warp
-    --block                   warp morph sweep distance mesh
-    --byte-order              warp morph sweep distance convert
+    --background-value        warp apply
+    --block                   warp apply morph sweep distance mesh
+    --byte-order              warp apply morph sweep distance convert
     --camera-from             morph sweep mesh
     --camera-to               morph sweep mesh
     --cap                     mesh
-    --chunked/--no-chunked    warp morph sweep distance mesh
+    --chunked/--no-chunked    warp apply morph sweep distance mesh
     --color                   mesh
-    --compress/--no-compress  warp morph sweep distance convert
+    --compress/--no-compress  warp apply morph sweep distance convert
     --contours                convert
     --crop                    warp
     --debug                   (every command)
@@ -33,8 +33,8 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
     --density                 morph
     --dicom-type              convert
     --displacement-to         warp
-    --dtype                   warp morph sweep distance convert
-    --duplicates              capture warp distance mesh info convert
+    --dtype                   warp apply morph sweep distance convert
+    --duplicates              capture warp apply distance mesh info convert
     --evaluator               warp
     --fail-fast               batch
     --force                   batch
@@ -43,45 +43,46 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
     --frames-to               warp
     --grid                    warp morph
     --inside                  morph distance mesh
-    --irregular               capture warp distance mesh info convert
+    --interpolation           apply
+    --irregular               capture warp apply distance mesh info convert
     --iso                     morph distance mesh
     --jacobian-to             warp
     -j/--jobs                 batch
     --json                    warp mesh info
-    --keep-phi                capture warp distance mesh info convert
-    --keep-shear              capture warp distance mesh info convert
+    --keep-phi                capture warp apply distance mesh info convert
+    --keep-shear              capture warp apply distance mesh info convert
     --label                   distance mesh
-    --labels                  warp mesh
+    --labels                  warp apply mesh
     --largest-component       mesh
     --lattice                 capture
     --max-distance            morph distance
     --memory-limit            (every command)
-    --mesh-in                 warp
-    --mesh-to                 warp morph
+    --mesh-in                 warp apply
+    --mesh-to                 warp apply morph
     --method                  sweep
     --metric                  morph distance
     --multi                   sweep
-    --ome-zarr-version        warp morph sweep distance convert
+    --ome-zarr-version        warp apply morph sweep distance convert
     --orientation-labels/--no-orientation-labels  morph sweep mesh
-    -o/--output               capture warp morph sweep distance mesh convert
+    -o/--output               capture warp apply morph sweep distance mesh convert
     --oversample              capture
     --pad                     capture
     --placement               capture
-    --points-in               warp
-    --points-to               warp
+    --points-in               warp apply
+    --points-to               warp apply
     --preserve-labels         warp
-    --progress                warp morph sweep distance mesh batch
+    --progress                warp apply morph sweep distance mesh batch
     --pushforward             warp
-    --pyramid                 warp morph sweep distance convert
+    --pyramid                 warp apply morph sweep distance convert
     --pyramid-method          convert
     -q/--quiet                (every command)
-    --raw-dtype               capture warp distance mesh info convert
-    --raw-endian              capture warp distance mesh info convert
-    --raw-header-bytes        capture warp distance mesh info convert
-    --raw-origin              capture warp distance mesh info convert
-    --raw-shape               capture warp distance mesh info convert
-    --raw-spacing             capture warp distance mesh info convert
-    --reference               capture warp distance mesh info convert
+    --raw-dtype               capture warp apply distance mesh info convert
+    --raw-endian              capture warp apply distance mesh info convert
+    --raw-header-bytes        capture warp apply distance mesh info convert
+    --raw-origin              capture warp apply distance mesh info convert
+    --raw-shape               capture warp apply distance mesh info convert
+    --raw-spacing             capture warp apply distance mesh info convert
+    --reference               capture warp apply distance mesh info convert
     --render                  sweep mesh
     --render-size             morph sweep mesh
     --render-to               morph
@@ -89,10 +90,10 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
     --report-json             batch
     --retries                 batch
     --sampling                capture
-    --scheduler               warp morph sweep distance mesh batch
-    --segment                 capture warp distance mesh info convert
+    --scheduler               warp apply morph sweep distance mesh batch
+    --segment                 capture warp apply distance mesh info convert
     --segments                convert
-    --series                  capture warp distance mesh info convert
+    --series                  capture warp apply distance mesh info convert
     --shape                   sweep
     --shard                   batch
     --sheet                   morph
@@ -100,23 +101,24 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
     --spacing                 sweep
     --spec                    warp morph
     --stats                   mesh
-    --structure               capture warp distance mesh info convert
+    --structure               capture warp apply distance mesh info convert
     --surface                 distance
     --tau                     sweep
     --threads                 (every command)
-    --threads-per-worker      warp morph sweep distance mesh batch
+    --threads-per-worker      warp apply morph sweep distance mesh batch
     --times                   morph
     --transform               distance
+    -t/--transform            apply
     --transform-to            warp
     --turntable               mesh
     --unsigned                distance
     --update                  distance
-    --values                  warp distance
+    --values                  warp apply distance
     -v/--verbose              (every command)
     --view                    morph sweep mesh
-    --volume-index            capture warp distance mesh info convert
+    --volume-index            capture warp apply distance mesh info convert
     --wait                    batch
-    --workers                 warp morph sweep distance mesh batch
+    --workers                 warp apply morph sweep distance mesh batch
 
 Old spellings, hidden, still accepted with a warning::
 

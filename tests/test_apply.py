@@ -1,0 +1,425 @@
+"""`volwarp apply` against SimpleITK: its transform files, its Resample and its TransformPoint."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.transforms import read_chain
+from volwarp_cli.volume import Volume
+
+sitk = pytest.importorskip("SimpleITK")
+
+ANG = np.deg2rad(12)
+DIRECTION = np.array([[np.cos(ANG), -np.sin(ANG), 0], [np.sin(ANG), np.cos(ANG), 0], [0, 0, 1]])
+RNG = np.random.default_rng(7)
+
+
+def smooth(shape=(20, 22, 24)):
+    nz, ny, nx = shape
+    z, y, x = np.mgrid[:nz, :ny, :nx].astype(float)
+    data = (100 * np.exp(-((x - 11.5) ** 2 / 50 + (y - 10.5) ** 2 / 40 + (z - 9.5) ** 2 / 30))
+            + 20 * np.sin(x / 4) * np.cos(y / 5) + RNG.normal(0, 2, x.shape)).astype(np.float32)
+    return Volume(data, spacing=(1.1, 1.0, 1.3), origin=(-10.0, 5.0, 3.0), direction=DIRECTION,
+                  space="left-posterior-superior")
+
+
+def to_sitk(vol: Volume):
+    img = sitk.GetImageFromArray(vol.data)
+    img.SetSpacing([float(v) for v in vol.spacing])
+    img.SetOrigin([float(v) for v in vol.origin])
+    img.SetDirection([float(v) for v in vol.direction.ravel()])
+    return img
+
+
+def affine():
+    a = sitk.AffineTransform(3)
+    a.SetMatrix([1.02, 0.05, 0.0, -0.03, 0.97, 0.04, 0.02, 0.0, 1.05])
+    a.SetTranslation([1.0, -1.5, 0.8])
+    a.SetCenter([2.0, 14.0, 15.0])
+    return a
+
+
+def euler(zyx=False):
+    e = sitk.Euler3DTransform()
+    e.SetRotation(0.1, -0.15, 0.2)
+    e.SetTranslation([0.5, 1.0, -0.7])
+    e.SetCenter([1.0, 12.0, 16.0])
+    e.SetComputeZYX(zyx)
+    return e
+
+
+def field_on(vol: Volume, amp=1.5):
+    """A smooth displacement field on ``vol``'s grid (float64 vectors, as sitk keeps them)."""
+    nz, ny, nx = vol.data.shape
+    z, y, x = np.mgrid[:nz, :ny, :nx].astype(float)
+    vec = np.stack([amp * np.sin(z / 6), amp * np.cos(x / 8), 0.6 * amp * np.sin(y / 7)], -1)
+    img = sitk.GetImageFromArray(vec, isVector=True)
+    ref = to_sitk(vol)
+    img.CopyInformation(ref)
+    return img
+
+
+def bspline(vol: Volume):
+    b = sitk.BSplineTransformInitializer(to_sitk(vol), [4, 4, 3])
+    p = np.asarray(b.GetParameters())
+    b.SetParameters(RNG.normal(0, 1.0, p.size).tolist())
+    return b
+
+
+def transforms(vol):
+    s = sitk.Similarity3DTransform()
+    s.SetScale(1.05)
+    s.SetRotation([0.2, 0.3, 1.0], 0.25)
+    s.SetTranslation([1, 2, -1])
+    s.SetCenter([2, 3, 4])
+    v = sitk.VersorRigid3DTransform()
+    v.SetRotation([1, 1, 0], 0.2)
+    v.SetTranslation([1, -2, 3])
+    v.SetCenter([2, 0, 4])
+    d = sitk.DisplacementFieldTransform(field_on(vol))
+    return {"affine.tfm": affine(), "euler.txt": euler(), "euler_zyx.tfm": euler(True),
+            "similarity.tfm": s, "versor.tfm": v, "translation.tfm":
+                sitk.TranslationTransform(3, [1.0, 2.0, 3.0]),
+            "bspline.tfm": bspline(vol), "field.h5": d, "affine.mat": affine(),
+            "composite.h5": sitk.CompositeTransform([affine(), d, bspline(vol)]),
+            "composite.tfm": sitk.CompositeTransform([affine(), euler()])}
+
+
+def world_points(vol: Volume, n=200):
+    lo, hi = vol.world_bounds()
+    return RNG.uniform(lo, hi, (n, 3))
+
+
+@pytest.mark.parametrize("name", ["affine.tfm", "euler.txt", "euler_zyx.tfm", "similarity.tfm",
+                                  "versor.tfm", "translation.tfm", "bspline.tfm", "field.h5",
+                                  "affine.mat", "composite.h5", "composite.tfm"])
+def test_reader_maps_points_as_transform_point(tmp_path, name):
+    vol = smooth()
+    tr = transforms(vol)[name]
+    path = tmp_path / name
+    sitk.WriteTransform(tr, str(path))
+    pts = world_points(vol)
+    ours = read_chain([str(path)]).map(pts)
+    theirs = np.array([tr.TransformPoint(p.tolist()) for p in pts])
+    assert np.abs(ours - theirs).max() < 1e-9
+
+
+def test_inverse_of_linear_file(tmp_path):
+    path = tmp_path / "c.tfm"
+    tr = sitk.CompositeTransform([affine(), euler()])
+    sitk.WriteTransform(tr, str(path))
+    pts = world_points(smooth())
+    ours = read_chain([f"[{path},1]"]).map(pts)
+    theirs = np.array([tr.GetInverse().TransformPoint(p.tolist()) for p in pts])
+    assert np.abs(ours - theirs).max() < 1e-9
+
+
+@pytest.fixture
+def scene(tmp_path):
+    """An input, a reference grid (other spacing, direction), an affine and a field file.
+
+    The field lies on the reference grid (as ANTs' 1Warp on the fixed image); ``expect``
+    resamples with SimpleITK the chain -t field -t affine = affine(field(p)).
+    """
+    vol = smooth()
+    src = tmp_path / "in.nrrd"
+    write_volume(vol, src)
+    ref = Volume(np.zeros((18, 20, 21), np.uint8), spacing=(1.2, 1.15, 1.25),
+                 origin=(-8.0, 6.0, 4.0), direction=np.eye(3), space="left-posterior-superior")
+    write_volume(ref, tmp_path / "ref.nrrd")
+    sitk.WriteTransform(affine(), str(tmp_path / "a.tfm"))
+    fimg = field_on(ref)
+    sitk.WriteImage(sitk.Cast(fimg, sitk.sitkVectorFloat32), str(tmp_path / "f.nii.gz"))
+    field32 = sitk.Cast(sitk.Cast(fimg, sitk.sitkVectorFloat32), sitk.sitkVectorFloat64)
+
+    def expect(interp, chain=None):
+        chain = chain or sitk.CompositeTransform(
+            [affine(), sitk.DisplacementFieldTransform(sitk.Image(field32))])
+        out = sitk.Resample(to_sitk(vol), to_sitk(ref), chain, interp, 0.0)
+        return sitk.GetArrayFromImage(out)
+
+    return tmp_path, vol, expect
+
+
+@pytest.mark.parametrize("interp", ["linear", "nearest", "bspline"])
+def test_resample_matches_simpleitk(run, scene, interp):
+    d, vol, expect = scene
+    res = run("apply", d / "in.nrrd", "-o", d / "out.nrrd", "--reference", d / "ref.nrrd",
+              "-t", d / "f.nii.gz", "-t", d / "a.tfm", "--interpolation", interp,
+              "--background-value", "0")
+    assert res.code == 0, res
+    ours = read_volume(d / "out.nrrd").data
+    theirs = expect({"linear": sitk.sitkLinear, "nearest": sitk.sitkNearestNeighbor,
+                     "bspline": sitk.sitkBSpline}[interp])
+    span = float(vol.data.max() - vol.data.min())
+    if interp == "nearest":
+        assert np.array_equal(ours, theirs)
+    else:
+        assert np.abs(ours - theirs).max() <= 1e-4 * span
+    assert np.count_nonzero(ours) > 0.5 * ours.size  # (the comparison is not of backgrounds)
+
+
+def test_wrong_order_fails_the_comparison(run, scene):
+    """Two non-commuting transforms: the order listed is the order they act on a point."""
+    d, vol, expect = scene
+    sitk.WriteTransform(euler(), str(d / "e.tfm"))
+    theirs = expect(sitk.sitkLinear, sitk.CompositeTransform([euler(), affine()]))  # a, then e
+    span = float(vol.data.max() - vol.data.min())
+    for order, close in (((d / "a.tfm", d / "e.tfm"), True), ((d / "e.tfm", d / "a.tfm"), False)):
+        res = run("apply", d / "in.nrrd", "-o", d / "out.nrrd", "--reference", d / "ref.nrrd",
+                  "-t", order[0], "-t", order[1], "--background-value", "0")
+        assert res.code == 0, res
+        err = np.abs(read_volume(d / "out.nrrd").data - theirs).max()
+        assert (err <= 1e-4 * span) if close else (err > 1e-2 * span)
+    # a field listed after the affine that leaves its grid: the spaces do not meet
+    res = run("apply", d / "in.nrrd", "-o", d / "out2.nrrd", "--reference", d / "ref.nrrd",
+              "-t", d / "a.tfm", "-t", d / "f.nii.gz")
+    assert res.code == 1 and "wrong order" in res.stderr
+    assert not (d / "out2.nrrd").exists()
+
+
+@pytest.mark.parametrize("interp", ["linear", "bspline", "nearest"])
+@pytest.mark.parametrize("field", [True, False])
+def test_by_blocks_same_bytes(run, scene, interp, field):
+    d, _, _ = scene
+    chain = ["-t", d / "f.nii.gz"] if field else []
+    args = ["apply", d / "in.nrrd", "--reference", d / "ref.nrrd", *chain, "-t", d / "a.tfm",
+            "--interpolation", interp]
+    assert run(*args, "-o", d / "whole.nrrd").code == 0
+    res = run(*args, "-o", d / "blocks.nrrd", "--chunked", "--block", "5,7,6")
+    assert res.code == 0, res
+    assert (d / "whole.nrrd").read_bytes() == (d / "blocks.nrrd").read_bytes()
+
+
+def test_field_read_by_windows(run, scene, monkeypatch):
+    """A field larger than its share of the memory is read by windows: the same bytes."""
+    from volwarp_cli.transforms import fields
+
+    d, _, _ = scene
+    img = sitk.ReadImage(str(d / "f.nii.gz"))
+    sitk.WriteImage(img, str(d / "f.nii"))  # (uncompressed: windows are read in place)
+    chain = ["-t", d / "f.nii", "-t", d / "a.tfm"]
+    args = ["apply", d / "in.nrrd", "--reference", d / "ref.nrrd", *chain]
+    assert run(*args, "-o", d / "whole.nrrd").code == 0
+    pts = np.random.default_rng(5).uniform([-5, 8, 6], [15, 25, 20], (20, 3))
+    write_points(d / "p.csv", pts)
+    assert run("apply", *chain, "--points-in", d / "p.csv", "--points-to", d / "q.csv").code == 0
+    monkeypatch.setattr(fields, "LAZY_SHARE", 0.0)
+    assert run(*args, "-o", d / "lazy.nrrd").code == 0
+    assert run(*args, "-o", d / "lazy_blocks.nrrd", "--chunked", "--block", "5,6,7").code == 0
+    assert run("apply", *chain, "--points-in", d / "p.csv", "--points-to", d / "q2.csv").code == 0
+    whole = (d / "whole.nrrd").read_bytes()
+    assert (d / "lazy.nrrd").read_bytes() == whole
+    assert (d / "lazy_blocks.nrrd").read_bytes() == whole
+    assert np.abs(read_points(d / "q.csv") - read_points(d / "q2.csv")).max() < 1e-9
+
+
+def test_bspline_transform_by_blocks(run, scene):
+    """A B-spline transform's blocks read the region its coefficients bound: whole = blocks."""
+    d, vol, expect = scene
+    b = bspline(vol)
+    sitk.WriteTransform(b, str(d / "b.tfm"))
+    args = ["apply", d / "in.nrrd", "--reference", d / "ref.nrrd", "-t", d / "b.tfm",
+            "--background-value", "0"]
+    assert run(*args, "-o", d / "whole.nrrd").code == 0
+    assert run(*args, "-o", d / "blocks.nrrd", "--chunked", "--block", "4,5,6").code == 0
+    assert (d / "whole.nrrd").read_bytes() == (d / "blocks.nrrd").read_bytes()
+    span = float(vol.data.max() - vol.data.min())
+    theirs = expect(sitk.sitkLinear, b)
+    assert np.abs(read_volume(d / "whole.nrrd").data - theirs).max() <= 1e-4 * span
+
+
+def test_label_map_gains_no_label(run, tmp_path):
+    vol = smooth()
+    labels = np.digitize(vol.data, [10, 40, 80]).astype(np.uint8) * 3 + 2  # ids 2 5 8 11
+    lab = vol.with_data(labels)
+    write_volume(lab, tmp_path / "seg.nrrd")
+    sitk.WriteTransform(affine(), str(tmp_path / "a.tfm"))
+    res = run("apply", tmp_path / "seg.nrrd", "-o", tmp_path / "out.nrrd", "-t",
+              tmp_path / "a.tfm", "-v")
+    assert res.code == 0, res
+    assert "values: labels" in res.stderr
+    out = read_volume(tmp_path / "out.nrrd").data
+    assert out.dtype == np.uint8
+    assert set(np.unique(out)) <= set(np.unique(labels))
+    border = np.bincount(np.concatenate([labels[0].ravel(), labels[-1].ravel(),
+                                         labels[:, 0].ravel(), labels[:, -1].ravel(),
+                                         labels[:, :, 0].ravel(), labels[:, :, -1].ravel()]))
+    theirs = sitk.GetArrayFromImage(sitk.Resample(to_sitk(lab), to_sitk(lab), affine(),
+                                                  sitk.sitkNearestNeighbor,
+                                                  float(np.argmax(border))))
+    assert np.array_equal(out, theirs)
+    res = run("apply", tmp_path / "seg.nrrd", "-o", tmp_path / "o2.nrrd", "-t",
+              tmp_path / "a.tfm", "--interpolation", "linear")
+    assert res.code == 2 and "label map" in res.stderr
+    assert not (tmp_path / "o2.nrrd").exists()
+
+
+def test_intensity_keeps_type_unless_dtype(run, tmp_path):
+    vol = smooth()
+    write_volume(vol.with_data(np.rint(vol.data * 10).astype(np.int16)), tmp_path / "ct.nrrd")
+    sitk.WriteTransform(affine(), str(tmp_path / "a.tfm"))
+    assert run("apply", tmp_path / "ct.nrrd", "-o", tmp_path / "o.nrrd", "-t",
+               tmp_path / "a.tfm", "--values", "intensity").code == 0
+    assert read_volume(tmp_path / "o.nrrd").data.dtype == np.int16
+    assert run("apply", tmp_path / "ct.nrrd", "-o", tmp_path / "f.nrrd", "-t",
+               tmp_path / "a.tfm", "--values", "intensity", "--dtype", "float32").code == 0
+    assert read_volume(tmp_path / "f.nrrd").data.dtype == np.float32
+
+
+def test_nrrd_vector_field(run, scene):
+    d, vol, expect = scene
+    fimg = sitk.ReadImage(str(d / "f.nii.gz"))
+    sitk.WriteImage(fimg, str(d / "f.nrrd"))
+    res = run("apply", d / "in.nrrd", "-o", d / "out.nrrd", "--reference", d / "ref.nrrd",
+              "-t", d / "f.nrrd", "-t", d / "a.tfm", "--background-value", "0")
+    assert res.code == 0, res
+    span = float(vol.data.max() - vol.data.min())
+    assert np.abs(read_volume(d / "out.nrrd").data - expect(sitk.sitkLinear)).max() <= 1e-4 * span
+
+
+def write_points(path, pts):
+    rows = ["x,y,z,name"] + [",".join(repr(float(v)) for v in p) + f",p{k}"
+                             for k, p in enumerate(pts)]
+    path.write_text("\n".join(rows) + "\n")
+
+
+def read_points(path):
+    lines = path.read_text().splitlines()
+    assert lines[0] == "x,y,z,name"
+    rows = [r.split(",") for r in lines[1:]]
+    assert [r[3] for r in rows] == [f"p{k}" for k in range(len(rows))]
+    return np.array([[float(v) for v in r[:3]] for r in rows])
+
+
+def test_points_go_by_the_inverse_linear(run, tmp_path):
+    sitk.WriteTransform(affine(), str(tmp_path / "a.tfm"))
+    sitk.WriteTransform(euler(), str(tmp_path / "e.tfm"))
+    pts = world_points(smooth(), 30)
+    write_points(tmp_path / "p.csv", pts)
+    res = run("apply", "-t", tmp_path / "a.tfm", "-t", tmp_path / "e.tfm", "--points-in",
+              tmp_path / "p.csv", "--points-to", tmp_path / "q.csv")
+    assert res.code == 0, res
+    q = read_points(tmp_path / "q.csv")
+    chain = sitk.CompositeTransform([euler(), affine()])  # a first, then e
+    back = np.array([chain.TransformPoint(p.tolist()) for p in q])
+    assert np.abs(back - pts).max() < 1e-6
+
+
+def test_points_through_a_field_and_mesh(run, scene):
+    from volwarp_cli.surface.mesh import Mesh
+    from volwarp_cli.surface.mesh_io import read_mesh, write_mesh
+
+    d, vol, _ = scene
+    ref = read_volume(d / "ref.nrrd")
+    lo, hi = ref.world_bounds()
+    pts = np.random.default_rng(11).uniform(lo + 2, hi - 2, (40, 3))
+    write_points(d / "p.csv", pts)
+    faces = np.array([[0, 1, 2], [1, 2, 3]])
+    write_mesh(Mesh(pts[:4], faces), d / "m.ply")
+    res = run("apply", "-t", d / "f.nii.gz", "-t", d / "a.tfm", "--points-in", d / "p.csv",
+              "--points-to", d / "q.csv", "--mesh-in", d / "m.ply", "--mesh-to", d / "m2.ply",
+              "-v")
+    assert res.code == 0, res
+    assert "largest residual" in res.stderr
+    q = read_points(d / "q.csv")
+    field = sitk.Cast(sitk.ReadImage(str(d / "f.nii.gz")), sitk.sitkVectorFloat64)
+    chain = sitk.CompositeTransform([affine(), sitk.DisplacementFieldTransform(field)])
+    back = np.array([chain.TransformPoint(p.tolist()) for p in q])
+    assert np.abs(back - pts).max() < 1e-3
+    moved = read_mesh(d / "m2.ply")
+    assert np.array_equal(moved.faces, faces)
+    assert np.abs(moved.vertices - q[:4]).max() < 1e-4  # (PLY stores float32)
+
+
+def test_volwarp_displacement_export(run, tmp_path):
+    """volwarp's own `warp --displacement-to` field is read as ITK reads it."""
+    vol = smooth()
+    write_volume(vol, tmp_path / "in.nrrd")
+    c = [float(v) for v in vol.index_to_world([11.5, 10.5, 9.5])]
+    (tmp_path / "w.yaml").write_text(
+        f"version: 1\ncapture: {{lattice: 6}}\nsteps:\n  - drag:\n      - {{from: {c}, to: "
+        f"{[c[0] + 2.0, c[1] - 1.0, c[2] + 1.0]}}}\n")
+    res = run("warp", tmp_path / "in.nrrd", "--spec", tmp_path / "w.yaml",
+              "--displacement-to", tmp_path / "disp.nii.gz")
+    assert res.code == 0, res
+    assert run("apply", tmp_path / "in.nrrd", "-o", tmp_path / "out.nrrd", "-t",
+               tmp_path / "disp.nii.gz", "--background-value", "0").code == 0
+    field = sitk.Cast(sitk.ReadImage(str(tmp_path / "disp.nii.gz")), sitk.sitkVectorFloat64)
+    theirs = sitk.GetArrayFromImage(sitk.Resample(to_sitk(vol), to_sitk(vol),
+                                                  sitk.DisplacementFieldTransform(field),
+                                                  sitk.sitkLinear, 0.0))
+    ours = read_volume(tmp_path / "out.nrrd").data
+    ok = np.isfinite(theirs)
+    assert np.abs(ours[ok] - theirs[ok]).max() <= 1e-4 * float(np.ptp(vol.data))
+
+
+# -- errors: one line, nothing written, an existing output untouched ------------------------
+@pytest.fixture
+def inputs(tmp_path):
+    vol = smooth()
+    write_volume(vol, tmp_path / "in.nrrd")
+    (tmp_path / "out.nrrd").write_bytes(b"old output")
+    return tmp_path
+
+
+def _refused(run, d, *args, code=1, says=""):
+    res = run("apply", d / "in.nrrd", "-o", d / "out.nrrd", *args)
+    assert res.code == code, res
+    assert res.stderr.count("\n") == 1 and res.stderr.startswith("volwarp: error: ")
+    assert says in res.stderr
+    assert (d / "out.nrrd").read_bytes() == b"old output"
+    assert sorted(p.name for p in d.iterdir() if p.name.startswith("out")) == ["out.nrrd"]
+    return res
+
+
+def test_2d_transform_refused(run, inputs):
+    sitk.WriteTransform(sitk.AffineTransform(2), str(inputs / "a2.tfm"))
+    _refused(run, inputs, "-t", inputs / "a2.tfm", says="2-D")
+
+
+def test_not_a_transform_refused(run, inputs):
+    (inputs / "notes.txt").write_text("hello\n")
+    _refused(run, inputs, "-t", inputs / "notes.txt", says="not a transform")
+    _refused(run, inputs, "-t", inputs / "in.nrrd", says="not a displacement field")
+
+
+def test_field_not_covering_the_grid_refused(run, inputs):
+    far = Volume(np.zeros((6, 6, 6), np.uint8), origin=(500.0, 500.0, 500.0))
+    sitk.WriteImage(field_on(far), str(inputs / "far.nii.gz"))
+    _refused(run, inputs, "-t", inputs / "far.nii.gz", says="does not cover")
+
+
+def test_inverse_of_field_refused(run, inputs, scene):
+    d, _, _ = scene
+    _refused(run, inputs, "-t", f"[{d / 'f.nii.gz'},1]", says="only a linear")
+
+
+def test_output_over_a_transform_refused(run, inputs):
+    sitk.WriteTransform(affine(), str(inputs / "a.tfm"))
+    before = (inputs / "a.tfm").read_bytes()
+    (inputs / "t.nrrd").write_bytes(before)  # a "transform" named like a volume output
+    res = run("apply", inputs / "in.nrrd", "-o", inputs / "t.nrrd", "-t", inputs / "t.nrrd")
+    assert res.code == 2 and "never replaces an input" in res.stderr
+    assert (inputs / "t.nrrd").read_bytes() == before
+
+
+def test_slicer_markups_points(run, tmp_path):
+    """A Slicer .mrk.json in RAS moves as the same points in a CSV (LPS)."""
+    import json
+
+    sitk.WriteTransform(affine(), str(tmp_path / "a.tfm"))
+    pts = world_points(smooth(), 5)
+    write_points(tmp_path / "p.csv", pts)
+    ras = [{"position": [-p[0], -p[1], p[2]]} for p in pts]
+    doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "RAS", "controlPoints": ras}]}
+    (tmp_path / "p.mrk.json").write_text(json.dumps(doc))
+    for src, dst in (("p.csv", "q.csv"), ("p.mrk.json", "q.mrk.json")):
+        assert run("apply", "-t", tmp_path / "a.tfm", "--points-in", tmp_path / src,
+                   "--points-to", tmp_path / dst).code == 0
+    q = read_points(tmp_path / "q.csv")
+    moved = json.loads((tmp_path / "q.mrk.json").read_text())["markups"][0]["controlPoints"]
+    got = np.array([[-m["position"][0], -m["position"][1], m["position"][2]] for m in moved])
+    assert np.abs(got - q).max() < 1e-9

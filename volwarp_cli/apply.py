@@ -1,0 +1,417 @@
+"""Resampling an input through a chain of transforms, as an operation of the executor.
+
+An output voxel ``p`` (LPS mm, the output grid's) takes the input's sample at
+``T(p)``, ``T`` the :class:`~volwarp_cli.transforms.model.Chain` (output ->
+input, as ITK's ``Resample``, ``antsApplyTransforms`` and transformix). The
+interpolation is ITK's: inside the input's buffer (continuous index within
+``[-0.5, n - 0.5)``) linear with the neighbours beyond the edge clamped,
+nearest rounded half up, or cubic B-spline on mirror-extended coefficients;
+elsewhere the background.
+
+:class:`ApplyOperation` computes any block of the output from the input
+region the chain needs for it, bounded before any sample is read
+(:meth:`.model.Chain.box`): for a linear chain exactly, the box of the
+block's corners mapped; through a displacement field, grown by the field's
+range over the box (per-tile extremes, computed once); through a B-spline,
+by the range of the coefficients whose support meets it (the convex hull
+property); then the interpolation's support. The block's points are mapped
+and sampled part by part from that region. In memory the whole output is
+one block; by blocks each task reads its own region.
+
+Cubic B-spline interpolation needs the input's spline coefficients, whose
+exact prefilter (an infinite recursive filter, ``scipy.ndimage.spline_filter``)
+makes every coefficient depend on the whole line: a block would then differ
+from the whole by the cut. Here the prefilter is its impulse response
+``sqrt(3) z^|k|`` (``z = sqrt(3) - 2``) truncated to ``|k| <= PREFILTER_TAPS``
+on the mirror-extended input (the boundary ITK and ``mode="mirror"`` use):
+every coefficient is then the same sum of the same samples whichever block
+computes it, so in memory and by blocks give the same bytes, at the cost of
+a halo of ``PREFILTER_TAPS`` voxels. The truncation's error is at most
+``3 * 2 sqrt(3) |z|^16 / (1 - |z|)``, 1e-8 of the samples' largest magnitude
+(measured against ``spline_filter(mode="mirror")`` on noise: 5.6e-9 of the
+range).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .box import Box
+from .execute import Operation
+from .transforms.model import Affine, Chain
+
+INTERPOLATIONS = ("linear", "nearest", "bspline")
+#: half the prefilter's taps (see the module notes)
+PREFILTER_TAPS = 15
+_POLE = math.sqrt(3.0) - 2.0
+#: output points mapped at a time by one thread
+PART_POINTS = 1 << 18
+
+
+def _prefilter_weights() -> np.ndarray:
+    k = np.arange(-PREFILTER_TAPS, PREFILTER_TAPS + 1)
+    return math.sqrt(3.0) * _POLE ** np.abs(k)
+
+
+def _mirror(i: np.ndarray, n: int) -> np.ndarray:
+    """Mirror indices into ``[0, n)`` without repeating the edge (ITK's, scipy's ``mirror``)."""
+    if n == 1:
+        return np.zeros_like(i)
+    period = 2 * (n - 1)
+    i = np.abs(i) % period
+    return np.where(i >= n, period - i, i)
+
+
+def index_affine(geometry) -> Affine:
+    """A grid's index (x, y, z) -> world map."""
+    return Affine(np.asarray(geometry.matrix, float), np.asarray(geometry.origin, float), "grid")
+
+
+class ApplyOperation(Operation):
+    """The input resampled on ``grid`` through ``chain`` (module notes).
+
+    Parameters
+    ----------
+    source : (Z, Y, X) array or sliceable lazy source
+        The input's samples.
+    in_grid : Geometry
+        The input's grid.
+    chain : Chain
+        Output (fixed) points to input (moving) points.
+    grid : Geometry
+        The output grid.
+    interpolation : {"linear", "nearest", "bspline"}
+    background : float
+        The value of output voxels whose point is outside the input.
+    target : Target
+        The output (its ``dtype``: the samples are rounded and clipped to it).
+    """
+
+    KEY = "resampled"
+
+    def __init__(self, source, in_grid, chain: Chain, grid, *, interpolation: str,
+                 background: float, target, name: str = "the input"):
+        if interpolation not in INTERPOLATIONS:
+            raise ValueError(f"interpolation must be one of {INTERPOLATIONS}")
+        self.source, self.in_grid, self.grid = source, in_grid, grid
+        self.chain = chain
+        self.interpolation = interpolation
+        self.background = float(background)
+        self.targets = {self.KEY: target}
+        self.dtype = np.dtype(target.dtype)
+        self.in_dtype = np.dtype(source.dtype)
+        to_index = index_affine(in_grid).inverse()
+        ops = [index_affine(grid)] + list(chain.steps) + [to_index]
+        self.ops = Chain(ops).simplified()
+        #: one affine from output to input indices
+        self.linear = len(self.ops) == 1
+        #: fields read by windows, block by block (larger than memory)
+        self.windowed = any(_windowed(op) for op in self.ops)
+        self.n_xyz = np.array(in_grid.shape_xyz, dtype=np.int64)
+        nx, ny, nz = grid.shape_xyz
+        kinds = ", ".join(s.name for s in chain.steps) or "identity"
+        self.what = (f"the resampling of {name} to {nx}x{ny}x{nz} voxels ({interpolation}; "
+                     f"{kinds})")
+
+    def __getstate__(self):
+        # (a task in another process writes through the executor's writers: the target,
+        # whose template's placeholder would pickle as a whole output of zeros, stays here)
+        state = dict(self.__dict__)
+        state["targets"] = {}
+        return state
+
+    # -- regions -------------------------------------------------------------------------
+    def _support(self, lo: np.ndarray, hi: np.ndarray) -> Box | None:
+        """The input box (z, y, x) the interpolation reads for points in index box ``[lo, hi]``."""
+        n = self.n_xyz
+        lo = np.maximum(lo, -0.5)
+        hi = np.minimum(hi, n - 0.5)
+        if np.any(~(lo <= hi)):
+            return None
+        # one voxel more on each side: the kernels map each point on their own, and their
+        # rounding may put a point a hair beyond the bound's corner
+        if self.interpolation == "nearest":
+            a, b = np.floor(lo + 0.5) - 1, np.floor(hi + 0.5) + 2
+        elif self.interpolation == "linear":
+            a, b = np.floor(lo) - 1, np.floor(hi) + 3
+        else:
+            a, b = np.floor(lo) - 2, np.floor(hi) + 4
+            if a.min() < 0 or np.any(b > n):  # the mirrored indices' range
+                a2, b2 = [], []
+                for k in range(3):
+                    m = _mirror(np.arange(int(a[k]), int(b[k])), int(n[k]))
+                    a2.append(m.min())
+                    b2.append(m.max() + 1)
+                a, b = np.array(a2, float), np.array(b2, float)
+        a = np.clip(a, 0, n).astype(int)
+        b = np.clip(b, 0, n).astype(int)
+        box = Box.from_xyz(tuple(a), tuple(b))
+        return None if box.empty else box
+
+    def _walk(self, box: Box):
+        """``[(op, lo, hi)]``: each op with the box its points lie in for block ``box``.
+
+        The boxes are :meth:`.model.Chain.box`'s bounds, op by op; the last
+        item is ``(None, lo, hi)``, the input index box.
+        """
+        (x0, y0, z0), (x1, y1, z1) = box.xyz()
+        lo = np.array([x0, y0, z0], float)
+        hi = np.array([x1 - 1, y1 - 1, z1 - 1], float)
+        out = []
+        for op in self.ops:
+            out.append((op, lo, hi))
+            lo, hi = op.box(lo, hi)
+        out.append((None, lo, hi))
+        return out
+
+    def region(self, box: Box) -> Box | None:
+        """A bound, before any sample is read, of the input box block ``box`` reads (None: none)."""
+        _, ilo, ihi = self._walk(box)[-1]
+        return self._support(ilo, ihi)
+
+    def _local_ops(self, box: Box) -> list:
+        """The ops, each field read by windows replaced by its window for block ``box``."""
+        if not self.windowed:
+            return self.ops
+        return [op.window(lo, hi) if _windowed(op) else op for op, lo, hi in self._walk(box)[:-1]]
+
+    def memory(self, box: Box) -> int:
+        """The bytes of block ``box``: its samples, its region, its fields' windows, the scratch."""
+        walk = self._walk(box)
+        region = self._support(walk[-1][1], walk[-1][2])
+        windows = sum(op.window_bytes(lo, hi) for op, lo, hi in walk[:-1] if _windowed(op))
+        per_region = self.in_dtype.itemsize
+        if self.interpolation == "bspline":
+            per_region += 16  # the float64 samples with their halo, the coefficients
+        rbytes = 0
+        if region is not None:
+            rbytes = region.size * per_region
+            if self.interpolation == "bspline":
+                rbytes += (region.grow(PREFILTER_TAPS).size - region.size) * per_region
+        per_voxel = self.dtype.itemsize
+        from . import parallel
+
+        scratch = min(box.size, PART_POINTS) * 120 * max(1, min(parallel.threads(), 8))
+        return rbytes + windows + box.size * per_voxel + scratch
+
+    # -- computing ---------------------------------------------------------------------
+    def _parts(self, box: Box) -> list[Box]:
+        ny, nx = box.shape[1], box.shape[2]
+        planes = max(1, PART_POINTS // max(1, ny * nx))
+        return [Box((z, box.lo[1], box.lo[2]), (min(z + planes, box.hi[0]), box.hi[1],
+                                                   box.hi[2]))
+                for z in range(box.lo[0], box.hi[0], planes)]
+
+    def map_indices(self, part: Box, ops=None) -> np.ndarray:
+        """The input's continuous indices (x, y, z) sampled by the voxels of ``part``, (N, 3).
+
+        ``ops``: the block's (:meth:`_local_ops`; default the whole's).
+        """
+        from .transforms import _kernels
+
+        ops = self.ops if ops is None else ops
+        first = ops[0]
+        lo, hi = part.xyz()
+        p = np.empty((part.size, 3))
+        _kernels.grid_points(np.array(lo, np.int64), np.array(hi, np.int64), first.matrix,
+                             first.offset, p)
+        for step in ops[1:]:
+            p = step.map(p)
+        return p
+
+    def compute(self, box: Box, *, threads: int) -> dict:
+        """``{"resampled": [z, y, x] of the output's type}`` of block ``box``.
+
+        The region is :meth:`region`'s bound (exact for a linear chain), read
+        once; the block's points are then mapped and sampled part by part
+        over ``threads`` (no mapped points held: a 256^3 block's would be
+        400 MB of fresh pages).
+        """
+        from . import parallel
+
+        parts = self._parts(box)
+        starts = np.cumsum([0] + [p.size for p in parts])
+        out = np.empty(box.shape, dtype=self.dtype)
+        flat = out.reshape(-1)
+        region = self.region(box)
+        if region is None:
+            flat[:] = self._background_as(self.dtype)
+            return {self.KEY: out}
+        data = self._region_samples(region)
+        lo_xyz = np.array(region.xyz()[0], dtype=np.int64)
+        ops = self._local_ops(box)
+
+        def part(k):
+            flat[starts[k]:starts[k + 1]] = self._sample(data, self.map_indices(parts[k], ops),
+                                                         lo_xyz)
+
+        parallel.run_blocks(part, range(len(parts)), threads)
+        return {self.KEY: out}
+
+    def _background_as(self, dtype):
+        from .samples import cast_samples
+
+        return cast_samples(np.array([self.background]), dtype, what="--background-value")[0]
+
+    def _region_samples(self, region: Box) -> np.ndarray:
+        """The samples of ``region`` (nearest, linear) or their spline coefficients (bspline)."""
+        if self.interpolation != "bspline":
+            return np.ascontiguousarray(self.source[region.slices])
+        return self._coefficients(region)
+
+    def _coefficients(self, region: Box) -> np.ndarray:
+        """Cubic B-spline coefficients of ``region``: the truncated prefilter (module notes)."""
+        from scipy.ndimage import correlate1d
+
+        k = PREFILTER_TAPS
+        n_zyx = tuple(int(v) for v in self.in_grid.shape)
+        idx = [_mirror(np.arange(a - k, b + k), n) for a, b, n in zip(region.lo, region.hi,
+                                                                      n_zyx, strict=True)]
+        read = Box(tuple(int(i.min()) for i in idx), tuple(int(i.max()) + 1 for i in idx))
+        block = np.asarray(self.source[read.slices], dtype=np.float64)
+        ext = block[np.ix_(*(i - r for i, r in zip(idx, read.lo, strict=True)))]
+        del block
+        w = _prefilter_weights()
+        for axis in range(3):
+            ext = correlate1d(ext, w, axis=axis, mode="nearest")
+        inner = tuple(slice(k, s - k) for s in ext.shape)
+        return np.ascontiguousarray(ext[inner])
+
+    def _sample(self, data: np.ndarray, coords: np.ndarray, lo_xyz: np.ndarray) -> np.ndarray:
+        from .samples import cast_samples
+        from .transforms import _kernels
+
+        n = self.n_xyz
+        if self.interpolation == "nearest":
+            res = np.empty(len(coords), dtype=data.dtype)
+            _kernels.sample_nearest(data, coords, lo_xyz, n, self._background_as(data.dtype),
+                                    res)
+            return res if res.dtype == self.dtype else cast_samples(res, self.dtype)
+        res = np.empty(len(coords))
+        kernel = _kernels.sample_linear if self.interpolation == "linear" else \
+            _kernels.sample_cubic
+        kernel(data, coords, lo_xyz, n, self.background, res)
+        return cast_samples(res, self.dtype, what="the resampled volume")
+
+    def prepare(self) -> None:
+        """The kernels compiled (or loaded from numba's cache) once, before any block."""
+        self.load()
+
+    def load(self) -> None:
+        """The kernels this resampling runs, on a tiny case: the budget counts what they load."""
+        from .transforms import _kernels
+
+        pts = np.zeros((1, 3))
+        lo, n = np.zeros(3, np.int64), np.full(3, 2, np.int64)
+        if self.interpolation == "nearest":
+            one = np.zeros((2, 2, 2), dtype=self.in_dtype)
+            _kernels.sample_nearest(one, pts, lo, n, one[0, 0, 0], np.empty(1, self.in_dtype))
+        elif self.interpolation == "linear":
+            one = np.zeros((2, 2, 2), dtype=self.in_dtype)
+            _kernels.sample_linear(one, pts, lo, n, 0.0, np.empty(1))
+        else:
+            _kernels.sample_cubic(np.zeros((2, 2, 2)), pts, lo, n, 0.0, np.empty(1))
+        _kernels.grid_points(lo, lo + 1, np.eye(3), np.zeros(3), np.empty((1, 3)))
+        _kernels.affine(pts, np.eye(3), np.zeros(3), np.empty((1, 3)))
+        if not self.linear:
+            for step in self.chain.steps:  # (the fields' own types and layouts)
+                if _windowed(step):
+                    step.window(pts[0], pts[0]).map(pts)
+                else:
+                    step.map(pts)
+
+
+def _windowed(op) -> bool:
+    """Whether ``op`` is a displacement field read by windows."""
+    return getattr(op, "source", None) is not None and getattr(op, "vectors", 0) is None
+
+
+def default_background(source, labels: bool) -> float:
+    """What the output gets outside the input: a label map's border label, a scan's border median."""
+    from .border import border_label, border_value
+
+    return float(border_label(source)) if labels else float(border_value(source))
+
+
+def check_coverage(chain: Chain, grid) -> None:
+    """Refuse a displacement field whose extent does not cover the output grid's points.
+
+    The points reaching the first non-linear step, when it is a field,
+    through the linear steps before it (exact): where some lie outside the
+    field's extent it
+    leaves them unmoved (ITK's rule), which silently resamples part of the
+    output with another map than the rest; a field made for another
+    reference or subject, or a chain in the wrong order, shows that way.
+    One error stating both boxes (LPS mm). (A B-spline transform's grid is
+    ITK's to place: it is the identity outside by design.)
+    """
+    from .errors import VolwarpError
+    from .transforms.model import DisplacementField
+
+    corners = grid.index_to_world(grid.corner_indices())
+    before = Affine.identity()
+    for step in chain.steps:
+        if step.linear:
+            before = before.then(step)
+            continue
+        if not isinstance(step, DisplacementField):
+            return
+        reach = before.map(corners)  # (the grid's corners: exact for a parallelepiped)
+        idx = step.frame.to_index(reach)
+        n = np.asarray(step.frame.size, float)
+        if np.any(idx < -0.5 - 1e-3) or np.any(idx > n - 0.5 + 1e-3):
+            elo, ehi = step.extent()
+            raise VolwarpError(
+                f"{step.name}: its extent {_box_text(elo, ehi)} does not cover the output "
+                f"grid's points {_box_text(reach.min(0), reach.max(0))} (LPS mm) where they "
+                "reach it: a transform for another reference or subject, or the chain in the "
+                "wrong order (--reference sets the output grid)")
+        return
+
+
+def _box_text(lo, hi) -> str:
+    return "[" + ", ".join(f"{a:.4g}..{b:.4g}" for a, b in zip(lo, hi, strict=True)) + "]"
+
+
+# -- points and meshes: the other way, by the chain's inverse --------------------------------
+def move_points(chain: Chain, points, path) -> None:
+    """Write ``points`` (a :class:`~volwarp_cli.warp.export.PointsFile`) moved by ``T^-1`` to ``path``."""
+    from .progress import timed
+    from .warp.export import write_points
+
+    with timed(f"invert the chain at {len(points.points)} points"):
+        inv = chain.invert_points(points.points)
+    _report(points.path, inv)
+    with timed(f"write {path}"):
+        write_points(points, inv.points, path)
+
+
+def move_mesh(chain: Chain, mesh, source, path) -> None:
+    """Write ``mesh`` with its vertices moved by ``T^-1`` (faces kept, normals recomputed)."""
+    from .progress import timed
+    from .surface.mesh import Mesh
+    from .surface.mesh_io import write_mesh
+
+    with timed(f"invert the chain at {len(mesh.vertices)} vertices"):
+        inv = chain.invert_points(mesh.vertices)
+    _report(source, inv)
+    with timed(f"write {path}"):
+        write_mesh(Mesh(inv.points, mesh.faces).with_normals(), path,
+                   comments={"volwarp_command": "apply"})
+
+
+def _report(what, inv) -> None:
+    """The largest residual at -v; the points not solved, by row, in a warning."""
+    from .progress import log
+
+    worst = float(inv.residual.max()) if inv.residual.size else 0.0
+    log.info("%s: %d points moved by the chain's inverse, largest residual %.3g mm", what,
+             len(inv.residual), worst)
+    if inv.unsolved.size:
+        rows = ", ".join(str(int(i) + 1) for i in inv.unsolved[:20])
+        more = "" if inv.unsolved.size <= 20 else f" and {inv.unsolved.size - 20} more"
+        log.warning("warning: %s: %d points could not be solved (the chain folds or leaves "
+                    "them; residual up to %.3g mm): points %s%s", what, inv.unsolved.size,
+                    float(np.nanmax(inv.residual[inv.unsolved])), rows, more)

@@ -1,0 +1,231 @@
+"""`volwarp apply IN -o OUT -t T [-t T ...]`: resample through other tools' transforms.
+
+The transforms (:mod:`volwarp_cli.transforms`) act on an output point in the
+order listed, as antsApplyTransforms' ``-t``; the resampling is an operation
+of the executor (:class:`volwarp_cli.apply.ApplyOperation`: in memory, or by
+blocks when it does not fit or --chunked asks); points and meshes of the
+input move the other way, by the chain's inverse.
+"""
+
+from __future__ import annotations
+
+import click
+
+from ..apply import INTERPOLATIONS
+from ..io import check_output_path
+from ..labelmap import VALUES
+from ..progress import log, timed
+from .options import (
+    INPUT_PATH,
+    common_options,
+    examples,
+    finite,
+    input_options,
+    output_option,
+    write_options,
+)
+from .resources import scale_options, scale_settings
+
+#: --reference (input_options' option, taken by this command: the output grid)
+REFERENCE_HELP = ("The output grid: REF's size, spacing, origin and direction [default: the "
+                  "input's]; its samples are not used (for a DICOM SEG or RTSTRUCT input, "
+                  "convert it first).")
+
+
+def _transforms(ctx, param, value):
+    """``-t`` values parsed (``FILE`` or ``[FILE,0|1]``), each file declared as an input."""
+    from ..errors import VolwarpError
+    from ..io.inputs import declare_input
+    from ..transforms import parse_spec
+
+    specs = []
+    for text in value:
+        try:
+            spec = parse_spec(text)
+        except VolwarpError as exc:
+            raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+        declare_input(spec.path)
+        specs.append(spec)
+    return specs
+
+
+@click.command(name="apply", epilog=examples(
+    "volwarp apply moving.nii.gz -o moved.nii.gz --reference fixed.nii.gz "
+    "-t 1Warp.nii.gz -t 0GenericAffine.mat",
+    "volwarp apply -t 1Warp.nii.gz -t 0GenericAffine.mat --points-in landmarks.csv "
+    "--points-to landmarks_fixed.csv",
+))
+@click.argument("input", required=False, type=INPUT_PATH)
+@output_option("The resampled volume (format by extension): on --reference's grid, the "
+               "input's type (unless --dtype).", required=False)
+@click.option("-t", "--transform", "transforms", multiple=True, required=True,
+              metavar="T|[T,1]", callback=_transforms,
+              help="A transform file, repeated in antsApplyTransforms' order: they act on an "
+                   "output point in the order listed (-t A -t B samples the input at B(A(p))). "
+                   "ITK .tfm/.txt/.h5, ITK/ANTs .mat, displacement-field images (.nii.gz, "
+                   ".nrrd, .mha), recognised by content; '[T,1]': the inverse of a linear T.")
+@click.option("--interpolation", type=click.Choice(INTERPOLATIONS), default=None,
+              help="As ITK's: linear, nearest or cubic B-spline [default: nearest for a label "
+                   "map, else linear].")
+@click.option("--values", type=click.Choice(VALUES), default=None,
+              help="Take the samples as intensities or as label ids (nearest: a label map "
+                   "never gains a value). Default: labels when INPUT looks like a label map "
+                   "(as `volwarp info` hints).")
+@click.option("--labels", is_flag=True, help="The same as --values labels.")
+@click.option("--background-value", "background", type=float, default=None, metavar="B",
+              callback=finite,
+              help="Output value where the point falls outside the input [default: the median "
+                   "of the input's border samples, a label map's most frequent border label].")
+@click.option("--points-in", default=None, type=INPUT_PATH, metavar="P.csv",
+              help="Points of the input (moving) space to move into the output space, by the "
+                   "chain's inverse: a CSV with x, y, z columns (LPS mm; ANTs' layout; other "
+                   "columns kept) or a Slicer .mrk.json.")
+@click.option("--points-to", default=None, metavar="Q.csv",
+              help="Where the moved points go (the format of --points-in).")
+@click.option("--mesh-in", default=None, type=INPUT_PATH, metavar="M.ply",
+              help="A mesh (PLY, LPS mm) of the input space whose vertices move as the points.")
+@click.option("--mesh-to", default=None, metavar="M2.ply",
+              help="The moved mesh, faces kept, normals recomputed (.ply .stl .obj .vtp .vtk).")
+@write_options
+@input_options(reference_help=REFERENCE_HELP)
+@scale_options
+@common_options
+def command(input, output, transforms, reference, interpolation, values, labels, background,
+            points_in, points_to, mesh_in, mesh_to, dtype, compress, byte_order, raw,
+            volume_index, dicom, ome_zarr):
+    """Resample INPUT through a chain of transforms onto the --reference grid.
+
+    Each transform maps an output (fixed) point to an input (moving) point,
+    in LPS millimetres, as ITK, ANTs and transformix have them: the output
+    voxel at p takes the input's value at T(p). Points and meshes of the
+    input go the other way (by the inverse of T): they move with the image
+    content into the output space. A label map (as `volwarp info` hints) is
+    resampled by nearest neighbour: it gains no value. -v prints the choices.
+    """
+    from ..transforms import read_chain
+
+    if (points_in is None) != (points_to is None):
+        raise click.UsageError("--points-in and --points-to go together")
+    if (mesh_in is None) != (mesh_to is None):
+        raise click.UsageError("--mesh-in and --mesh-to go together")
+    if (input is None) != (output is None):
+        raise click.UsageError("INPUT and -o OUT go together (the volume to resample and "
+                               "where it goes)")
+    if input is None and points_in is None and mesh_in is None:
+        raise click.UsageError("nothing to do: give INPUT -o OUT, --points-in/--points-to or "
+                               "--mesh-in/--mesh-to")
+    given = _values(values, labels, interpolation)
+    if input is None:
+        for flag, value in (("--reference", reference), ("--interpolation", interpolation),
+                            ("--values", given), ("--background-value", background),
+                            ("--dtype", dtype)):
+            if value is not None:
+                raise click.UsageError(f"{flag} applies to the resampled volume (INPUT -o OUT)")
+    if output is not None:
+        check_output_path(output, option="-o")
+    points = _points(points_in, points_to)
+    mesh = _mesh(mesh_in, mesh_to)
+    with timed("read the transforms"):
+        chain = read_chain(transforms)
+    log.info("chain: %s", " -> ".join(s.name for s in chain.steps))
+    for note in chain.notes:
+        log.info("%s", note)
+    if input is not None:
+        _resample(input, output, chain, reference, interpolation, given, background, dtype,
+                  dict(compress=compress, byte_order=byte_order, **ome_zarr), raw,
+                  volume_index, dicom, [t.path for t in transforms])
+    if points is not None or mesh is not None:
+        from ..apply import move_mesh, move_points
+
+        if points is not None:
+            move_points(chain, *points)
+        if mesh is not None:
+            move_mesh(chain, *mesh)
+
+
+def _values(values, labels, interpolation):
+    if labels and values == "intensity":
+        raise click.UsageError("--labels and --values intensity contradict each other")
+    given = "labels" if labels else values
+    if given == "labels" and interpolation not in (None, "nearest"):
+        raise click.UsageError(f"--interpolation {interpolation} would blend label ids: a label "
+                               "map is resampled by nearest neighbour")
+    return given
+
+
+def _points(points_in, points_to):
+    if points_in is None:
+        return None
+    from ..errors import VolwarpError
+    from ..warp.export import points_format, read_points
+
+    try:
+        kinds = points_format(points_in), points_format(points_to)
+    except VolwarpError as exc:
+        raise click.UsageError(str(exc)) from None
+    if kinds[0] != kinds[1]:
+        raise click.UsageError(f"--points-to {points_to}: write the points in the format they "
+                               "were read in")
+    check_output_path(points_to, option="--points-to")
+    return read_points(points_in), points_to
+
+
+def _mesh(mesh_in, mesh_to):
+    if mesh_in is None:
+        return None
+    from ..errors import VolwarpError
+    from ..surface.mesh_io import check_mesh_output, read_mesh
+
+    try:
+        check_mesh_output(mesh_to, option="--mesh-to")
+    except VolwarpError as exc:
+        raise click.BadParameter(str(exc), param_hint="'--mesh-to'") from None
+    return read_mesh(mesh_in), mesh_in, mesh_to
+
+
+def _resample(input, output, chain, reference, interpolation, given, background, dtype,
+              write, raw, volume_index, dicom, transform_paths):
+    import numpy as np
+
+    from .. import execute
+    from ..apply import ApplyOperation, check_coverage, default_background
+    from ..geometry import Geometry
+    from ..io.lazy import open_volume_template
+    from ..provenance import stamp
+    from ..warp.defaults import choose_values
+    from .chunked import lazy_input
+
+    template, source = lazy_input(input, raw, volume_index, dicom)
+    in_grid = Geometry.of(template)
+    grid = in_grid if chain.grid is None else chain.grid
+    if reference is not None:
+        ref, _ = open_volume_template(reference)
+        grid = Geometry.of(ref)
+    check_coverage(chain, grid)
+    choice = choose_values(source, given, name=str(input))
+    if choice.warning:
+        log.warning("%s", choice.warning)
+    log.info("%s", choice.describe())
+    if choice.is_labels and interpolation not in (None, "nearest"):
+        raise click.UsageError(f"{input} looks like a label map ({choice.why}): "
+                               f"--interpolation {interpolation} would blend its ids; give "
+                               "--values intensity to resample it as intensities")
+    method = interpolation or ("nearest" if choice.is_labels else "linear")
+    if background is None:
+        background = default_background(source, choice.is_labels)
+        log.info("background: %g (the input's border)", background)
+    out_dtype = np.dtype(dtype or source.dtype)
+    placeholder = np.broadcast_to(np.zeros((), out_dtype), grid.shape)
+    out = template.with_data(placeholder, spacing=np.array(grid.spacing),
+                             origin=np.array(grid.origin), direction=np.array(grid.direction))
+    out = stamp(out, "apply", [input, *transform_paths])
+    target = execute.Target(output, out, out_dtype, compress=write["compress"],
+                            byte_order=write["byte_order"], version=write["ome_zarr_version"],
+                            pyramid=write["pyramid"])
+    op = ApplyOperation(source, in_grid, chain, grid, interpolation=method,
+                        background=background, target=target, name=str(input))
+    settings = scale_settings()
+    ran = execute.run(op, execute.How(chunked=settings.chunked, block=settings.block,
+                                      open_engine=settings.open_engine))
+    if ran.by_blocks:
+        log.info("by %d blocks of %s", ran.blocks, "x".join(map(str, ran.block)))

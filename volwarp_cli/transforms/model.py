@@ -1,0 +1,485 @@
+"""The transforms of a chain, as ITK defines them: each maps a fixed (output) point to a moving one.
+
+Every transform here maps LPS millimetre points, an ``(N, 3)`` float64 array,
+from the output (fixed) space to the input (moving) space, as ITK's
+``TransformPoint``, ANTs and transformix do: an image is resampled by
+sampling the input at ``T(p)`` for each output voxel centre ``p``; points
+of the input go the other way, by ``T^-1``.
+
+- :class:`Affine`: ``p -> M p + o`` (every linear ITK transform reduces to
+  it: ``M (p - c) + c + t``);
+- :class:`BSplineGrid`: ITK's ``BSplineTransform`` (cubic, coefficients on a
+  grid), the identity outside its valid region, as ITK;
+- :class:`DisplacementField`: ``p -> p + u(p)``, ``u`` linearly interpolated
+  in a vector image, zero outside the field's extent (ITK's
+  ``DisplacementFieldTransform`` with its default interpolator);
+- :class:`Chain`: transforms in the order they act on a point (the first
+  listed acts first, as ``antsApplyTransforms -t A -t B``: ``B(A(p))``).
+
+Each states, for a world box of its domain, a world box its images stay in
+(:meth:`box`): exact for an affine (the corners), the coefficients' or the
+field's range over the box for the others (convex combinations of them);
+the executor's blocks read the input region it gives.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import VolwarpError
+
+#: the edge of the tiles whose extremes bound a field's range over a box
+TILE = 16
+
+
+def _affine(p: np.ndarray, m: np.ndarray, o: np.ndarray) -> np.ndarray:
+    """``p @ m.T + o`` for points (N, 3): a kernel for many (numpy's matmul is slow for 3x3)."""
+    p = np.asarray(p, dtype=np.float64)
+    if len(p) < 4096:
+        return p @ np.asarray(m, float).T + o
+    from . import _kernels
+
+    out = np.empty_like(p)
+    _kernels.affine(np.ascontiguousarray(p), np.asarray(m, float), np.asarray(o, float), out)
+    return out
+
+
+def _corners(lo, hi) -> np.ndarray:
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    return np.array([[(lo, hi)[a][0], (lo, hi)[b][1], (lo, hi)[c][2]]
+                     for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+
+
+@dataclass(frozen=True)
+class Affine:
+    """``p -> matrix @ p + offset`` (LPS mm); ``name``: where it came from, for messages."""
+
+    matrix: np.ndarray
+    offset: np.ndarray
+    name: str = "affine"
+
+    linear = True
+
+    @classmethod
+    def centred(cls, matrix, translation, center, name: str = "affine") -> Affine:
+        """ITK's ``MatrixOffsetTransformBase``: ``M (p - c) + c + t``."""
+        m = np.asarray(matrix, float).reshape(3, 3)
+        c = np.asarray(center, float).reshape(3)
+        t = np.asarray(translation, float).reshape(3)
+        return cls(m, t + c - m @ c, name)
+
+    @classmethod
+    def identity(cls) -> Affine:
+        """The identity map."""
+        return cls(np.eye(3), np.zeros(3), "identity")
+
+    def map(self, p: np.ndarray) -> np.ndarray:
+        """The images of points ``p`` (N, 3)."""
+        return _affine(p, self.matrix, self.offset)
+
+    def inverse(self) -> Affine:
+        """The inverse map (an error for a singular matrix)."""
+        if abs(np.linalg.det(self.matrix)) < 1e-12 * max(1.0, np.abs(self.matrix).max()) ** 3:
+            raise VolwarpError(f"{self.name}: its matrix is singular: it has no inverse")
+        inv = np.linalg.inv(self.matrix)
+        return Affine(inv, -inv @ self.offset, f"the inverse of {self.name}")
+
+    def then(self, other: Affine) -> Affine:
+        """``other(self(p))`` as one affine."""
+        return Affine(other.matrix @ self.matrix, other.matrix @ self.offset + other.offset,
+                      other.name)
+
+    def box(self, lo, hi):
+        """The world box the images of box ``[lo, hi]`` lie in (its corners': exact)."""
+        pts = self.map(_corners(lo, hi))
+        return pts.min(axis=0), pts.max(axis=0)
+
+
+@dataclass(frozen=True)
+class GridFrame:
+    """A grid's frame: ``world = origin + direction @ (spacing * index)``, index (x, y, z)."""
+
+    size: tuple[int, int, int]  # (x, y, z)
+    origin: np.ndarray
+    spacing: np.ndarray
+    direction: np.ndarray
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """Index steps (x, y, z) to world vectors."""
+        return np.asarray(self.direction, float) * np.asarray(self.spacing, float)[None, :]
+
+    @property
+    def inverse_matrix(self) -> np.ndarray:
+        """World vectors to index steps."""
+        return np.linalg.inv(self.matrix)
+
+    def to_index(self, p: np.ndarray) -> np.ndarray:
+        """Continuous indices (x, y, z) of world points."""
+        inv = self.inverse_matrix
+        return _affine(p, inv, -inv @ np.asarray(self.origin, float))
+
+    def index_box(self, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+        """The continuous index box of world box ``[lo, hi]``."""
+        idx = self.to_index(_corners(lo, hi))
+        return idx.min(axis=0), idx.max(axis=0)
+
+    def world_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """The world box of the grid's voxel boxes (half a voxel beyond the centres)."""
+        n = np.asarray(self.size, float)
+        pts = _corners(np.full(3, -0.5), n - 0.5) @ self.matrix.T + self.origin
+        return pts.min(axis=0), pts.max(axis=0)
+
+
+def _range_over(values: np.ndarray, frame: GridFrame, lo, hi, *, grow: int, inside_lo: float,
+                inside_hi_less: float):
+    """The min and max vector of ``values`` (z, y, x, 3) over the index box of world ``[lo, hi]``.
+
+    ``grow``: indices added on each side (the interpolation's support);
+    the zero vector is included where the box reaches beyond the valid index
+    range ``[inside_lo, n - 1 - inside_hi_less]`` (the transform is the
+    identity there). None: the box misses the grid (only zero).
+    """
+    ilo, ihi = frame.index_box(lo, hi)
+    n = np.asarray(frame.size)
+    outside = bool(np.any(ilo < inside_lo) or np.any(ihi > n - 1 - inside_hi_less))
+    a = np.clip(np.floor(ilo).astype(np.int64) - grow, 0, n - 1)
+    b = np.clip(np.ceil(ihi).astype(np.int64) + grow, 0, n - 1)
+    if np.any(ihi < -0.5 - grow) or np.any(ilo > n - 0.5 + grow):
+        return np.zeros(3), np.zeros(3)
+    sub = values[a[2]:b[2] + 1, a[1]:b[1] + 1, a[0]:b[0] + 1].reshape(-1, 3)
+    vmin = np.nanmin(sub, axis=0).astype(float)
+    vmax = np.nanmax(sub, axis=0).astype(float)
+    if outside:
+        vmin, vmax = np.minimum(vmin, 0.0), np.maximum(vmax, 0.0)
+    return vmin, vmax
+
+
+@dataclass(frozen=True, eq=False)
+class DisplacementField:
+    """``p -> p + u(p)``: ``u`` (z, y, x, 3) LPS mm on ``frame``, linear, zero outside.
+
+    As ITK's ``DisplacementFieldTransform``: inside the field's buffer (a
+    continuous index within ``[-0.5, n - 0.5)`` on each axis) ``u`` is the
+    trilinear interpolation of the vectors, the neighbours beyond the last
+    sample clamped to it; elsewhere the point is not moved.
+
+    ``vectors``: the samples (any float type and strides), or None with
+    ``source``, a field read by windows (:class:`.fields.LazyField`: a field
+    larger than memory); ``offset``: the grid index (x, y, z) of
+    ``vectors[0, 0, 0]`` for a window (:meth:`window`), whose points are
+    mapped exactly as by the whole field (the indices are the whole grid's).
+    """
+
+    frame: GridFrame
+    vectors: np.ndarray | None
+    name: str = "displacement field"
+    source: object = None
+    offset: tuple = (0, 0, 0)
+
+    linear = False
+
+    @property
+    def itemsize(self) -> int:
+        """Bytes of one component of a vector."""
+        v = self.vectors if self.vectors is not None else self.source
+        return int(np.dtype(v.dtype).itemsize)
+
+    def displacement(self, p: np.ndarray) -> np.ndarray:
+        """``u(p)`` for points ``p`` (N, 3), float64."""
+        p = np.ascontiguousarray(p, dtype=np.float64)
+        return self.map(p) - p
+
+    def map(self, p: np.ndarray) -> np.ndarray:
+        """The images of points ``p`` (N, 3)."""
+        from . import _kernels
+
+        field = self if self.vectors is not None else self.window(*_bounds(p))
+        p = np.ascontiguousarray(p, dtype=np.float64)
+        out = np.empty_like(p)
+        _kernels.field_map(field.vectors, p, self.frame.inverse_matrix,
+                           np.asarray(self.frame.origin, float),
+                           np.asarray(field.offset, np.int64),
+                           np.asarray(self.frame.size, np.int64), out)
+        return out
+
+    def window(self, lo, hi) -> DisplacementField:
+        """The field for points in world box ``[lo, hi]`` only: its vectors there read.
+
+        The index box grown by one voxel (the neighbours and the rounding of
+        the kernels' own mapping), clipped to the grid; the field itself
+        when its vectors are in memory.
+        """
+        if self.vectors is not None:
+            return self
+        ilo, ihi = self.frame.index_box(lo, hi)
+        n = np.asarray(self.frame.size)
+        a = np.clip(np.floor(ilo).astype(np.int64) - 1, 0, n - 1)
+        b = np.clip(np.ceil(ihi).astype(np.int64) + 2, 1, n)
+        if np.any(b <= a):
+            a, b = np.zeros(3, np.int64), np.ones(3, np.int64)
+        vectors = self.source.read((int(a[2]), int(a[1]), int(a[0])),
+                                   (int(b[2]), int(b[1]), int(b[0])))
+        return DisplacementField(self.frame, vectors, self.name,
+                                 offset=tuple(int(v) for v in a))
+
+    def window_bytes(self, lo, hi) -> int:
+        """The bytes :meth:`window` reads for world box ``[lo, hi]`` (0 when in memory)."""
+        if self.vectors is not None:
+            return 0
+        ilo, ihi = self.frame.index_box(lo, hi)
+        n = np.asarray(self.frame.size)
+        a = np.clip(np.floor(ilo).astype(np.int64) - 1, 0, n - 1)
+        b = np.clip(np.ceil(ihi).astype(np.int64) + 2, 1, n)
+        return int(np.prod(np.maximum(b - a, 1))) * 3 * self.itemsize * 2
+
+    def box(self, lo, hi):
+        """``[lo, hi]`` grown by the field's range over it (zero included beyond its extent).
+
+        The range of the tiles of :data:`TILE` voxels the box's index box
+        (grown by one) meets: a bound made from per-tile extremes computed
+        once, so that a block's bound costs no pass over the field.
+        """
+        tmin, tmax = self._tiles()
+        ilo, ihi = self.frame.index_box(lo, hi)
+        n = np.asarray(self.frame.size)
+        if np.any(ihi < -1.5) or np.any(ilo > n + 0.5):
+            return np.asarray(lo, float), np.asarray(hi, float)
+        a = np.clip(np.floor(ilo).astype(np.int64) - 1, 0, n - 1) // TILE
+        b = np.clip(np.ceil(ihi).astype(np.int64) + 1, 0, n - 1) // TILE
+        vmin = np.fmin.reduce(tmin[a[2]:b[2] + 1, a[1]:b[1] + 1, a[0]:b[0] + 1].reshape(-1, 3))
+        vmax = np.fmax.reduce(tmax[a[2]:b[2] + 1, a[1]:b[1] + 1, a[0]:b[0] + 1].reshape(-1, 3))
+        if np.any(ilo < -0.5) or np.any(ihi > n - 0.5):  # unmoved beyond the extent
+            vmin, vmax = np.minimum(vmin, 0.0), np.maximum(vmax, 0.0)
+        vmin = np.where(np.isfinite(vmin), vmin, 0.0)  # (tiles of NaN only: no value)
+        vmax = np.where(np.isfinite(vmax), vmax, 0.0)
+        return np.asarray(lo) + vmin, np.asarray(hi) + vmax
+
+    def _tiles(self):
+        cached = self.__dict__.get("_tile_range")
+        if cached is None:
+            if self.vectors is None:
+                cached = self.source.tile_range(TILE)
+            else:
+                cached = tile_range(self.vectors, TILE)
+            object.__setattr__(self, "_tile_range", cached)
+        return cached
+
+    def extent(self) -> tuple[np.ndarray, np.ndarray]:
+        """The world box where the field moves points (its voxels' boxes)."""
+        return self.frame.world_box()
+
+
+def tile_range(vectors: np.ndarray, tile: int):
+    """Per-tile min and max vectors (float64) of ``vectors`` (z, y, x, 3), NaN skipped."""
+    starts = [np.arange(0, s, tile) for s in vectors.shape[:3]]
+    tmin, tmax = vectors, vectors
+    for axis in range(3):  # (fmin/fmax skip NaN: a folded field's holes)
+        tmin = np.fmin.reduceat(tmin, starts[axis], axis=axis)
+        tmax = np.fmax.reduceat(tmax, starts[axis], axis=axis)
+    return tmin.astype(np.float64), tmax.astype(np.float64)
+
+
+def _bounds(p: np.ndarray):
+    """The world box of points ``p`` (N, 3), NaN skipped (a point box when none)."""
+    p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+    with np.errstate(invalid="ignore"):
+        lo, hi = np.fmin.reduce(p, axis=0), np.fmax.reduce(p, axis=0)
+    if not np.all(np.isfinite(lo + hi)):
+        return np.zeros(3), np.zeros(3)
+    return lo, hi
+
+
+@dataclass(frozen=True, eq=False)
+class BSplineGrid:
+    """ITK's ``BSplineTransform`` (order 3): ``p -> p + sum_k B(u - k) c_k`` in its valid region.
+
+    ``coefficients`` (z, y, x, 3) LPS mm on the control grid ``frame`` (ITK's
+    FixedParameters: size, origin, spacing, direction). As ITK, a point whose
+    continuous grid index ``u`` is outside ``[1, n - 2)`` on some axis (its
+    support would leave the grid) is not moved.
+    """
+
+    frame: GridFrame
+    coefficients: np.ndarray
+    name: str = "B-spline transform"
+
+    linear = False
+
+    def displacement(self, p: np.ndarray) -> np.ndarray:
+        """The displacement at points ``p`` (N, 3), float64."""
+        from . import _kernels
+
+        idx = self.frame.to_index(p)
+        out = np.empty_like(idx)
+        _kernels.bspline_cubic(np.ascontiguousarray(self.coefficients, dtype=np.float64), idx,
+                               out)
+        return out
+
+    def map(self, p: np.ndarray) -> np.ndarray:
+        """The images of points ``p`` (N, 3)."""
+        return p + self.displacement(p)
+
+    def box(self, lo, hi):
+        """``[lo, hi]`` grown by the range of the coefficients whose support reaches it."""
+        vmin, vmax = _range_over(self.coefficients, self.frame, lo, hi, grow=2, inside_lo=1.0,
+                                 inside_hi_less=1.0)
+        return np.asarray(lo) + vmin, np.asarray(hi) + vmax
+
+    def extent(self) -> tuple[np.ndarray, np.ndarray]:
+        """The world box of the valid region (where the transform moves points)."""
+        n = np.asarray(self.frame.size, float)
+        pts = _corners(np.ones(3), n - 2) @ self.frame.matrix.T + self.frame.origin
+        return pts.min(axis=0), pts.max(axis=0)
+
+
+@dataclass(frozen=True)
+class Inverted:
+    """Where points of the input land: the images, the residuals, and the points not solved."""
+
+    points: np.ndarray
+    residual: np.ndarray  # |T(q) - p| in mm, per point
+    unsolved: np.ndarray  # indices of the points whose residual exceeds the tolerance
+
+
+#: Newton's stopping residual and the accepted one (mm) for inverting non-linear transforms
+SOLVE_TOL = 1e-9
+SOLVE_ACCEPT = 1e-3
+SOLVE_ITERATIONS = 50
+
+
+@dataclass
+class Chain:
+    """Transforms in the order they act on an output point (``steps[0]`` first).
+
+    ``grid``: the output grid the first file states, where it states one
+    (an elastix parameter file's fixed grid, transformix's output), else
+    None; ``notes``: what the files say that volwarp does not follow (said
+    to the user).
+    """
+
+    steps: list = field(default_factory=list)
+    grid: object = None
+    notes: list = field(default_factory=list)
+
+    @property
+    def linear(self) -> bool:
+        """Whether every step is affine."""
+        return all(s.linear for s in self.steps)
+
+    def affine(self) -> Affine:
+        """The whole chain as one affine (only for a linear chain)."""
+        out = Affine.identity()
+        for s in self.steps:
+            if not s.linear:
+                raise VolwarpError(f"{s.name} is not linear")
+            out = out.then(s)
+        return out
+
+    def simplified(self) -> list:
+        """The steps, consecutive affines merged into one (the same map, fewer passes)."""
+        out: list = []
+        for s in self.steps:
+            if s.linear and out and out[-1].linear:
+                out[-1] = out[-1].then(s)
+            else:
+                out.append(s)
+        return out
+
+    def map(self, p: np.ndarray) -> np.ndarray:
+        """``T(p)``: the input (moving) points sampled for output (fixed) points ``p`` (N, 3)."""
+        for s in self.steps:
+            p = s.map(p)
+        return p
+
+    def box(self, lo, hi):
+        """A world box holding the images of the world box ``[lo, hi]`` (exact for affines)."""
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        for s in self.simplified():
+            lo, hi = s.box(lo, hi)
+        return lo, hi
+
+    def invert_points(self, p: np.ndarray) -> Inverted:
+        """Points ``q`` with ``T(q) = p``: where input points ``p`` go in the output space.
+
+        Step by step from the last: an affine's inverse exactly, a
+        non-linear step's by Newton's method (the Jacobian by central
+        differences) from ``q = p - u(p)``.
+        """
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+        q = p.copy()
+        for s in reversed(self.simplified()):
+            q = s.inverse().map(q) if s.linear else _solve(s, q)
+        residual = np.linalg.norm(self.map(q) - p, axis=1) if len(p) else np.zeros(0)
+        bad = np.flatnonzero(~(residual <= SOLVE_ACCEPT))
+        return Inverted(q, residual, bad)
+
+
+def _solve(step, target: np.ndarray) -> np.ndarray:
+    """``q`` with ``q + u(q) = target`` for a non-linear ``step`` (Newton, vectorised).
+
+    The Jacobian by central differences; a step that does not lower the
+    residual is halved (up to 6 times: a field's cell edges and its border
+    make the Jacobian jump).
+    """
+    if getattr(step, "vectors", 0) is None:  # a field read by windows: one, for all points
+        tmin, tmax = step._tiles()
+        reach = float(np.nanmax(np.abs(np.concatenate([tmin, tmax]))) if tmin.size else 0.0)
+        lo, hi = _bounds(target)
+        step = step.window(lo - reach - 1.0, hi + reach + 1.0)
+    q = target - step.displacement(target)
+    h = 1e-4
+    active = np.arange(len(target))
+    for _ in range(SOLVE_ITERATIONS):
+        if not active.size:
+            break
+        qa, ta = q[active], target[active]
+        r = step.map(qa) - ta
+        norm = np.linalg.norm(r, axis=1)
+        done = norm <= SOLVE_TOL
+        active, qa, ta, r, norm = (active[~done], qa[~done], ta[~done], r[~done],
+                                   norm[~done])
+        if not active.size:
+            break
+        jac = np.empty((len(qa), 3, 3))
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = h
+            jac[:, :, k] = (step.map(qa + e) - step.map(qa - e)) / (2 * h)
+        try:
+            dq = np.linalg.solve(jac, r[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            dq = r
+        dq = np.where(np.isfinite(dq), dq, r)
+        scale = np.ones(len(qa))
+        for _ in range(6):
+            trial = qa - dq * scale[:, None]
+            worse = np.linalg.norm(step.map(trial) - ta, axis=1) > norm
+            if not worse.any():
+                break
+            scale[worse] *= 0.5
+        q[active] = qa - dq * scale[:, None]
+    return q
+
+
+def check_dimension(name: str, dims: int, where: str) -> None:
+    """A 2-D (or other) transform for a 3-D image: one error naming the file."""
+    if dims != 3:
+        raise VolwarpError(f"{where}: {name} is a {dims}-D transform; the images are 3-D")
+
+
+def grid_frame(size, origin, spacing, direction, where: str) -> GridFrame:
+    """A checked :class:`GridFrame` (sizes positive, spacing positive, direction invertible)."""
+    size = tuple(int(round(float(v))) for v in size)
+    spacing = np.asarray(spacing, float).reshape(3)
+    direction = np.asarray(direction, float).reshape(3, 3)
+    origin = np.asarray(origin, float).reshape(3)
+    if (min(size) < 1 or not np.all(spacing > 0) or not np.all(np.isfinite(origin))
+            or not np.isfinite(direction).all()
+            or abs(np.linalg.det(direction)) < 1e-6 or not math.isfinite(spacing.sum())):
+        raise VolwarpError(f"{where}: the transform's grid is not valid (size {size}, spacing "
+                           f"{spacing.tolist()}, direction {direction.ravel().tolist()})")
+    return GridFrame(size, origin, spacing, direction)
