@@ -17,7 +17,7 @@ from volwarp_cli.volume import Volume
 
 
 def command_of(name: str) -> click.Command:
-    return importlib.import_module(f"volwarp_cli.cli.{COMMANDS[name]}").command
+    return importlib.import_module(f"volwarp_cli.cli.{name}").command
 
 
 def visible_options(cmd: click.Command) -> set[str]:

@@ -39,6 +39,7 @@ import math
 import numpy as np
 
 from .box import Box
+from .errors import BadUsage
 from .execute import Operation
 from .transforms.model import Affine, Chain
 
@@ -326,6 +327,54 @@ class ApplyOperation(Operation):
 def _windowed(op) -> bool:
     """Whether ``op`` is a displacement field read by windows."""
     return getattr(op, "source", None) is not None and getattr(op, "vectors", 0) is None
+
+
+def plan_resample(template, source, chain: Chain, reference=None, *,
+                  interpolation: str | None = None, values: str | None = None,
+                  background: float | None = None, dtype=None,
+                  name: str = "the input") -> ApplyOperation:
+    """The resampling of an input through ``chain``, its defaults chosen (an operation).
+
+    ``template``, ``source``: the input's Volume (its samples may be a
+    placeholder) and its samples, sliceable; ``reference``: the output grid's
+    Volume (default: the chain's own grid, an elastix file's, else the
+    input's). Labels or intensities by ``values``, else by the label-map
+    rule (:func:`volwarp_cli.warp.defaults.choose_values`, said at ``-v``): a
+    label map is resampled by nearest neighbour (another interpolation is a
+    :class:`~volwarp_cli.errors.BadUsage`); ``background`` by default the
+    input's border (its most frequent label, or its median sample); the output
+    in the input's type unless ``dtype``. The field's coverage of the grid is
+    checked here, before any work. The target is an output at no path
+    (its template on the grid): the caller gives it its path and options.
+    """
+    from .execute import Target
+    from .geometry import Geometry
+    from .progress import log
+    from .warp.defaults import choose_values
+
+    in_grid = Geometry.of(template)
+    grid = Geometry.of(reference) if reference is not None else (
+        in_grid if chain.grid is None else chain.grid)
+    check_coverage(chain, grid)
+    choice = choose_values(source, values, name=name)
+    if choice.warning:
+        log.warning("%s", choice.warning)
+    log.info("%s", choice.describe())
+    if choice.is_labels and interpolation not in (None, "nearest"):
+        raise BadUsage(f"{name} looks like a label map ({choice.why}): --interpolation "
+                       f"{interpolation} would blend its ids; give --values intensity to "
+                       "resample it as intensities")
+    method = interpolation or ("nearest" if choice.is_labels else "linear")
+    if background is None:
+        background = default_background(source, choice.is_labels)
+        log.info("background: %g (the input's border)", background)
+    out_dtype = np.dtype(dtype or source.dtype)
+    out = template.with_data(np.broadcast_to(np.zeros((), out_dtype), grid.shape),
+                             spacing=np.array(grid.spacing), origin=np.array(grid.origin),
+                             direction=np.array(grid.direction))
+    return ApplyOperation(source, in_grid, chain, grid, interpolation=method,
+                          background=background, target=Target(None, out, out_dtype),
+                          name=name)
 
 
 def default_background(source, labels: bool) -> float:

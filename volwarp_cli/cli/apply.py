@@ -12,6 +12,7 @@ from __future__ import annotations
 import click
 
 from ..apply import INTERPOLATIONS
+from ..errors import BadUsage
 from ..io import check_output_path
 from ..labelmap import VALUES
 from ..progress import log, timed
@@ -131,9 +132,11 @@ def command(input, output, transforms, reference, interpolation, values, labels,
     for note in chain.notes:
         log.info("%s", note)
     if input is not None:
-        _resample(input, output, chain, reference, interpolation, given, background, dtype,
-                  dict(compress=compress, byte_order=byte_order, **ome_zarr), raw,
-                  volume_index, dicom, [t.path for t in transforms])
+        _resample(input, output, chain, reference,
+                  dict(interpolation=interpolation, values=given, background=background,
+                       dtype=dtype),
+                  dict(compress=compress, byte_order=byte_order, **ome_zarr),
+                  (raw, volume_index, dicom), [t.path for t in transforms])
     if points is not None or mesh is not None:
         from ..apply import move_mesh, move_points
 
@@ -183,47 +186,26 @@ def _mesh(mesh_in, mesh_to):
     return read_mesh(mesh_in), mesh_in, mesh_to
 
 
-def _resample(input, output, chain, reference, interpolation, given, background, dtype,
-              write, raw, volume_index, dicom, transform_paths):
-    import numpy as np
-
+def _resample(input, output, chain, reference, options, write, read, transform_paths):
+    """INPUT through ``chain`` onto the grid (:func:`volwarp_cli.apply.plan_resample`), run."""
     from .. import execute
-    from ..apply import ApplyOperation, check_coverage, default_background
-    from ..geometry import Geometry
+    from ..apply import plan_resample
     from ..io.lazy import open_volume_template
     from ..provenance import stamp
-    from ..warp.defaults import choose_values
     from .chunked import lazy_input
 
-    template, source = lazy_input(input, raw, volume_index, dicom)
-    in_grid = Geometry.of(template)
-    grid = in_grid if chain.grid is None else chain.grid
-    if reference is not None:
-        ref, _ = open_volume_template(reference)
-        grid = Geometry.of(ref)
-    check_coverage(chain, grid)
-    choice = choose_values(source, given, name=str(input))
-    if choice.warning:
-        log.warning("%s", choice.warning)
-    log.info("%s", choice.describe())
-    if choice.is_labels and interpolation not in (None, "nearest"):
-        raise click.UsageError(f"{input} looks like a label map ({choice.why}): "
-                               f"--interpolation {interpolation} would blend its ids; give "
-                               "--values intensity to resample it as intensities")
-    method = interpolation or ("nearest" if choice.is_labels else "linear")
-    if background is None:
-        background = default_background(source, choice.is_labels)
-        log.info("background: %g (the input's border)", background)
-    out_dtype = np.dtype(dtype or source.dtype)
-    placeholder = np.broadcast_to(np.zeros((), out_dtype), grid.shape)
-    out = template.with_data(placeholder, spacing=np.array(grid.spacing),
-                             origin=np.array(grid.origin), direction=np.array(grid.direction))
-    out = stamp(out, "apply", [input, *transform_paths])
-    target = execute.Target(output, out, out_dtype, compress=write["compress"],
-                            byte_order=write["byte_order"], version=write["ome_zarr_version"],
-                            pyramid=write["pyramid"])
-    op = ApplyOperation(source, in_grid, chain, grid, interpolation=method,
-                        background=background, target=target, name=str(input))
+    template, source = lazy_input(input, *read)
+    ref = open_volume_template(reference)[0] if reference is not None else None
+    try:
+        op = plan_resample(template, source, chain, ref, name=str(input), **options)
+    except BadUsage as exc:
+        raise click.UsageError(str(exc)) from None
+    target = op.targets[op.KEY]
+    out = stamp(target.template, "apply", [input, *transform_paths])
+    op.targets[op.KEY] = execute.Target(output, out, target.dtype, compress=write["compress"],
+                                      byte_order=write["byte_order"],
+                                      version=write["ome_zarr_version"],
+                                      pyramid=write["pyramid"])
     settings = scale_settings()
     ran = execute.run(op, execute.How(chunked=settings.chunked, block=settings.block,
                                       open_engine=settings.open_engine))

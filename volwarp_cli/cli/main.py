@@ -23,20 +23,10 @@ from ..signals import cancel_deferred as cancel_deferred_stop
 from ..signals import install as install_signal_handlers
 from ..signals import settle as settle_signals
 
-# subcommand name -> module under volwarp_cli.cli; imported when used, so that
-# `volwarp --help` stays fast and one broken command cannot break the others.
-COMMANDS = {
-    "capture": "capture",
-    "warp": "warp",
-    "apply": "apply",
-    "morph": "morph",
-    "sweep": "sweep",
-    "distance": "distance",
-    "mesh": "mesh",
-    "info": "info",
-    "convert": "convert",
-    "batch": "batch",
-}
+# the subcommands, each the module of its name under volwarp_cli.cli; imported when
+# used, so that `volwarp --help` stays fast and one broken command cannot break the others.
+COMMANDS = ("capture", "warp", "apply", "morph", "sweep", "distance", "mesh", "info",
+            "convert", "batch")
 _SHORT_HELP = {
     "capture": "Capture a volume into a B-spline domain voxmap (.vwc).",
     "warp": "Warp a volume by moving B-spline control points or dragging handles.",
@@ -82,7 +72,7 @@ class VolwarpGroup(click.Group):
             return None
         import importlib
 
-        module = importlib.import_module(f"volwarp_cli.cli.{COMMANDS[name]}")
+        module = importlib.import_module(f"volwarp_cli.cli.{name}")
         return module.command
 
     def format_commands(self, ctx, formatter):
