@@ -33,9 +33,9 @@ def test_help_lists_every_subcommand(run):
     assert res.code == 0
     for name in ("capture", "warp", "morph", "sweep", "distance", "mesh", "info", "convert"):
         assert f"\n  {name} " in res.stdout
-    for name, module in COMMANDS.items():
+    for name in COMMANDS:
         assert f"\n  {name} " in res.stdout
-        command = importlib.import_module(f"volwarp_cli.cli.{module}").command
+        command = importlib.import_module(f"volwarp_cli.cli.{name}").command
         assert command.name == name
         sub = run(name, "--help")
         assert sub.code == 0, (name, sub.stderr)
