@@ -136,6 +136,24 @@ class _FieldPasses(Passes):
         self.unsigned, self.max_distance = unsigned, max_distance
         self.what = what or f"the distance field of {grid.size} samples"
 
+    #: bytes a voxel of a pass's block holds besides its samples: (by blocks, in memory)
+    block_bytes_per_voxel = (PASS_BYTES_PER_VOXEL, PASS_BYTES_IN_MEMORY)
+
+    def passes(self, block_bytes):
+        """The passes: x and y on slabs (x, then y, where a plane does not fit), then z.
+
+        Each pass's block is ``_xy``, ``_x``, ``_y`` or ``_z`` of the subclass.
+        """
+        by_blocks, in_memory = self.block_bytes_per_voxel
+        per = (in_memory if block_bytes is None else by_blocks) + self._extra()
+        nz, ny, nx = self.grid.shape
+        if block_bytes is None or ny * nx * per <= block_bytes:
+            first = [Pass("xy", (1, 2), per, self._xy, self.masks.after_first)]
+        else:  # a plane does not fit: x on whole x lines, then y on whole y lines
+            first = [Pass("x", (2,), per, self._x, self.masks.after_first),
+                     Pass("y", (1,), per, self._y)]
+        return [*first, Pass("z", (0,), per, self._z)]
+
     def load(self) -> None:
         """The kernels on a small ball, so that the budget counts their loaded code."""
         from .field import warm_kernels
@@ -173,18 +191,6 @@ class ExactDistance(_FieldPasses):
 
     scratch = {"xy": np.float32}
     aliases = {"field": "xy"}
-
-    def passes(self, block_bytes):
-        """The passes: x and y on slabs (x, then y, where a plane does not fit), then z."""
-        per = (PASS_BYTES_IN_MEMORY if block_bytes is None else PASS_BYTES_PER_VOXEL) \
-            + self._extra()
-        nz, ny, nx = self.grid.shape
-        if block_bytes is None or ny * nx * per <= block_bytes:
-            first = [Pass("xy", (1, 2), per, self._xy, self.masks.after_first)]
-        else:  # a plane does not fit: x on whole x lines, then y on whole y lines
-            first = [Pass("x", (2,), per, self._x, self.masks.after_first),
-                     Pass("y", (1,), per, self._y)]
-        return [*first, Pass("z", (0,), per, self._z)]
 
     def _x(self, box, stores, *, and_y: bool = False):
         mask, stats = self.masks.box_and_stats(box)
@@ -228,6 +234,7 @@ class LineMetricDistance(_FieldPasses):
 
     scratch = {"outside": np.float32, "inside": np.float32}
     aliases = {"field": "outside"}
+    block_bytes_per_voxel = (LINE_BYTES_PER_VOXEL, LINE_BYTES_IN_MEMORY)
 
     def __init__(self, masks: MaskSource, grid, *, metric: str, **kwargs):
         if metric not in ("minnorm", "taxicab", "chessboard"):
@@ -237,18 +244,6 @@ class LineMetricDistance(_FieldPasses):
         self.metric = metric
         self.scale = (None if metric == "minnorm" or self.spacing_zyx[0] == 1.0
                       else self.spacing_zyx[0])
-
-    def passes(self, block_bytes):
-        """The passes: x and y on slabs (x, then y, where a plane does not fit), then z."""
-        per = (LINE_BYTES_IN_MEMORY if block_bytes is None else LINE_BYTES_PER_VOXEL) \
-            + self._extra()
-        nz, ny, nx = self.grid.shape
-        if block_bytes is None or ny * nx * per <= block_bytes:
-            first = [Pass("xy", (1, 2), per, self._xy, self.masks.after_first)]
-        else:
-            first = [Pass("x", (2,), per, self._x, self.masks.after_first),
-                     Pass("y", (1,), per, self._y)]
-        return [*first, Pass("z", (0,), per, self._z)]
 
     def _lines(self, fields, axes):
         from .minnorm import line_metric_pass
