@@ -389,7 +389,12 @@ def test_not_a_transform_refused(run, inputs):
 def test_field_not_covering_the_grid_refused(run, inputs):
     far = Volume(np.zeros((6, 6, 6), np.uint8), origin=(500.0, 500.0, 500.0))
     sitk.WriteImage(field_on(far), str(inputs / "far.nii.gz"))
-    _refused(run, inputs, "-t", inputs / "far.nii.gz", says="does not cover")
+    _refused(run, inputs, "-t", inputs / "far.nii.gz", says="outside its 6x6x6 samples")
+    # a field after another field is checked too (it passed silently when only the first
+    # non-linear step was)
+    sitk.WriteImage(field_on(read_volume(inputs / "in.nrrd")), str(inputs / "near.nii.gz"))
+    _refused(run, inputs, "-t", inputs / "near.nii.gz", "-t", inputs / "far.nii.gz",
+             says="far.nii.gz (displacement field): the output grid's points reach it")
 
 
 def test_inverse_of_field_refused(run, inputs, scene):

@@ -197,6 +197,32 @@ class ApplyOperation(Operation):
         scratch = min(box.size, PART_POINTS) * 120 * max(1, min(parallel.threads(), 8))
         return rbytes + windows + box.size * per_voxel + scratch
 
+    def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
+        """Cubes as large as a task's memory allows (:meth:`memory` of one in the middle).
+
+        A block's memory is not its voxels times a rate: its region's halo (the
+        cubic prefilter's 15 voxels, the chain's reach) is fixed, so the edge
+        doubles while a cube fits, then grows by eighths; two blocks a worker at least.
+        """
+        shape = self.grid.shape
+
+        def cube(edge):
+            size = [min(edge, n) for n in shape]
+            lo = [max(0, min(n // 2 - e // 2, n - e)) for n, e in zip(shape, size, strict=True)]
+            return Box(tuple(lo), tuple(a + e for a, e in zip(lo, size, strict=True)))
+
+        def fits(edge):
+            count = math.prod(-(-n // min(edge, n)) for n in shape)
+            return self.memory(cube(edge)) <= per_task and (count >= 2 * workers or edge <= 8)
+
+        edge = 8
+        while edge < max(shape) and fits(edge * 2):
+            edge *= 2
+        step = max(1, edge // 8)
+        while edge < max(shape) and fits(edge + step):
+            edge += step
+        return tuple(min(edge, n) for n in shape)
+
     # -- computing ---------------------------------------------------------------------
     def _parts(self, box: Box) -> list[Box]:
         ny, nx = box.shape[1], box.shape[2]
@@ -387,37 +413,40 @@ def default_background(source, labels: bool) -> float:
 def check_coverage(chain: Chain, grid) -> None:
     """Refuse a displacement field whose extent does not cover the output grid's points.
 
-    The points reaching the first non-linear step, when it is a field,
-    through the linear steps before it (exact): where some lie outside the
-    field's extent it
-    leaves them unmoved (ITK's rule), which silently resamples part of the
-    output with another map than the rest; a field made for another
-    reference or subject, or a chain in the wrong order, shows that way.
-    One error stating both boxes (LPS mm). (A B-spline transform's grid is
-    ITK's to place: it is the identity outside by design.)
+    Every field of the chain, with the output grid's points that reach it:
+    its corners (exact through linear steps) and a lattice of its points
+    (through non-linear steps before the field). Where some lie outside the
+    field's extent it leaves them unmoved (ITK's rule), which silently
+    resamples part of the output with another map than the rest; a field
+    made for another reference or subject, or a chain in the wrong order,
+    shows that way. One error naming the field, its size and the farthest
+    point. (A B-spline transform's grid is ITK's to place: it is the
+    identity outside by design.)
     """
     from .errors import VolwarpError
     from .transforms.model import DisplacementField
 
-    corners = grid.index_to_world(grid.corner_indices())
-    before = Affine.identity()
+    # the grid's corners (exact through linear steps: a parallelepiped's extremes) and a
+    # lattice of its points (through a field or a B-spline before a later field)
+    n_xyz = np.array(grid.shape_xyz, float)
+    axes = [np.unique(np.linspace(0, n - 1, min(int(n), 9))) for n in n_xyz]
+    lattice = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    reach = grid.index_to_world(np.vstack([grid.corner_indices(), lattice]))
     for step in chain.steps:
-        if step.linear:
-            before = before.then(step)
-            continue
-        if not isinstance(step, DisplacementField):
-            return
-        reach = before.map(corners)  # (the grid's corners: exact for a parallelepiped)
-        idx = step.frame.to_index(reach)
-        n = np.asarray(step.frame.size, float)
-        if np.any(idx < -0.5 - 1e-3) or np.any(idx > n - 0.5 + 1e-3):
-            elo, ehi = step.extent()
-            raise VolwarpError(
-                f"{step.name}: its extent {_box_text(elo, ehi)} does not cover the output "
-                f"grid's points {_box_text(reach.min(0), reach.max(0))} (LPS mm) where they "
-                "reach it: a transform for another reference or subject, or the chain in the "
-                "wrong order (--reference sets the output grid)")
-        return
+        if isinstance(step, DisplacementField):
+            idx = step.frame.to_index(reach)
+            n = np.asarray(step.frame.size, float)
+            out = np.any((idx < -0.5 - 1e-3) | (idx > n - 0.5 + 1e-3), axis=1)
+            if np.any(out):
+                far = reach[np.argmax(np.abs(idx - (n - 1) / 2).max(axis=1))]
+                raise VolwarpError(
+                    f"{step.name}: the output grid's points reach it outside its "
+                    f"{'x'.join(str(int(v)) for v in n)} samples (at LPS "
+                    f"{', '.join(f'{v:.4g}' for v in far)} mm; {int(out.sum())} of "
+                    f"{len(reach)} points checked): a transform for another reference or "
+                    "subject, or the chain in the wrong order (--reference sets the output "
+                    "grid)")
+        reach = step.map(reach)
 
 
 def _box_text(lo, hi) -> str:
