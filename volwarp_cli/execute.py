@@ -134,6 +134,10 @@ class Operation:
         """
         raise NotImplementedError
 
+    def scratch_files(self) -> list:
+        """``[(path, nbytes)]`` of the files it writes by blocks besides its targets (none)."""
+        return []
+
     def output(self, results: dict, key) -> np.ndarray:
         """Target ``key``'s samples (its type) from a block's results (default: ``results[key]``)."""
         return results[key]
@@ -309,7 +313,7 @@ def run(op: Operation, how: How = How(), after: Callable | None = None) -> Ran:
         return _reduce(op, how, after)
     first = next(iter(op.targets.values()))
     outputs = [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()]
-    outputs += getattr(op, "scratch_files", lambda: [])()  # (beside the outputs, by blocks)
+    outputs += op.scratch_files()
     if not _in_memory(op, how, outputs, compress=first.compress, pyramid=first.pyramid):
         return _run_blocks(op, how, after)
     results = compute_whole(op, how.threads)
