@@ -229,18 +229,18 @@ def test_what_the_block_path_refuses(run, shapes, tmp_path):
 
 
 def test_a_failing_block_leaves_no_frame_and_no_scratch(run, shapes, tmp_path, monkeypatch):
-    from volwarp_cli.morph import chunked
+    from volwarp_cli.morph.frames import FrameOperation
 
-    real = chunked._frame_block
+    real = FrameOperation.compute
     calls = []
 
-    def flaky(a, b, *, t, values):
-        calls.append(t)
-        if t > 0.5 and len(calls) > 3:
+    def flaky(self, box, *, threads):
+        calls.append(self.t)
+        if self.t > 0.5 and len(calls) > 3:
             raise OSError("disk on fire")
-        return real(a, b, t=t, values=values)
+        return real(self, box, threads=threads)
 
-    monkeypatch.setattr(chunked, "_frame_block", flaky)
+    monkeypatch.setattr(FrameOperation, "compute", flaky)
     res = run("morph", shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "3",
               "-o", tmp_path / "o_{i}.nrrd", "--chunked", "--block", "8",
               "--scheduler", "synchronous")

@@ -298,12 +298,15 @@ def refuse_unmakeable(what: str, memory_bytes: int, outputs, *, chunked: bool | 
                            else f"{what}, by blocks: {by_blocks}")
 
 
-def run(op: Operation, how: How = How(), after: Callable | None = None) -> Ran:
+def run(op: Operation, how: How = How(), after: Callable | None = None, *,
+        by_blocks: bool | None = None) -> Ran:
     """Run ``op``: in memory as one block when it fits, else by blocks (module notes).
 
     ``after(ran)``: called once the outputs are written (by blocks: before they
     are committed, so that it can read them back with :meth:`Ran.read`); what
     it returns is ``Ran.after``. An error in it leaves no output by blocks.
+    ``by_blocks``: decided already, by a caller that planned a larger job
+    whose step ``op`` is (a morph's frames: :func:`decide` on the whole job).
 
     Raises the in-memory refusal (:class:`~volwarp_cli.errors.OutOfMemoryError`,
     with the sizes) where the whole does not fit and blocks may not or cannot
@@ -311,10 +314,13 @@ def run(op: Operation, how: How = How(), after: Callable | None = None) -> Ran:
     """
     if isinstance(op, Reduction):
         return _reduce(op, how, after)
-    first = next(iter(op.targets.values()))
-    outputs = [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()]
-    outputs += op.scratch_files()
-    if not _in_memory(op, how, outputs, compress=first.compress, pyramid=first.pyramid):
+    if by_blocks is None:
+        first = next(iter(op.targets.values()))
+        outputs = [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()]
+        outputs += op.scratch_files()
+        by_blocks = not _in_memory(op, how, outputs, compress=first.compress,
+                                   pyramid=first.pyramid)
+    if by_blocks:
         return _run_blocks(op, how, after)
     results = compute_whole(op, how.threads)
     for key, target in op.targets.items():

@@ -6,9 +6,9 @@
 
 Patterns are Python format strings with ``{i}`` (frame number) and ``{t}``
 (its time), e.g. ``frame_{i:03d}.nrrd`` or ``m_{t:.2f}.nrrd``. The frames
-come from :func:`volwarp_cli.morph.frames.morph_frames`, or by blocks from
-:func:`volwarp_cli.morph.run.morph_by_blocks`; this module parses, reads,
-calls and writes.
+come from :func:`volwarp_cli.morph.run.run_morph` (in memory or by blocks, as
+:func:`volwarp_cli.morph.run.plan_morph` decides); this module parses and
+calls.
 """
 
 from __future__ import annotations

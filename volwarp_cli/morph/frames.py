@@ -1,28 +1,35 @@
-"""The morph's frames: each frame's volume, attributes, surface and picture from a prepared morph.
+"""The morph's frames: each frame's volume, attributes, surface and picture, one code.
 
 After Dinh & Carvalho 2004, section 0.3.
 
-:func:`morph_frames` walks the job's times over a
-:class:`~.pipeline.Prepared` morph and yields one :class:`Frame` per time:
-the interpolated signed distance field (or the 0..1 occupancy, or that
-occupancy mapped to the source's value range), every attribute blended at
-the same time, and, when asked, the frame's zero-level surface and its
-render, all frames seen by one fixed camera. Nothing here reads or writes
-files: ``volwarp morph`` writes what it gets.
+A frame is an elementwise function of the two shapes' fields on the frame
+grid (and of each attribute's pair): :class:`FrameOperation` states it as an
+operation of the executor, whose block is a box of the frame. In memory the
+fields are arrays and the frame is its one block (:func:`computed`, or the
+command's run); by blocks the fields are scratch files and the executor runs
+the same :meth:`FrameOperation.compute` block by block, so the frames are
+the same bytes either way. :func:`frames` walks the job's times: each frame
+made (computed or written, as its caller says), then, when asked, its
+zero-level surface (:func:`volwarp_cli.surface.chunked.isosurface_blocks` of
+the frame's field, one block or many) and its render, all frames seen by one
+fixed camera.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..box import Box
 from ..errors import VolwarpError
+from ..execute import Operation
 from ..progress import progress
 from ..samples import cast_samples
 from ..volume import Volume
-from .interpolate import density, occupancy_to_range
+from .interpolate import blend, check_time, density, occupancy_to_range, warp_on_grid
 from .pipeline import Prepared
 from .spec import MorphJob
 
@@ -51,9 +58,9 @@ class Frame:
     with the frame's key/values (``volwarp_morph_t``); ``attributes``: name ->
     the attribute at ``t`` in its output type; ``mesh``: the zero-level surface
     (when meshes or renders were asked for); ``image``: its ``(H, W, 3)`` render,
-    ``camera`` the camera of every frame's render.
-    The arrays may be reused by the next frame: use (write) a frame before
-    asking for the next.
+    ``camera`` the camera of every frame's render. Where the frames were
+    written by blocks, the volumes' samples are placeholders (their geometry
+    and key/values are the files').
     """
 
     index: int
@@ -63,15 +70,6 @@ class Frame:
     mesh: object = None
     image: np.ndarray | None = None
     camera: object = None
-
-
-def shape_box(prep: Prepared) -> np.ndarray:
-    """World corners ``(8, 3)`` of the box holding source and target shapes on the frame grid.
-
-    For one fixed camera.
-    """
-    inside = (prep.morph.source < 0) | (prep.morph.target < 0)
-    return box_corners([inside.any(axis=a) for a in ((1, 2), (0, 2), (0, 1))], prep.grid)
 
 
 def box_corners(occupied_zyx, grid) -> np.ndarray:
@@ -129,66 +127,257 @@ class FrameValues:
         return data
 
 
+
+#: Bytes per voxel a frame block holds at most: both fields (8), their blend (4), the
+#: occupancy and its float64 mapping to the source's range (about 40), the output
+FRAME_BYTES_PER_VOXEL = 64
+#: ... and per attribute: its pair's box (8), their blend and the cast output
+ATTRIBUTE_BYTES_PER_VOXEL = 16
+
+
+@dataclass
+class FrameFields:
+    """Both shapes' fields and the attributes' pairs on the frame grid, read box by box.
+
+    ``source``, ``target``: float32 fields sliceable ``[z, y, x]`` (arrays in
+    memory, :class:`~volwarp_cli.io.filearray.FileArray` scratch by blocks),
+    the static landmark warp already applied; ``attributes``: name ->
+    ``(source samples, target samples, output type name)``, sliceable on the
+    grid; ``back``, ``fwd``: a progressive landmark warp's displacements
+    (:class:`.interpolate.Morph`'s), which move whole fields: such a morph has
+    no form by blocks.
+    """
+
+    source: object
+    target: object
+    grid: object
+    attributes: dict = field(default_factory=dict)
+    back: np.ndarray | None = None
+    fwd: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, job: MorphJob, prep: Prepared) -> FrameFields:
+        """The fields of an in-memory :class:`~.pipeline.Prepared` morph."""
+        types = {a.name: a.dtype or np.dtype(prep.attribute_types[a.name]).name
+                 for a in job.attributes}
+        return cls(prep.morph.source, prep.morph.target, prep.grid,
+                   {name: (a, b, types[name]) for name, (a, b) in prep.attributes.items()},
+                   prep.morph.back, prep.morph.fwd)
+
+    def pair(self, t: float, a, b, box: Box) -> tuple[np.ndarray, np.ndarray]:
+        """``box`` of a pair at time ``t`` (float32): moved by a progressive warp (whole only)."""
+        a = np.asarray(a[box.slices], dtype=np.float32)
+        b = np.asarray(b[box.slices], dtype=np.float32)
+        if self.back is None:
+            return a, b
+        return (warp_on_grid(a, self.grid, self.back, t),
+                warp_on_grid(b, self.grid, self.fwd, 1 - t))
+
+    def field(self, t: float):
+        """Frame ``t``'s field ``(1 - t) d_s + t d_t``, sliceable (read box by box)."""
+        check_time(t)
+        if self.back is None:
+            return FrameField(self.source, self.target, t)
+        return blend(*self.pair(t, self.source, self.target, self.grid.box), t)
+
+    def corners(self, run=None, block=None) -> np.ndarray:
+        """World corners ``(8, 3)`` of the box holding both shapes (:func:`box_corners`).
+
+        Counted over blocks of ``block`` (default one, the whole) by ``run``
+        (``run(task, boxes)``: an engine's map; default here).
+        """
+        boxes = self.grid.box.blocks(block) if block is not None else [self.grid.box]
+        task = functools.partial(_occupied, source=self.source, target=self.target)
+        occ = [np.zeros(n, bool) for n in self.grid.shape]
+        for box, parts in (run(task, boxes) if run is not None else map(task, boxes)):
+            for axis in range(3):
+                occ[axis][box.lo[axis]:box.hi[axis]] |= parts[axis]
+        return box_corners(occ, self.grid)
+
+
+def _occupied(box: Box, source, target):
+    inside = (np.asarray(source[box.slices]) < 0) | (np.asarray(target[box.slices]) < 0)
+    return box, [inside.any(axis=a) for a in ((1, 2), (0, 2), (0, 1))]
+
+
+class FrameField:
+    """The field of frame ``t``, ``(1 - t) d_s + t d_t``, read box by box (picklable).
+
+    ``source``, ``target``: the two float32 fields, sliceable ``[z, y, x]``.
+    """
+
+    def __init__(self, source, target, t: float):
+        check_time(t)
+        self.source, self.target, self.t = source, target, float(t)
+        self.shape = tuple(source.shape)
+        self.dtype = np.dtype(np.float32)
+        self.ndim = 3
+
+    def __getitem__(self, key) -> np.ndarray:
+        a = np.asarray(self.source[key], dtype=np.float32)
+        b = np.asarray(self.target[key], dtype=np.float32)
+        return blend(a, b, self.t)
+
+
+class FrameOperation(Operation):
+    """One frame of a morph as an operation of the executor: a block is a box of the frame.
+
+    A frame is an elementwise function of the two fields (:func:`.interpolate.blend`,
+    then :class:`FrameValues`) and each attribute's pair, so a block needs its
+    own box of them and nothing more: the in-memory frame is the one block,
+    the frames by blocks the same :meth:`compute` on each. Its results:
+    ``"frame"`` and each attribute's name. ``targets`` (set by the caller
+    that writes them: key -> :class:`~volwarp_cli.execute.Target`); the frame's
+    ``cast``: the type it is written in (``--dtype``), if not its own.
+    """
+
+    def __init__(self, fields: FrameFields, values: FrameValues, t: float, *,
+                 meta: dict, cast=None):
+        check_time(t)
+        self.fields, self.values, self.t = fields, values, float(t)
+        self.grid = fields.grid
+        self.meta = dict(meta, volwarp_morph_t=f"{t:.9g}")
+        self.dtype = np.dtype(values.dtype if values.range_source else np.float32)
+        self.cast = None if cast is None else np.dtype(cast)
+        self.targets = {}
+        self.what = (f"the morph's frame at t = {t:g} on a "
+                     f"{'x'.join(map(str, self.grid.shape_xyz))} grid")
+        if fields.back is not None:
+            self.no_blocks = "a morph with a landmark warp runs in memory only"
+
+    def types(self) -> dict:
+        """Each result's type: the frame's (its cast, if any) and each attribute's."""
+        out = {"frame": self.cast or self.dtype}
+        out.update({name: np.dtype(kind) for name, (_, _, kind)
+                    in self.fields.attributes.items()})
+        return out
+
+    def memory(self, box: Box) -> int:
+        """A block's bytes: its fields' boxes, blend and values, its attributes'."""
+        return box.size * (FRAME_BYTES_PER_VOXEL
+                           + ATTRIBUTE_BYTES_PER_VOXEL * len(self.fields.attributes))
+
+    def compute(self, box: Box, *, threads: int) -> dict:
+        """``box`` of the frame and of each attribute (elementwise: ``threads`` unused)."""
+        f, t = self.fields, self.t
+        out = {"frame": self.values(blend(*f.pair(t, f.source, f.target, box), t))}
+        for name, (a, b, kind) in f.attributes.items():
+            out[name] = cast_samples(blend(*f.pair(t, a, b, box), t), kind,
+                                     what=f"attribute {name} at t = {t:g}")
+        return out
+
+    def output(self, results: dict, key) -> np.ndarray:
+        """Result ``key`` in its output type (the frame cast to ``--dtype``)."""
+        data = results[key]
+        if key == "frame" and self.cast is not None:
+            data = cast_samples(data, self.cast, what=str(self.targets[key].path))
+        return data
+
+    def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
+        """Whole rows within ``per_task``, two blocks a worker at least."""
+        from ..passes import pass_boxes
+
+        return pass_boxes(self.grid.shape, (2,), block_bytes=per_task,
+                          bytes_per_voxel=self.memory(Box((0, 0, 0), (1, 1, 1))),
+                          min_blocks=workers)[0].shape
+
+    def volume(self, data=None, key="frame"):
+        """A Volume of result ``key`` with the frame's key/values (``data`` None: a placeholder)."""
+        if data is None:
+            data = np.broadcast_to(np.zeros((), self.types()[key]), self.grid.shape)
+        return self.grid.volume(data, meta=dict(self.meta))
+
+
+@dataclass(frozen=True)
+class MeshBlocks:
+    """How the frames' surfaces are meshed: ``block`` None for one block, the whole.
+
+    ``run``, ``threads``: who runs the blocks
+    (:func:`volwarp_cli.surface.chunked.isosurface_blocks`' ``run`` and ``threads``).
+    """
+
+    block: tuple | None = None
+    run: object = None
+    threads: int | None = None
+
+
+def frames(job: MorphJob, fields: FrameFields, values: FrameValues, make, *,
+           meta: dict | None = None, meshes: MeshBlocks | None = None,
+           render: RenderSettings | None = None, corners=None) -> Iterator[Frame]:
+    """The frames of ``job`` at its times, in order (a progress bar counts them).
+
+    Each frame's :class:`FrameOperation` is given to ``make(i, op)``, which
+    returns the frame's volume and its attributes' (``(Volume, {name:
+    Volume})``: computed in memory by :func:`computed`, or written by the
+    command, their samples then placeholders). ``meta``: what every frame
+    carries (provenance; each adds ``volwarp_morph_t``). ``meshes``: each
+    frame's surface made so (default none, but for a render); ``render``:
+    each surface rendered, every frame by one camera (``render.camera``, or
+    fitted to both shapes: ``corners()`` gives their box, default
+    :meth:`FrameFields.corners` in one block).
+    """
+    meta = dict(meta or {})
+    camera = None if render is None else render.camera
+    if meshes is None and render is not None:
+        meshes = MeshBlocks()
+    with progress(len(job.times), "morph frames") as bar:
+        for i, t in enumerate(job.times):
+            volume, attributes = make(i, FrameOperation(fields, values, t, meta=meta))
+            frame = Frame(i, t, volume, attributes)
+            if meshes is not None:
+                from ..surface.chunked import isosurface_blocks
+
+                frame.mesh = isosurface_blocks(fields.field(t), fields.grid, 0.0,
+                                               inside="below", normals=True,
+                                               block_shape=meshes.block, run=meshes.run,
+                                               threads=meshes.threads)
+            if render is not None:
+                from ..render.surface import fit_camera, render_mesh
+
+                if camera is None:
+                    camera = fit_camera((corners or fields.corners)(), render.view,
+                                        render.size)
+                frame.image = render_mesh(frame.mesh, camera=camera,
+                                          orientation_labels=render.orientation_labels)
+                frame.camera = camera
+            yield frame
+            bar.advance()
+
+
+def computed(i: int, op: FrameOperation):
+    """A frame computed in memory, the whole as one block: ``(Volume, {name: Volume})``."""
+    from ..execute import compute_whole
+
+    results = compute_whole(op)
+    return (op.volume(op.output(results, "frame")),
+            {name: op.volume(results[name], name) for name in op.fields.attributes})
+
+
+def frame_values(job: MorphJob, fields: FrameFields, source) -> FrameValues:
+    """What ``job``'s frames hold; ``source``: the source's samples (sliceable: their type, range)."""
+    value_range = None
+    if job.output == "density" and job.density_range == "source":
+        from ..bspline.capture import source_range
+
+        value_range = source_range(source)
+    return FrameValues.of(job, fields.grid, source.dtype, value_range)
+
+
 def morph_frames(job: MorphJob, prep: Prepared, source: Volume,
                  attributes: dict[str, tuple[Volume, Volume]] | None = None, *,
                  meta: dict | None = None, meshes: bool = False,
                  render: RenderSettings | None = None) -> Iterator[Frame]:
-    """The frames of ``job`` at its times, in order (a progress bar counts them).
+    """The frames of an in-memory morph, computed (nothing written): :func:`frames`.
 
-    Parameters
-    ----------
-    job : MorphJob
-        Times, output kind (``sdf`` or ``density``, its width and range) and
-        attributes.
-    prep : Prepared
-        :func:`.pipeline.prepare` of ``job`` with ``source``, the target and
-        ``attributes``.
-    source : Volume
-        The source shape's volume (its value range and type for a density
-        ``range: source``).
-    attributes : dict, optional
-        The attributes' (source, target) volumes, by name (the default output
-        type of each is its source's).
-    meta : dict, optional
-        Key/values every frame carries (provenance); each frame adds
-        ``volwarp_morph_t``.
-    meshes : bool
-        Make each frame's surface (:attr:`Frame.mesh`).
-    render : RenderSettings, optional
-        Render each frame's surface (:attr:`Frame.image`).
+    ``prep``: :func:`.pipeline.prepare` of ``job`` with ``source``, the
+    target and ``attributes`` (their volumes: the output types' defaults);
+    ``meshes``: make each frame's surface.
     """
-    grid = prep.grid
-    meta = dict(meta or {})
-    types = {a.name: a.dtype or np.dtype(attributes[a.name][0].data.dtype).name
-             for a in job.attributes}
-    value_range = None
-    if job.output == "density" and job.density_range == "source":
-        value_range = float(np.nanmin(source.data)), float(np.nanmax(source.data))
-    values = FrameValues.of(job, grid, source.data.dtype, value_range)
-    camera = None if render is None else render.camera
-    with progress(len(job.times), "morph frames") as bar:
-        buf = np.empty(grid.shape, np.float32)
-        for i, t in enumerate(job.times):
-            sdf = prep.morph.field(t, out=buf)
-            data = values(sdf)
-            frame_meta = dict(meta, volwarp_morph_t=f"{t:.9g}")
-            frame = Frame(i, t, grid.volume(data, meta=frame_meta))
-            for a in job.attributes:
-                va, vb = prep.attributes[a.name]
-                blended = cast_samples(prep.morph.attribute(t, va, vb), types[a.name],
-                                       what=f"attribute {a.name} at t = {t:g}")
-                frame.attributes[a.name] = grid.volume(blended, meta=dict(frame_meta))
-            if meshes or render is not None:
-                from ..surface.isosurface import isosurface
+    fields = FrameFields.of(job, prep)
+    return frames(job, fields, frame_values(job, fields, source.data), computed, meta=meta,
+                  meshes=MeshBlocks() if meshes else None, render=render)
 
-                frame.mesh = isosurface(grid.volume(sdf), 0.0, inside="below")
-                if render is not None:
-                    from ..render.surface import fit_camera, render_mesh
 
-                    if camera is None:
-                        camera = fit_camera(shape_box(prep), render.view, render.size)
-                    frame.image = render_mesh(frame.mesh, camera=camera,
-                                              orientation_labels=render.orientation_labels)
-                    frame.camera = camera
-            yield frame
-            bar.advance()
+def shape_box(prep: Prepared) -> np.ndarray:
+    """World corners ``(8, 3)`` of the box holding source and target shapes on the frame grid."""
+    return FrameFields(prep.morph.source, prep.morph.target, prep.grid).corners()

@@ -39,6 +39,7 @@ class Prepared:
     warp_back: LandmarkWarp | None
     uncovered: dict
     attributes: dict = field(default_factory=dict)  # name -> (source on grid, target on grid)
+    attribute_types: dict = field(default_factory=dict)  # name -> its source's type
 
 
 def _matrix(params, vol: Volume, iso: float, inside: str) -> np.ndarray:
@@ -97,6 +98,7 @@ def prepare(job: MorphJob, source: Volume, target: Volume,
         sa = resample_to_grid(va.data, va.index_to_world_matrix, a_s, grid, outside="nearest")
         sb = resample_to_grid(vb.data, vb.index_to_world_matrix, a_t, grid, outside="nearest")
         prepared.attributes[name] = (morph.static_source(sa, warp_back), sb)
+        prepared.attribute_types[name] = va.data.dtype
     return prepared
 
 

@@ -4,12 +4,14 @@
 outputs', and decides by arithmetic, as :func:`volwarp_cli.execute.run` does
 for every operation: the in-memory morph's memory against the budget
 (``--chunked``/``--no-chunked`` as asked), what neither way can make refused
-with both reasons. :func:`run_morph` runs it: in memory the frames of :mod:`.frames`, by
-blocks :func:`morph_by_blocks`, which strings together the steps of
-:mod:`.chunked`: the frame grid and what the block path refuses, the
-alignment's matrices counted by blocks, the resampling's blocks and the
-aligned inputs' coverage, the outputs' checks, then both fields on disk and
-every frame written block by block. Nothing here parses options: the command
+with both reasons. :func:`run_morph` runs it: the fields in memory
+(:func:`morph_in_memory`) or on disk by blocks (:func:`morph_by_blocks`,
+which strings together the steps of :mod:`.chunked`: the frame grid and what
+the block path refuses, the alignment's matrices counted by blocks, the
+resampling's blocks and the aligned inputs' coverage, the outputs' checks,
+both fields on disk), then the same frames either way
+(:func:`.frames.frames`: each frame an operation of the executor, one block
+in memory, many by blocks). Nothing here parses options: the command
 line passes the job, its outputs (:class:`.outputs.MorphOutputs`) and how to
 run (:class:`volwarp_cli.execute.How`).
 """
@@ -21,14 +23,14 @@ import functools
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from ..errors import VolwarpError
 from ..geometry import Geometry
 from ..progress import log, timed
-from .chunked import BlockFrame
-from .frames import RenderSettings
+from .frames import Frame, RenderSettings
 from .spec import MorphJob
 
 
@@ -78,14 +80,6 @@ class FrameWrite:
         return cls(write_kw.get("dtype"), bool(write_kw.get("compress")),
                    write_kw.get("byte_order", "little"),
                    write_kw.get("ome_zarr_version", "0.5"), int(write_kw.get("pyramid") or 0))
-
-    def open(self, path, template, dtype, block):
-        """The block output of ``path`` (committed on a clean exit)."""
-        from ..io.blockwrite import open_volume_blocks
-
-        return open_volume_blocks(path, template, dtype, block=block, compress=self.compress,
-                                  byte_order=self.byte_order, version=self.version,
-                                  pyramid=self.pyramid)
 
     def refusal(self, path, shape_zyx, dtype) -> str | None:
         """Why ``path`` cannot be written by blocks (its format, its folder's space), or None."""
@@ -213,16 +207,57 @@ def one_volume_inputs():
                           "volwarp convert IN --volume-index N -o one.nrrd)") from None
 
 
-def _cast_block(block, *, dtype, what):
-    from ..samples import cast_samples
+def frame_writer(outputs, write: FrameWrite, how, *, by_blocks: bool):
+    """``make(i, op)`` for :func:`.frames.frames`: frame ``i`` written where ``outputs`` says.
 
-    return cast_samples(block, dtype, what=what)
+    The frame and its attributes are ``op``'s targets, run by the executor as
+    the morph's plan decided (``by_blocks``; ``how``: the engine the blocks
+    run on). Returns their Volumes, samples as placeholders.
+    """
+    from .. import execute
+
+    def make(i, op):
+        op.cast = None if write.dtype is None else np.dtype(write.dtype)  # (--dtype)
+        types = op.types()
+        paths = {"frame": outputs.frames[i],
+                 **{name: outputs.attributes[name][i] for name in op.fields.attributes}}
+        op.targets = {key: execute.Target(Path(path), op.volume(key=key), types[key],
+                                          compress=write.compress, byte_order=write.byte_order,
+                                          version=write.version, pyramid=write.pyramid)
+                      for key, path in paths.items()}
+        execute.run(op, how, by_blocks=by_blocks)
+        return op.targets["frame"].template, {
+            name: op.targets[name].template for name in op.fields.attributes}
+    return make
+
+
+def morph_in_memory(job: MorphJob, source, target, attributes: dict | None = None, *,
+                    outputs, meta: dict | None = None, write: FrameWrite = FrameWrite(),
+                    meshes: bool = False, render: RenderSettings | None = None
+                    ) -> Iterator[Frame]:
+    """The frames of ``job`` computed in memory and written, yielded in order once written.
+
+    ``source``, ``target``: the shapes' Volumes; ``attributes``: name ->
+    (source Volume, target Volume); the rest as :func:`morph_by_blocks`'.
+    The frames are :func:`.frames.frames` of the in-memory fields
+    (:func:`.pipeline.prepare`), each the one block of its operation.
+    """
+    from ..execute import How
+    from .frames import FrameFields, MeshBlocks, frame_values, frames
+    from .pipeline import prepare
+
+    prep = prepare(job, source, target, attributes)
+    fields = FrameFields.of(job, prep)
+    yield from frames(job, fields, frame_values(job, fields, source.data),
+                      frame_writer(outputs, write, How(), by_blocks=False),
+                      meta={"volwarp_morph": morph_note(job), **(meta or {})},
+                      meshes=MeshBlocks() if meshes else None, render=render)
 
 
 def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = None, *,
                     outputs, meta: dict | None = None, write: FrameWrite = FrameWrite(),
                     meshes: bool = False, render: RenderSettings | None = None,
-                    how) -> Iterator[BlockFrame]:
+                    how) -> Iterator[Frame]:
     """The frames of ``job`` computed and written by blocks, yielded in order once written.
 
     Parameters
@@ -241,7 +276,7 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
     write : FrameWrite
         The frames' type and the writers' options.
     meshes, render
-        As :func:`.frames.morph_frames`' (the caller writes them).
+        Each frame's surface and its render (the caller writes them).
     how : volwarp_cli.execute.How
         The engine the blocks run on (``open_engine``), the user's ``block``
         shape, and the ``scheduler`` named (the meshes run on it when one is;
@@ -249,9 +284,10 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
 
     Yields
     ------
-    BlockFrame
-        Each frame once its volume and attributes are written (their mesh and
-        render, when asked for, are the caller's to write).
+    Frame
+        Each frame once its volume and attributes are written (their samples
+        placeholders), with its mesh and render when asked for. The same
+        :func:`.frames.frames` as in memory, on the fields by blocks.
 
     Raises
     ------
@@ -264,14 +300,11 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
     VolwarpError
         The work's errors.
     """
-    from .. import parallel
-    from ..engine import write_blocks
+    from .. import execute, parallel
     from ..execute import block_budget
     from ..io.atomic import scratch_folder
     from .chunked import (
-        MeshBlocks,
         attributes_by_blocks,
-        block_frames,
         block_grid,
         block_matrices,
         check_covered,
@@ -280,11 +313,11 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
         mesh_block_shape,
         resample_chunks,
     )
+    from .frames import FrameFields, MeshBlocks, frame_values, frames
     from .grid import GridError
     from .interpolate import index_map, lands_on_grid
 
     attrs = attributes or {}
-    frame_paths, attribute_paths = outputs.frames, outputs.attributes
     block = how.block
 
     def refuse_why(why):
@@ -336,48 +369,37 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
                                 rchunks)
             if why:
                 refuse_why(why)
-        dtype = write.dtype
-        checks = [(p, np.dtype(dtype or frame_type)) for p in frame_paths]
+        checks = [(p, np.dtype(write.dtype or frame_type)) for p in outputs.frames]
         for a in job.attributes:
-            checks += [(p, types[a.name]) for p in attribute_paths[a.name]]
+            checks += [(p, types[a.name]) for p in outputs.attributes[a.name]]
         for path, out_type in checks:
             why = write.refusal(path, grid.shape, out_type)
             if why is not None:
                 raise BlocksRefused(why, usage=False)
-        with scratch_folder(frame_paths[0]) as scratch:
+        with scratch_folder(outputs.frames[0]) as scratch:
             with timed("morph by blocks: both fields"):
                 bm = fields_by_blocks(job, inputs, engine, scratch, block_bytes=per_task,
                                       block=block, grid=grid, matrices=matrices, chunks=rchunks)
             log.info("morph fields by blocks: %s", bm.info["chunked"])
-            frame_meta = {"volwarp_morph": morph_note(job), **(meta or {})}
-            mesh_run = None
-            if how.scheduler is not None:  # (VTK holds the GIL: threads otherwise)
-                mesh_run = functools.partial(engine.map, label="mesh", memory=per_task)
             attr_samples = attributes_by_blocks(
                 {a.name: (attrs[a.name][0], attrs[a.name][1], types[a.name].name)
                  for a in job.attributes}, matrices, grid, engine, scratch,
                 block_bytes=per_task, chunks=rchunks)
+            fields = FrameFields(bm.source, bm.target, grid, attr_samples)
             surfaces = None
             if meshes or render is not None:
+                mesh_run = None
+                if how.scheduler is not None:  # (VTK holds the GIL: threads otherwise)
+                    mesh_run = functools.partial(engine.map, label="mesh", memory=per_task)
                 surfaces = MeshBlocks(mesh_block_shape(grid.shape, per_task, block), mesh_run,
                                       parallel.threads())
-            for frame in block_frames(job, bm, source[1], attr_samples, meta=frame_meta,
-                                      chunks=chunks, run=run, meshes=surfaces, render=render):
-                i = frame.index
-                path = frame_paths[i]
-                data = frame.data
-                if dtype is not None:
-                    data = data.map_blocks(functools.partial(_cast_block, dtype=dtype,
-                                                             what=str(path)),
-                                           dtype=np.dtype(dtype))
-                with write.open(path, frame.template, data.dtype, chunks) as sink:
-                    write_blocks(data, sink, engine, label=f"frame-{i}", memory=per_task)
-                for name, (template, values) in frame.attributes.items():
-                    with write.open(attribute_paths[name][i], template, values.dtype,
-                                    chunks) as sink:
-                        write_blocks(values, sink, engine, label=f"{name}-{i}",
-                                     memory=per_task)
-                yield frame
+            on_engine = execute.How(chunked=True, block=block, scheduler=how.scheduler,
+                                    open_engine=lambda: contextlib.nullcontext(engine))
+            yield from frames(job, fields, frame_values(job, fields, source[1]),
+                              frame_writer(outputs, write, on_engine, by_blocks=True),
+                              meta={"volwarp_morph": morph_note(job), **(meta or {})},
+                              meshes=surfaces, render=render,
+                              corners=functools.partial(fields.corners, run, chunks))
 
 
 def run_morph(job: MorphJob, outputs, plan: MorphPlan, *, meta: dict, write_kw: dict,
@@ -389,45 +411,38 @@ def run_morph(job: MorphJob, outputs, plan: MorphPlan, *, meta: dict, write_kw: 
     By blocks where the in-memory morph did not fit (unasked), what the
     block path refuses is that refusal's second half.
     """
-    if not plan.by_blocks:
-        return _in_memory(job, outputs, plan.loaded, meta=meta, write_kw=write_kw,
-                          render=render, camera_to=camera_to)
     from ..errors import OutOfMemoryError
+    from ..io import read_volume
 
+    write = FrameWrite.of(write_kw)
+    if not plan.by_blocks:
+        def read(path):  # (taken out: the caller keeps none of them)
+            vol = plan.loaded.pop(str(path), None)
+            return read_volume(path) if vol is None else vol
+        with timed("read inputs"), one_volume_inputs():
+            source, target = read(job.source.path), read(job.target.path)
+            attrs = {a.name: (read_volume(a.source), read_volume(a.target))
+                     for a in job.attributes}
+    else:
+        with one_volume_inputs():
+            source, target = _lazy(job.source.path), _lazy(job.target.path)
+            attrs = {a.name: (_lazy(a.source), _lazy(a.target)) for a in job.attributes}
+    kw = dict(outputs=outputs, meta=meta, write=write, meshes=bool(outputs.meshes),
+              render=render)
+    frames = (morph_by_blocks(job, source, target, attrs, how=how, **kw) if plan.by_blocks
+              else morph_in_memory(job, source, target, attrs, **kw))
+    renders = []
+    frame = None
     try:
-        return _by_blocks(job, outputs, meta=meta, write=FrameWrite.of(write_kw), render=render,
-                          camera_to=camera_to, how=how)
+        with contextlib.closing(frames):
+            for frame in frames:
+                outputs.write_surface(frame, frame.volume.meta, renders)
     except BlocksRefused as exc:
         if plan.in_memory_refusal is None:
             raise
         raise OutOfMemoryError(f"{plan.in_memory_refusal}, and by blocks: {exc}") from None
-
-
-def _in_memory(job, outputs, loaded, *, meta, write_kw, render, camera_to) -> Geometry:
-    from ..io import read_volume, write_volume
-    from .frames import morph_frames
-    from .pipeline import prepare
-
-    def read(path):  # (taken out: the caller keeps none of them)
-        vol = loaded.pop(str(path), None)
-        return read_volume(path) if vol is None else vol
-    with timed("read inputs"), one_volume_inputs():
-        source = read(job.source.path)
-        target = read(job.target.path)
-        attrs = {a.name: (read_volume(a.source), read_volume(a.target)) for a in job.attributes}
-    prep = prepare(job, source, target, attrs)
-    meta = {"volwarp_morph": morph_note(job), **meta}
-    attr_kw = {k: v for k, v in write_kw.items() if k != "dtype"}  # their own types
-    renders = []
-    for frame in morph_frames(job, prep, source, attrs, meta=meta,
-                              meshes=bool(outputs.meshes), render=render):
-        i = frame.index
-        write_volume(frame.volume, outputs.frames[i], **write_kw)
-        for name, vol in frame.attributes.items():
-            write_volume(vol, outputs.attributes[name][i], **attr_kw)
-        outputs.write_surface(frame, frame.volume.meta, renders)
     outputs.finish(job, frame, render, camera_to, renders)
-    return prep.grid
+    return Geometry.of(frame.volume)
 
 
 def _lazy(path):
@@ -435,18 +450,3 @@ def _lazy(path):
 
     template, array = open_volume_template(path)
     return template, LazySource(path, array=array)
-
-
-def _by_blocks(job, outputs, *, meta, write, render, camera_to, how) -> Geometry:
-    with one_volume_inputs():
-        source, target = _lazy(job.source.path), _lazy(job.target.path)
-        attrs = {a.name: (_lazy(a.source), _lazy(a.target)) for a in job.attributes}
-    frames = morph_by_blocks(job, source, target, attrs, outputs=outputs, meta=meta,
-                             write=write, meshes=bool(outputs.meshes), render=render, how=how)
-    renders = []
-    frame = None
-    with contextlib.closing(frames):
-        for frame in frames:
-            outputs.write_surface(frame, frame.template.meta, renders)
-    outputs.finish(job, frame, render, camera_to, renders)
-    return Geometry.of(frame.template)
