@@ -15,11 +15,11 @@ from volwarp_cli.box import Box
 from volwarp_cli.geometry import Geometry
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.morph.align import affine_from_params
+from volwarp_cli.morph.fields import ResampleOperation
 from volwarp_cli.morph.interpolate import (
     index_map,
     needed_box,
     resample_box,
-    resample_to_grid,
 )
 from volwarp_cli.surface.mesh_io import read_mesh
 from volwarp_cli.volume import Volume
@@ -148,7 +148,8 @@ def _case():
 def test_the_input_box_is_exactly_enough(outside):
     """A block from its needed box equals the whole resampling's block; one voxel less does not."""
     values, vgeo, grid, mat = _case()
-    whole = resample_to_grid(values, vgeo.index_to_world_matrix, mat, grid, outside=outside)
+    whole = ResampleOperation(values, vgeo.index_to_world_matrix, mat, grid,
+                              outside=outside).compute(grid.box, threads=1)["values"]
     m = index_map(vgeo.index_to_world_matrix, mat, grid)
     vbox = Box.from_shape(values.shape)
     changed = set()
@@ -190,3 +191,32 @@ def test_strong_scalings_split_the_blocks_or_are_refused():
         assert needed_box(m, block, values.shape).size * 12 + block.size * 32 <= 12 * 400 + 256
     with pytest.raises(VolwarpError, match="single voxel"):
         resample_chunks(grid.shape, grid.shape, [(m, values.shape)], 64)
+
+
+def test_the_alignment_centre_by_blocks_is_the_whole_mask_centroid():
+    """Counted box by box in integers, the centroid is the whole mask's, bit for bit."""
+    from volwarp_cli.morph.align import shape_centroid
+    from volwarp_cli.morph.fields import Steps, alignment_matrices
+    from volwarp_cli.morph.spec import MorphJob, ShapeRef
+
+    class SmallBlocks(Steps):
+        def chunks(self, shape):
+            return (3, 4, 5)
+
+    rng = np.random.default_rng(3)
+    samples = rng.random((17, 19, 23)).astype(np.float32)
+    geo = Geometry.from_xyz((23, 19, 17), (0.9, 1.3, 0.7), (4.0, -2.0, 1.5), FLIPPED)
+    template = geo.volume(samples)
+    job = MorphJob(source=ShapeRef("a.nrrd", 0.7), target=ShapeRef("b.nrrd", 0.7),
+                   times=[0.0], align_source={"rotate": [5, 10, 15]},
+                   align_target={"scale": 1.2})
+    inputs = {"source": (template, samples), "target": (template, samples)}
+    whole = alignment_matrices(job, inputs, Steps())
+    blocks = alignment_matrices(job, inputs, SmallBlocks())
+    for name in ("source", "target"):
+        assert np.array_equal(whole[name], blocks[name])
+    centre = shape_centroid(samples >= 0.7, geo.index_to_world_matrix)
+    # a scaling about the centroid leaves the centroid where it is
+    moved = whole["target"] @ np.append(centre, 1.0)
+    np.testing.assert_allclose(moved[:3], centre, atol=1e-9)
+    assert not np.allclose(whole["target"][:3, 3], 0.0)

@@ -321,6 +321,8 @@ def run(op: Operation, how: How = How(), after: Callable | None = None, *,
         by_blocks = not _in_memory(op, how, outputs, compress=first.compress,
                                    pyramid=first.pyramid)
     if by_blocks:
+        if op.no_blocks is not None:
+            raise VolwarpError(op.no_blocks)
         return _run_blocks(op, how, after)
     results = compute_whole(op, how.threads)
     for key, target in op.targets.items():

@@ -33,13 +33,14 @@ def field_operation(source, grid, rule, *, metric: str, surface: str,
                               max_distance=max_distance)
 
 
-def field_memory(shape_zyx, dtype, *, metric: str = "euclidean", surface: str = "auto") -> int:
+def field_memory(shape_zyx, dtype, *, metric: str = "euclidean", surface: str = "auto",
+                 max_distance: float | None = None) -> int:
     """The bytes the in-memory field of a grid of ``shape_zyx`` and ``dtype`` holds at its peak.
 
     Its operation's own count (:meth:`~volwarp_cli.execute.Operation.memory`
     of the whole, the field included), before any sample is read; under
     ``surface="auto"`` the euclidean field's larger of the voxel and
-    sub-voxel ways (which one, the samples say).
+    sub-voxel ways (which one, the samples say); ``max_distance``: a band's.
     """
     import numpy as np
 
@@ -51,5 +52,5 @@ def field_memory(shape_zyx, dtype, *, metric: str = "euclidean", surface: str = 
     rule = ShapeRule("intensity", "given", iso=0.5)
     surfaces = ["voxel", "subvoxel"] if metric == "euclidean" and surface == "auto" else [
         "voxel" if surface == "auto" else surface]
-    return max(field_operation(source, grid, rule, metric=metric, surface=s).memory(grid.box)
-               for s in surfaces)
+    return max(field_operation(source, grid, rule, metric=metric, surface=s,
+                               max_distance=max_distance).memory(grid.box) for s in surfaces)

@@ -33,16 +33,14 @@ scaling, when even the smallest blocks would need it).
 
 from __future__ import annotations
 
-import contextlib
 import functools
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..box import Box
 from ..errors import VolwarpError
 from ..geometry import Geometry
+from .fields import INPUT_BYTES_PER_VOXEL, RESAMPLE_BYTES_PER_VOXEL
 from .frames import FRAME_BYTES_PER_VOXEL
 from .grid import choose_grid
 from .interpolate import (
@@ -56,10 +54,6 @@ from .spec import MorphJob
 #: Bytes per voxel a mesh block holds: the frame field (12 with both inputs) and the
 #: flying edges' arrays
 MESH_BYTES_PER_VOXEL = 36
-#: ... a resampling block: its coordinates (24), the output (4), slack for the interpolation
-RESAMPLE_BYTES_PER_VOXEL = 32
-#: ... and per input sample it reads: the stored samples and their float32 copy
-INPUT_BYTES_PER_VOXEL = 12
 
 
 def block_grid(job: MorphJob, source: Geometry, target: Geometry,
@@ -83,47 +77,6 @@ def block_grid(job: MorphJob, source: Geometry, target: Geometry,
                       "matrix products whose rounding is not guaranteed to be the same block "
                       "by block)")
     return grid, None
-
-
-def _counts(box: Box, samples, iso: float, inside: str):
-    from ..distance.field import inside_mask
-    from .align import axis_counts
-
-    return box, axis_counts(inside_mask(np.asarray(samples[box.slices]), iso, inside))
-
-
-def block_matrices(job: MorphJob, inputs: dict, run, chunks) -> tuple[np.ndarray, np.ndarray]:
-    """The alignment matrices of source and target, as :func:`.pipeline.prepare` makes them.
-
-    ``inputs``: ``{"source": (template, samples), ...}``; ``run``: an engine's
-    map; ``chunks``: the block shape of the centroid's pass (the shape's voxels
-    counted per index in integers, block by block: the in-memory centroid
-    bit for bit).
-    """
-    from .align import affine_from_params, centroid_from_counts
-
-    out = []
-    for name, ref in (("source", job.source), ("target", job.target)):
-        params = getattr(job, f"align_{name}")
-        if not params:
-            out.append(np.eye(4))
-            continue
-        template, samples = inputs[name]
-        geo = Geometry.of(template)
-        center = None
-        if "center" not in params and "matrix" not in params:
-            shape = geo.shape
-            counts = [np.zeros(n, np.int64) for n in (shape[2], shape[1], shape[0])]
-            task = functools.partial(_counts, samples=samples, iso=ref.iso, inside=ref.inside)
-            for box, parts in run(task, Box.from_shape(shape).blocks(chunks)):
-                for k, axis in enumerate((2, 1, 0)):
-                    counts[k][box.lo[axis]:box.hi[axis]] += parts[k]
-            try:
-                center = centroid_from_counts(counts, geo.index_to_world_matrix)
-            except VolwarpError as exc:
-                raise VolwarpError(f"{ref.path}: {exc}") from None
-        out.append(affine_from_params(params, default_center=center))
-    return out[0], out[1]
 
 
 def resample_chunks(shape, chunks, maps, block_bytes: int) -> tuple[int, int, int]:
@@ -158,33 +111,6 @@ def resample_chunks(shape, chunks, maps, block_bytes: int) -> tuple[int, int, in
         c[axis] = (c[axis] + 1) // 2
 
 
-def _resample_task(block_info=None, *, values, m, values_shape, outside: str, scale: float):
-    loc = block_info[None]["array-location"]
-    box = Box(tuple(a for a, _ in loc), tuple(b for _, b in loc))
-    need = needed_box(m, box, values_shape)
-    out = resample_box(values[need.slices], need, m, box, outside=outside)
-    if scale != 1.0:
-        out *= np.float32(scale)
-    return out
-
-
-def resampled(values, values_i2w: np.ndarray, matrix: np.ndarray, grid: Geometry, chunks, *,
-              outside: str, scale: float = 1.0):
-    """``values`` resampled onto ``grid`` through ``matrix``, as a Dask array of ``chunks``.
-
-    Each block is :func:`.interpolate.resample_box` of the input box it
-    needs, read from ``values`` (sliceable ``[z, y, x]``, picklable), times
-    ``scale`` (a field's alignment scale, applied as the in-memory morph does).
-    """
-    import dask.array as da
-
-    m = index_map(values_i2w, matrix, grid)
-    dchunks = da.core.normalize_chunks(tuple(chunks), grid.shape)
-    return da.map_blocks(_resample_task, values=values, m=m, values_shape=tuple(values.shape),
-                         outside=outside, scale=float(scale), chunks=dchunks, dtype=np.float32,
-                         meta=np.empty((0, 0, 0), np.float32))
-
-
 def _uncovered_task(box: Box, *, m, values_shape):
     need = needed_box(m, box, values_shape)
     ones = np.ones(need.shape, np.float32)  # finite samples: NaN exactly where uncovered
@@ -216,83 +142,7 @@ def check_covered(job: MorphJob, geometries: dict, matrices: dict, grid: Geometr
     return None
 
 
-@dataclass
-class BlockMorph:
-    """Both shapes' fields on disk (float32, the frame grid), ready for frames by blocks.
-
-    ``info``: how the fields were computed (``chunked``: ``passes`` or
-    ``band``; ``surface``), for the log.
-    """
-
-    source: object
-    target: object
-    grid: Geometry
-    info: dict
-
-
-def fields_by_blocks(job: MorphJob, inputs: dict, engine, scratch: Path, *, block_bytes: int,
-                     block=None, grid: Geometry | None = None, matrices: dict | None = None,
-                     chunks=None) -> BlockMorph:
-    """Both shapes' signed fields computed by blocks on ``engine`` into ``scratch``.
-
-    ``inputs``: ``{"source": (template, samples), "target": ...}``, each a
-    template Volume (the geometry) and a sliceable, picklable reader of its
-    samples (:class:`~volwarp_cli.io.lazy.LazySource`); ``block_bytes``:
-    one task's memory; ``block``: the user's block shape. ``grid``: the
-    frame grid (default the source's); ``matrices``: each shape's alignment
-    (default none); a field not landing on the grid unmoved is resampled onto
-    it by blocks of ``chunks`` (:func:`resampled`; :func:`check_covered`
-    first) into a second scratch file. The distance's errors name the shape's
-    file (smooth samples without a band: in the morph's settings).
-    """
-    from .. import execute
-    from ..distance.labels import ShapeRule
-    from ..distance.operation import field_operation
-    from ..distance.scan import field_surface, scan_box_voxels
-    from ..engine import write_blocks
-    from ..io.blockwrite import committed, open_block_output
-    from ..io.lazy import open_volume_lazy
-    from ..passes import Passes
-    from .align import linear_scale
-
-    if grid is None:
-        grid = Geometry.of(inputs["source"][0])
-    matrices = matrices or {"source": np.eye(4), "target": np.eye(4)}
-    on_engine = execute.How(chunked=True, block=block,
-                            open_engine=lambda: contextlib.nullcontext(engine))
-    fields, info = {}, {}
-    for name, ref in (("source", job.source), ("target", job.target)):
-        template, samples = inputs[name]
-        path = Path(scratch) / f"{name}.nrrd"
-        geometry = Geometry.of(template)
-        rule = ShapeRule("intensity", "given", iso=ref.iso, inside=ref.inside)
-        target = execute.Target(path, template, np.dtype(np.float32))
-        try:
-            surface = field_surface(samples, rule, metric=job.metric, surface=job.surface,
-                                    max_distance=job.max_distance,
-                                    box_voxels=scan_box_voxels())
-            op = field_operation(samples, geometry, rule, metric=job.metric, surface=surface,
-                                 max_distance=job.max_distance, target=target)
-            execute.run(op, on_engine)
-        except VolwarpError as exc:
-            raise VolwarpError(f"{ref.path}: {_in_morph_terms(job, exc)}") from None
-        info[name] = {"chunked": "passes" if isinstance(op, Passes) else "band",
-                      "surface": surface}
-        _, fields[name] = open_volume_lazy(path)
-        mat = matrices[name]
-        if not lands_on_grid(geometry.shape, geometry.index_to_world_matrix, mat, grid):
-            on_grid = Path(scratch) / f"{name}-on-grid.nrrd"
-            rchunks = chunks or grid.shape
-            data = resampled(fields[name], geometry.index_to_world_matrix, mat, grid, rchunks,
-                             outside="nan", scale=linear_scale(mat))
-            with committed(open_block_output(on_grid, grid, np.float32,
-                                             chunks_zyx=rchunks)) as sink:
-                write_blocks(data, sink, engine, label=f"{name}-onto-grid", memory=block_bytes)
-            _, fields[name] = open_volume_lazy(on_grid)
-    return BlockMorph(fields["source"], fields["target"], grid, info["source"])
-
-
-def _in_morph_terms(job: MorphJob, exc: VolwarpError) -> str:
+def in_morph_terms(job: MorphJob, exc: VolwarpError) -> str:
     """The distance's refusal as a morph's: the morph's settings, not ``volwarp distance``'s."""
     from ..distance.band import SUBVOXEL_NEEDS_BAND
 
@@ -305,38 +155,6 @@ def _in_morph_terms(job: MorphJob, exc: VolwarpError) -> str:
         how = ("give --max-distance D (each field clamped to [-D, D]), or use a spec with "
                "surface: voxel for the exact field between voxel centres")
     return f"smooth samples (a sub-voxel surface) morph by blocks only within a band: {how}"
-
-
-def attributes_by_blocks(attributes: dict, matrices: dict, grid: Geometry, engine,
-                         scratch: Path, *, block_bytes: int, chunks) -> dict:
-    """Attributes on the frame grid: ``name -> (source samples, target samples, type)``.
-
-    ``attributes``: ``name -> ((template, samples), (template, samples), type
-    name)``. A pair landing on the grid unmoved is read as it is; another is
-    resampled by blocks (the border sample beyond its grid, as in memory)
-    into float32 scratch files.
-    """
-    from ..engine import write_blocks
-    from ..io.blockwrite import committed, open_block_output
-    from ..io.lazy import open_volume_lazy
-
-    out = {}
-    for name, (a, b, type_name) in attributes.items():
-        pair = []
-        for side, (template, samples) in (("source", a), ("target", b)):
-            geo, mat = Geometry.of(template), matrices[side]
-            if lands_on_grid(geo.shape, geo.index_to_world_matrix, mat, grid):
-                pair.append(samples)
-                continue
-            path = Path(scratch) / f"attribute-{len(out)}-{side}.nrrd"
-            data = resampled(samples, geo.index_to_world_matrix, mat, grid, chunks,
-                             outside="nearest")
-            with committed(open_block_output(path, grid, np.float32, chunks_zyx=chunks)) as sink:
-                write_blocks(data, sink, engine, label=f"{name}-{side}-onto-grid",
-                             memory=block_bytes)
-            pair.append(open_volume_lazy(path)[1])
-        out[name] = (pair[0], pair[1], type_name)
-    return out
 
 
 def frame_chunks(shape, block_bytes: int, workers: int, block=None):

@@ -62,16 +62,11 @@ def lands_on_grid(shape_zyx, values_i2w: np.ndarray, matrix: np.ndarray,
                   grid: Geometry) -> bool:
     """Whether samples of ``shape_zyx`` on ``values_i2w``, moved by ``matrix``, are ``grid``'s.
 
-    Then :func:`resample_to_grid` is a copy (no interpolation), which is what
-    lets a morph run by blocks.
+    Then they are the grid's samples as they are (no interpolation).
     """
     return (tuple(shape_zyx) == tuple(grid.shape)
             and np.allclose(_index_map(values_i2w, matrix, grid), np.eye(4), atol=1e-9))
 
-
-#: Voxels of the target grid one :func:`resample_to_grid` slab covers (its coordinates:
-#: 24 bytes a voxel, on top of the output's 4)
-_SLAB_VOXELS = 1 << 20
 
 #: The interpolation of every resampling onto the frame grid (trilinear) and its support:
 #: a coordinate ``c`` reads samples ``floor(c)`` .. ``floor(c) + SUPPORT`` on each axis
@@ -170,50 +165,6 @@ def resample_box(values, values_box: Box, m: np.ndarray, box: Box, *,
             coords[axis] -= values_box.lo[axis]  # exact: a whole number off a coordinate
     kwargs = {"mode": "constant", "cval": np.nan} if outside == "nan" else {"mode": "nearest"}
     return ndimage.map_coordinates(src, coords, order=ORDER, output=np.float32, **kwargs)
-
-
-def resample_to_grid(values: np.ndarray, values_i2w: np.ndarray, matrix: np.ndarray,
-                     grid: Geometry, *, outside: str = "nan") -> np.ndarray:
-    """``values`` (on the grid ``values_i2w``) moved by world ``matrix``, sampled on ``grid``.
-
-    ``outside``: ``"nan"`` (marks uncovered voxels) or ``"nearest"``. The
-    whole grid is :func:`resample_box` on the whole values box, slab by slab
-    of the grid (what the morph by blocks evaluates block by block).
-    """
-    m = _index_map(values_i2w, matrix, grid)
-    src = np.asarray(values, dtype=np.float32)
-    if lands_on_grid(src.shape, values_i2w, matrix, grid):
-        return src.copy()
-    out = np.empty(grid.shape, np.float32)
-    whole = Box.from_shape(src.shape)
-    nz, ny, nx = grid.shape
-    depth = max(1, _SLAB_VOXELS // max(1, ny * nx))
-    for z0 in range(0, nz, depth):
-        slab = Box((z0, 0, 0), (min(nz, z0 + depth), ny, nx))
-        out[slab.slices] = resample_box(src, whole, m, slab, outside=outside)
-    return out
-
-
-def grid_field(field: np.ndarray, field_i2w: np.ndarray, matrix: np.ndarray, grid: Geometry,
-               metric: str) -> tuple[np.ndarray, int]:
-    """A signed field brought onto ``grid`` through ``matrix``, uncovered parts filled."""
-    from ..distance.update import fill_uncovered
-    from .align import linear_scale
-
-    out = resample_to_grid(field, field_i2w, matrix, grid, outside="nan")
-    s = linear_scale(matrix)
-    if s != 1.0:
-        out *= np.float32(s)
-    unknown = np.isnan(out)
-    uncovered = int(unknown.sum())
-    if uncovered:
-        if uncovered == out.size:
-            from .grid import GridError
-
-            raise GridError("the frame grid does not overlap an input's grid at all")
-        fill_uncovered(out, unknown, grid.spacing_zyx,
-                       metric="minnorm" if metric in ("minnorm", "taxicab") else "euclidean")
-    return out, uncovered
 
 
 def warp_on_grid(values: np.ndarray, grid: Geometry, displacement: np.ndarray,

@@ -1,7 +1,10 @@
-"""From loaded volumes to a ready :class:`~.interpolate.Morph`: fields, alignment, grid, warp.
+"""From the inputs to a ready :class:`~.interpolate.Morph`: fields, alignment, grid, warp.
 
 Every distance field is computed once (on its input's grid); frames only
-interpolate. Nothing here reads or writes files.
+interpolate. :func:`prepare_on` runs the steps of :mod:`.fields` where a
+:class:`~.fields.Steps` says (in memory, or by blocks on an engine);
+:func:`prepare` is the in-memory case for loaded volumes. Nothing here reads
+or writes files of its own.
 """
 
 from __future__ import annotations
@@ -10,26 +13,25 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..distance.field import finish_field, inside_mask, signed_distance
-from ..errors import OutOfMemoryError, VolwarpError
 from ..geometry import Geometry
 from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
-from ..volume import Volume, xyz_to_zyx
-from .align import affine_from_params, shape_centroid
+from ..volume import Volume
+from .align import linear_scale
+from .fields import Steps, alignment_matrices, onto_grid, shape_field
 from .grid import GridError, choose_grid
-from .interpolate import Morph, grid_field, resample_to_grid
+from .interpolate import Morph
 from .landmarks import LandmarkWarp
 from .spec import MorphJob
 
 
 @dataclass
 class Prepared:
-    """A morph ready for its frames (:func:`prepare`).
+    """A morph ready for its frames (:func:`prepare_on`).
 
     Both fields on the frame grid, the alignment matrices, the landmark warp back,
-    the voxels of each field's grid its input did not cover, and each attribute's
-    source and target on the grid.
+    the voxels of each field's grid its input did not cover (in memory: they
+    were filled), and each attribute's source and target on the grid.
     """
 
     morph: Morph
@@ -42,64 +44,90 @@ class Prepared:
     attribute_types: dict = field(default_factory=dict)  # name -> its source's type
 
 
-def _matrix(params, vol: Volume, iso: float, inside: str) -> np.ndarray:
-    if not params:
-        return np.eye(4)
-    center = None
-    if "center" not in params and "matrix" not in params:
-        center = shape_centroid(inside_mask(vol.data, iso, inside), vol.index_to_world_matrix)
-    return affine_from_params(params, default_center=center)
-
-
 def prepare(job: MorphJob, source: Volume, target: Volume,
             attributes: dict[str, tuple[Volume, Volume]] | None = None) -> Prepared:
-    """Compute both fields, align them, pick the grid, fit the warp."""
-    fields = {}
-    for name, vol, ref in (("source", source, job.source), ("target", target, job.target)):
-        with timed(f"{name} distance ({job.metric})"):
-            try:
-                fields[name], _ = signed_distance(vol.data, xyz_to_zyx(vol.spacing), iso=ref.iso,
-                                                  inside=ref.inside, metric=job.metric,
-                                                  surface=job.surface)
-                finish_field(fields[name], max_distance=job.max_distance)
-            except VolwarpError as exc:  # (named after its input; a refusal stays one)
-                kind = OutOfMemoryError if isinstance(exc, OutOfMemoryError) else VolwarpError
-                raise kind(f"{ref.path}: {exc}") from None
-    a_s = _matrix(job.align_source, source, job.source.iso, job.source.inside)
-    a_t = _matrix(job.align_target, target, job.target.iso, job.target.inside)
-    grid = choose_grid(job.grid, Geometry.of(source), Geometry.of(target), a_s, a_t, moved=job.moved,
-                       margin=job.margin)
-    ensure_fits_in_memory(grid.size * 4 * (5 if job.warp_mode == "static" else 11),
-                          f"a morph on a {'x'.join(map(str, grid.shape_xyz))} grid")
+    """Compute both fields, align them, pick the grid, fit the warp: in memory."""
+
+    def check(grid, matrices):
+        ensure_fits_in_memory(grid.size * 4 * (5 if job.warp_mode == "static" else 11),
+                              f"a morph on a {'x'.join(map(str, grid.shape_xyz))} grid")
+
+    return prepare_on(job, {"source": (source, source.data), "target": (target, target.data)},
+                      {name: ((a, a.data), (b, b.data))
+                       for name, (a, b) in (attributes or {}).items()}, Steps(), check=check)
+
+
+def prepare_on(job: MorphJob, inputs: dict, attributes: dict, steps: Steps, *,
+               check=None) -> Prepared:
+    """The morph's fields and attributes on the frame grid, each step where ``steps`` runs it.
+
+    ``inputs``: ``{"source": (template, samples), "target": ...}`` (a Volume
+    for the geometry, sliceable samples); ``attributes``: name ->
+    ``((template, samples), (template, samples))``. ``check(grid, matrices)``:
+    called once the frame grid is known, before any field (a refusal there
+    costs no work but the alignment's). In memory (``steps.whole``) the
+    voxels no input covers are filled and a landmark warp applied; by blocks
+    the caller refuses both first.
+    """
+    matrices = alignment_matrices(job, inputs, steps)
+    grid = choose_grid(job.grid, Geometry.of(inputs["source"][0]),
+                       Geometry.of(inputs["target"][0]), matrices["source"],
+                       matrices["target"], moved=job.moved, margin=job.margin)
+    if check is not None:
+        check(grid, matrices)
     log.info("frame grid %s, spacing %s, origin %s", grid.shape_xyz, list(grid.spacing),
              list(grid.origin))
-    uncovered = {}
-    on_grid = {}
-    for name, vol, mat in (("source", source, a_s), ("target", target, a_t)):
-        with timed(f"{name} field onto the frame grid"):
-            try:
-                on_grid[name], uncovered[name] = grid_field(
-                    fields.pop(name), vol.index_to_world_matrix, mat, grid, job.metric)
-            except GridError as exc:  # the spec's alignment or grid put it elsewhere
-                moved = getattr(job, f"align_{name}")
-                key = ("align", name) if moved and not isinstance(job.grid, dict) else ("grid",)
-                raise GridError(f"{exc} ({name} {ref_path(job, name)})", key=key) from None
+    on_grid, uncovered = {}, {}
+    for name in ("source", "target"):
+        template, samples = inputs[name]
+        mat = matrices[name]
+        values = onto_grid(shape_field(job, name, template, samples, steps), template, mat,
+                           grid, steps, name, outside="nan", scale=linear_scale(mat))
+        uncovered[name] = 0
+        if steps.whole:
+            uncovered[name] = _fill_uncovered(values, grid, job, name)
+        on_grid[name] = values
     warp_back = warp_fwd = None
     if job.warp_source_points is not None:
-        ps = _apply(a_s, job.warp_source_points)
-        pt = _apply(a_t, job.warp_target_points)
+        ps = _apply(matrices["source"], job.warp_source_points)
+        pt = _apply(matrices["target"], job.warp_target_points)
         warp_fwd = LandmarkWarp.fit(ps, pt, kind=job.warp_kind, sigma=job.warp_sigma)
         warp_back = LandmarkWarp.fit(pt, ps, kind=job.warp_kind, sigma=job.warp_sigma)
     with timed("warp"):
         morph = Morph(on_grid["source"], on_grid["target"], grid, warp_back=warp_back,
                       warp_fwd=warp_fwd, mode=job.warp_mode)
-    prepared = Prepared(morph, grid, a_s, a_t, warp_back, uncovered)
-    for name, (va, vb) in (attributes or {}).items():
-        sa = resample_to_grid(va.data, va.index_to_world_matrix, a_s, grid, outside="nearest")
-        sb = resample_to_grid(vb.data, vb.index_to_world_matrix, a_t, grid, outside="nearest")
+    prepared = Prepared(morph, grid, matrices["source"], matrices["target"], warp_back,
+                        uncovered)
+    for name, pair in attributes.items():
+        sa, sb = (onto_grid(samples, template, matrices[side], grid, steps,
+                            f"attribute {name} ({side})", outside="nearest")
+                  for side, (template, samples) in zip(("source", "target"), pair, strict=True))
         prepared.attributes[name] = (morph.static_source(sa, warp_back), sb)
-        prepared.attribute_types[name] = va.data.dtype
+        prepared.attribute_types[name] = np.dtype(pair[0][1].dtype)
     return prepared
+
+
+def _fill_uncovered(values: np.ndarray, grid: Geometry, job: MorphJob, name: str) -> int:
+    """Fill the frame voxels the input's grid does not cover (NaN); how many there were.
+
+    The paper's shift-and-increment propagation across the whole field
+    (:func:`volwarp_cli.distance.update.fill_uncovered`); a grid the input
+    does not reach at all is the spec's error.
+    """
+    from ..distance.update import fill_uncovered
+
+    unknown = np.isnan(values)
+    count = int(unknown.sum())
+    if not count:
+        return 0
+    if count == values.size:
+        moved = getattr(job, f"align_{name}")
+        key = ("align", name) if moved and not isinstance(job.grid, dict) else ("grid",)
+        raise GridError("the frame grid does not overlap an input's grid at all "
+                        f"({name} {ref_path(job, name)})", key=key)
+    fill_uncovered(values, unknown, grid.spacing_zyx,
+                   metric="minnorm" if job.metric in ("minnorm", "taxicab") else "euclidean")
+    return count
 
 
 def ref_path(job: MorphJob, name: str):

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import VolwarpError
 from ..geometry import Geometry
-from ..progress import log, timed
+from ..progress import timed
 from .frames import Frame, RenderSettings
 from .spec import MorphJob
 
@@ -137,7 +137,8 @@ def in_memory_bytes(job: MorphJob, source, target, frame_voxels: int) -> int:
     from ..distance.operation import field_memory
 
     def mem(v):
-        return field_memory(v.data.shape, v.dtype, metric=job.metric, surface=job.surface)
+        return field_memory(v.data.shape, v.dtype, metric=job.metric, surface=job.surface,
+                            max_distance=job.max_distance)
 
     inputs = sum(math.prod(v.data.shape) * np.dtype(v.dtype).itemsize
                  for v in (source, target))
@@ -304,18 +305,17 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
     from ..execute import block_budget
     from ..io.atomic import scratch_folder
     from .chunked import (
-        attributes_by_blocks,
         block_grid,
-        block_matrices,
         check_covered,
-        fields_by_blocks,
         frame_chunks,
         mesh_block_shape,
         resample_chunks,
     )
+    from .fields import StepsOnEngine
     from .frames import FrameFields, MeshBlocks, frame_values, frames
     from .grid import GridError
     from .interpolate import index_map, lands_on_grid
+    from .pipeline import prepare_on
 
     attrs = attributes or {}
     block = how.block
@@ -324,49 +324,36 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
         raise BlocksRefused(f"--chunked does not run a morph with {why} by blocks (that morph "
                             "runs in memory)")
 
-    geometry = {name: (Geometry.of(a[0]), Geometry.of(b[0])) for name, (a, b) in attrs.items()}
     try:
-        grid, why = block_grid(job, Geometry.of(source[0]), Geometry.of(target[0]), geometry)
+        _, why = block_grid(job, Geometry.of(source[0]), Geometry.of(target[0]))
     except GridError:  # (the unaligned grid's error: the aligned one's is below)
         if not job.moved:
             raise
         why = None
     if why:
         refuse_why(why)
-    source_type = np.dtype(source[1].dtype)
-    frame_type = (source_type if job.output == "density" and job.density_range == "source"
-                  else np.dtype(np.float32))
+    inputs = {"source": source, "target": target}
+    frame_type = (np.dtype(source[1].dtype) if job.output == "density"
+                  and job.density_range == "source" else np.dtype(np.float32))
     types = {a.name: np.dtype(a.dtype or attrs[a.name][0][1].dtype) for a in job.attributes}
-    with how.open_engine() as engine:
-        per_task = block_budget() // max(1, engine.workers)
-        run = functools.partial(engine.map, label="morph", memory=per_task)
-        inputs = {"source": source, "target": target}
-        if job.moved:
-            a_s, a_t = block_matrices(job, inputs, run, frame_chunks(
-                Geometry.of(source[0]).shape, per_task, engine.workers, block))
-            grid, why = block_grid(job, Geometry.of(source[0]), Geometry.of(target[0]),
-                                   geometry, a_s, a_t)
-            if why:
-                refuse_why(why)
-        else:
-            a_s = a_t = np.eye(4)
-        matrices = {"source": a_s, "target": a_t}
-        chunks = frame_chunks(grid.shape, per_task, engine.workers, block)
+
+    def check(grid, matrices):
+        """What the block path refuses, before any field: coverage, outputs, blocks."""
+        a_s, a_t = matrices["source"], matrices["target"]
         maps = []
         for (template, _), mat in ((source, a_s), (target, a_t), *(
                 (pair, m) for a, b in attrs.values() for pair, m in ((a, a_s), (b, a_t)))):
             geo = Geometry.of(template)
             if not lands_on_grid(geo.shape, geo.index_to_world_matrix, mat, grid):
                 maps.append((index_map(geo.index_to_world_matrix, mat, grid), geo.shape))
-        rchunks = chunks
         if maps:
+            chunks = steps.chunks(grid.shape)
             try:
-                rchunks = resample_chunks(grid.shape, chunks, maps, per_task)
+                chunks = resample_chunks(grid.shape, chunks, maps, steps.per_task)
             except VolwarpError as exc:
                 raise BlocksRefused(str(exc), usage=False) from None
-            why = check_covered(job, {"source": Geometry.of(source[0]),
-                                      "target": Geometry.of(target[0])}, matrices, grid, run,
-                                rchunks)
+            why = check_covered(job, {name: Geometry.of(inputs[name][0]) for name in inputs},
+                                matrices, grid, steps.map, chunks)
             if why:
                 refuse_why(why)
         checks = [(p, np.dtype(write.dtype or frame_type)) for p in outputs.frames]
@@ -376,30 +363,30 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
             why = write.refusal(path, grid.shape, out_type)
             if why is not None:
                 raise BlocksRefused(why, usage=False)
-        with scratch_folder(outputs.frames[0]) as scratch:
-            with timed("morph by blocks: both fields"):
-                bm = fields_by_blocks(job, inputs, engine, scratch, block_bytes=per_task,
-                                      block=block, grid=grid, matrices=matrices, chunks=rchunks)
-            log.info("morph fields by blocks: %s", bm.info["chunked"])
-            attr_samples = attributes_by_blocks(
-                {a.name: (attrs[a.name][0], attrs[a.name][1], types[a.name].name)
-                 for a in job.attributes}, matrices, grid, engine, scratch,
-                block_bytes=per_task, chunks=rchunks)
-            fields = FrameFields(bm.source, bm.target, grid, attr_samples)
-            surfaces = None
-            if meshes or render is not None:
-                mesh_run = None
-                if how.scheduler is not None:  # (VTK holds the GIL: threads otherwise)
-                    mesh_run = functools.partial(engine.map, label="mesh", memory=per_task)
-                surfaces = MeshBlocks(mesh_block_shape(grid.shape, per_task, block), mesh_run,
-                                      parallel.threads())
-            on_engine = execute.How(chunked=True, block=block, scheduler=how.scheduler,
-                                    open_engine=lambda: contextlib.nullcontext(engine))
-            yield from frames(job, fields, frame_values(job, fields, source[1]),
-                              frame_writer(outputs, write, on_engine, by_blocks=True),
-                              meta={"volwarp_morph": morph_note(job), **(meta or {})},
-                              meshes=surfaces, render=render,
-                              corners=functools.partial(fields.corners, run, chunks))
+
+    with how.open_engine() as engine, scratch_folder(outputs.frames[0]) as scratch:
+        per_task = block_budget() // max(1, engine.workers)
+        steps = StepsOnEngine(engine, scratch, per_task, block)
+        with timed("morph by blocks: both fields"):
+            prep = prepare_on(job, inputs, attrs, steps, check=check)
+        fields = FrameFields.of(job, prep)
+        grid = prep.grid
+        surfaces = None
+        if meshes or render is not None:
+            mesh_run = None
+            if how.scheduler is not None:  # (VTK holds the GIL: threads otherwise)
+                mesh_run = functools.partial(engine.map, label="mesh", memory=per_task)
+            surfaces = MeshBlocks(mesh_block_shape(grid.shape, per_task, block), mesh_run,
+                                  parallel.threads())
+        on_engine = execute.How(chunked=True, block=block, scheduler=how.scheduler,
+                                open_engine=lambda: contextlib.nullcontext(engine))
+        yield from frames(job, fields, frame_values(job, fields, source[1]),
+                          frame_writer(outputs, write, on_engine, by_blocks=True),
+                          meta={"volwarp_morph": morph_note(job), **(meta or {})},
+                          meshes=surfaces, render=render,
+                          corners=functools.partial(fields.corners, steps.map,
+                                                    frame_chunks(grid.shape, per_task,
+                                                                 engine.workers, block)))
 
 
 def run_morph(job: MorphJob, outputs, plan: MorphPlan, *, meta: dict, write_kw: dict,
