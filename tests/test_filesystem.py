@@ -110,7 +110,9 @@ def test_sweep_render_on_a_full_disk_keeps_the_old_png(run, small_fs, tmp_path):
     assert_failed(res, out)
     assert out.read_bytes() == before
     only(small_fs, "out.png")
-    assert (tmp_path / "sw.nrrd").is_file()  # the volume, elsewhere, was written
+    # the volume, elsewhere, was complete, but a command's outputs are one set: not put in place
+    assert not (tmp_path / "sw.nrrd").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
 def test_morph_sheet_on_a_full_disk_keeps_the_old_png(run, small_fs, tmp_path, ball_file):

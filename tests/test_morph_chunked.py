@@ -246,5 +246,36 @@ def test_a_failing_block_leaves_no_frame_and_no_scratch(run, shapes, tmp_path, m
               "--scheduler", "synchronous")
     assert res.code == 1 and "disk on fire" in res.stderr
     left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(("o_", ".")))
-    # frames 0 and 1 were complete and committed; the failed frame 2 left nothing
-    assert left == ["o_0.nrrd", "o_1.nrrd"]
+    # frames 0 and 1 were complete, but a morph's frames are one set: none is put in place
+    assert left == []
+
+
+@pytest.mark.parametrize("chunked", [[], ["--chunked", "--block", "8"]])
+def test_a_failed_rerun_leaves_the_previous_frames_as_they_were(run, shapes, tmp_path,
+                                                                 monkeypatch, chunked):
+    """A rerun that fails half-way leaves the last run's set, never a mix of new and old."""
+    from volwarp_cli.morph.frames import FrameOperation
+
+    out = tmp_path / "o_{i}.nrrd"
+    mesh = tmp_path / "o_{i}.ply"
+    args = ["--iso", "0.5", "--frames", "3", "-o", out, "--mesh-to", mesh, *chunked]
+    assert run("morph", shapes["ball"], shapes["box"], *args).code == 0
+    names = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("o_"))
+    assert len(names) == 6
+    before = {n: (tmp_path / n).read_bytes() for n in names}
+    real = FrameOperation.compute
+
+    def fails_last(self, box, *, threads):
+        if self.t == 1.0:
+            raise OSError("disk on fire")
+        return real(self, box, threads=threads)
+
+    monkeypatch.setattr(FrameOperation, "compute", fails_last)
+    # the other way round: every frame but the last would differ from the first run's
+    res = run("morph", shapes["box"], shapes["ball"], *args)
+    assert res.code == 1 and "disk on fire" in res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(("o_", "."))) == names
+    assert {n: (tmp_path / n).read_bytes() for n in names} == before
+    monkeypatch.setattr(FrameOperation, "compute", real)
+    assert run("morph", shapes["box"], shapes["ball"], *args).code == 0
+    assert (tmp_path / "o_0.nrrd").read_bytes() != before["o_0.nrrd"]

@@ -108,7 +108,9 @@ class VolwarpGroup(click.Group):
             # preamble): the reader's own errors say what matters
             warnings.filterwarnings("ignore", module=r"pydicom(\..*)?$")
         try:
-            result = super().main(args=args, prog_name=prog_name, standalone_mode=False, **extra)
+            with _outputs_of(args):
+                result = super().main(args=args, prog_name=prog_name, standalone_mode=False,
+                                      **extra)
             code = result if isinstance(result, int) else 0
             cancel_deferred_stop()  # the work is over: a deferred stop is reported below
         except BaseException as exc:
@@ -170,6 +172,23 @@ class VolwarpGroup(click.Group):
                 raise
             return _fail(f"internal error: {type(exc).__name__}: {exc} "
                          "(run with --debug for a traceback)", 1)
+
+
+def _outputs_of(args):
+    """The command's outputs renamed into place together at its end (all new or all old).
+
+    :func:`volwarp_cli.io.atomic.outputs_together`; not for ``batch``, whose
+    steps are commands of their own (each its own set) and whose reports are
+    written as it goes; nothing for ``--help`` and ``--version``.
+    """
+    import contextlib
+
+    name = next((a for a in args if not a.startswith("-")), None)
+    if name is None or name == "batch" or name not in COMMANDS:
+        return contextlib.nullcontext()
+    from ..io.atomic import outputs_together
+
+    return outputs_together()
 
 
 @click.group(cls=VolwarpGroup, context_settings={"help_option_names": ["-h", "--help"]},

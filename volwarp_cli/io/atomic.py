@@ -5,6 +5,12 @@ renamed into place only once it is complete, so a failure, Ctrl-C or SIGTERM
 never leaves a partial output and never touches an existing one. Temporary
 files still open when the process is told to stop are removed by the signal
 handler installed by :func:`install_signal_handlers` (the CLI calls it).
+
+A command's outputs belong together (a morph's frames and meshes, a warp and
+its exports): inside :func:`outputs_together` (every command but ``batch``
+runs in one) the renames are held until the command ends, then made
+together, so that a failure half-way leaves the previous run's files as
+they were, never a mix of new and old.
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ import os
 import re
 import shutil
 import tempfile
+import threading
 from pathlib import Path
 
 from ..errors import BadUsage, VolwarpError
@@ -22,13 +29,80 @@ from .mapped import check_unchanged, sync_temporaries
 
 __all__ = ["Interrupted", "atomic_folder", "atomic_output", "atomic_outputs",
            "check_output_path", "install_signal_handlers", "is_folder_output", "is_zarr_store",
-           "write_bytes_atomic"]
+           "outputs_together", "write_bytes_atomic"]
 
 #: extensions of outputs that are folders (OME-Zarr stores)
 FOLDER_EXTENSIONS = (".zarr",)
 
 #: the registry the signal handler empties (see :mod:`volwarp_cli.signals`)
 _live_temporaries = temporaries
+
+#: the renames :func:`outputs_together` holds back: ``(rename, temporaries)``, or None
+_held: list | None = None
+_held_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def outputs_together():
+    """Every output written inside renamed into place together, when the block ends.
+
+    Inside, each atomic write completes its temporary and holds its rename
+    (the temporary stays registered: a stop removes it). On a clean exit the
+    renames run in the order the outputs were written, with SIGINT and SIGTERM
+    held back, after the last checks (a stop asked meanwhile, an input that
+    changed); on any error or stop every held temporary is removed and every
+    existing output is left as it was. Nested, the outermost one commits.
+    """
+    global _held
+    if _held is not None:
+        yield
+        return
+    _held = held = []
+    try:
+        yield
+        with blocked():
+            check_stop()
+            check_unchanged()
+            while held:
+                rename, tmps = held.pop(0)
+                rename()
+                for tmp in tmps:
+                    _live_temporaries.discard(tmp)
+    except BaseException:
+        for _, tmps in held:
+            for tmp in tmps:
+                _remove_temporary(tmp)
+        raise
+    finally:
+        for _, tmps in held:
+            for tmp in tmps:
+                _live_temporaries.discard(tmp)
+        _held = None
+        sync_temporaries()
+
+
+#: the live :func:`scratch_folder` s: what is written in them is read back at once, not held
+_scratch_folders: set[str] = set()
+
+
+def _hold(rename, tmps, path: Path) -> bool:
+    """Hold ``rename`` of ``tmps`` until :func:`outputs_together` ends (False outside one).
+
+    Never a file of a scratch folder (the work reads it back; it is not an output).
+    """
+    with _held_lock:
+        if _held is None or os.path.realpath(path.parent) in _scratch_folders:
+            return False
+        _held.append((rename, list(tmps)))
+        return True
+
+
+def _remove_temporary(tmp: str) -> None:
+    if os.path.isdir(tmp) and not os.path.islink(tmp):
+        _remove_tree(tmp)
+    else:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
 
 
 def install_signal_handlers() -> None:
@@ -106,7 +180,7 @@ def atomic_folder(path: str | os.PathLike):
         tmp = tempfile.mkdtemp(prefix=_temporary_prefix(path.name), suffix=".partdir",
                                dir=path.parent)
         _live_temporaries.add(tmp)
-    aside = None
+    held = False
     try:
         sync_temporaries()
         yield Path(tmp)
@@ -114,20 +188,10 @@ def atomic_folder(path: str | os.PathLike):
         with blocked():
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
             check_unchanged()  # an input mapped for this output changed: no rename
-            if path.is_dir():
-                aside = tempfile.mkdtemp(prefix=_temporary_prefix(path.name), suffix=".old",
-                                         dir=path.parent)
-                os.rmdir(aside)  # (only the unique name was wanted)
-                os.rename(path, aside)
-                try:
-                    os.rename(tmp, path)
-                except BaseException:
-                    os.rename(aside, path)  # put the old store back
-                    aside = None
-                    raise
-            else:
-                os.rename(tmp, path)
-            _live_temporaries.discard(tmp)
+            held = _hold(lambda: _rename_folder(tmp, path), [tmp], path)
+            if not held:
+                _rename_folder(tmp, path)
+                _live_temporaries.discard(tmp)
     except BaseException as exc:
         _remove_tree(tmp)
         if isinstance(exc, OSError) and (exc.filename is None
@@ -135,8 +199,26 @@ def atomic_folder(path: str | os.PathLike):
             raise VolwarpError(f"{path}: cannot write ({exc.strerror or exc})") from exc
         raise
     finally:
-        _live_temporaries.discard(tmp)
+        if not held:
+            _live_temporaries.discard(tmp)
         sync_temporaries()
+
+
+def _rename_folder(tmp: str, path: Path) -> None:
+    """Put the folder ``tmp`` at ``path``: an old one renamed aside first, removed after."""
+    aside = None
+    if path.is_dir():
+        aside = tempfile.mkdtemp(prefix=_temporary_prefix(path.name), suffix=".old",
+                                 dir=path.parent)
+        os.rmdir(aside)  # (only the unique name was wanted)
+        os.rename(path, aside)
+        try:
+            os.rename(tmp, path)
+        except BaseException:
+            os.rename(aside, path)  # put the old store back
+            raise
+    else:
+        os.rename(tmp, path)
     if aside is not None:
         _remove_tree(aside)
 
@@ -185,6 +267,7 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
         suffixes = ["".join(p.suffixes[-2:]) if p.name.endswith(".gz") else p.suffix
                     for p in paths]
     tmps: list[str] = []
+    held = False
     try:
         for path, suffix in zip(paths, suffixes, strict=True):
             _remove_stale_temporaries(path)
@@ -202,8 +285,12 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
         with blocked():
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
             check_unchanged()  # an input mapped for these outputs changed: no rename
-            for tmp, path in zip(tmps, paths, strict=True):
-                os.replace(tmp, path)
+            pairs = list(zip(tmps, paths, strict=True))
+            held = _hold(lambda: [os.replace(tmp, path) for tmp, path in pairs], tmps,
+                         paths[-1])
+            if not held:
+                for tmp, path in pairs:
+                    os.replace(tmp, path)
     except BaseException as exc:
         for tmp in tmps:
             with contextlib.suppress(OSError):
@@ -214,8 +301,9 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
             raise VolwarpError(f"{named}: cannot write ({exc.strerror or exc})") from exc
         raise
     finally:
-        for tmp in tmps:
-            _live_temporaries.discard(tmp)
+        if not held:
+            for tmp in tmps:
+                _live_temporaries.discard(tmp)
         sync_temporaries()
 
 
@@ -258,12 +346,14 @@ def scratch_folder(near: str | os.PathLike):
         tmp = tempfile.mkdtemp(prefix=_temporary_prefix(path.name), suffix=".scratch",
                                dir=path.parent if str(path.parent) else ".")
         _live_temporaries.add(tmp)
+        _scratch_folders.add(os.path.realpath(tmp))
     try:
         yield Path(tmp)
     finally:
         with blocked():
             shutil.rmtree(tmp, ignore_errors=True)
             _live_temporaries.discard(tmp)
+            _scratch_folders.discard(os.path.realpath(tmp))
 
 
 def _temporary_prefix(name: str) -> str:
