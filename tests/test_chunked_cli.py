@@ -278,3 +278,29 @@ def test_distance_passes_take_the_block_size(run, scan, tmp_path):
     assert {i for i in ids if i.startswith("distance-z-")} == {
         f"distance-z-0-{y}-{x}" for y in range(0, 41, 7) for x in range(0, 29, 13)}
     assert np.array_equal(read_volume(mem).data, read_volume(blk).data)
+
+
+def _tree(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("version", ["0.5", "0.4"])
+def test_ome_zarr_by_blocks_is_the_in_memory_store_byte_for_byte(run, tmp_path, version):
+    """Blocks made of the store's own shards (chunks in 0.4): the same files, not only values."""
+    z, y, x = np.mgrid[:40, :300, :290].astype(np.float32)
+    tube = ((x - 140) ** 2 + (y - 150) ** 2) / 100 + ((z - 20) / 8) ** 2 < 100
+    src = tmp_path / "in.nrrd"
+    write_volume(Volume(tube.astype(np.uint8) * 100, spacing=np.array([0.8, 0.8, 1.5]),
+                        direction=ROTATED), src)
+    mem, blk, own = (tmp_path / f"{n}.ome.zarr" for n in ("m", "b", "u"))
+    common = ["--iso", "50", "--max-distance", "4", "--ome-zarr-version", version]
+    assert run("distance", src, "-o", mem, *common).code == 0
+    res = run("distance", src, "-o", blk, *common, "--chunked", "--memory-limit", "4G")
+    assert res.code == 0, res.stderr
+    assert _tree(mem) == _tree(blk)
+    # a block of the user's: the store's layout follows it (same samples, other files)
+    res = run("distance", src, "-o", own, *common, "--chunked", "--block", "40,100,100")
+    assert res.code == 0, res.stderr
+    assert np.array_equal(read_volume(own).data, read_volume(mem).data)
+    assert _tree(own) != _tree(mem)

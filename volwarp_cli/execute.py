@@ -412,10 +412,12 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
         if isinstance(op, Passes):  # the outputs' blocks are the last pass's
             block = last_pass_block(op, block_bytes=per_task, workers=engine.workers,
                                     block=how.block)
+        elif how.block is not None:
+            block = how.block
+            _check_user_block(op, block, per_task, engine.workers)
         else:
-            block = how.block or op.block_shape(per_task, engine.workers)
-            if how.block is not None:
-                _check_user_block(op, block, per_task, engine.workers)
+            block = _store_aligned(op, op.block_shape(per_task, engine.workers), per_task,
+                                   engine.workers)
         outs = {key: stack.enter_context(t.open_blocks(block)) for key, t in op.targets.items()}
         boxes = next(iter(outs.values())).blocks()
         if any(o.blocks() != boxes for o in outs.values()):
@@ -439,6 +441,32 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
         if after is not None:
             ran.after = after(ran)
     return ran
+
+
+def _store_aligned(op: Operation, block, per_task: int, workers: int):
+    """OME-Zarr outputs' own write units as the blocks, where they fit: else ``block``.
+
+    Blocks made of the in-memory writer's shards (chunks in NGFF 0.4) give
+    its store byte for byte (:func:`~volwarp_cli.io.blockwrite.block_layout`);
+    taken when one fits a task's memory and they are about as many as the
+    blocks chosen (two a worker at least), so that the work still spreads.
+    """
+    from .io import volume_format
+    from .io.blockwrite import store_unit
+
+    targets = list(op.targets.values())
+    if not targets or any(volume_format(t.path) != "omezarr" for t in targets):
+        return block
+    versions = {t.version for t in targets}
+    if len(versions) != 1:
+        return block
+    shape = op.grid.shape
+    unit = store_unit(shape, versions.pop())
+    count = math.prod(-(-n // min(b, n)) for n, b in zip(shape, block, strict=True))
+    units = math.prod(-(-n // u) for n, u in zip(shape, unit, strict=True))
+    if units < min(count, 2 * workers) or op.memory(Box((0, 0, 0), unit)) > per_task:
+        return block
+    return unit
 
 
 def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None:

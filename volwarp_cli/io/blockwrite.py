@@ -495,20 +495,39 @@ def committed(out: BlockOutput):
 def block_layout(shape_zyx, version: str, block=None):
     """``(chunks, shards)`` of a store written in blocks of ``block`` (z, y, x).
 
-    NGFF 0.5: one shard per block (the unit of a write), inner chunks of 64
-    along an axis whose block is a multiple of 64, else of the whole block;
-    0.4: the blocks are the chunks. No block: :func:`.omezarr.store_layout`.
+    The in-memory writer's own layout (:func:`.omezarr.store_layout`) where
+    the blocks are made of its write units (shards in 0.5, chunks in 0.4:
+    :func:`store_unit`), so that the store is the one written in memory, byte
+    for byte; else NGFF 0.5: one shard per block (the unit of a write), inner
+    chunks of 64 along an axis whose block is a multiple of 64, else of the
+    whole block; 0.4: the blocks are the chunks.
     """
     from . import omezarr
 
+    standard = omezarr.store_layout(shape_zyx, version, None)
     if block is None:
-        return omezarr.store_layout(shape_zyx, version, None)
+        return standard
     block = tuple(max(1, min(int(b), max(int(n), 1))) for b, n in zip(block, shape_zyx,
                                                                        strict=True))
+    if all(b >= n or b % u == 0 for b, u, n in zip(block, store_unit(shape_zyx, version),
+                                                    shape_zyx, strict=True)):
+        return standard
     if version == "0.4":
         return block, None
     inner = tuple(omezarr.CHUNK if b % omezarr.CHUNK == 0 else b for b in block)
     return inner, block
+
+
+def store_unit(shape_zyx, version: str) -> tuple[int, int, int]:
+    """The unit a write of the in-memory OME-Zarr layout covers: its shards (0.5), chunks (0.4).
+
+    The same edge on every axis, clipped to it: in the grid's own axes as in
+    the store's (permuted or reversed to the identity direction).
+    """
+    from . import omezarr
+
+    chunks, shards = omezarr.store_layout(shape_zyx, omezarr.check_version(version), None)
+    return tuple(shards or chunks)
 
 
 class _ZarrOutput(BlockOutput):
