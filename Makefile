@@ -73,11 +73,12 @@ system-deps: system-deps-render system-deps-browser
 # (mesh --render, morph --render-to, sweep --render, the demo) need no OpenGL.
 # Installed when missing and we are allowed to: make test only.
 system-deps-render:
-	@if ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so.0' && ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1; then \
+	@if ldconfig -p 2>/dev/null | grep -q 'libEGL_mesa.so.0' && ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1 \
+	    && ldconfig -p | grep -q 'libGL.so.1' && ldconfig -p | grep -q 'libglib-2.0.so.0'; then \
 	  :; \
 	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
-	  echo "installing Mesa EGL for the tests' and benchmarks' VTK renders"; \
-	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri >/dev/null; \
+	  echo "installing Mesa EGL for the tests' and benchmarks' VTK renders, libGL and GLib for rt-utils' OpenCV"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libegl-mesa0 libgl1-mesa-dri libgl1 libglib2.0-0 >/dev/null; \
 	else \
 	  echo "warning: libEGL/Mesa not found and cannot install it: VTK's renders in the tests will fail" >&2; \
 	fi

@@ -6,7 +6,11 @@ frame per segment and slice it covers) and an RTSTRUCT. Reading a SEG is timed
 against highdicom reading the same file into a volume (``segread(...)``
 ``.get_volume(...)``: the label map highdicom assembles); writing a LABELMAP SEG
 (whole processes) against a script in which highdicom builds and saves it. An
-RTSTRUCT has no highdicom reader: its read and write times are printed alone.
+RTSTRUCT has no highdicom reader: reading one is timed against rt-utils (when
+installed: ``RTStructBuilder.create_from`` and every ROI's ``get_roi_mask_by_name``,
+checked to give the same masks) on two RTSTRUCTs of 117 ROIs: the blocks above
+(4-point contours) and 117 organ-like ellipsoids (:func:`organ_map`, contours of a
+few dozen to a few hundred vertices, as a planning system's), both written by volwarp.
 """
 
 from __future__ import annotations
@@ -39,6 +43,25 @@ def label_map(shape_zyx, labels: int = LABELS) -> np.ndarray:
         z0 = 4 + step * layer
         y0, x0 = (cell // 4) * cy, (cell % 4) * cx
         lab[z0:z0 + 8, y0 + 2:y0 + cy - 2, x0 + 2:x0 + cx - 2] = n + 1
+    return lab
+
+
+def organ_map(shape_zyx, labels: int = LABELS, seed: int = 1) -> np.ndarray:
+    """``labels`` ellipsoids (semi-axes 3-15 slices, 4-25 voxels in-plane), each taking the
+    voxels no earlier one took, uint8: organ-like outlines, several contours per slice.
+
+    On 256x256x120 all 117 keep voxels; on the quick run's 128x128x60, 114.
+    """
+    nz, ny, nx = shape_zyx
+    rng = np.random.default_rng(seed)
+    lab = np.zeros(shape_zyx, np.uint8)
+    z, y, x = np.ogrid[:nz, :ny, :nx]
+    for n in range(labels):
+        c = rng.uniform([10, 20, 20], [nz - 10, ny - 20, nx - 20])
+        r = rng.uniform([3, 4, 4], [15, 25, 25])
+        inside = ((z - c[0]) / r[0]) ** 2 + ((y - c[1]) / r[1]) ** 2 + \
+            ((x - c[2]) / r[2]) ** 2 <= 1
+        lab[inside & (lab == 0)] = n + 1
     return lab
 
 
@@ -96,13 +119,30 @@ def make_case(folder: Path, quick: bool = False) -> dict[str, Path]:
     grid = read_dicom(ct)
     lab = grid.with_data(label_map((nz, ny, nx)))
     paths = {"ct": ct, "labels": folder / "labels.nrrd", "labelmap": folder / "labelmap.dcm",
-             "binary": folder / "binary.dcm", "rtstruct": folder / "rtstruct.dcm"}
+             "binary": folder / "binary.dcm", "rtstruct": folder / "rtstruct.dcm",
+             "organs": folder / "organs.nrrd", "organs_rtstruct": folder / "organs_rs.dcm"}
     write_volume(lab, paths["labels"])
     ref = read_reference(ct)
     write_seg(lab, paths["labelmap"], ref, labelmap=True)
     write_seg(lab, paths["binary"], ref)
     write_rtstruct(lab, paths["rtstruct"], ref)
+    organs = grid.with_data(organ_map((nz, ny, nx)))
+    write_volume(organs, paths["organs"])
+    write_rtstruct(organs, paths["organs_rtstruct"], ref)
     return paths
+
+
+def rtutils_masks(ct: Path, rtstruct: Path) -> dict[str, np.ndarray]:
+    """Every ROI's mask [z, y, x] as rt-utils reads it (its masks are [row, column, slice])."""
+    import warnings
+
+    import rt_utils
+
+    with warnings.catch_warnings():  # (its pydicom 3 deprecations)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        rt = rt_utils.RTStructBuilder.create_from(str(ct), str(rtstruct))
+        return {name: rt.get_roi_mask_by_name(name).transpose(2, 0, 1)
+                for name in rt.get_roi_names()}
 
 
 #: highdicom building and saving a LABELMAP SEG of a label map on a series, as a script would
@@ -163,12 +203,34 @@ def main(quick: bool = False) -> None:
             row(f"read {LABELS}-label {kind.upper()} SEG {size} ({frames} frames)", t_ours,
                 t_peer, "highdicom get_volume", ratio=ratio)
 
-        def rs_read():
-            return read_dicom(p["rtstruct"], reference=p["ct"])
+        try:
+            import rt_utils  # noqa: F401
+        except ImportError:  # (not installed, or its OpenCV lacks libGL: volwarp alone)
+            rt_utils = None
+        for kind, labels_key, what in (("rtstruct", "labels", "blocks, 4-point contours"),
+                                       ("organs_rtstruct", "organs", "organ shapes")):
+            def rs_read(kind=kind):
+                return read_dicom(p[kind], reference=p["ct"])
 
-        if not np.array_equal(rs_read().data, want):
-            raise AssertionError("volwarp reads its RTSTRUCT wrongly")
-        row(f"read {LABELS}-ROI RTSTRUCT on the {size} series", median_time(rs_read, pairs))
+            truth = read_volume(p[labels_key]).data
+            if not np.array_equal(rs_read().data, truth):
+                raise AssertionError(f"volwarp reads its RTSTRUCT ({what}) wrongly")
+            rois = len(np.unique(truth)) - 1
+            name = f"read {rois}-ROI RTSTRUCT ({what}) on {size}"
+            if rt_utils is None:
+                row(name, median_time(rs_read, pairs))
+                continue
+
+            def peer(kind=kind):
+                return rtutils_masks(p["ct"], p[kind])
+
+            masks = peer()
+            if len(masks) != rois or any(
+                    not np.array_equal(m, truth == int(n.removeprefix("label_")))
+                    for n, m in masks.items()):
+                raise AssertionError(f"rt-utils reads volwarp's RTSTRUCT ({what}) otherwise")
+            t_ours, t_peer, ratio = paired_times(rs_read, peer, pairs=min(pairs, 3))
+            row(name, t_ours, t_peer, "rt-utils every ROI", ratio=ratio)
 
         out = tmp / "out"
         out.mkdir()

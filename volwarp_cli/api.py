@@ -67,7 +67,8 @@ __all__ = ["Mesh", "READ_OPTIONS", "capture", "distance", "mesh", "read", "sweep
 #: function that takes a volume path takes them too.
 READ_OPTIONS = ("raw_shape", "raw_dtype", "raw_endian", "raw_spacing", "raw_origin",
                 "raw_header_bytes", "volume_index", "series", "irregular", "duplicates",
-                "keep_shear", "keep_phi", "allow_outside_data")
+                "keep_shear", "keep_phi", "allow_outside_data", "reference", "segment",
+                "structure")
 
 
 @dataclass
@@ -102,6 +103,18 @@ def read(path: str | os.PathLike, **options) -> Volume:
         DICOM inputs: as the commands' ``--series`` (a SeriesInstanceUID or
         its number), ``--irregular resample``, ``--duplicates first|last``,
         ``--keep-shear``, ``--keep-phi``.
+    reference : path, optional
+        A DICOM SEG or RTSTRUCT input: the image series (folder, DICOMDIR or
+        file) it lies on, as the commands' ``--reference``. An RTSTRUCT needs
+        it (its ROIs are rasterised on that grid); a SEG is put on that whole
+        grid (default: its own frames' grid). ``series``, ``irregular`` and
+        ``duplicates`` then choose how the reference is read.
+    segment : int, optional
+        A DICOM SEG input: segment ``segment`` (1 or more) alone, as a 0/1
+        mask (``--segment``; default: every segment, valued by its number).
+    structure : str, optional
+        A DICOM RTSTRUCT input: the ROI of that name alone, as a 0/1 mask
+        (``--structure``; default: every ROI, valued by its ROI Number).
     allow_outside_data : bool
         Let a detached header read data files outside its folder.
 
@@ -111,10 +124,9 @@ def read(path: str | os.PathLike, **options) -> Volume:
         Samples ``[z, y, x]``, geometry (x, y, z) in LPS, the file's key/values.
     """
     from .io import read_volume
-    from .io.inputs import declare_input
 
     raw, volume_index, dicom, outside = _read_arguments(path, options)
-    declare_input(path)
+    _declare_inputs(path, dicom)
     with _outside_data(outside):
         return read_volume(path, raw=raw, volume_index=volume_index, dicom=dicom)
 
@@ -585,6 +597,7 @@ def _read_arguments(path, options: dict):
     for key in ("keep_shear", "keep_phi"):
         if o[key]:
             dicom[key] = True
+    dicom.update(_segmentation_arguments(o["reference"], o["segment"], o["structure"]))
     dicom = dicom or None
     if raw is not None and not str(path).lower().endswith((".raw", ".bin")):
         raise BadUsage(f"--raw-* options describe headerless .raw/.bin inputs, not {path}")
@@ -592,6 +605,43 @@ def _read_arguments(path, options: dict):
         given = " ".join(f"--{k.replace('_', '-')}" for k in sorted(dicom))
         raise BadUsage(f"{given} applies to DICOM inputs, and {path} is not one")
     return raw, o["volume_index"], dicom, bool(o["allow_outside_data"])
+
+
+def _segmentation_arguments(reference, segment, structure) -> dict:
+    """The segmentation inputs' options as ``read_dicom``'s keywords, typed as the commands type them.
+
+    (``--reference`` a path, ``--segment`` a whole number >= 1, ``--structure``
+    a name: what click checks before the command runs.) What they mean, and
+    every error of a value that does not fit the file (an RTSTRUCT without
+    ``reference``, ``segment`` of an RTSTRUCT, a name no ROI has, ...), is the
+    readers' (:func:`volwarp_cli.io.dicom.read_dicom`), the same for both.
+    """
+    import numbers
+
+    given = {}
+    if reference is not None:
+        if not isinstance(reference, (str, os.PathLike)):
+            raise BadUsage(f"reference must be a path (the image series), got {reference!r}")
+        given["reference"] = os.fspath(reference)
+    if segment is not None:
+        if isinstance(segment, bool) or not isinstance(segment, numbers.Integral) or segment < 1:
+            raise BadUsage(f"segment must be a whole number >= 1 (a segment number), got "
+                           f"{segment!r}")
+        given["segment"] = int(segment)
+    if structure is not None:
+        if not isinstance(structure, str):
+            raise BadUsage(f"structure must be a ROI's name (a str), got {structure!r}")
+        given["structure"] = structure
+    return given
+
+
+def _declare_inputs(path, dicom: dict | None) -> None:
+    """``path`` and its ``reference`` series as inputs of this run (never overwritten)."""
+    from .io.inputs import declare_input
+
+    declare_input(path)
+    if dicom and dicom.get("reference") is not None:
+        declare_input(dicom["reference"])
 
 
 @contextlib.contextmanager
@@ -623,11 +673,10 @@ def _open_lazy(path, read_options: dict):
     (``volwarp_cli.cli.chunked.lazy_input``: the geometry read, the samples
     read box by box.)
     """
-    from .io.inputs import declare_input
     from .io.lazy import LazySource, open_volume_template
 
     raw, volume_index, dicom, _ = _read_arguments(path, read_options)
-    declare_input(path)
+    _declare_inputs(path, dicom)
     template, array = open_volume_template(path, raw=raw, volume_index=volume_index,
                                            dicom=dicom)
     return template, LazySource(path, raw=raw, volume_index=volume_index, array=array,

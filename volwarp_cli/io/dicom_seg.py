@@ -596,7 +596,6 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     the label map, the reference series and the options.
     """
     import highdicom as hd
-    import pydicom
     from pydicom.sr.codedict import codes
 
     from .. import __version__
@@ -608,7 +607,6 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
 
     def uid(what):
         return new_uid(key, what)
-    sources = [pydicom.dcmread(p, stop_before_pixels=True) for p in reference.files]
     if labelmap:
         numbers = [int(v) for v in values]
         pixels = vol.data.astype(_label_dtype(int(values[-1])), copy=False)
@@ -623,6 +621,7 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
         segmented_property_type=codes.SCT.Tissue,
         algorithm_type=hd.seg.SegmentAlgorithmTypeValues.MANUAL)
         for n, v in zip(numbers, values, strict=True)]
+    sources, pixels = _sources_and_frames(reference, pixels, where)
     try:
         seg = hd.seg.Segmentation(
             source_images=sources, pixel_array=np.ascontiguousarray(pixels),
@@ -636,6 +635,30 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
                            f"({type(exc).__name__}: {_one_line(exc)})") from None
     make_timeless(seg, *_stamp(reference), uid)
     return seg
+
+
+def _sources_and_frames(reference, pixels: np.ndarray, where: str):
+    """The ``source_images`` and ``pixel_array`` highdicom takes for a label map on ``reference``.
+
+    A series of single-frame images: each slice's data set (headers only), the
+    pixels as they are. An enhanced (multi-frame) image: highdicom takes that
+    one data set, and the pixels frame by frame in the file's frame order (which
+    need not be volwarp's z order: frames are stored in any order), a frame of
+    the file that is no slice of the grid (another stack) empty.
+    """
+    import pydicom
+
+    if not reference.multi_frame:
+        return [pydicom.dcmread(p, stop_before_pixels=True) for p in reference.files], pixels
+    files = sorted(set(reference.files))
+    if len(files) > 1 or None in reference.frame_numbers:
+        raise VolwarpError(f"{where}: the reference series in {reference.path} is made of "
+                           f"{len(files)} files holding several frames each: a SEG written "
+                           "against a multi-frame image references one file")
+    source = pydicom.dcmread(files[0], stop_before_pixels=True)
+    frames = np.zeros((int(source.get("NumberOfFrames", 1)),) + pixels.shape[1:], pixels.dtype)
+    frames[np.array(reference.frame_numbers, np.int64) - 1] = pixels
+    return [source], frames
 
 
 def write_seg(vol: Volume, path: str | os.PathLike, reference, *, labelmap: bool = False,

@@ -95,8 +95,8 @@ def describe_structures(ds) -> list[dict]:
             for r in ds.get("StructureSetROISequence", [])]
 
 
-def _structure_number(ds, structure: str, where: str) -> int:
-    rois = describe_structures(ds)
+def _structure_number(rois: list[dict], structure: str, where: str) -> int:
+    """The ROI Number of the one ROI named ``structure`` (``rois``: :func:`describe_structures`)."""
     hits = [r["number"] for r in rois if r["name"] == structure]
     names = ", ".join(repr(r["name"]) for r in rois) or "none"
     if not hits:
@@ -139,10 +139,11 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
     ref = read_reference(reference, series=series, irregular=irregular, duplicates=duplicates,
                          want_series=referenced_series(ds))
     check_reference(ds, ref, where)
-    numbers = [r["number"] for r in describe_structures(ds)]
-    only = _structure_number(ds, structure, where) if structure is not None else None
+    structures = describe_structures(ds)
+    numbers = [r["number"] for r in structures]
+    only = _structure_number(structures, structure, where) if structure is not None else None
     grid = ref.grid
-    names = {r["number"]: r["name"] for r in describe_structures(ds)}
+    names = {r["number"]: r["name"] for r in structures}
     dtype = np.uint8 if only is not None else _label_dtype(max(numbers, default=0))
     out = np.zeros(grid.data.shape, dtype)
     rois = []
@@ -231,18 +232,18 @@ def combine(rois: list[RoiMask], out: np.ndarray, where: str) -> list[tuple[int,
     ``(inner ROI Number, outer ROI Number)``.
     """
     nested, clashes = [], []
-    for i, a in enumerate(rois):
-        for b in rois[i + 1:]:
-            common = a.shared(b)
-            if not common:
-                continue
-            if common == a.count and a.count < b.count:
-                nested.append((a.number, b.number))
-            elif common == b.count and b.count < a.count:
-                nested.append((b.number, a.number))
-            else:
-                clashes.append(f"{a.title()} and {b.title()} share {common} voxels"
-                               + (" (the same voxels)" if common == a.count == b.count else ""))
+    for i, j in _box_pairs(rois):
+        a, b = rois[i], rois[j]
+        common = a.shared(b)
+        if not common:
+            continue
+        if common == a.count and a.count < b.count:
+            nested.append((a.number, b.number))
+        elif common == b.count and b.count < a.count:
+            nested.append((b.number, a.number))
+        else:
+            clashes.append(f"{a.title()} and {b.title()} share {common} voxels"
+                           + (" (the same voxels)" if common == a.count == b.count else ""))
     if clashes:
         shown = "; ".join(clashes[:6]) + (f"; and {len(clashes) - 6} more pairs"
                                           if len(clashes) > 6 else "")
@@ -252,6 +253,21 @@ def combine(rois: list[RoiMask], out: np.ndarray, where: str) -> list[tuple[int,
     for roi in sorted(rois, key=lambda r: (-r.count, r.number)):  # outer ROIs first
         out[roi.slices()][roi.mask] = roi.number
     return sorted(nested)
+
+
+def _box_pairs(rois: list[RoiMask]) -> list[tuple[int, int]]:
+    """The pairs ``(i, j)``, i < j, of ROIs whose boxes overlap (only they can share voxels).
+
+    In the order of the loop over every pair (so the error lists pairs as it always did).
+    """
+    if len(rois) < 2:
+        return []
+    lo = np.array([r.box[0] for r in rois], np.int64)
+    hi = np.array([r.box[1] for r in rois], np.int64)
+    overlap = np.all(np.minimum(hi[:, None], hi[None]) > np.maximum(lo[:, None], lo[None]),
+                     axis=2)
+    i, j = np.nonzero(np.triu(overlap, 1))
+    return list(zip(i.tolist(), j.tolist(), strict=True))
 
 
 def _label_dtype(top: int):
@@ -278,11 +294,11 @@ def _contours_in_index(roi, grid, where: str, label: str) -> list[tuple[int, np.
     out = []
     nz = grid.data.shape[0]
     for m, c in enumerate(roi.get("ContourSequence", [])):
-        raw = c.get("ContourData")
-        if raw is None or len(raw) == 0:
+        items = _contour_data(c)
+        if not items:
             continue
         try:
-            pts = np.asarray([float(v) for v in raw], dtype=np.float64)
+            pts = np.array([float(v) for v in items], dtype=np.float64)
         except (TypeError, ValueError):
             raise FormatError(f"{where}: {label} contour {m + 1}: ContourData is not "
                               "numeric") from None
@@ -304,42 +320,94 @@ def _contours_in_index(roi, grid, where: str, label: str) -> list[tuple[int, np.
     return out
 
 
+#: the tag of Contour Data (3006,0050)
+_CONTOUR_DATA = 0x30060050
+
+
+def _contour_data(item) -> list:
+    """A contour item's ContourData as its list of values (strings or numbers; [] if none).
+
+    An element read from a file is still its bytes: they are split here as
+    pydicom decodes a DS value (latin-1, the padding stripped, split at the
+    backslashes), and ``float`` of each item gives the number pydicom's
+    ``DSfloat`` would, without building one object per number (pydicom spends
+    about 3 us a value there: two thirds of reading a large RTSTRUCT). An
+    element already decoded is taken as it is.
+    """
+    if _CONTOUR_DATA not in item:
+        return []
+    value = item.get_item(_CONTOUR_DATA).value
+    if isinstance(value, (bytes, bytearray)):
+        text = bytes(value).decode("latin-1").strip().rstrip(" \x00")
+        return text.split("\\") if text else []
+    if value is None:
+        return []
+    if isinstance(value, (str, bytes, float, int)):
+        return [value] if str(value).strip() else []
+    return list(value)
+
+
 def rasterize(contours, shape_zyx, *, tol: float = ON_CONTOUR) -> np.ndarray:
     """A bool mask [z, y, x] of contours ``(k, points (n, 2) in (x, y) voxel indices, closed)``.
 
     Even-odd over each slice's closed contours, plus every voxel centre within
-    ``tol`` voxel of any contour (its closing edge included when closed).
+    ``tol`` voxel of any contour (its closing edge included when closed). The
+    slice index ``k`` must be one of the mask's (0 <= k < nz). Slices are
+    rasterised a slab at a time (:data:`_FILL_CELLS`): every contour of the slab
+    in a few array passes, rather than a few passes per contour, with scratch
+    memory bounded by the slab's size and its contours' lengths.
     """
     nz, ny, nx = shape_zyx
     mask = np.zeros(shape_zyx, dtype=bool)
-    by_slice: dict[int, list] = {}
+    step = max(1, _FILL_CELLS // (ny * (nx + 1)))  # slices in a slab
+    slabs: dict[int, list] = {}
     for k, pts, closed in contours:
-        by_slice.setdefault(int(k), []).append((np.asarray(pts, np.float64), bool(closed)))
-    for k, items in by_slice.items():
-        starts, ends = [], []
-        for pts, closed in items:
-            if closed and len(pts) >= 3:
-                starts.append(pts)
-                ends.append(np.roll(pts, -1, axis=0))
-        if starts:
-            mask[k] = _even_odd(np.concatenate(starts), np.concatenate(ends), ny, nx)
-        segs_a, segs_b = [], []
-        for pts, closed in items:
-            if len(pts) == 1:
-                segs_a.append(pts)
-                segs_b.append(pts)
-            else:
-                segs_a.append(pts[:-1])
-                segs_b.append(pts[1:])
-                if closed and len(pts) >= 3:
-                    segs_a.append(pts[-1:])
-                    segs_b.append(pts[:1])
-        _mark_on_segments(mask[k], np.concatenate(segs_a), np.concatenate(segs_b), tol)
+        slabs.setdefault(int(k) // step, []).append((int(k), pts, closed))
+    for slab, items in slabs.items():
+        z0 = slab * step
+        _rasterize_slab(mask[z0:z0 + step], [(k - z0, pts, closed) for k, pts, closed in items],
+                        tol)
     return mask
 
 
-def _even_odd(a: np.ndarray, b: np.ndarray, ny: int, nx: int) -> np.ndarray:
-    """Voxel centres (x = i, y = j) an odd number of edges a->b lie to the left of."""
+#: cells (rows x (columns + 1)) of a slab :func:`rasterize` fills at once (8 MiB of counts)
+_FILL_CELLS = 1 << 20
+
+
+def _rasterize_slab(mask: np.ndarray, contours, tol: float) -> None:
+    """:func:`rasterize` into ``mask`` (all False), its contours' ``k`` counted from its first slice."""
+    edges, segments = [], []  # (k, a, b): slice and end points of edges a -> b
+    for k, pts, closed in contours:
+        pts = np.asarray(pts, np.float64)
+        ring = bool(closed) and len(pts) >= 3
+        if ring:
+            edges.append((k, pts, np.roll(pts, -1, axis=0)))
+        if len(pts) == 1:
+            segments.append((k, pts, pts))
+        else:
+            segments.append((k, pts[:-1], pts[1:]))
+            if ring:
+                segments.append((k, pts[-1:], pts[:1]))
+    if edges:
+        _even_odd(mask, *_stacked(edges))
+    if segments:
+        _mark_on_segments(mask, *_stacked(segments), tol)
+
+
+def _stacked(parts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(k, a, b)`` of a list of edge runs ``(k, a, b)``, as arrays: one row per edge."""
+    k = np.concatenate([np.full(len(a), k, np.int64) for k, a, _ in parts])
+    return (k, np.concatenate([a for _, a, _ in parts]),
+            np.concatenate([b for _, _, b in parts]))
+
+
+def _even_odd(mask: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+    """Set the voxel centres of ``mask`` [z, y, x] an odd number of edges lie to the left of.
+
+    Edge ``e`` runs from ``a[e]`` to ``b[e]`` ((x, y) = (i, j) voxel indices) on
+    slice ``k[e]``; ``mask`` is all False on entry.
+    """
+    nz, ny, nx = mask.shape
     y0, y1 = a[:, 1], b[:, 1]
     lo, hi = np.minimum(y0, y1), np.maximum(y0, y1)
     # a row j crosses an edge when lo <= j < hi (half open: a vertex on the row counts once)
@@ -348,7 +416,7 @@ def _even_odd(a: np.ndarray, b: np.ndarray, ny: int, nx: int) -> np.ndarray:
     count = np.maximum(j1 - j0, 0)
     keep = count > 0
     if not keep.any():
-        return np.zeros((ny, nx), dtype=bool)
+        return
     edge = np.repeat(np.flatnonzero(keep), count[keep])
     first = np.repeat(j0[keep], count[keep])
     offs = np.arange(edge.size) - np.repeat(np.cumsum(count[keep]) - count[keep], count[keep])
@@ -356,13 +424,15 @@ def _even_odd(a: np.ndarray, b: np.ndarray, ny: int, nx: int) -> np.ndarray:
     xa, ya, xb, yb = a[edge, 0], a[edge, 1], b[edge, 0], b[edge, 1]
     x = xa + (j - ya) * (xb - xa) / (yb - ya)
     start = np.clip(np.floor(x).astype(np.int64) + 1, 0, nx)  # centres strictly right of x
-    toggles = np.bincount(j * (nx + 1) + start, minlength=ny * (nx + 1)).reshape(ny, nx + 1)
-    return (np.cumsum(toggles[:, :nx], axis=1) & 1).astype(bool)
+    cell = (k[edge] * ny + j) * (nx + 1) + start  # the crossing's cell, rows of every slice
+    toggles = np.bincount(cell, minlength=nz * ny * (nx + 1)).reshape(nz, ny, nx + 1)
+    mask[...] = (np.cumsum(toggles[:, :, :nx], axis=2) & 1).astype(bool)
 
 
-def _mark_on_segments(plane: np.ndarray, a: np.ndarray, b: np.ndarray, tol: float) -> None:
-    """Set the voxel centres of ``plane`` [y, x] within ``tol`` of a segment a->b."""
-    ny, nx = plane.shape
+def _mark_on_segments(mask: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndarray,
+                      tol: float) -> None:
+    """Set the voxel centres of ``mask`` [z, y, x] within ``tol`` of a segment a->b on slice k."""
+    _, ny, nx = mask.shape
     d = b - a
     major = (np.abs(d[:, 1]) > np.abs(d[:, 0])).astype(np.int64)  # 0: x, 1: y
     idx = np.arange(len(a))
@@ -391,7 +461,7 @@ def _mark_on_segments(plane: np.ndarray, a: np.ndarray, b: np.ndarray, tol: floa
     near = a[seg] + p[:, None] * ds
     dist = np.hypot(*(near - c).T)
     ok = (dist <= tol) & (c[:, 0] >= 0) & (c[:, 0] < nx) & (c[:, 1] >= 0) & (c[:, 1] < ny)
-    plane[c[ok, 1].astype(np.int64), c[ok, 0].astype(np.int64)] = True
+    mask[k[seg[ok]], c[ok, 1].astype(np.int64), c[ok, 0].astype(np.int64)] = True
 
 
 # -- writing -----------------------------------------------------------------------------
@@ -510,7 +580,8 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     (``contours="edges"``) on voxel edges moved :data:`NUDGE` voxel inward
     (:func:`mask_outlines`), or (``"smooth"``) the zero level of each slice's
     sub-voxel distance field (:func:`smooth_outlines`), each referencing its
-    slice's image; new SOP and Series UIDs made from the content.
+    slice's image (and its frame, ReferencedFrameNumber, when the reference is
+    a multi-frame image); new SOP and Series UIDs made from the content.
     """
     if contours not in CONTOUR_STYLES:
         raise VolwarpError(f"contours must be one of {', '.join(CONTOUR_STYLES)}, "
@@ -553,14 +624,16 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     ds.InstanceCreationDate, ds.InstanceCreationTime = date, time
     sop_class = reference.sop_class_uid or str(src.SOPClassUID)
 
-    def image_ref(k):
+    def image_ref(k, frames=None):
         item = Dataset()
         item.ReferencedSOPClassUID = sop_class
         item.ReferencedSOPInstanceUID = reference.sop_uids[k]
+        if reference.multi_frame:  # a frame of an enhanced image: which one
+            item.ReferencedFrameNumber = frames or reference.frame_numbers[k]
         return item
     series = Dataset()
     series.SeriesInstanceUID = reference.series_uid
-    series.ContourImageSequence = Sequence([image_ref(k) for k in range(len(reference.sop_uids))])
+    series.ContourImageSequence = Sequence(_series_images(reference, image_ref))
     study = Dataset()
     study.ReferencedSOPClassUID = "1.2.840.10008.3.1.2.3.1"  # Study Component Management
     study.ReferencedSOPInstanceUID = reference.study_uid
@@ -604,6 +677,23 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     ds.ROIContourSequence = Sequence(contours)
     ds.RTROIObservationsSequence = Sequence(observations)
     return ds
+
+
+def _series_images(reference, image_ref) -> list:
+    """The referenced series' ContourImageSequence: each image it has, once.
+
+    One item per slice of single-frame images; one per multi-frame image, its
+    ReferencedFrameNumber every frame of it that is a slice of the grid.
+    """
+    if not reference.multi_frame:
+        return [image_ref(k) for k in range(len(reference.sop_uids))]
+    first: dict[str, int] = {}
+    frames: dict[str, list[int]] = {}
+    for k, (uid, n) in enumerate(zip(reference.sop_uids, reference.frame_numbers, strict=True)):
+        first.setdefault(uid, k)
+        frames.setdefault(uid, []).append(n)
+    return [image_ref(k, sorted(frames[uid]) if len(frames[uid]) > 1 else frames[uid][0])
+            for uid, k in first.items()]
 
 
 def write_rtstruct(vol: Volume, path: str | os.PathLike, reference, *,

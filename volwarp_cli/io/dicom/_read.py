@@ -268,7 +268,9 @@ class ReferenceSeries:
 
     ``grid`` is :func:`read_dicom`'s Volume geometry with a placeholder (no
     pixels are read); ``files[k]`` and ``sop_uids[k]`` are the image of slice
-    ``k`` (z order).
+    ``k`` (z order); ``frame_numbers[k]`` its frame number (1 ...) in that file
+    when the file is a multi-frame image (an enhanced CT or MR: one file, one
+    SOP Instance UID for every slice), else None.
     """
 
     path: str
@@ -279,6 +281,12 @@ class ReferenceSeries:
     sop_class_uid: str
     sop_uids: tuple
     files: tuple
+    frame_numbers: tuple = ()
+
+    @property
+    def multi_frame(self) -> bool:
+        """Whether the slices are frames of multi-frame images (referenced by frame number)."""
+        return any(n is not None for n in self.frame_numbers)
 
 
 def read_reference(path: str | os.PathLike, *, series=None, want_series: tuple = (),
@@ -316,4 +324,6 @@ def read_reference(path: str | os.PathLike, *, series=None, want_series: tuple =
         study_uid=f0.file.meta.get("StudyInstanceUID", ""),
         sop_class_uid=f0.file.meta.get("SOPClassUID", ""),
         sop_uids=tuple(f.file.sop_uid for f in plan.frames),
-        files=tuple(f.file.path for f in plan.frames))
+        files=tuple(f.file.path for f in plan.frames),
+        frame_numbers=tuple(f.frame + 1 if f.file.n_frames > 1 else None
+                            for f in plan.frames))
