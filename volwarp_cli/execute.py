@@ -405,6 +405,7 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
     if how.open_engine is None:
         raise VolwarpError(f"{op.what}: no engine to run blocks on")
     op.prepare()  # (once, here: the blocks' tasks get it made)
+    op.load()  # (the blocks' budget is what is left once the kernels are loaded)
     from .passes import Passes, last_pass_block, run_by_blocks
 
     with how.open_engine() as engine, contextlib.ExitStack() as stack:

@@ -141,13 +141,6 @@ class BandedDistance(Operation):
             return field
         return cast_samples(field, self.out_dtype, what=str(self.targets[key].path))
 
-    def prepare(self) -> None:
-        """The kernels loaded (:meth:`load`) once the run is decided.
-
-        By blocks, the blocks' budget is taken after this: it leaves out their code.
-        """
-        self.load()
-
     def load(self) -> None:
         """The kernels on a small ball, so that the budget counts their loaded code."""
         from .field import warm_kernels

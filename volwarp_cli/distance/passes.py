@@ -161,10 +161,6 @@ class _FieldPasses(Passes):
         warm_kernels(getattr(self, "metric", "euclidean"), "voxel", np.dtype(bool), 0.5,
                      "above")
 
-    def prepare(self) -> None:
-        """The kernels loaded once the run is decided (by blocks: before the blocks' budget)."""
-        self.load()
-
     def _finish(self, field: np.ndarray) -> np.ndarray:
         # --unsigned, --max-distance (in place), then the output's type
         finish_field(field, unsigned=self.unsigned, max_distance=self.max_distance)

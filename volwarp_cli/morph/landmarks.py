@@ -31,7 +31,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.interpolate import RBFInterpolator
 
 from ..errors import VolwarpError
 
@@ -64,7 +63,7 @@ class LandmarkWarp:
     kind: str
     sigma: float | None
     degree: int  # 1: affine part, 0: translation only
-    interpolator: RBFInterpolator = field(repr=False)
+    interpolator: object = field(repr=False)  # a scipy.interpolate.RBFInterpolator
 
     @classmethod
     def fit(cls, source, target, *, kind: str = "thin-plate", sigma: float | None = None
@@ -92,6 +91,8 @@ class LandmarkWarp:
                 raise VolwarpError("two source landmarks coincide")
         degree = _degree(p)
         try:
+            from scipy.interpolate import RBFInterpolator  # (0.15 s: only for a warp)
+
             interp = RBFInterpolator(p, q - p, kernel=_KERNELS[kind],
                                      epsilon=_epsilon(kind, sigma), degree=degree)
         except (np.linalg.LinAlgError, ValueError):
