@@ -103,6 +103,39 @@ def test_sweep_fields_are_the_command_s_files(run, tmp_path):
     assert fields["opacity"].data.any()
 
 
+def test_morph_frames_are_the_command_s_files(run, tmp_path):
+    """Frames, an attribute and meshes of a moved target on another grid (a spec dict)."""
+    ball, block = ROOT / "tests" / "data" / "ball_30_uint8.nrrd", ROOT / "tests" / "data" / \
+        "block_int16_aniso.nrrd"
+    spec = {"version": 1, "source": {"volume": str(ball), "iso": 100},
+            "target": {"volume": str(block), "iso": -1300},
+            "align": {"target": {"scale": 1.5, "rotate": [0, 0, 15],
+                                 "translate": [21.0, -40.0, 3.0]}},
+            "times": [0.0, 0.4, 1.0], "output": "density",
+            "attributes": [{"name": "grey", "source": str(ball), "target": str(block),
+                            "dtype": "float32"}]}
+    path = tmp_path / "m.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    res = run("morph", "--spec", path, "-o", tmp_path / "cli_{i}.nrrd",
+              "--mesh-to", tmp_path / "cli_{i}.ply")
+    assert res.code == 0, res.stderr
+    frames = api.morph(path, meshes=True)
+    assert [f.t for f in frames] == [0.0, 0.4, 1.0]
+    for f in frames:
+        api.write(f.volume, tmp_path / f"api_{f.index}.nrrd")
+        api.write(f.attributes["grey"], tmp_path / f"api_{f.index}_grey.nrrd")
+        api.write(f.mesh, tmp_path / f"api_{f.index}.ply")
+        for name in (f"{f.index}.nrrd", f"{f.index}_grey.nrrd", f"{f.index}.ply"):
+            _same_bytes(tmp_path / f"cli_{name}", tmp_path / f"api_{name}")
+    # the density moves from the ball to the block
+    assert not np.array_equal(frames[0].volume.data, frames[-1].volume.data)
+    # a dict spec: the same frames, no spec hash recorded
+    again = api.morph(spec)
+    assert np.array_equal(again[1].volume.data, frames[1].volume.data)
+    assert "volwarp_spec_sha256" not in again[1].volume.meta
+    assert "volwarp_spec_sha256" in frames[1].volume.meta
+
+
 def test_mesh_is_the_command_s_file(run, tmp_path):
     cli, mine = tmp_path / "cli.ply", tmp_path / "api.ply"
     res = run("mesh", BALL, "-o", cli, "--iso", "100", "--smooth", "5", "--cap")

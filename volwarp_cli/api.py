@@ -60,8 +60,8 @@ from .errors import BadUsage
 from .surface.mesh import Mesh as _Mesh
 from .volume import Volume
 
-__all__ = ["Mesh", "READ_OPTIONS", "capture", "distance", "mesh", "read", "sweep", "warp",
-           "write"]
+__all__ = ["Mesh", "READ_OPTIONS", "capture", "distance", "mesh", "morph", "read", "sweep",
+           "warp", "write"]
 
 #: The keyword options of :func:`read` (those of ``volwarp convert``, snake_case); every
 #: function that takes a volume path takes them too.
@@ -392,6 +392,62 @@ def sweep(spec, *, shape=None, spacing: float | None = None, method: str | None 
     op = SweepOperation(sspec, geometry, dict.fromkeys(names), dtype or "float32", meta, {},
                         method=method, tau=tau)
     return _compute_whole(op)
+
+
+def morph(spec, *, meshes: bool = False) -> list:
+    """``volwarp morph``: the frames of a morph spec, computed in memory.
+
+    Parameters
+    ----------
+    spec : path or dict
+        A morph spec (schema ``specs/morph.schema.json``): source and target
+        shapes, times, metric, output, alignment, grid, warp, attributes.
+    meshes : bool
+        Also each frame's zero-level surface (the command's ``--mesh-to``).
+
+    Returns
+    -------
+    list of :class:`volwarp_cli.morph.frames.Frame`
+        In time order: ``volume`` (the frame, its key/values as the command
+        writes them), ``attributes`` (name -> Volume), ``mesh`` (an
+        :class:`Mesh` with the frame's key/values, with ``meshes``).
+        ``write(frame.volume, path)`` is the command's frame file byte for
+        byte; every frame is held (the command writes them one by one).
+
+    References
+    ----------
+    Dinh and Carvalho, "Implicit morphing by signed-distance interpolation", 2004.
+    """
+    from .io import read_volume
+    from .io.inputs import declare_input
+    from .morph.frames import morph_frames
+    from .morph.pipeline import prepare
+    from .morph.run import morph_note, one_volume_inputs
+    from .morph.spec import job_from_spec
+
+    if not isinstance(meshes, bool):
+        raise BadUsage(f"meshes must be True or False, got {meshes!r}")
+    doc, spec_path = _spec(spec, "morph")
+    job = job_from_spec(doc)
+    paths = [job.source.path, job.target.path]
+    for a in job.attributes:
+        paths += [a.source, a.target]
+    for path in paths:
+        declare_input(path)
+    with one_volume_inputs():
+        source, target = read_volume(job.source.path), read_volume(job.target.path)
+        attributes = {a.name: (read_volume(a.source), read_volume(a.target))
+                      for a in job.attributes}
+    meta = {"volwarp_morph": morph_note(job),
+            **_provenance("morph", [job.source.path, job.target.path], spec_path)}
+    frames = []
+    for frame in morph_frames(job, prepare(job, source, target, attributes), source,
+                              attributes, meta=meta, meshes=meshes):
+        if frame.mesh is not None:
+            m = frame.mesh
+            frame.mesh = Mesh(m.vertices, m.faces, m.normals, meta=dict(frame.volume.meta))
+        frames.append(frame)
+    return frames
 
 
 def distance(volume, iso: float | None = None, *, inside: str = "above",
