@@ -428,3 +428,148 @@ def test_slicer_markups_points(run, tmp_path):
     moved = json.loads((tmp_path / "q.mrk.json").read_text())["markups"][0]["controlPoints"]
     got = np.array([[-m["position"][0], -m["position"][1], m["position"][2]] for m in moved])
     assert np.abs(got - q).max() < 1e-9
+
+
+# -- NaN vectors, label-map wording, a folder as a transform -------------------------------
+def write_field(path, vectors, origin, spacing=(1.1, 1.0, 1.3), direction=DIRECTION):
+    """A displacement field image of ``vectors`` (z, y, x, 3) on the grid given (SimpleITK)."""
+    img = sitk.GetImageFromArray(np.asarray(vectors, np.float64), isVector=True)
+    img.SetOrigin([float(v) for v in origin])
+    img.SetSpacing([float(v) for v in spacing])
+    img.SetDirection([float(v) for v in np.ravel(direction)])
+    sitk.WriteImage(sitk.Cast(img, sitk.sitkVectorFloat32), str(path))
+
+
+def smooth_vectors(shape, amp=1.5):
+    nz, ny, nx = shape
+    z, y, x = np.mgrid[:nz, :ny, :nx].astype(float)
+    return np.stack([amp * np.sin(z / 6), amp * np.cos(x / 8), 0.6 * amp * np.sin(y / 7)], -1)
+
+
+@pytest.mark.parametrize("how", ["in memory", "by blocks", "by windows"])
+def test_nan_vectors_map_outside_as_in_itk_and_are_said(run, inputs, monkeypatch, how):
+    """A NaN vector where the output samples the field: its voxels take the background, said once.
+
+    Such a point maps to NaN, outside the input (ITK's rule for a point
+    outside every image; SimpleITK itself gives other values there, its
+    interpolation of a NaN index being undefined); the warning gives the
+    count, the index box and a point. The NaN sits between the lattice of
+    points checked before any work (x = 13), so it is the block that samples
+    it that finds it.
+    """
+    from volwarp_cli.transforms import fields
+
+    vol = read_volume(inputs / "in.nrrd")
+    vec = smooth_vectors(vol.data.shape)
+    vec[7, 9, 13] = np.nan  # (z, y, x)
+    name = "nan.nii" if how == "by windows" else "nan.nii.gz"
+    write_field(inputs / name, vec, vol.origin)
+    args = ["-t", inputs / name, "--background-value", "-7"]
+    if how == "by blocks":
+        args += ["--chunked", "--block", "6,7,5"]
+    if how == "by windows":
+        monkeypatch.setattr(fields, "LAZY_SHARE", 0.0)
+    res = run("apply", inputs / "in.nrrd", "-o", inputs / "o.nrrd", *args)
+    assert res.code == 0, res.stderr
+    said = (f"{name} (displacement field): 1 of its 10560 vectors are NaN or infinite (at "
+            "indices x 13, y 9, z 7) and points mapped through it reach them (the first at LPS ")
+    assert res.stderr.count(said) == 1 and "fill the vectors (0 is no displacement)" in res.stderr
+    ours = read_volume(inputs / "o.nrrd").data
+    # the same field without its NaN: the same voxels but those whose trilinear support
+    # holds the NaN vector, which map outside the input (the background)
+    write_field(inputs / "clean.nii.gz", smooth_vectors(vol.data.shape), vol.origin)
+    assert run("apply", inputs / "in.nrrd", "-o", inputs / "c.nrrd", "-t",
+               inputs / "clean.nii.gz", "--background-value", "-7").code == 0
+    clean = read_volume(inputs / "c.nrrd").data
+    changed = ours != clean
+    assert 0 < np.count_nonzero(changed) <= 8 and (ours[changed] == -7.0).all()
+    assert changed[7, 9, 13]
+
+
+def test_nan_vectors_the_output_never_reaches_ignored(run, inputs):
+    """NaN vectors in a field's margin that no output point samples do not stop the resampling.
+
+    The output's samples are those of the same field with those vectors zero.
+    """
+    vol = read_volume(inputs / "in.nrrd")
+    shape = tuple(n + 12 for n in vol.data.shape)
+    origin = vol.index_to_world([-6.0, -6.0, -6.0])  # 6 voxels of margin on every side
+    vec = smooth_vectors(shape, amp=1.0)
+    vec[:, :, :2] = 0.0
+    write_field(inputs / "zero.nii.gz", vec, origin)
+    vec[:, :, :2] = np.nan  # (the grid's points reach x >= 6 - 1 mm / 1.1 mm, no lower)
+    write_field(inputs / "nan.nii.gz", vec, origin)
+    for name in ("zero", "nan"):
+        res = run("apply", inputs / "in.nrrd", "-o", inputs / f"{name}.nrrd", "-t",
+                  inputs / f"{name}.nii.gz", "--background-value", "0")
+        assert res.code == 0, res
+    ours = read_volume(inputs / "nan.nrrd").data
+    assert np.array_equal(ours, read_volume(inputs / "zero.nrrd").data)
+    assert np.isfinite(ours).all() and np.count_nonzero(ours) > 0.9 * ours.size
+
+
+def test_points_reaching_nan_vectors_are_nan_and_said(run, tmp_path):
+    vol = smooth()
+    vec = smooth_vectors(vol.data.shape)
+    vec[7, 9, 13] = np.nan
+    write_field(tmp_path / "nan.nii.gz", vec, vol.origin)
+    near = vol.index_to_world([13.2, 9.1, 7.3])
+    far = vol.index_to_world([3.0, 4.0, 2.0])
+    write_points(tmp_path / "p.csv", np.array([near, far]))
+    res = run("apply", "-t", tmp_path / "nan.nii.gz", "--points-in", tmp_path / "p.csv",
+              "--points-to", tmp_path / "q.csv")
+    assert res.code == 0, res.stderr
+    assert "1 of its 10560 vectors are NaN or infinite (at indices x 13, y 9, z 7)" in res.stderr
+    q = read_points(tmp_path / "q.csv")
+    assert np.isnan(q[0]).all() and np.isfinite(q[1]).all()
+    # the other point moves as through the field without the NaN
+    write_field(tmp_path / "clean.nii.gz", smooth_vectors(vol.data.shape), vol.origin)
+    assert run("apply", "-t", tmp_path / "clean.nii.gz", "--points-in", tmp_path / "p.csv",
+               "--points-to", tmp_path / "r.csv").code == 0
+    r = read_points(tmp_path / "r.csv")
+    assert np.array_equal(q[1], r[1]) and np.isfinite(r[0]).all()
+
+
+def test_label_map_refusal_says_why_once(run, tmp_path):
+    """The refusal of a blending interpolation on a label map: its exact words, said once."""
+    from volwarp_cli.apply import plan_resample
+    from volwarp_cli.errors import BadUsage
+    from volwarp_cli.transforms.model import Chain
+
+    vol = smooth()
+    labels = (np.digitize(vol.data, [10, 40, 80]).astype(np.uint8) * 3 + 2)
+    write_volume(vol.with_data(labels), tmp_path / "seg.nrrd")
+    sitk.WriteTransform(affine(), str(tmp_path / "a.tfm"))
+    res = run("apply", tmp_path / "seg.nrrd", "-o", tmp_path / "o.nrrd", "-t",
+              tmp_path / "a.tfm", "--interpolation", "bspline")
+    assert res.code == 2
+    said = (f"volwarp: error: {tmp_path / 'seg.nrrd'} looks like a label map (4 labels): "
+            "--interpolation bspline would blend its ids; give --values intensity to resample "
+            "it as intensities (see '")
+    assert res.stderr.startswith(said) and res.stderr.endswith(" apply --help')\n")
+    assert res.stderr.count("label map") == 1 and res.stderr.count("\n") == 1
+    with pytest.raises(BadUsage) as exc:  # labels asked for (the library's path)
+        plan_resample(vol, labels, Chain(), values="labels", interpolation="linear",
+                      name="seg.nrrd")
+    assert str(exc.value) == ("seg.nrrd is resampled as labels (as asked): --interpolation "
+                              "linear would blend its ids; a label map is resampled by nearest "
+                              "neighbour")
+
+
+@pytest.mark.parametrize("inside", [True, False])
+def test_folder_as_transform_refused(run, inputs, inside):
+    """``-t FOLDER``: it is not a transform (exit 1), whatever the output's place.
+
+    With the output inside the folder it was refused as overwriting an input folder (exit 2).
+    """
+    folder = inputs / "reg"
+    folder.mkdir()
+    sitk.WriteTransform(affine(), str(folder / "0GenericAffine.mat"))
+    (folder / "notes.txt").write_text("x\n")
+    out = folder / "out.nrrd" if inside else inputs / "out.nrrd"
+    res = run("apply", inputs / "in.nrrd", "-o", out, "-t", folder)
+    assert res.code == 1
+    assert res.stderr == (f"volwarp: error: {folder}: is a folder, not a transform file "
+                          "(transform files in it: 0GenericAffine.mat)\n")
+    assert not (folder / "out.nrrd").exists()
+    assert (inputs / "out.nrrd").read_bytes() == b"old output"

@@ -10,7 +10,7 @@ elsewhere the background.
 
 :class:`ApplyOperation` computes any block of the output from the input
 region the chain needs for it, bounded before any sample is read
-(:meth:`.model.Chain.box`): for a linear chain exactly, the box of the
+(each step's ``box``): for a linear chain exactly, the box of the
 block's corners mapped; through a displacement field, grown by the field's
 range over the box (per-tile extremes, computed once); through a B-spline,
 by the range of the coefficients whose support meets it (the convex hull
@@ -49,6 +49,14 @@ PREFILTER_TAPS = 15
 _POLE = math.sqrt(3.0) - 2.0
 #: output points mapped at a time by one thread
 PART_POINTS = 1 << 18
+#: coefficients mirrored beyond the input's edges for the cubic kernel (its support's reach)
+CUBIC_PAD = 2
+#: scipy's line buffers of one ``correlate1d`` (two of ``BUFFER_SIZE`` doubles, or of one line)
+_LINE_BUFFER_DOUBLES = 256000
+#: bytes of a point being mapped and sampled (its mapped coordinates twice, the samples, the cast)
+SCRATCH_PER_POINT = 120
+#: bytes of a block beyond its arrays (index arrays, the Python objects of its parts)
+BLOCK_OVERHEAD = 1 << 16
 
 
 def _prefilter_weights() -> np.ndarray:
@@ -154,7 +162,7 @@ class ApplyOperation(Operation):
     def _walk(self, box: Box):
         """``[(op, lo, hi)]``: each op with the box its points lie in for block ``box``.
 
-        The boxes are :meth:`.model.Chain.box`'s bounds, op by op; the last
+        The boxes are the ops' own bounds (their ``box``), op by op; the last
         item is ``(None, lo, hi)``, the input index box.
         """
         (x0, y0, z0), (x1, y1, z1) = box.xyz()
@@ -179,23 +187,38 @@ class ApplyOperation(Operation):
         return [op.window(lo, hi) if _windowed(op) else op for op, lo, hi in self._walk(box)[:-1]]
 
     def memory(self, box: Box) -> int:
-        """The bytes of block ``box``: its samples, its region, its fields' windows, the scratch."""
+        """The bytes of block ``box``, at its peak: its output, its region, its windows, scratch.
+
+        Nearest and linear hold the region's samples (a copy in the input's
+        type) while the parts are sampled. Cubic goes through three phases,
+        the largest counted: the prefilter (:meth:`_coefficients`: two
+        float64 arrays of the region grown by its halo, scipy's line
+        buffers), the padded coefficients copied out of one of them
+        (``np.pad`` copies its edge planes once more), then the sampling of
+        the parts with only the padded coefficients held.
+        """
+        from . import parallel
+
         walk = self._walk(box)
         region = self._support(walk[-1][1], walk[-1][2])
         windows = sum(op.window_bytes(lo, hi) for op, lo, hi in walk[:-1] if _windowed(op))
-        per_region = self.in_dtype.itemsize
-        if self.interpolation == "bspline":
-            per_region += 16  # the float64 samples with their halo, the coefficients
-        rbytes = 0
-        if region is not None:
-            rbytes = region.size * per_region
-            if self.interpolation == "bspline":
-                rbytes += (region.grow(PREFILTER_TAPS).size - region.size) * per_region
-        per_voxel = self.dtype.itemsize
-        from . import parallel
-
-        scratch = min(box.size, PART_POINTS) * 120 * max(1, min(parallel.threads(), 8))
-        return rbytes + windows + box.size * per_voxel + scratch
+        scratch = (min(box.size, PART_POINTS) * SCRATCH_PER_POINT
+                   * max(1, min(parallel.threads(), 8)))
+        held = 0
+        if region is None:
+            scratch = 0
+        elif self.interpolation == "bspline":
+            read, padded = self._prefilter_boxes(region)
+            lines = 2 * 8 * max(_LINE_BUFFER_DOUBLES, max(read.shape) + 2 * PREFILTER_TAPS)
+            pz, py, px = padded.shape
+            pad_planes = 8 * CUBIC_PAD * max(py * px, pz * px, pz * py)  # (np.pad's copies)
+            filtering = 16 * read.size + lines
+            copying = 8 * read.size + 8 * padded.size + pad_planes
+            held = max(filtering, copying, 8 * padded.size + scratch)
+            scratch = 0
+        else:
+            held = region.size * self.in_dtype.itemsize
+        return box.size * self.dtype.itemsize + windows + held + scratch + BLOCK_OVERHEAD
 
     def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
         """Cubes as large as a task's memory allows (:meth:`memory` of one in the middle).
@@ -266,8 +289,7 @@ class ApplyOperation(Operation):
         if region is None:
             flat[:] = self._background_as(self.dtype)
             return {self.KEY: out}
-        data = self._region_samples(region)
-        lo_xyz = np.array(region.xyz()[0], dtype=np.int64)
+        data, lo_xyz = self._region_samples(region)
         ops = self._local_ops(box)
 
         def part(k):
@@ -282,29 +304,52 @@ class ApplyOperation(Operation):
 
         return cast_samples(np.array([self.background]), dtype, what="--background-value")[0]
 
-    def _region_samples(self, region: Box) -> np.ndarray:
-        """The samples of ``region`` (nearest, linear) or their spline coefficients (bspline)."""
-        if self.interpolation != "bspline":
-            return np.ascontiguousarray(self.source[region.slices])
-        return self._coefficients(region)
+    def _region_samples(self, region: Box) -> tuple[np.ndarray, np.ndarray]:
+        """The samples of ``region`` (nearest, linear) or their spline coefficients (bspline).
 
-    def _coefficients(self, region: Box) -> np.ndarray:
-        """Cubic B-spline coefficients of ``region``: the truncated prefilter (module notes)."""
+        With the global index (x, y, z) of their first element.
+        """
+        if self.interpolation != "bspline":
+            return (np.ascontiguousarray(self.source[region.slices]),
+                    np.array(region.xyz()[0], dtype=np.int64))
+        coefficients, padded = self._coefficients(region)
+        return coefficients, np.array(padded.xyz()[0], dtype=np.int64)
+
+    def _prefilter_boxes(self, region: Box) -> tuple[Box, Box]:
+        """The boxes (z, y, x) the prefilter reads and the padded coefficients cover."""
+        n = tuple(int(v) for v in self.in_grid.shape)
+        read = region.grow(PREFILTER_TAPS, within=Box.from_shape(n))
+        lo = tuple(a - (CUBIC_PAD if a == 0 else 0) for a in region.lo)
+        hi = tuple(b + (CUBIC_PAD if b == m else 0) for b, m in zip(region.hi, n, strict=True))
+        return read, Box(lo, hi)
+
+    def _coefficients(self, region: Box) -> tuple[np.ndarray, Box]:
+        """Cubic B-spline coefficients of ``region``, padded, and the box they cover.
+
+        The truncated prefilter (module notes) along each axis, on the
+        samples of ``region`` grown by its halo within the input; beyond the
+        input's edges scipy's ``mirror`` extension, ITK's. Then, where
+        ``region`` meets an edge, the coefficients mirrored by
+        :data:`CUBIC_PAD` indices beyond it, so that the kernel reads every
+        point's 4x4x4 support without mirroring indices. Two float64 arrays
+        of the read box at the most (:meth:`memory` counts them).
+        """
         from scipy.ndimage import correlate1d
 
-        k = PREFILTER_TAPS
-        n_zyx = tuple(int(v) for v in self.in_grid.shape)
-        idx = [_mirror(np.arange(a - k, b + k), n) for a, b, n in zip(region.lo, region.hi,
-                                                                      n_zyx, strict=True)]
-        read = Box(tuple(int(i.min()) for i in idx), tuple(int(i.max()) + 1 for i in idx))
-        block = np.asarray(self.source[read.slices], dtype=np.float64)
-        ext = block[np.ix_(*(i - r for i, r in zip(idx, read.lo, strict=True)))]
-        del block
+        read, padded = self._prefilter_boxes(region)
+        a = np.array(self.source[read.slices], dtype=np.float64)  # (a copy: filtered in place)
+        b = np.empty_like(a)
         w = _prefilter_weights()
-        for axis in range(3):
-            ext = correlate1d(ext, w, axis=axis, mode="nearest")
-        inner = tuple(slice(k, s - k) for s in ext.shape)
-        return np.ascontiguousarray(ext[inner])
+        correlate1d(a, w, axis=0, output=b, mode="mirror")
+        correlate1d(b, w, axis=1, output=a, mode="mirror")
+        correlate1d(a, w, axis=2, output=b, mode="mirror")
+        del a
+        inner = b[region.relative_to(read).slices]
+        pads = [(r0 - p0, p1 - r1) for r0, p0, r1, p1 in zip(region.lo, padded.lo, region.hi,
+                                                              padded.hi, strict=True)]
+        if not any(before or after for before, after in pads):
+            return np.ascontiguousarray(inner), padded
+        return np.pad(inner, pads, mode="reflect"), padded
 
     def _sample(self, data: np.ndarray, coords: np.ndarray, lo_xyz: np.ndarray) -> np.ndarray:
         from .samples import cast_samples
@@ -339,7 +384,7 @@ class ApplyOperation(Operation):
             one = np.zeros((2, 2, 2), dtype=self.in_dtype)
             _kernels.sample_linear(one, pts, lo, n, 0.0, np.empty(1))
         else:
-            _kernels.sample_cubic(np.zeros((2, 2, 2)), pts, lo, n, 0.0, np.empty(1))
+            _kernels.sample_cubic(np.zeros((6, 6, 6)), pts, lo - CUBIC_PAD, n, 0.0, np.empty(1))
         _kernels.grid_points(lo, lo + 1, np.eye(3), np.zeros(3), np.empty((1, 3)))
         _kernels.affine(pts, np.eye(3), np.zeros(3), np.empty((1, 3)))
         if not self.linear:
@@ -387,9 +432,7 @@ def plan_resample(template, source, chain: Chain, reference=None, *,
         log.warning("%s", choice.warning)
     log.info("%s", choice.describe())
     if choice.is_labels and interpolation not in (None, "nearest"):
-        raise BadUsage(f"{name} looks like a label map ({choice.why}): --interpolation "
-                       f"{interpolation} would blend its ids; give --values intensity to "
-                       "resample it as intensities")
+        raise BadUsage(label_interpolation_refusal(name, choice, interpolation))
     method = interpolation or ("nearest" if choice.is_labels else "linear")
     if background is None:
         background = default_background(source, choice.is_labels)
@@ -401,6 +444,18 @@ def plan_resample(template, source, chain: Chain, reference=None, *,
     return ApplyOperation(source, in_grid, chain, grid, interpolation=method,
                           background=background, target=Target(None, out, out_dtype),
                           name=name)
+
+
+def label_interpolation_refusal(name: str, choice, interpolation: str) -> str:
+    """The message refusing ``--interpolation`` other than nearest on labels (once said)."""
+    if choice.ruled:
+        n = "" if choice.labels is None else f" ({choice.labels} labels)"
+        why = f"{name} looks like a label map{n}"
+        way = "give --values intensity to resample it as intensities"
+    else:
+        why = f"{name} is resampled as labels (as asked)"
+        way = "a label map is resampled by nearest neighbour"
+    return f"{why}: --interpolation {interpolation} would blend its ids; {way}"
 
 
 def default_background(source, labels: bool) -> float:

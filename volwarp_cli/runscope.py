@@ -32,7 +32,7 @@ class RunFiles:
     memory map, when it was mapped; ``allow_outside_data``: detached headers
     may read data files outside their own folder; ``dry_run``: the command runs
     its checks only, and stops at its first read of an input
-    (:func:`stop_if_dry_run`).
+    (:func:`stop_if_dry_run`); ``said``: the warnings a run says once.
     """
 
     inputs: set[tuple[int, int]] = field(default_factory=set)
@@ -43,6 +43,7 @@ class RunFiles:
     mapped: dict[str, tuple[int, int, int]] = field(default_factory=dict)
     allow_outside_data: bool = False
     dry_run: bool = False
+    said: set = field(default_factory=set)
 
 
 class DryRunStop(BaseException):  # noqa: N818 - a stop, not an error

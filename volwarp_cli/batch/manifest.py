@@ -8,11 +8,13 @@ step that does not come before it, a missing output pattern, an unknown
 placeholder, an option the manifest sets itself (``-o``, ``--spec``), an
 output extension the step cannot write, an option or a spec the step's own
 command refuses (:mod:`.steps`). A scans' table (``inputs.csv``) may give each
-scan the image series it lies on in a ``reference`` column, which a step's
-input option takes as ``{reference}`` (``--reference {reference}``: a DICOM
-SEG or RTSTRUCT read on its series). The scans are found here too
-(:func:`find_scans`), so two scans that would share outputs are refused before
-anything runs.
+scan files of its own in columns, which a step's input option takes as
+``{COLUMN}``, its whole value: the image series it lies on in a ``reference``
+column (``--reference {reference}``: a DICOM SEG or RTSTRUCT read on its
+series), its registration in a ``transform`` column (``apply -t
+{transform}``), any column so named (``-t {warp} -t {affine}``). The scans
+are found here too (:func:`find_scans`), so two scans that would share
+outputs are refused before anything runs.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import csv
 import glob
 import hashlib
+import re
 import string
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,10 +34,8 @@ from ..spec.loader import SpecDoc, load_spec
 SCAN = "scan"
 #: the placeholders of output patterns and option values
 PLACEHOLDERS = ("stem", "relpath")
-#: an input option's whole value: the scan's series, from its row's ``reference`` cell
-REFERENCE = "{reference}"
-#: the scans' table column holding each scan's reference series
-REFERENCE_COLUMN = "reference"
+#: an input option's whole value naming a column of the scans' table: that row's file
+_COLUMN = re.compile(r"^\{([A-Za-z_][A-Za-z0-9_]*)\}$")
 #: extensions a single extension's worth of stem stripping treats as one
 DOUBLE_EXTENSIONS = (".nii.gz", ".raw.gz")
 #: options the manifest's own keys set (given in ``options`` they would clash)
@@ -67,8 +68,12 @@ class Scan:
     path: Path
     stem: str
     relpath: str  # "" at the root
-    #: the image series the scan lies on (the table's ``reference`` cell), if any
-    reference: Path | None = None
+    #: ``(column, file)`` of the table's cells the steps take (``{reference}``, ``{transform}``)
+    files: tuple[tuple[str, Path], ...] = ()
+
+    def file(self, column: str) -> Path | None:
+        """The scan's file in the table's ``column`` (None: not taken, or no table)."""
+        return dict(self.files).get(column)
 
 
 @dataclass
@@ -86,9 +91,10 @@ class Manifest:
     scans: list[Scan] | None = field(default=None, repr=False, compare=False)
 
     @property
-    def uses_reference(self) -> bool:
-        """Whether a step's options take ``{reference}`` (each scan needs its series)."""
-        return any(is_reference(v) for step in self.steps for v in step.options)
+    def columns(self) -> tuple[str, ...]:
+        """The table columns the steps' options take (``{reference}``...): each scan's files."""
+        return tuple(sorted({c for step in self.steps for v in step.options
+                             if (c := row_column(v)) is not None}))
 
     def __getstate__(self) -> dict:
         """Pickled for a cluster task without the scan list (a task gets its own scan)."""
@@ -120,17 +126,39 @@ def placeholders(text: str) -> list[str] | None:
     return names
 
 
-def is_reference(text: str) -> bool:
-    """Whether an options item (``VALUE`` or ``--opt=VALUE``) is the ``{reference}`` placeholder."""
+def option_value(text: str) -> str:
+    """The value of an options item: ``--opt=VALUE`` -> ``VALUE``; else the item."""
     name, eq, value = text.partition("=")
-    return (value if eq and name.startswith("--") else text) == REFERENCE
+    return value if eq and name.startswith("--") else text
 
 
-def fill_reference(text: str, scan: Scan) -> str:
-    """An options item with ``{reference}`` replaced by the scan's series (absolute)."""
-    if scan.reference is None:  # (find_scans refuses an empty cell when a step needs it)
-        raise VolwarpError(f"scan {scan.id}: no reference series ({REFERENCE_COLUMN} column)")
-    return text.replace(REFERENCE, str(scan.reference.absolute()))
+def row_column(text: str) -> str | None:
+    """The table column whose file an options item takes (``{transform}`` -> ``transform``).
+
+    The item's whole value (``VALUE`` or ``--opt=VALUE``) is ``{COLUMN}``,
+    COLUMN not an output placeholder; None otherwise.
+    """
+    m = _COLUMN.match(option_value(text))
+    return m.group(1) if m and m.group(1) not in PLACEHOLDERS else None
+
+
+def _embedded_column(text: str) -> str | None:
+    """A column placeholder inside a longer value (``x/{reference}``), or None."""
+    try:
+        fields = [f for _, f, _, _ in string.Formatter().parse(option_value(text))]
+    except ValueError:
+        return None
+    return next((f for f in fields if f and _COLUMN.match("{" + f + "}")
+                 and f not in PLACEHOLDERS), None)
+
+
+def fill_column(text: str, scan: Scan) -> tuple[str, Path]:
+    """An options item with ``{COLUMN}`` replaced by the scan's file (absolute), and the file."""
+    column = row_column(text)
+    path = scan.file(column)
+    if path is None:  # (find_scans refuses an empty cell when a step needs it)
+        raise VolwarpError(f"scan {scan.id}: no file in the {column!r} column")
+    return text.replace("{" + column + "}", str(path.absolute())), path
 
 
 def fill(text: str, scan: Scan) -> str:
@@ -169,19 +197,25 @@ def _check_output_extension(doc: SpecDoc, path: tuple, run: str, pattern: str) -
             raise doc.error(path, str(exc)) from None
 
 
-def _check_reference_source(doc: SpecDoc, key: tuple) -> None:
-    """``{reference}`` needs scans listed in a table (``inputs.csv``), each row naming its series."""
+def _what(column: str) -> str:
+    """What a column's file is to a scan, for messages."""
+    return {"reference": "each scan's series", "transform": "each scan's transform"}.get(
+        column, "each scan's file")
+
+
+def _check_column_source(doc: SpecDoc, key: tuple, column: str) -> None:
+    """``{COLUMN}`` needs scans listed in a table (``inputs.csv``) with that column."""
     if "csv" not in doc.data["inputs"]:
-        raise doc.error(key, f"{REFERENCE} is each scan's series from the scans' table: list "
-                             f"the scans in inputs.csv with a {REFERENCE_COLUMN!r} column")
+        raise doc.error(key, f"{{{column}}} is {_what(column)} from the scans' table: list "
+                             f"the scans in inputs.csv with a {column!r} column")
     table = doc.resolve(doc.data["inputs"]["csv"])
     try:
         with open(table, newline="", encoding="utf-8-sig") as fh:
             columns = next(csv.reader(fh), [])
     except (OSError, UnicodeDecodeError):  # (said with its key when the scans are read)
         return
-    if REFERENCE_COLUMN not in columns:
-        raise doc.error(key, f"{REFERENCE}: {table.name} has no {REFERENCE_COLUMN!r} column "
+    if column not in columns:
+        raise doc.error(key, f"{{{column}}}: {table.name} has no {column!r} column "
                              f"(columns: {', '.join(columns) or 'none'})")
 
 
@@ -243,12 +277,15 @@ def load_manifest(path: str | Path) -> Manifest:
                 raise doc.error(key + ("options", k),
                                 f"{flag} is set by the step's "
                                 f"{'spec' if flag == '--spec' else 'output'} key, not options")
-            if is_reference(text):
-                _check_reference_source(doc, key + ("options", k))
-            elif "{reference}" in text:
+            column = row_column(text)
+            embedded = _embedded_column(text)
+            if column is not None:
+                _check_column_source(doc, key + ("options", k), column)
+            elif embedded is not None:
                 raise doc.error(key + ("options", k),
-                                f"{text!r}: {REFERENCE} is a whole option value (the scan's "
-                                "series, e.g. --reference {reference})")
+                                f"{text!r}: {{{embedded}}} is a whole option value "
+                                f"({_what(embedded)}, e.g. --reference {{reference}}, "
+                                "-t {transform})")
             else:
                 _check_pattern(doc, key + ("options", k), text)
             options.append(text)
@@ -320,7 +357,7 @@ def _find_scans(manifest: Manifest) -> list[Scan]:
     doc = manifest.doc
     inputs = doc.data["inputs"]
     paths: list[tuple[Path, tuple]] = []  # (file, the key that named it)
-    references: dict[int, Path | None] = {}  # (the table's reference cells, by row)
+    cells: dict[int, tuple] = {}  # (the table's files the steps take, by row)
     if "glob" in inputs:
         pattern = str(doc.resolve(inputs["glob"]))
         # (the pattern is resolved already: its root is not resolved again)
@@ -343,25 +380,28 @@ def _find_scans(manifest: Manifest) -> list[Scan]:
                     raise doc.error(("inputs", "column"),
                                     f"{table.name} has no column {column!r} (columns: "
                                     f"{', '.join(reader.fieldnames or []) or 'none'})")
-                wants = manifest.uses_reference
-                if wants and REFERENCE_COLUMN not in (reader.fieldnames or []):
-                    raise doc.error(("inputs", "csv"),
-                                    f"{table.name} has no {REFERENCE_COLUMN!r} column, and "
-                                    f"a step's options take {REFERENCE} (each scan's series)")
+                wants = manifest.columns
+                for name in wants:
+                    if name not in (reader.fieldnames or []):
+                        raise doc.error(("inputs", "csv"),
+                                        f"{table.name} has no {name!r} column, and a step's "
+                                        f"options take {{{name}}} ({_what(name)})")
                 for row in reader:
                     cell = (row.get(column) or "").strip()
                     if not cell:
                         raise SpecError(f"{column}: empty cell", file=str(table),
                                         line=reader.line_num)
                     p = Path(cell).expanduser()
-                    ref = (row.get(REFERENCE_COLUMN) or "").strip()
-                    if wants and not ref:
-                        raise SpecError(f"{REFERENCE_COLUMN}: empty cell (a step's options "
-                                        f"take {REFERENCE})", file=str(table),
-                                        line=reader.line_num)
-                    r = Path(ref).expanduser() if ref else None
-                    references[len(paths)] = (None if r is None else
-                                              r if r.is_absolute() else table.parent / r)
+                    files = []
+                    for name in wants:
+                        text = (row.get(name) or "").strip()
+                        if not text:
+                            raise SpecError(f"{name}: empty cell (a step's options take "
+                                            f"{{{name}}})", file=str(table),
+                                            line=reader.line_num)
+                        f = Path(text).expanduser()
+                        files.append((name, f if f.is_absolute() else table.parent / f))
+                    cells[len(paths)] = tuple(files)
                     paths.append((p if p.is_absolute() else table.parent / p, ("inputs", "csv")))
         except OSError as exc:
             raise doc.error(("inputs", "csv"), f"cannot read {table}: "
@@ -378,7 +418,7 @@ def _find_scans(manifest: Manifest) -> list[Scan]:
         relpath = "" if str(rel) == "." else rel.as_posix()
         stem = stem_of(Path(p).name)
         scan = Scan(id=f"{relpath}/{stem}" if relpath else stem, path=Path(p), stem=stem,
-                    relpath=relpath, reference=references.get(n))
+                    relpath=relpath, files=cells.get(n, ()))
         if scan.id in scans:
             raise doc.error(key, f"{scans[scan.id].path} and {p} would share outputs "
                                  f"(both are scan {scan.id!r})")

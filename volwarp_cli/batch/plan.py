@@ -6,8 +6,10 @@ outputs: ``-o`` and every option value holding a placeholder (a mesh's
 ``--render {stem}.png``), all under the output folder, and the output
 options' values without one (``--camera-to cam.json``: one file, in the
 manifest's folder, which :func:`check_outputs` allows for one scan only).
-An option value ``{reference}`` is the scan's series (its table row's
-``reference`` cell): a file the step reads for that scan, not an output.
+An option value ``{COLUMN}`` is the scan's file in that column of its table
+row (``{reference}``: its series; ``{transform}``: its registration): a file
+the step reads for that scan, not an output (an elastix parameter file with
+the initial transforms it names).
 
 A step is up to date when what its outputs were made from is what it would
 be made from now, and its outputs are still what it made. "Made from" is
@@ -34,7 +36,7 @@ from pathlib import Path
 from .. import __version__
 from .content import FileHashes, content_digest
 from .lock import BOOK_DIR
-from .manifest import SCAN, Manifest, Scan, Step, fill, fill_reference, is_reference, placeholders
+from .manifest import SCAN, Manifest, Scan, Step, fill, fill_column, placeholders, row_column
 
 #: in the output folder: what each output was made from, and the file hash cache
 STATE_NAME = f"{BOOK_DIR}/state.json"
@@ -60,7 +62,7 @@ class StepPlan:
     #: scans, in the manifest's folder: ``--camera-to cam.json``); not in :attr:`outputs`
     fixed_outputs: list[tuple[str, Path]] = field(default_factory=list)
     #: the files this scan's step reads besides its input and the step's own files (the
-    #: scan's ``{reference}`` series)
+    #: scan's ``{reference}`` series, ``{transform}``...)
     reads: list[Path] = field(default_factory=list)
 
     @property
@@ -98,9 +100,10 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
         output = output_path(manifest, scan, step.output)
         options, extra, flags, reads = [], [], [], []
         for k, value in enumerate(step.options):
-            if is_reference(value):
-                options.append(fill_reference(value, scan))
-                reads.append(scan.reference)
+            if row_column(value) is not None:
+                text, path = fill_column(value, scan)
+                options.append(text)
+                reads += [path, *_linked(path)]
             elif placeholders(value):
                 path = output_path(manifest, scan, value)
                 extra.append(path)
@@ -117,6 +120,21 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
         plans[step.name] = StepPlan(step, Path(source), output, extra, argv, flags,
                                     _fixed_outputs(manifest, step), reads)
     return list(plans.values())
+
+
+def _linked(path: Path) -> list[Path]:
+    """The files a scan's own file names: an elastix parameter file's initial transforms.
+
+    They are what the step reads too (a changed initial transform redoes the
+    scan); one that cannot be found is the step's to report.
+    """
+    from ..errors import VolwarpError
+    from ..transforms.elastix import initial_files
+
+    try:
+        return [Path(p) for p in initial_files(str(path))]
+    except (OSError, VolwarpError):
+        return []
 
 
 def _fixed_outputs(manifest: Manifest, step: Step) -> list[tuple[str, Path]]:

@@ -31,12 +31,13 @@ from __future__ import annotations
 import contextvars
 import dataclasses
 import importlib
+import re
 import tempfile
 from pathlib import Path
 
 import click
 
-from .manifest import REFERENCE, Manifest, Scan, Step, is_reference, placeholders
+from .manifest import Manifest, Scan, Step, option_value, placeholders, row_column
 
 #: spec files a step's command reads, by command and parameter: the schema they follow
 SPEC_PARAMS = {"warp": {"spec_path": "warp"}, "distance": {"transform": "transform"}}
@@ -46,6 +47,8 @@ _STAND_IN = "volwarp-batch-step-input.nrrd"
 _ENDING = ("-h", "--help", "-V", "--version")
 #: long options writing a file whose type is not a click.Path (besides every ``--*-to``)
 _OUTPUT_NAMES = ("--sheet",)
+#: an input option's ``[FILE,0|1]`` (apply's -t: a transform or its inverse)
+_BRACKETS = re.compile(r"^\[\s*(.+?)\s*,\s*([01])\s*\]$")
 
 
 def check_steps(manifest: Manifest) -> list[Step]:
@@ -103,7 +106,7 @@ def _sample_scan(manifest: Manifest) -> Scan:
     if scans:
         return dataclasses.replace(scans[0], relpath="")
     return Scan(id="scan", path=manifest.base / _STAND_IN, stem="scan", relpath="",
-                reference=manifest.base / _STAND_IN)
+                files=tuple((c, manifest.base / _STAND_IN) for c in manifest.columns))
 
 
 def path_kind(param: click.Parameter) -> str | None:
@@ -156,22 +159,18 @@ def _check_tokens(manifest: Manifest, step: Step, values) -> None:
         if k not in taken and text.split("=", 1)[0] in _ENDING:
             raise manifest.doc.error(key, f"{text} prints and ends the command instead of "
                                           "running it: not a step's option")
-        if is_reference(text) and taken.get(k) != "input":
-            raise manifest.doc.error(key, f"{REFERENCE} (each scan's series) is the value of "
-                                          "an input option, e.g. --reference {reference}")
+        column = row_column(text)
+        if column is not None and taken.get(k) != "input":
+            raise manifest.doc.error(key, f"{{{column}}} (each scan's file, from its "
+                                          f"{column!r} cell) is the value of an input option, "
+                                          "e.g. --reference {reference}, -t {transform}")
     for k, option, kind in values:
-        if kind != "output" and placeholders(_value(step.options[k])):
+        if kind != "output" and placeholders(option_value(step.options[k])):
             raise manifest.doc.error(
                 ("steps", step.index, "options", k),
-                f"{option} {_value(step.options[k])!r}: {{stem}} and {{relpath}} name outputs "
+                f"{option} {option_value(step.options[k])!r}: {{stem}} and {{relpath}} name outputs "
                 "(placed under output_dir); only an output option (-o, --render, --*-to) "
                 "holds them")
-
-
-def _value(text: str) -> str:
-    """The value of an options item: ``--opt=VALUE`` -> ``VALUE``; else the item."""
-    name, eq, value = text.partition("=")
-    return value if eq and name.startswith("--") else text
 
 
 def _absolute(manifest: Manifest, argv: list[str], options, values) -> list[str]:
@@ -184,11 +183,15 @@ def _absolute(manifest: Manifest, argv: list[str], options, values) -> list[str]
     start = len(argv) - len(options)
     for k, _, kind in values:
         text = options[k]
-        value = _value(text)
-        if kind is None or placeholders(value) or is_reference(text) or \
-                Path(value).is_absolute() or not value:
+        value = option_value(text)
+        inverse = _BRACKETS.match(value) if kind == "input" else None
+        path = inverse.group(1) if inverse else value  # (apply's -t '[FILE,1]')
+        if kind is None or placeholders(value) or row_column(text) is not None or \
+                Path(path).is_absolute() or not path:
             continue  # (placeholders are filled with absolute names already)
-        resolved = str(manifest.base / value)
+        resolved = str(manifest.base / path)
+        if inverse:
+            resolved = f"[{resolved},{inverse.group(2)}]"
         argv[start + k] = resolved if value == text else f"{text.split('=', 1)[0]}={resolved}"
     return argv
 

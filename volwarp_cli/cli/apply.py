@@ -18,6 +18,7 @@ from ..labelmap import VALUES
 from ..progress import log, timed
 from .options import (
     INPUT_PATH,
+    InputPath,
     common_options,
     examples,
     finite,
@@ -33,21 +34,33 @@ REFERENCE_HELP = ("The output grid: REF's size, spacing, origin and direction [d
                   "convert it first).")
 
 
-def _transforms(ctx, param, value):
-    """``-t`` values parsed (``FILE`` or ``[FILE,0|1]``), each file declared as an input."""
-    from ..errors import VolwarpError
-    from ..io.inputs import declare_input
-    from ..transforms import parse_spec
+class TransformArg(InputPath):
+    """A ``-t`` value, ``FILE`` or ``[FILE,0|1]`` (a :class:`~volwarp_cli.transforms.TransformSpec`).
 
-    specs = []
-    for text in value:
+    An input option (``volwarp batch`` takes ``-t {transform}`` from a scan's
+    table row): its file declared as an input. A folder is refused here,
+    before it is declared (exit 1, as a file that is not a transform):
+    declared, it would make an output inside it look like one overwriting an
+    input.
+    """
+
+    name = "transform"
+
+    def convert(self, value, param, ctx):
+        """The parsed spec, its file declared."""
+        from ..errors import VolwarpError
+        from ..io.inputs import declare_input
+        from ..transforms import TransformSpec, parse_spec, refuse_folder
+
+        if isinstance(value, TransformSpec):
+            return value
         try:
-            spec = parse_spec(text)
+            spec = parse_spec(value)
         except VolwarpError as exc:
-            raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+            self.fail(str(exc), param, ctx)
+        refuse_folder(spec.path)
         declare_input(spec.path)
-        specs.append(spec)
-    return specs
+        return spec
 
 
 @click.command(name="apply", epilog=examples(
@@ -60,7 +73,7 @@ def _transforms(ctx, param, value):
 @output_option("The resampled volume (format by extension): on --reference's grid, the "
                "input's type (unless --dtype).", required=False)
 @click.option("-t", "--transform", "transforms", multiple=True, required=True,
-              metavar="T|[T,1]", callback=_transforms,
+              metavar="T|[T,1]", type=TransformArg(),
               help="A transform file, repeated in antsApplyTransforms' order: they act on an "
                    "output point in the order listed (-t A -t B samples the input at B(A(p))). "
                    "ITK .tfm/.txt/.h5, ITK/ANTs .mat, displacement-field images (.nii.gz, "

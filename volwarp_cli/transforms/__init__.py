@@ -23,7 +23,8 @@ from dataclasses import dataclass
 from ..errors import VolwarpError
 from .model import Affine, Chain
 
-__all__ = ["TransformSpec", "parse_spec", "read_transform", "read_chain", "Chain", "Affine"]
+__all__ = ["TransformSpec", "parse_spec", "read_transform", "read_chain", "refuse_folder",
+           "Chain", "Affine"]
 
 _SPEC = re.compile(r"^\[\s*(.+?)\s*,\s*([01])\s*\]$")
 
@@ -47,6 +48,32 @@ def parse_spec(text: str) -> TransformSpec:
     return TransformSpec(text)
 
 
+#: names of the transform files registrations leave in their folders (named in the refusal)
+_TRANSFORM_NAMES = re.compile(r"(?i)^(TransformParameters\.\d+\.txt|.*\.(tfm|h5|mat)|"
+                              r".*Warp\.nii(\.gz)?)$")
+
+
+def refuse_folder(path: str) -> None:
+    """A folder given as a transform: one error naming it (and the transform files in it).
+
+    Checked before the folder is declared an input (an output inside it
+    would otherwise be refused as overwriting an input folder).
+    """
+    import os
+
+    if not os.path.isdir(path):
+        return
+    try:
+        names = sorted(n for n in os.listdir(path) if _TRANSFORM_NAMES.match(n))
+    except OSError:
+        names = []
+    hint = ""
+    if names:
+        shown = ", ".join(names[:4]) + (f" and {len(names) - 4} more" if len(names) > 4 else "")
+        hint = f" (transform files in it: {shown})"
+    raise VolwarpError(f"{path}: is a folder, not a transform file{hint}")
+
+
 def sniff(path: str) -> str:
     """What the file at ``path`` holds, by its first bytes.
 
@@ -62,7 +89,8 @@ def sniff(path: str) -> str:
     except FileNotFoundError:
         raise VolwarpError(f"{path}: no such transform file") from None
     except IsADirectoryError:
-        raise VolwarpError(f"{path}: is a folder, not a transform file") from None
+        refuse_folder(path)
+        raise
     except OSError as exc:
         raise VolwarpError(f"{path}: cannot open ({exc.strerror})") from None
     if head.startswith(b"\x89HDF\r\n\x1a\n"):

@@ -156,6 +156,31 @@ def read_elastix(path: str, text: str, _seen: tuple = ()) -> tuple[list, dict]:
     return steps, doc
 
 
+def initial_files(path: str) -> list[str]:
+    """The initial transforms an elastix parameter file names, nearest first ([] for another file).
+
+    What reading ``path`` reads besides it (``volwarp batch`` hashes them
+    with a scan's own transform).
+    """
+    from . import sniff
+
+    out: list[str] = []
+    seen = {os.path.realpath(path)}
+    while True:
+        if sniff(path) != "elastix":
+            return out
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            text = fh.read()
+        if not looks_like_elastix(text):
+            return out
+        initial = _initial(parse(text, path), path)
+        if initial is None or os.path.realpath(initial) in seen:
+            return out
+        seen.add(os.path.realpath(initial))
+        out.append(initial)
+        path = initial
+
+
 def fixed_grid(doc: dict, where: str):
     """The fixed grid a parameter file states (transformix's output grid), a Geometry."""
     from ..geometry import Geometry

@@ -191,6 +191,9 @@ def read_text(path: str, text: str) -> list:
 
 def read_hdf5(path: str) -> list:
     """An ITK HDF5 transform file's steps (``/TransformGroup/N``)."""
+    from ..runscope import stop_if_dry_run
+
+    stop_if_dry_run(path)  # (it may hold a displacement field: batch's checks end here)
     try:
         import h5py
     except ImportError:  # pragma: no cover - a dependency

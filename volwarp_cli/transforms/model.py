@@ -127,12 +127,6 @@ class GridFrame:
         idx = self.to_index(_corners(lo, hi))
         return idx.min(axis=0), idx.max(axis=0)
 
-    def world_box(self) -> tuple[np.ndarray, np.ndarray]:
-        """The world box of the grid's voxel boxes (half a voxel beyond the centres)."""
-        n = np.asarray(self.size, float)
-        pts = _corners(np.full(3, -0.5), n - 0.5) @ self.matrix.T + self.origin
-        return pts.min(axis=0), pts.max(axis=0)
-
 
 def _range_over(values: np.ndarray, frame: GridFrame, lo, hi, *, grow: int, inside_lo: float,
                 inside_hi_less: float):
@@ -200,27 +194,85 @@ class DisplacementField:
         field = self if self.vectors is not None else self.window(*_bounds(p))
         p = np.ascontiguousarray(p, dtype=np.float64)
         out = np.empty_like(p)
-        _kernels.field_map(field.vectors, p, self.frame.inverse_matrix,
-                           np.asarray(self.frame.origin, float),
-                           np.asarray(field.offset, np.int64),
-                           np.asarray(self.frame.size, np.int64), out)
+        first = _kernels.field_map(field.vectors, p, self.frame.inverse_matrix,
+                                   np.asarray(self.frame.origin, float),
+                                   np.asarray(field.offset, np.int64),
+                                   np.asarray(self.frame.size, np.int64), out)
+        if first >= 0:
+            self._warn_not_finite(p[first])
         return out
 
-    def window(self, lo, hi) -> DisplacementField:
-        """The field for points in world box ``[lo, hi]`` only: its vectors there read.
+    def _warn_not_finite(self, point) -> None:
+        """Say, once per field and run, that points reach its NaN (or infinite) vectors.
+
+        Such a point maps to NaN, outside every image, as in ITK: its output
+        voxel takes the background value, a moved point is NaN. volwarp's own
+        exports mark so where a warp has no preimage or folds; ITK says
+        nothing, here the count and index box of those vectors and a point
+        that reached them are said.
+        """
+        from ..progress import log
+        from ..runscope import run_files
+
+        said = run_files().said
+        if ("not finite", self.name) in said:
+            return
+        said.add(("not finite", self.name))
+        count, lo, hi = self.nonfinite()
+        where = ", ".join(f"{a} {p}" if p == q else f"{a} {p}..{q}"
+                          for a, p, q in zip("xyz", lo, hi, strict=True))
+        total = math.prod(self.frame.size)
+        at = ", ".join(f"{v:.4g}" for v in point)
+        log.warning("warning: %s: %d of its %d vectors are NaN or infinite (at indices %s) and "
+                    "points mapped through it reach them (the first at LPS %s mm): they map "
+                    "outside the input, as in ITK (their voxels take the background value, "
+                    "moved points are NaN); fill the vectors (0 is no displacement) to move "
+                    "them instead", self.name, count, total, where, at)
+
+    def nonfinite(self) -> tuple[int, tuple, tuple]:
+        """The count of vectors with a NaN or infinite component and their index box (x, y, z).
+
+        Read slab by slab (a field read by windows is never whole in memory).
+        """
+        nx, ny, nz = self.frame.size
+        count, lo, hi = 0, [nx, ny, nz], [-1, -1, -1]
+        for z0 in range(0, nz, TILE):
+            z1 = min(nz, z0 + TILE)
+            slab = (self.vectors[z0:z1] if self.vectors is not None
+                    else self.source.read((z0, 0, 0), (z1, ny, nx)))
+            bad = ~np.isfinite(slab).all(axis=-1)
+            if not bad.any():
+                continue
+            count += int(bad.sum())
+            for axis, where in zip((2, 1, 0), np.nonzero(bad)[::-1], strict=True):
+                shift = z0 if axis == 0 else 0
+                lo[2 - axis] = min(lo[2 - axis], int(where.min()) + shift)
+                hi[2 - axis] = max(hi[2 - axis], int(where.max()) + shift)
+        return count, tuple(lo), tuple(hi)
+
+    def _window_box(self, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+        """The grid indices ``[a, b)`` (x, y, z) :meth:`window` reads for world box ``[lo, hi]``.
 
         The index box grown by one voxel (the neighbours and the rounding of
-        the kernels' own mapping), clipped to the grid; the field itself
-        when its vectors are in memory.
+        the kernels' own mapping), clipped to the grid; one voxel when the
+        box misses it.
         """
-        if self.vectors is not None:
-            return self
         ilo, ihi = self.frame.index_box(lo, hi)
         n = np.asarray(self.frame.size)
         a = np.clip(np.floor(ilo).astype(np.int64) - 1, 0, n - 1)
         b = np.clip(np.ceil(ihi).astype(np.int64) + 2, 1, n)
         if np.any(b <= a):
             a, b = np.zeros(3, np.int64), np.ones(3, np.int64)
+        return a, b
+
+    def window(self, lo, hi) -> DisplacementField:
+        """The field for points in world box ``[lo, hi]`` only: its vectors there read.
+
+        The field itself when its vectors are in memory.
+        """
+        if self.vectors is not None:
+            return self
+        a, b = self._window_box(lo, hi)
         vectors = self.source.read((int(a[2]), int(a[1]), int(a[0])),
                                    (int(b[2]), int(b[1]), int(b[0])))
         return DisplacementField(self.frame, vectors, self.name,
@@ -230,11 +282,8 @@ class DisplacementField:
         """The bytes :meth:`window` reads for world box ``[lo, hi]`` (0 when in memory)."""
         if self.vectors is not None:
             return 0
-        ilo, ihi = self.frame.index_box(lo, hi)
-        n = np.asarray(self.frame.size)
-        a = np.clip(np.floor(ilo).astype(np.int64) - 1, 0, n - 1)
-        b = np.clip(np.ceil(ihi).astype(np.int64) + 2, 1, n)
-        return int(np.prod(np.maximum(b - a, 1))) * 3 * self.itemsize * 2
+        a, b = self._window_box(lo, hi)
+        return int(np.prod(b - a)) * 3 * self.itemsize * 2
 
     def box(self, lo, hi):
         """``[lo, hi]`` grown by the field's range over it (zero included beyond its extent).
@@ -267,10 +316,6 @@ class DisplacementField:
                 cached = tile_range(self.vectors, TILE)
             object.__setattr__(self, "_tile_range", cached)
         return cached
-
-    def extent(self) -> tuple[np.ndarray, np.ndarray]:
-        """The world box where the field moves points (its voxels' boxes)."""
-        return self.frame.world_box()
 
 
 def tile_range(vectors: np.ndarray, tile: int):
@@ -328,12 +373,6 @@ class BSplineGrid:
         vmin, vmax = _range_over(self.coefficients, self.frame, lo, hi, grow=2, inside_lo=1.0,
                                  inside_hi_less=1.0)
         return np.asarray(lo) + vmin, np.asarray(hi) + vmax
-
-    def extent(self) -> tuple[np.ndarray, np.ndarray]:
-        """The world box of the valid region (where the transform moves points)."""
-        n = np.asarray(self.frame.size, float)
-        pts = _corners(np.ones(3), n - 2) @ self.frame.matrix.T + self.frame.origin
-        return pts.min(axis=0), pts.max(axis=0)
 
 
 @dataclass(frozen=True)
@@ -394,13 +433,6 @@ class Chain:
         for s in self.steps:
             p = s.map(p)
         return p
-
-    def box(self, lo, hi):
-        """A world box holding the images of the world box ``[lo, hi]`` (exact for affines)."""
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-        for s in self.simplified():
-            lo, hi = s.box(lo, hi)
-        return lo, hi
 
     def invert_points(self, p: np.ndarray) -> Inverted:
         """Points ``q`` with ``T(q) = p``: where input points ``p`` go in the output space.
