@@ -176,6 +176,9 @@ def main() -> int:
     signals.install()
     # (inherited by what the command starts: batch steps, Dask workers)
     configure_numba_cache()
+    from . import numba_blas
+
+    numba_blas.install()  # (scipy.linalg not imported by numba's BLAS probe: 0.2 s)
     try:
         from .cli.main import main as run
     except signals.Interrupted as exc:  # stopped while the command line was imported
