@@ -32,6 +32,7 @@ threads of the batch process, each waiting on its own child. The cluster form
 
 from __future__ import annotations
 
+import contextvars
 import os
 import signal
 import subprocess
@@ -394,7 +395,10 @@ class Batch:
         killed_at = None
         with ThreadPoolExecutor(max_workers=min(self.jobs, max(1, len(self.scans))),
                                 thread_name_prefix="volwarp-batch") as pool:
-            futures = [pool.submit(self._guarded, scan) for scan in self.scans]
+            # (each in the batch's own context: its run's files, not the process's, so that
+            # what other code of this process read never stands in the way of state.json)
+            futures = [pool.submit(contextvars.copy_context().run, self._guarded, scan)
+                       for scan in self.scans]
             pending = set(futures)
             while pending:
                 _, pending = wait(pending, timeout=0.05)
