@@ -279,3 +279,32 @@ def test_a_failed_rerun_leaves_the_previous_frames_as_they_were(run, shapes, tmp
     monkeypatch.setattr(FrameOperation, "compute", real)
     assert run("morph", shapes["box"], shapes["ball"], *args).code == 0
     assert (tmp_path / "o_0.nrrd").read_bytes() != before["o_0.nrrd"]
+
+
+def test_a_failing_block_leaves_no_store_temporary_while_others_still_write(run, shapes,
+                                                                          tmp_path,
+                                                                          monkeypatch):
+    """The blocks still running when one fails finish before the outputs are removed.
+
+    (A late block wrote into an OME-Zarr temporary already removed, re-creating
+    it: a .partdir was left behind.)
+    """
+    import time
+
+    from volwarp_cli.morph.frames import FrameOperation
+
+    real = FrameOperation.compute
+
+    def slow_or_failing(self, box, *, threads):
+        if box.lo == (0, 0, 0):
+            raise OSError("disk on fire")
+        time.sleep(0.2)
+        return real(self, box, threads=threads)
+
+    monkeypatch.setattr(FrameOperation, "compute", slow_or_failing)
+    res = run("morph", shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "2",
+              "-o", tmp_path / "o_{i}.ome.zarr", "--chunked", "--block", "6,7,5",
+              "--scheduler", "threads", "--workers", "2")
+    assert res.code == 1 and "disk on fire" in res.stderr
+    time.sleep(0.5)  # (what a late block would write, it would have written by now)
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith((".o_", "o_"))]

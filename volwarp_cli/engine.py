@@ -205,11 +205,20 @@ class Engine:
                     bar.advance()
                 results = [s for s in ordered if s is not None]
             else:
-                with _LocalCallbacks(self, bar):
-                    # the scheduler's function, not its name: a name makes dask import
-                    # distributed (0.2 s) to look for a client
-                    results = list(dask.compute(*tasks, scheduler=_local_get(self.choice.kind),
-                                                num_workers=self.workers))
+                pool = _local_pool(self.choice.kind, self.workers)
+                extra = {} if pool is None else {"pool": pool}
+                try:
+                    with _LocalCallbacks(self, bar):
+                        # the scheduler's function, not its name: a name makes dask import
+                        # distributed (0.2 s) to look for a client
+                        results = list(dask.compute(*tasks,
+                                                    scheduler=_local_get(self.choice.kind),
+                                                    num_workers=self.workers, **extra))
+                finally:
+                    # (a failed task: the tasks still running finish before the error goes
+                    # on, so that no late block writes into an output being removed)
+                    if pool is not None:
+                        pool.shutdown(wait=True, cancel_futures=True)
         return results
 
     @staticmethod
@@ -254,6 +263,30 @@ def _local_get(kind: str):
     else:
         from dask.local import get_sync as get
     return get
+
+
+def _local_pool(kind: str, workers: int):
+    """The executor a local Dask scheduler runs on, ours to wait for (None: synchronous).
+
+    Made as dask makes its own (for processes: its context and worker
+    initializer), so that the tasks run as before.
+    """
+    if kind == "threads":
+        from concurrent.futures import ThreadPoolExecutor
+
+        return ThreadPoolExecutor(workers)
+    if kind == "processes":
+        import functools
+        import os
+        from concurrent.futures import ProcessPoolExecutor
+
+        from dask.multiprocessing import get_context, initialize_worker_process
+
+        if os.environ.get("PYTHONHASHSEED") in (None, "0"):
+            os.environ["PYTHONHASHSEED"] = "6640"  # (dask's own choice, for its hashing)
+        return ProcessPoolExecutor(workers, mp_context=get_context(), initializer=functools.partial(
+            initialize_worker_process, user_initializer=None))
+    return None
 
 
 def _one_line(exc: BaseException) -> str:
