@@ -294,7 +294,8 @@ def test_ome_zarr_by_blocks_is_the_in_memory_store_byte_for_byte(run, tmp_path, 
     write_volume(Volume(tube.astype(np.uint8) * 100, spacing=np.array([0.8, 0.8, 1.5]),
                         direction=ROTATED), src)
     mem, blk, own = (tmp_path / f"{n}.ome.zarr" for n in ("m", "b", "u"))
-    common = ["--iso", "50", "--max-distance", "4", "--ome-zarr-version", version]
+    common = ["--iso", "50", "--max-distance", "4", "--ome-zarr-version", version,
+              "--pyramid", "1"]
     assert run("distance", src, "-o", mem, *common).code == 0
     res = run("distance", src, "-o", blk, *common, "--chunked", "--memory-limit", "4G")
     assert res.code == 0, res.stderr

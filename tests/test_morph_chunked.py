@@ -308,3 +308,52 @@ def test_a_failing_block_leaves_no_store_temporary_while_others_still_write(run,
     assert res.code == 1 and "disk on fire" in res.stderr
     time.sleep(0.5)  # (what a late block would write, it would have written by now)
     assert not [p.name for p in tmp_path.iterdir() if p.name.startswith((".o_", "o_"))]
+
+
+def test_every_frame_by_blocks_is_cut_as_the_first(run, shapes, tmp_path, monkeypatch):
+    """The frames' blocks are chosen once: a budget that shrinks meanwhile changes no store.
+
+    (Each frame re-planned its blocks from the budget left, so identical runs
+    wrote OME-Zarr stores of other chunks as the process's memory varied.)
+    """
+    import json
+
+    from volwarp_cli import execute
+
+    real = execute.block_budget
+    calls = []
+
+    def shrinking():
+        calls.append(1)
+        return max(execute.MIN_BLOCK_BUDGET, real() // len(calls))
+
+    monkeypatch.setattr(execute, "block_budget", shrinking)
+    from volwarp_cli.morph import frames  # (blocks of a few thousand voxels, on a small grid)
+
+    monkeypatch.setattr(frames, "FRAME_BYTES_PER_VOXEL", 100_000)
+    res = run("morph", shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "3",
+              "-o", tmp_path / "o_{i}.ome.zarr", "--chunked", "--memory-limit", "600M")
+    assert res.code == 0, res.stderr
+    assert len(calls) >= 3
+    layouts = {json.dumps(json.loads((tmp_path / f"o_{i}.ome.zarr" / "0" / "zarr.json")
+                                     .read_text())["chunk_grid"]) for i in range(3)}
+    assert len(layouts) == 1
+
+
+def test_a_source_with_nan_has_the_range_of_its_finite_samples(run, tmp_path):
+    """density: {range: source} of a source with NaN samples (outside the shape, as said)."""
+    z, y, x = np.mgrid[:20, :20, :20].astype(np.float32)
+    src = 100 - 5 * np.sqrt((x - 9) ** 2 + (y - 10) ** 2 + (z - 10) ** 2)
+    src[:3] = np.nan
+    write_volume(Volume(src.astype(np.float32)), tmp_path / "s.nrrd")
+    write_volume(Volume((100 - 5 * np.sqrt((x - 11) ** 2 + (y - 9) ** 2 + (z - 10) ** 2))
+                        .astype(np.float32)), tmp_path / "t.nrrd")
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\nsource: {volume: s.nrrd, iso: 50}\ntarget: {volume: t.nrrd, iso: 50}\n"
+        "times: [0, 1]\noutput: density\ndensity: {range: source}\n")
+    res = run("morph", "--spec", tmp_path / "m.yaml", "-o", tmp_path / "f_{i}.nrrd")
+    assert res.code == 0, res.stderr
+    f0 = read_volume(tmp_path / "f_0.nrrd").data
+    assert f0.dtype == np.float32 and np.isfinite(f0).all()
+    assert f0.min() >= np.nanmin(src) and f0.max() <= np.nanmax(src)
+    assert np.array_equal(f0[3:] >= 50, src[3:] >= 50)

@@ -168,7 +168,9 @@ class How:
     shape (z, y, x); ``open_engine()``: a context manager giving the engine
     the blocks run on; ``threads``: the in-memory run's threads (None:
     :func:`volwarp_cli.parallel.threads`); ``scheduler``: the scheduler the
-    user named, if any.
+    user named, if any; ``planned``: ``block`` was chosen by a caller that
+    planned a larger job once for all its steps (:func:`auto_block`; a morph's
+    frames), not weighed again.
     """
 
     chunked: bool | None = None
@@ -176,6 +178,7 @@ class How:
     open_engine: Callable | None = None
     threads: int | None = None
     scheduler: str | None = None
+    planned: bool = False
 
 
 @dataclass
@@ -415,10 +418,10 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
                                     block=how.block)
         elif how.block is not None:
             block = how.block
-            _check_user_block(op, block, per_task, engine.workers)
+            if not how.planned:
+                _check_user_block(op, block, per_task, engine.workers)
         else:
-            block = _store_aligned(op, op.block_shape(per_task, engine.workers), per_task,
-                                   engine.workers)
+            block = auto_block(op, per_task, engine.workers)
         outs = {key: stack.enter_context(t.open_blocks(block)) for key, t in op.targets.items()}
         boxes = next(iter(outs.values())).blocks()
         if any(o.blocks() != boxes for o in outs.values()):
@@ -444,6 +447,11 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
     return ran
 
 
+def auto_block(op: Operation, per_task: int, workers: int) -> tuple[int, int, int]:
+    """The blocks ``op`` runs in when the user gave none: its own, or its stores' shards."""
+    return _store_aligned(op, op.block_shape(per_task, workers), per_task, workers)
+
+
 def _store_aligned(op: Operation, block, per_task: int, workers: int):
     """OME-Zarr outputs' own write units as the blocks, where they fit: else ``block``.
 
@@ -465,9 +473,15 @@ def _store_aligned(op: Operation, block, per_task: int, workers: int):
     unit = store_unit(shape, versions.pop())
     count = math.prod(-(-n // min(b, n)) for n, b in zip(shape, block, strict=True))
     units = math.prod(-(-n // u) for n, u in zip(shape, unit, strict=True))
-    if units < min(count, 2 * workers) or op.memory(Box((0, 0, 0), unit)) > per_task:
+    if units < min(count, 2 * workers) or _heaviest(op, unit) > per_task:
         return block
     return unit
+
+
+def _heaviest(op: Operation, block) -> int:
+    """The most memory of the first, middle and last blocks of ``block`` (where they lie counts)."""
+    boxes = op.grid.box.blocks(block)
+    return max(op.memory(b) for b in {boxes[0], boxes[len(boxes) // 2], boxes[-1]})
 
 
 def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None:
@@ -478,8 +492,7 @@ def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None
     """
     from .memory import human_bytes
 
-    boxes = op.grid.box.blocks(block)
-    need = max(op.memory(b) for b in {boxes[0], boxes[len(boxes) // 2], boxes[-1]})
+    need = _heaviest(op, block)
     if need > per_task:
         raise OutOfMemoryError(
             f"{op.what}: a block of {'x'.join(map(str, block))} (z, y, x) needs "

@@ -569,10 +569,12 @@ class _ZarrOutput(BlockOutput):
         try:
             tmp = self._stack.enter_context(atomic_folder(path))
             group = omezarr.open_group_for_writing(tmp, version)
+            # (the in-memory layout at level 0: the pyramid's levels take theirs too)
+            standard = layout == omezarr.store_layout(stored.data.shape, version, None)
             self._arrays = omezarr.create_arrays(group, omezarr.level_shapes(stored.data.shape,
                                                                              pyramid),
-                                                 dtype, version, block, byte_order,
-                                                 layout0=layout)
+                                                 dtype, version, None if standard else block,
+                                                 byte_order, layout0=layout)
             self._group = group
         except BaseException:
             self.abort()

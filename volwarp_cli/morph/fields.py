@@ -55,9 +55,11 @@ class Steps:
         return tuple(int(n) for n in shape)
 
     def run(self, op, name: str, *, user_block: bool = True):
-        """``op``'s one output, computed whole: an array."""
+        """``op``'s one output, computed whole: an array (refused where it cannot fit)."""
         from ..execute import compute_whole
+        from ..memory import ensure_fits_once_loaded
 
+        ensure_fits_once_loaded(op.memory(op.grid.box), op.what, op.load)
         results = compute_whole(op)
         (key,) = op.targets
         return op.output(results, key)

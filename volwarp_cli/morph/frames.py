@@ -357,10 +357,29 @@ def frame_values(job: MorphJob, fields: FrameFields, source) -> FrameValues:
     """What ``job``'s frames hold; ``source``: the source's samples (sliceable: their type, range)."""
     value_range = None
     if job.output == "density" and job.density_range == "source":
-        from ..bspline.capture import source_range
-
-        value_range = source_range(source)
+        value_range = finite_range(source, str(job.source.path))
     return FrameValues.of(job, fields.grid, source.dtype, value_range)
+
+
+def finite_range(source, name: str, *, slab_bytes: int = 64 << 20) -> tuple[float, float]:
+    """(min, max) of ``source``'s finite samples, read slab by slab (sliceable ``[z, y, x]``).
+
+    NaN samples count as outside the shape (the distance says so), so the
+    range is the other samples'; none at all is an error naming ``name``.
+    """
+    nz, ny, nx = source.shape
+    step = max(1, slab_bytes // max(1, ny * nx * np.dtype(source.dtype).itemsize))
+    lo, hi = np.inf, -np.inf
+    for z0 in range(0, nz, step):
+        part = np.asarray(source[z0:min(z0 + step, nz)])
+        if part.dtype.kind == "f":
+            part = part[np.isfinite(part)]
+        if part.size:
+            lo, hi = min(lo, float(part.min())), max(hi, float(part.max()))
+    if lo > hi:
+        raise VolwarpError(f"{name}: no finite sample: the source has no value range for "
+                           "density: {range: source}")
+    return lo, hi
 
 
 def morph_frames(job: MorphJob, prep: Prepared, source: Volume,

@@ -123,6 +123,9 @@ def _input_header(path, loaded: dict):
 #: static: 23 bytes a voxel above the command's start): both fields on the grid, the
 #: frame's buffer and values, a field being resampled onto the grid and the writer's copy
 FRAME_BYTES = {"static": 24, "moving": 48}
+#: ... and what a density mapped to the source's range adds: its float64 values and the
+#: temporaries of the mapping (160^3 int16, measured: 415 MiB at the peak)
+RANGE_BYTES = 56
 
 
 def in_memory_bytes(job: MorphJob, source, target, frame_voxels: int) -> int:
@@ -144,6 +147,8 @@ def in_memory_bytes(job: MorphJob, source, target, frame_voxels: int) -> int:
                  for v in (source, target))
     fields = max(mem(source), 4 * math.prod(source.data.shape) + mem(target))
     per_voxel = FRAME_BYTES["static" if job.warp_mode == "static" else "moving"]
+    if job.output == "density" and job.density_range == "source":
+        per_voxel += RANGE_BYTES
     frames = frame_voxels * (per_voxel + 8 * len(job.attributes))
     return inputs + max(fields, frames)
 
@@ -179,8 +184,12 @@ def plan_morph(job: MorphJob, outputs, write: FrameWrite, chunked: bool | None) 
     no_blocks = None
     if job.warp_source_points is not None and chunked is None:  # (--chunked: a usage error)
         no_blocks = "a morph with a landmark warp runs in memory only"
-    if execute.decide(need, what, sizes, execute.How(chunked=chunked), no_blocks=no_blocks,
-                      compress=write.compress, pyramid=write.pyramid):
+    def load():  # (what the work loads, counted where the budget is tight)
+        if job.warp_source_points is not None:
+            import scipy.interpolate  # noqa: F401 - the landmark warp's solver
+
+    if execute.decide(need, what, sizes, execute.How(chunked=chunked), load=load,
+                      no_blocks=no_blocks, compress=write.compress, pyramid=write.pyramid):
         return plan
     plan.by_blocks = True
     plan.loaded.clear()  # (the block path opens its inputs itself)
@@ -208,6 +217,20 @@ def one_volume_inputs():
                           "volwarp convert IN --volume-index N -o one.nrrd)") from None
 
 
+def frame_targets(op, i: int, outputs, write: FrameWrite) -> None:
+    """Frame ``i``'s outputs as ``op``'s targets (the frame cast to ``--dtype``)."""
+    from .. import execute
+
+    op.cast = None if write.dtype is None else np.dtype(write.dtype)
+    types = op.types()
+    paths = {"frame": outputs.frames[i],
+             **{name: outputs.attributes[name][i] for name in op.fields.attributes}}
+    op.targets = {key: execute.Target(Path(path), op.volume(key=key), types[key],
+                                      compress=write.compress, byte_order=write.byte_order,
+                                      version=write.version, pyramid=write.pyramid)
+                  for key, path in paths.items()}
+
+
 def frame_writer(outputs, write: FrameWrite, how, *, by_blocks: bool):
     """``make(i, op)`` for :func:`.frames.frames`: frame ``i`` written where ``outputs`` says.
 
@@ -218,14 +241,7 @@ def frame_writer(outputs, write: FrameWrite, how, *, by_blocks: bool):
     from .. import execute
 
     def make(i, op):
-        op.cast = None if write.dtype is None else np.dtype(write.dtype)  # (--dtype)
-        types = op.types()
-        paths = {"frame": outputs.frames[i],
-                 **{name: outputs.attributes[name][i] for name in op.fields.attributes}}
-        op.targets = {key: execute.Target(Path(path), op.volume(key=key), types[key],
-                                          compress=write.compress, byte_order=write.byte_order,
-                                          version=write.version, pyramid=write.pyramid)
-                      for key, path in paths.items()}
+        frame_targets(op, i, outputs, write)
         execute.run(op, how, by_blocks=by_blocks)
         return op.targets["frame"].template, {
             name: op.targets[name].template for name in op.fields.attributes}
@@ -312,7 +328,7 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
         resample_chunks,
     )
     from .fields import StepsOnEngine
-    from .frames import FrameFields, MeshBlocks, frame_values, frames
+    from .frames import FrameFields, FrameOperation, MeshBlocks, frame_values, frames
     from .grid import GridError
     from .interpolate import index_map, lands_on_grid
     from .pipeline import prepare_on
@@ -371,6 +387,8 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
             prep = prepare_on(job, inputs, attrs, steps, check=check)
         fields = FrameFields.of(job, prep)
         grid = prep.grid
+        # the frames' budget: what is left now that the fields' kernels are loaded (taken once)
+        per_task = block_budget() // max(1, engine.workers)
         surfaces = None
         if meshes or render is not None:
             mesh_run = None
@@ -378,9 +396,15 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
                 mesh_run = functools.partial(engine.map, label="mesh", memory=per_task)
             surfaces = MeshBlocks(mesh_block_shape(grid.shape, per_task, block), mesh_run,
                                   parallel.threads())
+        values = frame_values(job, fields, source[1])
+        if block is None:  # every frame in the same blocks, chosen once (identical runs:
+            probe = FrameOperation(fields, values, 0.0, meta={})  # identical stores)
+            frame_targets(probe, 0, outputs, write)
+            block = execute.auto_block(probe, per_task, engine.workers)
         on_engine = execute.How(chunked=True, block=block, scheduler=how.scheduler,
-                                open_engine=lambda: contextlib.nullcontext(engine))
-        yield from frames(job, fields, frame_values(job, fields, source[1]),
+                                open_engine=lambda: contextlib.nullcontext(engine),
+                                planned=how.block is None)
+        yield from frames(job, fields, values,
                           frame_writer(outputs, write, on_engine, by_blocks=True),
                           meta={"volwarp_morph": morph_note(job), **(meta or {})},
                           meshes=surfaces, render=render,
