@@ -211,9 +211,13 @@ class DisplacementField:
         nothing, here the count and index box of those vectors and a point
         that reached them are said.
         """
+        import multiprocessing
+
         from ..progress import log
         from ..runscope import run_files
 
+        if multiprocessing.parent_process() is not None:
+            return  # (a worker process of --scheduler processes: its log is not the command's)
         said = run_files().said
         if ("not finite", self.name) in said:
             return
