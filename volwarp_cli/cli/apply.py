@@ -172,17 +172,9 @@ def _values(values, labels, interpolation):
 def _points(points_in, points_to):
     if points_in is None:
         return None
-    from ..errors import VolwarpError
-    from ..warp.export import points_format, read_points
+    from ..warp.export import check_points_pair, read_points
 
-    try:
-        kinds = points_format(points_in), points_format(points_to)
-    except VolwarpError as exc:
-        raise click.UsageError(str(exc)) from None
-    if kinds[0] != kinds[1]:
-        raise click.UsageError(f"--points-to {points_to}: write the points in the format they "
-                               "were read in")
-    check_output_path(points_to, option="--points-to")
+    check_points_pair(points_in, points_to)
     return read_points(points_in), points_to
 
 

@@ -186,7 +186,7 @@ def check_exports(displacement_to, forward_field_to, jacobian_to, transform_to, 
     if all(v is None for v in (displacement_to, forward_field_to, jacobian_to, transform_to,
                                points_in, points_to, mesh_in, mesh_to)):
         return None  # (nothing asked: the export modules are not imported)
-    from ..warp.export import field_format, points_format, read_points
+    from ..warp.export import check_points_pair, field_format, read_points
     from ..warp.export_outputs import ExportRequests
 
     for name, path in (("--displacement-to", displacement_to),
@@ -213,14 +213,7 @@ def check_exports(displacement_to, forward_field_to, jacobian_to, transform_to, 
     if (mesh_in is None) != (mesh_to is None):
         raise click.UsageError("--mesh-in and --mesh-to go together")
     if points_in is not None:
-        try:
-            kinds = points_format(points_in), points_format(points_to)
-        except VolwarpError as exc:
-            raise click.UsageError(str(exc)) from None
-        if kinds[0] != kinds[1]:
-            raise click.UsageError(f"--points-to {points_to}: write the points in the format "
-                                   f"they were read in ({'.csv' if kinds[0] == 'csv' else '.mrk.json'})")
-        check_output_path(points_to, option="--points-to")
+        check_points_pair(points_in, points_to)
     if mesh_in is not None:
         from ..surface.mesh_io import check_mesh_output
 

@@ -70,6 +70,21 @@ def points_format(path: str) -> str:
     raise VolwarpError(f"{path}: unknown points file extension (use .csv or .mrk.json)")
 
 
+def check_points_pair(points_in, points_to) -> None:
+    """``--points-in`` and ``--points-to`` of one format, the output's path checked (BadUsage)."""
+    from ..errors import BadUsage
+    from ..io import check_output_path
+
+    try:
+        kinds = points_format(points_in), points_format(points_to)
+    except VolwarpError as exc:
+        raise BadUsage(str(exc)) from None
+    if kinds[0] != kinds[1]:
+        raise BadUsage(f"--points-to {points_to}: write the points in the format they were "
+                       f"read in ({'.csv' if kinds[0] == 'csv' else '.mrk.json'})")
+    check_output_path(points_to, option="--points-to")
+
+
 def check_exportable(placement: str, dq0: np.ndarray, what: str) -> None:
     """Exports need the affine capture map of the uniform placement."""
     if placement != "uniform" or np.any(dq0 != 0):
