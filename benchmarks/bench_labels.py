@@ -25,7 +25,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".numba-cache"))
+
+import common  # noqa: E402
 
 
 def label_map(n: int, cells: int) -> np.ndarray:
@@ -71,8 +74,8 @@ def case(kind: str, n: int, cells: int, repeat: int) -> dict:
 
     def intensity():
         cap = capture_volume(vol, lattice=(9, 9, 9), oversample=2, mean=False, defer=True)
-        return Scene(cap.voxmap, cap.grid, dq_of(cap), 8,
-                     domain_range=cap.stats[:2]).render_once()
+        return common.one_shot(Scene(cap.voxmap, cap.grid, dq_of(cap), 8,
+                                     domain_range=cap.stats[:2]))
 
     def labels():
         cap = capture_labels(vol, lattice=(9, 9, 9), oversample=2)

@@ -214,8 +214,8 @@ def main(quick: bool = False):
         def core():
             cap = capture_volume(vol, lattice=(9, 9, 9), oversample=1, defer=True)
             pad = int(np.ceil(np.abs(dq).max())) + 1
-            Scene(cap.voxmap, cap.grid, base.dq + dq, pad,
-                  domain_range=base.stats[:2]).render_once()
+            common.one_shot(Scene(cap.voxmap, cap.grid, base.dq + dq, pad,
+                                  domain_range=base.stats[:2]))
 
         core()
         with parallel.use_threads(cores):

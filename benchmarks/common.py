@@ -62,3 +62,14 @@ def row(name: str, ours: float, peer: float | None = None, peer_name: str = "pee
         paired = f"{r:6.3f}x (paired)" if ratio is not None else f"{r:6.2f}x"
         print(f"  {name:<48} volwarp {ours:8.3f} s   {peer_name} {peer:8.3f} s   "
               f"ratio {paired}", flush=True)
+
+
+def one_shot(scene):
+    """The one-shot warp of ``scene`` (built from a deferred capture): the command's renderer.
+
+    The whole target as one block of :func:`volwarp_cli.warp.blocks.warp_block`,
+    the ring stream every warp command runs (``Scene.render_once`` is gone).
+    """
+    from volwarp_cli.warp.blocks import warp_block
+
+    return warp_block(scene, scene.sampler, scene.target_box)

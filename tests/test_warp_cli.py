@@ -363,7 +363,8 @@ def test_a_warp_failing_midway_leaves_the_existing_output(run, data_dir, tmp_pat
 
     monkeypatch.setattr(scene_mod.Scene, "contribute", failing)
     monkeypatch.setattr(blocks_mod, "STREAM_PLANES", 1)  # many chunks: some planes done
-    res = run("warp", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out)
+    res = run("warp", data_dir / "ball_30_uint8.nrrd", "--spec", spec, "-o", out,
+              "--values", "intensity")  # (the intensity warp's stream: a label map's is its own)
     assert len(calls) >= 3 and res.code == 1 and "memory" in res.stderr
     assert out.read_bytes() == b"an earlier result"
     assert [p.name for p in tmp_path.iterdir()] == ["o.nrrd"]

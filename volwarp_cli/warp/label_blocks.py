@@ -5,11 +5,11 @@ operation for the executor (:mod:`volwarp_cli.execute`), which decides by the
 sizes, before the map is read, whether it runs whole or by slabs.
 
 The in-memory label warp (:func:`.labels.warp_labels`) already cuts the target
-into z ranges, one per thread, each running the background's and every
-label's pass over its own planes (:func:`.labels.label_passes`); the result
-does not depend on the cut. By slabs, each task is one such slab of whole
-target planes, computed from the lattice and the label map read box by box
-(reopened by path in a worker process). It writes the output's part of its
+into z ranges, one per thread, each streaming every label's weights in one
+pass over its own planes (:class:`.labels.LabelStream`); the result does not
+depend on the cut. By slabs, each task is one such slab of whole target
+planes, computed from the lattice and the label map read a few planes at a
+time (reopened by path in a worker process). It writes the output's part of its
 slab and returns its totals: each label's predicted weight and output
 voxels, and its voxel of largest weight with the label that voxel ended with.
 The report, and ``--preserve-labels``' fix-up of the labels that would
@@ -34,12 +34,14 @@ from ..progress import timed
 from ..volume import Volume
 from .blocks import SceneRecipe
 from .labels import (
-    _Q,
+    TILE,
+    LabelCodes,
     LabelStream,
+    LabelTotals,
     _bounding_boxes,
-    _counts,
     _stronger,
-    label_passes,
+    label_window,
+    needed_tiles,
     stream_bytes,
 )
 from .run import LatticeMoves, WarpOptions, background_label, prepare_label_warp
@@ -104,15 +106,15 @@ class OneShotLabelWarp(LatticeMoves):
     def memory_whole(self) -> int:
         """The bytes :meth:`compute_whole` holds at its peak (an upper bound).
 
-        The map read whole, the target's weights and labels, each thread's
-        label pass (:func:`.labels.stream_bytes`) and the output's copy.
+        The map read whole, the target's labels, each thread's stream
+        (:func:`.labels.stream_bytes`) and the output's copy.
         """
         from .. import parallel
 
         tx, ty, tz = self.scene.target_shape
         item = self.input.dtype.itemsize
         workers = max(1, min(parallel.threads(), tz // 4))
-        return (self.input.data.size * item + tx * ty * tz * (8 + item)
+        return (self.input.data.size * item + tx * ty * tz * item
                 + workers * stream_bytes(self.scene, self.scene.dq, self.input.dtype)
                 + self.template.data.size * item)
 
@@ -147,13 +149,19 @@ class OneShotLabelWarp(LatticeMoves):
         # slabs of the map read for its labels' boxes: each one's samples and counts
         depth = max(1, min(nz, per_task // max(1, ny * nx * (self.input.dtype.itemsize + 16))))
         with timed("labels: bounding boxes (one pass)"):
-            labels, nvox, boxes = bounding_boxes_by_blocks(self.source, run, depth,
-                                                           self.background)
+            labels, nvox, boxes, tiles = bounding_boxes_by_blocks(
+                self.source, run, depth, self.background, TILE)
+        codes = LabelCodes(labels, self.background, self.dtype)
+        hull = None
+        for box in boxes:
+            hull = box if hull is None else hull.union_hull(box)
+        window = label_window(self.scene, self.scene.dq, hull)
+        need = needed_tiles(self.scene, self.scene.dq, tiles, TILE)
         slab = slab or self.choose_depth(budget, engine.workers)
         shape = self.template.data.shape
         with open_output(self.template, (slab, shape[1], shape[2])) as out, \
-                timed(f"labels: {len(labels)} label passes + background, by slabs"):
-            return self._warp_slabs(out, engine, labels, nvox, boxes, memory=per_task)
+                timed(f"labels: {len(labels)} labels + background, one pass, by slabs"):
+            return self._warp_slabs(out, engine, codes, nvox, (window, need), memory=per_task)
 
     def slab_scene(self) -> Scene:
         """The scene the slabs are computed with: rebuilt from the recipe, once per process."""
@@ -163,37 +171,32 @@ class OneShotLabelWarp(LatticeMoves):
                 self._slab_scene = self.recipe.build(NoSamples(tuple(grid.domain_shape[::-1])))
         return self._slab_scene
 
-    def slab(self, t_lo: int, t_hi: int, labels, boxes):
-        """Target planes ``[t_lo, t_hi)``: ``(labels, predicted, peak, counts, peak_labels)``.
+    def slab(self, t_lo: int, t_hi: int, codes: LabelCodes, where):
+        """Target planes ``[t_lo, t_hi)``: ``(labels, totals, peak_labels)``.
 
-        ``labels``, ``boxes``: the map's labels but the background and their
-        input bounding boxes (:func:`bounding_boxes_by_blocks`). Returned:
-        the slab's output labels; ``predicted``, ``peak``:
-        :func:`.labels.label_passes`'; ``counts``: output voxels per label;
-        ``peak_labels``: the label each peak voxel ended with.
+        ``codes``: the map's :class:`.labels.LabelCodes`; ``where``: its
+        :func:`.labels.label_window` and :func:`.labels.needed_tiles`.
+        Returned: the slab's output labels, its :class:`.labels.LabelTotals`
+        and, per label with a peak voxel, the label that voxel ended with.
         """
         scene = self.slab_scene()
         _, ty, tx = self.target_shape
-        best_w = np.full((t_hi - t_lo, ty, tx), _Q, dtype=np.int64)
-        best_l = np.full((t_hi - t_lo, ty, tx), self.background, dtype=self.dtype)
-        st = LabelStream(scene, scene.dq, self.source, t_lo, t_hi, best_w, best_l,
-                         self.background)
-        predicted, peak = label_passes(st, labels, boxes, preserve=self.preserve, z_base=t_lo)
-        del st, best_w  # (the stream's buffers and the weights, before the counts)
+        best_l = np.empty((t_hi - t_lo, ty, tx), dtype=self.dtype)
+        window, need = where
+        totals = LabelStream(scene, scene.dq, self.source, t_lo, t_hi, best_l, codes,
+                             window=window, need=need).run()
         peak_labels = {L: int(best_l[at[0] - t_lo, at[1], at[2]])
-                       for L, (_, at) in peak.items() if at is not None}
-        return (best_l, predicted, peak, _counts(best_l, labels, self.background),
-                peak_labels)
+                       for L, (_, at) in totals.peak.items() if at is not None}
+        return best_l, totals, peak_labels
 
     def slab_bytes(self, depth: int) -> int:
         """Memory a task of ``depth`` target planes holds at its peak (an upper bound).
 
-        The slab's weights and labels, and a label pass's buffers
-        (:func:`.labels.stream_bytes`).
+        The slab's labels and its stream's buffers (:func:`.labels.stream_bytes`).
         """
         scene = self.slab_scene()
         _, ty, tx = self.target_shape
-        return (depth * ty * tx * (8 + self.dtype.itemsize)
+        return (depth * ty * tx * self.dtype.itemsize
                 + stream_bytes(scene, scene.dq, self.source.dtype))
 
     def choose_depth(self, budget: int, tasks_at_once: int) -> int:
@@ -231,7 +234,7 @@ class OneShotLabelWarp(LatticeMoves):
                 slabs[(z, min(z + depth, hi))] = []
         return [(a, b, slabs[(a, b)]) for a, b in sorted(slabs)]
 
-    def _warp_slabs(self, out, engine, labels, nvox, boxes, *, memory: int | None) -> dict:
+    def _warp_slabs(self, out, engine, codes, nvox, where, *, memory: int | None) -> dict:
         """The label warp into ``out`` (a :class:`~volwarp_cli.io.blockwrite.BlockOutput`).
 
         One task per slab on ``engine``; then the labels that would vanish are
@@ -247,26 +250,20 @@ class OneShotLabelWarp(LatticeMoves):
         plan = self.slab_plan(out, depth)
         job_node = dask.delayed(self, pure=False)
         out_node = dask.delayed(out.writer(), pure=False)
-        found_node = dask.delayed((labels, boxes), pure=False, traverse=False)
+        found_node = dask.delayed((codes, where), pure=False, traverse=False)
         tasks = [engine.block_delayed(label_slab_task, f"labels-{a}", job_node, out_node,
                                       found_node, a, b, out_boxes, memory=memory, keep=True)
                  for a, b, out_boxes in plan]
         stats = engine.run(tasks, label="label slabs")
         out.mark_written([box for _, _, out_boxes in plan for box in out_boxes])
-        predicted = {L: 0 for L in labels}
-        peak = {L: (0, None) for L in labels}
-        counts = {L: 0 for L in labels}
+        totals = LabelTotals()
         initial = {}  # peak voxel -> the label it ended with
         for s in stats:
-            got, top, n, ended = s.value
-            for L, total in got.items():
-                predicted[L] += total
-            for L, c in n.items():
-                counts[L] += c
-            for L, (w, at) in top.items():
-                if at is not None and _stronger(w, at, *peak[L]):
-                    peak[L] = (w, at)
+            got, ended = s.value
+            for L, (w, at) in got.peak.items():
+                if at is not None and _stronger(w, at, *totals.peak.get(L, (0, None))):
                     initial[at] = ended[L]
+            totals.add(got)
         changed: dict[tuple, int] = {}
 
         def label_at(at):
@@ -275,7 +272,10 @@ class OneShotLabelWarp(LatticeMoves):
         def set_label(at, L):
             changed[at] = L
 
-        report = label_report(labels, nvox, predicted, peak, counts,
+        labels = codes.labels
+        report = label_report(labels, nvox, {L: totals.predicted.get(L, 0) for L in labels},
+                              {L: totals.peak.get(L, (0, None)) for L in labels},
+                              {L: totals.counts.get(L, 0) for L in labels},
                               float(np.prod(self.input.spacing)), preserve=self.preserve,
                               label_at=label_at, set_label=set_label)
         report["background"] = self.background
@@ -283,20 +283,25 @@ class OneShotLabelWarp(LatticeMoves):
         return report
 
 
-def bounding_boxes_by_blocks(source, run, depth: int, background: int = 0):
+def bounding_boxes_by_blocks(source, run, depth: int, background: int = 0, tile: int = 0):
     """:func:`.labels._bounding_boxes` of a sliceable map read in slabs of ``depth`` planes.
 
     ``run(task, items)``: who runs the slabs (an engine's ``map``). Returns
     ``(labels, voxel counts, boxes)`` of the labels but ``background``: the
-    same as the whole map's.
+    same as the whole map's; with ``tile`` (input voxels), also the tiles
+    holding their voxels (:func:`.labels.label_tiles`), read in the same pass.
     """
     import functools
 
-    nz = source.shape[0]
-    task = functools.partial(_slab_boxes, source=source, background=int(background))
+    nz, ny, nx = source.shape
+    if tile:  # (slabs of whole tiles)
+        depth = tile * max(1, depth // tile)
+    task = functools.partial(_slab_boxes, source=source, background=int(background),
+                             tile=int(tile))
     found: dict[int, list] = {}
-    for z0, labels, nvox, boxes in run(task, [(z, min(z + depth, nz))
-                                             for z in range(0, nz, depth)]):
+    tiles = np.zeros([-(-n // tile) for n in (nz, ny, nx)], np.uint8) if tile else None
+    for z0, labels, nvox, boxes, part in run(task, [(z, min(z + depth, nz))
+                                                   for z in range(0, nz, depth)]):
         for L, n, box in zip(labels, nvox, boxes, strict=True):
             box = box.shift((z0, 0, 0))
             if L in found:
@@ -304,28 +309,37 @@ def bounding_boxes_by_blocks(source, run, depth: int, background: int = 0):
                 found[L][1] = found[L][1].union_hull(box)
             else:
                 found[L] = [n, box]
+        if tile:
+            tiles[z0 // tile:z0 // tile + len(part)] |= part
     labels = sorted(found)
-    return labels, [found[L][0] for L in labels], [found[L][1] for L in labels]
+    out = labels, [found[L][0] for L in labels], [found[L][1] for L in labels]
+    return (*out, tiles) if tile else out
 
 
-def _slab_boxes(zs, source, background=0):
+def _slab_boxes(zs, source, background=0, tile=0):
+    from .labels import label_tiles
+
     z0, z1 = zs
-    labels, nvox, boxes, _ = _bounding_boxes(np.asarray(source[z0:z1]), background)
-    return z0, labels, nvox, boxes
+    data = np.asarray(source[z0:z1])
+    labels, nvox, boxes, _ = _bounding_boxes(data, background)
+    return z0, labels, nvox, boxes, label_tiles(data != background, tile) if tile else None
 
 
 def label_slab_task(job: OneShotLabelWarp, writer, found, t_lo: int, t_hi: int,
                     out_boxes) -> tuple:
     """One slab's task: write its part of the output, return its totals.
 
-    ``found``: ``(labels, boxes)``, the map's labels and their input boxes.
+    ``found``: ``(codes, where)``, the map's :class:`.labels.LabelCodes`, and
+    its :func:`.labels.label_window` and :func:`.labels.needed_tiles`. Returned:
+    the slab's :class:`.labels.LabelTotals` and the labels its peak voxels
+    ended with.
     """
-    best_l, predicted, peak, counts, peak_labels = job.slab(t_lo, t_hi, *found)
+    best_l, totals, peak_labels = job.slab(t_lo, t_hi, *found)
     for box in out_boxes:
         part = box.shift(job.window.lo)  # (target indices)
         writer.write(box, best_l[part.lo[0] - t_lo:part.hi[0] - t_lo, part.lo[1]:part.hi[1],
                                  part.lo[2]:part.hi[2]])
-    return predicted, peak, counts, peak_labels
+    return totals, peak_labels
 
 
 def _patch(out, window: Box, changed: dict) -> None:
