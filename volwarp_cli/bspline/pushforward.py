@@ -83,6 +83,24 @@ class HeldPlanes:
         return self.lo + len(acc) if self.hi is None else self.hi
 
 
+def domain_faces(e0: int, e1: int, ext, dshape) -> list[tuple[int, int]]:
+    """The halo faces of a chunk's deformation that lie on the domain's own border.
+
+    ``(axis, side)`` pairs for :func:`fill_halo` (axis 0 = z of the array):
+    the z planes ``[e0, e1)`` and the chunk's box ``ext`` (z, y, x) against
+    the domain's shape ``dshape`` (x, y, z); inner faces hold real neighbours.
+    """
+    faces = [(0, 0)] if e0 == 0 else []
+    if e1 == dshape[2]:
+        faces.append((0, 1))
+    for axis in (2, 1):  # the array's x and y
+        if ext.lo[axis] == 0:
+            faces.append((axis, 0))
+        if ext.hi[axis] == dshape[2 - axis]:
+            faces.append((axis, 1))
+    return faces
+
+
 def fill_halo(uh, faces=None):
     """Extrapolate the one-voxel halo of a deformation array linearly (``2 U[0] - U[1]``).
 

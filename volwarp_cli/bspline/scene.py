@@ -259,14 +259,7 @@ class Scene:
                 for dq, ub in zip(dqs, ubs, strict=True):
                     evaluate(dq, grid, ub[1:-1, 1:-1, 1:-1], x=sub[0], y=sub[1], z=(e0, e1),
                              origin=origin, parallel=parallel)
-                faces = [(0, 0)] if e0 == 0 else []
-                if e1 == dshape[2]:
-                    faces.append((0, 1))
-                for axis in (2, 1):  # the array's x and y
-                    if ext.lo[axis] == 0:
-                        faces.append((axis, 0))
-                    if ext.hi[axis] == dshape[2 - axis]:
-                        faces.append((axis, 1))
+                faces = pushforward.domain_faces(e0, e1, ext, dshape)
                 for ub in ubs:
                     pushforward.fill_halo(ub, faces)
             parts = (work.thread_parts(self.reach, parts_reach, chunk, held.lo, held.hi, still)

@@ -526,7 +526,7 @@ class LabelStream:
         the C scatter reads, here read by the label kernel.
         """
         from ..bspline import basis
-        from ..bspline.pushforward import fill_halo, with_planes
+        from ..bspline.pushforward import domain_faces, fill_halo, with_planes
         from ..bspline.scene import _to_evaluate
         from ._label_kernels import scatter_labels
 
@@ -553,14 +553,7 @@ class LabelStream:
             if sub is not None:
                 evaluate(self.dq, grid, ub[1:-1, 1:-1, 1:-1], x=sub[0], y=sub[1], z=(e0, e1),
                          origin=origin, parallel=False)
-                faces = [(0, 0)] if e0 == 0 else []
-                if e1 == dshape[2]:
-                    faces.append((0, 1))
-                for axis in (2, 1):  # the array's x and y
-                    if ext.lo[axis] == 0:
-                        faces.append((axis, 0))
-                    if ext.hi[axis] == dshape[2 - axis]:
-                        faces.append((axis, 1))
+                faces = domain_faces(e0, e1, ext, dshape)
                 fill_halo(ub, faces)
             (cz0, cy0, cx0), (cz1, cy1, cx1) = chunk.lo, chunk.hi
             start = (cy0, cz0)
