@@ -199,9 +199,8 @@ class Geometry:
 
     @property
     def size(self) -> int:
-        """Number of voxels (exact, as :attr:`.box.Box.size`)."""
-        z, y, x = self.shape
-        return z * y * x
+        """Number of voxels (exact: :attr:`.box.Box.size` of :attr:`box`)."""
+        return self.box.size
 
     @property
     def box(self) -> Box:

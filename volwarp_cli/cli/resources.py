@@ -111,7 +111,12 @@ def scale_settings() -> ScaleSettings:
     return ctx.find_root().meta.setdefault(SCALE_META, ScaleSettings())
 
 
-def _setting(name, convert=None):
+def _scale_option(*decls, convert=None, **kwargs):
+    """An option of :class:`ScaleSettings`, not passed to the command.
+
+    Its value (``convert`` run on it: a ``ValueError`` or ``VolwarpError`` is a
+    usage error) goes to the setting of the option's name.
+    """
     def callback(ctx, param, value):
         if value is None:
             return None
@@ -120,9 +125,10 @@ def _setting(name, convert=None):
                 value = convert(value)
             except (ValueError, VolwarpError) as exc:
                 raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
-        setattr(scale_settings(), name, value)
+        setattr(scale_settings(), param.name, value)
         return value
-    return callback
+
+    return click.option(*decls, default=None, expose_value=False, callback=callback, **kwargs)
 
 
 def _scheduler(value):
@@ -151,34 +157,32 @@ def scale_options(f):
     For the commands that can run by blocks (warp, distance, mesh, sweep, morph);
     the values go to :func:`scale_settings`, not to the command's arguments.
     """
-    f = click.option("--progress", type=click.Choice(["auto", "jsonl"]), default=None,
-                     expose_value=False, callback=_setting("progress"),
-                     help="auto: a bar on a terminal; jsonl: one JSON line per block on "
-                          "stderr (start, done, failed, seconds, peak memory), for logs.")(f)
-    f = click.option("--threads-per-worker", type=click.IntRange(min=1), default=None,
-                     metavar="N", expose_value=False, callback=_setting("threads_per_worker"),
-                     help="With --scheduler local: threads of each worker process "
-                          "[default: 1].")(f)
-    f = click.option("--workers", type=click.IntRange(min=1), default=None, metavar="N",
-                     expose_value=False, callback=_setting("workers"),
-                     help="With --scheduler local: worker processes [default: the cores "
-                          "this process may use]; threads or processes of the local "
-                          "schedulers [default: --threads].")(f)
-    f = click.option("--scheduler", default=None, metavar="NAME", expose_value=False,
-                     callback=_setting("scheduler", _scheduler),
-                     help="Who runs the blocks (with --chunked): threads [default], "
-                          "processes, synchronous, local (a Dask LocalCluster), "
-                          "tcp://HOST:PORT or file:PATH (an existing Dask cluster; also "
-                          "DASK_SCHEDULER_ADDRESS). The output is the same on every one.")(f)
-    f = click.option("--block", default=None, metavar="N|Z,Y,X", expose_value=False,
-                     callback=_setting("block", _block),
-                     help="With --chunked: the output block's size in voxels [default: "
-                          "the largest the memory budget holds for the tasks run at once]; "
-                          "the exact distance, whose passes need whole lines, takes Z as "
-                          "its x/y passes' slab depth and Y,X as its z pass's columns.")(f)
-    f = click.option("--chunked/--no-chunked", default=None, expose_value=False,
-                     callback=_setting("chunked"),
-                     help="Run by output blocks on Dask, the input read and the output "
-                          "written block by block (out of core; the output is identical). "
-                          "Default: only when the work does not fit the memory budget.")(f)
+    options = [  # (applied in this order: --help lists them from the last)
+        _scale_option("--progress", type=click.Choice(["auto", "jsonl"]),
+                      help="auto: a bar on a terminal; jsonl: one JSON line per block on "
+                           "stderr (start, done, failed, seconds, peak memory), for logs."),
+        _scale_option("--threads-per-worker", type=click.IntRange(min=1), metavar="N",
+                      help="With --scheduler local: threads of each worker process "
+                           "[default: 1]."),
+        _scale_option("--workers", type=click.IntRange(min=1), metavar="N",
+                      help="With --scheduler local: worker processes [default: the cores "
+                           "this process may use]; threads or processes of the local "
+                           "schedulers [default: --threads]."),
+        _scale_option("--scheduler", metavar="NAME", convert=_scheduler,
+                      help="Who runs the blocks (with --chunked): threads [default], "
+                           "processes, synchronous, local (a Dask LocalCluster), "
+                           "tcp://HOST:PORT or file:PATH (an existing Dask cluster; also "
+                           "DASK_SCHEDULER_ADDRESS). The output is the same on every one."),
+        _scale_option("--block", metavar="N|Z,Y,X", convert=_block,
+                      help="With --chunked: the output block's size in voxels [default: "
+                           "the largest the memory budget holds for the tasks run at once]; "
+                           "the exact distance, whose passes need whole lines, takes Z as "
+                           "its x/y passes' slab depth and Y,X as its z pass's columns."),
+        _scale_option("--chunked/--no-chunked",
+                      help="Run by output blocks on Dask, the input read and the output "
+                           "written block by block (out of core; the output is identical). "
+                           "Default: only when the work does not fit the memory budget."),
+    ]
+    for option in options:
+        f = option(f)
     return f

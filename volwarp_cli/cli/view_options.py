@@ -42,17 +42,14 @@ ORIENTATION_LABELS_HELP = (
     "without space) and for sweeps' generated volumes.")
 
 
-def _read_camera(ctx, param, value):
-    """--camera-from: the Camera in the file; a malformed or unreadable file exits 2."""
-    if value is None:
-        return None
-    from ..errors import VolwarpError
+def _read_camera(path):
+    """--camera-from: :func:`volwarp_cli.render.camera.read_camera`, imported when first used.
+
+    A malformed or unreadable file is a usage error (exit 2: :func:`.options.core_parser`).
+    """
     from ..render.camera import read_camera
 
-    try:
-        return read_camera(value)
-    except VolwarpError as exc:
-        raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+    return read_camera(path)
 
 
 def _given(ctx, name: str) -> bool:
@@ -84,7 +81,7 @@ def camera_options(f):
     * ``orientation_labels``: True or False when given, None when not: resolve
       it with :func:`orientation_labels_for` once the input volume is known.
     """
-    from .options import InputPath  # (options imports this module)
+    from .options import InputPath, core_parser  # (options imports this module)
 
     @functools.wraps(f)
     def wrapper(*args, camera_from, camera_to, orientation_labels, **kwargs):
@@ -106,7 +103,7 @@ def camera_options(f):
 
     opts = [
         click.option("--camera-from", "camera_from", type=InputPath(dir_okay=False),
-                     default=None, metavar="FILE", callback=_read_camera,
+                     default=None, metavar="FILE", callback=core_parser(_read_camera),
                      help=CAMERA_FROM_HELP),
         click.option("--camera-to", "camera_to", type=click.Path(dir_okay=False), default=None,
                      metavar="FILE", help=CAMERA_TO_HELP),

@@ -37,7 +37,52 @@ from ..errors import VolwarpError
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _envelope(f, label, want, n, h2, v, zb, out):
+def new_envelope(n):
+    """The arrays of a lower envelope of up to ``n`` parabolas: sites, heights, breakpoints."""
+    return np.empty(n, np.int64), np.empty(n, np.float64), np.empty(n + 1, np.float64)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def add_parabola(k, q, gq, h2, v, g, zb):
+    """Add the parabola ``h2 (p - q)^2 + gq`` to a lower envelope; return its new last index.
+
+    The envelope's parabolas ``0..k`` (``k = -1``: none yet) have their sites in
+    ``v``, their heights in ``g`` and the breakpoints between them in ``zb``
+    (``zb[j]`` to ``zb[j + 1]`` is where parabola ``j`` is lowest; the arrays of
+    :func:`new_envelope`); sites come in increasing order (Felzenszwalb &
+    Huttenlocher 2012, algorithm DT(f)). Shared by the exact field and the
+    sub-voxel feature transform.
+
+    The kernels of :mod:`.subvoxel` inline it and this module's other helpers;
+    numba's disk cache checks their compiled code against ``subvoxel.py``
+    alone: after changing a helper here, touch that file too.
+    """
+    if k < 0:
+        v[0] = q
+        g[0] = gq
+        zb[0] = -np.inf
+        zb[1] = np.inf
+        return 0
+    s = 0.0
+    while True:
+        r = v[k]
+        s = ((gq + h2 * q * q) - (g[k] + h2 * r * r)) / (2.0 * h2 * (q - r))
+        if s <= zb[k]:
+            k -= 1
+            if k < 0:
+                break
+        else:
+            break
+    k += 1
+    v[k] = q
+    g[k] = gq
+    zb[k] = -np.inf if k == 0 else s
+    zb[k + 1] = np.inf
+    return k
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def _envelope(f, label, want, n, h2, v, g, zb, out):
     # Lower envelope of the parabolas h2 (p - q)^2 + g(q), g(q) = f[q] where
     # label[q] == want, else 0 (a voxel of the other label is at distance 0
     # from it); evaluated only at the positions p with label[p] == want.
@@ -52,7 +97,6 @@ def _envelope(f, label, want, n, h2, v, zb, out):
     if not anywant:
         return
     k = -1
-    s = 0.0
     for q in range(n):
         if label[q] == want:
             gq = f[q]
@@ -62,26 +106,7 @@ def _envelope(f, label, want, n, h2, v, zb, out):
             if 0 < q < n - 1 and label[q - 1] != want and label[q + 1] != want:
                 continue
             gq = 0.0
-        if k < 0:
-            k = 0
-            v[0] = q
-            zb[0] = -np.inf
-            zb[1] = np.inf
-            continue
-        while True:
-            r = v[k]
-            gr = f[r] if label[r] == want else 0.0
-            s = ((gq + h2 * q * q) - (gr + h2 * r * r)) / (2.0 * h2 * (q - r))
-            if s <= zb[k]:
-                k -= 1
-                if k < 0:
-                    break
-            else:
-                break
-        k += 1
-        v[k] = q
-        zb[k] = -np.inf if k == 0 else s
-        zb[k + 1] = np.inf
+        k = add_parabola(k, q, gq, h2, v, g, zb)
     if k < 0:
         for p in range(n):
             if label[p] == want:
@@ -94,8 +119,15 @@ def _envelope(f, label, want, n, h2, v, zb, out):
         while zb[j + 1] < p:
             j += 1
         r = v[j]
-        gr = f[r] if label[r] == want else 0.0
-        out[p] = h2 * (p - r) * (p - r) + gr
+        out[p] = h2 * (p - r) * (p - r) + g[j]
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def column(plane, other, c, f, fo):
+    """Copy column ``c`` of an (n, m) plane to ``f`` and that of ``other`` to ``fo``."""
+    for i in range(f.shape[0]):
+        f[i] = plane[i, c]
+        fo[i] = other[i, c]
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -104,14 +136,11 @@ def _plane_pass(plane, labels, m, n, h2, sign):
     f = np.empty(n, np.float64)
     lab = np.empty(n, np.uint8)
     tmp = np.empty(n, np.float64)
-    v = np.empty(n, np.int64)
-    zb = np.empty(n + 1, np.float64)
+    v, g, zb = new_envelope(n)
     for c in range(m):
-        for i in range(n):
-            f[i] = plane[i, c]
-            lab[i] = labels[i, c]
-        _envelope(f, lab, 1, n, h2, v, zb, tmp)
-        _envelope(f, lab, 0, n, h2, v, zb, tmp)
+        column(plane, labels, c, f, lab)
+        _envelope(f, lab, 1, n, h2, v, g, zb, tmp)
+        _envelope(f, lab, 0, n, h2, v, g, zb, tmp)
         if sign == 1:  # the signed distance
             for i in range(n):
                 d = np.sqrt(tmp[i])

@@ -41,6 +41,7 @@ import numpy as np
 
 from .. import parallel
 from ..errors import VolwarpError
+from .exact import add_parabola, column, new_envelope
 
 #: Jacobi steps of closest-point propagation after the feature transform.
 REFINE_STEPS = 2
@@ -54,6 +55,24 @@ def _is_in(v, iso, above):
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
+def _neighbour(k, z, y, x, nz, ny, nx):
+    # The k-th face neighbour (k = 0..5: x - 1, x + 1, y - 1, y + 1, z - 1, z + 1) of
+    # (z, y, x): whether it is on the grid, and its index.
+    step = 2 * (k & 1) - 1
+    qz, qy, qx = z, y, x
+    if k < 2:
+        qx += step
+        on = 0 <= qx < nx
+    elif k < 4:
+        qy += step
+        on = 0 <= qy < ny
+    else:
+        qz += step
+        on = 0 <= qz < nz
+    return on, qz, qy, qx
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def _crossings(vals, z, y, x, iso, above, hs, best, side):
     # Nearest iso crossing per axis (world distance) and its side; False if none.
     nz, ny, nx = vals.shape
@@ -64,19 +83,11 @@ def _crossings(vals, z, y, x, iso, above, hs, best, side):
         best[ax] = np.inf
         side[ax] = 0.0
     for nbi in range(6):
+        on, qz, qy, qx = _neighbour(nbi, z, y, x, nz, ny, nx)
+        if not on:
+            continue
         ax = nbi // 2
         sgn = 2 * (nbi % 2) - 1
-        qx = x
-        qy = y
-        qz = z
-        if ax == 0:
-            qx = x + sgn
-        elif ax == 1:
-            qy = y + sgn
-        else:
-            qz = z + sgn
-        if qx < 0 or qy < 0 or qz < 0 or qx >= nx or qy >= ny or qz >= nz:
-            continue
         w = vals[qz, qy, qx] - iso
         insq = (w >= 0) if above else (w < 0)
         if insq == ins:
@@ -183,42 +194,25 @@ def _seeds(vals, iso, above, hs, offsets, fill, ids, cps, origin, z0, z1):
             offsets[z] = cnt
 
 @nb.njit(cache=True, nogil=True, inline="always")
-def _envelope_idx(f, fi, n, h2, v, zb, outd, outi):
+def _envelope_idx(f, fi, n, h2, v, g, zb, plane, pids, c):
+    # The lower envelope of the parabolas h2 (p - q)^2 + f[q] (an infinite f[q]: no
+    # seed there): its value and the seed id fi of its lowest parabola at every p, into
+    # column c of plane and pids.
     k = -1
-    s = 0.0
     for q in range(n):
-        if f[q] == np.inf:
-            continue
-        if k < 0:
-            k = 0
-            v[0] = q
-            zb[0] = -np.inf
-            zb[1] = np.inf
-            continue
-        while True:
-            r = v[k]
-            s = ((f[q] + h2 * q * q) - (f[r] + h2 * r * r)) / (2.0 * h2 * (q - r))
-            if s <= zb[k]:
-                k -= 1
-                if k < 0:
-                    break
-            else:
-                break
-        k += 1
-        v[k] = q
-        zb[k] = -np.inf if k == 0 else s
-        zb[k + 1] = np.inf
+        if f[q] != np.inf:
+            k = add_parabola(k, q, f[q], h2, v, g, zb)
     if k < 0:
         for p in range(n):
-            outd[p] = np.inf
-            outi[p] = -1
+            plane[p, c] = np.inf
+            pids[p, c] = -1
         return
     j = 0
     for p in range(n):
         while zb[j + 1] < p:
             j += 1
         r = v[j]
-        best = h2 * (p - r) * (p - r) + f[r]
+        best = h2 * (p - r) * (p - r) + g[j]
         bi = fi[r]
         # at a breakpoint the neighbouring parabolas can tie with this one, and which one
         # the rounding of the breakpoint picks depends on where the line starts (a block's
@@ -227,12 +221,13 @@ def _envelope_idx(f, fi, n, h2, v, zb, outd, outi):
         for jj in (j - 1, j + 1):
             if 0 <= jj <= k:
                 r2 = v[jj]
-                d2 = h2 * (p - r2) * (p - r2) + f[r2]
+                d2 = h2 * (p - r2) * (p - r2) + g[jj]
                 if d2 < best or (d2 == best and fi[r2] < bi):
                     best = d2
                     bi = fi[r2]
-        outd[p] = best
-        outi[p] = bi
+        plane[p, c] = best
+        pids[p, c] = bi
+
 
 @nb.njit(cache=True, nogil=True)
 def _feature_x(ids, hx, dist, z0, z1):
@@ -294,21 +289,13 @@ def _feature_z(ids, hz, dist, y0, y1):
 
 @nb.njit(cache=True, nogil=True, inline="always")
 def _feature_plane(plane, pids, m, n, h2):
-    # nearest-seed envelope along axis 0 of an (n, m) plane, column by column
+    # nearest-seed envelope along axis 0 of an (n, m) plane, column by column, in place
     f = np.empty(n, np.float64)
     fi = np.empty(n, np.int64)
-    od = np.empty(n, np.float64)
-    oi = np.empty(n, np.int64)
-    v = np.empty(n, np.int64)
-    zb = np.empty(n + 1, np.float64)
+    v, g, zb = new_envelope(n)
     for c in range(m):
-        for i in range(n):
-            f[i] = plane[i, c]
-            fi[i] = pids[i, c]
-        _envelope_idx(f, fi, n, h2, v, zb, od, oi)
-        for i in range(n):
-            plane[i, c] = od[i]
-            pids[i, c] = oi[i]
+        column(plane, pids, c, f, fi)
+        _envelope_idx(f, fi, n, h2, v, g, zb, plane, pids, c)
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -343,33 +330,9 @@ def _finish(vals, iso, above, hs, r0, eps, ids, new_ids, cps, out, origin, z0, z
                     best = _disc_d2(x + ox, y + oy, z + oz, bid, cps, hs, r0)
                 own = bid
                 for k in range(6):
-                    qx = x
-                    qy = y
-                    qz = z
-                    if k == 0:
-                        if x == 0:
-                            continue
-                        qx = x - 1
-                    elif k == 1:
-                        if x == nx - 1:
-                            continue
-                        qx = x + 1
-                    elif k == 2:
-                        if y == 0:
-                            continue
-                        qy = y - 1
-                    elif k == 3:
-                        if y == ny - 1:
-                            continue
-                        qy = y + 1
-                    elif k == 4:
-                        if z == 0:
-                            continue
-                        qz = z - 1
-                    else:
-                        if z == nz - 1:
-                            continue
-                        qz = z + 1
+                    on, qz, qy, qx = _neighbour(k, z, y, x, nz, ny, nx)
+                    if not on:
+                        continue
                     s = ids[qz, qy, qx]
                     if s < 0 or s == own or s == bid:
                         continue

@@ -131,6 +131,19 @@ def note_input(file) -> None:
     run_files().inputs.add((st.st_dev, st.st_ino))
 
 
+def open_input(path: Path, where: str):
+    """Open ``path`` to read (binary), recorded as an input of this run (:func:`note_input`).
+
+    A file that cannot be opened is a FormatError naming it (``where``).
+    """
+    try:
+        fh = open(path, "rb")
+    except OSError as exc:
+        raise FormatError(f"{where}: cannot open ({exc.strerror})") from None
+    note_input(fh)  # a detached header's data file may then be rewritten with it
+    return fh
+
+
 def open_data_file(header: Path, path: Path, where: str):
     """Open a detached header's data file for reading, refusing one outside its folder.
 
@@ -156,6 +169,79 @@ def open_data_file(header: Path, path: Path, where: str):
         raise FormatError(f"{where}: data file {str(path)!r}: {exc.strerror}") from None
     note_input(fh)
     return fh
+
+
+def pattern_numbers(fmt: str, words: list[str], what: str, where: str) -> list[int]:
+    """The whole numbers (``<min> <max> <step>``) after a data file pattern ``fmt``.
+
+    ``what``: the header field, as errors name it (``'data file'``, ``ElementDataFile``).
+    """
+    try:
+        return [int(v) for v in words]
+    except ValueError:
+        raise FormatError(f"{where}: {what} pattern needs whole numbers <min> <max> <step> "
+                          f"after {fmt!r}, got {' '.join(words)!r}") from None
+
+
+def pattern_count(lo: int, hi: int, step: int, what: str, where: str) -> int:
+    """How many files a data file pattern's ``lo``, ``hi``, ``step`` name (``hi`` included)."""
+    if step == 0:
+        raise FormatError(f"{where}: {what} pattern has step 0")
+    if (hi - lo) * step < 0:
+        raise FormatError(f"{where}: {what} pattern: max {hi} is not reached from min {lo} by "
+                          f"step {step}")
+    return (hi - lo) // step + 1
+
+
+def pattern_files(base: Path, fmt: str, lo: int, step: int, n: int, what: str,
+                  where: str) -> list[Path]:
+    """The ``n`` data files ``fmt % i`` (``i`` from ``lo`` by ``step``) in the folder ``base``."""
+    try:
+        return [base / (fmt % i) for i in range(lo, lo + n * step, step)]
+    except (TypeError, ValueError) as exc:
+        raise FormatError(f"{where}: {what} pattern {fmt!r} is not a file name with one %d "
+                          f"({exc})") from None
+
+
+def read_data_files(header: Path, files: list[Path], count: int, where: str, read):
+    """The ``count`` samples of a detached header's data ``files``, in equal parts, in order.
+
+    ``read(fh, n, name)``: ``n`` samples of the open data file ``name``. Each file
+    is opened by :func:`open_data_file` (inside the header's folder).
+    """
+    per_file = count // len(files) if files else 0
+    if not files or per_file * len(files) != count:
+        raise FormatError(f"{where}: {len(files)} data files do not divide {count} samples")
+    chunks = []
+    for f in files:
+        with open_data_file(header, f, where) as fh:
+            chunks.append(read(fh, per_file, str(f)))
+    return np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
+
+
+def write_with_header(path: Path, header: bytes, write_samples, *,
+                      data_path: Path | None = None, referenced=None) -> None:
+    """Write a header and its samples (``write_samples(fh)``), atomically.
+
+    Both in one file ``path``, the samples after the header; or, with
+    ``data_path``, a detached header ``path`` and its data file, renamed
+    together (:func:`~volwarp_cli.io.atomic.atomic_outputs`) after
+    :func:`check_data_output` (``referenced``: the data files an existing
+    header names).
+    """
+    from .atomic import atomic_output, atomic_outputs
+
+    if data_path is None:
+        with atomic_output(path) as tmp:
+            with open(tmp, "wb") as fh:
+                fh.write(header)
+                write_samples(fh)
+        return
+    check_data_output(data_path, path, referenced)
+    with atomic_outputs(data_path, path) as (tmp_data, tmp_header):
+        with open(tmp_data, "wb") as fh:
+            write_samples(fh)
+        tmp_header.write_bytes(header)
 
 
 def check_data_output(data_path: Path, header_path: Path, referenced) -> None:

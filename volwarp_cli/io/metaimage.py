@@ -36,20 +36,22 @@ import numpy as np
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..volume import LPS, Volume, xyz_to_zyx
-from .atomic import atomic_output, atomic_outputs
 from .common import (
     ascii_values,
-    check_data_output,
     check_dtype,
     ensure_fits_in_memory,
     make_volume,
     native,
-    note_input,
-    open_data_file,
+    open_input,
+    pattern_count,
+    pattern_files,
+    pattern_numbers,
+    read_data_files,
     read_exact,
     read_gzip_exact,
     voxel_count,
     with_byte_order,
+    write_with_header,
 )
 from .deflate import zlib_bytes
 
@@ -188,12 +190,7 @@ def read_metaimage(path: str | os.PathLike, volume_index: int | None = None) -> 
     """
     path = Path(path)
     where = str(path)
-    try:
-        fh = open(path, "rb")
-    except OSError as exc:
-        raise FormatError(f"{where}: cannot open ({exc.strerror})") from None
-    note_input(fh)  # a detached header's data file may then be rewritten with it
-    with fh:
+    with open_input(path, where) as fh:
         pairs = read_header(fh, where)
         fields: dict[str, tuple[str, str]] = {}  # canonical key -> (name in file, value)
         for key, value in pairs:
@@ -239,13 +236,9 @@ def read_metaimage(path: str | os.PathLike, volume_index: int | None = None) -> 
         if spec in ("LOCAL", "Local", "local"):
             data = _read_piece(fh, layout, count, where, local=True)
         else:
-            files = _data_files(spec, path, fh, where, sizes)
-            per_file = count // len(files)
-            chunks = []
-            for f in files:
-                with open_data_file(path, f, where) as dfh:
-                    chunks.append(_read_piece(dfh, layout, per_file, str(f), local=False))
-            data = np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
+            data = read_data_files(
+                path, _data_files(spec, path, fh, where, sizes), count, where,
+                lambda dfh, n, name: _read_piece(dfh, layout, n, name, local=False))
     shape = xyz_to_zyx(sizes) + ((channels,) if channels > 1 else ())
     data = data.reshape(shape)
     for axis, index in select:
@@ -420,31 +413,18 @@ def _data_files(spec: str, header_path: Path, fh, where: str, sizes: list[int]) 
                               f"got {spec!r}")
         else:
             fmt, nums = words[0], words[1:]
-        try:
-            vals = [int(v) for v in nums]
-        except ValueError:
-            raise FormatError(f"{where}: ElementDataFile pattern needs whole numbers <min> "
-                              f"<max> <step> after {fmt!r}, got {' '.join(nums)!r}") from None
+        vals = pattern_numbers(fmt, nums, "ElementDataFile", where)
         if len(vals) == 3:
             lo, hi, step = vals
         else:
             lo = vals[0] if vals else 1
             hi, step = lo + slow - 1, 1
-        if step == 0:
-            raise FormatError(f"{where}: ElementDataFile pattern has step 0")
-        if (hi - lo) * step < 0:
-            raise FormatError(f"{where}: ElementDataFile pattern: max {hi} is not reached "
-                              f"from min {lo} by step {step}")
-        n = (hi - lo) // step + 1
+        n = pattern_count(lo, hi, step, "ElementDataFile", where)
         if n != slow:
             raise FormatError(f"{where}: ElementDataFile pattern names {n} "
                               f"file{'s' if n != 1 else ''} ({lo}..{hi} step {step}), but "
                               f"the slowest axis of DimSize has {slow} slices")
-        try:
-            return [base / (fmt % i) for i in range(lo, lo + n * step, step)]
-        except (TypeError, ValueError) as exc:
-            raise FormatError(f"{where}: ElementDataFile pattern {fmt!r} is not a file name "
-                              f"with one %d ({exc})") from None
+        return pattern_files(base, fmt, lo, step, n, "ElementDataFile", where)
     return [base / spec]
 
 
@@ -571,17 +551,9 @@ def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = Fa
                 name != name.strip()):
             raise VolwarpError(f"{path}: a MetaImage data file cannot be named {name!r} "
                                "(it would read as a LIST, a pattern or LOCAL)")
-        header = metaimage_header(vol, dtype, byte_order=byte_order, data_file=name,
-                                  compressed_size=size)
-        check_data_output(data_path, path, _referenced_data_files)
-        with atomic_outputs(data_path, path) as (tmp_data, tmp_header):
-            with open(tmp_data, "wb") as fh:
-                fh.write(payload)
-            tmp_header.write_bytes(header)
-        return
-    header = metaimage_header(vol, dtype, byte_order=byte_order, data_file="LOCAL",
+    else:
+        data_path, name = None, "LOCAL"
+    header = metaimage_header(vol, dtype, byte_order=byte_order, data_file=name,
                               compressed_size=size)
-    with atomic_output(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(header)
-            fh.write(payload)
+    write_with_header(path, header, lambda fh: fh.write(payload), data_path=data_path,
+                      referenced=_referenced_data_files)

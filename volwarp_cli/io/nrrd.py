@@ -28,20 +28,22 @@ import numpy as np
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..volume import Volume, frame_to_lps, xyz_to_zyx
-from .atomic import atomic_output, atomic_outputs
 from .common import (
     ascii_values,
-    check_data_output,
     check_dtype,
     ensure_fits_in_memory,
     make_volume,
     native,
-    note_input,
-    open_data_file,
+    open_input,
+    pattern_count,
+    pattern_files,
+    pattern_numbers,
+    read_data_files,
     read_exact,
     read_gzip_exact,
     voxel_count,
     with_byte_order,
+    write_with_header,
 )
 from .deflate import gzip_bytes
 from .mapped import guard
@@ -342,25 +344,11 @@ def _data_files(fields: dict[str, str], header_path: Path, fh, where: str, sizes
         return names
     if len(parts) >= 4 and "%" in parts[0]:
         fmt = parts[0]
-        try:
-            lo, hi, step = int(parts[1]), int(parts[2]), int(parts[3])
-        except ValueError:
-            raise FormatError(f"{where}: 'data file' pattern needs whole numbers "
-                              f"<min> <max> <step> after {fmt!r}, got {' '.join(parts[1:4])!r}"
-                              ) from None
+        lo, hi, step = pattern_numbers(fmt, parts[1:4], "'data file'", where)
         subdim = _subdim(parts[4:], sizes, where, fmt)
-        if step == 0:
-            raise FormatError(f"{where}: 'data file' pattern has step 0")
-        if (hi - lo) * step < 0:
-            raise FormatError(f"{where}: 'data file' pattern: max {hi} is not reached from "
-                              f"min {lo} by step {step}")
-        n = (hi - lo) // step + 1
+        n = pattern_count(lo, hi, step, "'data file'", where)
         _check_file_count(n, subdim, sizes, where)
-        try:
-            return [base / (fmt % i) for i in range(lo, lo + n * step, step)]
-        except (TypeError, ValueError) as exc:
-            raise FormatError(f"{where}: 'data file' pattern {fmt!r} is not a file name "
-                              f"with one %d ({exc})") from None
+        return pattern_files(base, fmt, lo, step, n, "'data file'", where)
     return [base / spec]
 
 
@@ -422,12 +410,7 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
     """
     path = Path(path)
     where = str(path)
-    try:
-        fh = open(path, "rb")
-    except OSError as exc:
-        raise FormatError(f"{where}: cannot open ({exc.strerror})") from None
-    note_input(fh)  # a detached header's data file may then be rewritten with it
-    with fh:
+    with open_input(path, where) as fh:
         fields, keyvals = read_header(fh, where)
         for req in ("type", "dimension", "sizes", "encoding"):
             if req not in fields:
@@ -478,15 +461,10 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
             data = _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where,
                               exact_end=True, mmap=mmap)
         else:
-            chunks = []
-            per_file = count // len(files) if files else 0
-            if not files or per_file * len(files) != count:
-                raise FormatError(f"{where}: {len(files)} data files do not divide {count} samples")
-            for f in files:
-                with open_data_file(path, f, where) as dfh:
-                    chunks.append(_read_data(dfh, file_dtype, per_file, encoding, lineskip,
-                                             byteskip, str(f), exact_end=True))
-            data = np.concatenate(chunks) if len(chunks) > 1 else chunks[0]
+            data = read_data_files(
+                path, files, count, where,
+                lambda dfh, n, name: _read_data(dfh, file_dtype, n, encoding, lineskip,
+                                                byteskip, name, exact_end=True))
     meta = dict(keyvals)
     if comp_axis is not None:
         index = component or 0
@@ -730,20 +708,12 @@ def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
     data = vol.data if components is None else np.stack(components, axis=-1)
     dtype = check_dtype(data.dtype, str(path))
     payload = with_byte_order(data, byte_order)
+    data_path = None
     if path.suffix.lower() == ".nhdr":
         data_path = path.with_suffix(".raw.gz" if compress else ".raw")
-        header = nrrd_header(vol, dtype, encoding=encoding, byte_order=byte_order,
-                             data_file=data_path.name, components=component_names)
-        check_data_output(data_path, path, _referenced_data_files)
-        with atomic_outputs(data_path, path) as (tmp_data, tmp_header):
-            with open(tmp_data, "wb") as fh:
-                _write_payload(fh, payload, encoding, level)
-            tmp_header.write_bytes(header)
-        return
     header = nrrd_header(vol, dtype, encoding=encoding, byte_order=byte_order,
+                         data_file=None if data_path is None else data_path.name,
                          components=component_names)
-    with atomic_output(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(header)
-            _write_payload(fh, payload, encoding, level)
+    write_with_header(path, header, lambda fh: _write_payload(fh, payload, encoding, level),
+                      data_path=data_path, referenced=_referenced_data_files)
 

@@ -117,6 +117,36 @@ def _cell(p, n):
     return i0, i1, f
 
 
+@njit(cache=True, inline="always")
+def _clip_to_slab(p, d, n, t0, t1):
+    """The part ``[t0, t1]`` of the ray ``p + t d`` (one axis) between samples 0 and n - 1."""
+    if abs(d) < 1e-12:
+        if p < 0.0 or p > n - 1:
+            t1 = -1.0
+    else:
+        ta = (0.0 - p) / d
+        tb = (n - 1 - p) / d
+        if ta > tb:
+            ta, tb = tb, ta
+        if ta > t0:
+            t0 = ta
+        if tb < t1:
+            t1 = tb
+    return t0, t1
+
+
+@njit(cache=True, inline="always")
+def _block_exit(p, d, bi, B, te):
+    """The lesser of ``te`` and where the ray ``p + t d`` (one axis) leaves block ``bi``."""
+    if d > 1e-12:
+        tt = ((bi + 1) * B - p) / d
+    elif d < -1e-12:
+        tt = (bi * B - p) / d
+    else:
+        tt = 1e300
+    return tt if tt < te else te
+
+
 @njit(cache=True)
 def _march_row(row, op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze, first, bmax, B,
                spacing, centre, fwd, right, up, half_w, half_h, pix, radius, hstep, step, light,
@@ -135,27 +165,9 @@ def _march_row(row, op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze
         py = oy / spacing[1]
         pz = oz / spacing[2]
         # slab intersection with the box of voxel centres
-        t0 = 0.0
-        t1 = 3.0 * radius
-        for ax in range(3):
-            if ax == 0:
-                p, d, n = px, dx, nx
-            elif ax == 1:
-                p, d, n = py, dy, ny
-            else:
-                p, d, n = pz, dz, nz
-            if abs(d) < 1e-12:
-                if p < 0.0 or p > n - 1:
-                    t1 = -1.0
-            else:
-                ta = (0.0 - p) / d
-                tb = (n - 1 - p) / d
-                if ta > tb:
-                    ta, tb = tb, ta
-                if ta > t0:
-                    t0 = ta
-                if tb < t1:
-                    t1 = tb
+        t0, t1 = _clip_to_slab(px, dx, nx, 0.0, 3.0 * radius)
+        t0, t1 = _clip_to_slab(py, dy, ny, t0, t1)
+        t0, t1 = _clip_to_slab(pz, dz, nz, t0, t1)
         if first:
             cr = 0.0
             cg = 0.0
@@ -185,22 +197,9 @@ def _march_row(row, op, cr_, cg_, cb_, const_col, grad, zoff, nz, ny, nx, zs, ze
             bzi = min(max(int(z) // B, 0), bmax.shape[0] - 1)
             if bmax[bzi, byi, bxi] <= 0.0:
                 # skip to where the ray leaves this block
-                te = 1e300
-                for ax in range(3):
-                    if ax == 0:
-                        p, d, bi = x, dx, bxi
-                    elif ax == 1:
-                        p, d, bi = y, dy, byi
-                    else:
-                        p, d, bi = z, dz, bzi
-                    if d > 1e-12:
-                        tt = ((bi + 1) * B - p) / d
-                    elif d < -1e-12:
-                        tt = (bi * B - p) / d
-                    else:
-                        tt = 1e300
-                    if tt < te:
-                        te = tt
+                te = _block_exit(x, dx, bxi, B, 1e300)
+                te = _block_exit(y, dy, byi, B, te)
+                te = _block_exit(z, dz, bzi, B, te)
                 k = math.ceil((te + 1e-6) / hstep)
                 if k < 1:
                     k = 1

@@ -48,6 +48,8 @@ _MAX_FLOAT = float(np.finfo(np.float64).max)
 _BINOPS = {ast.Add: np.add, ast.Sub: np.subtract, ast.Mult: np.multiply,
            ast.Div: np.divide, ast.Pow: np.power, ast.Mod: np.mod}
 _UNARY = {ast.USub: np.negative, ast.UAdd: np.positive}
+#: the operators of each operator node, and how a refusal lists them
+_OPERATORS = {ast.BinOp: (_BINOPS, "+ - * / ** %"), ast.UnaryOp: (_UNARY, "unary - and +")}
 #: what the checker calls each refused construct, with its verb (so that the message's
 #: grammar does not depend on how the words happen to end)
 _NODE_WORDS = {
@@ -287,18 +289,14 @@ def _check(node, path, doc, text) -> None:
             _raise(doc, path, f"unknown name {node.id!r}{where} (allowed: u, pi and the "
                    f"functions {' '.join(ALLOWED_FUNCTIONS)})")
         return
-    if isinstance(node, ast.BinOp):
-        if type(node.op) not in _BINOPS:
+    if type(node) in _OPERATORS:
+        allowed, words = _OPERATORS[type(node)]
+        if type(node.op) not in allowed:
             _raise(doc, path, f"operator {_operator(node.op)} is not allowed{where} "
-                   "(allowed: + - * / ** %)")
-        _check(node.left, path, doc, text)
-        _check(node.right, path, doc, text)
-        return
-    if isinstance(node, ast.UnaryOp):
-        if type(node.op) not in _UNARY:
-            _raise(doc, path, f"operator {_operator(node.op)} is not allowed{where} "
-                   "(allowed: unary - and +)")
-        _check(node.operand, path, doc, text)
+                   f"(allowed: {words})")
+        for operand in ast.iter_child_nodes(node):  # (left and right, or the operand)
+            if isinstance(operand, ast.expr):
+                _check(operand, path, doc, text)
         return
     if isinstance(node, ast.Call):
         if not isinstance(node.func, ast.Name):

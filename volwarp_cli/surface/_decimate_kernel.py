@@ -23,6 +23,8 @@ import math
 import numpy as np
 from numba import njit
 
+from ._kernels import cross, offset, triangle_normal
+
 
 @njit(cache=True, nogil=True)
 def _quadric_error(q, x, y, z):
@@ -70,16 +72,7 @@ def _edge_cost(quadrics, verts, i0, i1, q, p):
 @njit(cache=True, nogil=True)
 def _face_update(verts, faces, t, normals, errors, quadrics, q, p):
     """Recompute triangle ``t``'s normal and its three edge costs."""
-    a, b, c = faces[t, 0], faces[t, 1], faces[t, 2]
-    ux = verts[b, 0] - verts[a, 0]
-    uy = verts[b, 1] - verts[a, 1]
-    uz = verts[b, 2] - verts[a, 2]
-    vx = verts[c, 0] - verts[a, 0]
-    vy = verts[c, 1] - verts[a, 1]
-    vz = verts[c, 2] - verts[a, 2]
-    nx = uy * vz - uz * vy
-    ny = uz * vx - ux * vz
-    nz = ux * vy - uy * vx
+    nx, ny, nz = triangle_normal(verts, faces[t, 0], faces[t, 1], faces[t, 2])
     length = math.sqrt(nx * nx + ny * ny + nz * nz)
     if length > 0.0:
         nx /= length
@@ -126,12 +119,8 @@ def _flipped(verts, faces, normals, deleted, refs_t, refs_v, start, count, i_oth
         id2 = faces[t, (s + 2) % 3]
         if id1 == i_other or id2 == i_other:
             continue  # this triangle disappears with the collapse
-        d1x = verts[id1, 0] - p[0]
-        d1y = verts[id1, 1] - p[1]
-        d1z = verts[id1, 2] - p[2]
-        d2x = verts[id2, 0] - p[0]
-        d2y = verts[id2, 1] - p[1]
-        d2z = verts[id2, 2] - p[2]
+        d1x, d1y, d1z = offset(verts, id1, p)
+        d2x, d2y, d2z = offset(verts, id2, p)
         l1 = math.sqrt(d1x * d1x + d1y * d1y + d1z * d1z)
         l2 = math.sqrt(d2x * d2x + d2y * d2y + d2z * d2z)
         if l1 == 0.0 or l2 == 0.0:
@@ -144,9 +133,7 @@ def _flipped(verts, faces, normals, deleted, refs_t, refs_v, start, count, i_oth
         d2z /= l2
         if abs(d1x * d2x + d1y * d2y + d1z * d2z) > 0.999:
             return True
-        nx = d1y * d2z - d1z * d2y
-        ny = d1z * d2x - d1x * d2z
-        nz = d1x * d2y - d1y * d2x
+        nx, ny, nz = cross(d1x, d1y, d1z, d2x, d2y, d2z)
         ln = math.sqrt(nx * nx + ny * ny + nz * nz)
         if ln == 0.0:
             return True

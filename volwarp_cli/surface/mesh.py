@@ -93,42 +93,6 @@ class Mesh:
         return n
 
 
-def _normals_kernel():
-    import numba
-
-    @numba.njit(cache=True, nogil=True)
-    def accumulate(vertices, faces, out):
-        # Each triangle adds its (area-weighted) cross product to its corners.
-        for t in range(faces.shape[0]):
-            a = faces[t, 0]
-            b = faces[t, 1]
-            c = faces[t, 2]
-            ux = vertices[b, 0] - vertices[a, 0]
-            uy = vertices[b, 1] - vertices[a, 1]
-            uz = vertices[b, 2] - vertices[a, 2]
-            vx = vertices[c, 0] - vertices[a, 0]
-            vy = vertices[c, 1] - vertices[a, 1]
-            vz = vertices[c, 2] - vertices[a, 2]
-            nx = uy * vz - uz * vy
-            ny = uz * vx - ux * vz
-            nz = ux * vy - uy * vx
-            for k in (a, b, c):
-                out[k, 0] += nx
-                out[k, 1] += ny
-                out[k, 2] += nz
-        for i in range(out.shape[0]):
-            s = (out[i, 0] ** 2 + out[i, 1] ** 2 + out[i, 2] ** 2) ** 0.5
-            if s > 0:
-                out[i, 0] /= s
-                out[i, 1] /= s
-                out[i, 2] /= s
-
-    return accumulate
-
-
-_KERNELS: dict = {}
-
-
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals, (N, 3) float32.
 
@@ -141,7 +105,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     out = np.zeros(vertices.shape, dtype=np.float64)
     if len(faces):
-        if "normals" not in _KERNELS:
-            _KERNELS["normals"] = _normals_kernel()
-        _KERNELS["normals"](vertices, faces, out)
+        from ._kernels import vertex_normals as kernel
+
+        kernel(vertices, faces, out)
     return out.astype(np.float32)

@@ -7,48 +7,13 @@ from .topology import is_closed, topology
 
 __all__ = ["surface_area", "enclosed_volume", "is_closed", "mesh_stats"]
 
-_KERNELS: dict = {}
-
-
-def _sums_kernel():
-    import numba
-
-    @numba.njit(cache=True, nogil=True)
-    def face_sums(vertices, faces, center):
-        area = 0.0
-        volume = 0.0
-        for t in range(faces.shape[0]):
-            a = faces[t, 0]
-            b = faces[t, 1]
-            c = faces[t, 2]
-            ax = vertices[a, 0] - center[0]
-            ay = vertices[a, 1] - center[1]
-            az = vertices[a, 2] - center[2]
-            bx = vertices[b, 0] - center[0]
-            by = vertices[b, 1] - center[1]
-            bz = vertices[b, 2] - center[2]
-            cx = vertices[c, 0] - center[0]
-            cy = vertices[c, 1] - center[1]
-            cz = vertices[c, 2] - center[2]
-            ux, uy, uz = bx - ax, by - ay, bz - az
-            vx, vy, vz = cx - ax, cy - ay, cz - az
-            nx = uy * vz - uz * vy
-            ny = uz * vx - ux * vz
-            nz = ux * vy - uy * vx
-            area += (nx * nx + ny * ny + nz * nz) ** 0.5
-            volume += ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
-        return 0.5 * area, volume / 6.0
-
-    return face_sums
-
-
 def _face_sums(mesh: Mesh) -> tuple[float, float]:
     if mesh.is_empty:
         return 0.0, 0.0
-    if "sums" not in _KERNELS:
-        _KERNELS["sums"] = _sums_kernel()
+    from ._kernels import face_sums
+
     center = 0.5 * (mesh.vertices.min(axis=0) + mesh.vertices.max(axis=0))
-    area, volume = _KERNELS["sums"](mesh.vertices, mesh.faces, center)
+    area, volume = face_sums(mesh.vertices, mesh.faces, center)
     return float(area), float(volume)
 
 

@@ -26,18 +26,22 @@ FOUND, NO_INVERSE, FOLDED = 0, 1, 2
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _basis(t, w, dw):
+def _basis(t, w, dw, axis):
+    """The cubic B-spline weights ``w[axis]`` and their derivatives ``dw[axis]`` at ``t``.
+
+    ``w``, ``dw``: (3, 4) arrays, a row per axis (x, y, z).
+    """
     u = 1.0 - t
     t2 = t * t
     t3 = t2 * t
-    w[0] = u * u * u / 6.0
-    w[1] = (4.0 - 6.0 * t2 + 3.0 * t3) / 6.0
-    w[2] = (1.0 + 3.0 * t + 3.0 * t2 - 3.0 * t3) / 6.0
-    w[3] = t3 / 6.0
-    dw[0] = -0.5 * u * u
-    dw[1] = (-12.0 * t + 9.0 * t2) / 6.0
-    dw[2] = (3.0 + 6.0 * t - 9.0 * t2) / 6.0
-    dw[3] = 0.5 * t2
+    w[axis, 0] = u * u * u / 6.0
+    w[axis, 1] = (4.0 - 6.0 * t2 + 3.0 * t3) / 6.0
+    w[axis, 2] = (1.0 + 3.0 * t + 3.0 * t2 - 3.0 * t3) / 6.0
+    w[axis, 3] = t3 / 6.0
+    dw[axis, 0] = -0.5 * u * u
+    dw[axis, 1] = (-12.0 * t + 9.0 * t2) / 6.0
+    dw[axis, 2] = (3.0 + 6.0 * t - 9.0 * t2) / 6.0
+    dw[axis, 3] = 0.5 * t2
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -52,72 +56,48 @@ def _cell(s, regions):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _spline(dq, s, regions, val, jac, wx, wy, wz, dx, dy, dz):
-    """val[m] = sum B dq[..., m] at parameters s; jac[m, axis] = d val[m] / d s[axis]."""
+def _add3(w, q0, q1, q2, a0, a1, a2):
+    """``a + w q`` of 3-vectors held as scalars.
+
+    (Array ones would be stored to memory on every term.)
+    """
+    return a0 + w * q0, a1 + w * q1, a2 + w * q2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _spline(dq, s, regions, val, jac, w, dw):
+    """val[m] = sum B dq[..., m] at parameters s; jac[m, axis] = d val[m] / d s[axis].
+
+    ``w``, ``dw``: (3, 4) scratch for the weights (:func:`_basis`).
+    """
     a0 = _cell(s[0], regions[0])
     a1 = _cell(s[1], regions[1])
     a2 = _cell(s[2], regions[2])
-    _basis(s[0] - a0, wx, dx)
-    _basis(s[1] - a1, wy, dy)
-    _basis(s[2] - a2, wz, dz)
-    # scalar accumulators (array ones would be stored to memory on every term)
-    v0 = 0.0
-    v1 = 0.0
-    v2 = 0.0
-    j00 = 0.0
-    j01 = 0.0
-    j02 = 0.0
-    j10 = 0.0
-    j11 = 0.0
-    j12 = 0.0
-    j20 = 0.0
-    j21 = 0.0
-    j22 = 0.0
+    _basis(s[0] - a0, w, dw, 0)
+    _basis(s[1] - a1, w, dw, 1)
+    _basis(s[2] - a2, w, dw, 2)
+    # the value and its derivatives along x, y, z: jac's columns
+    v0 = v1 = v2 = 0.0
+    j00 = j10 = j20 = j01 = j11 = j21 = j02 = j12 = j22 = 0.0
     for k in range(4):
         for j in range(4):
-            ax0 = 0.0
-            ax1 = 0.0
-            ax2 = 0.0
-            dx0 = 0.0
-            dx1 = 0.0
-            dx2 = 0.0
+            ax0 = ax1 = ax2 = 0.0  # the row's value and its x derivative
+            dx0 = dx1 = dx2 = 0.0
             for i in range(4):
                 q0 = dq[a2 + k, a1 + j, a0 + i, 0]
                 q1 = dq[a2 + k, a1 + j, a0 + i, 1]
                 q2 = dq[a2 + k, a1 + j, a0 + i, 2]
-                ax0 += wx[i] * q0
-                ax1 += wx[i] * q1
-                ax2 += wx[i] * q2
-                dx0 += dx[i] * q0
-                dx1 += dx[i] * q1
-                dx2 += dx[i] * q2
-            wyz = wy[j] * wz[k]
-            dyz = dy[j] * wz[k]
-            ydz = wy[j] * dz[k]
-            v0 += wyz * ax0
-            v1 += wyz * ax1
-            v2 += wyz * ax2
-            j00 += wyz * dx0
-            j10 += wyz * dx1
-            j20 += wyz * dx2
-            j01 += dyz * ax0
-            j11 += dyz * ax1
-            j21 += dyz * ax2
-            j02 += ydz * ax0
-            j12 += ydz * ax1
-            j22 += ydz * ax2
-    val[0] = v0
-    val[1] = v1
-    val[2] = v2
-    jac[0, 0] = j00
-    jac[0, 1] = j01
-    jac[0, 2] = j02
-    jac[1, 0] = j10
-    jac[1, 1] = j11
-    jac[1, 2] = j12
-    jac[2, 0] = j20
-    jac[2, 1] = j21
-    jac[2, 2] = j22
+                ax0, ax1, ax2 = _add3(w[0, i], q0, q1, q2, ax0, ax1, ax2)
+                dx0, dx1, dx2 = _add3(dw[0, i], q0, q1, q2, dx0, dx1, dx2)
+            wyz = w[1, j] * w[2, k]
+            v0, v1, v2 = _add3(wyz, ax0, ax1, ax2, v0, v1, v2)
+            j00, j10, j20 = _add3(wyz, dx0, dx1, dx2, j00, j10, j20)
+            j01, j11, j21 = _add3(dw[1, j] * w[2, k], ax0, ax1, ax2, j01, j11, j21)
+            j02, j12, j22 = _add3(w[1, j] * dw[2, k], ax0, ax1, ax2, j02, j12, j22)
+    val[0], val[1], val[2] = v0, v1, v2
+    jac[0, 0], jac[0, 1], jac[0, 2] = j00, j01, j02
+    jac[1, 0], jac[1, 1], jac[1, 2] = j10, j11, j12
+    jac[2, 0], jac[2, 1], jac[2, 2] = j20, j21, j22
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -125,6 +105,26 @@ def _det3(J):
     return (J[0, 0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1])
             - J[0, 1] * (J[1, 0] * J[2, 2] - J[1, 2] * J[2, 0])
             + J[0, 2] * (J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _map_jacobian(jac, h, J):
+    """``J`` = the map's Jacobian d(org + h s + val(s)) / ds = ``jac + diag(h)``; its det."""
+    for m in range(3):
+        for d in range(3):
+            J[m, d] = jac[m, d]
+        J[m, m] += h[m]
+    return _det3(J)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clip(v, regions):
+    """A parameter clipped to the extrapolation box ``[-0.5, regions + 0.5]``."""
+    if v < -0.5:
+        return -0.5
+    if v > regions + 0.5:
+        return regions + 0.5
+    return v
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -143,8 +143,7 @@ def _solve3(J, det, r, out):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _newton(dq, org, h, regions, y, s, iterations, tol, val, jac, J, r, step, new,
-            wx, wy, wz, dx, dy, dz):
+def _newton(dq, org, h, regions, y, s, iterations, tol, val, jac, J, r, step, new, w, dw):
     """Damped Newton for W(s) = org + h s + val(s) = y from ``s`` (updated in place).
 
     It is the reference's iteration step for step. Returns the residual (inf when
@@ -153,7 +152,7 @@ def _newton(dq, org, h, regions, y, s, iterations, tol, val, jac, J, r, step, ne
     """
     res = math.inf
     for _ in range(iterations):
-        _spline(dq, s, regions, val, jac, wx, wy, wz, dx, dy, dz)
+        _spline(dq, s, regions, val, jac, w, dw)
         res = 0.0
         for m in range(3):
             r[m] = org[m] + h[m] * s[m] + val[m] - y[m]
@@ -161,11 +160,7 @@ def _newton(dq, org, h, regions, y, s, iterations, tol, val, jac, J, r, step, ne
                 res = abs(r[m])
         if res < tol:
             return res, True
-        for m in range(3):
-            for d in range(3):
-                J[m, d] = jac[m, d]
-            J[m, m] += h[m]
-        det = _det3(J)
+        det = _map_jacobian(jac, h, J)
         if not abs(det) > 1e-12:
             return math.inf, False
         _solve3(J, det, r, step)
@@ -173,11 +168,7 @@ def _newton(dq, org, h, regions, y, s, iterations, tol, val, jac, J, r, step, ne
         scale = 1.0 if big <= 1.0 else 1.0 / big
         moved = 0.0
         for d in range(3):
-            v = s[d] - step[d] * scale
-            if v < -0.5:
-                v = -0.5
-            elif v > regions[d] + 0.5:
-                v = regions[d] + 0.5
+            v = _clip(s[d] - step[d] * scale, regions[d])
             if abs(v - s[d]) > moved:
                 moved = abs(v - s[d])
             new[d] = v
@@ -213,12 +204,8 @@ def invert_rows(dq, org, h, regions, shift, box_lo, box_hi, matrix, nx, ny, z0, 
     r = np.empty(3)
     step = np.empty(3)
     new = np.empty(3)
-    wx = np.empty(4)
-    wy = np.empty(4)
-    wz = np.empty(4)
-    dx = np.empty(4)
-    dy = np.empty(4)
-    dz = np.empty(4)
+    w = np.empty((3, 4))  # the B-spline weights along x, y, z, and their derivatives
+    dw = np.empty((3, 4))
     eps = 1e-9
     nan = np.float32(np.nan)
     for iz in range(z0, z1):
@@ -236,12 +223,7 @@ def invert_rows(dq, org, h, regions, shift, box_lo, box_hi, matrix, nx, ny, z0, 
                 if near:
                     # the reference's start: the identity's parameters, clipped
                     for d in range(3):
-                        v = (yv[d] - org[d]) / h[d]
-                        if v < -0.5:
-                            v = -0.5
-                        elif v > regions[d] + 0.5:
-                            v = regions[d] + 0.5
-                        start[d] = v
+                        start[d] = _clip((yv[d] - org[d]) / h[d], regions[d])
                     tried_start = False
                     if warm and have_prev:
                         for d in range(3):
@@ -249,18 +231,14 @@ def invert_rows(dq, org, h, regions, shift, box_lo, box_hi, matrix, nx, ny, z0, 
                             v = prev[d] + pred[d]
                             if have_prev > 1:
                                 v += 0.5 * (pred[d] - pred1[d])
-                            if v < -0.5:
-                                v = -0.5
-                            elif v > regions[d] + 0.5:
-                                v = regions[d] + 0.5
-                            s[d] = v
+                            s[d] = _clip(v, regions[d])
                     else:
                         for d in range(3):
                             s[d] = start[d]
                         tried_start = True
                     for _attempt in range(2):
-                        res, fresh = _newton(dq, org, h, regions, yv, s, iterations, tol, val, jac,
-                                      J, r, step, new, wx, wy, wz, dx, dy, dz)
+                        res, fresh = _newton(dq, org, h, regions, yv, s, iterations, tol, val,
+                                             jac, J, r, step, new, w, dw)
                         inside = True
                         for d in range(3):
                             if not (s[d] >= -eps and s[d] <= regions[d] + eps):
@@ -275,12 +253,8 @@ def invert_rows(dq, org, h, regions, shift, box_lo, box_hi, matrix, nx, ny, z0, 
                         tried_start = True
                 if st == FOUND:
                     if not fresh:
-                        _spline(dq, s, regions, val, jac, wx, wy, wz, dx, dy, dz)
-                    for m in range(3):
-                        for d in range(3):
-                            J[m, d] = jac[m, d]
-                        J[m, m] += h[m]
-                    det = _det3(J)
+                        _spline(dq, s, regions, val, jac, w, dw)
+                    det = _map_jacobian(jac, h, J)
                     if det <= 0.0:
                         st = FOLDED
                         have_prev = 0
@@ -314,21 +288,17 @@ def jacobian_rows(dq, org, h, regions, nx, ny, z0, z1, out):
     weights of a row contracted once per control column).
     """
     cx = dq.shape[2]
-    wx = np.empty(4)
-    wy = np.empty(4)
-    wz = np.empty(4)
-    dx = np.empty(4)
-    dy = np.empty(4)
-    dz = np.empty(4)
+    w = np.empty((3, 4))  # the B-spline weights along x, y, z, and their derivatives
+    dw = np.empty((3, 4))
     col = np.empty((3, cx, 3))  # [weight combination, control column, component]
     for iz in range(z0, z1):
         sz = (iz - org[2]) / h[2]
         c = _cell(sz, regions[2])
-        _basis(sz - c, wz, dz)
+        _basis(sz - c, w, dw, 2)
         for iy in range(ny):
             sy = (iy - org[1]) / h[1]
             b = _cell(sy, regions[1])
-            _basis(sy - b, wy, dy)
+            _basis(sy - b, w, dw, 1)
             for i in range(cx):
                 for m in range(3):
                     v = 0.0
@@ -337,36 +307,29 @@ def jacobian_rows(dq, org, h, regions, nx, ny, z0, z1, out):
                     for k in range(4):
                         for j in range(4):
                             q = dq[c + k, b + j, i, m]
-                            v += wy[j] * wz[k] * q
-                            vy += dy[j] * wz[k] * q
-                            vz += wy[j] * dz[k] * q
+                            v += w[1, j] * w[2, k] * q
+                            vy += dw[1, j] * w[2, k] * q
+                            vz += w[1, j] * dw[2, k] * q
                     col[0, i, m] = v
                     col[1, i, m] = vy / h[1]
                     col[2, i, m] = vz / h[2]
             for ix in range(nx):
                 sx = (ix - org[0]) / h[0]
                 a = _cell(sx, regions[0])
-                _basis(sx - a, wx, dx)
-                j00 = 1.0
-                j11 = 1.0
-                j22 = 1.0
-                j01 = 0.0
-                j02 = 0.0
-                j10 = 0.0
-                j12 = 0.0
-                j20 = 0.0
-                j21 = 0.0
+                _basis(sx - a, w, dw, 0)
+                # dF/dx = I + d(dq)/dx, its columns along x, y, z
+                j00, j10, j20 = 1.0, 0.0, 0.0
+                j01, j11, j21 = 0.0, 1.0, 0.0
+                j02, j12, j22 = 0.0, 0.0, 1.0
                 for i in range(4):
-                    ddx = dx[i] / h[0]
-                    w = wx[i]
-                    j00 += ddx * col[0, a + i, 0]
-                    j10 += ddx * col[0, a + i, 1]
-                    j20 += ddx * col[0, a + i, 2]
-                    j01 += w * col[1, a + i, 0]
-                    j11 += w * col[1, a + i, 1]
-                    j21 += w * col[1, a + i, 2]
-                    j02 += w * col[2, a + i, 0]
-                    j12 += w * col[2, a + i, 1]
-                    j22 += w * col[2, a + i, 2]
+                    ddx = dw[0, i] / h[0]
+                    wi = w[0, i]
+                    ai = a + i
+                    j00, j10, j20 = _add3(ddx, col[0, ai, 0], col[0, ai, 1], col[0, ai, 2],
+                                          j00, j10, j20)
+                    j01, j11, j21 = _add3(wi, col[1, ai, 0], col[1, ai, 1], col[1, ai, 2],
+                                          j01, j11, j21)
+                    j02, j12, j22 = _add3(wi, col[2, ai, 0], col[2, ai, 1], col[2, ai, 2],
+                                          j02, j12, j22)
                 out[iz, iy, ix] = (j00 * (j11 * j22 - j12 * j21) - j01 * (j10 * j22 - j12 * j20)
                                    + j02 * (j10 * j21 - j11 * j20))
