@@ -627,6 +627,7 @@ def _read_arguments(path, options: dict):
     format than ``path``'s is a usage error.
     """
     from .io import RawLayout, volume_format
+    from .io.common import dicom_read_options
 
     _check_keys(options)
     o = dict.fromkeys(READ_OPTIONS)
@@ -643,18 +644,9 @@ def _read_arguments(path, options: dict):
     elif o["raw_spacing"] or o["raw_origin"] or o["raw_header_bytes"]:
         raise BadUsage("--raw-spacing/--raw-origin/--raw-header-bytes need --raw-shape and "
                        "--raw-dtype")
-    dicom = {}
-    series = o["series"]
-    if series is not None:
-        dicom["series"] = int(series) if str(series).isdigit() else series
-    for key in ("irregular", "duplicates"):
-        if o[key] is not None:
-            dicom[key] = o[key]
-    for key in ("keep_shear", "keep_phi"):
-        if o[key]:
-            dicom[key] = True
-    dicom.update(_segmentation_arguments(o["reference"], o["segment"], o["structure"]))
-    dicom = dicom or None
+    dicom = dicom_read_options(o["series"], o["irregular"], o["duplicates"], o["keep_shear"],
+                               o["keep_phi"], **_segmentation_arguments(
+                                   o["reference"], o["segment"], o["structure"]))
     if raw is not None and not str(path).lower().endswith((".raw", ".bin")):
         raise BadUsage(f"--raw-* options describe headerless .raw/.bin inputs, not {path}")
     if dicom is not None and volume_format(path, reading=True) != "dicom":

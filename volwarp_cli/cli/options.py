@@ -138,6 +138,7 @@ from click.core import ParameterSource
 
 from ..errors import VolwarpError
 from ..io import FOLDER_FORMATS, SUPPORTED_DTYPES, RawLayout
+from ..io.common import dicom_read_options
 from ..progress import configure, log
 from ..runscope import run_files
 from .view_options import VIEW_HELP  # noqa: F401  (--view's help, for every command)
@@ -305,27 +306,6 @@ def output_option(help_text: str = "Output file (format by extension).", volume:
                         help=help_text, **extra)
 
 
-def _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi, reference=None,
-                   segment=None, structure=None) -> dict | None:
-    """The DICOM options given, as keyword arguments of ``read_dicom`` (None: none given)."""
-    given = {}
-    if series is not None:
-        given["series"] = int(series) if series.isdigit() else series
-    if irregular is not None:
-        given["irregular"] = irregular
-    if duplicates is not None:
-        given["duplicates"] = duplicates
-    if keep_shear:
-        given["keep_shear"] = True
-    if keep_phi:
-        given["keep_phi"] = True
-    for key, value in (("reference", reference), ("segment", segment),
-                       ("structure", structure)):
-        if value is not None:
-            given[key] = value
-    return given or None
-
-
 #: --reference's help in every command reading a volume (convert adds its output's meaning)
 REFERENCE_HELP = ("DICOM SEG or RTSTRUCT input: the image series (folder, DICOMDIR or file) it "
                   "lies on. RTSTRUCT: required, its ROIs are rasterised on that grid; SEG: "
@@ -362,8 +342,8 @@ def input_options(f=None, *, reference_help: str = REFERENCE_HELP):
                 keep_phi, allow_outside_data, reference, segment, structure, **kwargs):
         if takes_reference:
             kwargs["reference"] = reference
-        dicom = _dicom_choices(series, irregular, duplicates, keep_shear, keep_phi,
-                               None if takes_reference else reference, segment, structure)
+        dicom = dicom_read_options(series, irregular, duplicates, keep_shear, keep_phi,
+                                   None if takes_reference else reference, segment, structure)
         if allow_outside_data:  # this run's readers may open such data files (io.common)
             run_files().allow_outside_data = True
         layout = None

@@ -323,3 +323,25 @@ def is_number(token: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def dicom_read_options(series=None, irregular=None, duplicates=None, keep_shear=False,
+                       keep_phi=False, reference=None, segment=None,
+                       structure=None) -> dict | None:
+    """The DICOM read options given, as keyword arguments of ``read_dicom`` (None: none).
+
+    The command line's options and the Python API's keywords alike: a series
+    given as digits is its number, flags only when set.
+    """
+    given = {}
+    if series is not None:
+        given["series"] = int(series) if str(series).isdigit() else series
+    for key, value in (("irregular", irregular), ("duplicates", duplicates),
+                       ("reference", reference), ("segment", segment),
+                       ("structure", structure)):
+        if value is not None:
+            given[key] = value
+    for key, flag in (("keep_shear", keep_shear), ("keep_phi", keep_phi)):
+        if flag:
+            given[key] = True
+    return given or None
