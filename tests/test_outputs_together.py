@@ -90,3 +90,25 @@ def test_a_failing_warp_with_an_export_keeps_both_old_files(run, data_dir, tmp_p
     assert out.read_bytes() == b"an earlier result"
     assert field.read_bytes() == b"an earlier field"
     assert _names(tmp_path) == ["d.nrrd", "o.nrrd"]
+
+
+def test_a_rename_failing_at_the_end_leaves_no_temporary(tmp_path, monkeypatch):
+    """The renames made before it stand; the failed one's and the later ones' temporaries go."""
+    import os
+
+    real = os.replace
+    calls = []
+
+    def replace(src, dst):
+        calls.append(dst)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device", str(src))
+        return real(src, dst)
+
+    with pytest.raises(OSError), outputs_together():
+        for name in ("a.txt", "b.txt", "c.txt"):
+            with atomic_output(tmp_path / name) as tmp:
+                tmp.write_text(name)
+        monkeypatch.setattr(os, "replace", replace)
+    monkeypatch.setattr(os, "replace", real)
+    assert _names(tmp_path) == ["a.txt"]

@@ -64,8 +64,9 @@ def outputs_together():
             check_stop()
             check_unchanged()
             while held:
-                rename, tmps = held.pop(0)
+                rename, tmps = held[0]
                 rename()
+                held.pop(0)  # (only once renamed: a failed one's temporary is removed below)
                 for tmp in tmps:
                     _live_temporaries.discard(tmp)
     except BaseException:
