@@ -8,6 +8,9 @@
 #     peers the suite and the benchmarks check against: about 2 GB), and, as root on
 #     Debian, Mesa's EGL and Chromium for the checks that need them.
 # Running one after the other adds what is missing to the same .venv: no reinstall.
+# make test also installs .venv-peers (make install-peers): ANTs and elastix, whose
+# antspyx pins numpy and scipy below volwarp's, for the tests of `volwarp apply` against
+# them (tests/peers/; about 2 GB, 35 s).
 # Both then compile and cache every numba kernel (python -m volwarp_cli.warmup, about a
 # minute on a fresh install; again only when the package's sources change), so that no
 # command, demo, test or cron job pays a kernel's compilation (3-7 s each) on its first run.
@@ -18,6 +21,8 @@ BIN    := $(VENV)/bin
 DEMO   ?= demo-output
 DEMO_STAMP := $(VENV)/.installed-demo
 TEST_STAMP := $(VENV)/.installed-test
+PEERS_VENV ?= .venv-peers
+PEERS_STAMP := $(PEERS_VENV)/.installed
 # what a change of reinstalls: the package's metadata, the warp kernels and the SIGBUS
 # guard compiled at install
 INSTALLED_FROM := pyproject.toml volwarp_cli/bspline/_warpkernels.c volwarp_cli/io/_mapguard.c
@@ -34,7 +39,7 @@ WARM_SOURCES := $(shell find volwarp_cli -name '*.py' 2>/dev/null)
 BYTECODE = $(BIN)/python -m compileall -q volwarp_cli && $(BIN)/python -c \
   "import compileall, glob, sysconfig; [compileall.compile_file(f, quiet=1) for f in glob.glob(sysconfig.get_paths()['purelib'] + '/__editable__*.py')]"
 
-.PHONY: install install-test system-deps system-deps-render system-deps-browser \
+.PHONY: install install-test install-peers system-deps system-deps-render system-deps-browser \
         demo test bench lint examples clean
 
 install: $(DEMO_STAMP)
@@ -65,6 +70,16 @@ $(TEST_STAMP): $(INSTALLED_FROM) | $(BIN)/python
 	$(BIN)/pip install --quiet -e '.[test]'
 	$(BYTECODE)
 	touch $@ $(DEMO_STAMP)
+
+# ANTs and elastix, the peers `volwarp apply` is checked against, in an environment of
+# their own (antspyx pins numpy and scipy below volwarp's): tests/peers/
+install-peers: $(PEERS_STAMP)
+
+$(PEERS_STAMP): tests/peers/requirements.txt
+	$(PYTHON) -m venv $(PEERS_VENV)
+	$(PEERS_VENV)/bin/pip install --quiet --upgrade pip
+	$(PEERS_VENV)/bin/pip install --quiet -r tests/peers/requirements.txt
+	touch $@
 
 system-deps: system-deps-render system-deps-browser
 
@@ -103,9 +118,10 @@ demo: $(DEMO_STAMP)
 # (each worker holds its own numpy/VTK/dask); a test file runs in one worker
 TEST_WORKERS ?= $(shell $(BIN)/python -c "from volwarp_cli.parallel import available_cores as c; print(min(c(), 8))")
 
-test: $(TEST_STAMP)
+test: $(TEST_STAMP) $(PEERS_STAMP)
 	$(BYTECODE)
 	@$(MAKE) --no-print-directory $(WARM_STAMP)
+	VOLWARP_PEERS_PYTHON=$(abspath $(PEERS_VENV))/bin/python VOLWARP_REQUIRE_PEERS=1 \
 	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=20
 
 bench: $(TEST_STAMP)
