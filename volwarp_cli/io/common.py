@@ -79,18 +79,18 @@ def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
     Faster than ``gzip.GzipFile`` (one decompressor, large chunks written in
     place); refuses truncated streams and streams holding more than ``nbytes``.
     """
-    from .deflate import ERRORS, decompressobj
+    from .deflate import ERRORS, INFLATE_INPUT, decompressobj
 
     out = bytearray(nbytes)
     pos = 0
     dec = decompressobj()  # gzip or zlib header
     try:
         while True:
-            chunk = fh.read(1 << 22)
+            chunk = fh.read(INFLATE_INPUT)
             if not chunk:
                 break
             while chunk:
-                piece = dec.decompress(chunk, nbytes - pos + 1)
+                piece = dec.decompress(chunk)
                 if pos + len(piece) > nbytes:
                     raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
                                       "(wrong sizes or type in the header?)")
@@ -106,7 +106,7 @@ def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
                         raise FormatError(f"{where}: compressed data holds more than {nbytes} "
                                           "bytes (wrong sizes or type in the header?)")
                     break
-                chunk = dec.unconsumed_tail
+                chunk = b""
     except ERRORS as exc:
         raise FormatError(f"{where}: corrupt compressed data ({exc})") from None
     if pos < nbytes or not dec.eof:

@@ -265,8 +265,6 @@ def _check_raw_header(path, where: str) -> None:
 _LPS = "left-posterior-superior"
 _RAS = "right-anterior-superior"
 #: decompressed bytes per inflate call, and compressed bytes per read
-_INFLATE_PIECE = 1 << 23
-_READ_PIECE = 1 << 22
 #: a form whose matrix places every corner of the grid within this fraction of a voxel of
 #: the matrix volwarp reads holds the same geometry (float32 storage, a quaternion's rounding)
 _SAME_FORM_VOXELS = 1e-2
@@ -378,7 +376,7 @@ def _gunzip_range(path: Path, start: int, count: int, need: int, where: str,
     header asks for. Members may follow one another (as gzip allows), and NUL
     padding may end the file; anything else after a member is corrupt.
     """
-    from .deflate import ERRORS, decompressobj
+    from .deflate import ERRORS, INFLATE_INPUT, decompressobj
 
     out = np.empty(count, dtype=np.uint8)
     dest = memoryview(out)
@@ -391,19 +389,19 @@ def _gunzip_range(path: Path, start: int, count: int, need: int, where: str,
 
     try:
         with open(path, "rb") as fh:
-            while chunk := fh.read(_READ_PIECE):
+            while chunk := fh.read(INFLATE_INPUT):
                 while chunk:
                     if dec.eof:  # a member ended: padding, or the next member
                         chunk = chunk.lstrip(b"\0")
                         if not chunk:
                             break
                         dec = decompressobj()
-                    piece = dec.decompress(chunk, _INFLATE_PIECE)
+                    piece = dec.decompress(chunk)
                     lo, hi = max(pos, start), min(pos + len(piece), end)
                     if hi > lo:
                         dest[lo - start:hi - start] = memoryview(piece)[lo - pos:hi - pos]
                     pos += len(piece)
-                    chunk = dec.unused_data if dec.eof else dec.unconsumed_tail
+                    chunk = dec.unused_data if dec.eof else b""
     except ERRORS as exc:
         raise fail(f"the gzip stream is corrupt: {_one_line(exc)}") from None
     except OSError as exc:
