@@ -369,17 +369,31 @@ class NiftiFile:
 
 def _gunzip_range(path: Path, start: int, count: int, need: int, where: str,
                   layout: str) -> np.ndarray:
-    """Bytes ``[start, start + count)`` of a gzip file's decompressed stream, as uint8.
+    """Bytes ``[start, start + count)`` of a gzip file's decompressed stream, as uint8."""
+    out = np.empty(count, dtype=np.uint8)
+    dest = memoryview(out)
 
-    The whole stream is decompressed (other bytes dropped as they come): zlib then
-    checks every member's CRC-32 and length. ``need``: the decompressed bytes the
-    header asks for. Members may follow one another (as gzip allows), and NUL
-    padding may end the file; anything else after a member is corrupt.
+    def sink(at: int, piece: memoryview) -> None:
+        dest[at:at + len(piece)] = piece
+
+    gunzip_range_into(path, start, count, need, where, layout, sink)
+    return out
+
+
+def gunzip_range_into(path: Path, start: int, count: int, need: int, where: str,
+                      layout: str, sink) -> None:
+    """Bytes ``[start, start + count)`` of a gzip file's decompressed stream, to ``sink``.
+
+    ``sink(at, piece)`` takes each decompressed piece in order, ``at`` its
+    position from ``start`` (a caller may place them without a buffer of
+    the whole range). The whole stream is decompressed (other bytes dropped
+    as they come): zlib then checks every member's CRC-32 and length.
+    ``need``: the decompressed bytes the header asks for. Members may follow
+    one another (as gzip allows), and NUL padding may end the file; anything
+    else after a member is corrupt.
     """
     from .deflate import ERRORS, INFLATE_INPUT, decompressobj
 
-    out = np.empty(count, dtype=np.uint8)
-    dest = memoryview(out)
     end = start + count
     pos = 0  # decompressed bytes so far
     dec = decompressobj()
@@ -399,7 +413,7 @@ def _gunzip_range(path: Path, start: int, count: int, need: int, where: str,
                     piece = dec.decompress(chunk)
                     lo, hi = max(pos, start), min(pos + len(piece), end)
                     if hi > lo:
-                        dest[lo - start:hi - start] = memoryview(piece)[lo - pos:hi - pos]
+                        sink(lo - start, memoryview(piece)[lo - pos:hi - pos])
                     pos += len(piece)
                     chunk = dec.unused_data if dec.eof else b""
     except ERRORS as exc:
@@ -412,7 +426,6 @@ def _gunzip_range(path: Path, start: int, count: int, need: int, where: str,
     if pos < need:
         raise fail(f"truncated: {layout} end at decompressed byte {need}, the stream "
                    f"holds {pos}")
-    return out
 
 
 def open_nifti(path: str | os.PathLike) -> NiftiFile:

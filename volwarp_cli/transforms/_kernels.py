@@ -198,6 +198,29 @@ def interleave(a, b, c, out):
 
 
 @njit(cache=True, nogil=True)
+def tile_range(vec, tile, tmin, tmax):
+    """Per-tile min and max of each component of ``vec`` (z, y, x, 3), NaN skipped, in one pass.
+
+    ``tmin``/``tmax`` (tiles z, y, x, 3), float64, filled with NaN by the
+    caller: a tile of NaN only stays NaN (as ``np.fmin``).
+    """
+    nz, ny, nx = vec.shape[0], vec.shape[1], vec.shape[2]
+    for z in range(nz):
+        tz = z // tile
+        for y in range(ny):
+            ty = y // tile
+            for x in range(nx):
+                tx = x // tile
+                for c in range(3):
+                    v = vec[z, y, x, c]
+                    if v == v:
+                        if not tmin[tz, ty, tx, c] <= v:
+                            tmin[tz, ty, tx, c] = v
+                        if not tmax[tz, ty, tx, c] >= v:
+                            tmax[tz, ty, tx, c] = v
+
+
+@njit(cache=True, nogil=True)
 def field_map(vec, p, inv, origin, offset, n, out):
     """``out = p + u(p)``: the field on the grid of world-to-index ``inv (p - origin)``.
 

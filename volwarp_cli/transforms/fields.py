@@ -94,7 +94,7 @@ LAZY_SHARE = 0.25
 
 
 def _nifti(path: str):
-    from ..io.nifti import _gunzip_range, nifti_geometry, nifti_meta, open_nifti
+    from ..io.nifti import gunzip_range_into, nifti_geometry, nifti_meta, open_nifti
     from ..memory import ensure_fits_in_memory, memory_limit
 
     nf = open_nifti(path)
@@ -118,10 +118,10 @@ def _nifti(path: str):
     # interleaved (z, y, x, 3): a point's neighbours' vectors share cache lines (the planar
     # layout of the file was 1.5x slower to sample)
     vectors = np.empty((nz, ny, nx, 3), dtype=out_type)
-    if nf.gzipped:  # (one decompression: the gzip stream is read to its end anyway)
-        raw = _gunzip_range(nf.path, nf.offset, nf.data_bytes, nf.offset + nf.data_bytes,
-                            nf.where, f"{'x'.join(map(str, nf.shape))} samples")
-        _interleave(np.frombuffer(raw, dtype=kind).reshape(3, nz, ny, nx), vectors, nf)
+    if nf.gzipped:  # each decompressed piece into place: no copy of the file's planes held
+        gunzip_range_into(nf.path, nf.offset, nf.data_bytes, nf.offset + nf.data_bytes,
+                          nf.where, f"{'x'.join(map(str, nf.shape))} samples",
+                          _ComponentSink(vectors, kind, nf))
     else:  # slab by slab into place: no second copy of the field held
         plane = ny * nx * kind.itemsize
         step = max(1, (64 << 20) // (3 * plane))
@@ -137,6 +137,34 @@ def _nifti(path: str):
                     parts.append(np.frombuffer(buf, dtype=kind).reshape(z1 - z0, ny, nx))
                 _interleave(parts, vectors[z0:z1], nf)
     return _frame(geometry, (nz, ny, nx)), vectors, meta
+
+
+class _ComponentSink:
+    """Places a NIfTI field's decompressed planes (x components, then y, then z) into the
+    interleaved vectors (z, y, x, 3) piece by piece, scaled as the file says.
+
+    A sample split between two pieces waits for the rest of its bytes.
+    """
+
+    def __init__(self, vectors: np.ndarray, kind: np.dtype, nf):
+        self.flat = vectors.reshape(-1, 3)
+        self.kind, self.nf = kind, nf
+        self.carry = b""
+        self.done = 0  # samples placed
+
+    def __call__(self, at: int, piece: memoryview) -> None:
+        item = self.kind.itemsize
+        data = self.carry + bytes(piece) if self.carry else piece
+        whole = len(data) // item * item
+        values = np.frombuffer(data[:whole], dtype=self.kind)
+        self.carry = bytes(data[whole:])
+        n, i = len(self.flat), 0
+        while i < len(values):
+            c, v = divmod(self.done, n)
+            take = min(len(values) - i, n - v)
+            self.flat[v:v + take, c] = _scaled(values[i:i + take], self.nf)
+            i += take
+            self.done += take
 
 
 def _interleave(planes, out: np.ndarray, nf) -> None:

@@ -323,13 +323,21 @@ class DisplacementField:
 
 
 def tile_range(vectors: np.ndarray, tile: int):
-    """Per-tile min and max vectors (float64) of ``vectors`` (z, y, x, 3), NaN skipped."""
-    starts = [np.arange(0, s, tile) for s in vectors.shape[:3]]
-    tmin, tmax = vectors, vectors
-    for axis in range(3):  # (fmin/fmax skip NaN: a folded field's holes)
-        tmin = np.fmin.reduceat(tmin, starts[axis], axis=axis)
-        tmax = np.fmax.reduceat(tmax, starts[axis], axis=axis)
-    return tmin.astype(np.float64), tmax.astype(np.float64)
+    """Per-tile min and max vectors (float64) of ``vectors`` (z, y, x, 3), NaN skipped.
+
+    (A folded field's holes are NaN; a tile of NaN only has NaN extremes.)
+    """
+    from .. import parallel
+    from . import _kernels
+
+    shape = tuple(-(-n // tile) for n in vectors.shape[:3]) + (3,)
+    tmin, tmax = np.full(shape, np.nan), np.full(shape, np.nan)
+
+    def rows(a, b):  # tile rows a..b (z) on one thread
+        _kernels.tile_range(vectors[a * tile:b * tile], tile, tmin[a:b], tmax[a:b])
+
+    parallel.run_ranges(rows, shape[0])
+    return tmin, tmax
 
 
 def _bounds(p: np.ndarray):
