@@ -158,6 +158,30 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
     return vol
 
 
+def read_components(path: str | os.PathLike) -> tuple[Volume, np.ndarray]:
+    """Every component per voxel of a NRRD or MetaImage file, read once: a vector image.
+
+    ``(Volume, samples)``: the first component's Volume (geometry, key/values)
+    and the samples (z, y, x, n), n = 1 for a plain volume. (``read_volume``
+    reads one component a call: a field's three would read the file three
+    times.)
+    """
+    stop_if_dry_run(path)
+    path = Path(path)
+    fmt = volume_format(path, reading=True)
+    _check_content(path, fmt)
+    if fmt == "nrrd":
+        from .nrrd import read_nrrd_components as read
+    elif fmt == "metaimage":
+        from .metaimage import read_metaimage_components as read
+    else:
+        raise FormatError(f"{path}: a {_FORMAT_NAMES[fmt]} file is not read as a vector "
+                          "image (NRRD or MetaImage)")
+    vol, samples = read(path)
+    note_input(path)
+    return vol, samples
+
+
 def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: bool = False,
                  byte_order: str = "little", ome_zarr_version: str = "0.5", pyramid: int = 0,
                  labels="auto") -> None:

@@ -188,6 +188,20 @@ def read_metaimage(path: str | os.PathLike, volume_index: int | None = None) -> 
     channel, chosen by ``volume_index``; a 4-D file with one volume, or a
     single-channel file, reads without it.
     """
+    return _read_metaimage(path, volume_index)[0]
+
+
+def read_metaimage_components(path: str | os.PathLike) -> tuple[Volume, np.ndarray]:
+    """A MetaImage file's every channel (or 4-D volume) per voxel, read once.
+
+    ``(Volume, samples)``: ``samples`` (z, y, x, n) in the machine's byte
+    order (n = 1 for a plain 3-D file); the Volume is the first one's.
+    """
+    return _read_metaimage(path, 0, every=True)
+
+
+def _read_metaimage(path, volume_index, every: bool = False):
+    """``(Volume of the selection, all of them (z, y, x, n) or None)``: :func:`read_metaimage`."""
     path = Path(path)
     where = str(path)
     with open_input(path, where) as fh:
@@ -241,12 +255,17 @@ def read_metaimage(path: str | os.PathLike, volume_index: int | None = None) -> 
                 lambda dfh, n, name: _read_piece(dfh, layout, n, name, local=False))
     shape = xyz_to_zyx(sizes) + ((channels,) if channels > 1 else ())
     data = data.reshape(shape)
+    every_one = None
+    if every:  # (t, z, y, x) or (z, y, x, c) or (z, y, x) -> (z, y, x, n)
+        every_one = (data if channels > 1 else np.moveaxis(data, 0, -1) if ndims == 4
+                     else data[..., None])
+        every_one = native(every_one)
     for axis, index in select:
         data = np.take(data, index, axis=axis)
     data = native(np.ascontiguousarray(data))
     meta = _meta(pairs, direction)
     return make_volume(where, data, spacing=spacing, origin=origin, direction=direction,
-                       space=LPS, file_space=LPS, meta=meta)
+                       space=LPS, file_space=LPS, meta=meta), every_one
 
 
 def _selection(where, ndims, sizes, channels, index) -> list[tuple[int, int]]:

@@ -408,6 +408,20 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
     names them, is kept as ``volwarp_component``). A single-component 4-D file
     reads without it.
     """
+    return _read_nrrd(path, component, mmap=mmap)[0]
+
+
+def read_nrrd_components(path: str | os.PathLike) -> tuple[Volume, np.ndarray]:
+    """A NRRD file's every component per voxel, read once: ``(Volume, samples)``.
+
+    ``samples`` (z, y, x, n) in the machine's byte order (n = 1 for a 3-D
+    file); the Volume is the first component's (geometry, key/values).
+    """
+    return _read_nrrd(path, 0, mmap=False, every=True)
+
+
+def _read_nrrd(path, component, *, mmap: bool, every: bool = False):
+    """``(Volume of the component, all components (z, y, x, n) or None)``: :func:`read_nrrd`."""
     path = Path(path)
     where = str(path)
     with open_input(path, where) as fh:
@@ -466,18 +480,23 @@ def read_nrrd(path: str | os.PathLike, component: int | None = None, *,
                 lambda dfh, n, name: _read_data(dfh, file_dtype, n, encoding, lineskip,
                                                 byteskip, name, exact_end=True))
     meta = dict(keyvals)
+    every_component = None
     if comp_axis is not None:
         index = component or 0
         data = data.reshape(sizes[::-1])
+        if every:  # the component axis last: (z, y, x, n), a view where it is the fastest
+            every_component = native(np.moveaxis(data, dim - 1 - comp_axis, -1))
         data = np.take(data, index, axis=dim - 1 - comp_axis)
         sizes = [s for a, s in enumerate(sizes) if a != comp_axis]
         names = meta.pop("volwarp_components", "").split()
         if len(names) == n_comp:
             meta["volwarp_component"] = names[index]
     data = native(np.ascontiguousarray(data.reshape(xyz_to_zyx(sizes))))
+    if every and every_component is None:
+        every_component = data[..., None]
     meta.update(kept_fields(fields, space, where))
     return make_volume(where, data, spacing=spacing, origin=origin, direction=direction,
-                       space=space, meta=meta)
+                       space=space, meta=meta), every_component
 
 
 def kept_fields(fields: dict, space, where: str) -> dict:

@@ -140,10 +140,10 @@ def _nifti(path: str):
 
 
 class _ComponentSink:
-    """Places a NIfTI field's decompressed planes (x components, then y, then z) into the
-    interleaved vectors (z, y, x, 3) piece by piece, scaled as the file says.
+    """A NIfTI field's inflated planes placed piece by piece into interleaved vectors.
 
-    A sample split between two pieces waits for the rest of its bytes.
+    The planes (x components, then y, then z) go into ``vectors`` (z, y, x, 3),
+    scaled as the file says. A sample split between two pieces waits for the rest of its bytes.
     """
 
     def __init__(self, vectors: np.ndarray, kind: np.dtype, nf):
@@ -191,31 +191,22 @@ def _scaled(samples: np.ndarray, nf) -> np.ndarray:
 
 
 def _components(path: str):
-    from ..io import read_volume
+    from ..io import read_components
     from ..volume import frame_to_lps
 
-    comps, first = [], None
-    for k in range(3):
-        try:
-            vol = read_volume(path, volume_index=k)
-        except VolwarpError as exc:
-            raise VolwarpError(f"{path}: not a displacement field of 3 components per voxel "
-                               f"({str(exc).removeprefix(str(path) + ': ')})") from None
-        if first is None:
-            first = vol
-        comps.append(vol.data)
     try:
-        read_volume(path, volume_index=3)
-    except VolwarpError:
-        pass
-    else:
-        raise VolwarpError(f"{path}: has more than 3 components per voxel: not a displacement "
-                           "field")
-    vectors = np.stack(comps, axis=-1)
+        first, vectors = read_components(path)
+    except VolwarpError as exc:
+        raise VolwarpError(f"{path}: not a displacement field of 3 components per voxel "
+                           f"({str(exc).removeprefix(str(path) + ': ')})") from None
+    n = vectors.shape[-1]
+    if n != 3:
+        raise VolwarpError(f"{path}: has {n} component{'s' if n > 1 else ''} per voxel: not "
+                           "a displacement field (3 components per voxel)")
     if vectors.dtype.kind != "f":
         vectors = vectors.astype(np.float32)
     to_lps = frame_to_lps(first.file_space)
     if to_lps is not None and not np.array_equal(to_lps, np.eye(3)):
         vectors = vectors @ to_lps.T.astype(vectors.dtype)
     geometry = {"origin": first.origin, "spacing": first.spacing, "direction": first.direction}
-    return _frame(geometry, first.data.shape), vectors, dict(first.meta)
+    return _frame(geometry, first.data.shape), np.ascontiguousarray(vectors), dict(first.meta)
