@@ -14,7 +14,6 @@ process is left as it is.
 
 from __future__ import annotations
 
-import importlib.abc
 import importlib.machinery
 import importlib.util
 import sys
@@ -22,8 +21,12 @@ import sys
 _LINALG = "numba.np.linalg"
 
 
-class _DeferProbe(importlib.abc.MetaPathFinder):
-    """Finds ``numba.np.linalg`` once, wrapping its ``ensure_blas`` after it runs."""
+class _DeferProbe:
+    """Finds ``numba.np.linalg`` once, wrapping its ``ensure_blas`` after it runs.
+
+    (A meta path finder needs only ``find_spec``: no ``importlib.abc`` base,
+    whose import brings importlib.resources, 4-8 ms of every command's start.)
+    """
 
     def find_spec(self, name, path, target=None):
         if name != _LINALG:
