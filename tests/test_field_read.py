@@ -48,3 +48,18 @@ def test_gzip_field_vectors_as_nibabel_reads_them(tmp_path, monkeypatch, dtype, 
     tol = 0 if field.vectors.dtype == np.float64 else 1e-6 * np.abs(expected).max()
     assert np.abs(got - expected).max() <= tol
     assert not np.array_equal(got[..., 0], got[..., 1])  # (components not confused)
+
+
+def test_an_integer_field_is_budgeted_as_the_float32_vectors_it_becomes(tmp_path):
+    from volwarp_cli.errors import OutOfMemoryError
+    from volwarp_cli.memory import process_rss, use_memory_limit
+
+    planes = np.random.default_rng(0).integers(0, 200, size=(160, 160, 160, 3))
+    path = tmp_path / "u8.nii.gz"
+    write_nifti_field(path, planes, "<u1", slope=0.1)
+    file_bytes = planes.size  # 12 MB of uint8 samples; 49 MB as float32 vectors
+    with use_memory_limit(process_rss() + 2 * file_bytes), \
+            pytest.raises(OutOfMemoryError, match="needs 46.9 MiB"):
+        read_field(str(path), "nifti")
+    with use_memory_limit(process_rss() + 8 * file_bytes):
+        assert read_field(str(path), "nifti").vectors.dtype == np.float32

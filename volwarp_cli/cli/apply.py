@@ -139,9 +139,6 @@ def command(input, output, transforms, reference, interpolation, values, labels,
         check_output_path(output, option="-o")
     points = _points(points_in, points_to)
     mesh = _mesh(mesh_in, mesh_to)
-    # the input read beside the transforms (both mostly inflate, which frees the GIL); an
-    # error of the transforms is still the one said first
-    reading = _start_reading(input, (raw, volume_index, dicom)) if input is not None else None
     with timed("read the transforms"):
         chain = read_chain(transforms)
     log.info("chain: %s", " -> ".join(s.name for s in chain.steps))
@@ -152,7 +149,7 @@ def command(input, output, transforms, reference, interpolation, values, labels,
                   dict(interpolation=interpolation, values=given, background=background,
                        dtype=dtype),
                   dict(compress=compress, byte_order=byte_order, **ome_zarr),
-                  reading, [t.path for t in transforms])
+                  (raw, volume_index, dicom), [t.path for t in transforms])
     if points is not None or mesh is not None:
         from ..apply import move_mesh, move_points
 
@@ -160,20 +157,6 @@ def command(input, output, transforms, reference, interpolation, values, labels,
             move_points(chain, *points)
         if mesh is not None:
             move_mesh(chain, *mesh)
-
-
-def _start_reading(input, read):
-    """A future of :func:`~volwarp_cli.cli.chunked.lazy_input`'s ``(template, source)``."""
-    import contextvars
-    from concurrent.futures import ThreadPoolExecutor
-
-    from .chunked import lazy_input
-
-    pool = ThreadPoolExecutor(1, thread_name_prefix="volwarp-read")
-    try:
-        return pool.submit(contextvars.copy_context().run, lazy_input, input, *read)
-    finally:
-        pool.shutdown(wait=False)  # (the thread ends with its one task)
 
 
 def _values(values, labels, interpolation):
@@ -208,14 +191,15 @@ def _mesh(mesh_in, mesh_to):
     return read_mesh(mesh_in), mesh_in, mesh_to
 
 
-def _resample(input, output, chain, reference, options, write, reading, transform_paths):
+def _resample(input, output, chain, reference, options, write, read, transform_paths):
     """INPUT through ``chain`` onto the grid (:func:`volwarp_cli.apply.plan_resample`), run."""
     from .. import execute
     from ..apply import plan_resample
     from ..io.lazy import open_volume_template
     from ..provenance import stamp
+    from .chunked import lazy_input
 
-    template, source = reading.result()
+    template, source = lazy_input(input, *read)
     ref = open_volume_template(reference)[0] if reference is not None else None
     try:
         op = plan_resample(template, source, chain, ref, name=str(input), **options)

@@ -76,37 +76,32 @@ def read_exact(fh, nbytes: int, where: str) -> np.ndarray:
 def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
     """Decompress a gzip (or zlib) stream from ``fh`` into exactly ``nbytes``.
 
-    Faster than ``gzip.GzipFile`` (one decompressor, large chunks written in
-    place); refuses truncated streams and streams holding more than ``nbytes``.
+    Faster than ``gzip.GzipFile`` (one decompressor, pieces written in
+    place); refuses truncated streams and streams holding more than
+    ``nbytes`` (before inflating more than a byte beyond them). Members may
+    follow one another, empty ones too (bgzip's end-of-file block), and NUL
+    padding may lie between and after them, as gzip readers allow.
     """
-    from .deflate import ERRORS, INFLATE_INPUT, decompressobj
+    from .deflate import ERRORS, INFLATE_INPUT, INFLATE_OUTPUT, decompressobj
 
     out = bytearray(nbytes)
     pos = 0
     dec = decompressobj()  # gzip or zlib header
     try:
-        while True:
-            chunk = fh.read(INFLATE_INPUT)
-            if not chunk:
-                break
+        while chunk := fh.read(INFLATE_INPUT):
             while chunk:
-                piece = dec.decompress(chunk)
+                if dec.eof:  # a member ended: padding, or the next member
+                    chunk = chunk.lstrip(b"\0")
+                    if not chunk:
+                        break
+                    dec = decompressobj()
+                piece = dec.decompress(chunk, min(INFLATE_OUTPUT, nbytes - pos + 1))
                 if pos + len(piece) > nbytes:
                     raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
                                       "(wrong sizes or type in the header?)")
                 out[pos:pos + len(piece)] = piece
                 pos += len(piece)
-                if dec.eof:
-                    rest = dec.unused_data
-                    if rest.strip(b"\0") and pos < nbytes:  # another gzip member follows
-                        dec = decompressobj()
-                        chunk = rest
-                        continue
-                    if rest.strip(b"\0"):
-                        raise FormatError(f"{where}: compressed data holds more than {nbytes} "
-                                          "bytes (wrong sizes or type in the header?)")
-                    break
-                chunk = b""
+                chunk = dec.unused_data if dec.eof else dec.unconsumed_tail
     except ERRORS as exc:
         raise FormatError(f"{where}: corrupt compressed data ({exc})") from None
     if pos < nbytes or not dec.eof:

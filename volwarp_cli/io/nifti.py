@@ -392,7 +392,7 @@ def gunzip_range_into(path: Path, start: int, count: int, need: int, where: str,
     one another (as gzip allows), and NUL padding may end the file; anything
     else after a member is corrupt.
     """
-    from .deflate import ERRORS, INFLATE_INPUT, decompressobj
+    from .deflate import ERRORS, INFLATE_INPUT, INFLATE_OUTPUT, decompressobj
 
     end = start + count
     pos = 0  # decompressed bytes so far
@@ -410,12 +410,12 @@ def gunzip_range_into(path: Path, start: int, count: int, need: int, where: str,
                         if not chunk:
                             break
                         dec = decompressobj()
-                    piece = dec.decompress(chunk)
+                    piece = dec.decompress(chunk, INFLATE_OUTPUT)
                     lo, hi = max(pos, start), min(pos + len(piece), end)
                     if hi > lo:
                         sink(lo - start, memoryview(piece)[lo - pos:hi - pos])
                     pos += len(piece)
-                    chunk = dec.unused_data if dec.eof else b""
+                    chunk = dec.unused_data if dec.eof else dec.unconsumed_tail
     except ERRORS as exc:
         raise fail(f"the gzip stream is corrupt: {_one_line(exc)}") from None
     except OSError as exc:

@@ -113,8 +113,10 @@ def _nifti(path: str):
             note_input(fh)
         return _frame(geometry, (nz, ny, nx)), LazyField(path, kind, nf.offset,
                                                          (nz, ny, nx)), meta
-    ensure_fits_in_memory(nf.data_bytes, f"{path} ({'x'.join(map(str, nf.shape))})")
     out_type = np.dtype(np.float32 if nf.scaled or kind.kind != "f" else kind.newbyteorder("="))
+    # (the vectors as held: an int16 field's float32 vectors are twice its file's samples)
+    ensure_fits_in_memory(nx * ny * nz * 3 * out_type.itemsize,
+                          f"{path} ({'x'.join(map(str, nf.shape))})")
     # interleaved (z, y, x, 3): a point's neighbours' vectors share cache lines (the planar
     # layout of the file was 1.5x slower to sample)
     vectors = np.empty((nz, ny, nx, 3), dtype=out_type)
