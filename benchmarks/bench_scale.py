@@ -35,10 +35,10 @@ from common import volwarp_argv  # noqa: E402
 def make_volume(path: Path, n: int) -> None:
     """An n^3 int16 NRRD of a few soft blobs, written plane by plane (never held whole)."""
     from volwarp_cli.io.nrrd import nrrd_header
-    from volwarp_cli.volume import Volume
+    from volwarp_cli.volume import Header
 
-    template = Volume(np.broadcast_to(np.zeros((), np.int16), (n, n, n)))
-    header = nrrd_header(template, np.dtype(np.int16), encoding="raw", byte_order="little")
+    header = nrrd_header(Header((n, n, n), np.dtype(np.int16)), np.dtype(np.int16),
+                         encoding="raw", byte_order="little")
     axis = np.linspace(-1.0, 1.0, n, dtype=np.float32)
     y, x = np.meshgrid(axis, axis, indexing="ij")
     centres = [(0.2, 0.0, 0.0, 0.25), (-0.4, 0.3, -0.2, 0.08), (0.0, -0.5, 0.4, 0.05)]

@@ -549,7 +549,7 @@ def test_label_map_refusal_says_why_once(run, tmp_path):
     assert res.stderr.startswith(said) and res.stderr.endswith(" apply --help')\n")
     assert res.stderr.count("label map") == 1 and res.stderr.count("\n") == 1
     with pytest.raises(BadUsage) as exc:  # labels asked for (the library's path)
-        plan_resample(vol, labels, Chain(), values="labels", interpolation="linear",
+        plan_resample(vol.header, labels, Chain(), values="labels", interpolation="linear",
                       name="seg.nrrd")
     assert str(exc.value) == ("seg.nrrd is resampled as labels (as asked): --interpolation "
                               "linear would blend its ids; a label map is resampled by nearest "

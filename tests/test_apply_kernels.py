@@ -44,7 +44,7 @@ def test_cubic_on_tiny_axes(shape):
     rng = np.random.default_rng(sum(shape))
     data = rng.normal(0, 1, shape)
     ref, (x, y, z) = _fine_grid(shape)
-    op = plan_resample(Volume(data), data, Chain(), ref, interpolation="bspline",
+    op = plan_resample(Volume(data).header, data, Chain(), ref, interpolation="bspline",
                        background=0.0, values="intensity")
     ours = compute_whole(op)["resampled"]
     exact = map_coordinates(data, [z, y, x], order=3, mode="mirror")
@@ -134,7 +134,7 @@ def test_cubic_block_memory_counts_what_it_allocates(monkeypatch, dtype):
     data = rng.normal(0, 100, (40, 44, 50)).astype(dtype)
     chain = Chain([Affine(np.array([[1.0, 0.05, 0.0], [0.0, 0.98, 0.02], [0.01, 0.0, 1.03]]),
                           np.array([0.4, -0.3, 0.8]))])
-    op = plan_resample(Volume(data), _Reads(data), chain, interpolation="bspline",
+    op = plan_resample(Volume(data).header, _Reads(data), chain, interpolation="bspline",
                        background=0.0, values="intensity")
     threads = parallel.threads()
     op.load()

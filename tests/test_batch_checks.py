@@ -176,12 +176,12 @@ def test_output_folder_holding_the_scans(tmp_path, output_dir, glob, how):
 def test_dry_run_stops_at_every_reader(tmp_path):
     """In a dry run each reader's entry stops, before it opens anything."""
     from volwarp_cli.io import read_volume
-    from volwarp_cli.io.lazy import open_volume_lazy, open_volume_template
+    from volwarp_cli.io.lazy import open_volume_header, open_volume_lazy
     from volwarp_cli.runscope import DryRunStop, run_scope
     from volwarp_cli.warp.capture_file import open_capture_lazy, read_capture
 
     missing = tmp_path / "missing.nrrd"
-    for read in (read_volume, open_volume_lazy, open_volume_template, read_capture,
+    for read in (read_volume, open_volume_lazy, open_volume_header, read_capture,
                  open_capture_lazy):
         with run_scope() as files:
             files.dry_run = True

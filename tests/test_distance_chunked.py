@@ -266,7 +266,7 @@ def test_field_by_blocks_refusals(tmp_path, kwargs, match):
 
     args = {"metric": "euclidean", "surface": "voxel", **kwargs}
     data = smooth(SHAPE, 0)
-    target = execute.Target(tmp_path / "f.nrrd", Volume(data), np.dtype(np.float32))
+    target = execute.Target(tmp_path / "f.nrrd", Volume(data).header, np.dtype(np.float32))
     with pytest.raises(VolwarpError, match=match) as err:
         op = field_operation(data, Geometry(SHAPE, (1.0, 1.0, 1.0)),
                              ShapeRule("intensity", "given", iso=0.0), target=target, **args)

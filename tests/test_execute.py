@@ -34,16 +34,15 @@ class Ramp(execute.Operation):
         self.fail_at = fail_at
         self.bytes_per = bytes_per
         self.computed = []
-        empty = np.broadcast_to(np.zeros((), np.int32), SHAPE)
         if multi:
-            self.targets = {None: execute.Target(folder / f"both{suffix}", self.grid.volume(
-                empty, meta={"k": "v"}), np.dtype(np.float64), components=("v", "sq"))}
+            self.targets = {None: execute.Target(folder / f"both{suffix}", self.grid.header(
+                np.int32, meta={"k": "v"}), np.dtype(np.float64), components=("v", "sq"))}
         else:
             self.targets = {
-                "v": execute.Target(folder / f"v{suffix}", self.grid.volume(
-                    empty, meta={"k": "v"}), np.dtype(np.int32)),
-                "sq": execute.Target(folder / f"sq{suffix}", self.grid.volume(
-                    empty, meta={"k": "sq"}), np.dtype(np.float64))}
+                "v": execute.Target(folder / f"v{suffix}", self.grid.header(
+                    np.int32, meta={"k": "v"}), np.dtype(np.int32)),
+                "sq": execute.Target(folder / f"sq{suffix}", self.grid.header(
+                    np.int32, meta={"k": "sq"}), np.dtype(np.float64))}
 
     def memory(self, box):
         return int(box.size) * self.bytes_per

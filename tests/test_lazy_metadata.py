@@ -1,4 +1,4 @@
-"""The lazy readers' templates carry read_volume's key/values, so outputs by blocks are
+"""The lazy readers' headers carry read_volume's key/values, so outputs by blocks are
 the in-memory outputs byte for byte (metadata included).
 
 NIfTI with several sform/qform codes, descrip, intent, units and volwarp's extension
@@ -20,7 +20,7 @@ from nibabel.testing import data_path
 from volwarp_cli.errors import FormatError
 from volwarp_cli.geometry import Geometry
 from volwarp_cli.io import read_volume
-from volwarp_cli.io.lazy import open_volume_template
+from volwarp_cli.io.lazy import open_volume_header
 
 NB = Path(data_path)
 WARP_SPEC = """version: 1
@@ -37,17 +37,17 @@ def blob(shape=(14, 15, 13)) -> np.ndarray:
     return (1000 * np.exp(-(x * x + y * y + z * z) / 0.3)).astype(np.int16)
 
 
-def assert_template_is_read_volume(path, **kw):
-    """The lazy template (read without loading) has read_volume's geometry, frame and meta."""
-    template, array = open_volume_template(path, require_lazy=True, **kw)
+def assert_header_is_read_volume(path, **kw):
+    """The lazy Header (read without loading) has read_volume's geometry, frame and meta."""
+    header, array = open_volume_header(path, require_lazy=True, **kw)
     assert not isinstance(array, np.ndarray)  # (require_lazy: read on slicing)
     ref = read_volume(path, **kw)
-    assert Geometry.of(template) == Geometry.of(ref)
-    assert (template.space, template.file_space) == (ref.space, ref.file_space)
-    assert template.meta == ref.meta
-    assert template.data.shape == ref.data.shape
+    assert Geometry.of(header) == Geometry.of(ref)
+    assert (header.space, header.file_space) == (ref.space, ref.file_space)
+    assert header.meta == ref.meta
+    assert header.shape == ref.data.shape and header.dtype == ref.data.dtype
     np.testing.assert_array_equal(np.asarray(array[:, :, :]), ref.data)
-    return template
+    return header
 
 
 # -- NIfTI ----------------------------------------------------------------------
@@ -72,15 +72,15 @@ def nifti(path, scode, qcode, *, same=True, **fields):
     (4, 1, False),   # the qform is read, the MNI sform not carried (code 0 in both)
     (1, 1, False),
 ])
-def test_nifti_templates_carry_the_header_fields(tmp_path, scode, qcode, same):
+def test_nifti_headers_carry_the_header_fields(tmp_path, scode, qcode, same):
     path = nifti(tmp_path / "v.nii", scode, qcode, same=same, descrip=b"a description",
                  xyzt_units=10, intent_code=1002, intent_p1=3.0)
-    template = assert_template_is_read_volume(path)
-    assert template.meta["descrip"] == "a description"
-    assert template.meta["NIfTI_xyzt_units"] == "10"
-    assert template.meta["NIfTI_intent_code"] == "1002"
+    header = assert_header_is_read_volume(path)
+    assert header.meta["descrip"] == "a description"
+    assert header.meta["NIfTI_xyzt_units"] == "10"
+    assert header.meta["NIfTI_intent_code"] == "1002"
     if (scode, qcode) != (1, 1) or not same:
-        assert "NIfTI_sform_code" in template.meta
+        assert "NIfTI_sform_code" in header.meta
 
 
 def test_big_endian_nifti(tmp_path):
@@ -90,15 +90,15 @@ def test_big_endian_nifti(tmp_path):
     img.header["descrip"] = b"big"
     nib.save(img, tmp_path / "be.nii")
     assert nib.load(tmp_path / "be.nii").get_data_dtype() == np.dtype(">i2")
-    template = assert_template_is_read_volume(tmp_path / "be.nii")
-    assert template.meta["descrip"] == "big"
+    header = assert_header_is_read_volume(tmp_path / "be.nii")
+    assert header.meta["descrip"] == "big"
 
 
 @pytest.mark.parametrize("name", ["anatomical.nii", "reoriented_anat_moved.nii",
                                   "resampled_anat_moved.nii"])
 def test_nibabels_files(name):
-    template = assert_template_is_read_volume(NB / name)
-    assert template.meta  # codes 2 and 2, units, descrip
+    header = assert_header_is_read_volume(NB / name)
+    assert header.meta  # codes 2 and 2, units, descrip
 
 
 def test_volwarps_extension(tmp_path, run):
@@ -106,8 +106,8 @@ def test_volwarps_extension(tmp_path, run):
     spec = tmp_path / "w.yaml"
     spec.write_text(WARP_SPEC)
     assert run("warp", "-q", NB / "anatomical.nii", "--spec", spec, "-o", out).code == 0
-    template = assert_template_is_read_volume(out)
-    assert template.meta["volwarp_command"] == "warp"
+    header = assert_header_is_read_volume(out)
+    assert header.meta["volwarp_command"] == "warp"
 
 
 # -- MetaImage ------------------------------------------------------------------
@@ -120,8 +120,8 @@ def test_metaimage_from_simpleitk_with_its_metadata(tmp_path):
     img.SetMetaData("site", "A")
     path = tmp_path / "s.mha"
     sitk.WriteImage(img, str(path), useCompression=False)
-    template = assert_template_is_read_volume(path)
-    assert template.meta["site"] == "A" and template.meta["PatientName"] == "anonymous"
+    header = assert_header_is_read_volume(path)
+    assert header.meta["site"] == "A" and header.meta["PatientName"] == "anonymous"
 
 
 @pytest.mark.parametrize("suffix", [".mha", ".mhd"])
@@ -140,8 +140,8 @@ def test_metaimage_descriptive_and_user_fields(tmp_path, suffix):
     else:
         (tmp_path / "m.raw").write_bytes(data.tobytes())
         path.write_text(header + "ElementDataFile = m.raw\n")
-    template = assert_template_is_read_volume(path)
-    assert len(template.meta) == 7, template.meta  # 8 keys became 4 before
+    header = assert_header_is_read_volume(path)
+    assert len(header.meta) == 7, header.meta  # 8 keys became 4 before
 
 
 # -- NRRD -----------------------------------------------------------------------
@@ -161,17 +161,17 @@ def nrrd_with_fields(path, space="right-anterior-superior"):
 
 @pytest.mark.parametrize("space", ["right-anterior-superior", "left-posterior-superior"])
 def test_nrrd_kept_fields_and_measurement_frame(tmp_path, space):
-    template = assert_template_is_read_volume(nrrd_with_fields(tmp_path / "n.nrrd", space))
-    assert template.meta["NRRD_content"] == "a head"
-    assert template.meta["NRRD_space units"] == '"mm" "mm" "mm"'
-    assert "NRRD_measurement frame" in template.meta and template.meta["site"] == "C"
+    header = assert_header_is_read_volume(nrrd_with_fields(tmp_path / "n.nrrd", space))
+    assert header.meta["NRRD_content"] == "a head"
+    assert header.meta["NRRD_space units"] == '"mm" "mm" "mm"'
+    assert "NRRD_measurement frame" in header.meta and header.meta["site"] == "C"
 
 
-def test_truncated_nifti_template_is_refused_before_any_work(tmp_path):
+def test_truncated_nifti_header_is_refused_before_any_work(tmp_path):
     trunc = tmp_path / "trunc.nii"
     trunc.write_bytes((NB / "anatomical.nii").read_bytes()[:40000])
     with pytest.raises(FormatError, match=r"trunc\.nii: cannot read NIfTI data \(truncated"):
-        open_volume_template(trunc)
+        open_volume_header(trunc)
 
 
 # -- by blocks: the same bytes as in memory ----------------------------------------

@@ -15,7 +15,7 @@ from volwarp_cli.errors import VolwarpError
 from volwarp_cli.surface.ops import Cleanup, clean
 from volwarp_cli.surface.run import ALL_LABELS, Level, MeshOperation
 from volwarp_cli.surface.stats import mesh_stats
-from volwarp_cli.volume import Volume
+from volwarp_cli.volume import Header, Volume
 
 BY_BLOCKS = execute.How(chunked=True, block=(5, 7, 6),
                         open_engine=functools.partial(open_engine, "threads", workers=2))
@@ -151,16 +151,16 @@ def test_label_refusals():
 def test_memory_is_the_volumes_side_and_blocks_are_slabs():
     """What the decision reads before any sample: the samples read, their working copy and
     flying edges' bytes per voxel; the blocks are whole planes, as deep as fits."""
-    template = Volume(np.broadcast_to(np.zeros((), np.uint8), (40, 30, 20)))
+    header = Header((40, 30, 20), np.uint8)
 
     class Lazy:  # a source read on slicing (its samples cost memory when read)
         shape, dtype = (40, 30, 20), np.dtype(np.uint8)
 
-    box = template.data.shape
-    plain = MeshOperation(template, Lazy(), Level(1.0))
-    capped = MeshOperation(template, Lazy(), Level(1.0, cap=True))
-    labels = MeshOperation(template, Lazy(), labels=ALL_LABELS)
-    in_memory = MeshOperation(template, np.zeros(box, np.uint8), Level(1.0))
+    box = header.shape
+    plain = MeshOperation(header, Lazy(), Level(1.0))
+    capped = MeshOperation(header, Lazy(), Level(1.0, cap=True))
+    labels = MeshOperation(header, Lazy(), labels=ALL_LABELS)
+    in_memory = MeshOperation(header, np.zeros(box, np.uint8), Level(1.0))
     whole = plain.grid.box
     assert plain.memory(whole) == whole.size * (1 + 4)
     assert capped.memory(whole) == whole.size * (1 + 4 + 4)  # the padded float32 copy

@@ -17,7 +17,7 @@ from volwarp_cli.engine import open_engine
 from volwarp_cli.errors import OutOfMemoryError, VolwarpError
 from volwarp_cli.execute import How
 from volwarp_cli.io import read_volume, write_volume
-from volwarp_cli.io.lazy import LazySource, open_volume_template
+from volwarp_cli.io.lazy import LazySource, open_volume_header
 from volwarp_cli.morph.frames import morph_frames
 from volwarp_cli.morph.outputs import MorphOutputs
 from volwarp_cli.morph.pipeline import prepare
@@ -56,8 +56,8 @@ def shapes(tmp_path):
 
 
 def _lazy(path):
-    template, array = open_volume_template(path)
-    return template, LazySource(path, array=array)
+    header, array = open_volume_header(path)
+    return header, LazySource(path, array=array)
 
 
 def _outputs(job, tmp_path):

@@ -22,7 +22,7 @@ from volwarp_cli.engine import open_engine
 from volwarp_cli.geometry import Geometry
 from volwarp_cli.io import read_volume
 from volwarp_cli.passes import Pass, Passes, pass_boxes
-from volwarp_cli.volume import Volume
+from volwarp_cli.volume import Header
 
 SHAPE = (13, 11, 17)
 
@@ -72,8 +72,7 @@ class RunningSums(Passes):
 
 
 def _target(path, shape, dtype=np.float64):
-    template = Volume(np.broadcast_to(np.zeros((), dtype), shape))
-    return execute.Target(path, template, np.dtype(dtype))
+    return execute.Target(path, Header(shape, dtype), np.dtype(dtype))
 
 
 def _run(tmp_path, name, *, chunked, block=None, scheduler="threads", workers=3,

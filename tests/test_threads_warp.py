@@ -16,7 +16,7 @@ from volwarp_cli.bspline import jobs, work
 from volwarp_cli.bspline import scene as scene_mod
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.scene import Scene
-from volwarp_cli.volume import Volume
+from volwarp_cli.volume import Header, Volume
 
 THREADS = [1, 2, 3, 5]
 
@@ -103,10 +103,10 @@ def _operation(cap, dq, pad):
 
     scene = Scene(cap.voxmap, cap.grid, dq, pad, domain_range=cap.stats[:2])
     window = scene.target_box
-    template = Volume(np.broadcast_to(np.zeros((), np.float32), window.shape))
     sampler = scene.sampler if scene.sampler is not None else DomainSampler(scene.domain)
     return WarpOperation(scene, None, cap.placement, cap.sampling, window,
-                         Target(None, template, np.float32), sampler=sampler)
+                         Target(None, Header(window.shape, np.float32), np.float32),
+                         sampler=sampler)
 
 
 @pytest.mark.parametrize("oversample", [1, 2])

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from volwarp_cli.errors import SpecError, VolwarpError
 from volwarp_cli.spec import format_key, parse_spec_text, validate
-from volwarp_cli.volume import Volume, xyz_to_zyx, zyx_to_xyz
+from volwarp_cli.volume import Header, Volume, xyz_to_zyx, zyx_to_xyz
 
 finite = st.floats(-1e3, 1e3, allow_nan=False)
 positive = st.floats(0.05, 20.0)
@@ -67,6 +67,64 @@ def test_volume_rejects_bad_geometry(kwargs, needle):
 def test_volume_needs_three_axes():
     with pytest.raises(VolwarpError, match="3 axes"):
         Volume(np.zeros((2, 2)))
+
+
+def test_a_header_is_its_volume_without_the_samples():
+    """Volume.header: the shape, type, geometry, frame and key/values; with_data goes back."""
+    data = np.arange(24, dtype=np.int16).reshape(2, 3, 4)
+    vol = Volume(data, spacing=(0.5, 1.0, 2.0), origin=(1.0, 2.0, 3.0),
+                 direction=rotation((0.1, 0.2, 0.3)), space="ras", meta={"k": "v"})
+    head = vol.header
+    assert isinstance(head, Header) and not hasattr(head, "data")
+    assert head.shape == vol.shape == (2, 3, 4) and head.dtype == np.int16
+    assert head.shape_xyz == vol.shape_xyz == (4, 3, 2)
+    assert (head.space, head.file_space) == (vol.space, vol.file_space) == (
+        "left-posterior-superior", "right-anterior-superior")
+    for name in ("spacing", "origin", "direction", "index_to_world_matrix"):
+        np.testing.assert_array_equal(getattr(head, name), getattr(vol, name))
+    np.testing.assert_array_equal(head.world_bounds(), vol.world_bounds())
+    assert head.same_grid(vol) and vol.same_grid(head) and head.meta == {"k": "v"}
+    head.meta["k"] = "w"  # (its own key/values)
+    assert vol.meta == {"k": "v"}
+    back = vol.header.with_data(data)
+    assert back.same_grid(vol) and back.meta == vol.meta and back.file_space == vol.file_space
+    np.testing.assert_array_equal(back.origin, vol.origin)  # (converted once, not twice)
+    moved = head.replace(shape=(5, 6, 7), dtype=np.float32, origin=np.zeros(3))
+    assert moved.shape == (5, 6, 7) and moved.dtype == np.float32 and moved.meta == head.meta
+    assert head.shape == (2, 3, 4)
+
+
+def test_a_header_converts_its_file_frame_as_a_volume_does():
+    head = Header((2, 2, 2), np.uint8, origin=(1.0, 2.0, 3.0), space="ras")
+    vol = Volume(np.zeros((2, 2, 2), np.uint8), origin=(1.0, 2.0, 3.0), space="ras")
+    np.testing.assert_array_equal(head.origin, (-1.0, -2.0, 3.0))
+    np.testing.assert_array_equal(head.direction, vol.direction)
+    assert (head.space, head.file_space) == (vol.space, vol.file_space)
+
+
+@pytest.mark.parametrize("kwargs,needle", [
+    ({"spacing": (1, 0, 1)}, "positive"),
+    ({"origin": (np.nan, 0, 0)}, "finite"),
+    ({"direction": np.zeros((3, 3))}, "singular"),
+    ({"shape": (2, 2)}, "3 axes"),
+    ({"shape": (2, -1, 2)}, "3 axes"),
+])
+def test_header_rejects_what_a_volume_rejects(kwargs, needle):
+    args = {"shape": (2, 2, 2), "dtype": np.float32, **kwargs}
+    with pytest.raises(VolwarpError, match=needle):
+        Header(**args)
+
+
+def test_a_header_pickles_small_whatever_its_grid():
+    """A header travels to block tasks in other processes: no samples, whatever the grid."""
+    import pickle
+
+    small = Header((2, 3, 4), np.float32, meta={"k": "v"})
+    huge = Header((4000, 5000, 6000), np.float32, meta={"k": "v"})
+    sizes = [len(pickle.dumps(h)) for h in (small, huge)]
+    assert max(sizes) < 2_000 and abs(sizes[1] - sizes[0]) < 16, sizes
+    again = pickle.loads(pickle.dumps(huge))
+    assert again.shape == huge.shape and again.same_grid(huge) and again.meta == huge.meta
 
 
 SCHEMA = {

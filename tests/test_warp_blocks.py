@@ -22,7 +22,7 @@ from volwarp_cli.bspline.pushforward import HeldPlanes
 from volwarp_cli.bspline.scene import Scene
 from volwarp_cli.execute import Target
 from volwarp_cli.io.lazy import LazySource
-from volwarp_cli.volume import Volume
+from volwarp_cli.volume import Header, Volume
 from volwarp_cli.warp import blocks
 
 
@@ -169,13 +169,13 @@ def test_warp_operation_pickles_without_samples_and_renders_the_same(tmp_path):
     path = tmp_path / "in.nrrd"
     write_volume(Volume(data), path)
     source = LazySource(path)
-    cap = capture_source(Volume(data), source, lattice=(5, 5, 5), oversample=1.0)
+    cap = capture_source(Volume(data).header, source, lattice=(5, 5, 5), oversample=1.0)
     dq = _general(cap, scale=1.0)
     scene = Scene(cap.sampler, cap.grid, dq, 4, domain_range=cap.stats[:2])
     window = scene.target_box
-    template = Volume(np.broadcast_to(np.zeros((), np.float32), window.shape))
     job = blocks.WarpOperation(scene, source, cap.placement, cap.sampling, window,
-                               Target(tmp_path / "o.nrrd", template, np.float32))
+                               Target(tmp_path / "o.nrrd", Header(window.shape, np.float32),
+                                      np.float32))
     blob = pickle.dumps(job)
     assert len(blob) < 64 * 1024  # the lattice and tables, not the samples
     copy = pickle.loads(blob)

@@ -232,15 +232,15 @@ def test_exports_of_an_unmoved_warp(tmp_path):
 
 
 def _block_writer(path):
-    """``open_output(template, block)`` writing a NRRD by blocks (what the command passes)."""
+    """``open_output(header, block)`` writing a NRRD by blocks (what the command passes)."""
     from volwarp_cli.geometry import Geometry
     from volwarp_cli.io.blockwrite import committed, open_block_output
 
     seen = []
 
-    def open_output(template, block):
+    def open_output(header, block):
         seen.append(tuple(block))
-        return committed(open_block_output(path, Geometry.of(template), template.dtype,
+        return committed(open_block_output(path, Geometry.of(header), header.dtype,
                                            chunks_zyx=block))
 
     return open_output, seen
@@ -254,22 +254,22 @@ def test_the_operation_by_blocks_writes_the_rendered_volume(tmp_path, block):
     from volwarp_cli import execute
     from volwarp_cli.bspline.capture import capture_source
     from volwarp_cli.engine import open_engine
-    from volwarp_cli.io.lazy import LazySource, open_volume_template
+    from volwarp_cli.io.lazy import LazySource, open_volume_header
 
     spec_path = _spec(tmp_path)
     doc = load_spec(spec_path, "warp")
     spec = read_warp_spec(doc)
     whole = IntensityWarp(*_opened(spec_path)[2:], doc, spec).compute()
-    template, array = open_volume_template(BALL)
+    header, array = open_volume_header(BALL)
     source = LazySource(BALL, array=array)
     s = spec.capture
-    cap = capture_source(template, source, lattice=s.lattice, placement=s.placement,
+    cap = capture_source(header, source, lattice=s.lattice, placement=s.placement,
                          oversample=s.oversample, sampling=s.sampling)
     warp = IntensityWarp(cap, doc, spec)
     ran = {}
     for chunked, name in ((True, "b.nrrd"), (False, "m.nrrd")):
         out = tmp_path / name
-        target = execute.Target(out, warp.output_template(), whole.data.dtype)
+        target = execute.Target(out, warp.output_header(), whole.data.dtype)
         how = execute.How(chunked=chunked, block=block,
                           open_engine=lambda: open_engine("threads", workers=2))
         ran[chunked] = execute.run(warp.operation(target, source=source), how)
@@ -287,7 +287,7 @@ def test_label_map_blocks_equal_the_label_warp(tmp_path):
     as LabelMapWarp, by slabs of the asked depth."""
     from volwarp_cli.engine import open_engine
     from volwarp_cli.io import write_volume
-    from volwarp_cli.io.lazy import LazySource, open_volume_template
+    from volwarp_cli.io.lazy import LazySource, open_volume_header
     from volwarp_cli.warp.label_blocks import OneShotLabelWarp
 
     lab = np.zeros((20, 21, 22), np.int16)
@@ -300,9 +300,9 @@ def test_label_map_blocks_equal_the_label_warp(tmp_path):
     doc = load_spec(spec_path, "warp")
     spec = read_warp_spec(doc)
     want, want_report = LabelMapWarp(Volume(lab), doc, spec).compute()
-    template, array = open_volume_template(src)
-    warp = OneShotLabelWarp(template, LazySource(src, array=array), doc, spec)
-    assert warp.template.data.shape == want.data.shape
+    header, array = open_volume_header(src)
+    warp = OneShotLabelWarp(header, LazySource(src, array=array), doc, spec)
+    assert warp.header.shape == want.data.shape
     out = tmp_path / "o.nrrd"
     open_output, seen = _block_writer(out)
     with open_engine("threads", workers=2) as engine:

@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 
 from .errors import BadUsage
 from .surface.mesh import Mesh as _Mesh
-from .volume import Volume
+from .volume import Header, Volume
 
 __all__ = ["Mesh", "READ_OPTIONS", "capture", "distance", "mesh", "morph", "read", "sweep",
            "warp", "write"]
@@ -327,18 +327,15 @@ def warp(volume, spec, *, values: str | None = None, pushforward: str | None = N
             from .io.inputs import declare_input
 
             declare_input(path)
-            choice, cap, template, source, wspec = open_capture_values(path, doc, wspec,
-                                                                       values)
-        elif path is not None:
-            template, source = _open_lazy(path, read_options)
+            choice, cap, header, source, wspec = open_capture_values(path, doc, wspec,
+                                                                     values)
         else:
-            template = _volume(volume, read_options)
-            source = template.data
-        choice, planned = plan_final(template, source, doc, wspec, options, name=name,
+            header, source = _header_and_source(volume, path, read_options)
+        choice, planned = plan_final(header, source, doc, wspec, options, name=name,
                                      cap=cap, choice=choice)
         if choice.is_labels:
             return _warp_labels(planned, name, path, spec_path)
-        out = planned.output_template()
+        out = planned.output_header()
         op = planned.operation(_target(_stamped(out, "warp", path, spec_path)), source=source)
         (result,) = _compute_whole(op).values()
         return result
@@ -502,7 +499,7 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
         raise BadUsage(f"unsigned must be True or False, got {unsigned!r}")
     path = _path_of(volume)
     with _outside_data(read_options.get("allow_outside_data", False)):
-        template, source = _template_and_source(volume, path, read_options)
+        header, source = _header_and_source(volume, path, read_options)
         box_voxels = scan_box_voxels()
         name = str(path) if path is not None else "the volume"
         rule = choose_shape(source, values=values, label=label, iso=iso, inside=inside,
@@ -510,9 +507,9 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
         log.info("%s", rule.describe())
         surface = field_surface(source, rule, metric=metric, surface=surface,
                                 max_distance=max_distance, box_voxels=box_voxels)
-        out = _stamped(template, "distance", path, None)
+        out = _stamped(header, "distance", path, None)
         out.meta["volwarp_distance"] = field_note(metric, surface, rule, unsigned, max_distance)
-        out = out.with_data(np.broadcast_to(np.zeros((), np.float32), template.data.shape))
+        out = out.replace(dtype=np.float32)
         op = field_operation(source, Geometry.of(out), rule, metric=metric, surface=surface,
                              max_distance=max_distance, unsigned=unsigned, target=_target(out))
         (field,) = _compute_whole(op).values()
@@ -572,8 +569,8 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
                        "label is)")
     path = _path_of(volume)
     with _outside_data(read_options.get("allow_outside_data", False)):
-        template, source = _template_and_source(volume, path, read_options)
-        op = MeshOperation(template, source, Level(iso, inside, cap),
+        header, source = _header_and_source(volume, path, read_options)
+        op = MeshOperation(header, source, Level(iso, inside, cap),
                            cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
                                            decimate=decimate),
                            labels=label, allow_empty=allow_empty,
@@ -707,28 +704,27 @@ def _outside_data(allowed: bool):
         files.allow_outside_data = before
 
 
-def _template_and_source(volume, path, read_options: dict):
-    """``(template, source)``: a path opened lazily (:func:`_open_lazy`), a Volume as it is."""
+def _header_and_source(volume, path, read_options: dict):
+    """``(header, source)``: a path opened lazily (:func:`_open_lazy`), a Volume's as they are."""
     if path is not None:
         return _open_lazy(path, read_options)
-    template = _volume(volume, read_options)
-    return template, template.data
+    vol = _volume(volume, read_options)
+    return vol.header, vol.data
 
 
 def _open_lazy(path, read_options: dict):
-    """``(template, source)`` of a volume path, opened as the commands open it by blocks.
+    """``(header, source)`` of a volume path, opened as the commands open it by blocks.
 
-    (``volwarp_cli.cli.chunked.lazy_input``: the geometry read, the samples
+    (``volwarp_cli.cli.chunked.lazy_input``: the header read, the samples
     read box by box.)
     """
-    from .io.lazy import LazySource, open_volume_template
+    from .io.lazy import LazySource, open_volume_header
 
     raw, volume_index, dicom, _ = _read_arguments(path, read_options)
     _declare_inputs(path, dicom)
-    template, array = open_volume_template(path, raw=raw, volume_index=volume_index,
-                                           dicom=dicom)
-    return template, LazySource(path, raw=raw, volume_index=volume_index, array=array,
-                                dicom=dicom)
+    header, array = open_volume_header(path, raw=raw, volume_index=volume_index, dicom=dicom)
+    return header, LazySource(path, raw=raw, volume_index=volume_index, array=array,
+                              dicom=dicom)
 
 
 def _spec(spec, kind: str):
@@ -755,20 +751,20 @@ def _provenance(command: str, inputs: list, spec) -> dict:
     return meta
 
 
-def _stamped(vol: Volume, command: str, path, spec_path) -> Volume:
+def _stamped(vol: Header, command: str, path, spec_path) -> Header:
     """``vol`` with its provenance (:func:`volwarp_cli.provenance.stamp`'s, of what is known)."""
     from .provenance import PROVENANCE_KEYS
 
     meta = {k: v for k, v in vol.meta.items() if k not in PROVENANCE_KEYS}
     meta.update(_provenance(command, [path], spec_path))
-    return vol.with_data(vol.data, meta=meta)
+    return vol.replace(meta=meta)
 
 
-def _target(template: Volume):
+def _target(header: Header):
     """An output at no path (:class:`volwarp_cli.execute.Target`): computed, not written."""
     from .execute import Target
 
-    return Target(None, template, template.dtype)
+    return Target(None, header, header.dtype)
 
 
 def _compute_whole(op) -> dict:
@@ -783,7 +779,7 @@ def _compute_whole(op) -> dict:
 
     ensure_fits_once_loaded(op.memory(op.grid.box), op.what, op.load)
     results = compute_whole(op)
-    return {key: target.template.with_data(op.output(results, key))
+    return {key: target.header.with_data(op.output(results, key))
             for key, target in op.targets.items()}
 
 
@@ -796,7 +792,7 @@ def _warp_labels(planned, name: str, path, spec_path) -> Volume:
     ensure_fits_once_loaded(planned.memory_whole(), f"the warp of {name}'s labels", None)
     out, report = planned.compute_whole()
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
-    stamped = _stamped(planned.template, "warp", path, spec_path)
+    stamped = _stamped(planned.header, "warp", path, spec_path)
     return stamped.with_data(out.data, origin=out.origin)
 
 

@@ -125,8 +125,8 @@ class ApplyOperation(Operation):
                      f"{kinds})")
 
     def __getstate__(self):
-        # (a task in another process writes through the executor's writers: the target,
-        # whose template's placeholder would pickle as a whole output of zeros, stays here)
+        # (a task in another process writes through the executor's writers: the target
+        # stays here)
         state = dict(self.__dict__)
         state["targets"] = {}
         return state
@@ -400,15 +400,15 @@ def _windowed(op) -> bool:
     return getattr(op, "source", None) is not None and getattr(op, "vectors", 0) is None
 
 
-def plan_resample(template, source, chain: Chain, reference=None, *,
+def plan_resample(header, source, chain: Chain, reference=None, *,
                   interpolation: str | None = None, values: str | None = None,
                   background: float | None = None, dtype=None,
                   name: str = "the input") -> ApplyOperation:
     """The resampling of an input through ``chain``, its defaults chosen (an operation).
 
-    ``template``, ``source``: the input's Volume (its samples may be a
-    placeholder) and its samples, sliceable; ``reference``: the output grid's
-    Volume (default: the chain's own grid, an elastix file's, else the
+    ``header``, ``source``: the input's :class:`~volwarp_cli.volume.Header`
+    and its samples, sliceable; ``reference``: the output grid's Header (or
+    Volume; default: the chain's own grid, an elastix file's, else the
     input's). Labels or intensities by ``values``, else by the label-map
     rule (:func:`volwarp_cli.warp.defaults.choose_values`, said at ``-v``): a
     label map is resampled by nearest neighbour (another interpolation is a
@@ -416,14 +416,14 @@ def plan_resample(template, source, chain: Chain, reference=None, *,
     input's border (its most frequent label, or its median sample); the output
     in the input's type unless ``dtype``. The field's coverage of the grid is
     checked here, before any work. The target is an output at no path
-    (its template on the grid): the caller gives it its path and options.
+    (the input's header on the grid): the caller gives it its path and options.
     """
     from .execute import Target
     from .geometry import Geometry
     from .progress import log
     from .warp.defaults import choose_values
 
-    in_grid = Geometry.of(template)
+    in_grid = Geometry.of(header)
     grid = Geometry.of(reference) if reference is not None else (
         in_grid if chain.grid is None else chain.grid)
     check_coverage(chain, grid)
@@ -438,9 +438,8 @@ def plan_resample(template, source, chain: Chain, reference=None, *,
         background = default_background(source, choice.is_labels)
         log.info("background: %g (the input's border)", background)
     out_dtype = np.dtype(dtype or source.dtype)
-    out = template.with_data(np.broadcast_to(np.zeros((), out_dtype), grid.shape),
-                             spacing=np.array(grid.spacing), origin=np.array(grid.origin),
-                             direction=np.array(grid.direction))
+    out = header.replace(shape=grid.shape, dtype=out_dtype, spacing=np.array(grid.spacing),
+                         origin=np.array(grid.origin), direction=np.array(grid.direction))
     return ApplyOperation(source, in_grid, chain, grid, interpolation=method,
                           background=background, target=Target(None, out, out_dtype),
                           name=name)

@@ -54,15 +54,15 @@ MIN_BLOCK_BUDGET = 32 << 20
 class Target:
     """One output of an operation: its file, its samples' type, and how it is written.
 
-    ``template``: a Volume with the output's geometry, frame and key/values
-    (its samples a placeholder); ``components``: the names of the components
+    ``header``: the output's :class:`~volwarp_cli.volume.Header` (its shape,
+    geometry, frame and key/values); ``components``: the names of the components
     of a multi-component output (NRRD; a block's samples then have them on
     their last axis), else None. The rest are
     :func:`~volwarp_cli.io.write_volume`'s options.
     """
 
     path: Path
-    template: object
+    header: object
     dtype: np.dtype
     compress: bool = False
     byte_order: str = "little"
@@ -78,11 +78,11 @@ class Target:
             from .io.nrrd import write_nrrd
 
             comps = [np.ascontiguousarray(data[..., i]) for i in range(data.shape[-1])]
-            write_nrrd(self.template.with_data(comps[0]), self.path, compress=self.compress,
+            write_nrrd(self.header.with_data(comps[0]), self.path, compress=self.compress,
                        byte_order=self.byte_order, components=comps,
                        component_names=list(self.components))
             return
-        write_volume(self.template.with_data(data), self.path, compress=self.compress,
+        write_volume(self.header.with_data(data), self.path, compress=self.compress,
                      byte_order=self.byte_order, ome_zarr_version=self.version,
                      pyramid=self.pyramid)
 
@@ -95,10 +95,10 @@ class Target:
         from .geometry import Geometry
         from .io.blockwrite import committed, open_block_output
 
-        out = open_block_output(self.path, Geometry.of(self.template), self.dtype,
+        out = open_block_output(self.path, Geometry.of(self.header), self.dtype,
                                 chunks_zyx=block, version=self.version, compress=self.compress,
-                                byte_order=self.byte_order, metadata=self.template.meta,
-                                space=self.template.space, pyramid=self.pyramid,
+                                byte_order=self.byte_order, metadata=self.header.meta,
+                                space=self.header.space, pyramid=self.pyramid,
                                 components=list(self.components) if self.components else None)
         return committed(out)
 

@@ -1,4 +1,7 @@
-"""The one grid geometry: a :class:`~.volume.Volume` without samples.
+"""The one grid geometry: a :class:`~.volume.Volume` without samples, type, frame or key/values.
+
+(A :class:`~.volume.Header` is a Volume without samples: a Geometry with a
+sample type, a frame and key/values; :meth:`Geometry.header` makes one.)
 
 A :class:`Geometry` is where a grid of samples lies in the world: its
 ``shape`` in array order (z, y, x) and, as a Volume has them, ``spacing``,
@@ -177,7 +180,7 @@ class Geometry:
 
     @classmethod
     def of(cls, volume) -> Geometry:
-        """The geometry of a :class:`~.volume.Volume`, or of anything alike.
+        """The geometry of a :class:`~.volume.Volume`, a :class:`~.volume.Header` or anything alike.
 
         That is anything with ``data`` or ``shape`` (z, y, x), ``spacing``, ``origin``
         and ``direction``.
@@ -321,4 +324,14 @@ class Geometry:
             raise VolwarpError(f"samples of shape {data.shape} do not fit a grid of shape "
                                f"{self.shape}")
         return Volume(data, spacing=self.spacing_array, origin=self.origin_array,
+                      direction=self.direction_array, **kwargs)
+
+    def header(self, dtype, **kwargs):
+        """A :class:`~.volume.Header` of samples of ``dtype`` on this grid (none held).
+
+        ``kwargs`` (meta, ...) pass through (a ``space`` other than LPS would move it).
+        """
+        from .volume import Header
+
+        return Header(self.shape, dtype, spacing=self.spacing_array, origin=self.origin_array,
                       direction=self.direction_array, **kwargs)

@@ -6,7 +6,7 @@ bytes, which batch's content-addressed cache relies on.
 
 from __future__ import annotations
 
-from .volume import Volume
+from .volume import Header, Volume
 
 
 def provenance(command: str, inputs, spec=None) -> dict[str, str]:
@@ -38,8 +38,11 @@ def provenance(command: str, inputs, spec=None) -> dict[str, str]:
 PROVENANCE_KEYS = ("volwarp_version", "volwarp_command", "volwarp_input", "volwarp_spec_sha256")
 
 
-def stamp(vol: Volume, command: str, inputs, spec=None) -> Volume:
-    """``vol`` with its provenance key/values set (an earlier step's replaced)."""
+def stamp(vol: Volume | Header, command: str, inputs, spec=None) -> Volume | Header:
+    """``vol`` (a Volume or a Header) with its provenance key/values set.
+
+    An earlier step's provenance is replaced.
+    """
     meta = {k: v for k, v in vol.meta.items() if k not in PROVENANCE_KEYS}
     meta.update(provenance(command, inputs, spec))
-    return vol.with_data(vol.data, meta=meta)
+    return vol.replace(meta=meta)

@@ -1,5 +1,8 @@
 """The Volume type: a ``[z, y, x]`` sample array plus its place in the world.
 
+A :class:`Header` is the same without the samples (their shape and type):
+what an output is before it is computed, what a file holds before it is read.
+
 Geometry (sizes, spacing, origin, points, indices) is always written (x, y, z);
 samples are indexed ``[z, y, x]``. :func:`xyz_to_zyx` and :func:`zyx_to_xyz`
 are the one place where the two orders meet: every module that turns a
@@ -78,52 +81,27 @@ def zyx_to_xyz(values):
     return tuple(values)[::-1]
 
 
-@dataclass(frozen=True)
-class _Broadcast:
-    """A zero-strided array's one value (a 1-element array) and its shape, for pickling."""
+class _Placed:
+    """What :class:`Volume` and :class:`Header` share: a grid of ``shape`` (z, y, x) in the world.
 
-    value: np.ndarray
-    shape: tuple
-
-
-@dataclass
-class Volume:
-    """Samples ``data[z, y, x]`` with spacing, origin and direction, all (x, y, z).
-
-    ``meta`` holds the file format's other key/value pairs (strings), carried
-    from input to output so that a pipeline does not lose them.
-
-    ``space`` is the world frame of origin and direction: LPS
-    (``left-posterior-superior``) for every file with an anatomical frame, or
-    None for files that name none (TIFF, raw, a NRRD without ``space``). A
-    Volume made with another frame (a reader passes the file's own, e.g. a
-    NRRD's ``right-anterior-superior``) converts its origin and direction to
-    LPS here, once, and keeps the file's frame in ``file_space``: no other
-    code converts frames, and every writer starts from LPS.
-
-    Spacing, origin and direction obey :func:`volwarp_cli.geometry.check_placement`
-    (finite, positive, non-singular and within its bound): the readers call it
-    first with their files' own field names, so that a refusal names the field.
+    The one implementation of the checks and the frame conversion every
+    volume's geometry goes through (:meth:`_place`), and of the geometry
+    methods; a subclass has ``shape``, ``spacing``, ``origin``, ``direction``,
+    ``space``, ``meta`` and ``file_space``.
     """
 
-    data: np.ndarray
-    spacing: np.ndarray = field(default_factory=lambda: np.ones(3))
-    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
-    space: str | None = None
-    meta: dict[str, Any] = field(default_factory=dict)
-    #: the world frame the file itself used (its readers converted it to ``space``)
-    file_space: str | None = None
+    def _place(self, shape_zyx) -> None:
+        """Check the placement for a grid of ``shape_zyx`` and convert the file's frame to LPS.
 
-    def __post_init__(self):
-        data = np.asarray(self.data)
-        if data.ndim != 3:
-            raise VolwarpError(f"a volume has 3 axes, got an array of shape {data.shape}")
-        self.data = data
+        Spacing, origin and direction obey
+        :func:`volwarp_cli.geometry.check_placement`; a frame other than LPS
+        (``space``) has its origin and direction converted to LPS here, once,
+        and is kept as ``file_space``.
+        """
         from .geometry import check_placement  # (geometry imports this module)
 
         self.spacing, self.origin, self.direction = check_placement(
-            self.spacing, self.origin, self.direction, zyx_to_xyz(data.shape))
+            self.spacing, self.origin, self.direction, zyx_to_xyz(shape_zyx))
         to_lps = frame_to_lps(self.space)
         if to_lps is not None:  # the one conversion of a file's frame to LPS
             frame = SPACE_NAMES[str(self.space).lower()]
@@ -135,34 +113,16 @@ class Volume:
             self.space = LPS
         self.meta = dict(self.meta)
 
-    def __getstate__(self):
-        """Pickled for block tasks: a placeholder (one value broadcast) as its shape and value.
-
-        A template's samples are a zero-strided view (``np.broadcast_to``);
-        pickling it as an array would copy the whole grid into every task.
-        """
-        state = dict(self.__dict__)
-        data = state["data"]
-        if data.size > 1 and all(s == 0 for s in data.strides):
-            state["data"] = _Broadcast(data.reshape(-1)[:1].copy(), data.shape)
-        return state
-
-    def __setstate__(self, state):
-        data = state["data"]
-        if isinstance(data, _Broadcast):
-            state["data"] = np.broadcast_to(data.value.reshape(()), data.shape)
-        self.__dict__.update(state)
+    def replace(self, **changes):
+        """A copy with ``changes`` (geometry, frame, meta, ...); meta kept (a copy) by default."""
+        changes.setdefault("meta", dict(self.meta))
+        return replace(self, **changes)
 
     # -- sizes --------------------------------------------------------------
     @property
     def shape_xyz(self) -> tuple[int, int, int]:
         """Number of samples along x, y, z."""
-        return tuple(int(n) for n in zyx_to_xyz(self.data.shape))
-
-    @property
-    def dtype(self) -> np.dtype:
-        """The sample type of ``data``."""
-        return self.data.dtype
+        return tuple(int(n) for n in zyx_to_xyz(self.shape))
 
     # -- coordinates ----------------------------------------------------------
     @property
@@ -191,16 +151,109 @@ class Volume:
         pts = self.index_to_world(corners)
         return pts.min(axis=0), pts.max(axis=0)
 
-    def with_data(self, data: np.ndarray, **changes) -> Volume:
-        """A copy with new samples (and optionally new geometry or meta); meta kept by default."""
-        changes.setdefault("meta", dict(self.meta))
-        return replace(self, data=data, **changes)
-
-    def same_grid(self, other: Volume, atol: float = 1e-6) -> bool:
-        """True when both volumes sample the same world points."""
+    def same_grid(self, other: _Placed, atol: float = 1e-6) -> bool:
+        """True when both sample the same world points (a Volume's or a Header's grid)."""
         return (
             self.shape_xyz == other.shape_xyz
             and np.allclose(self.spacing, other.spacing, atol=atol)
             and np.allclose(self.origin, other.origin, atol=atol)
             and np.allclose(self.direction, other.direction, atol=atol)
         )
+
+
+@dataclass(eq=False)
+class Header(_Placed):
+    """A volume without its samples: ``shape`` (z, y, x), ``dtype``, and its place in the world.
+
+    What an output is before it is computed, what a file holds before it is
+    read: everything a :class:`Volume` has but ``data`` (spacing, origin,
+    direction, frame and key/values, the same checks and the same one
+    conversion of a file's frame to LPS). :meth:`with_data` gives the Volume
+    of samples on it; :meth:`Volume.header` the Header of a Volume. It pickles
+    small, whatever the grid's size.
+    """
+
+    shape: tuple[int, int, int]
+    dtype: np.dtype
+    spacing: np.ndarray = field(default_factory=lambda: np.ones(3))
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
+    space: str | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+    #: the world frame the file itself used (its readers converted it to ``space``)
+    file_space: str | None = None
+
+    def __post_init__(self):
+        shape = tuple(int(n) for n in self.shape)
+        if len(shape) != 3 or min(shape) < 0:
+            raise VolwarpError(f"a volume has 3 axes, got a shape {shape}")
+        self.shape = shape
+        self.dtype = np.dtype(self.dtype)
+        self._place(shape)
+
+    def with_data(self, data: np.ndarray, **changes) -> Volume:
+        """A Volume of ``data`` (and optionally new geometry or meta) on this header; meta kept."""
+        changes.setdefault("meta", dict(self.meta))
+        kept = {k: getattr(self, k) for k in ("spacing", "origin", "direction", "space",
+                                               "file_space")}
+        return Volume(data, **{**kept, **changes})
+
+
+@dataclass
+class Volume(_Placed):
+    """Samples ``data[z, y, x]`` with spacing, origin and direction, all (x, y, z).
+
+    ``meta`` holds the file format's other key/value pairs (strings), carried
+    from input to output so that a pipeline does not lose them.
+
+    ``space`` is the world frame of origin and direction: LPS
+    (``left-posterior-superior``) for every file with an anatomical frame, or
+    None for files that name none (TIFF, raw, a NRRD without ``space``). A
+    Volume made with another frame (a reader passes the file's own, e.g. a
+    NRRD's ``right-anterior-superior``) converts its origin and direction to
+    LPS here, once, and keeps the file's frame in ``file_space``: no other
+    code converts frames, and every writer starts from LPS.
+
+    Spacing, origin and direction obey :func:`volwarp_cli.geometry.check_placement`
+    (finite, positive, non-singular and within its bound): the readers call it
+    first with their files' own field names, so that a refusal names the field.
+    The same without samples is a :class:`Header` (:attr:`header`).
+    """
+
+    data: np.ndarray
+    spacing: np.ndarray = field(default_factory=lambda: np.ones(3))
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
+    space: str | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+    #: the world frame the file itself used (its readers converted it to ``space``)
+    file_space: str | None = None
+
+    def __post_init__(self):
+        data = np.asarray(self.data)
+        if data.ndim != 3:
+            raise VolwarpError(f"a volume has 3 axes, got an array of shape {data.shape}")
+        self.data = data
+        self._place(data.shape)
+
+    # -- sizes --------------------------------------------------------------
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """The shape (z, y, x) of ``data``."""
+        return tuple(self.data.shape)
+
+    @property
+    def dtype(self) -> np.dtype:
+        """The sample type of ``data``."""
+        return self.data.dtype
+
+    @property
+    def header(self) -> Header:
+        """The volume without its samples: its shape, type, geometry, frame and key/values."""
+        return Header(self.data.shape, self.data.dtype, spacing=self.spacing,
+                      origin=self.origin, direction=self.direction, space=self.space,
+                      meta=dict(self.meta), file_space=self.file_space)
+
+    def with_data(self, data: np.ndarray, **changes) -> Volume:
+        """A copy with new samples (and optionally new geometry or meta); meta kept by default."""
+        return self.replace(data=data, **changes)

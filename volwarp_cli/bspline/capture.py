@@ -15,7 +15,7 @@ from ..border import border_value
 from ..errors import VolwarpError
 from ..memory import ensure_fits_in_memory
 from ..progress import timed
-from ..volume import Volume
+from ..volume import Header, Volume
 from .lattice import PLACEMENTS, Lattice, capture_offsets
 from .pullback import SAMPLINGS, Sampler
 
@@ -24,8 +24,8 @@ from .pullback import SAMPLINGS, Sampler
 class Capture:
     """Domain voxmap ``[Dz, Dy, Dx]`` and the capture set-up.
 
-    ``geometry`` is the input volume's geometry with a 1-voxel placeholder
-    array (its ``meta`` kept); ``input_dtype`` and ``stats`` (min, max, mean;
+    ``geometry`` is the input volume's :class:`~volwarp_cli.volume.Header`
+    (its shape, geometry, frame and ``meta``); ``input_dtype`` and ``stats`` (min, max, mean;
     the mean None when not asked for) describe the captured input. The
     domain's samples lie within the input's (min, max): each is one input
     sample (on a subdivision grid: its input voxel's; outside the input, the
@@ -43,7 +43,7 @@ class Capture:
     oversample: float
     sampling: str
     pad: tuple[int, int, int] | None
-    geometry: Volume
+    geometry: Header
     input_dtype: np.dtype
     stats: tuple[float, float, float | None]
     sampler: Sampler | None = None
@@ -84,9 +84,9 @@ class NoSamples:
     whole = planes
 
 
-def geometry_capture(template: Volume, *, lattice=(9, 9, 9), placement: str = "uniform",
+def geometry_capture(header: Header, *, lattice=(9, 9, 9), placement: str = "uniform",
                      oversample: float = 2.0, sampling: str = "linear", pad=None) -> Capture:
-    """A capture of ``template``'s geometry alone: its lattice and grid, no samples read.
+    """A capture of ``header``'s geometry alone: its lattice and grid, no samples read.
 
     For what depends on the deformation only (moved points and meshes, the
     fields): the same grid and capture offsets as :func:`capture_volume`
@@ -95,15 +95,14 @@ def geometry_capture(template: Volume, *, lattice=(9, 9, 9), placement: str = "u
     if placement not in PLACEMENTS:
         raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
     lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
-    grid = Lattice.create(template.shape_xyz, lattice, oversample, placement)
+    grid = Lattice.create(header.shape_xyz, lattice, oversample, placement)
     ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,
                           f"the {'x'.join(map(str, grid.lattice))} control lattice")
     capture_offsets(grid, placement)
     if pad is not None:
         pad = tuple(int(v) for v in np.broadcast_to(np.asarray(pad), (3,)))
-    geometry = template.with_data(np.zeros((1, 1, 1), dtype=template.dtype))
-    return Capture(None, grid, placement, float(oversample), sampling, pad, geometry,
-                   np.dtype(template.dtype), (0.0, 1.0, None),
+    return Capture(None, grid, placement, float(oversample), sampling, pad, header.replace(),
+                   np.dtype(header.dtype), (0.0, 1.0, None),
                    NoSamples(tuple(grid.domain_shape[::-1])))
 
 
@@ -174,12 +173,12 @@ def source_range(source, *, slab_bytes: int = 64 << 20) -> tuple[float, float]:
     return min(p[0] for p in parts), max(p[1] for p in parts)
 
 
-def capture_source(template: Volume, source, *, lattice=(9, 9, 9), placement: str = "uniform",
+def capture_source(header: Header, source, *, lattice=(9, 9, 9), placement: str = "uniform",
                    oversample: float = 2.0, sampling: str = "linear") -> Capture:
     """A deferred capture of an input that is not held (:class:`.pullback.BoxSampler`).
 
-    ``template``: the input's Volume for its geometry and meta (its samples are
-    not read: a placeholder will do); ``source``: its samples, sliceable
+    ``header``: the input's :class:`~volwarp_cli.volume.Header` (its geometry
+    and meta); ``source``: its samples, sliceable
     ``[z, y, x]``. The input's range comes from one pass over it, slab by
     slab; the gather runs later, box by box, in the blocks' tasks.
     """
@@ -189,20 +188,19 @@ def capture_source(template: Volume, source, *, lattice=(9, 9, 9), placement: st
         raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
     if sampling not in SAMPLINGS:
         raise VolwarpError(f"unknown sampling {sampling!r} (use linear or nearest)")
-    if tuple(source.shape) != tuple(template.data.shape):
+    if tuple(source.shape) != tuple(header.shape):
         raise VolwarpError(f"samples of shape {tuple(source.shape)} do not match the volume's "
-                           f"{tuple(template.data.shape)}")
+                           f"{tuple(header.shape)}")
     lo, hi = source_range(source)
     check_value_range(source, lo, hi)
     lattice = tuple(int(v) for v in np.broadcast_to(np.asarray(lattice), (3,)))
-    grid = Lattice.create(template.shape_xyz, lattice, oversample, placement)
+    grid = Lattice.create(header.shape_xyz, lattice, oversample, placement)
     ensure_fits_in_memory(int(np.prod(grid.lattice)) * 3 * 8 * LATTICE_ARRAYS,
                           f"the {'x'.join(map(str, grid.lattice))} control lattice")
     capture_offsets(grid, placement)
-    sampler = BoxSampler(source, grid, placement, sampling, domain_dtype(template.dtype))
-    geometry = template.with_data(np.zeros((1, 1, 1), dtype=template.dtype))
-    return Capture(None, grid, placement, float(oversample), sampling, None, geometry,
-                   np.dtype(template.dtype), (lo, hi, None), sampler,
+    sampler = BoxSampler(source, grid, placement, sampling, domain_dtype(header.dtype))
+    return Capture(None, grid, placement, float(oversample), sampling, None, header.replace(),
+                   np.dtype(header.dtype), (lo, hi, None), sampler,
                    border=border_value(source))
 
 
@@ -253,10 +251,9 @@ def capture_volume(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
             domain, _ = sampler.whole()
         sampler = None
     stats = (lo, hi, float(data.mean(dtype=np.float64)) if mean else None)
-    geometry = vol.with_data(np.zeros((1, 1, 1), dtype=vol.dtype))
     if pad is not None:
         pad = tuple(int(v) for v in np.broadcast_to(np.asarray(pad), (3,)))
-    return Capture(domain, grid, placement, float(oversample), sampling, pad, geometry,
+    return Capture(domain, grid, placement, float(oversample), sampling, pad, vol.header,
                    np.dtype(vol.dtype), stats, sampler, border=border_value(data))
 
 

@@ -195,18 +195,18 @@ def _resample(input, output, chain, reference, options, write, read, transform_p
     """INPUT through ``chain`` onto the grid (:func:`volwarp_cli.apply.plan_resample`), run."""
     from .. import execute
     from ..apply import plan_resample
-    from ..io.lazy import open_volume_template
+    from ..io.lazy import open_volume_header
     from ..provenance import stamp
     from .chunked import lazy_input
 
-    template, source = lazy_input(input, *read)
-    ref = open_volume_template(reference)[0] if reference is not None else None
+    header, source = lazy_input(input, *read)
+    ref = open_volume_header(reference)[0] if reference is not None else None
     try:
-        op = plan_resample(template, source, chain, ref, name=str(input), **options)
+        op = plan_resample(header, source, chain, ref, name=str(input), **options)
     except BadUsage as exc:
         raise click.UsageError(str(exc)) from None
     target = op.targets[op.KEY]
-    out = stamp(target.template, "apply", [input, *transform_paths])
+    out = stamp(target.header, "apply", [input, *transform_paths])
     op.targets[op.KEY] = execute.Target(output, out, target.dtype, compress=write["compress"],
                                       byte_order=write["byte_order"],
                                       version=write["ome_zarr_version"],

@@ -127,7 +127,7 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
     check_method(metric, surface)
     check_options(values=values, label=label, iso=iso, surface=surface)
     check_output_path(output, option="-o")
-    template, source = lazy_input(input, raw, volume_index, dicom)
+    header, source = lazy_input(input, raw, volume_index, dicom)
     box_voxels = scan_box_voxels()
     with timed("label rule"):
         rule = choose_shape(source, values=values, label=label, iso=iso, inside=inside,
@@ -135,7 +135,7 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
     log.info("%s", rule.describe())
     surface = field_surface(source, rule, metric=metric, surface=surface,
                             max_distance=max_distance, box_voxels=box_voxels)
-    out = stamp(template, "distance", input)
+    out = stamp(header, "distance", input)
     out.meta["volwarp_distance"] = field_note(metric, surface, rule, unsigned, max_distance)
     op = field_operation(source, Geometry.of(out), rule, metric=metric, surface=surface,
                          max_distance=max_distance, unsigned=unsigned,
@@ -155,10 +155,9 @@ def _target(out, output, dtype, compress, byte_order, ome_zarr):
     from .. import execute
 
     dtype = np.dtype(dtype or "float32")
-    return execute.Target(output, out.with_data(np.broadcast_to(np.zeros((), dtype),
-                                                                out.data.shape)),
-                          dtype, compress=compress, byte_order=byte_order,
-                          version=ome_zarr["ome_zarr_version"], pyramid=ome_zarr["pyramid"])
+    return execute.Target(output, out.replace(dtype=dtype), dtype, compress=compress,
+                          byte_order=byte_order, version=ome_zarr["ome_zarr_version"],
+                          pyramid=ome_zarr["pyramid"])
 
 
 @contextlib.contextmanager

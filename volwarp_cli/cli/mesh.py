@@ -174,8 +174,8 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         for path in [render] if turntable is None else turntable_paths(render, turntable):
             check_output_path(path, option="--render")
 
-    template, source = lazy_input(input, raw, volume_index, dicom)
-    op = MeshOperation(template, source, Level(iso, inside, cap),
+    header, source = lazy_input(input, raw, volume_index, dicom)
+    op = MeshOperation(header, source, Level(iso, inside, cap),
                        cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
                                        decimate=decimate),
                        labels=ALL_LABELS if labels else label, allow_empty=allow_empty,
@@ -194,7 +194,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         _print_stats(dict(surface.stats, iso=surface.iso), as_json)
     if render is not None:
         _render(surface.mesh, render, turntable, orientation_labels_for(orientation_labels,
-                                                                        template),
+                                                                        header),
                 dict(view=view, size=render_size, color=color, background=background_color,
                      camera=camera_from), (camera_to, input))
 

@@ -55,14 +55,6 @@ class _Aborted(Exception):
     """Thrown into the atomic-output context to make it remove its temporary."""
 
 
-def _placeholder_volume(geometry: Geometry, dtype, space, metadata):
-    from ..volume import Volume
-
-    data = np.broadcast_to(np.zeros((), dtype=dtype), geometry.shape)
-    return Volume(data, spacing=geometry.spacing_array, origin=geometry.origin_array,
-                  direction=geometry.direction_array, space=space, meta=dict(metadata or {}))
-
-
 def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chunks_zyx=None,
                       version: str = "0.5", compress: bool = False, byte_order: str = "little",
                       metadata: dict | None = None, space: str | None = None,
@@ -96,18 +88,19 @@ def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chu
                          components)
 
 
-def open_volume_blocks(path, template, dtype=None, *, block=None, compress=False,
+def open_volume_blocks(path, header, dtype=None, *, block=None, compress=False,
                        byte_order="little", pyramid=0, version="0.5", labels="auto",
                        components=None):
-    """The :class:`BlockOutput` of the volume ``template`` (its geometry, frame, key/values).
+    """The :class:`BlockOutput` of the volume of ``header`` (its geometry, frame, key/values).
 
-    A context manager: committed when it exits without an error, aborted
-    (nothing left at ``path``, an existing file untouched) otherwise. The
-    options are :func:`open_block_output`'s.
+    ``header``: the output's :class:`~volwarp_cli.volume.Header`. A context
+    manager: committed when it exits without an error, aborted (nothing left
+    at ``path``, an existing file untouched) otherwise. The options are
+    :func:`open_block_output`'s.
     """
-    out = open_block_output(path, Geometry.of(template), dtype or template.dtype,
+    out = open_block_output(path, Geometry.of(header), dtype or header.dtype,
                             chunks_zyx=block, version=version, compress=compress,
-                            byte_order=byte_order, metadata=template.meta, space=template.space,
+                            byte_order=byte_order, metadata=header.meta, space=header.space,
                             pyramid=pyramid, labels=labels, components=components)
     return committed(out)
 
@@ -537,19 +530,19 @@ class _ZarrOutput(BlockOutput):
         from .atomic import atomic_folder
 
         version = omezarr.check_version(version)
-        vol = _placeholder_volume(geometry, dtype, space, metadata)
+        header = geometry.header(dtype, space=space, meta=dict(metadata or {}))
         # a grid whose axes are flipped or permuted is stored reindexed to the identity
         # direction, as write_omezarr stores it: each block is moved into place, on the
         # store's own block grid (counted from the far end along a reversed axis)
-        stored = omezarr.reindex_to_identity(vol, samples=False)
-        found = omezarr.reindex_axes(vol.direction)
+        stored = omezarr.reindexed_header(header)
+        found = omezarr.reindex_axes(header.direction)
         reindex = None
         if found is not None and (found[0] or found[1] != (0, 1, 2)):
             reindex = _Reindex(geometry.shape, *found)
         block = chunks_zyx
         if reindex is not None and block is not None:
             block = reindex.stored_axes(block)
-        layout = block_layout(stored.data.shape, version, block)
+        layout = block_layout(stored.shape, version, block)
         chunk, shard = layout
         grid = shard or chunk
         phase = (0, 0, 0)
@@ -559,7 +552,8 @@ class _ZarrOutput(BlockOutput):
                           for a, (n, c) in enumerate(zip(geometry.shape, grid, strict=True)))
         super().__init__(path, geometry, dtype, grid, phase)
         self._reindex = reindex
-        self._stored, self._vol, self._version, self._pyramid = stored, vol, version, pyramid
+        self._stored, self._header, self._version, self._pyramid = (stored, header, version,
+                                                                     pyramid)
         # labels "auto" (write_volume's default) of an integer output, or a float one (a
         # float map of integer ids is one too): decided on commit, from the samples written
         # (their pyramid levels take the mode or the mean), as in memory
@@ -570,8 +564,8 @@ class _ZarrOutput(BlockOutput):
             tmp = self._stack.enter_context(atomic_folder(path))
             group = omezarr.open_group_for_writing(tmp, version)
             # (the in-memory layout at level 0: the pyramid's levels take theirs too)
-            standard = layout == omezarr.store_layout(stored.data.shape, version, None)
-            self._arrays = omezarr.create_arrays(group, omezarr.level_shapes(stored.data.shape,
+            standard = layout == omezarr.store_layout(stored.shape, version, None)
+            self._arrays = omezarr.create_arrays(group, omezarr.level_shapes(stored.shape,
                                                                              pyramid),
                                                  dtype, version, None if standard else block,
                                                  byte_order, layout0=layout)
@@ -609,7 +603,7 @@ class _ZarrOutput(BlockOutput):
         omezarr.write_levels(self._arrays, None, self._labels)
         self._group.attrs.update(omezarr.group_attributes(
             omezarr.multiscales_metadata(self._stored, self._pyramid, self._version, method),
-            omezarr.volwarp_attribute(self._stored, self._vol, method), self._version))
+            omezarr.volwarp_attribute(self._stored, self._header, method), self._version))
 
 
 class _MappedOutput(BlockOutput):
@@ -623,16 +617,16 @@ class _MappedOutput(BlockOutput):
                        for c, n in zip(chunks, geometry.shape, strict=True))
         super().__init__(path, geometry, dtype, chunks, components=len(components or ()))
         with_byte_order(np.zeros(0, dtype), byte_order)  # checks the name
-        vol = _placeholder_volume(geometry, dtype, space, metadata)
+        vol_header = geometry.header(dtype, space=space, meta=dict(metadata or {}))
         if fmt == "nrrd":
             from .nrrd import nrrd_header
 
-            header = nrrd_header(vol, self.dtype, encoding="raw", byte_order=byte_order,
+            header = nrrd_header(vol_header, self.dtype, encoding="raw", byte_order=byte_order,
                                  components=list(components) if components else None)
         elif fmt == "metaimage":
             from .metaimage import metaimage_header
 
-            header = metaimage_header(vol, self.dtype, byte_order=byte_order,
+            header = metaimage_header(vol_header, self.dtype, byte_order=byte_order,
                                       data_file="LOCAL")
         else:
             header = b""

@@ -438,7 +438,7 @@ def _onto_reference(data, spacing, origin, direction, seg, reference, where) -> 
     """The SEG's slices placed on the reference grid (zeros elsewhere)."""
     check_frame_of_reference(where, str(seg.get("FrameOfReferenceUID", "")), reference)
     g = reference.grid
-    nz, ny, nx = g.data.shape
+    nz, ny, nx = g.shape
     mine = f"{data.shape[2]}x{data.shape[1]} pixels of {spacing[0]:g}x{spacing[1]:g} mm"
     theirs = f"{nx}x{ny} pixels of {g.spacing[0]:g}x{g.spacing[1]:g} mm"
     if data.shape[1:] != (ny, nx) or not np.allclose(spacing[:2], g.spacing[:2], rtol=1e-4) \
@@ -474,7 +474,7 @@ def _grid_text(shape_xyz, spacing, origin, direction) -> str:
 def check_on_reference_grid(vol: Volume, reference, where: str) -> None:
     """A label map written against ``reference`` must lie on its grid (within 1e-3 voxel)."""
     g = reference.grid
-    same = vol.data.shape == g.data.shape
+    same = vol.data.shape == g.shape
     if same:
         corners = np.array([[0, 0, 0], np.array(vol.shape_xyz) - 1], dtype=np.float64)
         corners = np.vstack([corners, [[1, 0, 0], [0, 1, 0], [0, 0, 1]]])

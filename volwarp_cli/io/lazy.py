@@ -22,7 +22,7 @@ own header parsers are used). Per format:
   ``read_volume`` opens it (CIFTI refused, a file shorter than its samples
   refused before any work).
 
-The template's key/values are ``read_volume``'s, from the same functions of
+The header's key/values are ``read_volume``'s, from the same functions of
 the readers where they have them (NIfTI header fields and extension,
 MetaImage fields; for NRRD the key/values and ``NRRD_content``,
 ``NRRD_space units``, ``NRRD_measurement frame`` as :func:`.nrrd.read_nrrd`
@@ -43,10 +43,11 @@ import numpy as np
 from ..errors import FormatError, VolwarpError
 from ..geometry import Geometry
 from ..samples import check_dtype, voxel_count
-from ..volume import xyz_to_zyx
+from ..volume import Header, xyz_to_zyx
 from .filearray import FileArray
 
-__all__ = ["open_volume_lazy", "open_volume_template", "NotLazy", "LazySource"]
+__all__ = ["open_volume_lazy", "open_volume_header", "NotLazy",
+           "LazySource", "make_header"]
 
 
 class NotLazy(Exception):
@@ -62,18 +63,20 @@ def open_volume_lazy(path: str | os.PathLike, *, raw=None, volume_index: int | N
     read whole). ``require_lazy``: raise a VolwarpError naming the reason
     when the file would have to be read whole.
     """
-    template, array = open_volume_template(path, raw=raw, volume_index=volume_index,
-                                           require_lazy=require_lazy, dicom=dicom)
-    return Geometry.of(template), array
+    header, array = open_volume_header(path, raw=raw, volume_index=volume_index,
+                                       require_lazy=require_lazy, dicom=dicom)
+    return Geometry.of(header), array
 
 
-def open_volume_template(path: str | os.PathLike, *, raw=None, volume_index: int | None = None,
-                         require_lazy: bool = False, dicom: dict | None = None):
-    """:func:`open_volume_lazy` with the Volume for the geometry: ``(template, array_like)``.
+def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int | None = None,
+                       require_lazy: bool = False, dicom: dict | None = None):
+    """:func:`open_volume_lazy` with the file's Header: ``(header, array_like)``.
 
-    ``template`` is the Volume ``read_volume`` would give, but for its samples,
-    a zero-strided placeholder of their shape and type: its frame (``space``,
-    ``file_space``) and key/values are the file's, for the outputs made from it.
+    ``header`` (a :class:`~volwarp_cli.volume.Header`) is the Volume
+    ``read_volume`` would give without its samples (their shape and type):
+    its frame (``space``, ``file_space``) and key/values are the file's, for
+    the outputs made from it. A file read whole gives its Volume's header and
+    its samples.
     """
     from ..runscope import stop_if_dry_run
     from . import read_volume, volume_format
@@ -96,12 +99,11 @@ def open_volume_template(path: str | os.PathLike, *, raw=None, volume_index: int
                 raise NotLazy("its stack is resampled (a gantry tilt or irregular spacing)")
             return opened
         if fmt == "omezarr":
-            from .common import make_volume
             from .omezarr import LazyOmeZarr, open_omezarr
 
             opened = open_omezarr(path, volume_index)
             lazy = LazyOmeZarr(opened)
-            return make_volume(opened.where, _placeholder(lazy.shape, lazy.dtype),
+            return make_header(opened.where, lazy.shape, lazy.dtype,
                                spacing=opened.spacing, origin=opened.origin,
                                direction=opened.direction, space=opened.space,
                                file_space=opened.file_space, meta=opened.meta), lazy
@@ -123,19 +125,20 @@ def open_volume_template(path: str | os.PathLike, *, raw=None, volume_index: int
             raise VolwarpError(f"{path}: cannot be read without loading it ({why}); write it "
                                "as .ome.zarr or uncompressed .nrrd first") from None
     vol = read_volume(path, raw=raw, volume_index=volume_index, dicom=dicom)
-    return vol, vol.data
+    return vol.header, vol.data
 
 
-def _placeholder(shape_zyx, dtype) -> np.ndarray:
-    """A zero-strided array of the volume's shape (no memory): to build a Volume's geometry."""
-    return np.broadcast_to(np.zeros((), dtype=dtype), tuple(int(n) for n in shape_zyx))
+def make_header(where: str, shape_zyx, dtype, *, error=FormatError, **geometry) -> Header:
+    """The :class:`~volwarp_cli.volume.Header` of a file's samples, or ``error`` naming ``where``.
 
-
-def _geometry(where: str, shape_zyx, dtype, **geometry):
-    """The placeholder Volume (geometry, frame, key/values) of a file's samples."""
-    from .common import make_volume
-
-    return make_volume(where, _placeholder(shape_zyx, dtype), **geometry)
+    :func:`.common.make_volume` without the samples: the Header's own checks
+    (a singular direction, a spacing that is not positive, ...) do not know
+    which file the geometry came from.
+    """
+    try:
+        return Header(shape_zyx, dtype, **geometry)
+    except VolwarpError as exc:
+        raise error(f"{where}: {exc}") from None
 
 
 def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str, *,
@@ -211,9 +214,10 @@ def _nrrd(path: Path):
         raise FormatError(f"{data_path}: file has {size - start} bytes of samples, expected "
                           f"{nbytes} (wrong sizes or type in the header?)")
     shape = xyz_to_zyx(sizes)
-    geom = _geometry(where, shape, dtype, spacing=spacing, origin=origin, direction=direction,
-                     space=space, meta=_nrrd_meta(fields, keyvals, space, where))
-    return geom, _memmap(data_path, file_dtype, start, shape, str(data_path))
+    header = make_header(where, shape, dtype, spacing=spacing, origin=origin,
+                         direction=direction, space=space,
+                         meta=_nrrd_meta(fields, keyvals, space, where))
+    return header, _memmap(data_path, file_dtype, start, shape, str(data_path))
 
 
 def _nrrd_meta(fields: dict, keyvals: dict, space, where: str) -> dict:
@@ -275,10 +279,10 @@ def _metaimage(path: Path):
         raise FormatError(f"{data_path}: file has {size - start} bytes of samples, expected "
                           f"{nbytes} (wrong DimSize or ElementType in the header?)")
     shape = xyz_to_zyx(sizes)
-    geom = _geometry(where, shape, dtype, spacing=spacing, origin=origin, direction=direction,
-                     space="left-posterior-superior", file_space="left-posterior-superior",
-                     meta=mi._meta(pairs, direction))
-    return geom, _memmap(data_path, file_dtype, start, shape, str(data_path))
+    header = make_header(where, shape, dtype, spacing=spacing, origin=origin,
+                         direction=direction, space="left-posterior-superior",
+                         file_space="left-posterior-superior", meta=mi._meta(pairs, direction))
+    return header, _memmap(data_path, file_dtype, start, shape, str(data_path))
 
 
 # -- raw --------------------------------------------------------------------------------
@@ -300,10 +304,10 @@ def _raw(path: Path, layout):
                           f" {dtype.name} needs {nbytes + layout.header_bytes} bytes")
     from .raw import raw_placement
 
-    geom = _geometry(where, shape, dtype, error=VolwarpError,
-                     **raw_placement(layout, where, shape))
+    header = make_header(where, shape, dtype, error=VolwarpError,
+                         **raw_placement(layout, where, shape))
     file_dtype = dtype.newbyteorder("<" if layout.endian == "little" else ">")
-    return geom, _memmap(path, file_dtype, layout.header_bytes, shape, where)
+    return header, _memmap(path, file_dtype, layout.header_bytes, shape, where)
 
 
 # -- TIFF -------------------------------------------------------------------------------
@@ -332,9 +336,10 @@ def _tiff(path: Path):
         ny, nx = first.shape[-2:]
         if int(np.prod(shape)) != nz * ny * nx or nz < 1:
             raise NotLazy("pages do not make one stack")
-        check_dtype(first.dtype, where)
+        dtype = check_dtype(first.dtype, where)  # (native: the samples read are made so)
         ij = tif.imagej_metadata
-        vol = tiff_io._geometry(tif, first, ij, _placeholder((nz, ny, nx), first.dtype), where)
+        header = make_header(where, (nz, ny, nx), dtype,
+                             **tiff_io.tiff_placement(tif, first, ij, (nz, ny, nx), where))
     store = tifffile.imread(path, aszarr=True)  # (it keeps the files it reads open)
     try:
         arr = zarr.open(store, mode="r")
@@ -343,7 +348,7 @@ def _tiff(path: Path):
     except BaseException:
         store.close()
         raise
-    return vol, _ZarrView(arr, (nz, ny, nx), store)
+    return header, _ZarrView(arr, (nz, ny, nx), store)
 
 
 class _ZarrView:
@@ -414,8 +419,8 @@ def _nifti(path: Path):
     dtype = check_dtype(nf.file_dtype, where)
     geometry, chosen = nifti.nifti_geometry(nf.header, where)
     shape = xyz_to_zyx(nf.shape)
-    geom = _geometry(where, shape, dtype, meta=nifti.nifti_meta(nf, chosen), **geometry)
-    return geom, _memmap(path, nf.file_dtype, nf.offset, shape, where, kind=_NiftiView)
+    header = make_header(where, shape, dtype, meta=nifti.nifti_meta(nf, chosen), **geometry)
+    return header, _memmap(path, nf.file_dtype, nf.offset, shape, where, kind=_NiftiView)
 
 
 class _NiftiView(FileArray):

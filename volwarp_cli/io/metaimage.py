@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
-from ..volume import LPS, Volume, xyz_to_zyx
+from ..volume import LPS, Header, Volume, xyz_to_zyx
 from .common import (
     ascii_values,
     check_dtype,
@@ -514,7 +514,7 @@ def _user_fields(meta: dict) -> list[tuple[str, str]]:
     return sorted(out.items())
 
 
-def metaimage_header(vol: Volume, dtype: np.dtype, *, byte_order: str, data_file: str,
+def metaimage_header(vol: Volume | Header, dtype: np.dtype, *, byte_order: str, data_file: str,
                      compressed_size: int | None = None) -> bytes:
     """The header text of ``vol`` as volwarp writes it (deterministic)."""
     center = str(vol.meta.get(PREFIX + "CenterOfRotation", "0 0 0"))

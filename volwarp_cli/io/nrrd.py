@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
-from ..volume import Volume, frame_to_lps, xyz_to_zyx
+from ..volume import Header, Volume, frame_to_lps, xyz_to_zyx
 from .common import (
     ascii_values,
     check_dtype,
@@ -661,7 +661,7 @@ def _vec(v) -> str:
     return "(" + ",".join(_fmt(x) for x in v) + ")"
 
 
-def nrrd_header(vol: Volume, dtype: np.dtype, *, encoding: str, byte_order: str,
+def nrrd_header(vol: Volume | Header, dtype: np.dtype, *, encoding: str, byte_order: str,
                 data_file: str | None = None, components: list[str] | None = None) -> bytes:
     """The header text of ``vol`` as volwarp writes it (deterministic)."""
     lines = ["NRRD0005", "# Complete NRRD file format specification at:",

@@ -78,7 +78,7 @@ from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..labelmap import looks_like_labels
 from ..samples import check_dtype
-from ..volume import Volume, xyz_to_zyx, zyx_to_xyz
+from ..volume import Header, Volume, xyz_to_zyx, zyx_to_xyz
 from .common import make_volume, native
 
 #: NGFF versions volwarp writes (and reads)
@@ -128,13 +128,13 @@ def signed_permutation(direction) -> tuple[list[int], list[float]] | None:
     return perm, signs
 
 
-def reindex_to_identity(vol: Volume, *, samples: bool = True) -> Volume:
+def reindex_to_identity(vol: Volume) -> Volume:
     """``vol`` with identity direction, by flips and transposes only (signed permutations).
 
     Every sample keeps its world point; the origin becomes the world point of
     the new first voxel. A volume whose direction is not a signed permutation
-    is returned as it is. ``samples=False``: the geometry only, the samples a
-    zero-strided placeholder (a store written by blocks moves each block).
+    is returned as it is. :func:`reindexed_header` is the same for a Header
+    (a store written by blocks moves each block).
     """
     found = reindex_axes(vol.direction)
     if found is None:
@@ -145,14 +145,27 @@ def reindex_to_identity(vol: Volume, *, samples: bool = True) -> Volume:
             return vol
         return vol.with_data(vol.data, direction=np.eye(3))
     data = vol.data
-    if not samples:
-        shape = tuple(data.shape[o] for o in order)
-        data = np.broadcast_to(np.zeros((), data.dtype), shape)
-    else:
-        if flips:
-            data = np.flip(data, axis=flips)
-        data = np.ascontiguousarray(data.transpose(order))
+    if flips:
+        data = np.flip(data, axis=flips)
+    data = np.ascontiguousarray(data.transpose(order))
     return vol.with_data(data, **reindexed_geometry(vol, flips, order))
+
+
+def reindexed_header(header: Header) -> Header:
+    """:func:`reindex_to_identity` of a volume's Header: the stored grid, no samples.
+
+    ``header`` itself when its direction is the identity or not a signed permutation.
+    """
+    found = reindex_axes(header.direction)
+    if found is None:
+        return header
+    flips, order = found
+    if not flips and order == (0, 1, 2):
+        if np.array_equal(header.direction, np.eye(3)):
+            return header
+        return header.replace(direction=np.eye(3))
+    shape = tuple(header.shape[o] for o in order)
+    return header.replace(shape=shape, **reindexed_geometry(header, flips, order))
 
 
 def reindex_axes(direction) -> tuple[tuple[int, ...], tuple[int, int, int]] | None:
@@ -172,7 +185,7 @@ def reindex_axes(direction) -> tuple[tuple[int, ...], tuple[int, int, int]] | No
     return flips, tuple(2 - old_of_new[2 - c] for c in range(3))
 
 
-def reindexed_geometry(vol: Volume, flips, order) -> dict:
+def reindexed_geometry(vol: Volume | Header, flips, order) -> dict:
     """Spacing, origin and (identity) direction of ``vol`` reindexed by ``(flips, order)``."""
     n = np.array(vol.shape_xyz)
     first = np.array([n[a] - 1 if 2 - a in flips else 0 for a in range(3)], dtype=np.float64)
@@ -325,7 +338,7 @@ def multiscales_metadata(vol_geom, levels: int, version: str, method: str | None
     return entry
 
 
-def volwarp_attribute(vol: Volume, source: Volume, method: str | None) -> dict:
+def volwarp_attribute(vol: Volume | Header, source: Volume | Header, method: str | None) -> dict:
     """The namespaced ``volwarp`` attribute: exact geometry, frame, key/values, provenance."""
     attr = {
         "version": ATTRIBUTE_VERSION,

@@ -145,7 +145,7 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
     grid = ref.grid
     names = {r["number"]: r["name"] for r in structures}
     dtype = np.uint8 if only is not None else _label_dtype(max(numbers, default=0))
-    out = np.zeros(grid.data.shape, dtype)
+    out = np.zeros(grid.shape, dtype)
     rois = []
     for roi in ds.get("ROIContourSequence", []):
         number = int(roi.get("ReferencedROINumber", -1))
@@ -153,7 +153,7 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
             continue
         label = f"ROI {number} {names.get(number, '')!r}"
         mask = RoiMask.of(number, names.get(number, ""),
-                          _contours_in_index(roi, grid, where, label), grid.data.shape)
+                          _contours_in_index(roi, grid, where, label), grid.shape)
         if only is not None:
             out[mask.slices()][mask.mask] = 1
             continue
@@ -292,7 +292,7 @@ def _meta(ds, keep_phi: bool, ref) -> dict:
 def _contours_in_index(roi, grid, where: str, label: str) -> list[tuple[int, np.ndarray, bool]]:
     """``(slice k, points (n, 2) as continuous (x, y) indices, closed)`` of one ROI's contours."""
     out = []
-    nz = grid.data.shape[0]
+    nz = grid.shape[0]
     for m, c in enumerate(roi.get("ContourSequence", [])):
         items = _contour_data(c)
         if not items:

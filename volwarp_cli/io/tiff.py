@@ -377,7 +377,8 @@ def _read_tiff(tif, where: str, records) -> Volume:
         raise FormatError(f"{where}: cannot read TIFF data ({_reason(exc)})") from None
     _check_tifffile_log(records, where, nz)
     data = np.asarray(data).reshape(nz, ny, nx)
-    return _geometry(tif, first, ij, data, where)
+    placement = tiff_placement(tif, first, ij, data.shape, where)
+    return make_volume(where, native(data), **placement)
 
 
 def _ome_spacing(tif, where: str) -> list[float | None] | None:
@@ -420,7 +421,11 @@ def _is_imagej_big_stack(tif, first, count: int) -> bool:
     return need <= tif.filehandle.size
 
 
-def _geometry(tif, first, ij, data, where: str) -> Volume:
+def tiff_placement(tif, first, ij, shape_zyx, where: str) -> dict:
+    """The Volume keywords but ``data`` (spacing, origin, direction, space, meta) of a stack.
+
+    ``shape_zyx``: the stack's shape; the placement is checked for it.
+    """
     meta: dict = {}
     spacing = [1.0, 1.0, 1.0]
     names = ["XResolution", "YResolution", "z spacing"]  # where each axis' spacing came from
@@ -463,7 +468,7 @@ def _geometry(tif, first, ij, data, where: str) -> Volume:
                 spacing[axis] = value
                 names[axis] = f"OME PhysicalSize{'XYZ'[axis]}"
         meta["unit"] = "mm"
-        if ome[2] is None and data.shape[0] > 1:
+        if ome[2] is None and shape_zyx[0] > 1:
             log.warning("%s: the OME metadata give no PhysicalSizeZ: z spacing is %g", where,
                         spacing[2])
     if "volwarp_origin" in extra:
@@ -479,10 +484,10 @@ def _geometry(tif, first, ij, data, where: str) -> Volume:
         except (TypeError, ValueError):
             raise FormatError(f"{where}: volwarp_meta is not valid JSON") from None
     spacing, origin, direction = check_placement(
-        spacing, origin, direction, zyx_to_xyz(data.shape), where=where,
+        spacing, origin, direction, zyx_to_xyz(shape_zyx), where=where,
         fields={"spacing": names, "origin": "volwarp_origin", "direction": "volwarp_direction"})
-    return make_volume(where, native(data), spacing=spacing, origin=origin,
-                       direction=direction, space=space, meta=meta)
+    return {"spacing": spacing, "origin": origin, "direction": direction, "space": space,
+            "meta": meta}
 
 
 def write_tiff(vol: Volume, path: str | os.PathLike, *, compress: bool = False,

@@ -64,11 +64,11 @@ class Steps:
         (key,) = op.targets
         return op.output(results, key)
 
-    def target(self, name: str, template):
-        """A float32 output named ``name`` on ``template``'s grid (in memory, not written)."""
+    def target(self, name: str, header):
+        """A float32 output named ``name`` on ``header``'s grid (in memory, not written)."""
         from ..execute import Target
 
-        return Target(Path(f"{name}.nrrd"), template, np.dtype(np.float32))
+        return Target(Path(f"{name}.nrrd"), header, np.dtype(np.float32))
 
     def on_grid(self, samples):
         """Samples already on the frame grid, as the frames read them (float32 in memory)."""
@@ -110,11 +110,11 @@ class StepsOnEngine(Steps):
         (target,) = op.targets.values()
         return open_volume_lazy(target.path)[1]
 
-    def target(self, name: str, template):
-        """A float32 scratch file named ``name`` on ``template``'s grid."""
+    def target(self, name: str, header):
+        """A float32 scratch file named ``name`` on ``header``'s grid."""
         from ..execute import Target
 
-        return Target(self.scratch / f"{name}.nrrd", template, np.dtype(np.float32))
+        return Target(self.scratch / f"{name}.nrrd", header, np.dtype(np.float32))
 
     def on_grid(self, samples):
         """Samples already on the frame grid, read box by box as they are."""
@@ -176,7 +176,7 @@ class ResampleOperation(Operation):
 def alignment_matrices(job: MorphJob, inputs: dict, steps: Steps) -> dict:
     """The alignment matrix of each shape (``{"source": 4x4, "target": 4x4}``).
 
-    ``inputs``: ``{"source": (template, samples), ...}``. A shape's default
+    ``inputs``: ``{"source": (header, samples), ...}``. A shape's default
     centre (its centroid) is counted box by box in integers over ``steps``'
     blocks (:func:`.align.axis_counts`): the same bits for any blocks.
     """
@@ -188,8 +188,8 @@ def alignment_matrices(job: MorphJob, inputs: dict, steps: Steps) -> dict:
         if not params:
             out[name] = np.eye(4)
             continue
-        template, samples = inputs[name]
-        geo = Geometry.of(template)
+        header, samples = inputs[name]
+        geo = Geometry.of(header)
         center = None
         if "center" not in params and "matrix" not in params:
             shape = geo.shape
@@ -213,7 +213,7 @@ def _counts(box: Box, samples, iso: float, inside: str):
     return box, axis_counts(inside_mask(np.asarray(samples[box.slices]), iso, inside))
 
 
-def shape_field(job: MorphJob, name: str, template, samples, steps: Steps):
+def shape_field(job: MorphJob, name: str, header, samples, steps: Steps):
     """The signed field of shape ``name`` on its own grid (the distance's operation)."""
     from ..distance.labels import ShapeRule
     from ..distance.operation import field_operation
@@ -226,9 +226,9 @@ def shape_field(job: MorphJob, name: str, template, samples, steps: Steps):
     try:
         surface = field_surface(samples, rule, metric=job.metric, surface=job.surface,
                                 max_distance=job.max_distance, box_voxels=scan_box_voxels())
-        op = field_operation(samples, Geometry.of(template), rule, metric=job.metric,
+        op = field_operation(samples, Geometry.of(header), rule, metric=job.metric,
                              surface=surface, max_distance=job.max_distance,
-                             target=steps.target(name, template))
+                             target=steps.target(name, header))
         with timed(f"{name} distance ({job.metric})"):
             field = steps.run(op, name)
     except VolwarpError as exc:  # (named after its input; a refusal stays one)
@@ -239,15 +239,15 @@ def shape_field(job: MorphJob, name: str, template, samples, steps: Steps):
     return field
 
 
-def onto_grid(samples, template, matrix: np.ndarray, grid: Geometry, steps: Steps, name: str,
+def onto_grid(samples, header, matrix: np.ndarray, grid: Geometry, steps: Steps, name: str,
               *, outside: str, scale: float = 1.0):
-    """``samples`` (on ``template``'s grid) on the frame grid: as they are, or resampled."""
-    geo = Geometry.of(template)
+    """``samples`` (on ``header``'s grid) on the frame grid: as they are, or resampled."""
+    geo = Geometry.of(header)
     if lands_on_grid(geo.shape, geo.index_to_world_matrix, matrix, grid):
         return steps.on_grid(samples)
-    grid_template = grid.volume(np.broadcast_to(np.zeros((), np.float32), grid.shape))
     op = ResampleOperation(samples, geo.index_to_world_matrix, matrix, grid, outside=outside,
-                           scale=scale, target=steps.target(f"{name}-on-grid", grid_template),
+                           scale=scale,
+                           target=steps.target(f"{name}-on-grid", grid.header(np.float32)),
                            what=name, chunks=steps.chunks(grid.shape))
     with timed(f"{name} onto the frame grid"):
         return steps.run(op, f"{name}-on-grid", user_block=False)

@@ -28,7 +28,7 @@ from ..errors import VolwarpError
 from ..execute import Operation
 from ..progress import progress
 from ..samples import cast_samples
-from ..volume import Volume
+from ..volume import Header, Volume
 from .interpolate import blend, check_time, density, occupancy_to_range, warp_on_grid
 from .pipeline import Prepared
 from .spec import MorphJob
@@ -59,14 +59,14 @@ class Frame:
     the attribute at ``t`` in its output type; ``mesh``: the zero-level surface
     (when meshes or renders were asked for); ``image``: its ``(H, W, 3)`` render,
     ``camera`` the camera of every frame's render. Where the frames were
-    written by blocks, the volumes' samples are placeholders (their geometry
-    and key/values are the files').
+    written by blocks, ``volume`` and the attributes are the files'
+    :class:`~volwarp_cli.volume.Header` (their geometry and key/values), no samples.
     """
 
     index: int
     t: float
-    volume: Volume
-    attributes: dict[str, Volume] = field(default_factory=dict)
+    volume: Volume | Header
+    attributes: dict[str, Volume | Header] = field(default_factory=dict)
     mesh: object = None
     image: np.ndarray | None = None
     camera: object = None
@@ -281,11 +281,13 @@ class FrameOperation(Operation):
                           bytes_per_voxel=self.memory(Box((0, 0, 0), (1, 1, 1))),
                           min_blocks=workers)[0].shape
 
-    def volume(self, data=None, key="frame"):
-        """A Volume of result ``key`` with the frame's key/values (``data`` None: a placeholder)."""
-        if data is None:
-            data = np.broadcast_to(np.zeros((), self.types()[key]), self.grid.shape)
+    def volume(self, data, key="frame"):
+        """A Volume of result ``key``'s ``data`` with the frame's key/values."""
         return self.grid.volume(data, meta=dict(self.meta))
+
+    def header(self, key="frame"):
+        """The Header of result ``key``: its type on the grid, the frame's key/values."""
+        return self.grid.header(self.types()[key], meta=dict(self.meta))
 
 
 @dataclass(frozen=True)
@@ -308,8 +310,8 @@ def frames(job: MorphJob, fields: FrameFields, values: FrameValues, make, *,
 
     Each frame's :class:`FrameOperation` is given to ``make(i, op)``, which
     returns the frame's volume and its attributes' (``(Volume, {name:
-    Volume})``: computed in memory by :func:`computed`, or written by the
-    command, their samples then placeholders). ``meta``: what every frame
+    Volume})``: computed in memory by :func:`computed`; or written by the
+    command, then their Headers). ``meta``: what every frame
     carries (provenance; each adds ``volwarp_morph_t``). ``meshes``: each
     frame's surface made so (default none, but for a render); ``render``:
     each surface rendered, every frame by one camera (``render.camera``, or

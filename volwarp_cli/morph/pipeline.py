@@ -52,8 +52,9 @@ def prepare(job: MorphJob, source: Volume, target: Volume,
         ensure_fits_in_memory(grid.size * 4 * (5 if job.warp_mode == "static" else 11),
                               f"a morph on a {'x'.join(map(str, grid.shape_xyz))} grid")
 
-    return prepare_on(job, {"source": (source, source.data), "target": (target, target.data)},
-                      {name: ((a, a.data), (b, b.data))
+    return prepare_on(job, {"source": (source.header, source.data),
+                            "target": (target.header, target.data)},
+                      {name: ((a.header, a.data), (b.header, b.data))
                        for name, (a, b) in (attributes or {}).items()}, Steps(), check=check)
 
 
@@ -61,9 +62,9 @@ def prepare_on(job: MorphJob, inputs: dict, attributes: dict, steps: Steps, *,
                check=None) -> Prepared:
     """The morph's fields and attributes on the frame grid, each step where ``steps`` runs it.
 
-    ``inputs``: ``{"source": (template, samples), "target": ...}`` (a Volume
-    for the geometry, sliceable samples); ``attributes``: name ->
-    ``((template, samples), (template, samples))``. ``check(grid, matrices)``:
+    ``inputs``: ``{"source": (header, samples), "target": ...}`` (a
+    :class:`~volwarp_cli.volume.Header` for the geometry, sliceable samples);
+    ``attributes``: name -> ``((header, samples), (header, samples))``. ``check(grid, matrices)``:
     called once the frame grid is known, before any field (a refusal there
     costs no work but the alignment's). In memory (``steps.whole``) the
     voxels no input covers are filled and a landmark warp applied; by blocks
@@ -79,9 +80,9 @@ def prepare_on(job: MorphJob, inputs: dict, attributes: dict, steps: Steps, *,
              list(grid.origin))
     on_grid, uncovered = {}, {}
     for name in ("source", "target"):
-        template, samples = inputs[name]
+        header, samples = inputs[name]
         mat = matrices[name]
-        values = onto_grid(shape_field(job, name, template, samples, steps), template, mat,
+        values = onto_grid(shape_field(job, name, header, samples, steps), header, mat,
                            grid, steps, name, outside="nan", scale=linear_scale(mat))
         uncovered[name] = 0
         if steps.whole:
@@ -99,9 +100,9 @@ def prepare_on(job: MorphJob, inputs: dict, attributes: dict, steps: Steps, *,
     prepared = Prepared(morph, grid, matrices["source"], matrices["target"], warp_back,
                         uncovered)
     for name, pair in attributes.items():
-        sa, sb = (onto_grid(samples, template, matrices[side], grid, steps,
+        sa, sb = (onto_grid(samples, header, matrices[side], grid, steps,
                             f"attribute {name} ({side})", outside="nearest")
-                  for side, (template, samples) in zip(("source", "target"), pair, strict=True))
+                  for side, (header, samples) in zip(("source", "target"), pair, strict=True))
         prepared.attributes[name] = (morph.static_source(sa, warp_back), sb)
         prepared.attribute_types[name] = np.dtype(pair[0][1].dtype)
     return prepared

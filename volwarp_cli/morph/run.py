@@ -98,7 +98,7 @@ class MorphPlan:
     ``by_blocks``; ``in_memory_refusal``: why the in-memory morph does not
     fit, when blocks run instead of it unasked; ``loaded``: inputs read whole
     to read their headers (compressed files), by path; ``headers``: the
-    source's and the target's Volumes, their samples placeholders or read.
+    source's and the target's :class:`~volwarp_cli.volume.Header`.
     """
 
     by_blocks: bool
@@ -108,15 +108,18 @@ class MorphPlan:
 
 
 def _input_header(path, loaded: dict):
-    """The Volume of ``path`` without its samples where the format allows, else read whole."""
+    """The Header of ``path``: its samples unread where the format allows, else read whole.
+
+    A volume read whole is kept in ``loaded`` (by path).
+    """
     from ..io import read_volume
-    from ..io.lazy import open_volume_template
+    from ..io.lazy import open_volume_header
 
     try:
-        return open_volume_template(path, require_lazy=True)[0]
+        return open_volume_header(path, require_lazy=True)[0]
     except VolwarpError:  # (compressed, or not a volume: read_volume says what is wrong)
         loaded[str(path)] = read_volume(path)
-        return loaded[str(path)]
+        return loaded[str(path)].header
 
 
 #: Bytes a frame-grid voxel holds in the in-memory morph, measured (256^3 binary shapes,
@@ -140,12 +143,12 @@ def in_memory_bytes(job: MorphJob, source, target, frame_voxels: int) -> int:
     from ..distance.operation import field_memory
 
     def mem(v):
-        return field_memory(v.data.shape, v.dtype, metric=job.metric, surface=job.surface,
+        return field_memory(v.shape, v.dtype, metric=job.metric, surface=job.surface,
                             max_distance=job.max_distance)
 
-    inputs = sum(math.prod(v.data.shape) * np.dtype(v.dtype).itemsize
+    inputs = sum(math.prod(v.shape) * np.dtype(v.dtype).itemsize
                  for v in (source, target))
-    fields = max(mem(source), 4 * math.prod(source.data.shape) + mem(target))
+    fields = max(mem(source), 4 * math.prod(source.shape) + mem(target))
     per_voxel = FRAME_BYTES["static" if job.warp_mode == "static" else "moving"]
     if job.output == "density" and job.density_range == "source":
         per_voxel += RANGE_BYTES
@@ -225,7 +228,7 @@ def frame_targets(op, i: int, outputs, write: FrameWrite) -> None:
     types = op.types()
     paths = {"frame": outputs.frames[i],
              **{name: outputs.attributes[name][i] for name in op.fields.attributes}}
-    op.targets = {key: execute.Target(Path(path), op.volume(key=key), types[key],
+    op.targets = {key: execute.Target(Path(path), op.header(key), types[key],
                                       compress=write.compress, byte_order=write.byte_order,
                                       version=write.version, pyramid=write.pyramid)
                   for key, path in paths.items()}
@@ -236,15 +239,15 @@ def frame_writer(outputs, write: FrameWrite, how, *, by_blocks: bool):
 
     The frame and its attributes are ``op``'s targets, run by the executor as
     the morph's plan decided (``by_blocks``; ``how``: the engine the blocks
-    run on). Returns their Volumes, samples as placeholders.
+    run on). Returns their Headers (no samples held).
     """
     from .. import execute
 
     def make(i, op):
         frame_targets(op, i, outputs, write)
         execute.run(op, how, by_blocks=by_blocks)
-        return op.targets["frame"].template, {
-            name: op.targets[name].template for name in op.fields.attributes}
+        return op.targets["frame"].header, {
+            name: op.targets[name].header for name in op.fields.attributes}
     return make
 
 
@@ -281,11 +284,11 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
     ----------
     job : MorphJob
         The morph (no landmark warp).
-    source, target : (template, samples)
-        Each shape opened lazily: a template Volume (its geometry) and a
-        sliceable, picklable reader of its samples.
+    source, target : (header, samples)
+        Each shape opened lazily: its :class:`~volwarp_cli.volume.Header`
+        (its geometry) and a sliceable, picklable reader of its samples.
     attributes : dict, optional
-        name -> ((template, samples), (template, samples)) of each attribute.
+        name -> ((header, samples), (header, samples)) of each attribute.
     outputs : MorphOutputs
         Each frame's path (``frames``) and each attribute's (``attributes``).
     meta : dict, optional
@@ -302,8 +305,8 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
     Yields
     ------
     Frame
-        Each frame once its volume and attributes are written (their samples
-        placeholders), with its mesh and render when asked for. The same
+        Each frame once its volume and attributes are written (their
+        Headers), with its mesh and render when asked for. The same
         :func:`.frames.frames` as in memory, on the fields by blocks.
 
     Raises
@@ -357,9 +360,9 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
         """What the block path refuses, before any field: coverage, outputs, blocks."""
         a_s, a_t = matrices["source"], matrices["target"]
         maps = []
-        for (template, _), mat in ((source, a_s), (target, a_t), *(
+        for (header, _), mat in ((source, a_s), (target, a_t), *(
                 (pair, m) for a, b in attrs.values() for pair, m in ((a, a_s), (b, a_t)))):
-            geo = Geometry.of(template)
+            geo = Geometry.of(header)
             if not lands_on_grid(geo.shape, geo.index_to_world_matrix, mat, grid):
                 maps.append((index_map(geo.index_to_world_matrix, mat, grid), geo.shape))
         if maps:
@@ -457,7 +460,7 @@ def run_morph(job: MorphJob, outputs, plan: MorphPlan, *, meta: dict, write_kw: 
 
 
 def _lazy(path):
-    from ..io.lazy import LazySource, open_volume_template
+    from ..io.lazy import LazySource, open_volume_header
 
-    template, array = open_volume_template(path)
-    return template, LazySource(path, array=array)
+    header, array = open_volume_header(path)
+    return header, LazySource(path, array=array)

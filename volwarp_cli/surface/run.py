@@ -108,8 +108,8 @@ class MeshOperation(Reduction):
 
     Parameters
     ----------
-    template : Volume
-        The input's geometry and type (its samples may be a placeholder).
+    header : Header
+        The input's geometry and type (:class:`~volwarp_cli.volume.Header`).
     source : sliceable (z, y, x)
         The input's samples (an array, or a
         :class:`~volwarp_cli.io.lazy.LazySource` read box by box).
@@ -132,13 +132,13 @@ class MeshOperation(Reduction):
     :attr:`~volwarp_cli.execute.Ran.output` is the list of :class:`Surface`.
     """
 
-    def __init__(self, template, source, level: Level = Level(), *,
+    def __init__(self, header, source, level: Level = Level(), *,
                  cleanup: Cleanup = Cleanup(), labels=None, allow_empty: bool = False,
                  name: str = "the volume", to: MeshFile | None = None, stats: bool = False):
         self.source, self.name, self.to, self.stats = source, str(name), to, bool(stats)
         self.level = LABEL_LEVEL if labels is not None else level
         self.labels, self.cleanup, self.allow_empty = labels, cleanup, bool(allow_empty)
-        self.grid = Geometry.of(template)
+        self.grid = Geometry.of(header)
         self.shape = tuple(int(n) for n in source.shape)
         self.dtype = np.dtype(source.dtype)
         if labels is not None:

@@ -109,14 +109,13 @@ class SweepOperation(Operation):
         self.dtype = np.dtype(dtype)
         nx, ny, nz = self.grid.shape_xyz
         self.what = f"sweep output {nx}x{ny}x{nz} x {len(self.names)} fields"
-        placeholder = np.broadcast_to(np.zeros((), self.dtype), self.grid.shape)
         if None in paths:  # (the key/values of the first field's, without its name)
-            self.targets = {None: Target(paths[None], self.grid.volume(placeholder,
+            self.targets = {None: Target(paths[None], self.grid.header(self.dtype,
                                                                        meta=dict(meta)),
                                          self.dtype, components=tuple(self.names), **write)}
         else:
-            self.targets = {n: Target(paths[n], self.grid.volume(
-                placeholder, meta=dict(meta, volwarp_sweep_field=n)), self.dtype, **write)
+            self.targets = {n: Target(paths[n], self.grid.header(
+                self.dtype, meta=dict(meta, volwarp_sweep_field=n)), self.dtype, **write)
                 for n in self.names}
 
     def prepare(self) -> None:

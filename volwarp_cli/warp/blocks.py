@@ -199,7 +199,7 @@ class WarpOperation(Operation):
         self.sampling = sampling
         self.window = window  # the output's box of the target
         self.dtype = np.dtype(target.dtype)
-        self.grid = Geometry.of(target.template)
+        self.grid = Geometry.of(target.header)
         self.targets = {self.KEY: target}
         nx, ny, nz = self.grid.shape_xyz
         self.what = (f"the warp of {name} to {nx}x{ny}x{nz} voxels (deformation + "

@@ -43,7 +43,7 @@ from ..bspline.capture import Capture, capture_border
 from ..bspline.lattice import Lattice
 from ..errors import FormatError
 from ..io.atomic import atomic_output
-from ..volume import Volume
+from ..volume import Header, xyz_to_zyx
 
 MAGIC = b"VOLWARP-CAPTURE\n"
 VERSION = 2
@@ -250,7 +250,7 @@ def _capture_of(head: dict, domain, path, sampler=None) -> Capture:
     try:
         inp = head["input"]
         capd = head["capture"]
-        geometry = Volume(np.zeros((1, 1, 1), dtype=np.dtype(inp["dtype"])),
+        geometry = Header(xyz_to_zyx(inp["shape"]), np.dtype(inp["dtype"]),
                           spacing=inp["spacing"], origin=inp["origin"],
                           direction=inp["direction"], space=inp["space"], meta=inp["meta"])
         grid = Lattice(tuple(int(v) for v in inp["shape"]), tuple(int(v) for v in capd["lattice"]),
@@ -264,7 +264,7 @@ def _capture_of(head: dict, domain, path, sampler=None) -> Capture:
                       sampler)
     except (ValueError, KeyError, TypeError) as exc:
         raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
-    except Exception as exc:  # a Volume check failing on bad geometry
+    except Exception as exc:  # a Header check failing on bad geometry
         raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
     cap.border = capture_border(cap)  # the warp's default background, from the stored input
     return cap
@@ -373,8 +373,8 @@ def describe_capture(path: str | os.PathLike) -> dict:
     inp = head["input"]
     capd = head["capture"]
     # (as read_capture builds it: a version 1 file's frame name normalised to LPS)
-    geometry = Volume(np.zeros((1, 1, 1)), spacing=inp["spacing"], origin=inp["origin"],
-                      direction=inp["direction"], space=inp["space"])
+    geometry = Header(xyz_to_zyx(inp["shape"]), np.float64, spacing=inp["spacing"],
+                      origin=inp["origin"], direction=inp["direction"], space=inp["space"])
     grid = Lattice(tuple(inp["shape"]), tuple(capd["lattice"]), tuple(capd["granularity"]),
                 int(capd["subdivision"]))
     from ..bspline.lattice import capture_offsets

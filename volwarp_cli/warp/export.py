@@ -37,7 +37,7 @@ from ..bspline.evaluate import LatticeSpline
 from ..bspline.lattice import Lattice
 from ..errors import VolwarpError
 from ..progress import log
-from ..volume import LPS, Volume
+from ..volume import LPS, Header
 
 #: Newton's stopping residual for the inverse (input voxels) and the accepted one
 INVERSE_TOL = 1e-8
@@ -99,7 +99,7 @@ class ForwardMap:
 
     grid: Lattice
     dq: np.ndarray  # (Cz, Cy, Cx, 3) offsets from the uniform lattice, input voxels
-    geometry: Volume  # the input's geometry (its samples unused: a capture's is a placeholder)
+    geometry: Header  # the input's Header (a capture's geometry)
 
     def __post_init__(self):
         self.dq = np.asarray(self.dq, dtype=np.float64)
@@ -567,7 +567,7 @@ def _run_slabs(part, nz: int, per_slice: int, threads: int | None) -> None:
 
 # ---- writers ------------------------------------------------------------------------------------
 
-def write_field(field: np.ndarray, geometry: Volume, path: str, meta: dict, kind: str) -> None:
+def write_field(field: np.ndarray, geometry: Header, path: str, meta: dict, kind: str) -> None:
     """Write a displacement field ([z, y, x, 3], LPS mm) atomically as NRRD or NIfTI.
 
     NRRD: ``kinds: vector domain domain domain``, ``space: left-posterior-superior``,
@@ -580,22 +580,22 @@ def write_field(field: np.ndarray, geometry: Volume, path: str, meta: dict, kind
     meta["volwarp_field"] = kind
     meta["volwarp_field_units"] = "mm (LPS)"
     fmt = field_format(path)
-    vol = Volume(np.zeros(field.shape[:3], np.float32), spacing=geometry.spacing,
-                 origin=geometry.origin, direction=geometry.direction, space=LPS, meta=meta)
+    header = Header(field.shape[:3], np.float32, spacing=geometry.spacing,
+                    origin=geometry.origin, direction=geometry.direction, space=LPS, meta=meta)
     if fmt == "nrrd":
         from ..io.nrrd import write_nrrd
 
         if kind == "resampling":
             meta["displacement field type"] = "resampling"
         meta.pop("volwarp_components", None)
-        vol = vol.with_data(vol.data, meta=meta)
-        write_nrrd(vol, path, compress=True,
-                   components=[field[..., m] for m in range(3)], component_names=["x", "y", "z"])
+        components = [field[..., m] for m in range(3)]
+        write_nrrd(header.with_data(components[0], meta=meta), path, compress=True,
+                   components=components, component_names=["x", "y", "z"])
         return
-    _write_nifti_field(field, vol, path, kind)
+    _write_nifti_field(field, header, path, kind)
 
 
-def field_block_output(path: str, geometry: Volume, meta: dict, kind: str, depth: int):
+def field_block_output(path: str, geometry: Header, meta: dict, kind: str, depth: int):
     """The block output of a displacement field written by slabs: an uncompressed NRRD.
 
     A :class:`~volwarp_cli.io.blockwrite.BlockOutput` of blocks of ``depth`` z planes.
@@ -616,13 +616,13 @@ def field_block_output(path: str, geometry: Volume, meta: dict, kind: str, depth
     if kind == "resampling":
         meta["displacement field type"] = "resampling"
     meta.pop("volwarp_components", None)
-    nz, ny, nx = geometry.data.shape
+    nz, ny, nx = geometry.shape
     return open_block_output(path, Geometry.of(geometry), np.float32,
                              chunks_zyx=(max(1, int(depth)), ny, nx), metadata=meta, space=LPS,
                              components=["x", "y", "z"])
 
 
-def _write_nifti_field(field, vol: Volume, path: str, kind: str) -> None:
+def _write_nifti_field(field, grid: Header, path: str, kind: str) -> None:
     import nibabel as nib
 
     from ..io.atomic import atomic_output
@@ -630,8 +630,8 @@ def _write_nifti_field(field, vol: Volume, path: str, kind: str) -> None:
     from ..io.nifti import _RAS_TO_LPS, _extension
 
     aff = np.eye(4)
-    aff[:3, :3] = _RAS_TO_LPS @ (vol.direction * vol.spacing[None, :])
-    aff[:3, 3] = _RAS_TO_LPS @ vol.origin
+    aff[:3, :3] = _RAS_TO_LPS @ (grid.direction * grid.spacing[None, :])
+    aff[:3, 3] = _RAS_TO_LPS @ grid.origin
     data = np.ascontiguousarray(field.transpose(2, 1, 0, 3))[:, :, :, None, :]
     img = nib.Nifti1Image(data, aff)
     header = img.header
@@ -640,7 +640,7 @@ def _write_nifti_field(field, vol: Volume, path: str, kind: str) -> None:
     img.set_qform(aff, code=1)
     header.set_intent("vector")
     header["descrip"] = f"volwarp {kind} displacement field, LPS mm".encode("latin-1")
-    ext = _extension(vol.meta)
+    ext = _extension(grid.meta)
     if ext is not None:
         header.extensions.append(ext)
     payload = img.to_bytes()

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..io import write_volume
 from ..progress import log, timed
-from ..volume import Volume
+from ..volume import Header
 
 
 @dataclass(frozen=True)
@@ -195,13 +195,13 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
     fmap = ForwardMap(cap.grid, warp.final_lattice, cap.geometry)
     g = cap.geometry
     nx, ny, nz = cap.grid.input_shape
-    in_grid = Volume(np.zeros((nz, ny, nx), np.uint8), spacing=g.spacing, origin=g.origin,
+    in_grid = Header((nz, ny, nx), np.float32, spacing=g.spacing, origin=g.origin,
                      direction=g.direction, space=g.space)
     if requests.displacement is not None:
         path = requests.displacement
         window, origin = _output_window(cap, scene, warp.options.crop)
         shape = tuple(w.stop - w.start for w in window)
-        out_grid = Volume(np.zeros(shape, np.uint8), spacing=g.spacing, origin=origin,
+        out_grid = Header(shape, np.float32, spacing=g.spacing, origin=origin,
                           direction=g.direction, space=g.space)
         shift = np.array([window[2].start, window[1].start, window[0].start]) - np.array(scene.pad)
         if blocks is None:
@@ -285,7 +285,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
     return stats
 
 
-def _jacobian_by_slabs(fmap, in_grid: Volume, path: str, jmeta: dict) -> dict:
+def _jacobian_by_slabs(fmap, in_grid: Header, path: str, jmeta: dict) -> dict:
     """Write det dF/dx to ``path`` slab by slab; its :func:`.export.jacobian_stats`.
 
     The figures of the whole map, reduced exactly: the extremes combined, the
@@ -294,7 +294,7 @@ def _jacobian_by_slabs(fmap, in_grid: Volume, path: str, jmeta: dict) -> dict:
     from ..geometry import Geometry
     from ..io.blockwrite import committed, open_block_output
 
-    nz, ny, nx = in_grid.data.shape
+    nz, ny, nx = in_grid.shape
     acc = {"min": np.inf, "max": -np.inf, "neg": 0, "low": 0, "n": 0}
 
     def slabs():

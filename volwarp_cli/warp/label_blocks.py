@@ -21,6 +21,7 @@ report counts the whole target, as in memory) but written nowhere.
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
@@ -31,7 +32,7 @@ from ..bspline.scene import Scene
 from ..errors import OutOfMemoryError
 from ..execute import Blocks, Reduction
 from ..progress import timed
-from ..volume import Volume
+from ..volume import Header, Volume
 from .blocks import SceneRecipe
 from .labels import (
     TILE,
@@ -49,7 +50,7 @@ from .run import LatticeMoves, WarpOptions, background_label, prepare_label_warp
 _BUILD = threading.Lock()  # one scene per process, even when two threads ask at once
 
 #: what a slab task needs where it runs: the only state pickled (the planned capture,
-#: frames and placeholder Volumes stay with the caller)
+#: frames and Headers stay with the caller)
 _SLAB_STATE = ("recipe", "source", "window", "dtype", "preserve", "background",
                "target_shape")
 
@@ -57,11 +58,11 @@ _SLAB_STATE = ("recipe", "source", "window", "dtype", "preserve", "background",
 class OneShotLabelWarp(LatticeMoves):
     """A label map's warp for the final lattice: whole, or by slabs of target planes.
 
-    ``template``: the map's Volume with a placeholder of its shape and dtype;
-    ``source``: its samples, sliceable ``[z, y, x]`` (a
+    ``header``: the map's :class:`~volwarp_cli.volume.Header` (its shape,
+    dtype and geometry); ``source``: its samples, sliceable ``[z, y, x]`` (a
     :class:`~volwarp_cli.io.lazy.LazySource`, reopened by path in worker
     processes). Construction plans the lattice and the output
-    (:attr:`template`, refused before any work when the spec cannot apply)
+    (:attr:`header`, refused before any work when the spec cannot apply)
     and reads the map's border (its background label,
     :func:`~volwarp_cli.border.border_label`); :meth:`compute_whole` reads the
     map whole and warps it here (:func:`.labels.warp_labels`, within
@@ -73,24 +74,25 @@ class OneShotLabelWarp(LatticeMoves):
     process (:meth:`slab_scene`).
     """
 
-    def __init__(self, template: Volume, source, doc, spec,
+    def __init__(self, header: Header, source, doc, spec,
                  options: WarpOptions = WarpOptions(), *, name: str = "input"):
         from .prepare import output_planes, output_window_box
 
         self.source = source
-        self.input = template
-        self.dtype = np.dtype(template.dtype)
+        #: the map's Header
+        self.input = header
+        self.dtype = np.dtype(header.dtype)
         self.preserve = options.preserve
         self.options = options
         self.name = name  # (the input's file: in messages)
         self.cap, self.scene, self.frames, (self.grid, self.grid_why) = prepare_label_warp(
-            template, doc, spec, options, name)
+            header, doc, spec, options, name)
         #: the label where nothing lands: the most frequent on the map's border
         self.background = background_label(source)
         if self.frames:
             self.scene.set_lattice(self.frames[-1].dq)
-        #: the output's Volume, a placeholder of its shape and dtype
-        self.template, _ = output_planes(self.cap, self.scene, crop=options.crop)
+        #: the output's Header: its shape, dtype and geometry
+        self.header, _ = output_planes(self.cap, self.scene, crop=options.crop)
         #: the output's box of the target
         self.window = output_window_box(self.cap, self.scene, options.crop)
         #: the whole target's shape (z, y, x)
@@ -114,9 +116,9 @@ class OneShotLabelWarp(LatticeMoves):
         tx, ty, tz = self.scene.target_shape
         item = self.input.dtype.itemsize
         workers = max(1, min(parallel.threads(), tz // 4))
-        return (self.input.data.size * item + tx * ty * tz * item
+        return (math.prod(self.input.shape) * item + tx * ty * tz * item
                 + workers * stream_bytes(self.scene, self.scene.dq, self.input.dtype)
-                + self.template.data.size * item)
+                + math.prod(self.header.shape) * item)
 
     def compute_whole(self) -> tuple[Volume, dict]:
         """The output and the per-label report, the map read whole and warped here."""
@@ -134,9 +136,9 @@ class OneShotLabelWarp(LatticeMoves):
                          slab: int | None = None) -> dict:
         """Warp by slabs on ``engine``; returns the per-label report.
 
-        ``open_output(template, block)``: a context manager giving the block
+        ``open_output(header, block)``: a context manager giving the block
         output (:class:`~volwarp_cli.io.blockwrite.BlockOutput`) for the
-        output's template and block shape (a slab's: ``(slab, y, x)`` of the
+        output's Header and block shape (a slab's: ``(slab, y, x)`` of the
         output), committed on a clean exit; ``budget``: the bytes the tasks
         may hold together; ``slab``: target planes per task (default: as many
         as the budget holds).
@@ -145,7 +147,7 @@ class OneShotLabelWarp(LatticeMoves):
 
         per_task = budget // max(1, engine.workers)
         run = functools.partial(engine.map, label="label boxes", memory=per_task)
-        nz, ny, nx = self.input.data.shape
+        nz, ny, nx = self.input.shape
         # slabs of the map read for its labels' boxes: each one's samples and counts
         depth = max(1, min(nz, per_task // max(1, ny * nx * (self.input.dtype.itemsize + 16))))
         with timed("labels: bounding boxes (one pass)"):
@@ -158,8 +160,8 @@ class OneShotLabelWarp(LatticeMoves):
         window = label_window(self.scene, self.scene.dq, hull)
         need = needed_tiles(self.scene, self.scene.dq, tiles, TILE)
         slab = slab or self.choose_depth(budget, engine.workers)
-        shape = self.template.data.shape
-        with open_output(self.template, (slab, shape[1], shape[2])) as out, \
+        shape = self.header.shape
+        with open_output(self.header, (slab, shape[1], shape[2])) as out, \
                 timed(f"labels: {len(labels)} labels + background, one pass, by slabs"):
             return self._warp_slabs(out, engine, codes, nvox, (window, need), memory=per_task)
 
@@ -359,9 +361,9 @@ def _patch(out, window: Box, changed: dict) -> None:
 class LabelWarpOperation(Reduction):
     """A label map's warp on the executor: whole, or by slabs of target planes.
 
-    ``warp``: the planned :class:`OneShotLabelWarp`; ``path``, ``template``:
-    the output file and its Volume (key/values stamped, its samples a
-    placeholder); ``write``: :func:`~volwarp_cli.io.write_volume`'s options.
+    ``warp``: the planned :class:`OneShotLabelWarp`; ``path``, ``header``:
+    the output file and its :class:`~volwarp_cli.volume.Header` (key/values
+    stamped); ``write``: :func:`~volwarp_cli.io.write_volume`'s options.
     In memory the map is read whole and warped here
     (:meth:`OneShotLabelWarp.compute_whole`, :meth:`memory` its peak); by
     blocks, each task is a slab of whole target planes read box by box
@@ -371,16 +373,16 @@ class LabelWarpOperation(Reduction):
 
     blocks_share = 1.0  # (a slab returns its totals only: nothing to hold beside the tasks)
 
-    def __init__(self, warp: OneShotLabelWarp, path, template, write: dict):
+    def __init__(self, warp: OneShotLabelWarp, path, header, write: dict):
         from ..geometry import Geometry
 
-        self.warp, self.path, self.template, self.write = warp, path, template, dict(write)
-        self.grid = Geometry.of(template)
+        self.warp, self.path, self.header, self.write = warp, path, header, dict(write)
+        self.grid = Geometry.of(header)
         self.what = f"the warp of {warp.name}'s labels"
 
     def outputs(self) -> list:
         """The output file and its size (checked against the disk by blocks)."""
-        return [(self.path, self.template.data.size * self.template.dtype.itemsize)]
+        return [(self.path, math.prod(self.header.shape) * self.header.dtype.itemsize)]
 
     def memory(self, box: Box) -> int:
         """The whole in memory (:meth:`OneShotLabelWarp.memory_whole`), else a slab's."""
@@ -401,13 +403,13 @@ class LabelWarpOperation(Reduction):
         if blocks.whole:
             out, report = self.warp.compute_whole()
             with timed(f"write {self.path}"):  # (pyramid levels take the mode: never averaged ids)
-                write_volume(self.template.with_data(out.data, origin=out.origin), self.path,
+                write_volume(self.header.with_data(out.data, origin=out.origin), self.path,
                              **self.write, labels=True)
             return report
         w = self.write
 
-        def open_output(template, block):
-            return open_volume_blocks(self.path, self.template, block=block,
+        def open_output(header, block):
+            return open_volume_blocks(self.path, self.header, block=block,
                                       compress=w.get("compress", False),
                                       byte_order=w.get("byte_order", "little"),
                                       version=w.get("ome_zarr_version", "0.5"),

@@ -78,24 +78,25 @@ from ..bspline.scene import Scene
 from ..errors import VolwarpError
 from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
-from ..volume import Volume
+from ..volume import Header, Volume
 
 _Q = int(QUANTUM)
 
 
-def capture_labels(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform",
+def capture_labels(vol: Volume | Header, *, lattice=(9, 9, 9), placement: str = "uniform",
                    oversample: float = 2.0, sampling: str = "linear", pad=None) -> Capture:
     """A :class:`Capture` of a label map (no float voxmap: the label passes gather their own).
 
-    Refuses samples that cannot be ids (not integers or floats; a float's
-    values are checked by the label passes, which read them all) and the
-    spanning grid (a non-integer oversample or the tripled placement: its
-    capture would blend ids). The returned capture keeps the labels as
-    ``labels`` (``vol.data``, not copied).
+    ``vol``: the map, or its :class:`~volwarp_cli.volume.Header` (its
+    samples read elsewhere, by slabs). Refuses samples that cannot be ids
+    (not integers or floats; a float's values are checked by the label
+    passes, which read them all) and the spanning grid (a non-integer
+    oversample or the tripled placement: its capture would blend ids). The
+    capture of a Volume keeps its labels as ``labels`` (``vol.data``, not copied).
     """
-    data = vol.data
-    if np.dtype(data.dtype).kind not in "iuf":
-        raise VolwarpError(f"a label map needs integer samples, got {data.dtype} (convert it "
+    dtype = np.dtype(vol.dtype)
+    if dtype.kind not in "iuf":
+        raise VolwarpError(f"a label map needs integer samples, got {dtype} (convert it "
                            "with --dtype, or warp it without --labels)")
     if placement not in PLACEMENTS:
         raise VolwarpError(f"unknown placement {placement!r} (use uniform or tripled)")
@@ -105,9 +106,11 @@ def capture_labels(vol: Volume, *, lattice=(9, 9, 9), placement: str = "uniform"
                            "voxel takes one input voxel's label: use an integer oversample "
                            f"(1, 2, ...) and the uniform placement (got oversample {oversample:g}, "
                            f"placement {placement})")
-    cap = geometry_capture(vol, lattice=lattice, placement=placement, oversample=k,
+    header = vol.header if isinstance(vol, Volume) else vol
+    cap = geometry_capture(header, lattice=lattice, placement=placement, oversample=k,
                            sampling=sampling, pad=pad)
-    cap.labels = data
+    if isinstance(vol, Volume):
+        cap.labels = vol.data
     return cap
 
 
@@ -730,9 +733,10 @@ def _stronger(w: int, at, w_best: int, at_best) -> bool:
     return w > w_best or (w == w_best and at_best is not None and at < at_best)
 
 
-def prepare_labels(vol: Volume, doc, spec, *, method=None, evaluator=None, background=None,
-                   source: str = "input", allow_growth: bool = False, grid: str | None = None):
-    """``(cap, scene, frames)`` for warping the label map ``vol`` with a checked spec.
+def prepare_labels(vol: Volume | Header, doc, spec, *, method=None, evaluator=None,
+                   background=None, source: str = "input", allow_growth: bool = False,
+                   grid: str | None = None):
+    """``(cap, scene, frames)`` for warping the label map ``vol`` (or its Header) by a spec.
 
     The spec: ``doc``, ``spec``. Returned: the :func:`capture_labels` capture of
     ``vol`` and :func:`.prepare.prepare`'s scene and frames (the frames' lattices are

@@ -204,16 +204,15 @@ def output_volume(cap: Capture, scene: Scene, target: np.ndarray, *, crop: bool 
 def output_planes(cap: Capture, scene: Scene, *, crop: bool = False, dtype=None):
     """:func:`output_volume` for a target that arrives as z planes.
 
-    Returns the output Volume with a zero-strided placeholder of its shape and
-    dtype (for the file's header), and ``convert(z0, planes)``: target planes
+    Returns the output's :class:`~volwarp_cli.volume.Header` (its shape, dtype
+    and geometry: the file's header), and ``convert(z0, planes)``: target planes
     [z0, z0 + k) as ``(output z0, samples)``, the part :func:`output_volume`
     keeps and converts in the same way, or None when it keeps none of them.
     """
     window, origin = _output_window(cap, scene, crop)
     out_dtype = np.dtype(dtype or cap.input_dtype)
     shape = tuple(w.stop - w.start for w in window)
-    template = cap.geometry.with_data(np.broadcast_to(np.zeros((), out_dtype), shape),
-                                      origin=origin)
+    header = cap.geometry.replace(shape=shape, dtype=out_dtype, origin=origin)
     wz, wy, wx = window
 
     def convert(z0: int, planes: np.ndarray):
@@ -223,7 +222,7 @@ def output_planes(cap: Capture, scene: Scene, *, crop: bool = False, dtype=None)
         part = np.ascontiguousarray(planes[a - z0:b - z0, wy, wx])
         return a - wz.start, cast_samples(part, out_dtype, what="warped volume")
 
-    return template, convert
+    return header, convert
 
 
 def output_window_box(cap: Capture, scene: Scene, crop: bool):

@@ -15,8 +15,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from ..errors import BadUsage, VolwarpError
 from ..progress import log, timed
 from ..provenance import provenance, stamp
@@ -29,7 +27,7 @@ class WarpFiles:
 
     ``input``: a volume or a capture file (``is_capture``), opened with
     ``read_volume()`` (whole, mapped where it can be: the frames) or
-    ``open_lazy()`` (``(template, source)``: its geometry and its samples
+    ``open_lazy()`` (``(header, source)``: its Header and its samples
     read box by box, reopened by path in other processes). ``spec``: the
     spec file. ``output``: the warped volume (None: ``frames_to`` or the
     exports alone); ``frames_to``: the frames' name pattern
@@ -99,8 +97,8 @@ def _exports_only(req: WarpFiles, how) -> dict:
     else:
         from ..bspline.capture import geometry_capture
 
-        template, _ = req.open_lazy()
-        cap = capture_as_spec(geometry_capture, spec.capture, req.input, template)
+        header, _ = req.open_lazy()
+        cap = capture_as_spec(geometry_capture, spec.capture, req.input, header)
     check_exportable(cap.placement, cap.dq, req.input)
     warp = Deformation(cap, doc, spec, req.options)
     stats = _write_exports(req, warp, how, by_slabs=_exports_by_slabs(req, warp, how))
@@ -108,14 +106,14 @@ def _exports_only(req: WarpFiles, how) -> dict:
     return {"output": None, "handles": warp.handles(), "grid": None, **stats}
 
 
-def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions(), *,
+def plan_final(header, source, doc, spec, options: WarpOptions = WarpOptions(), *,
                name: str = "input", cap=None, choice=None, exportable: bool = False):
     """The final lattice's warp of an input, planned: ``(choice, warp)``; no output computed.
 
-    ``template``: the input's Volume (its samples may be a placeholder);
+    ``header``: the input's :class:`~volwarp_cli.volume.Header`;
     ``source``: its samples, sliceable (an array, or a lazy source read box
     by box); ``cap``: a capture file's deferred capture instead (its
-    ``template``/``source`` None unless its labels are warped, and ``spec``
+    ``header``/``source`` None unless its labels are warped, and ``spec``
     then the one with its capture settings: :func:`open_capture_values`).
     How the samples are warped: ``options.values`` (None: the spec's, else
     the label rule, one pass over the samples), unless ``choice`` was made
@@ -140,10 +138,10 @@ def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions()
     if choice.is_labels:
         from .label_blocks import OneShotLabelWarp  # (a label map's only: not every warp's)
 
-        return choice, OneShotLabelWarp(template, source, doc, spec, options, name=name)
+        return choice, OneShotLabelWarp(header, source, doc, spec, options, name=name)
     if cap is None:
         with timed("input range (one pass)"):
-            cap = capture_as_spec(capture_source, spec.capture, name, template, source)
+            cap = capture_as_spec(capture_source, spec.capture, name, header, source)
     if exportable:  # refused before any work where they cannot be exact
         from .export import check_exportable
 
@@ -152,13 +150,13 @@ def plan_final(template, source, doc, spec, options: WarpOptions = WarpOptions()
 
 
 def open_capture_values(path, doc, spec, values: str | None = None):
-    """A capture file opened lazily for :func:`plan_final`: ``(choice, cap, template, source, spec)``.
+    """A capture file opened lazily for :func:`plan_final`: ``(choice, cap, header, source, spec)``.
 
     Its settings checked against the spec's; how its samples are warped
     chosen (``values``: the command line's, else the spec's, else the label
     rule over the input samples it holds). For labels, the map it holds
-    (template, samples read box by box; ``cap`` None) and the spec with its
-    capture settings; else ``template``, ``source`` None.
+    (its Header, samples read box by box; ``cap`` None) and the spec with its
+    capture settings; else ``header``, ``source`` None.
     """
     from .capture_file import open_capture_lazy
     from .prepare import check_capture_settings
@@ -171,9 +169,8 @@ def open_capture_values(path, doc, spec, values: str | None = None):
         choice, view = capture_values(cap, values or spec.values, path)
     if not choice.is_labels:
         return choice, cap, None, None, spec
-    template = cap.geometry.with_data(np.broadcast_to(np.zeros((), cap.input_dtype),
-                                                      view.shape))
-    return choice, None, template, view, capture_spec(spec, cap)
+    header = cap.geometry.replace(shape=view.shape, dtype=cap.input_dtype)
+    return choice, None, header, view, capture_spec(spec, cap)
 
 
 def _warp_once(req: WarpFiles, how) -> dict:
@@ -190,23 +187,23 @@ def _warp_once(req: WarpFiles, how) -> dict:
     doc, spec = _load_spec(req.spec)
     cap = choice = None
     if req.is_capture:
-        choice, cap, template, source, spec = open_capture_values(req.input, doc, spec,
-                                                                  req.options.values)
+        choice, cap, header, source, spec = open_capture_values(req.input, doc, spec,
+                                                                req.options.values)
     else:
-        template, source = req.open_lazy()
-    choice, warp = plan_final(template, source, doc, spec, req.options, name=req.input,
+        header, source = req.open_lazy()
+    choice, warp = plan_final(header, source, doc, spec, req.options, name=req.input,
                               cap=cap, choice=choice, exportable=bool(req.exports))
     if choice.is_labels:
         return {**_warp_labels(req, warp, how), **values_json(choice)}
-    template = warp.output_template()
+    header = warp.output_header()
     w = req.write
-    target = execute.Target(req.output, req.stamped(template), template.dtype,
+    target = execute.Target(req.output, req.stamped(header), header.dtype,
                             compress=w["compress"], byte_order=w["byte_order"],
                             version=w.get("ome_zarr_version", "0.5"),
                             pyramid=w.get("pyramid", 0))
-    slabs = _exports_by_slabs(req, warp, how, held=target.nbytes(template.data.shape))
+    slabs = _exports_by_slabs(req, warp, how, held=target.nbytes(header.shape))
     ran = execute.run(warp.operation(target, source=source), how)
-    summary = {"output": str(req.output), "shape": list(template.shape_xyz),
+    summary = {"output": str(req.output), "shape": list(header.shape_xyz),
                "handles": warp.handles(), **values_json(choice), **warp.summary()}
     if ran.by_blocks:
         summary.update(blocks=ran.blocks, block=list(ran.block[::-1]))
@@ -256,11 +253,11 @@ def _warp_labels(req: WarpFiles, warp, how) -> dict:
     from .labels import format_report
 
     slabs = _exports_by_slabs(req, warp, how)
-    ran = execute.run(LabelWarpOperation(warp, req.output, req.stamped(warp.template),
+    ran = execute.run(LabelWarpOperation(warp, req.output, req.stamped(warp.header),
                                          req.write), how)
     report, by_slabs = ran.output, ran.by_blocks or slabs
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
-    summary = {"output": str(req.output), "shape": list(warp.template.shape_xyz),
+    summary = {"output": str(req.output), "shape": list(warp.header.shape_xyz),
                "handles": warp.handles(), "grid": warp.grid, **labels_json(report)}
     if req.exports:
         summary.update(_write_exports(req, warp, how, by_slabs=by_slabs))

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import BadUsage, OutOfMemoryError, SpecError, VolwarpError
 from ..progress import log, timed
-from ..volume import Volume
+from ..volume import Header, Volume
 
 #: the fields of a frame's name (``--frames-to``): ``frame`` and its alias ``step`` (0 =
 #: unwarped, then one per increment), ``spec_step`` and ``sub`` (the spec step and the
@@ -399,13 +399,13 @@ class IntensityWarp(LatticeMoves):
         return output_volume(self.cap, self.scene, target, crop=self.options.crop,
                              dtype=self.options.dtype)
 
-    def output_template(self) -> Volume:
-        """The output's Volume with a zero-strided placeholder of its shape and dtype."""
+    def output_header(self) -> Header:
+        """The output's :class:`~volwarp_cli.volume.Header`: its shape, dtype and geometry."""
         from .prepare import output_planes
 
-        template, _ = output_planes(self.cap, self.scene, crop=self.options.crop,
-                                    dtype=self.options.dtype)
-        return template
+        header, _ = output_planes(self.cap, self.scene, crop=self.options.crop,
+                                  dtype=self.options.dtype)
+        return header
 
     def operation(self, target=None, source=None):
         """The final lattice's output as an operation (:class:`.blocks.WarpOperation`).
@@ -423,8 +423,8 @@ class IntensityWarp(LatticeMoves):
         if self.frames:
             self.scene.set_lattice(self.frames[-1].dq)
         if target is None:
-            template = self.output_template()
-            target = Target(None, template, template.dtype)
+            header = self.output_header()
+            target = Target(None, header, header.dtype)
         window = output_window_box(self.cap, self.scene, self.options.crop)
         return WarpOperation(self.scene, source, self.cap.placement, self.cap.sampling, window,
                              target, sampler=self.sampler() if source is None else None,
@@ -436,7 +436,7 @@ class IntensityWarp(LatticeMoves):
 
         op = self.operation()
         data = op.compute(op.grid.box, threads=parallel.threads())[op.KEY]
-        return op.targets[op.KEY].template.with_data(data)
+        return op.targets[op.KEY].header.with_data(data)
 
     def compute_frames(self, on_frame: OnFrame) -> Volume:
         """Every frame (0: unwarped, then each increment), incrementally; returns the last.
@@ -464,8 +464,8 @@ class IntensityWarp(LatticeMoves):
         return self.cap.sampler
 
 
-def prepare_label_warp(vol: Volume, doc, spec, options: WarpOptions, name: str):
-    """:func:`.labels.prepare_labels` with the options' overrides.
+def prepare_label_warp(vol: Volume | Header, doc, spec, options: WarpOptions, name: str):
+    """:func:`.labels.prepare_labels` (of a map or its Header) with the options' overrides.
 
     Returns ``(cap, scene, frames, grid)``, ``grid`` the output's and why.
     """

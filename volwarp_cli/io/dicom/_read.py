@@ -9,8 +9,9 @@ import numpy as np
 
 from ...errors import BadUsage, FormatError, VolwarpError
 from ...geometry import check_placement
-from ...volume import Volume
+from ...volume import Header, Volume
 from ..common import ensure_fits_in_memory, make_volume
+from ..lazy import make_header
 from ._geometry import plan_stack, resample
 from ._pixels import output_dtype, read_frames
 from ._scan import META_TAGS, PHI_TAGS, Candidate, DicomSeriesChoiceError, scan_dicom
@@ -222,7 +223,7 @@ class LazyDicom:
 def open_dicom_lazy(path: str | os.PathLike, *, series=None, irregular: str = "error",
                     duplicates: str = "error", keep_shear: bool = False, keep_phi: bool = False,
                     reference=None, segment=None, structure=None):
-    """``(template, LazyDicom)``: :func:`read_dicom`'s Volume with a placeholder, and its samples.
+    """``(header, LazyDicom)``: :func:`read_dicom`'s Volume's Header, and its samples.
 
     None when the stack must be resampled (a gantry tilt, irregular spacing
     with ``irregular="resample"``): that is read whole. A SEG or RTSTRUCT (a
@@ -244,8 +245,7 @@ def open_dicom_lazy(path: str | os.PathLike, *, series=None, irregular: str = "e
         return None
     rows, cols = plan.frames[0].file.rows, plan.frames[0].file.columns
     lazy = LazyDicom(plan.frames, dtype, rows, cols)
-    placeholder = np.broadcast_to(np.zeros((), dtype), lazy.shape)
-    return make_volume(where, placeholder, spacing=plan.spacing, origin=plan.origin,
+    return make_header(where, lazy.shape, dtype, spacing=plan.spacing, origin=plan.origin,
                        direction=plan.direction, space=_LPS, file_space=_LPS, meta=meta), lazy
 
 
@@ -266,15 +266,15 @@ def _meta(cand: Candidate, plan, keep_phi: bool) -> dict[str, str]:
 class ReferenceSeries:
     """The image series a segmentation was drawn on: its grid and its images' identities.
 
-    ``grid`` is :func:`read_dicom`'s Volume geometry with a placeholder (no
-    pixels are read); ``files[k]`` and ``sop_uids[k]`` are the image of slice
+    ``grid`` is :func:`read_dicom`'s Volume's :class:`~volwarp_cli.volume.Header`
+    (no pixels are read); ``files[k]`` and ``sop_uids[k]`` are the image of slice
     ``k`` (z order); ``frame_numbers[k]`` its frame number (1 ...) in that file
     when the file is a multi-frame image (an enhanced CT or MR: one file, one
     SOP Instance UID for every slice), else None.
     """
 
     path: str
-    grid: Volume
+    grid: Header
     series_uid: str
     frame_of_reference_uid: str
     study_uid: str
@@ -315,7 +315,7 @@ def read_reference(path: str | os.PathLike, *, series=None, want_series: tuple =
                           "ImageOrientationPatient: nothing to place a segmentation on")
     f0 = plan.frames[0]
     rows, cols = f0.file.rows, f0.file.columns
-    grid = make_volume(where, np.broadcast_to(np.zeros((), np.uint8), (plan.n_out, rows, cols)),
+    grid = make_header(where, (plan.n_out, rows, cols), np.uint8,
                        spacing=plan.spacing, origin=plan.origin, direction=plan.direction,
                        space=_LPS, file_space=_LPS, meta=meta)
     return ReferenceSeries(
