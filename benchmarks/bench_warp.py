@@ -142,7 +142,7 @@ def core_figures(quick):
     dq[4, 4, 4] += [3.0, 2.0, 1.0]
     scene = Scene(cap.domain, cap.grid, dq, 4)
     scene.compute()
-    t = median_time(scene.render, 2 if quick else 3)
+    t = median_time(scene.compute, 2 if quick else 3)
     deferred = capture_volume(Volume(data), lattice=(9, 9, 9), oversample=1, defer=True)
     streamed = Scene(deferred.voxmap, deferred.grid, dq, 4, domain_range=deferred.stats[:2])
     common.one_shot(streamed)
@@ -246,7 +246,7 @@ def papers_size():
         t0 = time.perf_counter()
         scene.set_lattice(dq)
         times.append(time.perf_counter() - t0)
-    tfull = median_time(scene.render, 3)
+    tfull = median_time(scene.compute, 3)
     print(f"papers' size (30^3 model, 60^3 domain, 9^3 lattice): warp step "
           f"{statistics.median(times) * 1e3:.1f} ms ({step_kind(scene)}), "
           f"{tfull * 1e3:.1f} ms full "
