@@ -76,37 +76,31 @@ def read_exact(fh, nbytes: int, where: str) -> np.ndarray:
 def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
     """Decompress a gzip (or zlib) stream from ``fh`` into exactly ``nbytes``.
 
-    Faster than ``gzip.GzipFile`` (one decompressor, pieces written in
-    place); refuses truncated streams and streams holding more than
-    ``nbytes`` (before inflating more than a byte beyond them). Members may
-    follow one another, empty ones too (bgzip's end-of-file block), and NUL
-    padding may lie between and after them, as gzip readers allow.
+    Faster than ``gzip.GzipFile`` (pieces written in place); refuses
+    truncated streams and streams holding more than ``nbytes`` (after at
+    most a piece beyond them). Members, empty ones and NUL padding as
+    :func:`.deflate.inflate_pieces` reads them.
     """
-    from .deflate import ERRORS, INFLATE_INPUT, INFLATE_OUTPUT, decompressobj
+    from .deflate import ERRORS, Truncated, inflate_pieces
 
     out = bytearray(nbytes)
     pos = 0
-    dec = decompressobj()  # gzip or zlib header
     try:
-        while chunk := fh.read(INFLATE_INPUT):
-            while chunk:
-                if dec.eof:  # a member ended: padding, or the next member
-                    chunk = chunk.lstrip(b"\0")
-                    if not chunk:
-                        break
-                    dec = decompressobj()
-                piece = dec.decompress(chunk, min(INFLATE_OUTPUT, nbytes - pos + 1))
-                if pos + len(piece) > nbytes:
-                    raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
-                                      "(wrong sizes or type in the header?)")
-                out[pos:pos + len(piece)] = piece
-                pos += len(piece)
-                chunk = dec.unused_data if dec.eof else dec.unconsumed_tail
+        for piece in inflate_pieces(fh):
+            if pos + len(piece) > nbytes:
+                raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
+                                  "(wrong sizes or type in the header?)")
+            out[pos:pos + len(piece)] = piece
+            pos += len(piece)
     except ERRORS as exc:
         raise FormatError(f"{where}: corrupt compressed data ({exc})") from None
-    if pos < nbytes or not dec.eof:
+    except Truncated:
         if pos >= nbytes:
-            raise FormatError(f"{where}: compressed data is truncated (no end-of-stream marker)")
+            raise FormatError(f"{where}: compressed data is truncated (no end-of-stream "
+                              "marker)") from None
+        raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes, "
+                          f"found {pos}") from None
+    if pos < nbytes:
         raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes, found {pos}")
     return out
 

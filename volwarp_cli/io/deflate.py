@@ -50,6 +50,36 @@ INFLATE_INPUT = 1 << 16
 INFLATE_OUTPUT = 1 << 20
 
 
+class Truncated(Exception):
+    """A stream that ends before its end-of-stream marker (``args[0]``: the bytes inflated)."""
+
+
+def inflate_pieces(fh):
+    """The inflated pieces of the gzip (or zlib) members read from ``fh``, in order.
+
+    Members may follow one another, empty ones too (bgzip's end-of-file
+    block), with NUL padding between and after them, as gzip readers allow;
+    at most :data:`INFLATE_OUTPUT` bytes a piece. Raises one of :data:`ERRORS`
+    for corrupt data (trailing bytes that are no member included), and
+    :class:`Truncated` when the file ends inside a member.
+    """
+    dec = decompressobj()
+    done = 0
+    while chunk := fh.read(INFLATE_INPUT):
+        while chunk:
+            if dec.eof:  # a member ended: padding, or the next member
+                chunk = chunk.lstrip(b"\0")
+                if not chunk:
+                    break
+                dec = decompressobj()
+            piece = dec.decompress(chunk, INFLATE_OUTPUT)
+            done += len(piece)
+            yield piece
+            chunk = dec.unused_data if dec.eof else dec.unconsumed_tail
+    if not dec.eof:
+        raise Truncated(done)
+
+
 def decompressobj(wbits: int = AUTO_HEADER):
     """A streaming inflater with zlib's interface; its errors are in :data:`ERRORS`.
 

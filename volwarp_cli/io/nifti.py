@@ -392,37 +392,28 @@ def gunzip_range_into(path: Path, start: int, count: int, need: int, where: str,
     one another (as gzip allows), and NUL padding may end the file; anything
     else after a member is corrupt.
     """
-    from .deflate import ERRORS, INFLATE_INPUT, INFLATE_OUTPUT, decompressobj
+    from .deflate import ERRORS, Truncated, inflate_pieces
 
     end = start + count
     pos = 0  # decompressed bytes so far
-    dec = decompressobj()
 
     def fail(why: str):
         return FormatError(f"{where}: cannot read NIfTI data ({why})")
 
     try:
         with open(path, "rb") as fh:
-            while chunk := fh.read(INFLATE_INPUT):
-                while chunk:
-                    if dec.eof:  # a member ended: padding, or the next member
-                        chunk = chunk.lstrip(b"\0")
-                        if not chunk:
-                            break
-                        dec = decompressobj()
-                    piece = dec.decompress(chunk, INFLATE_OUTPUT)
-                    lo, hi = max(pos, start), min(pos + len(piece), end)
-                    if hi > lo:
-                        sink(lo - start, memoryview(piece)[lo - pos:hi - pos])
-                    pos += len(piece)
-                    chunk = dec.unused_data if dec.eof else dec.unconsumed_tail
+            for piece in inflate_pieces(fh):
+                lo, hi = max(pos, start), min(pos + len(piece), end)
+                if hi > lo:
+                    sink(lo - start, memoryview(piece)[lo - pos:hi - pos])
+                pos += len(piece)
     except ERRORS as exc:
         raise fail(f"the gzip stream is corrupt: {_one_line(exc)}") from None
     except OSError as exc:
         raise fail(f"cannot read the file: {exc.strerror or exc}") from None
-    if not dec.eof:
+    except Truncated:
         raise fail(f"the gzip stream is truncated: it ends after {pos} decompressed bytes, "
-                   "before its end-of-stream marker")
+                   "before its end-of-stream marker") from None
     if pos < need:
         raise fail(f"truncated: {layout} end at decompressed byte {need}, the stream "
                    f"holds {pos}")

@@ -137,18 +137,13 @@ def reindex_to_identity(vol: Volume) -> Volume:
     (a store written by blocks moves each block).
     """
     found = reindex_axes(vol.direction)
-    if found is None:
+    if found is None or np.array_equal(vol.direction, np.eye(3)):
         return vol
     flips, order = found
-    if not flips and order == (0, 1, 2):
-        if np.array_equal(vol.direction, np.eye(3)):
-            return vol
-        return vol.with_data(vol.data, direction=np.eye(3))
     data = vol.data
-    if flips:
-        data = np.flip(data, axis=flips)
-    data = np.ascontiguousarray(data.transpose(order))
-    return vol.with_data(data, **reindexed_geometry(vol, flips, order))
+    if flips or order != (0, 1, 2):
+        data = np.ascontiguousarray(np.flip(data, axis=flips).transpose(order))
+    return reindexed_header(vol.header).with_data(data)
 
 
 def reindexed_header(header: Header) -> Header:
