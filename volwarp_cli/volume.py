@@ -81,14 +81,23 @@ def zyx_to_xyz(values):
     return tuple(values)[::-1]
 
 
+@dataclass(kw_only=True, eq=False)
 class _Placed:
     """What :class:`Volume` and :class:`Header` share: a grid of ``shape`` (z, y, x) in the world.
 
-    The one implementation of the checks and the frame conversion every
-    volume's geometry goes through (:meth:`_place`), and of the geometry
-    methods; a subclass has ``shape``, ``spacing``, ``origin``, ``direction``,
-    ``space``, ``meta`` and ``file_space``.
+    The placement's fields (keywords after a subclass's own), the one
+    implementation of the checks and the frame conversion every volume's
+    geometry goes through (:meth:`_place`), and of the geometry methods; a
+    subclass has ``shape``.
     """
+
+    spacing: np.ndarray = field(default_factory=lambda: np.ones(3))
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
+    space: str | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+    #: the world frame the file itself used (its readers converted it to ``space``)
+    file_space: str | None = None
 
     def _place(self, shape_zyx) -> None:
         """Check the placement for a grid of ``shape_zyx`` and convert the file's frame to LPS.
@@ -175,13 +184,6 @@ class Header(_Placed):
 
     shape: tuple[int, int, int]
     dtype: np.dtype
-    spacing: np.ndarray = field(default_factory=lambda: np.ones(3))
-    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
-    space: str | None = None
-    meta: dict[str, Any] = field(default_factory=dict)
-    #: the world frame the file itself used (its readers converted it to ``space``)
-    file_space: str | None = None
 
     def __post_init__(self):
         shape = tuple(int(n) for n in self.shape)
@@ -221,13 +223,6 @@ class Volume(_Placed):
     """
 
     data: np.ndarray
-    spacing: np.ndarray = field(default_factory=lambda: np.ones(3))
-    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
-    space: str | None = None
-    meta: dict[str, Any] = field(default_factory=dict)
-    #: the world frame the file itself used (its readers converted it to ``space``)
-    file_space: str | None = None
 
     def __post_init__(self):
         data = np.asarray(self.data)
