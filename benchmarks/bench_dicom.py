@@ -59,7 +59,8 @@ def main(quick: bool = False) -> None:
     nx = ny = 256 if quick else 512
     nz = 60 if quick else 300
     with tempfile.TemporaryDirectory() as tmp:
-        folder = Path(tmp)
+        folder = Path(tmp) / "series"  # (the outputs beside it: volwarp writes none inside an input)
+        folder.mkdir()
         write_ct_series(folder, nx, ny, nz)
 
         def ours():
