@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -71,25 +70,19 @@ def commands(p: dict, out: Path) -> list[tuple[str, list[str]]]:
     ]
 
 
-def _run(argv, env=None):
-    def run():
-        subprocess.run(argv, check=True, stdout=subprocess.DEVNULL, env=env)
-    return run
-
-
 def main(quick: bool = False, pairs: int | None = None) -> None:
     from volwarp_cli.warmup import write_inputs
 
     pairs = pairs or (3 if quick else 9)
     one_blas = dict(os.environ, OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    numpy = _run([sys.executable, "-c", "import numpy"], env=one_blas)
-    plain = _run([sys.executable, "-c", "import numpy"])
+    numpy = common.process([sys.executable, "-c", "import numpy"], env=one_blas)
+    plain = common.process([sys.executable, "-c", "import numpy"])
     with tempfile.TemporaryDirectory(prefix="volwarp-bench-fixed-") as tmp:
         p = write_inputs(tmp)
         p["moves729"] = str(_moves_spec(Path(tmp) / "moves729.yaml"))
         out = Path(tmp) / "out"
         out.mkdir()
-        rows = [(name, _run(common.volwarp_argv(*args))) for name, args in commands(p, out)]
+        rows = [(name, common.process(common.volwarp_argv(*args))) for name, args in commands(p, out)]
         for _, run in rows:  # untimed: kernels compiled or loaded, files cached
             run()
         numpy()

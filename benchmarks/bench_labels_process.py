@@ -107,20 +107,12 @@ def main(quick: bool = False, pairs: int | None = None) -> None:
             for values in ("labels", "intensity"):
                 argv = common.volwarp_argv("warp", str(src), "--spec", str(spec), "--values",
                                            values, "-o", str(tmp / f"{name}_{values}.nrrd"), "-q")
-                runs[values] = _run(argv)
+                runs[values] = common.process(argv)
                 runs[values]()  # untimed: kernels loaded, files cached
             ours, ref, ratio = common.paired_times(runs["labels"], runs["intensity"], pairs)
             nz, ny, nx = lab.shape
             row(f"warp --labels {nx}x{ny}x{nz} ({name})", ours, ref, "intensity", ratio=ratio)
             print(f"    ({what})", flush=True)
-
-
-def _run(argv):
-    import subprocess
-
-    def run():
-        subprocess.run(argv, check=True, stdout=subprocess.DEVNULL)
-    return run
 
 
 if __name__ == "__main__":

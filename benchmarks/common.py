@@ -20,11 +20,16 @@ def median_time(fn, repeat: int = 5, warmup: int = 1) -> float:
     return statistics.median(times)
 
 
+def process(argv: list[str], env: dict | None = None):
+    """A callable that runs ``argv`` as a new process (its output dropped; a failure raises)."""
+    def run():
+        subprocess.run(argv, check=True, stdout=subprocess.DEVNULL, env=env)
+    return run
+
+
 def command_time(argv: list[str], repeat: int = 3, warmup: int = 1) -> float:
     """Median wall time of a whole command (a new process each run)."""
-    def run():
-        subprocess.run(argv, check=True, stdout=subprocess.DEVNULL)
-    return median_time(run, repeat=repeat, warmup=warmup)
+    return median_time(process(argv), repeat=repeat, warmup=warmup)
 
 
 def paired_times(ours, peer, pairs: int) -> tuple[float, float, float]:
