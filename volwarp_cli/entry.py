@@ -174,14 +174,14 @@ def main() -> int:
     from . import signals
 
     signals.install()
-    # (inherited by what the command starts: batch steps, Dask workers)
-    configure_numba_cache()
-    from . import numba_blas
+    try:  # (a stop from here on is a stop: one line, no traceback)
+        # (inherited by what the command starts: batch steps, Dask workers)
+        configure_numba_cache()
+        from . import numba_blas
 
-    numba_blas.install()  # (scipy.linalg not imported by numba's BLAS probe: 0.2 s)
-    try:
+        numba_blas.install()  # (scipy.linalg not imported by numba's BLAS probe: 0.2 s)
         from .cli.main import main as run
-    except signals.Interrupted as exc:  # stopped while the command line was imported
+    except signals.Interrupted as exc:  # stopped while the command line was set up
         sys.stderr.write(f"volwarp: error: {exc}\n")
         sys.stderr.flush()
         os._exit(128 + exc.signum)
