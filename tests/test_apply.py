@@ -195,7 +195,7 @@ def test_by_blocks_same_bytes(run, scene, interp, field):
 
 def test_field_read_by_windows(run, scene, monkeypatch):
     """A field larger than its share of the memory is read by windows: the same bytes."""
-    from volwarp_cli.transforms import fields
+    from volwarp_cli import memory
 
     d, _, _ = scene
     img = sitk.ReadImage(str(d / "f.nii.gz"))
@@ -206,7 +206,7 @@ def test_field_read_by_windows(run, scene, monkeypatch):
     pts = np.random.default_rng(5).uniform([-5, 8, 6], [15, 25, 20], (20, 3))
     write_points(d / "p.csv", pts)
     assert run("apply", *chain, "--points-in", d / "p.csv", "--points-to", d / "q.csv").code == 0
-    monkeypatch.setattr(fields, "LAZY_SHARE", 0.0)
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
     assert run(*args, "-o", d / "lazy.nrrd").code == 0
     assert run(*args, "-o", d / "lazy_blocks.nrrd", "--chunked", "--block", "5,6,7").code == 0
     assert run("apply", *chain, "--points-in", d / "p.csv", "--points-to", d / "q2.csv").code == 0
@@ -457,7 +457,7 @@ def test_nan_vectors_map_outside_as_in_itk_and_are_said(run, inputs, monkeypatch
     points checked before any work (x = 13), so it is the block that samples
     it that finds it.
     """
-    from volwarp_cli.transforms import fields
+    from volwarp_cli import memory
 
     vol = read_volume(inputs / "in.nrrd")
     vec = smooth_vectors(vol.data.shape)
@@ -468,7 +468,7 @@ def test_nan_vectors_map_outside_as_in_itk_and_are_said(run, inputs, monkeypatch
     if how == "by blocks":
         args += ["--chunked", "--block", "6,7,5"]
     if how == "by windows":
-        monkeypatch.setattr(fields, "LAZY_SHARE", 0.0)
+        monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
     res = run("apply", inputs / "in.nrrd", "-o", inputs / "o.nrrd", *args)
     assert res.code == 0, res.stderr
     said = (f"{name} (displacement field): 1 of its 10560 vectors are NaN or infinite (at "

@@ -324,6 +324,17 @@ def ensure_fits_in_memory(nbytes: int, what: str) -> None:
                                f"{human_bytes(limit)} of memory is {where}")
 
 
+#: an input whose samples exceed this share of the memory budget is read by box (from its
+#: file, or from a scratch copy where the file is compressed), not held whole: what is
+#: left must hold the work's own arrays
+READ_BY_BOX_SHARE = 0.25
+
+
+def read_by_box(nbytes: int) -> bool:
+    """Whether an input of ``nbytes`` samples is read by box rather than held whole."""
+    return nbytes > READ_BY_BOX_SHARE * memory_limit()
+
+
 #: More than what a command's libraries and compiled kernels take when they load (VTK's
 #: filters, numba and its kernels: 60-250 MiB): see :func:`ensure_fits_once_loaded`.
 LOAD_MARGIN = 512 << 20

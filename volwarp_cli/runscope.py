@@ -32,7 +32,8 @@ class RunFiles:
     memory map, when it was mapped; ``allow_outside_data``: detached headers
     may read data files outside their own folder; ``dry_run``: the command runs
     its checks only, and stops at its first read of an input
-    (:func:`stop_if_dry_run`); ``said``: the warnings a run says once.
+    (:func:`stop_if_dry_run`); ``said``: the warnings a run says once;
+    ``ends``: what the run removes when it ends (:func:`at_run_end`).
     """
 
     inputs: set[tuple[int, int]] = field(default_factory=set)
@@ -44,6 +45,7 @@ class RunFiles:
     allow_outside_data: bool = False
     dry_run: bool = False
     said: set = field(default_factory=set)
+    ends: list = field(default_factory=list)
 
 
 class DryRunStop(BaseException):  # noqa: N818 - a stop, not an error
@@ -78,7 +80,39 @@ def run_files() -> RunFiles:
 def run_scope():
     """A fresh :class:`RunFiles` for the code inside (and the threads it hands its context to)."""
     token = _current.set(RunFiles())
+    files = _current.get()
     try:
-        yield _current.get()
+        yield files
     finally:
         _current.reset(token)
+        _run_ends(files)
+
+
+def at_run_end(end) -> None:
+    """Call ``end()`` when the current run ends (outside any :func:`run_scope`: at exit).
+
+    For what a run makes for itself and must not outlive it (an input
+    inflated to a scratch file): a batch that runs many scans in one process
+    removes each one's when that scan's run ends.
+    """
+    files = _current.get()
+    if files is None:
+        import atexit
+
+        atexit.register(end)
+    else:
+        files.ends.append(end)
+
+
+def hand_over_ends(inner: RunFiles) -> None:
+    """Move ``inner``'s ends (a scope opened for a permission) to the current run's."""
+    ends, inner.ends = inner.ends, []
+    for end in ends:
+        at_run_end(end)
+
+
+def _run_ends(files: RunFiles) -> None:
+    ends, files.ends = files.ends, []
+    for end in reversed(ends):
+        with contextlib.suppress(Exception):  # (a failed cleanup must not hide the result)
+            end()

@@ -339,8 +339,19 @@ def scratch_folder(near: str | os.PathLike):
     For intermediate results too large for memory (a distance's passes by
     blocks); named and cleaned like the output's own temporaries.
     """
-    import shutil
+    tmp = make_scratch_folder(near)
+    try:
+        yield tmp
+    finally:
+        remove_scratch_folder(tmp)
 
+
+def make_scratch_folder(near: str | os.PathLike) -> Path:
+    """:func:`scratch_folder`'s folder, for a caller that removes it itself (:func:`remove_scratch_folder`).
+
+    A stop (SIGINT, SIGTERM) removes it meanwhile; one left by a killed
+    process goes with the next run that writes ``near``.
+    """
     path = Path(near)
     _remove_stale_temporaries(path)
     with blocked():
@@ -348,13 +359,18 @@ def scratch_folder(near: str | os.PathLike):
                                dir=path.parent if str(path.parent) else ".")
         _live_temporaries.add(tmp)
         _scratch_folders.add(os.path.realpath(tmp))
-    try:
-        yield Path(tmp)
-    finally:
-        with blocked():
-            shutil.rmtree(tmp, ignore_errors=True)
-            _live_temporaries.discard(tmp)
-            _scratch_folders.discard(os.path.realpath(tmp))
+    return Path(tmp)
+
+
+def remove_scratch_folder(tmp: str | os.PathLike) -> None:
+    """Remove a :func:`make_scratch_folder` folder and all it holds."""
+    import shutil
+
+    tmp = str(tmp)
+    with blocked():
+        shutil.rmtree(tmp, ignore_errors=True)
+        _live_temporaries.discard(tmp)
+        _scratch_folders.discard(os.path.realpath(tmp))
 
 
 def _temporary_prefix(name: str) -> str:

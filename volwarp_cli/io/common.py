@@ -81,16 +81,27 @@ def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
     most a piece beyond them). Members, empty ones and NUL padding as
     :func:`.deflate.inflate_pieces` reads them.
     """
+    out = bytearray(nbytes)
+    view = memoryview(out)
+
+    def place(at: int, piece) -> None:
+        view[at:at + len(piece)] = piece
+
+    inflate_exact(fh, nbytes, where, place)
+    return out
+
+
+def inflate_exact(fh, nbytes: int, where: str, sink) -> None:
+    """:func:`read_gzip_exact`'s stream, each inflated piece to ``sink(at, piece)`` in order."""
     from .deflate import ERRORS, Truncated, inflate_pieces
 
-    out = bytearray(nbytes)
     pos = 0
     try:
         for piece in inflate_pieces(fh):
             if pos + len(piece) > nbytes:
                 raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
                                   "(wrong sizes or type in the header?)")
-            out[pos:pos + len(piece)] = piece
+            sink(pos, piece)
             pos += len(piece)
     except ERRORS as exc:
         raise FormatError(f"{where}: corrupt compressed data ({exc})") from None
@@ -102,7 +113,6 @@ def read_gzip_exact(fh, nbytes: int, where: str) -> bytearray:
                           f"found {pos}") from None
     if pos < nbytes:
         raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes, found {pos}")
-    return out
 
 
 # -- detached data files -------------------------------------------------------------

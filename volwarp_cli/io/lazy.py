@@ -28,9 +28,15 @@ MetaImage fields; for NRRD the key/values and ``NRRD_content``,
 ``NRRD_space units``, ``NRRD_measurement frame`` as :func:`.nrrd.read_nrrd`
 makes them), so that an output by blocks carries what the in-memory one does.
 
-Anything else (gzip/bzip2/ascii encodings, compressed NIfTI or MetaImage,
-scaled NIfTI, 4-D files with several volumes or components, DICOM) is read
-whole by ``read_volume``, unless ``require_lazy`` asks for an error instead.
+- **Compressed** NIfTI (``.nii.gz``), gzip NRRD (no byte skip, one data
+  file) and compressed MetaImage, 3-D: read whole where their samples fit
+  their share of the memory budget (:func:`~volwarp_cli.memory.read_by_box`);
+  larger, inflated once into a scratch file and read from it by box
+  (:mod:`.inflated`).
+
+Anything else (bzip2/ascii encodings, scaled NIfTI, 4-D files with several
+volumes or components, DICOM that is resampled) is read whole by
+``read_volume``, unless ``require_lazy`` asks for an error instead.
 """
 
 from __future__ import annotations
@@ -40,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, VolwarpError
+from ..errors import FormatError, OutOfMemoryError, VolwarpError
 from ..geometry import Geometry
 from ..samples import check_dtype, voxel_count
 from ..volume import Header, xyz_to_zyx
@@ -52,6 +58,10 @@ __all__ = ["open_volume_lazy", "open_volume_header", "NotLazy",
 
 class NotLazy(Exception):
     """Raised inside: this file cannot be read lazily (the reason is the message)."""
+
+
+class NoRoomToInflate(NotLazy):
+    """A compressed input too large to hold, and no disk room to inflate it (the message)."""
 
 
 def open_volume_lazy(path: str | os.PathLike, *, raw=None, volume_index: int | None = None,
@@ -124,8 +134,31 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
         if require_lazy:
             raise VolwarpError(f"{path}: cannot be read without loading it ({why}); write it "
                                "as .ome.zarr or uncompressed .nrrd first") from None
-    vol = read_volume(path, raw=raw, volume_index=volume_index, dicom=dicom)
+        no_room = str(why) if isinstance(why, NoRoomToInflate) else None
+    try:
+        vol = read_volume(path, raw=raw, volume_index=volume_index, dicom=dicom)
+    except OutOfMemoryError as exc:
+        if no_room is None:
+            raise
+        raise OutOfMemoryError(f"{exc}; {no_room}") from None
     return vol.header, vol.data
+
+
+def _inflated(original: Path, nbytes: int, file_dtype, shape_zyx, where: str, fill):
+    """A compressed input's samples read by box from a scratch copy, where too big to hold.
+
+    Raises NotLazy where they fit their share of the memory budget (read
+    whole: faster) and :class:`NoRoomToInflate` where the disk has no room.
+    """
+    from ..memory import read_by_box
+    from .inflated import NoRoom, inflated_array
+
+    if not read_by_box(nbytes):
+        raise NotLazy("compressed samples that fit in memory are read whole")
+    try:
+        return inflated_array(original, nbytes, file_dtype, shape_zyx, where, fill)
+    except NoRoom as why:
+        raise NoRoomToInflate(str(why)) from None
 
 
 def make_header(where: str, shape_zyx, dtype, *, error=FormatError, **geometry) -> Header:
@@ -172,7 +205,8 @@ def _nrrd(path: Path):
         for req in ("type", "dimension", "sizes", "encoding"):
             if req not in fields:
                 raise NotLazy(f"no '{req}' field")
-        if nrrd._ENCODINGS.get(fields["encoding"].lower()) != "raw":
+        encoding = nrrd._ENCODINGS.get(fields["encoding"].lower())
+        if encoding not in ("raw", "gzip"):
             raise NotLazy(f"encoding {fields['encoding']} is read whole")
         try:
             dim = int(fields["dimension"])
@@ -193,6 +227,8 @@ def _nrrd(path: Path):
         byteskip = nrrd._whole(fields, ("byte skip", "byteskip"), where, minimum=-1)
         if files is not None and len(files) != 1:
             raise NotLazy("data split over several files")
+        if encoding == "gzip" and byteskip != 0:
+            raise NotLazy("a byte skip of compressed data is read whole")
         nbytes = voxel_count(sizes) * dtype.itemsize
         if files is None:
             data_path, dfh = path, fh
@@ -210,14 +246,29 @@ def _nrrd(path: Path):
         finally:
             if dfh is not fh:
                 dfh.close()
-    if byteskip != -1 and size - start > nbytes:
+    if encoding == "raw" and byteskip != -1 and size - start > nbytes:
         raise FormatError(f"{data_path}: file has {size - start} bytes of samples, expected "
                           f"{nbytes} (wrong sizes or type in the header?)")
     shape = xyz_to_zyx(sizes)
     header = make_header(where, shape, dtype, spacing=spacing, origin=origin,
                          direction=direction, space=space,
                          meta=_nrrd_meta(fields, keyvals, space, where))
+    if encoding == "gzip":
+        return header, _inflated(data_path, nbytes, file_dtype, shape, where,
+                                 _stream_at(data_path, start, nbytes))
     return header, _memmap(data_path, file_dtype, start, shape, str(data_path))
+
+
+def _stream_at(data_path: Path, start: int, nbytes: int):
+    """A ``fill(sink)`` of :func:`_inflated`: the gzip/zlib stream at ``start`` of ``data_path``."""
+    from .common import inflate_exact
+
+    def fill(sink) -> None:
+        with open(data_path, "rb") as fh:
+            fh.seek(start)
+            inflate_exact(fh, nbytes, str(data_path), sink)
+
+    return fill
 
 
 def _nrrd_meta(fields: dict, keyvals: dict, space, where: str) -> dict:
@@ -249,9 +300,9 @@ def _metaimage(path: Path):
         raise NotLazy("only 3-D files are mapped")
     if mi._int(fields, "ElementNumberOfChannels", 1, where) != 1:
         raise NotLazy("several channels per voxel")
-    if not mi._bool(fields, "BinaryData", True, where) or mi._bool(fields, "CompressedData",
-                                                                    False, where):
-        raise NotLazy("compressed or ascii data is read whole")
+    if not mi._bool(fields, "BinaryData", True, where):
+        raise NotLazy("ascii data is read whole")
+    compressed = mi._bool(fields, "CompressedData", False, where)
     sizes = mi._numbers(fields, "DimSize", 3, where, int)
     type_name = fields["ElementType"][1]
     if type_name not in mi._TYPES or min(sizes) <= 0:
@@ -273,15 +324,21 @@ def _metaimage(path: Path):
     size = os.path.getsize(data_path)
     if header_size > 0:
         start = header_size
-    elif header_size == -1:
+    elif header_size == -1 and not compressed:
         start = size - nbytes
-    if size - start > nbytes:
+    if compressed:
+        start = mi.compressed_start(mi._int(fields, "CompressedDataSize", -1, where),
+                                    header_size, size, start, str(data_path))
+    elif size - start > nbytes:
         raise FormatError(f"{data_path}: file has {size - start} bytes of samples, expected "
                           f"{nbytes} (wrong DimSize or ElementType in the header?)")
     shape = xyz_to_zyx(sizes)
     header = make_header(where, shape, dtype, spacing=spacing, origin=origin,
                          direction=direction, space="left-posterior-superior",
                          file_space="left-posterior-superior", meta=mi._meta(pairs, direction))
+    if compressed:
+        return header, _inflated(data_path, nbytes, file_dtype, shape, where,
+                                 _stream_at(data_path, start, nbytes))
     return header, _memmap(data_path, file_dtype, start, shape, str(data_path))
 
 
@@ -410,8 +467,6 @@ def _nifti(path: Path):
     where = str(path)
     _check_content(path, "nifti")  # (read_volume's own messages for a missing file)
     nf = nifti.open_nifti(path)  # checked as read_volume does: class, sizes, file length
-    if nf.gzipped:
-        raise NotLazy("gzip-compressed NIfTI is read whole")
     if len(nf.shape) != 3:
         raise NotLazy("only 3-D files are mapped")
     if nf.scaled:
@@ -420,6 +475,12 @@ def _nifti(path: Path):
     geometry, chosen = nifti.nifti_geometry(nf.header, where)
     shape = xyz_to_zyx(nf.shape)
     header = make_header(where, shape, dtype, meta=nifti.nifti_meta(nf, chosen), **geometry)
+    if nf.gzipped:  # (the samples' bytes of the whole stream: its checks as read whole)
+        def fill(sink):
+            nifti.gunzip_range_into(nf.path, nf.offset, nf.block_bytes,
+                                    nf.offset + nf.data_bytes, where, nf.layout(), sink)
+
+        return header, _inflated(path, nf.block_bytes, nf.file_dtype, shape, where, fill)
     return header, _memmap(path, nf.file_dtype, nf.offset, shape, where, kind=_NiftiView)
 
 
@@ -456,13 +517,14 @@ class LazySource:
     def array(self):
         """The input's samples, sliceable ``[z, y, x]`` (opened on first use)."""
         if self._array is None:
-            from ..runscope import run_scope
+            from ..runscope import hand_over_ends, run_scope
 
             with run_scope() as files:  # (this thread's own: the permission it was given)
                 files.allow_outside_data = self.allow_outside_data
                 _, self._array = open_volume_lazy(self.path, raw=self.raw,
                                                   volume_index=self.volume_index,
                                                   dicom=self.dicom)
+                hand_over_ends(files)  # (a scratch copy lasts as long as the run)
         return self._array
 
     @property

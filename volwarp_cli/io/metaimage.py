@@ -346,6 +346,27 @@ class _Layout:
         self.header_size = header_size
 
 
+def compressed_start(comp_size: int, header_size: int, size: int, start: int,
+                     where: str) -> int:
+    """Where a compressed piece's stream starts in its file of ``size`` bytes.
+
+    ``start``: after the header (or the ``HeaderSize``); ``comp_size``:
+    ``CompressedDataSize`` (-1: not given), checked against the file; with
+    ``HeaderSize = -1`` the stream is the file's last ``comp_size`` bytes.
+    """
+    have = size - start
+    if comp_size >= 0:
+        if header_size == -1:
+            start, have = size - comp_size, comp_size
+        if have < comp_size or start < 0:
+            raise FormatError(f"{where}: compressed data is truncated: CompressedDataSize "
+                              f"is {comp_size} bytes, found {max(have, 0)}")
+        if have > comp_size:
+            raise FormatError(f"{where}: file has {have} bytes of compressed data, "
+                              f"CompressedDataSize is {comp_size}")
+    return start
+
+
 def _read_piece(fh, layout: _Layout, count: int, where: str, *, local: bool) -> np.ndarray:
     """``count`` samples from ``fh`` (positioned after the header when ``local``)."""
     nbytes = count * layout.file_dtype.itemsize
@@ -358,17 +379,7 @@ def _read_piece(fh, layout: _Layout, count: int, where: str, *, local: bool) -> 
         return ascii_values(fh.read().decode("latin-1"), layout.file_dtype.newbyteorder("="),
                              count, where)
     if layout.compressed:
-        have = size - start
-        if layout.comp_size >= 0:
-            if layout.header_size == -1:
-                start, have = size - layout.comp_size, layout.comp_size
-            if have < layout.comp_size or start < 0:
-                raise FormatError(f"{where}: compressed data is truncated: CompressedDataSize "
-                                  f"is {layout.comp_size} bytes, found {max(have, 0)}")
-            if have > layout.comp_size:
-                raise FormatError(f"{where}: file has {have} bytes of compressed data, "
-                                  f"CompressedDataSize is {layout.comp_size}")
-        fh.seek(start)
+        fh.seek(compressed_start(layout.comp_size, layout.header_size, size, start, where))
         return np.frombuffer(read_gzip_exact(fh, nbytes, where), dtype=layout.file_dtype)
     if layout.header_size == -1:
         start = size - nbytes

@@ -313,10 +313,11 @@ class NiftiFile:
             size = os.fstat(fh.fileno()).st_size
         if not self.gzipped and size - self.offset < self.data_bytes:
             raise FormatError(f"{where}: cannot read NIfTI data (truncated: "
-                              f"{self._layout()} need {self.data_bytes} bytes from byte "
+                              f"{self.layout()} need {self.data_bytes} bytes from byte "
                               f"{self.offset}, the file has {max(size - self.offset, 0)})")
 
-    def _layout(self) -> str:
+    def layout(self) -> str:
+        """``"XxYxZ TYPE samples"``, for messages."""
         return f"{'x'.join(map(str, self.shape))} {self.file_dtype.name} samples"
 
     def sample_dtype(self) -> np.dtype:
@@ -357,7 +358,7 @@ class NiftiFile:
         start = self.offset + k * self.block_bytes
         if self.gzipped:
             return _gunzip_range(self.path, start, self.block_bytes,
-                                 self.offset + self.data_bytes, self.where, self._layout())
+                                 self.offset + self.data_bytes, self.where, self.layout())
         with open(self.path, "rb") as fh:
             fh.seek(start)
             try:

@@ -7,10 +7,12 @@ own ``warp --displacement-to`` does:
 - NIfTI: a 5-D (x, y, z, 1, 3) image, intent 1007 (vector). The header's
   geometry is RAS (read to LPS as every NIfTI), but the *vectors* are LPS:
   ITK writes its components as they are. Read in one pass (a ``.nii.gz``
-  decompressed once), kept in the file's type (float32 stays float32); an
-  uncompressed float field larger than a quarter of the memory budget is
-  read by windows instead (:class:`LazyField`: a block reads the vectors its
-  points reach).
+  decompressed once), kept in the file's type (float32 stays float32); a
+  float field larger than its share of the memory budget
+  (:func:`~volwarp_cli.memory.read_by_box`) is read by windows instead
+  (:class:`LazyField`: a block reads the vectors its points reach), from
+  the file, or from a scratch copy of a ``.nii.gz``'s samples
+  (:mod:`volwarp_cli.io.inflated`).
 - NRRD (``kinds: vector domain domain domain``) and MetaImage with three
   components: the vectors are in the file's ``space`` (a RAS file's are
   turned to LPS).
@@ -23,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import VolwarpError
+from ..errors import OutOfMemoryError, VolwarpError
 from .model import DisplacementField, GridFrame
 
 
@@ -89,13 +91,10 @@ class LazyField:
         return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
 
 
-#: a field whose bytes exceed this share of the memory budget is read by windows
-LAZY_SHARE = 0.25
-
-
 def _nifti(path: str):
+    from ..io.inflated import NoRoom
     from ..io.nifti import gunzip_range_into, nifti_geometry, nifti_meta, open_nifti
-    from ..memory import ensure_fits_in_memory, memory_limit
+    from ..memory import ensure_fits_in_memory, read_by_box
 
     nf = open_nifti(path)
     if nf.components != 3 or nf.volumes != 1:
@@ -105,18 +104,21 @@ def _nifti(path: str):
     meta = nifti_meta(nf, chosen, 0)
     nx, ny, nz = nf.shape[:3]
     kind = nf.file_dtype
-    if (not nf.gzipped and not nf.scaled and kind.kind == "f"
-            and nf.data_bytes > LAZY_SHARE * memory_limit()):
-        from ..io.common import note_input
-
-        with open(path, "rb") as fh:  # (an output is not renamed into place if it changed)
-            note_input(fh)
-        return _frame(geometry, (nz, ny, nx)), LazyField(path, kind, nf.offset,
-                                                         (nz, ny, nx)), meta
+    no_room = None
+    if not nf.scaled and kind.kind == "f" and read_by_box(nf.data_bytes):
+        try:
+            return _frame(geometry, (nz, ny, nx)), _lazy_field(nf, (nz, ny, nx)), meta
+        except NoRoom as why:
+            no_room = str(why)
     out_type = np.dtype(np.float32 if nf.scaled or kind.kind != "f" else kind.newbyteorder("="))
     # (the vectors as held: an int16 field's float32 vectors are twice its file's samples)
-    ensure_fits_in_memory(nx * ny * nz * 3 * out_type.itemsize,
-                          f"{path} ({'x'.join(map(str, nf.shape))})")
+    try:
+        ensure_fits_in_memory(nx * ny * nz * 3 * out_type.itemsize,
+                              f"{path} ({'x'.join(map(str, nf.shape))})")
+    except OutOfMemoryError as exc:
+        if no_room is None:
+            raise
+        raise OutOfMemoryError(f"{exc}; {no_room}") from None
     # interleaved (z, y, x, 3): a point's neighbours' vectors share cache lines (the planar
     # layout of the file was 1.5x slower to sample)
     vectors = np.empty((nz, ny, nx, 3), dtype=out_type)
@@ -139,6 +141,31 @@ def _nifti(path: str):
                     parts.append(np.frombuffer(buf, dtype=kind).reshape(z1 - z0, ny, nx))
                 _interleave(parts, vectors[z0:z1], nf)
     return _frame(geometry, (nz, ny, nx)), vectors, meta
+
+
+def _lazy_field(nf, shape_zyx):
+    """The field's vectors read by windows: from the file, or a ``.nii.gz``'s scratch copy.
+
+    Raises :class:`~volwarp_cli.io.inflated.NoRoom` where a ``.nii.gz``'s
+    samples find no room on the disk (then read whole, or refused by the
+    memory check with its sizes and the disk's).
+    """
+    from ..io.common import note_input
+    from ..io.inflated import inflated_array
+    from ..io.nifti import gunzip_range_into
+
+    if not nf.gzipped:
+        note_input(nf.path)  # (an output is not renamed into place if it changed)
+        return LazyField(nf.path, nf.file_dtype, nf.offset, shape_zyx)
+
+    def fill(sink):
+        gunzip_range_into(nf.path, nf.offset, nf.data_bytes, nf.offset + nf.data_bytes,
+                          nf.where, nf.layout(), sink)
+
+    nz, ny, nx = shape_zyx  # (the three planes, one after the other)
+    copy = inflated_array(nf.path, nf.data_bytes, nf.file_dtype, (3 * nz, ny, nx), nf.where,
+                          fill)
+    return LazyField(copy.path, nf.file_dtype, 0, shape_zyx)
 
 
 class _ComponentSink:

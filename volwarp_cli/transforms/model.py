@@ -34,6 +34,10 @@ from ..errors import VolwarpError
 #: the edge of the tiles whose extremes bound a field's range over a box
 TILE = 16
 
+#: the most one window of a field read by windows may hold for :meth:`DisplacementField.map`
+#: (points spread wider are mapped a cell of them at a time)
+WINDOW_BYTES = 32 << 20
+
 
 def _affine(p: np.ndarray, m: np.ndarray, o: np.ndarray) -> np.ndarray:
     """``p @ m.T + o`` for points (N, 3): a kernel for many (numpy's matmul is slow for 3x3)."""
@@ -188,19 +192,55 @@ class DisplacementField:
         return self.map(p) - p
 
     def map(self, p: np.ndarray) -> np.ndarray:
-        """The images of points ``p`` (N, 3)."""
-        from . import _kernels
+        """The images of points ``p`` (N, 3).
 
-        field = self if self.vectors is not None else self.window(*_bounds(p))
+        A field read by windows reads the window of the points' box, or,
+        where that would exceed :data:`WINDOW_BYTES` (points spread over a
+        large field), one window per cell of :data:`TILE` voxels that holds
+        points.
+        """
         p = np.ascontiguousarray(p, dtype=np.float64)
         out = np.empty_like(p)
-        first = _kernels.field_map(field.vectors, p, self.frame.inverse_matrix,
-                                   np.asarray(self.frame.origin, float),
-                                   np.asarray(field.offset, np.int64),
-                                   np.asarray(self.frame.size, np.int64), out)
+        if self.vectors is not None:
+            first = self._map_into(self, p, out)
+        else:
+            lo, hi = _bounds(p)
+            if self.window_bytes(lo, hi) <= WINDOW_BYTES:
+                first = self._map_into(self.window(lo, hi), p, out)
+            else:
+                first = self._map_by_cells(p, out)
         if first >= 0:
             self._warn_not_finite(p[first])
         return out
+
+    def _map_into(self, field: DisplacementField, p: np.ndarray, out: np.ndarray) -> int:
+        """``field`` (this one or a window of it) maps ``p`` into ``out``: the first non-finite, or -1."""
+        from . import _kernels
+
+        return int(_kernels.field_map(field.vectors, p, self.frame.inverse_matrix,
+                                      np.asarray(self.frame.origin, float),
+                                      np.asarray(field.offset, np.int64),
+                                      np.asarray(self.frame.size, np.int64), out))
+
+    def _map_by_cells(self, p: np.ndarray, out: np.ndarray) -> int:
+        """:meth:`map` of points spread over a field read by windows: a window per cell of points."""
+        n = np.asarray(self.frame.size, np.int64)
+        cells = -(-n // TILE)
+        with np.errstate(invalid="ignore"):
+            idx = np.nan_to_num(self.frame.to_index(p) // TILE, nan=0.0, posinf=0.0, neginf=0.0)
+        cell = np.clip(idx, 0, cells - 1).astype(np.int64)  # (points outside: the nearest cell)
+        key = (cell[:, 2] * cells[1] + cell[:, 1]) * cells[0] + cell[:, 0]
+        order = np.argsort(key, kind="stable")
+        starts = np.flatnonzero(np.diff(key[order], prepend=-1))
+        first = -1
+        for a, b in zip(starts, [*starts[1:], len(order)], strict=True):
+            pick = order[a:b]
+            part = np.empty((len(pick), 3))
+            bad = self._map_into(self.window(*_bounds(p[pick])), p[pick], part)
+            out[pick] = part
+            if bad >= 0 and (first < 0 or pick[bad] < first):
+                first = int(pick[bad])
+        return first
 
     def _warn_not_finite(self, point) -> None:
         """Say, once per field and run, that points reach its NaN (or infinite) vectors.
@@ -469,11 +509,13 @@ def _solve(step, target: np.ndarray) -> np.ndarray:
     residual is halved (up to 6 times: a field's cell edges and its border
     make the Jacobian jump).
     """
-    if getattr(step, "vectors", 0) is None:  # a field read by windows: one, for all points
-        tmin, tmax = step._tiles()
+    if getattr(step, "vectors", 0) is None:  # a field read by windows: one for all points
+        tmin, tmax = step._tiles()  # (where it is small enough, else map's cells each time)
         reach = float(np.nanmax(np.abs(np.concatenate([tmin, tmax]))) if tmin.size else 0.0)
         lo, hi = _bounds(target)
-        step = step.window(lo - reach - 1.0, hi + reach + 1.0)
+        lo, hi = lo - reach - 1.0, hi + reach + 1.0
+        if step.window_bytes(lo, hi) <= WINDOW_BYTES:
+            step = step.window(lo, hi)
     q = target - step.displacement(target)
     h = 1e-4
     active = np.arange(len(target))

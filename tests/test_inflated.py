@@ -1,0 +1,331 @@
+"""Compressed inputs larger than their share of memory: inflated once to scratch, read by box.
+
+A ``.nii.gz``, a gzip NRRD or a compressed MetaImage whose samples exceed
+``memory.READ_BY_BOX_SHARE`` of the budget is inflated into a scratch file
+beside the run's first output and read from there box by box (the share is
+set to 0 here to take that way on small files). The samples, the header and
+the outputs are the ones read whole; the scratch folder is gone when the run
+ends, after a failure too; a damaged file is the same error.
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+import pickle
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+
+from volwarp_cli import memory
+from volwarp_cli.geometry import Geometry
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.volume import Volume
+
+
+def _ball(shape=(23, 19, 17)) -> Volume:
+    z, y, x = np.ogrid[:shape[0], :shape[1], :shape[2]]
+    r2 = (x - 8.3) ** 2 + ((y - 9.1) * 1.2) ** 2 + ((z - 11.4) * 0.9) ** 2
+    data = (1000 * np.exp(-r2 / 40.0)).astype(np.int16)
+    return Volume(data, spacing=(0.9, 1.1, 1.3), origin=(-4.0, 7.5, 2.25))
+
+
+def _write(kind: str, folder) -> str:
+    vol = _ball()
+    if kind == "nii.gz":
+        path = folder / "in.nii.gz"
+        write_volume(vol, path)
+    elif kind == "nii.gz big-endian":  # another byte order, as nibabel writes it
+        path = folder / "in_be.nii.gz"
+        data = vol.data.astype(">i2")
+        img = nib.Nifti1Image(np.asarray(data).transpose(2, 1, 0), np.diag([-0.9, -1.1, 1.3, 1]))
+        img.header.set_data_dtype(">i2")
+        nib.save(img, str(path))
+    elif kind == "nrrd gzip":
+        path = folder / "in.nrrd"
+        write_volume(vol, path, compress=True)
+    elif kind == "nhdr + raw.gz":
+        path = folder / "in.nhdr"
+        write_volume(vol, path, compress=True)
+        assert any(p.name.endswith(".gz") for p in folder.iterdir())
+    elif kind == "mha compressed":
+        path = folder / "in.mha"
+        write_volume(vol, path, compress=True)
+    else:
+        raise AssertionError(kind)
+    return str(path)
+
+
+#: a bundled warp spec in voxel units, as intensities
+SPEC = Path(__file__).resolve().parent.parent / "specs" / "warp-ball-voxel.yaml"
+
+KINDS = ["nii.gz", "nii.gz big-endian", "nrrd gzip", "nhdr + raw.gz", "mha compressed"]
+
+
+@pytest.fixture
+def by_box(monkeypatch):
+    """Every input read by box: compressed ones through a scratch copy."""
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+
+
+@pytest.fixture
+def inflations(monkeypatch):
+    """The inputs inflated to scratch in the test (their ``where``), as they are made."""
+    from volwarp_cli.io import inflated
+
+    made, real = [], inflated.inflated_array
+
+    def spy(original, nbytes, file_dtype, shape_zyx, where, fill):
+        made.append(where)
+        return real(original, nbytes, file_dtype, shape_zyx, where, fill)
+
+    monkeypatch.setattr(inflated, "inflated_array", spy)
+    return made
+
+
+def _scratch(folder) -> list[str]:
+    return [n for n in os.listdir(folder) if n.endswith(".scratch")]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_compressed_input_read_by_box_equals_whole(kind, tmp_path, by_box):
+    """The scratch copy's boxes are the samples read whole; the header is the same; it goes."""
+    from volwarp_cli.io.inflated import InflatedArray
+    from volwarp_cli.io.inputs import claim_output
+    from volwarp_cli.io.lazy import LazySource, open_volume_header
+    from volwarp_cli.runscope import run_scope
+
+    src = tmp_path / "src"
+    src.mkdir()
+    path = _write(kind, src)
+    whole = read_volume(path)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    with run_scope():
+        claim_output(out_dir / "result.nrrd", "-o")
+        header, array = open_volume_header(path)
+        assert isinstance(array, InflatedArray)
+        assert len(_scratch(out_dir)) == 1 and _scratch(src) == []  # (beside the output)
+        assert Geometry.of(header) == Geometry.of(whole)
+        assert (header.space, header.file_space, header.meta) == (whole.space, whole.file_space,
+                                                                  whole.meta)
+        assert header.shape == whole.data.shape and header.dtype == whole.data.dtype
+        np.testing.assert_array_equal(np.asarray(array[...]), whole.data)
+        box = (slice(3, 17), slice(2, 11), slice(5, 16))
+        np.testing.assert_array_equal(array[box], whole.data[box])
+        # a worker process gets the same scratch file, not a second inflation
+        again = pickle.loads(pickle.dumps(LazySource(path, array=array)))
+        assert isinstance(again._array, InflatedArray) and again._array.path == array.path
+        np.testing.assert_array_equal(again[box], whole.data[box])
+    assert _scratch(out_dir) == []  # the run ended: its scratch copy with it
+
+
+def test_small_compressed_input_is_read_whole(tmp_path):
+    """Where the samples fit their share of the budget, nothing is written to disk."""
+    from volwarp_cli.io.inputs import claim_output
+    from volwarp_cli.io.lazy import open_volume_header
+    from volwarp_cli.runscope import run_scope
+
+    path = _write("nii.gz", tmp_path)
+    with run_scope():
+        claim_output(tmp_path / "o.nrrd", "-o")
+        _, array = open_volume_header(path)
+        assert isinstance(array, np.ndarray) and _scratch(tmp_path) == []
+
+
+@pytest.mark.parametrize("command", [
+    ["mesh", "--iso", "400"],
+    ["distance", "--iso", "400", "--surface", "voxel"],
+    ["warp", "--spec", "SPEC"],
+])
+def test_command_on_a_scratch_copy_writes_the_same_bytes(command, run, tmp_path, monkeypatch,
+                                                         inflations):
+    """A command by blocks on a compressed input through its scratch copy = read whole."""
+    path = _write("nii.gz", tmp_path)
+    args = [SPEC if a == "SPEC" else a for a in command]
+    ext = ".ply" if command[0] == "mesh" else ".nrrd"
+    first = run(args[0], path, "-o", tmp_path / f"whole{ext}", *args[1:])
+    assert first.code == 0, first.stderr
+    assert inflations == []
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    res = run(args[0], path, "-o", tmp_path / f"boxes{ext}", *args[1:], "--chunked")
+    assert res.code == 0, res.stderr
+    assert inflations == [path]
+    assert (tmp_path / f"whole{ext}").read_bytes() == (tmp_path / f"boxes{ext}").read_bytes()
+    assert _scratch(tmp_path) == []
+
+
+def test_damaged_compressed_input_same_error_nothing_left(run, tmp_path, by_box):
+    """A truncated .nii.gz inflated to scratch: the reader's error, no output, no scratch."""
+    path = _write("nii.gz", tmp_path)
+    whole = Path(path).read_bytes()
+    cut = tmp_path / "cut.nii.gz"
+    cut.write_bytes(whole[:len(whole) * 2 // 3])
+    (tmp_path / "o.ply").write_bytes(b"earlier run")
+    res = run("mesh", cut, "-o", tmp_path / "o.ply", "--iso", "400")
+    assert res.code == 1
+    assert "cut.nii.gz: cannot read NIfTI data (the gzip stream is truncated" in res.stderr
+    assert (tmp_path / "o.ply").read_bytes() == b"earlier run"
+    assert _scratch(tmp_path) == []
+
+
+def test_gzip_nrrd_holding_more_than_its_sizes_refused(tmp_path, by_box):
+    """A stream longer than the header's sizes is refused as when read whole."""
+    from volwarp_cli.errors import FormatError
+    from volwarp_cli.io.lazy import open_volume_header
+    from volwarp_cli.runscope import run_scope
+
+    vol = _ball()
+    head = (b"NRRD0004\ntype: int16\ndimension: 3\nsizes: 17 19 23\nencoding: gzip\n"
+            b"endian: little\n\n")
+    extra = vol.data.astype("<i2").tobytes() + b"\0" * 4096
+    path = tmp_path / "long.nrrd"
+    path.write_bytes(head + gzip.compress(extra))
+    with pytest.raises(FormatError, match="holds more than"):
+        read_volume(path)
+    with run_scope(), pytest.raises(FormatError, match="holds more than"):
+        open_volume_header(path)
+    assert _scratch(tmp_path) == [] and not any(
+        n.endswith(".scratch") for n in os.listdir(os.path.dirname(os.path.abspath(path))))
+
+
+def test_no_disk_room_reads_whole_and_says_both(run, tmp_path, monkeypatch, by_box):
+    """No room on the disk for the copy: read whole where it fits; refused naming both sizes."""
+    import shutil
+    from collections import namedtuple
+
+    from volwarp_cli.io import inflated
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10 << 30, 10 << 30, 100))
+    path = _write("nii.gz", tmp_path)
+    assert inflated.NoRoom  # (the reason the copy is not made)
+    res = run("mesh", path, "-o", tmp_path / "a.ply", "--iso", "400")
+    assert res.code == 0, res.stderr  # read whole: it fits the memory
+    res = run("mesh", path, "-o", tmp_path / "b.ply", "--iso", "400", "--memory-limit", "1M")
+    assert res.code == 1
+    assert "needs" in res.stderr and "inflating it to read by blocks needs" in res.stderr
+    assert "has 100 B free" in res.stderr
+    assert not (tmp_path / "b.ply").exists() and _scratch(tmp_path) == []
+
+
+# -- displacement fields: a .nii.gz field by windows, points spread over it by cells -------
+def _field(path, shape=(20, 22, 24), nan_at=None):
+    """A smooth float32 displacement field (.nii.gz or .nii, as SimpleITK writes it)."""
+    sitk = pytest.importorskip("SimpleITK")
+    nz, ny, nx = shape
+    z, y, x = np.mgrid[:nz, :ny, :nx].astype(float)
+    vec = np.stack([1.5 * np.sin(z / 6), 1.5 * np.cos(x / 8), 0.9 * np.sin(y / 7)], -1)
+    if nan_at is not None:
+        vec[nan_at] = np.nan
+    img = sitk.GetImageFromArray(vec.astype(np.float32), isVector=True)
+    img.SetOrigin([-3.0, 2.0, 1.5])
+    img.SetSpacing([1.1, 1.0, 1.3])
+    sitk.WriteImage(img, str(path))
+    return sitk.ReadImage(str(path), sitk.sitkVectorFloat64)
+
+
+def _points(n=400):
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-6, -1, -2], [26, 25, 30], (n, 3))  # (some beyond the field's extent)
+    return np.vstack([pts, [[np.nan, 1.0, 2.0]]])
+
+
+def test_gz_field_by_windows_maps_as_whole(tmp_path, monkeypatch):
+    """A .nii.gz field over its share: a scratch copy read by windows, mapping as held whole.
+
+    Points spread wider than one window (here any) are mapped a cell of
+    them at a time: the same images as the whole field's, NaN where a
+    point or the vectors it reaches are NaN, and ITK's TransformPoint.
+    """
+    sitk = pytest.importorskip("SimpleITK")
+    from volwarp_cli.io.inputs import claim_output
+    from volwarp_cli.runscope import run_scope
+    from volwarp_cli.transforms import model, read_chain
+
+    img = _field(tmp_path / "f.nii.gz", nan_at=(5, 6, 7))
+    pts = _points()
+    with run_scope():
+        whole = read_chain([str(tmp_path / "f.nii.gz")]).steps[0]
+        assert whole.vectors is not None
+        expect = whole.map(pts)
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    monkeypatch.setattr(model, "WINDOW_BYTES", 0)
+    with run_scope():
+        claim_output(tmp_path / "o.nrrd", "-o")
+        lazy = read_chain([str(tmp_path / "f.nii.gz")]).steps[0]
+        assert lazy.vectors is None and ".scratch" in lazy.source.components[0].path
+        got = lazy.map(pts)
+        np.testing.assert_array_equal(got, expect)
+    assert _scratch(tmp_path) == []
+    theirs = sitk.DisplacementFieldTransform(img)
+    finite = np.isfinite(expect).all(axis=1)
+    assert 0 < (~finite).sum() < 10  # (the NaN point and those reaching the NaN vector)
+    ref = np.array([theirs.TransformPoint(p.tolist()) for p in pts[finite]])
+    assert np.abs(expect[finite] - ref).max() < 1e-5
+
+
+def test_points_spread_over_a_lazy_field_read_by_cells(tmp_path, monkeypatch):
+    """Mapping a lattice over a field read by windows never holds the field's window whole."""
+    import tracemalloc
+
+    from volwarp_cli.transforms import model, read_chain
+
+    _field(tmp_path / "f.nii", shape=(64, 64, 64))  # 3 MiB of vectors
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    field = read_chain([str(tmp_path / "f.nii")]).steps[0]
+    assert field.vectors is None
+    axes = [np.linspace(lo, hi, 9) for lo, hi in ((-3, 66), (2, 65), (1.5, 83))]
+    lattice = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    field.map(lattice[:2])  # (the kernel compiled outside the measure)
+    for limit, most in ((64 << 20, None), (1 << 20, 1 << 20)):
+        monkeypatch.setattr(model, "WINDOW_BYTES", limit)
+        tracemalloc.start()
+        got = field.map(lattice)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        if most is None:
+            assert peak > 3 << 20  # one window: the whole field's vectors
+            whole = got
+        else:
+            assert peak < most  # a cell's windows at a time
+            np.testing.assert_array_equal(got, whole)
+
+
+def test_apply_through_a_gz_field_by_scratch_equals_whole(run, tmp_path, monkeypatch,
+                                                          inflations):
+    """`volwarp apply` through a .nii.gz field copied to scratch and read by windows: same bytes."""
+    vol = _ball((20, 22, 24))
+    write_volume(Volume(vol.data, spacing=(1.1, 1.0, 1.3), origin=(-3.0, 2.0, 1.5)),
+                 tmp_path / "in.nrrd")
+    _field(tmp_path / "f.nii.gz")
+    args = ["apply", tmp_path / "in.nrrd", "-t", tmp_path / "f.nii.gz"]
+    assert run(*args, "-o", tmp_path / "whole.nrrd").code == 0
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    res = run(*args, "-o", tmp_path / "boxes.nrrd", "--chunked", "--block", "7,8,9")
+    assert res.code == 0, res.stderr
+    assert inflations == [str(tmp_path / "f.nii.gz")]
+    assert (tmp_path / "whole.nrrd").read_bytes() == (tmp_path / "boxes.nrrd").read_bytes()
+    assert _scratch(tmp_path) == []
+
+
+def test_morph_by_blocks_inflates_each_compressed_input_once(run, tmp_path, monkeypatch,
+                                                              inflations):
+    """A morph of two large .nii.gz shapes: each inflated once (its plan's copy reused), same frames."""
+    a, b = _ball(), _ball()
+    b = Volume(np.roll(b.data, 3, axis=2), spacing=b.spacing, origin=b.origin)
+    write_volume(a, tmp_path / "a.nii.gz")
+    write_volume(b, tmp_path / "b.nii.gz")
+    args = ["morph", tmp_path / "a.nii.gz", tmp_path / "b.nii.gz", "--iso", "400",
+            "--frames", "3", "--max-distance", "4"]
+    assert run(*args, "-o", tmp_path / "m_{i}.nrrd").code == 0
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    res = run(*args, "-o", tmp_path / "k_{i}.nrrd", "--chunked")
+    assert res.code == 0, res.stderr
+    assert sorted(inflations) == [str(tmp_path / "a.nii.gz"), str(tmp_path / "b.nii.gz")]
+    for i in range(3):
+        assert (read_volume(tmp_path / f"m_{i}.nrrd").data.tobytes()
+                == read_volume(tmp_path / f"k_{i}.nrrd").data.tobytes())
+    assert _scratch(tmp_path) == []
