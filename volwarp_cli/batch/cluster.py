@@ -38,6 +38,7 @@ import signal
 import threading
 import time
 import uuid
+from dataclasses import KW_ONLY, dataclass
 
 from .manifest import Manifest, Scan
 from .plan import CommandRecord, RecordSnapshot, plan_scan
@@ -142,24 +143,28 @@ def _worker_deaths(keys: list[str], dask_scheduler=None) -> dict[str, int]:
 
 
 # -- in the batch process --------------------------------------------------------------------
+@dataclass(eq=False)
 class ClusterBatch:
-    """The scans of a manifest, one task each on the cluster of ``client``."""
+    """The scans of a manifest, one task each on the cluster of ``client``.
 
-    def __init__(self, manifest: Manifest, scans: list[Scan], *, client, force: bool = False,
-                 fail_fast: bool = False, retries: int = 0, child_threads: int | None = None,
-                 thumbnails: bool = False, on_scan=None, on_start=None):
-        self.manifest = manifest
-        self.scans = scans
-        self.client = client
-        self.force = force
-        self.fail_fast = fail_fast
-        self.retries = retries
-        self.child_threads = child_threads
-        self.thumbnails = thumbnails
-        self.on_scan = on_scan
-        self.on_start = on_start  # called with (scan, worker address, worker pid)
+    ``on_start``: called with (scan, worker address, worker pid).
+    """
+
+    manifest: Manifest
+    scans: list[Scan]
+    _: KW_ONLY
+    client: object
+    force: bool = False
+    fail_fast: bool = False
+    retries: int = 0
+    child_threads: int | None = None
+    thumbnails: bool = False
+    on_scan: object = None
+    on_start: object = None
+
+    def __post_init__(self):
         self.run_id = uuid.uuid4().hex[:12]
-        self.record = CommandRecord(manifest)
+        self.record = CommandRecord(self.manifest)
         self._signals: list[int] = []
         self._stopping: int | None = None
         self._lock = threading.Lock()

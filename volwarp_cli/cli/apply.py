@@ -23,6 +23,7 @@ from .options import (
     examples,
     finite,
     input_options,
+    moved_points_options,
     output_option,
     write_options,
 )
@@ -90,16 +91,13 @@ class TransformArg(InputPath):
               callback=finite,
               help="Output value where the point falls outside the input [default: the median "
                    "of the input's border samples, a label map's most frequent border label].")
-@click.option("--points-in", default=None, type=INPUT_PATH, metavar="P.csv",
-              help="Points of the input (moving) space to move into the output space, by the "
-                   "chain's inverse: a CSV with x, y, z columns (LPS mm; ANTs' layout; other "
-                   "columns kept) or a Slicer .mrk.json.")
-@click.option("--points-to", default=None, metavar="Q.csv",
-              help="Where the moved points go (the format of --points-in).")
-@click.option("--mesh-in", default=None, type=INPUT_PATH, metavar="M.ply",
-              help="A mesh (PLY, LPS mm) of the input space whose vertices move as the points.")
-@click.option("--mesh-to", default=None, metavar="M2.ply",
-              help="The moved mesh, faces kept, normals recomputed (.ply .stl .obj .vtp .vtk).")
+@moved_points_options(
+    "Points of the input (moving) space to move into the output space, by the chain's "
+    "inverse: a CSV with x, y, z columns (LPS mm; ANTs' layout; other columns kept) or a "
+    "Slicer .mrk.json.",
+    "Where the moved points go (the format of --points-in).",
+    "A mesh (PLY, LPS mm) of the input space whose vertices move as the points.",
+    "The moved mesh, faces kept, normals recomputed (.ply .stl .obj .vtp .vtk).")
 @write_options
 @input_options(reference_help=REFERENCE_HELP)
 @scale_options

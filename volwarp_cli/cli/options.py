@@ -461,6 +461,24 @@ def write_options(f=None, *, dtype_default: str = "the input's"):
 
 
 
+def moved_points_options(points: str, points_to: str, mesh: str, mesh_to: str):
+    """--points-in/--points-to and --mesh-in/--mesh-to: points and a mesh the command moves.
+
+    The four help texts say by which map (warp: the forward map; apply: the
+    chain's inverse).
+    """
+    def decorate(f):
+        for decls, kw in reversed([
+                (("--points-in",), dict(type=INPUT_PATH, metavar="P.csv", help=points)),
+                (("--points-to",), dict(metavar="Q.csv", help=points_to)),
+                (("--mesh-in",), dict(type=INPUT_PATH, metavar="M.ply", help=mesh)),
+                (("--mesh-to",), dict(metavar="M2.ply", help=mesh_to))]):
+            f = click.option(*decls, default=None, **kw)(f)
+        return f
+
+    return decorate
+
+
 #: --render-size's default, for every command that renders (mesh, morph, sweep)
 DEFAULT_RENDER_SIZE = "800x600"
 

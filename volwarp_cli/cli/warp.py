@@ -19,6 +19,7 @@ from .options import (
     examples,
     finite,
     input_options,
+    moved_points_options,
     option,
     output_option,
     write_options,
@@ -87,15 +88,12 @@ from .warp_options import (
               help="Write the forward map as an ITK BSplineTransform (.tfm), for moving "
                    "points; ITK tools read it as a resampling transform: do not resample "
                    "the input with it (use --displacement-to).")
-@click.option("--points-in", default=None, type=INPUT_PATH, metavar="P.csv",
-              help="Points to move by the forward map: a CSV with x, y, z columns (LPS mm; "
-                   "ANTs' layout works) or a Slicer .mrk.json markups file.")
-@click.option("--points-to", default=None, metavar="Q.csv",
-              help="Where the moved points go (the same format as --points-in).")
-@click.option("--mesh-in", default=None, type=INPUT_PATH, metavar="M.ply",
-              help="A mesh (PLY, world coordinates) whose vertices to move by the forward map.")
-@click.option("--mesh-to", default=None, metavar="M2.ply",
-              help="The moved mesh, normals recomputed (.ply .stl .obj .vtp .vtk).")
+@moved_points_options(
+    "Points to move by the forward map: a CSV with x, y, z columns (LPS mm; ANTs' layout "
+    "works) or a Slicer .mrk.json markups file.",
+    "Where the moved points go (the same format as --points-in).",
+    "A mesh (PLY, world coordinates) whose vertices to move by the forward map.",
+    "The moved mesh, normals recomputed (.ply .stl .obj .vtp .vtk).")
 @click.option("--allow-growth", is_flag=True,
               help="With --grid grow: let the padding the moves need make the output more "
                    "than 2x the input (and more than 64 voxels larger) along an axis; refused "
