@@ -446,7 +446,7 @@ def smooth_vectors(shape, amp=1.5):
     return np.stack([amp * np.sin(z / 6), amp * np.cos(x / 8), 0.6 * amp * np.sin(y / 7)], -1)
 
 
-@pytest.mark.parametrize("how", ["in memory", "by blocks", "by windows"])
+@pytest.mark.parametrize("how", ["in memory", "by blocks", "by windows", "by processes"])
 def test_nan_vectors_map_outside_as_in_itk_and_are_said(run, inputs, monkeypatch, how):
     """A NaN vector where the output samples the field: its voxels take the background, said once.
 
@@ -465,8 +465,10 @@ def test_nan_vectors_map_outside_as_in_itk_and_are_said(run, inputs, monkeypatch
     name = "nan.nii" if how == "by windows" else "nan.nii.gz"
     write_field(inputs / name, vec, vol.origin)
     args = ["-t", inputs / name, "--background-value", "-7"]
-    if how == "by blocks":
+    if how in ("by blocks", "by processes"):  # (a worker process's warning: said once too)
         args += ["--chunked", "--block", "6,7,5"]
+    if how == "by processes":
+        args += ["--scheduler", "processes"]
     if how == "by windows":
         monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
     res = run("apply", inputs / "in.nrrd", "-o", inputs / "o.nrrd", *args)

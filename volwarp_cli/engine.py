@@ -137,26 +137,86 @@ class BlockStats:
     seconds: float
     peak_rss: int
     value: object = None
+    #: the warnings the task said in another process than the command's: ``(key, message)``
+    said: tuple = ()
 
 
 def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | None = None,
-               keep: bool = False, **kwargs) -> BlockStats:
+               keep: bool = False, origin: int | None = None, **kwargs) -> BlockStats:
     """Run ``fn(*args, **kwargs)`` as one block task; its :class:`BlockStats`.
 
     The task's kernels get ``threads`` threads (the scheduler's are the
     parallelism) and the memory budget ``memory`` (the command's, passed in:
     a worker process has no command line to read it from). ``keep``: return
-    ``fn``'s result too, as the stats' ``value``.
+    ``fn``'s result too, as the stats' ``value``. ``origin``: the command's
+    process; in another one the task is a run of its own and its warnings go
+    back in the stats (:meth:`Engine.run` says them once), not to the
+    worker's stderr.
     """
     from . import memory as memory_mod
     from . import parallel
 
     start = time.perf_counter()
     with parallel.use_threads(threads), (memory_mod.use_memory_limit(memory)
-                                         if memory is not None else contextlib.nullcontext()):
+                                         if memory is not None else contextlib.nullcontext()), \
+            _said_here(origin is not None and os.getpid() != origin) as said:
         value = fn(*args, **kwargs)
     return BlockStats(ident, time.perf_counter() - start, peak_rss(),
-                      value if keep else None)
+                      value if keep else None, tuple(said))
+
+
+_capture = threading.local()
+
+
+class _KeepSaid:
+    """A filter of volwarp's log: warnings in a capturing thread kept (key, message), not shown.
+
+    ``key``: the record's ``once`` (what a warning said once per run is
+    keyed by), else its message.
+    """
+
+    def filter(self, record) -> bool:
+        import logging
+
+        said = getattr(_capture, "said", None)
+        if said is None or record.levelno < logging.WARNING:
+            return True
+        message = record.getMessage()
+        said.append((getattr(record, "once", None) or message, message))
+        return False
+
+
+@contextlib.contextmanager
+def _said_here(capture: bool):
+    """The warnings said inside, kept (a list) where ``capture``, in a run of its own."""
+    if not capture:
+        yield []
+        return
+    from .progress import log
+    from .runscope import run_scope
+
+    if not any(isinstance(f, _KeepSaid) for f in log.filters):
+        log.addFilter(_KeepSaid())
+    said: list = []
+    _capture.said = said
+    try:
+        with run_scope():
+            yield said
+    finally:
+        _capture.said = None
+
+
+def say_once(results) -> None:
+    """The warnings block tasks said in other processes, each key once per run."""
+    from .progress import log
+    from .runscope import run_files
+
+    done = run_files().said
+    for stats in results:
+        for key, message in getattr(stats, "said", ()):
+            if key not in done:
+                done.add(key)
+                log.warning("%s", message)
 
 
 # -- running a graph -------------------------------------------------------------------
@@ -219,6 +279,7 @@ class Engine:
                     # on, so that no late block writes into an output being removed)
                     if pool is not None:
                         pool.shutdown(wait=True, cancel_futures=True)
+        say_once(results)
         return results
 
     @staticmethod
@@ -344,8 +405,8 @@ def block_delayed(fn: Callable, ident: str, *args, threads: int = 1,
     import dask
 
     return dask.delayed(block_task, pure=False)(
-        fn, ident, *args, threads=threads, memory=memory, dask_key_name=BLOCK_PREFIX + ident,
-        **kwargs)
+        fn, ident, *args, threads=threads, memory=memory, origin=os.getpid(),
+        dask_key_name=BLOCK_PREFIX + ident, **kwargs)
 
 
 @contextlib.contextmanager

@@ -251,17 +251,14 @@ class DisplacementField:
         nothing, here the count and index box of those vectors and a point
         that reached them are said.
         """
-        import multiprocessing
-
         from ..progress import log
         from ..runscope import run_files
 
-        if multiprocessing.parent_process() is not None:
-            return  # (a worker process of --scheduler processes: its log is not the command's)
+        key = ("not finite", self.name)  # (a block in a worker process: said by the command)
         said = run_files().said
-        if ("not finite", self.name) in said:
+        if key in said:
             return
-        said.add(("not finite", self.name))
+        said.add(key)
         count, lo, hi = self.nonfinite()
         where = ", ".join(f"{a} {p}" if p == q else f"{a} {p}..{q}"
                           for a, p, q in zip("xyz", lo, hi, strict=True))
@@ -271,7 +268,7 @@ class DisplacementField:
                     "points mapped through it reach them (the first at LPS %s mm): they map "
                     "outside the input, as in ITK (their voxels take the background value, "
                     "moved points are NaN); fill the vectors (0 is no displacement) to move "
-                    "them instead", self.name, count, total, where, at)
+                    "them instead", self.name, count, total, where, at, extra={"once": key})
 
     def nonfinite(self) -> tuple[int, tuple, tuple]:
         """The count of vectors with a NaN or infinite component and their index box (x, y, z).
