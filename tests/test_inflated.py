@@ -329,3 +329,113 @@ def test_morph_by_blocks_inflates_each_compressed_input_once(run, tmp_path, monk
         assert (read_volume(tmp_path / f"m_{i}.nrrd").data.tobytes()
                 == read_volume(tmp_path / f"k_{i}.nrrd").data.tobytes())
     assert _scratch(tmp_path) == []
+
+
+# -- where copies are not made, and made once -------------------------------------------------
+def test_worker_reopening_an_input_reads_it_whole_never_copies(tmp_path, by_box):
+    """A LazySource pickled without its samples (read whole by the command) reopens them whole.
+
+    A worker process's tasks have a smaller budget than the command: a copy
+    made there was removed by the reopening's own scope at once (the review's
+    FileNotFoundError), and would be one copy per block.
+    """
+    from volwarp_cli.io.lazy import LazySource
+    from volwarp_cli.runscope import run_scope
+
+    path = _write("nii.gz", tmp_path)
+    whole = read_volume(path)
+    with run_scope():
+        shipped = pickle.loads(pickle.dumps(LazySource(path, array=whole.data)))
+        box = (slice(0, 5), slice(2, 9), slice(3, 4))
+        np.testing.assert_array_equal(shipped[box], whole.data[box])
+        assert isinstance(shipped._array, np.ndarray)
+    assert _scratch(tmp_path) == [] and not [
+        n for n in os.listdir(tempfile_dir()) if n.startswith(".in.nii.gz.vw-")]
+
+
+def tempfile_dir():
+    import tempfile
+
+    return tempfile.gettempdir()
+
+
+def test_no_copy_outside_a_run_nor_for_a_header(tmp_path, by_box, inflations):
+    """A library call outside any run reads whole (nothing left behind); a header alone inflates nothing."""
+    from volwarp_cli.io.lazy import open_volume_header
+    from volwarp_cli.runscope import run_scope
+
+    path = _write("nii.gz", tmp_path)
+    _, array = open_volume_header(path)
+    assert isinstance(array, np.ndarray)
+    with run_scope():
+        header, array = open_volume_header(path, samples=False)
+        assert array is None and header.shape == read_volume(path).data.shape
+    assert inflations == []
+
+
+def test_the_same_file_twice_in_a_run_is_copied_once(tmp_path, by_box, inflations):
+    from volwarp_cli.io import inflated
+    from volwarp_cli.io.lazy import open_volume_header
+    from volwarp_cli.runscope import run_scope
+
+    path = _write("nii.gz", tmp_path)
+    made = []
+    real = inflated._scratch_for
+    with run_scope(), pytest.MonkeyPatch.context() as mp:
+        mp.setattr(inflated, "_scratch_for", lambda *a: made.append(a) or real(*a))
+        first = open_volume_header(path)[1]
+        second = open_volume_header(path)[1]
+        assert first.path == second.path and len(made) == 1
+
+
+def test_cells_of_an_oblique_field_read_small_windows(tmp_path, monkeypatch):
+    """Points far outside a rotated field are not windowed: each read stays a cell's size.
+
+    (A cell's window was the world box of its points, strays clamped into it
+    included: on an oblique field that box's index range was the whole grid.)
+    """
+    sitk = pytest.importorskip("SimpleITK")
+    from volwarp_cli.transforms import model, read_chain
+
+    n = 48
+    z, y, x = np.mgrid[:n, :n, :n].astype(np.float32)
+    vec = np.stack([np.sin(z / 5), np.cos(x / 7), 0.5 * np.sin(y / 6)], -1).astype(np.float32)
+    img = sitk.GetImageFromArray(vec, isVector=True)
+    rot = sitk.Euler3DTransform((0, 0, 0), 0.3, -0.25, 0.2)
+    img.SetDirection(rot.GetMatrix())
+    img.SetOrigin((3.0, -2.0, 5.0))
+    sitk.WriteImage(img, str(tmp_path / "f.nii"))
+    rng = np.random.default_rng(7)
+    inside = np.asarray([img.TransformContinuousIndexToPhysicalPoint(v.tolist())
+                         for v in rng.uniform(0, n - 1, (3000, 3))])
+    strays = rng.uniform(-3000, 3000, (40, 3))
+    pts = np.vstack([inside, strays, [[np.inf, 0.0, 1.0]]])
+    whole = read_chain([str(tmp_path / "f.nii")]).steps[0].map(pts)
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    monkeypatch.setattr(model, "WINDOW_BYTES", 0)
+    field = read_chain([str(tmp_path / "f.nii")]).steps[0]
+    sizes = []
+    real = field.source.read
+    monkeypatch.setattr(field.source, "read", lambda lo, hi: sizes.append(
+        np.prod(np.subtract(hi, lo))) or real(lo, hi))
+    np.testing.assert_array_equal(field.map(pts), whole)
+    theirs = sitk.DisplacementFieldTransform(sitk.Cast(img, sitk.sitkVectorFloat64))
+    ref = np.array([theirs.TransformPoint(p.tolist()) for p in pts[:3040]])
+    assert np.abs(whole[:3040] - ref).max() < 1e-5
+    cell = model.TILE + 3  # (a cell's points, one voxel either side and the upper neighbour)
+    assert sizes and max(sizes) <= cell ** 3
+
+
+def test_nan_count_computed_once_per_process_across_pickled_copies(tmp_path, monkeypatch):
+    """Block tasks in a worker process each get a pickled field: its NaN scan runs once there."""
+    from volwarp_cli.transforms import model, read_chain
+
+    _field(tmp_path / "f.nii", nan_at=(3, 4, 5))
+    field = read_chain([str(tmp_path / "f.nii")]).steps[0]
+    calls = []
+    real = model.DisplacementField._nonfinite
+    monkeypatch.setattr(model.DisplacementField, "_nonfinite",
+                        lambda self: calls.append(1) or real(self))
+    copies = [pickle.loads(pickle.dumps(field)) for _ in range(3)]
+    counts = {c.nonfinite() for c in copies} | {field.nonfinite()}
+    assert counts == {(1, (5, 4, 3), (5, 4, 3))} and len(calls) == 1

@@ -33,7 +33,8 @@ class RunFiles:
     may read data files outside their own folder; ``dry_run``: the command runs
     its checks only, and stops at its first read of an input
     (:func:`stop_if_dry_run`); ``said``: the warnings a run says once;
-    ``ends``: what the run removes when it ends (:func:`at_run_end`).
+    ``ends``: what the run removes when it ends (:func:`at_run_end`); ``copies``:
+    its inputs' scratch copies (:mod:`volwarp_cli.io.inflated`), by file.
     """
 
     inputs: set[tuple[int, int]] = field(default_factory=set)
@@ -46,6 +47,7 @@ class RunFiles:
     dry_run: bool = False
     said: set = field(default_factory=set)
     ends: list = field(default_factory=list)
+    copies: dict = field(default_factory=dict)
 
 
 class DryRunStop(BaseException):  # noqa: N818 - a stop, not an error
@@ -104,11 +106,9 @@ def at_run_end(end) -> None:
         files.ends.append(end)
 
 
-def hand_over_ends(inner: RunFiles) -> None:
-    """Move ``inner``'s ends (a scope opened for a permission) to the current run's."""
-    ends, inner.ends = inner.ends, []
-    for end in ends:
-        at_run_end(end)
+def in_run() -> bool:
+    """Whether the code runs inside a :func:`run_scope` (a command's run, a batch scan)."""
+    return _current.get() is not None
 
 
 def _run_ends(files: RunFiles) -> None:

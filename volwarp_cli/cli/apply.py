@@ -198,7 +198,7 @@ def _resample(input, output, chain, reference, options, write, read, transform_p
     from .chunked import lazy_input
 
     header, source = lazy_input(input, *read)
-    ref = open_volume_header(reference)[0] if reference is not None else None
+    ref = open_volume_header(reference, samples=False)[0] if reference is not None else None
     try:
         op = plan_resample(header, source, chain, ref, name=str(input), **options)
     except BadUsage as exc:

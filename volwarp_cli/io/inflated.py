@@ -8,11 +8,17 @@ a piece at a time (a few MB held), into a raw file in a scratch folder, and
 read from there box by box as an uncompressed file is
 (:class:`InflatedArray`, a :class:`.filearray.FileArray`). Every check of the
 in-memory read still holds: the whole stream is inflated, so a truncated or
-corrupt file is the same one-line error, before any work.
+corrupt file is the same one-line error, before any work. A file opened again in the same run (a morph's source that
+is also its target) reuses its copy.
 
-The scratch folder is made beside the run's first output (its disk is the
-one the outputs need anyway; named and cleaned as the output's temporaries),
-else in the system's temporary folder, and removed when the run ends
+Copies are made inside a command's run only (a library call outside any
+:func:`~volwarp_cli.runscope.run_scope` reads the file whole), by the
+command's process (a worker process reopening an input reads it whole: the
+copy, where there is one, travels with the input instead). The scratch
+folder is made beside the run's first output (its disk is the one the
+outputs need anyway; named and cleaned as the output's temporaries), else in
+the system's temporary folder (a command without an output file; a remote
+cluster's workers cannot see that one), and removed when the run ends
 (:func:`~volwarp_cli.runscope.at_run_end`), on a stop, or, after a kill, by
 the next run writing the same output. A disk without room for the samples
 leaves the input to be read whole, as before, and the refusal says so.
@@ -53,10 +59,17 @@ def inflated_array(original: Path, nbytes: int, file_dtype, shape_zyx, where: st
     :class:`NoRoom` when the folder's disk has less than ``nbytes`` free.
     """
     from ..progress import timed
+    from ..runscope import run_files
     from ..signals import check_stop
     from .common import note_input
 
     note_input(original)
+    st = os.stat(original)
+    key = (os.path.realpath(original), st.st_size, st.st_mtime_ns, nbytes, str(file_dtype),
+           tuple(shape_zyx))
+    copies = run_files().copies
+    if key in copies and os.path.exists(copies[key].path):  # (the same file opened again)
+        return copies[key]
     folder = _scratch_for(original, nbytes)
     try:
         path = folder / "samples.raw"
@@ -74,7 +87,8 @@ def inflated_array(original: Path, nbytes: int, file_dtype, shape_zyx, where: st
     except BaseException:
         _remove(folder)
         raise
-    return InflatedArray(path, file_dtype, 0, shape_zyx)
+    copies[key] = InflatedArray(path, file_dtype, 0, shape_zyx)
+    return copies[key]
 
 
 def _scratch_for(original: Path, nbytes: int) -> Path:

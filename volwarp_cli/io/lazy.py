@@ -79,7 +79,8 @@ def open_volume_lazy(path: str | os.PathLike, *, raw=None, volume_index: int | N
 
 
 def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int | None = None,
-                       require_lazy: bool = False, dicom: dict | None = None):
+                       require_lazy: bool = False, dicom: dict | None = None,
+                       samples: bool = True, inflate: bool = True):
     """:func:`open_volume_lazy` with the file's Header: ``(header, array_like)``.
 
     ``header`` (a :class:`~volwarp_cli.volume.Header`) is the Volume
@@ -87,6 +88,13 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
     its frame (``space``, ``file_space``) and key/values are the file's, for
     the outputs made from it. A file read whole gives its Volume's header and
     its samples.
+
+    ``samples=False``: the header is what is wanted; a compressed file gives
+    it with None for the samples (nothing inflated). ``inflate=False``: a
+    compressed file too large to hold is read whole, never copied to scratch
+    (a worker process reopening a command's input: the command decides).
+    Copies to scratch are made only inside a command's run
+    (:func:`~volwarp_cli.runscope.run_scope`), which removes them at its end.
     """
     from ..runscope import stop_if_dry_run
     from . import read_volume, volume_format
@@ -119,16 +127,17 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
                                file_space=opened.file_space, meta=opened.meta), lazy
         if volume_index not in (None, 0):
             raise NotLazy("a volume of a 4-D file is read whole")
+        copy = "header" if not samples else "inflate" if inflate else "never"
         if fmt == "nrrd":
-            return _nrrd(path)
+            return _nrrd(path, copy)
         if fmt == "metaimage":
-            return _metaimage(path)
+            return _metaimage(path, copy)
         if fmt == "raw":
             return _raw(path, raw)
         if fmt == "tiff":
             return _tiff(path)
         if fmt == "nifti":
-            return _nifti(path)
+            return _nifti(path, copy)
         raise NotLazy(f"{fmt} files are read whole")
     except NotLazy as why:
         if require_lazy:
@@ -144,15 +153,23 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
     return vol.header, vol.data
 
 
-def _inflated(original: Path, nbytes: int, file_dtype, shape_zyx, where: str, fill):
+def _inflated(original: Path, nbytes: int, file_dtype, shape_zyx, where: str, fill,
+              copy: str):
     """A compressed input's samples read by box from a scratch copy, where too big to hold.
 
-    Raises NotLazy where they fit their share of the memory budget (read
-    whole: faster) and :class:`NoRoomToInflate` where the disk has no room.
+    ``copy``: "header" (None: the samples are not wanted), "never" or
+    "inflate". Raises NotLazy where they fit their share of the memory
+    budget (read whole: faster), outside a command's run or where ``copy``
+    forbids a copy, and :class:`NoRoomToInflate` where the disk has no room.
     """
     from ..memory import read_by_box
+    from ..runscope import in_run
     from .inflated import NoRoom, inflated_array
 
+    if copy == "header":
+        return None
+    if copy == "never" or not in_run():
+        raise NotLazy("compressed samples are read whole")
     if not read_by_box(nbytes):
         raise NotLazy("compressed samples that fit in memory are read whole")
     try:
@@ -195,7 +212,7 @@ def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str, *,
 
 # -- NRRD -------------------------------------------------------------------------------
 
-def _nrrd(path: Path):
+def _nrrd(path: Path, copy: str):
     from . import nrrd
     from .common import open_data_file
 
@@ -255,7 +272,7 @@ def _nrrd(path: Path):
                          meta=_nrrd_meta(fields, keyvals, space, where))
     if encoding == "gzip":
         return header, _inflated(data_path, nbytes, file_dtype, shape, where,
-                                 _stream_at(data_path, start, nbytes))
+                                 _stream_at(data_path, start, nbytes), copy)
     return header, _memmap(data_path, file_dtype, start, shape, str(data_path))
 
 
@@ -280,7 +297,7 @@ def _nrrd_meta(fields: dict, keyvals: dict, space, where: str) -> dict:
 
 # -- MetaImage ------------------------------------------------------------------------------
 
-def _metaimage(path: Path):
+def _metaimage(path: Path, copy: str):
     from . import metaimage as mi
     from .common import open_data_file
 
@@ -338,7 +355,7 @@ def _metaimage(path: Path):
                          file_space="left-posterior-superior", meta=mi._meta(pairs, direction))
     if compressed:
         return header, _inflated(data_path, nbytes, file_dtype, shape, where,
-                                 _stream_at(data_path, start, nbytes))
+                                 _stream_at(data_path, start, nbytes), copy)
     return header, _memmap(data_path, file_dtype, start, shape, str(data_path))
 
 
@@ -461,7 +478,7 @@ class _ZarrView:
 
 # -- NIfTI ------------------------------------------------------------------------------
 
-def _nifti(path: Path):
+def _nifti(path: Path, copy: str):
     from . import _check_content, nifti
 
     where = str(path)
@@ -480,7 +497,7 @@ def _nifti(path: Path):
             nifti.gunzip_range_into(nf.path, nf.offset, nf.block_bytes,
                                     nf.offset + nf.data_bytes, where, nf.layout(), sink)
 
-        return header, _inflated(path, nf.block_bytes, nf.file_dtype, shape, where, fill)
+        return header, _inflated(path, nf.block_bytes, nf.file_dtype, shape, where, fill, copy)
     return header, _memmap(path, nf.file_dtype, nf.offset, shape, where, kind=_NiftiView)
 
 
@@ -517,14 +534,15 @@ class LazySource:
     def array(self):
         """The input's samples, sliceable ``[z, y, x]`` (opened on first use)."""
         if self._array is None:
-            from ..runscope import hand_over_ends, run_scope
+            from ..runscope import run_scope
 
             with run_scope() as files:  # (this thread's own: the permission it was given)
                 files.allow_outside_data = self.allow_outside_data
-                _, self._array = open_volume_lazy(self.path, raw=self.raw,
-                                                  volume_index=self.volume_index,
-                                                  dicom=self.dicom)
-                hand_over_ends(files)  # (a scratch copy lasts as long as the run)
+                # (reopened by path, in a worker: a compressed input is read whole, as the
+                # command chose, never copied again, and kept beyond this scope)
+                _, self._array = open_volume_header(self.path, raw=self.raw,
+                                                    volume_index=self.volume_index,
+                                                    dicom=self.dicom, inflate=False)
         return self._array
 
     @property

@@ -97,34 +97,31 @@ class MorphPlan:
 
     ``by_blocks``; ``in_memory_refusal``: why the in-memory morph does not
     fit, when blocks run instead of it unasked; ``loaded``: inputs read whole
-    to read their headers (compressed files), by path; ``opened``: the
-    others' ``(header, array read on slicing)``, by path (a compressed input
-    inflated to scratch is not inflated again by the blocks); ``headers``:
-    the source's and the target's :class:`~volwarp_cli.volume.Header`.
+    to read their headers, by path; ``headers``: the source's and the
+    target's :class:`~volwarp_cli.volume.Header`.
     """
 
     by_blocks: bool
     in_memory_refusal: str | None = None
     loaded: dict = field(default_factory=dict)
-    opened: dict = field(default_factory=dict)
     headers: tuple = ()
 
 
-def _input_header(path, plan: MorphPlan):
+def _input_header(path, loaded: dict):
     """The Header of ``path``: its samples unread where the format allows, else read whole.
 
-    A volume read whole is kept in ``plan.loaded``, one opened so in
-    ``plan.opened`` (by path).
+    A volume read whole is kept in ``loaded`` (by path). A compressed file's
+    header is read alone (its samples inflated only if the morph runs by
+    blocks, by :func:`_lazy`).
     """
     from ..io import read_volume
     from ..io.lazy import open_volume_header
 
     try:
-        plan.opened[str(path)] = open_volume_header(path, require_lazy=True)
-        return plan.opened[str(path)][0]
-    except VolwarpError:  # (compressed, or not a volume: read_volume says what is wrong)
-        plan.loaded[str(path)] = read_volume(path)
-        return plan.loaded[str(path)].header
+        return open_volume_header(path, require_lazy=True, samples=False)[0]
+    except VolwarpError:  # (a file read whole, or not a volume: read_volume says so)
+        loaded[str(path)] = read_volume(path)
+        return loaded[str(path)].header
 
 
 #: Bytes a frame-grid voxel holds in the in-memory morph, measured (256^3 binary shapes,
@@ -173,8 +170,8 @@ def plan_morph(job: MorphJob, outputs, write: FrameWrite, chunked: bool | None) 
 
     plan = MorphPlan(False)
     with one_volume_inputs():
-        source = _input_header(job.source.path, plan)
-        target = _input_header(job.target.path, plan)
+        source = _input_header(job.source.path, plan.loaded)
+        target = _input_header(job.target.path, plan.loaded)
     plan.headers = (source, target)
     shape = least_frame_shape(job, Geometry.of(source), Geometry.of(target))
     n = math.prod(shape)
@@ -444,8 +441,7 @@ def run_morph(job: MorphJob, outputs, plan: MorphPlan, *, meta: dict, write_kw: 
                      for a in job.attributes}
     else:
         with one_volume_inputs():
-            source, target = (_lazy(job.source.path, plan.opened),
-                              _lazy(job.target.path, plan.opened))
+            source, target = _lazy(job.source.path), _lazy(job.target.path)
             attrs = {a.name: (_lazy(a.source), _lazy(a.target)) for a in job.attributes}
     kw = dict(outputs=outputs, meta=meta, write=write, meshes=bool(outputs.meshes),
               render=render)
@@ -465,9 +461,8 @@ def run_morph(job: MorphJob, outputs, plan: MorphPlan, *, meta: dict, write_kw: 
     return Geometry.of(frame.volume)
 
 
-def _lazy(path, opened: dict | None = None):
-    """``(header, LazySource)`` of an input read by blocks (``opened``: as the plan opened it)."""
+def _lazy(path):
     from ..io.lazy import LazySource, open_volume_header
 
-    header, array = (opened or {}).pop(str(path), None) or open_volume_header(path)
+    header, array = open_volume_header(path)
     return header, LazySource(path, array=array)

@@ -95,6 +95,7 @@ def _nifti(path: str):
     from ..io.inflated import NoRoom
     from ..io.nifti import gunzip_range_into, nifti_geometry, nifti_meta, open_nifti
     from ..memory import ensure_fits_in_memory, read_by_box
+    from ..runscope import in_run
 
     nf = open_nifti(path)
     if nf.components != 3 or nf.volumes != 1:
@@ -105,7 +106,8 @@ def _nifti(path: str):
     nx, ny, nz = nf.shape[:3]
     kind = nf.file_dtype
     no_room = None
-    if not nf.scaled and kind.kind == "f" and read_by_box(nf.data_bytes):
+    if not nf.scaled and kind.kind == "f" and read_by_box(nf.data_bytes) and (
+            not nf.gzipped or in_run()):  # (a copy to scratch: inside a command's run only)
         try:
             return _frame(geometry, (nz, ny, nx)), _lazy_field(nf, (nz, ny, nx)), meta
         except NoRoom as why:

@@ -25,6 +25,7 @@ the executor's blocks read the input region it gives.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +34,9 @@ from ..errors import VolwarpError
 
 #: the edge of the tiles whose extremes bound a field's range over a box
 TILE = 16
+
+#: :meth:`DisplacementField.nonfinite` of the fields seen in this process, by token
+_NONFINITE: dict = {}
 
 #: the most one window of a field read by windows may hold for :meth:`DisplacementField.map`
 #: (points spread wider are mapped a cell of them at a time)
@@ -177,6 +181,9 @@ class DisplacementField:
     name: str = "displacement field"
     source: object = None
     offset: tuple = (0, 0, 0)
+    #: this field's identity across pickled copies (a block in a worker process gets one):
+    #: its NaN count is computed once per process (:meth:`nonfinite`)
+    token: str = field(default_factory=lambda: os.urandom(8).hex())
 
     linear = False
 
@@ -223,20 +230,36 @@ class DisplacementField:
                                       np.asarray(self.frame.size, np.int64), out))
 
     def _map_by_cells(self, p: np.ndarray, out: np.ndarray) -> int:
-        """:meth:`map` of points spread over a field read by windows: a window per cell of points."""
+        """:meth:`map` of points spread over a field read by windows: a window per cell of points.
+
+        Points outside the field are not moved (no vector is read for them);
+        those inside go a :data:`TILE`-voxel cell at a time, each cell's window
+        its points' index box grown by one voxel (as :meth:`_window_box`).
+        """
         n = np.asarray(self.frame.size, np.int64)
-        cells = -(-n // TILE)
-        with np.errstate(invalid="ignore"):
-            idx = np.nan_to_num(self.frame.to_index(p) // TILE, nan=0.0, posinf=0.0, neginf=0.0)
-        cell = np.clip(idx, 0, cells - 1).astype(np.int64)  # (points outside: the nearest cell)
-        key = (cell[:, 2] * cells[1] + cell[:, 1]) * cells[0] + cell[:, 0]
-        order = np.argsort(key, kind="stable")
-        starts = np.flatnonzero(np.diff(key[order], prepend=-1))
+        idx = self.frame.to_index(p)
+        with np.errstate(invalid="ignore"):  # (NaN points: outside)
+            inside = np.all((idx >= -0.5 - 1e-6) & (idx < n - 0.5 + 1e-6), axis=1)
         first = -1
+        rest = np.flatnonzero(~inside)
+        if rest.size:  # (the kernel finds them outside and reads nothing: any window)
+            one = self._window_at(np.zeros(3, np.int64), np.ones(3, np.int64))
+            part = np.empty((rest.size, 3))
+            bad = self._map_into(one, p[rest], part)
+            out[rest] = part
+            first = int(rest[bad]) if bad >= 0 else -1
+        pick_in = np.flatnonzero(inside)
+        cells = -(-n // TILE)
+        cell = np.clip(np.floor(idx[pick_in] / TILE), 0, cells - 1).astype(np.int64)
+        key = (cell[:, 2] * cells[1] + cell[:, 1]) * cells[0] + cell[:, 0]
+        order = pick_in[np.argsort(key, kind="stable")]
+        starts = np.flatnonzero(np.diff(np.sort(key, kind="stable"), prepend=-1))
         for a, b in zip(starts, [*starts[1:], len(order)], strict=True):
             pick = order[a:b]
+            lo = np.clip(np.floor(idx[pick].min(axis=0)).astype(np.int64) - 1, 0, n - 1)
+            hi = np.clip(np.ceil(idx[pick].max(axis=0)).astype(np.int64) + 2, 1, n)
             part = np.empty((len(pick), 3))
-            bad = self._map_into(self.window(*_bounds(p[pick])), p[pick], part)
+            bad = self._map_into(self._window_at(lo, hi), p[pick], part)
             out[pick] = part
             if bad >= 0 and (first < 0 or pick[bad] < first):
                 first = int(pick[bad])
@@ -273,8 +296,17 @@ class DisplacementField:
     def nonfinite(self) -> tuple[int, tuple, tuple]:
         """The count of vectors with a NaN or infinite component and their index box (x, y, z).
 
-        Read slab by slab (a field read by windows is never whole in memory).
+        Read slab by slab (a field read by windows is never whole in memory);
+        once per process (block tasks in a worker process share it).
         """
+        known = _NONFINITE.get(self.token)
+        if known is None:
+            known = _NONFINITE[self.token] = self._nonfinite()
+            while len(_NONFINITE) > 64:  # (a long-lived worker: the oldest go)
+                _NONFINITE.pop(next(iter(_NONFINITE)))
+        return known
+
+    def _nonfinite(self) -> tuple[int, tuple, tuple]:
         nx, ny, nz = self.frame.size
         count, lo, hi = 0, [nx, ny, nz], [-1, -1, -1]
         for z0 in range(0, nz, TILE):
@@ -313,7 +345,10 @@ class DisplacementField:
         """
         if self.vectors is not None:
             return self
-        a, b = self._window_box(lo, hi)
+        return self._window_at(*self._window_box(lo, hi))
+
+    def _window_at(self, a, b) -> DisplacementField:
+        """The field's vectors of grid index box ``[a, b)`` (x, y, z), read."""
         vectors = self.source.read((int(a[2]), int(a[1]), int(a[0])),
                                    (int(b[2]), int(b[1]), int(b[0])))
         return DisplacementField(self.frame, vectors, self.name,
