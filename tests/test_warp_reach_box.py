@@ -118,21 +118,23 @@ def _random_lattice(cap, seed, scale, lift):
 
 @settings(max_examples=20, deadline=None)
 @given(seed=st.integers(0, 10 ** 6), scale=st.floats(0.0, 2.5),
-       lift=st.sampled_from([0.0, -5.0, 7.5]), oversample=st.sampled_from([1.0, 1.5, 2]))
-def test_plane_reach_holds_every_voxel_footprint(seed, scale, lift, oversample):
+       lift=st.sampled_from([0.0, -5.0, 7.5]), oversample=st.sampled_from([1.0, 1.5, 2]),
+       tight=st.booleans())
+def test_plane_reach_holds_every_voxel_footprint(seed, scale, lift, oversample, tight):
     """Every domain voxel's contributions land within the target planes its plane is given.
 
     Plane by plane (a plane's touched box is the union of its voxels' boxes),
     and each target plane's domain window holds every plane that reaches it.
     (The rule rounds outwards by up to a plane, ``floor(.. - 0.5)`` and
     ``ceil(.. + 0.5) + 1``: a bound one plane short at the top can still hold
-    here; two short is caught.)
+    here; two short is caught.) ``tight``: the bound from the deformation itself
+    (:meth:`.reach.Reach.tight_planes`, the label warp's), else the lattice's hull.
     """
     cap = capture_volume(Volume(_blob((12, 11, 13), seed=seed % 7)), lattice=(4, 5, 4),
                          oversample=oversample)
     dq = _random_lattice(cap, seed, scale, lift)
     sc = Scene(cap.domain, cap.grid, dq, 2)
-    pr = sc._plane_reach([dq])
+    pr = sc.tight_plane_reach(dq) if tight else sc._plane_reach([dq])
     dshape = cap.grid.domain_shape
     acc = np.zeros(tuple(sc.target_shape[::-1]) + (2,), np.int64)
     tz = sc.target_shape[2]
@@ -151,6 +153,43 @@ def test_plane_reach_holds_every_voxel_footprint(seed, scale, lift, oversample):
         for g, f in enumerate(footprint):
             if f is not None and f[0] < t1 and f[1] > t0:
                 assert a <= g < b, (t0, t1, g, a, b)
+
+
+def test_tight_plane_reach_of_a_drag_is_the_drag_not_its_handles():
+    """A drag moves its handle's 4^3 control points by up to about 2.4 times itself
+    (minimum norm): the hull's reach grows by that, the deformation's by the drag only.
+
+    The bound still holds every plane's footprint (the scatter's own boxes).
+    """
+    from volwarp_cli.bspline.reach import _refined
+
+    c = np.random.default_rng(0).normal(size=9)  # subdivision keeps the curve: both evaluated
+    t = (np.arange(8) + 0.5) / 8
+    from volwarp_cli.bspline.basis import basis
+    curve = np.concatenate([basis(t) @ c[r:r + 4] for r in range(6)])
+    t2 = (np.arange(4) + 0.5) / 4
+    q = _refined(c, 0)
+    again = np.concatenate([basis(t2) @ q[r:r + 4] for r in range(len(q) - 3)])
+    np.testing.assert_allclose(again, curve, atol=1e-12)
+
+    cap = capture_volume(Volume(_blob((40, 30, 32))), lattice=(7, 7, 7), oversample=2)
+    dq = cap.dq.copy()
+    w = np.array([1 / 6, 2 / 3, 1 / 6, 0.0])  # a voxel centre's basis weights (t = 0)
+    weights = np.einsum("i,j,k->ijk", w, w, w)
+    dq[2:6, 2:6, 2:6, 2] += 6.0 * weights / (weights ** 2).sum()  # moves that point by 6
+    sc = Scene(cap.domain, cap.grid, dq, 2)
+    tight, hull = sc.tight_plane_reach(dq), sc._plane_reach([dq])
+    dz = np.asarray(dq[..., 2] - cap.dq[..., 2])
+    assert dz.max() > 2.3 * 6.0  # (the handles' overshoot)
+    base = sc.reach.offset[2] + sc.reach.scale[2] * np.arange(len(tight.t_hi))
+    assert (tight.t_hi - base).max() <= 6.0 + 0.5 * sc.reach.scale[2] + 2.6
+    assert (hull.t_hi - base).max() > 13.0
+    acc = np.zeros(tuple(sc.target_shape[::-1]) + (2,), np.int64)
+    dshape = cap.grid.domain_shape
+    for g in range(dshape[2]):
+        bb = sc.contribute([dq], _plane(dshape, g), 1, acc=acc, bounds=True, parallel=False)
+        if bb is not None:
+            assert tight.t_lo[g] <= bb.lo[0] and bb.hi[0] <= tight.t_hi[g], g
 
 
 def test_thread_parts_use_the_per_plane_reach(small_splits):
@@ -225,9 +264,9 @@ def test_renders_and_updates_identical_bytes_for_any_thread_count(monkeypatch, s
 
 
 def test_label_warp_identical_for_any_thread_count_with_the_per_plane_ring():
-    """The label warp's ring and domain windows from the per-plane reach: the ring is
-    smaller than the lattice-wide bound's, and the labels are those of that bound at 1, 2,
-    3 and 5 threads."""
+    """The label warp's ring and domain windows from the per-plane reach (the deformation's
+    own, :meth:`Reach.tight_planes`): the ring is smaller than the lattice-wide bound's,
+    and the labels are those of that bound at 1, 2, 3 and 5 threads."""
     shape = (44, 12, 14)  # long in z: a ring of fewer planes than the whole target
     z, y, x = np.indices(shape)
     lab = np.zeros(shape, np.int64)
@@ -243,7 +282,7 @@ def test_label_warp_identical_for_any_thread_count_with_the_per_plane_ring():
 
     sc = Scene(cap.voxmap, cap.grid, dq, 3, domain_range=(0.0, 1.0))
     wide = loose(sc)
-    sc._plane_reach = lambda dqs: wide
+    sc.tight_plane_reach = lambda dq: wide
     ref = warp_labels(lab, sc)
     wide_ring = labels.LabelStream(sc, dq, lab, 0, sc.target_shape[2], None, None).planes
     for n in THREADS:

@@ -417,6 +417,18 @@ class Scene:
         return PlaneReach(np.minimum.reduce([r.t_lo for r in reaches]),
                           np.maximum.reduce([r.t_hi for r in reaches]))
 
+    def tight_plane_reach(self, dq):
+        """:meth:`.reach.Reach.tight_planes` of lattice ``dq`` (cached per lattice).
+
+        The label warp's shares and rings: a share's domain window is its
+        target planes' reach, which the control points' hull widened by the
+        whole drag again.
+        """
+        facts = self._facts(dq)
+        if "tight planes" not in facts:
+            facts["tight planes"] = self.reach.tight_planes(dq)
+        return facts["tight planes"]
+
     def _work(self, dqs, block: Box) -> float:
         """:func:`.work.scatter_work` of the domain voxels ``block``, one pass per lattice of ``dqs``."""
         return work.scatter_work(self.reach, self._still(dqs), len(dqs), block)

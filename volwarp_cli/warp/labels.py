@@ -451,8 +451,8 @@ class LabelStream:
         self.need = np.ascontiguousarray(need, np.uint8)
         self.k = grid.subdivision
         self.chunk = max(1, int(STREAM_PLANES * self.k))  # domain planes per step
-        # each domain plane's reach, from its own layer of the lattice (as the stream's)
-        self.reach = scene._plane_reach([dq])
+        # each domain plane's reach, from the deformation itself (a share's halo is that)
+        self.reach = scene.tight_plane_reach(dq)
         self.planes = ring_planes(self.reach, self.chunk)
         #: the scatter's value scale (1: a label map's scene, whose range is (0, 1))
         self.inv_vmax = 1.0 / scene.vmax if scene.vmax > 0 else 0.0
