@@ -140,6 +140,15 @@ def write_inputs(folder: str) -> dict:
         f.write("#Insight Transform File V1.0\n#Transform 0\n"
                 "Transform: AffineTransform_double_3_3\n"
                 "Parameters: 1 0.05 0 0 1 0 0 0 1 0.5 -0.25 0\nFixedParameters: 8 8 8\n")
+    # a float64 displacement field (SimpleITK and ITK write them so): the field kernels'
+    # other signature
+    from .io.nrrd import write_nrrd
+    from .volume import LPS
+
+    wave = [0.5 * np.sin(z / 4), 0.3 * np.cos(x / 5), 0.2 * np.sin(y / 3)]
+    paths["field64"] = os.path.join(folder, "field64.nrrd")
+    write_nrrd(Volume(wave[0], space=LPS, **aniso), paths["field64"], components=wave,
+               component_names=["x", "y", "z"])
     paths["points"] = os.path.join(folder, "points.csv")
     with open(paths["points"], "w", encoding="utf-8") as f:
         f.write("x,y,z\n7.0,7.5,8.0\n3.0,4.0,5.0\n")
@@ -230,6 +239,7 @@ def command_lines(p: dict, out: str, chunked: bool) -> list[list[str]]:
                  "--mesh-in", o("blob.ply"), "--mesh-to", o("am.ply"), *t],
                 ["apply", p["labels"], "-o", o("al.nrrd"), "-t", o("disp.nrrd"), "--labels",
                  *t],
+                ["apply", p["blob"], "-o", o("a64.nrrd"), "-t", p["field64"], *t],
             ]
     if chunked:
         c = ["--chunked", "--block", "8", "--threads", "2"]
@@ -254,6 +264,7 @@ def command_lines(p: dict, out: str, chunked: bool) -> list[list[str]]:
         ]
         if "apply" in COMMANDS:
             runs += [["apply", p["blob"], "-o", o("ca.nrrd"), "-t", o("disp.nrrd"), *c],
+                     ["apply", p["blob"], "-o", o("ca64.nrrd"), "-t", p["field64"], *c],
                      ["apply", p["labels"], "-o", o("cal.nrrd"), "-t", o("disp.nrrd"),
                       "--labels", *c]]
     return runs
@@ -283,7 +294,7 @@ def run(*, verbosity: int = 1, list_only: bool = False) -> int:
         if list_only:
             names = ("blob", "blob16", "egg", "mask", "slice", "labels", "move", "table", "turn",
                      "bezier", "arc", "line", "morph", "morph_minnorm", "morph_iso", "points",
-                     "affine")
+                     "affine", "field64")
             paths = {k: os.path.join(tmp, k) for k in names}
             for line in command_lines(paths, out, chunked):
                 print("volwarp " + " ".join(line))
