@@ -439,3 +439,59 @@ def test_nan_count_computed_once_per_process_across_pickled_copies(tmp_path, mon
     copies = [pickle.loads(pickle.dumps(field)) for _ in range(3)]
     counts = {c.nonfinite() for c in copies} | {field.nonfinite()}
     assert counts == {(1, (5, 4, 3), (5, 4, 3))} and len(calls) == 1
+
+
+# -- NIfTI: scaled samples and a volume of a 4-D (or a component of a 5-D) file, by box ------
+def _nifti_cases(folder, ext):
+    """A scaled 4-D int16 file and a 5-D vector file (x, y, z, 1, 3), both written by nibabel."""
+    rng = np.random.default_rng(1)
+    four = (rng.normal(size=(17, 19, 23, 4)) * 100).astype(np.int16)
+    img = nib.Nifti1Image(four, np.diag([1.1, 0.9, 1.3, 1]))
+    img.header.set_slope_inter(0.37, -12.5)
+    nib.save(img, str(folder / f"s4.{ext}"))
+    five = rng.normal(size=(13, 11, 9, 1, 3)).astype(np.float32)
+    vec = nib.Nifti1Image(five, np.diag([-1.0, -1.0, 2.0, 1]))
+    vec.header.set_intent("vector")
+    nib.save(vec, str(folder / f"v5.{ext}"))
+    return [(str(folder / f"s4.{ext}"), i) for i in (0, 3)] + [
+        (str(folder / f"v5.{ext}"), i) for i in (1, 2)]
+
+
+@pytest.mark.parametrize("ext", ["nii", "nii.gz"])
+def test_scaled_and_4d_nifti_read_by_box_equal_read_volume(ext, tmp_path, by_box):
+    """scl_slope/scl_inter applied box by box, a 4-D file's volume and a 5-D file's component
+    are their own samples: values, type and key/values are read_volume's; a pickled
+    source (a worker's) reads the same."""
+    from volwarp_cli.io.inputs import claim_output
+    from volwarp_cli.io.lazy import LazySource, ScaledSamples, open_volume_header
+    from volwarp_cli.runscope import run_scope
+
+    for path, index in _nifti_cases(tmp_path, ext):
+        whole = read_volume(path, volume_index=index)
+        with run_scope():
+            claim_output(tmp_path / "o.nrrd", "-o")
+            header, array = open_volume_header(path, volume_index=index)
+            assert not isinstance(array, np.ndarray)
+            assert isinstance(array, ScaledSamples) == path.endswith(f"s4.{ext}")
+            got = np.asarray(array[...])
+            assert got.dtype == whole.data.dtype and header.dtype == whole.data.dtype
+            np.testing.assert_array_equal(got, whole.data)
+            assert header.meta == whole.meta and Geometry.of(header) == Geometry.of(whole)
+            box = (slice(2, 7), slice(1, 8), slice(3, 6))
+            src = pickle.loads(pickle.dumps(LazySource(path, volume_index=index, array=array)))
+            np.testing.assert_array_equal(src[box], whole.data[box])
+        assert _scratch(tmp_path) == []
+
+
+def test_command_by_blocks_on_a_scaled_4d_nifti_writes_the_same_bytes(run, tmp_path,
+                                                                       monkeypatch, inflations):
+    """`distance --volume-index 3` of a scaled 4-D .nii.gz by blocks, its volume copied to
+    scratch and scaled box by box, writes the in-memory bytes."""
+    path, index = _nifti_cases(tmp_path, "nii.gz")[1]
+    args = ["distance", path, "--volume-index", str(index), "--iso", "0", "--surface", "voxel"]
+    assert run(*args, "-o", tmp_path / "whole.nrrd").code == 0
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    res = run(*args, "-o", tmp_path / "blocks.nrrd", "--chunked", "--block", "5,6,7")
+    assert res.code == 0, res.stderr
+    assert inflations == [path]
+    assert (tmp_path / "whole.nrrd").read_bytes() == (tmp_path / "blocks.nrrd").read_bytes()

@@ -15,12 +15,14 @@ own header parsers are used). Per format:
   Truncated meanwhile, a read stops the run with one line.
 - **TIFF** 3-D stacks of one sample per pixel: tifffile's zarr interface
   (``imread(aszarr=True)``), pages decoded on demand.
-- **NIfTI** uncompressed, unscaled, 3-D: a :class:`.filearray.FileArray` of
-  the samples (nibabel's ``[x, y, z]`` in Fortran order are ``[z, y, x]`` in
-  C order; volwarp's reader does nothing else to them: the direction matrix
-  holds the reflections), opened by :func:`.nifti.open_nifti` as
-  ``read_volume`` opens it (CIFTI refused, a file shorter than its samples
-  refused before any work).
+- **NIfTI**: a :class:`.filearray.FileArray` of the samples (nibabel's
+  ``[x, y, z]`` in Fortran order are ``[z, y, x]`` in C order; volwarp's
+  reader does nothing else to them: the direction matrix holds the
+  reflections), opened by :func:`.nifti.open_nifti` as ``read_volume`` opens
+  it (CIFTI refused, a file shorter than its samples refused before any
+  work); a 4-D file's volume or a 5-D file's component (``volume_index``)
+  is its own block of samples; ``scl_slope``/``scl_inter`` are applied box
+  by box (:class:`ScaledSamples`).
 
 The header's key/values are ``read_volume``'s, from the same functions of
 the readers where they have them (NIfTI header fields and extension,
@@ -34,8 +36,8 @@ makes them), so that an output by blocks carries what the in-memory one does.
   larger, inflated once into a scratch file and read from it by box
   (:mod:`.inflated`).
 
-Anything else (bzip2/ascii encodings, scaled NIfTI, 4-D files with several
-volumes or components, DICOM that is resampled) is read whole by
+Anything else (bzip2/ascii encodings, 4-D NRRD, MetaImage, TIFF or raw files
+with several volumes or components, DICOM that is resampled) is read whole by
 ``read_volume``, unless ``require_lazy`` asks for an error instead.
 """
 
@@ -125,9 +127,11 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
                                spacing=opened.spacing, origin=opened.origin,
                                direction=opened.direction, space=opened.space,
                                file_space=opened.file_space, meta=opened.meta), lazy
+        copy = "header" if not samples else "inflate" if inflate else "never"
+        if fmt == "nifti":  # (a volume or component of a 4-D or 5-D file too)
+            return _nifti(path, copy, volume_index)
         if volume_index not in (None, 0):
             raise NotLazy("a volume of a 4-D file is read whole")
-        copy = "header" if not samples else "inflate" if inflate else "never"
         if fmt == "nrrd":
             return _nrrd(path, copy)
         if fmt == "metaimage":
@@ -136,8 +140,6 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
             return _raw(path, raw)
         if fmt == "tiff":
             return _tiff(path)
-        if fmt == "nifti":
-            return _nifti(path, copy)
         raise NotLazy(f"{fmt} files are read whole")
     except NotLazy as why:
         if require_lazy:
@@ -478,27 +480,63 @@ class _ZarrView:
 
 # -- NIfTI ------------------------------------------------------------------------------
 
-def _nifti(path: Path, copy: str):
+def _nifti(path: Path, copy: str, volume_index: int | None):
     from . import _check_content, nifti
 
     where = str(path)
     _check_content(path, "nifti")  # (read_volume's own messages for a missing file)
     nf = nifti.open_nifti(path)  # checked as read_volume does: class, sizes, file length
-    if len(nf.shape) != 3:
-        raise NotLazy("only 3-D files are mapped")
-    if nf.scaled:
-        raise NotLazy("scaled samples are read whole")
-    dtype = check_dtype(nf.file_dtype, where)
+    k, component = nf.select(volume_index)  # (a 4-D file without an index: read_volume's error)
+    dtype = nf.sample_dtype()
     geometry, chosen = nifti.nifti_geometry(nf.header, where)
-    shape = xyz_to_zyx(nf.shape)
-    header = make_header(where, shape, dtype, meta=nifti.nifti_meta(nf, chosen), **geometry)
+    shape = xyz_to_zyx(nf.shape[:3])
+    header = make_header(where, shape, dtype, meta=nifti.nifti_meta(nf, chosen, component),
+                         **geometry)
+    start = nf.offset + k * nf.block_bytes  # (the volume's or the component's samples)
     if nf.gzipped:  # (the samples' bytes of the whole stream: its checks as read whole)
         def fill(sink):
-            nifti.gunzip_range_into(nf.path, nf.offset, nf.block_bytes,
+            nifti.gunzip_range_into(nf.path, start, nf.block_bytes,
                                     nf.offset + nf.data_bytes, where, nf.layout(), sink)
 
-        return header, _inflated(path, nf.block_bytes, nf.file_dtype, shape, where, fill, copy)
-    return header, _memmap(path, nf.file_dtype, nf.offset, shape, where, kind=_NiftiView)
+        array = _inflated(path, nf.block_bytes, nf.file_dtype, shape, where, fill, copy)
+    else:
+        array = _memmap(path, nf.file_dtype, start, shape, where, kind=_NiftiView)
+    if nf.scaled and array is not None:
+        array = ScaledSamples(array, nf.slope, nf.inter, dtype)
+    return header, array
+
+
+class ScaledSamples:
+    """A NIfTI's samples with its ``scl_slope``/``scl_inter`` applied box by box.
+
+    As :func:`.nifti.read_nifti` applies them to the whole (nibabel's
+    ``apply_read_scaling``, then the sample type): element by element, so
+    every box is the whole's. Picklable, and carried to a worker process
+    where its samples are (:class:`.inflated.InflatedArray`).
+    """
+
+    def __init__(self, base, slope, inter, dtype):
+        self.base, self.slope, self.inter = base, slope, inter
+        self.dtype = np.dtype(dtype)
+        self.shape = tuple(base.shape)
+        self.ndim = 3
+        self.portable = getattr(base, "portable", False)
+
+    def __getitem__(self, key) -> np.ndarray:
+        from nibabel.volumeutils import apply_read_scaling
+
+        raw = self.base[key]
+        with np.errstate(all="ignore"):
+            return apply_read_scaling(raw, np.asanyarray(self.slope),
+                                      np.asanyarray(self.inter)).astype(self.dtype)
+
+    def __array__(self, dtype=None, copy=None):
+        out = self[...]
+        return out if dtype is None else out.astype(dtype)
+
+    def close(self) -> None:
+        """Close the samples' file."""
+        self.base.close()
 
 
 class _NiftiView(FileArray):
