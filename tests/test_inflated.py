@@ -77,9 +77,9 @@ def inflations(monkeypatch):
 
     made, real = [], inflated.inflated_array
 
-    def spy(original, nbytes, file_dtype, shape_zyx, where, fill):
+    def spy(original, nbytes, file_dtype, shape_zyx, where, fill, part=0):
         made.append(where)
-        return real(original, nbytes, file_dtype, shape_zyx, where, fill)
+        return real(original, nbytes, file_dtype, shape_zyx, where, fill, part)
 
     monkeypatch.setattr(inflated, "inflated_array", spy)
     return made
@@ -495,3 +495,17 @@ def test_command_by_blocks_on_a_scaled_4d_nifti_writes_the_same_bytes(run, tmp_p
     assert res.code == 0, res.stderr
     assert inflations == [path]
     assert (tmp_path / "whole.nrrd").read_bytes() == (tmp_path / "blocks.nrrd").read_bytes()
+
+
+def test_two_volumes_of_one_gz_file_in_a_run_are_their_own(tmp_path, by_box):
+    """A 4-D .nii.gz's volumes opened in one run: each its own copy (the cache's key holds
+    which block; volume 3 came back as volume 0's samples)."""
+    from volwarp_cli.io.lazy import open_volume_header
+    from volwarp_cli.runscope import run_scope
+
+    path, _ = _nifti_cases(tmp_path, "nii.gz")[0]
+    with run_scope():
+        for index in (0, 3, 0):
+            _, array = open_volume_header(path, volume_index=index)
+            np.testing.assert_array_equal(np.asarray(array[...]),
+                                          read_volume(path, volume_index=index).data)

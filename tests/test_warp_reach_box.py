@@ -317,3 +317,63 @@ def test_scatter_job_clip_is_a_box():
     assert pushforward.target_clip(((2, 4), (1, 3)), (0, 0), (4, 4), 0, 4) == clip
     assert pushforward.target_clip(clip, (9, 9), (1, 1), 0, 4) == clip
     assert pushforward.with_planes(clip, 1, 0) == Box((1, 1, 2), (1, 3, 4))
+
+
+def _big_reach(lattice, input_shape=(512, 512, 512), oversample=2):
+    from volwarp_cli.bspline.lattice import Lattice
+    from volwarp_cli.bspline.reach import Reach
+
+    grid = Lattice.create(input_shape, (lattice,) * 3, oversample)
+    return Reach(grid, np.zeros(3), np.asarray(grid.scale, float), input_shape)
+
+
+def test_tight_plane_reach_of_a_large_lattice_is_bounded_in_memory_and_within_the_hull():
+    """A 40^3 lattice on a 512^3 input at oversample 2 (1024 domain planes): the refined
+    nets are made a batch at a time (they took 1.8 GB at once), fewer refinements where
+    they would be many; the bound lies within the hull's, and a non-finite lattice gives
+    the hull's."""
+    import tracemalloc
+
+    reach = _big_reach(40)
+    rng = np.random.default_rng(3)
+    dq = rng.normal(scale=2.0, size=tuple(reach.grid.lattice[::-1]) + (3,))
+    hull = reach.planes(offset_bounds(dq))
+    tracemalloc.start()
+    tight = reach.tight_planes(dq, hull)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 200 << 20, peak
+    assert (tight.t_lo >= hull.t_lo).all() and (tight.t_hi <= hull.t_hi).all()
+    dq[5, 6, 7, 2] = np.nan
+    same = reach.tight_planes(dq, hull)
+    assert np.array_equal(same.t_lo, hull.t_lo) and np.array_equal(same.t_hi, hull.t_hi)
+
+
+def test_tight_plane_reach_computed_once_for_the_threads_that_ask():
+    """The label warp's shares each ask for the bound at once: one computes it."""
+    import threading
+
+    from volwarp_cli.bspline import reach as reach_mod
+
+    cap = capture_volume(Volume(_blob((20, 16, 18))), lattice=(5, 5, 6), oversample=2)
+    dq = _random_lattice(cap, 1, 0.5, 0.0)
+    sc = Scene(cap.domain, cap.grid, dq, 2)
+    calls = []
+    real = reach_mod.Reach.tight_planes
+
+    def counted(self, *a, **k):
+        calls.append(1)
+        return real(self, *a, **k)
+
+    reach_mod.Reach.tight_planes = counted
+    try:
+        got = []
+        threads = [threading.Thread(target=lambda: got.append(sc.tight_plane_reach(dq)))
+                   for _ in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        reach_mod.Reach.tight_planes = real
+    assert len(calls) == 1 and all(g is got[0] for g in got)

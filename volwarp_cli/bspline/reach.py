@@ -22,6 +22,11 @@ from .lattice import Lattice, window_reduce
 #: Slack for float32 deformation offsets in bounds derived from the lattice.
 OFFSET_SLACK = 0.01
 
+#: about the most refined net values :meth:`Reach.tight_planes` computes (fewer
+#: refinements beyond), and held at once
+TIGHT_WORK = 1 << 24
+TIGHT_BATCH = 1 << 22
+
 
 @dataclass(frozen=True)
 class Reach:
@@ -72,9 +77,10 @@ class Reach:
         Tighter than :meth:`target_z_reach` (one bound for the whole lattice,
         widened everywhere by the halo's extrapolation): each plane takes the
         bounds of its own layer of regions, whose faces alone are widened.
-        The one-shot warp's rings, the threads' parts
-        (:func:`.work.thread_parts`) and the label warp's rings and windows
-        are sized from it.
+        The one-shot warp's rings and the threads' parts
+        (:func:`.work.thread_parts`) are sized from it, and the memory the
+        label warp's rings may take (:meth:`tight_planes` narrows the rings
+        themselves).
         """
         lo_u, hi_u = bounds
         gz = self.grid.granularity[2]
@@ -89,7 +95,8 @@ class Reach:
         t_hi = np.ceil(base + hi_z + half + 0.5).astype(np.int64) + 1
         return PlaneReach(t_lo, t_hi)
 
-    def tight_planes(self, dq, refinements: int = 3) -> PlaneReach:
+    def tight_planes(self, dq, hull: PlaneReach | None = None,
+                     refinements: int = 3) -> PlaneReach:
         """:meth:`planes` from the deformation of ``dq`` itself, not its control points' hull.
 
         The hull of the control points is loose where a drag moved them: the
@@ -105,18 +112,30 @@ class Reach:
         plane g's bound is that of planes g - 1..g + 1 and of plane g's halo
         columns and rows. Strict (:data:`OFFSET_SLACK` for float32), as
         :meth:`planes`; for the label warp's shares, whose halos it shrinks.
+
+        ``hull``: :meth:`planes`'s bound, which the result never exceeds
+        (both hold: their intersection does), and the result where ``dq`` is
+        not finite. Fewer refinements on large lattices: the nets' work stays
+        about :data:`TIGHT_WORK` values, held a batch of planes at a time.
         """
         from .basis import region_weights
 
         dims = []
         for g, r in zip(self.grid.granularity, self.grid.regions, strict=True):
+            weights = region_weights(g)
             w = np.zeros((g * r, r + 3))
             rows = np.arange(g * r)
             for m in range(4):
-                w[rows, rows // g + m] = region_weights(g)[rows % g, m]
+                w[rows, rows // g + m] = weights[rows % g, m]
             dims.append(w)
         wx, wy, wz = dims
         nets = np.einsum("gk,kji->gji", wz, np.asarray(dq[..., 2], np.float64))  # per plane
+        if not np.isfinite(nets).all():
+            return hull if hull is not None else self.planes(offset_bounds(dq))
+        cy, cx = nets.shape[1:]
+        while refinements > 0 and len(nets) * (cy << refinements) * (cx << refinements) > \
+                TIGHT_WORK:
+            refinements -= 1
         lo_p, hi_p = _net_range(nets, (1, 2), refinements)
         halo_lo = np.full(len(nets), np.inf)
         halo_hi = np.full(len(nets), -np.inf)
@@ -142,6 +161,8 @@ class Reach:
         half = 0.5 * s
         t_lo = np.floor(base + lo_z - half - 0.5).astype(np.int64)
         t_hi = np.ceil(base + hi_z + half + 0.5).astype(np.int64) + 1
+        if hull is not None:
+            t_lo, t_hi = np.maximum(t_lo, hull.t_lo), np.minimum(t_hi, hull.t_hi)
         return PlaneReach(t_lo, t_hi)
 
     def region_range(self, axis: int, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
@@ -300,13 +321,20 @@ def _refined(net: np.ndarray, axis: int) -> np.ndarray:
 def _net_range(nets: np.ndarray, axes, refinements: int) -> tuple[np.ndarray, np.ndarray]:
     """Per leading index, the range of the surfaces of ``nets`` (their ``axes`` the spline's).
 
-    The hull of each net after ``refinements`` halvings of its spacing.
+    The hull of each net after ``refinements`` halvings of its spacing, a
+    batch of nets at a time (:data:`TIGHT_BATCH` refined values at most).
     """
-    for _ in range(refinements):
-        for axis in axes:
-            nets = _refined(nets, axis)
-    flat = nets.reshape(len(nets), -1)
-    return flat.min(axis=1), flat.max(axis=1)
+    size = int(np.prod([(n << refinements) for n in nets.shape[1:]])) or 1
+    step = max(1, TIGHT_BATCH // size)
+    lo, hi = np.empty(len(nets)), np.empty(len(nets))
+    for a in range(0, len(nets), step):
+        part = nets[a:a + step]
+        for _ in range(refinements):
+            for axis in axes:
+                part = _refined(part, axis)
+        flat = part.reshape(len(part), -1)
+        lo[a:a + step], hi[a:a + step] = flat.min(axis=1), flat.max(axis=1)
+    return lo, hi
 
 
 def offset_bounds(dq) -> tuple[np.ndarray, np.ndarray]:

@@ -179,6 +179,7 @@ class Scene:
         self.scratch = Scratch()
         self._lattice_facts = {}
         self._facts_lock = threading.Lock()  # (threads sharing a scene share the cache)
+        self._tight_lock = threading.Lock()
 
     @property
     def domain(self) -> np.ndarray:
@@ -425,8 +426,9 @@ class Scene:
         whole drag again.
         """
         facts = self._facts(dq)
-        if "tight planes" not in facts:
-            facts["tight planes"] = self.reach.tight_planes(dq)
+        with self._tight_lock:  # (the shares' threads ask at once: one computes it)
+            if "tight planes" not in facts:
+                facts["tight planes"] = self.reach.tight_planes(dq, self._plane_reach([dq]))
         return facts["tight planes"]
 
     def _work(self, dqs, block: Box) -> float:

@@ -49,13 +49,14 @@ class NoRoom(Exception):
 
 
 def inflated_array(original: Path, nbytes: int, file_dtype, shape_zyx, where: str,
-                   fill) -> InflatedArray:
+                   fill, part=0) -> InflatedArray:
     """``shape_zyx`` samples of ``file_dtype``, inflated by ``fill(sink)`` into a scratch file.
 
     ``fill(sink)`` inflates the input and hands every piece of its samples,
     in order, to ``sink(at, piece)`` (``at``: the piece's byte position among
     the samples), raising the reader's own errors for a damaged file.
-    ``original``: the compressed file, noted as an input of the run. Raises
+    ``original``: the compressed file, noted as an input of the run; ``part``:
+    which of its sample blocks (a 4-D file's volume: its first byte). Raises
     :class:`NoRoom` when the folder's disk has less than ``nbytes`` free.
     """
     from ..progress import timed
@@ -65,8 +66,8 @@ def inflated_array(original: Path, nbytes: int, file_dtype, shape_zyx, where: st
 
     note_input(original)
     st = os.stat(original)
-    key = (os.path.realpath(original), st.st_size, st.st_mtime_ns, nbytes, str(file_dtype),
-           tuple(shape_zyx))
+    key = (os.path.realpath(original), st.st_size, st.st_mtime_ns, part, nbytes,
+           str(file_dtype), tuple(shape_zyx))
     copies = run_files().copies
     if key in copies and os.path.exists(copies[key].path):  # (the same file opened again)
         return copies[key]

@@ -156,13 +156,16 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
 
 
 def _inflated(original: Path, nbytes: int, file_dtype, shape_zyx, where: str, fill,
-              copy: str):
+              copy: str, *, part=0, held: int | None = None):
     """A compressed input's samples read by box from a scratch copy, where too big to hold.
 
     ``copy``: "header" (None: the samples are not wanted), "never" or
-    "inflate". Raises NotLazy where they fit their share of the memory
-    budget (read whole: faster), outside a command's run or where ``copy``
-    forbids a copy, and :class:`NoRoomToInflate` where the disk has no room.
+    "inflate"; ``part``: which block of the file's samples (as
+    :func:`.inflated.inflated_array`); ``held``: what reading it whole holds
+    (default ``nbytes``; a scaled NIfTI's float samples too). Raises NotLazy
+    where that fits its share of the memory budget (read whole: faster),
+    outside a command's run or where ``copy`` forbids a copy, and
+    :class:`NoRoomToInflate` where the disk has no room.
     """
     from ..memory import read_by_box
     from ..runscope import in_run
@@ -172,10 +175,10 @@ def _inflated(original: Path, nbytes: int, file_dtype, shape_zyx, where: str, fi
         return None
     if copy == "never" or not in_run():
         raise NotLazy("compressed samples are read whole")
-    if not read_by_box(nbytes):
+    if not read_by_box(nbytes if held is None else held):
         raise NotLazy("compressed samples that fit in memory are read whole")
     try:
-        return inflated_array(original, nbytes, file_dtype, shape_zyx, where, fill)
+        return inflated_array(original, nbytes, file_dtype, shape_zyx, where, fill, part)
     except NoRoom as why:
         raise NoRoomToInflate(str(why)) from None
 
@@ -498,7 +501,9 @@ def _nifti(path: Path, copy: str, volume_index: int | None):
             nifti.gunzip_range_into(nf.path, start, nf.block_bytes,
                                     nf.offset + nf.data_bytes, where, nf.layout(), sink)
 
-        array = _inflated(path, nf.block_bytes, nf.file_dtype, shape, where, fill, copy)
+        whole = nf.block_bytes + (voxel_count(shape) * 8 if nf.scaled else 0)  # (as read)
+        array = _inflated(path, nf.block_bytes, nf.file_dtype, shape, where, fill, copy,
+                          part=start, held=whole)
     else:
         array = _memmap(path, nf.file_dtype, start, shape, where, kind=_NiftiView)
     if nf.scaled and array is not None:
@@ -531,6 +536,8 @@ class ScaledSamples:
                                       np.asanyarray(self.inter)).astype(self.dtype)
 
     def __array__(self, dtype=None, copy=None):
+        if copy is False:
+            raise ValueError("scaled samples are computed: a copy cannot be avoided")
         out = self[...]
         return out if dtype is None else out.astype(dtype)
 

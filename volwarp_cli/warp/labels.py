@@ -672,7 +672,8 @@ def stream_bytes(scene: Scene, dq, dtype, slots: int = SLOTS) -> int:
     grid = scene.grid
     k = grid.subdivision
     chunk = max(1, int(STREAM_PLANES * k))
-    planes = ring_planes(scene._plane_reach([dq]), chunk)  # as LabelStream's
+    # (the hull's reach: LabelStream's own, Scene.tight_plane_reach, lies within it)
+    planes = ring_planes(scene._plane_reach([dq]), chunk)
     tx, ty, _ = scene.target_shape
     nx, ny, _ = grid.input_shape
     ring = planes * ty * tx
