@@ -132,15 +132,11 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
             return _nifti(path, copy, volume_index)
         if volume_index not in (None, 0):
             raise NotLazy("a volume of a 4-D file is read whole")
-        if fmt == "nrrd":
-            return _nrrd(path, copy)
-        if fmt == "metaimage":
-            return _metaimage(path, copy)
-        if fmt == "raw":
-            return _raw(path, raw)
-        if fmt == "tiff":
-            return _tiff(path)
-        raise NotLazy(f"{fmt} files are read whole")
+        openers = {"nrrd": lambda: _nrrd(path, copy), "metaimage": lambda: _metaimage(path, copy),
+                   "raw": lambda: _raw(path, raw), "tiff": lambda: _tiff(path)}
+        if fmt not in openers:
+            raise NotLazy(f"{fmt} files are read whole")
+        return openers[fmt]()
     except NotLazy as why:
         if require_lazy:
             raise VolwarpError(f"{path}: cannot be read without loading it ({why}); write it "
