@@ -27,11 +27,11 @@ import numpy as np
 
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
+from ..memory import ensure_fits_in_memory
+from ..samples import check_dtype, voxel_count
 from ..volume import Header, Volume, frame_to_lps, xyz_to_zyx
 from .common import (
     ascii_values,
-    check_dtype,
-    ensure_fits_in_memory,
     make_volume,
     native,
     open_input,
@@ -41,7 +41,6 @@ from .common import (
     read_data_files,
     read_exact,
     read_gzip_exact,
-    voxel_count,
     with_byte_order,
     write_with_header,
 )

@@ -10,15 +10,14 @@ import numpy as np
 
 from ..errors import FormatError, VolwarpError
 from ..geometry import check_placement
+from ..memory import ensure_fits_in_memory
+from ..samples import check_dtype, voxel_count
 from ..volume import Volume, xyz_to_zyx, zyx_to_xyz
 from .atomic import atomic_output
 from .common import (
-    check_dtype,
-    ensure_fits_in_memory,
     make_volume,
     native,
     read_exact,
-    voxel_count,
     with_byte_order,
 )
 
