@@ -8,8 +8,8 @@ a piece at a time (a few MB held), into a raw file in a scratch folder, and
 read from there box by box as an uncompressed file is
 (:class:`InflatedArray`, a :class:`.filearray.FileArray`). Every check of the
 in-memory read still holds: the whole stream is inflated, so a truncated or
-corrupt file is the same one-line error, before any work. A file opened again in the same run (a morph's source that
-is also its target) reuses its copy.
+corrupt file is the same one-line error, before any work. A file opened again
+in the same run (a morph's source that is also its target) reuses its copy.
 
 Copies are made inside a command's run only (a library call outside any
 :func:`~volwarp_cli.runscope.run_scope` reads the file whole), by the
