@@ -256,10 +256,9 @@ class DisplacementField:
         starts = np.flatnonzero(np.diff(np.sort(key, kind="stable"), prepend=-1))
         for a, b in zip(starts, [*starts[1:], len(order)], strict=True):
             pick = order[a:b]
-            lo = np.clip(np.floor(idx[pick].min(axis=0)).astype(np.int64) - 1, 0, n - 1)
-            hi = np.clip(np.ceil(idx[pick].max(axis=0)).astype(np.int64) + 2, 1, n)
+            window = self._index_window(idx[pick].min(axis=0), idx[pick].max(axis=0))
             part = np.empty((len(pick), 3))
-            bad = self._map_into(self._window_at(lo, hi), p[pick], part)
+            bad = self._map_into(self._window_at(*window), p[pick], part)
             out[pick] = part
             if bad >= 0 and (first < 0 or pick[bad] < first):
                 first = int(pick[bad])
@@ -330,7 +329,10 @@ class DisplacementField:
         the kernels' own mapping), clipped to the grid; one voxel when the
         box misses it.
         """
-        ilo, ihi = self.frame.index_box(lo, hi)
+        return self._index_window(*self.frame.index_box(lo, hi))
+
+    def _index_window(self, ilo, ihi) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_window_box` of the continuous index box ``[ilo, ihi]`` (x, y, z)."""
         n = np.asarray(self.frame.size)
         a = np.clip(np.floor(ilo).astype(np.int64) - 1, 0, n - 1)
         b = np.clip(np.ceil(ihi).astype(np.int64) + 2, 1, n)
