@@ -23,9 +23,8 @@ DEMO_STAMP := $(VENV)/.installed-demo
 TEST_STAMP := $(VENV)/.installed-test
 PEERS_VENV ?= .venv-peers
 PEERS_STAMP := $(PEERS_VENV)/.installed
-# what a change of reinstalls: the package's metadata, the warp kernels and the SIGBUS
-# guard compiled at install
-INSTALLED_FROM := pyproject.toml volwarp_cli/bspline/_warpkernels.c volwarp_cli/io/_mapguard.c
+# what a change of reinstalls: the package's metadata and the C modules compiled at install
+INSTALLED_FROM := pyproject.toml $(wildcard volwarp_cli/*/*.c)
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 # The compiled kernels: where the commands themselves keep them (volwarp_cli/entry.py: the
 # package's __pycache__ folders, writable here), so that make's runs and direct runs of

@@ -11,6 +11,8 @@ on slabs of planes, and where a plane does not fit the budget.
 from __future__ import annotations
 
 import contextlib
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -24,9 +26,9 @@ from volwarp_cli.distance.operation import field_operation
 from volwarp_cli.engine import open_engine
 from volwarp_cli.errors import VolwarpError
 from volwarp_cli.geometry import Geometry
-from volwarp_cli.io import read_volume
+from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.passes import last_pass_block, run_by_blocks
-from volwarp_cli.volume import zyx_to_xyz
+from volwarp_cli.volume import Volume, zyx_to_xyz
 
 SHAPE = (23, 17, 19)  # z, y, x: odd; no block below divides them
 ANISO = (1.7, 0.6, 1.1)
@@ -147,6 +149,49 @@ def test_a_pass_on_cut_lines_is_wrong():
     z_pass(field, ANISO[0])
     ref = REFERENCES["euclidean"](mask.view(bool), ANISO)
     assert not np.allclose(field, ref, rtol=1e-6, atol=1e-5)
+
+
+def test_the_c_passes_check_their_buffers():
+    """A wrong call is an exception, and writes nothing (the passes are C: ``_edtkernels.c``)."""
+    mask = blobs(SHAPE, 1).view(np.uint8)
+    out = np.full(SHAPE, 7, np.float32)
+    with pytest.raises(TypeError, match="float32"):
+        x_pass(mask, 1.0, out.astype(np.float64))
+    with pytest.raises(TypeError, match="uint8"):
+        x_pass(mask.astype(np.int16), 1.0, out)
+    with pytest.raises(ValueError, match="shapes differ"):
+        x_pass(mask[:, :, 1:], 1.0, out)
+    with pytest.raises(ValueError, match="3 dimensions"):
+        y_pass(out[0], mask[0], 1.0)
+    with pytest.raises(ValueError, match="shapes differ"):
+        y_pass(out[:, 1:], mask, 1.0)
+    with pytest.raises((ValueError, BufferError), match="read-only|not writable"):
+        z_pass(np.broadcast_to(np.float32(1), SHAPE), 1.0)
+    assert (out == 7).all()
+    # any strides: the z pass on a view (a block of whole z lines) = on its copy
+    x_pass(mask, ANISO[2], out)
+    y_pass(out, mask, ANISO[1])
+    part = np.ascontiguousarray(out[:, 3:11, ::2])
+    z_pass(out[:, 3:11, ::2], ANISO[0])
+    z_pass(part, ANISO[0])
+    assert np.array_equal(out[:, 3:11, ::2], part)
+
+
+def test_the_exact_distance_loads_no_numba(tmp_path):
+    """The exact field's command path imports no numba (its start-up was half the command)."""
+    mask = np.zeros((12, 13, 14), np.uint8)
+    mask[3:9, 2:10, 4:11] = 1
+    write_volume(Volume(mask), tmp_path / "m.nrrd")
+    code = ("import sys\n"
+            "from volwarp_cli.cli.main import main\n"
+            "for extra in ([], ['--chunked', '--block', '5,6,7']):\n"
+            f"    assert main(['distance', r'{tmp_path / 'm.nrrd'}', '-o', r'{tmp_path / 'd.nrrd'}',"
+            " '--surface', 'voxel', *extra]) == 0\n"
+            "assert 'numba' not in sys.modules, 'numba imported'\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+    got = read_volume(tmp_path / "d.nrrd").data
+    np.testing.assert_allclose(got, REFERENCES["euclidean"](mask.view(bool), (1, 1, 1)),
+                               rtol=1e-6, atol=1e-5)
 
 
 @pytest.mark.parametrize("chunked", [False, True])

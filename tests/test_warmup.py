@@ -142,17 +142,17 @@ def test_seed_copies_once_per_warmup(tmp_path):
     pkg = tmp_path / "pkg"
     (pkg / "distance" / "__pycache__").mkdir(parents=True)
     (pkg / "__pycache__").mkdir()
-    (pkg / "distance" / "__pycache__" / "exact.x_pass-1.py311.nbi").write_bytes(b"index")
-    (pkg / "distance" / "__pycache__" / "exact.x_pass-1.py311.1.nbc").write_bytes(b"code")
-    (pkg / "distance" / "__pycache__" / "exact.cpython-311.pyc").write_bytes(b"bytecode")
+    (pkg / "distance" / "__pycache__" / "minnorm.axis_pass-1.py311.nbi").write_bytes(b"index")
+    (pkg / "distance" / "__pycache__" / "minnorm.axis_pass-1.py311.1.nbc").write_bytes(b"code")
+    (pkg / "distance" / "__pycache__" / "minnorm.cpython-311.pyc").write_bytes(b"bytecode")
     cache = tmp_path / "cache"
     cache.mkdir()
     assert entry.seed_cache(str(cache), str(pkg)) == 0  # no warm-up at install: nothing
     (pkg / "__pycache__" / entry.WARMUP_MARK).write_text("1\n")
     assert entry.seed_cache(str(cache), str(pkg)) == 2
     sub = cache / ("distance_" + hashlib.sha1(str(pkg / "distance").encode()).hexdigest())
-    assert sorted(p.name for p in sub.iterdir()) == ["exact.x_pass-1.py311.1.nbc",
-                                                     "exact.x_pass-1.py311.nbi"]
+    assert sorted(p.name for p in sub.iterdir()) == ["minnorm.axis_pass-1.py311.1.nbc",
+                                                     "minnorm.axis_pass-1.py311.nbi"]
     assert entry.seed_cache(str(cache), str(pkg)) == 0  # done for this warm-up
     (pkg / "__pycache__" / entry.WARMUP_MARK).write_text("2\n")  # a new install
     assert entry.seed_cache(str(cache), str(pkg)) == 2

@@ -1,6 +1,6 @@
 """Compile and cache every numba kernel ahead: ``python -m volwarp_cli.warmup``.
 
-volwarp's numba kernels (the exact and min-norm distance passes, the sub-voxel
+volwarp's numba kernels (the min-norm and line-metric distance passes, the sub-voxel
 distance, the sweep's voxeliser and root finder, the renderers, the mesh
 statistics and decimation, the warp's export loops, the papers' table
 evaluator) are compiled on their first call and cached on disk

@@ -41,7 +41,56 @@ import numpy as np
 
 from .. import parallel
 from ..errors import VolwarpError
-from .exact import add_parabola, column, new_envelope
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def new_envelope(n):
+    """The arrays of a lower envelope of up to ``n`` parabolas: sites, heights, breakpoints."""
+    return np.empty(n, np.int64), np.empty(n, np.float64), np.empty(n + 1, np.float64)
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def add_parabola(k, q, gq, h2, v, g, zb):
+    """Add the parabola ``h2 (p - q)^2 + gq`` to a lower envelope; return its new last index.
+
+    The envelope's parabolas ``0..k`` (``k = -1``: none yet) have their sites in
+    ``v``, their heights in ``g`` and the breakpoints between them in ``zb``
+    (``zb[j]`` to ``zb[j + 1]`` is where parabola ``j`` is lowest; the arrays of
+    :func:`new_envelope`); sites come in increasing order (Felzenszwalb &
+    Huttenlocher 2012, algorithm DT(f)). The exact field's passes
+    (``_edtkernels.c``) hold the same function in C.
+    """
+    if k < 0:
+        v[0] = q
+        g[0] = gq
+        zb[0] = -np.inf
+        zb[1] = np.inf
+        return 0
+    s = 0.0
+    while True:
+        r = v[k]
+        s = ((gq + h2 * q * q) - (g[k] + h2 * r * r)) / (2.0 * h2 * (q - r))
+        if s <= zb[k]:
+            k -= 1
+            if k < 0:
+                break
+        else:
+            break
+    k += 1
+    v[k] = q
+    g[k] = gq
+    zb[k] = -np.inf if k == 0 else s
+    zb[k + 1] = np.inf
+    return k
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def column(plane, other, c, f, fo):
+    """Copy column ``c`` of an (n, m) plane to ``f`` and that of ``other`` to ``fo``."""
+    for i in range(f.shape[0]):
+        f[i] = plane[i, c]
+        fo[i] = other[i, c]
+
 
 #: Jacobi steps of closest-point propagation after the feature transform.
 REFINE_STEPS = 2
