@@ -33,6 +33,7 @@ from volwarp_cli.labelmap import (
     looks_like_labels,
     looks_like_labels_by_blocks,
     scan_labels,
+    value_counts,
 )
 from volwarp_cli.volume import Volume
 
@@ -303,3 +304,23 @@ def test_by_blocks_is_the_whole_arrays_answer(kind, seed, block, box_voxels):
     want = looks_like_labels(data)
     assert looks_like_labels_by_blocks(data, Box.from_shape(data.shape).blocks(block)) == want
     assert scan_labels(data, box_voxels=box_voxels)[0] == want
+
+
+@settings(max_examples=60, deadline=None)
+@given(dtype=st.sampled_from(["uint8", "int8", "uint16", "int16", "int32", "int64", "bool",
+                              "float32"]),
+       lo=st.integers(-300, 300), span=st.sampled_from([1, 2, 3, 8, 9, 40, 300, 70000]),
+       shape=st.tuples(st.integers(1, 9), st.integers(1, 9), st.integers(1, 9)),
+       seed=st.integers(0, 2**16))
+def test_value_counts_is_numpys_unique(dtype, lo, span, shape, seed):
+    """Every way value_counts counts (a comparison a value up to 8 values, a table, a sort)."""
+    info = np.iinfo(dtype) if dtype not in ("bool", "float32") else None
+    lo, hi = (0, 1) if dtype == "bool" else (lo, lo + span - 1)
+    if info is not None:
+        lo = min(max(lo, int(info.min)), int(info.max))
+        hi = max(lo, min(hi, int(info.max)))
+    data = np.random.default_rng(seed).integers(lo, hi + 1, size=shape).astype(dtype)
+    values, counts = value_counts(data)
+    want_values, want_counts = np.unique(data.astype(np.int64), return_counts=True)
+    assert values.dtype == counts.dtype == np.int64
+    assert np.array_equal(values, want_values) and np.array_equal(counts, want_counts)

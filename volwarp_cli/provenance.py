@@ -16,7 +16,6 @@ def provenance(command: str, inputs, spec=None) -> dict[str, str]:
     files' names, not their folders, so moving a tree does not change bytes)
     and, when a spec drove the work, ``volwarp_spec_sha256`` of its bytes.
     """
-    import hashlib
     from pathlib import Path
 
     from . import __version__
@@ -29,6 +28,8 @@ def provenance(command: str, inputs, spec=None) -> dict[str, str]:
         "volwarp_input": " ".join(Path(p).name for p in inputs),
     }
     if spec is not None:
+        import hashlib  # (here: OpenSSL's load costs a command without a spec 3-10 ms)
+
         meta["volwarp_spec_sha256"] = hashlib.sha256(Path(spec).read_bytes()).hexdigest()
     return meta
 
