@@ -17,6 +17,7 @@ from 1 but not 1 from 1.0.
 from __future__ import annotations
 
 import numbers
+import operator
 import re
 from collections.abc import Mapping, Sequence
 from urllib.parse import unquote
@@ -39,7 +40,7 @@ def is_valid(instance, schema: dict) -> bool | None:
     """The jsonschema 2020-12 verdict on ``instance``, or None if this subset cannot tell."""
     try:
         _check(schema, schema, set())
-        return _valid(instance, schema, schema)
+        return _Compiled(schema).check(schema)(instance)
     except Exception:  # anything odd (a self-containing YAML value: RecursionError,
         return None  # a malformed schema): jsonschema decides, and raises as it did
 
@@ -80,22 +81,6 @@ def _check(schema, root, seen):
         _check(sub, root, seen)
 
 
-def _is_type(x, t):
-    if t == "object":
-        return isinstance(x, dict)
-    if t == "array":
-        return isinstance(x, list)
-    if t == "string":
-        return isinstance(x, str)
-    if t == "null":
-        return x is None
-    if t == "boolean" or isinstance(x, bool):
-        return isinstance(x, bool) and t == "boolean"
-    if t == "number":
-        return isinstance(x, numbers.Number)
-    return isinstance(x, int) or (isinstance(x, float) and x.is_integer())  # integer
-
-
 def _equal(a, b):
     """Equality as jsonschema's ``_utils.equal`` has it: 1 == 1.0, True != 1.
 
@@ -114,47 +99,142 @@ def _equal(a, b):
     return a == b
 
 
-def _valid(x, s, root):
-    if s is True or s is False:
-        return s
-    if "$ref" in s and not _valid(x, _resolve(s["$ref"], root), root):
-        return False
-    if "type" in s:
-        t = s["type"]
-        if not any(_is_type(x, each) for each in ([t] if isinstance(t, str) else t)):
-            return False
-    if "enum" in s and not any(_equal(each, x) for each in s["enum"]):
-        return False
-    if "const" in s and not _equal(x, s["const"]):
-        return False
-    if "not" in s and _valid(x, s["not"], root):
-        return False
-    if "anyOf" in s and not any(_valid(x, sub, root) for sub in s["anyOf"]):
-        return False
-    if "oneOf" in s and sum(bool(_valid(x, sub, root)) for sub in s["oneOf"]) != 1:
-        return False
-    if isinstance(x, dict):
-        props = s.get("properties", {})
-        if not all(k in x for k in s.get("required", ())):
-            return False
-        if not s.get("minProperties", 0) <= len(x) <= s.get("maxProperties", len(x)):
-            return False
-        if not all(_valid(v, props[k], root) for k, v in x.items() if k in props):
-            return False
-        extra = s.get("additionalProperties", True)
-        if not all(_valid(v, extra, root) for k, v in x.items() if k not in props):
-            return False
-        names = s.get("propertyNames", True)
-        return all(_valid(k, names, root) for k in x)
-    if isinstance(x, list):
-        return (s.get("minItems", 0) <= len(x) <= s.get("maxItems", len(x))
-                and all(_valid(item, s.get("items", True), root) for item in x))
-    if isinstance(x, str):
-        return len(x) >= s.get("minLength", 0) and ("pattern" not in s
-                                                    or re.search(s["pattern"], x) is not None)
-    if _is_type(x, "number"):
-        return not (("minimum" in s and x < s["minimum"])
-                    or ("maximum" in s and x > s["maximum"])
-                    or ("exclusiveMinimum" in s and x <= s["exclusiveMinimum"])
-                    or ("exclusiveMaximum" in s and x >= s["exclusiveMaximum"]))
+def _true(x):
     return True
+
+
+def _false(x):
+    return False
+
+
+def _number(x) -> bool:
+    return isinstance(x, numbers.Number) and not isinstance(x, bool)
+
+
+#: each type's test: ``integer`` accepts 1.0, and neither ``integer`` nor ``number`` a bool
+_TYPE_TESTS = {
+    "object": lambda x: isinstance(x, dict),
+    "array": lambda x: isinstance(x, list),
+    "string": lambda x: isinstance(x, str),
+    "null": lambda x: x is None,
+    "boolean": lambda x: isinstance(x, bool),
+    "number": _number,
+    "integer": lambda x: not isinstance(x, bool) and (
+        isinstance(x, int) or (isinstance(x, float) and x.is_integer())),
+}
+
+
+_ABSENT = object()
+#: each bound's keyword and the comparison that puts a number outside it
+_OUT_OF_BOUNDS = (("minimum", operator.lt), ("maximum", operator.gt),
+                  ("exclusiveMinimum", operator.le), ("exclusiveMaximum", operator.ge))
+
+
+class _Compiled:
+    """A schema as nested closures, one per subschema: each keyword's lookup made once.
+
+    A spec of a registration's 729 moves was checked keyword by keyword on each
+    of its 20,000 values (20 ms); the closures make the same tests in the same
+    order (the verdict of the former keyword-walking check, which the tests hold
+    against jsonschema) at a fraction of the cost.
+    """
+
+    def __init__(self, root: dict):
+        self.root = root
+        self.done: dict[int, object] = {}  # id(subschema) -> its test
+
+    def check(self, s):
+        """The test of subschema ``s`` (built once; a ``$ref`` cycle goes through a cell)."""
+        if s is True or s is False:
+            return _true if s else _false
+        made = self.done.get(id(s))
+        if made is not None:
+            return made
+        cell: list = []
+        self.done[id(s)] = lambda x: cell[0](x)  # (while s is built: a recursive $ref)
+        test = self._build(s)
+        cell.append(test)
+        self.done[id(s)] = test
+        return test
+
+    def _build(self, s):
+        pre = []  # the tests of any instance, in _valid's order
+        if "$ref" in s:
+            pre.append(self.check(_resolve(s["$ref"], self.root)))
+        if "type" in s:
+            t = s["type"]
+            tests = tuple(_TYPE_TESTS[each] for each in ([t] if isinstance(t, str) else t))
+            pre.append(tests[0] if len(tests) == 1 else lambda x: any(f(x) for f in tests))
+        if "enum" in s:
+            enum = s["enum"]
+            pre.append(lambda x: any(_equal(each, x) for each in enum))
+        if "const" in s:
+            const = s["const"]
+            pre.append(lambda x: _equal(x, const))
+        if "not" in s:
+            negated = self.check(s["not"])
+            pre.append(lambda x: not negated(x))
+        if "anyOf" in s:
+            any_of = [self.check(sub) for sub in s["anyOf"]]
+            pre.append(lambda x: any(f(x) for f in any_of))
+        if "oneOf" in s:
+            one_of = [self.check(sub) for sub in s["oneOf"]]
+            pre.append(lambda x: sum(bool(f(x)) for f in one_of) == 1)
+        of_object, of_array = self._object(s), self._array(s)
+        of_string, of_number = self._string(s), self._number(s)
+
+        def test(x):
+            for f in pre:
+                if not f(x):
+                    return False
+            if isinstance(x, dict):
+                return of_object is None or of_object(x)
+            if isinstance(x, list):
+                return of_array is None or of_array(x)
+            if isinstance(x, str):
+                return of_string is None or of_string(x)
+            return of_number is None or not _number(x) or of_number(x)
+        return test
+
+    def _object(self, s):
+        keys = ("properties", "required", "minProperties", "maxProperties",
+                "additionalProperties", "propertyNames")
+        if not any(k in s for k in keys):
+            return None
+        props = {k: self.check(v) for k, v in s.get("properties", {}).items()}
+        required = tuple(s.get("required", ()))
+        lo, hi = s.get("minProperties", 0), s.get("maxProperties", _ABSENT)
+        extra = self.check(s.get("additionalProperties", True))
+        names = self.check(s.get("propertyNames", True))
+
+        def test(x):
+            if not all(k in x for k in required):
+                return False
+            if not lo <= len(x) <= (len(x) if hi is _ABSENT else hi):
+                return False
+            for k, v in x.items():
+                if not props.get(k, extra)(v):
+                    return False
+            return names is _true or all(names(k) for k in x)
+        return test
+
+    def _array(self, s):
+        if not any(k in s for k in ("items", "minItems", "maxItems")):
+            return None
+        lo, hi = s.get("minItems", 0), s.get("maxItems", _ABSENT)
+        items = self.check(s.get("items", True))
+        return lambda x: (lo <= len(x) <= (len(x) if hi is _ABSENT else hi)
+                          and all(items(each) for each in x))
+
+    def _string(self, s):
+        if "minLength" not in s and "pattern" not in s:
+            return None
+        least = s.get("minLength", 0)
+        pattern = re.compile(s["pattern"]) if "pattern" in s else None
+        return lambda x: len(x) >= least and (pattern is None or pattern.search(x) is not None)
+
+    def _number(self, s):
+        fails = [(op, s[k]) for k, op in _OUT_OF_BOUNDS if k in s]
+        if not fails:
+            return None
+        return lambda x: not any(op(x, bound) for op, bound in fails)
