@@ -6,8 +6,10 @@ Rows:
   outward winding, normals) against ``skimage.measure.marching_cubes``;
 - the whole ``volwarp mesh`` command on the gyroid writing binary PLY (a
   fresh process: imports, reading the NRRD, isosurface, normals, writing)
-  against skimage's bare computation, and the same by blocks (``--chunked``:
-  the same bytes, checked) against it in memory;
+  against skimage's bare computation, against scikit-image's whole job as a
+  process (read the NRRD with SimpleITK, marching cubes with its normals, write
+  the same binary PLY layout), alternated, and the same by blocks
+  (``--chunked``: the same bytes, checked) against it in memory;
 - rendering a ~1M-triangle mesh at 1024x768: volwarp's rasteriser, and the
   whole ``volwarp mesh --render`` command, against pyvista/VTK off-screen
   through Mesa EGL (plotter set-up, first render and screenshot).
@@ -31,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 sys.path.insert(0, str(Path(__file__).parent))
-from common import median_time, row  # noqa: E402
+from common import median_time, paired_times, row  # noqa: E402
 
 
 def sphere_field(n: int) -> np.ndarray:
@@ -59,6 +61,26 @@ def _run_cmd(args: list[str]) -> None:
     res = subprocess.run(_volwarp_cmd() + ["mesh"] + args, capture_output=True, text=True, env=env)
     if res.returncode != 0:
         raise RuntimeError(f"volwarp {' '.join(args)} failed: {res.stderr.strip()}")
+
+
+#: scikit-image's whole job as a process: read, marching cubes (with normals), binary PLY
+SKIMAGE_JOB = """
+import sys, numpy as np, SimpleITK as sitk
+from skimage.measure import marching_cubes
+a = sitk.GetArrayFromImage(sitk.ReadImage(sys.argv[1]))
+v, f, n, _ = marching_cubes(a, 0.0)
+v, n = v[:, ::-1].astype(np.float32), n[:, ::-1].astype(np.float32)
+head = ("ply\\nformat binary_little_endian 1.0\\nelement vertex %d\\nproperty float x\\n"
+        "property float y\\nproperty float z\\nproperty float nx\\nproperty float ny\\n"
+        "property float nz\\nelement face %d\\nproperty list uchar int vertex_indices\\n"
+        "end_header\\n" % (len(v), len(f)))
+faces = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", 3)])
+faces["n"], faces["i"] = 3, f
+with open(sys.argv[2], "wb") as fh:
+    fh.write(head.encode())
+    fh.write(np.hstack([v, n]).astype("<f4").tobytes())
+    fh.write(faces.tobytes())
+"""
 
 
 def main(quick: bool = False) -> None:
@@ -100,6 +122,12 @@ def main(quick: bool = False) -> None:
         size_mb = out.stat().st_size / 1e6
         row(f"volwarp mesh gyroid -> PLY ({size_mb:.0f} MB)", whole,
              skimage_times["gyroid"], "skimage (bare)")
+        peer_argv = [sys.executable, "-c", SKIMAGE_JOB, str(gpath), str(tmp / "sk.ply")]
+        job, peer_job, ratio = paired_times(lambda: _run_cmd(cmd),
+                                            lambda: subprocess.run(peer_argv, check=True),
+                                            repeats)
+        row("volwarp mesh gyroid -> PLY", job, peer_job, "skimage's whole job (process)",
+            ratio)
         # by blocks: the same file, byte for byte (slabs on the engine, welded)
         blocked = tmp / "gyroid-blocks.ply"
         cmd = [str(gpath), "-o", str(blocked), "--iso", "0", "-q", "--chunked"]
