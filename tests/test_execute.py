@@ -213,3 +213,30 @@ def test_the_default_blocks_fit_the_task_and_feed_every_worker():
         edge = op.block_shape(per_task, 1)[0]
         assert edge ** 3 * 36 <= per_task < (edge + 2) ** 3 * 36
     assert op.block_shape(1, 1) == (8, 8, 8)  # never below 8
+
+
+def _block_that_warns(n):
+    from volwarp_cli.progress import log
+
+    log.warning("warning: block %d saw a NaN", n)
+    return n
+
+
+def _block_that_fails_later(n):
+    import time
+
+    time.sleep(1.5)  # (the other block has ended by then)
+    raise VolwarpError(f"block {n} failed")
+
+
+def test_a_worker_blocks_warning_is_said_when_a_later_block_fails(caplog):
+    """Warnings of worker processes' blocks are said as each block ends, not lost to a failure."""
+    from volwarp_cli.engine import block_delayed
+    from volwarp_cli.runscope import run_scope
+
+    tasks = [block_delayed(_block_that_warns, "warns", 1),
+             block_delayed(_block_that_fails_later, "fails", 2)]
+    with run_scope(), open_engine("processes", workers=2) as engine, \
+            pytest.raises(VolwarpError, match="block 2 failed"):
+        engine.run(tasks)
+    assert caplog.text.count("block 1 saw a NaN") == 1

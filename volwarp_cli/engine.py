@@ -150,8 +150,8 @@ def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | 
     a worker process has no command line to read it from). ``keep``: return
     ``fn``'s result too, as the stats' ``value``. ``origin``: the command's
     process; in another one the task is a run of its own and its warnings go
-    back in the stats (:meth:`Engine.run` says them once), not to the
-    worker's stderr.
+    back in the stats (:meth:`Engine.run` says them once, as the block ends),
+    not to the worker's stderr.
     """
     from . import memory as memory_mod
     from . import parallel
@@ -279,7 +279,6 @@ class Engine:
                     # on, so that no late block writes into an output being removed)
                     if pool is not None:
                         pool.shutdown(wait=True, cancel_futures=True)
-        say_once(results)
         return results
 
     @staticmethod
@@ -299,6 +298,7 @@ class Engine:
         return [by_id[f"{label}-{i}"] for i in range(len(tasks))]
 
     def _done(self, stats: BlockStats) -> None:
+        say_once((stats,))  # (as each block ends: a later block's failure loses none)
         if self.progress is not None:
             self.progress.emit("done", "block", stats.id, seconds=round(stats.seconds, 4),
                                peak_rss=stats.peak_rss)
