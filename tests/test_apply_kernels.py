@@ -1,7 +1,11 @@
-"""`volwarp apply`'s sampling: cubic B-splines on tiny axes, and the memory a block counts."""
+"""`volwarp apply`'s sampling: cubic B-splines on tiny axes, the memory a block counts, and
+the C kernels (their checks, a reference, no numba on the command's path)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
 import tracemalloc
 
 import numpy as np
@@ -10,6 +14,7 @@ import pytest
 from volwarp_cli.apply import plan_resample
 from volwarp_cli.box import Box
 from volwarp_cli.execute import compute_whole
+from volwarp_cli.transforms import _applykernels as K
 from volwarp_cli.transforms.model import Affine, Chain
 from volwarp_cli.volume import Volume
 
@@ -138,7 +143,7 @@ def test_cubic_block_memory_counts_what_it_allocates(monkeypatch, dtype):
                        background=0.0, values="intensity")
     threads = parallel.threads()
     op.load()
-    op.compute(Box((0, 0, 0), (2, 2, 2)), threads=threads)  # (scipy imported, kernels loaded)
+    op.compute(Box((0, 0, 0), (2, 2, 2)), threads=threads)  # (scipy's filters imported)
     for box in (Box((0, 0, 0), (40, 44, 50)), Box((10, 10, 10), (30, 34, 40)),
                 Box((0, 0, 0), (8, 8, 8)), Box((20, 20, 20), (21, 21, 21)),
                 Box((0, 0, 0), (1, 44, 50)), Box((0, 0, 0), (40, 1, 1))):
@@ -149,3 +154,201 @@ def test_cubic_block_memory_counts_what_it_allocates(monkeypatch, dtype):
         finally:
             tracemalloc.stop()
         assert op.memory(box) >= peak, box
+
+
+# -- the C kernels -----------------------------------------------------------------------
+def _sample_args(n=5, points=4):
+    """A whole image of ``n``^3 float64 samples and arguments sampling it at ``points``."""
+    img = np.arange(float(n ** 3)).reshape(n, n, n)
+    idx = np.full((points, 3), 1.25)
+    return img, idx, np.zeros(3, np.int64), np.full(3, n, np.int64)
+
+
+def _field_args(points=4):
+    vec = np.zeros((4, 4, 4, 3))
+    p = np.full((points, 3), 1.5)
+    return vec, p, np.eye(3), np.zeros(3), np.zeros(3, np.int64), np.full(3, 4, np.int64)
+
+
+def _wrong_calls():
+    img, idx, lo, n = _sample_args()
+    vec, p, inv, origin, offset, size = _field_args()
+    out = np.empty(4)
+    yield "float16 image", TypeError, K.sample_linear, (img.astype(np.float16), idx, lo, n,
+                                                         0.0, out)
+    yield "2-D image", ValueError, K.sample_linear, (img[0], idx, lo, n, 0.0, out)
+    yield "strided image", ValueError, K.sample_linear, (img[:, :, ::2], idx, lo, n, 0.0, out)
+    yield "(N, 2) indices", ValueError, K.sample_linear, (img, idx[:, :2].copy(), lo, n, 0.0,
+                                                          out)
+    yield "float32 indices", TypeError, K.sample_linear, (img, idx.astype(np.float32), lo, n,
+                                                          0.0, out)
+    yield "lo of 2", ValueError, K.sample_linear, (img, idx, lo[:2], n, 0.0, out)
+    yield "lo beyond any grid", ValueError, K.sample_linear, (img, idx, np.array([-2 ** 63, 0, 0]),
+                                                              n, 0.0, out)
+    yield "int32 sizes", TypeError, K.sample_linear, (img, idx, lo, n.astype(np.int32), 0.0, out)
+    yield "read-only out", ValueError, K.sample_linear, (img, idx, lo, n, 0.0, _read_only(4))
+    yield "region short of the points", IndexError, K.sample_linear, (img[:1], idx, lo, n, 0.0,
+                                                                      out)
+    yield "region after the points", IndexError, K.sample_nearest, (img, idx, lo + 2, n + 2,
+                                                                    img[0, 0, 0], out)
+    yield "nearest out of another type", TypeError, K.sample_nearest, (
+        img, idx, lo, n, img[0, 0, 0], np.empty(4, np.float32))
+    yield "nearest background of another type", TypeError, K.sample_nearest, (
+        img.astype(np.int16), idx, lo, n, np.float64(0), np.empty(4, np.int16))
+    yield "cubic of int16", TypeError, K.sample_cubic, (img.astype(np.int16), idx, lo, n, 0.0,
+                                                        out)
+    yield "cubic support beyond the coefficients", IndexError, K.sample_cubic, (
+        img[:3, :3, :3].copy(), idx, lo, n, 0.0, out)
+    yield "field of 2 components", ValueError, K.field_map, (vec[..., :2], p, inv, origin,
+                                                             offset, size, np.empty((4, 3)))
+    yield "empty window", ValueError, K.field_map, (vec[:0], p, inv, origin, offset, size,
+                                                    np.empty((4, 3)))
+    yield "int field", TypeError, K.field_map, (vec.astype(np.int32), p, inv, origin, offset,
+                                                size, np.empty((4, 3)))
+    yield "inverse of 2x3", ValueError, K.field_map, (vec, p, inv[:2], origin, offset, size,
+                                                    np.empty((4, 3)))
+    yield "tiles of another count", ValueError, K.tile_range, (vec, 2, np.empty((1, 2, 2, 3)),
+                                                               np.empty((2, 2, 2, 3)))
+    yield "tile 0", ValueError, K.tile_range, (vec, 0, np.empty((2, 2, 2, 3)),
+                                               np.empty((2, 2, 2, 3)))
+    yield "planes of two types", ValueError, K.interleave, (
+        img, img, img.astype(np.float32), np.empty(img.shape + (3,)))
+    yield "B-spline of 2 components", ValueError, K.bspline_cubic, (
+        vec[..., :2].copy(), p, np.empty((4, 3)))
+    yield "affine 3x2", ValueError, K.affine, (p, inv[:, :2], origin, np.empty((4, 3)))
+
+
+def _read_only(n):
+    a = np.empty(n)
+    a.setflags(write=False)
+    return a
+
+
+@pytest.mark.parametrize("what, error, kernel, args", list(_wrong_calls()),
+                         ids=[c[0] for c in _wrong_calls()])
+def test_kernels_refuse_wrong_calls(what, error, kernel, args):
+    """A call with a wrong type, shape, layout or region is an exception, not a stray access."""
+    with pytest.raises(error):
+        kernel(*args)
+
+
+@pytest.mark.parametrize("kernel, args, out", [
+    (K.sample_linear, lambda o: (*_sample_args(points=5), 0.0, o), (8,)),
+    (K.sample_nearest, lambda o: (*_sample_args(points=5), np.float64(0), o), (8,)),
+    (K.sample_cubic, lambda o: (*_sample_args(points=5), 0.0, o), (8,)),
+    (K.field_map, lambda o: (*_field_args(points=5), o), (8, 3)),
+    (K.affine, lambda o: (np.ones((5, 3)), np.eye(3), np.zeros(3), o), (8, 3)),
+    (K.bspline_cubic, lambda o: (np.zeros((5, 5, 5, 3)), np.ones((5, 3)), o), (8, 3)),
+    (K.grid_points, lambda o: (np.zeros(3, np.int64), np.array([5, 1, 1]), np.eye(3),
+                               np.zeros(3), o), (8, 3)),
+], ids=["linear", "nearest", "cubic", "field_map", "affine", "bspline", "grid_points"])
+def test_kernels_refuse_a_short_output_and_write_nothing(kernel, args, out):
+    """Five points into room for four: refused, and the memory past the four is untouched."""
+    guard = np.full(out, 7.0)
+    with pytest.raises(ValueError, match="5 points but room for 4"):
+        kernel(*args(guard[:4]))
+    assert np.all(guard == 7.0)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int16, np.float32, np.float64])
+def test_sample_linear_is_map_coordinates_inside_the_buffer(dtype):
+    """Trilinear samples of a region against scipy's ``map_coordinates(order=1)`` of the whole.
+
+    Inside the buffer ``[-0.5, n - 0.5)`` ITK clamps the neighbours beyond the edges, as
+    scipy's ``mode="nearest"``; outside, the background.
+    """
+    from scipy.ndimage import map_coordinates
+
+    rng = np.random.default_rng(5)
+    whole = rng.integers(0, 200, (7, 6, 9)).astype(dtype)
+    n = np.array(whole.shape[::-1], np.int64)
+    idx = rng.uniform(-1.0, n, (4000, 3))
+    idx[:20] = n - 0.5 - 1e-9  # (the last half voxel: clamped)
+    idx[20:40] = -0.5
+    idx = np.ascontiguousarray(idx[np.floor(idx[:, 1]) >= 1])  # (none reads the first row)
+    got = np.empty(len(idx))
+    K.sample_linear(np.ascontiguousarray(whole[:, 1:]), idx, np.array([0, 1, 0], np.int64), n,
+                    -5.0, got)
+    inside = np.all((idx >= -0.5) & (idx < n - 0.5), axis=1)
+    expect = map_coordinates(whole.astype(float), idx[inside, ::-1].T, order=1, mode="nearest")
+    assert inside.sum() > 1000 and (~inside).sum() > 100
+    np.testing.assert_allclose(got[inside], expect, rtol=0, atol=1e-9)
+    assert np.all(got[~inside] == -5.0)
+
+
+def test_sample_nearest_rounds_half_up_and_clamps_to_the_buffer():
+    """ITK's nearest: ``k + 0.5`` samples ``k + 1``; ``[-0.5, 0)`` and ``[n - 1, n - 0.5)``
+    the edge samples; ``n - 0.5`` and beyond, the background."""
+    img = np.arange(4, dtype=np.int16).reshape(1, 1, 4) * 10
+    x = np.array([-0.5, -0.2, 0.5, 1.5, 2.49, 2.5, 3.4, np.nextafter(3.5, 0), 3.5, -0.51])
+    idx = np.ascontiguousarray(np.stack([x, np.zeros_like(x), np.zeros_like(x)], -1))
+    out = np.empty(len(x), np.int16)
+    K.sample_nearest(img, idx, np.zeros(3, np.int64), np.array([4, 1, 1]), np.int16(-1), out)
+    assert out.tolist() == [0, 0, 10, 20, 20, 30, 30, 30, -1, -1]
+
+
+def test_field_map_is_map_coordinates_and_windows_map_as_the_whole():
+    """``p + u(p)`` against scipy per component, points outside unmoved, NaN reported; a window
+    of the vectors maps its points as the whole field does (the same bits)."""
+    from scipy.ndimage import map_coordinates
+
+    rng = np.random.default_rng(6)
+    vec = rng.normal(0, 2, (6, 7, 8, 3)).astype(np.float32)
+    n = np.array([8, 7, 6], np.int64)
+    mat = np.diag([1.5, 0.8, 1.2])
+    origin = np.array([3.0, -2.0, 1.0])
+    idx = rng.uniform(-1.5, n + 0.5, (3000, 3))
+    p = np.ascontiguousarray(idx @ mat.T + origin)
+    idx = (p - origin) @ np.linalg.inv(mat).T  # (the kernel's own indices, nearly)
+    out = np.empty_like(p)
+    args = (p, np.linalg.inv(mat), origin)
+    assert K.field_map(vec, *args, np.zeros(3, np.int64), n, out) == -1
+    inside = np.all((idx >= -0.5 + 1e-9) & (idx < n - 0.5 - 1e-9), axis=1)
+    u = np.stack([map_coordinates(vec[..., c].astype(float), idx[inside, ::-1].T, order=1,
+                                  mode="nearest") for c in range(3)], -1)
+    np.testing.assert_allclose(out[inside] - p[inside], u, rtol=0, atol=1e-9)
+    outside = np.all((idx < -0.5 - 1e-9) | (idx >= n - 0.5 + 1e-9), axis=1)
+    assert outside.any() and np.array_equal(out[outside], p[outside])
+    # a window covering the points of a box maps them as the whole
+    box = np.all((idx >= 1.2) & (idx < [5.0, 4.0, 3.0]), axis=1)
+    q = np.ascontiguousarray(p[box])
+    win, whole = np.empty_like(q), np.empty_like(q)
+    K.field_map(vec, q, *args[1:], np.zeros(3, np.int64), n, whole)
+    K.field_map(vec[1:5, 1:6, 1:7], q, *args[1:], np.ones(3, np.int64), n, win)
+    assert len(q) > 50 and np.array_equal(win.view(np.uint64), whole.view(np.uint64))
+    vec[2, 3, 4] = np.nan  # (the points it neighbours: NaN, the first one reported)
+    reach = np.flatnonzero(np.all(np.abs(idx - [4, 3, 2]) < 1, axis=1))
+    assert K.field_map(vec, *args, np.zeros(3, np.int64), n, out) == reach[0]
+    assert np.isnan(out[reach]).all() and np.isfinite(np.delete(out, reach, 0)).all()
+
+
+def test_apply_imports_no_numba(tmp_path):
+    """`volwarp apply` through an affine, a displacement field and a B-spline (each
+    interpolation) loads no numba: its kernels are C (numba's start-up was half the run)."""
+    from volwarp_cli.io import write_volume
+
+    rng = np.random.default_rng(2)
+    write_volume(Volume(rng.normal(100, 20, (12, 13, 14)).astype(np.float32)),
+                 tmp_path / "in.nrrd")
+    a = sitk.AffineTransform(3)
+    a.SetMatrix([1.02, 0.05, 0.0, -0.03, 0.97, 0.04, 0.02, 0.0, 1.05])
+    a.SetTranslation([0.5, -0.3, 0.2])
+    sitk.WriteTransform(a, str(tmp_path / "a.tfm"))
+    field = sitk.GetImageFromArray(rng.normal(0, 0.5, (12, 13, 14, 3)), isVector=True)
+    sitk.WriteImage(sitk.Cast(field, sitk.sitkVectorFloat32), str(tmp_path / "f.nii.gz"))
+    b = sitk.BSplineTransformInitializer(sitk.Image([14, 13, 12], sitk.sitkFloat32), [3, 3, 3])
+    b.SetParameters(rng.normal(0, 0.3, len(b.GetParameters())).tolist())
+    sitk.WriteTransform(b, str(tmp_path / "b.tfm"))
+    code = textwrap.dedent("""
+        import sys
+        from volwarp_cli.cli.main import main
+        for i in ("linear", "nearest", "bspline"):
+            args = ["apply", "in.nrrd", "-o", f"out_{i}.nrrd", "-t", "f.nii.gz", "-t",
+                    "a.tfm", "-t", "b.tfm", "--interpolation", i]
+            assert main(args) == 0, i
+        assert "numba" not in sys.modules
+    """)
+    done = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert len(list(tmp_path.glob("out_*.nrrd"))) == 3

@@ -114,8 +114,6 @@ class ApplyOperation(Operation):
         to_index = index_affine(in_grid).inverse()
         ops = [index_affine(grid)] + list(chain.steps) + [to_index]
         self.ops = Chain(ops).simplified()
-        #: one affine from output to input indices
-        self.linear = len(self.ops) == 1
         #: fields read by windows, block by block (larger than memory)
         self.windowed = any(_windowed(op) for op in self.ops)
         self.n_xyz = np.array(in_grid.shape_xyz, dtype=np.int64)
@@ -259,14 +257,14 @@ class ApplyOperation(Operation):
 
         ``ops``: the block's (:meth:`_local_ops`; default the whole's).
         """
-        from .transforms import _kernels
+        from .transforms._applykernels import grid_points
 
         ops = self.ops if ops is None else ops
         first = ops[0]
         lo, hi = part.xyz()
         p = np.empty((part.size, 3))
-        _kernels.grid_points(np.array(lo, np.int64), np.array(hi, np.int64), first.matrix,
-                             first.offset, p)
+        grid_points(np.array(lo, np.int64), np.array(hi, np.int64), first.matrix, first.offset,
+                    p)
         for step in ops[1:]:
             p = step.map(p)
         return p
@@ -353,46 +351,26 @@ class ApplyOperation(Operation):
 
     def _sample(self, data: np.ndarray, coords: np.ndarray, lo_xyz: np.ndarray) -> np.ndarray:
         from .samples import cast_samples
-        from .transforms import _kernels
+        from .transforms import _applykernels as kernels
 
         n = self.n_xyz
         if self.interpolation == "nearest":
             res = np.empty(len(coords), dtype=data.dtype)
-            _kernels.sample_nearest(data, coords, lo_xyz, n, self._background_as(data.dtype),
-                                    res)
+            kernels.sample_nearest(data, coords, lo_xyz, n, self._background_as(data.dtype), res)
             return res if res.dtype == self.dtype else cast_samples(res, self.dtype)
         res = np.empty(len(coords))
-        kernel = _kernels.sample_linear if self.interpolation == "linear" else \
-            _kernels.sample_cubic
+        kernel = kernels.sample_linear if self.interpolation == "linear" else \
+            kernels.sample_cubic
         kernel(data, coords, lo_xyz, n, self.background, res)
         return cast_samples(res, self.dtype, what="the resampled volume")
 
-    def prepare(self) -> None:
-        """The kernels compiled (or loaded from numba's cache) once, before any block."""
-        self.load()
-
     def load(self) -> None:
-        """The kernels this resampling runs, on a tiny case: the budget counts what they load."""
-        from .transforms import _kernels
+        """What the resampling loads, so the budget counts it: scipy's filters for bspline.
 
-        pts = np.zeros((1, 3))
-        lo, n = np.zeros(3, np.int64), np.full(3, 2, np.int64)
-        if self.interpolation == "nearest":
-            one = np.zeros((2, 2, 2), dtype=self.in_dtype)
-            _kernels.sample_nearest(one, pts, lo, n, one[0, 0, 0], np.empty(1, self.in_dtype))
-        elif self.interpolation == "linear":
-            one = np.zeros((2, 2, 2), dtype=self.in_dtype)
-            _kernels.sample_linear(one, pts, lo, n, 0.0, np.empty(1))
-        else:
-            _kernels.sample_cubic(np.zeros((6, 6, 6)), pts, lo - CUBIC_PAD, n, 0.0, np.empty(1))
-        _kernels.grid_points(lo, lo + 1, np.eye(3), np.zeros(3), np.empty((1, 3)))
-        _kernels.affine(pts, np.eye(3), np.zeros(3), np.empty((1, 3)))
-        if not self.linear:
-            for step in self.chain.steps:  # (the fields' own types and layouts)
-                if _windowed(step):
-                    step.window(pts[0], pts[0]).map(pts)
-                else:
-                    step.map(pts)
+        (The kernels are compiled C, loaded with the module: nothing to run.)
+        """
+        if self.interpolation == "bspline":
+            import scipy.ndimage  # noqa: F401 - 25 MiB once imported
 
 
 def _windowed(op) -> bool:

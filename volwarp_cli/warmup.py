@@ -230,16 +230,11 @@ def command_lines(p: dict, out: str, chunked: bool) -> list[list[str]]:
              "--sheet", o("sheet.png"), "--render-size", "48x48", *t],
             ["morph", "--spec", p["morph_minnorm"], "-o", o("g_{i:02d}.nrrd"), *t],
         ]
-        if "apply" in COMMANDS:  # other tools' transforms: the field and the ITK B-spline
+        if "apply" in COMMANDS:  # (its kernels are C: the mesh it moves takes the normals')
             runs += [
-                *[["apply", p["blob"], "-o", o(f"a{i}.nrrd"), "-t", o("disp.nrrd"),
-                   "--interpolation", i, *t] for i in ("linear", "nearest", "bspline")],
                 ["apply", p["blob"], "-o", o("at.nrrd"), "-t", o("disp.nrrd"),
                  "-t", p["affine"], "--points-in", p["points"], "--points-to", o("ap.csv"),
                  "--mesh-in", o("blob.ply"), "--mesh-to", o("am.ply"), *t],
-                ["apply", p["labels"], "-o", o("al.nrrd"), "-t", o("disp.nrrd"), "--labels",
-                 *t],
-                ["apply", p["blob"], "-o", o("a64.nrrd"), "-t", p["field64"], *t],
             ]
     if chunked:
         c = ["--chunked", "--block", "8", "--threads", "2"]
@@ -262,11 +257,6 @@ def command_lines(p: dict, out: str, chunked: bool) -> list[list[str]]:
              "--render", o("cs.png"), "--render-size", "48x32", *c],
             ["morph", "--spec", p["morph_iso"], "-o", o("cf_{i:02d}.nrrd"), *c],
         ]
-        if "apply" in COMMANDS:
-            runs += [["apply", p["blob"], "-o", o("ca.nrrd"), "-t", o("disp.nrrd"), *c],
-                     ["apply", p["blob"], "-o", o("ca64.nrrd"), "-t", p["field64"], *c],
-                     ["apply", p["labels"], "-o", o("cal.nrrd"), "-t", o("disp.nrrd"),
-                      "--labels", *c]]
     return runs
 
 

@@ -7,7 +7,7 @@ Modules:
 - :mod:`.itk`: ITK text ``.tfm``/``.txt``, HDF5 ``.h5``, MATLAB v4 ``.mat``;
 - :mod:`.fields`: displacement-field images (NIfTI, NRRD, MetaImage);
 - :mod:`.elastix`: elastix ``TransformParameters`` files and their initial transforms;
-- :mod:`._kernels`: the numba sampling kernels (fields, B-splines, images).
+- :mod:`._applykernels`: the sampling kernels, in C (fields, B-splines, images).
 
 :func:`read_chain` reads ``-t`` arguments in antsApplyTransforms' order: the
 transforms act on an output point in the order listed (``-t A -t B``: the

@@ -206,7 +206,7 @@ def _interleave(planes, out: np.ndarray, nf) -> None:
     each touches every page); else numpy's.
     """
     if not nf.scaled and all(p.dtype == out.dtype and p.dtype.isnative for p in planes):
-        from ._kernels import interleave
+        from ._applykernels import interleave
 
         interleave(planes[0], planes[1], planes[2], out)
         return

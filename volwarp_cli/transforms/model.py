@@ -48,10 +48,10 @@ def _affine(p: np.ndarray, m: np.ndarray, o: np.ndarray) -> np.ndarray:
     p = np.asarray(p, dtype=np.float64)
     if len(p) < 4096:
         return p @ np.asarray(m, float).T + o
-    from . import _kernels
+    from ._applykernels import affine
 
-    out = np.empty_like(p)
-    _kernels.affine(np.ascontiguousarray(p), np.asarray(m, float), np.asarray(o, float), out)
+    out = np.empty(p.shape)  # (C order, as the kernel writes)
+    affine(np.ascontiguousarray(p), np.asarray(m, float), np.asarray(o, float), out)
     return out
 
 
@@ -222,12 +222,11 @@ class DisplacementField:
 
     def _map_into(self, field: DisplacementField, p: np.ndarray, out: np.ndarray) -> int:
         """``field`` (this one or a window of it) maps ``p`` into ``out``: the first non-finite, or -1."""
-        from . import _kernels
+        from ._applykernels import field_map
 
-        return int(_kernels.field_map(field.vectors, p, self.frame.inverse_matrix,
-                                      np.asarray(self.frame.origin, float),
-                                      np.asarray(field.offset, np.int64),
-                                      np.asarray(self.frame.size, np.int64), out))
+        return field_map(field.vectors, p, self.frame.inverse_matrix,
+                         np.asarray(self.frame.origin, float), np.asarray(field.offset, np.int64),
+                         np.asarray(self.frame.size, np.int64), out)
 
     def _map_by_cells(self, p: np.ndarray, out: np.ndarray) -> int:
         """:meth:`map` of points spread over a field read by windows: a window per cell of points.
@@ -402,13 +401,13 @@ def tile_range(vectors: np.ndarray, tile: int):
     (A folded field's holes are NaN; a tile of NaN only has NaN extremes.)
     """
     from .. import parallel
-    from . import _kernels
+    from ._applykernels import tile_range as kernel
 
     shape = tuple(-(-n // tile) for n in vectors.shape[:3]) + (3,)
     tmin, tmax = np.full(shape, np.nan), np.full(shape, np.nan)
 
     def rows(a, b):  # tile rows a..b (z) on one thread
-        _kernels.tile_range(vectors[a * tile:b * tile], tile, tmin[a:b], tmax[a:b])
+        kernel(vectors[a * tile:b * tile], tile, tmin[a:b], tmax[a:b])
 
     parallel.run_ranges(rows, shape[0])
     return tmin, tmax
@@ -442,12 +441,11 @@ class BSplineGrid:
 
     def displacement(self, p: np.ndarray) -> np.ndarray:
         """The displacement at points ``p`` (N, 3), float64."""
-        from . import _kernels
+        from ._applykernels import bspline_cubic
 
         idx = self.frame.to_index(p)
         out = np.empty_like(idx)
-        _kernels.bspline_cubic(np.ascontiguousarray(self.coefficients, dtype=np.float64), idx,
-                               out)
+        bspline_cubic(np.ascontiguousarray(self.coefficients, dtype=np.float64), idx, out)
         return out
 
     def map(self, p: np.ndarray) -> np.ndarray:
