@@ -294,6 +294,38 @@ def test_points_spread_over_a_lazy_field_read_by_cells(tmp_path, monkeypatch):
             np.testing.assert_array_equal(got, whole)
 
 
+def test_points_inverted_through_a_lazy_field_read_once_per_cell(tmp_path, monkeypatch):
+    """Newton's inverse through a field read by windows: its cells read once, not per iteration.
+
+    The points (mesh vertices, landmarks) go the other way than images: each
+    iteration maps them several times. With their common window too large,
+    each cell of points is solved through its own window, read once; the
+    points solved are those the field in memory gives.
+    """
+    from volwarp_cli.transforms import model, read_chain
+
+    _field(tmp_path / "f.nii", shape=(48, 40, 44))
+    pts = _points(600) * 2.0  # (over the whole 48x40x44 field, some off it, one NaN)
+    whole = read_chain([str(tmp_path / "f.nii")])
+    want = whole.invert_points(pts)
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    monkeypatch.setattr(model, "WINDOW_BYTES", 1 << 20)  # (the whole field: 0.9 MB x 2)
+    chain = read_chain([str(tmp_path / "f.nii")])
+    field = chain.steps[0]
+    assert field.vectors is None
+    field._tiles()  # (the field's reach: read once, slab by slab, before the count)
+    reads = []
+    real = field.source.read
+    monkeypatch.setattr(field.source, "read", lambda lo, hi: reads.append(1) or real(lo, hi))
+    got = model._solve(field, pts)
+    cells = {tuple(c) for c in np.floor(field.frame.to_index(pts[:-1]) / model.TILE)}
+    assert 1 < len(reads) <= len(cells)  # (one window per cell of points on the field)
+    np.testing.assert_allclose(got, want.points, rtol=0, atol=1e-9, equal_nan=True)
+    lazy = chain.invert_points(pts)  # (the residuals: the whole chain's map of the solution)
+    assert lazy.unsolved.tolist() == want.unsolved.tolist() and len(want.unsolved) < 40
+    np.testing.assert_allclose(lazy.residual, want.residual, rtol=0, atol=1e-9, equal_nan=True)
+
+
 def test_apply_through_a_gz_field_by_scratch_equals_whole(run, tmp_path, monkeypatch,
                                                           inflations):
     """`volwarp apply` through a .nii.gz field copied to scratch and read by windows: same bytes."""

@@ -235,10 +235,7 @@ class DisplacementField:
         those inside go a :data:`TILE`-voxel cell at a time, each cell's window
         its points' index box grown by one voxel (as :meth:`_window_box`).
         """
-        n = np.asarray(self.frame.size, np.int64)
-        idx = self.frame.to_index(p)
-        with np.errstate(invalid="ignore"):  # (NaN points: outside)
-            inside = np.all((idx >= -0.5 - 1e-6) & (idx < n - 0.5 + 1e-6), axis=1)
+        idx, inside = self._inside(p)
         first = -1
         rest = np.flatnonzero(~inside)
         if rest.size:  # (the kernel finds them outside and reads nothing: any window)
@@ -247,14 +244,7 @@ class DisplacementField:
             bad = self._map_into(one, p[rest], part)
             out[rest] = part
             first = int(rest[bad]) if bad >= 0 else -1
-        pick_in = np.flatnonzero(inside)
-        cells = -(-n // TILE)
-        cell = np.clip(np.floor(idx[pick_in] / TILE), 0, cells - 1).astype(np.int64)
-        key = (cell[:, 2] * cells[1] + cell[:, 1]) * cells[0] + cell[:, 0]
-        order = pick_in[np.argsort(key, kind="stable")]
-        starts = np.flatnonzero(np.diff(np.sort(key, kind="stable"), prepend=-1))
-        for a, b in zip(starts, [*starts[1:], len(order)], strict=True):
-            pick = order[a:b]
+        for pick in self._cells_of(idx, np.flatnonzero(inside)):
             window = self._index_window(idx[pick].min(axis=0), idx[pick].max(axis=0))
             part = np.empty((len(pick), 3))
             bad = self._map_into(self._window_at(*window), p[pick], part)
@@ -262,6 +252,23 @@ class DisplacementField:
             if bad >= 0 and (first < 0 or pick[bad] < first):
                 first = int(pick[bad])
         return first
+
+    def _inside(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The continuous indices (x, y, z) of points ``p`` and whether each is on the field."""
+        n = np.asarray(self.frame.size, np.int64)
+        idx = self.frame.to_index(p)
+        with np.errstate(invalid="ignore"):  # (NaN points: outside)
+            inside = np.all((idx >= -0.5 - 1e-6) & (idx < n - 0.5 + 1e-6), axis=1)
+        return idx, inside
+
+    def _cells_of(self, idx: np.ndarray, pick: np.ndarray) -> list[np.ndarray]:
+        """The points ``pick`` (on the field; ``idx`` their indices) grouped by :data:`TILE` cell."""
+        cells = -(-np.asarray(self.frame.size, np.int64) // TILE)
+        cell = np.clip(np.floor(idx[pick] / TILE), 0, cells - 1).astype(np.int64)
+        key = (cell[:, 2] * cells[1] + cell[:, 1]) * cells[0] + cell[:, 0]
+        order = pick[np.argsort(key, kind="stable")]
+        starts = np.flatnonzero(np.diff(np.sort(key, kind="stable"), prepend=-1))
+        return [order[a:b] for a, b in zip(starts, [*starts[1:], len(order)], strict=True)]
 
     def _warn_not_finite(self, point) -> None:
         """Say, once per field and run, that points reach its NaN (or infinite) vectors.
@@ -537,17 +544,40 @@ class Chain:
 def _solve(step, target: np.ndarray) -> np.ndarray:
     """``q`` with ``q + u(q) = target`` for a non-linear ``step`` (Newton, vectorised).
 
+    A field read by windows is read once for the solve: one window for all
+    points, or, where that would exceed :data:`WINDOW_BYTES`, one per
+    :data:`TILE` cell of points (each iteration maps the points several
+    times: through the field itself, each map would read their cells again).
+    """
+    if getattr(step, "vectors", 0) is not None:
+        return _newton(step, target)
+    tmin, tmax = step._tiles()  # how far a vector reaches: the windows' margin
+    reach = float(np.nanmax(np.abs(np.concatenate([tmin, tmax]))) if tmin.size else 0.0)
+    grow = reach + 1.0
+
+    def windowed(points):
+        lo, hi = _bounds(points)
+        if step.window_bytes(lo - grow, hi + grow) <= WINDOW_BYTES:
+            return step.window(lo - grow, hi + grow)
+        return step
+
+    whole = windowed(target)
+    if whole is not step or len(target) == 0:
+        return _newton(whole, target)
+    q = target.copy()  # (points off the field: not moved, their own solution)
+    idx, inside = step._inside(target)
+    for pick in step._cells_of(idx, np.flatnonzero(inside)):
+        q[pick] = _newton(windowed(target[pick]), target[pick])
+    return q
+
+
+def _newton(step, target: np.ndarray) -> np.ndarray:
+    """:func:`_solve`'s Newton iterations through ``step`` (a field: in memory or a window).
+
     The Jacobian by central differences; a step that does not lower the
     residual is halved (up to 6 times: a field's cell edges and its border
     make the Jacobian jump).
     """
-    if getattr(step, "vectors", 0) is None:  # a field read by windows: one for all points
-        tmin, tmax = step._tiles()  # (where it is small enough, else map's cells each time)
-        reach = float(np.nanmax(np.abs(np.concatenate([tmin, tmax]))) if tmin.size else 0.0)
-        lo, hi = _bounds(target)
-        lo, hi = lo - reach - 1.0, hi + reach + 1.0
-        if step.window_bytes(lo, hi) <= WINDOW_BYTES:
-            step = step.window(lo, hi)
     q = target - step.displacement(target)
     h = 1e-4
     active = np.arange(len(target))
