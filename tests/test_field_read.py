@@ -63,3 +63,100 @@ def test_an_integer_field_is_budgeted_as_the_float32_vectors_it_becomes(tmp_path
         read_field(str(path), "nifti")
     with use_memory_limit(process_rss() + 8 * file_bytes):
         assert read_field(str(path), "nifti").vectors.dtype == np.float32
+
+
+def _vector_field(path, kind: str) -> np.ndarray:
+    """A smooth float32 field written as ``kind`` says; its LPS vectors (z, y, x, 3)."""
+    import SimpleITK as sitk
+
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    nz, ny, nx = 11, 13, 17
+    z, y, x = np.mgrid[:nz, :ny, :nx].astype(float)
+    lps = np.stack([1.5 * np.sin(z / 4), np.cos(x / 5) - 0.2, 0.8 * np.sin(y / 3)],
+                   -1).astype(np.float32)
+    if kind.startswith("itk"):  # SimpleITK's writers: interleaved vectors, LPS
+        img = sitk.GetImageFromArray(lps, isVector=True)
+        img.SetOrigin([-3.0, 2.0, 1.5])
+        img.SetSpacing([1.1, 1.0, 1.3])
+        sitk.WriteImage(img, str(path), useCompression=kind.endswith("gz"))
+    elif kind == "ras":  # pynrrd, a RAS frame: the file's x and y components are LPS's negated
+        import nrrd
+
+        ras = lps * np.float32([-1, -1, 1])
+        nrrd.write(str(path), ras, index_order="C", header={
+            "space": "right-anterior-superior", "kinds": ["vector", "domain", "domain", "domain"],
+            "space directions": np.array([[np.nan] * 3, [-1.0, 0, 0], [0, -1.0, 0], [0, 0, 1.0]]),
+            "space origin": np.array([3.0, -2.0, 1.5])})
+    else:  # components as the last (slowest) axis: three volumes one after the other
+        write_volume(Volume(lps[..., 0]), path.with_suffix(".tmp.nrrd"))
+        head = path.with_suffix(".tmp.nrrd").read_bytes().split(b"\n\n", 1)[0].decode()
+        lines = [ln for ln in head.splitlines() if not ln.startswith(("data file", "encoding"))]
+        lines = [("dimension: 4" if ln.startswith("dimension:") else
+                  f"sizes: {nx} {ny} {nz} 3" if ln.startswith("sizes:") else
+                  ln.replace(")\n", ")") + " none" if ln.startswith("space directions:") else
+                  "kinds: domain domain domain vector" if ln.startswith("kinds:") else ln)
+                 for ln in lines]
+        path.write_text("\n".join([*lines, "encoding: raw", "data file: planes.raw", ""]))
+        (path.parent / "planes.raw").write_bytes(np.moveaxis(lps, -1, 0).astype("<f4").tobytes())
+    return lps
+
+
+@pytest.mark.parametrize("kind,name", [("itk", "f.nrrd"), ("itk", "f.mha"), ("itk-gz", "f.nrrd"),
+                                       ("itk-gz", "f.mha"), ("ras", "f.nrrd"),
+                                       ("planar", "f.nhdr")])
+def test_nrrd_and_metaimage_fields_by_windows_are_the_whole(tmp_path, monkeypatch, kind, name):
+    """A NRRD or MetaImage field over its share of the budget is read by windows (issue 30).
+
+    Interleaved (ITK's writers, compressed ones through a scratch copy),
+    RAS (vectors turned to LPS window by window) and planar: the vectors
+    and the points' images are those read whole, and a window reads only its box.
+    """
+    from volwarp_cli import memory
+    from volwarp_cli.io.inputs import claim_output
+    from volwarp_cli.runscope import run_scope
+
+    lps = _vector_field(tmp_path / name, kind)
+    whole = read_field(str(tmp_path / name), "metaimage" if name.endswith("mha") else "nrrd")
+    assert whole.vectors is not None and np.array_equal(whole.vectors, lps)
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    with run_scope():
+        claim_output(tmp_path / "o.nrrd", "-o")  # (a compressed file's copy goes beside it)
+        lazy = read_field(str(tmp_path / name), "metaimage" if name.endswith("mha") else "nrrd")
+        assert lazy.vectors is None
+        nz, ny, nx = lps.shape[:3]
+        assert np.array_equal(lazy.source.read((0, 0, 0), (nz, ny, nx)), lps)
+        assert np.array_equal(lazy.source.read((2, 3, 4), (5, 9, 16)), lps[2:5, 3:9, 4:16])
+        pts = np.random.default_rng(1).uniform([-5, 0, 0], [22, 16, 16], (300, 3))
+        np.testing.assert_array_equal(lazy.map(pts), whole.map(pts))
+        for a, b in zip(vars(lazy.frame).values(), vars(whole.frame).values(), strict=True):
+            assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("name", ["f.nrrd", "f.mha"])
+def test_apply_through_a_nrrd_field_by_windows_writes_the_same_bytes(run, tmp_path, monkeypatch,
+                                                                      name):
+    """`volwarp apply` by blocks through a NRRD/MetaImage field read by windows: the same file."""
+    from volwarp_cli import memory
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    _vector_field(tmp_path / name, "itk-gz")
+    z, y, x = np.mgrid[:10, :10, :14].astype(np.float32)  # (inside the field's extent)
+    write_volume(Volume(np.sin(x / 3) * np.cos(y / 4) + z / 7, origin=(-2.0, 3.0, 2.5)),
+                 tmp_path / "in.nrrd")
+    args = ["apply", tmp_path / "in.nrrd", "-t", tmp_path / name]
+    assert run(*args, "-o", tmp_path / "whole.nrrd").code == 0
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    opened = []
+    from volwarp_cli.transforms import fields
+
+    real = fields.LazyField.__init__
+    monkeypatch.setattr(fields.LazyField, "__init__",
+                        lambda self, *a, **k: opened.append(1) or real(self, *a, **k))
+    res = run(*args, "-o", tmp_path / "windows.nrrd", "--chunked", "--block", "5,6,7")
+    assert res.code == 0, res.stderr
+    assert opened  # (read by windows, not whole)
+    assert (tmp_path / "windows.nrrd").read_bytes() == (tmp_path / "whole.nrrd").read_bytes()
+    assert not list(tmp_path.glob("*.scratch*"))  # (the compressed field's copy: removed)

@@ -256,7 +256,7 @@ def test_gz_field_by_windows_maps_as_whole(tmp_path, monkeypatch):
     with run_scope():
         claim_output(tmp_path / "o.nrrd", "-o")
         lazy = read_chain([str(tmp_path / "f.nii.gz")]).steps[0]
-        assert lazy.vectors is None and ".scratch" in lazy.source.components[0].path
+        assert lazy.vectors is None and ".scratch" in lazy.source.path
         got = lazy.map(pts)
         np.testing.assert_array_equal(got, expect)
     assert _scratch(tmp_path) == []

@@ -213,7 +213,8 @@ def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str, *,
 
 # -- NRRD -------------------------------------------------------------------------------
 
-def _nrrd(path: Path, copy: str):
+def _nrrd(path: Path, copy: str, *, vectors: bool = False):
+    """``(header, samples)`` of a 3-D NRRD; with ``vectors``, of a vector image too (below)."""
     from . import nrrd
     from .common import open_data_file
 
@@ -231,7 +232,17 @@ def _nrrd(path: Path, copy: str):
             sizes = [int(s) for s in fields["sizes"].split()]
         except ValueError:
             raise NotLazy("bad sizes") from None
-        if dim != 3 or len(sizes) != 3 or min(sizes) <= 0:
+        if len(sizes) != dim or min(sizes) <= 0:
+            raise NotLazy("bad sizes")
+        axis = None  # the components' axis of a vector image: first (interleaved) or last
+        if vectors and dim == 4:
+            try:
+                axis = nrrd._component_axis(fields, dim, sizes, where)
+            except FormatError:
+                raise NotLazy("not one component axis") from None
+            if axis not in (0, 3):
+                raise NotLazy("components neither interleaved nor in planes")
+        elif dim != 3:
             raise NotLazy("only 3-D files are mapped")
         type_name = fields["type"].lower()
         if type_name not in nrrd._TYPES:
@@ -267,14 +278,51 @@ def _nrrd(path: Path, copy: str):
     if encoding == "raw" and byteskip != -1 and size - start > nbytes:
         raise FormatError(f"{data_path}: file has {size - start} bytes of samples, expected "
                           f"{nbytes} (wrong sizes or type in the header?)")
-    shape = xyz_to_zyx(sizes)
+    spatial = [s for a, s in enumerate(sizes) if a != axis]
+    shape = xyz_to_zyx(spatial)
     header = make_header(where, shape, dtype, spacing=spacing, origin=origin,
                          direction=direction, space=space,
                          meta=_nrrd_meta(fields, keyvals, space, where))
+    count = 1 if axis is None else sizes[axis]
+    layout = _vector_layout(shape, count, planar=axis == 3)
     if encoding == "gzip":
-        return header, _inflated(data_path, nbytes, file_dtype, shape, where,
-                                 _stream_at(data_path, start, nbytes), copy)
-    return header, _memmap(data_path, file_dtype, start, shape, str(data_path))
+        samples = _inflated(data_path, nbytes, file_dtype, layout, where,
+                            _stream_at(data_path, start, nbytes), copy)
+    else:
+        samples = _memmap(data_path, file_dtype, start, layout, str(data_path))
+    return (header, samples, count, axis == 3) if vectors else (header, samples)
+
+
+def _vector_layout(shape_zyx, count: int, *, planar: bool) -> tuple:
+    """The 3-D shape a file's ``count`` samples a voxel are read as.
+
+    (z, y, x * count) where they are interleaved, (count * z, y, x) where each
+    component is a volume of its own.
+    """
+    nz, ny, nx = shape_zyx
+    return (count * nz, ny, nx) if planar else (nz, ny, nx * count)
+
+
+def open_vectors_lazy(path: str | os.PathLike):
+    """A NRRD or MetaImage vector image's samples read by box: ``(header, samples, n, planar)``.
+
+    ``header``: the grid's :class:`~volwarp_cli.volume.Header` (the file's
+    frame and key/values; samples of ``header.dtype``); ``samples``: the
+    file's samples (a :class:`.filearray.FileArray`, or a compressed file's
+    scratch copy) as the 3-D array of :func:`_vector_layout`, ``n`` a voxel,
+    ``planar`` whether they are one volume per component. Raises
+    :class:`NotLazy` where the file is read whole (a compressed one that
+    fits its share of the budget, data split over files, other layouts).
+    """
+    from . import volume_format
+
+    path = Path(path)
+    fmt = volume_format(path, reading=True)
+    if fmt == "nrrd":
+        return _nrrd(path, "inflate", vectors=True)
+    if fmt == "metaimage":
+        return _metaimage(path, "inflate", vectors=True)
+    raise NotLazy(f"{fmt} vector images are read whole")
 
 
 def _stream_at(data_path: Path, start: int, nbytes: int):
@@ -298,7 +346,8 @@ def _nrrd_meta(fields: dict, keyvals: dict, space, where: str) -> dict:
 
 # -- MetaImage ------------------------------------------------------------------------------
 
-def _metaimage(path: Path, copy: str):
+def _metaimage(path: Path, copy: str, *, vectors: bool = False):
+    """``(header, samples)`` of a 3-D MetaImage; with ``vectors``, of channels too (as _nrrd)."""
     from . import metaimage as mi
     from .common import open_data_file
 
@@ -316,7 +365,8 @@ def _metaimage(path: Path, copy: str):
         raise NotLazy("not an image")  # (read_volume says so)
     if mi._int(fields, "NDims", 0, where) != 3:
         raise NotLazy("only 3-D files are mapped")
-    if mi._int(fields, "ElementNumberOfChannels", 1, where) != 1:
+    count = mi._int(fields, "ElementNumberOfChannels", 1, where)
+    if count != 1 and not vectors or count < 1:
         raise NotLazy("several channels per voxel")
     if not mi._bool(fields, "BinaryData", True, where):
         raise NotLazy("ascii data is read whole")
@@ -331,7 +381,7 @@ def _metaimage(path: Path, copy: str):
     spacing, origin, direction = mi._geometry(fields, 3, where)
     header_size = mi._int(fields, "HeaderSize", 0, where)
     spec = fields["ElementDataFile"][1]
-    nbytes = voxel_count(sizes) * dtype.itemsize
+    nbytes = voxel_count(sizes) * count * dtype.itemsize
     if spec in ("LOCAL", "Local", "local"):
         data_path, start = path, header_end
     else:
@@ -354,10 +404,13 @@ def _metaimage(path: Path, copy: str):
     header = make_header(where, shape, dtype, spacing=spacing, origin=origin,
                          direction=direction, space="left-posterior-superior",
                          file_space="left-posterior-superior", meta=mi._meta(pairs, direction))
+    layout = _vector_layout(shape, count, planar=False)  # (channels: interleaved)
     if compressed:
-        return header, _inflated(data_path, nbytes, file_dtype, shape, where,
-                                 _stream_at(data_path, start, nbytes), copy)
-    return header, _memmap(data_path, file_dtype, start, shape, str(data_path))
+        samples = _inflated(data_path, nbytes, file_dtype, layout, where,
+                            _stream_at(data_path, start, nbytes), copy)
+    else:
+        samples = _memmap(data_path, file_dtype, start, layout, str(data_path))
+    return (header, samples, count, False) if vectors else (header, samples)
 
 
 # -- raw --------------------------------------------------------------------------------

@@ -722,6 +722,9 @@ def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
     file whose first, fastest axis holds them, in the order of ``component_names``.
     """
     path = Path(path)
+    if components is not None and (component_names is None
+                                   or len(component_names) != len(components)):
+        raise ValueError("write_nrrd: components need their names (the header's 4th axis)")
     encoding = "gzip" if compress else "raw"
     data = vol.data if components is None else np.stack(components, axis=-1)
     dtype = check_dtype(data.dtype, str(path))

@@ -15,13 +15,18 @@ own ``warp --displacement-to`` does:
   (:mod:`volwarp_cli.io.inflated`).
 - NRRD (``kinds: vector domain domain domain``) and MetaImage with three
   components: the vectors are in the file's ``space`` (a RAS file's are
-  turned to LPS).
+  turned to LPS). Larger than their share of the budget, float vectors
+  interleaved (a NRRD's first axis, MetaImage's channels) or in planes (a
+  NRRD's last axis) are read by windows too (a compressed file's from a
+  scratch copy).
 
 volwarp's ``--forward-field-to`` (``volwarp_field: forward``) moves points of
 the input, not the output grid's: refused here, with the field to use.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -56,30 +61,41 @@ def _frame(vol_geometry: dict, shape_zyx) -> GridFrame:
 
 
 class LazyField:
-    """A NIfTI field's vectors read by windows: three planes of samples in the file, by pread.
+    """A field's vectors read by windows from its file (or a compressed file's scratch copy).
 
+    ``samples``: the file's samples as a 3-D :class:`~volwarp_cli.io.filearray.FileArray`
+    read by pread: the three components in planes, one volume after the other
+    (``planar``: NIfTI's, a NRRD's last axis; shape (3 z, y, x)), or
+    interleaved (a NRRD's first axis, MetaImage's channels; shape (z, y, 3 x)).
+    ``signs``: the file frame's vectors to LPS (None: they are LPS).
     Picklable (file paths and offsets): a worker process reads its own
     windows. ``read(lo, hi)``: the (z, y, x, 3) vectors of the box ``[lo,
     hi)`` (z, y, x), interleaved.
     """
 
-    def __init__(self, path: str, dtype: np.dtype, offset: int, shape_zyx):
-        from ..io.filearray import FileArray
-
+    def __init__(self, samples, shape_zyx, *, planar: bool, signs=None):
         nz, ny, nx = shape_zyx
-        plane = nz * ny * nx * np.dtype(dtype).itemsize
+        self.samples, self.planar, self.signs = samples, planar, signs
         self.shape = (nz, ny, nx, 3)
-        self.dtype = np.dtype(dtype).newbyteorder("=")
-        self.components = [FileArray(path, dtype, offset + c * plane, shape_zyx)
-                           for c in range(3)]
+        self.dtype = np.dtype(samples.dtype).newbyteorder("=")
+
+    @property
+    def path(self) -> str:
+        """The file the vectors are read from."""
+        return self.samples.path
 
     def read(self, lo, hi) -> np.ndarray:
         """The vectors of box ``[lo, hi)`` (z, y, x)."""
-        box = tuple(slice(a, b) for a, b in zip(lo, hi, strict=True))
-        out = np.empty(tuple(b - a for a, b in zip(lo, hi, strict=True)) + (3,), self.dtype)
-        for c, comp in enumerate(self.components):
-            out[..., c] = comp[box]
-        return out
+        (z0, y0, x0), (z1, y1, x1) = lo, hi
+        if self.planar:
+            nz = self.shape[0]
+            out = np.empty((z1 - z0, y1 - y0, x1 - x0, 3), self.dtype)
+            for c in range(3):
+                out[..., c] = self.samples[c * nz + z0:c * nz + z1, y0:y1, x0:x1]
+        else:
+            out = self.samples[z0:z1, y0:y1, 3 * x0:3 * x1].reshape(z1 - z0, y1 - y0,
+                                                                     x1 - x0, 3)
+        return out if self.signs is None else to_lps(out, self.signs)
 
     def tile_range(self, tile: int):
         """Per-tile extremes (:func:`.model.tile_range`), read slab by slab of ``tile`` planes."""
@@ -89,6 +105,21 @@ class LazyField:
         parts = [tile_range(self.read((z, 0, 0), (min(z + tile, nz), ny, nx)), tile)
                  for z in range(0, nz, tile)]
         return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
+
+
+def to_lps(vectors: np.ndarray, signs) -> np.ndarray:
+    """Vectors of a file frame to LPS by its axes' signs (exact: a NaN stays in its component)."""
+    return vectors * np.asarray(signs, dtype=vectors.dtype)
+
+
+def frame_signs(file_space) -> np.ndarray | None:
+    """The signs taking a file frame's vectors to LPS; None where they are LPS already."""
+    from ..volume import frame_to_lps
+
+    matrix = frame_to_lps(file_space)
+    if matrix is None or np.array_equal(matrix, np.eye(3)):
+        return None
+    return np.diag(matrix).copy()  # (the frames are LPS's axes, signed)
 
 
 def _nifti(path: str):
@@ -153,21 +184,28 @@ def _lazy_field(nf, shape_zyx):
     memory check with its sizes and the disk's).
     """
     from ..io.common import note_input
+    from ..io.filearray import FileArray
     from ..io.inflated import inflated_array
     from ..io.nifti import gunzip_range_into
 
     if not nf.gzipped:
         note_input(nf.path)  # (an output is not renamed into place if it changed)
-        return LazyField(nf.path, nf.file_dtype, nf.offset, shape_zyx)
+        return LazyField(FileArray(nf.path, nf.file_dtype, nf.offset, _planes(shape_zyx)),
+                         shape_zyx, planar=True)
 
     def fill(sink):
         gunzip_range_into(nf.path, nf.offset, nf.data_bytes, nf.offset + nf.data_bytes,
                           nf.where, nf.layout(), sink)
 
-    nz, ny, nx = shape_zyx  # (the three planes, one after the other)
-    copy = inflated_array(nf.path, nf.data_bytes, nf.file_dtype, (3 * nz, ny, nx), nf.where,
+    copy = inflated_array(nf.path, nf.data_bytes, nf.file_dtype, _planes(shape_zyx), nf.where,
                           fill)
-    return LazyField(copy.path, nf.file_dtype, 0, shape_zyx)
+    return LazyField(copy, shape_zyx, planar=True)
+
+
+def _planes(shape_zyx) -> tuple:
+    """The 3-D shape of three components' volumes one after the other."""
+    nz, ny, nx = shape_zyx
+    return (3 * nz, ny, nx)
 
 
 class _ComponentSink:
@@ -222,9 +260,20 @@ def _scaled(samples: np.ndarray, nf) -> np.ndarray:
 
 
 def _components(path: str):
+    """A NRRD or MetaImage field: by windows where its vectors exceed their share of the budget."""
     from ..io import read_components
-    from ..volume import frame_to_lps
+    from ..io.lazy import NotLazy, open_vectors_lazy
+    from ..memory import read_by_box
 
+    try:
+        header, samples, n, planar = open_vectors_lazy(path)
+        held = samples is not None and math.prod(samples.shape) * header.dtype.itemsize
+        if n == 3 and header.dtype.kind == "f" and held and read_by_box(held):
+            source = LazyField(samples, header.shape, planar=planar,
+                               signs=frame_signs(header.file_space))
+            return _frame(_geometry_of(header), header.shape), source, dict(header.meta)
+    except NotLazy:
+        pass  # (read whole below, with the reader's own errors)
     try:
         first, vectors = read_components(path)
     except VolwarpError as exc:
@@ -236,8 +285,13 @@ def _components(path: str):
                            "a displacement field (3 components per voxel)")
     if vectors.dtype.kind != "f":
         vectors = vectors.astype(np.float32)
-    to_lps = frame_to_lps(first.file_space)
-    if to_lps is not None and not np.array_equal(to_lps, np.eye(3)):
-        vectors = vectors @ to_lps.T.astype(vectors.dtype)
-    geometry = {"origin": first.origin, "spacing": first.spacing, "direction": first.direction}
-    return _frame(geometry, first.data.shape), np.ascontiguousarray(vectors), dict(first.meta)
+    signs = frame_signs(first.file_space)
+    if signs is not None:
+        vectors = to_lps(vectors, signs)
+    return (_frame(_geometry_of(first), first.data.shape), np.ascontiguousarray(vectors),
+            dict(first.meta))
+
+
+def _geometry_of(placed) -> dict:
+    """A Volume's or Header's placement (LPS), as :func:`_frame` takes it."""
+    return {"origin": placed.origin, "spacing": placed.spacing, "direction": placed.direction}
