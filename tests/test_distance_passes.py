@@ -159,6 +159,8 @@ def test_the_c_passes_check_their_buffers():
         x_pass(mask, 1.0, out.astype(np.float64))
     with pytest.raises(TypeError, match="uint8"):
         x_pass(mask.astype(np.int16), 1.0, out)
+    with pytest.raises(TypeError, match="float32"):  # (the other byte order: not read as ours)
+        x_pass(mask, 1.0, out.astype(out.dtype.newbyteorder()))
     with pytest.raises(ValueError, match="shapes differ"):
         x_pass(mask[:, :, 1:], 1.0, out)
     with pytest.raises(ValueError, match="3 dimensions"):

@@ -160,3 +160,28 @@ def test_apply_through_a_nrrd_field_by_windows_writes_the_same_bytes(run, tmp_pa
     assert opened  # (read by windows, not whole)
     assert (tmp_path / "windows.nrrd").read_bytes() == (tmp_path / "whole.nrrd").read_bytes()
     assert not list(tmp_path.glob("*.scratch*"))  # (the compressed field's copy: removed)
+
+
+def test_an_integer_compressed_nrrd_field_is_read_whole_without_a_scratch_copy(tmp_path,
+                                                                               monkeypatch):
+    """Only float vectors are read by windows: an int16 gzip NRRD field is not inflated to disk
+    first (then read whole again); its vectors are the file's, as float32."""
+    import SimpleITK as sitk
+
+    from volwarp_cli import memory
+    from volwarp_cli.io import inflated
+    from volwarp_cli.io.inputs import claim_output
+    from volwarp_cli.runscope import run_scope
+
+    vec = (np.random.default_rng(0).normal(size=(12, 13, 14, 3)) * 10).astype(np.int16)
+    sitk.WriteImage(sitk.GetImageFromArray(vec, isVector=True), str(tmp_path / "i.nrrd"),
+                    useCompression=True)
+    copies = []
+    real = inflated.inflated_array
+    monkeypatch.setattr(inflated, "inflated_array", lambda *a, **k: copies.append(a) or real(*a, **k))
+    monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+    with run_scope():
+        claim_output(tmp_path / "o.nrrd", "-o")
+        field = read_field(str(tmp_path / "i.nrrd"), "nrrd")
+    assert copies == [] and field.vectors.dtype == np.float32
+    assert np.array_equal(field.vectors, vec.astype(np.float32))

@@ -33,14 +33,21 @@ typedef struct {
 
 #define AT(a, T, z, y, x) (*(T *)((a).p + (z) * (a).s[0] + (y) * (a).s[1] + (x) * (a).s[2]))
 
-/* A buffer of 3 dimensions, float32 ('f') or uint8 ('B'/'?'), with any strides. */
+/* A buffer of 3 dimensions, float32 ('f') or uint8 ('B'/'?') in the machine's byte order,
+ * with any strides. */
 static int get_grid(PyObject *o, Py_buffer *b, grid3 *g, int writable, char kind, const char *name)
 {
     if (PyObject_GetBuffer(o, b, PyBUF_STRIDES | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0)) < 0)
         return -1;
     const char *f = b->format ? b->format : "B";
-    char c = f[0] && strchr("@=<>!", f[0]) && f[1] ? f[1] : f[0];
-    int ok = kind == 'f' ? (c == 'f' && b->itemsize == 4) : ((c == 'B' || c == '?') && b->itemsize == 1);
+#if PY_LITTLE_ENDIAN
+    const char *native = "@=<";
+#else
+    const char *native = "@=>!";
+#endif
+    char c = f[0] && strchr(native, f[0]) ? f[1] : f[0]; /* (a swapped byte order: refused) */
+    int ok = (c == f[strlen(f) - 1]) &&
+             (kind == 'f' ? (c == 'f' && b->itemsize == 4) : ((c == 'B' || c == '?') && b->itemsize == 1));
     if (!ok) {
         PyErr_Format(PyExc_TypeError, "%s: expected %s samples, got '%s'", name,
                      kind == 'f' ? "float32" : "uint8", f);

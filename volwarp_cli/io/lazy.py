@@ -213,8 +213,11 @@ def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str, *,
 
 # -- NRRD -------------------------------------------------------------------------------
 
-def _nrrd(path: Path, copy: str, *, vectors: bool = False):
-    """``(header, samples)`` of a 3-D NRRD; with ``vectors``, of a vector image too (below)."""
+def _nrrd(path: Path, copy: str, *, vectors: tuple | None = None):
+    """``(header, samples)`` of a 3-D NRRD; of a vector image too with ``vectors``.
+
+    ``vectors``: ``(count, kinds)`` wanted (:func:`open_vectors_lazy`).
+    """
     from . import nrrd
     from .common import open_data_file
 
@@ -284,6 +287,7 @@ def _nrrd(path: Path, copy: str, *, vectors: bool = False):
                          direction=direction, space=space,
                          meta=_nrrd_meta(fields, keyvals, space, where))
     count = 1 if axis is None else sizes[axis]
+    _wanted(vectors, count, dtype)
     layout = _vector_layout(shape, count, planar=axis == 3)
     if encoding == "gzip":
         samples = _inflated(data_path, nbytes, file_dtype, layout, where,
@@ -303,26 +307,36 @@ def _vector_layout(shape_zyx, count: int, *, planar: bool) -> tuple:
     return (count * nz, ny, nx) if planar else (nz, ny, nx * count)
 
 
-def open_vectors_lazy(path: str | os.PathLike):
+def open_vectors_lazy(path: str | os.PathLike, *, count: int | None = None,
+                      kinds: str = "biuf"):
     """A NRRD or MetaImage vector image's samples read by box: ``(header, samples, n, planar)``.
 
     ``header``: the grid's :class:`~volwarp_cli.volume.Header` (the file's
     frame and key/values; samples of ``header.dtype``); ``samples``: the
     file's samples (a :class:`.filearray.FileArray`, or a compressed file's
     scratch copy) as the 3-D array of :func:`_vector_layout`, ``n`` a voxel,
-    ``planar`` whether they are one volume per component. Raises
-    :class:`NotLazy` where the file is read whole (a compressed one that
-    fits its share of the budget, data split over files, other layouts).
+    ``planar`` whether they are one volume per component. ``count``, ``kinds``:
+    the components a voxel and the sample kinds wanted (numpy's ``dtype.kind``).
+    Raises :class:`NotLazy` where the file is read whole (other vectors than
+    wanted, a compressed one that fits its share of the budget, data split
+    over files, other layouts), before any copy is made.
     """
     from . import volume_format
 
     path = Path(path)
     fmt = volume_format(path, reading=True)
+    want = (count, kinds)
     if fmt == "nrrd":
-        return _nrrd(path, "inflate", vectors=True)
+        return _nrrd(path, "inflate", vectors=want)
     if fmt == "metaimage":
-        return _metaimage(path, "inflate", vectors=True)
+        return _metaimage(path, "inflate", vectors=want)
     raise NotLazy(f"{fmt} vector images are read whole")
+
+
+def _wanted(vectors, count: int, dtype) -> None:
+    """Raise NotLazy unless the file holds the vectors wanted (before any inflating)."""
+    if vectors and (vectors[0] not in (None, count) or dtype.kind not in vectors[1]):
+        raise NotLazy(f"{count} {dtype} samples a voxel: read whole")
 
 
 def _stream_at(data_path: Path, start: int, nbytes: int):
@@ -346,7 +360,7 @@ def _nrrd_meta(fields: dict, keyvals: dict, space, where: str) -> dict:
 
 # -- MetaImage ------------------------------------------------------------------------------
 
-def _metaimage(path: Path, copy: str, *, vectors: bool = False):
+def _metaimage(path: Path, copy: str, *, vectors: tuple | None = None):
     """``(header, samples)`` of a 3-D MetaImage; with ``vectors``, of channels too (as _nrrd)."""
     from . import metaimage as mi
     from .common import open_data_file
@@ -380,6 +394,8 @@ def _metaimage(path: Path, copy: str, *, vectors: bool = False):
     file_dtype = dtype.newbyteorder(">" if msb else "<")
     spacing, origin, direction = mi._geometry(fields, 3, where)
     header_size = mi._int(fields, "HeaderSize", 0, where)
+    if header_size < -1:
+        raise NotLazy("a HeaderSize below -1")  # (read_volume says so)
     spec = fields["ElementDataFile"][1]
     nbytes = voxel_count(sizes) * count * dtype.itemsize
     if spec in ("LOCAL", "Local", "local"):
@@ -404,6 +420,7 @@ def _metaimage(path: Path, copy: str, *, vectors: bool = False):
     header = make_header(where, shape, dtype, spacing=spacing, origin=origin,
                          direction=direction, space="left-posterior-superior",
                          file_space="left-posterior-superior", meta=mi._meta(pairs, direction))
+    _wanted(vectors, count, dtype)
     layout = _vector_layout(shape, count, planar=False)  # (channels: interleaved)
     if compressed:
         samples = _inflated(data_path, nbytes, file_dtype, layout, where,

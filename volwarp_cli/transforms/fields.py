@@ -262,20 +262,27 @@ def _scaled(samples: np.ndarray, nf) -> np.ndarray:
 def _components(path: str):
     """A NRRD or MetaImage field: by windows where its vectors exceed their share of the budget."""
     from ..io import read_components
-    from ..io.lazy import NotLazy, open_vectors_lazy
+    from ..io.lazy import NoRoomToInflate, NotLazy, open_vectors_lazy
     from ..memory import read_by_box
 
+    no_room = None
     try:
-        header, samples, n, planar = open_vectors_lazy(path)
+        header, samples, _, planar = open_vectors_lazy(path, count=3, kinds="f")
         held = samples is not None and math.prod(samples.shape) * header.dtype.itemsize
-        if n == 3 and header.dtype.kind == "f" and held and read_by_box(held):
+        if held and read_by_box(held):
             source = LazyField(samples, header.shape, planar=planar,
                                signs=frame_signs(header.file_space))
             return _frame(_geometry_of(header), header.shape), source, dict(header.meta)
-    except NotLazy:
+    except NoRoomToInflate as why:
+        no_room = str(why)
+    except (NotLazy, OSError):
         pass  # (read whole below, with the reader's own errors)
     try:
         first, vectors = read_components(path)
+    except OutOfMemoryError as exc:
+        if no_room is None:
+            raise
+        raise OutOfMemoryError(f"{exc}; {no_room}") from None
     except VolwarpError as exc:
         raise VolwarpError(f"{path}: not a displacement field of 3 components per voxel "
                            f"({str(exc).removeprefix(str(path) + ': ')})") from None

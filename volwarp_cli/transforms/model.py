@@ -263,6 +263,8 @@ class DisplacementField:
 
     def _cells_of(self, idx: np.ndarray, pick: np.ndarray) -> list[np.ndarray]:
         """The points ``pick`` (on the field; ``idx`` their indices) grouped by :data:`TILE` cell."""
+        if not pick.size:
+            return []
         cells = -(-np.asarray(self.frame.size, np.int64) // TILE)
         cell = np.clip(np.floor(idx[pick] / TILE), 0, cells - 1).astype(np.int64)
         key = (cell[:, 2] * cells[1] + cell[:, 1]) * cells[0] + cell[:, 0]
@@ -423,6 +425,8 @@ def tile_range(vectors: np.ndarray, tile: int):
 def _bounds(p: np.ndarray):
     """The world box of points ``p`` (N, 3), NaN skipped (a point box when none)."""
     p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+    if not len(p):
+        return np.zeros(3), np.zeros(3)
     with np.errstate(invalid="ignore"):
         lo, hi = np.fmin.reduce(p, axis=0), np.fmax.reduce(p, axis=0)
     if not np.all(np.isfinite(lo + hi)):
@@ -544,31 +548,78 @@ class Chain:
 def _solve(step, target: np.ndarray) -> np.ndarray:
     """``q`` with ``q + u(q) = target`` for a non-linear ``step`` (Newton, vectorised).
 
-    A field read by windows is read once for the solve: one window for all
-    points, or, where that would exceed :data:`WINDOW_BYTES`, one per
-    :data:`TILE` cell of points (each iteration maps the points several
-    times: through the field itself, each map would read their cells again).
+    A field read by windows is read once for the solve: one window for the
+    points, or, where that would exceed :data:`WINDOW_BYTES`, one for each
+    half of them (split at the median of their widest axis, again until a
+    window fits): each iteration maps the points several times, and through
+    the field itself each map would read their cells again. The windows give
+    the field's own values (:class:`_Window`), so the points solved are those
+    of the field held whole.
     """
     if getattr(step, "vectors", 0) is not None:
         return _newton(step, target)
-    tmin, tmax = step._tiles()  # how far a vector reaches: the windows' margin
-    reach = float(np.nanmax(np.abs(np.concatenate([tmin, tmax]))) if tmin.size else 0.0)
-    grow = reach + 1.0
-
-    def windowed(points):
-        lo, hi = _bounds(points)
-        if step.window_bytes(lo - grow, hi + grow) <= WINDOW_BYTES:
-            return step.window(lo - grow, hi + grow)
-        return step
-
-    whole = windowed(target)
-    if whole is not step or len(target) == 0:
-        return _newton(whole, target)
     q = target.copy()  # (points off the field: not moved, their own solution)
     idx, inside = step._inside(target)
-    for pick in step._cells_of(idx, np.flatnonzero(inside)):
-        q[pick] = _newton(windowed(target[pick]), target[pick])
+    groups = [np.flatnonzero(inside)]
+    while groups:
+        pick = groups.pop()
+        if not pick.size:
+            continue
+        window = _Window.around(step, target[pick])
+        spread = np.ptp(idx[pick], axis=0)
+        if window is None and spread.max() > 0:  # (halves: each with a smaller window)
+            order = pick[np.argsort(idx[pick, int(np.argmax(spread))], kind="stable")]
+            groups += [order[:len(order) // 2], order[len(order) // 2:]]
+            continue
+        q[pick] = _newton(step if window is None else window, target[pick])
     return q
+
+
+class _Window:
+    """A field read by windows, mapped through one window read once, exactly.
+
+    A point whose neighbours lie in the window is mapped through it (the
+    same bits as the whole field: the kernel reads the same vectors); one
+    whose neighbours leave it (a Newton step or a halving trial going far)
+    through the field itself. The window: the points' box grown by the
+    field's range over it (:meth:`DisplacementField.box`, per-tile extremes)
+    and one millimetre.
+    """
+
+    def __init__(self, field: DisplacementField, window: DisplacementField):
+        self.field, self.window = field, window
+        self.lo = np.asarray(window.offset, np.int64)
+        self.hi = self.lo + np.asarray(window.vectors.shape[2::-1], np.int64)
+
+    @classmethod
+    def around(cls, field: DisplacementField, points: np.ndarray):
+        """The window for ``points``, or None where it would exceed :data:`WINDOW_BYTES`."""
+        lo, hi = _bounds(points)
+        blo, bhi = field.box(lo, hi)
+        grow = np.maximum(lo - blo, bhi - hi) + 1.0  # (q = target - u(q): either way)
+        if field.window_bytes(lo - grow, hi + grow) > WINDOW_BYTES:
+            return None
+        return cls(field, field.window(lo - grow, hi + grow))
+
+    def map(self, p: np.ndarray) -> np.ndarray:
+        p = np.ascontiguousarray(p, dtype=np.float64)
+        idx, inside = self.field._inside(p)
+        n = np.asarray(self.field.frame.size, np.int64)
+        with np.errstate(invalid="ignore"):
+            below = np.clip(np.floor(idx), 0, n - 1)  # (the kernel's neighbours: b0, b1)
+            above = np.clip(np.floor(idx) + 1, 0, n - 1)
+            held = np.all((below >= self.lo) & (above < self.hi), axis=1)
+        near = held | ~inside  # (off the field: not moved, any window says so)
+        if near.all():
+            return self.window.map(p)
+        out = np.empty_like(p)
+        out[near] = self.window.map(p[near])
+        out[~near] = self.field.map(p[~near])
+        return out
+
+    def displacement(self, p: np.ndarray) -> np.ndarray:
+        p = np.ascontiguousarray(p, dtype=np.float64)
+        return self.map(p) - p
 
 
 def _newton(step, target: np.ndarray) -> np.ndarray:
