@@ -594,8 +594,9 @@ class ScaledSamples:
         self.portable = getattr(base, "portable", False)
 
     def __getitem__(self, key) -> np.ndarray:
-        from nibabel.volumeutils import apply_read_scaling
+        from .nifti import nibabel
 
+        apply_read_scaling = nibabel().volumeutils.apply_read_scaling
         raw = self.base[key]
         with np.errstate(all="ignore"):
             return apply_read_scaling(raw, np.asanyarray(self.slope),

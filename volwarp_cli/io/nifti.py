@@ -110,6 +110,7 @@ import json
 import logging
 import os
 import struct
+import sys
 import threading
 import zlib
 from pathlib import Path
@@ -419,6 +420,44 @@ def gunzip_range_into(path: Path, start: int, count: int, need: int, where: str,
                    f"holds {pos}")
 
 
+class _NoPydicomForNibabel:
+    """A finder refusing ``pydicom`` to nibabel's optional import, and to nobody else.
+
+    ``import nibabel`` imports pydicom (0.12 s on a quiet machine, 0.3 s on a busy
+    one: most of nibabel's import) only to show a NIfTI's DICOM header extension
+    (code 2) as a pydicom Dataset. volwarp never reads other programs'
+    extensions (module notes); without pydicom nibabel keeps such an extension
+    as its bytes. Only an import made from ``nibabel.optpkg`` is refused, so
+    another thread importing pydicom meanwhile (a DICOM input) is not.
+    """
+
+    @staticmethod
+    def find_spec(name, path=None, target=None):
+        if name != "pydicom":
+            return None
+        frame = sys._getframe(1)
+        while frame is not None:
+            if frame.f_globals.get("__name__") == "nibabel.optpkg":
+                raise ModuleNotFoundError("pydicom: not for nibabel (volwarp reads no DICOM "
+                                          "extension of a NIfTI)", name="pydicom")
+            frame = frame.f_back
+        return None
+
+
+def nibabel():
+    """The nibabel module, imported without pydicom (:class:`_NoPydicomForNibabel`)."""
+    module = sys.modules.get("nibabel")
+    if module is not None:
+        return module
+    finder = _NoPydicomForNibabel()
+    sys.meta_path.insert(0, finder)
+    try:
+        import nibabel as module
+    finally:
+        sys.meta_path.remove(finder)
+    return module
+
+
 def open_nifti(path: str | os.PathLike) -> NiftiFile:
     """Open a NIfTI-1/2 file and check its header (the samples are read later).
 
@@ -427,8 +466,8 @@ def open_nifti(path: str | os.PathLike) -> NiftiFile:
     reads as another image class (CIFTI-2: data on surfaces and grayordinates),
     empty axes, axes beyond the 5th, an uncompressed file shorter than its samples.
     """
-    import nibabel as nib
-    from nibabel.filebasedimages import ImageFileError
+    nib = nibabel()
+    ImageFileError = nib.filebasedimages.ImageFileError  # noqa: N806
 
     where = str(path)
     _check_raw_header(path, where)
@@ -520,7 +559,7 @@ def _read_samples(nf: NiftiFile, k: int, geometry: dict, meta: dict) -> Volume:
                           f"{nf.where} ({nf.shape[:3]})")
     data = np.frombuffer(nf.read_block(k), dtype=nf.file_dtype).reshape(xyz_to_zyx(nf.shape[:3]))
     if nf.scaled:  # as nibabel's data proxy scales, then in float32 or float64
-        from nibabel.volumeutils import apply_read_scaling
+        apply_read_scaling = nibabel().volumeutils.apply_read_scaling
 
         data = apply_read_scaling(data, np.asanyarray(nf.slope), np.asanyarray(nf.inter))
         data = data.astype(dtype)
@@ -714,7 +753,7 @@ def _form_codes(meta: dict, ras: np.ndarray, spacing: np.ndarray) -> tuple[int, 
 
 def _extension(meta: dict):
     """The volwarp header extension for the meta that is not a header field, or None."""
-    from nibabel.nifti1 import Nifti1Extension
+    Nifti1Extension = nibabel().nifti1.Nifti1Extension  # noqa: N806
 
     rest = {str(k): v for k, v in meta.items() if k not in HEADER_KEYS}
     if not rest:
@@ -726,7 +765,7 @@ def _extension(meta: dict):
 
 def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
     """Write ``vol`` as NIfTI-1 (gzipped for ``.gz``), atomically, keeping the meta it can."""
-    import nibabel as nib
+    nib = nibabel()
 
     path = Path(path)
     check_dtype(vol.data.dtype, str(path))

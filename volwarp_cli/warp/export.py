@@ -623,11 +623,11 @@ def field_block_output(path: str, geometry: Header, meta: dict, kind: str, depth
 
 
 def _write_nifti_field(field, grid: Header, path: str, kind: str) -> None:
-    import nibabel as nib
-
     from ..io.atomic import atomic_output
     from ..io.deflate import gzip_bytes
-    from ..io.nifti import _RAS_TO_LPS, _extension
+    from ..io.nifti import _RAS_TO_LPS, _extension, nibabel
+
+    nib = nibabel()
 
     aff = np.eye(4)
     aff[:3, :3] = _RAS_TO_LPS @ (grid.direction * grid.spacing[None, :])
