@@ -240,3 +240,21 @@ def test_a_worker_blocks_warning_is_said_when_a_later_block_fails(caplog):
             pytest.raises(VolwarpError, match="block 2 failed"):
         engine.run(tasks)
     assert caplog.text.count("block 1 saw a NaN") == 1
+
+
+def _block_that_warns_then_fails(n):
+    from volwarp_cli.progress import log
+
+    log.warning("warning: block %d saw a NaN before it failed", n)
+    raise VolwarpError(f"block {n} failed")
+
+
+def test_a_failing_worker_blocks_own_warning_is_said_with_its_error(caplog):
+    """A worker process's block that warns and then fails: its warning goes back with the error."""
+    from volwarp_cli.engine import block_delayed
+    from volwarp_cli.runscope import run_scope
+
+    with run_scope(), open_engine("processes", workers=2) as engine, \
+            pytest.raises(VolwarpError, match="block 3 failed"):
+        engine.run([block_delayed(_block_that_warns_then_fails, "fails", 3)])
+    assert caplog.text.count("block 3 saw a NaN before it failed") == 1

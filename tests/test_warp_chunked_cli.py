@@ -72,11 +72,22 @@ def test_chunked_ome_zarr_is_the_same_on_every_scheduler(run, scan, tmp_path, sc
 
 
 def test_chunked_on_a_local_cluster_with_jsonl_progress(run, scan, tmp_path):
+    """A LocalCluster's run, while port 8787 is taken (another run's cluster at the same
+    time): no "Port 8787 is already in use" warning (here an error), the same bytes."""
+    import socket
+
     src, spec = scan
     mem, blk = tmp_path / "mem.nrrd", tmp_path / "blk.nrrd"
     assert run("warp", src, "--spec", spec, "-o", mem).code == 0
-    res = run("warp", src, "--spec", spec, "-o", blk, "--chunked", "--block", "24",
-              "--scheduler", "local", "--workers", "2", "--progress", "jsonl")
+    with socket.socket() as taken:
+        taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            taken.bind(("127.0.0.1", 8787))
+            taken.listen()
+        except OSError:  # (taken already)
+            pass
+        res = run("warp", src, "--spec", spec, "-o", blk, "--chunked", "--block", "24",
+                  "--scheduler", "local", "--workers", "2", "--progress", "jsonl")
     assert res.code == 0, res.stderr
     assert blk.read_bytes() == mem.read_bytes()
     events = [json.loads(line) for line in res.stderr.splitlines() if line.startswith("{")]

@@ -160,7 +160,12 @@ def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | 
     with parallel.use_threads(threads), (memory_mod.use_memory_limit(memory)
                                          if memory is not None else contextlib.nullcontext()), \
             _said_here(origin is not None and os.getpid() != origin) as said:
-        value = fn(*args, **kwargs)
+        try:
+            value = fn(*args, **kwargs)
+        except BaseException as exc:  # (its warnings go back with the failure)
+            if said:
+                exc.volwarp_said = tuple(said)
+            raise
     return BlockStats(ident, time.perf_counter() - start, peak_rss(),
                       value if keep else None, tuple(said))
 
@@ -207,13 +212,17 @@ def _said_here(capture: bool):
 
 
 def say_once(results) -> None:
-    """The warnings block tasks said in other processes, each key once per run."""
+    """The warnings block tasks said in other processes, each key once per run.
+
+    ``results``: :class:`BlockStats`, or a failed task's exception (its
+    ``volwarp_said``: what the block said before it failed).
+    """
     from .progress import log
     from .runscope import run_files
 
     done = run_files().said
     for stats in results:
-        for key, message in getattr(stats, "said", ()):
+        for key, message in getattr(stats, "said", getattr(stats, "volwarp_said", ())):
             if key not in done:
                 done.add(key)
                 log.warning("%s", message)
@@ -236,49 +245,57 @@ class Engine:
         Failures propagate as the task's own exception (a VolwarpError stays
         one); a bar is drawn on a terminal, JSON lines with ``progress``.
         """
-        import dask
-
         from .progress import progress
 
         tasks = list(tasks)
         if not tasks:
             return []
-        results: list[BlockStats] = []
-        with progress(len(tasks), label) as bar:
-            if self.client is not None:
-                from distributed import as_completed
+        try:
+            with progress(len(tasks), label) as bar:
+                results = self._run(tasks, bar)
+        except BaseException as exc:  # (a failed block's warnings: said before its error)
+            say_once((exc,))
+            raise
+        return results
 
-                futures = self.client.compute(tasks)
-                keys = {f.key: i for i, f in enumerate(futures)}
-                names = {f.key: _key_name(f.key) for f in futures}
-                ordered: list[BlockStats | None] = [None] * len(futures)
-                for fut in as_completed(futures):
-                    try:
-                        stats = fut.result()
-                    except BaseException as exc:
-                        self._failed(names[fut.key], exc)
-                        for other in futures:
-                            other.cancel()
-                        raise
-                    ordered[keys[fut.key]] = stats
-                    self._done(stats)
-                    bar.advance()
-                results = [s for s in ordered if s is not None]
-            else:
-                pool = _local_pool(self.choice.kind, self.workers)
-                extra = {} if pool is None else {"pool": pool}
+    def _run(self, tasks: list, bar) -> list[BlockStats]:
+        """:meth:`run`'s tasks on the client or on a local scheduler, advancing ``bar``."""
+        import dask
+
+        if self.client is not None:
+            from distributed import as_completed
+
+            futures = self.client.compute(tasks)
+            keys = {f.key: i for i, f in enumerate(futures)}
+            names = {f.key: _key_name(f.key) for f in futures}
+            ordered: list[BlockStats | None] = [None] * len(futures)
+            for fut in as_completed(futures):
                 try:
-                    with _LocalCallbacks(self, bar):
-                        # the scheduler's function, not its name: a name makes dask import
-                        # distributed (0.2 s) to look for a client
-                        results = list(dask.compute(*tasks,
-                                                    scheduler=_local_get(self.choice.kind),
-                                                    num_workers=self.workers, **extra))
-                finally:
-                    # (a failed task: the tasks still running finish before the error goes
-                    # on, so that no late block writes into an output being removed)
-                    if pool is not None:
-                        pool.shutdown(wait=True, cancel_futures=True)
+                    stats = fut.result()
+                except BaseException as exc:
+                    self._failed(names[fut.key], exc)
+                    for other in futures:
+                        other.cancel()
+                    raise
+                ordered[keys[fut.key]] = stats
+                self._done(stats)
+                bar.advance()
+            results = [s for s in ordered if s is not None]
+        else:
+            pool = _local_pool(self.choice.kind, self.workers)
+            extra = {} if pool is None else {"pool": pool}
+            try:
+                with _LocalCallbacks(self, bar):
+                    # the scheduler's function, not its name: a name makes dask import
+                    # distributed (0.2 s) to look for a client
+                    results = list(dask.compute(*tasks,
+                                                scheduler=_local_get(self.choice.kind),
+                                                num_workers=self.workers, **extra))
+            finally:
+                # (a failed task: the tasks still running finish before the error goes
+                # on, so that no late block writes into an output being removed)
+                if pool is not None:
+                    pool.shutdown(wait=True, cancel_futures=True)
         return results
 
     @staticmethod
@@ -448,10 +465,14 @@ def open_engine(scheduler: str | SchedulerChoice | None = None, *, workers: int 
         with dask.config.set({"distributed.worker.profile.enabled": False,
                               "distributed.admin.tick.interval": "1s",
                               "distributed.admin.system-monitor.interval": "5s"}):
+            # (no dashboard; the scheduler's HTTP server, which it starts anyway, on a free
+            # port of this host only: on 8787, a second cluster of another run at the
+            # same time printed distributed's "Port 8787 is already in use" warning)
             cluster = LocalCluster(n_workers=n, threads_per_worker=per, processes=True,
                                    memory_limit=("auto" if memory_limit is None
                                                  else memory_limit // n),
-                                   dashboard_address=None, silence_logs=50)
+                                   dashboard_address=None, silence_logs=50,
+                                   scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
         client = Client(cluster)
     else:
         try:
