@@ -32,8 +32,19 @@ def _commands(tmp: Path):
     spec = tmp / "w.yaml"
     spec.write_text("version: 1\ncapture: {lattice: 7, oversample: 1}\nsteps:\n"
                     "  - move:\n      - {index: [3, 3, 3], by: [6.0, 0.0, 0.0]}\n")
+    # (convert: the scan's 7 MB to .nii.gz took 0.2-0.3 s once nibabel came without
+    # pydicom, over before a Ctrl-C from 0.25 s could land; a larger, noisy int16 scan
+    # written as float64 takes about a second)
+    from volwarp_cli.io import read_volume, write_volume
+
+    vol = read_volume(scan)
+    tiled = np.tile(vol.data, (2, 2, 1)).astype(np.int16) * 8
+    tiled += np.random.default_rng(0).integers(0, 8, tiled.shape, dtype=np.int16)
+    big = tmp / "big.nrrd"
+    write_volume(vol.with_data(tiled), big)
     return {
-        "convert": (["convert", scan, "-o", tmp / "out.nii.gz"], tmp / "out.nii.gz"),
+        "convert": (["convert", big, "-o", tmp / "out.nii.gz", "--dtype", "float64"],
+                    tmp / "out.nii.gz"),
         "info": (["info", tmp / "ras.nii.gz"], None),
         "distance": (["distance", scan, "--iso", "40", "-o", tmp / "d.nrrd"], tmp / "d.nrrd"),
         "warp": (["warp", scan, "--spec", spec, "-o", tmp / "w.nrrd"], tmp / "w.nrrd"),
