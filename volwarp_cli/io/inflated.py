@@ -26,10 +26,12 @@ leaves the input to be read whole, as before, and the refusal says so.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 from pathlib import Path
 
+from ..errors import OutOfMemoryError
 from .filearray import FileArray
 
 
@@ -46,6 +48,20 @@ class InflatedArray(FileArray):
 
 class NoRoom(Exception):
     """The scratch folder's disk cannot take the samples (``args[0]`` says so)."""
+
+
+@contextlib.contextmanager
+def naming_no_room(no_room: str | None):
+    """A memory refusal inside (the input then read whole) also says why no copy was made.
+
+    ``no_room``: the :class:`NoRoom` message, or None (the refusal as it is).
+    """
+    try:
+        yield
+    except OutOfMemoryError as exc:
+        if no_room is None:
+            raise
+        raise OutOfMemoryError(f"{exc}; {no_room}") from None
 
 
 def inflated_array(original: Path, nbytes: int, file_dtype, shape_zyx, where: str,

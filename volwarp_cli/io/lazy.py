@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, OutOfMemoryError, VolwarpError
+from ..errors import FormatError, VolwarpError
 from ..geometry import Geometry
 from ..samples import check_dtype, voxel_count
 from ..volume import Header, xyz_to_zyx
@@ -142,12 +142,10 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
             raise VolwarpError(f"{path}: cannot be read without loading it ({why}); write it "
                                "as .ome.zarr or uncompressed .nrrd first") from None
         no_room = str(why) if isinstance(why, NoRoomToInflate) else None
-    try:
+    from .inflated import naming_no_room
+
+    with naming_no_room(no_room):
         vol = read_volume(path, raw=raw, volume_index=volume_index, dicom=dicom)
-    except OutOfMemoryError as exc:
-        if no_room is None:
-            raise
-        raise OutOfMemoryError(f"{exc}; {no_room}") from None
     return vol.header, vol.data
 
 

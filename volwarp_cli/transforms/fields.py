@@ -123,7 +123,7 @@ def frame_signs(file_space) -> np.ndarray | None:
 
 
 def _nifti(path: str):
-    from ..io.inflated import NoRoom
+    from ..io.inflated import NoRoom, naming_no_room
     from ..io.nifti import gunzip_range_into, nifti_geometry, nifti_meta, open_nifti
     from ..memory import ensure_fits_in_memory, read_by_box
     from ..runscope import in_run
@@ -145,13 +145,9 @@ def _nifti(path: str):
             no_room = str(why)
     out_type = np.dtype(np.float32 if nf.scaled or kind.kind != "f" else kind.newbyteorder("="))
     # (the vectors as held: an int16 field's float32 vectors are twice its file's samples)
-    try:
+    with naming_no_room(no_room):
         ensure_fits_in_memory(nx * ny * nz * 3 * out_type.itemsize,
                               f"{path} ({'x'.join(map(str, nf.shape))})")
-    except OutOfMemoryError as exc:
-        if no_room is None:
-            raise
-        raise OutOfMemoryError(f"{exc}; {no_room}") from None
     # interleaved (z, y, x, 3): a point's neighbours' vectors share cache lines (the planar
     # layout of the file was 1.5x slower to sample)
     vectors = np.empty((nz, ny, nx, 3), dtype=out_type)
@@ -262,6 +258,7 @@ def _scaled(samples: np.ndarray, nf) -> np.ndarray:
 def _components(path: str):
     """A NRRD or MetaImage field: by windows where its vectors exceed their share of the budget."""
     from ..io import read_components
+    from ..io.inflated import naming_no_room
     from ..io.lazy import NoRoomToInflate, NotLazy, open_vectors_lazy
     from ..memory import read_by_box
 
@@ -278,11 +275,10 @@ def _components(path: str):
     except (NotLazy, OSError):
         pass  # (read whole below, with the reader's own errors)
     try:
-        first, vectors = read_components(path)
-    except OutOfMemoryError as exc:
-        if no_room is None:
-            raise
-        raise OutOfMemoryError(f"{exc}; {no_room}") from None
+        with naming_no_room(no_room):
+            first, vectors = read_components(path)
+    except OutOfMemoryError:
+        raise  # (not "not a displacement field": the field is one, too large)
     except VolwarpError as exc:
         raise VolwarpError(f"{path}: not a displacement field of 3 components per voxel "
                            f"({str(exc).removeprefix(str(path) + ': ')})") from None
