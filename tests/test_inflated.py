@@ -424,6 +424,45 @@ def tempfile_dir():
     return tempfile.gettempdir()
 
 
+@pytest.mark.parametrize("ext", ["nii.gz", "scaled nii.gz"])
+def test_worker_that_cannot_see_the_scratch_copy_reads_the_input_whole(ext, tmp_path, by_box):
+    """A command without an output file makes its copy in the temporary folder, which a
+    remote cluster's worker does not see: unpickled where the copy is not, the source
+    reopens the input by path (read whole) and reads the same samples."""
+    from volwarp_cli.io.inflated import InflatedArray
+    from volwarp_cli.io.lazy import LazySource, ScaledSamples, open_volume_header
+    from volwarp_cli.runscope import run_scope
+
+    if ext == "nii.gz":
+        path = _write("nii.gz", tmp_path)
+    else:  # scl_slope/scl_inter: the copy inside ScaledSamples
+        path = str(tmp_path / "scaled.nii.gz")
+        img = nib.Nifti1Image(_ball().data.transpose(2, 1, 0), np.eye(4))
+        img.header.set_slope_inter(0.5, -3.0)
+        nib.save(img, path)
+    whole = read_volume(path)
+    box = (slice(3, 17), slice(2, 11), slice(5, 16))
+    with run_scope():  # (no output claimed: the copy goes to the temporary folder)
+        _, array = open_volume_header(path)
+        copy = array.base if isinstance(array, ScaledSamples) else array
+        assert isinstance(copy, InflatedArray)
+        assert os.path.dirname(os.path.dirname(copy.path)) == tempfile_dir()
+        shipped = pickle.dumps(LazySource(path, array=array))
+        here = pickle.loads(shipped)  # (a worker on this machine: the same copy)
+        assert here._array is not None and here._array.reachable()
+        hidden = copy.path + ".elsewhere"
+        os.rename(copy.path, hidden)  # (a worker on another machine)
+        try:
+            remote = pickle.loads(shipped)
+            assert remote._array is None
+            got = remote[box]
+            assert isinstance(remote._array, np.ndarray)  # (reopened whole, not copied)
+        finally:
+            os.rename(hidden, copy.path)
+        np.testing.assert_array_equal(got, whole.data[box])
+        assert got.dtype == whole.data.dtype
+
+
 def test_no_copy_outside_a_run_nor_for_a_header(tmp_path, by_box, inflations):
     """A library call outside any run reads whole (nothing left behind); a header alone inflates nothing."""
     from volwarp_cli.io.lazy import open_volume_header

@@ -17,8 +17,9 @@ command's process (a worker process reopening an input reads it whole: the
 copy, where there is one, travels with the input instead). The scratch
 folder is made beside the run's first output (its disk is the one the
 outputs need anyway; named and cleaned as the output's temporaries), else in
-the system's temporary folder (a command without an output file; a remote
-cluster's workers cannot see that one), and removed when the run ends
+the system's temporary folder (a command without an output file: a remote
+cluster's workers cannot see that one, so a worker that does not find the
+copy reads the input whole, as one without a copy does), and removed when the run ends
 (:func:`~volwarp_cli.runscope.at_run_end`), on a stop, or, after a kill, by
 the next run writing the same output. A disk without room for the samples
 leaves the input to be read whole, as before, and the refusal says so.
@@ -40,10 +41,15 @@ class InflatedArray(FileArray):
 
     ``portable``: a :class:`.lazy.LazySource` pickles it with itself, so that
     a worker process reads the same scratch file instead of inflating the
-    input again.
+    input again; where that file is not (:meth:`reachable`: a worker on
+    another machine), the source reopens the input instead.
     """
 
     portable = True
+
+    def reachable(self) -> bool:
+        """Whether this process sees the scratch file (a remote worker may not)."""
+        return os.path.exists(self.path)
 
 
 class NoRoom(Exception):

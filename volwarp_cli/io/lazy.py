@@ -591,6 +591,10 @@ class ScaledSamples:
         self.ndim = 3
         self.portable = getattr(base, "portable", False)
 
+    def reachable(self) -> bool:
+        """Whether this process sees the samples' file (:meth:`.inflated.InflatedArray.reachable`)."""
+        return _reachable(self.base)
+
     def __getitem__(self, key) -> np.ndarray:
         from .nifti import nibabel
 
@@ -675,3 +679,16 @@ class LazySource:
         return {"path": self.path, "raw": self.raw, "volume_index": self.volume_index,
                 "dicom": self.dicom, "allow_outside_data": self.allow_outside_data,
                 "_array": keep}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        if self._array is not None and not _reachable(self._array):
+            # (a worker on another machine: the command's scratch copy is not here; the
+            # input is reopened by path, as a worker without a copy does)
+            self._array = None
+
+
+def _reachable(array) -> bool:
+    """Whether a portable array's file is seen by this process (True: no file to see)."""
+    check = getattr(array, "reachable", None)
+    return True if check is None else bool(check())
