@@ -28,10 +28,26 @@ def provenance(command: str, inputs, spec=None) -> dict[str, str]:
         "volwarp_input": " ".join(Path(p).name for p in inputs),
     }
     if spec is not None:
-        import hashlib  # (here: OpenSSL's load costs a command without a spec 3-10 ms)
-
-        meta["volwarp_spec_sha256"] = hashlib.sha256(Path(spec).read_bytes()).hexdigest()
+        meta["volwarp_spec_sha256"] = _sha256(Path(spec).read_bytes()).hexdigest()
     return meta
+
+
+def _sha256(data: bytes):
+    """A SHA-256 of ``data`` without loading OpenSSL when CPython's own one is there.
+
+    ``hashlib`` loads OpenSSL's library on import (5-7 ms, a twentieth of a
+    small warp command, for the hash of a spec of a few kB); CPython's
+    built-in module gives the same digest (``_sha2`` since 3.12, ``_sha256``
+    before). Falls back to ``hashlib`` where neither is built.
+    """
+    try:
+        from _sha2 import sha256
+    except ImportError:
+        try:
+            from _sha256 import sha256
+        except ImportError:  # pragma: no cover - a CPython built without them
+            from hashlib import sha256
+    return sha256(data)
 
 
 #: The keys :func:`provenance` writes (an earlier step's are replaced; other
