@@ -80,6 +80,32 @@ def amdahl_row(name, fixed, t1, tn, cores):
           f"{bound:4.2f}x at {cores} threads; the rest scaled {scaled}", flush=True)
 
 
+def predicted_rows(name, scene, t1=None, fixed=None, counts=(2, 4, 16, 64)):
+    """What the one-shot warp's cut predicts at more cores than this machine has.
+
+    For each thread count: the parts :func:`volwarp_cli.warp.blocks.least_time_cut`
+    makes of the whole output (what a command with that many threads runs),
+    the domain voxels they scatter over the whole's (their halos), and the
+    speedup of the scatter work that cut allows (the whole's work over its
+    longest thread's, dealt largest first): a bound, reached only where memory
+    bandwidth grows with the cores. With ``t1`` (the command at one thread)
+    and ``fixed`` (its part no thread count changes): the whole command's.
+    """
+    from volwarp_cli.warp.blocks import _makespan, block_work, domain_box, least_time_cut
+
+    whole = scene._work([scene.dq], domain_box(scene, scene.target_box))
+    for n in counts:
+        parts = least_time_cut(scene, scene.target_box, n)
+        work = [scene._work([scene.dq], domain_box(scene, p)) for p in parts]
+        bound = whole / _makespan(work, n)
+        line = (f"  {name:<44} {n:>2} threads: {len(parts):>3} parts scatter "
+                f"{block_work(scene, parts):4.2f}x the voxels; scatter speedup at most "
+                f"{bound:5.2f}x")
+        if t1 is not None and fixed is not None:
+            line += f", the command's {t1 / (fixed + max(t1 - fixed, 0.0) / bound):5.2f}x"
+        print(line, flush=True)
+
+
 def general_coefficients(c, amplitude, seed=1):
     """Offsets (voxels) of every control point of a c^3 lattice, as a registration gives."""
     rng = np.random.default_rng(seed)
@@ -175,6 +201,7 @@ def main(quick: bool = False):
         # what no thread count changes: the same warp commands on a 16^3 volume
         small = tmp / "small.nrrd"
         write_volume(Volume(volume(16)), small)
+        fixed_of = {}
         for name, spec in ((f"warp {n}^3, one point moved", one),
                            (f"warp {n}^3, every point of 9^3 moved", general)):
             if name not in timed:
@@ -183,6 +210,22 @@ def main(quick: bool = False):
                                              str(tmp / "small_out.nrrd"), "--threads", "1"],
                                         repeat=pairs)
             amdahl_row(name, fixed, *timed[name], cores)
+            fixed_of[name] = fixed
+        # what the cut predicts at 2, 4, 16 and 64 cores (not measured here)
+        from volwarp_cli.bspline.capture import capture_volume
+        from volwarp_cli.bspline.scene import Scene
+
+        vol = Volume(data)
+        base = capture_volume(vol, lattice=(9, 9, 9), oversample=1)
+        one_dq = np.zeros_like(dq)
+        one_dq[4, 4, 4] = (3.0, 2.0, 1.0)
+        for name, move in ((f"warp {n}^3, one point moved", one_dq),
+                           (f"warp {n}^3, every point of 9^3 moved", dq)):
+            cap = capture_volume(vol, lattice=(9, 9, 9), oversample=1, defer=True)
+            pad = int(np.ceil(np.abs(move).max())) + 1
+            scene = Scene(cap.voxmap, cap.grid, base.dq + move, pad, domain_range=base.stats[:2])
+            t1 = timed[name][0] if name in timed else None
+            predicted_rows(name, scene, t1, fixed_of.get(name))
         # the general deformation against the peers, everything on every core
         cmd = v + ["warp", str(src), "--spec", str(general), "-o", str(tmp / "g.nrrd")]
         subprocess.run(cmd, check=True)
@@ -205,12 +248,6 @@ def main(quick: bool = False):
             common.row(f"general warp {n}^3 command vs {kind} script", ours, peer,
                        f"{kind} script", r)
         # the same work in process, no start-up, reading or writing: what the peers' figures are
-        from volwarp_cli.bspline.capture import capture_volume
-        from volwarp_cli.bspline.scene import Scene
-
-        vol = Volume(data)
-        base = capture_volume(vol, lattice=(9, 9, 9), oversample=1)
-
         def core():
             cap = capture_volume(vol, lattice=(9, 9, 9), oversample=1, defer=True)
             pad = int(np.ceil(np.abs(dq).max())) + 1

@@ -132,6 +132,30 @@ def _makespan(work, threads: int) -> float:
     return max(loads)
 
 
+def least_time_cut(scene: Scene, box: Box, threads: int, origin=(0, 0, 0)) -> list[Box]:
+    """Output box ``box`` cut for ``threads`` threads (:meth:`WarpOperation.slabs`' cut).
+
+    Of the cuts into ``threads`` or ``2 * threads`` parts of whole rows (z
+    times y), the one whose longest thread (each part's scatter work, dealt
+    largest first) is least. ``origin``: the output's corner in the target.
+    """
+    best = None
+    for parts in (threads, 2 * threads):
+        for nz in range(1, parts + 1):
+            if parts % nz or nz > box.shape[0] or parts // nz > box.shape[1]:
+                continue
+            zc = parallel.cuts(box.lo[0], box.hi[0], nz)
+            yc = parallel.cuts(box.lo[1], box.hi[1], parts // nz)
+            cut = [Box((z0, y0, box.lo[2]), (z1, y1, box.hi[2]))
+                   for z0, z1 in zip(zc[:-1], zc[1:], strict=True)
+                   for y0, y1 in zip(yc[:-1], yc[1:], strict=True)]
+            cost = _makespan([scene._work([scene.dq], domain_box(scene, b.shift(origin)))
+                              for b in cut], threads)
+            if best is None or cost < best[0]:
+                best = (cost, cut)
+    return best[1] if best is not None else [box]
+
+
 def block_work(scene: Scene, blocks) -> float:
     """Domain voxels the blocks scatter, over the voxels the whole warp scatters once.
 
@@ -258,27 +282,8 @@ class WarpOperation(Operation):
             return [box]
         key = (box, threads)
         if key not in self._cuts:  # (asked by memory() and compute() alike)
-            self._cuts[key] = self._least_time_cut(box, threads)
+            self._cuts[key] = least_time_cut(self._scene()[0], box, threads, self.window.lo)
         return self._cuts[key]
-
-    def _least_time_cut(self, box: Box, threads: int) -> list[Box]:
-        scene, _ = self._scene()
-        best = None
-        for parts in (threads, 2 * threads):
-            for nz in range(1, parts + 1):
-                if parts % nz or nz > box.shape[0] or parts // nz > box.shape[1]:
-                    continue
-                zc = parallel.cuts(box.lo[0], box.hi[0], nz)
-                yc = parallel.cuts(box.lo[1], box.hi[1], parts // nz)
-                cut = [Box((z0, y0, box.lo[2]), (z1, y1, box.hi[2]))
-                       for z0, z1 in zip(zc[:-1], zc[1:], strict=True)
-                       for y0, y1 in zip(yc[:-1], yc[1:], strict=True)]
-                cost = _makespan([scene._work([scene.dq],
-                                              domain_box(scene, b.shift(self.window.lo)))
-                                  for b in cut], threads)
-                if best is None or cost < best[0]:
-                    best = (cost, cut)
-        return best[1] if best is not None else [box]
 
     def compute(self, box: Box, *, threads: int) -> dict:
         """``{KEY: samples}`` of output block ``box``, over ``threads`` threads."""
