@@ -174,18 +174,29 @@ def test_integer_valued_floats_are_candidates():
     assert not looks_like_labels(f)
 
 
-def test_a_float_with_fractions_is_read_no_further_than_its_first_box():
+def test_a_float_with_fractions_is_read_no_further_than_a_few_rows():
+    """A scan's fractions in the middle rows end the count before any box is read; where
+    those rows are integers (a background), no further than the first box with one."""
     reads = []
 
     class Source:
         shape, dtype = (64, 32, 32), np.dtype(np.float32)
 
-        def __getitem__(self, key):
-            reads.append(key)
-            return np.full((64, 32, 32), 0.5, np.float32)[key]
+        def __init__(self, data):
+            self.data = data
 
-    assert scan_labels(Source(), box_voxels=32 * 32 * 8) == (False, None, None)
-    assert len(reads) == 1
+        def __getitem__(self, key):
+            part = self.data[key]
+            reads.append(part.size)
+            return part
+
+    scan = np.full((64, 32, 32), 0.5, np.float32)
+    assert scan_labels(Source(scan), box_voxels=32 * 32 * 8) == (False, None, None)
+    assert reads == [16 * 32]  # (the middle plane's 16 central rows)
+    reads.clear()
+    scan[32] = 0.0  # the middle plane integers: the boxes decide, the first one here
+    assert scan_labels(Source(scan), box_voxels=32 * 32 * 8) == (False, None, None)
+    assert reads == [16 * 32, 32 * 32 * 8]
 
 
 # -- scans stay out -------------------------------------------------------------------------
