@@ -472,7 +472,7 @@ def test_rgba_template_channels_are_not_premultiplied(tmp_path):
     assert np.allclose(got[..., 0], 1.0) and np.allclose(got[..., 3], 64 / 255)
 
 
-def test_numba_root_finder_matches_companion_eigenvalues():
+def test_root_finder_matches_companion_eigenvalues():
     from volwarp_cli.sweep.direct import _bezier_candidates, bezier_candidates_eig
     from volwarp_cli.sweep.trajectory import Bezier
 

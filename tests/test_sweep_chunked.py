@@ -6,8 +6,7 @@ one thread give the same samples. Odd grid sizes (37 x 41 x 29, x y z) with
 block shapes that do not divide them, every method the CLI offers (voxelize,
 direct), single sweeps with every segment kind and a scene of CVG operators; the
 executor's blocks on a Dask threaded engine; random partitions (hypothesis);
-block tasks in parallel threads under numba's workqueue layer (which aborts on
-concurrent parallel kernels).
+block tasks in parallel threads (the C kernels release the GIL).
 """
 
 from __future__ import annotations
@@ -289,12 +288,11 @@ PARALLEL_SCRIPT = textwrap.dedent("""
 """)
 
 
-def test_block_tasks_run_in_parallel_threads_under_workqueue(tmp_path):
-    """Block tasks in two threads of their own overlap and give the whole grid's bits,
-    under numba's workqueue layer (which aborts when two threads run ``prange`` kernels:
-    the sweep's kernels are ``nogil`` ones, run over volwarp's threads)."""
-    env = dict(os.environ, NUMBA_THREADING_LAYER="workqueue", NUMBA_NUM_THREADS="2",
-               OPENBLAS_NUM_THREADS="1")
+def test_block_tasks_run_in_parallel_threads(tmp_path):
+    """Block tasks in two threads of their own overlap and give the whole grid's bits (the
+    kernels release the GIL; numba's ``prange`` kernels, before them, aborted under its
+    workqueue layer when two threads ran them at once)."""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     res = subprocess.run([sys.executable, "-c", PARALLEL_SCRIPT, str(ROOT),
                           str(Path(__file__).parent), str(tmp_path)],
                          env=env, capture_output=True, text=True, timeout=300)

@@ -102,9 +102,9 @@ def test_read_only_install_loads_the_install_kernels(shared_tmp):
                                cwd=shared_tmp, capture_output=True).returncode != 0:
         pytest.skip("the unprivileged user cannot run this interpreter (installed in a "
                     "private folder)")
-    # (command line, whether it loads numba kernels: the exact distance, the warp and apply
-    # are C; the sub-voxel distance, the mesh's statistics and renderer and the sweep's
-    # voxeliser are numba's)
+    # (command line, whether it loads numba kernels: the exact distance, the warp, apply and
+    # the sweep's voxeliser are C; the sub-voxel distance, the mesh's statistics and
+    # renderer and the sweep's ray caster (--render) are numba's)
     commands = [
         (["distance", inputs["mask"], "--iso", "100", "-o", str(out / "d.nrrd")], False),
         (["distance", inputs["blob"], "--iso", "50", "-o", str(out / "sdf.nrrd")], True),

@@ -3,7 +3,8 @@
 ``trajectory`` (segments a(u)), ``frames`` (direction, up, scale -> template
 frames), ``templates`` (images and image stacks on [0, 1]^2), ``voxelize``
 (adaptive subdivision, §4.2), ``direct`` (inverse mapping, §5.2-5.3),
-``cvg`` (real-domain operators, §4.3), ``model`` (the spec as objects).
+``cvg`` (real-domain operators, §4.3), ``model`` (the spec as objects),
+``_sweepkernels`` (the voxeliser's and the Bezier root finder's loops, in C).
 :func:`evaluate` runs a whole spec (one sweep or a scene tree) on a grid.
 """
 

@@ -25,9 +25,9 @@ at ``origin + spacing * (i, j, k)``, :func:`.voxelize.check_axis_aligned`),
 and for ``method: direct``, polyline segments and directions it cannot invert
 (:func:`.direct.check_direct`).
 
-Block tasks call the kernels in their own thread (numba ``nogil`` kernels,
-no ``prange``): a Dask scheduler runs tasks in threads of its own, and the
-parallelism is across blocks.
+Block tasks call the kernels in their own thread (C kernels that release
+the GIL, :mod:`._sweepkernels`): a Dask scheduler runs tasks in threads of
+its own, and the parallelism is across blocks.
 
 Nothing here imports dask: the executor (:mod:`volwarp_cli.execute`) runs the blocks.
 """

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 OPERATORS = ("union", "intersection", "difference", "blend", "sum", "first")
-#: operator -> code used by the numba voxeliser
+#: operator -> code used by the voxeliser's C kernel (:mod:`._sweepkernels`)
 OP_CODES = {name: i for i, name in enumerate(OPERATORS)}
 BLEND_FLOOR = 1e-6
 
@@ -131,7 +131,7 @@ class Accumulator:
     """Per-field ``eta`` accumulation of template instances (numpy; used by ``direct``).
 
     ``add`` takes one batch of instances at distinct flat voxel indices; the
-    numba voxeliser implements the same rules in its kernel.
+    voxeliser's C kernel (:mod:`._sweepkernels`) implements the same rules.
     """
 
     def __init__(self, names: list[str], ops: dict[str, str], n_voxels: int,

@@ -16,7 +16,7 @@ to every template instance whose plane contains it, ``[x, y, u] = rho^-1(p)``:
   ``2n - 1``. The paper cites Schneider's Bezier root finder; volwarp isolates
   the roots by the derivative chain (the roots of each derivative bracket the
   monotone pieces of the one below) and refines each by safeguarded Newton,
-  in a numba kernel (:func:`._kernels.real_roots_unit`); numpy's
+  in a C kernel (:func:`._sweepkernels.real_roots_unit`); numpy's
   companion-matrix eigenvalues (:func:`bezier_candidates_eig`) are the
   reference it is tested against. A root is *trivially rejected* when
   ``|v| > 0.5 sqrt(r_sx(u)^2 + r_sy(u)^2)`` (the template's circumscribed
@@ -149,7 +149,7 @@ def _bezier_candidates(seg: Bezier, p: np.ndarray, serial: bool = False) -> np.n
 
     ``serial``: in the calling thread only (a block task in a thread of its own).
     """
-    from ._kernels import real_roots_unit
+    from ._sweepkernels import real_roots_unit
 
     coef = np.ascontiguousarray(bezier_f_coefficients(seg, p))
     roots = np.empty((coef.shape[0], coef.shape[1] - 1))

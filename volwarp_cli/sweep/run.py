@@ -147,7 +147,11 @@ class SweepOperation(Operation):
         return cast_samples(scale_to_dtype(data, self.dtype), self.dtype, what=str(name))
 
     def load(self) -> None:
-        """The kernels on a 4^3 corner: numba's loaded code (over 100 MiB) counts in the budget."""
+        """The evaluation on a 4^3 corner, so the budget counts what the blocks load.
+
+        (The kernels are compiled C, :mod:`._sweepkernels`: a few tens of kB, loaded with
+        the module; what the corner loads besides is what the evaluation imports.)
+        """
         corner = Box((0, 0, 0), tuple(min(s, 4) for s in self.grid.shape))
         self.compute(corner, threads=1)
 

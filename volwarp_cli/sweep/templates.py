@@ -64,7 +64,7 @@ def sample_template(data: np.ndarray, x: np.ndarray, y: np.ndarray,
                     sl: np.ndarray | None = None) -> np.ndarray:
     """Bilinear (and linear-between-slices) sample of ``data[n, H, W]`` at (x, y[, slice]).
 
-    The numpy reference of the voxeliser's numba sampler (same conventions).
+    The numpy reference of the voxeliser's C sampler (same conventions).
     """
     n, h, w = data.shape
     cx = np.clip(np.asarray(x, dtype=np.float64) * w - 0.5, 0.0, w - 1)

@@ -180,8 +180,8 @@ def _joint(a: Frames, b: Frames, sl: np.ndarray, tau: float, what: str, fns):
 
 # -- the kernel ---------------------------------------------------------------------
 def _get_kernel():
-    """The voxelising kernel (numba, ``nogil``: z slices ``[zlo, zhi)`` per call)."""
-    from ._kernels import sweep_voxelize
+    """The voxelising kernel (C, releases the GIL: z slices ``[zlo, zhi)`` per call)."""
+    from ._sweepkernels import sweep_voxelize
 
     return sweep_voxelize
 
@@ -288,7 +288,8 @@ def _kernel_args(plan: VoxelPlan, grid: Geometry, box: Box):
     (the kernel tests every voxel of that range exactly; the clamp only skips
     voxels outside the block).
     """
-    origin, spacing = grid.origin_array, grid.spacing_array
+    origin = np.ascontiguousarray(grid.origin_array, dtype=np.float64)
+    spacing = np.ascontiguousarray(grid.spacing_array, dtype=np.float64)
     ilo = np.floor((plan.lo - origin) / spacing).astype(np.int64) - 1
     ihi = np.ceil((plan.hi - origin) / spacing).astype(np.int64) + 1
     blo_xyz, bhi_xyz = box.xyz()
