@@ -28,6 +28,7 @@ from hypothesis import strategies as st
 
 from volwarp_cli import parallel
 from volwarp_cli.box import Box
+from volwarp_cli.bspline import _warpkernels as K
 from volwarp_cli.bspline.pushforward import HeldPlanes
 from volwarp_cli.bspline.scene import Scene, Scratch
 from volwarp_cli.io import read_volume, write_volume
@@ -371,8 +372,6 @@ def test_a_label_warp_failing_midway_leaves_the_existing_output(run, data_dir, t
     """The ball (a 0/200 mask: a label map) fails in its third step of domain planes."""
     from pathlib import Path
 
-    from volwarp_cli.warp import _label_kernels as K
-
     out = tmp_path / "o.nrrd"
     out.write_bytes(b"an earlier result")
     calls = []
@@ -391,6 +390,273 @@ def test_a_label_warp_failing_midway_leaves_the_existing_output(run, data_dir, t
     assert len(calls) >= 3 and res.code == 1 and "memory" in res.stderr
     assert out.read_bytes() == b"an earlier result"
     assert [p.name for p in tmp_path.iterdir()] == ["o.nrrd"]
+
+
+# -- the C kernels themselves ---------------------------------------------------------------
+#
+# _warpkernels.scatter_labels and resolve_planes on blocks whose numbers are exact and known:
+# domain voxels = input voxels (k = 1), the deformation a translation by dyadic offsets (or
+# none: the still shortcut), so every box side, overlap and product is exact and each
+# label's weight at a target voxel can be written down here with numpy.
+
+_Q40 = 1 << 40
+
+
+def _kernel_args(codes, *, scale, off=(0.5, 1.25, 0.75), shift=(0.0, 0.0, 0.0), still=False,
+                 box=True, slots=1, pool_blocks=64, tile=4):
+    """``(args, target shape z y x)`` of a scatter_labels call on the whole block of ``codes``.
+
+    ``scale``, ``off``, ``shift``: x y z. The target: every voxel the boxes can reach, one
+    ring of all its planes.
+    """
+    nz, ny, nx = codes.shape
+    u = np.empty((3, nz + 2, ny + 2, nx + 2), np.float32)
+    for c in range(3):
+        u[c] = shift[c]
+    dom = (nx, ny, nz)
+    t = tuple(int(np.ceil(off[a] + scale[a] * dom[a] + abs(shift[a]) + scale[a])) + 2
+              for a in range(3))  # x y z
+    ring = t[2]
+    size = ring * t[1] * t[0]
+    need = np.ones([-(-n // tile) for n in codes.shape], np.uint8)
+    st = np.ones((1, 1, 1), np.uint8) if still else np.zeros((0, 0, 0), np.uint8)
+    args = [u, (0, 0, 0), np.ascontiguousarray(codes, np.int32), (0, 0, 0), 1, (0, 0, 0),
+            tuple(map(float, off)), tuple(map(float, scale)), (0, nx, 0, ny, 0, nz), box, 1.0,
+            st, dom, dom, (0, t[0], 0, t[1], 0, t[2]), ring, (0, 0), (t[1], t[0]),
+            np.zeros(size, np.int64), np.zeros(size * slots, np.int32),
+            np.zeros(size * slots, np.int64), np.full(size, -1, np.int32),
+            np.zeros(pool_blocks * (2 * slots + 1), np.int64), np.array([-1, 0, 0, 0], np.int64),
+            slots, need, tile, (0, 0)]
+    return args, t[::-1]
+
+
+def _expected_weights(codes, ncodes, tshape, *, scale, off=(0.5, 1.25, 0.75),
+                      shift=(0.0, 0.0, 0.0), box=True):
+    """``W[code, z, y, x]``: each code's weight (2**-40 units) by the box (or nearest) filter."""
+    from volwarp_cli.bspline.pushforward import ROUND
+
+    W = np.zeros((ncodes, *tshape), np.int64)
+    per_axis = []
+    for a in range(3):  # x, y, z: each voxel's overlaps with the target voxels along the axis
+        n = codes.shape[2 - a]
+        centre = off[a] + scale[a] * np.arange(n) + shift[a]
+        tv = np.arange(tshape[2 - a])
+        if box:
+            lo, hi = centre - scale[a] / 2, centre + scale[a] / 2
+            ov = np.clip(np.minimum(hi[:, None], tv + 0.5) - np.maximum(lo[:, None], tv - 0.5),
+                         0, None)
+        else:
+            ov = (np.floor(centre + ROUND)[:, None] == tv).astype(float)
+        per_axis.append(ov)
+    ox, oy, oz = per_axis
+    for (z, y, x), c in np.ndenumerate(codes):
+        w = (oz[z][:, None, None] * oy[y][None, :, None]) * ox[x][None, None, :]
+        W[c] += (w * _Q40).astype(np.int64)  # (exact: dyadic overlaps)
+    return W
+
+
+def _scatter_all(args):
+    """scatter_labels from the block's first row, the pool doubled whenever it stops."""
+    stops = 0
+    start = args[27]
+    while True:
+        start = K.scatter_labels(*args[:27], start)
+        if start[0] < 0:
+            return stops
+        stops += 1
+        args[22] = np.concatenate([args[22], np.zeros_like(args[22])])
+
+
+def _ring_weights(args, ncodes, tshape):
+    """``(wall, W[code, z, y, x])`` read from a ring (its slots and chains) as the kernel left it."""
+    wall, head_l, head_w, head_next, pool = args[18:23]
+    slots = args[24]
+    W = np.zeros((ncodes, int(np.prod(tshape))), np.int64)
+    hl, hw = head_l.reshape(-1, slots), head_w.reshape(-1, slots)
+    for t, j in zip(*np.nonzero(hl), strict=True):
+        assert W[hl[t, j], t] == 0  # (a label once a voxel)
+        W[hl[t, j], t] = hw[t, j]
+    stride = 2 * slots + 1
+    for t in np.flatnonzero(head_next >= 0):
+        assert (hl[t] != 0).all()  # (a chain only past full slots)
+        blk = head_next[t]
+        while blk >= 0:
+            b = pool[blk * stride:(blk + 1) * stride]
+            for j in range(slots):
+                if b[1 + j]:
+                    assert W[b[1 + j], t] == 0
+                    W[b[1 + j], t] = b[1 + slots + j]
+            blk = b[0]
+    return wall.reshape(tshape), W.reshape(ncodes, *tshape)
+
+
+def _resolve(args, ncodes, tshape, below):
+    z0, z1 = args[14][4], args[14][5]
+    out = np.full((z1 - z0, *tshape[1:]), -1, np.int32)
+    counts, total_hi, total_lo, peak_w = (np.zeros(ncodes, np.int64) for _ in range(4))
+    peak_at = np.zeros((ncodes, 3), np.int64)
+    K.resolve_planes(z0, z1, args[15], args[16], args[17], *args[18:24], args[24], below, out,
+                     counts, total_hi, total_lo, peak_w, peak_at)
+    return out, counts, (total_hi << 32) + total_lo, peak_w, peak_at
+
+
+KERNEL_CASES = [  # scale, shift (x y z), still, box
+    ((1.0, 1.0, 1.0), (0.25, -0.5, 0.125), False, True),     # narrow boxes
+    ((0.5, 0.5, 0.5), (0.375, 0.25, -0.125), False, True),   # an oversample of 2's
+    ((2.0, 1.5, 1.0), (0.125, 0.25, 0.5), False, True),      # wide boxes (splat)
+    ((0.5, 0.5, 0.5), (0.0, 0.0, 0.0), True, True),          # still voxels, narrow
+    ((2.0, 2.0, 0.5), (0.0, 0.0, 0.0), True, True),          # still voxels, wide
+    ((1.0, 0.5, 1.0), (0.0, -0.75, 0.5), False, False),      # nearest (ties: half voxels)
+]
+
+
+@pytest.mark.parametrize("scale, shift, still, box", KERNEL_CASES)
+@pytest.mark.parametrize("slots", [1, 3])
+def test_the_kernel_adds_each_labels_exact_weights(scale, shift, still, box, slots):
+    """Every label's weight at every target voxel, its slots and chains, the total weight,
+    then the winners, totals and peaks resolve_planes reads: as computed here."""
+    rng = np.random.default_rng(slots)
+    ncodes = 7
+    codes = rng.integers(0, ncodes, (5, 6, 7))
+    args, tshape = _kernel_args(codes, scale=scale, shift=shift, still=still, box=box,
+                                slots=slots)
+    _scatter_all(args)
+    W = _expected_weights(codes, ncodes, tshape, scale=scale, shift=shift, box=box)
+    wall, got = _ring_weights(args, ncodes, tshape)
+    assert np.array_equal(wall, W.sum(axis=0))
+    assert np.array_equal(got[1:], W[1:]) and not got[0].any()  # (the background: no slot)
+    if slots == 1:
+        assert args[23][2] > 0  # (chains taken: labels beyond the slots)
+    below = 4
+    out, counts, totals, peak_w, peak_at = _resolve(args, ncodes, tshape, below)
+    # the winner: the largest label weight (ties: the smaller code), against the background's
+    w_fg = W[1:].sum(axis=0)
+    w_b = np.maximum(W.sum(axis=0), _Q40) - w_fg
+    best = np.argmax(W[1:], axis=0) + 1
+    best_w = W[1:].max(axis=0)
+    wins = (best_w > 0) & ((best_w > w_b) | ((best_w == w_b) & (best < below)))
+    assert np.array_equal(out, np.where(wins, best, 0))
+    assert counts.tolist() == np.bincount(out.ravel(), minlength=ncodes).tolist()
+    assert totals[1:].tolist() == W[1:].reshape(ncodes - 1, -1).sum(axis=1).tolist()
+    for c in range(1, ncodes):
+        assert peak_w[c] == W[c].max()
+        assert tuple(peak_at[c]) == np.unravel_index(np.argmax(W[c]), tshape)
+    # the ring cleared for its next turn, the chains' blocks all back on the free list
+    assert not args[18].any() and not args[19].any() and (args[21] == -1).all()
+    assert args[23][3] == args[23][1]
+
+
+@pytest.mark.parametrize("slots", [1, 2])
+def test_a_tiny_pool_grows_to_the_same_weights(slots):
+    """From one block, the pool runs short mid-block: the kernel stops before a row, the
+    pool doubles and the kernel resumes there; the weights are those of a large pool."""
+    rng = np.random.default_rng(5)
+    codes = rng.integers(0, 30, (6, 7, 8))
+    kw = dict(scale=(1.5, 1.0, 2.0), shift=(0.25, 0.5, -0.25), slots=slots)
+    small, tshape = _kernel_args(codes, pool_blocks=1, **kw)
+    large, _ = _kernel_args(codes, pool_blocks=1 << 14, **kw)
+    assert _scatter_all(small) >= 3 and _scatter_all(large) == 0
+    assert small[23][2] == large[23][2] > 100  # (as many blocks taken)
+    a, b = _ring_weights(small, 30, tshape), _ring_weights(large, 30, tshape)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    for x, y in zip(_resolve(small, 30, tshape, 1), _resolve(large, 30, tshape, 1),
+                    strict=True):
+        assert np.array_equal(x, y)
+
+
+def _bad_scatter(mutate):
+    args, _ = _kernel_args(np.arange(60).reshape(3, 4, 5) % 4, scale=(1.0, 1.0, 1.0))
+    mutate(args)
+    return args
+
+
+@pytest.mark.parametrize("mutate, error", [
+    (lambda a: a.__setitem__(18, a[18][:-1]), ValueError),                 # wall short
+    (lambda a: a.__setitem__(19, a[19][:-1]), ValueError),                 # head_l short
+    (lambda a: a.__setitem__(21, a[21][:-1]), ValueError),                 # head_next short
+    (lambda a: a.__setitem__(19, a[19].astype(np.int64)), TypeError),      # head_l's type
+    (lambda a: a.__setitem__(0, a[0][:, :, :, :-1]), ValueError),          # u: not contiguous
+    (lambda a: a.__setitem__(0, np.ascontiguousarray(a[0][:, :-1])), ValueError),  # u short
+    (lambda a: a.__setitem__(2, np.ascontiguousarray(a[2][:, :, :-1])), ValueError),  # codes
+    (lambda a: a.__setitem__(25, np.ones((1, 1, 1), np.uint8)), ValueError),  # need short
+    (lambda a: a.__setitem__(11, np.ones((1, 2, 1), np.uint8)), ValueError),  # still regions
+    (lambda a: a.__setitem__(23, np.array([-1, 0, 0], np.int64)), ValueError),  # state
+    (lambda a: a.__setitem__(23, np.array([-1, 65, 0, 0], np.int64)), ValueError),  # used
+    (lambda a: a.__setitem__(23, np.array([64, 0, 0, 0], np.int64)), ValueError),  # free list
+    (lambda a: a.__setitem__(14, (0, a[17][1] + 1, 0, 2, 0, 2)), ValueError),  # clip > window
+    (lambda a: a.__setitem__(14, (0, 2, 0, 2, 0, a[15] + 1)), ValueError),  # clip > ring
+    (lambda a: a.__setitem__(8, (0, 6, 0, 4, 0, 3)), ValueError),          # block > domain
+    (lambda a: a.__setitem__(27, (5, 0)), ValueError),                     # start
+    (lambda a: a.__setitem__(24, 0), ValueError),                          # slots
+])
+def test_scatter_labels_refuses_a_bad_call(mutate, error):
+    args = _bad_scatter(mutate)
+    with pytest.raises(error):
+        K.scatter_labels(*args)
+
+
+def test_a_chain_leaving_the_pool_is_an_error_not_a_read():
+    args = _bad_scatter(lambda a: None)
+    args[19][:] = 99  # every voxel's slot taken by a code the block has not: chains
+    args[21][:] = 1000  # (beyond the pool's 64 blocks)
+    with pytest.raises(ValueError, match="pool"):
+        K.scatter_labels(*args)
+    args = _bad_scatter(lambda a: None)
+    args[21][:] = 1 << 30
+    with pytest.raises(ValueError, match="chain"):
+        _resolve(args, 4, (args[15], *args[17]), 1)
+    args = _bad_scatter(lambda a: None)
+    _scatter_all(args)
+    with pytest.raises(ValueError, match="code"):  # (codes up to 3, totals for 3)
+        _resolve(args, 3, (args[15], *args[17]), 1)
+
+
+def test_resolve_planes_refuses_a_bad_call():
+    args = _bad_scatter(lambda a: None)
+    _scatter_all(args)
+    tshape = (args[15], *args[17])
+    z0, z1 = args[14][4], args[14][5]
+
+    def call(out_shape=(z1 - z0, *tshape[1:]), n=4, z=(z0, z1), peak=3):
+        out = np.zeros(out_shape, np.int32)
+        v = [np.zeros(n, np.int64) for _ in range(4)]
+        K.resolve_planes(*z, args[15], args[16], args[17], *args[18:24], args[24], 1, out, *v,
+                         np.zeros((n, peak), np.int64))
+
+    with pytest.raises(ValueError):
+        call(out_shape=(z1 - z0 - 1, *tshape[1:]))  # out: a plane short
+    with pytest.raises(ValueError):
+        call(out_shape=(z1 - z0, tshape[1] - 1, tshape[2]))  # a row short
+    with pytest.raises(ValueError):
+        call(z=(z0, z0 + args[15] + 1))  # more planes than the ring's
+    with pytest.raises(ValueError):
+        call(z=(-1, 1))
+    with pytest.raises(ValueError):
+        call(peak=2)
+    call()  # (and the good call reads and clears it)
+    assert not args[18].any()
+
+
+def test_a_label_warp_imports_no_numba():
+    """The label warp's kernels are C: numba (0.4 s of a command to import) stays out."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from volwarp_cli.warp.labels import capture_labels, warp_labels\n"
+        "from volwarp_cli.bspline.scene import Scene\n"
+        "from volwarp_cli.volume import Volume\n"
+        "lab = np.zeros((10, 11, 12), np.uint8); lab[3:7, 2:8, 4:9] = 3; lab[5:9, 5:9, 5:9] = 7\n"
+        "for method in ('box', 'nearest'):\n"
+        "    cap = capture_labels(Volume(lab), lattice=(5, 5, 5), oversample=2)\n"
+        "    dq = cap.dq.copy(); dq[2, 2, 2] += (1.2, -0.7, 0.4)\n"
+        "    sc = Scene(cap.voxmap, cap.grid, dq, 2, method=method, domain_range=(0.0, 1.0))\n"
+        "    assert warp_labels(lab, sc).report['labels'][3]['output_voxels'] > 0\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('numba', 'llvmlite')))\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "[]"
 
 
 # -- by slabs: the in-memory bytes ------------------------------------------------------------

@@ -1,9 +1,8 @@
 """Compile and cache every numba kernel ahead: ``python -m volwarp_cli.warmup``.
 
 volwarp's numba kernels (the min-norm and line-metric distance passes, the sub-voxel
-distance, the sweep's voxeliser and root finder, the renderers, the mesh
-statistics and decimation, the warp's export loops, the papers' table
-evaluator) are compiled on their first call and cached on disk
+distance, the renderers, the mesh statistics and decimation, the warp's export
+loops, the papers' table evaluator) are compiled on their first call and cached on disk
 (``cache=True``): 3-7 s per kernel, paid inside a user's first real command or
 cron job on a fresh install. The warm-up pays it once, at install (``make
 install``, ``make demo`` and ``make test`` run it), or in a container image's
@@ -190,9 +189,7 @@ def command_lines(p: dict, out: str, chunked: bool) -> list[list[str]]:
             ["warp", p["blob"], "--spec", p["move"], "--jacobian-to", o("jac2.nrrd"),
              "--displacement-to", o("disp2.nrrd"), *t],
             ["warp", p["blob16"], "--spec", p["table"], "-o", o("wt.nrrd"), *t],
-            ["warp", p["labels"], "--spec", p["move"], "-o", o("wl.nrrd"), *t],
-            ["warp", p["labels"], "--spec", p["move"], "-o", o("wl.nrrd"),
-             "--preserve-labels", "--values", "labels", "--grid", "grow", *t],
+            # (a label map's warp is C: nothing to compile)
             # distance: exact between voxel centres, sub-voxel, labels, the line metrics,
             # the update of a moved field
             ["distance", p["mask"], "--iso", "100", "-o", o("d.nrrd"), *t],
@@ -217,13 +214,10 @@ def command_lines(p: dict, out: str, chunked: bool) -> list[list[str]]:
              "--render", o("m.png"), "--render-size", "64x48", "--turntable", "2", *t],
             ["mesh", p["blob"], "--iso", "50", "-o", o("m.stl"), "--json", *t],
             ["mesh", p["labels"], "--labels", "-o", o("ml_{label}.ply"), "--stats", *t],
-            # sweep: the voxeliser and the direct evaluation (the Bezier root finder); the
-            # ray caster
+            # sweep: its render's ray caster (the voxeliser and the direct evaluation are C)
             *[["sweep", p[k], "-o", o(k + "_{field}.nrrd"), "--spacing", "1",
                "--render", o(f"{k}.png"), "--render-size", "48x32", *t]
               for k in ("bezier", "arc", "line")],
-            *[["sweep", p[k], "-o", o(k + "d_{field}.nrrd"), "--spacing", "1",
-               "--method", "direct", *t] for k in ("bezier", "arc", "line")],
             # morph: both fields, the frames' surfaces and renders
             ["morph", "--spec", p["morph"], "-o", o("f_{i:02d}.nrrd"),
              "--mesh-to", o("f_{i:02d}.ply"), "--render-to", o("f_{i:02d}.png"),
@@ -241,7 +235,6 @@ def command_lines(p: dict, out: str, chunked: bool) -> list[list[str]]:
         runs += [
             ["warp", p["blob"], "--spec", p["move"], "-o", o("cw.nrrd"),
              "--jacobian-to", o("cjac.nrrd"), "--displacement-to", o("cdisp.nrrd"), *c],
-            ["warp", p["labels"], "--spec", p["move"], "-o", o("cwl.nrrd"), *c],
             ["distance", p["mask"], "--iso", "100", "-o", o("cd.nrrd"), *c],
             ["distance", p["blob"], "--iso", "50", "--max-distance", "4", "-o", o("cds.nrrd"),
              *c],

@@ -3,13 +3,15 @@
  * Why C and not numba like the rest of volwarp: `volwarp warp` is a one-shot
  * command whose whole run is about a second, and numba costs about half a
  * second of it before any work (its import, the LLVM start-up and loading each
- * cached kernel). These four kernels are all the warp and capture commands
- * need; compiled when the package is installed, they load in a millisecond.
+ * cached kernel). These kernels are all the warp and capture commands need,
+ * the label map's warp included (its one-pass scatter and the reading of its
+ * planes, at the end: the intensity scatter's helpers, a label's weights); compiled
+ * when the package is installed, they load in a millisecond.
  *
  * Every function takes buffers (numpy arrays; the wrappers are in pullback.py,
- * basis.py and pushforward.py), checks their types, shapes and index ranges
- * itself (a wrong call is a Python exception, never a stray write), and
- * releases the GIL while it runs, so the callers' threads share the work.
+ * basis.py, pushforward.py and warp/labels.py), checks their types, shapes and
+ * index ranges itself (a wrong call is a Python exception, never a stray read or
+ * write), and releases the GIL while it runs, so the callers' threads share the work.
  *
  * Built with -ffp-contract=off: no fused multiply-adds, so a voxel's values
  * are the same on every machine and whatever block it is computed in (the
@@ -1089,6 +1091,765 @@ fail:
     return NULL;
 }
 
+/* ------------------------------------------------------------- label maps */
+/* The one-pass label warp's loops (volwarp_cli/warp/labels.py, LabelStream): every
+ * domain voxel of a label map pushed forward once, each of its contributions added to
+ * the target voxel's total weight and to the weight of the voxel's own label there,
+ * so that every label's weights come out of one pass whatever the number of labels.
+ *
+ * Exact: a contribution is the integer (2**-40 of a voxel's weight) that scatter_run
+ * adds for the label's indicator, from the same helpers: row_boxes, row_spans,
+ * row_still, the still voxels' shortcut, the same products in the same order (BOX_SIDE,
+ * splat_narrow's and splat's overlaps, kv = (QUANTUM m, QUANTUM m inv_vmax) quantized
+ * by quantize2). Integer sums do not depend on their order, so each label's weight at
+ * a target voxel is the one a pass of the intensity scatter over that label's
+ * indicator gives, and the total weight the one of the whole map's pass.
+ *
+ * The ring: target plane z in slot z - rb (less ring from ring on, rb a multiple of
+ * ring), rows and columns from the window's (wy0, wx0): a voxel t has its total weight
+ * wall[t], `slots` (code, weight) pairs head_l/head_w[t * slots ...] and a chain
+ * head_next[t] of blocks of as many pairs more, from a pool shared by the ring (a
+ * junction of many labels, a noisy map: nothing is dropped). A pool block is
+ * (next, codes[slots], weights[slots]) int64s; state = (free list, blocks used,
+ * blocks ever taken, blocks free). The scatter never grows the pool (it is Python's
+ * array): before each row it checks that the pool holds a new block for every
+ * contribution of a label the row can make, and otherwise returns the row to resume
+ * from once the caller has grown it (a larger copy: block indices stay valid).
+ * resolve_planes reads finished planes (winners, per-label totals and peaks) and
+ * clears them, their chains back to the free list, for the ring's next turn.
+ *
+ * Label codes: 0 is the background (its voxels add to the total weight only), 1..n
+ * the other labels in increasing id order, so comparing codes compares ids.
+ *
+ * Every index read from a buffer (codes, chain links, the free list) is checked
+ * before use; a bad call or an inconsistent ring is a ValueError, never a stray
+ * access. The GIL is released: the label shares run in threads. */
+
+typedef struct {
+    int64_t *wall;      /* [ring * ny * nx] total weight */
+    int32_t *head_l;    /* [ring * ny * nx * slots] codes (0: free slot) */
+    int64_t *head_w;    /* and weights */
+    int32_t *head_next; /* [ring * ny * nx]: first chain block, -1 none */
+    int64_t *pool;      /* [blocks * (2 slots + 1)] */
+    int64_t *state;     /* free list, blocks used, blocks ever taken, blocks free */
+    Py_ssize_t blocks, stride;
+    int slots;
+    int bad; /* a chain link or the free list outside the pool (a bad call) */
+} LabelRing;
+
+/* floor(a / b) for b > 0, as Python's // */
+static inline Py_ssize_t floordiv(Py_ssize_t a, Py_ssize_t b)
+{
+    Py_ssize_t q = a / b;
+    return q - ((a % b) != 0 && a < 0);
+}
+
+/* Add q to label `code` of voxel t beyond its own slots: in its chain, else in a new
+ * block (from the free list, else from the pool's unused end). */
+static void chain_add(LabelRing *r, Py_ssize_t t, int32_t code, int64_t q)
+{
+    const Py_ssize_t slots = r->slots, stride = r->stride, blocks = r->blocks;
+    int64_t *pool = r->pool, *state = r->state;
+    int64_t c = r->head_next[t], prev = -1;
+    for (Py_ssize_t steps = 0; c >= 0; steps++) {
+        if (c >= blocks || steps >= blocks) {
+            r->bad = 1;
+            return;
+        }
+        int64_t *b = pool + c * stride;
+        for (Py_ssize_t s = 0; s < slots; s++) {
+            if (b[1 + s] == code) {
+                b[1 + slots + s] += q;
+                return;
+            }
+            if (b[1 + s] == 0) {
+                b[1 + s] = code;
+                b[1 + slots + s] = q;
+                return;
+            }
+        }
+        prev = c;
+        c = b[0];
+    }
+    int64_t blk;
+    if (state[0] >= 0) {
+        blk = state[0];
+        if (blk >= blocks) {
+            r->bad = 1;
+            return;
+        }
+        state[0] = pool[blk * stride];
+        state[3] -= 1;
+    } else {
+        blk = state[1];
+        if (blk < 0 || blk >= blocks) { /* (the row's room was checked: cannot happen) */
+            r->bad = 1;
+            return;
+        }
+        state[1] += 1;
+    }
+    state[2] += 1;
+    int64_t *b = pool + blk * stride;
+    b[0] = -1;
+    for (Py_ssize_t s = 0; s < slots; s++)
+        b[1 + s] = 0;
+    b[1] = code;
+    b[1 + slots] = q;
+    if (prev < 0)
+        r->head_next[t] = (int32_t)blk;
+    else
+        pool[prev * stride] = blk;
+}
+
+/* A label's weight q at target voxel t, in one of its slots or in its chain (a
+ * label's own pass adds no zero, so neither does this: no slot for it) */
+static inline void label_slot(LabelRing *r, Py_ssize_t t, int32_t code, int64_t q)
+{
+    if (q == 0)
+        return;
+    const int slots = r->slots;
+    int32_t *hl = r->head_l + t * slots;
+    int64_t *hw = r->head_w + t * slots;
+    for (int j = 0; j < slots; j++) {
+        if (hl[j] == code) {
+            hw[j] += q;
+            return;
+        }
+        if (hl[j] == 0) {
+            hl[j] = code;
+            hw[j] = q;
+            return;
+        }
+    }
+    chain_add(r, t, code, q);
+}
+
+/* Where target voxels lie in the ring: plane z in slot z - rb, less ring from ring on;
+ * rows and columns from (wy0, wx0). (Passed by value: kept in registers, not reloaded
+ * after every store into the ring.) */
+typedef struct {
+    Py_ssize_t ring, rb, ny, nx, wy0, wx0;
+} RingGeom;
+
+/* the ring index of target voxel (0, y, z): add x */
+static inline Py_ssize_t ring_row(RingGeom g, int64_t z, int64_t y)
+{
+    int64_t slot = z - g.rb;
+    slot = slot >= g.ring ? slot - g.ring : slot;
+    return (slot * g.ny + y - g.wy0) * g.nx - g.wx0;
+}
+
+/* One contribution to target voxel t: q[0] to its total weight, q[1] to its label's
+ * (code 0, the background: to the total only) */
+static inline void label_add(int64_t *restrict wall, LabelRing *r, Py_ssize_t t, int32_t code,
+                             v2i q)
+{
+    wall[t] += q[0];
+    if (code != 0)
+        label_slot(r, t, code, q[1]);
+}
+
+/* splat_narrow for a label: voxels [x0, x1] (x1 - x0 <= 1) with overlaps ax0, ax1, and
+ * likewise y and z; kv = (weight scale, label weight scale) */
+static inline void label_narrow(int64_t *restrict wall, LabelRing *r, RingGeom g,
+                                int32_t code, v2d kv, int64_t x0, int64_t x1, double ax0,
+                                double ax1, int64_t y0, int64_t y1, double ay0, double ay1,
+                                int64_t z0, int64_t z1, double az0, double az1)
+{
+    for (int64_t dz = 0; dz <= z1 - z0; dz++) {
+        const double wz = dz ? az1 : az0;
+        for (int64_t dy = 0; dy <= y1 - y0; dy++) {
+            const double wzy = wz * (dy ? ay1 : ay0);
+            const Py_ssize_t t = ring_row(g, z0 + dz, y0 + dy) + x0;
+            label_add(wall, r, t, code, quantize2(kv * (wzy * ax0)));
+            if (x1 > x0)
+                label_add(wall, r, t + 1, code, quantize2(kv * (wzy * ax1)));
+        }
+    }
+}
+
+/* splat for a label: a box over two voxels wide, its overlaps as they go */
+static void label_wide(int64_t *restrict wall, LabelRing *r, RingGeom g, int32_t code, v2d kv,
+                       const Span *x, const Span *y, const Span *z)
+{
+    for (int64_t tz = z->v0; tz <= z->v1; tz++) {
+        const double wz = MIN(z->hi, tz + 0.5) - MAX(z->lo, tz - 0.5);
+        for (int64_t ty = y->v0; ty <= y->v1; ty++) {
+            const double wzy = wz * (MIN(y->hi, ty + 0.5) - MAX(y->lo, ty - 0.5));
+            const Py_ssize_t row = ring_row(g, tz, ty);
+            for (int64_t tx = x->v0; tx <= x->v1; tx++)
+                label_add(wall, r, row + tx, code,
+                          quantize2(kv * (wzy * (MIN(x->hi, tx + 0.5) - MAX(x->lo, tx - 0.5)))));
+        }
+    }
+}
+
+typedef struct {
+    const float *u; /* deformation offsets, planar [3][nzb][nyb][nxb], one-voxel margin */
+    Py_ssize_t cs, nyb, nxb, ox, oy, oz;
+    const int32_t *codes; /* [cnz][cny][cnx]: input voxel (cx, cy, cz) first */
+    Py_ssize_t cny, cnx, cx, cy, cz, k, lead[3];
+    double off[3], scale[3];
+    Py_ssize_t lo[3], hi[3]; /* the block of domain voxels (x y z) */
+    int box;
+    double inv_vmax;
+    Scatter still; /* row_still's fields (still NULL: no still regions) */
+    Py_ssize_t tx0, tx1, ty0, ty1, tz0, tz1, ring, rb, wy0, wx0, ny, nx;
+    const unsigned char *need; /* [ntz][nty][ntx] tiles of `tile` input voxels */
+    Py_ssize_t nty, ntx, tile;
+    Py_ssize_t start_f, start_g, stop_f, stop_g;
+    LabelRing r;
+} LabelScatter;
+
+/* The pushforward of the block's rows from (start_f, start_g) on, rows in y order, each
+ * through the block's planes (the rows of one y reach the same few target rows, which
+ * stay in the cache while those of the next y, the oversample's, reach them too).
+ * Leaves stop_f = -1 when done, else the row it stopped before, untouched (the pool
+ * might not hold all that row can chain). Returns -1 when its row buffers could not be
+ * allocated. */
+static int label_scatter_run(LabelScatter *s)
+{
+    LabelRing *r = &s->r;
+    const Py_ssize_t e0 = s->lo[0], n = s->hi[0] - e0, g0 = s->lo[2], g1 = s->hi[2];
+    const Py_ssize_t f1 = s->hi[1], nzp = g1 - g0, k = s->k;
+    const Py_ssize_t tx0 = s->tx0, tx1 = s->tx1, ty0 = s->ty0, ty1 = s->ty1, tz0 = s->tz0,
+                     tz1 = s->tz1;
+    const Py_ssize_t sF = s->nxb, sG = s->nyb * s->nxb, cs = s->cs;
+    const double bx = s->off[0], sx = s->scale[0], sy = s->scale[1], sz = s->scale[2];
+    const double hx = 0.5 * sx, hy = 0.5 * sy, hz = 0.5 * sz;
+    const double inv_vmax = s->inv_vmax;
+    const int box = s->box, has_still = box && s->still.still != NULL;
+    const double det_still = sx * (sy * sz);
+    /* nearest: weight 1, as scatter_run's (kv times 1.0) */
+    const v2d kv_one = {QUANTUM, QUANTUM * (1.0 * inv_vmax)};
+    const v2i q_one = quantize2(kv_one * 1.0);
+    const RingGeom rg = {s->ring, s->rb, s->ny, s->nx, s->wy0, s->wx0};
+    int64_t *const wall = r->wall;
+    s->stop_f = s->stop_g = -1;
+    /* per column: 7 doubles of boxes, 6 of overlaps and 4 of the still x sides and
+     * overlaps; 6 int32 of spans, 2 of the still x spans, 2 of still regions; the input
+     * column and its tile; flags. Per plane: the still z sides, spans and overlaps. */
+    char *mem = malloc((size_t)n * (17 * sizeof(double) + 10 * sizeof(int32_t) +
+                                    2 * sizeof(Py_ssize_t) + 4) +
+                       (size_t)nzp * (4 * sizeof(double) + 2 * sizeof(int32_t)) + 64);
+    if (!mem)
+        return -1;
+    double *xmin = (double *)mem, *xmax = xmin + n, *ymin = xmin + 2 * n, *ymax = xmin + 3 * n,
+           *zmin = xmin + 4 * n, *zmax = xmin + 5 * n, *mass = xmin + 6 * n;
+    double *sa0[3] = {xmin + 7 * n, xmin + 8 * n, xmin + 9 * n};
+    double *sa1[3] = {xmin + 10 * n, xmin + 11 * n, xmin + 12 * n};
+    double *xs_lo = xmin + 13 * n, *xs_hi = xmin + 14 * n, *xs_w0 = xmin + 15 * n,
+           *xs_w1 = xmin + 16 * n;
+    double *zs_lo = xmin + 17 * n, *zs_hi = zs_lo + nzp, *zs_w0 = zs_lo + 2 * nzp,
+           *zs_w1 = zs_lo + 3 * nzp;
+    Py_ssize_t *xi = (Py_ssize_t *)(zs_lo + 4 * nzp), *xt = xi + n;
+    int32_t *sv0[3] = {(int32_t *)(xt + n), (int32_t *)(xt + n) + n, (int32_t *)(xt + n) + 2 * n};
+    int32_t *sv1[3] = {sv0[2] + n, sv0[2] + 2 * n, sv0[2] + 3 * n};
+    int32_t *xs_a = sv1[2] + n, *xs_b = xs_a + n, *ra = xs_b + n, *rb_ = ra + n;
+    int32_t *zs_a = rb_ + n, *zs_b = zs_a + nzp;
+    unsigned char *use = (unsigned char *)(zs_b + nzp), *fast = use + n, *reg = fast + n;
+    /* (reg: row_still's x regions, up to n + 2, last) */
+    memset(fast, 0, (size_t)n);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const Py_ssize_t e = e0 + i;
+        xi[i] = floordiv(e - s->lead[0], k) - s->cx;
+        xt[i] = floordiv(xi[i] + s->cx, s->tile);
+        const double base = bx + sx * (int32_t)e;
+        xs_lo[i] = -hx + base;
+        xs_hi[i] = hx + base;
+    }
+    if (has_still) {
+        const Py_ssize_t gx = s->still.gran[0], a0 = MAX(e0 - 1, 0) / gx;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            const Py_ssize_t e = e0 + i;
+            ra[i] = (int32_t)(MAX(e - 1, 0) / gx - a0);
+            rb_[i] = (int32_t)(MIN(e + 1, s->still.dvx - 1) / gx - a0);
+        }
+    }
+    /* the still voxels' x and z sides, spans and overlaps (base -/+ half a voxel) */
+    row_spans(xs_lo, xs_hi, n, (int32_t)tx0, (int32_t)tx1 - 1, xs_a, xs_b, xs_w0, xs_w1);
+    for (Py_ssize_t g = g0; g < g1; g++) {
+        const double bz = s->off[2] + sz * g;
+        zs_lo[g - g0] = -hz + bz;
+        zs_hi[g - g0] = hz + bz;
+    }
+    row_spans(zs_lo, zs_hi, nzp, (int32_t)tz0, (int32_t)tz1 - 1, zs_a, zs_b, zs_w0, zs_w1);
+    Py_ssize_t known[4] = {-1, -1, -1, -1}, nfast = 0;
+    for (Py_ssize_t f = s->start_f; f < f1 && !r->bad; f++) {
+        const double by = s->off[1] + sy * f;
+        const Py_ssize_t yi = floordiv(f - s->lead[1], k) - s->cy, fu = f - s->oy + 1;
+        const double ys_lo = -hy + by, ys_hi = hy + by;
+        int32_t ys_a, ys_b;
+        double ys_w0, ys_w1;
+        row_spans(&ys_lo, &ys_hi, 1, (int32_t)ty0, (int32_t)ty1 - 1, &ys_a, &ys_b, &ys_w0,
+                  &ys_w1);
+        const Span ystill = {ys_a, ys_b, ys_w0, ys_w1, ys_lo, ys_hi};
+        const double yw = ys_hi - ys_lo;
+        for (Py_ssize_t g = f == s->start_f ? s->start_g : g0; g < g1 && !r->bad; g++) {
+            const double bz = s->off[2] + sz * g;
+            const Py_ssize_t zi = floordiv(g - s->lead[2], k) - s->cz, gu = g - s->oz + 1;
+            const Py_ssize_t p_ = g - g0;
+            const unsigned char *row_need =
+                s->need + (floordiv(zi + s->cz, s->tile) * s->nty +
+                           floordiv(yi + s->cy, s->tile)) * s->ntx;
+            Py_ssize_t nuse = 0;
+            for (Py_ssize_t i = 0; i < n; i++) {
+                use[i] = row_need[xt[i]] != 0;
+                nuse += use[i];
+            }
+            if (nuse == 0)
+                continue; /* no voxel of the row can reach where a label lands */
+            const int32_t *row_codes = s->codes + (zi * s->cny + yi) * s->cnx;
+            if (has_still) { /* the voxels whose 3x3x3 neighbourhoods' regions are all still */
+                const Py_ssize_t cb[4] = {MAX(g - 1, 0) / s->still.gran[2],
+                                          MIN(g + 1, s->still.vz - 1) / s->still.gran[2],
+                                          MAX(f - 1, 0) / s->still.gran[1],
+                                          MIN(f + 1, s->still.dvy - 1) / s->still.gran[1]};
+                if (memcmp(cb, known, sizeof cb) != 0) {
+                    nfast = row_still(&s->still, 0, cb, ra, rb_, fast, reg);
+                    memcpy(known, cb, sizeof cb);
+                }
+            }
+            const float *u = s->u + (gu * s->nyb + fu) * s->nxb + e0 - s->ox + 1;
+            const Py_ssize_t free_blocks = r->blocks - r->state[1] + r->state[3];
+            if (!box) { /* nearest: map and round (ties down), weight 1 */
+                if (n > free_blocks) {
+                    s->stop_f = f;
+                    s->stop_g = g;
+                    break;
+                }
+                for (Py_ssize_t i = 0; i < n; i++) {
+                    if (!use[i])
+                        continue;
+                    const double x = bx + sx * (e0 + i) + u[i] + ROUND;
+                    const double y = by + u[cs + i] + ROUND;
+                    const double z = bz + u[2 * cs + i] + ROUND;
+                    /* (beyond 2**40: outside any target, and in ifloor's range) */
+                    if (!(fabs(x) < 0x1p40 && fabs(y) < 0x1p40 && fabs(z) < 0x1p40))
+                        continue;
+                    const int64_t ix = ifloor(x), iy = ifloor(y), iz = ifloor(z);
+                    if (ix < tx0 || iy < ty0 || iz < tz0 || ix >= tx1 || iy >= ty1 || iz >= tz1)
+                        continue;
+                    label_add(wall, r, ring_row(rg, iz, iy) + ix, row_codes[xi[i]], q_one);
+                }
+                continue;
+            }
+            /* phase 1: the general voxels' boxes (of each run of the row's voxels in needed
+             * tiles, those between its first and last general one) and spans */
+            for (Py_ssize_t i = 0; i < n;) {
+                if (!use[i]) {
+                    i++;
+                    continue;
+                }
+                Py_ssize_t i0 = i;
+                while (i < n && use[i])
+                    i++;
+                Py_ssize_t i1 = i;
+                if (nfast) {
+                    while (i0 < i1 && fast[i0])
+                        i0++;
+                    while (i1 > i0 && fast[i1 - 1])
+                        i1--;
+                }
+                if (i1 <= i0)
+                    continue;
+                const Py_ssize_t m = i1 - i0;
+                row_boxes(u + i0, u + cs + i0, u + 2 * cs + i0, sF, sG, e0 + i0, m, bx, by, bz,
+                          sx, sy, sz, xmin + i0, xmax + i0, ymin + i0, ymax + i0, zmin + i0,
+                          zmax + i0, mass + i0);
+                row_spans(xmin + i0, xmax + i0, m, (int32_t)tx0, (int32_t)tx1 - 1, sv0[0] + i0,
+                          sv1[0] + i0, sa0[0] + i0, sa1[0] + i0);
+                row_spans(ymin + i0, ymax + i0, m, (int32_t)ty0, (int32_t)ty1 - 1, sv0[1] + i0,
+                          sv1[1] + i0, sa0[1] + i0, sa1[1] + i0);
+                row_spans(zmin + i0, zmax + i0, m, (int32_t)tz0, (int32_t)tz1 - 1, sv0[2] + i0,
+                          sv1[2] + i0, sa0[2] + i0, sa1[2] + i0);
+            }
+            /* room in the pool for a new block per contribution of a label */
+            const Span zstill = {zs_a[p_], zs_b[p_], zs_w0[p_], zs_w1[p_], zs_lo[p_], zs_hi[p_]};
+            const int64_t nys = MAX(ystill.v1 - ystill.v0 + 1, 0),
+                          nzs = MAX(zstill.v1 - zstill.v0 + 1, 0);
+            int64_t room = 0;
+            for (Py_ssize_t i = 0; i < n && room <= free_blocks; i++) {
+                if (!use[i] || row_codes[xi[i]] == 0)
+                    continue;
+                if (nfast && fast[i])
+                    room += MAX(xs_b[i] - xs_a[i] + 1, 0) * nys * nzs;
+                else
+                    room += (int64_t)MAX(sv1[0][i] - sv0[0][i] + 1, 0) *
+                            MAX(sv1[1][i] - sv0[1][i] + 1, 0) * MAX(sv1[2][i] - sv0[2][i] + 1, 0);
+            }
+            if (room > free_blocks) {
+                s->stop_f = f;
+                s->stop_g = g;
+                break;
+            }
+            /* phase 2: the overlaps with the target voxels, accumulated (narrow spans, of at
+             * most two voxels, take the overlaps found above; wider ones compute them from
+             * the box's sides: the same numbers) */
+            const double zw = zstill.hi - zstill.lo;
+            for (Py_ssize_t i = 0; i < n; i++) {
+                if (!use[i])
+                    continue;
+                const int still = nfast && fast[i];
+                int64_t x0, x1, y0, y1, z0, z1;
+                double kq;
+                if (still) { /* a still voxel: its box the affine image (no u read) */
+                    x0 = xs_a[i], x1 = xs_b[i], y0 = ystill.v0, y1 = ystill.v1, z0 = zstill.v0,
+                    z1 = zstill.v1;
+                    /* (as row_boxes computes it from zero offsets) */
+                    kq = QUANTUM * (det_still / ((xs_hi[i] - xs_lo[i]) * yw * zw));
+                } else {
+                    x0 = sv0[0][i], x1 = sv1[0][i], y0 = sv0[1][i], y1 = sv1[1][i], z0 = sv0[2][i],
+                    z1 = sv1[2][i];
+                    kq = QUANTUM * mass[i];
+                }
+                if (x1 < x0 || y1 < y0 || z1 < z0)
+                    continue; /* (a degenerate box, or none of it in the window) */
+                const int32_t code = row_codes[xi[i]];
+                const v2d kv = {kq, kq * (1.0 * inv_vmax)};
+                if (x1 - x0 <= 1 && y1 - y0 <= 1 && z1 - z0 <= 1) { /* splat_narrow's case */
+                    if (still)
+                        label_narrow(wall, r, rg, code, kv, x0, x1, xs_w0[i], xs_w1[i], y0, y1,
+                                     ystill.a0, ystill.a1, z0, z1, zstill.a0, zstill.a1);
+                    else
+                        label_narrow(wall, r, rg, code, kv, x0, x1, sa0[0][i], sa1[0][i], y0, y1,
+                                     sa0[1][i], sa1[1][i], z0, z1, sa0[2][i], sa1[2][i]);
+                } else if (still) {
+                    const Span xs = {x0, x1, xs_w0[i], xs_w1[i], xs_lo[i], xs_hi[i]};
+                    label_wide(wall, r, rg, code, kv, &xs, &ystill, &zstill);
+                } else {
+                    const Span xs = {x0, x1, sa0[0][i], sa1[0][i], xmin[i], xmax[i]},
+                               ys = {y0, y1, sa0[1][i], sa1[1][i], ymin[i], ymax[i]},
+                               zs = {z0, z1, sa0[2][i], sa1[2][i], zmin[i], zmax[i]};
+                    label_wide(wall, r, rg, code, kv, &xs, &ys, &zs);
+                }
+            }
+        }
+        if (s->stop_f >= 0)
+            break;
+    }
+    free(mem);
+    return 0;
+}
+
+/* A buffer's length (1-D) is at least a * b * c (all >= 0) */
+static int holds(const Py_buffer *v, Py_ssize_t a, Py_ssize_t b, Py_ssize_t c)
+{
+    Py_ssize_t ab, abc;
+    return a >= 0 && b >= 0 && c >= 0 && !__builtin_mul_overflow(a, b, &ab) &&
+           !__builtin_mul_overflow(ab, c, &abc) && v->shape[0] >= abc;
+}
+
+/* The ring's buffers, checked: arguments wall, head_l, head_w, head_next, pool, state
+ * (b[0..5]) for `size` voxels of `slots` pairs */
+static int ring_of(Py_buffer *b, Py_ssize_t size, Py_ssize_t slots, LabelRing *r,
+                   const char *name)
+{
+    r->wall = b[0].buf;
+    r->head_l = b[1].buf;
+    r->head_w = b[2].buf;
+    r->head_next = b[3].buf;
+    r->pool = b[4].buf;
+    r->state = b[5].buf;
+    r->slots = (int)slots;
+    r->stride = 2 * slots + 1;
+    r->blocks = slots >= 1 && slots < 1 << 20 ? b[4].shape[0] / r->stride : 0;
+    r->bad = 0;
+    const int64_t *st = r->state;
+    if (slots < 1 || slots >= 1 << 20 || !holds(&b[0], size, 1, 1) ||
+        !holds(&b[1], size, slots, 1) || !holds(&b[2], size, slots, 1) ||
+        !holds(&b[3], size, 1, 1) || b[5].shape[0] != 4 || r->blocks > INT32_MAX ||
+        st[0] < -1 || st[0] >= r->blocks || st[1] < 0 || st[1] > r->blocks || st[3] < 0 ||
+        st[3] > st[1]) {
+        PyErr_Format(PyExc_ValueError, "%s: ring buffers, pool or state inconsistent", name);
+        return -1;
+    }
+    return 0;
+}
+
+static PyObject *py_scatter_labels(PyObject *self, PyObject *args)
+{
+    PyObject *o_u, *o_codes, *o_still, *o_need, *o_ring[6];
+    Py_buffer b[10];
+    int n = 0;
+    LabelScatter s;
+    memset(&s, 0, sizeof s);
+    Py_ssize_t clip[6], block[6], dom[3], gran[3], slots;
+    if (!PyArg_ParseTuple(args, "O(nnn)O(nnn)n(nnn)(ddd)(ddd)(nnnnnn)pdO(nnn)(nnn)(nnnnnn)n(nn)(nn)"
+                          "OOOOOOnOn(nn)",
+                          &o_u, &s.ox, &s.oy, &s.oz, &o_codes, &s.cx, &s.cy, &s.cz, &s.k,
+                          &s.lead[0], &s.lead[1], &s.lead[2], &s.off[0], &s.off[1], &s.off[2],
+                          &s.scale[0], &s.scale[1], &s.scale[2], &block[0], &block[1],
+                          &block[2], &block[3], &block[4], &block[5], &s.box, &s.inv_vmax,
+                          &o_still, &gran[0], &gran[1], &gran[2], &dom[0], &dom[1], &dom[2],
+                          &clip[0], &clip[1], &clip[2], &clip[3], &clip[4], &clip[5], &s.ring,
+                          &s.wy0, &s.wx0, &s.ny, &s.nx, &o_ring[0], &o_ring[1], &o_ring[2],
+                          &o_ring[3], &o_ring[4], &o_ring[5], &slots, &o_need, &s.tile,
+                          &s.start_f, &s.start_g))
+        return NULL;
+    static const int kinds[6] = {K_I64, K_I32, K_I64, K_I32, K_I64, K_I64};
+    static const char *names[6] = {"wall", "head_l", "head_w", "head_next", "pool", "state"};
+    if (get_buf(o_u, &b[n++], 0, K_F32, 4, "u") < 0 ||
+        get_buf(o_codes, &b[n++], 0, K_I32, 3, "codes") < 0 ||
+        get_buf(o_still, &b[n++], 0, K_U8, 3, "still") < 0 ||
+        get_buf(o_need, &b[n++], 0, K_U8, 3, "need") < 0) {
+        n--;
+        goto fail;
+    }
+    for (int j = 0; j < 6; j++)
+        if (get_buf(o_ring[j], &b[n++], 1, kinds[j], 1, names[j]) < 0) {
+            n--;
+            goto fail;
+        }
+    for (int j = 0; j < 3; j++) {
+        s.lo[j] = block[2 * j];
+        s.hi[j] = block[2 * j + 1];
+    }
+    s.tx0 = clip[0], s.tx1 = clip[1], s.ty0 = clip[2], s.ty1 = clip[3], s.tz0 = clip[4],
+    s.tz1 = clip[5];
+    if (s.lo[0] >= s.hi[0] || s.lo[1] >= s.hi[1] || s.lo[2] >= s.hi[2]) {
+        release_all(b, n); /* (an empty block: nothing to do) */
+        return Py_BuildValue("(nn)", (Py_ssize_t)-1, (Py_ssize_t)-1);
+    }
+    Py_ssize_t size;
+    int bad = s.ring < 1 || s.ny < 0 || s.nx < 0 || __builtin_mul_overflow(s.ring, s.ny, &size) ||
+              __builtin_mul_overflow(size, s.nx, &size);
+    if (bad || ring_of(&b[4], size, slots, &s.r, "scatter_labels") < 0) {
+        if (bad)
+            PyErr_SetString(PyExc_ValueError, "scatter_labels: bad ring shape");
+        goto fail;
+    }
+    const Py_buffer *bu = &b[0], *bc = &b[1], *bs = &b[2], *bn = &b[3];
+    s.u = bu->buf;
+    s.nyb = bu->shape[2];
+    s.nxb = bu->shape[3];
+    s.cs = bu->shape[1] * bu->shape[2] * bu->shape[3];
+    s.codes = bc->buf;
+    s.cny = bc->shape[1];
+    s.cnx = bc->shape[2];
+    s.need = bn->buf;
+    s.nty = bn->shape[1];
+    s.ntx = bn->shape[2];
+    const Py_ssize_t org[3] = {s.ox, s.oy, s.oz};
+    const Py_ssize_t ub[3] = {bu->shape[3], bu->shape[2], bu->shape[1]};
+    const Py_ssize_t cb[3] = {bc->shape[2], bc->shape[1], bc->shape[0]};
+    const Py_ssize_t corg[3] = {s.cx, s.cy, s.cz};
+    const Py_ssize_t nb[3] = {bn->shape[2], bn->shape[1], bn->shape[0]};
+    /* target voxels: the clip within the ring's rows, columns and planes, every index
+     * small enough for row_spans (int32, < 2**20) */
+    bad = bu->shape[0] != 3 || s.k < 1 || s.tile < 1 || s.tx0 < s.wx0 || s.tx1 < s.tx0 ||
+          s.tx1 > s.wx0 + s.nx || s.ty0 < s.wy0 || s.ty1 < s.ty0 || s.ty1 > s.wy0 + s.ny ||
+          s.tz0 < 0 || s.tz1 < s.tz0 || s.tz1 - s.tz0 > s.ring;
+    for (int j = 0; j < 6 && !bad; j++)
+        bad = clip[j] < 0 || clip[j] > (1 << 20) - 3;
+    /* the block within the domain, its offsets (with their one-voxel margin) in u, its
+     * input voxels in codes and their tiles in need */
+    for (int j = 0; j < 3 && !bad; j++) {
+        const Py_ssize_t i0 = floordiv(s.lo[j] - s.lead[j], s.k),
+                         i1 = floordiv(s.hi[j] - 1 - s.lead[j], s.k);
+        bad = s.lo[j] < 0 || s.hi[j] > dom[j] || s.lo[j] - org[j] < 0 ||
+              s.hi[j] - org[j] + 2 > ub[j] || i0 - corg[j] < 0 || i1 - corg[j] >= cb[j] ||
+              floordiv(i0, s.tile) < 0 || floordiv(i1, s.tile) >= nb[j];
+    }
+    /* the still regions tile the domain (regions * granularity = size) */
+    if (s.box && bs->shape[0] * bs->shape[1] * bs->shape[2] > 0) {
+        s.still.still = bs->buf;
+        for (int j = 0; j < 3; j++) {
+            s.still.regions[j] = bs->shape[2 - j];
+            s.still.gran[j] = gran[j];
+            bad = bad || gran[j] < 1 || s.still.regions[j] * gran[j] != dom[j];
+        }
+        s.still.lo[0] = s.lo[0];
+        s.still.hi[0] = s.hi[0];
+        s.still.dvx = dom[0];
+        s.still.dvy = dom[1];
+        s.still.vz = dom[2];
+    }
+    bad = bad || s.start_f < s.lo[1] || s.start_f > s.hi[1] || s.start_g < s.lo[2] ||
+          s.start_g > s.hi[2];
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError,
+                        "scatter_labels: block outside the domain or its buffers");
+        goto fail;
+    }
+    s.rb = s.tz0 - s.tz0 % s.ring;
+    int ok;
+    Py_BEGIN_ALLOW_THREADS
+    ok = label_scatter_run(&s);
+    Py_END_ALLOW_THREADS
+    if (ok < 0) {
+        PyErr_NoMemory();
+        goto fail;
+    }
+    if (s.r.bad) {
+        PyErr_SetString(PyExc_ValueError, "scatter_labels: a chain or the free list leaves the "
+                                          "pool (ring or state inconsistent)");
+        goto fail;
+    }
+    release_all(b, n);
+    return Py_BuildValue("(nn)", s.stop_f, s.stop_g);
+fail:
+    release_all(b, n);
+    return NULL;
+}
+
+typedef struct {
+    Py_ssize_t z0, z1, ring, wy0, wx0, ny, nx, oy, ox, ncodes, below;
+    int32_t *out;
+    int64_t *counts, *total_hi, *total_lo, *peak_w, *peak_at;
+    LabelRing r;
+} LabelResolve;
+
+/* One (code, weight) of a voxel (z, y, x): its label's total and peak, the voxel's best */
+static inline int resolve_one(LabelResolve *s, int64_t c, int64_t w, Py_ssize_t z, Py_ssize_t y,
+                              Py_ssize_t x, int64_t *w_fg, int64_t *best_w, int64_t *best)
+{
+    if (c < 1 || c >= s->ncodes)
+        return -1;
+    *w_fg += w;
+    s->total_lo[c] += w & (int64_t)0xFFFFFFFF;
+    s->total_hi[c] += w >> 32;
+    if (w > s->peak_w[c]) {
+        s->peak_w[c] = w;
+        s->peak_at[3 * c] = z;
+        s->peak_at[3 * c + 1] = y + s->wy0;
+        s->peak_at[3 * c + 2] = x + s->wx0;
+    }
+    if (w > *best_w || (w == *best_w && c < *best)) {
+        *best_w = w;
+        *best = c;
+    }
+    return 0;
+}
+
+/* Planes [z0, z1): each voxel's winner (largest weight, ties to the smaller code, the
+ * background competing with max(w, 1) - w_fg), each label's total and first voxel of
+ * largest weight; the planes cleared and their chains returned to the free list.
+ * Returns -1 on a code or chain link outside its range. */
+static int label_resolve_run(LabelResolve *s)
+{
+    LabelRing *r = &s->r;
+    const Py_ssize_t slots = r->slots, stride = r->stride, ny = s->ny, nx = s->nx;
+    int64_t *pool = r->pool, *state = r->state;
+    for (Py_ssize_t z = s->z0; z < s->z1; z++) {
+        const Py_ssize_t slot = z % s->ring;
+        for (Py_ssize_t y = 0; y < ny; y++) {
+            const Py_ssize_t row = (slot * ny + y) * nx;
+            int32_t *out = s->out + ((z - s->z0) * s->oy + y) * s->ox;
+            for (Py_ssize_t x = 0; x < nx; x++) {
+                const Py_ssize_t t = row + x;
+                const int64_t w_all = r->wall[t];
+                int64_t w_fg = 0, best_w = -1, best = 0;
+                r->wall[t] = 0;
+                int32_t *hl = r->head_l + t * slots;
+                const int64_t *hw = r->head_w + t * slots;
+                for (Py_ssize_t j = 0; j < slots && hl[j] != 0; j++) {
+                    if (resolve_one(s, hl[j], hw[j], z, y, x, &w_fg, &best_w, &best) < 0)
+                        return -1;
+                    hl[j] = 0;
+                }
+                int64_t blk = r->head_next[t];
+                r->head_next[t] = -1;
+                for (Py_ssize_t steps = 0; blk >= 0; steps++) {
+                    if (blk >= r->blocks || steps >= r->blocks)
+                        return -1;
+                    int64_t *b = pool + blk * stride;
+                    for (Py_ssize_t j = 0; j < slots && b[1 + j] != 0; j++)
+                        if (resolve_one(s, b[1 + j], b[1 + slots + j], z, y, x, &w_fg, &best_w,
+                                        &best) < 0)
+                            return -1;
+                    const int64_t next = b[0];
+                    b[0] = state[0]; /* (back to the free list) */
+                    state[0] = blk;
+                    state[3] += 1;
+                    blk = next;
+                }
+                const int64_t w_b = MAX(w_all, IQUANTUM) - w_fg;
+                if (best != 0 && !(best_w > w_b || (best_w == w_b && best < s->below)))
+                    best = 0;
+                out[x] = (int32_t)best;
+                s->counts[best] += 1;
+            }
+        }
+    }
+    return 0;
+}
+
+static PyObject *py_resolve_planes(PyObject *self, PyObject *args)
+{
+    PyObject *o_ring[6], *o_out, *o[5];
+    Py_buffer b[12];
+    int n = 0;
+    LabelResolve s;
+    memset(&s, 0, sizeof s);
+    Py_ssize_t slots;
+    if (!PyArg_ParseTuple(args, "nnn(nn)(nn)OOOOOOnnOOOOOO", &s.z0, &s.z1, &s.ring, &s.wy0,
+                          &s.wx0, &s.ny, &s.nx, &o_ring[0], &o_ring[1], &o_ring[2], &o_ring[3],
+                          &o_ring[4], &o_ring[5], &slots, &s.below, &o_out, &o[0], &o[1], &o[2],
+                          &o[3], &o[4]))
+        return NULL;
+    static const int kinds[6] = {K_I64, K_I32, K_I64, K_I32, K_I64, K_I64};
+    static const char *names[6] = {"wall", "head_l", "head_w", "head_next", "pool", "state"};
+    static const char *tnames[5] = {"counts", "total_hi", "total_lo", "peak_w", "peak_at"};
+    for (int j = 0; j < 6; j++)
+        if (get_buf(o_ring[j], &b[n++], 1, kinds[j], 1, names[j]) < 0) {
+            n--;
+            goto fail;
+        }
+    if (get_buf(o_out, &b[n++], 1, K_I32, 3, "out") < 0) {
+        n--;
+        goto fail;
+    }
+    for (int j = 0; j < 5; j++)
+        if (get_buf(o[j], &b[n++], 1, K_I64, j == 4 ? 2 : 1, tnames[j]) < 0) {
+            n--;
+            goto fail;
+        }
+    Py_ssize_t size;
+    int bad = s.ring < 1 || s.ny < 0 || s.nx < 0 || __builtin_mul_overflow(s.ring, s.ny, &size) ||
+              __builtin_mul_overflow(size, s.nx, &size);
+    if (bad || ring_of(b, size, slots, &s.r, "resolve_planes") < 0) {
+        if (bad)
+            PyErr_SetString(PyExc_ValueError, "resolve_planes: bad ring shape");
+        goto fail;
+    }
+    const Py_buffer *bo = &b[6];
+    s.out = bo->buf;
+    s.oy = bo->shape[1];
+    s.ox = bo->shape[2];
+    s.ncodes = b[7].shape[0];
+    s.counts = b[7].buf;
+    s.total_hi = b[8].buf;
+    s.total_lo = b[9].buf;
+    s.peak_w = b[10].buf;
+    s.peak_at = b[11].buf;
+    bad = s.z0 < 0 || s.z1 < s.z0 || s.z1 - s.z0 > s.ring || s.z1 - s.z0 > bo->shape[0] ||
+          s.oy < s.ny || s.ox < s.nx || s.ncodes < 1 || b[8].shape[0] != s.ncodes ||
+          b[9].shape[0] != s.ncodes || b[10].shape[0] != s.ncodes ||
+          b[11].shape[0] != s.ncodes || b[11].shape[1] != 3;
+    if (bad) {
+        PyErr_SetString(PyExc_ValueError, "resolve_planes: planes outside the ring or buffers "
+                                          "of other sizes");
+        goto fail;
+    }
+    int ok = 0;
+    if (s.z1 > s.z0) {
+        Py_BEGIN_ALLOW_THREADS
+        ok = label_resolve_run(&s);
+        Py_END_ALLOW_THREADS
+    }
+    if (ok < 0) {
+        PyErr_SetString(PyExc_ValueError, "resolve_planes: a label code or a chain outside "
+                                          "its range (ring or state inconsistent)");
+        goto fail;
+    }
+    release_all(b, n);
+    Py_RETURN_NONE;
+fail:
+    release_all(b, n);
+    return NULL;
+}
+
 static PyMethodDef methods[] = {
     {"sample", py_sample, METH_VARARGS,
      "sample(data, x0, x1, fx, y0, y1, fy, z0, z1, fz, out, g0, g1) -> (min, max) (indices "
@@ -1105,6 +1866,17 @@ static PyMethodDef methods[] = {
      "touched box (x0, y0, z0, x1, y1, z1), empty unless track: add a block's pushforward to "
      "the target voxels in the window (still: uint8 [npass, Rz, Ry, Rx], regions whose "
      "control points have zero offsets, or None)."},
+    {"scatter_labels", py_scatter_labels, METH_VARARGS,
+     "scatter_labels(u, origin, codes, codes_origin, k, lead, off, scale, block, box, inv_vmax, "
+     "still, granularity, domain, clip, ring, win_lo, win_shape, wall, head_l, head_w, "
+     "head_next, pool, state, slots, need, tile, start) -> (f, g): push a block of a label "
+     "map's domain voxels into the ring of target planes, every label's weights at once "
+     "(-1, -1 when done; else the row to resume from once the pool has grown)."},
+    {"resolve_planes", py_resolve_planes, METH_VARARGS,
+     "resolve_planes(z0, z1, ring, win_lo, win_shape, wall, head_l, head_w, head_next, pool, "
+     "state, slots, below, out, counts, total_hi, total_lo, peak_w, peak_at): the winning "
+     "label codes of the ring's finished planes, each label's total and peak weight; the "
+     "planes cleared."},
     {"finalize", py_finalize, METH_VARARGS,
      "finalize(acc, vmax, lo, hi, out, background, clear=False): accumulators to samples on "
      "a block (and, with clear, the block's accumulators back to zero)."},
@@ -1113,7 +1885,8 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_warpkernels",
-    "The warp's inner loops (pullback, separable spline, box pushforward, finalize) in C.", -1,
+    "The warp's inner loops (pullback, separable spline, box pushforward, finalize, the label "
+    "maps' one pass) in C.", -1,
     methods, NULL, NULL, NULL, NULL,
 };
 

@@ -9,7 +9,8 @@ output voxel instead, and the output voxel takes the label of largest weight:
   warp (:meth:`~volwarp_cli.bspline.scene.Scene.contribute`), read before the ``v / w``
   normalisation. Every label's at once, in one pass over the domain whatever
   the number of labels (:class:`LabelStream`): each domain voxel is pushed
-  forward once (:mod:`._label_kernels`, the C scatter's numbers to the bit)
+  forward once (``scatter_labels`` of ``bspline/_warpkernels.c``, the intensity
+  scatter's numbers to the bit, from the same helpers)
   and adds each contribution to the weight of its own label at the target
   voxel, held in a few (label, weight) slots beside it (a chain of more
   where more labels reach it: exact for any count); integer sums do not
@@ -332,7 +333,7 @@ _TABLE_IDS = 1 << 16
 
 
 class LabelCodes:
-    """A label map's ids as the label kernels' codes (:mod:`._label_kernels`), and back.
+    """A label map's ids as the label kernels' codes (``_warpkernels.scatter_labels``), and back.
 
     Code 0 is the ``background`` label, codes 1..n the map's other
     ``labels`` (ascending): comparing codes compares ids, and a code below
@@ -429,11 +430,10 @@ class LabelStream:
     every voxel). :meth:`run` streams the domain
     planes that can reach the share through a ring of its target planes
     (:func:`~volwarp_cli.bspline.reach.ring_planes`), each domain voxel pushed
-    once (:func:`._label_kernels.scatter_labels`), each plane resolved as
-    soon as no later domain plane can reach it
-    (:func:`._label_kernels.resolve_planes`). ``slots``: (label, weight) pairs
-    beside each ring voxel (:data:`SLOTS`; more labels reaching a voxel chain
-    blocks of as many: any count is exact).
+    once (``scatter_labels`` of ``bspline/_warpkernels.c``), each plane resolved
+    as soon as no later domain plane can reach it (its ``resolve_planes``).
+    ``slots``: (label, weight) pairs beside each ring voxel (:data:`SLOTS`;
+    more labels reaching a voxel chain blocks of as many: any count is exact).
     """
 
     def __init__(self, scene: Scene, dq, source, t_lo: int, t_hi: int, out, codes, *,
@@ -461,7 +461,7 @@ class LabelStream:
 
     def run(self) -> LabelTotals:
         """Fill ``out`` (the background where no label wins); the share's :class:`LabelTotals`."""
-        from ._label_kernels import resolve_planes
+        from ..bspline._warpkernels import resolve_planes
 
         codes, win = self.codes, self.window
         n = len(codes.labels) + 1
@@ -529,9 +529,9 @@ class LabelStream:
         the C scatter reads, here read by the label kernel.
         """
         from ..bspline import basis
+        from ..bspline._warpkernels import scatter_labels
         from ..bspline.pushforward import domain_faces, fill_halo, with_planes
         from ..bspline.scene import _to_evaluate
-        from ._label_kernels import scatter_labels
 
         sc, grid = self.scene, self.scene.grid
         dshape = grid.domain_shape
