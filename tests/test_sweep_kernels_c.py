@@ -168,6 +168,15 @@ def test_straight_sweep_is_the_analytic_box():
     assert np.all(a["acc"][1][~inside] == 0) and np.all(a["wsum"][~inside] == 0)
 
 
+def test_a_box_empty_in_x_is_skipped_whatever_its_y_range():
+    """A sub-segment whose box holds no voxel (x range empty) is not scanned row by row:
+    with 2**40 rows it returned at once (the review's hang), and wrote nothing."""
+    a = straight_sweep()
+    a["boxes"] = np.array([[5, 4, 0, 1 << 40, 0, 7]], np.int64)
+    call(a)
+    assert not a["covered"].any() and not a["acc"].any() and not a["wsum"].any()
+
+
 def turning_pair(ops, rng):
     """Two templates through the origin, the second turned 40 degrees about z: the square
     (4 x 3, centred on the axis) sweeps two opposite wedges, the ordinary one (sA >= 0 > sB)

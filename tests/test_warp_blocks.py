@@ -82,6 +82,28 @@ def test_slabs_along_z_equal_the_whole_for_any_lattice(seed, scale, slab, oversa
     assert np.array_equal(_by_blocks(scene, sampler, (slab, *whole.shape[1:])), full)
 
 
+def test_a_recipe_carries_its_planes_reach_to_the_tasks(monkeypatch):
+    """A block task's scene, rebuilt from a pickled recipe, takes the planes' reach the
+    command computed: no task computes it again (each did, 0.05-5 s a lattice)."""
+    from volwarp_cli.bspline import reach as reach_mod
+
+    data = _blob((30, 26, 28))
+    cap = capture_volume(Volume(data), lattice=(6, 6, 6), oversample=1.0)
+    scene = Scene(cap.domain, cap.grid, _general(cap, scale=2.0), 6,
+                  domain_range=cap.stats[:2])
+    recipe = pickle.loads(pickle.dumps(blocks.SceneRecipe(scene)))
+    calls = []
+    real = reach_mod.Reach.tight_planes
+    monkeypatch.setattr(reach_mod.Reach, "tight_planes",
+                        lambda self, *a, **k: calls.append(1) or real(self, *a, **k))
+    task = recipe.build(cap.domain)
+    box = Box((3, 0, 0), (14, *task.target_box.hi[1:]))
+    assert blocks.domain_box(task, box) == blocks.domain_box(scene, box)
+    assert calls == []
+    other = Scene(cap.domain, cap.grid, scene.dq, 6, domain_range=cap.stats[:2])
+    assert blocks.domain_box(other, box) == blocks.domain_box(scene, box) and calls == [1]
+
+
 def test_two_parts_cut_along_z_scatter_few_voxels_twice():
     """Every control point moved (N(0, 2 voxels), regions of 8 voxels): the two z halves
     of a two-thread warp scatter 1.7 times the whole's domain voxels by the control

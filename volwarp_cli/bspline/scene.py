@@ -421,15 +421,26 @@ class Scene:
     def tight_plane_reach(self, dq):
         """:meth:`.reach.Reach.tight_planes` of lattice ``dq`` (cached per lattice).
 
-        The label warp's shares and rings: a share's domain window is its
-        target planes' reach, which the control points' hull widened by the
-        whole drag again.
+        The warp's blocks and threads' parts, the label warp's shares and
+        rings: a part's domain window is its target planes' reach, which the
+        control points' hull widened by the whole drag again.
         """
         facts = self._facts(dq)
         with self._tight_lock:  # (the shares' threads ask at once: one computes it)
             if "tight planes" not in facts:
                 facts["tight planes"] = self.reach.tight_planes(dq, self._plane_reach([dq]))
         return facts["tight planes"]
+
+    def remember_tight_plane_reach(self, dq, planes) -> None:
+        """Take ``planes`` as :meth:`tight_plane_reach` of ``dq`` (computed by another process).
+
+        A block task's scene is rebuilt from a recipe
+        (:class:`~volwarp_cli.warp.blocks.SceneRecipe`) that carries it, so the
+        tasks do not each compute it again.
+        """
+        facts = self._facts(dq)
+        with self._tight_lock:
+            facts["tight planes"] = planes
 
     def _work(self, dqs, block: Box) -> float:
         """:func:`.work.scatter_work` of the domain voxels ``block``, one pass per lattice of ``dqs``."""

@@ -637,7 +637,8 @@ class LazySource:
     def __init__(self, path, *, raw=None, volume_index=None, array=None, dicom=None):
         from ..runscope import run_files
 
-        self.path = str(path)
+        # (absolute: a worker process, here or on another machine, may run elsewhere)
+        self.path = os.path.abspath(path)
         self.raw = raw
         self.volume_index = volume_index
         self.dicom = dicom

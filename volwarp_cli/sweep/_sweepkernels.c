@@ -324,8 +324,8 @@ static void voxelise(const Voxeliser *k)
     for (int64_t z = k->zlo; z < k->zhi; z++)
         for (Py_ssize_t s = 0; s < k->S; s++) {
             const int64_t *box = k->boxes + 6 * s;
-            if (z < box[4] || z > box[5])
-                continue;
+            if (z < box[4] || z > box[5] || box[0] > box[1])
+                continue; /* (a box empty in x holds no voxel, whatever its y range) */
             for (int64_t y = box[2]; y <= box[3]; y++)
                 scan_row(k, s, z, y, has_blend);
         }

@@ -9,7 +9,8 @@ memory (or ``--chunked``) runs many blocks on an engine
 1. the domain voxels whose images can reach the block,
    :func:`volwarp_cli.regions.warp_input` (the lattice's convex hull, region
    by region, never the block's corners mapped back, which under-bounds a
-   non-linear map);
+   non-linear map), their planes narrowed to those the deformation itself
+   can move into the block's (:func:`domain_box`);
 2. their samples, gathered from the input region they read
    (:class:`~volwarp_cli.bspline.pullback.BoxSampler`: the capture runs inside the task, the
    domain is never held);
@@ -23,9 +24,8 @@ block scatters, so the blocks put together equal the in-memory warp bit for
 bit. A voxel near a block's side is scattered by each block it reaches, which
 is the price of independent blocks (see :func:`block_work`): measured on a
 256^3 warp with every control point of a 9^3 lattice moved, the whole output
-on one thread is one block (no halo, within 5% of the former whole-target
-stream), on two threads four slabs scatter 1.42 times the domain voxels and
-took the stream's time (the halo's cost hidden by the balance it buys).
+on one thread is one block (no halo), on two threads two slabs along z
+scatter 1.02 times the domain voxels (:func:`least_time_cut`).
 
 Local updates (animations, ``--frames-to``) stay in memory: each frame's
 update reuses the previous frame's accumulators, which blocks do not keep.
@@ -177,13 +177,15 @@ def block_work(scene: Scene, blocks) -> float:
 class SceneRecipe:
     """What rebuilds a :class:`~volwarp_cli.bspline.scene.Scene` where block tasks run: all of it but its samples.
 
-    Picklable (the lattice is its only array): a task in another process
-    builds its own scene from it, with the domain it has there.
+    Picklable (the lattice and its planes' reach are its arrays): a task in
+    another process builds its own scene from it, with the domain it has there.
     """
 
     def __init__(self, scene: Scene):
         self.grid = scene.grid
         self.dq = scene.dq
+        # (its planes' reach, computed here once: each task's scene would compute it again)
+        self.tight_planes = scene.tight_plane_reach(scene.dq)
         self.pad = tuple(int(p) for p in scene.pad)
         self.method = scene.method
         self.evaluator = scene.evaluator
@@ -192,9 +194,11 @@ class SceneRecipe:
 
     def build(self, domain) -> Scene:
         """The scene over ``domain`` (a sampler, or a stand-in with only a shape)."""
-        return Scene(domain, self.grid, self.dq, self.pad, method=self.method,
-                     evaluator=self.evaluator, background=self.background,
-                     domain_range=(-self.vmax, self.vmax))
+        scene = Scene(domain, self.grid, self.dq, self.pad, method=self.method,
+                      evaluator=self.evaluator, background=self.background,
+                      domain_range=(-self.vmax, self.vmax))
+        scene.remember_tight_plane_reach(self.dq, self.tight_planes)
+        return scene
 
 
 class WarpOperation(Operation):
