@@ -217,3 +217,40 @@ def test_a_deferred_stops_timer_is_cancelled_once_the_work_is_over():
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                           timeout=60)
     assert proc.returncode == 0 and "no late raise" in proc.stdout, proc
+
+
+def test_a_stop_taken_by_another_thread_waits_for_the_blocked_section():
+    """The signal mask is the calling thread's: another thread takes the signal and
+    Python runs the handler in the main thread at its next bytecode, inside a blocked()
+    section (it raised in the middle of mkstemp: the file made, never registered, left
+    behind). The stop is raised when the section ends, and its temporaries go."""
+    script = (
+        "import os, signal, tempfile, threading, time\n"
+        "from volwarp_cli import signals\n"
+        "signals.install()\n"
+        "d = tempfile.mkdtemp()\n"
+        "go = threading.Event()\n"
+        "def other():\n"
+        "    go.wait()\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "t = threading.Thread(target=other)\n"
+        "t.start()\n"
+        "state = []\n"
+        "try:\n"
+        "    with signals.blocked():\n"
+        "        go.set()\n"
+        "        t.join()\n"
+        "        for _ in range(10000):\n"
+        "            pass\n"
+        "        time.sleep(0.05)\n"
+        "        fd, tmp = tempfile.mkstemp(dir=d)\n"
+        "        os.close(fd)\n"
+        "        signals.temporaries.add(tmp)\n"
+        "        state.append('section done')\n"
+        "except signals.Interrupted:\n"
+        "    state.append('raised after')\n"
+        "print(state, os.listdir(d))\n")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc
+    assert proc.stdout.strip() == "['section done', 'raised after'] []", proc.stdout
