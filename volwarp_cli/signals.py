@@ -116,14 +116,18 @@ def blocked():
     if threading.current_thread() is not threading.main_thread():
         yield  # Python runs its handlers in the main thread only
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK,
-                                 {signal.SIGINT, signal.SIGTERM, signal.SIGALRM})
+    # (counted before the mask is set and after it is restored: a handler running between
+    # the two calls, at a bytecode, only notes the stop, and the mask is always restored)
     _held_back[0] += 1
     try:
-        yield
+        old = signal.pthread_sigmask(signal.SIG_BLOCK,
+                                     {signal.SIGINT, signal.SIGTERM, signal.SIGALRM})
+        try:
+            yield
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
     finally:
         _held_back[0] -= 1
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
     if not _held_back[0] and _waiting[0]:
         _waiting[0] = False
         _remove_temporaries()
