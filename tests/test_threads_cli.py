@@ -3,6 +3,7 @@ on inputs large enough that the work is split over the threads."""
 
 from __future__ import annotations
 
+import itertools
 import os
 import threading
 from pathlib import Path
@@ -204,13 +205,21 @@ def test_numba_kernels_run_on_the_commands_threads(run, inputs, tmp_path, monkey
     threads at once, and the PNG or field is the one thread's."""
     seen, idents = [], set()
     real = parallel.run_blocks
+    # The first three tasks of a 3-thread split wait for each other: they can only
+    # meet if they run at once (a pool reusing an idle thread would time out here).
+    together = threading.Barrier(3, timeout=20)
+    started = itertools.count()
 
     def spy(task, blocks, n=None):
         blocks = list(blocks)
         seen.append((n, len(blocks)))
+        meet = n == 3 and len(blocks) >= 3
 
         def tracked(b):
-            idents.add(threading.get_ident())
+            if meet:
+                idents.add(threading.get_ident())
+            if meet and next(started) < 3:
+                together.wait()
             return task(b)
 
         return real(tracked, blocks, n)
@@ -230,4 +239,5 @@ def test_numba_kernels_run_on_the_commands_threads(run, inputs, tmp_path, monkey
                     else Path(str(out)))
     assert outs[0].read_bytes() == outs[1].read_bytes()
     assert any(n == 3 and k > 1 for n, k in seen)  # the kernels' ranges were split
-    assert len(idents) >= 3  # in threads of their own (the main thread runs none)
+    assert next(started) >= 3  # three tasks met at the barrier: three threads at once
+    assert len(idents) >= 3 and threading.get_ident() not in idents  # the split runs none on the main thread
