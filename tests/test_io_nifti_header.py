@@ -402,3 +402,28 @@ def test_nifti_is_read_without_pydicom_and_a_dicom_extension_is_left_alone(tmp_p
             "pydicom.dcmread(get_testdata_file('CT_small.dcm'))\n")
     subprocess.run([sys.executable, "-c", code], check=True)
     assert np.array_equal(read_volume(tmp_path / "o.nrrd").data, data)
+
+
+def test_nifti_command_leaves_urllib_request_to_its_first_use(tmp_path):
+    """nibabel imports urllib.request (and http.client, ssl, email) for ``from_url`` only:
+    a NIfTI command runs none of them, and the module still works when used after."""
+    import subprocess
+    import sys
+
+    data = ball(10).astype(np.int16)
+    nib.save(nib.Nifti1Image(data.transpose(2, 1, 0), np.eye(4)), str(tmp_path / "b.nii.gz"))
+    code = ("import sys\n"
+            "from volwarp_cli.cli.main import main\n"
+            f"assert main(['convert', r'{tmp_path / 'b.nii.gz'}', '-o',"
+            f" r'{tmp_path / 'o.nii'}']) == 0\n"
+            "loaded = [m for m in ('http.client', 'ssl', 'email.parser') if m in sys.modules]\n"
+            "assert not loaded, loaded\n"
+            "import nibabel.filebasedimages as fbi\n"
+            "from urllib.request import Request, urlopen\n"  # (its code runs now)
+            "assert 'http.client' in sys.modules\n"
+            "assert fbi.request.urlopen is urlopen and Request('http://x/').host == 'x'\n"
+            "import urllib.request\n"
+            f"assert urllib.request.urlopen(r'{(tmp_path / 'b.nii.gz').as_uri()}').read(2)"
+            " == b'\\x1f\\x8b'\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+    assert np.array_equal(read_volume(tmp_path / "o.nii").data, data)

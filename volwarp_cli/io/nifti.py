@@ -444,18 +444,55 @@ class _NoPydicomForNibabel:
         return None
 
 
+def _lazy_module(name: str) -> None:
+    """Module ``name`` put in ``sys.modules`` now, its code run at its first attribute's use.
+
+    (:class:`importlib.util.LazyLoader`.) Its parent package gets it as an
+    attribute, so ``from urllib import request`` takes it as it is; any use
+    of it (an attribute, another ``import``) runs its code then, so nothing
+    changes for a caller that needs it.
+    """
+    import importlib.util
+
+    spec = importlib.util.find_spec(name)
+    if spec is None or spec.loader is None:
+        return
+    spec.loader = importlib.util.LazyLoader(spec.loader)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    parent, _, child = name.rpartition(".")
+    if parent:
+        setattr(sys.modules[parent], child, module)
+
+
 def nibabel():
-    """The nibabel module, imported without pydicom (:class:`_NoPydicomForNibabel`)."""
-    module = sys.modules.get("nibabel")
-    if module is not None:
-        return module
-    finder = _NoPydicomForNibabel()
-    sys.meta_path.insert(0, finder)
-    try:
-        import nibabel as module
-    finally:
-        sys.meta_path.remove(finder)
-    return module
+    """The nibabel module, imported without pydicom (:class:`_NoPydicomForNibabel`).
+
+    And without running ``urllib.request``: nibabel imports it for
+    ``from_url`` only, and with it ``http.client``, ``ssl`` and ``email``
+    (17-47 ms of every NIfTI command); it is left to load at its first use.
+    """
+    if _nibabel:
+        return _nibabel[0]
+    with _NIBABEL_LOCK:  # (a thread reading an input beside another reading a field)
+        if not _nibabel:
+            if "urllib.request" not in sys.modules:
+                _lazy_module("urllib.request")
+            finder = _NoPydicomForNibabel()
+            sys.meta_path.insert(0, finder)
+            try:
+                import nibabel as module
+            finally:
+                sys.meta_path.remove(finder)
+            _nibabel.append(module)
+    return _nibabel[0]
+
+
+#: the nibabel module once :func:`nibabel` has imported it whole (``sys.modules`` holds
+#: it from the start of its import: another thread would find it half made there)
+_nibabel: list = []
+_NIBABEL_LOCK = threading.Lock()
 
 
 def open_nifti(path: str | os.PathLike) -> NiftiFile:
