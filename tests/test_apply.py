@@ -161,6 +161,28 @@ def test_resample_matches_simpleitk(run, scene, interp):
     assert np.count_nonzero(ours) > 0.5 * ours.size  # (the comparison is not of backgrounds)
 
 
+def test_nifti_input_read_beside_a_nifti_field_in_a_fresh_process(scene):
+    """The input (and its label scan) is read in a thread beside the transforms: with
+    NIfTI files on both sides, both threads import nibabel at once in a new process
+    (a half-imported module was found once); the result is SimpleITK's."""
+    import subprocess
+    import sys
+
+    d, vol, expect = scene
+    sitk.WriteImage(to_sitk(vol), str(d / "in.nii.gz"))
+    sitk.WriteImage(sitk.ReadImage(str(d / "ref.nrrd")), str(d / "ref.nii.gz"))
+    for k in range(2):
+        res = subprocess.run([sys.executable, "-m", "volwarp_cli", "apply", d / "in.nii.gz",
+                              "-o", d / f"out{k}.nrrd", "--reference", d / "ref.nii.gz",
+                              "-t", d / "f.nii.gz", "-t", d / "a.tfm", "--threads", "2",
+                              "--background-value", "0", "--dtype", "float64"],
+                             capture_output=True, text=True)
+        assert res.returncode == 0 and res.stderr == "", res.stderr
+        ours = read_volume(d / f"out{k}.nrrd").data
+        span = float(vol.data.max() - vol.data.min())
+        assert np.abs(ours - expect(sitk.sitkLinear)).max() <= 1e-4 * span
+
+
 def test_wrong_order_fails_the_comparison(run, scene):
     """Two non-commuting transforms: the order listed is the order they act on a point."""
     d, vol, expect = scene

@@ -199,6 +199,29 @@ def test_run_ranges_covers_every_index_once(length, n, parts):
     assert np.all(hits == 1)
 
 
+def test_beside_runs_in_a_thread_of_its_own_in_the_callers_context():
+    """parallel.beside: another thread with two or more threads, this one with one; the
+    caller's thread count goes with it; an error is raised by result(), not at the start."""
+    seen = []
+
+    def job(x):
+        seen.append((threading.get_ident(), parallel.threads()))
+        if x < 0:
+            raise ValueError("negative")
+        return 2 * x
+
+    with parallel.use_threads(3):
+        assert parallel.beside(job, 21).result(timeout=30) == 42
+        failed = parallel.beside(job, -1)
+        with pytest.raises(ValueError, match="negative"):
+            failed.result(timeout=30)
+    with parallel.use_threads(1):
+        assert parallel.beside(job, 4).result() == 8
+    main = threading.get_ident()
+    assert [t == main for t, _ in seen] == [False, False, True]
+    assert [n for _, n in seen] == [3, 3, 1]
+
+
 @pytest.mark.parametrize("command", ["distance", "sweep-render", "subvoxel"])
 def test_numba_kernels_run_on_the_commands_threads(run, inputs, tmp_path, monkeypatch, command):
     """The numba kernels (no prange pool) split their ranges over --threads, in that many

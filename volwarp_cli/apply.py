@@ -35,6 +35,7 @@ range).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -378,49 +379,87 @@ def _windowed(op) -> bool:
     return getattr(op, "source", None) is not None and getattr(op, "vectors", 0) is None
 
 
+@dataclass(frozen=True)
+class Sampling:
+    """How an input's samples are taken (:func:`choose_sampling`): its values, interpolation, background.
+
+    ``choice``: the label rule's :class:`~volwarp_cli.warp.defaults.ValuesChoice`;
+    ``background_ruled``: the background is the input's border (not given).
+    """
+
+    choice: object
+    interpolation: str
+    background: float
+    background_ruled: bool
+
+    def say(self) -> None:
+        """The choices, for ``-v`` (and the warning of labels asked on a scan, once)."""
+        from .progress import log
+
+        if self.choice.warning:
+            log.warning("%s", self.choice.warning)
+        log.info("%s", self.choice.describe())
+        if self.background_ruled:
+            log.info("background: %g (the input's border)", self.background)
+
+
+def choose_sampling(source, *, interpolation: str | None = None, values: str | None = None,
+                    background: float | None = None, name: str = "the input") -> Sampling:
+    """How ``source``'s samples are resampled: read-only, the input alone decides it.
+
+    Labels or intensities by ``values``, else by the label-map rule
+    (:func:`volwarp_cli.warp.defaults.choose_values`): a label map is
+    resampled by nearest neighbour (another interpolation is a
+    :class:`~volwarp_cli.errors.BadUsage`); ``background`` by default the
+    input's border (its most frequent label, or its median sample). Says
+    nothing (:meth:`Sampling.say`): a command may run it beside its reading
+    of the transforms.
+    """
+    from .warp.defaults import choose_values
+
+    choice = choose_values(source, values, name=name)
+    if choice.is_labels and interpolation not in (None, "nearest"):
+        raise BadUsage(label_interpolation_refusal(name, choice, interpolation))
+    method = interpolation or ("nearest" if choice.is_labels else "linear")
+    ruled = background is None
+    if ruled:
+        background = default_background(source, choice.is_labels)
+    return Sampling(choice, method, float(background), ruled)
+
+
 def plan_resample(header, source, chain: Chain, reference=None, *,
                   interpolation: str | None = None, values: str | None = None,
                   background: float | None = None, dtype=None,
-                  name: str = "the input") -> ApplyOperation:
+                  name: str = "the input", sampling: Sampling | None = None) -> ApplyOperation:
     """The resampling of an input through ``chain``, its defaults chosen (an operation).
 
     ``header``, ``source``: the input's :class:`~volwarp_cli.volume.Header`
     and its samples, sliceable; ``reference``: the output grid's Header (or
     Volume; default: the chain's own grid, an elastix file's, else the
-    input's). Labels or intensities by ``values``, else by the label-map
-    rule (:func:`volwarp_cli.warp.defaults.choose_values`, said at ``-v``): a
-    label map is resampled by nearest neighbour (another interpolation is a
-    :class:`~volwarp_cli.errors.BadUsage`); ``background`` by default the
-    input's border (its most frequent label, or its median sample); the output
-    in the input's type unless ``dtype``. The field's coverage of the grid is
-    checked here, before any work. The target is an output at no path
-    (the input's header on the grid): the caller gives it its path and options.
+    input's). ``interpolation``, ``values``, ``background``: as
+    :func:`choose_sampling` (said at ``-v``), unless ``sampling`` gives its
+    result already; the output in the input's type unless ``dtype``. The
+    field's coverage of the grid is checked here, before any work. The
+    target is an output at no path (the input's header on the grid): the
+    caller gives it its path and options.
     """
     from .execute import Target
     from .geometry import Geometry
-    from .progress import log
-    from .warp.defaults import choose_values
 
     in_grid = Geometry.of(header)
     grid = Geometry.of(reference) if reference is not None else (
         in_grid if chain.grid is None else chain.grid)
     check_coverage(chain, grid)
-    choice = choose_values(source, values, name=name)
-    if choice.warning:
-        log.warning("%s", choice.warning)
-    log.info("%s", choice.describe())
-    if choice.is_labels and interpolation not in (None, "nearest"):
-        raise BadUsage(label_interpolation_refusal(name, choice, interpolation))
-    method = interpolation or ("nearest" if choice.is_labels else "linear")
-    if background is None:
-        background = default_background(source, choice.is_labels)
-        log.info("background: %g (the input's border)", background)
+    if sampling is None:
+        sampling = choose_sampling(source, interpolation=interpolation, values=values,
+                                   background=background, name=name)
+    sampling.say()
     out_dtype = np.dtype(dtype or source.dtype)
     out = header.replace(shape=grid.shape, dtype=out_dtype, spacing=np.array(grid.spacing),
                          origin=np.array(grid.origin), direction=np.array(grid.direction))
-    return ApplyOperation(source, in_grid, chain, grid, interpolation=method,
-                          background=background, target=Target(None, out, out_dtype),
-                          name=name)
+    return ApplyOperation(source, in_grid, chain, grid, interpolation=sampling.interpolation,
+                          background=sampling.background,
+                          target=Target(None, out, out_dtype), name=name)
 
 
 def label_interpolation_refusal(name: str, choice, interpolation: str) -> str:

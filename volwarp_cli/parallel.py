@@ -262,3 +262,37 @@ def run_split(job_for, lo_z: int, hi_z: int, work: int) -> list:
         return [job_for(lo_z, hi_z).run()]
     edges = cuts(lo_z, hi_z, parts)
     return run_blocks(lambda i: job_for(edges[i], edges[i + 1]).run(), range(len(edges) - 1))
+
+
+def beside(fn: Callable, *args):
+    """Start ``fn(*args)`` in a thread of its own while the caller goes on: its ``Future``.
+
+    For work that waits on other things than the GIL (an input's reading and
+    its label scan while the transforms' files inflate), in a copy of the
+    caller's context (its run, budget and thread count). With one thread
+    (:func:`threads`) it runs here, now; its error, if any, is then raised by
+    ``result()`` as from the thread (a stop is raised at once).
+    """
+    import threading
+    from concurrent.futures import Future
+
+    future: Future = Future()
+
+    def run() -> None:
+        if not future.set_running_or_notify_cancel():
+            return
+        try:
+            future.set_result(fn(*args))
+        except BaseException as exc:  # (raised where the caller asks for the result)
+            future.set_exception(exc)
+
+    if threads() <= 1:
+        future.set_running_or_notify_cancel()
+        try:
+            future.set_result(fn(*args))
+        except Exception as exc:
+            future.set_exception(exc)
+        return future
+    threading.Thread(target=contextvars.copy_context().run, args=(run,), daemon=True,
+                     name="volwarp-beside").start()
+    return future

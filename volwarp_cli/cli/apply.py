@@ -114,6 +114,9 @@ def command(input, output, transforms, reference, interpolation, values, labels,
     content into the output space. A label map (as `volwarp info` hints) is
     resampled by nearest neighbour: it gains no value. -v prints the choices.
     """
+    from concurrent.futures import wait
+
+    from ..parallel import beside
     from ..transforms import read_chain
 
     if (points_in is None) != (points_to is None):
@@ -137,17 +140,29 @@ def command(input, output, transforms, reference, interpolation, values, labels,
         check_output_path(output, option="-o")
     points = _points(points_in, points_to)
     mesh = _mesh(mesh_in, mesh_to)
-    with timed("read the transforms"):
-        chain = read_chain(transforms)
+    prepared = None
+    if input is not None:  # (read beside the transforms: a field inflates without the GIL)
+        prepared = beside(_prepare_input, input, reference, (raw, volume_index, dicom),
+                          dict(interpolation=interpolation, values=given,
+                               background=background))
+    try:
+        with timed("read the transforms"):
+            chain = read_chain(transforms)
+    except Exception:  # (the transforms' error is said; the input's reading ends first)
+        if prepared is not None:
+            wait([prepared])
+        raise
     log.info("chain: %s", " -> ".join(s.name for s in chain.steps))
     for note in chain.notes:
         log.info("%s", note)
-    if input is not None:
-        _resample(input, output, chain, reference,
-                  dict(interpolation=interpolation, values=given, background=background,
-                       dtype=dtype),
+    if prepared is not None:
+        try:
+            ready = prepared.result()
+        except BadUsage as exc:
+            raise click.UsageError(str(exc)) from None
+        _resample(input, output, chain, ready, dtype,
                   dict(compress=compress, byte_order=byte_order, **ome_zarr),
-                  (raw, volume_index, dicom), [t.path for t in transforms])
+                  [t.path for t in transforms])
     if points is not None or mesh is not None:
         from ..apply import move_mesh, move_points
 
@@ -189,20 +204,32 @@ def _mesh(mesh_in, mesh_to):
     return read_mesh(mesh_in), mesh_in, mesh_to
 
 
-def _resample(input, output, chain, reference, options, write, read, transform_paths):
-    """INPUT through ``chain`` onto the grid (:func:`volwarp_cli.apply.plan_resample`), run."""
-    from .. import execute
-    from ..apply import plan_resample
+def _prepare_input(input, reference, read, options):
+    """INPUT opened, the reference's header, and how INPUT is sampled: read only, says nothing.
+
+    (:func:`volwarp_cli.apply.choose_sampling`.) Run beside the reading of the transforms.
+    """
+    from ..apply import choose_sampling
     from ..io.lazy import open_volume_header
-    from ..provenance import stamp
     from .chunked import lazy_input
 
     header, source = lazy_input(input, *read)
     ref = open_volume_header(reference, samples=False)[0] if reference is not None else None
-    try:
-        op = plan_resample(header, source, chain, ref, name=str(input), **options)
-    except BadUsage as exc:
-        raise click.UsageError(str(exc)) from None
+    return header, source, ref, choose_sampling(source, name=str(input), **options)
+
+
+def _resample(input, output, chain, ready, dtype, write, transform_paths):
+    """INPUT through ``chain`` onto the grid (:func:`volwarp_cli.apply.plan_resample`), run.
+
+    ``ready``: :func:`_prepare_input`'s result.
+    """
+    from .. import execute
+    from ..apply import plan_resample
+    from ..provenance import stamp
+
+    header, source, ref, sampling = ready
+    op = plan_resample(header, source, chain, ref, name=str(input), dtype=dtype,
+                       sampling=sampling)
     target = op.targets[op.KEY]
     out = stamp(target.header, "apply", [input, *transform_paths])
     op.targets[op.KEY] = execute.Target(output, out, target.dtype, compress=write["compress"],
