@@ -266,3 +266,38 @@ def test_kernel_partial_values_and_accumulators_equal_whole_planes():
                          window=((tx0, tx1), (ty0, ty1)), acc_xy=(tx0, ty0), parallel=False,
                          values=(np.ascontiguousarray(cap.domain[dbox.slices]), lo[2],
                                  (lo[0], lo[1])))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.int16, np.uint8])
+def test_parts_write_into_the_output_as_the_whole_cast(dtype, monkeypatch):
+    """warp_block(into=...) fills a view of the output, cast plane by plane as the whole
+    block is by cast_samples; WarpOperation.compute over 1, 2 and 3 threads (parts
+    writing straight into one output) gives those bytes, and a strided view (a part
+    cut along y) the same samples."""
+    from volwarp_cli.samples import cast_samples
+
+    data = _blob((26, 21, 23), seed=3) * 3.0
+    cap = capture_volume(Volume(data), lattice=(5, 6, 5), oversample=1.0)
+    dq = _general(cap, scale=1.2)
+    scene = Scene(cap.domain, cap.grid, dq, 4, domain_range=cap.stats[:2])
+    sampler = BoxSampler(data, cap.grid, cap.placement, cap.sampling, cap.domain.dtype)
+    window = scene.target_box
+    expect = cast_samples(blocks.warp_block(scene, sampler, window), dtype)
+    assert np.ptp(expect.astype(float)) > 10  # (the comparison is not of a constant)
+    box = Box((2, 3, 1), (window.shape[0] - 1, window.shape[1] - 2, window.shape[2]))
+    whole = np.full(window.shape, 7, dtype=dtype)
+    strided = whole[box.slices]  # not contiguous: its planes are cast and copied
+    assert not strided.flags.c_contiguous
+    blocks.warp_block(scene, sampler, box, into=strided)
+    assert np.array_equal(whole[box.slices], expect[box.slices])
+    outside = np.ones(window.shape, bool)
+    outside[box.slices] = False
+    assert np.all(whole[outside] == 7)  # nothing written beside the view
+    op = blocks.WarpOperation(Scene(cap.domain, cap.grid, dq, 4, domain_range=cap.stats[:2]),
+                              None, cap.placement, cap.sampling, window,
+                              Target(None, Header(window.shape, dtype), dtype), sampler=sampler)
+    monkeypatch.setattr(blocks, "PARALLEL_VOXELS", 1)  # (this small block is cut too)
+    assert [len(op.slabs(window, t)) > 1 for t in (1, 2, 3)] == [False, True, True]
+    for threads in (1, 2, 3):
+        got = op.compute(window, threads=threads)[op.KEY]
+        assert got.dtype == dtype and np.array_equal(got, expect), threads

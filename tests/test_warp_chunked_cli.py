@@ -156,11 +156,11 @@ def test_a_failing_block_leaves_no_output(run, scan, tmp_path, monkeypatch):
     out.write_bytes(b"old")
     calls = []
 
-    def broken(self, box):
+    def broken(self, box, into=None):
         calls.append(box)
         if len(calls) == 5:
             raise VolwarpError("disk full (test)")
-        return original(self, box)
+        return original(self, box, into)
 
     original = blocks.WarpOperation.output_block
     monkeypatch.setattr(blocks.WarpOperation, "output_block", broken)

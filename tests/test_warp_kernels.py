@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import sys
 from itertools import pairwise
 from pathlib import Path
 
@@ -357,9 +358,13 @@ def _baseline_module(tmp_path):
                     f"-I{sysconfig.get_paths()['include']}", str(src), "-o", str(so)],
                    check=True)
     name = "volwarp_cli.bspline._warpkernels"
+    installed = sys.modules[name]
     loader = importlib.machinery.ExtensionFileLoader(name, str(so))
-    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(name, loader))
-    loader.exec_module(module)
+    try:
+        module = importlib.util.module_from_spec(importlib.util.spec_from_loader(name, loader))
+        loader.exec_module(module)
+    finally:  # (loading an extension puts it in sys.modules under its name: every later
+        sys.modules[name] = installed  # test of this process would run the baseline build)
     return module
 
 
@@ -437,3 +442,12 @@ def test_kernel_jobs_refuse_misplaced_arguments():
         SeparableJob(dq=np.zeros((4, 4, 4, 3)), weights=(np.zeros((1, 4)),) * 2, x=(0, 1),
                      y=(0, 1), z=(0, 1), out=np.zeros((1, 1, 1, 3), np.float32),
                      origin=(0, 0, 0))
+
+
+def test_the_baseline_build_leaves_the_installed_kernels_in_place(tmp_path):
+    """Loading the baseline build for a comparison does not replace the module every later
+    test of the process imports (a patched kernel was then never called)."""
+    base = _baseline_module(tmp_path)
+    from volwarp_cli.bspline._warpkernels import scatter_labels
+
+    assert base is not K and sys.modules[K.__name__] is K and scatter_labels is K.scatter_labels

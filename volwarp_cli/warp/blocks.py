@@ -52,12 +52,18 @@ from ..regions import warp_input
 PARALLEL_VOXELS = 1 << 14
 
 
-def warp_block(scene: Scene, sampler, box: Box) -> np.ndarray:
+def warp_block(scene: Scene, sampler, box: Box, into: np.ndarray | None = None,
+               what: str = "warped volume") -> np.ndarray:
     """The target block ``box`` (z, y, x of the padded target) of ``scene``'s current lattice.
 
     ``sampler`` (a :class:`~volwarp_cli.bspline.pullback.BoxSampler`) gathers the domain voxels'
     samples; the scene's own domain is not used. Equal to the same block of
     :meth:`~volwarp_cli.bspline.scene.Scene.compute` bit for bit.
+
+    ``into``: where the block goes (an array of its shape, a part's view of
+    the whole output: no block of its own is made, then copied), its planes
+    cast to its type as they are finished (:func:`~volwarp_cli.samples.cast_samples`,
+    ``what`` naming it in a refusal); by default a new float array.
 
     The block is streamed: the domain box's z planes a few at a time, each
     slab gathered just before it is scattered into a ring of the block's
@@ -66,12 +72,16 @@ def warp_block(scene: Scene, sampler, box: Box) -> np.ndarray:
     own columns and rows, not the whole block), and only its sides cost a
     halo of domain voxels scattered by two blocks.
     """
+    from ..samples import cast_samples
+
     out_dtype = np.float64 if scene.dtype == np.float64 else np.float32
-    out = np.empty(box.shape, dtype=out_dtype)
+    out = np.empty(box.shape, dtype=out_dtype) if into is None else into
     (tx0, ty0, tz0), (_, _, tz1) = box.xyz()
     need = domain_box(scene, box)
     reach, chunk, planes = _stream(scene, box)
     acc = np.zeros((planes,) + box.shape[1:] + (2,), dtype=np.int64)
+    direct = out.dtype == out_dtype and out.flags.c_contiguous  # (else finished planes are cast)
+    finished = None if direct else np.empty((planes,) + box.shape[1:], dtype=out_dtype)
     base = tz0  # target planes [base, ...) accumulate; those below are in out
 
     def flush(upto):
@@ -79,9 +89,11 @@ def warp_block(scene: Scene, sampler, box: Box) -> np.ndarray:
         while base < upto:
             s0 = base % planes
             k = min(upto - base, planes - s0)  # contiguous slots of the ring
+            dest = out[base - tz0:base - tz0 + k] if direct else finished[:k]
             pushforward.finalize(acc[s0:s0 + k], scene.vmax, Box((0, 0, 0), (k, *box.shape[1:])),
-                                 out[base - tz0:base - tz0 + k], parallel=False,
-                                 background=scene.background, clear=True)
+                                 dest, parallel=False, background=scene.background, clear=True)
+            if not direct:
+                out[base - tz0:base - tz0 + k] = cast_samples(dest, out.dtype, what=what)
             base += k
 
     if not need.empty:
@@ -266,13 +278,15 @@ class WarpOperation(Operation):
         self.__dict__.update(state)
         self._lock = threading.Lock()
 
-    def output_block(self, out_box: Box) -> np.ndarray:
-        """Output block ``out_box`` (z, y, x of the output), cast to the output's type."""
-        from ..samples import cast_samples
+    def output_block(self, out_box: Box, into: np.ndarray | None = None) -> np.ndarray:
+        """Output block ``out_box`` (z, y, x of the output), cast to the output's type.
 
+        ``into``: the array (of the block's shape and the output's type) it goes to.
+        """
         scene, sampler = self._scene()
-        target = warp_block(scene, sampler, out_box.shift(self.window.lo))
-        return cast_samples(target, self.dtype, what="warped volume")
+        if into is None:
+            into = np.empty(out_box.shape, dtype=self.dtype)
+        return warp_block(scene, sampler, out_box.shift(self.window.lo), into)
 
     def slabs(self, box: Box, threads: int) -> list[Box]:
         """``box`` cut for ``threads`` threads: parts of whole rows, cut along z and y.
@@ -302,13 +316,13 @@ class WarpOperation(Operation):
         from ..progress import progress
 
         parts = self.slabs(box, threads)
-        if len(parts) == 1:
-            return {self.KEY: self.output_block(box)}
         out = np.empty(box.shape, dtype=self.dtype)
+        if len(parts) == 1:
+            return {self.KEY: self.output_block(box, out)}
         with progress(len(parts), "warp") as bar:
-            def task(part):
+            def task(part):  # (each part's planes straight into its view of the output)
                 with parallel.use_threads(1):
-                    out[part.shift([-v for v in box.lo]).slices] = self.output_block(part)
+                    self.output_block(part, out[part.shift([-v for v in box.lo]).slices])
                 bar.advance()
 
             parallel.run_blocks(task, parts, threads)
@@ -317,22 +331,27 @@ class WarpOperation(Operation):
     def memory(self, box: Box) -> int:
         """The bytes computing ``box`` holds at its peak, over the threads in effect.
 
-        The output's samples, and each thread's part at its peak
-        (:meth:`block_bytes`).
+        The output's samples, and each thread's part's stream at its peak
+        (:meth:`stream_bytes`; the parts write into the output).
         """
         threads = parallel.threads()
         parts = self.slabs(box, threads)
-        if len(parts) == 1:
-            return self.block_bytes(box)
         return box.size * self.dtype.itemsize + min(threads, len(parts)) * max(
-            self.block_bytes(p) for p in parts)
+            self.stream_bytes(p) for p in parts)
 
     def block_bytes(self, box: Box) -> int:
         """Memory one thread computing output block ``box`` holds at its peak (an upper bound).
 
-        The ring of target planes, the block's target and its cast, one slab
-        of the domain box's samples with the input they read, and the
-        deformation buffers (see :func:`warp_block`).
+        The block's samples in the output's type and its stream (:meth:`stream_bytes`).
+        """
+        return box.size * self.dtype.itemsize + self.stream_bytes(box)
+
+    def stream_bytes(self, box: Box) -> int:
+        """What streaming output block ``box`` holds besides its output (see :func:`warp_block`).
+
+        The ring of target planes (and, for an output of another type, its
+        finished planes in float and their cast), one slab of the domain box's
+        samples with the input they read, and the deformation buffers.
         """
         scene, sampler = self._scene()
         target = box.shift(self.window.lo)
@@ -345,8 +364,11 @@ class WarpOperation(Operation):
             part = Box((z0, need.lo[1], need.lo[2]), (min(z0 + chunk, need.hi[0]), *need.hi[1:]))
             inputs = sampler.input_box(part).size
             slab = part.size * item + inputs * (item + np.dtype(sampler.source.dtype).itemsize)
-        return (planes * box.shape[1] * box.shape[2] * 16
-                + box.size * (item + self.dtype.itemsize) + slab + 2 * scene.chunk_bytes)
+        plane = box.shape[1] * box.shape[2]
+        floats = np.dtype(np.float64 if self.domain_dtype == np.float64 else np.float32)
+        finished = 0 if self.dtype == floats else (  # (the floats, rint's, the cast)
+            planes * plane * (2 * floats.itemsize + self.dtype.itemsize))
+        return planes * plane * 16 + finished + slab + 2 * scene.chunk_bytes
 
     def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
         """Output blocks (z, y, x) for ``workers`` tasks of ``per_task`` bytes each.
