@@ -183,6 +183,30 @@ def test_nifti_input_read_beside_a_nifti_field_in_a_fresh_process(scene):
         assert np.abs(ours - expect(sitk.sitkLinear)).max() <= 1e-4 * span
 
 
+def test_every_memory_decision_is_made_in_the_command_thread(run, scene, monkeypatch):
+    """The input's label scan runs beside the transforms' reading, but the input and the
+    field are each read (and their memory checked) in the command's own thread: two
+    threads checking at once would each count the memory left as theirs."""
+    import threading
+
+    from volwarp_cli import memory
+
+    d, vol, _ = scene
+    sitk.WriteImage(to_sitk(vol), str(d / "in.nii.gz"))
+    asked = []
+    real = memory._limit
+
+    def limit():
+        asked.append(threading.current_thread() is threading.main_thread())
+        return real()
+
+    monkeypatch.setattr(memory, "_limit", limit)
+    res = run("apply", d / "in.nii.gz", "-o", d / "o.nrrd", "--reference", d / "ref.nrrd",
+              "-t", d / "f.nii.gz", "-t", d / "a.tfm", "--threads", "2")
+    assert res.code == 0, res.stderr
+    assert len(asked) >= 3 and all(asked), asked  # (the input's, the field's, the run's)
+
+
 def test_wrong_order_fails_the_comparison(run, scene):
     """Two non-commuting transforms: the order listed is the order they act on a point."""
     d, vol, expect = scene

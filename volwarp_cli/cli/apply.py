@@ -140,27 +140,34 @@ def command(input, output, transforms, reference, interpolation, values, labels,
         check_output_path(output, option="-o")
     points = _points(points_in, points_to)
     mesh = _mesh(mesh_in, mesh_to)
-    prepared = None
-    if input is not None:  # (read beside the transforms: a field inflates without the GIL)
-        prepared = beside(_prepare_input, input, reference, (raw, volume_index, dicom),
+    opened = failed = sampling = None
+    if input is not None:
+        try:
+            opened = _open_input(input, reference, (raw, volume_index, dicom))
+        except Exception as exc:  # (said after the transforms' errors, as always)
+            failed = exc
+    if opened is not None:  # the label rule reads the input while a field inflates
+        sampling = beside(_sampling, opened[1], str(input),
                           dict(interpolation=interpolation, values=given,
                                background=background))
     try:
         with timed("read the transforms"):
             chain = read_chain(transforms)
-    except Exception:  # (the transforms' error is said; the input's reading ends first)
-        if prepared is not None:
-            wait([prepared])
+    except Exception:  # (the transforms' error is said once the input's scan has ended)
+        if sampling is not None:
+            wait([sampling])
         raise
+    if failed is not None:
+        raise failed
     log.info("chain: %s", " -> ".join(s.name for s in chain.steps))
     for note in chain.notes:
         log.info("%s", note)
-    if prepared is not None:
+    if opened is not None:
         try:
-            ready = prepared.result()
+            chosen = sampling.result()
         except BadUsage as exc:
             raise click.UsageError(str(exc)) from None
-        _resample(input, output, chain, ready, dtype,
+        _resample(input, output, chain, (*opened, chosen), dtype,
                   dict(compress=compress, byte_order=byte_order, **ome_zarr),
                   [t.path for t in transforms])
     if points is not None or mesh is not None:
@@ -204,24 +211,37 @@ def _mesh(mesh_in, mesh_to):
     return read_mesh(mesh_in), mesh_in, mesh_to
 
 
-def _prepare_input(input, reference, read, options):
-    """INPUT opened, the reference's header, and how INPUT is sampled: read only, says nothing.
+def _open_input(input, reference, read):
+    """INPUT opened (header, samples) and the reference's header.
 
-    (:func:`volwarp_cli.apply.choose_sampling`.) Run beside the reading of the transforms.
+    Before the transforms, in this thread: an input read whole and a field
+    read whole each check the memory left, which two threads at once would
+    both count as theirs.
     """
-    from ..apply import choose_sampling
     from ..io.lazy import open_volume_header
     from .chunked import lazy_input
 
     header, source = lazy_input(input, *read)
     ref = open_volume_header(reference, samples=False)[0] if reference is not None else None
-    return header, source, ref, choose_sampling(source, name=str(input), **options)
+    return header, source, ref
+
+
+def _sampling(source, name, options):
+    """How INPUT is sampled (:func:`volwarp_cli.apply.choose_sampling`): reads, says nothing.
+
+    Run beside the reading of the transforms (a field's inflating releases
+    the GIL); its reads of the samples are a box at a time, checked by no
+    budget either way.
+    """
+    from ..apply import choose_sampling
+
+    return choose_sampling(source, name=name, **options)
 
 
 def _resample(input, output, chain, ready, dtype, write, transform_paths):
     """INPUT through ``chain`` onto the grid (:func:`volwarp_cli.apply.plan_resample`), run.
 
-    ``ready``: :func:`_prepare_input`'s result.
+    ``ready``: the opened input (:func:`_open_input`) and its :func:`_sampling`.
     """
     from .. import execute
     from ..apply import plan_resample
