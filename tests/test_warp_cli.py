@@ -413,6 +413,18 @@ def test_a_move_that_would_grow_the_output_past_twice_needs_allow_growth(run, da
     assert max(read_volume(out).shape_xyz) > 94  # grown past 30 + 64 voxels
 
 
+def test_the_growth_refusal_of_an_absurd_move_is_one_short_line(run, data_dir, tmp_path):
+    """A move of 1e300 voxels: the sizes in the refusal are written short (2e+300), not as
+    a 300-digit integer."""
+    src = data_dir / "ball_30_uint8.nrrd"
+    spec = _spec(tmp_path, "version: 1\nunits: voxel\ncapture: {lattice: 5, oversample: 1}\n"
+                           "steps:\n  - move:\n      - {index: [2, 2, 2], by: [1.0e+300, 0, 0]}\n")
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--grid", "grow")
+    line = res.stderr.strip()
+    assert res.code == 2 and "\n" not in line and len(line) < 300, line
+    assert "would be 2e+300x30x30 voxels (" in line and "e+298 times the input's 30x30x30" in line
+
+
 def test_a_failed_write_names_the_output_and_leaves_nothing(tmp_path):
     """An OSError while an output is written (a full disk, a quota) becomes an error
     naming the output; the temporary file goes, an existing output stays."""

@@ -126,10 +126,11 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
         grown = [t / i for i, t in sizes]
         if not allow_growth and any(t > max(MAX_GROWTH * i, i + MIN_GROWTH_VOXELS)
                                     for i, t in sizes):
-            shape = "x".join(str(int(i) + 2 * int(p))
+            shape = "x".join(_voxels(int(i) + 2 * int(p))
                              for i, p in zip(cap.grid.input_shape, pad, strict=True))
+            times = f"{max(grown):.1f}" if max(grown) < 1e6 else f"{max(grown):.3g}"
             raise SpecError(f"the moves reach so far that the output would be {shape} "
-                            f"voxels ({max(grown):.1f} times the input's "
+                            f"voxels ({times} times the input's "
                             f"{'x'.join(map(str, cap.grid.input_shape))} along an axis): a "
                             "mistyped move or drag? Give --allow-growth (or the spec's "
                             "capture.pad) to make it", file=getattr(doc, "file", None))
@@ -146,6 +147,11 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     return scene, frames
 
 
+def _voxels(v: int) -> str:
+    """A count of voxels for a message: as it is, or ``2e+19`` past a billion."""
+    return str(v) if v < 10**9 else f"{v:.3g}"
+
+
 def _check_target_shape(tshape, pad) -> None:
     """Refuse a padded target longer than :data:`~volwarp_cli.samples.MAX_AXIS` along an axis.
 
@@ -158,12 +164,8 @@ def _check_target_shape(tshape, pad) -> None:
 
     if max(tshape) <= MAX_AXIS:
         return
-
-    def size(v):
-        return str(v) if v < 10**9 else f"{v:.3g}"
-
-    raise OutOfMemoryError(f"the warped target ({'x'.join(map(size, tshape))} voxels, pad "
-                           f"{' '.join(size(int(p)) for p in pad)}) needs "
+    raise OutOfMemoryError(f"the warped target ({'x'.join(map(_voxels, tshape))} voxels, pad "
+                           f"{' '.join(_voxels(int(p)) for p in pad)}) needs "
                            f"{human_bytes(voxel_count(tshape) * 4)}: more than {MAX_AXIS} "
                            "voxels along an axis, which no memory or disk holds")
 
