@@ -162,9 +162,9 @@ def test_resample_matches_simpleitk(run, scene, interp):
 
 
 def test_nifti_input_read_beside_a_nifti_field_in_a_fresh_process(scene):
-    """The input (and its label scan) is read in a thread beside the transforms: with
-    NIfTI files on both sides, both threads import nibabel at once in a new process
-    (a half-imported module was found once); the result is SimpleITK's."""
+    """A NIfTI input, reference and field in a new process (nibabel imported there for
+    the input, the input's label scan in a thread beside the field's reading): the
+    result is SimpleITK's, twice over."""
     import subprocess
     import sys
 
@@ -602,6 +602,27 @@ def test_label_map_refusal_says_why_once(run, tmp_path):
     assert str(exc.value) == ("seg.nrrd is resampled as labels (as asked): --interpolation "
                               "linear would blend its ids; a label map is resampled by nearest "
                               "neighbour")
+
+
+def test_a_field_that_misses_the_grid_is_said_before_a_label_refusal(run, tmp_path):
+    """The input's label rule runs beside the transforms' reading, but its refusal comes
+    where it came before: after the field's coverage check, and after -v says the choice."""
+    vol = smooth()
+    labels = vol.with_data((vol.data > 40).astype(np.uint8) + (vol.data > 80))
+    write_volume(labels, tmp_path / "lab.nrrd")
+    sitk.WriteImage(field_on(smooth((6, 6, 6))), str(tmp_path / "small.nii.gz"))
+    sitk.WriteImage(field_on(vol), str(tmp_path / "f.nii.gz"))
+    res = run("apply", tmp_path / "lab.nrrd", "-o", tmp_path / "o.nrrd", "-t",
+              tmp_path / "small.nii.gz", "--interpolation", "linear")
+    assert res.code == 1 and "outside its 6x6x6 samples" in res.stderr, res.stderr
+    res = run("apply", tmp_path / "lab.nrrd", "-o", tmp_path / "o.nrrd", "-t",
+              tmp_path / "f.nii.gz", "--interpolation", "linear", "-v")
+    lines = res.stderr.strip().splitlines()
+    assert res.code == 2 and "would blend its ids" in lines[-1], res.stderr
+    assert any(line.startswith("volwarp: values: labels (looks like a label map")
+               for line in lines[:-1]), res.stderr
+    assert not any("background:" in line for line in lines)
+    assert not (tmp_path / "o.nrrd").exists()
 
 
 @pytest.mark.parametrize("inside", [True, False])

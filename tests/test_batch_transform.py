@@ -94,6 +94,22 @@ def test_each_scan_applies_its_own_transforms(run, subjects):
     assert _statuses(run, d) == {"p01/scan": "ok", "p02/scan": "skipped"}
 
 
+def test_a_fixed_elastix_transforms_initial_file_is_one_of_the_inputs(run, subjects):
+    """The same elastix chain for every scan, written in the step's options (not a table
+    column): its initial transform is read with it, so a change to it redoes every scan
+    (the batch's dry run stops at the input's reading, before the chain is read)."""
+    d = subjects
+    chain = d / "p01" / "TransformParameters.1.txt"
+    (d / "m.yaml").write_text(
+        "version: 1\ninputs: {glob: 'p0*/scan.nrrd'}\noutput_dir: out\nsteps:\n"
+        "  - name: chained\n    run: apply\n    output: '{stem}_el.nrrd'\n"
+        f"    options: [-t, '{chain}', --background-value, '0']\n")
+    assert _statuses(run, d) == {"p01/scan": "ok", "p02/scan": "ok"}
+    assert _statuses(run, d) == {"p01/scan": "skipped", "p02/scan": "skipped"}
+    _elastix(d / "p01" / "TransformParameters.0.txt", [3.5, 2.0, 1.0])
+    assert _statuses(run, d) == {"p01/scan": "ok", "p02/scan": "ok"}
+
+
 @pytest.mark.parametrize(("inputs", "options", "says"), [
     ("{glob: 'p0*/scan.nrrd'}", "[-t, '{transform}']", "inputs.csv with a 'transform' column"),
     ("{csv: scans.csv}", "[-t, '{warp}']", "scans.csv has no 'warp' column"),

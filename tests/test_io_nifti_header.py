@@ -406,7 +406,9 @@ def test_nifti_is_read_without_pydicom_and_a_dicom_extension_is_left_alone(tmp_p
 
 def test_nifti_command_leaves_urllib_request_to_its_first_use(tmp_path):
     """nibabel imports urllib.request (and http.client, ssl, email) for ``from_url`` only:
-    a NIfTI command runs none of them, and the module still works when used after."""
+    a NIfTI command runs none of them, and the module still works when used after, by
+    nibabel and by eight threads importing it at once (a lazy module in sys.modules
+    gave them a half-made one on Python 3.11)."""
     import subprocess
     import sys
 
@@ -418,6 +420,18 @@ def test_nifti_command_leaves_urllib_request_to_its_first_use(tmp_path):
             f" r'{tmp_path / 'o.nii'}']) == 0\n"
             "loaded = [m for m in ('http.client', 'ssl', 'email.parser') if m in sys.modules]\n"
             "assert not loaded, loaded\n"
+            "import threading\n"  # (eight threads' first use at once: a real, locked import)
+            "errors, go = [], threading.Barrier(8)\n"
+            "def use():\n"
+            "    go.wait()\n"
+            "    try:\n"
+            "        from urllib.request import Request, build_opener  # noqa: F401\n"
+            "    except BaseException as exc:\n"
+            "        errors.append(repr(exc))\n"
+            "threads = [threading.Thread(target=use) for _ in range(8)]\n"
+            "[t.start() for t in threads]\n"
+            "[t.join() for t in threads]\n"
+            "assert not errors, errors\n"
             "import nibabel.filebasedimages as fbi\n"
             "from urllib.request import Request, urlopen\n"  # (its code runs now)
             "assert 'http.client' in sys.modules\n"
@@ -427,3 +441,27 @@ def test_nifti_command_leaves_urllib_request_to_its_first_use(tmp_path):
             " == b'\\x1f\\x8b'\n")
     subprocess.run([sys.executable, "-c", code], check=True)
     assert np.array_equal(read_volume(tmp_path / "o.nii").data, data)
+
+
+def test_threads_asking_for_nibabel_at_once_all_get_it_whole():
+    """nibabel() from several threads in a new process: each gets the module imported
+    whole (sys.modules holds it from the start of its import, half made)."""
+    import subprocess
+    import sys
+
+    code = ("import threading\n"
+            "from volwarp_cli.io.nifti import nibabel\n"
+            "errors, go = [], threading.Barrier(6)\n"
+            "def use():\n"
+            "    go.wait()\n"
+            "    try:\n"
+            "        nib = nibabel()\n"
+            "        nib.Nifti1Header, nib.filebasedimages.FileBasedImage, nib.Nifti2Image\n"
+            "    except BaseException as exc:\n"
+            "        errors.append(repr(exc))\n"
+            "threads = [threading.Thread(target=use) for _ in range(6)]\n"
+            "[t.start() for t in threads]\n"
+            "[t.join() for t in threads]\n"
+            "assert not errors, errors\n")
+    for _ in range(3):
+        subprocess.run([sys.executable, "-c", code], check=True)

@@ -35,6 +35,7 @@ range).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -384,13 +385,16 @@ class Sampling:
     """How an input's samples are taken (:func:`choose_sampling`): its values, interpolation, background.
 
     ``choice``: the label rule's :class:`~volwarp_cli.warp.defaults.ValuesChoice`;
-    ``background_ruled``: the background is the input's border (not given).
+    ``background_ruled``: the background is the input's border (not given);
+    ``refusal``: why the interpolation asked for cannot be (a label map's ids
+    would blend), raised by :func:`plan_resample` once the choice is said.
     """
 
     choice: object
     interpolation: str
     background: float
     background_ruled: bool
+    refusal: str | None = None
 
     def say(self) -> None:
         """The choices, for ``-v`` (and the warning of labels asked on a scan, once)."""
@@ -399,7 +403,7 @@ class Sampling:
         if self.choice.warning:
             log.warning("%s", self.choice.warning)
         log.info("%s", self.choice.describe())
-        if self.background_ruled:
+        if self.background_ruled and self.refusal is None:
             log.info("background: %g (the input's border)", self.background)
 
 
@@ -409,17 +413,18 @@ def choose_sampling(source, *, interpolation: str | None = None, values: str | N
 
     Labels or intensities by ``values``, else by the label-map rule
     (:func:`volwarp_cli.warp.defaults.choose_values`): a label map is
-    resampled by nearest neighbour (another interpolation is a
-    :class:`~volwarp_cli.errors.BadUsage`); ``background`` by default the
-    input's border (its most frequent label, or its median sample). Says
-    nothing (:meth:`Sampling.say`): a command may run it beside its reading
-    of the transforms.
+    resampled by nearest neighbour (another interpolation is refused:
+    :attr:`Sampling.refusal`); ``background`` by default the input's border
+    (its most frequent label, or its median sample). Says nothing
+    (:meth:`Sampling.say`): a command may run it beside its reading of the
+    transforms.
     """
     from .warp.defaults import choose_values
 
     choice = choose_values(source, values, name=name)
     if choice.is_labels and interpolation not in (None, "nearest"):
-        raise BadUsage(label_interpolation_refusal(name, choice, interpolation))
+        return Sampling(choice, interpolation, float("nan"), False,
+                        label_interpolation_refusal(name, choice, interpolation))
     method = interpolation or ("nearest" if choice.is_labels else "linear")
     ruled = background is None
     if ruled:
@@ -429,17 +434,22 @@ def choose_sampling(source, *, interpolation: str | None = None, values: str | N
 
 def plan_resample(header, source, chain: Chain, reference=None, *,
                   interpolation: str | None = None, values: str | None = None,
-                  background: float | None = None, dtype=None,
-                  name: str = "the input", sampling: Sampling | None = None) -> ApplyOperation:
+                  background: float | None = None, dtype=None, name: str = "the input",
+                  sampling: Sampling | Callable[[], Sampling] | None = None
+                  ) -> ApplyOperation:
     """The resampling of an input through ``chain``, its defaults chosen (an operation).
 
     ``header``, ``source``: the input's :class:`~volwarp_cli.volume.Header`
     and its samples, sliceable; ``reference``: the output grid's Header (or
     Volume; default: the chain's own grid, an elastix file's, else the
     input's). ``interpolation``, ``values``, ``background``: as
-    :func:`choose_sampling` (said at ``-v``), unless ``sampling`` gives its
-    result already; the output in the input's type unless ``dtype``. The
-    field's coverage of the grid is checked here, before any work. The
+    :func:`choose_sampling` (said at ``-v``; a label map given another
+    interpolation than nearest is a :class:`~volwarp_cli.errors.BadUsage`),
+    unless ``sampling`` is its result already, or the call that gives it
+    (a command's thread's ``Future.result``: asked for after the coverage
+    check, so the errors come in the same order); the output in the
+    input's type unless ``dtype``. The field's coverage of the grid is
+    checked here, before any work. The
     target is an output at no path (the input's header on the grid): the
     caller gives it its path and options.
     """
@@ -453,7 +463,14 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
     if sampling is None:
         sampling = choose_sampling(source, interpolation=interpolation, values=values,
                                    background=background, name=name)
+    elif (interpolation, values, background) != (None, None, None):
+        raise ValueError("plan_resample: give interpolation, values and background to "
+                         "choose_sampling, not beside its result")
+    elif callable(sampling):
+        sampling = sampling()
     sampling.say()
+    if sampling.refusal is not None:
+        raise BadUsage(sampling.refusal)
     out_dtype = np.dtype(dtype or source.dtype)
     out = header.replace(shape=grid.shape, dtype=out_dtype, spacing=np.array(grid.spacing),
                          origin=np.array(grid.origin), direction=np.array(grid.direction))

@@ -61,7 +61,25 @@ class TransformArg(InputPath):
             self.fail(str(exc), param, ctx)
         refuse_folder(spec.path)
         declare_input(spec.path)
+        for initial in _initial_transforms(spec.path):
+            declare_input(initial)
         return spec
+
+
+def _initial_transforms(path) -> list:
+    """The initial transforms an elastix parameter file names, declared with it as inputs.
+
+    Here, not only when the chain is read: a batch's dry run (its inputs'
+    hashes) stops at the first volume read, the input's, which comes first.
+    A file that cannot be followed is the chain's reading to refuse.
+    """
+    from ..errors import VolwarpError
+    from ..transforms.elastix import initial_files
+
+    try:
+        return initial_files(str(path))
+    except (VolwarpError, OSError):
+        return []
 
 
 @click.command(name="apply", epilog=examples(
@@ -163,11 +181,7 @@ def command(input, output, transforms, reference, interpolation, values, labels,
     for note in chain.notes:
         log.info("%s", note)
     if opened is not None:
-        try:
-            chosen = sampling.result()
-        except BadUsage as exc:
-            raise click.UsageError(str(exc)) from None
-        _resample(input, output, chain, (*opened, chosen), dtype,
+        _resample(input, output, chain, (*opened, sampling.result), dtype,
                   dict(compress=compress, byte_order=byte_order, **ome_zarr),
                   [t.path for t in transforms])
     if points is not None or mesh is not None:
@@ -241,15 +255,19 @@ def _sampling(source, name, options):
 def _resample(input, output, chain, ready, dtype, write, transform_paths):
     """INPUT through ``chain`` onto the grid (:func:`volwarp_cli.apply.plan_resample`), run.
 
-    ``ready``: the opened input (:func:`_open_input`) and its :func:`_sampling`.
+    ``ready``: the opened input (:func:`_open_input`) and the call giving its
+    :func:`_sampling` (its thread's ``Future.result``).
     """
     from .. import execute
     from ..apply import plan_resample
     from ..provenance import stamp
 
     header, source, ref, sampling = ready
-    op = plan_resample(header, source, chain, ref, name=str(input), dtype=dtype,
-                       sampling=sampling)
+    try:  # (the label scan's result is asked for after the coverage check, as before)
+        op = plan_resample(header, source, chain, ref, name=str(input), dtype=dtype,
+                           sampling=sampling)
+    except BadUsage as exc:
+        raise click.UsageError(str(exc)) from None
     target = op.targets[op.KEY]
     out = stamp(target.header, "apply", [input, *transform_paths])
     op.targets[op.KEY] = execute.Target(output, out, target.dtype, compress=write["compress"],

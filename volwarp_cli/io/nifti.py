@@ -112,6 +112,7 @@ import os
 import struct
 import sys
 import threading
+import types
 import zlib
 from pathlib import Path
 
@@ -444,47 +445,45 @@ class _NoPydicomForNibabel:
         return None
 
 
-def _lazy_module(name: str) -> None:
-    """Module ``name`` put in ``sys.modules`` now, its code run at its first attribute's use.
+class _RequestOnUse(types.ModuleType):
+    """What nibabel's ``from urllib import request`` binds: the real module at first use.
 
-    (:class:`importlib.util.LazyLoader`.) Its parent package gets it as an
-    attribute, so ``from urllib import request`` takes it as it is; any use
-    of it (an attribute, another ``import``) runs its code then, so nothing
-    changes for a caller that needs it.
+    ``urllib.request`` (with ``http.client``, ``ssl`` and ``email``: 17-47 ms)
+    serves nibabel's ``from_url`` only. This stand-in is set as the ``urllib``
+    package's attribute while nibabel imports, never in ``sys.modules``: any
+    other ``import urllib.request`` is the real, locked import, and the stand-in's
+    first attribute makes one.
     """
-    import importlib.util
 
-    spec = importlib.util.find_spec(name)
-    if spec is None or spec.loader is None:
-        return
-    spec.loader = importlib.util.LazyLoader(spec.loader)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    parent, _, child = name.rpartition(".")
-    if parent:
-        setattr(sys.modules[parent], child, module)
+    def __getattr__(self, attr):
+        import importlib
+
+        return getattr(importlib.import_module("urllib.request"), attr)
 
 
 def nibabel():
     """The nibabel module, imported without pydicom (:class:`_NoPydicomForNibabel`).
 
-    And without running ``urllib.request``: nibabel imports it for
-    ``from_url`` only, and with it ``http.client``, ``ssl`` and ``email``
-    (17-47 ms of every NIfTI command); it is left to load at its first use.
+    And without running ``urllib.request`` (:class:`_RequestOnUse`).
     """
     if _nibabel:
         return _nibabel[0]
-    with _NIBABEL_LOCK:  # (a thread reading an input beside another reading a field)
+    with _NIBABEL_LOCK:  # (a second thread finds nibabel in sys.modules half made)
         if not _nibabel:
-            if "urllib.request" not in sys.modules:
-                _lazy_module("urllib.request")
+            import urllib
+
+            stand_in = None
+            if "urllib.request" not in sys.modules and not hasattr(urllib, "request"):
+                stand_in = _RequestOnUse("urllib.request")
+                urllib.request = stand_in
             finder = _NoPydicomForNibabel()
             sys.meta_path.insert(0, finder)
             try:
                 import nibabel as module
             finally:
                 sys.meta_path.remove(finder)
+                if stand_in is not None and getattr(urllib, "request", None) is stand_in:
+                    del urllib.request
             _nibabel.append(module)
     return _nibabel[0]
 

@@ -349,9 +349,10 @@ class WarpOperation(Operation):
     def stream_bytes(self, box: Box) -> int:
         """What streaming output block ``box`` holds besides its output (see :func:`warp_block`).
 
-        The ring of target planes (and, for an output of another type, its
-        finished planes in float and their cast), one slab of the domain box's
-        samples with the input they read, and the deformation buffers.
+        The ring of target planes (and its finished planes in float, for a
+        strided view of the output or another type, with their cast), one slab
+        of the domain box's samples with the input they read, and the
+        deformation buffers.
         """
         scene, sampler = self._scene()
         target = box.shift(self.window.lo)
@@ -366,8 +367,11 @@ class WarpOperation(Operation):
             slab = part.size * item + inputs * (item + np.dtype(sampler.source.dtype).itemsize)
         plane = box.shape[1] * box.shape[2]
         floats = np.dtype(np.float64 if self.domain_dtype == np.float64 else np.float32)
-        finished = 0 if self.dtype == floats else (  # (the floats, rint's, the cast)
-            planes * plane * (2 * floats.itemsize + self.dtype.itemsize))
+        # finished planes in float where the part's view of the output is strided (a cut
+        # along y) or of another type, and then rint's and the cast's copies of them
+        finished = planes * plane * floats.itemsize
+        if self.dtype != floats:
+            finished += planes * plane * (floats.itemsize + self.dtype.itemsize)
         return planes * plane * 16 + finished + slab + 2 * scene.chunk_bytes
 
     def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
