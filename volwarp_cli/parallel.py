@@ -267,9 +267,11 @@ def run_split(job_for, lo_z: int, hi_z: int, work: int) -> list:
 def beside(fn: Callable, *args):
     """Start ``fn(*args)`` in a thread of its own while the caller goes on: its ``Future``.
 
-    For work that waits on other things than the GIL (an input's reading and
-    its label scan while the transforms' files inflate), in a copy of the
-    caller's context (its run, budget and thread count). With one thread
+    For work beside other work that waits on other things than the GIL (an
+    input's label scan while the transforms' files inflate), in a copy of the
+    caller's context (its run, budget and thread count). It should decide
+    nothing by the memory left: the caller's allocations meanwhile are not
+    yet in what it would read. With one thread
     (:func:`threads`) it runs here, now; its error, if any, is then raised by
     ``result()`` as from the thread (a stop is raised at once).
     """
