@@ -1,5 +1,5 @@
-"""Large specs are composed by libyaml: the same data, the same lines and the same errors
-as the pure-Python loader."""
+"""Specs are read from libyaml's events (plain ones) or composed by libyaml: the same data,
+the same lines and the same errors as the pure-Python loader."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from volwarp_cli.errors import SpecError
 from volwarp_cli.spec import loader
@@ -87,3 +89,98 @@ def test_the_fast_path_is_taken(monkeypatch):
     loader.parse_spec_text(PAD + "version: 1\n", "s.yaml")
     assert made
     assert isinstance(yaml.CSafeLoader, type)
+
+
+# Plain scalars whose type YAML 1.1 (and the spec's 1.2 floats) decide by their text, and
+# (fewer) texts that are not plain data or not YAML.
+SCALARS = ["yes", "No", "on", "OFF", "y", "~", "null", "Null", "true", "False", "1e5", "1.5e5",
+           "-.5", "+.5", ".5", "3.", "-0", "+1", "0x1F", "0o17", "017", "089", "0b101",
+           "1_000", "1:30", "-1:30.5", "2001-12-14", "2001-12-14t21:59:43.10-05:00", "=",
+           "abc", "a b", "é", "'q'", '"d"', "'1'", '"yes"', "1.0", "12", "[1, 2]", "{a: 1}"]
+HAZARDS = [".inf", "-.Inf", ".NaN", "1e999", "9" * 400, "<<", "&x 1", "*x", "!!str 5",
+           "!!float 1", "!!int 1.5", "a: b", "- x", "[", "'q"]
+KEYS = st.sampled_from(["a", "b", "c", "d", "e", "1", "2", "yes", "true", "~", "1.0", "'a'"] * 4
+                      + ["<<", "=", "[x]"])
+TEXTS = st.sampled_from(SCALARS * 6 + HAZARDS)
+
+
+def typed(value):
+    """``value`` with every scalar's type kept apart (``1 == True == 1.0`` in Python)."""
+    if isinstance(value, dict):
+        return ("map", [(typed(k), typed(v)) for k, v in value.items()])
+    if isinstance(value, list):
+        return ("seq", [typed(v) for v in value])
+    return (type(value).__name__, repr(value))
+
+
+def _block(draw, depth, indent):
+    pad = " " * indent
+    lines = []
+    distinct = draw(st.integers(0, 9)) > 0  # (else duplicate keys are likely)
+    for key in draw(st.lists(KEYS, min_size=1, max_size=3, unique=distinct)):
+        if depth < 3 and draw(st.booleans()):
+            if draw(st.booleans()):
+                lines.append(f"{pad}{key}:")
+                lines.extend(_block(draw, depth + 1, indent + 2))
+            else:
+                items = draw(st.lists(TEXTS, min_size=0, max_size=3))
+                lines.append(f"{pad}{key}: [{', '.join(items)}]")
+        elif depth < 3 and draw(st.booleans()):
+            lines.append(f"{pad}{key}:")
+            for item in draw(st.lists(TEXTS, min_size=1, max_size=3)):
+                lines.append(f"{pad}  - {item}")
+        else:
+            lines.append(f"{pad}{key}: {draw(TEXTS)}")
+    return lines
+
+
+@st.composite
+def spec_texts(draw):
+    head = draw(st.sampled_from(["", "", "", "---\n", "version: 1\n", "- 1\n", "%YAML 1.1\n---\n"]))
+    tail = draw(st.sampled_from(["", "", "", "", "", "...\n", "---\nb: 2\n", "x: &r [1]\ny: *r\n"]))
+    return head + "\n".join(_block(draw, 0, 0)) + "\n" + tail
+
+
+def _outcome(text, threshold):
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(loader, "FAST_MIN_BYTES", threshold)
+        try:
+            doc = loader.parse_spec_text(text, "s.yaml")
+        except SpecError as exc:
+            return "error", str(exc)
+    keys = list(paths(doc.data))
+    return typed(doc.data), [doc.line(k) for k in keys]
+
+
+@settings(max_examples=300, deadline=None)
+@given(text=spec_texts())
+def test_events_read_what_the_python_loader_reads(text):
+    """Data with types and lines, or the error word for word: as the pure-Python loader."""
+    assert _outcome(text, 0) == _outcome(text, 1 << 60)
+
+
+def test_a_plain_spec_is_read_from_events_and_composed_only_for_a_line(monkeypatch):
+    text = SPECS[0].read_text()
+    composed = []
+    real = loader._compose
+    monkeypatch.setattr(loader, "_compose", lambda t: composed.append(1) or real(t))
+    doc = loader.parse_spec_text(text, "s.yaml")
+    assert not composed  # (the data came from the events)
+    key = list(paths(doc.data))[-1]
+    line = doc.line(key)
+    assert composed == [1] and doc.line(key) == line and composed == [1]
+    monkeypatch.undo()
+    monkeypatch.setattr(loader, "FAST_MIN_BYTES", 1 << 60)
+    assert loader.parse_spec_text(text, "s.yaml").line(key) == line
+
+
+@pytest.mark.parametrize("text", [
+    "a: &x [1, 2]\nb: *x\n",          # an alias
+    "base: &b {k: 1}\nm:\n  <<: *b\n  j: 2\n",  # a merge
+    "a: !!str 5\n",                    # a tag
+    "[1, 2]: 3\n",                     # a list as a key
+    "a: 1\n---\nb: 2\n",               # two documents
+])
+def test_what_is_not_plain_goes_to_the_composing_loader(text, monkeypatch):
+    assert loader._plain_data(text) is loader._NOT_PLAIN
+    assert _outcome(text, 0) == _outcome(text, 1 << 60)

@@ -21,6 +21,7 @@ import json
 import math
 import re
 import sys
+from collections.abc import Callable
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -71,11 +72,13 @@ class SpecDoc:
     """A loaded spec: ``data`` (plain Python values) plus the line of every key.
 
     ``lines`` is the document's YAML node tree (lines are looked up in it on
-    demand, so an alias costs no memory per expansion) or a dict mapping key
-    paths to lines.
+    demand, so an alias costs no memory per expansion), a function composing
+    that tree (called at the first line asked: a valid spec never composes
+    it), or a dict mapping key paths to lines.
     """
 
-    def __init__(self, data: Any, lines: yaml.Node | dict[Key, int], file: str, base: Path):
+    def __init__(self, data: Any, lines: yaml.Node | dict[Key, int] | Callable[[], yaml.Node],
+                 file: str, base: Path):
         self.data = data
         self._lines = lines
         self.file = file
@@ -84,6 +87,8 @@ class SpecDoc:
     def line(self, path: Key) -> int | None:
         """Line of ``path``, or of its nearest ancestor that has one."""
         path = tuple(path)
+        if callable(self._lines):
+            self._lines = self._lines()
         if isinstance(self._lines, yaml.Node):
             return _node_line(self._lines, path)
         while True:
@@ -184,11 +189,13 @@ _FLOAT_12 = re.compile(r"^[-+]?(?:(?:\.[0-9]+|[0-9]+\.[0-9]*)(?:[eE][-+]?[0-9]+)
                        r"|[0-9]+[eE][-+]?[0-9]+)$")
 _SpecLoader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_12, list("-+.0123456789"))
 
-#: Specs from this size on are composed by libyaml (when PyYAML has it): every spec. A
+#: Specs from this size on are read by libyaml (when PyYAML has it): every spec. A plain
+#: one is built from its events (:func:`_plain_data`), any other composed by libyaml. A
 #: registration's 729 control-point moves (40 kB) take 0.24 s in the pure-Python
-#: composer, 0.04 s in C; a one-move spec 0.9 ms, 0.25 ms (the depth check included).
-#: Any text libyaml finds fault with is read again by the Python loader, whose errors
-#: and their wording are the ones reported (``tests/test_spec_fast_path.py``).
+#: composer, 0.04 s composed in C, 0.008 s from the events; a one-move spec 0.9 ms,
+#: 0.25 ms composed. Any text libyaml finds fault with is read again by the Python
+#: loader, whose errors and their wording are the ones reported
+#: (``tests/test_spec_fast_path.py``).
 FAST_MIN_BYTES = 0
 
 if getattr(yaml, "__with_libyaml__", False):
@@ -355,8 +362,116 @@ def _check_tree(loader: _SpecLoader, root: yaml.Node, file: str) -> None:
         fail(path, node, f"nested more than {MAX_DEPTH} levels deep")
 
 
+class _NotPlain(Exception):
+    """A document :func:`_plain_data` leaves to the composing loader."""
+
+
+_NO_KEY = object()  # a mapping waiting for its next key
+
+
+def _plain_data(text: str) -> Any:
+    """The data of a plain spec, built straight from libyaml's events; ``_NOT_PLAIN`` if not.
+
+    Plain: one document of mappings, lists and untagged scalars, no anchor or
+    alias, no merge key, distinct scalar keys, finite numbers, at most
+    :data:`MAX_DEPTH` levels and :data:`MAX_VALUES` values. Scalars resolve and
+    construct exactly as the composing loader's do (its resolvers and
+    constructors, each distinct scalar once), so the data is the same. Anything
+    else, and any text libyaml finds fault with, is the composing loader's to
+    read and word the error of. Composing a node tree (with two marks per
+    node) and walking it was most of a large spec's reading: 729 moves, 43 ms
+    against 8 ms this way.
+    """
+    loader = _FastSpecLoader(text)
+    try:
+        return _data_from_events(loader)
+    except (_NotPlain, yaml.YAMLError, ValueError, TypeError, ArithmeticError, KeyError):
+        return _NOT_PLAIN
+    finally:
+        loader.dispose()
+
+
+_NOT_PLAIN = object()
+
+
+def _data_from_events(loader) -> Any:
+    next_event = loader.get_event
+    resolve, constructors = loader.resolve, loader.yaml_constructors
+    scalar_node = yaml.ScalarNode
+    scalars: dict = {}  # (text, implicit) -> value
+    open_: list = []  # [collection, its pending key] from the root down
+    values = 0
+    root = None
+    if not isinstance(next_event(), yaml.StreamStartEvent) or \
+            not isinstance(next_event(), yaml.DocumentStartEvent):
+        raise _NotPlain  # (an empty text)
+    while True:
+        event = next_event()
+        kind = type(event)
+        if kind is yaml.ScalarEvent:
+            if event.anchor is not None or event.tag is not None:
+                raise _NotPlain
+            key = (event.value, event.implicit)
+            value = scalars.get(key, _NO_KEY)
+            if value is _NO_KEY:
+                tag = resolve(scalar_node, event.value, event.implicit)
+                if tag in _SPECIAL_KEY_TAGS:
+                    raise _NotPlain
+                value = constructors[tag](loader, scalar_node(tag, event.value, None, None,
+                                                              event.style))
+                if isinstance(value, float) and not math.isfinite(value):
+                    raise _NotPlain
+                if type(value) is int and not -_MAX_FLOAT <= value <= _MAX_FLOAT:
+                    raise _NotPlain
+                scalars[key] = value
+        elif kind is yaml.MappingStartEvent or kind is yaml.SequenceStartEvent:
+            if event.anchor is not None or event.tag is not None or len(open_) >= MAX_DEPTH:
+                raise _NotPlain
+            open_.append([{} if kind is yaml.MappingStartEvent else [], _NO_KEY])
+            continue
+        elif kind is yaml.MappingEndEvent or kind is yaml.SequenceEndEvent:
+            value = open_.pop()[0]
+        elif kind is yaml.DocumentEndEvent and not open_:
+            if not isinstance(next_event(), yaml.StreamEndEvent):
+                raise _NotPlain  # (a second document)
+            return root
+        else:  # an alias
+            raise _NotPlain
+        values += 1
+        if values > MAX_VALUES:
+            raise _NotPlain
+        if not open_:
+            root = value
+            continue
+        parent = open_[-1]
+        collection, key = parent
+        if type(collection) is list:
+            collection.append(value)
+        elif key is not _NO_KEY:
+            collection[key] = value
+            parent[1] = _NO_KEY
+        elif type(value) in (dict, list) or value in collection:
+            raise _NotPlain  # a collection as a key, a duplicate key
+        else:
+            parent[1] = value
+
+
+def _composed_tree(text: str):
+    """The node tree of a text :func:`_plain_data` read (for the lines of errors), or no lines."""
+    try:
+        loader, node = _compose(text)
+    except (yaml.YAMLError, RecursionError, _TooDeep):  # pragma: no cover - read once already
+        return {}
+    loader.dispose()
+    return node
+
+
 def parse_spec_text(text: str, file: str = "<spec>", base: Path | None = None) -> SpecDoc:
     """Parse YAML text into a :class:`SpecDoc` (no schema check)."""
+    if _FastSpecLoader is not None and len(text) >= FAST_MIN_BYTES:
+        data = _plain_data(text)
+        if isinstance(data, dict):
+            return SpecDoc(data, lambda: _composed_tree(text), file, base or Path("."))
     loader = None
     try:
         try:
