@@ -404,6 +404,36 @@ def test_nifti_is_read_without_pydicom_and_a_dicom_extension_is_left_alone(tmp_p
     assert np.array_equal(read_volume(tmp_path / "o.nrrd").data, data)
 
 
+def test_nifti_command_imports_no_scipy_and_spm_images_keep_their_mat(tmp_path):
+    """nibabel imports scipy only for SPM Analyze images' ``.mat``: a NIfTI command imports
+    none, and nibabel used after it in the process says it has scipy and reads a ``.mat``'s
+    orientation (the image's affine, not the header's default)."""
+    import subprocess
+    import sys
+
+    data = ball(10).astype(np.int16)
+    nib.save(nib.Nifti1Image(data.transpose(2, 1, 0), np.eye(4)), str(tmp_path / "b.nii.gz"))
+    turned = np.array([[0.0, -2.0, 0.0, 10.0], [1.5, 0.0, 0.0, -4.0], [0.0, 0.0, 3.0, 7.0],
+                       [0.0, 0.0, 0.0, 1.0]])
+    code = ("import sys\n"
+            "import numpy as np\n"
+            "from volwarp_cli.cli.main import main\n"
+            f"assert main(['convert', r'{tmp_path / 'b.nii.gz'}', '-o',"
+            f" r'{tmp_path / 'o.nrrd'}']) == 0\n"
+            "assert 'scipy' not in sys.modules, 'scipy imported'\n"
+            "import nibabel as nib\n"
+            "assert nib.spm99analyze.have_scipy and nib.Spm2AnalyzeImage.rw  # (as with scipy)\n"
+            f"turned = np.array({turned.tolist()})\n"
+            "img = nib.Spm99AnalyzeImage(np.zeros((4, 5, 6), np.int16), turned)\n"
+            f"nib.save(img, r'{tmp_path / 'spm.img'}')\n"
+            "import os\n"
+            f"assert os.path.exists(r'{tmp_path / 'spm.mat'}'), 'no .mat written'\n"
+            f"back = nib.load(r'{tmp_path / 'spm.img'}')\n"
+            "assert np.allclose(back.affine, turned), back.affine\n")
+    subprocess.run([sys.executable, "-c", code], check=True)
+    assert np.array_equal(read_volume(tmp_path / "o.nrrd").data, data)
+
+
 def test_nifti_command_leaves_urllib_request_to_its_first_use(tmp_path):
     """nibabel imports urllib.request (and http.client, ssl, email) for ``from_url`` only:
     a NIfTI command runs none of them, and the module still works when used after, by

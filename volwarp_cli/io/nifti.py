@@ -422,27 +422,51 @@ def gunzip_range_into(path: Path, start: int, count: int, need: int, where: str,
 
 
 class _NoPydicomForNibabel:
-    """A finder refusing ``pydicom`` to nibabel's optional import, and to nobody else.
+    """A finder refusing ``pydicom`` and ``scipy`` to nibabel's optional imports, and to nobody else.
 
     ``import nibabel`` imports pydicom (0.12 s on a quiet machine, 0.3 s on a busy
     one: most of nibabel's import) only to show a NIfTI's DICOM header extension
     (code 2) as a pydicom Dataset. volwarp never reads other programs'
     extensions (module notes); without pydicom nibabel keeps such an extension
-    as its bytes. Only an import made from ``nibabel.optpkg`` is refused, so
-    another thread importing pydicom meanwhile (a DICOM input) is not.
+    as its bytes. scipy (7-9 ms where no command imported it before) serves the
+    ``.mat`` sidecar of SPM's Analyze images only: :func:`nibabel` gives those
+    back their scipy after the import (:func:`_spm_reads_mat_again`). Only an
+    import made from ``nibabel.optpkg`` is refused, so another thread
+    importing either meanwhile (a DICOM input) is not.
     """
+
+    REFUSED = ("pydicom", "scipy")
 
     @staticmethod
     def find_spec(name, path=None, target=None):
-        if name != "pydicom":
+        if name not in _NoPydicomForNibabel.REFUSED:
             return None
         frame = sys._getframe(1)
         while frame is not None:
             if frame.f_globals.get("__name__") == "nibabel.optpkg":
-                raise ModuleNotFoundError("pydicom: not for nibabel (volwarp reads no DICOM "
-                                          "extension of a NIfTI)", name="pydicom")
+                raise ModuleNotFoundError(f"{name}: not for nibabel's import (volwarp reads "
+                                          "no DICOM extension of a NIfTI, no SPM .mat)",
+                                          name=name)
             frame = frame.f_back
         return None
+
+
+def _spm_reads_mat_again(module) -> None:
+    """SPM99/SPM2 Analyze images read their ``.mat`` again where scipy is installed.
+
+    nibabel noted at import, without scipy (:class:`_NoPydicomForNibabel`), that
+    they cannot (``spm99analyze.have_scipy``, the image classes' ``rw``). It reads
+    a ``.mat`` by importing ``scipy.io`` whatever these say (nibabel 5), but a
+    program beside volwarp may ask them: where scipy can be imported, they are
+    set as an import with scipy sets them.
+    """
+    import importlib.util
+
+    spm = getattr(module, "spm99analyze", None)
+    if spm is None or spm.have_scipy or importlib.util.find_spec("scipy") is None:
+        return
+    spm.have_scipy = True
+    spm.Spm99AnalyzeImage.rw = True
 
 
 class _RequestOnUse(types.ModuleType):
@@ -462,7 +486,7 @@ class _RequestOnUse(types.ModuleType):
 
 
 def nibabel():
-    """The nibabel module, imported without pydicom (:class:`_NoPydicomForNibabel`).
+    """The nibabel module, imported without pydicom and scipy (:class:`_NoPydicomForNibabel`).
 
     And without running ``urllib.request`` (:class:`_RequestOnUse`).
     """
@@ -484,6 +508,7 @@ def nibabel():
                 sys.meta_path.remove(finder)
                 if stand_in is not None and getattr(urllib, "request", None) is stand_in:
                     del urllib.request
+            _spm_reads_mat_again(module)
             _nibabel.append(module)
     return _nibabel[0]
 

@@ -220,11 +220,13 @@ def _exports_by_slabs(req: WarpFiles, warp, how, *, held: int = 0) -> bool:
     while they are made) do not fit the budget; refused, before any work,
     where they fit neither whole nor by slabs (a NIfTI or compressed field).
     """
+    if not req.exports:
+        return False  # (the export modules are not imported)
     from ..execute import fits
     from ..memory import ensure_fits_in_memory, human_bytes
     from .export_outputs import block_export_problem, whole_fields_bytes
 
-    need = whole_fields_bytes(req.exports, warp) if req.exports else 0
+    need = whole_fields_bytes(req.exports, warp)
     if not need or how.chunked:
         return bool(need and how.chunked)
     if fits(held + need):
