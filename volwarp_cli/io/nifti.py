@@ -826,8 +826,6 @@ def _extension(meta: dict):
 
 def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
     """Write ``vol`` as NIfTI-1 (gzipped for ``.gz``), atomically, keeping the meta it can."""
-    nib = nibabel()
-
     path = Path(path)
     check_dtype(vol.data.dtype, str(path))
     d = vol.direction
@@ -839,33 +837,60 @@ def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
     meta = dict(vol.meta)
     units = _meta_int(meta, "NIfTI_xyzt_units", _DEFAULT_XYZT_UNITS, 0, 255)
     to_file_units = 1.0 / _SPACE_UNIT_TO_MM.get(units & 7, 1.0)  # the file's own units
-    aff = np.eye(4)
-    aff[:3, :3] = _RAS_TO_LPS @ (vol.direction * vol.spacing[None, :]) * to_file_units
-    aff[:3, 3] = _RAS_TO_LPS @ vol.origin * to_file_units
-    scode, qcode = _form_codes(meta, aff, vol.spacing * to_file_units)
+    aff = ras_affine(vol, to_file_units)
+    codes = _form_codes(meta, aff, vol.spacing * to_file_units)
     if not np.all(np.abs(aff) <= np.finfo(np.float32).max):
         raise VolwarpError(f"{path}: the geometry (spacing or origin up to "
                            f"{np.abs(aff).max():.3g}) is beyond NIfTI's float32 matrices; "
                            "write .nrrd or .mha")
-    img = nib.Nifti1Image(vol.data.transpose(2, 1, 0), aff)
+    intent = None
+    if any(k in meta for k in _INTENT_KEYS):
+        intent = (_meta_int(meta, "NIfTI_intent_code", 0, -32768, 32767),
+                  [_meta_float(meta, f"NIfTI_intent_p{i}") for i in (1, 2, 3)],
+                  str(meta.get("NIfTI_intent_name", "")))
+    write_nifti_file(path, vol.data.transpose(2, 1, 0), aff, units=units, codes=codes,
+                     intent=intent, descrip=str(meta.get("descrip", "")), meta=meta)
+
+
+def ras_affine(grid, scale: float = 1.0) -> np.ndarray:
+    """The voxel-to-RAS 4x4 matrix of an LPS grid (a Volume, a Header), ``scale`` per mm."""
+    aff = np.eye(4)
+    aff[:3, :3] = _RAS_TO_LPS @ (grid.direction * grid.spacing[None, :]) * scale
+    aff[:3, 3] = _RAS_TO_LPS @ grid.origin * scale
+    return aff
+
+
+def write_nifti_file(path: str | os.PathLike, data_xyz: np.ndarray, aff: np.ndarray, *,
+                     units: int, codes: tuple[int, int], intent=None, descrip: str = "",
+                     meta: dict | None = None) -> None:
+    """``data_xyz`` (x fastest: 3-D, or 5-D with vectors) as a NIfTI-1 file, atomically.
+
+    Gzipped for a ``.gz`` path. ``aff``: the voxel-to-RAS matrix written in
+    both forms with ``codes`` (sform, qform); ``units``: ``xyzt_units``;
+    ``intent``: ``(code, (p1, p2, p3), name)`` or None (none); ``descrip``
+    (at most 79 bytes, latin-1); ``meta``: the key/values that are no header
+    field go into volwarp's extension (module notes).
+    """
+    nib = nibabel()
+
+    img = nib.Nifti1Image(data_xyz, aff)
     header = img.header
     header["xyzt_units"] = units
-    img.set_sform(aff, code=scode)
-    img.set_qform(aff, code=qcode)
-    if any(k in meta for k in _INTENT_KEYS):
-        header["intent_code"] = _meta_int(meta, "NIfTI_intent_code", 0, -32768, 32767)
-        for i in (1, 2, 3):
-            header[f"intent_p{i}"] = _meta_float(meta, f"NIfTI_intent_p{i}")
-        name = str(meta.get("NIfTI_intent_name", ""))[:15]
-        header["intent_name"] = name.encode("latin-1", errors="replace")
-    descrip = str(meta.get("descrip", ""))[:79]
+    img.set_sform(aff, code=codes[0])
+    img.set_qform(aff, code=codes[1])
+    if intent is not None:
+        code, params, name = intent
+        header["intent_code"] = code
+        for i, p in enumerate(params, 1):
+            header[f"intent_p{i}"] = p
+        header["intent_name"] = name[:15].encode("latin-1", errors="replace")
     if descrip:
-        header["descrip"] = descrip.encode("latin-1", errors="replace")
-    ext = _extension(meta)
+        header["descrip"] = descrip[:79].encode("latin-1", errors="replace")
+    ext = _extension(meta or {})
     if ext is not None:
         header.extensions.append(ext)
     payload = img.to_bytes()
-    if path.name.lower().endswith(".gz"):
+    if str(path).lower().endswith(".gz"):
         payload = gzip_bytes(payload, 1)
     with atomic_output(path) as tmp:
         tmp.write_bytes(payload)

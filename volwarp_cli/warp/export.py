@@ -623,31 +623,12 @@ def field_block_output(path: str, geometry: Header, meta: dict, kind: str, depth
 
 
 def _write_nifti_field(field, grid: Header, path: str, kind: str) -> None:
-    from ..io.atomic import atomic_output
-    from ..io.deflate import gzip_bytes
-    from ..io.nifti import _RAS_TO_LPS, _extension, nibabel
+    from ..io.nifti import ras_affine, write_nifti_file
 
-    nib = nibabel()
-
-    aff = np.eye(4)
-    aff[:3, :3] = _RAS_TO_LPS @ (grid.direction * grid.spacing[None, :])
-    aff[:3, 3] = _RAS_TO_LPS @ grid.origin
     data = np.ascontiguousarray(field.transpose(2, 1, 0, 3))[:, :, :, None, :]
-    img = nib.Nifti1Image(data, aff)
-    header = img.header
-    header["xyzt_units"] = 2  # mm
-    img.set_sform(aff, code=1)
-    img.set_qform(aff, code=1)
-    header.set_intent("vector")
-    header["descrip"] = f"volwarp {kind} displacement field, LPS mm".encode("latin-1")
-    ext = _extension(grid.meta)
-    if ext is not None:
-        header.extensions.append(ext)
-    payload = img.to_bytes()
-    if str(path).lower().endswith(".gz"):
-        payload = gzip_bytes(payload, 1)
-    with atomic_output(path) as tmp:
-        tmp.write_bytes(payload)
+    write_nifti_file(path, data, ras_affine(grid), units=2, codes=(1, 1),  # mm
+                     intent=(1007, (0.0, 0.0, 0.0), ""),  # NIFTI_INTENT_VECTOR
+                     descrip=f"volwarp {kind} displacement field, LPS mm", meta=grid.meta)
 
 
 def _num(x: float) -> str:
