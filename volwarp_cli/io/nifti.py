@@ -812,16 +812,14 @@ def _form_codes(meta: dict, ras: np.ndarray, spacing: np.ndarray) -> tuple[int, 
     return scode, qcode
 
 
-def _extension(meta: dict):
-    """The volwarp header extension for the meta that is not a header field, or None."""
-    Nifti1Extension = nibabel().nifti1.Nifti1Extension  # noqa: N806
-
+def _extension(meta: dict) -> tuple[int, bytes] | None:
+    """volwarp's header extension ``(code, content)`` for the meta that is no header field."""
     rest = {str(k): v for k, v in meta.items() if k not in HEADER_KEYS}
     if not rest:
         return None
     text = json.dumps(rest, sort_keys=True, ensure_ascii=True, separators=(",", ":"),
                       default=str)
-    return Nifti1Extension(EXTENSION_CODE, EXTENSION_PREFIX + text.encode("ascii"))
+    return EXTENSION_CODE, EXTENSION_PREFIX + text.encode("ascii")
 
 
 def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
@@ -871,25 +869,22 @@ def write_nifti_file(path: str | os.PathLike, data_xyz: np.ndarray, aff: np.ndar
     (at most 79 bytes, latin-1); ``meta``: the key/values that are no header
     field go into volwarp's extension (module notes).
     """
-    nib = nibabel()
+    from .niftiheader import nifti1_header_bytes
 
-    img = nib.Nifti1Image(data_xyz, aff)
-    header = img.header
-    header["xyzt_units"] = units
-    img.set_sform(aff, code=codes[0])
-    img.set_qform(aff, code=codes[1])
+    samples = np.asarray(data_xyz).T  # [.., z, y, x]: x fastest in memory, as the file has it
+    samples = np.ascontiguousarray(samples, dtype=samples.dtype.newbyteorder("="))
     if intent is not None:
         code, params, name = intent
-        header["intent_code"] = code
-        for i, p in enumerate(params, 1):
-            header[f"intent_p{i}"] = p
-        header["intent_name"] = name[:15].encode("latin-1", errors="replace")
-    if descrip:
-        header["descrip"] = descrip[:79].encode("latin-1", errors="replace")
+        intent = (code, params, name[:15].encode("latin-1", errors="replace"))
     ext = _extension(meta or {})
-    if ext is not None:
-        header.extensions.append(ext)
-    payload = img.to_bytes()
+    try:
+        head = nifti1_header_bytes(samples.shape[::-1], samples.dtype, aff, codes=codes,
+                                   units=units, intent=intent,
+                                   descrip=descrip[:79].encode("latin-1", errors="replace"),
+                                   extensions=() if ext is None else (ext,))
+    except ValueError as exc:
+        raise VolwarpError(f"{path}: {exc}") from None
+    payload = b"".join((head, memoryview(samples).cast("B")))
     if str(path).lower().endswith(".gz"):
         payload = gzip_bytes(payload, 1)
     with atomic_output(path) as tmp:
