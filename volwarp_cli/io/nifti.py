@@ -813,7 +813,7 @@ def _form_codes(meta: dict, ras: np.ndarray, spacing: np.ndarray) -> tuple[int, 
 
 
 def _extension(meta: dict) -> tuple[int, bytes] | None:
-    """volwarp's header extension ``(code, content)`` for the meta that is no header field."""
+    """The header extension ``(code, content)`` of the meta that is no header field (volwarp's)."""
     rest = {str(k): v for k, v in meta.items() if k not in HEADER_KEYS}
     if not rest:
         return None
