@@ -137,3 +137,211 @@ def nifti1_header_bytes(shape_xyz: tuple[int, ...], dtype, aff: np.ndarray, *,
     hdr["vox_offset"] = 352 + len(tail)
     flag = bytes([1 if extensions else 0, 0, 0, 0])
     return hdr.tobytes() + flag + tail
+
+
+# -- reading ---------------------------------------------------------------------------
+
+#: NIfTI-2's header fields, in order (540 bytes)
+HEADER2 = np.dtype([
+    ("sizeof_hdr", "i4"), ("magic", "S4"), ("eol_check", "i1", (4,)), ("datatype", "i2"),
+    ("bitpix", "i2"), ("dim", "i8", (8,)), ("intent_p1", "f8"), ("intent_p2", "f8"),
+    ("intent_p3", "f8"), ("pixdim", "f8", (8,)), ("vox_offset", "i8"), ("scl_slope", "f8"),
+    ("scl_inter", "f8"), ("cal_max", "f8"), ("cal_min", "f8"), ("slice_duration", "f8"),
+    ("toffset", "f8"), ("slice_start", "i8"), ("slice_end", "i8"), ("descrip", "S80"),
+    ("aux_file", "S24"), ("qform_code", "i4"), ("sform_code", "i4"), ("quatern_b", "f8"),
+    ("quatern_c", "f8"), ("quatern_d", "f8"), ("qoffset_x", "f8"), ("qoffset_y", "f8"),
+    ("qoffset_z", "f8"), ("srow_x", "f8", (4,)), ("srow_y", "f8", (4,)), ("srow_z", "f8", (4,)),
+    ("slice_code", "i4"), ("xyzt_units", "i4"), ("intent_code", "i4"), ("intent_name", "S16"),
+    ("dim_info", "u1"), ("unused_str", "S15"),
+])
+assert HEADER2.itemsize == 540
+
+_SAMPLE_TYPES = {code: dt for dt, code in DATATYPE_CODES.items()}
+#: the most header bytes (header, extensions) read here; beyond, nibabel reads the file
+MAX_HEADER_BYTES = 1 << 20
+#: the code of a DICOM header extension (nibabel reads it with pydicom where it can)
+_DICOM_EXTENSION = 2
+#: NIfTI-2 intent codes of CIFTI-2 files (data on surfaces: nibabel reads them as such)
+_CIFTI_INTENTS = range(3000, 3100)
+
+
+class _Extension:
+    """A header extension: its code and content (trailing NULs removed)."""
+
+    def __init__(self, code: int, content: bytes):
+        self.code, self.content = code, content
+
+    def get_code(self) -> int:
+        return self.code
+
+
+class NiftiHeader:
+    """A NIfTI-1 or NIfTI-2 header that needs no repair, read as nibabel reads it.
+
+    ``fields``: the header's fields (``header["pixdim"]``, ``header.get(name)``);
+    ``shape`` (x, y, z, ...), ``dtype`` (the file's byte order), ``offset``
+    (where the samples start); ``extensions``. The forms' matrices are
+    nibabel's to the bit: the sform's rows; the qform's quaternion completed
+    and turned into a matrix in extended precision, times the voxel sizes
+    (the last one times ``qfac``).
+    """
+
+    def __init__(self, fields: np.void, version: int, extensions: list):
+        self.fields, self.version, self.extensions = fields, version, extensions
+        self.shape = tuple(int(d) for d in fields["dim"][1:int(fields["dim"][0]) + 1])
+        self.dtype = _SAMPLE_TYPES[int(fields["datatype"])].newbyteorder(
+            fields.dtype["sizeof_hdr"].byteorder)
+        self.offset = int(fields["vox_offset"])
+
+    def __getitem__(self, name: str):
+        return self.fields[name]
+
+    def get(self, name: str, default=None):
+        """Field ``name``, or ``default`` where this version has none."""
+        return self.fields[name] if name in self.fields.dtype.names else default
+
+    def get_data_shape(self) -> tuple[int, ...]:
+        """The samples' sizes (x, y, z, ...)."""
+        return self.shape
+
+    def get_sform(self, coded: bool = False):
+        """The sform's 4x4 matrix (``coded``: and its code; None for code 0)."""
+        code = int(self.fields["sform_code"])
+        if coded and code == 0:
+            return None, 0
+        out = np.eye(4)
+        out[0, :], out[1, :], out[2, :] = (self.fields[r] for r in ("srow_x", "srow_y",
+                                                                       "srow_z"))
+        return (out, code) if coded else out
+
+    def get_qform(self, coded: bool = False):
+        """The qform's 4x4 matrix (``coded``: and its code; None for code 0)."""
+        code = int(self.fields["qform_code"])
+        if coded and code == 0:
+            return None, 0
+        f = self.fields
+        rot = _quaternion_matrix(_completed_quaternion(
+            [f["quatern_b"], f["quatern_c"], f["quatern_d"]], self.version))
+        vox = f["pixdim"][1:4].copy()
+        vox[-1] *= f["pixdim"][0]
+        out = np.eye(4)
+        out[0:3, 0:3] = np.dot(rot, np.diag(vox))
+        out[0:3, 3] = [f["qoffset_x"], f["qoffset_y"], f["qoffset_z"]]
+        return (out, code) if coded else out
+
+
+def _completed_quaternion(bcd, version: int) -> np.ndarray:
+    """(w, b, c, d), w = sqrt(1 - b^2 - c^2 - d^2) in extended precision, 0 within rounding.
+
+    Within 3 float32 epsilons (NIfTI-1) or 3 float64 ones (NIfTI-2) of a
+    unit vector, w is 0; beyond, a ValueError (the caller checked before).
+    """
+    eps = np.finfo(np.float32 if version == 1 else np.float64).eps * 3
+    xyz = np.asarray(bcd, dtype=np.longdouble)
+    w2 = 1.0 - xyz @ xyz
+    if np.abs(w2) < eps:
+        w = 0
+    elif w2 < 0:
+        raise ValueError(f"w2 should be positive, but is {w2:e}")
+    else:
+        w = np.sqrt(w2)
+    return np.r_[w, xyz]
+
+
+def _quaternion_matrix(q) -> np.ndarray:
+    """The rotation matrix of a quaternion (w, x, y, z), scaled to unit length."""
+    w, x, y, z = q
+    nq = w * w + x * x + y * y + z * z
+    if nq < np.finfo(float).eps:
+        return np.eye(3)
+    s = 2.0 / nq
+    xs, ys, zs = x * s, y * s, z * s
+    wx, wy, wz = w * xs, w * ys, w * zs
+    xx, xy, xz = x * xs, x * ys, x * zs
+    yy, yz, zz = y * ys, y * zs, z * zs
+    return np.array([[1.0 - (yy + zz), xy - wz, xz + wy],
+                     [xy + wz, 1.0 - (xx + zz), yz - wx],
+                     [xz - wy, yz + wx, 1.0 - (xx + yy)]])
+
+
+def _fields(block: bytes) -> tuple[np.void, int] | None:
+    """The header fields of a single-file NIfTI-1 or NIfTI-2 header, and its version."""
+    for version, dtype, magic in ((1, HEADER1, b"n+1\0"), (2, HEADER2, b"n+2\0")):
+        size = dtype.itemsize
+        if len(block) < size + 4:
+            continue
+        for end in "<>":
+            if int(np.frombuffer(block, end + "i4", 1)[0]) != size:
+                continue
+            at = 344 if version == 1 else 4
+            if block[at:at + 4] != magic:
+                return None
+            if version == 2 and (block[8:12] != b"\r\n\x1a\n"
+                                 or block[344:348].rstrip(b"\0") in (b"ni1", b"n+1")):
+                return None  # (nibabel would read the second as NIfTI-1)
+            return np.frombuffer(block, dtype.newbyteorder(end), 1)[0], version
+    return None
+
+
+def _needs_nibabel(f: np.void, version: int) -> bool:
+    """Whether nibabel would repair, refuse, scale or read otherwise: left to it."""
+    dims = f["dim"]
+    if not 1 <= dims[0] <= 7 or np.any(dims[1:int(dims[0]) + 1] < 1):
+        return True
+    if tuple(dims[1:4]) == (27307, 1, 6):  # (FreeSurfer's icosahedron, reshaped by nibabel)
+        return True
+    kind = _SAMPLE_TYPES.get(int(f["datatype"]))
+    if kind is None or int(f["bitpix"]) != kind.itemsize * 8:
+        return True
+    pixdim = f["pixdim"]
+    if np.any(pixdim[1:4] <= 0) or pixdim[0] not in (-1, 1):
+        return True
+    offset = float(f["vox_offset"])
+    if not (offset >= (352 if version == 1 else 544) and offset % 16 == 0
+            and offset <= MAX_HEADER_BYTES):
+        return True
+    if int(f["qform_code"]) not in range(6) or int(f["sform_code"]) not in range(6):
+        return True
+    if version == 2 and int(f["intent_code"]) in _CIFTI_INTENTS:
+        return True
+    slope, inter = float(f["scl_slope"]), float(f["scl_inter"])
+    if slope != 0 and np.isfinite(slope) and (slope, inter) != (1.0, 0.0):
+        return True  # (scaled samples, or an intercept that is not a number)
+    try:
+        _completed_quaternion([f["quatern_b"], f["quatern_c"], f["quatern_d"]], version)
+    except ValueError:
+        return True
+    return False
+
+
+def read_header(read) -> NiftiHeader | None:
+    """The header of a single NIfTI-1/2 file as nibabel reads it, or None to leave it to nibabel.
+
+    ``read(n)``: the file's first ``n`` bytes (decompressed; fewer at its end).
+    None for anything that is not a clean single-file NIfTI header: another
+    format, a field nibabel would repair or refuse (a size, a type, the voxel
+    sizes, ``qfac``, the codes, the offset), scaled samples, CIFTI-2, an
+    extension whose size is not a multiple of 16 or runs past the samples, a
+    DICOM extension.
+    """
+    first = read(548) or b""
+    parsed = _fields(first)
+    if parsed is None or _needs_nibabel(*parsed):
+        return None
+    fields, version = parsed
+    size = fields.dtype.itemsize
+    offset = int(fields["vox_offset"])
+    block = (read(offset) or b"") if offset > len(first) else first
+    if len(block) < offset:
+        return None
+    extensions = []
+    if block[size:size + 1] != b"\0":
+        byteorder = fields.dtype["sizeof_hdr"].byteorder
+        at, left = size + 4, offset - size - 4
+        while left >= 16:
+            esize, ecode = (int(v) for v in np.frombuffer(block, byteorder + "i4", 2, at))
+            if esize < 16 or esize % 16 or esize > left or ecode == _DICOM_EXTENSION:
+                return None
+            extensions.append(_Extension(ecode, block[at + 8:at + esize].rstrip(b"\0")))
+            at, left = at + esize, left - esize
+    return NiftiHeader(fields, version, extensions)
