@@ -184,3 +184,18 @@ def test_a_plain_spec_is_read_from_events_and_composed_only_for_a_line(monkeypat
 def test_what_is_not_plain_goes_to_the_composing_loader(text, monkeypatch):
     assert loader._plain_data(text) is loader._NOT_PLAIN
     assert _outcome(text, 0) == _outcome(text, 1 << 60)
+
+
+def test_a_spec_read_from_events_pickles_with_its_lines():
+    """A manifest's SpecDoc travels to batch workers: plain pickle, lines still answered."""
+    import pickle
+
+    doc = loader.parse_spec_text("version: 1\nsteps:\n  - move: []\n  - drag: []\n", "s.yaml")
+    back = pickle.loads(pickle.dumps(doc))
+    assert back.data == doc.data and back.line(("steps", 1)) == 4 == doc.line(("steps", 1))
+
+
+def test_a_lone_surrogate_is_a_spec_error():
+    """libyaml cannot take one (UnicodeEncodeError): the Python loader words the error."""
+    with pytest.raises(SpecError, match="unacceptable character"):
+        loader.parse_spec_text("a: \ud800\n", "s.yaml")

@@ -87,13 +87,14 @@ class SpecDoc:
     def line(self, path: Key) -> int | None:
         """Line of ``path``, or of its nearest ancestor that has one."""
         path = tuple(path)
-        if callable(self._lines):
-            self._lines = self._lines()
-        if isinstance(self._lines, yaml.Node):
-            return _node_line(self._lines, path)
+        lines = self._lines  # (read once: another thread may compose the tree meanwhile)
+        if callable(lines):
+            lines = self._lines = lines()
+        if isinstance(lines, yaml.Node):
+            return _node_line(lines, path)
         while True:
-            if path in self._lines:
-                return self._lines[path]
+            if path in lines:
+                return lines[path]
             if not path:
                 return None
             path = path[:-1]
@@ -236,7 +237,7 @@ def _compose(text: str):
             if not _too_deep(text):
                 loader = _FastSpecLoader(text)
                 return loader, loader.get_single_node()
-        except (yaml.YAMLError, RecursionError):
+        except (yaml.YAMLError, RecursionError, UnicodeEncodeError):  # (a lone surrogate)
             pass
         if loader is not None:
             loader.dispose()
@@ -382,7 +383,10 @@ def _plain_data(text: str) -> Any:
     node) and walking it was most of a large spec's reading: 729 moves, 43 ms
     against 8 ms this way.
     """
-    loader = _FastSpecLoader(text)
+    try:
+        loader = _FastSpecLoader(text)
+    except UnicodeEncodeError:  # (a lone surrogate: the Python loader words its error)
+        return _NOT_PLAIN
     try:
         return _data_from_events(loader)
     except (_NotPlain, yaml.YAMLError, ValueError, TypeError, ArithmeticError, KeyError):
@@ -456,14 +460,22 @@ def _data_from_events(loader) -> Any:
             parent[1] = value
 
 
-def _composed_tree(text: str):
-    """The node tree of a text :func:`_plain_data` read (for the lines of errors), or no lines."""
-    try:
-        loader, node = _compose(text)
-    except (yaml.YAMLError, RecursionError, _TooDeep):  # pragma: no cover - read once already
-        return {}
-    loader.dispose()
-    return node
+class _TreeLater:
+    """The node tree of a text :func:`_plain_data` read, composed at the first line asked.
+
+    (A class, not a closure: a :class:`SpecDoc` pickles, as a batch's manifest is sent.)
+    """
+
+    def __init__(self, text: str):
+        self.text = text
+
+    def __call__(self):
+        try:
+            loader, node = _compose(self.text)
+        except (yaml.YAMLError, RecursionError, _TooDeep):  # pragma: no cover - read once
+            return {}
+        loader.dispose()
+        return node
 
 
 def parse_spec_text(text: str, file: str = "<spec>", base: Path | None = None) -> SpecDoc:
@@ -471,7 +483,7 @@ def parse_spec_text(text: str, file: str = "<spec>", base: Path | None = None) -
     if _FastSpecLoader is not None and len(text) >= FAST_MIN_BYTES:
         data = _plain_data(text)
         if isinstance(data, dict):
-            return SpecDoc(data, lambda: _composed_tree(text), file, base or Path("."))
+            return SpecDoc(data, _TreeLater(text), file, base or Path("."))
     loader = None
     try:
         try:
