@@ -144,10 +144,12 @@ def test_the_quaternion_of_a_rotation():
 
 
 def test_a_size_nifti1_cannot_hold_is_refused_and_nothing_written(tmp_path):
+    """Over 32767 samples along an axis: refused (nibabel wrote a line of them with
+    FreeSurfer's dim[1] = -1, which ITK does not read as such)."""
     from volwarp_cli.errors import VolwarpError
 
     path = tmp_path / "long.nii"
-    with pytest.raises(VolwarpError, match="at most 32767"):
+    with pytest.raises(VolwarpError, match=r"at most 32767; write \.nrrd or \.mha"):
         write_nifti_file(path, np.zeros((40000, 1, 1), np.uint8), np.eye(4), units=2,
                          codes=(1, 1))
     assert not path.exists()

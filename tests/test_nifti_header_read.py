@@ -10,6 +10,7 @@ extension sizes.
 
 from __future__ import annotations
 
+import gzip
 import subprocess
 import sys
 import warnings
@@ -20,6 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from volwarp_cli.io import read_volume
+from volwarp_cli.io.nifti import header_without_nibabel, nibabel
 from volwarp_cli.io.niftiheader import HEADER1, HEADER2, NiftiHeader, read_header
 
 FIELD_VALUES = {
@@ -99,7 +101,11 @@ def fields_of(h):
                 got = getattr(h, f"get_{name}")(coded=coded)
             except Exception as exc:  # (nibabel refuses a bad qfac, negative sizes)
                 got = type(exc).__name__
-            out[name, coded] = repr(got)
+            if isinstance(got, tuple):
+                got = (None if got[0] is None else got[0].tolist(), got[1])
+            elif isinstance(got, np.ndarray):
+                got = got.tolist()
+            out[name, coded] = repr(got)  # (every float in full: the matrices to the bit)
     for name in ("pixdim", "xyzt_units", "sform_code", "qform_code", "intent_code", "intent_p1",
                  "intent_p2", "intent_p3", "intent_name", "descrip", "dim"):
         out[name] = repr(np.asarray(h[name]).tolist())  # (NaN as text: equal to itself)
@@ -108,15 +114,21 @@ def fields_of(h):
 
 
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(block=headers())
-def test_where_it_reads_a_header_nibabel_reads_the_same(tmp_path_factory, block):
-    path = tmp_path_factory.mktemp("h") / "h.nii"
-    path.write_bytes(block)
-    ours = read_header(lambda n: block[:n])
+@given(block=headers(), name=st.sampled_from(["h.nii", "h.nii", "h.nii.gz", "h.nii.gz",
+                                              "H.NII.GZ", "gz.nii", "plain.nii.gz", "h.hdr",
+                                              "h", "cut.nii.gz"]))
+def test_where_it_reads_a_header_nibabel_reads_the_same(tmp_path_factory, block, name):
+    """Files named and compressed as nibabel finds them, or not (a gzip .nii, a plain .nii.gz,
+    other names, a gzip stream whose end is cut)."""
+    path = tmp_path_factory.mktemp("h") / name
+    gzipped = name.lower().endswith(".gz") != name.startswith(("gz", "plain"))
+    raw = gzip.compress(block[:700] if name.startswith("cut") else block) if gzipped else block
+    path.write_bytes(raw[:-8] if name.startswith("cut") else raw)
+    ours = header_without_nibabel(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
-            img = nib.load(path, mmap=False)
+            img = nibabel().load(path, mmap=False)
         except Exception:
             img = None
     if ours is None:

@@ -534,11 +534,9 @@ def open_nifti(path: str | os.PathLike) -> NiftiFile:
     reads as another image class (CIFTI-2: data on surfaces and grayordinates),
     empty axes, axes beyond the 5th, an uncompressed file shorter than its samples.
     """
-    from .niftiheader import read_header
-
     where = str(path)
     _check_raw_header(path, where)
-    header = read_header(lambda n: _read_start(path, n))
+    header = header_without_nibabel(path)
     if header is not None:  # (a header nibabel reads as it is: no nibabel import, 0.05 s)
         return NiftiFile(Path(path), where, header, header.dtype, header.offset, (1.0, 0.0),
                          header.shape)
@@ -561,6 +559,37 @@ def open_nifti(path: str | os.PathLike) -> NiftiFile:
     proxy = img.dataobj  # (nibabel moves scl_slope/scl_inter from the header to it)
     return NiftiFile(Path(path), where, img.header, proxy.dtype, proxy.offset,
                      (proxy.slope, proxy.inter), img.shape)
+
+
+def header_without_nibabel(path):
+    """The header of a NIfTI file as nibabel would read it, or None to let nibabel read it.
+
+    Only where nibabel would take the file for a NIfTI by its name and read it
+    as it is: a ``.nii`` that is not gzipped, a ``.nii.gz`` that is (nibabel
+    goes by the name: another name, or the other content, it refuses or reads
+    as another format), whose first 1024 bytes inflate (nibabel reads as many
+    to find the format: a short stream with a damaged end is refused there), and
+    whose header needs no repair (:func:`.niftiheader.read_header`).
+    """
+    from .niftiheader import read_header
+
+    name = str(path).lower()
+    if not name.endswith((".nii", ".nii.gz")):
+        return None
+    try:
+        with open(path, "rb") as fh:
+            if (fh.read(2) == b"\x1f\x8b") != name.endswith(".gz"):
+                return None
+    except OSError:
+        return None
+    first = _read_start(path, _SNIFF_BYTES)
+    if first is None:
+        return None
+    return read_header(lambda n: first[:n] if n <= len(first) else _read_start(path, n))
+
+
+#: the decompressed bytes nibabel reads of a file to find its format
+_SNIFF_BYTES = 1024
 
 
 def nifti_geometry(header, where: str) -> tuple[dict, tuple[np.ndarray, str]]:

@@ -104,14 +104,17 @@ def nifti1_header_bytes(shape_xyz: tuple[int, ...], dtype, aff: np.ndarray, *,
     qform); ``units``: ``xyzt_units``; ``intent``: ``(code, (p1, p2, p3),
     name bytes)`` or None; ``descrip``: at most 80 bytes; ``extensions``:
     ``(code, content)`` pairs. A ValueError for a type or a size NIfTI-1
-    cannot hold.
+    cannot hold: more than 32767 samples along an axis is refused (nibabel
+    wrote a line of them with FreeSurfer's ``dim[1] = -1``, which ITK and
+    SimpleITK do not read as such).
     """
     dtype = np.dtype(dtype)
     if dtype.newbyteorder("=") not in DATATYPE_CODES:
         raise ValueError(f"NIfTI-1 has no type for {dtype.name} samples")
     if not 1 <= len(shape_xyz) <= 7 or any(not 0 < n <= _DIM_MAX for n in shape_xyz):
         raise ValueError(f"NIfTI-1 cannot hold {len(shape_xyz)}-D samples of sizes "
-                         f"{tuple(shape_xyz)} (1 to 7 axes, each at most {_DIM_MAX})")
+                         f"{tuple(shape_xyz)} (1 to 7 axes, each at most {_DIM_MAX}; "
+                         "write .nrrd or .mha)")
     hdr = np.zeros((), dtype=HEADER1)
     hdr["sizeof_hdr"] = 348
     hdr["dim"] = 1
