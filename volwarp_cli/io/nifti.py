@@ -209,14 +209,6 @@ def _choose_affine(header, where: str) -> tuple[np.ndarray, str]:
     return sform, "sform"
 
 
-def _read_header_block(path) -> bytes | None:
-    """The first 560 bytes of the (possibly gzipped) file, or None when they cannot be read.
-
-    nibabel then says why.
-    """
-    return _read_start(path, 560)
-
-
 def _read_start(path, count: int) -> bytes | None:
     """The first ``count`` bytes of the (possibly gzipped) file (fewer at its end), or None."""
     try:
@@ -231,13 +223,13 @@ def _read_start(path, count: int) -> bytes | None:
         return None
 
 
-def _check_raw_header(path, where: str) -> None:
+def _check_raw_header(block: bytes | None, where: str) -> None:
     """Refuse, before nibabel reads them, a vox_offset inside the header and an invalid quaternion.
 
-    nibabel would read header bytes as samples, or fail with a traceback-like message
-    that names no field.
+    ``block``: the file's first (decompressed) bytes, None where they cannot be
+    read (nibabel then says why). nibabel would read header bytes as samples, or
+    fail with a traceback-like message that names no field.
     """
-    block = _read_header_block(path)
     if not block or len(block) < 348:
         return
     for end in "<>":
@@ -535,8 +527,9 @@ def open_nifti(path: str | os.PathLike) -> NiftiFile:
     empty axes, axes beyond the 5th, an uncompressed file shorter than its samples.
     """
     where = str(path)
-    _check_raw_header(path, where)
-    header = header_without_nibabel(path)
+    start = _read_start(path, _SNIFF_BYTES)  # (read once for both: a .nii.gz inflates it)
+    _check_raw_header(start if start is not None else _read_start(path, _HEADER_BYTES), where)
+    header = header_without_nibabel(path, start, read=False)
     if header is not None:  # (a header nibabel reads as it is: no nibabel import, 0.05 s)
         return NiftiFile(Path(path), where, header, header.dtype, header.offset, (1.0, 0.0),
                          header.shape)
@@ -561,7 +554,7 @@ def open_nifti(path: str | os.PathLike) -> NiftiFile:
                      (proxy.slope, proxy.inter), img.shape)
 
 
-def header_without_nibabel(path):
+def header_without_nibabel(path, start=None, *, read: bool = True):
     """The header of a NIfTI file as nibabel would read it, or None to let nibabel read it.
 
     Only where nibabel would take the file for a NIfTI by its name and read it
@@ -569,7 +562,9 @@ def header_without_nibabel(path):
     goes by the name: another name, or the other content, it refuses or reads
     as another format), whose first 1024 bytes inflate (nibabel reads as many
     to find the format: a short stream with a damaged end is refused there), and
-    whose header needs no repair (:func:`.niftiheader.read_header`).
+    whose header needs no repair (:func:`.niftiheader.read_header`). ``start``:
+    the file's first 1024 bytes where the caller read them (``read=False``;
+    None: they could not be read).
     """
     from .niftiheader import read_header
 
@@ -582,7 +577,7 @@ def header_without_nibabel(path):
                 return None
     except OSError:
         return None
-    first = _read_start(path, _SNIFF_BYTES)
+    first = _read_start(path, _SNIFF_BYTES) if read else start
     if first is None:
         return None
     return read_header(lambda n: first[:n] if n <= len(first) else _read_start(path, n))
@@ -590,6 +585,8 @@ def header_without_nibabel(path):
 
 #: the decompressed bytes nibabel reads of a file to find its format
 _SNIFF_BYTES = 1024
+#: the bytes :func:`_check_raw_header` needs (a NIfTI-2 header and its extension flag)
+_HEADER_BYTES = 560
 
 
 def nifti_geometry(header, where: str) -> tuple[dict, tuple[np.ndarray, str]]:
