@@ -291,50 +291,53 @@ def test_a_block_and_a_split_give_the_whole():
     assert block["covered"].tobytes() == whole["covered"][sl].tobytes()
 
 
-@pytest.mark.parametrize("change", [
-    {"acc": np.zeros((2, 8, 8, 14), np.float64)},  # a wrong type
-    {"covered": np.zeros((8, 8, 14), np.int64)},
-    {"closed": np.array([3], np.int64)},
-    {"tex": np.array([0.7, 0.0, 1.0], np.float64)},
-    {"P": np.zeros((2, 3), np.float32)},
-    {"SL": np.zeros((2, 3))},  # a wrong size
-    {"covered": np.zeros((8, 8, 13), np.uint8)},
-    {"boxes": np.zeros((1, 5), np.int64)},
-    {"tex": np.array([0.7, 0.0], np.float32)},  # field 1's stack beyond tex
-    {"off": np.array([0, 2], np.int64)},
-    {"tn": np.array([1, 0], np.int64)},
-    {"sub_b": np.array([2], np.int64)},  # a template that does not exist
-    {"sub_a": np.array([-1], np.int64)},
-    {"boxes": np.array([[0, 14, 0, 7, 0, 7]], np.int64)},  # a voxel outside the block
-    {"boxes": np.array([[-1, 13, 0, 7, 0, 7]], np.int64)},
-    {"zhi": 9},
-    {"zlo": -1},
-    {"ops": np.array([0, 9], np.int64)},
-    {"opac": 2},
-    {"wsum": np.zeros((1, 1, 1), np.float32)},  # field 1 blends: wsum is the block's
-    {"acc": np.zeros((2, 8, 8, 28), np.float32)[..., ::2]},  # not contiguous
+@pytest.mark.parametrize("change, error", [
+    ({"acc": np.zeros((2, 8, 8, 14), np.float64)}, TypeError),  # a wrong type
+    ({"covered": np.zeros((8, 8, 14), np.int64)}, TypeError),
+    ({"closed": np.array([3], np.int64)}, TypeError),
+    ({"tex": np.array([0.7, 0.0, 1.0], np.float64)}, TypeError),
+    ({"P": np.zeros((2, 3), np.float32)}, TypeError),
+    ({"SL": np.zeros((2, 3))}, ValueError),  # a wrong size
+    ({"covered": np.zeros((8, 8, 13), np.uint8)}, ValueError),
+    ({"boxes": np.zeros((1, 5), np.int64)}, ValueError),
+    ({"tex": np.array([0.7, 0.0], np.float32)}, ValueError),  # field 1's stack beyond tex
+    ({"off": np.array([0, 2], np.int64)}, ValueError),
+    ({"tn": np.array([1, 0], np.int64)}, ValueError),
+    ({"sub_b": np.array([2], np.int64)}, ValueError),  # a template that does not exist
+    ({"sub_a": np.array([-1], np.int64)}, ValueError),
+    # a voxel outside the block
+    ({"boxes": np.array([[0, 14, 0, 7, 0, 7]], np.int64)}, ValueError),
+    ({"boxes": np.array([[-1, 13, 0, 7, 0, 7]], np.int64)}, ValueError),
+    ({"zhi": 9}, ValueError),
+    ({"zlo": -1}, ValueError),
+    ({"ops": np.array([0, 9], np.int64)}, ValueError),
+    ({"opac": 2}, ValueError),
+    # field 1 blends: wsum is the block's
+    ({"wsum": np.zeros((1, 1, 1), np.float32)}, ValueError),
+    ({"acc": np.zeros((2, 8, 8, 28), np.float32)[..., ::2]}, ValueError),  # not contiguous
 ])
-def test_the_voxeliser_refuses_wrong_buffers_and_writes_nothing(change):
+def test_the_voxeliser_refuses_wrong_buffers_and_writes_nothing(change, error):
     a = straight_sweep()
     a.update(change)
-    with pytest.raises(ValueError):
+    with pytest.raises(error):
         call(a)
     for k in ("acc", "wsum", "covered"):
         assert not np.any(a[k])
 
 
-@pytest.mark.parametrize("coef, out", [
-    (np.zeros((4, 3), np.float32), np.zeros((4, 2))),  # a wrong type
-    (np.zeros((4, 3)), np.zeros((4, 2), np.float32)),
-    (np.zeros((4, 3), np.int64), np.zeros((4, 2))),
-    (np.zeros((4, 3)), np.zeros((4, 3))),  # a wrong size
-    (np.zeros((4, 3)), np.zeros((5, 2))),
-    (np.zeros((4, 3)), np.zeros(8)),
-    (np.zeros((4, 0)), np.zeros((4, 0))),
-    (np.zeros((4, 6))[:, ::2], np.zeros((4, 2))),  # not contiguous
+@pytest.mark.parametrize("coef, out, error", [
+    (np.zeros((4, 3), np.float32), np.zeros((4, 2)), TypeError),  # a wrong type
+    (np.zeros((4, 3)), np.zeros((4, 2), np.float32), TypeError),
+    (np.zeros((4, 3), np.int64), np.zeros((4, 2)), TypeError),
+    (np.zeros((4, 3), ">f8"), np.zeros((4, 2)), TypeError),  # not the machine's byte order
+    (np.zeros((4, 3)), np.zeros((4, 3)), ValueError),  # a wrong size
+    (np.zeros((4, 3)), np.zeros((5, 2)), ValueError),
+    (np.zeros((4, 3)), np.zeros(8), ValueError),
+    (np.zeros((4, 0)), np.zeros((4, 0)), ValueError),
+    (np.zeros((4, 6))[:, ::2], np.zeros((4, 2)), ValueError),  # not contiguous
 ])
-def test_the_root_finder_refuses_wrong_buffers(coef, out):
-    with pytest.raises(ValueError):
+def test_the_root_finder_refuses_wrong_buffers(coef, out, error):
+    with pytest.raises(error):
         K.real_roots_unit(coef, out)
     assert not np.any(out)
 

@@ -283,6 +283,11 @@ def test_wrong_buffers_are_errors():
     out = np.zeros((4, 4, 4), np.float32)
     with pytest.raises(TypeError, match="sample type"):
         K.finalize(acc.astype(np.int32), 1.0, (0, 0, 0), (4, 4, 4), out, 0.0)
+    for swapped in (acc.astype(">i8"), out.astype(">f4")):  # another machine's byte order
+        with pytest.raises(TypeError, match="sample type"):
+            K.finalize(swapped if swapped.ndim == 4 else acc, 1.0, (0, 0, 0), (4, 4, 4),
+                       swapped if swapped.ndim == 3 else out, 0.0)
+    assert not out.any()
     with pytest.raises(ValueError, match="outside"):
         K.finalize(acc, 1.0, (0, 0, 0), (5, 4, 4), out, 0.0)
     with pytest.raises(ValueError, match="dimensions"):

@@ -27,50 +27,7 @@
 
 /* ---------------------------------------------------------------- buffers */
 
-enum { K_F32 = 1, K_F64 = 2, K_I64 = 4, K_U8 = 8, K_I32 = 16, K_FLOAT = K_F32 | K_F64 };
-
-static int buf_kind(const Py_buffer *v)
-{
-    const char *f = v->format ? v->format : "B";
-    size_t n = strlen(f);
-    char c = n ? f[n - 1] : 'B';
-    if (n > 2 || (n == 2 && strchr("@=<>!", f[0]) == NULL))
-        return 0;
-    if (c == 'f' && v->itemsize == 4)
-        return K_F32;
-    if (c == 'd' && v->itemsize == 8)
-        return K_F64;
-    if ((c == 'l' || c == 'q') && v->itemsize == 8)
-        return K_I64;
-    if ((c == 'B' || c == '?') && v->itemsize == 1)
-        return K_U8;
-    if ((c == 'i' || c == 'l') && v->itemsize == 4)
-        return K_I32;
-    return 0;
-}
-
-/* A C-contiguous buffer of one of the kinds in `kinds` with `ndim` dimensions
- * (writable > 1: a writable buffer with any strides). */
-static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim, const char *name)
-{
-    int flags = (writable > 1 ? PyBUF_STRIDES : PyBUF_C_CONTIGUOUS) | PyBUF_FORMAT |
-                (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(o, v, flags) < 0)
-        return -1;
-    if (!(buf_kind(v) & kinds)) {
-        PyErr_Format(PyExc_TypeError, "%s: unexpected sample type '%s'", name,
-                     v->format ? v->format : "B");
-        PyBuffer_Release(v);
-        return -1;
-    }
-    if (v->ndim != ndim) {
-        PyErr_Format(PyExc_ValueError, "%s: expected %d dimensions, got %d", name, ndim,
-                     v->ndim);
-        PyBuffer_Release(v);
-        return -1;
-    }
-    return 0;
-}
+#include "../_buffers.h"
 
 /* Row loops that run as vectors get AVX-512 (x86-64-v4) and AVX2 clones on x86-64, the
  * best the CPU has chosen when the module loads (same IEEE operations, no FMA: the same
@@ -82,12 +39,6 @@ static int get_buf(PyObject *o, Py_buffer *v, int writable, int kinds, int ndim,
 #else
 #define VECTOR_CLONES
 #endif
-
-static void release_all(Py_buffer *b, int n)
-{
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
-}
 
 #define MIN(a, b) ((a) < (b) ? (a) : (b))
 #define MAX(a, b) ((a) > (b) ? (a) : (b))
@@ -210,8 +161,8 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     Py_ssize_t g0, g1;
     Py_buffer b[11];
     int n = 0;
-    static const int kinds[11] = {K_FLOAT, K_I32, K_I32, K_F64, K_I32, K_I32, K_F64,
-                                  K_I32,   K_I32, K_F64, K_FLOAT};
+    static const int kinds[11] = {FLOATS, KIND(I32), KIND(I32), KIND(F64), KIND(I32), KIND(I32), KIND(F64),
+                                  KIND(I32),   KIND(I32), KIND(F64), FLOATS};
     static const int dims[11] = {3, 1, 1, 1, 1, 1, 1, 1, 1, 1, 3};
     static const char *names[11] = {"data", "x0", "x1", "fx", "y0", "y1", "fy",
                                     "z0",   "z1", "fz", "out"};
@@ -219,7 +170,7 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
                           &o[6], &o[7], &o[8], &o[9], &o[10], &g0, &g1))
         return NULL;
     for (; n < 11; n++)
-        if (get_buf(o[n], &b[n], n == 10, kinds[n], dims[n], names[n]) < 0)
+        if (get_buf(o[n], &b[n], n == 10 ? WRITE : READ, kinds[n], dims[n], names[n]) < 0)
             goto fail;
     Py_ssize_t nz = b[10].shape[0], ny = b[10].shape[1], nx = b[10].shape[2];
     Py_ssize_t iz = b[0].shape[0], iy = b[0].shape[1], ix = b[0].shape[2];
@@ -244,11 +195,11 @@ static PyObject *py_sample(PyObject *self, PyObject *args)
     const int copy = all_zero(b[3].buf, 0, nx) && all_zero(b[6].buf, 0, ny) &&
                      all_zero(b[9].buf, g0, g1);
     Py_BEGIN_ALLOW_THREADS
-    if (copy && buf_kind(&b[0]) == K_F32)
+    if (copy && buf_kind(&b[0]) == F32)
         copy_f32(b[0].buf, iy, ix, b[1].buf, b[4].buf, b[7].buf, b[10].buf, ny, nx, g0, g1, range);
     else if (copy)
         copy_f64(b[0].buf, iy, ix, b[1].buf, b[4].buf, b[7].buf, b[10].buf, ny, nx, g0, g1, range);
-    else if (buf_kind(&b[0]) == K_F32)
+    else if (buf_kind(&b[0]) == F32)
         sample_f32(b[0].buf, iy, ix, b[1].buf, b[2].buf, b[3].buf, b[4].buf, b[5].buf, b[6].buf,
                    b[7].buf, b[8].buf, b[9].buf, b[10].buf, ny, nx, g0, g1, range);
     else
@@ -333,14 +284,14 @@ static PyObject *py_separable(PyObject *self, PyObject *args)
     Py_ssize_t x0, x1, y0, y1, z0, z1, ox, oy, oz;
     Py_buffer b[5];
     int n = 0;
-    static const int kinds[5] = {K_F64, K_F64, K_F64, K_F64, K_FLOAT};
+    static const int kinds[5] = {KIND(F64), KIND(F64), KIND(F64), KIND(F64), FLOATS};
     static const int dims[5] = {4, 2, 2, 2, 4};
     static const char *names[5] = {"dq", "wx", "wy", "wz", "out"};
     if (!PyArg_ParseTuple(args, "OOOOnnnnnnOnnn", &o[0], &o[1], &o[2], &o[3], &x0, &x1, &y0,
                           &y1, &z0, &z1, &o[4], &ox, &oy, &oz))
         return NULL;
     for (; n < 5; n++)
-        if (get_buf(o[n], &b[n], n == 4 ? 2 : 0, kinds[n], dims[n], names[n]) < 0)
+        if (get_buf(o[n], &b[n], n == 4 ? WRITE | STRIDED : READ, kinds[n], dims[n], names[n]) < 0)
             goto fail;
     if (x1 <= x0 || y1 <= y0 || z1 <= z0) {
         for (int k = 0; k < n; k++)
@@ -374,7 +325,7 @@ static PyObject *py_separable(PyObject *self, PyObject *args)
     Py_ssize_t sxe = b[4].strides[2] / b[4].itemsize, sce = b[4].strides[3] / b[4].itemsize;
     char *out = b[4].buf; /* any strides: interleaved (x, y, z) triplets or planar */
     Py_BEGIN_ALLOW_THREADS
-    if (buf_kind(&b[4]) == K_F32) {
+    if (buf_kind(&b[4]) == F32) {
         SEPARABLE_BODY(float, xrow_f32)
     } else {
         SEPARABLE_BODY(double, xrow_f64)
@@ -906,11 +857,11 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
                           &o_acc, &s.tx_lo, &s.tx_hi, &s.ty_lo, &s.ty_hi, &s.tz_lo, &s.tz_hi, &ring, &s.track, &o_still, &s.gran[0],
                           &s.gran[1], &s.gran[2], &vox, &voy, &s.dvx, &s.dvy, &ax, &ay))
         return NULL;
-    if (get_buf(o_uha, &b[n++], 0, K_F32, 4, "uh") < 0 ||
-        get_buf(o_uhb, &b[n++], 0, K_F32, 4, "uh_new") < 0 ||
-        get_buf(o_values, &b[n++], 0, K_FLOAT, 3, "values") < 0 ||
-        get_buf(o_acc, &b[n++], 1, K_I64, 4, "acc") < 0 ||
-        (o_still != Py_None && get_buf(o_still, &b[n++], 0, K_U8, 4, "still") < 0)) {
+    if (get_buf(o_uha, &b[n++], READ, KIND(F32), 4, "uh") < 0 ||
+        get_buf(o_uhb, &b[n++], READ, KIND(F32), 4, "uh_new") < 0 ||
+        get_buf(o_values, &b[n++], READ, FLOATS, 3, "values") < 0 ||
+        get_buf(o_acc, &b[n++], WRITE, KIND(I64), 4, "acc") < 0 ||
+        (o_still != Py_None && get_buf(o_still, &b[n++], READ, KIND(U8), 4, "still") < 0)) {
         n--;
         goto fail;
     }
@@ -927,7 +878,7 @@ static PyObject *py_scatter(PyObject *self, PyObject *args)
     s.cstride = b[0].shape[1] * b[0].shape[2] * b[0].shape[3];
     s.nyb = b[0].shape[2];
     s.nxb = b[0].shape[3];
-    s.values_f64 = buf_kind(&b[2]) == K_F64;
+    s.values_f64 = buf_kind(&b[2]) == F64;
     s.vy = b[2].shape[1];
     s.vx = b[2].shape[2];
     if (s.dvx < 0) /* the values are whole planes */
@@ -1052,8 +1003,8 @@ static PyObject *py_finalize(PyObject *self, PyObject *args)
     if (!PyArg_ParseTuple(args, "Od(nnn)(nnn)Od|p", &o_acc, &vmax, &lo[0], &lo[1], &lo[2], &hi[0],
                           &hi[1], &hi[2], &o_out, &background, &clear))
         return NULL;
-    if (get_buf(o_acc, &b[n++], clear, K_I64, 4, "acc") < 0 ||
-        get_buf(o_out, &b[n++], 1, K_FLOAT, 3, "out") < 0) {
+    if (get_buf(o_acc, &b[n++], clear ? WRITE : READ, KIND(I64), 4, "acc") < 0 ||
+        get_buf(o_out, &b[n++], WRITE, FLOATS, 3, "out") < 0) {
         n--;
         goto fail;
     }
@@ -1070,7 +1021,7 @@ static PyObject *py_finalize(PyObject *self, PyObject *args)
     if (lo[0] < hi[0] && lo[1] < hi[1] && lo[2] < hi[2]) {
         int64_t *acc = b[0].buf;
         const double inv_q = 1.0 / QUANTUM;
-        const int f32 = buf_kind(&b[1]) == K_F32;
+        const int f32 = buf_kind(&b[1]) == F32;
         Py_BEGIN_ALLOW_THREADS
         for (Py_ssize_t z = lo[2]; z < hi[2]; z++)
             for (Py_ssize_t y = lo[1]; y < hi[1]; y++) {
@@ -1587,17 +1538,17 @@ static PyObject *py_scatter_labels(PyObject *self, PyObject *args)
                           &o_ring[3], &o_ring[4], &o_ring[5], &slots, &o_need, &s.tile,
                           &s.start_f, &s.start_g))
         return NULL;
-    static const int kinds[6] = {K_I64, K_I32, K_I64, K_I32, K_I64, K_I64};
+    static const int kinds[6] = {KIND(I64), KIND(I32), KIND(I64), KIND(I32), KIND(I64), KIND(I64)};
     static const char *names[6] = {"wall", "head_l", "head_w", "head_next", "pool", "state"};
-    if (get_buf(o_u, &b[n++], 0, K_F32, 4, "u") < 0 ||
-        get_buf(o_codes, &b[n++], 0, K_I32, 3, "codes") < 0 ||
-        get_buf(o_still, &b[n++], 0, K_U8, 3, "still") < 0 ||
-        get_buf(o_need, &b[n++], 0, K_U8, 3, "need") < 0) {
+    if (get_buf(o_u, &b[n++], READ, KIND(F32), 4, "u") < 0 ||
+        get_buf(o_codes, &b[n++], READ, KIND(I32), 3, "codes") < 0 ||
+        get_buf(o_still, &b[n++], READ, KIND(U8), 3, "still") < 0 ||
+        get_buf(o_need, &b[n++], READ, KIND(U8), 3, "need") < 0) {
         n--;
         goto fail;
     }
     for (int j = 0; j < 6; j++)
-        if (get_buf(o_ring[j], &b[n++], 1, kinds[j], 1, names[j]) < 0) {
+        if (get_buf(o_ring[j], &b[n++], WRITE, kinds[j], 1, names[j]) < 0) {
             n--;
             goto fail;
         }
@@ -1788,20 +1739,20 @@ static PyObject *py_resolve_planes(PyObject *self, PyObject *args)
                           &o_ring[4], &o_ring[5], &slots, &s.below, &o_out, &o[0], &o[1], &o[2],
                           &o[3], &o[4]))
         return NULL;
-    static const int kinds[6] = {K_I64, K_I32, K_I64, K_I32, K_I64, K_I64};
+    static const int kinds[6] = {KIND(I64), KIND(I32), KIND(I64), KIND(I32), KIND(I64), KIND(I64)};
     static const char *names[6] = {"wall", "head_l", "head_w", "head_next", "pool", "state"};
     static const char *tnames[5] = {"counts", "total_hi", "total_lo", "peak_w", "peak_at"};
     for (int j = 0; j < 6; j++)
-        if (get_buf(o_ring[j], &b[n++], 1, kinds[j], 1, names[j]) < 0) {
+        if (get_buf(o_ring[j], &b[n++], WRITE, kinds[j], 1, names[j]) < 0) {
             n--;
             goto fail;
         }
-    if (get_buf(o_out, &b[n++], 1, K_I32, 3, "out") < 0) {
+    if (get_buf(o_out, &b[n++], WRITE, KIND(I32), 3, "out") < 0) {
         n--;
         goto fail;
     }
     for (int j = 0; j < 5; j++)
-        if (get_buf(o[j], &b[n++], 1, K_I64, j == 4 ? 2 : 1, tnames[j]) < 0) {
+        if (get_buf(o[j], &b[n++], WRITE, KIND(I64), j == 4 ? 2 : 1, tnames[j]) < 0) {
             n--;
             goto fail;
         }

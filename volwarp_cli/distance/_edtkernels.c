@@ -25,6 +25,8 @@
 #include <stdlib.h>
 #include <string.h>
 
+#include "../_buffers.h"
+
 /* A 3-D buffer: its first byte, shape and strides in bytes. */
 typedef struct {
     char *p;
@@ -37,28 +39,9 @@ typedef struct {
  * with any strides. */
 static int get_grid(PyObject *o, Py_buffer *b, grid3 *g, int writable, char kind, const char *name)
 {
-    if (PyObject_GetBuffer(o, b, PyBUF_STRIDES | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0)) < 0)
+    if (get_buf(o, b, STRIDED | (writable ? WRITE : READ), KIND(kind == 'f' ? F32 : U8), 3,
+                name) < 0)
         return -1;
-    const char *f = b->format ? b->format : "B";
-#if PY_LITTLE_ENDIAN
-    const char *native = "@=<";
-#else
-    const char *native = "@=>!";
-#endif
-    char c = f[0] && strchr(native, f[0]) ? f[1] : f[0]; /* (a swapped byte order: refused) */
-    int ok = (c == f[strlen(f) - 1]) &&
-             (kind == 'f' ? (c == 'f' && b->itemsize == 4) : ((c == 'B' || c == '?') && b->itemsize == 1));
-    if (!ok) {
-        PyErr_Format(PyExc_TypeError, "%s: expected %s samples, got '%s'", name,
-                     kind == 'f' ? "float32" : "uint8", f);
-        PyBuffer_Release(b);
-        return -1;
-    }
-    if (b->ndim != 3) {
-        PyErr_Format(PyExc_ValueError, "%s: expected 3 dimensions, got %d", name, b->ndim);
-        PyBuffer_Release(b);
-        return -1;
-    }
     g->p = b->buf;
     for (int k = 0; k < 3; k++) {
         g->n[k] = b->shape[k];

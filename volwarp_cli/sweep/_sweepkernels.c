@@ -37,69 +37,7 @@
 
 /* ---------------------------------------------------------------- buffers */
 
-enum { U8, I64, F32, F64, KINDS };
-
-static const char *const kind_names[KINDS] = {"uint8", "int64", "float32", "float64"};
-
-/* The sample type of a buffer of native byte order, or -1. */
-static int buf_kind(const Py_buffer *v)
-{
-    const char *f = v->format ? v->format : "B";
-#if PY_LITTLE_ENDIAN
-    if (*f == '@' || *f == '=' || *f == '<')
-#else
-    if (*f == '@' || *f == '=' || *f == '>' || *f == '!')
-#endif
-        f++;
-    if (!f[0] || f[1])
-        return -1;
-    switch (f[0]) {
-    case 'B': return v->itemsize == 1 ? U8 : -1;
-    case 'l': case 'q': return v->itemsize == 8 ? I64 : -1;
-    case 'f': return v->itemsize == 4 ? F32 : -1;
-    case 'd': return v->itemsize == 8 ? F64 : -1;
-    default: return -1;
-    }
-}
-
-/* Argument `name` as a C-contiguous, aligned buffer of `kind` with `ndim` dimensions,
- * writable if `writable`. */
-static int get_buf(PyObject *o, Py_buffer *v, int kind, int ndim, int writable,
-                   const char *fn, const char *name)
-{
-    int flags = PyBUF_STRIDES | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(o, v, flags) < 0)
-        return -1;
-    if (buf_kind(v) != kind) {
-        PyErr_Format(PyExc_ValueError, "%s: %s: expected %s samples, got '%s'", fn, name,
-                     kind_names[kind], v->format ? v->format : "B");
-    } else if (v->ndim != ndim) {
-        PyErr_Format(PyExc_ValueError, "%s: %s: expected %d dimensions, got %d", fn, name,
-                     ndim, v->ndim);
-    } else if (!PyBuffer_IsContiguous(v, 'C')) {
-        PyErr_Format(PyExc_ValueError, "%s: %s: expected a C-contiguous array", fn, name);
-    } else if ((uintptr_t)v->buf % v->itemsize != 0) {
-        PyErr_Format(PyExc_ValueError, "%s: %s: expected an aligned array", fn, name);
-    } else {
-        return 0;
-    }
-    PyBuffer_Release(v);
-    return -1;
-}
-
-static void release_all(Py_buffer *b, int n)
-{
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
-}
-
-/* Indices and sizes beyond any grid: the loops' integer arithmetic would overflow. */
-#define INDEX_LIMIT ((int64_t)1 << 62)
-
-static int within_limit(int64_t v)
-{
-    return v > -INDEX_LIMIT && v < INDEX_LIMIT;
-}
+#include "../_buffers.h"
 
 /* ---------------------------------------------------------------- the voxeliser */
 
@@ -374,8 +312,8 @@ static PyObject *py_sweep_voxelize(PyObject *self, PyObject *args)
                           &zhi, &oz, &oy, &ox))
         return NULL;
     for (; nb < N_BUFS; nb++)
-        if (get_buf(o[nb], &b[nb], voxel_bufs[nb].kind, voxel_bufs[nb].ndim,
-                    voxel_bufs[nb].writable, fn, voxel_bufs[nb].name) < 0)
+        if (get_buf(o[nb], &b[nb], voxel_bufs[nb].writable ? WRITE : READ,
+                    KIND(voxel_bufs[nb].kind), voxel_bufs[nb].ndim, voxel_bufs[nb].name) < 0)
             goto fail;
     const Py_ssize_t K = b[B_P].shape[0];
     const Py_ssize_t S = b[B_SUB_A].shape[0];
@@ -582,8 +520,8 @@ static PyObject *py_real_roots_unit(PyObject *self, PyObject *args)
     int nb = 0;
     if (!PyArg_ParseTuple(args, "OO:real_roots_unit", &o_coef, &o_out))
         return NULL;
-    if (get_buf(o_coef, &b[nb++], F64, 2, 0, fn, "coef") < 0 ||
-        get_buf(o_out, &b[nb++], F64, 2, 1, fn, "out") < 0) {
+    if (get_buf(o_coef, &b[nb++], READ, KIND(F64), 2, "coef") < 0 ||
+        get_buf(o_out, &b[nb++], WRITE, KIND(F64), 2, "out") < 0) {
         nb--;
         goto fail;
     }

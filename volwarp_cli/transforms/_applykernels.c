@@ -33,85 +33,7 @@
 
 /* ---------------------------------------------------------------- buffers */
 
-enum { I8, U8, I16, U16, I32, U32, I64, U64, F32, F64, KINDS };
-#define KIND(k) (1 << (k))
-#define FLOATS (KIND(F32) | KIND(F64))
-#define IMAGES ((1 << KINDS) - 1)
-
-static const char *const kind_names[KINDS] = {"int8",  "uint8", "int16", "uint16",  "int32",
-                                              "uint32", "int64", "uint64", "float32", "float64"};
-
-/* The sample type of a buffer of native byte order, or -1. */
-static int buf_kind(const Py_buffer *v)
-{
-    const char *f = v->format ? v->format : "B";
-#if PY_LITTLE_ENDIAN
-    if (*f == '@' || *f == '=' || *f == '<')
-#else
-    if (*f == '@' || *f == '=' || *f == '>' || *f == '!')
-#endif
-        f++;
-    if (!f[0] || f[1])
-        return -1;
-    switch (f[0]) {
-    case 'b': return v->itemsize == 1 ? I8 : -1;
-    case 'B': return v->itemsize == 1 ? U8 : -1;
-    case 'h': return v->itemsize == 2 ? I16 : -1;
-    case 'H': return v->itemsize == 2 ? U16 : -1;
-    case 'i': return v->itemsize == 4 ? I32 : -1;
-    case 'I': return v->itemsize == 4 ? U32 : -1;
-    case 'l': case 'q': return v->itemsize == 8 ? I64 : v->itemsize == 4 ? I32 : -1;
-    case 'L': case 'Q': return v->itemsize == 8 ? U64 : v->itemsize == 4 ? U32 : -1;
-    case 'f': return v->itemsize == 4 ? F32 : -1;
-    case 'd': return v->itemsize == 8 ? F64 : -1;
-    default: return -1;
-    }
-}
-
-enum { READ = 0, WRITE = 1, STRIDED = 2 };
-
-/* Whether every item lies at a multiple of its size (the loops read them as their type). */
-static int aligned(const Py_buffer *v)
-{
-    int ok = (uintptr_t)v->buf % v->itemsize == 0;
-    for (int d = 0; d < v->ndim && v->strides; d++)
-        ok &= v->strides[d] % v->itemsize == 0;
-    return ok;
-}
-
-/* Argument `name` as a buffer of one of `kinds` with `ndim` dimensions, C-contiguous
- * unless `how` has STRIDED (then any strides), writable if it has WRITE. */
-static int get_buf(PyObject *o, Py_buffer *v, int how, int kinds, int ndim, const char *name)
-{
-    int flags = PyBUF_STRIDES | PyBUF_FORMAT | (how & WRITE ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(o, v, flags) < 0)
-        return -1;
-    int kind = buf_kind(v);
-    if (kind < 0 || !(kinds & KIND(kind))) {
-        PyErr_Format(PyExc_TypeError, "%s: unexpected sample type '%s'", name,
-                     v->format ? v->format : "B");
-    } else if (v->ndim != ndim) {
-        PyErr_Format(PyExc_ValueError, "%s: expected %d dimensions, got %d", name, ndim,
-                     v->ndim);
-    } else if (!(how & STRIDED) && !PyBuffer_IsContiguous(v, 'C')) {
-        PyErr_Format(PyExc_ValueError, "%s: expected a C-contiguous array", name);
-    } else if (!aligned(v)) {
-        PyErr_Format(PyExc_ValueError, "%s: expected an aligned array", name);
-    } else {
-        return 0;
-    }
-    PyBuffer_Release(v);
-    return -1;
-}
-
-static void release_all(Py_buffer *b, int n)
-{
-    for (int k = 0; k < n; k++)
-        PyBuffer_Release(&b[k]);
-}
-
-/* Indices and sizes beyond any grid: the loops' integer arithmetic would overflow. */
-#define INDEX_LIMIT ((int64_t)1 << 62)
+#include "../_buffers.h"
 
 /* A small argument (a 3-vector of int64 or float64, a 3x3 float64 matrix; any strides)
  * copied into `out`; int64 ones within +-INDEX_LIMIT. */
@@ -338,7 +260,7 @@ static PyObject *sample(PyObject *args, int method)
     Region r;
     if (!PyArg_ParseTuple(args, "OOOOOO", &o_img, &o_idx, &o_lo, &o_n, &o_bg, &o_out))
         return NULL;
-    int img_kinds = method == CUBIC ? KIND(F64) : IMAGES;
+    int img_kinds = method == CUBIC ? KIND(F64) : ALL_KINDS;
     if (get_buf(o_img, &b[nb++], READ, img_kinds, 3, "img") < 0 ||
         get_buf(o_idx, &b[nb++], READ, KIND(F64), 2, "idx") < 0) {
         nb--;
@@ -373,7 +295,7 @@ static PyObject *sample(PyObject *args, int method)
         PyBuffer_Release(&bg);
         if (!same) {
             PyErr_Format(PyExc_TypeError, "%s: background: expected one %s", fn,
-                         kind_names[kind]);
+                         kind_name(kind));
             goto fail;
         }
     } else {
