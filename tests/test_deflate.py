@@ -16,7 +16,7 @@ import pytest
 from volwarp_cli.errors import FormatError
 from volwarp_cli.io import deflate
 from volwarp_cli.io.common import read_gzip_exact
-from volwarp_cli.io.nifti import _gunzip_range
+from volwarp_cli.io.nifti import _gunzip_range, gunzip_range_into
 
 PAYLOAD = (np.random.default_rng(2).random(200_000) * 300).astype(np.int16).tobytes()
 
@@ -99,3 +99,126 @@ def test_garbage_after_the_stream_is_corrupt_data(impl):
     data = bytes(range(256)) * 100
     with pytest.raises(FormatError, match="corrupt compressed data"):
         read_gzip_exact(io.BytesIO(gzip.compress(data) + b"garbage!"), len(data), "g")
+
+
+# -- placing inflated pieces beside the inflation ----------------------------------------
+# A large range's pieces are placed on a thread of their own (deflate.sink_beside), in
+# batches; the tests make the batches small so that a small stream takes that path.
+
+def _sink_threads() -> list:
+    import threading
+
+    return [t for t in threading.enumerate() if t.name == "volwarp-inflate-sink"]
+
+
+@pytest.fixture
+def small_batches(monkeypatch):
+    monkeypatch.setattr(deflate, "BESIDE_BATCH", 4096)
+
+
+def _recorder():
+    import threading
+
+    got = []
+
+    def sink(at, piece):
+        got.append((at, bytes(piece), threading.get_ident()))
+
+    return got, sink
+
+
+def test_a_sink_beside_gets_every_piece_in_order_on_its_own_thread(small_batches):
+    import threading
+
+    from volwarp_cli.parallel import use_threads
+
+    pieces = [PAYLOAD[i:i + 1000] for i in range(0, 60_000, 1000)]
+    got, sink = _recorder()
+    with use_threads(2), deflate.sink_beside(sink, 60_000) as place:
+        at = 0
+        for p in pieces:
+            place(at, memoryview(p))
+            at += len(p)
+    assert [g[0] for g in got] == list(range(0, 60_000, 1000))
+    assert b"".join(g[1] for g in got) == PAYLOAD[:60_000]
+    assert {g[2] for g in got} != {threading.get_ident()}
+    assert not _sink_threads()
+    # one thread, or a range under four batches: the sink itself, here
+    for threads, total in ((1, 60_000), (2, 4 * 4096 - 1)):
+        got, sink = _recorder()
+        with use_threads(threads), deflate.sink_beside(sink, total) as place:
+            assert place is sink
+            place(0, memoryview(PAYLOAD[:10]))
+        assert got[0][2] == threading.get_ident()
+
+
+def test_a_gzip_range_read_beside_is_the_same_bytes(small_batches, tmp_path):
+    from volwarp_cli.parallel import use_threads
+
+    path = tmp_path / "a.gz"
+    path.write_bytes(gzip.compress(PAYLOAD, mtime=0))
+    reads = {}
+    for threads in (1, 2):
+        with use_threads(threads):
+            got, sink = _recorder()
+            gunzip_range_into(path, 1000, 300_000, 400_000, "a", "samples", sink, beside=True)
+            reads[threads] = got
+    assert b"".join(g[1] for g in reads[1]) == PAYLOAD[1000:301_000]
+    assert [g[:2] for g in reads[1]] == [g[:2] for g in reads[2]]
+    assert len({g[2] for g in reads[1]}) == 1 and {g[2] for g in reads[1]} != {
+        g[2] for g in reads[2]}  # (one thread: here; two: placed beside)
+
+
+def test_the_sinks_error_is_raised_in_the_caller(small_batches):
+    from volwarp_cli.parallel import use_threads
+
+    calls = []
+
+    def sink(at, piece):
+        calls.append(at)
+        if len(calls) == 3:
+            raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError, match="No space"), use_threads(2):
+        with deflate.sink_beside(sink, 1 << 20) as place:
+            for at in range(0, 1 << 20, 1000):
+                place(at, memoryview(PAYLOAD[:1000]))
+    assert len(calls) == 3  # (nothing placed after the error)
+    assert not _sink_threads()
+
+
+def test_a_corrupt_stream_stops_the_sink_and_is_the_error(small_batches, tmp_path):
+    from volwarp_cli.parallel import use_threads
+
+    gz = bytearray(gzip.compress(PAYLOAD, mtime=0))
+    gz[len(gz) // 2:len(gz) // 2 + 64] = bytes(64)
+    path = tmp_path / "bad.gz"
+    path.write_bytes(bytes(gz))
+    got, sink = _recorder()
+    with pytest.raises(FormatError, match="corrupt|truncated"), use_threads(2):
+        gunzip_range_into(path, 0, len(PAYLOAD), len(PAYLOAD), "bad.gz", "samples", sink,
+                          beside=True)
+    assert not _sink_threads()
+
+
+def test_the_callers_error_stops_the_placing(small_batches):
+    import threading
+
+    from volwarp_cli.parallel import use_threads
+
+    release = threading.Event()
+    placed = []
+
+    def sink(at, piece):
+        release.wait(10)  # (the first batch waits until the caller has failed)
+        placed.append(at)
+
+    piece = memoryview(PAYLOAD[:4096])  # a batch a piece
+    threading.Timer(0.3, release.set).start()
+    with pytest.raises(KeyboardInterrupt), use_threads(2):
+        with deflate.sink_beside(sink, 1 << 20) as place:
+            for k in range(3):  # one placing, two waiting: the queue is full
+                place(k * 4096, piece)
+            raise KeyboardInterrupt  # (a stop, say)
+    assert placed == [0]  # the waiting batches were dropped, not placed
+    assert not _sink_threads()

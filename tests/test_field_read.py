@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from volwarp_cli.io import deflate
+from volwarp_cli.parallel import use_threads
 from volwarp_cli.transforms.fields import read_field
 
 
@@ -30,8 +31,19 @@ def write_nifti_field(path, planes_xyz: np.ndarray, dtype, slope=None, inter=0.0
 @pytest.mark.parametrize("dtype,slope", [("<f4", None), (">f4", None), ("<f8", None),
                                          (">i2", 0.01), ("<u1", 0.5)])
 @pytest.mark.parametrize("piece", [1 << 17, 7])
-def test_gzip_field_vectors_as_nibabel_reads_them(tmp_path, monkeypatch, dtype, slope, piece):
+@pytest.mark.parametrize("beside", [False, True])  # the pieces placed on a thread of their own
+def test_gzip_field_vectors_as_nibabel_reads_them(tmp_path, monkeypatch, dtype, slope, piece,
+                                                  beside):
     monkeypatch.setattr(deflate, "INFLATE_INPUT", piece)
+    monkeypatch.setattr(deflate, "BESIDE_BATCH", 64 if beside else 1 << 40)
+    placing = []
+    real = deflate.sink_beside
+
+    def watched(sink, total):
+        placing.append(total >= 4 * deflate.BESIDE_BATCH)
+        return real(sink, total)
+
+    monkeypatch.setattr(deflate, "sink_beside", watched)
     rng = np.random.default_rng(3)
     shape = (9, 7, 5, 3)  # x, y, z, component
     if np.dtype(dtype).kind == "f":
@@ -41,7 +53,9 @@ def test_gzip_field_vectors_as_nibabel_reads_them(tmp_path, monkeypatch, dtype, 
     path = tmp_path / "f.nii.gz"
     write_nifti_field(path, planes, dtype, slope=slope, inter=0.25 if slope else 0.0)
     expected = np.asarray(nib.load(str(path)).dataobj, dtype=np.float64)[:, :, :, 0, :]
-    field = read_field(str(path), "nifti")
+    with use_threads(2):
+        field = read_field(str(path), "nifti")
+    assert placing == [beside]
     got = field.vectors.transpose(2, 1, 0, 3)  # (z, y, x, 3) -> (x, y, z, 3)
     assert field.vectors.dtype == (np.float64 if dtype == "<f8" else np.float32)
     assert field.vectors.dtype.isnative

@@ -382,18 +382,20 @@ def _gunzip_range(path: Path, start: int, count: int, need: int, where: str,
 
 
 def gunzip_range_into(path: Path, start: int, count: int, need: int, where: str,
-                      layout: str, sink) -> None:
+                      layout: str, sink, *, beside: bool = False) -> None:
     """Bytes ``[start, start + count)`` of a gzip file's decompressed stream, to ``sink``.
 
     ``sink(at, piece)`` takes each decompressed piece in order, ``at`` its
     position from ``start`` (a caller may place them without a buffer of
-    the whole range). The whole stream is decompressed (other bytes dropped
+    the whole range); with ``beside`` (a sink that is more than a copy),
+    on a thread of its own while the stream inflates
+    (:func:`.deflate.sink_beside`). The whole stream is decompressed (other bytes dropped
     as they come): zlib then checks every member's CRC-32 and length.
     ``need``: the decompressed bytes the header asks for. Members may follow
     one another (as gzip allows), and NUL padding may end the file; anything
     else after a member is corrupt.
     """
-    from .deflate import ERRORS, Truncated, inflate_pieces
+    from .deflate import ERRORS, Truncated, inflate_pieces, sink_beside
 
     end = start + count
     pos = 0  # decompressed bytes so far
@@ -402,11 +404,11 @@ def gunzip_range_into(path: Path, start: int, count: int, need: int, where: str,
         return FormatError(f"{where}: cannot read NIfTI data ({why})")
 
     try:
-        with open(path, "rb") as fh:
+        with open(path, "rb") as fh, sink_beside(sink, count if beside else 0) as place:
             for piece in inflate_pieces(fh):
                 lo, hi = max(pos, start), min(pos + len(piece), end)
                 if hi > lo:
-                    sink(lo - start, memoryview(piece)[lo - pos:hi - pos])
+                    place(lo - start, memoryview(piece)[lo - pos:hi - pos])
                 pos += len(piece)
     except ERRORS as exc:
         raise fail(f"the gzip stream is corrupt: {_one_line(exc)}") from None

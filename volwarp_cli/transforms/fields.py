@@ -154,7 +154,7 @@ def _nifti(path: str):
     if nf.gzipped:  # each decompressed piece into place: no copy of the file's planes held
         gunzip_range_into(nf.path, nf.offset, nf.data_bytes, nf.offset + nf.data_bytes,
                           nf.where, f"{'x'.join(map(str, nf.shape))} samples",
-                          _ComponentSink(vectors, kind, nf))
+                          _ComponentSink(vectors, kind, nf), beside=True)
     else:  # slab by slab into place: no second copy of the field held
         plane = ny * nx * kind.itemsize
         step = max(1, (64 << 20) // (3 * plane))
