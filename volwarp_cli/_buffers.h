@@ -5,11 +5,18 @@
  * A kernel takes each array through get_buf, which refuses (a Python exception, the buffer
  * released) a sample type it was not written for, a byte order not the machine's, another
  * number of dimensions, a layout it cannot walk (not C-contiguous unless STRIDED) and an
- * item not at a multiple of its size: a wrong call is an error, never a stray read.
+ * item not at a multiple of its size (unless the module says BUFFERS_UNALIGNED_OK): a wrong
+ * call is an error, never a stray read.
  */
 
 #ifndef VOLWARP_BUFFERS_H
 #define VOLWARP_BUFFERS_H
+
+/* A module whose loops read samples wherever they lie defines this as 1 before the include
+ * (the warp's: a memory-mapped NRRD's samples start wherever its header ends). */
+#ifndef BUFFERS_UNALIGNED_OK
+#define BUFFERS_UNALIGNED_OK 0
+#endif
 
 #include <Python.h> /* (after the module's #define PY_SSIZE_T_CLEAN) */
 #include <stdint.h>
@@ -92,7 +99,7 @@ static inline int get_buf(PyObject *o, Py_buffer *v, int how, int kinds, int ndi
                      v->ndim);
     } else if (!(how & STRIDED) && !PyBuffer_IsContiguous(v, 'C')) {
         PyErr_Format(PyExc_ValueError, "%s: expected a C-contiguous array", name);
-    } else if (!buf_aligned(v)) {
+    } else if (!BUFFERS_UNALIGNED_OK && !buf_aligned(v)) {
         PyErr_Format(PyExc_ValueError, "%s: expected an aligned array", name);
     } else {
         return 0;

@@ -27,6 +27,10 @@
 
 /* ---------------------------------------------------------------- buffers */
 
+/* The warp reads its input where it lies: a memory-mapped NRRD's samples start wherever its
+ * header ends (x86-64 and arm64 load unaligned floats; copying the input to align it would
+ * cost a copy of the volume). */
+#define BUFFERS_UNALIGNED_OK 1
 #include "../_buffers.h"
 
 /* Row loops that run as vectors get AVX-512 (x86-64-v4) and AVX2 clones on x86-64, the
