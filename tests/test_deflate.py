@@ -31,10 +31,10 @@ def impl(request, monkeypatch):
 
 
 def test_streams_are_standard_and_deterministic(impl):
-    gz = deflate.gzip_bytes(PAYLOAD, 1)
+    gz = deflate.gzip_bytes(PAYLOAD, level=1)
     assert gzip.decompress(gz) == PAYLOAD  # the standard library reads it
     assert gz[4:8] == b"\0\0\0\0"  # mtime 0
-    assert deflate.gzip_bytes(PAYLOAD, 1) == gz
+    assert deflate.gzip_bytes(PAYLOAD, level=1) == gz
     z = deflate.zlib_bytes(PAYLOAD, 1)
     assert zlib.decompress(z) == PAYLOAD
     dec = deflate.decompressobj()
@@ -222,3 +222,22 @@ def test_the_callers_error_stops_the_placing(small_batches):
             raise KeyboardInterrupt  # (a stop, say)
     assert placed == [0]  # the waiting batches were dropped, not placed
     assert not _sink_threads()
+
+
+@pytest.mark.parametrize("size", [deflate.BLOCKS_FROM - 1, deflate.BLOCKS_FROM + 12_345])
+def test_gzip_bytes_are_the_same_whatever_the_thread_count(size):
+    """Data from BLOCKS_FROM on deflates by blocks on several threads: the same bytes on one
+    thread as on four, a standard stream, mtime 0; parts deflate as their concatenation."""
+    from volwarp_cli.parallel import use_threads
+
+    rng = np.random.default_rng(5)
+    data = np.repeat(rng.integers(0, 40, size // 8 + 1, dtype=np.uint8), 8)[:size].tobytes()
+    outs = set()
+    for threads in (1, 2, 4):
+        with use_threads(threads):
+            outs.add(deflate.gzip_bytes(data, level=1))
+            outs.add(deflate.gzip_bytes(data[:1000], memoryview(data)[1000:], level=1))
+    assert len(outs) == 1
+    gz = outs.pop()
+    assert gzip.decompress(gz) == data and gz[4:8] == b"\0\0\0\0"
+    assert zlib.decompressobj(31).decompress(gz) == data  # (one member: zlib's own reader)

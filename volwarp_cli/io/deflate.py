@@ -29,13 +29,66 @@ except ImportError:  # pragma: no cover - platforms without python-isal wheels
 AUTO_HEADER = zlib.MAX_WBITS | 32
 
 
-def gzip_bytes(data, level: int = 1) -> bytes:
-    """``data`` as one gzip member with mtime 0 (deterministic)."""
-    if _igzip is not None:
-        return _igzip.compress(data, compresslevel=min(level, 3), mtime=0)
-    import gzip
+#: data from this size on is deflated by blocks on up to four threads (python-isal's
+#: igzip_threaded, pigz's scheme: 1 MiB blocks, each with its predecessor's last 32 KiB as
+#: dictionary): a 256^3 int16 volume in 0.067 s instead of 0.097 s; the bytes are the same
+#: whatever the thread count (a machine of one core writes what one of 64 writes)
+BLOCKS_FROM = 4 << 20
 
-    return gzip.compress(data, compresslevel=level, mtime=0)
+
+def gzip_bytes(*parts, level: int = 1) -> bytes:
+    """The buffers ``parts``, one after the other, as one gzip member with mtime 0.
+
+    Deterministic for a given installation: the same bytes whatever the
+    thread count (:data:`BLOCKS_FROM`). Several parts (a header and the
+    samples) are deflated as they lie, without a joined copy.
+    """
+    views = [memoryview(p).cast("B") for p in parts]
+    if _igzip is None:
+        import gzip
+
+        return gzip.compress(b"".join(views), compresslevel=level, mtime=0)
+    if sum(v.nbytes for v in views) < BLOCKS_FROM:
+        return _igzip.compress(views[0] if len(views) == 1 else b"".join(views),
+                               compresslevel=min(level, 3), mtime=0)
+    import io
+
+    from isal import igzip_threaded
+
+    from ..parallel import threads
+
+    out = io.BytesIO()  # (a file object: closing the writer leaves it open)
+    with igzip_threaded.open(out, "wb", compresslevel=min(level, 3),
+                             threads=max(1, min(threads(), 4)), block_size=_BLOCK) as fh:
+        for block in _blocks(views, _BLOCK):  # (a block a write: the blocks, and so the
+            fh.write(block)                   # bytes, whatever the parts)
+    return out.getvalue()
+
+
+_BLOCK = 1 << 20
+
+
+def _blocks(views, size: int):
+    """The concatenation of ``views`` in pieces of ``size`` bytes (the last shorter).
+
+    Only a piece across two parts is copied.
+    """
+    carry = bytearray()
+    for v in views:
+        at = 0
+        if carry:
+            at = min(size - len(carry), v.nbytes)
+            carry += v[:at]
+            if len(carry) < size:
+                continue
+            yield bytes(carry)
+            carry = bytearray()
+        while v.nbytes - at >= size:
+            yield v[at:at + size]
+            at += size
+        carry += v[at:]
+    if carry:
+        yield bytes(carry)
 
 
 def zlib_bytes(data, level: int = 1) -> bytes:

@@ -926,8 +926,11 @@ def write_nifti_file(path: str | os.PathLike, data_xyz: np.ndarray, aff: np.ndar
                                    extensions=() if ext is None else (ext,))
     except ValueError as exc:
         raise VolwarpError(f"{path}: {exc}") from None
-    payload = b"".join((head, memoryview(samples).cast("B")))
-    if str(path).lower().endswith(".gz"):
-        payload = gzip_bytes(payload, 1)
+    body = memoryview(samples).cast("B")
     with atomic_output(path) as tmp:
-        tmp.write_bytes(payload)
+        if str(path).lower().endswith(".gz"):
+            tmp.write_bytes(gzip_bytes(head, body))
+        else:
+            with open(tmp, "wb") as fh:
+                fh.write(head)
+                fh.write(body)

@@ -709,7 +709,7 @@ def _write_payload(fh, data: np.ndarray, encoding: str, level: int) -> None:
     if encoding == "raw":
         fh.write(memoryview(data).cast("B"))
         return
-    fh.write(gzip_bytes(memoryview(data).cast("B"), level))
+    fh.write(gzip_bytes(data, level=level))
 
 
 def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
