@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from volwarp_cli.errors import SpecError
 from volwarp_cli.io.images import write_image
@@ -375,3 +377,15 @@ def test_up_given_per_segment_and_default_elsewhere(tmp_path):
     # rotation from x to z: a quarter turn about -y, which keeps the y components
     assert np.allclose(b.EY, np.array([-1, 1, 0]) / np.sqrt(2))
     assert np.allclose(b.EX, np.array([1, 1, 0]) / np.sqrt(2))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(*[st.integers(-6, 6)] * 3), min_size=2, max_size=9, unique=True),
+       st.integers(2, 40))
+def test_dense_parameters_are_numpys_unique_of_the_samples_and_breaks(vertices, n):
+    """Evenly spaced parameters and a polyline's vertices (some on a sample: equal steps),
+    sorted, each once: np.unique's answer (which the sweep no longer calls)."""
+    seg = Polyline(points=np.array(vertices, dtype=np.float64))
+    want = np.unique(np.concatenate([np.linspace(0.0, 1.0, n), seg.breaks()]))
+    got = seg.dense_parameters(n)
+    assert got.dtype == want.dtype and np.array_equal(got, want)

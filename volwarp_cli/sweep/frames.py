@@ -385,7 +385,7 @@ def check_up(seg: Segment, fns: SweepFunctions, index: int, samples: int = 1025)
     through the up, or an up through zero, between two samples is found too.
     """
     breaks = seg.breaks()
-    s = np.unique(np.concatenate([np.linspace(0.0, 1.0, samples), breaks]))
+    s = seg.dense_parameters(samples)
     rel, _, _, nu = _closeness(seg, fns, s, index, 1.0)
     scale = max(float(nu.max()), 1e-300)
     zero = 1e-9 * scale

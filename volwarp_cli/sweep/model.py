@@ -48,7 +48,7 @@ class Sweep:
         """World bounding box of the swept template squares (sampled densely)."""
         pts = []
         for i, (seg, fns) in enumerate(zip(self.segments, self.functions, strict=True)):
-            s = np.unique(np.concatenate([np.linspace(0, 1, samples), seg.breaks()]))
+            s = seg.dense_parameters(samples)
             fr = compute_frames(seg, fns, s, i)
             pts.append(fr.corners().reshape(-1, 3))
             if isinstance(seg, Polyline):  # joints turn about the vertices

@@ -70,6 +70,14 @@ class Segment:
         """``n`` points at evenly spaced ``s`` from 0 to 1, (n, 3)."""
         return self.point(np.linspace(0.0, 1.0, n))
 
+    def dense_parameters(self, n: int) -> np.ndarray:
+        """``n`` evenly spaced ``s`` from 0 to 1 and the :meth:`breaks`, sorted, each once.
+
+        (As ``np.unique``, which imports numpy.ma on its first call: 7 ms of a sweep.)
+        """
+        s = np.sort(np.concatenate([np.linspace(0.0, 1.0, n), self.breaks()]))
+        return s[np.concatenate(([True], s[1:] != s[:-1]))]
+
 
 @dataclass
 class Line(Segment):
