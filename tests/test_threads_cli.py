@@ -222,6 +222,30 @@ def test_beside_runs_in_a_thread_of_its_own_in_the_callers_context():
     assert [n for _, n in seen] == [3, 3, 1]
 
 
+def test_run_blocks_gives_results_in_order_and_the_first_error_after_all_ran():
+    """parallel.run_blocks on plain threads: each block once, results in block order
+    whatever the finishing order, each task in a copy of the caller's context, and of
+    several errors the first block's, raised once every block has run."""
+    import time
+
+    ran = []
+
+    def task(b):
+        time.sleep(0.002 * (7 - b % 8))  # (later blocks finish first)
+        ran.append(b)
+        if b in (5, 11):
+            raise ValueError(f"block {b}")
+        return b * b, parallel.threads()
+
+    with parallel.use_threads(3):
+        assert parallel.run_blocks(lambda b: task(b % 5), range(20)) == [
+            ((b % 5) ** 2, 3) for b in range(20)]
+        ran.clear()
+        with pytest.raises(ValueError, match="block 5"):
+            parallel.run_blocks(task, range(16))
+    assert sorted(ran) == list(range(16))
+
+
 @pytest.mark.parametrize("command", ["distance", "sweep-render", "subvoxel"])
 def test_numba_kernels_run_on_the_commands_threads(run, inputs, tmp_path, monkeypatch, command):
     """The numba kernels (no prange pool) split their ranges over --threads, in that many

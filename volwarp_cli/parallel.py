@@ -24,6 +24,7 @@ import contextlib
 import contextvars
 import math
 import os
+import threading
 from collections.abc import Callable, Iterable, Sequence
 
 from .errors import SpecError
@@ -187,17 +188,45 @@ def run_blocks(task: Callable, blocks: Sequence | Iterable, n: int | None = None
     Each task runs in a copy of the caller's context (its thread count, its
     memory budget). The tasks must write disjoint outputs and release the
     GIL for the threads to help (volwarp's kernels do: numba ``nogil`` and the
-    C extension). An exception in a task is raised here once the others end.
+    C extension). An exception in a task is raised here once the others end
+    (the first in block order); a stop (an exception in the calling thread
+    while it waits) starts no more tasks and is raised once the running ones
+    end. Plain threads taking the next block in turn: ``concurrent.futures``
+    imports :mod:`logging` (5 ms of a small command).
     """
     blocks = list(blocks)
     n = threads() if n is None else int(n)
     if n <= 1 or len(blocks) <= 1:
         return [task(b) for b in blocks]
-    from concurrent.futures import ThreadPoolExecutor
+    contexts = [contextvars.copy_context() for _ in blocks]
+    results: list = [None] * len(blocks)
+    errors: dict[int, BaseException] = {}
+    taken = iter(range(len(blocks)))  # (next() on it is atomic: one thread a block)
+    stop = threading.Event()
 
-    with ThreadPoolExecutor(min(n, len(blocks)), thread_name_prefix="volwarp") as pool:
-        futures = [pool.submit(contextvars.copy_context().run, task, b) for b in blocks]
-        return [f.result() for f in futures]
+    def work() -> None:
+        for i in taken:
+            if stop.is_set():
+                return
+            try:
+                results[i] = contexts[i].run(task, blocks[i])
+            except BaseException as exc:  # (raised in the caller, in block order)
+                errors[i] = exc
+
+    workers = [threading.Thread(target=work, name=f"volwarp_{k}", daemon=True)
+               for k in range(min(n, len(blocks)))]
+    for w in workers:
+        w.start()
+    try:
+        for w in workers:
+            w.join()
+    finally:
+        stop.set()
+        for w in workers:
+            w.join()
+    if errors:
+        raise errors[min(errors)]
+    return results
 
 
 
@@ -264,37 +293,60 @@ def run_split(job_for, lo_z: int, hi_z: int, work: int) -> list:
     return run_blocks(lambda i: job_for(edges[i], edges[i + 1]).run(), range(len(edges) - 1))
 
 
-def beside(fn: Callable, *args):
-    """Start ``fn(*args)`` in a thread of its own while the caller goes on: its ``Future``.
+class Beside:
+    """The outcome of :func:`beside`'s ``fn(*args)``: :meth:`result` waits for it.
+
+    (Not ``concurrent.futures``'s Future: that package imports :mod:`logging`,
+    5 ms of a command that emits no record.)
+    """
+
+    def __init__(self):
+        self._ended = threading.Event()
+        self._value = self._error = None
+
+    def _run(self, fn: Callable, args) -> None:
+        try:
+            self._value = fn(*args)
+        except BaseException as exc:  # (raised where the caller asks for the result)
+            self._error = exc
+        finally:
+            self._ended.set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait until ``fn`` has ended (returned or raised): whether it has."""
+        return self._ended.wait(timeout)
+
+    def result(self, timeout: float | None = None):
+        """``fn``'s result, once it has ended; its error is raised here.
+
+        ``TimeoutError`` where it has not ended within ``timeout`` seconds.
+        """
+        if not self._ended.wait(timeout):
+            raise TimeoutError(f"not ended within {timeout} s")
+        if self._error is not None:
+            raise self._error
+        return self._value
+
+
+def beside(fn: Callable, *args) -> Beside:
+    """Start ``fn(*args)`` in a thread of its own while the caller goes on: its :class:`Beside`.
 
     For work beside other work that waits on other things than the GIL (an
-    input's label scan while the transforms' files inflate), in a copy of the
-    caller's context (its run, budget and thread count). It should decide
-    nothing by the memory left: the caller's allocations meanwhile are not
-    yet in what it would read. With one thread
-    (:func:`threads`) it runs here, now; its error, if any, is then raised by
-    ``result()`` as from the thread (a stop is raised at once).
+    input's label scan while the transforms' files inflate; a volume's reading
+    while the spec is checked), in a copy of the caller's context (its run,
+    budget and thread count). It should decide nothing by the memory left:
+    the caller's allocations meanwhile are not yet in what it would read. With
+    one thread (:func:`threads`) it runs here, now; its error, if any, is then
+    raised by ``result()`` as from the thread (a stop is raised at once).
     """
-    import threading
-    from concurrent.futures import Future
-
-    future: Future = Future()
-
-    def run() -> None:
-        if not future.set_running_or_notify_cancel():
-            return
-        try:
-            future.set_result(fn(*args))
-        except BaseException as exc:  # (raised where the caller asks for the result)
-            future.set_exception(exc)
-
+    outcome = Beside()
     if threads() <= 1:
-        future.set_running_or_notify_cancel()
         try:
-            future.set_result(fn(*args))
+            outcome._value = fn(*args)
         except Exception as exc:
-            future.set_exception(exc)
-        return future
-    threading.Thread(target=contextvars.copy_context().run, args=(run,), daemon=True,
-                     name="volwarp-beside").start()
-    return future
+            outcome._error = exc
+        outcome._ended.set()
+        return outcome
+    threading.Thread(target=contextvars.copy_context().run, args=(outcome._run, fn, args),
+                     daemon=True, name="volwarp-beside").start()
+    return outcome

@@ -9,11 +9,63 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-import logging
 import sys
 import time
 
-log = logging.getLogger("volwarp")
+DEBUG, INFO, WARNING, ERROR = 10, 20, 30, 40  # (logging's levels)
+
+
+class _VolwarpLog:
+    """The ``volwarp`` logger (:mod:`logging`'s), imported when a record may be emitted.
+
+    Importing :mod:`logging` (and the traceback, string and weakref modules it
+    imports) took 5 ms of every command's start, and a run at the default
+    verbosity mostly emits nothing. So until something imports logging (a
+    warning to emit, a reader that uses it, a library caller's own set-up), a
+    call below the level the command line asked for (:func:`configure`) ends
+    here. Everything else is the real logger's: the records, its level,
+    handlers and filters (any other attribute is read from it).
+    """
+
+    def __init__(self):
+        self._asked = None  # configure()'s level while logging is not imported
+
+    def _logger(self):
+        import logging
+
+        logger = logging.getLogger("volwarp")
+        if self._asked is not None:  # (configured before logging was imported)
+            _set_up(logger, self._asked)
+            self._asked = None
+        return logger
+
+    def isEnabledFor(self, level: int) -> bool:  # noqa: N802 - logging's name
+        if self._asked is not None and "logging" not in sys.modules:
+            return level >= self._asked
+        return self._logger().isEnabledFor(level)
+
+    def _emit(self, level: int, msg, args, kwargs) -> None:
+        if self.isEnabledFor(level):
+            kwargs.setdefault("stacklevel", 3)  # (the record names its caller, not this)
+            self._logger().log(level, msg, *args, **kwargs)
+
+    def debug(self, msg, *args, **kwargs) -> None:
+        self._emit(DEBUG, msg, args, kwargs)
+
+    def info(self, msg, *args, **kwargs) -> None:
+        self._emit(INFO, msg, args, kwargs)
+
+    def warning(self, msg, *args, **kwargs) -> None:
+        self._emit(WARNING, msg, args, kwargs)
+
+    def error(self, msg, *args, **kwargs) -> None:
+        self._emit(ERROR, msg, args, kwargs)
+
+    def __getattr__(self, name: str):  # level, handlers, filters, setLevel, addFilter, ...
+        return getattr(self._logger(), name)
+
+
+log = _VolwarpLog()
 
 #: Whether bars are drawn, per context: the command line's (set by :func:`configure`),
 #: not a process-wide setting a library caller or a Dask worker's threads would share.
@@ -26,36 +78,47 @@ def configure(verbosity: int) -> None:
 
     Bars are switched on for the calling context (the command line's thread
     and the tasks :func:`volwarp_cli.parallel.run_blocks` runs for it); the
-    level is the ``volwarp`` logger's, which a caller may set as it likes.
+    level is the ``volwarp`` logger's, which a caller may set as it likes
+    (set when logging is imported, if it is not yet: :class:`_VolwarpLog`).
     """
     _bars.set(verbosity >= 0 and sys.stderr.isatty())
-    level = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(verbosity, logging.DEBUG)
-    log.setLevel(level)
-    if not log.handlers:
+    level = {-1: ERROR, 0: WARNING, 1: INFO}.get(verbosity, DEBUG)
+    if "logging" in sys.modules:
+        log._asked = None
+        _set_up(sys.modules["logging"].getLogger("volwarp"), level)
+    else:
+        log._asked = level
+
+
+def _set_up(logger, level: int) -> None:
+    """The command line's ``volwarp`` logger: ``level``, one line a record on stderr."""
+    import logging
+
+    class _StderrHandler(logging.StreamHandler):
+        """Writes to whatever ``sys.stderr`` is when a record is emitted.
+
+        A plain StreamHandler keeps the stream it was made with; when the CLI runs
+        several times in one process (tests, a Python caller redirecting stderr)
+        messages would go to a stale, possibly closed stream.
+        """
+
+        def __init__(self):
+            super().__init__(sys.stderr)
+
+        @property
+        def stream(self):
+            return sys.stderr
+
+        @stream.setter
+        def stream(self, value):  # StreamHandler.__init__ assigns it; the property ignores it
+            pass
+
+    logger.setLevel(level)
+    if not logger.handlers:
         handler = _StderrHandler()
         handler.setFormatter(logging.Formatter("volwarp: %(message)s"))
-        log.addHandler(handler)
-    log.propagate = False
-
-
-class _StderrHandler(logging.StreamHandler):
-    """Writes to whatever ``sys.stderr`` is when a record is emitted.
-
-    A plain StreamHandler keeps the stream it was made with; when the CLI runs
-    several times in one process (tests, a Python caller redirecting stderr)
-    messages would go to a stale, possibly closed stream.
-    """
-
-    def __init__(self):
-        super().__init__(sys.stderr)
-
-    @property
-    def stream(self):
-        return sys.stderr
-
-    @stream.setter
-    def stream(self, value):  # StreamHandler.__init__ assigns it; the property ignores it
-        pass
+        logger.addHandler(handler)
+    logger.propagate = False
 
 
 class Progress:

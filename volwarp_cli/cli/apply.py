@@ -132,8 +132,6 @@ def command(input, output, transforms, reference, interpolation, values, labels,
     content into the output space. A label map (as `volwarp info` hints) is
     resampled by nearest neighbour: it gains no value. -v prints the choices.
     """
-    from concurrent.futures import wait
-
     from ..parallel import beside
     from ..transforms import read_chain
 
@@ -173,7 +171,7 @@ def command(input, output, transforms, reference, interpolation, values, labels,
             chain = read_chain(transforms)
     except Exception:  # (the transforms' error is said once the input's scan has ended)
         if sampling is not None:
-            wait([sampling])
+            sampling.wait()
         raise
     if failed is not None:
         raise failed

@@ -7,7 +7,6 @@ computation that cannot be done). ``--debug`` shows the traceback instead.
 
 from __future__ import annotations
 
-import logging
 import os
 import sys
 import warnings
@@ -261,5 +260,6 @@ def _end_process(code: int) -> None:
             stream.flush()
         except (OSError, ValueError):  # a closed pipe: nothing more to say
             pass
-    logging.shutdown()
+    if "logging" in sys.modules:  # (imported when a record was emitted: progress.log)
+        sys.modules["logging"].shutdown()
     os._exit(code)

@@ -56,10 +56,14 @@ def gzip_bytes(*parts, level: int = 1) -> bytes:
     from isal import igzip_threaded
 
     from ..parallel import threads
+    from ..signals import blocked
 
     out = io.BytesIO()  # (a file object: closing the writer leaves it open)
-    with igzip_threaded.open(out, "wb", compresslevel=min(level, 3),
-                             threads=max(1, min(threads(), 4)), block_size=_BLOCK) as fh:
+    # (a stop waits for the end, a tenth of a second: raised inside, it left the writer's
+    # threads waiting on each other and the command hung)
+    with blocked(), igzip_threaded.open(out, "wb", compresslevel=min(level, 3),
+                                        threads=max(1, min(threads(), 4)),
+                                        block_size=_BLOCK) as fh:
         for block in _blocks(views, _BLOCK):  # (a block a write: the blocks, and so the
             fh.write(block)                   # bytes, whatever the parts)
     return out.getvalue()

@@ -113,7 +113,6 @@ from __future__ import annotations
 import contextlib
 import gzip
 import json
-import logging
 import os
 import struct
 import sys
@@ -127,6 +126,7 @@ import numpy as np
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..memory import ensure_fits_in_memory
+from ..progress import log
 from ..samples import check_dtype, voxel_count
 from ..volume import Volume, xyz_to_zyx
 from .atomic import atomic_output
@@ -136,8 +136,6 @@ from .common import (
     read_exact,
 )
 from .deflate import gzip_bytes
-
-log = logging.getLogger("volwarp")
 
 _RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 
@@ -776,15 +774,18 @@ def _one_line(exc: Exception) -> str:
     return " ".join(str(exc).split())[:200]
 
 
-class _ThreadFilter(logging.Filter):
-    """Drops the records of threads reading a NIfTI file (they go to volwarp's debug log)."""
+class _ThreadFilter:
+    """Drops the records of threads reading a NIfTI file (they go to volwarp's debug log).
+
+    (A logging filter is any object with this method: no logging.Filter, so that
+    this module does not import logging; nibabel, which logs, does.)
+    """
 
     def __init__(self):
-        super().__init__()
         self.threads: dict[int, int] = {}
         self.lock = threading.Lock()
 
-    def filter(self, record: logging.LogRecord) -> bool:
+    def filter(self, record) -> bool:
         if record.thread in self.threads:
             log.debug("nibabel: %s", record.getMessage())
             return False
@@ -801,6 +802,8 @@ def _quiet_nibabel():
     nibabel logs them through its own stderr handler; the contract is one
     line on stderr per failure, so they go to volwarp's debug log instead.
     """
+    import logging
+
     logger = logging.getLogger("nibabel.global")
     ident = threading.get_ident()
     with _FILTER.lock:

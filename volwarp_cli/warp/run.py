@@ -25,15 +25,14 @@ it gets. Progress and timings go to :data:`volwarp_cli.progress.log`.
 
 from __future__ import annotations
 
-import contextvars
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import BadUsage, OutOfMemoryError, SpecError, VolwarpError
+from ..parallel import beside
 from ..progress import log, timed
 from ..volume import Header, Volume
 
@@ -192,7 +191,7 @@ class WarpInput(AbstractContextManager):
         self._read_volume = read_volume
         self._read_capture = read_capture
         self._values = "labels" if labels else values
-        self._pool = None
+        self._started = []  # the :func:`~volwarp_cli.parallel.beside` work, waited for on exit
         self._reading = None
         self._early = None
         self._early_given = None
@@ -203,14 +202,17 @@ class WarpInput(AbstractContextManager):
         self.spec = None
 
     def __enter__(self):
-        self._pool = ThreadPoolExecutor(1)
+        self._started = []
         if self._read_volume is not None:  # in this run's context (its files, threads, budget)
-            self._reading = self._pool.submit(contextvars.copy_context().run, self._read_volume)
+            self._reading = beside(self._read_volume)
+            self._started.append(self._reading)
         return self
 
     def __exit__(self, *exc_info):
         self._reading = self._early = None
-        self._pool.shutdown(wait=True)
+        for started in self._started:  # (ended before the with does, as they were started)
+            started.wait()
+        self._started = []
         return None
 
     def load_spec(self, spec_path):
@@ -228,9 +230,9 @@ class WarpInput(AbstractContextManager):
             early = _unchecked_spec(doc)
             self._settings = early.capture if early is not None else None
             self._early_given = self._values or (early.values if early is not None else None)
-            self._early = self._pool.submit(contextvars.copy_context().run, _capture_early,
-                                            self._reading, self._early_given, self._settings,
-                                            self.name)
+            self._early = beside(_capture_early, self._reading, self._early_given,
+                                 self._settings, self.name)
+            self._started.append(self._early)
         validate(doc, load_schema("warp"))
         return doc, read_warp_spec(doc)
 

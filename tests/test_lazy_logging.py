@@ -1,0 +1,64 @@
+"""volwarp's log imports :mod:`logging` only when a record may be emitted (progress._VolwarpLog).
+
+A command at the default verbosity mostly says nothing: the logging module (and
+``concurrent.futures``, which imports it) stay unloaded, 5 ms of every start.
+The records asked for (-v), the warnings said at the default level and -q's
+silence must not change for it. Each run is a fresh process: the test process
+has logging loaded already (pytest's), where the log is the real logger's.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from volwarp_cli.warmup import write_inputs
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("lazy_logging")
+    return folder, write_inputs(folder)
+
+
+def _volwarp(folder, *args, check_modules=False):
+    """``volwarp ARGS`` in a fresh interpreter: (exit code, stderr, modules loaded at the end)."""
+    code = textwrap.dedent(f"""
+        import json, sys
+        from volwarp_cli.cli.main import main
+        code = main({list(args)!r})
+        sys.stdout.write(json.dumps([m for m in ("logging", "concurrent.futures")
+                                     if m in sys.modules]))
+        sys.exit(code)
+        """)
+    res = subprocess.run([sys.executable, "-c", code], cwd=folder, capture_output=True,
+                         text=True, timeout=120)
+    return res.returncode, res.stderr, json.loads(res.stdout or "null")
+
+
+def test_a_warp_that_says_nothing_loads_no_logging(inputs):
+    folder, p = inputs
+    for threads in ("1", "2"):  # (two threads: the volume read beside the spec, the blocks)
+        code, err, loaded = _volwarp(folder, "warp", p["blob"], "--spec", p["move"], "-o",
+                                     f"w{threads}.nrrd", "--threads", threads)
+        assert code == 0 and err == "", err
+        assert loaded == [], loaded
+        assert (folder / f"w{threads}.nrrd").stat().st_size > 4096
+
+
+def test_records_asked_for_and_warnings_still_reach_stderr(inputs):
+    folder, p = inputs
+    code, err, loaded = _volwarp(folder, "warp", p["blob"], "--spec", p["move"], "-o",
+                                 "v.nrrd", "-v")
+    assert code == 0 and "volwarp: write v.nrrd: " in err and "logging" in loaded
+    warn = ("warp", p["blob16"], "--spec", p["move"], "-o", "l.nrrd", "--labels")
+    code, err, _ = _volwarp(folder, *warn)  # (labels asked for on a smooth volume)
+    assert code == 0
+    assert err.startswith("volwarp: warning: ") and "does not look like a label map" in err
+    assert err.count("\n") == 1
+    code, err, loaded = _volwarp(folder, *warn, "-q")
+    assert code == 0 and err == "" and loaded == []
