@@ -371,7 +371,7 @@ def _tile_range_reference(vec, tile):
 
 
 @settings(max_examples=120, deadline=None)
-@given(shape=st.tuples(*[st.integers(1, 21)] * 3), tile=st.sampled_from([1, 2, 3, 5, 16]),
+@given(shape=st.tuples(*[st.integers(1, 21)] * 3), tile=st.sampled_from([1, 2, 3, 5, 16, 2 ** 61]),
        dtype=st.sampled_from([np.float32, np.float64]), layout=st.sampled_from(
            ["contiguous", "x strided", "components reversed", "z reversed"]),
        holes=st.floats(0, 1), seed=st.integers(0, 2 ** 16))

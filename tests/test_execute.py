@@ -120,9 +120,11 @@ def test_the_whole_over_the_budget_runs_by_blocks_with_one_warning(tmp_path, cap
     from volwarp_cli.progress import log
 
     monkeypatch.setattr(memory, "process_rss", lambda: 0)  # (a budget of its own: 2 GiB)
-    # (a command run earlier in this process keeps the volwarp logger to its own handler)
-    monkeypatch.setattr(log, "level", logging.WARNING)
-    monkeypatch.setattr(log, "propagate", False)
+    # (a command run earlier in this process keeps the volwarp logger to its own handler;
+    # the logger itself: progress.log stands in for it)
+    real = logging.getLogger("volwarp")
+    monkeypatch.setattr(real, "level", logging.WARNING)
+    monkeypatch.setattr(real, "propagate", False)
     log.addHandler(caplog.handler)
     op = Ramp(tmp_path, bytes_per=2 << 20)  # (the whole: 4.7 GiB; a 6x7x8 block 672 MiB)
     how = execute.How(block=(6, 7, 8), open_engine=lambda: open_engine("threads", workers=2))

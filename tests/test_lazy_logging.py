@@ -25,19 +25,19 @@ def inputs(tmp_path_factory):
     return folder, write_inputs(folder)
 
 
-def _volwarp(folder, *args, check_modules=False):
+def _volwarp(folder, *args):
     """``volwarp ARGS`` in a fresh interpreter: (exit code, stderr, modules loaded at the end)."""
     code = textwrap.dedent(f"""
         import json, sys
         from volwarp_cli.cli.main import main
         code = main({list(args)!r})
-        sys.stdout.write(json.dumps([m for m in ("logging", "concurrent.futures")
-                                     if m in sys.modules]))
+        sys.stdout.write("\\n" + json.dumps([m for m in ("logging", "concurrent.futures")
+                                            if m in sys.modules]))
         sys.exit(code)
         """)
     res = subprocess.run([sys.executable, "-c", code], cwd=folder, capture_output=True,
                          text=True, timeout=120)
-    return res.returncode, res.stderr, json.loads(res.stdout or "null")
+    return res.returncode, res.stderr, json.loads(res.stdout.splitlines()[-1] or "null")
 
 
 def test_a_warp_that_says_nothing_loads_no_logging(inputs):
@@ -62,3 +62,38 @@ def test_records_asked_for_and_warnings_still_reach_stderr(inputs):
     assert err.count("\n") == 1
     code, err, loaded = _volwarp(folder, *warn, "-q")
     assert code == 0 and err == "" and loaded == []
+
+
+def test_a_readers_warning_is_the_command_lines_whoever_loaded_logging(inputs):
+    """A reader that imports logging itself (tifffile's) says its warning through volwarp's
+    log: the ``volwarp:`` prefix, and nothing with -q (it once went to logging's last-resort
+    handler when it came before any other record)."""
+    tifffile = pytest.importorskip("tifffile")
+    import numpy as np
+
+    folder, _ = inputs
+    tifffile.imwrite(folder / "noz.ome.tif", np.zeros((4, 8, 8), np.uint8), ome=True,
+                     metadata={"axes": "ZYX", "PhysicalSizeX": 0.5, "PhysicalSizeY": 0.5})
+    code, err, _ = _volwarp(folder, "info", "noz.ome.tif")
+    assert code == 0 and err.splitlines() == [
+        "volwarp: noz.ome.tif: the OME metadata give no PhysicalSizeZ: z spacing is 1"], err
+    code, err, _ = _volwarp(folder, "info", "noz.ome.tif", "-q")
+    assert code == 0 and err == ""
+
+
+def test_the_stand_in_reads_and_sets_the_real_loggers_attributes():
+    """progress.log is the ``volwarp`` logger to a library caller: what it sets on it
+    (propagate, level, disabled) is the logger's."""
+    import logging
+
+    from volwarp_cli.progress import log
+
+    real = logging.getLogger("volwarp")
+    before = real.propagate, real.level
+    try:
+        log.propagate = not before[0]
+        log.level = logging.ERROR
+        assert real.propagate is (not before[0]) and real.level == logging.ERROR
+        assert log.propagate is real.propagate and log.getEffectiveLevel() == logging.ERROR
+    finally:
+        real.propagate, real.level = before

@@ -215,15 +215,16 @@ def run_blocks(task: Callable, blocks: Sequence | Iterable, n: int | None = None
 
     workers = [threading.Thread(target=work, name=f"volwarp_{k}", daemon=True)
                for k in range(min(n, len(blocks)))]
-    for w in workers:
-        w.start()
-    try:
+    try:  # (a stop while they start, or while they run: those started end first)
+        for w in workers:
+            w.start()
         for w in workers:
             w.join()
     finally:
         stop.set()
         for w in workers:
-            w.join()
+            if w.ident is not None:
+                w.join()
     if errors:
         raise errors[min(errors)]
     return results

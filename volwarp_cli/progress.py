@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import sys
+import threading
 import time
 
 DEBUG, INFO, WARNING, ERROR = 10, 20, 30, 40  # (logging's levels)
@@ -24,19 +25,25 @@ class _VolwarpLog:
     warning to emit, a reader that uses it, a library caller's own set-up), a
     call below the level the command line asked for (:func:`configure`) ends
     here. Everything else is the real logger's: the records, its level,
-    handlers and filters (any other attribute is read from it).
+    handlers and filters (any other attribute is read from it and set on it).
+    Every module of volwarp logs through this one (a module logging on the
+    real ``volwarp`` logger before the first record here would find it not
+    set up: no prefix, no ``-q``).
     """
 
     def __init__(self):
-        self._asked = None  # configure()'s level while logging is not imported
+        object.__setattr__(self, "_asked", None)  # configure()'s, while logging is not loaded
+        object.__setattr__(self, "_lock", threading.Lock())
 
     def _logger(self):
         import logging
 
         logger = logging.getLogger("volwarp")
         if self._asked is not None:  # (configured before logging was imported)
-            _set_up(logger, self._asked)
-            self._asked = None
+            with self._lock:  # (two threads' first records: one set-up, one handler)
+                if self._asked is not None:
+                    _set_up(logger, self._asked)
+                    object.__setattr__(self, "_asked", None)
         return logger
 
     def isEnabledFor(self, level: int) -> bool:  # noqa: N802 - logging's name
@@ -64,6 +71,9 @@ class _VolwarpLog:
     def __getattr__(self, name: str):  # level, handlers, filters, setLevel, addFilter, ...
         return getattr(self._logger(), name)
 
+    def __setattr__(self, name: str, value) -> None:  # propagate, level, disabled, ...
+        setattr(self._logger(), name, value)
+
 
 log = _VolwarpLog()
 
@@ -84,10 +94,10 @@ def configure(verbosity: int) -> None:
     _bars.set(verbosity >= 0 and sys.stderr.isatty())
     level = {-1: ERROR, 0: WARNING, 1: INFO}.get(verbosity, DEBUG)
     if "logging" in sys.modules:
-        log._asked = None
+        object.__setattr__(log, "_asked", None)
         _set_up(sys.modules["logging"].getLogger("volwarp"), level)
     else:
-        log._asked = level
+        object.__setattr__(log, "_asked", level)
 
 
 def _set_up(logger, level: int) -> None:

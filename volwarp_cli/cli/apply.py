@@ -254,7 +254,7 @@ def _resample(input, output, chain, ready, dtype, write, transform_paths):
     """INPUT through ``chain`` onto the grid (:func:`volwarp_cli.apply.plan_resample`), run.
 
     ``ready``: the opened input (:func:`_open_input`) and the call giving its
-    :func:`_sampling` (its thread's ``Future.result``).
+    :func:`_sampling` (its thread's ``Beside.result``).
     """
     from .. import execute
     from ..apply import plan_resample

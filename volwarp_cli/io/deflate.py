@@ -47,7 +47,8 @@ def gzip_bytes(*parts, level: int = 1) -> bytes:
     if _igzip is None:
         import gzip
 
-        return gzip.compress(b"".join(views), compresslevel=level, mtime=0)
+        return gzip.compress(views[0] if len(views) == 1 else b"".join(views),
+                             compresslevel=level, mtime=0)
     if sum(v.nbytes for v in views) < BLOCKS_FROM:
         return _igzip.compress(views[0] if len(views) == 1 else b"".join(views),
                                compresslevel=min(level, 3), mtime=0)
@@ -139,8 +140,9 @@ def inflate_pieces(fh):
         raise Truncated(done)
 
 
-#: inflated bytes handed to :func:`sink_beside`'s thread at a time; two batches may wait
-#: for it, so at most four are held besides the destination (2 MB)
+#: inflated bytes from which a batch goes to :func:`sink_beside`'s thread (a piece is at
+#: most :data:`INFLATE_OUTPUT`); two batches may wait for it, so at most four, 6 MB, are
+#: held besides the destination
 BESIDE_BATCH = 1 << 19
 
 
@@ -195,6 +197,8 @@ def sink_beside(sink, total: int):
             batches.put(batch)
             batch, size = [], 0
 
+    from ..signals import blocked
+
     worker = threading.Thread(target=contextvars.copy_context().run, args=(place,),
                               daemon=True, name="volwarp-inflate-sink")
     worker.start()
@@ -206,8 +210,9 @@ def sink_beside(sink, total: int):
         stop.set()
         raise
     finally:
-        batches.put(None)
-        worker.join()
+        with blocked():  # (a second stop here would leave the thread waiting for its end)
+            batches.put(None)
+            worker.join()
     if failed:
         raise failed[0]
 

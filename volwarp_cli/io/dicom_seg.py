@@ -32,7 +32,6 @@ that lies on the reference series' grid, with new SOP and Series UIDs.
 
 from __future__ import annotations
 
-import logging
 import os
 
 import numpy as np
@@ -40,8 +39,6 @@ import numpy as np
 from ..errors import BadUsage, FormatError, VolwarpError
 from ..volume import LPS, Volume
 from .common import make_volume
-
-log = logging.getLogger("volwarp")
 
 SEG_SOP = "1.2.840.10008.5.1.4.1.1.66.4"
 LABELMAP_SEG_SOP = "1.2.840.10008.5.1.4.1.1.66.7"

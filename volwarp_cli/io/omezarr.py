@@ -67,7 +67,6 @@ The zarr imports stay inside this module (imported lazily by the dispatch).
 from __future__ import annotations
 
 import json
-import logging
 import math
 import os
 from pathlib import Path
@@ -77,6 +76,7 @@ import numpy as np
 from ..errors import ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..labelmap import looks_like_labels
+from ..progress import log
 from ..samples import check_dtype
 from ..volume import Header, Volume, xyz_to_zyx, zyx_to_xyz
 from .common import make_volume, native
@@ -100,8 +100,6 @@ MM_PER_UNIT = {
 }
 
 _PERMUTATION_TOLERANCE = 1e-12
-
-log = logging.getLogger("volwarp")
 
 
 # -- geometry ---------------------------------------------------------------------------

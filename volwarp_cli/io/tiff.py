@@ -40,6 +40,7 @@ import numpy as np
 from ..errors import FormatError, VolwarpError
 from ..geometry import check_placement
 from ..memory import ensure_fits_in_memory
+from ..progress import log
 from ..samples import check_dtype, voxel_count
 from ..volume import Volume, zyx_to_xyz
 from .atomic import atomic_output
@@ -49,8 +50,6 @@ from .common import (
     read_exact,
     with_byte_order,
 )
-
-log = logging.getLogger("volwarp")
 
 _IMAGEJ_TYPES = ("uint8", "int16", "uint16", "float32")
 _UNIT_TO_MM = {"inch": 25.4, "centimeter": 10.0, "millimeter": 1.0, "micrometer": 1e-3}

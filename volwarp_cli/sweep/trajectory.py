@@ -76,7 +76,7 @@ class Segment:
         (As ``np.unique``, which imports numpy.ma on its first call: 7 ms of a sweep.)
         """
         s = np.sort(np.concatenate([np.linspace(0.0, 1.0, n), self.breaks()]))
-        return s[np.concatenate(([True], s[1:] != s[:-1]))]
+        return s[np.concatenate(([True], s[1:] != s[:-1]))] if s.size else s
 
 
 @dataclass

@@ -597,9 +597,15 @@ static inline void merge_range(double *tmin, double *tmax, Py_ssize_t at, const 
                     }                                                                         \
             return 0;                                                                         \
         }                                                                                     \
-        const Py_ssize_t lanes = 3 * tile;                                                    \
         if (tx_n == 0 || v->nz == 0 || v->ny == 0)                                            \
             return 0;                                                                         \
+        /* a tile beyond every axis is one tile a grid: as the largest axis (the same tiles; \
+         * the lanes, and the sums below, then stay within the grid's sizes) */              \
+        const Py_ssize_t most = v->nz > v->ny ? (v->nz > v->nx ? v->nz : v->nx)              \
+                                              : (v->ny > v->nx ? v->ny : v->nx);             \
+        if (tile > most)                                                                      \
+            tile = most;                                                                      \
+        const Py_ssize_t lanes = 3 * tile;                                                    \
         T *lo = malloc(2 * (size_t)(tx_n * lanes) * sizeof(T));                               \
         if (!lo)                                                                              \
             return -1;                                                                        \

@@ -8,15 +8,13 @@ an irregular stack) turns the one into the other.
 
 from __future__ import annotations
 
-import logging
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ...errors import FormatError
-
-log = logging.getLogger("volwarp")
+from ...progress import log
 
 
 @dataclass

@@ -8,7 +8,6 @@ file one per frame) carries what the grouping and the geometry need.
 
 from __future__ import annotations
 
-import logging
 import os
 import struct
 import warnings
@@ -20,13 +19,13 @@ import numpy as np
 from pydicom.multival import MultiValue
 
 from ...errors import FormatError, VolwarpError
+from ...progress import log
 
 try:  # the command line maps ChoiceNeeded to a usage error (exit 2)
     from ...errors import ChoiceNeeded as _ChoiceBase
 except ImportError:  # pragma: no cover - an errors module without it
     _ChoiceBase = VolwarpError
 
-log = logging.getLogger("volwarp")
 
 DICOMDIR_SOP = "1.2.840.10008.1.3.10"
 RTDOSE_SOP = "1.2.840.10008.5.1.4.1.1.481.2"
