@@ -213,7 +213,9 @@ def run_blocks(task: Callable, blocks: Sequence | Iterable, n: int | None = None
             except BaseException as exc:  # (raised in the caller, in block order)
                 errors[i] = exc
 
-    workers = [threading.Thread(target=work, name=f"volwarp_{k}", daemon=True)
+    # (not daemons, as the pool's were: an interpreter ending while a caller's thread is in
+    # here waits for the blocks under way rather than stopping them inside a kernel)
+    workers = [threading.Thread(target=work, name=f"volwarp_{k}")
                for k in range(min(n, len(blocks)))]
     try:  # (a stop while they start, or while they run: those started end first)
         for w in workers:
