@@ -155,12 +155,13 @@ def sink_beside(sink, total: int):
     a fifth of a large ``.nii.gz`` field's read on the inflating thread;
     beside it, the inflation (which releases the GIL) goes on meanwhile
     (256^3 ``apply``: 0.91x the time). Not for a plain copy: that one cost
-    more in the hand-over than it gained (a 256^3 scan's read: 1.04x). The pieces go over in batches of :data:`BESIDE_BATCH` bytes
-    (one hand-over a piece contended for the GIL). ``total`` under four
-    batches, or one thread (:func:`~volwarp_cli.parallel.threads`): ``sink``
-    itself, here. The sink's error is raised in the caller (at its next
-    piece, or at the end); an error of the caller's stops the thread before
-    it is raised.
+    more in the hand-over than it gained (a 256^3 scan's read: 1.04x).
+
+    The pieces go over in batches of :data:`BESIDE_BATCH` bytes (one
+    hand-over a piece contended for the GIL). ``total`` under four batches,
+    or one thread (:func:`~volwarp_cli.parallel.threads`): ``sink`` itself,
+    here. The sink's error is raised in the caller (at its next piece, or at
+    the end); an error of the caller's stops the thread before it is raised.
     """
     from ..parallel import threads
 
