@@ -307,10 +307,10 @@ class Beside:
         self._ended = threading.Event()
         self._value = self._error = None
 
-    def _run(self, fn: Callable, args) -> None:
+    def _run(self, fn: Callable, args, catching: type[BaseException] = BaseException) -> None:
         try:
             self._value = fn(*args)
-        except BaseException as exc:  # (raised where the caller asks for the result)
+        except catching as exc:  # (raised where the caller asks for the result)
             self._error = exc
         finally:
             self._ended.set()
@@ -344,11 +344,7 @@ def beside(fn: Callable, *args) -> Beside:
     """
     outcome = Beside()
     if threads() <= 1:
-        try:
-            outcome._value = fn(*args)
-        except Exception as exc:
-            outcome._error = exc
-        outcome._ended.set()
+        outcome._run(fn, args, Exception)  # (a stop is no Exception: raised at once)
         return outcome
     threading.Thread(target=contextvars.copy_context().run, args=(outcome._run, fn, args),
                      daemon=True, name="volwarp-beside").start()
