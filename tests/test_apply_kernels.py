@@ -324,6 +324,79 @@ def test_field_map_is_map_coordinates_and_windows_map_as_the_whole():
     assert np.isnan(out[reach]).all() and np.isfinite(np.delete(out, reach, 0)).all()
 
 
+def _node_case(shape, shift, oblique, seed):
+    """A field with 3 voxels of margin round an output grid ``shift`` voxels off its nodes."""
+    from volwarp_cli.transforms.model import DisplacementField, GridFrame
+
+    rng = np.random.default_rng(seed)
+    size = tuple(n + 6 for n in shape[::-1])  # (x, y, z)
+    vec = rng.normal(0, 2, size[::-1] + (3,)).astype(np.float32)
+    if oblique:
+        a, b = 0.3, -0.2
+        rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+        direction, spacing, origin = rz @ rx, np.array([0.9375, 1.1, 0.7]), np.array([-91.3, 4.7, 12.1])
+    else:  # (binary fractions: the kernel's own indices are whole, its sums exact)
+        direction, spacing, origin = np.eye(3), np.array([1.0, 2.0, 0.5]), np.array([-8.0, 4.0, 1.5])
+    frame = GridFrame(size, origin, spacing, direction)
+    m = frame.matrix
+    grid = Affine(m, origin + m @ (np.array(shift, float) + 3), "grid")
+    return DisplacementField(frame, vec, "field"), grid
+
+
+@settings(max_examples=60, deadline=None)
+@given(shape=st.tuples(*[st.integers(1, 7)] * 3), shift=st.tuples(*[st.integers(-3, 3)] * 3),
+       oblique=st.booleans(), seed=st.integers(0, 2 ** 16))
+def test_a_field_on_the_output_grid_adds_the_vectors_its_kernel_interpolates(shape, shift,
+                                                                             oblique, seed):
+    """A field whose nodes are the output's voxels (ANTs' warp on its fixed grid): its vectors
+    are added as they lie, what the interpolating kernel gives there (the same bits where its
+    indices are whole; within 1e-9 mm where rounding puts them a hair off). A window of the
+    field adds as the whole; a grid off the nodes, or a box beyond the field, is left to
+    the kernel (False, nothing added)."""
+    field, grid = _node_case(shape, shift, oblique, seed)
+    lo, hi = np.zeros(3, np.int64), np.array(shape[::-1], np.int64)
+    p = np.empty((int(np.prod(shape)), 3))
+    K.grid_points(lo, hi, grid.matrix, grid.offset, p)
+    ref = field.map(p)
+    q = p.copy()
+    assert field.add_nodes(grid, lo, hi, q)
+    if oblique:
+        np.testing.assert_allclose(q, ref, rtol=0, atol=1e-9)
+    else:
+        assert np.array_equal(q.view(np.uint64), ref.view(np.uint64))
+    # a window of the vectors: the box's nodes and one voxel more on each side
+    from volwarp_cli.transforms.model import DisplacementField
+
+    a = np.maximum(lo + np.array(shift) + 2, 0)
+    b = np.minimum(hi + np.array(shift) + 4, field.frame.size)
+    win = DisplacementField(field.frame, field.vectors[a[2]:b[2], a[1]:b[1], a[0]:b[0]],
+                            "field", offset=tuple(int(v) for v in a))
+    w = p.copy()
+    assert win.add_nodes(grid, lo, hi, w) and np.array_equal(w, q)
+    # half a voxel off the nodes, turned, or reaching past the window: the kernel's
+    half = Affine(grid.matrix, grid.offset + grid.matrix @ [0.5, 0, 0], "grid")
+    turned = Affine(grid.matrix @ np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]]), grid.offset,
+                    "grid")
+    for g, box, f in ((half, (lo, hi), field), (turned, (lo, hi), field),
+                      (grid, (lo, b - np.array(shift) - 2), win), (grid, (lo - 7, hi), field)):
+        r = np.empty((int(np.prod(box[1] - box[0])), 3))
+        K.grid_points(box[0], box[1], g.matrix, g.offset, r)
+        before = r.copy()
+        assert not f.add_nodes(g, *box, r) and np.array_equal(r, before)
+
+
+def test_a_nan_node_of_a_field_on_the_output_grid_moves_its_point_to_nan():
+    field, grid = _node_case((4, 5, 6), (1, 0, -1), False, 3)
+    field.vectors[5, 4, 6] = np.nan  # (z, y, x): the node of the output's (x 2, y 1, z 3)
+    lo, hi = np.zeros(3, np.int64), np.array([6, 5, 4], np.int64)
+    p = np.empty((120, 3))
+    K.grid_points(lo, hi, grid.matrix, grid.offset, p)
+    assert field.add_nodes(grid, lo, hi, p)
+    bad = np.flatnonzero(~np.isfinite(p).all(axis=1))
+    assert bad.tolist() == [(3 * 5 + 1) * 6 + 2]  # (its neighbours' points: not moved there)
+
+
 def test_apply_imports_no_numba(tmp_path):
     """`volwarp apply` through an affine, a displacement field and a B-spline (each
     interpolation) loads no numba: its kernels are C (numba's start-up was half the run)."""

@@ -43,7 +43,7 @@ import numpy as np
 from .box import Box
 from .errors import BadUsage
 from .execute import Operation
-from .transforms.model import Affine, Chain
+from .transforms.model import Affine, Chain, DisplacementField
 
 INTERPOLATIONS = ("linear", "nearest", "bspline")
 #: half the prefilter's taps (see the module notes)
@@ -267,7 +267,11 @@ class ApplyOperation(Operation):
         p = np.empty((part.size, 3))
         grid_points(np.array(lo, np.int64), np.array(hi, np.int64), first.matrix, first.offset,
                     p)
-        for step in ops[1:]:
+        rest = ops[1:]
+        if (rest and isinstance(rest[0], DisplacementField)
+                and rest[0].add_nodes(first, lo, hi, p)):  # (on the output's own grid)
+            rest = rest[1:]
+        for step in rest:
             p = step.map(p)
         return p
 
@@ -512,7 +516,6 @@ def check_coverage(chain: Chain, grid) -> None:
     identity outside by design.)
     """
     from .errors import VolwarpError
-    from .transforms.model import DisplacementField
 
     # the grid's corners (exact through linear steps: a parallelepiped's extremes) and a
     # lattice of its points (through a field or a B-spline before a later field)

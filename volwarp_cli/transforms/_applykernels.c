@@ -83,12 +83,17 @@ static int same_count(Py_ssize_t n, Py_ssize_t m, const char *fn)
 
 /* ---------------------------------------------------------------- ITK's rules */
 
-static inline int64_t clamp(int64_t v, int64_t lo, int64_t hi)
+/* The per-point helpers are inlined whatever GCC's size heuristics say: GCC called axis
+ * and trilinear as functions from the one-loop-per-type macros, and a linear sample took
+ * 1.25x as long (12.5 against 10 ns a point, 160^3). */
+#define HOT static inline __attribute__((always_inline))
+
+HOT int64_t clamp(int64_t v, int64_t lo, int64_t hi)
 {
     return v < lo ? lo : (v > hi ? hi : v);
 }
 
-static inline int inside(double x, double y, double z, const int64_t n[3])
+HOT int inside(double x, double y, double z, const int64_t n[3])
 {
     return x >= -0.5 && x < (double)n[0] - 0.5 && y >= -0.5 && y < (double)n[1] - 0.5 &&
            z >= -0.5 && z < (double)n[2] - 0.5;
@@ -100,7 +105,7 @@ typedef struct {
     double d;
 } Axis;
 
-static inline Axis axis(double x, int64_t n)
+HOT Axis axis(double x, int64_t n)
 {
     int64_t b = (int64_t)floor(x);
     Axis a = {clamp(b, 0, n - 1), clamp(b + 1, 0, n - 1), x - (double)b};
@@ -108,7 +113,7 @@ static inline Axis axis(double x, int64_t n)
 }
 
 /* The first of the four indices a cubic B-spline at x weighs; their weights into w. */
-static inline int64_t cubic_support(double x, double w[4])
+HOT int64_t cubic_support(double x, double w[4])
 {
     int64_t b = (int64_t)floor(x) - 1;
     double t = x - (double)b - 1.0, s = 1.0 - t;
@@ -120,9 +125,9 @@ static inline int64_t cubic_support(double x, double w[4])
 }
 
 /* The 4x4x4 values of float64 `a` from (bz, by, bx) (strides in elements) weighed. */
-static inline double cubic_sum(const double *a, Py_ssize_t sz, Py_ssize_t sy, Py_ssize_t sx,
-                               int64_t bz, int64_t by, int64_t bx, const double wz[4],
-                               const double wy[4], const double wx[4])
+HOT double cubic_sum(const double *a, Py_ssize_t sz, Py_ssize_t sy, Py_ssize_t sx, int64_t bz,
+                     int64_t by, int64_t bx, const double wz[4], const double wy[4],
+                     const double wx[4])
 {
     double acc = 0.0;
     for (int k = 0; k < 4; k++) {
@@ -140,7 +145,7 @@ static inline double cubic_sum(const double *a, Py_ssize_t sz, Py_ssize_t sy, Py
 }
 
 /* The eight neighbours v[z][y][x] (as float64) blended by the upper ones' weights. */
-static inline double trilinear(const double v[2][2][2], double fz, double fy, double fx)
+HOT double trilinear(const double v[2][2][2], double fz, double fy, double fx)
 {
     double lo = (v[0][0][0] * (1 - fx) + v[0][0][1] * fx) * (1 - fy) +
                 (v[0][1][0] * (1 - fx) + v[0][1][1] * fx) * fy;

@@ -220,6 +220,56 @@ class DisplacementField:
             self._warn_not_finite(p[first])
         return out
 
+    def add_nodes(self, grid: Affine, lo, hi, p: np.ndarray) -> bool:
+        """``p += u`` for the points of index box ``[lo, hi)`` (x, y, z) of ``grid`` where they are nodes.
+
+        ``grid``: a grid's index -> world map, ``p`` (N, 3) its points of the
+        box, x fastest. When ``grid``'s voxels are this field's own nodes (the
+        same axes and spacing, the origin a whole number of voxels away: ANTs'
+        ``1Warp.nii.gz`` applied on its fixed image's grid) and the box lies on
+        the field (this window's), the trilinear weights are 0 and 1 and the
+        displacement is the node's vector: added without interpolation, as ITK
+        adds the neighbours with non-zero weight only. False (``p`` untouched):
+        not so, map through :meth:`map`. A non-finite vector moves its point to
+        NaN or infinity, outside every image, said as :meth:`map` says it.
+        """
+        shift = self._node_shift(grid)
+        if shift is None or self.vectors is None:
+            return False
+        a = np.asarray(lo, np.int64) + shift - np.asarray(self.offset, np.int64)
+        b = np.asarray(hi, np.int64) + shift - np.asarray(self.offset, np.int64)
+        if np.any(a < 0) or np.any(b > np.array(self.vectors.shape[2::-1])):
+            return False
+        u = self.vectors[a[2]:b[2], a[1]:b[1], a[0]:b[0]]
+        view = p.reshape(u.shape)
+        np.add(view, u, out=view)
+        if not math.isfinite(float(np.add.reduce(p, axis=None))):
+            k = int(np.flatnonzero(~np.isfinite(p).all(axis=1))[0])
+            nx, ny = int(hi[0]) - int(lo[0]), int(hi[1]) - int(lo[1])
+            index = np.asarray(lo, float) + [k % nx, k // nx % ny, k // (nx * ny)]
+            self._warn_not_finite(grid.map(index[None])[0])
+        return True
+
+    def _node_shift(self, grid: Affine) -> np.ndarray | None:
+        """The field index minus ``grid``'s index of the same point, where whole (else None).
+
+        Within 1e-12 of the identity for the axes and 1e-9 voxel of a whole
+        number for the shift: a displacement interpolated that near a node
+        differs from the node's by less than float32 resolves.
+        """
+        key = (grid.matrix.tobytes(), grid.offset.tobytes())
+        known = self.__dict__.get("_shift_of")
+        if known is not None and known[0] == key:
+            return known[1]
+        inv = self.frame.inverse_matrix
+        m = inv @ np.asarray(grid.matrix, float)
+        b = inv @ (np.asarray(grid.offset, float) - np.asarray(self.frame.origin, float))
+        whole = np.rint(b)
+        shift = (whole.astype(np.int64) if np.all(np.abs(m - np.eye(3)) <= 1e-12)
+                 and np.all(np.abs(b - whole) <= 1e-9) else None)
+        object.__setattr__(self, "_shift_of", (key, shift))
+        return shift
+
     def _map_into(self, field: DisplacementField, p: np.ndarray, out: np.ndarray) -> int:
         """``field`` (this one or a window of it) maps ``p`` into ``out``: the first non-finite, or -1."""
         from ._applykernels import field_map
