@@ -209,6 +209,25 @@ def test_capture_source_matches_the_in_memory_capture():
     assert np.array_equal(lazy.sampler.box(Box.from_shape(lazy.sampler.shape)), mem.domain)
 
 
+@settings(max_examples=60, deadline=None)
+@given(shape=st.tuples(st.integers(1, 40), st.integers(1, 9), st.integers(1, 9)),
+       slab=st.integers(1, 700), threads=st.integers(1, 3), seed=st.integers(0, 2 ** 16))
+def test_scan_source_is_the_range_faces_and_sample_read_on_their_own(shape, slab, threads,
+                                                                     seed):
+    """One pass gives what the separate reads give: min and max, the faces' samples in
+    border_samples' order and value_sample's planes, whatever the slabs and threads."""
+    from volwarp_cli import parallel
+    from volwarp_cli.border import border_samples
+    from volwarp_cli.bspline.capture import scan_source, value_sample
+
+    data = np.random.default_rng(seed).normal(size=shape).astype(np.float32)
+    with parallel.use_threads(threads):
+        scan = scan_source(data, slab_bytes=slab * 4)
+    assert (scan.lo, scan.hi) == (float(data.min()), float(data.max()))
+    assert np.array_equal(scan.border, border_samples(data))
+    assert np.array_equal(scan.sample, value_sample(data))
+
+
 def test_capture_source_refuses_nan():
     data = _blob((9, 10, 11))
     data[4, 5, 6] = np.nan

@@ -44,7 +44,11 @@ def border_value(source) -> float:
     read). A voxel on an edge counts once per face it lies on. NaN only
     when every border sample is NaN.
     """
-    samples = border_samples(source)
+    return lower_median(border_samples(source))
+
+
+def lower_median(samples: np.ndarray) -> float:
+    """:func:`border_value` of the faces' samples already read (:func:`border_samples`' array)."""
     if samples.dtype.kind == "f":
         samples = samples[~np.isnan(samples)]
         if not samples.size:
