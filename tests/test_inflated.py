@@ -290,6 +290,42 @@ def test_gz_field_by_windows_maps_as_whole(tmp_path, monkeypatch):
     assert np.abs(expect[finite] - ref).max() < 1e-5
 
 
+@pytest.mark.parametrize("ext", [".nii.gz", ".nrrd"])
+def test_worker_that_cannot_see_a_fields_scratch_copy_reads_the_field_whole(ext, tmp_path,
+                                                                            by_box):
+    """A compressed field read by windows goes to workers with its scratch copy; a worker on
+    another machine (the copy not there) reads the field whole from its own file instead,
+    and maps points as the command's copy does."""
+    from volwarp_cli.io.inflated import InflatedArray
+    from volwarp_cli.runscope import run_scope
+    from volwarp_cli.transforms import read_chain
+
+    sitk = pytest.importorskip("SimpleITK")
+    path = tmp_path / f"f{ext}"
+    img = _field(tmp_path / "f.nii.gz")
+    if ext == ".nrrd":  # (a gzip NRRD of the same vectors, as SimpleITK writes it)
+        sitk.WriteImage(sitk.Cast(img, sitk.sitkVectorFloat32), str(path), True)
+    pts = _points()
+    with run_scope():  # (no output claimed: the copy goes to the temporary folder)
+        field = read_chain([str(path)]).steps[0]
+        copy = field.source.samples
+        assert field.vectors is None and isinstance(copy, InflatedArray)
+        expect = field.map(pts)
+        shipped = pickle.dumps(field)
+        assert pickle.loads(shipped).source.samples is not None  # (here: the same copy)
+        hidden = copy.path + ".elsewhere"
+        os.rename(copy.path, hidden)  # (a worker on another machine)
+        try:
+            remote = pickle.loads(shipped)
+            assert remote.source.samples is None
+            got = remote.map(pts)
+        finally:
+            os.rename(hidden, copy.path)
+        assert isinstance(remote.source._whole, np.ndarray)  # (read whole, not copied)
+        np.testing.assert_array_equal(got, expect)
+        assert np.isfinite(got).sum() > 0.9 * got.size
+
+
 def test_points_spread_over_a_lazy_field_read_by_cells(tmp_path, monkeypatch):
     """Mapping a lattice over a field read by windows never holds the field's window whole."""
     import tracemalloc

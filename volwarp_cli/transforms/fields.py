@@ -27,6 +27,7 @@ the input, not the output grid's: refused here, with the field to use.
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
@@ -71,13 +72,31 @@ class LazyField:
     Picklable (file paths and offsets): a worker process reads its own
     windows. ``read(lo, hi)``: the (z, y, x, 3) vectors of the box ``[lo,
     hi)`` (z, y, x), interleaved.
+
+    ``field``: the field's own file, a NIfTI or not (``nifti``); ``samples``
+    may be a compressed file's scratch copy. A worker that does not see that
+    copy (on another machine: :meth:`.io.inflated.InflatedArray.reachable`)
+    reads the field whole from ``field`` instead, as a worker reopening a
+    compressed input does.
     """
 
-    def __init__(self, samples, shape_zyx, *, planar: bool, signs=None):
+    def __init__(self, samples, shape_zyx, *, planar: bool, signs=None, field: str,
+                 nifti: bool):
         nz, ny, nx = shape_zyx
         self.samples, self.planar, self.signs = samples, planar, signs
+        self.field, self.nifti = os.path.abspath(field), nifti
         self.shape = (nz, ny, nx, 3)
         self.dtype = np.dtype(samples.dtype).newbyteorder("=")
+        self._whole = None
+
+    def __getstate__(self):
+        return {**self.__dict__, "_whole": None}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        check = getattr(self.samples, "reachable", None)
+        if check is not None and not check():  # (a remote worker: no scratch copy here)
+            self.samples = None
 
     @property
     def path(self) -> str:
@@ -87,6 +106,13 @@ class LazyField:
     def read(self, lo, hi) -> np.ndarray:
         """The vectors of box ``[lo, hi)`` (z, y, x)."""
         (z0, y0, x0), (z1, y1, x1) = lo, hi
+        if self.samples is None:
+            if self._whole is None:
+                self._whole = read_whole(self.field, self.nifti)
+                if self._whole.shape != self.shape:
+                    raise VolwarpError(f"{self.field}: changed while it was read (now "
+                                       f"{self._whole.shape[:3]} vectors, not {self.shape[:3]})")
+            return self._whole[z0:z1, y0:y1, x0:x1]
         if self.planar:
             nz = self.shape[0]
             out = np.empty((z1 - z0, y1 - y0, x1 - x0, 3), self.dtype)
@@ -122,7 +148,12 @@ def frame_signs(file_space) -> np.ndarray | None:
     return np.diag(matrix).copy()  # (the frames are LPS's axes, signed)
 
 
-def _nifti(path: str):
+def read_whole(path: str, nifti: bool) -> np.ndarray:
+    """The vectors (z, y, x, 3, LPS) of the field at ``path``, read whole (never by windows)."""
+    return (_nifti if nifti else _components)(path, whole=True)[1]
+
+
+def _nifti(path: str, whole: bool = False):
     from ..io.inflated import NoRoom, naming_no_room
     from ..io.nifti import gunzip_range_into, nifti_geometry, nifti_meta, open_nifti
     from ..memory import ensure_fits_in_memory, read_by_box
@@ -137,7 +168,7 @@ def _nifti(path: str):
     nx, ny, nz = nf.shape[:3]
     kind = nf.file_dtype
     no_room = None
-    if not nf.scaled and kind.kind == "f" and read_by_box(nf.data_bytes) and (
+    if not whole and not nf.scaled and kind.kind == "f" and read_by_box(nf.data_bytes) and (
             not nf.gzipped or in_run()):  # (a copy to scratch: inside a command's run only)
         try:
             return _frame(geometry, (nz, ny, nx)), _lazy_field(nf, (nz, ny, nx)), meta
@@ -187,7 +218,7 @@ def _lazy_field(nf, shape_zyx):
     if not nf.gzipped:
         note_input(nf.path)  # (an output is not renamed into place if it changed)
         return LazyField(FileArray(nf.path, nf.file_dtype, nf.offset, _planes(shape_zyx)),
-                         shape_zyx, planar=True)
+                         shape_zyx, planar=True, field=nf.path, nifti=True)
 
     def fill(sink):
         gunzip_range_into(nf.path, nf.offset, nf.data_bytes, nf.offset + nf.data_bytes,
@@ -195,7 +226,7 @@ def _lazy_field(nf, shape_zyx):
 
     copy = inflated_array(nf.path, nf.data_bytes, nf.file_dtype, _planes(shape_zyx), nf.where,
                           fill)
-    return LazyField(copy, shape_zyx, planar=True)
+    return LazyField(copy, shape_zyx, planar=True, field=nf.path, nifti=True)
 
 
 def _planes(shape_zyx) -> tuple:
@@ -255,7 +286,7 @@ def _scaled(samples: np.ndarray, nf) -> np.ndarray:
     return samples
 
 
-def _components(path: str):
+def _components(path: str, whole: bool = False):
     """A NRRD or MetaImage field: by windows where its vectors exceed their share of the budget."""
     from ..io import read_components
     from ..io.inflated import naming_no_room
@@ -266,9 +297,9 @@ def _components(path: str):
     try:
         header, samples, _, planar = open_vectors_lazy(path, count=3, kinds="f")
         held = samples is not None and math.prod(samples.shape) * header.dtype.itemsize
-        if held and read_by_box(held):
+        if held and read_by_box(held) and not whole:
             source = LazyField(samples, header.shape, planar=planar,
-                               signs=frame_signs(header.file_space))
+                               signs=frame_signs(header.file_space), field=path, nifti=False)
             return _frame(_geometry_of(header), header.shape), source, dict(header.meta)
     except NoRoomToInflate as why:
         no_room = str(why)
