@@ -565,6 +565,20 @@ static inline void splat_narrow(int64_t *restrict acc, Py_ssize_t rb, Py_ssize_t
                                 v2d kv)
 {
     const int two_x = x1 > x0;
+    if (two_x && y1 > y0 && z1 > z0) { /* the usual box: 2 x 2 x 2 voxels, no loop */
+        int64_t *p0 = plane_at(acc, z0, rb, nz, plane) + y0 * line + x0 * 2;
+        int64_t *p1 = plane_at(acc, z0 + 1, rb, nz, plane) + y0 * line + x0 * 2;
+        const v4d kv2 = {kv[0], kv[1], kv[0], kv[1]};
+        double w = az0 * ay0;
+        add4(p0, kv2, (v4d){w * ax0, w * ax0, w * ax1, w * ax1});
+        w = az0 * ay1;
+        add4(p0 + line, kv2, (v4d){w * ax0, w * ax0, w * ax1, w * ax1});
+        w = az1 * ay0;
+        add4(p1, kv2, (v4d){w * ax0, w * ax0, w * ax1, w * ax1});
+        w = az1 * ay1;
+        add4(p1 + line, kv2, (v4d){w * ax0, w * ax0, w * ax1, w * ax1});
+        return;
+    }
     for (int64_t dz = 0; dz <= z1 - z0; dz++) {
         int64_t *p = plane_at(acc, z0 + dz, rb, nz, plane) + y0 * line + x0 * 2;
         const double wz = dz ? az1 : az0;
