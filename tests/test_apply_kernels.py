@@ -386,6 +386,36 @@ def test_a_field_on_the_output_grid_adds_the_vectors_its_kernel_interpolates(sha
         assert not f.add_nodes(g, *box, r) and np.array_equal(r, before)
 
 
+def test_apply_adds_the_nodes_of_a_field_on_its_grid_and_samples_as_through_the_kernel(
+        monkeypatch):
+    """A resampling whose field lies on the output grid never calls the interpolating kernel
+    (it would raise here), and its output is the one the kernel gives (forced: the same
+    bytes, the indices being whole)."""
+    from volwarp_cli.transforms import model
+
+    rng = np.random.default_rng(5)
+    data = rng.normal(100, 30, (9, 10, 11)).astype(np.float32)
+    vol = Volume(data, spacing=(1.0, 2.0, 0.5), origin=(-8.0, 4.0, 1.5))
+    # (the field's frame: 3 voxels wider than the volume's grid on every side)
+    frame = model.GridFrame((17, 16, 15), np.array([-11.0, -2.0, 0.0]), np.array([1.0, 2.0, 0.5]),
+                            np.eye(3))
+    field = model.DisplacementField(frame, rng.normal(0, 1.5, (15, 16, 17, 3)).astype(np.float32),
+                                    "field")
+    chain = Chain([field, Affine(np.diag([1.01, 0.99, 1.0]), np.array([0.3, -0.2, 0.1]))])
+
+    op = plan_resample(vol.header, data, chain, interpolation="linear")  # (its coverage
+    real = K.field_map                                                   # check maps points)
+    monkeypatch.setattr(K, "field_map", lambda *a: (_ for _ in ()).throw(AssertionError("called")))
+    nodes = compute_whole(op)["resampled"]
+    monkeypatch.setattr(K, "field_map", real)
+    monkeypatch.setattr(model.DisplacementField, "add_nodes", lambda *a: False)
+    through = compute_whole(op)["resampled"]
+    assert np.array_equal(nodes, through) and np.isfinite(nodes).all()
+    assert np.count_nonzero(nodes != compute_whole(
+        plan_resample(vol.header, data, Chain(chain.steps[1:]), interpolation="linear")
+    )["resampled"]) > 0.5 * nodes.size  # (the field moves the samples)
+
+
 def test_a_nan_node_of_a_field_on_the_output_grid_moves_its_point_to_nan():
     field, grid = _node_case((4, 5, 6), (1, 0, -1), False, 3)
     field.vectors[5, 4, 6] = np.nan  # (z, y, x): the node of the output's (x 2, y 1, z 3)

@@ -292,13 +292,18 @@ def test_gz_field_by_windows_maps_as_whole(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("ext", [".nii.gz", ".nrrd"])
 def test_worker_that_cannot_see_a_fields_scratch_copy_reads_the_field_whole(ext, tmp_path,
-                                                                            by_box):
+                                                                            by_box, inflations,
+                                                                            monkeypatch):
     """A compressed field read by windows goes to workers with its scratch copy; a worker on
-    another machine (the copy not there) reads the field whole from its own file instead,
-    and maps points as the command's copy does."""
+    another machine (the copy not there) reads the field whole from its own file instead
+    (once, whatever the threads asking; no second scratch copy), and maps points as the
+    command's copy does."""
+    import threading
+    import time
+
     from volwarp_cli.io.inflated import InflatedArray
     from volwarp_cli.runscope import run_scope
-    from volwarp_cli.transforms import read_chain
+    from volwarp_cli.transforms import fields, read_chain
 
     sitk = pytest.importorskip("SimpleITK")
     path = tmp_path / f"f{ext}"
@@ -315,13 +320,28 @@ def test_worker_that_cannot_see_a_fields_scratch_copy_reads_the_field_whole(ext,
         assert pickle.loads(shipped).source.samples is not None  # (here: the same copy)
         hidden = copy.path + ".elsewhere"
         os.rename(copy.path, hidden)  # (a worker on another machine)
+        reads, real = [], fields.read_whole
+
+        def slow_read(*args):
+            reads.append(args)
+            time.sleep(0.2)  # (the other threads ask meanwhile)
+            return real(*args)
+
+        monkeypatch.setattr(fields, "read_whole", slow_read)
         try:
             remote = pickle.loads(shipped)
             assert remote.source.samples is None
+            threads = [threading.Thread(target=remote.source.read, args=((0, 0, 0), (2, 2, 2)))
+                       for _ in range(4)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
             got = remote.map(pts)
         finally:
             os.rename(hidden, copy.path)
-        assert isinstance(remote.source._whole, np.ndarray)  # (read whole, not copied)
+        assert len(reads) == 1 and isinstance(remote.source._whole, np.ndarray)
+        assert len(inflations) == 1  # (the command's copy only: read whole, not copied again)
         np.testing.assert_array_equal(got, expect)
         assert np.isfinite(got).sum() > 0.9 * got.size
 

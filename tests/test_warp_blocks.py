@@ -228,6 +228,22 @@ def test_scan_source_is_the_range_faces_and_sample_read_on_their_own(shape, slab
     assert np.array_equal(scan.sample, value_sample(data))
 
 
+def test_scan_source_of_a_file_read_lazily_is_that_of_its_samples(tmp_path):
+    """The case the one pass is for: a raw NRRD read slab by slab (its x faces no longer a
+    read per row), odd sizes so the slabs, faces and sample planes fall unevenly."""
+    from volwarp_cli.border import border_samples
+    from volwarp_cli.bspline.capture import scan_source, value_sample
+    from volwarp_cli.io import write_volume
+
+    data = np.random.default_rng(4).normal(size=(37, 23, 29)).astype(np.float32)
+    write_volume(Volume(data), tmp_path / "in.nrrd")
+    source = LazySource(tmp_path / "in.nrrd")
+    scan = scan_source(source, slab_bytes=3 * 23 * 29 * 4)
+    assert (scan.lo, scan.hi) == (float(data.min()), float(data.max()))
+    assert np.array_equal(scan.border, border_samples(data))
+    assert np.array_equal(scan.sample, value_sample(data))
+
+
 def test_capture_source_refuses_nan():
     data = _blob((9, 10, 11))
     data[4, 5, 6] = np.nan

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 
 import numpy as np
 
@@ -61,6 +62,10 @@ def _frame(vol_geometry: dict, shape_zyx) -> GridFrame:
                      np.asarray(vol_geometry["direction"], float))
 
 
+#: held while a field is read whole on a worker that cannot see its scratch copy (rare)
+_WHOLE_READ = threading.Lock()
+
+
 class LazyField:
     """A field's vectors read by windows from its file (or a compressed file's scratch copy).
 
@@ -76,8 +81,9 @@ class LazyField:
     ``field``: the field's own file, a NIfTI or not (``nifti``); ``samples``
     may be a compressed file's scratch copy. A worker that does not see that
     copy (on another machine: :meth:`.io.inflated.InflatedArray.reachable`)
-    reads the field whole from ``field`` instead, as a worker reopening a
-    compressed input does.
+    reads the field whole from ``field`` instead (once, whichever of its
+    threads asks first), as a worker reopening a compressed input does: that
+    worker then holds the whole field, beyond the block's own budget.
     """
 
     def __init__(self, samples, shape_zyx, *, planar: bool, signs=None, field: str,
@@ -101,18 +107,13 @@ class LazyField:
     @property
     def path(self) -> str:
         """The file the vectors are read from."""
-        return self.samples.path
+        return self.field if self.samples is None else self.samples.path
 
     def read(self, lo, hi) -> np.ndarray:
         """The vectors of box ``[lo, hi)`` (z, y, x)."""
         (z0, y0, x0), (z1, y1, x1) = lo, hi
         if self.samples is None:
-            if self._whole is None:
-                self._whole = read_whole(self.field, self.nifti)
-                if self._whole.shape != self.shape:
-                    raise VolwarpError(f"{self.field}: changed while it was read (now "
-                                       f"{self._whole.shape[:3]} vectors, not {self.shape[:3]})")
-            return self._whole[z0:z1, y0:y1, x0:x1]
+            return self._read_whole()[z0:z1, y0:y1, x0:x1]
         if self.planar:
             nz = self.shape[0]
             out = np.empty((z1 - z0, y1 - y0, x1 - x0, 3), self.dtype)
@@ -122,6 +123,17 @@ class LazyField:
             out = self.samples[z0:z1, y0:y1, 3 * x0:3 * x1].reshape(z1 - z0, y1 - y0,
                                                                      x1 - x0, 3)
         return out if self.signs is None else to_lps(out, self.signs)
+
+    def _read_whole(self) -> np.ndarray:
+        """The field's vectors read whole from its own file, once (the block tasks' threads wait)."""
+        with _WHOLE_READ:
+            if self._whole is None:
+                whole = read_whole(self.field, self.nifti)
+                if whole.shape != self.shape:
+                    raise VolwarpError(f"{self.field}: changed while it was read (now "
+                                       f"{whole.shape[:3]} vectors, not {self.shape[:3]})")
+                self._whole = whole
+        return self._whole
 
     def tile_range(self, tile: int):
         """Per-tile extremes (:func:`.model.tile_range`), read slab by slab of ``tile`` planes."""
@@ -295,9 +307,11 @@ def _components(path: str, whole: bool = False):
 
     no_room = None
     try:
+        if whole:  # (no scratch copy to throw away: read whole below)
+            raise NotLazy(path)
         header, samples, _, planar = open_vectors_lazy(path, count=3, kinds="f")
         held = samples is not None and math.prod(samples.shape) * header.dtype.itemsize
-        if held and read_by_box(held) and not whole:
+        if held and read_by_box(held):
             source = LazyField(samples, header.shape, planar=planar,
                                signs=frame_signs(header.file_space), field=path, nifti=False)
             return _frame(_geometry_of(header), header.shape), source, dict(header.meta)

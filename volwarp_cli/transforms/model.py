@@ -228,13 +228,15 @@ class DisplacementField:
         same axes and spacing, the origin a whole number of voxels away: ANTs'
         ``1Warp.nii.gz`` applied on its fixed image's grid) and the box lies on
         the field (this window's), the trilinear weights are 0 and 1 and the
-        displacement is the node's vector: added without interpolation, as ITK
-        adds the neighbours with non-zero weight only. False (``p`` untouched):
-        not so, map through :meth:`map`. A non-finite vector moves its point to
-        NaN or infinity, outside every image, said as :meth:`map` says it.
+        displacement is the node's vector: added without interpolation (ITK adds
+        the neighbours of non-zero weight only). The kernel's interpolation there
+        gives the same bits where its indices are whole, else differs by
+        rounding (1e-13 mm). False (``p`` untouched): not so, or ``p`` not
+        contiguous; map through :meth:`map`. A non-finite vector moves its point
+        to NaN or infinity, outside every image, said as :meth:`map` says it.
         """
         shift = self._node_shift(grid)
-        if shift is None or self.vectors is None:
+        if shift is None or self.vectors is None or not p.flags.c_contiguous:
             return False
         a = np.asarray(lo, np.int64) + shift - np.asarray(self.offset, np.int64)
         b = np.asarray(hi, np.int64) + shift - np.asarray(self.offset, np.int64)
@@ -243,8 +245,9 @@ class DisplacementField:
         u = self.vectors[a[2]:b[2], a[1]:b[1], a[0]:b[0]]
         view = p.reshape(u.shape)
         np.add(view, u, out=view)
-        if not math.isfinite(float(np.add.reduce(p, axis=None))):
-            k = int(np.flatnonzero(~np.isfinite(p).all(axis=1))[0])
+        finite = np.isfinite(p)
+        if not finite.all():
+            k = int(np.flatnonzero(~finite.all(axis=1))[0])
             nx, ny = int(hi[0]) - int(lo[0]), int(hi[1]) - int(lo[1])
             index = np.asarray(lo, float) + [k % nx, k // nx % ny, k // (nx * ny)]
             self._warn_not_finite(grid.map(index[None])[0])
