@@ -191,22 +191,23 @@ def scan_source(source, *, slab_bytes: int = 64 << 20) -> SourceScan:
 
     def slab(z0):
         part = np.asarray(source[z0:min(z0 + step, nz)])
-        faces = [part[:, 0].copy(), part[:, -1].copy(), part[:, :, 0].copy(),
-                 part[:, :, -1].copy()]
+        ends = [part[0].copy()] if z0 == 0 else []  # (the z faces: from their slabs only)
+        if z0 + len(part) == nz:
+            ends.append(part[-1].copy())
+        sides = [part[:, 0].copy(), part[:, -1].copy(), part[:, :, 0].copy(),
+                 part[:, :, -1].copy()]  # (y first, y last, x first, x last)
         planes = part[(-z0) % sz::sz, ::sy, ::sx].copy()
-        return float(part.min()), float(part.max()), faces, planes, part[0].copy(), \
-            part[-1].copy()
+        return float(part.min()), float(part.max()), ends, sides, planes
 
     parts = parallel.run_blocks(slab, range(0, nz, step), threads)
     ranges = [p[:2] for p in parts]
     if not np.all(np.isfinite(ranges)):  # (each slab's: min() skips a NaN among numbers)
         raise VolwarpError("the volume has NaN or infinite samples; warping needs finite ones "
                            "(replace them first)")
-    faces = [np.concatenate([p[2][k] for p in parts]) for k in range(4)]
-    border = np.concatenate([parts[0][4].ravel(), parts[-1][5].ravel()]
-                            + [f.ravel() for f in faces])
-    return SourceScan(min(r[0] for r in ranges), max(r[1] for r in ranges), border,
-                      np.concatenate([p[3] for p in parts]))
+    ends = [e.ravel() for p in parts for e in p[2]]
+    sides = [np.concatenate([p[3][k] for p in parts]).ravel() for k in range(4)]
+    return SourceScan(min(r[0] for r in ranges), max(r[1] for r in ranges),
+                      np.concatenate(ends + sides), np.concatenate([p[4] for p in parts]))
 
 
 def capture_source(header: Header, source, *, lattice=(9, 9, 9), placement: str = "uniform",

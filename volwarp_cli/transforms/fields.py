@@ -306,19 +306,19 @@ def _components(path: str, whole: bool = False):
     from ..memory import read_by_box
 
     no_room = None
-    try:
-        if whole:  # (no scratch copy to throw away: read whole below)
-            raise NotLazy(path)
-        header, samples, _, planar = open_vectors_lazy(path, count=3, kinds="f")
-        held = samples is not None and math.prod(samples.shape) * header.dtype.itemsize
-        if held and read_by_box(held):
-            source = LazyField(samples, header.shape, planar=planar,
-                               signs=frame_signs(header.file_space), field=path, nifti=False)
-            return _frame(_geometry_of(header), header.shape), source, dict(header.meta)
-    except NoRoomToInflate as why:
-        no_room = str(why)
-    except (NotLazy, OSError):
-        pass  # (read whole below, with the reader's own errors)
+    if not whole:  # (whole: read below, no scratch copy made to be thrown away)
+        try:
+            header, samples, _, planar = open_vectors_lazy(path, count=3, kinds="f")
+            held = samples is not None and math.prod(samples.shape) * header.dtype.itemsize
+            if held and read_by_box(held):
+                source = LazyField(samples, header.shape, planar=planar,
+                                   signs=frame_signs(header.file_space), field=path,
+                                   nifti=False)
+                return _frame(_geometry_of(header), header.shape), source, dict(header.meta)
+        except NoRoomToInflate as why:
+            no_room = str(why)
+        except (NotLazy, OSError):
+            pass  # (read whole below, with the reader's own errors)
     try:
         with naming_no_room(no_room):
             first, vectors = read_components(path)
