@@ -260,3 +260,91 @@ def test_a_failing_worker_blocks_own_warning_is_said_with_its_error(caplog):
             pytest.raises(VolwarpError, match="block 3 failed"):
         engine.run([block_delayed(_block_that_warns_then_fails, "fails", 3)])
     assert caplog.text.count("block 3 saw a NaN before it failed") == 1
+
+
+class PlacedRamp(Ramp):
+    """Ramp whose in-memory run places its samples a plane at a time (compute_into),
+    from two threads, the planes in a scrambled order; ``fail_at``: a plane whose
+    placing fails, after others were placed."""
+
+    streams = True
+
+    def compute_into(self, box, *, threads, place):
+        from volwarp_cli import parallel
+
+        self.computed.append(("placed", threads))
+
+        def plane(z):
+            if self.fail_at is not None and z == self.fail_at[0]:
+                raise VolwarpError("a plane failed")
+            one = Box((z, box.lo[1], box.lo[2]), (z + 1, box.hi[1], box.hi[2]))
+            for key, samples in Ramp.compute(self, one, threads=1).items():
+                if key in place:
+                    place[key](one, samples)
+
+        order = list(range(box.lo[0], box.hi[0]))
+        parallel.run_blocks(plane, order[1::2] + order[::2], 2)
+
+
+@pytest.mark.parametrize("suffix", [".nrrd", ".mha", ".raw"])
+def test_an_output_placed_as_computed_is_the_file_written_whole(tmp_path, suffix):
+    (tmp_path / "m").mkdir()
+    (tmp_path / "p").mkdir()
+    execute.run(Ramp(tmp_path / "m", suffix=suffix), execute.How(chunked=False))
+    op = PlacedRamp(tmp_path / "p", suffix=suffix)
+    ran = execute.run(op, execute.How(chunked=False, threads=2))
+    assert not ran.by_blocks and ran.results is None
+    assert op.computed[0] == ("placed", 2) and all(t == 1 for _, t in op.computed[1:])
+    for name in ("v", "sq"):
+        assert ((tmp_path / "p" / f"{name}{suffix}").read_bytes()
+                == (tmp_path / "m" / f"{name}{suffix}").read_bytes())
+    assert sorted(p.name for p in (tmp_path / "p").iterdir()) == [f"sq{suffix}", f"v{suffix}"]
+
+
+@pytest.mark.parametrize("suffix", [".nii", ".nii.gz", ".nhdr", ".tif", ".ome.zarr"])
+def test_outputs_not_written_by_offset_are_computed_whole(tmp_path, suffix):
+    op = PlacedRamp(tmp_path, suffix=suffix)
+    ran = execute.run(op, execute.How(chunked=False, threads=2))
+    assert ran.results is not None and op.computed == [(Box.from_shape(SHAPE), 2)]
+    assert np.array_equal(read_volume(tmp_path / f"v{suffix}").data, _expected()[0])
+
+
+def test_an_after_hook_gets_the_whole_in_memory(tmp_path):
+    """(It may read any part of the results: they are computed whole, not placed.)"""
+    op = PlacedRamp(tmp_path)
+    ran = execute.run(op, execute.How(chunked=False), after=lambda r: r.results["v"][1, 2, 3])
+    assert ran.after == 123 and op.computed[0][0] == Box.from_shape(SHAPE)
+    assert np.array_equal(read_volume(tmp_path / "v.nrrd").data, _expected()[0])
+
+
+def test_a_failure_while_placing_leaves_nothing_and_an_old_output_untouched(tmp_path):
+    old = tmp_path / "v.nrrd"
+    old.write_bytes(b"an earlier output")
+    op = PlacedRamp(tmp_path, fail_at=(4, 0, 0))
+    with pytest.raises(VolwarpError, match="a plane failed"):
+        execute.run(op, execute.How(chunked=False, threads=2))
+    assert len(op.computed) > 2  # (other planes were placed first)
+    assert old.read_bytes() == b"an earlier output"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.nrrd"]
+
+
+@pytest.mark.parametrize("how", ["placed", "blocks"])
+def test_a_full_disk_while_writing_names_the_output_and_leaves_nothing(tmp_path, monkeypatch,
+                                                                       how):
+    import errno
+
+    from volwarp_cli.io import filearray
+
+    def full(self, key, value):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(filearray.FileArray, "__setitem__", full)
+    old = tmp_path / "v.nrrd"
+    old.write_bytes(b"an earlier output")
+    with pytest.raises(VolwarpError, match=r"v\.nrrd: cannot write \(No space left on device\)"):
+        if how == "placed":
+            execute.run(PlacedRamp(tmp_path), execute.How(chunked=False, threads=2))
+        else:
+            execute.run(Ramp(tmp_path), _blocks(scheduler="synchronous"))
+    assert old.read_bytes() == b"an earlier output"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.nrrd"]

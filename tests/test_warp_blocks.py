@@ -336,3 +336,52 @@ def test_parts_write_into_the_output_as_the_whole_cast(dtype, monkeypatch):
     for threads in (1, 2, 3):
         got = op.compute(window, threads=threads)[op.KEY]
         assert got.dtype == dtype and np.array_equal(got, expect), threads
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.int16])
+@pytest.mark.parametrize("suffix", [".nrrd", ".mha"])
+def test_the_whole_written_as_computed_is_the_in_memory_file(tmp_path, dtype, suffix,
+                                                             monkeypatch):
+    """In memory, a warp to a file written by offset places each part's planes as they
+    are finished (no array of the whole): over 1 to 4 threads (parts cut along z, and
+    along y, whose planes are row ranges of the file) the same bytes as the whole
+    computed, then written; and the same samples as a .nii.gz output, written whole."""
+    from volwarp_cli import execute
+    from volwarp_cli.io import read_volume
+    from volwarp_cli.samples import cast_samples
+
+    data = _blob((26, 21, 23), seed=4) * 3.0
+    cap = capture_volume(Volume(data), lattice=(5, 6, 5), oversample=1.0)
+    dq = _general(cap, scale=1.2)
+    sampler = BoxSampler(data, cap.grid, cap.placement, cap.sampling, cap.domain.dtype)
+    scene = Scene(cap.domain, cap.grid, dq, 4, domain_range=cap.stats[:2])
+    window = scene.target_box
+    expect = cast_samples(blocks.warp_block(scene, sampler, window), dtype)
+    header = Header(window.shape, dtype, spacing=(0.5, 0.75, 1.25), origin=(3.0, -2.0, 1.0))
+
+    def op(path):
+        return blocks.WarpOperation(
+            Scene(cap.domain, cap.grid, dq, 4, domain_range=cap.stats[:2]), None,
+            cap.placement, cap.sampling, window, Target(path, header, dtype), sampler=sampler)
+
+    reference = tmp_path / f"reference{suffix}"
+    Target(reference, header, dtype).write_whole(expect)
+    monkeypatch.setattr(blocks, "PARALLEL_VOXELS", 1)  # (this small block is cut too)
+    nz, ny, nx = window.shape
+    along_y = [Box((0, 0, 0), (9, 8, nx)), Box((0, 8, 0), (9, ny, nx)),
+               Box((9, 0, 0), (nz, 5, nx)), Box((9, 5, 0), (nz, ny, nx))]
+    for threads, cut in ((1, None), (2, None), (3, None), (4, along_y)):
+        path = tmp_path / f"t{threads}{suffix}"
+        job = op(path)
+        if cut is not None:
+            job._cuts[(window, threads)] = cut
+        assert (len(job.slabs(window, threads)) > 1) == (threads > 1)
+        job.compute = None  # (the whole is never computed as an array)
+        ran = execute.run(job, execute.How(chunked=False, threads=threads))
+        assert not ran.by_blocks and ran.results is None
+        assert path.read_bytes() == reference.read_bytes(), threads
+    ran = execute.run(op(tmp_path / "whole.nii.gz"), execute.How(chunked=False, threads=2))
+    assert ran.results is not None  # (a compressed file is written whole)
+    assert np.array_equal(read_volume(tmp_path / "whole.nii.gz").data, expect)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [reference.name, "whole.nii.gz"] + [f"t{t}{suffix}" for t in (1, 2, 3, 4)])

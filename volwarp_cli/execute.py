@@ -121,6 +121,8 @@ class Operation:
     what: str = "the work"
     #: why the operation has no form by blocks (it then runs in memory or not at all), or None
     no_blocks: str | None = None
+    #: whether it has :meth:`compute_into` (the in-memory run then writes as it computes)
+    streams: bool = False
 
     def memory(self, box: Box) -> int:
         """The bytes computing ``box`` holds at its peak (its results included)."""
@@ -131,6 +133,18 @@ class Operation:
 
         ``threads``: how many threads the computation may use (1 in a block
         task: the engine's tasks are the parallelism).
+        """
+        raise NotImplementedError
+
+    def compute_into(self, box: Box, *, threads: int, place: dict) -> None:
+        """:meth:`compute`, each target's samples handed over as they are finished.
+
+        ``place[key](sub_box, samples)``: where they go (any boxes, together
+        ``box``; called from the computing threads, each box once). For
+        operations whose parts finish their output a few planes at a time:
+        the in-memory run then holds no array of the whole output, and the
+        output's file is written while the work goes on. Only where
+        :attr:`streams`.
         """
         raise NotImplementedError
 
@@ -186,7 +200,8 @@ class Ran:
     """What :func:`run` did.
 
     ``by_blocks``; ``results``: the in-memory run's results (the whole's
-    :meth:`Operation.compute`; None by blocks); ``block``: the blocks' shape
+    :meth:`Operation.compute`; None by blocks, and where the outputs were
+    written as they were computed, :meth:`Operation.compute_into`); ``block``: the blocks' shape
     and ``blocks`` their count (by blocks); ``after``: what the ``after`` hook
     returned; ``output``: a :class:`Reduction`'s output (either way).
     """
@@ -327,6 +342,9 @@ def run(op: Operation, how: How = How(), after: Callable | None = None, *,
         if op.no_blocks is not None:
             raise VolwarpError(op.no_blocks)
         return _run_blocks(op, how, after)
+    if after is None and _streamed(op):
+        _compute_written(op, how.threads)
+        return Ran(False)
     results = compute_whole(op, how.threads)
     for key, target in op.targets.items():
         with timed(f"write {target.path}"):
@@ -349,6 +367,49 @@ def compute_whole(op: Operation, threads: int | None = None) -> dict:
     op.prepare()
     with timed(op.what):
         return op.compute(op.grid.box, threads=threads or parallel.threads())
+
+
+def _streamed(op: Operation) -> bool:
+    """Whether ``op``'s in-memory run writes its outputs as it computes them.
+
+    Where the operation can (:attr:`Operation.streams`) and every target is
+    a file of samples at an offset, written in place (uncompressed NRRD,
+    MetaImage or raw: the bytes :meth:`Target.write_whole` writes) with
+    room for it on its disk.
+    """
+    if not op.streams:
+        return False
+    from .io import volume_format
+
+    targets = op.targets.values()
+    if any(t.components is not None or volume_format(t.path) == "omezarr" for t in targets):
+        return False  # (a store's shards are written whole)
+    return all(blocks_refusal([(t.path, t.nbytes(op.grid.shape))], t.compress, t.pyramid)
+               is None for t in targets)
+
+
+def _compute_written(op: Operation, threads: int | None) -> None:
+    """The whole output as one block on the calling threads, written as it is computed.
+
+    Each target opened as one block of its file
+    (:class:`~volwarp_cli.io.blockwrite.BlockOutput`: an existing output
+    untouched and nothing left behind on an error or a stop) and committed
+    once every part has been placed. The same bytes as :func:`compute_whole`
+    and :meth:`Target.write_whole`, without the whole's array: its memory,
+    its pages' first touch and the write's copy of them after the work.
+    """
+    from . import parallel
+
+    box = op.grid.box
+    with contextlib.ExitStack() as stack:
+        outs = {key: stack.enter_context(t.open_blocks(box.shape))
+                for key, t in op.targets.items()}
+        op.prepare()
+        with timed(f"{op.what}, written as computed"):
+            op.compute_into(box, threads=threads or parallel.threads(),
+                            place={key: out.place for key, out in outs.items()})
+        for out in outs.values():
+            out.mark_written([box])
 
 
 def _in_memory(op: Operation, how: How, outputs, *, compress: bool = False,

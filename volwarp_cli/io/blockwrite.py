@@ -301,7 +301,10 @@ class _MappedWriter(BlockWriter):
 
     def _place(self, box, array):
         key, flat = _flat(box, array, self.components)
-        self._opened[key] = flat
+        try:
+            self._opened[key] = flat
+        except OSError as exc:  # (a full disk, a file size limit: the output named)
+            raise VolwarpError(f"{self.where}: cannot write ({exc.strerror or exc})") from exc
 
 
 def _block_shape(box: Box, components: int) -> tuple:
@@ -374,6 +377,15 @@ class BlockOutput:
         the blocks whose tasks succeeded before :meth:`commit`.
         """
         raise NotImplementedError  # pragma: no cover - every format has one
+
+    def place(self, box: Box, array) -> None:
+        """Write ``array`` at any ``box`` of the output (thread-safe; not counted as written).
+
+        For a run that writes the whole as one block, a few planes at a time
+        as they are finished (:func:`volwarp_cli.execute.run`): it marks the
+        whole written once every part is placed. Files written by offset only.
+        """
+        raise VolwarpError(f"{self.path}: this format is written by whole blocks")
 
     def mark_written(self, boxes) -> None:
         """Count the blocks of ``boxes`` as written (by :meth:`writer` handles)."""
@@ -645,14 +657,34 @@ class _MappedOutput(BlockOutput):
                 self._map = FileArray(tmp, file_dtype, len(header),
                                       _file_shape(geometry.shape, self.components),
                                       writable=True)
-        except BaseException:
+        except BaseException as exc:
             self.abort()
+            if isinstance(exc, OSError):
+                raise VolwarpError(f"{path}: cannot write ({exc.strerror or exc})") from exc
             raise
 
     def _write(self, box, array):
         if self._map is not None:
-            key, flat = _flat(box, array, self.components)
+            self._put(box, array)
+
+    def _put(self, box, array):
+        key, flat = _flat(box, array, self.components)
+        try:
             self._map[key] = flat
+        except OSError as exc:  # (a full disk, a file size limit: the output named)
+            raise VolwarpError(f"{self.path}: cannot write ({exc.strerror or exc})") from exc
+
+    def place(self, box, array):
+        array = np.asarray(array)
+        if tuple(array.shape) != _block_shape(box, self.components):
+            raise ValueError(f"samples of shape {array.shape} placed at {box}")
+        with self._lock:
+            if self._state != "open":
+                raise ValueError(f"{self.path}: the output is {self._state}: no more writes")
+            if self._map is None:
+                return
+            self._map._file()  # (opened once, not by two threads at once)
+        self._put(box, array)
 
     def _read(self, box):
         shape = _block_shape(box, self.components)

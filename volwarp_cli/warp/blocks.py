@@ -53,7 +53,7 @@ PARALLEL_VOXELS = 1 << 14
 
 
 def warp_block(scene: Scene, sampler, box: Box, into: np.ndarray | None = None,
-               what: str = "warped volume") -> np.ndarray:
+               what: str = "warped volume", *, place=None, dtype=None) -> np.ndarray | None:
     """The target block ``box`` (z, y, x of the padded target) of ``scene``'s current lattice.
 
     ``sampler`` (a :class:`~volwarp_cli.bspline.pullback.BoxSampler`) gathers the domain voxels'
@@ -64,6 +64,10 @@ def warp_block(scene: Scene, sampler, box: Box, into: np.ndarray | None = None,
     the whole output: no block of its own is made, then copied), its planes
     cast to its type as they are finished (:func:`~volwarp_cli.samples.cast_samples`,
     ``what`` naming it in a refusal); by default a new float array.
+    ``place(z, planes)``: instead, where finished planes go as they are made
+    (``planes`` of ``dtype``, the block's planes from ``z`` on, relative to
+    ``box``; valid during the call only): no array of the block is held, and
+    None is returned.
 
     The block is streamed: the domain box's z planes a few at a time, each
     slab gathered just before it is scattered into a ring of the block's
@@ -75,14 +79,20 @@ def warp_block(scene: Scene, sampler, box: Box, into: np.ndarray | None = None,
     from ..samples import cast_samples
 
     out_dtype = np.float64 if scene.dtype == np.float64 else np.float32
-    out = np.empty(box.shape, dtype=out_dtype) if into is None else into
+    if place is None:
+        out = np.empty(box.shape, dtype=out_dtype) if into is None else into
+        dtype = out.dtype
+    else:
+        out, dtype = None, np.dtype(dtype or out_dtype)
     (tx0, ty0, tz0), (_, _, tz1) = box.xyz()
     need = domain_box(scene, box)
     reach, chunk, planes = _stream(scene, box)
     acc = np.zeros((planes,) + box.shape[1:] + (2,), dtype=np.int64)
-    direct = out.dtype == out_dtype and out.flags.c_contiguous  # (else finished planes are cast)
+    # finished planes go straight into a whole array of the float type; else through a
+    # ring's worth of float planes, cast and placed or copied
+    direct = out is not None and dtype == out_dtype and out.flags.c_contiguous
     finished = None if direct else np.empty((planes,) + box.shape[1:], dtype=out_dtype)
-    base = tz0  # target planes [base, ...) accumulate; those below are in out
+    base = tz0  # target planes [base, ...) accumulate; those below are finished
 
     def flush(upto):
         nonlocal base
@@ -93,7 +103,11 @@ def warp_block(scene: Scene, sampler, box: Box, into: np.ndarray | None = None,
             pushforward.finalize(acc[s0:s0 + k], scene.vmax, Box((0, 0, 0), (k, *box.shape[1:])),
                                  dest, parallel=False, background=scene.background, clear=True)
             if not direct:
-                out[base - tz0:base - tz0 + k] = cast_samples(dest, out.dtype, what=what)
+                samples = cast_samples(dest, dtype, what=what)
+                if place is not None:
+                    place(base - tz0, samples)
+                else:
+                    out[base - tz0:base - tz0 + k] = samples
             base += k
 
     if not need.empty:
@@ -234,6 +248,7 @@ class WarpOperation(Operation):
     """
 
     KEY = "warped"
+    streams = True  # (compute_into: the planes are written as they are finished)
 
     def __init__(self, scene: Scene, source, placement: str, sampling: str, window: Box,
                  target, *, sampler=None, name: str = "input"):
@@ -327,6 +342,34 @@ class WarpOperation(Operation):
 
             parallel.run_blocks(task, parts, threads)
         return {self.KEY: out}
+
+    def compute_into(self, box: Box, *, threads: int, place: dict) -> None:
+        """Output block ``box`` over ``threads`` threads, its planes placed as they are finished.
+
+        ``place[KEY](box, samples)``: where a part's finished planes go (an
+        output written by offset, :meth:`~volwarp_cli.io.blockwrite.BlockOutput.place`),
+        from the thread that finished them. The parts are :meth:`compute`'s
+        and their samples the same; no array of the whole is made.
+        """
+        from ..progress import progress
+
+        put = place[self.KEY]
+        scene, sampler = self._scene()
+
+        def task(part):
+            (z0, y0, x0), (_, y1, x1) = part.lo, part.hi
+
+            def placed(z, planes):  # (z: the part's first finished plane, relative to it)
+                put(Box((z0 + z, y0, x0), (z0 + z + len(planes), y1, x1)), planes)
+
+            with parallel.use_threads(1):
+                warp_block(scene, sampler, part.shift(self.window.lo), place=placed,
+                           dtype=self.dtype)
+            bar.advance()
+
+        parts = self.slabs(box, threads)
+        with progress(len(parts), "warp") as bar:
+            parallel.run_blocks(task, parts, threads)
 
     def memory(self, box: Box) -> int:
         """The bytes computing ``box`` holds at its peak, over the threads in effect.
