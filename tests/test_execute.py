@@ -348,3 +348,25 @@ def test_a_full_disk_while_writing_names_the_output_and_leaves_nothing(tmp_path,
             execute.run(Ramp(tmp_path), _blocks(scheduler="synchronous"))
     assert old.read_bytes() == b"an earlier output"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.nrrd"]
+
+
+def test_outputs_written_as_computed_are_not_counted_in_the_whole_s_memory(tmp_path,
+                                                                         monkeypatch):
+    """Ramp's memory counts its results; placed as they are computed, the targets' arrays
+    are never held: the decision weighs the rest (and an after hook, which gets them
+    whole, weighs them again)."""
+    weighed = []
+
+    def decide(need, *args, **kwargs):
+        weighed.append(need)
+        return True
+
+    monkeypatch.setattr(execute, "decide", decide)
+    voxels = SHAPE[0] * SHAPE[1] * SHAPE[2]
+    for kind, after, need in ((Ramp, None, 60), (PlacedRamp, None, 60 - 12),
+                              (PlacedRamp, lambda ran: None, 60)):
+        folder = tmp_path / f"{kind.__name__}{len(weighed)}"
+        folder.mkdir()
+        execute.run(kind(folder, bytes_per=60), execute.How(), after=after)
+        assert weighed[-1] == voxels * need, kind
+        assert np.array_equal(read_volume(folder / "v.nrrd").data, _expected()[0])

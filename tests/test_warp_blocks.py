@@ -385,3 +385,25 @@ def test_the_whole_written_as_computed_is_the_in_memory_file(tmp_path, dtype, su
     assert np.array_equal(read_volume(tmp_path / "whole.nii.gz").data, expect)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
         [reference.name, "whole.nii.gz"] + [f"t{t}{suffix}" for t in (1, 2, 3, 4)])
+
+
+@pytest.mark.parametrize("chunk_bytes", [1 << 10, 200 << 10, 32 << 20])
+@pytest.mark.parametrize("lo,hi", [((0, 0, 0), (4, 22, 24)), ((3, 5, 2), (19, 20, 17)),
+                                   ((10, 0, 0), (11, 22, 24))])
+def test_deformation_bytes_bound_the_buffers_a_contribution_holds(chunk_bytes, lo, hi):
+    """What the memory estimates count for a step's deformation buffers: at least the
+    Scratch a contribution over that domain block grows to, and not many times more."""
+    from volwarp_cli.bspline.scene import Scratch
+
+    data = _blob((20, 22, 24), seed=6)
+    cap = capture_volume(Volume(data), lattice=(5, 5, 5), oversample=1.0)
+    scene = Scene(cap.domain, cap.grid, _general(cap, scale=1.0), 4,
+                  domain_range=cap.stats[:2])
+    scene.chunk_bytes = chunk_bytes
+    block = Box(lo, hi)
+    scratch = Scratch()
+    acc = np.zeros(scene.target_box.shape + (2,), np.int64)
+    scene.contribute([scene.dq], block, 1, acc=acc, parallel=False, scratch=scratch)
+    assert acc.any()
+    held = scratch.flat.nbytes
+    assert held <= scene.deformation_bytes(block) <= 4 * held

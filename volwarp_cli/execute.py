@@ -332,17 +332,18 @@ def run(op: Operation, how: How = How(), after: Callable | None = None, *,
     """
     if isinstance(op, Reduction):
         return _reduce(op, how, after)
+    streamed = after is None and _streamed(op)
     if by_blocks is None:
         first = next(iter(op.targets.values()))
         outputs = [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()]
         outputs += op.scratch_files()
         by_blocks = not _in_memory(op, how, outputs, compress=first.compress,
-                                   pyramid=first.pyramid)
+                                   pyramid=first.pyramid, streamed=streamed)
     if by_blocks:
         if op.no_blocks is not None:
             raise VolwarpError(op.no_blocks)
         return _run_blocks(op, how, after)
-    if after is None and _streamed(op):
+    if streamed:
         _compute_written(op, how.threads)
         return Ran(False)
     results = compute_whole(op, how.threads)
@@ -405,7 +406,8 @@ def _compute_written(op: Operation, threads: int | None) -> None:
         outs = {key: stack.enter_context(t.open_blocks(box.shape))
                 for key, t in op.targets.items()}
         op.prepare()
-        with timed(f"{op.what}, written as computed"):
+        names = ", ".join(str(t.path) for t in op.targets.values())
+        with timed(f"{op.what}, written to {names} as it was computed"):
             op.compute_into(box, threads=threads or parallel.threads(),
                             place={key: out.place for key, out in outs.items()})
         for out in outs.values():
@@ -413,12 +415,16 @@ def _compute_written(op: Operation, threads: int | None) -> None:
 
 
 def _in_memory(op: Operation, how: How, outputs, *, compress: bool = False,
-               pyramid: int = 0) -> bool:
+               pyramid: int = 0, streamed: bool = False) -> bool:
     """Whether ``op`` runs as one block: its whole's memory against the budget, before any work.
 
-    :func:`decide` with the operation's own sizes.
+    :func:`decide` with the operation's own sizes; ``streamed``: its outputs
+    written as they are computed, so their arrays (in its memory) never held.
     """
-    return decide(op.memory(op.grid.box), op.what, outputs, how, load=op.load,
+    need = op.memory(op.grid.box)
+    if streamed:
+        need -= sum(t.nbytes(op.grid.shape) for t in op.targets.values())
+    return decide(max(need, 0), op.what, outputs, how, load=op.load,
                   no_blocks=op.no_blocks, compress=compress, pyramid=pyramid)
 
 

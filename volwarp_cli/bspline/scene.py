@@ -195,6 +195,19 @@ class Scene:
         """Target size (x, y, z)."""
         return tuple(int(i + 2 * p) for i, p in zip(self.grid.input_shape, self.pad, strict=False))
 
+    def deformation_bytes(self, block: Box, n: int = 1) -> int:
+        """At most the bytes of :meth:`contribute`'s deformation buffers for domain ``block``.
+
+        ``block``: a Box (z, y, x) of the domain; ``n``: the lattices (two for an
+        update). Its chunk's planes and their neighbours, each plane's voxels
+        with a ring of halo, float32 components; twice over with the room
+        :class:`Scratch` grows by, for a buffer outgrown while the new one is made.
+        """
+        _, ny, nx = block.shape
+        plane = (ny + 4) * (nx + 4) * 12 * n
+        chunk = min(block.shape[0] * plane, max(4 * plane, self.chunk_bytes))
+        return (chunk + 4 * plane) * 9 // 4
+
     def contribute(self, dqs, block: Box, sign, acc=None, held=None, parallel=True,
                    scratch=None, bounds=False, window=None, values=None, acc_xy=(0, 0)):
         """Add (``sign`` +1) or remove (-1) the contributions of the domain voxels ``block``.

@@ -393,21 +393,22 @@ class WarpOperation(Operation):
         """What streaming output block ``box`` holds besides its output (see :func:`warp_block`).
 
         The ring of target planes (and its finished planes in float, for a
-        strided view of the output or another type, with their cast), one slab
-        of the domain box's samples with the input they read, and the
-        deformation buffers.
+        strided view of the output, another type or an output written as
+        computed, with their cast), one step's slab of the domain box's samples
+        with the input they read, and its deformation buffers.
         """
         scene, sampler = self._scene()
         target = box.shift(self.window.lo)
         need = domain_box(scene, target)
         _, chunk, planes = _stream(scene, box)
         item = np.dtype(self.domain_dtype).itemsize
-        slab = 0
+        slab = deformation = 0
         if not need.empty:
             z0 = need.lo[0]
             part = Box((z0, need.lo[1], need.lo[2]), (min(z0 + chunk, need.hi[0]), *need.hi[1:]))
             inputs = sampler.input_box(part).size
             slab = part.size * item + inputs * (item + np.dtype(sampler.source.dtype).itemsize)
+            deformation = scene.deformation_bytes(part)
         plane = box.shape[1] * box.shape[2]
         floats = np.dtype(np.float64 if self.domain_dtype == np.float64 else np.float32)
         # finished planes in float where the part's view of the output is strided (a cut
@@ -415,7 +416,7 @@ class WarpOperation(Operation):
         finished = planes * plane * floats.itemsize
         if self.dtype != floats:
             finished += planes * plane * (floats.itemsize + self.dtype.itemsize)
-        return planes * plane * 16 + finished + slab + 2 * scene.chunk_bytes
+        return planes * plane * 16 + finished + slab + deformation
 
     def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
         """Output blocks (z, y, x) for ``workers`` tasks of ``per_task`` bytes each.
