@@ -262,6 +262,12 @@ def test_a_failing_worker_blocks_own_warning_is_said_with_its_error(caplog):
     assert caplog.text.count("block 3 saw a NaN before it failed") == 1
 
 
+@pytest.fixture
+def placed_small(monkeypatch):
+    """Outputs of any size written as computed (SHAPE's are below STREAMED_FROM)."""
+    monkeypatch.setattr(execute, "STREAMED_FROM", 0)
+
+
 class PlacedRamp(Ramp):
     """Ramp whose in-memory run places its samples a plane at a time (compute_into),
     from two threads, the planes in a scrambled order; ``fail_at``: a plane whose
@@ -287,7 +293,7 @@ class PlacedRamp(Ramp):
 
 
 @pytest.mark.parametrize("suffix", [".nrrd", ".mha", ".raw"])
-def test_an_output_placed_as_computed_is_the_file_written_whole(tmp_path, suffix):
+def test_an_output_placed_as_computed_is_the_file_written_whole(placed_small, tmp_path, suffix):
     (tmp_path / "m").mkdir()
     (tmp_path / "p").mkdir()
     execute.run(Ramp(tmp_path / "m", suffix=suffix), execute.How(chunked=False))
@@ -302,14 +308,14 @@ def test_an_output_placed_as_computed_is_the_file_written_whole(tmp_path, suffix
 
 
 @pytest.mark.parametrize("suffix", [".nii", ".nii.gz", ".nhdr", ".tif", ".ome.zarr"])
-def test_outputs_not_written_by_offset_are_computed_whole(tmp_path, suffix):
+def test_outputs_not_written_by_offset_are_computed_whole(placed_small, tmp_path, suffix):
     op = PlacedRamp(tmp_path, suffix=suffix)
     ran = execute.run(op, execute.How(chunked=False, threads=2))
     assert ran.results is not None and op.computed == [(Box.from_shape(SHAPE), 2)]
     assert np.array_equal(read_volume(tmp_path / f"v{suffix}").data, _expected()[0])
 
 
-def test_an_after_hook_gets_the_whole_in_memory(tmp_path):
+def test_an_after_hook_gets_the_whole_in_memory(placed_small, tmp_path):
     """(It may read any part of the results: they are computed whole, not placed.)"""
     op = PlacedRamp(tmp_path)
     ran = execute.run(op, execute.How(chunked=False), after=lambda r: r.results["v"][1, 2, 3])
@@ -317,7 +323,7 @@ def test_an_after_hook_gets_the_whole_in_memory(tmp_path):
     assert np.array_equal(read_volume(tmp_path / "v.nrrd").data, _expected()[0])
 
 
-def test_a_failure_while_placing_leaves_nothing_and_an_old_output_untouched(tmp_path):
+def test_a_failure_while_placing_leaves_nothing_and_an_old_output_untouched(placed_small, tmp_path):
     old = tmp_path / "v.nrrd"
     old.write_bytes(b"an earlier output")
     op = PlacedRamp(tmp_path, fail_at=(4, 0, 0))
@@ -329,8 +335,8 @@ def test_a_failure_while_placing_leaves_nothing_and_an_old_output_untouched(tmp_
 
 
 @pytest.mark.parametrize("how", ["placed", "blocks"])
-def test_a_full_disk_while_writing_names_the_output_and_leaves_nothing(tmp_path, monkeypatch,
-                                                                       how):
+def test_a_full_disk_while_writing_names_the_output_and_leaves_nothing(placed_small, tmp_path,
+                                                                       monkeypatch, how):
     import errno
 
     from volwarp_cli.io import filearray
@@ -350,8 +356,8 @@ def test_a_full_disk_while_writing_names_the_output_and_leaves_nothing(tmp_path,
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.nrrd"]
 
 
-def test_outputs_written_as_computed_are_not_counted_in_the_whole_s_memory(tmp_path,
-                                                                         monkeypatch):
+def test_outputs_written_as_computed_are_not_counted_in_the_whole_s_memory(placed_small,
+                                                                         tmp_path, monkeypatch):
     """Ramp's memory counts its results; placed as they are computed, the targets' arrays
     are never held: the decision weighs the rest (and an after hook, which gets them
     whole, weighs them again)."""
@@ -369,4 +375,17 @@ def test_outputs_written_as_computed_are_not_counted_in_the_whole_s_memory(tmp_p
         folder.mkdir()
         execute.run(kind(folder, bytes_per=60), execute.How(), after=after)
         assert weighed[-1] == voxels * need, kind
+        assert np.array_equal(read_volume(folder / "v.nrrd").data, _expected()[0])
+
+
+def test_small_outputs_are_computed_whole(tmp_path, monkeypatch):
+    """Below STREAMED_FROM (a small command's fixed cost) the whole is an array."""
+    nbytes = SHAPE[0] * SHAPE[1] * SHAPE[2] * 4
+    for threshold, streamed in ((nbytes * 3 + 1, False), (nbytes * 3, True)):  # (v and sq)
+        monkeypatch.setattr(execute, "STREAMED_FROM", threshold)
+        folder = tmp_path / str(threshold)
+        folder.mkdir()
+        op = PlacedRamp(folder)
+        ran = execute.run(op, execute.How(chunked=False, threads=2))
+        assert (ran.results is None) == streamed and (op.computed[0][0] == "placed") == streamed
         assert np.array_equal(read_volume(folder / "v.nrrd").data, _expected()[0])

@@ -54,8 +54,7 @@ def test_records_asked_for_and_warnings_still_reach_stderr(inputs):
     folder, p = inputs
     code, err, loaded = _volwarp(folder, "warp", p["blob"], "--spec", p["move"], "-o",
                                  "v.nrrd", "-v")
-    assert code == 0 and "logging" in loaded
-    assert "pushforward), written to v.nrrd as it was computed: " in err  # (by planes)
+    assert code == 0 and "volwarp: write v.nrrd: " in err and "logging" in loaded
     warn = ("warp", p["blob16"], "--spec", p["move"], "-o", "l.nrrd", "--labels")
     code, err, _ = _volwarp(folder, *warn)  # (labels asked for on a smooth volume)
     assert code == 0

@@ -367,6 +367,7 @@ def test_the_whole_written_as_computed_is_the_in_memory_file(tmp_path, dtype, su
     reference = tmp_path / f"reference{suffix}"
     Target(reference, header, dtype).write_whole(expect)
     monkeypatch.setattr(blocks, "PARALLEL_VOXELS", 1)  # (this small block is cut too)
+    monkeypatch.setattr(execute, "STREAMED_FROM", 0)  # (and written as computed)
     nz, ny, nx = window.shape
     along_y = [Box((0, 0, 0), (9, 8, nx)), Box((0, 8, 0), (9, ny, nx)),
                Box((9, 0, 0), (nz, 5, nx)), Box((9, 5, 0), (nz, ny, nx))]

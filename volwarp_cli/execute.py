@@ -48,6 +48,10 @@ from .progress import log, timed
 
 #: the least memory worth running blocks in (below it, refuse: tiny blocks take forever)
 MIN_BLOCK_BUDGET = 32 << 20
+#: the outputs' bytes from which an in-memory run that can writes them as it computes
+#: them; below, the whole is an array written after the work (a 16^3 warp, a batch's
+#: step: its pages and its copy are a fraction of a millisecond either way)
+STREAMED_FROM = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -373,16 +377,18 @@ def compute_whole(op: Operation, threads: int | None = None) -> dict:
 def _streamed(op: Operation) -> bool:
     """Whether ``op``'s in-memory run writes its outputs as it computes them.
 
-    Where the operation can (:attr:`Operation.streams`) and every target is
-    a file of samples at an offset, written in place (uncompressed NRRD,
-    MetaImage or raw: the bytes :meth:`Target.write_whole` writes) with
-    room for it on its disk.
+    Where the operation can (:attr:`Operation.streams`), the outputs are not
+    small (:data:`STREAMED_FROM`) and every target is a file of samples at an
+    offset, written in place (uncompressed NRRD, MetaImage or raw: the bytes
+    :meth:`Target.write_whole` writes) with room for it on its disk.
     """
     if not op.streams:
         return False
     from .io import volume_format
 
     targets = op.targets.values()
+    if sum(t.nbytes(op.grid.shape) for t in targets) < STREAMED_FROM:
+        return False
     if any(t.components is not None or volume_format(t.path) == "omezarr" for t in targets):
         return False  # (a store's shards are written whole)
     return all(blocks_refusal([(t.path, t.nbytes(op.grid.shape))], t.compress, t.pyramid)
