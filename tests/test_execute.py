@@ -389,3 +389,42 @@ def test_small_outputs_are_computed_whole(tmp_path, monkeypatch):
         ran = execute.run(op, execute.How(chunked=False, threads=2))
         assert (ran.results is None) == streamed and (op.computed[0][0] == "placed") == streamed
         assert np.array_equal(read_volume(folder / "v.nrrd").data, _expected()[0])
+
+
+def test_an_abort_waits_for_the_planes_being_placed_and_refuses_later_ones(tmp_path,
+                                                                           monkeypatch):
+    """A stop aborts from the main thread while the threads place planes: the file is
+    closed only once the write under way returns (its descriptor is never closed under
+    it), later places are refused, and nothing is left."""
+    import threading
+    import time
+
+    from volwarp_cli.io import filearray
+    from volwarp_cli.io.blockwrite import open_block_output
+
+    entered, go = threading.Event(), threading.Event()
+    real = filearray.FileArray.__setitem__
+
+    def slow(self, key, value):
+        entered.set()
+        assert go.wait(10)
+        real(self, key, value)
+
+    monkeypatch.setattr(filearray.FileArray, "__setitem__", slow)
+    geometry = Geometry(SHAPE, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+    out = open_block_output(tmp_path / "v.nrrd", geometry, np.float32, chunks_zyx=SHAPE)
+    plane = Box((0, 0, 0), (1, SHAPE[1], SHAPE[2]))
+    placing = threading.Thread(target=out.place, args=(plane, np.ones(plane.shape, np.float32)))
+    placing.start()
+    assert entered.wait(10)
+    aborting = threading.Thread(target=out.abort)
+    aborting.start()
+    time.sleep(0.2)
+    assert aborting.is_alive() and out._map is not None  # (waiting: the file still open)
+    go.set()
+    placing.join(10)
+    aborting.join(10)
+    assert not aborting.is_alive() and out._map is None
+    with pytest.raises(ValueError, match="aborted: no more writes"):
+        out.place(plane, np.ones(plane.shape, np.float32))
+    assert list(tmp_path.iterdir()) == []

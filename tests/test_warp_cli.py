@@ -329,10 +329,15 @@ def test_a_failed_early_capture_is_reported_after_the_spec_check(run, tmp_path):
 
 @pytest.mark.parametrize("extra", [[], ["--crop"], ["--dtype", "int16", "--byte-order", "big"],
                                    ["--crop", "--dtype", "float32"]])
-def test_streamed_nrrd_output_is_the_whole_targets_file(run, data_dir, tmp_path, extra):
-    """A one-shot warp (the final lattice's output, block by block) writes the file
-    that the incremental frames' last target gives, byte for byte (the --frames-to
-    path: frame 0 in full, then local updates)."""
+def test_streamed_nrrd_output_is_the_whole_targets_file(run, data_dir, tmp_path, extra,
+                                                        monkeypatch):
+    """A one-shot warp (the final lattice's output, block by block, its planes written
+    into the file as they are finished) writes the file that the incremental frames'
+    last target gives, byte for byte (the --frames-to path: frame 0 in full, then local
+    updates, written whole)."""
+    from volwarp_cli import execute
+
+    monkeypatch.setattr(execute, "STREAMED_FROM", 0)  # (this output is small)
     spec = SPECS / "warp-ball.yaml"
     src = data_dir / "ball_30_uint8.nrrd"
     streamed, whole = tmp_path / "streamed.nrrd", tmp_path / "whole.nrrd"

@@ -336,7 +336,7 @@ def run(op: Operation, how: How = How(), after: Callable | None = None, *,
     """
     if isinstance(op, Reduction):
         return _reduce(op, how, after)
-    streamed = after is None and _streamed(op)
+    streamed = written_as_computed(op, after)
     if by_blocks is None:
         first = next(iter(op.targets.values()))
         outputs = [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()]
@@ -374,15 +374,16 @@ def compute_whole(op: Operation, threads: int | None = None) -> dict:
         return op.compute(op.grid.box, threads=threads or parallel.threads())
 
 
-def _streamed(op: Operation) -> bool:
-    """Whether ``op``'s in-memory run writes its outputs as it computes them.
+def written_as_computed(op: Operation, after: Callable | None = None) -> bool:
+    """Whether ``op``'s in-memory run writes its outputs as it computes them (no whole array).
 
+    Not with an ``after`` hook (:func:`run`'s: it gets the results whole).
     Where the operation can (:attr:`Operation.streams`), the outputs are not
     small (:data:`STREAMED_FROM`) and every target is a file of samples at an
     offset, written in place (uncompressed NRRD, MetaImage or raw: the bytes
     :meth:`Target.write_whole` writes) with room for it on its disk.
     """
-    if not op.streams:
+    if after is not None or not op.streams:
         return False
     from .io import volume_format
 

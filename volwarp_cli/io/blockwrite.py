@@ -645,6 +645,8 @@ class _MappedOutput(BlockOutput):
         file_dtype = self.dtype.newbyteorder("<" if byte_order == "little" else ">")
         nbytes = geometry.size * self.dtype.itemsize * max(1, self.components)
         self._map = None
+        self._placing = 0  # (place calls under way, and their end)
+        self._placed = threading.Condition(self._lock)
         self._file_dtype, self._offset = file_dtype, len(header)
         try:
             tmp = self._tmp = self._stack.enter_context(atomic_output(path))
@@ -684,7 +686,13 @@ class _MappedOutput(BlockOutput):
             if self._map is None:
                 return
             self._map._file()  # (opened once, not by two threads at once)
-        self._put(box, array)
+            self._placing += 1
+        try:
+            self._put(box, array)
+        finally:
+            with self._lock:
+                self._placing -= 1
+                self._placed.notify_all()
 
     def _read(self, box):
         shape = _block_shape(box, self.components)
@@ -698,9 +706,17 @@ class _MappedOutput(BlockOutput):
                              self.chunks, self.dtype, str(self.path), self.components)
 
     def _finish(self):
-        self._release()
+        try:
+            self._release()
+        except OSError as exc:  # (a quota or NFS error reported when the file is closed)
+            raise VolwarpError(f"{self.path}: cannot write ({exc.strerror or exc})") from exc
 
     def _release(self):
+        # A stop while the threads place their planes aborts from the main thread: the
+        # file is closed once the writes under way end (later ones are refused), never
+        # under them (its descriptor's number could be another file's by then)
+        with self._lock:
+            self._placed.wait_for(lambda: self._placing == 0)
         if self._map is not None:
             self._map.close()
             self._map = None

@@ -201,8 +201,12 @@ def _warp_once(req: WarpFiles, how) -> dict:
                             compress=w["compress"], byte_order=w["byte_order"],
                             version=w.get("ome_zarr_version", "0.5"),
                             pyramid=w.get("pyramid", 0))
-    slabs = _exports_by_slabs(req, warp, how, held=target.nbytes(header.shape))
-    ran = execute.run(warp.operation(target, source=source), how)
+    op = warp.operation(target, source=source)
+    # (the output the in-memory warp keeps while the exports are made: none when written
+    # as computed)
+    held = 0 if execute.written_as_computed(op) else target.nbytes(header.shape)
+    slabs = _exports_by_slabs(req, warp, how, held=held)
+    ran = execute.run(op, how)
     summary = {"output": str(req.output), "shape": list(header.shape_xyz),
                "handles": warp.handles(), **values_json(choice), **warp.summary()}
     if ran.by_blocks:
