@@ -428,3 +428,30 @@ def test_an_abort_waits_for_the_planes_being_placed_and_refuses_later_ones(tmp_p
     with pytest.raises(ValueError, match="aborted: no more writes"):
         out.place(plane, np.ones(plane.shape, np.float32))
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "synchronous"])
+@pytest.mark.parametrize("suffix", [".nrrd", ".ome.zarr"])
+def test_block_tasks_place_their_planes_into_outputs_written_by_offset(tmp_path, scheduler,
+                                                                        suffix):
+    """By blocks, an operation that can place its planes does so into an NRRD (no block
+    array; the file is the in-memory one), and computes its blocks whole for a store
+    written by shards; the blocks' weighing leaves out what is placed."""
+    (tmp_path / "m").mkdir()
+    (tmp_path / "b").mkdir()
+    execute.run(Ramp(tmp_path / "m", suffix=suffix), execute.How(chunked=False))
+    op = PlacedRamp(tmp_path / "b", suffix=suffix)
+    block = (4, 13, 17) if suffix == ".nrrd" else (4, 5, 6)
+    ran = execute.run(op, _blocks(block, scheduler))
+    assert ran.by_blocks
+    placed = [c for c in op.computed if c[0] == "placed"]
+    assert bool(placed) == (suffix == ".nrrd") and all(t == 1 for _, t in placed)
+    assert execute.places_blocks(op) == (suffix == ".nrrd")
+    voxels = 4 * 13 * 17
+    weighed = execute._heaviest(op, (4, 13, 17))
+    assert weighed == voxels * 12 - (voxels * 12 if suffix == ".nrrd" else 0)
+    for name in ("v", "sq"):
+        a, b = tmp_path / "m" / f"{name}{suffix}", tmp_path / "b" / f"{name}{suffix}"
+        if suffix == ".nrrd":
+            assert a.read_bytes() == b.read_bytes()
+        assert np.array_equal(read_volume(b).data, read_volume(a).data)

@@ -241,6 +241,7 @@ class Spy:
     tasks: list = field(default_factory=list)  # block task ids
     engines: list = field(default_factory=list)  # (scheduler kind, workers) per Engine.run
     writes: list = field(default_factory=list)  # (output path, its block grid, box)
+    placed: list = field(default_factory=list)  # (output path, box) placed inside a block
     mesh_cells: list = field(default_factory=list)  # the flying-edges blocks' cell boxes
     slabs: list = field(default_factory=list)  # (slab depth, [(z0, z1) read])
 
@@ -304,6 +305,29 @@ def spying(threads: int):
             s.writes.append((self.where, tuple(self.chunks), box))
         return real_write(self, box, array)
 
+    # a task that places its planes as it computes them (the warp into an NRRD) writes its
+    # block too: every voxel of it placed once, counted as the block's write
+    from volwarp_cli import execute
+
+    real_place = blockwrite._MappedWriter.place
+    real_block = execute._block_task
+
+    def place(self, box, array):
+        with s.lock:
+            s.placed.append((self.where, box))
+        return real_place(self, box, array)
+
+    def block(op, box, writers):
+        result = real_block(op, box, writers)
+        if op.streams and writers and all(w.places for w in writers.values()):
+            with s.lock:
+                for w in writers.values():
+                    inside = [b for where, b in s.placed
+                              if where == w.where and b.intersect(box) == b]
+                    assert sum(b.size for b in inside) == box.size, (w.where, box)
+                    s.writes.append((w.where, tuple(w.chunks), box))
+        return result
+
     real_mesh_block = surface_chunked.mesh_block
 
     def mesh_block(raw, region, cells, plan):
@@ -331,6 +355,8 @@ def spying(threads: int):
         mp.setattr(engine, "block_task", block_task)
         mp.setattr(engine.Engine, "run", run)
         mp.setattr(blockwrite.BlockWriter, "write", write)
+        mp.setattr(blockwrite._MappedWriter, "place", place)
+        mp.setattr(execute, "_block_task", block)
         mp.setattr(surface_chunked, "mesh_block", mesh_block)
         mp.setattr(raycast, "render_volume_slabs", render_volume_slabs)
         yield s

@@ -156,14 +156,14 @@ def test_a_failing_block_leaves_no_output(run, scan, tmp_path, monkeypatch):
     out.write_bytes(b"old")
     calls = []
 
-    def broken(self, box, into=None):
+    def broken(scene, sampler, box, *args, **kwargs):
         calls.append(box)
         if len(calls) == 5:
             raise VolwarpError("disk full (test)")
-        return original(self, box, into)
+        return original(scene, sampler, box, *args, **kwargs)
 
-    original = blocks.WarpOperation.output_block
-    monkeypatch.setattr(blocks.WarpOperation, "output_block", broken)
+    original = blocks.warp_block  # (a block task's, whether it places its planes or not)
+    monkeypatch.setattr(blocks, "warp_block", broken)
     res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--block", "12",
               "--scheduler", "synchronous")
     assert res.code == 1 and "disk full (test)" in res.stderr

@@ -553,9 +553,31 @@ def _store_aligned(op: Operation, block, per_task: int, workers: int):
 
 
 def _heaviest(op: Operation, block) -> int:
-    """The most memory of the first, middle and last blocks of ``block`` (where they lie counts)."""
+    """The most memory of the first, middle and last blocks of ``block`` (where they lie counts).
+
+    Less the targets' samples where the blocks' tasks place them as they are
+    computed (:func:`places_blocks`).
+    """
     boxes = op.grid.box.blocks(block)
-    return max(op.memory(b) for b in {boxes[0], boxes[len(boxes) // 2], boxes[-1]})
+    placed = places_blocks(op)
+    return max(op.memory(b) - (sum(t.nbytes(b.shape) for t in op.targets.values())
+                               if placed else 0)
+               for b in {boxes[0], boxes[len(boxes) // 2], boxes[-1]})
+
+
+def places_blocks(op: Operation) -> bool:
+    """Whether ``op``'s block tasks place their samples as they compute them (no block array).
+
+    Where it can (:attr:`Operation.streams`) and every target is written by
+    offset (uncompressed NRRD, MetaImage or raw of one component: the
+    writers of :mod:`~volwarp_cli.io.blockwrite` that place any box).
+    """
+    from .io import volume_format
+
+    return op.streams and all(
+        t.components is None and not t.compress and not t.pyramid
+        and volume_format(t.path) in ("nrrd", "metaimage", "raw")
+        and not str(t.path).lower().endswith((".nhdr", ".mhd")) for t in op.targets.values())
 
 
 def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None:
@@ -576,7 +598,14 @@ def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None
 
 
 def _block_task(op: Operation, box: Box, writers: dict) -> None:
-    """One block: computed on this task's thread, each target's samples written."""
+    """One block: computed on this task's thread, each target's samples written.
+
+    Placed as they are computed where the operation can and every output is
+    written by offset (:func:`places_blocks`): the block's array is not made.
+    """
+    if op.streams and writers and all(w.places for w in writers.values()):
+        op.compute_into(box, threads=1, place={k: w.place for k, w in writers.items()})
+        return
     results = op.compute(box, threads=1)
     for key, writer in writers.items():
         writer.write(box, op.output(results, key))

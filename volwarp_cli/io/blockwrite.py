@@ -265,6 +265,17 @@ class BlockWriter:
     def _place(self, box: Box, array: np.ndarray) -> None:
         self._opened[box.slices] = array
 
+    #: whether :meth:`place` writes any box (outputs written by offset), not whole blocks only
+    places = False
+
+    def place(self, box: Box, array) -> None:
+        """Write ``array`` at any ``box`` inside a task's block (a few planes as they are made).
+
+        Only where :attr:`places`; the executor marks the task's block written
+        once the task has returned.
+        """
+        raise VolwarpError(f"{self.where}: this format is written by whole blocks")
+
     def __getstate__(self):
         state = dict(self.__dict__)
         state["_opened"] = None
@@ -305,6 +316,18 @@ class _MappedWriter(BlockWriter):
             self._opened[key] = flat
         except OSError as exc:  # (a full disk, a file size limit: the output named)
             raise VolwarpError(f"{self.where}: cannot write ({exc.strerror or exc})") from exc
+
+    places = True
+
+    def place(self, box, array):
+        array = np.asarray(array)
+        if tuple(array.shape) != _block_shape(box, self.components):
+            raise ValueError(f"samples of shape {array.shape} placed at {box}")
+        if box.empty:
+            return
+        if self._opened is None:
+            self._opened = self._open()
+        self._place(box, array)
 
 
 def _block_shape(box: Box, components: int) -> tuple:

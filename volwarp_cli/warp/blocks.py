@@ -385,9 +385,14 @@ class WarpOperation(Operation):
     def block_bytes(self, box: Box) -> int:
         """Memory one thread computing output block ``box`` holds at its peak (an upper bound).
 
-        The block's samples in the output's type and its stream (:meth:`stream_bytes`).
+        The block's samples in the output's type (unless its task places its
+        planes into the output as they are finished,
+        :func:`~volwarp_cli.execute.places_blocks`) and its stream (:meth:`stream_bytes`).
         """
-        return box.size * self.dtype.itemsize + self.stream_bytes(box)
+        from ..execute import places_blocks
+
+        held = 0 if places_blocks(self) else box.size * self.dtype.itemsize
+        return held + self.stream_bytes(box)
 
     def stream_bytes(self, box: Box) -> int:
         """What streaming output block ``box`` holds besides its output (see :func:`warp_block`).
