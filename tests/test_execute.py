@@ -455,3 +455,40 @@ def test_block_tasks_place_their_planes_into_outputs_written_by_offset(tmp_path,
         if suffix == ".nrrd":
             assert a.read_bytes() == b.read_bytes()
         assert np.array_equal(read_volume(b).data, read_volume(a).data)
+
+
+def test_an_abort_does_not_wait_for_its_own_thread_and_always_removes_the_temporary(tmp_path):
+    """A stop can cut a place short on the thread that then aborts (the main thread places
+    too when the run has one thread): that place is not waited for (it would never end),
+    and a second stop while the release waits still leaves no temporary."""
+    import threading
+
+    from volwarp_cli.io.blockwrite import open_block_output
+    from volwarp_cli.signals import Interrupted
+
+    geometry = Geometry(SHAPE, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+    out = open_block_output(tmp_path / "v.nrrd", geometry, np.float32, chunks_zyx=SHAPE)
+    out._placing[threading.get_ident()] += 1  # (this thread's place, cut short by a stop)
+    done = threading.Event()
+    aborting = threading.Thread(target=lambda: (out.abort(), done.set()))
+    aborting.start()  # (another thread: it must wait for this one's place)
+    assert not done.wait(0.2)
+    out._placing.clear()
+    with out._lock:
+        out._placed.notify_all()
+    assert done.wait(10) and list(tmp_path.iterdir()) == []
+
+    second = open_block_output(tmp_path / "w.nrrd", geometry, np.float32, chunks_zyx=SHAPE)
+    second._placing[threading.get_ident()] += 1
+    second.abort()  # (this thread's own: returns at once)
+    assert list(tmp_path.iterdir()) == []
+
+    third = open_block_output(tmp_path / "x.nrrd", geometry, np.float32, chunks_zyx=SHAPE)
+
+    def stopped():
+        raise Interrupted(2)
+
+    third._release = stopped
+    with pytest.raises(Interrupted):
+        third.abort()
+    assert list(tmp_path.iterdir()) == []

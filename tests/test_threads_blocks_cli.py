@@ -317,9 +317,9 @@ def spying(threads: int):
             s.placed.append((self.where, box))
         return real_place(self, box, array)
 
-    def block(op, box, writers):
-        result = real_block(op, box, writers)
-        if op.streams and writers and all(w.places for w in writers.values()):
+    def block(op, box, writers, placed=False):
+        result = real_block(op, box, writers, placed)
+        if placed:
             with s.lock:
                 for w in writers.values():
                     inside = [b for where, b in s.placed

@@ -408,3 +408,32 @@ def test_deformation_bytes_bound_the_buffers_a_contribution_holds(chunk_bytes, l
     assert acc.any()
     held = scratch.flat.nbytes
     assert held <= scene.deformation_bytes(block) <= 4 * held
+
+
+def test_blocks_are_weighed_as_their_tasks_run_them(tmp_path, monkeypatch):
+    """A block task runs on one thread and streams its whole box: a user's --block is
+    weighed so (not as the in-memory run's threads would cut it), its placed samples
+    left out for an NRRD and counted for a store written by shards."""
+    from volwarp_cli import execute, parallel
+
+    data = _blob((26, 21, 23), seed=4) * 3.0
+    cap = capture_volume(Volume(data), lattice=(5, 6, 5), oversample=1.0)
+    sampler = BoxSampler(data, cap.grid, cap.placement, cap.sampling, cap.domain.dtype)
+    scene = Scene(cap.domain, cap.grid, _general(cap, scale=1.2), 4, domain_range=cap.stats[:2])
+    window = scene.target_box
+    header = Header(window.shape, np.float32)
+    monkeypatch.setattr(blocks, "PARALLEL_VOXELS", 1)
+    block = (window.shape[0], 8, window.shape[2])
+    weighed = {}
+    for suffix in (".nrrd", ".ome.zarr"):
+        op = blocks.WarpOperation(scene, None, cap.placement, cap.sampling, window,
+                                  Target(tmp_path / f"o{suffix}", header, np.float32),
+                                  sampler=sampler)
+        for threads in (1, 4):
+            with parallel.use_threads(threads):
+                weighed[suffix, threads] = execute._heaviest(op, block)
+        boxes = window.blocks(block)  # (the first, middle and last are weighed)
+        one = max(op.block_bytes(b) for b in (boxes[0], boxes[len(boxes) // 2], boxes[-1]))
+        assert weighed[suffix, 1] == weighed[suffix, 4] == one, suffix
+    samples = window.shape[0] * 8 * window.shape[2] * 4
+    assert weighed[".ome.zarr", 1] - weighed[".nrrd", 1] == samples

@@ -507,8 +507,9 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
         else:
             op_node = dask.delayed(op, pure=False)
             writers = dask.delayed({k: o.writer() for k, o in outs.items()}, pure=False)
+            placed = places_blocks(op)  # (decided here, as the blocks were weighed)
             tasks = [engine.block_delayed(_block_task, f"block-{'-'.join(map(str, b.lo))}",
-                                          op_node, b, writers, memory=per_task)
+                                          op_node, b, writers, placed, memory=per_task)
                      for b in boxes]
             with timed(f"{op.what} by {len(boxes)} blocks"):
                 engine.run(tasks, label="blocks")
@@ -558,11 +559,14 @@ def _heaviest(op: Operation, block) -> int:
     Less the targets' samples where the blocks' tasks place them as they are
     computed (:func:`places_blocks`).
     """
+    from . import parallel
+
     boxes = op.grid.box.blocks(block)
     placed = places_blocks(op)
-    return max(op.memory(b) - (sum(t.nbytes(b.shape) for t in op.targets.values())
-                               if placed else 0)
-               for b in {boxes[0], boxes[len(boxes) // 2], boxes[-1]})
+    with parallel.use_threads(1):  # (as a block task runs)
+        return max(op.memory(b) - (sum(t.nbytes(b.shape) for t in op.targets.values())
+                                   if placed else 0)
+                   for b in {boxes[0], boxes[len(boxes) // 2], boxes[-1]})
 
 
 def places_blocks(op: Operation) -> bool:
@@ -574,7 +578,7 @@ def places_blocks(op: Operation) -> bool:
     """
     from .io import volume_format
 
-    return op.streams and all(
+    return op.streams and bool(op.targets) and all(
         t.components is None and not t.compress and not t.pyramid
         and volume_format(t.path) in ("nrrd", "metaimage", "raw")
         and not str(t.path).lower().endswith((".nhdr", ".mhd")) for t in op.targets.values())
@@ -597,13 +601,13 @@ def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None
             "--memory-limit)")
 
 
-def _block_task(op: Operation, box: Box, writers: dict) -> None:
+def _block_task(op: Operation, box: Box, writers: dict, placed: bool = False) -> None:
     """One block: computed on this task's thread, each target's samples written.
 
-    Placed as they are computed where the operation can and every output is
-    written by offset (:func:`places_blocks`): the block's array is not made.
+    ``placed`` (:func:`places_blocks`, decided by the run): placed as they
+    are computed, the block's array not made.
     """
-    if op.streams and writers and all(w.places for w in writers.values()):
+    if placed:
         op.compute_into(box, threads=1, place={k: w.place for k, w in writers.items()})
         return
     results = op.compute(box, threads=1)

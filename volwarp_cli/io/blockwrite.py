@@ -34,6 +34,7 @@ Computing is left to the engine: this module only places blocks.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import itertools
 import math
@@ -231,6 +232,10 @@ class _Reindex:
         return np.flip(array, axis=self.flips) if self.flips else array
 
 
+#: held while a writer opens what it writes into (threads of a worker share one writer)
+_OPENING = threading.Lock()
+
+
 class BlockWriter:
     """Writes aligned blocks into an output's temporary: picklable, usable in any process.
 
@@ -258,9 +263,16 @@ class BlockWriter:
         block_indices(box, self.shape, self.chunks, self.phase)
         if box.empty:
             return
-        if self._opened is None:
-            self._opened = self._open()
+        self._target()
         self._place(box, array)
+
+    def _target(self):
+        """What the samples go into, opened once in this process (not by two threads)."""
+        if self._opened is None:
+            with _OPENING:
+                if self._opened is None:
+                    self._opened = self._open()
+        return self._opened
 
     def _place(self, box: Box, array: np.ndarray) -> None:
         self._opened[box.slices] = array
@@ -325,8 +337,7 @@ class _MappedWriter(BlockWriter):
             raise ValueError(f"samples of shape {array.shape} placed at {box}")
         if box.empty:
             return
-        if self._opened is None:
-            self._opened = self._open()
+        self._target()
         self._place(box, array)
 
 
@@ -492,10 +503,12 @@ class BlockOutput:
         if self._state in ("committed", "aborted"):
             return
         self._state = "aborted"
-        with contextlib.suppress(Exception):
-            self._release()
-        stack, self._stack = self._stack, contextlib.ExitStack()
-        stack.__exit__(_Aborted, _Aborted(), None)
+        try:
+            with contextlib.suppress(Exception):
+                self._release()
+        finally:  # (a second stop while the release waits: the temporary still goes)
+            stack, self._stack = self._stack, contextlib.ExitStack()
+            stack.__exit__(_Aborted, _Aborted(), None)
 
     def __enter__(self) -> BlockOutput:
         return self
@@ -668,7 +681,7 @@ class _MappedOutput(BlockOutput):
         file_dtype = self.dtype.newbyteorder("<" if byte_order == "little" else ">")
         nbytes = geometry.size * self.dtype.itemsize * max(1, self.components)
         self._map = None
-        self._placing = 0  # (place calls under way, and their end)
+        self._placing = collections.Counter()  # (place calls under way by thread, their end)
         self._placed = threading.Condition(self._lock)
         self._file_dtype, self._offset = file_dtype, len(header)
         try:
@@ -703,18 +716,20 @@ class _MappedOutput(BlockOutput):
         array = np.asarray(array)
         if tuple(array.shape) != _block_shape(box, self.components):
             raise ValueError(f"samples of shape {array.shape} placed at {box}")
-        with self._lock:
-            if self._state != "open":
-                raise ValueError(f"{self.path}: the output is {self._state}: no more writes")
-            if self._map is None:
-                return
-            self._map._file()  # (opened once, not by two threads at once)
-            self._placing += 1
+        me = threading.get_ident()
         try:
+            with self._lock:
+                if self._state != "open":
+                    raise ValueError(f"{self.path}: the output is {self._state}: no more writes")
+                if self._map is None:
+                    return
+                self._map._file()  # (opened once, not by two threads at once)
+                self._placing[me] += 1
             self._put(box, array)
         finally:
             with self._lock:
-                self._placing -= 1
+                if self._placing[me]:
+                    self._placing[me] -= 1
                 self._placed.notify_all()
 
     def _read(self, box):
@@ -736,10 +751,13 @@ class _MappedOutput(BlockOutput):
 
     def _release(self):
         # A stop while the threads place their planes aborts from the main thread: the
-        # file is closed once the writes under way end (later ones are refused), never
-        # under them (its descriptor's number could be another file's by then)
+        # file is closed once the other threads' writes under way end (later ones are
+        # refused), never under them (its descriptor's number could be another file's
+        # by then); a place of this thread's own that a stop cut short is not waited for
+        me = threading.get_ident()
         with self._lock:
-            self._placed.wait_for(lambda: self._placing == 0)
+            self._placed.wait_for(lambda: not any(
+                n for thread, n in self._placing.items() if thread != me))
         if self._map is not None:
             self._map.close()
             self._map = None

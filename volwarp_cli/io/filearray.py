@@ -53,8 +53,8 @@ class FileArray:
     def close(self) -> None:
         """Close the file (reopened by the next access)."""
         if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
+            fd, self._fd = self._fd, None  # (forgotten first: a failed close frees it anyway)
+            os.close(fd)
 
     def __del__(self):
         try:
