@@ -378,22 +378,17 @@ def written_as_computed(op: Operation, after: Callable | None = None) -> bool:
     """Whether ``op``'s in-memory run writes its outputs as it computes them (no whole array).
 
     Not with an ``after`` hook (:func:`run`'s: it gets the results whole).
-    Where the operation can (:attr:`Operation.streams`), the outputs are not
-    small (:data:`STREAMED_FROM`) and every target is a file of samples at an
-    offset, written in place (uncompressed NRRD, MetaImage or raw: the bytes
-    :meth:`Target.write_whole` writes) with room for it on its disk.
+    Where its blocks would be placed (:func:`places_blocks`: every target a
+    file of samples at an offset, written in place, the bytes
+    :meth:`Target.write_whole` writes), the outputs are not small
+    (:data:`STREAMED_FROM`) and their disks have room for them.
     """
-    if after is not None or not op.streams:
+    if after is not None or not places_blocks(op):
         return False
-    from .io import volume_format
-
-    targets = op.targets.values()
-    if sum(t.nbytes(op.grid.shape) for t in targets) < STREAMED_FROM:
+    outputs = [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()]
+    if sum(n for _, n in outputs) < STREAMED_FROM:
         return False
-    if any(t.components is not None or volume_format(t.path) == "omezarr" for t in targets):
-        return False  # (a store's shards are written whole)
-    return all(blocks_refusal([(t.path, t.nbytes(op.grid.shape))], t.compress, t.pyramid)
-               is None for t in targets)
+    return blocks_refusal(outputs) is None  # (and room for them on their disks)
 
 
 def _compute_written(op: Operation, threads: int | None) -> None:
