@@ -254,3 +254,31 @@ def test_a_stop_taken_by_another_thread_waits_for_the_blocked_section():
                           timeout=60)
     assert proc.returncode == 0, proc
     assert proc.stdout.strip() == "['section done', 'raised after'] []", proc.stdout
+
+
+@pytest.mark.parametrize("where", ["entry", "main"])
+def test_a_deferred_stop_landing_before_the_command_line_starts_is_one_line(where):
+    """A stop that arrives during the start-up imports is deferred (its timer looks again
+    every 20 ms) and can land after them, before the command line's own handling of
+    stops: between the entry's imports and the call (entry), or in cli.main's first
+    steps (main). One line and 128 + the signal, never a traceback."""
+    if where == "entry":
+        land = ("from volwarp_cli.cli import main as m\n"
+                "def run(argv=None):\n"
+                "    raise signals.Interrupted(signal.SIGTERM)\n"
+                "m.main = run\n"
+                "from volwarp_cli import entry\n"
+                "entry.main()\n")
+    else:
+        land = ("from volwarp_cli.cli import main as m\n"
+                "def landing():\n"
+                "    raise signals.Interrupted(signal.SIGTERM)\n"
+                "m.install_signal_handlers = landing\n"
+                "m.main(['info', '--help'])\n"
+                "import os; os._exit(0)\n")
+    script = "import signal, sys\nfrom volwarp_cli import signals\n" + land
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=60)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip().count("\n") == 0 and "interrupted by SIGTERM" in proc.stderr
+    assert proc.returncode == (143 if where == "entry" else 0), proc

@@ -181,8 +181,11 @@ def main() -> int:
 
         numba_blas.install()  # (scipy.linalg not imported by numba's BLAS probe: 0.2 s)
         from .cli.main import main as run
+
+        # (a stop deferred by the imports above lands up to 20 ms later: maybe before
+        # the command line's own handling starts, so the call is inside this try too)
+        return run()
     except signals.Interrupted as exc:  # stopped while the command line was set up
         sys.stderr.write(f"volwarp: error: {exc}\n")
         sys.stderr.flush()
         os._exit(128 + exc.signum)
-    return run()

@@ -223,9 +223,9 @@ def _after_command(result, **_):
 
 def main(argv=None) -> int:
     """Run ``volwarp`` with ``argv`` (default: the process's); ends the process when run from it."""
-    install_signal_handlers()
-    _reported.clear()
     try:
+        install_signal_handlers()
+        _reported.clear()
         code = cli.main(args=argv, prog_name="volwarp", standalone_mode=False)
     except Interrupted as exc:  # a second stop while the first was being reported
         code = 128 + exc.signum
