@@ -571,12 +571,16 @@ def places_blocks(op: Operation) -> bool:
     offset (uncompressed NRRD, MetaImage or raw of one component: the
     writers of :mod:`~volwarp_cli.io.blockwrite` that place any box).
     """
-    from .io import volume_format
+    from .io.blockwrite import check_block_format
+
+    def by_offset(t) -> bool:
+        try:  # (the formats written by blocks, less OME-Zarr: its shards are written whole)
+            return check_block_format(t.path, t.compress, t.pyramid) != "omezarr"
+        except VolwarpError:
+            return False
 
     return op.streams and bool(op.targets) and all(
-        t.components is None and not t.compress and not t.pyramid
-        and volume_format(t.path) in ("nrrd", "metaimage", "raw")
-        and not str(t.path).lower().endswith((".nhdr", ".mhd")) for t in op.targets.values())
+        t.components is None and by_offset(t) for t in op.targets.values())
 
 
 def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None:

@@ -197,7 +197,7 @@ def atomic_folder(path: str | os.PathLike):
         _remove_tree(tmp)
         if isinstance(exc, OSError) and (exc.filename is None
                                          or str(exc.filename).startswith(tmp)):
-            raise VolwarpError(f"{path}: cannot write ({exc.strerror or exc})") from exc
+            raise write_error(path, exc) from exc
         raise
     finally:
         if not held:
@@ -241,6 +241,11 @@ def _remove_tree(root) -> None:
         shutil.rmtree(root, ignore_errors=True)
         if not os.path.lexists(root):
             return
+
+
+def write_error(path, exc: OSError) -> VolwarpError:
+    """The one-line error of an output that could not be written (a full disk, a quota)."""
+    return VolwarpError(f"{path}: cannot write ({exc.strerror or exc})")
 
 
 @contextlib.contextmanager
@@ -299,7 +304,7 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
         if isinstance(exc, OSError) and (exc.filename is None or exc.filename in tmps):
             # writing an output failed (a full disk, a quota): say which output
             named = paths[tmps.index(exc.filename)] if exc.filename in tmps else paths[-1]
-            raise VolwarpError(f"{named}: cannot write ({exc.strerror or exc})") from exc
+            raise write_error(named, exc) from exc
         raise
     finally:
         if not held:

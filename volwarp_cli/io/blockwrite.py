@@ -48,6 +48,7 @@ from ..box import Box
 from ..errors import VolwarpError
 from ..geometry import Geometry
 from ..samples import check_dtype
+from .atomic import write_error
 
 __all__ = ["BlockOutput", "BlockWriter", "aligned_chunks", "block_indices", "open_block_output"]
 
@@ -277,14 +278,11 @@ class BlockWriter:
     def _place(self, box: Box, array: np.ndarray) -> None:
         self._opened[box.slices] = array
 
-    #: whether :meth:`place` writes any box (outputs written by offset), not whole blocks only
-    places = False
-
     def place(self, box: Box, array) -> None:
         """Write ``array`` at any ``box`` inside a task's block (a few planes as they are made).
 
-        Only where :attr:`places`; the executor marks the task's block written
-        once the task has returned.
+        Outputs written by offset only (:func:`volwarp_cli.execute.places_blocks`);
+        the executor marks the task's block written once the task has returned.
         """
         raise VolwarpError(f"{self.where}: this format is written by whole blocks")
 
@@ -327,9 +325,7 @@ class _MappedWriter(BlockWriter):
         try:
             self._opened[key] = flat
         except OSError as exc:  # (a full disk, a file size limit: the output named)
-            raise VolwarpError(f"{self.where}: cannot write ({exc.strerror or exc})") from exc
-
-    places = True
+            raise write_error(self.where, exc) from exc
 
     def place(self, box, array):
         array = np.asarray(array)
@@ -698,7 +694,7 @@ class _MappedOutput(BlockOutput):
         except BaseException as exc:
             self.abort()
             if isinstance(exc, OSError):
-                raise VolwarpError(f"{path}: cannot write ({exc.strerror or exc})") from exc
+                raise write_error(path, exc) from exc
             raise
 
     def _write(self, box, array):
@@ -710,7 +706,7 @@ class _MappedOutput(BlockOutput):
         try:
             self._map[key] = flat
         except OSError as exc:  # (a full disk, a file size limit: the output named)
-            raise VolwarpError(f"{self.path}: cannot write ({exc.strerror or exc})") from exc
+            raise write_error(self.path, exc) from exc
 
     def place(self, box, array):
         array = np.asarray(array)
@@ -747,7 +743,7 @@ class _MappedOutput(BlockOutput):
         try:
             self._release()
         except OSError as exc:  # (a quota or NFS error reported when the file is closed)
-            raise VolwarpError(f"{self.path}: cannot write ({exc.strerror or exc})") from exc
+            raise write_error(self.path, exc) from exc
 
     def _release(self):
         # A stop while the threads place their planes aborts from the main thread: the
