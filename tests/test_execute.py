@@ -356,6 +356,47 @@ def test_a_full_disk_while_writing_names_the_output_and_leaves_nothing(placed_sm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.nrrd"]
 
 
+@pytest.fixture
+def quota_on_close(monkeypatch):
+    """Files closed by the block tasks' threads report a full quota (as an NFS server may:
+    the data reach it only then); the output's own file, closed by the main thread on
+    commit, does not."""
+    import errno
+    import threading
+
+    from volwarp_cli.io import filearray
+
+    class QuotaOnClose(filearray.FileArray):
+        def close(self):
+            had = self._fd is not None
+            super().close()
+            if had and threading.current_thread() is not threading.main_thread():
+                raise OSError(errno.EDQUOT, "Disk quota exceeded")
+
+    monkeypatch.setattr(filearray, "FileArray", QuotaOnClose)
+
+
+@pytest.mark.parametrize("how", ["written", "placed"])
+def test_an_error_closing_a_blocks_file_names_the_output_and_leaves_nothing(quota_on_close,
+                                                                            tmp_path, how):
+    """The descriptors a block task writes through are closed by the task, their errors
+    reported (not left to a finaliser that drops them): the run fails, nothing is left."""
+    old = tmp_path / "v.nrrd"
+    old.write_bytes(b"an earlier output")
+    op = Ramp(tmp_path) if how == "written" else PlacedRamp(tmp_path)
+    with pytest.raises(VolwarpError, match=r"(v|sq)\.nrrd: cannot write \(Disk quota exceeded\)"):
+        execute.run(op, _blocks(scheduler="threads"))
+    assert old.read_bytes() == b"an earlier output"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.nrrd"]
+
+
+def test_a_block_that_fails_while_placing_tells_its_own_error_not_the_close(quota_on_close,
+                                                                            tmp_path):
+    with pytest.raises(VolwarpError, match="a plane failed"):
+        execute.run(PlacedRamp(tmp_path, fail_at=(4, 0, 0)), _blocks(SHAPE, "threads"))
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_outputs_written_as_computed_are_not_counted_in_the_whole_s_memory(placed_small,
                                                                          tmp_path, monkeypatch):
     """Ramp's memory counts its results; placed as they are computed, the targets' arrays

@@ -309,13 +309,13 @@ def spying(threads: int):
     # block too: every voxel of it placed once, counted as the block's write
     from volwarp_cli import execute
 
-    real_place = blockwrite._MappedWriter.place
+    real_place = blockwrite._MappedWriter._place
     real_block = execute._block_task
 
-    def place(self, box, array):
+    def place(self, file, box, array):
         with s.lock:
             s.placed.append((self.where, box))
-        return real_place(self, box, array)
+        return real_place(self, file, box, array)
 
     def block(op, box, writers, placed=False):
         result = real_block(op, box, writers, placed)
@@ -355,7 +355,7 @@ def spying(threads: int):
         mp.setattr(engine, "block_task", block_task)
         mp.setattr(engine.Engine, "run", run)
         mp.setattr(blockwrite.BlockWriter, "write", write)
-        mp.setattr(blockwrite._MappedWriter, "place", place)
+        mp.setattr(blockwrite._MappedWriter, "_place", place)
         mp.setattr(execute, "_block_task", block)
         mp.setattr(surface_chunked, "mesh_block", mesh_block)
         mp.setattr(raycast, "render_volume_slabs", render_volume_slabs)

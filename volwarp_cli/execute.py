@@ -607,7 +607,9 @@ def _block_task(op: Operation, box: Box, writers: dict, placed: bool = False) ->
     are computed, the block's array not made.
     """
     if placed:
-        op.compute_into(box, threads=1, place={k: w.place for k, w in writers.items()})
+        with contextlib.ExitStack() as stack:
+            place = {k: stack.enter_context(w.placing()) for k, w in writers.items()}
+            op.compute_into(box, threads=1, place=place)
         return
     results = op.compute(box, threads=1)
     for key, writer in writers.items():

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import itertools
 import math
 import os
@@ -233,15 +234,13 @@ class _Reindex:
         return np.flip(array, axis=self.flips) if self.flips else array
 
 
-#: held while a writer opens what it writes into (threads of a worker share one writer)
-_OPENING = threading.Lock()
-
-
 class BlockWriter:
     """Writes aligned blocks into an output's temporary: picklable, usable in any process.
 
-    Made by :meth:`BlockOutput.writer`; ``target()`` opens what the samples go
-    into (a zarr array, the temporary file), once per process.
+    Made by :meth:`BlockOutput.writer`. What a write opens it closes before it
+    returns, and an error closing it (a quota or an NFS server reporting
+    then) fails the write naming the output: no descriptor is left for a
+    finaliser to close, where such an error would be lost.
     """
 
     def __init__(self, shape, chunks, dtype, where: str, phase=(0, 0, 0), components: int = 0):
@@ -251,10 +250,6 @@ class BlockWriter:
         self.dtype = np.dtype(dtype)
         self.where = where
         self.components = int(components)
-        self._opened = None
-
-    def _open(self):  # pragma: no cover - every format has one
-        raise NotImplementedError
 
     def write(self, box: Box, array) -> None:
         """Write ``array`` at ``box`` (whole blocks of the grid)."""
@@ -264,32 +259,22 @@ class BlockWriter:
         block_indices(box, self.shape, self.chunks, self.phase)
         if box.empty:
             return
-        self._target()
-        self._place(box, array)
+        self._write(box, array)
 
-    def _target(self):
-        """What the samples go into, opened once in this process (not by two threads)."""
-        if self._opened is None:
-            with _OPENING:
-                if self._opened is None:
-                    self._opened = self._open()
-        return self._opened
+    def _write(self, box: Box, array: np.ndarray) -> None:  # pragma: no cover - per format
+        raise NotImplementedError
 
-    def _place(self, box: Box, array: np.ndarray) -> None:
-        self._opened[box.slices] = array
+    @contextlib.contextmanager
+    def placing(self):
+        """A task's ``place(box, array)``: samples at any box of its block, as they are made.
 
-    def place(self, box: Box, array) -> None:
-        """Write ``array`` at any ``box`` inside a task's block (a few planes as they are made).
-
-        Outputs written by offset only (:func:`volwarp_cli.execute.places_blocks`);
-        the executor marks the task's block written once the task has returned.
+        Outputs written by offset only (:func:`volwarp_cli.execute.places_blocks`):
+        one descriptor for the task, closed when it leaves (an error closing it
+        raised naming the output, unless the task failed: its own error is the
+        one to tell); the executor marks the block written once the task returned.
         """
         raise VolwarpError(f"{self.where}: this format is written by whole blocks")
-
-    def __getstate__(self):
-        state = dict(self.__dict__)
-        state["_opened"] = None
-        return state
+        yield  # pragma: no cover - (a context manager)
 
 
 class _ZarrWriter(BlockWriter):
@@ -298,43 +283,75 @@ class _ZarrWriter(BlockWriter):
         self.array = array  # a zarr array pickles as its store and path
         self.reindex = reindex
 
-    def _open(self):
-        return self.array
-
-    def _place(self, box, array):
+    def _write(self, box, array):
         if self.reindex is None:
-            self._opened[box.slices] = array
+            self.array[box.slices] = array
         else:
-            self._opened[self.reindex.box(box).slices] = self.reindex.array(array)
+            self.array[self.reindex.box(box).slices] = self.reindex.array(array)
+
+
+def _close(file, where: str) -> None:
+    """Close ``file`` (a FileArray), an error naming the output ``where``."""
+    try:
+        file.close()
+    except OSError as exc:
+        raise write_error(where, exc) from exc
 
 
 class _MappedWriter(BlockWriter):
+    """A writer by offset: ``pwrite`` into the temporary.
+
+    Through a descriptor of the write's (or the placing task's) own, closed by
+    it (not a memory map: mapped pages would count in the task's memory).
+    """
+
     def __init__(self, file, file_dtype, offset, shape, chunks, dtype, where, components=0):
         super().__init__(shape, chunks, dtype, where, components=components)
         self.file, self.file_dtype, self.offset = str(file), np.dtype(file_dtype), int(offset)
 
-    def _open(self):
+    @contextlib.contextmanager
+    def _opened(self):
         from .filearray import FileArray
 
-        # pwrite, not a memory map: mapped pages would count in the task's memory
-        return FileArray(self.file, self.file_dtype, self.offset,
+        file = FileArray(self.file, self.file_dtype, self.offset,
                          _file_shape(self.shape, self.components), writable=True)
+        try:
+            file._file()  # (now: not by two of a task's threads at once)
+        except OSError as exc:
+            raise write_error(self.where, exc) from exc
+        try:
+            yield file
+        except BaseException:
+            with contextlib.suppress(OSError):
+                file.close()
+            raise
+        try:
+            file.close()
+        except OSError as exc:  # (a quota or NFS error reported when the file is closed)
+            raise write_error(self.where, exc) from exc
 
-    def _place(self, box, array):
+    def _put(self, file, box, array):
         key, flat = _flat(box, array, self.components)
         try:
-            self._opened[key] = flat
+            file[key] = flat
         except OSError as exc:  # (a full disk, a file size limit: the output named)
             raise write_error(self.where, exc) from exc
 
-    def place(self, box, array):
+    def _write(self, box, array):
+        with self._opened() as file:
+            self._put(file, box, array)
+
+    def _place(self, file, box, array):
         array = np.asarray(array)
         if tuple(array.shape) != _block_shape(box, self.components):
             raise ValueError(f"samples of shape {array.shape} placed at {box}")
-        if box.empty:
-            return
-        self._target()
-        self._place(box, array)
+        if not box.empty:
+            self._put(file, box, array)
+
+    @contextlib.contextmanager
+    def placing(self):
+        with self._opened() as file:
+            yield functools.partial(self._place, file)
 
 
 def _block_shape(box: Box, components: int) -> tuple:
