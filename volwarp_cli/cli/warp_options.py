@@ -7,8 +7,6 @@ and mesh inputs, so a file that does not parse fails before any output.
 
 from __future__ import annotations
 
-import string
-
 import click
 from click.core import ParameterSource
 
@@ -49,6 +47,8 @@ JSON_HELP = (
 
 def check_pattern(pattern: str) -> None:
     """The --frames-to pattern: known fields only, distinct names for distinct frames."""
+    import string
+
     try:
         names = {f for _, f, _, _ in string.Formatter().parse(pattern) if f is not None}
     except ValueError as exc:

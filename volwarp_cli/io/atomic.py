@@ -16,10 +16,9 @@ they were, never a mix of new and old.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
-import shutil
-import tempfile
 import threading
 from pathlib import Path
 
@@ -178,8 +177,8 @@ def atomic_folder(path: str | os.PathLike):
     path = check_output_path(path)
     _remove_stale_temporaries(path)
     with blocked():  # made and registered at once: a stop cannot leak it
-        tmp = tempfile.mkdtemp(prefix=_temporary_prefix(path.name), suffix=".partdir",
-                               dir=path.parent)
+        tmp = _tempfile().mkdtemp(prefix=_temporary_prefix(path.name), suffix=".partdir",
+                                  dir=path.parent)
         _live_temporaries.add(tmp)
     held = False
     try:
@@ -209,8 +208,8 @@ def _rename_folder(tmp: str, path: Path) -> None:
     """Put the folder ``tmp`` at ``path``: an old one renamed aside first, removed after."""
     aside = None
     if path.is_dir():
-        aside = tempfile.mkdtemp(prefix=_temporary_prefix(path.name), suffix=".old",
-                                 dir=path.parent)
+        aside = _tempfile().mkdtemp(prefix=_temporary_prefix(path.name), suffix=".old",
+                                    dir=path.parent)
         os.rmdir(aside)  # (only the unique name was wanted)
         os.rename(path, aside)
         try:
@@ -237,6 +236,8 @@ def _chmod_tree(root: str) -> None:
 
 def _remove_tree(root) -> None:
     """Remove a temporary folder (again, if a writer thread still added files meanwhile)."""
+    import shutil
+
     for _ in range(5):
         shutil.rmtree(root, ignore_errors=True)
         if not os.path.lexists(root):
@@ -278,15 +279,15 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
         for path, suffix in zip(paths, suffixes, strict=True):
             _remove_stale_temporaries(path)
             with blocked():  # made and registered at once: a stop cannot leak it
-                fd, tmp = tempfile.mkstemp(prefix=_temporary_prefix(path.name),
-                                           suffix=f".part{suffix}", dir=path.parent)
+                fd, tmp = _make_temporary(_temporary_prefix(path.name), f".part{suffix}",
+                                          path.parent)
                 _live_temporaries.add(tmp)
                 tmps.append(tmp)
             os.close(fd)
         sync_temporaries()
         yield [Path(t) for t in tmps]
         mask = current_umask()
-        for tmp in tmps:  # mkstemp makes files 0600: give the outputs the usual mode
+        for tmp in tmps:  # the temporaries are 0600: give the outputs the usual mode
             os.chmod(tmp, 0o666 & ~mask)
         with blocked():
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
@@ -360,8 +361,8 @@ def make_scratch_folder(near: str | os.PathLike) -> Path:
     path = Path(near)
     _remove_stale_temporaries(path)
     with blocked():
-        tmp = tempfile.mkdtemp(prefix=_temporary_prefix(path.name), suffix=".scratch",
-                               dir=path.parent if str(path.parent) else ".")
+        tmp = _tempfile().mkdtemp(prefix=_temporary_prefix(path.name), suffix=".scratch",
+                                  dir=path.parent if str(path.parent) else ".")
         _live_temporaries.add(tmp)
         _scratch_folders.add(os.path.realpath(tmp))
     return Path(tmp)
@@ -378,8 +379,42 @@ def remove_scratch_folder(tmp: str | os.PathLike) -> None:
         _scratch_folders.discard(os.path.realpath(tmp))
 
 
+def _tempfile():
+    """The tempfile module, imported by the outputs that are folders only.
+
+    (It imports shutil and random: 4-5 ms of every command's start, where a
+    file output's temporary is :func:`_make_temporary`'s.)
+    """
+    import tempfile
+
+    return tempfile
+
+
+#: the characters of a temporary's random part (tempfile's)
+_NAME_CHARS = "abcdefghijklmnopqrstuvwxyz0123456789_"
+
+
+def _make_temporary(prefix: str, suffix: str, folder) -> tuple[int, str]:
+    """``(fd, path)`` of a new file ``PREFIX`` + 8 random characters + ``SUFFIX`` in ``folder``.
+
+    As ``tempfile.mkstemp``: created exclusively, mode 0600, not through a
+    symbolic link, its descriptor not inherited; the path absolute.
+    """
+    flags = (os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+             | getattr(os, "O_CLOEXEC", 0))
+    folder = os.path.abspath(folder)
+    for _ in range(10000):  # (tempfile's number of tries)
+        name = "".join(_NAME_CHARS[b % len(_NAME_CHARS)] for b in os.urandom(8))
+        path = os.path.join(folder, f"{prefix}{name}{suffix}")
+        try:
+            return os.open(path, flags, 0o600), path
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, "no unused name for a temporary", folder)
+
+
 def _temporary_prefix(name: str) -> str:
-    """``.NAME.vw-PID@HOST.``: a temporary says whose it is (mkstemp adds 8 random characters)."""
+    """``.NAME.vw-PID@HOST.``: a temporary says whose it is (8 random characters follow)."""
     return f".{name}.vw-{os.getpid()}@{_host()}."
 
 

@@ -16,8 +16,6 @@ here rather than by pynrrd so that every error names the field and the file.
 
 from __future__ import annotations
 
-import bz2
-import gzip
 import os
 import re
 import zlib
@@ -582,6 +580,9 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
         return np.frombuffer(read_gzip_exact(fh, nbytes, where), dtype=file_dtype)
     # A byte skip of compressed data counts decompressed bytes, and -1 means the samples
     # are the stream's last bytes (as teem, ITK and pynrrd read it).
+    import bz2  # (bzip2, and gzip with a byte skip: rare files)
+    import gzip
+
     stream = gzip.GzipFile(fileobj=fh) if encoding == "gzip" else bz2.BZ2File(fh)
     with stream:
         if byteskip == -1:
