@@ -366,7 +366,13 @@ def quota_on_close(monkeypatch):
 
     from volwarp_cli.io import filearray
 
+    made = []
+
     class QuotaOnClose(filearray.FileArray):
+        def _file(self):
+            made.append(self)
+            return super()._file()
+
         def close(self):
             had = self._fd is not None
             super().close()
@@ -374,6 +380,7 @@ def quota_on_close(monkeypatch):
                 raise OSError(errno.EDQUOT, "Disk quota exceeded")
 
     monkeypatch.setattr(filearray, "FileArray", QuotaOnClose)
+    return made
 
 
 @pytest.mark.parametrize("how", ["written", "placed"])
@@ -388,6 +395,7 @@ def test_an_error_closing_a_blocks_file_names_the_output_and_leaves_nothing(quot
         execute.run(op, _blocks(scheduler="threads"))
     assert old.read_bytes() == b"an earlier output"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.nrrd"]
+    assert quota_on_close and all(f._fd is None for f in quota_on_close)  # none left open
 
 
 def test_a_block_that_fails_while_placing_tells_its_own_error_not_the_close(quota_on_close,
@@ -395,6 +403,7 @@ def test_a_block_that_fails_while_placing_tells_its_own_error_not_the_close(quot
     with pytest.raises(VolwarpError, match="a plane failed"):
         execute.run(PlacedRamp(tmp_path, fail_at=(4, 0, 0)), _blocks(SHAPE, "threads"))
     assert list(tmp_path.iterdir()) == []
+    assert quota_on_close and all(f._fd is None for f in quota_on_close)  # none left open
 
 
 def test_outputs_written_as_computed_are_not_counted_in_the_whole_s_memory(placed_small,

@@ -283,7 +283,7 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
                                           path.parent)
                 _live_temporaries.add(tmp)
                 tmps.append(tmp)
-            os.close(fd)
+                os.close(fd)  # (here: a stop deferred by blocked() is raised as it ends)
         sync_temporaries()
         yield [Path(t) for t in tmps]
         mask = current_umask()
@@ -390,8 +390,8 @@ def _tempfile():
     return tempfile
 
 
-#: the characters of a temporary's random part (tempfile's)
-_NAME_CHARS = "abcdefghijklmnopqrstuvwxyz0123456789_"
+#: the characters of a temporary's random part (32 of tempfile's: a byte's low 5 bits)
+_NAME_CHARS = "abcdefghijklmnopqrstuvwxyz012345"
 
 
 def _make_temporary(prefix: str, suffix: str, folder) -> tuple[int, str]:
@@ -403,8 +403,8 @@ def _make_temporary(prefix: str, suffix: str, folder) -> tuple[int, str]:
     flags = (os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
              | getattr(os, "O_CLOEXEC", 0))
     folder = os.path.abspath(folder)
-    for _ in range(10000):  # (tempfile's number of tries)
-        name = "".join(_NAME_CHARS[b % len(_NAME_CHARS)] for b in os.urandom(8))
+    for _ in range(getattr(os, "TMP_MAX", 10000)):  # (tempfile's number of tries)
+        name = "".join(_NAME_CHARS[b & 31] for b in os.urandom(8))
         path = os.path.join(folder, f"{prefix}{name}{suffix}")
         try:
             return os.open(path, flags, 0o600), path

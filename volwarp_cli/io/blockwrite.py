@@ -290,14 +290,6 @@ class _ZarrWriter(BlockWriter):
             self.array[self.reindex.box(box).slices] = self.reindex.array(array)
 
 
-def _close(file, where: str) -> None:
-    """Close ``file`` (a FileArray), an error naming the output ``where``."""
-    try:
-        file.close()
-    except OSError as exc:
-        raise write_error(where, exc) from exc
-
-
 class _MappedWriter(BlockWriter):
     """A writer by offset: ``pwrite`` into the temporary.
 
