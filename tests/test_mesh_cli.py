@@ -354,6 +354,14 @@ def test_mesh_label_usage_errors(run, two_labels, tmp_path, sphere_file):
     assert res.code == 1 and "does not occur" in res.stderr
     res = run("mesh", sphere_file[0], "--label", "1", "--stats")
     assert res.code == 1 and "integer" in res.stderr
+    # a pattern that gives two labels (1 and 12: their first digit) one file: the second
+    # mesh would replace the first (exit 0, before); refused before any is written
+    lab = np.zeros((12, 12, 12), np.uint8)
+    lab[2:5, 2:5, 2:5], lab[7:10, 2:5, 2:5] = 1, 12
+    write_volume(Volume(lab), tmp_path / "two.nrrd")
+    res = run("mesh", tmp_path / "two.nrrd", "--labels", "-o", tmp_path / "s_{label!s:.1}.ply")
+    assert res.code == 2 and "names labels 1 and 12 both" in res.stderr, res.stderr
+    assert not list(tmp_path.glob("s_*.ply"))
 
 
 def test_a_tiff_render_carries_no_time_stamp(run, tmp_path):

@@ -197,6 +197,36 @@ def test_bad_frame_pattern_exit_2(run, data_dir, tmp_path, pattern):
     assert list(tmp_path.glob("*.nrrd")) == []
 
 
+TWO_STEPS = ("version: 1\nunits: voxel\ncapture: {lattice: 5}\nsteps:\n"
+             "  - move: [{index: [2, 2, 2], by: [1, 0.5, -0.5]}]\n    frames: 3\n"
+             "  - move: [{index: [2, 2, 2], by: [1, 0.5, -0.5]}]\n    frames: 2\n")
+
+
+@pytest.mark.parametrize("values", ["intensity", "labels"])
+def test_frames_a_pattern_gives_one_name_are_refused_before_any_is_written(run, data_dir,
+                                                                           tmp_path, values):
+    """{sub} restarts at each spec step: frames 1 and 4 would both be s1.nrrd (the second
+    replacing the first, exit 0, before); -o naming a frame's file likewise."""
+    src = data_dir / "ball_30_uint8.nrrd"
+    spec = _spec(tmp_path, TWO_STEPS)
+    old = tmp_path / "s1.nrrd"
+    old.write_bytes(b"an earlier frame")
+    res = run("warp", src, "--spec", spec, "--frames-to", str(tmp_path / "s{sub}.nrrd"),
+              "--values", values)
+    assert res.code == 2, res.stderr
+    assert "names frames 1 and 4 both" in res.stderr and "{frame}" in res.stderr
+    assert [p.name for p in tmp_path.glob("*.nrrd")] == ["s1.nrrd"]
+    assert old.read_bytes() == b"an earlier frame"
+    res = run("warp", src, "--spec", spec, "--frames-to", str(tmp_path / "f{frame}.nrrd"),
+              "-o", tmp_path / "f2.nrrd", "--values", values)
+    assert res.code == 2 and "is also frame 2's file" in res.stderr
+    assert not list(tmp_path.glob("f*.nrrd"))
+    res = run("warp", src, "--spec", spec, "--frames-to", str(tmp_path / "f{frame}.nrrd"),
+              "--values", values)
+    assert res.code == 0, res.stderr
+    assert sorted(p.name for p in tmp_path.glob("f*.nrrd")) == [f"f{n}.nrrd" for n in range(6)]
+
+
 def test_table_evaluator_gives_the_same_output(run, data_dir, tmp_path):
     a, b = tmp_path / "a.nrrd", tmp_path / "b.nrrd"
     spec = SPECS / "warp-ball-voxel.yaml"

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..box import Box
-from ..errors import VolwarpError
+from ..errors import BadUsage, VolwarpError
 from ..execute import Blocks, Reduction
 from ..geometry import Geometry
 from ..progress import log, timed
@@ -210,6 +210,8 @@ class MeshOperation(Reduction):
         found = [v for v in values if v != 0]
         if not found:
             raise VolwarpError(f"{self.name}: no label other than 0 in the volume")
+        if self.to is not None:  # every label's file its own, before any mesh is made
+            _distinct_label_files(self.to.path, found)
         log.info("%d labels: %s", len(found), " ".join(map(str, found[:20])))
         return [self._surface(LabelIndicator(source, label), blocks, LABEL_LEVEL,
                               f"{self.name} label {label}", label, keep=False)
@@ -308,6 +310,19 @@ class MeshOperation(Reduction):
 
         with timed("statistics"):
             return mesh_stats(mesh)
+
+
+def _distinct_label_files(pattern: str, labels) -> None:
+    """A :class:`BadUsage` where ``pattern`` gives two labels one file (``{label:.1}``)."""
+    import os
+
+    seen: dict[str, int] = {}
+    for label in labels:
+        name = pattern.format(label=label)
+        other = seen.setdefault(os.path.realpath(name), label)
+        if other != label:
+            raise BadUsage(f"-o: {pattern!r} names labels {other} and {label} both {name}; "
+                           "give each label its own file (e.g. 'seg_{label}.ply')")
 
 
 def _runner(blocks: Blocks, label: str):

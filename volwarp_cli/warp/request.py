@@ -306,10 +306,14 @@ def _warp_frames(req: WarpFiles) -> dict:
         write(vol, req.frames_to.format(**fields))
         written[0] += 1
 
+    def checked(warp):  # (every frame's file its own, before any is made)
+        warp.frame_names(req.frames_to, req.output)
+        return warp
+
     if labels:
         from .labels import format_report
 
-        warp = LabelMapWarp(what, doc, spec, req.options, name=req.input)
+        warp = checked(LabelMapWarp(what, doc, spec, req.options, name=req.input))
         del what
         out, report = warp.compute_frames(write_frame)
         log.info("per-label volumes (mm^3):\n%s", format_report(report))
@@ -319,7 +323,7 @@ def _warp_frames(req: WarpFiles) -> dict:
             from .export import check_exportable
 
             check_exportable(what.placement, what.dq, req.input)
-        warp = IntensityWarp(what, doc, spec, req.options, name=req.input)
+        warp = checked(IntensityWarp(what, doc, spec, req.options, name=req.input))
         del what
         out, stats = warp.compute_frames(write_frame), {}
     if req.output is not None:

@@ -356,6 +356,29 @@ class LatticeMoves:
         """:func:`handle_report` of this warp's drags."""
         return handle_report(self.cap, self.frames)
 
+    def frame_names(self, pattern: str, output=None) -> list[str]:
+        """Every frame's file (``--frames-to`` ``pattern``), each its own; checked before any work.
+
+        A pattern can number the frames of one spec step and not the others
+        (``{sub}`` restarts at each step): two frames of one name, or one
+        named as the ``output``, would replace each other (a :class:`BadUsage`).
+        """
+        import os
+
+        names = [pattern.format(**frame_fields(n, fr))
+                 for n, fr in enumerate([None, *self.frames])]
+        seen: dict[str, int] = {}
+        for n, name in enumerate(names):
+            key = os.path.realpath(name)
+            if key in seen:
+                raise BadUsage(f"--frames-to: {pattern!r} names frames {seen[key]} and {n} "
+                               f"both {name}; put {{frame}} in it")
+            seen[key] = n
+        if output is not None and os.path.realpath(output) in seen:
+            n = seen[os.path.realpath(output)]
+            raise BadUsage(f"-o {output} is also frame {n}'s file (--frames-to {pattern!r})")
+        return names
+
 
 class IntensityWarp(LatticeMoves):
     """The warp of a captured volume (:class:`~volwarp_cli.bspline.capture.Capture`) by a checked spec.
