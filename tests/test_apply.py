@@ -303,6 +303,30 @@ def test_label_map_gains_no_label(run, tmp_path):
     assert not (tmp_path / "o2.nrrd").exists()
 
 
+@pytest.mark.parametrize("command", ["apply", "convert"])
+def test_a_dtype_that_would_merge_label_ids_is_refused(run, tmp_path, command):
+    """--dtype clips intensities to the type's range; on a label map that merged ids 300 and
+    1000 into one id 255 of uint8 (exit 0, before). A type that holds every id is fine."""
+    vol = smooth()
+    ids = np.array([0, 1, 300, 1000], np.uint16)
+    lab = vol.with_data(ids[np.digitize(vol.data, [10, 40, 80])])
+    write_volume(lab, tmp_path / "seg.nrrd")
+    sitk.WriteTransform(affine(), str(tmp_path / "a.tfm"))
+    extra = ["-t", tmp_path / "a.tfm"] if command == "apply" else []
+    old = tmp_path / "o8.nrrd"
+    old.write_bytes(b"an earlier output")
+    res = run(command, tmp_path / "seg.nrrd", "-o", old, *extra, "--dtype", "uint8")
+    assert res.code == 2 and "cannot hold its label ids 300, 1000" in res.stderr, res.stderr
+    assert old.read_bytes() == b"an earlier output"
+    res = run(command, tmp_path / "seg.nrrd", "-o", tmp_path / "o16.nrrd", *extra,
+              "--dtype", "int16")
+    assert res.code == 0, res.stderr
+    out = read_volume(tmp_path / "o16.nrrd").data
+    assert out.dtype == np.int16 and set(np.unique(out)) <= {0, 1, 300, 1000}
+    if command == "convert":
+        assert np.array_equal(out, lab.data)
+
+
 def test_intensity_keeps_type_unless_dtype(run, tmp_path):
     vol = smooth()
     write_volume(vol.with_data(np.rint(vol.data * 10).astype(np.int16)), tmp_path / "ct.nrrd")

@@ -475,6 +475,10 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
     sampling.say()
     if sampling.refusal is not None:
         raise BadUsage(sampling.refusal)
+    if dtype is not None and sampling.choice.is_labels and sampling.choice.ids is not None:
+        from .labelmap import refuse_merged_ids
+
+        refuse_merged_ids(sampling.choice.ids, dtype, name)
     out_dtype = np.dtype(dtype or source.dtype)
     out = header.replace(shape=grid.shape, dtype=out_dtype, spacing=np.array(grid.spacing),
                          origin=np.array(grid.origin), direction=np.array(grid.direction))

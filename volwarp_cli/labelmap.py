@@ -122,6 +122,29 @@ MIN_IN_REGIONS = 0.5
 SAMPLED_PLANES = 64
 
 
+def refuse_merged_ids(ids, dtype, name: str, option: str = "--dtype") -> None:
+    """A :class:`~volwarp_cli.errors.BadUsage` where ``dtype`` cannot hold every id of ``ids``.
+
+    A label map's ids are never merged: the clipping that ``--dtype`` gives
+    intensities would turn ids 300 and 1000 into one id 255 of uint8 (and a
+    float32 holds integers exactly up to 2**24 only).
+    """
+    from .errors import BadUsage
+
+    dt = np.dtype(dtype)
+    ids = np.asarray(ids)
+    if dt.kind in "iu":
+        info = np.iinfo(dt)
+        lost = ids[(ids < info.min) | (ids > info.max)]
+    else:
+        lost = ids[np.abs(ids) > 2.0 ** (np.finfo(dt).nmant + 1)]
+    if lost.size:
+        shown = ", ".join(f"{v:.17g}" for v in lost[:3].tolist())
+        more = f" and {lost.size - 3} more" if lost.size > 3 else ""
+        raise BadUsage(f"{name}: {option} {dt.name} cannot hold its label ids {shown}{more} "
+                       "(a label map's ids are never merged): give a type that holds them")
+
+
 def label_map_hint(data: np.ndarray) -> dict | None:
     """``{"labels": n, "values": [...]}`` when ``data`` looks like a label map (``info``).
 

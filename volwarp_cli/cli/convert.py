@@ -96,9 +96,20 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, dicom_ty
     if writing:
         _write_segmentation(vol, output, dicom_type, reference, segments, contours)
         return
+    if dtype is not None and dtype != vol.dtype.name:
+        _check_label_ids(vol, dtype, input, PYRAMID_METHODS[pyramid_method])
     with timed(f"write {output}"):
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      labels=PYRAMID_METHODS[pyramid_method], **ome_zarr)
+
+
+def _check_label_ids(vol, dtype, name, labels) -> None:
+    """A label map (by the rule, or ``--pyramid-method mode``) keeps every id in ``dtype``."""
+    from ..labelmap import refuse_merged_ids, scan_labels
+
+    looks, ids, _ = scan_labels(vol.data, detect=labels == "auto")
+    if ids is not None and (looks or labels is True):
+        refuse_merged_ids(ids, dtype, str(name))
 
 
 def _dicom_output(output, dicom_type, segments, reference, dtype, compress, byte_order,

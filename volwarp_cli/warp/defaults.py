@@ -29,7 +29,7 @@ prints what comes out.
 from __future__ import annotations
 
 import contextvars
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -69,13 +69,16 @@ class ValuesChoice:
     ``"looks like a label map: 5 labels"``, ``"not a label map"``, ...;
     ``labels``: the distinct values counted (None when not counted);
     ``warning``: a line to say once (labels asked for on a volume that
-    does not look like a label map), or None.
+    does not look like a label map), or None; ``ids``: the distinct values
+    themselves where they were counted (an output type must hold them:
+    :func:`~volwarp_cli.labelmap.refuse_merged_ids`).
     """
 
     values: str
     why: str
     labels: int | None = None
     warning: str | None = None
+    ids: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property
     def is_labels(self) -> bool:
@@ -92,8 +95,8 @@ class ValuesChoice:
         return f"values: {self.values} ({self.why})"
 
 
-def label_scan(source, *, box_voxels: int = SCAN_BOX_VOXELS) -> tuple[bool, int | None]:
-    """``(looks like a label map, distinct values)`` of ``source``, read once box by box.
+def label_scan(source, *, box_voxels: int = SCAN_BOX_VOXELS) -> tuple[bool, np.ndarray | None]:
+    """``(looks like a label map, its distinct values)`` of ``source``, read once box by box.
 
     The rule is :func:`~volwarp_cli.labelmap.looks_like_labels` (by boxes:
     :func:`~volwarp_cli.labelmap.scan_labels`, the same answer in memory as
@@ -106,7 +109,7 @@ def label_scan(source, *, box_voxels: int = SCAN_BOX_VOXELS) -> tuple[bool, int 
     if np.dtype(source.dtype).kind not in "iuf":
         return False, None
     looks, values, _ = scan_labels(source, box_voxels=box_voxels)
-    return looks, None if values is None else int(len(values))
+    return looks, values
 
 
 def choose_values(source, given: str | None = None, *, name: str = "the input") -> ValuesChoice:
@@ -127,7 +130,8 @@ def choose_values(source, given: str | None = None, *, name: str = "the input") 
     kind = np.dtype(source.dtype).kind
     if given == "labels" and kind not in "iuf":  # (the label warp says why it cannot)
         return ValuesChoice("labels", "given")
-    looks, n = label_scan(source)
+    looks, ids = label_scan(source)
+    n = None if ids is None else int(len(ids))
     if given == "labels":
         if n is None:
             raise not_ids(name, source.dtype)
@@ -138,9 +142,9 @@ def choose_values(source, given: str | None = None, *, name: str = "the input") 
                        f"{'' if n < 2 else ', not piecewise constant'}): "
                        "warped as labels as asked (each output voxel one of its values, "
                        "never a blend)")
-        return ValuesChoice("labels", "given", n, warning)
+        return ValuesChoice("labels", "given", n, warning, ids)
     if looks:
-        return ValuesChoice("labels", f"looks like a label map: {n} labels", n)
+        return ValuesChoice("labels", f"looks like a label map: {n} labels", n, ids=ids)
     return ValuesChoice("intensity", "not a label map", n)
 
 
