@@ -342,6 +342,30 @@ def test_two_scans_sharing_outputs_are_refused(tmp_path):
     assert "would share outputs (both are scan 'site-a/p02')" in res.stderr
 
 
+@pytest.mark.parametrize("how", ["list", "csv"])
+def test_a_scan_reached_by_dotdot_is_outside_the_root_too(tmp_path, how):
+    """'../x' under output_dir is outside it: a listed scan spelled so put its outputs beside
+    the output folder and replaced a file there (exit 0, before); an absolute path to the
+    same file was refused. Both are now."""
+    make_tree(tmp_path, CONVERT_MANIFEST)
+    steps = CONVERT_MANIFEST.split("steps:", 1)[1]
+    keep = tmp_path / "proj" / "scans" / "site-a" / "p02_sdf.nrrd"  # out/../scans/site-a/
+    keep.parent.mkdir(parents=True)
+    keep.write_bytes(b"my notes")
+    if how == "list":
+        inputs = "{list: [../scans/site-a/p02.nrrd]}"
+    else:
+        (tmp_path / "proj" / "t.csv").write_text("path\n../scans/site-a/p02.nrrd\n")
+        inputs = "{csv: t.csv}"
+    manifest = tmp_path / "proj" / "m.yaml"
+    manifest.write_text(f"version: 1\ninputs: {inputs}\noutput_dir: out\nsteps:{steps}")
+    res = volwarp("batch", manifest)
+    assert res.returncode == 2, res.stderr
+    assert "is not under the inputs' root" in res.stderr
+    assert keep.read_bytes() == b"my notes"
+    assert not (tmp_path / "proj" / "out").exists()
+
+
 def test_list_and_csv_inputs(tmp_path):
     make_tree(tmp_path, CONVERT_MANIFEST)
     steps = CONVERT_MANIFEST.split("steps:", 1)[1]

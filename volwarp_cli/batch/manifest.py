@@ -22,6 +22,7 @@ from __future__ import annotations
 import csv
 import glob
 import hashlib
+import os
 import re
 import string
 from dataclasses import dataclass, field
@@ -410,8 +411,9 @@ def _find_scans(manifest: Manifest) -> list[Scan]:
             raise VolwarpError(f"{table}: no scan listed")
     scans: dict[str, Scan] = {}
     for n, (p, key) in enumerate(paths):
-        try:
-            rel = Path(p).absolute().parent.relative_to(Path(root).absolute())
+        try:  # (lexically normal: '../x' is not under the root, though Path keeps its '..')
+            rel = Path(os.path.normpath(Path(p).absolute().parent)).relative_to(
+                os.path.normpath(Path(root).absolute()))
         except ValueError:
             raise doc.error(key, f"{p} is not under the inputs' root {root} (set inputs.root)"
                             ) from None
