@@ -169,6 +169,21 @@ def test_rerun_skips_and_changes_no_byte(warped, tmp_path):
     assert snapshot(root / "out") == before
 
 
+@pytest.mark.parametrize("option", ["--report", "--report-json"])
+def test_a_report_over_the_batch_s_own_state_is_refused(warped, tmp_path, option):
+    """--report OUT/.volwarp-batch/state.json replaced the state with the report (exit 0), and
+    the next run redid every scan."""
+    root = tmp_path / "tree"
+    shutil.copytree(warped[0], root)
+    state = root / "out" / ".volwarp-batch" / "state.json"
+    before = state.read_bytes()
+    res = volwarp("batch", root / "manifest.yaml", option, state)
+    assert res.returncode == 2 and "inside the batch's own records" in res.stderr, res.stderr
+    assert state.read_bytes() == before
+    res = volwarp("batch", root / "manifest.yaml")
+    assert summary(res) == "volwarp batch: 3 scans, 0 ok, 3 skipped, 0 failed"
+
+
 def test_changed_spec_or_force_redoes(warped, tmp_path):
     root = tmp_path / "tree"
     shutil.copytree(warped[0], root)

@@ -455,6 +455,9 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
                     raise _located(manifest, key, f"{'' if fixed_name else f'scan {scan.id}: '}"
                                                   f"{exc}") from None
                 _refuse_over_scans(manifest, key, out, option, scan_files)
+                inside = _in_records(manifest, out, option)
+                if inside is not None:
+                    raise _located(manifest, key, f"scan {scan.id}: {inside}")
                 writer = _Writer(f"step {step.name!r} (steps[{step.index}])", step, scan, option)
                 _refuse_twice(manifest, key, out, writer, writers)
     _check_reports(manifest, reports, fixed, scan_files, writers)
@@ -485,6 +488,17 @@ def _refuse_twice(manifest, key, out: Path, writer: _Writer, writers: dict) -> N
         writers[real] = writer
 
 
+def _in_records(manifest, out: Path, option: str) -> str | None:
+    """Why ``out`` may not be written: inside the batch's own records (its state, its locks)."""
+    from .lock import book_dir
+
+    book = os.path.realpath(book_dir(manifest.output_dir))
+    if os.path.realpath(out) == book or os.path.realpath(out).startswith(book + os.sep):
+        return (f"{option} {out} is inside the batch's own records ({book}): writing it "
+                "would lose what the batch knows of its scans")
+    return None
+
+
 def _check_reports(manifest, reports, fixed, scan_files, writers) -> None:
     """The batch's reports: never over an input, never a file a step (or another report) writes."""
     from ..errors import BadUsage
@@ -492,6 +506,9 @@ def _check_reports(manifest, reports, fixed, scan_files, writers) -> None:
     for option, path in reports:
         out = Path(path).absolute()
         _refuse_over(out, option, list(fixed), fixed)
+        inside = _in_records(manifest, out, option)
+        if inside is not None:
+            raise BadUsage(inside)
         other = scan_files.get(os.path.realpath(out))
         if other is not None:
             raise BadUsage(f"{option} {path} would overwrite the scan {other.id!r} "
