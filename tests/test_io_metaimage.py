@@ -19,7 +19,7 @@ import SimpleITK as sitk
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from volwarp_cli.errors import ChoiceNeeded, FormatError, VolwarpError
+from volwarp_cli.errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
 from volwarp_cli.io.metaimage import (
     anatomical_orientation,
     looks_like_metaimage,
@@ -357,7 +357,7 @@ def test_four_d_and_multichannel_files_need_a_volume_index(tmp_path):
     with pytest.raises(ChoiceNeeded, match=r"t\.mha: has 3 volumes; select one with "
                                           r"--volume-index 0\.\.2"):
         read_metaimage(p4)
-    with pytest.raises(FormatError, match=r"t\.mha: --volume-index 3 is out of range"):
+    with pytest.raises(BadUsage, match=r"t\.mha: --volume-index 3 is out of range"):
         read_metaimage(p4, 3)
     np.testing.assert_array_equal(read_metaimage(p4, 2).data, four[2])
     vec = _samples("uint8", (2, 4, 5, 3), seed=7)  # [z, y, x, channel]
@@ -369,7 +369,7 @@ def test_four_d_and_multichannel_files_need_a_volume_index(tmp_path):
         np.testing.assert_array_equal(read_metaimage(pv, c).data, vec[..., c])
     plain = tmp_path / "plain.mha"
     write_metaimage(_volume(), plain)
-    with pytest.raises(FormatError, match=r"plain\.mha: --volume-index 1 given"):
+    with pytest.raises(BadUsage, match=r"plain\.mha: --volume-index 1 given"):
         read_metaimage(plain, 1)
     single = tmp_path / "single.mha"  # a 4-D file holding one volume reads without an index
     sitk.WriteImage(sitk.JoinSeries([sitk.GetImageFromArray(four[0])]), str(single))

@@ -18,7 +18,7 @@ import pytest
 import SimpleITK as sitk
 
 from volwarp_cli.box import Box
-from volwarp_cli.errors import ChoiceNeeded, FormatError, VolwarpError
+from volwarp_cli.errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
 from volwarp_cli.geometry import Geometry
 from volwarp_cli.io import SUPPORTED_DTYPES, omezarr, read_volume, write_volume
 from volwarp_cli.io.blockwrite import (
@@ -217,7 +217,7 @@ def test_volwarp_reads_ome_zarr_py_stores_with_units_and_channel_axis(tmp_path):
     with pytest.raises(ChoiceNeeded, match="volume-index"):
         read_volume(path2)
     assert np.array_equal(read_volume(path2, volume_index=1).data, data + 1)
-    with pytest.raises(FormatError, match="out of range"):
+    with pytest.raises(BadUsage, match="out of range"):  # (a usage error: exit 2)
         read_volume(path2, volume_index=2)
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from volwarp_cli.errors import ChoiceNeeded, FormatError
+from volwarp_cli.errors import BadUsage, ChoiceNeeded
 from volwarp_cli.io import RawLayout, read_volume, write_volume
 from volwarp_cli.io.common import SUPPORTED_DTYPES
 from volwarp_cli.volume import Volume
@@ -324,7 +324,7 @@ def test_multi_component_nrrd_reads_one_component(tmp_path):
         assert vol.meta["volwarp_component"] == name
     with pytest.raises(ChoiceNeeded, match=r"3 components per voxel \(opacity red green\)"):
         read_volume(tmp_path / "m.nrrd")
-    with pytest.raises(FormatError, match="out of range"):
+    with pytest.raises(BadUsage, match="out of range"):  # (a usage error: exit 2)
         read_volume(tmp_path / "m.nrrd", volume_index=3)
     # pynrrd, an independent reader, sees the same samples on the vector axis
     data, _ = pynrrd.read(str(tmp_path / "m.nrrd"), index_order="C")
@@ -348,11 +348,11 @@ def test_volume_index_refused_where_it_means_nothing(tmp_path):
 
     vol = Volume(ball(12))
     write_volume(vol, tmp_path / "b.tif")
-    with pytest.raises(FormatError, match="--volume-index"):
+    with pytest.raises(BadUsage, match="--volume-index"):  # (usage errors: exit 2)
         read_volume(tmp_path / "b.tif", volume_index=0)
     write_volume(vol, tmp_path / "b.nrrd")
     assert read_volume(tmp_path / "b.nrrd", volume_index=0).data.shape == vol.data.shape
-    with pytest.raises(FormatError, match="one component"):
+    with pytest.raises(BadUsage, match="one component"):
         read_volume(tmp_path / "b.nrrd", volume_index=1)
 
 

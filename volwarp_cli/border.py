@@ -82,9 +82,13 @@ def border_label(source) -> int:
 
 
 def not_ids(name: str, dtype) -> Exception:
-    """The error for float samples taken as labels that are not all integers (raise it)."""
-    from .errors import VolwarpError
+    """The error for float samples taken as labels that are not all integers (raise it).
 
-    return VolwarpError(f"{name}: a label map needs integer ids, and its {np.dtype(dtype)} "
+    A usage error (exit 2): labels were asked for (the rule never takes such
+    samples for a label map).
+    """
+    from .errors import BadUsage
+
+    return BadUsage(f"{name}: a label map needs integer ids, and its {np.dtype(dtype)} "
                         "samples are not all integers (a fraction, a NaN or an infinity): "
                         "warp it as intensities (--values intensity)")

@@ -33,7 +33,7 @@ import os
 import re
 from collections.abc import Mapping
 
-from .errors import OutOfMemoryError, VolwarpError
+from .errors import BadUsage, OutOfMemoryError
 
 #: Environment variable lowering the memory limit (a size: ``8G``, ``512M``, bytes).
 MEMORY_ENV = "VOLWARP_MEMORY_LIMIT"
@@ -215,7 +215,7 @@ def _env_limit() -> int | None:
     try:
         return parse_size(text)
     except ValueError as exc:
-        raise VolwarpError(f"{MEMORY_ENV}={text!r}: {exc}") from None
+        raise BadUsage(f"{MEMORY_ENV}={text!r}: {exc}") from None  # (exit 2, as VOLWARP_THREADS)
 
 
 def process_rss() -> int:

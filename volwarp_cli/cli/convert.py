@@ -98,9 +98,11 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, dicom_ty
         return
     if dtype is not None and dtype != vol.dtype.name:
         _check_label_ids(vol, dtype, input, PYRAMID_METHODS[pyramid_method])
-    with timed(f"write {output}"):
-        write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
-                     labels=PYRAMID_METHODS[pyramid_method], **ome_zarr)
+    from ..provenance import stamp
+
+    with timed(f"write {output}"):  # (its key/values kept; the provenance is convert's)
+        write_volume(stamp(vol, "convert", input), output, dtype=dtype, compress=compress,
+                     byte_order=byte_order, labels=PYRAMID_METHODS[pyramid_method], **ome_zarr)
 
 
 def _check_label_ids(vol, dtype, name, labels) -> None:

@@ -52,7 +52,7 @@ def _read_camera(path):
     return read_camera(path)
 
 
-def _given(ctx, name: str) -> bool:
+def option_given(ctx, name: str) -> bool:
     """Whether option ``name`` of the running command was set by the user (not its default)."""
     if ctx is None or name not in ctx.params:
         return False
@@ -87,11 +87,11 @@ def camera_options(f):
     def wrapper(*args, camera_from, camera_to, orientation_labels, **kwargs):
         ctx = click.get_current_context(silent=True)
         if camera_from is not None:
-            if _given(ctx, "view"):
+            if option_given(ctx, "view"):
                 raise click.UsageError("--view and --camera-from exclude each other: the "
                                        "camera file fixes the view")
             for name in _SIZE_PARAMS:
-                if _given(ctx, name) and kwargs.get(name) is not None:
+                if option_given(ctx, name) and kwargs.get(name) is not None:
                     camera_from = camera_from.resized(kwargs[name])
         if camera_to is not None:
             from ..io.atomic import check_output_path

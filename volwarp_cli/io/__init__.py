@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, VolwarpError
+from ..errors import BadUsage, FormatError, VolwarpError
 from ..runscope import stop_if_dry_run
 from ..volume import Volume
 from .atomic import atomic_output, check_output_path
@@ -132,9 +132,9 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
         fmt = volume_format(path, reading=True)
         _check_content(path, fmt)
     if volume_index is not None and fmt in ("tiff", "raw", "dicom"):
-        raise FormatError(f"{path}: --volume-index selects a volume of a 4-D NIfTI or "
-                          f"MetaImage or a component of a 4-D NRRD; a {_FORMAT_NAMES[fmt]} "
-                          "input has one")
+        raise BadUsage(f"{path}: --volume-index selects a volume of a 4-D NIfTI or "
+                       f"MetaImage or a component of a 4-D NRRD; a {_FORMAT_NAMES[fmt]} "
+                       "input has one")
     if fmt == "dicom":
         from .dicom import read_dicom
         vol = read_dicom(path, **(dicom or {}))
@@ -182,6 +182,30 @@ def read_components(path: str | os.PathLike) -> tuple[Volume, np.ndarray]:
     return vol, samples
 
 
+def _say_unused_options(path: Path, fmt: str, compress: bool, ome_zarr_version: str) -> None:
+    """Say (once a run) a writer option that ``path``'s format has nothing to do with.
+
+    Not refused: a command's options go to all its outputs (``-o x.nrrd
+    --compress --jacobian-to j.nii``), and apply where they can.
+    """
+    unused = []
+    if compress and (fmt == "raw" or (fmt == "nifti" and not path.name.endswith(".gz"))):
+        unused.append(("--compress", "a .nii or raw file is never compressed (.nii.gz is "
+                                     "gzip NIfTI)"))
+    if ome_zarr_version != "0.5" and fmt != "omezarr":
+        unused.append(("--ome-zarr-version", "it is for OME-Zarr outputs (.ome.zarr)"))
+    if not unused:
+        return
+    from ..progress import log
+    from ..runscope import run_files
+
+    said = run_files().said
+    for option, why in unused:
+        if ("unused writer option", option, fmt) not in said:
+            said.add(("unused writer option", option, fmt))
+            log.warning("warning: %s does not apply to %s: %s", option, path, why)
+
+
 def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: bool = False,
                  byte_order: str = "little", ome_zarr_version: str = "0.5", pyramid: int = 0,
                  labels="auto") -> None:
@@ -201,8 +225,11 @@ def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: 
     fmt = volume_format(path)
     check_output_path(path)
     if pyramid and fmt != "omezarr":
-        raise VolwarpError(f"{path}: --pyramid writes extra levels of OME-Zarr outputs "
-                           "(.ome.zarr); a " + _FORMAT_NAMES[fmt] + " file has one")
+        raise BadUsage(f"{path}: --pyramid writes extra levels of OME-Zarr outputs "
+                       "(.ome.zarr); a " + _FORMAT_NAMES[fmt] + " file has one")
+    if fmt == "nifti" and byte_order != "little":
+        raise BadUsage(f"{path}: volwarp writes NIfTI little-endian only (--byte-order)")
+    _say_unused_options(path, fmt, compress, ome_zarr_version)
     if dtype is not None:
         vol = vol.with_data(cast_samples(vol.data, dtype, what=str(path)))
     if not np.issubdtype(vol.data.dtype, np.number):
@@ -221,8 +248,6 @@ def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: 
         from .metaimage import write_metaimage
         write_metaimage(vol, path, compress=compress, byte_order=byte_order)
     elif fmt == "nifti":
-        if byte_order != "little":
-            raise VolwarpError(f"{path}: volwarp writes NIfTI little-endian only")
         from .nifti import write_nifti
         write_nifti(vol, path)
     else:

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from ..box import Box
-from ..errors import VolwarpError
+from ..errors import BadUsage, VolwarpError
 from ..geometry import Geometry
 from ..samples import check_dtype
 from .atomic import write_error
@@ -119,7 +119,7 @@ def check_block_format(path: str | os.PathLike, compress: bool = False, pyramid:
     path = Path(path)
     fmt = volume_format(path)
     if pyramid and fmt != "omezarr":
-        raise VolwarpError(f"{path}: --pyramid writes extra levels of OME-Zarr outputs only")
+        raise BadUsage(f"{path}: --pyramid writes extra levels of OME-Zarr outputs only")
     if fmt == "omezarr":
         return fmt
     name = path.name.lower()

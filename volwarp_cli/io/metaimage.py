@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ChoiceNeeded, FormatError, VolwarpError
+from ..errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..memory import ensure_fits_in_memory
 from ..samples import check_dtype, voxel_count
@@ -279,15 +279,15 @@ def _selection(where, ndims, sizes, channels, index) -> list[tuple[int, int]]:
                           "volwarp reads files with one of the two")
     n, what = (channels, "component") if channels > 1 else (n_vol, "volume")
     if n == 1 and index not in (None, 0):
-        raise FormatError(f"{where}: --volume-index {index} given, but the file has one "
-                          "volume of one component")
+        raise BadUsage(f"{where}: --volume-index {index} given, but the file has one "
+                       "volume of one component")
     if n > 1 and index is None:
         noun = "components per voxel" if what == "component" else "volumes"
         raise ChoiceNeeded(f"{where}: has {n} {noun}; select one with --volume-index "
                           f"0..{n - 1}")
     if n > 1 and not 0 <= index < n:
-        raise FormatError(f"{where}: --volume-index {index} is out of range: the file has "
-                          f"{n} {what}s")
+        raise BadUsage(f"{where}: --volume-index {index} is out of range: the file has "
+                       f"{n} {what}s")
     steps = []
     if channels > 1:
         steps.append((ndims, index))

@@ -123,7 +123,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ChoiceNeeded, FormatError, VolwarpError
+from ..errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..memory import ensure_fits_in_memory
 from ..progress import log
@@ -341,8 +341,8 @@ class NiftiFile:
             raise ChoiceNeeded(f"{where}: 4-D NIfTI with {self.volumes} volumes; choose one with "
                               "--volume-index N")
         if volume_index is not None and not 0 <= volume_index < count:
-            raise VolwarpError(f"{where}: --volume-index {volume_index} is outside "
-                               f"0..{count - 1}")
+            raise BadUsage(f"{where}: --volume-index {volume_index} is outside "
+                           f"0..{count - 1}")
         k = volume_index or 0
         return k, (k if self.components > 1 else None)
 

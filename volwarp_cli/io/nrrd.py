@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ChoiceNeeded, FormatError, VolwarpError
+from ..errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..memory import ensure_fits_in_memory
 from ..samples import check_dtype, voxel_count
@@ -441,16 +441,16 @@ def _read_nrrd(path, component, *, mmap: bool, every: bool = False):
         comp_axis = _component_axis(fields, dim, sizes, where)
         n_comp = sizes[comp_axis] if comp_axis is not None else 1
         if comp_axis is None and component not in (None, 0):
-            raise FormatError(f"{where}: --volume-index {component} given, but the file "
-                              "has one component")
+            raise BadUsage(f"{where}: --volume-index {component} given, but the file "
+                           "has one component")
         if comp_axis is not None and component is None and n_comp > 1:
             names = keyvals.get("volwarp_components", "")
             raise ChoiceNeeded(f"{where}: has {n_comp} components per voxel"
                               f"{f' ({names})' if names else ''}; "
                               f"select one with --volume-index 0..{n_comp - 1}")
         if component is not None and component >= n_comp:
-            raise FormatError(f"{where}: --volume-index {component} is out of range: "
-                              f"the file has {n_comp} component{'s' if n_comp > 1 else ''}")
+            raise BadUsage(f"{where}: --volume-index {component} is out of range: "
+                           f"the file has {n_comp} component{'s' if n_comp > 1 else ''}")
         encoding = _ENCODINGS.get(fields["encoding"].lower())
         if encoding is None:
             raise FormatError(f"{where}: unknown encoding {fields['encoding']!r} "

@@ -73,7 +73,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import ChoiceNeeded, FormatError, VolwarpError
+from ..errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..labelmap import looks_like_labels
 from ..progress import log
@@ -652,11 +652,11 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
             raise ChoiceNeeded(f"{where}: has {count} entries along axis {names[big[0]]!r}; "
                               f"select one with --volume-index 0..{count - 1}")
         if not 0 <= volume_index < count:
-            raise FormatError(f"{where}: --volume-index {volume_index} is out of range: axis "
-                              f"{names[big[0]]!r} has {count} entries")
+            raise BadUsage(f"{where}: --volume-index {volume_index} is out of range: axis "
+                           f"{names[big[0]]!r} has {count} entries")
     elif volume_index not in (None, 0):
-        raise FormatError(f"{where}: --volume-index {volume_index} given, but the image holds "
-                          "one volume")
+        raise BadUsage(f"{where}: --volume-index {volume_index} given, but the image holds "
+                       "one volume")
     for i in range(n):
         if kinds[i] == "space":
             index.append(slice(None))
