@@ -88,6 +88,28 @@ def test_mesh_picture_options_without_a_picture_are_refused(run, blob, tmp_path,
     assert (tmp_path / "m.png").is_file()
 
 
+@pytest.mark.parametrize("command", ["morph", "sweep"])
+def test_morph_and_sweep_picture_options_without_a_picture_are_refused(run, tmp_path,
+                                                                      monkeypatch, command):
+    from volwarp_cli.warmup import write_inputs
+
+    monkeypatch.chdir(tmp_path)
+    p = write_inputs(".")
+    if command == "morph":
+        args = ["morph", p["blob"], p["egg"], "--frames", "2", "--iso", "50", "--grid",
+                "union", "-o", "out_f{i}.nrrd"]
+        render = ["--render-to", "r{i}.png"]
+    else:
+        args = ["sweep", p["line"], "-o", "out_{field}.nrrd"]
+        render = ["--render", "r.png"]
+    res = run(*args, "--view", "front", "--render-size", "40x30")
+    assert res.code == 2 and "--view, --render-size shape the picture" in res.stderr, res
+    assert not list(tmp_path.glob("out_*"))
+    res = run(*args, "--view", "front", "--render-size", "40x30", *render)
+    assert res.code == 0, res
+    assert list(tmp_path.glob("r*.png"))
+
+
 @pytest.mark.parametrize("suffix", [".nrrd", ".nii.gz", ".mha"])
 def test_convert_says_how_its_output_was_made_and_keeps_the_rest(run, tmp_path, suffix):
     vol = Volume(np.arange(64, dtype=np.int16).reshape(4, 4, 4), meta={"patient": "x"})

@@ -26,7 +26,7 @@ from .options import (
     render_size_option,
 )
 from .resources import scale_options, scale_settings
-from .view_options import camera_options, orientation_labels_for
+from .view_options import camera_options, orientation_labels_for, refuse_picture_options_without
 
 
 def image_path(value):
@@ -165,15 +165,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
                            or orientation_labels is not None):
         raise click.UsageError("--camera-from, --camera-to and --orientation-labels need "
                                "--render OUT.png")
-    if render is None:  # (accepted and ignored, before)
-        from .view_options import option_given
-
-        ctx = click.get_current_context()
-        looks = [f"--{n.replace('_', '-')}" for n in ("view", "render_size", "color",
-                                                     "background_color") if option_given(ctx, n)]
-        if looks:
-            raise click.UsageError(f"{', '.join(looks)} shape{'s' if len(looks) == 1 else ''} "
-                                   "the picture: give --render OUT.png")
+    refuse_picture_options_without(render, "--render OUT.png")
     # Fail on bad outputs before any work (their extensions are checked by the options).
     if output is not None:
         check_mesh_output(_label_pattern(output) if labels else output, option="-o")

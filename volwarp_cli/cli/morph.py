@@ -33,7 +33,7 @@ from .options import (
     write_options,
 )
 from .resources import scale_options, scale_settings
-from .view_options import camera_options
+from .view_options import camera_options, refuse_picture_options_without
 
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
@@ -175,6 +175,7 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
                               or orientation_labels is not None):
         raise click.UsageError("--camera-from, --camera-to and --orientation-labels need "
                                "--render-to")
+    refuse_picture_options_without(render_to, "--render-to PATTERN")
     _run(job, output, mesh_to, render_to, sheet_path, render_size, view, spec_path,
          dict(dtype=dtype, compress=compress, byte_order=byte_order, **ome_zarr),
          (camera_from, camera_to, orientation_labels))

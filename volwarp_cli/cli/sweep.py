@@ -25,7 +25,7 @@ from .options import (
     write_options,
 )
 from .resources import scale_options, scale_settings
-from .view_options import camera_options
+from .view_options import camera_options, refuse_picture_options_without
 
 
 def _render_size(value):
@@ -101,6 +101,7 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
                                 or orientation_labels is not None):
         raise click.UsageError("--camera-from, --camera-to and --orientation-labels need "
                                "--render OUT.png")
+    refuse_picture_options_without(render_path, "--render OUT.png")
     if multi:  # the output's form is checked before the spec and its templates are read
         output_paths(output, [], multi)
     with timed("read spec and templates"):

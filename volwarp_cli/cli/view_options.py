@@ -61,6 +61,25 @@ def option_given(ctx, name: str) -> bool:
                       click.core.ParameterSource.ENVIRONMENT)
 
 
+#: the options that shape a rendered picture (those a command has)
+PICTURE_OPTIONS = ("view", "render_size", "size", "color", "background_color")
+
+
+def refuse_picture_options_without(render, flag: str) -> None:
+    """A usage error where options of the picture were given but no picture (``flag``).
+
+    (mesh, morph and sweep took --view, --render-size and the colours without
+    their --render and did nothing with them.)
+    """
+    if render is not None:
+        return
+    ctx = click.get_current_context(silent=True)
+    given = [f"--{n.replace('_', '-')}" for n in PICTURE_OPTIONS if option_given(ctx, n)]
+    if given:
+        raise click.UsageError(f"{', '.join(given)} shape{'s' if len(given) == 1 else ''} "
+                               f"the picture: give {flag}")
+
+
 #: names of a command's picture-size parameter (--render-size; the old --size)
 _SIZE_PARAMS = ("size", "render_size")
 
