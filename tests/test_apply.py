@@ -322,9 +322,70 @@ def test_a_dtype_that_would_merge_label_ids_is_refused(run, tmp_path, command):
               "--dtype", "int16")
     assert res.code == 0, res.stderr
     out = read_volume(tmp_path / "o16.nrrd").data
-    assert out.dtype == np.int16 and set(np.unique(out)) <= {0, 1, 300, 1000}
+    assert out.dtype == np.int16 and set(np.unique(out)) == {0, 1, 300, 1000}
     if command == "convert":
         assert np.array_equal(out, lab.data)
+    # the way out the message names: the ids taken as intensities, clipped
+    nearest = ["--interpolation", "nearest"] if command == "apply" else []
+    res = run(command, tmp_path / "seg.nrrd", "-o", tmp_path / "oi.nrrd", *extra,
+              "--dtype", "uint8", "--values", "intensity", *nearest)
+    assert res.code == 0, res.stderr
+    assert set(np.unique(read_volume(tmp_path / "oi.nrrd").data)) == {0, 1, 255}
+
+
+@pytest.mark.parametrize("chunked", [False, True])
+def test_nearest_keeps_a_background_the_output_type_holds_as_sitk(run, tmp_path, chunked):
+    """Nearest samples in the input's type: a -1000 background of a uint8 scan's int16 output
+    was clipped to 0 there (SimpleITK gives -1000, as asked)."""
+    vol = smooth()
+    scan = vol.with_data(np.clip(vol.data + 30, 0, 255).astype(np.uint8))
+    write_volume(scan, tmp_path / "s.nrrd")
+    shift = sitk.TranslationTransform(3, (8.0, 0.0, 0.0))
+    sitk.WriteTransform(shift, str(tmp_path / "t.tfm"))
+    res = run("apply", tmp_path / "s.nrrd", "-t", tmp_path / "t.tfm", "-o", tmp_path / "o.nrrd",
+              "--interpolation", "nearest", "--values", "intensity", "--background-value",
+              "-1000", "--dtype", "int16", *(["--chunked", "--block", "8"] if chunked else []))
+    assert res.code == 0, res.stderr
+    out = read_volume(tmp_path / "o.nrrd").data
+    img = to_sitk(scan)
+    theirs = sitk.GetArrayFromImage(sitk.Resample(img, img, shift, sitk.sitkNearestNeighbor,
+                                                  -1000.0, sitk.sitkInt16))
+    assert (theirs == -1000).sum() > 100
+    assert out.dtype == np.int16 and np.array_equal(out, theirs)
+
+
+def test_api_write_keeps_a_label_map_s_ids_as_convert_does(tmp_path):
+    from volwarp_cli import api
+    from volwarp_cli.errors import BadUsage
+
+    ids = np.array([0, 1, 300, 1000], np.uint16)
+    lab = smooth().with_data(ids[np.digitize(smooth().data, [10, 40, 80])])
+    with pytest.raises(BadUsage, match="cannot hold its label ids 300, 1000"):
+        api.write(lab, tmp_path / "a.nrrd", dtype="uint8")
+    with pytest.raises(BadUsage, match="cannot hold"):
+        api.write(lab, tmp_path / "a.nrrd", dtype="uint8", labels=True)
+    assert not (tmp_path / "a.nrrd").exists()
+    api.write(lab, tmp_path / "b.nrrd", dtype="uint8", labels=False)  # intensities: clipped
+    assert set(np.unique(read_volume(tmp_path / "b.nrrd").data)) == {0, 1, 255}
+
+
+def test_a_given_background_of_a_label_map_is_a_label_the_output_holds(run, tmp_path):
+    """--background-value 300 on a uint8 map was clipped into label 255 (which then grew)."""
+    ids = np.array([0, 3, 7, 255], np.uint8)
+    lab = smooth().with_data(ids[np.digitize(smooth().data, [10, 40, 80])])
+    write_volume(lab, tmp_path / "seg.nrrd")  # (a shift: part of the output falls outside)
+    sitk.WriteTransform(sitk.TranslationTransform(3, (8.0, 0.0, 0.0)), str(tmp_path / "a.tfm"))
+    args = ["apply", tmp_path / "seg.nrrd", "-t", tmp_path / "a.tfm", "-o", tmp_path / "o.nrrd"]
+    res = run(*args, "--background-value", "300")
+    assert res.code == 2 and "does not fit the output's uint8 ids" in res.stderr, res.stderr
+    res = run(*args, "--background-value", "2.5")
+    assert res.code == 2 and "is not a label id" in res.stderr, res.stderr
+    assert not (tmp_path / "o.nrrd").exists()
+    res = run(*args, "--background-value", "300", "--dtype", "uint16")
+    assert res.code == 0, res.stderr
+    out = read_volume(tmp_path / "o.nrrd").data
+    assert out.dtype == np.uint16 and 300 in np.unique(out)
+    assert set(np.unique(out)) <= {0, 3, 7, 255, 300}
 
 
 def test_intensity_keeps_type_unless_dtype(run, tmp_path):

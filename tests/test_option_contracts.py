@@ -1,7 +1,7 @@
 """Options and errors as README and DESIGN say, where a review found them otherwise.
 
 Each case ran before with another exit code, or took an option and did
-nothing with it (exit 0, no word), or wrote a volume without its provenance.
+nothing with it (exit 0, no word).
 """
 
 from __future__ import annotations
@@ -111,15 +111,18 @@ def test_morph_and_sweep_picture_options_without_a_picture_are_refused(run, tmp_
 
 
 @pytest.mark.parametrize("suffix", [".nrrd", ".nii.gz", ".mha"])
-def test_convert_says_how_its_output_was_made_and_keeps_the_rest(run, tmp_path, suffix):
-    vol = Volume(np.arange(64, dtype=np.int16).reshape(4, 4, 4), meta={"patient": "x"})
+def test_convert_keeps_the_provenance_of_its_input_s_samples(run, tmp_path, suffix):
+    """A format change is not how the samples were made: a warp's provenance (its command
+    and its spec's hash) survives a conversion; the other key/values too."""
+    vol = Volume(np.arange(64, dtype=np.int16).reshape(4, 4, 4),
+                 meta={"patient": "x", "volwarp_command": "warp", "volwarp_input": "a.nrrd",
+                       "volwarp_spec_sha256": "ab" * 32, "volwarp_version": "0.1.0"})
     write_volume(vol, tmp_path / "in.nrrd")
     res = run("convert", tmp_path / "in.nrrd", "-o", tmp_path / f"out{suffix}")
     assert res.code == 0, res
     out = read_volume(tmp_path / f"out{suffix}")
-    assert out.meta["volwarp_command"] == "convert"
-    assert out.meta["volwarp_input"] == "in.nrrd"
-    assert "volwarp_version" in out.meta
-    if suffix != ".nii.gz":  # (NIfTI has no free key/values: volwarp's own only)
+    assert out.meta["volwarp_command"] == "warp"
+    assert out.meta["volwarp_spec_sha256"] == "ab" * 32
+    if suffix != ".nii.gz":  # (NIfTI keeps volwarp's own keys only)
         assert out.meta["patient"] == "x"
     assert np.array_equal(out.data, vol.data)

@@ -206,7 +206,8 @@ TWO_STEPS = ("version: 1\nunits: voxel\ncapture: {lattice: 5}\nsteps:\n"
 def test_frames_a_pattern_gives_one_name_are_refused_before_any_is_written(run, data_dir,
                                                                            tmp_path, values):
     """{sub} restarts at each spec step: frames 1 and 4 would both be s1.nrrd (the second
-    replacing the first, exit 0, before); -o naming a frame's file likewise."""
+    replacing the first, exit 0, before); -o or an export naming a frame's file
+    likewise (only frame 1's name was checked)."""
     src = data_dir / "ball_30_uint8.nrrd"
     spec = _spec(tmp_path, TWO_STEPS)
     old = tmp_path / "s1.nrrd"
@@ -217,10 +218,15 @@ def test_frames_a_pattern_gives_one_name_are_refused_before_any_is_written(run, 
     assert "names frames 1 and 4 both" in res.stderr and "{frame}" in res.stderr
     assert [p.name for p in tmp_path.glob("*.nrrd")] == ["s1.nrrd"]
     assert old.read_bytes() == b"an earlier frame"
-    res = run("warp", src, "--spec", spec, "--frames-to", str(tmp_path / "f{frame}.nrrd"),
-              "-o", tmp_path / "f2.nrrd", "--values", values)
-    assert res.code == 2 and "is also frame 2's file" in res.stderr
-    assert not list(tmp_path.glob("f*.nrrd"))
+    for clash in (["-o", tmp_path / "f2.nrrd"], ["--jacobian-to", tmp_path / "f3.nrrd"]):
+        res = run("warp", src, "--spec", spec, "--frames-to", str(tmp_path / "f{frame}.nrrd"),
+                  *clash, "--values", values)
+        assert res.code == 2 and "name the same file" in res.stderr, res.stderr
+    # a detached header's data file: frame 2's f2.raw is the -o header's too
+    res = run("warp", src, "--spec", spec, "--frames-to", str(tmp_path / "f{frame}.nhdr"),
+              "-o", tmp_path / "f2.mhd", "--values", values)
+    assert res.code == 2 and "f2.raw" in res.stderr, res.stderr
+    assert not list(tmp_path.glob("f*"))
     res = run("warp", src, "--spec", spec, "--frames-to", str(tmp_path / "f{frame}.nrrd"),
               "--values", values)
     assert res.code == 0, res.stderr

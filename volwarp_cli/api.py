@@ -147,9 +147,12 @@ def write(obj, path: str | os.PathLike, *, dtype: str | None = None, compress: b
         Volumes: as the commands' ``--dtype``, ``--compress``,
         ``--byte-order``, ``--ome-zarr-version`` and ``--pyramid``.
     labels : True, False or ``"auto"``
-        OME-Zarr pyramids: whether levels take the most frequent label (True)
-        or the mean; ``"auto"``: the label-map rule. ``volwarp warp`` writes a
-        label map's warp with True: give it for a label warp's pyramid.
+        Whether the samples are a label map (True) or intensities; ``"auto"``:
+        the label-map rule. A label map's pyramid levels take the most
+        frequent label, and a ``dtype`` that cannot hold every id is refused
+        (:class:`~volwarp_cli.errors.BadUsage`); intensities are clipped to
+        ``dtype``'s range and their levels take the mean (as ``convert
+        --values``). ``volwarp warp`` writes a label map's warp with True.
 
     Notes
     -----
@@ -167,6 +170,11 @@ def write(obj, path: str | os.PathLike, *, dtype: str | None = None, compress: b
     if isinstance(obj, Volume):
         from .io import write_volume
 
+        if dtype is not None and dtype != obj.dtype.name:  # (as convert: ids kept)
+            from .labelmap import keep_label_ids
+
+            keep_label_ids(obj.data, dtype, str(path),
+                           None if labels == "auto" else "labels" if labels else "intensity")
         write_volume(obj, path, labels=labels, **volume_options)
         return
     if isinstance(obj, Mapping) and obj and all(isinstance(v, Volume) for v in obj.values()):

@@ -294,6 +294,10 @@ class ApplyOperation(Operation):
             flat[:] = self._background_as(self.dtype)
             return {self.KEY: out}
         data, lo_xyz = self._region_samples(region)
+        if self.interpolation == "nearest" and not _holds(data.dtype, self.background):
+            # (nearest samples in the input's type, where the background would be clipped:
+            # -1000 in a uint8 scan's int16 output, 300 in a uint8 map's uint16 one)
+            data = data.astype(np.promote_types(data.dtype, self.dtype))
         ops = self._local_ops(box)
 
         def part(k):
@@ -475,16 +479,40 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
     sampling.say()
     if sampling.refusal is not None:
         raise BadUsage(sampling.refusal)
-    if dtype is not None and sampling.choice.is_labels and sampling.choice.ids is not None:
-        from .labelmap import refuse_merged_ids
-
-        refuse_merged_ids(sampling.choice.ids, dtype, name)
     out_dtype = np.dtype(dtype or source.dtype)
+    if sampling.choice.is_labels:
+        _check_label_output(sampling, dtype, out_dtype, name)
     out = header.replace(shape=grid.shape, dtype=out_dtype, spacing=np.array(grid.spacing),
                          origin=np.array(grid.origin), direction=np.array(grid.direction))
     return ApplyOperation(source, in_grid, chain, grid, interpolation=sampling.interpolation,
                           background=sampling.background,
                           target=Target(None, out, out_dtype), name=name)
+
+
+def _holds(dtype, value: float) -> bool:
+    """Whether samples of ``dtype`` hold ``value`` exactly (integer types: in range, whole)."""
+    dtype = np.dtype(dtype)
+    if dtype.kind not in "iu":
+        return True  # (floats: the value as that float, as every sample of it is)
+    info = np.iinfo(dtype)
+    return float(value).is_integer() and info.min <= value <= info.max
+
+
+def _check_label_output(sampling: Sampling, dtype, out_dtype: np.dtype, name: str) -> None:
+    """A label map's output type holds every id and the background (a label id too)."""
+    from .labelmap import refuse_merged_ids
+
+    b = sampling.background
+    if not sampling.background_ruled:  # (the rule's background is a border label)
+        if not float(b).is_integer():
+            raise BadUsage(f"{name}: --background-value {b:g} is not a label id (an integer); "
+                           "a label map's outside takes a label")
+        if not _holds(out_dtype, b):
+            raise BadUsage(f"{name}: --background-value {b:g} does not fit the output's "
+                           f"{out_dtype.name} ids (it would become another label); give a "
+                           "--dtype that holds it")
+    if dtype is not None and sampling.choice.ids is not None:
+        refuse_merged_ids(sampling.choice.ids, dtype, name)
 
 
 def label_interpolation_refusal(name: str, choice, interpolation: str) -> str:

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from .box import Box
-from .errors import OutOfMemoryError, VolwarpError
+from .errors import BadUsage, OutOfMemoryError, VolwarpError
 from .progress import log, timed
 
 #: the least memory worth running blocks in (below it, refuse: tiny blocks take forever)
@@ -277,6 +277,8 @@ def blocks_refusal(outputs, compress: bool = False, pyramid: int = 0) -> str | N
     for path, nbytes in outputs:
         try:
             check_block_format(path, bool(compress), int(pyramid or 0))
+        except BadUsage:  # (an option the output cannot take at all: a usage error either way)
+            raise
         except VolwarpError as exc:
             return str(exc)
         need.setdefault(Path(path).resolve().parent, []).append(int(nbytes))

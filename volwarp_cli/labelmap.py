@@ -142,7 +142,22 @@ def refuse_merged_ids(ids, dtype, name: str, option: str = "--dtype") -> None:
         shown = ", ".join(f"{v:.17g}" for v in lost[:3].tolist())
         more = f" and {lost.size - 3} more" if lost.size > 3 else ""
         raise BadUsage(f"{name}: {option} {dt.name} cannot hold its label ids {shown}{more} "
-                       "(a label map's ids are never merged): give a type that holds them")
+                       "(a label map's ids are never merged or changed): give a type that "
+                       "holds them, or --values intensity to clip them as intensities")
+
+
+def keep_label_ids(data, dtype, name: str, values: str | None = None) -> None:
+    """:func:`refuse_merged_ids` for samples written as ``dtype``, if they are a label map.
+
+    ``values``: ``"labels"`` (they are), ``"intensity"`` (they are not:
+    clipped to the type's range, nothing checked) or None (the rule decides,
+    one pass over ``data``).
+    """
+    if values == "intensity":
+        return
+    looks, ids, _ = scan_labels(data, detect=values is None)
+    if ids is not None and (looks or values == "labels"):
+        refuse_merged_ids(ids, dtype, name)
 
 
 def label_map_hint(data: np.ndarray) -> dict | None:

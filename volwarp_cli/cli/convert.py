@@ -58,6 +58,12 @@ def _output(ctx, param, value):
                    "mode (the most frequent value: label maps, never an invented label), "
                    "mean (intensities), or auto (mode for integer volumes that are "
                    "piecewise constant, whatever their number of labels; else mean).")
+@click.option("--values", type=click.Choice(["intensity", "labels"]), default=None,
+              help="Take the samples as intensities or as label ids [default: labels when "
+                   "INPUT looks like a label map, as `volwarp info` hints]. Labels keep every "
+                   "id: a --dtype that cannot hold one is refused, and --pyramid levels take "
+                   "the mode; intensities are clipped to --dtype's range, and levels take "
+                   "the mean (unless --pyramid-method says).")
 @click.option("--dicom-type", type=click.Choice(DICOM_TYPES), default=None,
               help="Write the label map as a DICOM SEG (seg: BINARY, segments numbered 1..K "
                    "in label order; labelmap-seg: LABELMAP, the label values kept) or "
@@ -74,8 +80,8 @@ def _output(ctx, param, value):
                    "(default: 'label N' for a SEG, 'label_N' for an RTSTRUCT).")
 @input_options(reference_help=REFERENCE_HELP)
 @common_options
-def command(input, output, dtype, compress, byte_order, pyramid_method, dicom_type, contours,
-            segments, raw, volume_index, dicom, reference, ome_zarr):
+def command(input, output, dtype, compress, byte_order, pyramid_method, values, dicom_type,
+            contours, segments, raw, volume_index, dicom, reference, ome_zarr):
     """Convert INPUT to OUTPUT (format by extension), keeping geometry and key/values.
 
     DICOM SEG and RTSTRUCT inputs are read as label maps (--reference, --segment,
@@ -85,7 +91,7 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, dicom_ty
         raise click.UsageError(f"--pyramid-method {pyramid_method} chooses how --pyramid "
                                "levels are made: give --pyramid N (N >= 1) with it")
     writing = _dicom_output(output, dicom_type, segments, reference, dtype, compress,
-                            byte_order, ome_zarr)
+                            byte_order, ome_zarr, values)
     if contours is not None and dicom_type != "rtstruct":
         raise click.UsageError(f"--contours {contours} shapes the contours of an RTSTRUCT: "
                                "give --dicom-type rtstruct")
@@ -96,26 +102,21 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, dicom_ty
     if writing:
         _write_segmentation(vol, output, dicom_type, reference, segments, contours)
         return
+    labels = PYRAMID_METHODS[pyramid_method]
+    if labels == "auto" and values is not None:
+        labels = values == "labels"
     if dtype is not None and dtype != vol.dtype.name:
-        _check_label_ids(vol, dtype, input, PYRAMID_METHODS[pyramid_method])
-    from ..provenance import stamp
+        from ..labelmap import keep_label_ids
 
-    with timed(f"write {output}"):  # (its key/values kept; the provenance is convert's)
-        write_volume(stamp(vol, "convert", input), output, dtype=dtype, compress=compress,
-                     byte_order=byte_order, labels=PYRAMID_METHODS[pyramid_method], **ome_zarr)
-
-
-def _check_label_ids(vol, dtype, name, labels) -> None:
-    """A label map (by the rule, or ``--pyramid-method mode``) keeps every id in ``dtype``."""
-    from ..labelmap import refuse_merged_ids, scan_labels
-
-    looks, ids, _ = scan_labels(vol.data, detect=labels == "auto")
-    if ids is not None and (looks or labels is True):
-        refuse_merged_ids(ids, dtype, str(name))
+        keep_label_ids(vol.data, dtype, str(input),
+                       None if labels == "auto" else "labels" if labels else "intensity")
+    with timed(f"write {output}"):  # (its key/values kept, the provenance of its samples too)
+        write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
+                     labels=labels, **ome_zarr)
 
 
 def _dicom_output(output, dicom_type, segments, reference, dtype, compress, byte_order,
-                  ome_zarr) -> bool:
+                  ome_zarr, values=None) -> bool:
     """True when OUTPUT is a SEG or RTSTRUCT; usage errors for options that do not fit."""
     is_dcm = output.lower().endswith(".dcm")
     if not is_dcm:
@@ -131,10 +132,10 @@ def _dicom_output(output, dicom_type, segments, reference, dtype, compress, byte
         raise click.UsageError(f"--dicom-type {dicom_type} writes against the image series the "
                                "label map lies on: give --reference SERIES")
     if dtype or compress or byte_order != "little" or ome_zarr.get("pyramid") or \
-            ome_zarr.get("ome_zarr_version") != "0.5":
-        raise click.UsageError("--dtype, --compress, --byte-order, --pyramid and "
-                               "--ome-zarr-version describe volume outputs, not a DICOM "
-                               f"{dicom_type}")
+            ome_zarr.get("ome_zarr_version") != "0.5" or values:
+        raise click.UsageError("--dtype, --compress, --byte-order, --pyramid, "
+                               "--ome-zarr-version and --values describe volume outputs, not "
+                               f"a DICOM {dicom_type} (its labels are labels)")
     return True
 
 

@@ -182,14 +182,16 @@ def read_components(path: str | os.PathLike) -> tuple[Volume, np.ndarray]:
     return vol, samples
 
 
-def _say_unused_options(path: Path, fmt: str, compress: bool, ome_zarr_version: str) -> None:
+def say_unused_writer_options(path, fmt: str, compress: bool, ome_zarr_version: str) -> None:
     """Say (once a run) a writer option that ``path``'s format has nothing to do with.
 
     Not refused: a command's options go to all its outputs (``-o x.nrrd
-    --compress --jacobian-to j.nii``), and apply where they can.
+    --compress --jacobian-to j.nii``), and apply where they can. In memory
+    (:func:`write_volume`) as by blocks (:func:`.blockwrite.open_volume_blocks`).
     """
     unused = []
-    if compress and (fmt == "raw" or (fmt == "nifti" and not path.name.endswith(".gz"))):
+    name = Path(path).name.lower()
+    if compress and (fmt == "raw" or (fmt == "nifti" and not name.endswith(".gz"))):
         unused.append(("--compress", "a .nii or raw file is never compressed (.nii.gz is "
                                      "gzip NIfTI)"))
     if ome_zarr_version != "0.5" and fmt != "omezarr":
@@ -229,7 +231,7 @@ def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: 
                        "(.ome.zarr); a " + _FORMAT_NAMES[fmt] + " file has one")
     if fmt == "nifti" and byte_order != "little":
         raise BadUsage(f"{path}: volwarp writes NIfTI little-endian only (--byte-order)")
-    _say_unused_options(path, fmt, compress, ome_zarr_version)
+    say_unused_writer_options(path, fmt, compress, ome_zarr_version)
     if dtype is not None:
         vol = vol.with_data(cast_samples(vol.data, dtype, what=str(path)))
     if not np.issubdtype(vol.data.dtype, np.number):

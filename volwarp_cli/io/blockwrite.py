@@ -78,8 +78,11 @@ def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chu
     multi-component NRRD, components interleaved, as :func:`.nrrd.write_nrrd`
     writes it); each block is then written with them last, ``box.shape + (C,)``.
     """
+    from . import say_unused_writer_options
+
     path = Path(path)
     fmt = check_block_format(path, compress, pyramid)
+    say_unused_writer_options(path, fmt, compress, version)
     dtype = check_dtype(dtype, str(path))
     if components and fmt != "nrrd":
         raise VolwarpError(f"{path}: samples with several components are written by blocks "

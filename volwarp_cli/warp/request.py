@@ -307,7 +307,7 @@ def _warp_frames(req: WarpFiles) -> dict:
         written[0] += 1
 
     def checked(warp):  # (every frame's file its own, before any is made)
-        warp.frame_names(req.frames_to, req.output)
+        warp.frame_names(req.frames_to)
         return warp
 
     if labels:

@@ -356,14 +356,19 @@ class LatticeMoves:
         """:func:`handle_report` of this warp's drags."""
         return handle_report(self.cap, self.frames)
 
-    def frame_names(self, pattern: str, output=None) -> list[str]:
-        """Every frame's file (``--frames-to`` ``pattern``), each its own; checked before any work.
+    def frame_names(self, pattern: str) -> list[str]:
+        """Every frame's file (``--frames-to`` ``pattern``), each its own; checked before any is made.
 
         A pattern can number the frames of one spec step and not the others
-        (``{sub}`` restarts at each step): two frames of one name, or one
-        named as the ``output``, would replace each other (a :class:`BadUsage`).
+        (``{sub}`` restarts at each step): two frames of one name would
+        replace each other (a :class:`BadUsage`). Every frame's name is then
+        checked as an output of its own (:func:`~volwarp_cli.io.check_output_path`):
+        not an input, not a file ``-o`` or an export names (a detached
+        header's data file included), its folder there.
         """
         import os
+
+        from ..io import check_output_path
 
         names = [pattern.format(**frame_fields(n, fr))
                  for n, fr in enumerate([None, *self.frames])]
@@ -374,9 +379,8 @@ class LatticeMoves:
                 raise BadUsage(f"--frames-to: {pattern!r} names frames {seen[key]} and {n} "
                                f"both {name}; put {{frame}} in it")
             seen[key] = n
-        if output is not None and os.path.realpath(output) in seen:
-            n = seen[os.path.realpath(output)]
-            raise BadUsage(f"-o {output} is also frame {n}'s file (--frames-to {pattern!r})")
+        for name in names:
+            check_output_path(name, option="--frames-to")
         return names
 
 
