@@ -34,7 +34,11 @@ class RunFiles:
     its checks only, and stops at its first read of an input
     (:func:`stop_if_dry_run`); ``said``: the warnings a run says once;
     ``ends``: what the run removes when it ends (:func:`at_run_end`); ``copies``:
-    its inputs' scratch copies (:mod:`volwarp_cli.io.inflated`), by file.
+    its inputs' scratch copies (:mod:`volwarp_cli.io.inflated`), by file;
+    ``folder``: where the run's relative names inside files are taken from
+    (an elastix file's initial transform: where elastix ran), None for the
+    process's folder (a batch's dry run of a step stands in for the step,
+    which runs in the manifest's folder).
     """
 
     inputs: set[tuple[int, int]] = field(default_factory=set)
@@ -48,6 +52,7 @@ class RunFiles:
     said: set = field(default_factory=set)
     ends: list = field(default_factory=list)
     copies: dict = field(default_factory=dict)
+    folder: str | None = None
 
 
 class DryRunStop(BaseException):  # noqa: N818 - a stop, not an error

@@ -76,6 +76,14 @@ class StepPlan:
         return ["-o", *self.extra_options]
 
     @property
+    def made(self) -> list[Path]:
+        """Every file the step makes: :attr:`outputs` and the fixed outputs.
+
+        Each recorded and checked: one deleted or changed by hand makes the step run again.
+        """
+        return [*self.outputs, *(p for _, p in self.fixed_outputs)]
+
+    @property
     def writes(self) -> list[tuple[str, Path]]:
         """``(option, path)`` of every file the step writes: :attr:`outputs`, fixed outputs."""
         return [*zip(self.output_options, self.outputs, strict=True), *self.fixed_outputs]
@@ -103,7 +111,7 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
             if row_column(value) is not None:
                 text, path = fill_column(value, scan)
                 options.append(text)
-                reads += [path, *_linked(path)]
+                reads += [path, *_linked(path, manifest.base)]
             elif placeholders(value):
                 path = output_path(manifest, scan, value)
                 extra.append(path)
@@ -122,17 +130,18 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
     return list(plans.values())
 
 
-def _linked(path: Path) -> list[Path]:
+def _linked(path: Path, folder: Path) -> list[Path]:
     """The files a scan's own file names: an elastix parameter file's initial transforms.
 
     They are what the step reads too (a changed initial transform redoes the
-    scan); one that cannot be found is the step's to report.
+    scan), found as the step finds them: it runs in the manifest's ``folder``.
+    One that cannot be found is the step's to report.
     """
     from ..errors import VolwarpError
     from ..transforms.elastix import initial_files
 
     try:
-        return [Path(p) for p in initial_files(str(path))]
+        return [Path(p) for p in initial_files(str(path), str(folder))]
     except (OSError, VolwarpError):
         return []
 
@@ -198,7 +207,7 @@ def _difference(old: dict, new: dict) -> str | None:
 def stale_reason(manifest: Manifest, plan: StepPlan, record: CommandRecord, made: dict
                  ) -> str | None:
     """Why ``plan``'s outputs must be (re)made from ``made``, or None when they are up to date."""
-    for out in plan.outputs:
+    for out in plan.made:
         entry = record.entry(out)
         if entry is None:
             return f"{out.name}: not made by this batch before"
@@ -255,7 +264,7 @@ class CommandRecord:
     def entries(self, plan: StepPlan, made: dict) -> dict[str, dict] | None:
         """The record of ``plan``'s outputs just made from ``made`` (None: one is missing)."""
         out = {}
-        for path in plan.outputs:
+        for path in plan.made:
             try:
                 out[self._key(path)] = {**made, "sha256": content_digest(path, self.hashes)}
             except OSError:
@@ -302,9 +311,9 @@ class CommandRecord:
 
     def snapshot(self, plans: list[StepPlan]) -> tuple[dict, dict]:
         """The record's entries for ``plans``' outputs and files (what a cluster task needs)."""
-        keys = {self._key(p) for plan in plans for p in plan.outputs}
+        keys = {self._key(p) for plan in plans for p in plan.made}
         roots = [os.path.abspath(path) for plan in plans
-                 for path in [*plan.outputs, *(p for _, p in step_files(self.manifest, plan))]]
+                 for path in [*plan.made, *(p for _, p in step_files(self.manifest, plan))]]
         roots += [str(f) for plan in plans for f in _data_files(plan.input)]
         with self.lock:
             outputs = {k: v for k, v in self.outputs.items() if k in keys}

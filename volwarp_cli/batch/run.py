@@ -249,7 +249,7 @@ class ScanRunner:
         for plan in plans:
             step = plan.step
             res = StepResult(step.name, step.run, "not run", command=["volwarp", *plan.argv],
-                             outputs=[str(p) for p in plan.outputs])
+                             outputs=[str(p) for p in plan.made])
             results[step.name] = res
             upstream = results.get(step.input) if step.input != SCAN else None
             if upstream is not None and upstream.status in ("failed", "not run", "stopped"):

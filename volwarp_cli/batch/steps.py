@@ -213,6 +213,7 @@ def _dry_run(manifest: Manifest, step: Step, command, argv: list[str]):
     def run():
         with run_scope() as files:
             files.dry_run = True
+            files.folder = str(manifest.base)  # (where the step will run)
             try:
                 ctx = command.make_context(f"volwarp {step.run}", argv[1:],
                                            resilient_parsing=False)

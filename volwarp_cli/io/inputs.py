@@ -46,7 +46,7 @@ def opened_as_input(path: str | os.PathLike) -> bool:
 
 
 def input_files(path: str | os.PathLike) -> list[Path]:
-    """``path`` and the data files its header names (detached NRRD and MetaImage).
+    """``path`` and the data files its header names (detached NRRD and MetaImage, a DICOMDIR's images).
 
     ``LIST`` headers and ``%d`` patterns name several. A folder (a DICOM
     series, an OME-Zarr store) is itself: :func:`refuse_output_over_input`
@@ -63,9 +63,18 @@ def input_files(path: str | os.PathLike) -> list[Path]:
             files += _nrrd_data_files(path)
         elif name.endswith(_METAIMAGE):
             files += _metaimage_data_files(path)
+        elif name == "dicomdir":
+            files += _dicomdir_data_files(path)
     except Exception:  # noqa: BLE001 - a header its reader will refuse: the read says why
         pass
     return files
+
+
+def _dicomdir_data_files(path: Path) -> list[Path]:
+    """The images a DICOMDIR lists (what a batch must hash: the DICOMDIR alone is an index)."""
+    from .dicom._scan import _files_of
+
+    return [Path(f) for f, _ in _files_of(path)[0] if Path(f) != path]
 
 
 def _nrrd_data_files(path: Path) -> list[Path]:

@@ -117,7 +117,12 @@ def _step(doc: dict, where: str):
     return itk_transform(_CLASSES[kind], params, fixed, where)
 
 
-def _initial(doc: dict, path: str) -> str | None:
+def _initial(doc: dict, path: str, folder: str | None = None) -> str | None:
+    """The initial transform ``path`` names: where elastix ran, else beside ``path``.
+
+    Where elastix ran: ``folder``, default the run's
+    (:attr:`~volwarp_cli.runscope.RunFiles.folder`), else this process's.
+    """
     for key in _INITIAL:
         if key in doc:
             name = _word(doc, key, "NoInitialTransform")
@@ -126,8 +131,13 @@ def _initial(doc: dict, path: str) -> str | None:
         return None
     if name in ("NoInitialTransform", ""):
         return None
-    if os.path.isfile(name):
-        return name
+    if folder is None:
+        from ..runscope import run_files
+
+        folder = run_files().folder
+    there = name if folder is None else os.path.join(folder, name)  # (absolute: itself)
+    if os.path.isfile(there):
+        return there
     beside = os.path.join(os.path.dirname(path), os.path.basename(name))
     if os.path.isfile(beside):
         return beside
@@ -156,11 +166,12 @@ def read_elastix(path: str, text: str, _seen: tuple = ()) -> tuple[list, dict]:
     return steps, doc
 
 
-def initial_files(path: str) -> list[str]:
+def initial_files(path: str, folder: str | None = None) -> list[str]:
     """The initial transforms an elastix parameter file names, nearest first ([] for another file).
 
     What reading ``path`` reads besides it (``volwarp batch`` hashes them
-    with a scan's own transform).
+    with a scan's own transform), a relative name taken from ``folder`` (as
+    :func:`_initial`).
     """
     from . import sniff
 
@@ -173,7 +184,7 @@ def initial_files(path: str) -> list[str]:
             text = fh.read()
         if not looks_like_elastix(text):
             return out
-        initial = _initial(parse(text, path), path)
+        initial = _initial(parse(text, path), path, folder)
         if initial is None or os.path.realpath(initial) in seen:
             return out
         seen.add(os.path.realpath(initial))

@@ -1,0 +1,154 @@
+"""A batch step is skipped only when what it reads and what it made are unchanged.
+
+Three ways it skipped a step whose output was no longer current (a review's
+findings, each a stale output reported as up to date): the images a DICOMDIR
+lists, an output option of one fixed name, and an elastix file's initial
+transform found from another folder than the one the step runs in.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pydicom = pytest.importorskip("pydicom")
+
+from volwarp_cli.io import read_volume, write_volume  # noqa: E402
+from volwarp_cli.volume import Volume  # noqa: E402
+
+
+def volwarp(*args, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "volwarp_cli", *map(str, args)], cwd=cwd,
+                          capture_output=True, text=True, timeout=300)
+
+
+def batch(manifest: Path, cwd=None) -> str:
+    """The batch's summary line (it must succeed)."""
+    res = volwarp("batch", manifest, cwd=cwd)
+    assert res.returncode == 0, res.stderr
+    return [line for line in res.stderr.splitlines() if line.startswith("volwarp batch:")][0]
+
+
+def dicomdir_series(folder: Path) -> Path:
+    """A 6-slice CT series written into a DICOM file set; its DICOMDIR."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.fileset import FileSet
+    from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+
+    fs = FileSet()
+    for k in range(6):
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = CTImageStorage
+        meta.MediaStorageSOPInstanceUID = generate_uid()
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = Dataset()
+        ds.file_meta = meta
+        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, meta.MediaStorageSOPInstanceUID
+        ds.Modality, ds.PatientName, ds.PatientID = "CT", "Doe^Jane", "ID-1"
+        ds.StudyInstanceUID = "1.2.826.0.1.3680043.8.498.9"
+        ds.StudyDate, ds.StudyTime, ds.StudyID, ds.AccessionNumber = "20260101", "120000", "1", "A1"
+        ds.SeriesNumber = 1
+        ds.SeriesInstanceUID = "1.2.826.0.1.3680043.8.498.1"
+        ds.FrameOfReferenceUID = "1.2.826.0.1.3680043.8.498.7"
+        ds.InstanceNumber = k + 1
+        ds.ImagePositionPatient = [0.0, 0.0, 2.0 * k]
+        ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
+        ds.PixelSpacing = [0.8, 0.8]
+        ds.Rows = ds.Columns = 8
+        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+        ds.BitsAllocated = ds.BitsStored = 16
+        ds.HighBit, ds.PixelRepresentation = 15, 1
+        ds.PixelData = (np.arange(64, dtype="<i2") + 100 * k).tobytes()
+        fs.add(ds)
+    fs.write(folder)
+    fs._stage["t"].cleanup()  # (pydicom's staging folder: else cleaned up, with a warning, at exit)
+    return folder / "DICOMDIR"
+
+
+def test_an_image_a_dicomdir_lists_changed_redoes_the_step(tmp_path):
+    dicomdir = dicomdir_series(tmp_path / "fs")
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\ninputs: {list: [fs/DICOMDIR]}\noutput_dir: out\nsteps:\n"
+        "  - {name: conv, run: convert, output: \"{stem}.nrrd\"}\n")
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 0 ok, 1 skipped, 0 failed"
+    image = sorted(p for p in dicomdir.parent.rglob("*") if p.is_file() and p != dicomdir)[0]
+    ds = pydicom.dcmread(image)
+    ds.PixelData = np.full(64, 1234, "<i2").tobytes()
+    ds.save_as(image)
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    out = read_volume(tmp_path / "out" / "fs" / "DICOMDIR.nrrd").data
+    assert (out == 1234).sum() == 64  # the changed slice, as a fresh convert reads it
+
+
+def test_an_output_option_of_one_fixed_name_is_recorded_and_checked(tmp_path):
+    """--points-to q.csv (one name: one scan) deleted or edited by hand redoes the step."""
+    write_volume(Volume(np.zeros((6, 6, 6), np.float32)), tmp_path / "mov.nrrd")
+    (tmp_path / "a.tfm").write_text(
+        "#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+        "Parameters: 1 0 0 0 1 0 0 0 1 1 2 3\nFixedParameters: 0 0 0\n")
+    (tmp_path / "p.csv").write_text("x,y,z\n1,2,3\n")
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\ninputs: {list: [mov.nrrd]}\noutput_dir: out\nsteps:\n"
+        "  - {name: moved, run: apply, output: \"{stem}_moved.nrrd\", options: "
+        "[-t, a.tfm, --points-in, p.csv, --points-to, q.csv]}\n")
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    made = (tmp_path / "q.csv").read_bytes()
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 0 ok, 1 skipped, 0 failed"
+    (tmp_path / "q.csv").unlink()
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    assert (tmp_path / "q.csv").read_bytes() == made
+    (tmp_path / "q.csv").write_text("edited by hand\n")
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    assert (tmp_path / "q.csv").read_bytes() == made
+
+
+ELASTIX = """(Transform "TranslationTransform")
+(NumberOfParameters 3)
+(TransformParameters {t})
+(InitialTransformParametersFileName "{initial}")
+(HowToCombineTransforms "Compose")
+(FixedImageDimension 3)
+(MovingImageDimension 3)
+(Size 6 6 6)
+(Spacing 1 1 1)
+(Origin 0 0 0)
+(Direction 1 0 0 0 1 0 0 0 1)
+(Index 0 0 0)
+"""
+
+
+def test_an_initial_transform_is_the_file_the_step_reads(tmp_path):
+    """TP1 names TP0: the step (run in the manifest's folder) reads the TP0 there, as elastix
+    does (relative to where it ran); the batch hashed the one beside TP1 when started from
+    another folder, and kept an output made from the other TP0."""
+    root = tmp_path / "proj"
+    (root / "reg").mkdir(parents=True)
+    data = np.zeros((6, 6, 6), np.float32)
+    data[2:4, 2:4, 2:4] = 100
+    write_volume(Volume(data), root / "mov.nrrd")
+    (root / "reg" / "TP1.txt").write_text(ELASTIX.format(t="0 0 0", initial="TP0.txt"))
+    (root / "reg" / "TP0.txt").write_text(ELASTIX.format(t="0 0 0", initial="NoInitialTransform"))
+    (root / "TP0.txt").write_text(ELASTIX.format(t="1 0 0", initial="NoInitialTransform"))
+    (root / "m.yaml").write_text(
+        "version: 1\ninputs: {list: [mov.nrrd]}\noutput_dir: out\nsteps:\n"
+        "  - {name: moved, run: apply, output: \"{stem}_moved.nrrd\", options: "
+        "[-t, reg/TP1.txt, --interpolation, nearest]}\n")
+    start = tmp_path  # (not the manifest's folder)
+    assert batch(root / "m.yaml", cwd=start) == \
+        "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    assert batch(root / "m.yaml", cwd=start) == \
+        "volwarp batch: 1 scan, 0 ok, 1 skipped, 0 failed"
+    (root / "TP0.txt").write_text(ELASTIX.format(t="2 0 0", initial="NoInitialTransform"))
+    assert batch(root / "m.yaml", cwd=start) == \
+        "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    out = read_volume(root / "out" / "mov_moved.nrrd").data
+    fresh = tmp_path / "fresh.nrrd"
+    res = volwarp("apply", root / "mov.nrrd", "-t", "reg/TP1.txt", "--interpolation", "nearest",
+                  "-o", fresh, cwd=root)
+    assert res.returncode == 0, res.stderr
+    assert np.array_equal(out, read_volume(fresh).data)
