@@ -109,7 +109,7 @@ def test_shards_share_the_folder_and_its_record(tmp_path):
     0 could end before the other runs start on a busy machine), then runs it.
     """
     manifest = make_tree(tmp_path, 6)
-    with hold(tmp_path / "out", shard=(0, 2)):
+    with hold(tmp_path / "out", shard=(0, 2), manifest=manifest):
         whole = volwarp("batch", manifest)
         again = volwarp("batch", manifest, "--shard", "0/2")
         shard1 = volwarp("batch", manifest, "--shard", "1/2")
@@ -122,3 +122,35 @@ def test_shards_share_the_folder_and_its_record(tmp_path):
     assert shard0.returncode == 0 and "3 ok" in summary(shard0), shard0.stderr
     res = volwarp("batch", manifest)  # both shards' records were kept
     assert summary(res) == "volwarp batch: 6 scans, 0 ok, 6 skipped, 0 failed", res.stderr
+
+
+def test_only_the_shards_of_one_array_share_the_folder(tmp_path):
+    """--shard 0/2 running: --shard 0/3 (another array: it would split the scans otherwise)
+    or the same N of another manifest is another batch (75); the array's other shards come
+    in, also while one of them holds its file without having signed it yet."""
+    import pytest
+
+    from volwarp_cli.batch.lock import Busy
+
+    a, b = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    with hold(tmp_path, shard=(0, 2), manifest=a):
+        with pytest.raises(Busy, match="another --shard array"):
+            with hold(tmp_path, shard=(0, 3), manifest=a):
+                pass
+        with pytest.raises(Busy, match="another --shard array"):
+            with hold(tmp_path, shard=(1, 2), manifest=b):
+                pass
+        with hold(tmp_path, shard=(1, 2), manifest=a):
+            pass
+    # shard 1 of the array has taken its file but not signed it (it waits for the check)
+    book = tmp_path / BOOK_DIR
+    fd = os.open(book / "shard-1-of-2.lock", os.O_RDWR | os.O_CREAT | os.O_TRUNC)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        with hold(tmp_path, shard=(0, 2), manifest=a):
+            pass
+        with pytest.raises(Busy, match="another --shard array"):
+            with hold(tmp_path, shard=(0, 4), manifest=a):
+                pass
+    finally:
+        os.close(fd)

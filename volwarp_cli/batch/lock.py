@@ -103,18 +103,51 @@ def _open(path: Path) -> int:
     return os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
 
 
-def _sign(fd: int, shard: str | None) -> None:
+def _sign(fd: int, shard: str | None, array: str | None = None) -> None:
     os.ftruncate(fd, 0)
     os.pwrite(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
-                              "shard": shard}).encode() + b"\n", 0)
+                              "shard": shard, "array": array}).encode() + b"\n", 0)
+
+
+def _other_array(folder: Path, count: int, array: str, mine: Path) -> str | None:
+    """A shard of another array (another N, another manifest) holding ``folder``, or None.
+
+    Called under ``array.lock``, holding ``mine`` (this shard's file, left
+    out): a shard signs its file before that lock is let go. Another N is in
+    a held file's name; another manifest in what its holder signed (a holder
+    that has not signed yet, waiting for ``array.lock``, shows an older
+    signature, or none: taken for this array's).
+    """
+    for shard in sorted(folder.glob("shard-*-of-*.lock")):
+        if shard == mine:
+            continue
+        probe = os.open(shard, os.O_RDONLY)
+        try:
+            if _try(probe, fcntl.LOCK_EX):  # (no one holds it: an old file)
+                fcntl.flock(probe, fcntl.LOCK_UN)
+                continue
+        finally:
+            os.close(probe)
+        try:
+            theirs = json.loads(shard.read_text()).get("array")
+        except (OSError, ValueError, AttributeError):
+            theirs = None
+        of = shard.stem.rsplit("-of-", 1)[-1]
+        if of != str(count) or (theirs is not None and theirs != array):
+            return _owner(shard)
+    return None
 
 
 @contextlib.contextmanager
 def hold(output_dir: Path, *, shard: tuple[int, int] | None = None, wait: bool = False,
-         on_wait=None):
+         on_wait=None, manifest: Path | None = None):
     """Hold the output folder for this run (raises :class:`Busy` when another run has it).
 
     ``wait``: wait for it instead, calling ``on_wait(holder)`` once first.
+    A shard shares the folder with the shards of its own array only: the
+    same ``N`` and the same ``manifest`` (another array's shard, running, is
+    another batch: :class:`Busy`, even with ``wait``: they would not end
+    for it to start).
     """
     folder = book_dir(output_dir)
     folder.mkdir(parents=True, exist_ok=True)
@@ -133,7 +166,18 @@ def hold(output_dir: Path, *, shard: tuple[int, int] | None = None, wait: bool =
             fds.append(mine)
             _acquire(mine, fcntl.LOCK_EX, wait,
                      lambda: f"{busy} ({_owner(path)})", on_wait)
-        _sign(mine, label)
+            # the shards of one array only: checked and signed as one step
+            array = f"{shard[1]} {os.path.realpath(manifest) if manifest else ''}"
+            gate = _open(folder / "array.lock")
+            fds.append(gate)
+            fcntl.flock(gate, fcntl.LOCK_EX)
+            other = _other_array(folder, shard[1], array, path)
+            if other is not None:
+                raise Busy(f"{busy} (another --shard array: {other})")
+            _sign(mine, label, array)
+            fcntl.flock(gate, fcntl.LOCK_UN)
+        else:
+            _sign(mine, label)
         yield
     finally:
         for fd in reversed(fds):

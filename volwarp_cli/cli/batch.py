@@ -162,7 +162,7 @@ def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force
 
     check_writable(m.output_dir)  # once, up front: not once per scan
     try:
-        with hold(m.output_dir, shard=shard, wait=wait,
+        with hold(m.output_dir, shard=shard, wait=wait, manifest=m.path,
                   on_wait=None if quiet else _say_waiting):
             report = run_batch(m, scans, Where(scheduler, jobs, workers, threads_per_worker),
                                ScanProgress.chosen(progress_mode, quiet, len(scans)),
