@@ -158,6 +158,37 @@ def test_cubic_block_memory_counts_what_it_allocates(monkeypatch, dtype):
         assert op.memory(box) >= peak, box
 
 
+def test_a_nearest_block_s_counted_bytes_hold_a_background_the_input_type_cannot():
+    """A background the uint8 input cannot hold is sampled in the output's type: the region is
+    copied into it (the background kept, not clipped), and the count holds that copy: what
+    the block allocates beyond a background that fits is what the count adds (it added
+    nothing)."""
+    from volwarp_cli import parallel
+
+    rng = np.random.default_rng(2)
+    data = rng.integers(0, 255, (40, 44, 50)).astype(np.uint8)
+    chain = Chain([Affine(np.eye(3), np.array([6.0, 0.0, 0.0]))])
+    box = Box((0, 0, 0), (40, 44, 50))
+    threads = parallel.threads()
+    counted, peaks = [], []
+    for background in (0.0, -1000.0):
+        op = plan_resample(Volume(data).header, _Reads(data), chain, interpolation="nearest",
+                           background=background, values="intensity", dtype="float64")
+        op.compute(Box((0, 0, 0), (2, 2, 2)), threads=threads)
+        tracemalloc.start()
+        try:
+            out = op.compute(box, threads=threads)[op.KEY]
+            peaks.append(tracemalloc.get_traced_memory()[1])
+        finally:
+            tracemalloc.stop()
+        counted.append(op.memory(box))
+        assert counted[-1] >= peaks[-1]
+        assert (out == background).sum() > 1000  # (the shifted-in columns)
+    extra = peaks[1] - peaks[0]  # (the float64 copy of the region, less its uint8 read)
+    assert extra > 0.5 * data.size * 8
+    assert counted[1] - counted[0] >= extra
+
+
 # -- the C kernels -----------------------------------------------------------------------
 def _sample_args(n=5, points=4):
     """A whole image of ``n``^3 float64 samples and arguments sampling it at ``points``."""

@@ -126,13 +126,21 @@ def test_shards_share_the_folder_and_its_record(tmp_path):
 
 def test_only_the_shards_of_one_array_share_the_folder(tmp_path):
     """--shard 0/2 running: --shard 0/3 (another array: it would split the scans otherwise)
-    or the same N of another manifest is another batch (75); the array's other shards come
-    in, also while one of them holds its file without having signed it yet."""
+    or the same N of another manifest is another batch (75, or waited for with --wait); the
+    array's other shards come in, also where a file holds a stale signature of another
+    array (the folder's previous batch)."""
+    import json
+    import threading
+
     import pytest
 
     from volwarp_cli.batch.lock import Busy
 
     a, b = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    book = tmp_path / BOOK_DIR
+    book.mkdir()
+    (book / "shard-1-of-2.lock").write_text(json.dumps(
+        {"pid": 1, "host": "x", "shard": "1/2", "array": f"2 {tmp_path / 'old.yaml'}"}))
     with hold(tmp_path, shard=(0, 2), manifest=a):
         with pytest.raises(Busy, match="another --shard array"):
             with hold(tmp_path, shard=(0, 3), manifest=a):
@@ -140,17 +148,53 @@ def test_only_the_shards_of_one_array_share_the_folder(tmp_path):
         with pytest.raises(Busy, match="another --shard array"):
             with hold(tmp_path, shard=(1, 2), manifest=b):
                 pass
-        with hold(tmp_path, shard=(1, 2), manifest=a):
+        with hold(tmp_path, shard=(1, 2), manifest=a):  # (its file's stale signature: no matter)
             pass
-    # shard 1 of the array has taken its file but not signed it (it waits for the check)
+        entered = []
+
+        def other_array():
+            with hold(tmp_path, shard=(0, 3), manifest=a, wait=True):
+                entered.append(time.monotonic())
+
+        waiter = threading.Thread(target=other_array)
+        waiter.start()
+        time.sleep(0.5)
+        assert not entered  # (it waits for this array's shards to end)
+        released = time.monotonic()
+    waiter.join(10)
+    assert entered and entered[0] >= released
+
+
+def test_a_shard_starting_during_another_s_probe_of_its_file_comes_in(tmp_path):
+    """SLURM starts every shard at once, and each start probes the others' files by taking
+    them for a moment: a shard whose own take met such a probe was refused (85 of 4,332
+    starts). Probes and takes are now under array.lock: the start waits for the probe."""
+    import threading
+
     book = tmp_path / BOOK_DIR
-    fd = os.open(book / "shard-1-of-2.lock", os.O_RDWR | os.O_CREAT | os.O_TRUNC)
+    book.mkdir()
+    gate = os.open(book / "array.lock", os.O_RDWR | os.O_CREAT)
+    probe = os.open(book / "shard-1-of-4.lock", os.O_RDWR | os.O_CREAT)
+    outcome = []
+
+    def start():
+        try:
+            with hold(tmp_path, shard=(1, 4), manifest=tmp_path / "m.yaml"):
+                outcome.append("in")
+        except Exception as exc:  # noqa: BLE001 - the outcome asserted below
+            outcome.append(exc)
+
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        with hold(tmp_path, shard=(0, 2), manifest=a):
-            pass
-        with pytest.raises(Busy, match="another --shard array"):
-            with hold(tmp_path, shard=(0, 4), manifest=a):
-                pass
+        fcntl.flock(gate, fcntl.LOCK_EX)  # a probe under way: the gate and shard 1's file
+        fcntl.flock(probe, fcntl.LOCK_EX)
+        t = threading.Thread(target=start)
+        t.start()
+        time.sleep(0.3)
+        assert not outcome  # (waiting for the gate, not refused)
+        fcntl.flock(probe, fcntl.LOCK_UN)
+        fcntl.flock(gate, fcntl.LOCK_UN)
+        t.join(10)
     finally:
-        os.close(fd)
+        os.close(probe)
+        os.close(gate)
+    assert outcome == ["in"], outcome

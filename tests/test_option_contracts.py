@@ -126,3 +126,20 @@ def test_convert_keeps_the_provenance_of_its_input_s_samples(run, tmp_path, suff
     if suffix != ".nii.gz":  # (NIfTI keeps volwarp's own keys only)
         assert out.meta["patient"] == "x"
     assert np.array_equal(out.data, vol.data)
+
+
+def test_convert_values_decides_the_ids_check_and_pyramid_method_only_the_levels(run, tmp_path):
+    z, y, x = np.mgrid[:8, :8, :8]
+    lab = np.where(x < 3, 0, np.where(y < 4, 300, 1000)).astype(np.uint16)
+    write_volume(Volume(lab), tmp_path / "lab.nrrd")
+    base = ["convert", tmp_path / "lab.nrrd", "--pyramid", "1", "--dtype", "uint8"]
+    res = run(*base, "-o", tmp_path / "a.ome.zarr", "--pyramid-method", "mean",
+              "--values", "labels")
+    assert res.code == 2 and "would average label ids" in res.stderr, res
+    res = run(*base, "-o", tmp_path / "b.ome.zarr", "--pyramid-method", "mode")
+    assert res.code == 2 and "cannot hold its label ids 300, 1000" in res.stderr, res
+    res = run(*base, "-o", tmp_path / "c.ome.zarr", "--pyramid-method", "mode",
+              "--values", "intensity")  # (the way out the refusal names, taken)
+    assert res.code == 0, res
+    assert set(np.unique(read_volume(tmp_path / "c.ome.zarr").data)) == {0, 255}
+    assert not (tmp_path / "a.ome.zarr").exists() and not (tmp_path / "b.ome.zarr").exists()

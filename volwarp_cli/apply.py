@@ -218,7 +218,21 @@ class ApplyOperation(Operation):
             scratch = 0
         else:
             held = region.size * self.in_dtype.itemsize
+            promoted = self._sampled_type(self.in_dtype)
+            if promoted != self.in_dtype:  # (a copy of the region in it: :meth:`compute`)
+                held += region.size * promoted.itemsize
         return box.size * self.dtype.itemsize + windows + held + scratch + BLOCK_OVERHEAD
+
+    def _sampled_type(self, dtype) -> np.dtype:
+        """The type nearest samples in: the input's, unless the background does not fit it.
+
+        Then the type both the input's and the output's fit in (-1000 for a
+        uint8 scan's int16 output: int16).
+        """
+        dtype = np.dtype(dtype)
+        if self.interpolation != "nearest" or _holds(dtype, self.background):
+            return dtype
+        return np.promote_types(dtype, self.dtype)
 
     def block_shape(self, per_task: int, workers: int) -> tuple[int, int, int]:
         """Cubes as large as a task's memory allows (:meth:`memory` of one in the middle).
@@ -294,10 +308,9 @@ class ApplyOperation(Operation):
             flat[:] = self._background_as(self.dtype)
             return {self.KEY: out}
         data, lo_xyz = self._region_samples(region)
-        if self.interpolation == "nearest" and not _holds(data.dtype, self.background):
-            # (nearest samples in the input's type, where the background would be clipped:
-            # -1000 in a uint8 scan's int16 output, 300 in a uint8 map's uint16 one)
-            data = data.astype(np.promote_types(data.dtype, self.dtype))
+        sampled = self._sampled_type(data.dtype)
+        if sampled != data.dtype:  # (else the background would be clipped to the input's type)
+            data = data.astype(sampled)
         ops = self._local_ops(box)
 
         def part(k):

@@ -28,6 +28,7 @@ from ..errors import VolwarpError
 #: the batch's own files, in the output folder
 BOOK_DIR = ".volwarp-batch"
 LOCK_NAME = "lock"
+ARRAY_LOCK_NAME = "array.lock"
 
 
 class Busy(VolwarpError):
@@ -79,14 +80,30 @@ def _holder(folder: Path, fd: int) -> str:
     if not _try(fd, fcntl.LOCK_SH):
         return _owner(folder / LOCK_NAME)
     fcntl.flock(fd, fcntl.LOCK_UN)
-    for shard in sorted(folder.glob("shard-*.lock")):
-        probe = os.open(shard, os.O_RDONLY)
-        try:
-            if not _try(probe, fcntl.LOCK_EX):
-                return _owner(shard)
-        finally:
-            os.close(probe)
+    with _gate(folder):  # (a probe outside it could make a starting shard think its file held)
+        for shard in sorted(folder.glob("shard-*.lock")):
+            probe = os.open(shard, os.O_RDONLY)
+            try:
+                if not _try(probe, fcntl.LOCK_EX):
+                    return _owner(shard)
+            finally:
+                os.close(probe)
     return "its pid unknown"
+
+
+@contextlib.contextmanager
+def _gate(folder: Path):
+    """``array.lock``, held exclusively for a moment.
+
+    The shards' files are taken, signed and probed under it only, so a probe
+    never meets a taking, nor a file not yet signed.
+    """
+    gate = _open(folder / ARRAY_LOCK_NAME)
+    try:
+        fcntl.flock(gate, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(gate)
 
 
 def _acquire(fd: int, mode: int, wait: bool, who, on_wait) -> None:
@@ -109,14 +126,12 @@ def _sign(fd: int, shard: str | None, array: str | None = None) -> None:
                               "shard": shard, "array": array}).encode() + b"\n", 0)
 
 
-def _other_array(folder: Path, count: int, array: str, mine: Path) -> str | None:
-    """A shard of another array (another N, another manifest) holding ``folder``, or None.
+def _other_array(folder: Path, count: int, array: str, mine: Path):
+    """``(file, holder)`` of a shard of another array holding ``folder``, or None.
 
-    Called under ``array.lock``, holding ``mine`` (this shard's file, left
-    out): a shard signs its file before that lock is let go. Another N is in
-    a held file's name; another manifest in what its holder signed (a holder
-    that has not signed yet, waiting for ``array.lock``, shows an older
-    signature, or none: taken for this array's).
+    Under :func:`_gate`, holding ``mine`` (this shard's file, left out): every
+    file held was taken and signed under it. Another array: another N (in
+    the file's name), or another manifest (in what its holder signed).
     """
     for shard in sorted(folder.glob("shard-*-of-*.lock")):
         if shard == mine:
@@ -132,10 +147,40 @@ def _other_array(folder: Path, count: int, array: str, mine: Path) -> str | None
             theirs = json.loads(shard.read_text()).get("array")
         except (OSError, ValueError, AttributeError):
             theirs = None
-        of = shard.stem.rsplit("-of-", 1)[-1]
-        if of != str(count) or (theirs is not None and theirs != array):
-            return _owner(shard)
+        if shard.stem.rsplit("-of-", 1)[-1] != str(count) or theirs != array:
+            return shard, _owner(shard)
     return None
+
+
+def _take_shard(folder: Path, fd: int, path: Path, label: str, array: str, count: int,
+                wait: bool, busy: str, on_wait) -> None:
+    """Take this shard's file and sign it, the other shards held being of its array only.
+
+    Another holder of the file (the same shard run twice) or of another
+    array: :class:`Busy`, or with ``wait`` waited for (``on_wait`` once).
+    """
+    said = False
+    while True:
+        with _gate(folder):
+            if _try(fd, fcntl.LOCK_EX):
+                other = _other_array(folder, count, array, path)
+                if other is None:
+                    _sign(fd, label, array)
+                    return
+                fcntl.flock(fd, fcntl.LOCK_UN)  # (let go under the gate)
+                held, who = other[0], f"another --shard array: {other[1]}"
+            else:
+                held, who = path, _owner(path)
+        if not wait:
+            raise Busy(f"{busy} ({who}); give --wait to wait")
+        if on_wait is not None and not said:
+            on_wait(f"{busy} ({who})")
+            said = True
+        probe = os.open(held, os.O_RDONLY)  # (until its holder ends)
+        try:
+            fcntl.flock(probe, fcntl.LOCK_EX)
+        finally:
+            os.close(probe)
 
 
 @contextlib.contextmanager
@@ -145,9 +190,8 @@ def hold(output_dir: Path, *, shard: tuple[int, int] | None = None, wait: bool =
 
     ``wait``: wait for it instead, calling ``on_wait(holder)`` once first.
     A shard shares the folder with the shards of its own array only: the
-    same ``N`` and the same ``manifest`` (another array's shard, running, is
-    another batch: :class:`Busy`, even with ``wait``: they would not end
-    for it to start).
+    same ``N`` and the same ``manifest`` (another array's running shard is
+    another batch: :class:`Busy`, or waited for with ``wait``).
     """
     folder = book_dir(output_dir)
     folder.mkdir(parents=True, exist_ok=True)
@@ -159,25 +203,14 @@ def hold(output_dir: Path, *, shard: tuple[int, int] | None = None, wait: bool =
         label = f"{shard[0]}/{shard[1]}" if shard else None
         _acquire(main, fcntl.LOCK_SH if shard else fcntl.LOCK_EX, wait,
                  lambda: f"{busy} ({_holder(folder, main)})", on_wait)
-        mine = main
         if shard:
             path = folder / f"shard-{shard[0]}-of-{shard[1]}.lock"
             mine = _open(path)
             fds.append(mine)
-            _acquire(mine, fcntl.LOCK_EX, wait,
-                     lambda: f"{busy} ({_owner(path)})", on_wait)
-            # the shards of one array only: checked and signed as one step
             array = f"{shard[1]} {os.path.realpath(manifest) if manifest else ''}"
-            gate = _open(folder / "array.lock")
-            fds.append(gate)
-            fcntl.flock(gate, fcntl.LOCK_EX)
-            other = _other_array(folder, shard[1], array, path)
-            if other is not None:
-                raise Busy(f"{busy} (another --shard array: {other})")
-            _sign(mine, label, array)
-            fcntl.flock(gate, fcntl.LOCK_UN)
+            _take_shard(folder, mine, path, label, array, shard[1], wait, busy, on_wait)
         else:
-            _sign(mine, label)
+            _sign(main, label)
         yield
     finally:
         for fd in reversed(fds):

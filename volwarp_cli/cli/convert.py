@@ -87,6 +87,10 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
     DICOM SEG and RTSTRUCT inputs are read as label maps (--reference, --segment,
     --structure); --dicom-type writes one (docs/segmentations.md).
     """
+    if values == "labels" and pyramid_method == "mean":
+        raise click.UsageError("--pyramid-method mean would average label ids into ids the map "
+                               "does not have: give --pyramid-method mode (or auto) with "
+                               "--values labels")
     if pyramid_method != "auto" and not ome_zarr.get("pyramid"):
         raise click.UsageError(f"--pyramid-method {pyramid_method} chooses how --pyramid "
                                "levels are made: give --pyramid N (N >= 1) with it")
@@ -108,8 +112,9 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
     if dtype is not None and dtype != vol.dtype.name:
         from ..labelmap import keep_label_ids
 
-        keep_label_ids(vol.data, dtype, str(input),
-                       None if labels == "auto" else "labels" if labels else "intensity")
+        # --values decides, else --pyramid-method's mode (labels) or mean (intensities)
+        keep_label_ids(vol.data, dtype, str(input), values or (
+            None if labels == "auto" else "labels" if labels else "intensity"))
     with timed(f"write {output}"):  # (its key/values kept, the provenance of its samples too)
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      labels=labels, **ome_zarr)
