@@ -34,38 +34,21 @@ def batch(manifest: Path, cwd=None) -> str:
 
 
 def dicomdir_series(folder: Path) -> Path:
-    """A 6-slice CT series written into a DICOM file set; its DICOMDIR."""
-    from pydicom.dataset import Dataset, FileMetaDataset
+    """A 6-slice CT series (:func:`test_io_dicom.write_slice`) in a DICOM file set; its DICOMDIR."""
     from pydicom.fileset import FileSet
-    from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+    from test_io_dicom import write_slice
 
     fs = FileSet()
+    study = {"StudyDate": "20260101", "StudyTime": "120000", "StudyID": "1",
+             "AccessionNumber": "A1"}  # (what a file set's study record needs)
     for k in range(6):
-        meta = FileMetaDataset()
-        meta.MediaStorageSOPClassUID = CTImageStorage
-        meta.MediaStorageSOPInstanceUID = generate_uid()
-        meta.TransferSyntaxUID = ExplicitVRLittleEndian
-        ds = Dataset()
-        ds.file_meta = meta
-        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, meta.MediaStorageSOPInstanceUID
-        ds.Modality, ds.PatientName, ds.PatientID = "CT", "Doe^Jane", "ID-1"
-        ds.StudyInstanceUID = "1.2.826.0.1.3680043.8.498.9"
-        ds.StudyDate, ds.StudyTime, ds.StudyID, ds.AccessionNumber = "20260101", "120000", "1", "A1"
-        ds.SeriesNumber = 1
-        ds.SeriesInstanceUID = "1.2.826.0.1.3680043.8.498.1"
-        ds.FrameOfReferenceUID = "1.2.826.0.1.3680043.8.498.7"
-        ds.InstanceNumber = k + 1
-        ds.ImagePositionPatient = [0.0, 0.0, 2.0 * k]
-        ds.ImageOrientationPatient = [1, 0, 0, 0, 1, 0]
-        ds.PixelSpacing = [0.8, 0.8]
-        ds.Rows = ds.Columns = 8
-        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
-        ds.BitsAllocated = ds.BitsStored = 16
-        ds.HighBit, ds.PixelRepresentation = 15, 1
-        ds.PixelData = (np.arange(64, dtype="<i2") + 100 * k).tobytes()
-        fs.add(ds)
+        write_slice(folder.parent / f"slice{k}.dcm", (np.arange(64) + 100 * k).reshape(8, 8),
+                    position=(0.0, 0.0, 2.0 * k), instance=k + 1, extra=study)
+        fs.add(folder.parent / f"slice{k}.dcm")
     fs.write(folder)
     fs._stage["t"].cleanup()  # (pydicom's staging folder: else cleaned up, with a warning, at exit)
+    for k in range(6):
+        (folder.parent / f"slice{k}.dcm").unlink()
     return folder / "DICOMDIR"
 
 

@@ -11,6 +11,7 @@ import os
 import click
 
 from ..io import check_output_path, write_volume
+from ..labelmap import VALUES
 from ..progress import timed
 from .common import load_input
 from .options import (
@@ -58,7 +59,7 @@ def _output(ctx, param, value):
                    "mode (the most frequent value: label maps, never an invented label), "
                    "mean (intensities), or auto (mode for integer volumes that are "
                    "piecewise constant, whatever their number of labels; else mean).")
-@click.option("--values", type=click.Choice(["intensity", "labels"]), default=None,
+@click.option("--values", type=click.Choice(VALUES), default=None,
               help="Take the samples as intensities or as label ids [default: labels when "
                    "INPUT looks like a label map, as `volwarp info` hints]. Labels keep every "
                    "id: a --dtype that cannot hold one is refused, and --pyramid levels take "
