@@ -143,3 +143,19 @@ def test_convert_values_decides_the_ids_check_and_pyramid_method_only_the_levels
     assert res.code == 0, res
     assert set(np.unique(read_volume(tmp_path / "c.ome.zarr").data)) == {0, 255}
     assert not (tmp_path / "a.ome.zarr").exists() and not (tmp_path / "b.ome.zarr").exists()
+
+
+def test_compress_for_a_raw_output_is_said_by_blocks_as_in_memory(run, blob, tmp_path):
+    """By blocks a raw output with --compress was refused ("a compressed or raw output
+    cannot be written block by block"), in memory written and said: the same now."""
+    spec = tmp_path / "s.yaml"
+    spec.write_text("version: 1\nunits: voxel\ncapture: {lattice: 5}\n"
+                    "steps:\n  - move: [{index: [2, 2, 2], by: [1, 0, 0]}]\n")
+    outs = []
+    for how in ([], ["--chunked", "--block", "4"]):
+        out = tmp_path / f"w{len(outs)}.raw"
+        res = run("warp", blob, "--spec", spec, "-o", out, "--compress", *how)
+        assert res.code == 0, res
+        assert "--compress does not apply to" in res.stderr
+        outs.append(out.read_bytes())
+    assert outs[0] == outs[1]

@@ -127,7 +127,8 @@ def check_block_format(path: str | os.PathLike, compress: bool = False, pyramid:
         return fmt
     name = path.name.lower()
     hint = "write .ome.zarr or uncompressed .nrrd for block-wise outputs"
-    if compress or fmt in ("tiff", "nifti"):
+    # (a raw file is never compressed: --compress is said and ignored, as in memory)
+    if (compress and fmt != "raw") or fmt in ("tiff", "nifti"):
         raise VolwarpError(f"{path}: a compressed or {fmt} output cannot be written block by "
                            f"block; {hint}")
     if name.endswith((".nhdr", ".mhd")):
