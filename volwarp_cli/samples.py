@@ -42,6 +42,18 @@ def voxel_count(shape) -> int:
     return n
 
 
+def _float_bounds(ftype, info) -> tuple:
+    """The largest and smallest floats of ``ftype`` inside an integer type's range ``info``."""
+    ftype = np.dtype(ftype).type
+    hi, lo = ftype(info.max), ftype(info.min)
+    if float(hi) > info.max:
+        hi = np.nextafter(hi, ftype(0))
+    if float(lo) < info.min:
+        lo = np.nextafter(lo, ftype(0))
+    return (int(lo) if float(lo) == info.min else float(lo),
+            int(hi) if float(hi) == info.max else float(hi))
+
+
 def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray:
     """Convert samples to ``dtype``: integers are rounded and clipped to the type's range.
 
@@ -57,8 +69,17 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
                 raise VolwarpError(f"{what} contains NaN, which {dt.name} cannot hold")
             info = np.iinfo(dt)
             out = np.rint(data)
-            np.clip(out, info.min, info.max, out=out)
-            return out.astype(dt)
+            lo, hi = _float_bounds(out.dtype, info)
+            if (lo, hi) == (info.min, info.max):
+                np.clip(out, info.min, info.max, out=out)
+                return out.astype(dt)
+            # the type's range is not exact in these floats (int32 from float32: its max
+            # rounds up to 2**31, which wrapped to -2**31): clipped inside it, then the ends
+            over, under = out > hi, out < lo
+            np.clip(out, lo, hi, out=out)
+            res = out.astype(dt)
+            res[over], res[under] = info.max, info.min
+            return res
         info = np.iinfo(dt)
         src = np.iinfo(data.dtype)
         if src.min >= info.min and src.max <= info.max:
