@@ -252,25 +252,36 @@ def test_nifti_4d_needs_volume_index(tmp_path):
     np.testing.assert_array_equal(vol.data, data[..., 2].transpose(2, 1, 0))
 
 
-def test_tiff_imagej_spacing_read_from_fiji_style_file(tmp_path):
-    """A stack written the way Fiji writes it (no volwarp keys): spacing from resolution + ImageJ."""
+@pytest.mark.parametrize("unit, mm", [("micron", 1e-3), ("\\u00B5m", 1e-3), ("um", 1e-3),
+                                      ("cm", 10.0), ("mm", 1.0), ("pixel", None)])
+def test_tiff_imagej_spacing_read_from_fiji_style_file(tmp_path, unit, mm):
+    """A stack written the way Fiji writes it (no volwarp keys): spacing from resolution + ImageJ,
+    in ImageJ's unit, made millimetres (0.25 um voxels were read as 0.25 mm ones, and an
+    OME-TIFF of the same stack as 0.00025 mm); no length unit (pixel): the numbers as they are."""
     import tifffile
 
     data = np.arange(3 * 4 * 5, dtype=np.uint16).reshape(3, 4, 5)
     tifffile.imwrite(tmp_path / "fiji.tif", data, imagej=True, resolution=(1 / 0.25, 1 / 0.5),
-                     metadata={"axes": "ZYX", "spacing": 2.0, "unit": "micron"})
+                     metadata={"axes": "ZYX", "spacing": 2.0, "unit": unit})
     vol = read_volume(tmp_path / "fiji.tif")
     np.testing.assert_array_equal(vol.data, data)
-    np.testing.assert_allclose(vol.spacing, (0.25, 0.5, 2.0), rtol=1e-6)
-    assert vol.meta["unit"] == "micron"
-    # and what volwarp writes, tifffile's ImageJ reader sees with the same voxel size
+    np.testing.assert_allclose(vol.spacing, np.array([0.25, 0.5, 2.0]) * (mm or 1.0), rtol=1e-6)
+    assert vol.meta["unit"] == ("mm" if mm is not None else unit)
+    # what volwarp writes, tifffile's ImageJ reader sees with the same voxel size
     write_volume(vol, tmp_path / "out.tif")
     with tifffile.TiffFile(tmp_path / "out.tif") as tif:
         assert tif.is_imagej
-        assert tif.imagej_metadata["spacing"] == 2.0
-        assert tif.imagej_metadata["unit"] == "micron"
+        assert tif.imagej_metadata["spacing"] == pytest.approx(2.0 * (mm or 1.0))
+        assert tif.imagej_metadata["unit"] == vol.meta["unit"]
         xres = tif.pages[0].tags["XResolution"].value
-        assert abs(xres[1] / xres[0] - 0.25) < 1e-6
+        assert abs(xres[1] / xres[0] - 0.25 * (mm or 1.0)) < 1e-6 * (mm or 1.0)
+    if mm is not None:  # the same stack as an OME-TIFF in micrometres: the same voxels
+        tifffile.imwrite(tmp_path / "ome.ome.tif", data, ome=True, metadata={
+            "axes": "ZYX", "PhysicalSizeX": 0.25 * mm * 1e3, "PhysicalSizeXUnit": "\u00b5m",
+            "PhysicalSizeY": 0.5 * mm * 1e3, "PhysicalSizeYUnit": "\u00b5m",
+            "PhysicalSizeZ": 2.0 * mm * 1e3, "PhysicalSizeZUnit": "\u00b5m"})
+        np.testing.assert_allclose(read_volume(tmp_path / "ome.ome.tif").spacing, vol.spacing,
+                                   rtol=1e-6)
 
 
 def test_detached_nhdr_written_by_another_program(tmp_path):

@@ -1,9 +1,11 @@
 """TIFF stacks (one page per z slice, or an ImageJ hyperstack) via tifffile.
 
 Spacing is read the way ImageJ/Fiji store it: x and y from the resolution
-tags (pixels per unit), z from the ImageJ description's ``spacing``, the unit
-from its ``unit``. Plain TIFFs with a ResolutionUnit of inch or centimetre
-are converted to millimetres.
+tags (pixels per unit), z from the ImageJ description's ``spacing``, all in
+its ``unit``, converted to millimetres where that is a length (``micron``,
+``um``, ``cm``, ...; :func:`imagej_unit_mm`; ``pixel`` keeps the numbers).
+Plain TIFFs with a ResolutionUnit of inch or centimetre are converted to
+millimetres.
 
 An OME-TIFF's ``PhysicalSizeX``/``Y``/``Z`` (of its first ``Pixels``
 element) come ahead of those: each is converted to millimetres from its
@@ -419,6 +421,22 @@ def _is_imagej_big_stack(tif, first, count: int) -> bool:
     return need <= tif.filehandle.size
 
 
+#: ImageJ's unit words (Fiji writes "micron"), beside the OME symbols
+_IMAGEJ_UNITS_MM = {"micron": 1e-3, "microns": 1e-3, "micrometer": 1e-3, "micrometre": 1e-3,
+                    "nanometer": 1e-6, "millimeter": 1.0, "centimeter": 10.0, "meter": 1e3,
+                    "inch": 25.4, "inches": 25.4}
+
+
+def imagej_unit_mm(unit: str) -> float | None:
+    """An ImageJ stack's ``unit`` in millimetres, None for no length (``pixel``, unknown).
+
+    ImageJ's spacings (the resolution tags' and ``spacing``) are in that unit:
+    a stack of 0.25 um voxels is 0.00025 mm ones (it was read as 0.25 mm).
+    """
+    u = unit.strip().replace("\\u00B5", "\u00b5").replace("\\u00b5", "\u00b5")
+    return _OME_LENGTH_TO_MM.get(u, _IMAGEJ_UNITS_MM.get(u.lower()))
+
+
 def tiff_placement(tif, first, ij, shape_zyx, where: str) -> dict:
     """The Volume keywords but ``data`` (spacing, origin, direction, space, meta) of a stack.
 
@@ -430,18 +448,23 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str) -> dict:
     origin = [0.0, 0.0, 0.0]
     direction = np.eye(3)
     extra = {}
+    ij_scale = None  # an ImageJ unit's millimetres (x, y and z are in it)
     if ij:
         extra = ij
         if ij.get("unit"):
             meta["unit"] = str(ij["unit"])
+            ij_scale = imagej_unit_mm(str(ij["unit"]))
+            if ij_scale is not None:
+                meta["unit"] = "mm"
         if "spacing" in ij:
             spacing[2] = _floats([ij["spacing"]], 1, where, "ImageJ spacing")[0]
+            spacing[2] *= ij_scale or 1.0
             names[2] = "ImageJ spacing"
     elif tif.shaped_metadata:
         extra = tif.shaped_metadata[0]
         if "unit" in extra:
             meta["unit"] = str(extra["unit"])
-    scale = 1.0
+    scale = ij_scale or 1.0
     tags = first.tags
     if not ij and "ResolutionUnit" in tags:
         unit = {2: "inch", 3: "centimeter"}.get(int(tags["ResolutionUnit"].value))
