@@ -73,6 +73,64 @@ def test_truncated_and_foreign_capture_files(run, data_dir, tmp_path):
     assert not (tmp_path / "o.nrrd").exists()
 
 
+def _rewritten(raw: bytes, edit) -> bytes:
+    """A capture file with its JSON header edited by ``edit(dict)`` (the prefix's length kept
+    right): what a hand edit or a damaged header gives."""
+    import struct
+
+    magic, version, n = struct.unpack("<16sII", raw[:24])
+    head = json.loads(raw[24:24 + n])
+    edit(head)
+    text = json.dumps(head, sort_keys=True).encode()
+    return struct.pack("<16sII", magic, version, len(text)) + text + raw[24 + n:]
+
+
+@pytest.mark.parametrize("what", ["origin", "input shape", "oversample", "dtype"])
+def test_an_edited_capture_header_is_refused(run, data_dir, tmp_path, what):
+    """Only the payload was checksummed: an origin 1 mm off, an input shape halved, an
+    oversample or type changed were read and warped wrong (exit 0)."""
+    good = tmp_path / "g.vwc"
+    assert run("capture", data_dir / "ball_30_uint8.nrrd", "-o", good,
+               "--oversample", "1").code == 0
+
+    def edit(head):
+        inp, cap = head["input"], head["capture"]
+        if what == "origin":
+            inp["origin"][1] += 1.0
+        elif what == "input shape":
+            inp["shape"][0] //= 2
+        elif what == "oversample":
+            cap["oversample"] = 2.0
+        else:
+            inp["dtype"] = "int16"
+
+    bad = tmp_path / "b.vwc"
+    bad.write_bytes(_rewritten(good.read_bytes(), edit))
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nsteps: []\n")
+    res = run("warp", bad, "--spec", spec, "-o", tmp_path / "o.nrrd")
+    assert res.code == 1 and "header checksum mismatch" in res.stderr, res.stderr
+    res = run("info", bad, "--json")
+    assert res.code == 1 and "header checksum mismatch" in res.stderr
+    assert not (tmp_path / "o.nrrd").exists()
+
+
+def test_a_capture_file_from_before_the_header_checksum_is_read_as_before(run, data_dir,
+                                                                          tmp_path):
+    good = tmp_path / "g.vwc"
+    assert run("capture", data_dir / "ball_30_uint8.nrrd", "-o", good,
+               "--oversample", "1").code == 0
+    old = tmp_path / "old.vwc"
+    old.write_bytes(_rewritten(good.read_bytes(), lambda head: head.pop("header_crc32")))
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nsteps: []\n")
+    for src, out in ((good, "a.nrrd"), (old, "b.nrrd")):
+        res = run("warp", src, "--spec", spec, "-o", tmp_path / out)
+        assert res.code == 0, res.stderr
+    assert np.array_equal(read_volume(tmp_path / "a.nrrd").data,
+                          read_volume(tmp_path / "b.nrrd").data)
+
+
 @pytest.mark.parametrize("args, msg", [
     (["--lattice", "3"], "at least 4"),
     (["--lattice", "5", "5"], "one size or three"),
@@ -159,6 +217,7 @@ def test_version_1_capture_files_keep_their_spanning_grid(run, data_dir, tmp_pat
     head = json.loads(raw[24:24 + n])
     assert head["capture"]["subdivision"] == 0  # a non-integer oversample: spanning
     del head["capture"]["subdivision"]
+    del head["header_crc32"]  # (version 1 files had neither)
     head["version"] = 1
     text = json.dumps(head, sort_keys=True).encode()
     old = tmp_path / "old.vwc"
@@ -200,6 +259,7 @@ def test_version_1_capture_files_from_a_ras_input_are_refused(run, data_dir, tmp
     magic, _, n = struct.unpack("<16sII", raw[:24])
     head = json.loads(raw[24:24 + n])
     del head["capture"]["subdivision"]
+    del head["header_crc32"]  # (version 1 files had neither)
     head["version"] = 1
     head["input"]["space"] = space
     text = json.dumps(head, sort_keys=True).encode()

@@ -12,10 +12,12 @@ Layout (all integers little-endian)::
 The header holds ``format`` ("vwc"), ``version``, ``input`` (shape x y z,
 dtype, spacing, origin, direction, space, meta, min, max, mean of the captured
 volume), ``capture`` (lattice, placement, oversample, sampling, pad,
-granularity, subdivision, domain_shape) and ``payload`` (dtype, shape x y z, nbytes,
-crc32). Loading checks the magic (a foreign file), the version, the file size
-(a truncated file) and the CRC-32 of the payload (a corrupted one); each
-failure is a :class:`~volwarp_cli.errors.FormatError` naming the file.
+granularity, subdivision, domain_shape), ``payload`` (dtype, shape x y z, nbytes,
+crc32) and ``header_crc32`` (of the other fields). Loading checks the magic (a
+foreign file), the version, the file size (a truncated file), the header's
+CRC-32 (an edited or damaged header: an origin, an input shape; files written
+before it have none) and the payload's (a corrupted one); each failure is a
+:class:`~volwarp_cli.errors.FormatError` naming the file.
 Identical captures give byte-identical files.
 
 Version 2 placed the domain on the input as an exact subdivision of its
@@ -50,6 +52,16 @@ VERSION = 2
 #: Versions read: 1 has no ``subdivision`` (its grid spans the input).
 READ_VERSIONS = (1, 2)
 _PREFIX = struct.Struct("<16sII")
+#: the header's own CRC-32 (of its other fields, as :func:`_header_crc` writes them): an
+#: edited or damaged header (an origin, an input shape) is refused, as a payload is.
+#: Files written before it have none, and are read as they were.
+HEADER_CRC = "header_crc32"
+
+
+def _header_crc(fields: dict) -> int:
+    """The CRC-32 of a header's fields but :data:`HEADER_CRC`, as sorted-key JSON."""
+    rest = {k: v for k, v in fields.items() if k != HEADER_CRC}
+    return zlib.crc32(json.dumps(rest, sort_keys=True).encode("utf-8"))
 
 
 def _header(cap: Capture, payload: np.ndarray, crc: int) -> dict:
@@ -92,7 +104,9 @@ def write_capture(cap: Capture, path: str | os.PathLike) -> None:
     """Write ``cap`` to ``path`` atomically."""
     payload = np.ascontiguousarray(cap.domain, dtype=cap.domain.dtype.newbyteorder("<"))
     crc = zlib.crc32(memoryview(payload).cast("B"))
-    head = json.dumps(_header(cap, payload, crc), sort_keys=True).encode("utf-8")
+    fields = _header(cap, payload, crc)
+    fields[HEADER_CRC] = _header_crc(fields)
+    head = json.dumps(fields, sort_keys=True).encode("utf-8")
     with atomic_output(path) as tmp, open(tmp, "wb") as fh:
         fh.write(_PREFIX.pack(MAGIC, VERSION, len(head)))
         fh.write(head)
@@ -143,6 +157,9 @@ def read_header(path: str | os.PathLike) -> tuple[dict, int]:
     problem = _header_problem(head)
     if problem:
         raise FormatError(f"{path}: capture file header is malformed ({problem})")
+    if HEADER_CRC in head and head[HEADER_CRC] != _header_crc(head):  # (fields that pass)
+        raise FormatError(f"{path}: capture file is corrupt (header checksum mismatch: edited "
+                          "or damaged; capture the input again)")
     if size < expected:
         raise FormatError(f"{path}: capture file is truncated: expected {expected} bytes, "
                           f"found {size}")
