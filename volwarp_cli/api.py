@@ -173,8 +173,7 @@ def write(obj, path: str | os.PathLike, *, dtype: str | None = None, compress: b
         if dtype is not None and dtype != obj.dtype.name:  # (as convert: ids kept)
             from .labelmap import keep_label_ids
 
-            keep_label_ids(obj.data, dtype, str(path),
-                           None if labels == "auto" else "labels" if labels else "intensity")
+            keep_label_ids(obj.data, dtype, str(path), labels)
         write_volume(obj, path, labels=labels, **volume_options)
         return
     if isinstance(obj, Mapping) and obj and all(isinstance(v, Volume) for v in obj.values()):

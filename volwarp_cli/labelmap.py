@@ -146,17 +146,17 @@ def refuse_merged_ids(ids, dtype, name: str, option: str = "--dtype") -> None:
                        "holds them, or --values intensity to clip them as intensities")
 
 
-def keep_label_ids(data, dtype, name: str, values: str | None = None) -> None:
+def keep_label_ids(data, dtype, name: str, labels="auto") -> None:
     """:func:`refuse_merged_ids` for samples written as ``dtype``, if they are a label map.
 
-    ``values``: ``"labels"`` (they are), ``"intensity"`` (they are not:
-    clipped to the type's range, nothing checked) or None (the rule decides,
-    one pass over ``data``).
+    ``labels``: True (they are), False (they are not: clipped to the type's
+    range, nothing checked) or ``"auto"`` (the rule decides, one pass over
+    ``data``), as :func:`~volwarp_cli.io.write_volume`'s.
     """
-    if values == "intensity":
+    if labels is False:
         return
-    looks, ids, _ = scan_labels(data, detect=values is None)
-    if ids is not None and (looks or values == "labels"):
+    looks, ids, _ = scan_labels(data, detect=labels == "auto")
+    if ids is not None and (looks or labels is True):
         refuse_merged_ids(ids, dtype, name)
 
 

@@ -43,15 +43,14 @@ def voxel_count(shape) -> int:
 
 
 def _float_bounds(ftype, info) -> tuple:
-    """The largest and smallest floats of ``ftype`` inside an integer type's range ``info``."""
+    """The smallest and largest floats of ``ftype`` inside an integer type's range ``info``."""
     ftype = np.dtype(ftype).type
-    hi, lo = ftype(info.max), ftype(info.min)
-    if float(hi) > info.max:
-        hi = np.nextafter(hi, ftype(0))
+    lo, hi = ftype(info.min), ftype(info.max)
     if float(lo) < info.min:
         lo = np.nextafter(lo, ftype(0))
-    return (int(lo) if float(lo) == info.min else float(lo),
-            int(hi) if float(hi) == info.max else float(hi))
+    if float(hi) > info.max:
+        hi = np.nextafter(hi, ftype(0))
+    return lo, hi
 
 
 def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray:
@@ -70,8 +69,8 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
             info = np.iinfo(dt)
             out = np.rint(data)
             lo, hi = _float_bounds(out.dtype, info)
-            if (lo, hi) == (info.min, info.max):
-                np.clip(out, info.min, info.max, out=out)
+            if float(lo) == info.min and float(hi) == info.max:  # (the range exact here)
+                np.clip(out, lo, hi, out=out)
                 return out.astype(dt)
             # the type's range is not exact in these floats (int32 from float32: its max
             # rounds up to 2**31, which wrapped to -2**31): clipped inside it, then the ends

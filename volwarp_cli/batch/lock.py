@@ -81,14 +81,23 @@ def _holder(folder: Path, fd: int) -> str:
         return _owner(folder / LOCK_NAME)
     fcntl.flock(fd, fcntl.LOCK_UN)
     with _gate(folder):  # (a probe outside it could make a starting shard think its file held)
-        for shard in sorted(folder.glob("shard-*.lock")):
-            probe = os.open(shard, os.O_RDONLY)
-            try:
-                if not _try(probe, fcntl.LOCK_EX):
-                    return _owner(shard)
-            finally:
-                os.close(probe)
+        for shard in _held_shards(folder):
+            return _owner(shard)
     return "its pid unknown"
+
+
+def _held_shards(folder: Path, mine: Path | None = None):
+    """The shard files a run holds (probed under :func:`_gate`), ``mine`` left out."""
+    for shard in sorted(folder.glob("shard-*.lock")):
+        if shard == mine:
+            continue
+        probe = os.open(shard, os.O_RDONLY)
+        try:
+            held = not _try(probe, fcntl.LOCK_EX)
+        finally:
+            os.close(probe)  # (a probe that took it lets it go here)
+        if held:
+            yield shard
 
 
 @contextlib.contextmanager
@@ -133,16 +142,7 @@ def _other_array(folder: Path, count: int, array: str, mine: Path):
     file held was taken and signed under it. Another array: another N (in
     the file's name), or another manifest (in what its holder signed).
     """
-    for shard in sorted(folder.glob("shard-*-of-*.lock")):
-        if shard == mine:
-            continue
-        probe = os.open(shard, os.O_RDONLY)
-        try:
-            if _try(probe, fcntl.LOCK_EX):  # (no one holds it: an old file)
-                fcntl.flock(probe, fcntl.LOCK_UN)
-                continue
-        finally:
-            os.close(probe)
+    for shard in _held_shards(folder, mine):
         try:
             theirs = json.loads(shard.read_text()).get("array")
         except (OSError, ValueError, AttributeError):

@@ -114,8 +114,8 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
         from ..labelmap import keep_label_ids
 
         # --values decides, else --pyramid-method's mode (labels) or mean (intensities)
-        keep_label_ids(vol.data, dtype, str(input), values or (
-            None if labels == "auto" else "labels" if labels else "intensity"))
+        keep_label_ids(vol.data, dtype, str(input),
+                       labels if values is None else values == "labels")
     with timed(f"write {output}"):  # (its key/values kept, the provenance of its samples too)
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      labels=labels, **ome_zarr)

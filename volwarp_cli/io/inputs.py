@@ -98,6 +98,21 @@ def _metaimage_data_files(path: Path) -> list[Path]:
         return list(_data_files(spec, path, fh, str(path), sizes))
 
 
+def one_file_twice(named) -> tuple | None:
+    """Of ``(key, path)`` pairs, the first two keys whose paths are one file, with that path.
+
+    ``(first key, second key, path)``, links followed; None when every path
+    is a file of its own (a pattern's frames, a label map's meshes).
+    """
+    seen: dict[str, object] = {}
+    for key, path in named:
+        real = os.path.realpath(path)
+        if real in seen:
+            return seen[real], key, path
+        seen[real] = key
+    return None
+
+
 def output_files(path: str | os.PathLike) -> list[Path]:
     """The files writing ``path`` may create or replace.
 

@@ -314,15 +314,12 @@ class MeshOperation(Reduction):
 
 def _distinct_label_files(pattern: str, labels) -> None:
     """A :class:`BadUsage` where ``pattern`` gives two labels one file (``{label:.1}``)."""
-    import os
+    from ..io.inputs import one_file_twice
 
-    seen: dict[str, int] = {}
-    for label in labels:
-        name = pattern.format(label=label)
-        other = seen.setdefault(os.path.realpath(name), label)
-        if other != label:
-            raise BadUsage(f"-o: {pattern!r} names labels {other} and {label} both {name}; "
-                           "give each label its own file (e.g. 'seg_{label}.ply')")
+    twice = one_file_twice((label, pattern.format(label=label)) for label in labels)
+    if twice is not None:
+        raise BadUsage(f"-o: {pattern!r} names labels {twice[0]} and {twice[1]} both "
+                       f"{twice[2]}; give each label its own file (e.g. 'seg_{{label}}.ply')")
 
 
 def _runner(blocks: Blocks, label: str):

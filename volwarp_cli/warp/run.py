@@ -366,19 +366,15 @@ class LatticeMoves:
         not an input, not a file ``-o`` or an export names (a detached
         header's data file included), its folder there.
         """
-        import os
-
         from ..io import check_output_path
+        from ..io.inputs import one_file_twice
 
         names = [pattern.format(**frame_fields(n, fr))
                  for n, fr in enumerate([None, *self.frames])]
-        seen: dict[str, int] = {}
-        for n, name in enumerate(names):
-            key = os.path.realpath(name)
-            if key in seen:
-                raise BadUsage(f"--frames-to: {pattern!r} names frames {seen[key]} and {n} "
-                               f"both {name}; put {{frame}} in it")
-            seen[key] = n
+        twice = one_file_twice(enumerate(names))
+        if twice is not None:
+            raise BadUsage(f"--frames-to: {pattern!r} names frames {twice[0]} and {twice[1]} "
+                           f"both {twice[2]}; put {{frame}} in it")
         for name in names:
             check_output_path(name, option="--frames-to")
         return names
