@@ -90,18 +90,18 @@ def test_mesh_picture_options_without_a_picture_are_refused(run, blob, tmp_path,
 
 @pytest.mark.parametrize("command", ["morph", "sweep"])
 def test_morph_and_sweep_picture_options_without_a_picture_are_refused(run, tmp_path,
-                                                                      monkeypatch, command):
+                                                                      command):
     from volwarp_cli.warmup import write_inputs
 
-    monkeypatch.chdir(tmp_path)
-    p = write_inputs(".")
+    (tmp_path / "in").mkdir()
+    p = write_inputs(str(tmp_path / "in"))  # (absolute: no name another test's run declared)
     if command == "morph":
         args = ["morph", p["blob"], p["egg"], "--frames", "2", "--iso", "50", "--grid",
-                "union", "-o", "out_f{i}.nrrd"]
-        render = ["--render-to", "r{i}.png"]
+                "union", "-o", tmp_path / "out_f{i}.nrrd"]
+        render = ["--render-to", tmp_path / "r{i}.png"]
     else:
-        args = ["sweep", p["line"], "-o", "out_{field}.nrrd"]
-        render = ["--render", "r.png"]
+        args = ["sweep", p["line"], "-o", tmp_path / "out_{field}.nrrd"]
+        render = ["--render", tmp_path / "r.png"]
     res = run(*args, "--view", "front", "--render-size", "40x30")
     assert res.code == 2 and "--view, --render-size shape the picture" in res.stderr, res
     assert not list(tmp_path.glob("out_*"))
