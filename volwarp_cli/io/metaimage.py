@@ -52,7 +52,6 @@ from .common import (
     with_byte_order,
     write_with_header,
 )
-from .deflate import zlib_bytes
 
 #: MetaIO element types -> numpy (MET_LONG is 4 bytes in MetaIO, as ITK reads it)
 _TYPES = {
@@ -571,6 +570,8 @@ def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = Fa
     dtype = check_dtype(vol.data.dtype, str(path))
     payload = memoryview(with_byte_order(vol.data, byte_order)).cast("B")
     if compress:
+        from .deflate import zlib_bytes  # (not loaded for an uncompressed file)
+
         payload = zlib_bytes(payload, level)
     size = len(payload) if compress else None
     if path.suffix.lower() == ".mhd":

@@ -42,7 +42,6 @@ from .common import (
     with_byte_order,
     write_with_header,
 )
-from .deflate import gzip_bytes
 from .mapped import guard
 
 _TYPES = {
@@ -710,6 +709,8 @@ def _write_payload(fh, data: np.ndarray, encoding: str, level: int) -> None:
     if encoding == "raw":
         fh.write(memoryview(data).cast("B"))
         return
+    from .deflate import gzip_bytes  # (ISA-L and gzip: 2 ms to load, not for raw data)
+
     fh.write(gzip_bytes(data, level=level))
 
 
