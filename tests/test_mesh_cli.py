@@ -124,11 +124,12 @@ def test_cap_closes_a_border_shape(run, tmp_path, messages):
     data[:, 3:9, 3:9] = 200  # a bar through the whole z extent
     path = tmp_path / "bar.nrrd"
     write_volume(Volume(data), path)
-    res = run("mesh", path, "--iso", "100", "--json")
+    # (as a label map its surface is closed at the border, as every label's: intensities)
+    res = run("mesh", path, "--iso", "100", "--json", "--values", "intensity")
     assert res.code == 0
     assert json.loads(res.stdout)["closed"] is False
     assert any("--cap" in m for m in messages)  # the warning says how to close it
-    res = run("mesh", path, "--iso", "100", "--json", "--cap")
+    res = run("mesh", path, "--iso", "100", "--json", "--cap", "--values", "intensity")
     st = json.loads(res.stdout)
     assert st["closed"] is True and st["volume"] > 0
     assert st["bbox_min"][2] == pytest.approx(-0.5) and st["bbox_max"][2] == pytest.approx(11.5)
@@ -201,12 +202,13 @@ def test_level_never_crossed_is_an_error(run, tmp_path):
     data = np.zeros((5, 5, 5), dtype=np.uint8)
     data[2, 2, 2] = 10
     write_volume(Volume(data), path)
-    # at the minimum every sample counts as above the level: nothing is crossed
-    res = run("mesh", path, "--iso", "0", "-o", tmp_path / "x.ply")
+    # at the minimum every sample counts as above the level: nothing is crossed (the ids
+    # taken as intensities: as a label map, a level selecting voxel 0 too is refused)
+    res = run("mesh", path, "--iso", "0", "--values", "intensity", "-o", tmp_path / "x.ply")
     assert res.code == 1 and "never crossed" in res.stderr
     assert not (tmp_path / "x.ply").exists()
     # a sample exactly at the level counts as above it: the lone voxel is a small closed surface
-    res = run("mesh", path, "--iso", "10", "--json")
+    res = run("mesh", path, "--iso", "10", "--values", "intensity", "--json")
     assert res.code == 0 and json.loads(res.stdout)["closed"] is True
 
 
@@ -362,6 +364,71 @@ def test_mesh_label_usage_errors(run, two_labels, tmp_path, sphere_file):
     res = run("mesh", tmp_path / "two.nrrd", "--labels", "-o", tmp_path / "s_{label!s:.1}.ply")
     assert res.code == 2 and "names labels 1 and 12 both" in res.stderr, res.stderr
     assert not list(tmp_path.glob("s_*.ply"))
+
+
+def test_a_label_map_is_meshed_as_its_labels_not_its_ids(run, two_labels, tmp_path):
+    """DESIGN.md: mesh follows the label rule. The old default (the middle of the range,
+    150 for ids 0, 7, 300) meshed the box of 300 alone; the rule gives the surface of
+    every voxel with a non-zero label, closed at the border as a label's is."""
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    path, lab, voxel = two_labels
+    res = run("mesh", path, "-o", tmp_path / "all.ply", "--json")
+    assert res.code == 0, res.stderr
+    st = json.loads(res.stdout)
+    assert (st["values"], st["values_why"]) == ("labels", "looks like a label map: 3 labels")
+    assert st["closed"] is True and st["components"] == 2 and st["iso"] == 0.5
+    assert st["volume"] == pytest.approx(float((lab != 0).sum()) * voxel, rel=0.04)
+    # the ids never count: renamed ids give the same file, byte for byte
+    renamed = np.select([lab == 7, lab == 300], [2, 1], 0).astype(np.uint16)
+    write_volume(Volume(renamed, spacing=(0.5, 1.0, 2.0)), tmp_path / "renamed.nrrd")
+    assert run("mesh", tmp_path / "renamed.nrrd", "-o", tmp_path / "renamed.ply").code == 0
+    a, b = read_mesh(tmp_path / "all.ply"), read_mesh(tmp_path / "renamed.ply")
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
+    assert b"volwarp_values=labels" in (tmp_path / "all.ply").read_bytes()[:2000]
+    # a level that selects exactly the non-zero labels is the same surface
+    res = run("mesh", path, "--iso", "1", "-o", tmp_path / "iso1.ply")
+    assert res.code == 0, res.stderr
+    assert np.array_equal(read_mesh(tmp_path / "iso1.ply").vertices, a.vertices)
+    # the ids as intensities only when asked: the old answer, the box of 300 at 150
+    st = json.loads(run("mesh", path, "--values", "intensity", "--cap", "--json").stdout)
+    assert (st["values"], st["iso"]) == ("intensity", 150.0)
+    assert st["volume"] == pytest.approx(float((lab == 300).sum()) * voxel, rel=0.06)
+
+
+def test_a_label_map_level_between_ids_is_refused(run, two_labels, tmp_path):
+    path, _, _ = two_labels
+    out = tmp_path / "m.ply"
+    out.write_bytes(b"old")
+    for args, said in ((["--iso", "100"], "--iso 100 selects other voxels"),
+                       (["--iso", "0.5", "--inside", "below"], "--iso 0.5 --inside below"),
+                       (["--inside", "below"], "--inside goes with --iso V")):
+        res = run("mesh", path, *args, "-o", out)
+        assert res.code == 2 and said in res.stderr and "--values intensity" in res.stderr, res
+        assert out.read_bytes() == b"old"
+    res = run("mesh", path, "--label", "7", "--values", "intensity", "--stats")
+    assert res.code == 2 and "--values intensity" in res.stderr
+    # floats with a fraction are no label map: --values labels is refused, naming why
+    data = np.full((6, 6, 6), 0.25, np.float32)
+    data[2:4, 2:4, 2:4] = 3.5
+    write_volume(Volume(data), tmp_path / "f.nrrd")
+    res = run("mesh", tmp_path / "f.nrrd", "--values", "labels", "--stats")
+    assert res.code == 2 and "not all integers" in res.stderr
+
+
+def test_the_api_mesh_follows_the_label_rule_as_the_command_does(run, two_labels, tmp_path):
+    from volwarp_cli import api
+    from volwarp_cli.errors import BadUsage
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    path, _, _ = two_labels
+    assert run("mesh", path, "-o", tmp_path / "cli.ply").code == 0
+    mesh = api.mesh(path)
+    assert np.array_equal(mesh.vertices, read_mesh(tmp_path / "cli.ply").vertices)
+    assert mesh.meta["volwarp_values"] == "labels"
+    with pytest.raises(BadUsage, match="selects other voxels"):
+        api.mesh(path, iso=100)
+    assert api.mesh(path, iso=100, values="intensity").n_faces > 0
 
 
 def test_a_tiff_render_carries_no_time_stamp(run, tmp_path):

@@ -276,7 +276,7 @@ def test_info_says_the_defaults_take_a_label_map_as_labels(run, tmp_path):
     (hint,) = [line for line in res.stdout.splitlines() if line.startswith("hint:")]
     assert "looks like a label map (4 distinct values: 0 1 2 3)" in hint
     assert "with --labels," not in hint
-    assert "warp and distance take it as labels by default" in hint
+    assert "warp, distance and mesh take it as labels by default" in hint
     assert "--values intensity" in hint
 
 

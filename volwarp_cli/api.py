@@ -525,7 +525,8 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
 
 def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool = False,
          smooth: int = 0, decimate: float = 0.0, largest_component: bool = False,
-         allow_empty: bool = False, label: int | None = None, **read_options) -> Mesh:
+         allow_empty: bool = False, label: int | None = None, values: str | None = None,
+         **read_options) -> Mesh:
     """``volwarp mesh``: the isosurface of ``volume`` at ``iso``, in world coordinates.
 
     Parameters
@@ -544,6 +545,9 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
         An empty surface gives an empty mesh (a warning) instead of an error.
     label : int, optional
         A label map: the surface of label ``label`` (no ``iso`` or ``inside``).
+    values : {"intensity", "labels"}, optional
+        As ``--values``: None lets the label rule decide, and a label map's
+        surface (without ``label``) is that of its non-zero labels' voxels.
 
     Returns
     -------
@@ -557,8 +561,9 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
     import numbers
 
     from . import execute
+    from .labelmap import VALUES
     from .surface.ops import Cleanup
-    from .surface.run import Level, MeshOperation
+    from .surface.run import Level, MeshOperation, surface_keys
 
     _check_keys(read_options)
     _choice(inside, ("above", "below"), "inside")
@@ -574,18 +579,28 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
     if label is not None and inside != "above":
         raise BadUsage("--inside does not apply to --label/--labels (inside is where the "
                        "label is)")
+    _choice(values, VALUES, "values")
+    if values == "intensity" and label is not None:
+        raise BadUsage("--label N and --labels take a label map's ids as labels: they do not "
+                       "go with --values intensity")
     path = _path_of(volume)
+    name = str(path) if path is not None else "the volume"
     with _outside_data(read_options.get("allow_outside_data", False)):
         header, source = _header_and_source(volume, path, read_options)
+        which = label
+        if label is None:
+            from .surface.labels import mesh_values
+            from .surface.run import NONZERO_LABELS
+
+            if mesh_values(source, values=values, iso=iso, inside=inside, name=name).labels:
+                which = NONZERO_LABELS
         op = MeshOperation(header, source, Level(iso, inside, cap),
                            cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
                                            decimate=decimate),
-                           labels=label, allow_empty=allow_empty,
-                           name=str(path) if path is not None else "the volume")
+                           labels=which, allow_empty=allow_empty, name=name)
         (surface,) = execute.run(op, execute.How(chunked=False)).output
     meta = _provenance("mesh", [path], None)
-    # (as MeshOperation writes one surface: its level, to 9 digits)
-    meta["volwarp_iso"] = f"{surface.iso:.9g}"
+    meta.update(surface_keys(which, surface.iso, surface.label))  # (as the command's file)
     m = surface.mesh
     return Mesh(m.vertices, m.faces, m.normals, meta=meta)
 

@@ -39,9 +39,9 @@ def _format_text(d: dict) -> str:
             vals = " ".join(map(str, v["values"])) + (" ..." if v["labels"] > len(v["values"])
                                                          else "")
             lines.append(f"hint:      looks like a label map ({v['labels']} distinct values: "
-                         f"{vals}): warp and distance take it as labels by default "
-                         "(--values intensity to take its samples as intensities); mesh it "
-                         "with --label N or --labels")
+                         f"{vals}): warp, distance and mesh take it as labels by default "
+                         "(--values intensity to take its samples as intensities); mesh "
+                         "--label N or --labels for one label's surface or each one's")
         elif k == "segments":
             lines.append(f"segments:  {len(v)} ({d.get('segmentation_type', '')})")
             for seg in v:

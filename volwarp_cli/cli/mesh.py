@@ -12,6 +12,7 @@ from pathlib import Path
 
 import click
 
+from ..labelmap import VALUES
 from .options import (
     INPUT_PATH,
     VIEW_HELP,
@@ -78,7 +79,8 @@ def _format_stats(d: dict) -> str:
               help="Mesh file: .ply .stl .obj .vtp .vtk (binary where the format has it). "
                    "May be left out when --render or --stats is given.")
 @click.option("--iso", type=float, default=None, callback=finite,
-              help="Isosurface level (default: the middle of the value range).")
+              help="Isosurface level (default: the middle of the value range; a label map's "
+                   "surface is its non-zero labels', see --values).")
 @click.option("--inside", type=click.Choice(["above", "below"]), default="above",
               show_default=True,
               help="Which side of the level is the shape (sets the outward direction): "
@@ -118,6 +120,11 @@ def _format_stats(d: dict) -> str:
               help="A label map: one mesh per non-zero label, to -o's pattern with {label}, "
                    "e.g. -o 'seg_{label}.ply' (--stats / --json: one entry per label); "
                    "no --iso or --render.")
+@click.option("--values", "values", type=click.Choice(VALUES), default=None,
+              help="Take the samples as intensities (the isosurface at --iso) or as label ids "
+                   "(the surface of every voxel with a non-zero label). Default: labels when "
+                   "INPUT looks like a label map (integer ids whose values are regions, as "
+                   "`volwarp info` hints), else intensity.")
 @click.option("--stats", "show_stats", is_flag=True,
               help="Print counts, area, enclosed volume, bounding box, components, closed.")
 @click.option("--json", "as_json", is_flag=True,
@@ -128,9 +135,13 @@ def _format_stats(d: dict) -> str:
 @common_options
 def command(input, output, iso, inside, cap, smooth, decimate, largest_component, allow_empty,
             render, view, render_size, color, background_color, turntable, label, labels,
-            show_stats, as_json, raw, volume_index, dicom, camera_from, camera_to,
+            values, show_stats, as_json, raw, volume_index, dicom, camera_from, camera_to,
             orientation_labels):
     """Isosurface INPUT at level --iso and write it to OUTPUT (world coordinates).
+
+    A label map (as `volwarp info` hints; --values overrides) gives the
+    surface of every voxel with a non-zero label, never a level of its ids
+    taken as intensities: --label N for one label's, --labels for a mesh each.
 
     Triangles are wound counter-clockwise seen from outside and normals point
     outwards. The surface is closed wherever the shape does not touch the
@@ -143,7 +154,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
     from ..io.inputs import refuse_pattern_over_input
     from ..surface.mesh_io import check_mesh_output
     from ..surface.ops import Cleanup
-    from ..surface.run import ALL_LABELS, Level, MeshFile, MeshOperation
+    from ..surface.run import ALL_LABELS, NONZERO_LABELS, Level, MeshFile, MeshOperation
     from .chunked import lazy_input
     from .common import provenance
 
@@ -153,6 +164,9 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         raise click.UsageError("--turntable needs --render OUT.png (the frames' name)")
     if labels and label is not None:
         raise click.UsageError("--label N and --labels exclude each other")
+    if values == "intensity" and (labels or label is not None):
+        raise click.UsageError("--label N and --labels take a label map's ids as labels: they "
+                               "do not go with --values intensity")
     if (labels or label is not None) and iso is not None:
         raise click.UsageError("--iso does not apply to --label/--labels (the level is 0.5 of "
                                "each label's indicator)")
@@ -176,10 +190,21 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
             check_output_path(path, option="--render")
 
     header, source = lazy_input(input, raw, volume_index, dicom)
+    which = ALL_LABELS if labels else label
+    choice = None
+    if which is None:  # DESIGN.md: a label map's surface is its labels', not its ids' level
+        from ..progress import log, timed
+        from ..surface.labels import mesh_values
+
+        with timed("label rule"):
+            choice = mesh_values(source, values=values, iso=iso, inside=inside, name=input)
+        log.info("%s: values: %s (%s)", input, choice.values, choice.why)
+        if choice.labels:
+            which = NONZERO_LABELS
     op = MeshOperation(header, source, Level(iso, inside, cap),
                        cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
                                        decimate=decimate),
-                       labels=ALL_LABELS if labels else label, allow_empty=allow_empty,
+                       labels=which, allow_empty=allow_empty,
                        name=input, stats=show_stats or as_json,
                        to=None if output is None else MeshFile(output,
                                                                 provenance("mesh", input)))
@@ -192,7 +217,8 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         return
     (surface,) = surfaces
     if show_stats or as_json:
-        _print_stats(dict(surface.stats, iso=surface.iso), as_json)
+        chosen = {} if choice is None else {"values": choice.values, "values_why": choice.why}
+        _print_stats(dict(surface.stats, iso=surface.iso, **chosen), as_json)
     if render is not None:
         _render(surface.mesh, render, turntable, orientation_labels_for(orientation_labels,
                                                                         header),

@@ -3,13 +3,23 @@
 The surface of a label is the isosurface at 0.5 of its indicator (1 where
 the label is, 0 elsewhere), closed at the volume's border (``cap``): a
 label's voxels enclosed by their faces, bevelled at edges and corners.
+
+DESIGN.md's "label maps are labels": a volume the label rule takes for a
+label map (:func:`mesh_values`), meshed without ``--label``/``--labels``,
+gives the surface of every voxel with a non-zero label (the union's
+indicator), never an isosurface of its ids as intensities. The middle of the
+value range of a map with ids 0..29 is 14.5: the old default meshed the
+structures whose ids happened to be above it, and any level between two ids
+moves each vertex by the ratio of the two numbers.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from ..errors import VolwarpError
+from ..errors import BadUsage, VolwarpError
 
 
 def check_label_map(dtype, name: str, what: str) -> None:
@@ -22,17 +32,88 @@ def check_label_map(dtype, name: str, what: str) -> None:
 class LabelIndicator:
     """The indicator of one label of a sliceable label map (1 inside, float32), read by boxes.
 
-    Picklable when the map is (a :class:`~volwarp_cli.io.lazy.LazySource`).
+    ``label`` None: of every non-zero label (their union). Picklable when the
+    map is (a :class:`~volwarp_cli.io.lazy.LazySource`).
     """
 
-    def __init__(self, source, label: int):
-        self.source, self.label = source, int(label)
+    def __init__(self, source, label: int | None):
+        self.source, self.label = source, None if label is None else int(label)
         self.shape = tuple(source.shape)
         self.dtype = np.dtype(np.float32)
         self.ndim = 3
 
     def __getitem__(self, key) -> np.ndarray:
-        return (np.asarray(self.source[key]) == self.label).astype(np.float32)
+        samples = np.asarray(self.source[key])
+        inside = samples != 0 if self.label is None else samples == self.label
+        return inside.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class ValuesChoice:
+    """How ``volwarp mesh`` takes its input: ``values`` ``"labels"`` or ``"intensity"``, and why.
+
+    ``why``: ``"given"``, ``"not a label map"`` or ``"looks like a label map:
+    26 labels"`` (the distinct values, 0 included, as ``warp`` counts them).
+    """
+
+    values: str
+    why: str
+
+    @property
+    def labels(self) -> bool:
+        """Whether the surface is that of the non-zero labels' voxels."""
+        return self.values == "labels"
+
+
+def mesh_values(source, *, values: str | None = None, iso: float | None = None,
+                inside: str = "above", name: str = "the input") -> ValuesChoice:
+    """How a volume meshed without ``--label``/``--labels`` is taken (module notes).
+
+    ``values``: the command line's ``--values`` (None: the label rule
+    decides, one pass over ``source``, box by box). A label map's surface is
+    its non-zero labels' (their indicator's at 0.5, between the voxels
+    whatever the ids); an ``iso`` level is accepted only where it selects
+    exactly those voxels (a 0/1 or 0/255 mask's 0.5), and ``inside`` only
+    with such a level. Anything else is a
+    :class:`~volwarp_cli.errors.BadUsage` naming the ways out; a map with no
+    non-zero label, a :class:`~volwarp_cli.errors.VolwarpError`.
+    """
+    from ..distance.field import inside_mask
+    from ..distance.labels import scan_values
+
+    if values == "intensity":
+        return ValuesChoice("intensity", "given")
+    scan = scan_values(source)
+    if values is None and not scan.looks_like:
+        return ValuesChoice("intensity", "not a label map")
+    if scan.values is None:
+        what = "samples that are not all integers" if scan.dtype.kind == "f" else "samples"
+        raise BadUsage(f"{name}: --values labels needs a label map (integer ids), got "
+                       f"{scan.dtype} {what}; mesh the samples' level with --iso V")
+    if values is None:
+        why = f"looks like a label map: {len(scan.values)} labels"
+        what = f"{name} looks like a label map ({len(scan.values)} labels)"
+    else:
+        why, what = "given", f"{name} is taken as a label map (--values labels)"
+        if not scan.looks_like:  # (as warp and distance say it; the work goes on as asked)
+            from ..progress import log
+
+            log.warning("warning: %s does not look like a label map (%d distinct values): its "
+                        "ids taken as labels as asked (--values labels)", name, len(scan.values))
+    ways_out = ("give --label N (one label's surface), --labels (a mesh for each), or "
+                "--values intensity to take the ids as intensities")
+    ids = scan.values[scan.values != 0]
+    if not ids.size:
+        raise VolwarpError(f"{name}: no label other than 0 in the volume")
+    if iso is not None:
+        if not np.array_equal(scan.values[inside_mask(scan.values, iso, inside)], ids):
+            side = "" if inside == "above" else f" --inside {inside}"
+            raise BadUsage(f"{what}: --iso {iso:g}{side} selects other voxels than its "
+                           f"non-zero labels; {ways_out}")
+    elif inside != "above":
+        raise BadUsage(f"{what}: --inside goes with --iso V (the surface is that of its "
+                       f"non-zero labels); {ways_out}")
+    return ValuesChoice("labels", why)
 
 
 def label_values(source, boxes, run=None) -> list[int]:

@@ -74,6 +74,8 @@ class Level:
 LABEL_LEVEL = Level(0.5, "above", True)
 #: ``labels`` for every label other than 0.
 ALL_LABELS = "all"
+#: ``labels`` for the surface of every voxel with a label other than 0 (one mesh).
+NONZERO_LABELS = "nonzero"
 
 
 @dataclass(frozen=True)
@@ -117,9 +119,12 @@ class MeshOperation(Reduction):
         The surface of the samples (not of a label map's labels).
     cleanup : Cleanup
         What is done to each surface after it is made.
-    labels : None, int or ``"all"``
+    labels : None, int, ``"all"`` or ``"nonzero"``
         A label map's label (its surface: :data:`LABEL_LEVEL` of its
-        indicator), every label other than 0 (``"all"``), or None (``level``).
+        indicator), every label other than 0 (``"all"``: a mesh each), the
+        union of those (``"nonzero"``: one mesh, as
+        :func:`.labels.mesh_values` chooses for a label map), or None
+        (``level``).
     allow_empty : bool
         An empty surface is a warning (an empty mesh) instead of an error.
     name : str
@@ -141,7 +146,7 @@ class MeshOperation(Reduction):
         self.grid = Geometry.of(header)
         self.shape = tuple(int(n) for n in source.shape)
         self.dtype = np.dtype(source.dtype)
-        if labels is not None:
+        if labels is not None and labels != NONZERO_LABELS:  # (the rule's: integers' values)
             check_label_map(self.dtype, self.name,
                             "--labels" if labels == ALL_LABELS else "--label")
         else:
@@ -199,6 +204,9 @@ class MeshOperation(Reduction):
                 source = np.asarray(source[whole.slices])
         if self.labels is None:
             return [self._surface(source, blocks, self.level, self.name)]
+        if self.labels == NONZERO_LABELS:  # (the rule found non-zero labels: one pass less)
+            return [self._surface(LabelIndicator(source, None), blocks, LABEL_LEVEL,
+                                  f"{self.name}'s non-zero labels")]
         with timed("labels (one pass)"):
             values = label_values(source, blocks.split(whole), _runner(blocks, "labels"))
         if self.labels != ALL_LABELS:
@@ -295,11 +303,8 @@ class MeshOperation(Reduction):
             return
         from .mesh_io import write_mesh
 
-        if self.labels == ALL_LABELS:
-            path = self.to.path.format(label=label)
-            comments = dict(self.to.comments, volwarp_label=str(label))
-        else:
-            path, comments = self.to.path, dict(self.to.comments, volwarp_iso=f"{iso:.9g}")
+        path = self.to.path.format(label=label) if self.labels == ALL_LABELS else self.to.path
+        comments = dict(self.to.comments, **surface_keys(self.labels, iso, label))
         with timed(f"write {path}"):
             write_mesh(mesh, path, comments=comments)
 
@@ -310,6 +315,21 @@ class MeshOperation(Reduction):
 
         with timed("statistics"):
             return mesh_stats(mesh)
+
+
+def surface_keys(labels, iso: float, label: int | None) -> dict:
+    """The key/values a mesh file records of its surface (``labels`` as :class:`MeshOperation`'s).
+
+    Every label's file: its label; else the level (to 9 digits), and for the
+    non-zero labels' union that it is a label map's surface, not a level of
+    samples.
+    """
+    if labels == ALL_LABELS:
+        return {"volwarp_label": str(label)}
+    keys = {"volwarp_iso": f"{iso:.9g}"}
+    if labels == NONZERO_LABELS:
+        keys["volwarp_values"] = "labels"
+    return keys
 
 
 def _distinct_label_files(pattern: str, labels) -> None:
