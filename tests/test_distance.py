@@ -233,3 +233,40 @@ def test_options_that_contradict_each_other_are_a_usage_error(run, data_dir, tmp
               tmp_path / "d.nrrd")
     assert res.code == 2 and "need the euclidean metric" in res.stderr, res
     assert not (tmp_path / "d.nrrd").exists()
+
+
+def test_a_sheared_grid_is_refused_not_measured_along_its_axes(run, tmp_path):
+    """The passes measure along the index axes by their spacing: on a grid whose z axis
+    leans (a NRRD's space directions, a skewed sform, DICOM with --keep-shear) the field
+    was off by 3.5 mm in a 10 mm ball, exit 0. Refused in distance, the API and morph (whose
+    shapes' fields are distance's); a grid off a right angle by a DICOM header's rounding
+    (a few millionths) is measured as before."""
+    from volwarp_cli import api
+    from volwarp_cli.errors import VolwarpError
+
+    z, y, x = np.indices((20, 24, 24))
+    data = (6.0 - np.sqrt((x - 12.0) ** 2 + (y - 12.0) ** 2 + (z - 10.0) ** 2)).astype(np.float32)
+    lean = np.array([[1.0, 0, 0], [0, 1, 0.5], [0, 0, 1]])
+    lean[:, 2] /= np.linalg.norm(lean[:, 2])
+    sheared = tmp_path / "shear.nrrd"
+    write_volume(Volume(data, direction=lean), sheared)
+    out = tmp_path / "d.nrrd"
+    res = run("distance", sheared, "--iso", "0", "-o", out)
+    assert res.code == 1 and "shear.nrrd: its grid is sheared" in res.stderr, res.stderr
+    assert not out.exists()
+    with pytest.raises(VolwarpError, match="sheared"):
+        api.distance(sheared, iso=0)
+    res = run("morph", sheared, sheared, "--frames", "2", "--iso", "0",
+              "-o", tmp_path / "m_{i}.nrrd")
+    assert res.code == 1 and "sheared" in res.stderr and not list(tmp_path.glob("m_*"))
+    # rounding off a right angle: measured, the same field as on the exact grid
+    near = np.eye(3)
+    near[:, 0] = [1.0, 3e-6, 0.0]
+    near[:, 0] /= np.linalg.norm(near[:, 0])
+    write_volume(Volume(data, direction=near), tmp_path / "near.nrrd")
+    write_volume(Volume(data), tmp_path / "exact.nrrd")
+    for name in ("near", "exact"):
+        assert run("distance", tmp_path / f"{name}.nrrd", "--iso", "0",
+                   "-o", tmp_path / f"d_{name}.nrrd").code == 0
+    assert np.array_equal(read_volume(tmp_path / "d_near.nrrd").data,
+                          read_volume(tmp_path / "d_exact.nrrd").data)

@@ -518,7 +518,8 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
         out.meta["volwarp_distance"] = field_note(metric, surface, rule, unsigned, max_distance)
         out = out.replace(dtype=np.float32)
         op = field_operation(source, Geometry.of(out), rule, metric=metric, surface=surface,
-                             max_distance=max_distance, unsigned=unsigned, target=_target(out))
+                             max_distance=max_distance, unsigned=unsigned, target=_target(out),
+                             name=name)
         (field,) = _compute_whole(op).values()
     return field
 

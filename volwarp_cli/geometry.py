@@ -241,6 +241,17 @@ class Geometry:
         return self.direction == _IDENTITY
 
     @property
+    def right_angled(self) -> bool:
+        """Whether the index axes are at right angles in the world (the grid is not sheared).
+
+        Within 1e-4 of a right angle's cosine: a DICOM series' row and column
+        cosines, written to six decimals, stay off by a few millionths.
+        """
+        d = self.direction_array
+        d = d / np.linalg.norm(d, axis=0)
+        return bool(np.allclose(d.T @ d, np.eye(3), atol=1e-4))
+
+    @property
     def matrix(self) -> np.ndarray:
         """3x3 ``direction @ diag(spacing)``: index steps (x, y, z) to world vectors."""
         return self.direction_array * self.spacing_array[None, :]

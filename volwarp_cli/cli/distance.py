@@ -139,7 +139,8 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
     out.meta["volwarp_distance"] = field_note(metric, surface, rule, unsigned, max_distance)
     op = field_operation(source, Geometry.of(out), rule, metric=metric, surface=surface,
                          max_distance=max_distance, unsigned=unsigned,
-                         target=_target(out, output, dtype, compress, byte_order, ome_zarr))
+                         target=_target(out, output, dtype, compress, byte_order, ome_zarr),
+                         name=input)
     settings = scale_settings()
     with _collector_paused():
         execute.run(op, execute.How(chunked=settings.chunked, block=settings.block,
