@@ -80,7 +80,7 @@ def test_warp_of_a_label_map_is_the_command_s_output(run, tmp_path):
 
 @pytest.mark.parametrize("spec, capture_args", [
     (INTENSITY_SPEC, ["--lattice", "7", "8", "9", "--placement", "tripled", "--oversample",
-                      "1.5", "--sampling", "nearest"]),
+                      "1.5", "--sampling", "nearest", "--values", "intensity"]),
     (LABELS_SPEC, ["--lattice", "9", "--oversample", "2"]),  # its labels, held exactly
 ], ids=["intensity", "labels"])
 def test_warp_of_a_capture_file_is_the_command_s_output(run, tmp_path, spec, capture_args):

@@ -210,7 +210,8 @@ def test_version_1_capture_files_keep_their_spanning_grid(run, data_dir, tmp_pat
 
     src = data_dir / "ball_30_uint8.nrrd"
     new = tmp_path / "new.vwc"
-    assert run("capture", src, "-o", new, "--lattice", "7", "--oversample", "1.5").code == 0
+    assert run("capture", src, "-o", new, "--lattice", "7", "--oversample", "1.5",
+               "--values", "intensity").code == 0
     raw = new.read_bytes()
     magic, version, n = struct.unpack("<16sII", raw[:24])
     assert version == VERSION == 2
@@ -254,7 +255,8 @@ def test_version_1_capture_files_from_a_ras_input_are_refused(run, data_dir, tmp
 
     src = data_dir / "ball_30_uint8.nrrd"
     new = tmp_path / "new.vwc"
-    assert run("capture", src, "-o", new, "--lattice", "7", "--oversample", "1.5").code == 0
+    assert run("capture", src, "-o", new, "--lattice", "7", "--oversample", "1.5",
+               "--values", "intensity").code == 0
     raw = new.read_bytes()
     magic, _, n = struct.unpack("<16sII", raw[:24])
     head = json.loads(raw[24:24 + n])

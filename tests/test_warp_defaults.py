@@ -162,10 +162,20 @@ def test_a_capture_file_of_a_label_map_is_warped_as_labels(run, files):
         assert res.code == 0, res.stderr
         assert json.loads(res.stdout)["values"] == "labels"
         assert np.array_equal(read_volume(out).data, read_volume(d / "direct.nrrd").data)
+    # the spanning grid blends a label map's ids for good: refused at capture (a warp of it
+    # averaged ids 1, 2, 7 into 5 and 6, exit 0), unless its samples are asked for as
+    # intensities; a warp of that capture cannot take it for labels
     tripled = d / "tripled.vwc"
     res = run("capture", files["frog"], "-o", tripled, "--lattice", "6", "--placement",
               "tripled")
-    assert res.code == 0 and "looks like a label map" in res.stderr  # said at capture
+    assert res.code == 2 and "looks like a label map" in res.stderr and "--values intensity" \
+        in res.stderr and not tripled.exists()
+    res = run("capture", files["frog"], "-o", tripled, "--lattice", "6", "--placement",
+              "tripled", "--values", "intensity")
+    assert res.code == 0, res.stderr
+    res = run("capture", files["frog"], "-o", d / "l.vwc", "--lattice", "6", "--oversample",
+              "1.5", "--values", "labels")
+    assert res.code == 2 and "--values labels needs" in res.stderr
     spec = d / "plain.yaml"
     spec.write_text("version: 1\nsteps: []\n")
     res = run("warp", tripled, "--spec", spec, "-o", d / "t.nrrd", "--labels")

@@ -206,7 +206,8 @@ def write(obj, path: str | os.PathLike, *, dtype: str | None = None, compress: b
 
 # -- operations --------------------------------------------------------------------------
 def capture(volume, *, lattice=9, placement: str = "uniform", oversample: float = 2.0,
-            pad=None, sampling: str = "linear", name: str | None = None, **read_options):
+            pad=None, sampling: str = "linear", name: str | None = None,
+            values: str | None = None, **read_options):
     """``volwarp capture``: ``volume`` pulled back into a B-spline domain voxmap.
 
     Parameters
@@ -226,14 +227,17 @@ def capture(volume, *, lattice=9, placement: str = "uniform", oversample: float 
         How a domain voxel takes its value from the input.
     name : str, optional
         The input in messages (default: its path, else "the volume").
+    values : {"intensity", "labels"}, optional
+        As ``--values``: a label map (by the rule, or ``"labels"``) is
+        refused on the spanning grid (``tripled``, or a non-integer
+        ``oversample``), which blends its ids for good; ``"intensity"``
+        captures its samples as intensities on any grid.
 
     Returns
     -------
     Capture
         :class:`volwarp_cli.bspline.capture.Capture`; :func:`write` it to a
-        ``.vwc`` file, or keep it. A label map captured on the spanning grid
-        (``tripled``, or a non-integer ``oversample``) is warned about: its
-        ids are blended for good.
+        ``.vwc`` file, or keep it.
 
     References
     ----------
@@ -244,15 +248,17 @@ def capture(volume, *, lattice=9, placement: str = "uniform", oversample: float 
 
     from .bspline.capture import capture_volume
     from .errors import VolwarpError
+    from .labelmap import VALUES
 
     _check_keys(read_options)
     if not (isinstance(oversample, numbers.Real) and math.isfinite(oversample)
             and 0 < oversample <= 16):
         raise BadUsage(f"oversample must be a number in (0, 16], got {oversample!r}")
+    _choice(values, VALUES, "values")
     path = _path_of(volume)
     vol = read(volume, **read_options) if path is not None else _volume(volume, read_options)
     name = str(name or path or "the volume")
-    _warn_blended_labels(vol, name, placement, oversample)
+    _refuse_blended_labels(vol, name, placement, oversample, values)
     try:
         return capture_volume(vol, lattice=_three_ints(lattice, "lattice"),
                               placement=placement, oversample=oversample, sampling=sampling,
@@ -819,28 +825,33 @@ def _warp_labels(planned, name: str, path, spec_path) -> Volume:
     return stamped.with_data(out.data, origin=out.origin)
 
 
-def _warn_blended_labels(vol: Volume, name: str, placement: str, oversample: float) -> None:
-    """Say when a label map is captured on the spanning grid, which blends its ids.
+def _refuse_blended_labels(vol: Volume, name: str, placement: str, oversample: float,
+                           values: str | None) -> None:
+    """Refuse a label map's capture on the spanning grid, which blends its ids for good.
 
     On the subdivision grid (the uniform placement, an integer oversample) a
     capture holds its input's samples, and ``warp`` takes a label map's
-    capture for labels as it takes the map; on the spanning grid its ids are
-    blended for good, and a warp of it can only average them.
+    capture for labels as it takes the map. On the spanning grid a warp of
+    it could only average the ids (ids 1, 2, 7 gave 5 and 6, exit 0): refused
+    as ``warp`` refuses such a spec for a label map (a usage error), unless
+    ``values`` is ``"intensity"``.
     """
     from .bspline.lattice import subdivision_of
-    from .progress import log
     from .warp.defaults import choose_values
 
-    if subdivision_of(oversample, placement):
+    if values == "intensity" or subdivision_of(oversample, placement):
         return
+    how = "the tripled placement" if placement != "uniform" else f"oversample {oversample:g}"
+    if values == "labels":
+        raise BadUsage(f"{name}: --values labels needs the uniform placement and an integer "
+                       f"--oversample (each domain voxel one input voxel's label); {how} "
+                       "blends the ids")
     choice = choose_values(vol.data)
     if choice.is_labels:
-        how = ("the tripled placement" if placement != "uniform"
-               else f"oversample {oversample:g}")
-        log.warning("warning: %s looks like a label map (%d labels), and %s blends its ids "
-                    "(a warp of this capture averages them); capture it with the uniform "
-                    "placement and an integer --oversample to warp it as labels", name,
-                    choice.labels, how)
+        raise BadUsage(f"{name} looks like a label map ({choice.labels} labels), and {how} "
+                       "blends its ids (a warp of the capture would average them): capture it "
+                       "with the uniform placement and an integer --oversample, or give "
+                       "--values intensity to capture its samples as intensities")
 
 
 def _finite(value, name: str, *, positive: bool = False) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from ..io import check_output_path
+from ..labelmap import VALUES
 from ..progress import timed
 from .common import load_input
 from .options import INPUT_PATH, common_options, examples, finite, input_options, output_option
@@ -94,10 +95,16 @@ def lattice_option(default="9"):
                    "linear (trilinear interpolation) or nearest (the paper's rounding). At an "
                    "integer --oversample with the uniform placement both give each domain "
                    "voxel the value of the input voxel it lies in.")
+@click.option("--values", "values", type=click.Choice(VALUES), default=None,
+              help="Take the samples as intensities or as label ids. A label map (as "
+                   "`volwarp info` hints, or labels given) is refused on the spanning grid "
+                   "(--placement tripled, or a non-integer --oversample), which blends its "
+                   "ids for good; intensity captures them as intensities on any grid. (A "
+                   "warp of the capture chooses again, by the rule or its own --values.)")
 @input_options
 @common_options
-def command(input, output, lattice, placement, oversample, pad, sampling, raw, volume_index,
-            dicom):
+def command(input, output, lattice, placement, oversample, pad, sampling, values, raw,
+            volume_index, dicom):
     """Capture INPUT into a domain voxmap file (.vwc) for `volwarp warp`.
 
     The capture lattice's B-spline image of the domain's model voxels is exactly
@@ -116,6 +123,6 @@ def command(input, output, lattice, placement, oversample, pad, sampling, raw, v
                                  param_hint="'--lattice'")
     vol = load_input(input, raw, volume_index, dicom=dicom)
     cap = capture(vol, lattice=lattice, placement=placement, oversample=oversample,
-                  sampling=sampling, pad=pad, name=input)
+                  sampling=sampling, pad=pad, name=input, values=values)
     with timed(f"write {output}"):
         write_capture(cap, output)

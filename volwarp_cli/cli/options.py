@@ -113,7 +113,7 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
     --turntable               mesh
     --unsigned                distance
     --update                  distance
-    --values                  warp apply distance mesh convert
+    --values                  capture warp apply distance mesh convert
     -v/--verbose              (every command)
     --view                    morph sweep mesh
     --volume-index            capture warp apply distance mesh info convert
