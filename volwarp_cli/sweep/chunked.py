@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..box import Box
-from ..errors import VolwarpError
+from ..errors import BadUsage, VolwarpError
 from ..geometry import Geometry
 from .cvg import combine_objects
 from .direct import check_direct, direct_block
@@ -114,6 +114,9 @@ def prepare_sweep(model, geometry: Geometry, *, method: str | None = None,
     method = method or "voxelize"
     if method not in METHODS:
         raise VolwarpError(f"unknown sweep method {method!r} (known: {', '.join(METHODS)})")
+    if method == "direct" and tau is not None:  # (it was taken and ignored)
+        raise BadUsage("--tau spaces the templates the voxelize method places; the direct "
+                       "method inverts the mapping at every voxel and has none")
     check_axis_aligned(geometry)
     sweeps = _sweeps(root)
     if isinstance(root, SceneNode):
