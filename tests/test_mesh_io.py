@@ -310,3 +310,38 @@ def test_read_mesh_bad_ascii_is_a_clear_error(tmp_path, text, match):
     path.write_text(text)
     with pytest.raises(VolwarpError, match=match):
         read_mesh(path)
+
+
+def test_a_slicer_ras_ply_is_read_in_lps_and_every_file_says_lps(blob, tmp_path, run):
+    """3D Slicer writes 'comment SPACE=RAS' (or LPS) in a PLY and reads a file without a
+    mark as LPS. read_mesh took a RAS file's vertices for LPS: a mesh moved by apply
+    came out mirrored in x and y, in a file without a mark (found by a review)."""
+    import SimpleITK as sitk
+
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    ras = (TRI_ASCII.replace("comment a line", "comment 3D Slicer output. SPACE=RAS\ncomment a")
+           .replace("property float z\n", "property float z\nproperty float nx\n"
+                    "property float ny\nproperty float nz\n"))
+    rows = ras.split("end_header\n")[1].splitlines()
+    verts = ["0 0 0 0 0 1 255", "1 2 0 0 0 1 255", "0 1 3 -1 0 0 255", "4 0 1 0 1 0 255"]
+    (tmp_path / "ras.ply").write_text(ras.split("end_header\n")[0] + "end_header\n"
+                                      + "\n".join(verts + rows[4:]) + "\n")
+    m = read_mesh(tmp_path / "ras.ply")
+    np.testing.assert_array_equal(m.vertices, [[0, 0, 0], [-1, -2, 0], [0, -1, 3], [-4, 0, 1]])
+    np.testing.assert_array_equal(m.normals, [[0, 0, 1], [0, 0, 1], [1, 0, 0], [0, -1, 0]])
+    assert m.faces.tolist() == [[0, 1, 2], [0, 3, 1]]  # (a half turn: the winding stays)
+    lps = read_mesh(tmp_path / "ras.ply").vertices
+    (tmp_path / "lps.ply").write_text((tmp_path / "ras.ply").read_text().replace("RAS", "LPS"))
+    assert read_mesh(tmp_path / "lps.ply").vertices.tolist() == (lps * [-1, -1, 1]).tolist()
+    # through apply (an identity): the output in LPS, and saying so where Slicer looks
+    tfm = tmp_path / "id.tfm"
+    sitk.WriteTransform(sitk.AffineTransform(3), str(tfm))
+    res = run("apply", "-t", tfm, "--mesh-in", tmp_path / "ras.ply",
+              "--mesh-to", tmp_path / "out.ply")
+    assert res.code == 0, res.stderr
+    out = read_mesh(tmp_path / "out.ply")
+    np.testing.assert_allclose(out.vertices, m.vertices, atol=1e-6)
+    for fmt, where in (("ply", 400), ("obj", 200), ("stl", 80), ("vtk", 80)):
+        write_mesh(blob, tmp_path / f"b.{fmt}")
+        assert b"SPACE=LPS" in (tmp_path / f"b.{fmt}").read_bytes()[:where], fmt

@@ -56,7 +56,8 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike,
     ``comments`` (provenance key/values) go where the format has room for
     text: ``comment key=value`` header lines in PLY, ``# key=value`` in OBJ,
     an XML comment in VTP; STL's 80-byte header and legacy VTK's title line
-    are too small and keep their fixed text.
+    are too small and keep their fixed text. PLY, OBJ, STL and VTK files say
+    ``SPACE=LPS`` where 3D Slicer looks for it (:data:`SPACE_MARK`).
     """
     fmt = check_mesh_output(path)
     notes = [f"{k}={_one_line(v)}" for k, v in sorted((comments or {}).items())]
@@ -70,6 +71,11 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike,
             writer(mesh, fh, notes)
         else:
             writer(mesh, fh)
+
+
+#: The frame mark 3D Slicer writes and reads in mesh files (since 4.11: a comment of PLY
+#: and OBJ, the header of STL and legacy VTK; a file without one is taken for LPS).
+SPACE_MARK = "SPACE=LPS"
 
 
 def _one_line(value) -> str:
@@ -99,7 +105,7 @@ def _write_blocks(fh, n: int, dtype, fill) -> None:
 def _write_ply(mesh: Mesh, fh, notes: list[str]) -> None:
     has_n = mesh.normals is not None
     header = ["ply", "format binary_little_endian 1.0", "comment written by volwarp",
-              *(f"comment {n}" for n in notes),
+              f"comment {SPACE_MARK}", *(f"comment {n}" for n in notes),
               f"element vertex {mesh.n_vertices}",
               "property float x", "property float y", "property float z"]
     if has_n:
@@ -125,7 +131,8 @@ def _write_ply(mesh: Mesh, fh, notes: list[str]) -> None:
 # -- STL ---------------------------------------------------------------------
 def _write_stl(mesh: Mesh, fh) -> None:
     # The 80-byte header must not start with "solid" (readers take that for ASCII STL).
-    head = b"binary STL written by volwarp; units of the volume's world frame"
+    head = f"binary STL written by volwarp; {SPACE_MARK}; units of the volume's world frame"
+    head = head.encode("ascii")
     fh.write(head.ljust(80, b" "))
     fh.write(np.uint32(mesh.n_faces).astype("<u4").tobytes())
 
@@ -153,7 +160,7 @@ def _text_rows(prefix: str, values: np.ndarray, fmt: str, chunk: int = 200_000):
 
 
 def _write_obj(mesh: Mesh, fh, notes: list[str]) -> None:
-    fh.write(b"# written by volwarp\n")
+    fh.write(f"# written by volwarp\n# {SPACE_MARK}\n".encode("ascii"))
     for n in notes:
         fh.write(f"# {n}\n".encode())
     fh.write(f"# {mesh.n_vertices} vertices, {mesh.n_faces} triangles\n".encode("ascii"))
@@ -234,7 +241,8 @@ def _write_vtp(mesh: Mesh, fh, notes: list[str]) -> None:
 
 # -- legacy VTK ------------------------------------------------------------------
 def _write_vtk(mesh: Mesh, fh) -> None:
-    fh.write(b"# vtk DataFile Version 4.2\nvolwarp mesh\nBINARY\nDATASET POLYDATA\n")
+    fh.write(f"# vtk DataFile Version 4.2\nvolwarp mesh {SPACE_MARK}\nBINARY\n"
+             "DATASET POLYDATA\n".encode("ascii"))
     fh.write(f"POINTS {mesh.n_vertices} float\n".encode("ascii"))
     _write_blocks(fh, mesh.n_vertices, np.dtype((">f4", (3,))),
                   lambda buf, a, b: buf.__setitem__(slice(None), mesh.vertices[a:b]))
@@ -268,7 +276,9 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     present, ``nx ny nz``; faces from their ``vertex_indices`` list, which
     must hold triangles. Other elements and properties (colours, texture
     coordinates, edges) are read past and dropped. Other formats are
-    refused: read them with a mesh library (meshio, trimesh).
+    refused: read them with a mesh library (meshio, trimesh). A file 3D
+    Slicer wrote in its RAS frame (a ``SPACE=RAS`` comment) is brought to
+    LPS, as Slicer reads it (x and y negated); one without a mark is LPS.
     """
     path = Path(path)
     if path.suffix.lower() != ".ply":
@@ -281,8 +291,11 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     if header is None:
         raise VolwarpError(f"{path}: not a PLY file (no 'ply ... end_header' header)")
     fmt, elements = None, []  # elements: [name, count, [(prop, type, list_count_type | None)]]
+    ras = None  # (Slicer's rule: the first comment that names a frame)
     for line in header[1:]:
         words = line.split()
+        if words and words[0] == "comment" and ras is None:
+            ras = True if "SPACE=RAS" in line else False if "SPACE=LPS" in line else None
         if not words or words[0] in ("comment", "obj_info"):
             continue
         try:
@@ -326,6 +339,10 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     faces = faces.astype(np.int64)
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise VolwarpError(f"{path}: face indices outside the {len(vertices)} vertices")
+    if ras:  # (a half turn about z: the winding, and so the outside, stays)
+        vertices[:, :2] *= -1
+        if normals is not None:
+            normals[:, :2] *= -1
     return Mesh(vertices, faces, normals)
 
 
