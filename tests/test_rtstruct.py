@@ -290,3 +290,24 @@ def test_pydicoms_rtstruct_file(run):
     assert [s["name"] for s in desc["structures"]] == ["patient", "Isocenter 1", "Isocenter 2"]
     assert [s["contours"] for s in desc["structures"]] == [3, 1, 1]
     assert desc["referenced_series"] == ["1.2.826.0.1.3680043.8.498.2010020400001.2.1.1"]
+
+
+@pytest.mark.parametrize("number", [0, -3])
+def test_an_roi_numbered_0_or_less_is_never_lost(ct, tmp_path, run, number):
+    """ROI Number 0 is a label map's background, and no label is negative: the map of every
+    ROI is refused naming the ROI and ``--structure``, which gives its voxels."""
+    folder, paths, vol = ct
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        number: ("left corner", [("CLOSED_PLANAR", world(vol, 2, square(0.5, 0.5, 2.5, 2.5)))]),
+        300: ("liver", [("CLOSED_PLANAR", world(vol, 1, square(5.5, 5.5, 8.5, 8.5)))])})
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 1 and not out.exists()
+    assert len(res.stderr.strip().splitlines()) == 1 and str(rs) in res.stderr
+    assert f"ROI {number} 'left corner'" in res.stderr
+    assert "--structure 'left corner'" in res.stderr
+    res = run("convert", rs, "--reference", folder, "--structure", "left corner", "-o", out)
+    assert res.code == 0, res.stderr
+    want = np.zeros(SHAPE, np.uint8)
+    want[2, 1:3, 1:3] = 1
+    np.testing.assert_array_equal(read_volume(out).data, want)

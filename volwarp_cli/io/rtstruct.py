@@ -2,7 +2,9 @@
 
 Reading (:func:`read_rtstruct`). Every ROI is rasterised on the grid of the
 image series the structure set was drawn on (``reference``), its voxels taking
-the ROI Number; ``structure=NAME`` gives one ROI as a 0/1 mask. ROIs that
+the ROI Number (an ROI with contours numbered 0, the background, or less is an
+error naming ``--structure``: never lost from the map); ``structure=NAME`` gives
+one ROI as a 0/1 mask. ROIs that
 overlap (:func:`combine`): one lying wholly inside another (organs inside the
 BODY or External contour, a GTV inside its CTV inside its PTV) is *nested*,
 and a voxel takes the ROI Number of the smallest ROI holding it, so every
@@ -26,6 +28,7 @@ slice by slice:
 from __future__ import annotations
 
 import os
+import shlex
 from dataclasses import dataclass
 
 import numpy as np
@@ -152,8 +155,10 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
         if only is not None and number != only:
             continue
         label = f"ROI {number} {names.get(number, '')!r}"
-        mask = RoiMask.of(number, names.get(number, ""),
-                          _contours_in_index(roi, grid, where, label), grid.shape)
+        contours = _contours_in_index(roi, grid, where, label)
+        if contours and only is None:
+            _check_label(number, names.get(number, ""), where)
+        mask = RoiMask.of(number, names.get(number, ""), contours, grid.shape)
         if only is not None:
             out[mask.slices()][mask.mask] = 1
             continue
@@ -268,6 +273,15 @@ def _box_pairs(rois: list[RoiMask]) -> list[tuple[int, int]]:
                      axis=2)
     i, j = np.nonzero(np.triu(overlap, 1))
     return list(zip(i.tolist(), j.tolist(), strict=True))
+
+
+def _check_label(number: int, name: str, where: str) -> None:
+    """An ROI with contours must be numbered 1 or more to be a label (0 is the background)."""
+    if number < 1:
+        why = "0 is the background" if number == 0 else "a label is not negative"
+        raise VolwarpError(f"{where}: ROI {number} {name!r} cannot be a label of the map of "
+                           f"every ROI ({why}): read it as a 0/1 mask with --structure "
+                           f"{shlex.quote(name)}")
 
 
 def _label_dtype(top: int):
