@@ -311,3 +311,28 @@ def test_an_roi_numbered_0_or_less_is_never_lost(ct, tmp_path, run, number):
     want = np.zeros(SHAPE, np.uint8)
     want[2, 1:3, 1:3] = 1
     np.testing.assert_array_equal(read_volume(out).data, want)
+
+
+@pytest.mark.parametrize("orphan", [7, 300])
+def test_contours_of_an_roi_the_structure_set_does_not_list(ct, tmp_path, run, orphan):
+    """Contours whose ReferencedROINumber StructureSetROISequence does not list have no ROI:
+    the map of every ROI is refused naming the number (300 crashed sizing a uint8 map);
+    the listed ROIs still read one at a time."""
+    folder, paths, vol = ct
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        2: ("a", [("CLOSED_PLANAR", world(vol, 1, square(1.5, 1.5, 3.5, 3.5)))]),
+        orphan: ("gone", [("CLOSED_PLANAR", world(vol, 3, square(5.5, 5.5, 8.5, 8.5)))])})
+    ds = pydicom.dcmread(rs)
+    ds.StructureSetROISequence = Sequence([r for r in ds.StructureSetROISequence
+                                           if r.ROINumber == 2])
+    ds.save_as(rs)
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 1 and not out.exists()
+    assert len(res.stderr.strip().splitlines()) == 1 and str(rs) in res.stderr
+    assert f"ROI Number {orphan}" in res.stderr and "StructureSetROISequence" in res.stderr
+    res = run("convert", rs, "--reference", folder, "--structure", "a", "-o", out)
+    assert res.code == 0, res.stderr
+    want = np.zeros(SHAPE, np.uint8)
+    want[1, 2:4, 2:4] = 1
+    np.testing.assert_array_equal(read_volume(out).data, want)

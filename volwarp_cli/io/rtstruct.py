@@ -147,7 +147,7 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
     only = _structure_number(structures, structure, where) if structure is not None else None
     grid = ref.grid
     names = {r["number"]: r["name"] for r in structures}
-    dtype = np.uint8 if only is not None else _label_dtype(max(numbers, default=0))
+    dtype = np.uint8 if only is not None else _label_dtype(max(numbers, default=0), where)
     out = np.zeros(grid.shape, dtype)
     rois = []
     for roi in ds.get("ROIContourSequence", []):
@@ -157,7 +157,7 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
         label = f"ROI {number} {names.get(number, '')!r}"
         contours = _contours_in_index(roi, grid, where, label)
         if contours and only is None:
-            _check_label(number, names.get(number, ""), where)
+            _check_label(number, names, where)
         mask = RoiMask.of(number, names.get(number, ""), contours, grid.shape)
         if only is not None:
             out[mask.slices()][mask.mask] = 1
@@ -275,20 +275,28 @@ def _box_pairs(rois: list[RoiMask]) -> list[tuple[int, int]]:
     return list(zip(i.tolist(), j.tolist(), strict=True))
 
 
-def _check_label(number: int, name: str, where: str) -> None:
-    """An ROI with contours must be numbered 1 or more to be a label (0 is the background)."""
+def _check_label(number: int, names: dict[int, str], where: str) -> None:
+    """An ROI with contours is a label of the map when listed and numbered 1 or more.
+
+    ``names``: the structure set's ROIs, number -> name; 0 is the map's background.
+    """
+    if number not in names:
+        listed = " ".join(map(str, names)) or "none"
+        raise FormatError(f"{where}: contours of ROI Number {number}, which "
+                          f"StructureSetROISequence does not list (ROIs {listed}): no ROI to "
+                          "label them with; read a listed ROI with --structure NAME")
     if number < 1:
         why = "0 is the background" if number == 0 else "a label is not negative"
-        raise VolwarpError(f"{where}: ROI {number} {name!r} cannot be a label of the map of "
-                           f"every ROI ({why}): read it as a 0/1 mask with --structure "
-                           f"{shlex.quote(name)}")
+        raise VolwarpError(f"{where}: ROI {number} {names[number]!r} cannot be a label of the "
+                           f"map of every ROI ({why}): read it as a 0/1 mask with --structure "
+                           f"{shlex.quote(names[number])}")
 
 
-def _label_dtype(top: int):
+def _label_dtype(top: int, where: str):
     for t in (np.uint8, np.uint16, np.uint32):
         if top <= np.iinfo(t).max:
             return t
-    raise VolwarpError(f"ROI Number {top} does not fit uint32")
+    raise VolwarpError(f"{where}: ROI Number {top} does not fit uint32")
 
 
 def _meta(ds, keep_phi: bool, ref) -> dict:
