@@ -272,3 +272,20 @@ def test_reference_with_several_series_takes_the_referenced_one(ct, tmp_path):
     vol = read_dicom(seg_path, reference=folder)
     np.testing.assert_array_equal(vol.data, lab)
     assert vol.same_grid(ref)
+
+
+@pytest.mark.parametrize("kind", ["BINARY", "FRACTIONAL", "LABELMAP"])
+def test_a_seg_cut_inside_its_pixel_data_is_truncated(ct, tmp_path, run, kind):
+    """A file cut short inside its frames is one 'truncated' error naming it, every type."""
+    _, paths = ct
+    lab = labels_fixture()
+    pixels = lab if kind == "LABELMAP" else masks_of(lab).astype(
+        np.float32 if kind == "FRACTIONAL" else bool)
+    whole = make_seg(paths, pixels, kind, tmp_path / "seg.dcm").read_bytes()
+    cut = tmp_path / "cut.dcm"
+    cut.write_bytes(whole[:-7])  # (the pixel data is the last element)
+    out = tmp_path / "o.nrrd"
+    res = run("convert", cut, "-o", out)
+    assert res.code == 1 and not out.exists()
+    assert len(res.stderr.strip().splitlines()) == 1
+    assert f"{cut}: the pixel data is truncated" in res.stderr, res.stderr

@@ -234,12 +234,15 @@ def _fast_frames(ds, where: str, segment: int | None):
     direction = np.column_stack([row_cos, col_cos, normal])
     npix = rows * cols
     raw = ds.PixelData
+    need = -(-n_frames * npix * bits // 8)  # (BINARY: bits run on across frames)
+    if len(raw) < need:
+        raise FormatError(f"{where}: the pixel data is truncated: {n_frames} frames of "
+                          f"{cols}x{rows} {kind} pixels need {need} bytes, the file holds "
+                          f"{len(raw)}")
     if kind == "BINARY":
         data = _binary_labels(raw, n_frames, npix, n, index, seg_of, segment, numbers, where)
     else:
         dtype = np.dtype(f"<u{bits // 8}")
-        if len(raw) < n_frames * npix * dtype.itemsize:
-            return None
         frames = np.frombuffer(raw, dtype, n_frames * npix).reshape(n_frames, npix)
         if kind == "LABELMAP":
             data = np.zeros((n, npix), _label_dtype(max(numbers, default=0)))
