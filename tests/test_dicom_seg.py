@@ -289,3 +289,25 @@ def test_a_seg_cut_inside_its_pixel_data_is_truncated(ct, tmp_path, run, kind):
     assert res.code == 1 and not out.exists()
     assert len(res.stderr.strip().splitlines()) == 1
     assert f"{cut}: the pixel data is truncated" in res.stderr, res.stderr
+
+
+def test_info_lists_the_segments_of_a_seg_whose_segments_overlap(ct, tmp_path, run):
+    """No label map holds overlapping segments, but info still lists them (to choose
+    ``--segment N``) and says they overlap."""
+    _, paths = ct
+    masks = masks_of(labels_fixture())
+    masks[1, 2, 2, 2] = True  # segment 3 also covers a voxel of segment 1
+    seg_path = make_seg(paths, masks, "BINARY", tmp_path / "over.dcm")
+    res = run("info", seg_path, "--json")
+    assert res.code == 0, res.stderr
+    desc = json.loads(res.stdout)
+    assert desc["dicom_type"] == "SEG" and desc["segmentation_type"] == "BINARY"
+    assert [s["number"] for s in desc["segments"]] == [1, 2, 3]
+    assert [s["label"] for s in desc["segments"]] == ["organ 1", "organ 2", "organ 3"]
+    assert desc["segments_overlap"] is True and "shape" not in desc
+    text = run("info", seg_path)
+    assert text.code == 0, text.stderr
+    assert "[3] 'organ 3'" in text.stdout and "overlap" in text.stdout
+    assert "--segment N" in text.stdout
+    one = json.loads(run("info", seg_path, "--segment", 3, "--json").stdout)
+    assert one["max"] == 1 and "segments_overlap" not in one

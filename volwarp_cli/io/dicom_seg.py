@@ -322,8 +322,12 @@ def _fractional_labels(ds, frames, n: int, index, seg_of, segment, numbers,
     return out
 
 
-def _overlap_error(where: str, numbers) -> VolwarpError:
-    return VolwarpError(f"{where}: segments overlap (a voxel in two segments), so one label map "
+class SegmentsOverlap(VolwarpError):
+    """Segments share a voxel: no one label map holds them (``info`` still lists them)."""
+
+
+def _overlap_error(where: str, numbers) -> SegmentsOverlap:
+    return SegmentsOverlap(f"{where}: segments overlap (a voxel in two segments), so one label map "
                         "cannot hold them: read one segment as a 0/1 mask with --segment N "
                         f"(segments {' '.join(map(str, numbers))})")
 
