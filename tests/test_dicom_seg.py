@@ -272,3 +272,42 @@ def test_reference_with_several_series_takes_the_referenced_one(ct, tmp_path):
     vol = read_dicom(seg_path, reference=folder)
     np.testing.assert_array_equal(vol.data, lab)
     assert vol.same_grid(ref)
+
+
+@pytest.mark.parametrize("kind", ["BINARY", "FRACTIONAL", "LABELMAP"])
+def test_a_seg_cut_inside_its_pixel_data_is_truncated(ct, tmp_path, run, kind):
+    """A file cut short inside its frames is one 'truncated' error naming it, every type."""
+    _, paths = ct
+    lab = labels_fixture()
+    pixels = lab if kind == "LABELMAP" else masks_of(lab).astype(
+        np.float32 if kind == "FRACTIONAL" else bool)
+    whole = make_seg(paths, pixels, kind, tmp_path / "seg.dcm").read_bytes()
+    cut = tmp_path / "cut.dcm"
+    cut.write_bytes(whole[:-7])  # (the pixel data is the last element)
+    out = tmp_path / "o.nrrd"
+    res = run("convert", cut, "-o", out)
+    assert res.code == 1 and not out.exists()
+    assert len(res.stderr.strip().splitlines()) == 1
+    assert f"{cut}: the pixel data is truncated" in res.stderr, res.stderr
+
+
+def test_info_lists_the_segments_of_a_seg_whose_segments_overlap(ct, tmp_path, run):
+    """No label map holds overlapping segments, but info still lists them (to choose
+    ``--segment N``) and says they overlap."""
+    _, paths = ct
+    masks = masks_of(labels_fixture())
+    masks[1, 2, 2, 2] = True  # segment 3 also covers a voxel of segment 1
+    seg_path = make_seg(paths, masks, "BINARY", tmp_path / "over.dcm")
+    res = run("info", seg_path, "--json")
+    assert res.code == 0, res.stderr
+    desc = json.loads(res.stdout)
+    assert desc["dicom_type"] == "SEG" and desc["segmentation_type"] == "BINARY"
+    assert [s["number"] for s in desc["segments"]] == [1, 2, 3]
+    assert [s["label"] for s in desc["segments"]] == ["organ 1", "organ 2", "organ 3"]
+    assert desc["segments_overlap"] is True and "shape" not in desc
+    text = run("info", seg_path)
+    assert text.code == 0, text.stderr
+    assert "[3] 'organ 3'" in text.stdout and "overlap" in text.stdout
+    assert "--segment N" in text.stdout
+    one = json.loads(run("info", seg_path, "--segment", 3, "--json").stdout)
+    assert one["max"] == 1 and "segments_overlap" not in one

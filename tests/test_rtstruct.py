@@ -290,3 +290,116 @@ def test_pydicoms_rtstruct_file(run):
     assert [s["name"] for s in desc["structures"]] == ["patient", "Isocenter 1", "Isocenter 2"]
     assert [s["contours"] for s in desc["structures"]] == [3, 1, 1]
     assert desc["referenced_series"] == ["1.2.826.0.1.3680043.8.498.2010020400001.2.1.1"]
+
+
+@pytest.mark.parametrize("number", [0, -3])
+def test_an_roi_numbered_0_or_less_is_never_lost(ct, tmp_path, run, number):
+    """ROI Number 0 is a label map's background, and no label is negative: the map of every
+    ROI is refused naming the ROI and ``--structure``, which gives its voxels."""
+    folder, paths, vol = ct
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        number: ("left corner", [("CLOSED_PLANAR", world(vol, 2, square(0.5, 0.5, 2.5, 2.5)))]),
+        300: ("liver", [("CLOSED_PLANAR", world(vol, 1, square(5.5, 5.5, 8.5, 8.5)))])})
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 1 and not out.exists()
+    assert len(res.stderr.strip().splitlines()) == 1 and str(rs) in res.stderr
+    assert f"ROI {number} 'left corner'" in res.stderr
+    assert "--structure 'left corner'" in res.stderr
+    res = run("convert", rs, "--reference", folder, "--structure", "left corner", "-o", out)
+    assert res.code == 0, res.stderr
+    want = np.zeros(SHAPE, np.uint8)
+    want[2, 1:3, 1:3] = 1
+    np.testing.assert_array_equal(read_volume(out).data, want)
+
+
+@pytest.mark.parametrize("orphan", [7, 300])
+def test_contours_of_an_roi_the_structure_set_does_not_list(ct, tmp_path, run, orphan):
+    """Contours whose ReferencedROINumber StructureSetROISequence does not list have no ROI:
+    the map of every ROI is refused naming the number (300 crashed sizing a uint8 map);
+    the listed ROIs still read one at a time."""
+    folder, paths, vol = ct
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        2: ("a", [("CLOSED_PLANAR", world(vol, 1, square(1.5, 1.5, 3.5, 3.5)))]),
+        orphan: ("gone", [("CLOSED_PLANAR", world(vol, 3, square(5.5, 5.5, 8.5, 8.5)))])})
+    ds = pydicom.dcmread(rs)
+    ds.StructureSetROISequence = Sequence([r for r in ds.StructureSetROISequence
+                                           if r.ROINumber == 2])
+    ds.save_as(rs)
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 1 and not out.exists()
+    assert len(res.stderr.strip().splitlines()) == 1 and str(rs) in res.stderr
+    assert f"ROI Number {orphan}" in res.stderr and "StructureSetROISequence" in res.stderr
+    res = run("convert", rs, "--reference", folder, "--structure", "a", "-o", out)
+    assert res.code == 0, res.stderr
+    want = np.zeros(SHAPE, np.uint8)
+    want[1, 2:4, 2:4] = 1
+    np.testing.assert_array_equal(read_volume(out).data, want)
+
+
+def slice_file(paths, vol, k):
+    """The file of the series' slice k (z order)."""
+    at = vol.index_to_world([0, 0, k])
+    return next(p for p in paths if np.allclose(
+        np.array(pydicom.dcmread(p).ImagePositionPatient, float), at, atol=1e-4))
+
+
+def on_image(rs, uid) -> None:
+    """Make every contour of the RTSTRUCT ``rs`` reference the image ``uid``."""
+    ds = pydicom.dcmread(rs)
+    for roi in ds.ROIContourSequence:
+        for c in roi.ContourSequence:
+            item = Dataset()
+            item.ReferencedSOPClassUID = "1.2.840.10008.5.1.4.1.1.2"
+            item.ReferencedSOPInstanceUID = uid
+            c.ContourImageSequence = Sequence([item])
+    ds.save_as(rs)
+
+
+def test_a_contour_whose_image_the_reference_lacks_is_an_error(ct, tmp_path, run):
+    """A contour outside the reference's slices (its image skipped as a header-only file) or
+    on an image the reference does not hold is an error naming the ROI, never dropped."""
+    folder, paths, vol = ct
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        1: ("low", [("CLOSED_PLANAR", world(vol, 1, square(1.5, 1.5, 3.5, 3.5)))]),
+        2: ("top", [("CLOSED_PLANAR", world(vol, 4, square(5.5, 5.5, 8.5, 8.5)))])})
+    top = slice_file(paths, vol, 4)
+    header = pydicom.dcmread(top)
+    del header.PixelData  # a truncated file: skipped with a warning, the grid is 4 slices
+    header.save_as(top)
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 1 and not out.exists(), res.stderr
+    assert str(rs) in res.stderr and "ROI 2 'top'" in res.stderr
+    assert "outside" in res.stderr and "slices 0..3" in res.stderr
+    res = run("convert", rs, "--reference", folder, "--structure", "top", "-o", out)
+    assert res.code == 1 and "ROI 2 'top'" in res.stderr and not out.exists()
+    # within the grid, but on an image the reference does not hold
+    rs = write_rtstruct(tmp_path / "rs2.dcm", paths, {
+        1: ("low", [("CLOSED_PLANAR", world(vol, 1, square(1.5, 1.5, 3.5, 3.5)))])})
+    on_image(rs, "1.2.3.4.5")
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 1 and not out.exists(), res.stderr
+    assert str(rs) in res.stderr and "ROI 1 'low'" in res.stderr and "1.2.3.4.5" in res.stderr
+    assert [line for line in res.stderr.splitlines() if "error:" in line] == \
+        [res.stderr.strip().splitlines()[-1]]  # (after the header-only file's warning)
+
+
+@pytest.mark.parametrize("keep", ["first", "last"])
+def test_a_contour_on_a_duplicate_image_dropped_from_the_grid(ct, tmp_path, run, keep):
+    """A duplicate image ``--duplicates`` leaves out is still the reference's: a contour on it
+    lies on its slice of the grid."""
+    folder, paths, vol = ct
+    copy = pydicom.dcmread(slice_file(paths, vol, 2))
+    copy.SOPInstanceUID = copy.file_meta.MediaStorageSOPInstanceUID = generate_uid()
+    copy.save_as(folder / "copy.dcm")
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        1: ("a", [("CLOSED_PLANAR", world(vol, 2, square(1.5, 1.5, 3.5, 3.5)))])})
+    on_image(rs, copy.SOPInstanceUID)
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "--duplicates", keep, "-o", out)
+    assert res.code == 0, res.stderr
+    want = np.zeros(SHAPE, np.uint8)
+    want[2, 2:4, 2:4] = 1
+    np.testing.assert_array_equal(read_volume(out).data, want)

@@ -44,9 +44,7 @@ def _format_text(d: dict) -> str:
                          "--label N or --labels for one label's surface or each one's")
         elif k == "segments":
             lines.append(f"segments:  {len(v)} ({d.get('segmentation_type', '')})")
-            for seg in v:
-                what = " / ".join(c["meaning"] for c in (seg["category"], seg["type"]) if c)
-                lines.append(f"  [{seg['number']}] {seg['label']!r}" + (f": {what}" if what else ""))
+            lines += _segment_lines(v)
         elif k in ("dicom_type", "segmentation_type"):
             continue
         elif k == "candidates":
@@ -81,6 +79,8 @@ def command(file, as_json, raw, volume_index, dicom):
         _label_hint(desc, vol)
     if "structures" in desc and "shape" not in desc:  # an RTSTRUCT: no grid of its own
         click.echo(json.dumps(desc, indent=2) if as_json else _structures_text(desc))
+    elif desc.get("segments_overlap"):  # a SEG no one label map holds: no grid to show
+        click.echo(json.dumps(desc, indent=2) if as_json else _overlap_text(desc))
     elif desc.get("format") == "dicom" and "shape" not in desc:  # several volumes, none chosen
         click.echo(json.dumps(desc, indent=2) if as_json else _candidates_text(desc))
     elif as_json:
@@ -184,6 +184,8 @@ def _describe_dicom(file, raw, volume_index, dicom) -> dict:
 def _describe_segmentation(file, kind: str, dicom) -> dict:
     """A SEG: its label map (its own grid) with ``segments``; an RTSTRUCT: its ``structures``.
 
+    A SEG whose segments overlap has no label map: its ``segments`` alone, and
+    ``segments_overlap``, so that the user can choose one with ``--segment N``.
     An RTSTRUCT has no grid without the series it was drawn on: its ROIs, the
     series and frame of reference it names; with ``--reference`` also the label
     map rasterised on that series' grid.
@@ -204,15 +206,33 @@ def _describe_segmentation(file, kind: str, dicom) -> dict:
                 "referenced_series": list(referenced_series(ds)),
                 "frame_of_reference": list(frames_of_reference(ds)),
                 "structures": describe_structures(ds)}
-    from ..io.dicom_seg import describe_segments, open_seg, seg_type
+    from ..io.dicom_seg import SegmentsOverlap, describe_segments, open_seg, seg_type
 
     seg = open_seg(file)
-    vol = load_input(file, dicom=dicom)
-    desc = describe_volume(vol, "dicom")
+    try:
+        desc = describe_volume(load_input(file, dicom=dicom), "dicom")
+    except SegmentsOverlap:
+        desc = {"format": "dicom", "segments_overlap": True}
     desc["dicom_type"] = "SEG"
     desc["segmentation_type"] = seg_type(seg)
     desc["segments"] = describe_segments(seg)
     return desc
+
+
+def _segment_lines(segments: list[dict]) -> list[str]:
+    """One line per segment: its number, label, coded category and type."""
+    lines = []
+    for seg in segments:
+        what = " / ".join(c["meaning"] for c in (seg["category"], seg["type"]) if c)
+        lines.append(f"  [{seg['number']}] {seg['label']!r}" + (f": {what}" if what else ""))
+    return lines
+
+
+def _overlap_text(desc: dict) -> str:
+    return "\n".join([f"format:    dicom SEG ({desc['segmentation_type']}), "
+                      f"{len(desc['segments'])} segment(s) that overlap (a voxel in two): no "
+                      "one label map holds them; read one as a 0/1 mask with --segment N"]
+                     + _segment_lines(desc["segments"]))
 
 
 def _structures_text(desc: dict) -> str:

@@ -234,12 +234,15 @@ def _fast_frames(ds, where: str, segment: int | None):
     direction = np.column_stack([row_cos, col_cos, normal])
     npix = rows * cols
     raw = ds.PixelData
+    need = -(-n_frames * npix * bits // 8)  # (BINARY: bits run on across frames)
+    if len(raw) < need:
+        raise FormatError(f"{where}: the pixel data is truncated: {n_frames} frames of "
+                          f"{cols}x{rows} {kind} pixels need {need} bytes, the file holds "
+                          f"{len(raw)}")
     if kind == "BINARY":
         data = _binary_labels(raw, n_frames, npix, n, index, seg_of, segment, numbers, where)
     else:
         dtype = np.dtype(f"<u{bits // 8}")
-        if len(raw) < n_frames * npix * dtype.itemsize:
-            return None
         frames = np.frombuffer(raw, dtype, n_frames * npix).reshape(n_frames, npix)
         if kind == "LABELMAP":
             data = np.zeros((n, npix), _label_dtype(max(numbers, default=0)))
@@ -319,8 +322,12 @@ def _fractional_labels(ds, frames, n: int, index, seg_of, segment, numbers,
     return out
 
 
-def _overlap_error(where: str, numbers) -> VolwarpError:
-    return VolwarpError(f"{where}: segments overlap (a voxel in two segments), so one label map "
+class SegmentsOverlap(VolwarpError):
+    """Segments share a voxel: no one label map holds them (``info`` still lists them)."""
+
+
+def _overlap_error(where: str, numbers) -> SegmentsOverlap:
+    return SegmentsOverlap(f"{where}: segments overlap (a voxel in two segments), so one label map "
                         "cannot hold them: read one segment as a 0/1 mask with --segment N "
                         f"(segments {' '.join(map(str, numbers))})")
 

@@ -2,7 +2,9 @@
 
 Reading (:func:`read_rtstruct`). Every ROI is rasterised on the grid of the
 image series the structure set was drawn on (``reference``), its voxels taking
-the ROI Number; ``structure=NAME`` gives one ROI as a 0/1 mask. ROIs that
+the ROI Number (an ROI with contours numbered 0, the background, or less is an
+error naming ``--structure``: never lost from the map); ``structure=NAME`` gives
+one ROI as a 0/1 mask. ROIs that
 overlap (:func:`combine`): one lying wholly inside another (organs inside the
 BODY or External contour, a GTV inside its CTV inside its PTV) is *nested*,
 and a voxel takes the ROI Number of the smallest ROI holding it, so every
@@ -13,7 +15,9 @@ their shared voxels, and names ``--structure``. The rule (:func:`rasterize`),
 slice by slice:
 
 - a contour lies in the slice whose plane it is in (every point within 0.05
-  voxel of it, else an error naming the ROI);
+  voxel of it, else an error naming the ROI); a contour outside the series'
+  slices, or on an image it does not hold, is an error too (its image is
+  missing: dropping it would lose the ROI's voxels there);
 - even-odd: a voxel centre is inside when a ray from it crosses the slice's
   closed contours of the ROI an odd number of times, so holes and islands are
   what the contours make them, whichever way round they are drawn;
@@ -26,6 +30,7 @@ slice by slice:
 from __future__ import annotations
 
 import os
+import shlex
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,16 +149,19 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
     only = _structure_number(structures, structure, where) if structure is not None else None
     grid = ref.grid
     names = {r["number"]: r["name"] for r in structures}
-    dtype = np.uint8 if only is not None else _label_dtype(max(numbers, default=0))
+    dtype = np.uint8 if only is not None else _label_dtype(max(numbers, default=0), where)
     out = np.zeros(grid.shape, dtype)
     rois = []
+    images: dict = {}  # ContourImageSequence bytes -> the UIDs they name
     for roi in ds.get("ROIContourSequence", []):
         number = int(roi.get("ReferencedROINumber", -1))
         if only is not None and number != only:
             continue
         label = f"ROI {number} {names.get(number, '')!r}"
-        mask = RoiMask.of(number, names.get(number, ""),
-                          _contours_in_index(roi, grid, where, label), grid.shape)
+        contours = _contours_in_index(roi, ref, where, label, images)
+        if contours and only is None:
+            _check_label(number, names, where)
+        mask = RoiMask.of(number, names.get(number, ""), contours, grid.shape)
         if only is not None:
             out[mask.slices()][mask.mask] = 1
             continue
@@ -270,11 +278,28 @@ def _box_pairs(rois: list[RoiMask]) -> list[tuple[int, int]]:
     return list(zip(i.tolist(), j.tolist(), strict=True))
 
 
-def _label_dtype(top: int):
+def _check_label(number: int, names: dict[int, str], where: str) -> None:
+    """An ROI with contours is a label of the map when listed and numbered 1 or more.
+
+    ``names``: the structure set's ROIs, number -> name; 0 is the map's background.
+    """
+    if number not in names:
+        listed = " ".join(map(str, names)) or "none"
+        raise FormatError(f"{where}: contours of ROI Number {number}, which "
+                          f"StructureSetROISequence does not list (ROIs {listed}): no ROI to "
+                          "label them with; read a listed ROI with --structure NAME")
+    if number < 1:
+        why = "0 is the background" if number == 0 else "a label is not negative"
+        raise VolwarpError(f"{where}: ROI {number} {names[number]!r} cannot be a label of the "
+                           f"map of every ROI ({why}): read it as a 0/1 mask with --structure "
+                           f"{shlex.quote(names[number])}")
+
+
+def _label_dtype(top: int, where: str):
     for t in (np.uint8, np.uint16, np.uint32):
         if top <= np.iinfo(t).max:
             return t
-    raise VolwarpError(f"ROI Number {top} does not fit uint32")
+    raise VolwarpError(f"{where}: ROI Number {top} does not fit uint32")
 
 
 def _meta(ds, keep_phi: bool, ref) -> dict:
@@ -289,9 +314,18 @@ def _meta(ds, keep_phi: bool, ref) -> dict:
     return meta
 
 
-def _contours_in_index(roi, grid, where: str, label: str) -> list[tuple[int, np.ndarray, bool]]:
-    """``(slice k, points (n, 2) as continuous (x, y) indices, closed)`` of one ROI's contours."""
+def _contours_in_index(roi, ref, where: str, label: str,
+                       images: dict) -> list[tuple[int, np.ndarray, bool]]:
+    """``(slice k, points (n, 2) as continuous (x, y) indices, closed)`` of one ROI's contours.
+
+    Each must lie on an image of the reference ``ref`` (a ReferenceSeries): one it
+    holds, when its ContourImageSequence names it, and one of its grid's slices.
+    A contour whose image is missing (or was skipped as unreadable) is an error:
+    dropping it would lose the ROI's voxels there without a word. ``images``:
+    :func:`_contour_images`' cache.
+    """
     out = []
+    grid = ref.grid
     nz = grid.shape[0]
     for m, c in enumerate(roi.get("ContourSequence", [])):
         items = _contour_data(c)
@@ -305,6 +339,11 @@ def _contours_in_index(roi, grid, where: str, label: str) -> list[tuple[int, np.
         if pts.size % 3 or not np.all(np.isfinite(pts)):
             raise FormatError(f"{where}: {label} contour {m + 1}: ContourData must be finite "
                               f"x y z triples, got {pts.size} values")
+        for uid in _contour_images(c, images):
+            if uid and uid not in ref.image_uids:
+                raise FormatError(f"{where}: {label} contour {m + 1} lies on image {uid}, which "
+                                  f"--reference {ref.path} does not hold (missing, or skipped "
+                                  "as unreadable)")
         ijk = grid.world_to_index(pts.reshape(-1, 3))
         k = np.rint(ijk[:, 2])
         if np.abs(ijk[:, 2] - k).max() > IN_PLANE or k.min() != k.max():
@@ -314,7 +353,9 @@ def _contours_in_index(roi, grid, where: str, label: str) -> list[tuple[int, np.
                               f"{np.ptp(ijk[:, 2]):.3g} across)")
         k = int(k[0])
         if not 0 <= k < nz:
-            continue  # outside the reference's slices: nothing of it is on the grid
+            raise FormatError(f"{where}: {label} contour {m + 1} lies at slice index {k}, "
+                              f"outside the slices 0..{nz - 1} of --reference {ref.path} (its "
+                              "image missing, or skipped as unreadable?)")
         kind = str(c.get("ContourGeometricType", "CLOSED_PLANAR")).upper()
         out.append((k, ijk[:, :2], kind == "CLOSED_PLANAR"))
     return out
@@ -322,6 +363,27 @@ def _contours_in_index(roi, grid, where: str, label: str) -> list[tuple[int, np.
 
 #: the tag of Contour Data (3006,0050)
 _CONTOUR_DATA = 0x30060050
+#: the tag of Contour Image Sequence (3006,0016)
+_CONTOUR_IMAGES = 0x30060016
+
+
+def _contour_images(item, cache: dict) -> tuple[str, ...]:
+    """The SOP Instance UIDs a contour item's ContourImageSequence names (() if none).
+
+    pydicom parses a sequence when it is first read, about 50 us a contour (a
+    quarter of reading a large RTSTRUCT); the contours on one image hold the same
+    bytes, so each distinct sequence is parsed once, ``cache`` keeping its UIDs.
+    """
+    if _CONTOUR_IMAGES not in item:
+        return ()
+    raw = item.get_item(_CONTOUR_IMAGES).value
+    key = bytes(raw) if isinstance(raw, (bytes, bytearray)) else None
+    if key in cache:
+        return cache[key]
+    uids = tuple(str(i.get("ReferencedSOPInstanceUID", "")) for i in item[_CONTOUR_IMAGES].value)
+    if key is not None:
+        cache[key] = uids
+    return uids
 
 
 def _contour_data(item) -> list:

@@ -270,7 +270,10 @@ class ReferenceSeries:
     (no pixels are read); ``files[k]`` and ``sop_uids[k]`` are the image of slice
     ``k`` (z order); ``frame_numbers[k]`` its frame number (1 ...) in that file
     when the file is a multi-frame image (an enhanced CT or MR: one file, one
-    SOP Instance UID for every slice), else None.
+    SOP Instance UID for every slice), else None. ``image_uids``: the SOP
+    Instance UIDs of every image of the series read, those of duplicates
+    ``duplicates`` left off the grid included (a file skipped as unreadable is
+    not one).
     """
 
     path: str
@@ -282,6 +285,7 @@ class ReferenceSeries:
     sop_uids: tuple
     files: tuple
     frame_numbers: tuple = ()
+    image_uids: frozenset = frozenset()
 
     @property
     def multi_frame(self) -> bool:
@@ -304,8 +308,9 @@ def read_reference(path: str | os.PathLike, *, series=None, want_series: tuple =
         hits = [c for c in cands if c.series_uid in want_series]
         if len(hits) == 1:
             series = hits[0].index
-    plan, dtype, meta = _plan(path, series=series, irregular=irregular, duplicates=duplicates,
-                              keep_shear=False, keep_phi=False, candidates=cands)
+    cand = choose(cands, series, where)
+    plan, dtype, meta = _plan(path, series=None, irregular=irregular, duplicates=duplicates,
+                              keep_shear=False, keep_phi=False, candidates=[cand])
     if plan.resampled:
         raise FormatError(f"{where}: the reference series must be read as it is stored (its "
                           "slices are resampled: gantry tilt or irregular gaps), so a "
@@ -326,4 +331,5 @@ def read_reference(path: str | os.PathLike, *, series=None, want_series: tuple =
         sop_uids=tuple(f.file.sop_uid for f in plan.frames),
         files=tuple(f.file.path for f in plan.frames),
         frame_numbers=tuple(f.frame + 1 if f.file.n_frames > 1 else None
-                            for f in plan.frames))
+                            for f in plan.frames),
+        image_uids=frozenset(f.file.sop_uid for f in cand.frames))
