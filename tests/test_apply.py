@@ -727,3 +727,63 @@ def test_folder_as_transform_refused(run, inputs, inside):
                           "(transform files in it: 0GenericAffine.mat)\n")
     assert not (folder / "out.nrrd").exists()
     assert (inputs / "out.nrrd").read_bytes() == b"old output"
+
+
+def _centred():
+    """One transform of each class with a centre (its FixedParameters), as SimpleITK makes them."""
+    s = sitk.ScaleTransform(3, [1.1, 0.9, 1.05])
+    s.SetCenter([2.0, 3.0, 4.0])
+    v = sitk.VersorRigid3DTransform()
+    v.SetRotation([1, 1, 0], 0.2)
+    v.SetCenter([2.0, 0.0, 4.0])
+    m = sitk.Similarity3DTransform()
+    m.SetScale(1.05)
+    m.SetCenter([2.0, 3.0, 4.0])
+    return {"affine": affine(), "euler": euler(), "versor": v, "similarity": m, "scale": s}
+
+
+@pytest.mark.parametrize("kept", [1, 2])
+@pytest.mark.parametrize("fmt", ["tfm", "h5", "mat"])
+@pytest.mark.parametrize("cls", ["affine", "euler", "versor", "similarity", "scale"])
+def test_a_centre_cut_short_is_refused_as_itk_does(run, inputs, cls, fmt, kept):
+    """FixedParameters of 1 or 2 values (a file cut inside the centre): ITK refuses the file;
+    volwarp took the centre as 0 and resampled about the wrong point."""
+    tr = _centred()[cls]
+    path = inputs / f"cut.{fmt}"
+    sitk.WriteTransform(tr, str(path))
+    fixed = list(tr.GetFixedParameters())[:kept]
+    if fmt == "tfm":
+        text = path.read_text()
+        head = text[:text.index("FixedParameters:")]
+        path.write_text(head + "FixedParameters: " + " ".join(map(str, fixed)) + "\n")
+    elif fmt == "h5":
+        import h5py
+
+        with h5py.File(path, "a") as f:
+            g = f["TransformGroup/0"]
+            del g["TransformFixedParameters"]
+            g["TransformFixedParameters"] = np.array(fixed)
+    else:
+        import scipy.io
+
+        doc = {k: v for k, v in scipy.io.loadmat(path).items() if not k.startswith("__")}
+        doc["fixed"] = np.array(fixed).reshape(-1, 1)
+        scipy.io.savemat(path, doc, format="4")
+    with pytest.raises(RuntimeError):  # (SimpleITK: "parameters array size ... is less")
+        sitk.ReadTransform(str(path))
+    _refused(run, inputs, "-t", path, says=f"{path}: ")
+    res = run("apply", inputs / "in.nrrd", "-o", inputs / "out.nrrd", "-t", path)
+    assert f"has {kept} fixed parameters" in res.stderr, res.stderr
+
+
+def test_a_text_file_without_fixed_parameters_is_refused(run, inputs):
+    """No FixedParameters line: ITK reads the file as the identity (it drops the Parameters),
+    where volwarp took them about the centre 0; neither is what the file says: refused."""
+    path = inputs / "nofixed.tfm"
+    sitk.WriteTransform(euler(), str(path))
+    text = path.read_text()
+    path.write_text(text[:text.index("FixedParameters:")])
+    tr = sitk.ReadTransform(str(path))
+    assert tr.TransformPoint([1.0, 2.0, 3.0]) == (1.0, 2.0, 3.0)  # (ITK: the identity)
+    _refused(run, inputs, "-t", path,
+             says=f"{path}: Euler3DTransform has Parameters but no FixedParameters line")
