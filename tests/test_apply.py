@@ -787,3 +787,30 @@ def test_a_text_file_without_fixed_parameters_is_refused(run, inputs):
     assert tr.TransformPoint([1.0, 2.0, 3.0]) == (1.0, 2.0, 3.0)  # (ITK: the identity)
     _refused(run, inputs, "-t", path,
              says=f"{path}: Euler3DTransform has Parameters but no FixedParameters line")
+
+
+@pytest.mark.parametrize("versor", [(0.6, 0.6, 0.6), (0.0, 0.8, 0.6), (0.5, -0.5, 0.7071067811)])
+@pytest.mark.parametrize("cls", ["VersorRigid3DTransform", "Similarity3DTransform"])
+def test_a_versor_of_norm_1_or_above_is_normalised_as_itk_does(run, inputs, cls, versor):
+    """ITK reads a versor whose norm is not below 1 (a hand-edited or rounded file) by
+    normalising it (its SetParameters: a rotation near a half turn); volwarp refused it
+    without naming the file. The same resampling as sitk.Resample."""
+    extra = " 1.05" if cls == "Similarity3DTransform" else ""
+    path = inputs / "big_versor.tfm"
+    path.write_text("#Insight Transform File V1.0\n#Transform 0\n"
+                    f"Transform: {cls}_double_3_3\n"
+                    f"Parameters: {' '.join(map(str, versor))} 1 2 3{extra}\n"
+                    "FixedParameters: 2 14 15\n")
+    tr = sitk.ReadTransform(str(path))
+    vol = read_volume(inputs / "in.nrrd")
+    pts = world_points(vol)
+    theirs = np.array([tr.TransformPoint(p.tolist()) for p in pts])
+    assert np.abs(read_chain([str(path)]).map(pts) - theirs).max() < 1e-9
+    res = run("apply", inputs / "in.nrrd", "-o", inputs / "o.nrrd", "-t", path,
+              "--background-value", "0")
+    assert res.code == 0, res
+    ours = read_volume(inputs / "o.nrrd").data
+    expect = sitk.GetArrayFromImage(sitk.Resample(to_sitk(vol), to_sitk(vol), tr,
+                                                  sitk.sitkLinear, 0.0))
+    assert np.abs(ours - expect).max() <= 1e-4 * float(np.ptp(vol.data))
+    assert np.count_nonzero(ours) > 0.2 * ours.size  # (not a comparison of backgrounds)

@@ -73,12 +73,18 @@ def _rot_z(a):
 
 
 def versor_matrix(v) -> np.ndarray:
-    """The rotation of a unit quaternion's vector part ``v`` (ITK's Versor, w >= 0)."""
+    """The rotation of a versor's vector part ``v`` (ITK's Versor, w >= 0).
+
+    As ITK's ``SetParameters`` (VersorRigid3D, Similarity3D): a vector part
+    whose norm is not below ``1 - 1e-10`` (a rounded or hand-edited file) is
+    divided by ``norm (1 + 1e-10)``, a rotation near a half turn, not refused.
+    """
     x, y, z = (float(t) for t in v)
-    w2 = 1.0 - (x * x + y * y + z * z)
-    if w2 < -1e-10:
-        raise VolwarpError(f"versor {v} has a norm above 1")
-    w = np.sqrt(max(w2, 0.0))
+    norm = np.sqrt(x * x + y * y + z * z)  # (ITK's order of operations: w is ill-conditioned)
+    if norm >= 1.0 - 1e-10:
+        x, y, z = (t / (norm + 1e-10 * norm) for t in (x, y, z))
+        norm = np.sqrt(x * x + y * y + z * z)
+    w = np.sqrt(max(1.0 - norm * norm, 0.0))
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
