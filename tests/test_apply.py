@@ -814,3 +814,47 @@ def test_a_versor_of_norm_1_or_above_is_normalised_as_itk_does(run, inputs, cls,
                                                   sitk.sitkLinear, 0.0))
     assert np.abs(ours - expect).max() <= 1e-4 * float(np.ptp(vol.data))
     assert np.count_nonzero(ours) > 0.2 * ours.size  # (not a comparison of backgrounds)
+
+
+def _several(kind: str, ref3):
+    """A file of ``kind`` holding several volumes (or components) on ``ref3``'s 3-D grid."""
+    if kind == "vector":  # a displacement field (5-D NIfTI, vector NRRD and MetaImage)
+        img = sitk.GetImageFromArray(np.zeros((*ref3.GetSize()[::-1], 3), np.float32),
+                                     isVector=True)
+        img.CopyInformation(ref3)
+        return img
+    img = sitk.GetImageFromArray(np.zeros((3, *ref3.GetSize()[::-1]), np.float32),
+                                 isVector=False)  # (fMRI, DWI: x, y, z, t)
+    img.SetSpacing([*ref3.GetSpacing(), 2.0])
+    img.SetOrigin([*ref3.GetOrigin(), 0.0])
+    direction = np.eye(4)
+    direction[:3, :3] = np.reshape(ref3.GetDirection(), (3, 3))
+    img.SetDirection(direction.ravel().tolist())
+    return img
+
+
+@pytest.mark.parametrize("name", ["ref4d.nii.gz", "ref4d.mha", "field.nii.gz", "field.nrrd",
+                                  "field.mha"])
+def test_a_reference_of_several_volumes_gives_its_3d_grid(run, inputs, name):
+    """A 4-D (fMRI, DWI) or vector (a field) reference: its first three dimensions are the
+    grid, as antsApplyTransforms takes them. It was refused ("choose one with
+    --volume-index N"), and --volume-index chooses the input's volume, not the reference's."""
+    ref3 = to_sitk(Volume(np.zeros((18, 20, 21), np.float32), spacing=(1.2, 1.15, 1.25),
+                          origin=(-8.0, 6.0, 4.0), direction=DIRECTION.T))
+    sitk.WriteImage(ref3, str(inputs / "ref3.nrrd"))
+    sitk.WriteImage(_several("vector" if name.startswith("field") else "4d", ref3),
+                    str(inputs / name))
+    sitk.WriteTransform(affine(), str(inputs / "a.tfm"))
+    res = run("apply", inputs / "in.nrrd", "-o", inputs / "o.nrrd", "-t", inputs / "a.tfm",
+              "--reference", inputs / name, "--background-value", "0")
+    assert res.code == 0, res
+    out = read_volume(inputs / "o.nrrd")
+    assert out.shape_xyz == ref3.GetSize()
+    assert np.allclose(out.spacing, ref3.GetSpacing())
+    assert np.allclose(out.origin, ref3.GetOrigin())
+    assert np.allclose(out.direction.ravel(), ref3.GetDirection())
+    expect = sitk.Resample(to_sitk(read_volume(inputs / "in.nrrd")), ref3, affine(),
+                           sitk.sitkLinear, 0.0)
+    theirs = sitk.GetArrayFromImage(expect)
+    assert np.abs(out.data - theirs).max() <= 1e-4 * float(np.ptp(theirs))
+    assert np.count_nonzero(out.data) > 0.5 * out.data.size
