@@ -727,3 +727,134 @@ def test_folder_as_transform_refused(run, inputs, inside):
                           "(transform files in it: 0GenericAffine.mat)\n")
     assert not (folder / "out.nrrd").exists()
     assert (inputs / "out.nrrd").read_bytes() == b"old output"
+
+
+def _centred():
+    """One transform of each class with a centre (its FixedParameters), as SimpleITK makes them."""
+    s = sitk.ScaleTransform(3, [1.1, 0.9, 1.05])
+    s.SetCenter([2.0, 3.0, 4.0])
+    v = sitk.VersorRigid3DTransform()
+    v.SetRotation([1, 1, 0], 0.2)
+    v.SetCenter([2.0, 0.0, 4.0])
+    m = sitk.Similarity3DTransform()
+    m.SetScale(1.05)
+    m.SetCenter([2.0, 3.0, 4.0])
+    return {"affine": affine(), "euler": euler(), "versor": v, "similarity": m, "scale": s}
+
+
+@pytest.mark.parametrize("kept", [1, 2])
+@pytest.mark.parametrize("fmt", ["tfm", "h5", "mat"])
+@pytest.mark.parametrize("cls", ["affine", "euler", "versor", "similarity", "scale"])
+def test_a_centre_cut_short_is_refused_as_itk_does(run, inputs, cls, fmt, kept):
+    """FixedParameters of 1 or 2 values (a file cut inside the centre): ITK refuses the file;
+    volwarp took the centre as 0 and resampled about the wrong point."""
+    tr = _centred()[cls]
+    path = inputs / f"cut.{fmt}"
+    sitk.WriteTransform(tr, str(path))
+    fixed = list(tr.GetFixedParameters())[:kept]
+    if fmt == "tfm":
+        text = path.read_text()
+        head = text[:text.index("FixedParameters:")]
+        path.write_text(head + "FixedParameters: " + " ".join(map(str, fixed)) + "\n")
+    elif fmt == "h5":
+        import h5py
+
+        with h5py.File(path, "a") as f:
+            g = f["TransformGroup/0"]
+            del g["TransformFixedParameters"]
+            g["TransformFixedParameters"] = np.array(fixed)
+    else:
+        import scipy.io
+
+        doc = {k: v for k, v in scipy.io.loadmat(path).items() if not k.startswith("__")}
+        doc["fixed"] = np.array(fixed).reshape(-1, 1)
+        scipy.io.savemat(path, doc, format="4")
+    with pytest.raises(RuntimeError):  # (SimpleITK: "parameters array size ... is less")
+        sitk.ReadTransform(str(path))
+    _refused(run, inputs, "-t", path, says=f"{path}: ")
+    res = run("apply", inputs / "in.nrrd", "-o", inputs / "out.nrrd", "-t", path)
+    assert f"has {kept} fixed parameters" in res.stderr, res.stderr
+
+
+def test_a_text_file_without_fixed_parameters_is_refused(run, inputs):
+    """No FixedParameters line: ITK reads the file as the identity (it drops the Parameters),
+    where volwarp took them about the centre 0; neither is what the file says: refused."""
+    path = inputs / "nofixed.tfm"
+    sitk.WriteTransform(euler(), str(path))
+    text = path.read_text()
+    path.write_text(text[:text.index("FixedParameters:")])
+    tr = sitk.ReadTransform(str(path))
+    assert tr.TransformPoint([1.0, 2.0, 3.0]) == (1.0, 2.0, 3.0)  # (ITK: the identity)
+    _refused(run, inputs, "-t", path,
+             says=f"{path}: Euler3DTransform has Parameters but no FixedParameters line")
+
+
+@pytest.mark.parametrize("versor", [(0.6, 0.6, 0.6), (0.0, 0.8, 0.6), (0.5, -0.5, 0.7071067811)])
+@pytest.mark.parametrize("cls", ["VersorRigid3DTransform", "Similarity3DTransform"])
+def test_a_versor_of_norm_1_or_above_is_normalised_as_itk_does(run, inputs, cls, versor):
+    """ITK reads a versor whose norm is not below 1 (a hand-edited or rounded file) by
+    normalising it (its SetParameters: a rotation near a half turn); volwarp refused it
+    without naming the file. The same resampling as sitk.Resample."""
+    extra = " 1.05" if cls == "Similarity3DTransform" else ""
+    path = inputs / "big_versor.tfm"
+    path.write_text("#Insight Transform File V1.0\n#Transform 0\n"
+                    f"Transform: {cls}_double_3_3\n"
+                    f"Parameters: {' '.join(map(str, versor))} 1 2 3{extra}\n"
+                    "FixedParameters: 2 14 15\n")
+    tr = sitk.ReadTransform(str(path))
+    vol = read_volume(inputs / "in.nrrd")
+    pts = world_points(vol)
+    theirs = np.array([tr.TransformPoint(p.tolist()) for p in pts])
+    assert np.abs(read_chain([str(path)]).map(pts) - theirs).max() < 1e-9
+    res = run("apply", inputs / "in.nrrd", "-o", inputs / "o.nrrd", "-t", path,
+              "--background-value", "0")
+    assert res.code == 0, res
+    ours = read_volume(inputs / "o.nrrd").data
+    expect = sitk.GetArrayFromImage(sitk.Resample(to_sitk(vol), to_sitk(vol), tr,
+                                                  sitk.sitkLinear, 0.0))
+    assert np.abs(ours - expect).max() <= 1e-4 * float(np.ptp(vol.data))
+    assert np.count_nonzero(ours) > 0.2 * ours.size  # (not a comparison of backgrounds)
+
+
+def _several(kind: str, ref3):
+    """A file of ``kind`` holding several volumes (or components) on ``ref3``'s 3-D grid."""
+    if kind == "vector":  # a displacement field (5-D NIfTI, vector NRRD and MetaImage)
+        img = sitk.GetImageFromArray(np.zeros((*ref3.GetSize()[::-1], 3), np.float32),
+                                     isVector=True)
+        img.CopyInformation(ref3)
+        return img
+    img = sitk.GetImageFromArray(np.zeros((3, *ref3.GetSize()[::-1]), np.float32),
+                                 isVector=False)  # (fMRI, DWI: x, y, z, t)
+    img.SetSpacing([*ref3.GetSpacing(), 2.0])
+    img.SetOrigin([*ref3.GetOrigin(), 0.0])
+    direction = np.eye(4)
+    direction[:3, :3] = np.reshape(ref3.GetDirection(), (3, 3))
+    img.SetDirection(direction.ravel().tolist())
+    return img
+
+
+@pytest.mark.parametrize("name", ["ref4d.nii.gz", "ref4d.mha", "field.nii.gz", "field.nrrd",
+                                  "field.mha"])
+def test_a_reference_of_several_volumes_gives_its_3d_grid(run, inputs, name):
+    """A 4-D (fMRI, DWI) or vector (a field) reference: its first three dimensions are the
+    grid, as antsApplyTransforms takes them. It was refused ("choose one with
+    --volume-index N"), and --volume-index chooses the input's volume, not the reference's."""
+    ref3 = to_sitk(Volume(np.zeros((18, 20, 21), np.float32), spacing=(1.2, 1.15, 1.25),
+                          origin=(-8.0, 6.0, 4.0), direction=DIRECTION.T))
+    sitk.WriteImage(ref3, str(inputs / "ref3.nrrd"))
+    sitk.WriteImage(_several("vector" if name.startswith("field") else "4d", ref3),
+                    str(inputs / name))
+    sitk.WriteTransform(affine(), str(inputs / "a.tfm"))
+    res = run("apply", inputs / "in.nrrd", "-o", inputs / "o.nrrd", "-t", inputs / "a.tfm",
+              "--reference", inputs / name, "--background-value", "0")
+    assert res.code == 0, res
+    out = read_volume(inputs / "o.nrrd")
+    assert out.shape_xyz == ref3.GetSize()
+    assert np.allclose(out.spacing, ref3.GetSpacing())
+    assert np.allclose(out.origin, ref3.GetOrigin())
+    assert np.allclose(out.direction.ravel(), ref3.GetDirection())
+    expect = sitk.Resample(to_sitk(read_volume(inputs / "in.nrrd")), ref3, affine(),
+                           sitk.sitkLinear, 0.0)
+    theirs = sitk.GetArrayFromImage(expect)
+    assert np.abs(out.data - theirs).max() <= 1e-4 * float(np.ptp(theirs))
+    assert np.count_nonzero(out.data) > 0.5 * out.data.size

@@ -114,3 +114,31 @@ def test_missing_initial_transform(run, tmp_path):
     res = run("apply", tmp_path / "in.nrrd", "-o", tmp_path / "o.nrrd", "-t", tmp_path / "tp.txt")
     assert res.code == 1 and "initial transform" in res.stderr
     assert not (tmp_path / "o.nrrd").exists()
+
+
+@pytest.mark.parametrize("initial", [False, True])
+def test_use_direction_cosines_false_is_refused(run, tmp_path, initial):
+    """(UseDirectionCosines "false"): elastix takes the images' directions as identity, the
+    command-line transformix both images' (it reads them so), itk-elastix's TransformixFilter
+    the output grid's only (measured with itk-elastix 0.25.4). volwarp read the file as
+    "true", half the range off on a rotated grid; it refuses it, naming the file (an initial
+    transform's too)."""
+    first = tmp_path / "TransformParameters.0.txt"
+    euler_file(first)
+    last = first
+    if initial:
+        last = tmp_path / "TransformParameters.1.txt"
+        bspline_file(last, str(first))
+    first.write_text(first.read_text().replace('(UseDirectionCosines "true")',
+                                               '(UseDirectionCosines "false")'))
+    write_volume(Volume(np.zeros((4, 4, 4), np.float32)), tmp_path / "in.nrrd")
+    res = run("apply", tmp_path / "in.nrrd", "-o", tmp_path / "o.nrrd", "-t", last)
+    assert res.code == 1, res
+    assert res.stderr.count("\n") == 1
+    assert res.stderr.startswith(f'volwarp: error: {first}: (UseDirectionCosines "false")')
+    assert not (tmp_path / "o.nrrd").exists()
+    (tmp_path / "p.csv").write_text("x,y,z\n1,2,3\n")  # (points move by the same chain)
+    res = run("apply", "-t", last, "--points-in", tmp_path / "p.csv", "--points-to",
+              tmp_path / "q.csv")
+    assert res.code == 1 and f'{first}: (UseDirectionCosines "false")' in res.stderr, res
+    assert not (tmp_path / "q.csv").exists()

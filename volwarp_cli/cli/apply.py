@@ -230,12 +230,30 @@ def _open_input(input, reference, read):
     read whole each check the memory left, which two threads at once would
     both count as theirs.
     """
-    from ..io.lazy import open_volume_header
     from .chunked import lazy_input
 
     header, source = lazy_input(input, *read)
-    ref = open_volume_header(reference, samples=False)[0] if reference is not None else None
-    return header, source, ref
+    return header, source, _reference_grid(reference) if reference is not None else None
+
+
+def _reference_grid(reference):
+    """The reference's header, of its first three dimensions: the output grid.
+
+    A 4-D (fMRI, DWI) or vector (a field) reference gives its first volume's
+    header, the same grid, as antsApplyTransforms takes it: --volume-index
+    chooses the input's volume, and the reference's samples are not used.
+    """
+    from ..errors import ChoiceNeeded
+    from ..io import volume_format
+    from ..io.lazy import open_volume_header
+
+    try:
+        return open_volume_header(reference, samples=False)[0]
+    except ChoiceNeeded:
+        if volume_format(reference, reading=True) not in ("nifti", "nrrd", "metaimage",
+                                                          "omezarr"):
+            raise  # (a DICOM folder of several series: the user says which)
+        return open_volume_header(reference, samples=False, volume_index=0)[0]
 
 
 def _sampling(source, name, options):

@@ -20,6 +20,11 @@ The file is parenthesised key/values (``(Transform "EulerTransform")``,
   the output grid transformix resamples on (:func:`fixed_grid`);
 - ``FinalBSplineInterpolationOrder``: transformix's final interpolation
   (:func:`final_interpolation`, reported to the user).
+
+``(UseDirectionCosines "false")`` is refused: elastix then takes the
+images' directions as identity, and its two front ends differ on which
+(the command-line transformix reads both images so; itk-elastix 0.25's
+TransformixFilter, given the moving image in memory, only the output grid).
 """
 
 from __future__ import annotations
@@ -98,6 +103,12 @@ def _step(doc: dict, where: str):
     if kind not in _CLASSES:
         raise VolwarpError(f"{where}: elastix transform {kind!r} is not supported (supported: "
                            f"{', '.join(_CLASSES)})")
+    if _word(doc, "UseDirectionCosines", "true").lower() == "false":
+        raise VolwarpError(f'{where}: (UseDirectionCosines "false") is not supported: elastix '
+                           "then takes the images' directions as identity (the command-line "
+                           "transformix both images', itk-elastix's TransformixFilter the "
+                           "output grid's only); resample with transformix, or make it "
+                           '"true" where both images\' directions are the identity')
     params = _numbers(doc, "TransformParameters", None, where)
     center = _numbers(doc, "CenterOfRotationPoint", 3, where, [0, 0, 0])
     fixed = list(center)

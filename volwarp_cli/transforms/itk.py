@@ -21,6 +21,10 @@ act on a point. The classes and their parameters (ITK's definitions):
 
 ANTs' ``0GenericAffine.mat`` is the MATLAB v4 form of the first group: a
 variable named after the class and ``fixed``, the centre.
+
+As ITK, a centre of fewer than 3 values (a file cut short) is refused; a
+text file without a FixedParameters line, which ITK reads as the identity
+(dropping its Parameters), is refused too.
 """
 
 from __future__ import annotations
@@ -35,6 +39,9 @@ from .model import Affine, BSplineGrid, DisplacementField, check_dimension, grid
 _NAME = re.compile(r"^(\w+?)_(double|float)_(\d+)_(\d+)$")
 _MATRIX = ("AffineTransform", "MatrixOffsetTransformBase", "Rigid3DTransform",
            "ScalableAffineTransform")
+#: the classes whose FixedParameters begin with the centre (ITK refuses fewer than 3)
+_CENTRED = (*_MATRIX, "Euler3DTransform", "VersorRigid3DTransform", "Similarity3DTransform",
+            "ScaleTransform")
 
 
 def split_name(name: str, where: str) -> str:
@@ -66,12 +73,18 @@ def _rot_z(a):
 
 
 def versor_matrix(v) -> np.ndarray:
-    """The rotation of a unit quaternion's vector part ``v`` (ITK's Versor, w >= 0)."""
+    """The rotation of a versor's vector part ``v`` (ITK's Versor, w >= 0).
+
+    As ITK's ``SetParameters`` (VersorRigid3D, Similarity3D): a vector part
+    whose norm is not below ``1 - 1e-10`` (a rounded or hand-edited file) is
+    divided by ``norm (1 + 1e-10)``, a rotation near a half turn, not refused.
+    """
     x, y, z = (float(t) for t in v)
-    w2 = 1.0 - (x * x + y * y + z * z)
-    if w2 < -1e-10:
-        raise VolwarpError(f"versor {v} has a norm above 1")
-    w = np.sqrt(max(w2, 0.0))
+    norm = np.sqrt(x * x + y * y + z * z)  # (ITK's order of operations: w is ill-conditioned)
+    if norm >= 1.0 - 1e-10:
+        x, y, z = (t / (norm + 1e-10 * norm) for t in (x, y, z))
+        norm = np.sqrt(x * x + y * y + z * z)
+    w = np.sqrt(max(1.0 - norm * norm, 0.0))
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
@@ -91,7 +104,8 @@ def itk_transform(cls: str, params, fixed, where: str):
     if not (np.all(np.isfinite(params)) and np.all(np.isfinite(fixed))):
         raise VolwarpError(f"{where}: {cls} has parameters that are not finite numbers")
     name = f"{where} ({cls})"
-    center = fixed[:3] if len(fixed) >= 3 else np.zeros(3)
+    if cls in _CENTRED:  # (a centre cut short would be taken about another point)
+        center = _need(fixed, 3, "fixed parameters (its centre)", where, cls)
     if cls in _MATRIX:
         p = _need(params, 12, "parameters", where, cls)
         return Affine.centred(p[:9], p[9:12], center, name)
@@ -174,7 +188,7 @@ def read_text(path: str, text: str) -> list:
             raise VolwarpError(f"{path}: line {n}: expected 'Key: value', got {line[:40]!r}")
         key = key.strip()
         if key == "Transform":
-            cur = [split_name(value, path), [], []]
+            cur = [split_name(value, path), [], None]
             items.append(cur)
         elif key in ("Parameters", "FixedParameters"):
             if cur is None:
@@ -186,7 +200,11 @@ def read_text(path: str, text: str) -> list:
             cur[1 if key == "Parameters" else 2] = numbers
         else:
             raise VolwarpError(f"{path}: line {n}: unknown key {key!r}")
-    return _assemble([tuple(i) for i in items], path)
+    for cls, params, fixed in items:
+        if fixed is None and params:
+            raise VolwarpError(f"{path}: {cls} has Parameters but no FixedParameters line: "
+                               "ITK reads such a file as the identity (it drops the Parameters)")
+    return _assemble([(cls, params, fixed or []) for cls, params, fixed in items], path)
 
 
 def read_hdf5(path: str) -> list:
@@ -235,5 +253,5 @@ def read_matlab(path: str) -> list:
         raise VolwarpError(f"{path}: a MATLAB file without one ITK transform variable "
                            f"(AffineTransform_double_3_3, ...): not a transform")
     cls = split_name(names[0], path)
-    fixed = np.asarray(doc.get("fixed", np.zeros(3)), dtype=float).ravel()
+    fixed = np.asarray(doc.get("fixed", []), dtype=float).ravel()  # (ITK: required)
     return [itk_transform(cls, np.asarray(doc[names[0]], dtype=float).ravel(), fixed, path)]
