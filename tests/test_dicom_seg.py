@@ -311,3 +311,45 @@ def test_info_lists_the_segments_of_a_seg_whose_segments_overlap(ct, tmp_path, r
     assert "--segment N" in text.stdout
     one = json.loads(run("info", seg_path, "--segment", 3, "--json").stdout)
     assert one["max"] == 1 and "segments_overlap" not in one
+
+
+def test_a_seg_is_a_label_map_whatever_its_segments_look_like(ct, tmp_path, run):
+    """The rule looks at neighbours, and single-voxel segments fail its region test: a
+    warp took such a SEG for intensities and blended segment 2's voxel into id 1, and
+    convert --dtype uint8 merged ids 300 and 1000 of a map read from a SEG into 255
+    (found by a review). A volume read from a SEG (or a file that carries its
+    DICOM_Modality, as volwarp's outputs do) is a label map in every command."""
+    from volwarp_cli.labelmap import keep_label_ids, looks_like_labels, segmentation_of
+    from volwarp_cli.volume import Volume
+
+    folder, paths = ct
+    lab = np.zeros(SHAPE, np.uint8)
+    for k, (z, y, x) in enumerate([(1, 2, 3), (3, 7, 9), (5, 5, 5), (2, 8, 1)], start=1):
+        lab[z, y, x] = k
+    seg = make_seg(paths, masks_of(lab, 4), "BINARY", tmp_path / "dots.dcm")
+    vol = read_volume(seg, dicom={"reference": folder})
+    assert not looks_like_labels(vol.data)  # (the rule alone: not a label map)
+    assert segmentation_of(vol.meta) == "a DICOM SEG"
+    spec = tmp_path / "move.yaml"
+    spec.write_text("version: 1\ncapture: {lattice: 5}\nsteps:\n  - move:\n"
+                    "      - {index: [2, 2, 2], by: [0.7, 0.4, 0.3]}\n")
+    res = run("warp", seg, "--reference", folder, "--spec", spec, "-o", tmp_path / "w.nrrd",
+              "--json")
+    assert res.code == 0, res.stderr
+    assert json.loads(res.stdout)["values_why"] == "read from a DICOM SEG: 5 labels"
+    assert set(np.unique(read_volume(tmp_path / "w.nrrd").data)) <= {0, 1, 2, 3, 4}
+    res = run("mesh", seg, "--reference", folder, "--json")
+    assert res.code == 0 and json.loads(res.stdout)["values"] == "labels", res.stderr
+    res = run("distance", seg, "--reference", folder, "--iso", "2.5", "-o", tmp_path / "d.nrrd")
+    assert res.code == 2 and "is a label map (a DICOM SEG, 5 labels)" in res.stderr
+    # a NRRD converted from a SEG keeps the key, and with it its ids
+    far = np.zeros(SHAPE, np.uint16)
+    far[1, 2, 3], far[4, 6, 8] = 300, 1000
+    keep_label_ids(far, "uint8", "x.nrrd")  # (the rule alone lets them merge)
+    with pytest.raises(BadUsage, match="300, 1000"):
+        keep_label_ids(far, "uint8", "x.nrrd", meta={"DICOM_Modality": "SEG"})
+    from volwarp_cli.io import write_volume
+
+    write_volume(Volume(far, meta={"DICOM_Modality": "SEG"}), tmp_path / "far.nrrd")
+    res = run("convert", tmp_path / "far.nrrd", "--dtype", "uint8", "-o", tmp_path / "f8.nrrd")
+    assert res.code == 2 and "300, 1000" in res.stderr and not (tmp_path / "f8.nrrd").exists()

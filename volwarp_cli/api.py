@@ -173,7 +173,7 @@ def write(obj, path: str | os.PathLike, *, dtype: str | None = None, compress: b
         if dtype is not None and dtype != obj.dtype.name:  # (as convert: ids kept)
             from .labelmap import keep_label_ids
 
-            keep_label_ids(obj.data, dtype, str(path), labels)
+            keep_label_ids(obj.data, dtype, str(path), labels, obj.meta)
         write_volume(obj, path, labels=labels, **volume_options)
         return
     if isinstance(obj, Mapping) and obj and all(isinstance(v, Volume) for v in obj.values()):
@@ -516,7 +516,8 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
         box_voxels = scan_box_voxels()
         name = str(path) if path is not None else "the volume"
         rule = choose_shape(source, values=values, label=label, iso=iso, inside=inside,
-                            surface=surface, name=name, box_voxels=box_voxels)
+                            surface=surface, name=name, box_voxels=box_voxels,
+                            meta=header.meta)
         log.info("%s", rule.describe())
         surface = field_surface(source, rule, metric=metric, surface=surface,
                                 max_distance=max_distance, box_voxels=box_voxels)
@@ -599,7 +600,8 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
             from .surface.labels import mesh_values
             from .surface.run import NONZERO_LABELS
 
-            if mesh_values(source, values=values, iso=iso, inside=inside, name=name).labels:
+            if mesh_values(source, values=values, iso=iso, inside=inside, name=name,
+                           meta=header.meta).labels:
                 which = NONZERO_LABELS
         op = MeshOperation(header, source, Level(iso, inside, cap),
                            cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
@@ -846,7 +848,7 @@ def _refuse_blended_labels(vol: Volume, name: str, placement: str, oversample: f
         raise BadUsage(f"{name}: --values labels needs the uniform placement and an integer "
                        f"--oversample (each domain voxel one input voxel's label); {how} "
                        "blends the ids")
-    choice = choose_values(vol.data)
+    choice = choose_values(vol.data, meta=vol.meta)
     if choice.is_labels:
         raise BadUsage(f"{name} looks like a label map ({choice.labels} labels), and {how} "
                        "blends its ids (a warp of the capture would average them): capture it "

@@ -429,7 +429,8 @@ class Sampling:
 
 
 def choose_sampling(source, *, interpolation: str | None = None, values: str | None = None,
-                    background: float | None = None, name: str = "the input") -> Sampling:
+                    background: float | None = None, name: str = "the input",
+                    meta=None) -> Sampling:
     """How ``source``'s samples are resampled: read-only, the input alone decides it.
 
     Labels or intensities by ``values``, else by the label-map rule
@@ -438,11 +439,12 @@ def choose_sampling(source, *, interpolation: str | None = None, values: str | N
     :attr:`Sampling.refusal`); ``background`` by default the input's border
     (its most frequent label, or its median sample). Says nothing
     (:meth:`Sampling.say`): a command may run it beside its reading of the
-    transforms.
+    transforms. ``meta``: the input's key/values (a segmentation's ids are
+    labels whatever the rule says).
     """
     from .warp.defaults import choose_values
 
-    choice = choose_values(source, values, name=name)
+    choice = choose_values(source, values, name=name, meta=meta)
     if choice.is_labels and interpolation not in (None, "nearest"):
         return Sampling(choice, interpolation, float("nan"), False,
                         label_interpolation_refusal(name, choice, interpolation))
@@ -483,7 +485,7 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
     check_coverage(chain, grid)
     if sampling is None:
         sampling = choose_sampling(source, interpolation=interpolation, values=values,
-                                   background=background, name=name)
+                                   background=background, name=name, meta=header.meta)
     elif (interpolation, values, background) != (None, None, None):
         raise ValueError("plan_resample: give interpolation, values and background to "
                          "choose_sampling, not beside its result")

@@ -109,6 +109,23 @@ import numpy as np
 #: intensities, or as label ids
 VALUES = ("intensity", "labels")
 
+#: the DICOM modalities whose samples are a label map by construction, as volwarp reads them
+_SEGMENTATIONS = {"SEG": "a DICOM SEG", "RTSTRUCT": "a DICOM RTSTRUCT"}
+
+
+def segmentation_of(meta) -> str | None:
+    """``"a DICOM SEG"`` (or RTSTRUCT) for a volume read from one (its key/values), else None.
+
+    Such a volume is a label map whatever its samples look like: the rule
+    below looks at its neighbours, and a SEG of single-voxel segments (or
+    thin contours) fails its region test, so a warp blended its ids and
+    ``convert --dtype uint8`` merged ids 300 and 1000 into 255. The key stays
+    with the map through volwarp's outputs (a NRRD converted from a SEG).
+    """
+    modality = str((meta or {}).get("DICOM_Modality", "")).strip().upper()
+    return _SEGMENTATIONS.get(modality)
+
+
 #: ``info``'s hint lists label maps with at most this many distinct values
 HINT_MAX_LABELS = 256
 #: test 1: at least this share of the neighbour pairs that are both neither 0 nor the
@@ -146,15 +163,18 @@ def refuse_merged_ids(ids, dtype, name: str, option: str = "--dtype") -> None:
                        "holds them, or --values intensity to clip them as intensities")
 
 
-def keep_label_ids(data, dtype, name: str, labels="auto") -> None:
+def keep_label_ids(data, dtype, name: str, labels="auto", meta=None) -> None:
     """:func:`refuse_merged_ids` for samples written as ``dtype``, if they are a label map.
 
     ``labels``: True (they are), False (they are not: clipped to the type's
     range, nothing checked) or ``"auto"`` (the rule decides, one pass over
-    ``data``), as :func:`~volwarp_cli.io.write_volume`'s.
+    ``data``, and a segmentation's samples by ``meta``, :func:`segmentation_of`,
+    are labels), as :func:`~volwarp_cli.io.write_volume`'s.
     """
     if labels is False:
         return
+    if labels == "auto" and segmentation_of(meta):
+        labels = True
     looks, ids, _ = scan_labels(data, detect=labels == "auto")
     if ids is not None and (looks or labels is True):
         refuse_merged_ids(ids, dtype, name)

@@ -165,7 +165,7 @@ def command(input, output, transforms, reference, interpolation, values, labels,
     if opened is not None:  # the label rule reads the input while a field inflates
         sampling = beside(_sampling, opened[1], str(input),
                           dict(interpolation=interpolation, values=given,
-                               background=background))
+                               background=background, meta=opened[0].meta))
     try:
         with timed("read the transforms"):
             chain = read_chain(transforms)

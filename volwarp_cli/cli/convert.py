@@ -107,15 +107,17 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
     if writing:
         _write_segmentation(vol, output, dicom_type, reference, segments, contours)
         return
+    from ..labelmap import keep_label_ids, segmentation_of
+
     labels = PYRAMID_METHODS[pyramid_method]
     if labels == "auto" and values is not None:
         labels = values == "labels"
+    elif labels == "auto" and segmentation_of(vol.meta):  # (a SEG's ids whatever they look like)
+        labels = True
     if dtype is not None and dtype != vol.dtype.name:
-        from ..labelmap import keep_label_ids
-
         # --values decides, else --pyramid-method's mode (labels) or mean (intensities)
         keep_label_ids(vol.data, dtype, str(input),
-                       labels if values is None else values == "labels")
+                       labels if values is None else values == "labels", vol.meta)
     with timed(f"write {output}"):  # (its key/values kept, the provenance of its samples too)
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      labels=labels, **ome_zarr)

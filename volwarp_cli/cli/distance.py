@@ -131,7 +131,8 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
     box_voxels = scan_box_voxels()
     with timed("label rule"):
         rule = choose_shape(source, values=values, label=label, iso=iso, inside=inside,
-                            surface=surface, name=str(input), box_voxels=box_voxels)
+                            surface=surface, name=str(input), box_voxels=box_voxels,
+                            meta=header.meta)
     log.info("%s", rule.describe())
     surface = field_surface(source, rule, metric=metric, surface=surface,
                             max_distance=max_distance, box_voxels=box_voxels)

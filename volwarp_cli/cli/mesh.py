@@ -197,7 +197,8 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         from ..surface.labels import mesh_values
 
         with timed("label rule"):
-            choice = mesh_values(source, values=values, iso=iso, inside=inside, name=input)
+            choice = mesh_values(source, values=values, iso=iso, inside=inside, name=input,
+                                 meta=header.meta)
         log.info("%s: values: %s (%s)", input, choice.values, choice.why)
         if choice.labels:
             which = NONZERO_LABELS

@@ -147,7 +147,8 @@ def check_options(*, values: str | None = None, label: int | None = None,
 
 def choose_shape(source, *, values: str | None = None, label: int | None = None,
                  iso: float | None = None, inside: str = "above", surface: str = "auto",
-                 name: str = "the input", box_voxels: int = SCAN_BOX_VOXELS) -> ShapeRule:
+                 name: str = "the input", box_voxels: int = SCAN_BOX_VOXELS,
+                 meta=None) -> ShapeRule:
     """The shape ``source``'s distance is of: its labels or its samples' level (module notes).
 
     ``values``: None (the label rule decides), ``"intensity"`` or
@@ -155,13 +156,18 @@ def choose_shape(source, *, values: str | None = None, label: int | None = None,
     says intensity); ``iso``, ``inside``, ``surface``: the options given.
     Raises :class:`BadUsage` for options that contradict the input (exit 2)
     and :class:`VolwarpError` for a shape with no surface (a missing label,
-    labels filling the grid).
+    labels filling the grid). ``meta``: the input's key/values (a
+    segmentation's ids are labels whatever the rule says).
     """
+    from ..labelmap import segmentation_of
+
     check_options(values=values, label=label, iso=iso, surface=surface)
     if values == "intensity":
         return ShapeRule("intensity", "given", iso=iso, inside=inside)
     scan = scan_values(source, box_voxels=box_voxels)  # (detected: to say so when asked)
-    if values is None and label is None and not scan.looks_like:
+    segmentation = segmentation_of(meta) if scan.values is not None else None
+    looks_like = scan.looks_like or segmentation is not None
+    if values is None and label is None and not looks_like:
         if iso is None:
             raise BadUsage(f"--iso V is required: {name} does not look like a label map, so "
                            f"the shape is the samples {inside} V (or give --values labels or "
@@ -174,14 +180,19 @@ def choose_shape(source, *, values: str | None = None, label: int | None = None,
         raise BadUsage(f"{name}: {given} needs a label map (integer ids), got {scan.dtype} "
                        f"{what}; give --iso V for the samples' level")
     ids = scan.values[scan.values != 0]
-    if values != "labels" and scan.looks_like:
+    if values != "labels" and looks_like:
         # (as warp counts them: the distinct values, 0 included)
-        why = f"looks like a label map: {len(scan.values)} labels"
-        what = f"{name} looks like a label map ({len(scan.values)} labels)"
+        n = len(scan.values)
+        if scan.looks_like:
+            why, what = (f"looks like a label map: {n} labels",
+                         f"{name} looks like a label map ({n} labels)")
+        else:
+            why, what = (f"read from {segmentation}: {n} labels",
+                         f"{name} is a label map ({segmentation}, {n} labels)")
     else:
         why = "given"
         what = f"{name} is taken as a label map ({given})"
-        if not scan.looks_like:  # (as warp says it: once, and the work goes on as asked)
+        if not looks_like:  # (as warp says it: once, and the work goes on as asked)
             from ..progress import log
 
             log.warning("warning: %s does not look like a label map (%d distinct values): its "

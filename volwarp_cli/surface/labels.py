@@ -66,7 +66,7 @@ class ValuesChoice:
 
 
 def mesh_values(source, *, values: str | None = None, iso: float | None = None,
-                inside: str = "above", name: str = "the input") -> ValuesChoice:
+                inside: str = "above", name: str = "the input", meta=None) -> ValuesChoice:
     """How a volume meshed without ``--label``/``--labels`` is taken (module notes).
 
     ``values``: the command line's ``--values`` (None: the label rule
@@ -76,23 +76,30 @@ def mesh_values(source, *, values: str | None = None, iso: float | None = None,
     exactly those voxels (a 0/1 or 0/255 mask's 0.5), and ``inside`` only
     with such a level. Anything else is a
     :class:`~volwarp_cli.errors.BadUsage` naming the ways out; a map with no
-    non-zero label, a :class:`~volwarp_cli.errors.VolwarpError`.
+    non-zero label, a :class:`~volwarp_cli.errors.VolwarpError`. ``meta``:
+    the input's key/values (a segmentation's ids are labels whatever the
+    rule says).
     """
     from ..distance.field import inside_mask
     from ..distance.labels import scan_values
+    from ..labelmap import segmentation_of
 
     if values == "intensity":
         return ValuesChoice("intensity", "given")
     scan = scan_values(source)
-    if values is None and not scan.looks_like:
+    segmentation = segmentation_of(meta) if scan.values is not None else None
+    if values is None and not scan.looks_like and segmentation is None:
         return ValuesChoice("intensity", "not a label map")
     if scan.values is None:
         what = "samples that are not all integers" if scan.dtype.kind == "f" else "samples"
         raise BadUsage(f"{name}: --values labels needs a label map (integer ids), got "
                        f"{scan.dtype} {what}; mesh the samples' level with --iso V")
-    if values is None:
+    if values is None and scan.looks_like:
         why = f"looks like a label map: {len(scan.values)} labels"
         what = f"{name} looks like a label map ({len(scan.values)} labels)"
+    elif values is None:
+        why = f"read from {segmentation}: {len(scan.values)} labels"
+        what = f"{name} is a label map ({segmentation}, {len(scan.values)} labels)"
     else:
         why, what = "given", f"{name} is taken as a label map (--values labels)"
         if not scan.looks_like:  # (as warp and distance say it; the work goes on as asked)

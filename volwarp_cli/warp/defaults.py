@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..border import not_ids
-from ..labelmap import SCAN_BOX_VOXELS, VALUES  # noqa: F401  (warp's --values)
+from ..labelmap import SCAN_BOX_VOXELS, VALUES, segmentation_of  # noqa: F401  (VALUES: warp's)
 from ..progress import log
 
 #: ``--grid``: the input's grid, or grown to hold the whole moved model
@@ -112,7 +112,8 @@ def label_scan(source, *, box_voxels: int = SCAN_BOX_VOXELS) -> tuple[bool, np.n
     return looks, values
 
 
-def choose_values(source, given: str | None = None, *, name: str = "the input") -> ValuesChoice:
+def choose_values(source, given: str | None = None, *, name: str = "the input",
+                  meta=None) -> ValuesChoice:
     """How to warp ``source``'s samples: as labels or as intensities (module notes).
 
     ``given``: the user's choice (``--values``, ``--labels``, the spec's
@@ -122,6 +123,8 @@ def choose_values(source, given: str | None = None, *, name: str = "the input") 
     integer ids). Labels asked for on float samples that are not all
     integers are an error (:class:`~volwarp_cli.errors.VolwarpError`): a
     fraction is no id. ``name`` (the input's file) goes into the messages.
+    ``meta``: the input's key/values; a segmentation's integer samples
+    (:func:`~volwarp_cli.labelmap.segmentation_of`) are labels, whatever the rule says.
     """
     if given is not None and given not in VALUES:
         raise ValueError(f"values must be one of {', '.join(VALUES)}, got {given!r}")
@@ -145,6 +148,9 @@ def choose_values(source, given: str | None = None, *, name: str = "the input") 
         return ValuesChoice("labels", "given", n, warning, ids)
     if looks:
         return ValuesChoice("labels", f"looks like a label map: {n} labels", n, ids=ids)
+    segmentation = segmentation_of(meta)
+    if segmentation and n is not None:
+        return ValuesChoice("labels", f"read from {segmentation}: {n} labels", n, ids=ids)
     return ValuesChoice("intensity", "not a label map", n)
 
 

@@ -131,7 +131,8 @@ def plan_final(header, source, doc, spec, options: WarpOptions = WarpOptions(), 
 
     if choice is None:
         with timed("labels? (the rule, one pass)"):
-            choice = choose_values(source, options.values or spec.values, name=name)
+            choice = choose_values(source, options.values or spec.values, name=name,
+                                   meta=header.meta)
     warn_once(choice.warning)
     log.info("%s: %s", name, choice.describe())
     check_values_fit(choice, doc, spec, options, name)

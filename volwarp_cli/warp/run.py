@@ -134,7 +134,7 @@ def _capture_early(reading, given, settings, name):
 
     try:
         vol = reading.result()
-        choice = choose_values(vol.data, given, name=name)
+        choice = choose_values(vol.data, given, name=name, meta=vol.meta)
     except Exception:
         return None, None
     if choice.is_labels or settings is None:  # (labels: their own capture)
@@ -265,7 +265,7 @@ class WarpInput(AbstractContextManager):
             early = None
         self._reading = self._early = None  # the futures hold the volume and the capture
         if choice is None:
-            choice = choose_values(vol.data, given, name=self.name)
+            choice = choose_values(vol.data, given, name=self.name, meta=vol.meta)
         self._chose(choice)
         if choice.is_labels:
             return vol
@@ -304,7 +304,7 @@ def capture_values(cap, given: str | None, name: str):
 
     view = captured_input(cap)
     if view is not None:
-        return choose_values(view, given, name=name), view
+        return choose_values(view, given, name=name, meta=cap.geometry.meta), view
     how = spanning_cause(cap.placement, cap.oversample)
     if given == "labels":
         raise BadUsage(f"{name}: a capture with {how} holds blended samples, not labels: "
