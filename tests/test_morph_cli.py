@@ -163,3 +163,35 @@ def test_cli_errors(run, shapes):
             "-o", shapes / "x_{i}.nrrd")
     assert r.code == 2
     assert not list(shapes.glob("x*"))
+
+
+def test_frames_keep_the_source_s_key_values_and_its_patient_frame(run, tmp_path):
+    """Every command keeps its input's key/values and frame; morph's frames had neither
+    (`space` gone, a custom key lost), in memory and by blocks alike (found by a review).
+    The frames name LPS (the frame grid is in volwarp's LPS world) where an input names a
+    patient frame; the source's earlier provenance is replaced."""
+    from volwarp_cli import api
+
+    z, y, x = np.indices((20, 20, 20))
+    ball = (6 - np.sqrt((x - 10.0) ** 2 + (y - 10) ** 2 + (z - 10) ** 2)).astype(np.float32)
+    src = tmp_path / "ras.nrrd"
+    write_volume(Volume(ball, space="right-anterior-superior",
+                        meta={"my_key": "hello", "volwarp_command": "distance"}), src)
+    plain = tmp_path / "plain.nrrd"
+    write_volume(Volume(ball), plain)
+    for extra, name in (([], "m"), (["--chunked", "--max-distance", "5"], "c")):
+        res = run("morph", src, src, "--frames", "2", "--iso", "0",
+                  "-o", tmp_path / f"{name}_{{i}}.nrrd", *extra)
+        assert res.code == 0, res.stderr
+        for i in (0, 1):
+            frame = read_volume(tmp_path / f"{name}_{i}.nrrd")
+            assert frame.space == "left-posterior-superior", (name, i)
+            assert frame.meta["my_key"] == "hello" and frame.meta["volwarp_command"] == "morph"
+    assert run("morph", plain, plain, "--frames", "2", "--iso", "0",
+               "-o", tmp_path / "p_{i}.nrrd").code == 0
+    assert read_volume(tmp_path / "p_0.nrrd").space is None  # (as its inputs: none named)
+    frames = api.morph({"version": 1, "source": {"volume": str(src), "iso": 0},
+                        "target": {"volume": str(plain), "iso": 0}, "frames": 2,
+                        "grid": "union"})
+    assert frames[0].volume.space == "left-posterior-superior"
+    assert frames[0].volume.meta["my_key"] == "hello"

@@ -430,7 +430,7 @@ def morph(spec, *, meshes: bool = False) -> list:
     """
     from .io import read_volume
     from .io.inputs import declare_input
-    from .morph.frames import morph_frames
+    from .morph.frames import frame_space, morph_frames, source_keys
     from .morph.pipeline import prepare
     from .morph.run import morph_note, one_volume_inputs
     from .morph.spec import job_from_spec
@@ -448,11 +448,12 @@ def morph(spec, *, meshes: bool = False) -> list:
         source, target = read_volume(job.source.path), read_volume(job.target.path)
         attributes = {a.name: (read_volume(a.source), read_volume(a.target))
                       for a in job.attributes}
-    meta = {"volwarp_morph": morph_note(job),
+    meta = {**source_keys(source), "volwarp_morph": morph_note(job),
             **_provenance("morph", [job.source.path, job.target.path], spec_path)}
     frames = []
     for frame in morph_frames(job, prepare(job, source, target, attributes), source,
-                              attributes, meta=meta, meshes=meshes):
+                              attributes, meta=meta, meshes=meshes,
+                              space=frame_space(source, target)):
         if frame.mesh is not None:
             m = frame.mesh
             frame.mesh = Mesh(m.vertices, m.faces, m.normals, meta=dict(frame.volume.meta))

@@ -228,14 +228,15 @@ class FrameOperation(Operation):
     the frames by blocks the same :meth:`compute` on each. Its results:
     ``"frame"`` and each attribute's name. ``targets`` (set by the caller
     that writes them: key -> :class:`~volwarp_cli.execute.Target`); the frame's
-    ``cast``: the type it is written in (``--dtype``), if not its own.
+    ``cast``: the type it is written in (``--dtype``), if not its own;
+    ``space``: the world frame its file names (:func:`frame_space`).
     """
 
     def __init__(self, fields: FrameFields, values: FrameValues, t: float, *,
-                 meta: dict, cast=None):
+                 meta: dict, cast=None, space: str | None = None):
         check_time(t)
         self.fields, self.values, self.t = fields, values, float(t)
-        self.grid = fields.grid
+        self.grid, self.space = fields.grid, space
         self.meta = dict(meta, volwarp_morph_t=f"{t:.9g}")
         self.dtype = np.dtype(values.dtype if values.range_source else np.float32)
         self.cast = None if cast is None else np.dtype(cast)
@@ -283,11 +284,11 @@ class FrameOperation(Operation):
 
     def volume(self, data, key="frame"):
         """A Volume of result ``key``'s ``data`` with the frame's key/values."""
-        return self.grid.volume(data, meta=dict(self.meta))
+        return self.grid.volume(data, meta=dict(self.meta), space=self.space)
 
     def header(self, key="frame"):
         """The Header of result ``key``: its type on the grid, the frame's key/values."""
-        return self.grid.header(self.types()[key], meta=dict(self.meta))
+        return self.grid.header(self.types()[key], meta=dict(self.meta), space=self.space)
 
 
 @dataclass(frozen=True)
@@ -305,14 +306,17 @@ class MeshBlocks:
 
 def frames(job: MorphJob, fields: FrameFields, values: FrameValues, make, *,
            meta: dict | None = None, meshes: MeshBlocks | None = None,
-           render: RenderSettings | None = None, corners=None) -> Iterator[Frame]:
+           render: RenderSettings | None = None, corners=None,
+           space: str | None = None) -> Iterator[Frame]:
     """The frames of ``job`` at its times, in order (a progress bar counts them).
 
     Each frame's :class:`FrameOperation` is given to ``make(i, op)``, which
     returns the frame's volume and its attributes' (``(Volume, {name:
     Volume})``: computed in memory by :func:`computed`; or written by the
     command, then their Headers). ``meta``: what every frame
-    carries (provenance; each adds ``volwarp_morph_t``). ``meshes``: each
+    carries (the source's own, :func:`source_keys`, then the morph's note and
+    provenance; each adds ``volwarp_morph_t``); ``space``: the
+    world frame the frames' files name (:func:`frame_space`). ``meshes``: each
     frame's surface made so (default none, but for a render); ``render``:
     each surface rendered, every frame by one camera (``render.camera``, or
     fitted to both shapes: ``corners()`` gives their box, default
@@ -324,7 +328,8 @@ def frames(job: MorphJob, fields: FrameFields, values: FrameValues, make, *,
         meshes = MeshBlocks()
     with progress(len(job.times), "morph frames") as bar:
         for i, t in enumerate(job.times):
-            volume, attributes = make(i, FrameOperation(fields, values, t, meta=meta))
+            volume, attributes = make(i, FrameOperation(fields, values, t, meta=meta,
+                                                        space=space))
             frame = Frame(i, t, volume, attributes)
             if meshes is not None:
                 from ..surface.chunked import isosurface_blocks
@@ -387,7 +392,8 @@ def finite_range(source, name: str, *, slab_bytes: int = 64 << 20) -> tuple[floa
 def morph_frames(job: MorphJob, prep: Prepared, source: Volume,
                  attributes: dict[str, tuple[Volume, Volume]] | None = None, *,
                  meta: dict | None = None, meshes: bool = False,
-                 render: RenderSettings | None = None) -> Iterator[Frame]:
+                 render: RenderSettings | None = None,
+                 space: str | None = None) -> Iterator[Frame]:
     """The frames of an in-memory morph, computed (nothing written): :func:`frames`.
 
     ``prep``: :func:`.pipeline.prepare` of ``job`` with ``source``, the
@@ -396,7 +402,27 @@ def morph_frames(job: MorphJob, prep: Prepared, source: Volume,
     """
     fields = FrameFields.of(job, prep)
     return frames(job, fields, frame_values(job, fields, source.data), computed, meta=meta,
-                  meshes=MeshBlocks() if meshes else None, render=render)
+                  meshes=MeshBlocks() if meshes else None, render=render, space=space)
+
+
+def source_keys(source) -> dict:
+    """The source's own key/values, which every frame keeps (as every command keeps its input's).
+
+    Its provenance and an earlier morph's notes are left out: the frame's replace them.
+    """
+    from ..provenance import PROVENANCE_KEYS
+
+    return {k: v for k, v in source.meta.items() if k not in PROVENANCE_KEYS
+            and not k.startswith("volwarp_morph")}
+
+
+def frame_space(source, target) -> str | None:
+    """The world frame the frames' files name: LPS where an input names one, else None.
+
+    The frame grid is in volwarp's LPS world; inputs that name no frame (TIFF,
+    raw) give frames that name none either.
+    """
+    return "left-posterior-superior" if (source.space or target.space) else None
 
 
 def shape_box(prep: Prepared) -> np.ndarray:

@@ -255,8 +255,8 @@ def frame_writer(outputs, write: FrameWrite, how, *, by_blocks: bool):
 
 def morph_in_memory(job: MorphJob, source, target, attributes: dict | None = None, *,
                     outputs, meta: dict | None = None, write: FrameWrite = FrameWrite(),
-                    meshes: bool = False, render: RenderSettings | None = None
-                    ) -> Iterator[Frame]:
+                    meshes: bool = False, render: RenderSettings | None = None,
+                    space: str | None = None) -> Iterator[Frame]:
     """The frames of ``job`` computed in memory and written, yielded in order once written.
 
     ``source``, ``target``: the shapes' Volumes; ``attributes``: name ->
@@ -273,13 +273,13 @@ def morph_in_memory(job: MorphJob, source, target, attributes: dict | None = Non
     yield from frames(job, fields, frame_values(job, fields, source.data),
                       frame_writer(outputs, write, How(), by_blocks=False),
                       meta={"volwarp_morph": morph_note(job), **(meta or {})},
-                      meshes=MeshBlocks() if meshes else None, render=render)
+                      meshes=MeshBlocks() if meshes else None, render=render, space=space)
 
 
 def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = None, *,
                     outputs, meta: dict | None = None, write: FrameWrite = FrameWrite(),
                     meshes: bool = False, render: RenderSettings | None = None,
-                    how) -> Iterator[Frame]:
+                    how, space: str | None = None) -> Iterator[Frame]:
     """The frames of ``job`` computed and written by blocks, yielded in order once written.
 
     Parameters
@@ -415,7 +415,8 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
                           meshes=surfaces, render=render,
                           corners=functools.partial(fields.corners, steps.map,
                                                     frame_chunks(grid.shape, per_task,
-                                                                 engine.workers, block)))
+                                                                 engine.workers, block)),
+                          space=space)
 
 
 def run_morph(job: MorphJob, outputs, plan: MorphPlan, *, meta: dict, write_kw: dict,
@@ -443,8 +444,12 @@ def run_morph(job: MorphJob, outputs, plan: MorphPlan, *, meta: dict, write_kw: 
         with one_volume_inputs():
             source, target = _lazy(job.source.path), _lazy(job.target.path)
             attrs = {a.name: (_lazy(a.source), _lazy(a.target)) for a in job.attributes}
-    kw = dict(outputs=outputs, meta=meta, write=write, meshes=bool(outputs.meshes),
-              render=render)
+    from .frames import frame_space, source_keys
+
+    # (the inputs' headers: the plan's; by blocks an input is its (header, samples))
+    headers = plan.headers or ((source[0], target[0]) if plan.by_blocks else (source, target))
+    kw = dict(outputs=outputs, meta={**source_keys(headers[0]), **meta}, write=write,
+              meshes=bool(outputs.meshes), render=render, space=frame_space(*headers))
     frames = (morph_by_blocks(job, source, target, attrs, how=how, **kw) if plan.by_blocks
               else morph_in_memory(job, source, target, attrs, **kw))
     renders = []
