@@ -195,3 +195,36 @@ def test_frames_keep_the_source_s_key_values_and_its_patient_frame(run, tmp_path
                         "grid": "union"})
     assert frames[0].volume.space == "left-posterior-superior"
     assert frames[0].volume.meta["my_key"] == "hello"
+
+
+def test_a_frame_without_a_surface_is_said_not_written_silently(run, tmp_path):
+    """Two small balls far apart: the middle frame's blend is positive everywhere (no
+    shape), and its --mesh-to file an empty mesh, exit 0 without a word before (a review);
+    a vanishing shape is a morph's right, so it is a warning naming the frame's file."""
+    import logging
+
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    z, y, x = np.indices((16, 16, 40))
+    for name, cx in (("a", 6.0), ("b", 33.0)):
+        d = (np.sqrt((x - cx) ** 2 + (y - 8.0) ** 2 + (z - 8.0) ** 2) - 3).astype(np.float32)
+        write_volume(Volume(d), tmp_path / f"{name}.nrrd")
+    said: list[str] = []
+
+    class Keep(logging.Handler):  # (the command's own handler writes to the first run's
+        def emit(self, record):    # stderr: the logger's records are kept here)
+            said.append(record.getMessage())
+
+    keep = Keep(level=logging.WARNING)
+    logging.getLogger("volwarp").addHandler(keep)
+    try:
+        res = run("morph", tmp_path / "a.nrrd", tmp_path / "b.nrrd", "--frames", 3, "--iso", 0,
+                  "--inside", "below", "-o", tmp_path / "h_{i}.nrrd",
+                  "--mesh-to", tmp_path / "h_{i}.ply")
+    finally:
+        logging.getLogger("volwarp").removeHandler(keep)
+    assert res.code == 0, res.stderr
+    assert read_mesh(tmp_path / "h_1.ply").n_faces == 0
+    assert read_mesh(tmp_path / "h_0.ply").n_faces > 0
+    said = [m for m in said if "no surface" in m]
+    assert len(said) == 1 and "frame 1 (t = 0.5)" in said[0] and "h_1.ply" in said[0], said

@@ -68,6 +68,11 @@ class MorphOutputs:
         if self.meshes:
             from ..surface.mesh_io import write_mesh
 
+            if frame.mesh.is_empty:  # (a shape may vanish between two: said, not refused)
+                from ..progress import log
+
+                log.warning("warning: frame %d (t = %g) has no surface, the shape is empty "
+                            "then: %s is an empty mesh", i, frame.t, self.meshes[i])
             write_mesh(frame.mesh, self.meshes[i], comments=comments)
         if self.renders:
             from ..io.images import write_image

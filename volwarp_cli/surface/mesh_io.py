@@ -333,6 +333,8 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     faces = face.get("vertex_indices", face.get("vertex_index"))
     if faces is None:
         raise VolwarpError(f"{path}: faces have no vertex_indices list")
+    if faces.size == 0:  # (an empty mesh, as --allow-empty and morph's empty frames write)
+        faces = np.zeros((0, 3), np.int64)
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise VolwarpError(f"{path}: faces that are not triangles (volwarp reads triangle "
                            "meshes)")
