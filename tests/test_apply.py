@@ -858,3 +858,34 @@ def test_a_reference_of_several_volumes_gives_its_3d_grid(run, inputs, name):
     theirs = sitk.GetArrayFromImage(expect)
     assert np.abs(out.data - theirs).max() <= 1e-4 * float(np.ptp(theirs))
     assert np.count_nonzero(out.data) > 0.5 * out.data.size
+
+
+def test_allow_outside_field_takes_itk_s_identity_past_the_field(run, tmp_path):
+    """A template's field resampling a subject whose scan covers more (ANTs' inverse warp
+    into a wider field of view) was refused with no way through; ITK and antsApplyTransforms
+    take the field as the identity past its samples. --allow-outside-field asks for that,
+    and the output equals SimpleITK's; without it the refusal names the flag."""
+    vol = smooth()
+    write_volume(vol, tmp_path / "in.nrrd")
+    small = Volume(np.zeros((8, 9, 10), np.float32), spacing=(1.1, 1.0, 1.3),
+                   origin=vol.index_to_world([6, 6, 5]), direction=DIRECTION)
+    field = field_on(small)
+    sitk.WriteImage(field, str(tmp_path / "small.nii.gz"))
+    out = tmp_path / "out.nrrd"
+    res = run("apply", tmp_path / "in.nrrd", "-o", out, "-t", tmp_path / "small.nii.gz",
+              "--background-value", "0")
+    assert res.code == 1 and "--allow-outside-field" in res.stderr and not out.exists()
+    res = run("apply", tmp_path / "in.nrrd", "-o", out, "-t", tmp_path / "small.nii.gz",
+              "--background-value", "0", "--allow-outside-field")
+    assert res.code == 0, res.stderr
+    theirs = sitk.GetArrayFromImage(sitk.Resample(
+        to_sitk(vol), to_sitk(vol),
+        sitk.DisplacementFieldTransform(sitk.Cast(sitk.ReadImage(str(tmp_path / "small.nii.gz")),
+                                                  sitk.sitkVectorFloat64)),
+        sitk.sitkLinear, 0.0))
+    ours = read_volume(out).data
+    assert np.abs(ours - theirs).max() <= 1e-4 * float(np.ptp(vol.data))
+    assert not np.array_equal(ours, vol.data)  # (the field moved its part)
+    res = run("apply", "-t", tmp_path / "small.nii.gz", "--allow-outside-field",
+              "--points-in", tmp_path / "p.csv", "--points-to", tmp_path / "q.csv")
+    assert res.code == 2 and "applies to the resampled volume" in res.stderr

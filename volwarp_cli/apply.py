@@ -458,8 +458,8 @@ def choose_sampling(source, *, interpolation: str | None = None, values: str | N
 def plan_resample(header, source, chain: Chain, reference=None, *,
                   interpolation: str | None = None, values: str | None = None,
                   background: float | None = None, dtype=None, name: str = "the input",
-                  sampling: Sampling | Callable[[], Sampling] | None = None
-                  ) -> ApplyOperation:
+                  sampling: Sampling | Callable[[], Sampling] | None = None,
+                  outside_field: bool = False) -> ApplyOperation:
     """The resampling of an input through ``chain``, its defaults chosen (an operation).
 
     ``header``, ``source``: the input's :class:`~volwarp_cli.volume.Header`
@@ -472,7 +472,8 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
     (a command's thread's ``Future.result``: asked for after the coverage
     check, so the errors come in the same order); the output in the
     input's type unless ``dtype``. The field's coverage of the grid is
-    checked here, before any work. The
+    checked here, before any work (``outside_field``: ITK's identity past a
+    field's samples asked for, :func:`check_coverage`). The
     target is an output at no path (the input's header on the grid): the
     caller gives it its path and options.
     """
@@ -482,7 +483,7 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
     in_grid = Geometry.of(header)
     grid = Geometry.of(reference) if reference is not None else (
         in_grid if chain.grid is None else chain.grid)
-    check_coverage(chain, grid)
+    check_coverage(chain, grid, allow=outside_field)
     if sampling is None:
         sampling = choose_sampling(source, interpolation=interpolation, values=values,
                                    background=background, name=name, meta=header.meta)
@@ -549,7 +550,7 @@ def default_background(source, labels: bool) -> float:
     return float(border_label(source)) if labels else float(border_value(source))
 
 
-def check_coverage(chain: Chain, grid) -> None:
+def check_coverage(chain: Chain, grid, *, allow: bool = False) -> None:
     """Refuse a displacement field whose extent does not cover the output grid's points.
 
     Every field of the chain, with the output grid's points that reach it:
@@ -560,7 +561,8 @@ def check_coverage(chain: Chain, grid) -> None:
     made for another reference or subject, or a chain in the wrong order,
     shows that way. One error naming the field, its size and the farthest
     point. (A B-spline transform's grid is ITK's to place: it is the
-    identity outside by design.)
+    identity outside by design.) ``allow`` (``--allow-outside-field``):
+    ITK's rule is asked for, and the reach outside is said at ``-v`` instead.
     """
     from .errors import VolwarpError
 
@@ -576,7 +578,13 @@ def check_coverage(chain: Chain, grid) -> None:
             idx = step.frame.to_index(reach)
             n = np.asarray(step.frame.size, float)
             out = np.any((idx < -0.5 - 1e-3) | (idx > n - 0.5 + 1e-3), axis=1)
-            if np.any(out):
+            if np.any(out) and allow:
+                from .progress import log
+
+                log.info("%s: %d of %d points checked lie outside its samples, where it is "
+                         "the identity (--allow-outside-field)", step.name, int(out.sum()),
+                         len(reach))
+            elif np.any(out):
                 far = reach[np.argmax(np.abs(idx - (n - 1) / 2).max(axis=1))]
                 raise VolwarpError(
                     f"{step.name}: the output grid's points reach it outside its "
@@ -584,7 +592,7 @@ def check_coverage(chain: Chain, grid) -> None:
                     f"{', '.join(f'{v:.4g}' for v in far)} mm; {int(out.sum())} of "
                     f"{len(reach)} points checked): a transform for another reference or "
                     "subject, or the chain in the wrong order (--reference sets the output "
-                    "grid)")
+                    "grid); --allow-outside-field takes it as the identity there, as ITK does")
         reach = step.map(reach)
 
 

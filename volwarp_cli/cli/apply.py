@@ -105,6 +105,11 @@ def _initial_transforms(path) -> list:
                    "never gains a value). Default: labels when INPUT looks like a label map "
                    "(as `volwarp info` hints).")
 @click.option("--labels", is_flag=True, help="The same as --values labels.")
+@click.option("--allow-outside-field", "outside_field", is_flag=True,
+              help="Let the output grid reach past a displacement field's samples, where the "
+                   "field is the identity (ITK's and antsApplyTransforms' rule): a template's "
+                   "labels into a subject whose scan covers more. Refused by default: a field "
+                   "made for another reference, or a chain in the wrong order, looks the same.")
 @click.option("--background-value", "background", type=float, default=None, metavar="B",
               callback=finite,
               help="Output value where the point falls outside the input [default: the median "
@@ -120,8 +125,8 @@ def _initial_transforms(path) -> list:
 @input_options(reference_help=REFERENCE_HELP)
 @scale_options
 @common_options
-def command(input, output, transforms, reference, interpolation, values, labels, background,
-            points_in, points_to, mesh_in, mesh_to, dtype, compress, byte_order, raw,
+def command(input, output, transforms, reference, interpolation, values, labels, outside_field,
+            background, points_in, points_to, mesh_in, mesh_to, dtype, compress, byte_order, raw,
             volume_index, dicom, ome_zarr):
     """Resample INPUT through a chain of transforms onto the --reference grid.
 
@@ -149,7 +154,7 @@ def command(input, output, transforms, reference, interpolation, values, labels,
     if input is None:
         for flag, value in (("--reference", reference), ("--interpolation", interpolation),
                             ("--values", given), ("--background-value", background),
-                            ("--dtype", dtype)):
+                            ("--dtype", dtype), ("--allow-outside-field", outside_field or None)):
             if value is not None:
                 raise click.UsageError(f"{flag} applies to the resampled volume (INPUT -o OUT)")
     if output is not None:
@@ -181,7 +186,7 @@ def command(input, output, transforms, reference, interpolation, values, labels,
     if opened is not None:
         _resample(input, output, chain, (*opened, sampling.result), dtype,
                   dict(compress=compress, byte_order=byte_order, **ome_zarr),
-                  [t.path for t in transforms])
+                  [t.path for t in transforms], outside_field)
     if points is not None or mesh is not None:
         from ..apply import move_mesh, move_points
 
@@ -268,7 +273,7 @@ def _sampling(source, name, options):
     return choose_sampling(source, name=name, **options)
 
 
-def _resample(input, output, chain, ready, dtype, write, transform_paths):
+def _resample(input, output, chain, ready, dtype, write, transform_paths, outside_field=False):
     """INPUT through ``chain`` onto the grid (:func:`volwarp_cli.apply.plan_resample`), run.
 
     ``ready``: the opened input (:func:`_open_input`) and the call giving its
@@ -281,7 +286,7 @@ def _resample(input, output, chain, ready, dtype, write, transform_paths):
     header, source, ref, sampling = ready
     try:  # (the label scan's result is asked for after the coverage check, as before)
         op = plan_resample(header, source, chain, ref, name=str(input), dtype=dtype,
-                           sampling=sampling)
+                           sampling=sampling, outside_field=outside_field)
     except BadUsage as exc:
         raise click.UsageError(str(exc)) from None
     target = op.targets[op.KEY]

@@ -16,6 +16,7 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
     --allow-empty             mesh
     --allow-growth            warp
     --allow-outside-data      capture warp apply distance mesh info convert
+    --allow-outside-field     apply
     --background-color        mesh
     --background-value        warp apply
     --block                   warp apply morph sweep distance mesh
