@@ -6,10 +6,12 @@ read it), in LPS with volwarp's axes (x the row cosine, y the column cosine, z
 the slice normal row x column, as :func:`~volwarp_cli.io.dicom.read_dicom`
 reads the series the SEG was made from). Frames a SEG leaves out because they
 are empty are zeros, never missing slices. With ``reference`` (the image series)
-the label map is on that series' whole grid instead, each frame placed on its
-slice. Values: BINARY and FRACTIONAL segments give their segment numbers (a
-FRACTIONAL voxel is in its segment when its value is at least half the
-maximum); a LABELMAP SEG gives its pixel values. ``segment=N`` gives segment N
+the label map is on that series' whole grid instead, each frame placed on the
+slice at its own position: the SEG needs no grid of its own then (frames on
+some slices only, without the optional SpacingBetweenSlices, have none, and
+read only this way). Values: BINARY and FRACTIONAL segments give their segment
+numbers (a FRACTIONAL voxel is in its segment when its value is at least half
+the maximum); a LABELMAP SEG gives its pixel values. ``segment=N`` gives segment N
 as a 0/1 mask; overlapping segments without it are an error naming the option.
 
 Speed (:func:`_fast_frames`). highdicom's ``segread`` builds a frame table from
@@ -22,9 +24,11 @@ positions by element tags, the grid by highdicom's own
 :func:`highdicom.spatial.get_volume_positions` (the rule ``get_volume`` uses,
 missing and repeated positions allowed, SpacingBetweenSlices as the hint), and
 a BINARY SEG's bit-packed frames unpacked only where a byte is non-zero, all
-frames at once. Anything else (compressed frames, tiled images, per-frame
-orientations) goes through highdicom; the two give the same label map
-(``tests/test_dicom_seg_fast.py``).
+frames at once. With a reference, compressed frames are read the same way once
+highdicom has decoded them. Anything else (compressed frames without a
+reference, tiled images, per-frame orientations) goes through highdicom; the
+two give the same label map (``tests/test_dicom_seg_fast.py``,
+``tests/test_dicom_seg_irregular.py``).
 
 Writing (:func:`write_seg`): one segment per non-zero label of a label map
 that lies on the reference series' grid, with new SOP and Series UIDs.
@@ -121,8 +125,13 @@ def _label_dtype(top: int) -> np.dtype:
     raise VolwarpError(f"label {top} does not fit uint32")
 
 
-def _frames_array(seg, where: str, segment: int | None) -> tuple[np.ndarray, np.ndarray]:
-    """(samples [slice, row, column], highdicom's affine) of the SEG's own grid."""
+def _frames_array(seg, where: str, segment: int | None,
+                  reference=None) -> tuple[np.ndarray, np.ndarray]:
+    """(samples [slice, row, column], highdicom's affine) of the SEG's own grid.
+
+    Frames with no regular grid of their own are an error that names
+    ``--reference SERIES`` when no ``reference`` was given (it reads them).
+    """
     kind = seg_type(seg)
     numbers = [int(s.SegmentNumber) for s in seg.SegmentSequence]
     if segment is not None and segment not in numbers:
@@ -152,6 +161,12 @@ def _frames_array(seg, where: str, segment: int | None) -> tuple[np.ndarray, np.
     except RuntimeError as exc:
         if "overlap" in str(exc):
             raise _overlap_error(where, numbers) from None
+        if "regularly-spaced" in str(exc) and reference is None:
+            raise FormatError(
+                f"{where}: {_one_line(exc).rstrip('.')} (its frames lie on some slices only and "
+                "no SpacingBetweenSlices gives their spacing, or they are irregular), so the SEG "
+                "has no grid of its own: --reference SERIES (the series it was drawn on) reads "
+                "it on that series' grid, each frame on its slice") from None
         raise FormatError(f"{where}: {_one_line(exc)}") from None
     except (ValueError, KeyError, AttributeError) as exc:
         raise FormatError(f"{where}: cannot assemble the SEG's frames into a volume "
@@ -168,11 +183,15 @@ _SEGMENT_IDENTIFICATION = 0x0062000A
 _REFERENCED_SEGMENT = 0x0062000B
 
 
-def _fast_frames(ds, where: str, segment: int | None):
+def _fast_frames(ds, where: str, segment: int | None, reference=None):
     """``(data [z, y, x], spacing, origin, direction)`` of a common SEG, or None (use highdicom).
 
     The module docstring says which SEGs, and why; the values and the grid are
-    those of :func:`_frames_array` and :func:`_to_volwarp_axes`.
+    those of :func:`_frames_array` and :func:`_to_volwarp_axes`. With
+    ``reference``, the data lie on the reference grid, each frame on the slice at
+    its own position (:func:`_reference_slices`), whatever the spacing of the
+    frames: the same label map as :func:`_onto_reference` of the SEG's own grid
+    where the SEG has one. Compressed frames are then decoded by highdicom.
     """
     from pydicom.uid import UID
 
@@ -183,7 +202,7 @@ def _fast_frames(ds, where: str, segment: int | None):
                        f"{' '.join(map(str, numbers))}")
     syntax = UID(str(getattr(ds, "file_meta", {}).get("TransferSyntaxUID", "")))
     if kind not in ("BINARY", "FRACTIONAL", "LABELMAP") or not syntax or \
-            syntax.is_compressed or "PixelData" not in ds or \
+            (syntax.is_compressed and reference is None) or "PixelData" not in ds or \
             "TotalPixelMatrixRows" in ds or int(ds.get("SamplesPerPixel", 1)) != 1:
         return None
     try:
@@ -200,10 +219,18 @@ def _fast_frames(ds, where: str, segment: int | None):
             return None
         positions = np.empty((n_frames, 3))
         seg_of = np.zeros(n_frames, np.int64)
+        # A SEG of one segment may name it once, in the shared functional groups.
+        # Read here with a reference only: without one, highdicom's grid is kept (the
+        # same grid, but its spacing differs in the last bit, and outputs are bytes).
+        one = shared[_SEGMENT_IDENTIFICATION] if reference is not None and \
+            _SEGMENT_IDENTIFICATION in shared else None
         for i, item in enumerate(per_frame):
             positions[i] = [float(v) for v in item[_PLANE_POSITION].value[0][_IMAGE_POSITION].value]
             if kind != "LABELMAP":
-                seg_of[i] = int(item[_SEGMENT_IDENTIFICATION].value[0][_REFERENCED_SEGMENT].value)
+                ident = item[_SEGMENT_IDENTIFICATION] if _SEGMENT_IDENTIFICATION in item else one
+                if ident is None:
+                    return None
+                seg_of[i] = int(ident.value[0][_REFERENCED_SEGMENT].value)
     except (AttributeError, IndexError, KeyError, TypeError, ValueError):
         return None  # (something less common: highdicom reads it, or says what is wrong)
     rows, cols = int(ds.Rows), int(ds.Columns)
@@ -213,27 +240,36 @@ def _fast_frames(ds, where: str, segment: int | None):
         return None
     import highdicom as hd
 
-    spacing_z, index = hd.spatial.get_volume_positions(
-        positions, orientation, allow_missing_positions=True,
-        allow_duplicate_positions=kind != "LABELMAP", spacing_hint=hint)
-    if index is None:
-        return None  # (highdicom's get_volume says why these are not a volume)
-    index = np.asarray(index, np.int64)
     row_cos, col_cos = np.array(orientation[:3]), np.array(orientation[3:])
     row_cos /= np.linalg.norm(row_cos)
     col_cos /= np.linalg.norm(col_cos)
     normal = np.cross(row_cos, col_cos)
     normal /= np.linalg.norm(normal)
-    n = int(index.max()) + 1
-    along = positions @ normal
-    if n > 1 and along[index == index.max()][0] < along[index == 0][0]:
-        index = (n - 1) - index  # volwarp's z runs along the normal
-    first = positions[index == 0][0]
-    spacing = np.array([pixel_spacing[1], pixel_spacing[0],
-                        spacing_z if n > 1 else _single_spacing(ds)], dtype=np.float64)
     direction = np.column_stack([row_cos, col_cos, normal])
+    off_grid = ()
+    if reference is not None:
+        g = reference.grid
+        index, off_grid = _reference_slices(
+            ds, positions, (rows, cols), np.array([pixel_spacing[1], pixel_spacing[0]]),
+            direction, kind, reference, where)
+        n = g.shape[0] + len(off_grid)  # (a scratch slice for each frame off the grid)
+        spacing, first, direction = g.spacing, g.origin, g.direction
+    else:
+        spacing_z, index = hd.spatial.get_volume_positions(
+            positions, orientation, allow_missing_positions=True,
+            allow_duplicate_positions=kind != "LABELMAP", spacing_hint=hint)
+        if index is None:
+            return None  # (highdicom's get_volume says why these are not a volume)
+        index = np.asarray(index, np.int64)
+        n = int(index.max()) + 1
+        along = positions @ normal
+        if n > 1 and along[index == index.max()][0] < along[index == 0][0]:
+            index = (n - 1) - index  # volwarp's z runs along the normal
+        first = positions[index == 0][0]
+        spacing = np.array([pixel_spacing[1], pixel_spacing[0],
+                            spacing_z if n > 1 else _single_spacing(ds)], dtype=np.float64)
     npix = rows * cols
-    raw = ds.PixelData
+    raw = _decoded(ds, kind, bits, where) if syntax.is_compressed else ds.PixelData
     need = -(-n_frames * npix * bits // 8)  # (BINARY: bits run on across frames)
     if len(raw) < need:
         raise FormatError(f"{where}: the pixel data is truncated: {n_frames} frames of "
@@ -251,7 +287,61 @@ def _fast_frames(ds, where: str, segment: int | None):
                 data = (data == segment).astype(np.uint8)
         else:
             data = _fractional_labels(ds, frames, n, index, seg_of, segment, numbers, where)
+    if reference is not None:
+        nz = reference.grid.shape[0]
+        for j, (f, ijk) in enumerate(off_grid):
+            if data[nz + j].any():  # (a frame with nothing in the map may lie anywhere)
+                raise VolwarpError(f"{where}: its frame {f + 1} at {_xyz(positions[f])} mm is "
+                                   f"not a slice of the reference series in {reference.path} "
+                                   f"(index {_xyz(ijk)})")
+        data, n = data[:nz], nz
     return data.reshape(n, rows, cols), spacing, first, direction
+
+
+def _reference_slices(ds, positions, shape_yx, spacing_xy, direction, kind, reference,
+                      where: str):
+    """``(index, off_grid)``: the reference slice of each frame, by its own position.
+
+    The frame of reference and the images (size, pixel spacing, orientation) must
+    be the reference's, as :func:`_onto_reference` checks. A frame within
+    ``_ON_GRID`` voxel of a slice's pixel (0, 0) goes to that slice; each other
+    frame gets a scratch slice after the grid's (``off_grid`` lists them as
+    ``(frame, fractional index)``), an error only if it puts something in the map.
+    Two frames of a LABELMAP SEG on one slice are an error (one frame a slice).
+    """
+    check_frame_of_reference(where, str(ds.get("FrameOfReferenceUID", "")), reference)
+    _check_images(where, shape_yx, spacing_xy, direction, reference)
+    g = reference.grid
+    nz = g.shape[0]
+    ijk = g.world_to_index(positions).reshape(-1, 3)
+    rk = np.rint(ijk)
+    on = (np.abs(ijk - rk).max(axis=1) <= _ON_GRID) & (rk[:, 0] == 0) & (rk[:, 1] == 0) & \
+        (rk[:, 2] >= 0) & (rk[:, 2] < nz)
+    index = np.where(on, rk[:, 2], 0).astype(np.int64)
+    off = np.flatnonzero(~on)
+    index[off] = nz + np.arange(off.size)
+    if kind == "LABELMAP":
+        slices, count = np.unique(index[on], return_counts=True)
+        if np.any(count > 1):
+            k = int(slices[count > 1][0])
+            frames = np.flatnonzero(index == k) + 1
+            raise FormatError(f"{where}: frames {frames[0]} and {frames[1]} of the LABELMAP SEG "
+                              f"are both on slice {k} of the reference series in "
+                              f"{reference.path} (a LABELMAP SEG has one frame a slice)")
+    return index, tuple((int(f), ijk[f]) for f in off)
+
+
+def _decoded(ds, kind: str, bits: int, where: str) -> bytes:
+    """The frames of a compressed SEG as uncompressed PixelData (BINARY: bit-packed)."""
+    seg = as_highdicom(ds, where)
+    try:
+        frames = np.asarray(seg.get_stored_frames())
+    except Exception as exc:  # (the codecs raise many types)
+        raise FormatError(f"{where}: cannot decode the SEG's frames ({type(exc).__name__}: "
+                          f"{_one_line(exc)})") from None
+    if kind == "BINARY":
+        return np.packbits(frames.reshape(-1) != 0, bitorder="little").tobytes()
+    return np.ascontiguousarray(frames, f"<u{bits // 8}").tobytes()
 
 
 def _binary_labels(raw: bytes, n_frames: int, npix: int, n: int, index, seg_of, segment,
@@ -412,19 +502,19 @@ def read_seg(path: str | os.PathLike, *, segment: int | None = None, reference=N
     """
     where = str(path)
     seg = open_seg(path) if seg is None else seg
-    fast = _fast_frames(seg, where, segment)
-    if fast is not None:
+    fast = _fast_frames(seg, where, segment, reference)
+    if fast is not None:  # (with a reference: on its grid already)
         data, spacing, origin, direction = fast
     else:
-        arr, affine = _frames_array(seg, where, segment)
+        arr, affine = _frames_array(seg, where, segment, reference)
         data, spacing, origin, direction = _to_volwarp_axes(arr, affine, _single_spacing(seg))
+        if reference is not None:
+            data = _onto_reference(data, spacing, origin, direction, seg, reference, where)
+            g = reference.grid
+            spacing, origin, direction = g.spacing, g.origin, g.direction
     meta = _meta(seg, keep_phi)
     if segment is not None:
         meta["DICOM_Segment"] = str(segment)
-    if reference is not None:
-        data = _onto_reference(data, spacing, origin, direction, seg, reference, where)
-        g = reference.grid
-        spacing, origin, direction = g.spacing, g.origin, g.direction
     return make_volume(where, data, spacing=spacing, origin=origin, direction=direction,
                        space=LPS, file_space=LPS, meta=meta)
 
@@ -441,14 +531,9 @@ def check_frame_of_reference(where: str, own: str, reference) -> None:
 def _onto_reference(data, spacing, origin, direction, seg, reference, where) -> np.ndarray:
     """The SEG's slices placed on the reference grid (zeros elsewhere)."""
     check_frame_of_reference(where, str(seg.get("FrameOfReferenceUID", "")), reference)
+    _check_images(where, data.shape[1:], spacing[:2], direction, reference)
     g = reference.grid
     nz, ny, nx = g.shape
-    mine = f"{data.shape[2]}x{data.shape[1]} pixels of {spacing[0]:g}x{spacing[1]:g} mm"
-    theirs = f"{nx}x{ny} pixels of {g.spacing[0]:g}x{g.spacing[1]:g} mm"
-    if data.shape[1:] != (ny, nx) or not np.allclose(spacing[:2], g.spacing[:2], rtol=1e-4) \
-            or not np.allclose(direction[:, :2], g.direction[:, :2], atol=1e-4):
-        raise VolwarpError(f"{where}: its frames ({mine}) are not the images of the reference "
-                           f"series in {reference.path} ({theirs}, or another orientation)")
     out = np.zeros((nz, ny, nx), data.dtype)
     for k in range(data.shape[0]):
         ijk = g.world_to_index(origin + direction[:, 2] * spacing[2] * k)
@@ -461,6 +546,18 @@ def _onto_reference(data, spacing, origin, direction, seg, reference, where) -> 
                                f"(index {_xyz(ijk)})")
         out[int(rk[2])] = data[k]
     return out
+
+
+def _check_images(where: str, shape_yx, spacing_xy, direction, reference) -> None:
+    """A SEG's frames must be the reference's images: size, pixel spacing, orientation."""
+    g = reference.grid
+    _, ny, nx = g.shape
+    mine = f"{shape_yx[1]}x{shape_yx[0]} pixels of {spacing_xy[0]:g}x{spacing_xy[1]:g} mm"
+    theirs = f"{nx}x{ny} pixels of {g.spacing[0]:g}x{g.spacing[1]:g} mm"
+    if tuple(shape_yx) != (ny, nx) or not np.allclose(spacing_xy, g.spacing[:2], rtol=1e-4) \
+            or not np.allclose(direction[:, :2], g.direction[:, :2], atol=1e-4):
+        raise VolwarpError(f"{where}: its frames ({mine}) are not the images of the reference "
+                           f"series in {reference.path} ({theirs}, or another orientation)")
 
 
 def _xyz(v) -> str:
