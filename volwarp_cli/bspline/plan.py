@@ -71,7 +71,8 @@ class WarpSpec:
 
 
 def _vec3(v):
-    return tuple(int(x) for x in ([v] * 3 if isinstance(v, int) else v))
+    """Three ints of a schema integer or list of three (7.0 is an integer to the schema)."""
+    return tuple(int(x) for x in ([v] * 3 if isinstance(v, (int, float)) else v))
 
 
 def read_warp_spec(doc) -> WarpSpec:
@@ -148,6 +149,13 @@ def check_indices(doc, spec: WarpSpec, lattice) -> None:
                                 f"0..{lattice[1] - 1}, 0..{lattice[2] - 1})")
 
 
+#: The largest control point displacement (input voxels) a spec may ask for: the box
+#: pushforward's spans and fixed-point sums run in 64-bit integers, and a move of 1e42
+#: wrapped them (values far outside the input's range, exit 0); 2**40 voxels is beyond any
+#: model and far within them.
+MAX_DISPLACEMENT = float(2 ** 40)
+
+
 def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -> list[Frame]:
     """The lattice after every increment of every step, in order."""
     check_indices(doc, spec, grid.lattice)
@@ -157,7 +165,7 @@ def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -
     for s, step in enumerate(spec.steps):
         work = current.copy()
         for mv in step.get("move", []):
-            i, j, k = mv["index"]
+            i, j, k = (int(v) for v in mv["index"])  # (7.0: an integer to the schema)
             if "by" in mv:
                 work[k, j, i] += geom.vector(mv["by"])
             else:
@@ -201,6 +209,11 @@ def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -
             handles = [(src[i], dst[i], reached[i]) for i in range(len(src))]
         else:
             handles = []
+        reach = float(np.abs(work).max(initial=0.0))
+        if not reach <= MAX_DISPLACEMENT:  # (NaN too)
+            raise doc.error(("steps", s), f"moves a control point {reach:.3g} input voxels, "
+                            f"beyond the {MAX_DISPLACEMENT:.3g} the warp's exact sums can "
+                            "place (a value in the wrong units?)")
         n = int(step.get("frames", 1))
         total = work - current
         for f in range(1, n + 1):
