@@ -77,8 +77,10 @@ def _output(ctx, param, value):
                    "volwarp, also exact; their polygon areas are smaller: "
                    "docs/segmentations.md).")
 @click.option("--segments", type=INPUT_PATH, default=None, metavar="CSV",
-              help="With --dicom-type: segment or ROI names, a CSV file of label,name rows "
-                   "(default: 'label N' for a SEG, 'label_N' for an RTSTRUCT).")
+              help="With --dicom-type: segment or ROI names, a CSV file of label,name rows; "
+                   "they win over the names the label map's key/values keep from the SEG or "
+                   "RTSTRUCT it was read from (default: those, else 'label N' for a SEG, "
+                   "'label_N' for an RTSTRUCT).")
 @input_options(reference_help=REFERENCE_HELP)
 @common_options
 def command(input, output, dtype, compress, byte_order, pyramid_method, values, dicom_type,
@@ -105,7 +107,7 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
         dicom = {**(dicom or {}), "reference": reference}  # (the input lies on that series)
     vol = load_input(input, raw, volume_index, dicom=dicom)
     if writing:
-        _write_segmentation(vol, output, dicom_type, reference, segments, contours)
+        _write_segmentation(vol, output, dicom_type, reference, segments, contours, str(input))
         return
     from ..labelmap import keep_label_ids, segmentation_of
 
@@ -153,7 +155,8 @@ def _is_segmentation(path) -> bool:
     return segmentation_kind(path) is not None
 
 
-def _write_segmentation(vol, output, dicom_type, reference, segments, contours) -> None:
+def _write_segmentation(vol, output, dicom_type, reference, segments, contours,
+                        source) -> None:
     from ..io.dicom import read_reference
     from ..io.dicom_seg import read_names, write_seg
 
@@ -166,6 +169,8 @@ def _write_segmentation(vol, output, dicom_type, reference, segments, contours) 
         if dicom_type == "rtstruct":
             from ..io.rtstruct import write_rtstruct
 
-            write_rtstruct(vol, output, ref, names=names, contours=contours or "edges")
+            write_rtstruct(vol, output, ref, names=names, contours=contours or "edges",
+                           source=source)
         else:
-            write_seg(vol, output, ref, labelmap=dicom_type == "labelmap-seg", names=names)
+            write_seg(vol, output, ref, labelmap=dicom_type == "labelmap-seg", names=names,
+                      source=source)
