@@ -28,12 +28,16 @@ from .options import (
 PYRAMID_METHODS = {"auto": "auto", "mode": True, "mean": False}
 #: --dicom-type choices
 DICOM_TYPES = ("seg", "labelmap-seg", "rtstruct")
+#: the DICOM read options that choose how --reference is read when writing a segmentation
+REFERENCE_CHOICES = ("series", "irregular", "duplicates")
 #: --reference's help here: an input's series (as every command), or the output's
 REFERENCE_HELP = ("The image series (folder, DICOMDIR or file) a segmentation lies on. "
                   "RTSTRUCT input: its ROIs are rasterised on that grid (required); SEG "
                   "input: the label map is put on its whole grid (default: the SEG's own "
                   "frames' grid); --dicom-type output: the series the SEG or RTSTRUCT "
-                  "references, whose grid the label map must lie on (required).")
+                  "references, whose grid the label map must lie on (required; --series "
+                  "chooses it when the path holds several, else the series the label map's "
+                  "key/values name).")
 
 
 def _output(ctx, param, value):
@@ -103,11 +107,21 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
         raise click.UsageError(f"--contours {contours} shapes the contours of an RTSTRUCT: "
                                "give --dicom-type rtstruct")
     check_output_path(output, option="-o")
+    reference_options = {}  # how --reference is read when a segmentation is written
+    if writing:
+        reference_options = {k: v for k, v in (dicom or {}).items() if k in REFERENCE_CHOICES}
+        if not _is_segmentation(input) and not _is_dicom_image(input):
+            # (a label map file: --series, --irregular, --duplicates choose the reference's)
+            dicom = {k: v for k, v in (dicom or {}).items()
+                     if k not in REFERENCE_CHOICES} or None
+        elif not _is_segmentation(input):
+            reference_options = {}  # (a DICOM image input: they choose the input's series)
     if reference is not None and (not writing or _is_segmentation(input)):
         dicom = {**(dicom or {}), "reference": reference}  # (the input lies on that series)
     vol = load_input(input, raw, volume_index, dicom=dicom)
     if writing:
-        _write_segmentation(vol, output, dicom_type, reference, segments, contours, str(input))
+        _write_segmentation(vol, output, dicom_type, reference, segments, contours, str(input),
+                            reference_options)
         return
     from ..labelmap import keep_label_ids, segmentation_of
 
@@ -155,16 +169,35 @@ def _is_segmentation(path) -> bool:
     return segmentation_kind(path) is not None
 
 
+def _is_dicom_image(path) -> bool:
+    from ..io import volume_format
+
+    try:
+        return volume_format(path, reading=True) == "dicom" and not _is_segmentation(path)
+    except Exception:  # (an unknown extension: the reader says so)
+        return False
+
+
 def _write_segmentation(vol, output, dicom_type, reference, segments, contours,
-                        source) -> None:
-    from ..io.dicom import read_reference
+                        source, reference_options) -> None:
+    """Write ``vol`` as a SEG or RTSTRUCT against ``reference``.
+
+    ``reference_options``: ``series``, ``irregular``, ``duplicates`` as the
+    command line gave them, choosing how the reference is read; without
+    ``series``, the series the map's key/values name is taken when the
+    reference holds several.
+    """
+    from ..io.dicom import DicomSeriesChoiceError, read_reference
     from ..io.dicom_seg import read_names, write_seg
 
     names = read_names(segments) if segments else None
     want = tuple(vol.meta.get(k) for k in ("DICOM_ReferencedSeriesInstanceUID",
                                            "DICOM_SeriesInstanceUID") if vol.meta.get(k))
     with timed(f"read {reference}"):
-        ref = read_reference(reference, want_series=want)
+        try:
+            ref = read_reference(reference, want_series=want, **reference_options)
+        except DicomSeriesChoiceError as exc:  # (say which path: the output's reference)
+            raise DicomSeriesChoiceError(f"--reference {exc}") from None
     with timed(f"write {output}"):
         if dicom_type == "rtstruct":
             from ..io.rtstruct import write_rtstruct
