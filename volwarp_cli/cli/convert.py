@@ -28,12 +28,16 @@ from .options import (
 PYRAMID_METHODS = {"auto": "auto", "mode": True, "mean": False}
 #: --dicom-type choices
 DICOM_TYPES = ("seg", "labelmap-seg", "rtstruct")
+#: the DICOM read options that choose how --reference is read when writing a segmentation
+REFERENCE_CHOICES = ("series", "irregular", "duplicates")
 #: --reference's help here: an input's series (as every command), or the output's
 REFERENCE_HELP = ("The image series (folder, DICOMDIR or file) a segmentation lies on. "
                   "RTSTRUCT input: its ROIs are rasterised on that grid (required); SEG "
                   "input: the label map is put on its whole grid (default: the SEG's own "
                   "frames' grid); --dicom-type output: the series the SEG or RTSTRUCT "
-                  "references, whose grid the label map must lie on (required).")
+                  "references, whose grid the label map must lie on (required; --series "
+                  "chooses it when the path holds several, else the series the label map's "
+                  "key/values name).")
 
 
 def _output(ctx, param, value):
@@ -77,8 +81,10 @@ def _output(ctx, param, value):
                    "volwarp, also exact; their polygon areas are smaller: "
                    "docs/segmentations.md).")
 @click.option("--segments", type=INPUT_PATH, default=None, metavar="CSV",
-              help="With --dicom-type: segment or ROI names, a CSV file of label,name rows "
-                   "(default: 'label N' for a SEG, 'label_N' for an RTSTRUCT).")
+              help="With --dicom-type: segment or ROI names, a CSV file of label,name rows; "
+                   "they win over the names the label map's key/values keep from the SEG or "
+                   "RTSTRUCT it was read from (default: those, else 'label N' for a SEG, "
+                   "'label_N' for an RTSTRUCT).")
 @input_options(reference_help=REFERENCE_HELP)
 @common_options
 def command(input, output, dtype, compress, byte_order, pyramid_method, values, dicom_type,
@@ -101,11 +107,21 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
         raise click.UsageError(f"--contours {contours} shapes the contours of an RTSTRUCT: "
                                "give --dicom-type rtstruct")
     check_output_path(output, option="-o")
+    reference_options = {}  # how --reference is read when a segmentation is written
+    if writing:
+        reference_options = {k: v for k, v in (dicom or {}).items() if k in REFERENCE_CHOICES}
+        if not _is_segmentation(input) and not _is_dicom_image(input):
+            # (a label map file: --series, --irregular, --duplicates choose the reference's)
+            dicom = {k: v for k, v in (dicom or {}).items()
+                     if k not in REFERENCE_CHOICES} or None
+        elif not _is_segmentation(input):
+            reference_options = {}  # (a DICOM image input: they choose the input's series)
     if reference is not None and (not writing or _is_segmentation(input)):
         dicom = {**(dicom or {}), "reference": reference}  # (the input lies on that series)
     vol = load_input(input, raw, volume_index, dicom=dicom)
     if writing:
-        _write_segmentation(vol, output, dicom_type, reference, segments, contours)
+        _write_segmentation(vol, output, dicom_type, reference, segments, contours, str(input),
+                            reference_options)
         return
     from ..labelmap import keep_label_ids, segmentation_of
 
@@ -153,19 +169,41 @@ def _is_segmentation(path) -> bool:
     return segmentation_kind(path) is not None
 
 
-def _write_segmentation(vol, output, dicom_type, reference, segments, contours) -> None:
-    from ..io.dicom import read_reference
+def _is_dicom_image(path) -> bool:
+    from ..io import volume_format
+
+    try:
+        return volume_format(path, reading=True) == "dicom" and not _is_segmentation(path)
+    except Exception:  # (an unknown extension: the reader says so)
+        return False
+
+
+def _write_segmentation(vol, output, dicom_type, reference, segments, contours,
+                        source, reference_options) -> None:
+    """Write ``vol`` as a SEG or RTSTRUCT against ``reference``.
+
+    ``reference_options``: ``series``, ``irregular``, ``duplicates`` as the
+    command line gave them, choosing how the reference is read; without
+    ``series``, the series the map's key/values name is taken when the
+    reference holds several.
+    """
+    from ..io.dicom import DicomSeriesChoiceError, read_reference
     from ..io.dicom_seg import read_names, write_seg
 
     names = read_names(segments) if segments else None
     want = tuple(vol.meta.get(k) for k in ("DICOM_ReferencedSeriesInstanceUID",
                                            "DICOM_SeriesInstanceUID") if vol.meta.get(k))
     with timed(f"read {reference}"):
-        ref = read_reference(reference, want_series=want)
+        try:
+            ref = read_reference(reference, want_series=want, **reference_options)
+        except DicomSeriesChoiceError as exc:  # (say which path: the output's reference)
+            raise DicomSeriesChoiceError(f"--reference {exc}") from None
     with timed(f"write {output}"):
         if dicom_type == "rtstruct":
             from ..io.rtstruct import write_rtstruct
 
-            write_rtstruct(vol, output, ref, names=names, contours=contours or "edges")
+            write_rtstruct(vol, output, ref, names=names, contours=contours or "edges",
+                           source=source)
         else:
-            write_seg(vol, output, ref, labelmap=dicom_type == "labelmap-seg", names=names)
+            write_seg(vol, output, ref, labelmap=dicom_type == "labelmap-seg", names=names,
+                      source=source)

@@ -32,6 +32,10 @@ two give the same label map (``tests/test_dicom_seg_fast.py``,
 
 Writing (:func:`write_seg`): one segment per non-zero label of a label map
 that lies on the reference series' grid, with new SOP and Series UIDs.
+
+Each segment's label, codes, algorithm and colour are recorded in the label
+map's key/values when it is read, and taken back from them when it is written
+(:mod:`.segment_keys`).
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ import numpy as np
 from ..errors import BadUsage, FormatError, VolwarpError
 from ..volume import LPS, Volume
 from .common import make_volume
+from .segment_keys import label_descriptions, seg_algorithm, seg_colour, seg_keys
 
 SEG_SOP = "1.2.840.10008.5.1.4.1.1.66.4"
 LABELMAP_SEG_SOP = "1.2.840.10008.5.1.4.1.1.66.7"
@@ -515,6 +520,7 @@ def read_seg(path: str | os.PathLike, *, segment: int | None = None, reference=N
     meta = _meta(seg, keep_phi)
     if segment is not None:
         meta["DICOM_Segment"] = str(segment)
+    meta.update(seg_keys(seg, segment))  # (what each label is: written back by build_seg)
     return make_volume(where, data, spacing=spacing, origin=origin, direction=direction,
                        space=LPS, file_space=LPS, meta=meta)
 
@@ -658,11 +664,13 @@ def new_uid(*sources) -> str:
     return str(generate_uid(entropy_srcs=[str(s) for s in sources]))
 
 
-def _content_key(vol: Volume, reference, kind: str, names: dict) -> str:
+def _content_key(vol: Volume, reference, kind: str, names: dict, described=None) -> str:
     import hashlib
 
     h = hashlib.sha256(np.ascontiguousarray(vol.data).tobytes())
     h.update(repr((str(vol.data.dtype), reference.series_uid, kind, sorted(names.items()))).encode())
+    if described:  # (the labels' descriptions from the key/values)
+        h.update(repr(sorted(described.items())).encode())
     return h.hexdigest()
 
 
@@ -687,14 +695,18 @@ def make_timeless(ds, date: str, time: str, uid) -> None:
 
 
 def build_seg(vol: Volume, reference, *, labelmap: bool = False,
-              names: dict[int, str] | None = None, where: str = "SEG"):
+              names: dict[int, str] | None = None, where: str = "SEG",
+              source: str | None = None):
     """The highdicom Segmentation of a label map on ``reference``'s grid.
 
     BINARY (``labelmap`` False): one segment per label, numbered 1..K in
     ascending label order as the standard requires; LABELMAP: the segment
-    numbers are the label values. Each segment is named from ``names`` or
-    ``label N``. SOP Instance and Series UIDs are new (never copied), made from
-    the label map, the reference series and the options.
+    numbers are the label values. Each segment is named from ``names``, else
+    the map's key/values (:mod:`.segment_keys`: also its colour, property
+    category and type, and algorithm), else ``label N`` (coded SCT Tissue /
+    Tissue, MANUAL, no colour). SOP Instance and Series UIDs are new (never
+    copied), made from the label map, its descriptions, the reference series
+    and the options. ``source``: the label map's file, named in errors.
     """
     import highdicom as hd
     from pydicom.sr.codedict import codes
@@ -704,7 +716,8 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     check_on_reference_grid(vol, reference, where)
     values = label_values(vol, where)
     names = dict(names or {})
-    key = _content_key(vol, reference, "labelmap" if labelmap else "seg", names)
+    described = label_descriptions(vol.meta, values, source or where)
+    key = _content_key(vol, reference, "labelmap" if labelmap else "seg", names, described)
 
     def uid(what):
         return new_uid(key, what)
@@ -716,12 +729,23 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
         lut = np.zeros(int(values[-1]) + 1, _label_dtype(len(values)))
         lut[values] = numbers
         pixels = lut[vol.data.astype(np.int64)]
-    descs = [hd.seg.SegmentDescription(
-        segment_number=n, segment_label=names.get(int(v), f"label {int(v)}")[:64],
-        segmented_property_category=codes.SCT.Tissue,
-        segmented_property_type=codes.SCT.Tissue,
-        algorithm_type=hd.seg.SegmentAlgorithmTypeValues.MANUAL)
-        for n, v in zip(numbers, values, strict=True)]
+    def description(n: int, v: int):
+        d = described.get(v)
+        name = names.get(v) or (d and (d.seg_label or d.roi_name)) or f"label {v}"
+        algorithm, ident = seg_algorithm(d)
+        category = hd.sr.CodedConcept(d.category[1], d.category[0], d.category[2]) \
+            if d and d.category else codes.SCT.Tissue
+        kind = hd.sr.CodedConcept(d.type[1], d.type[0], d.type[2]) \
+            if d and d.type else codes.SCT.Tissue
+        return hd.seg.SegmentDescription(
+            segment_number=n, segment_label=name[:64], segmented_property_category=category,
+            segmented_property_type=kind, algorithm_type=algorithm,
+            algorithm_identification=ident, display_color=seg_colour(d))
+    try:
+        descs = [description(n, int(v)) for n, v in zip(numbers, values, strict=True)]
+    except (ValueError, TypeError) as exc:
+        raise VolwarpError(f"{source or where}: a segment's description from its key/values "
+                           f"is refused by highdicom ({_one_line(exc)})") from None
     sources, pixels = _sources_and_frames(reference, pixels, where)
     try:
         seg = hd.seg.Segmentation(
@@ -763,11 +787,12 @@ def _sources_and_frames(reference, pixels: np.ndarray, where: str):
 
 
 def write_seg(vol: Volume, path: str | os.PathLike, reference, *, labelmap: bool = False,
-              names: dict[int, str] | None = None) -> None:
+              names: dict[int, str] | None = None, source: str | None = None) -> None:
     """Write :func:`build_seg`'s SEG to ``path`` atomically."""
     from .atomic import atomic_output, check_output_path
 
     check_output_path(path)
-    seg = build_seg(vol, reference, labelmap=labelmap, names=names, where=str(path))
+    seg = build_seg(vol, reference, labelmap=labelmap, names=names, where=str(path),
+                    source=source)
     with atomic_output(path) as tmp:
         seg.save_as(tmp)

@@ -38,6 +38,7 @@ import numpy as np
 from ..errors import BadUsage, FormatError, VolwarpError
 from ..volume import LPS, Volume
 from .common import make_volume
+from .segment_keys import label_descriptions, roi_colour, roi_colours, roi_keys
 
 RTSTRUCT_SOP = "1.2.840.10008.5.1.4.1.1.481.3"
 
@@ -168,10 +169,14 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
         rois.append(mask)
     nested = [] if only is not None else combine(rois, out, where)
     meta = _meta(ds, keep_phi, ref)
+    colours = roi_colours(ds)
     if only is not None:
         meta["DICOM_Structure"] = f"{only} {names[only]}"
+        # (the mask's label 1 is that ROI: its name and colour, written back by build_rtstruct)
+        meta.update(roi_keys({1: names[only]},
+                             {1: colours[only]} if only in colours else {}))
     else:
-        meta.update({f"DICOM_ROI_{n}": names[n] for n in numbers})
+        meta.update(roi_keys({n: names[n] for n in numbers}, colours))
         if nested:
             meta["DICOM_ROI_nested"] = "; ".join(f"{a} in {b}" for a, b in nested)
     return make_volume(where, out, spacing=grid.spacing, origin=grid.origin,
@@ -635,10 +640,12 @@ def _ds(values) -> list[str]:
 
 
 def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = None,
-                   where: str = "RTSTRUCT", contours: str = "edges"):
+                   where: str = "RTSTRUCT", contours: str = "edges",
+                   source: str | None = None):
     """A pydicom RTSTRUCT of a label map on ``reference``'s grid: one ROI per label.
 
-    ROI Number = label value, named from ``names`` or ``label_N``; contours
+    ROI Number = label value, named from ``names``, else the map's key/values
+    (:mod:`.segment_keys`: also its colour), else ``label_N``; contours
     (``contours="edges"``) on voxel edges moved :data:`NUDGE` voxel inward
     (:func:`mask_outlines`), or (``"smooth"``) the zero level of each slice's
     sub-voxel distance field (:func:`smooth_outlines`), each referencing its
@@ -660,8 +667,9 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     check_on_reference_grid(vol, reference, where)
     values = label_values(vol, where)
     names = dict(names or {})
+    described = label_descriptions(vol.meta, values, source or where)
     key = _content_key(vol, reference, "rtstruct" if contours == "edges" else
-                       f"rtstruct {contours}", names)
+                       f"rtstruct {contours}", names, described)
     date, time = _stamp(reference)
     src = pydicom.dcmread(reference.files[0], stop_before_pixels=True)
     g = reference.grid
@@ -710,7 +718,9 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
         roi = Dataset()
         roi.ROINumber = int(value)
         roi.ReferencedFrameOfReferenceUID = reference.frame_of_reference_uid
-        roi.ROIName = names.get(int(value), f"label_{int(value)}")[:64]
+        d = described.get(int(value))
+        roi.ROIName = (names.get(int(value)) or (d and (d.roi_name or d.seg_label))
+                       or f"label_{int(value)}")[:64]
         roi.ROIGenerationAlgorithm = ""
         rois.append(roi)
         seq = []
@@ -725,8 +735,8 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
                 seq.append(item)
         c = Dataset()
         c.ReferencedROINumber = int(value)
-        c.ROIDisplayColor = [int((value * 67) % 256), int((value * 131 + 80) % 256),
-                             int((value * 29 + 160) % 256)]
+        c.ROIDisplayColor = list(roi_colour(d) or (
+            int((value * 67) % 256), int((value * 131 + 80) % 256), int((value * 29 + 160) % 256)))
         c.ContourSequence = Sequence(seq)
         contours.append(c)
         obs = Dataset()
@@ -759,11 +769,13 @@ def _series_images(reference, image_ref) -> list:
 
 
 def write_rtstruct(vol: Volume, path: str | os.PathLike, reference, *,
-                   names: dict[int, str] | None = None, contours: str = "edges") -> None:
+                   names: dict[int, str] | None = None, contours: str = "edges",
+                   source: str | None = None) -> None:
     """Write :func:`build_rtstruct`'s RTSTRUCT to ``path`` atomically."""
     from .atomic import atomic_output, check_output_path
 
     check_output_path(path)
-    ds = build_rtstruct(vol, reference, names=names, where=str(path), contours=contours)
+    ds = build_rtstruct(vol, reference, names=names, where=str(path), contours=contours,
+                        source=source)
     with atomic_output(path) as tmp:
         ds.save_as(tmp, enforce_file_format=True)
