@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import bz2
 import gzip
+import json
 
 import nrrd as pynrrd
 import numpy as np
@@ -137,3 +138,35 @@ def test_bzip2_missing_its_last_bytes_is_truncated_naming_the_file(run, tmp_path
     assert res.code == 1
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "cut.nrrd: compressed data is truncated" in lines[0], res.stderr
+
+
+@pytest.mark.parametrize("ext", [".nrrd", ".mha", ".nhdr"])
+def test_utf8_key_values_and_file_names_are_read_and_written_as_utf8(tmp_path, run, ext):
+    """3D Slicer and ITK write header text as UTF-8 (segment names, "Läsion"); read as
+    Latin-1 it came out "LÃ¤sion" in info, NIfTI and OME-Zarr, and what is no Latin-1 was
+    written as "?" (a detached header's data file name too). A Latin-1 header still reads."""
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    img = sitk.GetImageFromArray(DATA)
+    img.SetMetaData("Segment0_Name", "Läsion")
+    sitk.WriteImage(img, str(tmp_path / f"slicer{ext}"))
+    vol = read_volume(tmp_path / f"slicer{ext}")
+    assert vol.meta["Segment0_Name"] == "Läsion"
+    res = run("info", tmp_path / f"slicer{ext}", "--json")
+    assert res.code == 0 and json.loads(res.stdout)["meta"]["Segment0_Name"] == "Läsion"
+    res = run("convert", tmp_path / f"slicer{ext}", "-o", tmp_path / "c.nii")
+    assert res.code == 0 and read_volume(tmp_path / "c.nii").meta["Segment0_Name"] == "Läsion"
+    # written: every character kept, as SimpleITK reads it; a data file named in UTF-8
+    out = tmp_path / f"肝臓{ext}"
+    write_volume(Volume(DATA, meta={"organ": "肝臓 – Läsion"}), out)
+    back = read_volume(out)
+    assert back.meta["organ"] == "肝臓 – Läsion" and np.array_equal(back.data, DATA)
+    theirs = sitk.ReadImage(str(out))
+    assert theirs.GetMetaData("organ") == "肝臓 – Läsion"
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(theirs), DATA)
+    if ext == ".nrrd":  # an older header in Latin-1 still reads
+        raw = (tmp_path / "slicer.nrrd").read_bytes().replace("Läsion".encode(),
+                                                             "Läsion".encode("latin-1"))
+        (tmp_path / "latin.nrrd").write_bytes(raw)
+        assert read_volume(tmp_path / "latin.nrrd").meta["Segment0_Name"] == "Läsion"

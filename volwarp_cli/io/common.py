@@ -20,6 +20,24 @@ from ..runscope import run_files
 from ..samples import SUPPORTED_DTYPES, cast_samples, check_dtype, voxel_count  # noqa: F401
 
 
+def header_line(raw: bytes) -> str:
+    """A text header's line (NRRD, MetaImage): UTF-8, else Latin-1.
+
+    3D Slicer and ITK write key/values and file names as UTF-8 ("Läsion");
+    read as Latin-1 they came out "LÃ¤sion" in info, NIfTI and OME-Zarr. A
+    line that is not UTF-8 is an older Latin-1 header, read as before. The
+    writers write UTF-8 (:data:`HEADER_ENCODING`).
+    """
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
+
+
+#: how NRRD and MetaImage headers are written (every character kept, as Slicer writes them)
+HEADER_ENCODING = "utf-8"
+
+
 def make_volume(where: str, data: np.ndarray, *, error=FormatError, **geometry):
     """A :class:`~volwarp_cli.volume.Volume`, or ``error`` naming the file ``where``.
 

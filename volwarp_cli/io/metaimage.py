@@ -39,7 +39,9 @@ from ..memory import ensure_fits_in_memory
 from ..samples import check_dtype, voxel_count
 from ..volume import LPS, Header, Volume, xyz_to_zyx
 from .common import (
+    HEADER_ENCODING,
     ascii_values,
+    header_line,
     make_volume,
     native,
     open_input,
@@ -119,7 +121,7 @@ def read_header(fh, where: str) -> list[tuple[str, str]]:
         raw = fh.readline(1 << 20)
         if not raw:
             break
-        line = raw.decode("latin-1").rstrip("\r\n")
+        line = header_line(raw).rstrip("\r\n")
         if not line.strip():
             continue
         if "=" not in line:
@@ -418,7 +420,7 @@ def _data_files(spec: str, header_path: Path, fh, where: str, sizes: list[int]) 
         n = voxel_count(sizes[fdim:])
         names = []
         for raw in fh:
-            name = raw.decode("latin-1").strip()
+            name = header_line(raw).strip()
             if not name:
                 continue
             if len(names) == n:
@@ -554,7 +556,7 @@ def metaimage_header(vol: Volume | Header, dtype: np.dtype, *, byte_order: str, 
         f"ElementType = {_WRITE_TYPES[dtype.name]}",
         f"ElementDataFile = {data_file}",
     ]
-    return ("\n".join(lines) + "\n").encode("latin-1", errors="replace")
+    return ("\n".join(lines) + "\n").encode(HEADER_ENCODING)
 
 
 def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = False,

@@ -29,7 +29,9 @@ from ..memory import ensure_fits_in_memory
 from ..samples import check_dtype, voxel_count
 from ..volume import Header, Volume, frame_to_lps, xyz_to_zyx
 from .common import (
+    HEADER_ENCODING,
     ascii_values,
+    header_line,
     make_volume,
     native,
     open_input,
@@ -130,7 +132,7 @@ def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
         raw = fh.readline(1 << 20)
         if not raw:
             break  # detached header ends at end of file
-        line = raw.decode("latin-1").rstrip("\r\n")
+        line = header_line(raw).rstrip("\r\n")
         if line == "":
             break
         if line.startswith("#"):
@@ -333,7 +335,7 @@ def _data_files(fields: dict[str, str], header_path: Path, fh, where: str, sizes
         subdim = _subdim(parts[1:], sizes, where, "LIST")
         names = []
         for raw in fh:
-            name = raw.decode("latin-1").strip()
+            name = header_line(raw).strip()
             if name:
                 names.append(base / name)
         _check_file_count(len(names), subdim, sizes, where)
@@ -702,7 +704,7 @@ def nrrd_header(vol: Volume | Header, dtype: np.dtype, *, encoding: str, byte_or
     text = "\n".join(lines) + "\n"
     if data_file is None:
         text += "\n"
-    return text.encode("latin-1", errors="replace")
+    return text.encode(HEADER_ENCODING)
 
 
 def _write_payload(fh, data: np.ndarray, encoding: str, level: int) -> None:
