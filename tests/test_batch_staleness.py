@@ -135,3 +135,54 @@ def test_an_initial_transform_is_the_file_the_step_reads(tmp_path):
                   "-o", fresh, cwd=root)
     assert res.returncode == 0, res.stderr
     assert np.array_equal(out, read_volume(fresh).data)
+
+
+def test_transforms_swapped_between_a_scan_s_columns_redo_the_step(tmp_path):
+    """-t {first} -t {second}: the step's inputs were compared by name, so swapping the
+    two files between the columns (or giving one twice) kept the old output as up to date
+    (a review's finding); the chain's order is what the output is made of."""
+    import SimpleITK as sitk
+
+    data = np.zeros((12, 12, 12), np.float32)
+    data[3:9, 4:8, 2:10] = 100.0
+    (tmp_path / "scans").mkdir()
+    write_volume(Volume(data), tmp_path / "scans" / "p01.nrrd")
+    scale = sitk.AffineTransform(3)
+    scale.SetMatrix([1.2, 0, 0, 0, 1, 0, 0, 0, 1])
+    sitk.WriteTransform(scale, str(tmp_path / "A.tfm"))
+    sitk.WriteTransform(sitk.TranslationTransform(3, (2.0, 0.0, 0.0)), str(tmp_path / "B.tfm"))
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\ninputs: {csv: scans.csv}\noutput_dir: out\nsteps:\n"
+        "  - {name: moved, run: apply, output: \"{stem}_moved.nrrd\", "
+        "options: [-t, \"{first}\", -t, \"{second}\"]}\n")
+    out = tmp_path / "out" / "scans" / "p01_moved.nrrd"
+    made = {}
+    for row in ("A.tfm,B.tfm", "B.tfm,A.tfm", "A.tfm,A.tfm", "A.tfm,B.tfm"):
+        (tmp_path / "scans.csv").write_text(f"path,first,second\nscans/p01.nrrd,{row}\n")
+        assert batch(tmp_path / "m.yaml", cwd=tmp_path).endswith("1 ok, 0 skipped, 0 failed")
+        first, second = row.split(",")
+        res = volwarp("apply", tmp_path / "scans" / "p01.nrrd", "-o", tmp_path / "d.nrrd",
+                      "-t", tmp_path / first, "-t", tmp_path / second)
+        assert res.returncode == 0, res.stderr
+        assert np.array_equal(read_volume(out).data, read_volume(tmp_path / "d.nrrd").data)
+        made[row] = read_volume(out).data
+    assert not np.array_equal(made["A.tfm,B.tfm"], made["B.tfm,A.tfm"])
+    # unchanged: skipped
+    assert batch(tmp_path / "m.yaml", cwd=tmp_path).endswith("0 ok, 1 skipped, 0 failed")
+
+
+@pytest.mark.parametrize("pattern", ["../scans/{stem}_c.nrrd", "/tmp/elsewhere_{stem}.nrrd"])
+def test_an_output_pattern_that_leaves_output_dir_is_refused(tmp_path, pattern):
+    """'../scans/{stem}_c.nrrd' wrote beside the scans, outside the batch's lock: the next
+    run took it for a scan and stopped; two batches wrote one file unlocked (a review)."""
+    (tmp_path / "scans").mkdir()
+    write_volume(Volume(np.zeros((4, 4, 4), np.float32)), tmp_path / "scans" / "p01.nrrd")
+    for where in ("output", "option"):
+        step = (f"{{name: c, run: convert, output: \"{pattern}\"}}" if where == "output" else
+                "{name: m, run: mesh, output: \"{stem}.ply\", options: [--iso, \"0.5\", "
+                f"--render, \"{pattern.replace('.nrrd', '.png')}\"]}}")
+        (tmp_path / "m.yaml").write_text("version: 1\ninputs: {glob: \"scans/*.nrrd\"}\n"
+                                         f"output_dir: out\nsteps:\n  - {step}\n")
+        res = volwarp("batch", tmp_path / "m.yaml", cwd=tmp_path)
+        assert res.returncode == 2 and "leaves output_dir" in res.stderr, res.stderr
+        assert sorted(p.name for p in (tmp_path / "scans").iterdir()) == ["p01.nrrd"]

@@ -167,12 +167,22 @@ def fill(text: str, scan: Scan) -> str:
     return text.format(stem=scan.stem, relpath=scan.relpath or ".")
 
 
-def _check_pattern(doc: SpecDoc, path: tuple, text: str) -> list[str]:
+def _check_pattern(doc: SpecDoc, path: tuple, text: str, *, output: bool = False) -> list[str]:
+    """The placeholders of ``text``; a per-scan output's pattern must stay in output_dir.
+
+    ``output``: the step's ``output`` (an option with a placeholder is one too).
+    Such a path lands under output_dir, the folder the batch's lock holds: a
+    '../' or absolute pattern wrote beside the scans (taken for a scan by the
+    next run) or into another batch's folder, unlocked.
+    """
     names = placeholders(text)
     if names is None:
         raise doc.error(path, f"bad pattern {text!r}: the placeholders are "
                               + ", ".join("{" + p + "}" for p in PLACEHOLDERS)
                               + " (write {{ and }} for braces)")
+    if (output or names) and (os.path.isabs(text) or ".." in Path(text).parts):
+        raise doc.error(path, f"{text!r} leaves output_dir: a scan's outputs land in it (the "
+                              "folder this batch locks); write a path inside it")
     return names
 
 
@@ -259,7 +269,7 @@ def load_manifest(path: str | Path) -> Manifest:
         spec_path = doc.resolve(spec) if spec is not None else None
         if spec_path is not None and not spec_path.is_file():
             raise doc.error(key + ("spec",), f"no such spec file: {spec_path}")
-        _check_pattern(doc, key + ("output",), raw["output"])
+        _check_pattern(doc, key + ("output",), raw["output"], output=True)
         _check_output_extension(doc, key + ("output",), run, raw["output"])
         options = []
         for k, value in enumerate(raw.get("options", [])):

@@ -195,13 +195,17 @@ def _difference(old: dict, new: dict) -> str | None:
         return f"volwarp's version changed ({old.get('volwarp')} -> {new['volwarp']})"
     if old.get("command") != new["command"]:
         return "its options changed"
-    before = {name: digest for name, digest in old.get("inputs", [])}
-    for name, digest in new["inputs"]:
+    now = [(name, digest) for name, digest in new["inputs"]]
+    then = [(name, digest) for name, digest in old.get("inputs", [])]
+    if now == then:  # (in order: -t A -t B is not -t B -t A, nor -t A -t A)
+        return None
+    before = dict(then)
+    for name, digest in now:
         if before.get(name) != digest:
             return f"{name} changed" if name in before else f"it reads {name} now"
-    if len(before) != len(new["inputs"]):
-        return "it reads other files now"
-    return None
+    if sorted(now) == sorted(then):
+        return "it reads its files in another order now"
+    return "it reads other files now"
 
 
 def stale_reason(manifest: Manifest, plan: StepPlan, record: CommandRecord, made: dict
