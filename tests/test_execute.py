@@ -462,7 +462,7 @@ def test_an_abort_waits_for_the_planes_being_placed_and_refuses_later_ones(tmp_p
 
     monkeypatch.setattr(filearray.FileArray, "__setitem__", slow)
     geometry = Geometry(SHAPE, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
-    out = open_block_output(tmp_path / "v.nrrd", geometry, np.float32, chunks_zyx=SHAPE)
+    out = open_block_output(tmp_path / "v.nrrd", geometry.header(np.float32), chunks_zyx=SHAPE)
     plane = Box((0, 0, 0), (1, SHAPE[1], SHAPE[2]))
     placing = threading.Thread(target=out.place, args=(plane, np.ones(plane.shape, np.float32)))
     placing.start()
@@ -517,7 +517,7 @@ def test_an_abort_does_not_wait_for_its_own_thread_and_always_removes_the_tempor
     from volwarp_cli.signals import Interrupted
 
     geometry = Geometry(SHAPE, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
-    out = open_block_output(tmp_path / "v.nrrd", geometry, np.float32, chunks_zyx=SHAPE)
+    out = open_block_output(tmp_path / "v.nrrd", geometry.header(np.float32), chunks_zyx=SHAPE)
     out._placing[threading.get_ident()] += 1  # (this thread's place, cut short by a stop)
     done = threading.Event()
     aborting = threading.Thread(target=lambda: (out.abort(), done.set()))
@@ -528,12 +528,14 @@ def test_an_abort_does_not_wait_for_its_own_thread_and_always_removes_the_tempor
         out._placed.notify_all()
     assert done.wait(10) and list(tmp_path.iterdir()) == []
 
-    second = open_block_output(tmp_path / "w.nrrd", geometry, np.float32, chunks_zyx=SHAPE)
+    second = open_block_output(tmp_path / "w.nrrd", geometry.header(np.float32),
+                               chunks_zyx=SHAPE)
     second._placing[threading.get_ident()] += 1
     second.abort()  # (this thread's own: returns at once)
     assert list(tmp_path.iterdir()) == []
 
-    third = open_block_output(tmp_path / "x.nrrd", geometry, np.float32, chunks_zyx=SHAPE)
+    third = open_block_output(tmp_path / "x.nrrd", geometry.header(np.float32),
+                              chunks_zyx=SHAPE)
 
     def stopped():
         raise Interrupted(2)

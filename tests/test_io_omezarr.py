@@ -409,8 +409,9 @@ def test_block_output_store_equals_write_volume(tmp_path, version):
     geom = Geometry((20, 33, 40), (0.5, 0.6, 0.7), (1.0, -2.0, 3.0))
     data = samples("int16", geom.shape)
     meta = {"volwarp_command": "test"}
-    out = open_block_output(tmp_path / "b.ome.zarr", geom, "int16", chunks_zyx=(8, 8, 8),
-                            version=version, metadata=meta, space="LPS", pyramid=1, labels=False)
+    header = geom.header("int16", meta=meta, space="LPS")
+    out = open_block_output(tmp_path / "b.ome.zarr", header, chunks_zyx=(8, 8, 8),
+                            version=version, pyramid=1, labels=False)
     assert out.chunks == (8, 8, 8)  # 0.4: the chunks; 0.5: one shard per block
     _threads_in_random_order(out, data)
     assert not (tmp_path / "b.ome.zarr").exists()  # only on commit
@@ -442,9 +443,9 @@ def test_block_output_of_any_direction_is_the_stores_write_volume_makes(tmp_path
     geom = Geometry((13, 22, 17), (0.5, 0.6, 0.7), (1.0, -2.0, 3.0), DIRECTIONS[name])
     data = samples("int16", geom.shape)
     meta = {"volwarp_command": "test"}
-    out = open_block_output(tmp_path / "b.ome.zarr", geom, "int16", chunks_zyx=(5, 8, 6),
-                            version=version, metadata=meta, space="LPS", pyramid=1,
-                            labels=False)
+    header = geom.header("int16", meta=meta, space="LPS")
+    out = open_block_output(tmp_path / "b.ome.zarr", header, chunks_zyx=(5, 8, 6),
+                            version=version, pyramid=1, labels=False)
     boxes = out.blocks()
     assert sum(b.size for b in boxes) == geom.size  # the grid tiles the volume
     _threads_in_random_order(out, data, seed=5)
@@ -487,8 +488,8 @@ def test_mapped_block_outputs_are_write_volumes_bytes(tmp_path, name, byte_order
                     DIRECTIONS["permuted"])
     data = samples("float32", geom.shape)
     meta = {"volwarp_command": "test"}
-    out = open_block_output(tmp_path / name, geom, "float32", chunks_zyx=(4, 3, 11),
-                            byte_order=byte_order, metadata=meta, space="LPS")
+    out = open_block_output(tmp_path / name, geom.header("float32", meta=meta, space="LPS"),
+                            chunks_zyx=(4, 3, 11), byte_order=byte_order)
     _threads_in_random_order(out, data, seed=3)
     out.commit()
     ref = tmp_path / f"ref_{name}"
@@ -500,8 +501,8 @@ def test_mapped_block_outputs_are_write_volumes_bytes(tmp_path, name, byte_order
 def test_block_output_refusals_and_abort(tmp_path):
     geom = Geometry((10, 10, 10))
     data = samples("uint8", geom.shape)
-    out = open_block_output(tmp_path / "m.ome.zarr", geom, "uint8", chunks_zyx=(4, 4, 4),
-                            version="0.4")
+    out = open_block_output(tmp_path / "m.ome.zarr", geom.header("uint8"),
+                            chunks_zyx=(4, 4, 4), version="0.4")
     assert out.chunks == (4, 4, 4)
     assert aligned_chunks(geom.shape, out) == ((4, 4, 2),) * 3
     with pytest.raises(ValueError, match="not aligned"):
@@ -511,14 +512,14 @@ def test_block_output_refusals_and_abort(tmp_path):
         out.commit()
     assert leftovers(tmp_path) == [] and not (tmp_path / "m.ome.zarr").exists()
     with pytest.raises(RuntimeError):
-        with open_block_output(tmp_path / "n.nrrd", geom, "uint8") as out2:
+        with open_block_output(tmp_path / "n.nrrd", geom.header("uint8")) as out2:
             out2.write(Box.from_shape(geom.shape), data)
             raise RuntimeError("the engine failed")
     assert leftovers(tmp_path) == [] and not (tmp_path / "n.nrrd").exists()
-    out3 = open_block_output(tmp_path / "k.ome.zarr", geom, "uint8")
+    out3 = open_block_output(tmp_path / "k.ome.zarr", geom.header("uint8"))
     out3.abort()
     assert leftovers(tmp_path) == [] and not (tmp_path / "k.ome.zarr").exists()
     for name, kw in [("c.nrrd", {"compress": True}), ("t.tif", {}), ("n.nii.gz", {}),
                      ("d.nhdr", {})]:
         with pytest.raises(VolwarpError, match=r"\.ome\.zarr"):
-            open_block_output(tmp_path / name, geom, "uint8", **kw)
+            open_block_output(tmp_path / name, geom.header("uint8"), **kw)

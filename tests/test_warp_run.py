@@ -233,15 +233,13 @@ def test_exports_of_an_unmoved_warp(tmp_path):
 
 def _block_writer(path):
     """``open_output(header, block)`` writing a NRRD by blocks (what the command passes)."""
-    from volwarp_cli.geometry import Geometry
     from volwarp_cli.io.blockwrite import committed, open_block_output
 
     seen = []
 
     def open_output(header, block):
         seen.append(tuple(block))
-        return committed(open_block_output(path, Geometry.of(header), header.dtype,
-                                           chunks_zyx=block))
+        return committed(open_block_output(path, header, chunks_zyx=block))
 
     return open_output, seen
 

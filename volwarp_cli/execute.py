@@ -96,13 +96,11 @@ class Target:
         A context manager: committed (renamed into place) on a clean exit,
         aborted (nothing left, an existing file untouched) on an error.
         """
-        from .geometry import Geometry
         from .io.blockwrite import committed, open_block_output
 
-        out = open_block_output(self.path, Geometry.of(self.header), self.dtype,
-                                chunks_zyx=block, version=self.version, compress=self.compress,
-                                byte_order=self.byte_order, metadata=self.header.meta,
-                                space=self.header.space, pyramid=self.pyramid,
+        out = open_block_output(self.path, self.header, dtype=self.dtype, chunks_zyx=block,
+                                version=self.version, compress=self.compress,
+                                byte_order=self.byte_order, pyramid=self.pyramid,
                                 components=list(self.components) if self.components else None)
         return committed(out)
 

@@ -1,9 +1,10 @@
 """Outputs written block by block, for results that do not fit in memory.
 
-:func:`open_block_output` makes a :class:`BlockOutput` for a grid, a sample
-type and an output path; the engine (Dask, threads) computes blocks and
-hands each to :meth:`BlockOutput.write`, then calls :meth:`BlockOutput.commit`
-(or :meth:`BlockOutput.abort`). The output appears at its path only on
+:func:`open_block_output` makes a :class:`BlockOutput` for an output's
+:class:`~volwarp_cli.volume.Header` (grid, sample type, frame, key/values) and
+path; the engine (Dask, threads) computes blocks and hands each to
+:meth:`BlockOutput.write`, then calls :meth:`BlockOutput.commit` (or
+:meth:`BlockOutput.abort`). The output appears at its path only on
 commit, atomically, as every volwarp output (:mod:`.atomic`); an error, an
 abort or a stop leaves no temporary behind and an existing output untouched.
 
@@ -58,21 +59,23 @@ class _Aborted(Exception):
     """Thrown into the atomic-output context to make it remove its temporary."""
 
 
-def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chunks_zyx=None,
+def open_block_output(path: str | os.PathLike, header, *, dtype=None, chunks_zyx=None,
                       version: str = "0.5", compress: bool = False, byte_order: str = "little",
-                      metadata: dict | None = None, space: str | None = None,
                       pyramid: int = 0, labels="auto",
                       components: list[str] | None = None) -> BlockOutput:
-    """A :class:`BlockOutput` writing a volume of ``geometry`` and ``dtype`` to ``path``.
+    """A :class:`BlockOutput` writing the volume of ``header`` to ``path``.
 
+    ``header``: the output's :class:`~volwarp_cli.volume.Header`, what
+    :func:`~volwarp_cli.io.write_volume` is given with the samples: its grid,
+    its frame (``space`` and the input's ``file_space``) and key/values
+    (provenance), so that the file is the one written in memory.
+    ``dtype``: the samples' type, default ``header.dtype``.
     ``chunks_zyx``: the block shape the engine writes (OME-Zarr 0.5: one shard
     per block, :func:`block_layout`; 0.4: the chunks; others: the block grid,
     default 64 planes of the whole y, x extent). ``version``, ``pyramid``,
     ``labels``: OME-Zarr (see :mod:`.omezarr`; ``labels="auto"``, as
     :func:`~volwarp_cli.io.write_volume`'s: an integer output's levels are
     decided on commit from the samples written, read shard by shard).
-    ``metadata``: the volume's key/values (provenance); ``space``: its world
-    frame (``"left-posterior-superior"``, or None), as the Volume would have.
     ``compress``: refused except for OME-Zarr (always compressed).
     ``components``: names of the components each voxel holds (a
     multi-component NRRD, components interleaved, as :func:`.nrrd.write_nrrd`
@@ -83,15 +86,15 @@ def open_block_output(path: str | os.PathLike, geometry: Geometry, dtype, *, chu
     path = Path(path)
     fmt = check_block_format(path, compress, pyramid)
     say_unused_writer_options(path, fmt, compress, version)
-    dtype = check_dtype(dtype, str(path))
+    dtype = check_dtype(header.dtype if dtype is None else dtype, str(path))
+    if dtype != header.dtype:
+        header = header.replace(dtype=dtype)
     if components and fmt != "nrrd":
         raise VolwarpError(f"{path}: samples with several components are written by blocks "
                            "to an uncompressed .nrrd only")
     if fmt == "omezarr":
-        return _ZarrOutput(path, geometry, dtype, chunks_zyx, version, byte_order, metadata,
-                           space, pyramid, labels)
-    return _MappedOutput(path, geometry, dtype, chunks_zyx, fmt, byte_order, metadata, space,
-                         components)
+        return _ZarrOutput(path, header, chunks_zyx, version, byte_order, pyramid, labels)
+    return _MappedOutput(path, header, chunks_zyx, fmt, byte_order, components)
 
 
 def open_volume_blocks(path, header, dtype=None, *, block=None, compress=False,
@@ -104,11 +107,10 @@ def open_volume_blocks(path, header, dtype=None, *, block=None, compress=False,
     at ``path``, an existing file untouched) otherwise. The options are
     :func:`open_block_output`'s.
     """
-    out = open_block_output(path, Geometry.of(header), dtype or header.dtype,
-                            chunks_zyx=block, version=version, compress=compress,
-                            byte_order=byte_order, metadata=header.meta, space=header.space,
-                            pyramid=pyramid, labels=labels, components=components)
-    return committed(out)
+    return committed(open_block_output(path, header, dtype=dtype, chunks_zyx=block,
+                                       version=version, compress=compress,
+                                       byte_order=byte_order, pyramid=pyramid, labels=labels,
+                                       components=components))
 
 
 def check_block_format(path: str | os.PathLike, compress: bool = False, pyramid: int = 0) -> str:
@@ -581,13 +583,12 @@ def store_unit(shape_zyx, version: str) -> tuple[int, int, int]:
 
 
 class _ZarrOutput(BlockOutput):
-    def __init__(self, path, geometry, dtype, chunks_zyx, version, byte_order, metadata, space,
-                 pyramid, labels):
+    def __init__(self, path, header, chunks_zyx, version, byte_order, pyramid, labels):
         from . import omezarr
         from .atomic import atomic_folder
 
         version = omezarr.check_version(version)
-        header = geometry.header(dtype, space=space, meta=dict(metadata or {}))
+        geometry, dtype = Geometry.of(header), header.dtype
         # a grid whose axes are flipped or permuted is stored reindexed to the identity
         # direction, as write_omezarr stores it: each block is moved into place, on the
         # store's own block grid (counted from the far end along a reversed axis)
@@ -664,17 +665,16 @@ class _ZarrOutput(BlockOutput):
 
 
 class _MappedOutput(BlockOutput):
-    def __init__(self, path, geometry, dtype, chunks_zyx, fmt, byte_order, metadata, space,
-                 components=None):
+    def __init__(self, path, vol_header, chunks_zyx, fmt, byte_order, components=None):
         from .atomic import atomic_output
         from .common import with_byte_order
 
+        geometry, dtype = Geometry.of(vol_header), vol_header.dtype
         chunks = chunks_zyx or (64, geometry.shape[1], geometry.shape[2])
         chunks = tuple(max(1, min(int(c), max(int(n), 1)))
                        for c, n in zip(chunks, geometry.shape, strict=True))
         super().__init__(path, geometry, dtype, chunks, components=len(components or ()))
         with_byte_order(np.zeros(0, dtype), byte_order)  # checks the name
-        vol_header = geometry.header(dtype, space=space, meta=dict(metadata or {}))
         if fmt == "nrrd":
             from .nrrd import nrrd_header
 

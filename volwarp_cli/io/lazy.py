@@ -13,8 +13,11 @@ own header parsers are used). Per format:
   ``pread`` box by box (slices come back in the machine's order). Not a memory
   map: mapped pages would count in the process's memory as they are touched.
   Truncated meanwhile, a read stops the run with one line.
-- **TIFF** 3-D stacks of one sample per pixel: tifffile's zarr interface
-  (``imread(aszarr=True)``), pages decoded on demand.
+- **TIFF** 3-D stacks of one sample per pixel, checked by
+  :func:`.tiff.read_tiff_stack` (what ``read_volume`` refuses is refused,
+  with its message): tifffile's zarr interface (``imread(aszarr=True)``),
+  pages decoded on demand, where tifffile's series is the stack as
+  (z, y, x); ImageJ's one-IFD stack over 4 GiB by ``pread``.
 - **NIfTI**: a :class:`.filearray.FileArray` of the samples (nibabel's
   ``[x, y, z]`` in Fortran order are ``[z, y, x]`` in C order; volwarp's
   reader does nothing else to them: the direction matrix holds the
@@ -36,8 +39,9 @@ makes them), so that an output by blocks carries what the in-memory one does.
   larger, inflated once into a scratch file and read from it by box
   (:mod:`.inflated`).
 
-Anything else (bzip2/ascii encodings, 4-D NRRD, MetaImage, TIFF or raw files
-with several volumes or components, DICOM that is resampled) is read whole by
+Anything else (bzip2/ascii encodings, 4-D NRRD, MetaImage or raw files with
+several volumes or components, a TIFF whose tifffile series is not its stack,
+DICOM that is resampled) is read whole by
 ``read_volume``, unless ``require_lazy`` asks for an error instead.
 """
 
@@ -456,59 +460,50 @@ def _raw(path: Path, layout):
 # -- TIFF -------------------------------------------------------------------------------
 
 def _tiff(path: Path):
+    """``(header, samples)`` of a TIFF stack: :func:`.tiff.read_tiff`'s checks, then by box.
+
+    Pages decoded on demand through tifffile's zarr view of its series, where
+    that series is the stack as (z, y, x); ImageJ's one-IFD layout of a stack
+    over 4 GiB is read by box from the file. Anything else is read whole.
+    """
     import tifffile
     import zarr
 
     from . import tiff as tiff_io
 
     where = str(path)
-    try:
-        tif = tifffile.TiffFile(path)
-    except Exception as exc:  # tifffile raises many types for damaged files
-        raise NotLazy(f"tifffile cannot open it ({exc})") from None
-    with tif:
-        pages = tif.pages
-        first = pages.first
-        if first.samplesperpixel > 1 or first.dtype is None:
-            raise NotLazy("not a one-channel stack")
-        series = tif.series[0] if tif.series else None
-        nz = len(pages)
-        if series is None or len(tif.series) != 1 or series.dtype != first.dtype:
-            raise NotLazy("not one series")
-        shape = tuple(int(n) for n in series.shape)
-        ny, nx = first.shape[-2:]
-        if int(np.prod(shape)) != nz * ny * nx or nz < 1:
-            raise NotLazy("pages do not make one stack")
-        dtype = check_dtype(first.dtype, where)  # (native: the samples read are made so)
-        ij = tif.imagej_metadata
-        header = make_header(where, (nz, ny, nx), dtype,
-                             **tiff_io.tiff_placement(tif, first, ij, (nz, ny, nx), where))
+    stack = tiff_io.read_tiff_stack(path)  # (refuses what the whole reader refuses, as it does)
+    header = make_header(where, stack.shape, stack.dtype, **stack.placement)
+    if stack.planes_at is not None:
+        return header, _memmap(path, stack.file_dtype, stack.planes_at, stack.shape, where)
     store = tifffile.imread(path, aszarr=True)  # (it keeps the files it reads open)
     try:
         arr = zarr.open(store, mode="r")
-        if tuple(arr.shape) != shape or arr.ndim < 3:
-            raise NotLazy(f"tifffile's zarr view has shape {arr.shape}")
+        if tuple(arr.shape) != stack.shape or np.dtype(arr.dtype).newbyteorder("=") != stack.dtype:
+            # e.g. tifffile's shaped series of a 4-D array, whose pages volwarp reads as slices
+            raise NotLazy(f"tifffile's zarr view is {arr.shape} {arr.dtype}, not the stack")
     except BaseException:
         store.close()
         raise
-    return header, _ZarrView(arr, (nz, ny, nx), store)
+    return header, _ZarrView(arr, store, where)
 
 
 class _ZarrView:
-    """A 3-D zarr array (extra leading axes of size 1 dropped) with numpy's negative steps.
+    """A 3-D zarr array (z, y, x) with numpy's negative steps.
 
     ``store`` (tifffile's zarr store, which keeps the files it has read open) is
     closed by :meth:`close` or when the view is dropped, as a
-    :class:`.filearray.FileArray` closes its file.
+    :class:`.filearray.FileArray` closes its file. Samples that cannot be
+    decoded are a FormatError naming ``where``, the whole reader's.
     """
 
-    def __init__(self, arr, shape, store=None):
+    def __init__(self, arr, store=None, where: str = ""):
         self._arr = arr
         self._store = store
-        self.shape = tuple(shape)
+        self._where = where
+        self.shape = tuple(arr.shape)
         self.dtype = arr.dtype
         self.ndim = 3
-        self._lead = arr.ndim - 3
 
     def close(self) -> None:
         """Close the store's open files (tifffile opens them again on the next read)."""
@@ -537,7 +532,12 @@ class _ZarrView:
             else:
                 forward.append(k)
             axis += isinstance(k, slice)
-        out = np.asarray(self._arr[(0,) * self._lead + tuple(forward)])
+        try:
+            out = np.asarray(self._arr[tuple(forward)])
+        except Exception as exc:  # tifffile raises many types for damaged files
+            from .tiff import unreadable_data
+
+            raise unreadable_data(self._where, exc) from None
         return np.flip(out, axis=tuple(flips)) if flips else out
 
     def __array__(self, dtype=None, copy=None):

@@ -35,6 +35,7 @@ import os
 import re
 import struct
 import threading
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -276,8 +277,44 @@ def _ome_extra_axes(tif) -> tuple[str, int] | None:
     return None
 
 
+@dataclass(frozen=True)
+class TiffStack:
+    """A TIFF's stack as volwarp reads it, its checks made (:func:`read_tiff_stack`).
+
+    ``shape``: (z, y, x); ``dtype``: the samples' type (native), ``file_dtype``
+    the same in the file's byte order; ``placement``: the Volume keywords but
+    ``data`` (:func:`tiff_placement`); ``planes_at``: where ImageJ's layout of
+    a stack over 4 GiB (one IFD, every plane back to back after it) has its
+    first plane, else None (one page a slice).
+    """
+
+    shape: tuple[int, int, int]
+    dtype: np.dtype
+    file_dtype: np.dtype
+    placement: dict
+    planes_at: int | None = None
+
+
 def read_tiff(path: str | os.PathLike) -> Volume:
     """Read a TIFF stack, its spacing as the module notes say (OME, ImageJ, resolution tags)."""
+    return _open_tiff(path, _read_samples)
+
+
+def read_tiff_stack(path: str | os.PathLike) -> TiffStack:
+    """The :class:`TiffStack` of the TIFF at ``path``, without its samples.
+
+    The checks are :func:`read_tiff`'s, with its errors word for word (the
+    block-wise reader refuses what the whole reader refuses).
+    """
+    return _open_tiff(path, lambda tif, stack, where, records: stack)
+
+
+def _open_tiff(path, then):
+    """``then(tif, stack, where, records)`` on the open, checked TIFF at ``path``.
+
+    tifffile's log records stay off stderr (judged by :func:`_check_tifffile_log`,
+    else logged at debug level); its exceptions are FormatErrors naming the file.
+    """
     import tifffile
 
     where = str(path)
@@ -291,7 +328,7 @@ def read_tiff(path: str | os.PathLike) -> Volume:
             raise FormatError(f"{where}: not a readable TIFF ({_reason(exc)})") from None
         with tif:
             try:
-                return _read_tiff(tif, where, records)
+                return then(tif, _check_stack(tif, where, records), where, records)
             except FormatError:
                 raise
             except Exception as exc:  # tifffile raises many types for damaged files
@@ -306,7 +343,19 @@ def _reason(exc: Exception) -> str:
     return text or type(exc).__name__
 
 
-def _read_tiff(tif, where: str, records) -> Volume:
+def unreadable_data(where: str, exc: Exception) -> FormatError:
+    """The error of a stack whose samples cannot be decoded (read whole or by box)."""
+    return FormatError(f"{where}: cannot read TIFF data ({_reason(exc)})")
+
+
+def _check_stack(tif, where: str, records) -> TiffStack:
+    """The stack of an open TIFF, or a FormatError for one volwarp does not read.
+
+    Refused: a broken or looping list of pages, several samples a pixel, pages
+    of different shapes or types, an ImageJ hyperstack's channels or frames,
+    an OME image's channels or time points, fewer pages than the metadata
+    declare.
+    """
     pages = []
     seen: dict[int, int] = {}
     try:
@@ -339,7 +388,7 @@ def _read_tiff(tif, where: str, records) -> Volume:
                               f"page 0 has {shape0} {dtype0}; all slices must match")
     if dtype0 is None:
         raise FormatError(f"{where}: unsupported TIFF sample format")
-    check_dtype(dtype0, where)
+    dtype = check_dtype(dtype0, where)
     ij = tif.imagej_metadata
     if ij:
         for key in ("channels", "frames"):
@@ -353,32 +402,38 @@ def _read_tiff(tif, where: str, records) -> Volume:
     ny, nx = shape0[-2], shape0[-1]
     nz = len(pages)
     declared = _declared_pages(tif, pages, ij, where)
-    contiguous_stack = False
+    planes_at = None
     if declared is not None and declared[0] != nz:
         count, source = declared
         if ij and nz == 1 and count > 1 and _is_imagej_big_stack(tif, first, count):
-            contiguous_stack, nz = True, count  # ImageJ's own layout of stacks over 4 GiB
+            planes_at, nz = int(first.dataoffsets[0]), count  # ImageJ's stacks over 4 GiB
         else:
             raise FormatError(f"{where}: TIFF has {nz} page{'s' if nz != 1 else ''} but its "
                               f"{source} declares {count}: the file is truncated or damaged")
-    ensure_fits_in_memory(voxel_count((nx, ny, nz)) * dtype0.itemsize,
-                          f"{where} ({nx}x{ny}x{nz} {dtype0.name})")
+    shape = (nz, ny, nx)
+    return TiffStack(shape, dtype, dtype.newbyteorder(tif.byteorder),
+                     tiff_placement(tif, first, ij, shape, where), planes_at)
+
+
+def _read_samples(tif, stack: TiffStack, where: str, records) -> Volume:
+    """The Volume of a checked stack (:func:`_check_stack`): its samples read whole."""
+    nz, ny, nx = stack.shape
+    ensure_fits_in_memory(voxel_count((nx, ny, nz)) * stack.dtype.itemsize,
+                          f"{where} ({nx}x{ny}x{nz} {stack.dtype.name})")
     try:
-        if contiguous_stack:
-            dt = np.dtype(dtype0).newbyteorder(tif.byteorder)
-            tif.filehandle.seek(first.dataoffsets[0])
-            data = np.frombuffer(read_exact(tif.filehandle, nz * ny * nx * dt.itemsize, where),
-                                 dtype=dt)
+        if stack.planes_at is not None:
+            tif.filehandle.seek(stack.planes_at)
+            data = np.frombuffer(read_exact(tif.filehandle, nz * ny * nx * stack.dtype.itemsize,
+                                            where), dtype=stack.file_dtype)
         else:
-            data = tif.asarray(key=range(nz)) if nz > 1 else first.asarray()
+            data = tif.asarray(key=range(nz)) if nz > 1 else tif.pages.first.asarray()
     except FormatError:
         raise
     except Exception as exc:  # tifffile raises many types for damaged files
-        raise FormatError(f"{where}: cannot read TIFF data ({_reason(exc)})") from None
+        raise unreadable_data(where, exc) from None
     _check_tifffile_log(records, where, nz)
     data = np.asarray(data).reshape(nz, ny, nx)
-    placement = tiff_placement(tif, first, ij, data.shape, where)
-    return make_volume(where, native(data), **placement)
+    return make_volume(where, native(data), **stack.placement)
 
 
 def _ome_spacing(tif, where: str) -> list[float | None] | None:

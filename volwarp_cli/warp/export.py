@@ -576,23 +576,32 @@ def write_field(field: np.ndarray, geometry: Header, path: str, meta: dict, kind
     array with intent 1007 (vector), LPS components, RAS affine; ``descrip``
     says the direction and volwarp's header extension holds the key/values.
     """
-    meta = dict(meta)
-    meta["volwarp_field"] = kind
-    meta["volwarp_field_units"] = "mm (LPS)"
     fmt = field_format(path)
-    header = Header(field.shape[:3], np.float32, spacing=geometry.spacing,
-                    origin=geometry.origin, direction=geometry.direction, space=LPS, meta=meta)
+    header = _field_header(geometry, field.shape[:3], meta, kind, fmt)
     if fmt == "nrrd":
         from ..io.nrrd import write_nrrd
 
-        if kind == "resampling":
-            meta["displacement field type"] = "resampling"
-        meta.pop("volwarp_components", None)
         components = [field[..., m] for m in range(3)]
-        write_nrrd(header.with_data(components[0], meta=meta), path, compress=True,
+        write_nrrd(header.with_data(components[0]), path, compress=True,
                    components=components, component_names=["x", "y", "z"])
         return
     _write_nifti_field(field, header, path, kind)
+
+
+def _field_header(geometry: Header, shape_zyx, meta: dict, kind: str, fmt: str) -> Header:
+    """The Header of a displacement field file of ``fmt``, in memory and by blocks alike.
+
+    ``geometry``'s grid, LPS, the key/values ``meta`` with the field's own.
+    """
+    meta = dict(meta)
+    meta["volwarp_field"] = kind
+    meta["volwarp_field_units"] = "mm (LPS)"
+    if fmt == "nrrd":
+        if kind == "resampling":
+            meta["displacement field type"] = "resampling"
+        meta.pop("volwarp_components", None)
+    return Header(shape_zyx, np.float32, spacing=geometry.spacing, origin=geometry.origin,
+                  direction=geometry.direction, space=LPS, meta=meta)
 
 
 def field_block_output(path: str, geometry: Header, meta: dict, kind: str, depth: int):
@@ -604,21 +613,14 @@ def field_block_output(path: str, geometry: Header, meta: dict, kind: str, depth
     the same key/values) but for ``encoding: raw``: the gzip stream of the in-memory
     file cannot be placed slab by slab. A NIfTI path is a VolwarpError.
     """
-    from ..geometry import Geometry
     from ..io.blockwrite import open_block_output
 
     if field_format(path) != "nrrd":
         raise VolwarpError(f"{path}: a NIfTI displacement field cannot be written by blocks "
                            "(write .nrrd: uncompressed by blocks)")
-    meta = dict(meta)
-    meta["volwarp_field"] = kind
-    meta["volwarp_field_units"] = "mm (LPS)"
-    if kind == "resampling":
-        meta["displacement field type"] = "resampling"
-    meta.pop("volwarp_components", None)
     nz, ny, nx = geometry.shape
-    return open_block_output(path, Geometry.of(geometry), np.float32,
-                             chunks_zyx=(max(1, int(depth)), ny, nx), metadata=meta, space=LPS,
+    return open_block_output(path, _field_header(geometry, geometry.shape, meta, kind, "nrrd"),
+                             chunks_zyx=(max(1, int(depth)), ny, nx),
                              components=["x", "y", "z"])
 
 

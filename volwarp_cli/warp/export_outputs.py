@@ -291,7 +291,6 @@ def _jacobian_by_slabs(fmap, in_grid: Header, path: str, jmeta: dict) -> dict:
     The figures of the whole map, reduced exactly: the extremes combined, the
     counts below 0 and 0.1 added, then divided by the voxels.
     """
-    from ..geometry import Geometry
     from ..io.blockwrite import committed, open_block_output
 
     nz, ny, nx = in_grid.shape
@@ -307,9 +306,9 @@ def _jacobian_by_slabs(fmap, in_grid: Header, path: str, jmeta: dict) -> dict:
             acc["n"] += d.size
             yield z0, det
 
-    out = open_block_output(path, Geometry.of(in_grid), np.float32,
-                            chunks_zyx=(fmap.slab_depth(), ny, nx), metadata=jmeta,
-                            space=in_grid.space)
+    # (the header of the in-memory file: in_grid.with_data(det, meta=jmeta))
+    out = open_block_output(path, in_grid.replace(meta=jmeta), dtype=np.float32,
+                            chunks_zyx=(fmap.slab_depth(), ny, nx))
     with timed(f"write {path}, by slabs"), committed(out):
         _place_slabs(out, slabs())
     return {"min": acc["min"], "max": acc["max"], "below_0": float(acc["neg"] / acc["n"]),
