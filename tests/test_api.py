@@ -256,6 +256,35 @@ def test_distance_refuses_wrong_arguments_as_the_command_does(kwargs, match):
         api.distance(BALL, **kwargs)
 
 
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(lattice=3), "at least 4 control points"),
+    (dict(lattice=(4, 5)), "give one size or three"),
+    (dict(lattice=5, placement="tripled"), "at least 6 control points"),
+    (dict(placement="bogus"), "placement"),
+    (dict(sampling="bogus"), "sampling"),
+    (dict(pad=-3), "pad: voxels per side"),
+    (dict(pad=(1, -1, 1)), "pad: voxels per side"),
+])
+def test_capture_refuses_what_the_command_refuses_as_usage(tmp_path, kwargs, match):
+    """The command's exit 2 is the API's BadUsage: a lattice of 3 and an unknown sampling
+    were plain VolwarpErrors (exit 1's class), and a negative pad wrote a .vwc that no
+    command could read (found by a review)."""
+    with pytest.raises(BadUsage, match=match):
+        api.capture(BALL, **kwargs)
+
+
+def test_a_missing_input_is_a_volwarp_error_in_every_api_function(tmp_path):
+    """api.read said so; mesh, warp and distance raised a bare FileNotFoundError."""
+    from volwarp_cli.errors import VolwarpError
+
+    missing = tmp_path / "none.nrrd"
+    for call in (lambda: api.read(missing), lambda: api.mesh(missing, iso=1),
+                 lambda: api.distance(missing, iso=1),
+                 lambda: api.warp(missing, SPECS / "warp-ball.yaml")):
+        with pytest.raises(VolwarpError, match="none.nrrd: no such file"):
+            call()
+
+
 def test_an_infinite_band_is_a_usage_error_of_the_command(run, tmp_path):
     res = run("distance", BALL, "-o", tmp_path / "d.nrrd", "--iso", "100", "--max-distance",
               "inf")

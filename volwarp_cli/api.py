@@ -247,6 +247,8 @@ def capture(volume, *, lattice=9, placement: str = "uniform", oversample: float 
     import numbers
 
     from .bspline.capture import capture_volume
+    from .bspline.lattice import PLACEMENTS
+    from .bspline.pullback import SAMPLINGS
     from .errors import VolwarpError
     from .labelmap import VALUES
 
@@ -255,14 +257,22 @@ def capture(volume, *, lattice=9, placement: str = "uniform", oversample: float 
             and 0 < oversample <= 16):
         raise BadUsage(f"oversample must be a number in (0, 16], got {oversample!r}")
     _choice(values, VALUES, "values")
+    _choice(placement, PLACEMENTS, "placement")
+    _choice(sampling, SAMPLINGS, "sampling")
+    lattice = _three_ints(lattice, "lattice")  # (the command's checks: its usage errors)
+    least = 6 if placement == "tripled" else 4
+    if min(lattice) < least:
+        raise BadUsage(f"lattice: at least {least} control points per axis"
+                       f"{' with the tripled placement' if least == 6 else ''}, got {lattice}")
+    if pad is not None and min(_three_ints(pad, "pad")) < 0:
+        raise BadUsage(f"pad: voxels per side, 0 or more, got {pad!r}")
     path = _path_of(volume)
     vol = read(volume, **read_options) if path is not None else _volume(volume, read_options)
     name = str(name or path or "the volume")
     _refuse_blended_labels(vol, name, placement, oversample, values)
     try:
-        return capture_volume(vol, lattice=_three_ints(lattice, "lattice"),
-                              placement=placement, oversample=oversample, sampling=sampling,
-                              pad=pad)
+        return capture_volume(vol, lattice=lattice, placement=placement,
+                              oversample=oversample, sampling=sampling, pad=pad)
     except VolwarpError as exc:
         raise VolwarpError(f"{name}: {exc}") from None
 

@@ -107,6 +107,8 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
 
     stop_if_dry_run(path)  # (volwarp batch's checks of a step end here)
     path = Path(path)
+    if not path.exists():  # (as read_volume says it: a FormatError, not an OSError)
+        raise FormatError(f"{path}: no such file")
     fmt = volume_format(path, reading=True)
     try:
         if fmt == "dicom":  # a stack of files: slabs read from their frames' files
