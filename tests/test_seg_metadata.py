@@ -16,8 +16,7 @@ hd = pytest.importorskip("highdicom")
 
 from pydicom.sr.coding import Code  # noqa: E402
 from test_dicom_seg import masks_of, sorted_sources, write_ct  # noqa: E402
-from test_rtstruct import square, world, write_rtstruct  # noqa: E402
-from test_segmentation_inputs import WARP_SPEC  # noqa: E402
+from test_segmentation_inputs import WARP_SPEC, liver_and_ptv  # noqa: E402
 
 from volwarp_cli.io import read_volume  # noqa: E402
 from volwarp_cli.io.dicom import read_dicom  # noqa: E402
@@ -203,12 +202,7 @@ def roi_table(ds) -> dict:
 @pytest.fixture
 def rs_case(tmp_path, ct):
     folder, paths = ct
-    vol = read_dicom(folder)
-    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
-        3: ("liver", [("CLOSED_PLANAR", world(vol, k, square(2.5, 2.5, 8.5, 9.5)))
-                      for k in (1, 2, 3)]),
-        7: ("PTV", [("CLOSED_PLANAR", world(vol, k, square(10.5, 3.5, 13.5, 7.5)))
-                    for k in (2, 3)])})
+    rs = liver_and_ptv(tmp_path / "rs.dcm", folder, paths)
     ds = pydicom.dcmread(rs)
     ds.ROIContourSequence[0].ROIDisplayColor = [220, 40, 7]
     ds.ROIContourSequence[1].ROIDisplayColor = [0, 128, 255]

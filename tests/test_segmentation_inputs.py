@@ -51,17 +51,21 @@ def seg_case(tmp_path):
     return folder, seg
 
 
-@pytest.fixture
-def rs_case(tmp_path):
-    folder = tmp_path / "ct"
-    paths = write_ct(folder, RS_SHAPE, spacing=(0.9, 0.6, 2.0))
+def liver_and_ptv(out: Path, folder: Path, paths) -> Path:
+    """An RTSTRUCT of ROIs 3 (liver, slices 1-3) and 7 (PTV, slices 2-3) on the series."""
     vol = read_dicom(folder)
-    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+    return write_rtstruct(out, paths, {
         3: ("liver", [("CLOSED_PLANAR", world(vol, k, square(2.5, 2.5, 8.5, 9.5)))
                       for k in (1, 2, 3)]),
         7: ("PTV", [("CLOSED_PLANAR", world(vol, k, square(10.5, 3.5, 13.5, 7.5)))
                     for k in (2, 3)])})
-    return folder, rs
+
+
+@pytest.fixture
+def rs_case(tmp_path):
+    folder = tmp_path / "ct"
+    paths = write_ct(folder, RS_SHAPE, spacing=(0.9, 0.6, 2.0))
+    return folder, liver_and_ptv(tmp_path / "rs.dcm", folder, paths)
 
 
 @pytest.mark.parametrize("grid", ["own", "reference"])
