@@ -478,11 +478,14 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
         raise VolwarpError(f"{op.what}: no engine to run blocks on")
     op.prepare()  # (once, here: the blocks' tasks get it made)
     op.load()  # (the blocks' budget is what is left once the kernels are loaded)
-    from .passes import Passes, last_pass_block, run_by_blocks
+    from .passes import Passes, heaviest_pass_block, last_pass_block, run_by_blocks
 
     with how.open_engine() as engine, contextlib.ExitStack() as stack:
         per_task = block_budget() // max(1, engine.workers)
         if isinstance(op, Passes):  # the outputs' blocks are the last pass's
+            if how.block is not None and not how.planned:
+                refuse_block_over_budget(op.what, *heaviest_pass_block(op, how.block, per_task),
+                                         per_task, engine.workers)
             block = last_pass_block(op, block_bytes=per_task, workers=engine.workers,
                                     block=how.block)
         elif how.block is not None:
@@ -589,12 +592,21 @@ def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None
     The first, middle and last blocks are weighed (an operation's block memory
     may depend on where the block lies: a warp's reach).
     """
+    refuse_block_over_budget(op.what, block, _heaviest(op, block), per_task, workers)
+
+
+def refuse_block_over_budget(what: str, block, need: int, per_task: int, workers: int) -> None:
+    """Refuse a block of shape ``block`` (z, y, x) needing ``need`` bytes over ``per_task``.
+
+    The one refusal of a ``--block`` too large for a task's share of the
+    budget, whichever operation weighed it (:func:`_check_user_block`; an
+    operation in passes, :func:`~volwarp_cli.passes.heaviest_pass_block`).
+    """
     from .memory import human_bytes
 
-    need = _heaviest(op, block)
     if need > per_task:
         raise OutOfMemoryError(
-            f"{op.what}: a block of {'x'.join(map(str, block))} (z, y, x) needs "
+            f"{what}: a block of {'x'.join(map(str, block))} (z, y, x) needs "
             f"{human_bytes(need)}, more than the {human_bytes(per_task)} each of "
             f"{workers} workers may use (give a smaller --block, fewer --workers or a larger "
             "--memory-limit)")
