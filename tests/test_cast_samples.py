@@ -41,3 +41,44 @@ def test_the_ends_of_int32_and_uint32_from_float32():
     assert cast_samples(data, "int32").tolist() == [2**31 - 1] * 4 + [-2**31] * 2 + [2147483520]
     assert cast_samples(data, "uint32").tolist() == [3000000000] + [2**32 - 1] * 3 + [0, 0,
                                                                                      2147483520]
+
+
+def test_a_cast_written_by_slabs_is_the_whole_s_cast(tmp_path, monkeypatch):
+    """Uncompressed outputs cast (and put in their byte order) a slab of planes at a time:
+    the bytes of the whole's cast, whatever the slabs, every format that does it."""
+    import io
+
+    import pytest
+
+    from volwarp_cli.errors import VolwarpError
+    from volwarp_cli.io import common, write_volume
+    from volwarp_cli.io.deflate import gzip_bytes, gzip_to
+    from volwarp_cli.volume import Volume
+
+    rng = np.random.default_rng(3)
+    data = (rng.standard_normal((7, 5, 6)) * 4e4).astype(np.float32)
+    data[0, 0, :3] = [np.inf, -np.inf, 2.5]
+    for dt in ("int16", "uint8", "float64", "int32"):
+        for order in ("little", "big"):
+            for name in ("a.nrrd", "b.nhdr", "c.mha", "d.mhd", "e.raw", "f.nii"):
+                if name == "f.nii" and order == "big":
+                    continue
+                whole = tmp_path / f"whole-{dt}-{order}" / name
+                whole.parent.mkdir(exist_ok=True)
+                write_volume(Volume(cast_samples(data, dt)), whole, byte_order=order)
+                monkeypatch.setattr(common, "SLAB_BYTES", 2 * 5 * 6)  # (a plane or two a slab)
+                sliced = tmp_path / f"slabs-{dt}-{order}" / name
+                sliced.parent.mkdir(exist_ok=True)
+                write_volume(Volume(data), sliced, dtype=dt, byte_order=order)
+                monkeypatch.undo()
+                for a in sorted(whole.parent.iterdir()):
+                    assert a.read_bytes() == (sliced.parent / a.name).read_bytes(), (dt, order, a)
+    data[6, 4, 5] = np.nan  # (found in the last slab: refused, nothing left)
+    with pytest.raises(VolwarpError, match="contains NaN"):
+        write_volume(Volume(data), tmp_path / "n.nrrd", dtype="int16")
+    assert not (tmp_path / "n.nrrd").exists()
+    big = rng.integers(0, 50, 9 << 20, dtype=np.uint8)  # (over BLOCKS_FROM: by blocks)
+    for parts in ((big,), (b"head", big), (b"small",)):
+        out = io.BytesIO()
+        gzip_to(out, *parts)
+        assert out.getvalue() == gzip_bytes(*parts)

@@ -24,7 +24,7 @@ from volwarp_cli.distance.exact import x_pass, y_pass, z_pass
 from volwarp_cli.distance.labels import ShapeRule
 from volwarp_cli.distance.operation import field_operation
 from volwarp_cli.engine import open_engine
-from volwarp_cli.errors import VolwarpError
+from volwarp_cli.errors import OutOfMemoryError, VolwarpError
 from volwarp_cli.geometry import Geometry
 from volwarp_cli.io import read_volume, write_volume
 from volwarp_cli.passes import last_pass_block, run_by_blocks
@@ -230,3 +230,28 @@ def test_a_block_task_pickles_small(tmp_path):
     assert len(pickle.dumps(header)) < 2_000
     again = pickle.loads(pickle.dumps(header))
     assert again.shape == shape and Geometry.of(again) == Geometry.of(header)
+
+
+@pytest.mark.parametrize("metric", ["euclidean", "minnorm"])
+def test_a_user_block_over_a_task_s_budget_is_refused_before_any_work(tmp_path, monkeypatch,
+                                                                       metric):
+    """``--block`` is weighed as warp's, apply's and sweep's are: one pass's block (its lines
+    made whole) over a task's share is refused in their words, nothing computed or written."""
+    spacing = (1.0, 1.0, 1.0)
+    monkeypatch.setattr(execute, "block_budget", lambda: 3 * 20_000)  # 3 workers: 20 kB each
+    data = blobs(SHAPE, 1).astype(np.float32)
+    old = tmp_path / "o.nrrd"
+    old.write_bytes(b"an earlier output")
+    op = _op(data, spacing, metric, old)
+    with pytest.raises(OutOfMemoryError) as err:
+        _run(op, chunked=True, block=SHAPE)
+    msg = str(err.value)
+    assert msg.startswith(f"{op.what}: a block of 23x17x19 (z, y, x) needs "), msg
+    assert "more than the 19.5 KiB each of 3 workers may use" in msg and "\n" not in msg
+    assert old.read_bytes() == b"an earlier output"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o.nrrd"]
+    # a block within the share runs: the in-memory bytes
+    mem, _ = _run(_op(data, spacing, metric, tmp_path / "m.nrrd"), chunked=False)
+    blk, ran = _run(_op(data, spacing, metric, tmp_path / "b.nrrd"), chunked=True,
+                    block=(2, 3, 4))
+    assert ran.by_blocks and same(blk, mem)

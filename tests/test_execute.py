@@ -544,3 +544,29 @@ def test_an_abort_does_not_wait_for_its_own_thread_and_always_removes_the_tempor
     with pytest.raises(Interrupted):
         third.abort()
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_compressed_output_is_not_refused_on_its_uncompressed_size(tmp_path, monkeypatch):
+    """The free-disk check counts what will be written: an OME-Zarr output's chunks are
+    compressed (a warp's 16 MiB output was 52 KB), so too little room for its samples
+    uncompressed does not refuse it (a disk that fills still fails it, with one line); an
+    uncompressed NRRD's, or a scratch file's, size is what it takes, and is refused."""
+    import collections
+    import shutil
+
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(1 << 30, 1 << 30, 1000))
+    (tmp_path / "z").mkdir()
+    ran = execute.run(Ramp(tmp_path / "z", suffix=".ome.zarr"), _blocks())
+    assert ran.by_blocks
+    assert np.array_equal(read_volume(tmp_path / "z" / "v.ome.zarr").data, _expected()[0])
+    assert execute.blocks_refusal([(tmp_path / "z" / "w.ome.zarr", 1 << 20)]) is None
+    (tmp_path / "n").mkdir()
+    with pytest.raises(OutOfMemoryError, match=r"the outputs need .* \(2 files\) where .* has "
+                                               r"1000 B free"):
+        execute.run(Ramp(tmp_path / "n"), _blocks())
+    assert list((tmp_path / "n").iterdir()) == []
+    # a scratch file beside a compressed output takes its size
+    why = execute.blocks_refusal([(tmp_path / "z" / "w.ome.zarr", 1 << 20)],
+                                 scratch=[(tmp_path / "z" / "w.ome.zarr", 4000)])
+    assert why is not None and "need 3.9 KiB" in why

@@ -437,3 +437,37 @@ def test_the_sweep_keeps_within_its_limit(tmp_path):
         else:
             assert proc.returncode == 0 and written.exists()
             assert peak < limit * M, f"peak RSS {peak / M:.0f} MiB"
+
+
+# -- convert: the write's copies count --------------------------------------------------------
+
+@pytest.mark.parametrize("name, extra, refused_at, runs_at", [
+    ("o.nrrd", ["--dtype", "float64", "--compress"], "4M", "12M"),  # cast, gzip stream
+    ("o.nii.gz", [], "2M", "8M"),                                   # the gzip stream
+    ("o.mha", ["--compress"], "1.5M", "8M"),                        # zlib, made whole
+    ("o.nrrd", ["--dtype", "int16", "--values", "intensity"], "1M", "8M"),  # rint + cast
+])
+def test_convert_refuses_a_write_whose_copies_do_not_fit(run, tmp_path, holding, name, extra,
+                                                         refused_at, runs_at):
+    """The read of a 64^3 float32 scan (1 MiB) fits both limits; what writing it holds (a
+    cast, a compressed stream) does not fit the lower one: one line, nothing written. The
+    higher one writes what an unlimited convert writes."""
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    data = (np.random.default_rng(0).random((64, 64, 64)) * 1000).astype(np.float32)
+    write_volume(Volume(data, spacing=np.array([0.5, 0.7, 1.1])), tmp_path / "in.nrrd")
+    (tmp_path / "out").mkdir()
+    out = tmp_path / "out" / name
+    r = run("convert", tmp_path / "in.nrrd", "-o", out, *extra, "--memory-limit", refused_at)
+    assert r.code == 1, r.stderr
+    line = r.stderr.strip()
+    assert "\n" not in line and line.startswith(f"volwarp: error: writing {out} (64x64x64 ")
+    assert "beside the 1.0 MiB read) needs " in line and "under the memory limit" in line
+    assert list((tmp_path / "out").iterdir()) == []
+    r = run("convert", tmp_path / "in.nrrd", "-o", out, *extra, "--memory-limit", runs_at)
+    assert r.code == 0, r.stderr
+    ref = tmp_path / f"ref{''.join(out.suffixes)}"
+    assert run("convert", tmp_path / "in.nrrd", "-o", ref, *extra).code == 0
+    assert out.read_bytes() == ref.read_bytes()
+    assert read_volume(out).data.shape == (64, 64, 64)

@@ -259,12 +259,17 @@ def block_budget() -> int:
     return left
 
 
-def blocks_refusal(outputs, compress: bool = False, pyramid: int = 0) -> str | None:
+def blocks_refusal(outputs, compress: bool = False, pyramid: int = 0, *,
+                   scratch=()) -> str | None:
     """Why ``outputs`` (``[(path, nbytes)]``) cannot be written by blocks, or None.
 
     Their formats (:func:`~volwarp_cli.io.blockwrite.check_block_format`), and
     their sizes against the free space of their folders (outputs sharing a
-    folder add up).
+    folder add up). A compressed output (:func:`compressed_output`: OME-Zarr's
+    zstd chunks) is not weighed by its samples' size, which its file may be a
+    thousandth of (a disk that fills while it is written fails it, with one
+    line and nothing left); ``scratch``: ``[(path, nbytes)]`` of uncompressed
+    scratch files beside those paths, weighed in full.
     """
     import shutil
 
@@ -274,11 +279,14 @@ def blocks_refusal(outputs, compress: bool = False, pyramid: int = 0) -> str | N
     need: dict[Path, list[int]] = {}
     for path, nbytes in outputs:
         try:
-            check_block_format(path, bool(compress), int(pyramid or 0))
+            fmt = check_block_format(path, bool(compress), int(pyramid or 0))
         except BadUsage:  # (an option the output cannot take at all: a usage error either way)
             raise
         except VolwarpError as exc:
             return str(exc)
+        if not compressed_output(path, fmt, compress):
+            need.setdefault(Path(path).resolve().parent, []).append(int(nbytes))
+    for path, nbytes in scratch:
         need.setdefault(Path(path).resolve().parent, []).append(int(nbytes))
     for folder, sizes in need.items():
         try:
@@ -292,15 +300,29 @@ def blocks_refusal(outputs, compress: bool = False, pyramid: int = 0) -> str | N
     return None
 
 
+def compressed_output(path, fmt: str, compress: bool = False) -> bool:
+    """Whether the output ``path`` of format ``fmt`` holds its samples compressed.
+
+    OME-Zarr (its chunks always zstd), ``.nii.gz``, and with ``--compress``
+    every format but raw.
+    """
+    if fmt == "omezarr":
+        return True
+    if fmt == "nifti":
+        return Path(path).name.lower().endswith(".gz")
+    return bool(compress) and fmt != "raw"
+
+
 def refuse_unmakeable(what: str, memory_bytes: int, outputs, *, chunked: bool | None = None,
-                      compress: bool = False, pyramid: int = 0) -> None:
+                      compress: bool = False, pyramid: int = 0, scratch=()) -> None:
     """Refuse, before any work, what fits neither the memory nor, by blocks, the disk.
 
     ``what``: the work and its sizes, for the message; ``memory_bytes``: what
     the work holds in memory at the least; ``outputs``: ``[(path, nbytes)]``.
     One line with the sizes of both ways (an absurd grid was otherwise
     allocated, or tiled into blocks, until killed). ``chunked``: as
-    :class:`How`'s (False: memory only; True: blocks only).
+    :class:`How`'s (False: memory only; True: blocks only); ``scratch``: as
+    :func:`blocks_refusal`'s.
     """
     from .memory import ensure_fits_in_memory
 
@@ -313,7 +335,7 @@ def refuse_unmakeable(what: str, memory_bytes: int, outputs, *, chunked: bool | 
             if chunked is False:
                 raise
             in_memory = exc
-    by_blocks = blocks_refusal(outputs, compress, pyramid)
+    by_blocks = blocks_refusal(outputs, compress, pyramid, scratch=scratch)
     if by_blocks is None:
         return
     raise OutOfMemoryError(f"{in_memory}, and by blocks {by_blocks}" if in_memory
@@ -340,9 +362,9 @@ def run(op: Operation, how: How = How(), after: Callable | None = None, *,
     if by_blocks is None:
         first = next(iter(op.targets.values()))
         outputs = [(t.path, t.nbytes(op.grid.shape)) for t in op.targets.values()]
-        outputs += op.scratch_files()
         by_blocks = not _in_memory(op, how, outputs, compress=first.compress,
-                                   pyramid=first.pyramid, streamed=streamed)
+                                   pyramid=first.pyramid, streamed=streamed,
+                                   scratch=op.scratch_files())
     if by_blocks:
         if op.no_blocks is not None:
             raise VolwarpError(op.no_blocks)
@@ -417,7 +439,7 @@ def _compute_written(op: Operation, threads: int | None) -> None:
 
 
 def _in_memory(op: Operation, how: How, outputs, *, compress: bool = False,
-               pyramid: int = 0, streamed: bool = False) -> bool:
+               pyramid: int = 0, streamed: bool = False, scratch=()) -> bool:
     """Whether ``op`` runs as one block: its whole's memory against the budget, before any work.
 
     :func:`decide` with the operation's own sizes; ``streamed``: its outputs
@@ -427,18 +449,19 @@ def _in_memory(op: Operation, how: How, outputs, *, compress: bool = False,
     if streamed:
         need -= sum(t.nbytes(op.grid.shape) for t in op.targets.values())
     return decide(max(need, 0), op.what, outputs, how, load=op.load,
-                  no_blocks=op.no_blocks, compress=compress, pyramid=pyramid)
+                  no_blocks=op.no_blocks, compress=compress, pyramid=pyramid, scratch=scratch)
 
 
 def decide(need: int, what: str, outputs, how: How, *, load=None, no_blocks: str | None = None,
-           compress: bool = False, pyramid: int = 0) -> bool:
+           compress: bool = False, pyramid: int = 0, scratch=()) -> bool:
     """In memory (True) or by blocks (False), by arithmetic, before any work.
 
     ``need``: the whole's memory in one block; ``what``: the work and its
     sizes, for messages; ``outputs``: ``[(path, nbytes)]`` written by blocks
     (the disk's check); ``load()``: what the work loads (kernels), run before
     a tight answer and before the blocks' budget is weighed (so that it counts
-    them); ``no_blocks``: why the work has no form by blocks, if it has none.
+    them); ``no_blocks``: why the work has no form by blocks, if it has none;
+    ``scratch``: the scratch files by blocks (:func:`blocks_refusal`).
     By blocks where the whole does not fit (said on stderr where the command
     did not ask for them); one refusal with both reasons where neither way can
     run (:func:`refuse_unmakeable`).
@@ -456,7 +479,7 @@ def decide(need: int, what: str, outputs, how: How, *, load=None, no_blocks: str
             raise OutOfMemoryError(f"{exc}, and by blocks: {no_blocks}") from None
         return True
     refuse_unmakeable(what, need, outputs, chunked=how.chunked, compress=compress,
-                      pyramid=pyramid)
+                      pyramid=pyramid, scratch=scratch)
     if how.chunked is None:
         if load is not None:
             load()  # (the blocks' budget is what is left once the kernels are loaded)
@@ -478,11 +501,14 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
         raise VolwarpError(f"{op.what}: no engine to run blocks on")
     op.prepare()  # (once, here: the blocks' tasks get it made)
     op.load()  # (the blocks' budget is what is left once the kernels are loaded)
-    from .passes import Passes, last_pass_block, run_by_blocks
+    from .passes import Passes, heaviest_pass_block, last_pass_block, run_by_blocks
 
     with how.open_engine() as engine, contextlib.ExitStack() as stack:
         per_task = block_budget() // max(1, engine.workers)
         if isinstance(op, Passes):  # the outputs' blocks are the last pass's
+            if how.block is not None and not how.planned:
+                refuse_block_over_budget(op.what, *heaviest_pass_block(op, how.block, per_task),
+                                         per_task, engine.workers)
             block = last_pass_block(op, block_bytes=per_task, workers=engine.workers,
                                     block=how.block)
         elif how.block is not None:
@@ -589,12 +615,21 @@ def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None
     The first, middle and last blocks are weighed (an operation's block memory
     may depend on where the block lies: a warp's reach).
     """
+    refuse_block_over_budget(op.what, block, _heaviest(op, block), per_task, workers)
+
+
+def refuse_block_over_budget(what: str, block, need: int, per_task: int, workers: int) -> None:
+    """Refuse a block of shape ``block`` (z, y, x) needing ``need`` bytes over ``per_task``.
+
+    The one refusal of a ``--block`` too large for a task's share of the
+    budget, whichever operation weighed it (:func:`_check_user_block`; an
+    operation in passes, :func:`~volwarp_cli.passes.heaviest_pass_block`).
+    """
     from .memory import human_bytes
 
-    need = _heaviest(op, block)
     if need > per_task:
         raise OutOfMemoryError(
-            f"{op.what}: a block of {'x'.join(map(str, block))} (z, y, x) needs "
+            f"{what}: a block of {'x'.join(map(str, block))} (z, y, x) needs "
             f"{human_bytes(need)}, more than the {human_bytes(per_task)} each of "
             f"{workers} workers may use (give a smaller --block, fewer --workers or a larger "
             "--memory-limit)")

@@ -266,6 +266,24 @@ def run_by_blocks(op: Passes, engine, outputs: dict, *, block_bytes: int, block=
     return count
 
 
+def heaviest_pass_block(op: Passes, block, block_bytes: int) -> tuple[tuple[int, ...], int]:
+    """The largest block the user's ``block`` gives any pass, and the bytes it holds.
+
+    Each pass makes ``block`` whole along its axes (:func:`pass_boxes`), so
+    its blocks are larger than ``block``; the passes are those for blocks of
+    ``block_bytes``. For :func:`volwarp_cli.execute.refuse_block_over_budget`,
+    before any work.
+    """
+    heaviest: tuple[tuple[int, ...], int] = (tuple(block), 0)
+    for p in op.passes(block_bytes):
+        boxes = pass_boxes(op.grid.shape, p.whole, block_bytes=block_bytes,
+                           bytes_per_voxel=p.bytes_per_voxel, block=block)
+        box = max(boxes, key=lambda b: b.size)
+        if box.size * p.bytes_per_voxel > heaviest[1]:
+            heaviest = (tuple(box.shape), box.size * p.bytes_per_voxel)
+    return heaviest
+
+
 def _pass_task(block: Callable, box: Box, stores: dict):
     return block(box, stores)
 

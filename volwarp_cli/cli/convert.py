@@ -12,6 +12,7 @@ import click
 
 from ..io import check_output_path, write_volume
 from ..labelmap import VALUES
+from ..memory import human_bytes
 from ..progress import timed
 from .common import load_input
 from .options import (
@@ -134,9 +135,30 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
         # --values decides, else --pyramid-method's mode (labels) or mean (intensities)
         keep_label_ids(vol.data, dtype, str(input),
                        labels if values is None else values == "labels", vol.meta)
+    _check_write_memory(vol, output, dtype, compress, byte_order)
     with timed(f"write {output}"):  # (its key/values kept, the provenance of its samples too)
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      labels=labels, **ome_zarr)
+
+
+def _check_write_memory(vol, output, dtype, compress, byte_order) -> None:
+    """Refuse, before anything is written, a write whose copies do not fit what the read left.
+
+    The budget is the process's peak: the samples read are held, and the
+    write's own copies (:func:`~volwarp_cli.io.write_memory`: a cast, the
+    file's byte order, a compressed stream made whole) come on top of them.
+    """
+    import numpy as np
+
+    from ..io import write_memory
+    from ..memory import ensure_fits_in_memory
+
+    need = write_memory(output, vol.data.shape, vol.dtype, dtype=dtype, compress=compress,
+                        byte_order=byte_order)
+    if need:
+        out = np.dtype(dtype or vol.dtype).name
+        ensure_fits_in_memory(need, f"writing {output} ({'x'.join(map(str, vol.shape_xyz))} "
+                                    f"{out}, beside the {human_bytes(vol.data.nbytes)} read)")
 
 
 def _dicom_output(output, dicom_type, segments, reference, dtype, compress, byte_order,

@@ -232,8 +232,12 @@ def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: 
     if fmt == "nifti" and byte_order != "little":
         raise BadUsage(f"{path}: volwarp writes NIfTI little-endian only (--byte-order)")
     say_unused_writer_options(path, fmt, compress, ome_zarr_version)
-    if dtype is not None:
-        vol = vol.with_data(cast_samples(vol.data, dtype, what=str(path)))
+    cast = None  # (a type the writer casts to by slabs as it writes)
+    if dtype is not None and np.dtype(dtype) != vol.data.dtype:
+        if _cast_by_slabs(path, fmt, compress) and np.issubdtype(vol.data.dtype, np.number):
+            cast = np.dtype(dtype)
+        else:
+            vol = vol.with_data(cast_samples(vol.data, dtype, what=str(path)))
     if not np.issubdtype(vol.data.dtype, np.number):
         raise VolwarpError(f"{path}: cannot write samples of type {vol.data.dtype}")
     if fmt == "omezarr":
@@ -242,16 +246,96 @@ def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: 
                       byte_order=byte_order)
     elif fmt == "nrrd":
         from .nrrd import write_nrrd
-        write_nrrd(vol, path, compress=compress, byte_order=byte_order)
+        write_nrrd(vol, path, compress=compress, byte_order=byte_order, dtype=cast)
     elif fmt == "tiff":
         from .tiff import write_tiff
         write_tiff(vol, path, compress=compress, byte_order=byte_order)
     elif fmt == "metaimage":
         from .metaimage import write_metaimage
-        write_metaimage(vol, path, compress=compress, byte_order=byte_order)
+        write_metaimage(vol, path, compress=compress, byte_order=byte_order, dtype=cast)
     elif fmt == "nifti":
         from .nifti import write_nifti
-        write_nifti(vol, path)
+        write_nifti(vol, path, dtype=cast)
     else:
         from .raw import write_raw
-        write_raw(vol, path, byte_order=byte_order)
+        write_raw(vol, path, byte_order=byte_order, dtype=cast)
+
+
+def _compressed(path: Path, fmt: str, compress: bool) -> bool:
+    """Whether :func:`write_volume` compresses ``path``'s samples (OME-Zarr: always)."""
+    if fmt == "nifti":
+        return path.name.lower().endswith(".gz")
+    return fmt == "omezarr" or (compress and fmt != "raw")
+
+
+def _cast_by_slabs(path: Path, fmt: str, compress: bool) -> bool:
+    """Whether ``path``'s writer casts the samples slab by slab as it writes them.
+
+    Uncompressed NRRD, MetaImage, NIfTI and raw files: the samples go to the
+    file as they lie, so a slab's cast is the whole's bytes for its part.
+    """
+    return fmt in ("nrrd", "metaimage", "nifti", "raw") and not _compressed(path, fmt, compress)
+
+
+def _cast_bytes(count: int, src: np.dtype, out: np.dtype, swapped: bool) -> int:
+    """The bytes casting ``count`` samples from ``src`` to ``out`` and swapping them holds."""
+    held = 0
+    if out != src:
+        held += count * out.itemsize
+        if out.kind in "iu" and src.kind == "f":
+            held += count * src.itemsize  # (np.rint's floats, beside the cast)
+        elif out.kind in "iu" and src.kind in "iu" and not (
+                np.iinfo(out).min <= np.iinfo(src).min and np.iinfo(src).max <= np.iinfo(out).max):
+            held += count * src.itemsize  # (the clip's copy, beside the cast)
+    if swapped:
+        held += count * out.itemsize
+    return held
+
+
+def write_memory(path: str | os.PathLike, shape, src_dtype, *, dtype=None,
+                 compress: bool = False, byte_order: str = "little") -> int:
+    """The bytes :func:`write_volume` holds beyond the samples' own array, at its peak.
+
+    For a check before the write (``volwarp convert``: what the read left
+    must hold it). ``shape``: the samples' (z, y, x); ``src_dtype``: theirs.
+    Uncompressed NRRD, MetaImage, NIfTI and raw files cast and order their
+    samples a slab at a time (:data:`~.common.SLAB_BYTES`); other outputs
+    hold the whole's cast (and the rounded floats of a float-to-integer
+    cast beside it), the whole in the file's byte order where it is not the
+    machine's, and the compressed bytes where they are made whole first
+    (a zlib MetaImage, whose header gives their size; TIFF's and gzip's
+    streams go to the file as they are made: a few blocks). As many bytes
+    compressed as uncompressed, the worst case. OME-Zarr outputs: not
+    counted here (0).
+    """
+    import math
+    import sys
+
+    from .common import SLAB_BYTES
+
+    path = Path(path)
+    fmt = volume_format(path)
+    if fmt == "omezarr":
+        return 0
+    src = np.dtype(src_dtype)
+    out = src if dtype is None else np.dtype(dtype)
+    count = math.prod(int(n) for n in shape)
+    size = count * out.itemsize
+    if fmt == "nifti":
+        byte_order = sys.byteorder
+    swapped = byte_order != sys.byteorder and out.itemsize > 1
+    if _cast_by_slabs(path, fmt, compress):  # (a slab's cast and swap at a time)
+        if out == src and not swapped:
+            return 0
+        plane = count // max(1, int(shape[0])) if count else 0
+        widest = max(out.itemsize, src.itemsize)
+        planes = min(int(shape[0]), max(1, SLAB_BYTES // max(1, plane * widest)))
+        return _cast_bytes(planes * plane, src, out, swapped)
+    held = _cast_bytes(count, src, out, swapped)
+    if fmt == "metaimage" and compress:
+        held += size + size // 64 + (1 << 20)  # (zlib's worst case: stored blocks)
+    elif fmt == "tiff":
+        held += min(size, 3 * SLAB_BYTES)
+    else:  # (gzip: under 8 MiB made whole, its parts joined; else blocks on four threads)
+        held += min(2 * size + (1 << 16), 16 << 20)
+    return held

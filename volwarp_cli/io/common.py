@@ -67,6 +67,35 @@ def with_byte_order(data: np.ndarray, byte_order: str) -> np.ndarray:
     return np.ascontiguousarray(data, dtype=data.dtype.newbyteorder(code))
 
 
+#: bytes of samples (the wider of their type and the output's) cast or put in the file's
+#: byte order at a time, where samples are written by slabs of z planes (:func:`write_samples`)
+SLAB_BYTES = 4 << 20
+
+
+def write_samples(fh, data: np.ndarray, byte_order: str = "little", dtype=None, *,
+                  what: str = "volume") -> None:
+    """Write ``data`` ([z, ...], cast to ``dtype`` where given) to ``fh`` in ``byte_order``.
+
+    The bytes of the whole's :func:`~volwarp_cli.samples.cast_samples` and
+    :func:`with_byte_order` (both work sample by sample); where either has
+    something to do, a slab of z planes at a time (:data:`SLAB_BYTES`), so
+    that the write holds a slab's copy, never the whole's. ``what``: names
+    the output in a refusal of the cast (NaN for an integer type).
+    """
+    out = check_dtype(data.dtype if dtype is None else dtype, what)
+    out = out.newbyteorder("<" if byte_order == "little" else ">")
+    if data.dtype == out and data.flags.c_contiguous:
+        fh.write(memoryview(data).cast("B"))
+        return
+    plane = max(1, data[:1].size * max(out.itemsize, data.dtype.itemsize))
+    step = max(1, SLAB_BYTES // plane)
+    for z in range(0, data.shape[0], step):
+        part = data[z:z + step]
+        if dtype is not None:
+            part = cast_samples(part, dtype, what=what)
+        fh.write(memoryview(with_byte_order(part, byte_order)).cast("B"))
+
+
 def read_exact(fh, nbytes: int, where: str) -> np.ndarray:
     """Read exactly ``nbytes`` from ``fh`` into a new uint8 buffer, or raise 'truncated'.
 

@@ -52,6 +52,7 @@ from .common import (
     read_exact,
     read_gzip_exact,
     with_byte_order,
+    write_samples,
     write_with_header,
 )
 
@@ -560,21 +561,31 @@ def metaimage_header(vol: Volume | Header, dtype: np.dtype, *, byte_order: str, 
 
 
 def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
-                    byte_order: str = "little", level: int = 1) -> None:
+                    byte_order: str = "little", level: int = 1, dtype=None) -> None:
     """Write ``vol`` as MetaImage: a ``.mhd`` header and its data file, or one ``.mha``.
 
     ``.mhd`` writes a header plus ``.raw`` (``.zraw`` when compressed, as ITK names it)
     next to it, any other name one ``.mha``.
 
     Compressed data is one zlib stream (as MetaIO writes it), ``level`` 1..9.
+    ``dtype``: the samples cast to it as they are written (uncompressed only:
+    :func:`~volwarp_cli.io.write_volume` casts a compressed output's first).
     """
     path = Path(path)
-    dtype = check_dtype(vol.data.dtype, str(path))
-    payload = memoryview(with_byte_order(vol.data, byte_order)).cast("B")
-    if compress:
+    if dtype is not None and compress:
+        raise ValueError("write_metaimage: a compressed output's samples are cast before")
+    cast = dtype
+    dtype = check_dtype(vol.data.dtype if cast is None else cast, str(path))
+    if compress:  # (the header gives the stream's size: it is made whole first)
         from .deflate import zlib_bytes  # (not loaded for an uncompressed file)
 
-        payload = zlib_bytes(payload, level)
+        payload = zlib_bytes(memoryview(with_byte_order(vol.data, byte_order)).cast("B"), level)
+
+        def write(fh):
+            fh.write(payload)
+    else:  # (cast and ordered by slabs where it must be)
+        def write(fh):
+            write_samples(fh, vol.data, byte_order, cast, what=str(path))
     size = len(payload) if compress else None
     if path.suffix.lower() == ".mhd":
         data_path = path.with_suffix(".zraw" if compress else ".raw")
@@ -587,5 +598,5 @@ def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = Fa
         data_path, name = None, "LOCAL"
     header = metaimage_header(vol, dtype, byte_order=byte_order, data_file=name,
                               compressed_size=size)
-    write_with_header(path, header, lambda fh: fh.write(payload), data_path=data_path,
+    write_with_header(path, header, write, data_path=data_path,
                       referenced=_referenced_data_files)

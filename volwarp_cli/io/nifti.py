@@ -134,8 +134,9 @@ from .common import (
     make_volume,
     native,
     read_exact,
+    write_samples,
 )
-from .deflate import gzip_bytes
+from .deflate import gzip_to
 
 _RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 
@@ -867,10 +868,14 @@ def _extension(meta: dict) -> tuple[int, bytes] | None:
     return EXTENSION_CODE, EXTENSION_PREFIX + text.encode("ascii")
 
 
-def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
-    """Write ``vol`` as NIfTI-1 (gzipped for ``.gz``), atomically, keeping the meta it can."""
+def write_nifti(vol: Volume, path: str | os.PathLike, *, dtype=None) -> None:
+    """Write ``vol`` as NIfTI-1 (gzipped for ``.gz``), atomically, keeping the meta it can.
+
+    ``dtype``: the samples cast to it as they are written (``.nii`` only:
+    :func:`~volwarp_cli.io.write_volume` casts a ``.nii.gz`` output's first).
+    """
     path = Path(path)
-    check_dtype(vol.data.dtype, str(path))
+    check_dtype(vol.data.dtype if dtype is None else dtype, str(path))
     d = vol.direction
     if not np.allclose(d.T @ d, np.eye(3), atol=1e-6):
         # ITK, SimpleITK and volwarp's reader would take the qform, which has no shear:
@@ -892,7 +897,8 @@ def write_nifti(vol: Volume, path: str | os.PathLike) -> None:
                   [_meta_float(meta, f"NIfTI_intent_p{i}") for i in (1, 2, 3)],
                   str(meta.get("NIfTI_intent_name", "")))
     write_nifti_file(path, vol.data.transpose(2, 1, 0), aff, units=units, codes=codes,
-                     intent=intent, descrip=str(meta.get("descrip", "")), meta=meta)
+                     intent=intent, descrip=str(meta.get("descrip", "")), meta=meta,
+                     dtype=dtype)
 
 
 def ras_affine(grid, scale: float = 1.0) -> np.ndarray:
@@ -905,35 +911,42 @@ def ras_affine(grid, scale: float = 1.0) -> np.ndarray:
 
 def write_nifti_file(path: str | os.PathLike, data_xyz: np.ndarray, aff: np.ndarray, *,
                      units: int, codes: tuple[int, int], intent=None, descrip: str = "",
-                     meta: dict | None = None) -> None:
+                     meta: dict | None = None, dtype=None) -> None:
     """``data_xyz`` (x fastest: 3-D, or 5-D with vectors) as a NIfTI-1 file, atomically.
 
     Gzipped for a ``.gz`` path. ``aff``: the voxel-to-RAS matrix written in
     both forms with ``codes`` (sform, qform); ``units``: ``xyzt_units``;
     ``intent``: ``(code, (p1, p2, p3), name)`` or None (none); ``descrip``
     (at most 79 bytes, latin-1); ``meta``: the key/values that are no header
-    field go into volwarp's extension (module notes).
+    field go into volwarp's extension (module notes). ``dtype``: the samples
+    cast to it as they are written (``.nii`` only: a ``.gz`` file's samples are
+    cast before).
     """
+    import sys
+
     from .niftiheader import nifti1_header_bytes
 
     samples = np.asarray(data_xyz).T  # [.., z, y, x]: x fastest in memory, as the file has it
-    samples = np.ascontiguousarray(samples, dtype=samples.dtype.newbyteorder("="))
+    gz = str(path).lower().endswith(".gz")
+    if dtype is not None and gz:
+        raise ValueError("write_nifti_file: a .gz output's samples are cast before")
+    if gz:
+        samples = np.ascontiguousarray(samples, dtype=samples.dtype.newbyteorder("="))
+    out_dtype = check_dtype(samples.dtype if dtype is None else dtype, str(path))
     if intent is not None:
         code, params, name = intent
         intent = (code, params, name[:15].encode("latin-1", errors="replace"))
     ext = _extension(meta or {})
     try:
-        head = nifti1_header_bytes(samples.shape[::-1], samples.dtype, aff, codes=codes,
+        head = nifti1_header_bytes(samples.shape[::-1], out_dtype, aff, codes=codes,
                                    units=units, intent=intent,
                                    descrip=descrip[:79].encode("latin-1", errors="replace"),
                                    extensions=() if ext is None else (ext,))
     except ValueError as exc:
         raise VolwarpError(f"{path}: {exc}") from None
-    body = memoryview(samples).cast("B")
-    with atomic_output(path) as tmp:
-        if str(path).lower().endswith(".gz"):
-            tmp.write_bytes(gzip_bytes(head, body))
-        else:
-            with open(tmp, "wb") as fh:
-                fh.write(head)
-                fh.write(body)
+    with atomic_output(path) as tmp, open(tmp, "wb") as fh:
+        if gz:  # (the stream written as it is made)
+            gzip_to(fh, head, memoryview(samples).cast("B"))
+        else:  # (in the machine's order, cast by slabs where it must be)
+            fh.write(head)
+            write_samples(fh, samples, sys.byteorder, dtype, what=str(path))

@@ -42,6 +42,7 @@ from .common import (
     read_exact,
     read_gzip_exact,
     with_byte_order,
+    write_samples,
     write_with_header,
 )
 from .mapped import guard
@@ -707,38 +708,44 @@ def nrrd_header(vol: Volume | Header, dtype: np.dtype, *, encoding: str, byte_or
     return text.encode(HEADER_ENCODING)
 
 
-def _write_payload(fh, data: np.ndarray, encoding: str, level: int) -> None:
-    if encoding == "raw":
-        fh.write(memoryview(data).cast("B"))
+def _write_payload(fh, data: np.ndarray, encoding: str, level: int, byte_order: str,
+                   dtype, what: str) -> None:
+    if encoding == "raw":  # (cast and ordered by slabs where it must be)
+        write_samples(fh, data, byte_order, dtype, what=what)
         return
-    from .deflate import gzip_bytes  # (ISA-L and gzip: 2 ms to load, not for raw data)
+    from .deflate import gzip_to  # (ISA-L and gzip: 2 ms to load, not for raw data)
 
-    fh.write(gzip_bytes(data, level=level))
+    gzip_to(fh, with_byte_order(data, byte_order), level=level)
 
 
 def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
                byte_order: str = "little", level: int = 1,
                components: list[np.ndarray] | None = None,
-               component_names: list[str] | None = None) -> None:
+               component_names: list[str] | None = None, dtype=None) -> None:
     """Write ``vol`` as NRRD (``.nhdr`` writes a detached header plus ``.raw``/``.raw.gz``).
 
     ``components`` (arrays shaped like ``vol.data``) writes one multi-component
     file whose first, fastest axis holds them, in the order of ``component_names``.
+    ``dtype``: the samples cast to it as they are written (uncompressed only:
+    :func:`~volwarp_cli.io.write_volume` casts a compressed output's first).
     """
     path = Path(path)
     if components is not None and (component_names is None
                                    or len(component_names) != len(components)):
         raise ValueError("write_nrrd: components need their names (the header's 4th axis)")
     encoding = "gzip" if compress else "raw"
+    if dtype is not None and compress:
+        raise ValueError("write_nrrd: a compressed output's samples are cast before")
+    cast = dtype
     data = vol.data if components is None else np.stack(components, axis=-1)
-    dtype = check_dtype(data.dtype, str(path))
-    payload = with_byte_order(data, byte_order)
+    dtype = check_dtype(data.dtype if cast is None else cast, str(path))
     data_path = None
     if path.suffix.lower() == ".nhdr":
         data_path = path.with_suffix(".raw.gz" if compress else ".raw")
     header = nrrd_header(vol, dtype, encoding=encoding, byte_order=byte_order,
                          data_file=None if data_path is None else data_path.name,
                          components=component_names)
-    write_with_header(path, header, lambda fh: _write_payload(fh, payload, encoding, level),
+    write_with_header(path, header, lambda fh: _write_payload(fh, data, encoding, level,
+                                                              byte_order, cast, str(path)),
                       data_path=data_path, referenced=_referenced_data_files)
 

@@ -18,7 +18,7 @@ from .common import (
     make_volume,
     native,
     read_exact,
-    with_byte_order,
+    write_samples,
 )
 
 
@@ -79,10 +79,13 @@ def raw_placement(layout: RawLayout, where: str, shape_zyx) -> dict:
     return {"spacing": spacing, "origin": origin}
 
 
-def write_raw(vol: Volume, path: str | os.PathLike, *, byte_order: str = "little") -> None:
-    """Write the samples only (x fastest). Geometry is not stored: use .nhdr to keep it."""
-    check_dtype(vol.data.dtype, str(path))
-    data = with_byte_order(vol.data, byte_order)
+def write_raw(vol: Volume, path: str | os.PathLike, *, byte_order: str = "little",
+              dtype=None) -> None:
+    """Write the samples only (x fastest). Geometry is not stored: use .nhdr to keep it.
+
+    ``dtype``: the samples cast to it as they are written, by slabs.
+    """
+    check_dtype(vol.data.dtype if dtype is None else dtype, str(path))
     with atomic_output(Path(path)) as tmp:
         with open(tmp, "wb") as fh:
-            fh.write(memoryview(data).cast("B"))
+            write_samples(fh, vol.data, byte_order, dtype, what=str(path))
