@@ -109,6 +109,48 @@ class Target:
         n = math.prod(int(v) for v in shape) * np.dtype(self.dtype).itemsize
         return n * (len(self.components) if self.components else 1)
 
+    def _zarr(self) -> bool:
+        from .io import volume_format
+
+        return self.components is None and volume_format(self.path) == "omezarr"
+
+    def write_bytes(self, shape) -> int:
+        """What writing the whole output of ``shape`` holds beyond its samples (in memory).
+
+        An OME-Zarr store's shard encoding, label-map count and pyramid
+        (:func:`~volwarp_cli.io.omezarr.memory_bytes`); 0 for the other formats.
+        """
+        if not self._zarr():
+            return 0
+        from .io.omezarr import memory_bytes
+
+        return memory_bytes(shape, self.dtype, self.version, self.pyramid)
+
+    def block_bytes(self, shape, block) -> int:
+        """What writing one block of ``block`` of an output of ``shape`` adds to its samples.
+
+        An OME-Zarr store's encoding of the block's shards
+        (:func:`~volwarp_cli.io.blockwrite.zarr_block_bytes`); 0 for the
+        formats written by offset.
+        """
+        if not self._zarr():
+            return 0
+        from .io.blockwrite import zarr_block_bytes
+
+        return zarr_block_bytes(shape, self.dtype, self.version, block)
+
+    def commit_bytes(self, shape, block) -> int:
+        """The least memory committing the output written in blocks of ``block`` takes.
+
+        An OME-Zarr store's pyramid levels
+        (:func:`~volwarp_cli.io.blockwrite.zarr_commit_bytes`); else 0.
+        """
+        if not self._zarr():
+            return 0
+        from .io.blockwrite import zarr_commit_bytes
+
+        return zarr_commit_bytes(shape, self.dtype, self.version, self.pyramid, block)
+
 
 class Operation:
     """What an operation states before any sample is read (see the module notes).
@@ -448,6 +490,8 @@ def _in_memory(op: Operation, how: How, outputs, *, compress: bool = False,
     need = op.memory(op.grid.box)
     if streamed:
         need -= sum(t.nbytes(op.grid.shape) for t in op.targets.values())
+    else:  # (written after the work: the writers' own buffers, one target at a time)
+        need += max((t.write_bytes(op.grid.shape) for t in op.targets.values()), default=0)
     return decide(max(need, 0), op.what, outputs, how, load=op.load,
                   no_blocks=op.no_blocks, compress=compress, pyramid=pyramid, scratch=scratch)
 
@@ -517,6 +561,7 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
                 _check_user_block(op, block, per_task, engine.workers)
         else:
             block = auto_block(op, per_task, engine.workers)
+        _check_commit(op, block)
         outs = {key: stack.enter_context(t.open_blocks(block)) for key, t in op.targets.items()}
         boxes = next(iter(outs.values())).blocks()
         if any(o.blocks() != boxes for o in outs.values()):
@@ -543,9 +588,39 @@ def _run_blocks(op: Operation, how: How, after: Callable | None) -> Ran:
     return ran
 
 
+def _check_commit(op: Operation, block) -> None:
+    """Refuse, before any work, outputs whose commit (an OME-Zarr pyramid) cannot fit the budget.
+
+    Each target is committed alone, once the blocks are done, with the whole
+    budget (its levels made in pieces of what is left: its least need,
+    :meth:`Target.commit_bytes`, is weighed here).
+    """
+    from . import memory
+
+    need = max((t.commit_bytes(op.grid.shape, block) for t in op.targets.values()), default=0)
+    if need:
+        memory.ensure_fits_in_memory(need, f"{op.what}: the --pyramid levels of its output")
+
+
 def auto_block(op: Operation, per_task: int, workers: int) -> tuple[int, int, int]:
-    """The blocks ``op`` runs in when the user gave none: its own, or its stores' shards."""
-    return _store_aligned(op, op.block_shape(per_task, workers), per_task, workers)
+    """The blocks ``op`` runs in when the user gave none: its own, or its stores' shards.
+
+    Where the outputs' writes add to a block's memory (OME-Zarr shards are
+    encoded whole, :func:`writes_bytes`), the operation is asked for smaller
+    blocks until its heaviest block with them fits ``per_task``; where none
+    does, an :class:`~volwarp_cli.errors.OutOfMemoryError` before any work.
+    """
+    block = op.block_shape(per_task, workers)
+    if writes_bytes(op, block):
+        share = per_task
+        while _heaviest(op, block) > per_task:
+            share = share * 3 // 4
+            if share < MIN_BLOCK_BUDGET // 8:  # (refused: the smallest it makes)
+                _check_user_block(op, block, per_task, workers, chosen=True)
+            smaller = op.block_shape(share, workers)
+            if math.prod(smaller) < math.prod(block):
+                block = smaller
+    return _store_aligned(op, block, per_task, workers)
 
 
 def _store_aligned(op: Operation, block, per_task: int, workers: int):
@@ -585,9 +660,19 @@ def _heaviest(op: Operation, block) -> int:
     boxes = op.grid.box.blocks(block)
     placed = places_blocks(op)
     with parallel.use_threads(1):  # (as a block task runs)
-        return max(op.memory(b) - (sum(t.nbytes(b.shape) for t in op.targets.values())
+        need = max(op.memory(b) - (sum(t.nbytes(b.shape) for t in op.targets.values())
                                    if placed else 0)
                    for b in {boxes[0], boxes[len(boxes) // 2], boxes[-1]})
+    return need + writes_bytes(op, block)
+
+
+def writes_bytes(op: Operation, block) -> int:
+    """What a block task's writes of its block of ``block`` add to its samples (all targets).
+
+    OME-Zarr outputs: zarr's encoding of the block's shards
+    (:meth:`Target.block_bytes`); nothing for the outputs written by offset.
+    """
+    return sum(t.block_bytes(op.grid.shape, block) for t in op.targets.values())
 
 
 def places_blocks(op: Operation) -> bool:
@@ -609,29 +694,36 @@ def places_blocks(op: Operation) -> bool:
         t.components is None and by_offset(t) for t in op.targets.values())
 
 
-def _check_user_block(op: Operation, block, per_task: int, workers: int) -> None:
+def _check_user_block(op: Operation, block, per_task: int, workers: int, *,
+                      chosen: bool = False) -> None:
     """Refuse, before any work, a ``--block`` whose blocks need more than a task's budget.
 
     The first, middle and last blocks are weighed (an operation's block memory
-    may depend on where the block lies: a warp's reach).
+    may depend on where the block lies: a warp's reach). ``chosen``: the
+    smallest block the operation makes, not the user's.
     """
-    refuse_block_over_budget(op.what, block, _heaviest(op, block), per_task, workers)
+    refuse_block_over_budget(op.what, block, _heaviest(op, block), per_task, workers,
+                             chosen=chosen)
 
 
-def refuse_block_over_budget(what: str, block, need: int, per_task: int, workers: int) -> None:
+def refuse_block_over_budget(what: str, block, need: int, per_task: int, workers: int, *,
+                             chosen: bool = False) -> None:
     """Refuse a block of shape ``block`` (z, y, x) needing ``need`` bytes over ``per_task``.
 
     The one refusal of a ``--block`` too large for a task's share of the
     budget, whichever operation weighed it (:func:`_check_user_block`; an
     operation in passes, :func:`~volwarp_cli.passes.heaviest_pass_block`).
+    ``chosen``: the block is the smallest the operation makes, not the user's.
     """
     from .memory import human_bytes
 
     if need > per_task:
+        which = "the smallest block" if chosen else "a block"
+        advice = "" if chosen else "give a smaller --block, "
         raise OutOfMemoryError(
-            f"{what}: a block of {'x'.join(map(str, block))} (z, y, x) needs "
+            f"{what}: {which} of {'x'.join(map(str, block))} (z, y, x) needs "
             f"{human_bytes(need)}, more than the {human_bytes(per_task)} each of "
-            f"{workers} workers may use (give a smaller --block, fewer --workers or a larger "
+            f"{workers} workers may use ({advice}fewer --workers or a larger "
             "--memory-limit)")
 
 

@@ -582,6 +582,40 @@ def store_unit(shape_zyx, version: str) -> tuple[int, int, int]:
     return tuple(shards or chunks)
 
 
+def zarr_block_bytes(shape_zyx, dtype, version: str, block) -> int:
+    """What writing a block of ``block`` (z, y, x) into an OME-Zarr output adds to its samples.
+
+    zarr's encoding of the shards (0.5; the chunks in 0.4) the block is
+    made of (:func:`.omezarr.write_bytes`), in the store's layout for blocks
+    of ``block`` (:func:`block_layout`).
+    """
+    from . import omezarr
+
+    block = tuple(max(1, min(int(b), max(int(n), 1))) for b, n in zip(block, shape_zyx,
+                                                                       strict=True))
+    chunks, shards = block_layout(shape_zyx, version, block)
+    return omezarr.write_bytes(block, np.dtype(dtype).itemsize, chunks, shards)
+
+
+def zarr_commit_bytes(shape_zyx, dtype, version: str, pyramid: int, block) -> int:
+    """The least memory committing an OME-Zarr output written in blocks of ``block`` takes.
+
+    Its pyramid's levels, each made in its smallest pieces
+    (:func:`.omezarr.pyramid_bytes`); 0 without levels. (The label-map rule's
+    count reads boxes as small as it must.)
+    """
+    from . import omezarr
+
+    if not pyramid:
+        return 0
+    standard = omezarr.store_layout(shape_zyx, version, None)
+    layout = standard if block is None else block_layout(shape_zyx, version, block)
+    chunks = None if layout == standard else tuple(
+        max(1, min(int(b), max(int(n), 1))) for b, n in zip(block, shape_zyx, strict=True))
+    return omezarr.pyramid_bytes(shape_zyx, np.dtype(dtype).itemsize, version, pyramid,
+                                 chunks=chunks, layout0=layout)
+
+
 class _ZarrOutput(BlockOutput):
     def __init__(self, path, header, chunks_zyx, version, byte_order, pyramid, labels):
         from . import omezarr
@@ -649,16 +683,18 @@ class _ZarrOutput(BlockOutput):
                            str(self.path), self.phase, self._reindex)
 
     def _finish(self):
+        from ..memory import memory_limit, release_freed
         from . import omezarr
 
+        release_freed()  # (what the blocks' tasks freed: the levels are weighed against the rest)
         if self._labels is None:  # (the whole array's rule, read box by box)
             from ..labelmap import looks_like_labels_by_blocks
 
             level0 = self._arrays[0]
-            boxes = grid_boxes(level0.shape, level0.shards or level0.chunks)
-            self._labels = looks_like_labels_by_blocks(level0, boxes)
+            self._labels = looks_like_labels_by_blocks(
+                level0, omezarr.scan_pieces(level0, memory_limit()))
         method = ("mode" if self._labels else "mean") if self._pyramid else None
-        omezarr.write_levels(self._arrays, None, self._labels)
+        omezarr.write_levels(self._arrays, None, self._labels, memory_limit())
         self._group.attrs.update(omezarr.group_attributes(
             omezarr.multiscales_metadata(self._stored, self._pyramid, self._version, method),
             omezarr.volwarp_attribute(self._stored, self._header, method), self._version))

@@ -374,6 +374,9 @@ def create_arrays(group, shapes, dtype: np.dtype, version: str, chunks=None,
     """
     import zarr  # noqa: F401  (imported here only: the in-memory path stays free of it)
 
+    from ..memory import map_large_allocations
+
+    map_large_allocations()  # (zarr's threads' freed frames given back: see there)
     arrays = []
     for level, shape in enumerate(shapes):
         chunk, shard = (layout0 if level == 0 and layout0 is not None
@@ -427,20 +430,250 @@ def open_group_for_writing(folder: Path, version: str):
     return zarr.open_group(str(folder), mode="w", zarr_format=3 if version == "0.5" else 2)
 
 
-def write_levels(arrays, first: np.ndarray | None, labels: bool) -> None:
+def write_levels(arrays, first: np.ndarray | None, labels: bool, budget: int | None = None
+                 ) -> None:
     """Fill level 0 with ``first`` (unless None: already written) and each next level from the last.
 
-    Each level is made shard by shard from the level above (the 2x region of
-    each coarse shard), so no level needs to fit in memory once written.
+    Level 0 is written one shard at a time (zarr encodes the shards of one
+    write at once: :func:`write_bytes` each). Each coarser level is made shard
+    by shard from the level above, and each of its shards piece by piece
+    (:func:`level_pieces`: the largest pieces whose reading and averaging fit
+    ``budget`` beside the shard), so that no level, and no 2x region of a
+    shard, is read whole unless it fits; level 1 is averaged from ``first``
+    itself where it is given. The pieces start at even samples, so every
+    coarse sample is made from the same 2x2x2 block in the same order: the
+    same bytes whatever the budget.
+
+    ``budget``: the bytes the work may hold (default: what is left under the
+    memory limit, :func:`volwarp_cli.memory.memory_limit`); an
+    :class:`~volwarp_cli.errors.OutOfMemoryError` where a level's smallest
+    piece does not fit it.
     """
+    from ..memory import memory_limit
+
+    if budget is None:
+        budget = memory_limit()
     if first is not None:
-        arrays[0][...] = first
-    for prev, arr in zip(arrays[:-1], arrays[1:], strict=True):
+        target = arrays[0]
+        if target.shards is None:  # (0.4: chunk by chunk, a few at once)
+            target[...] = first
+        else:
+            for box in _boxes(target.shape, target.shards):
+                target[box] = first[box]
+    for level, (prev, arr) in enumerate(zip(arrays[:-1], arrays[1:], strict=True), start=1):
+        source = first if level == 1 and first is not None else prev
         block = arr.shards or arr.chunks
+        piece = level_pieces(block, arr.chunks, prev.shape, prev.chunks,
+                             np.dtype(arr.dtype).itemsize, budget, held=source is first)
         for box in _boxes(arr.shape, block):
-            src = tuple(slice(2 * s.start, min(2 * s.stop, n))
-                        for s, n in zip(box, prev.shape, strict=True))
-            arr[box] = downsample(np.asarray(prev[src]), labels)
+            shard = np.empty(tuple(s.stop - s.start for s in box), dtype=arr.dtype)
+            for sub in _boxes(shard.shape, piece):
+                src = tuple(slice(2 * (b.start + s.start), min(2 * (b.start + s.stop), n))
+                            for b, s, n in zip(box, sub, prev.shape, strict=True))
+                shard[sub] = downsample(np.asarray(source[src]), labels)
+            arr[box] = shard
+            del shard
+
+
+#: zarr-python's chunks (and shards) encoded or decoded at once, when its config says none
+_CONCURRENCY = 10
+
+
+def _concurrency() -> int:
+    try:
+        import zarr
+
+        return max(1, int(zarr.config.get("async.concurrency") or _CONCURRENCY))
+    except Exception:  # (no zarr, or no such key: its default)
+        return _CONCURRENCY
+
+
+def write_bytes(shape_zyx, itemsize: int, chunks, shards=None) -> int:
+    """The bytes zarr holds beyond the samples while it writes a region of ``shape_zyx``.
+
+    The region is made of whole write units (shards, or chunks in NGFF 0.4).
+    Sharded (0.5): zarr encodes each shard whole, its chunks' zstd frames
+    kept until they are joined into the shard's bytes, a second copy, so up
+    to twice the region (samples that do not compress) beside a few chunks'
+    buffers; 0.4: each chunk's copy and frame, a few chunks at once.
+    """
+    region = math.prod(int(n) for n in shape_zyx) * int(itemsize)
+    buffers = _chunk_buffers(shape_zyx, chunks, itemsize)
+    if shards is None:
+        return min(2 * region, buffers) + (1 << 20)
+    return 2 * region + buffers
+
+
+def read_bytes(shape_zyx, itemsize: int, chunks, hull_zyx=None) -> int:
+    """The bytes reading a region of ``shape_zyx`` from a zarr array takes, the result included.
+
+    ``hull_zyx``: the shape of the whole chunks the region touches (default
+    the region): their encoded bytes are read first (a whole shard's at once
+    where the region covers it), then decoded chunk by chunk into a buffer of
+    the shard's part of the region, copied into the result: twice the region
+    beside the chunks' bytes and a few chunks' buffers.
+    """
+    region = math.prod(int(n) for n in shape_zyx) * int(itemsize)
+    hull = math.prod(int(n) for n in (hull_zyx or shape_zyx)) * int(itemsize)
+    return 2 * region + hull + _chunk_buffers(hull_zyx or shape_zyx, chunks, itemsize)
+
+
+def _chunk_buffers(shape_zyx, chunks, itemsize: int) -> int:
+    """Two buffers (samples, frame) of each chunk zarr encodes or decodes at once, and 1 MiB."""
+    count = math.prod(-(-int(n) // int(c)) for n, c in zip(shape_zyx, chunks, strict=True))
+    chunk = math.prod(int(c) for c in chunks) * int(itemsize)
+    return 2 * min(count, _concurrency()) * chunk + (1 << 20)
+
+
+def downsample_bytes(coarse_voxels: int, itemsize: int) -> int:
+    """The most :func:`downsample` holds (its result included) making ``coarse_voxels`` samples.
+
+    Measured: the mean's float64 sums, counts and their copies (44-65 bytes
+    a coarse voxel), the mode's padded parts and masks (16-87 for 8-byte
+    samples at odd ends).
+    """
+    return int(coarse_voxels) * (56 + 8 * int(itemsize))
+
+
+def _span(f: int, c: int, n: int) -> int:
+    """Samples of the whole chunks (of ``c``) a run of ``f`` samples starting at a multiple of ``f`` touches."""
+    whole = -(-f // c) * c
+    if f % c and c % f:  # (not aligned to the chunks: one more)
+        whole += c
+    return min(whole, max(int(n), 1))
+
+
+def _halvings(shape):
+    """Piece shapes from ``shape`` down: halved along z, then y, then x (one sample at least)."""
+    piece = [int(n) for n in shape]
+    yield tuple(piece)
+    for axis in range(3):
+        while piece[axis] > 1:
+            piece[axis] = -(-piece[axis] // 2)
+            yield tuple(piece)
+
+
+def level_pieces(block, chunks, prev_shape, prev_chunks, itemsize: int, budget: int, *,
+                 held: bool = False) -> tuple[int, int, int]:
+    """The pieces (coarse shape) :func:`write_levels` makes a coarse shard of ``block`` in.
+
+    The largest of :func:`_halvings` whose step fits ``budget``
+    (:func:`level_step_bytes`); ``chunks``: the coarse level's chunks;
+    ``prev_shape``, ``prev_chunks``: the level above's (``held``: read from
+    an array in memory instead, at no cost). An
+    :class:`~volwarp_cli.errors.OutOfMemoryError` naming both sizes where none fits.
+    """
+    from ..errors import OutOfMemoryError
+    from ..memory import human_bytes
+
+    need = None
+    for piece in _halvings(block):
+        need = level_step_bytes(block, chunks, piece, prev_shape, prev_chunks, itemsize,
+                                held=held)
+        if need <= budget:
+            return piece
+    raise OutOfMemoryError(f"a pyramid level's shard of {'x'.join(map(str, block[::-1]))} "
+                           f"samples needs {human_bytes(need)} but only "
+                           f"{human_bytes(budget)} is left under the memory limit (raise "
+                           "--memory-limit, or give fewer --pyramid levels)")
+
+
+def level_step_bytes(block, chunks, piece, prev_shape, prev_chunks, itemsize: int, *,
+                     held: bool = False) -> int:
+    """The most a coarse shard of ``block`` made in pieces of ``piece`` holds (:func:`write_levels`).
+
+    The shard's samples, and the larger of its encoding (:func:`write_bytes`)
+    and one piece's reading (:func:`read_bytes`: the whole chunks of the
+    level above its 2x region touches; none where ``held``) with its
+    averaging (:func:`downsample_bytes`).
+    """
+    shard = math.prod(int(n) for n in block) * int(itemsize)
+    fine = tuple(min(2 * p, int(n)) for p, n in zip(piece, prev_shape, strict=True))
+    step = downsample_bytes(math.prod(piece), itemsize)
+    if not held:
+        hull = tuple(_span(f, int(c), n) for f, c, n in zip(fine, prev_chunks, prev_shape,
+                                                             strict=True))
+        step += read_bytes(fine, itemsize, prev_chunks, hull)
+    return shard + max(step, write_bytes(block, itemsize, chunks, block))
+
+
+def pyramid_bytes(shape_zyx, itemsize: int, version: str, levels: int, *, held: bool = False,
+                  chunks=None, layout0=None) -> int:
+    """The least memory :func:`write_levels` needs to make ``levels`` levels (0: none).
+
+    Each level's shards made in its smallest pieces (:func:`level_step_bytes`);
+    ``held``: level 1 made from level 0 in memory; ``chunks`` and
+    ``layout0``: :func:`create_arrays`'s (a store written by blocks). The
+    largest level's.
+    """
+    shapes = level_shapes(shape_zyx, levels)
+    need = 0
+    prev_chunks = (layout0 or store_layout(shapes[0], version, chunks))[0]
+    for level in range(1, levels + 1):
+        inner, shards = store_layout(shapes[level], version, chunks)
+        block = shards or inner
+        smallest = list(_halvings(block))[-1]
+        need = max(need, level_step_bytes(block, inner, smallest, shapes[level - 1],
+                                          prev_chunks, itemsize, held=held and level == 1))
+        prev_chunks = inner
+    return need
+
+
+#: bytes a voxel counting a box's values takes (:func:`volwarp_cli.labelmap.looks_like_labels`:
+#: the samples as int64 and their counts; measured 8)
+COUNT_BYTES = 12
+
+
+def scan_pieces(arr, budget: int) -> list:
+    """Boxes tiling the zarr array ``arr``, each within one of its shards, read in ``budget``.
+
+    For the label-map rule's count of a store's samples
+    (:func:`volwarp_cli.labelmap.looks_like_labels_by_blocks`): the largest
+    :func:`_halvings` of a shard whose reading (:func:`read_bytes`) and
+    counting (:data:`COUNT_BYTES` a voxel) fit ``budget`` (one sample at the
+    least). The answer does not depend on the boxes.
+    """
+    from ..box import Box
+
+    item = np.dtype(arr.dtype).itemsize
+    block = arr.shards or arr.chunks
+    piece = (1, 1, 1)
+    for cand in _halvings(tuple(min(b, n) for b, n in zip(block, arr.shape, strict=True))):
+        hull = tuple(_span(p, c, n) for p, c, n in zip(cand, arr.chunks, arr.shape,
+                                                       strict=True))
+        if read_bytes(cand, item, arr.chunks, hull) + COUNT_BYTES * math.prod(cand) <= budget:
+            piece = cand
+            break
+    boxes = []
+    for shard in _boxes(arr.shape, block):
+        for sub in _boxes(tuple(s.stop - s.start for s in shard), piece):
+            lo = tuple(a.start + b.start for a, b in zip(shard, sub, strict=True))
+            hi = tuple(a.start + b.stop for a, b in zip(shard, sub, strict=True))
+            boxes.append(Box(lo, hi))
+    return boxes
+
+
+def memory_bytes(shape_zyx, dtype, version: str = "0.5", pyramid: int = 0, labels="auto") -> int:
+    """What :func:`write_omezarr` holds beyond the volume's samples (which its caller holds).
+
+    The largest of: level 0's one shard at a time (:func:`write_bytes`), the
+    label-map rule's count (``labels="auto"`` with levels: its boxes of
+    :data:`~volwarp_cli.labelmap.SCAN_BOX_VOXELS`) and the levels made in
+    their smallest pieces (:func:`pyramid_bytes`: they take larger ones
+    where the budget holds them).
+    """
+    from ..labelmap import SCAN_BOX_VOXELS
+
+    version = check_version(version)
+    item = np.dtype(dtype).itemsize
+    chunks, shards = store_layout(shape_zyx, version)
+    need = write_bytes(shards or chunks, item, chunks, shards)
+    if pyramid:
+        if labels is None or labels == "auto":
+            voxels = min(SCAN_BOX_VOXELS, math.prod(int(n) for n in shape_zyx))
+            need = max(need, COUNT_BYTES * voxels)
+        need = max(need, pyramid_bytes(shape_zyx, item, version, pyramid, held=True))
+    return need
 
 
 def _boxes(shape, block):
@@ -468,6 +701,12 @@ def write_omezarr(vol: Volume, path: str | os.PathLike, *, version: str = "0.5",
     if pyramid < 0:
         raise VolwarpError(f"{path}: --pyramid must be 0 or more, got {pyramid}")
     check_dtype(vol.data.dtype, str(path))
+    from ..memory import ensure_fits_in_memory
+
+    # (before the store is made: its encoding, label count and levels beside the samples)
+    ensure_fits_in_memory(memory_bytes(vol.data.shape, vol.data.dtype, version, pyramid, labels),
+                          f"writing {path} ({'x'.join(map(str, vol.shape_xyz))}"
+                          f"{f', {pyramid} levels' if pyramid else ''})")
     stored = reindex_to_identity(vol)
     data = native(stored.data)
     is_labels = resolve_labels(labels, data) if pyramid else False
