@@ -441,3 +441,31 @@ def test_a_tiff_render_carries_no_time_stamp(run, tmp_path):
     with tifffile.TiffFile(out) as tif:
         tags = {t.name: t.value for t in tif.pages[0].tags.values()}
     assert tags.get("DateTime", "") == "" and "XMP" not in tags, tags
+
+
+def test_a_mask_is_meshed_at_its_level_as_asked(run, tmp_path):
+    """A mask (two values) mixes no ids: its --iso, --inside and --cap mean what they say.
+    The label rule had replaced a given --iso 50 by its indicator's 0.5 and capped the
+    border unasked; a 100/200 mask (no 0) failed as if empty; an all-zero map read from a
+    SEG ignored --allow-empty (a review of this session's change)."""
+    data_dir = Path(__file__).parent / "data"
+    st = json.loads(run("mesh", data_dir / "ball_30_uint8.nrrd", "--iso", "50", "--json").stdout)
+    assert st["iso"] == 50.0 and st["values"] == "intensity"
+    assert st["volume"] == pytest.approx(4467.19, rel=1e-4)  # (at 50 of 0..200: a larger ball)
+    slab = np.zeros((10, 12, 14), np.uint8)
+    slab[:, :, :5] = 1  # touches the border at x = 0
+    write_volume(Volume(slab), tmp_path / "slab.nrrd")
+    st = json.loads(run("mesh", tmp_path / "slab.nrrd", "--iso", "0.5", "--json").stdout)
+    assert st["closed"] is False  # (open at the border, as asked: no --cap)
+    ball = np.where(read_volume(data_dir / "ball_30_uint8.nrrd").data > 0, 200, 100)
+    write_volume(Volume(ball.astype(np.uint8)), tmp_path / "b.nrrd")
+    res = run("mesh", tmp_path / "b.nrrd", "--json")
+    assert res.code == 0, res.stderr
+    assert json.loads(res.stdout)["iso"] == 150.0 and json.loads(res.stdout)["components"] == 1
+    empty = Volume(np.zeros((6, 6, 6), np.uint8), meta={"DICOM_Modality": "SEG"})
+    write_volume(empty, tmp_path / "e.nrrd")
+    for extra in ([], ["--values", "labels"]):
+        res = run("mesh", tmp_path / "e.nrrd", "--allow-empty", "-o", tmp_path / "e.ply", *extra)
+        assert res.code == 0, (extra, res.stderr)
+    res = run("mesh", tmp_path / "e.nrrd", "--values", "labels", "-o", tmp_path / "e2.ply")
+    assert res.code == 1 and "--allow-empty" in res.stderr

@@ -176,7 +176,11 @@ def test_frames_keep_the_source_s_key_values_and_its_patient_frame(run, tmp_path
     ball = (6 - np.sqrt((x - 10.0) ** 2 + (y - 10) ** 2 + (z - 10) ** 2)).astype(np.float32)
     src = tmp_path / "ras.nrrd"
     write_volume(Volume(ball, space="right-anterior-superior",
-                        meta={"my_key": "hello", "volwarp_command": "distance"}), src)
+                        meta={"my_key": "hello", "volwarp_command": "distance",
+                              "volwarp_distance": "values=labels labels=all",
+                              "DICOM_StudyInstanceUID": "1.2.3", "DICOM_Modality": "SEG",
+                              "DICOM_Segment_1_Label": "liver",
+                              "DICOM_SeriesInstanceUID": "4.5.6"}), src)
     plain = tmp_path / "plain.nrrd"
     write_volume(Volume(ball), plain)
     for extra, name in (([], "m"), (["--chunked", "--max-distance", "5"], "c")):
@@ -187,6 +191,11 @@ def test_frames_keep_the_source_s_key_values_and_its_patient_frame(run, tmp_path
             frame = read_volume(tmp_path / f"{name}_{i}.nrrd")
             assert frame.space == "left-posterior-superior", (name, i)
             assert frame.meta["my_key"] == "hello" and frame.meta["volwarp_command"] == "morph"
+            # (the subject's kept; what described the source's own samples not: a frame
+            # written back as a SEG named its shape after the source's segment 1)
+            assert frame.meta["DICOM_StudyInstanceUID"] == "1.2.3"
+            assert not {"DICOM_Modality", "DICOM_Segment_1_Label", "DICOM_SeriesInstanceUID",
+                        "volwarp_distance"} & set(frame.meta)
     assert run("morph", plain, plain, "--frames", "2", "--iso", "0",
                "-o", tmp_path / "p_{i}.nrrd").code == 0
     assert read_volume(tmp_path / "p_0.nrrd").space is None  # (as its inputs: none named)

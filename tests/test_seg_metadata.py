@@ -270,3 +270,21 @@ def test_a_key_that_does_not_parse_is_one_line_naming_it(ct, tmp_path, run):
     assert res.code == 1 and len(res.stderr.strip().splitlines()) == 1
     assert "lab.nrrd" in res.stderr and "DICOM_Segment_2_CIELab='red'" in res.stderr
     assert not out.exists()
+
+
+def test_a_code_a_seg_read_beyond_the_standard_still_writes_back():
+    """A SEG with an 81-character meaning (or an empty one) reads, and its keys then
+    refused the write back (exit 1; a review). The meaning is cut at DICOM's 64
+    characters, an empty part gives the default code; a code without three parts is
+    still an error naming the key."""
+    from volwarp_cli.errors import VolwarpError
+    from volwarp_cli.io.segment_keys import label_descriptions
+
+    long = "M" * 81
+    meta = {"DICOM_Segment_1_Type": f"SCT^10200004^{long}",
+            "DICOM_Segment_2_Type": "SCT^10200004^", "DICOM_Segment_2_Label": "two"}
+    d = label_descriptions(meta, [1, 2], "x.nrrd")
+    assert d[1].type == ("SCT", "10200004", "M" * 64)
+    assert d[2].type is None and d[2].seg_label == "two"
+    with pytest.raises(VolwarpError, match="DICOM_Segment_1_Type"):
+        label_descriptions({"DICOM_Segment_1_Type": "SCT-Liver"}, [1], "x.nrrd")

@@ -612,7 +612,7 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
             from .surface.run import NONZERO_LABELS
 
             if mesh_values(source, values=values, iso=iso, inside=inside, name=name,
-                           meta=header.meta).labels:
+                           meta=header.meta, allow_empty=allow_empty).labels:
                 which = NONZERO_LABELS
         op = MeshOperation(header, source, Level(iso, inside, cap),
                            cleanup=Cleanup(largest_component=largest_component, smooth=smooth,

@@ -139,9 +139,10 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
             orientation_labels):
     """Isosurface INPUT at level --iso and write it to OUTPUT (world coordinates).
 
-    A label map (as `volwarp info` hints; --values overrides) gives the
-    surface of every voxel with a non-zero label, never a level of its ids
-    taken as intensities: --label N for one label's, --labels for a mesh each.
+    A label map of several labels (as `volwarp info` hints; --values
+    overrides) gives the surface of every voxel with a non-zero label, never
+    a level of its ids taken as intensities: --label N for one label's,
+    --labels for a mesh each. A two-valued mask is meshed at its --iso.
 
     Triangles are wound counter-clockwise seen from outside and normals point
     outwards. The surface is closed wherever the shape does not touch the
@@ -198,7 +199,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
 
         with timed("label rule"):
             choice = mesh_values(source, values=values, iso=iso, inside=inside, name=input,
-                                 meta=header.meta)
+                                 meta=header.meta, allow_empty=allow_empty)
         log.info("%s: values: %s (%s)", input, choice.values, choice.why)
         if choice.labels:
             which = NONZERO_LABELS

@@ -141,12 +141,28 @@ def _bad(source: str, key: str, value: str, want: str) -> VolwarpError:
                         f"want {want} (docs/segmentations.md)")
 
 
-def _parse_code(source: str, key: str, value: str) -> Code3:
-    parts = value.split("^", 2)
-    if len(parts) != 3 or not all(p.strip() for p in parts) or len(parts[2]) > 64:
-        raise _bad(source, key, value, "scheme^value^meaning (a meaning of at most 64 "
-                                       "characters)")
-    return parts[0].strip(), parts[1].strip(), parts[2].strip()
+def _parse_code(source: str, key: str, value: str) -> Code3 | None:
+    """``scheme^value^meaning``; None (the default code) where a SEG read left a part empty.
+
+    SEGs in the wild break the standard's limits (an 81-character meaning, an
+    empty one) and read fine: such a code, read by volwarp, must not stop the
+    map from being written back. A meaning over DICOM's 64 characters is cut
+    there, an empty part gives the default code; either is said.
+    """
+    from ..progress import log
+
+    parts = [p.strip() for p in value.split("^", 2)]
+    if len(parts) != 3:
+        raise _bad(source, key, value, "scheme^value^meaning")
+    if not all(parts):
+        log.warning("warning: %s: %s = %r has an empty part: the default code is written",
+                    source, key, value)
+        return None
+    if len(parts[2]) > 64:
+        log.warning("warning: %s: %s's meaning is over DICOM's 64 characters: cut there",
+                    source, key)
+        parts[2] = parts[2][:64].rstrip()
+    return parts[0], parts[1], parts[2]
 
 
 def _parse_triple(source: str, key: str, value: str, top: int, what: str) -> tuple[int, int, int]:

@@ -405,15 +405,22 @@ def morph_frames(job: MorphJob, prep: Prepared, source: Volume,
                   meshes=MeshBlocks() if meshes else None, render=render, space=space)
 
 
+#: the source's keys a frame does not keep: what describes the source's own samples, not
+#: the subject (a SEG's segments and identity: a frame written back as a SEG named its
+#: morphed shape after the source's segment 1), and volwarp's notes of earlier commands
+_NOT_THE_FRAMES = ("volwarp_", "DICOM_Segment", "DICOM_ROI_", "DICOM_Structure",
+                   "DICOM_Modality", "DICOM_SOPClassUID", "DICOM_SOPInstanceUID",
+                   "DICOM_SeriesInstanceUID", "DICOM_SeriesNumber", "DICOM_ContentLabel")
+
+
 def source_keys(source) -> dict:
-    """The source's own key/values, which every frame keeps (as every command keeps its input's).
+    """The source's own key/values that every frame keeps (as every command keeps its input's).
 
-    Its provenance and an earlier morph's notes are left out: the frame's replace them.
+    What is the subject's (custom keys, the study, the frame of reference),
+    not what describes the source's samples (:data:`_NOT_THE_FRAMES`): a
+    frame is a new shape, its provenance and the morph's notes its own.
     """
-    from ..provenance import PROVENANCE_KEYS
-
-    return {k: v for k, v in source.meta.items() if k not in PROVENANCE_KEYS
-            and not k.startswith("volwarp_morph")}
+    return {k: v for k, v in source.meta.items() if not k.startswith(_NOT_THE_FRAMES)}
 
 
 def frame_space(source, target) -> str | None:

@@ -66,19 +66,23 @@ class ValuesChoice:
 
 
 def mesh_values(source, *, values: str | None = None, iso: float | None = None,
-                inside: str = "above", name: str = "the input", meta=None) -> ValuesChoice:
+                inside: str = "above", name: str = "the input", meta=None,
+                allow_empty: bool = False) -> ValuesChoice:
     """How a volume meshed without ``--label``/``--labels`` is taken (module notes).
 
     ``values``: the command line's ``--values`` (None: the label rule
-    decides, one pass over ``source``, box by box). A label map's surface is
-    its non-zero labels' (their indicator's at 0.5, between the voxels
-    whatever the ids); an ``iso`` level is accepted only where it selects
-    exactly those voxels (a 0/1 or 0/255 mask's 0.5), and ``inside`` only
-    with such a level. Anything else is a
-    :class:`~volwarp_cli.errors.BadUsage` naming the ways out; a map with no
-    non-zero label, a :class:`~volwarp_cli.errors.VolwarpError`. ``meta``:
-    the input's key/values (a segmentation's ids are labels whatever the
-    rule says).
+    decides, one pass over ``source``, box by box). A label map of several
+    labels has the surface of its non-zero labels (their indicator's at 0.5,
+    between the voxels whatever the ids); an ``iso`` level is accepted only
+    where it selects exactly those voxels, and ``inside`` only with such a
+    level. A mask (two values at most) is meshed at its level as asked: any
+    level between its two values is its one label's surface, the ids mix
+    nothing, and ``--iso``, ``--inside`` and ``--cap`` mean what they say.
+    Anything else is a :class:`~volwarp_cli.errors.BadUsage` naming the ways
+    out; labels asked for on a map with no non-zero label, a
+    :class:`~volwarp_cli.errors.VolwarpError` unless ``allow_empty`` (an
+    empty mesh). ``meta``: the input's key/values (a segmentation's ids are
+    labels whatever the rule says).
     """
     from ..distance.field import inside_mask
     from ..distance.labels import scan_values
@@ -90,6 +94,9 @@ def mesh_values(source, *, values: str | None = None, iso: float | None = None,
     segmentation = segmentation_of(meta) if scan.values is not None else None
     if values is None and not scan.looks_like and segmentation is None:
         return ValuesChoice("intensity", "not a label map")
+    if values is None and len(scan.values) <= 2:
+        return ValuesChoice("intensity", f"a mask ({len(scan.values)} values): the surface at "
+                                         "its level is its label's")
     if scan.values is None:
         what = "samples that are not all integers" if scan.dtype.kind == "f" else "samples"
         raise BadUsage(f"{name}: --values labels needs a label map (integer ids), got "
@@ -110,8 +117,9 @@ def mesh_values(source, *, values: str | None = None, iso: float | None = None,
     ways_out = ("give --label N (one label's surface), --labels (a mesh for each), or "
                 "--values intensity to take the ids as intensities")
     ids = scan.values[scan.values != 0]
-    if not ids.size:
-        raise VolwarpError(f"{name}: no label other than 0 in the volume")
+    if not ids.size and not allow_empty:
+        raise VolwarpError(f"{name}: no label other than 0 in the volume (--allow-empty "
+                           "writes an empty mesh)")
     if iso is not None:
         if not np.array_equal(scan.values[inside_mask(scan.values, iso, inside)], ids):
             side = "" if inside == "above" else f" --inside {inside}"
