@@ -170,3 +170,30 @@ def test_utf8_key_values_and_file_names_are_read_and_written_as_utf8(tmp_path, r
                                                              "Läsion".encode("latin-1"))
         (tmp_path / "latin.nrrd").write_bytes(raw)
         assert read_volume(tmp_path / "latin.nrrd").meta["Segment0_Name"] == "Läsion"
+
+
+@pytest.mark.parametrize("ext", [".nhdr", ".mhd", ".nrrd"])
+def test_a_file_name_that_is_not_utf8_is_written_and_read_as_its_bytes(tmp_path, run, ext):
+    """A Latin-1 file system's name (byte 0xE9): writing a header that names it (a
+    detached data file, the input in the provenance) crashed once headers were UTF-8
+    ('internal error: UnicodeEncodeError', a review); before, it was written as '?', a
+    data file reference that named no file. Its bytes go in as they are and open it."""
+    import os
+
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    name = os.fsdecode(b"caf\xe9" + ext.encode())
+    src = os.fsdecode(bytes(tmp_path) + b"/in\xe9.nrrd")
+    write_volume(Volume(DATA), src)
+    res = run("convert", src, "-o", tmp_path / name)
+    assert res.code == 0, res.stderr
+    back = read_volume(tmp_path / name)
+    np.testing.assert_array_equal(back.data, DATA)
+    out = tmp_path / f"d{ext}"  # (a command whose provenance names the input)
+    res = run("distance", src, "--values", "intensity", "--iso", "100", "-o", out)
+    assert res.code == 0, res.stderr
+    assert read_volume(out).meta["volwarp_input"] == "iné.nrrd"  # (Latin-1 read: é)
+    if ext != ".nrrd":  # the header names its data file by the same bytes
+        header = (tmp_path / name).read_bytes()
+        assert b"caf\xe9.raw" in header

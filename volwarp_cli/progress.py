@@ -124,8 +124,11 @@ def _set_up(logger, level: int) -> None:
             pass
 
     logger.setLevel(level)
-    if not logger.handlers:
+    # (its own handler looked for, not any: a caller's handler on the logger, added before
+    # the first command, left the command lines of that process without their stderr)
+    if not any(getattr(h, "volwarp_stderr", False) for h in logger.handlers):
         handler = _StderrHandler()
+        handler.volwarp_stderr = True
         handler.setFormatter(logging.Formatter("volwarp: %(message)s"))
         logger.addHandler(handler)
     logger.propagate = False

@@ -34,8 +34,27 @@ def header_line(raw: bytes) -> str:
         return raw.decode("latin-1")
 
 
+def header_name(raw: bytes) -> str:
+    """A file name in a text header (a detached data file): its bytes, whatever they are.
+
+    A name that is not UTF-8 (a Latin-1 file system's) keeps its bytes as
+    the file system gives them (surrogate escapes), so it opens the file it names;
+    :func:`header_bytes` writes them back as they were.
+    """
+    return raw.decode("utf-8", "surrogateescape")
+
+
 #: how NRRD and MetaImage headers are written (every character kept, as Slicer writes them)
 HEADER_ENCODING = "utf-8"
+
+
+def header_bytes(text: str) -> bytes:
+    """A header's text as UTF-8, never an error.
+
+    A file name's undecodable bytes (surrogate escapes, from the file system)
+    are written back as they were.
+    """
+    return text.encode(HEADER_ENCODING, "surrogateescape")
 
 
 def make_volume(where: str, data: np.ndarray, *, error=FormatError, **geometry):

@@ -39,9 +39,10 @@ from ..memory import ensure_fits_in_memory
 from ..samples import check_dtype, voxel_count
 from ..volume import LPS, Header, Volume, xyz_to_zyx
 from .common import (
-    HEADER_ENCODING,
     ascii_values,
+    header_bytes,
     header_line,
+    header_name,
     make_volume,
     native,
     open_input,
@@ -134,6 +135,8 @@ def read_header(fh, where: str) -> list[tuple[str, str]]:
                               "'Key = Value')")
         key, value = line.split("=", 1)
         key, value = key.strip(), value.strip()
+        if key == "ElementDataFile":  # (a file name: its bytes, as they are)
+            value = header_name(raw).split("=", 1)[1].strip()
         if not key:
             raise FormatError(f"{where}: header line {line[:80]!r} has no key")
         pairs.append((key, value))
@@ -421,7 +424,7 @@ def _data_files(spec: str, header_path: Path, fh, where: str, sizes: list[int]) 
         n = voxel_count(sizes[fdim:])
         names = []
         for raw in fh:
-            name = header_line(raw).strip()
+            name = header_name(raw).strip()
             if not name:
                 continue
             if len(names) == n:
@@ -557,7 +560,7 @@ def metaimage_header(vol: Volume | Header, dtype: np.dtype, *, byte_order: str, 
         f"ElementType = {_WRITE_TYPES[dtype.name]}",
         f"ElementDataFile = {data_file}",
     ]
-    return ("\n".join(lines) + "\n").encode(HEADER_ENCODING)
+    return header_bytes("\n".join(lines) + "\n")
 
 
 def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = False,

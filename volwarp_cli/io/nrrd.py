@@ -29,9 +29,10 @@ from ..memory import ensure_fits_in_memory
 from ..samples import check_dtype, voxel_count
 from ..volume import Header, Volume, frame_to_lps, xyz_to_zyx
 from .common import (
-    HEADER_ENCODING,
     ascii_values,
+    header_bytes,
     header_line,
+    header_name,
     make_volume,
     native,
     open_input,
@@ -151,6 +152,8 @@ def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
             raise FormatError(f"{where}: malformed header line {shown!r}")
         name, value = line.split(": ", 1)
         name = name.strip().lower()
+        if name in ("data file", "datafile"):  # (a file name: its bytes, as they are)
+            value = header_name(raw).rstrip("\r\n").split(": ", 1)[1]
         fields[name] = value.strip()
         if name in ("data file", "datafile") and value.split()[:1] == ["LIST"]:
             listing = True
@@ -336,7 +339,7 @@ def _data_files(fields: dict[str, str], header_path: Path, fh, where: str, sizes
         subdim = _subdim(parts[1:], sizes, where, "LIST")
         names = []
         for raw in fh:
-            name = header_line(raw).strip()
+            name = header_name(raw).strip()
             if name:
                 names.append(base / name)
         _check_file_count(len(names), subdim, sizes, where)
@@ -705,7 +708,7 @@ def nrrd_header(vol: Volume | Header, dtype: np.dtype, *, encoding: str, byte_or
     text = "\n".join(lines) + "\n"
     if data_file is None:
         text += "\n"
-    return text.encode(HEADER_ENCODING)
+    return header_bytes(text)
 
 
 def _write_payload(fh, data: np.ndarray, encoding: str, level: int, byte_order: str,
