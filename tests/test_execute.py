@@ -356,6 +356,29 @@ def test_a_full_disk_while_writing_names_the_output_and_leaves_nothing(placed_sm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.nrrd"]
 
 
+def test_a_full_disk_while_a_store_is_written_by_blocks_names_it(tmp_path, monkeypatch):
+    """zarr let a bare OSError through: 'volwarp: error: No space left on device', no
+    file named, where every other writer names its output (a review)."""
+    import errno
+
+    from volwarp_cli.io import blockwrite
+
+    real = blockwrite._ZarrWriter._write  # (its own handling tested: the store's write fails)
+
+    class Full:
+        def __setitem__(self, key, value):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    def failing(self, box, array):
+        self.array = Full()
+        return real(self, box, array)
+
+    monkeypatch.setattr(blockwrite._ZarrWriter, "_write", failing)
+    with pytest.raises(VolwarpError, match=r"v\.ome\.zarr: cannot write \(No space left"):
+        execute.run(Ramp(tmp_path, suffix=".ome.zarr"), _blocks(scheduler="synchronous"))
+    assert not list(tmp_path.iterdir())
+
+
 @pytest.fixture
 def quota_on_close(monkeypatch):
     """Files closed by the block tasks' threads report a full quota (as an NFS server may:

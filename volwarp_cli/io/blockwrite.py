@@ -290,10 +290,13 @@ class _ZarrWriter(BlockWriter):
         self.reindex = reindex
 
     def _write(self, box, array):
-        if self.reindex is None:
-            self.array[box.slices] = array
-        else:
-            self.array[self.reindex.box(box).slices] = self.reindex.array(array)
+        try:
+            if self.reindex is None:
+                self.array[box.slices] = array
+            else:
+                self.array[self.reindex.box(box).slices] = self.reindex.array(array)
+        except OSError as exc:  # (a full disk: the store named, as the other writers do)
+            raise write_error(self.where, exc) from exc
 
 
 class _MappedWriter(BlockWriter):
