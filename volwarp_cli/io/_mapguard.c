@@ -66,7 +66,9 @@ static PyObject *install(PyObject *self, PyObject *args) {
     Py_RETURN_NONE;
 }
 
-/* set_temporaries(list of str): the temporary outputs to remove on a fault */
+/* set_temporaries(list of str or bytes): the temporary outputs to remove on a fault. A str
+ * is encoded as the file system's name (os.fsencode: a name that is not UTF-8 keeps its
+ * bytes, where UTF-8 could not encode its surrogate escapes). */
 static PyObject *set_temporaries(PyObject *self, PyObject *arg) {
     PyObject *seq = PySequence_Fast(arg, "set_temporaries takes a sequence of paths");
     if (seq == NULL) {
@@ -77,18 +79,21 @@ static PyObject *set_temporaries(PyObject *self, PyObject *arg) {
     int kept = 0;
     for (Py_ssize_t i = 0; i < n && kept < MAX_PATHS; i++) {
         PyObject *item = PySequence_Fast_GET_ITEM(seq, i);
+        PyObject *encoded = PyUnicode_Check(item) ? PyUnicode_EncodeFSDefault(item)
+                                                  : PyBytes_FromObject(item);
+        char *text;
         Py_ssize_t len;
-        const char *text = PyUnicode_AsUTF8AndSize(item, &len);
-        if (text == NULL) {
+        if (encoded == NULL || PyBytes_AsStringAndSize(encoded, &text, &len) < 0) {
+            Py_XDECREF(encoded);
             Py_DECREF(seq);
             return NULL;
         }
-        if (len >= MAX_PATH_BYTES) {
-            continue;
+        if (len < MAX_PATH_BYTES) {
+            memcpy(paths[kept], text, (size_t)len);
+            paths[kept][len] = '\0';
+            kept++;
         }
-        memcpy(paths[kept], text, (size_t)len);
-        paths[kept][len] = '\0';
-        kept++;
+        Py_DECREF(encoded);
     }
     n_paths = kept;
     Py_DECREF(seq);

@@ -32,8 +32,9 @@ def guard(fh, where: str) -> None:
     if _guard is None:
         from . import _mapguard
 
-        _mapguard.install(f"volwarp: error: {where}: the file was truncated while it was "
-                          "being read (replaced by another program?)\n")
+        _mapguard.install((f"volwarp: error: {where}: the file was truncated while it was "
+                           "being read (replaced by another program?)\n")
+                          .encode("utf-8", "surrogateescape"))  # (a name's own bytes)
         _guard = _mapguard
     sync_temporaries()
 
