@@ -307,7 +307,7 @@ def blocks_refusal(outputs, compress: bool = False, pyramid: int = 0, *,
 
     Their formats (:func:`~volwarp_cli.io.blockwrite.check_block_format`), and
     their sizes against the free space of their folders (outputs sharing a
-    folder add up). A compressed output (:func:`compressed_output`: OME-Zarr's
+    folder add up). A compressed output (:func:`~volwarp_cli.io.compressed_output`: OME-Zarr's
     zstd chunks) is not weighed by its samples' size, which its file may be a
     thousandth of (a disk that fills while it is written fails it, with one
     line and nothing left); ``scratch``: ``[(path, nbytes)]`` of uncompressed
@@ -315,6 +315,7 @@ def blocks_refusal(outputs, compress: bool = False, pyramid: int = 0, *,
     """
     import shutil
 
+    from .io import compressed_output
     from .io.blockwrite import check_block_format
     from .memory import human_bytes
 
@@ -340,19 +341,6 @@ def blocks_refusal(outputs, compress: bool = False, pyramid: int = 0, *,
             return (f"the outputs need {human_bytes(sum(sizes))}{each} where {folder} has "
                     f"{human_bytes(free)} free")
     return None
-
-
-def compressed_output(path, fmt: str, compress: bool = False) -> bool:
-    """Whether the output ``path`` of format ``fmt`` holds its samples compressed.
-
-    OME-Zarr (its chunks always zstd), ``.nii.gz``, and with ``--compress``
-    every format but raw.
-    """
-    if fmt == "omezarr":
-        return True
-    if fmt == "nifti":
-        return Path(path).name.lower().endswith(".gz")
-    return bool(compress) and fmt != "raw"
 
 
 def refuse_unmakeable(what: str, memory_bytes: int, outputs, *, chunked: bool | None = None,

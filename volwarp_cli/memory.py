@@ -238,20 +238,26 @@ def release_freed() -> None:
     under an explicit limit would otherwise find less than there is. Nothing
     where the C library has no ``malloc_trim`` (not glibc).
     """
-    import ctypes
-    import ctypes.util
+    trim = getattr(_libc(), "malloc_trim", None)
+    if trim is not None:
+        trim(0)
 
-    global _trim
-    if _trim is None:
+
+def _libc():
+    """The C library through ctypes (loaded once), or None where it cannot be loaded."""
+    global _loaded
+    if _loaded is None:
+        import ctypes
+        import ctypes.util
+
         try:
-            _trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
-        except (OSError, AttributeError):
-            _trim = False
-    if _trim:
-        _trim(0)
+            _loaded = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        except OSError:
+            _loaded = False
+    return _loaded or None
 
 
-_trim = None
+_loaded = None
 
 #: glibc's mallopt parameter number of the mmap threshold
 _M_MMAP_THRESHOLD = -3
@@ -273,18 +279,13 @@ def map_large_allocations() -> None:
     gives them back at once. Called where OME-Zarr stores are written;
     nothing where the C library is not glibc.
     """
-    import ctypes
-    import ctypes.util
-
     global _mapped
     if _mapped:
         return
     _mapped = True
-    try:
-        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt(
-            _M_MMAP_THRESHOLD, MMAP_THRESHOLD)
-    except (OSError, AttributeError):
-        pass
+    mallopt = getattr(_libc(), "mallopt", None)
+    if mallopt is not None:
+        mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
 
 
 _mapped = False

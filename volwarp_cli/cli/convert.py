@@ -11,7 +11,7 @@ import os
 import click
 
 from ..io import check_output_path, write_volume
-from ..labelmap import VALUES
+from ..labelmap import VALUES, keep_label_ids, segmentation_of
 from ..memory import human_bytes
 from ..progress import timed
 from .common import load_input
@@ -124,8 +124,6 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
         _write_segmentation(vol, output, dicom_type, reference, segments, contours, str(input),
                             reference_options)
         return
-    from ..labelmap import keep_label_ids, segmentation_of
-
     labels = PYRAMID_METHODS[pyramid_method]
     if labels == "auto" and values is not None:
         labels = values == "labels"

@@ -261,11 +261,15 @@ def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: 
         write_raw(vol, path, byte_order=byte_order, dtype=cast)
 
 
-def _compressed(path: Path, fmt: str, compress: bool) -> bool:
-    """Whether :func:`write_volume` compresses ``path``'s samples (OME-Zarr: always)."""
+def compressed_output(path, fmt: str, compress: bool = False) -> bool:
+    """Whether the output ``path`` of format ``fmt`` holds its samples compressed.
+
+    OME-Zarr (its chunks always zstd), ``.nii.gz``, and with ``--compress``
+    every format but raw: in memory (:func:`write_volume`) as by blocks.
+    """
     if fmt == "nifti":
-        return path.name.lower().endswith(".gz")
-    return fmt == "omezarr" or (compress and fmt != "raw")
+        return Path(path).name.lower().endswith(".gz")
+    return fmt == "omezarr" or (bool(compress) and fmt != "raw")
 
 
 def _cast_by_slabs(path: Path, fmt: str, compress: bool) -> bool:
@@ -274,7 +278,7 @@ def _cast_by_slabs(path: Path, fmt: str, compress: bool) -> bool:
     Uncompressed NRRD, MetaImage, NIfTI and raw files: the samples go to the
     file as they lie, so a slab's cast is the whole's bytes for its part.
     """
-    return fmt in ("nrrd", "metaimage", "nifti", "raw") and not _compressed(path, fmt, compress)
+    return fmt in ("nrrd", "metaimage", "nifti", "raw") and not compressed_output(path, fmt, compress)
 
 
 def _cast_bytes(count: int, src: np.dtype, out: np.dtype, swapped: bool) -> int:

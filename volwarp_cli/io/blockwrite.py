@@ -547,6 +547,12 @@ def committed(out: BlockOutput):
     out.commit()
 
 
+def clip_block(block, shape_zyx) -> tuple[int, int, int]:
+    """``block`` (z, y, x) within ``shape_zyx``: each side 1 sample at least, the grid's at most."""
+    return tuple(max(1, min(int(b), max(int(n), 1))) for b, n in zip(block, shape_zyx,
+                                                                     strict=True))
+
+
 def block_layout(shape_zyx, version: str, block=None):
     """``(chunks, shards)`` of a store written in blocks of ``block`` (z, y, x).
 
@@ -562,8 +568,7 @@ def block_layout(shape_zyx, version: str, block=None):
     standard = omezarr.store_layout(shape_zyx, version, None)
     if block is None:
         return standard
-    block = tuple(max(1, min(int(b), max(int(n), 1))) for b, n in zip(block, shape_zyx,
-                                                                       strict=True))
+    block = clip_block(block, shape_zyx)
     if all(b >= n or b % u == 0 for b, u, n in zip(block, store_unit(shape_zyx, version),
                                                     shape_zyx, strict=True)):
         return standard
@@ -594,8 +599,7 @@ def zarr_block_bytes(shape_zyx, dtype, version: str, block) -> int:
     """
     from . import omezarr
 
-    block = tuple(max(1, min(int(b), max(int(n), 1))) for b, n in zip(block, shape_zyx,
-                                                                       strict=True))
+    block = clip_block(block, shape_zyx)
     chunks, shards = block_layout(shape_zyx, version, block)
     return omezarr.write_bytes(block, np.dtype(dtype).itemsize, chunks, shards)
 
@@ -613,8 +617,7 @@ def zarr_commit_bytes(shape_zyx, dtype, version: str, pyramid: int, block) -> in
         return 0
     standard = omezarr.store_layout(shape_zyx, version, None)
     layout = standard if block is None else block_layout(shape_zyx, version, block)
-    chunks = None if layout == standard else tuple(
-        max(1, min(int(b), max(int(n), 1))) for b, n in zip(block, shape_zyx, strict=True))
+    chunks = None if layout == standard else clip_block(block, shape_zyx)
     return omezarr.pyramid_bytes(shape_zyx, np.dtype(dtype).itemsize, version, pyramid,
                                  chunks=chunks, layout0=layout)
 
@@ -710,8 +713,7 @@ class _MappedOutput(BlockOutput):
 
         geometry, dtype = Geometry.of(vol_header), vol_header.dtype
         chunks = chunks_zyx or (64, geometry.shape[1], geometry.shape[2])
-        chunks = tuple(max(1, min(int(c), max(int(n), 1)))
-                       for c, n in zip(chunks, geometry.shape, strict=True))
+        chunks = clip_block(chunks, geometry.shape)
         super().__init__(path, geometry, dtype, chunks, components=len(components or ()))
         with_byte_order(np.zeros(0, dtype), byte_order)  # checks the name
         if fmt == "nrrd":
