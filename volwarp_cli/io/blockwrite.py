@@ -659,6 +659,10 @@ class _ZarrOutput(BlockOutput):
             labels = None if pyramid and self.dtype.kind in "iuf" else False
         self._labels = labels if labels is None else bool(labels)
         try:
+            from ..memory import large_allocations_mapped
+
+            # (zarr's threads' freed frames given back until the store is renamed: see there)
+            self._stack.enter_context(large_allocations_mapped())
             tmp = self._stack.enter_context(atomic_folder(path))
             group = omezarr.open_group_for_writing(tmp, version)
             # (the in-memory layout at level 0: the pyramid's levels take theirs too)

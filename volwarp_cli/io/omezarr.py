@@ -374,9 +374,6 @@ def create_arrays(group, shapes, dtype: np.dtype, version: str, chunks=None,
     """
     import zarr  # noqa: F401  (imported here only: the in-memory path stays free of it)
 
-    from ..memory import map_large_allocations
-
-    map_large_allocations()  # (zarr's threads' freed frames given back: see there)
     arrays = []
     for level, shape in enumerate(shapes):
         chunk, shard = (layout0 if level == 0 and layout0 is not None
@@ -693,6 +690,7 @@ def write_omezarr(vol: Volume, path: str | os.PathLike, *, version: str = "0.5",
     ``pyramid``: extra levels; ``labels``: True, False or ``"auto"`` (how the
     levels are made); ``chunks``: chunk shape (z, y, x), default 64 per axis.
     """
+    from ..memory import large_allocations_mapped
     from .atomic import atomic_folder
 
     path = Path(path)
@@ -714,7 +712,8 @@ def write_omezarr(vol: Volume, path: str | os.PathLike, *, version: str = "0.5",
     shapes = level_shapes(data.shape, pyramid)
     attrs = group_attributes(multiscales_metadata(stored, pyramid, version, method),
                              volwarp_attribute(stored, vol, method), version)
-    with atomic_folder(path) as tmp:
+    # (zarr's threads' freed frames given back as the store is written: see there)
+    with large_allocations_mapped(), atomic_folder(path) as tmp:
         group = open_group_for_writing(tmp, version)
         arrays = create_arrays(group, shapes, data.dtype, version, chunks, byte_order)
         write_levels(arrays, data, is_labels)
