@@ -15,6 +15,8 @@ import nrrd as pynrrd
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from volwarp_cli.errors import FormatError
 from volwarp_cli.io import read_volume
@@ -199,3 +201,86 @@ def test_a_file_name_that_is_not_utf8_is_written_and_read_as_its_bytes(tmp_path,
     if ext != ".nrrd":  # the header names its data file by the same bytes
         header = (tmp_path / name).read_bytes()
         assert b"caf\xe9.raw" in header
+
+
+_ESCAPED = {"multi": "line one\nline two", "back": "C:\\dir\\name", "lit": "a\\nb",
+            "tail": "ends\\", "k\\ey": "v"}
+
+
+def test_key_values_take_teems_escapes_as_itk_writes_and_reads_them(tmp_path):
+    """A backslash is ``\\\\`` and a newline ``\\n`` in a NRRD key/value (teem, so ITK and Slicer).
+
+    Read literally, ITK's ``C:\\\\dir`` came out with doubled backslashes and
+    a two-line value as one with ``\\n`` in it; written back, a newline became
+    a space. Both directions are checked against SimpleITK.
+    """
+    from volwarp_cli import api
+    from volwarp_cli.volume import Volume
+
+    image = sitk.GetImageFromArray(np.zeros((2, 2, 2), np.uint8))
+    for key, value in _ESCAPED.items():
+        image.SetMetaData(key, value)
+    sitk.WriteImage(image, str(tmp_path / "itk.nrrd"))
+    meta = read_volume(tmp_path / "itk.nrrd").meta
+    assert {k: meta[k] for k in _ESCAPED} == _ESCAPED
+
+    api.write(Volume(np.zeros((2, 2, 2), np.uint8), meta=dict(_ESCAPED)), tmp_path / "vw.nrrd")
+    back = sitk.ReadImage(str(tmp_path / "vw.nrrd"))
+    assert {k: back.GetMetaData(k) for k in _ESCAPED} == _ESCAPED
+    assert read_volume(tmp_path / "vw.nrrd").meta == {**_ESCAPED, **{
+        k: v for k, v in read_volume(tmp_path / "vw.nrrd").meta.items() if k not in _ESCAPED}}
+
+
+def test_a_backslash_before_anything_else_is_kept_as_teem_keeps_it(tmp_path):
+    path = tmp_path / "h.nrrd"
+    path.write_bytes(b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 1 1 1\nencoding: raw\n"
+                     b"a:=x\\Py\nb:=tail\\\nc:=q\\\\n\nd:=t\\tz\n\n\0")
+    mine = read_volume(path).meta
+    theirs = sitk.ReadImage(str(path))
+    assert {k: mine[k] for k in "abcd"} == {k: theirs.GetMetaData(k) for k in "abcd"} \
+        == {"a": "x\\Py", "b": "tail\\", "c": "q\\n", "d": "t\\tz"}
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.dictionaries(st.text(alphabet=st.characters(blacklist_categories=("Cs",),
+                                                      blacklist_characters="\r:="),
+                               min_size=1, max_size=8).filter(lambda k: not k.startswith("#")),
+                       st.text(alphabet=st.characters(blacklist_categories=("Cs",),
+                                                      blacklist_characters="\r"),
+                               max_size=12),
+                       max_size=4))
+def test_any_key_values_come_back_from_a_nrrd_as_written(meta):
+    import tempfile
+
+    from volwarp_cli import api
+    from volwarp_cli.volume import Volume
+
+    meta = {k: v for k, v in meta.items() if not k.startswith(("NRRD_", "volwarp_"))}
+    with tempfile.TemporaryDirectory() as tmp:
+        api.write(Volume(np.zeros((1, 1, 1), np.uint8), meta=meta), f"{tmp}/m.nrrd")
+        got = read_volume(f"{tmp}/m.nrrd").meta
+    assert {k: got.get(k) for k in meta} == meta
+
+
+@pytest.mark.parametrize("ext, key", [(".nrrd", "#note"), (".nrrd", "a:=b"),
+                                      (".mha", "ElementDataFile"), (".mha", "a=b")])
+def test_a_key_the_header_cannot_hold_is_dropped_with_a_warning(tmp_path, ext, key):
+    import logging
+
+    from volwarp_cli import api
+    from volwarp_cli.volume import Volume
+
+    records = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    logging.getLogger("volwarp").addHandler(handler)
+    try:
+        api.write(Volume(np.arange(8, dtype=np.uint8).reshape(2, 2, 2),
+                         meta={key: "x", "kept": "y"}), tmp_path / f"o{ext}")
+    finally:
+        logging.getLogger("volwarp").removeHandler(handler)
+    back = read_volume(tmp_path / f"o{ext}")
+    assert back.meta["kept"] == "y" and key not in back.meta
+    assert np.array_equal(back.data, np.arange(8, dtype=np.uint8).reshape(2, 2, 2))
+    said = [r.getMessage() for r in records if repr(key) in r.getMessage()]
+    assert len(said) == 1 and "not written" in said[0]

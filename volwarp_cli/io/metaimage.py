@@ -518,14 +518,23 @@ def _nums(values) -> str:
 
 def _user_fields(meta: dict) -> list[tuple[str, str]]:
     """The meta key/values written to the header (sorted, as ITK writes its dictionary)."""
-    out = {}
+    out, dropped = {}, []
     for key, value in meta.items():
         key = str(key)
         name = key[len(PREFIX):] if key.startswith(PREFIX) else key
         if (not name or name in _STRUCTURE or "=" in name or name != name.strip()
                 or any(ch in name for ch in "\r\n")):
-            continue  # written by volwarp itself, or not a header key
+            # written by volwarp itself, or not a header key
+            if not key.startswith(PREFIX):
+                dropped.append(key)
+            continue
         out[name] = str(value).replace("\r", " ").replace("\n", " ").strip()
+    if dropped:
+        from ..progress import log
+
+        log.warning("warning: key/value%s %s not written to the MetaImage header (MetaIO's "
+                    "own fields, or not a header key)", "s" if len(dropped) > 1 else "",
+                    ", ".join(map(repr, sorted(dropped))))
     return sorted(out.items())
 
 

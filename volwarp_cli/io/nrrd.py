@@ -5,7 +5,8 @@ endian, ``space``/``space directions``/``space origin`` or ``spacings``/``axis
 mins``/``axis maxs``/``centerings`` geometry (placed as ITK places it: cell
 centering unless ``node`` is given, see :func:`_axis_geometry`), detached
 data (one file, ``LIST`` or a ``%d`` pattern), line and byte skips.
-Key/value pairs (``key:=value``) are kept in ``Volume.meta``; the
+Key/value pairs (``key:=value``) are kept in ``Volume.meta``, with teem's
+two escapes (``\\n`` a newline, ``\\\\`` a backslash: :func:`_unescape`); the
 descriptive fields ``content``, ``space units`` and ``measurement frame``
 are kept as ``NRRD_content`` etc. (ITK's names), and written back.
 
@@ -78,6 +79,24 @@ _FIELDS = frozenset((
     "centerings", "labels", "units", "kinds", "space", "space dimension", "space units",
     "space origin", "space directions", "measurement frame"))
 _VECTOR = re.compile(r"\(([^()]*)\)")
+#: teem's escapes in key/value pairs (what ITK and Slicer write): \\ and \n
+_ESCAPE = re.compile(r"\\([\\n])")
+
+
+def _unescape(text: str) -> str:
+    """A key or value as teem reads it: ``\\\\`` a backslash, ``\\n`` a newline.
+
+    Left to right, as teem does: ``\\\\n`` is a backslash and an ``n``; any
+    other backslash is kept (a DICOM value's ``ORIGINAL\\PRIMARY`` read as
+    ITK reads it).
+    """
+    return _ESCAPE.sub(lambda m: "\n" if m.group(1) == "n" else "\\", text) if "\\" in text \
+        else text
+
+
+def _escape(text: str) -> str:
+    """A key or value as teem writes it (:func:`_unescape` reads it back the same)."""
+    return text.replace("\\", "\\\\").replace("\n", "\\n")
 
 
 def _parse_vector(text: str, where: str, name: str) -> list[float]:
@@ -145,7 +164,7 @@ def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
             break
         if ":=" in line:
             key, value = line.split(":=", 1)
-            keyvals[key] = value
+            keyvals[_unescape(key)] = _unescape(value)
             continue
         if ": " not in line:
             shown = line if len(line) <= 80 else line[:77] + "..."
@@ -693,18 +712,25 @@ def nrrd_header(vol: Volume | Header, dtype: np.dtype, *, encoding: str, byte_or
     lines.append(f"space origin: {_vec(vol.origin)}")
     for name in _KEPT_FIELDS:
         value = vol.meta.get(f"NRRD_{name}")
-        if value is not None:
-            lines.append(f"{name}: {value}")
+        if value is not None:  # (a field has no escapes: one line)
+            lines.append(f"{name}: {' '.join(str(value).splitlines())}")
     if data_file is not None:
         lines.append(f"data file: {data_file}")
     meta = {k: v for k, v in vol.meta.items() if not k.startswith("NRRD_")}
     if components is not None:
         meta["volwarp_components"] = " ".join(components)
-    for key in sorted(meta):
-        value = str(meta[key]).replace("\n", " ")
-        if ":=" in key or "\n" in key:
+    dropped = []
+    for key in sorted(meta, key=str):
+        if ":=" in str(key) or str(key).startswith("#"):  # (not a key: a comment, or cut)
+            dropped.append(str(key))
             continue
-        lines.append(f"{key}:={value}")
+        lines.append(f"{_escape(str(key))}:={_escape(str(meta[key]))}")
+    if dropped:
+        from ..progress import log
+
+        log.warning("warning: key/value%s %s not written to the NRRD header (a key cannot "
+                    "hold ':=' or begin with '#')", "s" if len(dropped) > 1 else "",
+                    ", ".join(map(repr, dropped)))
     text = "\n".join(lines) + "\n"
     if data_file is None:
         text += "\n"
