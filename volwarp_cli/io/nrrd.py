@@ -1,4 +1,4 @@
-"""NRRD (``.nrrd`` attached, ``.nhdr`` detached) reading and writing.
+r"""NRRD (``.nrrd`` attached, ``.nhdr`` detached) reading and writing.
 
 Reads NRRD0001-5 headers with encodings raw, gzip, bzip2 and ascii, either
 endian, ``space``/``space directions``/``space origin`` or ``spacings``/``axis
@@ -6,7 +6,7 @@ mins``/``axis maxs``/``centerings`` geometry (placed as ITK places it: cell
 centering unless ``node`` is given, see :func:`_axis_geometry`), detached
 data (one file, ``LIST`` or a ``%d`` pattern), line and byte skips.
 Key/value pairs (``key:=value``) are kept in ``Volume.meta``, with teem's
-two escapes (``\\n`` a newline, ``\\\\`` a backslash: :func:`_unescape`); the
+two escapes (``\n`` a newline, ``\\`` a backslash: :func:`_unescape`); the
 descriptive fields ``content``, ``space units`` and ``measurement frame``
 are kept as ``NRRD_content`` etc. (ITK's names), and written back.
 
@@ -84,10 +84,10 @@ _ESCAPE = re.compile(r"\\([\\n])")
 
 
 def _unescape(text: str) -> str:
-    """A key or value as teem reads it: ``\\\\`` a backslash, ``\\n`` a newline.
+    r"""A key or value as teem reads it: ``\\`` a backslash, ``\n`` a newline.
 
-    Left to right, as teem does: ``\\\\n`` is a backslash and an ``n``; any
-    other backslash is kept (a DICOM value's ``ORIGINAL\\PRIMARY`` read as
+    Left to right, as teem does: ``\\n`` is a backslash and an ``n``; any
+    other backslash is kept (a DICOM value's ``ORIGINAL\PRIMARY`` read as
     ITK reads it).
     """
     return _ESCAPE.sub(lambda m: "\n" if m.group(1) == "n" else "\\", text) if "\\" in text \
