@@ -471,3 +471,39 @@ def test_convert_refuses_a_write_whose_copies_do_not_fit(run, tmp_path, holding,
     assert run("convert", tmp_path / "in.nrrd", "-o", ref, *extra).code == 0
     assert out.read_bytes() == ref.read_bytes()
     assert read_volume(out).data.shape == (64, 64, 64)
+
+
+@pytest.mark.parametrize("name", ["o.nii.gz", "o.nii"])
+def test_convert_near_its_limit_is_refused_or_stays_under_it_measured(tmp_path, name):
+    """Around the least limit a convert needs, each run is refused with nothing written or
+    peaks under its limit (the process's whole peak, measured). ISA-L, loaded by the NIfTI
+    writer after the check, and the writer's own objects went uncounted: a .nii.gz of a
+    256^3 scan peaked 1.6 MiB over a limit it had passed (0.7 MiB for a .nii)."""
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    data = (np.random.default_rng(1).random((96, 96, 96)) * 1000).astype(np.float32)
+    write_volume(Volume(data), tmp_path / "in.nrrd")
+    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
+
+    def convert(limit_bytes, out):
+        proc = subprocess.run([sys.executable, "-c", _WRAPPER, sys.executable, "-m",
+                               "volwarp_cli", "convert", str(tmp_path / "in.nrrd"), "-o",
+                               str(out), "--memory-limit", str(int(limit_bytes))],
+                              capture_output=True, text=True, env=env, timeout=60)
+        return proc.returncode, proc.stderr, int(proc.stdout.split()[-1])
+
+    code, err, peak = convert(2 << 30, tmp_path / f"free_{name}")
+    assert code == 0, err
+    ran = refused = 0
+    for step in range(-3, 5):  # (the limit from 3 MiB under the free run's peak to 4 over)
+        limit = peak + step * M
+        out = tmp_path / f"l{step + 3}_{name}"
+        code, err, got = convert(limit, out)
+        if code == 0:
+            assert got <= limit, f"{(got - limit) / M:.2f} MiB over {limit / M:.1f} MiB"
+            ran += 1
+        else:
+            assert code == 1 and "memory limit" in err and not out.exists(), err
+            refused += 1
+    assert ran and refused  # (the sweep crossed the least limit)

@@ -261,6 +261,28 @@ def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: 
         write_raw(vol, path, byte_order=byte_order, dtype=cast)
 
 
+def load_writer(path: str | os.PathLike, compress: bool = False) -> None:
+    """Load what :func:`write_volume` needs to write ``path``, without writing anything.
+
+    The format's writer and a compressed output's compressor (ISA-L's
+    deflate for gzip, tifffile's zlib, zarr and its codecs): 1-20 MiB that a
+    check against a tight memory limit must find already held
+    (:func:`volwarp_cli.memory.ensure_fits_once_loaded`).
+    """
+    import importlib
+
+    path = Path(path)
+    fmt = volume_format(path)
+    importlib.import_module(f"{__name__}.{fmt}")
+    if fmt == "omezarr":
+        import numcodecs  # noqa: F401  (the 0.4 stores' codec)
+        import zarr.codecs  # noqa: F401
+    elif fmt == "tiff":
+        import tifffile  # noqa: F401
+    if compressed_output(path, fmt, compress) and fmt in ("nifti", "nrrd"):
+        from . import deflate  # noqa: F401  (ISA-L)
+
+
 def compressed_output(path, fmt: str, compress: bool = False) -> bool:
     """Whether the output ``path`` of format ``fmt`` holds its samples compressed.
 
@@ -309,18 +331,31 @@ def write_memory(path: str | os.PathLike, shape, src_dtype, *, dtype=None,
     machine's, and the compressed bytes where they are made whole first
     (a zlib MetaImage, whose header gives their size; TIFF's and gzip's
     streams go to the file as they are made: a few blocks). As many bytes
-    compressed as uncompressed, the worst case. OME-Zarr outputs: not
-    counted here (0).
+    compressed as uncompressed, the worst case. And :data:`WRITER_BYTES` for
+    the writer's own objects and buffers. OME-Zarr outputs: not counted here
+    (0).
     """
+    path = Path(path)
+    fmt = volume_format(path)
+    if fmt == "omezarr":
+        return 0
+    return WRITER_BYTES + _copies_bytes(path, fmt, shape, src_dtype, dtype, compress, byte_order)
+
+
+#: what a writer holds beyond its copies of the samples: its header, its calls' objects,
+#: and the code it runs first (numpy's and the writer's pages, resident once touched):
+#: measured 1.3-1.6 MiB (96^3 and 256^3 float32 to .nii, .nii.gz, .nii as int16)
+WRITER_BYTES = 2 << 20
+
+
+def _copies_bytes(path: Path, fmt: str, shape, src_dtype, dtype, compress: bool,
+                  byte_order: str) -> int:
+    """:func:`write_memory`'s copies of the samples (a cast, a swap, a compressed stream)."""
     import math
     import sys
 
     from .common import SLAB_BYTES
 
-    path = Path(path)
-    fmt = volume_format(path)
-    if fmt == "omezarr":
-        return 0
     src = np.dtype(src_dtype)
     out = src if dtype is None else np.dtype(dtype)
     count = math.prod(int(n) for n in shape)
@@ -340,6 +375,9 @@ def write_memory(path: str | os.PathLike, shape, src_dtype, *, dtype=None,
         held += size + size // 64 + (1 << 20)  # (zlib's worst case: stored blocks)
     elif fmt == "tiff":
         held += min(size, 3 * SLAB_BYTES)
-    else:  # (gzip: under 8 MiB made whole, its parts joined; else blocks on four threads)
-        held += min(2 * size + (1 << 16), 16 << 20)
+    else:  # (gzip: under 8 MiB made whole, its parts joined, and the stream grown to its
+        # size: 2.8 times the samples' measured; else blocks on four threads)
+        from .deflate import BLOCKS_FROM
+
+        held += 3 * size + (1 << 16) if size < BLOCKS_FROM else 16 << 20
     return held

@@ -136,7 +136,6 @@ from .common import (
     read_exact,
     write_samples,
 )
-from .deflate import gzip_to
 
 _RAS_TO_LPS = np.diag([-1.0, -1.0, 1.0])
 
@@ -945,7 +944,9 @@ def write_nifti_file(path: str | os.PathLike, data_xyz: np.ndarray, aff: np.ndar
     except ValueError as exc:
         raise VolwarpError(f"{path}: {exc}") from None
     with atomic_output(path) as tmp, open(tmp, "wb") as fh:
-        if gz:  # (the stream written as it is made)
+        if gz:  # (the stream written as it is made; ISA-L loaded for a .nii.gz only)
+            from .deflate import gzip_to
+
             gzip_to(fh, head, memoryview(samples).cast("B"))
         else:  # (in the machine's order, cast by slabs where it must be)
             fh.write(head)
