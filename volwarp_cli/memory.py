@@ -219,6 +219,15 @@ def _env_limit() -> int | None:
         raise BadUsage(f"{MEMORY_ENV}={text!r}: {exc}") from None  # (exit 2, as VOLWARP_THREADS)
 
 
+def explicit_limit() -> int | None:
+    """The explicit limit in effect (``--memory-limit``, ``VOLWARP_MEMORY_LIMIT``: the lower), or None.
+
+    The whole process's, before what it holds is taken off (:func:`_limit`).
+    """
+    found = [v for v in (_env_limit(), (_budget.get() or (None,))[0]) if v is not None]
+    return min(found) if found else None
+
+
 def process_rss() -> int:
     """The resident memory of this process now (bytes; 0 where /proc is not there)."""
     from .parallel import _read

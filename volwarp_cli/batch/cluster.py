@@ -75,8 +75,12 @@ def share_of_cores(cores: int, host: str, host_threads: dict | None, nthreads: i
     processes on one machine share its cores: ``dask worker --nworkers 4``);
     a host not in it (a worker that joined later) counts its own ``nthreads``.
     """
-    at_once = (host_threads or {}).get(host) or nthreads
-    return max(1, int(cores) // max(1, int(at_once)))
+    return max(1, int(cores) // scans_at_once(host, host_threads, nthreads))
+
+
+def scans_at_once(host: str, host_threads: dict | None, nthreads: int) -> int:
+    """The scans a host runs at once: its workers' threads (:func:`share_of_cores`)."""
+    return max(1, int((host_threads or {}).get(host) or nthreads))
 
 
 def host_threads(scheduler_info: dict) -> dict[str, int]:
@@ -91,8 +95,13 @@ def host_threads(scheduler_info: dict) -> dict[str, int]:
 
 def scan_task(manifest: Manifest, scan: Scan, made: tuple[dict, dict], run_id: str, *,
               force: bool, step_retries: int, child_threads: int | None,
-              thumbnails: bool, hosts: dict | None = None) -> ScanResult:
-    """One scan's steps on this worker (a distributed task); its :class:`ScanResult`."""
+              thumbnails: bool, hosts: dict | None = None,
+              memory_limit: int | None = None) -> ScanResult:
+    """One scan's steps on this worker (a distributed task); its :class:`ScanResult`.
+
+    ``memory_limit``: the batch's explicit limit, which the scans its host runs
+    at once share (each step process gets its share as ``VOLWARP_MEMORY_LIMIT``).
+    """
     from distributed import get_worker
     from distributed.comm import get_address_host
 
@@ -102,18 +111,21 @@ def scan_task(manifest: Manifest, scan: Scan, made: tuple[dict, dict], run_id: s
     children = _children(run_id)
     if children.stopping is not None:
         return ScanResult(scan, "not started", worker=worker.address)
+    nthreads = getattr(getattr(worker, "state", None), "nthreads", None) or getattr(
+        worker, "nthreads", 1)
+    host = get_address_host(worker.address)
     if child_threads is None:  # the host's cores shared by the scans it runs at once
-        nthreads = getattr(getattr(worker, "state", None), "nthreads", None) or getattr(
-            worker, "nthreads", 1)
-        child_threads = share_of_cores(parallel.threads(), get_address_host(worker.address),
-                                       hosts, nthreads)
+        child_threads = share_of_cores(parallel.threads(), host, hosts, nthreads)
+    child_memory = None
+    if memory_limit is not None:  # (and the batch's memory limit)
+        child_memory = max(1, int(memory_limit) // scans_at_once(host, hosts, nthreads))
 
     def started(scan):
         worker.log_event(f"{TOPIC}-{run_id}", {"scan": scan.id, "worker": worker.address,
                                                 "pid": os.getpid()})
 
     runner = ScanRunner(manifest, force=force, retries=step_retries,
-                        child_threads=child_threads,
+                        child_threads=child_threads, child_memory=child_memory,
                         record=RecordSnapshot(manifest, made), children=children,
                         thumbnails=thumbnails, on_start=started, ships_hashes=True)
     result = runner.run(scan)
@@ -147,7 +159,9 @@ def _worker_deaths(keys: list[str], dask_scheduler=None) -> dict[str, int]:
 class ClusterBatch:
     """The scans of a manifest, one task each on the cluster of ``client``.
 
-    ``on_start``: called with (scan, worker address, worker pid).
+    ``on_start``: called with (scan, worker address, worker pid);
+    ``memory_limit``: the batch's explicit limit, shared by the scans each host
+    runs at once (:func:`scan_task`).
     """
 
     manifest: Manifest
@@ -158,6 +172,7 @@ class ClusterBatch:
     fail_fast: bool = False
     retries: int = 0
     child_threads: int | None = None
+    memory_limit: int | None = None
     thumbnails: bool = False
     on_scan: object = None
     on_start: object = None
@@ -204,7 +219,8 @@ class ClusterBatch:
         return self.client.submit(
             scan_task, self.manifest, scan, self.record.snapshot(plans), self.run_id,
             force=self.force, step_retries=self.retries, child_threads=self.child_threads,
-            thumbnails=self.thumbnails, hosts=self._hosts, key=f"volwarp-scan-{self.run_id}-{i:06d}-{again}",
+            thumbnails=self.thumbnails, hosts=self._hosts, memory_limit=self.memory_limit,
+            key=f"volwarp-scan-{self.run_id}-{i:06d}-{again}",
             priority=-i, pure=False)
 
     def _never_ran(self, i: int, future) -> bool:
@@ -220,7 +236,7 @@ class ClusterBatch:
     def _run(self) -> list[ScanResult]:
         self._by_id = {s.id: s for s in self.scans}
         self._hosts = None
-        if self.child_threads is None:
+        if self.child_threads is None or self.memory_limit is not None:
             try:
                 self._hosts = host_threads(self.client.scheduler_info())
             except Exception:  # noqa: BLE001 - then each worker counts its own threads
@@ -337,7 +353,7 @@ def run_on_cluster(manifest: Manifest, scans: list[Scan], where, **options):
 
     import dask
 
-    from .. import parallel
+    from .. import memory, parallel
     from ..engine import open_engine
 
     local = where.scheduler.kind == "local"
@@ -356,6 +372,9 @@ def run_on_cluster(manifest: Manifest, scans: list[Scan], where, **options):
             at_once, child = engine.workers, None  # (each host shares its cores: share_of_cores)
         with contextlib.suppress(Exception):
             engine.client.wait_for_workers(1, timeout=60)
+        limit = memory.explicit_limit()  # (each host's scans at once share it)
+        if limit is not None and local:  # (on this machine: less what the batch holds)
+            limit = max(1, limit - memory.process_rss())
         results, stop = ClusterBatch(manifest, scans, client=engine.client,
-                                     child_threads=child, **options).run()
+                                     child_threads=child, memory_limit=limit, **options).run()
     return results, stop, at_once

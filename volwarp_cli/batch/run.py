@@ -42,6 +42,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
+from ..memory import MEMORY_ENV
 from ..parallel import THREADS_ENV
 from .manifest import SCAN, Manifest, Scan
 from .plan import CommandRecord, StepPlan, made_from, plan_scan, stale_reason
@@ -219,7 +220,8 @@ class ScanRunner:
     """
 
     def __init__(self, manifest: Manifest, *, force: bool = False, retries: int = 0,
-                 child_threads: int = 1, record: CommandRecord | None = None,
+                 child_threads: int = 1, child_memory: int | None = None,
+                 record: CommandRecord | None = None,
                  children: Children | None = None, thumbnails: bool = False, on_start=None,
                  ships_hashes: bool = False):
         self.manifest = manifest
@@ -227,6 +229,7 @@ class ScanRunner:
         self.force = force
         self.retries = retries
         self.child_threads = child_threads
+        self.child_memory = child_memory
         self.record = record if record is not None else CommandRecord(manifest)
         self.children = children if children is not None else Children()
         self.thumbnails = thumbnails
@@ -328,6 +331,8 @@ class ScanRunner:
     def _call(self, argv: list[str]) -> tuple[int | None, str, int | None]:
         """Run ``volwarp ARGV``: ``(exit code or None if not started, stderr, peak bytes)``."""
         env = dict(os.environ, **{THREADS_ENV: str(self.child_threads)})
+        if self.child_memory is not None:  # (the batch's limit, this scan's share of it)
+            env[MEMORY_ENV] = str(self.child_memory)
         proc = self.children.start(child_argv(argv), cwd=self.manifest.base, env=env)
         if proc is None:
             return None, "", None
@@ -372,6 +377,7 @@ class Batch:
         #: VOLWARP_THREADS of each scan's commands (a step's own --threads wins)
         self.runner = ScanRunner(manifest, force=force, retries=retries,
                                  child_threads=child_threads(self.jobs),
+                                 child_memory=child_memory(self.jobs),
                                  record=CommandRecord(manifest), children=self._children,
                                  thumbnails=thumbnails, on_start=on_start)
 
@@ -453,6 +459,23 @@ def default_jobs() -> int:
     from .. import parallel
 
     return parallel.threads()
+
+
+def child_memory(jobs: int) -> int | None:
+    """Each scan's step process's ``--memory-limit``: an explicit limit shared by ``jobs`` scans.
+
+    None without one (``--memory-limit``, ``VOLWARP_MEMORY_LIMIT``): each step
+    then weighs what the machine and its cgroup leave when it starts. Given,
+    the batch's limit is the machine's for every scan running at once (what
+    this process holds taken off first), never each step's whole (a pool of
+    four scans under 8G: 2G each, less the batch's own share), at least a byte.
+    """
+    from .. import memory
+
+    limit = memory.explicit_limit()
+    if limit is None:
+        return None
+    return max(1, (limit - memory.process_rss()) // max(1, jobs))
 
 
 def child_threads(jobs: int) -> int:
