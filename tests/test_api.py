@@ -155,6 +155,30 @@ def test_mesh_is_the_command_s_file(run, tmp_path):
     assert "volwarp_input" not in again.meta and surface.meta["volwarp_input"] == BALL.name
 
 
+def test_mesh_labels_are_the_command_s_files(run, tmp_path):
+    """``labels=True`` is ``--labels``: a mesh per label, each the bytes of its file (the API
+    had no way to it: ``TypeError: unexpected keyword argument 'labels'``)."""
+    from volwarp_cli.volume import Volume
+
+    ids = np.zeros((24, 22, 20), np.uint8)
+    ids[3:9, 4:10, 2:8], ids[12:20, 10:18, 9:17] = 2, 9
+    api.write(Volume(ids, spacing=(0.5, 0.7, 1.1)), tmp_path / "ids.nrrd")
+    res = run("mesh", tmp_path / "ids.nrrd", "--labels", "-o", tmp_path / "cli_{label}.ply",
+              "--smooth", "3")
+    assert res.code == 0, res.stderr
+    meshes = api.mesh(tmp_path / "ids.nrrd", labels=True, smooth=3)
+    assert list(meshes) == [2, 9]
+    for label, surface in meshes.items():
+        api.write(surface, tmp_path / f"api_{label}.ply")
+        _same_bytes(tmp_path / f"cli_{label}.ply", tmp_path / f"api_{label}.ply")
+    one = api.mesh(tmp_path / "ids.nrrd", label=9, smooth=3)
+    assert np.array_equal(one.vertices, meshes[9].vertices)
+    with pytest.raises(BadUsage, match="exclude each other"):
+        api.mesh(tmp_path / "ids.nrrd", labels=True, label=2)
+    with pytest.raises(BadUsage, match="--iso does not apply"):
+        api.mesh(tmp_path / "ids.nrrd", labels=True, iso=1)
+
+
 @pytest.mark.parametrize("options, kwargs", [
     (["--iso", "100", "--surface", "voxel"], dict(iso=100, surface="voxel")),
     (["--iso", "100", "--metric", "minnorm", "--unsigned"],

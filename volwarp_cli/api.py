@@ -544,8 +544,8 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
 
 def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool = False,
          smooth: int = 0, decimate: float = 0.0, largest_component: bool = False,
-         allow_empty: bool = False, label: int | None = None, values: str | None = None,
-         **read_options) -> Mesh:
+         allow_empty: bool = False, label: int | None = None, labels: bool = False,
+         values: str | None = None, **read_options) -> Mesh | dict[int, Mesh]:
     """``volwarp mesh``: the isosurface of ``volume`` at ``iso``, in world coordinates.
 
     Parameters
@@ -564,6 +564,8 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
         An empty surface gives an empty mesh (a warning) instead of an error.
     label : int, optional
         A label map: the surface of label ``label`` (no ``iso`` or ``inside``).
+    labels : bool
+        A label map: a mesh of each label (``--labels``), as ``{label: Mesh}``.
     values : {"intensity", "labels"}, optional
         As ``--values``: None lets the label rule decide, and a label map's
         surface (without ``label``) is that of its non-zero labels' voxels.
@@ -573,8 +575,7 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
     Mesh
         Triangles counter-clockwise seen from outside, outward normals; its
         :attr:`Mesh.meta` the provenance and level ``volwarp mesh`` records.
-        (``--labels``, one file per label, is not made here: call this for
-        each label.)
+        With ``labels``: a dict of them, one per label, in increasing order.
     """
     import math
     import numbers
@@ -592,22 +593,26 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
         raise BadUsage(f"decimate must be a fraction in [0, 1), got {decimate!r}")
     if iso is not None and not (isinstance(iso, numbers.Real) and math.isfinite(iso)):
         raise BadUsage(f"iso must be a finite number, got {iso!r}")
-    if label is not None and iso is not None:
+    if labels and label is not None:
+        raise BadUsage("--label N and --labels exclude each other")
+    if (labels or label is not None) and iso is not None:
         raise BadUsage("--iso does not apply to --label/--labels (the level is 0.5 of "
                        "each label's indicator)")
-    if label is not None and inside != "above":
+    if (labels or label is not None) and inside != "above":
         raise BadUsage("--inside does not apply to --label/--labels (inside is where the "
                        "label is)")
     _choice(values, VALUES, "values")
-    if values == "intensity" and label is not None:
+    if values == "intensity" and (labels or label is not None):
         raise BadUsage("--label N and --labels take a label map's ids as labels: they do not "
                        "go with --values intensity")
     path = _path_of(volume)
     name = str(path) if path is not None else "the volume"
     with _outside_data(read_options.get("allow_outside_data", False)):
         header, source = _header_and_source(volume, path, read_options)
-        which = label
-        if label is None:
+        from .surface.run import ALL_LABELS
+
+        which = ALL_LABELS if labels else label
+        if which is None:
             from .surface.labels import mesh_values
             from .surface.run import NONZERO_LABELS
 
@@ -618,11 +623,18 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
                            cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
                                            decimate=decimate),
                            labels=which, allow_empty=allow_empty, name=name)
-        (surface,) = execute.run(op, execute.How(chunked=False)).output
-    meta = _provenance("mesh", [path], None)
-    meta.update(surface_keys(which, surface.iso, surface.label))  # (as the command's file)
-    m = surface.mesh
-    return Mesh(m.vertices, m.faces, m.normals, meta=meta)
+        surfaces = execute.run(op, execute.How(chunked=False)).output
+
+    def made(surface) -> Mesh:
+        meta = _provenance("mesh", [path], None)
+        meta.update(surface_keys(which, surface.iso, surface.label))  # (as the command's file)
+        m = surface.mesh
+        return Mesh(m.vertices, m.faces, m.normals, meta=meta)
+
+    if labels:
+        return {int(s.label): made(s) for s in sorted(surfaces, key=lambda s: s.label)}
+    (surface,) = surfaces
+    return made(surface)
 
 
 # -- the pieces --------------------------------------------------------------------------

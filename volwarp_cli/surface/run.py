@@ -221,8 +221,9 @@ class MeshOperation(Reduction):
         if self.to is not None:  # every label's file its own, before any mesh is made
             _distinct_label_files(self.to.path, found)
         log.info("%d labels: %s", len(found), " ".join(map(str, found[:20])))
+        # (written label by label, each mesh let go; with no file, as the API asks, kept)
         return [self._surface(LabelIndicator(source, label), blocks, LABEL_LEVEL,
-                              f"{self.name} label {label}", label, keep=False)
+                              f"{self.name} label {label}", label, keep=self.to is None)
                 for label in found]
 
     def _surface(self, source, blocks: Blocks, level: Level, name: str,
