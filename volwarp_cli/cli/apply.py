@@ -95,8 +95,9 @@ def _initial_transforms(path) -> list:
               metavar="T|[T,1]", type=TransformArg(),
               help="A transform file, repeated in antsApplyTransforms' order: they act on an "
                    "output point in the order listed (-t A -t B samples the input at B(A(p))). "
-                   "ITK .tfm/.txt/.h5, ITK/ANTs .mat, displacement-field images (.nii.gz, "
-                   ".nrrd, .mha), recognised by content; '[T,1]': the inverse of a linear T.")
+                   "ITK .tfm/.txt/.h5, ITK/ANTs .mat, elastix TransformParameters files, "
+                   "displacement-field images (.nii.gz, .nrrd, .mha), recognised by content; "
+                   "'[T,1]': the inverse of a linear T.")
 @click.option("--interpolation", type=click.Choice(INTERPOLATIONS), default=None,
               help="As ITK's: linear, nearest or cubic B-spline [default: nearest for a label "
                    "map, else linear].")
@@ -122,7 +123,7 @@ def _initial_transforms(path) -> list:
     "A mesh (PLY, LPS mm) of the input space whose vertices move as the points.",
     "The moved mesh, faces kept, normals recomputed (.ply .stl .obj .vtp .vtk).")
 @write_options
-@input_options(reference_help=REFERENCE_HELP)
+@input_options(reference_help=REFERENCE_HELP, reference_metavar="REF")
 @scale_options
 @common_options
 def command(input, output, transforms, reference, interpolation, values, labels, outside_field,

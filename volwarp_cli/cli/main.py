@@ -33,9 +33,9 @@ _SHORT_HELP = {
     "morph": "Morph one shape into another through signed distance fields.",
     "sweep": "Sweep 2-D image templates along a trajectory into volumes.",
     "distance": "Signed distance field of a shape (euclidean or min-norm).",
-    "mesh": "Isosurface a volume to PLY/STL/OBJ/VTP and render it to PNG.",
+    "mesh": "Isosurface a volume to PLY/STL/OBJ/VTP/VTK and render it to PNG.",
     "info": "Print a volume's format, geometry and statistics.",
-    "convert": "Convert a volume between NRRD, NIfTI, MetaImage, TIFF and raw (DICOM in).",
+    "convert": "Convert a volume between NRRD, NIfTI, MetaImage, TIFF, OME-Zarr and raw (DICOM in).",
     "batch": "Run a manifest of scans through a chain of volwarp steps, in parallel.",
 }
 
@@ -198,14 +198,15 @@ def _outputs_of(args):
 def cli(debug):
     """volwarp: modelling with sampled volumes, in batch.
 
-    Volumes are NRRD, NIfTI, MetaImage, TIFF or raw files, or DICOM (a file,
-    a folder or a DICOMDIR); geometry
+    Volumes are NRRD, NIfTI, MetaImage, TIFF, OME-Zarr or raw files, or DICOM
+    (a file, a folder or a DICOMDIR; SEG and RTSTRUCT as label maps); geometry
     on the command line and in specs is always (x, y, z) in world units
     unless a spec says `units: voxel`. The world frame is LPS millimetres
     (x to the patient's left, y posterior, z superior, as ITK and 3D Slicer
     have it), whatever frame a file stores: a RAS point (FSL, SPM, MNI) is
     (-x, -y, z). Exit codes: 0 success, 2 usage or spec error, 1 other
-    failures.
+    failures, 128+N when stopped by signal N (130 Ctrl-C, 143 SIGTERM); batch:
+    75 when another batch holds its output folder.
     """
 
 

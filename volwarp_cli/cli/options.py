@@ -314,7 +314,8 @@ REFERENCE_HELP = ("DICOM SEG or RTSTRUCT input: the image series (folder, DICOMD
                   "grid).")
 
 
-def input_options(f=None, *, reference_help: str = REFERENCE_HELP):
+def input_options(f=None, *, reference_help: str = REFERENCE_HELP,
+                  reference_metavar: str = "SERIES"):
     """Options describing how to read a volume input.
 
     Headerless raw inputs (``--raw-*``, combined into ``raw: RawLayout``),
@@ -326,7 +327,8 @@ def input_options(f=None, *, reference_help: str = REFERENCE_HELP):
     :func:`~volwarp_cli.cli.common.load_input` and
     :func:`~volwarp_cli.cli.chunked.lazy_input` read them for every command.
 
-    ``@input_options``, or ``@input_options(reference_help=...)``. A command
+    ``@input_options``, or ``@input_options(reference_help=..., reference_metavar=...)``
+    (``apply``'s ``--reference`` is the output grid's image: ``REF``). A command
     whose function takes ``reference`` itself (``convert``: also the series a
     written SEG or RTSTRUCT references) gets ``--reference`` as that keyword
     instead, and decides.
@@ -334,7 +336,8 @@ def input_options(f=None, *, reference_help: str = REFERENCE_HELP):
     import inspect
 
     if f is None:
-        return functools.partial(input_options, reference_help=reference_help)
+        return functools.partial(input_options, reference_help=reference_help,
+                                 reference_metavar=reference_metavar)
     takes_reference = "reference" in inspect.signature(f).parameters
 
     @functools.wraps(f)
@@ -396,8 +399,8 @@ def input_options(f=None, *, reference_help: str = REFERENCE_HELP):
         click.option("--keep-phi", is_flag=True, default=False,
                      help="DICOM input: keep identifying tags (patient name, ID, birth "
                           "date, ...) in the output's key/values (default: left out)."),
-        click.option("--reference", type=INPUT_PATH, default=None, metavar="SERIES",
-                     help=reference_help),
+        click.option("--reference", type=INPUT_PATH, default=None,
+                     metavar=reference_metavar, help=reference_help),
         click.option("--segment", type=click.IntRange(min=1), default=None, metavar="N",
                      help="DICOM SEG input: segment N alone, as a 0/1 mask (default: every "
                           "segment, valued by its number; overlapping segments need this)."),
@@ -456,7 +459,7 @@ def write_options(f=None, *, dtype_default: str = "the input's"):
                                 "is always gzip; OME-Zarr always zstd).")(wrapper)
     wrapper = click.option("--byte-order", type=click.Choice(["little", "big"]),
                            default="little", show_default=True,
-                           help="Byte order of NRRD, TIFF, raw and OME-Zarr outputs.")(wrapper)
+                           help="Byte order of NRRD, MetaImage, TIFF, raw and OME-Zarr outputs.")(wrapper)
     return wrapper
 
 

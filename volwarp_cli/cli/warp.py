@@ -54,7 +54,8 @@ from .warp_options import (
 @click.option("--frames-to", default=None, metavar="PATTERN",
               help="Also write every animation frame, e.g. 'out_{frame:03d}.nrrd' "
                    "({frame} and its alias {step}: 0 = unwarped, then one per increment; "
-                   "{spec_step}, {sub}: the spec step and the increment within it). A label "
+                   "{spec_step}, {sub}: the spec step and the increment within it, both from "
+                   "1; --json's handles count steps from 0). A label "
                    "map's frames are each the label warp recomputed exactly from the input "
                    "map for that frame's lattice (not incremental: each frame costs a whole "
                    "label warp).")
