@@ -199,6 +199,69 @@ def test_a_float_with_fractions_is_read_no_further_than_a_few_rows():
     assert reads == [16 * 32, 32 * 32 * 8]
 
 
+# -- 1b. densities aligned with the axes (test 3) --------------------------------------------
+
+def smooth_step(n=48, width=20, axis=2) -> np.ndarray:
+    """0 to 255 across ``width`` voxels along ``axis``: each level a flat region one voxel thick."""
+    ramp = np.clip((np.arange(n) - (n - width) / 2) / width, 0, 1) * 255
+    shape = [1, 1, 1]
+    shape[axis] = n
+    return np.broadcast_to(np.round(ramp).astype(np.uint8).reshape(shape), (n, n, n)).copy()
+
+
+def antialiased_box(n=40) -> np.ndarray:
+    """A box aligned with the axes whose faces' partial voxels hold their covered share."""
+    out = np.zeros((n, n, n), np.uint8)
+    out[10:30, 10:30, 10:30] = 255
+    out[9, 10:30, 10:30] = out[30, 10:30, 10:30] = 90
+    out[10:30, 9, 10:30] = out[10:30, 30, 10:30] = 140
+    out[10:30, 10:30, 9] = out[10:30, 10:30, 30] = 60
+    return out
+
+
+def rounded_distance() -> np.ndarray:
+    z, y, x = np.mgrid[:40, :40, :40]
+    m = ((x - 20) ** 2 + (y - 20) ** 2 + (z - 20) ** 2) < 100
+    field = ndi.distance_transform_edt(~m) - ndi.distance_transform_edt(m)
+    return np.round(field - field.min()).astype(np.int16)
+
+
+@pytest.mark.parametrize("name, make", [
+    ("smooth step along x", lambda: smooth_step(axis=2)),
+    ("smooth step along z", lambda: smooth_step(axis=0)),
+    ("steep step along y", lambda: smooth_step(width=6, axis=1)),
+    ("antialiased box", antialiased_box),
+    ("integer-rounded distance field", rounded_distance),
+])
+def test_densities_aligned_with_the_axes_are_not_label_maps(name, make):
+    """Each level of such a density is a flat region one voxel thick, so tests 1 and 2 took
+    them for labels (the tree-wind example's leaf map: `distance` measured the surface of
+    "ids" 1, 2, 3, ... of a 0..255 step); their levels lie between their neighbours'."""
+    data = make()
+    assert len(np.unique(data)) > 4
+    assert not looks_like_labels(data), name
+    assert label_map_hint(data) is None
+    # by boxes of a few planes: the same answer
+    assert not looks_like_labels_by_blocks(data, list(Box.from_shape(data.shape).blocks((7, 40, 40))))
+
+
+def test_a_step_is_a_density_in_distance_and_a_label_map_still_a_label_map(run, tmp_path):
+    write_volume(Volume(smooth_step()), tmp_path / "step.nrrd")
+    res = run("distance", tmp_path / "step.nrrd", "--iso", "127.5", "-o", tmp_path / "d.nrrd")
+    assert res.code == 0, res.stderr  # (a label map: --iso refused, exit 2)
+    out = read_volume(tmp_path / "d.nrrd")
+    assert "values=intensity" in out.meta["volwarp_distance"]
+    field = out.data
+    # the level 127.5 is the plane x = 23.5 (voxel centres): a signed distance along x
+    x = np.arange(48)
+    assert np.allclose(field[5, 7], np.abs(x - 23.5) * np.sign(23.5 - x), atol=0.51)
+    labels = segmentation()
+    write_volume(Volume(labels), tmp_path / "seg.nrrd")
+    res = run("distance", tmp_path / "seg.nrrd", "-o", tmp_path / "ds.nrrd")
+    assert res.code == 0, res.stderr
+    assert "values=labels" in read_volume(tmp_path / "ds.nrrd").meta["volwarp_distance"]
+
+
 # -- scans stay out -------------------------------------------------------------------------
 
 def _nibabel(name):

@@ -39,6 +39,17 @@ with its next plane ``z + 1``:
    0.86). With two values only, nothing is left for this test: every
    2-valued candidate is a label map (a mask: an intensity warp would blend
    it into values it does not have).
+3. *Its values jump, they do not step through levels*: fewer than
+   :data:`MIN_GRADED` graded crossings per voxel of those values, on the
+   plane after each sampled one: a voxel whose two neighbours along an axis
+   (x, y, or the planes before and after) both differ from it, one lower and
+   one higher (each axis counts, so a voxel gives up to 3). A density aligned
+   with the axes passes tests 1 and 2 (each level of a smooth ramp is a flat
+   region one voxel thick: 3D Slicer's and volwarp's own smooth steps, the
+   tree-wind example's leaf map, an antialiased box, an integer-rounded
+   distance field) and was taken for labels; its levels lie between their
+   neighbours' (0.6 to 1.6). A label map's ids do so only where a region one
+   voxel thick lies between a lower and a higher id (0.00 to 0.16).
 
 Measured (``S``: test 1; ``R``: test 2; ``before``: the rule before, the
 share of equal x pairs that are not both 0, at least 0.5, with the mode's
@@ -83,16 +94,38 @@ nibabel standard.nii.gz (random 0/255)     0.13    1.00   --     yes
 integer-rounded distance field (35 values) 0.51    0.52   0.99   yes
 =========================================  ======  =====  =====  ======
 
-A distance field (float, not integers) and a float fMRI volume are not
-candidates. Ambiguous by nature, and taken for labels: an integer-rounded
-distance field (its levels are shells, regions along the surface), a
-random 0/255 pattern (two values) and an antialiased box aligned with the
-axes (its faces' partial voxels are flat regions of one value). Single-voxel
-landmarks are no regions: not a label map (a sparse noise is no different).
+Test 3 (``G``), measured on the cases above that pass tests 1 and 2 and on
+densities aligned with the axes (every scan above fails test 1 or 2; the
+scans' own ``G`` is 0.0 to 2.7):
+
+=========================================  =====  =====  =====  ======
+data                                       S      R      G      labels
+=========================================  =====  =====  =====  ======
+tree-wind leaf map (smooth step, 256)      0.81   0.77   0.81   no
+clay block warped as intensity (124)       0.59   0.85   1.55   no
+a smooth ramp along x, 20 voxels wide      0.84   1.00   1.00   no
+antialiased box aligned with the axes      0.92   1.00   1.00   no
+integer-rounded distance field             0.52   0.99   0.62   no
+frog tissue map (bundled, 26 labels)       0.98   1.00   0.01   yes
+k-means (4 labels) of the bundled T1       0.71   0.97   0.14   yes
+k-means of colin27, 6 classes, 1-3 mm      0.68   0.96   0.03   yes
+k-means of colin27, 8 classes, 1 mm        0.79   0.99   0.16   yes
+Voronoi atlas (652 ids)                    0.70   0.99   0.07   yes
+1-voxel-wide random walks (3 ids)          0.91   0.98   0.11   yes
+20 landmarks of 2x2x2, 343 blocks          1.00   1.00   0.00   yes
+=========================================  =====  =====  =====  ======
+
+Ambiguous by nature: an intensity image quantised into many ordered classes
+(k-means of colin27 into 8 classes at 2 or 3 mm: ``G`` 0.45 to 0.54, taken
+for a density; at 1 mm 0.16, a label map) and a random 0/255 pattern (two
+values: a label map). A distance field (float, not integers) and a float fMRI
+volume are not candidates. Single-voxel landmarks are no regions: not a label
+map (a sparse noise is no different). ``--values`` decides where the rule
+cannot.
 
 **Cost.** One pass over the samples to count the distinct values (a count
 table for ranges under 2**24, else a sort; box by box, so that memory does
-not grow with the volume) and about 2 x :data:`SAMPLED_PLANES` planes for
+not grow with the volume) and about 3 x :data:`SAMPLED_PLANES` planes for
 the neighbours; no cap on the number of values is needed for speed. The
 value counts are merged over any boxes, and the planes are the same, so the
 answer never depends on how the source was read.
@@ -135,6 +168,9 @@ MIN_EQUAL_PAIRS = 0.5
 #: have a neighbour of their own value (antialiased densities 0.15 to 0.22, label maps
 #: 0.97 and more)
 MIN_IN_REGIONS = 0.5
+#: test 3: from this share of graded crossings among those voxels (each axis counted) on,
+#: the values step through levels (a density), not jump between regions (a label map)
+MIN_GRADED = 0.3
 #: about this many planes are sampled for the neighbour tests (each with its next plane)
 SAMPLED_PLANES = 64
 
@@ -380,25 +416,34 @@ def _rule(values, counts, shape, plane) -> bool:
         return False
     order = np.lexsort((values, -counts))  # most frequent first; a tie: the smaller value
     top = values[order[:2]]
-    pairs, equal, minor, in_regions = _neighbours(shape, plane, skip=(0, int(top[0])),
-                                                  top=tuple(int(v) for v in top))
+    counts = _neighbours(shape, plane, skip=(0, int(top[0])), top=tuple(int(v) for v in top))
+    pairs, equal, minor, in_regions, middle, graded = counts
     piecewise = not pairs or equal >= MIN_EQUAL_PAIRS * pairs
     regions = not minor or in_regions >= MIN_IN_REGIONS * minor
-    return piecewise and regions
+    steps = bool(middle) and graded >= MIN_GRADED * middle
+    return piecewise and regions and not steps
 
 
-def _neighbours(shape, plane, *, skip, top) -> tuple[int, int, int, int]:
-    """The counts of the two tests on about :data:`SAMPLED_PLANES` planes, each with the next.
+def _neighbours(shape, plane, *, skip, top) -> tuple[int, int, int, int, int, int]:
+    """The counts of the three tests on about :data:`SAMPLED_PLANES` planes and the two after.
 
     ``(pairs, equal pairs, minor voxels, minor voxels with a neighbour of their
-    value)``: pairs along x, y, z whose voxels are both none of ``skip``;
-    minor voxels: those whose value is none of ``top``.
+    value, minor voxels of the plane after, their graded crossings)``: pairs
+    along x, y, z whose voxels are both none of ``skip``; minor voxels: those
+    whose value is none of ``top``; a graded crossing: a minor voxel of plane
+    ``z + 1`` whose two neighbours along an axis (x, y, or planes ``z`` and
+    ``z + 2``) both differ from it, one lower and one higher (each axis counts).
     """
     nz = int(shape[0])
-    pairs = equal = minor = in_regions = 0
+    pairs = equal = minor = in_regions = middle = graded = 0
     for z in range(0, nz, max(1, nz // SAMPLED_PLANES)):
         p = np.asarray(plane(z))
         q = np.asarray(plane(z + 1)) if z + 1 < nz else None
+        if q is not None:
+            after = np.asarray(plane(z + 2)) if z + 2 < nz else None
+            m, g = _graded(p, q, after, top)
+            middle += m
+            graded += g
         keep = _none_of(p, skip)
         same = np.zeros(p.shape, dtype=bool)  # a neighbour of the same value
         for a, b, ka, kb, sa, sb in _pairs(p, keep, same):
@@ -417,7 +462,20 @@ def _neighbours(shape, plane, *, skip, top) -> tuple[int, int, int, int]:
         small = _none_of(p, top)
         minor += int(np.count_nonzero(small))
         in_regions += int(np.count_nonzero(small & same))
-    return pairs, equal, minor, in_regions
+    return pairs, equal, minor, in_regions, middle, graded
+
+
+def _graded(before, p, after, top) -> tuple[int, int]:
+    """``(minor voxels of plane p, their graded crossings)``: :func:`_neighbours`' third count."""
+    small = _none_of(p, top)
+    lines = [(p[:, :-2], p[:, 1:-1], p[:, 2:], small[:, 1:-1]),
+             (p[:-2], p[1:-1], p[2:], small[1:-1])]
+    if after is not None:
+        lines.append((before, p, after, small))
+    graded = 0
+    for lo, v, hi, keep in lines:
+        graded += int(np.count_nonzero(keep & (np.minimum(lo, hi) < v) & (v < np.maximum(lo, hi))))
+    return int(np.count_nonzero(small)), graded
 
 
 def _pairs(p, keep, same):
