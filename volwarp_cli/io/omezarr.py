@@ -131,17 +131,36 @@ def reindex_to_identity(vol: Volume) -> Volume:
 
     Every sample keeps its world point; the origin becomes the world point of
     the new first voxel. A volume whose direction is not a signed permutation
-    is returned as it is. :func:`reindexed_header` is the same for a Header
-    (a store written by blocks moves each block).
+    is returned as it is. Where axes move, the samples are a contiguous copy
+    (the writer writes :func:`reindexed_samples`, a view, instead).
+    :func:`reindexed_header` is the same for a Header (a store written by
+    blocks moves each block).
     """
     found = reindex_axes(vol.direction)
     if found is None or np.array_equal(vol.direction, np.eye(3)):
         return vol
-    flips, order = found
-    data = vol.data
-    if flips or order != (0, 1, 2):
-        data = np.ascontiguousarray(np.flip(data, axis=flips).transpose(order))
+    data = reindexed_samples(vol.data, vol.direction)
+    if data is not vol.data:
+        data = np.ascontiguousarray(data)
     return reindexed_header(vol.header).with_data(data)
+
+
+def reindexed_samples(data: np.ndarray, direction) -> np.ndarray:
+    """The samples ``data`` of a grid of ``direction`` as the store holds them: a view.
+
+    ``np.flip`` and ``transpose`` only (:func:`reindex_axes`), no copy: a
+    store is written from it a write unit at a time, and zarr copies each
+    chunk out of it, whatever its strides (a whole contiguous copy was a
+    second volume beside the first that no estimate counted). ``data``
+    itself where no axis moves.
+    """
+    found = reindex_axes(direction)
+    if found is None:
+        return data
+    flips, order = found
+    if flips:
+        data = np.flip(data, axis=flips)
+    return data.transpose(order) if order != (0, 1, 2) else data
 
 
 def reindexed_header(header: Header) -> Header:
@@ -701,21 +720,24 @@ def write_omezarr(vol: Volume, path: str | os.PathLike, *, version: str = "0.5",
     check_dtype(vol.data.dtype, str(path))
     from ..memory import ensure_fits_in_memory
 
+    stored = reindexed_header(vol.header)
+    # (the samples as the store holds them, a view: zarr copies a chunk at a time out of
+    # it, whatever its strides and byte order, so that no second volume is held)
+    data = reindexed_samples(vol.data, vol.direction)
     # (before the store is made: its encoding, label count and levels beside the samples)
-    ensure_fits_in_memory(memory_bytes(vol.data.shape, vol.data.dtype, version, pyramid, labels),
+    ensure_fits_in_memory(memory_bytes(stored.shape, data.dtype, version, pyramid, labels),
                           f"writing {path} ({'x'.join(map(str, vol.shape_xyz))}"
                           f"{f', {pyramid} levels' if pyramid else ''})")
-    stored = reindex_to_identity(vol)
-    data = native(stored.data)
     is_labels = resolve_labels(labels, data) if pyramid else False
     method = ("mode" if is_labels else "mean") if pyramid else None
-    shapes = level_shapes(data.shape, pyramid)
+    shapes = level_shapes(stored.shape, pyramid)
     attrs = group_attributes(multiscales_metadata(stored, pyramid, version, method),
                              volwarp_attribute(stored, vol, method), version)
     # (zarr's threads' freed frames given back as the store is written: see there)
     with large_allocations_mapped(), atomic_folder(path) as tmp:
         group = open_group_for_writing(tmp, version)
-        arrays = create_arrays(group, shapes, data.dtype, version, chunks, byte_order)
+        arrays = create_arrays(group, shapes, data.dtype.newbyteorder("="), version, chunks,
+                               byte_order)
         write_levels(arrays, data, is_labels)
         group.attrs.update(attrs)
 
