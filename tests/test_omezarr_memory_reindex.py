@@ -186,3 +186,47 @@ def _write(path: Path, vol: Volume, version: str, pyramid: int) -> Path:
     omezarr.write_omezarr(vol, path, version=version, pyramid=pyramid, labels=False,
                           chunks=(16, 16, 16))
     return path
+
+
+def test_a_cast_to_an_ome_zarr_output_is_counted_before_it_is_made():
+    """``convert --dtype`` casts the whole before the store is written and holds the cast
+    while it is: counted with the store's write (it was not counted at all: a 256^3
+    float32 convert to int16 at 125M peaked at 191 MiB before the store's own check
+    refused it)."""
+    from volwarp_cli.io import write_memory
+
+    shape = (64, 64, 64)
+    store = omezarr.memory_bytes(shape, np.int16, "0.4")
+    need = write_memory("o.ome.zarr", shape, np.float32, dtype="int16", ome_zarr_version="0.4")
+    assert need >= 64 ** 3 * 2 + store
+    assert need >= 64 ** 3 * (2 + 4)  # (the cast beside np.rint's floats)
+    assert write_memory("o.ome.zarr", shape, np.float32) == 0  # (write_omezarr checks itself)
+    levels = write_memory("o.ome.zarr", shape, np.float32, dtype="int16", pyramid=1)
+    assert levels >= 64 ** 3 * 2 + omezarr.memory_bytes(shape, np.int16, "0.5", 1)
+
+
+def test_convert_refuses_a_cast_store_that_does_not_fit_before_any_output(run, tmp_path,
+                                                                         monkeypatch):
+    """Between the store's own write and the cast with it: one line, exit 1, nothing made
+    (the old check counted no cast for OME-Zarr: the cast was made and the store written)."""
+    from volwarp_cli import memory
+    from volwarp_cli.io import write_volume
+
+    data = (np.random.default_rng(3).random((64, 64, 64)) * 1000).astype(np.float32)
+    write_volume(Volume(data, direction=RAS, space="LPS"), tmp_path / "in.nrrd")
+    store = omezarr.memory_bytes(data.shape, np.int16, "0.4")
+    budget = store + data.size * 2 // 2  # (the store's write, not its cast beside it)
+    monkeypatch.setattr(memory, "_limit", lambda: (budget, "the memory limit (a test's)"))
+    out = tmp_path / "o.ome.zarr"
+    res = run("convert", tmp_path / "in.nrrd", "-o", out, "--dtype", "int16",
+              "--ome-zarr-version", "0.4")
+    assert res.code == 1, res.stderr
+    assert res.stderr.startswith("volwarp: error: writing ") and res.stderr.count("\n") == 1
+    assert "needs" in res.stderr and "int16" in res.stderr
+    assert not out.exists() and list(tmp_path.iterdir()) == [tmp_path / "in.nrrd"]
+    roomy = store + data.size * (2 + 4)
+    monkeypatch.setattr(memory, "_limit", lambda: (roomy, "the memory limit (a test's)"))
+    res = run("convert", tmp_path / "in.nrrd", "-o", out, "--dtype", "int16",
+              "--ome-zarr-version", "0.4")
+    assert res.code == 0, res.stderr
+    assert np.array_equal(read_volume(out).data, np.rint(data[:, ::-1, ::-1]).astype(np.int16))

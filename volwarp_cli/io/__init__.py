@@ -297,7 +297,8 @@ def _cast_bytes(count: int, src: np.dtype, out: np.dtype, swapped: bool) -> int:
 
 
 def write_memory(path: str | os.PathLike, shape, src_dtype, *, dtype=None,
-                 compress: bool = False, byte_order: str = "little") -> int:
+                 compress: bool = False, byte_order: str = "little",
+                 ome_zarr_version: str = "0.5", pyramid: int = 0, labels="auto") -> int:
     """The bytes :func:`write_volume` holds beyond the samples' own array, at its peak.
 
     For a check before the write (``volwarp convert``: what the read left
@@ -309,8 +310,13 @@ def write_memory(path: str | os.PathLike, shape, src_dtype, *, dtype=None,
     machine's, and the compressed bytes where they are made whole first
     (a zlib MetaImage, whose header gives their size; TIFF's and gzip's
     streams go to the file as they are made: a few blocks). As many bytes
-    compressed as uncompressed, the worst case. OME-Zarr outputs: not
-    counted here (0).
+    compressed as uncompressed, the worst case. OME-Zarr outputs
+    (``ome_zarr_version``, ``pyramid``, ``labels``: :func:`write_volume`'s):
+    the store's own write is checked by :func:`.omezarr.write_omezarr` (0
+    here), but a cast is made whole first and held while the store is
+    written: the larger of the cast and its result beside the store's write
+    (:func:`.omezarr.memory_bytes`; zarr puts each chunk in the file's byte
+    order as it encodes it).
     """
     import math
     import sys
@@ -319,11 +325,17 @@ def write_memory(path: str | os.PathLike, shape, src_dtype, *, dtype=None,
 
     path = Path(path)
     fmt = volume_format(path)
-    if fmt == "omezarr":
-        return 0
     src = np.dtype(src_dtype)
     out = src if dtype is None else np.dtype(dtype)
     count = math.prod(int(n) for n in shape)
+    if fmt == "omezarr":
+        if out == src:
+            return 0
+        from .omezarr import memory_bytes
+
+        return max(_cast_bytes(count, src, out, False),
+                   count * out.itemsize + memory_bytes(shape, out, ome_zarr_version, pyramid,
+                                                       labels))
     size = count * out.itemsize
     if fmt == "nifti":
         byte_order = sys.byteorder
