@@ -12,7 +12,8 @@ A reviewer measured two writes over ``--memory-limit`` (256^3 float32):
 
 Now level 0 of a 0.4 store is written in as many whole chunks at once as
 the budget holds, and a reindexed grid is written from a flipped and
-transposed view, the same bytes.
+transposed view, the same bytes. (And ``convert --dtype``'s cast of the
+whole, made before the store is written, is counted with it.)
 """
 
 from __future__ import annotations
