@@ -105,7 +105,7 @@ def test_the_v2_estimate_counts_a_writes_chunks_in_flight():
     one = omezarr.write_bytes((64, 64, 64), 4, (64, 64, 64))
     assert whole >= 10 * 2 * chunk  # (the old count: 22 MiB; measured 22-24 MiB)
     assert whole == omezarr.write_bytes((128, 256, 256), 4, (64, 64, 64))
-    assert one >= 2 * chunk + (2 << 20)  # (measured 4.9 MiB in a fresh process)
+    assert one >= 2 * chunk + (4 << 20)  # (measured 4.8-6.6 MiB in convert)
     assert omezarr.memory_bytes((256, 256, 256), np.float32, "0.4") == one
 
 

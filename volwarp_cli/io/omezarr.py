@@ -515,9 +515,10 @@ def _concurrency() -> int:
 #: call; its tables are sized to the input, up to level 3's): with the chunk's copy and its
 #: frame, 2.3-2.7 MiB a 1 MiB chunk in flight, measured
 ZSTD_CONTEXT = 1 << 19
-#: what a Zarr v2 write holds beside its chunks: zarr's buffers, and the first write's
-#: threads (a write of one 1 MiB chunk in a fresh process: 4.9 MiB, measured)
-V2_WRITE_OVERHEAD = 3 << 20
+#: what a Zarr v2 write holds beside its chunks: zarr's buffers, and its threads' (a
+#: 256^3 float32 level 0 written one 1 MiB chunk at a time by convert: 4.8-5.0 MiB over
+#: the process, now and then 6.6 MiB, measured)
+V2_WRITE_OVERHEAD = 5 << 20
 
 
 def write_bytes(shape_zyx, itemsize: int, chunks, shards=None) -> int:
