@@ -133,21 +133,23 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
         # --values decides, else --pyramid-method's mode (labels) or mean (intensities)
         keep_label_ids(vol.data, dtype, str(input),
                        labels if values is None else values == "labels", vol.meta)
-    _check_write_memory(vol, output, dtype, compress, byte_order)
+    _check_write_memory(vol, output, dtype, compress, byte_order, labels, ome_zarr)
     with timed(f"write {output}"):  # (its key/values kept, the provenance of its samples too)
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      labels=labels, **ome_zarr)
 
 
-def _check_write_memory(vol, output, dtype, compress, byte_order) -> None:
+def _check_write_memory(vol, output, dtype, compress, byte_order, labels="auto",
+                        ome_zarr=None) -> None:
     """Refuse, before anything is written, a write whose copies do not fit what the read left.
 
     The budget is the process's peak: the samples read are held, and the
     write's own copies (:func:`~volwarp_cli.io.write_memory`: a cast, the
-    file's byte order, a compressed stream made whole) come on top of them,
-    with the writer's modules and libraries (ISA-L's for a ``.nii.gz``: 1.8
-    MiB over a tight limit, uncounted): where the budget is tight they are
-    loaded first (:func:`~volwarp_cli.io.load_writer`) and counted.
+    file's byte order, a compressed stream made whole; an OME-Zarr store's
+    write beside its cast) come on top of them, with the writer's modules and
+    libraries (ISA-L's for a ``.nii.gz``: 1.8 MiB over a tight limit,
+    uncounted): where the budget is tight they are loaded first
+    (:func:`~volwarp_cli.io.load_writer`) and counted.
     """
     import numpy as np
 
@@ -155,7 +157,7 @@ def _check_write_memory(vol, output, dtype, compress, byte_order) -> None:
     from ..memory import ensure_fits_once_loaded
 
     need = write_memory(output, vol.data.shape, vol.dtype, dtype=dtype, compress=compress,
-                        byte_order=byte_order)
+                        byte_order=byte_order, labels=labels, **(ome_zarr or {}))
     out = np.dtype(dtype or vol.dtype).name
     ensure_fits_once_loaded(need, f"writing {output} ({'x'.join(map(str, vol.shape_xyz))} "
                                   f"{out}, beside the {human_bytes(vol.data.nbytes)} read)",

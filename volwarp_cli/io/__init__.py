@@ -319,7 +319,8 @@ def _cast_bytes(count: int, src: np.dtype, out: np.dtype, swapped: bool) -> int:
 
 
 def write_memory(path: str | os.PathLike, shape, src_dtype, *, dtype=None,
-                 compress: bool = False, byte_order: str = "little") -> int:
+                 compress: bool = False, byte_order: str = "little",
+                 ome_zarr_version: str = "0.5", pyramid: int = 0, labels="auto") -> int:
     """The bytes :func:`write_volume` holds beyond the samples' own array, at its peak.
 
     For a check before the write (``volwarp convert``: what the read left
@@ -332,14 +333,38 @@ def write_memory(path: str | os.PathLike, shape, src_dtype, *, dtype=None,
     (a zlib MetaImage, whose header gives their size; TIFF's and gzip's
     streams go to the file as they are made: a few blocks). As many bytes
     compressed as uncompressed, the worst case. And :data:`WRITER_BYTES` for
-    the writer's own objects and buffers. OME-Zarr outputs: not counted here
-    (0).
+    the writer's own objects and buffers. OME-Zarr outputs
+    (``ome_zarr_version``, ``pyramid``, ``labels``: :func:`write_volume`'s):
+    the store's write (:func:`.omezarr.memory_bytes`; zarr puts each chunk
+    in the file's byte order as it encodes it), and a cast, made whole first
+    and held while the store is written: the larger of the cast and its
+    result beside the store's write.
     """
     path = Path(path)
     fmt = volume_format(path)
     if fmt == "omezarr":
-        return 0
+        return _cast_beside_store(shape, src_dtype, dtype, ome_zarr_version, pyramid, labels)
     return WRITER_BYTES + _copies_bytes(path, fmt, shape, src_dtype, dtype, compress, byte_order)
+
+
+def _cast_beside_store(shape, src_dtype, dtype, version: str, pyramid: int, labels) -> int:
+    """:func:`write_memory` of an OME-Zarr output: the store's write, and a cast held beside it.
+
+    The store's own write (:func:`.omezarr.memory_bytes`) is checked again by
+    :func:`.omezarr.write_omezarr` once zarr is loaded; counted here too, a
+    write that cannot fit is refused before zarr's 17 MiB are loaded.
+    """
+    import math
+
+    from .omezarr import memory_bytes
+
+    src = np.dtype(src_dtype)
+    out = src if dtype is None else np.dtype(dtype)
+    store = memory_bytes(shape, out, version, pyramid, labels)
+    if out == src:
+        return store
+    count = math.prod(int(n) for n in shape)
+    return max(_cast_bytes(count, src, out, False), count * out.itemsize + store)
 
 
 #: what a writer holds beyond its copies of the samples: its header, its calls' objects,

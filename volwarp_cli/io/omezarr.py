@@ -131,17 +131,36 @@ def reindex_to_identity(vol: Volume) -> Volume:
 
     Every sample keeps its world point; the origin becomes the world point of
     the new first voxel. A volume whose direction is not a signed permutation
-    is returned as it is. :func:`reindexed_header` is the same for a Header
-    (a store written by blocks moves each block).
+    is returned as it is. Where axes move, the samples are a contiguous copy
+    (the writer writes :func:`reindexed_samples`, a view, instead).
+    :func:`reindexed_header` is the same for a Header (a store written by
+    blocks moves each block).
     """
     found = reindex_axes(vol.direction)
     if found is None or np.array_equal(vol.direction, np.eye(3)):
         return vol
-    flips, order = found
-    data = vol.data
-    if flips or order != (0, 1, 2):
-        data = np.ascontiguousarray(np.flip(data, axis=flips).transpose(order))
+    data = reindexed_samples(vol.data, vol.direction)
+    if data is not vol.data:
+        data = np.ascontiguousarray(data)
     return reindexed_header(vol.header).with_data(data)
+
+
+def reindexed_samples(data: np.ndarray, direction) -> np.ndarray:
+    """The samples ``data`` of a grid of ``direction`` as the store holds them: a view.
+
+    ``np.flip`` and ``transpose`` only (:func:`reindex_axes`), no copy: a
+    store is written from it a write unit at a time, and zarr copies each
+    chunk out of it, whatever its strides (a whole contiguous copy was a
+    second volume beside the first that no estimate counted). ``data``
+    itself where no axis moves.
+    """
+    found = reindex_axes(direction)
+    if found is None:
+        return data
+    flips, order = found
+    if flips:
+        data = np.flip(data, axis=flips)
+    return data.transpose(order) if order != (0, 1, 2) else data
 
 
 def reindexed_header(header: Header) -> Header:
@@ -432,7 +451,11 @@ def write_levels(arrays, first: np.ndarray | None, labels: bool, budget: int | N
     """Fill level 0 with ``first`` (unless None: already written) and each next level from the last.
 
     Level 0 is written one shard at a time (zarr encodes the shards of one
-    write at once: :func:`write_bytes` each). Each coarser level is made shard
+    write at once: :func:`write_bytes` each); in NGFF 0.4 (no shards) in
+    boxes of whole chunks, as many at once as ``budget`` holds
+    (:func:`chunk_pieces`: zarr encodes up to its concurrency's chunks of a
+    write at once, each with its copy, its frame and a zstd context). Each
+    coarser level is made shard
     by shard from the level above, and each of its shards piece by piece
     (:func:`level_pieces`: the largest pieces whose reading and averaging fit
     ``budget`` beside the shard), so that no level, and no 2x region of a
@@ -441,10 +464,12 @@ def write_levels(arrays, first: np.ndarray | None, labels: bool, budget: int | N
     coarse sample is made from the same 2x2x2 block in the same order: the
     same bytes whatever the budget.
 
+    ``first`` may be any array of level 0's shape, a view of any strides and
+    byte order (:func:`reindexed_samples`): zarr copies each chunk out of it.
     ``budget``: the bytes the work may hold (default: what is left under the
     memory limit, :func:`volwarp_cli.memory.memory_limit`); an
     :class:`~volwarp_cli.errors.OutOfMemoryError` where a level's smallest
-    piece does not fit it.
+    piece (one chunk of level 0 in NGFF 0.4) does not fit it.
     """
     from ..memory import memory_limit
 
@@ -452,11 +477,12 @@ def write_levels(arrays, first: np.ndarray | None, labels: bool, budget: int | N
         budget = memory_limit()
     if first is not None:
         target = arrays[0]
-        if target.shards is None:  # (0.4: chunk by chunk, a few at once)
-            target[...] = first
-        else:
-            for box in _boxes(target.shape, target.shards):
-                target[box] = first[box]
+        unit = target.shards
+        if unit is None:  # (0.4: whole chunks, as many at once as the budget holds)
+            unit = chunk_pieces(target.shape, target.chunks, np.dtype(target.dtype).itemsize,
+                                budget)
+        for box in _boxes(target.shape, unit):
+            target[box] = first[box]
     for level, (prev, arr) in enumerate(zip(arrays[:-1], arrays[1:], strict=True), start=1):
         source = first if level == 1 and first is not None else prev
         block = arr.shards or arr.chunks
@@ -477,12 +503,31 @@ _CONCURRENCY = 10
 
 
 def _concurrency() -> int:
-    try:
-        import zarr
+    """The ``async.concurrency`` of zarr, without loading zarr for an estimate (17 MiB).
 
-        return max(1, int(zarr.config.get("async.concurrency") or _CONCURRENCY))
-    except Exception:  # (no zarr, or no such key: its default)
+    Its config where zarr is loaded, else the variable its config reads
+    (``ZARR_ASYNC__CONCURRENCY``), else its default: a write re-checks once
+    zarr is loaded (:func:`write_omezarr`).
+    """
+    import sys
+
+    zarr = sys.modules.get("zarr")
+    try:
+        if zarr is not None:
+            return max(1, int(zarr.config.get("async.concurrency") or _CONCURRENCY))
+        return max(1, int(os.environ.get("ZARR_ASYNC__CONCURRENCY") or _CONCURRENCY))
+    except Exception:  # (no such key, a malformed value: its default)
         return _CONCURRENCY
+
+
+#: what zstd's compression context holds while it encodes a chunk (numcodecs makes one a
+#: call; its tables are sized to the input, up to level 3's): with the chunk's copy and its
+#: frame, 2.3-2.7 MiB a 1 MiB chunk in flight, measured
+ZSTD_CONTEXT = 1 << 19
+#: what a Zarr v2 write holds beside its chunks: zarr's buffers, and its threads' (a
+#: 256^3 float32 level 0 written one 1 MiB chunk at a time by convert: 4.8-5.0 MiB over
+#: the process, now and then 6.6 MiB, measured)
+V2_WRITE_OVERHEAD = 5 << 20
 
 
 def write_bytes(shape_zyx, itemsize: int, chunks, shards=None) -> int:
@@ -492,13 +537,43 @@ def write_bytes(shape_zyx, itemsize: int, chunks, shards=None) -> int:
     Sharded (0.5): zarr encodes each shard whole, its chunks' zstd frames
     kept until they are joined into the shard's bytes, a second copy, so up
     to twice the region (samples that do not compress) beside a few chunks'
-    buffers; 0.4: each chunk's copy and frame, a few chunks at once.
+    buffers. 0.4 (Zarr v2): the chunks in flight (the write's, up to zarr's
+    concurrency: ten by default, whatever the region's size), each with its
+    copy, its frame (as large, for samples that do not compress) and a zstd
+    context (:data:`ZSTD_CONTEXT`), and :data:`V2_WRITE_OVERHEAD`.
     """
     region = math.prod(int(n) for n in shape_zyx) * int(itemsize)
-    buffers = _chunk_buffers(shape_zyx, chunks, itemsize)
     if shards is None:
-        return min(2 * region, buffers) + (1 << 20)
-    return 2 * region + buffers
+        chunk = math.prod(int(c) for c in chunks) * int(itemsize)
+        count = math.prod(-(-int(n) // int(c)) for n, c in zip(shape_zyx, chunks, strict=True))
+        in_flight = min(count, _concurrency())
+        return in_flight * (2 * chunk + min(chunk, ZSTD_CONTEXT)) + V2_WRITE_OVERHEAD
+    return 2 * region + _chunk_buffers(shape_zyx, chunks, itemsize)
+
+
+def chunk_pieces(shape_zyx, chunks, itemsize: int, budget: int) -> tuple[int, int, int]:
+    """The boxes :func:`write_levels` writes level 0 of a Zarr v2 (NGFF 0.4) array in.
+
+    Whole chunks: the largest of :func:`_halvings` of the chunk grid whose
+    write (:func:`write_bytes`: its chunks in flight) fits ``budget``, the
+    whole array where it does (the same bytes either way: each chunk is
+    encoded on its own). An :class:`~volwarp_cli.errors.OutOfMemoryError`
+    naming both sizes where one chunk does not fit.
+    """
+    from ..errors import OutOfMemoryError
+    from ..memory import human_bytes
+
+    grid = tuple(max(1, -(-int(n) // int(c))) for n, c in zip(shape_zyx, chunks, strict=True))
+    need = None
+    for units in _halvings(grid):
+        piece = tuple(min(u * int(c), max(int(n), 1))
+                      for u, c, n in zip(units, chunks, shape_zyx, strict=True))
+        need = write_bytes(piece, itemsize, chunks)
+        if need <= budget:
+            return piece
+    raise OutOfMemoryError(f"writing a chunk of {'x'.join(map(str, tuple(chunks)[::-1]))} "
+                           f"samples needs {human_bytes(need)} but only {human_bytes(budget)} "
+                           "is left under the memory limit (raise --memory-limit)")
 
 
 def read_bytes(shape_zyx, itemsize: int, chunks, hull_zyx=None) -> int:
@@ -653,8 +728,9 @@ def scan_pieces(arr, budget: int) -> list:
 def memory_bytes(shape_zyx, dtype, version: str = "0.5", pyramid: int = 0, labels="auto") -> int:
     """What :func:`write_omezarr` holds beyond the volume's samples (which its caller holds).
 
-    The largest of: level 0's one shard at a time (:func:`write_bytes`), the
-    label-map rule's count (``labels="auto"`` with levels: its boxes of
+    The largest of: level 0's one shard at a time (:func:`write_bytes`; NGFF
+    0.4: one chunk at a time, the least: :func:`write_levels` writes as many
+    at once as the budget then holds), the label-map rule's count (``labels="auto"`` with levels: its boxes of
     :data:`~volwarp_cli.labelmap.SCAN_BOX_VOXELS`) and the levels made in
     their smallest pieces (:func:`pyramid_bytes`: they take larger ones
     where the budget holds them).
@@ -701,21 +777,24 @@ def write_omezarr(vol: Volume, path: str | os.PathLike, *, version: str = "0.5",
     check_dtype(vol.data.dtype, str(path))
     from ..memory import ensure_fits_in_memory
 
+    stored = reindexed_header(vol.header)
+    # (the samples as the store holds them, a view: zarr copies a chunk at a time out of
+    # it, whatever its strides and byte order, so that no second volume is held)
+    data = reindexed_samples(vol.data, vol.direction)
     # (before the store is made: its encoding, label count and levels beside the samples)
-    ensure_fits_in_memory(memory_bytes(vol.data.shape, vol.data.dtype, version, pyramid, labels),
+    ensure_fits_in_memory(memory_bytes(stored.shape, data.dtype, version, pyramid, labels),
                           f"writing {path} ({'x'.join(map(str, vol.shape_xyz))}"
                           f"{f', {pyramid} levels' if pyramid else ''})")
-    stored = reindex_to_identity(vol)
-    data = native(stored.data)
     is_labels = resolve_labels(labels, data) if pyramid else False
     method = ("mode" if is_labels else "mean") if pyramid else None
-    shapes = level_shapes(data.shape, pyramid)
+    shapes = level_shapes(stored.shape, pyramid)
     attrs = group_attributes(multiscales_metadata(stored, pyramid, version, method),
                              volwarp_attribute(stored, vol, method), version)
     # (zarr's threads' freed frames given back as the store is written: see there)
     with large_allocations_mapped(), atomic_folder(path) as tmp:
         group = open_group_for_writing(tmp, version)
-        arrays = create_arrays(group, shapes, data.dtype, version, chunks, byte_order)
+        arrays = create_arrays(group, shapes, data.dtype.newbyteorder("="), version, chunks,
+                               byte_order)
         write_levels(arrays, data, is_labels)
         group.attrs.update(attrs)
 
