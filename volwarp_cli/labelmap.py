@@ -39,21 +39,26 @@ with its next plane ``z + 1``:
    0.86). With two values only, nothing is left for this test: every
    2-valued candidate is a label map (a mask: an intensity warp would blend
    it into values it does not have).
-3. *Its values jump, they do not step through levels*: fewer than
-   :data:`MIN_GRADED` graded crossings per voxel of those values, on the
-   plane after each sampled one: a voxel whose two neighbours along an axis
-   (x, y, or the planes before and after) both differ from it, one lower and
-   one higher (each axis counts, so a voxel gives up to 3). A density aligned
-   with the axes passes tests 1 and 2 (each level of a smooth ramp is a flat
-   region one voxel thick: 3D Slicer's and volwarp's own smooth steps, the
-   tree-wind example's leaf map, an antialiased box, an integer-rounded
-   distance field) and was taken for labels; its levels lie between their
-   neighbours' (0.6 to 1.6). A label map's ids do so only where a region one
-   voxel thick lies between a lower and a higher id (0.00 to 0.16).
+3. *Its values jump, they do not step through levels*: with
+   :data:`MIN_GRADED_VALUES` values or more, fewer than :data:`MIN_GRADED`
+   graded crossings per voxel of those values, on the plane after each
+   sampled one: a voxel whose two neighbours along an axis (x, y, or the
+   planes before and after) both differ from it, one lower and one higher
+   (each axis counts, so a voxel gives up to 3). A density aligned with the
+   axes passes tests 1 and 2 (each level of a smooth ramp is a flat region
+   one voxel thick: the tree-wind example's leaf map, the clay block warped
+   as intensities, an integer-rounded distance field) and was taken for
+   labels; its levels lie between their neighbours' (0.6 to 1.6). The ids of
+   a label map of many labels do so only where a region one voxel thick lies
+   between a lower and a higher id (0.00 to 0.16); a few ordered labels in
+   thin layers do so as often as a density (a head's scalp, skull and CSF
+   at 3 mm 0.35, a shell one voxel thick 0.75, Otsu's 7 classes 0.28 to
+   0.68), so the test is for what has levels to step through.
 
 Measured (``S``: test 1; ``R``: test 2; ``before``: the rule before, the
 share of equal x pairs that are not both 0, at least 0.5, with the mode's
-pairs left out too above 256 values; ``*``: it gave the wrong answer):
+pairs left out too above 256 values; ``*``: it gave the wrong answer;
+``(3)``: by test 3, below):
 
 =========================================  ======  =====  =====  ======
 data                                       before  S      R      labels
@@ -91,34 +96,36 @@ frog-like tissue map                       0.74    0.92   1.00   yes
 1-voxel-wide random walks (3 ids)          0.31*   0.94   0.99   yes
 the bundled 0/200 ball                     0.86    1.00   --     yes
 nibabel standard.nii.gz (random 0/255)     0.13    1.00   --     yes
-integer-rounded distance field (35 values) 0.51    0.52   0.99   yes
+integer-rounded distance field (35 values) 0.51    0.52   0.99   no (3)
 =========================================  ======  =====  =====  ======
 
 Test 3 (``G``), measured on the cases above that pass tests 1 and 2 and on
 densities aligned with the axes (every scan above fails test 1 or 2; the
-scans' own ``G`` is 0.0 to 2.7):
+scans' own ``G`` is 0.0 to 2.7; ``n``: distinct values):
 
-=========================================  =====  =====  =====  ======
-data                                       S      R      G      labels
-=========================================  =====  =====  =====  ======
-tree-wind leaf map (smooth step, 256)      0.81   0.77   0.81   no
-clay block warped as intensity (124)       0.59   0.85   1.55   no
-a smooth ramp along x, 20 voxels wide      0.84   1.00   1.00   no
-antialiased box aligned with the axes      0.92   1.00   1.00   no
-integer-rounded distance field             0.52   0.99   0.62   no
-frog tissue map (bundled, 26 labels)       0.98   1.00   0.01   yes
-k-means (4 labels) of the bundled T1       0.71   0.97   0.14   yes
-k-means of colin27, 6 classes, 1-3 mm      0.68   0.96   0.03   yes
-k-means of colin27, 8 classes, 1 mm        0.79   0.99   0.16   yes
-Voronoi atlas (652 ids)                    0.70   0.99   0.07   yes
-1-voxel-wide random walks (3 ids)          0.91   0.98   0.11   yes
-20 landmarks of 2x2x2, 343 blocks          1.00   1.00   0.00   yes
-=========================================  =====  =====  =====  ======
+=========================================  ====  =====  =====  =====  ======
+data                                       n     S      R      G      labels
+=========================================  ====  =====  =====  =====  ======
+tree-wind leaf map (smooth step)           256   0.81   0.77   0.81   no
+clay block warped as intensity             124   0.59   0.85   1.55   no
+a smooth ramp along x, 20 voxels wide      21    0.84   1.00   1.00   no
+integer-rounded distance field             35    0.52   0.99   0.62   no
+frog tissue map (bundled)                  26    0.98   1.00   0.01   yes
+Voronoi atlas                              652   0.70   0.99   0.07   yes
+343 blocks                                 343   0.85   1.00   0.00   yes
+k-means (4 labels) of the bundled T1       4     0.71   0.97   0.14   yes
+head at 3 mm: scalp, skull, CSF, brain     5     0.87   1.00   0.35   yes
+a shell one voxel thick between 1 and 3    4     0.91   1.00   0.75   yes
+Otsu's 7 classes of the bundled T1         7     0.53   0.90   0.41   yes
+1-voxel-wide random walks (3 ids)          4     0.91   0.98   0.11   yes
+=========================================  ====  =====  =====  =====  ======
 
-Ambiguous by nature: an intensity image quantised into many ordered classes
-(k-means of colin27 into 8 classes at 2 or 3 mm: ``G`` 0.45 to 0.54, taken
-for a density; at 1 mm 0.16, a label map) and a random 0/255 pattern (two
-values: a label map). A distance field (float, not integers) and a float fMRI
+Ambiguous by nature, and taken for labels: a density whose levels are
+two voxels wide or more (a ramp of wide steps, a distance field rounded
+on a fine grid, a scan upsampled by nearest neighbour: no level lies
+between two others within one voxel), a density of fewer than 16 levels
+(an antialiased box aligned with the axes: 5 values), and a random 0/255
+pattern (two values). A distance field (float, not integers) and a float fMRI
 volume are not candidates. Single-voxel landmarks are no regions: not a label
 map (a sparse noise is no different). ``--values`` decides where the rule
 cannot.
@@ -171,6 +178,9 @@ MIN_IN_REGIONS = 0.5
 #: test 3: from this share of graded crossings among those voxels (each axis counted) on,
 #: the values step through levels (a density), not jump between regions (a label map)
 MIN_GRADED = 0.3
+#: test 3 applies to candidates of at least this many values (thin layers of a few ordered
+#: labels, nested shells, Otsu's classes, step through their neighbours too: 0.35 to 0.75)
+MIN_GRADED_VALUES = 16
 #: about this many planes are sampled for the neighbour tests (each with its next plane)
 SAMPLED_PLANES = 64
 
@@ -420,7 +430,10 @@ def _rule(values, counts, shape, plane) -> bool:
     pairs, equal, minor, in_regions, middle, graded = counts
     piecewise = not pairs or equal >= MIN_EQUAL_PAIRS * pairs
     regions = not minor or in_regions >= MIN_IN_REGIONS * minor
-    steps = bool(middle) and graded >= MIN_GRADED * middle
+    # (test 3 where there are levels to step through: a few ordered labels in thin layers,
+    # a head's scalp, skull and CSF, cross between their neighbours as often)
+    steps = (len(values) >= MIN_GRADED_VALUES and bool(middle)
+             and graded >= MIN_GRADED * middle)
     return piecewise and regions and not steps
 
 

@@ -142,7 +142,7 @@ def choose_values(source, given: str | None = None, *, name: str = "the input",
         if not looks:
             warning = (f"warning: {name} does not look like a label map ({n} distinct "
                        f"value{'s' if n != 1 else ''}"
-                       f"{'' if n < 2 else ', not piecewise constant'}): "
+                       f"{'' if n < 2 else ': the label rule takes it for intensities'}): "
                        "warped as labels as asked (each output voxel one of its values, "
                        "never a blend)")
         return ValuesChoice("labels", "given", n, warning, ids)
