@@ -38,6 +38,9 @@ from .errors import BadUsage, OutOfMemoryError
 
 #: Environment variable lowering the memory limit (a size: ``8G``, ``512M``, bytes).
 MEMORY_ENV = "VOLWARP_MEMORY_LIMIT"
+#: what :data:`MEMORY_ENV` is, for messages, where a parent set it (a batch: a scan's share
+#: of its own limit)
+MEMORY_FROM_ENV = "VOLWARP_MEMORY_LIMIT_FROM"
 
 #: A cgroup v1 limit at or above this means none (v1 writes 2^63 - 1 rounded down to
 #: the page size, 9223372036854771712 with 4 KiB pages).
@@ -335,7 +338,7 @@ def _limit() -> tuple[int, str]:
     explicit = []
     env = _env_limit()
     if env is not None:
-        explicit.append((env, MEMORY_ENV))
+        explicit.append((env, os.environ.get(MEMORY_FROM_ENV) or MEMORY_ENV))
     budget = _budget.get()
     if budget is not None:
         explicit.append(budget)

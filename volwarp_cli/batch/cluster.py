@@ -116,9 +116,13 @@ def scan_task(manifest: Manifest, scan: Scan, made: tuple[dict, dict], run_id: s
     host = get_address_host(worker.address)
     if child_threads is None:  # the host's cores shared by the scans it runs at once
         child_threads = share_of_cores(parallel.threads(), host, hosts, nthreads)
-    child_memory = None
+    child_memory, memory_from = None, "memory limit"
     if memory_limit is not None:  # (and the batch's memory limit)
-        child_memory = max(1, int(memory_limit) // scans_at_once(host, hosts, nthreads))
+        from ..memory import human_bytes
+
+        at_once = scans_at_once(host, hosts, nthreads)
+        child_memory = max(1, int(memory_limit) // at_once)
+        memory_from = f"memory limit {human_bytes(memory_limit)}, {at_once} scans at once on {host}"
 
     def started(scan):
         worker.log_event(f"{TOPIC}-{run_id}", {"scan": scan.id, "worker": worker.address,
@@ -126,6 +130,7 @@ def scan_task(manifest: Manifest, scan: Scan, made: tuple[dict, dict], run_id: s
 
     runner = ScanRunner(manifest, force=force, retries=step_retries,
                         child_threads=child_threads, child_memory=child_memory,
+                        memory_from=memory_from,
                         record=RecordSnapshot(manifest, made), children=children,
                         thumbnails=thumbnails, on_start=started, ships_hashes=True)
     result = runner.run(scan)
@@ -374,7 +379,9 @@ def run_on_cluster(manifest: Manifest, scans: list[Scan], where, **options):
             engine.client.wait_for_workers(1, timeout=60)
         limit = memory.explicit_limit()  # (each host's scans at once share it)
         if limit is not None and local:  # (on this machine: less what the batch holds)
-            limit = max(1, limit - memory.process_rss())
+            from .run import child_memory
+
+            limit, _ = child_memory(1)
         results, stop = ClusterBatch(manifest, scans, client=engine.client,
                                      child_threads=child, memory_limit=limit, **options).run()
     return results, stop, at_once

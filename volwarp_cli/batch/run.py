@@ -221,7 +221,7 @@ class ScanRunner:
 
     def __init__(self, manifest: Manifest, *, force: bool = False, retries: int = 0,
                  child_threads: int = 1, child_memory: int | None = None,
-                 record: CommandRecord | None = None,
+                 memory_from: str = "memory limit", record: CommandRecord | None = None,
                  children: Children | None = None, thumbnails: bool = False, on_start=None,
                  ships_hashes: bool = False):
         self.manifest = manifest
@@ -230,6 +230,7 @@ class ScanRunner:
         self.retries = retries
         self.child_threads = child_threads
         self.child_memory = child_memory
+        self.memory_from = memory_from  # (what child_memory is a share of, for messages)
         self.record = record if record is not None else CommandRecord(manifest)
         self.children = children if children is not None else Children()
         self.thumbnails = thumbnails
@@ -328,11 +329,30 @@ class ScanRunner:
                 res.error = f"exit code {code}"
             return
 
+    def _env(self, threads: int) -> dict:
+        """A child's environment: its threads, and this scan's share of the batch's limit.
+
+        The share only lowers a limit the environment already sets (a cluster
+        worker's own ``VOLWARP_MEMORY_LIMIT``: its host's), never raises it.
+        """
+        from ..memory import MEMORY_FROM_ENV, parse_size
+
+        env = dict(os.environ, **{THREADS_ENV: str(threads)})
+        if self.child_memory is not None:
+            own = env.get(MEMORY_ENV, "").strip()
+            try:
+                own = parse_size(own) if own else None
+            except ValueError:
+                own = None  # (the step refuses it itself, naming it)
+            if own is None or self.child_memory < own:
+                env[MEMORY_ENV] = str(self.child_memory)
+                env[MEMORY_FROM_ENV] = (f"{MEMORY_ENV}, this scan's share of the batch's "
+                                        f"{self.memory_from}")
+        return env
+
     def _call(self, argv: list[str]) -> tuple[int | None, str, int | None]:
         """Run ``volwarp ARGV``: ``(exit code or None if not started, stderr, peak bytes)``."""
-        env = dict(os.environ, **{THREADS_ENV: str(self.child_threads)})
-        if self.child_memory is not None:  # (the batch's limit, this scan's share of it)
-            env[MEMORY_ENV] = str(self.child_memory)
+        env = self._env(self.child_threads)
         proc = self.children.start(child_argv(argv), cwd=self.manifest.base, env=env)
         if proc is None:
             return None, "", None
@@ -349,7 +369,7 @@ class ScanRunner:
                 if thumbs.can_preview(out) and out.is_file():
                     files.append(str(out.absolute()))
                     names.append(os.path.relpath(out, self.manifest.output_dir))
-        env = dict(os.environ, **{THREADS_ENV: "1"})
+        env = self._env(1)  # (its reads held to the scan's share too)
         proc = self.children.start(thumbs.command(files), cwd=self.manifest.base, env=env,
                                    stdout=subprocess.PIPE)
         if proc is None:
@@ -374,10 +394,13 @@ class Batch:
         self._children = Children()
         self._failed = False
         self._signals: list[int] = []  # appended by the signal handler only
-        #: VOLWARP_THREADS of each scan's commands (a step's own --threads wins)
+        # VOLWARP_THREADS of each scan's commands (a step's own --threads wins), and their
+        # memory: shared by the scans that run at once
+        at_once = min(self.jobs, max(1, len(scans)))
+        memory, memory_from = child_memory(at_once)
         self.runner = ScanRunner(manifest, force=force, retries=retries,
-                                 child_threads=child_threads(self.jobs),
-                                 child_memory=child_memory(self.jobs),
+                                 child_threads=child_threads(at_once),
+                                 child_memory=memory, memory_from=memory_from,
                                  record=CommandRecord(manifest), children=self._children,
                                  thumbnails=thumbnails, on_start=on_start)
 
@@ -461,21 +484,32 @@ def default_jobs() -> int:
     return parallel.threads()
 
 
-def child_memory(jobs: int) -> int | None:
-    """Each scan's step process's ``--memory-limit``: an explicit limit shared by ``jobs`` scans.
+def child_memory(at_once: int) -> tuple[int | None, str]:
+    """Each scan's step processes' memory limit: an explicit limit shared by the scans at once.
 
-    None without one (``--memory-limit``, ``VOLWARP_MEMORY_LIMIT``): each step
-    then weighs what the machine and its cgroup leave when it starts. Given,
-    the batch's limit is the machine's for every scan running at once (what
-    this process holds taken off first), never each step's whole (a pool of
-    four scans under 8G: 2G each, less the batch's own share), at least a byte.
+    ``(bytes or None, what they are a share of)``. None without an explicit
+    limit (``--memory-limit``, ``VOLWARP_MEMORY_LIMIT``): each step then weighs
+    what the machine and its cgroup leave when it starts. Given, the batch's
+    limit is the machine's for every scan running at once (what this process
+    holds taken off first), never each step's whole (a pool of four scans
+    under 8G: 2G each, less the batch's own share); an
+    :class:`~volwarp_cli.errors.OutOfMemoryError` where this process alone
+    holds it all.
     """
     from .. import memory
+    from ..errors import OutOfMemoryError
 
     limit = memory.explicit_limit()
     if limit is None:
-        return None
-    return max(1, (limit - memory.process_rss()) // max(1, jobs))
+        return None, ""
+    held = memory.process_rss()
+    if limit <= held:
+        raise OutOfMemoryError(f"the memory limit ({memory.human_bytes(limit)}) leaves nothing "
+                               f"for the scans' steps: this batch process holds "
+                               f"{memory.human_bytes(held)}")
+    what = (f"memory limit {memory.human_bytes(limit)}, {at_once} "
+            f"scan{'s' if at_once > 1 else ''} at once")
+    return max(1, (limit - held) // max(1, at_once)), what
 
 
 def child_threads(jobs: int) -> int:
