@@ -622,7 +622,8 @@ def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool =
         op = MeshOperation(header, source, Level(iso, inside, cap),
                            cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
                                            decimate=decimate),
-                           labels=which, allow_empty=allow_empty, name=name)
+                           labels=which, allow_empty=allow_empty, name=name,
+                           keep_labels=bool(labels))
         surfaces = execute.run(op, execute.How(chunked=False)).output
 
     def made(surface) -> Mesh:

@@ -133,14 +133,19 @@ class MeshOperation(Reduction):
         Where the meshes are written.
     stats : bool
         Compute each mesh's statistics (:func:`.stats.mesh_stats`).
+    keep_labels : bool
+        With ``labels="all"``, keep every label's mesh in its :class:`Surface`
+        (the API's); else each is let go once written and measured.
 
     :attr:`~volwarp_cli.execute.Ran.output` is the list of :class:`Surface`.
     """
 
     def __init__(self, header, source, level: Level = Level(), *,
                  cleanup: Cleanup = Cleanup(), labels=None, allow_empty: bool = False,
-                 name: str = "the volume", to: MeshFile | None = None, stats: bool = False):
+                 name: str = "the volume", to: MeshFile | None = None, stats: bool = False,
+                 keep_labels: bool = False):
         self.source, self.name, self.to, self.stats = source, str(name), to, bool(stats)
+        self.keep_labels = bool(keep_labels)
         self.level = LABEL_LEVEL if labels is not None else level
         self.labels, self.cleanup, self.allow_empty = labels, cleanup, bool(allow_empty)
         self.grid = Geometry.of(header)
@@ -221,9 +226,9 @@ class MeshOperation(Reduction):
         if self.to is not None:  # every label's file its own, before any mesh is made
             _distinct_label_files(self.to.path, found)
         log.info("%d labels: %s", len(found), " ".join(map(str, found[:20])))
-        # (written label by label, each mesh let go; with no file, as the API asks, kept)
+        # (written label by label, each mesh let go unless kept as asked: the API's)
         return [self._surface(LabelIndicator(source, label), blocks, LABEL_LEVEL,
-                              f"{self.name} label {label}", label, keep=self.to is None)
+                              f"{self.name} label {label}", label, keep=self.keep_labels)
                 for label in found]
 
     def _surface(self, source, blocks: Blocks, level: Level, name: str,
