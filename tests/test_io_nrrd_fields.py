@@ -231,6 +231,25 @@ def test_key_values_take_teems_escapes_as_itk_writes_and_reads_them(tmp_path):
         k: v for k, v in read_volume(tmp_path / "vw.nrrd").meta.items() if k not in _ESCAPED}}
 
 
+def test_a_carriage_return_is_written_as_teem_writes_it(tmp_path):
+    """Written as it was, a ``\\r`` in a value made a header line ITK cannot read ("didn't
+    see ': ' or ':=' in line"); teem writes a space for it, and so for \\v and \\f."""
+    from volwarp_cli import api
+    from volwarp_cli.volume import Volume
+
+    meta = {"cr": "x\ry", "vt": "a\vb", "ff": "p\fq", "tab": "a\tb"}
+    api.write(Volume(np.zeros((2, 2, 2), np.uint8), meta=meta), tmp_path / "o.nrrd")
+    theirs = sitk.ReadImage(str(tmp_path / "o.nrrd"))
+    image = sitk.GetImageFromArray(np.zeros((2, 2, 2), np.uint8))
+    for key, value in meta.items():
+        image.SetMetaData(key, value)
+    sitk.WriteImage(image, str(tmp_path / "itk.nrrd"))
+    expect = {"cr": "x y", "vt": "a b", "ff": "p q", "tab": "a\tb"}
+    assert {k: theirs.GetMetaData(k) for k in meta} == expect
+    assert {k: read_volume(tmp_path / "o.nrrd").meta[k] for k in meta} == expect
+    assert {k: read_volume(tmp_path / "itk.nrrd").meta[k] for k in meta} == expect
+
+
 def test_a_backslash_before_anything_else_is_kept_as_teem_keeps_it(tmp_path):
     path = tmp_path / "h.nrrd"
     path.write_bytes(b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 1 1 1\nencoding: raw\n"
@@ -243,10 +262,10 @@ def test_a_backslash_before_anything_else_is_kept_as_teem_keeps_it(tmp_path):
 
 @settings(max_examples=60, deadline=None)
 @given(st.dictionaries(st.text(alphabet=st.characters(blacklist_categories=("Cs",),
-                                                      blacklist_characters="\r:="),
+                                                      blacklist_characters="\r\v\f:="),
                                min_size=1, max_size=8).filter(lambda k: not k.startswith("#")),
                        st.text(alphabet=st.characters(blacklist_categories=("Cs",),
-                                                      blacklist_characters="\r"),
+                                                      blacklist_characters="\r\v\f"),
                                max_size=12),
                        max_size=4))
 def test_any_key_values_come_back_from_a_nrrd_as_written(meta):
@@ -262,7 +281,7 @@ def test_any_key_values_come_back_from_a_nrrd_as_written(meta):
     assert {k: got.get(k) for k in meta} == meta
 
 
-@pytest.mark.parametrize("ext, key", [(".nrrd", "#note"), (".nrrd", "a:=b"),
+@pytest.mark.parametrize("ext, key", [(".nrrd", "#note"), (".nrrd", "a:=b"), (".nrrd", ""),
                                       (".mha", "ElementDataFile"), (".mha", "a=b")])
 def test_a_key_the_header_cannot_hold_is_dropped_with_a_warning(tmp_path, ext, key):
     import logging

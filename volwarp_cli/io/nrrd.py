@@ -95,8 +95,15 @@ def _unescape(text: str) -> str:
 
 
 def _escape(text: str) -> str:
-    """A key or value as teem writes it (:func:`_unescape` reads it back the same)."""
-    return text.replace("\\", "\\\\").replace("\n", "\\n")
+    r"""A key or value as teem writes it (:func:`_unescape` reads it back the same).
+
+    A carriage return, vertical tab or form feed becomes a space, as teem
+    writes them (a ``\r`` kept made the line one ITK cannot read).
+    """
+    return text.replace("\\", "\\\\").replace("\n", "\\n").translate(_SPACED)
+
+
+_SPACED = str.maketrans({"\r": " ", "\v": " ", "\f": " "})
 
 
 def _parse_vector(text: str, where: str, name: str) -> list[float]:
@@ -721,7 +728,7 @@ def nrrd_header(vol: Volume | Header, dtype: np.dtype, *, encoding: str, byte_or
         meta["volwarp_components"] = " ".join(components)
     dropped = []
     for key in sorted(meta, key=str):
-        if ":=" in str(key) or str(key).startswith("#"):  # (not a key: a comment, or cut)
+        if ":=" in str(key) or str(key).startswith("#") or not str(key):  # (not a key)
             dropped.append(str(key))
             continue
         lines.append(f"{_escape(str(key))}:={_escape(str(meta[key]))}")
@@ -729,7 +736,7 @@ def nrrd_header(vol: Volume | Header, dtype: np.dtype, *, encoding: str, byte_or
         from ..progress import log
 
         log.warning("warning: key/value%s %s not written to the NRRD header (a key cannot "
-                    "hold ':=' or begin with '#')", "s" if len(dropped) > 1 else "",
+                    "be empty, hold ':=' or begin with '#')", "s" if len(dropped) > 1 else "",
                     ", ".join(map(repr, dropped)))
     text = "\n".join(lines) + "\n"
     if data_file is None:
