@@ -173,3 +173,22 @@ def test_a_store_write_maps_large_allocations_only_while_it_lasts(tmp_path):
                          capture_output=True, text=True, check=True).stdout.split()
     assert out == ["True", "False", "True", "False"]
     assert (tmp_path / "o.ome.zarr").is_dir()
+
+
+def test_the_environments_malloc_thresholds_are_what_a_write_leaves(tmp_path):
+    """A user's (or Dask's nanny's) MALLOC_MMAP_THRESHOLD_ is back after a store's write:
+    the write left 32 MiB whatever the environment said (a review found it)."""
+    import os
+    import subprocess
+    import sys
+
+    probe = _MAPPED_PROBE.split("with large_allocations_mapped():")[0] + (
+        "with large_allocations_mapped():\n    pass\n"
+        "print(mapped(1 << 20))\n")
+    env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536", MALLOC_TRIM_THRESHOLD_="65536")
+    out = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "o.ome.zarr")],
+                         capture_output=True, text=True, check=True, env=env).stdout.split()
+    assert out == ["True"]  # (64 KiB again: a 1 MiB allocation is a mapping of its own)
+    out = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "o.ome.zarr")],
+                         capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["False"]  # (without them: 32 MiB, from the arena)

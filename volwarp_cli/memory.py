@@ -301,25 +301,42 @@ def large_allocations_mapped():
     glibc cannot go back to its own rule once a threshold is set, so on
     leaving (the last of nested or concurrent writes) the thresholds are
     set where that rule takes them after large frees: mmap 32 MiB, trim
-    64 MiB. Nothing where the C library is not glibc.
+    64 MiB; or, where the environment sets them (``MALLOC_MMAP_THRESHOLD_``,
+    ``MALLOC_TRIM_THRESHOLD_``: a user's, Dask's nanny's), back to those,
+    and a lower mmap threshold of the environment's holds inside too.
+    Nothing where the C library is not glibc.
     """
     mallopt = getattr(_libc(), "mallopt", None)
     if mallopt is None:
         yield
         return
     global _mapping_writes
+    given_mmap = _malloc_env("MALLOC_MMAP_THRESHOLD_")
+    given_trim = _malloc_env("MALLOC_TRIM_THRESHOLD_")
     with _mapping_lock:
         _mapping_writes += 1
         if _mapping_writes == 1:
-            mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+            mallopt(_M_MMAP_THRESHOLD, min(MMAP_THRESHOLD, given_mmap or MMAP_THRESHOLD))
     try:
         yield
     finally:
         with _mapping_lock:
             _mapping_writes -= 1
             if _mapping_writes == 0:
-                mallopt(_M_TRIM_THRESHOLD, AFTER_TRIM_THRESHOLD)
-                mallopt(_M_MMAP_THRESHOLD, AFTER_MMAP_THRESHOLD)
+                mallopt(_M_TRIM_THRESHOLD, AFTER_TRIM_THRESHOLD if given_trim is None
+                        else given_trim)
+                mallopt(_M_MMAP_THRESHOLD, AFTER_MMAP_THRESHOLD if given_mmap is None
+                        else given_mmap)
+
+
+def _malloc_env(name: str) -> int | None:
+    """A glibc tunable the environment sets (``MALLOC_MMAP_THRESHOLD_=65536``), or None."""
+    text = os.environ.get(name, "").strip()
+    try:
+        value = int(text) if text else None
+    except ValueError:
+        return None  # (glibc ignores what it cannot read too)
+    return value if value is not None and 0 <= value < 2 ** 31 else None
 
 
 _mapping_writes = 0
