@@ -89,7 +89,7 @@ _FLOAT = (np.dtype(np.float32), np.dtype(np.float64))
 _I64 = (np.dtype(np.int64),)
 
 
-@dataclass(frozen=True, kw_only=True)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class ScatterJob:
     """The box (or nearest) pushforward of the domain voxels ``block`` into ``acc``.
 
@@ -169,7 +169,7 @@ class ScatterJob:
             (-1, -1) if self.domain_xy is None else self.domain_xy, self.acc_xy))
 
 
-@dataclass(frozen=True, kw_only=True)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class SeparableJob:
     """The separable spline evaluator on domain voxels [x0, x1) x [y0, y1) x [z0, z1)."""
 
@@ -199,7 +199,7 @@ class SeparableJob:
                                *self.origin)
 
 
-@dataclass(frozen=True, kw_only=True)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class TableJob:
     """The papers' 64-term table evaluator (numba) on the same ranges as :class:`SeparableJob`."""
 
@@ -226,7 +226,7 @@ class TableJob:
         table_kernel()(self.dq, self.table, *self.x, *self.y, *self.z, self.out, self.origin)
 
 
-@dataclass(frozen=True, kw_only=True)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class SampleJob:
     """The capture's gather of domain planes [g0, g1) into ``out``.
 
@@ -261,7 +261,7 @@ class SampleJob:
                                    self.g1)
 
 
-@dataclass(frozen=True, kw_only=True)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class FinalizeJob:
     """``out = v / w`` (blended with the background on the silhouette) on target ``block``.
 

@@ -28,7 +28,7 @@ TIGHT_WORK = 1 << 24
 TIGHT_BATCH = 1 << 20
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (arrays: compared by identity, as numpy cannot)
 class Reach:
     """The write map's affine base ``A(g) = offset + scale * g`` on ``grid``.
 
@@ -300,7 +300,7 @@ class TargetBlock:
     domain: Box
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # (arrays: compared by identity, as numpy cannot)
 class PlaneReach:
     """Per domain z plane g: the target z planes [t_lo[g], t_hi[g]) its voxels can reach."""
 
