@@ -343,7 +343,7 @@ class ScanRunner:
             try:
                 own = parse_size(own) if own else None
             except ValueError:
-                own = None  # (the step refuses it itself, naming it)
+                return env  # (kept as it is: the step refuses it itself, naming it)
             if own is None or self.child_memory < own:
                 env[MEMORY_ENV] = str(self.child_memory)
                 env[MEMORY_FROM_ENV] = (f"{MEMORY_ENV}, this scan's share of the batch's "
