@@ -197,3 +197,66 @@ def test_smooth_samples_without_a_band_are_refused_in_morph_terms(shapes, tmp_pa
     assert ("max_distance: D in the spec" in message) == spec
     assert ("--max-distance D" in message) == (not spec)
     assert not list(tmp_path.glob("b_*")) and not list(tmp_path.glob(".*"))
+
+
+_PEAK = """\
+import resource, subprocess, sys
+code = subprocess.run(sys.argv[1:]).returncode
+print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
+sys.exit(code)
+"""
+
+
+def _two_shapes(tmp_path):
+    from volwarp_cli import api
+    from volwarp_cli.volume import Volume
+
+    z, y, x = np.mgrid[:160, :160, :160]
+    ball = (((x - 80) / 50) ** 2 + ((y - 80) / 40) ** 2 + ((z - 80) / 45) ** 2 <= 1)
+    block = (abs(x - 80) < 40) & (abs(y - 80) < 50) & (abs(z - 80) < 30)
+    api.write(Volume(ball.astype(np.uint8) * 100), tmp_path / "a.nrrd")
+    api.write(Volume(block.astype(np.uint8) * 100), tmp_path / "b.nrrd")
+    spec = tmp_path / "m.yaml"
+    spec.write_text("version: 1\nsource: {volume: a.nrrd, iso: 50}\n"
+                    "target: {volume: b.nrrd, iso: 50}\ngrid: union\nframes: 2\n")
+    return spec
+
+
+def _morph(spec, out, limit):
+    import os
+    import subprocess
+    import sys
+
+    from volwarp_cli.memory import MEMORY_ENV
+
+    env = {k: v for k, v in os.environ.items() if k != MEMORY_ENV}
+    proc = subprocess.run([sys.executable, "-c", _PEAK, sys.executable, "-m", "volwarp_cli",
+                           "morph", "--spec", str(spec), "-o", str(out), "--memory-limit",
+                           limit], capture_output=True, text=True, env=env, timeout=120)
+    return proc.returncode, proc.stderr, int(proc.stdout.split()[-1])
+
+
+def test_an_in_memory_morph_is_not_refused_halfway_by_its_resampling(tmp_path):
+    """A 164^3 frame grid's resampling was counted whole (its coordinates 32 bytes a voxel,
+    135 MiB) where it goes by parts of 2^20 voxels: the morph the plan chose in memory (its
+    measured need) was refused at `target resampled onto the frame grid`, its work half done,
+    at 250M and 300M; it runs at 210M, under its limit."""
+    spec = _two_shapes(tmp_path)
+    code, err, peak = _morph(spec, tmp_path / "f_{i}.nrrd", "210M")
+    assert code == 0, err
+    assert peak <= 210 << 20, f"{peak / 2**20:.1f} MiB"
+    assert (tmp_path / "f_1.nrrd").exists()
+
+
+def test_a_morph_whose_store_frames_cannot_be_written_is_refused_before_any_work(tmp_path):
+    """The in-memory morph counted no write, nor the libraries it loads (scipy's ndimage,
+    zarr): at 230M it made every field and frame, then its first OME-Zarr frame's write was
+    refused. Now the plan refuses it (this grid has no form by blocks), one line, nothing
+    written."""
+    spec = _two_shapes(tmp_path)
+    code, err, peak = _morph(spec, tmp_path / "f_{i}.ome.zarr", "230M")
+    assert code == 1
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("volwarp: error: a morph on a 164x164x164 grid needs "), line
+    assert not list(tmp_path.glob("f_*"))
+    assert peak <= 230 << 20

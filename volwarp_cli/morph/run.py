@@ -178,20 +178,28 @@ def plan_morph(job: MorphJob, outputs, write: FrameWrite, chunked: bool | None) 
     frame_type = np.dtype(write.dtype or (
         source.dtype if job.output == "density" and job.density_range == "source"
         else np.float32))
-    sizes = [(p, n * frame_type.itemsize) for p in outputs.frames]
+    typed = [(p, frame_type) for p in outputs.frames]
     for a in job.attributes:  # (an attribute's own type: one byte at least)
-        sizes += [(p, n * np.dtype(a.dtype or np.uint8).itemsize)
-                  for p in outputs.attributes[a.name]]
+        typed += [(p, np.dtype(a.dtype or np.uint8)) for p in outputs.attributes[a.name]]
+    sizes = [(p, n * t.itemsize) for p, t in typed]
     what = f"a morph on a {'x'.join(map(str, shape))} grid"
-    # (inputs read whole for their headers are held already: the budget left counts them)
+    # (inputs read whole for their headers are held already: the budget left counts them;
+    # and a frame's write beside the frames' arrays: an OME-Zarr store's encoding, a gzip
+    # stream, counted, or the in-memory morph was refused at its first write, its work done)
     need = in_memory_bytes(job, source, target, n) - sum(
-        v.data.nbytes for v in plan.loaded.values())
+        v.data.nbytes for v in plan.loaded.values()) + _write_bytes(write, typed, shape)
     no_blocks = None
     if job.warp_source_points is not None and chunked is None:  # (--chunked: a usage error)
         no_blocks = "a morph with a landmark warp runs in memory only"
     def load():  # (what the work loads, counted where the budget is tight)
+        import scipy.ndimage  # noqa: F401 - the fields' resampling onto the frame grid
+
+        from ..io import load_writer
+
         if job.warp_source_points is not None:
             import scipy.interpolate  # noqa: F401 - the landmark warp's solver
+        for path, _ in typed:  # (the writers: zarr's 17 MiB for a store's frames)
+            load_writer(path, write.compress)
 
     if execute.decide(need, what, sizes, execute.How(chunked=chunked), load=load,
                       no_blocks=no_blocks, compress=write.compress, pyramid=write.pyramid):
@@ -204,6 +212,18 @@ def plan_morph(job: MorphJob, outputs, write: FrameWrite, chunked: bool | None) 
         except VolwarpError as exc:
             plan.in_memory_refusal = str(exc)
     return plan
+
+
+def _write_bytes(write: FrameWrite, typed, shape) -> int:
+    """The most one output's write holds beyond its samples (:func:`~volwarp_cli.io.write_memory`).
+
+    ``typed``: ``[(path, dtype)]`` of the frames and attributes.
+    """
+    from ..io import write_memory
+
+    return max((write_memory(path, shape, dtype, compress=write.compress,
+                             byte_order=write.byte_order, ome_zarr_version=write.version,
+                             pyramid=write.pyramid) for path, dtype in typed), default=0)
 
 
 @contextlib.contextmanager
