@@ -138,7 +138,7 @@ import click
 from click.core import ParameterSource
 
 from ..errors import VolwarpError
-from ..io import FOLDER_FORMATS, SUPPORTED_DTYPES, RawLayout
+from ..io import FOLDER_FORMATS, SUPPORTED_DTYPES
 from ..io.common import dicom_read_options
 from ..progress import configure, log
 from ..runscope import run_files
@@ -354,6 +354,8 @@ def input_options(f=None, *, reference_help: str = REFERENCE_HELP,
         if raw_shape is not None or raw_dtype is not None:
             if raw_shape is None or raw_dtype is None:
                 raise click.UsageError("--raw-shape and --raw-dtype go together")
+            from ..io.raw import RawLayout
+
             layout = RawLayout(shape=tuple(raw_shape), dtype=raw_dtype, endian=raw_endian,
                                spacing=tuple(raw_spacing) if raw_spacing else (1.0, 1.0, 1.0),
                                origin=tuple(raw_origin) if raw_origin else (0.0, 0.0, 0.0),

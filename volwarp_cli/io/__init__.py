@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,10 +18,27 @@ from ..runscope import stop_if_dry_run
 from ..volume import Volume
 from .atomic import atomic_output, check_output_path
 from .common import SUPPORTED_DTYPES, cast_samples, note_input
-from .raw import RawLayout
+
+if TYPE_CHECKING:
+    from .raw import RawLayout
 
 __all__ = ["read_volume", "write_volume", "volume_format", "RawLayout", "atomic_output",
            "check_output_path", "SUPPORTED_DTYPES", "VOLUME_EXTENSIONS", "FOLDER_FORMATS"]
+
+
+
+def __getattr__(name: str):
+    """``RawLayout``, from :mod:`.raw` when asked for.
+
+    A raw input's options only: most commands never load that module, nor
+    make its dataclass (1 ms of every start).
+    """
+    if name == "RawLayout":
+        from .raw import RawLayout
+
+        return RawLayout
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 #: extension -> format name
 VOLUME_EXTENSIONS = {
