@@ -26,7 +26,6 @@ __all__ = ["read_volume", "write_volume", "volume_format", "RawLayout", "atomic_
            "check_output_path", "SUPPORTED_DTYPES", "VOLUME_EXTENSIONS", "FOLDER_FORMATS"]
 
 
-
 def __getattr__(name: str):
     """``RawLayout``, from :mod:`.raw` when asked for.
 
