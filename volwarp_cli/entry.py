@@ -174,6 +174,9 @@ def main() -> int:
     from . import signals
 
     signals.install()
+    from . import library_memory
+
+    library_memory.install()  # (an explicit limit counts what the libraries will take)
     try:  # (a stop from here on is a stop: one line, no traceback)
         # (inherited by what the command starts: batch steps, Dask workers)
         configure_numba_cache()
