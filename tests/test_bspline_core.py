@@ -440,8 +440,15 @@ def test_samples_far_above_the_rest_are_refused_before_they_wipe_it_out():
     tails = np.exp(-np.linspace(0, 60, 16 * 17 * 18)).reshape(16, 17, 18)  # down to 1e-26
     capture_volume(Volume(tails.astype(np.float32)), lattice=5, oversample=1)
     point = np.zeros((16, 17, 18), np.float32)
-    point[8, 8, 8] = 1e30  # the bulk is 0: nothing to lose
+    point[8, 8, 8] = 1e30  # nothing else but zeros: nothing to lose
     capture_volume(Volume(point), lattice=5, oversample=1)
+    # a sparse volume: a small object (under 1% of the samples) beside a marker. The
+    # percentile of all the samples is 0, and the warp came out 0 everywhere (exit 0)
+    sparse = np.zeros((16, 17, 18), np.float32)
+    sparse[7:9, 7:9, 7:9] = 0.75
+    sparse[0, 0, 0] = -3.4e38
+    with pytest.raises(VolwarpError, match="non-zero ones have .* <= 0.75"):
+        capture_volume(Volume(sparse), lattice=5, oversample=1)
 
 
 def test_a_lattice_too_big_for_memory_is_refused_before_it_is_built(monkeypatch):

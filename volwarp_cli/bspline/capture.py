@@ -120,8 +120,10 @@ def check_value_range(data: np.ndarray, lo: float, hi: float, sample=None) -> No
     they resolve about 2**-40 of it. A no-data marker such as -3.4e38, or a
     single spike, far above the bulk of the samples would then wipe the rest
     out. Refused: a largest magnitude over ``MAX_VALUE_SPREAD`` times the 99th
-    percentile of ``|value|`` in an evenly strided sample of the input (about
-    65000 samples, a millisecond or two), where that percentile is not 0.
+    percentile of the non-zero ``|value|`` in an evenly strided sample of the
+    input (about 65000 samples, a millisecond or two). Non-zero: in a sparse
+    volume (a small object in a field of zeros) the percentile of all the
+    samples is 0, and a marker beside the object once went through, zeroing it.
     ``sample``: that sample, when already taken (:func:`scan_source`).
     """
     vmax = max(-lo, hi)
@@ -129,13 +131,17 @@ def check_value_range(data: np.ndarray, lo: float, hi: float, sample=None) -> No
         return
     sample = value_sample(data) if sample is None else sample
     mags = np.abs(sample, dtype=np.float64).ravel()
+    mags = mags[mags > 0]
+    if mags.size == 0:  # (nothing but zeros seen: no bulk to keep)
+        return
     k = int(0.99 * (mags.size - 1))
     bulk = float(np.partition(mags, k)[k])  # (np.percentile's first call imports ~60 ms)
-    if bulk > 0 and vmax > MAX_VALUE_SPREAD * bulk:
+    if vmax > MAX_VALUE_SPREAD * bulk:
         raise VolwarpError(
             f"samples reach {lo if -lo > hi else hi:.3g}, over 2^{np.log2(MAX_VALUE_SPREAD):.0f} times "
-            f"the bulk of the values (99% have |value| <= {bulk:.3g}): the warp's exact "
-            f"sums resolve about {vmax * 2.0 ** -40:.2g}, too coarse for the rest; clip or "
+            f"the bulk of the values (99% of the non-zero ones have |value| <= {bulk:.3g}): "
+            f"the warp's exact sums resolve about {vmax * 2.0 ** -40:.2g}, too coarse for the "
+            "rest; clip or "
             "mask those samples first (a no-data value?)")
 
 
