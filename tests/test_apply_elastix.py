@@ -92,11 +92,13 @@ def test_apply_on_the_fixed_grid_it_states(run, tmp_path):
     vol = Volume(np.sin(x / 3) * np.cos(y / 4) * 50 + z, spacing=(1.0, 1.1, 1.0),
                  origin=(-4.0, 2.0, 3.0), space="left-posterior-superior")
     write_volume(vol, tmp_path / "moving.nrrd")
-    res = run("apply", tmp_path / "moving.nrrd", "-o", tmp_path / "out.nrrd", "-t",
+    res = run("apply", "-v", tmp_path / "moving.nrrd", "-o", tmp_path / "out.nrrd", "-t",
               tmp_path / "tp.txt", "--interpolation", "bspline", "--background-value", "0")
     assert res.code == 0, res
     out = read_volume(tmp_path / "out.nrrd")
     assert out.shape_xyz == tuple(GRID["Size"]) and np.allclose(out.direction, ROT)
+    size = "x".join(map(str, GRID["Size"]))  # (not the input's: said, as --help says)
+    assert f"output grid: {size} (the elastix file's fixed grid)" in res.stderr, res.stderr
     mov = sitk.GetImageFromArray(vol.data)
     mov.SetSpacing([1.0, 1.1, 1.0])
     mov.SetOrigin([-4.0, 2.0, 3.0])

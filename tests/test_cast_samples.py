@@ -82,3 +82,66 @@ def test_a_cast_written_by_slabs_is_the_whole_s_cast(tmp_path, monkeypatch):
         out = io.BytesIO()
         gzip_to(out, *parts)
         assert out.getvalue() == gzip_bytes(*parts)
+
+
+def test_clipping_is_said_once_a_run_with_what_lay_beyond(caplog):
+    """An int16 CT cast to uint8 came out 0 everywhere without a word (exit 0): clipping is
+    now a warning naming the output, the reach and the type's range, once a run for each
+    output and type; samples within the range say nothing."""
+    from volwarp_cli.runscope import run_scope
+
+    ct = np.array([-1147.0, -614.0, -700.4], np.float32)
+    with caplog.at_level("WARNING", logger="volwarp"), run_scope():
+        assert cast_samples(ct, "uint8", what="ct_u8.nrrd").tolist() == [0, 0, 0]
+        cast_samples(ct, "uint8", what="ct_u8.nrrd")  # (the next block: said already)
+        assert cast_samples(np.array([60000, -3], np.int32), "int16", what="o.nrrd").tolist() \
+            == [32767, -3]
+        assert cast_samples(np.array([0.4, 254.6]), "uint8", what="fits.nrrd").tolist() == [0, 255]
+    lines = [r.getMessage() for r in caplog.records]
+    assert lines == [
+        "warning: ct_u8.nrrd: samples as low as -1147 lie outside uint8's range [0, 255] and "
+        "are clipped to it",
+        "warning: o.nrrd: samples as high as 60000 lie outside int16's range [-32768, 32767] "
+        "and are clipped to it"], lines
+
+
+def test_float64_beyond_float32_is_refused_not_made_infinite():
+    """float64 samples of 1e300 cast to float32 became +inf (59 of 60, exit 0; only `info`
+    counted them afterwards): refused, naming the largest; infinities already there and
+    values within float32's range are kept."""
+    import pytest
+
+    from volwarp_cli.errors import VolwarpError
+
+    with pytest.raises(VolwarpError, match=r"big.nrrd: samples as large as 1e\+300 \(2 of them\) "
+                                           "do not fit float32"):
+        cast_samples(np.array([1e300, -1e300, 1.0]), "float32", what="big.nrrd")
+    out = cast_samples(np.array([np.inf, -np.inf, 3e38, 1.5]), "float32")
+    assert out.dtype == np.float32 and out.tolist()[:2] == [np.inf, -np.inf]
+    assert out.tolist()[3] == 1.5 and np.isfinite(out[2])
+
+
+def test_apply_by_blocks_in_other_processes_names_its_output_once(run, tmp_path):
+    """A cast in a block task of another process (the operation pickled without its
+    target) names the output: the first version of this warning looked the target up
+    there and failed (internal error: KeyError). Said once for all the blocks."""
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    z, y, x = np.mgrid[:24, :20, :16]
+    # (every block that clips holds 300 and nothing else beyond: the same words from any;
+    # a step of ids, which the label rule takes for labels: --values intensity)
+    write_volume(Volume(np.where(x < 8, x, 300).astype(np.float32)), tmp_path / "ramp.nrrd")
+    (tmp_path / "id.tfm").write_text(
+        "#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+        "Parameters: 1 0 0 0 1 0 0 0 1 0 0 0\nFixedParameters: 0 0 0\n")
+    r = run("apply", tmp_path / "ramp.nrrd", "-o", tmp_path / "o.nrrd", "-t",
+            tmp_path / "id.tfm", "--dtype", "int8", "--values", "intensity", "--chunked",
+            "--block", "8",
+            "--scheduler", "processes", "--workers", "2")
+    assert r.code == 0, r.stderr
+    said = [line for line in r.stderr.splitlines() if "clipped" in line]
+    assert said == [f"volwarp: warning: {tmp_path / 'o.nrrd'}: samples as high as 300 lie "
+                    "outside int8's range [-128, 127] and are clipped to it"], r.stderr
+    out = read_volume(tmp_path / "o.nrrd").data
+    assert out.max() == 127 and out[:, :, 0].max() == 0

@@ -129,6 +129,7 @@ class ApplyOperation(Operation):
         # stays here)
         state = dict(self.__dict__)
         state["targets"] = {}
+        state["output_name"] = self._output  # (what its casts' messages name)
         return state
 
     # -- regions -------------------------------------------------------------------------
@@ -380,12 +381,24 @@ class ApplyOperation(Operation):
         if self.interpolation == "nearest":
             res = np.empty(len(coords), dtype=data.dtype)
             kernels.sample_nearest(data, coords, lo_xyz, n, self._background_as(data.dtype), res)
-            return res if res.dtype == self.dtype else cast_samples(res, self.dtype)
+            return res if res.dtype == self.dtype else cast_samples(res, self.dtype,
+                                                                     what=self._output)
         res = np.empty(len(coords))
         kernel = kernels.sample_linear if self.interpolation == "linear" else \
             kernels.sample_cubic
         kernel(data, coords, lo_xyz, n, self.background, res)
-        return cast_samples(res, self.dtype, what="the resampled volume")
+        return cast_samples(res, self.dtype, what=self._output)
+
+    @property
+    def _output(self) -> str:
+        """The output, as a cast's messages name it (the API's has no path).
+
+        (A task in another process has no target: the name it was sent with.)
+        """
+        target = self.targets.get(self.KEY)
+        if target is None:
+            return self.__dict__.get("output_name", "the resampled volume")
+        return "the resampled volume" if target.path is None else str(target.path)
 
     def load(self) -> None:
         """What the resampling loads, so the budget counts it: scipy's filters for bspline.
@@ -479,10 +492,14 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
     """
     from .execute import Target
     from .geometry import Geometry
+    from .progress import log
 
     in_grid = Geometry.of(header)
     grid = Geometry.of(reference) if reference is not None else (
         in_grid if chain.grid is None else chain.grid)
+    log.info("output grid: %s (%s)", "x".join(map(str, grid.shape[::-1])),
+             "--reference" if reference is not None else
+             f"{name}'s" if chain.grid is None else "the elastix file's fixed grid")
     check_coverage(chain, grid, allow=outside_field)
     if sampling is None:
         sampling = choose_sampling(source, interpolation=interpolation, values=values,

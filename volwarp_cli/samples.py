@@ -6,6 +6,8 @@ a morph frame cast back to the input's type), so it lives in neither.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .errors import FormatError, VolwarpError
@@ -57,17 +59,24 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
     """Convert samples to ``dtype``: integers are rounded and clipped to the type's range.
 
     NaN cannot be stored in an integer type and is refused rather than
-    silently turned into 0.
+    silently turned into 0; finite samples beyond float32's range are refused
+    rather than turned into infinities. Clipping is said, once a run for each
+    ``what`` and type (:func:`_say_clipped`): every sample of a CT cast to uint8
+    came out 0 without a word.
     """
     dt = check_dtype(dtype)
     if data.dtype == dt:
         return data
     if dt.kind in "iu":
+        info = np.iinfo(dt)
         if data.dtype.kind == "f":
-            if np.isnan(data).any():
-                raise VolwarpError(f"{what} contains NaN, which {dt.name} cannot hold")
-            info = np.iinfo(dt)
             out = np.rint(data)
+            low, high = (float(out.min()), float(out.max())) if out.size else (0.0, 0.0)
+            if math.isnan(low) or math.isnan(high):  # (min and max pass NaN on)
+                raise VolwarpError(f"{what} contains NaN, which {dt.name} cannot hold")
+            if low >= info.min and high <= info.max:  # (Python's float-int order: exact)
+                return out.astype(dt)
+            _say_clipped(what, dt, low, high)
             lo, hi = _float_bounds(out.dtype, info)
             if float(lo) == info.min and float(hi) == info.max:  # (the range exact here)
                 np.clip(out, lo, hi, out=out)
@@ -79,9 +88,44 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
             res = out.astype(dt)
             res[over], res[under] = info.max, info.min
             return res
-        info = np.iinfo(dt)
         src = np.iinfo(data.dtype)
         if src.min >= info.min and src.max <= info.max:
             return data.astype(dt)
-        return np.clip(data, max(info.min, src.min), min(info.max, src.max)).astype(dt)
+        low, high = (int(data.min()), int(data.max())) if data.size else (0, 0)
+        if low >= info.min and high <= info.max:
+            return data.astype(dt)
+        _say_clipped(what, dt, low, high)
+        return np.clip(data, info.min, info.max).astype(dt)
+    if dt == np.float32 and data.dtype == np.float64:
+        with np.errstate(over="ignore"):
+            out = data.astype(dt)
+        over = np.isinf(out) & np.isfinite(data)
+        if over.any():
+            worst = float(np.abs(data[over]).max())
+            raise VolwarpError(f"{what}: samples as large as {worst:.3g} ({int(over.sum())} "
+                               f"of them) do not fit float32 (at most {float(np.finfo(dt).max):.3g}) "
+                               "and would become infinite: keep float64 (--dtype float64) "
+                               "or scale them first")
+        return out
     return data.astype(dt)
+
+
+def _say_clipped(what: str, dt: np.dtype, low, high) -> None:
+    """Warn, once a run for ``what`` and ``dt``, that samples from ``low`` to ``high`` were clipped.
+
+    (A cast by blocks says it for the first block with any: its reach, not the whole's.)
+    """
+    from .progress import log
+    from .runscope import run_files
+
+    info = np.iinfo(dt)
+    key = ("clipped", what, dt.name)
+    said = run_files().said
+    if key in said:
+        return
+    said.add(key)
+    beyond = [f"as low as {float(low):.10g}"] if low < info.min else []
+    beyond += [f"as high as {float(high):.10g}"] if high > info.max else []
+    log.warning("warning: %s: samples %s lie outside %s's range [%d, %d] and are clipped to "
+                "it", what, " and ".join(beyond), dt.name, info.min, info.max,
+                extra={"once": key})

@@ -31,7 +31,8 @@ from .resources import scale_options, scale_settings
 
 #: --reference (input_options' option, taken by this command: the output grid)
 REFERENCE_HELP = ("The output grid: REF's size, spacing, origin and direction [default: the "
-                  "input's]; its samples are not used (for a DICOM SEG or RTSTRUCT input, "
+                  "input's; with an elastix file, the fixed grid it states, as transformix "
+                  "takes it]; its samples are not used (for a DICOM SEG or RTSTRUCT input, "
                   "convert it first).")
 
 
