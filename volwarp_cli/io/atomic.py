@@ -85,6 +85,17 @@ def outputs_together():
 _scratch_folders: set[str] = set()
 
 
+def is_own_temporary(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a temporary of this process or lies in one (a scratch folder).
+
+    Such a file is volwarp's own, rewritten as the work goes: not an input
+    another program could change (:func:`.mapped.watch`).
+    """
+    real = os.path.realpath(path)
+    folders = _scratch_folders | {os.path.realpath(t) for t in list(_live_temporaries)}
+    return any(real == f or real.startswith(f + os.sep) for f in folders)
+
+
 def _hold(rename, tmps, path: Path) -> bool:
     """Hold ``rename`` of ``tmps`` until :func:`outputs_together` ends (False outside one).
 

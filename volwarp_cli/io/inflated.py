@@ -85,8 +85,10 @@ def inflated_array(original: Path, nbytes: int, file_dtype, shape_zyx, where: st
     from ..runscope import run_files
     from ..signals import check_stop
     from .common import note_input
+    from .mapped import watch
 
     note_input(original)
+    watch(original)  # (rewritten while it is inflated: a mix; refused before any rename)
     st = os.stat(original)
     key = (os.path.realpath(original), st.st_size, st.st_mtime_ns, part, nbytes,
            str(file_dtype), tuple(shape_zyx))

@@ -200,10 +200,13 @@ def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str, *,
             kind=FileArray):
     """The samples in ``file`` as a :class:`.filearray.FileArray` (read by pread, not mapped).
 
-    Checked for truncation first; the file is noted as an input (an output is not
-    renamed into place when an input changed meanwhile).
+    Checked for truncation first; the file is noted as an input, and watched:
+    an output is not renamed into place when it changed meanwhile
+    (:func:`.mapped.watch`; read by blocks as the work went, a scan rewritten
+    in place gave a mix of the two, exit 0).
     """
     from .common import note_input
+    from .mapped import watch
 
     nbytes = voxel_count(shape_zyx) * dtype.itemsize
     with open(file, "rb") as fh:
@@ -212,6 +215,7 @@ def _memmap(file: Path, dtype: np.dtype, offset: int, shape_zyx, where: str, *,
             raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of samples, "
                               f"found {max(size - max(offset, 0), 0)}")
         note_input(fh)
+        watch(fh, str(file))
     return kind(file, dtype, offset, shape_zyx)
 
 

@@ -225,10 +225,12 @@ def _lazy_field(nf, shape_zyx):
     from ..io.common import note_input
     from ..io.filearray import FileArray
     from ..io.inflated import inflated_array
+    from ..io.mapped import watch
     from ..io.nifti import gunzip_range_into
 
     if not nf.gzipped:
-        note_input(nf.path)  # (an output is not renamed into place if it changed)
+        note_input(nf.path)
+        watch(nf.path)  # (an output is not renamed into place if it changed meanwhile)
         return LazyField(FileArray(nf.path, nf.file_dtype, nf.offset, _planes(shape_zyx)),
                          shape_zyx, planar=True, field=nf.path, nifti=True)
 
