@@ -110,11 +110,22 @@ def test_a_cluster_hosts_scans_at_once_share_it():
     assert cluster.share_of_cores(8, "10.0.0.1", hosts, 2) == 2
 
 
-def test_a_local_clusters_steps_are_held_to_it_too(run, tmp_path):
+def test_a_local_clusters_own_workers_count_against_the_limit(run, tmp_path):
+    """A local cluster's worker and nanny processes (about 120 MiB a worker) run on this
+    machine beside the batch and its steps, but the steps shared all the batch process
+    left: with 150 MiB over the batch, a distance step ran (exit 0) while the worker
+    held most of it. Now the workers are taken off first, and what they leave is too
+    little for any step: refused before any scan, naming the workers."""
     _manifest(tmp_path, "  - {name: d, run: distance, output: '{stem}_d.nrrd', "
                         "options: ['--iso', '50']}\n")
     r = run("batch", tmp_path / "m.yaml", "--scheduler", "local", "--workers", "1",
-            "--memory-limit", memory.process_rss() + 30 * M)
+            "--memory-limit", memory.process_rss() + 150 * M)
     assert r.code == 1, r.stderr
-    assert "memory limit" in r.stderr and "share of the batch's memory limit" in r.stderr
+    assert "the memory limit leaves nothing for the scans' steps: the local cluster's " \
+           "workers hold" in r.stderr, r.stderr
     assert not (tmp_path / "out" / "ball_d.nrrd").exists()
+    # with room for the workers, the steps get the rest, shared (the pool's test above)
+    r = run("batch", tmp_path / "m.yaml", "--scheduler", "local", "--workers", "1",
+            "--memory-limit", memory.process_rss() + (2 << 30))
+    assert r.code == 0, r.stderr
+    assert (tmp_path / "out" / "ball_d.nrrd").exists()

@@ -357,6 +357,7 @@ def run_on_cluster(manifest: Manifest, scans: list[Scan], where, **options):
     import contextlib
 
     import dask
+    import distributed  # noqa: F401 - its config defaults in place before the set below
 
     from .. import memory, parallel
     from ..engine import open_engine
@@ -382,6 +383,28 @@ def run_on_cluster(manifest: Manifest, scans: list[Scan], where, **options):
             from .run import child_memory
 
             limit, _ = child_memory(1)
+            limit = less_local_workers(engine.client, limit)
         results, stop = ClusterBatch(manifest, scans, client=engine.client,
                                      child_threads=child, memory_limit=limit, **options).run()
     return results, stop, at_once
+
+
+def less_local_workers(client, limit: int) -> int:
+    """``limit`` less what a local cluster's worker and nanny processes hold now.
+
+    They run on this machine beside the batch and its steps (about 120 MiB a
+    worker with its nanny): a batch under ``--memory-limit`` shared the whole
+    of what the batch process left among the steps, and the machine held the
+    workers on top. An :class:`~volwarp_cli.errors.OutOfMemoryError` where
+    they leave the steps nothing.
+    """
+    from .. import memory
+    from ..errors import OutOfMemoryError
+
+    held = sum(sum(client.run(memory.process_rss, nanny=nanny).values())
+               for nanny in (False, True))
+    if limit <= held:
+        raise OutOfMemoryError(f"the memory limit leaves nothing for the scans' steps: the "
+                               f"local cluster's workers hold {memory.human_bytes(held)} of "
+                               f"the {memory.human_bytes(limit)} the batch process leaves")
+    return limit - held
