@@ -68,6 +68,33 @@ def _run(args, env, delay=None, signum=None):
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["TERM", "INT"])
 @pytest.mark.parametrize("name", ["convert", "info", "distance", "warp", "mesh"])
 def test_a_stop_at_any_moment_keeps_the_old_output(tmp_path, name, signum):
+    _stop_at_any_moment(tmp_path, name, signum)
+
+
+@pytest.mark.parametrize(("name", "signum"), [("distance", signal.SIGHUP),
+                                              ("convert", signal.SIGQUIT)], ids=["HUP", "QUIT"])
+def test_a_closed_terminal_is_a_stop_too(tmp_path, name, signum):
+    """SIGHUP (a job left in the foreground of an ssh session that closes) and SIGQUIT
+    (Ctrl-\\) killed the process as they came: a distance by blocks left its hidden
+    256 MB temporary output behind, exit 129. Now stops like SIGTERM's."""
+    _stop_at_any_moment(tmp_path, name, signum)
+
+
+def test_nohup_keeps_a_job_going(tmp_path):
+    """A job started with SIGHUP ignored (``nohup``) goes on through a SIGHUP: the handler
+    is installed only where the signal is not ignored."""
+    args, out = _commands(tmp_path)["convert"]
+    proc = subprocess.Popen([str(VOLWARP)] + [str(a) for a in args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGHUP)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    assert out.exists()
+
+
+def _stop_at_any_moment(tmp_path, name, signum):
     args, out = _commands(tmp_path)[name]
     if name == "info":  # read a NIfTI (nibabel's optional imports used to swallow the stop;
         # the larger scan's: the bundled one's info ended before a Ctrl-C from 0.25 s)

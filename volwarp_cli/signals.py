@@ -1,7 +1,10 @@
-"""Stopping on SIGINT / SIGTERM: the stop is recorded, raised, and checked again.
+"""Stopping on SIGINT / SIGTERM (and SIGHUP, SIGQUIT): the stop is recorded, raised, checked again.
 
 A cron job or Make that kills a run must be able to rely on exit 130 / 143
-and on its old outputs. Raising from the handler alone is not enough: a
+and on its old outputs; a job left in the foreground of an ssh session that
+closes gets SIGHUP (129), and it left its temporary output behind (a hidden
+256 MB file). SIGHUP and SIGQUIT are stops unless the process started with
+them ignored (``nohup`` ignores SIGHUP: such a job goes on). Raising from the handler alone is not enough: a
 library's ``except Exception`` (nibabel's optional imports, a reader's
 catch-all turning any failure into "file damaged") or a callback from C
 (llvmlite's, through ctypes) can swallow the exception, and the run would go
@@ -31,11 +34,20 @@ import threading
 
 #: paths of temporary outputs not yet renamed into place (removed on a stop)
 temporaries: set[str] = set()
+#: the signals that stop a run (SIGHUP and SIGQUIT where not ignored: :func:`stops`)
+STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
+_HELD = frozenset(STOPS) | {signal.SIGALRM}  # (what blocked() and settle() hold back)
+
+
+def stops() -> tuple:
+    """The stop signals this process takes: SIGINT, SIGTERM, and the others not ignored."""
+    return tuple(s for s in STOPS if s in (signal.SIGINT, signal.SIGTERM)
+                 or signal.getsignal(s) is not signal.SIG_IGN)
 _stop: list[int] = []  # the first stop's signal number, once one is asked
 
 
 class Interrupted(BaseException):
-    """Raised inside the work when SIGINT or SIGTERM arrives (or at a later safe point)."""
+    """Raised inside the work when a stop (SIGINT, SIGTERM, ...) arrives (or at a later safe point)."""
 
     def __init__(self, signum: int):
         self.signum = signum
@@ -100,7 +112,7 @@ def _raise_when_safe(frame) -> None:
 
 @contextlib.contextmanager
 def blocked():
-    """Hold SIGINT, SIGTERM (and the deferred stop's SIGALRM) back for a few steps.
+    """Hold the stops (and the deferred stop's SIGALRM) back for a few steps.
 
     Steps that must not be cut in two: a temporary made and registered, several
     files renamed together. A stop asked meanwhile is handled as soon as the block ends.
@@ -120,8 +132,7 @@ def blocked():
     # the two calls, at a bytecode, only notes the stop, and the mask is always restored)
     _held_back[0] += 1
     try:
-        old = signal.pthread_sigmask(signal.SIG_BLOCK,
-                                     {signal.SIGINT, signal.SIGTERM, signal.SIGALRM})
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
         try:
             yield
         finally:
@@ -178,9 +189,9 @@ def _unraisable(hook):
 
 
 def install() -> None:
-    """Handle SIGINT and SIGTERM as described above (main thread only)."""
-    signal.signal(signal.SIGTERM, _on_signal)
-    signal.signal(signal.SIGINT, _on_signal)
+    """Handle the stops as described above (main thread only; an ignored SIGHUP stays so)."""
+    for signum in stops():
+        signal.signal(signum, _on_signal)
     if not getattr(sys.unraisablehook, "_volwarp", False):
         hook = _unraisable(sys.unraisablehook)
         hook._volwarp = True
@@ -198,7 +209,7 @@ def cancel_deferred() -> None:
 
 
 def settle() -> None:
-    """Let no stop raise any more: hold SIGINT, SIGTERM and SIGALRM back, cancel a deferred stop.
+    """Let no stop raise any more: hold the stops and SIGALRM back, cancel a deferred stop.
 
     For the end of a command-line run, once its exit code is decided: a stop
     deferred by an import (the re-check timer) or a second Ctrl-C must not raise
@@ -207,7 +218,7 @@ def settle() -> None:
     crash). A stop that lands while this runs raises :class:`Interrupted` once,
     before the mask is in place: call it again.
     """
-    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM, signal.SIGALRM})
+    signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
     signal.setitimer(signal.ITIMER_REAL, 0)
 
 

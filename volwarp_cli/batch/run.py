@@ -24,7 +24,7 @@ threads of the batch process, each waiting on its own child. The cluster form
 - ``retries``: a step whose process died of a signal (exit code < 0: SIGKILL from
   the out-of-memory killer, SIGSEGV) is run again, up to that many times; a
   step that failed (exit 1, 2) or was stopped never is.
-- SIGINT / SIGTERM to the batch: no new step starts, the running ones get the
+- SIGINT / SIGTERM (SIGHUP, SIGQUIT) to the batch: no new step starts, the running ones get the
   same signal (each leaves its old outputs, as every volwarp command
   guarantees), and :meth:`Batch.run` returns with the signal number. A second
   stop kills the children at once.
@@ -44,12 +44,13 @@ from dataclasses import dataclass, field
 
 from ..memory import MEMORY_ENV
 from ..parallel import THREADS_ENV
+from ..signals import STOPS, stops
 from .manifest import SCAN, Manifest, Scan
 from .plan import CommandRecord, StepPlan, made_from, plan_scan, stale_reason
 
 #: seconds a stopped child is given before it is killed
 STOP_GRACE = 20.0
-_STOP_CODES = (128 + signal.SIGINT, 128 + signal.SIGTERM)
+_STOP_CODES = tuple(128 + s for s in STOPS)
 #: Linux's prctl option asking for a signal when the parent (thread) dies
 _PR_SET_PDEATHSIG = 1
 #: the child's first lines: SIGTERM when its parent dies, then ``volwarp`` itself
@@ -458,10 +459,13 @@ class Batch:
 
 
 def install_stop_handlers(signals: list[int]):
-    """SIGINT and SIGTERM append their number to ``signals`` (main thread only); the old ones."""
+    """The stops (:func:`volwarp_cli.signals.stops`) append their number to ``signals``.
+
+    Main thread only; returns the old handlers.
+    """
     if threading.current_thread() is not threading.main_thread():
         return None
-    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    old = {s: signal.getsignal(s) for s in stops()}
     for s in old:
         signal.signal(s, lambda signum, frame: signals.append(signum))
     return old
