@@ -76,7 +76,9 @@ def _pattern_check(kind: str):
 @click.option("--spec", "spec_path", type=INPUT_PATH, default=None,
               help="Morph spec (YAML, see specs/morph.schema.json).")
 @output_option("Frame file pattern, e.g. 'frame_{i:03d}.nrrd' ({i} frame number, {t} time); "
-               "format by extension.", callback=_pattern_check("volume"))
+               "format by extension. An earlier run's frames beyond this run's count are "
+               "not removed (a frames folder of its own per run keeps them apart).",
+               callback=_pattern_check("volume"))
 @click.option("--mesh-to", default=None, callback=_pattern_check("mesh"),
               help="Also write each frame's surface: pattern with a mesh extension "
                    "(.ply .stl .obj .vtp .vtk).")
