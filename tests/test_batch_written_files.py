@@ -4,7 +4,9 @@ A review found a mesh step's ``--render {stem}.png --turntable 4`` taken for
 the one file ``{stem}.png``, while the command writes ``{stem}-000.png`` ...
 ``{stem}-003.png`` only: a frame deleted or changed by hand was never noticed,
 an old ``{stem}.png`` was recorded as the step's output (without one the step
-ran every time), and a second step writing a frame was not refused.
+ran every time), and a second step writing a frame was not refused. A name
+still a pattern after ``{stem}`` (``--frames-to '{stem}_{{frame:03d}}.nrrd'``)
+had the same blind spot: it is refused.
 """
 
 from __future__ import annotations
@@ -89,4 +91,23 @@ def test_a_second_step_writing_a_frame_is_refused(tmp_path):
     assert res.returncode == 2, res.stderr
     assert re.search(r"m\.yaml:6: steps\[1\]\.options: \S*p01-001\.png is also written by "
                      r"step 'surf'", _one_error_line(res)), res.stderr
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("step, key", [
+    ('{name: w, run: warp, spec: warp.yaml, output: "{stem}_w.nrrd", '
+     'options: ["--frames-to", "{stem}_{{frame:03d}}.nrrd"]}', r"steps\[0\]\.options"),
+    ('{name: m, run: mesh, output: "{stem}_{{label}}.ply", options: ["--labels"]}',
+     r"steps\[0\]\.output"),
+])
+def test_an_output_still_a_pattern_is_refused(tmp_path, step, key):
+    """A file per frame or label: batch could neither record nor check them."""
+    manifest = _tree(tmp_path, f"  - {step}\n")
+    (tmp_path / "warp.yaml").write_text(
+        "version: 1\nunits: voxel\ncapture: {lattice: 5, oversample: 1}\nsteps:\n"
+        "  - move:\n      - {index: [2, 2, 2], by: [1.0, 0.5, 0.0]}\n")
+    res = volwarp("batch", manifest)
+    assert res.returncode == 2, res.stderr
+    assert re.search(key + r": \S+ \S*p01_\{(frame:03d|label)\}\.(nrrd|ply): a pattern, which "
+                     r"the step fills per frame or label", _one_error_line(res)), res.stderr
     assert not (tmp_path / "out").exists()

@@ -8,7 +8,10 @@ options' values without one (``--camera-to cam.json``: one file, in the
 manifest's folder, which :func:`check_outputs` allows for one scan only).
 The outputs are the files the command writes, named as it names them
 (:func:`written_files`): ``--render {stem}.png --turntable 4`` writes
-``{stem}-000.png`` ... ``{stem}-003.png``, not ``{stem}.png``.
+``{stem}-000.png`` ... ``{stem}-003.png``, not ``{stem}.png``. A name that
+is still a pattern once its placeholders are filled (``--frames-to
+'{stem}_{{frame:03d}}.nrrd'``: a file per frame) is refused: its files
+are known only once the step has run.
 An option value ``{COLUMN}`` is the scan's file in that column of its table
 row (``{reference}``: its series; ``{transform}``: its registration): a file
 the step reads for that scan, not an output (an elastix parameter file with
@@ -413,18 +416,15 @@ def _is_pattern(path: Path) -> bool:
 
 
 def _refuse_over(out: Path, option: str, inputs: list, readers: dict[str, str]) -> None:
-    """:func:`..io.inputs.refuse_output_over_input` (or its pattern form) for one output.
+    """:func:`..io.inputs.refuse_output_over_input` for one output.
 
     The message says who reads the input (``readers``: path -> who), when it is known.
     """
     from ..errors import BadUsage
-    from ..io.inputs import refuse_output_over_input, refuse_pattern_over_input
+    from ..io.inputs import refuse_output_over_input
 
     def refuse(given):
-        if _is_pattern(out):
-            refuse_pattern_over_input(str(out), option=option, inputs=given)
-        else:
-            refuse_output_over_input(out, inputs=given, option=option)
+        refuse_output_over_input(out, inputs=given, option=option)
 
     try:
         refuse(inputs)
@@ -465,7 +465,8 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
 
     An output is every file a step writes (its ``-o``, every output option,
     as :func:`written_files` names them) and the batch's reports
-    (``reports``: ``(option, path)``). An input is a
+    (``reports``: ``(option, path)``); a step's output still a pattern
+    (:func:`_refuse_pattern`) is refused. An input is a
     scan (any scan's files, a detached header's data files too), a file a
     step reads (its spec, an option's file), the manifest, the scans' table;
     symbolic and hard links are followed
@@ -483,6 +484,7 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
             step = plan.step
             for option, out in plan.writes:
                 key = ("steps", step.index, "output" if option == "-o" else "options")
+                _refuse_pattern(manifest, key, out, option)
                 try:
                     _refuse_over(out, option, [str(scan.path), *map(str, plan.reads), *fixed],
                                  fixed)
@@ -497,6 +499,21 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
                 writer = _Writer(f"step {step.name!r} (steps[{step.index}])", step, scan, option)
                 _refuse_twice(manifest, key, out, writer, writers)
     _check_reports(manifest, reports, fixed, scan_files, writers)
+
+
+def _refuse_pattern(manifest, key, out: Path, option: str) -> None:
+    """An output whose name holds fields after its placeholders (``{{frame:03d}}``).
+
+    Its command fills them, a file per frame or label (warp's ``--frames-to``,
+    mesh's ``--labels``): files batch cannot name before the step runs, so it
+    could neither record nor check them (the step ran every time, and a frame
+    deleted by hand was never noticed).
+    """
+    if _is_pattern(out):
+        raise _located(manifest, key, (
+            f"{option} {out}: a pattern, which the step fills per frame or label; batch "
+            "records and checks every file a step writes and cannot name these before it "
+            "runs (leave the option out, or run the command outside batch)"))
 
 
 def _refuse_over_scans(manifest, key, out: Path, option: str, scan_files: dict) -> None:
