@@ -59,6 +59,9 @@ class Step:
     inputs: tuple[Path, ...] = ()
     #: ``(index in options, option)`` of each option value naming a file the step writes
     writes: tuple[tuple[int, str], ...] = ()
+    #: ``(parameter, parsed value)`` of the options that change which files an output
+    #: option writes (mesh's ``turntable``: :data:`.plan.FILE_PARAMS`)
+    params: tuple[tuple[str, object], ...] = ()
 
 
 @dataclass(frozen=True)

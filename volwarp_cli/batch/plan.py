@@ -6,6 +6,12 @@ outputs: ``-o`` and every option value holding a placeholder (a mesh's
 ``--render {stem}.png``), all under the output folder, and the output
 options' values without one (``--camera-to cam.json``: one file, in the
 manifest's folder, which :func:`check_outputs` allows for one scan only).
+The outputs are the files the command writes, named as it names them
+(:func:`written_files`): ``--render {stem}.png --turntable 4`` writes
+``{stem}-000.png`` ... ``{stem}-003.png``, not ``{stem}.png``. A name that
+is still a pattern once its placeholders are filled (``--frames-to
+'{stem}_{{frame:03d}}.nrrd'``: a file per frame) is refused: its files
+are known only once the step has run.
 An option value ``{COLUMN}`` is the scan's file in that column of its table
 row (``{reference}``: its series; ``{transform}``: its registration): a file
 the step reads for that scan, not an output (an elastix parameter file with
@@ -46,6 +52,9 @@ STATE_LOCK_NAME = f"{BOOK_DIR}/state.lock"
 STATE_VERSION = 2
 #: seconds between rewrites of the state file during a run (and once at its end)
 FLUSH_SECONDS = 1.0
+#: the parsed options that change which files an output option writes, by command
+#: (each step's dry run keeps their values: :attr:`.manifest.Step.params`)
+FILE_PARAMS = {"mesh": ("turntable",)}
 
 
 @dataclass
@@ -67,7 +76,7 @@ class StepPlan:
 
     @property
     def outputs(self) -> list[Path]:
-        """The files the step makes per scan: ``-o`` first, then the placeholder option values."""
+        """The files the step makes per scan: ``-o`` first, then those of the placeholder options."""
         return [self.output, *self.extra_outputs]
 
     @property
@@ -100,6 +109,19 @@ def output_path(manifest: Manifest, scan: Scan, pattern: str) -> Path:
     return manifest.output_dir / scan.relpath / filled
 
 
+def written_files(step: Step, option: str, path: Path) -> list[Path]:
+    """The files ``step``'s command writes for its output ``option`` given ``path``.
+
+    Named by the command's own function, so that what batch records and checks
+    is what the step writes (``--render`` with ``--turntable``: only the frames).
+    """
+    if step.run == "mesh" and option == "--render":
+        from ..cli.mesh import render_files
+
+        return render_files(path, dict(step.params).get("turntable"))
+    return [path]
+
+
 def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
     """The plans of the manifest's steps for ``scan``, in step order (absolute paths)."""
     plans: dict[str, StepPlan] = {}
@@ -114,9 +136,11 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
                 reads += [path, *_linked(path, manifest.base)]
             elif placeholders(value):
                 path = output_path(manifest, scan, value)
-                extra.append(path)
-                flags.append(step.options[k - 1] if k and step.options[k - 1].startswith("-")
-                             else "an output")
+                flag = (step.options[k - 1] if k and step.options[k - 1].startswith("-")
+                        else "an output")
+                files = written_files(step, flag, path)
+                extra += files
+                flags += [flag] * len(files)
                 options.append(str(path.absolute()))
             else:
                 options.append(value)
@@ -154,7 +178,8 @@ def _fixed_outputs(manifest: Manifest, step: Step) -> list[tuple[str, Path]]:
         value = text.split("=", 1)[1] if text.startswith("--") and "=" in text else text
         if not placeholders(value):
             p = Path(value)
-            out.append((option, p if p.is_absolute() else manifest.base / p))
+            out += [(option, f) for f in written_files(step, option, p if p.is_absolute()
+                                                      else manifest.base / p)]
     return out
 
 
@@ -391,18 +416,15 @@ def _is_pattern(path: Path) -> bool:
 
 
 def _refuse_over(out: Path, option: str, inputs: list, readers: dict[str, str]) -> None:
-    """:func:`..io.inputs.refuse_output_over_input` (or its pattern form) for one output.
+    """:func:`..io.inputs.refuse_output_over_input` for one output.
 
     The message says who reads the input (``readers``: path -> who), when it is known.
     """
     from ..errors import BadUsage
-    from ..io.inputs import refuse_output_over_input, refuse_pattern_over_input
+    from ..io.inputs import refuse_output_over_input
 
     def refuse(given):
-        if _is_pattern(out):
-            refuse_pattern_over_input(str(out), option=option, inputs=given)
-        else:
-            refuse_output_over_input(out, inputs=given, option=option)
+        refuse_output_over_input(out, inputs=given, option=option)
 
     try:
         refuse(inputs)
@@ -441,8 +463,10 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
                   reports: list[tuple[str, str]] = ()) -> None:
     """Refuse, before any work, an output over an input, or a file written twice.
 
-    An output is every file a step writes (its ``-o``, every output option)
-    and the batch's reports (``reports``: ``(option, path)``). An input is a
+    An output is every file a step writes (its ``-o``, every output option,
+    as :func:`written_files` names them) and the batch's reports
+    (``reports``: ``(option, path)``); a step's output still a pattern
+    (:func:`_refuse_pattern`) is refused. An input is a
     scan (any scan's files, a detached header's data files too), a file a
     step reads (its spec, an option's file), the manifest, the scans' table;
     symbolic and hard links are followed
@@ -460,6 +484,7 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
             step = plan.step
             for option, out in plan.writes:
                 key = ("steps", step.index, "output" if option == "-o" else "options")
+                _refuse_pattern(manifest, key, out, option)
                 try:
                     _refuse_over(out, option, [str(scan.path), *map(str, plan.reads), *fixed],
                                  fixed)
@@ -474,6 +499,21 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
                 writer = _Writer(f"step {step.name!r} (steps[{step.index}])", step, scan, option)
                 _refuse_twice(manifest, key, out, writer, writers)
     _check_reports(manifest, reports, fixed, scan_files, writers)
+
+
+def _refuse_pattern(manifest, key, out: Path, option: str) -> None:
+    """An output whose name holds fields after its placeholders (``{{frame:03d}}``).
+
+    Its command fills them, a file per frame or label (warp's ``--frames-to``,
+    mesh's ``--labels``): files batch cannot name before the step runs, so it
+    could neither record nor check them (the step ran every time, and a frame
+    deleted by hand was never noticed).
+    """
+    if _is_pattern(out):
+        raise _located(manifest, key, (
+            f"{option} {out}: a pattern, which the step fills per frame or label; batch "
+            "records and checks every file a step writes and cannot name these before it "
+            "runs (leave the option out, or run the command outside batch)"))
 
 
 def _refuse_over_scans(manifest, key, out: Path, option: str, scan_files: dict) -> None:

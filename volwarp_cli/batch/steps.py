@@ -53,7 +53,7 @@ _BRACKETS = re.compile(r"^\[\s*(.+?)\s*,\s*([01])\s*\]$")
 
 def check_steps(manifest: Manifest) -> list[Step]:
     """The manifest's steps, each dry-run by its command, with the files it reads and writes."""
-    from .plan import plan_scan
+    from .plan import FILE_PARAMS, plan_scan
 
     sample = _sample_scan(manifest)
     steps = []
@@ -73,7 +73,9 @@ def check_steps(manifest: Manifest) -> list[Step]:
             if problem is not None:
                 raise problem
             writes = tuple((k, opt) for k, opt, kind in values if kind == "output")
-            steps.append(dataclasses.replace(step, inputs=tuple(inputs), writes=writes))
+            kept = tuple((name, params.get(name)) for name in FILE_PARAMS.get(step.run, ()))
+            steps.append(dataclasses.replace(step, inputs=tuple(inputs), writes=writes,
+                                             params=kept))
     return steps
 
 
@@ -87,10 +89,10 @@ def _apart(plan, tmp: Path) -> list[str]:
     options = plan.step.options
     start = len(argv) - len(options)
     where = [argv.index("-o") + 1] + [start + k for k, v in enumerate(options) if placeholders(v)]
-    for k, (i, out) in enumerate(zip(where, plan.outputs, strict=True)):
+    for k, i in enumerate(where):  # (by the values: an option may write several files)
         folder = tmp / f"{plan.step.index}-{k}"
         folder.mkdir()
-        argv[i] = str(folder / out.name)
+        argv[i] = str(folder / Path(argv[i]).name)
     return argv
 
 

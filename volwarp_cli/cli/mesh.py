@@ -54,6 +54,14 @@ def turntable_paths(render: str, n: int) -> list[Path]:
     return [p.with_name(f"{p.stem}-{k:03d}{p.suffix}") for k in range(n)]
 
 
+def render_files(render: str | Path, turntable: int | None) -> list[Path]:
+    """The images ``--render`` writes: its own name, or with ``--turntable N`` only the frames.
+
+    One function for the command and for batch, which records and checks these files.
+    """
+    return [Path(render)] if turntable is None else turntable_paths(render, turntable)
+
+
 def _format_stats(d: dict) -> str:
     def vec(v):
         return "-" if v is None else " ".join(f"{x:.6g}" for x in v)
@@ -187,7 +195,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         if labels:  # every name the pattern can give, against the inputs
             refuse_pattern_over_input(output, option="-o")
     if render is not None:
-        for path in [render] if turntable is None else turntable_paths(render, turntable):
+        for path in render_files(render, turntable):
             check_output_path(path, option="--render")
 
     header, source = lazy_input(input, raw, volume_index, dicom)
