@@ -132,7 +132,8 @@ def _dedupe(frames, pos, d, where, duplicates):
         j = k
         while j + 1 < len(frames) and d[j + 1] - d[j] <= dup_tol:
             j += 1
-        group = list(range(k, j + 1))  # file order within the group (stable sort)
+        # by file order, not by position: duplicates a few micrometres apart sort by position
+        group = sorted(range(k, j + 1), key=lambda i: (frames[i].order, frames[i].frame))
         keep.append(group[0] if duplicates == "first" else group[-1])
         k = j + 1
     log.info("%s: %d duplicate image(s) dropped (--duplicates %s)", where,
