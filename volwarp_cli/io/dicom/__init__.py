@@ -67,7 +67,8 @@ Values
     is ``stored * DoseGridScaling`` as float32 (SimpleITK leaves it unscaled),
     in the file's DoseUnits (``GY``, or ``RELATIVE`` to a reference dose: never
     taken for Gy), kept as ``DICOM_DoseUnits``.
-    Resampled volumes (tilt, irregular) are float32. Colour images are refused.
+    Resampled volumes (tilt, irregular) are float32. Colour images are refused,
+    PALETTE COLOR too (one sample per pixel, but an index into colour tables).
     The grid's spacing, origin and direction obey
     :func:`volwarp_cli.geometry.check_placement` (a refusal names the tag).
 

@@ -391,9 +391,10 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
     common = {"FrameOfReferenceUID": _text(ds, "FrameOfReferenceUID"),
               "Rows/Columns": (rows, cols)}
     problem = ""
-    if samples != 1:
-        problem = (f"colour image (SamplesPerPixel {samples}, "
-                   f"{_text(ds, 'PhotometricInterpretation')}): volwarp reads greyscale volumes")
+    photometric = _text(ds, "PhotometricInterpretation")
+    if samples != 1 or photometric.upper() == "PALETTE COLOR":  # (indices into colour tables)
+        problem = (f"colour image (SamplesPerPixel {samples}, {photometric}): volwarp reads "
+                   "greyscale volumes")
     image_type = _text(ds, "ImageType").upper().split("\\")
     localizer = "LOCALIZER" in image_type
     top_spacing = _floats(ds, "PixelSpacing", 2, where)
