@@ -637,11 +637,10 @@ def test_gantry_tilt_with_irregular_gap_resampled(tmp_path):
     ijk = np.indices(vol.shape_xyz).reshape(3, -1).T
     world = vol.index_to_world(ijk)
     got = vol.data[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
-    # inside the field of view (one voxel away from its edge, where the fill value blends in)
-    # the world ramp survives both the tilt correction and the slice interpolation
-    fov = vol.data > stored.min()
-    fov[:, 1:-1] &= fov[:, :-2] & fov[:, 2:]
-    fov = fov[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+    # every voxel is the world ramp (the tilt correction and the slice interpolation are
+    # linear: exact for it) or the fill; none at the field's rim blends the fill with data
+    # between two slices, as 28 of 1512 did in the review's case
+    fov = got != stored.min()
     assert fov.mean() > 0.5
     np.testing.assert_allclose(got[fov], _ramp_world(world[fov]), atol=0.51)
 

@@ -55,7 +55,8 @@ Geometry
     origins moving in-plane along the stack) is by default resampled onto the
     orthogonal grid that has the normal as third axis, slice by slice in the
     slice planes (bilinear = trilinear with integer z), out-of-field voxels
-    set to the volume's minimum, with the tilt angle logged; ``keep_shear``
+    set to the volume's minimum (a voxel is interpolated from samples of the
+    field only, or is that fill), with the tilt angle logged; ``keep_shear``
     returns the exact sheared geometry instead (third direction column the
     unit vector between successive slice origins, as ITK does).
 

@@ -158,15 +158,22 @@ def _gap_message(where, frames, gaps, nominal, tol, bad) -> str:
 
 
 def resample(plan: Plan, data: np.ndarray) -> np.ndarray:
-    """Apply the plan's tilt shifts and slice interpolation to ``data`` (input slices)."""
+    """Apply the plan's tilt shifts and slice interpolation to ``data`` (input slices).
+
+    A voxel is interpolated from samples of the field only, or is the fill (the
+    input's minimum): the shifts mark what lies outside the field NaN, the
+    interpolation between slices carries the NaN on, and only then does it become
+    the fill, so that no voxel at the field's rim blends the fill with data.
+    """
     from scipy import ndimage
 
+    fill = None
     if plan.shifts is not None:
         fill = float(data.min())
         out = np.empty(data.shape, dtype=np.float32)
         for k in range(data.shape[0]):
             ndimage.shift(data[k].astype(np.float32, copy=False), plan.shifts[k], output=out[k],
-                          order=1, mode="constant", cval=fill, prefilter=False)
+                          order=1, mode="constant", cval=np.nan, prefilter=False)
         data = out
     if plan.planes is not None:
         out = np.empty((plan.n_out,) + data.shape[1:], dtype=np.float32)
@@ -181,4 +188,7 @@ def resample(plan: Plan, data: np.ndarray) -> np.ndarray:
         data = out
     if data.dtype != np.float32:
         data = data.astype(np.float32)
+    if fill is not None:
+        for plane in data:  # (a slice at a time: no mask of the whole volume)
+            np.copyto(plane, np.float32(fill), where=np.isnan(plane))
     return data
