@@ -19,6 +19,7 @@ from pydicom.uid import (  # noqa: E402
     CTImageStorage,
     ExplicitVRLittleEndian,
     RLELossless,
+    RTDoseStorage,
     generate_uid,
 )
 
@@ -249,6 +250,70 @@ def test_rtdose_absolute_grid_offsets(tmp_path):
     b = read_dicom(tmp_path / "abs.dcm")
     assert b.same_grid(a, atol=1e-6)
     np.testing.assert_array_equal(a.data, b.data)
+
+
+def write_dose(path, offsets, *, orientation=(1, 0, 0, 0, 1, 0), position=(10.0, 20.0, 30.0)):
+    """An RT Dose of len(offsets) 4x3 frames, frame k all 10 * (k + 1) x DoseGridScaling 0.1."""
+    n = len(offsets)
+    write_slice(path, np.zeros((4, 3)), position=position, orientation=orientation,
+                modality="RTDOSE", extra={"SOPClassUID": RTDoseStorage})
+    ds = pydicom.dcmread(path)
+    ds.file_meta.MediaStorageSOPClassUID = RTDoseStorage
+    ds.NumberOfFrames = n
+    ds.FrameIncrementPointer = 0x3004000C
+    ds.GridFrameOffsetVector = [float(v) for v in offsets]
+    ds.DoseGridScaling = 0.1
+    ds.DoseUnits, ds.DoseType, ds.DoseSummationType = "GY", "PHYSICAL", "PLAN"
+    ds.PixelData = np.repeat(10 * np.arange(1, n + 1, dtype="<i2"), 12).tobytes()
+    ds.save_as(path, enforce_file_format=True)
+
+
+def frame_z(vol) -> dict[int, float]:
+    """World z of each frame of a :func:`write_dose` file (frame k holds the value k + 1)."""
+    return {round(float(vol.data[s, 0, 0])) - 1: float(vol.index_to_world([0, 0, s])[2])
+            for s in range(vol.shape_xyz[2])}
+
+
+@pytest.mark.parametrize("orientation, offsets, z", [
+    ((1, 0, 0, 0, 1, 0), [0, 2.5, 5, 7.5], [30, 32.5, 35, 37.5]),       # relative
+    ((-1, 0, 0, 0, 1, 0), [0, 2.5, 5, 7.5], [30, 27.5, 25, 22.5]),      # relative, normal -z
+    ((1, 0, 0, 0, 1, 0), [30, 32.5, 35, 37.5], [30, 32.5, 35, 37.5]),   # absolute z
+    ((1, 0, 0, 0, 1, 0), [30, 27.5, 25, 22.5], [30, 27.5, 25, 22.5]),
+    ((-1, 0, 0, 0, 1, 0), [30, 32.5, 35, 37.5], [30, 32.5, 35, 37.5]),  # absolute, normal -z
+])
+def test_rtdose_frames_lie_at_their_grid_offsets(tmp_path, orientation, offsets, z):
+    """Relative offsets step along the normal from ImagePositionPatient; absolute ones are z.
+
+    Absolute offsets with the slice normal along -z were taken as positions along the
+    normal: the grid landed 2 x z away (origin z -30 for 30).
+    """
+    write_dose(tmp_path / "d.dcm", offsets, orientation=orientation)
+    vol = read_dicom(tmp_path / "d.dcm")
+    got = frame_z(vol)
+    np.testing.assert_allclose([got[k] for k in range(4)], z, atol=1e-9)
+    np.testing.assert_allclose(vol.index_to_world([0, 0, 0])[:2], [10, 20], atol=1e-9)
+    if offsets[0] == 0 or orientation[0] == 1:  # SimpleITK reads these right
+        img = sitk.ReadImage(str(tmp_path / "d.dcm"))
+        assert_same_world(vol, img, values=sitk.GetArrayFromImage(img) * np.float32(0.1))
+
+
+@pytest.mark.parametrize("orientation, offsets, why", [
+    ((1, 0, 0, 0, 1, 0), [32, 34.5, 37, 39.5], "ImagePositionPatient's z is 30"),
+    ((0, 1, 0, 0, 0, -1), [30, 32.5, 35, 37.5], "has no z component"),
+])
+def test_rtdose_absolute_offsets_that_contradict_the_file_are_refused(run, tmp_path,
+                                                                        orientation, offsets,
+                                                                        why):
+    """Frame 0 was moved silently to the first offset (2 mm here) or placed along x."""
+    path = tmp_path / "d.dcm"
+    write_dose(path, offsets, orientation=orientation)
+    with pytest.raises(FormatError, match=why):
+        read_dicom(path)
+    res = run("convert", path, "-o", tmp_path / "o.nrrd")
+    assert res.code == 1 and not (tmp_path / "o.nrrd").exists(), res
+    line, = res.stderr.strip().splitlines()
+    assert line.startswith(f"volwarp: error: {path}: GridFrameOffsetVector starts at "
+                           f"{offsets[0]:g}") and why in line, line
 
 
 def test_dicomdir_and_folder_list_the_same_candidates():

@@ -35,8 +35,10 @@ Candidates (:func:`scan_dicom`)
     (PlanePosition, PlaneOrientation, PixelMeasures, PixelValueTransformation,
     the shared groups as fallback); different orientations, StackIDs, temporal
     positions or segments are different candidates. RT Dose frames lie at
-    GridFrameOffsetVector: relative to ImagePositionPatient when the first
-    offset is 0, else absolute positions along the normal (PS3.3 C.8.8.3.2).
+    GridFrameOffsetVector: distances along the normal from ImagePositionPatient
+    when the first offset is 0, else the frames' z coordinates (PS3.3
+    C.8.8.3.2), frame 0 at ImagePositionPatient: its z must be the first offset
+    (within 0.01 mm) and the normal must have a z component, else a FormatError.
 
 Geometry
     Slices are sorted by their position projected on the slice normal (row

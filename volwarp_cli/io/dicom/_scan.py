@@ -434,10 +434,8 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
         row, col = _cosines(iop, where)
         normal = np.cross(row, col)
         normal /= np.linalg.norm(normal)
-        if offsets[0] == 0:
-            positions = ipp[None, :] + offsets[:, None] * normal[None, :]
-        else:  # absolute positions along the normal (PS3.3 C.8.8.3.2)
-            positions = ipp[None, :] + (offsets - ipp @ normal)[:, None] * normal[None, :]
+        steps = offsets if offsets[0] == 0 else _absolute_steps(offsets, ipp, normal, where)
+        positions = ipp[None, :] + steps[:, None] * normal[None, :]
         keys = {"ImageOrientationPatient": tuple(iop), "PixelSpacing": _tup(top_spacing)}
         for k in range(n_frames):
             add(positions[k], row, col, top_spacing, 1.0, 0.0, single, keys, {}, frame=k)
@@ -481,6 +479,24 @@ def _offsets(ds, n_frames: int, where: str):
         raise FormatError(f"{where}: GridFrameOffsetVector has {len(vals)} values for "
                           f"{n_frames} frames")
     return vals[:n_frames]
+
+
+def _absolute_steps(offsets, ipp, normal, where: str) -> np.ndarray:
+    """Distances along the normal of frames whose GridFrameOffsetVector gives their z.
+
+    PS3.3 C.8.8.3.2: a first offset other than 0 makes the offsets the frames'
+    z coordinates (allowed with ImageOrientationPatient (1, 0, 0, 0, 1, 0) only).
+    Frame 0 stays at ImagePositionPatient, so its z must be the first offset.
+    """
+    if abs(normal[2]) < _ATOL:
+        raise FormatError(f"{where}: GridFrameOffsetVector starts at {offsets[0]:g}, not 0: "
+                          "absolute z positions, but the slice normal of ImageOrientationPatient "
+                          "has no z component")
+    if abs(offsets[0] - ipp[2]) > 0.01:
+        raise FormatError(f"{where}: GridFrameOffsetVector starts at {offsets[0]:g}, not 0: "
+                          f"an absolute z position, but ImagePositionPatient's z is {ipp[2]:g} "
+                          "(they must agree within 0.01 mm)")
+    return (offsets - offsets[0]) / normal[2]
 
 
 def sop_is_enhanced(sop: str) -> bool:
