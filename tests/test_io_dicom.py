@@ -24,6 +24,7 @@ from pydicom.uid import (  # noqa: E402
 )
 
 from volwarp_cli.errors import FormatError, VolwarpError  # noqa: E402
+from volwarp_cli.io import read_volume  # noqa: E402
 from volwarp_cli.io.dicom import (  # noqa: E402
     DicomSeriesChoiceError,
     is_dicom_path,
@@ -207,12 +208,20 @@ def test_enhanced_ct_matches_simpleitk_in_world():
 
 
 def test_enhanced_mr_without_geometry_as_simpleitk():
+    """An Enhanced MR without functional groups: stacked SpacingBetweenSlices (1.2) apart.
+
+    SimpleITK (GDCM) looks for the spacing only in an Enhanced MR's functional
+    groups, which this file lacks (1 mm); everything else is its geometry.
+    """
     path = get_testdata_file("emri_small.dcm")
     vol = read_dicom(path)
     img = sitk.ReadImage(path)
+    assert vol.spacing[2] == pytest.approx(1.2) and img.GetSpacing()[2] == 1.0
+    img.SetSpacing(img.GetSpacing()[:2] + (1.2,))
     assert_same_geometry(vol, img)
     np.testing.assert_array_equal(vol.data, sitk.GetArrayFromImage(img))
-    assert "DICOM_geometry" in vol.meta
+    assert vol.meta["DICOM_geometry"] == ("assumed: origin 0 (no ImagePositionPatient), "
+                                          "identity orientation (no ImageOrientationPatient)")
 
 
 def test_segmentation_multiframe_with_functional_groups():
@@ -314,6 +323,105 @@ def test_rtdose_absolute_offsets_that_contradict_the_file_are_refused(run, tmp_p
     line, = res.stderr.strip().splitlines()
     assert line.startswith(f"volwarp: error: {path}: GridFrameOffsetVector starts at "
                            f"{offsets[0]:g}") and why in line, line
+
+
+NM, MR = "1.2.840.10008.5.1.4.1.1.20", "1.2.840.10008.5.1.4.1.1.4"
+
+
+def write_multiframe(path, stored, *, sop=CTImageStorage, modality="CT", drop=(), **tags):
+    """A classic multi-frame image (no functional groups): stored[frame, row, column].
+
+    ``tags`` are set (DICOM keywords), ``drop`` removed; SliceThickness is 9.5.
+    """
+    write_slice(path, stored[0], position=(-10.0, 20.0, 30.0), orientation=(1, 0, 0, 0, 0, -1),
+                modality=modality, extra={"SOPClassUID": sop})
+    ds = pydicom.dcmread(path)
+    ds.file_meta.MediaStorageSOPClassUID = sop
+    ds.NumberOfFrames = len(stored)
+    for k, v in tags.items():
+        setattr(ds, k, v)
+    for k in drop:
+        delattr(ds, k)
+    ds.PixelData = stored.astype("<i2").tobytes()
+    ds.save_as(path, enforce_file_format=True)
+
+
+@pytest.mark.parametrize("sop, modality", [(NM, "NM"), (MR, "MR"), (CTImageStorage, "CT")])
+@pytest.mark.parametrize("between", [3.5, -3.5])
+def test_classic_multiframe_frames_lie_spacing_between_slices_apart(tmp_path, ramp, caplog, sop,
+                                                                      modality, between):
+    """Frames without per-frame positions were stacked 1 mm apart whatever the file said.
+
+    SimpleITK (GDCM) stacks them SpacingBetweenSlices apart, along the normal or,
+    negative, against it. (It leaves an NM origin at 0 unless the detector gives one:
+    the top-level ImagePositionPatient is taken here, so NM is compared in spacing.)
+    """
+    path = tmp_path / "mf.dcm"
+    write_multiframe(path, ramp, sop=sop, modality=modality, SpacingBetweenSlices=between)
+    with caplog.at_level(logging.WARNING, logger="volwarp"):
+        vol = read_dicom(path)
+    assert caplog.text == "" and "DICOM_geometry" not in vol.meta
+    img = sitk.ReadImage(str(path))
+    assert vol.spacing[2] == pytest.approx(3.5) and img.GetSpacing()[2] == pytest.approx(3.5)
+    if modality == "NM":
+        img.SetOrigin((-10.0, 20.0, 30.0))
+    assert_same_world(vol, img)
+
+
+@pytest.mark.parametrize("drop", [("SpacingBetweenSlices",),
+                                  ("SpacingBetweenSlices", "SliceThickness")])
+def test_classic_multiframe_without_spacing_says_so(run, tmp_path, ramp, drop):
+    """No SpacingBetweenSlices: unit spacing as ITK (SliceThickness is no spacing), not silently.
+
+    The key said "none in the file: unit spacing, origin 0" with the origin taken from
+    ImagePositionPatient; it names what was assumed, and a warning says it too.
+    """
+    path = tmp_path / "mf.dcm"
+    write_multiframe(path, ramp, modality="MR", sop=MR, SpacingBetweenSlices=3.5, drop=drop)
+    vol = read_dicom(path)
+    img = sitk.ReadImage(str(path))
+    assert_same_geometry(vol, img)
+    np.testing.assert_array_equal(vol.data, sitk.GetArrayFromImage(img))
+    assert vol.meta["DICOM_geometry"] == "assumed: unit slice spacing (no SpacingBetweenSlices)"
+    res = run("convert", path, "-o", tmp_path / "o.nrrd")
+    assert res.code == 0, res
+    line, = res.stderr.strip().splitlines()
+    assert line == (f"volwarp: warning: {path}: 6 frames without positions of their own, "
+                    "stacked with unit slice spacing (no SpacingBetweenSlices)")
+    assert read_volume(tmp_path / "o.nrrd").meta["DICOM_geometry"] == \
+        vol.meta["DICOM_geometry"]
+
+
+def detector(position, orientation):
+    item = Dataset()
+    item.ImagePositionPatient = [float(v) for v in position]
+    item.ImageOrientationPatient = [float(v) for v in orientation]
+    return item
+
+
+@pytest.mark.parametrize("top", [True, False])
+def test_nm_takes_its_geometry_from_the_detector_information(tmp_path, ramp, top):
+    """An NM image's plane is in DetectorInformationSequence, where GDCM reads it first."""
+    path = tmp_path / "nm.dcm"
+    write_multiframe(path, ramp, sop=NM, modality="NM", SpacingBetweenSlices=3.5,
+                     DetectorInformationSequence=[detector((-5, 7, 11), (0, 1, 0, 0, 0, -1))],
+                     drop=() if top else ("ImagePositionPatient", "ImageOrientationPatient"))
+    vol = read_dicom(path)
+    img = sitk.ReadImage(str(path))
+    assert_same_geometry(vol, img)
+    np.testing.assert_allclose(vol.origin, [-5, 7, 11])
+    np.testing.assert_array_equal(vol.data, sitk.GetArrayFromImage(img))
+    assert "DICOM_geometry" not in vol.meta
+
+
+def test_nm_detectors_placed_apart_are_refused(tmp_path, ramp):
+    path = tmp_path / "nm.dcm"
+    write_multiframe(path, ramp, sop=NM, modality="NM", SpacingBetweenSlices=3.5,
+                     DetectorInformationSequence=[detector((-5, 7, 11), (0, 1, 0, 0, 0, -1)),
+                                                  detector((5, 7, 11), (0, 1, 0, 0, 0, -1))])
+    with pytest.raises(FormatError, match=r"nm.dcm: DetectorInformationSequence places its 2 "
+                                          "detectors' frames differently"):
+        read_dicom(path)
 
 
 def test_dicomdir_and_folder_list_the_same_candidates():

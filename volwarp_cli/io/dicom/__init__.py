@@ -52,8 +52,18 @@ Geometry
     onto a uniform grid of the smallest gap, along the normal, with a warning.
     Images at one position (exact copies dropped before): an error, or
     ``duplicates="first"``/``"last"`` keeps the first/last of them in file
-    order (files sorted by path, frames by frame number), at every position. One slice: z spacing is SpacingBetweenSlices, else 1
-    (what ITK does: it ignores SliceThickness). A gantry-tilted stack (slice
+    order (files sorted by path, frames by frame number), at every position.
+    One slice: z spacing is SpacingBetweenSlices, else 1 (what ITK does: it
+    ignores SliceThickness). A multi-frame file without per-frame positions (a
+    classic NM, MR, CT ...): its frames in file order SpacingBetweenSlices
+    apart from ImagePositionPatient along the normal (a negative one: against
+    it), as ITK does; an NM file's ImagePositionPatient / Orientation from its
+    DetectorInformationSequence first, as GDCM's (the top-level ones, which
+    GDCM leaves out for NM, as fallback; detectors placed differently refused).
+    Without SpacingBetweenSlices, unit spacing as ITK's (SliceThickness is not
+    the spacing), with a warning; whatever the file leaves out and volwarp
+    assumed (that spacing, origin 0, identity orientation) is said in the key
+    ``DICOM_geometry``. A gantry-tilted stack (slice
     origins moving in-plane along the stack) is by default resampled onto the
     orthogonal grid that has the normal as third axis, slice by slice in the
     slice planes (bilinear = trilinear with integer z), out-of-field voxels
@@ -80,6 +90,7 @@ Meta
     StudyInstanceUID, SeriesInstanceUID, FrameOfReferenceUID, SeriesNumber,
     (RT Dose) DoseUnits, DoseType, DoseSummationType. Identifying tags
     (PatientName, PatientID, PatientBirthDate, ...) only with ``keep_phi``.
+    ``DICOM_geometry``: what of the grid the file does not give (above).
 
 Segmentations
     A SEG file (BINARY, FRACTIONAL, LABELMAP) or an RTSTRUCT file is read as a
