@@ -61,7 +61,7 @@ def plan_stack(frames, where: str, *, irregular: str = "error", duplicates: str 
     nominal = float(np.median(gaps))
     tol = max(1e-3 * nominal, 0.01)
     rel = (d - d[0])[:, None]
-    inplane = (pos - pos[0]) - rel * normal[None, :]
+    inplane = inplane_offsets(pos, normal)
     extent = float(d[-1] - d[0])
     shear = inplane[-1] / extent      # in-plane movement per mm along the normal
     off = np.linalg.norm(inplane - rel * shear[None, :], axis=1)
@@ -109,6 +109,15 @@ def plan_stack(frames, where: str, *, irregular: str = "error", duplicates: str 
                     "(keep the sheared geometry with --keep-shear)", where, angle)
     return Plan(frames, pos[0], direction, np.array([sx, sy, step]), n_out, shifts=shifts,
                 planes=planes)
+
+
+def inplane_offsets(pos: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Each position's offset from the first, within the slice plane: 0 unless tilted.
+
+    ``pos`` (n, 3) positions, ``normal`` the unit slice normal.
+    """
+    step = pos - pos[0]
+    return step - (step @ normal)[:, None] * normal[None, :]
 
 
 def _dedupe(frames, pos, d, where, duplicates):
