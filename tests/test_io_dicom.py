@@ -31,6 +31,7 @@ from volwarp_cli.io.dicom import (  # noqa: E402
     read_dicom,
     scan_dicom,
 )
+from volwarp_cli.io.dicom._read import read_reference  # noqa: E402
 
 sitk.ProcessObject_SetGlobalWarningDisplay(False)
 ATOL = 1e-4
@@ -390,6 +391,15 @@ def test_classic_multiframe_without_spacing_says_so(run, tmp_path, ramp, drop):
                     "stacked with unit slice spacing (no SpacingBetweenSlices)")
     assert read_volume(tmp_path / "o.nrrd").meta["DICOM_geometry"] == \
         vol.meta["DICOM_geometry"]
+
+
+def test_a_multiframe_reference_is_refused_in_one_line(tmp_path, ramp, caplog):
+    """Its frames have no positions a segmentation's could match: no warning before that."""
+    write_multiframe(tmp_path / "mf.dcm", ramp, modality="MR", sop=MR)
+    with caplog.at_level(logging.WARNING, logger="volwarp"), \
+            pytest.raises(FormatError, match="gives no position per image"):
+        read_reference(tmp_path / "mf.dcm")
+    assert caplog.text == ""
 
 
 def detector(position, orientation):

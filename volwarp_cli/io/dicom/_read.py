@@ -313,16 +313,16 @@ def read_reference(path: str | os.PathLike, *, series=None, want_series: tuple =
         if len(hits) == 1:
             series = hits[0].index
     cand = choose(cands, series, where)
+    if cand.frames[0].synthetic:  # (before _plan, which warns of what it assumes)
+        raise FormatError(f"{where}: the reference series gives no position per image "
+                          "(ImagePositionPatient / ImageOrientationPatient of each slice): "
+                          "nothing to place a segmentation on")
     plan, dtype, meta = _plan(path, series=None, irregular=irregular, duplicates=duplicates,
                               keep_shear=False, keep_phi=False, candidates=[cand])
     if plan.resampled:
         raise FormatError(f"{where}: the reference series must be read as it is stored (its "
                           "slices are resampled: gantry tilt or irregular gaps), so a "
                           "segmentation's frames or contours cannot be placed on it")
-    if plan.frames[0].synthetic:
-        raise FormatError(f"{where}: the reference series gives no position per image "
-                          "(ImagePositionPatient / ImageOrientationPatient of each slice): "
-                          "nothing to place a segmentation on")
     f0 = plan.frames[0]
     rows, cols = f0.file.rows, f0.file.columns
     grid = make_header(where, (plan.n_out, rows, cols), np.uint8,
