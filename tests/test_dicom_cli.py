@@ -11,9 +11,12 @@ import json
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from pydicom.data import get_testdata_file
 from test_io_dicom import sitk_series, write_series
 
+from volwarp_cli.errors import FormatError
 from volwarp_cli.io import read_volume
+from volwarp_cli.io.dicom import read_dicom
 
 A, B = "1.2.826.0.1.3680043.8.498.1", "1.2.826.0.1.3680043.8.498.2"
 
@@ -100,3 +103,25 @@ def test_pydicom_warnings_stay_off_stderr(tmp_path):
                          capture_output=True, text=True)
     assert res.returncode == 1
     assert res.stderr.count("\n") == 1 and res.stderr.startswith("volwarp: error: "), res.stderr
+
+
+def test_palette_colour_is_refused_naming_the_file(run, tmp_path):
+    """PALETTE COLOR has one sample per pixel, but an index into colour tables, not a value.
+
+    It was read silently as the indices; colour images are refused (docs/formats.md).
+    """
+    lut = (np.arange(256, dtype=np.uint16) * 256).tobytes()
+    palette = {"PhotometricInterpretation": "PALETTE COLOR"}
+    for c in ("Red", "Green", "Blue"):
+        palette[f"{c}PaletteColorLookupTableDescriptor"] = [256, 0, 16]
+        palette[f"{c}PaletteColorLookupTableData"] = lut
+    stored = np.arange(3 * 4 * 5, dtype=np.int16).reshape(3, 4, 5) % 256
+    write_series(tmp_path / "s", stored, shuffle=False, signed=False, per_slice=[palette] * 3)
+    out = tmp_path / "o.nrrd"
+    res = run("convert", tmp_path / "s", "-o", out)
+    assert res.code == 1 and not out.exists(), res
+    line, = res.stderr.strip().splitlines()
+    assert line.startswith("volwarp: error: ") and "IM0000.dcm" in line, line
+    assert "PALETTE COLOR" in line and "greyscale" in line, line
+    with pytest.raises(FormatError, match="PALETTE COLOR"):  # pydicom's ultrasound sample
+        read_dicom(get_testdata_file("OBXXXX1A_2frame.dcm"))

@@ -169,3 +169,21 @@ def test_time_points_stay_candidates_of_their_own(tmp_path, ramp):
     assert [c.n_files for c in cands] == [6, 6]
     assert all("TemporalPositionIdentifier" in c.why for c in cands)
     np.testing.assert_array_equal(read_dicom(tmp_path / "s", series=1).data, ramp + 1)
+
+
+def test_first_and_last_follow_the_file_order_not_the_position(tmp_path, ramp):
+    """Duplicates a few micrometres apart: --duplicates keeps the first/last file, as documented.
+
+    The images sorted by position before the choice, so "first" took the lowest of them
+    (here the last file) and "last" the highest (the first file).
+    """
+    write_series(tmp_path / "s", ramp)  # IM0000.dcm ... IM0005.dcm, slice 2 at z 35
+    write_slice(tmp_path / "s" / "A-early.dcm", ramp[2] + 7, position=(-10.0, 20.0, 35.004))
+    write_slice(tmp_path / "s" / "Z-late.dcm", ramp[2] + 9, position=(-10.0, 20.0, 34.996))
+    for mode, added in (("first", 7), ("last", 9)):
+        vol = read_dicom(tmp_path / "s", duplicates=mode)
+        expected = ramp.copy()
+        expected[2] += added
+        np.testing.assert_array_equal(vol.data, expected)
+        _, lazy = open_dicom_lazy(tmp_path / "s", duplicates=mode)
+        np.testing.assert_array_equal(np.asarray(lazy), expected)

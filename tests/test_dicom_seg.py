@@ -31,10 +31,11 @@ SHAPE = (7, 10, 12)  # z, y, x
 
 def write_ct(folder: Path, shape=SHAPE, *, spacing=(0.8, 0.7, 2.5), origin=(-10.0, 20.0, 30.0),
              orientation=OBLIQUE, series_uid=None, frame_uid=None, study_uid=None,
-             seed=3) -> list[Path]:
+             seed=3, tilt_deg=0.0) -> list[Path]:
     """A CT series, one file per slice, names shuffled, InstanceNumbers not in position order.
 
     ``spacing`` is (x, y, z): PixelSpacing is (row spacing y, column spacing x).
+    ``tilt_deg``: a gantry tilt, the slice origins moving along the column cosine.
     """
     folder.mkdir(parents=True, exist_ok=True)
     row, col = np.array(orientation[:3], float), np.array(orientation[3:], float)
@@ -68,7 +69,7 @@ def write_ct(folder: Path, shape=SHAPE, *, spacing=(0.8, 0.7, 2.5), origin=(-10.
         ds.SeriesNumber = 1
         ds.FrameOfReferenceUID = frame_uid
         ds.InstanceNumber = (k * 3) % nz + 1
-        pos = np.array(origin) + k * spacing[2] * normal
+        pos = np.array(origin) + k * spacing[2] * (normal + np.tan(np.radians(tilt_deg)) * col)
         ds.ImagePositionPatient = [f"{v:.6f}" for v in pos]
         ds.ImageOrientationPatient = [f"{v:.8f}" for v in orientation]
         ds.PixelSpacing = [spacing[1], spacing[0]]

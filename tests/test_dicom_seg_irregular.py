@@ -5,7 +5,8 @@ of a series have no regular grid of their own (gaps of 2 and 3 slices), and the
 reader refused the SEG even with ``--reference SERIES``, whose grid places every
 frame (found by a review): each frame is now placed on the reference slice at
 its own ImagePositionPatient. Without a reference the SEG is still refused, with
-a message that names ``--reference SERIES``. SEGs that read before give the same
+a message that names ``--reference SERIES`` (none where the frames lie on a
+gantry-tilted stack, which no reference gives them). SEGs that read before give the same
 bytes (compared with the earlier route: the SEG's own grid, then the reference).
 """
 
@@ -130,6 +131,31 @@ def test_without_a_reference_the_error_names_the_option(ct, tmp_path, run):
     assert res.code == 1 and not out.exists()
     assert len(res.stderr.strip().splitlines()) == 1
     assert str(seg) in res.stderr and "--reference SERIES" in res.stderr, res.stderr
+
+
+@pytest.mark.parametrize("slices", [SLICES, range(SHAPE[0])])
+def test_frames_of_a_tilted_series_name_no_option_that_fails(tmp_path, run, slices):
+    """A SEG drawn on a gantry-tilted series has no grid, and --reference cannot give one.
+
+    The error suggested ``--reference SERIES``, which then failed too: a tilted
+    reference is resampled, and a segmentation's frames must lie on stored slices.
+    """
+    paths = write_ct(tmp_path / "ct", tilt_deg=15.0)
+    shift = 2.5 * np.tan(np.radians(15.0))  # in-plane, from one slice to the next
+    lab = np.zeros(SHAPE, np.uint8)
+    for k in slices:
+        lab[k, 2 + k % 3, 4] = 1
+    seg = make_seg(paths, masks_of(lab, 1), "BINARY", tmp_path / "seg.dcm")
+    out = tmp_path / "o.nrrd"
+    res = run("convert", seg, "-o", out)
+    assert res.code == 1 and not out.exists(), res
+    line, = res.stderr.strip().splitlines()
+    assert line.startswith(f"volwarp: error: {seg}: its frames lie on a gantry-tilted stack "
+                           f"(their positions move {(max(slices) - min(slices)) * shift:.3g} mm "
+                           "within the slice plane)"), line
+    assert "--reference SERIES" not in line and "cannot place these frames" in line, line
+    res = run("convert", seg, "--reference", tmp_path / "ct", "-o", out)  # (what it said)
+    assert res.code == 1 and "must be read as it is stored" in res.stderr and not out.exists()
 
 
 def test_a_frame_between_reference_slices_is_an_error(ct, tmp_path, run):

@@ -135,7 +135,9 @@ def _frames_array(seg, where: str, segment: int | None,
     """(samples [slice, row, column], highdicom's affine) of the SEG's own grid.
 
     Frames with no regular grid of their own are an error that names
-    ``--reference SERIES`` when no ``reference`` was given (it reads them).
+    ``--reference SERIES`` when no ``reference`` was given (it reads them),
+    unless the frames lie on a gantry-tilted stack, which no reference read as
+    stored is (:func:`_tilt_drift`).
     """
     kind = seg_type(seg)
     numbers = [int(s.SegmentNumber) for s in seg.SegmentSequence]
@@ -167,6 +169,13 @@ def _frames_array(seg, where: str, segment: int | None,
         if "overlap" in str(exc):
             raise _overlap_error(where, numbers) from None
         if "regularly-spaced" in str(exc) and reference is None:
+            drift = _tilt_drift(seg)
+            if drift > 0.01:
+                raise FormatError(
+                    f"{where}: its frames lie on a gantry-tilted stack (their positions move "
+                    f"{drift:.3g} mm within the slice plane), so the SEG has no grid of its own, "
+                    "and the series it was drawn on would be resampled for the tilt, which "
+                    "--reference does not do: volwarp cannot place these frames") from None
             raise FormatError(
                 f"{where}: {_one_line(exc).rstrip('.')} (its frames lie on some slices only and "
                 "no SpacingBetweenSlices gives their spacing, or they are irregular), so the SEG "
@@ -179,6 +188,31 @@ def _frames_array(seg, where: str, segment: int | None,
     if arr.ndim == 4:  # (a one-channel highdicom volume)
         arr = arr[..., 0]
     return np.ascontiguousarray(arr), np.asarray(vol.affine, dtype=np.float64)
+
+
+def _tilt_drift(seg) -> float:
+    """How far (mm) the frames' positions move within the slice plane; 0 if unknown.
+
+    Frames of an untilted stack differ along the normal only; a SEG drawn on a
+    gantry-tilted series carries that series' sheared positions.
+    """
+    from .dicom._geometry import inplane_offsets
+
+    try:
+        frames = seg.PerFrameFunctionalGroupsSequence
+        shared = seg.SharedFunctionalGroupsSequence[0]
+        plane = shared if "PlaneOrientationSequence" in shared else frames[0]
+        iop = np.array([float(v) for v in
+                        plane.PlaneOrientationSequence[0].ImageOrientationPatient])
+        pos = np.array([[float(v) for v in f.PlanePositionSequence[0].ImagePositionPatient]
+                        for f in frames])
+    except (AttributeError, IndexError, KeyError, TypeError, ValueError):
+        return 0.0
+    normal = np.cross(iop[:3], iop[3:])
+    if len(pos) < 2 or not np.linalg.norm(normal) > 0 or not np.all(np.isfinite(pos)):
+        return 0.0
+    return float(np.linalg.norm(inplane_offsets(pos, normal / np.linalg.norm(normal)),
+                                axis=1).max())
 
 
 # tags of the per-frame functional groups read by _fast_frames

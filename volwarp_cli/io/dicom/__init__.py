@@ -35,8 +35,10 @@ Candidates (:func:`scan_dicom`)
     (PlanePosition, PlaneOrientation, PixelMeasures, PixelValueTransformation,
     the shared groups as fallback); different orientations, StackIDs, temporal
     positions or segments are different candidates. RT Dose frames lie at
-    GridFrameOffsetVector: relative to ImagePositionPatient when the first
-    offset is 0, else absolute positions along the normal (PS3.3 C.8.8.3.2).
+    GridFrameOffsetVector: distances along the normal from ImagePositionPatient
+    when the first offset is 0, else the frames' z coordinates (PS3.3
+    C.8.8.3.2), frame 0 at ImagePositionPatient: its z must be the first offset
+    (within 0.01 mm) and the normal must have a z component, else a FormatError.
 
 Geometry
     Slices are sorted by their position projected on the slice normal (row
@@ -50,12 +52,23 @@ Geometry
     onto a uniform grid of the smallest gap, along the normal, with a warning.
     Images at one position (exact copies dropped before): an error, or
     ``duplicates="first"``/``"last"`` keeps the first/last of them in file
-    order (files sorted by path, frames by frame number), at every position. One slice: z spacing is SpacingBetweenSlices, else 1
-    (what ITK does: it ignores SliceThickness). A gantry-tilted stack (slice
+    order (files sorted by path, frames by frame number), at every position.
+    One slice: z spacing is SpacingBetweenSlices, else 1 (what ITK does: it
+    ignores SliceThickness). A multi-frame file without per-frame positions (a
+    classic NM, MR, CT ...): its frames in file order SpacingBetweenSlices
+    apart from ImagePositionPatient along the normal (a negative one: against
+    it), as ITK does; an NM file's ImagePositionPatient / Orientation from its
+    DetectorInformationSequence first, as GDCM's (the top-level ones, which
+    GDCM leaves out for NM, as fallback; detectors placed differently refused).
+    Without SpacingBetweenSlices, unit spacing as ITK's (SliceThickness is not
+    the spacing), with a warning; whatever the file leaves out and volwarp
+    assumed (that spacing, origin 0, identity orientation) is said in the key
+    ``DICOM_geometry``. A gantry-tilted stack (slice
     origins moving in-plane along the stack) is by default resampled onto the
     orthogonal grid that has the normal as third axis, slice by slice in the
     slice planes (bilinear = trilinear with integer z), out-of-field voxels
-    set to the volume's minimum, with the tilt angle logged; ``keep_shear``
+    set to the volume's minimum (a voxel is interpolated from samples of the
+    field only, or is that fill), with the tilt angle logged; ``keep_shear``
     returns the exact sheared geometry instead (third direction column the
     unit vector between successive slice origins, as ITK does).
 
@@ -67,7 +80,8 @@ Values
     is ``stored * DoseGridScaling`` as float32 (SimpleITK leaves it unscaled),
     in the file's DoseUnits (``GY``, or ``RELATIVE`` to a reference dose: never
     taken for Gy), kept as ``DICOM_DoseUnits``.
-    Resampled volumes (tilt, irregular) are float32. Colour images are refused.
+    Resampled volumes (tilt, irregular) are float32. Colour images are refused,
+    PALETTE COLOR too (one sample per pixel, but an index into colour tables).
     The grid's spacing, origin and direction obey
     :func:`volwarp_cli.geometry.check_placement` (a refusal names the tag).
 
@@ -76,6 +90,7 @@ Meta
     StudyInstanceUID, SeriesInstanceUID, FrameOfReferenceUID, SeriesNumber,
     (RT Dose) DoseUnits, DoseType, DoseSummationType. Identifying tags
     (PatientName, PatientID, PatientBirthDate, ...) only with ``keep_phi``.
+    ``DICOM_geometry``: what of the grid the file does not give (above).
 
 Segmentations
     A SEG file (BINARY, FRACTIONAL, LABELMAP) or an RTSTRUCT file is read as a

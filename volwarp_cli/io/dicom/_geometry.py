@@ -61,7 +61,7 @@ def plan_stack(frames, where: str, *, irregular: str = "error", duplicates: str 
     nominal = float(np.median(gaps))
     tol = max(1e-3 * nominal, 0.01)
     rel = (d - d[0])[:, None]
-    inplane = (pos - pos[0]) - rel * normal[None, :]
+    inplane = inplane_offsets(pos, normal)
     extent = float(d[-1] - d[0])
     shear = inplane[-1] / extent      # in-plane movement per mm along the normal
     off = np.linalg.norm(inplane - rel * shear[None, :], axis=1)
@@ -111,6 +111,15 @@ def plan_stack(frames, where: str, *, irregular: str = "error", duplicates: str 
                 planes=planes)
 
 
+def inplane_offsets(pos: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Each position's offset from the first, within the slice plane: 0 unless tilted.
+
+    ``pos`` (n, 3) positions, ``normal`` the unit slice normal.
+    """
+    step = pos - pos[0]
+    return step - (step @ normal)[:, None] * normal[None, :]
+
+
 def _dedupe(frames, pos, d, where, duplicates):
     if len(frames) < 2:
         return frames, pos, d
@@ -132,7 +141,8 @@ def _dedupe(frames, pos, d, where, duplicates):
         j = k
         while j + 1 < len(frames) and d[j + 1] - d[j] <= dup_tol:
             j += 1
-        group = list(range(k, j + 1))  # file order within the group (stable sort)
+        # by file order, not by position: duplicates a few micrometres apart sort by position
+        group = sorted(range(k, j + 1), key=lambda i: (frames[i].order, frames[i].frame))
         keep.append(group[0] if duplicates == "first" else group[-1])
         k = j + 1
     log.info("%s: %d duplicate image(s) dropped (--duplicates %s)", where,
@@ -157,15 +167,22 @@ def _gap_message(where, frames, gaps, nominal, tol, bad) -> str:
 
 
 def resample(plan: Plan, data: np.ndarray) -> np.ndarray:
-    """Apply the plan's tilt shifts and slice interpolation to ``data`` (input slices)."""
+    """Apply the plan's tilt shifts and slice interpolation to ``data`` (input slices).
+
+    A voxel is interpolated from samples of the field only, or is the fill (the
+    input's minimum): the shifts mark what lies outside the field NaN, the
+    interpolation between slices carries the NaN on, and only then does it become
+    the fill, so that no voxel at the field's rim blends the fill with data.
+    """
     from scipy import ndimage
 
+    fill = None
     if plan.shifts is not None:
         fill = float(data.min())
         out = np.empty(data.shape, dtype=np.float32)
         for k in range(data.shape[0]):
             ndimage.shift(data[k].astype(np.float32, copy=False), plan.shifts[k], output=out[k],
-                          order=1, mode="constant", cval=fill, prefilter=False)
+                          order=1, mode="constant", cval=np.nan, prefilter=False)
         data = out
     if plan.planes is not None:
         out = np.empty((plan.n_out,) + data.shape[1:], dtype=np.float32)
@@ -180,4 +197,7 @@ def resample(plan: Plan, data: np.ndarray) -> np.ndarray:
         data = out
     if data.dtype != np.float32:
         data = data.astype(np.float32)
+    if fill is not None:
+        for plane in data:  # (a slice at a time: no mask of the whole volume)
+            np.copyto(plane, np.float32(fill), where=np.isnan(plane))
     return data

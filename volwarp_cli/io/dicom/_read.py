@@ -9,6 +9,7 @@ import numpy as np
 
 from ...errors import BadUsage, FormatError, VolwarpError
 from ...geometry import check_placement
+from ...progress import log
 from ...volume import Header, Volume
 from ..common import ensure_fits_in_memory, make_volume
 from ..lazy import make_header
@@ -164,6 +165,9 @@ def _plan(path, *, series, irregular, duplicates, keep_shear, keep_phi, candidat
         raise FormatError(f"{f0.file.path}: {f0.problem}")
     plan = plan_stack(list(cand.frames), where, irregular=irregular, duplicates=duplicates,
                       keep_shear=keep_shear)
+    if f0.assumed and plan.n_out > 1:  # (not silently: a grid with a guessed axis)
+        log.warning("warning: %s: %d frames without positions of their own, stacked with %s",
+                    f0.file.path, plan.n_out, f0.assumed)
     _check_plan(plan)
     return plan, output_dtype(plan.frames), _meta(cand, plan, keep_phi)
 
@@ -176,7 +180,7 @@ def _check_plan(plan) -> None:
     Dose: GridFrameOffsetVector).
     """
     f0 = plan.frames[0]
-    if plan.n_out == 1:
+    if plan.n_out == 1 or f0.synthetic:
         z_name = "SpacingBetweenSlices"
     elif f0.file.dose_scaling is not None and f0.file.n_frames > 1:
         z_name = "GridFrameOffsetVector"
@@ -253,8 +257,8 @@ def _meta(cand: Candidate, plan, keep_phi: bool) -> dict[str, str]:
     src = plan.frames[0].file.meta
     keep = META_TAGS + (PHI_TAGS if keep_phi else ())
     meta = {f"DICOM_{k}": str(src[k]) for k in keep if k in src}
-    if plan.frames[0].synthetic:
-        meta["DICOM_geometry"] = "none in the file: unit spacing, origin 0"
+    if plan.frames[0].assumed:
+        meta["DICOM_geometry"] = f"assumed: {plan.frames[0].assumed}"
     if cand.why:
         meta["DICOM_candidate"] = cand.why
     return meta
@@ -309,15 +313,16 @@ def read_reference(path: str | os.PathLike, *, series=None, want_series: tuple =
         if len(hits) == 1:
             series = hits[0].index
     cand = choose(cands, series, where)
+    if cand.frames[0].synthetic:  # (before _plan, which warns of what it assumes)
+        raise FormatError(f"{where}: the reference series gives no position per image "
+                          "(ImagePositionPatient / ImageOrientationPatient of each slice): "
+                          "nothing to place a segmentation on")
     plan, dtype, meta = _plan(path, series=None, irregular=irregular, duplicates=duplicates,
                               keep_shear=False, keep_phi=False, candidates=[cand])
     if plan.resampled:
         raise FormatError(f"{where}: the reference series must be read as it is stored (its "
                           "slices are resampled: gantry tilt or irregular gaps), so a "
                           "segmentation's frames or contours cannot be placed on it")
-    if plan.frames[0].synthetic:
-        raise FormatError(f"{where}: the reference series has no ImagePositionPatient / "
-                          "ImageOrientationPatient: nothing to place a segmentation on")
     f0 = plan.frames[0]
     rows, cols = f0.file.rows, f0.file.columns
     grid = make_header(where, (plan.n_out, rows, cols), np.uint8,

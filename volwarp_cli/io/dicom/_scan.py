@@ -95,7 +95,8 @@ class Frame:
     keys: dict
     split_keys: dict
     localizer: bool = False
-    synthetic: bool = False
+    synthetic: bool = False  # placed by volwarp: the file gives no position per frame
+    assumed: str = ""  # what the file does not say and volwarp took (DICOM_geometry)
     problem: str = ""
 
     @property
@@ -391,9 +392,10 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
     common = {"FrameOfReferenceUID": _text(ds, "FrameOfReferenceUID"),
               "Rows/Columns": (rows, cols)}
     problem = ""
-    if samples != 1:
-        problem = (f"colour image (SamplesPerPixel {samples}, "
-                   f"{_text(ds, 'PhotometricInterpretation')}): volwarp reads greyscale volumes")
+    photometric = _text(ds, "PhotometricInterpretation")
+    if samples != 1 or photometric.upper() == "PALETTE COLOR":  # (indices into colour tables)
+        problem = (f"colour image (SamplesPerPixel {samples}, {photometric}): volwarp reads "
+                   "greyscale volumes")
     image_type = _text(ds, "ImageType").upper().split("\\")
     localizer = "LOCALIZER" in image_type
     top_spacing = _floats(ds, "PixelSpacing", 2, where)
@@ -406,7 +408,7 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
     frames: list[Frame] = []
 
     def add(position, row, col, spacing, slope, inter, single, keys, split, synthetic=False,
-            frame=0):
+            frame=0, assumed=""):
         spacing = (1.0, 1.0) if spacing is None else (float(spacing[1]), float(spacing[0]))
         if spacing[0] <= 0 or spacing[1] <= 0:
             raise FormatError(f"{where}: PixelSpacing must be positive, got "
@@ -415,10 +417,10 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
                             col=col, pixel_spacing=spacing, slope=slope, intercept=inter,
                             single_spacing=single, series_uid=series_uid,
                             keys={**common, **keys}, split_keys=split, localizer=localizer,
-                            synthetic=synthetic, problem=problem))
+                            synthetic=synthetic, assumed=assumed, problem=problem))
 
     sbs = _float(ds, "SpacingBetweenSlices", 0.0, where)
-    single = sbs if sbs > 0 else 1.0
+    single = abs(sbs) or 1.0
     pffg = ds.get("PerFrameFunctionalGroupsSequence")
     offsets = _offsets(ds, n_frames, where) if is_dose else None
     if is_dose and n_frames > 1 and offsets is None:
@@ -433,10 +435,8 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
         row, col = _cosines(iop, where)
         normal = np.cross(row, col)
         normal /= np.linalg.norm(normal)
-        if offsets[0] == 0:
-            positions = ipp[None, :] + offsets[:, None] * normal[None, :]
-        else:  # absolute positions along the normal (PS3.3 C.8.8.3.2)
-            positions = ipp[None, :] + (offsets - ipp @ normal)[:, None] * normal[None, :]
+        steps = offsets if offsets[0] == 0 else _absolute_steps(offsets, ipp, normal, where)
+        positions = ipp[None, :] + steps[:, None] * normal[None, :]
         keys = {"ImageOrientationPatient": tuple(iop), "PixelSpacing": _tup(top_spacing)}
         for k in range(n_frames):
             add(positions[k], row, col, top_spacing, 1.0, 0.0, single, keys, {}, frame=k)
@@ -444,18 +444,26 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
         _enhanced_frames(ds, pffg, n_frames, where, add, top_spacing, top_slope, top_inter,
                          single)
     else:
-        ipp = _floats(ds, "ImagePositionPatient", 3, where)
-        iop = _floats(ds, "ImageOrientationPatient", 6, where)
+        ipp, iop = _plane(ds, where)
         if n_frames > 1 or ipp is None or iop is None:
-            # no per-frame geometry: frames in file order at unit spacing, as ITK reads them
+            # no per-frame geometry: frames in file order SpacingBetweenSlices apart, as ITK
+            # (GDCM) reads them: a negative one steps against the normal, SliceThickness is
+            # no spacing, and without either unit spacing, which the warning and key say
             row, col = _cosines(iop, where) if iop is not None else (np.eye(3)[0], np.eye(3)[1])
             normal = np.cross(row, col)
+            normal /= np.linalg.norm(normal)
             origin = ipp if ipp is not None else np.zeros(3)
+            missing = [what for gone, what in (
+                (ipp is None, "origin 0 (no ImagePositionPatient)"),
+                (iop is None, "identity orientation (no ImageOrientationPatient)"),
+                (n_frames > 1 and not sbs, "unit slice spacing (no SpacingBetweenSlices)"))
+                if gone]
             keys = {"file": full, "ImageOrientationPatient": tuple(np.r_[row, col]),
                     "PixelSpacing": _tup(top_spacing)}
             for k in range(n_frames):
-                add(origin + k * normal, row, col, top_spacing, top_slope, top_inter,
-                    single if n_frames == 1 else 1.0, keys, {}, synthetic=True, frame=k)
+                add(origin + k * (sbs or 1.0) * normal, row, col, top_spacing, top_slope,
+                    top_inter, single, keys, {}, synthetic=True, frame=k,
+                    assumed=", ".join(missing))
         else:
             row, col = _cosines(iop, where)
             keys = {"ImageOrientationPatient": tuple(iop), "PixelSpacing": _tup(top_spacing),
@@ -464,6 +472,33 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
                      "AcquisitionNumber": _text(ds, "AcquisitionNumber")}
             add(ipp, row, col, top_spacing, top_slope, top_inter, single, keys, split)
     return frames, ""
+
+
+def _plane(ds, where: str):
+    """ImagePositionPatient and ImageOrientationPatient of an image without functional groups.
+
+    An NM image keeps them in DetectorInformationSequence (PS3.3 C.8.4.10), where
+    GDCM reads them first; the top-level ones are the fallback (GDCM leaves an NM
+    origin at 0 then). Detectors placed differently are no one stack: refused.
+    """
+    ipp = _floats(ds, "ImagePositionPatient", 3, where)
+    iop = _floats(ds, "ImageOrientationPatient", 6, where)
+    found = []
+    for k, item in enumerate(ds.get("DetectorInformationSequence") or []):
+        fw = f"{where}: DetectorInformationSequence item {k + 1}"
+        det = (_floats(item, "ImagePositionPatient", 3, fw),
+               _floats(item, "ImageOrientationPatient", 6, fw))
+        if any(v is not None for v in det):
+            found.append(det)
+    if not found:
+        return ipp, iop
+    if any(not all(_same(_tup(a), _tup(b)) for a, b in zip(det, found[0], strict=True))
+           for det in found[1:]):
+        raise FormatError(f"{where}: DetectorInformationSequence places its {len(found)} "
+                          "detectors' frames differently (ImagePositionPatient / "
+                          "ImageOrientationPatient): not one stack")
+    det_ipp, det_iop = found[0]
+    return (ipp if det_ipp is None else det_ipp), (iop if det_iop is None else det_iop)
 
 
 def _offsets(ds, n_frames: int, where: str):
@@ -480,6 +515,24 @@ def _offsets(ds, n_frames: int, where: str):
         raise FormatError(f"{where}: GridFrameOffsetVector has {len(vals)} values for "
                           f"{n_frames} frames")
     return vals[:n_frames]
+
+
+def _absolute_steps(offsets, ipp, normal, where: str) -> np.ndarray:
+    """Distances along the normal of frames whose GridFrameOffsetVector gives their z.
+
+    PS3.3 C.8.8.3.2: a first offset other than 0 makes the offsets the frames'
+    z coordinates (allowed with ImageOrientationPatient (1, 0, 0, 0, 1, 0) only).
+    Frame 0 stays at ImagePositionPatient, so its z must be the first offset.
+    """
+    if abs(normal[2]) < _ATOL:
+        raise FormatError(f"{where}: GridFrameOffsetVector starts at {offsets[0]:g}, not 0: "
+                          "absolute z positions, but the slice normal of ImageOrientationPatient "
+                          "has no z component")
+    if abs(offsets[0] - ipp[2]) > 0.01:
+        raise FormatError(f"{where}: GridFrameOffsetVector starts at {offsets[0]:g}, not 0: "
+                          f"an absolute z position, but ImagePositionPatient's z is {ipp[2]:g} "
+                          "(they must agree within 0.01 mm)")
+    return (offsets - offsets[0]) / normal[2]
 
 
 def sop_is_enhanced(sop: str) -> bool:
@@ -539,7 +592,10 @@ def _enhanced_frames(ds, pffg, n_frames, where, add, top_spacing, top_slope, top
         ident = np.eye(3)
         for k, r in enumerate(rows):
             add(np.array([0.0, 0.0, float(k)]), ident[0], ident[1], r[2], r[3], r[4], 1.0,
-                {"file": where, **r[6]}, {}, synthetic=True, frame=k)
+                {"file": where, **r[6]}, {}, synthetic=True, frame=k,
+                assumed="origin 0, identity orientation, unit slice spacing (no "
+                        "PlanePositionSequence / PlaneOrientationSequence in the functional "
+                        "groups)")
         return
     if not all(have):
         k = have.index(False)
