@@ -108,6 +108,23 @@ def test_an_output_still_a_pattern_is_refused(tmp_path, step, key):
         "  - move:\n      - {index: [2, 2, 2], by: [1.0, 0.5, 0.0]}\n")
     res = volwarp("batch", manifest)
     assert res.returncode == 2, res.stderr
-    assert re.search(key + r": \S+ \S*p01_\{(frame:03d|label)\}\.(nrrd|ply): a pattern, which "
-                     r"the step fills per frame or label", _one_error_line(res)), res.stderr
+    assert re.search(key + r": (--frames-to|-o) \{stem\}_\{\{(frame:03d|label)\}\}\.(nrrd|ply): "
+                     r"a pattern, which the step fills per frame or label",
+                     _one_error_line(res)), res.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_braces_in_names_are_names(tmp_path):
+    """The pattern check looks at the options that take patterns, their placeholders
+    filled: a scan, a folder or an output folder with braces in its name (a {GUID}
+    folder), or a convert output with escaped braces, was refused as "a pattern"."""
+    root = tmp_path / "run_{1}"
+    root.mkdir()
+    (root / "scans").mkdir()
+    (root / "scans" / "{GUID-1}.nrrd").write_bytes((DATA / "ball_30_uint8.nrrd").read_bytes())
+    (root / "m.yaml").write_text(
+        'version: 1\ninputs: {glob: "scans/*.nrrd"}\noutput_dir: "out_{x}"\nsteps:\n'
+        '  - {name: c, run: convert, output: "{stem}_{{y}}.nii"}\n')
+    res = volwarp("batch", root / "m.yaml")
+    assert res.returncode == 0, res.stderr
+    assert (root / "out_{x}" / "{GUID-1}_{y}.nii").exists()

@@ -86,23 +86,30 @@ def test_a_cast_written_by_slabs_is_the_whole_s_cast(tmp_path, monkeypatch):
 
 def test_clipping_is_said_once_a_run_with_what_lay_beyond(caplog):
     """An int16 CT cast to uint8 came out 0 everywhere without a word (exit 0): clipping is
-    now a warning naming the output, the reach and the type's range, once a run for each
-    output and type; samples within the range say nothing."""
+    now a warning naming the output, the reach and the type's range, once a command's run
+    for each type (a morph's frames: one line for all, naming the first); samples within
+    the range say nothing. Outside a run (the API), each cast that clips says so."""
     from volwarp_cli.runscope import run_scope
 
     ct = np.array([-1147.0, -614.0, -700.4], np.float32)
     with caplog.at_level("WARNING", logger="volwarp"), run_scope():
-        assert cast_samples(ct, "uint8", what="ct_u8.nrrd").tolist() == [0, 0, 0]
-        cast_samples(ct, "uint8", what="ct_u8.nrrd")  # (the next block: said already)
+        assert cast_samples(ct, "uint8", what="f_00.nrrd").tolist() == [0, 0, 0]
+        cast_samples(ct, "uint8", what="f_00.nrrd")  # (the next block: said already)
+        cast_samples(ct, "uint8", what="f_01.nrrd")  # (the next frame: said already)
         assert cast_samples(np.array([60000, -3], np.int32), "int16", what="o.nrrd").tolist() \
             == [32767, -3]
         assert cast_samples(np.array([0.4, 254.6]), "uint8", what="fits.nrrd").tolist() == [0, 255]
     lines = [r.getMessage() for r in caplog.records]
     assert lines == [
-        "warning: ct_u8.nrrd: samples as low as -1147 lie outside uint8's range [0, 255] and "
+        "warning: f_00.nrrd: samples as low as -1147 lie outside uint8's range [0, 255] and "
         "are clipped to it",
         "warning: o.nrrd: samples as high as 60000 lie outside int16's range [-32768, 32767] "
         "and are clipped to it"], lines
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="volwarp"):  # (no run: a script's calls)
+        cast_samples(ct, "uint8", what="a")
+        cast_samples(ct, "uint8", what="b")
+    assert [r.getMessage()[:12] for r in caplog.records] == ["warning: a: ", "warning: b: "]
 
 
 def test_float64_beyond_float32_is_refused_not_made_infinite():

@@ -34,8 +34,10 @@ numba_blas.install()
 name = sys.argv[1]
 if name == "numba":
     from volwarp_cli.distance import field
-if name == "dask.array":
+if name == "dask.array":  # (counted beyond what they import first)
     import dask
+if name == "highdicom":
+    import pydicom
 try:
     before = memory.process_rss()
     importlib.import_module(name)

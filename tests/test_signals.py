@@ -88,6 +88,7 @@ def test_nohup_keeps_a_job_going(tmp_path):
                             stderr=subprocess.PIPE,
                             preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
     time.sleep(0.5)
+    assert proc.poll() is None, "the job ended before the SIGHUP: nothing tested"
     proc.send_signal(signal.SIGHUP)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err

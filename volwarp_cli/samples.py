@@ -60,9 +60,8 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
 
     NaN cannot be stored in an integer type and is refused rather than
     silently turned into 0; finite samples beyond float32's range are refused
-    rather than turned into infinities. Clipping is said, once a run for each
-    ``what`` and type (:func:`_say_clipped`): every sample of a CT cast to uint8
-    came out 0 without a word.
+    rather than turned into infinities. Clipping is said (:func:`_say_clipped`):
+    every sample of a CT cast to uint8 came out 0 without a word.
     """
     dt = check_dtype(dtype)
     if data.dtype == dt:
@@ -111,19 +110,23 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
 
 
 def _say_clipped(what: str, dt: np.dtype, low, high) -> None:
-    """Warn, once a run for ``what`` and ``dt``, that samples from ``low`` to ``high`` were clipped.
+    """Warn that samples from ``low`` to ``high`` were clipped to ``dt`` for ``what``.
 
-    (A cast by blocks says it for the first block with any: its reach, not the whole's.)
+    Once a command's run for each type, naming the first output it happened
+    to (a morph's 100 frames: one line, not 100); a cast by blocks says the
+    reach of the first block with any, not the whole's. Outside a run (the
+    API), every time.
     """
     from .progress import log
-    from .runscope import run_files
+    from .runscope import in_run, run_files
 
     info = np.iinfo(dt)
-    key = ("clipped", what, dt.name)
-    said = run_files().said
-    if key in said:
-        return
-    said.add(key)
+    key = ("clipped", dt.name)
+    if in_run():
+        said = run_files().said
+        if key in said:
+            return
+        said.add(key)
     beyond = [f"as low as {float(low):.10g}"] if low < info.min else []
     beyond += [f"as high as {float(high):.10g}"] if high > info.max else []
     log.warning("warning: %s: samples %s lie outside %s's range [%d, %d] and are clipped to "

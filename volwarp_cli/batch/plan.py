@@ -54,7 +54,7 @@ STATE_VERSION = 2
 FLUSH_SECONDS = 1.0
 #: the parsed options that change which files an output option writes, by command
 #: (each step's dry run keeps their values: :attr:`.manifest.Step.params`)
-FILE_PARAMS = {"mesh": ("turntable",)}
+FILE_PARAMS = {"mesh": ("turntable", "labels")}
 
 
 @dataclass
@@ -465,8 +465,8 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
 
     An output is every file a step writes (its ``-o``, every output option,
     as :func:`written_files` names them) and the batch's reports
-    (``reports``: ``(option, path)``); a step's output still a pattern
-    (:func:`_refuse_pattern`) is refused. An input is a
+    (``reports``: ``(option, path)``); a step's output its command fills per
+    frame or label (:func:`_refuse_patterns`) is refused. An input is a
     scan (any scan's files, a detached header's data files too), a file a
     step reads (its spec, an option's file), the manifest, the scans' table;
     symbolic and hard links are followed
@@ -479,12 +479,13 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
     scan_files = {os.path.realpath(f): s for s in scans for f in input_files(s.path)}
     fixed = batch_reads(manifest)
     writers: dict[str, _Writer] = {}
+    for step in manifest.steps:
+        _refuse_patterns(manifest, step)
     for scan in scans:
         for plan in plan_scan(manifest, scan):
             step = plan.step
             for option, out in plan.writes:
                 key = ("steps", step.index, "output" if option == "-o" else "options")
-                _refuse_pattern(manifest, key, out, option)
                 try:
                     _refuse_over(out, option, [str(scan.path), *map(str, plan.reads), *fixed],
                                  fixed)
@@ -501,19 +502,30 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
     _check_reports(manifest, reports, fixed, scan_files, writers)
 
 
-def _refuse_pattern(manifest, key, out: Path, option: str) -> None:
-    """An output whose name holds fields after its placeholders (``{{frame:03d}}``).
+def _refuse_patterns(manifest, step: Step) -> None:
+    """An output the step's command fills per frame or label, given a pattern (``{{frame}}``).
 
-    Its command fills them, a file per frame or label (warp's ``--frames-to``,
-    mesh's ``--labels``): files batch cannot name before the step runs, so it
-    could neither record nor check them (the step ran every time, and a frame
-    deleted by hand was never noticed).
+    Warp's ``--frames-to`` and ``mesh --labels -o`` take patterns: a file per
+    frame or label, which batch cannot name before the step runs, so it could
+    neither record nor check them (the step ran every time, and a frame
+    deleted by hand was never noticed). Only the manifest's value is looked
+    at, its placeholders filled: braces in a scan's or a folder's name are
+    names, and other options write the name given, braces and all.
     """
-    if _is_pattern(out):
-        raise _located(manifest, key, (
-            f"{option} {out}: a pattern, which the step fills per frame or label; batch "
-            "records and checks every file a step writes and cannot name these before it "
-            "runs (leave the option out, or run the command outside batch)"))
+    params = dict(step.params)
+    for k, option in ((-1, "-o"), *step.writes):
+        if not ((step.run == "warp" and option == "--frames-to")
+                or (step.run == "mesh" and option == "-o" and params.get("labels"))):
+            continue
+        value = step.output if k < 0 else step.options[k]
+        named = value.format(stem="stem", relpath=".") if placeholders(value) is not None \
+            else value
+        if _is_pattern(named):
+            key = ("steps", step.index, "output" if option == "-o" else "options")
+            raise _located(manifest, key, (
+                f"{option} {value}: a pattern, which the step fills per frame or label; batch "
+                "records and checks every file a step writes and cannot name these before it "
+                "runs (leave the option out, or run the command outside batch)"))
 
 
 def _refuse_over_scans(manifest, key, out: Path, option: str, scan_files: dict) -> None:

@@ -6,8 +6,7 @@ rewritten in place meanwhile (``dd conv=notrunc``, a program saving over it),
 the work reads a mix of the two, and a run by blocks wrote such a mix with
 exit 0. :func:`watch` records such a file's identity; :func:`check_unchanged`,
 called before every output's rename, refuses to rename an output made from
-an input that changed (size, modification or change time, inode) while it
-was read. A mapped file (:func:`guard`) also gets a SIGBUS handler (in C,
+an input that changed (size, modification time, inode) while it was read. A mapped file (:func:`guard`) also gets a SIGBUS handler (in C,
 ``_mapguard``: it removes the temporary outputs, writes one line and exits
 1): if it is truncated while mapped (``cp new.nrrd in.nrrd`` truncates
 first), a read past the new end raises SIGBUS.
@@ -24,9 +23,10 @@ from ..signals import temporaries
 _guard = None  # the _mapguard module, once a file is mapped
 
 
-def _identity(st: os.stat_result) -> tuple[int, int, int, int]:
-    # (the change time too: a program can put the modification time back, not that)
-    return st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino
+def _identity(st: os.stat_result) -> tuple[int, int, int]:
+    # (not the change time: a chmod, a hard link made by a backup, an xattr move it with
+    # the bytes unchanged; a rewrite that puts the modification time back goes unseen)
+    return st.st_size, st.st_mtime_ns, st.st_ino
 
 
 def watch(file, where: str | None = None) -> None:
