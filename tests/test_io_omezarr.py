@@ -219,6 +219,13 @@ def test_volwarp_reads_ome_zarr_py_stores_with_units_and_channel_axis(tmp_path):
     assert np.array_equal(read_volume(path2, volume_index=1).data, data + 1)
     with pytest.raises(BadUsage, match="out of range"):  # (a usage error: exit 2)
         read_volume(path2, volume_index=2)
+    # the usual t, c, z, y, x with a size-1 time axis: the index is the channel's only
+    # (it was applied to the time axis too, and index 1 failed as "chunk data is damaged")
+    path3 = tmp_path / "t.ome.zarr"
+    write_image(stack[None], zarr.open_group(str(path3), mode="w"), axes="tczyx",
+                scale_factors=[])
+    for k in (0, 1):
+        assert np.array_equal(read_volume(path3, volume_index=k).data, data + k)
 
 
 # -- pyramids -----------------------------------------------------------------------------

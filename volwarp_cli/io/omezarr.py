@@ -974,11 +974,11 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
     elif volume_index not in (None, 0):
         raise BadUsage(f"{where}: --volume-index {volume_index} given, but the image holds "
                        "one volume")
-    for i in range(n):
+    for i in range(n):  # (the index on the one longer axis; a size-1 axis' only entry)
         if kinds[i] == "space":
             index.append(slice(None))
         else:
-            index.append(volume_index or 0)
+            index.append(volume_index if big and i == big[0] else 0)
     remaining = [i for i in range(n) if kinds[i] == "space"]  # axes left after the selection
     transpose = [remaining.index(i) for i in order]
     check_dtype(arr.dtype, where)
