@@ -465,6 +465,46 @@ def test_points_through_a_field_and_mesh(run, scene):
     assert np.abs(moved.vertices - q[:4]).max() < 1e-4  # (PLY stores float32)
 
 
+def _signed_volume(mesh) -> float:
+    v = mesh.vertices[mesh.faces]
+    return float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6)
+
+
+def test_a_mirroring_chain_keeps_a_meshs_faces_outward(run, scene):
+    """A left-right flip (an affine of determinant -1: onto an atlas's other side) turned
+    every triangle of a moved mesh inside out: volume negative, every normal inward (exit
+    0). Its faces are turned back; through a field and the flip too (the Jacobian's sign
+    by differences), and a chain that keeps orientation keeps the faces as they were."""
+    from volwarp_cli.io import read_volume as read
+    from volwarp_cli.surface.isosurface import isosurface
+    from volwarp_cli.surface.mesh_io import read_mesh, write_mesh
+
+    d, vol, _ = scene
+    z, y, x = np.mgrid[:18, :20, :21]
+    ball = read(d / "ref.nrrd").with_data(
+        (((x - 10) ** 2 + (y - 10) ** 2 + (z - 9) ** 2) < 36).astype(np.float32))
+    mesh = isosurface(ball, 0.5)
+    write_mesh(mesh, d / "ball.ply")
+    flip = sitk.AffineTransform(3)
+    flip.SetMatrix([-1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0])
+    flip.SetCenter([3.0, 17.0, 14.0])
+    sitk.WriteTransform(flip, str(d / "flip.tfm"))
+    before = _signed_volume(mesh)
+    assert before > 0
+    for chain, flipped in (([d / "flip.tfm"], True), ([d / "f.nii.gz", d / "flip.tfm"], True),
+                           ([d / "a.tfm"], False)):
+        args = [a for t in chain for a in ("-t", t)]
+        res = run("apply", *args, "--mesh-in", d / "ball.ply", "--mesh-to", d / "out.ply")
+        assert res.code == 0, res.stderr
+        out = read_mesh(d / "out.ply")
+        assert np.array_equal(out.faces, mesh.faces[:, ::-1] if flipped else mesh.faces)
+        after = _signed_volume(out)
+        assert after > 0 and abs(after - before) < 0.1 * before, (chain, after, before)
+        centre = out.vertices.mean(axis=0)
+        outward = np.einsum("ij,ij->i", out.normals, out.vertices - centre) > 0
+        assert outward.mean() > 0.99, chain
+
+
 def test_volwarp_displacement_export(run, tmp_path):
     """volwarp's own `warp --displacement-to` field is read as ITK reads it."""
     vol = smooth()
