@@ -228,6 +228,33 @@ def test_volwarp_reads_ome_zarr_py_stores_with_units_and_channel_axis(tmp_path):
         assert np.array_equal(read_volume(path3, volume_index=k).data, data + k)
 
 
+def test_a_store_listing_a_coarser_level_first_is_read_at_its_finest(tmp_path, caplog):
+    """NGFF lists the finest level first; a store that lists the half-resolution one first
+    was read at that level (a 7x6x5 volume of a 14x12x10 image, exit 0). The finest by its
+    scale is read, with a warning."""
+    import zarr
+
+    a = samples("uint16", (10, 12, 14))
+    path = tmp_path / "rev.ome.zarr"
+    g = zarr.open_group(str(path), mode="w", zarr_format=2)
+    g.create_array("0", data=a, chunks=(5, 6, 7))
+    g.create_array("1", data=a[::2, ::2, ::2], chunks=(5, 6, 7))
+    axes = [{"name": n, "type": "space", "unit": "millimeter"} for n in "zyx"]
+    g.attrs["multiscales"] = [{"version": "0.4", "axes": axes, "datasets": [
+        {"path": "1", "coordinateTransformations": [
+            {"type": "scale", "scale": [4.0, 2.0, 2.0]},
+            {"type": "translation", "translation": [1.0, 0.5, 0.5]}]},
+        {"path": "0", "coordinateTransformations": [
+            {"type": "scale", "scale": [2.0, 1.0, 1.0]},
+            {"type": "translation", "translation": [0.0, 0.0, 0.0]}]}]}]
+    with caplog.at_level("WARNING", logger="volwarp"):
+        vol = read_volume(path)
+    assert np.array_equal(vol.data, a)
+    np.testing.assert_allclose(vol.spacing, [1.0, 1.0, 2.0])
+    np.testing.assert_allclose(vol.origin, [0.0, 0.0, 0.0])
+    assert "'1' first, but '0' is finer" in caplog.text
+
+
 # -- pyramids -----------------------------------------------------------------------------
 
 def test_pyramid_mean_levels_and_their_transforms(tmp_path):

@@ -893,6 +893,33 @@ class Opened:
         return Geometry(self.view_shape, self.spacing, self.origin, self.direction)
 
 
+def _finest(datasets: list, n: int, space_axes: list, where: str) -> int:
+    """The index of the dataset with the finest grid (level 0): NGFF lists it first.
+
+    A store that lists its levels otherwise was read at a coarser level, exit
+    0: the finest by its scale is read, with a warning.
+    """
+    finest, best = 0, None
+    for k, ds in enumerate(datasets):
+        try:  # (the first must be well formed: its own errors come where it is read)
+            if not isinstance(ds, dict) or "path" not in ds:
+                raise FormatError(f"{where}: multiscales dataset {k} has no path")
+            scale, _ = _transforms(ds.get("coordinateTransformations"), n, where,
+                                   f"dataset {ds['path']!r}")
+        except FormatError:
+            if k == 0:
+                raise
+            continue  # (a coarser level this read never opens)
+        size = float(np.prod(np.abs(scale[space_axes])))
+        if best is None or size < best:
+            finest, best = k, size
+    if finest:
+        log.warning("warning: %s: its multiscales list level %r first, but %r is finer (NGFF "
+                    "lists the finest first): %r read", where, datasets[0]["path"],
+                    datasets[finest]["path"], datasets[finest]["path"])
+    return finest
+
+
 def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Opened:
     """Open the store at ``path``: level 0 and the geometry volwarp gives it (module notes)."""
     import zarr
@@ -928,8 +955,9 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
             or "path" not in datasets[0]:
         raise FormatError(f"{where}: multiscales has no datasets")
     n = len(axes)
-    s0, t0 = _transforms(datasets[0].get("coordinateTransformations"), n, where,
-                         f"dataset {datasets[0]['path']!r}")
+    level = _finest(datasets, n, space_axes, where)
+    s0, t0 = _transforms(datasets[level].get("coordinateTransformations"), n, where,
+                         f"dataset {datasets[level]['path']!r}")
     s1, t1 = _transforms(ms.get("coordinateTransformations"), n, where, "multiscales")
     scale, translation = s0 * s1, t0 * s1 + t1
     factors = []
@@ -947,11 +975,11 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
     order = [by_name["z"], by_name["y"], by_name["x"]]
     spacing_zyx = np.array([scale[i] for i in order]) * factors
     origin_zyx = np.array([translation[i] for i in order]) * factors
-    array_path = path / str(datasets[0]["path"])
+    array_path = path / str(datasets[level]["path"])
     try:
         arr = zarr.open_array(str(array_path), mode="r", zarr_format=fmt)
     except Exception as exc:  # zarr raises several types for missing or bad metadata
-        raise FormatError(f"{where}: cannot open level 0 ({datasets[0]['path']!r}: "
+        raise FormatError(f"{where}: cannot open level 0 ({datasets[level]['path']!r}: "
                           f"{type(exc).__name__}: {_one_line(exc)})") from None
     if arr.ndim != n:
         raise FormatError(f"{where}: level 0 has {arr.ndim} axes, the multiscales name {n}")
