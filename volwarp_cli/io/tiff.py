@@ -4,8 +4,8 @@ Spacing is read the way ImageJ/Fiji store it: x and y from the resolution
 tags (pixels per unit), z from the ImageJ description's ``spacing``, all in
 its ``unit``, converted to millimetres where that is a length (``micron``,
 ``um``, ``cm``, ...; :func:`imagej_unit_mm`; ``pixel`` keeps the numbers).
-Plain TIFFs with a ResolutionUnit of inch or centimetre are converted to
-millimetres.
+Plain TIFFs with a ResolutionUnit of inch, centimetre, millimetre or
+micrometre (tifffile's 4 and 5) are converted to millimetres.
 
 An OME-TIFF's ``PhysicalSizeX``/``Y``/``Z`` (of its first ``Pixels``
 element) come ahead of those: each is converted to millimetres from its
@@ -55,7 +55,9 @@ from .common import (
 )
 
 _IMAGEJ_TYPES = ("uint8", "int16", "uint16", "float32")
-_UNIT_TO_MM = {"inch": 25.4, "centimeter": 10.0, "millimeter": 1.0, "micrometer": 1e-3}
+#: TIFF ResolutionUnit values (tifffile's RESUNIT: 4 and 5 are its own extension) in mm
+_RESUNIT_MM = {2: ("inch", 25.4), 3: ("centimeter", 10.0), 4: ("millimeter", 1.0),
+               5: ("micrometer", 1e-3)}
 
 #: The OME schema's UnitsLength symbols (and the common spellings of micrometre and
 #: ångström) in millimetres. ``pixel`` and ``reference frame`` are not lengths.
@@ -521,11 +523,14 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str) -> dict:
             meta["unit"] = str(extra["unit"])
     scale = ij_scale or 1.0
     tags = first.tags
-    if not ij and "ResolutionUnit" in tags:
-        unit = {2: "inch", 3: "centimeter"}.get(int(tags["ResolutionUnit"].value))
-        if unit and "volwarp_spacing" not in extra:
-            scale = _UNIT_TO_MM[unit]
+    if not ij and "ResolutionUnit" in tags and "volwarp_spacing" not in extra:
+        code = int(tags["ResolutionUnit"].value)
+        if code in _RESUNIT_MM:
+            scale = _RESUNIT_MM[code][1]
             meta["unit"] = "mm"
+        elif code != 1:  # 1: no unit, the numbers as they are
+            log.warning("%s: TIFF ResolutionUnit %d is no known unit: x and y spacing are "
+                        "1 / resolution, in no unit", where, code)
     for axis, tag in ((0, "XResolution"), (1, "YResolution")):
         if tag in tags:
             num, den = tags[tag].value
