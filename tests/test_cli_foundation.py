@@ -220,9 +220,10 @@ def test_huge_raw_is_refused(run, tmp_path):
 def test_tiff_with_pages_of_different_shapes(run, tmp_path):
     import tifffile
 
+    # plain pages (no tifffile description: with one, each page is an image of its own)
     with tifffile.TiffWriter(tmp_path / "mixed.tif") as tw:
-        tw.write(np.zeros((8, 8), np.uint8))
-        tw.write(np.zeros((8, 9), np.uint8))
+        tw.write(np.zeros((8, 8), np.uint8), metadata=None)
+        tw.write(np.zeros((8, 9), np.uint8), metadata=None)
     res = run("convert", tmp_path / "mixed.tif", "-o", tmp_path / "o.nrrd")
     _assert_clean_failure(res, 1, "mixed.tif", "page 1", out=tmp_path / "o.nrrd")
 

@@ -358,9 +358,10 @@ def test_volume_index_refused_where_it_means_nothing(tmp_path):
     from conftest import ball
 
     vol = Volume(ball(12))
-    write_volume(vol, tmp_path / "b.tif")
+    vol.data.tofile(tmp_path / "b.raw")
     with pytest.raises(BadUsage, match="--volume-index"):  # (usage errors: exit 2)
-        read_volume(tmp_path / "b.tif", volume_index=0)
+        read_volume(tmp_path / "b.raw", volume_index=0,
+                    raw=RawLayout((12, 12, 12), vol.data.dtype.name))
     write_volume(vol, tmp_path / "b.nrrd")
     assert read_volume(tmp_path / "b.nrrd", volume_index=0).data.shape == vol.data.shape
     with pytest.raises(BadUsage, match="one component"):

@@ -381,7 +381,9 @@ def input_options(f=None, *, reference_help: str = REFERENCE_HELP,
                      help="Raw input: bytes to skip before the samples."),
         click.option("--volume-index", type=click.IntRange(min=0), default=None,
                      help="4-D NIfTI or MetaImage input: which volume to read; "
-                          "multi-component NRRD or MetaImage: which component."),
+                          "multi-component NRRD or MetaImage: which component; TIFF "
+                          "holding several images (OME-TIFF images, tifffile series): "
+                          "which image."),
         click.option("--series", default=None, metavar="UID|N",
                      help="DICOM input holding several volumes: which one, by "
                           "SeriesInstanceUID or by its number in `volwarp info`'s list."),

@@ -127,9 +127,10 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
                 dicom: dict | None = None) -> Volume:
     """Read a volume file; ``raw`` describes headerless ``.raw``/``.bin`` files.
 
-    ``volume_index`` selects one volume of a 4-D NIfTI or MetaImage file or
+    ``volume_index`` selects one volume of a 4-D NIfTI or MetaImage file,
     one component of a multi-component (4-D) NRRD file or of a vector NIfTI
-    field (x, y, z, 1, C). ``mmap``: where the
+    field (x, y, z, 1, C), or one image of a TIFF holding several (OME-TIFF
+    images, tifffile series). ``mmap``: where the
     samples lie raw in the machine's byte order in an attached NRRD, map them
     read-only instead of copying (a command that only reads its input).
     ``dicom``: keyword arguments of :func:`~volwarp_cli.io.dicom.read_dicom`
@@ -148,10 +149,10 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
     else:
         fmt = volume_format(path, reading=True)
         _check_content(path, fmt)
-    if volume_index is not None and fmt in ("tiff", "raw", "dicom"):
+    if volume_index is not None and fmt in ("raw", "dicom"):
         raise BadUsage(f"{path}: --volume-index selects a volume of a 4-D NIfTI or "
-                       f"MetaImage or a component of a 4-D NRRD; a {_FORMAT_NAMES[fmt]} "
-                       "input has one")
+                       "MetaImage, a component of a 4-D NRRD or an image of a TIFF; a "
+                       f"{_FORMAT_NAMES[fmt]} input has one")
     if fmt == "dicom":
         from .dicom import read_dicom
         vol = read_dicom(path, **(dicom or {}))
@@ -163,7 +164,7 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
         vol = read_nrrd(path, volume_index, mmap=mmap)
     elif fmt == "tiff":
         from .tiff import read_tiff
-        vol = read_tiff(path)
+        vol = read_tiff(path, volume_index)
     elif fmt == "nifti":
         from .nifti import read_nifti
         vol = read_nifti(path, volume_index)

@@ -136,10 +136,12 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
         copy = "header" if not samples else "inflate" if inflate else "never"
         if fmt == "nifti":  # (a volume or component of a 4-D or 5-D file too)
             return _nifti(path, copy, volume_index)
+        if fmt == "tiff":  # (an image of a TIFF holding several too)
+            return _tiff(path, volume_index)
         if volume_index not in (None, 0):
             raise NotLazy("a volume of a 4-D file is read whole")
         openers = {"nrrd": lambda: _nrrd(path, copy), "metaimage": lambda: _metaimage(path, copy),
-                   "raw": lambda: _raw(path, raw), "tiff": lambda: _tiff(path)}
+                   "raw": lambda: _raw(path, raw)}
         if fmt not in openers:
             raise NotLazy(f"{fmt} files are read whole")
         return openers[fmt]()
@@ -465,12 +467,13 @@ def _raw(path: Path, layout):
 
 # -- TIFF -------------------------------------------------------------------------------
 
-def _tiff(path: Path):
+def _tiff(path: Path, volume_index: int | None = None):
     """``(header, samples)`` of a TIFF stack: :func:`.tiff.read_tiff`'s checks, then by box.
 
-    Pages decoded on demand through tifffile's zarr view of its series, where
-    that series is the stack as (z, y, x); ImageJ's one-IFD layout of a stack
-    over 4 GiB is read by box from the file. Anything else is read whole.
+    Pages decoded on demand through tifffile's zarr view of the chosen image's
+    series, where that series is the stack as (z, y, x); ImageJ's one-IFD
+    layout of a stack over 4 GiB is read by box from the file. An ImageJ value
+    calibration is applied box by box. Anything else is read whole.
     """
     import tifffile
     import zarr
@@ -478,20 +481,40 @@ def _tiff(path: Path):
     from . import tiff as tiff_io
 
     where = str(path)
-    stack = tiff_io.read_tiff_stack(path)  # (refuses what the whole reader refuses, as it does)
+    # (refuses what the whole reader refuses, as it does)
+    stack = tiff_io.read_tiff_stack(path, volume_index)
     header = make_header(where, stack.shape, stack.dtype, **stack.placement)
     if stack.planes_at is not None:
-        return header, _memmap(path, stack.file_dtype, stack.planes_at, stack.shape, where)
-    store = tifffile.imread(path, aszarr=True)  # (it keeps the files it reads open)
-    try:
-        arr = zarr.open(store, mode="r")
-        if tuple(arr.shape) != stack.shape or np.dtype(arr.dtype).newbyteorder("=") != stack.dtype:
-            # e.g. tifffile's shaped series of a 4-D array, whose pages volwarp reads as slices
-            raise NotLazy(f"tifffile's zarr view is {arr.shape} {arr.dtype}, not the stack")
-    except BaseException:
-        store.close()
-        raise
-    return header, _ZarrView(arr, store, where)
+        samples = _memmap(path, stack.file_dtype, stack.planes_at, stack.shape, where)
+    else:
+        store = tifffile.imread(path, aszarr=True, series=stack.image)  # (keeps its files open)
+        try:
+            arr = zarr.open(store, mode="r")
+            if arr.ndim > 3 and all(n == 1 for n in arr.shape[:-3]):  # (size-1 axes: dropped)
+                arr = _Squeezed(arr)
+            if (tuple(arr.shape) != stack.shape
+                    or np.dtype(arr.dtype).newbyteorder("=") != stack.file_dtype.newbyteorder("=")):
+                # e.g. a series of tifffile's whose pages are not the image's only
+                raise NotLazy(f"tifffile's zarr view is {arr.shape} {arr.dtype}, not the stack")
+        except BaseException:
+            store.close()
+            raise
+        samples = _ZarrView(arr, store, where)
+    if stack.calibration is not None:
+        c0, c1 = stack.calibration
+        samples = _CalibratedTiff(samples, c1, c0, stack.dtype)
+    return header, samples
+
+
+class _Squeezed:
+    """A zarr array's last three axes, its leading ones of size 1 indexed at 0."""
+
+    def __init__(self, arr):
+        self._arr, self._lead = arr, (0,) * (arr.ndim - 3)
+        self.shape, self.dtype, self.ndim = tuple(arr.shape[-3:]), arr.dtype, 3
+
+    def __getitem__(self, key):
+        return self._arr[self._lead + key]
 
 
 class _ZarrView:
@@ -619,6 +642,18 @@ class ScaledSamples:
     def close(self) -> None:
         """Close the samples' file."""
         self.base.close()
+
+
+class _CalibratedTiff(ScaledSamples):
+    """A TIFF's samples with ImageJ's straight-line calibration applied box by box.
+
+    :func:`.tiff.calibrate`, as :func:`.tiff.read_tiff` applies it to the whole.
+    """
+
+    def __getitem__(self, key) -> np.ndarray:
+        from .tiff import calibrate
+
+        return calibrate(np.asarray(self.base[key]), (self.inter, self.slope))
 
 
 class _NiftiView(FileArray):

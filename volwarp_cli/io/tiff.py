@@ -4,8 +4,13 @@ Spacing is read the way ImageJ/Fiji store it: x and y from the resolution
 tags (pixels per unit), z from the ImageJ description's ``spacing``, all in
 its ``unit``, converted to millimetres where that is a length (``micron``,
 ``um``, ``cm``, ...; :func:`imagej_unit_mm`; ``pixel`` keeps the numbers).
-Plain TIFFs with a ResolutionUnit of inch or centimetre are converted to
-millimetres.
+Plain TIFFs with a ResolutionUnit of inch, centimetre, millimetre or
+micrometre (tifffile's 4 and 5) are converted to millimetres.
+
+A file of several images (OME ``Image`` elements, tifffile series) is read
+one image at a time, chosen by ``volume_index`` (:func:`_choose_image`); an
+image's planes must be z slices (:func:`_check_image_axes`); an ImageJ
+straight-line value calibration is applied (:func:`_imagej_calibration`).
 
 An OME-TIFF's ``PhysicalSizeX``/``Y``/``Z`` (of its first ``Pixels``
 element) come ahead of those: each is converted to millimetres from its
@@ -40,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, VolwarpError
+from ..errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..memory import ensure_fits_in_memory
 from ..progress import log
@@ -55,7 +60,9 @@ from .common import (
 )
 
 _IMAGEJ_TYPES = ("uint8", "int16", "uint16", "float32")
-_UNIT_TO_MM = {"inch": 25.4, "centimeter": 10.0, "millimeter": 1.0, "micrometer": 1e-3}
+#: TIFF ResolutionUnit values (tifffile's RESUNIT: 4 and 5 are its own extension) in mm
+_RESUNIT_MM = {2: ("inch", 25.4), 3: ("centimeter", 10.0), 4: ("millimeter", 1.0),
+               5: ("micrometer", 1e-3)}
 
 #: The OME schema's UnitsLength symbols (and the common spellings of micrometre and
 #: ångström) in millimetres. ``pixel`` and ``reference frame`` are not lengths.
@@ -197,7 +204,7 @@ def _declared_pages(tif, pages, ij, where: str) -> tuple[int, str] | None:
             shape = [int(v) for v in json.loads(desc)["shape"]]
         except (ValueError, TypeError, KeyError):
             continue
-        plane = int(np.prod(page.shape[-2:])) if len(page.shape) >= 2 else 0
+        plane = int(np.prod(page.shape))  # (a volumetric page's shape holds its depth)
         total = int(np.prod(shape))
         if plane <= 0 or total % plane:
             continue
@@ -260,21 +267,59 @@ def _ome_pages(tif) -> tuple[int, str] | None:
     return total, "OME metadata"
 
 
-def _ome_extra_axes(tif) -> tuple[str, int] | None:
-    """``("channels", n)`` or ``("time points", n)`` where an OME image has more than one.
+#: tifffile's axis letters of a series that hold z slices: ``Z``, and the unnamed
+#: ``Q`` and ``I`` of a shaped series written without axes (one page a plane)
+_Z_AXES = "ZQI"
+_AXIS_WORDS = {"C": "channels", "T": "time points", "Q": "entries along an unnamed axis"}
 
-    Else None. Such an image's planes would otherwise be read as z slices.
+
+def _check_image_axes(series, where: str) -> None:
+    """Refuse an image (tifffile's OME or shaped series) whose planes are not only z slices.
+
+    Its axes as tifffile squeezes them (an axis of size 1 is dropped): y and x,
+    and before them at most one axis, of z. A channel or time axis, or a
+    second one of any kind, would otherwise be stacked along z.
     """
-    ome = _ome_pixels(tif)
-    for pixels in ome[0] if ome else ():
-        for key, name in (("SizeC", "channels"), ("SizeT", "time points")):
-            try:
-                n = int(pixels.get(key, 1))
-            except ValueError:
-                continue
-            if n > 1:
-                return name, n
-    return None
+    axes, shape = series.axes, tuple(series.shape)
+    lead = [(a, n) for a, n in zip(axes[:-2], shape[:-2], strict=True) if n > 1]
+    if axes[-2:] == "YX" and (not lead or (len(lead) == 1 and lead[0][0] in _Z_AXES)):
+        return
+    kind = "OME-TIFF" if series.kind == "ome" else "TIFF"
+    extra = [(a, n) for a, n in lead if a not in "Z"] or lead or [(axes, 0)]
+    axis, n = extra[0]
+    what = f"{n} {_AXIS_WORDS.get(axis, f'entries along axis {axis}')}" if n else "no y, x planes"
+    raise FormatError(f"{where}: {kind} image has {what} (axes {axes}, shape "
+                      f"{'x'.join(map(str, shape))}); volwarp reads single-channel, "
+                      "single-time-point z stacks")
+
+
+def _choose_image(tif, npages: int, where: str, volume_index: int | None):
+    """``(image, page indices)``: the image of the file ``volume_index`` picks, and its planes.
+
+    An OME-TIFF holds an image per OME ``Image`` element, a tifffile "shaped"
+    file one per series (``append=True``): each a volume, with its own size and
+    spacing, never stacked into one. Other TIFFs hold one stack of pages.
+    """
+    series = tif.series
+    if not series or series[0].kind not in ("ome", "shaped"):
+        series = []
+    count = max(len(series), 1)
+    if count > 1 and volume_index is None:
+        raise ChoiceNeeded(f"{where}: TIFF holds {count} images "
+                           f"({'OME Image elements' if series[0].kind == 'ome' else 'tifffile series'}"
+                           f"); volwarp reads one: choose it with --volume-index 0..{count - 1}")
+    if volume_index is not None and not 0 <= volume_index < count:
+        raise BadUsage(f"{where}: --volume-index {volume_index} is outside 0..{count - 1}: "
+                       f"the TIFF holds {count} image{'s' if count > 1 else ''}")
+    image = volume_index or 0
+    if series:
+        _check_image_axes(series[image], where)
+    if count == 1:
+        return image, list(range(npages))
+    indices = [getattr(p, "index", None) for p in series[image].pages]
+    if None in indices:
+        raise FormatError(f"{where}: TIFF image {image} lacks some of its planes (pages)")
+    return image, indices
 
 
 @dataclass(frozen=True)
@@ -285,7 +330,10 @@ class TiffStack:
     the same in the file's byte order; ``placement``: the Volume keywords but
     ``data`` (:func:`tiff_placement`); ``planes_at``: where ImageJ's layout of
     a stack over 4 GiB (one IFD, every plane back to back after it) has its
-    first plane, else None (one page a slice).
+    first plane, else None (one page a slice, or one volumetric page);
+    ``pages``: the indices of the image's pages in the file; ``image``: which
+    image of the file (tifffile's series); ``calibration``: ImageJ's straight
+    line ``(c0, c1)`` from the file's samples to ``dtype``'s (:func:`calibrate`).
     """
 
     shape: tuple[int, int, int]
@@ -293,23 +341,29 @@ class TiffStack:
     file_dtype: np.dtype
     placement: dict
     planes_at: int | None = None
+    pages: tuple[int, ...] = (0,)
+    image: int = 0
+    calibration: tuple[float, float] | None = None
 
 
-def read_tiff(path: str | os.PathLike) -> Volume:
-    """Read a TIFF stack, its spacing as the module notes say (OME, ImageJ, resolution tags)."""
-    return _open_tiff(path, _read_samples)
+def read_tiff(path: str | os.PathLike, volume_index: int | None = None) -> Volume:
+    """Read a TIFF stack, its spacing as the module notes say (OME, ImageJ, resolution tags).
+
+    ``volume_index``: which image of a file holding several (:func:`_choose_image`).
+    """
+    return _open_tiff(path, volume_index, _read_samples)
 
 
-def read_tiff_stack(path: str | os.PathLike) -> TiffStack:
+def read_tiff_stack(path: str | os.PathLike, volume_index: int | None = None) -> TiffStack:
     """The :class:`TiffStack` of the TIFF at ``path``, without its samples.
 
     The checks are :func:`read_tiff`'s, with its errors word for word (the
     block-wise reader refuses what the whole reader refuses).
     """
-    return _open_tiff(path, lambda tif, stack, where, records: stack)
+    return _open_tiff(path, volume_index, lambda tif, stack, where, records: stack)
 
 
-def _open_tiff(path, then):
+def _open_tiff(path, volume_index, then):
     """``then(tif, stack, where, records)`` on the open, checked TIFF at ``path``.
 
     tifffile's log records stay off stderr (judged by :func:`_check_tifffile_log`,
@@ -328,8 +382,9 @@ def _open_tiff(path, then):
             raise FormatError(f"{where}: not a readable TIFF ({_reason(exc)})") from None
         with tif:
             try:
-                return then(tif, _check_stack(tif, where, records), where, records)
-            except FormatError:
+                return then(tif, _check_stack(tif, where, records, volume_index), where,
+                            records)
+            except VolwarpError:  # (FormatError, and the usage errors of --volume-index)
                 raise
             except Exception as exc:  # tifffile raises many types for damaged files
                 raise FormatError(f"{where}: TIFF is damaged ({_reason(exc)})") from None
@@ -348,13 +403,14 @@ def unreadable_data(where: str, exc: Exception) -> FormatError:
     return FormatError(f"{where}: cannot read TIFF data ({_reason(exc)})")
 
 
-def _check_stack(tif, where: str, records) -> TiffStack:
+def _check_stack(tif, where: str, records, volume_index: int | None = None) -> TiffStack:
     """The stack of an open TIFF, or a FormatError for one volwarp does not read.
 
     Refused: a broken or looping list of pages, several samples a pixel, pages
     of different shapes or types, an ImageJ hyperstack's channels or frames,
-    an OME image's channels or time points, fewer pages than the metadata
-    declare.
+    an OME or tifffile image's channels or time points, several images without
+    ``volume_index``, several volumetric pages, fewer pages than the metadata
+    declare, an ImageJ value calibration other than a straight line.
     """
     pages = []
     seen: dict[int, int] = {}
@@ -377,15 +433,24 @@ def _check_stack(tif, where: str, records) -> TiffStack:
     _check_tifffile_log(records, where, len(pages))
     if len(pages) == 0:
         raise FormatError(f"{where}: TIFF has no pages")
-    first = pages[0]
+    if pages[0].samplesperpixel > 1:
+        raise FormatError(f"{where}: TIFF has {pages[0].samplesperpixel} samples per pixel; "
+                          "volwarp reads one-channel stacks")
+    image, indices = _choose_image(tif, len(pages), where, volume_index)
+    first = pages[indices[0]]
     shape0, dtype0 = first.shape, first.dtype
     if first.samplesperpixel > 1:
-        raise FormatError(f"{where}: TIFF has {first.samplesperpixel} samples per pixel; "
-                          "volwarp reads one-channel stacks")
-    for i, page in enumerate(pages):
+        raise FormatError(f"{where}: TIFF image {image} has {first.samplesperpixel} samples "
+                          "per pixel; volwarp reads one-channel stacks")
+    for i in indices:
+        page = pages[i]
         if page.shape != shape0 or page.dtype != dtype0:
             raise FormatError(f"{where}: page {i} has shape {page.shape} {page.dtype}, "
-                              f"page 0 has {shape0} {dtype0}; all slices must match")
+                              f"page {indices[0]} has {shape0} {dtype0}; all slices must match")
+    if first.imagedepth > 1 and len(indices) > 1:
+        raise FormatError(f"{where}: TIFF has {len(indices)} volumetric pages (of depth "
+                          f"{first.imagedepth}); volumetric TIFFs of more than one page are "
+                          "not supported")
     if dtype0 is None:
         raise FormatError(f"{where}: unsupported TIFF sample format")
     dtype = check_dtype(dtype0, where)
@@ -395,24 +460,25 @@ def _check_stack(tif, where: str, records) -> TiffStack:
             if int(ij.get(key, 1)) > 1:
                 raise FormatError(f"{where}: ImageJ hyperstack has {ij[key]} {key}; "
                                   "volwarp reads single-channel, single-frame stacks")
-    extra = _ome_extra_axes(tif)
-    if extra:
-        raise FormatError(f"{where}: OME-TIFF has {extra[1]} {extra[0]}; volwarp reads "
-                          "single-channel, single-time-point stacks")
     ny, nx = shape0[-2], shape0[-1]
-    nz = len(pages)
+    nz = len(indices) if first.imagedepth == 1 else first.imagedepth
     declared = _declared_pages(tif, pages, ij, where)
     planes_at = None
-    if declared is not None and declared[0] != nz:
+    if declared is not None and declared[0] != len(pages):
         count, source = declared
-        if ij and nz == 1 and count > 1 and _is_imagej_big_stack(tif, first, count):
+        npages = len(pages)
+        if ij and npages == 1 and count > 1 and _is_imagej_big_stack(tif, first, count):
             planes_at, nz = int(first.dataoffsets[0]), count  # ImageJ's stacks over 4 GiB
         else:
-            raise FormatError(f"{where}: TIFF has {nz} page{'s' if nz != 1 else ''} but its "
-                              f"{source} declares {count}: the file is truncated or damaged")
+            raise FormatError(f"{where}: TIFF has {npages} page{'s' if npages != 1 else ''} "
+                              f"but its {source} declares {count}: the file is truncated or "
+                              "damaged")
     shape = (nz, ny, nx)
-    return TiffStack(shape, dtype, dtype.newbyteorder(tif.byteorder),
-                     tiff_placement(tif, first, ij, shape, where), planes_at)
+    calibration = _imagej_calibration(ij, dtype, where)
+    out_dtype = dtype if calibration is None else calibrated_dtype(dtype, calibration)
+    return TiffStack(shape, out_dtype, dtype.newbyteorder(tif.byteorder),
+                     tiff_placement(tif, first, ij, shape, where, image), planes_at,
+                     tuple(indices), image, calibration)
 
 
 def _read_samples(tif, stack: TiffStack, where: str, records) -> Volume:
@@ -425,26 +491,28 @@ def _read_samples(tif, stack: TiffStack, where: str, records) -> Volume:
             tif.filehandle.seek(stack.planes_at)
             data = np.frombuffer(read_exact(tif.filehandle, nz * ny * nx * stack.dtype.itemsize,
                                             where), dtype=stack.file_dtype)
-        else:
-            data = tif.asarray(key=range(nz)) if nz > 1 else tif.pages.first.asarray()
+        elif len(stack.pages) > 1:
+            data = tif.asarray(key=list(stack.pages))
+        else:  # one plane, or one volumetric page of nz planes
+            data = tif.pages[stack.pages[0]].asarray()
     except FormatError:
         raise
     except Exception as exc:  # tifffile raises many types for damaged files
         raise unreadable_data(where, exc) from None
     _check_tifffile_log(records, where, nz)
-    data = np.asarray(data).reshape(nz, ny, nx)
-    return make_volume(where, native(data), **stack.placement)
+    data = calibrate(native(np.asarray(data).reshape(nz, ny, nx)), stack.calibration)
+    return make_volume(where, data, **stack.placement)
 
 
-def _ome_spacing(tif, where: str) -> list[float | None] | None:
-    """The OME ``PhysicalSizeX/Y/Z`` of the first image in mm, or None without OME metadata.
+def _ome_spacing(tif, where: str, image: int = 0) -> list[float | None] | None:
+    """The OME ``PhysicalSizeX/Y/Z`` of image ``image`` in mm, or None without OME metadata.
 
     An axis without a usable size is None.
     """
     ome = _ome_pixels(tif)
-    if ome is None or not ome[0]:
+    if ome is None or len(ome[0]) <= image:
         return None
-    pixels = ome[0][0]
+    pixels = ome[0][image]
     out: list[float | None] = []
     for axis in "XYZ":
         text = pixels.get(f"PhysicalSize{axis}")
@@ -492,10 +560,62 @@ def imagej_unit_mm(unit: str) -> float | None:
     return _OME_LENGTH_TO_MM.get(u, _IMAGEJ_UNITS_MM.get(u.lower()))
 
 
-def tiff_placement(tif, first, ij, shape_zyx, where: str) -> dict:
+#: ImageJ's value calibration functions (``ij.measure.Calibration``): a straight line, none
+_IJ_STRAIGHT_LINE, _IJ_NONE = 0, 20
+
+
+def _imagej_calibration(ij, dtype: np.dtype, where: str) -> tuple[float, float] | None:
+    """An ImageJ stack's value calibration ``(c0, c1)``, value = c0 + c1 x sample, or None.
+
+    Fiji saves a signed 16-bit stack as uint16 with ``cf=0 c0=-32768 c1=1``:
+    read raw, every value is 32768 too high. ImageJ drops the calibration of a
+    float32 stack (``Calibration.setImage``), and so does volwarp; a
+    calibration function other than a straight line is refused.
+    """
+    if not ij or "cf" not in ij or dtype.kind == "f":
+        return None
+    try:
+        cf = int(ij["cf"])
+        line = (float(ij["c0"]), float(ij["c1"])) if "c0" in ij and "c1" in ij else None
+    except (TypeError, ValueError):
+        raise FormatError(f"{where}: ImageJ value calibration (cf, c0, c1) is not a "
+                          "number") from None
+    if cf == _IJ_NONE or line is None:  # (ImageJ too keeps no function without coefficients)
+        return None
+    if cf != _IJ_STRAIGHT_LINE:
+        raise FormatError(f"{where}: ImageJ value calibration function {cf} is not a straight "
+                          "line (cf=0); volwarp applies straight-line calibrations only")
+    if str(ij.get("zeroclip", "false")).lower() == "true" or not np.all(np.isfinite(line)):
+        raise FormatError(f"{where}: ImageJ value calibration c0={line[0]:g} c1={line[1]:g} "
+                          f"zeroclip={ij.get('zeroclip', 'false')} cannot be applied")
+    return None if line == (0.0, 1.0) else line
+
+
+def calibrated_dtype(dtype: np.dtype, calibration: tuple[float, float]) -> np.dtype:
+    """The sample type of calibrated values: int16 for Fiji's signed 16-bit, else float32."""
+    if dtype == np.uint16 and calibration == (-32768.0, 1.0):
+        return np.dtype(np.int16)
+    return np.dtype(np.float32)
+
+
+def calibrate(samples: np.ndarray, calibration: tuple[float, float] | None) -> np.ndarray:
+    """``samples`` (the file's, native order) with an ImageJ straight line applied.
+
+    Element by element, so that a box read alone is the whole read's box.
+    """
+    if calibration is None:
+        return samples
+    c0, c1 = calibration
+    if calibrated_dtype(samples.dtype, calibration) == np.int16:  # exact
+        return (samples.astype(np.int32) - 32768).astype(np.int16)
+    return (c0 + c1 * samples.astype(np.float64)).astype(np.float32)
+
+
+def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dict:
     """The Volume keywords but ``data`` (spacing, origin, direction, space, meta) of a stack.
 
     ``shape_zyx``: the stack's shape; the placement is checked for it.
+    ``image``: which image (tifffile series) of the file the stack is.
     """
     meta: dict = {}
     spacing = [1.0, 1.0, 1.0]
@@ -515,17 +635,20 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str) -> dict:
             spacing[2] = _floats([ij["spacing"]], 1, where, "ImageJ spacing")[0]
             spacing[2] *= ij_scale or 1.0
             names[2] = "ImageJ spacing"
-    elif tif.shaped_metadata:
-        extra = tif.shaped_metadata[0]
+    elif tif.shaped_metadata and len(tif.shaped_metadata) > image:
+        extra = tif.shaped_metadata[image]
         if "unit" in extra:
             meta["unit"] = str(extra["unit"])
     scale = ij_scale or 1.0
     tags = first.tags
-    if not ij and "ResolutionUnit" in tags:
-        unit = {2: "inch", 3: "centimeter"}.get(int(tags["ResolutionUnit"].value))
-        if unit and "volwarp_spacing" not in extra:
-            scale = _UNIT_TO_MM[unit]
+    if not ij and "ResolutionUnit" in tags and "volwarp_spacing" not in extra:
+        code = int(tags["ResolutionUnit"].value)
+        if code in _RESUNIT_MM:
+            scale = _RESUNIT_MM[code][1]
             meta["unit"] = "mm"
+        elif code != 1:  # 1: no unit, the numbers as they are
+            log.warning("%s: TIFF ResolutionUnit %d is no known unit: x and y spacing are "
+                        "1 / resolution, in no unit", where, code)
     for axis, tag in ((0, "XResolution"), (1, "YResolution")):
         if tag in tags:
             num, den = tags[tag].value
@@ -537,7 +660,7 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str) -> dict:
     elif "spacing" in extra and not ij and not isinstance(extra["spacing"], (int, float)):
         spacing = _floats(extra["spacing"], 3, where, "spacing")
         names = ["spacing"] * 3
-    ome = _ome_spacing(tif, where) if "volwarp_spacing" not in extra else None
+    ome = _ome_spacing(tif, where, image) if "volwarp_spacing" not in extra else None
     if ome and any(v is not None for v in ome):
         for axis, value in enumerate(ome):
             if value is not None:
