@@ -313,22 +313,22 @@ def inputs(tmp_path_factory):
     lab[5:25, 4:24, 26:] = 300  # on the border: capped
     lab[3:9, 30:38, 4:11] = -2
     write_volume(Volume(lab, **geom), folder / "seg.nrrd")
-    for name, (dtype, peak, floor) in WIDE_INTEGERS.items():
-        write_volume(Volume(wide_blob(dtype, peak, floor), **geom), folder / name)
+    for name, (dtype, _) in WIDE_INTEGERS.items():
+        write_volume(Volume(wide_ball(dtype), **geom), folder / name)
     return folder
 
 
 #: 32-bit integer volumes and their levels: VTK's s1 - s0 wrapped in these types (uint32
 #: on every falling edge; int32 where neighbours differ by more than 2^31)
-WIDE_INTEGERS = {"u32.nrrd": ("uint32", 1000, 0), "i32.nrrd": ("int32", 3.0e9, -1.5e9)}
-WIDE_LEVELS = {"u32.nrrd": 100.5, "i32.nrrd": 0.5}
+WIDE_INTEGERS = {"u32.nrrd": ("uint32", 100.5), "i32.nrrd": ("int32", 0.5)}
 
 
-def wide_blob(dtype, peak, floor):
-    """A Gaussian blob of integers from ``floor`` to ``floor + peak`` on :data:`SHAPE`."""
+def wide_ball(dtype):
+    """A ball on :data:`SHAPE`: uint32 a Gaussian from 0 to 1000, int32 a step of 4.2e9."""
     k, j, i = np.indices(SHAPE, dtype=np.float64)
-    g = np.exp(-((i - 17.3) ** 2 + (j - 19.6) ** 2 + (k - 13.2) ** 2) / 60)
-    return np.round(peak * g + floor).astype(dtype)
+    r = np.sqrt((i - 17.3) ** 2 + (j - 19.6) ** 2 + (k - 13.2) ** 2)
+    f = 1000 * np.exp(-r * r / 60) if dtype == "uint32" else 2.1e9 * np.tanh(3 * (9 - r))
+    return np.round(f).astype(dtype)
 
 
 CASES = {
@@ -408,7 +408,7 @@ def test_32_bit_integers_by_blocks_are_the_in_memory_file_and_skimages(run, inpu
 
     from skimage.measure import marching_cubes
 
-    level = WIDE_LEVELS[source]
+    dtype, level = WIDE_INTEGERS[source]
     outs = {"m": [], "t": ["--chunked", "--block", "7,9,5", "--threads", "2"],
             "p": ["--chunked", "--block", "9", "--scheduler", "processes"]}
     stats = {}
@@ -420,7 +420,7 @@ def test_32_bit_integers_by_blocks_are_the_in_memory_file_and_skimages(run, inpu
     data = (tmp_path / "m.ply").read_bytes()
     assert all((tmp_path / f"{key}.ply").read_bytes() == data for key in "tp")
     spacing = (1.7, 1.1, 0.8)  # the inputs' (z, y, x); a rotation keeps areas and volumes
-    verts, faces, _, _ = marching_cubes(wide_blob(*WIDE_INTEGERS[source]).astype(np.float64),
+    verts, faces, _, _ = marching_cubes(wide_ball(dtype).astype(np.float64),
                                         level, spacing=spacing)
     tri = verts[faces]
     area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
