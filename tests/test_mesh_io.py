@@ -142,6 +142,39 @@ def test_empty_mesh_is_a_valid_file(tmp_path, fmt):
         assert all(line.startswith(b"#") for line in path.read_bytes().splitlines())
 
 
+def test_empty_legacy_vtk_is_what_vtks_writer_writes(tmp_path):
+    """vtkPolyDataReader reads an empty mesh's .vtk without an error event (``POLYGONS 0 0``
+    was "Error reading polygons", and 3D Slicer refused the file), and every line after
+    the title is vtkPolyDataWriter's for an empty polydata (file version 4.2)."""
+    from vtkmodules.vtkCommonCore import vtkFloatArray, vtkPoints
+    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+    from vtkmodules.vtkIOLegacy import vtkPolyDataReader, vtkPolyDataWriter
+
+    path = tmp_path / "empty.vtk"
+    write_mesh(Mesh.empty(), path)  # (with its empty normals)
+    reader = vtkPolyDataReader()
+    reader.SetFileName(str(path))
+    errors = []
+    reader.AddObserver("ErrorEvent", lambda obj, event: errors.append(event))
+    reader.Update()
+    assert errors == []
+    assert reader.GetOutput().GetNumberOfPoints() == 0
+    empty = vtkPolyData()
+    empty.SetPoints(vtkPoints())
+    empty.SetPolys(vtkCellArray())
+    normals = vtkFloatArray()
+    normals.SetNumberOfComponents(3)
+    empty.GetPointData().SetNormals(normals)
+    writer = vtkPolyDataWriter()
+    writer.SetInputData(empty)
+    writer.SetFileTypeToBinary()
+    writer.SetFileVersion(42)
+    writer.WriteToOutputStringOn()
+    writer.Write()
+    theirs = writer.GetOutputStdString().encode("ascii").split(b"\n")
+    assert path.read_bytes().split(b"\n")[2:] == theirs[2:]
+
+
 def test_binary_sizes(blob, tmp_path):
     """Binary encodings: sizes are exactly header + records."""
     write_mesh(blob, tmp_path / "m.ply")

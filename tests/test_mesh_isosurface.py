@@ -188,3 +188,56 @@ def test_agrees_with_skimage_marching_cubes():
         float(np.linalg.norm(np.cross(verts[faces[:, 1]] - verts[faces[:, 0]],
                                       verts[faces[:, 2]] - verts[faces[:, 0]]),
                              axis=1).sum() / 2), rel=0.02)
+
+
+def _ball(dtype):
+    """A ball of 32-bit integers on whose falling edges VTK's ``s1 - s0`` wrapped.
+
+    uint32: a Gaussian from 0 to 1000 (every falling edge wrapped); int32: a
+    steep step from -2.1e9 to 2.1e9 (neighbours across it more than 2^31 apart).
+    """
+    z, y, x = np.mgrid[:24, :26, :28]
+    r = np.sqrt((x - 13.3) ** 2 + (y - 12.6) ** 2 + (z - 11.2) ** 2)
+    f = 1000 * np.exp(-r * r / 40) if dtype == "uint32" else 2.1e9 * np.tanh(3 * (7 - r))
+    return np.round(f).astype(dtype)
+
+
+@pytest.mark.parametrize("dtype,level", [("uint32", 100.5), ("int32", 0.5)])
+def test_32_bit_integers_agree_with_skimage_marching_cubes(dtype, level):
+    """Every vertex where the edge's linear interpolation equals the level, in memory and by
+    blocks (the same bits), and scikit-image's area, volume and bounds."""
+    from skimage.measure import marching_cubes
+
+    from volwarp_cli.surface.chunked import isosurface_blocks
+    from volwarp_cli.surface.isosurface import crossing_edges
+
+    data = _ball(dtype)
+    vol = Volume(data)  # index = world: the vertices are (i, j, k)
+    mesh = isosurface(vol, level)
+    blocked = isosurface_blocks(data, vol, level, block_shape=(7, 9, 5), normals=True,
+                                threads=2)
+    for a, b in ((mesh.vertices, blocked.vertices), (mesh.faces, blocked.faces),
+                 (mesh.normals, blocked.normals)):
+        assert a.dtype == b.dtype and np.array_equal(a.view(np.uint8), b.view(np.uint8))
+    # the whole volume's vertices are its crossed edges', in order: each at the exact t
+    lower, axis = crossing_edges(data, level)
+    assert len(lower) == mesh.n_vertices
+    rows = np.arange(len(lower))
+    upper = lower.copy()
+    upper[rows, axis] += 1
+    s0 = data[lower[:, 2], lower[:, 1], lower[:, 0]].astype(np.float64)
+    s1 = data[upper[:, 2], upper[:, 1], upper[:, 0]].astype(np.float64)
+    exact = lower.astype(np.float64)
+    exact[rows, axis] += (level - s0) / (s1 - s0)
+    assert np.abs(mesh.vertices - exact).max() < 1e-5
+    verts, faces, _, _ = marching_cubes(data.astype(np.float64), level)
+    verts = verts[:, ::-1]  # (z, y, x) -> (x, y, z)
+    tri = verts[faces]
+    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    inside = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))
+    stats = mesh_stats(mesh)
+    assert stats["closed"]
+    assert stats["area"] == pytest.approx(area.sum() / 2, rel=1e-6)
+    assert stats["volume"] == pytest.approx(abs(inside.sum()) / 6, rel=1e-6)
+    assert np.allclose(mesh.vertices.min(axis=0), verts.min(axis=0), atol=1e-4)
+    assert np.allclose(mesh.vertices.max(axis=0), verts.max(axis=0), atol=1e-4)

@@ -166,6 +166,13 @@ def test_memory_is_the_volumes_side_and_blocks_are_slabs():
     assert capped.memory(whole) == whole.size * (1 + 4 + 4)  # the padded float32 copy
     assert labels.memory(whole) == whole.size * (1 + 5 + 4 + 4)
     assert in_memory.memory(whole) == whole.size * 4
+    # 32-bit integers run as float64 (VTK's s1 - s0 would wrap in their own type): the
+    # widened copy is 8 bytes a voxel, beside the samples read
+    wide = Header((40, 30, 20), np.uint32)
+    lazy_wide = type("LazyWide", (Lazy,), {"dtype": np.dtype(np.uint32)})()
+    assert MeshOperation(wide, lazy_wide, Level(1.0)).memory(whole) == whole.size * (4 + 8 + 4)
+    assert MeshOperation(wide, np.zeros(box, np.uint32), Level(1.0)).memory(whole) == \
+        whole.size * (8 + 4)
     per_plane = 30 * 20 * (1 + 4 + 32)
     assert plain.block_shape(10 * per_plane, 2) == (10, 30, 20)
     assert plain.block_shape(per_plane, 2) == (8, 30, 20)  # 8 planes at least

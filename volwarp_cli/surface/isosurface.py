@@ -47,23 +47,38 @@ def cap_value(lo: float, hi: float, iso: float, inside: str) -> float:
     return hi if hi >= iso else iso + 1.0
 
 
+def _wraps(dtype: np.dtype) -> bool:
+    """Whether VTK's ``s1 - s0`` can wrap in this sample type (32- and 64-bit integers).
+
+    Flying edges takes an edge's difference in the sample type: C promotes 8-
+    and 16-bit integers to int, where it is exact; unsigned 32- and 64-bit
+    ones wrap on every falling edge, signed ones when neighbours differ by
+    more than the type's half range.
+    """
+    return dtype.kind in "iu" and dtype.itemsize >= 4
+
+
 def cap_dtype(dtype) -> np.dtype:
     """The sample type of the padded volume ``--cap`` contours (float32 or float64)."""
     dtype = np.dtype(dtype)
-    wide = dtype == np.float64 or (dtype.itemsize >= 4 and dtype.kind in "iu")
+    wide = dtype == np.float64 or _wraps(dtype)
     return np.dtype(np.float64 if wide else np.float32)
 
 
 def work_dtype(dtype, cap: bool = False) -> np.dtype:
     """The sample type flying edges runs on: native byte order, float16 widened.
 
-    With ``cap``, :func:`cap_dtype`. A blocked run converts every block to it,
-    so that VTK's arithmetic (which is done in the sample type) is the whole's.
+    32- and 64-bit integers run as float64 (:func:`_wraps`; exact to 2^53,
+    and VTK compares any sample to the level in double anyway). With ``cap``,
+    :func:`cap_dtype`. A blocked run converts every block to it, so that
+    VTK's arithmetic (which is done in the sample type) is the whole's.
     """
     dtype = np.dtype(dtype)
     if cap:
         return cap_dtype(dtype)
     dtype = dtype.newbyteorder("=")
+    if _wraps(dtype):
+        return np.dtype(np.float64)
     return np.dtype(np.float32) if dtype == np.float16 else dtype
 
 
@@ -181,12 +196,14 @@ def _checked_edges(data: np.ndarray, level: float, points: np.ndarray):
 
 
 def _sample_diff(s1: np.ndarray, s0: np.ndarray) -> np.ndarray:
-    """``s1 - s0`` as VTK's flying edges computes it, in C arithmetic on the sample type."""
-    if s0.dtype.kind in "iu" and s0.dtype.itemsize < 4:  # C promotes to int
-        s0 = s0.astype(np.int32)
-        s1 = s1.astype(np.int32)
-    with np.errstate(over="ignore"):
-        return (s1 - s0).astype(np.float64)
+    """``s1 - s0`` as VTK's flying edges computes it, in C arithmetic on the sample type.
+
+    Integers reach VTK only as types C promotes to int (:func:`work_dtype`):
+    their difference is exact. Floats: rounded in the sample type.
+    """
+    if s0.dtype.kind in "iu":
+        return s1.astype(np.float64) - s0.astype(np.float64)
+    return (s1 - s0).astype(np.float64)
 
 
 def edge_points(lower: np.ndarray, axis: np.ndarray, s0: np.ndarray, s1: np.ndarray,

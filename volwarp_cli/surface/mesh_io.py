@@ -241,20 +241,27 @@ def _write_vtp(mesh: Mesh, fh, notes: list[str]) -> None:
 
 # -- legacy VTK ------------------------------------------------------------------
 def _write_vtk(mesh: Mesh, fh) -> None:
+    """Legacy VTK, sections laid out as vtkPolyDataWriter (file version 4.2) lays them out.
+
+    As that writer does, an empty section is left out: vtkPolyDataReader
+    reports ``POLYGONS 0 0`` as an error ("Error reading polygons").
+    """
     fh.write(f"# vtk DataFile Version 4.2\nvolwarp mesh {SPACE_MARK}\nBINARY\n"
              "DATASET POLYDATA\n".encode("ascii"))
     fh.write(f"POINTS {mesh.n_vertices} float\n".encode("ascii"))
     _write_blocks(fh, mesh.n_vertices, np.dtype((">f4", (3,))),
                   lambda buf, a, b: buf.__setitem__(slice(None), mesh.vertices[a:b]))
-    fh.write(f"\nPOLYGONS {mesh.n_faces} {4 * mesh.n_faces}\n".encode("ascii"))
-
-    def cells(buf, a, b):
-        buf[:, 0] = 3
-        buf[:, 1:] = mesh.faces[a:b]
-
-    _write_blocks(fh, mesh.n_faces, np.dtype((">i4", (4,))), cells)
     fh.write(b"\n")
-    if mesh.normals is not None:
+    if mesh.n_faces:
+        fh.write(f"POLYGONS {mesh.n_faces} {4 * mesh.n_faces}\n".encode("ascii"))
+
+        def cells(buf, a, b):
+            buf[:, 0] = 3
+            buf[:, 1:] = mesh.faces[a:b]
+
+        _write_blocks(fh, mesh.n_faces, np.dtype((">i4", (4,))), cells)
+        fh.write(b"\n")
+    if mesh.normals is not None and mesh.n_vertices:
         fh.write(f"POINT_DATA {mesh.n_vertices}\nNORMALS Normals float\n".encode("ascii"))
         _write_blocks(fh, mesh.n_vertices, np.dtype((">f4", (3,))),
                       lambda buf, a, b: buf.__setitem__(slice(None), mesh.normals[a:b]))

@@ -165,8 +165,9 @@ class MeshOperation(Reduction):
         """The bytes of a block of ``box`` samples, its part of the mesh aside.
 
         The samples read (none for an input already in memory), a label's
-        indicator, the copy flying edges runs on (converted, or padded for
-        ``cap``) and flying edges' working memory.
+        indicator, the copy flying edges runs on (converted: 32- and 64-bit
+        integers widen to 8 bytes a voxel; or padded for ``cap``) and flying
+        edges' working memory.
         """
         per_voxel = 0 if isinstance(self.source, np.ndarray) else self.dtype.itemsize
         dtype = self.dtype
