@@ -162,3 +162,35 @@ def test_bad_mesh_and_usage_errors(run, setup, tmp_path):
         res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", *args)
         assert res.code == 2, (args, res.stderr)
         assert not (tmp_path / "o.nrrd").exists()
+
+
+def test_a_mirroring_lattice_keeps_the_exported_meshs_faces_outward(run, tmp_path):
+    """Every control point moved to its mirror image across x = c: the B-spline map is the
+    mirror (an affine lattice reproduces an affine map), which turned a moved mesh inside
+    out (its volume negative, every normal inward). The faces are turned back."""
+    from volwarp_cli.bspline.lattice import Lattice
+    from volwarp_cli.surface.isosurface import isosurface
+    from volwarp_cli.surface.mesh_io import read_mesh, write_mesh
+
+    z, y, x = np.mgrid[:20, :22, :24]
+    vol = Volume((((x - 9) ** 2 + (y - 11) ** 2 + (z - 10) ** 2) < 25).astype(np.float32))
+    write_volume(vol, tmp_path / "in.nrrd")
+    mesh = isosurface(vol, 0.5)
+    write_mesh(mesh, tmp_path / "m.ply")
+    uni = Lattice.create(vol.shape_xyz, (5, 5, 5), 1).uniform_positions()
+    moves = [f"      - {{index: [{i}, {j}, {k}], by: [{2 * (11.5 - uni[k, j, i, 0]):.6f}, 0, 0]}}"
+             for k in range(5) for j in range(5) for i in range(5)]
+    (tmp_path / "mirror.yaml").write_text(
+        "version: 1\nunits: voxel\ncapture: {lattice: 5, oversample: 1}\nsteps:\n  - move:\n"
+        + "\n".join(moves) + "\n")
+    res = run("warp", tmp_path / "in.nrrd", "--spec", tmp_path / "mirror.yaml", "-o",
+              tmp_path / "o.nrrd", "--mesh-in", tmp_path / "m.ply", "--mesh-to",
+              tmp_path / "m2.ply", "--values", "intensity")
+    assert res.code == 0, res.stderr
+    out = read_mesh(tmp_path / "m2.ply")
+    assert np.allclose(out.vertices[:, 0], 23.0 - mesh.vertices[:, 0], atol=1e-3)  # mirrored
+    assert np.array_equal(out.faces, mesh.faces[:, ::-1])
+    v = out.vertices[out.faces]
+    assert np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() > 0
+    centre = out.vertices.mean(axis=0)
+    assert (np.einsum("ij,ij->i", out.normals, out.vertices - centre) > 0).mean() > 0.99

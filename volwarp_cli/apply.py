@@ -631,57 +631,26 @@ def move_points(chain: Chain, points, path) -> None:
 
 
 def move_mesh(chain: Chain, mesh, source, path) -> None:
-    """Write ``mesh`` with its vertices moved by ``T^-1`` (normals recomputed).
+    """Write ``mesh`` with its vertices moved by ``T^-1``, its faces kept outward.
 
-    A chain that mirrors (its Jacobian determinant negative: a left-right flip
-    onto an atlas) turns every triangle inside out: the faces are then turned
-    back, so that they stay counter-clockwise seen from outside (a mirrored
-    mesh came out with its volume negative and every normal inward).
+    (:func:`~volwarp_cli.surface.mesh.moved`: a chain that mirrors turns them
+    back; its orientation is a linear chain's determinant's, else the
+    Jacobian's at the moved points.)
     """
-    from .progress import log, timed
-    from .surface.mesh import Mesh
+    from .progress import timed
+    from .surface.mesh import map_orientation, moved
     from .surface.mesh_io import write_mesh
 
     with timed(f"invert the chain at {len(mesh.vertices)} vertices"):
         inv = chain.invert_points(mesh.vertices)
     _report(source, inv)
-    faces = mesh.faces
-    sign = _orientation(chain, inv.points[np.all(np.isfinite(inv.points), axis=1)])
-    if sign < 0:
-        faces = faces[:, ::-1]
-        log.info("%s: the chain mirrors: its faces turned back to face outward", source)
-    elif sign == 0:
-        log.warning("warning: %s: the chain mirrors in part of the mesh only (it folds "
-                    "there): triangles there are inside out", source)
-    with timed(f"write {path}"):
-        write_mesh(Mesh(inv.points, np.ascontiguousarray(faces)).with_normals(), path,
-                   comments={"volwarp_command": "apply"})
-
-
-#: mesh points at which a non-linear chain's orientation is looked at
-ORIENTATION_SAMPLES = 64
-
-
-def _orientation(chain: Chain, points: np.ndarray) -> int:
-    """1 where ``chain`` keeps orientation at ``points``, -1 where it mirrors, 0 if both.
-
-    A linear chain: its matrix's determinant. Otherwise the Jacobian's, by
-    central differences (a thousandth of the points' extent), at up to
-    :data:`ORIENTATION_SAMPLES` of them.
-    """
     if chain.linear:
-        return 1 if np.linalg.det(chain.affine().matrix) >= 0 else -1
-    if len(points) == 0:
-        return 1
-    at = points[np.linspace(0, len(points) - 1, min(len(points), ORIENTATION_SAMPLES))
-                .astype(int)]
-    h = max(1e-3 * float(np.ptp(points, axis=0).max()), 1e-3)
-    cols = [(chain.map(at + h * e) - chain.map(at - h * e)) / (2 * h) for e in np.eye(3)]
-    det = np.linalg.det(np.stack(cols, axis=-1))
-    det = det[np.isfinite(det)]
-    if det.size == 0 or (det > 0).all():
-        return 1
-    return -1 if (det < 0).all() else 0
+        sign = 1 if np.linalg.det(chain.affine().matrix) >= 0 else -1
+    else:
+        sign = map_orientation(chain.map, inv.points)
+    with timed(f"write {path}"):
+        write_mesh(moved(mesh, inv.points, sign, source), path,
+                   comments={"volwarp_command": "apply"})
 
 
 def _report(what, inv) -> None:

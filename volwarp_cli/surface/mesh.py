@@ -93,6 +93,53 @@ class Mesh:
         return n
 
 
+#: points of a mesh at which a map's orientation is looked at
+ORIENTATION_SAMPLES = 64
+
+
+def map_orientation(fn, points: np.ndarray) -> int:
+    """1 where the map ``fn`` keeps orientation at ``points``, -1 where it mirrors, 0 if both.
+
+    ``fn``: points (N, 3) to their images (N, 3). Its Jacobian's determinant
+    by central differences (a thousandth of the points' extent), at up to
+    :data:`ORIENTATION_SAMPLES` of the finite ``points``.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if len(points) == 0:
+        return 1
+    at = points[np.linspace(0, len(points) - 1, min(len(points), ORIENTATION_SAMPLES))
+                .astype(int)]
+    h = max(1e-3 * float(np.ptp(points, axis=0).max()), 1e-3)
+    cols = [(fn(at + h * e) - fn(at - h * e)) / (2 * h) for e in np.eye(3)]
+    det = np.linalg.det(np.stack(cols, axis=-1))
+    det = det[np.isfinite(det)]
+    if det.size == 0 or (det > 0).all():
+        return 1
+    return -1 if (det < 0).all() else 0
+
+
+def moved(mesh: Mesh, vertices: np.ndarray, orientation: int, what: str) -> Mesh:
+    """``mesh`` with its vertices moved to ``vertices`` by a map of ``orientation``.
+
+    A map that mirrors (-1: a left-right flip onto an atlas) turns every
+    triangle inside out: the faces are turned back, so that they stay
+    counter-clockwise seen from outside (a mirrored mesh came out with its
+    volume negative and every normal inward). A map that mirrors in part only
+    (0: it folds) is warned about. Normals recomputed.
+    """
+    from ..progress import log
+
+    faces = mesh.faces
+    if orientation < 0:
+        faces = np.ascontiguousarray(faces[:, ::-1])
+        log.info("%s: the map mirrors: its faces turned back to face outward", what)
+    elif orientation == 0:
+        log.warning("warning: %s: the map mirrors in part of the mesh only (it folds there): "
+                    "triangles there are inside out", what)
+    return Mesh(vertices, faces).with_normals()
+
+
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals, (N, 3) float32.
 

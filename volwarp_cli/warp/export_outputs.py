@@ -272,13 +272,15 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
             write_points(pf, moved, path)
         stats["points"] = {"path": str(path), "count": len(inside), "outside": outside}
     if requests.mesh is not None:
-        from ..surface.mesh import Mesh
+        from ..surface.mesh import map_orientation
+        from ..surface.mesh import moved as moved_mesh
         from ..surface.mesh_io import write_mesh
 
         mesh, src, path = requests.mesh
-        moved, inside = fmap.map_world(mesh.vertices)
+        points, inside = fmap.map_world(mesh.vertices)
         outside = report_outside(src, inside, fmap)
-        out = Mesh(moved, mesh.faces).with_normals()
+        sign = map_orientation(lambda p: fmap.map_world(p)[0], mesh.vertices[inside])
+        out = moved_mesh(mesh, points, sign, src)
         with timed(f"write {path}"):
             write_mesh(out, path, comments={**mesh_meta, "volwarp_field": "forward"})
         stats["mesh"] = {"path": str(path), "count": len(inside), "outside": outside}
