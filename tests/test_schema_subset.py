@@ -24,8 +24,10 @@ ROOT = Path(__file__).resolve().parent.parent
 SCHEMAS = {p.name.split(".")[0]: json.loads(p.read_text())
            for p in sorted((ROOT / "volwarp_cli" / "schemas").glob("*.schema.json"))}
 VALIDATORS = {kind: jsonschema.Draft202012Validator(s) for kind, s in SCHEMAS.items()}
+#: (not the examples' outputs: `make examples` copies sweep specs into their out/ folders)
 SPEC_FILES = sorted(p for folder in ("specs", "examples") for ext in ("yaml", "yml")
-                    for p in (ROOT / folder).rglob(f"*.{ext}"))
+                    for p in (ROOT / folder).rglob(f"*.{ext}")
+                    if "out" not in p.relative_to(ROOT).parts)
 SPECS = {str(p.relative_to(ROOT)): parse_spec_text(p.read_text(), file=str(p)).data
          for p in SPEC_FILES}
 

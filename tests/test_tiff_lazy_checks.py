@@ -163,3 +163,22 @@ def test_a_truncated_tiff_says_one_line_on_every_command_path(tmp_path):
             assert proc.stderr.startswith("volwarp: error: cut.tif: TIFF is truncated")
             lines.add(proc.stderr)
         assert len(lines) == 1, lines
+
+
+def test_a_damaged_tiff_read_by_box_leaves_no_file_open(refused):
+    """A failed read through tifffile's zarr store left the files it had opened open,
+    held by the failure's traceback until a garbage collection (whose ResourceWarning
+    then failed whatever test ran next); they are closed as the failure is raised."""
+    import os
+
+    folder, _ = refused
+    path = folder / "bad.tif"
+
+    def open_on_it():
+        fds = os.listdir("/proc/self/fd")
+        return [fd for fd in fds if os.path.realpath(f"/proc/self/fd/{fd}") == str(path)]
+
+    header, samples = open_volume_lazy(path, require_lazy=True)
+    with pytest.raises(FormatError, match="cannot read TIFF data"):
+        np.asarray(samples[...])
+    assert open_on_it() == []

@@ -561,12 +561,19 @@ class _ZarrView:
             else:
                 forward.append(k)
             axis += isinstance(k, slice)
+        failure = None
         try:
             out = np.asarray(self._arr[tuple(forward)])
         except Exception as exc:  # tifffile raises many types for damaged files
             from .tiff import unreadable_data
 
-            raise unreadable_data(self._where, exc) from None
+            failure = unreadable_data(self._where, exc)
+        if failure is not None:
+            # (raised here, not in the handler: tifffile's failure, whose traceback holds the
+            # files its store opened, is not kept as the context; those files are closed
+            # now, not at a garbage collection in whatever ran next)
+            self.close()
+            raise failure
         return np.flip(out, axis=tuple(flips)) if flips else out
 
     def __array__(self, dtype=None, copy=None):
