@@ -1,12 +1,14 @@
-"""Stopping on SIGINT / SIGTERM (and SIGHUP, SIGQUIT): the stop is recorded, raised, checked again.
+"""Stopping on SIGINT, SIGTERM, SIGHUP, SIGQUIT: the stop is recorded, raised, checked again.
 
 A cron job or Make that kills a run must be able to rely on exit 130 / 143
 and on its old outputs; a job left in the foreground of an ssh session that
 closes gets SIGHUP (129), and it left its temporary output behind (a hidden
 256 MB file). SIGHUP and SIGQUIT are stops unless the process started with
-them ignored (``nohup`` ignores SIGHUP: such a job goes on). Raising from the handler alone is not enough: a
-library's ``except Exception`` (nibabel's optional imports, a reader's
-catch-all turning any failure into "file damaged") or a callback from C
+them ignored (``nohup`` ignores SIGHUP: such a job goes on).
+
+Raising from the handler alone is not enough: a library's ``except
+Exception`` (nibabel's optional imports, a reader's catch-all turning any
+failure into "file damaged") or a callback from C
 (llvmlite's, through ctypes) can swallow the exception, and the run would go
 on to rename its output into place and exit 0. So the handler
 
@@ -34,6 +36,7 @@ import threading
 
 #: paths of temporary outputs not yet renamed into place (removed on a stop)
 temporaries: set[str] = set()
+_stop: list[int] = []  # the first stop's signal number, once one is asked
 #: the signals that stop a run (SIGHUP and SIGQUIT where not ignored: :func:`stops`)
 STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
 _HELD = frozenset(STOPS) | {signal.SIGALRM}  # (what blocked() and settle() hold back)
@@ -43,11 +46,10 @@ def stops() -> tuple:
     """The stop signals this process takes: SIGINT, SIGTERM, and the others not ignored."""
     return tuple(s for s in STOPS if s in (signal.SIGINT, signal.SIGTERM)
                  or signal.getsignal(s) is not signal.SIG_IGN)
-_stop: list[int] = []  # the first stop's signal number, once one is asked
 
 
 class Interrupted(BaseException):
-    """Raised inside the work when a stop (SIGINT, SIGTERM, ...) arrives (or at a later safe point)."""
+    """Raised inside the work when a stop (SIGINT, SIGTERM, ...) arrives, or at a safe point."""
 
     def __init__(self, signum: int):
         self.signum = signum

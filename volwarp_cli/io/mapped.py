@@ -6,7 +6,8 @@ rewritten in place meanwhile (``dd conv=notrunc``, a program saving over it),
 the work reads a mix of the two, and a run by blocks wrote such a mix with
 exit 0. :func:`watch` records such a file's identity; :func:`check_unchanged`,
 called before every output's rename, refuses to rename an output made from
-an input that changed (size, modification time, inode) while it was read. A mapped file (:func:`guard`) also gets a SIGBUS handler (in C,
+an input that changed (size, modification time, inode) while it was read.
+A mapped file (:func:`guard`) also gets a SIGBUS handler (in C,
 ``_mapguard``: it removes the temporary outputs, writes one line and exits
 1): if it is truncated while mapped (``cp new.nrrd in.nrrd`` truncates
 first), a read past the new end raises SIGBUS.
