@@ -64,7 +64,7 @@ def _added(name: str) -> str:
 def test_each_librarys_count_holds_what_its_import_adds():
     """Every entry at least what the library adds in a fresh process (numba with its first
     kernels), so that a refusal's arithmetic is an upper bound; and a large one is not
-    counted as a trifle (numba's 116 MiB measured: the test would see an import that
+    counted as a trifle (numba's 117-158 MiB measured: the test would see an import that
     no longer loads anything)."""
     names = sorted(LIBRARY_BYTES)
     with ThreadPoolExecutor(2) as pool:
@@ -110,7 +110,7 @@ def smooth16(tmp_path):
 def test_a_command_whose_libraries_cannot_fit_is_refused_before_loading_them(tmp_path,
                                                                               smooth16):
     """A 16^3 sub-voxel distance under 100M: its field is 100 KiB, but numba and LLVM take
-    about 116 MiB. It loaded them (146 MiB held) and only then was refused; now the
+    117-158 MiB. It loaded them (146 MiB held) and only then was refused; now the
     import is refused first, naming numba and the limit, the process within the limit
     and nothing written. With room for them (300M) the same command runs."""
     out = tmp_path / "d.nrrd"
