@@ -517,9 +517,12 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
         _check_label_output(sampling, dtype, out_dtype, name)
     out = header.replace(shape=grid.shape, dtype=out_dtype, spacing=np.array(grid.spacing),
                          origin=np.array(grid.origin), direction=np.array(grid.direction))
+    # (the choice goes with the output: its pyramid's levels then take a label map's mode,
+    # where the writer's own rule, on the resampled samples alone, took the mean)
+    labels = True if sampling.choice.is_labels else "auto"
     return ApplyOperation(source, in_grid, chain, grid, interpolation=sampling.interpolation,
                           background=sampling.background,
-                          target=Target(None, out, out_dtype), name=name)
+                          target=Target(None, out, out_dtype, labels=labels), name=name)
 
 
 def _holds(dtype, value: float) -> bool:

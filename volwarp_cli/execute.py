@@ -73,6 +73,9 @@ class Target:
     version: str = "0.5"
     pyramid: int = 0
     components: tuple[str, ...] | None = None
+    #: the samples are a label map (True), not one (False), or the writer's rule
+    #: decides ("auto"): an OME-Zarr pyramid's levels take the mode of a label map
+    labels: object = "auto"
 
     def write_whole(self, data: np.ndarray) -> None:
         """Write the whole output's ``data`` (the in-memory run), in any format."""
@@ -88,7 +91,7 @@ class Target:
             return
         write_volume(self.header.with_data(data), self.path, compress=self.compress,
                      byte_order=self.byte_order, ome_zarr_version=self.version,
-                     pyramid=self.pyramid)
+                     pyramid=self.pyramid, labels=self.labels)
 
     def open_blocks(self, block):
         """The :class:`~volwarp_cli.io.blockwrite.BlockOutput` written block by block.
@@ -101,7 +104,8 @@ class Target:
         out = open_block_output(self.path, self.header, dtype=self.dtype, chunks_zyx=block,
                                 version=self.version, compress=self.compress,
                                 byte_order=self.byte_order, pyramid=self.pyramid,
-                                components=list(self.components) if self.components else None)
+                                components=list(self.components) if self.components else None,
+                                labels=self.labels)
         return committed(out)
 
     def nbytes(self, shape) -> int:

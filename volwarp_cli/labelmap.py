@@ -153,17 +153,28 @@ VALUES = ("intensity", "labels")
 _SEGMENTATIONS = {"SEG": "a DICOM SEG", "RTSTRUCT": "a DICOM RTSTRUCT"}
 
 
-def segmentation_of(meta) -> str | None:
-    """``"a DICOM SEG"`` (or RTSTRUCT) for a volume read from one (its key/values), else None.
+#: a NIfTI's intent code for a label map (NIFTI_INTENT_LABEL)
+NIFTI_INTENT_LABEL = 1002
 
-    Such a volume is a label map whatever its samples look like: the rule
-    below looks at its neighbours, and a SEG of single-voxel segments (or
-    thin contours) fails its region test, so a warp blended its ids and
-    ``convert --dtype uint8`` merged ids 300 and 1000 into 255. The key stays
-    with the map through volwarp's outputs (a NRRD converted from a SEG).
+
+def segmentation_of(meta) -> str | None:
+    """What says a volume is a label map by its key/values (a DICOM SEG, ...), else None.
+
+    A DICOM SEG or RTSTRUCT, and a NIfTI whose intent is NIFTI_INTENT_LABEL
+    (the file itself says it holds labels): such a volume is a label map
+    whatever its samples look like. The rule below looks at its neighbours,
+    and a SEG of single-voxel segments (or landmarks, or thin contours) fails
+    its region test, so a warp blended its ids and ``convert --dtype uint8``
+    merged ids 300 and 1000 into 255. The keys stay with the map through
+    volwarp's outputs (a NRRD converted from a SEG).
     """
-    modality = str((meta or {}).get("DICOM_Modality", "")).strip().upper()
-    return _SEGMENTATIONS.get(modality)
+    meta = meta or {}
+    modality = str(meta.get("DICOM_Modality", "")).strip().upper()
+    if modality in _SEGMENTATIONS:
+        return _SEGMENTATIONS[modality]
+    if str(meta.get("NIfTI_intent_code", "")).strip() == str(NIFTI_INTENT_LABEL):
+        return "a NIfTI label map (intent NIFTI_INTENT_LABEL)"
+    return None
 
 
 #: ``info``'s hint lists label maps with at most this many distinct values

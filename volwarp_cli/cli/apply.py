@@ -296,7 +296,7 @@ def _resample(input, output, chain, ready, dtype, write, transform_paths, outsid
     op.targets[op.KEY] = execute.Target(output, out, target.dtype, compress=write["compress"],
                                       byte_order=write["byte_order"],
                                       version=write["ome_zarr_version"],
-                                      pyramid=write["pyramid"])
+                                      pyramid=write["pyramid"], labels=target.labels)
     settings = scale_settings()
     ran = execute.run(op, execute.How(chunked=settings.chunked, block=settings.block,
                                       open_engine=settings.open_engine))

@@ -652,11 +652,15 @@ class _ZarrOutput(BlockOutput):
         self._reindex = reindex
         self._stored, self._header, self._version, self._pyramid = (stored, header, version,
                                                                      pyramid)
-        # labels "auto" (write_volume's default) of an integer output, or a float one (a
-        # float map of integer ids is one too): decided on commit, from the samples written
-        # (their pyramid levels take the mode or the mean), as in memory
+        # labels "auto" (write_volume's default): a map its key/values say is one (a SEG's)
+        # is; of an integer output, or a float one (a float map of integer ids is one
+        # too), decided on commit, from the samples written (their pyramid levels take the
+        # mode or the mean), as in memory
         if labels == "auto" or labels is None:
-            labels = None if pyramid and self.dtype.kind in "iuf" else False
+            from ..labelmap import segmentation_of
+
+            labels = (True if pyramid and segmentation_of(getattr(header, "meta", None))
+                      else None if pyramid and self.dtype.kind in "iuf" else False)
         self._labels = labels if labels is None else bool(labels)
         try:
             from ..memory import large_allocations_mapped

@@ -318,10 +318,17 @@ def _mode(data: np.ndarray) -> np.ndarray:
     return best.astype(data.dtype)
 
 
-def resolve_labels(labels, data: np.ndarray) -> bool:
-    """``labels`` True/False as given; ``"auto"`` (or None): :func:`looks_like_labels`."""
+def resolve_labels(labels, data: np.ndarray, meta=None) -> bool:
+    """``labels`` True/False as given; ``"auto"`` (or None): the rule.
+
+    A volume its key/values say is a label map (``meta``: a SEG's, a NIfTI of
+    intent label; :func:`~volwarp_cli.labelmap.segmentation_of`) is one;
+    else :func:`looks_like_labels` of ``data``.
+    """
     if labels is None or labels == "auto":
-        return looks_like_labels(data)
+        from ..labelmap import segmentation_of
+
+        return bool(segmentation_of(meta)) or looks_like_labels(data)
     return bool(labels)
 
 
@@ -785,7 +792,7 @@ def write_omezarr(vol: Volume, path: str | os.PathLike, *, version: str = "0.5",
     ensure_fits_in_memory(memory_bytes(stored.shape, data.dtype, version, pyramid, labels),
                           f"writing {path} ({'x'.join(map(str, vol.shape_xyz))}"
                           f"{f', {pyramid} levels' if pyramid else ''})")
-    is_labels = resolve_labels(labels, data) if pyramid else False
+    is_labels = resolve_labels(labels, data, vol.meta) if pyramid else False
     method = ("mode" if is_labels else "mean") if pyramid else None
     shapes = level_shapes(stored.shape, pyramid)
     attrs = group_attributes(multiscales_metadata(stored, pyramid, version, method),

@@ -1,0 +1,93 @@
+"""A label map's outputs stay a label map's: the command's choice, or the file's own word.
+
+A review found ids invented in OME-Zarr pyramids: `apply` resampled a map as
+labels and then let the writer's rule, on the resampled samples alone, take
+the mean of its levels; `api.write` did the same to a map read from a DICOM
+SEG. And a NIfTI of intent NIFTI_INTENT_LABEL was warped as intensities,
+blending its ids, although the file says it holds labels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+
+from volwarp_cli import api
+from volwarp_cli.io import write_volume
+from volwarp_cli.volume import Volume
+
+
+def _levels(path):
+    group = zarr.open_group(str(path), mode="r")
+    attrs = group.attrs.asdict()
+    method = (attrs.get("ome") or attrs)["multiscales"][0].get("type")
+    return method, [set(np.unique(np.asarray(group[k])).tolist())
+                    for k in sorted(group.array_keys())]
+
+
+def _blocks(shape, n, seed, size=2):
+    """``n`` cubes of ``size`` voxels, ids 10, 20, ... on zeros (uint16)."""
+    rng = np.random.default_rng(seed)
+    data = np.zeros(shape, np.uint16)
+    for k, (z, y, x) in enumerate(rng.integers(0, min(shape) - size, (n, 3))):
+        data[z:z + size, y:y + size, x:x + size] = 10 * (k + 1)
+    return data
+
+
+@pytest.mark.parametrize("values", [(), ("--labels",)])
+def test_apply_writes_a_label_maps_pyramid_by_the_mode(run, tmp_path, values):
+    """Landmark cubes resampled to a coarser grid: as labels by the rule (or as asked for
+    sparse points the rule takes for intensities), and every level of the store takes
+    the mode: no level holds an id the input lacks (the mean invented 1, 5, 6, ...)."""
+    data = _blocks((32, 32, 32), 20, 1, size=2 if not values else 1)
+    write_volume(Volume(data), tmp_path / "lm.nrrd")
+    write_volume(Volume(np.zeros((16, 16, 16), np.uint8), spacing=(2.0, 2.0, 2.0)),
+                 tmp_path / "ref.nrrd")
+    (tmp_path / "t.tfm").write_text(
+        "#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+        "Parameters: 1 0 0 0 1 0 0 0 1 0.5 0.3 0.2\nFixedParameters: 0 0 0\n")
+    res = run("apply", tmp_path / "lm.nrrd", "-t", tmp_path / "t.tfm", "--reference",
+              tmp_path / "ref.nrrd", "-o", tmp_path / "o.ome.zarr", "--pyramid", "2", "-v",
+              *values)
+    assert res.code == 0, res.stderr
+    assert "values: labels" in res.stderr
+    method, levels = _levels(tmp_path / "o.ome.zarr")
+    ids = set(np.unique(data).tolist())
+    assert method == "mode" and all(level <= ids for level in levels), (method, levels)
+
+
+def test_a_segmentations_pyramid_is_written_by_the_mode_through_the_api(tmp_path):
+    """A map read from a DICOM SEG (its key says so) written by api.write with a pyramid:
+    the mode, as `convert` does; the sparse dots fail the rule's region test, and the
+    mean invented ids."""
+    data = np.zeros((6, 20, 22), np.uint16)
+    for k in range(12):
+        data[k % 6, 1 + k, 2 + k] = 50 * (k + 1)
+    vol = Volume(data, meta={"DICOM_Modality": "SEG"})
+    api.write(vol, tmp_path / "s.ome.zarr", pyramid=1)
+    method, levels = _levels(tmp_path / "s.ome.zarr")
+    assert method == "mode" and all(level <= set(np.unique(data).tolist()) for level in levels)
+
+
+def test_a_nifti_of_intent_label_is_warped_as_labels(run, tmp_path):
+    """Single-voxel landmarks (which the rule takes for intensities) in a NIfTI whose
+    intent is NIFTI_INTENT_LABEL: warped as labels, no id invented (a blend did)."""
+    import nibabel as nib
+
+    data = np.zeros((24, 24, 24), np.uint16)
+    rng = np.random.default_rng(4)
+    data.flat[rng.choice(data.size, 30, replace=False)] = np.arange(1, 31) * 25
+    img = nib.Nifti1Image(np.ascontiguousarray(data.transpose(2, 1, 0)), np.eye(4))
+    img.header.set_intent("label")
+    nib.save(img, tmp_path / "lm.nii.gz")
+    (tmp_path / "w.yaml").write_text(
+        "version: 1\nunits: voxel\ncapture: {lattice: 5, oversample: 1}\nsteps:\n"
+        "  - move:\n      - {index: [2, 2, 2], by: [1.3, -0.7, 0.4]}\n")
+    res = run("warp", tmp_path / "lm.nii.gz", "--spec", tmp_path / "w.yaml", "-o",
+              tmp_path / "o.nii.gz", "-v")
+    assert res.code == 0, res.stderr
+    assert "values: labels (read from a NIfTI label map (intent NIFTI_INTENT_LABEL)" \
+        in res.stderr, res.stderr
+    out = api.read(tmp_path / "o.nii.gz").data
+    assert set(np.unique(out).tolist()) <= set(np.unique(data).tolist())
