@@ -91,3 +91,28 @@ def test_a_nifti_of_intent_label_is_warped_as_labels(run, tmp_path):
         in res.stderr, res.stderr
     out = api.read(tmp_path / "o.nii.gz").data
     assert set(np.unique(out).tolist()) <= set(np.unique(data).tolist())
+
+
+def test_mesh_takes_a_float_map_of_whole_ids_as_distance_does(run, tmp_path):
+    """`mesh --label/--labels` refused a float32 segmentation (nibabel and MONAI write
+    them) that `distance --label` takes: it now meshes it as the same map in integers,
+    and refuses a float map whose samples are not whole ids."""
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    ids = np.zeros((12, 14, 16), np.int16)
+    ids[2:6, 3:8, 4:9], ids[7:10, 3:11, 2:6] = 2, 5
+    write_volume(Volume(ids), tmp_path / "i.nrrd")
+    write_volume(Volume(ids.astype(np.float32)), tmp_path / "f.nrrd")
+    for kind in ("i", "f"):
+        assert run("mesh", tmp_path / f"{kind}.nrrd", "--labels", "-o",
+                   tmp_path / f"{kind}_{{label}}.ply").code == 0
+        assert run("mesh", tmp_path / f"{kind}.nrrd", "--label", "5", "-o",
+                   tmp_path / f"{kind}5.ply").code == 0
+    for name in ("_2.ply", "_5.ply", "5.ply"):
+        a, b = read_mesh(tmp_path / f"i{name}"), read_mesh(tmp_path / f"f{name}")
+        assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
+    half = ids.astype(np.float32) * 0.75  # (1.5 and 3.75: no whole ids)
+    write_volume(Volume(half), tmp_path / "h.nrrd")
+    res = run("mesh", tmp_path / "h.nrrd", "--labels", "-o", tmp_path / "h_{label}.ply")
+    assert res.code == 1 and "needs a label map (integer ids); its float samples include 1.5" \
+        in res.stderr, res.stderr

@@ -143,7 +143,12 @@ def test_label_refusals():
     with pytest.raises(VolwarpError, match="label 5 does not occur"):
         surface(vol, labels=5, name="seg.nrrd")
     with pytest.raises(VolwarpError, match="--label needs a label map"):
+        surface(Volume(np.zeros((4, 4, 4), np.complex64)), labels=1)
+    # (a float map of whole ids is one, as distance takes it; of other values, not)
+    with pytest.raises(VolwarpError, match="label 1 does not occur"):
         surface(Volume(np.zeros((4, 4, 4), np.float32)), labels=1)
+    with pytest.raises(VolwarpError, match=r"--labels needs a label map \(integer ids\)"):
+        surfaces(Volume(np.full((4, 4, 4), 0.5, np.float32)), labels=ALL_LABELS)
     with pytest.raises(VolwarpError, match="no label other than 0"):
         surfaces(Volume(np.zeros((4, 4, 4), np.int8)), labels=ALL_LABELS)
 

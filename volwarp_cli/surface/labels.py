@@ -23,8 +23,13 @@ from ..errors import BadUsage, VolwarpError
 
 
 def check_label_map(dtype, name: str, what: str) -> None:
-    """Refuse samples that are not a label map (integers) for ``what`` (``--label``...)."""
-    if np.dtype(dtype).kind not in "iu":
+    """Refuse samples that cannot be a label map for ``what`` (``--label``...).
+
+    Integers, or floats (a segmentation written as floats, as nibabel and
+    MONAI do, which ``distance --label`` takes too): their values must then be
+    integers, which :func:`label_values` checks as it reads them.
+    """
+    if np.dtype(dtype).kind not in "iuf":
         raise VolwarpError(f"{name}: {what} needs a label map (integer samples), got "
                            f"{np.dtype(dtype)}")
 
@@ -131,8 +136,8 @@ def mesh_values(source, *, values: str | None = None, iso: float | None = None,
     return ValuesChoice("labels", why)
 
 
-def label_values(source, boxes, run=None) -> list[int]:
-    """The distinct values of a sliceable integer map, ascending, read by ``boxes``.
+def label_values(source, boxes, run=None, name: str = "the volume") -> list[int]:
+    """The distinct values of a sliceable label map, ascending, read by ``boxes``.
 
     The boxes one after the other here, or by ``run(task, boxes)`` (an
     engine's map).
@@ -142,4 +147,9 @@ def label_values(source, boxes, run=None) -> list[int]:
 
     parts = run(task, boxes) if run is not None else [task(b) for b in boxes]
     values = np.unique(np.concatenate(parts)) if parts else np.empty(0, np.int64)
+    if values.dtype.kind == "f":  # (a float map's ids: whole numbers only)
+        odd = values[~(np.isfinite(values) & (values == np.rint(values)))]
+        if odd.size:
+            raise VolwarpError(f"{name}: --labels needs a label map (integer ids); its float "
+                               f"samples include {odd[0]:g}")
     return [int(v) for v in values]

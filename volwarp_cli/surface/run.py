@@ -214,7 +214,8 @@ class MeshOperation(Reduction):
             return [self._surface(LabelIndicator(source, None), blocks, LABEL_LEVEL,
                                   f"{self.name}'s non-zero labels")]
         with timed("labels (one pass)"):
-            values = label_values(source, blocks.split(whole), _runner(blocks, "labels"))
+            values = label_values(source, blocks.split(whole), _runner(blocks, "labels"),
+                                  name=self.name)
         if self.labels != ALL_LABELS:
             if self.labels not in values:
                 raise VolwarpError(f"{self.name}: label {self.labels} does not occur in the "
