@@ -178,7 +178,8 @@ def test_a_damaged_tiff_read_by_box_leaves_no_file_open(refused):
         fds = os.listdir("/proc/self/fd")
         return [fd for fd in fds if os.path.realpath(f"/proc/self/fd/{fd}") == str(path)]
 
+    before = set(open_on_it())  # (the module's other tests share the file)
     header, samples = open_volume_lazy(path, require_lazy=True)
     with pytest.raises(FormatError, match="cannot read TIFF data"):
         np.asarray(samples[...])
-    assert open_on_it() == []
+    assert set(open_on_it()) <= before
