@@ -56,12 +56,13 @@ def test_renaming_an_id_changes_no_frame(run, tmp_path, mode, iso):
 
 
 @pytest.mark.parametrize("mode", [[], BLOCKS], ids=["memory", "blocks"])
-@pytest.mark.parametrize("label", [[], ["--label", "2"]], ids=["all", "label-2"])
-def test_frame_0_of_a_map_with_itself_is_distance_s_field(run, tmp_path, mode, label):
+@pytest.mark.parametrize("shape", [[], ["--iso", "0.5"], ["--label", "2"]],
+                         ids=["all", "iso", "label-2"])
+def test_frame_0_of_a_map_with_itself_is_distance_s_field(run, tmp_path, mode, shape):
     """Frame 0 (and 1) of a map morphed into itself: `distance`'s voxel-surface field."""
     path = _write(tmp_path / "map.nrrd", _boxes(1, 2))
-    assert run("distance", path, *label, "-o", tmp_path / "d.nrrd").code == 0
-    res = run("morph", path, path, "--frames", 2, *label, *mode, "-o", tmp_path / "m_{i}.nrrd")
+    assert run("distance", path, *shape, "-o", tmp_path / "d.nrrd").code == 0
+    res = run("morph", path, path, "--frames", 2, *shape, *mode, "-o", tmp_path / "m_{i}.nrrd")
     assert res.code == 0, res.stderr
     field = read_volume(tmp_path / "d.nrrd").data
     for frame in _frames(tmp_path, "m", 2):
@@ -81,16 +82,17 @@ def test_negative_ids_are_labels_and_a_level_missing_them_is_distance_s_refusal(
         run, tmp_path, mode):
     atlas = _atlas()
     path = _write(tmp_path / "atlas.nrrd", atlas)
-    res = run("morph", path, path, "--frames", 2, *mode, "-o", tmp_path / "m_{i}.nrrd")
-    assert res.code == 0, res.stderr
-    np.testing.assert_array_equal(_frames(tmp_path, "m", 2)[0] < 0, atlas != 0)
-    # --iso 0.5 selects other voxels than the labels: refused as distance refuses it
+    # --iso 0.5 selects other voxels than the labels (it dropped ids -300 and -5): refused
+    # as distance refuses it
     dist = run("distance", path, "--iso", "0.5", "-o", tmp_path / "d.nrrd")
     res = run("morph", path, path, "--frames", 2, "--iso", "0.5", *mode,
               "-o", tmp_path / "x_{i}.nrrd")
     assert dist.code == res.code == 2
     assert res.stderr == dist.stderr and "--values intensity" in res.stderr
     assert not list(tmp_path.glob("x_*"))
+    res = run("morph", path, path, "--frames", 2, *mode, "-o", tmp_path / "m_{i}.nrrd")
+    assert res.code == 0, res.stderr
+    np.testing.assert_array_equal(_frames(tmp_path, "m", 2)[0] < 0, atlas != 0)
 
 
 def test_the_alignment_centre_of_a_label_map_is_its_labels_centroid(run, tmp_path):
@@ -151,8 +153,8 @@ def _attribute_spec(tmp_path, extra=""):
     _write(tmp_path / "seg_a.nrrd", seg_a)
     _write(tmp_path / "seg_b.nrrd", seg_b)
     spec = tmp_path / "m.yaml"
-    spec.write_text(f"version: 1\nsource: {{volume: {shape}}}\ntarget: {{volume: {shape}}}\n"
-                    "frames: 3\nattributes:\n"
+    spec.write_text(f"version: 1\nsource: {{volume: {shape}, iso: 0.5}}\n"
+                    f"target: {{volume: {shape}, iso: 0.5}}\nframes: 3\nattributes:\n"
                     f"  - {{name: seg, source: seg_a.nrrd, target: seg_b.nrrd{extra}}}\n")
     return spec
 
