@@ -127,7 +127,8 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
             dtype, compress, byte_order, camera_from, camera_to, orientation_labels, ome_zarr):
     """Morph SOURCE into TARGET: frame t is the zero level set of (1-t) d_source + t d_target.
 
-    Give a --spec, or SOURCE TARGET with --frames (or --times) and --iso.
+    Give a --spec, or SOURCE TARGET with --frames (or --times) and --iso
+    (unless they are label maps).
     Frames are float32 signed distance fields (negative inside), or a 0..1
     occupancy with --density / output: density (--dtype converts them; a
     spec's attributes keep their own types). Source and target on different
@@ -145,7 +146,7 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
     fields are computed and kept on disk and every frame is written block by
     block, identical to the in-memory frames: for shapes on any grids, moved
     by an alignment or not, as long as the aligned inputs cover the frame
-    grid (no landmark warp), binary shapes or a --max-distance band,
+    grid (no landmark warp), binary shapes, label maps or a --max-distance band,
     uncompressed NRRD/MetaImage/raw or OME-Zarr frames.
     """
     from ..morph.spec import MorphJob, ShapeRef, check_shape_options
