@@ -117,8 +117,9 @@ def test_morph_frames_are_the_command_s_files(run, tmp_path):
             "align": {"target": {"scale": 1.5, "rotate": [0, 0, 15],
                                  "translate": [21.0, -40.0, 3.0]}},
             "times": [0.0, 0.4, 1.0], "output": "density",
+            # (the 0/200 ball is a mask, a label map by the rule: blended as asked)
             "attributes": [{"name": "grey", "source": str(ball), "target": str(block),
-                            "dtype": "float32"}]}
+                            "dtype": "float32", "values": "intensity"}]}
     path = tmp_path / "m.yaml"
     path.write_text(yaml.safe_dump(spec))
     res = run("morph", "--spec", path, "-o", tmp_path / "cli_{i}.nrrd",

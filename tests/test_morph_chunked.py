@@ -108,13 +108,15 @@ def test_meshes_and_renders_by_blocks_equal_the_in_memory_ones(run, shapes, tmp_
 
 
 def test_attributes_by_blocks(run, shapes, tmp_path):
+    # (heat_b, a few levels of z^2, is what the label rule takes for a label map: blended
+    # as numbers as asked, values: intensity)
     spec = tmp_path / "m.yaml"
     spec.write_text(f"version: 1\nsource: {{volume: {shapes['ball']}, iso: 0.5}}\n"
                     f"target: {{volume: {shapes['box']}, iso: 0.5}}\ntimes: [0, 0.4, 1]\n"
                     f"attributes:\n  - {{name: heat, source: {shapes['heat_a']}, "
-                    f"target: {shapes['heat_b']}}}\n"
+                    f"target: {shapes['heat_b']}, values: intensity}}\n"
                     f"  - {{name: code, source: {shapes['heat_b']}, target: {shapes['heat_b']},"
-                    " dtype: uint8}\n")
+                    " dtype: uint8, values: intensity}\n")
     assert run("morph", "--spec", spec, "-o", tmp_path / "m_{i}.nrrd").code == 0
     res = run("morph", "--spec", spec, "-o", tmp_path / "b_{i}.nrrd", "--chunked",
               "--block", "5,27,19")

@@ -104,12 +104,15 @@ def test_inputs_on_different_grids_by_blocks(run, inputs, tmp_path, scheduler):
     "{translate: [1.3, -0.6, 0.25]}",
 ])
 def test_an_alignment_by_blocks(run, inputs, tmp_path, align):
-    """The target (flipped grid) aligned onto the source's grid, with attributes."""
+    """The target (flipped grid) aligned onto the source's grid, with attributes.
+
+    (small_heat, 13 levels of z, is what the label rule takes for a label map: blended as
+    numbers as asked, values: intensity.)"""
     spec = _spec(tmp_path, "m", f"source: {{volume: {inputs['small_box']}, iso: 0.5}}\n"
                  f"target: {{volume: {inputs['big_ball']}, iso: 0.5}}\n"
                  f"times: [0, 0.5, 0.8, 1]\ngrid: source\nalign: {{target: {align}}}\n"
                  f"attributes:\n  - {{name: heat, source: {inputs['small_heat']}, "
-                 f"target: {inputs['big_heat']}}}\n")
+                 f"target: {inputs['big_heat']}, values: intensity}}\n")
     assert run("morph", "--spec", spec, "-o", tmp_path / "m_{i}.nrrd").code == 0
     res = run("morph", "--spec", spec, "-o", tmp_path / "b_{i}.nrrd", "--chunked",
               "--block", "4,6,5")
@@ -195,6 +198,7 @@ def test_strong_scalings_split_the_blocks_or_are_refused():
 
 def test_the_alignment_centre_by_blocks_is_the_whole_mask_centroid():
     """Counted box by box in integers, the centroid is the whole mask's, bit for bit."""
+    from volwarp_cli.distance.labels import ShapeRule
     from volwarp_cli.morph.align import shape_centroid
     from volwarp_cli.morph.fields import Steps, alignment_matrices
     from volwarp_cli.morph.spec import MorphJob, ShapeRef
@@ -211,8 +215,9 @@ def test_the_alignment_centre_by_blocks_is_the_whole_mask_centroid():
                    times=[0.0], align_source={"rotate": [5, 10, 15]},
                    align_target={"scale": 1.2})
     inputs = {"source": (template, samples), "target": (template, samples)}
-    whole = alignment_matrices(job, inputs, Steps())
-    blocks = alignment_matrices(job, inputs, SmallBlocks())
+    rules = dict.fromkeys(inputs, ShapeRule("intensity", "given", iso=0.7))
+    whole = alignment_matrices(job, inputs, Steps(), rules)
+    blocks = alignment_matrices(job, inputs, SmallBlocks(), rules)
     for name in ("source", "target"):
         assert np.array_equal(whole[name], blocks[name])
     centre = shape_centroid(samples >= 0.7, geo.index_to_world_matrix)

@@ -1,7 +1,7 @@
 """Whether a volume looks like a label map (a segmentation): the one rule.
 
-``warp`` and ``distance`` follow it by default, pyramids take their levels'
-mode by it, ``info`` hints it. Three functions give its answer:
+``warp``, ``distance`` and ``morph`` follow it by default, pyramids take
+their levels' mode by it, ``info`` hints it. Three functions give its answer:
 :func:`looks_like_labels` (an array), :func:`looks_like_labels_by_blocks` (a
 sliceable source read box by box: the same answer, for outputs written by
 blocks) and :func:`scan_labels` (the answer and the distinct values, what

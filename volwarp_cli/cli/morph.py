@@ -3,6 +3,7 @@
     volwarp morph --spec MORPH.yaml -o 'frame_{i:03d}.nrrd'
         [--mesh-to 'frame_{i:03d}.ply'] [--render-to 'frame_{i:03d}.png']
     volwarp morph SOURCE TARGET --frames N --iso V -o PATTERN [--inside ...] [--metric ...]
+    volwarp morph SEG_A SEG_B --frames N -o PATTERN [--label N] [--values intensity|labels]
 
 Patterns are Python format strings with ``{i}`` (frame number) and ``{t}``
 (its time), e.g. ``frame_{i:03d}.nrrd`` or ``m_{t:.2f}.nrrd``. The frames
@@ -18,6 +19,7 @@ from pathlib import Path
 import click
 
 from ..errors import VolwarpError
+from ..labelmap import VALUES
 from ..progress import log
 from .mesh import image_path, mesh_path
 from .options import (
@@ -93,9 +95,16 @@ def _pattern_check(kind: str):
 @click.option("--times", default=None, metavar="T1,T2,...",
               help="Short form: explicit times in [0, 1] instead of --frames.")
 @click.option("--iso", type=float, default=None, callback=finite,
-              help="Short form: iso level of both shapes.")
+              help="Short form: iso level of both shapes (needed unless they are label maps).")
 @click.option("--inside", type=click.Choice(["above", "below"]), default="above",
               show_default=True, help="Short form: which side of the iso level is inside.")
+@click.option("--label", "label", type=int, default=None, metavar="N",
+              help="Short form: label maps: morph label N's voxels (default: every voxel "
+                   "with a non-zero label).")
+@click.option("--values", "values", type=click.Choice(VALUES), default=None,
+              help="Short form: take both inputs' samples as intensities (the shape: --iso V) "
+                   "or as label ids (the labels' voxels), as `volwarp distance` does. Default: "
+                   "labels for an input that looks like a label map, else intensity.")
 @click.option("--metric", type=click.Choice(_METRICS), default=None,
               help="Short form: distance metric (default euclidean).")
 @click.option("--grid", "grid_choice", type=click.Choice(["source", "target", "union"]),
@@ -114,24 +123,33 @@ def _pattern_check(kind: str):
 @scale_options
 @common_options
 def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, times, iso, inside,
-            metric, grid_choice, max_distance, as_density, render_size, view, dtype, compress,
-            byte_order, camera_from, camera_to, orientation_labels, ome_zarr):
+            label, values, metric, grid_choice, max_distance, as_density, render_size, view,
+            dtype, compress, byte_order, camera_from, camera_to, orientation_labels, ome_zarr):
     """Morph SOURCE into TARGET: frame t is the zero level set of (1-t) d_source + t d_target.
 
-    Give a --spec, or SOURCE TARGET with --frames (or --times) and --iso.
+    Give a --spec, or SOURCE TARGET with --frames (or --times) and --iso
+    (unless they are label maps).
     Frames are float32 signed distance fields (negative inside), or a 0..1
     occupancy with --density / output: density (--dtype converts them; a
     spec's attributes keep their own types). Source and target on different
     grids need an alignment or a grid (spec 'grid', --grid).
 
+    Each shape is what `volwarp distance` takes: a label map's is its labels'
+    voxels (every non-zero label, or label N with --label N), on the voxel
+    surface, whatever its ids' values (no --iso needed; an --iso is accepted
+    when it selects exactly those voxels); --values intensity|labels
+    overrides. -v prints each shape's choice. A spec attribute that is a
+    label map is refused (its ids would be blended) unless it says values:
+    intensity.
+
     With --chunked (or when the morph does not fit the memory budget) the
     fields are computed and kept on disk and every frame is written block by
     block, identical to the in-memory frames: for shapes on any grids, moved
     by an alignment or not, as long as the aligned inputs cover the frame
-    grid (no landmark warp), binary shapes or a --max-distance band,
+    grid (no landmark warp), binary shapes, label maps or a --max-distance band,
     uncompressed NRRD/MetaImage/raw or OME-Zarr frames.
     """
-    from ..morph.spec import MorphJob, ShapeRef
+    from ..morph.spec import MorphJob, ShapeRef, check_shape_options
 
     if spec_path is not None:
         if shapes:
@@ -140,7 +158,8 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
                             ("--iso", iso is not None), ("--metric", metric is not None),
                             ("--grid", grid_choice is not None), ("--density", as_density),
                             ("--max-distance", max_distance is not None),
-                            ("--inside", inside != "above")):
+                            ("--inside", inside != "above"), ("--label", label is not None),
+                            ("--values", values is not None)):
             if given:
                 raise click.UsageError(f"{flag} belongs to the short form; with --spec, set it "
                                        "in the spec")
@@ -151,8 +170,6 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
     else:
         if len(shapes) != 2:
             raise click.UsageError("give SOURCE and TARGET (or --spec MORPH.yaml)")
-        if iso is None:
-            raise click.UsageError("--iso V is required in the short form")
         if (frames is None) == (times is None):
             raise click.UsageError("give --frames N or --times T1,T2,... (one of them)")
         if times is not None:
@@ -167,10 +184,11 @@ def command(shapes, spec_path, output, mesh_to, render_to, sheet_path, frames, t
                                          param_hint="--times")
         else:
             tlist = [i / (frames - 1) for i in range(frames)]
-        job = MorphJob(source=ShapeRef(Path(shapes[0]), iso, inside),
-                       target=ShapeRef(Path(shapes[1]), iso, inside), times=tlist,
+        job = MorphJob(source=ShapeRef(Path(shapes[0]), iso, inside, values, label),
+                       target=ShapeRef(Path(shapes[1]), iso, inside, values, label), times=tlist,
                        metric=metric or "euclidean", output="density" if as_density else "sdf",
                        grid=grid_choice, max_distance=max_distance)
+        check_shape_options(job.source, job.surface)
     if sheet_path is not None and render_to is None:
         raise click.UsageError("--sheet needs --render-to")
     if render_to is None and (camera_from is not None or camera_to is not None

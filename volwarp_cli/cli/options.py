@@ -52,7 +52,7 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
     --json                    warp mesh info
     --keep-phi                capture warp apply distance mesh info convert
     --keep-shear              capture warp apply distance mesh info convert
-    --label                   distance mesh
+    --label                   morph distance mesh
     --labels                  warp apply mesh
     --largest-component       mesh
     --lattice                 capture
@@ -114,7 +114,7 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
     --turntable               mesh
     --unsigned                distance
     --update                  distance
-    --values                  capture warp apply distance mesh convert
+    --values                  capture warp apply morph distance mesh convert
     -v/--verbose              (every command)
     --view                    morph sweep mesh
     --volume-index            capture warp apply distance mesh info convert

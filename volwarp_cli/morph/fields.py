@@ -183,12 +183,14 @@ class ResampleOperation(Operation):
                                per_task)
 
 
-def alignment_matrices(job: MorphJob, inputs: dict, steps: Steps) -> dict:
+def alignment_matrices(job: MorphJob, inputs: dict, steps: Steps, rules: dict) -> dict:
     """The alignment matrix of each shape (``{"source": 4x4, "target": 4x4}``).
 
-    ``inputs``: ``{"source": (header, samples), ...}``. A shape's default
-    centre (its centroid) is counted box by box in integers over ``steps``'
-    blocks (:func:`.align.axis_counts`): the same bits for any blocks.
+    ``inputs``: ``{"source": (header, samples), ...}``; ``rules``: each
+    shape's :class:`~volwarp_cli.distance.labels.ShapeRule` (:func:`shape_rule`).
+    A shape's default centre (the centroid of the rule's voxels) is counted
+    box by box in integers over ``steps``' blocks (:func:`.align.axis_counts`):
+    the same bits for any blocks.
     """
     from .align import affine_from_params, centroid_from_counts
 
@@ -204,7 +206,7 @@ def alignment_matrices(job: MorphJob, inputs: dict, steps: Steps) -> dict:
         if "center" not in params and "matrix" not in params:
             shape = geo.shape
             counts = [np.zeros(n, np.int64) for n in (shape[2], shape[1], shape[0])]
-            task = functools.partial(_counts, samples=samples, iso=ref.iso, inside=ref.inside)
+            task = functools.partial(_counts, samples=samples, rule=rules[name])
             for box, parts in steps.map(task, Box.from_shape(shape).blocks(steps.chunks(shape))):
                 for k, axis in enumerate((2, 1, 0)):
                     counts[k][box.lo[axis]:box.hi[axis]] += parts[k]
@@ -216,23 +218,76 @@ def alignment_matrices(job: MorphJob, inputs: dict, steps: Steps) -> dict:
     return out
 
 
-def _counts(box: Box, samples, iso: float, inside: str):
-    from ..distance.field import inside_mask
+def _counts(box: Box, samples, rule):
     from .align import axis_counts
 
-    return box, axis_counts(inside_mask(np.asarray(samples[box.slices]), iso, inside))
+    return box, axis_counts(rule.mask(np.asarray(samples[box.slices])))
 
 
-def shape_field(job: MorphJob, name: str, header, samples, steps: Steps):
-    """The signed field of shape ``name`` on its own grid (the distance's operation)."""
-    from ..distance.labels import ShapeRule
+def shape_rule(job: MorphJob, name: str, header, samples):
+    """What shape ``name``'s field is of: ``distance``'s choice (:func:`~volwarp_cli.distance.labels.choose_shape`).
+
+    A label map's shape is its labels' voxels, never a level of its ids (a
+    level between ids 1 and 2 moved a frame's surface by 0.83 mm when id 2
+    was renamed 1000, and dropped negative ids); its refusals are
+    ``distance``'s, in the spec's keys for a spec (:func:`.spec.spec_terms`).
+    Read once, box by box: the same choice in memory and by blocks.
+    """
+    from ..distance.labels import choose_shape
+    from ..distance.scan import scan_box_voxels
+    from ..errors import BadUsage
+    from .spec import spec_terms
+
+    ref = getattr(job, name)
+    try:
+        with timed(f"{name} label rule"):
+            rule = choose_shape(samples, values=ref.values, label=ref.label, iso=ref.iso,
+                                inside=ref.inside, surface=job.surface, name=str(ref.path),
+                                box_voxels=scan_box_voxels(), meta=header.meta)
+    except BadUsage as exc:
+        if job.doc is None:
+            raise
+        # (the file by its name: the spec's line says which, and a long path clipped the hint)
+        message = spec_terms(str(exc)).replace(str(ref.path), ref.path.name)
+        raise job.doc.error((name,), message) from None
+    log.info("%s: %s", name, rule.describe())
+    return rule
+
+
+def attribute_values(job: MorphJob, name: str, side: str, header, samples) -> None:
+    """Refuse attribute ``name``'s ``side`` if it is a label map (:func:`~volwarp_cli.warp.defaults.choose_values`).
+
+    An attribute is blended, ``(1 - t) a + t b``: ids 10 and 30 gave 20, an
+    id neither map has. Its ``values: intensity`` blends them as asked.
+    """
+    from ..errors import BadUsage
+    from ..warp.defaults import choose_values
+
+    index, ref = next(((i, a) for i, a in enumerate(job.attributes) if a.name == name),
+                      (None, None))
+    path = getattr(ref, side) if ref is not None else None
+    choice = choose_values(samples, ref.values if ref is not None else None,
+                           name=str(path or f"attribute {name}'s {side}"), meta=header.meta)
+    log.info("attribute %s (%s): %s", name, side, choice.describe())
+    if choice.values != "labels":
+        return
+    message = (f"attribute {name}: its {side}{f', {path.name},' if path else ''} is a label "
+               f"map ({choice.why}): blending it, (1 - t) a + t b, writes ids neither map has "
+               "(10 and 30 give 20); set values: intensity on the attribute to blend its ids "
+               "anyway, or morph a label as the shapes (label: N)")
+    if job.doc is None or index is None:
+        raise BadUsage(message)
+    raise job.doc.error(("attributes", index), message)
+
+
+def shape_field(job: MorphJob, name: str, header, samples, steps: Steps, rule):
+    """The signed field of shape ``name`` on its own grid: the distance's operation of ``rule``."""
     from ..distance.operation import field_operation
     from ..distance.scan import field_surface, scan_box_voxels
     from ..passes import Passes
     from .chunked import in_morph_terms
 
     ref = getattr(job, name)
-    rule = ShapeRule("intensity", "given", iso=ref.iso, inside=ref.inside)
     try:
         surface = field_surface(samples, rule, metric=job.metric, surface=job.surface,
                                 max_distance=job.max_distance, box_voxels=scan_box_voxels())

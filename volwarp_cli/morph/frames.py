@@ -112,8 +112,9 @@ class FrameValues:
         """The values of ``job``'s frames on ``grid``; ``value_range``: the source's (lo, hi)."""
         ranged = job.output == "density" and job.density_range == "source"
         lo, hi = value_range if ranged else (0.0, 1.0)
+        iso = float(job.source.iso) if ranged else 0.0  # (a label map's shape may have none)
         return FrameValues(job.output, float(job.density_width or min(grid.spacing)), ranged,
-                           float(lo), float(hi), float(job.source.iso), job.source.inside,
+                           float(lo), float(hi), iso, job.source.inside,
                            np.dtype(source_dtype).name)
 
     def __call__(self, sdf: np.ndarray) -> np.ndarray:

@@ -18,7 +18,14 @@ from ..memory import ensure_fits_in_memory
 from ..progress import log, timed
 from ..volume import Volume
 from .align import linear_scale
-from .fields import Steps, alignment_matrices, onto_grid, shape_field
+from .fields import (
+    Steps,
+    alignment_matrices,
+    attribute_values,
+    onto_grid,
+    shape_field,
+    shape_rule,
+)
 from .grid import GridError, choose_grid
 from .interpolate import Morph
 from .landmarks import LandmarkWarp
@@ -68,9 +75,15 @@ def prepare_on(job: MorphJob, inputs: dict, attributes: dict, steps: Steps, *,
     called once the frame grid is known, before any field (a refusal there
     costs no work but the alignment's). In memory (``steps.whole``) the
     voxels no input covers are filled and a landmark warp applied; by blocks
-    the caller refuses both first.
+    the caller refuses both first. Each shape follows the label rule
+    (:func:`.fields.shape_rule`) and a label-map attribute is refused
+    (:func:`.fields.attribute_values`), before any work.
     """
-    matrices = alignment_matrices(job, inputs, steps)
+    rules = {name: shape_rule(job, name, *inputs[name]) for name in ("source", "target")}
+    for name, pair in attributes.items():
+        for side, (header, samples) in zip(("source", "target"), pair, strict=True):
+            attribute_values(job, name, side, header, samples)
+    matrices = alignment_matrices(job, inputs, steps, rules)
     grid = choose_grid(job.grid, Geometry.of(inputs["source"][0]),
                        Geometry.of(inputs["target"][0]), matrices["source"],
                        matrices["target"], moved=job.moved, margin=job.margin)
@@ -82,8 +95,8 @@ def prepare_on(job: MorphJob, inputs: dict, attributes: dict, steps: Steps, *,
     for name in ("source", "target"):
         header, samples = inputs[name]
         mat = matrices[name]
-        values = onto_grid(shape_field(job, name, header, samples, steps), header, mat,
-                           grid, steps, name, outside="nan", scale=linear_scale(mat))
+        values = onto_grid(shape_field(job, name, header, samples, steps, rules[name]), header,
+                           mat, grid, steps, name, outside="nan", scale=linear_scale(mat))
         uncovered[name] = 0
         if steps.whole:
             uncovered[name] = _fill_uncovered(values, grid, job, name)

@@ -7,6 +7,7 @@ line of the offending entry (exit 2): unequal landmark lists, times outside
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,11 +19,18 @@ from .align import affine_from_params
 
 @dataclass
 class ShapeRef:
-    """A shape of the morph: its volume file, the iso level and which side is inside."""
+    """A shape of the morph: its volume file and what its shape is, as ``distance`` takes it.
+
+    ``iso``, ``inside``: the samples' level (None: a label map needs none);
+    ``values``, ``label``: ``distance``'s ``--values`` and ``--label``
+    (:func:`volwarp_cli.distance.labels.choose_shape` decides with them).
+    """
 
     path: Path
-    iso: float
+    iso: float | None
     inside: str = "above"
+    values: str | None = None
+    label: int | None = None
 
 
 @dataclass
@@ -33,6 +41,7 @@ class AttributeRef:
     source: Path
     target: Path
     dtype: str | None = None
+    values: str | None = None
 
 
 @dataclass
@@ -99,6 +108,30 @@ def _check_spacing(doc, sp) -> None:
                                   f"{1 / PLACEMENT_LIMIT:g} to {PLACEMENT_LIMIT:g})")
 
 
+def spec_terms(message: str) -> str:
+    """``distance``'s options in a message as a spec's keys: ``--values intensity``, ``values: intensity``."""
+    message = re.sub(r"--(iso|inside|label|values|surface) "
+                     r"(V|N|-?[0-9][0-9.e+-]*|intensity|labels|subvoxel|above|below)\b",
+                     r"\1: \2", message)
+    return re.sub(r"--(iso|inside|label|values|surface)\b", r"\1", message)
+
+
+def check_shape_options(ref: ShapeRef, surface: str, *, doc=None, key: str = "source") -> None:
+    """``distance``'s usage errors found without the samples, for one shape.
+
+    In a spec's keys, at the shape's line (``doc``); else as the options say them.
+    """
+    from ..distance.labels import check_options
+    from ..errors import BadUsage
+
+    try:
+        check_options(values=ref.values, label=ref.label, iso=ref.iso, surface=surface)
+    except BadUsage as exc:
+        if doc is None:
+            raise
+        raise doc.error((key,), spec_terms(str(exc))) from None
+
+
 def job_from_spec(doc) -> MorphJob:
     """A :class:`MorphJob` from a loaded, schema-valid spec document."""
     d = doc.data
@@ -126,7 +159,9 @@ def job_from_spec(doc) -> MorphJob:
 
     def shape(key):
         s = d[key]
-        return ShapeRef(doc.input_file(s["volume"]), float(s["iso"]), s.get("inside", "above"))
+        iso = s.get("iso")
+        return ShapeRef(doc.input_file(s["volume"]), None if iso is None else float(iso),
+                        s.get("inside", "above"), s.get("values"), s.get("label"))
 
     if "times" in d:
         times = [float(t) for t in d["times"]]
@@ -142,11 +177,16 @@ def job_from_spec(doc) -> MorphJob:
                    output=d.get("output", "sdf"))
     if job.surface == "subvoxel" and job.metric != "euclidean":
         raise doc.error(("surface",), "subvoxel surfaces need metric: euclidean")
+    for key in ("source", "target"):
+        check_shape_options(getattr(job, key), job.surface, doc=doc, key=key)
     dens = d.get("density", {})
     if dens and job.output != "density":
         raise doc.error(("density",), "density settings need output: density")
     job.density_width = dens.get("width")
     job.density_range = dens.get("range", "unit")
+    if job.density_range == "source" and job.source.iso is None:
+        raise doc.error(("density", "range"), "range: source puts the source's iso level on "
+                        "the surface: give the source an iso (or range: unit)")
     align = d.get("align", {})
     for side in ("source", "target"):
         params = align.get(side)
@@ -209,6 +249,7 @@ def job_from_spec(doc) -> MorphJob:
             raise doc.error(("attributes", i, "name"), f"attribute name {a['name']!r} repeats")
         names.add(a["name"])
         job.attributes.append(AttributeRef(a["name"], doc.input_file(a["source"]),
-                                           doc.input_file(a["target"]), a.get("dtype")))
+                                           doc.input_file(a["target"]), a.get("dtype"),
+                                           a.get("values")))
     job.doc = doc
     return job
