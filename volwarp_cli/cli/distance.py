@@ -14,7 +14,6 @@ import gc
 import click
 
 from ..io import check_output_path, write_volume
-from ..labelmap import VALUES
 from ..progress import log, timed
 from ..volume import xyz_to_zyx
 from .common import load_input, stamp
@@ -25,6 +24,7 @@ from .options import (
     finite,
     input_options,
     output_option,
+    shape_values_options,
     write_options,
 )
 from .resources import scale_options, scale_settings
@@ -43,14 +43,12 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
                    "INPUT is a label map).")
 @click.option("--inside", type=click.Choice(["above", "below"]), default="above",
               show_default=True, help="Which side of V is inside: above (samples >= V) or below (< V).")
-@click.option("--label", "label", type=int, default=None, metavar="N",
-              help="A label map: the distance of label N's voxels (default: of every voxel "
-                   "with a non-zero label).")
-@click.option("--values", "values", type=click.Choice(VALUES), default=None,
-              help="Take the samples as intensities (the shape: --iso V) or as label ids "
-                   "(the labels' voxels). Default: labels when INPUT looks like a label map "
-                   "(integer ids whose values are regions, as `volwarp info` hints), else "
-                   "intensity.")
+@shape_values_options(
+    label="A label map: the distance of label N's voxels (default: of every voxel with a "
+          "non-zero label).",
+    values="Take the samples as intensities (the shape: --iso V) or as label ids (the labels' "
+           "voxels). Default: labels when INPUT looks like a label map (integer ids whose "
+           "values are regions, as `volwarp info` hints), else intensity.")
 @click.option("--metric", type=click.Choice(_METRICS), default="euclidean", show_default=True,
               help="euclidean (exact); minnorm (the paper's shift-and-min passes; equals the "
                    "spacing-weighted taxicab distance); chessboard/taxicab (voxel steps, per-line passes; "

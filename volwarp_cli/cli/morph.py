@@ -19,7 +19,6 @@ from pathlib import Path
 import click
 
 from ..errors import VolwarpError
-from ..labelmap import VALUES
 from ..progress import log
 from .mesh import image_path, mesh_path
 from .options import (
@@ -32,6 +31,7 @@ from .options import (
     output_option,
     parse_view,
     render_size_option,
+    shape_values_options,
     write_options,
 )
 from .resources import scale_options, scale_settings
@@ -98,13 +98,12 @@ def _pattern_check(kind: str):
               help="Short form: iso level of both shapes (needed unless they are label maps).")
 @click.option("--inside", type=click.Choice(["above", "below"]), default="above",
               show_default=True, help="Short form: which side of the iso level is inside.")
-@click.option("--label", "label", type=int, default=None, metavar="N",
-              help="Short form: label maps: morph label N's voxels (default: every voxel "
-                   "with a non-zero label).")
-@click.option("--values", "values", type=click.Choice(VALUES), default=None,
-              help="Short form: take both inputs' samples as intensities (the shape: --iso V) "
-                   "or as label ids (the labels' voxels), as `volwarp distance` does. Default: "
-                   "labels for an input that looks like a label map, else intensity.")
+@shape_values_options(
+    label="Short form: label maps: morph label N's voxels (default: every voxel with a "
+          "non-zero label).",
+    values="Short form: take both inputs' samples as intensities (the shape: --iso V) or as "
+           "label ids (the labels' voxels), as `volwarp distance` does. Default: labels for an "
+           "input that looks like a label map, else intensity.")
 @click.option("--metric", type=click.Choice(_METRICS), default=None,
               help="Short form: distance metric (default euclidean).")
 @click.option("--grid", "grid_choice", type=click.Choice(["source", "target", "union"]),

@@ -487,6 +487,23 @@ def moved_points_options(points: str, points_to: str, mesh: str, mesh_to: str):
     return decorate
 
 
+def shape_values_options(label: str, values: str):
+    """--label N and --values intensity|labels: how a shape is taken from its samples.
+
+    ``distance`` and ``morph`` take a shape as the label rule says
+    (:mod:`volwarp_cli.labelmap`); the two help texts say of which input.
+    """
+    from ..labelmap import VALUES
+
+    def decorate(f):
+        f = click.option("--values", "values", type=click.Choice(VALUES), default=None,
+                         help=values)(f)
+        return click.option("--label", "label", type=int, default=None, metavar="N",
+                            help=label)(f)
+
+    return decorate
+
+
 #: --render-size's default, for every command that renders (mesh, morph, sweep)
 DEFAULT_RENDER_SIZE = "800x600"
 
