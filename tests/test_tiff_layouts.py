@@ -118,6 +118,14 @@ def test_fiji_signed_16_bit_stack_is_read_as_int16(tmp_path):
     vol = _both(path)
     assert vol.data.dtype == np.int16
     np.testing.assert_array_equal(vol.data, signed)
+    # (a stack over 4 GiB is read by box in the file's byte order, ImageJ's big-endian:
+    # the same int16 samples as the whole read's, not float32)
+    from volwarp_cli.io.tiff import calibrate
+
+    big_endian = (signed.astype(np.int32) + 32768).astype(">u2")
+    out = calibrate(big_endian, (-32768.0, 1.0))
+    assert out.dtype == np.int16
+    np.testing.assert_array_equal(out, signed)
 
 
 def test_an_imagej_straight_line_calibration_gives_float32(tmp_path):

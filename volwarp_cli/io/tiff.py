@@ -592,8 +592,11 @@ def _imagej_calibration(ij, dtype: np.dtype, where: str) -> tuple[float, float] 
 
 
 def calibrated_dtype(dtype: np.dtype, calibration: tuple[float, float]) -> np.dtype:
-    """The sample type of calibrated values: int16 for Fiji's signed 16-bit, else float32."""
-    if dtype == np.uint16 and calibration == (-32768.0, 1.0):
+    """The sample type of calibrated values: int16 for Fiji's signed 16-bit, else float32.
+
+    (``dtype`` in either byte order: a big stack's samples are read in the file's.)
+    """
+    if np.dtype(dtype).newbyteorder("=") == np.uint16 and calibration == (-32768.0, 1.0):
         return np.dtype(np.int16)
     return np.dtype(np.float32)
 
