@@ -126,6 +126,30 @@ def test_values_intensity_takes_the_ids_as_numbers(run, tmp_path):
     assert res.code == 2 and "--iso V" in res.stderr
 
 
+@pytest.mark.parametrize("mode", [[], BLOCKS], ids=["memory", "blocks"])
+def test_the_frames_key_records_each_shape_s_choice(run, tmp_path, mode):
+    """``volwarp_morph`` says what each shape was (distance's words), as distance's key does.
+
+    The same map morphed as its labels and as a level of its ids gives other
+    frames: a reader of a frame must be able to tell which it was.
+    """
+    path = _write(tmp_path / "s.nrrd", _boxes(1, 2))
+    notes = {}
+    for name, shape in (("labels", ["--label", "2"]),
+                        ("intensity", ["--iso", "0.5", "--values", "intensity",
+                                       "--max-distance", "4"])):
+        res = run("morph", path, path, "--frames", 2, *shape, *mode,
+                  "-o", tmp_path / f"{name}_{{i}}.nrrd")
+        assert res.code == 0, res.stderr
+        notes[name] = [read_volume(tmp_path / f"{name}_{i}.nrrd").meta["volwarp_morph"]
+                       for i in range(2)]
+        assert notes[name][0] == notes[name][1]
+    assert "source: values=labels label=2" in notes["labels"][0]
+    assert "target: values=labels label=2" in notes["labels"][0]
+    assert "source: iso=0.5 inside=above values=intensity" in notes["intensity"][0]
+    assert "target: iso=0.5 inside=above values=intensity" in notes["intensity"][0]
+
+
 def test_a_spec_says_the_choice_in_its_keys(run, tmp_path):
     """A spec's shape takes values and label; distance's refusals name its keys and line."""
     path = _write(tmp_path / "atlas.nrrd", _atlas())

@@ -100,9 +100,10 @@ def test_frames_by_blocks_are_the_in_memory_frames(shapes, tmp_path, case):
 
     source, target = read_volume(job.source.path), read_volume(job.target.path)
     attrs = {a.name: (read_volume(a.source), read_volume(a.target)) for a in job.attributes}
-    meta = {"volwarp_morph": morph_note(job),
+    prepared = prepare(job, source, target, attrs)
+    meta = {"volwarp_morph": morph_note(job, prepared.rules),
             "who": "test"}
-    for frame in morph_frames(job, prepare(job, source, target, attrs), source, attrs, meta=meta):
+    for frame in morph_frames(job, prepared, source, attrs, meta=meta):
         written = read_volume(tmp_path / f"b_{frame.index}.nrrd")
         assert written.data.dtype == frame.volume.data.dtype
         assert np.array_equal(written.data, frame.volume.data)

@@ -458,11 +458,11 @@ def morph(spec, *, meshes: bool = False) -> list:
         source, target = read_volume(job.source.path), read_volume(job.target.path)
         attributes = {a.name: (read_volume(a.source), read_volume(a.target))
                       for a in job.attributes}
-    meta = {**source_keys(source), "volwarp_morph": morph_note(job),
+    prepared = prepare(job, source, target, attributes)
+    meta = {**source_keys(source), "volwarp_morph": morph_note(job, prepared.rules),
             **_provenance("morph", [job.source.path, job.target.path], spec_path)}
     frames = []
-    for frame in morph_frames(job, prepare(job, source, target, attributes), source,
-                              attributes, meta=meta, meshes=meshes,
+    for frame in morph_frames(job, prepared, source, attributes, meta=meta, meshes=meshes,
                               space=frame_space(source, target)):
         if frame.mesh is not None:
             m = frame.mesh

@@ -49,6 +49,7 @@ class Prepared:
     uncovered: dict
     attributes: dict = field(default_factory=dict)  # name -> (source on grid, target on grid)
     attribute_types: dict = field(default_factory=dict)  # name -> its source's type
+    rules: dict = field(default_factory=dict)  # "source"/"target" -> its shape's rule
 
 
 def prepare(job: MorphJob, source: Volume, target: Volume,
@@ -111,7 +112,7 @@ def prepare_on(job: MorphJob, inputs: dict, attributes: dict, steps: Steps, *,
         morph = Morph(on_grid["source"], on_grid["target"], grid, warp_back=warp_back,
                       warp_fwd=warp_fwd, mode=job.warp_mode)
     prepared = Prepared(morph, grid, matrices["source"], matrices["target"], warp_back,
-                        uncovered)
+                        uncovered, rules=rules)
     for name, pair in attributes.items():
         sa, sb = (onto_grid(samples, header, matrices[side], grid, steps,
                             f"attribute {name} ({side})", outside="nearest")

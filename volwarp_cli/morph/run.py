@@ -49,15 +49,18 @@ class BlocksRefused(VolwarpError):
         self.usage = usage
 
 
-def morph_note(job: MorphJob) -> str:
-    """The frames' ``volwarp_morph`` value: metric, output, band.
+def morph_note(job: MorphJob, rules: dict) -> str:
+    """The frames' ``volwarp_morph`` value: metric, output, band, and each shape's rule.
 
-    The same in memory and by blocks (the frames are the same samples).
+    ``rules``: :attr:`.pipeline.Prepared.rules`, what each shape's field is
+    of (``distance``'s ``volwarp_distance`` words: a label map's voxels, or
+    a level of intensities). The same in memory and by blocks (the frames
+    are the same samples).
     """
     note = f"metric={job.metric} output={job.output}"
     if job.max_distance is not None:
         note += f" max_distance={job.max_distance:g} (each field clamped)"
-    return note
+    return note + "".join(f"; {name}: {rules[name].note()}" for name in ("source", "target"))
 
 
 @dataclass(frozen=True)
@@ -292,7 +295,7 @@ def morph_in_memory(job: MorphJob, source, target, attributes: dict | None = Non
     fields = FrameFields.of(job, prep)
     yield from frames(job, fields, frame_values(job, fields, source.data),
                       frame_writer(outputs, write, How(), by_blocks=False),
-                      meta={"volwarp_morph": morph_note(job), **(meta or {})},
+                      meta={"volwarp_morph": morph_note(job, prep.rules), **(meta or {})},
                       meshes=MeshBlocks() if meshes else None, render=render, space=space)
 
 
@@ -431,7 +434,7 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
                                 planned=how.block is None)
         yield from frames(job, fields, values,
                           frame_writer(outputs, write, on_engine, by_blocks=True),
-                          meta={"volwarp_morph": morph_note(job), **(meta or {})},
+                          meta={"volwarp_morph": morph_note(job, prep.rules), **(meta or {})},
                           meshes=surfaces, render=render,
                           corners=functools.partial(fields.corners, steps.map,
                                                     frame_chunks(grid.shape, per_task,
