@@ -136,8 +136,15 @@ def test_convert_values_decides_the_ids_check_and_pyramid_method_only_the_levels
     res = run(*base, "-o", tmp_path / "a.ome.zarr", "--pyramid-method", "mean",
               "--values", "labels")
     assert res.code == 2 and "would average label ids" in res.stderr, res
-    res = run(*base, "-o", tmp_path / "b.ome.zarr", "--pyramid-method", "mode")
-    assert res.code == 2 and "cannot hold its label ids 300, 1000" in res.stderr, res
+    for method in ("mode", "mean"):  # (mean: the levels averaged as asked, not the ids cut)
+        res = run(*base, "-o", tmp_path / "b.ome.zarr", "--pyramid-method", method)
+        assert res.code == 2 and "cannot hold its label ids 300, 1000" in res.stderr, res
+    ramp = (np.arange(512, dtype=np.int16).reshape(8, 8, 8) - 100)  # intensities: mode's
+    write_volume(Volume(ramp), tmp_path / "ramp.nrrd")             # levels, clipped samples
+    res = run("convert", tmp_path / "ramp.nrrd", "--pyramid", "1", "--dtype", "uint8",
+              "--pyramid-method", "mode", "-o", tmp_path / "r.ome.zarr")
+    assert res.code == 0, res
+    assert read_volume(tmp_path / "r.ome.zarr").data.max() == 255
     res = run(*base, "-o", tmp_path / "c.ome.zarr", "--pyramid-method", "mode",
               "--values", "intensity")  # (the way out the refusal names, taken)
     assert res.code == 0, res

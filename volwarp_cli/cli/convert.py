@@ -130,9 +130,11 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
     elif labels == "auto" and segmentation_of(vol.meta):  # (a SEG's ids whatever they look like)
         labels = True
     if dtype is not None and dtype != vol.dtype.name:
-        # --values decides, else --pyramid-method's mode (labels) or mean (intensities)
+        # --values decides, else the label rule: --pyramid-method makes the coarser levels
+        # only (a label map's `mean` levels are asked for; its ids 300 and 1000 clipped to
+        # 255 in the full-resolution level were not)
         keep_label_ids(vol.data, dtype, str(input),
-                       labels if values is None else values == "labels", vol.meta)
+                       "auto" if values is None else values == "labels", vol.meta)
     _check_write_memory(vol, output, dtype, compress, byte_order, labels, ome_zarr)
     with timed(f"write {output}"):  # (its key/values kept, the provenance of its samples too)
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
