@@ -49,7 +49,7 @@ def euler_file(path, initial="NoInitialTransform"):
     return e
 
 
-def bspline_file(path, initial):
+def bspline_file(path, initial, grid_index=(0, 0, 0)):
     ref = sitk.Image(GRID["Size"], sitk.sitkFloat32)
     ref.SetSpacing(GRID["Spacing"])
     ref.SetOrigin(GRID["Origin"])
@@ -58,11 +58,13 @@ def bspline_file(path, initial):
     rng = np.random.default_rng(3)
     b.SetParameters(rng.normal(0, 0.8, len(b.GetParameters())).tolist())
     fixed = np.asarray(b.GetFixedParameters())
+    # (transformix: the coefficients start at GridIndex of a grid whose index 0 is GridOrigin)
+    grid_origin = fixed[3:6] - fixed[9:18].reshape(3, 3) @ (fixed[6:9] * np.asarray(grid_index))
     path.write_text(header("BSplineTransform", len(b.GetParameters()), initial)
                     + f"(TransformParameters {numbers(b.GetParameters())})\n"
                     + f"(GridSize {' '.join(str(int(v)) for v in fixed[:3])})\n"
-                    + "(GridIndex 0 0 0)\n"
-                    + f"(GridOrigin {numbers(fixed[3:6])})\n"
+                    + f"(GridIndex {' '.join(str(int(v)) for v in grid_index)})\n"
+                    + f"(GridOrigin {numbers(grid_origin)})\n"
                     + f"(GridSpacing {numbers(fixed[6:9])})\n"
                     + f"(GridDirection {numbers(fixed[9:18].reshape(3, 3).T.ravel())})\n"
                     + "(BSplineTransformSplineOrder 3)\n"
@@ -70,9 +72,13 @@ def bspline_file(path, initial):
     return b
 
 
-def test_chain_through_initial_transforms(tmp_path, monkeypatch):
+@pytest.mark.parametrize("grid_index", [(0, 0, 0), (1, 2, -1)])
+def test_chain_through_initial_transforms(tmp_path, monkeypatch, grid_index):
+    """An initial transform first; a B-spline grid's non-zero GridIndex as transformix takes it
+    (it was ignored: 3.07 mm off transformix's field for GridIndex 1 1 1)."""
     e = euler_file(tmp_path / "TransformParameters.0.txt")
-    b = bspline_file(tmp_path / "TransformParameters.1.txt", "./TransformParameters.0.txt")
+    b = bspline_file(tmp_path / "TransformParameters.1.txt", "./TransformParameters.0.txt",
+                     grid_index)
     monkeypatch.chdir(tmp_path.parent)  # (not where elastix ran: found beside the file)
     chain = read_chain([str(tmp_path / "TransformParameters.1.txt")])
     assert len(chain.steps) == 2

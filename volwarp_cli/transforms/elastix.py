@@ -121,10 +121,14 @@ def _step(doc: dict, where: str):
                                "supported")
         if _word(doc, "UseCyclicTransform", "false").lower() == "true":
             raise VolwarpError(f"{where}: a cyclic B-spline transform is not supported")
-        fixed = [*_numbers(doc, "GridSize", 3, where), *_numbers(doc, "GridOrigin", 3, where),
-                 *_numbers(doc, "GridSpacing", 3, where),
-                 *_column_major(_numbers(doc, "GridDirection", 9, where,
-                                         np.eye(3).ravel())).ravel()]
+        spacing = _numbers(doc, "GridSpacing", 3, where)
+        direction = _column_major(_numbers(doc, "GridDirection", 9, where, np.eye(3).ravel()))
+        # (transformix's coefficients start at GridIndex of a grid whose index 0 lies at
+        # GridOrigin: ITK's grid origin is that node's point; a non-zero index, 3 mm off when
+        # ignored, comes from files other tools or hands wrote)
+        index = _numbers(doc, "GridIndex", 3, where, [0, 0, 0])
+        origin = _numbers(doc, "GridOrigin", 3, where) + direction @ (spacing * index)
+        fixed = [*_numbers(doc, "GridSize", 3, where), *origin, *spacing, *direction.ravel()]
     return itk_transform(_CLASSES[kind], params, fixed, where)
 
 
