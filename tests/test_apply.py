@@ -649,14 +649,17 @@ def test_nan_vectors_map_outside_as_in_itk_and_are_said(run, inputs, monkeypatch
     assert res.stderr.count(said) == 1 and "fill the vectors (0 is no displacement)" in res.stderr
     ours = read_volume(inputs / "o.nrrd").data
     # the same field without its NaN: the same voxels but those whose trilinear support
-    # holds the NaN vector, which map outside the input (the background)
+    # holds the NaN vector, which map outside the input (the background). The output's
+    # voxels lie on the field's nodes, but for its NIfTI header's float32 origin (1e-6
+    # voxel off): a voxel that close to a finite node takes that node's vector, not 1e-6
+    # of the NaN beside it (which sent all 8 neighbours to the background)
     write_field(inputs / "clean.nii.gz", smooth_vectors(vol.data.shape), vol.origin)
     assert run("apply", inputs / "in.nrrd", "-o", inputs / "c.nrrd", "-t",
                inputs / "clean.nii.gz", "--background-value", "-7").code == 0
     clean = read_volume(inputs / "c.nrrd").data
-    changed = ours != clean
-    assert 0 < np.count_nonzero(changed) <= 8 and (ours[changed] == -7.0).all()
-    assert changed[7, 9, 13]
+    lost = (ours == -7.0) & (clean != -7.0)
+    assert np.argwhere(lost).tolist() == [[7, 9, 13]]
+    np.testing.assert_allclose(ours[~lost], clean[~lost], rtol=0, atol=1e-4 * np.ptp(clean))
 
 
 def test_nan_vectors_the_output_never_reaches_ignored(run, inputs):

@@ -701,6 +701,41 @@ fail:
     return NULL;
 }
 
+/* A point this near a node along an axis (in voxels) does not take a non-finite vector
+ * from the node on the other side: a field's grid and the points' grid that are the same
+ * grid, read back from headers of float32 numbers (a NIfTI's origin), lie up to about
+ * 1e-5 voxel apart, and a NaN node (no preimage, as `warp --grid grow` exports) one voxel
+ * beyond the finite ones took every point on that face to the background with a weight
+ * of 1e-6. Finite neighbours are weighed as always (the same bytes). */
+#define NEAR_NODE 1e-4
+
+/* The corner values n8 where one is not finite: along each axis, a point within NEAR_NODE
+ * of a node takes that side's values for both (the other side's weight is below it). */
+static void near_nodes(double n8[2][2][2], double dz, double dy, double dx)
+{
+    for (int a = 0; a < 2; a++)
+        for (int b = 0; b < 2; b++) {
+            if (dx < NEAR_NODE)
+                n8[a][b][1] = n8[a][b][0];
+            else if (dx > 1 - NEAR_NODE)
+                n8[a][b][0] = n8[a][b][1];
+        }
+    for (int a = 0; a < 2; a++)
+        for (int c = 0; c < 2; c++) {
+            if (dy < NEAR_NODE)
+                n8[a][1][c] = n8[a][0][c];
+            else if (dy > 1 - NEAR_NODE)
+                n8[a][0][c] = n8[a][1][c];
+        }
+    for (int b = 0; b < 2; b++)
+        for (int c = 0; c < 2; c++) {
+            if (dz < NEAR_NODE)
+                n8[1][b][c] = n8[0][b][c];
+            else if (dz > 1 - NEAR_NODE)
+                n8[0][b][c] = n8[1][b][c];
+        }
+}
+
 /* The grid's map: world to index (inv, origin), the whole grid's sizes (n, x y z) and the
  * window's first index (offset). */
 typedef struct {
@@ -736,12 +771,16 @@ typedef struct {
             int64_t z1 = clamp(az.b1 - f->offset[2], 0, v->nz - 1);                          \
             double u[3];                                                                      \
             for (int c = 0; c < 3; c++) {                                                     \
-                const double n8[2][2][2] = {                                                  \
+                double n8[2][2][2] = {                                                        \
                     {{AT(v, T, z0, y0, x0, c), AT(v, T, z0, y0, x1, c)},                      \
                      {AT(v, T, z0, y1, x0, c), AT(v, T, z0, y1, x1, c)}},                     \
                     {{AT(v, T, z1, y0, x0, c), AT(v, T, z1, y0, x1, c)},                      \
                      {AT(v, T, z1, y1, x0, c), AT(v, T, z1, y1, x1, c)}}};                    \
                 u[c] = trilinear(n8, az.d, ay.d, ax.d);                                       \
+                if (!(fabs(u[c]) < INFINITY)) { /* a non-finite node: maybe one left out */   \
+                    near_nodes(n8, az.d, ay.d, ax.d);                                         \
+                    u[c] = trilinear(n8, az.d, ay.d, ax.d);                                   \
+                }                                                                             \
             }                                                                                 \
             out[3 * i] = px + u[0];                                                           \
             out[3 * i + 1] = py + u[1];                                                       \
