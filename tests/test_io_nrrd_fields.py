@@ -303,3 +303,38 @@ def test_a_key_the_header_cannot_hold_is_dropped_with_a_warning(tmp_path, ext, k
     assert np.array_equal(back.data, np.arange(8, dtype=np.uint8).reshape(2, 2, 2))
     said = [r.getMessage() for r in records if repr(key) in r.getMessage()]
     assert len(said) == 1 and "not written" in said[0]
+
+
+@pytest.mark.parametrize("fields, components", [
+    ("kinds: RGB-color domain domain\nspacings: nan 0.5 0.5", 3),
+    ("kinds: domain domain list\nspacings: 0.5 0.5 nan", 5),
+    ("kinds: vector domain domain\nspace dimension: 2\nspace directions: none (0.5,0) (0,0.5)",
+     3),
+], ids=["rgb", "list", "none-direction"])
+def test_a_2d_image_of_components_is_refused_not_read_as_a_volume(tmp_path, run, fields,
+                                                                    components):
+    """A 3-D NRRD with a non-spatial axis is a 2-D image of several components per pixel
+    (ITK reads it so: 5x4 pixels of 3 components); its components were read as the x axis,
+    spacing 1, exit 0. Refused whole and by box alike, nothing written."""
+    from volwarp_cli.io.lazy import open_volume_lazy
+
+    data = (np.arange(60) % 256).astype(np.uint8)
+    path = tmp_path / "image.nrrd"
+    path.write_bytes(f"NRRD0004\ntype: uchar\ndimension: 3\nsizes: 3 4 5\nencoding: raw\n"
+                     f"{fields}\n\n".encode() + data.tobytes())
+    image = sitk.ReadImage(str(path))  # (ITK: a 2-D image of components)
+    assert image.GetDimension() == 2 and image.GetNumberOfComponentsPerPixel() == components
+    for read in (read_volume, open_volume_lazy):
+        with pytest.raises(FormatError, match="a 2-D image with components per pixel"):
+            read(path)
+    res = run("convert", path, "-o", tmp_path / "out.nii.gz")
+    assert res.code == 1 and "a 2-D image with components" in res.stderr
+    assert not (tmp_path / "out.nii.gz").exists()
+
+
+@pytest.mark.parametrize("kinds", ["domain domain domain", "space space space", "??? ??? ???",
+                                   "none none none"])
+def test_spatial_kinds_of_a_3d_nrrd_still_read(tmp_path, kinds):
+    path = tmp_path / "v.nrrd"
+    path.write_bytes(_header("raw", f"kinds: {kinds}\n") + DATA.astype("<i2").tobytes())
+    assert np.array_equal(read_volume(path).data, DATA)

@@ -257,6 +257,8 @@ def _nrrd(path: Path, copy: str, *, vectors: tuple | None = None):
                 raise NotLazy("components neither interleaved nor in planes")
         elif dim != 3:
             raise NotLazy("only 3-D files are mapped")
+        else:  # (a 2-D image of components is refused as the whole read refuses it)
+            nrrd._component_axis(fields, dim, sizes, where)
         type_name = fields["type"].lower()
         if type_name not in nrrd._TYPES:
             raise NotLazy("unknown type")

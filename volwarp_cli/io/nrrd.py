@@ -555,9 +555,26 @@ def _measurement_frame_lps(fields: dict[str, str], space: str, where: str) -> st
     return " ".join(_vec(frame[:, a]) for a in range(3))
 
 
+#: NRRD ``kinds`` of an axis that may be a volume's: a domain (or unknown, or none said)
+_SPATIAL_KINDS = ("domain", "space", "???", "none")
+
+
 def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: str):
-    """The index of the one non-spatial axis of a 4-D header (None for 3-D)."""
+    """The index of the one non-spatial axis of a 4-D header (None for 3-D).
+
+    A 3-D header with a non-spatial axis (``kinds: RGB-color domain domain``,
+    a ``none`` space direction) is a 2-D image of several components per
+    pixel, as ITK reads it: refused (its components were read as an x axis).
+    """
     if dim == 3:
+        kinds = fields.get("kinds", "").lower().split()
+        entries = fields.get("space directions", "").lower().split()
+        other = ([k for k in kinds if k not in _SPATIAL_KINDS] if len(kinds) == 3 else []) \
+            or ["none"] * entries.count("none")
+        if other:
+            raise FormatError(f"{where}: a 2-D image with components per pixel ('kinds: "
+                              f"{fields.get('kinds', '')}', sizes {sizes}), not a volume: "
+                              "volwarp reads 3-D volumes")
         return None
     if dim == 4:
         entries = fields.get("space directions", "").split()
