@@ -70,8 +70,9 @@ def _same_triangles(mesh: Mesh, points: np.ndarray, faces: np.ndarray):
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_independent_readers_agree(blob, tmp_path, fmt):
     path = tmp_path / f"blob.{fmt}"
-    # provenance comments (with awkward characters) must not disturb any reader
-    write_mesh(blob, path, comments={"volwarp_input": "a b--c.nrrd", "volwarp_iso": "0.5"})
+    # provenance comments (with awkward characters) must not disturb any reader, nor fail
+    # the write (a non-ASCII file name failed PLY and VTP writes: UnicodeEncodeError)
+    write_mesh(blob, path, comments={"volwarp_input": "a b--c Läsion.nrrd", "volwarp_iso": "0.5"})
     for reader in READERS[fmt]:
         points, faces = reader(str(path))
         assert len(faces) == blob.n_faces, reader.__name__
@@ -84,6 +85,11 @@ def test_independent_readers_agree(blob, tmp_path, fmt):
         else:
             assert len(points) == blob.n_vertices, reader.__name__
         _same_triangles(blob, points, faces)
+    if fmt == "ply":  # (and volwarp's own reader: --mesh-in)
+        from volwarp_cli.surface.mesh_io import read_mesh
+
+        back = read_mesh(path)
+        _same_triangles(blob, back.vertices, back.faces)
 
 
 @pytest.mark.parametrize("fmt", ["ply", "obj", "vtp", "vtk"])

@@ -112,7 +112,9 @@ def _write_ply(mesh: Mesh, fh, notes: list[str]) -> None:
         header += ["property float nx", "property float ny", "property float nz"]
     header += [f"element face {mesh.n_faces}", "property list uchar int vertex_indices",
                "end_header"]
-    fh.write(("\n".join(header) + "\n").encode("ascii"))
+    # (a PLY header is ASCII, as plyfile reads it: a comment's other characters, a file
+    # name's "ä", are written as Python's escapes, "\\xe4", never a failed write)
+    fh.write(("\n".join(header) + "\n").encode("ascii", "backslashreplace"))
 
     def vertices(buf, a, b):
         buf[:, :3] = mesh.vertices[a:b]
@@ -232,7 +234,7 @@ def _write_vtp(mesh: Mesh, fh, notes: list[str]) -> None:
         "  </PolyData>\n"
         '  <AppendedData encoding="raw">\n   _'
     )
-    fh.write(xml.encode("ascii"))
+    fh.write(xml.encode("utf-8"))  # (XML's default encoding: a comment's file name "ä")
     for _, _, nbytes, write in arrays:
         fh.write(np.uint64(nbytes).astype("<u8").tobytes())
         write()
