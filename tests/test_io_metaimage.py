@@ -117,7 +117,7 @@ def test_geometry_synonyms_and_element_size_as_itk_reads_them(tmp_path):
     cases = [
         "Origin = 1 2 3\nRotation = 0 1 0 -1 0 0 0 0 1\nElementSize = 2 3 4\n",
         "Position = 1 2 3\nOrientation = 0 0 1 0 1 0 -1 0 0\n",
-        "Offset = 9 9 9\nOrigin = 4 5 6\nElementSize = 2 3 4\nElementSpacing = 5 6 7\n",
+        "Offset = 4 5 6\nOrigin = 4.0 5 6e0\nElementSize = 2 3 4\nElementSpacing = 5 6 7\n",
     ]
     for n, fields in enumerate(cases):
         path = _header(tmp_path, f"syn{n}.mha", fields, payload)
@@ -127,6 +127,37 @@ def test_geometry_synonyms_and_element_size_as_itk_reads_them(tmp_path):
         np.testing.assert_array_equal(vol.origin, itk.GetOrigin())
         np.testing.assert_array_equal(vol.direction.ravel(), itk.GetDirection())
         np.testing.assert_array_equal(vol.data, sitk.GetArrayFromImage(itk))
+
+
+@pytest.mark.parametrize("fields, itk_takes", [
+    ("TransformMatrix = 0 1 0 -1 0 0 0 0 1\nRotation = 1 0 0 0 1 0 0 0 1\n", "direction"),
+    ("Origin = 1 2 3\nOffset = 4 5 6\n", "origin"),
+    ("Offset = 4 5 6\nPosition = 7 8 9\n", "origin"),
+], ids=["TransformMatrix-Rotation", "Origin-Offset", "Offset-Position"])
+def test_synonyms_that_disagree_are_refused(tmp_path, fields, itk_takes):
+    """ITK takes TransformMatrix over Rotation, Origin over Offset over Position, whatever
+    their order; volwarp took the last one: another grid, exit 0. The header contradicts
+    itself: refused, naming both fields."""
+    path = _header(tmp_path, "two.mha", fields, bytes(range(24)))
+    itk = sitk.ReadImage(str(path))
+    last = {"direction": np.eye(3).ravel(), "origin": [7, 8, 9] if "Position" in fields
+            else [4, 5, 6]}[itk_takes]
+    got = itk.GetDirection() if itk_takes == "direction" else itk.GetOrigin()
+    assert not np.allclose(got, last)  # (ITK did not take the last one)
+    first, second = (line.split(" = ")[0] for line in fields.splitlines())
+    with pytest.raises(FormatError, match=f"gives {first} = .* and {second} = .*disagree"):
+        read_metaimage(path)
+
+
+def test_byte_order_synonyms_that_disagree_are_refused(tmp_path):
+    payload = np.arange(24, dtype=">u2").tobytes()
+    path = _header(tmp_path, "msb.mha", "BinaryDataByteOrderMSB = True\n"
+                   "ElementByteOrderMSB = False\n", payload, etype="MET_USHORT")
+    with pytest.raises(FormatError, match="BinaryDataByteOrderMSB = True and "
+                                          "ElementByteOrderMSB = False"):
+        read_metaimage(path)
+    path.write_bytes(path.read_bytes().replace(b"MSB = False", b"MSB = 1    "))
+    assert np.array_equal(read_metaimage(path).data.ravel(), np.arange(24))
 
 
 def test_anatomical_orientation_is_kept_only_when_it_disagrees_and_is_not_geometry(tmp_path):

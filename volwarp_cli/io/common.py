@@ -410,3 +410,8 @@ def dicom_read_options(series=None, irregular=None, duplicates=None, keep_shear=
         if flag:
             given[key] = True
     return given or None
+
+
+def short_text(text: str, n: int = 60) -> str:
+    """``text`` cut to ``n`` characters for a one-line message (a header's value)."""
+    return text if len(text) <= n else text[:n - 3] + "..."

@@ -381,9 +381,7 @@ def _metaimage(path: Path, copy: str, *, vectors: tuple | None = None):
     with open(path, "rb") as fh:
         pairs = mi.read_header(fh, where)
         header_end = fh.tell()
-    fields = {}
-    for key, value in pairs:
-        fields[mi._SYNONYMS.get(key, key)] = (key, value)
+    fields = mi.header_fields(pairs, where)
     for req in ("NDims", "DimSize", "ElementType"):
         if req not in fields:
             raise NotLazy(f"no '{req}' field")

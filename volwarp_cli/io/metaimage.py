@@ -12,8 +12,8 @@ Geometry is ITK's: ``TransformMatrix`` (synonyms ``Rotation``, ``Orientation``)
 holds the direction *columns* one after the other (its first three numbers are
 the unit vector of index axis i), ``Offset`` (``Origin``, ``Position``) the
 world position of voxel (0, 0, 0) and ``ElementSpacing`` (else ``ElementSize``,
-as ITK falls back) the spacing; all in LPS, volwarp's own frame, so no
-conversion. Field names are case-sensitive, as in MetaIO. ``AnatomicalOrientation``
+as ITK falls back) the spacing (synonyms that disagree are refused); all in LPS,
+volwarp's own frame, so no conversion. Field names are case-sensitive, as in MetaIO. ``AnatomicalOrientation``
 is not geometry (ITK ignores it on read): volwarp writes the one ITK would
 compute from the direction (``RAI`` for the identity), and on read keeps a
 file's value in ``meta`` only where it disagrees with that.
@@ -52,6 +52,7 @@ from .common import (
     read_data_files,
     read_exact,
     read_gzip_exact,
+    short_text,
     with_byte_order,
     write_samples,
     write_with_header,
@@ -67,7 +68,7 @@ _TYPES = {
 _WRITE_TYPES = {"uint8": "MET_UCHAR", "int8": "MET_CHAR", "uint16": "MET_USHORT",
                 "int16": "MET_SHORT", "uint32": "MET_UINT", "int32": "MET_INT",
                 "float32": "MET_FLOAT", "float64": "MET_DOUBLE"}
-#: header names that mean the same field (the last one in the file wins, as in ITK)
+#: header names that mean the same field (two that disagree: :func:`header_fields`)
 _SYNONYMS = {"Origin": "Offset", "Position": "Offset", "Rotation": "TransformMatrix",
              "Orientation": "TransformMatrix", "ElementByteOrderMSB": "BinaryDataByteOrderMSB"}
 #: fields that describe the layout or geometry: read here, written by volwarp itself
@@ -85,6 +86,35 @@ PREFIX = "MetaImage_"
 _MAX_HEADER_LINES = 100_000
 _TRUE = ("true", "1")
 _FALSE = ("false", "0")
+
+
+def header_fields(pairs, where: str) -> dict[str, tuple[str, str]]:
+    """The header's ``(key, value)`` pairs by field: canonical key -> (name in file, value).
+
+    Synonyms (:data:`_SYNONYMS`) that disagree are refused: ITK takes
+    TransformMatrix, Origin, BinaryDataByteOrderMSB over the others whatever
+    their order, other readers the last one; such a header means two grids.
+    """
+    fields: dict[str, tuple[str, str]] = {}
+    for key, value in pairs:
+        canonical = _SYNONYMS.get(key, key)
+        known = fields.get(canonical)
+        if known is not None and known[0] != key and not _same_value(known[1], value):
+            raise FormatError(f"{where}: the header gives {known[0]} = {short_text(known[1])} "
+                              f"and {key} = {short_text(value)}, names of one field that "
+                              "disagree (tools read one or the other): keep one")
+        fields[canonical] = (key, value)
+    return fields
+
+
+def _same_value(a: str, b: str) -> bool:
+    """Whether two synonyms' values say the same: the same numbers, or the same truth."""
+    try:
+        return [float(v) for v in a.split()] == [float(v) for v in b.split()]
+    except ValueError:
+        pass
+    a, b = a.strip().lower(), b.strip().lower()
+    return a == b or (a in _TRUE and b in _TRUE) or (a in _FALSE and b in _FALSE)
 
 
 _FIRST_LINE = re.compile(rb"\s*[A-Za-z_][A-Za-z0-9_]*[ \t]*=")
@@ -210,9 +240,7 @@ def _read_metaimage(path, volume_index, every: bool = False):
     where = str(path)
     with open_input(path, where) as fh:
         pairs = read_header(fh, where)
-        fields: dict[str, tuple[str, str]] = {}  # canonical key -> (name in file, value)
-        for key, value in pairs:
-            fields[_SYNONYMS.get(key, key)] = (key, value)
+        fields = header_fields(pairs, where)
         for req in ("NDims", "DimSize", "ElementType"):
             if req not in fields:
                 raise FormatError(f"{where}: header has no '{req}' field")

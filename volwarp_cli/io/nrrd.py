@@ -43,6 +43,7 @@ from .common import (
     read_data_files,
     read_exact,
     read_gzip_exact,
+    short_text,
     with_byte_order,
     write_samples,
     write_with_header,
@@ -110,11 +111,7 @@ def _parse_vector(text: str, where: str, name: str) -> list[float]:
     try:
         return [float(v) for v in text.split(",")]
     except ValueError:
-        raise FormatError(f"{where}: '{name}': cannot read vector ({_short(text)})") from None
-
-
-def _short(text: str, n: int = 60) -> str:
-    return text if len(text) <= n else text[:n - 3] + "..."
+        raise FormatError(f"{where}: '{name}': cannot read vector ({short_text(text)})") from None
 
 
 def _numbers(fields: dict[str, str], name: str, where: str) -> list[float]:
@@ -123,7 +120,7 @@ def _numbers(fields: dict[str, str], name: str, where: str) -> list[float]:
         return [float(v) for v in fields[name].split()]
     except ValueError:
         raise FormatError(f"{where}: '{name}' must be numbers, got "
-                          f"{_short(fields[name])!r}") from None
+                          f"{short_text(fields[name])!r}") from None
 
 
 def _whole(fields: dict[str, str], names: tuple[str, ...], where: str, default: int = 0,
@@ -136,7 +133,7 @@ def _whole(fields: dict[str, str], names: tuple[str, ...], where: str, default: 
                 value = int(text)
             except ValueError:
                 raise FormatError(f"{where}: '{name}' must be a whole number, got "
-                                  f"{_short(text)!r}") from None
+                                  f"{short_text(text)!r}") from None
             if value < minimum:
                 raise FormatError(f"{where}: '{name}' must be at least {minimum}, got {value}")
             return value
@@ -279,7 +276,7 @@ def _axis_values(fields: dict[str, str], names: tuple[str, ...], dim: int, where
                                   f"is {dim}")
             if any(np.isinf(v) for v in vals):
                 raise FormatError(f"{where}: '{name}' must be finite (or nan), got "
-                                  f"{_short(fields[name])!r}")
+                                  f"{short_text(fields[name])!r}")
             return vals
     return None
 
@@ -550,7 +547,7 @@ def _measurement_frame_lps(fields: dict[str, str], space: str, where: str) -> st
                for m in _VECTOR.finditer(text)]
     if len(vectors) != 3 or any(len(v) != 3 for v in vectors):
         raise FormatError(f"{where}: 'measurement frame' must be 3 vectors of 3 numbers, got "
-                          f"{_short(text)!r}")
+                          f"{short_text(text)!r}")
     frame = to_lps @ np.array(vectors, dtype=np.float64).T  # columns are the vectors
     return " ".join(_vec(frame[:, a]) for a in range(3))
 
@@ -685,7 +682,7 @@ def _hex_bytes(text: bytes, nbytes: int, where: str) -> bytes:
     except ValueError:
         bad = next((c for c in text.decode("latin-1").split() if not _is_hex(c)), "?")
         raise FormatError(f"{where}: hex data is not pairs of hex digits (near "
-                          f"{_short(bad, 20)!r})") from None
+                          f"{short_text(bad, 20)!r})") from None
     if len(data) != nbytes:
         what = "truncated" if len(data) < nbytes else "too long"
         raise FormatError(f"{where}: hex data is {what}: expected {nbytes} bytes of samples, "
