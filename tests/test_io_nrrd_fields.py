@@ -338,3 +338,22 @@ def test_spatial_kinds_of_a_3d_nrrd_still_read(tmp_path, kinds):
     path = tmp_path / "v.nrrd"
     path.write_bytes(_header("raw", f"kinds: {kinds}\n") + DATA.astype("<i2").tobytes())
     assert np.array_equal(read_volume(path).data, DATA)
+
+
+def test_spaces_inside_vectors_are_read_as_itk_reads_them(tmp_path):
+    """``(0.5, 0, 0)``: ITK (teem) reads a vector with spaces after its commas; volwarp
+    refused it ("'space directions' has 9 entries")."""
+    from volwarp_cli.io.lazy import open_volume_lazy
+
+    path = tmp_path / "v.nrrd"
+    path.write_bytes(
+        b"NRRD0004\ntype: short\ndimension: 3\nsizes: 3 4 5\nendian: little\nencoding: raw\n"
+        b"space: RAS\nspace directions: ( 0.5, 0, 0 ) (0, 0.7,0) (0,0, 1.1)\n"
+        b"space origin: (1, 2, 3)\nmeasurement frame: (1, 0, 0) (0, 1, 0) (0, 0, 1)\n\n"
+        + DATA.astype("<i2").tobytes())
+    itk = sitk.ReadImage(str(path))
+    for vol in (read_volume(path), open_volume_lazy(path)[0]):  # (the whole, the header)
+        np.testing.assert_allclose(vol.spacing, itk.GetSpacing())
+        np.testing.assert_allclose(vol.origin, itk.GetOrigin())
+        np.testing.assert_allclose(vol.direction.ravel(), itk.GetDirection())
+    assert np.array_equal(read_volume(path).data, sitk.GetArrayFromImage(itk))

@@ -80,6 +80,8 @@ _FIELDS = frozenset((
     "centerings", "labels", "units", "kinds", "space", "space dimension", "space units",
     "space origin", "space directions", "measurement frame"))
 _VECTOR = re.compile(r"\(([^()]*)\)")
+#: the fields of vectors, "(x,y,z)", whose entries are the words between spaces
+_VECTOR_FIELDS = ("space directions", "space origin", "measurement frame")
 #: teem's escapes in key/value pairs (what ITK and Slicer write): \\ and \n
 _ESCAPE = re.compile(r"\\([\\n])")
 
@@ -177,6 +179,8 @@ def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
         name = name.strip().lower()
         if name in ("data file", "datafile"):  # (a file name: its bytes, as they are)
             value = header_name(raw).rstrip("\r\n").split(": ", 1)[1]
+        if name in _VECTOR_FIELDS:  # ("(0.5, 0, 0)": teem and ITK read spaces in a vector)
+            value = _VECTOR.sub(lambda m: "(" + "".join(m.group(1).split()) + ")", value)
         fields[name] = value.strip()
         if name in ("data file", "datafile") and value.split()[:1] == ["LIST"]:
             listing = True
