@@ -355,5 +355,5 @@ def test_spaces_inside_vectors_are_read_as_itk_reads_them(tmp_path):
     for vol in (read_volume(path), open_volume_lazy(path)[0]):  # (the whole, the header)
         np.testing.assert_allclose(vol.spacing, itk.GetSpacing())
         np.testing.assert_allclose(vol.origin, itk.GetOrigin())
-        np.testing.assert_allclose(vol.direction.ravel(), itk.GetDirection())
+        np.testing.assert_allclose(np.ravel(vol.direction), itk.GetDirection())
     assert np.array_equal(read_volume(path).data, sitk.GetArrayFromImage(itk))
