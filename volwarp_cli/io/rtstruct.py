@@ -21,10 +21,16 @@ slice by slice:
 - even-odd: a voxel centre is inside when a ray from it crosses the slice's
   closed contours of the ROI an odd number of times, so holes and islands are
   what the contours make them, whichever way round they are drawn;
-- a voxel centre on a contour (within 1e-3 voxel, measured in voxel units of the
-  slice) is inside: contours drawn through the boundary voxels' centres
-  (rt-utils' habit), 1-point (POINT, or one vertex) and 2-point contours, and
-  OPEN_PLANAR polylines give exactly the voxels they pass through.
+- a voxel centre on a closed contour (within 1e-3 voxel, measured in voxel
+  units of the slice) is inside: contours drawn through the boundary voxels'
+  centres (rt-utils' habit) give exactly the voxels they pass through;
+- a 1-point contour (POINT, or one vertex) gives the voxel holding it (rint of
+  its index), and a polyline (OPEN_PLANAR, or a 2-point contour) the voxels it
+  passes through, one per step along its major axis (:func:`_mark_nearest`):
+  a marker or a line off the voxel centres is not lost.
+
+An ROI with contours that still holds no voxel (a closed contour round no
+voxel centre) is said in a warning naming it: its key/value lists it.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BadUsage, FormatError, VolwarpError
+from ..progress import log
 from ..volume import LPS, Volume
 from .common import make_volume
 from .segment_keys import label_descriptions, roi_colour, roi_colours, roi_keys
@@ -163,6 +170,10 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
         if contours and only is None:
             _check_label(number, names, where)
         mask = RoiMask.of(number, names.get(number, ""), contours, grid.shape)
+        if contours and not mask.count:
+            log.warning("warning: %s: %s has %d contour(s) but holds no voxel centre of "
+                        "--reference %s (drawn smaller than a voxel?): it has no voxels in "
+                        "the output", where, label, len(contours), ref.path)
         if only is not None:
             out[mask.slices()][mask.mask] = 1
             continue
@@ -443,22 +454,21 @@ _FILL_CELLS = 1 << 20
 
 def _rasterize_slab(mask: np.ndarray, contours, tol: float) -> None:
     """:func:`rasterize` into ``mask`` (all False), its contours' ``k`` counted from its first slice."""
-    edges, segments = [], []  # (k, a, b): slice and end points of edges a -> b
+    rings, lines = [], []  # (k, a, b): slice and end points of edges a -> b
     for k, pts, closed in contours:
         pts = np.asarray(pts, np.float64)
-        ring = bool(closed) and len(pts) >= 3
-        if ring:
-            edges.append((k, pts, np.roll(pts, -1, axis=0)))
-        if len(pts) == 1:
-            segments.append((k, pts, pts))
+        if bool(closed) and len(pts) >= 3:
+            rings.append((k, pts, np.roll(pts, -1, axis=0)))
+        elif len(pts) == 1:  # (a point: a segment of no length, its nearest centre)
+            lines.append((k, pts, pts))
         else:
-            segments.append((k, pts[:-1], pts[1:]))
-            if ring:
-                segments.append((k, pts[-1:], pts[:1]))
-    if edges:
-        _even_odd(mask, *_stacked(edges))
-    if segments:
-        _mark_on_segments(mask, *_stacked(segments), tol)
+            lines.append((k, pts[:-1], pts[1:]))
+    if rings:
+        ring_edges = _stacked(rings)
+        _even_odd(mask, *ring_edges)
+        _mark_on_segments(mask, *ring_edges, tol)
+    if lines:
+        _mark_nearest(mask, *_stacked(lines))
 
 
 def _stacked(parts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -528,6 +538,41 @@ def _mark_on_segments(mask: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndar
     near = a[seg] + p[:, None] * ds
     dist = np.hypot(*(near - c).T)
     ok = (dist <= tol) & (c[:, 0] >= 0) & (c[:, 0] < nx) & (c[:, 1] >= 0) & (c[:, 1] < ny)
+    mask[k[seg[ok]], c[ok, 1].astype(np.int64), c[ok, 0].astype(np.int64)] = True
+
+
+def _mark_nearest(mask: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+    """Set the voxels of ``mask`` [z, y, x] a segment a->b on slice k passes through, one per step.
+
+    Nearest-centre rasterisation (a DDA line): along the segment's major axis
+    (x when |dx| >= |dy|), every index t from rint of one end to rint of the
+    other gets the voxel holding the segment's point at t (the end point where
+    t lies beyond it), i.e. minor index rint of that point's. A segment of no
+    length (a POINT) gives the voxel holding it. Voxels off the grid are left out.
+    """
+    _, ny, nx = mask.shape
+    d = b - a
+    major = (np.abs(d[:, 1]) > np.abs(d[:, 0])).astype(np.int64)  # 0: x, 1: y
+    idx = np.arange(len(a))
+    am, bm = a[idx, major], b[idx, major]
+    size = np.where(major == 0, nx, ny)
+    t0 = np.clip(np.rint(np.minimum(am, bm)), -1, size).astype(np.int64)
+    t1 = np.clip(np.rint(np.maximum(am, bm)), -1, size).astype(np.int64)
+    t0, t1 = np.maximum(t0, 0), np.minimum(t1, size - 1)  # (the grid's steps only)
+    count = np.maximum(t1 - t0 + 1, 0)
+    if not count.any():
+        return
+    seg = np.repeat(idx, count)
+    offs = np.arange(seg.size) - np.repeat(np.cumsum(count) - count, count)
+    t = (t0[seg] + offs).astype(np.float64)
+    mj = major[seg]
+    dm = d[seg, mj]
+    s = np.clip(np.where(dm != 0, (t - a[seg, mj]) / np.where(dm != 0, dm, 1.0), 0.0), 0.0, 1.0)
+    minor = np.rint(a[seg, 1 - mj] + s * d[seg, 1 - mj])
+    c = np.empty((seg.size, 2))
+    c[np.arange(seg.size), mj] = t
+    c[np.arange(seg.size), 1 - mj] = minor
+    ok = (c[:, 0] >= 0) & (c[:, 0] < nx) & (c[:, 1] >= 0) & (c[:, 1] < ny)
     mask[k[seg[ok]], c[ok, 1].astype(np.int64), c[ok, 0].astype(np.int64)] = True
 
 
