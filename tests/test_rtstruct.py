@@ -365,6 +365,39 @@ def test_bad_requests_are_one_line_and_write_nothing(ct, tmp_path, run):
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".o.nrrd")) == []
 
 
+@pytest.mark.parametrize("listed", [False, True])
+def test_an_roi_in_another_frame_of_reference_is_refused(ct, tmp_path, run, listed):
+    """An ROI whose ReferencedFrameOfReferenceUID is not the reference's has its contours in
+    another coordinate system: the map of every ROI is refused naming it (before, it was
+    painted on the CT's grid, exit 0), whether or not the structure set lists that frame
+    too; ``--structure`` of an ROI in the reference's frame still reads."""
+    folder, paths, vol = ct
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        1: ("ct roi", [("CLOSED_PLANAR", world(vol, 2, square(1.5, 1.5, 4.5, 4.5)))]),
+        2: ("mr roi", [("CLOSED_PLANAR", world(vol, 2, square(8.5, 8.5, 11.5, 11.5)))])})
+    ds = pydicom.dcmread(rs)
+    other = generate_uid()
+    ds.StructureSetROISequence[1].ReferencedFrameOfReferenceUID = other
+    if listed:
+        item = Dataset()
+        item.FrameOfReferenceUID = other
+        ds.ReferencedFrameOfReferenceSequence.append(item)
+    ds.save_as(rs)
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 1 and not out.exists(), res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and str(rs) in res.stderr
+    assert "ROI 2 'mr roi'" in res.stderr and other in res.stderr
+    assert "frame of reference" in res.stderr and "--structure NAME" in res.stderr
+    res = run("convert", rs, "--reference", folder, "--structure", "mr roi", "-o", out)
+    assert res.code == 1 and "ROI 2 'mr roi'" in res.stderr and not out.exists()
+    res = run("convert", rs, "--reference", folder, "--structure", "ct roi", "-o", out)
+    assert res.code == 0, res.stderr
+    want = np.zeros(SHAPE, np.uint8)
+    want[2, 2:5, 2:5] = 1
+    np.testing.assert_array_equal(read_volume(out).data, want)
+
+
 def test_pydicoms_rtstruct_file(run):
     path = get_testdata_file("rtstruct.dcm")
     with pytest.raises(FormatError, match="no PixelData.*--reference"):

@@ -99,6 +99,23 @@ def frames_of_reference(ds) -> tuple[str, ...]:
     return tuple(dict.fromkeys(out))
 
 
+def roi_frames(ds) -> dict[int, str]:
+    """Each ROI's ReferencedFrameOfReferenceUID (ROIs that give one), by ROI Number."""
+    return {int(r.ROINumber): str(r.ReferencedFrameOfReferenceUID)
+            for r in ds.get("StructureSetROISequence", [])
+            if "ROINumber" in r and r.get("ReferencedFrameOfReferenceUID")}
+
+
+def _check_roi_frame(roi_frame: str | None, reference, where: str, label: str) -> None:
+    """An ROI's contours lie in its own frame of reference: it must be the reference's."""
+    own = reference.frame_of_reference_uid
+    if roi_frame and own and roi_frame != own:
+        raise VolwarpError(f"{where}: {label} lies in frame of reference {roi_frame}, not that "
+                           f"of --reference {reference.path} ({own}): its contours are in "
+                           "another coordinate system; read the ROIs on this one with "
+                           "--structure NAME, or give that frame's series with --reference")
+
+
 def describe_structures(ds) -> list[dict]:
     """Each ROI's number, name and number of contours (for ``volwarp info``)."""
     contours = {int(c.ReferencedROINumber): len(c.get("ContourSequence", []))
@@ -122,7 +139,11 @@ def _structure_number(rois: list[dict], structure: str, where: str) -> int:
 
 
 def check_reference(ds, reference, where: str) -> None:
-    """The reference must be the series the RTSTRUCT names (or, naming none, its frame)."""
+    """The reference must be the series the RTSTRUCT names (or, naming none, its frame).
+
+    Each ROI's own frame is checked as it is read (:func:`_check_roi_frame`):
+    an ROI of another frame is refused, ``--structure`` of one on this frame reads.
+    """
     wanted = referenced_series(ds)
     if wanted and reference.series_uid not in wanted:
         raise VolwarpError(f"{where}: drawn on series {' '.join(wanted)}, but --reference "
@@ -157,6 +178,7 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
     only = _structure_number(structures, structure, where) if structure is not None else None
     grid = ref.grid
     names = {r["number"]: r["name"] for r in structures}
+    frames = roi_frames(ds)
     dtype = np.uint8 if only is not None else _label_dtype(max(numbers, default=0), where)
     out = np.zeros(grid.shape, dtype)
     rois = []
@@ -166,6 +188,8 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
         if only is not None and number != only:
             continue
         label = f"ROI {number} {names.get(number, '')!r}"
+        if roi.get("ContourSequence"):
+            _check_roi_frame(frames.get(number), ref, where, label)
         contours = _contours_in_index(roi, ref, where, label, images)
         if contours and only is None:
             _check_label(number, names, where)
