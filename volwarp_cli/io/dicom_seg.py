@@ -47,7 +47,14 @@ import numpy as np
 from ..errors import BadUsage, FormatError, VolwarpError
 from ..volume import LPS, Volume
 from .common import make_volume
-from .segment_keys import label_descriptions, seg_algorithm, seg_colour, seg_keys
+from .segment_keys import (
+    NESTED_KEY,
+    label_descriptions,
+    nested_labels,
+    seg_algorithm,
+    seg_colour,
+    seg_keys,
+)
 
 SEG_SOP = "1.2.840.10008.5.1.4.1.1.66.4"
 LABELMAP_SEG_SOP = "1.2.840.10008.5.1.4.1.1.66.7"
@@ -738,7 +745,10 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     numbers are the label values. Each segment is named from ``names``, else
     the map's key/values (:mod:`.segment_keys`: also its colour, property
     category and type, and algorithm), else ``label N`` (coded SCT Tissue /
-    Tissue, MANUAL, no colour). SOP Instance and Series UIDs are new (never
+    Tissue, MANUAL, no colour). An outer label of the map's
+    ``DICOM_ROI_nested`` is its voxels and those of the labels inside it (a
+    BINARY SEG's segments then overlap; a LABELMAP SEG cannot, and warns). SOP
+    Instance and Series UIDs are new (never
     copied), made from the label map, its descriptions, the reference series
     and the options. ``source``: the label map's file, named in errors.
     """
@@ -755,9 +765,20 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
 
     def uid(what):
         return new_uid(key, what)
+    inside = nested_labels(vol.meta, values, source or where)
     if labelmap:
         numbers = [int(v) for v in values]
         pixels = vol.data.astype(_label_dtype(int(values[-1])), copy=False)
+        if inside:
+            from ..progress import log
+
+            held = "; ".join(f"{o} holds {' '.join(map(str, i))}" for o, i in inside.items())
+            log.warning("warning: %s: %s (%s), but a LABELMAP SEG has one segment a voxel: "
+                        "the outer segments keep their inner labels' holes; --dicom-type seg "
+                        "or rtstruct writes them whole", where, held, NESTED_KEY)
+    elif inside:
+        pixels = _overlapping_segments(vol.data, values, inside, where)
+        numbers = list(range(1, len(values) + 1))
     else:
         numbers = list(range(1, len(values) + 1))
         lut = np.zeros(int(values[-1]) + 1, _label_dtype(len(values)))
@@ -794,6 +815,22 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
                            f"({type(exc).__name__}: {_one_line(exc)})") from None
     make_timeless(seg, *_stamp(reference), uid)
     return seg
+
+
+def _overlapping_segments(data: np.ndarray, values, inside: dict, where: str) -> np.ndarray:
+    """Each label's mask [z, y, x, segment], an outer label's holding its nested labels' voxels.
+
+    highdicom takes overlapping BINARY segments as one bool plane a segment, so
+    this needs a byte a voxel a label (checked against the memory budget).
+    """
+    from ..memory import ensure_fits_in_memory
+
+    ensure_fits_in_memory(data.size * len(values), f"{where}: the {len(values)} segments, "
+                          "outer ones whole (their nested labels' voxels in them)")
+    masks = np.zeros(data.shape + (len(values),), bool)
+    for n, v in enumerate(int(x) for x in values):
+        masks[..., n] = np.isin(data, [v, *inside.get(v, ())])
+    return masks
 
 
 def _sources_and_frames(reference, pixels: np.ndarray, where: str):

@@ -45,7 +45,14 @@ from ..errors import BadUsage, FormatError, VolwarpError
 from ..progress import log
 from ..volume import LPS, Volume
 from .common import make_volume
-from .segment_keys import label_descriptions, roi_colour, roi_colours, roi_keys
+from .segment_keys import (
+    label_descriptions,
+    nested_keys,
+    nested_labels,
+    roi_colour,
+    roi_colours,
+    roi_keys,
+)
 
 RTSTRUCT_SOP = "1.2.840.10008.5.1.4.1.1.481.3"
 
@@ -212,8 +219,7 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
                              {1: colours[only]} if only in colours else {}))
     else:
         meta.update(roi_keys({n: names[n] for n in numbers}, colours))
-        if nested:
-            meta["DICOM_ROI_nested"] = "; ".join(f"{a} in {b}" for a, b in nested)
+        meta.update(nested_keys(nested))
     return make_volume(where, out, spacing=grid.spacing, origin=grid.origin,
                        direction=grid.direction, space=LPS, file_space=LPS, meta=meta)
 
@@ -719,7 +725,9 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     (:func:`mask_outlines`), or (``"smooth"``) the zero level of each slice's
     sub-voxel distance field (:func:`smooth_outlines`), each referencing its
     slice's image (and its frame, ReferencedFrameNumber, when the reference is
-    a multi-frame image); new SOP and Series UIDs made from the content.
+    a multi-frame image); new SOP and Series UIDs made from the content. An
+    outer ROI of the map's ``DICOM_ROI_nested`` is its voxels and those of the
+    ROIs inside it (:func:`.segment_keys.nested_labels`), as it was read.
     """
     if contours not in CONTOUR_STYLES:
         raise VolwarpError(f"contours must be one of {', '.join(CONTOUR_STYLES)}, "
@@ -783,6 +791,7 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     ds.ReferencedFrameOfReferenceSequence = Sequence([frame])
     rois, contours, observations = [], [], []
     data = vol.data
+    inside = nested_labels(vol.meta, values, source or where)  # (an outer ROI written whole)
     for n, value in enumerate(values.tolist(), 1):
         roi = Dataset()
         roi.ROINumber = int(value)
@@ -793,8 +802,9 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
         roi.ROIGenerationAlgorithm = ""
         rois.append(roi)
         seq = []
-        for k in np.flatnonzero((data == value).any(axis=(1, 2))):
-            for loop in outlines(data[k] == value):
+        members = [value, *inside.get(value, ())]
+        for k in np.flatnonzero(np.isin(data, members).any(axis=(1, 2))):
+            for loop in outlines(np.isin(data[k], members)):
                 xyz = g.index_to_world(np.column_stack([loop, np.full(len(loop), float(k))]))
                 item = Dataset()
                 item.ContourImageSequence = Sequence([image_ref(int(k))])
