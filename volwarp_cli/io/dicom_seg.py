@@ -507,16 +507,41 @@ def _to_volwarp_axes(arr: np.ndarray, affine: np.ndarray, single_spacing: float)
     return np.ascontiguousarray(arr), spacing, origin, np.column_stack([row_cos, col_cos, normal])
 
 
-def _single_spacing(seg) -> float:
+def _pixel_measure(seg, keyword: str) -> float | None:
+    """A positive value of the SEG's shared PixelMeasuresSequence (None: none, or not one)."""
     try:
-        pm = seg.SharedFunctionalGroupsSequence[0].PixelMeasuresSequence[0]
-        for kw in ("SpacingBetweenSlices", "SliceThickness"):
-            v = pm.get(kw)
-            if v is not None and float(v) > 0:
-                return float(v)
+        v = seg.SharedFunctionalGroupsSequence[0].PixelMeasuresSequence[0].get(keyword)
+        return float(v) if v not in (None, "") and float(v) > 0 else None
     except (AttributeError, IndexError, KeyError, ValueError, TypeError):
-        pass
-    return 1.0
+        return None
+
+
+def _single_spacing(seg) -> float:
+    return _pixel_measure(seg, "SpacingBetweenSlices") or _pixel_measure(seg, "SliceThickness") \
+        or 1.0
+
+
+def _warn_gapped(seg, spacing_z: float, n_slices: int, where: str) -> None:
+    """Say when frames placed without SpacingBetweenSlices lie k >= 2 slice thicknesses apart.
+
+    A SEG may leave out its empty frames: frames on slices 1, 3 and 5 of a
+    2.5 mm series then give a grid of 5 mm, every other slice of the series
+    missing, and nothing in the SEG tells that from a gapped acquisition
+    (which is why this is not refused).
+    """
+    thickness = _pixel_measure(seg, "SliceThickness")
+    if n_slices < 2 or thickness is None or _pixel_measure(seg, "SpacingBetweenSlices"):
+        return
+    ratio = spacing_z / thickness
+    k = round(ratio)
+    if k >= 2 and abs(ratio - k) <= 1e-3 * k:
+        from ..progress import log
+
+        log.warning("warning: %s: its frames lie %g mm apart, %d times its SliceThickness of "
+                    "%g mm, and no SpacingBetweenSlices gives the series' spacing: if it left "
+                    "out empty frames between them, the label map's slices are %g mm apart "
+                    "where the series' are %g mm; --reference SERIES places each frame on its "
+                    "slice exactly", where, spacing_z, k, thickness, spacing_z, thickness)
 
 
 def _meta(seg, keep_phi: bool) -> dict:
@@ -558,6 +583,8 @@ def read_seg(path: str | os.PathLike, *, segment: int | None = None, reference=N
             data = _onto_reference(data, spacing, origin, direction, seg, reference, where)
             g = reference.grid
             spacing, origin, direction = g.spacing, g.origin, g.direction
+    if reference is None:
+        _warn_gapped(seg, float(spacing[2]), data.shape[0], where)
     meta = _meta(seg, keep_phi)
     if segment is not None:
         meta["DICOM_Segment"] = str(segment)
