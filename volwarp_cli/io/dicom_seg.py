@@ -686,6 +686,23 @@ def label_values(vol: Volume, where: str) -> np.ndarray:
     return values
 
 
+def check_names(names: dict[int, str], values, names_from: str) -> None:
+    """Warn of ``--segments`` rows naming no label of the map (0, or a label it lacks).
+
+    They name nothing: a label id mistyped, or the CSV of another map, would
+    otherwise leave the segments it meant with the default names, silently.
+    """
+    unused = sorted(set(names) - {int(v) for v in values})
+    if unused:
+        from ..progress import log
+
+        log.warning("warning: %s: label%s %s name%s nothing: the label map has no such "
+                    "label%s (0 is its background); check the label column against the map's "
+                    "labels (volwarp info)", names_from, "s" if len(unused) > 1 else "",
+                    " ".join(map(str, unused)), "" if len(unused) > 1 else "s",
+                    "s" if len(unused) > 1 else "")
+
+
 def read_names(path: str | os.PathLike) -> dict[int, str]:
     """``label,name`` rows of a CSV file (a header row ``label,name`` is skipped)."""
     import csv
@@ -764,7 +781,7 @@ def make_timeless(ds, date: str, time: str, uid) -> None:
 
 def build_seg(vol: Volume, reference, *, labelmap: bool = False,
               names: dict[int, str] | None = None, where: str = "SEG",
-              source: str | None = None):
+              source: str | None = None, names_from: str | None = None):
     """The highdicom Segmentation of a label map on ``reference``'s grid.
 
     BINARY (``labelmap`` False): one segment per label, numbered 1..K in
@@ -777,7 +794,9 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     BINARY SEG's segments then overlap; a LABELMAP SEG cannot, and warns). SOP
     Instance and Series UIDs are new (never
     copied), made from the label map, its descriptions, the reference series
-    and the options. ``source``: the label map's file, named in errors.
+    and the options. ``source``: the label map's file, named in errors;
+    ``names_from``: the file ``names`` came from, named when a row names no
+    label (:func:`check_names`).
     """
     import highdicom as hd
     from pydicom.sr.codedict import codes
@@ -787,6 +806,7 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     check_on_reference_grid(vol, reference, where)
     values = label_values(vol, where)
     names = dict(names or {})
+    check_names(names, values, names_from or where)
     described = label_descriptions(vol.meta, values, source or where)
     key = _content_key(vol, reference, "labelmap" if labelmap else "seg", names, described)
 
@@ -885,12 +905,13 @@ def _sources_and_frames(reference, pixels: np.ndarray, where: str):
 
 
 def write_seg(vol: Volume, path: str | os.PathLike, reference, *, labelmap: bool = False,
-              names: dict[int, str] | None = None, source: str | None = None) -> None:
+              names: dict[int, str] | None = None, source: str | None = None,
+              names_from: str | None = None) -> None:
     """Write :func:`build_seg`'s SEG to ``path`` atomically."""
     from .atomic import atomic_output, check_output_path
 
     check_output_path(path)
     seg = build_seg(vol, reference, labelmap=labelmap, names=names, where=str(path),
-                    source=source)
+                    source=source, names_from=names_from)
     with atomic_output(path) as tmp:
         seg.save_as(tmp)

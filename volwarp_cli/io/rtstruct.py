@@ -716,7 +716,7 @@ def _ds(values) -> list[str]:
 
 def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = None,
                    where: str = "RTSTRUCT", contours: str = "edges",
-                   source: str | None = None):
+                   source: str | None = None, names_from: str | None = None):
     """A pydicom RTSTRUCT of a label map on ``reference``'s grid: one ROI per label.
 
     ROI Number = label value, named from ``names``, else the map's key/values
@@ -728,6 +728,7 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     a multi-frame image); new SOP and Series UIDs made from the content. An
     outer ROI of the map's ``DICOM_ROI_nested`` is its voxels and those of the
     ROIs inside it (:func:`.segment_keys.nested_labels`), as it was read.
+    ``names_from``: the file ``names`` came from (:func:`.dicom_seg.check_names`).
     """
     if contours not in CONTOUR_STYLES:
         raise VolwarpError(f"contours must be one of {', '.join(CONTOUR_STYLES)}, "
@@ -739,11 +740,19 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     from pydicom.uid import ExplicitVRLittleEndian
 
     from .. import __version__
-    from .dicom_seg import _content_key, _stamp, check_on_reference_grid, label_values, new_uid
+    from .dicom_seg import (
+        _content_key,
+        _stamp,
+        check_names,
+        check_on_reference_grid,
+        label_values,
+        new_uid,
+    )
 
     check_on_reference_grid(vol, reference, where)
     values = label_values(vol, where)
     names = dict(names or {})
+    check_names(names, values, names_from or where)
     described = label_descriptions(vol.meta, values, source or where)
     key = _content_key(vol, reference, "rtstruct" if contours == "edges" else
                        f"rtstruct {contours}", names, described)
@@ -849,12 +858,12 @@ def _series_images(reference, image_ref) -> list:
 
 def write_rtstruct(vol: Volume, path: str | os.PathLike, reference, *,
                    names: dict[int, str] | None = None, contours: str = "edges",
-                   source: str | None = None) -> None:
+                   source: str | None = None, names_from: str | None = None) -> None:
     """Write :func:`build_rtstruct`'s RTSTRUCT to ``path`` atomically."""
     from .atomic import atomic_output, check_output_path
 
     check_output_path(path)
     ds = build_rtstruct(vol, reference, names=names, where=str(path), contours=contours,
-                        source=source)
+                        source=source, names_from=names_from)
     with atomic_output(path) as tmp:
         ds.save_as(tmp, enforce_file_format=True)
