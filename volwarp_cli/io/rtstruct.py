@@ -539,35 +539,14 @@ def _even_odd(mask: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndarray) -> 
 def _mark_on_segments(mask: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndarray,
                       tol: float) -> None:
     """Set the voxel centres of ``mask`` [z, y, x] within ``tol`` of a segment a->b on slice k."""
-    _, ny, nx = mask.shape
-    d = b - a
-    major = (np.abs(d[:, 1]) > np.abs(d[:, 0])).astype(np.int64)  # 0: x, 1: y
-    idx = np.arange(len(a))
-    am, bm = a[idx, major], b[idx, major]
-    t0 = np.ceil(np.minimum(am, bm) - tol).astype(np.int64)
-    t1 = np.floor(np.maximum(am, bm) + tol).astype(np.int64)
-    count = np.maximum(t1 - t0 + 1, 0)
-    if not count.any():
-        return
-    seg = np.repeat(idx, count)
-    offs = np.arange(seg.size) - np.repeat(np.cumsum(count) - count, count)
-    t = (t0[seg] + offs).astype(np.float64)
-    mj = major[seg]
-    dm = d[seg, mj]
-    s = np.where(dm != 0, (t - a[seg, mj]) / np.where(dm != 0, dm, 1.0), 0.0)
-    s = np.clip(s, 0.0, 1.0)
-    minor = np.rint(a[seg, 1 - mj] + s * d[seg, 1 - mj])
-    c = np.empty((seg.size, 2))
-    c[np.arange(seg.size), mj] = t
-    c[np.arange(seg.size), 1 - mj] = minor
+    seg, c = _step_centres(mask.shape, a, b, tol)
     # exact distance from the candidate centre to the segment
-    ds = d[seg]
+    ds = (b - a)[seg]
     dd = np.einsum("ij,ij->i", ds, ds)
     p = np.where(dd > 0, np.einsum("ij,ij->i", c - a[seg], ds) / np.where(dd > 0, dd, 1.0), 0.0)
     p = np.clip(p, 0.0, 1.0)
     near = a[seg] + p[:, None] * ds
-    dist = np.hypot(*(near - c).T)
-    ok = (dist <= tol) & (c[:, 0] >= 0) & (c[:, 0] < nx) & (c[:, 1] >= 0) & (c[:, 1] < ny)
+    ok = np.hypot(*(near - c).T) <= tol
     mask[k[seg[ok]], c[ok, 1].astype(np.int64), c[ok, 0].astype(np.int64)] = True
 
 
@@ -580,30 +559,42 @@ def _mark_nearest(mask: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndarray)
     t lies beyond it), i.e. minor index rint of that point's. A segment of no
     length (a POINT) gives the voxel holding it. Voxels off the grid are left out.
     """
-    _, ny, nx = mask.shape
+    seg, c = _step_centres(mask.shape, a, b, None)
+    mask[k[seg], c[:, 1].astype(np.int64), c[:, 0].astype(np.int64)] = True
+
+
+def _step_centres(shape_zyx, a: np.ndarray, b: np.ndarray,
+                  tol: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(segment, centre (x, y))``: each segment's voxel centre nearest it at each step t.
+
+    The steps are the whole indices t along the segment's major axis (x when
+    |dx| >= |dy|) from ``ceil(start - tol)`` to ``floor(end + tol)``, or with
+    ``tol`` None from rint of one end to rint of the other; the centre is
+    ``(t, rint of the segment's minor coordinate at t)``, the end point's
+    where t lies beyond it. Centres off the grid are left out.
+    """
+    _, ny, nx = shape_zyx
     d = b - a
     major = (np.abs(d[:, 1]) > np.abs(d[:, 0])).astype(np.int64)  # 0: x, 1: y
     idx = np.arange(len(a))
     am, bm = a[idx, major], b[idx, major]
+    lo, hi = np.minimum(am, bm), np.maximum(am, bm)
+    lo, hi = (np.rint(lo), np.rint(hi)) if tol is None else (np.ceil(lo - tol), np.floor(hi + tol))
     size = np.where(major == 0, nx, ny)
-    t0 = np.clip(np.rint(np.minimum(am, bm)), -1, size).astype(np.int64)
-    t1 = np.clip(np.rint(np.maximum(am, bm)), -1, size).astype(np.int64)
-    t0, t1 = np.maximum(t0, 0), np.minimum(t1, size - 1)  # (the grid's steps only)
+    t0 = np.maximum(np.clip(lo, -1, size).astype(np.int64), 0)  # (the grid's steps only)
+    t1 = np.minimum(np.clip(hi, -1, size).astype(np.int64), size - 1)
     count = np.maximum(t1 - t0 + 1, 0)
-    if not count.any():
-        return
     seg = np.repeat(idx, count)
     offs = np.arange(seg.size) - np.repeat(np.cumsum(count) - count, count)
     t = (t0[seg] + offs).astype(np.float64)
     mj = major[seg]
     dm = d[seg, mj]
     s = np.clip(np.where(dm != 0, (t - a[seg, mj]) / np.where(dm != 0, dm, 1.0), 0.0), 0.0, 1.0)
-    minor = np.rint(a[seg, 1 - mj] + s * d[seg, 1 - mj])
     c = np.empty((seg.size, 2))
     c[np.arange(seg.size), mj] = t
-    c[np.arange(seg.size), 1 - mj] = minor
+    c[np.arange(seg.size), 1 - mj] = np.rint(a[seg, 1 - mj] + s * d[seg, 1 - mj])
     ok = (c[:, 0] >= 0) & (c[:, 0] < nx) & (c[:, 1] >= 0) & (c[:, 1] < ny)
-    mask[k[seg[ok]], c[ok, 1].astype(np.int64), c[ok, 0].astype(np.int64)] = True
+    return seg[ok], c[ok]
 
 
 # -- writing -----------------------------------------------------------------------------
