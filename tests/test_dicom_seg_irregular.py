@@ -244,3 +244,39 @@ def test_one_segment_named_in_the_shared_groups(ct, tmp_path, run):
     assert read_seg(regular, reference=ref).data.tobytes() == _before(regular, ref).tobytes()
     res = run("convert", regular, "--reference", folder, "-o", tmp_path / "regular.nrrd")
     assert res.code == 0 and (tmp_path / "regular.nrrd").read_bytes() == out.read_bytes()
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+@pytest.mark.parametrize("kind", ["BINARY", "LABELMAP"])
+def test_frames_at_twice_the_slice_thickness_without_spacing_are_warned(tmp_path, run, kind,
+                                                                        compressed):
+    """Frames on slices 1, 3 and 5 of a 2.5 mm series (its empty frames left out) without
+    SpacingBetweenSlices read as 3 slices 5 mm apart: a gapped acquisition would too, so this
+    is read, but said, naming both spacings and ``--reference SERIES`` (before: silent).
+    With the reference, or on consecutive slices, nothing is said."""
+    folder, paths, shape = series_for(tmp_path, kind, compressed)
+    lab = np.zeros(shape, np.uint8)
+    lab[1, 2:5, 2:6] = 1
+    lab[3, 4:7, 3:5] = 2
+    lab[5, 6, 7] = 1
+    seg = drop_spacing(make_seg(paths, pixels_of(lab, kind), kind, tmp_path / "seg.dcm",
+                                **compression(kind, compressed)))
+    out = tmp_path / "o.nrrd"
+    res = run("convert", seg, "-o", out)
+    assert res.code == 0, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "warning" in lines[0] and str(seg) in lines[0], res.stderr
+    assert "5 mm apart" in lines[0] and "2.5 mm" in lines[0] and "--reference SERIES" in lines[0]
+    vol = read_volume(out)
+    assert vol.data.shape[0] == 3 and vol.spacing[2] == pytest.approx(5.0)
+    np.testing.assert_array_equal(vol.data, lab[[1, 3, 5]])
+    res = run("convert", seg, "--reference", folder, "-o", out)
+    assert res.code == 0 and not res.stderr.strip(), res.stderr
+    np.testing.assert_array_equal(read_volume(out).data, lab)
+    solid = np.zeros_like(lab)
+    solid[2:5] = lab[1]  # (frames on slices 2, 3 and 4: no gap)
+    seg = drop_spacing(make_seg(paths, pixels_of(solid, kind), kind, tmp_path / "next.dcm",
+                                **compression(kind, compressed)))
+    res = run("convert", seg, "-o", out)
+    assert res.code == 0 and not res.stderr.strip(), res.stderr
+    np.testing.assert_array_equal(read_volume(out).data, solid[2:5])

@@ -146,6 +146,91 @@ def test_contours_off_a_voxel_centre_by_less_than_the_tolerance(ct, tmp_path):
     assert not got[4, 3, 3:7].any() and (got[4, 4:7, 3:7] == 2).all()
 
 
+def _line_voxels(a, b) -> set:
+    """The textbook nearest-centre line: each step t along the major axis, rint of its point."""
+    (x0, y0), (x1, y1) = a, b
+    steep = abs(y1 - y0) > abs(x1 - x0)
+    if steep:
+        x0, y0, x1, y1 = y0, x0, y1, x1
+    out = set()
+    for t in range(round(min(x0, x1)), round(max(x0, x1)) + 1):
+        s = 0.0 if x1 == x0 else min(max((t - x0) / (x1 - x0), 0.0), 1.0)
+        v = round(y0 + s * (y1 - y0))
+        out.add((v, t) if steep else (t, v))
+    return out
+
+
+def _polyline_voxels(pts, ny, nx) -> np.ndarray:
+    want = np.zeros((ny, nx), bool)
+    for a, b in zip(pts[:-1], pts[1:], strict=True) if len(pts) > 1 else [(pts[0], pts[0])]:
+        for i, j in _line_voxels(a, b):
+            if 0 <= i < nx and 0 <= j < ny:
+                want[j, i] = True
+    return want
+
+
+def test_markers_and_lines_off_the_voxel_centres_keep_their_voxels(ct, tmp_path, run):
+    """A POINT anywhere in a voxel gives that voxel, a polyline off the centres the voxels it
+    passes through (before, both gave nothing unless within 1e-3 voxel of a centre); an ROI
+    still empty (a closed contour round no centre) is said, naming it."""
+    folder, paths, vol = ct
+    marks = {(3, 4): (0.01, 0.0), (10, 7): (0.49, -0.49), (0, 13): (-0.4, 0.3)}
+    polyline = [(1.2, 12.6), (6.4, 10.2), (7.1, 13.4), (15.8, 11.3)]
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        1: ("markers", [("POINT", world(vol, 2, [(x + dx, y + dy)]))
+                        for (x, y), (dx, dy) in marks.items()]),
+        2: ("line", [("OPEN_PLANAR", world(vol, 1, [(2.2, 9.3), (13.7, 9.3)]))]),
+        3: ("path", [("OPEN_PLANAR", world(vol, 3, polyline))]),
+        4: ("tiny", [("CLOSED_PLANAR", world(vol, 4, square(7.1, 1.1, 7.6, 1.6)))])})
+    want = np.zeros(SHAPE, np.uint8)
+    for x, y in marks:
+        want[2, y, x] = 1
+    want[1, 9, 2:15] = 2
+    want[3][_polyline_voxels(polyline, *SHAPE[1:])] = 3
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 0, res.stderr
+    np.testing.assert_array_equal(read_volume(out).data, want)
+    warned = [line for line in res.stderr.splitlines() if "warning" in line]
+    assert len(warned) == 1 and str(rs) in warned[0] and "ROI 4 'tiny'" in warned[0]
+    res = run("convert", rs, "--reference", folder, "--structure", "markers", "-o", out)
+    assert res.code == 0 and "warning" not in res.stderr, res.stderr
+    np.testing.assert_array_equal(read_volume(out).data, (want == 1).astype(np.uint8))
+
+
+def test_polylines_are_nearest_centre_lines_through_their_voxels():
+    """Random polylines against the textbook loop, and two properties of their own: every
+    voxel marked is one the polyline passes through (its square meets it), and every voxel
+    centre within 1e-3 voxel of it (the rule before) is marked."""
+    rng = np.random.default_rng(11)
+    ny, nx = 26, 30
+    jj, ii = np.mgrid[:ny, :nx]
+    centres = np.column_stack([ii.ravel(), jj.ravel()]).astype(float)
+    for _ in range(40):
+        n = int(rng.integers(1, 5))
+        pts = rng.uniform(-3, 32, (n, 2))
+        if rng.random() < 0.3:
+            pts = np.rint(pts)  # (through centres, as the old rule read them)
+        got = rasterize([(0, pts, False)], (1, ny, nx))[0]
+        np.testing.assert_array_equal(got, _polyline_voxels(pts, ny, nx))
+        samples = np.concatenate([a + np.linspace(0, 1, 4000)[:, None] * (b - a)
+                                  for a, b in zip(pts[:-1], pts[1:], strict=True)]) if n > 1 else pts
+        for j, i in zip(*np.nonzero(got), strict=True):
+            assert np.abs(samples - (i, j)).max(axis=1).min() <= 0.5 + 1e-2
+        if n > 1:
+            near = _distance_to_polyline(centres, pts) <= 1e-3
+            assert got.ravel()[near].all()
+
+
+def _distance_to_polyline(pts, poly):
+    best = np.full(len(pts), np.inf)
+    for a, b in zip(poly[:-1], poly[1:], strict=True):
+        d = b - a
+        t = np.clip(((pts - a) @ d) / (d @ d), 0, 1)
+        best = np.minimum(best, np.linalg.norm(a + t[:, None] * d - pts, axis=1))
+    return best
+
+
 def test_rasterize_matches_a_slow_point_in_polygon_reference():
     rng = np.random.default_rng(5)
     ny, nx = 30, 34
@@ -278,6 +363,39 @@ def test_bad_requests_are_one_line_and_write_nothing(ct, tmp_path, run):
     assert res.code == 1 and "slice plane" in res.stderr and "'a'" in res.stderr
     assert out.read_bytes() == b"keep"
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".o.nrrd")) == []
+
+
+@pytest.mark.parametrize("listed", [False, True])
+def test_an_roi_in_another_frame_of_reference_is_refused(ct, tmp_path, run, listed):
+    """An ROI whose ReferencedFrameOfReferenceUID is not the reference's has its contours in
+    another coordinate system: the map of every ROI is refused naming it (before, it was
+    painted on the CT's grid, exit 0), whether or not the structure set lists that frame
+    too; ``--structure`` of an ROI in the reference's frame still reads."""
+    folder, paths, vol = ct
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        1: ("ct roi", [("CLOSED_PLANAR", world(vol, 2, square(1.5, 1.5, 4.5, 4.5)))]),
+        2: ("mr roi", [("CLOSED_PLANAR", world(vol, 2, square(8.5, 8.5, 11.5, 11.5)))])})
+    ds = pydicom.dcmread(rs)
+    other = generate_uid()
+    ds.StructureSetROISequence[1].ReferencedFrameOfReferenceUID = other
+    if listed:
+        item = Dataset()
+        item.FrameOfReferenceUID = other
+        ds.ReferencedFrameOfReferenceSequence.append(item)
+    ds.save_as(rs)
+    out = tmp_path / "o.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", out)
+    assert res.code == 1 and not out.exists(), res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and str(rs) in res.stderr
+    assert "ROI 2 'mr roi'" in res.stderr and other in res.stderr
+    assert "frame of reference" in res.stderr and "--structure NAME" in res.stderr
+    res = run("convert", rs, "--reference", folder, "--structure", "mr roi", "-o", out)
+    assert res.code == 1 and "ROI 2 'mr roi'" in res.stderr and not out.exists()
+    res = run("convert", rs, "--reference", folder, "--structure", "ct roi", "-o", out)
+    assert res.code == 0, res.stderr
+    want = np.zeros(SHAPE, np.uint8)
+    want[2, 2:5, 2:5] = 1
+    np.testing.assert_array_equal(read_volume(out).data, want)
 
 
 def test_pydicoms_rtstruct_file(run):

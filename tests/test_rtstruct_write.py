@@ -153,3 +153,79 @@ def test_smooth_contours_read_back_and_their_volumes(tmp_path, run):
     res = run("convert", src, "--reference", folder, "--dicom-type", "seg", "--contours",
               "smooth", "-o", tmp_path / "seg.dcm")
     assert res.code == 2 and "--dicom-type rtstruct" in res.stderr
+
+
+def test_nested_rois_written_back_keep_the_outer_roi_whole(tmp_path, run):
+    """A map read from nested ROIs holds each voxel in the smallest ROI (BODY's label only where
+    no organ is); written back as an RTSTRUCT or a BINARY SEG, BODY is its whole mask again,
+    the organs inside it (before, it had their holes: 1520 -> 1445 voxels, silently). A
+    LABELMAP SEG cannot overlap: it keeps the holes and says so."""
+    from test_rtstruct import square, world, write_rtstruct
+
+    shape = (5, 20, 24)
+    folder = tmp_path / "ct"
+    paths = write_ct(folder, shape, spacing=(0.8, 0.8, 2.0))
+    ct = read_dicom(folder)
+
+    def on(k, *box):
+        return ("CLOSED_PLANAR", world(ct, k, square(*box)))
+    rs = write_rtstruct(tmp_path / "rs.dcm", paths, {
+        1: ("BODY", [on(k, 1.5, 1.5, 20.5, 17.5) for k in range(5)]),
+        2: ("liver", [on(k, 4.5, 4.5, 9.5, 9.5) for k in (1, 2, 3)]),
+        3: ("tumour", [on(2, 6.5, 6.5, 8.5, 8.5)])})
+    masks = {n: np.zeros(shape, np.uint8) for n in (1, 2, 3)}
+    masks[1][:, 2:18, 2:21] = 1
+    masks[2][1:4, 5:10, 5:10] = 1
+    masks[3][2, 7:9, 7:9] = 1
+    names = {1: "BODY", 2: "liver", 3: "tumour"}
+    whole = tmp_path / "map.nrrd"
+    res = run("convert", rs, "--reference", folder, "-o", whole)
+    assert res.code == 0, res.stderr
+    lab = read_volume(whole)
+    assert lab.meta["DICOM_ROI_nested"] == "2 in 1; 3 in 1; 3 in 2"
+    assert np.count_nonzero(lab.data == 1) == masks[1].sum() - masks[2].sum() == 1520 - 75
+
+    back = tmp_path / "back.dcm"
+    res = run("convert", whole, "--reference", folder, "--dicom-type", "rtstruct", "-o", back)
+    assert res.code == 0 and "warning" not in res.stderr, res.stderr
+    for n, name in names.items():
+        got = tmp_path / f"roi{n}.nrrd"
+        res = run("convert", back, "--reference", folder, "--structure", name, "-o", got)
+        assert res.code == 0, res.stderr
+        np.testing.assert_array_equal(read_volume(got).data, masks[n])
+    res = run("convert", back, "--reference", folder, "-o", tmp_path / "again.nrrd")
+    assert res.code == 0, res.stderr
+    np.testing.assert_array_equal(read_volume(tmp_path / "again.nrrd").data, lab.data)
+
+    seg = tmp_path / "seg.dcm"
+    res = run("convert", whole, "--reference", folder, "--dicom-type", "seg", "-o", seg)
+    assert res.code == 0 and "warning" not in res.stderr, res.stderr
+    ds = pydicom.dcmread(seg)
+    assert [str(s.SegmentLabel) for s in ds.SegmentSequence] == ["BODY", "liver", "tumour"]
+    for n in names:  # (segment numbers 1..K in label order: here the labels)
+        got = tmp_path / f"seg{n}.nrrd"
+        res = run("convert", seg, "--reference", folder, "--segment", n, "-o", got)
+        assert res.code == 0, res.stderr
+        np.testing.assert_array_equal(read_volume(got).data, masks[n])
+
+    flat = tmp_path / "labelmap.dcm"
+    res = run("convert", whole, "--reference", folder, "--dicom-type", "labelmap-seg", "-o", flat)
+    assert res.code == 0, res.stderr
+    warned = [line for line in res.stderr.splitlines() if "warning" in line]
+    assert len(warned) == 1 and str(flat) in warned[0] and "1 holds 2 3; 2 holds 3" in warned[0]
+    assert "--dicom-type seg or rtstruct" in warned[0]
+    res = run("convert", flat, "--reference", folder, "-o", tmp_path / "flat.nrrd")
+    assert res.code == 0, res.stderr
+    np.testing.assert_array_equal(read_volume(tmp_path / "flat.nrrd").data, lab.data)
+
+
+def test_nested_labels_are_followed_to_every_depth():
+    from volwarp_cli.errors import VolwarpError
+    from volwarp_cli.io.segment_keys import nested_labels
+
+    meta = {"DICOM_ROI_nested": "3 in 2; 2 in 1; 7 in 9"}
+    assert nested_labels(meta, [1, 2, 3, 9], "m") == {1: [2, 3], 2: [3]}
+    assert nested_labels(meta, [1, 3], "m") == {1: [3]}  # (label 2 warped away: 3 still in 1)
+    assert nested_labels({}, [1, 2], "m") == {}
+    with pytest.raises(VolwarpError, match="m: key/value DICOM_ROI_nested.*INNER in OUTER"):
+        nested_labels({"DICOM_ROI_nested": "2 inside 1"}, [1, 2], "m")

@@ -179,6 +179,37 @@ def test_segments_csv_wins_and_unkeyed_labels_keep_the_defaults(ct, tmp_path, ru
                       None, "MANUAL", "")
 
 
+@pytest.mark.parametrize("kind", ["seg", "labelmap-seg", "rtstruct"])
+def test_segments_csv_rows_naming_no_label_are_warned(ct, tmp_path, run, kind):
+    """Rows of --segments for 0 or a label the map lacks name nothing: one warning naming the
+    CSV and those ids (before: silent); the rows that match still name their labels."""
+    from volwarp_cli.io import write_volume
+
+    folder, paths = ct
+    ref = read_dicom(folder)
+    lab = tmp_path / "lab.nrrd"
+    write_volume(ref.with_data(lab_fixture()), lab)
+    names = tmp_path / "names.csv"
+    names.write_text("label,name\n0,air\n2,tumour\n7,spleen\n12,bladder\n")
+    out = tmp_path / "out.dcm"
+    res = run("convert", lab, "--reference", folder, "--dicom-type", kind, "--segments", names,
+              "-o", out)
+    assert res.code == 0, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "warning" in lines[0] and str(names) in lines[0], res.stderr
+    assert "labels 0 7 12 name nothing" in lines[0]
+    ds = pydicom.dcmread(out)
+    got = roi_table(ds) if kind == "rtstruct" else {
+        int(s.SegmentNumber): (str(s.SegmentLabel),) for s in ds.SegmentSequence}
+    assert {n: v[0] for n, v in got.items() if n} == (  # (a LABELMAP SEG's 0: highdicom's)
+        {1: "label_1", 2: "tumour", 3: "label_3"} if kind == "rtstruct" else
+        {1: "label 1", 2: "tumour", 3: "label 3"})
+    names.write_text("2,tumour\n3,kidney\n")
+    res = run("convert", lab, "--reference", folder, "--dicom-type", kind, "--segments", names,
+              "-o", out)
+    assert res.code == 0 and not res.stderr.strip(), res.stderr
+
+
 def test_one_segment_mask_keeps_its_description(ct, tmp_path, run):
     folder, paths = ct
     seg = make_described_seg(paths, lab_fixture(), "BINARY", tmp_path / "seg.dcm")

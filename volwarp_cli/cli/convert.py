@@ -230,7 +230,7 @@ def _write_segmentation(vol, output, dicom_type, reference, segments, contours,
             from ..io.rtstruct import write_rtstruct
 
             write_rtstruct(vol, output, ref, names=names, contours=contours or "edges",
-                           source=source)
+                           source=source, names_from=segments)
         else:
             write_seg(vol, output, ref, labelmap=dicom_type == "labelmap-seg", names=names,
-                      source=source)
+                      source=source, names_from=segments)

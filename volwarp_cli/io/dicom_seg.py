@@ -47,7 +47,14 @@ import numpy as np
 from ..errors import BadUsage, FormatError, VolwarpError
 from ..volume import LPS, Volume
 from .common import make_volume
-from .segment_keys import label_descriptions, seg_algorithm, seg_colour, seg_keys
+from .segment_keys import (
+    NESTED_KEY,
+    label_descriptions,
+    nested_labels,
+    seg_algorithm,
+    seg_colour,
+    seg_keys,
+)
 
 SEG_SOP = "1.2.840.10008.5.1.4.1.1.66.4"
 LABELMAP_SEG_SOP = "1.2.840.10008.5.1.4.1.1.66.7"
@@ -500,16 +507,41 @@ def _to_volwarp_axes(arr: np.ndarray, affine: np.ndarray, single_spacing: float)
     return np.ascontiguousarray(arr), spacing, origin, np.column_stack([row_cos, col_cos, normal])
 
 
-def _single_spacing(seg) -> float:
+def _pixel_measure(seg, keyword: str) -> float | None:
+    """A positive value of the SEG's shared PixelMeasuresSequence (None: none, or not one)."""
     try:
-        pm = seg.SharedFunctionalGroupsSequence[0].PixelMeasuresSequence[0]
-        for kw in ("SpacingBetweenSlices", "SliceThickness"):
-            v = pm.get(kw)
-            if v is not None and float(v) > 0:
-                return float(v)
+        v = seg.SharedFunctionalGroupsSequence[0].PixelMeasuresSequence[0].get(keyword)
+        return float(v) if v not in (None, "") and float(v) > 0 else None
     except (AttributeError, IndexError, KeyError, ValueError, TypeError):
-        pass
-    return 1.0
+        return None
+
+
+def _single_spacing(seg) -> float:
+    return _pixel_measure(seg, "SpacingBetweenSlices") or _pixel_measure(seg, "SliceThickness") \
+        or 1.0
+
+
+def _warn_gapped(seg, spacing_z: float, n_slices: int, where: str) -> None:
+    """Say when frames placed without SpacingBetweenSlices lie k >= 2 slice thicknesses apart.
+
+    A SEG may leave out its empty frames: frames on slices 1, 3 and 5 of a
+    2.5 mm series then give a grid of 5 mm, every other slice of the series
+    missing, and nothing in the SEG tells that from a gapped acquisition
+    (which is why this is not refused).
+    """
+    thickness = _pixel_measure(seg, "SliceThickness")
+    if n_slices < 2 or thickness is None or _pixel_measure(seg, "SpacingBetweenSlices"):
+        return
+    ratio = spacing_z / thickness
+    k = round(ratio)
+    if k >= 2 and abs(ratio - k) <= 1e-3 * k:
+        from ..progress import log
+
+        log.warning("warning: %s: its frames lie %g mm apart, %d times its SliceThickness of "
+                    "%g mm, and no SpacingBetweenSlices gives the series' spacing: if it left "
+                    "out empty frames between them, the label map's slices are %g mm apart "
+                    "where the series' are %g mm; --reference SERIES places each frame on its "
+                    "slice exactly", where, spacing_z, k, thickness, spacing_z, thickness)
 
 
 def _meta(seg, keep_phi: bool) -> dict:
@@ -551,6 +583,8 @@ def read_seg(path: str | os.PathLike, *, segment: int | None = None, reference=N
             data = _onto_reference(data, spacing, origin, direction, seg, reference, where)
             g = reference.grid
             spacing, origin, direction = g.spacing, g.origin, g.direction
+    if reference is None:
+        _warn_gapped(seg, float(spacing[2]), data.shape[0], where)
     meta = _meta(seg, keep_phi)
     if segment is not None:
         meta["DICOM_Segment"] = str(segment)
@@ -652,6 +686,23 @@ def label_values(vol: Volume, where: str) -> np.ndarray:
     return values
 
 
+def check_names(names: dict[int, str], values, names_from: str) -> None:
+    """Warn of ``--segments`` rows naming no label of the map (0, or a label it lacks).
+
+    They name nothing: a label id mistyped, or the CSV of another map, would
+    otherwise leave the segments it meant with the default names, silently.
+    """
+    unused = sorted(set(names) - {int(v) for v in values})
+    if unused:
+        from ..progress import log
+
+        log.warning("warning: %s: label%s %s name%s nothing: the label map has no such "
+                    "label%s (0 is its background); check the label column against the map's "
+                    "labels (volwarp info)", names_from, "s" if len(unused) > 1 else "",
+                    " ".join(map(str, unused)), "" if len(unused) > 1 else "s",
+                    "s" if len(unused) > 1 else "")
+
+
 def read_names(path: str | os.PathLike) -> dict[int, str]:
     """``label,name`` rows of a CSV file (a header row ``label,name`` is skipped)."""
     import csv
@@ -730,7 +781,7 @@ def make_timeless(ds, date: str, time: str, uid) -> None:
 
 def build_seg(vol: Volume, reference, *, labelmap: bool = False,
               names: dict[int, str] | None = None, where: str = "SEG",
-              source: str | None = None):
+              source: str | None = None, names_from: str | None = None):
     """The highdicom Segmentation of a label map on ``reference``'s grid.
 
     BINARY (``labelmap`` False): one segment per label, numbered 1..K in
@@ -738,9 +789,14 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     numbers are the label values. Each segment is named from ``names``, else
     the map's key/values (:mod:`.segment_keys`: also its colour, property
     category and type, and algorithm), else ``label N`` (coded SCT Tissue /
-    Tissue, MANUAL, no colour). SOP Instance and Series UIDs are new (never
+    Tissue, MANUAL, no colour). An outer label of the map's
+    ``DICOM_ROI_nested`` is its voxels and those of the labels inside it (a
+    BINARY SEG's segments then overlap; a LABELMAP SEG cannot, and warns). SOP
+    Instance and Series UIDs are new (never
     copied), made from the label map, its descriptions, the reference series
-    and the options. ``source``: the label map's file, named in errors.
+    and the options. ``source``: the label map's file, named in errors;
+    ``names_from``: the file ``names`` came from, named when a row names no
+    label (:func:`check_names`).
     """
     import highdicom as hd
     from pydicom.sr.codedict import codes
@@ -750,14 +806,26 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     check_on_reference_grid(vol, reference, where)
     values = label_values(vol, where)
     names = dict(names or {})
+    check_names(names, values, names_from or where)
     described = label_descriptions(vol.meta, values, source or where)
     key = _content_key(vol, reference, "labelmap" if labelmap else "seg", names, described)
 
     def uid(what):
         return new_uid(key, what)
+    inside = nested_labels(vol.meta, values, source or where)
     if labelmap:
         numbers = [int(v) for v in values]
         pixels = vol.data.astype(_label_dtype(int(values[-1])), copy=False)
+        if inside:
+            from ..progress import log
+
+            held = "; ".join(f"{o} holds {' '.join(map(str, i))}" for o, i in inside.items())
+            log.warning("warning: %s: %s (%s), but a LABELMAP SEG has one segment a voxel: "
+                        "the outer segments keep their inner labels' holes; --dicom-type seg "
+                        "or rtstruct writes them whole", where, held, NESTED_KEY)
+    elif inside:
+        pixels = _overlapping_segments(vol.data, values, inside, where)
+        numbers = list(range(1, len(values) + 1))
     else:
         numbers = list(range(1, len(values) + 1))
         lut = np.zeros(int(values[-1]) + 1, _label_dtype(len(values)))
@@ -796,6 +864,22 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     return seg
 
 
+def _overlapping_segments(data: np.ndarray, values, inside: dict, where: str) -> np.ndarray:
+    """Each label's mask [z, y, x, segment], an outer label's holding its nested labels' voxels.
+
+    highdicom takes overlapping BINARY segments as one bool plane a segment, so
+    this needs a byte a voxel a label (checked against the memory budget).
+    """
+    from ..memory import ensure_fits_in_memory
+
+    ensure_fits_in_memory(data.size * len(values), f"{where}: the {len(values)} segments, "
+                          "outer ones whole (their nested labels' voxels in them)")
+    masks = np.zeros(data.shape + (len(values),), bool)
+    for n, v in enumerate(int(x) for x in values):
+        masks[..., n] = np.isin(data, [v, *inside.get(v, ())])
+    return masks
+
+
 def _sources_and_frames(reference, pixels: np.ndarray, where: str):
     """The ``source_images`` and ``pixel_array`` highdicom takes for a label map on ``reference``.
 
@@ -821,12 +905,13 @@ def _sources_and_frames(reference, pixels: np.ndarray, where: str):
 
 
 def write_seg(vol: Volume, path: str | os.PathLike, reference, *, labelmap: bool = False,
-              names: dict[int, str] | None = None, source: str | None = None) -> None:
+              names: dict[int, str] | None = None, source: str | None = None,
+              names_from: str | None = None) -> None:
     """Write :func:`build_seg`'s SEG to ``path`` atomically."""
     from .atomic import atomic_output, check_output_path
 
     check_output_path(path)
     seg = build_seg(vol, reference, labelmap=labelmap, names=names, where=str(path),
-                    source=source)
+                    source=source, names_from=names_from)
     with atomic_output(path) as tmp:
         seg.save_as(tmp)

@@ -21,10 +21,16 @@ slice by slice:
 - even-odd: a voxel centre is inside when a ray from it crosses the slice's
   closed contours of the ROI an odd number of times, so holes and islands are
   what the contours make them, whichever way round they are drawn;
-- a voxel centre on a contour (within 1e-3 voxel, measured in voxel units of the
-  slice) is inside: contours drawn through the boundary voxels' centres
-  (rt-utils' habit), 1-point (POINT, or one vertex) and 2-point contours, and
-  OPEN_PLANAR polylines give exactly the voxels they pass through.
+- a voxel centre on a closed contour (within 1e-3 voxel, measured in voxel
+  units of the slice) is inside: contours drawn through the boundary voxels'
+  centres (rt-utils' habit) give exactly the voxels they pass through;
+- a 1-point contour (POINT, or one vertex) gives the voxel holding it (rint of
+  its index), and a polyline (OPEN_PLANAR, or a 2-point contour) the voxels it
+  passes through, one per step along its major axis (:func:`_mark_nearest`):
+  a marker or a line off the voxel centres is not lost.
+
+An ROI with contours that still holds no voxel (a closed contour round no
+voxel centre) is said in a warning naming it: its key/value lists it.
 """
 
 from __future__ import annotations
@@ -36,9 +42,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import BadUsage, FormatError, VolwarpError
+from ..progress import log
 from ..volume import LPS, Volume
 from .common import make_volume
-from .segment_keys import label_descriptions, roi_colour, roi_colours, roi_keys
+from .segment_keys import (
+    label_descriptions,
+    nested_keys,
+    nested_labels,
+    roi_colour,
+    roi_colours,
+    roi_keys,
+)
 
 RTSTRUCT_SOP = "1.2.840.10008.5.1.4.1.1.481.3"
 
@@ -92,6 +106,23 @@ def frames_of_reference(ds) -> tuple[str, ...]:
     return tuple(dict.fromkeys(out))
 
 
+def roi_frames(ds) -> dict[int, str]:
+    """Each ROI's ReferencedFrameOfReferenceUID (ROIs that give one), by ROI Number."""
+    return {int(r.ROINumber): str(r.ReferencedFrameOfReferenceUID)
+            for r in ds.get("StructureSetROISequence", [])
+            if "ROINumber" in r and r.get("ReferencedFrameOfReferenceUID")}
+
+
+def _check_roi_frame(roi_frame: str | None, reference, where: str, label: str) -> None:
+    """An ROI's contours lie in its own frame of reference: it must be the reference's."""
+    own = reference.frame_of_reference_uid
+    if roi_frame and own and roi_frame != own:
+        raise VolwarpError(f"{where}: {label} lies in frame of reference {roi_frame}, not that "
+                           f"of --reference {reference.path} ({own}): its contours are in "
+                           "another coordinate system; read the ROIs on this one with "
+                           "--structure NAME, or give that frame's series with --reference")
+
+
 def describe_structures(ds) -> list[dict]:
     """Each ROI's number, name and number of contours (for ``volwarp info``)."""
     contours = {int(c.ReferencedROINumber): len(c.get("ContourSequence", []))
@@ -115,7 +146,11 @@ def _structure_number(rois: list[dict], structure: str, where: str) -> int:
 
 
 def check_reference(ds, reference, where: str) -> None:
-    """The reference must be the series the RTSTRUCT names (or, naming none, its frame)."""
+    """The reference must be the series the RTSTRUCT names (or, naming none, its frame).
+
+    Each ROI's own frame is checked as it is read (:func:`_check_roi_frame`):
+    an ROI of another frame is refused, ``--structure`` of one on this frame reads.
+    """
     wanted = referenced_series(ds)
     if wanted and reference.series_uid not in wanted:
         raise VolwarpError(f"{where}: drawn on series {' '.join(wanted)}, but --reference "
@@ -150,6 +185,7 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
     only = _structure_number(structures, structure, where) if structure is not None else None
     grid = ref.grid
     names = {r["number"]: r["name"] for r in structures}
+    frames = roi_frames(ds)
     dtype = np.uint8 if only is not None else _label_dtype(max(numbers, default=0), where)
     out = np.zeros(grid.shape, dtype)
     rois = []
@@ -159,10 +195,16 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
         if only is not None and number != only:
             continue
         label = f"ROI {number} {names.get(number, '')!r}"
+        if roi.get("ContourSequence"):
+            _check_roi_frame(frames.get(number), ref, where, label)
         contours = _contours_in_index(roi, ref, where, label, images)
         if contours and only is None:
             _check_label(number, names, where)
         mask = RoiMask.of(number, names.get(number, ""), contours, grid.shape)
+        if contours and not mask.count:
+            log.warning("warning: %s: %s has %d contour(s) but holds no voxel centre of "
+                        "--reference %s (drawn smaller than a voxel?): it has no voxels in "
+                        "the output", where, label, len(contours), ref.path)
         if only is not None:
             out[mask.slices()][mask.mask] = 1
             continue
@@ -177,8 +219,7 @@ def read_rtstruct(path: str | os.PathLike, reference, *, structure: str | None =
                              {1: colours[only]} if only in colours else {}))
     else:
         meta.update(roi_keys({n: names[n] for n in numbers}, colours))
-        if nested:
-            meta["DICOM_ROI_nested"] = "; ".join(f"{a} in {b}" for a, b in nested)
+        meta.update(nested_keys(nested))
     return make_volume(where, out, spacing=grid.spacing, origin=grid.origin,
                        direction=grid.direction, space=LPS, file_space=LPS, meta=meta)
 
@@ -443,22 +484,21 @@ _FILL_CELLS = 1 << 20
 
 def _rasterize_slab(mask: np.ndarray, contours, tol: float) -> None:
     """:func:`rasterize` into ``mask`` (all False), its contours' ``k`` counted from its first slice."""
-    edges, segments = [], []  # (k, a, b): slice and end points of edges a -> b
+    rings, lines = [], []  # (k, a, b): slice and end points of edges a -> b
     for k, pts, closed in contours:
         pts = np.asarray(pts, np.float64)
-        ring = bool(closed) and len(pts) >= 3
-        if ring:
-            edges.append((k, pts, np.roll(pts, -1, axis=0)))
-        if len(pts) == 1:
-            segments.append((k, pts, pts))
+        if bool(closed) and len(pts) >= 3:
+            rings.append((k, pts, np.roll(pts, -1, axis=0)))
+        elif len(pts) == 1:  # (a point: a segment of no length, its nearest centre)
+            lines.append((k, pts, pts))
         else:
-            segments.append((k, pts[:-1], pts[1:]))
-            if ring:
-                segments.append((k, pts[-1:], pts[:1]))
-    if edges:
-        _even_odd(mask, *_stacked(edges))
-    if segments:
-        _mark_on_segments(mask, *_stacked(segments), tol)
+            lines.append((k, pts[:-1], pts[1:]))
+    if rings:
+        ring_edges = _stacked(rings)
+        _even_odd(mask, *ring_edges)
+        _mark_on_segments(mask, *ring_edges, tol)
+    if lines:
+        _mark_nearest(mask, *_stacked(lines))
 
 
 def _stacked(parts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -499,36 +539,62 @@ def _even_odd(mask: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndarray) -> 
 def _mark_on_segments(mask: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndarray,
                       tol: float) -> None:
     """Set the voxel centres of ``mask`` [z, y, x] within ``tol`` of a segment a->b on slice k."""
-    _, ny, nx = mask.shape
+    seg, c = _step_centres(mask.shape, a, b, tol)
+    # exact distance from the candidate centre to the segment
+    ds = (b - a)[seg]
+    dd = np.einsum("ij,ij->i", ds, ds)
+    p = np.where(dd > 0, np.einsum("ij,ij->i", c - a[seg], ds) / np.where(dd > 0, dd, 1.0), 0.0)
+    p = np.clip(p, 0.0, 1.0)
+    near = a[seg] + p[:, None] * ds
+    ok = np.hypot(*(near - c).T) <= tol
+    mask[k[seg[ok]], c[ok, 1].astype(np.int64), c[ok, 0].astype(np.int64)] = True
+
+
+def _mark_nearest(mask: np.ndarray, k: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+    """Set the voxels of ``mask`` [z, y, x] a segment a->b on slice k passes through, one per step.
+
+    Nearest-centre rasterisation (a DDA line): along the segment's major axis
+    (x when |dx| >= |dy|), every index t from rint of one end to rint of the
+    other gets the voxel holding the segment's point at t (the end point where
+    t lies beyond it), i.e. minor index rint of that point's. A segment of no
+    length (a POINT) gives the voxel holding it. Voxels off the grid are left out.
+    """
+    seg, c = _step_centres(mask.shape, a, b, None)
+    mask[k[seg], c[:, 1].astype(np.int64), c[:, 0].astype(np.int64)] = True
+
+
+def _step_centres(shape_zyx, a: np.ndarray, b: np.ndarray,
+                  tol: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(segment, centre (x, y))``: each segment's voxel centre nearest it at each step t.
+
+    The steps are the whole indices t along the segment's major axis (x when
+    |dx| >= |dy|) from ``ceil(start - tol)`` to ``floor(end + tol)``, or with
+    ``tol`` None from rint of one end to rint of the other; the centre is
+    ``(t, rint of the segment's minor coordinate at t)``, the end point's
+    where t lies beyond it. Centres off the grid are left out.
+    """
+    _, ny, nx = shape_zyx
     d = b - a
     major = (np.abs(d[:, 1]) > np.abs(d[:, 0])).astype(np.int64)  # 0: x, 1: y
     idx = np.arange(len(a))
     am, bm = a[idx, major], b[idx, major]
-    t0 = np.ceil(np.minimum(am, bm) - tol).astype(np.int64)
-    t1 = np.floor(np.maximum(am, bm) + tol).astype(np.int64)
+    lo, hi = np.minimum(am, bm), np.maximum(am, bm)
+    lo, hi = (np.rint(lo), np.rint(hi)) if tol is None else (np.ceil(lo - tol), np.floor(hi + tol))
+    size = np.where(major == 0, nx, ny)
+    t0 = np.maximum(np.clip(lo, -1, size).astype(np.int64), 0)  # (the grid's steps only)
+    t1 = np.minimum(np.clip(hi, -1, size).astype(np.int64), size - 1)
     count = np.maximum(t1 - t0 + 1, 0)
-    if not count.any():
-        return
     seg = np.repeat(idx, count)
     offs = np.arange(seg.size) - np.repeat(np.cumsum(count) - count, count)
     t = (t0[seg] + offs).astype(np.float64)
     mj = major[seg]
     dm = d[seg, mj]
-    s = np.where(dm != 0, (t - a[seg, mj]) / np.where(dm != 0, dm, 1.0), 0.0)
-    s = np.clip(s, 0.0, 1.0)
-    minor = np.rint(a[seg, 1 - mj] + s * d[seg, 1 - mj])
+    s = np.clip(np.where(dm != 0, (t - a[seg, mj]) / np.where(dm != 0, dm, 1.0), 0.0), 0.0, 1.0)
     c = np.empty((seg.size, 2))
     c[np.arange(seg.size), mj] = t
-    c[np.arange(seg.size), 1 - mj] = minor
-    # exact distance from the candidate centre to the segment
-    ds = d[seg]
-    dd = np.einsum("ij,ij->i", ds, ds)
-    p = np.where(dd > 0, np.einsum("ij,ij->i", c - a[seg], ds) / np.where(dd > 0, dd, 1.0), 0.0)
-    p = np.clip(p, 0.0, 1.0)
-    near = a[seg] + p[:, None] * ds
-    dist = np.hypot(*(near - c).T)
-    ok = (dist <= tol) & (c[:, 0] >= 0) & (c[:, 0] < nx) & (c[:, 1] >= 0) & (c[:, 1] < ny)
-    mask[k[seg[ok]], c[ok, 1].astype(np.int64), c[ok, 0].astype(np.int64)] = True
+    c[np.arange(seg.size), 1 - mj] = np.rint(a[seg, 1 - mj] + s * d[seg, 1 - mj])
+    ok = (c[:, 0] >= 0) & (c[:, 0] < nx) & (c[:, 1] >= 0) & (c[:, 1] < ny)
+    return seg[ok], c[ok]
 
 
 # -- writing -----------------------------------------------------------------------------
@@ -641,7 +707,7 @@ def _ds(values) -> list[str]:
 
 def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = None,
                    where: str = "RTSTRUCT", contours: str = "edges",
-                   source: str | None = None):
+                   source: str | None = None, names_from: str | None = None):
     """A pydicom RTSTRUCT of a label map on ``reference``'s grid: one ROI per label.
 
     ROI Number = label value, named from ``names``, else the map's key/values
@@ -650,7 +716,10 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     (:func:`mask_outlines`), or (``"smooth"``) the zero level of each slice's
     sub-voxel distance field (:func:`smooth_outlines`), each referencing its
     slice's image (and its frame, ReferencedFrameNumber, when the reference is
-    a multi-frame image); new SOP and Series UIDs made from the content.
+    a multi-frame image); new SOP and Series UIDs made from the content. An
+    outer ROI of the map's ``DICOM_ROI_nested`` is its voxels and those of the
+    ROIs inside it (:func:`.segment_keys.nested_labels`), as it was read.
+    ``names_from``: the file ``names`` came from (:func:`.dicom_seg.check_names`).
     """
     if contours not in CONTOUR_STYLES:
         raise VolwarpError(f"contours must be one of {', '.join(CONTOUR_STYLES)}, "
@@ -662,11 +731,19 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     from pydicom.uid import ExplicitVRLittleEndian
 
     from .. import __version__
-    from .dicom_seg import _content_key, _stamp, check_on_reference_grid, label_values, new_uid
+    from .dicom_seg import (
+        _content_key,
+        _stamp,
+        check_names,
+        check_on_reference_grid,
+        label_values,
+        new_uid,
+    )
 
     check_on_reference_grid(vol, reference, where)
     values = label_values(vol, where)
     names = dict(names or {})
+    check_names(names, values, names_from or where)
     described = label_descriptions(vol.meta, values, source or where)
     key = _content_key(vol, reference, "rtstruct" if contours == "edges" else
                        f"rtstruct {contours}", names, described)
@@ -714,6 +791,7 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     ds.ReferencedFrameOfReferenceSequence = Sequence([frame])
     rois, contours, observations = [], [], []
     data = vol.data
+    inside = nested_labels(vol.meta, values, source or where)  # (an outer ROI written whole)
     for n, value in enumerate(values.tolist(), 1):
         roi = Dataset()
         roi.ROINumber = int(value)
@@ -724,8 +802,9 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
         roi.ROIGenerationAlgorithm = ""
         rois.append(roi)
         seq = []
-        for k in np.flatnonzero((data == value).any(axis=(1, 2))):
-            for loop in outlines(data[k] == value):
+        members = [value, *inside.get(value, ())]
+        for k in np.flatnonzero(np.isin(data, members).any(axis=(1, 2))):
+            for loop in outlines(np.isin(data[k], members)):
                 xyz = g.index_to_world(np.column_stack([loop, np.full(len(loop), float(k))]))
                 item = Dataset()
                 item.ContourImageSequence = Sequence([image_ref(int(k))])
@@ -770,12 +849,12 @@ def _series_images(reference, image_ref) -> list:
 
 def write_rtstruct(vol: Volume, path: str | os.PathLike, reference, *,
                    names: dict[int, str] | None = None, contours: str = "edges",
-                   source: str | None = None) -> None:
+                   source: str | None = None, names_from: str | None = None) -> None:
     """Write :func:`build_rtstruct`'s RTSTRUCT to ``path`` atomically."""
     from .atomic import atomic_output, check_output_path
 
     check_output_path(path)
     ds = build_rtstruct(vol, reference, names=names, where=str(path), contours=contours,
-                        source=source)
+                        source=source, names_from=names_from)
     with atomic_output(path) as tmp:
         ds.save_as(tmp, enforce_file_format=True)

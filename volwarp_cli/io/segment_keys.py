@@ -20,6 +20,9 @@ key                                value
                                    (``scheme^value^meaning``)
 ``DICOM_ROI_N``                    ROIName
 ``DICOM_ROI_N_Color``              ROIDisplayColor: ``R G B``, each 0..255
+``DICOM_ROI_nested``               ROIs lying inside others: ``2 in 1; 5 in 3``
+                                   (inner and outer labels; the map holds the
+                                   inner ROI's voxels, the outer one the rest)
 =================================  ===========================================
 
 Writing, for each label: a name from ``--segments``, else from these keys (a
@@ -28,7 +31,9 @@ round), else the default; a colour from the keys (converted between CIELab and
 RGB with highdicom's :class:`~highdicom.color.CIELabColor` when the map came
 from the other kind), else the default (a SEG: none; an RTSTRUCT: volwarp's
 made-up colour); a SEG's codes and algorithm from the keys, else SCT Tissue /
-Tissue, MANUAL. A key that cannot be parsed is an error naming it.
+Tissue, MANUAL. A key that cannot be parsed is an error naming it. An outer
+ROI of ``DICOM_ROI_nested`` is written whole (:func:`nested_labels`): its
+voxels and those of the labels inside it.
 """
 
 from __future__ import annotations
@@ -39,6 +44,8 @@ from ..errors import VolwarpError
 
 SEG_PREFIX = "DICOM_Segment_"
 ROI_PREFIX = "DICOM_ROI_"
+#: the key listing the ROIs that lie inside others (:func:`nested_keys`)
+NESTED_KEY = "DICOM_ROI_nested"
 
 Code3 = tuple[str, str, str]  # (scheme, value, meaning)
 
@@ -134,7 +141,46 @@ def roi_keys(names: dict[int, str], colours: dict[int, tuple[int, int, int]]) ->
     return meta
 
 
+def nested_keys(pairs: list[tuple[int, int]]) -> dict[str, str]:
+    """``DICOM_ROI_nested`` of the pairs ``(inner, outer)`` (none: no key)."""
+    return {NESTED_KEY: "; ".join(f"{a} in {b}" for a, b in pairs)} if pairs else {}
+
+
 # -- writing: each label's description from the key/values ---------------------------------
+
+def nested_labels(meta: dict, values, source: str) -> dict[int, list[int]]:
+    """{outer label: every label of ``values`` inside it, however deep} from ``DICOM_ROI_nested``.
+
+    A map read from an RTSTRUCT gives a voxel to the smallest ROI holding it, so
+    an outer ROI's own mask is its label's voxels and those of the labels
+    nested in it: written back without them, it has their holes.
+    """
+    text = str(meta.get(NESTED_KEY) or "").strip()
+    if not text:
+        return {}
+    inside: dict[int, set[int]] = {}
+    for part in filter(None, (p.strip() for p in text.split(";"))):
+        words = part.split()
+        if len(words) != 3 or words[1] != "in" or not all(
+                w.lstrip("-").isdigit() for w in words[::2]):
+            raise VolwarpError(f"{source}: key/value {NESTED_KEY}={text!r} does not say "
+                               "which labels lie in which: want 'INNER in OUTER' pairs of "
+                               "labels separated by ';' (docs/segmentations.md)")
+        inside.setdefault(int(words[2]), set()).add(int(words[0]))
+    present = {int(v) for v in values}
+    out = {}
+    for outer in sorted(inside.keys() & present):
+        seen, todo = set(), list(inside[outer])
+        while todo:  # (every depth: GTV in CTV in PTV)
+            label = todo.pop()
+            if label not in seen and label != outer:
+                seen.add(label)
+                todo.extend(inside.get(label, ()))
+        if seen & present:
+            out[outer] = sorted(seen & present)
+    return out
+
+
 
 def _bad(source: str, key: str, value: str, want: str) -> VolwarpError:
     return VolwarpError(f"{source}: key/value {key}={value!r} does not describe a segment: "
