@@ -223,6 +223,27 @@ def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -
     return frames
 
 
+def warn_folds(frames: list[Frame], grid: Lattice) -> None:
+    """Warn of each step whose lattice folds the map (:func:`.folds.fold_count`).
+
+    Called once the plan is accepted (a refusal is said alone). The warp goes
+    on: the pushforward sums what lands where, and the exports say where a
+    field has no single preimage.
+    """
+    from .folds import fold_count
+
+    uniform = grid.uniform_positions()
+    last = {frame.step: frame for frame in frames}  # (each step's last frame: its lattice)
+    for step, frame in last.items():
+        folded, samples = fold_count(uniform + frame.dq)
+        if folded:
+            log.warning("warning: steps[%d]: the lattice folds the map: its Jacobian's sign "
+                        "flips at %d of %d points sampled across the lattice (parts of the "
+                        "model pass through each other, their samples summed where they "
+                        "land); smaller moves, or a larger radius, keep it one-to-one",
+                        step - 1, folded, samples)
+
+
 #: A radius whose freed control points must move this many times as far as the handles
 #: gets a warning (none: about 2.4 times; a one-point radius: 3.4 times and more).
 STRONG_RADIUS = 3.0

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..bspline.capture import Capture
-from ..bspline.plan import SpecUnits, WarpSpec, default_pad, plan
+from ..bspline.plan import SpecUnits, WarpSpec, default_pad, plan, warn_folds
 from ..bspline.scene import Scene
 from ..errors import BadUsage, SpecError, VolwarpError
 from ..progress import log, progress, timed
@@ -140,6 +140,7 @@ def prepare(cap: Capture, doc, spec: WarpSpec, *, method: str | None = None,
     if grid == "grow" and any(p < n - 1 for p, n in zip(pad, needed, strict=False)):
         log.warning("pad %s is smaller than the largest displacement %s: material moved "
                     "outside the padded grid is cut off", list(pad), [max(n - 1, 0) for n in needed])
+    warn_folds(frames, cap.grid)
     scene = Scene(cap.voxmap, cap.grid, dq0, pad, method=method or spec.pushforward,
                   evaluator=evaluator or spec.evaluator,
                   background=background_of(spec, cap, background)[0],
