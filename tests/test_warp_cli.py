@@ -615,3 +615,25 @@ def test_a_move_beyond_the_exact_sums_is_a_spec_error(run, tmp_path, step):
                                      "by: [1e9, 1, 1]}]\n")  # (far, and placed exactly)
     assert run("warp", tmp_path / "in.nrrd", "--spec", tmp_path / "s.yaml", "-o", out).code == 0
     assert 0 <= read_volume(out).data.min() and read_volume(out).data.max() <= 33
+
+
+def test_a_handle_miss_is_said_in_the_spec_s_units(run, tmp_path):
+    """Two drags of one point 10 mm apart along z, on 2.5 mm slices: each misses by 5 mm (it
+    was said as "2 voxel", the input's z voxels, while the spec speaks millimetres)."""
+    z, y, x = np.mgrid[:20, :40, :40]
+    src = tmp_path / "aniso.nrrd"
+    write_volume(Volume(((x - 20) ** 2 + (y - 20) ** 2 + ((z - 10) * 2.5) ** 2 < 150)
+                        .astype(np.float32) * 100, spacing=(1, 1, 2.5)), src)
+    spec = tmp_path / "conflict.yaml"
+    spec.write_text("version: 1\ncapture: {lattice: 7}\nsteps:\n  - drag:\n"
+                    "      - {from: [20, 20, 25], to: [20, 20, 30]}\n"
+                    "      - {from: [20, 20, 25], to: [20, 20, 20]}\n")
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd")
+    assert res.code == 0, res.stderr
+    assert "the handles cannot all be reached (largest miss 5 mm)" in res.stderr, res.stderr
+    voxel = tmp_path / "voxel.yaml"  # (the same drags in input voxels: 2 voxels along z)
+    voxel.write_text("version: 1\nunits: voxel\ncapture: {lattice: 7}\nsteps:\n  - drag:\n"
+                     "      - {from: [20, 20, 10], to: [20, 20, 12]}\n"
+                     "      - {from: [20, 20, 10], to: [20, 20, 8]}\n")
+    res = run("warp", src, "--spec", voxel, "-o", tmp_path / "v.nrrd")
+    assert res.code == 0 and "(largest miss 2 voxel)" in res.stderr, res.stderr

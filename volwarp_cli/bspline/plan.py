@@ -196,17 +196,18 @@ def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -
                                "the region the warped model covers (the input's voxel box, "
                                "carried by the earlier steps)")
                 raise doc.error(("steps", s, "drag", exc.index, "from"), message) from None
-            if residual > 1e-3:
-                log.warning("steps[%d]: the handles cannot all be reached (largest miss %.3g "
-                            "voxel): they conflict, or lie closer together than the control "
-                            "points and pull apart; used a bounded least-squares compromise",
-                            s, residual)
-
             if free is not None:
                 _warn_strong_radius(s, float(step["radius"]), delta, src, dst, geom)
             work = work + delta
             reached = map_params(work, grid, params)
             handles = [(src[i], dst[i], reached[i]) for i in range(len(src))]
+            if residual > 1e-3:  # (the miss in the spec's units: 2 voxels of 2.5 mm are 5 mm)
+                miss = reached - dst if geom.units == "voxel" else (reached - dst) @ geom.matrix.T
+                log.warning("steps[%d]: the handles cannot all be reached (largest miss %.3g "
+                            "%s): they conflict, or lie closer together than the control "
+                            "points and pull apart; used a bounded least-squares compromise",
+                            s, float(np.linalg.norm(miss, axis=1).max()),
+                            "voxel" if geom.units == "voxel" else "mm")
         else:
             handles = []
         reach = float(np.abs(work).max(initial=0.0))
