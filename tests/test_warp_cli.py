@@ -637,3 +637,26 @@ def test_a_handle_miss_is_said_in_the_spec_s_units(run, tmp_path):
                      "      - {from: [20, 20, 10], to: [20, 20, 8]}\n")
     res = run("warp", src, "--spec", voxel, "-o", tmp_path / "v.nrrd")
     assert res.code == 0 and "(largest miss 2 voxel)" in res.stderr, res.stderr
+
+
+def test_a_step_that_moves_nothing_and_a_point_moved_twice_are_said(run, tmp_path):
+    """Both are the spec's right and more often a slip: said, and the warp goes on."""
+    z, y, x = np.mgrid[:20, :20, :20]
+    src = tmp_path / "ball.nrrd"
+    write_volume(Volume(((x - 10) ** 2 + (y - 10) ** 2 + (z - 10) ** 2 < 30)
+                        .astype(np.float32)), src)
+    spec = tmp_path / "s.yaml"
+    spec.write_text("version: 1\ncapture: {lattice: 5}\nsteps:\n  - frames: 3\n  - move:\n"
+                    "      - {index: [2, 2, 2], by: [1, 0, 0]}\n"
+                    "      - {index: [2, 2, 2], by: [1, 0, 0]}\n")
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd")
+    assert res.code == 0, res.stderr
+    assert "steps[0] moves nothing: its 3 frames are the same lattice" in res.stderr
+    assert "steps[1].move[1]: control point [2, 2, 2] is moved again" in res.stderr
+    once = tmp_path / "once.yaml"  # (the two 'by's add up: the same as one of 2)
+    once.write_text("version: 1\ncapture: {lattice: 5}\nsteps:\n  - move:\n"
+                    "      - {index: [2, 2, 2], by: [2, 0, 0]}\n")
+    res = run("warp", src, "--spec", once, "-o", tmp_path / "once.nrrd")
+    assert res.code == 0 and res.stderr == "", res.stderr
+    assert np.array_equal(read_volume(tmp_path / "o.nrrd").data,
+                          read_volume(tmp_path / "once.nrrd").data)

@@ -164,6 +164,7 @@ def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -
     current = np.array(dq0, dtype=np.float64)
     for s, step in enumerate(spec.steps):
         work = current.copy()
+        _warn_idle(s, step)
         for mv in step.get("move", []):
             i, j, k = (int(v) for v in mv["index"])  # (7.0: an integer to the schema)
             if "by" in mv:
@@ -222,6 +223,26 @@ def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -
             frames.append(Frame(dq, s + 1, f, handles if f == n else []))
         current = work
     return frames
+
+
+def _warn_idle(s: int, step: dict) -> None:
+    """Say a step that moves nothing, and a control point that one step moves twice.
+
+    Both are the spec's right (a step of frames only holds the model still;
+    moves apply in order: the ``by``s add up, the last ``to`` wins), and
+    both are more often a slip: a step's moves left out, an index typed twice.
+    """
+    if not step.get("move") and not step.get("drag"):
+        log.warning("warning: steps[%d] moves nothing: its %s the same lattice", s,
+                    f"{int(step.get('frames', 1))} frames are" if int(step.get("frames", 1)) > 1
+                    else "frame is")
+    seen = set()
+    for m, mv in enumerate(step.get("move", [])):
+        index = tuple(int(v) for v in mv["index"])
+        if index in seen:
+            log.warning("warning: steps[%d].move[%d]: control point %s is moved again in this "
+                        "step (a 'by' adds to its move, a 'to' replaces it)", s, m, list(index))
+        seen.add(index)
 
 
 def warn_folds(frames: list[Frame], grid: Lattice) -> None:
