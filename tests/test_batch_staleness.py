@@ -17,7 +17,10 @@ import pytest
 
 pydicom = pytest.importorskip("pydicom")
 
+from volwarp_cli.errors import BadUsage  # noqa: E402
 from volwarp_cli.io import read_volume, write_volume  # noqa: E402
+from volwarp_cli.io.inputs import refuse_output_over_input  # noqa: E402
+from volwarp_cli.runscope import run_scope  # noqa: E402
 from volwarp_cli.volume import Volume  # noqa: E402
 
 
@@ -52,10 +55,15 @@ def dicomdir_series(folder: Path) -> Path:
     return folder / "DICOMDIR"
 
 
-def test_an_image_a_dicomdir_lists_changed_redoes_the_step(tmp_path):
+@pytest.mark.parametrize("name", ["DICOMDIR", "INDEX.DCM"])
+def test_an_image_a_dicomdir_lists_changed_redoes_the_step(tmp_path, name):
+    """A DICOMDIR is known by content, as its reader knows it: under another name
+    (INDEX.DCM) it was hashed alone, and a changed image was skipped (a review)."""
     dicomdir = dicomdir_series(tmp_path / "fs")
+    if name != "DICOMDIR":
+        dicomdir = dicomdir.rename(dicomdir.with_name(name))
     (tmp_path / "m.yaml").write_text(
-        "version: 1\ninputs: {list: [fs/DICOMDIR]}\noutput_dir: out\nsteps:\n"
+        f"version: 1\ninputs: {{list: [fs/{name}]}}\noutput_dir: out\nsteps:\n"
         "  - {name: conv, run: convert, output: \"{stem}.nrrd\"}\n")
     assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
     assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 0 ok, 1 skipped, 0 failed"
@@ -64,8 +72,13 @@ def test_an_image_a_dicomdir_lists_changed_redoes_the_step(tmp_path):
     ds.PixelData = np.full(64, 1234, "<i2").tobytes()
     ds.save_as(image)
     assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
-    out = read_volume(tmp_path / "out" / "fs" / "DICOMDIR.nrrd").data
-    assert (out == 1234).sum() == 64  # the changed slice, as a fresh convert reads it
+    out = read_volume(tmp_path / "out" / "fs" / f"{dicomdir.name.split('.')[0]}.nrrd").data
+    assert (out == 1234).sum() == 64  # the changed slice
+    res = volwarp("convert", dicomdir, "-o", tmp_path / "fresh.nrrd")
+    assert res.returncode == 0, res.stderr
+    assert np.array_equal(out, read_volume(tmp_path / "fresh.nrrd").data)
+    with run_scope(), pytest.raises(BadUsage, match="would overwrite the data file"):
+        refuse_output_over_input(image, [dicomdir])  # (its images are the input's files)
 
 
 def test_an_output_option_of_one_fixed_name_is_recorded_and_checked(tmp_path):

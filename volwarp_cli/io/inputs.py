@@ -63,7 +63,7 @@ def input_files(path: str | os.PathLike) -> list[Path]:
             files += _nrrd_data_files(path)
         elif name.endswith(_METAIMAGE):
             files += _metaimage_data_files(path)
-        elif name == "dicomdir":
+        else:
             files += _dicomdir_data_files(path)
     except Exception:  # noqa: BLE001 - a header its reader will refuse: the read says why
         pass
@@ -71,9 +71,17 @@ def input_files(path: str | os.PathLike) -> list[Path]:
 
 
 def _dicomdir_data_files(path: Path) -> list[Path]:
-    """The images a DICOMDIR lists (what a batch must hash: the DICOMDIR alone is an index)."""
+    """The images a DICOMDIR lists (what a batch must hash: the DICOMDIR alone is an index).
+
+    Known by content, as the reader knows one (``INDEX.DCM`` is one too): a
+    file read as DICOM whose header (no pixel data) is a directory's; [] for
+    any other file.
+    """
+    from . import volume_format
     from .dicom._scan import _files_of
 
+    if volume_format(path, reading=True) != "dicom":
+        return []
     return [Path(f) for f, _ in _files_of(path)[0] if Path(f) != path]
 
 
