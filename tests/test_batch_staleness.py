@@ -199,3 +199,33 @@ def test_an_output_pattern_that_leaves_output_dir_is_refused(tmp_path, pattern):
         res = volwarp("batch", tmp_path / "m.yaml", cwd=tmp_path)
         assert res.returncode == 2 and "leaves output_dir" in res.stderr, res.stderr
         assert sorted(p.name for p in (tmp_path / "scans").iterdir()) == ["p01.nrrd"]
+
+
+def test_a_level_linked_into_an_ome_zarr_store_is_what_the_step_reads(tmp_path):
+    """zarr reads a store's keys through linked folders; the batch's walk did not follow
+    them, so a changed level linked in from elsewhere was skipped (a review). A link back
+    up the store ends no walk."""
+    import shutil
+
+    store = tmp_path / "scans" / "z.ome.zarr"
+    store.parent.mkdir()
+    data = np.zeros((6, 6, 6), np.float32)
+    data[2:4, 2:4, 2:4] = 100
+    write_volume(Volume(data), store)
+    (tmp_path / "levels").mkdir()
+    (store / "0").rename(tmp_path / "levels" / "z0")
+    (store / "0").symlink_to("../../levels/z0")
+    (tmp_path / "levels" / "z0" / "up").symlink_to("../../scans")  # (a loop)
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\ninputs: {list: [scans/z.ome.zarr]}\noutput_dir: out\nsteps:\n"
+        "  - {name: conv, run: convert, output: \"z.nrrd\"}\n")
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 0 ok, 1 skipped, 0 failed"
+    write_volume(Volume(data * 2), tmp_path / "other.ome.zarr")
+    shutil.rmtree(tmp_path / "levels" / "z0" / "c")
+    shutil.copytree(tmp_path / "other.ome.zarr" / "0" / "c", tmp_path / "levels" / "z0" / "c")
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    res = volwarp("convert", store, "-o", tmp_path / "fresh.nrrd")
+    assert res.returncode == 0, res.stderr
+    out = read_volume(tmp_path / "out" / "scans" / "z.nrrd").data
+    assert out.max() == 200 and np.array_equal(out, read_volume(tmp_path / "fresh.nrrd").data)
