@@ -229,3 +229,46 @@ def test_a_level_linked_into_an_ome_zarr_store_is_what_the_step_reads(tmp_path):
     assert res.returncode == 0, res.stderr
     out = read_volume(tmp_path / "out" / "scans" / "z.nrrd").data
     assert out.max() == 200 and np.array_equal(out, read_volume(tmp_path / "fresh.nrrd").data)
+
+
+IDENTITY = ("#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+            "Parameters: 1 0 0 0 1 0 0 0 1 {shift} 0 0\nFixedParameters: 0 0 0\n")
+
+
+@pytest.mark.parametrize("item", ["-tid.tfm", "-qtid.tfm"])
+def test_an_attached_short_option_s_file_is_the_manifest_folder_s(tmp_path, item):
+    """-tFILE (click's attached form) was not known as -t's value: its file was hashed from
+    the folder the batch started in, not the manifest's, where the step reads it (a review)."""
+    root, start = tmp_path / "proj", tmp_path / "elsewhere"
+    (root / "scans").mkdir(parents=True)
+    start.mkdir()
+    data = np.zeros((6, 6, 6), np.float32)
+    data[2:4, 2:4, 2:4] = 100
+    write_volume(Volume(data), root / "scans" / "b.nrrd")
+    (root / "id.tfm").write_text(IDENTITY.format(shift=0))
+    (start / "id.tfm").write_text(IDENTITY.format(shift=0))  # (never the step's)
+    (root / "m.yaml").write_text(
+        "version: 1\ninputs: {glob: 'scans/*.nrrd'}\noutput_dir: out\nsteps:\n"
+        f"  - {{name: moved, run: apply, output: \"{{stem}}_moved.nrrd\", options: [{item}]}}\n")
+    assert batch(root / "m.yaml", cwd=start).endswith("1 ok, 0 skipped, 0 failed")
+    assert batch(root / "m.yaml", cwd=start).endswith("0 ok, 1 skipped, 0 failed")
+    (root / "id.tfm").write_text(IDENTITY.format(shift=2))
+    assert batch(root / "m.yaml", cwd=start).endswith("1 ok, 0 skipped, 0 failed")
+    res = volwarp("apply", root / "scans" / "b.nrrd", "-t", root / "id.tfm", "-o",
+                  tmp_path / "fresh.nrrd")
+    assert res.returncode == 0, res.stderr
+    out = read_volume(root / "out" / "b_moved.nrrd").data
+    assert np.array_equal(out, read_volume(tmp_path / "fresh.nrrd").data)
+    assert not np.array_equal(out, data)
+
+
+def test_an_attached_output_option_is_refused(tmp_path):
+    """-oNAME is -o NAME: set by the step's output key, as -o is (it overrode the output)."""
+    (tmp_path / "scans").mkdir()
+    write_volume(Volume(np.zeros((4, 4, 4), np.float32)), tmp_path / "scans" / "b.nrrd")
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\ninputs: {glob: 'scans/*.nrrd'}\noutput_dir: out\nsteps:\n"
+        "  - {name: conv, run: convert, output: \"{stem}.nrrd\", options: [-qox.nrrd]}\n")
+    res = volwarp("batch", tmp_path / "m.yaml")
+    assert res.returncode == 2 and "-o is set by the step's output key" in res.stderr, res.stderr
+    assert not (tmp_path / "x.nrrd").exists() and not (tmp_path / "out").exists()

@@ -42,7 +42,17 @@ from pathlib import Path
 from .. import __version__
 from .content import FileHashes, content_digest
 from .lock import BOOK_DIR
-from .manifest import SCAN, Manifest, Scan, Step, fill, fill_column, placeholders, row_column
+from .manifest import (
+    SCAN,
+    Manifest,
+    Scan,
+    Step,
+    fill,
+    fill_column,
+    option_value,
+    placeholders,
+    row_column,
+)
 
 #: in the output folder: what each output was made from, and the file hash cache
 STATE_NAME = f"{BOOK_DIR}/state.json"
@@ -175,7 +185,7 @@ def _fixed_outputs(manifest: Manifest, step: Step) -> list[tuple[str, Path]]:
     out = []
     for k, option in step.writes:
         text = step.options[k]
-        value = text.split("=", 1)[1] if text.startswith("--") and "=" in text else text
+        value = option_value(text)
         if not placeholders(value):
             p = Path(value)
             out += [(option, f) for f in written_files(step, option, p if p.is_absolute()
