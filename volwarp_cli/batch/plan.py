@@ -143,7 +143,7 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
             if row_column(value) is not None:
                 text, path = fill_column(value, scan)
                 options.append(text)
-                reads += [path, *_linked(path, manifest.base)]
+                reads += [path, *linked_files(path, manifest.base)]
             elif placeholders(value):
                 path = output_path(manifest, scan, value)
                 flag = (step.options[k - 1] if k and step.options[k - 1].startswith("-")
@@ -164,7 +164,7 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
     return list(plans.values())
 
 
-def _linked(path: Path, folder: Path) -> list[Path]:
+def linked_files(path: Path, folder: Path) -> list[Path]:
     """The files a scan's own file names: an elastix parameter file's initial transforms.
 
     They are what the step reads too (a changed initial transform redoes the
@@ -210,9 +210,8 @@ def step_files(manifest: Manifest, plan: StepPlan) -> list[tuple[str, Path]]:
     The input is named by its file name (as its outputs' provenance names it),
     the others relative to the manifest (a moved tree keeps its names).
     """
-    fixed = list(plan.step.inputs) or ([plan.step.spec] if plan.step.spec else [])
     out = [(plan.input.name, plan.input)]
-    out += [(os.path.relpath(p, manifest.base), Path(p)) for p in [*fixed, *plan.reads]
+    out += [(os.path.relpath(p, manifest.base), Path(p)) for p in [*plan.step.inputs, *plan.reads]
             if Path(p).absolute() != plan.input.absolute()]
     return out
 

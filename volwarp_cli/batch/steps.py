@@ -20,10 +20,13 @@ folders), and every relative file name of the step's options taken from the
 manifest's folder, where the step will run; this process's working folder is
 never changed.
 
-It also tells which files the step reads besides its input (its spec,
-``--points-in``, ``--camera-from``...): the command declares them
-(:func:`..io.inputs.declare_input`). They go into what the step's outputs are
-made from (:mod:`.plan`), and no output may replace them.
+The files the step reads for every scan besides its input (its spec, the
+files of its input options, ``--reference``, ``-t``, ``--points-in``..., and
+the initial transforms an elastix file names) come from its options
+(:func:`_own_files`), not from what the dry run on the first scan read: a
+file that is also the first scan is every scan's file all the same. They go
+into what the step's outputs are made from (:mod:`.plan`), and no output may
+replace them.
 """
 
 from __future__ import annotations
@@ -74,9 +77,8 @@ def check_steps(manifest: Manifest) -> list[Step]:
             values = option_values(command, step.options)
             _check_tokens(manifest, step, values)
             argv = _absolute(manifest, _apart(plan, Path(tmp)), step.options, values)
-            declared, params, problem = _dry_run(manifest, step, command, argv)
-            inputs = [Path(p) for p in declared if _is_read(p, plan.input, tmp)
-                      and Path(p).absolute() not in {r.absolute() for r in plan.reads}]
+            params, problem = _dry_run(manifest, step, command, argv)
+            inputs = _own_files(manifest, step, values)
             _check_inputs_exist(manifest, step, inputs)
             _check_specs(manifest, step, params)
             if problem is not None:
@@ -249,7 +251,7 @@ def _absolute(manifest: Manifest, argv: list[str], options, values) -> list[str]
 
 
 def _dry_run(manifest: Manifest, step: Step, command, argv: list[str]):
-    """Parse and run ``volwarp ARGV`` up to its first read: ``(declared inputs, params, problem)``.
+    """Parse and run ``volwarp ARGV`` up to its first read: ``(params, problem)``.
 
     ``problem``: the usage or spec error the command raised before it read,
     as the manifest's error (None: none). A parse error is raised at once.
@@ -275,7 +277,7 @@ def _dry_run(manifest: Manifest, step: Step, command, argv: list[str]):
                                          "it runs") from None
             params = dict(ctx.params)
             problem = _invoke(manifest, step, command, ctx)
-            return list(files.declared), params, problem
+            return params, problem
 
     try:
         return contextvars.copy_context().run(run)
@@ -318,10 +320,25 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _is_read(path: str, step_input: Path, tmp: str) -> bool:
-    """Whether a declared input is one of the step's own files (not its input, not an output)."""
-    p = Path(path).absolute()
-    return p != Path(step_input).absolute() and not p.is_relative_to(Path(tmp).absolute())
+def _own_files(manifest: Manifest, step: Step, values: list[OptionValue]) -> list[Path]:
+    """The files the step reads for every scan: its spec, its input options' files, what they name.
+
+    From the manifest's options, never from what the dry run (on the first
+    scan) declared: a reference or a transform that is also the first scan,
+    or one of its table's cells, is every scan's file all the same. A
+    ``{COLUMN}`` value is each scan's own (:attr:`.plan.StepPlan.reads`).
+    """
+    from .plan import linked_files
+
+    files = [] if step.spec is None else [step.spec]
+    for v in values:
+        value = v.value(step.options)
+        inverse = _BRACKETS.match(value)
+        path = inverse.group(1) if inverse else value  # (apply's -t '[FILE,1]')
+        if v.kind == "input" and row_column(value) is None and path:
+            file = manifest.base / path
+            files += [file, *linked_files(file, manifest.base)]
+    return files
 
 
 def _check_inputs_exist(manifest: Manifest, step: Step, inputs: list[Path]) -> None:
