@@ -8,6 +8,8 @@ transform found from another folder than the one the step runs in.
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -272,3 +274,43 @@ def test_an_attached_output_option_is_refused(tmp_path):
     res = volwarp("batch", tmp_path / "m.yaml")
     assert res.returncode == 2 and "-o is set by the step's output key" in res.stderr, res.stderr
     assert not (tmp_path / "x.nrrd").exists() and not (tmp_path / "out").exists()
+
+
+def test_any_change_to_volwarp_s_code_redoes_every_step(tmp_path):
+    """A commit may change what a command writes without a version bump; the records of an
+    older tree were taken as current (a review). Here volwarp runs from a copy of its package
+    (a compiled file appears: __pycache__ is no source), then one of its files changes."""
+    import shutil
+
+    import volwarp_cli
+
+    package = tmp_path / "site" / "volwarp_cli"
+    shutil.copytree(Path(volwarp_cli.__file__).parent, package,
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    (tmp_path / "scans").mkdir()
+    write_volume(Volume(np.arange(64, dtype=np.float32).reshape(4, 4, 4)),
+                 tmp_path / "scans" / "b.nrrd")
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\ninputs: {glob: 'scans/*.nrrd'}\noutput_dir: out\nsteps:\n"
+        "  - {name: conv, run: convert, output: \"{stem}.nii.gz\"}\n")
+    env = dict(os.environ, PYTHONPATH=str(package.parent))
+
+    def run_batch() -> dict:
+        res = subprocess.run([sys.executable, "-m", "volwarp_cli", "batch", tmp_path / "m.yaml",
+                              "-q", "--report-json", tmp_path / "r.json"], env=env, cwd=tmp_path,
+                             capture_output=True, text=True, timeout=300)
+        assert res.returncode == 0, res.stderr
+        return json.loads((tmp_path / "r.json").read_text())["scans"][0]["steps"][0]
+
+    assert run_batch()["status"] == "ok"
+    (package / "cli" / "__pycache__").mkdir(exist_ok=True)  # (as a run may compile the copy)
+    (package / "cli" / "__pycache__" / "batch.cpython-311.pyc").write_bytes(b"compiled")
+    assert run_batch()["status"] == "skipped"
+    with open(package / "io" / "nifti.py", "a") as fh:
+        fh.write("\n# a commit that changes no version\n")
+    step = run_batch()
+    assert step["status"] == "ok" and "volwarp's code changed" in step["reason"], step
+    assert volwarp("convert", tmp_path / "scans" / "b.nrrd", "-o", tmp_path / "d.nii.gz"
+                   ).returncode == 0
+    assert np.array_equal(read_volume(tmp_path / "out" / "b.nii.gz").data,
+                          read_volume(tmp_path / "d.nii.gz").data)

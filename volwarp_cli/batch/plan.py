@@ -19,7 +19,8 @@ the initial transforms it names).
 
 A step is up to date when what its outputs were made from is what it would
 be made from now, and its outputs are still what it made. "Made from" is
-volwarp's version, the step as the manifest defines it (its options) and the
+volwarp's version and code (:func:`source_digest`), the step as the manifest
+defines it (its options) and the
 sha256 of every file it reads (its input with the data files its header
 names, its spec, the files its options name): :func:`made_from`. The record
 (:class:`CommandRecord`, ``OUT/.volwarp-batch/state.json``) keeps that for
@@ -31,6 +32,7 @@ one is not. Hashes are cached by each file's inode, size, mtime and ctime
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -62,6 +64,8 @@ STATE_LOCK_NAME = f"{BOOK_DIR}/state.lock"
 STATE_VERSION = 2
 #: seconds between rewrites of the state file during a run (and once at its end)
 FLUSH_SECONDS = 1.0
+#: compiled files left out of :func:`source_digest` (built from the sources beside them)
+_COMPILED = (".so", ".pyd", ".dylib", ".dll", ".pyc", ".pyo", ".o")
 #: the parsed options that change which files an output option writes, by command
 #: (each step's dry run keeps their values: :attr:`.manifest.Step.params`)
 FILE_PARAMS = {"mesh": ("turntable", "labels")}
@@ -216,9 +220,32 @@ def step_files(manifest: Manifest, plan: StepPlan) -> list[tuple[str, Path]]:
     return out
 
 
+@functools.cache
+def source_digest() -> str:
+    """The sha256 of volwarp's own code: every file of its package but compiled ones.
+
+    A commit may change what a command writes without a version bump: an
+    output made by other code is made again (any change, the safe side).
+    Relative names and bytes, sorted by name; ``__pycache__`` and extension
+    binaries left out. Once per process (a few milliseconds).
+    """
+    root = Path(__file__).parent.parent
+    files = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames[:] = [d for d in dirnames if d != "__pycache__"]
+        files += [os.path.join(dirpath, f) for f in filenames if not f.endswith(_COMPILED)]
+    digest = hashlib.sha256()
+    for path in sorted(files, key=lambda f: os.path.relpath(f, root)):
+        with open(path, "rb") as fh:
+            data = fh.read()
+        digest.update(f"{os.path.relpath(path, root)}\0{len(data)}\0".encode() + data)
+    return digest.hexdigest()
+
+
 def made_from(manifest: Manifest, plan: StepPlan, hashes: FileHashes) -> dict:
     """What the step's outputs would be made from now (raises OSError for a missing input)."""
-    return {"volwarp": __version__, "command": command_digest(manifest, plan),
+    return {"volwarp": __version__, "source": source_digest(),
+            "command": command_digest(manifest, plan),
             "inputs": [[name, content_digest(path, hashes)]
                        for name, path in step_files(manifest, plan)]}
 
@@ -227,6 +254,8 @@ def _difference(old: dict, new: dict) -> str | None:
     """Why an output made from ``old`` is stale now that it would be made from ``new``."""
     if old.get("volwarp") != new["volwarp"]:
         return f"volwarp's version changed ({old.get('volwarp')} -> {new['volwarp']})"
+    if old.get("source") != new["source"]:
+        return "volwarp's code changed (same version)"
     if old.get("command") != new["command"]:
         return "its options changed"
     now = [(name, digest) for name, digest in new["inputs"]]
