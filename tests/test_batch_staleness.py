@@ -1,9 +1,11 @@
 """A batch step is skipped only when what it reads and what it made are unchanged.
 
-Three ways it skipped a step whose output was no longer current (a review's
-findings, each a stale output reported as up to date): the images a DICOMDIR
-lists, an output option of one fixed name, and an elastix file's initial
-transform found from another folder than the one the step runs in.
+Ways it skipped a step whose output was no longer current (reviews' findings,
+each a stale output reported as up to date): the images a DICOMDIR lists
+(under any name), an output option of one fixed name, an elastix file's
+initial transform found from another folder than the one the step runs in,
+a level linked into an OME-Zarr store, a ``-tFILE`` option's file, and a
+change to volwarp's code without a version bump.
 """
 
 from __future__ import annotations

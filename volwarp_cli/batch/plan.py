@@ -20,9 +20,9 @@ the initial transforms it names).
 A step is up to date when what its outputs were made from is what it would
 be made from now, and its outputs are still what it made. "Made from" is
 volwarp's version and code (:func:`source_digest`), the step as the manifest
-defines it (its options) and the
-sha256 of every file it reads (its input with the data files its header
-names, its spec, the files its options name): :func:`made_from`. The record
+defines it (its options) and the sha256 of every file it reads (its input
+with the data files its header names, its spec, the files its options
+name): :func:`made_from`. The record
 (:class:`CommandRecord`, ``OUT/.volwarp-batch/state.json``) keeps that for
 each output with the output's own sha256. Dates decide nothing: a scan
 replaced by an older-dated one (``rsync -a``, ``cp -p``) is redone, a touched
