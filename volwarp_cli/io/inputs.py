@@ -78,11 +78,25 @@ def _dicomdir_data_files(path: Path) -> list[Path]:
     any other file.
     """
     from . import volume_format
-    from .dicom._scan import _files_of
 
+    if not (has_dicom_preamble(path) or path.suffix.lower() == ".dcm"
+            or path.name.upper() == "DICOMDIR"):
+        return []  # (no DICOM file: pydicom is not imported for a spec, a transform...)
     if volume_format(path, reading=True) != "dicom":
         return []
+    from .dicom._scan import _files_of
+
     return [Path(f) for f, _ in _files_of(path)[0] if Path(f) != path]
+
+
+def has_dicom_preamble(path: str | os.PathLike) -> bool:
+    """True for a file with DICOM's preamble (``DICM`` at byte 128)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(132)
+    except OSError:
+        return False
+    return len(head) == 132 and head[128:132] == b"DICM"
 
 
 def _nrrd_data_files(path: Path) -> list[Path]:
