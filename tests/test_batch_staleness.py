@@ -1,13 +1,17 @@
 """A batch step is skipped only when what it reads and what it made are unchanged.
 
-Three ways it skipped a step whose output was no longer current (a review's
-findings, each a stale output reported as up to date): the images a DICOMDIR
-lists, an output option of one fixed name, and an elastix file's initial
-transform found from another folder than the one the step runs in.
+Ways it skipped a step whose output was no longer current (reviews' findings,
+each a stale output reported as up to date): the images a DICOMDIR lists
+(under any name), an output option of one fixed name, an elastix file's
+initial transform found from another folder than the one the step runs in,
+a level linked into an OME-Zarr store, a ``-tFILE`` option's file, and a
+change to volwarp's code without a version bump.
 """
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +21,10 @@ import pytest
 
 pydicom = pytest.importorskip("pydicom")
 
+from volwarp_cli.errors import BadUsage  # noqa: E402
 from volwarp_cli.io import read_volume, write_volume  # noqa: E402
+from volwarp_cli.io.inputs import refuse_output_over_input  # noqa: E402
+from volwarp_cli.runscope import run_scope  # noqa: E402
 from volwarp_cli.volume import Volume  # noqa: E402
 
 
@@ -52,10 +59,15 @@ def dicomdir_series(folder: Path) -> Path:
     return folder / "DICOMDIR"
 
 
-def test_an_image_a_dicomdir_lists_changed_redoes_the_step(tmp_path):
+@pytest.mark.parametrize("name", ["DICOMDIR", "INDEX.DCM"])
+def test_an_image_a_dicomdir_lists_changed_redoes_the_step(tmp_path, name):
+    """A DICOMDIR is known by content, as its reader knows it: under another name
+    (INDEX.DCM) it was hashed alone, and a changed image was skipped (a review)."""
     dicomdir = dicomdir_series(tmp_path / "fs")
+    if name != "DICOMDIR":
+        dicomdir = dicomdir.rename(dicomdir.with_name(name))
     (tmp_path / "m.yaml").write_text(
-        "version: 1\ninputs: {list: [fs/DICOMDIR]}\noutput_dir: out\nsteps:\n"
+        f"version: 1\ninputs: {{list: [fs/{name}]}}\noutput_dir: out\nsteps:\n"
         "  - {name: conv, run: convert, output: \"{stem}.nrrd\"}\n")
     assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
     assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 0 ok, 1 skipped, 0 failed"
@@ -64,8 +76,13 @@ def test_an_image_a_dicomdir_lists_changed_redoes_the_step(tmp_path):
     ds.PixelData = np.full(64, 1234, "<i2").tobytes()
     ds.save_as(image)
     assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
-    out = read_volume(tmp_path / "out" / "fs" / "DICOMDIR.nrrd").data
-    assert (out == 1234).sum() == 64  # the changed slice, as a fresh convert reads it
+    out = read_volume(tmp_path / "out" / "fs" / f"{dicomdir.name.split('.')[0]}.nrrd").data
+    assert (out == 1234).sum() == 64  # the changed slice
+    res = volwarp("convert", dicomdir, "-o", tmp_path / "fresh.nrrd")
+    assert res.returncode == 0, res.stderr
+    assert np.array_equal(out, read_volume(tmp_path / "fresh.nrrd").data)
+    with run_scope(), pytest.raises(BadUsage, match="would overwrite the data file"):
+        refuse_output_over_input(image, [dicomdir])  # (its images are the input's files)
 
 
 def test_an_output_option_of_one_fixed_name_is_recorded_and_checked(tmp_path):
@@ -186,3 +203,116 @@ def test_an_output_pattern_that_leaves_output_dir_is_refused(tmp_path, pattern):
         res = volwarp("batch", tmp_path / "m.yaml", cwd=tmp_path)
         assert res.returncode == 2 and "leaves output_dir" in res.stderr, res.stderr
         assert sorted(p.name for p in (tmp_path / "scans").iterdir()) == ["p01.nrrd"]
+
+
+def test_a_level_linked_into_an_ome_zarr_store_is_what_the_step_reads(tmp_path):
+    """zarr reads a store's keys through linked folders; the batch's walk did not follow
+    them, so a changed level linked in from elsewhere was skipped (a review). A link back
+    up the store ends no walk."""
+    import shutil
+
+    store = tmp_path / "scans" / "z.ome.zarr"
+    store.parent.mkdir()
+    data = np.zeros((6, 6, 6), np.float32)
+    data[2:4, 2:4, 2:4] = 100
+    write_volume(Volume(data), store)
+    (tmp_path / "levels").mkdir()
+    (store / "0").rename(tmp_path / "levels" / "z0")
+    (store / "0").symlink_to("../../levels/z0")
+    (tmp_path / "levels" / "z0" / "up").symlink_to("../../scans")  # (a loop)
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\ninputs: {list: [scans/z.ome.zarr]}\noutput_dir: out\nsteps:\n"
+        "  - {name: conv, run: convert, output: \"z.nrrd\"}\n")
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 0 ok, 1 skipped, 0 failed"
+    write_volume(Volume(data * 2), tmp_path / "other.ome.zarr")
+    shutil.rmtree(tmp_path / "levels" / "z0" / "c")
+    shutil.copytree(tmp_path / "other.ome.zarr" / "0" / "c", tmp_path / "levels" / "z0" / "c")
+    assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    res = volwarp("convert", store, "-o", tmp_path / "fresh.nrrd")
+    assert res.returncode == 0, res.stderr
+    out = read_volume(tmp_path / "out" / "scans" / "z.nrrd").data
+    assert out.max() == 200 and np.array_equal(out, read_volume(tmp_path / "fresh.nrrd").data)
+
+
+IDENTITY = ("#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+            "Parameters: 1 0 0 0 1 0 0 0 1 {shift} 0 0\nFixedParameters: 0 0 0\n")
+
+
+@pytest.mark.parametrize("item", ["-tid.tfm", "-qtid.tfm"])
+def test_an_attached_short_option_s_file_is_the_manifest_folder_s(tmp_path, item):
+    """-tFILE (click's attached form) was not known as -t's value: its file was hashed from
+    the folder the batch started in, not the manifest's, where the step reads it (a review)."""
+    root, start = tmp_path / "proj", tmp_path / "elsewhere"
+    (root / "scans").mkdir(parents=True)
+    start.mkdir()
+    data = np.zeros((6, 6, 6), np.float32)
+    data[2:4, 2:4, 2:4] = 100
+    write_volume(Volume(data), root / "scans" / "b.nrrd")
+    (root / "id.tfm").write_text(IDENTITY.format(shift=0))
+    (start / "id.tfm").write_text(IDENTITY.format(shift=0))  # (never the step's)
+    (root / "m.yaml").write_text(
+        "version: 1\ninputs: {glob: 'scans/*.nrrd'}\noutput_dir: out\nsteps:\n"
+        f"  - {{name: moved, run: apply, output: \"{{stem}}_moved.nrrd\", options: [{item}]}}\n")
+    assert batch(root / "m.yaml", cwd=start).endswith("1 ok, 0 skipped, 0 failed")
+    assert batch(root / "m.yaml", cwd=start).endswith("0 ok, 1 skipped, 0 failed")
+    (root / "id.tfm").write_text(IDENTITY.format(shift=2))
+    assert batch(root / "m.yaml", cwd=start).endswith("1 ok, 0 skipped, 0 failed")
+    res = volwarp("apply", root / "scans" / "b.nrrd", "-t", root / "id.tfm", "-o",
+                  tmp_path / "fresh.nrrd")
+    assert res.returncode == 0, res.stderr
+    out = read_volume(root / "out" / "b_moved.nrrd").data
+    assert np.array_equal(out, read_volume(tmp_path / "fresh.nrrd").data)
+    assert not np.array_equal(out, data)
+
+
+def test_an_attached_output_option_is_refused(tmp_path):
+    """-oNAME is -o NAME: set by the step's output key, as -o is (it overrode the output)."""
+    (tmp_path / "scans").mkdir()
+    write_volume(Volume(np.zeros((4, 4, 4), np.float32)), tmp_path / "scans" / "b.nrrd")
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\ninputs: {glob: 'scans/*.nrrd'}\noutput_dir: out\nsteps:\n"
+        "  - {name: conv, run: convert, output: \"{stem}.nrrd\", options: [-qox.nrrd]}\n")
+    res = volwarp("batch", tmp_path / "m.yaml")
+    assert res.returncode == 2 and "-o is set by the step's output key" in res.stderr, res.stderr
+    assert not (tmp_path / "x.nrrd").exists() and not (tmp_path / "out").exists()
+
+
+def test_any_change_to_volwarp_s_code_redoes_every_step(tmp_path):
+    """A commit may change what a command writes without a version bump; the records of an
+    older tree were taken as current (a review). Here volwarp runs from a copy of its package
+    (a compiled file appears: __pycache__ is no source), then one of its files changes."""
+    import shutil
+
+    import volwarp_cli
+
+    package = tmp_path / "site" / "volwarp_cli"
+    shutil.copytree(Path(volwarp_cli.__file__).parent, package,
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    (tmp_path / "scans").mkdir()
+    write_volume(Volume(np.arange(64, dtype=np.float32).reshape(4, 4, 4)),
+                 tmp_path / "scans" / "b.nrrd")
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\ninputs: {glob: 'scans/*.nrrd'}\noutput_dir: out\nsteps:\n"
+        "  - {name: conv, run: convert, output: \"{stem}.nii.gz\"}\n")
+    env = dict(os.environ, PYTHONPATH=str(package.parent))
+
+    def run_batch() -> dict:
+        res = subprocess.run([sys.executable, "-m", "volwarp_cli", "batch", tmp_path / "m.yaml",
+                              "-q", "--report-json", tmp_path / "r.json"], env=env, cwd=tmp_path,
+                             capture_output=True, text=True, timeout=300)
+        assert res.returncode == 0, res.stderr
+        return json.loads((tmp_path / "r.json").read_text())["scans"][0]["steps"][0]
+
+    assert run_batch()["status"] == "ok"
+    (package / "cli" / "__pycache__").mkdir(exist_ok=True)  # (as a run may compile the copy)
+    (package / "cli" / "__pycache__" / "batch.cpython-311.pyc").write_bytes(b"compiled")
+    assert run_batch()["status"] == "skipped"
+    with open(package / "io" / "nifti.py", "a") as fh:
+        fh.write("\n# a commit that changes no version\n")
+    step = run_batch()
+    assert step["status"] == "ok" and "volwarp's code changed" in step["reason"], step
+    assert volwarp("convert", tmp_path / "scans" / "b.nrrd", "-o", tmp_path / "d.nii.gz"
+                   ).returncode == 0
+    assert np.array_equal(read_volume(tmp_path / "out" / "b.nii.gz").data,
+                          read_volume(tmp_path / "d.nii.gz").data)

@@ -133,3 +133,57 @@ def test_empty_transform_cell_refused(run, subjects):
     (d / "scans.csv").write_text("path,transform,elastix\np01/scan.nrrd,,x\n")
     res = run("batch", d / "m.yaml", "-q")
     assert res.code == 2 and "transform: empty cell" in res.stderr
+
+
+def _affine(path, shift):
+    path.write_text("#Insight Transform File V1.0\n#Transform 0\n"
+                    "Transform: AffineTransform_double_3_3\n"
+                    f"Parameters: 1 0 0 0 1 0 0 0 1 {shift} 0 0\nFixedParameters: 0 0 0\n")
+
+
+def _same_as_apply(run, d, scan, out, *args):
+    """The batch's output of ``scan`` is `volwarp apply`'s with ``args``."""
+    want = d / "want.nrrd"
+    assert run("apply", scan, "-o", want, *args).code == 0
+    assert np.array_equal(read_volume(out).data, read_volume(want).data)
+
+
+def test_a_step_file_that_is_the_first_scan_is_every_scan_s_file(run, subjects):
+    """--reference p01/scan.nrrd over every scan: the batch's dry run (on p01) dropped the
+    files equal to its sample scan, so p02's step did not hash its reference, and a
+    replaced p01 left p02's output as it was (a review)."""
+    d = subjects
+    (d / "id.tfm").write_text("#Insight Transform File V1.0\n#Transform 0\n"
+                              "Transform: IdentityTransform_double_3_3\n")
+    (d / "m.yaml").write_text(
+        "version: 1\ninputs: {glob: 'p0*/scan.nrrd'}\noutput_dir: out\nsteps:\n"
+        "  - name: on_p01\n    run: apply\n    output: '{stem}_on_p01.nrrd'\n"
+        "    options: [-t, id.tfm, --reference, p01/scan.nrrd]\n")
+    assert _statuses(run, d) == {"p01/scan": "ok", "p02/scan": "ok"}
+    assert _statuses(run, d) == {"p01/scan": "skipped", "p02/scan": "skipped"}
+    write_volume(Volume(np.zeros((5, 6, 7), np.float32), spacing=(2.0, 2.0, 2.0)),
+                 d / "p01" / "scan.nrrd")  # (another grid)
+    assert _statuses(run, d) == {"p01/scan": "ok", "p02/scan": "ok"}
+    _same_as_apply(run, d, d / "p02" / "scan.nrrd", d / "out" / "p02" / "scan_on_p01.nrrd",
+                   "-t", d / "id.tfm", "--reference", d / "p01" / "scan.nrrd")
+    assert read_volume(d / "out" / "p02" / "scan_on_p01.nrrd").data.shape == (5, 6, 7)
+
+
+def test_a_fixed_transform_that_is_the_first_row_s_cell_is_every_scan_s(run, subjects):
+    """-t {transform} -t shared.tfm, p01's row naming shared.tfm too: dropped as one of the
+    sample scan's cells, shared.tfm was no file of p02's step, and a changed one left
+    p02's output as it was (a review)."""
+    d = subjects
+    _affine(d / "shared.tfm", 1)
+    (d / "scans.csv").write_text("path,transform\np01/scan.nrrd,shared.tfm\n"
+                                 "p02/scan.nrrd,p02/a.tfm\n")
+    (d / "m.yaml").write_text(
+        "version: 1\ninputs: {csv: scans.csv}\noutput_dir: out\nsteps:\n"
+        "  - name: moved\n    run: apply\n    output: '{stem}_moved.nrrd'\n"
+        "    options: [-t, '{transform}', -t, shared.tfm, --background-value, '0']\n")
+    assert _statuses(run, d) == {"p01/scan": "ok", "p02/scan": "ok"}
+    assert _statuses(run, d) == {"p01/scan": "skipped", "p02/scan": "skipped"}
+    _affine(d / "shared.tfm", 3)
+    assert _statuses(run, d) == {"p01/scan": "ok", "p02/scan": "ok"}
+    _same_as_apply(run, d, d / "p02" / "scan.nrrd", d / "out" / "p02" / "scan_moved.nrrd",
+                   "-t", d / "p02" / "a.tfm", "-t", d / "shared.tfm", "--background-value", "0")

@@ -130,6 +130,12 @@ def placeholders(text: str) -> list[str] | None:
     return names
 
 
+def reserved_message(option: str) -> str:
+    """Why ``option`` (one of :data:`RESERVED_OPTIONS`) is not a step's option."""
+    return (f"{option} is set by the step's {'spec' if option == '--spec' else 'output'} key, "
+            "not options")
+
+
 def option_value(text: str) -> str:
     """The value of an options item: ``--opt=VALUE`` -> ``VALUE``; else the item."""
     name, eq, value = text.partition("=")
@@ -288,9 +294,7 @@ def load_manifest(path: str | Path) -> Manifest:
                                 f"([{flag!r}, {text.split('=', 1)[1]!r}]): the name is placed "
                                 "under output_dir")
             if flag in RESERVED_OPTIONS:
-                raise doc.error(key + ("options", k),
-                                f"{flag} is set by the step's "
-                                f"{'spec' if flag == '--spec' else 'output'} key, not options")
+                raise doc.error(key + ("options", k), reserved_message(flag))
             column = row_column(text)
             embedded = _embedded_column(text)
             if column is not None:

@@ -19,9 +19,10 @@ the initial transforms it names).
 
 A step is up to date when what its outputs were made from is what it would
 be made from now, and its outputs are still what it made. "Made from" is
-volwarp's version, the step as the manifest defines it (its options) and the
-sha256 of every file it reads (its input with the data files its header
-names, its spec, the files its options name): :func:`made_from`. The record
+volwarp's version and code (:func:`source_digest`), the step as the manifest
+defines it (its options) and the sha256 of every file it reads (its input
+with the data files its header names, its spec, the files its options
+name): :func:`made_from`. The record
 (:class:`CommandRecord`, ``OUT/.volwarp-batch/state.json``) keeps that for
 each output with the output's own sha256. Dates decide nothing: a scan
 replaced by an older-dated one (``rsync -a``, ``cp -p``) is redone, a touched
@@ -31,6 +32,7 @@ one is not. Hashes are cached by each file's inode, size, mtime and ctime
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -42,7 +44,17 @@ from pathlib import Path
 from .. import __version__
 from .content import FileHashes, content_digest
 from .lock import BOOK_DIR
-from .manifest import SCAN, Manifest, Scan, Step, fill, fill_column, placeholders, row_column
+from .manifest import (
+    SCAN,
+    Manifest,
+    Scan,
+    Step,
+    fill,
+    fill_column,
+    option_value,
+    placeholders,
+    row_column,
+)
 
 #: in the output folder: what each output was made from, and the file hash cache
 STATE_NAME = f"{BOOK_DIR}/state.json"
@@ -52,6 +64,8 @@ STATE_LOCK_NAME = f"{BOOK_DIR}/state.lock"
 STATE_VERSION = 2
 #: seconds between rewrites of the state file during a run (and once at its end)
 FLUSH_SECONDS = 1.0
+#: compiled files left out of :func:`source_digest` (built from the sources beside them)
+_COMPILED = (".so", ".pyd", ".dylib", ".dll", ".pyc", ".pyo", ".o")
 #: the parsed options that change which files an output option writes, by command
 #: (each step's dry run keeps their values: :attr:`.manifest.Step.params`)
 FILE_PARAMS = {"mesh": ("turntable", "labels")}
@@ -133,7 +147,7 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
             if row_column(value) is not None:
                 text, path = fill_column(value, scan)
                 options.append(text)
-                reads += [path, *_linked(path, manifest.base)]
+                reads += [path, *linked_files(path, manifest.base)]
             elif placeholders(value):
                 path = output_path(manifest, scan, value)
                 flag = (step.options[k - 1] if k and step.options[k - 1].startswith("-")
@@ -154,7 +168,7 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
     return list(plans.values())
 
 
-def _linked(path: Path, folder: Path) -> list[Path]:
+def linked_files(path: Path, folder: Path) -> list[Path]:
     """The files a scan's own file names: an elastix parameter file's initial transforms.
 
     They are what the step reads too (a changed initial transform redoes the
@@ -175,7 +189,7 @@ def _fixed_outputs(manifest: Manifest, step: Step) -> list[tuple[str, Path]]:
     out = []
     for k, option in step.writes:
         text = step.options[k]
-        value = text.split("=", 1)[1] if text.startswith("--") and "=" in text else text
+        value = option_value(text)
         if not placeholders(value):
             p = Path(value)
             out += [(option, f) for f in written_files(step, option, p if p.is_absolute()
@@ -200,16 +214,38 @@ def step_files(manifest: Manifest, plan: StepPlan) -> list[tuple[str, Path]]:
     The input is named by its file name (as its outputs' provenance names it),
     the others relative to the manifest (a moved tree keeps its names).
     """
-    fixed = list(plan.step.inputs) or ([plan.step.spec] if plan.step.spec else [])
     out = [(plan.input.name, plan.input)]
-    out += [(os.path.relpath(p, manifest.base), Path(p)) for p in [*fixed, *plan.reads]
+    out += [(os.path.relpath(p, manifest.base), Path(p)) for p in [*plan.step.inputs, *plan.reads]
             if Path(p).absolute() != plan.input.absolute()]
     return out
 
 
+@functools.cache
+def source_digest() -> str:
+    """The sha256 of volwarp's own code: every file of its package but compiled ones.
+
+    A commit may change what a command writes without a version bump: an
+    output made by other code is made again (any change, the safe side).
+    Relative names and bytes, sorted by name; ``__pycache__`` and extension
+    binaries left out. Once per process (a few milliseconds).
+    """
+    root = Path(__file__).parent.parent
+    files = []
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames[:] = [d for d in dirnames if d != "__pycache__"]
+        files += [os.path.join(dirpath, f) for f in filenames if not f.endswith(_COMPILED)]
+    digest = hashlib.sha256()
+    for path in sorted(files, key=lambda f: os.path.relpath(f, root)):
+        with open(path, "rb") as fh:
+            data = fh.read()
+        digest.update(f"{os.path.relpath(path, root)}\0{len(data)}\0".encode() + data)
+    return digest.hexdigest()
+
+
 def made_from(manifest: Manifest, plan: StepPlan, hashes: FileHashes) -> dict:
     """What the step's outputs would be made from now (raises OSError for a missing input)."""
-    return {"volwarp": __version__, "command": command_digest(manifest, plan),
+    return {"volwarp": __version__, "source": source_digest(),
+            "command": command_digest(manifest, plan),
             "inputs": [[name, content_digest(path, hashes)]
                        for name, path in step_files(manifest, plan)]}
 
@@ -218,6 +254,8 @@ def _difference(old: dict, new: dict) -> str | None:
     """Why an output made from ``old`` is stale now that it would be made from ``new``."""
     if old.get("volwarp") != new["volwarp"]:
         return f"volwarp's version changed ({old.get('volwarp')} -> {new['volwarp']})"
+    if old.get("source") != new["source"]:
+        return "volwarp's code changed (same version)"
     if old.get("command") != new["command"]:
         return "its options changed"
     now = [(name, digest) for name, digest in new["inputs"]]

@@ -1,6 +1,6 @@
 """Running the scans: one scan's steps (the same code on a local pool and on a cluster).
 
-A scan's steps are run by a :class:`ScanRunner`: every step as ``python -m
+A scan's steps are run by a :class:`ScanRunner`: every step as ``python -P -m
 volwarp_cli RUN ...`` in a child process (in the manifest's folder, so relative
 paths in options are the manifest's), so a crash, a memory blow-up or a stop of
 one scan cannot take the others down. The last line of a failed step's stderr is
@@ -53,6 +53,8 @@ STOP_GRACE = 20.0
 _STOP_CODES = tuple(128 + s for s in STOPS)
 #: Linux's prctl option asking for a signal when the parent (thread) dies
 _PR_SET_PDEATHSIG = 1
+#: Python's option leaving the working folder off ``sys.path`` (3.11+: ``PYTHONSAFEPATH``)
+_SAFE_PATH = "-P"
 #: the child's first lines: SIGTERM when its parent dies, then ``volwarp`` itself
 _BOOT = (
     "import ctypes, os, signal, sys\n"
@@ -119,16 +121,22 @@ def _scan_status(steps: list[StepResult]) -> str:
 
 
 def volwarp_argv(argv: list[str]) -> list[str]:
-    """The command line that runs ``volwarp ARGV`` with this interpreter."""
-    return [sys.executable, "-m", "volwarp_cli", *argv]
+    """The command line that runs ``volwarp ARGV`` with this interpreter (see :func:`child_argv`)."""
+    return [sys.executable, _SAFE_PATH, "-m", "volwarp_cli", *argv]
 
 
 def child_argv(argv: list[str], module: str = "volwarp_cli") -> list[str]:
-    """``python -m MODULE ARGV``, made to stop (SIGTERM) if this process dies first (Linux)."""
+    """``python -P -m MODULE ARGV``, made to stop (SIGTERM) if this process dies first (Linux).
+
+    ``-P``: a step runs in the manifest's folder, and ``-c``/``-m`` would put
+    that folder first on ``sys.path``, so a ``numpy.py`` or a ``volwarp_cli/``
+    lying beside the manifest would run instead of the real one (its output
+    recorded as the step's). ``PYTHONPATH`` still counts.
+    """
     if not sys.platform.startswith("linux"):
-        return [sys.executable, "-m", module, *argv]
-    return [sys.executable, "-c", _BOOT.replace("{module!r}", repr(module)), str(os.getpid()),
-            *argv]
+        return [sys.executable, _SAFE_PATH, "-m", module, *argv]
+    return [sys.executable, _SAFE_PATH, "-c", _BOOT.replace("{module!r}", repr(module)),
+            str(os.getpid()), *argv]
 
 
 def last_line(text: str) -> str | None:

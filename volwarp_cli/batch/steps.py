@@ -20,10 +20,13 @@ folders), and every relative file name of the step's options taken from the
 manifest's folder, where the step will run; this process's working folder is
 never changed.
 
-It also tells which files the step reads besides its input (its spec,
-``--points-in``, ``--camera-from``...): the command declares them
-(:func:`..io.inputs.declare_input`). They go into what the step's outputs are
-made from (:mod:`.plan`), and no output may replace them.
+The files the step reads for every scan besides its input (its spec, the
+files of its input options, ``--reference``, ``-t``, ``--points-in``..., and
+the initial transforms an elastix file names) come from its options
+(:func:`_own_files`), not from what the dry run on the first scan read: a
+file that is also the first scan is every scan's file all the same. They go
+into what the step's outputs are made from (:mod:`.plan`), and no output may
+replace them.
 """
 
 from __future__ import annotations
@@ -34,10 +37,19 @@ import importlib
 import re
 import tempfile
 from pathlib import Path
+from typing import NamedTuple
 
 import click
 
-from .manifest import Manifest, Scan, Step, option_value, placeholders, row_column
+from .manifest import (
+    RESERVED_OPTIONS,
+    Manifest,
+    Scan,
+    Step,
+    placeholders,
+    reserved_message,
+    row_column,
+)
 
 #: spec files a step's command reads, by command and parameter: the schema they follow
 SPEC_PARAMS = {"warp": {"spec_path": "warp"}, "distance": {"transform": "transform"}}
@@ -65,14 +77,13 @@ def check_steps(manifest: Manifest) -> list[Step]:
             values = option_values(command, step.options)
             _check_tokens(manifest, step, values)
             argv = _absolute(manifest, _apart(plan, Path(tmp)), step.options, values)
-            declared, params, problem = _dry_run(manifest, step, command, argv)
-            inputs = [Path(p) for p in declared if _is_read(p, plan.input, tmp)
-                      and Path(p).absolute() not in {r.absolute() for r in plan.reads}]
+            params, problem = _dry_run(manifest, step, command, argv)
+            inputs = _own_files(manifest, step, values)
             _check_inputs_exist(manifest, step, inputs)
             _check_specs(manifest, step, params)
             if problem is not None:
                 raise problem
-            writes = tuple((k, opt) for k, opt, kind in values if kind == "output")
+            writes = tuple((v.index, v.option) for v in values if v.kind == "output")
             kept = tuple((name, params.get(name)) for name in FILE_PARAMS.get(step.run, ()))
             steps.append(dataclasses.replace(step, inputs=tuple(inputs), writes=writes,
                                              params=kept))
@@ -129,33 +140,73 @@ def path_kind(param: click.Parameter) -> str | None:
     return None
 
 
-def option_values(command: click.Command, options) -> list[tuple[int, str, str | None]]:
-    """``(index, option, path kind)`` of each option value in a step's ``options``.
+class OptionValue(NamedTuple):
+    """One value in a step's options: the item holding it, its option, what it names."""
 
-    As click reads them: ``--opt VALUE`` and ``--opt=VALUE`` (its index is the
-    item's; the value after ``=``), flags taking none, ``nargs`` values taking
-    several; ``--`` ends the options. An unknown option is left to the parse.
+    index: int  # in the step's options
+    option: str  # as the parse knows it: ``-t``, ``--reference``
+    kind: str | None  # :func:`path_kind`
+    start: int = 0  # where the value starts in its item (``--opt=VALUE``, ``-tVALUE``)
+
+    def value(self, options) -> str:
+        """The value itself, from the step's ``options``."""
+        return options[self.index][self.start:]
+
+
+def option_values(command: click.Command, options) -> list[OptionValue]:
+    """Each option value in a step's ``options``, as click's parser reads them.
+
+    ``--opt VALUE``, ``--opt=VALUE``, a short option's ``-tVALUE`` (after any
+    flags: ``-qtVALUE``), flags taking none, ``nargs`` values taking several;
+    ``--`` ends the options. An unknown option is left to the parse.
     """
     table = {o: p for p in command.params if isinstance(p, click.Option)
              for o in (*p.opts, *p.secondary_opts)}
     out, k = [], 0
     while k < len(options) and options[k] != "--":
-        name, eq, _ = options[k].partition("=")
-        param = table.get(name if eq and name.startswith("--") else options[k])
+        param, option, start = _option_in(table, options[k])
         takes = 0 if param is None or param.is_flag or param.count else param.nargs
-        if takes and eq and name.startswith("--"):
-            out.append((k, name, path_kind(param)))
-        elif takes:
-            count = min(takes, len(options) - k - 1)  # (a value missing: the parse says so)
-            out += [(k + 1 + j, options[k], path_kind(param)) for j in range(count)]
-            k += count
-        k += 1
+        if takes and start:  # (its first value in its own item)
+            out.append(OptionValue(k, option, path_kind(param), start))
+            takes -= 1
+        count = min(takes, len(options) - k - 1)  # (a value missing: the parse says so)
+        out += [OptionValue(k + 1 + j, option, path_kind(param)) for j in range(count)]
+        k += count + 1
     return out
+
+
+def _option_in(table: dict, text: str) -> tuple[click.Option | None, str, int]:
+    """``(param, option, start)`` of the option an options item gives (click's rules).
+
+    ``start``: where a value attached to it begins in the item (0: none, its
+    values are the next items). A long option (or one of several letters)
+    takes ``=VALUE``; a one-letter option after ``-`` takes the rest of the
+    item, after the flags before it (``-qtVALUE``). ``(None, text, 0)`` for
+    anything else.
+    """
+    name, eq, _ = text.partition("=")
+    if name in table and not _is_short(name):
+        return table[name], name, len(name) + 1 if eq else 0
+    if len(text) < 2 or text[0] != "-" or text.startswith("--"):
+        return None, text, 0
+    for i in range(1, len(text)):
+        option = "-" + text[i]
+        param = table.get(option)
+        if param is None:
+            break
+        if not (param.is_flag or param.count):
+            return param, option, i + 1 if i + 1 < len(text) else 0
+    return None, text, 0
+
+
+def _is_short(option: str) -> bool:
+    """``-t``: one letter after one dash (click parses ``-tVALUE``, never ``-t=VALUE``)."""
+    return len(option) == 2 and option[0] == "-" and option[1] != "-"
 
 
 def _check_tokens(manifest: Manifest, step: Step, values) -> None:
     """Options that would end the command (``--help``), placeholders where no output is named."""
-    taken = {k: kind for k, _, kind in values}
+    taken = {v.index: v.kind for v in values}
     for k, text in enumerate(step.options):
         key = ("steps", step.index, "options", k)
         if k not in taken and text.split("=", 1)[0] in _ENDING:
@@ -166,13 +217,15 @@ def _check_tokens(manifest: Manifest, step: Step, values) -> None:
             raise manifest.doc.error(key, f"{{{column}}} (each scan's file, from its "
                                           f"{column!r} cell) is the value of an input option, "
                                           "e.g. --reference {reference}, -t {transform}")
-    for k, option, kind in values:
-        if kind != "output" and placeholders(option_value(step.options[k])):
+    for v in values:
+        key = ("steps", step.index, "options", v.index)
+        if v.option in RESERVED_OPTIONS:  # (attached: -oNAME; the manifest refuses -o NAME)
+            raise manifest.doc.error(key, reserved_message(v.option))
+        if v.kind != "output" and placeholders(v.value(step.options)):
             raise manifest.doc.error(
-                ("steps", step.index, "options", k),
-                f"{option} {option_value(step.options[k])!r}: {{stem}} and {{relpath}} name outputs "
-                "(placed under output_dir); only an output option (-o, --render, --*-to) "
-                "holds them")
+                key, f"{v.option} {v.value(step.options)!r}: {{stem}} and {{relpath}} name "
+                     "outputs (placed under output_dir); only an output option (-o, --render, "
+                     "--*-to) holds them")
 
 
 def _absolute(manifest: Manifest, argv: list[str], options, values) -> list[str]:
@@ -183,23 +236,22 @@ def _absolute(manifest: Manifest, argv: list[str], options, values) -> list[str]
     """
     argv = list(argv)
     start = len(argv) - len(options)
-    for k, _, kind in values:
-        text = options[k]
-        value = option_value(text)
-        inverse = _BRACKETS.match(value) if kind == "input" else None
+    for v in values:
+        value = v.value(options)
+        inverse = _BRACKETS.match(value) if v.kind == "input" else None
         path = inverse.group(1) if inverse else value  # (apply's -t '[FILE,1]')
-        if kind is None or placeholders(value) or row_column(text) is not None or \
+        if v.kind is None or placeholders(value) or row_column(value) is not None or \
                 Path(path).is_absolute() or not path:
             continue  # (placeholders are filled with absolute names already)
         resolved = str(manifest.base / path)
         if inverse:
             resolved = f"[{resolved},{inverse.group(2)}]"
-        argv[start + k] = resolved if value == text else f"{text.split('=', 1)[0]}={resolved}"
+        argv[start + v.index] = options[v.index][:v.start] + resolved
     return argv
 
 
 def _dry_run(manifest: Manifest, step: Step, command, argv: list[str]):
-    """Parse and run ``volwarp ARGV`` up to its first read: ``(declared inputs, params, problem)``.
+    """Parse and run ``volwarp ARGV`` up to its first read: ``(params, problem)``.
 
     ``problem``: the usage or spec error the command raised before it read,
     as the manifest's error (None: none). A parse error is raised at once.
@@ -225,7 +277,7 @@ def _dry_run(manifest: Manifest, step: Step, command, argv: list[str]):
                                          "it runs") from None
             params = dict(ctx.params)
             problem = _invoke(manifest, step, command, ctx)
-            return list(files.declared), params, problem
+            return params, problem
 
     try:
         return contextvars.copy_context().run(run)
@@ -268,10 +320,25 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _is_read(path: str, step_input: Path, tmp: str) -> bool:
-    """Whether a declared input is one of the step's own files (not its input, not an output)."""
-    p = Path(path).absolute()
-    return p != Path(step_input).absolute() and not p.is_relative_to(Path(tmp).absolute())
+def _own_files(manifest: Manifest, step: Step, values: list[OptionValue]) -> list[Path]:
+    """The files the step reads for every scan: its spec, its input options' files, what they name.
+
+    From the manifest's options, never from what the dry run (on the first
+    scan) declared: a reference or a transform that is also the first scan,
+    or one of its table's cells, is every scan's file all the same. A
+    ``{COLUMN}`` value is each scan's own (:attr:`.plan.StepPlan.reads`).
+    """
+    from .plan import linked_files
+
+    files = [] if step.spec is None else [step.spec]
+    for v in values:
+        value = v.value(step.options)
+        inverse = _BRACKETS.match(value)
+        path = inverse.group(1) if inverse else value  # (apply's -t '[FILE,1]')
+        if v.kind == "input" and row_column(value) is None and path:
+            file = manifest.base / path
+            files += [file, *linked_files(file, manifest.base)]
+    return files
 
 
 def _check_inputs_exist(manifest: Manifest, step: Step, inputs: list[Path]) -> None:

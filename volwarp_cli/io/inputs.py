@@ -63,7 +63,7 @@ def input_files(path: str | os.PathLike) -> list[Path]:
             files += _nrrd_data_files(path)
         elif name.endswith(_METAIMAGE):
             files += _metaimage_data_files(path)
-        elif name == "dicomdir":
+        else:
             files += _dicomdir_data_files(path)
     except Exception:  # noqa: BLE001 - a header its reader will refuse: the read says why
         pass
@@ -71,10 +71,32 @@ def input_files(path: str | os.PathLike) -> list[Path]:
 
 
 def _dicomdir_data_files(path: Path) -> list[Path]:
-    """The images a DICOMDIR lists (what a batch must hash: the DICOMDIR alone is an index)."""
+    """The images a DICOMDIR lists (what a batch must hash: the DICOMDIR alone is an index).
+
+    Known by content, as the reader knows one (``INDEX.DCM`` is one too): a
+    file read as DICOM whose header (no pixel data) is a directory's; [] for
+    any other file.
+    """
+    from . import volume_format
+
+    if not (has_dicom_preamble(path) or path.suffix.lower() == ".dcm"
+            or path.name.upper() == "DICOMDIR"):
+        return []  # (no DICOM file: pydicom is not imported for a spec, a transform...)
+    if volume_format(path, reading=True) != "dicom":
+        return []
     from .dicom._scan import _files_of
 
     return [Path(f) for f, _ in _files_of(path)[0] if Path(f) != path]
+
+
+def has_dicom_preamble(path: str | os.PathLike) -> bool:
+    """True for a file with DICOM's preamble (``DICM`` at byte 128)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(132)
+    except OSError:
+        return False
+    return len(head) == 132 and head[128:132] == b"DICM"
 
 
 def _nrrd_data_files(path: Path) -> list[Path]:

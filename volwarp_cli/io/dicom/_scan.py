@@ -20,6 +20,7 @@ from pydicom.multival import MultiValue
 
 from ...errors import FormatError, VolwarpError
 from ...progress import log
+from ..inputs import has_dicom_preamble as _has_preamble
 
 try:  # the command line maps ChoiceNeeded to a usage error (exit 2)
     from ...errors import ChoiceNeeded as _ChoiceBase
@@ -139,15 +140,6 @@ class Candidate:
 
 
 # -- finding files -------------------------------------------------------------
-
-def _has_preamble(path: str) -> bool:
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(132)
-    except OSError:
-        return False
-    return len(head) == 132 and head[128:132] == b"DICM"
-
 
 def is_dicom_path(path) -> bool:
     """True for a folder holding DICOM files (recursively), a DICOMDIR, or a DICOM file."""
