@@ -478,6 +478,7 @@ def _tiff(path: Path, volume_index: int | None = None):
     import tifffile
     import zarr
 
+    from ..runscope import at_run_end, in_run
     from . import tiff as tiff_io
 
     where = str(path)
@@ -500,6 +501,10 @@ def _tiff(path: Path, volume_index: int | None = None):
             store.close()
             raise
         samples = _ZarrView(arr, store, where)
+        if in_run():  # (a read that fails closes the store, but zarr's other chunk reads of
+            # that box, still running, may open a file again: closed when the command ends,
+            # before the failure's traceback is collected with the view, and the file)
+            at_run_end(samples.close)
     if stack.calibration is not None:
         c0, c1 = stack.calibration
         samples = _CalibratedTiff(samples, c1, c0, stack.dtype)
@@ -515,6 +520,23 @@ class _Squeezed:
 
     def __getitem__(self, key):
         return self._arr[self._lead + key]
+
+
+def _settle_zarr_reads(timeout: float = 5.0) -> None:
+    """Wait (up to ``timeout`` s) for the reads under way on zarr's event loop to end."""
+    import asyncio
+
+    from zarr.core.sync import sync
+
+    async def settle():
+        others = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        if others:
+            await asyncio.wait(others, timeout=timeout)
+
+    try:
+        sync(settle())
+    except Exception:  # (zarr's loop gone, or this is its thread: close at once)
+        pass
 
 
 class _ZarrView:
@@ -535,13 +557,21 @@ class _ZarrView:
         self.ndim = 3
 
     def close(self) -> None:
-        """Close the store's open files (tifffile opens them again on the next read)."""
+        """Close the store's open files (tifffile opens them again on the next read).
+
+        zarr's reads still under way first end: the reads of a box's other
+        chunks go on after one of them failed, and one starting after the
+        close opened the file again, for good (a ResourceWarning at a garbage
+        collection in whatever ran next).
+        """
         if self._store is not None:
+            _settle_zarr_reads()
             self._store.close()
 
     def __del__(self):
-        try:
-            self.close()
+        try:  # (no waiting here: a collection may run on zarr's own thread)
+            if self._store is not None:
+                self._store.close()
         except Exception:  # pragma: no cover - interpreter shutdown
             pass
 
