@@ -333,6 +333,7 @@ def test_a_2d_image_of_components_is_refused_not_read_as_a_volume(tmp_path, run,
 
 
 @pytest.mark.parametrize("kinds", ["domain domain domain", "space space space", "??? ??? ???",
+                                   "domain domain time",
                                    "none none none"])
 def test_spatial_kinds_of_a_3d_nrrd_still_read(tmp_path, kinds):
     path = tmp_path / "v.nrrd"

@@ -556,8 +556,9 @@ def _measurement_frame_lps(fields: dict[str, str], space: str, where: str) -> st
     return " ".join(_vec(frame[:, a]) for a in range(3))
 
 
-#: NRRD ``kinds`` of an axis that may be a volume's: a domain (or unknown, or none said)
-_SPATIAL_KINDS = ("domain", "space", "???", "none")
+#: NRRD ``kinds`` of an axis that may be a volume's: a domain (teem's domain kinds, time
+#: among them: ITK reads a 2-D+t file as a volume), or unknown, or none said
+_SPATIAL_KINDS = ("domain", "space", "time", "???", "none")
 
 
 def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: str):
@@ -569,9 +570,10 @@ def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: s
     """
     if dim == 3:
         kinds = fields.get("kinds", "").lower().split()
-        entries = fields.get("space directions", "").lower().split()
-        other = ([k for k in kinds if k not in _SPATIAL_KINDS] if len(kinds) == 3 else []) \
-            or ["none"] * entries.count("none")
+        if len(kinds) == 3:  # (the kinds say what each axis is: a none direction of a time axis)
+            other = [k for k in kinds if k not in _SPATIAL_KINDS]
+        else:
+            other = ["none"] * fields.get("space directions", "").lower().split().count("none")
         if other:
             raise FormatError(f"{where}: a 2-D image with components per pixel ('kinds: "
                               f"{fields.get('kinds', '')}', sizes {sizes}), not a volume: "
