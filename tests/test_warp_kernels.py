@@ -43,17 +43,21 @@ def grown_box(lo, hi, jac, det, near_lo, near_hi):
     """A box of less than GROW_BELOW of its voxel's image volume ``det``, grown to it.
 
     Each side from the face centres' box towards the 8 corners' box (side: the sum of
-    |d component / d axis|), one fraction k for the three (the root of the volume's
-    cubic, by scipy), about the box's middle, within [near_lo, near_hi].
+    |d component / d axis|), one fraction k for the three: the root of the volume's
+    tangent at 0, then two Newton steps (the volume then within 0.1% over the share,
+    checked here), about the box's middle, within [near_lo, near_hi].
     """
-    from scipy.optimize import brentq
-
     side = hi - lo
     more = np.maximum(np.abs(jac).sum(axis=0) - side, 0.0)
     want = GROW_BELOW * det
     k = 1.0
     if np.prod(side + more) > want:
-        k = brentq(lambda t: np.prod(side + t * more) - want, 0.0, 1.0, xtol=1e-14)
+        k = min(1.0, (want / np.prod(side) - 1.0) / np.sum(more / side))
+        for _ in range(2):
+            a = side + k * more
+            k -= (np.prod(a) - want) / (more[0] * a[1] * a[2] + a[0] * more[1] * a[2]
+                                        + a[0] * a[1] * more[2])
+        assert (1 - 1e-12) * want <= np.prod(side + k * more) <= 1.001 * want
     mid, grown = 0.5 * (lo + hi), side + k * more
     return np.maximum(mid - 0.5 * grown, near_lo), np.minimum(mid + 0.5 * grown, near_hi)
 

@@ -418,9 +418,10 @@ static inline void grow_side(double side, double nlo, double nhi, double *lo, do
  * image (45 degrees about x, then z), and the mass scale alone left gaps between such
  * boxes (a constant came out down to 41% inside). Each side goes from the face centres'
  * box s towards the box of the image's 8 corners c, s + k (c - s), one k for the three
- * (found by bisection: plain arithmetic, the same bits on every machine), and stays
- * within the voxel's and its neighbours' offsets widened by the half voxel, where the
- * reach bounds (reach.py) put every box. The box only grows: its mass only falls. */
+ * (its tangent's root, then two Newton steps: plain arithmetic, the same bits on every
+ * machine), and stays within the voxel's and its neighbours' offsets widened by the half
+ * voxel, where the reach bounds (reach.py) put every box. The box only grows: its mass
+ * only falls. */
 static void grow_box(const float *u0, const float *u1, const float *u2, Py_ssize_t sF,
                      Py_ssize_t sG, double bx, double by, double bz, double sx, double sy,
                      double sz, double *x0, double *x1, double *y0, double *y1, double *z0,
@@ -452,17 +453,20 @@ static void grow_box(const float *u0, const float *u1, const float *u2, Py_ssize
     }
     const double want = GROW_BELOW * fabs(det);
     double k = 1.0;
+    const double least = side[0] * side[1] * side[2];
     if ((side[0] + more[0]) * (side[1] + more[1]) * (side[2] + more[2]) > want) {
-        double a = 0.0, b = 1.0;
-        for (int i = 0; i < 32; i++) { /* the volume rises with k: the least k that holds it */
-            const double m = 0.5 * (a + b);
-            if ((side[0] + m * more[0]) * (side[1] + m * more[1]) * (side[2] + m * more[2]) >=
-                want)
-                b = m;
-            else
-                a = m;
+        /* the volume is a cubic in k of non-negative coefficients: above its tangent at 0,
+         * whose root k0 is too large, then convex and rising, so Newton's steps from k0
+         * come down towards the root without passing it (two leave the volume within
+         * 0.07% over the share, measured over 20000 random rotations and stretches) */
+        k = (want / least - 1.0) /
+            (more[0] / side[0] + more[1] / side[1] + more[2] / side[2]);
+        k = MIN(k, 1.0);
+        for (int i = 0; i < 2; i++) {
+            const double a = side[0] + k * more[0], b = side[1] + k * more[1],
+                         c = side[2] + k * more[2];
+            k -= (a * b * c - want) / (more[0] * b * c + a * more[1] * c + a * b * more[2]);
         }
-        k = b;
     }
     for (int c = 0; c < 3; c++)
         grow_side(side[c] + k * more[c], nlo[c], nhi[c], lo[c], hi[c]);
