@@ -1,29 +1,31 @@
-"""Whether a lattice folds its map: the sign of the Jacobian across the lattice.
+"""Whether a lattice folds its map: the sign of the Jacobian region by region.
 
 A part of the model that passes through another (a fold) is summed where it
 lands by the pushforward; a drag that far is rarely what was meant, so the
 plan says it. The map's Jacobian at parameter ``a + t`` of each axis is a
 tensor product of small filters (the cubic B-spline's weights and their
-derivatives at t) over the control points' positions, evaluated here at T
-points per region and axis; a determinant that changes sign across the map
-is a fold (one negative everywhere is a mirror image, not a fold).
+derivatives at t) over a region's 4^3 control points' positions; a
+determinant that changes sign across the map is a fold (one negative
+everywhere is a mirror image, not a fold).
 
-Most lattices cannot fold, and cost one pass over their control points: a
+Most regions cannot fold, and cost one look at their control points: a
 B-spline's derivative along an axis is a convex combination of the control
 points' differences along it, so with ``L`` the lattice's spacing the
-Jacobian is ``L (I + E)`` with ``|E[c, a]|`` at most the largest
-``|difference of offset c along a| / L[a]``; where every row of those bounds
-sums below 1, ``I + E`` is never singular. Sampled: a fold narrower than
-``1 / T`` of a region can pass unseen.
+Jacobian in a region is ``(I + E) diag(L)`` with ``|E[c, a]|`` at most the
+region's largest ``|difference of component c along a| / L[a]`` (less L for
+c = a); where every row of those bounds sums below 1, ``I + E`` is never
+singular there. Only the other regions are sampled, T points per axis (2 to
+8, :data:`SAMPLES` in all; past that, every few of them): a fold narrower
+than ``1 / T`` of a region can pass unseen.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-#: the samples on the lattice's axes, in all, at most about this many
+#: the samples taken in all, at most about this many
 SAMPLES = 50_000
-#: and at most this many per region and axis (1/8 of a region apart)
+#: and at most this many per region and axis (1/8 of a region apart), at least 2
 MOST_PER_REGION = 8
 
 
@@ -36,64 +38,86 @@ def _weights(t: float) -> tuple[np.ndarray, np.ndarray]:
     return value, slope
 
 
-def _axis_matrices(controls: int, per_region: int) -> tuple[np.ndarray, np.ndarray]:
-    """(values, slopes): (regions * per_region, controls) matrices of one axis's samples."""
-    regions = controls - 3
-    value = np.zeros((regions * per_region, controls))
-    slope = np.zeros_like(value)
-    for k in range(per_region):
-        v, d = _weights(k / per_region)
-        for a in range(regions):
-            value[a * per_region + k, a:a + 4] = v
-            slope[a * per_region + k, a:a + 4] = d
-    return value, slope
+def _window_max(a: np.ndarray, widths) -> np.ndarray:
+    """The maximum over every window of ``widths`` (z, y, x) of ``a``'s first three axes."""
+    for axis, width in enumerate(widths):
+        n = a.shape[axis] - width + 1
+        out = a.take(range(n), axis=axis)
+        for k in range(1, width):
+            np.maximum(out, a.take(range(k, k + n), axis=axis), out=out)
+        a = out
+    return a
 
 
-def cannot_fold(positions: np.ndarray) -> bool:
-    """Whether the bound of the module notes rules a fold out (one pass, no sampling)."""
-    p = np.asarray(positions, dtype=np.float64)
-    bound = np.zeros((3, 3))  # [component, axis]
-    for axis in range(3):  # (array axes z y x: x y z is 2 - axis)
-        diff = np.diff(p, axis=2 - axis)
-        spacing = np.abs(np.median(diff[..., axis]))
-        if not spacing > 0:
-            return False
-        change = np.abs(diff).max(axis=(0, 1, 2)) / spacing  # per component
-        change[axis] = np.abs(diff[..., axis] - spacing).max() / spacing
-        bound[:, axis] = change
-    return bool(bound.sum(axis=1).max() < 1.0)
+def suspect_regions(positions: np.ndarray) -> np.ndarray:
+    """The regions ``[Rz, Ry, Rx]`` (bool) the bound of the module notes cannot clear.
 
-
-def jacobian_dets(positions: np.ndarray, per_region: int) -> np.ndarray:
-    """The map's Jacobian determinants at ``per_region`` points of each region and axis.
-
-    ``positions``: the control points' positions ``[Cz, Cy, Cx, 3]`` (x y z
-    last, any linear units). Sample ``a * per_region + k`` of an axis is
-    parameter ``a + k / per_region``; the result is ``[z, y, x]``.
+    One component and axis at a time (a 129^3 lattice's differences are 17 MB each).
     """
     p = np.asarray(positions, dtype=np.float64)
-    mats = [_axis_matrices(n, per_region) for n in p.shape[2::-1]]  # x y z
+    rows = np.zeros(tuple(n - 3 for n in p.shape[:3]) + (3,))  # [region..., component]
+    for axis in range(3):  # (x y z; the array's axis 2 - axis)
+        spacing = float(np.median(np.diff(p[..., axis], axis=2 - axis)))
+        if not abs(spacing) > 0:
+            return np.ones(rows.shape[:3], bool)
+        widths = [4, 4, 4]
+        widths[2 - axis] = 3  # (a region's differences along the axis: 3 of its 4 points)
+        for component in range(3):
+            diff = np.diff(p[..., component], axis=2 - axis)
+            if component == axis:
+                diff -= spacing
+            np.abs(diff, out=diff)
+            rows[..., component] += _window_max(diff, widths) / abs(spacing)
+    return rows.max(axis=-1) >= 1.0
+
+
+def jacobian_dets(positions: np.ndarray, regions=None, per_region: int = 2) -> np.ndarray:
+    """The Jacobian's determinants at ``per_region`` points per axis of each region given.
+
+    ``positions``: the control points' positions ``[Cz, Cy, Cx, 3]`` (x y z
+    last, any linear units); ``regions``: (n, 3) region indices (z, y, x), all
+    by default. Returns ``[n, z, y, x]``: point (k, j, i) of a region (a, b,
+    c) is parameter ``(c + i / T, b + j / T, a + k / T)`` (x y z), T =
+    ``per_region``.
+    """
+    p = np.asarray(positions, dtype=np.float64)
+    if regions is None:
+        regions = np.argwhere(np.ones(tuple(n - 3 for n in p.shape[:3]), bool))
+    regions = np.asarray(regions, dtype=np.intp).reshape(-1, 3)
+    r = np.arange(4)
+    local = p[(regions[:, 0, None, None, None] + r[None, :, None, None]),
+              (regions[:, 1, None, None, None] + r[None, None, :, None]),
+              (regions[:, 2, None, None, None] + r[None, None, None, :])]  # [n, 4, 4, 4, 3]
+    value, slope = (np.array(m) for m in zip(*(_weights(k / per_region)
+                                               for k in range(per_region)), strict=True))
     columns = []
     for axis in range(3):
-        mx, my, mz = (mats[a][1 if a == axis else 0] for a in range(3))
-        columns.append(np.einsum("zk,yj,xi,kjic->zyxc", mz, my, mx, p, optimize=True))
+        mx, my, mz = (slope if a == axis else value for a in range(3))
+        columns.append(np.einsum("zk,yj,xi,nkjic->nzyxc", mz, my, mx, local, optimize=True))
     return np.linalg.det(np.stack(columns, axis=-1))
 
 
 def fold_count(positions: np.ndarray) -> tuple[int, int]:
-    """``(samples on the fold's side, samples)``; ``(0, 0)`` when the map cannot fold.
+    """``(samples on the fold's side, samples)``; ``(0, 0)`` when no region can fold.
 
-    The fold's side is the minority sign (a mirror with a fold folds back
-    into the positive side), 0 when one sign has no sample (a determinant of
-    zero, where a capture's tripled end points flatten the map, is neither);
-    at most about :data:`SAMPLES` samples.
+    Only the suspect regions are sampled (:func:`suspect_regions`; every few of
+    them past about :data:`SAMPLES` points). The others' determinants are
+    positive (the bound), so where one is left, a negative sample is a fold;
+    where every region is suspect, the minority sign is the fold's side (a
+    mirror is negative everywhere: no fold, and a fold in a mirror folds back
+    into the positive side). A determinant of zero, where a capture's tripled
+    end points flatten the map, is neither sign.
     """
-    if cannot_fold(positions):
+    suspect = suspect_regions(positions)
+    if not suspect.any():
         return 0, 0
-    regions = max(np.asarray(positions).shape[:3]) - 3
-    per_region = int(max(1, min(MOST_PER_REGION, round(SAMPLES ** (1 / 3) / max(regions, 1)))))
-    det = jacobian_dets(positions, per_region)
-    # (a zero is neither side: a capture's tripled end points flatten the map there)
+    chosen = np.argwhere(suspect)
+    per_region = int(np.clip(np.floor((SAMPLES / len(chosen)) ** (1 / 3)), 2, MOST_PER_REGION))
+    most = max(1, SAMPLES // per_region ** 3)
+    chosen = chosen[::-(-len(chosen) // most)]
+    det = jacobian_dets(positions, chosen, per_region)
     tiny = 1e-9 * float(np.abs(det).max(initial=0.0))
     positive, negative = int(np.count_nonzero(det > tiny)), int(np.count_nonzero(det < -tiny))
+    if not suspect.all():  # (regions cleared by the bound: positive)
+        return negative, int(det.size)
     return (min(positive, negative) if positive and negative else 0), int(det.size)

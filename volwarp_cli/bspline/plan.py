@@ -256,14 +256,18 @@ def warn_folds(frames: list[Frame], grid: Lattice) -> None:
 
     uniform = grid.uniform_positions()
     last = {frame.step: frame for frame in frames}  # (each step's last frame: its lattice)
+    before, was = None, 0
     for step, frame in last.items():
-        folded, samples = fold_count(uniform + frame.dq)
-        if folded:
+        if before is None or not np.array_equal(frame.dq, before):
+            folded, samples = fold_count(uniform + frame.dq)
+        before = frame.dq
+        if folded and not was:  # (the step that folds it; the later ones only carry it)
             log.warning("warning: steps[%d]: the lattice folds the map: its Jacobian's sign "
                         "flips at %d of %d points sampled across the lattice (parts of the "
                         "model pass through each other, their samples summed where they "
                         "land); smaller moves, or a larger radius, keep it one-to-one",
                         step - 1, folded, samples)
+        was = folded
 
 
 #: A radius whose freed control points must move this many times as far as the handles
