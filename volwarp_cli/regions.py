@@ -215,7 +215,8 @@ def warp_input(out_box: Box, dq, grid, pad) -> Box:
     map plus deformation offsets) and spreads its value over the target
     voxels its box overlaps: the bounding box of its six face centres, each
     ``A(g) +- half a domain voxel`` plus the mean offset of ``g`` and a
-    neighbour (:mod:`.bspline.pushforward`). By the convex-hull property of
+    neighbour, grown where thin but never past its own and its neighbours'
+    offsets widened by the half voxel (:mod:`.bspline.pushforward`). By the convex-hull property of
     the B-spline, a voxel's offset lies in the hull of its region's 4x4x4
     control points; a voxel and its neighbours, in the points ``[r - 1, r +
     4]`` per axis (widened at the domain's faces, where the halo is
