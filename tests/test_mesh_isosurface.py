@@ -86,6 +86,23 @@ def test_direction_applied_and_winding_outward(direction):
     assert np.max(np.abs(radii - r)) < 0.05
 
 
+@pytest.mark.parametrize("spacing", [1.0, 0.8])
+@pytest.mark.parametrize("direction", [-np.eye(3), np.diag([-1.0, -1.0, 1.0])])
+def test_normals_are_outward_in_a_frame_turned_about_with_isotropic_spacing(direction, spacing):
+    """A NIfTI of RAS diag(1, 1, -1) is LPS direction -I: with isotropic spacing every
+    normal pointed inward (the shortcut for a scaled identity took -I for one), while the
+    winding and the volume were right; renders came out nearly black."""
+    r = 7.0
+    vol = sphere_volume((30, 30, 30), r, spacing=(spacing,) * 3, origin=(5, 6, 7),
+                        direction=direction)
+    lo, hi = vol.world_bounds()
+    mesh = isosurface(vol, 0.0)
+    assert enclosed_volume(mesh) > 0
+    assert outward_fraction(mesh, 0.5 * (lo + hi)) == 1.0
+    fn = mesh.face_normals()  # (vertex normals agree with the winding)
+    assert np.mean(np.einsum("ij,ij->i", fn, mesh.normals[mesh.faces].mean(axis=1)) > 0) == 1.0
+
+
 def test_inside_below_is_the_same_surface_wound_outwards():
     vol_pos = sphere_volume((24, 24, 24), 8.0)
     vol_neg = vol_pos.with_data(-vol_pos.data)

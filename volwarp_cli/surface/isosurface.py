@@ -378,7 +378,8 @@ def _world_normals(grad: np.ndarray, matrix: np.ndarray, inside: str) -> np.ndar
     # a scaled rotation (isotropic spacing) keeps unit normals unit
     gram = inv.T @ inv
     if np.allclose(gram, gram[0, 0] * np.eye(3), rtol=1e-12, atol=0):
-        if np.allclose(inv, inv[0, 0] * np.eye(3), rtol=1e-12, atol=0) and sign > 0:
+        if np.allclose(inv, inv[0, 0] * np.eye(3), rtol=1e-12, atol=0) and \
+                inv[0, 0] * sign > 0:  # (-I turns every normal about: not this shortcut)
             return grad
         return _times3(grad, (sign * inv / np.sqrt(gram[0, 0])).astype(np.float32))
     n = _times3(grad, (sign * inv).astype(np.float32))
