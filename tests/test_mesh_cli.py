@@ -117,6 +117,13 @@ def test_smooth_decimate_largest_component(run, tmp_path):
     assert st["volume"] == pytest.approx(mask[:, :, :23].sum(), rel=0.05)
     assert st["bbox_min"][0] < 4 and st["bbox_max"][0] < 23
     assert st["triangles"] < 0.55 * (base["triangles"] * 0.8)
+    # one iteration: VTK's filter finds no offset and collapses the mesh (0.5% of its volume,
+    # "closed", exit 0, and VTK's message ahead of the JSON on stdout): refused, no output
+    res = run("mesh", path, "--iso", "0.5", "--smooth", "1", "--json", "-o", tmp_path / "x.ply")
+    assert res.code == 2 and "0 (off) or at least 2" in res.stderr and res.stdout == ""
+    assert not (tmp_path / "x.ply").exists()
+    two = json.loads(run("mesh", path, "--iso", "0.5", "--smooth", "2", "--json").stdout)
+    assert two["volume"] == pytest.approx(base["volume"], rel=0.02)
 
 
 def test_cap_closes_a_border_shape(run, tmp_path, messages):

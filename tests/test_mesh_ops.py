@@ -129,6 +129,8 @@ def test_bad_parameters():
         ops.smooth(cube, -1)
     with pytest.raises(VolwarpError):
         ops.smooth(cube, 5, pass_band=3.0)
+    with pytest.raises(VolwarpError, match="0 or at least 2"):  # (1 collapsed the mesh)
+        ops.smooth(cube, 1)
     assert ops.smooth(cube, 0) is cube
     assert ops.decimate(cube, 0.0) is cube
 
@@ -178,3 +180,4 @@ def test_decimation_keeps_an_open_border_in_place():
         idx = np.unique(np.concatenate([once // m.n_vertices, once % m.n_vertices]))
         return {tuple(np.round(m.vertices[i], 9)) for i in idx}
     assert border_points(dec) == border_points(mesh)
+

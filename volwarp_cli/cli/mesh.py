@@ -48,6 +48,14 @@ def mesh_path(value):
     return value
 
 
+def _smooth_iterations(value: int) -> int:
+    """--smooth: 0 or at least 2 (VTK's windowed sinc finds no filter for 1: the mesh collapsed)."""
+    if value == 1:
+        raise click.BadParameter("1 iteration: VTK's windowed-sinc filter needs 0 (off) or at "
+                                 "least 2 (at 1 it shrank a ball to 0.5% of its volume)")
+    return value
+
+
 def turntable_paths(render: str, n: int) -> list[Path]:
     """``out.png`` -> ``out-000.png`` ... ``out-{n-1}.png``."""
     p = Path(render)
@@ -98,7 +106,9 @@ def _format_stats(d: dict) -> str:
               help="Pad the volume with one layer of outside samples so shapes touching its "
                    "border are closed there.")
 @click.option("--smooth", type=click.IntRange(min=0), default=0, show_default=True,
-              metavar="N", help="Windowed-sinc smoothing iterations (volume-preserving; 0: off).")
+              metavar="N", callback=lambda ctx, param, value: _smooth_iterations(value),
+              help="Windowed-sinc smoothing iterations, 0 (off) or at least 2 "
+                   "(volume-preserving).")
 @click.option("--decimate", type=click.FloatRange(0.0, 1.0, max_open=True), default=0.0,
               show_default=True, metavar="FRACTION",
               help="Fraction of the triangles to remove by quadric decimation (0.9 keeps 10%).")

@@ -102,10 +102,13 @@ def smooth(mesh: Mesh, iterations: int, *, pass_band: float = 0.1) -> Mesh:
     -------
     Mesh
         Same vertex count and triangles, moved vertices, fresh normals. The
-        border of an open surface is not moved.
+        border of an open surface is not smoothed as a curve, but its vertices
+        slide along it (by 0.3 voxel at 20 iterations on a ball cut by the
+        volume's face: measured).
     """
-    if iterations < 0:
-        raise VolwarpError(f"smoothing iterations must be >= 0, got {iterations}")
+    if iterations < 0 or iterations == 1:
+        # (VTK's windowed sinc finds no filter for 1: it shrank a ball to 0.5% of its volume)
+        raise VolwarpError(f"smoothing iterations must be 0 or at least 2, got {iterations}")
     if not 0 < pass_band < 2:
         raise VolwarpError(f"smoothing pass band must be in (0, 2), got {pass_band}")
     if iterations == 0 or mesh.is_empty:
