@@ -396,6 +396,11 @@ def test_label_plys_by_blocks_are_the_in_memory_files(run, inputs, tmp_path, sch
         data = (tmp_path / f"m_{label}.ply").read_bytes()
         assert f"volwarp_label={label}\n".encode() in data
         assert (tmp_path / f"b_{label}.ply").read_bytes() == data
+    # one label's file says which too (it said iso=0.5 only: any label's, or the union's)
+    res = run("mesh", inputs / "seg.nrrd", "--label", "-2", "-o", tmp_path / "one.ply")
+    assert res.code == 0, res.stderr
+    one = (tmp_path / "one.ply").read_bytes()
+    assert b"volwarp_label=-2\n" in one and b"volwarp_iso" not in one
 
 
 @pytest.mark.parametrize("source", list(WIDE_INTEGERS))

@@ -328,12 +328,14 @@ class MeshOperation(Reduction):
 def surface_keys(labels, iso: float, label: int | None) -> dict:
     """The key/values a mesh file records of its surface (``labels`` as :class:`MeshOperation`'s).
 
-    Every label's file: its label; else the level (to 9 digits), and for the
-    non-zero labels' union that it is a label map's surface, not a level of
-    samples.
+    Every label's file, and one label's (``--label N``): its label; else the
+    level (to 9 digits), and for the non-zero labels' union that it is a label
+    map's surface, not a level of samples.
     """
     if labels == ALL_LABELS:
         return {"volwarp_label": str(label)}
+    if labels is not None and labels != NONZERO_LABELS:  # (one label: its file says which)
+        return {"volwarp_label": str(int(labels))}
     keys = {"volwarp_iso": f"{iso:.9g}"}
     if labels == NONZERO_LABELS:
         keys["volwarp_values"] = "labels"
