@@ -9,6 +9,8 @@ and takes the argmax.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -278,6 +280,24 @@ def test_info_says_the_defaults_take_a_label_map_as_labels(run, tmp_path):
     assert "with --labels," not in hint
     assert "warp, distance and mesh take it as labels by default" in hint
     assert "--values intensity" in hint
+
+
+def test_info_hints_a_map_of_many_labels_as_the_commands_take_it(run, tmp_path):
+    """343 blocks of their own ids: info said nothing (its hint stopped at 256 values) while
+    mesh took the map for labels, and --help says the default follows info's hint."""
+    from volwarp_cli.io import write_volume
+
+    ids = np.arange(1, 344, dtype=np.int16).reshape(7, 7, 7)
+    seg = np.zeros((30, 30, 30), np.int16)
+    seg[1:29, 1:29, 1:29] = np.kron(ids, np.ones((4, 4, 4), np.int16))
+    path = tmp_path / "many.nrrd"
+    write_volume(Volume(seg), path)
+    res = run("info", path, "--json")
+    assert res.code == 0, res.stderr
+    hint = json.loads(res.stdout)["label_map"]
+    assert hint["labels"] == 344 and hint["values"] == list(range(16))
+    res = run("mesh", "-v", path, "-o", tmp_path / "m.ply")
+    assert res.code == 0 and "looks like a label map: 344 labels" in res.stderr, res.stderr
 
 
 def test_warp_labels_through_the_command_line(run, tmp_path):

@@ -5,8 +5,8 @@ their levels' mode by it, ``info`` hints it. Three functions give its answer:
 :func:`looks_like_labels` (an array), :func:`looks_like_labels_by_blocks` (a
 sliceable source read box by box: the same answer, for outputs written by
 blocks) and :func:`scan_labels` (the answer and the distinct values, what
-the commands need); :func:`label_map_hint` is ``info``'s form (at most
-:data:`HINT_MAX_LABELS` values, listed).
+the commands need); :func:`label_map_hint` is ``info``'s form (its count
+of values and the first 16, whatever their number: the commands' answer).
 
 **Candidates.** Integer samples, and float samples whose values are all
 finite integers within the type's exact range (2**24 for float32): nibabel's
@@ -177,8 +177,6 @@ def segmentation_of(meta) -> str | None:
     return None
 
 
-#: ``info``'s hint lists label maps with at most this many distinct values
-HINT_MAX_LABELS = 256
 #: test 1: at least this share of the neighbour pairs that are both neither 0 nor the
 #: mode are equal (scans 0.00 to 0.12, label maps 0.71 and more)
 MIN_EQUAL_PAIRS = 0.5
@@ -240,14 +238,16 @@ def keep_label_ids(data, dtype, name: str, labels="auto", meta=None) -> None:
 def label_map_hint(data: np.ndarray) -> dict | None:
     """``{"labels": n, "values": [...]}`` when ``data`` looks like a label map (``info``).
 
-    The rule (module notes) with 2 to :data:`HINT_MAX_LABELS` distinct
-    values; None otherwise (the values: the first 16).
+    The rule (module notes), whatever the number of distinct values: the
+    answer the commands' defaults follow (a hint capped at 256 values said
+    nothing of a map of 344 labels, which ``mesh`` and ``distance`` took for
+    one); None otherwise (the values: the first 16).
     """
     data = np.asarray(data)
     if not _candidate(data) or data.size == 0:
         return None
     counted = _count(data, scan_boxes(data.shape))
-    if counted is None or not 2 <= len(counted[0]) <= HINT_MAX_LABELS:
+    if counted is None or len(counted[0]) < 2:
         return None
     values, counts = counted
     if not _rule(values, counts, data.shape, lambda z: data[z]):

@@ -149,8 +149,8 @@ def _label_hint(desc: dict, vol) -> None:
     """Add ``label_map`` (distinct values, the first 16) when the volume looks like one.
 
     The rule ``warp`` and ``distance`` follow (integer ids, or floats that are
-    all integers), listed up to 256 distinct values (see
-    :func:`volwarp_cli.labelmap.label_map_hint`).
+    all integers), whatever the number of values
+    (:func:`volwarp_cli.labelmap.label_map_hint`).
     """
     if vol.data.dtype.kind in "iuf":
         from ..labelmap import label_map_hint

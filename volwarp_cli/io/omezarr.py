@@ -36,10 +36,9 @@ Choices:
   label maps take the most frequent label of each 2x2x2 block (the smallest
   of equally frequent labels), so a coarse level holds only labels of level 0.
   ``labels``: True, False, or ``"auto"``: an integer volume that looks like a
-  label map (piecewise constant: :func:`volwarp_cli.labelmap.looks_like_labels`, which is
-  :func:`volwarp_cli.labelmap.label_map_hint` up to 256 distinct
-  values and goes on above them, so that no segmentation is averaged for
-  having many labels).
+  label map (piecewise constant: :func:`volwarp_cli.labelmap.looks_like_labels`, the
+  rule :func:`volwarp_cli.labelmap.label_map_hint` says, whatever the number of
+  labels: no segmentation is averaged for having many).
 - **Other axes.** Space axes ``z, y, x`` (any order, by name) are required;
   time and channel axes of size 1 are dropped, and one such axis of larger
   size is selected with ``volume_index`` (``--volume-index``), as a 4-D NIfTI.
