@@ -93,3 +93,18 @@ def test_a_large_lattice_is_sampled_within_the_budget():
     positions[30, 30, 30, 0] += 40.0  # (ten spacings: a fold)
     folded, samples = folds.fold_count(positions)
     assert 0 < samples <= folds.SAMPLES and folded > 0
+
+
+def test_a_strong_mirror_is_no_fold_and_its_fold_is():
+    """A mirrored lattice with a strong but one-to-one move (a suspect region, every
+    determinant negative) is no fold; the cleared regions' sign is the mirror's."""
+    grid = Lattice.create((40, 40, 40), (9, 9, 9), 1.0)
+    mirror = grid.uniform_positions() * [-1, 1, 1]
+    strong = mirror.copy()
+    strong[4, 4, 4, 1] += 4.0  # (across the axis: a shear of 0.6 spacing, no fold)
+    assert folds.suspect_regions(strong).any() and not folds.suspect_regions(strong).all()
+    assert (folds.jacobian_dets(strong, None, 4) < 0).all()
+    assert folds.fold_count(strong)[0] == 0
+    folded = mirror.copy()
+    folded[4, 4, 4, 0] -= 40.0
+    assert folds.fold_count(folded)[0] > 0

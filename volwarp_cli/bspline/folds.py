@@ -105,8 +105,9 @@ def fold_count(positions: np.ndarray) -> tuple[int, int]:
     """``(samples on the fold's side, samples)``; ``(0, 0)`` when no region can fold.
 
     Only the suspect regions are sampled (:func:`suspect_regions`; every few of
-    them past about :data:`SAMPLES` points). The others' determinants are
-    positive (the bound), so where one is left, a negative sample is a fold;
+    them past about :data:`SAMPLES` points). The others' determinants have the
+    sign of the lattice's spacings' product (the bound: positive, or a mirror's
+    negative), so where one is left, a sample of the other sign is a fold;
     where every region is suspect, the minority sign is the fold's side (a
     mirror is negative everywhere: no fold, and a fold in a mirror folds back
     into the positive side). A determinant of zero, where a capture's tripled
@@ -122,6 +123,8 @@ def fold_count(positions: np.ndarray) -> tuple[int, int]:
     det = jacobian_dets(positions, chosen, per_region)
     tiny = 1e-9 * float(np.abs(det).max(initial=0.0))
     positive, negative = int(np.count_nonzero(det > tiny)), int(np.count_nonzero(det < -tiny))
-    if not suspect.all():  # (regions cleared by the bound: positive)
-        return negative, int(det.size)
+    if not suspect.all():  # (the regions the bound cleared: the sign of the spacings' product)
+        p = np.asarray(positions, dtype=np.float64)
+        cleared = np.prod([np.mean(np.diff(p[..., a], axis=2 - a)) for a in range(3)])
+        return (negative if cleared > 0 else positive), int(det.size)
     return (min(positive, negative) if positive and negative else 0), int(det.size)
