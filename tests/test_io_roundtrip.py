@@ -420,3 +420,30 @@ def test_a_chain_through_every_format_keeps_key_values_exactly(tmp_path, data_di
     assert back.meta == src.meta
     assert back.data.tobytes() == src.data.tobytes()
     assert_same_geometry(src, back, atol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", DTYPES)
+@pytest.mark.parametrize("shape_zyx", [(5, 4, 1), (1, 4, 1), (3, 1, 1), (4, 1, 3)])
+@pytest.mark.parametrize("name", ["x.tif", "x.nrrd", "x.mha", "x.nii.gz"])
+def test_volumes_one_voxel_thick_round_trip(tmp_path, dtype, shape_zyx, name):
+    """x one voxel thick: tifffile took the last axis of size 1 for samples and dropped it. A
+    plain TIFF came back transposed (5 x 4 x 1 as 4 x 5 x 1, corners 10.9 mm off), an
+    ImageJ one declared 5 images in one page and could not be read back."""
+    vol = sample_volume(dtype, shape_zyx)
+    write_volume(vol, tmp_path / name)
+    back = read_volume(tmp_path / name)
+    assert back.data.shape == vol.data.shape and np.array_equal(back.data, vol.data)
+    assert_same_geometry(vol, back, atol=1e-5 if name.endswith(".nii.gz") else 1e-12)
+
+
+def test_a_tiff_says_millimetres_whatever_unit_its_key_values_carry(tmp_path):
+    """A key/value unit=micron (a stack read before) went into ImageJ's unit beside spacings
+    in mm: Fiji's voxels 1000x too small. A unit of no length (pixel) is kept."""
+    import tifffile
+
+    for unit, written in (("micron", "mm"), ("pixel", "pixel")):
+        vol = Volume(np.zeros((4, 3, 2), np.uint8), spacing=(0.5, 0.5, 2.0), meta={"unit": unit})
+        write_volume(vol, tmp_path / f"{unit}.tif")
+        with tifffile.TiffFile(tmp_path / f"{unit}.tif") as tif:
+            assert tif.imagej_metadata["unit"] == written and tif.imagej_metadata["spacing"] == 2.0
+        np.testing.assert_allclose(read_volume(tmp_path / f"{unit}.tif").spacing, (0.5, 0.5, 2.0))

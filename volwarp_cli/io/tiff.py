@@ -700,7 +700,10 @@ def write_tiff(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
     path = Path(path)
     dtype = check_dtype(vol.data.dtype, str(path))
     meta = dict(vol.meta)
+    # (the spacings written are millimetres: a key/value unit of length, "micron" from a
+    # stack read before, made Fiji's voxels 1000x too small; no length, "pixel", is kept)
     unit = str(meta.get("unit", "mm"))
+    unit = unit if imagej_unit_mm(unit) is None else "mm"
     geometry = {
         "volwarp_spacing": " ".join(repr(float(v)) for v in vol.spacing),
         "volwarp_origin": " ".join(repr(float(v)) for v in vol.origin),
@@ -723,12 +726,18 @@ def write_tiff(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
         compression="zlib" if compress else None,
         software="volwarp",
     )
+    # tifffile takes a last axis of size 1 (x one voxel thick) for samples and drops it: the
+    # axes are spelled out for ImageJ (the same bytes otherwise), and the plain TIFF's
+    # description is written as tifffile would, without its squeezing of the shape
+    nz, ny, nx = data.shape
     with atomic_output(path) as tmp:
         if dtype.name in _IMAGEJ_TYPES:
-            tifffile.imwrite(tmp, data, imagej=True,
-                             metadata={"axes": "ZYX", "spacing": float(vol.spacing[2]),
+            tifffile.imwrite(tmp, data.reshape(nz, 1, ny, nx, 1), imagej=True,
+                             metadata={"axes": "ZCYXS", "spacing": float(vol.spacing[2]),
                                        "unit": unit, **geometry}, **kwargs)
         else:
             # minisblack: else tifffile stores a stack of 3 or 4 slices as one RGB(A) page
-            tifffile.imwrite(tmp, data, metadata={"axes": "ZYX", "unit": unit, **geometry},
+            shaped = json.dumps({"shape": [nz, ny, nx], "axes": "ZYX", "unit": unit,
+                                 **geometry})
+            tifffile.imwrite(tmp, data, description=shaped, metadata=None,
                              resolutionunit="NONE", photometric="minisblack", **kwargs)
