@@ -549,3 +549,21 @@ def test_content_check_and_unwritable_data_file_names(tmp_path):
     with pytest.raises(VolwarpError, match=r"cannot be named 'a%d\.raw'"):
         write_metaimage(_volume(), tmp_path / "a%d.mhd")
     assert not (tmp_path / "a%d.mhd").exists() and not (tmp_path / "a%d.raw").exists()
+
+
+def test_a_key_value_a_header_line_cannot_hold_is_said(tmp_path, run):
+    """A NRRD value with a line break, or outer spaces, came out changed in a .mha, silently."""
+    from volwarp_cli.io import read_volume, write_volume
+
+    src = tmp_path / "k.nrrd"
+    write_volume(Volume(np.zeros((2, 3, 4), np.uint8),
+                        meta={"note": "line one\nline two", "pad": "spaces   ", "ok": "fine"}),
+                 src)
+    res = run("convert", src, "-o", tmp_path / "k.mha")
+    assert res.code == 0, res.stderr
+    assert "key/values 'note', 'pad' written to the MetaImage header with their line breaks" \
+        in res.stderr
+    meta = read_volume(tmp_path / "k.mha").meta
+    assert meta["note"] == "line one line two" and meta["pad"] == "spaces" and meta["ok"] == "fine"
+    res = run("convert", src, "-o", tmp_path / "k2.nrrd")  # (NRRD holds them: nothing said)
+    assert res.code == 0 and "MetaImage" not in res.stderr

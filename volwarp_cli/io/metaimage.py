@@ -546,7 +546,7 @@ def _nums(values) -> str:
 
 def _user_fields(meta: dict) -> list[tuple[str, str]]:
     """The meta key/values written to the header (sorted, as ITK writes its dictionary)."""
-    out, dropped = {}, []
+    out, dropped, changed = {}, [], []
     for key, value in meta.items():
         key = str(key)
         name = key[len(PREFIX):] if key.startswith(PREFIX) else key
@@ -557,12 +557,20 @@ def _user_fields(meta: dict) -> list[tuple[str, str]]:
                 dropped.append(key)
             continue
         out[name] = str(value).replace("\r", " ").replace("\n", " ").strip()
-    if dropped:
-        from ..progress import log
+        if out[name] != str(value):  # (a header line holds no line break, and is stripped)
+            changed.append(key)
+    from ..progress import log
 
+    if dropped:
         log.warning("warning: key/value%s %s not written to the MetaImage header (MetaIO's "
                     "own fields, or not a header key)", "s" if len(dropped) > 1 else "",
                     ", ".join(map(repr, sorted(dropped))))
+    if changed:
+        log.warning("warning: key/value%s %s written to the MetaImage header with %s line "
+                    "breaks as spaces and %s outer spaces left out (a header line holds "
+                    "neither): .nrrd keeps them", "s" if len(changed) > 1 else "",
+                    ", ".join(map(repr, sorted(changed))), *(("their",) * 2
+                                                             if len(changed) > 1 else ("its",) * 2))
     return sorted(out.items())
 
 
