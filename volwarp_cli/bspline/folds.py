@@ -50,18 +50,25 @@ def _window_max(a: np.ndarray, widths) -> np.ndarray:
 
 
 def suspect_regions(positions: np.ndarray) -> np.ndarray:
-    """The regions ``[Rz, Ry, Rx]`` (bool) the bound of the module notes cannot clear.
+    """The regions ``[Rz, Ry, Rx]`` (bool) the bound of the module notes cannot clear."""
+    return _bound(positions)[0]
+
+
+def _bound(positions: np.ndarray) -> tuple[np.ndarray, float]:
+    """``(suspect regions, sign of the spacings' product)``: the sign the cleared ones have.
 
     One component and axis at a time (a 129^3 lattice's differences are 17 MB each).
     """
     p = np.asarray(positions, dtype=np.float64)
     rows = np.zeros(tuple(n - 3 for n in p.shape[:3]) + (3,))  # [region..., component]
+    sign = 1.0
     for axis in range(3):  # (x y z; the array's axis 2 - axis)
         # (any spacing bounds: J = (I + E) diag(L) for any L of one sign, a mirror's too; the
         # mean, not the median, whose first call imports numpy.ma: 8 ms of a small warp)
         spacing = float(np.mean(np.diff(p[..., axis], axis=2 - axis)))
         if not abs(spacing) > 0:
-            return np.ones(rows.shape[:3], bool)
+            return np.ones(rows.shape[:3], bool), 1.0
+        sign *= np.sign(spacing)
         widths = [4, 4, 4]
         widths[2 - axis] = 3  # (a region's differences along the axis: 3 of its 4 points)
         for component in range(3):
@@ -70,7 +77,7 @@ def suspect_regions(positions: np.ndarray) -> np.ndarray:
                 diff -= spacing
             np.abs(diff, out=diff)
             rows[..., component] += _window_max(diff, widths) / abs(spacing)
-    return rows.max(axis=-1) >= 1.0
+    return rows.max(axis=-1) >= 1.0, float(sign)
 
 
 def jacobian_dets(positions: np.ndarray, regions=None, per_region: int = 2) -> np.ndarray:
@@ -113,7 +120,7 @@ def fold_count(positions: np.ndarray) -> tuple[int, int]:
     into the positive side). A determinant of zero, where a capture's tripled
     end points flatten the map, is neither sign.
     """
-    suspect = suspect_regions(positions)
+    suspect, cleared = _bound(positions)
     if not suspect.any():
         return 0, 0
     chosen = np.argwhere(suspect)
@@ -124,7 +131,5 @@ def fold_count(positions: np.ndarray) -> tuple[int, int]:
     tiny = 1e-9 * float(np.abs(det).max(initial=0.0))
     positive, negative = int(np.count_nonzero(det > tiny)), int(np.count_nonzero(det < -tiny))
     if not suspect.all():  # (the regions the bound cleared: the sign of the spacings' product)
-        p = np.asarray(positions, dtype=np.float64)
-        cleared = np.prod([np.mean(np.diff(p[..., a], axis=2 - a)) for a in range(3)])
         return (negative if cleared > 0 else positive), int(det.size)
     return (min(positive, negative) if positive and negative else 0), int(det.size)
