@@ -375,6 +375,33 @@ def test_a_full_disk_while_a_store_is_written_by_blocks_names_it(tmp_path, monke
 
     monkeypatch.setattr(blockwrite._ZarrWriter, "_write", failing)
     with pytest.raises(VolwarpError, match=r"v\.ome\.zarr: cannot write \(No space left"):
+        # (one block, the store's one shard: written by zarr from the task)
+        execute.run(Ramp(tmp_path, suffix=".ome.zarr"), _blocks(SHAPE, "synchronous"))
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_full_disk_while_a_staged_store_is_committed_names_it(tmp_path, monkeypatch):
+    """Blocks not made of the store's shards go to a scratch file first; the store's
+    write on commit names the output too, and neither the scratch nor the store is left."""
+    import errno
+
+    from volwarp_cli.io import blockwrite
+
+    real = blockwrite._ZarrOutput._unstage
+
+    class Full:
+        def __init__(self, array):
+            self.shape, self.shards, self.chunks = array.shape, array.shards, array.chunks
+
+        def __setitem__(self, key, value):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    def failing(self):
+        self._arrays[0] = Full(self._arrays[0])
+        return real(self)
+
+    monkeypatch.setattr(blockwrite._ZarrOutput, "_unstage", failing)
+    with pytest.raises(VolwarpError, match=r"(v|sq)\.ome\.zarr: cannot write \(No space left"):
         execute.run(Ramp(tmp_path, suffix=".ome.zarr"), _blocks(scheduler="synchronous"))
     assert not list(tmp_path.iterdir())
 
@@ -508,8 +535,10 @@ def test_an_abort_waits_for_the_planes_being_placed_and_refuses_later_ones(tmp_p
 def test_block_tasks_place_their_planes_into_outputs_written_by_offset(tmp_path, scheduler,
                                                                         suffix):
     """By blocks, an operation that can place its planes does so into an NRRD (no block
-    array; the file is the in-memory one), and computes its blocks whole for a store
-    written by shards; the blocks' weighing leaves out what is placed."""
+    array; the file is the in-memory one), and computes its blocks whole for a store; the
+    blocks' weighing leaves out what is placed. Blocks not made of the store's shards go
+    to a raw scratch file by offset (no encoding), the store written on commit in its
+    in-memory layout: the same files."""
     (tmp_path / "m").mkdir()
     (tmp_path / "b").mkdir()
     execute.run(Ramp(tmp_path / "m", suffix=suffix), execute.How(chunked=False))
@@ -522,15 +551,25 @@ def test_block_tasks_place_their_planes_into_outputs_written_by_offset(tmp_path,
     assert execute.places_blocks(op) == (suffix == ".nrrd")
     voxels = 4 * 13 * 17
     weighed = execute._heaviest(op, (4, 13, 17))
-    # (a store's blocks add zarr's encoding of their shards, for each target)
-    encoding = sum(t.block_bytes(op.grid.shape, (4, 13, 17)) for t in op.targets.values())
-    assert (encoding == 0) == (suffix == ".nrrd")
-    assert weighed == voxels * 12 - (voxels * 12 if suffix == ".nrrd" else 0) + encoding
+    # (a store's blocks made of its shards add zarr's encoding of them, for each target;
+    # staged ones, none)
+    for block, staged in (((4, 13, 17), True), (SHAPE, False)):
+        encoding = sum(t.block_bytes(op.grid.shape, block) for t in op.targets.values())
+        assert (encoding == 0) == (suffix == ".nrrd" or staged)
+    assert weighed == voxels * 12 - (voxels * 12 if suffix == ".nrrd" else 0)
     for name in ("v", "sq"):
         a, b = tmp_path / "m" / f"{name}{suffix}", tmp_path / "b" / f"{name}{suffix}"
         if suffix == ".nrrd":
             assert a.read_bytes() == b.read_bytes()
+        else:
+            assert _tree(a) == _tree(b)
         assert np.array_equal(read_volume(b).data, read_volume(a).data)
+    assert sorted(p.name for p in (tmp_path / "b").iterdir()) == [f"sq{suffix}", f"v{suffix}"]
+
+
+def _tree(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def test_an_abort_does_not_wait_for_its_own_thread_and_always_removes_the_temporary(tmp_path):

@@ -107,7 +107,9 @@ def test_a_shards_encoding_is_counted_twice_its_samples():
 
 def test_the_in_memory_decision_counts_the_stores_encoding(tmp_path):
     """An OME-Zarr target's whole weighs its samples and its encoding: what fit as samples
-    alone (the old count) runs by blocks, each block with its shard's encoding counted."""
+    alone (the old count) runs by blocks, each block with its shard's encoding counted;
+    blocks smaller than the store's shard go to a scratch file by offset (no encoding),
+    and the store's commit weighs a shard and its encoding."""
     from volwarp_cli.geometry import Geometry
 
     grid = Geometry((32, 32, 32))
@@ -115,7 +117,10 @@ def test_the_in_memory_decision_counts_the_stores_encoding(tmp_path):
     nrrd = execute.Target(tmp_path / "o.nrrd", grid.header(np.float32), np.dtype("f4"))
     assert nrrd.write_bytes(grid.shape) == 0 and nrrd.block_bytes(grid.shape, (8, 32, 32)) == 0
     assert target.write_bytes(grid.shape) >= 2 * 32 ** 3 * 4
-    assert target.block_bytes(grid.shape, (8, 32, 32)) >= 2 * 8 * 32 * 32 * 4
+    assert target.block_bytes(grid.shape, (32, 32, 32)) >= 2 * 32 ** 3 * 4
+    assert target.block_bytes(grid.shape, (8, 32, 32)) == 0
+    assert target.commit_bytes(grid.shape, (32, 32, 32)) == 0
+    assert target.commit_bytes(grid.shape, (8, 32, 32)) >= 3 * 32 ** 3 * 4
 
 
 _MAPPED_PROBE = r"""

@@ -71,6 +71,33 @@ def test_chunked_ome_zarr_is_the_same_on_every_scheduler(run, scan, tmp_path, sc
     assert np.allclose(a.origin, b.origin) and np.allclose(a.spacing, b.spacing)
 
 
+def _tree(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("version", ["0.5", "0.4"])
+def test_chunked_ome_zarr_is_the_in_memory_store_whatever_the_threads(run, scan, tmp_path,
+                                                                      version):
+    """A store of one shard (or of chunks larger than the blocks) cut into blocks for the
+    threads: its files were laid out by the blocks, so they changed with --threads (the
+    same samples, other bytes). The blocks are staged in a scratch file and the store is
+    written in its in-memory layout on commit: the same files, on a rotated grid too
+    (stored reindexed to the identity direction), with a pyramid."""
+    src, spec = scan
+    common = ["--spec", spec, "--ome-zarr-version", version, "--pyramid", "1"]
+    mem = tmp_path / "mem.ome.zarr"
+    assert run("warp", src, *common, "-o", mem).code == 0
+    for args in (["--threads", "2"], ["--threads", "1"], ["--block", "5,7,3"],
+                 ["--scheduler", "processes", "--threads", "2"]):
+        blk = tmp_path / f"blk{len(args)}{args[-1]}.ome.zarr"
+        res = run("warp", src, *common, "-o", blk, "--chunked", *args, "--json")
+        assert res.code == 0, res.stderr
+        assert json.loads(res.stdout)["blocks"] > 1
+        assert _tree(blk) == _tree(mem), args
+    assert not [p for p in tmp_path.iterdir() if ".vw-" in p.name]
+
+
 def test_chunked_on_a_local_cluster_with_jsonl_progress(run, scan, tmp_path):
     """A LocalCluster's run, while port 8787 is taken (another run's cluster at the same
     time): no "Port 8787 is already in use" warning (here an error), the same bytes."""

@@ -135,25 +135,30 @@ class Target:
 
         An OME-Zarr store's encoding of the block's shards
         (:func:`~volwarp_cli.io.blockwrite.zarr_block_bytes`); 0 for the
-        formats written by offset.
+        formats written by offset, a staged store's blocks among them
+        (:func:`~volwarp_cli.io.blockwrite.zarr_staged`).
         """
         if not self._zarr():
             return 0
-        from .io.blockwrite import zarr_block_bytes
+        from .io.blockwrite import zarr_block_bytes, zarr_staged
 
+        if zarr_staged(self.path, shape, self.dtype, self.version, block, self.header.direction):
+            return 0
         return zarr_block_bytes(shape, self.dtype, self.version, block)
 
     def commit_bytes(self, shape, block) -> int:
         """The least memory committing the output written in blocks of ``block`` takes.
 
-        An OME-Zarr store's pyramid levels
+        An OME-Zarr store's pyramid levels and a staged store's shards
         (:func:`~volwarp_cli.io.blockwrite.zarr_commit_bytes`); else 0.
         """
         if not self._zarr():
             return 0
-        from .io.blockwrite import zarr_commit_bytes
+        from .io.blockwrite import zarr_commit_bytes, zarr_staged
 
-        return zarr_commit_bytes(shape, self.dtype, self.version, self.pyramid, block)
+        staged = zarr_staged(self.path, shape, self.dtype, self.version, block,
+                             self.header.direction)
+        return zarr_commit_bytes(shape, self.dtype, self.version, self.pyramid, block, staged)
 
 
 class Operation:

@@ -11,17 +11,23 @@ abort or a stop leaves no temporary behind and an existing output untouched.
 Blocks must lie on the output's block grid, :attr:`BlockOutput.chunks`:
 a write covers whole blocks (the last block of an axis may be cut short at
 the grid's end), so that two writes never share a block. For OME-Zarr that is
-the shard shape (0.5) or the chunk shape (0.4): zarr-python reads, modifies
-and writes back a whole shard for a partial write, and two threads doing so
-at once lose one's data silently. :func:`aligned_chunks` gives the chunk
-sizes a Dask array should be rechunked to.
+the shard shape (0.5) or the chunk shape (0.4) where the blocks are made of
+them: zarr-python reads, modifies and writes back a whole shard for a partial
+write, and two threads doing so at once lose one's data silently. Other
+blocks are staged (:func:`zarr_staged`): placed in a raw scratch file, the
+store written from it shard by shard on commit. :func:`aligned_chunks` gives
+the chunk sizes a Dask array should be rechunked to.
 
 Formats:
 
 - **OME-Zarr** (``.ome.zarr``, ``.zarr``): zarr writes into the temporary
-  store; commit builds the pyramid (``pyramid`` levels, block by block from
-  the level above), writes the metadata and renames the store into place. The
-  store is the one :func:`~.omezarr.write_omezarr` writes for the same volume.
+  store (or a raw scratch file beside it, :func:`zarr_staged`, written into
+  the store on commit); commit builds the pyramid (``pyramid`` levels, block
+  by block from the level above), writes the metadata and renames the store
+  into place. The store is the one :func:`~.omezarr.write_omezarr` writes for
+  the same volume, byte for byte (but where a shard's write would not fit the
+  memory budget, or its samples the disk, for staging: then one shard per
+  block, the same samples).
 - **NRRD** (``.nrrd``, raw encoding), **MetaImage** (``.mha``) and **raw**:
   the header goes into the temporary file and the samples into its data
   region with ``pwrite`` (:mod:`.filearray`; a memory map's pages would count
@@ -70,9 +76,11 @@ def open_block_output(path: str | os.PathLike, header, *, dtype=None, chunks_zyx
     its frame (``space`` and the input's ``file_space``) and key/values
     (provenance), so that the file is the one written in memory.
     ``dtype``: the samples' type, default ``header.dtype``.
-    ``chunks_zyx``: the block shape the engine writes (OME-Zarr 0.5: one shard
-    per block, :func:`block_layout`; 0.4: the chunks; others: the block grid,
-    default 64 planes of the whole y, x extent). ``version``, ``pyramid``,
+    ``chunks_zyx``: the block shape the engine writes (OME-Zarr: the store's
+    own layout, the blocks staged in a scratch file where they are not made of
+    its shards, :func:`zarr_staged`, else one shard per block,
+    :func:`block_layout`; others: the block grid, default 64 planes of the
+    whole y, x extent). ``version``, ``pyramid``,
     ``labels``: OME-Zarr (see :mod:`.omezarr`; ``labels="auto"``, as
     :func:`~volwarp_cli.io.write_volume`'s: an integer output's levels are
     decided on commit from the samples written, read shard by shard).
@@ -227,6 +235,13 @@ class _Reindex:
         for a in self.flips:
             lo[a], hi[a] = self.shape[a] - hi[a], self.shape[a] - lo[a]
         return Box(self.stored_axes(lo), self.stored_axes(hi))
+
+    def volume_box(self, stored: Box) -> Box:
+        """Where the store's box ``stored`` lies in the volume (:meth:`box` undone)."""
+        lo, hi = list(self.volume_axes(stored.lo)), list(self.volume_axes(stored.hi))
+        for a in self.flips:
+            lo[a], hi[a] = self.shape[a] - hi[a], self.shape[a] - lo[a]
+        return Box(tuple(lo), tuple(hi))
 
     def array(self, array: np.ndarray) -> np.ndarray:
         """A block's samples in the store's orientation."""
@@ -590,6 +605,55 @@ def store_unit(shape_zyx, version: str) -> tuple[int, int, int]:
     return tuple(shards or chunks)
 
 
+def zarr_staged(path, shape_zyx, dtype, version: str, block, direction=None) -> bool:
+    """Whether an OME-Zarr output written in blocks of ``block`` is staged in a raw scratch file.
+
+    Blocks not made of the in-memory layout's write units (:func:`store_unit`)
+    would give the store a layout of their own (one shard per block): the
+    same samples, not the same bytes, and a layout that changed with the
+    blocks, so with ``--threads``. Staged, the blocks are placed by offset
+    in a raw file beside the output, and the commit writes the store shard
+    by shard in the in-memory layout: the bytes the in-memory write gives.
+    Not staged where a shard's write does not fit the memory budget (the
+    in-memory write would not fit either: it writes the same shards) or the
+    samples do not fit the disk beside the output. ``direction``: the grid's,
+    whose store may be reindexed (:func:`.omezarr.reindex_axes`): its write
+    units are the store's.
+    """
+    import shutil
+
+    from ..memory import memory_limit
+    from . import omezarr
+
+    if block is None:
+        return False
+    shape = tuple(int(n) for n in shape_zyx)
+    found = None if direction is None else omezarr.reindex_axes(direction)
+    if found is not None:  # (the store's axes)
+        shape = tuple(shape[o] for o in found[1])
+        block = tuple(int(block[o]) for o in found[1])
+    standard = omezarr.store_layout(shape, version, None)
+    if block_layout(shape, version, block) == standard:
+        return False
+    if staged_commit_bytes(shape, dtype, version) > memory_limit():
+        return False
+    try:
+        free = shutil.disk_usage(Path(path).resolve().parent).free
+    except OSError:
+        return False
+    return math.prod(shape) * np.dtype(dtype).itemsize <= free
+
+
+def staged_commit_bytes(shape_zyx, dtype, version: str) -> int:
+    """The memory a staged store's commit holds: one write unit's samples and zarr's encoding."""
+    from . import omezarr
+
+    unit = store_unit(shape_zyx, version)
+    chunks, shards = omezarr.store_layout(shape_zyx, version, None)
+    item = np.dtype(dtype).itemsize
+    return math.prod(unit) * item + omezarr.write_bytes(unit, item, chunks, shards)
+
+
 def zarr_block_bytes(shape_zyx, dtype, version: str, block) -> int:
     """What writing a block of ``block`` (z, y, x) into an OME-Zarr output adds to its samples.
 
@@ -604,22 +668,26 @@ def zarr_block_bytes(shape_zyx, dtype, version: str, block) -> int:
     return omezarr.write_bytes(block, np.dtype(dtype).itemsize, chunks, shards)
 
 
-def zarr_commit_bytes(shape_zyx, dtype, version: str, pyramid: int, block) -> int:
+def zarr_commit_bytes(shape_zyx, dtype, version: str, pyramid: int, block,
+                      staged: bool = False) -> int:
     """The least memory committing an OME-Zarr output written in blocks of ``block`` takes.
 
     Its pyramid's levels, each made in its smallest pieces
-    (:func:`.omezarr.pyramid_bytes`); 0 without levels. (The label-map rule's
-    count reads boxes as small as it must.)
+    (:func:`.omezarr.pyramid_bytes`), and a ``staged`` store's shards
+    (:func:`zarr_staged`); 0 for neither. (The label-map rule's count reads
+    boxes as small as it must.)
     """
     from . import omezarr
 
+    copy = staged_commit_bytes(shape_zyx, dtype, version) if staged else 0
     if not pyramid:
-        return 0
+        return copy
     standard = omezarr.store_layout(shape_zyx, version, None)
-    layout = standard if block is None else block_layout(shape_zyx, version, block)
+    layout = (standard if block is None or staged
+              else block_layout(shape_zyx, version, block))
     chunks = None if layout == standard else clip_block(block, shape_zyx)
-    return omezarr.pyramid_bytes(shape_zyx, np.dtype(dtype).itemsize, version, pyramid,
-                                 chunks=chunks, layout0=layout)
+    return max(copy, omezarr.pyramid_bytes(shape_zyx, np.dtype(dtype).itemsize, version,
+                                           pyramid, chunks=chunks, layout0=layout))
 
 
 class _ZarrOutput(BlockOutput):
@@ -640,16 +708,23 @@ class _ZarrOutput(BlockOutput):
         block = chunks_zyx
         if reindex is not None and block is not None:
             block = reindex.stored_axes(block)
-        layout = block_layout(stored.shape, version, block)
+        # blocks not made of the store's write units: placed in a raw scratch file, the
+        # store written in its in-memory layout on commit (zarr_staged)
+        staged = zarr_staged(path, header.shape, dtype, version, chunks_zyx, header.direction)
+        layout = (omezarr.store_layout(stored.shape, version, None) if staged
+                  else block_layout(stored.shape, version, block))
         chunk, shard = layout
         grid = shard or chunk
         phase = (0, 0, 0)
-        if reindex is not None:
+        if staged:
+            grid = clip_block(chunks_zyx, geometry.shape)
+        elif reindex is not None:
             grid = reindex.volume_axes(grid)
             phase = tuple(int(n) % c if a in reindex.flips else 0
                           for a, (n, c) in enumerate(zip(geometry.shape, grid, strict=True)))
         super().__init__(path, geometry, dtype, grid, phase)
         self._reindex = reindex
+        self._staged = None
         self._stored, self._header, self._version, self._pyramid = (stored, header, version,
                                                                      pyramid)
         # labels "auto" (write_volume's default): a map its key/values say is one (a SEG's)
@@ -668,6 +743,8 @@ class _ZarrOutput(BlockOutput):
             # (zarr's threads' freed frames given back until the store is renamed: see there)
             self._stack.enter_context(large_allocations_mapped())
             tmp = self._stack.enter_context(atomic_folder(path))
+            if staged:
+                self._stage(path)
             group = omezarr.open_group_for_writing(tmp, version)
             # (the in-memory layout at level 0: the pyramid's levels take theirs too)
             standard = layout == omezarr.store_layout(stored.shape, version, None)
@@ -680,27 +757,73 @@ class _ZarrOutput(BlockOutput):
             self.abort()
             raise
 
+    def _stage(self, path):
+        """The raw scratch file the blocks go to (the volume's own axes), removed with the store's temporary."""
+        from .atomic import make_scratch_folder, remove_scratch_folder
+        from .filearray import FileArray
+
+        folder = make_scratch_folder(path)
+        self._stack.callback(remove_scratch_folder, folder)
+        file = folder / "level0.raw"
+        try:
+            with open(file, "wb") as fh:
+                fh.truncate(self.geometry.size * self.dtype.itemsize)
+        except OSError as exc:
+            raise write_error(path, exc) from exc
+        self._staged = FileArray(file, self.dtype, 0, self.geometry.shape, writable=True)
+
     def _write(self, box, array):
-        if self._reindex is None:
+        if self._staged is not None:
+            try:
+                self._staged[box.slices] = array
+            except OSError as exc:
+                raise write_error(self.path, exc) from exc
+        elif self._reindex is None:
             self._arrays[0][box.slices] = array
         else:
             self._arrays[0][self._reindex.box(box).slices] = self._reindex.array(array)
 
     def _read(self, box):
+        if self._staged is not None:
+            return np.asarray(self._staged[box.slices])
         if self._reindex is None:
             return np.asarray(self._arrays[0][box.slices])
         return np.ascontiguousarray(self._reindex.unarray(
             np.asarray(self._arrays[0][self._reindex.box(box).slices])))
 
     def writer(self):
+        if self._staged is not None:
+            return _MappedWriter(self._staged.path, self.dtype, 0, self.geometry.shape,
+                                 self.chunks, self.dtype, str(self.path))
         return _ZarrWriter(self._arrays[0], self.geometry.shape, self.chunks, self.dtype,
                            str(self.path), self.phase, self._reindex)
+
+    def _unstage(self):
+        """Level 0 from the scratch file, one write unit at a time, as the in-memory write does."""
+        level0 = self._arrays[0]
+        for stored in grid_boxes(level0.shape, level0.shards or level0.chunks):
+            box = stored if self._reindex is None else self._reindex.volume_box(stored)
+            samples = self._staged[box.slices]
+            if self._reindex is not None:
+                samples = self._reindex.array(samples)
+            try:
+                level0[stored.slices] = samples
+            except OSError as exc:
+                raise write_error(self.path, exc) from exc
+            del samples
+        self._release()
+
+    def _release(self):
+        if self._staged is not None:
+            self._staged.close()
 
     def _finish(self):
         from ..memory import memory_limit, release_freed
         from . import omezarr
 
         release_freed()  # (what the blocks' tasks freed: the levels are weighed against the rest)
+        if self._staged is not None:
+            self._unstage()
         if self._labels is None:  # (the whole array's rule, read box by box)
             from ..labelmap import looks_like_labels_by_blocks
 
