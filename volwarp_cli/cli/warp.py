@@ -8,6 +8,8 @@ by blocks: the executor decides by the sizes unless --chunked or
 
 from __future__ import annotations
 
+import dataclasses
+
 import click
 
 from ..io import check_output_path
@@ -76,11 +78,13 @@ from .warp_options import (
 @click.option("--displacement-to", default=None, metavar="FIELD",
               help="Write the resampling displacement field y -> F^-1(y) - y (LPS mm) on the "
                    "output grid (see --grid), as ITK, ANTs and Slicer resample with (.nii.gz "
-                   "or .nrrd); NaN where the map folds or has no inverse. With --chunked: "
-                   "written by slabs, as .nrrd only, uncompressed (the same values).")
+                   "or .nrrd, gzip with --compress); NaN where the map folds or has no "
+                   "inverse. With --chunked: written by slabs, as uncompressed .nrrd only "
+                   "(the same bytes).")
 @click.option("--forward-field-to", default=None, metavar="FIELD",
               help="Write the forward (modelling) field x -> F(x) - x (LPS mm) on the input "
-                   "grid (.nii.gz or .nrrd; with --chunked: by slabs, .nrrd only, uncompressed).")
+                   "grid (.nii.gz or .nrrd, gzip with --compress; with --chunked: by slabs, "
+                   "uncompressed .nrrd only).")
 @click.option("--jacobian-to", default=None, metavar="MAP",
               help="Write det dF/dx on the input grid (float32, any volume format; with "
                    "--chunked: by slabs, a format written by blocks: uncompressed .nrrd, "
@@ -136,6 +140,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         check_pattern(frames_to)
     exports = check_exports(displacement_to, forward_field_to, jacobian_to, transform_to,
                              points_in, points_to, mesh_in, mesh_to)
+    if exports:  # (the writer options go to every output, the fields' too)
+        exports = dataclasses.replace(exports, compress=bool(compress))
     if output is None and not frames_to and not exports:
         raise click.UsageError("nothing to write: give -o OUT (the warped volume), "
                                "--frames-to, or an export (--points-to, --mesh-to, "

@@ -567,8 +567,12 @@ def _run_slabs(part, nz: int, per_slice: int, threads: int | None) -> None:
 
 # ---- writers ------------------------------------------------------------------------------------
 
-def write_field(field: np.ndarray, geometry: Header, path: str, meta: dict, kind: str) -> None:
+def write_field(field: np.ndarray, geometry: Header, path: str, meta: dict, kind: str, *,
+                compress: bool = False) -> None:
     """Write a displacement field ([z, y, x, 3], LPS mm) atomically as NRRD or NIfTI.
+
+    ``compress``: gzip NRRD (a field written by blocks is the raw file, the
+    bytes of the uncompressed one; a ``.nii.gz`` is gzip either way).
 
     NRRD: ``kinds: vector domain domain domain``, ``space: left-posterior-superior``,
     key/values ``volwarp_field:=KIND`` (and ``displacement field type:=resampling``
@@ -582,7 +586,7 @@ def write_field(field: np.ndarray, geometry: Header, path: str, meta: dict, kind
         from ..io.nrrd import write_nrrd
 
         components = [field[..., m] for m in range(3)]
-        write_nrrd(header.with_data(components[0]), path, compress=True,
+        write_nrrd(header.with_data(components[0]), path, compress=compress,
                    components=components, component_names=["x", "y", "z"])
         return
     _write_nifti_field(field, header, path, kind)
@@ -610,8 +614,8 @@ def field_block_output(path: str, geometry: Header, meta: dict, kind: str, depth
     A :class:`~volwarp_cli.io.blockwrite.BlockOutput` of blocks of ``depth`` z planes.
 
     The header is :func:`write_field`'s (``kinds: vector domain domain domain``, LPS,
-    the same key/values) but for ``encoding: raw``: the gzip stream of the in-memory
-    file cannot be placed slab by slab. A NIfTI path is a VolwarpError.
+    the same key/values, ``encoding: raw``): the file is the uncompressed one
+    :func:`write_field` writes. A NIfTI path is a VolwarpError.
     """
     from ..io.blockwrite import open_block_output
 

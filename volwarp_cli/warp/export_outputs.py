@@ -15,10 +15,11 @@ as in memory; the volume-sized fields are computed and written slab by slab
 of z planes (their values are per voxel: the same float32 values as in
 memory, and the same figures, the slabs' counts added and their extremes
 combined) into block outputs (:mod:`volwarp_cli.io.blockwrite`), so that
-no whole field is held. A field is then an uncompressed NRRD (the in-memory
-one is gzip NRRD or NIfTI, which cannot be placed by slabs:
-:func:`block_export_problem` says so before any work), the Jacobian any
-format written by blocks (uncompressed NRRD, MetaImage, raw, OME-Zarr).
+no whole field is held. A field is then an uncompressed NRRD, the bytes of
+the in-memory one (a NIfTI field or a compressed one, ``--compress``, cannot
+be placed by slabs: :func:`block_export_problem` says so before any work),
+the Jacobian any format written by blocks (uncompressed NRRD, MetaImage,
+raw, OME-Zarr).
 """
 
 from __future__ import annotations
@@ -37,7 +38,9 @@ class ExportRequests:
     """The exports asked for: output paths, and the points and meshes to move.
 
     ``points``: ``(PointsFile, output path)``; ``mesh``: ``(Mesh, its source
-    path, output path)``. False when nothing is asked for.
+    path, output path)``. False when nothing is asked for. ``compress``: the
+    command's ``--compress``, for the fields and the Jacobian as for its
+    output (gzip NRRD, zlib MetaImage; a ``.nii.gz`` is gzip either way).
     """
 
     displacement: str | None = None
@@ -46,9 +49,11 @@ class ExportRequests:
     transform: str | None = None
     points: tuple | None = None
     mesh: tuple | None = None
+    compress: bool = False
 
     def __bool__(self) -> bool:
-        return any(getattr(self, f.name) is not None for f in fields(self))
+        return any(getattr(self, f.name) is not None for f in fields(self)
+                   if f.name != "compress")
 
 
 #: the most field samples (bytes) a slab of the displacement field holds by blocks
@@ -112,8 +117,9 @@ def whole_fields_bytes(requests: ExportRequests, warp) -> int:
 def block_export_problem(requests: ExportRequests) -> str | None:
     """Why ``requests`` cannot be written by blocks (a sentence naming the option), or None.
 
-    The fields are written by blocks as uncompressed NRRD only (not NIfTI), the
-    Jacobian in a format written by blocks (:func:`~volwarp_cli.io.blockwrite.check_block_format`).
+    The fields are written by blocks as uncompressed NRRD only (not NIfTI, not
+    with ``--compress``), the Jacobian in a format written by blocks
+    (:func:`~volwarp_cli.io.blockwrite.check_block_format`).
     """
     from ..errors import VolwarpError
     from ..io.blockwrite import check_block_format
@@ -124,9 +130,12 @@ def block_export_problem(requests: ExportRequests) -> str | None:
         if path is not None and field_format(path) != "nrrd":
             return (f"{name} {path}: a NIfTI field cannot be written by blocks; write .nrrd "
                     "(by blocks it is written uncompressed)")
+        if path is not None and requests.compress:
+            return (f"{name} {path}: a compressed field cannot be written by blocks; drop "
+                    "--compress (by blocks a field is an uncompressed .nrrd)")
     if requests.jacobian is not None:
         try:
-            check_block_format(requests.jacobian)
+            check_block_format(requests.jacobian, requests.compress)
         except VolwarpError as exc:
             return f"--jacobian-to {exc}"
     return None
@@ -226,7 +235,8 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
                         counts["folded"])
         if blocks is None:
             with timed(f"write {path}"):
-                write_field(field, out_grid, path, meta, "resampling")
+                write_field(field, out_grid, path, meta, "resampling",
+                            compress=requests.compress)
             del field
         stats["displacement"] = {"path": str(path), "voxels": counts["voxels"],
                                  "folded": counts["folded"],
@@ -235,7 +245,8 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
         path = requests.forward
         if blocks is None:
             with timed(f"write {path}"):
-                write_field(fmap.forward_field(), in_grid, path, meta, "forward")
+                write_field(fmap.forward_field(), in_grid, path, meta, "forward",
+                            compress=requests.compress)
         else:
             from ..io.blockwrite import committed
             from .export import field_block_output
@@ -258,7 +269,8 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
                              "below_0": st["below_0"], "below_0_1": st["below_0.1"]}
         if blocks is None:
             with timed(f"write {path}"):
-                write_volume(in_grid.with_data(det, meta=jmeta), path)
+                write_volume(in_grid.with_data(det, meta=jmeta), path,
+                             compress=requests.compress)
             del det
     if requests.transform is not None:
         path = requests.transform
