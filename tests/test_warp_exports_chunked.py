@@ -85,6 +85,8 @@ def _same_exports(mem, blk, jac=".nrrd"):
     assert np.array_equal(ja.data, jb.data) and jb.data.dtype == np.float32
     assert np.allclose(ja.origin, jb.origin) and np.allclose(ja.direction, jb.direction)
     assert _tree(mem / f"jac{jac}") == _tree(blk / f"jac{jac}")
+    for name in ("t.tfm", "q.csv", "m2.ply"):
+        assert (mem / name).read_bytes() == (blk / name).read_bytes(), name
 
 
 def _tree(path):
@@ -92,8 +94,6 @@ def _tree(path):
         return path.read_bytes()
     return {p.relative_to(path).as_posix(): p.read_bytes()
             for p in sorted(path.rglob("*")) if p.is_file()}
-    for name in ("t.tfm", "q.csv", "m2.ply"):
-        assert (mem / name).read_bytes() == (blk / name).read_bytes(), name
 
 
 def _field(path):
