@@ -8,6 +8,8 @@ sizes, several blocks per axis, a flipped and a rotated direction.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -130,6 +132,12 @@ def test_what_moved_inputs_by_blocks_refuse(run, inputs, tmp_path):
     spec = _spec(tmp_path, "u", base + "align: {target: {translate: [1, 0, 0]}}\n")
     res = run("morph", "--spec", spec, "-o", out, "--chunked")
     assert res.code == 2 and "uncovered" in res.stderr and "alignment" in res.stderr
+    # one sentence: the cause, where it runs, then the way out (the advice was nested
+    # inside "a morph with ... by blocks" before)
+    assert re.search(r"--chunked does not run this morph by blocks: its frame grid reaches "
+                     r"beyond the (source|target)'s grid through its alignment or grid "
+                     r"\(\d+ of \d+ frame voxels uncovered\), .* \(without --chunked it runs in "
+                     r"memory\); choose a grid the aligned inputs cover", res.stderr), res.stderr
     spec = _spec(tmp_path, "w", base + "grid: source\nwarp: {source_points: [[4, 4, 4]], "
                  "target_points: [[5, 4, 4]]}\n")
     res = run("morph", "--spec", spec, "-o", out, "--chunked")

@@ -123,8 +123,9 @@ def test_a_landmark_warp_is_refused_before_any_work(shapes, tmp_path):
                warp_source_points=np.array([[12.0, -9.0, 10.0]]),
                warp_target_points=np.array([[13.0, -9.0, 10.0]]))
     opened = []
-    with pytest.raises(BlocksRefused, match=r"^--chunked does not run a morph with a landmark "
-                                            r"warp .* by blocks \(that morph runs in memory\)$"):
+    with pytest.raises(BlocksRefused, match=r"^--chunked does not run this morph by blocks: "
+                                            r"its landmark warp's .* block by block \(without "
+                                            r"--chunked it runs in memory\)$"):
         _run(job, tmp_path, engine_opened=opened)
     assert not opened and not list(tmp_path.glob("b_*"))
 

@@ -73,9 +73,9 @@ def block_grid(job: MorphJob, source: Geometry, target: Geometry,
     a_t = eye if target_matrix is None else target_matrix
     grid = choose_grid(job.grid, source, target, a_s, a_t, moved=job.moved, margin=job.margin)
     if job.warp_source_points is not None:
-        return grid, ("a landmark warp (its thin-plate/Gaussian map is evaluated through "
+        return grid, ("its landmark warp's thin-plate/Gaussian map is evaluated through "
                       "matrix products whose rounding is not guaranteed to be the same block "
-                      "by block)")
+                      "by block")
     return grid, None
 
 
@@ -119,7 +119,7 @@ def _uncovered_task(box: Box, *, m, values_shape):
 
 def check_covered(job: MorphJob, geometries: dict, matrices: dict, grid: Geometry, run,
                   chunks) -> str | None:
-    """Why the fields cannot be resampled by blocks (a frame voxel they do not cover), or None.
+    """``(why, advice)`` where the fields cannot be resampled by blocks (a frame voxel they do not cover), else None.
 
     ``geometries``, ``matrices``: ``{"source": ..., "target": ...}``. A frame
     voxel outside a moved input's grid gets its field from the in-memory
@@ -134,11 +134,12 @@ def check_covered(job: MorphJob, geometries: dict, matrices: dict, grid: Geometr
         task = functools.partial(_uncovered_task, m=m, values_shape=tuple(geo.shape))
         count = sum(run(task, Box.from_shape(grid.shape).blocks(chunks)))
         if count:
-            return (f"a frame grid reaching beyond the {name}'s grid through its alignment or "
-                    f"grid ({count} of {grid.size} frame voxels uncovered: the in-memory morph "
-                    "fills them by a propagation across the whole field, which has no "
-                    "by-blocks form; choose a grid the aligned inputs cover, e.g. grid: "
-                    "source with a target that covers it, or an explicit grid)")
+            return (f"its frame grid reaches beyond the {name}'s grid through its alignment "
+                    f"or grid ({count} of {grid.size} frame voxels uncovered), and the "
+                    "in-memory morph fills such voxels by a propagation across the whole "
+                    "field, which has no form by blocks",
+                    "choose a grid the aligned inputs cover, e.g. grid: source with a target "
+                    "that covers it, or an explicit grid")
     return None
 
 

@@ -364,9 +364,9 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
     attrs = attributes or {}
     block = how.block
 
-    def refuse_why(why):
-        raise BlocksRefused(f"--chunked does not run a morph with {why} by blocks (that morph "
-                            "runs in memory)")
+    def refuse_why(why, advice=None):
+        raise BlocksRefused(f"--chunked does not run this morph by blocks: {why} (without "
+                            "--chunked it runs in memory)" + (f"; {advice}" if advice else ""))
 
     try:
         _, why = block_grid(job, Geometry.of(source[0]), Geometry.of(target[0]))
@@ -396,10 +396,11 @@ def morph_by_blocks(job: MorphJob, source, target, attributes: dict | None = Non
                 chunks = resample_chunks(grid.shape, chunks, maps, steps.per_task)
             except VolwarpError as exc:
                 raise BlocksRefused(str(exc), usage=False) from None
-            why = check_covered(job, {name: Geometry.of(inputs[name][0]) for name in inputs},
-                                matrices, grid, steps.map, chunks)
-            if why:
-                refuse_why(why)
+            uncovered = check_covered(job, {name: Geometry.of(inputs[name][0])
+                                            for name in inputs}, matrices, grid, steps.map,
+                                      chunks)
+            if uncovered:
+                refuse_why(*uncovered)
         checks = [(p, np.dtype(write.dtype or frame_type)) for p in outputs.frames]
         for a in job.attributes:
             checks += [(p, types[a.name]) for p in outputs.attributes[a.name]]
