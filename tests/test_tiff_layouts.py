@@ -31,6 +31,7 @@ def _both(path, **kw):
     np.testing.assert_array_equal(np.asarray(arr[...]), vol.data)
     np.testing.assert_array_equal(np.asarray(arr[1:3, ::-2, 4:]), vol.data[1:3, ::-2, 4:])
     np.testing.assert_allclose(header.spacing, vol.spacing)
+    np.testing.assert_allclose(header.origin, vol.origin)
     return vol
 
 
@@ -154,6 +155,43 @@ def test_resolution_units_of_tifffile_are_read_in_mm(tmp_path, unit, mm):
     vol = _both(path)
     np.testing.assert_allclose(vol.spacing[:2], (mm, mm))
     assert vol.meta["unit"] == "mm"
+
+
+def test_an_imagej_calibration_origin_places_the_stack(tmp_path):
+    """Fiji's xorigin, yorigin, zorigin (pixels: pixel i lies at (i - xorigin) * width)
+    were ignored: such a stack was read at the world's origin. Whole and by box."""
+    path = tmp_path / "o.tif"
+    tifffile.imwrite(path, STACK, imagej=True, resolution=(2.0, 4.0),
+                     metadata={"axes": "ZYX", "spacing": 3.0, "unit": "micron",
+                               "xorigin": 2.5, "yorigin": -1, "zorigin": 4})
+    vol = _both(path)
+    np.testing.assert_allclose(vol.spacing, (0.0005, 0.00025, 0.003))
+    np.testing.assert_allclose(vol.origin, (-2.5 * 0.0005, 1 * 0.00025, -4 * 0.003))
+
+
+def test_an_axis_aligned_volume_is_written_with_its_imagej_origin(tmp_path):
+    """Fiji shows volwarp's coordinates: the origin in ImageJ's pixels, read back as
+    ImageJ computes it; a rotated grid has no ImageJ calibration origin."""
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    data = STACK.astype(np.uint16)
+    vol = Volume(data, spacing=np.array([0.5, 0.25, 2.0]), origin=np.array([-10.0, 3.0, 0.0]))
+    write_volume(vol, tmp_path / "a.tif")
+    with tifffile.TiffFile(tmp_path / "a.tif") as tif:
+        ij = tif.imagej_metadata
+    assert (ij["xorigin"], ij["yorigin"]) == (20.0, -12.0) and "zorigin" not in ij
+    for axis, name in enumerate(("xorigin", "yorigin")):  # ImageJ's Calibration.getX(0)
+        assert (0 - ij[name]) * vol.spacing[axis] == vol.origin[axis]
+    assert np.array_equal(read_volume(tmp_path / "a.tif").origin, vol.origin)
+    turned = Volume(data, spacing=vol.spacing, origin=vol.origin,
+                    direction=np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]))
+    write_volume(turned, tmp_path / "b.tif")
+    with tifffile.TiffFile(tmp_path / "b.tif") as tif:
+        assert "xorigin" not in tif.imagej_metadata
+    back = read_volume(tmp_path / "b.tif")
+    assert np.array_equal(back.origin, vol.origin) and np.array_equal(back.direction,
+                                                                     turned.direction)
 
 
 def test_a_volumetric_tiled_page_is_read(tmp_path):

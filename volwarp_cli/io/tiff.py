@@ -675,6 +675,8 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
                         spacing[2])
     if "volwarp_origin" in extra:
         origin = _floats(extra["volwarp_origin"], 3, where, "volwarp_origin")
+    elif ij:
+        origin = _imagej_origin(ij, spacing, where)
     if "volwarp_direction" in extra:
         direction = np.array(_floats(extra["volwarp_direction"], 9, where,
                                      "volwarp_direction")).reshape(3, 3)
@@ -690,6 +692,33 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
         fields={"spacing": names, "origin": "volwarp_origin", "direction": "volwarp_direction"})
     return {"spacing": spacing, "origin": origin, "direction": direction, "space": space,
             "meta": meta}
+
+
+def _imagej_origin(ij, spacing, where: str) -> list[float]:
+    """The position of voxel 0 from an ImageJ stack's ``xorigin``, ``yorigin``, ``zorigin``.
+
+    ImageJ's calibration origin is in pixels: the calibrated coordinate of
+    pixel ``i`` is ``(i - xorigin) * pixelWidth`` (its ``Calibration.getX``),
+    so voxel 0 lies at ``-xorigin * spacing``. 0 where a key is missing.
+    """
+    origin = [0.0, 0.0, 0.0]
+    for axis, name in enumerate(("xorigin", "yorigin", "zorigin")):
+        if name in ij:
+            pixels = _floats([ij[name]], 1, where, f"ImageJ {name}")[0]
+            origin[axis] = -pixels * spacing[axis] + 0.0
+    return origin
+
+
+def _imagej_origin_keys(vol: Volume) -> dict:
+    """ImageJ's ``xorigin``... of ``vol`` (pixels) where its axes are the stack's, else none.
+
+    Fiji then shows the volume's own coordinates. A rotated grid has no
+    ImageJ calibration (volwarp's own keys hold it).
+    """
+    if not np.array_equal(vol.direction, np.eye(3)):
+        return {}
+    return {name: -float(o) / float(s) + 0.0 for name, o, s in
+            zip(("xorigin", "yorigin", "zorigin"), vol.origin, vol.spacing, strict=True) if o}
 
 
 def write_tiff(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
@@ -734,7 +763,8 @@ def write_tiff(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
         if dtype.name in _IMAGEJ_TYPES:
             tifffile.imwrite(tmp, data.reshape(nz, 1, ny, nx, 1), imagej=True,
                              metadata={"axes": "ZCYXS", "spacing": float(vol.spacing[2]),
-                                       "unit": unit, **geometry}, **kwargs)
+                                       "unit": unit, **_imagej_origin_keys(vol), **geometry},
+                             **kwargs)
         else:
             # minisblack: else tifffile stores a stack of 3 or 4 slices as one RGB(A) page
             shaped = json.dumps({"shape": [nz, ny, nx], "axes": "ZYX", "unit": unit,
