@@ -133,7 +133,7 @@ def test_what_a_label_map_cannot_have_names_the_way_out(run, files):
     saying so and how to warp its samples as intensities; --labels with --values
     intensity contradict."""
     d = files["dir"]
-    for extra in (["--dtype", "float32"], ["--background-value", "3"]):
+    for extra in (["--dtype", "float32"], ["--background-value", "3.5"]):
         res = run("warp", files["frog"], "--spec", files["frog_spec"], "-o", d / "o.nrrd",
                   *extra)
         assert res.code == 2 and "looks like a label map" in res.stderr, res.stderr

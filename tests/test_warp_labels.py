@@ -438,7 +438,9 @@ def test_signed_ids_spanning_the_type_do_not_wrap(run, tmp_path, dtype, ids):
 @pytest.mark.parametrize("capture,extra,key", [
     ("{lattice: 6, oversample: 1.5}", [], "capture.oversample"),
     ("{lattice: 6, oversample: 1, placement: tripled}", [], "capture.placement"),
-    ("{lattice: 6, oversample: 1}", ["--background", "3"], "--background"),
+    ("{lattice: 6, oversample: 1}", ["--background", "3.5"], "--background"),
+    ("{lattice: 6, oversample: 1}", ["--background-value", "256"], "uint8"),
+    ("{lattice: 6, oversample: 1}\nbackground: 0.5", [], "background"),
 ])
 def test_what_a_label_map_cannot_have_is_a_usage_or_spec_error(run, tmp_path, capture, extra,
                                                                 key):
@@ -455,6 +457,46 @@ def test_what_a_label_map_cannot_have_is_a_usage_or_spec_error(run, tmp_path, ca
     res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", *extra)
     assert res.code == 2 and key in res.stderr, res
     assert not (tmp_path / "o.nrrd").exists()
+
+
+def test_a_given_background_label_fills_where_nothing_lands(run, tmp_path):
+    """A map cropped tightly around the body: its border is mostly tissue (label 1), which
+    was the background whatever the user said (--background-value was refused for labels):
+    the grown margin became tissue. A given id (here 0, not in the map) is the background:
+    the margin gets it and tissue 1 is warped as a label, the same in memory and by
+    blocks; the spec's background key does the same."""
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    z, y, x = np.mgrid[:20, :22, :24]
+    seg = np.ones((20, 22, 24), np.uint8)  # tissue 1 up to the border
+    seg[(x - 12) ** 2 + (y - 11) ** 2 + (z - 10) ** 2 < 25] = 2
+    src = tmp_path / "s.nrrd"
+    write_volume(Volume(seg), src)
+    spec = tmp_path / "w.yaml"
+    text = ("version: 1\nunits: voxel\nvalues: labels\ncapture: {lattice: 5, pad: 4}\n"
+            "steps:\n  - move:\n      - {index: [2, 2, 2], by: [2.0, 1.0, 0.0]}\n")
+    spec.write_text(text)
+    outs = {}
+    for name, extra in (("border", []), ("given", ["--background-value", "0"]),
+                        ("blocks", ["--background-value", "0", "--chunked", "--block", "5"])):
+        res = run("warp", src, "--spec", spec, "-o", tmp_path / f"{name}.nrrd", "--json",
+                  *extra)
+        assert res.code == 0, res.stderr
+        outs[name] = read_volume(tmp_path / f"{name}.nrrd").data
+        summary = json.loads(res.stdout)
+        assert summary["background"] == (1 if name == "border" else 0)
+        assert [r["label"] for r in summary["labels"]] == ([2] if name == "border" else [1, 2])
+    border, given = outs["border"], outs["given"]
+    assert border.shape == given.shape and border.shape[0] > 20  # (grown by the pad)
+    assert 0 not in np.unique(border)
+    margin = given == 0
+    assert margin.sum() > 1000 and np.all(border[margin] == 1)
+    assert np.array_equal(given[~margin], border[~margin])  # the labels land the same
+    assert np.array_equal(outs["blocks"], given)
+    spec.write_text(text.replace("values: labels\n", "values: labels\nbackground: 0\n"))
+    assert run("warp", src, "--spec", spec, "-o", tmp_path / "k.nrrd").code == 0
+    assert np.array_equal(read_volume(tmp_path / "k.nrrd").data, given)
 
 
 def test_json_reports_the_label_volumes(run, tmp_path):

@@ -39,9 +39,9 @@ JSON_HELP = (
     "--displacement-to: displacement {path, voxels, folded, no_preimage} (output voxel "
     "counts: folded = NaN, no_preimage = without an inverse in the lattice's support); "
     "with --points-in / --mesh-in: points / mesh {path, count, outside}; with labels: "
-    "labels (one per input label: label, input_voxels, output_voxels, input_mm3, "
-    "output_mm3, predicted_mm3; with --frames-to: the last frame's), vanished and "
-    "preserved (label ids); an intensity warp run by blocks: blocks (their count) and "
+    "labels (one per input label but the background: label, input_voxels, output_voxels, "
+    "input_mm3, output_mm3, predicted_mm3; with --frames-to: the last frame's), vanished "
+    "and preserved (label ids), background (its label); an intensity warp run by blocks: blocks (their count) and "
     "block (x y z voxels of one). A value that is not a finite number is null.")
 
 
@@ -100,8 +100,8 @@ BACKGROUND_HELP = (
     "partly covered ones [default: the spec's background, else the median of INPUT's border "
     "samples (its six faces, NaN left out): what the scan has outside its anatomy, e.g. "
     "-1024 for a CT, 0 for an MRI; -v prints it]; e.g. a large positive distance for a "
-    "signed distance field. Intensities only (a label map's background is its most "
-    "frequent border label).")
+    "signed distance field. A label map's background is a label: its most frequent border "
+    "label unless B (an id its type holds) is given; uncovered voxels take it.")
 
 #: options that shape the warped volume only: refused when no volume is written
 _VOLUME_ONLY = (("--values", "values"), ("--labels", "labels"), ("--pushforward", "pushforward"),

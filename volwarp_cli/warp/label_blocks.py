@@ -45,7 +45,13 @@ from .labels import (
     needed_tiles,
     stream_bytes,
 )
-from .run import LatticeMoves, WarpOptions, background_label, prepare_label_warp
+from .run import (
+    LatticeMoves,
+    WarpOptions,
+    background_label,
+    given_background,
+    prepare_label_warp,
+)
 
 _BUILD = threading.Lock()  # one scene per process, even when two threads ask at once
 
@@ -87,8 +93,9 @@ class OneShotLabelWarp(LatticeMoves):
         self.name = name  # (the input's file: in messages)
         self.cap, self.scene, self.frames, (self.grid, self.grid_why) = prepare_label_warp(
             header, doc, spec, options, name)
-        #: the label where nothing lands: the most frequent on the map's border
-        self.background = background_label(source)
+        #: the label where nothing lands: the given one, else the most frequent on the
+        #: map's border
+        self.background = background_label(source, given_background(spec, options))
         if self.frames:
             self.scene.set_lattice(self.frames[-1].dq)
         #: the output's Header: its shape, dtype and geometry

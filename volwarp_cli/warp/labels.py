@@ -735,24 +735,20 @@ def _stronger(w: int, at, w_best: int, at_best) -> bool:
 
 
 def prepare_labels(vol: Volume | Header, doc, spec, *, method=None, evaluator=None,
-                   background=None, source: str = "input", allow_growth: bool = False,
+                   source: str = "input", allow_growth: bool = False,
                    grid: str | None = None):
     """``(cap, scene, frames)`` for warping the label map ``vol`` (or its Header) by a spec.
 
     The spec: ``doc``, ``spec``. Returned: the :func:`capture_labels` capture of
     ``vol`` and :func:`.prepare.prepare`'s scene and frames (the frames' lattices are
     applied by :func:`warp_labels`). ``grid``: the output's, as
-    :func:`.prepare.prepare` takes it.
+    :func:`.prepare.prepare` takes it. (The map's background label, given
+    or its border's, is :func:`.run.background_label`'s: the scene's
+    background value is unused by labels.)
     """
     from .prepare import capture_as_spec, prepare
 
-    if background not in (None, 0, 0.0):
-        raise VolwarpError("--background does not apply to a label map (its background is "
-                           "its most frequent border label)")
     cap = capture_as_spec(capture_labels, spec.capture, source, vol)
-    if spec.background not in (None, 0):
-        raise doc.error(("background",), "does not apply to a label map (its background is "
-                        "its most frequent border label)")
     scene, frames = prepare(cap, doc, spec, method=method, evaluator=evaluator, background=0.0,
                             allow_growth=allow_growth, grid=grid)
     return cap, scene, frames

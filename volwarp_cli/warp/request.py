@@ -135,7 +135,7 @@ def plan_final(header, source, doc, spec, options: WarpOptions = WarpOptions(), 
                                    meta=header.meta)
     warn_once(choice.warning)
     log.info("%s: %s", name, choice.describe())
-    check_values_fit(choice, doc, spec, options, name)
+    check_values_fit(choice, doc, spec, options, name, getattr(header, "dtype", None))
     if choice.is_labels:
         from .label_blocks import OneShotLabelWarp  # (a label map's only: not every warp's)
 
@@ -292,7 +292,8 @@ def _warp_frames(req: WarpFiles) -> dict:
         doc, spec = source.load_spec(req.spec)
         what = source.source(doc, spec)
         choice, spec = source.choice, source.spec
-        check_values_fit(choice, doc, spec, req.options, req.input)
+        check_values_fit(choice, doc, spec, req.options, req.input,
+                         getattr(what, "dtype", None))
     labels = choice.is_labels
 
     def write(vol, path):
@@ -360,7 +361,19 @@ def _write_exports(req: WarpFiles, warp, how, *, by_slabs: bool) -> dict:
                          blocks=blocks)
 
 
-def check_values_fit(choice, doc, spec, options: WarpOptions, name) -> None:
+def _not_a_label(value: float, dtype) -> str | None:
+    """Why ``value`` cannot be a label id of a map of ``dtype`` (the background's), or None."""
+    if not float(value).is_integer():
+        return "is not a label id (an integer): a label map's background is one of its labels"
+    import numpy as np
+
+    dtype = np.dtype(dtype) if dtype is not None else np.dtype(np.float64)
+    if dtype.kind in "iu" and not np.iinfo(dtype).min <= value <= np.iinfo(dtype).max:
+        return (f"does not fit the map's {dtype.name} ids (labels keep the map's own type)")
+    return None
+
+
+def check_values_fit(choice, doc, spec, options: WarpOptions, name, dtype=None) -> None:
     """What a warp as labels, or as intensities, cannot have: usage or spec errors.
 
     Found once the values are chosen (the rule reads the samples), before
@@ -386,12 +399,17 @@ def check_values_fit(choice, doc, spec, options: WarpOptions, name) -> None:
 
         if options.dtype is not None:
             raise clash(f"{way} in the map's own integer type: --dtype does not apply")
-        if options.background is not None:
-            raise clash(f"{way} with their most frequent border label as their background: "
-                        "--background-value does not apply")
-        if spec.background is not None:
-            raise doc.error(("background",), out(f"does not apply: {way} with their most "
-                                                 "frequent border label as their background"))
+        for value, given in ((options.background, "--background-value"),
+                             (spec.background, "background")):
+            if value is None:
+                continue
+            why = _not_a_label(value, dtype)
+            if why is None:
+                continue
+            what = f"{way}: {given} {value:g} {why}"
+            if given == "background":
+                raise doc.error(("background",), out(what))
+            raise BadUsage(out(what))
         c = spec.capture
         if c.placement != "uniform" and "placement" in spec.capture_given:
             raise doc.error(("capture", "placement"), out(
@@ -417,4 +435,5 @@ def labels_json(report: dict) -> dict:
     return {"labels": [{"label": int(L), **{k: r[k] for k in keys}}
                        for L, r in report["labels"].items()],
             "vanished": [int(L) for L in report["vanished"]],
-            "preserved": [int(L) for L in report["preserved"]]}
+            "preserved": [int(L) for L in report["preserved"]],
+            "background": int(report["background"])}

@@ -80,9 +80,6 @@ class WarpOptions:
                            "--values intensity")
         if self.values == "labels" and self.dtype is not None:
             raise BadUsage("labels keep the label map's own integer type (no --dtype)")
-        if self.values == "labels" and self.background is not None:
-            raise BadUsage("--background-value does not apply to a label map (its "
-                           "background is its most frequent border label)")
 
     @property
     def output_grid(self) -> str | None:
@@ -500,8 +497,7 @@ def prepare_label_warp(vol: Volume | Header, doc, spec, options: WarpOptions, na
     grid = grid_of(spec, None, options.output_grid)
     try:
         cap, scene, frames = prepare_labels(vol, doc, spec, method=options.pushforward,
-                                            evaluator=options.evaluator,
-                                            background=options.background, source=name,
+                                            evaluator=options.evaluator, source=name,
                                             allow_growth=options.allow_growth, grid=grid[0])
     except OutOfMemoryError as exc:  # the target this input and spec ask for
         raise OutOfMemoryError(f"{name}: {exc}") from None
@@ -509,13 +505,25 @@ def prepare_label_warp(vol: Volume | Header, doc, spec, options: WarpOptions, na
     return cap, scene, frames, grid
 
 
-def background_label(samples) -> int:
-    """A label map's background (:func:`~volwarp_cli.border.border_label`), said at -v."""
+def background_label(samples, given: float | None = None) -> int:
+    """A label map's background label, said at -v.
+
+    ``given`` (checked by :func:`.request.check_values_fit`), else the most
+    frequent on its border (:func:`~volwarp_cli.border.border_label`).
+    """
+    if given is not None:
+        log.info("labels: background label %d (given)", int(given))
+        return int(given)
     from ..border import border_label
 
     label = border_label(samples)
     log.info("labels: background label %d (the most frequent on the map's border)", label)
     return label
+
+
+def given_background(spec, options: WarpOptions) -> float | None:
+    """The background the command line or the spec gives (the option first), or None."""
+    return options.background if options.background is not None else spec.background
 
 
 class Deformation(LatticeMoves):
@@ -560,8 +568,9 @@ class LabelMapWarp(LatticeMoves):
         self.preserve = options.preserve
         self.cap, self.scene, self.frames, (self.grid, self.grid_why) = prepare_label_warp(
             vol, doc, spec, options, name)
-        #: the label where nothing lands: the most frequent on the map's border
-        self.background = background_label(vol.data)
+        #: the label where nothing lands: the given one, else the most frequent on the
+        #: map's border
+        self.background = background_label(vol.data, given_background(spec, options))
 
 
     def summary(self) -> dict:
