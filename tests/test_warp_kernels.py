@@ -39,13 +39,14 @@ def random_offsets(shape_zyx, rng, amplitude=0.6):
     return u
 
 
-def grown_box(lo, hi, jac, det, near_lo, near_hi):
+def grown_box(lo, hi, jac, det, near_lo, near_hi, stats=None):
     """A box of less than GROW_BELOW of its voxel's image volume ``det``, grown to it.
 
     Each side from the face centres' box towards the 8 corners' box (side: the sum of
     |d component / d axis|), one fraction k for the three: the root of the volume's
     tangent at 0, then two Newton steps (the volume then within 0.1% over the share,
-    checked here), about the box's middle, within [near_lo, near_hi].
+    checked here), about the box's middle, within [near_lo, near_hi] (``stats["clamped"]``
+    counts the boxes that bound cut).
     """
     side = hi - lo
     more = np.maximum(np.abs(jac).sum(axis=0) - side, 0.0)
@@ -59,10 +60,13 @@ def grown_box(lo, hi, jac, det, near_lo, near_hi):
                                         + a[0] * a[1] * more[2])
         assert (1 - 1e-12) * want <= np.prod(side + k * more) <= 1.001 * want
     mid, grown = 0.5 * (lo + hi), side + k * more
+    if stats is not None and (np.any(mid - 0.5 * grown < near_lo)
+                              or np.any(mid + 0.5 * grown > near_hi)):
+        stats["clamped"] = stats.get("clamped", 0) + 1
     return np.maximum(mid - 0.5 * grown, near_lo), np.minimum(mid + 0.5 * grown, near_hi)
 
 
-def brute_force_box(u, values, off, scale, tshape_zyx, vmax):
+def brute_force_box(u, values, off, scale, tshape_zyx, vmax, stats=None):
     """Weights and weighted values of the box pushforward, straight from the definition."""
     w = np.zeros(tshape_zyx)
     v = np.zeros(tshape_zyx)
@@ -93,7 +97,7 @@ def brute_force_box(u, values, off, scale, tshape_zyx, vmax):
                 if np.prod(hi - lo) < GROW_BELOW * det:  # a thin box grows
                     offs = [U] + list(nb.values())
                     lo, hi = grown_box(lo, hi, jac, det, base + np.min(offs, axis=0) - 0.5 * s,
-                                       base + np.max(offs, axis=0) + 0.5 * s)
+                                       base + np.max(offs, axis=0) + 0.5 * s, stats)
                 mass = det / np.prod(hi - lo)
                 val = float(values[g, f, e]) / vmax
                 for z in range(tshape_zyx[0]):
@@ -155,6 +159,49 @@ def test_thin_boxes_of_an_oblique_rotation_grow_as_defined():
     pushforward.scatter(u, values, off, scale, Box.from_xyz((0, 0, 0), (dx, dy, dz)), 1, vmax,
                         "box", acc)
     w, v = brute_force_box(u, values, off, scale, tshape, vmax)
+    assert np.abs(acc[..., 0] / QUANTUM - w).max() < 1e-9
+    assert np.abs(acc[..., 1] / QUANTUM - v).max() < 1e-9
+
+
+def rough_rotated_offsets(seed, shape_zyx=(6, 7, 8)):
+    """A smooth random field (cubic zoom of n^3 normal offsets) plus an oblique rotation."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    n, amplitude = int(rng.integers(3, 7)), rng.uniform(0.5, 4)
+    u = np.zeros((3,) + tuple(m + 2 for m in shape_zyx))
+    coarse = rng.normal(0, amplitude, (3, n, n, n))
+    for c in range(3):
+        zoomed = ndimage.zoom(coarse[c], [(m + 2) / n for m in shape_zyx], order=3)
+        u[c] = zoomed[:shape_zyx[0] + 2, :shape_zyx[1] + 2, :shape_zyx[2] + 2]
+    rot = Rotation.from_euler("xz", rng.uniform(20, 70, 2), degrees=True).as_matrix()
+    g = np.stack(np.meshgrid(*[np.arange(-1, m + 1) for m in shape_zyx[::-1]], indexing="ij"),
+                 -1).astype(float)
+    u += np.moveaxis(g @ rot.T - g, -1, 0).transpose(0, 3, 2, 1)
+    return u.astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", [9, 17, 178])
+def test_a_grown_box_is_clamped_to_its_neighbours_reach_as_defined(seed):
+    """Where a thin box's growth would pass its voxel's and neighbours' offsets widened by
+    the half voxel (the reach bounds blocks and threads are planned by), it stops there:
+    the kernel against the definition on fields chosen so that the clamp acts (no test
+    reached it before: a kernel built without it passed the suite)."""
+    u = rough_rotated_offsets(seed)
+    dz, dy, dx = 6, 7, 8
+    values = np.random.default_rng(seed).uniform(-3, 5, (dz, dy, dx)).astype(np.float32)
+    g = np.stack(np.meshgrid(np.arange(dx), np.arange(dy), np.arange(dz), indexing="ij"), -1)
+    pos = g.transpose(2, 1, 0, 3) + np.moveaxis(u[:, 1:-1, 1:-1, 1:-1], 0, -1)
+    first = np.floor(pos.min(axis=(0, 1, 2))) - 3
+    off = tuple(float(-v) for v in first)
+    tshape = tuple(int(v) for v in (np.ceil(pos.max(axis=(0, 1, 2))) - first + 4)[::-1])
+    vmax = float(np.abs(values).max())
+    acc = np.zeros(tshape + (2,), np.int64)
+    pushforward.scatter(u, values, off, (1.0, 1.0, 1.0), Box.from_xyz((0, 0, 0), (dx, dy, dz)),
+                        1, vmax, "box", acc)
+    stats = {}
+    w, v = brute_force_box(u, values, off, (1.0, 1.0, 1.0), tshape, vmax, stats)
+    assert stats.get("clamped", 0) >= 1  # (the case reaches the clamp)
     assert np.abs(acc[..., 0] / QUANTUM - w).max() < 1e-9
     assert np.abs(acc[..., 1] / QUANTUM - v).max() < 1e-9
 
