@@ -35,6 +35,8 @@ class RunFiles:
     (:func:`stop_if_dry_run`); ``said``: the warnings a run says once;
     ``ends``: what the run removes when it ends (:func:`at_run_end`); ``copies``:
     its inputs' scratch copies (:mod:`volwarp_cli.io.inflated`), by file;
+    ``decided``: choices the run makes once and must keep (an OME-Zarr output's
+    staging, weighed before its blocks run and taken when it is opened);
     ``folder``: where the run's relative names inside files are taken from
     (an elastix file's initial transform: where elastix ran), None for the
     process's folder (a batch's dry run of a step stands in for the step,
@@ -52,6 +54,7 @@ class RunFiles:
     said: set = field(default_factory=set)
     ends: list = field(default_factory=list)
     copies: dict = field(default_factory=dict)
+    decided: dict = field(default_factory=dict)
     folder: str | None = None
 
 

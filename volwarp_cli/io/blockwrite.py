@@ -618,11 +618,11 @@ def zarr_staged(path, shape_zyx, dtype, version: str, block, direction=None) -> 
     in-memory write would not fit either: it writes the same shards) or the
     samples do not fit the disk beside the output. ``direction``: the grid's,
     whose store may be reindexed (:func:`.omezarr.reindex_axes`): its write
-    units are the store's.
+    units are the store's. The run decides once per output and block
+    (``RunFiles.decided``, :mod:`volwarp_cli.runscope`): the blocks' memory
+    is weighed by the decision before the output is opened.
     """
-    import shutil
-
-    from ..memory import memory_limit
+    from ..runscope import run_files
     from . import omezarr
 
     if block is None:
@@ -635,13 +635,27 @@ def zarr_staged(path, shape_zyx, dtype, version: str, block, direction=None) -> 
     standard = omezarr.store_layout(shape, version, None)
     if block_layout(shape, version, block) == standard:
         return False
-    if staged_commit_bytes(shape, dtype, version) > memory_limit():
+    key = ("zarr staged", os.path.abspath(path), shape, np.dtype(dtype).str, version,
+           tuple(int(b) for b in block))
+    decided = run_files().decided
+    if key not in decided:
+        decided[key] = _stage_fits(path, shape, dtype, version)
+    return decided[key]
+
+
+def _stage_fits(path, shape_zyx, dtype, version: str) -> bool:
+    """Whether a staged store's commit fits the memory budget and its scratch file the disk."""
+    import shutil
+
+    from ..memory import memory_limit
+
+    if staged_commit_bytes(shape_zyx, dtype, version) > memory_limit():
         return False
     try:
         free = shutil.disk_usage(Path(path).resolve().parent).free
     except OSError:
         return False
-    return math.prod(shape) * np.dtype(dtype).itemsize <= free
+    return math.prod(shape_zyx) * np.dtype(dtype).itemsize <= free
 
 
 def staged_commit_bytes(shape_zyx, dtype, version: str) -> int:
