@@ -55,6 +55,10 @@ class RunFiles:
     ends: list = field(default_factory=list)
     copies: dict = field(default_factory=dict)
     decided: dict = field(default_factory=dict)
+    #: the numbered output patterns (``--frames-to``, a morph's frames) and their options
+    patterns: list = field(default_factory=list)
+    #: the outputs renamed into place, in order (``io.atomic.outputs_together``)
+    committed: list = field(default_factory=list)
     folder: str | None = None
 
 

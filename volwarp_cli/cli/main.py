@@ -110,6 +110,9 @@ class VolwarpGroup(click.Group):
             with _outputs_of(args):
                 result = super().main(args=args, prog_name=prog_name, standalone_mode=False,
                                       **extra)
+            from ..io.inputs import say_earlier_pattern_files
+
+            say_earlier_pattern_files()  # (an earlier run's frames beyond this run's)
             code = result if isinstance(result, int) else 0
             cancel_deferred_stop()  # the work is over: a deferred stop is reported below
         except BaseException as exc:

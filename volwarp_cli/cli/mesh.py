@@ -170,7 +170,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
     """
     from .. import execute
     from ..io.atomic import check_output_path
-    from ..io.inputs import refuse_pattern_over_input
+    from ..io.inputs import note_pattern, refuse_pattern_over_input
     from ..surface.mesh_io import check_mesh_output
     from ..surface.ops import Cleanup
     from ..surface.run import ALL_LABELS, NONZERO_LABELS, Level, MeshFile, MeshOperation
@@ -204,6 +204,7 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         check_mesh_output(_label_pattern(output) if labels else output, option="-o")
         if labels:  # every name the pattern can give, against the inputs
             refuse_pattern_over_input(output, option="-o")
+            note_pattern(output, "-o")
     if render is not None:
         for path in render_files(render, turntable):
             check_output_path(path, option="--render")

@@ -70,9 +70,10 @@ def check_pattern(pattern: str) -> None:
         volume_format(a)
     except VolwarpError as exc:
         raise click.BadParameter(str(exc), param_hint="'--frames-to'") from None
-    from ..io.inputs import refuse_pattern_over_input
+    from ..io.inputs import note_pattern, refuse_pattern_over_input
 
     refuse_pattern_over_input(pattern, option="--frames-to")  # any frame's name an input's
+    note_pattern(pattern, "--frames-to")
     check_output_path(a, option="--frames-to")
 
 

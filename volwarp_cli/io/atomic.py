@@ -23,6 +23,7 @@ import threading
 from pathlib import Path
 
 from ..errors import BadUsage, VolwarpError
+from ..runscope import run_files
 from ..signals import Interrupted, blocked, check_stop, install, temporaries
 from .mapped import check_unchanged, sync_temporaries
 
@@ -50,31 +51,35 @@ def outputs_together():
     renames run in the order the outputs were written, with SIGINT and SIGTERM
     held back, after the last checks (a stop asked meanwhile, an input that
     changed); on any error or stop every held temporary is removed and every
-    existing output is left as it was. Nested, the outermost one commits.
+    existing output is left as it was. Nested, the outermost one commits. The
+    paths renamed into place are the run's ``committed``
+    (:mod:`volwarp_cli.runscope`).
     """
     global _held
     if _held is not None:
         yield
         return
     _held = held = []
+    committed = run_files().committed
     try:
         yield
         with blocked():
             check_stop()
             check_unchanged()
             while held:
-                rename, tmps = held[0]
+                rename, tmps, path = held[0]
                 rename()
+                committed.append(str(path))
                 held.pop(0)  # (only once renamed: a failed one's temporary is removed below)
                 for tmp in tmps:
                     _live_temporaries.discard(tmp)
     except BaseException:
-        for _, tmps in held:
+        for _, tmps, _ in held:
             for tmp in tmps:
                 _remove_temporary(tmp)
         raise
     finally:
-        for _, tmps in held:
+        for _, tmps, _ in held:
             for tmp in tmps:
                 _live_temporaries.discard(tmp)
         _held = None
@@ -104,7 +109,7 @@ def _hold(rename, tmps, path: Path) -> bool:
     with _held_lock:
         if _held is None or os.path.realpath(path.parent) in _scratch_folders:
             return False
-        _held.append((rename, list(tmps)))
+        _held.append((rename, list(tmps), path))
         return True
 
 

@@ -239,6 +239,67 @@ def _inside(path: str, folder: str) -> bool:
         return False
 
 
+def pattern_regex(name: str, value: str) -> str:
+    """A regular expression of the names ``str.format`` pattern ``name`` gives, each field ``value``."""
+    import re
+    import string
+
+    return "".join(re.escape(text) + ("" if field is None else f"({value})")
+                   for text, field, _, _ in string.Formatter().parse(name))
+
+
+#: what a numbered pattern's field gives: an integer or a decimal number ({i}, {t:.2f})
+NUMBER = r"[-+ ]*[0-9][0-9.eE+-]*"
+
+
+def note_pattern(pattern: str, option: str) -> None:
+    """Record that this run writes the numbered outputs of ``pattern`` (said after the commit)."""
+    run_files().patterns.append((str(pattern), option))
+
+
+def earlier_pattern_files(pattern: str, written) -> list[str]:
+    """Files of ``pattern``'s folder it could name that are not among ``written`` (sorted).
+
+    An earlier run's frames beyond this run's count (8 frames, then 4): a
+    movie or a glob of the pattern would mix them with this run's. None for
+    a pattern with fields in its folder.
+    """
+    import re
+    import string
+
+    folder, name = os.path.split(pattern)
+    if any(f is not None for _, f, _, _ in string.Formatter().parse(folder)):
+        return []
+    regex = pattern_regex(name, NUMBER)
+    mine = {os.path.realpath(p) for p in written}
+    try:
+        entries = sorted(os.listdir(folder or "."))
+    except OSError:
+        return []
+    return [e for e in entries if re.fullmatch(regex, e)
+            and os.path.realpath(os.path.join(folder or ".", e)) not in mine]
+
+
+def say_earlier_pattern_files() -> None:
+    """Warn, once the run's outputs are in place, of each pattern's files this run did not write.
+
+    Not removed (they are files the user may want): said, with the way out.
+    """
+    files = run_files()
+    for pattern, option in dict.fromkeys(files.patterns):
+        left = earlier_pattern_files(pattern, files.committed)
+        if not left:
+            continue
+        from ..progress import log
+
+        shown = ", ".join(left[:4]) + (f", ... ({len(left)} files)" if len(left) > 4 else "")
+        log.warning("warning: %s %s: %s match%s the pattern but %s not this run's (an "
+                    "earlier run's): remove %s, or give each run a folder of its own, so that "
+                    "a glob of the pattern does not mix the runs", option, pattern, shown,
+                    "es" if len(left) == 1 else "", "is" if len(left) == 1 else "are",
+                    "it" if len(left) == 1 else "them")
+
+
 def refuse_pattern_over_input(pattern: str, *, option: str | None = None,
                               inputs: list[str | os.PathLike] | None = None,
                               numbers: bool = True) -> None:
@@ -262,9 +323,7 @@ def refuse_pattern_over_input(pattern: str, *, option: str | None = None,
         base, name = "", pattern  # fields in the folder too: match whole paths
     else:
         base = os.path.realpath(folder or ".")
-    value = r"[-+ ]*\d+" if numbers else r"[^/]+"
-    regex = "".join(re.escape(text) + ("" if field is None else f"({value})")
-                    for text, field, _, _ in string.Formatter().parse(name))
+    regex = pattern_regex(name, r"[-+ ]*\d+" if numbers else r"[^/]+")
     for given in inputs:
         for file in _expanded(given):
             real = _real(file)

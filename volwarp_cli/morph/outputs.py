@@ -23,6 +23,9 @@ def expand(pattern: str, times: list[float], option: str) -> list[str]:
     if len(set(names)) != len(names):
         raise BadUsage(f"{option}: {pattern!r} gives the same file name to several frames; "
                        "put {i} (or {t}) in it")
+    from ..io.inputs import note_pattern
+
+    note_pattern(pattern, option)
     return names
 
 
