@@ -69,7 +69,8 @@ class ValuesChoice:
     ``"looks like a label map: 5 labels"``, ``"not a label map"``, ...;
     ``labels``: the distinct values counted (None when not counted);
     ``warning``: a line to say once (labels asked for on a volume that
-    does not look like a label map), or None; ``ids``: the distinct values
+    does not look like a label map; a sparse volume of a few ids taken for
+    intensities, :func:`sparse_ids_warning`), or None; ``ids``: the distinct values
     themselves where they were counted (an output type must hold them:
     :func:`~volwarp_cli.labelmap.refuse_merged_ids`).
     """
@@ -95,21 +96,47 @@ class ValuesChoice:
         return f"values: {self.values} ({self.why})"
 
 
-def label_scan(source, *, box_voxels: int = SCAN_BOX_VOXELS) -> tuple[bool, np.ndarray | None]:
-    """``(looks like a label map, its distinct values)`` of ``source``, read once box by box.
+def label_scan(source, *, box_voxels: int = SCAN_BOX_VOXELS):
+    """``(looks like a label map, its distinct values, their counts)`` of ``source``, read once.
 
     The rule is :func:`~volwarp_cli.labelmap.looks_like_labels` (by boxes:
     :func:`~volwarp_cli.labelmap.scan_labels`, the same answer in memory as
     by blocks). Samples that cannot be ids (floats with a fraction, a NaN;
-    other types) are no label map: ``(False, None)``, read no further than
+    other types) are no label map: ``(False, None, None)``, read no further than
     the first box that shows it.
     """
     from ..labelmap import scan_labels
 
     if np.dtype(source.dtype).kind not in "iuf":
-        return False, None
-    looks, values, _ = scan_labels(source, box_voxels=box_voxels)
-    return looks, values
+        return False, None, None
+    return scan_labels(source, box_voxels=box_voxels)
+
+
+#: the share of the voxels the most frequent value holds above which the rule's answer
+#: "intensities" rests on too few voxels to be sure of (:func:`sparse_ids_warning`)
+SPARSE_SHARE = 0.99
+
+
+def sparse_ids_warning(name: str, values, counts) -> str | None:
+    """A warning when the rule took a sparse volume of a few integer values for intensities.
+
+    Landmarks or points, one voxel each with ids 1..20 in zeros, have no
+    regions for the rule to see: it answers intensities, and an intensity
+    warp or resampling blends the ids away (a review: 20 landmarks became
+    values 0..7 over 103 voxels, 6 ids gone, nothing said). Said, not
+    decided: a sparse intensity image is possible too.
+    """
+    if values is None or counts is None or len(values) < 3:
+        return None
+    total = int(np.sum(counts))
+    top = int(np.max(counts))
+    if total == 0 or top < SPARSE_SHARE * total:
+        return None
+    background = values[int(np.argmax(counts))]
+    return (f"warning: {name}: its {total - top} voxels of {len(values) - 1} integer values "
+            f"besides the background {background:g} are taken for intensities (too few "
+            "regions for the label rule to tell landmarks or points from a sparse image); if "
+            "they are ids, give --values labels")
 
 
 def choose_values(source, given: str | None = None, *, name: str = "the input",
@@ -133,13 +160,14 @@ def choose_values(source, given: str | None = None, *, name: str = "the input",
     kind = np.dtype(source.dtype).kind
     if given == "labels" and kind not in "iuf":  # (the label warp says why it cannot)
         return ValuesChoice("labels", "given")
-    looks, ids = label_scan(source)
+    looks, ids, counts = label_scan(source)
     n = None if ids is None else int(len(ids))
     if given == "labels":
         if n is None:
             raise not_ids(name, source.dtype)
         warning = None
-        if not looks:
+        # (not when the rule could not tell: a sparse map of a few ids, landmarks)
+        if not looks and sparse_ids_warning(name, ids, counts) is None:
             warning = (f"warning: {name} does not look like a label map ({n} distinct "
                        f"value{'s' if n != 1 else ''}"
                        f"{'' if n < 2 else ': the label rule takes it for intensities'}): "
@@ -151,7 +179,8 @@ def choose_values(source, given: str | None = None, *, name: str = "the input",
     segmentation = segmentation_of(meta)
     if segmentation and n is not None:
         return ValuesChoice("labels", f"read from {segmentation}: {n} labels", n, ids=ids)
-    return ValuesChoice("intensity", "not a label map", n)
+    return ValuesChoice("intensity", "not a label map", n,
+                        sparse_ids_warning(name, ids, counts))
 
 
 def output_grid(option: str | None, spec_grid: str | None,
