@@ -74,7 +74,7 @@ def test_a_cast_written_by_slabs_is_the_whole_s_cast(tmp_path, monkeypatch):
                 for a in sorted(whole.parent.iterdir()):
                     assert a.read_bytes() == (sliced.parent / a.name).read_bytes(), (dt, order, a)
     data[6, 4, 5] = np.nan  # (found in the last slab: refused, nothing left)
-    with pytest.raises(VolwarpError, match="contains NaN"):
+    with pytest.raises(VolwarpError, match="samples that are NaN cannot be written as int16"):
         write_volume(Volume(data), tmp_path / "n.nrrd", dtype="int16")
     assert not (tmp_path / "n.nrrd").exists()
     big = rng.integers(0, 50, 9 << 20, dtype=np.uint8)  # (over BLOCKS_FROM: by blocks)
@@ -110,6 +110,34 @@ def test_clipping_is_said_once_a_run_with_what_lay_beyond(caplog):
         cast_samples(ct, "uint8", what="a")
         cast_samples(ct, "uint8", what="b")
     assert [r.getMessage()[:12] for r in caplog.records] == ["warning: a: ", "warning: b: "]
+
+
+def test_a_field_of_fractions_rounded_to_a_few_integers_is_said(caplog, run, tmp_path):
+    """convert --dtype uint8 of a 0..1 density made a binary mask without a word (a
+    user-day review; sweep scales its fields first): a cast whose extremes are fewer than
+    FEW_LEVELS apart and whose samples have fractions says so, once a run; whole numbers
+    in floats, and a wide field with fractions (a CT as float), say nothing."""
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.runscope import run_scope
+    from volwarp_cli.samples import FEW_LEVELS
+    from volwarp_cli.volume import Volume
+
+    density = np.linspace(0, 1, 24, dtype=np.float32).reshape(2, 3, 4)
+    with caplog.at_level("WARNING", logger="volwarp"), run_scope():
+        assert set(cast_samples(density, "uint8", what="d.nrrd").ravel()) == {0, 1}
+        cast_samples(density, "uint8", what="d.nrrd")  # (the next block: said already)
+        cast_samples(np.array([0.0, 3.0, 7.0]), "uint8", what="whole.nrrd")
+        cast_samples(np.array([-1000.3, 2000.6]), "int16", what="ct.nrrd")
+        cast_samples(np.array([0.5, FEW_LEVELS + 0.25]), "uint8", what="wide.nrrd")
+    assert [r.getMessage() for r in caplog.records] == [
+        "warning: d.nrrd: samples with fractions become 2 integer values (0 to 1) as uint8: "
+        "their fractions are rounded away (a 0..1 field becomes 0 and 1); keep a float type, "
+        "or scale them first"]
+    src = tmp_path / "dens.nrrd"
+    write_volume(Volume(density), src)
+    res = run("convert", src, "-o", tmp_path / "d8.nrrd", "--dtype", "uint8")
+    assert res.code == 0 and "fractions are rounded away" in res.stderr
+    assert read_volume(tmp_path / "d8.nrrd").data.max() == 1
 
 
 def test_float64_beyond_float32_is_refused_not_made_infinite():

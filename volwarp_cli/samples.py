@@ -72,7 +72,11 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
             out = np.rint(data)
             low, high = (float(out.min()), float(out.max())) if out.size else (0.0, 0.0)
             if math.isnan(low) or math.isnan(high):  # (min and max pass NaN on)
-                raise VolwarpError(f"{what} contains NaN, which {dt.name} cannot hold")
+                raise VolwarpError(f"{what}: samples that are NaN cannot be written as "
+                                   f"{dt.name} (an integer type holds no NaN): keep a float "
+                                   "type, or replace the NaN first")
+            if high - low < FEW_LEVELS:
+                _say_rounded_away(what, dt, data, out, low, high)
             if low >= info.min and high <= info.max:  # (Python's float-int order: exact)
                 return out.astype(dt)
             _say_clipped(what, dt, low, high)
@@ -107,6 +111,36 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
                                "or scale them first")
         return out
     return data.astype(dt)
+
+
+#: fewer integer levels than this between a float cast's extremes: its fractions may be
+#: most of what it holds (:func:`_say_rounded_away`)
+FEW_LEVELS = 16
+
+
+def _say_rounded_away(what: str, dt: np.dtype, data, rounded, low, high) -> None:
+    """Warn that a float field with fractions becomes a few integers in ``dt`` (once a run).
+
+    A 0..1 density or opacity cast to uint8 comes out 0 and 1: an antialiased
+    field made a binary mask without a word (a review of convert and morph;
+    sweep scales its fields to the type first, and says so).
+    """
+    if np.array_equal(data, rounded):
+        return
+    from .progress import log
+    from .runscope import in_run, run_files
+
+    key = ("rounded away", dt.name)
+    if in_run():
+        said = run_files().said
+        if key in said:
+            return
+        said.add(key)
+    levels = int(high - low) + 1
+    log.warning("warning: %s: samples with fractions become %d integer value%s (%g to %g) "
+                "as %s: their fractions are rounded away (a 0..1 field becomes 0 and 1); "
+                "keep a float type, or scale them first", what, levels,
+                "" if levels == 1 else "s", low, high, dt.name, extra={"once": key})
 
 
 def _say_clipped(what: str, dt: np.dtype, low, high) -> None:
