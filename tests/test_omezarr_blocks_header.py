@@ -67,5 +67,9 @@ def test_the_output_by_blocks_records_the_inputs_frame_as_in_memory(run, inputs,
     group = "zarr.json" if version == "0.5" else ".zattrs"
     assert (blk / group).read_bytes() == (mem / group).read_bytes()
     attrs = json.loads((mem / group).read_text())
-    assert attrs.get("attributes", attrs)["volwarp"]["file_space"] == RAS
+    # (the store's own frame: its numbers are LPS; the input's RAS made info say "the
+    # file's own: right-anterior-superior" of the store)
+    assert attrs.get("attributes", attrs)["volwarp"]["file_space"] == "left-posterior-superior"
+    res = run("info", mem, "--json")
+    assert res.code == 0 and json.loads(res.stdout)["file_space"] == "left-posterior-superior"
     np.testing.assert_array_equal(read_volume(blk).data, read_volume(mem).data)

@@ -365,7 +365,9 @@ def volwarp_attribute(vol: Volume | Header, source: Volume | Header, method: str
         "origin": [float(v) + 0.0 for v in vol.origin],
         "direction": [[float(v) + 0.0 for v in row] for row in vol.direction],
         "space": vol.space,
-        "file_space": vol.file_space,
+        # (the store's own numbers are LPS, whatever frame the volume was read from: a
+        # NIfTI's RAS made info say "the file's own: right-anterior-superior" of a store)
+        "file_space": vol.space,
         "complete": True,
         "meta": {str(k): str(v) for k, v in sorted(vol.meta.items())},
     }
