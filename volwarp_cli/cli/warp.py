@@ -79,8 +79,8 @@ from .warp_options import (
               help="Write the resampling displacement field y -> F^-1(y) - y (LPS mm) on the "
                    "output grid (see --grid), as ITK, ANTs and Slicer resample with (.nii.gz "
                    "or .nrrd, gzip with --compress); NaN where the map folds or has no "
-                   "inverse. With --chunked: written by slabs, as uncompressed .nrrd only "
-                   "(the same bytes).")
+                   "inverse (ITK's NIfTI reader takes NaN for 0: .nrrd keeps it). With "
+                   "--chunked: written by slabs, as uncompressed .nrrd only (the same bytes).")
 @click.option("--forward-field-to", default=None, metavar="FIELD",
               help="Write the forward (modelling) field x -> F(x) - x (LPS mm) on the input "
                    "grid (.nii.gz or .nrrd, gzip with --compress; with --chunked: by slabs, "

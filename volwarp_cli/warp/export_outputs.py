@@ -190,6 +190,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
     """
     from .export import (
         ForwardMap,
+        field_format,
         field_stats_ok,
         jacobian_stats,
         report_outside,
@@ -233,6 +234,14 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
         if counts["folded"]:
             log.warning("%s: the map folds: %d voxels have no single inverse (NaN)", path,
                         counts["folded"])
+        nan = counts["folded"] + counts["no_inverse"]
+        if nan and field_format(path) != "nrrd":
+            # (SimpleITK's reader gives a NIfTI's NaN vectors as 0: no move, where there is
+            # no inverse; a review measured the resampled scan 7.07 off against 2.99 with
+            # the .nrrd field)
+            log.warning("warning: %s: %d voxels have no inverse (NaN vectors), which ITK's "
+                        "NIfTI reader takes for 0, no move: write .nrrd to keep them NaN",
+                        path, nan)
         if blocks is None:
             with timed(f"write {path}"):
                 write_field(field, out_grid, path, meta, "resampling",
