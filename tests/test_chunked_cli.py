@@ -308,3 +308,24 @@ def test_ome_zarr_by_blocks_is_the_in_memory_store_byte_for_byte(run, tmp_path, 
     assert res.code == 0, res.stderr
     assert _tree(own) == _tree(mem)
     assert not [p for p in tmp_path.iterdir() if "scratch" in p.name]
+
+
+@pytest.mark.parametrize("version", ["0.5", "0.4"])
+def test_a_distance_by_passes_to_a_store_keeps_its_lines_whole(run, tmp_path, version):
+    """A block made of whole shards (or one covering an axis longer than a shard) made the
+    store's shards the last pass's blocks, cutting its lines along z at a shard's edge:
+    the planes beyond 256 came out inf, exit 0 (a review). The caller's blocks are the
+    output's grid: the in-memory store, file for file."""
+    z, y, x = np.mgrid[:300, :20, :24].astype(np.float32)
+    blob = ((x - 12) ** 2 + (y - 10) ** 2) / 40 + ((z - 150) / 120) ** 2 < 1
+    src = tmp_path / "in.nrrd"
+    write_volume(Volume(blob.astype(np.uint8) * 100), src)
+    common = ["--iso", "50", "--surface", "voxel", "--ome-zarr-version", version]
+    mem = tmp_path / "m.ome.zarr"
+    assert run("distance", src, "-o", mem, *common).code == 0
+    for block in ("256", "24,8,300"):
+        blk = tmp_path / f"b{block.replace(',', '_')}.ome.zarr"
+        res = run("distance", src, "-o", blk, *common, "--chunked", "--block", block)
+        assert res.code == 0, res.stderr
+        assert np.isfinite(read_volume(blk).data).all()
+        assert _tree(blk) == _tree(mem), block

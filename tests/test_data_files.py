@@ -117,6 +117,32 @@ def test_a_detached_output_replaces_only_its_own_earlier_data_file(run, data_dir
     np.testing.assert_array_equal(read_volume(out).data, read_volume(src).data)
 
 
+@pytest.mark.parametrize("name,raw,packed", [("o.nhdr", "o.raw", "o.raw.gz"),
+                                             ("o.mhd", "o.raw", "o.zraw")])
+def test_a_detached_output_rewritten_compressed_takes_its_old_data_file_along(
+        run, data_dir, tmp_path, name, raw, packed):
+    """-o o.nhdr, then with --compress: o.raw.gz replaced o.raw in the header, and o.raw
+    was left behind; the next uncompressed write of o.nhdr was then refused as if o.raw
+    were a stranger's (a user-day review). The earlier output's data file goes with the
+    commit; another header's, or an input, stays."""
+    src = data_dir / "ball_30_uint8.nrrd"
+    out = tmp_path / name
+    assert run("convert", src, "-o", out).code == 0
+    assert run("convert", src, "-o", out, "--compress").code == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([name, packed])
+    assert run("convert", src, "-o", out).code == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([name, raw])
+    np.testing.assert_array_equal(read_volume(out).data, read_volume(src).data)
+    # o.raw named by another header (o.nhdr beside o.mhd): kept, and o.mhd refused
+    other = tmp_path / ("o.mhd" if name == "o.nhdr" else "o.nhdr")
+    res = run("convert", src, "-o", other)
+    assert res.code == 1 and "not an earlier output's" in res.stderr
+    assert (tmp_path / raw).exists() and read_volume(out).data.shape == (30, 30, 30)
+    # the earlier data file is an input of the run: kept
+    res = run("convert", out, "-o", out.with_name("p" + name[1:]), "--compress")
+    assert res.code == 0 and (tmp_path / raw).exists()
+
+
 def _big_nrrd(path, n=192):
     rng = np.random.default_rng(1)
     data = rng.random((n, n, n), dtype=np.float32)

@@ -197,3 +197,40 @@ def test_the_environments_malloc_thresholds_are_what_a_write_leaves(tmp_path):
     out = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "o.ome.zarr")],
                          capture_output=True, text=True, check=True).stdout.split()
     assert out == ["False"]  # (without them: 32 MiB, from the arena)
+
+
+def test_a_staged_stores_commit_counts_its_unit_within_the_grid():
+    """A 256-sample shard over a 200-sample grid holds 200 planes: counted whole, the
+    commit's estimate was up to twice what was measured (a review: 213 MiB counted, 96 MiB
+    measured, for 200^3 float32), and stores fell back to blocks of their own."""
+    samples = 200 ** 3 * 4
+    need = blockwrite.staged_commit_bytes((200, 200, 200), np.float32, "0.5")
+    assert 3 * samples <= need < 4 * samples  # (the samples, zarr's frames and their join)
+    whole_unit = blockwrite.staged_commit_bytes((256, 256, 256), np.float32, "0.5")
+    assert need < 0.6 * whole_unit
+    assert need < omezarr.memory_bytes((200, 200, 200), np.float32, "0.5")  # (in memory)
+
+
+def test_staging_needs_the_disk_for_the_samples_and_the_store_of_every_staged_output(
+        tmp_path, monkeypatch):
+    """The scratch file stays while the commit writes the store, and a run's stores share
+    their disk: counted as the raw samples of one output alone, a warp failed on a full
+    disk after its blocks where one shard per block fits (a review)."""
+    import shutil
+    from collections import namedtuple
+
+    from volwarp_cli.runscope import run_scope
+
+    shape, block = (40, 64, 64), (8, 64, 64)
+    raw = 40 * 64 * 64 * 4
+    usage = namedtuple("usage", "total used free")
+    for free, expected in ((int(1.5 * raw), [False, False]), (int(2.5 * raw), [True, False]),
+                           (int(4.5 * raw), [True, True])):
+        monkeypatch.setattr(shutil, "disk_usage", lambda _, f=free: usage(f, 0, f))
+        with run_scope():
+            got = [blockwrite.zarr_staged(tmp_path / f"{n}.ome.zarr", shape, np.float32, "0.5",
+                                          block) for n in ("a", "b")]
+            # (decided once per output: asked again, the same answer, nothing counted twice)
+            again = blockwrite.zarr_staged(tmp_path / "a.ome.zarr", shape, np.float32, "0.5",
+                                           block)
+        assert got == expected and again == expected[0], (free / raw, got)

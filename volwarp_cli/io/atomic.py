@@ -277,13 +277,17 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None):
 
 
 @contextlib.contextmanager
-def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None):
+def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
+                   replaced=()):
     """Temporaries for several files that belong together, renamed onto them together.
 
     A detached header and its data file (``.nhdr`` + ``.raw``, ``.mhd`` +
     ``.raw``) must be both new or both old: the renames run with SIGINT and
     SIGTERM held back, in the order given (the data file first, so that a
     header never names data it does not describe), after the last checks.
+    ``replaced``: files of the earlier output these replace that no new file
+    takes the place of (its data file under another name), removed with the
+    renames.
     """
     paths = [check_output_path(p) for p in paths]
     if suffixes is None:
@@ -309,11 +313,17 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None)
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
             check_unchanged()  # an input mapped for these outputs changed: no rename
             pairs = list(zip(tmps, paths, strict=True))
-            held = _hold(lambda: [os.replace(tmp, path) for tmp, path in pairs], tmps,
-                         paths[-1])
-            if not held:
+
+            def rename():
                 for tmp, path in pairs:
                     os.replace(tmp, path)
+                for old in replaced:
+                    with contextlib.suppress(OSError):
+                        os.unlink(old)
+
+            held = _hold(rename, tmps, paths[-1])
+            if not held:
+                rename()
     except BaseException as exc:
         for tmp in tmps:
             with contextlib.suppress(OSError):

@@ -639,30 +639,48 @@ def zarr_staged(path, shape_zyx, dtype, version: str, block, direction=None) -> 
            tuple(int(b) for b in block))
     decided = run_files().decided
     if key not in decided:
-        decided[key] = _stage_fits(path, shape, dtype, version)
+        decided[key] = _stage_fits(path, shape, dtype, version, decided)
     return decided[key]
 
 
-def _stage_fits(path, shape_zyx, dtype, version: str) -> bool:
-    """Whether a staged store's commit fits the memory budget and its scratch file the disk."""
+def _stage_fits(path, shape_zyx, dtype, version: str, decided: dict) -> bool:
+    """Whether a staged store's commit fits the memory budget, and its scratch file the disk.
+
+    The disk holds the raw samples and, while the commit writes it, the
+    store (counted as large: zstd may gain nothing), beside what the run's
+    other staged stores on that disk take (``decided``): counted as the raw
+    samples alone, a 64 MiB warp failed on a 100 MiB disk after its blocks,
+    where one shard per block fits (a review).
+    """
     import shutil
 
     from ..memory import memory_limit
 
     if staged_commit_bytes(shape_zyx, dtype, version) > memory_limit():
         return False
+    folder = Path(path).resolve().parent
     try:
-        free = shutil.disk_usage(Path(path).resolve().parent).free
+        free = shutil.disk_usage(folder).free
+        disk = ("zarr staged disk", os.stat(folder).st_dev)
     except OSError:
         return False
-    return math.prod(shape_zyx) * np.dtype(dtype).itemsize <= free
+    need = 2 * math.prod(shape_zyx) * np.dtype(dtype).itemsize
+    if decided.get(disk, 0) + need > free:
+        return False
+    decided[disk] = decided.get(disk, 0) + need
+    return True
 
 
 def staged_commit_bytes(shape_zyx, dtype, version: str) -> int:
-    """The memory a staged store's commit holds: one write unit's samples and zarr's encoding."""
+    """The memory a staged store's commit holds: one write unit's samples and zarr's encoding.
+
+    The unit within the grid (a shard of 256 planes over a grid of 200 is
+    200 planes of samples): counted whole, it was up to twice what was
+    measured, and stores fell back to blocks of their own without need.
+    """
     from . import omezarr
 
-    unit = store_unit(shape_zyx, version)
+    unit = clip_block(store_unit(shape_zyx, version), shape_zyx)
     chunks, shards = omezarr.store_layout(shape_zyx, version, None)
     item = np.dtype(dtype).itemsize
     return math.prod(unit) * item + omezarr.write_bytes(unit, item, chunks, shards)
@@ -729,6 +747,11 @@ class _ZarrOutput(BlockOutput):
                   else block_layout(stored.shape, version, block))
         chunk, shard = layout
         grid = shard or chunk
+        if block is not None:
+            # the caller's blocks: each one whole write units in the in-memory layout, or
+            # one shard of its own (the units as the grid cut a distance's last pass, whole
+            # along z, at a shard's edge: 1,144,000 voxels were left inf, exit 0)
+            grid = clip_block(block, stored.shape)
         phase = (0, 0, 0)
         if staged:
             grid = clip_block(chunks_zyx, geometry.shape)

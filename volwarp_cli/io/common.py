@@ -285,14 +285,17 @@ def read_data_files(header: Path, files: list[Path], count: int, where: str, rea
 
 
 def write_with_header(path: Path, header: bytes, write_samples, *,
-                      data_path: Path | None = None, referenced=None) -> None:
+                      data_path: Path | None = None, referenced=None, siblings=()) -> None:
     """Write a header and its samples (``write_samples(fh)``), atomically.
 
     Both in one file ``path``, the samples after the header; or, with
     ``data_path``, a detached header ``path`` and its data file, renamed
     together (:func:`~volwarp_cli.io.atomic.atomic_outputs`) after
     :func:`check_data_output` (``referenced``: the data files an existing
-    header names).
+    header names). ``siblings``: the other names the writer gives this
+    header's data file (``x.raw.gz`` beside ``x.raw``): one the existing
+    header names is the earlier output's, removed with the commit (it was
+    left behind, and refused the next write of that name).
     """
     from .atomic import atomic_output, atomic_outputs
 
@@ -303,10 +306,36 @@ def write_with_header(path: Path, header: bytes, write_samples, *,
                 write_samples(fh)
         return
     check_data_output(data_path, path, referenced)
-    with atomic_outputs(data_path, path) as (tmp_data, tmp_header):
+    stale = _earlier_data_files(path, data_path, referenced, siblings)
+    with atomic_outputs(data_path, path, replaced=stale) as (tmp_data, tmp_header):
         with open(tmp_data, "wb") as fh:
             write_samples(fh)
         tmp_header.write_bytes(header)
+
+
+def _earlier_data_files(header_path: Path, data_path: Path, referenced, siblings) -> list:
+    """The ``siblings`` of ``data_path`` the existing header names (not inputs of the run)."""
+    from .atomic import check_output_path
+
+    if not siblings or not header_path.exists():
+        return []
+    try:
+        names = referenced(header_path)
+    except (OSError, VolwarpError):
+        return []
+    named = {os.path.realpath(header_path.parent / n) for n in names}
+    stale = []
+    for sibling in siblings:
+        sibling = Path(sibling)
+        if (sibling == data_path or not sibling.exists()
+                or os.path.realpath(sibling) not in named):
+            continue
+        try:
+            check_output_path(sibling)  # (an input of this run is never removed)
+        except VolwarpError:
+            continue
+        stale.append(sibling)
+    return stale
 
 
 def check_data_output(data_path: Path, header_path: Path, referenced) -> None:

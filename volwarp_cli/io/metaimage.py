@@ -647,4 +647,6 @@ def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = Fa
     header = metaimage_header(vol, dtype, byte_order=byte_order, data_file=name,
                               compressed_size=size)
     write_with_header(path, header, write, data_path=data_path,
-                      referenced=_referenced_data_files)
+                      referenced=_referenced_data_files,
+                      siblings=() if data_path is None else
+                      [path.with_suffix(".raw"), path.with_suffix(".zraw")])

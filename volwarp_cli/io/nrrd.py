@@ -803,5 +803,7 @@ def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
                          components=component_names)
     write_with_header(path, header, lambda fh: _write_payload(fh, data, encoding, level,
                                                               byte_order, cast, str(path)),
-                      data_path=data_path, referenced=_referenced_data_files)
+                      data_path=data_path, referenced=_referenced_data_files,
+                      siblings=() if data_path is None else
+                      [path.with_suffix(".raw"), path.with_suffix(".raw.gz")])
 
