@@ -217,6 +217,27 @@ def test_compress_goes_to_the_fields_and_is_refused_by_blocks(run, tmp_path):
         assert not out.exists() and not (tmp_path / name).exists()
 
 
+@pytest.mark.parametrize("chunked", [False, True])
+def test_the_writer_options_reach_the_fields_and_the_jacobian(run, tmp_path, chunked):
+    """--ome-zarr-version and --byte-order went to the warped volume only: a Jacobian store
+    was NGFF 0.5 whatever was asked (a review), the fields little-endian. They reach every
+    volume the command writes, in memory as by slabs; without -o they are taken when a
+    field or the Jacobian is written, and refused when no volume is."""
+    src, spec, pts, mesh = _inputs(tmp_path, OBLIQUE)
+    extra = ["--chunked"] if chunked else []
+    d = tmp_path / ("blk" if chunked else "mem")
+    d.mkdir()
+    res = run("warp", src, "--spec", spec, "--displacement-to", d / "disp.nrrd",
+              "--jacobian-to", d / "jac.ome.zarr", "--ome-zarr-version", "0.4",
+              "--byte-order", "big", *extra)
+    assert res.code == 0, res.stderr
+    assert (d / "jac.ome.zarr" / ".zattrs").exists()  # (Zarr v2: NGFF 0.4)
+    assert not (d / "jac.ome.zarr" / "zarr.json").exists()
+    assert b"endian: big" in (d / "disp.nrrd").read_bytes()[:2000]
+    res = run("warp", src, "--spec", spec, "--transform-to", d / "t.tfm", "--compress")
+    assert res.code == 2 and "--compress" in res.stderr and not (d / "t.tfm").exists()
+
+
 def test_a_failing_slab_leaves_no_partial_export(run, tmp_path, monkeypatch):
     src, spec, pts, mesh = _inputs(tmp_path, OBLIQUE)
     disp = tmp_path / "disp.nrrd"

@@ -141,7 +141,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     exports = check_exports(displacement_to, forward_field_to, jacobian_to, transform_to,
                              points_in, points_to, mesh_in, mesh_to)
     if exports:  # (the writer options go to every output, the fields' too)
-        exports = dataclasses.replace(exports, compress=bool(compress))
+        exports = dataclasses.replace(exports, compress=bool(compress), byte_order=byte_order,
+                                      ome_zarr_version=ome_zarr["ome_zarr_version"])
     if output is None and not frames_to and not exports:
         raise click.UsageError("nothing to write: give -o OUT (the warped volume), "
                                "--frames-to, or an export (--points-to, --mesh-to, "
@@ -163,7 +164,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
         if chunked and exports_refused:
             raise click.UsageError(f"--chunked: {exports_refused}")
     if output is None and not frames_to:  # the exports alone: no volume is computed
-        refuse_volume_options(bool(displacement_to))
+        refuse_volume_options(bool(displacement_to),
+                              bool(exports) and exports.writes_volumes)
     req = WarpFiles(input, spec_path, output, is_capture=is_capture, frames_to=frames_to,
                     exports=exports or None, options=options,
                     write=dict(compress=compress, byte_order=byte_order, **ome_zarr),

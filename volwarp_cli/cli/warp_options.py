@@ -124,15 +124,20 @@ def given_values(values, labels) -> str | None:
     return values
 
 
-def refuse_volume_options(displacement: bool) -> None:
+def refuse_volume_options(displacement: bool, fields: bool = False) -> None:
     """Without a volume output: the options that shape only the volume are usage errors.
 
     (No option is parsed and ignored.) ``displacement``: a displacement
-    field is written, on the output grid that --grid and --crop choose.
+    field is written, on the output grid that --grid and --crop choose;
+    ``fields``: a field or the Jacobian is written, which the writer options
+    (--compress, --byte-order, --ome-zarr-version) reach too.
     """
     ctx = click.get_current_context()
     given = []
+    writer = ("compress", "byte_order", "ome_zarr_version") if fields else ()
     for name, key in _VOLUME_ONLY + (() if displacement else _GRID_OPTIONS):
+        if key in writer:
+            continue
         value = ctx.params.get(key)
         if key in ("byte_order", "ome_zarr_version", "pyramid"):
             if ctx.get_parameter_source(key) in (ParameterSource.COMMANDLINE,

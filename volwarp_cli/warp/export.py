@@ -568,11 +568,12 @@ def _run_slabs(part, nz: int, per_slice: int, threads: int | None) -> None:
 # ---- writers ------------------------------------------------------------------------------------
 
 def write_field(field: np.ndarray, geometry: Header, path: str, meta: dict, kind: str, *,
-                compress: bool = False) -> None:
+                compress: bool = False, byte_order: str = "little") -> None:
     """Write a displacement field ([z, y, x, 3], LPS mm) atomically as NRRD or NIfTI.
 
     ``compress``: gzip NRRD (a field written by blocks is the raw file, the
-    bytes of the uncompressed one; a ``.nii.gz`` is gzip either way).
+    bytes of the uncompressed one; a ``.nii.gz`` is gzip either way);
+    ``byte_order``: a NRRD's (NIfTI is written little-endian).
 
     NRRD: ``kinds: vector domain domain domain``, ``space: left-posterior-superior``,
     key/values ``volwarp_field:=KIND`` (and ``displacement field type:=resampling``
@@ -587,6 +588,7 @@ def write_field(field: np.ndarray, geometry: Header, path: str, meta: dict, kind
 
         components = [field[..., m] for m in range(3)]
         write_nrrd(header.with_data(components[0]), path, compress=compress,
+                   byte_order=byte_order,
                    components=components, component_names=["x", "y", "z"])
         return
     _write_nifti_field(field, header, path, kind)
@@ -608,7 +610,8 @@ def _field_header(geometry: Header, shape_zyx, meta: dict, kind: str, fmt: str) 
                   direction=geometry.direction, space=LPS, meta=meta)
 
 
-def field_block_output(path: str, geometry: Header, meta: dict, kind: str, depth: int):
+def field_block_output(path: str, geometry: Header, meta: dict, kind: str, depth: int,
+                       byte_order: str = "little"):
     """The block output of a displacement field written by slabs: an uncompressed NRRD.
 
     A :class:`~volwarp_cli.io.blockwrite.BlockOutput` of blocks of ``depth`` z planes.
@@ -625,7 +628,7 @@ def field_block_output(path: str, geometry: Header, meta: dict, kind: str, depth
     nz, ny, nx = geometry.shape
     return open_block_output(path, _field_header(geometry, geometry.shape, meta, kind, "nrrd"),
                              chunks_zyx=(max(1, int(depth)), ny, nx),
-                             components=["x", "y", "z"])
+                             components=["x", "y", "z"], byte_order=byte_order)
 
 
 def _write_nifti_field(field, grid: Header, path: str, kind: str) -> None:

@@ -38,9 +38,10 @@ class ExportRequests:
     """The exports asked for: output paths, and the points and meshes to move.
 
     ``points``: ``(PointsFile, output path)``; ``mesh``: ``(Mesh, its source
-    path, output path)``. False when nothing is asked for. ``compress``: the
-    command's ``--compress``, for the fields and the Jacobian as for its
-    output (gzip NRRD, zlib MetaImage; a ``.nii.gz`` is gzip either way).
+    path, output path)``. False when nothing is asked for. ``compress``,
+    ``byte_order``, ``ome_zarr_version``: the command's writer options, for
+    the fields and the Jacobian as for its output (gzip NRRD, zlib
+    MetaImage; a ``.nii.gz`` is gzip either way).
     """
 
     displacement: str | None = None
@@ -50,10 +51,21 @@ class ExportRequests:
     points: tuple | None = None
     mesh: tuple | None = None
     compress: bool = False
+    byte_order: str = "little"
+    ome_zarr_version: str = "0.5"
 
     def __bool__(self) -> bool:
         return any(getattr(self, f.name) is not None for f in fields(self)
-                   if f.name != "compress")
+                   if f.name not in WRITER_OPTIONS)
+
+    @property
+    def writes_volumes(self) -> bool:
+        """Whether a field or the Jacobian is asked for (what the writer options reach)."""
+        return any(p is not None for p in (self.displacement, self.forward, self.jacobian))
+
+
+#: the writer options an :class:`ExportRequests` carries (not exports)
+WRITER_OPTIONS = ("compress", "byte_order", "ome_zarr_version")
 
 
 #: the most field samples (bytes) a slab of the displacement field holds by blocks
@@ -226,7 +238,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
             with timed(f"invert the map on {shape[2]}x{shape[1]}x{shape[0]} voxels and write "
                        f"{path}, by slabs of {depth} planes"), \
                     committed(field_block_output(path, out_grid, meta, "resampling",
-                                                 depth)) as out:
+                                                 depth, requests.byte_order)) as out:
                 _place_slabs(out, fmap.resampling_field_slabs(shape[::-1], shift, depth,
                                                               threads=blocks.threads),
                              counts)
@@ -245,7 +257,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
         if blocks is None:
             with timed(f"write {path}"):
                 write_field(field, out_grid, path, meta, "resampling",
-                            compress=requests.compress)
+                            compress=requests.compress, byte_order=requests.byte_order)
             del field
         stats["displacement"] = {"path": str(path), "voxels": counts["voxels"],
                                  "folded": counts["folded"],
@@ -255,14 +267,14 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
         if blocks is None:
             with timed(f"write {path}"):
                 write_field(fmap.forward_field(), in_grid, path, meta, "forward",
-                            compress=requests.compress)
+                            compress=requests.compress, byte_order=requests.byte_order)
         else:
             from ..io.blockwrite import committed
             from .export import field_block_output
 
             with timed(f"write {path}, by slabs"), \
                     committed(field_block_output(path, in_grid, meta, "forward",
-                                                 fmap.slab_depth())) as out:
+                                                 fmap.slab_depth(), requests.byte_order)) as out:
                 _place_slabs(out, fmap.forward_field_slabs())
     if requests.jacobian is not None:
         path = requests.jacobian
@@ -271,7 +283,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
             det = fmap.jacobian()
             st = jacobian_stats(det)
         else:
-            st = _jacobian_by_slabs(fmap, in_grid, path, jmeta)
+            st = _jacobian_by_slabs(fmap, in_grid, path, jmeta, requests)
         log.info("%s: det dF/dx min %.4g, max %.4g; %.3g%% of voxels below 0, %.3g%% below 0.1",
                  path, st["min"], st["max"], 100 * st["below_0"], 100 * st["below_0.1"])
         stats["jacobian"] = {"path": str(path), "min": st["min"], "max": st["max"],
@@ -279,7 +291,8 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
         if blocks is None:
             with timed(f"write {path}"):
                 write_volume(in_grid.with_data(det, meta=jmeta), path,
-                             compress=requests.compress)
+                             compress=requests.compress, byte_order=requests.byte_order,
+                             ome_zarr_version=requests.ome_zarr_version)
             del det
     if requests.transform is not None:
         path = requests.transform
@@ -308,7 +321,8 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
     return stats
 
 
-def _jacobian_by_slabs(fmap, in_grid: Header, path: str, jmeta: dict) -> dict:
+def _jacobian_by_slabs(fmap, in_grid: Header, path: str, jmeta: dict,
+                       requests: ExportRequests) -> dict:
     """Write det dF/dx to ``path`` slab by slab; its :func:`.export.jacobian_stats`.
 
     The figures of the whole map, reduced exactly: the extremes combined, the
@@ -331,7 +345,8 @@ def _jacobian_by_slabs(fmap, in_grid: Header, path: str, jmeta: dict) -> dict:
 
     # (the header of the in-memory file: in_grid.with_data(det, meta=jmeta))
     out = open_block_output(path, in_grid.replace(meta=jmeta), dtype=np.float32,
-                            chunks_zyx=(fmap.slab_depth(), ny, nx))
+                            chunks_zyx=(fmap.slab_depth(), ny, nx),
+                            version=requests.ome_zarr_version, byte_order=requests.byte_order)
     with timed(f"write {path}, by slabs"), committed(out):
         _place_slabs(out, slabs())
     return {"min": acc["min"], "max": acc["max"], "below_0": float(acc["neg"] / acc["n"]),
