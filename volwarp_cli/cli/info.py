@@ -6,6 +6,7 @@ import json
 
 import click
 
+from ..errors import ChoiceNeeded
 from ..io import volume_format
 from .common import describe_volume, load_input
 from .options import INPUT_PATH, common_options, examples, input_options
@@ -45,8 +46,11 @@ def _format_text(d: dict) -> str:
         elif k == "segments":
             lines.append(f"segments:  {len(v)} ({d.get('segmentation_type', '')})")
             lines += _segment_lines(v)
-        elif k in ("dicom_type", "segmentation_type"):
+        elif k in ("dicom_type", "segmentation_type", "volume_index"):
             continue
+        elif k == "volumes":
+            lines.append(f"volumes:   {v} in the file (components or time points); shown: "
+                         f"volume {d.get('volume_index', 0)} (--volume-index K for another)")
         elif k == "candidates":
             lines.append(f"candidates: {len(v)} volume{'s' if len(v) > 1 else ''} in the input")
         elif k not in ("format", "shape", "dtype", "spacing", "origin", "direction", "space",
@@ -74,8 +78,18 @@ def command(file, as_json, raw, volume_index, dicom):
     elif volume_format(file, reading=True) == "dicom":
         desc = _describe_dicom(file, raw, volume_index, dicom)
     else:
-        vol = load_input(file, raw, volume_index, dicom=dicom)
+        try:
+            vol = load_input(file, raw, volume_index, dicom=dicom)
+            count = None
+        except ChoiceNeeded:  # (a vector field, a 4-D series: described, not refused)
+            count = None if volume_index is not None else _volume_count(file, raw)
+            if count is None:
+                raise
+            vol = load_input(file, raw, 0, dicom=dicom)
         desc = describe_volume(vol, volume_format(file, reading=True))
+        if count is not None:
+            desc["volumes"] = count
+            desc["volume_index"] = 0
         _label_hint(desc, vol)
     if "structures" in desc and "shape" not in desc:  # an RTSTRUCT: no grid of its own
         click.echo(json.dumps(desc, indent=2) if as_json else _structures_text(desc))
@@ -98,6 +112,48 @@ def command(file, as_json, raw, volume_index, dicom):
                    f"y {lo[1]:g}..{hi[1]:g}, z {lo[2]:g}..{hi[2]:g} (all of them: --json)")
     else:
         click.echo(_format_text(desc))
+
+
+#: the most volumes (components, time points) info counts in one file
+MAX_VOLUMES = 100_000
+
+
+def _volume_count(file, raw) -> int | None:
+    """How many volumes (components or time points) ``file`` holds, by its header; None: not that.
+
+    For ``info`` of a file every other command asks ``--volume-index`` of (a
+    displacement field's 3 components, a 4-D series): volume 0 is described
+    and the count said (it was a usage error, exit 2, so volwarp's own
+    fields could not be inspected).
+    """
+    from ..errors import BadUsage
+    from ..io.lazy import open_volume_header
+
+    if raw is not None:
+        return None
+
+    def exists(i: int) -> bool:
+        try:
+            open_volume_header(file, volume_index=i)
+        except ChoiceNeeded:
+            raise
+        except BadUsage:
+            return False
+        return True
+
+    try:
+        if not exists(0):
+            return None
+        hi = 1
+        while hi < MAX_VOLUMES and exists(hi):  # (doubling, then halving: a few headers)
+            hi *= 2
+        lo = hi // 2
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (mid, hi) if exists(mid) else (lo, mid)
+        return hi if exists(hi) else lo + 1
+    except ChoiceNeeded:  # (not a choice of volumes: a series, ...)
+        return None
 
 
 def _lattice_lines(desc: dict, pts) -> list[str]:
