@@ -331,7 +331,10 @@ def test_a_field_without_volume_index_asks_for_one(run, fields):
     nii, _ = fields
     with pytest.raises(ChoiceNeeded, match=r"3 components per voxel .*--volume-index 0\.\.2"):
         read_volume(nii)
-    line = one_error_line(run("info", nii), nii, code=2)  # (a usage error: an option chooses)
+    # (info describes volume 0 and counts them; the other commands ask)
+    res = run("info", nii)
+    assert res.code == 0 and "volumes:   3 in the file" in res.stdout
+    line = one_error_line(run("convert", nii, "-o", nii.with_name("c.nrrd")), nii, code=2)
     assert "choose one with --volume-index" in line
     with pytest.raises(VolwarpError, match=r"--volume-index 3 is outside 0\.\.2"):
         read_volume(nii, volume_index=3)
