@@ -173,6 +173,28 @@ def test_output_folder_holding_the_scans(tmp_path, output_dir, glob, how):
     assert "2 scans, 2 ok" in res.stderr
 
 
+def test_another_batchs_outputs_under_the_glob_are_not_scans(tmp_path):
+    """A batch whose output folder lies under another manifest's scans: the second batch's
+    `**` glob took its outputs for scans (a user-day review). Folders holding a batch's
+    book (.volwarp-batch) below the glob's folder are left out, and said; a glob in a
+    batch's output folder itself takes its outputs (a batch that goes on from another's)."""
+    first = make_tree(tmp_path, MANIFEST.replace("output_dir: out", "output_dir: scans/out1"))
+    res = volwarp("batch", first)
+    assert res.returncode == 0 and "2 scans, 2 ok" in res.stderr, res.stderr
+    second = tmp_path / "second.yaml"
+    second.write_text(MANIFEST.replace("output_dir: out", "output_dir: out2"))
+    res = volwarp("batch", second)
+    assert res.returncode == 0, res.stderr
+    assert "2 scans, 2 ok" in res.stderr  # (not 6: the first batch's 4 outputs)
+    assert re.search(r"inputs\.glob: 4 files under \S*scans/out1, another batch's output "
+                     r"folder, left out", res.stderr), res.stderr
+    third = tmp_path / "third.yaml"
+    third.write_text(MANIFEST.replace("output_dir: out", "output_dir: out3")
+                     .replace("scans/**/*.n*", "scans/out1/**/*_f.nrrd"))
+    res = volwarp("batch", third)
+    assert res.returncode == 0 and "2 scans, 2 ok" in res.stderr, res.stderr
+
+
 def test_dry_run_stops_at_every_reader(tmp_path):
     """In a dry run each reader's entry stops, before it opens anything."""
     from volwarp_cli.io import read_volume

@@ -361,14 +361,50 @@ def _glob_scans(manifest: Manifest, pattern: str) -> list[tuple[Path, tuple]]:
             "searches; choose an output_dir outside it (a folder inside it is fine: it is "
             f"left out of the glob) ({folder})"))
     paths = []
+    batches: dict[Path, bool] = {}  # folder -> whether it is (or lies in) a batch's outputs
+    others: dict[Path, int] = {}
     for name in sorted(glob.glob(pattern, recursive=True)):
         p = Path(name)
         if not p.is_file():  # (DICOM folders: convert them first, or list them)
             continue
-        if p.resolve().is_relative_to(out):  # our own outputs are not scans
+        real = p.resolve()
+        if real.is_relative_to(out):  # our own outputs are not scans
+            continue
+        other = _batch_output_folder(real.parent, folder, batches)
+        if other is not None:  # another batch's outputs: not scans either
+            others[other] = others.get(other, 0) + 1
             continue
         paths.append((p, ("inputs", "glob")))
+    for other, n in others.items():
+        from ..progress import log
+
+        log.warning("warning: %s: inputs.glob: %d file%s under %s, another batch's output "
+                    "folder, left out (outputs are not scans)", manifest.path, n,
+                    "" if n == 1 else "s", other)
     return paths
+
+
+def _batch_output_folder(folder: Path, root: Path, seen: dict) -> Path | None:
+    """The batch output folder (one holding ``.volwarp-batch``) ``folder`` lies in, below ``root``.
+
+    A glob over a tree that holds an earlier batch's outputs took them for
+    scans (a user-day review: ``scans/out/site-a/p01_warped.nii.gz``). The
+    glob's own folder and those above it are not looked at: a glob in a
+    batch's output folder asks for its outputs (a batch that goes on from
+    another's).
+    """
+    from .lock import BOOK_DIR
+
+    if folder in seen:
+        return seen[folder]
+    if folder == root or not folder.is_relative_to(root) or folder.parent == folder:
+        found = None
+    elif (folder / BOOK_DIR).is_dir():
+        found = folder
+    else:
+        found = _batch_output_folder(folder.parent, root, seen)
+    seen[folder] = found
+    return found
 
 
 def _find_scans(manifest: Manifest) -> list[Scan]:
