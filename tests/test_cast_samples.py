@@ -114,29 +114,43 @@ def test_clipping_is_said_once_a_run_with_what_lay_beyond(caplog):
 
 def test_a_field_of_fractions_rounded_to_a_few_integers_is_said(caplog, run, tmp_path):
     """convert --dtype uint8 of a 0..1 density made a binary mask without a word (a
-    user-day review; sweep scales its fields first): a cast whose extremes are fewer than
-    FEW_LEVELS apart and whose samples have fractions says so, once a run; whole numbers
-    in floats, and a wide field with fractions (a CT as float), say nothing."""
+    user-day review; sweep scales its fields first): a cast whose whole output lies fewer
+    than FEW_LEVELS integers apart and has fractions says so, once a run, when the run's
+    outputs are in place. The reach is the whole output's, over its blocks: a warp's edge
+    slab of 0..3 in a 0..255 output said it wrongly in a first version. Whole numbers in
+    floats, and a wide field with fractions (a CT as float), say nothing."""
     from volwarp_cli.io import read_volume, write_volume
-    from volwarp_cli.runscope import run_scope
+    from volwarp_cli.runscope import run_files, run_scope
     from volwarp_cli.samples import FEW_LEVELS
     from volwarp_cli.volume import Volume
 
     density = np.linspace(0, 1, 24, dtype=np.float32).reshape(2, 3, 4)
-    with caplog.at_level("WARNING", logger="volwarp"), run_scope():
-        assert set(cast_samples(density, "uint8", what="d.nrrd").ravel()) == {0, 1}
-        cast_samples(density, "uint8", what="d.nrrd")  # (the next block: said already)
-        cast_samples(np.array([0.0, 3.0, 7.0]), "uint8", what="whole.nrrd")
-        cast_samples(np.array([-1000.3, 2000.6]), "int16", what="ct.nrrd")
-        cast_samples(np.array([0.5, FEW_LEVELS + 0.25]), "uint8", what="wide.nrrd")
+    edge, body = np.array([0.2, 2.7]), np.array([0.5, 254.6])
+    with caplog.at_level("WARNING", logger="volwarp"):
+        with run_scope():
+            assert set(cast_samples(density, "uint8", what="d.nrrd").ravel()) == {0, 1}
+            cast_samples(density, "uint8", what="d.nrrd")  # (the next block)
+            cast_samples(np.array([0.0, 3.0, 7.0]), "uint8", what="whole.nrrd")
+            cast_samples(np.array([-1000.3, 2000.6]), "int16", what="ct.nrrd")
+            cast_samples(np.array([0.5, FEW_LEVELS + 0.25]), "uint8", what="wide.nrrd")
+            cast_samples(edge, "uint8", what="warped.nrrd")  # (a first slab: 0..3)
+            cast_samples(body, "uint8", what="warped.nrrd")  # (the rest: 0..255)
+            run_files().committed.append("d.nrrd")
+            assert not caplog.records  # (said when the run ends)
+        with run_scope():  # (a run that wrote nothing says nothing)
+            cast_samples(density, "uint8", what="d.nrrd")
+        cast_samples(density, "int8", what="api")  # (outside a run: at once)
     assert [r.getMessage() for r in caplog.records] == [
-        "warning: d.nrrd: samples with fractions become 2 integer values (0 to 1) as uint8: "
-        "their fractions are rounded away (a 0..1 field becomes 0 and 1); keep a float type, "
-        "or scale them first"]
+        "warning: d.nrrd: samples with fractions became 2 integer values (0 to 1) as uint8: "
+        "their fractions were rounded away (a 0..1 field becomes 0 and 1); keep a float "
+        "type, or scale them first",
+        "warning: api: samples with fractions became 2 integer values (0 to 1) as int8: "
+        "their fractions were rounded away (a 0..1 field becomes 0 and 1); keep a float "
+        "type, or scale them first"]
     src = tmp_path / "dens.nrrd"
     write_volume(Volume(density), src)
     res = run("convert", src, "-o", tmp_path / "d8.nrrd", "--dtype", "uint8")
-    assert res.code == 0 and "fractions are rounded away" in res.stderr
+    assert res.code == 0 and res.stderr.count("fractions were rounded away") == 1
     assert read_volume(tmp_path / "d8.nrrd").data.max() == 1
 
 

@@ -75,8 +75,7 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
                 raise VolwarpError(f"{what}: samples that are NaN cannot be written as "
                                    f"{dt.name} (an integer type holds no NaN): keep a float "
                                    "type, or replace the NaN first")
-            if high - low < FEW_LEVELS:
-                _say_rounded_away(what, dt, data, out, low, high)
+            _note_rounding(what, dt, data, out, low, high)
             if low >= info.min and high <= info.max:  # (Python's float-int order: exact)
                 return out.astype(dt)
             _say_clipped(what, dt, low, high)
@@ -118,27 +117,56 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
 FEW_LEVELS = 16
 
 
-def _say_rounded_away(what: str, dt: np.dtype, data, rounded, low, high) -> None:
-    """Warn that a float field with fractions becomes a few integers in ``dt`` (once a run).
+def _note_rounding(what: str, dt: np.dtype, data, rounded, low, high) -> None:
+    """Note a float cast's reach and fractions; said if the whole is a few integers with fractions.
 
     A 0..1 density or opacity cast to uint8 comes out 0 and 1: an antialiased
     field made a binary mask without a word (a review of convert and morph;
-    sweep scales its fields to the type first, and says so).
+    sweep scales its fields to the type first, and says so). A cast is often
+    one block of many (a slab of planes): the reach of the whole output,
+    gathered over its blocks, is judged when the run ends (a block at a
+    warp's edge holds 0..3 of a 0..255 field). Outside a run (the API), each
+    call is judged alone.
     """
-    if np.array_equal(data, rounded):
+    from .runscope import at_run_end, in_run, run_files
+
+    if not in_run():
+        if high - low < FEW_LEVELS and not np.array_equal(data, rounded):
+            _say_rounded_away(what, dt, low, high)
         return
+    files = run_files()
+    key = ("rounding", what, dt.name)
+    seen = files.decided.get(key)
+    if seen is None:
+        seen = files.decided[key] = [low, high, False]
+        at_run_end(lambda: _rounded_at_end(what, dt, seen, files))
+    seen[0], seen[1] = min(seen[0], low), max(seen[1], high)
+    if not seen[2] and seen[1] - seen[0] < FEW_LEVELS:  # (a wide output: no more looks)
+        seen[2] = not np.array_equal(data, rounded)
+
+
+def _rounded_at_end(what: str, dt: np.dtype, seen, files) -> None:
+    """At the run's end: :func:`_say_rounded_away` if its outputs were written (``files``'s run)."""
+    low, high, fractions = seen
+    if fractions and high - low < FEW_LEVELS and files.committed:
+        _say_rounded_away(what, dt, low, high, files.said)
+
+
+def _say_rounded_away(what: str, dt: np.dtype, low, high, said=None) -> None:
+    """Warn that a float field with fractions became a few integers in ``dt``.
+
+    Once a run for each type (``said``: the run's said set; None: every time).
+    """
     from .progress import log
-    from .runscope import in_run, run_files
 
     key = ("rounded away", dt.name)
-    if in_run():
-        said = run_files().said
+    if said is not None:
         if key in said:
             return
         said.add(key)
     levels = int(high - low) + 1
-    log.warning("warning: %s: samples with fractions become %d integer value%s (%g to %g) "
-                "as %s: their fractions are rounded away (a 0..1 field becomes 0 and 1); "
+    log.warning("warning: %s: samples with fractions became %d integer value%s (%g to %g) "
+                "as %s: their fractions were rounded away (a 0..1 field becomes 0 and 1); "
                 "keep a float type, or scale them first", what, levels,
                 "" if levels == 1 else "s", low, high, dt.name, extra={"once": key})
 
