@@ -7,6 +7,7 @@ a morph frame cast back to the input's type), so it lives in neither.
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 
@@ -136,13 +137,19 @@ def _note_rounding(what: str, dt: np.dtype, data, rounded, low, high) -> None:
         return
     files = run_files()
     key = ("rounding", what, dt.name)
-    seen = files.decided.get(key)
-    if seen is None:
-        seen = files.decided[key] = [low, high, False]
-        at_run_end(lambda: _rounded_at_end(what, dt, seen, files))
-    seen[0], seen[1] = min(seen[0], low), max(seen[1], high)
-    if not seen[2] and seen[1] - seen[0] < FEW_LEVELS:  # (a wide output: no more looks)
-        seen[2] = not np.array_equal(data, rounded)
+    with _rounding_lock:  # (the threads of a run cast their planes at once)
+        seen = files.decided.get(key)
+        if seen is None:
+            seen = files.decided[key] = [low, high, False]
+            at_run_end(lambda: _rounded_at_end(what, dt, seen, files))
+        seen[0], seen[1] = min(seen[0], low), max(seen[1], high)
+        look = not seen[2] and seen[1] - seen[0] < FEW_LEVELS  # (a wide output: no more)
+    if look and not np.array_equal(data, rounded):
+        with _rounding_lock:
+            seen[2] = True
+
+
+_rounding_lock = threading.Lock()
 
 
 def _rounded_at_end(what: str, dt: np.dtype, seen, files) -> None:
