@@ -223,6 +223,15 @@ def test_sparse_ids_taken_for_intensities_are_said(run, tmp_path):
     assert choose_values(frog_like().data).warning is None
     spread = rng.integers(0, 5, (40, 40, 40)).astype(np.uint8)  # 5 values everywhere
     assert choose_values(spread).warning is None
+    # a sparse intensity image: its values many, or spread out (a review: 441 voxels of
+    # 350 values warned)
+    sparse = np.zeros((40, 40, 40), np.int16)
+    where = rng.integers(0, 40, (441, 3))
+    sparse[tuple(where.T)] = rng.integers(1, 4000, 441)
+    assert choose_values(sparse).warning is None
+    few = np.zeros((40, 40, 40), np.int16)
+    few[tuple(where[:20].T)] = rng.choice(np.arange(100, 4000, 150), 20, replace=False)
+    assert choose_values(few).warning is None
     src = tmp_path / "lm.nrrd"
     write_volume(Volume(marks), src)
     tfm = tmp_path / "t.tfm"

@@ -236,6 +236,18 @@ def test_the_writer_options_reach_the_fields_and_the_jacobian(run, tmp_path, chu
     assert b"endian: big" in (d / "disp.nrrd").read_bytes()[:2000]
     res = run("warp", src, "--spec", spec, "--transform-to", d / "t.tfm", "--compress")
     assert res.code == 2 and "--compress" in res.stderr and not (d / "t.tfm").exists()
+    # where a field's file has no use for one, it is said, as for -o (a review found them
+    # silent); a NIfTI big-endian is refused before any work, as -o x.nii's is
+    res = run("warp", src, "--spec", spec, "--displacement-to", d / "d.nii", "--compress")
+    assert res.code == 0 and "--compress does not apply to" in res.stderr
+    res = run("warp", src, "--spec", spec, "--forward-field-to", d / "f.nrrd",
+              "--ome-zarr-version", "0.4")
+    assert res.code == 0 and "--ome-zarr-version does not apply to" in res.stderr
+    for option, name in (("--displacement-to", "e.nii.gz"), ("--jacobian-to", "j.nii")):
+        res = run("warp", src, "--spec", spec, "-o", d / "o.nrrd", option, d / name,
+                  "--byte-order", "big")
+        assert res.code == 2 and "little-endian only" in res.stderr, res.stderr
+        assert not (d / name).exists() and not (d / "o.nrrd").exists()
 
 
 def test_a_failing_slab_leaves_no_partial_export(run, tmp_path, monkeypatch):

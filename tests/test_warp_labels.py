@@ -464,7 +464,7 @@ def test_a_given_background_label_fills_where_nothing_lands(run, tmp_path):
     was the background whatever the user said (--background-value was refused for labels):
     the grown margin became tissue. A given id (here 0, not in the map) is the background:
     the margin gets it and tissue 1 is warped as a label, the same in memory and by
-    blocks; the spec's background key does the same."""
+    blocks. The spec's background key stays refused (it is the scan's)."""
     from volwarp_cli.io import read_volume, write_volume
     from volwarp_cli.volume import Volume
 
@@ -494,9 +494,12 @@ def test_a_given_background_label_fills_where_nothing_lands(run, tmp_path):
     assert margin.sum() > 1000 and np.all(border[margin] == 1)
     assert np.array_equal(given[~margin], border[~margin])  # the labels land the same
     assert np.array_equal(outs["blocks"], given)
-    spec.write_text(text.replace("values: labels\n", "values: labels\nbackground: 0\n"))
-    assert run("warp", src, "--spec", spec, "-o", tmp_path / "k.nrrd").code == 0
-    assert np.array_equal(read_volume(tmp_path / "k.nrrd").data, given)
+    # a spec's background is the scan's (a spec shared with it: -1024 became a new label
+    # around the anatomy, exit 0, in a first version): refused for labels, as before
+    spec.write_text(text.replace("values: labels\n", "values: labels\nbackground: -1024\n"))
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "k.nrrd")
+    assert res.code == 2 and "background" in res.stderr and "--background-value" in res.stderr
+    assert not (tmp_path / "k.nrrd").exists()
 
 
 def test_json_reports_the_label_volumes(run, tmp_path):

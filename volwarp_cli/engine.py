@@ -142,7 +142,8 @@ class BlockStats:
 
 
 def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | None = None,
-               keep: bool = False, origin: int | None = None, **kwargs) -> BlockStats:
+               keep: bool = False, origin: int | None = None, run: int | None = None,
+               **kwargs) -> BlockStats:
     """Run ``fn(*args, **kwargs)`` as one block task; its :class:`BlockStats`.
 
     The task's kernels get ``threads`` threads (the scheduler's are the
@@ -151,14 +152,18 @@ def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | 
     ``fn``'s result too, as the stats' ``value``. ``origin``: the command's
     process; in another one the task is a run of its own and its warnings go
     back in the stats (:meth:`Engine.run` says them once, as the block ends),
-    not to the worker's stderr.
+    not to the worker's stderr. ``run``: the command's run
+    (:func:`~volwarp_cli.runscope.current_run_id`), entered in this process
+    (a thread pool's task has no context of it).
     """
     from . import memory as memory_mod
     from . import parallel
+    from .runscope import enter_run
 
     start = time.perf_counter()
-    with parallel.use_threads(threads), (memory_mod.use_memory_limit(memory)
-                                         if memory is not None else contextlib.nullcontext()), \
+    with enter_run(run if origin is None or os.getpid() == origin else None), \
+            parallel.use_threads(threads), (memory_mod.use_memory_limit(memory)
+                                            if memory is not None else contextlib.nullcontext()), \
             _said_here(origin is not None and os.getpid() != origin) as said:
         try:
             value = fn(*args, **kwargs)
@@ -421,9 +426,11 @@ def block_delayed(fn: Callable, ident: str, *args, threads: int = 1,
     """A dask delayed :func:`block_task` named after the block (its progress lines' id)."""
     import dask
 
+    from .runscope import current_run_id
+
     return dask.delayed(block_task, pure=False)(
         fn, ident, *args, threads=threads, memory=memory, origin=os.getpid(),
-        dask_key_name=BLOCK_PREFIX + ident, **kwargs)
+        run=current_run_id(), dask_key_name=BLOCK_PREFIX + ident, **kwargs)
 
 
 @contextlib.contextmanager

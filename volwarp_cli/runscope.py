@@ -90,16 +90,48 @@ def run_files() -> RunFiles:
     return _current.get() or _process
 
 
+#: the runs under way in this process, by :func:`current_run_id` (a block task of a
+#: thread pool has no context of its run: it enters it by this number, :func:`enter_run`)
+_runs: dict[int, RunFiles] = {}
+
+
 @contextlib.contextmanager
 def run_scope():
     """A fresh :class:`RunFiles` for the code inside (and the threads it hands its context to)."""
     token = _current.set(RunFiles())
     files = _current.get()
+    _runs[id(files)] = files
     try:
         yield files
     finally:
         _current.reset(token)
+        _runs.pop(id(files), None)
         _run_ends(files)
+
+
+def current_run_id() -> int | None:
+    """A number naming the current run in this process (None outside any :func:`run_scope`)."""
+    files = _current.get()
+    return None if files is None else id(files)
+
+
+@contextlib.contextmanager
+def enter_run(run_id: int | None):
+    """Inside, :func:`run_files` is the run ``run_id`` names, where it is under way here.
+
+    For a block task that a thread pool runs outside its run's context (Dask's
+    threads): its warnings are said once a run, its notes gathered with the
+    run's. Yields whether it entered (not in another process, nor outside a run).
+    """
+    files = _runs.get(run_id) if run_id is not None else None
+    if files is None or _current.get() is files:
+        yield files is not None
+        return
+    token = _current.set(files)
+    try:
+        yield True
+    finally:
+        _current.reset(token)
 
 
 def at_run_end(end) -> None:

@@ -49,7 +49,7 @@ def _format_text(d: dict) -> str:
         elif k in ("dicom_type", "segmentation_type", "volume_index"):
             continue
         elif k == "volumes":
-            lines.append(f"volumes:   {v} in the file (components or time points); shown: "
+            lines.append(f"volumes:   {v} in the file (components, time points or images); shown: "
                          f"volume {d.get('volume_index', 0)} (--volume-index K for another)")
         elif k == "candidates":
             lines.append(f"candidates: {len(v)} volume{'s' if len(v) > 1 else ''} in the input")
@@ -131,6 +131,12 @@ def _volume_count(file, raw) -> int | None:
 
     if raw is not None:
         return None
+    if volume_format(file, reading=True) == "nifti":  # (its header says: a .nii.gz
+        from ..io.nifti import open_nifti  # opened once a probe inflated it each time)
+
+        nf = open_nifti(file)
+        count = max(nf.volumes, nf.components)
+        return count if count > 1 else None
 
     def exists(i: int) -> bool:
         try:

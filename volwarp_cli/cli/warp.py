@@ -143,6 +143,9 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     if exports:  # (the writer options go to every output, the fields' too)
         exports = dataclasses.replace(exports, compress=bool(compress), byte_order=byte_order,
                                       ome_zarr_version=ome_zarr["ome_zarr_version"])
+        from ..warp.export_outputs import refuse_export_byte_order
+
+        refuse_export_byte_order(exports)  # (before any work, as -o's)
     if output is None and not frames_to and not exports:
         raise click.UsageError("nothing to write: give -o OUT (the warped volume), "
                                "--frames-to, or an export (--points-to, --mesh-to, "

@@ -334,8 +334,41 @@ def _earlier_data_files(header_path: Path, data_path: Path, referenced, siblings
             check_output_path(sibling)  # (an input of this run is never removed)
         except VolwarpError:
             continue
+        if _named_by_another_header(sibling, header_path):
+            continue
         stale.append(sibling)
     return stale
+
+
+#: the detached headers that may name a data file beside them
+_HEADER_SUFFIXES = (".nhdr", ".mhd")
+
+
+def _named_by_another_header(data: Path, header_path: Path) -> bool:
+    """Whether a detached header beside ``data`` other than ``header_path`` may name it.
+
+    Its name anywhere in the header's text (a data file field, a LIST): an
+    ``.mhd`` written by hand over the ``.raw`` of an ``.nhdr`` (one file, two
+    tools) lost its data when the ``.nhdr`` was rewritten compressed (a review).
+    Conservative: a header that cannot be read keeps it too.
+    """
+    name = data.name.encode()
+    mine = os.path.realpath(header_path)
+    try:
+        entries = list(os.scandir(data.parent))
+    except OSError:
+        return True
+    for entry in entries:
+        if not entry.name.lower().endswith(_HEADER_SUFFIXES) or (
+                os.path.realpath(entry.path) == mine):
+            continue
+        try:
+            with open(entry.path, "rb") as fh:
+                if name in fh.read(1 << 16):
+                    return True
+        except OSError:
+            return True
+    return False
 
 
 def check_data_output(data_path: Path, header_path: Path, referenced) -> None:

@@ -293,6 +293,8 @@ def say_earlier_pattern_files() -> None:
         from ..progress import log
 
         shown = ", ".join(left[:4]) + (f", ... ({len(left)} files)" if len(left) > 4 else "")
+        if pattern.lower().endswith((".nhdr", ".mhd")):  # (detached: their data files too)
+            shown += " (with their data files)"
         log.warning("warning: %s %s: %s match%s the pattern but %s not this run's (an "
                     "earlier run's): remove %s, or give each run a folder of its own, so that "
                     "a glob of the pattern does not mix the runs", option, pattern, shown,

@@ -112,6 +112,8 @@ def label_scan(source, *, box_voxels: int = SCAN_BOX_VOXELS):
     return scan_labels(source, box_voxels=box_voxels)
 
 
+#: the most values besides the background a sparse map of ids has (:func:`sparse_ids_warning`)
+SPARSE_IDS = 256
 #: the share of the voxels the most frequent value holds above which the rule's answer
 #: "intensities" rests on too few voxels to be sure of (:func:`sparse_ids_warning`)
 SPARSE_SHARE = 0.99
@@ -124,15 +126,20 @@ def sparse_ids_warning(name: str, values, counts) -> str | None:
     regions for the rule to see: it answers intensities, and an intensity
     warp or resampling blends the ids away (a review: 20 landmarks became
     values 0..7 over 103 voxels, 6 ids gone, nothing said). Said, not
-    decided: a sparse intensity image is possible too.
+    decided: a sparse intensity image is possible too, and one whose values
+    are many (above :data:`SPARSE_IDS`) or spread out (over four times as
+    many integers as there are values, as ids 1..N are not) says nothing.
     """
-    if values is None or counts is None or len(values) < 3:
+    if values is None or counts is None or not 3 <= len(values) <= SPARSE_IDS + 1:
         return None
     total = int(np.sum(counts))
     top = int(np.max(counts))
     if total == 0 or top < SPARSE_SHARE * total:
         return None
     background = values[int(np.argmax(counts))]
+    ids = np.asarray(values)[np.asarray(values) != background].astype(np.float64)
+    if ids.max() - ids.min() + 1 > 4 * len(ids):  # (values spread out: a sparse image's)
+        return None
     return (f"warning: {name}: its {total - top} voxels of {len(values) - 1} integer values "
             f"besides the background {background:g} are taken for intensities (too few "
             "regions for the label rule to tell landmarks or points from a sparse image); if "

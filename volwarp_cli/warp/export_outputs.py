@@ -126,6 +126,33 @@ def whole_fields_bytes(requests: ExportRequests, warp) -> int:
     return max(sizes, default=0)
 
 
+def refuse_export_byte_order(requests: ExportRequests) -> None:
+    """A NIfTI export with ``--byte-order big``: the usage error ``-o x.nii`` gets, before any work.
+
+    (Found when the Jacobian was written, after the warp's work, in a first
+    version; a NIfTI field was written little-endian without a word.)
+    """
+    from ..errors import BadUsage
+    from ..io import volume_format
+
+    if requests.byte_order == "little":
+        return
+    for name, path in (("--displacement-to", requests.displacement),
+                       ("--forward-field-to", requests.forward),
+                       ("--jacobian-to", requests.jacobian)):
+        if path is not None and volume_format(path) == "nifti":
+            raise BadUsage(f"{name} {path}: volwarp writes NIfTI little-endian only "
+                           "(--byte-order)")
+
+
+def say_unused_field_options(requests: ExportRequests, path: str) -> None:
+    """Say the writer options a field's file has no use for, as an output's are said."""
+    from ..io import say_unused_writer_options, volume_format
+
+    say_unused_writer_options(path, volume_format(path), requests.compress,
+                              requests.ome_zarr_version)
+
+
 def block_export_problem(requests: ExportRequests) -> str | None:
     """Why ``requests`` cannot be written by blocks (a sentence naming the option), or None.
 
@@ -221,6 +248,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
                      direction=g.direction, space=g.space)
     if requests.displacement is not None:
         path = requests.displacement
+        say_unused_field_options(requests, path)
         window, origin = _output_window(cap, scene, warp.options.crop)
         shape = tuple(w.stop - w.start for w in window)
         out_grid = Header(shape, np.float32, spacing=g.spacing, origin=origin,
@@ -264,6 +292,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
                                  "no_preimage": counts["no_inverse"]}
     if requests.forward is not None:
         path = requests.forward
+        say_unused_field_options(requests, path)
         if blocks is None:
             with timed(f"write {path}"):
                 write_field(fmap.forward_field(), in_grid, path, meta, "forward",

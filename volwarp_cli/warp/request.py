@@ -364,7 +364,7 @@ def _write_exports(req: WarpFiles, warp, how, *, by_slabs: bool) -> dict:
 def _not_a_label(value: float, dtype) -> str | None:
     """Why ``value`` cannot be a label id of a map of ``dtype`` (the background's), or None."""
     if not float(value).is_integer():
-        return "is not a label id (an integer): a label map's background is one of its labels"
+        return "is not a label id (an integer): a label map's background is a label"
     import numpy as np
 
     dtype = np.dtype(dtype) if dtype is not None else np.dtype(np.float64)
@@ -399,17 +399,17 @@ def check_values_fit(choice, doc, spec, options: WarpOptions, name, dtype=None) 
 
         if options.dtype is not None:
             raise clash(f"{way} in the map's own integer type: --dtype does not apply")
-        for value, given in ((options.background, "--background-value"),
-                             (spec.background, "background")):
-            if value is None:
-                continue
-            why = _not_a_label(value, dtype)
-            if why is None:
-                continue
-            what = f"{way}: {given} {value:g} {why}"
-            if given == "background":
-                raise doc.error(("background",), out(what))
-            raise BadUsage(out(what))
+        if options.background is not None:
+            why = _not_a_label(options.background, dtype)
+            if why is not None:
+                raise BadUsage(out(f"{way}: --background-value {options.background:g} {why}"))
+        if spec.background is not None:
+            # (a spec is shared by a scan and its segmentation: its background is the scan's,
+            # -1024 for a CT, which would have become a new label around the anatomy; the
+            # command line's --background-value names a label for this run)
+            raise doc.error(("background",), out(
+                f"does not apply: {way} with their most frequent border label as their "
+                "background (--background-value N names another for a run)"))
         c = spec.capture
         if c.placement != "uniform" and "placement" in spec.capture_given:
             raise doc.error(("capture", "placement"), out(

@@ -522,8 +522,8 @@ def background_label(samples, given: float | None = None) -> int:
 
 
 def given_background(spec, options: WarpOptions) -> float | None:
-    """The background the command line or the spec gives (the option first), or None."""
-    return options.background if options.background is not None else spec.background
+    """The background label the command line gives, or None (a spec's is refused for labels)."""
+    return options.background
 
 
 class Deformation(LatticeMoves):
