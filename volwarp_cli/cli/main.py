@@ -16,7 +16,7 @@ import click
 from .. import __version__
 from ..errors import BadUsage, SpecError, VolwarpError
 from ..progress import log
-from ..runscope import run_scope
+from ..runscope import run_files, run_scope
 from ..signals import Interrupted, stop_requested
 from ..signals import cancel_deferred as cancel_deferred_stop
 from ..signals import install as install_signal_handlers
@@ -110,9 +110,10 @@ class VolwarpGroup(click.Group):
             with _outputs_of(args):
                 result = super().main(args=args, prog_name=prog_name, standalone_mode=False,
                                       **extra)
-            from ..io.inputs import say_earlier_pattern_files
+            if run_files().patterns:  # (an earlier run's frames beyond this run's; the
+                from ..io.inputs import say_earlier_pattern_files  # io package loads numpy)
 
-            say_earlier_pattern_files()  # (an earlier run's frames beyond this run's)
+                say_earlier_pattern_files()
             code = result if isinstance(result, int) else 0
             cancel_deferred_stop()  # the work is over: a deferred stop is reported below
         except BaseException as exc:

@@ -8,8 +8,6 @@ by blocks: the executor decides by the sizes unless --chunked or
 
 from __future__ import annotations
 
-import dataclasses
-
 import click
 
 from ..io import check_output_path
@@ -141,6 +139,8 @@ def command(input, spec_path, output, frames_to, pushforward, evaluator, backgro
     exports = check_exports(displacement_to, forward_field_to, jacobian_to, transform_to,
                              points_in, points_to, mesh_in, mesh_to)
     if exports:  # (the writer options go to every output, the fields' too)
+        import dataclasses
+
         exports = dataclasses.replace(exports, compress=bool(compress), byte_order=byte_order,
                                       ome_zarr_version=ome_zarr["ome_zarr_version"])
         from ..warp.export_outputs import refuse_export_byte_order
