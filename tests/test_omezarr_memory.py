@@ -233,4 +233,10 @@ def test_staging_needs_the_disk_for_the_samples_and_the_store_of_every_staged_ou
             # (decided once per output: asked again, the same answer, nothing counted twice)
             again = blockwrite.zarr_staged(tmp_path / "a.ome.zarr", shape, np.float32, "0.5",
                                            block)
+            # (a store done gives its reservation back: what it wrote, the free space
+            # shows; the frames of a morph, written one after another, are not summed)
+            blockwrite._release_stage(tmp_path / "a.ome.zarr")
+            later = blockwrite.zarr_staged(tmp_path / "c.ome.zarr", shape, np.float32, "0.5",
+                                           block)
         assert got == expected and again == expected[0], (free / raw, got)
+        assert later == expected[0]

@@ -648,9 +648,11 @@ def _stage_fits(path, shape_zyx, dtype, version: str, decided: dict) -> bool:
 
     The disk holds the raw samples and, while the commit writes it, the
     store (counted as large: zstd may gain nothing), beside what the run's
-    other staged stores on that disk take (``decided``): counted as the raw
-    samples alone, a 64 MiB warp failed on a 100 MiB disk after its blocks,
-    where one shard per block fits (a review).
+    other staged stores not yet finished reserve there (``decided``: by
+    output path, each one's until it commits or is abandoned,
+    :func:`_release_stage`; what finished stores wrote, the free space
+    shows). Counted as the raw samples alone, a 64 MiB warp failed on a 100
+    MiB disk after its blocks, where one shard per block fits (a review).
     """
     import shutil
 
@@ -661,14 +663,26 @@ def _stage_fits(path, shape_zyx, dtype, version: str, decided: dict) -> bool:
     folder = Path(path).resolve().parent
     try:
         free = shutil.disk_usage(folder).free
-        disk = ("zarr staged disk", os.stat(folder).st_dev)
+        reserved = decided.setdefault(("zarr staged disk", os.stat(folder).st_dev), {})
     except OSError:
         return False
+    mine = os.path.abspath(path)
     need = 2 * math.prod(shape_zyx) * np.dtype(dtype).itemsize
-    if decided.get(disk, 0) + need > free:
+    if sum(n for p, n in reserved.items() if p != mine) + need > free:
+        reserved.pop(mine, None)
         return False
-    decided[disk] = decided.get(disk, 0) + need
+    reserved[mine] = need
     return True
+
+
+def _release_stage(path) -> None:
+    """The disk a staged store reserved (:func:`_stage_fits`), given back once it is done."""
+    from ..runscope import run_files
+
+    mine = os.path.abspath(path)
+    for key, reserved in run_files().decided.items():
+        if isinstance(key, tuple) and key[:1] == ("zarr staged disk",):
+            reserved.pop(mine, None)
 
 
 def staged_commit_bytes(shape_zyx, dtype, version: str) -> int:
@@ -853,6 +867,7 @@ class _ZarrOutput(BlockOutput):
     def _release(self):
         if self._staged is not None:
             self._staged.close()
+            _release_stage(self.path)
 
     def _finish(self):
         from ..memory import memory_limit, release_freed
