@@ -9,6 +9,8 @@ any output exists.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -58,6 +60,31 @@ def test_stored_domain_boxes_equal_the_read_capture(scene):
         got = lazy.sampler.box(box)
         assert got.dtype == held.domain.dtype
         assert np.array_equal(got, held.domain[box.slices])
+
+
+def test_a_capture_file_replaced_while_its_blocks_run_refuses_the_output(run, scene, tmp_path,
+                                                                        monkeypatch):
+    """The blocks' tasks reopen the file by its path: a capture written over it meanwhile
+    (`volwarp capture -o` renames a new file into place) gave a mix of the two files, exit
+    0 (a review, with the processes scheduler). The file is watched from its opening, as
+    a mapped volume is: the output is refused and nothing is left."""
+    from volwarp_cli.warp import capture_file
+
+    src, spec, vwc = scene
+    other = tmp_path / "other.vwc"
+    assert run("capture", src, "-o", other, "--lattice", "6", "--oversample", "2").code == 0
+    real = capture_file.open_capture_lazy
+
+    def replaced_after_opening(path):
+        cap = real(path)
+        os.replace(other, vwc)  # (a new file of the same name, as capture -o makes it)
+        return cap
+
+    monkeypatch.setattr(capture_file, "open_capture_lazy", replaced_after_opening)
+    out = tmp_path / "o.nrrd"
+    res = run("warp", vwc, "--spec", spec, "-o", out, "--chunked", "--block", "8")
+    assert res.code == 1 and "the file changed while it was being read" in res.stderr, res
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("scheduler", ["threads", "processes"])
@@ -115,3 +142,24 @@ def test_a_capture_file_too_big_for_the_budget_runs_by_blocks(run, scene, tmp_pa
     assert res.code == 0, res.stderr
     assert "running by blocks" in res.stderr
     assert blk.read_bytes() == mem.read_bytes()
+
+
+def test_a_cut_capture_file_and_a_capture_given_as_a_volume_say_what_they_are(run, scene,
+                                                                               tmp_path):
+    """A .vwc cut within its first bytes was 'not a volwarp capture file (file starts with
+    b'VOLWARP-CAPTURE\\n')', the right magic; a .vwc given to a command that reads volumes
+    was an 'unknown volume extension', exit 1 (a review)."""
+    src, spec, vwc = scene
+    cut = tmp_path / "cut.vwc"
+    cut.write_bytes(vwc.read_bytes()[:20])
+    res = run("warp", cut, "--spec", spec, "-o", tmp_path / "o.nrrd")
+    assert res.code == 1 and "truncated capture file (20 bytes" in res.stderr, res.stderr
+    (tmp_path / "empty.vwc").write_bytes(b"")
+    res = run("info", tmp_path / "empty.vwc")
+    assert res.code == 1 and "empty file" in res.stderr
+    for args in (["convert", vwc, "-o", tmp_path / "c.nrrd"],
+                 ["distance", vwc, "-o", tmp_path / "d.nrrd", "--iso", "1"],
+                 ["warp", src, "--spec", spec, "-o", tmp_path / "w.vwc"]):
+        res = run(*args)
+        assert res.code == 2 and "a capture file (.vwc) is" in res.stderr, (args, res.stderr)
+    assert not [p for p in tmp_path.iterdir() if p.suffix == ".nrrd" and p.name != "in.nrrd"]

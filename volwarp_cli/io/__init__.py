@@ -81,6 +81,11 @@ def volume_format(path: str | os.PathLike, *, reading: bool = False) -> str:
     fmt = VOLUME_EXTENSIONS.get(Path(name).suffix)
     if fmt is None and reading and _is_dicom(Path(path)):
         return "dicom"
+    if fmt is None and name.endswith(".vwc"):  # (a capture file: not a volume)
+        raise BadUsage(f"{path}: a capture file (.vwc) is read by `volwarp warp` and "
+                       "`volwarp info` only; give the volume it was captured from"
+                       if reading else f"{path}: a capture file (.vwc) is written by "
+                       "`volwarp capture` only; write a volume (.nrrd, .nii.gz, ...)")
     if fmt is None:
         known = " ".join(sorted(e for e, f in VOLUME_EXTENSIONS.items()
                                 if reading or f not in READ_ONLY_FORMATS))

@@ -33,6 +33,7 @@ B-spline ``Lattice`` and ``Capture`` and checks their placement and sampling nam
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import struct
@@ -123,6 +124,11 @@ def read_header(path: str | os.PathLike) -> tuple[dict, int]:
         size = path.stat().st_size
         with open(path, "rb") as fh:
             prefix = fh.read(_PREFIX.size)
+            if len(prefix) < _PREFIX.size and MAGIC.startswith(prefix[:len(MAGIC)]):
+                # (its start is a capture file's: cut short, not another kind of file)
+                raise FormatError(f"{path}: truncated capture file ({len(prefix)} bytes; "
+                                  f"its header alone takes {_PREFIX.size} or more)"
+                                  if prefix else f"{path}: empty file, not a capture file")
             if len(prefix) < _PREFIX.size or not prefix.startswith(MAGIC):
                 raise FormatError(f"{path}: not a volwarp capture file (file starts with "
                                   f"{prefix[:16]!r})")
@@ -349,7 +355,13 @@ def open_capture_lazy(path: str | os.PathLike) -> Capture:
     payload, so a warp by blocks never holds the domain.
     """
     from ..io.filearray import FileArray
+    from ..io.mapped import watch
 
+    # (its identity before the header and the checksum's pass: the blocks' tasks reopen
+    # it by its path, and a capture replaced meanwhile, `volwarp capture -o` over it, gave
+    # a mix of the two files, exit 0; the outputs are now refused, as a mapped volume's)
+    with contextlib.suppress(OSError):  # (a missing file: read_header says so)
+        watch(path)
     head, offset = read_header(path)
     pl = head["payload"]
     _check_payload(path, pl, offset)
