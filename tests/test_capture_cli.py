@@ -297,3 +297,36 @@ def test_info_says_where_the_control_points_lie(run, tmp_path):
     assert "j +1 = world 0 0 44 mm" in text
     assert f"[8, 8, 8]: world {' '.join(f'{v:g}' for v in pts[8, 8, 8])} mm" in text
     assert "lattice inside: [2..6, 2..6, 2..6]" in text
+
+
+def test_a_captures_values_choice_travels_in_the_file(run, tmp_path):
+    """capture --values labels was accepted and dropped: the file was the one captured
+    without it, and the warp's rule took a mask with three one-voxel ids for intensities
+    and blended them (0 1 2 3 4 6 out of 0 1 5 7 9; a review). The choice is now recorded
+    (key volwarp_values) and the warp takes it; its own --values still overrides."""
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    z, y, x = np.mgrid[:24, :24, :24]
+    mask = ((x - 12) ** 2 + (y - 12) ** 2 + (z - 12) ** 2 < 40).astype(np.uint8)
+    mask[3, 3, 3], mask[20, 4, 5], mask[5, 19, 18] = 5, 7, 9
+    src = tmp_path / "m.nrrd"
+    write_volume(Volume(mask), src)
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nunits: voxel\ncapture: {lattice: 7}\nsteps:\n  - move:\n"
+                    "      - {index: [3, 3, 3], by: [1.3, 0.7, 0.0]}\n")
+    vwc = tmp_path / "m.vwc"
+    assert run("capture", src, "-o", vwc, "--lattice", "7", "--values", "labels").code == 0
+    res = run("warp", vwc, "--spec", spec, "-o", tmp_path / "o.nrrd", "--json")
+    assert res.code == 0, res.stderr
+    summary = json.loads(res.stdout)
+    assert summary["values"] == "labels" and "recorded" in summary["values_why"]
+    assert set(np.unique(read_volume(tmp_path / "o.nrrd").data)) == {0, 1, 5, 7, 9}
+    res = run("warp", vwc, "--spec", spec, "-o", tmp_path / "i.nrrd", "--values", "intensity",
+              "--json")
+    assert res.code == 0 and json.loads(res.stdout)["values"] == "intensity"
+    plain = tmp_path / "p.vwc"
+    assert run("capture", src, "-o", plain, "--lattice", "7").code == 0
+    res = run("warp", plain, "--spec", spec, "-o", tmp_path / "q.nrrd", "--json")
+    assert res.code == 0 and json.loads(res.stdout)["values"] == "intensity"
+    assert "taken for intensities" in res.stderr  # (the ids beside the mask: said)

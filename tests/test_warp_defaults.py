@@ -216,7 +216,7 @@ def test_sparse_ids_taken_for_intensities_are_said(run, tmp_path):
     choice = choose_values(marks, name="lm.nrrd")
     assert not choice.is_labels
     assert choice.warning.startswith("warning: lm.nrrd: its 20 voxels of 20 integer values "
-                                     "besides the background 0 are taken for intensities")
+                                     "besides 0 are taken for intensities")
     assert "--values labels" in choice.warning
     assert choose_values(marks, "labels").warning is None  # (asked: no doubt left)
     assert choose_values(ct_like().data).warning is None
@@ -232,6 +232,14 @@ def test_sparse_ids_taken_for_intensities_are_said(run, tmp_path):
     few = np.zeros((40, 40, 40), np.int16)
     few[tuple(where[:20].T)] = rng.choice(np.arange(100, 4000, 150), 20, replace=False)
     assert choose_values(few).warning is None
+    # landmarks beside a mask (0 and 1 the two most frequent values): as few, said too
+    masked = np.zeros((40, 40, 40), np.uint8)
+    masked[10:30, 10:30, 10:30] = 1
+    masked[2, 2, 2], masked[37, 3, 5], masked[4, 36, 36] = 5, 7, 9
+    choice = choose_values(masked, name="m.nrrd")
+    assert not choice.is_labels
+    assert choice.warning.startswith("warning: m.nrrd: its 3 voxels of 3 integer values "
+                                     "besides 0 and 1 are taken for intensities")
     src = tmp_path / "lm.nrrd"
     write_volume(Volume(marks), src)
     tfm = tmp_path / "t.tfm"

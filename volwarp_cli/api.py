@@ -270,6 +270,10 @@ def capture(volume, *, lattice=9, placement: str = "uniform", oversample: float 
     vol = read(volume, **read_options) if path is not None else _volume(volume, read_options)
     name = str(name or path or "the volume")
     _refuse_blended_labels(vol, name, placement, oversample, values)
+    if values is not None:  # (recorded: the warp of the capture takes it, not the rule)
+        from .labelmap import VALUES_KEY
+
+        vol = vol.replace(meta={**vol.meta, VALUES_KEY: values})
     try:
         return capture_volume(vol, lattice=lattice, placement=placement,
                               oversample=oversample, sampling=sampling, pad=pad)

@@ -157,6 +157,17 @@ _SEGMENTATIONS = {"SEG": "a DICOM SEG", "RTSTRUCT": "a DICOM RTSTRUCT"}
 NIFTI_INTENT_LABEL = 1002
 
 
+#: the key/value a capture given ``--values`` records its choice in (a warp of the
+#: capture, and of the outputs that keep its key/values, takes it, not the rule)
+VALUES_KEY = "volwarp_values"
+
+
+def recorded_values(meta) -> str | None:
+    """The values choice ``meta`` records (:data:`VALUES_KEY`), or None."""
+    value = str((meta or {}).get(VALUES_KEY, ""))
+    return value if value in VALUES else None
+
+
 def segmentation_of(meta) -> str | None:
     """What says a volume is a label map by its key/values (a DICOM SEG, ...), else None.
 

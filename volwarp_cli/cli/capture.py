@@ -99,8 +99,9 @@ def lattice_option(default="9"):
               help="Take the samples as intensities or as label ids. A label map (as "
                    "`volwarp info` hints, or labels given) is refused on the spanning grid "
                    "(--placement tripled, or a non-integer --oversample), which blends its "
-                   "ids for good; intensity captures them as intensities on any grid. (A "
-                   "warp of the capture chooses again, by the rule or its own --values.)")
+                   "ids for good; intensity captures them as intensities on any grid. The "
+                   "choice is recorded in the file (key volwarp_values): a warp of the "
+                   "capture takes it, unless its own --values says otherwise.")
 @input_options
 @common_options
 def command(input, output, lattice, placement, oversample, pad, sampling, values, raw,

@@ -88,8 +88,8 @@ class ValuesChoice:
 
     @property
     def ruled(self) -> bool:
-        """Whether the rule chose (not the user): error messages then name the way out."""
-        return self.why != "given"
+        """Whether the rule chose (not the user, nor a capture's record): messages name the way out."""
+        return self.why != "given" and not self.why.startswith("recorded")
 
     def describe(self) -> str:
         """One line for ``-v``: ``values: labels (looks like a label map: 5 labels)``."""
@@ -122,28 +122,34 @@ SPARSE_SHARE = 0.99
 def sparse_ids_warning(name: str, values, counts) -> str | None:
     """A warning when the rule took a sparse volume of a few integer values for intensities.
 
-    Landmarks or points, one voxel each with ids 1..20 in zeros, have no
-    regions for the rule to see: it answers intensities, and an intensity
-    warp or resampling blends the ids away (a review: 20 landmarks became
-    values 0..7 over 103 voxels, 6 ids gone, nothing said). Said, not
-    decided: a sparse intensity image is possible too, and one whose values
-    are many (above :data:`SPARSE_IDS`) or spread out (over four times as
-    many integers as there are values, as ids 1..N are not) says nothing.
+    Landmarks or points, one voxel each with ids 1..20 in zeros (or beside a
+    mask's 0 and 1), have no regions for the rule to see: it answers
+    intensities, and an intensity warp or resampling blends the ids away (a
+    review: 20 landmarks became values 0..7 over 103 voxels, 6 ids gone,
+    nothing said). Said, not decided: a sparse intensity image is possible
+    too, and one whose values are many (above :data:`SPARSE_IDS`) or spread
+    out (over four times as many integers as there are values, as ids 1..N
+    are not) says nothing.
     """
     if values is None or counts is None or not 3 <= len(values) <= SPARSE_IDS + 1:
         return None
-    total = int(np.sum(counts))
-    top = int(np.max(counts))
-    if total == 0 or top < SPARSE_SHARE * total:
+    values, counts = np.asarray(values), np.asarray(counts)
+    total = int(counts.sum())
+    order = np.argsort(-counts, kind="stable")
+    # the background, and a mask beside it where one holds more than the sparse share
+    kept = order[:2] if counts[order[1]] > (1 - SPARSE_SHARE) * total else order[:1]
+    rest = np.setdiff1d(np.arange(len(values)), kept)
+    few = int(counts[rest].sum())
+    if total == 0 or few > (1 - SPARSE_SHARE) * total:
         return None
-    background = values[int(np.argmax(counts))]
-    ids = np.asarray(values)[np.asarray(values) != background].astype(np.float64)
+    ids = values[values != values[order[0]]].astype(np.float64)
     if ids.max() - ids.min() + 1 > 4 * len(ids):  # (values spread out: a sparse image's)
         return None
-    return (f"warning: {name}: its {total - top} voxels of {len(values) - 1} integer values "
-            f"besides the background {background:g} are taken for intensities (too few "
-            "regions for the label rule to tell landmarks or points from a sparse image); if "
-            "they are ids, give --values labels")
+    beside = " and ".join(f"{v:g}" for v in values[kept])
+    return (f"warning: {name}: its {few} voxels of {len(rest)} integer values besides "
+            f"{beside} are taken for intensities (too few regions for the label rule to "
+            "tell landmarks or points from a sparse image); if they are ids, give --values "
+            "labels")
 
 
 def choose_values(source, given: str | None = None, *, name: str = "the input",
@@ -162,6 +168,13 @@ def choose_values(source, given: str | None = None, *, name: str = "the input",
     """
     if given is not None and given not in VALUES:
         raise ValueError(f"values must be one of {', '.join(VALUES)}, got {given!r}")
+    from ..labelmap import recorded_values
+
+    recorded = recorded_values(meta) if given is None else None
+    if recorded is not None:  # (capture --values: the choice travels in the file)
+        choice = choose_values(source, recorded, name=name)
+        return ValuesChoice(choice.values, "recorded in the file (volwarp_values)",
+                            choice.labels, choice.warning, choice.ids)
     if given == "intensity":
         return ValuesChoice("intensity", "given")
     kind = np.dtype(source.dtype).kind
