@@ -476,3 +476,25 @@ def test_a_mask_is_meshed_at_its_level_as_asked(run, tmp_path):
         assert res.code == 0, (extra, res.stderr)
     res = run("mesh", tmp_path / "e.nrrd", "--values", "labels", "-o", tmp_path / "e2.ply")
     assert res.code == 1 and "--allow-empty" in res.stderr
+
+
+def test_an_empty_surfaces_render_and_camera_frame_the_volume(run, tmp_path):
+    """--allow-empty rendered with a camera at the world's origin: its --camera-to file
+    framed nothing of a volume far from it, and a later render through it of a surface
+    that appeared was empty (a review). The camera of an empty surface frames the
+    volume's box, as the surface would."""
+    data = np.zeros((12, 14, 16), np.float32)
+    data[4:8, 5:9, 6:10] = 200
+    src = tmp_path / "far.nrrd"
+    write_volume(Volume(data, origin=np.array([500.0, 300.0, -200.0])), src)
+    cam = tmp_path / "e.json"
+    res = run("mesh", src, "--iso", "300", "--allow-empty", "--render", tmp_path / "e.png",
+              "--camera-to", cam)
+    assert res.code == 0, res.stderr
+    focal = np.array(json.loads(cam.read_text())["focal_point"])
+    assert np.all(focal >= [499.5, 299.5, -200.5]) and np.all(focal <= [515.5, 313.5, -188.5])
+    res = run("mesh", src, "--iso", "100", "--render", tmp_path / "after.png",
+              "--camera-from", cam)
+    assert res.code == 0 and "outside the camera's picture" not in res.stderr, res.stderr
+    image = read_image(tmp_path / "after.png")
+    assert len(np.unique(image.reshape(-1, image.shape[-1]), axis=0)) > 2  # (a surface drawn)

@@ -154,6 +154,12 @@ def test_parse_view_patient_names_and_old_names():
         parse_view("patient-up")
     for name in ("patient-left", "anterior", "superior", "inferior", "AZIMUTH,ELEVATION"):
         assert name in VIEW_HELP
+    # the field at fault is named (a NaN azimuth was called a bad elevation; a review)
+    for bad, field in (("nan,0", "azimuth"), ("inf,10", "azimuth"), ("1e308,0", "azimuth"),
+                       ("0,nan", "elevation"), ("30,91", "elevation")):
+        with pytest.raises(VolwarpError, match=f"view {field} must"):
+            parse_view(bad)
+    assert parse_view("-720,30") == (-720.0, 30.0)
 
 
 # -- scenes: a body with a marker on one side ------------------------------------------

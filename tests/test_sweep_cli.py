@@ -245,6 +245,27 @@ def test_relative_spec_path_with_frame_glob(tmp_path, run, monkeypatch):
     assert 1.9 < read_volume(tmp_path / "o_red.nrrd").data.max() <= 2.0  # last frame at u = 1
 
 
+def test_an_output_the_frames_glob_matches_is_refused(tmp_path, run):
+    """--render t/f3.tif beside frames 't/f*.tif' was written, and the next run of the same
+    command read it as a fourth frame (a review: 67.4 then 54.9 mm^3). An output an input
+    glob matches is refused before any work; a name beside it that it does not match is
+    written."""
+    (tmp_path / "t").mkdir()
+    from volwarp_cli.io.images import write_image
+    for k in range(3):
+        write_image(tmp_path / "t" / f"f{k}.tif", np.full((2, 2, 1), float(k), dtype=np.float32))
+    (tmp_path / "s.yaml").write_text(GOOD.replace("red: 0.25", "red: {frames: 't/f*.tif'}"))
+    before = sorted(p.name for p in (tmp_path / "t").iterdir())
+    for option, name in (("--render", "f3.tif"), ("-o", "f_{field}.tif")):
+        args = ["-o", tmp_path / "o_{field}.nrrd"] if option == "--render" else []
+        res = run("sweep", tmp_path / "s.yaml", *args, option, tmp_path / "t" / name)
+        assert res.code == 2 and "matches the input pattern" in res.stderr, res.stderr
+        assert sorted(p.name for p in (tmp_path / "t").iterdir()) == before
+    res = run("sweep", tmp_path / "s.yaml", "-o", tmp_path / "o_{field}.nrrd", "--render",
+              tmp_path / "t" / "g3.png")
+    assert res.code == 0, res.stderr
+
+
 def test_render_needs_opacity(tmp_path, run):
     (tmp_path / "s.yaml").write_text(GOOD.replace("opacity: {value: 0.8}", "density: 0.8"))
     res = run("sweep", tmp_path / "s.yaml", "-o", tmp_path / "o_{field}.nrrd",

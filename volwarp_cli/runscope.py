@@ -55,6 +55,8 @@ class RunFiles:
     ends: list = field(default_factory=list)
     copies: dict = field(default_factory=dict)
     decided: dict = field(default_factory=dict)
+    #: the glob patterns of the run's inputs (a sweep's template frames ``fr_*.png``)
+    globs: list = field(default_factory=list)
     #: the numbered output patterns (``--frames-to``, a morph's frames) and their options
     patterns: list = field(default_factory=list)
     #: the outputs renamed into place, in order (``io.atomic.outputs_together``)

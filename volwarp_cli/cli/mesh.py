@@ -241,10 +241,31 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         chosen = {} if choice is None else {"values": choice.values, "values_why": choice.why}
         _print_stats(dict(surface.stats, iso=surface.iso, **chosen), as_json)
     if render is not None:
+        camera = camera_from
+        if camera is None and surface.mesh.is_empty:  # (--allow-empty: frame the volume)
+            camera = _volume_camera(header, view, render_size)
         _render(surface.mesh, render, turntable, orientation_labels_for(orientation_labels,
                                                                         header),
                 dict(view=view, size=render_size, color=color, background=background_color,
-                     camera=camera_from), (camera_to, input))
+                     camera=camera), (camera_to, input))
+
+
+def _volume_camera(header, view, size):
+    """The camera an empty surface's render takes: the volume's box, as its surface would.
+
+    (It was a camera at the world's origin, whose ``--camera-to`` file framed
+    nothing of the volume: a before/after pipeline's later renders were empty.)
+    """
+    import itertools
+
+    import numpy as np
+
+    from ..render.surface import fit_camera
+
+    nx, ny, nz = header.shape_xyz
+    corners = np.array(list(itertools.product((-0.5, nx - 0.5), (-0.5, ny - 0.5),
+                                              (-0.5, nz - 0.5))))
+    return fit_camera(header.index_to_world(corners), view, size)
 
 
 def _print_stats(stats: dict, as_json: bool, label_lines: bool = False) -> None:

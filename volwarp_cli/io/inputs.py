@@ -39,6 +39,19 @@ def declare_input(path: str | os.PathLike) -> None:
     run_files().declared.setdefault(str(path), None)
 
 
+def declare_input_glob(pattern: str | os.PathLike) -> None:
+    """Record a glob whose files are inputs of this run (a sweep's template frames).
+
+    :func:`refuse_output_over_input` then refuses an output it would match:
+    a render named ``fr_003.png`` beside frames ``fr_*.png`` was written, and
+    the next run of the command read it as a fourth frame (a review).
+    """
+    files = run_files()
+    pattern = os.path.abspath(pattern)
+    if pattern not in files.globs:
+        files.globs.append(pattern)
+
+
 def opened_as_input(path: str | os.PathLike) -> bool:
     """True when ``path`` is (the same file as) one this run's readers opened."""
     ident = _identity(path)
@@ -166,6 +179,7 @@ def refuse_output_over_input(output: str | os.PathLike,
     """
     if inputs is None:
         inputs = list(run_files().declared)
+        _refuse_output_in_glob(output, option)
     if not inputs:
         return
     targets = [(p, _real(p), _identity(p)) for p in output_files(output)]
@@ -176,6 +190,22 @@ def refuse_output_over_input(output: str | os.PathLike,
             for target, target_real, target_ident in targets:
                 if _collide(target_real, target_ident, real, ident, Path(file).is_dir()):
                     raise BadUsage(_message(output, target, given, file, option))
+
+
+def _refuse_output_in_glob(output, option: str | None) -> None:
+    """Refuse an output whose name an input glob of this run matches (:func:`declare_input_glob`)."""
+    import fnmatch
+
+    globs = run_files().globs
+    if not globs:
+        return
+    names = {os.path.abspath(output), _real(output)}
+    for pattern in globs:
+        if any(fnmatch.fnmatchcase(name, pattern) for name in names):
+            what = f"{option} {output}" if option else str(output)
+            raise BadUsage(f"{what} matches the input pattern {pattern}: the next run would "
+                           "read it as an input (a frame of the template); choose a name the "
+                           "pattern does not match")
 
 
 def _expanded(given) -> list[Path]:

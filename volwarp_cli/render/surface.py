@@ -161,7 +161,10 @@ def parse_view(value) -> tuple[float, float]:
         except (TypeError, ValueError):
             raise VolwarpError(f"a view is one of {names} or (azimuth, "
                                f"elevation), got {value!r}") from None
-    if not (math.isfinite(az) and math.isfinite(el)) or not -90.0 <= el <= 90.0:
+    if not math.isfinite(az) or abs(az) > 1e6:
+        raise VolwarpError(f"view azimuth must be a finite number of degrees (within "
+                           f"+-1e6), got {value!r}")
+    if not math.isfinite(el) or not -90.0 <= el <= 90.0:
         raise VolwarpError(f"view elevation must be within -90..90 degrees, got {value!r}")
     return az, el
 

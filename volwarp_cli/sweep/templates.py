@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import VolwarpError
 from ..io.images import read_image
-from ..io.inputs import declare_input
+from ..io.inputs import declare_input, declare_input_glob
 from ..spec.functions import Function, spec_error
 
 
@@ -147,6 +147,7 @@ class TemplateLoader:
         fpath = path + ("frames",)
         if isinstance(frames, str) and any(c in frames for c in "*?["):
             pattern = str(self.doc.resolve(frames)) if self.doc is not None else frames
+            declare_input_glob(pattern)  # (an output it matches would be a frame next time)
             files = sorted(globmod.glob(pattern))
             if not files:
                 raise self._err(fpath, f"no files match {frames!r}")
