@@ -264,6 +264,10 @@ def test_an_output_the_frames_glob_matches_is_refused(tmp_path, run):
     res = run("sweep", tmp_path / "s.yaml", "-o", tmp_path / "o_{field}.nrrd", "--render",
               tmp_path / "t" / "g3.png")
     assert res.code == 0, res.stderr
+    (tmp_path / "t" / "sub").mkdir()  # (a folder below: the glob's * does not reach it)
+    res = run("sweep", tmp_path / "s.yaml", "-o", tmp_path / "o_{field}.nrrd", "--render",
+              tmp_path / "t" / "sub" / "f9.tif")
+    assert res.code == 0, res.stderr
 
 
 def test_render_needs_opacity(tmp_path, run):

@@ -199,9 +199,14 @@ def _refuse_output_in_glob(output, option: str | None) -> None:
     globs = run_files().globs
     if not globs:
         return
+    def matches(name: str, pattern: str) -> bool:  # (as glob does: no * across a /)
+        parts, wild = name.split(os.sep), pattern.split(os.sep)
+        return len(parts) == len(wild) and all(
+            fnmatch.fnmatchcase(a, b) for a, b in zip(parts, wild, strict=True))
+
     names = {os.path.abspath(output), _real(output)}
     for pattern in globs:
-        if any(fnmatch.fnmatchcase(name, pattern) for name in names):
+        if any(matches(name, pattern) for name in names):
             what = f"{option} {output}" if option else str(output)
             raise BadUsage(f"{what} matches the input pattern {pattern}: the next run would "
                            "read it as an input (a frame of the template); choose a name the "
