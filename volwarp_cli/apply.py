@@ -43,6 +43,7 @@ import numpy as np
 from .box import Box
 from .errors import BadUsage
 from .execute import Operation
+from .samples import holds_value
 from .transforms.model import Affine, Chain, DisplacementField
 
 INTERPOLATIONS = ("linear", "nearest", "bspline")
@@ -231,7 +232,7 @@ class ApplyOperation(Operation):
         uint8 scan's int16 output: int16).
         """
         dtype = np.dtype(dtype)
-        if self.interpolation != "nearest" or _holds(dtype, self.background):
+        if self.interpolation != "nearest" or holds_value(dtype, self.background):
             return dtype
         return np.promote_types(dtype, self.dtype)
 
@@ -525,15 +526,6 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
                           target=Target(None, out, out_dtype, labels=labels), name=name)
 
 
-def _holds(dtype, value: float) -> bool:
-    """Whether samples of ``dtype`` hold ``value`` exactly (integer types: in range, whole)."""
-    dtype = np.dtype(dtype)
-    if dtype.kind not in "iu":
-        return True  # (floats: the value as that float, as every sample of it is)
-    info = np.iinfo(dtype)
-    return float(value).is_integer() and info.min <= value <= info.max
-
-
 def _check_label_output(sampling: Sampling, dtype, out_dtype: np.dtype, name: str) -> None:
     """A label map's output type holds every id and the background (a label id too)."""
     from .labelmap import refuse_merged_ids
@@ -543,7 +535,7 @@ def _check_label_output(sampling: Sampling, dtype, out_dtype: np.dtype, name: st
         if not float(b).is_integer():
             raise BadUsage(f"{name}: --background-value {b:g} is not a label id (an integer); "
                            "a label map's outside takes a label")
-        if not _holds(out_dtype, b):
+        if not holds_value(out_dtype, b):
             raise BadUsage(f"{name}: --background-value {b:g} does not fit the output's "
                            f"{out_dtype.name} ids (it would become another label); give a "
                            "--dtype that holds it")

@@ -33,6 +33,15 @@ def check_dtype(dtype, where: str = "") -> np.dtype:
 MAX_AXIS = 1 << 31
 
 
+def holds_value(dtype, value: float) -> bool:
+    """Whether samples of ``dtype`` hold ``value`` exactly (integer types: in range, whole)."""
+    dtype = np.dtype(dtype)
+    if dtype.kind not in "iu":
+        return True  # (floats: the value as that float, as every sample of it is)
+    info = np.iinfo(dtype)
+    return float(value).is_integer() and info.min <= value <= info.max
+
+
 def voxel_count(shape) -> int:
     """The number of samples of a grid of ``shape`` (any axis order), as a Python int.
 

@@ -361,7 +361,7 @@ def _glob_scans(manifest: Manifest, pattern: str) -> list[tuple[Path, tuple]]:
             "searches; choose an output_dir outside it (a folder inside it is fine: it is "
             f"left out of the glob) ({folder})"))
     paths = []
-    batches: dict[Path, bool] = {}  # folder -> whether it is (or lies in) a batch's outputs
+    batches: dict[Path, Path | None] = {}  # folder -> the batch output folder it lies in
     others: dict[Path, int] = {}
     for name in sorted(glob.glob(pattern, recursive=True)):
         p = Path(name)

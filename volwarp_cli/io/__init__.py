@@ -205,6 +205,16 @@ def read_components(path: str | os.PathLike) -> tuple[Volume, np.ndarray]:
     return vol, samples
 
 
+def check_byte_order(path, fmt: str, byte_order: str, option: str | None = None) -> None:
+    """Refuse a byte order ``path``'s format is not written in (NIfTI: little-endian only).
+
+    ``option``: the option that names ``path``, for the message (an export's).
+    """
+    if fmt == "nifti" and byte_order != "little":
+        where = f"{option} {path}" if option else str(path)
+        raise BadUsage(f"{where}: volwarp writes NIfTI little-endian only (--byte-order)")
+
+
 def say_unused_writer_options(path, fmt: str, compress: bool, ome_zarr_version: str) -> None:
     """Say (once a run) a writer option that ``path``'s format has nothing to do with.
 
@@ -252,8 +262,7 @@ def write_volume(vol: Volume, path: str | os.PathLike, *, dtype=None, compress: 
     if pyramid and fmt != "omezarr":
         raise BadUsage(f"{path}: --pyramid writes extra levels of OME-Zarr outputs "
                        "(.ome.zarr); a " + _FORMAT_NAMES[fmt] + " file has one")
-    if fmt == "nifti" and byte_order != "little":
-        raise BadUsage(f"{path}: volwarp writes NIfTI little-endian only (--byte-order)")
+    check_byte_order(path, fmt, byte_order)
     say_unused_writer_options(path, fmt, compress, ome_zarr_version)
     cast = None  # (a type the writer casts to by slabs as it writes)
     if dtype is not None and np.dtype(dtype) != vol.data.dtype:

@@ -759,20 +759,21 @@ class _ZarrOutput(BlockOutput):
         staged = zarr_staged(path, header.shape, dtype, version, chunks_zyx, header.direction)
         layout = (omezarr.store_layout(stored.shape, version, None) if staged
                   else block_layout(stored.shape, version, block))
-        chunk, shard = layout
-        grid = shard or chunk
-        if block is not None:
+        phase = (0, 0, 0)
+        if staged:  # (the scratch file: the volume's own axes)
+            grid = clip_block(chunks_zyx, geometry.shape)
+        else:
             # the caller's blocks: each one whole write units in the in-memory layout, or
             # one shard of its own (the units as the grid cut a distance's last pass, whole
-            # along z, at a shard's edge: 1,144,000 voxels were left inf, exit 0)
-            grid = clip_block(block, stored.shape)
-        phase = (0, 0, 0)
-        if staged:
-            grid = clip_block(chunks_zyx, geometry.shape)
-        elif reindex is not None:
-            grid = reindex.volume_axes(grid)
-            phase = tuple(int(n) % c if a in reindex.flips else 0
-                          for a, (n, c) in enumerate(zip(geometry.shape, grid, strict=True)))
+            # along z, at a shard's edge: 1,144,000 voxels were left inf, exit 0); without
+            # blocks, the store's write units
+            grid = (clip_block(block, stored.shape) if block is not None
+                    else layout[1] or layout[0])
+            if reindex is not None:
+                grid = reindex.volume_axes(grid)
+                phase = tuple(int(n) % c if a in reindex.flips else 0
+                              for a, (n, c) in enumerate(zip(geometry.shape, grid,
+                                                             strict=True)))
         super().__init__(path, geometry, dtype, grid, phase)
         self._reindex = reindex
         self._staged = None

@@ -274,6 +274,13 @@ def _inside(path: str, folder: str) -> bool:
         return False
 
 
+def _has_fields(text: str) -> bool:
+    """Whether the ``str.format`` pattern ``text`` has a field (``{frame}``)."""
+    import string
+
+    return any(f is not None for _, f, _, _ in string.Formatter().parse(text))
+
+
 def pattern_regex(name: str, value: str) -> str:
     """A regular expression of the names ``str.format`` pattern ``name`` gives, each field ``value``."""
     import re
@@ -300,10 +307,9 @@ def earlier_pattern_files(pattern: str, written) -> list[str]:
     a pattern with fields in its folder.
     """
     import re
-    import string
 
     folder, name = os.path.split(pattern)
-    if any(f is not None for _, f, _, _ in string.Formatter().parse(folder)):
+    if _has_fields(folder):
         return []
     regex = pattern_regex(name, NUMBER)
     mine = {os.path.realpath(p) for p in written}
@@ -351,12 +357,11 @@ def refuse_pattern_over_input(pattern: str, *, option: str | None = None,
     so ``head_{frame}.nrrd`` can never name ``head_t1.nrrd``.
     """
     import re
-    import string
 
     if inputs is None:
         inputs = list(run_files().declared)
     folder, name = os.path.split(pattern)
-    if any(f is not None for _, f, _, _ in string.Formatter().parse(folder)):
+    if _has_fields(folder):
         base, name = "", pattern  # fields in the folder too: match whole paths
     else:
         base = os.path.realpath(folder or ".")

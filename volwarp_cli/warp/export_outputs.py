@@ -132,17 +132,13 @@ def refuse_export_byte_order(requests: ExportRequests) -> None:
     (Found when the Jacobian was written, after the warp's work, in a first
     version; a NIfTI field was written little-endian without a word.)
     """
-    from ..errors import BadUsage
-    from ..io import volume_format
+    from ..io import check_byte_order, volume_format
 
-    if requests.byte_order == "little":
-        return
     for name, path in (("--displacement-to", requests.displacement),
                        ("--forward-field-to", requests.forward),
                        ("--jacobian-to", requests.jacobian)):
-        if path is not None and volume_format(path) == "nifti":
-            raise BadUsage(f"{name} {path}: volwarp writes NIfTI little-endian only "
-                           "(--byte-order)")
+        if path is not None:
+            check_byte_order(path, volume_format(path), requests.byte_order, name)
 
 
 def say_unused_field_options(requests: ExportRequests, path: str) -> None:

@@ -45,13 +45,7 @@ from .labels import (
     needed_tiles,
     stream_bytes,
 )
-from .run import (
-    LatticeMoves,
-    WarpOptions,
-    background_label,
-    given_background,
-    prepare_label_warp,
-)
+from .run import LatticeMoves, WarpOptions, background_label, prepare_label_warp
 
 _BUILD = threading.Lock()  # one scene per process, even when two threads ask at once
 
@@ -95,7 +89,7 @@ class OneShotLabelWarp(LatticeMoves):
             header, doc, spec, options, name)
         #: the label where nothing lands: the given one, else the most frequent on the
         #: map's border
-        self.background = background_label(source, given_background(spec, options))
+        self.background = background_label(source, options.background)
         if self.frames:
             self.scene.set_lattice(self.frames[-1].dq)
         #: the output's Header: its shape, dtype and geometry

@@ -363,13 +363,12 @@ def _write_exports(req: WarpFiles, warp, how, *, by_slabs: bool) -> dict:
 
 def _not_a_label(value: float, dtype) -> str | None:
     """Why ``value`` cannot be a label id of a map of ``dtype`` (the background's), or None."""
+    from ..samples import holds_value
+
     if not float(value).is_integer():
         return "is not a label id (an integer): a label map's background is a label"
-    import numpy as np
-
-    dtype = np.dtype(dtype) if dtype is not None else np.dtype(np.float64)
-    if dtype.kind in "iu" and not np.iinfo(dtype).min <= value <= np.iinfo(dtype).max:
-        return (f"does not fit the map's {dtype.name} ids (labels keep the map's own type)")
+    if dtype is not None and not holds_value(dtype, value):
+        return f"does not fit the map's {dtype} ids (labels keep the map's own type)"
     return None
 
 

@@ -521,10 +521,6 @@ def background_label(samples, given: float | None = None) -> int:
     return label
 
 
-def given_background(spec, options: WarpOptions) -> float | None:
-    """The background label the command line gives, or None (a spec's is refused for labels)."""
-    return options.background
-
 
 class Deformation(LatticeMoves):
     """A warp's lattice moves and nothing else: what its exports need, no volume computed.
@@ -570,7 +566,7 @@ class LabelMapWarp(LatticeMoves):
             vol, doc, spec, options, name)
         #: the label where nothing lands: the given one, else the most frequent on the
         #: map's border
-        self.background = background_label(vol.data, given_background(spec, options))
+        self.background = background_label(vol.data, options.background)
 
 
     def summary(self) -> dict:
