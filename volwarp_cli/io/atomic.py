@@ -25,6 +25,7 @@ from pathlib import Path
 from ..errors import BadUsage, VolwarpError
 from ..runscope import run_files
 from ..signals import Interrupted, blocked, check_stop, install, temporaries
+from . import writeback
 from .mapped import check_unchanged, sync_temporaries
 
 __all__ = ["Interrupted", "atomic_folder", "atomic_output", "atomic_outputs",
@@ -304,6 +305,7 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
                 _live_temporaries.add(tmp)
                 tmps.append(tmp)
                 os.close(fd)  # (here: a stop deferred by blocked() is raised as it ends)
+            writeback.replacing(tmp, os.path.lexists(path))
         sync_temporaries()
         yield [Path(t) for t in tmps]
         mask = current_umask()
@@ -334,6 +336,8 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
             raise write_error(named, exc) from exc
         raise
     finally:
+        for tmp in tmps:
+            writeback.replacing(tmp, False)
         if not held:
             for tmp in tmps:
                 _live_temporaries.discard(tmp)

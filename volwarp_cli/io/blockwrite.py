@@ -56,6 +56,7 @@ from ..box import Box
 from ..errors import BadUsage, VolwarpError
 from ..geometry import Geometry
 from ..samples import check_dtype
+from . import writeback
 from .atomic import write_error
 
 __all__ = ["BlockOutput", "BlockWriter", "aligned_chunks", "block_indices", "open_block_output"]
@@ -319,18 +320,22 @@ class _MappedWriter(BlockWriter):
 
     Through a descriptor of the write's (or the placing task's) own, closed by
     it (not a memory map: mapped pages would count in the task's memory).
+    ``write_back``: an output replacing a file (:mod:`.writeback`).
     """
 
-    def __init__(self, file, file_dtype, offset, shape, chunks, dtype, where, components=0):
+    def __init__(self, file, file_dtype, offset, shape, chunks, dtype, where, components=0,
+                 write_back=False):
         super().__init__(shape, chunks, dtype, where, components=components)
         self.file, self.file_dtype, self.offset = str(file), np.dtype(file_dtype), int(offset)
+        self.write_back = write_back
 
     @contextlib.contextmanager
     def _opened(self):
         from .filearray import FileArray
 
         file = FileArray(self.file, self.file_dtype, self.offset,
-                         _file_shape(self.shape, self.components), writable=True)
+                         _file_shape(self.shape, self.components), writable=True,
+                         write_back=self.write_back)
         try:
             file._file()  # (now: not by two of a task's threads at once)
         except OSError as exc:
@@ -920,6 +925,8 @@ class _MappedOutput(BlockOutput):
         self._file_dtype, self._offset = file_dtype, len(header)
         try:
             tmp = self._tmp = self._stack.enter_context(atomic_output(path))
+            # a rename replacing a file waits for the samples' writing out: begun as they come
+            self._write_back = writeback.replaces(tmp)
             with open(tmp, "r+b") as fh:
                 fh.write(header)
                 fh.truncate(len(header) + nbytes)
@@ -928,7 +935,7 @@ class _MappedOutput(BlockOutput):
 
                 self._map = FileArray(tmp, file_dtype, len(header),
                                       _file_shape(geometry.shape, self.components),
-                                      writable=True)
+                                      writable=True, write_back=self._write_back)
         except BaseException as exc:
             self.abort()
             if isinstance(exc, OSError):
@@ -975,7 +982,8 @@ class _MappedOutput(BlockOutput):
 
     def writer(self):
         return _MappedWriter(self._tmp, self._file_dtype, self._offset, self.geometry.shape,
-                             self.chunks, self.dtype, str(self.path), self.components)
+                             self.chunks, self.dtype, str(self.path), self.components,
+                             write_back=self._write_back)
 
     def _finish(self):
         try:

@@ -18,6 +18,7 @@ from ..memory import available_memory, ensure_fits_in_memory  # noqa: F401
 from ..memory import human_bytes as _human  # noqa: F401
 from ..runscope import run_files
 from ..samples import SUPPORTED_DTYPES, cast_samples, check_dtype, voxel_count  # noqa: F401
+from . import writeback
 
 
 def header_line(raw: bytes) -> str:
@@ -104,7 +105,7 @@ def write_samples(fh, data: np.ndarray, byte_order: str = "little", dtype=None, 
     out = check_dtype(data.dtype if dtype is None else dtype, what)
     out = out.newbyteorder("<" if byte_order == "little" else ">")
     if data.dtype == out and data.flags.c_contiguous:
-        fh.write(memoryview(data).cast("B"))
+        writeback.write(fh, memoryview(data).cast("B"))
         return
     plane = max(1, data[:1].size * max(out.itemsize, data.dtype.itemsize))
     step = max(1, SLAB_BYTES // plane)
@@ -112,7 +113,7 @@ def write_samples(fh, data: np.ndarray, byte_order: str = "little", dtype=None, 
         part = data[z:z + step]
         if dtype is not None:
             part = cast_samples(part, dtype, what=what)
-        fh.write(memoryview(with_byte_order(part, byte_order)).cast("B"))
+        writeback.write(fh, memoryview(with_byte_order(part, byte_order)).cast("B"))
 
 
 def read_exact(fh, nbytes: int, where: str) -> np.ndarray:

@@ -32,16 +32,20 @@ class FileArray:
     """``shape`` (z, y, x) samples of ``dtype`` at ``offset`` in ``path``: numpy slicing reads.
 
     Picklable (the path, not an open file): a worker process opens the file
-    itself. ``writable``: ``array[z0:z1, y0:y1, x0:x1] = block`` writes too.
+    itself. ``writable``: ``array[z0:z1, y0:y1, x0:x1] = block`` writes too;
+    ``write_back`` (an output's samples, not a scratch file's): each write of
+    a contiguous span asks for it to be written out (:mod:`.writeback`).
     """
 
-    def __init__(self, path, dtype, offset: int, shape, *, writable: bool = False):
+    def __init__(self, path, dtype, offset: int, shape, *, writable: bool = False,
+                 write_back: bool = False):
         self.path = str(path)
         self.dtype = np.dtype(dtype)
         self.offset = int(offset)
         self.shape = tuple(int(n) for n in shape)
         self.ndim = 3
         self.writable = writable
+        self.write_back = write_back and writable
         self._fd = None
 
     # -- the file ----------------------------------------------------------------------------
@@ -129,6 +133,10 @@ class FileArray:
                 continue
             for j, y in enumerate(range(y0, y1)):
                 _write_all(fd, block[i, j], self.offset + ((z * ny + y) * nx + x0) * item)
+        if self.write_back and whole_rows and (z1 - z0 == 1 or (y0 == 0 and y1 == ny)):
+            from . import writeback  # (the bytes written are one span of the file)
+
+            writeback.start(fd, self.offset + (z0 * ny + y0) * nx * item, block.nbytes)
 
     def __array__(self, dtype=None, copy=None):
         out = self[:, :, :]

@@ -1,0 +1,213 @@
+"""An output replacing a file has its samples asked out as they are written (io/writeback).
+
+The requests change no byte of any output (the kernel writes the pages out
+anyway); what is tested is that they are made where a rename would wait for
+them (an output replacing a file, by spans covering its samples), never for
+a new file or a scratch file, that the libc call is the right one, and that
+a slow disk cannot make them pile up.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from volwarp_cli.io import writeback
+
+SPECS = Path(__file__).resolve().parent.parent / "specs"
+linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="sync_file_range")
+
+
+@pytest.fixture
+def asked(monkeypatch):
+    """Record every request as (file, offset, bytes), made at once (no thread)."""
+    calls = []
+
+    def record(fd, offset, nbytes):
+        if nbytes < writeback.MIN_BYTES:
+            return False
+        calls.append((os.path.realpath(f"/proc/self/fd/{fd}"), offset, nbytes))
+        return True
+
+    monkeypatch.setattr(writeback, "start", record)
+    monkeypatch.setattr(writeback, "MIN_BYTES", 0)
+    return calls
+
+
+def _covered(calls, name_part):
+    """The byte ranges asked out of files whose name holds ``name_part``, merged."""
+    spans = sorted((o, o + n) for f, o, n in calls if name_part in os.path.basename(f))
+    merged = []
+    for lo, hi in spans:
+        if merged and lo <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], hi)
+        else:
+            merged.append([lo, hi])
+    return [tuple(m) for m in merged]
+
+
+@linux
+def test_the_libc_call_is_sync_file_range_asking_a_write(tmp_path):
+    # a wrong flag (or argument types) makes the kernel answer EINVAL, not 0
+    call = writeback._sync_file_range()
+    assert call is not None
+    path = tmp_path / "f.bin"
+    path.write_bytes(os.urandom(3 << 20))
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        import ctypes
+
+        assert call(fd, ctypes.c_int64(4096), ctypes.c_int64(2 << 20),
+                    writeback._SYNC_FILE_RANGE_WRITE) == 0
+        assert call(fd, ctypes.c_int64(0), ctypes.c_int64(1), 1 << 7) == -1  # (no such flag)
+        assert ctypes.get_errno() == 22  # EINVAL
+    finally:
+        os.close(fd)
+
+
+@linux
+def test_requests_reach_the_thread_and_their_descriptors_are_closed(tmp_path, monkeypatch):
+    seen, done = [], threading.Event()
+
+    def fake_call(fd, offset, nbytes, flags):
+        seen.append((os.path.realpath(f"/proc/self/fd/{fd}"), offset.value, nbytes.value, flags))
+        if len(seen) == 2:
+            done.set()
+        return 0
+
+    monkeypatch.setattr(writeback, "_state", {"call": fake_call})
+    path = tmp_path / "out.bin"
+    path.write_bytes(b"\0" * (4 << 20))
+    before = len(os.listdir("/proc/self/fd"))
+    with open(path, "r+b") as fh:
+        assert writeback.start(fh.fileno(), 0, 2 << 20)
+        assert writeback.start(fh.fileno(), 2 << 20, 2 << 20)
+        assert not writeback.start(fh.fileno(), 0, writeback.MIN_BYTES - 1)  # (too small)
+    assert done.wait(10)
+    for _ in range(1000):
+        if writeback.pending() == 0:
+            break
+        threading.Event().wait(0.01)
+    assert writeback.pending() == 0
+    assert seen == [(str(path), 0, 2 << 20, 2), (str(path), 2 << 20, 2 << 20, 2)]
+    assert len(os.listdir("/proc/self/fd")) == before  # the duplicates are closed
+
+
+@linux
+def test_a_slow_disk_holds_at_most_max_pending_requests(tmp_path, monkeypatch):
+    release = threading.Event()
+
+    def slow_call(fd, offset, nbytes, flags):
+        release.wait(10)
+        return 0
+
+    monkeypatch.setattr(writeback, "_state", {"call": slow_call})
+    path = tmp_path / "out.bin"
+    path.write_bytes(b"\0" * (1 << 20))
+    before = len(os.listdir("/proc/self/fd"))
+    with open(path, "rb") as fh:
+        made = [writeback.start(fh.fileno(), 0, 1 << 20) for _ in range(3 * writeback.MAX_PENDING)]
+        held = len(os.listdir("/proc/self/fd")) - before - 1  # (less fh's own)
+    # one request may be taken by the thread already: the rest wait, MAX_PENDING at most
+    assert sum(made) <= writeback.MAX_PENDING + 1
+    assert not made[-1]  # dropped, not waited for
+    assert held <= writeback.MAX_PENDING + 1
+    release.set()
+    for _ in range(1000):
+        if writeback.pending() == 0:
+            break
+        threading.Event().wait(0.01)
+    assert writeback.pending() == 0
+    assert len(os.listdir("/proc/self/fd")) == before
+
+
+def test_no_request_where_the_system_has_no_call(monkeypatch, tmp_path):
+    monkeypatch.setattr(writeback, "_state", {"call": None})
+    with open(tmp_path / "f", "wb") as fh:
+        assert not writeback.start(fh.fileno(), 0, 8 << 20)
+    assert writeback.pending() == 0
+
+
+def _warp(run, src, out, *extra):
+    res = run("warp", src, "--spec", SPECS / "warp-ball.yaml", "-o", out, "--values",
+              "intensity", *extra)
+    assert res.code == 0, res.stderr
+
+
+def test_a_warp_replacing_its_output_asks_out_all_its_samples(run, data_dir, tmp_path,
+                                                               monkeypatch, asked):
+    from volwarp_cli import execute
+
+    monkeypatch.setattr(execute, "STREAMED_FROM", 0)  # (written as computed: this is small)
+    src = data_dir / "ball_30_uint8.nrrd"
+    out = tmp_path / "o.nrrd"
+    _warp(run, src, out)
+    assert asked == []  # a new file: its rename waits for nothing
+    first = out.read_bytes()
+    _warp(run, src, out)
+    assert out.read_bytes() == first
+    header = first.index(b"\n\n") + 2
+    assert _covered(asked, ".o.nrrd.") == [(header, len(first))]
+
+
+def test_blocks_replacing_an_output_ask_their_whole_planes_out(run, data_dir, tmp_path, asked):
+    src = data_dir / "ball_30_uint8.nrrd"
+    out, slabs, columns = tmp_path / "o.nrrd", tmp_path / "s.nrrd", tmp_path / "c.nrrd"
+    for path in (out, slabs, columns):
+        path.write_bytes(b"an earlier result")
+    _warp(run, src, out)
+    asked.clear()
+    _warp(run, src, slabs, "--chunked", "--block", "8,64,64")  # (whole planes: 1 span each)
+    data = slabs.read_bytes()
+    assert data == out.read_bytes()
+    assert _covered(asked, ".s.nrrd.") == [(data.index(b"\n\n") + 2, len(data))]
+    asked.clear()
+    _warp(run, src, columns, "--chunked", "--block", "8,8,8")  # (a block's rows are apart)
+    assert columns.read_bytes() == data
+    assert asked == []
+
+
+def test_a_whole_write_replacing_a_file_asks_it_out_span_by_span(tmp_path, monkeypatch, asked):
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    monkeypatch.setattr(writeback, "SPAN", 1 << 16)
+    vol = Volume(np.arange(40 * 40 * 40, dtype=np.float32).reshape(40, 40, 40))
+    out = tmp_path / "v.nrrd"
+    write_volume(vol, out)
+    assert asked == []
+    write_volume(vol, out)
+    data = out.read_bytes()
+    header = data.index(b"\n\n") + 2
+    assert _covered(asked, ".v.nrrd.") == [(header, len(data))]
+    assert {n for _, _, n in asked} <= {1 << 16, (len(data) - header) % (1 << 16)}
+    np.testing.assert_array_equal(read_volume(out).data, vol.data)
+
+
+def test_scratch_files_are_never_asked_out(run, data_dir, tmp_path, asked):
+    # the distance's passes by blocks write a scratch file; an OME-Zarr by blocks
+    # stages its samples in one: both are removed, never renamed over anything
+    from volwarp_cli.io import write_volume
+
+    store = tmp_path / "w.ome.zarr"
+    for _ in range(2):  # (the second replaces the first)
+        _warp(run, data_dir / "ball_30_uint8.nrrd", store, "--chunked", "--block", "8,64,64")
+    assert asked == []
+    from volwarp_cli.volume import Volume
+
+    z, y, x = np.mgrid[:40, :40, :40]
+    ball = Volume((((z - 20) ** 2 + (y - 19) ** 2 + (x - 21) ** 2) < 120).astype(np.uint8))
+    src = tmp_path / "ball.nrrd"
+    write_volume(ball, src)
+    dist, store = tmp_path / "d.nrrd", tmp_path / "d.ome.zarr"
+    for argv in (["distance", src, "--iso", "0.5", "-o", dist, "--chunked", "--block", "8,40,40"],
+                 ["distance", src, "--iso", "0.5", "-o", store, "--chunked", "--block", "8,40,40"]):
+        assert run(*argv).code == 0
+        assert run(*argv).code == 0  # (the second replaces the first)
+    names = {os.path.basename(f) for f, _, _ in asked}
+    assert names and all(n.startswith(".d.nrrd.") for n in names), names
