@@ -685,25 +685,109 @@ def test_nan_vectors_the_output_never_reaches_ignored(run, inputs):
 
 
 def test_points_reaching_nan_vectors_are_nan_and_said(run, tmp_path):
+    """A point whose only preimage samples a NaN vector is NaN (named); one beside it is solved.
+
+    ``near``: the image of a point an output voxel away from the NaN node,
+    whose trilinear support does not hold it: Newton's first guess lands on
+    the NaN, its start is moved to finite vectors, and the answer is the
+    clean field's. ``lost``: the image of the NaN node itself, which no point
+    with finite vectors reaches: NaN, not Newton's last guess.
+    """
+    from volwarp_cli.transforms.fields import read_field
+
     vol = smooth()
     vec = smooth_vectors(vol.data.shape)
     vec[7, 9, 13] = np.nan
     write_field(tmp_path / "nan.nii.gz", vec, vol.origin)
-    near = vol.index_to_world([13.2, 9.1, 7.3])
+    write_field(tmp_path / "clean.nii.gz", smooth_vectors(vol.data.shape), vol.origin)
+    clean = read_field(str(tmp_path / "clean.nii.gz"), "nifti")
+    beside, node = vol.index_to_world([15.0, 9.0, 7.0]), vol.index_to_world([13.0, 9.0, 7.0])
+    near, lost = clean.map(np.array([beside, node]))
     far = vol.index_to_world([3.0, 4.0, 2.0])
-    write_points(tmp_path / "p.csv", np.array([near, far]))
+    write_points(tmp_path / "p.csv", np.array([near, far, lost]))
     res = run("apply", "-t", tmp_path / "nan.nii.gz", "--points-in", tmp_path / "p.csv",
               "--points-to", tmp_path / "q.csv")
     assert res.code == 0, res.stderr
     assert "1 of its 10560 vectors are NaN or infinite (at indices x 13, y 9, z 7)" in res.stderr
+    assert "p.csv: 1 points could not be solved" in res.stderr and ": points 3" in res.stderr
     q = read_points(tmp_path / "q.csv")
-    assert np.isnan(q[0]).all() and np.isfinite(q[1]).all()
-    # the other point moves as through the field without the NaN
-    write_field(tmp_path / "clean.nii.gz", smooth_vectors(vol.data.shape), vol.origin)
+    assert np.isfinite(q[:2]).all() and np.isnan(q[2]).all()
+    np.testing.assert_allclose(q[0], beside, rtol=0, atol=1e-6)
+    # the other points move as through the field without the NaN
     assert run("apply", "-t", tmp_path / "clean.nii.gz", "--points-in", tmp_path / "p.csv",
                "--points-to", tmp_path / "r.csv").code == 0
     r = read_points(tmp_path / "r.csv")
-    assert np.array_equal(q[1], r[1]) and np.isfinite(r[0]).all()
+    np.testing.assert_allclose(q[:2], r[:2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(r[2], node, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("suffix", [".nrrd", ".nii.gz"])
+def test_points_near_a_nan_margin_are_solved_exactly(run, tmp_path, suffix):
+    """A field with a NaN margin, as a warp's ``--displacement-to`` exports: every point solved.
+
+    The field resamples through an affine map F (so its trilinear
+    interpolation is exact), NaN over its first 4 planes in x (no preimage).
+    Points F^-1(y) for y just inside the finite part lie, taken as output
+    points, over the NaN: each is solved to y, none is left NaN or off. A
+    point whose preimage is in the margin is NaN and named. A NIfTI field's
+    warning says ITK reads its NaN as 0.
+    """
+    vol = smooth()
+    nz, ny, nx = vol.data.shape
+    k, j, i = np.mgrid[:nz, :ny, :nx].astype(float)
+    world = vol.index_to_world(np.stack([i, j, k], -1).reshape(-1, 3)).reshape(nz, ny, nx, 3)
+    m = np.array([[1.02, 0.03, 0.0], [-0.02, 0.97, 0.04], [0.01, 0.0, 1.05]])
+    shift = np.array([-3.0, 1.5, 0.8])
+    vec = world @ m.T + shift - world  # (u(y) = F(y) - y, F the map output -> input)
+    vec[:, :, :4] = np.nan
+    write_field(tmp_path / f"f{suffix}", vec, vol.origin)
+    rng = np.random.default_rng(3)
+    inside = vol.index_to_world(np.column_stack([rng.uniform(4.0, 6.0, 40),
+                                                 rng.uniform(1, ny - 2, 40),
+                                                 rng.uniform(1, nz - 2, 40)]))
+    margin = vol.index_to_world([3.0, 10.0, 9.0])
+    pts = np.vstack([inside, margin]) @ m.T + shift  # F(y): the input points
+    # (the margin point's image is on the field, over its NaN: no point off the field, its
+    # own image, answers it)
+    assert 0 <= vol.world_to_index(pts[40])[0] < 3.5
+    write_points(tmp_path / "p.csv", pts)
+    res = run("apply", "-t", tmp_path / f"f{suffix}", "--points-in", tmp_path / "p.csv",
+              "--points-to", tmp_path / "q.csv")
+    assert res.code == 0, res.stderr
+    q = read_points(tmp_path / "q.csv")
+    np.testing.assert_allclose(q[:40], inside, rtol=0, atol=1e-5)
+    assert np.isnan(q[40]).all() and "1 points could not be solved" in res.stderr
+    assert ("ITK and ANTs read NaN in a NIfTI file as 0" in res.stderr) == (suffix == ".nii.gz")
+
+
+def test_a_point_nothing_maps_to_is_nan_not_newtons_last_guess(run, tmp_path):
+    """No point maps to it: NaN in the output (named), never Newton's last, finite guess.
+
+    The field halves x about the grid's first plane (F(y) = y0 + (y - y0) / 2
+    along x): on the field no point reaches beyond half its width, and a
+    point there is on the field, so not its own image either. Newton swung
+    between the field and beyond it, and its last guess (several mm off, a
+    plausible coordinate) was written as the answer.
+    """
+    vol = smooth()
+    nz, ny, nx = vol.data.shape
+    k, j, i = np.mgrid[:nz, :ny, :nx].astype(float)
+    world = vol.index_to_world(np.stack([i, j, k], -1).reshape(-1, 3)).reshape(nz, ny, nx, 3)
+    x0 = vol.index_to_world([0.0, 0.0, 0.0])
+    axis = vol.index_to_world([1.0, 0.0, 0.0]) - x0
+    axis /= np.linalg.norm(axis)
+    along = (world - x0) @ axis
+    write_field(tmp_path / "half.nrrd", -0.5 * along[..., None] * axis, vol.origin)
+    reached = vol.index_to_world([6.0, 10.0, 9.0])  # (the image of x index 12)
+    beyond = vol.index_to_world([18.0, 10.0, 9.0])
+    write_points(tmp_path / "p.csv", np.array([reached, beyond]))
+    res = run("apply", "-t", tmp_path / "half.nrrd", "--points-in", tmp_path / "p.csv",
+              "--points-to", tmp_path / "q.csv")
+    assert res.code == 0, res.stderr
+    assert "p.csv: 1 points could not be solved" in res.stderr and ": points 2" in res.stderr
+    q = read_points(tmp_path / "q.csv")
+    np.testing.assert_allclose(q[0], vol.index_to_world([12.0, 10.0, 9.0]), rtol=0, atol=1e-6)
+    assert np.isnan(q[1]).all()
 
 
 def test_label_map_refusal_says_why_once(run, tmp_path):

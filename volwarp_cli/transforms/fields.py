@@ -50,9 +50,10 @@ def read_field(path: str, fmt: str) -> DisplacementField:
                            "input's points, it does not resample; apply the warp's "
                            "--displacement-to field instead")
     name = f"{path} (displacement field)"
+    nifti = fmt == "nifti"
     if isinstance(vectors, LazyField):
-        return DisplacementField(frame, None, name, source=vectors)
-    return DisplacementField(frame, vectors, name)
+        return DisplacementField(frame, None, name, source=vectors, nifti=nifti)
+    return DisplacementField(frame, vectors, name, nifti=nifti)
 
 
 def _frame(vol_geometry: dict, shape_zyx) -> GridFrame:

@@ -174,6 +174,8 @@ class DisplacementField:
     larger than memory); ``offset``: the grid index (x, y, z) of
     ``vectors[0, 0, 0]`` for a window (:meth:`window`), whose points are
     mapped exactly as by the whole field (the indices are the whole grid's).
+    ``nifti``: read from a NIfTI file, whose NaN vectors ITK reads as 0 (said
+    where points reach them).
     """
 
     frame: GridFrame
@@ -181,6 +183,7 @@ class DisplacementField:
     name: str = "displacement field"
     source: object = None
     offset: tuple = (0, 0, 0)
+    nifti: bool = False
     #: this field's identity across pickled copies (a block in a worker process gets one):
     #: its NaN count is computed once per process (:meth:`nonfinite`)
     token: str = field(default_factory=lambda: os.urandom(8).hex())
@@ -332,7 +335,8 @@ class DisplacementField:
         voxel takes the background value, a moved point is NaN. volwarp's own
         exports mark so where a warp has no preimage or folds; ITK says
         nothing, here the count and index box of those vectors and a point
-        that reached them are said.
+        that reached them are said. ITK's NIfTI reader, though, reads NaN as 0
+        (no move): for a NIfTI field, that ITK and ANTs differ there is said.
         """
         from ..progress import log
         from ..runscope import run_files
@@ -347,11 +351,15 @@ class DisplacementField:
                           for a, p, q in zip("xyz", lo, hi, strict=True))
         total = math.prod(self.frame.size)
         at = ", ".join(f"{v:.4g}" for v in point)
+        peers = ("as ITK does a NRRD's or MetaImage's; ITK and ANTs read NaN in a NIfTI "
+                 "file as 0, no move, so their result differs there" if self.nifti
+                 else "as in ITK")
         log.warning("warning: %s: %d of its %d vectors are NaN or infinite (at indices %s) and "
                     "points mapped through it reach them (the first at LPS %s mm): they map "
-                    "outside the input, as in ITK (their voxels take the background value, "
+                    "outside the input, %s (their voxels take the background value, "
                     "moved points are NaN); fill the vectors (0 is no displacement) to move "
-                    "them instead", self.name, count, total, where, at, extra={"once": key})
+                    "them instead", self.name, count, total, where, at, peers,
+                    extra={"once": key})
 
     def nonfinite(self) -> tuple[int, tuple, tuple]:
         """The count of vectors with a NaN or infinite component and their index box (x, y, z).
@@ -415,7 +423,7 @@ class DisplacementField:
         vectors = self.source.read((int(a[2]), int(a[1]), int(a[0])),
                                    (int(b[2]), int(b[1]), int(b[0])))
         return DisplacementField(self.frame, vectors, self.name,
-                                 offset=tuple(int(v) for v in a))
+                                 offset=tuple(int(v) for v in a), nifti=self.nifti)
 
     def window_bytes(self, lo, hi) -> int:
         """The bytes :meth:`window` reads for world box ``[lo, hi]`` (0 when in memory)."""
@@ -595,6 +603,7 @@ class Chain:
             q = s.inverse().map(q) if s.linear else _solve(s, q)
         residual = np.linalg.norm(self.map(q) - p, axis=1) if len(p) else np.zeros(0)
         bad = np.flatnonzero(~(residual <= SOLVE_ACCEPT))
+        q[bad] = np.nan  # (Newton's last guess is no answer: up to several mm off)
         return Inverted(q, residual, bad)
 
 
@@ -683,6 +692,9 @@ def _newton(step, target: np.ndarray) -> np.ndarray:
     make the Jacobian jump).
     """
     q = target - step.displacement(target)
+    lost = np.flatnonzero(~np.isfinite(q).all(axis=1))
+    if lost.size:  # (each over a NaN part of the field: a start from finite vectors near it)
+        q[lost] = _finite_start(step, target[lost])
     h = 1e-4
     active = np.arange(len(target))
     for _ in range(SOLVE_ITERATIONS):
@@ -709,12 +721,55 @@ def _newton(step, target: np.ndarray) -> np.ndarray:
         scale = np.ones(len(qa))
         for _ in range(6):
             trial = qa - dq * scale[:, None]
-            worse = np.linalg.norm(step.map(trial) - ta, axis=1) > norm
+            worse = ~(np.linalg.norm(step.map(trial) - ta, axis=1) <= norm)  # (NaN: worse)
             if not worse.any():
                 break
             scale[worse] *= 0.5
-        q[active] = qa - dq * scale[:, None]
+        step_to = qa - dq * scale[:, None]
+        # (a step onto NaN vectors is not taken: the point stays where the field is finite)
+        q[active] = np.where(np.isfinite(step.map(step_to)).all(axis=1)[:, None], step_to, qa)
     return q
+
+
+#: how far (mm) :func:`_finite_start` looks around a point for finite vectors
+START_RADII = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
+_DIRECTIONS = np.array([(x, y, z) for z in (-1, 0, 1) for y in (-1, 0, 1) for x in (-1, 0, 1)
+                        if (x, y, z) != (0, 0, 0)], float)
+_DIRECTIONS /= np.linalg.norm(_DIRECTIONS, axis=1)[:, None]
+
+
+def _finite_start(step, target: np.ndarray) -> np.ndarray:
+    """Newton's start for points over NaN vectors: a point near them that maps to finite.
+
+    A point of the input near its border lies, taken as an output point, in
+    the margin where a volwarp export's field is NaN (no preimage), though its
+    own image has finite vectors: ``target - u(target)`` is NaN and Newton
+    never left it. Probes ``s`` in 26 directions on growing spheres
+    (:data:`START_RADII`), and their fixed-point steps ``target - u(s)``: of
+    those on the first sphere that lie on the field (beyond it every point is
+    its own image) and map to finite points, the one mapped nearest
+    ``target``. A point with none keeps NaN (it is not solved).
+    """
+    field = step.field if isinstance(step, _Window) else step
+    start = np.full_like(target, np.nan)
+    left = np.arange(len(target))
+    for radius in START_RADII:
+        if not left.size:
+            break
+        probes = target[left, None, :] + radius * _DIRECTIONS[None]  # (points, 26, 3)
+        steps = target[left, None, :] - step.displacement(
+            probes.reshape(-1, 3)).reshape(probes.shape)
+        tried = np.concatenate([probes, steps], axis=1)  # (points, 52, 3)
+        with np.errstate(invalid="ignore"):
+            miss = np.linalg.norm(step.map(tried.reshape(-1, 3)).reshape(tried.shape)
+                                  - target[left, None, :], axis=2)
+        on = field._inside(tried.reshape(-1, 3))[1].reshape(miss.shape)  # (off it: unmoved)
+        miss = np.where(np.isfinite(miss) & on, miss, np.inf)
+        best = np.argmin(miss, axis=1)
+        found = np.isfinite(miss[np.arange(len(left)), best])
+        start[left[found]] = tried[found, best[found]]
+        left = left[~found]
+    return start
 
 
 def check_dimension(name: str, dims: int, where: str) -> None:
