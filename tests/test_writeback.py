@@ -134,9 +134,12 @@ def test_no_request_where_the_system_has_no_call(monkeypatch, tmp_path):
 
 
 def _warp(run, src, out, *extra):
+    """The ball warped to float32 (samples of 4 bytes: an offset or a size counted in
+    samples, not bytes, leaves a gap)."""
     res = run("warp", src, "--spec", SPECS / "warp-ball.yaml", "-o", out, "--values",
-              "intensity", *extra)
+              "intensity", "--dtype", "float32", *extra)
     assert res.code == 0, res.stderr
+    assert writeback._replacing == set()  # (each temporary forgotten with its rename)
 
 
 def test_a_warp_replacing_its_output_asks_out_all_its_samples(run, data_dir, tmp_path,
@@ -155,21 +158,45 @@ def test_a_warp_replacing_its_output_asks_out_all_its_samples(run, data_dir, tmp
     assert _covered(asked, ".o.nrrd.") == [(header, len(first))]
 
 
-def test_blocks_replacing_an_output_ask_their_whole_planes_out(run, data_dir, tmp_path, asked):
+@pytest.mark.parametrize("block", ["8,64,64", "1,16,64"])
+def test_blocks_replacing_an_output_ask_their_spans_out(run, data_dir, tmp_path, asked, block):
+    """Blocks of whole planes, and single planes' row bands (from y > 0), ask each its span."""
     src = data_dir / "ball_30_uint8.nrrd"
-    out, slabs, columns = tmp_path / "o.nrrd", tmp_path / "s.nrrd", tmp_path / "c.nrrd"
-    for path in (out, slabs, columns):
+    out, blocks = tmp_path / "o.nrrd", tmp_path / "b.nrrd"
+    for path in (out, blocks):
         path.write_bytes(b"an earlier result")
     _warp(run, src, out)
     asked.clear()
-    _warp(run, src, slabs, "--chunked", "--block", "8,64,64")  # (whole planes: 1 span each)
-    data = slabs.read_bytes()
+    _warp(run, src, blocks, "--chunked", "--block", block)
+    data = blocks.read_bytes()
     assert data == out.read_bytes()
-    assert _covered(asked, ".s.nrrd.") == [(data.index(b"\n\n") + 2, len(data))]
-    asked.clear()
-    _warp(run, src, columns, "--chunked", "--block", "8,8,8")  # (a block's rows are apart)
-    assert columns.read_bytes() == data
-    assert asked == []
+    spans = sorted((o, n) for f, o, n in asked if ".b.nrrd." in os.path.basename(f))
+    assert all(a + n == b for (a, n), (b, _) in zip(spans, spans[1:]))  # (no overlap, no gap)
+    assert _covered(asked, ".b.nrrd.") == [(data.index(b"\n\n") + 2, len(data))]
+
+
+@pytest.mark.parametrize("block", ["8,8,8", "4,16,64"])
+def test_blocks_whose_rows_lie_apart_are_not_asked_out(run, data_dir, tmp_path, asked, block):
+    """A block of several planes' partial rows is no span of the file: not asked for.
+
+    (A block one plane thick, the grid's last, is one: its rows are contiguous.) So
+    every span asked lies in one plane, or is whole planes.
+    """
+    from volwarp_cli.io import read_volume
+
+    out = tmp_path / "c.nrrd"
+    out.write_bytes(b"an earlier result")
+    _warp(run, data_dir / "ball_30_uint8.nrrd", out, "--chunked", "--block", block)
+    data = out.read_bytes()
+    header = data.index(b"\n\n") + 2
+    nz, ny, nx = read_volume(out).data.shape
+    plane = ny * nx * 4
+    assert nz % int(block.split(",")[0])  # (a last block of fewer planes: some asked, below)
+    for _, offset, nbytes in asked:
+        first, last = (offset - header) // plane, (offset + nbytes - 1 - header) // plane
+        assert first == last or ((offset - header) % plane == 0 and nbytes % plane == 0)
+    if block == "4,16,64":
+        assert asked  # (the last block's single plane)
 
 
 def test_a_whole_write_replacing_a_file_asks_it_out_span_by_span(tmp_path, monkeypatch, asked):
@@ -211,3 +238,80 @@ def test_scratch_files_are_never_asked_out(run, data_dir, tmp_path, asked):
         assert run(*argv).code == 0  # (the second replaces the first)
     names = {os.path.basename(f) for f, _, _ in asked}
     assert names and all(n.startswith(".d.nrrd.") for n in names), names
+
+
+@linux
+def test_a_file_array_asks_its_planes_whole_pages_out(tmp_path, monkeypatch):
+    """The real path: FileArray's write -> start -> the thread, the span's whole pages only."""
+    from volwarp_cli.io.filearray import FileArray
+
+    seen, done = [], threading.Event()
+
+    def fake_call(fd, offset, nbytes, flags):
+        seen.append((offset.value, nbytes.value))
+        done.set()
+        return 0
+
+    monkeypatch.setattr(writeback, "_state", {"call": fake_call})
+    path = tmp_path / "f.raw"
+    header = 1000  # (not a page: the span's first and last pages are partly others')
+    path.write_bytes(b"\0" * (header + 8 * 128 * 128 * 4))
+    data = np.arange(8 * 128 * 128, dtype=np.float32).reshape(8, 128, 128)
+    fa = FileArray(path, "<f4", header, (8, 128, 128), writable=True, write_back=True)
+    fa[2:6, :, :] = data[2:6]
+    fa.close()
+    assert done.wait(10)
+    page = writeback._PAGE
+    lo, hi = header + 2 * 128 * 128 * 4, header + 6 * 128 * 128 * 4
+    first, end = -(-lo // page) * page, hi // page * page
+    assert seen == [(first, end - first)]
+    np.testing.assert_array_equal(np.fromfile(path, "<f4", offset=header).reshape(8, 128, 128)
+                                  [2:6], data[2:6])
+
+
+def test_no_thread_to_be_had_drops_the_request_and_the_write_goes_on(tmp_path, monkeypatch):
+    """A limit on tasks: the thread cannot start; the write succeeds, nothing is held."""
+    from volwarp_cli.io.filearray import FileArray
+
+    def refuse(self):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(writeback, "_state", {"call": lambda *a: 0})
+    monkeypatch.setattr(threading.Thread, "start", refuse)
+    path = tmp_path / "f.raw"
+    path.write_bytes(b"\0" * (4 * 256 * 256 * 4))
+    before = len(os.listdir("/proc/self/fd")) if os.path.isdir("/proc/self/fd") else 0
+    fa = FileArray(path, "<f4", 0, (4, 256, 256), writable=True, write_back=True)
+    fa[:, :, :] = np.ones((4, 256, 256), np.float32)
+    fa[0:2, :, :] = np.zeros((2, 256, 256), np.float32)  # (a second request: dropped too)
+    fa.close()
+    assert writeback._state["call"] is None and writeback.pending() == 0
+    if before:
+        assert len(os.listdir("/proc/self/fd")) == before
+    assert np.fromfile(path, "<f4").sum() == 2 * 256 * 256
+
+
+@linux
+def test_a_forked_child_closes_the_requests_it_inherits(tmp_path, monkeypatch):
+    """The child has no thread: the duplicated descriptors queued at the fork are closed."""
+    release = threading.Event()
+
+    def slow_call(fd, offset, nbytes, flags):
+        release.wait(10)
+        return 0
+
+    monkeypatch.setattr(writeback, "_state", {"call": slow_call})
+    path = tmp_path / "out.bin"
+    path.write_bytes(b"\0" * (1 << 20))
+    with open(path, "rb") as fh:
+        for _ in range(5):
+            writeback.start(fh.fileno(), 0, 1 << 20)
+    assert writeback.pending() >= 4
+    pid = os.fork()
+    if pid == 0:  # the child: count the descriptors still open on the file
+        held = sum(os.path.realpath(f"/proc/self/fd/{n}") == str(path)
+                   for n in os.listdir("/proc/self/fd"))
+        os._exit(0 if held == 0 and writeback.pending() == 0 else 1)
+    _, status = os.waitpid(pid, 0)
+    release.set()
+    assert os.waitstatus_to_exitcode(status) == 0

@@ -12,14 +12,17 @@ finds little left to write (about 15 ms, the earlier file's freeing).
 
 Asked for only where the output replaces a file (:func:`replacing`, said by
 :func:`~.atomic.atomic_outputs` of each temporary it makes): a new file's rename
-waits for nothing, and its writing out beside the work cost 1-2% there.
-This changes neither what is written nor when an output appears: the kernel
-writes those pages out anyway, a few seconds later. Only contiguous spans of at
-least :data:`MIN_BYTES` are asked for (an output written by whole planes, as
-the in-memory runs write theirs), so a page is not sent out while a neighbouring
-block is still writing into it. A request that cannot be made (a system without
-``sync_file_range``, a file system that does not write back, :data:`MAX_PENDING`
-requests already waiting) is dropped: it was only ever a head start.
+waits for nothing, and its writing out beside the work cost 1-2% there. This
+changes neither what is written nor when an output appears: the kernel writes
+those pages out a few seconds later anyway (but a temporary removed on an error
+or a stop, whose pages a request may have sent out first). Only contiguous spans
+of at least :data:`MIN_BYTES` are asked for (an output written by whole planes,
+as the in-memory runs write theirs), and of a span only its whole pages, so that
+a page shared with a neighbouring span is not sent out before that span is
+written into it (it goes with the rename's own writing out). A request that
+cannot be made (a system without ``sync_file_range``, no thread to be had,
+:data:`MAX_PENDING` requests already waiting) is dropped: it was only ever a
+head start. On a file system without writeback (tmpfs) a request does nothing.
 """
 
 from __future__ import annotations
@@ -28,12 +31,16 @@ import os
 import sys
 import threading
 
-#: spans smaller than this are left to the kernel's own writeback (a request costs a
-#: system call and a descriptor; a small output's rename has little to wait for)
-MIN_BYTES = 1 << 20
+#: spans smaller than this are left to the rename's writing out (a request costs a
+#: system call and a descriptor; a small output's rename has little to wait for); an
+#: in-memory warp of 160^3 float32 places 400 KiB at a time, its parts' edges 200 KiB
+MIN_BYTES = 128 << 10
 
-#: requests waiting for the thread at most (each holds a duplicated descriptor)
+#: requests waiting for the thread at most (each holds a duplicated descriptor; one
+#: more is held by the request the thread is making)
 MAX_PENDING = 16
+
+_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 _SYNC_FILE_RANGE_WRITE = 2  # <fcntl.h>: start writing the dirty pages, do not wait
 
@@ -72,30 +79,46 @@ def write(fh, view: memoryview) -> None:
 
 
 def start(fd: int, offset: int, nbytes: int) -> bool:
-    """Ask for the ``nbytes`` bytes at ``offset`` of ``fd`` to be written out; True if asked.
+    """Ask for the whole pages of the ``nbytes`` bytes at ``offset`` of ``fd`` to be written out.
 
-    Returns at once; the request is made by a thread of this module's, on a
-    duplicate of ``fd`` (the caller may close its own descriptor at once).
+    True if asked. Returns at once; the request is made by a thread of this
+    module's, on a duplicate of ``fd`` (the caller may close its own
+    descriptor at once).
     """
     if nbytes < MIN_BYTES:
         return False
-    with _lock:
+    first = -(-int(offset) // _PAGE) * _PAGE
+    end = (int(offset) + int(nbytes)) // _PAGE * _PAGE
+    from ..signals import blocked
+
+    with _lock, blocked():  # (a stop between the dup and the put would leak the duplicate)
         if "call" not in _state:
             _state["call"] = _sync_file_range()
         if _state["call"] is None or _state.get("pending", 0) >= MAX_PENDING:
             return False
-        if "queue" not in _state:
-            import queue
-
-            _state["queue"] = queue.SimpleQueue()
-            threading.Thread(target=_serve, args=(_state["queue"], _state["call"]),
-                             name="volwarp-writeback", daemon=True).start()
+        if "queue" not in _state and not _start_thread():
+            return False
         try:
             fd = os.dup(fd)
         except OSError:  # (out of descriptors: no head start)
             return False
         _state["pending"] = _state.get("pending", 0) + 1
-        _state["queue"].put((fd, int(offset), int(nbytes)))
+        _state["queue"].put((fd, first, end - first))
+    return True
+
+
+def _start_thread() -> bool:
+    """The thread that makes the requests, started (False, and none asked again, if it cannot)."""
+    import queue
+
+    requests = queue.SimpleQueue()
+    try:
+        threading.Thread(target=_serve, args=(requests, _state["call"], _state),
+                         name="volwarp-writeback", daemon=True).start()
+    except RuntimeError:  # (no thread to be had: a limit on tasks)
+        _state["call"] = None
+        return False
+    _state["queue"] = requests
     return True
 
 
@@ -105,7 +128,8 @@ def pending() -> int:
         return _state.get("pending", 0)
 
 
-def _serve(requests, call) -> None:
+def _serve(requests, call, state: dict) -> None:
+    """Make the requests of ``requests`` (``state``: the module's, whose count it keeps)."""
     import ctypes
 
     while True:
@@ -117,7 +141,7 @@ def _serve(requests, call) -> None:
         finally:
             os.close(fd)
             with _lock:
-                _state["pending"] -= 1
+                state["pending"] -= 1
 
 
 def _sync_file_range():
@@ -136,11 +160,17 @@ def _sync_file_range():
 
 
 def _forget_in_child() -> None:
-    """A forked child has no thread: its own starts at its first request."""
+    """A forked child has no thread: the requests it inherited closed, its own thread later."""
     global _lock
     _lock = threading.Lock()
-    _state.pop("queue", None)
+    requests = _state.pop("queue", None)
     _state.pop("pending", None)
+    while requests is not None and not requests.empty():
+        fd = requests.get_nowait()[0]
+        try:
+            os.close(fd)
+        except OSError:  # pragma: no cover - the duplicate is the queue's own
+            pass
 
 
 if hasattr(os, "register_at_fork"):
