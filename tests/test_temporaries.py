@@ -70,3 +70,93 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def _store(folder, content: str):
+    folder.mkdir()
+    (folder / "zarr.json").write_text(content)
+    return folder
+
+
+def test_a_store_replaced_has_its_new_one_swapped_in_one_step(tmp_path, monkeypatch):
+    """``path`` holds a whole store at every moment: never renamed aside (Linux, ext4/tmpfs)."""
+    if not sys.platform.startswith("linux"):
+        return
+    path = _store(tmp_path / "o.ome.zarr", "old")
+    tmp = _store(tmp_path / ".o.ome.zarr.vw-1@h.abcdefgh.partdir", "new")
+    real = os.rename
+
+    def no_aside(src, dst, *a, **k):
+        assert os.fspath(src) != os.fspath(path), "the store was renamed aside"
+        return real(src, dst, *a, **k)
+
+    monkeypatch.setattr(atomic.os, "rename", no_aside)
+    atomic._rename_folder(str(tmp), path)
+    assert (path / "zarr.json").read_text() == "new"
+    assert sorted(os.listdir(tmp_path)) == ["o.ome.zarr"]  # (the old store removed)
+
+
+def test_without_a_swap_the_store_is_replaced_through_a_name_aside(tmp_path, monkeypatch):
+    monkeypatch.setattr(atomic, "_exchange", lambda a, b: False)
+    path = _store(tmp_path / "o.ome.zarr", "old")
+    tmp = _store(tmp_path / ".o.ome.zarr.vw-1@h.abcdefgh.partdir", "new")
+    atomic._rename_folder(str(tmp), path)
+    assert (path / "zarr.json").read_text() == "new"
+    assert sorted(os.listdir(tmp_path)) == ["o.ome.zarr"]
+
+
+def test_a_store_set_aside_by_a_killed_process_is_put_back(tmp_path):
+    """Killed between the two renames (no swap): no store at the path, the old one aside.
+
+    The next write of that output puts it back before anything else (it took it
+    for a stale temporary and removed it: the earlier output lost).
+    """
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = atomic._host()
+    path = tmp_path / "o.ome.zarr"
+    _store(tmp_path / f".o.ome.zarr.vw-{dead.pid}@{host}.abcdefgh.old", "earlier")
+    _store(tmp_path / f".o.ome.zarr.vw-{dead.pid}@{host}.ijklmnop.partdir", "unfinished")
+    atomic._remove_stale_temporaries(path)
+    assert sorted(os.listdir(tmp_path)) == ["o.ome.zarr"]
+    assert (path / "zarr.json").read_text() == "earlier"
+    # with the store in place, an old one set aside is a stale temporary
+    _store(tmp_path / f".o.ome.zarr.vw-{dead.pid}@{host}.qrstuvwx.old", "older")
+    atomic._remove_stale_temporaries(path)
+    assert sorted(os.listdir(tmp_path)) == ["o.ome.zarr"]
+    assert (path / "zarr.json").read_text() == "earlier"
+
+
+def test_a_detached_pair_is_renamed_under_its_folders_lock(tmp_path, monkeypatch):
+    """Two runs committing one `.nhdr` + `.raw` at once: their renames never interleave.
+
+    While a run renames its pair, another cannot take the folder's lock (the
+    other run's renames wait for it), so one whole pair wins.
+    """
+    import fcntl
+
+    import numpy as np
+
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    out = tmp_path / "o.nhdr"
+    held = []
+    real = os.replace
+
+    def probe(src, dst, *a, **k):
+        fd = os.open(tmp_path, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            held.append(False)
+        except BlockingIOError:
+            held.append(True)
+        finally:
+            os.close(fd)
+        return real(src, dst, *a, **k)
+
+    monkeypatch.setattr(atomic.os, "replace", probe)
+    vol = Volume(np.arange(24, dtype=np.float32).reshape(2, 3, 4))
+    write_volume(vol, out)
+    assert held == [True, True]  # (the data file, then the header)
+    np.testing.assert_array_equal(read_volume(out).data, vol.data)

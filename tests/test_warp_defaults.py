@@ -520,3 +520,29 @@ def test_a_warp_needs_an_output_and_no_volume_option_is_ignored(run, files):
               str(d / "f{frame}.nrrd"), "--json")  # frames alone: no -o needed either
     assert res.code == 0 and json.loads(res.stdout)["frames"] == 2
     assert sorted(p.name for p in d.glob("f?.nrrd")) == ["f0.nrrd", "f1.nrrd"]
+
+
+def test_a_capture_error_naming_its_file_is_not_named_twice():
+    """A reader's error names the input already ("in.nrrd: file is truncated ..."): the
+    capture's wrapper said "in.nrrd: in.nrrd: ..." (a review, with the input replaced
+    during a warp). Other errors get the input's name."""
+    import pytest
+
+    from volwarp_cli.bspline.plan import CaptureSettings
+    from volwarp_cli.errors import FormatError, VolwarpError
+    from volwarp_cli.warp.prepare import capture_as_spec
+
+    settings = CaptureSettings()
+
+    def truncated(*_, **__):
+        raise FormatError("in.nrrd: file is truncated (plane 0 ends 131072 bytes short)")
+
+    def other(*_, **__):
+        raise VolwarpError("the volume has NaN or infinite samples")
+
+    with pytest.raises(VolwarpError) as err:
+        capture_as_spec(truncated, settings, "in.nrrd")
+    assert str(err.value) == "in.nrrd: file is truncated (plane 0 ends 131072 bytes short)"
+    with pytest.raises(VolwarpError) as err:
+        capture_as_spec(other, settings, "in.nrrd")
+    assert str(err.value) == "in.nrrd: the volume has NaN or infinite samples"

@@ -171,7 +171,7 @@ def test_blocks_replacing_an_output_ask_their_spans_out(run, data_dir, tmp_path,
     data = blocks.read_bytes()
     assert data == out.read_bytes()
     spans = sorted((o, n) for f, o, n in asked if ".b.nrrd." in os.path.basename(f))
-    assert all(a + n == b for (a, n), (b, _) in zip(spans, spans[1:]))  # (no overlap, no gap)
+    assert all(a + n == b for (a, n), (b, _) in zip(spans, spans[1:], strict=False))  # (no overlap, no gap)
     assert _covered(asked, ".b.nrrd.") == [(data.index(b"\n\n") + 2, len(data))]
 
 

@@ -30,8 +30,9 @@ def capture_as_spec(capture, settings, name: str, *inputs):
     try:
         return capture(*inputs, lattice=settings.lattice, placement=settings.placement,
                        oversample=settings.oversample, sampling=settings.sampling)
-    except VolwarpError as exc:
-        raise VolwarpError(f"{name}: {exc}") from None
+    except VolwarpError as exc:  # (a reader's error names its file already: once)
+        text = str(exc)
+        raise VolwarpError(text if text.startswith(f"{name}: ") else f"{name}: {text}") from None
 
 
 def check_capture_settings(doc, spec: WarpSpec, cap: Capture, source: str) -> None:
