@@ -422,7 +422,7 @@ def test_retries_only_for_a_dead_worker(tmp_path, monkeypatch):
             if code == 0:
                 for out in (Path(argv[argv.index("-o") + 1]),):
                     write_volume(scan_volume(0), out)
-            return code, "volwarp: error: x: went wrong\n" if code > 0 else "", 1 << 20
+            return (code, "volwarp: error: x: went wrong\n" if code > 0 else "", 1 << 20, {})
         return call
 
     monkeypatch.setattr(ScanRunner, "_call", fake([-signal.SIGKILL, -signal.SIGSEGV, 0, 0]))

@@ -301,6 +301,10 @@ def _read_state(path: Path) -> tuple[dict, dict]:
     return {}, {}
 
 
+class Replaced(Exception):
+    """A step's output was replaced by another writer's before the batch recorded it."""
+
+
 class CommandRecord:
     """What each output was made from, and the file hash cache (``STATE_NAME``).
 
@@ -328,14 +332,31 @@ class CommandRecord:
             entry = self.outputs.get(self._key(path))
         return entry if isinstance(entry, dict) else None
 
-    def entries(self, plan: StepPlan, made: dict) -> dict[str, dict] | None:
-        """The record of ``plan``'s outputs just made from ``made`` (None: one is missing)."""
+    def entries(self, plan: StepPlan, made: dict, committed: dict | None = None
+                ) -> dict[str, dict] | None:
+        """The record of ``plan``'s outputs just made from ``made`` (None: one is missing).
+
+        ``committed``: the identity of each output as the step renamed it into
+        place, by absolute path (:func:`~volwarp_cli.io.atomic.note_committed`).
+        An output whose file is no longer that one (another writer put its own
+        there after the step) raises :class:`Replaced`: its bytes are not the
+        step's.
+        """
+        from ..io.atomic import file_identity
+
         out = {}
         for path in plan.made:
+            want = (committed or {}).get(os.path.abspath(path))
             try:
+                before = file_identity(os.stat(path))
                 out[self._key(path)] = {**made, "sha256": content_digest(path, self.hashes)}
+                after = file_identity(os.stat(path))
             except OSError:
                 return None
+            if want is not None and not before == after == want:
+                raise Replaced(f"{path} was replaced by another writer after this step made "
+                               "it (another batch or command writing the same file): not "
+                               "recorded, made again next run")
         return out
 
     def keep(self, entries: dict[str, dict], files: dict[str, list] | None = None) -> None:

@@ -32,6 +32,7 @@ threads of the batch process, each waiting on its own child. The cluster form
 
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import os
 import signal
@@ -42,11 +43,12 @@ import time
 from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
+from ..io.atomic import COMMITTED_LOG
 from ..memory import MEMORY_ENV
 from ..parallel import THREADS_ENV
 from ..signals import STOPS, stops
 from .manifest import SCAN, Manifest, Scan
-from .plan import CommandRecord, StepPlan, made_from, plan_scan, stale_reason
+from .plan import CommandRecord, Replaced, StepPlan, made_from, plan_scan, stale_reason
 
 #: seconds a stopped child is given before it is killed
 STOP_GRACE = 20.0
@@ -273,9 +275,12 @@ class ScanRunner:
             made = self._consider(plan, res)
             if res.status == "skipped":
                 continue
-            self._run_step(plan, res)
+            committed = self._run_step(plan, res)
             if res.status == "ok" and made is not None:
-                res.made = self.record.entries(plan, made)
+                try:
+                    res.made = self.record.entries(plan, made, committed)
+                except Replaced as exc:
+                    res.status, res.error = "failed", str(exc)
                 if res.made is not None:
                     self.record.keep(res.made)
         steps = list(results.values())
@@ -298,34 +303,39 @@ class ScanRunner:
                 res.status = "skipped"
         return made
 
-    def _run_step(self, plan: StepPlan, res: StepResult) -> None:
+    def _run_step(self, plan: StepPlan, res: StepResult) -> dict:
+        """Run the step (retried where it was killed): the outputs it renamed into place.
+
+        Their identities by absolute path (the last attempt's), as :meth:`_call` gives them.
+        """
+        committed: dict = {}
         for out in plan.outputs:
             try:
                 out.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 res.status, res.error = "failed", f"{out.parent}: {exc.strerror or exc}"
-                return
+                return committed
         start = time.monotonic()
         while True:
             res.attempts += 1
-            code, stderr, peak = self._call(plan.argv)
+            code, stderr, peak, committed = self._call(plan.argv)
             res.exit_code = code
             res.seconds = time.monotonic() - start
             if peak is not None:
                 res.peak_rss = max(peak, res.peak_rss or 0)
             if code is None:  # not started: the batch is stopping
                 res.status = "stopped"
-                return
+                return committed
             if code == 0:
                 res.status, res.error = "ok", None
-                return
+                return committed
             if code in _STOP_CODES or code < 0:
                 # a terminal's Ctrl-C reaches the children with the batch: give the
                 # batch's own handler a moment to say it was a stop
                 for _ in range(20):
                     if self.stopping is not None:
                         res.status, res.error = "stopped", None
-                        return
+                        return committed
                     time.sleep(0.01)
             res.error = last_line(stderr)
             if code < 0:
@@ -336,7 +346,7 @@ class ScanRunner:
             res.status = "failed"
             if res.error is None:
                 res.error = f"exit code {code}"
-            return
+            return committed
 
     def _env(self, threads: int) -> dict:
         """A child's environment: its threads, and this scan's share of the batch's limit.
@@ -359,14 +369,31 @@ class ScanRunner:
                                         f"{self.memory_from}")
         return env
 
-    def _call(self, argv: list[str]) -> tuple[int | None, str, int | None]:
-        """Run ``volwarp ARGV``: ``(exit code or None if not started, stderr, peak bytes)``."""
+    def _call(self, argv: list[str]) -> tuple[int | None, str, int | None, dict]:
+        """Run ``volwarp ARGV``: ``(exit code or None if not started, stderr, peak, renamed)``.
+
+        ``peak``: its peak resident bytes; ``renamed``: the identities of the
+        outputs it renamed into place (:func:`~volwarp_cli.io.atomic.note_committed`),
+        by absolute path.
+        """
+        import tempfile
+
         env = self._env(self.child_threads)
-        proc = self.children.start(child_argv(argv), cwd=self.manifest.base, env=env)
-        if proc is None:
-            return None, "", None
-        code, _, err, peak = self.children.finish(proc)
-        return code, err.decode("utf-8", "replace"), peak
+        log = None
+        with contextlib.suppress(OSError):  # (none to be had: outputs recorded as they are)
+            fd, log = tempfile.mkstemp(prefix=".volwarp-committed-", suffix=".jsonl")
+            os.close(fd)
+            env[COMMITTED_LOG] = log
+        try:
+            proc = self.children.start(child_argv(argv), cwd=self.manifest.base, env=env)
+            if proc is None:
+                return None, "", None, {}
+            code, _, err, peak = self.children.finish(proc)
+            return code, err.decode("utf-8", "replace"), peak, _committed(log)
+        finally:
+            if log is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(log)
 
     def _thumbnails(self, scan: Scan, plans: list[StepPlan]) -> dict | None:
         from . import thumbs
@@ -577,3 +604,23 @@ def run_batch(manifest: Manifest, scans: list[Scan], where: Where, progress, *,
     finally:
         progress.close()
     return Report(results, stop, jobs=jobs, scheduler=scheduler, shard=shard)
+
+
+def _committed(log: str | None) -> dict:
+    """The identities a step noted of the outputs it renamed into place, by absolute path."""
+    import json
+
+    out = {}
+    if log is None:
+        return out
+    try:
+        with open(log, encoding="utf-8", errors="surrogateescape") as fh:
+            for line in fh:
+                try:
+                    item = json.loads(line)
+                    out[item["path"]] = item["identity"]
+                except (ValueError, KeyError, TypeError):  # (a line cut short by a kill)
+                    continue
+    except OSError:
+        return {}
+    return out

@@ -222,6 +222,47 @@ def atomic_folder(path: str | os.PathLike):
         sync_temporaries()
 
 
+#: the environment variable naming the file where a batch's step notes each output it
+#: renamed into place (:func:`note_committed`)
+COMMITTED_LOG = "VOLWARP_COMMITTED_LOG"
+
+
+def file_identity(st: os.stat_result) -> list[int]:
+    """What tells a file written apart from another put in its place.
+
+    Device, inode, size and modification time; a folder's device and inode
+    (its size and time move with its entries).
+    """
+    import stat as stat_module
+
+    if stat_module.S_ISDIR(st.st_mode):
+        return [st.st_dev, st.st_ino]
+    return [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns]
+
+
+def note_committed(tmp, path) -> None:
+    """Note, for a batch that asked (:data:`COMMITTED_LOG`), the output ``tmp`` is renamed to.
+
+    Called just before the rename: ``tmp``'s identity is the output's after
+    it (a rename keeps the inode and the times). The batch records an output
+    only while the file at its path is still this one: another writer's file
+    put there meanwhile (a second batch, a cron job) was recorded as the
+    step's, and the next run skipped it.
+    """
+    log = os.environ.get(COMMITTED_LOG)
+    if not log:
+        return
+    import json
+
+    line = json.dumps({"path": os.path.abspath(path),
+                       "identity": file_identity(os.stat(tmp))}) + "\n"
+    fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+    try:
+        os.write(fd, line.encode("utf-8", "surrogateescape"))
+    finally:
+        os.close(fd)
+
+
 @contextlib.contextmanager
 def _folder_held(folder: Path | None):
     """An exclusive ``flock`` on ``folder`` for a few renames (None: nothing held).
@@ -262,6 +303,7 @@ def _rename_folder(tmp: str, path: Path) -> None:
     process killed between the two renames leaves no store at ``path``, and
     the next write of it puts the old one back (:func:`_remove_stale_temporaries`).
     """
+    note_committed(tmp, path)
     if not path.is_dir():
         os.rename(tmp, path)
         return
@@ -383,6 +425,7 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
             def rename():
                 with _folder_held(paths[-1].parent if len(pairs) > 1 else None):
                     for tmp, path in pairs:
+                        note_committed(tmp, path)
                         os.replace(tmp, path)
                     for old in replaced:
                         with contextlib.suppress(OSError):
