@@ -160,3 +160,21 @@ def test_a_detached_pair_is_renamed_under_its_folders_lock(tmp_path, monkeypatch
     write_volume(vol, out)
     assert held == [True, True]  # (the data file, then the header)
     np.testing.assert_array_equal(read_volume(out).data, vol.data)
+
+
+def test_a_store_put_in_place_by_another_run_meanwhile_is_replaced(tmp_path, monkeypatch):
+    """Two runs writing one store: the second found no store, then the first's was there
+    (its rename failed, "Directory not empty", exit 1): it is replaced as any old store."""
+    path = tmp_path / "o.ome.zarr"
+    tmp = _store(tmp_path / ".o.ome.zarr.vw-1@h.abcdefgh.partdir", "new")
+    real = os.rename
+
+    def first_run_wins_the_race(src, dst, *a, **k):
+        if os.fspath(dst) == os.fspath(path) and not path.exists():
+            _store(path, "the other run's")
+        return real(src, dst, *a, **k)
+
+    monkeypatch.setattr(atomic.os, "rename", first_run_wins_the_race)
+    atomic._rename_folder(str(tmp), path)
+    assert (path / "zarr.json").read_text() == "new"
+    assert sorted(os.listdir(tmp_path)) == ["o.ome.zarr"]

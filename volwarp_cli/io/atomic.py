@@ -305,8 +305,12 @@ def _rename_folder(tmp: str, path: Path) -> None:
     """
     note_committed(tmp, path)
     if not path.is_dir():
-        os.rename(tmp, path)
-        return
+        try:
+            os.rename(tmp, path)
+            return
+        except OSError as exc:  # (another run's store put there since: replaced as any)
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not path.is_dir():
+                raise
     if _exchange(tmp, path):
         _remove_tree(tmp)
         return

@@ -692,7 +692,7 @@ def _newton(step, target: np.ndarray) -> np.ndarray:
     make the Jacobian jump).
     """
     q = target - step.displacement(target)
-    lost = np.flatnonzero(~np.isfinite(q).all(axis=1))
+    lost = np.flatnonzero(~np.isfinite(q).all(axis=1) & np.isfinite(target).all(axis=1))
     if lost.size:  # (each over a NaN part of the field: a start from finite vectors near it)
         q[lost] = _finite_start(step, target[lost])
     h = 1e-4
