@@ -78,3 +78,29 @@ def test_a_step_notes_the_identity_of_each_output_it_renames(tmp_path, monkeypat
     for step in result.steps:
         (path,) = step.outputs
         assert str(Path(path).absolute()) in seen[step.command[1]], seen
+
+
+def test_a_log_that_cannot_be_written_never_fails_the_command(tmp_path, monkeypatch):
+    """The batch's log of renamed outputs is its own business: unwritable, the command's
+    output is still written (and the batch records it as it did before)."""
+    from volwarp_cli.io import atomic
+    from volwarp_cli.runscope import run_scope
+    from volwarp_cli.volume import Volume
+
+    monkeypatch.setenv(atomic.COMMITTED_LOG, str(tmp_path / "no" / "such" / "folder.jsonl"))
+    out = tmp_path / "o.nrrd"
+    with run_scope():  # (each its own command: the first's read is no input of the second)
+        write_volume(Volume(scan_volume(0).data), out)
+        assert (read_volume(out).data == scan_volume(0).data).all()
+    log = tmp_path / "log.jsonl"
+    monkeypatch.setenv(atomic.COMMITTED_LOG, str(log))
+    with run_scope():
+        write_volume(Volume(scan_volume(1).data), out)
+    import json
+    import os
+
+    (line,) = log.read_text().splitlines()
+    noted = json.loads(line)
+    st = os.stat(out)
+    assert noted == {"path": str(out.absolute()),
+                     "identity": [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns]}

@@ -254,13 +254,16 @@ def note_committed(tmp, path) -> None:
         return
     import json
 
-    line = json.dumps({"path": os.path.abspath(path),
-                       "identity": file_identity(os.stat(tmp))}) + "\n"
-    fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
-    try:
-        os.write(fd, line.encode("utf-8", "surrogateescape"))
-    finally:
-        os.close(fd)
+    try:  # (never the command's failure: unnoted, the batch records the output as before)
+        line = json.dumps({"path": os.path.abspath(path),
+                           "identity": file_identity(os.stat(tmp))}) + "\n"
+        fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+        try:
+            os.write(fd, line.encode("utf-8", "surrogateescape"))
+        finally:
+            os.close(fd)
+    except OSError:
+        pass
 
 
 @contextlib.contextmanager
