@@ -178,3 +178,25 @@ def test_a_store_put_in_place_by_another_run_meanwhile_is_replaced(tmp_path, mon
     atomic._rename_folder(str(tmp), path)
     assert (path / "zarr.json").read_text() == "new"
     assert sorted(os.listdir(tmp_path)) == ["o.ome.zarr"]
+
+
+def test_a_store_killed_while_removed_is_never_put_back(tmp_path):
+    """The old store is renamed '.gone' before its removal: a kill during the removal leaves
+    a half-removed folder that no later write takes for the earlier output."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    path = tmp_path / "o.ome.zarr"
+    _store(tmp_path / f".o.ome.zarr.vw-{dead.pid}@{atomic._host()}.abcdefgh.gone", "half")
+    atomic._remove_stale_temporaries(path)
+    assert os.listdir(tmp_path) == []
+
+
+def test_the_old_store_is_removed_under_a_name_never_put_back(tmp_path, monkeypatch):
+    monkeypatch.setattr(atomic, "_exchange", lambda a, b: False)
+    path = _store(tmp_path / "o.ome.zarr", "old")
+    tmp = _store(tmp_path / ".o.ome.zarr.vw-1@h.abcdefgh.partdir", "new")
+    removed = []
+    monkeypatch.setattr(atomic, "_remove_tree", lambda root: removed.append(os.path.basename(root)))
+    atomic._rename_folder(str(tmp), path)
+    (name,) = removed
+    assert name.endswith(".gone") and (tmp_path / name / "zarr.json").read_text() == "old"

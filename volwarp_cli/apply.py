@@ -659,5 +659,6 @@ def _report(what, inv) -> None:
         rows = ", ".join(str(int(i) + 1) for i in inv.unsolved[:20])
         more = "" if inv.unsolved.size <= 20 else f" and {inv.unsolved.size - 20} more"
         log.warning("warning: %s: %d points could not be solved (the chain folds or leaves "
-                    "them; residual up to %.3g mm): points %s%s", what, inv.unsolved.size,
+                    "them; residual up to %.3g mm), written without a position (NaN; a "
+                    "markups point 'undefined'): points %s%s", what, inv.unsolved.size,
                     float(np.nanmax(inv.residual[inv.unsolved])), rows, more)

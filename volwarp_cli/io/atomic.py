@@ -187,10 +187,11 @@ def atomic_folder(path: str | os.PathLike):
     For outputs that are folders (OME-Zarr stores). The temporary is
     registered with the signal handler's temporaries and removed on any
     error or stop; an existing store at ``path`` is untouched until the new
-    one is complete. Then, with SIGINT and SIGTERM held back, the old store is
-    renamed aside, the new one renamed in, and only then the old one removed:
-    at every moment one of the two is at ``path``. (A folder cannot be
-    renamed over another in one step, as a file can.)
+    one is complete. Then, with SIGINT and SIGTERM held back, the new store
+    takes its place (:func:`_rename_folder`: the two names swapped in one step
+    where the file system can, else the old one renamed aside first), and only
+    then is the old one removed. (A folder cannot be renamed over another in
+    one step, as a file can.)
     """
     path = check_output_path(path)
     _remove_stale_temporaries(path)
@@ -326,7 +327,14 @@ def _rename_folder(tmp: str, path: Path) -> None:
     except BaseException:
         os.rename(aside, path)  # put the old store back
         raise
-    _remove_tree(aside)
+    # (renamed again before its removal: a kill during it leaves a '.gone' folder, never
+    # put back, where a half-removed '.old' would have been)
+    gone = aside[:-len(".old")] + ".gone"
+    try:
+        os.rename(aside, gone)
+    except OSError:
+        gone = aside
+    _remove_tree(gone)
 
 
 _RENAME_EXCHANGE = 2  # <linux/fs.h>
@@ -345,12 +353,8 @@ def _exchange(a, b) -> bool:
         return False
     call.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p,
                      ctypes.c_uint]
-    if call(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
-        return True
-    code = ctypes.get_errno()
-    if code in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):  # (the file system cannot)
-        return False
-    raise OSError(code, os.strerror(code), str(b))
+    # (any failure: the names aside, as without the call; a real one fails there again)
+    return call(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0
 
 
 def _chmod_tree(root: str) -> None:
@@ -575,7 +579,7 @@ def _remove_stale_temporaries(path: Path) -> None:
     pattern = re.compile(re.escape(f".{path.name}.vw-") + r"(\d+)@" + re.escape(_host())
                          + r"\.[A-Za-z0-9_]{8}\.part")
     folders = re.compile(re.escape(f".{path.name}.vw-") + r"(\d+)@" + re.escape(_host())
-                         + r"\.[A-Za-z0-9_]{8}\.(partdir|old|scratch)$")
+                         + r"\.[A-Za-z0-9_]{8}\.(partdir|old|gone|scratch)$")
     try:
         names = os.listdir(path.parent if str(path.parent) else ".")
     except OSError:

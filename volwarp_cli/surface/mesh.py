@@ -146,10 +146,13 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     The normal of a vertex is the normalised sum of the cross products of its
     triangles (each proportional to the triangle's area), so it points to the
     side the triangles' winding calls "outside". Vertices used by no triangle
-    get a zero normal.
+    get a zero normal. A triangle with a NaN corner (a vertex ``apply`` could
+    not move) adds nothing: its finite corners keep their other triangles' normal.
     """
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
     faces = np.ascontiguousarray(faces, dtype=np.int64)
+    if len(faces) and not np.isfinite(vertices).all():
+        faces = np.ascontiguousarray(faces[np.isfinite(vertices).all(axis=1)[faces].all(axis=1)])
     out = np.zeros(vertices.shape, dtype=np.float64)
     if len(faces):
         from ._kernels import vertex_normals as kernel

@@ -351,15 +351,13 @@ class DisplacementField:
                           for a, p, q in zip("xyz", lo, hi, strict=True))
         total = math.prod(self.frame.size)
         at = ", ".join(f"{v:.4g}" for v in point)
-        peers = ("as ITK does a NRRD's or MetaImage's; ITK and ANTs read NaN in a NIfTI "
-                 "file as 0, no move, so their result differs there" if self.nifti
-                 else "as in ITK")
+        peers = ("; ITK and ANTs, reading NaN in a NIfTI file as 0 (no move), differ there"
+                 if self.nifti else ", as in ITK")
         log.warning("warning: %s: %d of its %d vectors are NaN or infinite (at indices %s) and "
                     "points mapped through it reach them (the first at LPS %s mm): they map "
-                    "outside the input, %s (their voxels take the background value, "
-                    "moved points are NaN); fill the vectors (0 is no displacement) to move "
-                    "them instead", self.name, count, total, where, at, peers,
-                    extra={"once": key})
+                    "outside the input (their voxels take the background value, moved points "
+                    "are NaN)%s; fill the vectors (0 is no displacement) to move them "
+                    "instead", self.name, count, total, where, at, peers, extra={"once": key})
 
     def nonfinite(self) -> tuple[int, tuple, tuple]:
         """The count of vectors with a NaN or infinite component and their index box (x, y, z).

@@ -740,9 +740,12 @@ def _read_markups(path, text) -> PointsFile:
                 raise VolwarpError(f"{path}: markups[{m}]: unknown coordinateSystem {frame!r}")
             flip = np.array([-1.0, -1.0, 1.0]) if frame == "RAS" else np.ones(3)
             for c, cp in enumerate(mk.get("controlPoints", []) or []):
-                p = np.array([float(v) for v in cp["position"]], dtype=np.float64)
-                if p.shape != (3,) or not np.all(np.isfinite(p)):
-                    raise ValueError("position")
+                if cp.get("positionStatus") == "undefined":  # (a point not placed: none)
+                    p = np.full(3, np.nan)
+                else:
+                    p = np.array([float(v) for v in cp["position"]], dtype=np.float64)
+                    if p.shape != (3,) or not np.all(np.isfinite(p)):
+                        raise ValueError("position")
                 pts.append(p * flip)
                 where.append((m, c, flip))
     except VolwarpError:
@@ -767,8 +770,15 @@ def points_text(pf: PointsFile, moved: np.ndarray) -> str:
         return buf.getvalue()
     doc = json.loads(json.dumps(pf.doc))
     for (m, c, flip), p in zip(pf.where, moved, strict=True):
-        doc["markups"][m]["controlPoints"][c]["position"] = [float(v) for v in p * flip]
-    return json.dumps(doc, indent=4) + "\n"
+        point = doc["markups"][m]["controlPoints"][c]
+        if np.all(np.isfinite(p)):
+            point["position"] = [float(v) for v in p * flip]
+            if point.get("positionStatus") == "undefined":
+                point["positionStatus"] = "defined"
+        else:  # (no position: Slicer's own way to say so, not a NaN JSON cannot hold)
+            point["position"] = [0.0, 0.0, 0.0]
+            point["positionStatus"] = "undefined"
+    return json.dumps(doc, indent=4, allow_nan=False) + "\n"
 
 
 def write_points(pf: PointsFile, moved: np.ndarray, path: str) -> None:
