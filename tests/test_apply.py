@@ -812,6 +812,33 @@ def test_a_point_nothing_maps_to_is_nan_not_newtons_last_guess(run, tmp_path):
     assert np.isfinite(back[0]).all() and np.isnan(back[1]).all()
 
 
+def test_newton_never_steps_onto_nan_vectors():
+    """A full Newton step past the solution into NaN vectors is halved back, not taken.
+
+    Along x, F(x) = x + x^2 / 10 (convex: from the left, the tangent's root lies
+    beyond the solution) and the field is NaN for 2.001 < x < 2.3. For the image
+    of x = 2 (2.4, finite), Newton starts at 1.824 and its first step lands at
+    2.0023: taken, the point was stuck on NaN and left unsolved; halved, it
+    converges to 2.
+    """
+    from volwarp_cli.transforms import model
+
+    class Convex:
+        def map(self, p):
+            p = np.asarray(p, float)
+            out = p.copy()
+            out[:, 0] = p[:, 0] + p[:, 0] ** 2 / 10
+            out[(p[:, 0] > 2.001) & (p[:, 0] < 2.3)] = np.nan
+            return out
+
+        def displacement(self, p):
+            return self.map(p) - np.asarray(p, float)
+
+    target = np.array([[2.0 + 0.4, 1.0, -3.0]])
+    q = model._newton(Convex(), target)
+    np.testing.assert_allclose(q, [[2.0, 1.0, -3.0]], rtol=0, atol=1e-9)
+
+
 def test_label_map_refusal_says_why_once(run, tmp_path):
     """The refusal of a blending interpolation on a label map: its exact words, said once."""
     from volwarp_cli.apply import plan_resample
