@@ -87,10 +87,15 @@ def test_nohup_keeps_a_job_going(tmp_path):
     proc = subprocess.Popen([str(VOLWARP)] + [str(a) for a in args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE,
                             preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
-    time.sleep(0.5)
-    assert proc.poll() is None, "the job ended before the SIGHUP: nothing tested"
-    proc.send_signal(signal.SIGHUP)
-    _, err = proc.communicate(timeout=120)
+    try:  # (the signal while the output is written: a fixed 0.5 s missed a 0.49 s job)
+        deadline = time.monotonic() + 60
+        while (proc.poll() is None and time.monotonic() < deadline
+               and not any(".part" in n for n in os.listdir(tmp_path))):
+            time.sleep(0.002)
+        assert proc.poll() is None, "the job ended before the SIGHUP: nothing tested"
+        proc.send_signal(signal.SIGHUP)
+    finally:  # (its pipes closed whatever happened: left open, they failed a later test)
+        _, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err
     assert out.exists()
 
