@@ -39,6 +39,30 @@ def asked(monkeypatch):
     return calls
 
 
+@pytest.fixture
+def slow_disk(tmp_path, monkeypatch):
+    """A disk whose requests wait until released: ``(release event, a 1 MiB file)``."""
+    release = threading.Event()
+
+    def slow_call(fd, offset, nbytes, flags):
+        release.wait(10)
+        return 0
+
+    monkeypatch.setattr(writeback, "_state", {"call": slow_call})
+    path = tmp_path / "out.bin"
+    path.write_bytes(b"\0" * (1 << 20))
+    yield release, path
+    release.set()
+
+
+def _drained() -> None:
+    """Wait (10 s at most) for the thread to have made every request."""
+    for _ in range(1000):
+        if writeback.pending() == 0:
+            return
+        threading.Event().wait(0.01)
+
+
 def _covered(calls, name_part):
     """The byte ranges asked out of files whose name holds ``name_part``, merged."""
     spans = sorted((o, o + n) for f, o, n in calls if name_part in os.path.basename(f))
@@ -89,26 +113,15 @@ def test_requests_reach_the_thread_and_their_descriptors_are_closed(tmp_path, mo
         assert writeback.start(fh.fileno(), 2 << 20, 2 << 20)
         assert not writeback.start(fh.fileno(), 0, writeback.MIN_BYTES - 1)  # (too small)
     assert done.wait(10)
-    for _ in range(1000):
-        if writeback.pending() == 0:
-            break
-        threading.Event().wait(0.01)
+    _drained()
     assert writeback.pending() == 0
     assert seen == [(str(path), 0, 2 << 20, 2), (str(path), 2 << 20, 2 << 20, 2)]
     assert len(os.listdir("/proc/self/fd")) == before  # the duplicates are closed
 
 
 @linux
-def test_a_slow_disk_holds_at_most_max_pending_requests(tmp_path, monkeypatch):
-    release = threading.Event()
-
-    def slow_call(fd, offset, nbytes, flags):
-        release.wait(10)
-        return 0
-
-    monkeypatch.setattr(writeback, "_state", {"call": slow_call})
-    path = tmp_path / "out.bin"
-    path.write_bytes(b"\0" * (1 << 20))
+def test_a_slow_disk_holds_at_most_max_pending_requests(slow_disk):
+    release, path = slow_disk
     before = len(os.listdir("/proc/self/fd"))
     with open(path, "rb") as fh:
         made = [writeback.start(fh.fileno(), 0, 1 << 20) for _ in range(3 * writeback.MAX_PENDING)]
@@ -118,10 +131,7 @@ def test_a_slow_disk_holds_at_most_max_pending_requests(tmp_path, monkeypatch):
     assert not made[-1]  # dropped, not waited for
     assert held <= writeback.MAX_PENDING + 1
     release.set()
-    for _ in range(1000):
-        if writeback.pending() == 0:
-            break
-        threading.Event().wait(0.01)
+    _drained()
     assert writeback.pending() == 0
     assert len(os.listdir("/proc/self/fd")) == before
 
@@ -292,17 +302,9 @@ def test_no_thread_to_be_had_drops_the_request_and_the_write_goes_on(tmp_path, m
 
 
 @linux
-def test_a_forked_child_closes_the_requests_it_inherits(tmp_path, monkeypatch):
+def test_a_forked_child_closes_the_requests_it_inherits(slow_disk):
     """The child has no thread: the duplicated descriptors queued at the fork are closed."""
-    release = threading.Event()
-
-    def slow_call(fd, offset, nbytes, flags):
-        release.wait(10)
-        return 0
-
-    monkeypatch.setattr(writeback, "_state", {"call": slow_call})
-    path = tmp_path / "out.bin"
-    path.write_bytes(b"\0" * (1 << 20))
+    release, path = slow_disk
     with open(path, "rb") as fh:
         for _ in range(5):
             writeback.start(fh.fileno(), 0, 1 << 20)

@@ -103,44 +103,55 @@ def start(fd: int, offset: int, nbytes: int) -> bool:
         except OSError:  # (out of descriptors: no head start)
             return False
         _state["pending"] = _state.get("pending", 0) + 1
-        _state["queue"].put((fd, first, end - first))
+        _state["queue"].append((fd, first, end - first))
+        _state["ready"].notify()
     return True
 
 
 def _start_thread() -> bool:
     """The thread that makes the requests, started (False, and none asked again, if it cannot)."""
-    import queue
+    import collections
 
-    requests = queue.SimpleQueue()
+    _state["queue"], _state["ready"] = collections.deque(), threading.Condition(_lock)
     try:
-        threading.Thread(target=_serve, args=(requests, _state["call"], _state),
+        threading.Thread(target=_serve, args=(_state, _state["call"]),
                          name="volwarp-writeback", daemon=True).start()
     except RuntimeError:  # (no thread to be had: a limit on tasks)
         _state["call"] = None
+        del _state["queue"], _state["ready"]
         return False
-    _state["queue"] = requests
     return True
 
 
 def pending() -> int:
-    """Requests waiting for the thread (for the tests)."""
+    """Requests waiting for the thread, or being made (for the tests)."""
     with _lock:
         return _state.get("pending", 0)
 
 
-def _serve(requests, call, state: dict) -> None:
-    """Make the requests of ``requests`` (``state``: the module's, whose count it keeps)."""
+def _serve(state: dict, call) -> None:
+    """Make the requests queued in ``state`` (the module's), one at a time.
+
+    A request stays first in the queue, with its descriptor, until it is made
+    and the descriptor closed: a child forked meanwhile (under the lock, see
+    :func:`_forget_in_child`) finds every descriptor it inherits listed.
+    """
     import ctypes
 
+    ready, requests = state["ready"], state["queue"]
     while True:
-        fd, offset, nbytes = requests.get()
+        with ready:
+            while not requests:
+                ready.wait()
+            fd, offset, nbytes = requests[0]
         try:
             call(fd, ctypes.c_int64(offset), ctypes.c_int64(nbytes), _SYNC_FILE_RANGE_WRITE)
         except Exception:  # pragma: no cover - ctypes raises only on a wrong signature
             pass
         finally:
-            os.close(fd)
-            with _lock:
+            with ready:
+                requests.popleft()
+                os.close(fd)
                 state["pending"] -= 1
 
 
@@ -160,18 +171,31 @@ def _sync_file_range():
 
 
 def _forget_in_child() -> None:
-    """A forked child has no thread: the requests it inherited closed, its own thread later."""
+    """A forked child has no thread: the requests it inherited closed, its own thread later.
+
+    The fork happens with the lock held (:func:`_hold_for_fork`), so the queue
+    lists every duplicate, the one being made included.
+    """
     global _lock
     _lock = threading.Lock()
-    requests = _state.pop("queue", None)
+    requests = _state.pop("queue", None) or ()
+    _state.pop("ready", None)
     _state.pop("pending", None)
-    while requests is not None and not requests.empty():
-        fd = requests.get_nowait()[0]
+    for fd, _, _ in requests:
         try:
             os.close(fd)
         except OSError:  # pragma: no cover - the duplicate is the queue's own
             pass
 
 
+def _hold_for_fork() -> None:
+    _lock.acquire()
+
+
+def _release_after_fork() -> None:
+    _lock.release()
+
+
 if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_in_child)
+    os.register_at_fork(before=_hold_for_fork, after_in_parent=_release_after_fork,
+                        after_in_child=_forget_in_child)
