@@ -794,22 +794,25 @@ def test_a_point_nothing_maps_to_is_nan_not_newtons_last_guess(run, tmp_path):
 
     from volwarp_cli.warp.export import read_points as read_any
 
+    # (a point given without a position is none to solve, not one that failed; a NaN
+    # elsewhere in the file, a measurement's, is the file's own and kept)
     doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "controlPoints": [
-        {"label": "a", "position": list(reached)}, {"label": "b", "position": list(beyond)}]}]}
+        {"label": "a", "position": list(reached)}, {"label": "b", "position": list(beyond)},
+        {"label": "c", "position": [0.0, 0.0, 0.0], "positionStatus": "undefined"}],
+        "measurements": [{"name": "length", "value": float("nan")}]}]}
     (tmp_path / "p.mrk.json").write_text(json.dumps(doc))
-    assert run("apply", "-t", tmp_path / "half.nrrd", "--points-in", tmp_path / "p.mrk.json",
-               "--points-to", tmp_path / "q.mrk.json").code == 0
-
-    def no_nan(token):
-        raise AssertionError(f"{token} in a JSON file")
-
-    moved = json.loads((tmp_path / "q.mrk.json").read_text(), parse_constant=no_nan)
-    a, b = moved["markups"][0]["controlPoints"]
+    res = run("apply", "-t", tmp_path / "half.nrrd", "--points-in", tmp_path / "p.mrk.json",
+              "--points-to", tmp_path / "q.mrk.json")
+    assert res.code == 0, res.stderr
+    assert "p.mrk.json: 1 points could not be solved" in res.stderr and ": points 2" in res.stderr
+    moved = json.loads((tmp_path / "q.mrk.json").read_text())
+    a, b, c = moved["markups"][0]["controlPoints"]
+    assert all(np.isfinite(p["position"]).all() for p in (a, b, c))  # (JSON has no NaN)
     np.testing.assert_allclose(a["position"], q[0], rtol=0, atol=1e-9)
     assert a.get("positionStatus", "defined") == "defined"
-    assert b["positionStatus"] == "undefined"
+    assert b["positionStatus"] == "undefined" and c["positionStatus"] == "undefined"
     back = read_any(str(tmp_path / "q.mrk.json")).points
-    assert np.isfinite(back[0]).all() and np.isnan(back[1]).all()
+    assert np.isfinite(back[0]).all() and np.isnan(back[1:]).all()
 
 
 def test_newton_never_steps_onto_nan_vectors():

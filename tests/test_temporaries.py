@@ -200,3 +200,32 @@ def test_the_old_store_is_removed_under_a_name_never_put_back(tmp_path, monkeypa
     atomic._rename_folder(str(tmp), path)
     (name,) = removed
     assert name.endswith(".gone") and (tmp_path / name / "zarr.json").read_text() == "old"
+
+
+def test_a_store_that_cannot_be_put_back_is_kept(tmp_path, monkeypatch):
+    """Putting a dead process's old store back fails (a full disk): it is kept where it is,
+    the earlier output's only copy (it was removed as a stale temporary)."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    path = tmp_path / "o.ome.zarr"
+    old = _store(tmp_path / f".o.ome.zarr.vw-{dead.pid}@{atomic._host()}.abcdefgh.old", "earlier")
+
+    def full(src, dst, *a, **k):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(atomic.os, "rename", full)
+    atomic._remove_stale_temporaries(path)
+    assert (old / "zarr.json").read_text() == "earlier" and not path.exists()
+
+
+def test_a_fork_whose_lock_was_not_taken_releases_nothing():
+    """A stop may cut the fork hook's acquire short: the hook after it releases only what it
+    took (it released a lock another thread held)."""
+    from volwarp_cli.io import writeback
+
+    writeback._held_for_fork[0] = False
+    writeback._release_after_fork()  # (no RuntimeError: nothing was taken)
+    writeback._hold_for_fork()
+    assert writeback._lock.locked()
+    writeback._release_after_fork()
+    assert not writeback._lock.locked()

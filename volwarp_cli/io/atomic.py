@@ -591,10 +591,14 @@ def _remove_stale_temporaries(path: Path) -> None:
         stale = path.parent / name
         if name.endswith(".old") and not os.path.lexists(path) and stale.is_dir():
             # a store set aside by a process killed before the new one took its place
-            # (_rename_folder): the earlier output, put back
-            with contextlib.suppress(OSError):
+            # (_rename_folder): the earlier output, put back (and kept where that fails:
+            # its only copy)
+            try:
                 os.rename(stale, path)
                 continue
+            except OSError:
+                if not os.path.lexists(path):
+                    continue
         if stale.is_dir() and not stale.is_symlink():
             _remove_tree(stale)  # a folder output's temporary (or an old store set aside)
             continue

@@ -36,8 +36,8 @@ import threading
 #: in-memory warp of 160^3 float32 places 400 KiB at a time, its parts' edges 200 KiB
 MIN_BYTES = 128 << 10
 
-#: requests waiting for the thread at most (each holds a duplicated descriptor; one
-#: more is held by the request the thread is making)
+#: requests waiting for the thread or being made at most (each holds a duplicated
+#: descriptor)
 MAX_PENDING = 16
 
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
@@ -188,12 +188,19 @@ def _forget_in_child() -> None:
             pass
 
 
+_held_for_fork = [False]  # (a stop may cut the acquire short: released only if taken)
+
+
 def _hold_for_fork() -> None:
+    _held_for_fork[0] = False
     _lock.acquire()
+    _held_for_fork[0] = True
 
 
 def _release_after_fork() -> None:
-    _lock.release()
+    if _held_for_fork[0]:
+        _held_for_fork[0] = False
+        _lock.release()
 
 
 if hasattr(os, "register_at_fork"):

@@ -600,8 +600,10 @@ class Chain:
         for s in reversed(self.simplified()):
             q = s.inverse().map(q) if s.linear else _solve(s, q)
         residual = np.linalg.norm(self.map(q) - p, axis=1) if len(p) else np.zeros(0)
-        bad = np.flatnonzero(~(residual <= SOLVE_ACCEPT))
+        given = np.isfinite(p).all(axis=1)  # (a point without a position: none to solve)
+        bad = np.flatnonzero(~(residual <= SOLVE_ACCEPT) & given)
         q[bad] = np.nan  # (Newton's last guess is no answer: up to several mm off)
+        q[~given] = np.nan
         return Inverted(q, residual, bad)
 
 

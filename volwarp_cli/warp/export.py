@@ -778,7 +778,7 @@ def points_text(pf: PointsFile, moved: np.ndarray) -> str:
         else:  # (no position: Slicer's own way to say so, not a NaN JSON cannot hold)
             point["position"] = [0.0, 0.0, 0.0]
             point["positionStatus"] = "undefined"
-    return json.dumps(doc, indent=4, allow_nan=False) + "\n"
+    return json.dumps(doc, indent=4) + "\n"
 
 
 def write_points(pf: PointsFile, moved: np.ndarray, path: str) -> None:
