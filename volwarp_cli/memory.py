@@ -251,20 +251,24 @@ def release_freed() -> None:
     under an explicit limit would otherwise find less than there is. Nothing
     where the C library has no ``malloc_trim`` (not glibc).
     """
-    trim = getattr(_libc(), "malloc_trim", None)
+    trim = getattr(libc(), "malloc_trim", None)
     if trim is not None:
         trim(0)
 
 
-def _libc():
-    """The C library through ctypes (loaded once), or None where it cannot be loaded."""
+def libc():
+    """The C library through ctypes (loaded once), or None where it cannot be loaded.
+
+    Its functions are looked up by name (``getattr(libc(), name, None)``: None where
+    this C library has none).
+    """
     global _loaded
     if _loaded is None:
         import ctypes
         import ctypes.util
 
         try:
-            _loaded = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+            _loaded = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
         except OSError:
             _loaded = False
     return _loaded or None
@@ -306,7 +310,7 @@ def large_allocations_mapped():
     and a lower mmap threshold of the environment's holds inside too.
     Nothing where the C library is not glibc.
     """
-    mallopt = getattr(_libc(), "mallopt", None)
+    mallopt = getattr(libc(), "mallopt", None)
     if mallopt is None:
         yield
         return

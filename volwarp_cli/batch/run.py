@@ -43,7 +43,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
-from ..io.atomic import COMMITTED_LOG
+from ..io.atomic import COMMITTED_LOG, committed_in
 from ..memory import MEMORY_ENV
 from ..parallel import THREADS_ENV
 from ..signals import STOPS, stops
@@ -389,7 +389,7 @@ class ScanRunner:
             if proc is None:
                 return None, "", None, {}
             code, _, err, peak = self.children.finish(proc)
-            return code, err.decode("utf-8", "replace"), peak, _committed(log)
+            return code, err.decode("utf-8", "replace"), peak, committed_in(log)
         finally:
             if log is not None:
                 with contextlib.suppress(OSError):
@@ -605,22 +605,3 @@ def run_batch(manifest: Manifest, scans: list[Scan], where: Where, progress, *,
         progress.close()
     return Report(results, stop, jobs=jobs, scheduler=scheduler, shard=shard)
 
-
-def _committed(log: str | None) -> dict:
-    """The identities a step noted of the outputs it renamed into place, by absolute path."""
-    import json
-
-    out = {}
-    if log is None:
-        return out
-    try:
-        with open(log, encoding="utf-8", errors="surrogateescape") as fh:
-            for line in fh:
-                try:
-                    item = json.loads(line)
-                    out[item["path"]] = item["identity"]
-                except (ValueError, KeyError, TypeError):  # (a line cut short by a kill)
-                    continue
-    except OSError:
-        return {}
-    return out

@@ -267,6 +267,26 @@ def note_committed(tmp, path) -> None:
         pass
 
 
+def committed_in(log: str | None) -> dict:
+    """What :func:`note_committed` noted in ``log``: each output's identity by absolute path."""
+    import json
+
+    out = {}
+    if log is None:
+        return out
+    try:
+        with open(log, encoding="utf-8", errors="surrogateescape") as fh:
+            for line in fh:
+                try:
+                    item = json.loads(line)
+                    out[item["path"]] = item["identity"]
+                except (ValueError, KeyError, TypeError):  # (a line cut short by a kill)
+                    continue
+    except OSError:
+        return {}
+    return out
+
+
 @contextlib.contextmanager
 def _folder_held(folder: Path | None):
     """An exclusive ``flock`` on ``folder`` for a few renames (None: nothing held).
@@ -343,14 +363,14 @@ _AT_FDCWD = -100
 
 def _exchange(a, b) -> bool:
     """Swap the names ``a`` and ``b`` in one step; False where the system cannot (nothing done)."""
-    if not sys.platform.startswith("linux"):
+    from ..memory import libc
+
+    # (a C library without it: not Linux, glibc before 2.28)
+    call = getattr(libc(), "renameat2", None) if sys.platform.startswith("linux") else None
+    if call is None:
         return False
     import ctypes
 
-    try:
-        call = ctypes.CDLL(None, use_errno=True).renameat2
-    except (OSError, AttributeError):  # (a C library without it: glibc before 2.28)
-        return False
     call.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p,
                      ctypes.c_uint]
     # (any failure: the names aside, as without the call; a real one fails there again)

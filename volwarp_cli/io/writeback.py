@@ -157,14 +157,13 @@ def _serve(state: dict, call) -> None:
 
 def _sync_file_range():
     """The C library's ``sync_file_range``, or None where there is none (not Linux)."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        import ctypes
+    from ..memory import libc
 
-        call = ctypes.CDLL(None, use_errno=True).sync_file_range
-    except (OSError, AttributeError):
+    call = getattr(libc(), "sync_file_range", None) if sys.platform.startswith("linux") else None
+    if call is None:
         return None
+    import ctypes
+
     call.argtypes = [ctypes.c_int, ctypes.c_int64, ctypes.c_int64, ctypes.c_uint]
     call.restype = ctypes.c_int
     return call
