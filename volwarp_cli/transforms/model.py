@@ -697,15 +697,16 @@ def _newton(step, target: np.ndarray) -> np.ndarray:
         q[lost] = _finite_start(step, target[lost])
     h = 1e-4
     active = np.arange(len(target))
+    images = step.map(q)  # (of the active points' guesses: each step's map is the next's)
     for _ in range(SOLVE_ITERATIONS):
         if not active.size:
             break
         qa, ta = q[active], target[active]
-        r = step.map(qa) - ta
+        r = images - ta
         norm = np.linalg.norm(r, axis=1)
         done = norm <= SOLVE_TOL
-        active, qa, ta, r, norm = (active[~done], qa[~done], ta[~done], r[~done],
-                                   norm[~done])
+        active, qa, ta, r, norm, images = (active[~done], qa[~done], ta[~done], r[~done],
+                                           norm[~done], images[~done])
         if not active.size:
             break
         jac = np.empty((len(qa), 3, 3))
@@ -726,8 +727,11 @@ def _newton(step, target: np.ndarray) -> np.ndarray:
                 break
             scale[worse] *= 0.5
         step_to = qa - dq * scale[:, None]
+        moved = step.map(step_to)
         # (a step onto NaN vectors is not taken: the point stays where the field is finite)
-        q[active] = np.where(np.isfinite(step.map(step_to)).all(axis=1)[:, None], step_to, qa)
+        taken = np.isfinite(moved).all(axis=1)[:, None]
+        q[active] = np.where(taken, step_to, qa)
+        images = np.where(taken, moved, images)
     return q
 
 
