@@ -119,7 +119,7 @@ _TYPE_TESTS = {
     "null": lambda x: x is None,
     "boolean": lambda x: isinstance(x, bool),
     "number": _number,
-    "integer": lambda x: not isinstance(x, bool) and (
+    "integer": lambda x: type(x) is int or not isinstance(x, bool) and (
         isinstance(x, int) or (isinstance(x, float) and x.is_integer())),
 }
 
@@ -179,7 +179,14 @@ class _Compiled:
             pre.append(lambda x: any(f(x) for f in any_of))
         if "oneOf" in s:
             one_of = [self.check(sub) for sub in s["oneOf"]]
-            pre.append(lambda x: sum(bool(f(x)) for f in one_of) == 1)
+
+            def exactly_one(x):
+                n = 0
+                for f in one_of:
+                    if f(x):
+                        n += 1
+                return n == 1
+            pre.append(exactly_one)
         of_object, of_array = self._object(s), self._array(s)
         of_string, of_number = self._string(s), self._number(s)
         if of_object is None and of_array is None and of_string is None and of_number is None:
@@ -187,6 +194,12 @@ class _Compiled:
                 return _true
             if len(pre) == 1:  # ({"type": "number"}: the type's own test, no layer)
                 return pre[0]
+        if of_object is None and of_array is None and of_string is None and len(pre) == 1 \
+                and s.get("type") in ("number", "integer"):
+            # a number's bounds alone ({"type": "integer", "minimum": 0}: each index of a
+            # registration's 729 moves): the type's test, then the bounds, in one layer
+            is_type = pre[0]
+            return lambda x: is_type(x) and of_number(x)
 
         def test(x):
             for f in pre:
@@ -212,15 +225,18 @@ class _Compiled:
         extra = self.check(s.get("additionalProperties", True))
         names = self.check(s.get("propertyNames", True))
 
+        get = props.get
+
         def test(x):
-            if not all(k in x for k in required):
-                return False
+            for k in required:
+                if k not in x:
+                    return False
             if not lo <= len(x) <= (len(x) if hi is _ABSENT else hi):
                 return False
             for k, v in x.items():
-                if not props.get(k, extra)(v):
+                if not get(k, extra)(v):
                     return False
-            return names is _true or all(names(k) for k in x)
+            return names is _true or all(map(names, x))
         return test
 
     def _array(self, s):
@@ -229,7 +245,7 @@ class _Compiled:
         lo, hi = s.get("minItems", 0), s.get("maxItems", _ABSENT)
         items = self.check(s.get("items", True))
         return lambda x: (lo <= len(x) <= (len(x) if hi is _ABSENT else hi)
-                          and all(items(each) for each in x))
+                          and all(map(items, x)))
 
     def _string(self, s):
         if "minLength" not in s and "pattern" not in s:
@@ -242,4 +258,7 @@ class _Compiled:
         fails = [(op, s[k]) for k, op in _OUT_OF_BOUNDS if k in s]
         if not fails:
             return None
+        if len(fails) == 1:
+            (op, bound), = fails
+            return lambda x: not op(x, bound)
         return lambda x: not any(op(x, bound) for op, bound in fails)
