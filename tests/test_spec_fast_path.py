@@ -199,3 +199,19 @@ def test_a_lone_surrogate_is_a_spec_error():
     """libyaml cannot take one (UnicodeEncodeError): the Python loader words the error."""
     with pytest.raises(SpecError, match="unacceptable character"):
         loader.parse_spec_text("a: \ud800\n", "s.yaml")
+
+
+NUMBERISH = st.text(alphabet="0123456789-+._eE", min_size=1, max_size=8)
+
+
+@settings(max_examples=300, deadline=None)
+@given(texts=st.lists(st.one_of(NUMBERISH, st.sampled_from([
+    "-0", "0.0", "-0.0", "007", "010", "-010", "089", "01.5", "-00.5", "00", "1.", "-1.",
+    ".5", "+1.5", "+7", "1_0.5", "1.5_0", "1_000",
+    "0.1234567890123456789", "-9" * 30 + ".5", "9" * 400, "9" * 400 + ".0"])),
+    min_size=1, max_size=12))
+def test_numbers_read_from_events_are_the_resolvers(texts):
+    """Plain decimals and integers, read by float() and int() without the resolvers: the
+    same values and types as the pure-Python loader's resolvers and constructors give."""
+    text = "x: [" + ", ".join(texts) + "]\ny:\n" + "".join(f"  - {t}\n" for t in texts)
+    assert _outcome(text, 0) == _outcome(text, 1 << 60)

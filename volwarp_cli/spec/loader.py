@@ -250,6 +250,13 @@ def _compose(text: str):
 
 _MAX_FLOAT = sys.float_info.max
 
+#: Plain scalars the resolvers make a float or an int that float() or int() makes alike
+#: (a test holds them to the resolvers and constructors): a registration's spec has
+#: thousands of distinct numbers, resolved and constructed one by one in Python before
+#: (729 moves of 4-decimal offsets: 12 ms to read, 4 ms of it theirs)
+_PLAIN_FLOAT = re.compile(r"-?[0-9]+\.[0-9]+")
+_PLAIN_INT = re.compile(r"-?(?:0|[1-9][0-9]*)")
+
 # keys the constructor reads itself when it flattens a mapping (<< merges, = values)
 _SPECIAL_KEY_TAGS = {"tag:yaml.org,2002:merge", "tag:yaml.org,2002:value"}
 
@@ -402,6 +409,7 @@ def _data_from_events(loader) -> Any:
     next_event = loader.get_event
     resolve, constructors = loader.resolve, loader.yaml_constructors
     scalar_node = yaml.ScalarNode
+    plain_float, plain_int = _PLAIN_FLOAT.fullmatch, _PLAIN_INT.fullmatch
     scalars: dict = {}  # (text, implicit) -> value
     open_: list = []  # [collection, its pending key] from the root down
     values = 0
@@ -418,11 +426,17 @@ def _data_from_events(loader) -> Any:
             key = (event.value, event.implicit)
             value = scalars.get(key, _NO_KEY)
             if value is _NO_KEY:
-                tag = resolve(scalar_node, event.value, event.implicit)
-                if tag in _SPECIAL_KEY_TAGS:
-                    raise _NotPlain
-                value = constructors[tag](loader, scalar_node(tag, event.value, None, None,
-                                                              event.style))
+                text = event.value
+                if event.implicit[0] and plain_float(text):  # (the resolvers' answer too)
+                    value = float(text)
+                elif event.implicit[0] and plain_int(text):
+                    value = int(text)
+                else:
+                    tag = resolve(scalar_node, text, event.implicit)
+                    if tag in _SPECIAL_KEY_TAGS:
+                        raise _NotPlain
+                    value = constructors[tag](loader, scalar_node(tag, text, None, None,
+                                                                  event.style))
                 if isinstance(value, float) and not math.isfinite(value):
                     raise _NotPlain
                 if type(value) is int and not -_MAX_FLOAT <= value <= _MAX_FLOAT:
