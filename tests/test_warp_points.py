@@ -82,6 +82,27 @@ def test_markups_keep_their_coordinate_system(run, setup, tmp_path):
     assert np.linalg.norm(p0 - tos[0]) < 0.5 and np.linalg.norm(p1 - tos[1]) < 0.5
 
 
+def test_a_markups_point_without_a_position_is_not_counted_outside(run, setup, tmp_path):
+    """A point not placed (Slicer's positionStatus undefined) stays so, and is neither
+    moved nor among the points outside the support."""
+    vol, src, spec, froms, tos = setup
+    doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "controlPoints": [
+        {"id": "1", "label": "a", "position": list(froms[0])},
+        {"id": "2", "label": "b", "position": [0.0, 0.0, 0.0], "positionStatus": "undefined"},
+        {"id": "3", "label": "c", "position": [1000.0, 1000.0, 1000.0]}]}]}
+    pin = tmp_path / "p.mrk.json"
+    pin.write_text(json.dumps(doc))
+    res = run("warp", src, "--spec", spec, "-o", tmp_path / "o.nrrd", "--points-in", pin,
+              "--points-to", tmp_path / "q.mrk.json", "--json")
+    assert res.code == 0, res.stderr
+    assert "1 of 2 points lie outside the lattice's support" in res.stderr
+    assert json.loads(res.stdout)["points"]["outside"] == 1
+    a, b, c = json.loads((tmp_path / "q.mrk.json").read_text())["markups"][0]["controlPoints"]
+    assert np.linalg.norm(np.array(a["position"]) - tos[0]) < 0.5
+    assert b["positionStatus"] == "undefined"
+    assert c["position"] == [1000.0, 1000.0, 1000.0]
+
+
 def test_points_outside_the_support_are_reported_and_left(run, setup, tmp_path):
     vol, src, spec, froms, _ = setup
     far = [1000.0, 1000.0, 1000.0]

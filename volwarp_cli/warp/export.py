@@ -788,12 +788,19 @@ def write_points(pf: PointsFile, moved: np.ndarray, path: str) -> None:
     write_bytes_atomic(path, points_text(pf, moved).encode("utf-8"))
 
 
-def report_outside(what: str, inside: np.ndarray, fmap: ForwardMap) -> int:
-    n = int(np.count_nonzero(~inside))
+def report_outside(what: str, inside: np.ndarray, fmap: ForwardMap, points=None) -> int:
+    """Warn of the points outside the lattice's support (``inside`` False); their count.
+
+    ``points``: the points, whose rows without a position (NaN: a markups point
+    not placed, written back as it was) are neither inside nor outside.
+    """
+    placed = (np.ones(len(inside), bool) if points is None
+              else np.all(np.isfinite(np.asarray(points).reshape(len(inside), -1)), axis=1))
+    n = int(np.count_nonzero(~inside & placed))
     if n:
         lo, hi = fmap.support_world_box()
         log.warning("%s: %d of %d points lie outside the lattice's support (world box %s .. "
-                    "%s mm) and were left unmoved", what, n, len(inside),
+                    "%s mm) and were left unmoved", what, n, int(np.count_nonzero(placed)),
                     np.round(lo, 2).tolist(), np.round(hi, 2).tolist())
     return n
 

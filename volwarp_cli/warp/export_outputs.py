@@ -326,7 +326,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
     if requests.points is not None:
         pf, path = requests.points
         moved, inside = fmap.map_world(pf.points)
-        outside = report_outside(pf.path, inside, fmap)
+        outside = report_outside(pf.path, inside, fmap, pf.points)
         with timed(f"write {path}"):
             write_points(pf, moved, path)
         stats["points"] = {"path": str(path), "count": len(inside), "outside": outside}
