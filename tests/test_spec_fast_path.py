@@ -195,6 +195,19 @@ def test_a_spec_read_from_events_pickles_with_its_lines():
     assert back.data == doc.data and back.line(("steps", 1)) == 4 == doc.line(("steps", 1))
 
 
+@pytest.mark.parametrize("bad", ["\x07", "\x1b", "\ufffe", "\x7f"])
+def test_an_unprintable_character_is_named_by_the_python_reader(bad, monkeypatch):
+    """PyYAML's pure-Python reader (its check compiled at first use, not at import) names
+    the character, for a short spec and a long one read by libyaml first."""
+    import yaml.reader
+
+    for text in (f"version: 1\nx: a{bad}b\n", PAD + f"version: 1\nx: a{bad}b\n"):
+        with pytest.raises(SpecError, match=f"unacceptable character #x{ord(bad):04x}"):
+            loader.parse_spec_text(text, "s.yaml")
+    assert yaml.reader.Reader.NON_PRINTABLE.search(f"ok{bad}").start() == 2
+    assert yaml.reader.Reader.NON_PRINTABLE.search("plain text\t\n") is None
+
+
 def test_a_lone_surrogate_is_a_spec_error():
     """libyaml cannot take one (UnicodeEncodeError): the Python loader words the error."""
     with pytest.raises(SpecError, match="unacceptable character"):
