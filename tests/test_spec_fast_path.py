@@ -228,3 +228,25 @@ def test_numbers_read_from_events_are_the_resolvers(texts):
     same values and types as the pure-Python loader's resolvers and constructors give."""
     text = "x: [" + ", ".join(texts) + "]\ny:\n" + "".join(f"  - {t}\n" for t in texts)
     assert _outcome(text, 0) == _outcome(text, 1 << 60)
+
+
+def test_the_lazily_compiled_check_copies_and_pickles_as_the_expression():
+    import copy
+    import pickle
+
+    import yaml.reader
+
+    check = yaml.reader.Reader.NON_PRINTABLE
+    for other in (copy.copy(check), copy.deepcopy(check), pickle.loads(pickle.dumps(check))):
+        assert other.search("ok\x07").start() == 2 and other.search("plain") is None
+
+
+def test_yaml_blocked_or_imported_elsewhere_is_imported_as_an_import_statement_would(monkeypatch):
+    """Once PyYAML is in sys.modules (or being imported by another thread), the loader's
+    import is a plain ``import yaml``: it waits for that import, and a blocked one fails."""
+    import yaml
+
+    assert loader._import_yaml() is yaml
+    monkeypatch.setitem(__import__("sys").modules, "yaml", None)
+    with pytest.raises(ImportError):
+        loader._import_yaml()

@@ -28,18 +28,25 @@ from typing import Any
 
 from ..errors import SpecError
 
+_compile = re.compile  # (the real one, whatever :func:`_import_yaml` puts in its place)
+
 
 class _CompiledLater:
     """A regular expression compiled at its first use (:func:`_import_yaml`)."""
 
-    def __init__(self, compile_, pattern, flags):
-        self._made = None
-        self._make = lambda: compile_(pattern, flags)
+    _made = None  # (class defaults: a copy made without __init__ finds them too)
+    pattern, flags = "", 0
+
+    def __init__(self, pattern, flags):
+        self.pattern, self.flags = pattern, flags
 
     def __getattr__(self, name):  # (search, match, ...: the compiled expression's)
         if self._made is None:
-            self._made = self._make()
+            self._made = _compile(self.pattern, self.flags)
         return getattr(self._made, name)
+
+    def __reduce__(self):  # (copied or pickled: the compiled expression)
+        return _compile, (self.pattern, self.flags)
 
 
 def _import_yaml():
@@ -49,20 +56,21 @@ def _import_yaml():
     at import: a third of PyYAML's import, 2% of a small warp. Only the pure-Python
     reader uses it, which reads a spec only to word its error.
     """
-    if "yaml" in sys.modules:
-        return sys.modules["yaml"]
-    compile_ = re.compile
+    if "yaml" in sys.modules:  # (imported, or being imported by another thread: waited for)
+        import yaml
+
+        return yaml
 
     def compile_later(pattern, flags=0):
         if isinstance(pattern, str) and pattern.startswith("[^\x09\x0A\x0D\x20-\x7E\x85"):
-            return _CompiledLater(compile_, pattern, flags)
-        return compile_(pattern, flags)
+            return _CompiledLater(pattern, flags)
+        return _compile(pattern, flags)
 
     re.compile = compile_later
     try:
         import yaml
     finally:
-        re.compile = compile_
+        re.compile = _compile
     return yaml
 
 
