@@ -645,9 +645,10 @@ VECTOR_CLONES static void row_keep(int32_t *const v0[3], int32_t *const v1[3], P
 static inline int64_t quantize1(double x)
 {
     const double t = x + MAGIC;
-    int64_t bits;
+    uint64_t bits; /* (unsigned: the difference of a voxel not kept, whose quanta are never
+                    * read, may be out of range; wrapped, not undefined) */
     memcpy(&bits, &t, sizeof bits);
-    return bits - MAGIC_BITS;
+    return (int64_t)(bits - (uint64_t)MAGIC_BITS);
 }
 
 #define QUANTA_OF_ROW(r, w)                                                                    \
@@ -867,10 +868,12 @@ VECTOR_CLONES static Py_ssize_t scatter_cubes(int64_t *restrict acc, Py_ssize_t 
              * lines reach the cache while this row runs (12% of the scatter; a prefetch
              * never faults, so a row past the accumulators' is asked for and never read) */
             for (int dz = 0; dz < 2; dz++) {
-                const char *below = (const char *)(pz[dz] + ((int64_t)Y + 2) * line +
-                                                   (int64_t)X * 2);
+                /* (an address, not a pointer: it may lie past the accumulators) */
+                const uintptr_t below = (uintptr_t)pz[dz] +
+                                        (uintptr_t)((((int64_t)Y + 2) * line + (int64_t)X * 2) *
+                                                    (int64_t)sizeof(int64_t));
                 for (Py_ssize_t b = 0; b < 16 * (len + 1); b += 64)
-                    __builtin_prefetch(below + b, 1, 3);
+                    __builtin_prefetch((const void *)(below + (uintptr_t)b), 1, 3);
             }
             touched[0] = MIN(touched[0], X);
             touched[1] = MIN(touched[1], Y);
@@ -1558,10 +1561,6 @@ static int label_scatter_run(LabelScatter *s)
     const double inv_vmax = s->inv_vmax;
     const int box = s->box, has_still = box && s->still.still != NULL;
     const double det_still = sx * (sy * sz);
-    /* A domain voxel's box covers 2 x 2 x 2 target voxels in the usual case where it is
-     * about a target voxel wide; half as wide (oversample 2), rarely: no runs looked for
-     * (a 256^3 warp at oversample 2 was 3-5% slower for looking) */
-    const int cubes_likely = sx > 0.75 && sy > 0.75 && sz > 0.75;
     /* nearest: weight 1, as scatter_run's (kv times 1.0) */
     const v2d kv_one = {QUANTUM, QUANTUM * (1.0 * inv_vmax)};
     const v2i q_one = quantize2(kv_one * 1.0);
