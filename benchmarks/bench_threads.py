@@ -247,12 +247,14 @@ def main(quick: bool = False):
                                                 pairs if kind == "vtk" else (1 if quick else 3))
             common.row(f"general warp {n}^3 command vs {kind} script", ours, peer,
                        f"{kind} script", r)
-        # the same work in process, no start-up, reading or writing: what the peers' figures are
+        # the same work in process, no start-up, reading or writing: what the peers' figures
+        # are; the command's own path (`volwarp_cli.api.warp` of the volume held), its
+        # output cut for the threads as the command's (the whole target as one block on
+        # one thread, as before, was slower than the whole command on two)
+        from volwarp_cli import api
+
         def core():
-            cap = capture_volume(vol, lattice=(9, 9, 9), oversample=1, defer=True)
-            pad = int(np.ceil(np.abs(dq).max())) + 1
-            common.one_shot(Scene(cap.voxmap, cap.grid, base.dq + dq, pad,
-                                  domain_range=base.stats[:2]))
+            api.warp(vol, str(general))
 
         core()
         with parallel.use_threads(cores):
