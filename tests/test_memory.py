@@ -507,3 +507,22 @@ def test_convert_near_its_limit_is_refused_or_stays_under_it_measured(tmp_path, 
             assert code == 1 and "memory limit" in err and not out.exists(), err
             refused += 1
     assert ran and refused  # (the sweep crossed the least limit)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's libc.so.6")
+def test_libc_loads_without_running_ldconfig(monkeypatch):
+    """glibc is loaded by its name: ctypes.util.find_library would fork the whole process to
+    run ``ldconfig -p`` (2 ms of a command, in the middle of its warp); its functions found."""
+    import ctypes.util
+
+    def forbidden(name):
+        raise AssertionError(f"find_library({name!r}) runs ldconfig")
+
+    if not os.path.exists("/lib/x86_64-linux-gnu/libc.so.6") and not any(
+            Path(d, "libc.so.6").exists() for d in ("/lib64", "/usr/lib64", "/lib", "/usr/lib")):
+        pytest.skip("no glibc")
+    monkeypatch.setattr(ctypes.util, "find_library", forbidden)
+    monkeypatch.setattr(memory, "_loaded", None)
+    lib = memory.libc()
+    assert lib is not None and getattr(lib, "malloc_trim", None) is not None
+    assert getattr(lib, "sync_file_range", None) is not None

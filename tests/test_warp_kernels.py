@@ -350,6 +350,33 @@ def test_trilinear_gather_matches_scipy(dtype):
     assert np.allclose(out, ref, rtol=0, atol=1e-5 if dtype == np.float32 else 1e-12)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("columns", ["consecutive", "clamped"])
+def test_gather_with_zero_weights_is_a_copy(dtype, columns):
+    """Every weight 0 (a capture at oversample 1): the samples at the lower indices plus 0.0,
+    so -0.0 comes out +0.0, whether the columns run consecutively (copied as a row) or
+    not (an edge's clamped indices, gathered one by one); the range is of the copy."""
+    rng = np.random.default_rng(23)
+    data = rng.normal(size=(6, 7, 40)).astype(dtype)
+    data[rng.random(data.shape) < 0.2] = -0.0
+    data[2, 3, 5:9] = 1e30 if dtype == np.float32 else 1e300  # (the range's high end)
+    x0 = (np.arange(3, 37) if columns == "consecutive" else
+          np.minimum(np.arange(10, 44), 39)).astype(np.int32)
+    y0 = np.array([0, 3, 3, 6], np.int32)
+    z0 = np.array([5, 2, 0], np.int32)
+    out = np.full((3, 4, len(x0)), np.nan, dtype)
+    zeros = [np.zeros(len(i)) for i in (x0, y0, z0)]
+    lo, hi = K.sample(data, x0, x0, zeros[0], y0, y0, zeros[1], z0, z0, zeros[2], out, 0, 3)
+    ref = data[z0][:, y0][:, :, x0] + dtype(0.0)
+    assert np.array_equal(out, ref)
+    assert not np.signbit(out[out == 0]).any() and (data[z0][:, y0][:, :, x0] == 0).any()
+    assert np.signbit(data[z0][:, y0][:, :, x0][ref == 0]).any()  # (there were -0.0 to mend)
+    assert (lo, hi) == (float(ref.min()), float(ref.max()))
+    part = np.full_like(out, 7.0)  # planes [1, 3) only: plane 0 untouched
+    K.sample(data, x0, x0, zeros[0], y0, y0, zeros[1], z0, z0, zeros[2], part, 1, 3)
+    assert np.array_equal(part[1:], ref[1:]) and (part[0] == 7.0).all()
+
+
 @pytest.mark.parametrize("heavy", [1.0, 4000.0])
 def test_finalize_formula(heavy):
     """Sums of ordinary size, and sums beyond 2**51 (a region folded onto a few voxels):

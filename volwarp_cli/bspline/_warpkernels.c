@@ -106,7 +106,7 @@ SAMPLE_FN(sample_f64, double)
  * voxel): out = the source at the lower indices, the same numbers as the blend, which is
  * v + 0 * d = v + 0.0 for finite d: -0.0 becomes +0.0, here by its bits (the optimizer may
  * drop a + 0.0 under no-signed-zeros). */
-static inline float plus_zero_f32(float v)
+SAMPLE_OPT static inline float plus_zero_f32(float v)
 {
     uint32_t b;
     memcpy(&b, &v, sizeof b);
@@ -115,7 +115,7 @@ static inline float plus_zero_f32(float v)
     return v;
 }
 
-static inline double plus_zero_f64(double v)
+SAMPLE_OPT static inline double plus_zero_f64(double v)
 {
     uint64_t b;
     memcpy(&b, &v, sizeof b);
@@ -131,11 +131,24 @@ static inline double plus_zero_f64(double v)
         Py_ssize_t g0, Py_ssize_t g1, double *range)                                           \
     {                                                                                          \
         double lo = HUGE_VAL, hi = -HUGE_VAL;                                                  \
+        int runs = 1;                                                                          \
+        for (Py_ssize_t e = 1; e < nx; e++)                                                    \
+            runs &= x0[e] == x0[0] + e;                                                        \
         for (Py_ssize_t g = g0; g < g1; g++) {                                                 \
             const T *p0 = data + z0[g] * sy * sx;                                              \
             for (Py_ssize_t f = 0; f < ny; f++) {                                              \
                 const T *r = p0 + y0[f] * sx;                                                  \
                 T *o = out + (g * ny + f) * nx;                                                \
+                if (runs) { /* consecutive columns: a plain copy, as vectors */               \
+                    const T *c = r + x0[0];                                                    \
+                    for (Py_ssize_t e = 0; e < nx; e++) {                                      \
+                        T v = PLUS_ZERO(c[e]);                                                 \
+                        o[e] = v;                                                              \
+                        lo = MIN(lo, (double)v);                                               \
+                        hi = MAX(hi, (double)v);                                               \
+                    }                                                                          \
+                    continue;                                                                  \
+                }                                                                              \
                 for (Py_ssize_t e = 0; e < nx; e++) {                                          \
                     T v = PLUS_ZERO(r[x0[e]]);                                                 \
                     o[e] = v;                                                                  \
