@@ -304,6 +304,38 @@ def test_window_keeps_exactly_the_contributions_inside_it(method):
         assert part.any() and whole[~inside].any()
 
 
+@pytest.mark.parametrize("offset", [0.0, 0.3])
+@pytest.mark.parametrize("moved", [False, True])
+def test_touched_box_is_what_the_scatter_added(offset, moved):
+    """The box the scatter says it touched (what a local update refinishes) is exactly the
+    extent of the accumulators it changed: still voxels one column each at consecutive
+    columns (offset 0: a grid warped onto itself, added a stretch at a time) or two
+    (offset 0.3), with and without a moved region among them, and a window cutting the
+    rows short."""
+    rng = np.random.default_rng(17)
+    dz, dy, dx = 8, 12, 40  # (whole regions of 4 voxels)
+    u = np.zeros((3, dz + 2, dy + 2, dx + 2), np.float32)
+    if moved:  # (regions of 4 columns: x region 3 moves)
+        u[:, :, :, 13:17] = rng.uniform(-0.6, 0.6, (3, dz + 2, dy + 2, 4))
+    values = rng.uniform(1, 2, (dz, dy, dx)).astype(np.float32)
+    still = np.ones((1, 2, 3, 10), np.uint8)
+    if moved:
+        still[0, :, :, 2:5] = 0
+    for window in (None, ((5, 31), (0, 12))):
+        acc = np.zeros((dz + 2, dy + 2, dx + 2, 2), np.int64)
+        touched = pushforward.scatter(u, values, (offset, offset, offset), (1.0, 1.0, 1.0),
+                                      Box.from_xyz((0, 0, 0), (dx, dy, dz)), 1, 2.0, "box", acc,
+                                      still=still, granularity=(4, 4, 4), window=window)
+        hit = np.argwhere(acc.any(axis=-1))
+        assert touched is not None and hit.size
+        assert touched.lo == tuple(hit.min(axis=0)) and touched.hi == tuple(hit.max(axis=0) + 1)
+        general = np.zeros_like(acc)  # (and the sums are those of the general path)
+        pushforward.scatter(u, values, (offset, offset, offset), (1.0, 1.0, 1.0),
+                            Box.from_xyz((0, 0, 0), (dx, dy, dz)), 1, 2.0, "box", general,
+                            window=window)
+        assert np.array_equal(acc, general)
+
+
 @pytest.mark.parametrize("method", ["box", "nearest"])
 def test_values_may_hold_only_the_blocks_planes(method):
     """The scatter reads a block's samples from a buffer of just its planes (what a

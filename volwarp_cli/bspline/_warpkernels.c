@@ -737,6 +737,41 @@ static inline void add_run(int64_t *restrict row, const int64_t *restrict q, Py_
     row[2 * len + 1] += b1[len - 1];
 }
 
+/* Still voxels [a, b) of a row whose x spans are one target column each, the columns
+ * consecutive from x0 (a scan's grid warped onto itself: each still voxel is its own
+ * target voxel), their y and z spans those of the row (trow, wrow: the nrow target rows
+ * and their weights): the numbers of the per-voxel path (its mass, then add2's two
+ * products, each rounded as quantize2 rounds), made as vectors a piece of QCHUNK voxels
+ * at a time (k: 2 QCHUNK doubles). A warp with one point moved is mostly still voxels:
+ * one at a time, they were most of its scatter. */
+VECTOR_CLONES static void still_run(int64_t *const trow[4], const double wrow[4], int nrow,
+                                    const double *restrict xw, const double *restrict xa0,
+                                    int64_t x0, const void *values, int f64, double sgn,
+                                    double inv_vmax, double det_still, double yw, double zw,
+                                    Py_ssize_t a, Py_ssize_t b, double *restrict k)
+{
+    double *restrict kq = k, *restrict kqv = k + QCHUNK;
+    for (Py_ssize_t c0 = a; c0 < b; c0 += QCHUNK) {
+        const Py_ssize_t m = MIN(QCHUNK, b - c0);
+        for (Py_ssize_t j = 0; j < m; j++) {
+            const double val = f64 ? ((const double *)values)[c0 + j]
+                                   : (double)((const float *)values)[c0 + j];
+            const double mass = det_still / (xw[c0 + j] * yw * zw); /* as row_boxes */
+            kq[j] = sgn * QUANTUM * mass;
+            kqv[j] = kq[j] * (val * inv_vmax);
+        }
+        for (int r = 0; r < nrow; r++) {
+            int64_t *restrict row = trow[r] + 2 * (x0 + (c0 - a));
+            const double wr = wrow[r];
+            _Pragma("GCC ivdep") for (Py_ssize_t j = 0; j < m; j++) {
+                const double w = wr * xa0[c0 + j];
+                row[2 * j] += quantize1(kq[j] * w);
+                row[2 * j + 1] += quantize1(kqv[j] * w);
+            }
+        }
+    }
+}
+
 /* Phase 2 for one voxel: add kv times each overlap volume to the covered target voxels
  * (target plane z in slot z - rb of acc, less nz from nz on; line, plane: strides of y
  * and z in int64s). */
@@ -919,10 +954,12 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
     int64_t bx0 = IQUANTUM, by0 = IQUANTUM, bz0 = IQUANTUM, bx1 = -1, by1 = -1, bz1 = -1;
     int64_t touched[6]; /* scatter_cubes' box */
     /* row buffers: 7 doubles (boxes), 6 doubles and 6 int32 (their spans) and a Span
-     * (still voxels' x) per voxel, a piece's 16 streams of quanta, a list, flags */
+     * (still voxels' x) per voxel, a piece's 16 streams of quanta, still_run's x spans
+     * and its piece's kq, kqv, a list, flags */
     const Py_ssize_t qn = MIN(n, QCHUNK) + QPAD; /* a stream of quanta, QPAD included */
-    char *mem = malloc((size_t)n * (13 * sizeof(double) + sizeof(Span) + 9 * sizeof(int32_t) +
-                                    5) + (size_t)qn * 16 * sizeof(int64_t) + 8);
+    char *mem = malloc((size_t)n * (15 * sizeof(double) + sizeof(Span) + 10 * sizeof(int32_t) +
+                                    5) + (size_t)qn * 16 * sizeof(int64_t) +
+                       2 * QCHUNK * sizeof(double) + 8);
     if (!mem)
         return; /* the caller checks bbox[0] for this */
     double *xmin = (double *)mem, *xmax = xmin + n, *ymin = xmin + 2 * n, *ymax = xmin + 3 * n,
@@ -935,7 +972,9 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
     int32_t *sv1[3] = {rb_ + 4 * n, rb_ + 5 * n, rb_ + 6 * n};
     /* (8-byte aligned: 13 n doubles, n Spans and 8 n int32 before it) */
     int64_t *quanta = (int64_t *)(rb_ + 7 * n);
-    int32_t *others = (int32_t *)(quanta + 16 * qn); /* a row's kept voxels not cubes */
+    double *xw = (double *)(quanta + 16 * qn), *xa0 = xw + n, *kbuf = xa0 + n;
+    int32_t *xend = (int32_t *)(kbuf + 2 * QCHUNK);
+    int32_t *others = xend + n; /* a row's kept voxels not cubes */
     /* still flags per pass, kept while the rows reach the same z and y regions */
     unsigned char *fasts[2] = {(unsigned char *)(others + n), (unsigned char *)(others + n) + n};
     unsigned char *keep = fasts[1] + n, *cube = keep + n, *reg = cube + n; /* reg: up to n + 2 */
@@ -951,7 +990,15 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
             span_of(-hx + base, hx + base, tx0, tx1 - 1, &xstill[i]);
             ra[i] = (int32_t)(MAX(e - 1, 0) / gx - a0);
             rb_[i] = (int32_t)(MIN(e + 1, s->dvx - 1) / gx - a0);
+            xw[i] = xstill[i].hi - xstill[i].lo;
+            xa0[i] = xstill[i].a0;
         }
+        for (Py_ssize_t i = n - 1; i >= 0; i--) /* (still_run's stretches) */
+            xend[i] = xstill[i].v1 != xstill[i].v0 ? (int32_t)i
+                      : i + 1 < n && xstill[i + 1].v1 == xstill[i + 1].v0 &&
+                              xstill[i + 1].v0 == xstill[i].v0 + 1
+                          ? xend[i + 1]
+                          : (int32_t)(i + 1);
     }
     const double det_still = sx * (sy * sz);
     /* A domain voxel's box covers 2 x 2 x 2 target voxels in the usual case where it is
@@ -1073,6 +1120,22 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                         Z = &zstill;
                         if (!yzok || X->v1 < X->v0)
                             continue;
+                        if (narrow_yz && xend[i] > i) { /* a stretch of one-column spans */
+                            Py_ssize_t j = i + 1;
+                            while (j < xend[i] && fast[j])
+                                j++;
+                            still_run(trow, wrow, nrow, xw, xa0, X->v0,
+                                      (const char *)s->values +
+                                          vrow * (f64 ? sizeof(double) : sizeof(float)),
+                                      f64, sgn, inv_vmax, det_still, yw, zw, i, j, kbuf);
+                            if (track) {
+                                bx0 = MIN(bx0, X->v0); by0 = MIN(by0, Y->v0);
+                                bz0 = MIN(bz0, Z->v0); bx1 = MAX(bx1, xstill[j - 1].v1);
+                                by1 = MAX(by1, Y->v1); bz1 = MAX(bz1, Z->v1);
+                            }
+                            k = j - 1; /* (listed is false here: k is i) */
+                            continue;
+                        }
                         m = det_still / ((X->hi - X->lo) * yw * zw); /* as row_boxes */
                         if (narrow_yz && X->v1 - X->v0 <= 1) { /* splat's common case */
                             double val = f64 ? ((const double *)s->values)[vrow + i]
