@@ -407,6 +407,9 @@ def test_gather_with_zero_weights_is_a_copy(dtype, columns):
     part = np.full_like(out, 7.0)  # planes [1, 3) only: plane 0 untouched
     K.sample(data, x0, x0, zeros[0], y0, y0, zeros[1], z0, z0, zeros[2], part, 1, 3)
     assert np.array_equal(part[1:], ref[1:]) and (part[0] == 7.0).all()
+    none = np.zeros(0, np.int32)  # no column: nothing read, an empty range
+    assert K.sample(data, none, none, np.zeros(0), y0, y0, zeros[1], z0, z0, zeros[2],
+                    np.zeros((3, 4, 0), dtype), 0, 3) == (np.inf, -np.inf)
 
 
 @pytest.mark.parametrize("heavy", [1.0, 4000.0])

@@ -131,7 +131,7 @@ SAMPLE_OPT static inline double plus_zero_f64(double v)
         Py_ssize_t g0, Py_ssize_t g1, double *range)                                           \
     {                                                                                          \
         double lo = HUGE_VAL, hi = -HUGE_VAL;                                                  \
-        int runs = 1;                                                                          \
+        int runs = nx > 0; /* (x0[0] is read only when there is a column) */              \
         for (Py_ssize_t e = 1; e < nx; e++)                                                    \
             runs &= x0[e] == x0[0] + e;                                                        \
         for (Py_ssize_t g = g0; g < g1; g++) {                                                 \
@@ -1120,7 +1120,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                         Z = &zstill;
                         if (!yzok || X->v1 < X->v0)
                             continue;
-                        if (narrow_yz && xend[i] > i) { /* a stretch of one-column spans */
+                        if (narrow_yz && !listed && xend[i] > i) { /* one-column spans */
                             Py_ssize_t j = i + 1;
                             while (j < xend[i] && fast[j])
                                 j++;
@@ -1133,26 +1133,20 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                                 bz0 = MIN(bz0, Z->v0); bx1 = MAX(bx1, xstill[j - 1].v1);
                                 by1 = MAX(by1, Y->v1); bz1 = MAX(bz1, Z->v1);
                             }
-                            k = j - 1; /* (listed is false here: k is i) */
+                            k = j - 1; /* (not listed: k is i) */
                             continue;
                         }
                         m = det_still / ((X->hi - X->lo) * yw * zw); /* as row_boxes */
-                        if (narrow_yz && X->v1 - X->v0 <= 1) { /* splat's common case */
+                        if (narrow_yz && X->v1 - X->v0 == 1) { /* (one column: still_run) */
                             double val = f64 ? ((const double *)s->values)[vrow + i]
                                              : (double)((const float *)s->values)[vrow + i];
                             double kq = sgn * QUANTUM * m;
                             const double kqv = kq * (val * inv_vmax);
-                            if (X->v1 > X->v0) {
-                                const v4d kv2 = {kq, kqv, kq, kqv};
-                                for (int r = 0; r < nrow; r++) {
-                                    const double w0 = wrow[r] * X->a0, w1 = wrow[r] * X->a1;
-                                    const v4d w2 = {w0, w0, w1, w1};
-                                    add4(trow[r] + X->v0 * 2, kv2, w2);
-                                }
-                            } else {
-                                const v2d kv = {kq, kqv};
-                                for (int r = 0; r < nrow; r++)
-                                    add2(trow[r] + X->v0 * 2, kv, wrow[r] * X->a0);
+                            const v4d kv2 = {kq, kqv, kq, kqv};
+                            for (int r = 0; r < nrow; r++) {
+                                const double w0 = wrow[r] * X->a0, w1 = wrow[r] * X->a1;
+                                const v4d w2 = {w0, w0, w1, w1};
+                                add4(trow[r] + X->v0 * 2, kv2, w2);
                             }
                             if (track) {
                                 bx0 = MIN(bx0, X->v0); by0 = MIN(by0, Y->v0);
