@@ -194,7 +194,7 @@ def distance_pass_input(out_box: Box, shape, axis: int) -> Box:
 
 
 # -- warp -------------------------------------------------------------------------------
-def warp_input(out_box: Box, dq, grid, pad) -> Box:
+def warp_input(out_box: Box, dq, grid, pad, bounds=None) -> Box:
     """The domain voxels (a box of the ``[Dz, Dy, Dx]`` voxmap) whose images can reach ``out_box``.
 
     ``out_box`` is a target block (``[z, y, x]`` of the padded target).
@@ -232,6 +232,9 @@ def warp_input(out_box: Box, dq, grid, pad) -> Box:
     the bounding box of the regions' ranges. The ``nearest`` pushforward
     reaches less (the voxel's mapped centre), so the same box serves it.
 
+    ``bounds``: ``offset_bounds(dq)`` where the caller has them (a scene keeps them
+    per lattice; the threads' cut asks for a dozen candidate parts).
+
     This is the domain half of :meth:`.bspline.reach.Reach.rebuild_block`, with strict
     rounding: that method takes ``floor``/``ceil + 1``, up to two voxels more
     per side than the block needs (harmless there, it only costs work). It
@@ -247,7 +250,7 @@ def warp_input(out_box: Box, dq, grid, pad) -> Box:
     pad = np.array([int(p) for p in np.broadcast_to(pad, (3,))])
     target = tuple(int(i + 2 * p) for i, p in zip(grid.input_shape, pad, strict=True))
     reach = Reach(grid, grid.affine_offset(pad), grid.scale, target)
-    lo_u, hi_u = offset_bounds(dq)
+    lo_u, hi_u = offset_bounds(dq) if bounds is None else bounds
     half = 0.5 * reach.scale
     tlo, thi = out_box.xyz()
 

@@ -150,7 +150,7 @@ def domain_box(scene: Scene, box: Box) -> Box:
     a 9^3 lattice moved, two parts: 1.14 times the voxels cut along y, 1.16
     along z; now 1.02 along z).
     """
-    need = warp_input(box, scene.dq, scene.grid, scene.pad)
+    need = warp_input(box, scene.dq, scene.grid, scene.pad, scene._offset_bounds(scene.dq))
     model = Box.from_xyz(scene.grid.data_lo, scene.grid.data_hi)
     g0, g1 = scene.tight_plane_reach(scene.dq).domain_window(box.lo[0], box.hi[0])
     planes = Box((g0, need.lo[1], need.lo[2]), (max(g0, g1), need.hi[1], need.hi[2]))
