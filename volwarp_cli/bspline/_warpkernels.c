@@ -131,7 +131,7 @@ SAMPLE_OPT static inline double plus_zero_f64(double v)
         Py_ssize_t g0, Py_ssize_t g1, double *range)                                           \
     {                                                                                          \
         double lo = HUGE_VAL, hi = -HUGE_VAL;                                                  \
-        int runs = nx > 0; /* (x0[0] is read only when there is a column) */              \
+        int runs = nx > 0; /* (x0[0] is read only when there is a column) */                   \
         for (Py_ssize_t e = 1; e < nx; e++)                                                    \
             runs &= x0[e] == x0[0] + e;                                                        \
         for (Py_ssize_t g = g0; g < g1; g++) {                                                 \
@@ -1137,7 +1137,7 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                             continue;
                         }
                         m = det_still / ((X->hi - X->lo) * yw * zw); /* as row_boxes */
-                        if (narrow_yz && X->v1 - X->v0 == 1) { /* (one column: still_run) */
+                        if (narrow_yz && X->v1 - X->v0 == 1) { /* two columns (one: above) */
                             double val = f64 ? ((const double *)s->values)[vrow + i]
                                              : (double)((const float *)s->values)[vrow + i];
                             double kq = sgn * QUANTUM * m;
