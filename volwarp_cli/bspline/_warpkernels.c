@@ -744,6 +744,9 @@ static inline void add_run(int64_t *restrict row, const int64_t *restrict q, Py_
  * products, each rounded as quantize2 rounds), made as vectors a piece of QCHUNK voxels
  * at a time (k: 2 QCHUNK doubles). A warp with one point moved is mostly still voxels:
  * one at a time, they were most of its scatter. */
+#define STILL_RUN_MIN 8 /* shorter stretches one voxel at a time: at oversample 2 every
+                         * other still voxel is one column, alone, and a call for each
+                         * made those warps' still voxels 1.6x slower */
 VECTOR_CLONES static void still_run(int64_t *const trow[4], const double wrow[4], int nrow,
                                     const double *restrict xw, const double *restrict xa0,
                                     int64_t x0, const void *values, int f64, double sgn,
@@ -1120,10 +1123,11 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                         Z = &zstill;
                         if (!yzok || X->v1 < X->v0)
                             continue;
-                        if (narrow_yz && !listed && xend[i] > i) { /* one-column spans */
-                            Py_ssize_t j = i + 1;
-                            while (j < xend[i] && fast[j])
+                        Py_ssize_t j = i; /* a stretch of one-column spans: [i, j) */
+                        if (narrow_yz && !listed && xend[i] - i >= STILL_RUN_MIN)
+                            for (j = i + 1; j < xend[i] && fast[j];)
                                 j++;
+                        if (j - i >= STILL_RUN_MIN) {
                             still_run(trow, wrow, nrow, xw, xa0, X->v0,
                                       (const char *)s->values +
                                           vrow * (f64 ? sizeof(double) : sizeof(float)),
@@ -1137,16 +1141,22 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                             continue;
                         }
                         m = det_still / ((X->hi - X->lo) * yw * zw); /* as row_boxes */
-                        if (narrow_yz && X->v1 - X->v0 == 1) { /* two columns (one: above) */
+                        if (narrow_yz && X->v1 - X->v0 <= 1) { /* splat's common case */
                             double val = f64 ? ((const double *)s->values)[vrow + i]
                                              : (double)((const float *)s->values)[vrow + i];
                             double kq = sgn * QUANTUM * m;
                             const double kqv = kq * (val * inv_vmax);
-                            const v4d kv2 = {kq, kqv, kq, kqv};
-                            for (int r = 0; r < nrow; r++) {
-                                const double w0 = wrow[r] * X->a0, w1 = wrow[r] * X->a1;
-                                const v4d w2 = {w0, w0, w1, w1};
-                                add4(trow[r] + X->v0 * 2, kv2, w2);
+                            if (X->v1 > X->v0) {
+                                const v4d kv2 = {kq, kqv, kq, kqv};
+                                for (int r = 0; r < nrow; r++) {
+                                    const double w0 = wrow[r] * X->a0, w1 = wrow[r] * X->a1;
+                                    const v4d w2 = {w0, w0, w1, w1};
+                                    add4(trow[r] + X->v0 * 2, kv2, w2);
+                                }
+                            } else { /* (one column, not in a long enough stretch) */
+                                const v2d kv = {kq, kqv};
+                                for (int r = 0; r < nrow; r++)
+                                    add2(trow[r] + X->v0 * 2, kv, wrow[r] * X->a0);
                             }
                             if (track) {
                                 bx0 = MIN(bx0, X->v0); by0 = MIN(by0, Y->v0);
