@@ -1015,6 +1015,8 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
         for (Py_ssize_t f = s->lo[1]; f < s->hi[1]; f++) {
             const double by = s->off[1] + sy * f;
             const Py_ssize_t vrow = ((g - s->voz) * s->vy + f) * s->vx + e_lo;
+            const void *row_values = /* (the row's first sample, for the run kernels) */
+                (const char *)s->values + vrow * (f64 ? sizeof(double) : sizeof(float));
             const Py_ssize_t urow = ((g - s->oz + 1) * s->nyb + (f - s->oy + 1)) * s->nxb +
                                     e_lo - s->ox + 1;
             Span ystill;
@@ -1082,10 +1084,8 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                 }
                 if (runs) {
                     nothers = scatter_cubes(acc, rb, nz, line, plane, sv0, sa0, sa1, mass,
-                                            (const char *)s->values +
-                                                vrow * (f64 ? sizeof(double) : sizeof(float)),
-                                            f64, sgn, inv_vmax, keep, cube, i0, i1, qn, quanta,
-                                            others, touched);
+                                            row_values, f64, sgn, inv_vmax, keep, cube, i0, i1,
+                                            qn, quanta, others, touched);
                     if (track) {
                         bx0 = MIN(bx0, touched[0]); by0 = MIN(by0, touched[1]);
                         bz0 = MIN(bz0, touched[2]); bx1 = MAX(bx1, touched[3]);
@@ -1128,10 +1128,8 @@ VECTOR_CLONES static void scatter_run(Scatter *s)
                             for (j = i + 1; j < xend[i] && fast[j];)
                                 j++;
                         if (j - i >= STILL_RUN_MIN) {
-                            still_run(trow, wrow, nrow, xw, xa0, X->v0,
-                                      (const char *)s->values +
-                                          vrow * (f64 ? sizeof(double) : sizeof(float)),
-                                      f64, sgn, inv_vmax, det_still, yw, zw, i, j, kbuf);
+                            still_run(trow, wrow, nrow, xw, xa0, X->v0, row_values, f64, sgn,
+                                      inv_vmax, det_still, yw, zw, i, j, kbuf);
                             if (track) {
                                 bx0 = MIN(bx0, X->v0); by0 = MIN(by0, Y->v0);
                                 bz0 = MIN(bz0, Z->v0); bx1 = MAX(bx1, xstill[j - 1].v1);
