@@ -1068,3 +1068,49 @@ def test_allow_outside_field_takes_itk_s_identity_past_the_field(run, tmp_path):
     res = run("apply", "-t", tmp_path / "small.nii.gz", "--allow-outside-field",
               "--points-in", tmp_path / "p.csv", "--points-to", tmp_path / "q.csv")
     assert res.code == 2 and "applies to the resampled volume" in res.stderr
+
+
+@pytest.mark.parametrize("how", ["in memory", "by blocks", "by processes"])
+@pytest.mark.parametrize("interp", ["linear", "bspline"])
+def test_nan_samples_spread_as_in_itk_and_are_said(run, inputs, how, interp):
+    """One NaN sample of a float input: the voxels ITK's Resample makes NaN, and a warning once.
+
+    Linear and cubic interpolation blend a NaN into every point whose support
+    reaches it (for cubic through the prefilter: many voxels). The output is
+    ITK's there and the clean input's elsewhere; the count said is the
+    output's (one block holds them all); nearest copies the sample and says
+    nothing.
+    """
+    vol = read_volume(inputs / "in.nrrd")
+    data = vol.data.copy()
+    data[9, 10, 11] = np.nan  # (z, y, x)
+    write_volume(Volume(data, spacing=vol.spacing, origin=vol.origin, direction=vol.direction,
+                        space=vol.space), inputs / "nan.nrrd")
+    sitk.WriteTransform(affine(), str(inputs / "a.tfm"))
+    args = ["-t", inputs / "a.tfm", "--interpolation", interp, "--background-value", "0"]
+    if how != "in memory":
+        args += ["--chunked", "--block", "5,6,7"]
+    if how == "by processes":
+        args += ["--scheduler", "processes"]
+    res = run("apply", inputs / "nan.nrrd", "-o", inputs / "o.nrrd", *args)
+    assert res.code == 0, res.stderr
+    ours = read_volume(inputs / "o.nrrd").data
+    lost = np.isnan(ours)
+    assert lost.any()
+    said = (f"nan.nrrd: NaN or infinite samples (one at index x y z = 11 10 9), which {interp} "
+            "interpolation blends into their neighbours: ")
+    assert res.stderr.count(said) == 1, res.stderr
+    if how == "in memory":
+        assert f"{np.count_nonzero(lost)} voxels of {inputs / 'o.nrrd'} are NaN" in res.stderr
+    theirs = sitk.GetArrayFromImage(sitk.Resample(
+        to_sitk(Volume(data, spacing=vol.spacing, origin=vol.origin, direction=vol.direction,
+                       space=vol.space)), to_sitk(vol), affine(),
+        sitk.sitkLinear if interp == "linear" else sitk.sitkBSpline, 0.0))
+    assert np.array_equal(lost, np.isnan(theirs))
+    assert run("apply", inputs / "in.nrrd", "-o", inputs / "c.nrrd", *args).code == 0
+    clean = read_volume(inputs / "c.nrrd").data
+    assert np.array_equal(ours[~lost], clean[~lost])
+    res = run("apply", inputs / "nan.nrrd", "-o", inputs / "n.nrrd", "-t", inputs / "a.tfm",
+              "--interpolation", "nearest", "--background-value", "0")
+    assert res.code == 0 and "NaN" not in res.stderr
+    assert np.count_nonzero(np.isnan(read_volume(inputs / "n.nrrd").data)) <= 1

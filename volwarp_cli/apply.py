@@ -110,6 +110,7 @@ class ApplyOperation(Operation):
         self.source, self.in_grid, self.grid = source, in_grid, grid
         self.chain = chain
         self.interpolation = interpolation
+        self.name = name
         self.background = float(background)
         self.targets = {self.KEY: target}
         self.dtype = np.dtype(target.dtype)
@@ -314,13 +315,47 @@ class ApplyOperation(Operation):
         if sampled != data.dtype:  # (else the background would be clipped to the input's type)
             data = data.astype(sampled)
         ops = self._local_ops(box)
+        spread = [0] * len(parts)  # (each part's count of output voxels a NaN reached)
 
         def part(k):
             flat[starts[k]:starts[k + 1]] = self._sample(data, self.map_indices(parts[k], ops),
-                                                         lo_xyz)
+                                                         lo_xyz, spread, k)
 
         parallel.run_blocks(part, range(len(parts)), threads)
+        if any(spread):
+            self._warn_spread(region, box, sum(spread))
         return {self.KEY: out}
+
+    def _warn_spread(self, region: Box, box: Box, count: int) -> None:
+        """Say, once a run, that the input's NaN (or infinite) samples were interpolated.
+
+        Linear and cubic interpolation blend a point's neighbours: one NaN
+        sample makes NaN every output voxel whose support reaches it (up to 8
+        for linear; for cubic, through the prefilter, a cube of about 34
+        voxels a side). ITK's Resample does the same, silently; here the
+        count in the first block that has them and one such sample's index
+        are said. (The background is finite, so only the input's samples
+        give a non-finite output.)
+        """
+        from .progress import log
+        from .runscope import run_files
+
+        key = ("input not finite", self._output)
+        said = run_files().said
+        if key in said:
+            return
+        said.add(key)
+        read = self._prefilter_boxes(region)[0] if self.interpolation == "bspline" else region
+        bad = np.argwhere(~np.isfinite(np.asarray(self.source[read.slices])))
+        what = (f"NaN or infinite samples (one at index x y z = "
+                f"{' '.join(str(int(v)) for v in bad[0][::-1] + read.xyz()[0])})"
+                if len(bad) else "samples so large that their interpolation overflows")
+        block = "" if box.size == math.prod(self.grid.shape_xyz) else " (its first block with them)"
+        log.warning("warning: %s: %s, which %s interpolation blends into their neighbours: %d "
+                    "voxels of %s%s are NaN or infinite (as ITK's Resample makes them); replace "
+                    "those samples first, or use --interpolation nearest, to keep their "
+                    "neighbours' values", self.name, what, self.interpolation, count,
+                    self._output, block, extra={"once": key})
 
     def _background_as(self, dtype):
         from .samples import cast_samples
@@ -374,7 +409,13 @@ class ApplyOperation(Operation):
             return np.ascontiguousarray(inner), padded
         return np.pad(inner, pads, mode="reflect"), padded
 
-    def _sample(self, data: np.ndarray, coords: np.ndarray, lo_xyz: np.ndarray) -> np.ndarray:
+    def _sample(self, data: np.ndarray, coords: np.ndarray, lo_xyz: np.ndarray,
+                spread: list | None = None, k: int = 0) -> np.ndarray:
+        """The samples at ``coords``, cast to the output's type.
+
+        ``spread[k]`` (when given) is set to the count of samples that a
+        non-finite input sample reached (linear and cubic of a float input).
+        """
         from .samples import cast_samples
         from .transforms import _applykernels as kernels
 
@@ -388,6 +429,9 @@ class ApplyOperation(Operation):
         kernel = kernels.sample_linear if self.interpolation == "linear" else \
             kernels.sample_cubic
         kernel(data, coords, lo_xyz, n, self.background, res)
+        if spread is not None and self.in_dtype.kind == "f" and not math.isfinite(res.sum()):
+            # (the sum: one pass, no array; NaN or inf if any sample is, or if it overflows)
+            spread[k] = len(res) - int(np.count_nonzero(np.isfinite(res)))
         return cast_samples(res, self.dtype, what=self._output)
 
     @property
