@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -64,6 +65,52 @@ def test_command_line_runs_exit_quietly(data_dir, tmp_path):
         out = subprocess.run(VOLWARP + [str(a) for a in args], capture_output=True, text=True)
         assert out.returncode == 0, out.stderr
         assert out.stderr == "", out.stderr[:500]
+
+
+def _closing(*fds):
+    """A ``preexec_fn`` that starts the child without the standard descriptors ``fds``."""
+    def close():
+        for fd in fds:
+            os.close(fd)
+    return close
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_a_closed_stderr_loses_nothing_and_fails_nothing(data_dir, tmp_path, quiet):
+    """``volwarp ... 2>&-`` (a launcher that closes descriptor 2): the command runs, exits 0
+    and writes the same file as with a stderr. Python leaves ``sys.stderr`` None then: the
+    command failed before it began (without -q) or after its output was renamed into
+    place (with -q), exit 1 either way; and the output's temporary could have taken
+    descriptor 2 (/dev/null holds it now)."""
+    ball = data_dir / "ball_30_uint8.nrrd"
+    args = VOLWARP + ["distance", str(ball), "--iso", "127"] + (["-q"] if quiet else []) + ["-o"]
+    ref = subprocess.run(args + [str(tmp_path / "ref.nrrd")], capture_output=True)
+    assert ref.returncode == 0, ref.stderr
+    got = subprocess.run(args + [str(tmp_path / "got.nrrd")], stdout=subprocess.PIPE,
+                         preexec_fn=_closing(2))
+    assert got.returncode == 0
+    assert (tmp_path / "got.nrrd").read_bytes() == (tmp_path / "ref.nrrd").read_bytes()
+
+
+def test_standard_descriptors_missing_at_start_are_held_by_dev_null():
+    """0 and 2 get /dev/null to read and write, 1 to read only: a command's product on a
+    closed stdout (``info >&-``) fails as it would on the closed descriptor, with exit 1
+    and its one line, instead of vanishing with exit 0."""
+    probe = ("import os, sys; from volwarp_cli.entry import occupy_standard_fds; "
+             "occupy_standard_fds(); sys.stderr.write('discarded'); sys.stderr.flush(); "
+             "f = open(os.environ['OUT'], 'w'); "
+             "print(os.readlink('/proc/self/fd/0'), os.readlink('/proc/self/fd/2'), f.fileno(), "
+             "file=f)")
+    out = Path(tempfile.mkdtemp()) / "fds.txt"
+    res = subprocess.run([sys.executable, "-c", probe], env={**os.environ, "OUT": str(out)},
+                         preexec_fn=_closing(0, 2), stdout=subprocess.DEVNULL)
+    assert res.returncode == 0
+    fd0, fd2, first_free = out.read_text().split()
+    assert fd0 == fd2 == os.devnull and int(first_free) > 2
+    res = subprocess.run(VOLWARP + ["--version"], preexec_fn=_closing(1),
+                         stderr=subprocess.PIPE, text=True)
+    assert res.returncode == 1
+    assert res.stderr.startswith("volwarp: error: ") and res.stderr.count("\n") == 1
 
 
 def test_info_json_is_stable(run, data_dir):

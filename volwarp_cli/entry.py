@@ -161,8 +161,36 @@ def configure_numba_cache() -> str | None:
     return folder
 
 
+def occupy_standard_fds() -> None:
+    """Put ``/dev/null`` on standard descriptors 0-2 the process was started without.
+
+    A job started as ``volwarp ... 2>&-`` (or by a launcher that closes them)
+    has no descriptor 2: Python's ``sys.stderr`` is None, and the first file
+    the command opens, an output's temporary, would get number 2, so that
+    anything written to the standard error (a library's message from C)
+    would land in the output. Descriptors 0 and 2 get ``/dev/null`` opened
+    for reading and writing, which discards what is said as ``2>/dev/null``
+    would; descriptor 1 gets it opened for reading only, so that what a
+    command writes there as its product (``info``, ``--help``) fails as on a
+    closed descriptor (exit 1) instead of vanishing.
+    """
+    for fd, mode, flags in ((0, "r", os.O_RDONLY), (1, "w", os.O_RDONLY), (2, "w", os.O_RDWR)):
+        try:
+            os.fstat(fd)
+            continue
+        except OSError:
+            pass
+        got = os.open(os.devnull, flags)
+        if got != fd:  # (a lower one was free too: filled in an earlier turn)
+            os.dup2(got, fd)
+            os.close(got)
+        stream = open(fd, mode, closefd=False, errors="backslashreplace")  # noqa: SIM115
+        setattr(sys, ("stdin", "stdout", "stderr")[fd], stream)
+
+
 def main() -> int:
     """Run the ``volwarp`` command line; its exit code."""
+    occupy_standard_fds()
     # A command-line run, before numpy is imported: BLAS's own threads stay at one.
     # volwarp's kernels take the cores with their own threads (--threads) and make no
     # large dense products; OpenBLAS's threads, woken by the small products of the
