@@ -285,6 +285,21 @@ def test_missing_output_folder(run, data_dir, tmp_path):
     _assert_clean_failure(res, 1, "does not exist")
 
 
+@pytest.mark.parametrize("output", ["o.nrrd", "o.ply", "o.png"])
+def test_an_output_named_by_a_fifo_is_refused_before_any_work(run, data_dir, tmp_path, output):
+    """A named pipe (a user's sink) where an output goes: refused, not replaced by a file
+    (the finished output is renamed onto its name), and no other output written."""
+    os.mkfifo(tmp_path / output)
+    ball = data_dir / "ball_30_uint8.nrrd"
+    args = {"o.nrrd": ["convert", ball, "-o", tmp_path / output],
+            "o.ply": ["mesh", ball, "--iso", "127", "-o", tmp_path / output],
+            "o.png": ["mesh", ball, "--iso", "127", "-o", tmp_path / "m.ply", "--render",
+                      tmp_path / output, "--render-size", "32x32"]}[output]
+    res = run(*args)
+    _assert_clean_failure(res, 1, "is a named pipe (FIFO), not a regular file")
+    assert (tmp_path / output).is_fifo() and sorted(p.name for p in tmp_path.iterdir()) == [output]
+
+
 def test_content_not_matching_extension(run, tmp_path):
     (tmp_path / "fake.nrrd").write_bytes(b"GIF89a......")
     res = run("info", tmp_path / "fake.nrrd")

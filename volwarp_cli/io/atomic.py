@@ -177,7 +177,27 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
         return path
     if path.is_dir():
         raise VolwarpError(f"{path}: is a folder, not a file")
+    kind = _special_kind(path)
+    if kind is not None:  # (the rename of a finished output would put a file in its place)
+        raise VolwarpError(f"{path}: is {kind}, not a regular file; volwarp writes an output "
+                           "as a new file renamed onto its name, which would replace it: "
+                           "choose another output name")
     return path
+
+
+def _special_kind(path: Path) -> str | None:
+    """What ``path`` is when it exists and is neither a file, a folder nor a link."""
+    import stat
+
+    try:
+        mode = os.lstat(path).st_mode
+    except OSError:
+        return None
+    for test, kind in ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return kind
+    return None
 
 
 @contextlib.contextmanager
