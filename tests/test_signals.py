@@ -54,10 +54,17 @@ def _commands(tmp: Path):
     }
 
 
+def _default_stops():
+    """The stops a job gets from a terminal: a suite run under ``nohup`` (SIGHUP ignored,
+    which a child inherits and volwarp then honours) would find nothing to stop."""
+    for signum in (signal.SIGHUP, signal.SIGINT, signal.SIGQUIT, signal.SIGTERM):
+        signal.signal(signum, signal.SIG_DFL)
+
+
 def _run(args, env, delay=None, signum=None):
     start = time.perf_counter()
     proc = subprocess.Popen([str(VOLWARP)] + [str(a) for a in args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, env=env)
+                            stderr=subprocess.PIPE, env=env, preexec_fn=_default_stops)
     if delay is not None:
         time.sleep(delay)
         proc.send_signal(signum)

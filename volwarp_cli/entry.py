@@ -181,7 +181,7 @@ def occupy_standard_fds() -> None:
         except OSError:
             pass
         got = os.open(os.devnull, flags)
-        if got != fd:  # (a lower one was free too: filled in an earlier turn)
+        if got != fd:  # (the lowest free number, so fd itself: the lower ones are open now)
             os.dup2(got, fd)
             os.close(got)
         stream = open(fd, mode, closefd=False, errors="backslashreplace")  # noqa: SIM115
