@@ -8,7 +8,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -92,7 +91,7 @@ def test_a_closed_stderr_loses_nothing_and_fails_nothing(data_dir, tmp_path, qui
     assert (tmp_path / "got.nrrd").read_bytes() == (tmp_path / "ref.nrrd").read_bytes()
 
 
-def test_standard_descriptors_missing_at_start_are_held_by_dev_null():
+def test_standard_descriptors_missing_at_start_are_held_by_dev_null(tmp_path):
     """0 and 2 get /dev/null to read and write, 1 to read only: a command's product on a
     closed stdout (``info >&-``) fails as it would on the closed descriptor, with exit 1
     and its one line, instead of vanishing with exit 0."""
@@ -101,7 +100,7 @@ def test_standard_descriptors_missing_at_start_are_held_by_dev_null():
              "f = open(os.environ['OUT'], 'w'); "
              "print(os.readlink('/proc/self/fd/0'), os.readlink('/proc/self/fd/2'), f.fileno(), "
              "file=f)")
-    out = Path(tempfile.mkdtemp()) / "fds.txt"
+    out = tmp_path / "fds.txt"
     res = subprocess.run([sys.executable, "-c", probe], env={**os.environ, "OUT": str(out)},
                          preexec_fn=_closing(0, 2), stdout=subprocess.DEVNULL)
     assert res.returncode == 0
