@@ -180,10 +180,7 @@ def occupy_standard_fds() -> None:
             continue
         except OSError:
             pass
-        got = os.open(os.devnull, flags)
-        if got != fd:  # (the lowest free number, so fd itself: the lower ones are open now)
-            os.dup2(got, fd)
-            os.close(got)
+        os.open(os.devnull, flags)  # (the lowest free number: fd, the lower ones open by now)
         stream = open(fd, mode, closefd=False, errors="backslashreplace")  # noqa: SIM115
         setattr(sys, ("stdin", "stdout", "stderr")[fd], stream)
 

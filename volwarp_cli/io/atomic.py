@@ -19,6 +19,7 @@ import contextlib
 import errno
 import os
 import re
+import stat
 import sys
 import threading
 from pathlib import Path
@@ -187,8 +188,6 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
 
 def _special_kind(path: Path) -> str | None:
     """What ``path`` is when it exists and is neither a file, a folder nor a link."""
-    import stat
-
     try:
         mode = os.lstat(path).st_mode
     except OSError:
@@ -254,9 +253,7 @@ def file_identity(st: os.stat_result) -> list[int]:
     Device, inode, size and modification time; a folder's device and inode
     (its size and time move with its entries).
     """
-    import stat as stat_module
-
-    if stat_module.S_ISDIR(st.st_mode):
+    if stat.S_ISDIR(st.st_mode):
         return [st.st_dev, st.st_ino]
     return [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns]
 
