@@ -4,6 +4,7 @@ never replaces an input or a file the user did not name (issue: hostile test run
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -164,7 +165,6 @@ def test_an_input_truncated_while_a_warp_maps_it_fails_cleanly(tmp_path):
     message, its 70 MB temporary left behind. Now: one line, exit 1, nothing left."""
     import subprocess
     import sys
-    import time
 
     volwarp = Path(sys.executable).parent / "volwarp"
     spec = tmp_path / "w.yaml"
@@ -200,9 +200,11 @@ def test_an_input_truncated_while_a_warp_maps_it_fails_cleanly(tmp_path):
     assert len(outcomes - {"finished"}) >= 1, outcomes
 
 
-def test_an_input_rewritten_in_place_while_mapped_is_not_used(tmp_path):
+@pytest.mark.parametrize("time_put_back", [False, True])
+def test_an_input_rewritten_in_place_while_mapped_is_not_used(tmp_path, time_put_back):
     """The same size rewritten in place (no fault, but a mix of two files): refused at the
-    output's rename."""
+    output's rename; also with its modification time put back (`cp -p`), which went
+    unseen."""
     from volwarp_cli.io import write_volume
     from volwarp_cli.runscope import run_scope
 
@@ -210,11 +212,13 @@ def test_an_input_rewritten_in_place_while_mapped_is_not_used(tmp_path):
     _big_nrrd(src, n=16)
     with run_scope():  # (this process goes on with other tests: the mapped file is this run's)
         vol = read_volume(src, mmap=True)
+        first = os.stat(src)
+        time.sleep(0.02)  # (past the kernel clock's tick: the change time is a later one)
         with open(src, "r+b") as fh:  # rewrite a sample in place, as `cp` onto it would
             fh.seek(-4, os.SEEK_END)
             fh.write(b"\0\0\0\0")
-        st = os.stat(src)
-        os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+        shift = 0 if time_put_back else 1_000_000
+        os.utime(src, ns=(first.st_atime_ns, first.st_mtime_ns + shift))
         out = tmp_path / "out.nrrd"
         with pytest.raises(FormatError,
                            match=r"in\.nrrd: the file changed while it was being read"):
@@ -248,8 +252,10 @@ def test_an_input_rewritten_in_place_while_read_by_pread_is_not_used(run, tmp_pa
     """An input read box by box as the work goes (by pread: apply by blocks, the streamed
     warp) and rewritten in place meanwhile, at the same size (`dd conv=notrunc`, a program
     saving over it): apply by blocks wrote a mix of the old and the new scan, exit 0.
-    Refused at the output's rename, the old output kept. A chmod meanwhile (a metadata
-    change, the bytes the same) refuses nothing."""
+    Refused at the output's rename, the old output kept, also when the rewrite puts the
+    modification time back (`cp -p`, `touch -r`: only the change time tells). A chmod, a
+    hard link, an xattr meanwhile (metadata changes, the bytes the same; each moves the
+    change time) refuse nothing."""
     from volwarp_cli.io import filearray, write_volume
     from volwarp_cli.volume import Volume
 
@@ -274,18 +280,38 @@ def test_an_input_rewritten_in_place_while_read_by_pread_is_not_used(run, tmp_pa
             fh.seek(-24 * 24 * 4, os.SEEK_END)
             fh.write(np.full(24 * 24, 999.0, np.float32).tobytes())
 
+    def rewrite_and_put_time_back():
+        st = os.stat(src)
+        time.sleep(0.02)  # (past the kernel clock's tick: the change time is a later one)
+        rewrite()
+        os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns))
+        assert os.stat(src).st_mtime_ns == st.st_mtime_ns
+
+    def link():
+        time.sleep(0.02)
+        os.link(src, tmp_path / "backup.nrrd")
+
+    def xattr():
+        time.sleep(0.02)
+        os.setxattr(src, "user.backup", b"done")
+
     extra = ["--chunked", "--block", "8"] if chunked else []
-    for change, refused in ((lambda: os.chmod(src, 0o640), False), (rewrite, True)):
+    changes = [(lambda: os.chmod(src, 0o640), False), (link, False), (xattr, False),
+               (rewrite, True), (rewrite_and_put_time_back, True)]
+    for change, refused in changes:
+        (tmp_path / "backup.nrrd").unlink(missing_ok=True)
+        before = os.stat(src).st_ctime_ns
         reads.clear()
         monkeypatch.setattr(filearray.FileArray, "__getitem__",
                             lambda self, key, change=change: touch_after_first(self, key, change))
         out.write_bytes(b"old output")
         r = run("apply", src, "-o", out, "-t", tmp_path / "t.tfm", *extra)
         assert len(reads) > 1, "the input was not read box by box"
+        assert os.stat(src).st_ctime_ns != before  # (each change moved the change time)
         if not refused:
-            assert r.code == 0, r.stderr
+            assert r.code == 0, (change, r.stderr)
             continue
-        assert r.code == 1, r.stderr
+        assert r.code == 1, (change, r.stderr)
         assert "in.nrrd: the file changed while it was being read" in r.stderr, r.stderr
         assert out.read_bytes() == b"old output"
         assert sorted(p.name for p in tmp_path.iterdir()) == ["in.nrrd", "out.nrrd", "t.tfm"]

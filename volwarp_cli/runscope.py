@@ -28,8 +28,9 @@ class RunFiles:
     ``inputs``: (device, inode) of every file read as an input; ``declared``:
     the input paths the command line and the specs named, before any was
     read (:mod:`volwarp_cli.io.inputs`), and ``expanded``: each one's files;
-    ``mapped``: path -> (size, mtime_ns, inode) of each input read
-    as the work goes (by ``pread`` or a memory map), when it was opened; ``allow_outside_data``: detached headers
+    ``mapped``: path -> ((size, mtime_ns, inode), ctime_ns, what else moves the
+    ctime) of each input read as the work goes (by ``pread`` or a memory map),
+    when it was opened (:mod:`.io.mapped`); ``allow_outside_data``: detached headers
     may read data files outside their own folder; ``dry_run``: the command runs
     its checks only, and stops at its first read of an input
     (:func:`stop_if_dry_run`); ``said``: the warnings a run says once;
@@ -48,7 +49,7 @@ class RunFiles:
     expanded: dict[str, list] = field(default_factory=dict)
     #: each output file (links followed) and the option that named it, as checked
     claimed: dict[str, str] = field(default_factory=dict)
-    mapped: dict[str, tuple[int, int, int]] = field(default_factory=dict)
+    mapped: dict[str, tuple] = field(default_factory=dict)
     allow_outside_data: bool = False
     dry_run: bool = False
     said: set = field(default_factory=set)

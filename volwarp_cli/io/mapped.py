@@ -6,7 +6,14 @@ rewritten in place meanwhile (``dd conv=notrunc``, a program saving over it),
 the work reads a mix of the two, and a run by blocks wrote such a mix with
 exit 0. :func:`watch` records such a file's identity; :func:`check_unchanged`,
 called before every output's rename, refuses to rename an output made from
-an input that changed (size, modification time, inode) while it was read.
+an input that changed while it was read: its size, modification time or
+inode, or its change time with nothing in its metadata to account for it.
+A rewrite in place that puts the modification time back (``cp -p`` of a
+file the same size, ``touch -r`` after a slow rewrite) still moves the
+change time, which no program can set back; a chmod, a chown, a hard link
+made or removed (a backup's), an xattr or ACL set also move it, with the
+bytes unchanged, and are told apart by the mode, owner, link count and
+xattrs they change (:func:`_explained`).
 A mapped file (:func:`guard`) also gets a SIGBUS handler (in C,
 ``_mapguard``: it removes the temporary outputs, writes one line and exits
 1): if it is truncated while mapped (``cp new.nrrd in.nrrd`` truncates
@@ -25,9 +32,23 @@ _guard = None  # the _mapguard module, once a file is mapped
 
 
 def _identity(st: os.stat_result) -> tuple[int, int, int]:
-    # (not the change time: a chmod, a hard link made by a backup, an xattr move it with
-    # the bytes unchanged; a rewrite that puts the modification time back goes unseen)
     return st.st_size, st.st_mtime_ns, st.st_ino
+
+
+def _xattrs(file) -> tuple:
+    """``file``'s extended attributes (names and values; ACLs among them), () where none can be read."""
+    try:
+        names = sorted(os.listxattr(file))
+        return tuple((n, os.getxattr(file, n)) for n in names)
+    except OSError:  # (a file system without them, or the file gone: the stat tells)
+        return ()
+
+
+def _explained(st: os.stat_result, file) -> tuple:
+    """What moves a file's change time without its bytes: mode, owner, links, xattrs."""
+    return st.st_mode, st.st_uid, st.st_gid, st.st_nlink, _xattrs(file)
+
+
 
 
 def watch(file, where: str | None = None) -> None:
@@ -47,8 +68,11 @@ def watch(file, where: str | None = None) -> None:
     path = str(where if where is not None else file.name if opened else file)
     if is_own_temporary(path):  # (a scratch file the work writes and reads back)
         return
-    st = os.fstat(file.fileno()) if opened else os.stat(file)
-    run_files().mapped.setdefault(path, _identity(st))
+    if path in run_files().mapped:  # (the first identity seen in a run stands)
+        return
+    handle = file.fileno() if opened else file
+    st = os.stat(handle)
+    run_files().mapped[path] = (_identity(st), st.st_ctime_ns, _explained(st, handle))
 
 
 def guard(fh, where: str) -> None:
@@ -73,11 +97,16 @@ def sync_temporaries() -> None:
 
 def check_unchanged() -> None:
     """Raise if a mapped input of this run changed since it was mapped (before a rename)."""
-    for where, ident in list(run_files().mapped.items()):
+    for where, (ident, ctime, explained) in list(run_files().mapped.items()):
         try:
-            now = _identity(os.stat(where))
+            st = os.stat(where)
         except OSError:
-            now = None
-        if now != ident:
+            st = None
+        if st is None or _identity(st) != ident:
             raise FormatError(f"{where}: the file changed while it was being read (replaced "
                               "or rewritten by another program?); the output is not written")
+        if st.st_ctime_ns != ctime and _explained(st, where) == explained:
+            raise FormatError(f"{where}: the file changed while it was being read (its change "
+                              "time moved, its size and modification time kept: rewritten in "
+                              "place with its time put back?); the output is not written "
+                              "(if only its times were set, run again)")
