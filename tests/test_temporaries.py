@@ -12,6 +12,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 from volwarp_cli.io import atomic
 from volwarp_cli.warmup import write_inputs
 
@@ -216,6 +218,42 @@ def test_a_store_that_cannot_be_put_back_is_kept(tmp_path, monkeypatch):
     monkeypatch.setattr(atomic.os, "rename", full)
     atomic._remove_stale_temporaries(path)
     assert (old / "zarr.json").read_text() == "earlier" and not path.exists()
+
+
+def test_a_store_neither_replaced_nor_put_back_is_named_and_put_back_later(tmp_path,
+                                                                            monkeypatch):
+    """No swap, and both renames fail after the old store was set aside (a file system
+    gone read-only): the error says where the earlier output is kept (it was a raw
+    "No space left on device" naming only the hidden name), and the next write of that
+    output, once this process is gone, puts it back."""
+    from volwarp_cli.errors import VolwarpError
+
+    monkeypatch.setattr(atomic, "_exchange", lambda a, b: False)
+    path = _store(tmp_path / "o.ome.zarr", "old")
+    tmp = _store(tmp_path / ".o.ome.zarr.vw-1@h.abcdefgh.partdir", "new")
+    real = os.rename
+
+    def only_aside(src, dst, *a, **k):
+        if os.fspath(dst) != os.fspath(path):
+            return real(src, dst, *a, **k)
+        raise OSError(30, "Read-only file system", os.fspath(src), None, os.fspath(dst))
+
+    monkeypatch.setattr(atomic.os, "rename", only_aside)
+    with pytest.raises(VolwarpError) as err:
+        atomic._rename_folder(str(tmp), path)
+    (aside,) = [n for n in os.listdir(tmp_path) if n.endswith(".old")]
+    message = str(err.value)
+    assert f"kept whole at {tmp_path / aside}" in message, message
+    assert "Read-only file system" in message and str(path) in message
+    assert (tmp_path / aside / "zarr.json").read_text() == "old" and not path.exists()
+    monkeypatch.setattr(atomic.os, "rename", real)
+    # this process's name on it: another process's write of the output would put it back
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    later = aside.replace(f".vw-{os.getpid()}@", f".vw-{dead.pid}@")
+    real(tmp_path / aside, tmp_path / later)
+    atomic._remove_stale_temporaries(path)
+    assert (path / "zarr.json").read_text() == "old"
 
 
 def test_a_fork_whose_lock_was_not_taken_releases_nothing():

@@ -361,8 +361,15 @@ def _rename_folder(tmp: str, path: Path) -> None:
     os.rename(path, aside)
     try:
         os.rename(tmp, path)
-    except BaseException:
-        os.rename(aside, path)  # put the old store back
+    except BaseException as exc:
+        try:
+            os.rename(aside, path)  # put the old store back
+        except OSError as back:  # (both failed: say where the earlier output is)
+            raise VolwarpError(
+                f"{path}: the new store could not take its place ({_why(exc)}) and the "
+                f"earlier one could not be put back ({_why(back)}): it is kept whole at "
+                f"{aside}, and the next write of {path.name} puts it back (or rename it "
+                "yourself)") from exc
         raise
     # (renamed again before its removal: a kill during it leaves a '.gone' folder, never
     # put back, where a half-removed '.old' would have been)
@@ -372,6 +379,11 @@ def _rename_folder(tmp: str, path: Path) -> None:
     except OSError:
         gone = aside
     _remove_tree(gone)
+
+
+def _why(exc: BaseException) -> str:
+    """An error's reason in a few words (an OSError's strerror)."""
+    return getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
 
 
 _RENAME_EXCHANGE = 2  # <linux/fs.h>
