@@ -317,3 +317,49 @@ def test_a_forked_child_closes_the_requests_it_inherits(slow_disk):
     _, status = os.waitpid(pid, 0)
     release.set()
     assert os.waitstatus_to_exitcode(status) == 0
+
+
+@linux
+def test_a_stop_landing_on_a_request_leaks_no_descriptor(tmp_path):
+    """A stop (SIGTERM) arriving just after the descriptor is duplicated: the request is
+    queued whole and the stop raised after it, so the thread closes the duplicate (raised
+    between the two, the duplicate was nobody's and stayed open). Its own process: the
+    stops' handlers are installed, as in a command."""
+    import subprocess
+    import textwrap
+
+    script = textwrap.dedent("""
+        import os, signal, sys, time
+        from volwarp_cli import signals
+        from volwarp_cli.io import writeback
+
+        signals.install()
+        real_dup, made = os.dup, []
+
+        def dup_then_stop(fd):
+            made.append(real_dup(fd))
+            os.kill(os.getpid(), signal.SIGTERM)  # (the stop lands here)
+            return made[-1]
+
+        fh = open(sys.argv[1], "wb")
+        fh.write(bytes(1 << 20))
+        fh.flush()
+        os.dup = dup_then_stop
+        try:
+            writeback.start(fh.fileno(), 0, 1 << 20)
+            print("not stopped")
+        except signals.Interrupted:
+            os.dup = real_dup
+            for _ in range(500):
+                if writeback.pending() == 0:
+                    break
+                time.sleep(0.01)
+            try:
+                os.fstat(made[0])
+                print("leaked")
+            except OSError:
+                print("closed")
+    """)
+    r = subprocess.run([sys.executable, "-c", script, str(tmp_path / "out.raw")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.stdout.split() == ["closed"], (r.stdout, r.stderr)
