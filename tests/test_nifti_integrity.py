@@ -206,6 +206,32 @@ def codes(path) -> tuple[int, int]:
     return int(h["sform_code"]), int(h["qform_code"])
 
 
+def test_forms_mirrored_about_one_origin_say_where_others_read_them(run, tmp_path):
+    """An aligned sform and a scanner qform that differ by a mirror of the third voxel axis
+    (one origin). volwarp reads the qform (they differ); ITK's check compares only the two
+    SVDs' left factors, which a mirror on the voxel side leaves alike, and SimpleITK 2.5
+    read the sform of this file, as nibabel does: the warning says so (it claimed ITK's
+    rule only, and the image was mirrored in z against every other reader)."""
+    rot = nib.eulerangles.euler2mat(0.3, -0.2, 0.5) @ np.diag([1.2, 0.9, 2.0])
+    sform = np.eye(4)
+    sform[:3, :3], sform[:3, 3] = rot, (-10.0, 20.0, 5.0)
+    qform = sform.copy()
+    qform[:3, 2] *= -1
+    src = two_forms(tmp_path / "in.nii", sform, 2, qform, 1)
+    np.testing.assert_allclose(nib.load(src).affine, sform, atol=1e-5)  # nibabel: the sform
+    assert any(np.allclose(sitk_matrix(src), m, atol=1e-4) for m in (sform, qform))
+    res = run("convert", src, "-o", tmp_path / "copy.nii")
+    assert res.code == 0, res.stderr
+    assert "nibabel, FSL and SPM read the sform of this file" in res.stderr, res.stderr
+    assert "set the qform code to 0" in res.stderr
+    np.testing.assert_allclose(nib.load(tmp_path / "copy.nii").affine, qform, atol=1e-4)
+    # the other way round (the sform read, the qform dropped) every reader agrees: not said
+    res = run("convert", two_forms(tmp_path / "s.nii", sform, 1, qform, 1), "-o",
+              tmp_path / "s.nrrd")
+    assert res.code == 0 and "places the image elsewhere" in res.stderr
+    assert "nibabel" not in res.stderr
+
+
 def test_the_testers_mni_sform_beside_a_scanner_qform(run, tmp_path):
     """ITK reads the qform (the sform's code is not 1 and they differ); the copy had the
     qform's matrix under the sform's MNI code, so nibabel/FSL/SPM moved the image."""

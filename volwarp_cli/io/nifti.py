@@ -11,7 +11,7 @@ files) works in LPS, so x and y of the world are negated on the way in and out
 (``Volume.space`` is LPS, ``Volume.file_space`` right-anterior-superior).
 
 Which matrix is used follows ITK's NiftiImageIO (so volwarp and SimpleITK place
-every file alike):
+every file alike, but one: see 3):
 
 1. neither form coded (``sform_code == qform_code == 0``, "method 1"): the
    voxel sizes ``pixdim[1:4]`` along the LPS axes (identity direction, as
@@ -19,7 +19,14 @@ every file alike):
 2. the sform, when it is coded and orthonormal once its column lengths are
    divided out, and either the qform is not coded, or the sform's code is 1
    (scanner), or both forms agree within 1e-4;
-3. else the qform, when it is coded;
+3. else the qform, when it is coded. Where ITK's code checks whether the
+   two forms agree, it compares their singular value decompositions' left
+   factors and values only: two forms that differ by a turn or a mirror of
+   the voxel axes about one origin can pass, and ITK then reads the sform
+   (whether they pass depends on the signs its SVD gives). volwarp compares
+   the matrices, reads the qform of such a file, and its warning says that
+   nibabel, FSL and SPM read the sform (as they do whenever its code is
+   above 0);
 4. else the (skewed) sform: ITK refuses such files, volwarp keeps the shear in
    ``direction``.
 
@@ -709,11 +716,17 @@ def _form_codes_read(header, where: str, chosen: tuple[np.ndarray, str],
         if _same_form(other, np.asarray(aff, dtype=np.float64), shape_xyz):
             return scode, qcode
     dropped = "qform" if name == "sform" else "sform"
+    # (the qform read beside a coded sform: the readers that take the sform whenever it is
+    # coded read another place, and so can ITK, whose check of the two forms compares only
+    # their left singular vectors and values, blind to a turn or a mirror of the voxel axes)
+    others = ("; nibabel, FSL and SPM read the sform of this file, and so can SimpleITK "
+              "(its check of the two forms misses a turn or a mirror of the voxel axes): "
+              "if the sform is meant, set the qform code to 0") if name == "qform" else ""
     log.warning("%s: the NIfTI %s (code %d) places the image elsewhere than the %s "
                 "(code %d) volwarp reads (ITK's rule); volwarp keeps the %s only (a NIfTI "
-                "output gets %s code 0)", where, dropped,
+                "output gets %s code 0)%s", where, dropped,
                 qcode if dropped == "qform" else scode, name,
-                scode if name == "sform" else qcode, name, dropped)
+                scode if name == "sform" else qcode, name, dropped, others)
     return (scode, 0) if name == "sform" else (0, qcode)
 
 
