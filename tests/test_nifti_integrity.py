@@ -232,6 +232,31 @@ def test_forms_mirrored_about_one_origin_say_where_others_read_them(run, tmp_pat
     assert "nibabel" not in res.stderr
 
 
+def test_sform_voxel_sizes_other_than_pixdim_are_said(run, tmp_path):
+    """An sform alone whose column lengths are not pixdim's: volwarp (as nibabel) takes the
+    sform's, SimpleITK pixdim's (its own warning), so the image's extent differs between
+    them; volwarp said nothing. Sizes that agree (to float32) say nothing."""
+    rot = nib.eulerangles.euler2mat(0.3, -0.2, 0.5)
+    sform = np.eye(4)
+    sform[:3, :3], sform[:3, 3] = rot @ np.diag([1.2, 0.9, 2.0]), (-10.0, 20.0, 5.0)
+    img = nib.Nifti1Image(np.arange(6 * 7 * 8, dtype=np.int16).reshape(6, 7, 8), None)
+    img.set_sform(sform, code=2)
+    img.set_qform(None, code=0)
+    nib.save(img, tmp_path / "in.nii")
+    assert tuple(nib.load(tmp_path / "in.nii").header["pixdim"][1:4]) == (1, 1, 1)
+    np.testing.assert_allclose(sitk.ReadImage(str(tmp_path / "in.nii")).GetSpacing(), 1.0)
+    res = run("convert", tmp_path / "in.nii", "-o", tmp_path / "out.nrrd")
+    assert res.code == 0
+    said = [line for line in res.stderr.splitlines() if "pixdim" in line]
+    assert len(said) == 1 and "voxel sizes (1.2, 0.9, 2) are not pixdim's (1, 1, 1)" in said[0]
+    np.testing.assert_allclose(read_volume(tmp_path / "out.nrrd").spacing, (1.2, 0.9, 2.0),
+                               rtol=1e-6)
+    img.header.set_zooms((1.2, 0.9, 2.0))  # (now both say the same)
+    nib.save(img, tmp_path / "same.nii")
+    res = run("convert", tmp_path / "same.nii", "-o", tmp_path / "same.nrrd")
+    assert res.code == 0 and "pixdim" not in res.stderr, res.stderr
+
+
 def test_the_testers_mni_sform_beside_a_scanner_qform(run, tmp_path):
     """ITK reads the qform (the sform's code is not 1 and they differ); the copy had the
     qform's matrix under the sform's MNI code, so nibabel/FSL/SPM moved the image."""

@@ -30,6 +30,11 @@ every file alike, but one: see 3):
 4. else the (skewed) sform: ITK refuses such files, volwarp keeps the shear in
    ``direction``.
 
+Voxel sizes are the chosen matrix's column lengths. Where an sform is read
+whose lengths are not ``pixdim``'s, volwarp says so: it reads the sform's, as
+nibabel, FSL and SPM do, while ITK takes ``pixdim``'s (its spacing always
+comes from there), so the image's extent differs in SimpleITK.
+
 Units: like ITK, a file whose ``xyzt_units`` say metres or microns is read in
 millimetres (spacing and origin scaled by 1000 or 1/1000); other space units
 (mm, unknown) are taken as millimetres. The units are written back as they
@@ -616,8 +621,32 @@ def nifti_geometry(header, where: str) -> tuple[dict, tuple[np.ndarray, str]]:
         spacing, origin, direction = check_placement(
             spacing, _RAS_TO_LPS @ aff[:3, 3], direction, _space_sizes(header),
             where=where, fields=_FIELDS[chosen[1]])
+        if chosen[1] == "sform":  # (a placement that holds: one that does not is an error)
+            _say_sform_sizes(header, chosen[0], where)
         return dict(spacing=spacing, origin=origin, direction=direction, space=_LPS,
                     file_space=_RAS), chosen
+
+
+#: how far an sform's column length may be from its pixdim (ITK's tolerance, absolute;
+#: with 1e-5 of it besides, for the float32 rounding of sizes in microns)
+_SFORM_SIZE_TOLERANCE = 1e-3
+
+
+def _say_sform_sizes(header, sform, where: str) -> None:
+    """Warn where the sform read has voxel sizes other than ``pixdim``'s.
+
+    volwarp takes the sform's (the matrix places every voxel, as nibabel, FSL and
+    SPM take it); ITK warns "unexpected scales in sform" and takes ``pixdim``'s,
+    so the image has another extent there.
+    """
+    sizes = np.linalg.norm(np.asarray(sform, dtype=np.float64)[:3, :3], axis=0)
+    pixdim = np.array([z if z > 0 else 1.0 for z in map(float, header["pixdim"][1:4])])
+    if np.allclose(sizes, pixdim, rtol=1e-5, atol=_SFORM_SIZE_TOLERANCE):  # (float32 sizes)
+        return
+    log.warning("%s: the NIfTI sform's voxel sizes (%s) are not pixdim's (%s); volwarp reads "
+                "the sform's, as nibabel, FSL and SPM do (ITK and SimpleITK take pixdim's)",
+                where, ", ".join(f"{v:.6g}" for v in sizes),
+                ", ".join(f"{v:.6g}" for v in pixdim))
 
 
 def _space_sizes(header) -> tuple[int, ...]:
