@@ -253,8 +253,9 @@ def test_an_input_rewritten_in_place_while_read_by_pread_is_not_used(run, tmp_pa
     warp) and rewritten in place meanwhile, at the same size (`dd conv=notrunc`, a program
     saving over it): apply by blocks wrote a mix of the old and the new scan, exit 0.
     Refused at the output's rename, the old output kept, also when the rewrite puts the
-    modification time back (`cp -p`, `touch -r`: only the change time tells). A chmod, a
-    hard link, an xattr meanwhile (metadata changes, the bytes the same; each moves the
+    modification time back (`cp -p`, `touch -r`: the change time moves, and the sampled
+    bytes tell), with or without a chmod. A chmod (even to the mode the file has), a hard
+    link made or removed, an xattr, `touch -a` meanwhile (metadata only: each moves the
     change time) refuse nothing."""
     from volwarp_cli.io import filearray, write_volume
     from volwarp_cli.volume import Volume
@@ -275,29 +276,52 @@ def test_an_input_rewritten_in_place_while_read_by_pread_is_not_used(run, tmp_pa
             change()
         return real(self, key)
 
-    def rewrite():
+    def rewrite(value=999.0):
         with open(src, "r+b") as fh:
             fh.seek(-24 * 24 * 4, os.SEEK_END)
-            fh.write(np.full(24 * 24, 999.0, np.float32).tobytes())
+            fh.write(np.full(24 * 24, value, np.float32).tobytes())
 
-    def rewrite_and_put_time_back():
-        st = os.stat(src)
-        time.sleep(0.02)  # (past the kernel clock's tick: the change time is a later one)
-        rewrite()
-        os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns))
-        assert os.stat(src).st_mtime_ns == st.st_mtime_ns
+    def later(step):
+        def change():
+            time.sleep(0.02)  # (past a coarse kernel clock's tick: the change time is a later one)
+            step()
+        return change
 
-    def link():
-        time.sleep(0.02)
+    def put_time_back(step):
+        def change():
+            st = os.stat(src)
+            later(step)()
+            os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns))
+            assert os.stat(src).st_mtime_ns == st.st_mtime_ns
+        return change
+
+    def link_and_unlink():
         os.link(src, tmp_path / "backup.nrrd")
+        os.unlink(tmp_path / "backup.nrrd")
 
     def xattr():
-        time.sleep(0.02)
-        os.setxattr(src, "user.backup", b"done")
+        try:
+            os.setxattr(src, "user.backup", b"done")
+        except OSError:  # (a file system without user xattrs: the change time moves anyway)
+            os.chmod(src, os.stat(src).st_mode)
+
+    def rewrite_then_chmod():
+        rewrite(555.0)
+        os.chmod(src, 0o600)
 
     extra = ["--chunked", "--block", "8"] if chunked else []
-    changes = [(lambda: os.chmod(src, 0o640), False), (link, False), (xattr, False),
-               (rewrite, True), (rewrite_and_put_time_back, True)]
+    changes = [  # (each moves the change time; only those that change bytes are refused)
+        (later(lambda: os.chmod(src, 0o640)), False),
+        (later(lambda: os.chmod(src, os.stat(src).st_mode)), False),  # (the mode it has)
+        (later(lambda: os.link(src, tmp_path / "backup.nrrd")), False),
+        (later(link_and_unlink), False),
+        (later(xattr), False),
+        (put_time_back(lambda: os.utime(src, ns=(os.stat(src).st_atime_ns + 5,
+                                                  os.stat(src).st_mtime_ns))), False),
+        (rewrite, True),
+        (put_time_back(lambda: rewrite(777.0)), True),
+        (put_time_back(rewrite_then_chmod), True),
+    ]
     for change, refused in changes:
         (tmp_path / "backup.nrrd").unlink(missing_ok=True)
         before = os.stat(src).st_ctime_ns

@@ -28,8 +28,8 @@ class RunFiles:
     ``inputs``: (device, inode) of every file read as an input; ``declared``:
     the input paths the command line and the specs named, before any was
     read (:mod:`volwarp_cli.io.inputs`), and ``expanded``: each one's files;
-    ``mapped``: path -> ((size, mtime_ns, inode), ctime_ns, what else moves the
-    ctime) of each input read as the work goes (by ``pread`` or a memory map),
+    ``mapped``: path -> ((size, mtime_ns, inode), ctime_ns, a hash of sampled
+    pieces) of each input read as the work goes (by ``pread`` or a memory map),
     when it was opened (:mod:`.io.mapped`); ``allow_outside_data``: detached headers
     may read data files outside their own folder; ``dry_run``: the command runs
     its checks only, and stops at its first read of an input
