@@ -243,7 +243,7 @@ def test_a_store_neither_replaced_nor_put_back_is_named_and_put_back_later(tmp_p
         atomic._rename_folder(str(tmp), path)
     (aside,) = [n for n in os.listdir(tmp_path) if n.endswith(".old")]
     message = str(err.value)
-    assert f"kept whole at {tmp_path / aside}" in message, message
+    assert f"kept whole at {tmp_path / aside} (rename it back yourself" in message, message
     assert "Read-only file system" in message and str(path) in message
     assert (tmp_path / aside / "zarr.json").read_text() == "old" and not path.exists()
     monkeypatch.setattr(atomic.os, "rename", real)

@@ -368,8 +368,9 @@ def _rename_folder(tmp: str, path: Path) -> None:
             raise VolwarpError(
                 f"{path}: the new store could not take its place ({_why(exc)}) and the "
                 f"earlier one could not be put back ({_why(back)}): it is kept whole at "
-                f"{aside}, and the next write of {path.name} puts it back (or rename it "
-                "yourself)") from exc
+                f"{aside} (rename it back yourself; the next write of {path.name} puts it "
+                "back only while nothing is at that path, and removes it where another "
+                "store is)") from exc
         raise
     # (renamed again before its removal: a kill during it leaves a '.gone' folder, never
     # put back, where a half-removed '.old' would have been)
