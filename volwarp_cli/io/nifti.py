@@ -32,7 +32,7 @@ every file alike, but one: see 3):
 
 Voxel sizes are the chosen matrix's column lengths. Where an sform is read
 whose lengths are not ``pixdim``'s, volwarp says so: it reads the sform's, as
-nibabel, FSL and SPM do, while ITK takes ``pixdim``'s (its spacing always
+nibabel's affine and SPM do, while ITK takes ``pixdim``'s (its spacing always
 comes from there), so the image's extent differs in SimpleITK.
 
 Units: like ITK, a file whose ``xyzt_units`` say metres or microns is read in
@@ -627,24 +627,26 @@ def nifti_geometry(header, where: str) -> tuple[dict, tuple[np.ndarray, str]]:
                     file_space=_RAS), chosen
 
 
-#: how far an sform's column length may be from its pixdim (ITK's tolerance, absolute;
-#: with 1e-5 of it besides, for the float32 rounding of sizes in microns)
-_SFORM_SIZE_TOLERANCE = 1e-3
+#: how far, relatively, an sform's column length may be from its pixdim (float32 rounding;
+#: ITK's own warning takes 1e-3 in the file's units, which hides a metre file's mismatch)
+_SFORM_SIZE_TOLERANCE = 1e-4
 
 
 def _say_sform_sizes(header, sform, where: str) -> None:
     """Warn where the sform read has voxel sizes other than ``pixdim``'s.
 
-    volwarp takes the sform's (the matrix places every voxel, as nibabel, FSL and
-    SPM take it); ITK warns "unexpected scales in sform" and takes ``pixdim``'s,
-    so the image has another extent there.
+    volwarp takes the sform's (the matrix places every voxel, as nibabel's affine
+    and SPM take it); ITK warns "unexpected scales in sform" and takes
+    ``pixdim``'s, so the image has another extent there.
     """
     sizes = np.linalg.norm(np.asarray(sform, dtype=np.float64)[:3, :3], axis=0)
     pixdim = np.array([z if z > 0 else 1.0 for z in map(float, header["pixdim"][1:4])])
-    if np.allclose(sizes, pixdim, rtol=1e-5, atol=_SFORM_SIZE_TOLERANCE):  # (float32 sizes)
+    if np.allclose(sizes, pixdim, rtol=_SFORM_SIZE_TOLERANCE, atol=0):
+        return
+    if not _said_once(("nifti-sizes", where)):
         return
     log.warning("%s: the NIfTI sform's voxel sizes (%s) are not pixdim's (%s); volwarp reads "
-                "the sform's, as nibabel, FSL and SPM do (ITK and SimpleITK take pixdim's)",
+                "the sform's, as nibabel's affine and SPM do (ITK and SimpleITK take pixdim's)",
                 where, ", ".join(f"{v:.6g}" for v in sizes),
                 ", ".join(f"{v:.6g}" for v in pixdim))
 
@@ -745,18 +747,54 @@ def _form_codes_read(header, where: str, chosen: tuple[np.ndarray, str],
         if _same_form(other, np.asarray(aff, dtype=np.float64), shape_xyz):
             return scode, qcode
     dropped = "qform" if name == "sform" else "sform"
+    if not _said_once(("nifti-forms", where)):
+        return (scode, 0) if name == "sform" else (0, qcode)
     # (the qform read beside a coded sform: the readers that take the sform whenever it is
-    # coded read another place, and so can ITK, whose check of the two forms compares only
-    # their left singular vectors and values, blind to a turn or a mirror of the voxel axes)
-    others = ("; nibabel, FSL and SPM read the sform of this file, and so can SimpleITK "
-              "(its check of the two forms misses a turn or a mirror of the voxel axes): "
-              "if the sform is meant, set the qform code to 0") if name == "qform" else ""
+    # coded read another place, and so may ITK where its check of the two can pass)
+    others = ""
+    if name == "qform":
+        itk = (", and so may SimpleITK (its check of the two forms misses a turn or a mirror "
+               "of the voxel axes about one origin)") if _itk_may_read_sform(other, aff) else ""
+        others = (f"; nibabel, FSL and SPM read the sform of this file{itk}: if the sform is "
+                  "meant, set the qform code to 0")
     log.warning("%s: the NIfTI %s (code %d) places the image elsewhere than the %s "
                 "(code %d) volwarp reads (ITK's rule); volwarp keeps the %s only (a NIfTI "
                 "output gets %s code 0)%s", where, dropped,
                 qcode if dropped == "qform" else scode, name,
                 scode if name == "sform" else qcode, name, dropped, others)
     return (scode, 0) if name == "sform" else (0, qcode)
+
+
+def _itk_may_read_sform(sform, qform) -> bool:
+    """Whether ITK's check of a differing sform and qform can pass (it then reads the sform).
+
+    ITK (NiftiImageIO) takes an orthonormal sform of code 2-4 beside a coded
+    qform where their offsets and the singular values of their 3x3 parts agree
+    within 1e-4 and the SVDs' left factors match: blind to a turn or a mirror
+    on the voxel side, and to the signs its SVD happens to give. Where the
+    offsets or the values differ, it reads the qform for certain.
+    """
+    s, q = np.asarray(sform, dtype=np.float64), np.asarray(qform, dtype=np.float64)
+    lin = s[:3, :3] / np.linalg.norm(s[:3, :3], axis=0)[None, :]
+    if not np.allclose(lin @ lin.T, np.eye(3), atol=1e-4):
+        return False
+    if np.abs(s[:3, 3] - q[:3, 3]).max() > 1e-4:
+        return False
+    values = [np.linalg.svd(m[:3, :3], compute_uv=False) for m in (s, q)]
+    return bool(np.abs(values[0] - values[1]).max() <= 1e-4)
+
+
+def _said_once(key) -> bool:
+    """True the first time ``key`` is asked in a run (a file read twice warns once); always outside."""
+    from ..runscope import in_run, run_files
+
+    if not in_run():
+        return True
+    said = run_files().said
+    if key in said:
+        return False
+    said.add(key)
+    return True
 
 
 def _header_meta(header, where: str, chosen: tuple[np.ndarray, str],
