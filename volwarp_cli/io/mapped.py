@@ -18,7 +18,9 @@ where it moved, the content decides: :func:`_fingerprint` hashes
 :data:`SAMPLES` pieces of the file spread over it (first and last among
 them), taken when the file was first watched and again at the check. A
 rewrite that changes no sampled piece (less than 1/:data:`SAMPLES` of the
-file, between pieces) still goes unseen.
+file, between pieces) still goes unseen, and so does one within the same
+tick of a coarse change-time clock (Linux before 6.13: a few ms) as the
+first read.
 A mapped file (:func:`guard`) also gets a SIGBUS handler (in C,
 ``_mapguard``: it removes the temporary outputs, writes one line and exits
 1): if it is truncated while mapped (``cp new.nrrd in.nrrd`` truncates
