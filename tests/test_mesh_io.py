@@ -285,6 +285,43 @@ def test_read_mesh_refuses_bad_files(blob, tmp_path):
         read_mesh(tmp_path / "m.stl")
 
 
+def test_read_mesh_refuses_what_it_took_silently(blob, tmp_path, caplog):
+    """NaN or infinite vertices (moved, they came out NaN without a word), face indices
+    that are not whole numbers (cut to integers), and data past what the header declares
+    (a header counting too few faces gave an open mesh, exit 0: now said)."""
+    from volwarp_cli.surface.mesh_io import read_mesh
+
+    path = tmp_path / "m.ply"
+    for bad in (np.nan, np.inf):
+        vertices = blob.vertices.copy()
+        vertices[7, 1] = bad
+        write_mesh(Mesh(vertices, blob.faces, blob.normals), path)
+        with pytest.raises(VolwarpError, match=r"1 vertex has NaN or infinite coordinates "
+                                               r"\(the first: vertex 7\)"):
+            read_mesh(path)
+    head = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+            "end_header\n0 0 0\n1 0 0\n0 1 0\n")
+    path.write_text(head + "3 0.7 1.9 2\n")
+    with pytest.raises(VolwarpError, match="not whole numbers"):
+        read_mesh(path)
+    path.write_text(head + "3 0 1.0 2\n")  # (whole numbers written as floats: taken)
+    np.testing.assert_array_equal(read_mesh(path).faces, [[0, 1, 2]])
+    caplog.clear()
+    path.write_text(head + "3 0 1 2\n3 0 2 1\n")  # (a face more than declared)
+    assert read_mesh(path).n_faces == 1
+    assert "4 values after the elements its PLY header declares" in caplog.text
+    write_mesh(blob, path)
+    good = path.read_bytes()
+    caplog.clear()
+    path.write_bytes(good + b"\n")  # (a trailing newline: nothing to say)
+    read_mesh(path)
+    assert "header declares" not in caplog.text
+    path.write_bytes(good + bytes(16))
+    read_mesh(path)
+    assert "16 bytes after the elements its PLY header declares" in caplog.text
+
+
 TRI_ASCII = """ply
 format ascii 1.0
 comment a line mentioning end_header is still a comment

@@ -324,10 +324,15 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise VolwarpError(f"{path}: unknown PLY format {fmt!r}")
     try:
-        parsed = _ply_elements(data[body_at:], fmt, elements)
+        parsed, left = _ply_elements(data[body_at:], fmt, elements)
     except (ValueError, IndexError) as exc:
         raise VolwarpError(f"{path}: the PLY data is truncated or does not match its "
                            f"header ({exc})") from None
+    if left:  # (VTK's reader and plyfile drop it too: said, as it may be a header's mistake)
+        from ..progress import log
+
+        log.warning("warning: %s: %s after the elements its PLY header declares, ignored (a "
+                    "header that counts too few?)", path, left)
     vert = parsed.get("vertex")
     if vert is None or "face" not in parsed:
         raise VolwarpError(f"{path}: a PLY mesh needs vertex and face elements")
@@ -335,6 +340,11 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
         vertices = np.stack([vert[k] for k in ("x", "y", "z")], axis=1).astype(np.float64)
     except KeyError:
         raise VolwarpError(f"{path}: vertices have no x, y, z") from None
+    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
+    if bad.size:  # (moved, they came out NaN without a word)
+        have = "vertex has" if bad.size == 1 else "vertices have"
+        raise VolwarpError(f"{path}: {bad.size} {have} NaN or infinite coordinates (the "
+                           f"first: vertex {bad[0]})")
     normals = None
     if all(k in vert for k in ("nx", "ny", "nz")):
         normals = np.stack([vert[k] for k in ("nx", "ny", "nz")], axis=1).astype(np.float32)
@@ -347,6 +357,8 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise VolwarpError(f"{path}: faces that are not triangles (volwarp reads triangle "
                            "meshes)")
+    if faces.dtype.kind == "f" and not np.array_equal(faces, np.trunc(faces)):
+        raise VolwarpError(f"{path}: face indices that are not whole numbers")  # (were cut)
     faces = faces.astype(np.int64)
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise VolwarpError(f"{path}: face indices outside the {len(vertices)} vertices")
@@ -373,14 +385,17 @@ def _ply_header_lines(data: bytes):
     return None, 0
 
 
-def _ply_elements(body: bytes, fmt: str, elements) -> dict[str, dict[str, np.ndarray]]:
-    """Each element's properties as arrays.
+def _ply_elements(body: bytes, fmt: str, elements) -> tuple[dict[str, dict[str, np.ndarray]],
+                                                              str | None]:
+    """Each element's properties as arrays, and what follows them (None: nothing but blanks).
 
     Lists as (N, k) arrays when every record has k items, else as a 1-D object
-    array of rows (the caller refuses faces that are not triangles).
+    array of rows (the caller refuses faces that are not triangles). What
+    follows: "N bytes" (binary) or "N values" (ASCII) past the last element.
     """
     if fmt == "ascii":
-        return _ply_ascii(body, elements)
+        out, tokens_left = _ply_ascii(body, elements)
+        return out, (f"{tokens_left} values" if tokens_left else None)
     order = "<" if fmt == "binary_little_endian" else ">"
     out, at = {}, 0
     for name, count, props in elements:
@@ -395,7 +410,8 @@ def _ply_elements(body: bytes, fmt: str, elements) -> dict[str, dict[str, np.nda
             continue
         cols, at = _ply_binary_lists(body, at, order, count, props, name)
         out[name] = cols
-    return out
+    rest = len(body) - at
+    return out, (f"{rest} bytes" if body[at:].strip() else None)
 
 
 def _ply_binary_lists(body, at, order, count, props, name):
@@ -446,7 +462,7 @@ def _stack(values):
     return np.asarray(values)
 
 
-def _ply_ascii(body: bytes, elements) -> dict[str, dict[str, np.ndarray]]:
+def _ply_ascii(body: bytes, elements) -> tuple[dict[str, dict[str, np.ndarray]], int]:
     tokens = body.split()
     out, at = {}, 0
     for name, count, props in elements:
@@ -463,4 +479,4 @@ def _ply_ascii(body: bytes, elements) -> dict[str, dict[str, np.ndarray]]:
                 cols[p].append(np.array([float(v) for v in tokens[at + 1:at + 1 + n]]))
                 at += 1 + n
         out[name] = {p: _stack(v) for p, v in cols.items()}
-    return out
+    return out, len(tokens) - at
