@@ -11,7 +11,8 @@ Layout (all integers little-endian)::
 
 The header holds ``format`` ("vwc"), ``version``, ``input`` (shape x y z,
 dtype, spacing, origin, direction, space, meta, min, max, mean of the captured
-volume), ``capture`` (lattice, placement, oversample, sampling, pad,
+volume, and ``border``, the median of its faces: the warp's default background;
+files written before volwarp 0.1.8 have none, and take it from the stored domain), ``capture`` (lattice, placement, oversample, sampling, pad,
 granularity, subdivision, domain_shape), ``payload`` (dtype, shape x y z, nbytes,
 crc32) and ``header_crc32`` (of the other fields). Loading checks the magic (a
 foreign file), the version, the file size (a truncated file), the header's
@@ -81,6 +82,7 @@ def _header(cap: Capture, payload: np.ndarray, crc: int) -> dict:
             "min": cap.stats[0],
             "max": cap.stats[1],
             "mean": cap.stats[2],
+            "border": None if cap.border is None else float(cap.border),
         },
         "capture": {
             "lattice": list(cap.grid.lattice),
@@ -221,6 +223,7 @@ def _header_problem(head: dict) -> str | None:
              and all(reals(r, 3) for r in inp["direction"]), "input direction"),
             (reals([inp["min"], inp["max"]], 2) and inp["min"] <= inp["max"], "input range"),
             (inp["mean"] is None or reals([inp["mean"]], 1), "input mean"),
+            (inp.get("border") is None or reals([inp["border"]], 1), "input border"),
             (ints(capd["lattice"], 3, 4), "lattice"),
             (ints(capd["granularity"], 3, 1), "granularity"),
             (isinstance(capd["subdivision"], int) and not isinstance(capd["subdivision"], bool)
@@ -289,7 +292,11 @@ def _capture_of(head: dict, domain, path, sampler=None) -> Capture:
         raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
     except Exception as exc:  # a Header check failing on bad geometry
         raise FormatError(f"{path}: capture file header is malformed ({exc})") from None
-    cap.border = capture_border(cap)  # the warp's default background, from the stored input
+    # the warp's default background: the input's own border value, as the capture found it
+    # (files before 0.1.8 have none: from the stored input, which on a spanning grid holds
+    # only its faces interpolated, and gave another background than a warp of the input)
+    border = head["input"].get("border")
+    cap.border = float(border) if border is not None else capture_border(cap)
     return cap
 
 
