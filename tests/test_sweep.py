@@ -438,7 +438,47 @@ def test_multipage_tiff_volume_template(tmp_path):
         "trajectory": [{"line": {"from": [0, 0, 0], "to": [6, 0, 0]}}],
         "up": [0, 0, 1], "scale": [2, 2]})
     v = fields_of(spec)[0]["v"][4, 4]
-    assert np.allclose(v, 30 - 30 * np.arange(13) / 12, atol=1e-3)  # frames 3 -> 0, raw values
+    # frames 3 -> 0, scaled as the same frames as image files are (255 -> 1.0)
+    assert np.allclose(v, (30 - 30 * np.arange(13) / 12) / 255, atol=1e-5)
+
+
+def test_one_stack_three_ways_is_one_template(tmp_path):
+    """The same frames as PNG files, as one uint8 TIFF stack and as one uint16 NRRD give the
+    same field: the stack's samples were kept raw (255 where the PNGs gave 1.0: a "volume"
+    255 times too large, and --dtype uint8 clipped everything)."""
+    import tifffile
+
+    frames = np.zeros((3, 8, 8), np.uint8)
+    frames[:, 2:6, 2:6] = [[[40]], [[255]], [[128]]]
+    for k, frame in enumerate(frames):
+        write_image(tmp_path / f"p_{k}.png", frame[:, :, None])
+    tifffile.imwrite(tmp_path / "stack.tif", frames, photometric="minisblack")
+    write_volume(Volume(frames.astype(np.uint16) * 257), tmp_path / "stack.nrrd")
+    got = []
+    for frames_spec in ("p_*.png", "stack.tif", "stack.nrrd"):
+        spec = make_spec(tmp_path, {
+            "grid": {"origin": [0, -2, -2], "spacing": 0.5, "shape": [13, 9, 9]},
+            "fields": {"v": {"frames": frames_spec}},
+            "trajectory": [{"line": {"from": [0, 0, 0], "to": [6, 0, 0]}}],
+            "up": [0, 0, 1], "scale": [2, 2]})
+        got.append(fields_of(spec)[0]["v"])
+    assert 0.99 < got[0].max() <= 1.0
+    np.testing.assert_allclose(got[1], got[0], atol=1e-6)
+    np.testing.assert_allclose(got[2], got[0], atol=1e-6)
+
+
+def test_a_frame_glob_is_in_natural_order(tmp_path):
+    """f_1 ... f_12 unpadded: the glob's frames were in string order (f_1, f_10, f_11, f_12,
+    f_2, ...), so the second frame was f_10 and the stack played out of order."""
+    for k in range(1, 13):
+        write_image(tmp_path / f"f_{k}.tif", np.full((4, 4, 1), float(k), dtype=np.float32))
+    spec = make_spec(tmp_path, {
+        "grid": {"origin": [0, -2, -2], "spacing": 0.5, "shape": [23, 9, 9]},
+        "fields": {"v": {"frames": "f_*.tif"}},
+        "trajectory": [{"line": {"from": [0, 0, 0], "to": [11, 0, 0]}}],
+        "up": [0, 0, 1], "scale": [2, 2]})
+    v = fields_of(spec)[0]["v"][4, 4]
+    assert np.allclose(v, 1 + np.arange(23) / 2, atol=1e-4)  # frame k+1 at x = k
 
 
 def test_cvg_operator_algebra_on_random_fields():

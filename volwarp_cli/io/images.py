@@ -67,11 +67,14 @@ def read_image(path: str | os.PathLike, *, normalize: bool = True) -> np.ndarray
         arr = arr[:, :, None]
     if arr.ndim != 3:
         raise FormatError(f"{where}: expected a 2-D image, got shape {arr.shape}")
-    if not normalize:
-        return arr
-    if arr.dtype.kind in "ui":
-        return (arr.astype(np.float32) / np.float32(np.iinfo(arr.dtype).max))
-    return arr.astype(np.float32)
+    return normalized(arr) if normalize else arr
+
+
+def normalized(samples: np.ndarray) -> np.ndarray:
+    """Samples as float32, integers scaled so their type's largest value is 1.0 (as images are)."""
+    if samples.dtype.kind in "ui":
+        return samples.astype(np.float32) / np.float32(np.iinfo(samples.dtype).max)
+    return samples.astype(np.float32)
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:

@@ -18,20 +18,25 @@ function ``f(u)``. Here:
 Images are read with :func:`volwarp_cli.io.images.read_image` (OpenImageIO,
 alpha left unassociated so colour is not darkened by opacity): 8- and
 16-bit images are scaled to [0, 1], float images are kept as they are.
-Image stacks come from a glob pattern, a list of files, or one volume file
-(NRRD, multi-page TIFF, NIfTI: its z slices are the frames, samples unscaled).
+Image stacks come from a glob pattern (its files in natural order: ``f_2``
+before ``f_10``, as a file manager shows them), a list of files (in its
+order), or one volume file (NRRD, multi-page TIFF, NIfTI: its z slices are
+the frames, scaled as images are: an integer type's largest value is 1.0, a
+float kept; the same frames as PNG files or as one TIFF stack give one
+template).
 """
 
 from __future__ import annotations
 
 import glob as globmod
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import VolwarpError
-from ..io.images import read_image
+from ..io.images import normalized, read_image
 from ..io.inputs import declare_input, declare_input_glob
 from ..spec.functions import Function, spec_error
 
@@ -58,6 +63,15 @@ class Template:
         if self.path_fn is None:
             return np.clip(s, 0.0, 1.0) * (self.n_slices - 1)
         return self.path_fn(seg.u_of(s))
+
+
+def natural_order(name: str) -> list:
+    """A sort key taking digit runs as numbers: ``f_2`` before ``f_10``.
+
+    (``sorted`` put ``f_10`` first, so a stack of unpadded frame numbers played
+    out of order along the trajectory.)
+    """
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
 
 
 def sample_template(data: np.ndarray, x: np.ndarray, y: np.ndarray,
@@ -148,7 +162,7 @@ class TemplateLoader:
         if isinstance(frames, str) and any(c in frames for c in "*?["):
             pattern = str(self.doc.resolve(frames)) if self.doc is not None else frames
             declare_input_glob(pattern)  # (an output it matches would be a frame next time)
-            files = sorted(globmod.glob(pattern))
+            files = sorted(globmod.glob(pattern), key=natural_order)
             if not files:
                 raise self._err(fpath, f"no files match {frames!r}")
             resolved = True
@@ -168,7 +182,7 @@ class TemplateLoader:
                     vol = read_volume(file)
                 except VolwarpError as exc:
                     raise self._err(fpath, f"cannot read template volume: {exc}") from None
-                return vol.data.astype(np.float32)
+                return normalized(vol.data)  # (as its slices would be as image files)
         else:
             files = list(frames)
             resolved = False
