@@ -56,8 +56,9 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 @click.option("--surface", type=click.Choice(["auto", "voxel", "subvoxel"]), default="auto",
               show_default=True,
               help="euclidean: distances between voxel centres (binary shapes) or to the "
-                   "sub-voxel iso-surface of smooth samples; auto picks by the samples. "
-                   "A label map's is always the voxel surface.")
+                   "sub-voxel iso-surface of smooth samples; auto picks by the samples "
+                   "(two values, NaN samples aside, are binary). A label map's is always "
+                   "the voxel surface.")
 @click.option("--unsigned", is_flag=True,
               help="Distance to the shape (0 inside) instead of the signed field.")
 @click.option("--max-distance", type=click.FloatRange(min=0, min_open=True), default=None,

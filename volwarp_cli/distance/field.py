@@ -47,14 +47,16 @@ def inside_mask(data: np.ndarray, iso: float, inside: str = "above") -> np.ndarr
 
 
 def is_binary(data: np.ndarray) -> bool:
-    """True when the samples take at most two distinct values."""
+    """True when the samples take at most two distinct values (NaN samples aside: outside)."""
     if data.dtype == bool:
         return True
-    lo = data.min()
-    hi = data.max()
+    nans = int(np.count_nonzero(np.isnan(data))) if data.dtype.kind == "f" else 0
+    if nans == data.size:
+        return True
+    lo, hi = (np.nanmin(data), np.nanmax(data)) if nans else (data.min(), data.max())
     if lo == hi:
         return True
-    return int(np.count_nonzero((data == lo) | (data == hi))) == data.size
+    return int(np.count_nonzero((data == lo) | (data == hi))) == data.size - nans
 
 
 def check_method(metric: str, surface: str) -> None:

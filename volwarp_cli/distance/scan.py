@@ -28,14 +28,13 @@ def block_stats(block, iso: float, inside: str):
     count = int(np.count_nonzero(inside_mask(b, iso, inside)))
     if b.dtype == bool:
         return nans, count, float(b.min()), float(b.max()), True, bool(b.min()), bool(b.max())
-    lo, hi = b.min(), b.max()
-    if nans == b.size:
-        fmin = fmax = np.nan
-    elif nans:
-        fmin, fmax = float(np.nanmin(b)), float(np.nanmax(b))
-    else:
-        fmin, fmax = float(lo), float(hi)
-    binary = bool(lo == hi) or int(np.count_nonzero((b == lo) | (b == hi))) == b.size
+    if nans == b.size:  # (NaN samples count as outside: they make no value of the shape's)
+        return nans, count, np.nan, np.nan, True, None, None
+    lo, hi = (np.nanmin(b), np.nanmax(b)) if nans else (b.min(), b.max())
+    fmin, fmax = float(lo), float(hi)
+    # (two values and some NaN samples are still binary: a NaN turned a 0/1 mask's
+    # voxel-centre distances into the sub-voxel surface's, half a voxel off everywhere)
+    binary = bool(lo == hi) or int(np.count_nonzero((b == lo) | (b == hi))) == b.size - nans
     return nans, count, fmin, fmax, binary, lo.item(), hi.item()
 
 
@@ -58,9 +57,14 @@ def check_shape(nans: int, count: int, size: int, lo, hi, iso: float, inside: st
     """
     if nans:
         from ..progress import log
+        from ..runscope import in_run, run_files
 
-        log.warning("%d NaN samples (%.2g%%) count as outside the shape", nans,
-                    100.0 * nans / size)
+        key = ("nan-outside", nans)  # (said once a run: the scan and the passes both check)
+        if not in_run() or key not in run_files().said:
+            if in_run():
+                run_files().said.add(key)
+            log.warning("%d NaN samples (%.2g%%) count as outside the shape", nans,
+                        100.0 * nans / size, extra={"once": key})
     if count == 0:
         raise VolwarpError(f"the shape is empty: no sample is {inside} the iso level {iso:g} "
                            f"(samples range {float(lo):g} to {float(hi):g})")
