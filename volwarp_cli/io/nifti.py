@@ -775,8 +775,9 @@ def _itk_may_read_sform(sform, qform) -> bool:
     offsets or the values differ, it reads the qform for certain.
     """
     s, q = np.asarray(sform, dtype=np.float64), np.asarray(qform, dtype=np.float64)
-    lin = s[:3, :3] / np.linalg.norm(s[:3, :3], axis=0)[None, :]
-    if not np.allclose(lin @ lin.T, np.eye(3), atol=1e-4):
+    with np.errstate(all="ignore"):  # (a column of zeros: NaN, and no orthonormal sform)
+        lin = s[:3, :3] / np.linalg.norm(s[:3, :3], axis=0)[None, :]
+    if not np.all(np.isfinite(lin)) or not np.allclose(lin @ lin.T, np.eye(3), atol=1e-4):
         return False
     if np.abs(s[:3, 3] - q[:3, 3]).max() > 1e-4:
         return False
