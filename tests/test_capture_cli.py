@@ -120,8 +120,16 @@ def test_a_capture_file_from_before_the_header_checksum_is_read_as_before(run, d
     good = tmp_path / "g.vwc"
     assert run("capture", data_dir / "ball_30_uint8.nrrd", "-o", good,
                "--oversample", "1").code == 0
+    import struct
+
+    def version_2(head):  # (a version 2 file from before the checksum and the border)
+        head.pop("header_crc32")
+        head["input"].pop("border")
+        head["version"] = 2
+
+    raw = _rewritten(good.read_bytes(), version_2)
     old = tmp_path / "old.vwc"
-    old.write_bytes(_rewritten(good.read_bytes(), lambda head: head.pop("header_crc32")))
+    old.write_bytes(raw[:16] + struct.pack("<I", 2) + raw[20:])
     spec = tmp_path / "w.yaml"
     spec.write_text("version: 1\nsteps: []\n")
     for src, out in ((good, "a.nrrd"), (old, "b.nrrd")):
@@ -129,6 +137,26 @@ def test_a_capture_file_from_before_the_header_checksum_is_read_as_before(run, d
         assert res.code == 0, res.stderr
     assert np.array_equal(read_volume(tmp_path / "a.nrrd").data,
                           read_volume(tmp_path / "b.nrrd").data)
+
+
+def test_an_edit_that_deletes_the_header_checksum_is_refused(run, data_dir, tmp_path):
+    """A version 3 file needs its checksum: an origin edited and the checksum deleted
+    with it was read as a file from before the checksum (and warped, exit 0)."""
+    good = tmp_path / "g.vwc"
+    assert run("capture", data_dir / "ball_30_uint8.nrrd", "-o", good,
+               "--oversample", "1").code == 0
+
+    def edit(head):
+        head["input"]["origin"][0] += 5.0
+        head.pop("header_crc32")
+
+    bad = tmp_path / "bad.vwc"
+    bad.write_bytes(_rewritten(good.read_bytes(), edit))
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nsteps: []\n")
+    res = run("warp", bad, "--spec", spec, "-o", tmp_path / "o.nrrd")
+    assert res.code == 1 and "header checksum is missing" in res.stderr, res.stderr
+    assert not (tmp_path / "o.nrrd").exists()
 
 
 @pytest.mark.parametrize("placement, oversample", [("tripled", "2"), ("uniform", "1.7"),
@@ -259,7 +287,7 @@ def test_version_1_capture_files_keep_their_spanning_grid(run, data_dir, tmp_pat
                "--values", "intensity").code == 0
     raw = new.read_bytes()
     magic, version, n = struct.unpack("<16sII", raw[:24])
-    assert version == VERSION == 2
+    assert version == VERSION == 3
     head = json.loads(raw[24:24 + n])
     assert head["capture"]["subdivision"] == 0  # a non-integer oversample: spanning
     del head["capture"]["subdivision"]
@@ -283,9 +311,9 @@ def test_version_1_capture_files_keep_their_spanning_grid(run, data_dir, tmp_pat
     d = json.loads(run("info", old, "--json").stdout)
     assert d["version"] == 1 and d["domain_shape"] == list(b.grid.domain_shape)
     bad = tmp_path / "future.vwc"
-    bad.write_bytes(struct.pack("<16sII", magic, 3, n) + raw[24:])
+    bad.write_bytes(struct.pack("<16sII", magic, 4, n) + raw[24:])
     res = run("info", bad, "--json")
-    assert res.code == 1 and "version 3 is not supported" in res.stderr
+    assert res.code == 1 and "version 4 is not supported" in res.stderr
 
 
 @pytest.mark.parametrize("space,refused", [("right-anterior-superior", True), ("LAS", True),

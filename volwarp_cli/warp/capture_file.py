@@ -3,7 +3,7 @@ r"""The ``.vwc`` capture file: a captured domain voxmap and its set-up, versione
 Layout (all integers little-endian)::
 
     offset 0   16 bytes  magic  b"VOLWARP-CAPTURE\n"
-    offset 16  uint32    format version (currently 2; 1 is read too)
+    offset 16  uint32    format version (currently 3; 1 and 2 are read too)
     offset 20  uint32    n, the length of the JSON header
     offset 24  n bytes   JSON header (UTF-8, sorted keys, no timestamps)
     offset 24+n          payload: the domain voxmap, C order [z, y, x],
@@ -11,20 +11,23 @@ Layout (all integers little-endian)::
 
 The header holds ``format`` ("vwc"), ``version``, ``input`` (shape x y z,
 dtype, spacing, origin, direction, space, meta, min, max, mean of the captured
-volume, and ``border``, the median of its faces: the warp's default background;
-files written before volwarp 0.1.8 have none, and take it from the stored domain), ``capture`` (lattice, placement, oversample, sampling, pad,
-granularity, subdivision, domain_shape), ``payload`` (dtype, shape x y z, nbytes,
-crc32) and ``header_crc32`` (of the other fields). Loading checks the magic (a
-foreign file), the version, the file size (a truncated file), the header's
-CRC-32 (an edited or damaged header: an origin, an input shape; files written
-before it have none) and the payload's (a corrupted one); each failure is a
+volume, and ``border``, the median of its faces: the warp's default
+background), ``capture`` (lattice, placement, oversample, sampling, pad,
+granularity, subdivision, domain_shape), ``payload`` (dtype, shape x y z,
+nbytes, crc32) and ``header_crc32`` (of the other fields). Loading checks the
+magic (a foreign file), the version, the file size (a truncated file), the
+header's CRC-32 (an edited or damaged header: an origin, an input shape) and
+the payload's (a corrupted one); each failure is a
 :class:`~volwarp_cli.errors.FormatError` naming the file.
 Identical captures give byte-identical files.
 
-Version 2 placed the domain on the input as an exact subdivision of its
-voxels at an integer oversample (``subdivision`` k; see :mod:`volwarp_cli.bspline.lattice`);
-version 1 files have the spanning grid (the domain's box the input's), and
-are warped as they were captured.
+Version 3 (volwarp 0.1.8) records the input's border value and requires the
+header's checksum (an edit that deleted it too was read as a file from
+before it). Version 2 files may have neither: their border value is taken
+from the stored domain. Version 2 placed the domain on the input as an exact
+subdivision of its voxels at an integer oversample (``subdivision`` k; see
+:mod:`volwarp_cli.bspline.lattice`); version 1 files have the spanning grid
+(the domain's box the input's), and are warped as they were captured.
 
 It lives in ``warp/``, not ``io/``, because it stores a
 :class:`~volwarp_cli.bspline.capture.Capture`, not a volume: reading one builds the
@@ -50,9 +53,10 @@ from ..io.atomic import atomic_output
 from ..volume import Header, xyz_to_zyx
 
 MAGIC = b"VOLWARP-CAPTURE\n"
-VERSION = 2
-#: Versions read: 1 has no ``subdivision`` (its grid spans the input).
-READ_VERSIONS = (1, 2)
+VERSION = 3
+#: Versions read: 1 has no ``subdivision`` (its grid spans the input); 2 may lack the
+#: header's checksum and the input's border value; 3 has both, the checksum required.
+READ_VERSIONS = (1, 2, 3)
 _PREFIX = struct.Struct("<16sII")
 #: the header's own CRC-32 (of its other fields, as :func:`_header_crc` writes them): an
 #: edited or damaged header (an origin, an input shape) is refused, as a payload is.
@@ -165,6 +169,9 @@ def read_header(path: str | os.PathLike) -> tuple[dict, int]:
     problem = _header_problem(head)
     if problem:
         raise FormatError(f"{path}: capture file header is malformed ({problem})")
+    if version >= 3 and HEADER_CRC not in head:  # (an edit that took the checksum out too)
+        raise FormatError(f"{path}: capture file is corrupt (its header checksum is missing: "
+                          "edited or damaged; capture the input again)")
     if HEADER_CRC in head and head[HEADER_CRC] != _header_crc(head):  # (fields that pass)
         raise FormatError(f"{path}: capture file is corrupt (header checksum mismatch: edited "
                           "or damaged; capture the input again)")
