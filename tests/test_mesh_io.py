@@ -296,9 +296,15 @@ def test_read_mesh_refuses_what_it_took_silently(blob, tmp_path, caplog):
         vertices = blob.vertices.copy()
         vertices[7, 1] = bad
         write_mesh(Mesh(vertices, blob.faces, blob.normals), path)
-        with pytest.raises(VolwarpError, match=r"1 vertex has NaN or infinite coordinates "
-                                               r"\(the first: vertex 7\)"):
+        with pytest.raises(VolwarpError, match=r"1 vertex of its faces has NaN or infinite "
+                                               r"coordinates \(the first: vertex 7\)"):
             read_mesh(path)
+    # a NaN vertex no face uses: read as before (it goes through as it is), and said
+    vertices = np.vstack([blob.vertices, [[np.nan, 0.0, 0.0]]])
+    write_mesh(Mesh(vertices, blob.faces), path)
+    caplog.clear()
+    assert read_mesh(path).n_vertices == len(vertices)
+    assert "1 vertex that no face uses has NaN" in caplog.text
     head = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
             "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
             "end_header\n0 0 0\n1 0 0\n0 1 0\n")
@@ -311,15 +317,22 @@ def test_read_mesh_refuses_what_it_took_silently(blob, tmp_path, caplog):
     path.write_text(head + "3 0 1 2\n3 0 2 1\n")  # (a face more than declared)
     assert read_mesh(path).n_faces == 1
     assert "4 values after the elements its PLY header declares" in caplog.text
+    caplog.clear()
+    path.write_text(head + "3 0 1 2\n\x1a")  # (an old DOS end: nothing to say)
+    read_mesh(path)
+    assert "header declares" not in caplog.text
     write_mesh(blob, path)
     good = path.read_bytes()
     caplog.clear()
     path.write_bytes(good + b"\n")  # (a trailing newline: nothing to say)
     read_mesh(path)
     assert "header declares" not in caplog.text
-    path.write_bytes(good + bytes(16))
+    path.write_bytes(good + bytes(16))  # (NUL padding: nothing to say)
     read_mesh(path)
-    assert "16 bytes after the elements its PLY header declares" in caplog.text
+    assert "header declares" not in caplog.text
+    path.write_bytes(good + b"garbage" * 2)
+    read_mesh(path)
+    assert "14 bytes after the elements its PLY header declares" in caplog.text
 
 
 TRI_ASCII = """ply

@@ -481,6 +481,21 @@ def test_a_frame_glob_is_in_natural_order(tmp_path):
     assert np.allclose(v, 1 + np.arange(23) / 2, atol=1e-4)  # frame k+1 at x = k
 
 
+def test_natural_order_takes_decimals_and_breaks_ties_by_name():
+    """t_0.25 before t_0.5 (digit runs alone put it after: 25 > 5, where plain sorting had
+    them right); f_01 and f_1, equal numbers, by name, never by the folder's listing."""
+    import random
+
+    from volwarp_cli.sweep.templates import natural_order
+
+    want = ["f_01.png", "f_1.png", "f_2.png", "f_10.png", "t_0.0.png", "t_0.25.png",
+            "t_0.5.png", "t_0.75.png", "t_1.0.png", "t_10.png"]
+    for seed in range(5):
+        names = want[:]
+        random.Random(seed).shuffle(names)
+        assert sorted(names, key=natural_order) == want
+
+
 def test_cvg_operator_algebra_on_random_fields():
     from hypothesis import given, settings
     from hypothesis import strategies as st

@@ -59,7 +59,9 @@ def check_shape(nans: int, count: int, size: int, lo, hi, iso: float, inside: st
         from ..progress import log
         from ..runscope import in_run, run_files
 
-        key = ("nan-outside", nans)  # (said once a run: the scan and the passes both check)
+        # (said once a run: the scan and the passes both check one shape; another shape,
+        # a morph's second, has its own count inside or range, and is said too)
+        key = ("nan-outside", nans, count, size, float(lo), float(hi))
         if not in_run() or key not in run_files().said:
             if in_run():
                 run_files().said.add(key)

@@ -643,12 +643,13 @@ def _say_sform_sizes(header, sform, where: str) -> None:
     pixdim = np.array([z if z > 0 else 1.0 for z in map(float, header["pixdim"][1:4])])
     if np.allclose(sizes, pixdim, rtol=_SFORM_SIZE_TOLERANCE, atol=0):
         return
-    if not _said_once(("nifti-sizes", where)):
+    key = ("nifti-sizes", os.path.abspath(where))
+    if not _said_once(key):
         return
     log.warning("%s: the NIfTI sform's voxel sizes (%s) are not pixdim's (%s); volwarp reads "
                 "the sform's, as nibabel's affine and SPM do (ITK and SimpleITK take pixdim's)",
                 where, ", ".join(f"{v:.6g}" for v in sizes),
-                ", ".join(f"{v:.6g}" for v in pixdim))
+                ", ".join(f"{v:.6g}" for v in pixdim), extra={"once": key})
 
 
 def _space_sizes(header) -> tuple[int, ...]:
@@ -747,7 +748,8 @@ def _form_codes_read(header, where: str, chosen: tuple[np.ndarray, str],
         if _same_form(other, np.asarray(aff, dtype=np.float64), shape_xyz):
             return scode, qcode
     dropped = "qform" if name == "sform" else "sform"
-    if not _said_once(("nifti-forms", where)):
+    key = ("nifti-forms", os.path.abspath(where))
+    if not _said_once(key):
         return (scode, 0) if name == "sform" else (0, qcode)
     # (the qform read beside a coded sform: the readers that take the sform whenever it is
     # coded read another place, and so may ITK where its check of the two can pass)
@@ -761,7 +763,8 @@ def _form_codes_read(header, where: str, chosen: tuple[np.ndarray, str],
                 "(code %d) volwarp reads (ITK's rule); volwarp keeps the %s only (a NIfTI "
                 "output gets %s code 0)%s", where, dropped,
                 qcode if dropped == "qform" else scode, name,
-                scode if name == "sform" else qcode, name, dropped, others)
+                scode if name == "sform" else qcode, name, dropped, others,
+                extra={"once": key})  # (a worker process's, said once with the run's)
     return (scode, 0) if name == "sform" else (0, qcode)
 
 

@@ -340,11 +340,6 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
         vertices = np.stack([vert[k] for k in ("x", "y", "z")], axis=1).astype(np.float64)
     except KeyError:
         raise VolwarpError(f"{path}: vertices have no x, y, z") from None
-    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
-    if bad.size:  # (moved, they came out NaN without a word)
-        have = "vertex has" if bad.size == 1 else "vertices have"
-        raise VolwarpError(f"{path}: {bad.size} {have} NaN or infinite coordinates (the "
-                           f"first: vertex {bad[0]})")
     normals = None
     if all(k in vert for k in ("nx", "ny", "nz")):
         normals = np.stack([vert[k] for k in ("nx", "ny", "nz")], axis=1).astype(np.float32)
@@ -362,11 +357,36 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     faces = faces.astype(np.int64)
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise VolwarpError(f"{path}: face indices outside the {len(vertices)} vertices")
+    _check_finite_vertices(vertices, faces, path)
     if ras:  # (a half turn about z: the winding, and so the outside, stays)
         vertices[:, :2] *= -1
         if normals is not None:
             normals[:, :2] *= -1
     return Mesh(vertices, faces, normals)
+
+
+def _check_finite_vertices(vertices, faces, path) -> None:
+    """Refuse NaN or infinite vertices that faces use; say those no face uses.
+
+    Moved, the used ones came out NaN without a word; the others go through
+    as they are, as before.
+    """
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if not bad.any():
+        return
+    used = np.zeros(len(vertices), bool)
+    used[faces.ravel()] = True
+    in_faces = np.flatnonzero(bad & used)
+    if in_faces.size:
+        have = "vertex of its faces has" if in_faces.size == 1 else "vertices of its faces have"
+        raise VolwarpError(f"{path}: {in_faces.size} {have} NaN or infinite coordinates (the "
+                           f"first: vertex {in_faces[0]}); remove or mend them first")
+    from ..progress import log
+
+    count = int(bad.sum())
+    log.warning("warning: %s: %d vert%s that no face uses %s NaN or infinite coordinates "
+                "(kept as they are)", path, count, "ex" if count == 1 else "ices",
+                "has" if count == 1 else "have")
 
 
 def _ply_header_lines(data: bytes):
@@ -385,6 +405,10 @@ def _ply_header_lines(data: bytes):
     return None, 0
 
 
+#: what may follow a PLY's last element unsaid: blanks, NUL padding, an old DOS end (Ctrl-Z)
+_PADDING = b" \t\r\n\x00\x1a"
+
+
 def _ply_elements(body: bytes, fmt: str, elements) -> tuple[dict[str, dict[str, np.ndarray]],
                                                               str | None]:
     """Each element's properties as arrays, and what follows them (None: nothing but blanks).
@@ -394,8 +418,9 @@ def _ply_elements(body: bytes, fmt: str, elements) -> tuple[dict[str, dict[str, 
     follows: "N bytes" (binary) or "N values" (ASCII) past the last element.
     """
     if fmt == "ascii":
-        out, tokens_left = _ply_ascii(body, elements)
-        return out, (f"{tokens_left} values" if tokens_left else None)
+        out, extra = _ply_ascii(body, elements)
+        return out, (f"{len(extra)} value{'s' if len(extra) != 1 else ''}"
+                     if b"".join(extra).strip(_PADDING) else None)
     order = "<" if fmt == "binary_little_endian" else ">"
     out, at = {}, 0
     for name, count, props in elements:
@@ -411,7 +436,8 @@ def _ply_elements(body: bytes, fmt: str, elements) -> tuple[dict[str, dict[str, 
         cols, at = _ply_binary_lists(body, at, order, count, props, name)
         out[name] = cols
     rest = len(body) - at
-    return out, (f"{rest} bytes" if body[at:].strip() else None)
+    return out, (f"{rest} byte{'s' if rest != 1 else ''}" if body[at:].strip(_PADDING)
+                 else None)
 
 
 def _ply_binary_lists(body, at, order, count, props, name):
@@ -462,7 +488,7 @@ def _stack(values):
     return np.asarray(values)
 
 
-def _ply_ascii(body: bytes, elements) -> tuple[dict[str, dict[str, np.ndarray]], int]:
+def _ply_ascii(body: bytes, elements) -> tuple[dict[str, dict[str, np.ndarray]], list]:
     tokens = body.split()
     out, at = {}, 0
     for name, count, props in elements:
@@ -479,4 +505,4 @@ def _ply_ascii(body: bytes, elements) -> tuple[dict[str, dict[str, np.ndarray]],
                 cols[p].append(np.array([float(v) for v in tokens[at + 1:at + 1 + n]]))
                 at += 1 + n
         out[name] = {p: _stack(v) for p, v in cols.items()}
-    return out, len(tokens) - at
+    return out, tokens[at:]

@@ -65,13 +65,17 @@ class Template:
         return self.path_fn(seg.u_of(s))
 
 
-def natural_order(name: str) -> list:
-    """A sort key taking digit runs as numbers: ``f_2`` before ``f_10``.
+def natural_order(name: str) -> tuple:
+    """A sort key taking numbers as numbers: ``f_2`` before ``f_10``, ``t_0.25`` before ``t_0.5``.
 
     (``sorted`` put ``f_10`` first, so a stack of unpadded frame numbers played
-    out of order along the trajectory.)
+    out of order along the trajectory.) Equal numbers (``f_1``, ``f_01``) go
+    by the name itself, so the order never depends on the folder's listing.
     """
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+    from decimal import Decimal
+
+    parts = re.split(r"(\d+(?:\.\d+)?)", name)
+    return [Decimal(p) if i % 2 else p for i, p in enumerate(parts)], name
 
 
 def sample_template(data: np.ndarray, x: np.ndarray, y: np.ndarray,
