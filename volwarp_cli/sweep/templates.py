@@ -19,7 +19,7 @@ Images are read with :func:`volwarp_cli.io.images.read_image` (OpenImageIO,
 alpha left unassociated so colour is not darkened by opacity): 8- and
 16-bit images are scaled to [0, 1], float images are kept as they are.
 Image stacks come from a glob pattern (its files in natural order: ``f_2``
-before ``f_10``, as a file manager shows them), a list of files (in its
+before ``f_10``, ``t_0.25`` before ``t_0.5``; :func:`natural_order`), a list of files (in its
 order), or one volume file (NRRD, multi-page TIFF, NIfTI: its z slices are
 the frames, scaled as images are: an integer type's largest value is 1.0, a
 float kept; the same frames as PNG files or as one TIFF stack give one
