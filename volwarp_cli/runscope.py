@@ -158,6 +158,20 @@ def in_run() -> bool:
     return _current.get() is not None
 
 
+def first_said(key) -> bool:
+    """True the first time ``key`` is asked in this run (a warning said once a run).
+
+    Always True outside a run: a script's every call says it.
+    """
+    if not in_run():
+        return True
+    said = _current.get().said
+    if key in said:
+        return False
+    said.add(key)
+    return True
+
+
 def _run_ends(files: RunFiles) -> None:
     ends, files.ends = files.ends, []
     for end in reversed(ends):

@@ -57,14 +57,12 @@ def check_shape(nans: int, count: int, size: int, lo, hi, iso: float, inside: st
     """
     if nans:
         from ..progress import log
-        from ..runscope import in_run, run_files
+        from ..runscope import first_said
 
         # (said once a run: the scan and the passes both check one shape; another shape,
         # a morph's second, has its own count inside or range, and is said too)
         key = ("nan-outside", nans, count, size, float(lo), float(hi))
-        if not in_run() or key not in run_files().said:
-            if in_run():
-                run_files().said.add(key)
+        if first_said(key):
             log.warning("%d NaN samples (%.2g%%) count as outside the shape", nans,
                         100.0 * nans / size, extra={"once": key})
     if count == 0:

@@ -139,6 +139,7 @@ from ..errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..memory import ensure_fits_in_memory
 from ..progress import log
+from ..runscope import first_said
 from ..samples import check_dtype, voxel_count
 from ..volume import Volume, xyz_to_zyx
 from .atomic import atomic_output
@@ -644,7 +645,7 @@ def _say_sform_sizes(header, sform, where: str) -> None:
     if np.allclose(sizes, pixdim, rtol=_SFORM_SIZE_TOLERANCE, atol=0):
         return
     key = ("nifti-sizes", os.path.abspath(where))
-    if not _said_once(key):
+    if not first_said(key):
         return
     log.warning("%s: the NIfTI sform's voxel sizes (%s) are not pixdim's (%s); volwarp reads "
                 "the sform's, as nibabel's affine and SPM do (ITK and SimpleITK take pixdim's)",
@@ -749,7 +750,7 @@ def _form_codes_read(header, where: str, chosen: tuple[np.ndarray, str],
             return scode, qcode
     dropped = "qform" if name == "sform" else "sform"
     key = ("nifti-forms", os.path.abspath(where))
-    if not _said_once(key):
+    if not first_said(key):
         return (scode, 0) if name == "sform" else (0, qcode)
     # (the qform read beside a coded sform: the readers that take the sform whenever it is
     # coded read another place, and so may ITK where its check of the two can pass)
@@ -786,19 +787,6 @@ def _itk_may_read_sform(sform, qform) -> bool:
         return False
     values = [np.linalg.svd(m[:3, :3], compute_uv=False) for m in (s, q)]
     return bool(np.abs(values[0] - values[1]).max() <= 1e-4)
-
-
-def _said_once(key) -> bool:
-    """True the first time ``key`` is asked in a run (a file read twice warns once); always outside."""
-    from ..runscope import in_run, run_files
-
-    if not in_run():
-        return True
-    said = run_files().said
-    if key in said:
-        return False
-    said.add(key)
-    return True
 
 
 def _header_meta(header, where: str, chosen: tuple[np.ndarray, str],
