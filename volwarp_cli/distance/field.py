@@ -50,10 +50,13 @@ def is_binary(data: np.ndarray) -> bool:
     """True when the samples take at most two distinct values (NaN samples aside: outside)."""
     if data.dtype == bool:
         return True
-    nans = int(np.count_nonzero(np.isnan(data))) if data.dtype.kind == "f" else 0
-    if nans == data.size:
-        return True
-    lo, hi = (np.nanmin(data), np.nanmax(data)) if nans else (data.min(), data.max())
+    lo, hi = data.min(), data.max()
+    nans = 0
+    if np.isnan(lo) or np.isnan(hi):  # (min and max carry a NaN: only then counted)
+        nans = int(np.count_nonzero(np.isnan(data)))
+        if nans == data.size:
+            return True
+        lo, hi = np.nanmin(data), np.nanmax(data)
     if lo == hi:
         return True
     return int(np.count_nonzero((data == lo) | (data == hi))) == data.size - nans
