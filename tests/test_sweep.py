@@ -200,6 +200,35 @@ def test_sum_within_one_segment_never_double_counts(tmp_path, segment):
         assert values <= {0.0, 0.4}
 
 
+def _arc(start, end):
+    return {"arc": {"center": [0, 0, 0], "radius": 5, "axis": [0, 0, 1],
+                    "start": start, "end": end}}
+
+
+@pytest.mark.parametrize("method", ["voxelize", "direct"])
+@pytest.mark.parametrize("trajectory", [
+    [{"line": {"from": [0, 0, 0], "to": [5, 0, 0]}},
+     {"line": {"from": [5, 0, 0], "to": [12, 0, 0]}}],
+    [_arc(0, 360)],  # a full turn meets its own start
+    [_arc(0, 180), _arc(180, 360)],  # two halves: a joint and the loop's closure
+], ids=["two-lines", "full-arc", "two-half-arcs"])
+def test_a_template_where_segments_join_is_one_instance(tmp_path, method, trajectory):
+    # The plane where one segment ends and the next begins (or a closed trajectory
+    # meets its start) was met as two instances: "difference" emptied it, "sum"
+    # doubled it. Nothing else here overlaps, so every operator must give union's field.
+    def opacity(op):
+        spec = make_spec(tmp_path, {
+            "grid": {"spacing": 0.5, "margin": 1.0}, "fields": {"opacity": 0.4},
+            "trajectory": trajectory, "up": [0, 0, 1], "scale": [2, 2], "combine": op},
+            name=f"{op}.yaml")
+        return fields_of(spec, method=method)[0]["opacity"]
+
+    union = opacity("union")
+    assert set(np.unique(np.round(union.astype(np.float64), 5)).tolist()) == {0.0, 0.4}
+    for op in ("sum", "difference"):
+        np.testing.assert_array_equal(opacity(op), union, err_msg=op)
+
+
 def test_split_region_has_no_holes(tmp_path):
     # template 6 wide on an arc of radius 1: the inner part sweeps across the axis;
     # a full turn of it covers a solid disc of radius 1 + 3 (the hole would be at the centre)

@@ -36,7 +36,10 @@ scale function) gives the template coordinates ``x = 0.5 + v'.ex / sx``,
 ``y = 0.5 + v'.ey / sy`` (``v' = p - a(u)``; the paper's
 ``|v| sin(theta)`` written as a signed projection); points inside the square
 sample the template there, and several instances combine with the field's
-CVG operator exactly as in the voxeliser.
+CVG operator exactly as in the voxeliser. As there, a template plane where one
+segment ends and the next begins (or where a closed trajectory, a full arc,
+meets its start) is one instance, the next segment's: the ending segment's
+parameters stop 1e-12 short of its end.
 
 Not handled directly (a spec error that says so): polyline segments, and
 sweeping directions other than the tangent (or a constant vector on a line),
@@ -244,6 +247,9 @@ def _evaluate_box(sweep, grid: Geometry, out: Box, serial: bool) -> dict[str, np
         lo, hi = _segment_box(sweep, i, grid)
         boxes.append((np.maximum(lo, olo), np.minimum(hi, ohi)))
     plane_tol = 0.01 * float(np.min(grid.spacing))
+    # a segment whose last template is the next one's first leaves that plane to
+    # the next (Sweep.joined_ends): its parameters stop short of 1
+    s_top = [1.0 - 1e-12 if join else 1.0 + 1e-12 for join in sweep.joined_ends()]
     origin, spacing = grid.origin_array, grid.spacing_array
     total = sum(int(np.prod(np.maximum(hi - lo + 1, 0))) for lo, hi in boxes)
     bar_ctx = contextlib.nullcontext(None) if serial else \
@@ -278,7 +284,7 @@ def _evaluate_box(sweep, grid: Geometry, out: Box, serial: bool) -> dict[str, np
                     cand = _bezier_candidates(seg, p, serial)
                 for j in range(cand.shape[1]):
                     s = cand[:, j]
-                    ok = np.isfinite(s) & (s >= -1e-12) & (s <= 1 + 1e-12)
+                    ok = np.isfinite(s) & (s >= -1e-12) & (s <= s_top[i])
                     if not np.any(ok):
                         continue
                     sel = np.flatnonzero(ok)

@@ -64,6 +64,32 @@ class Sweep:
         """The template frames of segment ``index`` at normalised parameters ``s``."""
         return compute_frames(self.segments[index], self.functions[index], np.asarray(s), index)
 
+    def joined_ends(self) -> list[bool]:
+        """Per segment: whether its last template is the next segment's first.
+
+        The next of the last segment is the first (a closed trajectory: a full
+        arc, a loop of segments). Where they join, the plane of that template is
+        one instance met from both sides, not two: it belongs to the next
+        segment only, as inside a segment each template plane belongs to the
+        piece that starts there. Counted twice, ``difference`` emptied it and
+        ``sum`` doubled it. Frames join when position, axes and size agree to
+        1e-9 (relative to the template's size and distance from the origin).
+        """
+        n = len(self.segments)
+        ends = [self.frames(i, [1.0]) for i in range(n)]
+        starts = [self.frames(i, [0.0]) for i in range(n)]
+        out = []
+        for i in range(n):
+            a, b = ends[i], starts[(i + 1) % n]
+            size = max(1.0, float(np.abs(a.P).max()), float(a.SX[0]), float(a.SY[0]))
+            out.append(bool(
+                np.abs(a.P - b.P).max() <= 1e-9 * size
+                and max(np.abs(getattr(a, f) - getattr(b, f)).max()
+                        for f in ("EX", "EY", "EZ")) <= 1e-9
+                and abs(float(a.SX[0] - b.SX[0])) <= 1e-9 * size
+                and abs(float(a.SY[0] - b.SY[0])) <= 1e-9 * size))
+        return out
+
 
 @dataclass
 class SceneNode:

@@ -20,7 +20,9 @@ across a tight bend, or across the axis of a rotational sweep), the space
 between them falls into two disjoint parts on either side of the planes'
 intersection line, and the second part is this one. A voxel is covered when
 the interpolated template coordinate lies in [0, 1]^2. The sub-segments of a
-segment are half-open (``t`` in [0, 1), the last one closed), so the
+segment are half-open (``t`` in [0, 1), the last one closed unless the
+segment's last template is the next segment's first, or the first segment's
+in a closed trajectory: :meth:`.model.Sweep.joined_ends`), so the
 subdivision never counts a voxel twice; a point reached by genuinely
 different instances (a self-intersection, another segment, another pass of
 the same segment) is combined per field with the CVG operator of
@@ -262,6 +264,15 @@ def plan_voxelize(sweep, tau: float) -> VoxelPlan:
             c[-1] |= 2  # last
             closed.append(c)
             base += k
+        joined = sweep.joined_ends()
+        for i, join in enumerate(joined):
+            if not join:
+                continue
+            j = (i + 1) % len(knots)
+            closed[i][-1] &= ~np.uint8(2)  # half-open: the plane is the next start's
+            closed[j][0] &= ~np.uint8(1)  # and met without the ends' tolerance
+            for f in ("P", "EX", "EY", "EZ", "SX", "SY"):  # one plane, bit for bit
+                getattr(knots[i], f)[-1] = getattr(knots[j], f)[0]
     fr = Frames.concat(knots)
     SL = np.ascontiguousarray(np.concatenate(slices), dtype=np.float64).reshape(len(fr.s), F)
     sub_a = np.concatenate(sub_a).astype(np.int64)
