@@ -686,13 +686,12 @@ def test_truncated_files(tmp_path, ramp, caplog):
     p.write_bytes(p.read_bytes()[:-20])
     with pytest.raises(FormatError, match="S3.dcm.*truncated"):
         read_dicom(tmp_path / "s")
-    p.write_bytes(p.read_bytes()[:300])  # inside the header: skipped with a warning...
-    with caplog.at_level(logging.WARNING, logger="volwarp"), \
-            pytest.raises(FormatError, match="missing slice") as err:
+    p.write_bytes(p.read_bytes()[:300])  # inside the header: refused in its folder...
+    with pytest.raises(FormatError) as err:
         read_dicom(tmp_path / "s")
     assert "\n" not in str(err.value)
-    assert "S3.dcm: CT Image Storage without PixelData (truncated file?)" in caplog.text
-    with pytest.raises(FormatError, match=r"S3.dcm: .*truncated"):  # ...refused on its own
+    assert "S3.dcm: CT Image Storage without PixelData (truncated file?)" in str(err.value)
+    with pytest.raises(FormatError, match=r"S3.dcm: .*truncated"):  # ...and on its own
         read_dicom(p)
     rle = tmp_path / "rle.dcm"
     rle.write_bytes(Path(get_testdata_file("MR_small_RLE.dcm")).read_bytes()[:3000])

@@ -59,7 +59,9 @@ def plan_stack(frames, where: str, *, irregular: str = "error", duplicates: str 
         return Plan(frames, pos[0], direction, np.array([sx, sy, d[1] - d[0]]), n)
     gaps = np.diff(d)
     nominal = float(np.median(gaps))
-    tol = max(1e-3 * nominal, 0.01)
+    # (0.01 mm, a tenth of the spacing at most: at micro-CT's 0.01 mm it was the whole
+    # spacing, and a missing slice passed, the stack placed on an even grid)
+    tol = min(max(1e-3 * nominal, 0.01), 0.1 * nominal)
     rel = (d - d[0])[:, None]
     inplane = inplane_offsets(pos, normal)
     extent = float(d[-1] - d[0])

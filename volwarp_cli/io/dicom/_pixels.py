@@ -16,6 +16,7 @@ from collections import defaultdict
 import numpy as np
 
 from ...errors import FormatError
+from ...progress import log
 
 #: transfer syntaxes whose pixel data lies raw in the file, little-endian
 NATIVE_LE = frozenset(("1.2.840.10008.1.2", "1.2.840.10008.1.2.1"))
@@ -156,6 +157,29 @@ def _fix_high_bits(raw: np.ndarray, fi) -> np.ndarray:
     return raw & raw.dtype.type((1 << fi.bits_stored) - 1)
 
 
+def _check_excess(fi, need: int, per_frame: int) -> None:
+    """Refuse PixelData holding a whole frame more than the header says, or a compressed value.
+
+    A file without its NumberOfFrames gave its first frame alone, and compressed
+    fragments under an uncompressed transfer syntax were read as samples, both
+    without a word. Less than a frame more (not the standard's one padding byte)
+    is said and left unread.
+    """
+    with open(fi.path, "rb") as fh:
+        fh.seek(fi.pixel_offset)
+        head = fh.read(4)
+    if head == b"\xfe\xff\x00\xe0":  # an item tag: encapsulated fragments
+        raise FormatError(f"{fi.path}: the pixel data is encapsulated (compressed) but the "
+                          f"transfer syntax ({fi.transfer_syntax}) says uncompressed")
+    extra = fi.pixel_length - need
+    if extra >= per_frame:
+        raise FormatError(f"{fi.path}: the pixel data holds {fi.pixel_length} bytes, "
+                          f"{fi.pixel_length / per_frame:.4g} frames of {fi.rows} x {fi.columns}, "
+                          f"but NumberOfFrames says {fi.n_frames} (missing or wrong?)")
+    log.warning("warning: %s: the pixel data holds %d bytes more than %d frame(s) of %d x %d "
+                "need; they are not read", fi.path, extra, fi.n_frames, fi.rows, fi.columns)
+
+
 def _read_native(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
     sdt = stored_dtype(fi.bits_allocated, fi.signed).newbyteorder("<")
     per_frame = fi.rows * fi.columns * sdt.itemsize
@@ -164,6 +188,8 @@ def _read_native(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
         raise FormatError(f"{fi.path}: pixel data is truncated: expected {need} bytes "
                           f"({fi.n_frames} x {fi.rows} x {fi.columns} x {sdt.itemsize}), "
                           f"the element holds {fi.pixel_length}")
+    if fi.pixel_length is not None and fi.pixel_length > need + 1:
+        _check_excess(fi, need, per_frame)
     direct = (sdt == dtype and fi.dose_scaling is None and fi.bits_stored == fi.bits_allocated
               and all(fr.slope == 1 and fr.intercept == 0 for _, _, fr in items))
     buf = None if direct else np.empty((fi.rows, fi.columns), dtype=sdt)

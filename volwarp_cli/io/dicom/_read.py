@@ -161,8 +161,9 @@ def _plan(path, *, series, irregular, duplicates, keep_shear, keep_phi, candidat
     where = str(path)
     cand = choose(candidates if candidates is not None else scan_dicom(path), series, where)
     f0 = cand.frames[0]
-    if f0.problem:
-        raise FormatError(f"{f0.file.path}: {f0.problem}")
+    bad = next((f for f in cand.frames if f.problem), None)  # any file's, not the first's
+    if bad is not None:
+        raise FormatError(f"{bad.file.path}: {bad.problem}")
     plan = plan_stack(list(cand.frames), where, irregular=irregular, duplicates=duplicates,
                       keep_shear=keep_shear)
     if f0.assumed and plan.n_out > 1:  # (not silently: a grid with a guessed axis)

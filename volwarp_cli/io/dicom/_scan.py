@@ -34,6 +34,9 @@ _PIXEL_TAG = (0x7FE0, 0x0010)
 _FLOAT_PIXEL_TAGS = ((0x7FE0, 0x0008), (0x7FE0, 0x0009))
 _BIG_ENDIAN = "1.2.840.10008.1.2.2"
 _IMPLICIT = "1.2.840.10008.1.2"
+_EXPLICIT = "1.2.840.10008.1.2.1"
+#: the VRs PixelData can have in an explicit VR data set
+_PIXEL_VRS = (b"OB", b"OW", b"OD", b"OF", b"OL", b"OV", b"UN")
 _DEFLATED = "1.2.840.10008.1.2.1.99"
 
 _STUB = "image without pixels: "
@@ -194,17 +197,83 @@ def _read_dataset(path: str, *, force: bool = False, stop: bool = True):
     return ds, pos, tail
 
 
+#: file names that say "DICOM" (an empty or foreign one of them in a series folder is refused)
+_DICOM_SUFFIXES = (".dcm", ".dicom", ".dic", ".ima")
+
+
+def _looks_like_dicom_body(head: bytes) -> bool:
+    """True where a file without the preamble starts as a DICOM data set does.
+
+    Its first element is of group 0002 (file meta) or 0008 (identification),
+    little-endian, implicit or explicit VR: GDCM and pydicom read such files,
+    and a series folder copied by older tools holds them.
+    """
+    if len(head) < 8:
+        return False
+    group, elem = struct.unpack("<HH", head[:4])
+    if group not in (0x0002, 0x0008) or elem > 0x0100:
+        return False
+    if head[4:6].isalpha() and head[4:6].isupper():  # an explicit VR
+        return True
+    (length,) = struct.unpack("<I", head[4:8])  # implicit: a sane length
+    return length < 1 << 16
+
+
+def _folder_file(full: str, name: str) -> str:
+    """"dicom", "" (skip: not DICOM) or a reason to refuse, for one file of a series folder.
+
+    A file volwarp cannot open, or an empty or foreign one named like a DICOM
+    file, may be a slice: skipped, it left a volume a slice short (the first or
+    last: nothing else shows it) with exit 0.
+    """
+    try:
+        st = os.stat(full)
+    except OSError as exc:
+        return f"cannot read ({exc.strerror or exc})"
+    import stat
+
+    if not stat.S_ISREG(st.st_mode):
+        return ""  # (a FIFO or socket: opening it could block)
+    try:
+        with open(full, "rb") as fh:
+            head = fh.read(132)
+    except OSError as exc:
+        return f"cannot read ({exc.strerror or exc})"
+    if len(head) == 132 and head[128:132] == b"DICM":
+        return "dicom"
+    if _looks_like_dicom_body(head):
+        return "dicom"
+    if name.lower().endswith(_DICOM_SUFFIXES):
+        return "empty file" if not head else "not a DICOM file (no DICM preamble, no DICOM header)"
+    return ""
+
+
 def _files_of(path: Path) -> tuple[list[tuple[str, str]], int]:
-    """(file path, label) of the DICOM files under ``path``, and how many files were looked at."""
+    """(file path, label) of the DICOM files under ``path``, and how many files were looked at.
+
+    In a folder: files with DICOM's preamble, and those starting as a DICOM data
+    set without it. A file that cannot be read, or an empty or foreign one named
+    ``*.dcm`` (``.dicom``, ``.dic``, ``.ima``), is refused; other files are
+    skipped, and a warning says how many.
+    """
     if path.is_dir():
-        out, seen = [], 0
+        out, seen, skipped = [], 0, []
         for root, dirs, files in os.walk(path):
             dirs.sort()
             for name in sorted(files):
                 seen += 1
                 full = os.path.join(root, name)
-                if _has_preamble(full):
+                kind = _folder_file(full, name)
+                if kind == "dicom":
                     out.append((full, os.path.relpath(full, path)))
+                elif kind:
+                    raise FormatError(f"{full}: {kind}: a file of the DICOM folder {path} "
+                                      "(a slice lost would leave the volume short)")
+                elif not name.startswith("."):
+                    skipped.append(os.path.relpath(full, path))
+        if out and skipped:
+            more = f" and {len(skipped) - 1} more" if len(skipped) > 1 else ""
+            log.warning("warning: %s: %s%s skipped (not DICOM)", path, skipped[0], more)
         return out, seen
     if not path.exists():
         raise FormatError(f"{path}: no such file or folder")
@@ -301,8 +370,19 @@ def _cosines(iop, where: str):
     return row, col
 
 
-def _pixel_element(tail: bytes, ts: str, pos: int, size: int):
-    """(offset, length) of a raw PixelData value from the 12 bytes after the header, or Nones."""
+def _pixel_element(tail: bytes, ts: str, pos: int, size: int, where: str = ""):
+    """(offset, length) of a raw PixelData value from the 12 bytes after the header, or Nones.
+
+    The element is parsed as it is written, not as the transfer syntax says: a
+    file's meta can name Implicit VR over an Explicit VR body or the other way
+    round (pydicom reads such bodies right). Taken by the meta, the value
+    started 4 bytes early or late: samples shifted, exit 0. The two are told
+    apart by the bytes after the tag: an explicit VR's two letters and two
+    zero bytes, which as an implicit length would be odd (``OW``: 22351), and
+    DICOM values have even lengths. Encapsulated (compressed) pixel data under
+    an uncompressed transfer syntax is refused: read as raw, the fragments'
+    bytes were taken for samples.
+    """
     if len(tail) < 8:
         return None, None, False
     endian = ">" if ts == _BIG_ENDIAN else "<"
@@ -311,7 +391,7 @@ def _pixel_element(tail: bytes, ts: str, pos: int, size: int):
         return None, None, "float"
     if (group, elem) != _PIXEL_TAG:
         return None, None, False
-    if ts == _IMPLICIT:
+    if tail[4:6] not in _PIXEL_VRS or tail[6:8] != b"\0\0":  # implicit VR
         (length,) = struct.unpack("<I", tail[4:8])
         offset = pos + 8
     else:
@@ -320,6 +400,10 @@ def _pixel_element(tail: bytes, ts: str, pos: int, size: int):
         (length,) = struct.unpack(endian + "I", tail[8:12])
         offset = pos + 12
     if length == 0xFFFFFFFF:  # encapsulated
+        if ts in (_IMPLICIT, _EXPLICIT, _BIG_ENDIAN):
+            raise FormatError(f"{where}: encapsulated (compressed) pixel data under the "
+                              f"uncompressed transfer syntax {ts}: the file's transfer "
+                              "syntax is wrong")
         return None, None, True
     return offset, min(length, max(0, size - offset)), True
 
@@ -340,7 +424,7 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
         offset = length = None
     else:
         size = os.path.getsize(full)
-        offset, length, has_pixels = _pixel_element(tail, ts, pos, size)
+        offset, length, has_pixels = _pixel_element(tail, ts, pos, size, full)
         float_pixels = has_pixels == "float"
     modality = _text(ds, "Modality")
     if float_pixels:
@@ -397,6 +481,9 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
     top_inter = _float(ds, "RescaleIntercept", 0.0, where)
     if top_slope == 0:
         raise FormatError(f"{where}: RescaleSlope is 0")
+    if "ModalityLUTSequence" in ds:  # (its values come through a table, not slope/intercept)
+        raise FormatError(f"{where}: ModalityLUTSequence (stored values mapped through a lookup "
+                          "table) is not supported: the stored values are not the image's")
     frames: list[Frame] = []
 
     def add(position, row, col, spacing, slope, inter, single, keys, split, synthetic=False,
@@ -788,6 +875,30 @@ def estimate_geometry(frames: list[Frame]) -> tuple[tuple[int, int, int], tuple[
     return (f0.file.columns, f0.file.rows, len(d)), (sx, sy, sz)
 
 
+def _check_stubs(stubs: dict[str, list[str]], series: set[str]) -> None:
+    """Refuse images without pixel data in a series that has images; say the others.
+
+    Such a file is a slice cut before its pixels (a transfer stopped short):
+    skipped, it left its series a slice short, the first or last without a
+    word (a file cut inside its header names no series: taken as one of them).
+    An image object of a series with no image at all (a DICOMDIR's stripped
+    examples) is no slice of any candidate: skipped with a warning.
+    """
+    for kind, names in stubs.items():
+        lost = [n for n in names if _series_of(n) in series | {""}]
+        if lost:
+            more = f" (and {len(lost) - 1} more)" if len(lost) > 1 else ""
+            raise FormatError(f"{lost[0]}: {kind} without PixelData (truncated file?) in a "
+                              f"series with images{more}")
+        more = f" and {len(names) - 1} more" if len(names) > 1 else ""
+        log.warning("warning: %s%s: %s without PixelData: skipped", names[0], more, kind)
+
+
+def _series_of(path: str) -> str:
+    ds = _read_dataset(path, force=not _has_preamble(path))[0]
+    return _text(ds, "SeriesInstanceUID")
+
+
 def scan_dicom(path) -> list[Candidate]:
     """The candidate volumes under ``path`` (a folder, a DICOMDIR or a file), in a fixed order."""
     path = Path(path)
@@ -808,10 +919,7 @@ def scan_dicom(path) -> list[Candidate]:
                 log.debug("%s: skipped (%s)", full, reason)
         frames.extend(got)
     frames = _drop_exact_copies(frames, str(path))
-    for kind, names in stubs.items():  # one line per kind, not one per file
-        more = f" and {len(names) - 1} more" if len(names) > 1 else ""
-        log.warning("warning: %s%s: %s without PixelData (truncated file?): skipped", names[0], more,
-                    kind)
+    _check_stubs(stubs, {f.series_uid for f in frames})
     if not frames:
         if not files:
             what = "is a folder with no DICOM files" if path.is_dir() else "no DICOM files found"
@@ -838,8 +946,10 @@ def scan_dicom(path) -> list[Candidate]:
     out = []
     for index, (_, uid, number, part, why) in enumerate(entries):
         meta = part[0].file.meta
-        if part[0].problem:
-            why = f"{why}; {part[0].problem}" if why else part[0].problem
+        bad = next((f for f in part if f.problem), None)
+        if bad is not None:
+            problem = bad.problem if bad is part[0] else f"{bad.label}: {bad.problem}"
+            why = f"{why}; {problem}" if why else problem
         shape, spacing = estimate_geometry(part)
         out.append(Candidate(index=index, series_uid=uid,
                              description=meta.get("SeriesDescription", ""),

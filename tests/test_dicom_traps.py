@@ -1,0 +1,160 @@
+"""DICOM series that were read wrong with exit 0: each case now reads right or is refused.
+
+Found by a hunt against SimpleITK and pydicom (session 38): a colour file that was
+not the first of its series, a PixelData element parsed by the meta's VR encoding
+instead of the body's, slice files skipped without a word, compressed fragments or
+extra frames under an uncompressed syntax, a modality LUT ignored, and the gap
+tolerance at micro-CT spacing.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+
+import numpy as np
+import pydicom
+import pytest
+from pydicom.filewriter import write_file_meta_info
+from pydicom.uid import ExplicitVRLittleEndian, ImplicitVRLittleEndian, RLELossless
+from test_io_dicom import write_series
+
+from volwarp_cli.errors import FormatError
+from volwarp_cli.io.dicom import read_dicom
+
+
+@pytest.fixture
+def stack():
+    return np.random.default_rng(38).integers(-1000, 2000, size=(5, 6, 8)).astype(np.int16)
+
+
+def _in_position_order(paths):
+    return sorted(paths, key=lambda p: float(pydicom.dcmread(p).ImagePositionPatient[2]))
+
+
+@pytest.mark.parametrize("kind", ["RGB", "PALETTE COLOR"])
+def test_a_colour_file_anywhere_in_the_series_is_refused(tmp_path, stack, kind):
+    paths = write_series(tmp_path / "s", stack, shuffle=False, names=[f"S{k}.dcm" for k in range(5)])
+    ds = pydicom.dcmread(paths[2])  # the middle file: not the first the reader meets
+    if kind == "RGB":
+        ds.SamplesPerPixel, ds.PhotometricInterpretation, ds.PlanarConfiguration = 3, "RGB", 0
+        ds.BitsAllocated = ds.BitsStored = 8
+        ds.HighBit = 7
+        ds.PixelRepresentation = 0
+        ds.PixelData = np.repeat(stack[2].astype(np.uint8)[..., None], 3, -1).tobytes()
+    else:
+        ds.PhotometricInterpretation = "PALETTE COLOR"
+    ds.save_as(paths[2])
+    with pytest.raises(FormatError, match=r"S2\.dcm: colour image"):
+        read_dicom(tmp_path / "s")
+
+
+def _relabel(path, syntax):
+    """Rewrite the file meta's transfer syntax, leaving the data set's bytes as they are."""
+    raw = path.read_bytes()
+    meta_end = 132 + 12 + int.from_bytes(raw[140:144], "little")
+    meta = pydicom.dcmread(path).file_meta
+    meta.TransferSyntaxUID = syntax
+    buf = io.BytesIO()
+    buf.write(b"\0" * 128 + b"DICM")
+    write_file_meta_info(buf, meta, enforce_standard=True)
+    buf.write(raw[meta_end:])
+    path.write_bytes(buf.getvalue())
+
+
+@pytest.mark.parametrize("written, said", [(ExplicitVRLittleEndian, ImplicitVRLittleEndian),
+                                           (ImplicitVRLittleEndian, ExplicitVRLittleEndian)])
+def test_pixel_data_is_parsed_as_written_not_as_the_meta_says(tmp_path, stack, written, said):
+    # The value started 4 bytes early (or late): samples shifted by two, exit 0.
+    paths = write_series(tmp_path / "s", stack)
+    for p in paths:
+        ds = pydicom.dcmread(p)
+        ds.file_meta.TransferSyntaxUID = written
+        ds.save_as(p)
+        _relabel(p, said)
+    np.testing.assert_array_equal(read_dicom(tmp_path / "s").data, stack)
+
+
+def test_compressed_fragments_under_an_uncompressed_syntax_are_refused(tmp_path, stack):
+    paths = write_series(tmp_path / "s", stack[:2])
+    for p in paths:
+        ds = pydicom.dcmread(p)
+        ds.compress(RLELossless)
+        ds.file_meta.TransferSyntaxUID = ExplicitVRLittleEndian  # the fragments stay
+        ds.save_as(p, implicit_vr=False, little_endian=True)
+    with pytest.raises(FormatError, match="encapsulated"):
+        read_dicom(tmp_path / "s")
+
+
+def test_pixel_data_with_frames_the_header_does_not_count_is_refused(tmp_path, stack):
+    paths = write_series(tmp_path / "s", stack[:1])
+    ds = pydicom.dcmread(paths[0])
+    ds.PixelData = stack.tobytes()  # five frames; NumberOfFrames absent (1)
+    ds.save_as(paths[0])
+    with pytest.raises(FormatError, match="5 frames of 6 x 8.*NumberOfFrames says 1"):
+        read_dicom(paths[0])
+    ds.PixelData = stack[0].tobytes() + b"\0\0\0\0"  # less than a frame more: said, not read
+    ds.save_as(paths[0])
+    np.testing.assert_array_equal(read_dicom(paths[0]).data[0], stack[0])
+
+
+def _cut_before_pixels(path):
+    raw = path.read_bytes()
+    path.write_bytes(raw[:raw.index(b"\xe0\x7f\x10\x00")])
+
+
+@pytest.mark.parametrize("damage", ["empty", "foreign", "cut-before-pixels", "dangling-link"])
+def test_a_lost_last_slice_is_refused_not_skipped(tmp_path, stack, damage):
+    # The first or last slice skipped left a volume a slice short with exit 0: nothing
+    # else (no gap) shows it.
+    paths = _in_position_order(write_series(tmp_path / "s", stack))
+    last = paths[-1]
+    if damage == "empty":
+        last.write_bytes(b"")
+    elif damage == "foreign":
+        last.write_bytes(b"<html>502 Bad Gateway</html>")
+    elif damage == "cut-before-pixels":
+        _cut_before_pixels(last)
+    else:  # a file that cannot be opened (as one without read permission, even for root)
+        last.unlink()
+        last.symlink_to(tmp_path / "gone.dcm")
+    with pytest.raises(FormatError, match=rf"{last.name}"):
+        read_dicom(tmp_path / "s")
+
+
+def test_files_without_the_preamble_are_read_when_they_are_dicom(tmp_path, stack):
+    paths = _in_position_order(write_series(tmp_path / "s", stack))
+    for p in (paths[0], paths[-1]):
+        p.write_bytes(p.read_bytes()[132:])  # no preamble, no "DICM": GDCM reads these
+    (tmp_path / "s" / "notes.txt").write_text("scanned 2026-12-01\n")  # skipped, said
+    np.testing.assert_array_equal(read_dicom(tmp_path / "s").data, stack)
+    assert pydicom.dcmread(paths[0], force=True).ImagePositionPatient is not None
+
+
+def test_a_series_of_stripped_image_objects_is_no_slice_of_another(tmp_path, stack):
+    # An image object without pixels whose series has no image (a DICOMDIR's examples)
+    # is skipped, as before: no candidate is short of it.
+    write_series(tmp_path / "s", stack)
+    other = write_series(tmp_path / "o", stack[:1], series="1.2.826.0.1.3680043.8.498.2")[0]
+    _cut_before_pixels(other)
+    os.replace(other, tmp_path / "s" / "stripped.dcm")
+    np.testing.assert_array_equal(read_dicom(tmp_path / "s").data, stack)
+
+
+def test_a_modality_lut_is_refused_not_ignored():
+    from pydicom.data import get_testdata_file
+
+    with pytest.raises(FormatError, match="ModalityLUTSequence"):
+        read_dicom(get_testdata_file("mlut_18.dcm"))
+
+
+@pytest.mark.parametrize("spacing", [0.008, 0.01, 0.05])
+def test_a_missing_slice_at_micro_ct_spacing_is_found(tmp_path, stack, spacing):
+    # The gap tolerance was 0.01 mm whatever the spacing: at 0.01 mm a missing slice
+    # passed and the stack was placed on an even grid, off by up to half a slice.
+    positions = [(0.0, 0.0, spacing * k) for k in (0, 1, 2, 4, 5)]
+    write_series(tmp_path / "s", stack, positions=positions, spacing=(0.01, 0.01))
+    with pytest.raises(FormatError, match="missing slice"):
+        read_dicom(tmp_path / "s")
+    write_series(tmp_path / "r", stack, spacing_z=spacing, spacing=(0.01, 0.01))
+    assert read_dicom(tmp_path / "r").spacing[2] == pytest.approx(spacing)
