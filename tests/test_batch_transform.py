@@ -187,3 +187,26 @@ def test_a_fixed_transform_that_is_the_first_row_s_cell_is_every_scan_s(run, sub
     assert _statuses(run, d) == {"p01/scan": "ok", "p02/scan": "ok"}
     _same_as_apply(run, d, d / "p02" / "scan.nrrd", d / "out" / "p02" / "scan_moved.nrrd",
                    "-t", d / "p02" / "a.tfm", "-t", d / "shared.tfm", "--background-value", "0")
+
+
+@pytest.mark.parametrize("case", ["another-scan", "another-step", "report"])
+def test_an_output_over_a_file_any_scan_s_cell_names_is_refused(run, subjects, case):
+    """A table cell's file is an input of every scan's step, not only of its own: scan
+    p02's output over p01's transform, one step's output over the file another step of
+    the scan reads through its cell, or a report over one, replaced it with exit 0."""
+    d = subjects
+    victim = d / "out" / "p02" / "scan_el.nrrd"  # what p02's step 'chained' writes
+    victim.parent.mkdir(parents=True)
+    victim.write_bytes((d / "p01" / "a.tfm").read_bytes())
+    before = victim.read_bytes()
+    rows = {"another-scan": ["p01", "p02"], "another-step": ["p02"], "report": ["p01"]}[case]
+    (d / "scans.csv").write_text("path,transform,elastix\n" + "".join(
+        f"{name}/scan.nrrd,{victim if k == 0 else f'{name}/a.tfm'},"
+        f"{name}/TransformParameters.1.txt\n" for k, name in enumerate(rows)))
+    extra = ["--report-json", victim] if case == "report" else []
+    res = run("batch", d / "m.yaml", "-q", *extra)
+    assert res.code == 2, res.stderr
+    assert victim.name in res.stderr and "never replaces an input" in res.stderr
+    assert f"for scan {rows[0]}/scan" in res.stderr  # who reads it
+    assert victim.read_bytes() == before
+    assert not list((d / "out").rglob("*_moved.nrrd"))

@@ -540,8 +540,10 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
     writers: dict[str, _Writer] = {}
     for step in manifest.steps:
         _refuse_patterns(manifest, step)
-    for scan in scans:
-        for plan in plan_scan(manifest, scan):
+    plans = [(scan, plan_scan(manifest, scan)) for scan in scans]
+    cells = _cell_reads(plans)
+    for scan, scan_plans in plans:
+        for plan in scan_plans:
             step = plan.step
             for option, out in plan.writes:
                 key = ("steps", step.index, "output" if option == "-o" else "options")
@@ -553,12 +555,35 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
                     raise _located(manifest, key, f"{'' if fixed_name else f'scan {scan.id}: '}"
                                                   f"{exc}") from None
                 _refuse_over_scans(manifest, key, out, option, scan_files)
+                try:
+                    cells.refuse(out, option)
+                except BadUsage as exc:
+                    raise _located(manifest, key, f"scan {scan.id}: {exc}") from None
                 inside = _in_records(manifest, out, option)
                 if inside is not None:
                     raise _located(manifest, key, f"scan {scan.id}: {inside}")
                 writer = _Writer(f"step {step.name!r} (steps[{step.index}])", step, scan, option)
                 _refuse_twice(manifest, key, out, writer, writers)
-    _check_reports(manifest, reports, fixed, scan_files, writers)
+    _check_reports(manifest, reports, fixed, scan_files, writers, cells)
+
+
+def _cell_reads(plans):
+    """Every file the scans' table cells name (``{reference}``, ``{transform}``), for every scan.
+
+    An output is checked against all of them, not only its own scan's step's:
+    scan b's output over scan a's reference, or one step's output over the
+    file another step of the same scan reads through its cell, replaced that
+    file with exit 0 (a cell naming a file some step writes would also make
+    the scans' order matter).
+    """
+    from ..io.inputs import InputIndex
+
+    index = InputIndex()
+    for scan, scan_plans in plans:
+        for plan in scan_plans:
+            for path in plan.reads:
+                index.add(path, f"read by step {plan.step.name!r} for scan {scan.id}")
+    return index
 
 
 def _refuse_patterns(manifest, step: Step) -> None:
@@ -623,13 +648,14 @@ def _in_records(manifest, out: Path, option: str) -> str | None:
     return None
 
 
-def _check_reports(manifest, reports, fixed, scan_files, writers) -> None:
+def _check_reports(manifest, reports, fixed, scan_files, writers, cells) -> None:
     """The batch's reports: never over an input, never a file a step (or another report) writes."""
     from ..errors import BadUsage
 
     for option, path in reports:
         out = Path(path).absolute()
         _refuse_over(out, option, list(fixed), fixed)
+        cells.refuse(out, option)
         inside = _in_records(manifest, out, option)
         if inside is not None:
             raise BadUsage(inside)

@@ -192,6 +192,47 @@ def refuse_output_over_input(output: str | os.PathLike,
                     raise BadUsage(_message(output, target, given, file, option))
 
 
+class InputIndex:
+    """Many inputs, each with who reads it, for many outputs to be checked against at once.
+
+    The same collisions as :func:`refuse_output_over_input` (links followed,
+    hard links, files inside an input folder, a folder output holding an
+    input), found by lookups instead of a pass over every input for every
+    output: a batch checks each scan's outputs against every scan's table
+    cells (thousands of each).
+    """
+
+    def __init__(self) -> None:
+        self._by_real: dict[str, tuple] = {}
+        self._by_ident: dict[tuple, tuple] = {}
+        self._folders: list[tuple[str, tuple]] = []
+
+    def add(self, given, who: str) -> None:
+        """Add the input ``given`` (its data files too, :func:`input_files`), read by ``who``."""
+        for file in _expanded(given):
+            entry = (given, file, who)
+            real = _real(file)
+            self._by_real.setdefault(real, entry)
+            ident = _identity(file)
+            if ident is not None:
+                self._by_ident.setdefault(ident, entry)
+            if Path(file).is_dir():
+                self._folders.append((real, entry))
+
+    def refuse(self, output, option: str | None = None) -> None:
+        """Raise :class:`~volwarp_cli.errors.BadUsage` where ``output`` would replace an input."""
+        for target in output_files(output):
+            real, ident = _real(target), _identity(target)
+            entry = self._by_real.get(real) or (self._by_ident.get(ident) if ident else None)
+            if entry is None:
+                entry = next((e for folder, e in self._folders if _inside(real, folder)), None)
+            if entry is None and os.path.isdir(real):
+                entry = next((e for r, e in self._by_real.items() if _inside(r, real)), None)
+            if entry is not None:
+                given, file, who = entry
+                raise BadUsage(f"{_message(output, target, given, file, option)} ({who})")
+
+
 def _refuse_output_in_glob(output, option: str | None) -> None:
     """Refuse an output whose name an input glob of this run matches (:func:`declare_input_glob`)."""
     import fnmatch
