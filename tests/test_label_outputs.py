@@ -116,3 +116,74 @@ def test_mesh_takes_a_float_map_of_whole_ids_as_distance_does(run, tmp_path):
     res = run("mesh", tmp_path / "h.nrrd", "--labels", "-o", tmp_path / "h_{label}.ply")
     assert res.code == 1 and "needs a label map (integer ids); its float samples include 1.5" \
         in res.stderr, res.stderr
+
+
+@pytest.fixture
+def intent_map(tmp_path):
+    """A NIfTI label map (intent NIFTI_INTENT_LABEL): two blocks of ids 3 and 9."""
+    import nibabel as nib
+
+    data = np.zeros((16, 20, 24), np.uint8)
+    data[4:12, 5:15, 6:14] = 3
+    data[6:10, 8:12, 15:20] = 9
+    img = nib.Nifti1Image(np.ascontiguousarray(data.transpose(2, 1, 0)), np.eye(4))
+    img.header.set_intent("label")
+    nib.save(img, tmp_path / "lm.nii.gz")
+    return tmp_path / "lm.nii.gz"
+
+
+def test_outputs_of_other_samples_do_not_keep_a_label_maps_marks(run, tmp_path, intent_map):
+    """A distance field, a warp's Jacobian and morph frames computed from a label map kept
+    its NIfTI intent (label): their OME-Zarr pyramids took the mode of distances, `apply`
+    resampled a distance field by nearest neighbour, viewers showed it as labels."""
+    import nibabel as nib
+
+    d = tmp_path
+    assert run("distance", intent_map, "-o", d / "sdf.nii.gz").code == 0
+    assert nib.load(d / "sdf.nii.gz").header["intent_code"] == 0
+    assert run("distance", intent_map, "-o", d / "sdf.ome.zarr", "--pyramid", "1").code == 0
+    method, _ = _levels(d / "sdf.ome.zarr")
+    level0, level1 = (np.asarray(zarr.open_group(str(d / "sdf.ome.zarr"), mode="r")[k])
+                      for k in ("0", "1"))
+    z, y, x = (n // 2 * 2 for n in level0.shape)
+    mean = level0[:z, :y, :x].reshape(z // 2, 2, y // 2, 2, x // 2, 2).mean(axis=(1, 3, 5))
+    assert method == "mean"
+    np.testing.assert_allclose(level1[:z // 2, :y // 2, :x // 2], mean, atol=1e-5)
+    (d / "t.tfm").write_text(
+        "#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+        "Parameters: 1 0 0 0 1 0 0 0 1 0.5 0.25 0\nFixedParameters: 0 0 0\n")
+    res = run("apply", d / "sdf.nii.gz", "-t", d / "t.tfm", "-o", d / "moved.nii.gz", "-v")
+    assert res.code == 0 and "values: intensity" in res.stderr, res.stderr
+    (d / "w.yaml").write_text(
+        "version: 1\nunits: voxel\ncapture: {lattice: 5, oversample: 1}\nsteps:\n"
+        "  - move:\n      - {index: [2, 2, 2], by: [1.3, -0.7, 0.4]}\n")
+    res = run("warp", intent_map, "--spec", d / "w.yaml", "-o", d / "w.nii.gz",
+              "--jacobian-to", d / "jac.nii.gz")
+    assert res.code == 0, res.stderr
+    assert nib.load(d / "w.nii.gz").header["intent_code"] == 1002  # (the warped map is one)
+    assert nib.load(d / "jac.nii.gz").header["intent_code"] == 0
+    res = run("morph", intent_map, intent_map, "--frames", "2", "-o", d / "f_{i}.nii.gz")
+    assert res.code == 0, res.stderr
+    assert nib.load(d / "f_0.nii.gz").header["intent_code"] == 0
+
+
+def test_a_float_volume_its_keys_call_labels_takes_the_mode_only_of_ids(tmp_path):
+    """In memory and by blocks: a SEG's keys on integer ids (floats too) give mode levels;
+    on fractions (a field that kept the keys) the mean."""
+    from volwarp_cli.box import Box
+    from volwarp_cli.io.blockwrite import open_volume_blocks
+    from volwarp_cli.io.omezarr import resolve_labels
+
+    ids = np.zeros((8, 8, 8), np.float32)
+    ids[2:6, 2:6, 2:6] = 7
+    meta = {"DICOM_Modality": "SEG"}
+    assert resolve_labels("auto", ids, meta) and resolve_labels("auto", ids.astype(np.uint8), meta)
+    assert not resolve_labels("auto", ids + 0.25, meta)
+    for data, want in ((ids, "mode"), (ids + 0.25, "mean")):
+        vol = Volume(data, meta=meta)
+        write_volume(vol, tmp_path / f"{want}.ome.zarr", pyramid=1)
+        with open_volume_blocks(tmp_path / f"{want}_blocks.ome.zarr", vol.header,
+                                pyramid=1) as out:
+            out.write(Box.from_shape(data.shape), data)
+        for name in (f"{want}.ome.zarr", f"{want}_blocks.ome.zarr"):
+            assert _levels(tmp_path / name)[0] == want, name

@@ -162,6 +162,30 @@ NIFTI_INTENT_LABEL = 1002
 VALUES_KEY = "volwarp_values"
 
 
+#: key prefixes that describe a label map's samples (a SEG's segments, an RTSTRUCT's ROIs)
+_LABEL_KEY_PREFIXES = ("NIfTI_intent_", "DICOM_Segment", "DICOM_ROI_", "DICOM_Structure",
+                       "DICOM_ContentLabel")
+
+
+def without_label_keys(meta) -> dict:
+    """``meta`` without what says its samples are labels: for an output of other samples.
+
+    A distance field, a warp's Jacobian or fields, a morph frame computed from a
+    label map kept its NIfTI intent (label), a SEG's modality and segments and a
+    capture's ``volwarp_values``: the next command took the field for labels
+    (``apply`` resampled it by nearest neighbour, ``warp`` refused it, an
+    OME-Zarr pyramid took the mode of distances) and viewers showed it as one.
+    """
+    out = {}
+    for k, v in (meta or {}).items():
+        if k.startswith(_LABEL_KEY_PREFIXES) or k == VALUES_KEY:
+            continue
+        if k == "DICOM_Modality" and str(v).strip().upper() in _SEGMENTATIONS:
+            continue
+        out[k] = v
+    return out
+
+
 def recorded_values(meta) -> str | None:
     """The values choice ``meta`` records (:data:`VALUES_KEY`), or None."""
     value = str((meta or {}).get(VALUES_KEY, ""))

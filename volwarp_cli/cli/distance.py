@@ -121,6 +121,7 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
     from ..distance.operation import field_operation
     from ..distance.scan import field_surface, scan_box_voxels
     from ..geometry import Geometry
+    from ..labelmap import without_label_keys
     from .chunked import lazy_input
 
     check_method(metric, surface)
@@ -135,7 +136,7 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
     log.info("%s", rule.describe())
     surface = field_surface(source, rule, metric=metric, surface=surface,
                             max_distance=max_distance, box_voxels=box_voxels)
-    out = stamp(header, "distance", input)
+    out = stamp(header.replace(meta=without_label_keys(header.meta)), "distance", input)
     out.meta["volwarp_distance"] = field_note(metric, surface, rule, unsigned, max_distance)
     op = field_operation(source, Geometry.of(out), rule, metric=metric, surface=surface,
                          max_distance=max_distance, unsigned=unsigned,

@@ -788,10 +788,12 @@ class _ZarrOutput(BlockOutput):
         # is; of an integer output, or a float one (a float map of integer ids is one
         # too), decided on commit, from the samples written (their pyramid levels take the
         # mode or the mean), as in memory
+        self._segmentation = False  # (a float map its keys call labels: ids if integers)
         if labels == "auto" or labels is None:
             from ..labelmap import segmentation_of
 
-            labels = (True if pyramid and segmentation_of(getattr(header, "meta", None))
+            self._segmentation = bool(pyramid and segmentation_of(getattr(header, "meta", None)))
+            labels = (True if self._segmentation and self.dtype.kind in "iu"
                       else None if pyramid and self.dtype.kind in "iuf" else False)
         self._labels = labels if labels is None else bool(labels)
         try:
@@ -883,11 +885,15 @@ class _ZarrOutput(BlockOutput):
         if self._staged is not None:
             self._unstage()
         if self._labels is None:  # (the whole array's rule, read box by box)
-            from ..labelmap import looks_like_labels_by_blocks
+            from ..labelmap import integer_samples, looks_like_labels_by_blocks
 
             level0 = self._arrays[0]
-            self._labels = looks_like_labels_by_blocks(
-                level0, omezarr.scan_pieces(level0, memory_limit()))
+            pieces = omezarr.scan_pieces(level0, memory_limit())
+            if self._segmentation:  # (as resolve_labels: its keys, if its samples are ids)
+                self._labels = all(integer_samples(level0[box.slices]) is not None
+                                   for box in pieces)
+            else:
+                self._labels = looks_like_labels_by_blocks(level0, pieces)
         method = ("mode" if self._labels else "mean") if self._pyramid else None
         omezarr.write_levels(self._arrays, None, self._labels, memory_limit())
         self._group.attrs.update(omezarr.group_attributes(

@@ -321,13 +321,17 @@ def resolve_labels(labels, data: np.ndarray, meta=None) -> bool:
     """``labels`` True/False as given; ``"auto"`` (or None): the rule.
 
     A volume its key/values say is a label map (``meta``: a SEG's, a NIfTI of
-    intent label; :func:`~volwarp_cli.labelmap.segmentation_of`) is one;
-    else :func:`looks_like_labels` of ``data``.
+    intent label; :func:`~volwarp_cli.labelmap.segmentation_of`) is one when
+    its samples are integer ids (a float field that kept such keys is not:
+    its levels took the mode of distances); else :func:`looks_like_labels` of
+    ``data``.
     """
     if labels is None or labels == "auto":
-        from ..labelmap import segmentation_of
+        from ..labelmap import integer_samples, segmentation_of
 
-        return bool(segmentation_of(meta)) or looks_like_labels(data)
+        if segmentation_of(meta):
+            return integer_samples(data) is not None
+        return looks_like_labels(data)
     return bool(labels)
 
 

@@ -418,10 +418,14 @@ def source_keys(source) -> dict:
     """The source's own key/values that every frame keeps (as every command keeps its input's).
 
     What is the subject's (custom keys, the study, the frame of reference),
-    not what describes the source's samples (:data:`_NOT_THE_FRAMES`): a
-    frame is a new shape, its provenance and the morph's notes its own.
+    not what describes the source's samples (:data:`_NOT_THE_FRAMES`, and a
+    label map's marks: a NIfTI's intent made frames of distances pyramids of
+    modes): a frame is a new shape, its provenance and the morph's notes its own.
     """
-    return {k: v for k, v in source.meta.items() if not k.startswith(_NOT_THE_FRAMES)}
+    from ..labelmap import without_label_keys
+
+    return {k: v for k, v in without_label_keys(source.meta).items()
+            if not k.startswith(_NOT_THE_FRAMES)}
 
 
 def frame_space(source, target) -> str | None:

@@ -223,6 +223,7 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
     its capture, scene and frames (a warp made with ``WarpOptions(blocks=True)``).
     The same values and figures as in memory.
     """
+    from ..labelmap import without_label_keys
     from .export import (
         ForwardMap,
         field_format,
@@ -303,7 +304,8 @@ def write_exports(requests: ExportRequests, warp, *, meta: dict, mesh_meta: dict
                 _place_slabs(out, fmap.forward_field_slabs())
     if requests.jacobian is not None:
         path = requests.jacobian
-        jmeta = {**dict(g.meta), **meta, "volwarp_field": "jacobian"}
+        # (the input's keys but what says they are labels: a label map's Jacobian is none)
+        jmeta = {**without_label_keys(g.meta), **meta, "volwarp_field": "jacobian"}
         if blocks is None:
             det = fmap.jacobian()
             st = jacobian_stats(det)
