@@ -158,3 +158,26 @@ def test_a_missing_slice_at_micro_ct_spacing_is_found(tmp_path, stack, spacing):
         read_dicom(tmp_path / "s")
     write_series(tmp_path / "r", stack, spacing_z=spacing, spacing=(0.01, 0.01))
     assert read_dicom(tmp_path / "r").spacing[2] == pytest.approx(spacing)
+
+
+@pytest.mark.parametrize("layout", ["tilted", "irregular"])
+def test_a_label_map_stored_as_a_series_is_resampled_without_blending_ids(tmp_path, layout):
+    # A gantry tilt's resampling (automatic) or --irregular resample blended ids 7 and
+    # 300 into 3.5, 150, ... (float32), and the rule then called the volume intensities.
+    ids = np.zeros((8, 20, 24), np.int16)
+    ids[1:7, 4:16, 5:19] = 7
+    ids[2:6, 6:12, 8:14] = 300
+    ids[3:5, 12:15, 14:17] = 1000
+    if layout == "tilted":  # 15 degrees: each slice 2.5 tan(15) mm further along y
+        positions = [(0.0, 2.5 * k * np.tan(np.radians(15)), 2.5 * k) for k in range(8)]
+    else:
+        positions = [(0.0, 0.0, z) for z in (0, 2.5, 5, 7.5, 12.5, 15, 17.5, 20)]
+    write_series(tmp_path / "s", ids, positions=positions, spacing=(1.0, 1.0))
+    vol = read_dicom(tmp_path / "s", irregular="resample")
+    assert vol.data.dtype == np.int16
+    assert set(np.unique(vol.data).tolist()) <= {0, 7, 300, 1000}
+    assert set(np.unique(vol.data).tolist()) >= {7, 300, 1000}
+    if layout == "irregular":  # the missing slice's place takes its nearer neighbour's ids
+        np.testing.assert_array_equal(vol.data[:4], ids[:4])
+        np.testing.assert_array_equal(vol.data[5:], ids[4:])
+        np.testing.assert_array_equal(vol.data[4], ids[3])

@@ -592,7 +592,9 @@ def test_missing_slice_names_the_gap(tmp_path, ramp):
 
 def test_irregular_spacing_error_or_resample(tmp_path, caplog):
     z = [0.0, 2.0, 4.0, 6.0, 9.0, 10.0, 12.0]  # gaps 2 2 2 3 1 2
-    stored = np.stack([np.full((4, 3), 100 + 10 * v, np.int16) for v in z])
+    # (an intensity ramp: planes of one value each would be a label map by the rule)
+    stored = np.stack([np.full((4, 3), 100 + 10 * v, np.int16)
+                       + np.arange(12, dtype=np.int16).reshape(4, 3) * 7 for v in z])
     write_series(tmp_path / "s", stored, positions=[(0, 0, v) for v in z])
     with pytest.raises(FormatError, match=r"irregular slice spacing.* is 3 mm.*1 more") as err:
         read_dicom(tmp_path / "s")

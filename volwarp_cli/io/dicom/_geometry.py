@@ -168,16 +168,22 @@ def _gap_message(where, frames, gaps, nominal, tol, bad) -> str:
             "read anyway with --irregular resample")
 
 
-def resample(plan: Plan, data: np.ndarray) -> np.ndarray:
+def resample(plan: Plan, data: np.ndarray, labels: bool = False) -> np.ndarray:
     """Apply the plan's tilt shifts and slice interpolation to ``data`` (input slices).
 
     A voxel is interpolated from samples of the field only, or is the fill (the
     input's minimum): the shifts mark what lies outside the field NaN, the
     interpolation between slices carries the NaN on, and only then does it become
     the fill, so that no voxel at the field's rim blends the fill with data.
+
+    ``labels``: ``data`` is a label map: each voxel takes its nearest sample
+    (between two slices, the nearer; half way, the lower), in ``data``'s type,
+    so no id is invented (linear weights blended ids 7 and 55 into 27.5).
     """
     from scipy import ndimage
 
+    if labels:
+        return _resample_nearest(plan, data)
     fill = None
     if plan.shifts is not None:
         fill = float(data.min())
@@ -202,4 +208,22 @@ def resample(plan: Plan, data: np.ndarray) -> np.ndarray:
     if fill is not None:
         for plane in data:  # (a slice at a time: no mask of the whole volume)
             np.copyto(plane, np.float32(fill), where=np.isnan(plane))
+    return data
+
+
+def _resample_nearest(plan: Plan, data: np.ndarray) -> np.ndarray:
+    from scipy import ndimage
+
+    if plan.shifts is not None:
+        fill = data.min()
+        out = np.empty_like(data)
+        for k in range(data.shape[0]):
+            ndimage.shift(data[k], plan.shifts[k], output=out[k], order=0, mode="constant",
+                          cval=fill, prefilter=False)
+        data = out
+    if plan.planes is not None:
+        out = np.empty((plan.n_out,) + data.shape[1:], dtype=data.dtype)
+        for m, (k, w) in enumerate(plan.planes):
+            out[m] = data[k] if w <= 0.5 else data[k + 1]
+        data = out
     return data

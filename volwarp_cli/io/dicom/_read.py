@@ -86,7 +86,13 @@ def read_dicom(path: str | os.PathLike, *, series: str | int | None = None,
     data = np.empty((n_in, rows, cols), dtype=dtype)
     read_frames(plan.frames, dtype, data)
     if plan.resampled:
-        data = resample(plan, data)
+        from ...labelmap import looks_like_labels
+
+        labels = looks_like_labels(data)
+        if labels:  # (a label map stored as an image series: its ids must not blend)
+            log.warning("warning: %s: a label map (by volwarp's rule): its slices are "
+                        "resampled by nearest neighbour, its ids kept", where)
+        data = resample(plan, data, labels=labels)
     return make_volume(where, data, spacing=plan.spacing, origin=plan.origin,
                        direction=plan.direction, space=_LPS, file_space=_LPS, meta=meta)
 
