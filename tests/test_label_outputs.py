@@ -187,3 +187,17 @@ def test_a_float_volume_its_keys_call_labels_takes_the_mode_only_of_ids(tmp_path
             out.write(Box.from_shape(data.shape), data)
         for name in (f"{want}.ome.zarr", f"{want}_blocks.ome.zarr"):
             assert _levels(tmp_path / name)[0] == want, name
+
+
+def test_convert_takes_fractions_for_labels_no_more_than_the_other_commands(run, tmp_path):
+    """`convert --values labels` of a float scan with fractions wrote pyramid levels of the
+    block's mode (its minimum, for continuous values); warp, apply, distance and mesh
+    refuse it: so does convert now, and nothing is written."""
+    data = np.linspace(0, 1, 8 * 8 * 8, dtype=np.float32).reshape(8, 8, 8)
+    write_volume(Volume(data), tmp_path / "f.nrrd")
+    for command in (["convert"], ["mesh"]):
+        out = tmp_path / ("o.ome.zarr" if command == ["convert"] else "o.ply")
+        res = run(*command, tmp_path / "f.nrrd", "-o", out, "--values", "labels",
+                  *(["--pyramid", "1"] if command == ["convert"] else []))
+        assert res.code == 2 and "needs a label map (integer ids)" in res.stderr, res.stderr
+        assert not out.exists()

@@ -359,6 +359,17 @@ def scan_labels(source, *, detect: bool = True, box_voxels: int = SCAN_BOX_VOXEL
     return bool(looks), values, counts
 
 
+def whole_ids(data, planes: int = 8) -> bool:
+    """Whether every sample of ``data`` is an id (:func:`integer_samples`), read by slabs.
+
+    A few planes at a time: a mapped float volume is never copied whole.
+    """
+    if np.dtype(data.dtype).kind in "iub":
+        return True
+    return all(integer_samples(data[z:z + planes]) is not None
+               for z in range(0, max(1, data.shape[0]), planes))
+
+
 def integer_samples(block) -> np.ndarray | None:
     """``block`` as integers: integer (or bool) samples as they are; None when they are not ids.
 

@@ -10,8 +10,9 @@ import os
 
 import click
 
+from ..errors import BadUsage
 from ..io import check_output_path, write_volume
-from ..labelmap import VALUES, keep_label_ids, segmentation_of
+from ..labelmap import VALUES, keep_label_ids, segmentation_of, whole_ids
 from ..memory import human_bytes
 from ..progress import timed
 from .common import load_input
@@ -125,9 +126,15 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
                             reference_options)
         return
     labels = PYRAMID_METHODS[pyramid_method]
+    ids = values == "labels" or (values is None and segmentation_of(vol.meta))
+    if ids and not whole_ids(vol.data):
+        if values == "labels":  # (as warp, apply, distance, mesh: fractions are no ids)
+            raise BadUsage(f"{input}: --values labels needs a label map (integer ids), got "
+                           f"{vol.dtype} samples that are not all integers")
+        ids = False  # (a float field that kept a SEG's keys: intensities)
     if labels == "auto" and values is not None:
         labels = values == "labels"
-    elif labels == "auto" and segmentation_of(vol.meta):  # (a SEG's ids whatever they look like)
+    elif labels == "auto" and ids:  # (a SEG's ids whatever they look like)
         labels = True
     if dtype is not None and dtype != vol.dtype.name:
         # --values decides, else the label rule: --pyramid-method makes the coarser levels

@@ -327,10 +327,10 @@ def resolve_labels(labels, data: np.ndarray, meta=None) -> bool:
     ``data``.
     """
     if labels is None or labels == "auto":
-        from ..labelmap import integer_samples, segmentation_of
+        from ..labelmap import segmentation_of, whole_ids
 
         if segmentation_of(meta):
-            return integer_samples(data) is not None
+            return whole_ids(data)
         return looks_like_labels(data)
     return bool(labels)
 
