@@ -104,3 +104,36 @@ def test_a_log_that_cannot_be_written_never_fails_the_command(tmp_path, monkeypa
     st = os.stat(out)
     assert noted == {"path": str(out.absolute()),
                      "identity": [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns]}
+
+
+def test_a_detached_headers_data_file_replaced_after_its_step_is_not_recorded(
+        tmp_path, monkeypatch):
+    """The data file of a `.nhdr` output replaced (same size, other bytes) between the
+    step's rename and the record: the header alone was checked, so the record vouched for
+    the other writer's samples and the next run skipped them."""
+    import os
+
+    from volwarp_cli.batch.run import ScanRunner
+
+    manifest = load_manifest(make_tree(tmp_path, CONVERT_MANIFEST.replace(
+        '"{stem}.nrrd"', '"{stem}.nhdr"')))
+    real = ScanRunner._call
+
+    def then_another_writer(self, argv):
+        result = real(self, argv)
+        if argv[0] == "convert":
+            raw = Path(argv[argv.index("-o") + 1]).with_suffix(".raw")
+            foreign = raw.with_name(".foreign")
+            foreign.write_bytes(b"\0" * raw.stat().st_size)
+            os.replace(foreign, raw)
+        return result
+
+    monkeypatch.setattr(ScanRunner, "_call", then_another_writer)
+    conv = _run(manifest).steps[0]
+    assert conv.status == "failed" and conv.made is None
+    assert ".raw was replaced by another writer" in conv.error
+    monkeypatch.setattr(ScanRunner, "_call", real)
+    again = _run(manifest).steps[0]
+    assert again.status == "ok"
+    out = Path(again.outputs[0])
+    assert (read_volume(out).data == read_volume(find_scans(manifest)[0].path).data).all()

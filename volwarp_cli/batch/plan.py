@@ -343,20 +343,33 @@ class CommandRecord:
         step's.
         """
         from ..io.atomic import file_identity
+        from ..io.inputs import output_files
+
+        def identity(file):
+            try:
+                return file_identity(os.stat(file))
+            except FileNotFoundError:
+                return None
 
         out = {}
         for path in plan.made:
-            want = (committed or {}).get(os.path.abspath(path))
+            # the output and the data file a detached header writes: either replaced makes
+            # the recorded digest another writer's (the header alone was checked)
+            files = [(f, (committed or {}).get(os.path.abspath(f))) for f in output_files(path)]
+            files = [(f, want) for f, want in files if want is not None or f == Path(path)]
             try:
-                before = file_identity(os.stat(path))
+                before = [identity(f) for f, _ in files]
                 out[self._key(path)] = {**made, "sha256": content_digest(path, self.hashes)}
-                after = file_identity(os.stat(path))
+                after = [identity(f) for f, _ in files]
             except OSError:
                 return None
-            if want is not None and not before == after == want:
-                raise Replaced(f"{path} was replaced by another writer after this step made "
-                               "it (another batch or command writing the same file): not "
-                               "recorded, made again next run")
+            if before[0] is None:
+                return None
+            for (file, want), b, a in zip(files, before, after, strict=True):
+                if want is not None and not b == a == want:
+                    raise Replaced(f"{file} was replaced by another writer after this step made "
+                                   "it (another batch or command writing the same file): not "
+                                   "recorded, made again next run")
         return out
 
     def keep(self, entries: dict[str, dict], files: dict[str, list] | None = None) -> None:
