@@ -171,6 +171,24 @@ def test_output_folder_holding_the_scans(tmp_path, output_dir, glob, how):
     res = volwarp("batch", manifest)
     assert res.returncode == 0, res.stderr
     assert "2 scans, 2 ok" in res.stderr
+    assert "left out as outputs" not in res.stderr  # (its own outputs: recorded)
+    res = volwarp("batch", manifest)
+    assert res.returncode == 0 and "2 skipped" in res.stderr, res.stderr
+    assert "left out as outputs" not in res.stderr
+
+
+def test_scans_in_the_output_folder_are_said_not_dropped_without_a_word(tmp_path):
+    """An output_dir inside the scans' tree that already holds scans (`scans/site-a`):
+    they were left out as outputs, the run said "1 scan" and exit 0. Files the glob
+    matches there that no run of the batch recorded writing are now said."""
+    manifest = make_tree(tmp_path, MANIFEST.replace("output_dir: out", "output_dir: scans/site-a"))
+    scans_there = sorted((tmp_path / "scans" / "site-a").rglob("*.n*"))
+    assert scans_there
+    res = volwarp("batch", manifest)
+    assert res.returncode == 0, res.stderr
+    assert re.search(rf"inputs\.glob: {scans_there[0].name}\S* in the output folder \S*site-a "
+                     r"left out as outputs, though no run of this batch recorded writing them",
+                     res.stderr), res.stderr
 
 
 def test_another_batchs_outputs_under_the_glob_are_not_scans(tmp_path):

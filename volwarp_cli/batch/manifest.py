@@ -363,12 +363,14 @@ def _glob_scans(manifest: Manifest, pattern: str) -> list[tuple[Path, tuple]]:
     paths = []
     batches: dict[Path, Path | None] = {}  # folder -> the batch output folder it lies in
     others: dict[Path, int] = {}
+    own: list[Path] = []  # matched in our output folder
     for name in sorted(glob.glob(pattern, recursive=True)):
         p = Path(name)
         if not p.is_file():  # (DICOM folders: convert them first, or list them)
             continue
         real = p.resolve()
         if real.is_relative_to(out):  # our own outputs are not scans
+            own.append(real)
             continue
         other = _batch_output_folder(real.parent, folder, batches)
         if other is not None:  # another batch's outputs: not scans either
@@ -381,7 +383,31 @@ def _glob_scans(manifest: Manifest, pattern: str) -> list[tuple[Path, tuple]]:
         log.warning("warning: %s: inputs.glob: %d file%s under %s, another batch's output "
                     "folder, left out (outputs are not scans)", manifest.path, n,
                     "" if n == 1 else "s", other)
+    _say_unrecorded(manifest, out, own)
     return paths
+
+
+def _say_unrecorded(manifest: Manifest, out: Path, own: list[Path]) -> None:
+    """Say the files the glob matches in the output folder that this batch never recorded.
+
+    They are left out as outputs; scans placed there (an ``output_dir`` inside
+    the scans' tree, ``scans/site-a``) were never processed, without a word.
+    Not refused: a batch stopped before its first record leaves outputs of
+    its own unrecorded, and refusing them would stop every later run.
+    """
+    if not own:
+        return
+    from ..progress import log
+    from .plan import STATE_NAME, _read_state
+
+    recorded = {os.path.normpath(k) for k in _read_state(out / STATE_NAME)[0]}
+    strangers = [p for p in own if os.path.relpath(p, out) not in recorded]
+    if strangers:
+        more = f" and {len(strangers) - 1} more" if len(strangers) > 1 else ""
+        log.warning("warning: %s: inputs.glob: %s%s in the output folder %s left out as "
+                    "outputs, though no run of this batch recorded writing them: if they are "
+                    "scans, choose an output_dir outside the scans' folders", manifest.path,
+                    os.path.relpath(strangers[0], out), more, out)
 
 
 def _batch_output_folder(folder: Path, root: Path, seen: dict) -> Path | None:
