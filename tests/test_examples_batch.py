@@ -160,3 +160,36 @@ def test_slurm_script_and_readme_use_real_options():
                                capture_output=True, text=True, timeout=60).stdout
     for opt in used:
         assert re.search(rf"(?<![\w-]){re.escape(opt)}\b", help_text), opt
+
+
+def test_a_detached_headers_new_data_file_is_a_changed_scan(tmp_path):
+    """The Makefile's rule depended on a `.nhdr` alone: a new `p1.raw` under it (newer
+    date) left the old output, `make` said nothing to do and `make status` said ok."""
+    import numpy as np
+
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    work = tmp_path / "batch"
+    shutil.copytree(ROOT / "examples" / "batch", work,
+                    ignore=shutil.ignore_patterns("scans", "processed", "logs", ".batch.lock"))
+    (work / "mine").mkdir()
+    z, y, x = np.mgrid[:64, :64, :64].astype(np.float32)  # (the spec's handles: mm about 0)
+    ball = 100.0 * (np.sqrt((x - 32) ** 2 + (y - 32) ** 2 + (z - 32) ** 2) < 24)
+    write_volume(Volume(ball.astype(np.float32), origin=(-32.0, -32.0, -32.0)),
+                 work / "mine" / "p1.nhdr")
+    make = ["make", "-C", str(work), "IN=mine", "OUT=out", f"VOLWARP={BIN / 'volwarp'}",
+            f"PYTHON={sys.executable}", "ISO=50"]
+    res = subprocess.run(make, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    before = read_volume(work / "out" / "p1.nrrd").data
+    assert subprocess.run([*make, "-q", "pipeline"], capture_output=True).returncode == 0
+    for p in work.rglob("*"):  # (the first run's files 10 s older: no clock skew)
+        t = p.stat().st_mtime_ns - 10_000_000_000
+        os.utime(p, ns=(t, t))
+    raw = work / "mine" / "p1.raw"
+    raw.write_bytes(np.roll(ball, 5, axis=2).astype(np.float32).tobytes())
+    assert subprocess.run([*make, "-q", "pipeline"], capture_output=True).returncode == 1
+    assert subprocess.run(make, capture_output=True, timeout=300).returncode == 0
+    assert not np.array_equal(read_volume(work / "out" / "p1.nrrd").data, before)
+    assert subprocess.run([*make, "-q", "pipeline"], capture_output=True).returncode == 0
