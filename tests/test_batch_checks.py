@@ -227,3 +227,23 @@ def test_dry_run_stops_at_every_reader(tmp_path):
             files.dry_run = True
             with pytest.raises(DryRunStop):
                 read(missing)
+
+
+def test_a_report_inside_a_scans_dicom_folder_is_refused(tmp_path):
+    """`--report ser/p01/run.json` was written into the scan's series folder (a step's
+    output there is refused): the series' digest changed every run, so the scan was
+    redone every night."""
+    import numpy as np
+    from test_io_dicom import write_series
+
+    write_series(tmp_path / "ser" / "p01", np.full((3, 5, 6), 7, np.int16)
+                 + np.arange(30, dtype=np.int16).reshape(5, 6))
+    manifest = tmp_path / "m.yaml"
+    manifest.write_text("version: 1\ninputs: {list: [ser/p01], root: ser}\noutput_dir: out\n"
+                        "steps:\n  - {name: c, run: convert, output: '{stem}.nrrd'}\n")
+    for option in ("--report", "--report-json"):
+        res = volwarp("batch", manifest, option, tmp_path / "ser" / "p01" / "run.json")
+        assert res.returncode == 2, res.stderr
+        assert "input folder" in res.stderr and "the scan 'p01'" in res.stderr
+        assert not (tmp_path / "ser" / "p01" / "run.json").exists()
+        assert not (tmp_path / "out" / "p01.nrrd").exists()

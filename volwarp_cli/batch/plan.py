@@ -665,10 +665,16 @@ def _check_reports(manifest, reports, fixed, scan_files, writers, cells) -> None
     """The batch's reports: never over an input, never a file a step (or another report) writes."""
     from ..errors import BadUsage
 
+    from ..io.inputs import InputIndex
+
+    scan_index = InputIndex()  # (a report inside a scan's folder, a DICOM series: one of it)
+    for scan in {id(s): s for s in scan_files.values()}.values():
+        scan_index.add(scan.path, f"the scan {scan.id!r}")
     for option, path in reports:
         out = Path(path).absolute()
         _refuse_over(out, option, list(fixed), fixed)
         cells.refuse(out, option)
+        scan_index.refuse(out, option)
         inside = _in_records(manifest, out, option)
         if inside is not None:
             raise BadUsage(inside)
