@@ -664,7 +664,6 @@ def _in_records(manifest, out: Path, option: str) -> str | None:
 def _check_reports(manifest, reports, fixed, scan_files, writers, cells) -> None:
     """The batch's reports: never over an input, never a file a step (or another report) writes."""
     from ..errors import BadUsage
-
     from ..io.inputs import InputIndex
 
     scan_index = InputIndex()  # (a report inside a scan's folder, a DICOM series: one of it)
