@@ -201,3 +201,14 @@ def test_convert_takes_fractions_for_labels_no_more_than_the_other_commands(run,
                   *(["--pyramid", "1"] if command == ["convert"] else []))
         assert res.code == 2 and "needs a label map (integer ids)" in res.stderr, res.stderr
         assert not out.exists()
+
+
+def test_a_label_name_pattern_that_cannot_name_an_id_is_a_usage_error(run, tmp_path):
+    """`{label:c}` of an id beyond Unicode ended in 'internal error: OverflowError'."""
+    data = np.zeros((8, 8, 8), np.uint32)
+    data[2:6, 2:6, 2:6] = 2**24 + 1
+    data[1, 1, 1:3] = 65
+    write_volume(Volume(data), tmp_path / "big.nrrd")
+    res = run("mesh", tmp_path / "big.nrrd", "--labels", "-o", tmp_path / "c_{label:c}.ply")
+    assert res.code == 2 and "cannot name label 16777217" in res.stderr, res.stderr
+    assert not list(tmp_path.glob("c_*.ply"))

@@ -346,7 +346,13 @@ def _distinct_label_files(pattern: str, labels) -> None:
     """A :class:`BadUsage` where ``pattern`` gives two labels one file (``{label:.1}``)."""
     from ..io.inputs import one_file_twice
 
-    twice = one_file_twice((label, pattern.format(label=label)) for label in labels)
+    def name(label):
+        try:
+            return pattern.format(label=label)
+        except (ValueError, OverflowError) as exc:  # ('{label:c}' of an id beyond Unicode)
+            raise BadUsage(f"-o: {pattern!r} cannot name label {label}: {exc}") from None
+
+    twice = one_file_twice((label, name(label)) for label in labels)
     if twice is not None:
         raise BadUsage(f"-o: {pattern!r} names labels {twice[0]} and {twice[1]} both "
                        f"{twice[2]}; give each label its own file (e.g. 'seg_{{label}}.ply')")
