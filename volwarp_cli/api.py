@@ -536,7 +536,10 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
         log.info("%s", rule.describe())
         surface = field_surface(source, rule, metric=metric, surface=surface,
                                 max_distance=max_distance, box_voxels=box_voxels)
-        out = _stamped(header, "distance", path, None)
+        from .labelmap import without_label_keys
+
+        out = _stamped(header.replace(meta=without_label_keys(header.meta)), "distance", path,
+                       None)
         out.meta["volwarp_distance"] = field_note(metric, surface, rule, unsigned, max_distance)
         out = out.replace(dtype=np.float32)
         op = field_operation(source, Geometry.of(out), rule, metric=metric, surface=surface,
