@@ -526,3 +526,20 @@ def test_libc_loads_without_running_ldconfig(monkeypatch):
     lib = memory.libc()
     assert lib is not None and getattr(lib, "malloc_trim", None) is not None
     assert getattr(lib, "sync_file_range", None) is not None
+
+
+def test_a_local_cluster_too_small_for_its_workers_is_refused_not_hung(tmp_path, run):
+    """`--scheduler local` with 2 workers under 200 MiB: each got about 55 MiB, a Dask worker
+    holds about 70 MiB before any block, and Dask paused it at 80% of its share: the run
+    never ended (a Slurm job until its walltime), or ended in 'internal error: KilledWorker'.
+    Refused now, before any work, saying what each worker would get."""
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    write_volume(Volume(ball(24)), tmp_path / "in.nrrd")
+    res = run("distance", tmp_path / "in.nrrd", "--iso", "0.5", "-o", tmp_path / "d.nrrd",
+              "--chunked", "--scheduler", "local", "--workers", "2", "--memory-limit", "200M")
+    assert res.code == 1, res.stderr
+    assert "--scheduler local: 2 worker process(es)" in res.stderr
+    assert "give each at least 100 MiB" in res.stderr
+    assert not (tmp_path / "d.nrrd").exists()
