@@ -84,9 +84,10 @@ class Target:
         if self.components is not None:
             from .io.nrrd import write_nrrd
 
-            comps = [np.ascontiguousarray(data[..., i]) for i in range(data.shape[-1])]
-            write_nrrd(self.header.with_data(comps[0]), self.path, compress=self.compress,
-                       byte_order=self.byte_order, components=comps,
+            # (the components on the last axis are the file's order: written as they are,
+            # not split and stacked again, two more copies of the whole output)
+            write_nrrd(self.header.with_data(data[..., 0]), self.path, compress=self.compress,
+                       byte_order=self.byte_order, components=data,
                        component_names=list(self.components))
             return
         write_volume(self.header.with_data(data), self.path, compress=self.compress,

@@ -780,20 +780,24 @@ def write_nrrd(vol: Volume, path: str | os.PathLike, *, compress: bool = False,
                component_names: list[str] | None = None, dtype=None) -> None:
     """Write ``vol`` as NRRD (``.nhdr`` writes a detached header plus ``.raw``/``.raw.gz``).
 
-    ``components`` (arrays shaped like ``vol.data``) writes one multi-component
-    file whose first, fastest axis holds them, in the order of ``component_names``.
+    ``components`` (arrays shaped like ``vol.data``, or one array of them on a last
+    axis, written without a copy) writes one multi-component file whose first,
+    fastest axis holds them, in the order of ``component_names``.
     ``dtype``: the samples cast to it as they are written (uncompressed only:
     :func:`~volwarp_cli.io.write_volume` casts a compressed output's first).
     """
     path = Path(path)
-    if components is not None and (component_names is None
-                                   or len(component_names) != len(components)):
+    stacked = isinstance(components, np.ndarray)
+    count = (components.shape[-1] if stacked else len(components)) if components is not None \
+        else 0
+    if components is not None and (component_names is None or len(component_names) != count):
         raise ValueError("write_nrrd: components need their names (the header's 4th axis)")
     encoding = "gzip" if compress else "raw"
     if dtype is not None and compress:
         raise ValueError("write_nrrd: a compressed output's samples are cast before")
     cast = dtype
-    data = vol.data if components is None else np.stack(components, axis=-1)
+    data = vol.data if components is None else \
+        np.ascontiguousarray(components) if stacked else np.stack(components, axis=-1)
     dtype = check_dtype(data.dtype if cast is None else cast, str(path))
     data_path = None
     if path.suffix.lower() == ".nhdr":

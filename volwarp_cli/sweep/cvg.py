@@ -173,17 +173,27 @@ class Accumulator:
         self.covered[idx] = True
 
     def result(self) -> dict[str, np.ndarray]:
-        """The fields accumulated so far, by name (see :func:`finish_fields`)."""
+        """The fields, by name (see :func:`finish_fields`): once, at the end (in place)."""
         return finish_fields(self.names, self.ops, self.acc, self.wsum, self.covered)
 
 
 def finish_fields(names, ops, acc, wsum, covered) -> dict[str, np.ndarray]:
-    """Turn accumulators into fields: blend sums divided by their weights, 0 where uncovered."""
+    """Turn accumulators into fields: blend sums divided by their weights, 0 where uncovered.
+
+    In place: the fields are ``acc``'s rows (a block's accumulators, used once), with
+    one array of weights and one mask beside them (a copy a field and the division's
+    temporaries took the blocks past their share of the memory limit).
+    """
     out = {}
+    weights = uncovered = None
     for f, name in enumerate(names):
         a = acc[f]
-        if ops[f] == "blend":
+        if ops[f] == "blend":  # (in place, on the block's own accumulators: no copies)
+            if weights is None:
+                weights = np.where(wsum > 0, wsum, np.float32(1))
+                uncovered = ~covered
             with np.errstate(invalid="ignore", divide="ignore"):
-                a = np.where(covered, a / np.where(wsum > 0, wsum, 1), 0).astype(np.float32)
+                np.divide(a, weights, out=a)
+            a[uncovered] = 0
         out[name] = a
     return out

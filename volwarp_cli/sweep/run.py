@@ -70,7 +70,9 @@ def scale_to_dtype(data, dtype):
     """Float fields in [0, 1] scaled to an integer type's full range (floats unchanged)."""
     if dtype is None or np.dtype(dtype).kind == "f":
         return data
-    return data.astype(np.float64) * np.iinfo(np.dtype(dtype)).max
+    out = data.astype(np.float64)
+    out *= np.iinfo(np.dtype(dtype)).max  # (in place: one float64 copy, not two)
+    return out
 
 
 class SweepOperation(Operation):
@@ -126,8 +128,18 @@ class SweepOperation(Operation):
             self.plan = prepare_sweep(self.spec, self.grid, method=self.method, tau=self.tau)
 
     def memory(self, box: Box) -> int:
-        """Every field as float32 and its cast, the coverage and the blend's weights."""
-        per_voxel = len(self.names) * (4 + self.dtype.itemsize) + 1 + 4
+        """Every field as float32 and its cast, the coverage and the blend's weights.
+
+        An integer cast passes through float64 (its scaling, rounding and check, 24 bytes
+        a voxel, one field at a time, measured); ``--multi`` stacks the casts in one more
+        array, the file's layout.
+        """
+        # (+5: a blend's divisor and the uncovered mask, :func:`.cvg.finish_fields`)
+        per_voxel = len(self.names) * (4 + self.dtype.itemsize) + 1 + 4 + 5
+        if self.dtype.kind != "f":
+            per_voxel += 24 + self.dtype.itemsize
+        if None in self.targets:
+            per_voxel += len(self.names) * self.dtype.itemsize
         return int(box.size) * per_voxel
 
     def compute(self, box: Box, *, threads: int) -> dict:
@@ -139,8 +151,12 @@ class SweepOperation(Operation):
 
     def output(self, results: dict, key) -> np.ndarray:
         """A field cast to the outputs' type (``--multi``: every field, on the last axis)."""
-        if key is None:
-            return np.stack([self._cast(results[n], n) for n in self.names], axis=-1)
+        if key is None:  # (filled a field at a time: no list of every cast beside it)
+            first = results[self.names[0]]
+            out = np.empty(first.shape + (len(self.names),), self.dtype)
+            for k, n in enumerate(self.names):
+                out[..., k] = self._cast(results[n], n)
+            return out
         return self._cast(results[key], key)
 
     def _cast(self, data, name) -> np.ndarray:
