@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from volwarp_cli.box import Box
 from volwarp_cli.errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
@@ -550,3 +552,34 @@ def test_block_output_refusals_and_abort(tmp_path):
                      ("d.nhdr", {})]:
         with pytest.raises(VolwarpError, match=r"\.ome\.zarr"):
             open_block_output(tmp_path / name, geom.header("uint8"), **kw)
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data())
+def test_a_region_read_by_rows_of_chunks_is_the_region(data):
+    """read_region reads a row of chunks at a time (a review measured 27 MiB held for
+    2 MiB of samples read at once): any region, any chunking, axes picked by an index
+    (a time point, a channel) or in another order, gives what one read gives."""
+    import zarr
+
+    from volwarp_cli.io.omezarr import _read_by_chunk_rows
+
+    shape = tuple(data.draw(st.integers(1, 23), label=f"n{i}") for i in range(4))
+    chunks = tuple(data.draw(st.integers(1, 9), label=f"c{i}") for i in range(4))
+    values = np.arange(int(np.prod(shape)), dtype=np.int32).reshape(shape)
+    arr = zarr.create_array(store=zarr.storage.MemoryStore(), shape=shape, chunks=chunks,
+                            dtype=np.int32)
+    arr[...] = values
+    picked = data.draw(st.integers(0, 3), label="the axis picked by an index")
+    stored, space = [], []
+    for axis, n in enumerate(shape):
+        if axis == picked:
+            stored.append(data.draw(st.integers(0, n - 1), label="index"))
+            continue
+        lo = data.draw(st.integers(0, n - 1), label=f"lo{axis}")
+        hi = data.draw(st.integers(lo + 1, n), label=f"hi{axis}")
+        stored.append(slice(lo, hi))
+        space.append(axis)
+    order = data.draw(st.permutations(space), label="space axes in the store's order")
+    got = _read_by_chunk_rows(arr, stored, list(order))
+    np.testing.assert_array_equal(got, values[tuple(stored)])

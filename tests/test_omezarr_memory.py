@@ -240,3 +240,33 @@ def test_staging_needs_the_disk_for_the_samples_and_the_store_of_every_staged_ou
                                            block)
         assert got == expected and again == expected[0], (free / raw, got)
         assert later == expected[0]
+
+
+def test_an_omezarr_input_is_read_within_the_memory_limit(tmp_path):
+    """Read at once, a region held every chunk it touched beside the samples (a review:
+    `convert` of a 256^3 store peaked at 190 MiB under 150M); read a row of chunks at a
+    time (and zarr's machinery loaded before the budget is weighed), it stays under."""
+    import os
+    import subprocess
+    import sys
+
+    from volwarp_cli import memory
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    rng = np.random.default_rng(1)
+    store = tmp_path / "r.ome.zarr"
+    write_volume(Volume(rng.random((192, 192, 192), dtype=np.float32)), store)
+    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
+    wrapper = ("import resource, subprocess, sys\n"
+               "proc = subprocess.run(sys.argv[1:], capture_output=True, text=True)\n"
+               "sys.stderr.write(proc.stderr)\n"
+               "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)\n"
+               "raise SystemExit(proc.returncode)\n")
+    proc = subprocess.run([sys.executable, "-c", wrapper, sys.executable, "-m", "volwarp_cli",
+                           "convert", str(store), "-o", str(tmp_path / "c.nrrd"),
+                           "--memory-limit", "110M"], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    peak = int(proc.stdout.split()[-1])
+    assert peak < 110 << 20, f"peak RSS {peak >> 20} MiB under --memory-limit 110M"

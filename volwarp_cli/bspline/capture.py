@@ -188,9 +188,13 @@ def scan_source(source, *, slab_bytes: int = 64 << 20) -> SourceScan:
     256^3 warp's 0.6 s).
     """
     from .. import parallel
+    from ..memory import available_memory
 
     nz, ny, nx = source.shape
     threads = parallel.threads()
+    # (within what the budget leaves: a slab, its copies and a reader's buffers, about
+    # three slabs a thread; fixed 64 MiB slabs took a warp under 130M to 171 MiB)
+    slab_bytes = min(slab_bytes, available_memory() // (3 * threads))
     step = max(1, min(slab_bytes // max(1, ny * nx * np.dtype(source.dtype).itemsize),
                       -(-nz // (2 * threads))))  # (two slabs a thread at least)
     sz, sy, sx = _sample_steps(source.shape)
