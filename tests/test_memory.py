@@ -543,3 +543,22 @@ def test_a_local_cluster_too_small_for_its_workers_is_refused_not_hung(tmp_path,
     assert "--scheduler local: 2 worker process(es)" in res.stderr
     assert "give each at least 100 MiB" in res.stderr
     assert not (tmp_path / "d.nrrd").exists()
+
+
+def test_a_metric_whose_kernels_do_not_fit_is_refused_before_the_blocks(tmp_path):
+    """A taxicab distance under 150M: numba's load was tried while warming the kernels, the
+    refusal swallowed, and tried again in a block task, which refused it against the
+    task's share ("--memory-limit: 52.4 MiB, of which this process holds 94.9 MiB ... 0 B
+    left") after the first pass's work. Now refused at once, with the command's budget."""
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    write_volume(Volume(ball(24)), tmp_path / "in.nrrd")
+    env = {k: v for k, v in os.environ.items() if k != "VOLWARP_MEMORY_LIMIT"}
+    res = subprocess.run([sys.executable, "-m", "volwarp_cli", "distance", str(tmp_path / "in.nrrd"),
+                          "--metric", "taxicab", "-o", str(tmp_path / "d.nrrd"), "--chunked",
+                          "--memory-limit", "150M"], capture_output=True, text=True, env=env,
+                         timeout=120)
+    assert res.returncode == 1, res.stderr
+    assert "loading numba" in res.stderr and "(--memory-limit: 150.0 MiB," in res.stderr
+    assert not (tmp_path / "d.nrrd").exists()

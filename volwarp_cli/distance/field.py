@@ -163,8 +163,12 @@ def warm_kernels(metric: str, surface: str, dtype, iso: float, inside: str) -> N
     if surface == "subvoxel":  # smooth samples, crossing the level between voxel centres
         ball = iso + (1.0 if up else -1.0) * ((n / 4) ** 2 - r2) / (n / 4) ** 2
     ball = ball.astype(dtype) if np.dtype(dtype).kind == "f" else ball.round().astype(dtype)
+    from ..errors import OutOfMemoryError
+
     try:
         signed_distance(ball, iso=iso, inside=inside, metric=metric, surface=surface)
+    except OutOfMemoryError:  # (numba does not fit the budget: said now, with the whole
+        raise                 # budget, not by a block task against its share, after work)
     except VolwarpError:  # (a level the dtype cannot hold around it: the real input tells)
         pass
 
