@@ -42,3 +42,17 @@ def test_a_sweep_peaks_below_its_memory_limit(tmp_path, options, limit):
     assert proc.returncode == 0, proc.stderr
     peak = int(proc.stdout.split()[-1])
     assert peak < limit * M, f"peak RSS {peak / M:.0f} MiB under --memory-limit {limit}M"
+
+
+def test_a_render_whose_kernels_do_not_fit_is_refused_before_the_fields(tmp_path):
+    """`sweep --render` under 150M computed every field (3 s) and then refused to load the
+    ray caster's numba; it is refused first now, nothing written."""
+    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
+    spec = ROOT / "specs" / "sweep-bottle.yaml"
+    proc = subprocess.run([sys.executable, "-m", "volwarp_cli", "sweep", str(spec), "--shape",
+                           "96", "96", "96", "-o", str(tmp_path / "s_{field}.nrrd"), "--render",
+                           str(tmp_path / "r.png"), "--memory-limit", "150M", "-v"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 1, proc.stderr
+    assert "loading numba" in proc.stderr and "voxelise" not in proc.stderr, proc.stderr
+    assert not list(tmp_path.iterdir())

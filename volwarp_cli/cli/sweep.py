@@ -131,6 +131,9 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
                       open_engine=settings.open_engine)
     picture = None
     if render_path is not None:
+        # (the ray caster's numba now: one that does not fit the budget is refused before
+        # the fields are computed, not after, and what it holds is off the blocks' share)
+        from ..render import _raycast_kernels  # noqa: F401
         from .view_options import orientation_labels_for
 
         look = VolumeRender(view, render_size, camera=camera_from,
