@@ -562,3 +562,25 @@ def test_a_metric_whose_kernels_do_not_fit_is_refused_before_the_blocks(tmp_path
     assert res.returncode == 1, res.stderr
     assert "loading numba" in res.stderr and "(--memory-limit: 150.0 MiB," in res.stderr
     assert not (tmp_path / "d.nrrd").exists()
+
+
+@pytest.mark.parametrize("chunked", [(), ("--chunked",)], ids=["in-memory", "by-blocks"])
+def test_a_morph_surface_too_large_for_the_budget_is_refused_before_it_is_made(
+        tmp_path, chunked):
+    """The frames' surfaces (--mesh-to) were made with no check: a review measured a morph
+    under 250M at 273 MiB. A surface whose triangles cannot fit is refused with its vertex
+    count before it is made, and no frame is left."""
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    noise = (np.random.default_rng(3).random((96, 96, 96)) < 0.5).astype(np.uint8)
+    write_volume(Volume(noise), tmp_path / "n.nrrd")
+    env = {k: v for k, v in os.environ.items() if k != "VOLWARP_MEMORY_LIMIT"}
+    res = subprocess.run([sys.executable, "-m", "volwarp_cli", "morph", str(tmp_path / "n.nrrd"),
+                          str(tmp_path / "n.nrrd"), "--frames", "2", "-o",
+                          str(tmp_path / "f_{i}.nrrd"), "--mesh-to", str(tmp_path / "f_{i}.ply"),
+                          "--memory-limit", "250M", *chunked], capture_output=True, text=True,
+                         env=env, timeout=300)
+    assert res.returncode == 1, res.stderr
+    assert "the surface of frame 0 (" in res.stderr and "vertices) needs" in res.stderr
+    assert not list(tmp_path.glob("f_*"))

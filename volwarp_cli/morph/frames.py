@@ -304,6 +304,25 @@ class MeshBlocks:
     run: object = None
     threads: int | None = None
 
+    def check(self, what: str):
+        """``check(vertices)`` for :func:`isosurface_blocks`: refuse a surface that won't fit.
+
+        As the mesh command's: about 2.25 triangles a vertex, the weld's bytes a
+        triangle by blocks, the extraction's in one block, against what the budget
+        leaves once the frame is written (the mesh's blocks are sized to their own
+        share). Unchecked, a morph's surfaces took a run under 250M to 273 MiB.
+        """
+        from ..memory import ensure_fits_in_memory
+        from ..surface.run import EXTRACT_BYTES_PER_TRIANGLE, WELD_BYTES_PER_TRIANGLE
+
+        per = EXTRACT_BYTES_PER_TRIANGLE if self.block is None else WELD_BYTES_PER_TRIANGLE
+
+        def check(vertices: int) -> None:
+            triangles = (9 * int(vertices)) // 4 + 8
+            ensure_fits_in_memory(triangles * per,
+                                  f"the surface of {what} ({vertices} vertices)")
+        return check
+
 
 def frames(job: MorphJob, fields: FrameFields, values: FrameValues, make, *,
            meta: dict | None = None, meshes: MeshBlocks | None = None,
@@ -338,7 +357,8 @@ def frames(job: MorphJob, fields: FrameFields, values: FrameValues, make, *,
                 frame.mesh = isosurface_blocks(fields.field(t), fields.grid, 0.0,
                                                inside="below", normals=True,
                                                block_shape=meshes.block, run=meshes.run,
-                                               threads=meshes.threads)
+                                               threads=meshes.threads,
+                                               check=meshes.check(f"frame {i}"))
             if render is not None:
                 from ..render.surface import fit_camera, render_mesh
 

@@ -458,7 +458,7 @@ def mesh_parts(source, plan: MeshPlan, split, *, threads: int = 1, run=None) -> 
 # -- whole runs ---------------------------------------------------------------------------
 def isosurface_blocks(source, geometry, level: float, *, block_shape=None,
                       inside: str = "above", cap: bool = False, normals: bool = False,
-                      threads: int | None = None, run=None) -> Mesh:
+                      threads: int | None = None, run=None, check=None) -> Mesh:
     """The isosurface of ``source`` at ``level``, block by block, in the whole volume's order.
 
     Parameters
@@ -482,6 +482,9 @@ def isosurface_blocks(source, geometry, level: float, *, block_shape=None,
     run : callable, optional
         ``run(task, blocks)`` -> the tasks' results in order, instead of
         threads: e.g. :meth:`volwarp_cli.engine.Engine.map` on a Dask scheduler.
+    check : callable, optional
+        ``check(vertices)`` once the surface's vertex count is known, before the
+        mesh is made (a memory check that refuses it).
 
     Returns
     -------
@@ -503,8 +506,10 @@ def isosurface_blocks(source, geometry, level: float, *, block_shape=None,
             def run(task, blocks):
                 return parallel.run_blocks(task, blocks, threads)
     facts = volume_facts(source, float(level), boxes=split(Box.from_shape(source.shape)),
-                         threads=inner, run=run, cap=cap)
+                         threads=inner, run=run, cap=cap, count=check is not None)
     check_finite_range(facts.stats.lo, facts.stats.hi)
+    if check is not None:
+        check(facts.vertices(cap))
     plan = mesh_plan(facts.stats, source.shape, source.dtype, level, inside=inside, cap=cap,
                      normals=normals)
     parts = mesh_parts(source, plan, split, threads=inner, run=run)
