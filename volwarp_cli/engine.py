@@ -162,8 +162,9 @@ def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | 
 
     start = time.perf_counter()
     with enter_run(run if origin is None or os.getpid() == origin else None), \
-            parallel.use_threads(threads), (memory_mod.use_memory_limit(memory)
-                                            if memory is not None else contextlib.nullcontext()), \
+            parallel.use_threads(threads), (memory_mod.use_memory_limit(
+                memory, source="a block task's share of --memory-limit")
+                if memory is not None else contextlib.nullcontext()), \
             _said_here(origin is not None and os.getpid() != origin) as said:
         try:
             value = fn(*args, **kwargs)
