@@ -528,7 +528,7 @@ def test_libc_loads_without_running_ldconfig(monkeypatch):
     assert getattr(lib, "sync_file_range", None) is not None
 
 
-def test_a_local_cluster_too_small_for_its_workers_is_refused_not_hung(tmp_path, run):
+def test_a_local_cluster_too_small_for_its_workers_is_refused_not_hung(tmp_path):
     """`--scheduler local` with 2 workers under 200 MiB: each got about 55 MiB, a Dask worker
     holds about 70 MiB before any block, and Dask paused it at 80% of its share: the run
     never ended (a Slurm job until its walltime), or ended in 'internal error: KilledWorker'.
@@ -537,9 +537,13 @@ def test_a_local_cluster_too_small_for_its_workers_is_refused_not_hung(tmp_path,
     from volwarp_cli.volume import Volume
 
     write_volume(Volume(ball(24)), tmp_path / "in.nrrd")
-    res = run("distance", tmp_path / "in.nrrd", "--iso", "0.5", "-o", tmp_path / "d.nrrd",
-              "--chunked", "--scheduler", "local", "--workers", "2", "--memory-limit", "200M")
-    assert res.code == 1, res.stderr
+    env = {k: v for k, v in os.environ.items() if k != "VOLWARP_MEMORY_LIMIT"}
+    res = subprocess.run([sys.executable, "-m", "volwarp_cli", "distance",
+                          str(tmp_path / "in.nrrd"), "--iso", "0.5", "-o", str(tmp_path / "d.nrrd"),
+                          "--chunked", "--scheduler", "local", "--workers", "2",
+                          "--memory-limit", "200M"], capture_output=True, text=True, env=env,
+                         timeout=120)
+    assert res.returncode == 1, res.stderr
     assert "--scheduler local: 2 worker process(es)" in res.stderr
     assert "give each at least 100 MiB" in res.stderr
     assert not (tmp_path / "d.nrrd").exists()
