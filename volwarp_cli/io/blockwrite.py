@@ -895,6 +895,11 @@ class _ZarrOutput(BlockOutput):
             else:
                 self._labels = looks_like_labels_by_blocks(level0, pieces)
         method = ("mode" if self._labels else "mean") if self._pyramid else None
+        if self._pyramid:  # (the label choice said at -v, as in memory)
+            from ..progress import log
+
+            log.info("%s: %d pyramid level(s) by the %s (%s)", self.path, self._pyramid,
+                     method, "a label map" if self._labels else "intensities")
         omezarr.write_levels(self._arrays, None, self._labels, memory_limit())
         self._group.attrs.update(omezarr.group_attributes(
             omezarr.multiscales_metadata(self._stored, self._pyramid, self._version, method),

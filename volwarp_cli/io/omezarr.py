@@ -799,6 +799,9 @@ def write_omezarr(vol: Volume, path: str | os.PathLike, *, version: str = "0.5",
                           f"{f', {pyramid} levels' if pyramid else ''})")
     is_labels = resolve_labels(labels, data, vol.meta) if pyramid else False
     method = ("mode" if is_labels else "mean") if pyramid else None
+    if pyramid:  # (the label choice said at -v, as every command says it)
+        log.info("%s: %d pyramid level(s) by the %s (%s)", path, pyramid, method,
+                 "a label map" if is_labels else "intensities")
     shapes = level_shapes(stored.shape, pyramid)
     attrs = group_attributes(multiscales_metadata(stored, pyramid, version, method),
                              volwarp_attribute(stored, vol, method), version)
