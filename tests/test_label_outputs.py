@@ -212,3 +212,26 @@ def test_a_label_name_pattern_that_cannot_name_an_id_is_a_usage_error(run, tmp_p
     res = run("mesh", tmp_path / "big.nrrd", "--labels", "-o", tmp_path / "c_{label:c}.ply")
     assert res.code == 2 and "cannot name label 16777217" in res.stderr, res.stderr
     assert not list(tmp_path.glob("c_*.ply"))
+
+
+def test_info_says_a_nifti_of_intent_label_is_a_label_map(run, intent_map, tmp_path):
+    """Every command takes a NIfTI of intent label for a label map; `info` gave no hint
+    where the rule alone would not (single voxels), and now says why it is one."""
+    import json
+
+    import nibabel as nib
+
+    data = np.zeros((12, 12, 12), np.uint16)
+    data[2, 3, 4], data[8, 9, 1] = 500, 700  # (two voxels: the rule says intensities)
+    img = nib.Nifti1Image(np.ascontiguousarray(data.transpose(2, 1, 0)), np.eye(4))
+    img.header.set_intent("label")
+    nib.save(img, tmp_path / "dots.nii.gz")
+    res = run("info", tmp_path / "dots.nii.gz", "--json")
+    hint = json.loads(res.stdout)["label_map"]
+    assert hint["labels"] == 3 and hint["values"] == [0, 500, 700]
+    assert "intent NIFTI_INTENT_LABEL" in hint["why"]
+    res = run("info", tmp_path / "dots.nii.gz")
+    assert "hint:      is a NIfTI label map" in res.stdout
+    nib.save(nib.Nifti1Image(np.ascontiguousarray(data.transpose(2, 1, 0)), np.eye(4)),
+             tmp_path / "plain.nii.gz")
+    assert "label_map" not in json.loads(run("info", tmp_path / "plain.nii.gz", "--json").stdout)

@@ -270,24 +270,28 @@ def keep_label_ids(data, dtype, name: str, labels="auto", meta=None) -> None:
         refuse_merged_ids(ids, dtype, name)
 
 
-def label_map_hint(data: np.ndarray) -> dict | None:
-    """``{"labels": n, "values": [...]}`` when ``data`` looks like a label map (``info``).
+def label_map_hint(data: np.ndarray, meta=None) -> dict | None:
+    """``{"labels": n, "values": [...]}`` when ``data`` is taken for a label map (``info``).
 
     The rule (module notes), whatever the number of distinct values: the
     answer the commands' defaults follow (a hint capped at 256 values said
     nothing of a map of 344 labels, which ``mesh`` and ``distance`` took for
-    one); None otherwise (the values: the first 16).
+    one), or the file's own word (``meta``, :func:`segmentation_of`: a NIfTI of
+    intent label, which every command takes as labels, had no hint), then with
+    ``"why"``; None otherwise (the values: the first 16).
     """
     data = np.asarray(data)
     if not _candidate(data) or data.size == 0:
         return None
     counted = _count(data, scan_boxes(data.shape))
-    if counted is None or len(counted[0]) < 2:
+    said = segmentation_of(meta)
+    if counted is None or len(counted[0]) < (1 if said else 2):
         return None
     values, counts = counted
-    if not _rule(values, counts, data.shape, lambda z: data[z]):
+    if not said and not _rule(values, counts, data.shape, lambda z: data[z]):
         return None
-    return {"labels": int(len(values)), "values": [int(v) for v in values[:16]]}
+    hint = {"labels": int(len(values)), "values": [int(v) for v in values[:16]]}
+    return {**hint, "why": said} if said else hint
 
 
 def looks_like_labels(data: np.ndarray) -> bool:

@@ -39,7 +39,8 @@ def _format_text(d: dict) -> str:
         if k == "label_map":
             vals = " ".join(map(str, v["values"])) + (" ..." if v["labels"] > len(v["values"])
                                                          else "")
-            lines.append(f"hint:      looks like a label map ({v['labels']} distinct values: "
+            what = f"is {v['why']}" if v.get("why") else "looks like a label map"
+            lines.append(f"hint:      {what} ({v['labels']} distinct values: "
                          f"{vals}): warp, distance and mesh take it as labels by default "
                          "(--values intensity to take its samples as intensities); mesh "
                          "--label N or --labels for one label's surface or each one's")
@@ -217,7 +218,7 @@ def _label_hint(desc: dict, vol) -> None:
     if vol.data.dtype.kind in "iuf":
         from ..labelmap import label_map_hint
 
-        hint = label_map_hint(vol.data)
+        hint = label_map_hint(vol.data, vol.meta)
         if hint is not None:
             desc["label_map"] = hint
 
