@@ -214,7 +214,7 @@ def test_a_label_name_pattern_that_cannot_name_an_id_is_a_usage_error(run, tmp_p
     assert not list(tmp_path.glob("c_*.ply"))
 
 
-def test_info_says_a_nifti_of_intent_label_is_a_label_map(run, intent_map, tmp_path):
+def test_info_says_a_nifti_of_intent_label_is_a_label_map(run, tmp_path):
     """Every command takes a NIfTI of intent label for a label map; `info` gave no hint
     where the rule alone would not (single voxels), and now says why it is one."""
     import json
