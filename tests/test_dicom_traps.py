@@ -181,3 +181,45 @@ def test_a_label_map_stored_as_a_series_is_resampled_without_blending_ids(tmp_pa
         np.testing.assert_array_equal(vol.data[:4], ids[:4])
         np.testing.assert_array_equal(vol.data[5:], ids[4:])
         np.testing.assert_array_equal(vol.data[4], ids[3])
+
+
+def test_a_cut_file_of_one_series_blocks_that_series_only(tmp_path, stack):
+    """A file of series B cut before its pixels refused every read of the folder, series A's
+    and the listing too; B alone is refused now, and listed with the reason."""
+    from volwarp_cli.io.dicom import scan_dicom
+
+    write_series(tmp_path / "d" / "A", stack)
+    b = write_series(tmp_path / "d" / "B", stack[:2], series="1.2.826.0.1.3680043.8.498.2")
+    _cut_before_pixels(b[0])
+    cands = scan_dicom(tmp_path / "d")
+    assert len(cands) == 2
+    a_index = next(c.index for c in cands if c.series_uid.endswith(".1"))
+    b_cand = next(c for c in cands if c.series_uid.endswith(".2"))
+    assert "without PixelData" in b_cand.why
+    np.testing.assert_array_equal(read_dicom(tmp_path / "d", series=a_index).data, stack)
+    with pytest.raises(FormatError, match=rf"{b[0].name}: CT Image Storage without PixelData"):
+        read_dicom(tmp_path / "d", series=b_cand.index)
+
+
+def test_macos_companion_files_and_empty_lookup_tables_are_not_refused(tmp_path, stack):
+    """A folder copied by macOS to FAT or SMB holds ._IM0000.dcm beside each file (its
+    AppleDouble data, not DICOM), and an empty ModalityLUTSequence holds no table: the
+    series reads, as before the refusals of foreign *.dcm files and of modality LUTs."""
+    from pydicom.sequence import Sequence
+
+    paths = write_series(tmp_path / "s", stack)
+    for p in paths:
+        (p.parent / f"._{p.name}").write_bytes(b"\x00\x05\x16\x07" + b"\x00" * 78)
+        ds = pydicom.dcmread(p)
+        ds.ModalityLUTSequence = Sequence([])
+        ds.save_as(p)
+    np.testing.assert_array_equal(read_dicom(tmp_path / "s").data, stack)
+
+
+def test_a_folder_of_files_without_the_preamble_is_a_dicom_input(tmp_path, stack):
+    from volwarp_cli.io import read_volume
+
+    for p in write_series(tmp_path / "s", stack):
+        p.write_bytes(p.read_bytes()[132:])
+        p.rename(p.with_suffix(""))  # (no extension either)
+    np.testing.assert_array_equal(read_volume(tmp_path / "s").data, stack)

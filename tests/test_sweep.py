@@ -229,6 +229,25 @@ def test_a_template_where_segments_join_is_one_instance(tmp_path, method, trajec
         np.testing.assert_array_equal(opacity(op), union, err_msg=op)
 
 
+@pytest.mark.parametrize("method", ["voxelize", "direct"])
+def test_a_path_that_turns_back_meets_its_end_planes_twice(tmp_path, method):
+    # Out and back under a constant direction: the same frames where the segments meet,
+    # but the path crosses the plane back the way it came: two instances there, as
+    # everywhere between (a review found lone 0.4 sheets left by "difference").
+    def opacity(op):
+        spec = make_spec(tmp_path, {
+            "grid": {"spacing": 0.5, "margin": 1.0}, "fields": {"opacity": 0.4},
+            "trajectory": [{"line": {"from": [0, 0, 0], "to": [5, 0, 0]}},
+                           {"line": {"from": [5, 0, 0], "to": [0, 0, 0]}}],
+            "direction": [1, 0, 0], "up": [0, 0, 1], "scale": [2, 2], "combine": op},
+            name=f"{op}.yaml")
+        return fields_of(spec, method=method)[0]["opacity"]
+
+    total = opacity("sum")
+    assert set(np.unique(np.round(total.astype(np.float64), 5)).tolist()) == {0.0, 0.8}
+    assert not np.any(opacity("difference"))
+
+
 def test_split_region_has_no_holes(tmp_path):
     # template 6 wide on an arc of radius 1: the inner part sweeps across the axis;
     # a full turn of it covers a solid disc of radius 1 + 3 (the hole would be at the centre)

@@ -73,21 +73,32 @@ class Sweep:
         segment only, as inside a segment each template plane belongs to the
         piece that starts there. Counted twice, ``difference`` emptied it and
         ``sum`` doubled it. Frames join when position, axes and size agree to
-        1e-9 (relative to the template's size and distance from the origin).
+        1e-9 (relative to the template's size and distance from the origin), and
+        the path crosses the template's plane the same way on both sides: a path
+        that turns back (out and back under a constant direction) meets the
+        plane again from the side it came from, a second instance.
         """
+        from .frames import _tangent
+
         n = len(self.segments)
         ends = [self.frames(i, [1.0]) for i in range(n)]
         starts = [self.frames(i, [0.0]) for i in range(n)]
         out = []
         for i in range(n):
-            a, b = ends[i], starts[(i + 1) % n]
+            j = (i + 1) % n
+            a, b = ends[i], starts[j]
             size = max(1.0, float(np.abs(a.P).max()), float(a.SX[0]), float(a.SY[0]))
-            out.append(bool(
+            same = bool(
                 np.abs(a.P - b.P).max() <= 1e-9 * size
                 and max(np.abs(getattr(a, f) - getattr(b, f)).max()
                         for f in ("EX", "EY", "EZ")) <= 1e-9
                 and abs(float(a.SX[0] - b.SX[0])) <= 1e-9 * size
-                and abs(float(a.SY[0] - b.SY[0])) <= 1e-9 * size))
+                and abs(float(a.SY[0] - b.SY[0])) <= 1e-9 * size)
+            if same:  # (the way through the plane: the tangent's side of its normal)
+                way_a = float(_tangent(self.segments[i], np.array([1.0]), True)[0] @ a.EZ[0])
+                way_b = float(_tangent(self.segments[j], np.array([0.0]), False)[0] @ b.EZ[0])
+                same = way_a * way_b > 0
+            out.append(same)
         return out
 
 

@@ -167,6 +167,8 @@ def _plan(path, *, series, irregular, duplicates, keep_shear, keep_phi, candidat
     where = str(path)
     cand = choose(candidates if candidates is not None else scan_dicom(path), series, where)
     f0 = cand.frames[0]
+    if cand.problem:  # (a file of its series cut before its pixels)
+        raise FormatError(cand.problem)
     bad = next((f for f in cand.frames if f.problem), None)  # any file's, not the first's
     if bad is not None:
         raise FormatError(f"{bad.file.path}: {bad.problem}")

@@ -125,6 +125,7 @@ class Candidate:
     why: str
     series_number: int | None = None
     frames: tuple = field(default=(), repr=False, compare=False)
+    problem: str = ""  # (why it cannot be read: a file of its series cut short)
 
     def describe(self) -> dict:
         """A JSON-able description (for ``volwarp info --json``)."""
@@ -147,11 +148,11 @@ class Candidate:
 def is_dicom_path(path) -> bool:
     """True for a folder holding DICOM files (recursively), a DICOMDIR, or a DICOM file."""
     p = Path(path)
-    if p.is_dir():
+    if p.is_dir():  # (by content, as the folder's files are read: the preamble or not)
         for root, dirs, files in os.walk(p):
             dirs.sort()
             for name in sorted(files):
-                if _has_preamble(os.path.join(root, name)):
+                if _folder_file(os.path.join(root, name), name) == "dicom":
                     return True
         return False
     if not p.is_file():
@@ -226,6 +227,8 @@ def _folder_file(full: str, name: str) -> str:
     file, may be a slice: skipped, it left a volume a slice short (the first or
     last: nothing else shows it) with exit 0.
     """
+    if name.startswith("._"):  # (macOS's AppleDouble companions on FAT/SMB copies)
+        return ""
     try:
         st = os.stat(full)
     except OSError as exc:
@@ -243,7 +246,7 @@ def _folder_file(full: str, name: str) -> str:
         return "dicom"
     if _looks_like_dicom_body(head):
         return "dicom"
-    if name.lower().endswith(_DICOM_SUFFIXES):
+    if name.lower().endswith(_DICOM_SUFFIXES) and not name.startswith("."):
         return "empty file" if not head else "not a DICOM file (no DICM preamble, no DICOM header)"
     return ""
 
@@ -481,7 +484,8 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
     top_inter = _float(ds, "RescaleIntercept", 0.0, where)
     if top_slope == 0:
         raise FormatError(f"{where}: RescaleSlope is 0")
-    if "ModalityLUTSequence" in ds:  # (its values come through a table, not slope/intercept)
+    if any("LUTData" in item for item in ds.get("ModalityLUTSequence") or ()):
+        # (its values come through a table, not slope/intercept; an empty sequence is none)
         raise FormatError(f"{where}: ModalityLUTSequence (stored values mapped through a lookup "
                           "table) is not supported: the stored values are not the image's")
     frames: list[Frame] = []
@@ -875,23 +879,31 @@ def estimate_geometry(frames: list[Frame]) -> tuple[tuple[int, int, int], tuple[
     return (f0.file.columns, f0.file.rows, len(d)), (sx, sy, sz)
 
 
-def _check_stubs(stubs: dict[str, list[str]], series: set[str]) -> None:
-    """Refuse images without pixel data in a series that has images; say the others.
+def _stub_problems(stubs: dict[str, list[str]], series: set[str]) -> dict[str, str]:
+    """Per series, why it cannot be read whole: an image of it without pixel data.
 
     Such a file is a slice cut before its pixels (a transfer stopped short):
     skipped, it left its series a slice short, the first or last without a
-    word (a file cut inside its header names no series: taken as one of them).
-    An image object of a series with no image at all (a DICOMDIR's stripped
-    examples) is no slice of any candidate: skipped with a warning.
+    word. A file cut inside its header names no series: every series gets it
+    (key ``""``). The series' candidates are listed with the problem, and
+    refused when read; other series read as they are. An image object of a
+    series with no image at all (a DICOMDIR's stripped examples) is no slice
+    of any candidate: skipped with a warning.
     """
+    problems: dict[str, str] = {}
     for kind, names in stubs.items():
-        lost = [n for n in names if _series_of(n) in series | {""}]
-        if lost:
-            more = f" (and {len(lost) - 1} more)" if len(lost) > 1 else ""
-            raise FormatError(f"{lost[0]}: {kind} without PixelData (truncated file?) in a "
-                              f"series with images{more}")
-        more = f" and {len(names) - 1} more" if len(names) > 1 else ""
-        log.warning("warning: %s%s: %s without PixelData: skipped", names[0], more, kind)
+        lost = {}
+        for n in names:
+            uid = _series_of(n)
+            if uid in series or not uid:
+                lost.setdefault(uid, []).append(n)
+            else:
+                log.warning("warning: %s: %s without PixelData: skipped", n, kind)
+        for uid, files in lost.items():
+            more = f" (and {len(files) - 1} more)" if len(files) > 1 else ""
+            problems.setdefault(uid, f"{files[0]}: {kind} without PixelData (truncated "
+                                     f"file?){more}")
+    return problems
 
 
 def _series_of(path: str) -> str:
@@ -919,7 +931,7 @@ def scan_dicom(path) -> list[Candidate]:
                 log.debug("%s: skipped (%s)", full, reason)
         frames.extend(got)
     frames = _drop_exact_copies(frames, str(path))
-    _check_stubs(stubs, {f.series_uid for f in frames})
+    stub_problems = _stub_problems(stubs, {f.series_uid for f in frames})
     if not frames:
         if not files:
             what = "is a folder with no DICOM files" if path.is_dir() else "no DICOM files found"
@@ -947,8 +959,11 @@ def scan_dicom(path) -> list[Candidate]:
     for index, (_, uid, number, part, why) in enumerate(entries):
         meta = part[0].file.meta
         bad = next((f for f in part if f.problem), None)
+        problem = stub_problems.get(uid) or stub_problems.get("")
         if bad is not None:
-            problem = bad.problem if bad is part[0] else f"{bad.label}: {bad.problem}"
+            shown = bad.problem if bad is part[0] else f"{bad.label}: {bad.problem}"
+            why = f"{why}; {shown}" if why else shown
+        elif problem:
             why = f"{why}; {problem}" if why else problem
         shape, spacing = estimate_geometry(part)
         out.append(Candidate(index=index, series_uid=uid,
@@ -956,5 +971,6 @@ def scan_dicom(path) -> list[Candidate]:
                              modality=meta.get("Modality", ""), shape_xyz=shape,
                              spacing=tuple(float(s) for s in spacing),
                              n_files=len({id(f.file) for f in part}), n_frames=len(part),
-                             why=why, series_number=number, frames=tuple(part)))
+                             why=why, series_number=number, frames=tuple(part),
+                             problem=problem or ""))
     return out
