@@ -469,11 +469,12 @@ def open_engine(scheduler: str | SchedulerChoice | None = None, *, workers: int 
         if memory_limit and memory_limit // n < LOCAL_WORKER_MIN:
             raise VolwarpError(
                 f"--scheduler local: {n} worker process(es) would share "
-                f"{memory_limit / 2**20:.0f} MiB of the memory limit, "
+                f"{memory_limit / 2**20:.0f} MiB of the memory limit (--memory-limit, or the "
+                f"machine's or cgroup's), "
                 f"{memory_limit // n / 2**20:.0f} MiB each; a Dask worker holds about 70 MiB "
                 f"before its first block and pauses at 80% of its share (the run never ends): "
-                f"give each at least {LOCAL_WORKER_MIN >> 20} MiB (a larger --memory-limit, "
-                "or fewer --workers), or leave --scheduler local out")
+                f"give each at least {LOCAL_WORKER_MIN >> 20} MiB (more memory, or fewer "
+                "--workers), or leave --scheduler local out")
         # the workers' statistical profiler samples every thread's stack every 10 ms, the
         # event loops' blocking check ticks every 20 ms and the system monitor (for a
         # dashboard) every 0.5 s: costs on every process, read by nothing volwarp runs

@@ -397,10 +397,12 @@ def _say_unrecorded(manifest: Manifest, out: Path, own: list[Path]) -> None:
     """
     if not own:
         return
+    from ..io.inputs import output_files
     from ..progress import log
     from .plan import STATE_NAME, _read_state
 
-    recorded = {os.path.normpath(k) for k in _read_state(out / STATE_NAME)[0]}
+    recorded = {os.path.normpath(os.path.relpath(f, out)) for k in _read_state(out / STATE_NAME)[0]
+                for f in output_files(out / k)}  # (a recorded .nhdr's data file too)
     strangers = [p for p in own if os.path.relpath(p, out) not in recorded]
     if strangers:
         more = f" and {len(strangers) - 1} more" if len(strangers) > 1 else ""

@@ -308,7 +308,7 @@ def _label_pattern(output):
     """``--labels``' output: a pattern with ``{label}`` (checked before any work)."""
     try:
         a, b = output.format(label=1), output.format(label=2)
-    except (ValueError, KeyError, IndexError, AttributeError) as exc:
+    except (ValueError, KeyError, IndexError, AttributeError, TypeError) as exc:
         raise click.BadParameter(f"{output!r}: {exc} (use e.g. 'seg_{{label}}.ply')",
                                  param_hint="'-o'") from None
     if a == b:

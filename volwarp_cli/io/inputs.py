@@ -205,7 +205,8 @@ class InputIndex:
     def __init__(self) -> None:
         self._by_real: dict[str, tuple] = {}
         self._by_ident: dict[tuple, tuple] = {}
-        self._folders: list[tuple[str, tuple]] = []
+        self._folders: dict[str, tuple] = {}
+        self._sorted: list[str] | None = None  # (the inputs' real paths, for prefixes)
 
     def add(self, given, who: str) -> None:
         """Add the input ``given`` (its data files too, :func:`input_files`), read by ``who``."""
@@ -217,20 +218,37 @@ class InputIndex:
             if ident is not None:
                 self._by_ident.setdefault(ident, entry)
             if Path(file).is_dir():
-                self._folders.append((real, entry))
+                self._folders.setdefault(real, entry)
+        self._sorted = None
 
     def refuse(self, output, option: str | None = None) -> None:
         """Raise :class:`~volwarp_cli.errors.BadUsage` where ``output`` would replace an input."""
         for target in output_files(output):
             real, ident = _real(target), _identity(target)
             entry = self._by_real.get(real) or (self._by_ident.get(ident) if ident else None)
-            if entry is None:
-                entry = next((e for folder, e in self._folders if _inside(real, folder)), None)
-            if entry is None and os.path.isdir(real):
-                entry = next((e for r, e in self._by_real.items() if _inside(r, real)), None)
+            parent = os.path.dirname(real)
+            while entry is None and parent != os.path.dirname(parent):  # (inside a folder)
+                entry = self._folders.get(parent)
+                parent = os.path.dirname(parent)
+            if entry is None and self._folders.get(parent) is not None:  # (the root)
+                entry = self._folders[parent]
+            if entry is None and os.path.isdir(real):  # (a folder output holding an input)
+                entry = self._holding(real)
             if entry is not None:
                 given, file, who = entry
                 raise BadUsage(f"{_message(output, target, given, file, option)} ({who})")
+
+    def _holding(self, folder: str):
+        """The entry of an input inside ``folder``, by bisection of the sorted real paths."""
+        import bisect
+
+        if self._sorted is None:
+            self._sorted = sorted(self._by_real)
+        prefix = folder.rstrip(os.sep) + os.sep
+        k = bisect.bisect_left(self._sorted, prefix)
+        if k < len(self._sorted) and self._sorted[k].startswith(prefix):
+            return self._by_real[self._sorted[k]]
+        return None
 
 
 def _refuse_output_in_glob(output, option: str | None) -> None:

@@ -1195,6 +1195,10 @@ def read_region(opened: Opened, region) -> np.ndarray:
     return native(block.transpose(transpose)) if transpose != [0, 1, 2] else native(block)
 
 
+#: decoded chunk bytes a row of :func:`_read_by_chunk_rows` takes at most (one chunk more)
+ROW_BYTES = 4 << 20
+
+
 def _read_by_chunk_rows(arr, stored: list, space_positions: list) -> np.ndarray:
     """``arr[stored]``, read a row of chunks at a time into the result.
 
@@ -1205,11 +1209,25 @@ def _read_by_chunk_rows(arr, stored: list, space_positions: list) -> np.ndarray:
     the two slowest space axes, whole along the fastest) holds a few chunks.
     """
     slow = space_positions[:2]
-    spans = {}
-    for axis in slow:
+    # (rows of several chunks where chunks are thin, up to ROW_BYTES of decoded chunks: a
+    # store of single planes read a plane at a time took twice as long)
+    fast = 1
+    for axis in space_positions[2:]:
         start, stop, _ = stored[axis].indices(arr.shape[axis])
         c = int(arr.chunks[axis])
-        edges = [start, *range((start // c + 1) * c, stop, c), stop] if stop > start else []
+        fast *= (-(-stop // c) - start // c) * c
+    item = arr.dtype.itemsize
+    bounds = {axis: stored[axis].indices(arr.shape[axis])[:2] for axis in slow}
+    c0, c1 = (int(arr.chunks[axis]) for axis in slow)
+    start1, stop1 = bounds[slow[1]]
+    hull1 = (-(-stop1 // c1) - start1 // c1) * c1  # (the chunks the region spans on a1)
+    step1 = min(hull1, c1 * max(1, ROW_BYTES // max(1, c0 * c1 * fast * item)))
+    step0 = c0 * max(1, ROW_BYTES // max(1, c0 * step1 * fast * item))
+    spans = {}
+    for axis, c, step in ((slow[0], c0, step0), (slow[1], c1, step1)):
+        start, stop = bounds[axis]
+        edges = [start, *range((start // c) * c + step, stop, step), stop] \
+            if stop > start else []
         spans[axis] = list(zip(edges[:-1], edges[1:], strict=True))
     if all(len(v) <= 1 for v in spans.values()):
         return np.asarray(arr[tuple(stored)])  # (one row already)

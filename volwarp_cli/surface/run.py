@@ -349,7 +349,8 @@ def _distinct_label_files(pattern: str, labels) -> None:
     def name(label):
         try:
             return pattern.format(label=label)
-        except (ValueError, OverflowError) as exc:  # ('{label:c}' of an id beyond Unicode)
+        except (ValueError, OverflowError, TypeError, KeyError, IndexError,
+                AttributeError) as exc:  # ('{label:c}' beyond Unicode, '{label[0]}')
             raise BadUsage(f"-o: {pattern!r} cannot name label {label}: {exc}") from None
 
     twice = one_file_twice((label, name(label)) for label in labels)

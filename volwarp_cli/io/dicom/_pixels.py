@@ -10,6 +10,7 @@ modality rescale is computed in int64 or float64 and then cast, so that
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections import defaultdict
 
@@ -176,8 +177,12 @@ def _check_excess(fi, need: int, per_frame: int) -> None:
         raise FormatError(f"{fi.path}: the pixel data holds {fi.pixel_length} bytes, "
                           f"{fi.pixel_length / per_frame:.4g} frames of {fi.rows} x {fi.columns}, "
                           f"but NumberOfFrames says {fi.n_frames} (missing or wrong?)")
-    log.warning("warning: %s: the pixel data holds %d bytes more than %d frame(s) of %d x %d "
-                "need; they are not read", fi.path, extra, fi.n_frames, fi.rows, fi.columns)
+    from ...runscope import first_said
+
+    if first_said(("dicom-excess-pixels", os.path.dirname(fi.path))):  # (once a folder, a run)
+        log.warning("warning: %s: the pixel data holds %d bytes more than %d frame(s) of %d x "
+                    "%d need (and maybe other files of its folder); they are not read",
+                    fi.path, extra, fi.n_frames, fi.rows, fi.columns)
 
 
 def _read_native(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
