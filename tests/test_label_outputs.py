@@ -235,3 +235,27 @@ def test_info_says_a_nifti_of_intent_label_is_a_label_map(run, tmp_path):
     nib.save(nib.Nifti1Image(np.ascontiguousarray(data.transpose(2, 1, 0)), np.eye(4)),
              tmp_path / "plain.nii.gz")
     assert "label_map" not in json.loads(run("info", tmp_path / "plain.nii.gz", "--json").stdout)
+
+
+@pytest.mark.parametrize("command", ["apply", "warp"])
+def test_values_intensity_reaches_the_pyramid(run, tmp_path, command):
+    """`--values intensity` on a label map: the output's pyramid levels took the mode anyway
+    (the writer's rule on the nearest-resampled samples); convert's took the mean. Asked
+    for, the levels take the mean in apply and warp too."""
+    data = _blocks((24, 24, 24), 12, 7, size=4)
+    write_volume(Volume(data), tmp_path / "lm.nrrd")
+    (tmp_path / "t.tfm").write_text(
+        "#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+        "Parameters: 1 0 0 0 1 0 0 0 1 0.5 0.3 0.2\nFixedParameters: 0 0 0\n")
+    (tmp_path / "w.yaml").write_text(
+        "version: 1\nunits: voxel\ncapture: {lattice: 5, oversample: 1}\nsteps:\n"
+        "  - move:\n      - {index: [2, 2, 2], by: [1.3, -0.7, 0.4]}\n")
+    how = (["-t", tmp_path / "t.tfm", "--interpolation", "nearest"] if command == "apply"
+           else ["--spec", tmp_path / "w.yaml", "--pushforward", "nearest"])
+    out = tmp_path / "o.ome.zarr"
+    res = run(command, tmp_path / "lm.nrrd", *how, "-o", out, "--pyramid", "1",
+              "--values", "intensity")
+    assert res.code == 0, res.stderr
+    method, levels = _levels(out)
+    assert method == "mean"
+    assert not levels[1] <= set(np.unique(data).tolist())  # (means between the ids)

@@ -564,7 +564,9 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
                          origin=np.array(grid.origin), direction=np.array(grid.direction))
     # (the choice goes with the output: its pyramid's levels then take a label map's mode,
     # where the writer's own rule, on the resampled samples alone, took the mean)
-    labels = True if sampling.choice.is_labels else "auto"
+    # (--values intensity too: asked for, the levels take the mean, never the mode)
+    asked = values == "intensity" or sampling.choice.why == "given"
+    labels = True if sampling.choice.is_labels else (False if asked else "auto")
     return ApplyOperation(source, in_grid, chain, grid, interpolation=sampling.interpolation,
                           background=sampling.background,
                           target=Target(None, out, out_dtype, labels=labels), name=name)

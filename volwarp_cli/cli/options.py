@@ -178,6 +178,10 @@ _RENAMED = "volwarp.renamed"
 _NOT_GIVEN = object()
 
 
+#: ``ctx.meta`` key: the options given by their old spelling (:func:`option`'s ``was``)
+RENAMED_GIVEN = "volwarp_renamed_given"
+
+
 def option(*decls, was: str | None = None, **attrs):
     """``click.option(*decls, **attrs)``; ``was``: the option's old spelling, still accepted.
 
@@ -198,6 +202,8 @@ def option(*decls, was: str | None = None, **attrs):
             if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE:
                 raise click.UsageError(f"{was} is the old name of {new}: give {new} only",
                                        ctx=ctx)
+            # (given, as the new spelling would be: the checks of what was given see it)
+            ctx.meta.setdefault(RENAMED_GIVEN, set()).add(name)
             return given
         return value if callback is None else callback(ctx, param, value)
 

@@ -56,6 +56,10 @@ def option_given(ctx, name: str) -> bool:
     """Whether option ``name`` of the running command was set by the user (not its default)."""
     if ctx is None or name not in ctx.params:
         return False
+    from .options import RENAMED_GIVEN  # (options imports this module)
+
+    if name in ctx.meta.get(RENAMED_GIVEN, ()):  # (by its old spelling: --size, --background)
+        return True
     source = ctx.get_parameter_source(name)
     return source in (click.core.ParameterSource.COMMANDLINE,
                       click.core.ParameterSource.ENVIRONMENT)

@@ -198,10 +198,13 @@ def _warp_once(req: WarpFiles, how) -> dict:
         return {**_warp_labels(req, warp, how), **values_json(choice)}
     header = warp.output_header()
     w = req.write
+    # (--values intensity: the pyramid's levels take the mean, as asked, not the writer's
+    # rule on the warped samples, which took a nearest-pushed map's mode)
     target = execute.Target(req.output, req.stamped(header), header.dtype,
                             compress=w["compress"], byte_order=w["byte_order"],
                             version=w.get("ome_zarr_version", "0.5"),
-                            pyramid=w.get("pyramid", 0))
+                            pyramid=w.get("pyramid", 0),
+                            labels=False if req.options.values == "intensity" else "auto")
     op = warp.operation(target, source=source)
     # (the output the in-memory warp keeps while the exports are made: none when written
     # as computed)
@@ -300,7 +303,8 @@ def _warp_frames(req: WarpFiles) -> dict:
         with timed(f"write {path}"):
             # (a label map's pyramid levels take the mode, as by blocks: never averaged ids)
             write_volume(req.stamped(vol), path, **req.write,
-                         **({"labels": True} if labels else {}))
+                         **({"labels": True} if labels else
+                            {"labels": False} if req.options.values == "intensity" else {}))
 
     written = [0]  # frame files
 
