@@ -575,8 +575,12 @@ class LabelStream:
     def _totals(self, counts, total_hi, total_lo, peak_w, peak_at) -> LabelTotals:
         totals = LabelTotals()
         hi, lo, pw = total_hi.tolist(), total_lo.tolist(), peak_w.tolist()
+        # the nearest pushforward weighs each domain voxel 1, the box its share of a target
+        # voxel: in input voxels, the nearest's totals are the oversample^3 too large
+        per = 1 if self.scene.method == "box" else max(1, self.scene.grid.subdivision) ** 3
         for c, L in enumerate(self.codes.labels, start=1):
-            totals.predicted[L] = (hi[c] << 32) + lo[c]
+            total = (hi[c] << 32) + lo[c]
+            totals.predicted[L] = total if per == 1 else total / per
             totals.counts[L] = int(counts[c])
             totals.peak[L] = (pw[c], tuple(peak_at[c].tolist())) if pw[c] > 0 else (0, None)
         return totals
