@@ -99,7 +99,9 @@ def reference(lab, scene, *, background=None, preserve=False, frame="target"):
         better = (wl >= bw) if lb < b else (wl > bw)
         bw[better] = wl[better]
         bl[better] = lb
-        predicted[lb] = int(wl.sum())
+        # (in input voxels: the nearest's weight 1 a domain voxel, k^3 of them in one)
+        per = 1 if scene.method == "box" else max(1, scene.grid.subdivision) ** 3
+        predicted[lb] = int(wl.sum()) if per == 1 else int(wl.sum()) / per
         j = int(np.argmax(wl))
         if preserve and wl.flat[j] > 0:
             at = np.unravel_index(j, wl.shape)
