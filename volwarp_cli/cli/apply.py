@@ -159,6 +159,7 @@ def command(input, output, transforms, reference, interpolation, values, labels,
                             ("--dtype", dtype), ("--allow-outside-field", outside_field or None)):
             if value is not None:
                 raise click.UsageError(f"{flag} applies to the resampled volume (INPUT -o OUT)")
+        _refuse_volume_options()
     if output is not None:
         check_output_path(output, option="-o")
     points = _points(points_in, points_to)
@@ -196,6 +197,30 @@ def command(input, output, transforms, reference, interpolation, values, labels,
             move_points(chain, *points)
         if mesh is not None:
             move_mesh(chain, *mesh)
+
+
+#: options of the volume's reading, writing and blocks: with points or a mesh only, none
+#: has anything to act on (they were parsed and ignored)
+_VOLUME_OPTIONS = ("compress", "byte_order", "ome_zarr_version", "pyramid", "raw_shape",
+                   "raw_dtype", "raw_endian", "raw_spacing", "raw_origin", "raw_header_bytes",
+                   "volume_index", "series", "irregular", "duplicates", "keep_shear", "keep_phi",
+                   "segment", "structure", "chunked", "block", "scheduler", "workers",
+                   "threads_per_worker")
+
+
+def _refuse_volume_options() -> None:
+    """A usage error for a volume's option given with points or a mesh only."""
+    from .resources import scale_settings
+    from .view_options import option_given
+
+    ctx = click.get_current_context()
+    scale = scale_settings()
+    for name in _VOLUME_OPTIONS:
+        if option_given(ctx, name) or getattr(scale, name, None) is not None:
+            flag = "--no-chunked" if name == "chunked" and scale.chunked is False else \
+                "--" + name.replace("_", "-")
+            raise click.UsageError(f"{flag} applies to a volume (INPUT -o OUT); with "
+                                   "--points-in or --mesh-in only there is none")
 
 
 def _values(values, labels, interpolation):

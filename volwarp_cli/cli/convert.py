@@ -105,6 +105,10 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
                                "levels are made: give --pyramid N (N >= 1) with it")
     writing = _dicom_output(output, dicom_type, segments, reference, dtype, compress,
                             byte_order, ome_zarr, values)
+    if not writing and values is not None and dtype is None and not ome_zarr.get("pyramid"):
+        raise click.UsageError(f"--values {values} decides how --dtype casts the samples and how "
+                               "--pyramid's levels are made: without either it changes "
+                               "nothing (convert keeps every sample as it is)")
     if contours is not None and dicom_type != "rtstruct":
         raise click.UsageError(f"--contours {contours} shapes the contours of an RTSTRUCT: "
                                "give --dicom-type rtstruct")

@@ -74,6 +74,9 @@ def _format_text(d: dict) -> str:
 def command(file, as_json, raw, volume_index, dicom):
     """Print FILE's format, size (x y z), type, geometry, value range and key/values."""
     if file.lower().endswith(".vwc"):
+        if raw is not None or volume_index is not None or dicom is not None:
+            raise click.UsageError("--raw-*, --volume-index and the DICOM options describe "
+                                   f"volume inputs, not the capture file {file}")
         from ..warp.capture_file import describe_capture
         desc = describe_capture(file)
     elif volume_format(file, reading=True) == "dicom":

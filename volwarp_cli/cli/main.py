@@ -219,10 +219,13 @@ def _after_command(result, **_):
     """A command's options for work by blocks that it never used: said, not silently ignored."""
     from .resources import scale_settings
 
-    unused = scale_settings().unused()
+    settings = scale_settings()
+    unused = settings.unused()
     if unused:
+        advice = ("" if settings.chunked else
+                  " (give --chunked to run it by blocks, where the command can)")
         log.warning("warning: %s not used: they apply to work by blocks, and this command "
-                    "ran in memory (give --chunked to run it by blocks)", ", ".join(unused))
+                    "ran in memory%s", ", ".join(unused), advice)
     return result
 
 

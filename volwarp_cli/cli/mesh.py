@@ -194,6 +194,9 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
                                "where the label is)")
     if labels and render is not None:
         raise click.UsageError("--render does not apply to --labels (render one --label N)")
+    if (labels or label is not None) and cap:
+        raise click.UsageError("--cap does not apply to --label/--labels: a label's surface "
+                               "is always closed at the border")
     if render is None and (camera_from is not None or camera_to is not None
                            or orientation_labels is not None):
         raise click.UsageError("--camera-from, --camera-to and --orientation-labels need "

@@ -178,6 +178,13 @@ _RENAMED = "volwarp.renamed"
 _NOT_GIVEN = object()
 
 
+def _given(name: str) -> bool:
+    """Whether the running command's option ``name`` was given (not its default)."""
+    from .view_options import option_given
+
+    return option_given(click.get_current_context(silent=True), name)
+
+
 #: ``ctx.meta`` key: the options given by their old spelling (:func:`option`'s ``was``)
 RENAMED_GIVEN = "volwarp_renamed_given"
 
@@ -366,9 +373,9 @@ def input_options(f=None, *, reference_help: str = REFERENCE_HELP,
                                spacing=tuple(raw_spacing) if raw_spacing else (1.0, 1.0, 1.0),
                                origin=tuple(raw_origin) if raw_origin else (0.0, 0.0, 0.0),
                                header_bytes=raw_header_bytes)
-        elif raw_spacing or raw_origin or raw_header_bytes:
-            raise click.UsageError("--raw-spacing/--raw-origin/--raw-header-bytes need "
-                                   "--raw-shape and --raw-dtype")
+        elif raw_spacing or raw_origin or raw_header_bytes or _given("raw_endian"):
+            raise click.UsageError("--raw-spacing/--raw-origin/--raw-header-bytes/--raw-endian "
+                                   "need --raw-shape and --raw-dtype")
         return f(*args, raw=layout, volume_index=volume_index, dicom=dicom, **kwargs)
 
     opts = [

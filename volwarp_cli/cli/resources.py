@@ -78,7 +78,8 @@ class ScaleSettings:
 
     def unused(self) -> list[str]:
         """The options given for work by blocks that the command's work did not use."""
-        given = [("--block", self.block), ("--scheduler", self.scheduler),
+        given = [("--chunked", True if self.chunked else None),
+                 ("--block", self.block), ("--scheduler", self.scheduler),
                  ("--workers", self.workers), ("--threads-per-worker", self.threads_per_worker),
                  ("--progress jsonl", True if self.progress == "jsonl" else None)]
         return [name for name, value in given if value is not None and name not in self.used]
@@ -96,8 +97,8 @@ class ScaleSettings:
             raise click.UsageError("--workers does not apply to an existing cluster (it has "
                                    "its own workers)")
         limit = memory.memory_limit() if kind == "local" else None
-        self.used |= {"--block", "--scheduler", "--workers", "--threads-per-worker",
-                      "--progress jsonl"}
+        self.used |= {"--chunked", "--block", "--scheduler", "--workers",
+                      "--threads-per-worker", "--progress jsonl"}
         return open_engine(self.scheduler, workers=self.workers,
                            threads_per_worker=self.threads_per_worker, memory_limit=limit,
                            progress="jsonl" if self.progress == "jsonl" else None)

@@ -218,8 +218,10 @@ class MeshOperation(Reduction):
                                   name=self.name)
         if self.labels != ALL_LABELS:
             if self.labels not in values:
-                raise VolwarpError(f"{self.name}: label {self.labels} does not occur in the "
-                                   "volume")
+                missing = f"{self.name}: label {self.labels} does not occur in the volume"
+                if not self.allow_empty:
+                    raise VolwarpError(f"{missing} (--allow-empty writes an empty mesh)")
+                log.warning("warning: %s: its surface is empty", missing)
             return [self._surface(LabelIndicator(source, self.labels), blocks, LABEL_LEVEL,
                                   self.name, self.labels)]
         found = [v for v in values if v != 0]

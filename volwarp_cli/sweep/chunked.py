@@ -117,8 +117,13 @@ def prepare_sweep(model, geometry: Geometry, *, method: str | None = None,
     if method == "direct" and tau is not None:  # (it was taken and ignored)
         raise BadUsage("--tau spaces the templates the voxelize method places; the direct "
                        "method inverts the mapping at every voxel and has none")
-    check_axis_aligned(geometry)
     sweeps = _sweeps(root)
+    if method == "direct" and (default_tau is not None or any(sw.tau is not None
+                                                              for sw in sweeps)):
+        raise BadUsage("the spec's tau spaces the templates the voxelize method places; the "
+                       "direct method inverts the mapping at every voxel and has none (leave "
+                       "tau out, or use method: voxelize)")
+    check_axis_aligned(geometry)
     if isinstance(root, SceneNode):
         names = root.field_names()
     else:

@@ -358,6 +358,10 @@ def _write_exports(req: WarpFiles, warp, how, *, by_slabs: bool) -> dict:
 
         blocks = FieldBlocks(memory=block_budget(),
                              depth=how.block[0] if how is not None and how.block else None)
+        if how is not None and how.block:  # (used: said so, not warned of as unused)
+            from ..cli.resources import scale_settings
+
+            scale_settings().used |= {"--block", "--chunked"}
     exports = req.exports
     mesh_src = [exports.mesh[1]] if exports.mesh is not None else []
     return write_exports(exports, warp, meta=provenance("warp", req.input, req.spec),
