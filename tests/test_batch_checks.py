@@ -137,6 +137,10 @@ WARP = '  - {name: w, run: warp, input: conv, spec: warp.yaml, output: "{stem}_w
      r"steps\[2\]\.options: mesh: --turntable needs --render"),
     (_mesh("m", '["--iso", "20", "--help"]'),
      r"steps\[2\]\.options\[2\]: --help prints and ends the command instead of running it"),
+    (_mesh("m", '["--iso", "20", "--stats", "--json"]'),
+     r"steps\[2\]\.options\[2\]: --stats writes to the step's console, which the batch does "
+     r"not keep"),
+    (WARP % '["-v"]', r"steps\[2\]\.options\[0\]: -v writes to the step's console"),
     (_mesh("m", '["--iso"]'), r"steps\[2\]\.options: mesh: Option '--iso' requires an "
                               r"argument\.$"),
     (_mesh("m", '["--render", "{stem}.png", "--camera-from", "{stem}.json"]'),

@@ -57,6 +57,10 @@ SPEC_PARAMS = {"warp": {"spec_path": "warp"}, "distance": {"transform": "transfo
 _STAND_IN = "volwarp-batch-step-input.nrrd"
 #: options that print and end the command instead of running it
 _ENDING = ("-h", "--help", "-V", "--version")
+#: options whose product is the step's console output, which the batch does not keep (its
+#: stdout goes nowhere, its stderr to the last line of a failure): the report says what
+#: each step made and how long it took
+_CONSOLE = ("--json", "--stats", "-v", "--verbose", "--progress")
 #: long options writing a file whose type is not a click.Path (besides every ``--*-to``)
 _OUTPUT_NAMES = ("--sheet",)
 #: an input option's ``[FILE,0|1]`` (apply's -t: a transform or its inverse)
@@ -212,6 +216,11 @@ def _check_tokens(manifest: Manifest, step: Step, values) -> None:
         if k not in taken and text.split("=", 1)[0] in _ENDING:
             raise manifest.doc.error(key, f"{text} prints and ends the command instead of "
                                           "running it: not a step's option")
+        if k not in taken and text.split("=", 1)[0] in _CONSOLE:
+            raise manifest.doc.error(key, f"{text} writes to the step's console, which the "
+                                          "batch does not keep (--report-json has each "
+                                          "step's outputs and times; -v and --progress "
+                                          "jsonl on the batch itself): not a step's option")
         column = row_column(text)
         if column is not None and taken.get(k) != "input":
             raise manifest.doc.error(key, f"{{{column}}} (each scan's file, from its "
