@@ -69,7 +69,7 @@ def test_distance_refusals_by_blocks(run, scan, tmp_path):
     assert res.code == 1 and "needs isotropic spacing" in res.stderr
     res = run("distance", scan, "-o", tmp_path / "o.nii.gz", "--iso", "300", "--chunked",
               "--surface", "voxel")
-    assert res.code == 1 and "block by block" in res.stderr
+    assert res.code == 2 and "block by block" in res.stderr  # (a usage error)
     assert not out.exists() and not any("part" in p.name for p in tmp_path.iterdir())
     assert not (tmp_path / "o.nii.gz").exists()
 
@@ -261,7 +261,7 @@ def test_multi_component_sweep_by_blocks_is_the_in_memory_file(run, tmp_path, sc
         a = read_nrrd(blk, component=i).data
         assert a.any() and np.array_equal(a, read_volume(tmp_path / f"m_{field}.nrrd").data)
     res = run("sweep", spec, "-o", tmp_path / "o.nhdr", "--multi", "--chunked")
-    assert res.code == 1 and "block" in res.stderr
+    assert res.code == 2 and "block" in res.stderr  # (a usage error)
 
 
 def test_distance_passes_take_the_block_size(run, scan, tmp_path):

@@ -225,7 +225,7 @@ def test_what_the_block_path_refuses(run, shapes, tmp_path):
     # a compressed frame format: refused before any work
     res = run("morph", shapes["ball"], shapes["box"], "--iso", "0.5", "--frames", "2",
               "-o", tmp_path / "o_{i}.nii.gz", "--chunked")
-    assert res.code == 1 and "block by block" in res.stderr
+    assert res.code == 2 and "block by block" in res.stderr  # (a usage error)
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("o_")) == []
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no scratch left
 

@@ -165,7 +165,7 @@ def test_what_the_block_path_refuses(run, scan, tmp_path):
     assert res.code == 2 and "--frames-to" in res.stderr
     gz = tmp_path / "o.nii.gz"
     res = run("warp", src, "--spec", spec, "-o", gz, "--chunked")
-    assert res.code == 1 and "block" in res.stderr and not gz.exists()
+    assert res.code == 2 and "block" in res.stderr and not gz.exists()  # (usage)
     res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--block", "0")
     assert res.code == 2
     res = run("warp", src, "--spec", spec, "-o", out, "--chunked", "--scheduler", "nope")

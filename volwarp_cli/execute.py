@@ -375,6 +375,17 @@ def refuse_unmakeable(what: str, memory_bytes: int, outputs, *, chunked: bool | 
             if chunked is False:
                 raise
             in_memory = exc
+    if chunked:  # (asked for blocks, an output format written whole: a usage error, as an
+        # export's is; a disk too small stays a failure of the run, below)
+        from .io.blockwrite import check_block_format
+
+        for path, _ in outputs:
+            try:
+                check_block_format(path, bool(compress), int(pyramid or 0))
+            except BadUsage:
+                raise
+            except VolwarpError as exc:
+                raise BadUsage(f"--chunked: {exc}") from None
     by_blocks = blocks_refusal(outputs, compress, pyramid, scratch=scratch)
     if by_blocks is None:
         return

@@ -140,8 +140,8 @@ def check_block_format(path: str | os.PathLike, compress: bool = False, pyramid:
     hint = "write .ome.zarr or uncompressed .nrrd for block-wise outputs"
     # (a raw file is never compressed: --compress is said and ignored, as in memory)
     if (compress and fmt != "raw") or fmt in ("tiff", "nifti"):
-        raise VolwarpError(f"{path}: a compressed or {fmt} output cannot be written block by "
-                           f"block; {hint}")
+        what = "a compressed" if compress and fmt not in ("tiff", "nifti") else f"a {fmt}"
+        raise VolwarpError(f"{path}: {what} output cannot be written block by block; {hint}")
     if name.endswith((".nhdr", ".mhd")):
         raise VolwarpError(f"{path}: detached headers are not written block by block; {hint}")
     if fmt not in ("nrrd", "metaimage", "raw"):
