@@ -237,5 +237,5 @@ def test_cli_chunked_render_refusals_keep_their_codes(run, refs, tmp_path):
     # a compressed NRRD cannot be written by blocks: a one-line error, nothing written
     res = run("sweep", d / "spec.yaml", "-o", tmp_path / "c_{field}.nrrd", "--compress",
               "--render", tmp_path / "r.png", "--chunked")
-    assert res.code == 1 and res.stderr.strip().count("\n") == 0, res.stderr
+    assert res.code == 2 and res.stderr.strip().count("\n") == 0, res.stderr  # (usage)
     assert not list(tmp_path.iterdir())

@@ -120,7 +120,7 @@ def test_the_label_block_path_refusals(run, seg, tmp_path):
               "--values", "intensity")
     assert res.code == 2 and "--values intensity" in res.stderr
     res = run("warp", src, "--spec", spec, "--labels", "-o", tmp_path / "o.nii.gz", "--chunked")
-    assert res.code == 1 and "block" in res.stderr
+    assert res.code == 2 and "block" in res.stderr  # (a usage error)
     assert not out.exists() and not (tmp_path / "o.nii.gz").exists()
 
 
