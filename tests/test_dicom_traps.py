@@ -223,3 +223,32 @@ def test_a_folder_of_files_without_the_preamble_is_a_dicom_input(tmp_path, stack
         p.write_bytes(p.read_bytes()[132:])
         p.rename(p.with_suffix(""))  # (no extension either)
     np.testing.assert_array_equal(read_volume(tmp_path / "s").data, stack)
+
+
+def test_apply_chooses_a_dicom_references_series(tmp_path, stack, run):
+    """`apply --reference DIR` of a folder holding two series said "choose one with
+    --series", which chooses INPUT's: --reference-series chooses the reference's."""
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    write_series(tmp_path / "ref" / "A", stack)
+    write_series(tmp_path / "ref" / "B", stack[:3, :4, :5], series="1.2.826.0.1.3680043.8.498.2",
+                 spacing_z=1.5)
+    write_volume(Volume(stack.astype(np.float32)), tmp_path / "in.nrrd")
+    (tmp_path / "t.tfm").write_text(
+        "#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
+        "Parameters: 1 0 0 0 1 0 0 0 1 0 0 0\nFixedParameters: 0 0 0\n")
+    base = ["apply", tmp_path / "in.nrrd", "-t", tmp_path / "t.tfm", "--reference",
+            tmp_path / "ref", "-o", tmp_path / "o.nrrd"]
+    res = run(*base)
+    assert res.code == 2 and "--reference-series" in res.stderr, res.stderr
+    from volwarp_cli.io.dicom import scan_dicom
+
+    b = next(c.index for c in scan_dicom(tmp_path / "ref") if c.series_uid.endswith(".2"))
+    res = run(*base, "--reference-series", str(b))
+    assert res.code == 0, res.stderr
+    out = read_volume(tmp_path / "o.nrrd")
+    assert out.shape_xyz == (5, 4, 3) and out.spacing[2] == pytest.approx(1.5)
+    res = run("apply", tmp_path / "in.nrrd", "-t", tmp_path / "t.tfm", "--reference",
+              tmp_path / "in.nrrd", "-o", tmp_path / "p.nrrd", "--reference-series", "1")
+    assert res.code == 2 and "is not DICOM" in res.stderr

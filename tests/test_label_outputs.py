@@ -237,7 +237,7 @@ def test_info_says_a_nifti_of_intent_label_is_a_label_map(run, tmp_path):
     assert "label_map" not in json.loads(run("info", tmp_path / "plain.nii.gz", "--json").stdout)
 
 
-@pytest.mark.parametrize("command", ["apply", "warp"])
+@pytest.mark.parametrize("command", ["apply", "warp", "warp-spec"])
 def test_values_intensity_reaches_the_pyramid(run, tmp_path, command):
     """`--values intensity` on a label map: the output's pyramid levels took the mode anyway
     (the writer's rule on the nearest-resampled samples); convert's took the mean. Asked
@@ -248,13 +248,15 @@ def test_values_intensity_reaches_the_pyramid(run, tmp_path, command):
         "#Insight Transform File V1.0\n#Transform 0\nTransform: AffineTransform_double_3_3\n"
         "Parameters: 1 0 0 0 1 0 0 0 1 0.5 0.3 0.2\nFixedParameters: 0 0 0\n")
     (tmp_path / "w.yaml").write_text(
-        "version: 1\nunits: voxel\ncapture: {lattice: 5, oversample: 1}\nsteps:\n"
+        "version: 1\nunits: voxel\ncapture: {lattice: 5, oversample: 1}\n"
+        + ("values: intensity\n" if command == "warp-spec" else "") + "steps:\n"
         "  - move:\n      - {index: [2, 2, 2], by: [1.3, -0.7, 0.4]}\n")
     how = (["-t", tmp_path / "t.tfm", "--interpolation", "nearest"] if command == "apply"
            else ["--spec", tmp_path / "w.yaml", "--pushforward", "nearest"])
     out = tmp_path / "o.ome.zarr"
-    res = run(command, tmp_path / "lm.nrrd", *how, "-o", out, "--pyramid", "1",
-              "--values", "intensity")
+    asked = [] if command == "warp-spec" else ["--values", "intensity"]
+    res = run(command.split("-")[0], tmp_path / "lm.nrrd", *how, "-o", out, "--pyramid", "1",
+              *asked)
     assert res.code == 0, res.stderr
     method, levels = _levels(out)
     assert method == "mean"

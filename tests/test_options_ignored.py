@@ -87,7 +87,7 @@ def test_a_sweep_specs_tau_with_the_direct_method_is_refused(run, tmp_path):
         "trajectory:\n  - line: {from: [0, 0, 0], to: [5, 0, 0]}\n"
         "up: [0, 0, 1]\nscale: [2, 2]\nmethod: direct\ntau: 0.2\n")
     _refused(run("sweep", tmp_path / "s.yaml", "-o", tmp_path / "o.nrrd"),
-             "the spec's tau", "the direct method")
+             "s.yaml:9: tau: tau spaces the templates", "the direct method")
     assert run("sweep", tmp_path / "s.yaml", "-o", tmp_path / "o.nrrd", "--method",
                "voxelize").code == 0
 

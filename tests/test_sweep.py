@@ -608,3 +608,21 @@ def test_root_finder_matches_companion_eigenvalues():
         # every root found is a root: the point lies in the template plane there
         s = a[np.isfinite(a)]
         assert s.size > 100
+
+
+def test_a_path_along_its_template_plane_goes_on_at_a_joint(tmp_path):
+    # Two arcs meeting where the path runs within the template's plane (a constant
+    # direction along x, the tangent along y there): one instance, as the single arc
+    # (a review found a sheet left by "difference" when such joints were not joined).
+    def opacity(trajectory, op):
+        spec = make_spec(tmp_path, {
+            "grid": {"origin": [-1, -7, -2], "spacing": 0.5, "shape": [15, 29, 9]},
+            "fields": {"opacity": 0.4}, "trajectory": trajectory, "direction": [1, 0, 0],
+            "up": [0, 0, 1], "scale": [2, 2], "combine": op}, name=f"{op}{len(trajectory)}.yaml")
+        return fields_of(spec)[0]["opacity"]  # (direct: no constant direction on arcs)
+
+    arc = {"center": [0, 0, 0], "radius": 5, "axis": [0, 0, 1]}
+    one = [{"arc": {**arc, "start": -90, "end": 90}}]
+    two = [{"arc": {**arc, "start": -90, "end": 0}}, {"arc": {**arc, "start": 0, "end": 90}}]
+    for op in ("sum", "difference"):
+        np.testing.assert_array_equal(opacity(two, op), opacity(one, op), err_msg=op)

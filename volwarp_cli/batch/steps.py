@@ -216,7 +216,8 @@ def _check_tokens(manifest: Manifest, step: Step, values) -> None:
         if k not in taken and text.split("=", 1)[0] in _ENDING:
             raise manifest.doc.error(key, f"{text} prints and ends the command instead of "
                                           "running it: not a step's option")
-        if k not in taken and text.split("=", 1)[0] in _CONSOLE:
+        if k not in taken and (text.split("=", 1)[0] in _CONSOLE
+                               or re.fullmatch(r"-[a-zA-Z]*v[a-zA-Z]*", text)):  # (-vv, -qv)
             raise manifest.doc.error(key, f"{text} writes to the step's console, which the "
                                           "batch does not keep (--report-json has each "
                                           "step's outputs and times; -v and --progress "

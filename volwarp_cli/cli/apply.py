@@ -112,6 +112,10 @@ def _initial_transforms(path) -> list:
                    "field is the identity (ITK's and antsApplyTransforms' rule): a template's "
                    "labels into a subject whose scan covers more. Refused by default: a field "
                    "made for another reference, or a chain in the wrong order, looks the same.")
+@click.option("--reference-series", default=None, metavar="UID|N",
+              help="A DICOM --reference holding several volumes: which one, by "
+                   "SeriesInstanceUID or by its number in `volwarp info`'s list (--series "
+                   "chooses INPUT's).")
 @click.option("--background-value", "background", type=float, default=None, metavar="B",
               callback=finite,
               help="Output value where the point falls outside the input [default: the median "
@@ -128,8 +132,8 @@ def _initial_transforms(path) -> list:
 @scale_options
 @common_options
 def command(input, output, transforms, reference, interpolation, values, labels, outside_field,
-            background, points_in, points_to, mesh_in, mesh_to, dtype, compress, byte_order, raw,
-            volume_index, dicom, ome_zarr):
+            reference_series, background, points_in, points_to, mesh_in, mesh_to, dtype,
+            compress, byte_order, raw, volume_index, dicom, ome_zarr):
     """Resample INPUT through a chain of transforms onto the --reference grid.
 
     Each transform maps an output (fixed) point to an input (moving) point,
@@ -154,7 +158,8 @@ def command(input, output, transforms, reference, interpolation, values, labels,
                                "--mesh-in/--mesh-to")
     given = _values(values, labels, interpolation)
     if input is None:
-        for flag, value in (("--reference", reference), ("--interpolation", interpolation),
+        for flag, value in (("--reference", reference), ("--reference-series", reference_series),
+                            ("--interpolation", interpolation),
                             ("--values", given), ("--background-value", background),
                             ("--dtype", dtype), ("--allow-outside-field", outside_field or None)):
             if value is not None:
@@ -167,7 +172,7 @@ def command(input, output, transforms, reference, interpolation, values, labels,
     opened = failed = sampling = None
     if input is not None:
         try:
-            opened = _open_input(input, reference, (raw, volume_index, dicom))
+            opened = _open_input(input, reference, (raw, volume_index, dicom), reference_series)
         except Exception as exc:  # (said after the transforms' errors, as always)
             failed = exc
     if opened is not None:  # the label rule reads the input while a field inflates
@@ -255,7 +260,7 @@ def _mesh(mesh_in, mesh_to):
     return read_mesh(mesh_in), mesh_in, mesh_to
 
 
-def _open_input(input, reference, read):
+def _open_input(input, reference, read, reference_series=None):
     """INPUT opened (header, samples) and the reference's header.
 
     Before the transforms, in this thread: an input read whole and a field
@@ -265,10 +270,14 @@ def _open_input(input, reference, read):
     from .chunked import lazy_input
 
     header, source = lazy_input(input, *read)
-    return header, source, _reference_grid(reference) if reference is not None else None
+    if reference_series is not None and reference is None:
+        raise click.UsageError("--reference-series chooses a DICOM --reference's volume: give "
+                               "--reference")
+    grid = _reference_grid(reference, reference_series) if reference is not None else None
+    return header, source, grid
 
 
-def _reference_grid(reference):
+def _reference_grid(reference, series=None):
     """The reference's header, of its first three dimensions: the output grid.
 
     A 4-D (fMRI, DWI) or vector (a field) reference gives its first volume's
@@ -277,14 +286,22 @@ def _reference_grid(reference):
     """
     from ..errors import ChoiceNeeded
     from ..io import volume_format
+    from ..io.common import dicom_read_options
     from ..io.lazy import open_volume_header
 
+    dicom = volume_format(reference, reading=True) == "dicom"
+    if series is not None and not dicom:
+        raise click.UsageError(f"--reference-series chooses a DICOM --reference's volume; "
+                               f"{reference} is not DICOM")
     try:
-        return open_volume_header(reference, samples=False)[0]
-    except ChoiceNeeded:
+        return open_volume_header(reference, samples=False,
+                                  dicom=dicom_read_options(series) if dicom else None)[0]
+    except ChoiceNeeded as exc:
+        if dicom:  # (a DICOM folder of several series: the user says which)
+            raise type(exc)(str(exc).replace("--series", "--reference-series")) from None
         if volume_format(reference, reading=True) not in ("nifti", "nrrd", "metaimage",
                                                           "omezarr"):
-            raise  # (a DICOM folder of several series: the user says which)
+            raise
         return open_volume_header(reference, samples=False, volume_index=0)[0]
 
 

@@ -225,6 +225,9 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
         log.info("%s: values: %s (%s)", input, choice.values, choice.why)
         if choice.labels:
             which = NONZERO_LABELS
+            if cap:  # (said, not ignored: --label/--labels with --cap are refused)
+                log.warning("warning: --cap does not apply: %s is taken for a label map, "
+                            "whose surface is always closed at the border", input)
     op = MeshOperation(header, source, Level(iso, inside, cap),
                        cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
                                        decimate=decimate),

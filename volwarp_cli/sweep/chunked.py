@@ -120,9 +120,15 @@ def prepare_sweep(model, geometry: Geometry, *, method: str | None = None,
     sweeps = _sweeps(root)
     if method == "direct" and (default_tau is not None or any(sw.tau is not None
                                                               for sw in sweeps)):
-        raise BadUsage("the spec's tau spaces the templates the voxelize method places; the "
-                       "direct method inverts the mapping at every voxel and has none (leave "
-                       "tau out, or use method: voxelize)")
+        message = ("tau spaces the templates the voxelize method places; the direct method "
+                   "inverts the mapping at every voxel and has none (leave tau out, or use "
+                   "the voxelize method)")
+        doc = getattr(model, "doc", None)
+        if doc is not None and default_tau is not None:  # (the spec's key and line)
+            from ..spec.functions import spec_error
+
+            raise spec_error(doc, ("tau",), message)
+        raise BadUsage(f"the spec's {message}")
     check_axis_aligned(geometry)
     if isinstance(root, SceneNode):
         names = root.field_names()

@@ -95,9 +95,12 @@ class Sweep:
                 and abs(float(a.SX[0] - b.SX[0])) <= 1e-9 * size
                 and abs(float(a.SY[0] - b.SY[0])) <= 1e-9 * size)
             if same:  # (the way through the plane: the tangent's side of its normal)
-                way_a = float(_tangent(self.segments[i], np.array([1.0]), True)[0] @ a.EZ[0])
-                way_b = float(_tangent(self.segments[j], np.array([0.0]), False)[0] @ b.EZ[0])
-                same = way_a * way_b > 0
+                ta = _tangent(self.segments[i], np.array([1.0]), True)[0]
+                tb = _tangent(self.segments[j], np.array([0.0]), False)[0]
+                way_a = float(ta @ a.EZ[0]) / max(float(np.linalg.norm(ta)), 1e-300)
+                way_b = float(tb @ b.EZ[0]) / max(float(np.linalg.norm(tb)), 1e-300)
+                # (turned back: clearly opposite ways; a path along its plane goes on)
+                same = not (way_a * way_b < 0 and min(abs(way_a), abs(way_b)) > 1e-9)
             out.append(same)
         return out
 

@@ -204,7 +204,7 @@ def _warp_once(req: WarpFiles, how) -> dict:
                             compress=w["compress"], byte_order=w["byte_order"],
                             version=w.get("ome_zarr_version", "0.5"),
                             pyramid=w.get("pyramid", 0),
-                            labels=False if req.options.values == "intensity" else "auto")
+                            labels=False if _intensity_asked(choice) else "auto")
     op = warp.operation(target, source=source)
     # (the output the in-memory warp keeps while the exports are made: none when written
     # as computed)
@@ -236,6 +236,10 @@ def _exports_by_slabs(req: WarpFiles, warp, how, *, held: int = 0) -> bool:
 
     need = whole_fields_bytes(req.exports, warp)
     if not need or how.chunked:
+        if need and how.chunked:  # (--chunked used: the fields go by slabs for it)
+            from ..cli.resources import scale_settings
+
+            scale_settings().used.add("--chunked")
         return bool(need and how.chunked)
     if fits(held + need):
         return False
@@ -304,7 +308,7 @@ def _warp_frames(req: WarpFiles) -> dict:
             # (a label map's pyramid levels take the mode, as by blocks: never averaged ids)
             write_volume(req.stamped(vol), path, **req.write,
                          **({"labels": True} if labels else
-                            {"labels": False} if req.options.values == "intensity" else {}))
+                            {"labels": False} if _intensity_asked(choice) else {}))
 
     written = [0]  # frame files
 
@@ -444,3 +448,13 @@ def labels_json(report: dict) -> dict:
             "vanished": [int(L) for L in report["vanished"]],
             "preserved": [int(L) for L in report["preserved"]],
             "background": int(report["background"])}
+
+
+def _intensity_asked(choice) -> bool:
+    """Whether intensities were asked for (the option, the spec, a capture's record), not ruled.
+
+    Then an OME-Zarr output's pyramid takes the mean, whatever the writer's rule would
+    say of the warped samples (a nearest-pushed map's mode).
+    """
+    return choice.values == "intensity" and (choice.why == "given"
+                                            or choice.why.startswith("recorded"))

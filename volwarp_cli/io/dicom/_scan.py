@@ -892,13 +892,16 @@ def _stub_problems(stubs: dict[str, list[str]], series: set[str]) -> dict[str, s
     """
     problems: dict[str, str] = {}
     for kind, names in stubs.items():
-        lost = {}
+        lost, skipped = {}, []
         for n in names:
             uid = _series_of(n)
             if uid in series or not uid:
                 lost.setdefault(uid, []).append(n)
             else:
-                log.warning("warning: %s: %s without PixelData: skipped", n, kind)
+                skipped.append(n)
+        if skipped:  # (one line a kind: a DICOMDIR's tree may hold hundreds)
+            more = f" and {len(skipped) - 1} more" if len(skipped) > 1 else ""
+            log.warning("warning: %s%s: %s without PixelData: skipped", skipped[0], more, kind)
         for uid, files in lost.items():
             more = f" (and {len(files) - 1} more)" if len(files) > 1 else ""
             problems.setdefault(uid, f"{files[0]}: {kind} without PixelData (truncated "
