@@ -84,6 +84,7 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
     --raw-shape               capture warp apply distance mesh info convert
     --raw-spacing             capture warp apply distance mesh info convert
     --reference               capture warp apply distance mesh info convert
+    --reference-series        apply
     --render                  sweep mesh
     --render-size             morph sweep mesh
     --render-to               morph
