@@ -538,3 +538,37 @@ def test_a_lazy_array_closes_its_file_when_dropped(tmp_path, name):
         np.testing.assert_array_equal(arr[2:4], data[2:4])  # (reopened on the next read)
         del arr
         assert open_files(tmp_path) == [], name
+
+
+def _nrrd(path, fields, payload=b""):
+    path.write_bytes(("NRRD0004\n" + "".join(f"{f}\n" for f in fields) + "\n").encode()
+                     + payload)
+    return path
+
+
+@pytest.mark.parametrize("case", ["no-endian", "misspelt-field", "twice", "dirs-and-spacings",
+                                  "byte-skip-short"])
+def test_nrrd_headers_teem_refuses_are_refused(tmp_path, case):
+    """Read with exit 0 before, with wrong samples or geometry: no 'endian' (a big-endian
+    file byte-swapped), 'spacing' for 'spacings' (the spacing lost), a field given twice
+    (the last won), 'spacings' beside 'space directions' (dropped), 'byte skip: -1' on a
+    short file (the header's text read as samples). teem, ITK and pynrrd refuse each."""
+    from volwarp_cli.io import read_volume
+
+    data = (np.arange(24, dtype=">i2") * 40 - 300).tobytes()
+    base = ["type: short", "dimension: 3", "sizes: 4 3 2", "encoding: raw"]
+    fields, payload, says = {
+        "no-endian": (base, data, "no 'endian' field"),
+        "misspelt-field": (base + ["endian: big", "spacing: 0.5 0.5 2.5"], data,
+                           "unknown NRRD field 'spacing'"),
+        "twice": (base + ["endian: big", "space origin: (0,0,0)", "space: LPS",
+                          "space directions: (1,0,0) (0,1,0) (0,0,1)",
+                          "space origin: (100,0,0)"], data, "'space origin' is given twice"),
+        "dirs-and-spacings": (base + ["endian: big", "space: LPS", "spacings: 2 2 2",
+                                      "space directions: (1,0,0) (0,1,0) (0,0,1)"], data,
+                              "'spacings' beside 'space directions'"),
+        "byte-skip-short": (base + ["endian: big", "byte skip: -1"], data[:-20],
+                            "data is truncated"),
+    }[case]
+    with pytest.raises(FormatError, match=says):
+        read_volume(_nrrd(tmp_path / "x.nrrd", fields, payload))

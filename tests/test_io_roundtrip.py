@@ -299,10 +299,10 @@ def test_ascii_and_bzip2_nrrd(tmp_path):
     import bz2
 
     data = np.arange(24, dtype=np.int32).reshape(2, 3, 4) - 5
-    header = "NRRD0004\ntype: int\ndimension: 3\nsizes: 4 3 2\nencoding: {enc}\n\n"
-    (tmp_path / "a.nrrd").write_bytes(header.format(enc="ascii").encode()
+    header = "NRRD0004\ntype: int\ndimension: 3\nsizes: 4 3 2\nencoding: {enc}\n{endian}\n"
+    (tmp_path / "a.nrrd").write_bytes(header.format(enc="ascii", endian="").encode()
                                       + " ".join(map(str, data.ravel())).encode())
-    (tmp_path / "b.nrrd").write_bytes(header.format(enc="bzip2").encode()
+    (tmp_path / "b.nrrd").write_bytes(header.format(enc="bzip2", endian="endian: little\n").encode()
                                       + bz2.compress(data.astype("<i4").tobytes()))
     for name in ("a.nrrd", "b.nrrd"):
         np.testing.assert_array_equal(read_volume(tmp_path / name).data, data)

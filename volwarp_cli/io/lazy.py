@@ -263,8 +263,7 @@ def _nrrd(path: Path, copy: str, *, vectors: tuple | None = None):
         if type_name not in nrrd._TYPES:
             raise NotLazy("unknown type")
         dtype = check_dtype(nrrd._TYPES[type_name], where)
-        endian = fields.get("endian", "little").lower()
-        file_dtype = dtype.newbyteorder("<" if endian == "little" else ">")
+        file_dtype = nrrd.file_type(fields, dtype, encoding, where)
         spacing, origin, direction, space = nrrd._geometry(fields, dim, where)
         files = nrrd._data_files(fields, path, fh, where, sizes)
         lineskip = nrrd._whole(fields, ("line skip", "lineskip"), where)
@@ -287,6 +286,9 @@ def _nrrd(path: Path, copy: str, *, vectors: tuple | None = None):
                     raise FormatError(f"{where}: file ends inside 'line skip'")
             size = os.fstat(dfh.fileno()).st_size
             start = size - nbytes if byteskip == -1 else dfh.tell() + byteskip
+            if byteskip == -1 and start < dfh.tell():  # (the header read as samples)
+                raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of "
+                                  "samples at the end ('byte skip: -1')")
         finally:
             if dfh is not fh:
                 dfh.close()
@@ -419,6 +421,9 @@ def _metaimage(path: Path, copy: str, *, vectors: tuple | None = None):
     if header_size > 0:
         start = header_size
     elif header_size == -1 and not compressed:
+        if size - nbytes < start:  # (the header read as samples: a file cut short)
+            raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of "
+                              "samples at the end ('HeaderSize = -1')")
         start = size - nbytes
     if compressed:
         start = mi.compressed_start(mi._int(fields, "CompressedDataSize", -1, where),

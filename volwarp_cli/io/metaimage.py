@@ -413,8 +413,12 @@ def _read_piece(fh, layout: _Layout, count: int, where: str, *, local: bool) -> 
     if layout.compressed:
         fh.seek(compressed_start(layout.comp_size, layout.header_size, size, start, where))
         return np.frombuffer(read_gzip_exact(fh, nbytes, where), dtype=layout.file_dtype)
-    if layout.header_size == -1:
-        start = size - nbytes
+    if layout.header_size == -1:  # (the last nbytes: never inside the header, a short file)
+        start, header_end = size - nbytes, start
+        if start < header_end:
+            raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of samples "
+                              f"at the end ('HeaderSize = -1'), the file has "
+                              f"{max(size - header_end, 0)} after its header")
     have = size - start
     if have < nbytes or start < 0:
         raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of samples, "

@@ -79,6 +79,8 @@ _FIELDS = frozenset((
     "spacings", "thicknesses", "axis mins", "axismins", "axis maxs", "axismaxs", "centers",
     "centerings", "labels", "units", "kinds", "space", "space dimension", "space units",
     "space origin", "space directions", "measurement frame"))
+#: spellings of one field (spaces dropped): each may be given once
+_SAME_FIELD = {"centerings": "centers"}
 _VECTOR = re.compile(r"\(([^()]*)\)")
 #: the fields of vectors, "(x,y,z)", whose entries are the words between spaces
 _VECTOR_FIELDS = ("space directions", "space origin", "measurement frame")
@@ -153,6 +155,7 @@ def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
         raise FormatError(f"{where}: not a NRRD file (no NRRD000x magic line)")
     fields: dict[str, str] = {}
     keyvals: dict[str, str] = {}
+    seen: set[str] = set()
     listing = False  # after "data file: LIST": the file names follow the last field
     while True:
         pos = fh.tell()
@@ -177,6 +180,13 @@ def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
             raise FormatError(f"{where}: malformed header line {shown!r}")
         name, value = line.split(": ", 1)
         name = name.strip().lower()
+        if name not in _FIELDS:  # (a misspelt field: 'spacing' for 'spacings' lost the spacing)
+            raise FormatError(f"{where}: unknown NRRD field {name!r} (a key/value pair is "
+                              "written 'key:=value')")
+        same = _SAME_FIELD.get(name.replace(" ", ""), name.replace(" ", ""))
+        if same in seen:  # (teem and pynrrd refuse it; the last one won silently)
+            raise FormatError(f"{where}: the NRRD field {name!r} is given twice")
+        seen.add(same)
         if name in ("data file", "datafile"):  # (a file name: its bytes, as they are)
             value = header_name(raw).rstrip("\r\n").split(": ", 1)[1]
         if name in _VECTOR_FIELDS:  # ("(0.5, 0, 0)": teem and ITK read spaces in a vector)
@@ -187,12 +197,37 @@ def read_header(fh, where: str) -> tuple[dict[str, str], dict[str, str]]:
     return fields, keyvals
 
 
+def file_type(fields: dict[str, str], dtype: np.dtype, encoding: str, where: str) -> np.dtype:
+    """The samples' type as the file stores them: ``dtype`` in the header's byte order.
+
+    Samples wider than a byte in a binary encoding need the ``endian`` field (teem
+    and pynrrd refuse a header without it; taken for little-endian, a big-endian
+    file's samples came out byte-swapped).
+    """
+    endian = fields.get("endian")
+    if endian is None:
+        if dtype.itemsize > 1 and encoding != "ascii":
+            raise FormatError(f"{where}: no 'endian' field: {dtype.itemsize}-byte samples in "
+                              f"{encoding} encoding need it (little or big)")
+        endian = "little"
+    endian = endian.lower()
+    if endian not in ("little", "big"):
+        raise FormatError(f"{where}: unknown endian {fields.get('endian')!r}")
+    return dtype.newbyteorder("<" if endian == "little" else ">")
+
+
 def _geometry(fields: dict[str, str], dim: int, where: str):
     """Return (spacing, origin, direction, space) in (x, y, z) for a 3-D header.
 
     Checked by :func:`~volwarp_cli.geometry.check_placement`: a refusal names
     the header field the bad number came from.
     """
+    if "space directions" in fields:  # (teem refuses both; the spacings were dropped silently)
+        for other in ("spacings", "axis mins", "axismins", "axis maxs", "axismaxs"):
+            if other in fields and any(v.lower() != "nan" for v in fields[other].split()):
+                raise FormatError(f"{where}: '{other}' beside 'space directions': an axis with "
+                                  f"a direction vector takes no {other} (give NaN, or one of "
+                                  "the two)")
     spacing, origin, direction, space = _header_geometry(fields, dim, where)
     if "space directions" in fields:
         names = {"spacing": "'space directions'", "direction": "'space directions'",
@@ -489,10 +524,7 @@ def _read_nrrd(path, component, *, mmap: bool, every: bool = False):
                               "(supported: raw, gzip, bzip2, ascii, hex)")
         dtype = np.dtype(_TYPES[type_name])
         check_dtype(dtype, where)
-        endian = fields.get("endian", "little").lower()
-        if endian not in ("little", "big"):
-            raise FormatError(f"{where}: unknown endian {fields.get('endian')!r}")
-        file_dtype = dtype.newbyteorder("<" if endian == "little" else ">")
+        file_dtype = file_type(fields, dtype, encoding, where)
         spacing, origin, direction, space = _geometry(fields, dim, where)
         count = voxel_count(sizes)
         nbytes = count * dtype.itemsize
@@ -602,8 +634,12 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
     if encoding == "raw":
         start = fh.tell()
         size = os.fstat(fh.fileno()).st_size
-        if byteskip == -1:
-            start = size - nbytes
+        if byteskip == -1:  # (the last nbytes: never inside the header, a file cut short)
+            start, header_end = size - nbytes, start
+            if start < header_end:
+                raise FormatError(f"{where}: data is truncated: expected {nbytes} bytes of "
+                                  f"samples at the end ('byte skip: -1'), the file has "
+                                  f"{max(size - header_end, 0)} after its header")
         else:
             start += byteskip
         have = size - start
