@@ -398,6 +398,8 @@ class IntensityWarp(LatticeMoves):
         self.grid, self.grid_why = grid_of(spec, cap, options.output_grid)
         #: the value where nothing lands, and why
         self.background, self.background_why = background_of(spec, cap, options.background)
+        _check_background_fits(self.background, self.background_why,
+                               options.dtype or getattr(cap.geometry, "dtype", None))
         try:
             self.scene, self.frames = prepare(
                 cap, doc, spec, method=options.pushforward, evaluator=options.evaluator,
@@ -607,3 +609,18 @@ class LabelMapWarp(LatticeMoves):
                 last = self.warp(lattice)
             on_frame(fields, last[0])
         return last
+
+
+def _check_background_fits(background: float, why: str, dtype) -> None:
+    """Refuse a background a float output cannot hold (it became inf, without a word).
+
+    Integer outputs clip it and say so (:func:`~volwarp_cli.samples.cast_samples`); a
+    float32 output took 1e39 as inf where nothing landed.
+    """
+    if dtype is None or np.dtype(dtype).kind != "f":
+        return
+    top = float(np.finfo(np.dtype(dtype)).max)
+    if np.isfinite(background) and abs(background) > top:
+        where = "--background-value" if why == "given" else "the spec's background"
+        raise BadUsage(f"{where} {background:g} is beyond what {np.dtype(dtype).name} holds "
+                       f"(at most {top:.4g}): give --dtype float64, or a smaller background")
