@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import re
 import time
 
 import pytest
@@ -66,8 +67,8 @@ def test_a_spec_written_by_json_dumps_loads(tmp_path):
 
 
 @pytest.mark.parametrize("text", [
-    "yes", "no", "on", "off", "true", "y", "n", "~", "null", "089", "0123", "0x1f", "0b11",
-    "1_000", "1_000.5", "1:30", "1:30.5", "12", "-12", "1.0", "1.0e+5", "1.0e5x", "1e", "e5",
+    "yes", "no", "on", "off", "true", "y", "n", "~", "null", "089", "0x1f",
+    "12", "-12", "1.0", "1.0e+5", "1.0e5x", "1e", "e5",
     ".e5", "1e5.5", "1..5", ".", "+.", "'1e1'", '"1e1"', "2001-12-14", ".nan_", "1 e5",
     "1e+", "0.5.1", "!!str 1e1", "+", "-1", "+1", ".0", "0.", "1_0e1",
 ])
@@ -76,6 +77,14 @@ def test_other_scalars_resolve_as_pyyaml_does(text):
     got = parse_spec_text(f"a: {text}\n").data["a"]
     want = yaml.safe_load(f"a: {text}\n")["a"]
     assert got == want and type(got) is type(want)
+
+
+@pytest.mark.parametrize("text", ["0123", "0b11", "1_000", "1_000.5", "1:30", "1:30.5"])
+def test_numbers_only_yaml_1_1_reads_so_are_refused(text):
+    """A leading zero (0123 is 83), sexagesimal, underscores, binary: numbers to PyYAML's
+    YAML 1.1, others (or strings) to YAML 1.2 and JSON; a spec error, not a guess."""
+    with pytest.raises(SpecError, match=rf"a: {re.escape(text)} is .* to YAML 1\.1"):
+        parse_spec_text(f"a: {text}\n", "x.yaml")
 
 
 def test_yes_and_on_stay_booleans_and_timestamps_stay_dates():

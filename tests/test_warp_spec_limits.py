@@ -48,3 +48,18 @@ def test_a_lattice_or_pad_beyond_reason_is_a_spec_error(run, tmp_path, vol, capt
     res = run("warp", vol, "--spec", spec, "-o", tmp_path / "o.nrrd")
     assert res.code == 2, res.stderr
     assert f"w.yaml:3: {key}:" in res.stderr and "maximum" in res.stderr
+
+
+@pytest.mark.parametrize("text, was", [("010", 8), ("1:30", 90), ("1_000", 1000), ("0b11", 3)])
+def test_numbers_yaml_versions_read_apart_are_refused(tmp_path, text, was):
+    """PyYAML reads specs as YAML 1.1: a zero-padded 010 was 8 (a generated spec's index,
+    silently another control point), 1:30 was 90; YAML 1.2 and JSON read them otherwise."""
+    from volwarp_cli.errors import SpecError
+    from volwarp_cli.spec.loader import parse_spec_text
+
+    with pytest.raises(SpecError, match=rf"x\.yaml:3: steps\[0\]\.move\[0\]\.index\[0\]: "
+                                        rf"{text} is {was} to YAML 1\.1"):
+        parse_spec_text(f"version: 1\nsteps:\n  - move: [{{index: [{text}, 2, 2], by: [1, 0, 0]}}]\n",
+                        "x.yaml", tmp_path)
+    for plain in ("10", "0", "-0.25", "1e5", "007.5", '"010"'):
+        parse_spec_text(f"version: 1\nx: {plain}\n", "x.yaml", tmp_path)

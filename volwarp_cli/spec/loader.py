@@ -295,6 +295,10 @@ def _compose(text: str):
         raise
 
 _MAX_FLOAT = sys.float_info.max
+#: plain numbers YAML 1.1 (PyYAML) reads otherwise than YAML 1.2 and JSON: a leading
+#: zero (010 is 8), sexagesimal (1:30 is 90), underscores (1_000), binary (0b11)
+_YAML11_ONLY = re.compile(r"^[-+]?(?:0[0-9_]+|0b[01_]+|[0-9][0-9_]*:[0-5]?[0-9].*"
+                          r"|[0-9]*_[0-9_]*(?:\.[0-9_]*)?(?:[eE][-+]?[0-9]+)?)$")
 
 #: Plain scalars the resolvers make a float or an int that float() or int() makes alike
 #: (a test holds them to the resolvers and constructors): a registration's spec has
@@ -346,6 +350,11 @@ def _check_tree(loader: _SpecLoader, root: yaml.Node, file: str) -> None:
         if type(value) is int and not -_MAX_FLOAT <= value <= _MAX_FLOAT:
             fail(path, node, f"number too large: {clip(node.value)} (the limit is "
                              f"{_MAX_FLOAT:.4g})")
+        if isinstance(value, int | float) and not isinstance(value, bool) \
+                and not node.style and _YAML11_ONLY.match(node.value):
+            fail(path, node, f"{node.value} is {value!r} to YAML 1.1 and not that number to YAML "
+                             "1.2 or JSON (a leading zero, ':', '_' or 0b): write the number "
+                             f"meant plainly (as YAML 1.1 reads it: {value!r})")
         return value
 
     size: dict[int, int] = {}  # id(node) -> values in its expansion (capped)
@@ -487,6 +496,9 @@ def _data_from_events(loader) -> Any:
                     raise _NotPlain
                 if type(value) is int and not -_MAX_FLOAT <= value <= _MAX_FLOAT:
                     raise _NotPlain
+                if isinstance(value, int | float) and not isinstance(value, bool) and \
+                        event.implicit[0] and _YAML11_ONLY.match(text):
+                    raise _NotPlain  # (the composing loader says why, with its line)
                 scalars[key] = value
         elif kind is yaml.MappingStartEvent or kind is yaml.SequenceStartEvent:
             if event.anchor is not None or event.tag is not None or len(open_) >= MAX_DEPTH:
