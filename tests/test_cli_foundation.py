@@ -251,7 +251,8 @@ def test_unknown_encoding(run, tmp_path):
 
 def test_huge_claimed_size_is_refused_before_allocating(run, tmp_path):
     (tmp_path / "huge.nrrd").write_bytes(b"NRRD0004\ntype: float\ndimension: 3\n"
-                                         b"sizes: 100000 100000 100000\nencoding: gzip\n\n")
+                                         b"sizes: 100000 100000 100000\nencoding: gzip\n"
+                                         b"endian: little\n\n")
     res = run("convert", tmp_path / "huge.nrrd", "-o", tmp_path / "o.nrrd")
     _assert_clean_failure(res, 1, "huge.nrrd", "needs", "memory", out=tmp_path / "o.nrrd")
 
