@@ -252,3 +252,12 @@ def test_apply_chooses_a_dicom_references_series(tmp_path, stack, run):
     res = run("apply", tmp_path / "in.nrrd", "-t", tmp_path / "t.tfm", "--reference",
               tmp_path / "in.nrrd", "-o", tmp_path / "p.nrrd", "--reference-series", "1")
     assert res.code == 2 and "is not DICOM" in res.stderr
+
+
+def test_hidden_files_in_a_series_folder_are_never_slices(tmp_path, stack):
+    """A hidden file (a lock, a dangling .link, macOS's ._*) is skipped whatever it is: the
+    refusal of an unreadable file is for the series' own files."""
+    write_series(tmp_path / "s", stack)
+    (tmp_path / "s" / ".lock").symlink_to(tmp_path / "gone")
+    (tmp_path / "s" / ".DS_Store").write_bytes(b"\0\0\0\1Bud1")
+    np.testing.assert_array_equal(read_dicom(tmp_path / "s").data, stack)

@@ -227,7 +227,7 @@ def _folder_file(full: str, name: str) -> str:
     file, may be a slice: skipped, it left a volume a slice short (the first or
     last: nothing else shows it) with exit 0.
     """
-    if name.startswith("._"):  # (macOS's AppleDouble companions on FAT/SMB copies)
+    if name.startswith("."):  # (hidden: macOS's ._* companions, .DS_Store, locks, links)
         return ""
     try:
         st = os.stat(full)
@@ -246,7 +246,7 @@ def _folder_file(full: str, name: str) -> str:
         return "dicom"
     if _looks_like_dicom_body(head):
         return "dicom"
-    if name.lower().endswith(_DICOM_SUFFIXES) and not name.startswith("."):
+    if name.lower().endswith(_DICOM_SUFFIXES):
         return "empty file" if not head else "not a DICOM file (no DICM preamble, no DICOM header)"
     return ""
 
