@@ -107,7 +107,7 @@ def test_requests_reach_the_thread_and_their_descriptors_are_closed(tmp_path, mo
     monkeypatch.setattr(writeback, "_state", {"call": fake_call})
     path = tmp_path / "out.bin"
     path.write_bytes(b"\0" * (4 << 20))
-    before = len(os.listdir("/proc/self/fd"))
+    before = set(os.listdir("/proc/self/fd"))
     with open(path, "r+b") as fh:
         assert writeback.start(fh.fileno(), 0, 2 << 20)
         assert writeback.start(fh.fileno(), 2 << 20, 2 << 20)
@@ -116,13 +116,14 @@ def test_requests_reach_the_thread_and_their_descriptors_are_closed(tmp_path, mo
     _drained()
     assert writeback.pending() == 0
     assert seen == [(str(path), 0, 2 << 20, 2), (str(path), 2 << 20, 2 << 20, 2)]
-    assert len(os.listdir("/proc/self/fd")) == before  # the duplicates are closed
+    assert set(os.listdir("/proc/self/fd")) <= before  # the duplicates are closed
 
 
 @linux
 def test_a_slow_disk_holds_at_most_max_pending_requests(slow_disk):
     release, path = slow_disk
-    before = len(os.listdir("/proc/self/fd"))
+    before_set = set(os.listdir("/proc/self/fd"))
+    before = len(before_set)
     with open(path, "rb") as fh:
         made = [writeback.start(fh.fileno(), 0, 1 << 20) for _ in range(3 * writeback.MAX_PENDING)]
         held = len(os.listdir("/proc/self/fd")) - before - 1  # (less fh's own)
@@ -133,7 +134,8 @@ def test_a_slow_disk_holds_at_most_max_pending_requests(slow_disk):
     release.set()
     _drained()
     assert writeback.pending() == 0
-    assert len(os.listdir("/proc/self/fd")) == before
+    # (as sets: another test's object collected meanwhile may close a descriptor of its own)
+    assert set(os.listdir("/proc/self/fd")) <= before_set
 
 
 def test_no_request_where_the_system_has_no_call(monkeypatch, tmp_path):
@@ -290,14 +292,15 @@ def test_no_thread_to_be_had_drops_the_request_and_the_write_goes_on(tmp_path, m
     monkeypatch.setattr(threading.Thread, "start", refuse)
     path = tmp_path / "f.raw"
     path.write_bytes(b"\0" * (4 * 256 * 256 * 4))
-    before = len(os.listdir("/proc/self/fd")) if os.path.isdir("/proc/self/fd") else 0
+    # (as sets: another test's object collected meanwhile may close a descriptor of its own)
+    before = set(os.listdir("/proc/self/fd")) if os.path.isdir("/proc/self/fd") else set()
     fa = FileArray(path, "<f4", 0, (4, 256, 256), writable=True, write_back=True)
     fa[:, :, :] = np.ones((4, 256, 256), np.float32)
     fa[0:2, :, :] = np.zeros((2, 256, 256), np.float32)  # (a second request: dropped too)
     fa.close()
     assert writeback._state["call"] is None and writeback.pending() == 0
     if before:
-        assert len(os.listdir("/proc/self/fd")) == before
+        assert set(os.listdir("/proc/self/fd")) <= before  # (nothing left open)
     assert np.fromfile(path, "<f4").sum() == 2 * 256 * 256
 
 
