@@ -61,6 +61,7 @@ class Frame:
 
     @property
     def dq(self) -> np.ndarray:
+        """The frame's control-point offsets (a new array for an increment before the end)."""
         if self.end is not None:
             return self.end
         return self.start + self.change * self.fraction
