@@ -229,6 +229,12 @@ def _geometry(fields: dict[str, str], dim: int, where: str):
                                   f"a direction vector takes no {other} (give NaN, or one of "
                                   "the two)")
     spacing, origin, direction, space = _header_geometry(fields, dim, where)
+    scale = length_scale(fields, dim, where)
+    if scale is not None:  # (numbers in microns, cm, ...: to millimetres)
+        matrix = direction * spacing[None, :] * scale[:, None]
+        spacing = np.linalg.norm(matrix, axis=0)
+        direction = matrix / spacing[None, :]
+        origin = origin * scale
     if "space directions" in fields:
         names = {"spacing": "'space directions'", "direction": "'space directions'",
                  "origin": "'space origin'"}
@@ -238,6 +244,71 @@ def _geometry(fields: dict[str, str], dim: int, where: str):
                                                  _spatial_sizes(fields, dim, where),
                                                  where=where, fields=names)
     return spacing, origin, direction, space
+
+
+_QUOTED = re.compile(r'"([^"]*)"')
+
+
+def _unit_words(fields: dict[str, str], name: str) -> list[str] | None:
+    """The quoted words of a units field (``"mm" "mm" "mm"``), or None when it is not there."""
+    if name not in fields:
+        return None
+    words = _QUOTED.findall(fields[name])
+    return words if words else fields[name].split()
+
+
+def length_scale(fields: dict[str, str], dim: int, where: str) -> np.ndarray | None:
+    """Millimetres per header unit along each world axis (x y z), or None: the numbers are mm.
+
+    ``space units`` (one a world axis, beside ``space directions``) or ``units``
+    (one an axis, beside ``spacings``) in a length other than millimetres
+    (``microns``, ``cm``, ``m``: :func:`~volwarp_cli.io.units.length_unit_mm`)
+    scale spacing and origin to millimetres, as volwarp's NIfTI, TIFF and
+    OME-Zarr readers do; ITK's NRRD reader takes the numbers as they are (it
+    reads no unit), so this is said once a run. A unit that is no known length
+    (``pixel``, a free word) leaves the numbers, and is said too; empty,
+    ``???`` and ``none`` are no unit.
+    """
+    from ..progress import log
+    from ..runscope import first_said
+    from .units import length_unit_mm
+
+    if "space directions" in fields:
+        name, words = "space units", _unit_words(fields, "space units")
+        if words is not None and len(words) != 3:
+            raise FormatError(f"{where}: 'space units' has {len(words)} entries for a 3-D space")
+    else:
+        name, words = "units", _unit_words(fields, "units")
+        if words is not None:
+            if len(words) != dim:
+                raise FormatError(f"{where}: 'units' has {len(words)} entries, 'dimension' "
+                                  f"is {dim}")
+            if dim != 3:  # (the spatial axes': the component axis has no length)
+                sizes = [int(v) for v in fields.get("sizes", "").split()]
+                comp = _component_axis(fields, dim, sizes, where)
+                words = [w for a, w in enumerate(words) if a != comp]
+    if words is None:
+        return None
+    scale, unknown = np.ones(3), []
+    for axis, word in enumerate(words):
+        if word.strip().lower() in ("", "???", "none"):
+            continue
+        mm = length_unit_mm(word)
+        if mm is None:
+            unknown.append(word)
+        else:
+            scale[axis] = mm
+    key = ("nrrd units", os.path.abspath(where))
+    if unknown and first_said(key + ("unknown",)):
+        log.warning("%s: '%s' %s: not a length volwarp knows; the numbers are taken as "
+                    "millimetres", where, name, " ".join(f'"{w}"' for w in unknown))
+    if np.all(scale == 1.0):
+        return None
+    if first_said(key):
+        log.warning("%s: '%s' %s: spacing and origin converted to millimetres (ITK and "
+                    "SimpleITK read NRRD numbers as millimetres whatever the unit)", where,
+                    name, " ".join(f'"{w}"' for w in words))
+    return scale
 
 
 def _spatial_sizes(fields: dict[str, str], dim: int, where: str) -> list[int] | None:
@@ -563,6 +634,8 @@ def _read_nrrd(path, component, *, mmap: bool, every: bool = False):
 def kept_fields(fields: dict, space, where: str) -> dict:
     """The header's kept fields as key/values ``NRRD_<field>`` (the measurement frame in LPS)."""
     meta = {f"NRRD_{name}": fields[name] for name in _KEPT_FIELDS if name in fields}
+    if "NRRD_space units" in meta and length_scale(fields, 3, where) is not None:
+        meta["NRRD_space units"] = '"mm" "mm" "mm"'  # (the numbers are millimetres now)
     if "measurement frame" in fields and space is not None:
         meta["NRRD_measurement frame"] = _measurement_frame_lps(fields, space, where)
     return meta

@@ -58,24 +58,13 @@ from .common import (
     read_exact,
     with_byte_order,
 )
+from .units import OME_LENGTH_TO_MM, length_unit_mm
 
 _IMAGEJ_TYPES = ("uint8", "int16", "uint16", "float32")
 #: TIFF ResolutionUnit values (tifffile's RESUNIT: 4 and 5 are its own extension) in mm
 _RESUNIT_MM = {2: ("inch", 25.4), 3: ("centimeter", 10.0), 4: ("millimeter", 1.0),
                5: ("micrometer", 1e-3)}
 
-#: The OME schema's UnitsLength symbols (and the common spellings of micrometre and
-#: ångström) in millimetres. ``pixel`` and ``reference frame`` are not lengths.
-_OME_LENGTH_TO_MM = {
-    "Ym": 1e27, "Zm": 1e24, "Em": 1e21, "Pm": 1e18, "Tm": 1e15, "Gm": 1e12, "Mm": 1e9,
-    "km": 1e6, "hm": 1e5, "dam": 1e4, "m": 1e3, "dm": 1e2, "cm": 10.0, "mm": 1.0,
-    "\u00b5m": 1e-3, "\u03bcm": 1e-3, "um": 1e-3, "micron": 1e-3,
-    "nm": 1e-6, "pm": 1e-9, "fm": 1e-12, "am": 1e-15, "zm": 1e-18, "ym": 1e-21,
-    "\u00c5": 1e-7, "\u212b": 1e-7,
-    "thou": 0.0254, "li": 25.4 / 12, "in": 25.4, "ft": 304.8, "yd": 914.4,
-    "mi": 1609344.0, "ua": 1.495978707e14, "ly": 9.4607304725808e18,
-    "pc": 3.0856775814913673e19, "pt": 25.4 / 72,
-}
 #: the schema's default PhysicalSize unit
 _OME_DEFAULT_UNIT = "\u00b5m"
 
@@ -524,7 +513,7 @@ def _ome_spacing(tif, where: str, image: int = 0) -> list[float | None] | None:
             value = float(text)
         except ValueError:
             value = float("nan")
-        scale = _OME_LENGTH_TO_MM.get(unit)
+        scale = OME_LENGTH_TO_MM.get(unit)
         if not (np.isfinite(value) and value > 0) or scale is None:
             log.debug("%s: OME PhysicalSize%s=%r %r is not a positive length: ignored",
                       where, axis, text, unit)
@@ -544,20 +533,13 @@ def _is_imagej_big_stack(tif, first, count: int) -> bool:
     return need <= tif.filehandle.size
 
 
-#: ImageJ's unit words (Fiji writes "micron"), beside the OME symbols
-_IMAGEJ_UNITS_MM = {"micron": 1e-3, "microns": 1e-3, "micrometer": 1e-3, "micrometre": 1e-3,
-                    "nanometer": 1e-6, "millimeter": 1.0, "centimeter": 10.0, "meter": 1e3,
-                    "inch": 25.4, "inches": 25.4}
-
-
 def imagej_unit_mm(unit: str) -> float | None:
     """An ImageJ stack's ``unit`` in millimetres, None for no length (``pixel``, unknown).
 
     ImageJ's spacings (the resolution tags' and ``spacing``) are in that unit:
     a stack of 0.25 um voxels is 0.00025 mm ones (it was read as 0.25 mm).
     """
-    u = unit.strip().replace("\\u00B5", "\u00b5").replace("\\u00b5", "\u00b5")
-    return _OME_LENGTH_TO_MM.get(u, _IMAGEJ_UNITS_MM.get(u.lower()))
+    return length_unit_mm(unit)
 
 
 #: ImageJ's value calibration functions (``ij.measure.Calibration``): a straight line, none
