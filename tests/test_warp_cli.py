@@ -660,3 +660,35 @@ def test_a_step_that_moves_nothing_and_a_point_moved_twice_are_said(run, tmp_pat
     assert res.code == 0 and res.stderr == "", res.stderr
     assert np.array_equal(read_volume(tmp_path / "o.nrrd").data,
                           read_volume(tmp_path / "once.nrrd").data)
+
+
+def test_a_spec_read_from_a_pipe_is_hashed_as_it_was_read(tmp_path):
+    """``--spec /dev/stdin``: the provenance hash is of the spec's bytes (it was the empty
+    input's: the pipe was read again, drained, when the output was stamped); a sweep's too."""
+    import hashlib
+    import subprocess
+    import sys
+
+    src = tmp_path / "in.nrrd"
+    write_volume(Volume(np.random.default_rng(0).random((12, 12, 12), dtype=np.float32)), src)
+    text = ("version: 1\r\ncapture: {lattice: 5, oversample: 1}\r\nsteps:\r\n  - move:\r\n"
+            "      - {index: [2, 2, 2], by: [1.0, 0.5, 0.0]}\r\n")
+    sha = hashlib.sha256(text.encode()).hexdigest()
+    piped, filed = tmp_path / "piped.nrrd", tmp_path / "filed.nrrd"
+    (tmp_path / "w.yaml").write_bytes(text.encode())
+    for spec, out, stdin in (("/dev/stdin", piped, text.encode()),
+                             (str(tmp_path / "w.yaml"), filed, b"")):
+        res = subprocess.run([sys.executable, "-m", "volwarp_cli", "warp", str(src), "--spec",
+                              spec, "-o", str(out), "-q"], input=stdin, capture_output=True)
+        assert res.returncode == 0, res.stderr
+        assert read_volume(out).meta["volwarp_spec_sha256"] == sha
+    assert np.array_equal(read_volume(piped).data, read_volume(filed).data)
+    sweep = ("version: 1\ngrid: {spacing: 0.5}\nfields:\n  opacity: {value: 0.8}\n"
+             "trajectory:\n  - line: {from: [0, 0, 0], to: [6, 0, 0]}\nup: [0, 0, 1]\n"
+             "scale: [2, 2]\n")
+    res = subprocess.run([sys.executable, "-m", "volwarp_cli", "sweep", "/dev/stdin", "-o",
+                          str(tmp_path / "s_{field}.nrrd"), "-q"], input=sweep.encode(),
+                         capture_output=True)
+    assert res.returncode == 0, res.stderr
+    assert read_volume(tmp_path / "s_opacity.nrrd").meta["volwarp_spec_sha256"] == \
+        hashlib.sha256(sweep.encode()).hexdigest()

@@ -28,8 +28,31 @@ def provenance(command: str, inputs, spec=None) -> dict[str, str]:
         "volwarp_input": " ".join(Path(p).name for p in inputs),
     }
     if spec is not None:
-        meta["volwarp_spec_sha256"] = _sha256(Path(spec).read_bytes()).hexdigest()
+        digest = _spec_digests.get(_key(spec))
+        if digest is None:
+            digest = _sha256(Path(spec).read_bytes()).hexdigest()
+        meta["volwarp_spec_sha256"] = digest
     return meta
+
+
+#: the sha256 of each spec file as :func:`~volwarp_cli.spec.loader.load_spec` last read it
+_spec_digests: dict[str, str] = {}
+
+
+def _key(path) -> str:
+    import os
+
+    return os.path.abspath(os.fspath(path))
+
+
+def remember_spec(path, data: bytes) -> None:
+    """Record the bytes a spec was read from, for its ``volwarp_spec_sha256``.
+
+    A spec read from a pipe (``--spec /dev/stdin``, ``<(...)``) cannot be read
+    twice: hashed again when the output is stamped, its hash was the empty
+    input's. A file changed after it was read is hashed as it was used.
+    """
+    _spec_digests[_key(path)] = _sha256(data).hexdigest()
 
 
 def _sha256(data: bytes):

@@ -652,13 +652,18 @@ def validate(doc: SpecDoc, schema: dict) -> None:
 
 def load_spec(path: str | Path, kind: str | None = None) -> SpecDoc:
     """Read a YAML spec file, check it against ``kind``'s schema when given."""
+    from ..provenance import remember_spec
+
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        data = path.read_bytes()
+        # (as read_text reads it: universal newlines)
+        text = data.decode("utf-8").replace("\r\n", "\n").replace("\r", "\n")
     except FileNotFoundError:
         raise SpecError("no such spec file", file=str(path)) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise SpecError(f"cannot read spec ({exc})", file=str(path)) from None
+    remember_spec(path, data)  # (a pipe, /dev/stdin, is read once: its hash is of these bytes)
     doc = parse_spec_text(text, file=str(path), base=path.parent)
     if kind is not None:
         validate(doc, load_schema(kind))
