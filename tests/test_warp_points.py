@@ -215,3 +215,20 @@ def test_a_mirroring_lattice_keeps_the_exported_meshs_faces_outward(run, tmp_pat
     assert np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() > 0
     centre = out.vertices.mean(axis=0)
     assert (np.einsum("ij,ij->i", out.normals, out.vertices - centre) > 0).mean() > 0.99
+
+
+@pytest.mark.parametrize("name, text", [
+    ("none.csv", "x,y,z,label\n"),
+    ("none.mrk.json", json.dumps({"markups": [{"type": "Fiducial", "coordinateSystem": "LPS",
+                                               "controlPoints": []}]}))])
+def test_a_points_file_of_no_point_is_written_as_empty(run, setup, tmp_path, name, text):
+    """(an internal error after the warp had run: the outside count reshaped no row)"""
+    vol, src, spec, _, _ = setup
+    pin, out = tmp_path / name, tmp_path / ("q_" + name)
+    pin.write_text(text)
+    res = run("warp", src, "--spec", spec, "--points-in", pin, "--points-to", out)
+    assert res.code == 0, res.stderr
+    if name.endswith(".csv"):
+        assert out.read_text().splitlines() == ["x,y,z,label"]
+    else:
+        assert json.loads(out.read_text())["markups"][0]["controlPoints"] == []

@@ -794,6 +794,8 @@ def report_outside(what: str, inside: np.ndarray, fmap: ForwardMap, points=None)
     ``points``: the points, whose rows without a position (NaN: a markups point
     not placed, written back as it was) are neither inside nor outside.
     """
+    if len(inside) == 0:  # (a points file of no point: written as empty, as apply does)
+        return 0
     placed = (np.ones(len(inside), bool) if points is None
               else np.all(np.isfinite(np.asarray(points).reshape(len(inside), -1)), axis=1))
     n = int(np.count_nonzero(~inside & placed))
