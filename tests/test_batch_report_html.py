@@ -156,6 +156,27 @@ def test_text_is_escaped():
     assert [decode_png(u) for u in page.imgs] == [(6, 4)]
 
 
+
+def test_a_scan_named_in_no_utf8_is_written_escaped(tmp_path):
+    """A scan named ``caf\\xe9.nrrd`` (bytes that are not UTF-8): the page's write was an
+    error after the batch's outputs were in place (exit 1); its name is escaped now."""
+    from volwarp_cli.batch.report_html import write_html
+
+    name = os.fsdecode(b"caf\xe9")
+    scan = Scan(id=name, path=Path(name + ".nrrd"), stem=name, relpath="")
+    r = ScanResult(scan, "ok", 1.0, [StepResult("s", "convert", "ok")])
+    r.thumbnails = {"input": None, "outputs": []}
+
+    class M:
+        path = Path("m.yaml")
+        output_dir = Path("out")
+
+    write_html(tmp_path / "r.html", report_html(M, [r]))
+    text = (tmp_path / "r.html").read_bytes().decode("utf-8")  # (valid UTF-8 throughout)
+    page = Page()
+    page.feed(text)
+    assert [c["scan"] for c in page.cards] == ["caf\\udce9"]
+
 def _chromium(*args, tmp_path):
     return subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu",
                            "--disable-quic", "--no-first-run", "--disable-background-networking",

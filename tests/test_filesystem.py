@@ -126,15 +126,22 @@ def test_morph_sheet_on_a_full_disk_keeps_the_old_png(run, small_fs, tmp_path, b
     only(small_fs, "sheet.png")
 
 
+@pytest.mark.parametrize("in_memory", [True, False])
 def test_write_image_refuses_a_cut_file_even_when_the_writer_says_nothing(tmp_path,
-                                                                         monkeypatch):
-    # a writer that "succeeds" but leaves a PNG without its IEND chunk
+                                                                         monkeypatch,
+                                                                         in_memory):
+    # a writer that "succeeds" but leaves a PNG without its IEND chunk: made in a memory
+    # file (where the system has them) or in the temporary itself
     import OpenImageIO as oiio
 
     from volwarp_cli.errors import VolwarpError
     from volwarp_cli.io import images
 
     out, before = old_png(tmp_path)
+    made = []
+    memory_file = images._memory_file
+    monkeypatch.setattr(images, "_memory_file",
+                        lambda: made.append(memory_file()) or made[-1] if in_memory else None)
 
     def cut_then_verify(oiio_mod, path, tmp, shape):
         raise AssertionError("not reached: the IEND check comes first")
@@ -143,6 +150,8 @@ def test_write_image_refuses_a_cut_file_even_when_the_writer_says_nothing(tmp_pa
 
     def close_and_cut(self):
         ok = original_close(self)
+        for fd in made:
+            os.ftruncate(fd, os.fstat(fd).st_size - 12)
         for p in tmp_path.glob(".out.png.*"):
             p.write_bytes(p.read_bytes()[:-12])
         return ok
@@ -167,3 +176,48 @@ def test_volume_output_on_a_full_disk_keeps_the_old_one(run, small_fs, tmp_path,
     assert_failed(res, out)
     assert out.read_bytes() == before
     only(small_fs, out.name)
+
+
+def test_a_jpeg_over_the_file_size_limit_is_said_not_the_end_of_the_process(tmp_path, ball_file):
+    """The JPEG library ends the process on a short write ("Output file write error ---
+    out of disk space?", exit 1, the temporaries left): the image is made in memory,
+    with room under the limit, and the output written by Python, whose error is said."""
+    import resource
+    import sys
+
+    out = tmp_path / "out.jpg"
+    write_image(out, np.full((16, 16, 3), 90, np.uint8))
+    before = out.read_bytes()
+
+    def limit(soft, hard):
+        return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+
+    for soft, hard, why in ((100 * 1024, resource.RLIM_INFINITY, "File too large"),
+                            (100 * 1024, 100 * 1024, "ulimit -f")):
+        res = subprocess.run([sys.executable, "-m", "volwarp_cli", "mesh", str(ball_file),
+                              "--iso", "50", "-o", str(tmp_path / "m.ply"), "--render",
+                              str(out), "--render-size", "1500x1500", "-q"],
+                             capture_output=True, text=True, preexec_fn=limit(soft, hard))
+        assert res.returncode == 1, res.stderr
+        lines = res.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("volwarp: error: "), res.stderr
+        assert str(out) in lines[0] and why in lines[0]
+        assert out.read_bytes() == before
+        only(tmp_path, "ball.nrrd", "out.jpg")
+
+
+def test_a_render_named_in_no_utf8_is_written(tmp_path, ball_file):
+    """OpenImageIO takes only str names: a render named ``r\xff.png`` was an internal
+    error. It now makes the image in memory and never sees the name."""
+    import sys
+
+    name = os.fsdecode(b"r\xff.png")
+    runs = {}
+    for out in (tmp_path / name, tmp_path / "plain.png"):
+        res = subprocess.run([sys.executable, "-m", "volwarp_cli", "mesh", str(ball_file),
+                              "--iso", "50", "-o", str(tmp_path / "m.ply"), "--render",
+                              str(out), "-q"], capture_output=True, text=True)
+        assert res.returncode == 0, res.stderr
+        runs[out.name] = out.read_bytes()
+    assert runs[name] == runs["plain.png"]
+    assert runs[name].endswith(PNG_END)

@@ -226,6 +226,22 @@ def test_provenance_comments_are_kept(blob, tmp_path, fmt):
     assert b"volwarp_input=x y.nrrd" in head
 
 
+
+@pytest.mark.parametrize("fmt", ["ply", "obj", "vtp"])
+def test_an_input_name_not_utf8_is_escaped_in_the_comments(blob, tmp_path, fmt):
+    """An input named ``caf\\xe9.nrrd`` (bytes that are not UTF-8) made .obj and .vtp an
+    internal error; the comment now escapes it, and the mesh reads as before."""
+    import os
+
+    pv = pytest.importorskip("pyvista")
+    named, plain = tmp_path / f"n.{fmt}", tmp_path / f"p.{fmt}"
+    write_mesh(blob, named, comments={"volwarp_input": os.fsdecode(b"caf\xe9.nrrd")})
+    write_mesh(blob, plain, comments={"volwarp_input": "cafe.nrrd"})
+    assert b"volwarp_input=caf\\udce9.nrrd" in named.read_bytes()[:2000]
+    a, b = pv.read(str(named)), pv.read(str(plain))
+    np.testing.assert_array_equal(a.points, b.points)
+    assert a.n_cells == b.n_cells == blob.n_faces
+
 def test_read_mesh_round_trip(blob, tmp_path):
     from volwarp_cli.surface.mesh_io import read_mesh
 

@@ -409,3 +409,26 @@ def test_apply_of_a_grown_grid_s_field_in_another_format_keeps_the_input_s_rim(r
     assert np.count_nonzero(outs[".nrrd"] == -1000) > 0
     assert np.count_nonzero(outs[".nii.gz"] == -1000) == np.count_nonzero(outs[".nrrd"] == -1000)
     np.testing.assert_allclose(outs[".nii.gz"], outs[".nrrd"], atol=1e-3 * np.ptp(vol.data))
+
+
+@pytest.mark.parametrize("name", [b"s\xc3\xa4.nrrd", b"caf\xe9.nrrd"])
+def test_an_input_name_beyond_ascii_is_kept_in_the_transform_file(run, tmp_path, name):
+    """A .tfm's comments name the input: "sä.nrrd" (UTF-8) was an internal error, as was a
+    name that is not UTF-8 at all. The transform reads in SimpleITK as the ASCII-named one."""
+    import os
+
+    vol = smooth_volume()
+    src = tmp_path / os.fsdecode(name)
+    write_volume(vol, src)
+    write_volume(vol, tmp_path / "plain.nrrd")
+    spec = drag_spec(tmp_path, vol)
+    params = {}
+    for inp, tfm in ((src, tmp_path / "named.tfm"), (tmp_path / "plain.nrrd", tmp_path / "p.tfm")):
+        res = run("warp", inp, "--spec", spec, "--transform-to", tfm)
+        assert res.code == 0, res.stderr
+        params[tfm.name] = sitk.BSplineTransform(sitk.ReadTransform(str(tfm))).GetParameters()
+    assert params["named.tfm"] == params["p.tfm"]
+    comment = [ln for ln in (tmp_path / "named.tfm").read_bytes().decode("utf-8").splitlines()
+               if ln.startswith("#volwarp_input")]
+    assert comment == ["#volwarp_input: " + (os.fsdecode(name) if name.isascii() or
+                                             b"\xc3" in name else "caf\\udce9.nrrd")]

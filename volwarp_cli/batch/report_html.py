@@ -154,4 +154,4 @@ def write_html(path: str | Path, text: str) -> None:
     """Write the page to ``path``, atomically."""
     from ..io.atomic import write_bytes_atomic
 
-    write_bytes_atomic(path, text.encode("utf-8"))
+    write_bytes_atomic(path, text.encode("utf-8", "backslashreplace"))

@@ -7,6 +7,7 @@ are always passed to it as ``(H, W, 1)``.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -132,23 +133,100 @@ def _oiio_errors(obj) -> str:
 
 
 def _write_checked(oiio, path: Path, tmp: Path, spec, arr: np.ndarray) -> None:
-    """Write ``arr`` to the temporary ``tmp`` through OpenImageIO, checking every step.
+    r"""Write ``arr`` to the temporary ``tmp`` through OpenImageIO, checking every step.
 
     OpenImageIO's writers report a short write (a full disk, a quota) only through
     ``has_error``/``geterror()``, with ``write_image`` and ``close`` still returning
-    success: each result and the error state are checked, the file is synced, then
-    read back (size, and for PNG the closing IEND chunk, then the pixels), so that a
-    cut image never replaces an output.
+    success, and its JPEG writer's library ends the process on one ("Output file
+    write error --- out of disk space?", leaving the temporaries behind). So the
+    image is made in memory (a memory file, where the system has them), checked
+    there (:func:`_check_encoded`), and its bytes written to ``tmp`` by Python,
+    whose errors are caught, and synced. OpenImageIO is then never given the
+    output's name either: one that is not UTF-8 (``caf\xe9.png``) it refused with
+    an internal error.
     """
     ext = path.suffix.lower()
-    h, w, c = arr.shape
+    memory = _memory_file()
+    if memory is None:  # (no memory files: written and checked in place, as before)
+        _encode(oiio, path, str(tmp), ext, spec, arr)
+        _sync(path, tmp)
+        _check_encoded(oiio, path, str(tmp), ext, arr.shape)
+        return
+    try:
+        where = f"/proc/self/fd/{memory}"
+        with _file_size_room(path, ext, arr):
+            _encode(oiio, path, where, ext, spec, arr)
+        _check_encoded(oiio, path, where, ext, arr.shape)
+        data = bytearray()
+        os.lseek(memory, 0, os.SEEK_SET)
+        while chunk := os.read(memory, 1 << 20):
+            data += chunk
+    finally:
+        os.close(memory)
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        if os.stat(tmp).st_size != len(data):
+            raise OSError(0, "the file written is cut short")
+    except OSError as exc:
+        raise VolwarpError(f"{path}: cannot write image ({exc.strerror or exc})") from exc
+
+
+@contextlib.contextmanager
+def _file_size_room(path: Path, ext: str, arr: np.ndarray):
+    """Room under the file size limit (``ulimit -f``) for a JPEG made in memory.
+
+    A memory file counts against that limit too, and the JPEG library ends the
+    process on a short write: the soft limit is raised to the hard one while
+    the image is made (what is written to the output stays under the soft
+    limit: Python's write fails there, and is said), and an image that may not
+    fit under the hard limit is refused before.
+    """
+    if ext not in (".jpg", ".jpeg"):
+        yield
+        return
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not a POSIX system
+        yield
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    bound = arr.nbytes + (1 << 16)  # (a JPEG of 8-bit samples: within its samples' size)
+    if hard != resource.RLIM_INFINITY and hard < bound:
+        raise VolwarpError(f"{path}: cannot write image (the file size limit, ulimit -f, is "
+                           f"{hard} bytes: a JPEG of {arr.shape[1]}x{arr.shape[0]} may need "
+                           f"{bound})")
+    if soft == hard:
+        yield
+        return
+    resource.setrlimit(resource.RLIMIT_FSIZE, (hard, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+
+
+def _memory_file() -> int | None:
+    """A file in memory that OpenImageIO can open by name (``/proc/self/fd/N``), or None."""
+    if not hasattr(os, "memfd_create") or not os.path.isdir("/proc/self/fd"):
+        return None
+    try:
+        return os.memfd_create("volwarp-image", os.MFD_CLOEXEC)
+    except OSError:
+        return None
+
+
+def _encode(oiio, path: Path, target: str, ext: str, spec, arr: np.ndarray) -> None:
+    """Write ``arr`` to the file ``target`` in the format of ``ext``, every step's result checked."""
     oiio.geterror()  # drop any stale global error text
-    out = oiio.ImageOutput.create(str(tmp))
+    out = oiio.ImageOutput.create(ext.lstrip("."))  # (by the format's name: target has none)
     if out is None:
         raise VolwarpError(f"{path}: no image writer for {ext!r} ({_oiio_errors(None)})")
     closed = False
     try:
-        if not out.open(str(tmp), spec):
+        if not out.open(target, spec):
             raise VolwarpError(f"{path}: cannot write image ({_oiio_errors(out)})")
         ok = out.write_image(arr)
         if not ok or out.has_error:
@@ -161,34 +239,44 @@ def _write_checked(oiio, path: Path, tmp: Path, spec, arr: np.ndarray) -> None:
             text = out.geterror()
             lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
             # OpenImageIO's TIFF writer reports this on every close (its Exif directory),
-            # with the image complete: the read-back below checks it
+            # with the image complete: the read-back checks it
             if not all(_BENIGN_CLOSE in ln for ln in lines):
                 raise VolwarpError(f"{path}: cannot write image ({lines[0] if lines else text})")
     finally:
         if not closed:
             out.close()
             out.geterror()  # consumed: nothing reported at exit
+
+
+def _sync(path: Path, tmp: Path) -> None:
     try:
         fd = os.open(tmp, os.O_RDONLY)
         try:
             os.fsync(fd)
         finally:
             os.close(fd)
-        size = tmp.stat().st_size
+    except OSError as exc:
+        raise VolwarpError(f"{path}: cannot write image ({exc.strerror or exc})") from exc
+
+
+def _check_encoded(oiio, path: Path, target: str, ext: str, shape) -> None:
+    """The image written to ``target`` is whole: not empty, a PNG's end there, it reads back."""
+    try:
+        size = os.stat(target).st_size
     except OSError as exc:
         raise VolwarpError(f"{path}: cannot write image ({exc.strerror or exc})") from exc
     if size == 0:
         raise VolwarpError(f"{path}: cannot write image (the file written is empty)")
     if ext == ".png":
-        with open(tmp, "rb") as fh:
+        with open(target, "rb") as fh:
             fh.seek(max(0, size - len(_PNG_END)))
             if fh.read() != _PNG_END:
                 raise VolwarpError(f"{path}: cannot write image (the PNG written is cut "
                                    f"short at {size} bytes: is the disk full?)")
-    _verify_readback(oiio, path, tmp, (h, w, c))
+    _verify_readback(oiio, path, target, tuple(shape))
 
 
-def _verify_readback(oiio, path: Path, tmp: Path, shape: tuple[int, int, int]) -> None:
+def _verify_readback(oiio, path: Path, tmp, shape: tuple[int, int, int]) -> None:
     """Re-open the written image: it must read in full, with the size written."""
     inp = oiio.ImageInput.open(str(tmp))
     if inp is None:

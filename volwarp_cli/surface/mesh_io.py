@@ -164,7 +164,7 @@ def _text_rows(prefix: str, values: np.ndarray, fmt: str, chunk: int = 200_000):
 def _write_obj(mesh: Mesh, fh, notes: list[str]) -> None:
     fh.write(f"# written by volwarp\n# {SPACE_MARK}\n".encode("ascii"))
     for n in notes:
-        fh.write(f"# {n}\n".encode())
+        fh.write(f"# {n}\n".encode("utf-8", "backslashreplace"))  # (a name not UTF-8: escaped)
     fh.write(f"# {mesh.n_vertices} vertices, {mesh.n_faces} triangles\n".encode("ascii"))
     # %.9g keeps a float32 exactly; coordinates are rounded to float32 first
     # so that every format stores the same numbers.
@@ -234,7 +234,7 @@ def _write_vtp(mesh: Mesh, fh, notes: list[str]) -> None:
         "  </PolyData>\n"
         '  <AppendedData encoding="raw">\n   _'
     )
-    fh.write(xml.encode("utf-8"))  # (XML's default encoding: a comment's file name "ä")
+    fh.write(xml.encode("utf-8", "backslashreplace"))  # (UTF-8: a comment names "ä")
     for _, _, nbytes, write in arrays:
         fh.write(np.uint64(nbytes).astype("<u8").tobytes())
         write()

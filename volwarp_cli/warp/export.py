@@ -675,7 +675,8 @@ def write_tfm(fmap: ForwardMap, path: str, meta: dict) -> None:
     meta["volwarp_field"] = "forward"
     meta["volwarp_note"] = ("forward (modelling) map for points: ITK reads it as a resampling "
                             "transform, do not resample the input with it")
-    write_bytes_atomic(path, tfm_text(fmap, meta).encode("ascii"))
+    # (UTF-8: a comment names the input, "ä"; a name that is not UTF-8 is escaped, \udce9)
+    write_bytes_atomic(path, tfm_text(fmap, meta).encode("utf-8", "backslashreplace"))
 
 
 # ---- points files -------------------------------------------------------------------------------
