@@ -30,6 +30,7 @@ Nothing here is imported by the in-memory path; dask and distributed are the
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import sys
@@ -409,12 +410,18 @@ class _LocalCallbacks:
 
 #: key-name prefix of block tasks (see :func:`block_delayed`)
 BLOCK_PREFIX = "volwarp-block-"
+#: between a block task's name and what makes its key unique (see :func:`block_delayed`)
+KEY_MARK = "@@"
+_KEY_TOKEN = f"{os.getpid()}-{os.urandom(6).hex()}"  # (this process's, beside a counter)
+_key_counter = itertools.count()
 
 
 def _key_name(key) -> str:
     name = key[0] if isinstance(key, tuple) else key
     name = str(name)
-    return name[len(BLOCK_PREFIX):] if name.startswith(BLOCK_PREFIX) else name
+    if not name.startswith(BLOCK_PREFIX):
+        return name
+    return name[len(BLOCK_PREFIX):].rsplit(KEY_MARK, 1)[0]
 
 
 def _is_block_key(key) -> bool:
@@ -424,14 +431,22 @@ def _is_block_key(key) -> bool:
 
 def block_delayed(fn: Callable, ident: str, *args, threads: int = 1,
                   memory: int | None = None, **kwargs):
-    """A dask delayed :func:`block_task` named after the block (its progress lines' id)."""
+    """A dask delayed :func:`block_task` named after the block (its progress lines' id).
+
+    Its key is unique to this call: the block's name, then :data:`KEY_MARK`, this
+    process's token and a count. A scheduler hands back the result it holds for
+    a key without running the task again: named by the block alone, a morph's
+    second frame got its first frame's blocks (a LocalCluster kept them: frames
+    of zeros, exit 0) and a mesh's pieces its counting pass's results.
+    """
     import dask
 
     from .runscope import current_run_id
 
+    key = f"{BLOCK_PREFIX}{ident}{KEY_MARK}{_KEY_TOKEN}-{next(_key_counter)}"
     return dask.delayed(block_task, pure=False)(
         fn, ident, *args, threads=threads, memory=memory, origin=os.getpid(),
-        run=current_run_id(), dask_key_name=BLOCK_PREFIX + ident, **kwargs)
+        run=current_run_id(), dask_key_name=key, **kwargs)
 
 
 @contextlib.contextmanager
