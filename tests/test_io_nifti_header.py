@@ -495,3 +495,45 @@ def test_threads_asking_for_nibabel_at_once_all_get_it_whole():
             "assert not errors, errors\n")
     for _ in range(3):
         subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("qcode, gz", [(1, False), (0, False), (1, True)])
+def test_a_negative_pixdim_is_said_and_read_as_nibabel_reads_it(run, tmp_path, qcode, gz):
+    """nibabel takes |pixdim| ("setting to abs"), ITK and SimpleITK mirror the axis: the
+    two place the same voxel apart, and the file was read without a word."""
+    import SimpleITK as sitk
+
+    from volwarp_cli.io import read_volume
+
+    a = np.arange(120, dtype=np.int16).reshape(4, 5, 6)
+    form = np.diag([1.5, 2.0, 2.5, 1.0])
+    form[:3, 3] = [-10, 20, -30]
+    img = nib.Nifti1Image(a, None)
+    img.set_qform(form, qcode)
+    img.set_sform(form, 0)
+    path = tmp_path / "neg.nii"
+    nib.save(img, path)
+    raw = bytearray(path.read_bytes())
+    struct.pack_into("<f", raw, 80, -1.5)
+    if gz:
+        path = tmp_path / "neg.nii.gz"
+        path.write_bytes(gzip.compress(bytes(raw)))
+    else:
+        path.write_bytes(bytes(raw))
+    res = run("info", path)
+    assert res.code == 0
+    assert res.stderr.count("pixdim[1] = -1.5: a voxel size given negative") == 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        want = nib.load(path).affine  # (nibabel's reading: the size, 1.5)
+    vol = read_volume(path)
+    np.testing.assert_allclose(vol.spacing, [1.5, 2.0, 2.5])
+    if qcode:  # (no form: ITK's placement, documented, not nibabel's centred one)
+        lps = np.diag([-1.0, -1.0, 1.0])
+        np.testing.assert_allclose(vol.direction * vol.spacing[None, :], lps @ want[:3, :3],
+                                   atol=1e-6)
+        np.testing.assert_allclose(vol.origin, lps @ want[:3, 3], atol=1e-6)
+    # ITK reads another image: the warning's reason
+    ref = sitk.ReadImage(str(path))
+    assert not np.allclose(ref.TransformIndexToPhysicalPoint((3, 0, 0)),
+                           vol.index_to_world([3, 0, 0]), atol=1e-3)

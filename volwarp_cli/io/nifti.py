@@ -254,6 +254,7 @@ def _check_raw_header(block: bytes | None, where: str) -> None:
         vox = struct.unpack_from(end + "f", block, 108)[0]
         qcode = struct.unpack_from(end + "h", block, 252)[0]
         quat = struct.unpack_from(end + "3f", block, 256)
+        pixdim = struct.unpack_from(end + "3f", block, 80)
         minimum, eps = 352, float(np.finfo(np.float32).eps)
     else:
         if len(block) < 376:
@@ -262,6 +263,7 @@ def _check_raw_header(block: bytes | None, where: str) -> None:
         vox = struct.unpack_from(end + "q", block, 168)[0]
         qcode = struct.unpack_from(end + "i", block, 344)[0]
         quat = struct.unpack_from(end + "3d", block, 352)
+        pixdim = struct.unpack_from(end + "3d", block, 112)
         minimum, eps = 544, float(np.finfo(np.float64).eps)
     if single and not vox >= minimum:  # also NaN
         raise FormatError(f"{where}: NIfTI header field vox_offset is {vox:g}, but the samples "
@@ -275,6 +277,24 @@ def _check_raw_header(block: bytes | None, where: str) -> None:
             raise FormatError(f"{where}: NIfTI qform (qform_code {qcode}) has an invalid "
                               f"quaternion: quatern_b, quatern_c, quatern_d = {b}, {c}, {d} "
                               f"give b^2+c^2+d^2 = {norm2:.6g}, more than 1")
+    _say_negative_pixdim(pixdim, where)
+
+
+def _say_negative_pixdim(pixdim, where: str) -> None:
+    """Say voxel sizes the header gives negative (the standard has them positive).
+
+    nibabel takes their sizes ("setting to abs") before volwarp sees the header,
+    and so volwarp does, while ITK and SimpleITK mirror the axis: the same voxel
+    lies elsewhere in the two. Said once a run for the file.
+    """
+    from ..runscope import first_said
+
+    negative = [f"pixdim[{i + 1}] = {z:g}" for i, z in enumerate(pixdim) if z < 0]
+    if negative and first_said(("negative pixdim", os.path.abspath(where))):
+        log.warning("%s: NIfTI %s: a voxel size given negative; volwarp takes its size, as "
+                    "nibabel does, while ITK and SimpleITK mirror that axis (the image lies "
+                    "elsewhere in them): write the file again with positive pixdim", where,
+                    ", ".join(negative))
 
 
 _LPS = "left-posterior-superior"
