@@ -92,19 +92,27 @@ def test_clipping_is_said_once_a_run_with_what_lay_beyond(caplog):
     from volwarp_cli.runscope import run_scope
 
     ct = np.array([-1147.0, -614.0, -700.4], np.float32)
-    with caplog.at_level("WARNING", logger="volwarp"), run_scope():
+    with caplog.at_level("WARNING", logger="volwarp"), run_scope() as files:
         assert cast_samples(ct, "uint8", what="f_00.nrrd").tolist() == [0, 0, 0]
-        cast_samples(ct, "uint8", what="f_00.nrrd")  # (the next block: said already)
-        cast_samples(ct, "uint8", what="f_01.nrrd")  # (the next frame: said already)
+        # the next block, whose reach widens the run's (said as the run ends: the same
+        # words whatever the cut into blocks and threads, the whole's reach)
+        cast_samples(np.array([300.0, 2.0], np.float32), "uint8", what="f_00.nrrd")
+        cast_samples(ct, "uint8", what="f_01.nrrd")  # (the next frame: one line for both)
         assert cast_samples(np.array([60000, -3], np.int32), "int16", what="o.nrrd").tolist() \
             == [32767, -3]
         assert cast_samples(np.array([0.4, 254.6]), "uint8", what="fits.nrrd").tolist() == [0, 255]
+        assert not caplog.records
+        files.committed.append("f_00.nrrd")  # (its outputs written: a failed run says none)
     lines = [r.getMessage() for r in caplog.records]
-    assert lines == [
-        "warning: f_00.nrrd: samples as low as -1147 lie outside uint8's range [0, 255] and "
-        "are clipped to it",
+    assert sorted(lines) == [
+        "warning: f_00.nrrd: samples as low as -1147 and as high as 300 lie outside uint8's "
+        "range [0, 255] and are clipped to it",
         "warning: o.nrrd: samples as high as 60000 lie outside int16's range [-32768, 32767] "
         "and are clipped to it"], lines
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="volwarp"), run_scope():
+        cast_samples(ct, "uint8", what="failed.nrrd")
+    assert not caplog.records
     caplog.clear()
     with caplog.at_level("WARNING", logger="volwarp"):  # (no run: a script's calls)
         cast_samples(ct, "uint8", what="a")
@@ -194,3 +202,35 @@ def test_apply_by_blocks_in_other_processes_names_its_output_once(run, tmp_path)
                     "outside int8's range [-128, 127] and are clipped to it"], r.stderr
     out = read_volume(tmp_path / "o.nrrd").data
     assert out.max() == 127 and out[:, :, 0].max() == 0
+
+
+def test_the_same_warnings_whatever_the_blocks_and_the_processes(run, tmp_path):
+    """The clipping warning named the reach of the first block (or thread's part) that
+    clipped: its words changed with the cut and from run to run (-609, -595, -486 for one
+    warp). A worker process's cast notes never came back: "rounded away" went unsaid
+    with --scheduler processes. Both are now the whole output's, said once at the end."""
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    z, y, x = np.indices((20, 22, 24), dtype=np.float32)
+    r = np.sqrt((x - 11) ** 2 + (y - 10) ** 2 + (z - 9) ** 2)
+    src = tmp_path / "mask.nrrd"
+    write_volume(Volume((r <= 6).astype(np.float32), spacing=(0.9, 1.1, 1.6)), src)
+    ways = ([], ["--chunked", "--block", "3,5,7"],
+            ["--chunked", "--block", "5,22,24", "--scheduler", "processes", "--threads", "2"])
+    assert run("distance", src, "--iso", "0.5", "-o", tmp_path / "f.nrrd").code == 0
+    from volwarp_cli.io import read_volume
+
+    low = float(np.rint(read_volume(tmp_path / "f.nrrd").data.min()))  # (the whole's)
+    assert low < -1
+    for options, want in ((["--dtype", "uint8"], f"samples as low as {low:g} lie outside uint8"),
+                          (["--dtype", "int8", "--max-distance", "1.5"],
+                           "became 5 integer values (-2 to 2) as int8")):
+        said = set()
+        for way in ways:
+            res = run("distance", src, "--iso", "0.5", "-o", tmp_path / "d.nrrd", *options, *way)
+            assert res.code == 0, res.stderr
+            lines = [ln for ln in res.stderr.splitlines() if "warning" in ln]
+            assert len(lines) == 1 and want in lines[0], (way, res.stderr)
+            said.add(lines[0])
+        assert len(said) == 1, said

@@ -140,6 +140,8 @@ class BlockStats:
     value: object = None
     #: the warnings the task said in another process than the command's: ``(key, message)``
     said: tuple = ()
+    #: what its casts noted there, judged with the command's (:func:`.samples.run_notes`)
+    notes: tuple = ()
 
 
 def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | None = None,
@@ -173,8 +175,13 @@ def block_task(fn: Callable, ident: str, *args, threads: int = 1, memory: int | 
             if said:
                 exc.volwarp_said = tuple(said)
             raise
+        notes = ()
+        if origin is not None and os.getpid() != origin:  # (its own run: notes go back)
+            from .samples import run_notes
+
+            notes = run_notes()
     return BlockStats(ident, time.perf_counter() - start, peak_rss(),
-                      value if keep else None, tuple(said))
+                      value if keep else None, tuple(said), notes)
 
 
 _capture = threading.local()
@@ -219,16 +226,19 @@ def _said_here(capture: bool):
 
 
 def say_once(results) -> None:
-    """The warnings block tasks said in other processes, each key once per run.
+    """The warnings block tasks said in other processes, each key once per run (their
+    casts' notes merged into the run's, judged at its end).
 
     ``results``: :class:`BlockStats`, or a failed task's exception (its
     ``volwarp_said``: what the block said before it failed).
     """
     from .progress import log
     from .runscope import run_files
+    from .samples import merge_notes
 
     done = run_files().said
     for stats in results:
+        merge_notes(getattr(stats, "notes", ()))
         for key, message in getattr(stats, "said", getattr(stats, "volwarp_said", ())):
             if key not in done:
                 done.add(key)

@@ -88,7 +88,7 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
             _note_rounding(what, dt, data, out, low, high)
             if low >= info.min and high <= info.max:  # (Python's float-int order: exact)
                 return out.astype(dt)
-            _say_clipped(what, dt, low, high)
+            _note_clipped(what, dt, low, high)
             lo, hi = _float_bounds(out.dtype, info)
             if float(lo) == info.min and float(hi) == info.max:  # (the range exact here)
                 np.clip(out, lo, hi, out=out)
@@ -106,7 +106,7 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
         low, high = (int(data.min()), int(data.max())) if data.size else (0, 0)
         if low >= info.min and high <= info.max:
             return data.astype(dt)
-        _say_clipped(what, dt, low, high)
+        _note_clipped(what, dt, low, high)
         return np.clip(data, info.min, info.max).astype(dt)
     if dt == np.float32 and data.dtype == np.float64:
         with np.errstate(over="ignore"):
@@ -138,20 +138,14 @@ def _note_rounding(what: str, dt: np.dtype, data, rounded, low, high) -> None:
     warp's edge holds 0..3 of a 0..255 field). Outside a run (the API), each
     call is judged alone.
     """
-    from .runscope import at_run_end, in_run, run_files
+    from .runscope import in_run
 
     if not in_run():
         if high - low < FEW_LEVELS and not np.array_equal(data, rounded):
             _say_rounded_away(what, dt, low, high)
         return
-    files = run_files()
-    key = ("rounding", what, dt.name)
+    seen = _gathered(("rounding", what, dt.name), [low, high, False])
     with _rounding_lock:  # (the threads of a run cast their planes at once)
-        seen = files.decided.get(key)
-        if seen is None:
-            seen = files.decided[key] = [low, high, False]
-            at_run_end(lambda: _rounded_at_end(what, dt, seen, files))
-        seen[0], seen[1] = min(seen[0], low), max(seen[1], high)
         look = not seen[2] and seen[1] - seen[0] < FEW_LEVELS  # (a wide output: no more)
     if look and not np.array_equal(data, rounded):
         with _rounding_lock:
@@ -160,12 +154,79 @@ def _note_rounding(what: str, dt: np.dtype, data, rounded, low, high) -> None:
 
 _rounding_lock = threading.Lock()
 
+#: the kinds of :func:`_gathered` notes: a run's casts, judged or said at its end
+_NOTE_KINDS = ("rounding", "clipped")
 
-def _rounded_at_end(what: str, dt: np.dtype, seen, files) -> None:
-    """At the run's end: :func:`_say_rounded_away` if its outputs were written (``files``'s run)."""
-    low, high, fractions = seen
-    if fractions and high - low < FEW_LEVELS and files.committed:
-        _say_rounded_away(what, dt, low, high, files.said)
+
+def _gathered(key: tuple, note: list) -> list:
+    """The run's note ``key`` (``[low, high, flag, ...]``), ``note`` merged into it.
+
+    The first of a key in a run is kept (and judged at the run's end,
+    :func:`_note_at_end`); a later one widens its reach and ors its flag.
+    """
+    from .runscope import at_run_end, run_files
+
+    files = run_files()
+    with _rounding_lock:
+        seen = files.decided.get(key)
+        if seen is None:
+            seen = files.decided[key] = list(note)
+            at_run_end(lambda: _note_at_end(key, seen, files))
+        else:
+            seen[0], seen[1] = min(seen[0], note[0]), max(seen[1], note[1])
+            seen[2] = seen[2] or note[2]
+    return seen
+
+
+def run_notes() -> tuple:
+    """The current run's cast notes, ``((key, note), ...)``: a block task in another
+    process sends them back with its result (:func:`merge_notes` in the command's).
+    """
+    from .runscope import run_files
+
+    with _rounding_lock:
+        return tuple((key, list(note)) for key, note in run_files().decided.items()
+                     if isinstance(key, tuple) and key and key[0] in _NOTE_KINDS)
+
+
+def merge_notes(notes) -> None:
+    """Merge notes from :func:`run_notes` into the current run (judged at its end)."""
+    for key, note in notes:
+        _gathered(tuple(key), note)
+
+
+def _note_at_end(key: tuple, seen: list, files) -> None:
+    """At the run's end, if its outputs were written (``files``'s run): say what a note holds.
+
+    A run of its own in a worker process writes nothing: its notes went back to
+    the command with its blocks (:func:`run_notes`), judged there.
+    """
+    if not files.committed:
+        return
+    if key[0] == "rounding":
+        _, what, name = key
+        low, high, fractions = seen
+        if fractions and high - low < FEW_LEVELS:
+            _say_rounded_away(what, np.dtype(name), low, high, files.said)
+    else:
+        _, name = key
+        low, high, _, what = seen
+        _say_clipped(what, np.dtype(name), low, high)
+
+
+def _note_clipped(what: str, dt: np.dtype, low, high) -> None:
+    """Note samples from ``low`` to ``high`` clipped to ``dt`` for ``what``.
+
+    In a run, the reach over all its casts to ``dt`` (every block and thread of
+    every output: the first output named) is said once at its end, the same
+    words whatever the cut into blocks; outside a run (the API), at once.
+    """
+    from .runscope import in_run
+
+    if not in_run():
+        _say_clipped(what, dt, low, high)
+        return
+    _gathered(("clipped", dt.name), [low, high, True, what])
 
 
 def _say_rounded_away(what: str, dt: np.dtype, low, high, said=None) -> None:
@@ -190,21 +251,14 @@ def _say_rounded_away(what: str, dt: np.dtype, low, high, said=None) -> None:
 def _say_clipped(what: str, dt: np.dtype, low, high) -> None:
     """Warn that samples from ``low`` to ``high`` were clipped to ``dt`` for ``what``.
 
-    Once a command's run for each type, naming the first output it happened
-    to (a morph's 100 frames: one line, not 100); a cast by blocks says the
-    reach of the first block with any, not the whole's. Outside a run (the
-    API), every time.
+    Said once a command's run for each type (:func:`_note_clipped` gathers the
+    reach of all its casts first), naming the first output it happened to (a
+    morph's 100 frames: one line, not 100). Outside a run (the API), every time.
     """
     from .progress import log
-    from .runscope import in_run, run_files
 
     info = np.iinfo(dt)
     key = ("clipped", dt.name)
-    if in_run():
-        said = run_files().said
-        if key in said:
-            return
-        said.add(key)
     beyond = [f"as low as {float(low):.10g}"] if low < info.min else []
     beyond += [f"as high as {float(high):.10g}"] if high > info.max else []
     log.warning("warning: %s: samples %s lie outside %s's range [%d, %d] and are clipped to "
