@@ -226,9 +226,9 @@ def _said_here(capture: bool):
 
 
 def say_once(results) -> None:
-    """The warnings block tasks said in other processes, each key once per run (their
-    casts' notes merged into the run's, judged at its end).
+    """The warnings block tasks said in other processes, each key once per run.
 
+    Their casts' notes are merged into the run's (judged at its end).
     ``results``: :class:`BlockStats`, or a failed task's exception (its
     ``volwarp_said``: what the block said before it failed).
     """
