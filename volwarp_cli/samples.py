@@ -179,8 +179,10 @@ def _gathered(key: tuple, note: list) -> list:
 
 
 def run_notes() -> tuple:
-    """The current run's cast notes, ``((key, note), ...)``: a block task in another
-    process sends them back with its result (:func:`merge_notes` in the command's).
+    """The current run's cast notes, ``((key, note), ...)``.
+
+    A block task in another process sends them back with its result
+    (:func:`merge_notes` in the command's).
     """
     from .runscope import run_files
 
