@@ -199,3 +199,31 @@ def test_a_volumetric_tiled_page_is_read(tmp_path):
     path = tmp_path / "vol.tif"
     tifffile.imwrite(path, data, tile=(4, 16, 16), volumetric=True)
     np.testing.assert_array_equal(_both(path).data, data)
+
+
+def test_a_calibration_changed_by_another_program_is_read_and_said(run, tmp_path):
+    """volwarp stores its exact spacing beside the resolution tags and ImageJ's spacing; a
+    program that recalibrates the stack (Fiji) keeps the key/values it does not know, and
+    the stale copy overrode the calibration Fiji shows (0.9055 mm read for 0.75, exit 0)."""
+    import tifffile
+
+    from volwarp_cli.io import read_volume, write_volume
+    from volwarp_cli.volume import Volume
+
+    data = np.random.default_rng(0).random((6, 7, 8), dtype=np.float32)
+    first = tmp_path / "a.tif"
+    write_volume(Volume(data, spacing=(0.9055, 0.9055, 2.0), origin=(1.0, 2.0, 3.0)), first)
+    assert run("info", first).stderr == ""  # (its own file: the exact copy, nothing said)
+    with tifffile.TiffFile(first) as tif:
+        md = dict(tif.imagej_metadata)
+    for key in ("ImageJ", "images", "slices", "hyperstack", "mode"):
+        md.pop(key, None)
+    md.update(spacing=5.0, axes="ZYX")
+    edited = tmp_path / "edited.tif"
+    tifffile.imwrite(edited, data, imagej=True, resolution=(1 / 0.75, 1 / 0.75), metadata=md)
+    vol = read_volume(edited)
+    np.testing.assert_allclose(vol.spacing, (0.75, 0.75, 5.0), rtol=1e-6)
+    np.testing.assert_array_equal(vol.origin, (1.0, 2.0, 3.0))  # (no calibration of its own)
+    res = run("info", edited)
+    assert res.code == 0
+    assert "is not the spacing volwarp stored with it (0.9055 0.9055 2 mm)" in res.stderr

@@ -36,6 +36,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import re
 import struct
@@ -640,8 +641,16 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
             if num > 0 and den > 0:
                 spacing[axis] = scale * den / num
     if "volwarp_spacing" in extra:
-        spacing = _floats(extra["volwarp_spacing"], 3, where, "volwarp_spacing")
-        names = ["volwarp_spacing"] * 3
+        stored = _floats(extra["volwarp_spacing"], 3, where, "volwarp_spacing")
+        if _calibration_disagrees(stored, spacing, names, tags, ij):
+            log.warning("%s: the stack's calibration (%s mm) is not the spacing volwarp stored "
+                        "with it (%s mm): another program changed it after volwarp wrote the "
+                        "file, so the calibration is read", where,
+                        " ".join(f"{v:.6g}" for v in spacing),
+                        " ".join(f"{v:.6g}" for v in stored))
+        else:
+            spacing = stored
+            names = ["volwarp_spacing"] * 3
     elif "spacing" in extra and not ij and not isinstance(extra["spacing"], (int, float)):
         spacing = _floats(extra["spacing"], 3, where, "spacing")
         names = ["spacing"] * 3
@@ -674,6 +683,26 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
         fields={"spacing": names, "origin": "volwarp_origin", "direction": "volwarp_direction"})
     return {"spacing": spacing, "origin": origin, "direction": direction, "space": space,
             "meta": meta}
+
+
+#: how far (relatively) a stack's calibration may be from the spacing volwarp stored with
+#: it and still be the same: the resolution tags are ratios of 32-bit integers
+_CALIBRATION_RTOL = 1e-5
+
+
+def _calibration_disagrees(stored, calibrated, names, tags, ij) -> bool:
+    """Whether the spacing a TIFF's own tags give differs from volwarp's exact copy of it.
+
+    volwarp writes both (the exact numbers, and the resolution tags and ImageJ
+    ``spacing`` that Fiji reads); a program that changes the calibration keeps
+    the key/values it does not know. Only the axes whose calibration the file
+    holds are compared (a plain stack has no z spacing).
+    """
+    held = [("XResolution" in tags) and names[0] == "XResolution",
+            ("YResolution" in tags) and names[1] == "YResolution",
+            bool(ij) and names[2] == "ImageJ spacing"]
+    return any(h and not math.isclose(float(a), float(b), rel_tol=_CALIBRATION_RTOL)
+               for h, a, b in zip(held, stored, calibrated, strict=True))
 
 
 def _imagej_origin(ij, spacing, where: str) -> list[float]:
