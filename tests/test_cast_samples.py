@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -234,3 +235,29 @@ def test_the_same_warnings_whatever_the_blocks_and_the_processes(run, tmp_path):
             assert len(lines) == 1 and want in lines[0], (way, res.stderr)
             said.add(lines[0])
         assert len(said) == 1, said
+
+
+def test_integers_a_float_type_cannot_hold_are_said(caplog):
+    """int32 samples beyond 2**24 cast to float32 were rounded (by up to 64) without a word;
+    those the type holds exactly (2**24, 4e9) say nothing, nor do the label ids it holds."""
+    from volwarp_cli.errors import BadUsage
+    from volwarp_cli.labelmap import refuse_merged_ids
+
+    values = np.array([-2**31, 2**24 + 1, 123456789, 7], np.int32)
+    with caplog.at_level("WARNING", logger="volwarp"):
+        out = cast_samples(values, "float32", what="ct.nrrd")
+        assert out.dtype == np.float32
+        worst = int(np.abs(out.astype(np.float64) - values.astype(np.float64)).max())
+        assert worst == 3  # (123456789 -> 123456792)
+        cast_samples(np.array([2**24, -2**24, 4_000_000_000], np.int64).astype(np.uint32)[:2],
+                     "float32", what="exact.nrrd")
+        cast_samples(np.array([4_000_000_000], np.uint32), "float32", what="exact2.nrrd")
+        cast_samples(values, "float64", what="wide.nrrd")
+    assert [r.getMessage() for r in caplog.records] == [
+        "warning: ct.nrrd: integer samples beyond +/-16777216 are not all float32 numbers and "
+        "were rounded to the nearest, by up to 3; keep an integer type (or float64), or scale "
+        "them first"]
+    refuse_merged_ids(np.array([0, 4_000_000_000], np.uint32), "float32", "ok.nrrd")
+    with pytest.raises(BadUsage, match="label ids 4000000001 "):
+        refuse_merged_ids(np.array([0, 4_000_000_000, 4_000_000_001], np.uint32), "float32",
+                          "lab.nrrd")

@@ -243,8 +243,9 @@ def refuse_merged_ids(ids, dtype, name: str, option: str = "--dtype") -> None:
     if dt.kind in "iu":
         info = np.iinfo(dt)
         lost = ids[(ids < info.min) | (ids > info.max)]
-    else:
-        lost = ids[np.abs(ids) > 2.0 ** (np.finfo(dt).nmant + 1)]
+    else:  # (exactly: 4000000000 is a float32, 4000000001 is not)
+        big = ids[np.abs(ids) > 2.0 ** (np.finfo(dt).nmant + 1)]
+        lost = big[[int(v) != int(dt.type(v)) for v in big.tolist()]]
     if lost.size:
         shown = ", ".join(f"{v:.17g}" for v in lost[:3].tolist())
         more = f" and {lost.size - 3} more" if lost.size > 3 else ""

@@ -119,7 +119,48 @@ def cast_samples(data: np.ndarray, dtype, *, what: str = "volume") -> np.ndarray
                                "and would become infinite: keep float64 (--dtype float64) "
                                "or scale them first")
         return out
+    if dt.kind == "f" and data.dtype.kind in "iu" and data.size:
+        return _integers_as_floats(data, dt, what)
     return data.astype(dt)
+
+
+def _integers_as_floats(data: np.ndarray, dt: np.dtype, what: str) -> np.ndarray:
+    """Integer samples as floats of ``dt``; those the floats cannot hold exactly are noted.
+
+    float32 holds every integer up to 2**24 (16,777,216), float64 up to 2**53:
+    an int32 CT or label count beyond that was rounded without a word (by up to
+    64 from int32 to float32). Said once a run (:func:`_note_inexact`).
+    """
+    out = data.astype(dt)
+    exact = 2 ** (np.finfo(dt).nmant + 1)
+    low, high = int(data.min()), int(data.max())
+    if -exact <= low and high <= exact:
+        return out
+    # (the sample types are at most 32-bit integers: float64 holds them, and the error)
+    worst = float(np.abs(out.astype(np.float64) - data.astype(np.float64)).max())
+    if worst > 0:
+        _note_inexact(what, dt, worst)
+    return out
+
+
+def _note_inexact(what: str, dt: np.dtype, worst: int) -> None:
+    """Note integer samples rounded to the nearest ``dt``, by up to ``worst``; said once a run."""
+    from .runscope import in_run
+
+    if not in_run():
+        _say_inexact(what, dt, worst)
+        return
+    _gathered(("inexact", dt.name), [-worst, worst, True, what])
+
+
+def _say_inexact(what: str, dt: np.dtype, worst) -> None:
+    from .progress import log
+
+    exact = 2 ** (np.finfo(dt).nmant + 1)
+    log.warning("warning: %s: integer samples beyond +/-%d are not all %s numbers and were "
+                "rounded to the nearest, by up to %d; keep an integer type (or float64), or "
+                "scale them first", what, exact, dt.name, int(worst),
+                extra={"once": ("inexact", dt.name)})
 
 
 #: fewer integer levels than this between a float cast's extremes: its fractions may be
@@ -155,7 +196,7 @@ def _note_rounding(what: str, dt: np.dtype, data, rounded, low, high) -> None:
 _rounding_lock = threading.Lock()
 
 #: the kinds of :func:`_gathered` notes: a run's casts, judged or said at its end
-_NOTE_KINDS = ("rounding", "clipped")
+_NOTE_KINDS = ("rounding", "clipped", "inexact")
 
 
 def _gathered(key: tuple, note: list) -> list:
@@ -210,6 +251,9 @@ def _note_at_end(key: tuple, seen: list, files) -> None:
         low, high, fractions = seen
         if fractions and high - low < FEW_LEVELS:
             _say_rounded_away(what, np.dtype(name), low, high, files.said)
+    elif key[0] == "inexact":
+        _, name = key
+        _say_inexact(seen[3], np.dtype(name), seen[1])
     else:
         _, name = key
         low, high, _, what = seen
