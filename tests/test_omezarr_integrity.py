@@ -287,3 +287,25 @@ def test_auto_by_blocks_is_the_whole_arrays(block):
         boxes = list(grid_boxes(data.shape, block))
         assert looks_like_labels_by_blocks(data, boxes) == \
             looks_like_labels(data)
+
+
+def test_a_store_named_by_a_link_is_replaced_and_nothing_left_beside_it(run, tmp_path):
+    """The link swapped aside was left as a hidden ``.NAME.vw-...partdir`` (exit 0): the
+    removal of a tree refused a link, its error ignored. The link's target is untouched,
+    and the name holds the new store, as an output file named by a link is replaced."""
+    src = tmp_path / "in.nrrd"
+    first = Volume(np.arange(60, dtype=np.float32).reshape(3, 4, 5))
+    write_volume(first, src)
+    target = tmp_path / "store.ome.zarr"
+    assert run("convert", src, "-o", target).code == 0
+    link = tmp_path / "cur.ome.zarr"
+    link.symlink_to(target.name)
+    second = tmp_path / "second.nrrd"
+    write_volume(first.with_data(first.data * 2), second)
+    res = run("convert", second, "-o", link)
+    assert res.code == 0, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "cur.ome.zarr", "in.nrrd", "second.nrrd", "store.ome.zarr"]
+    assert not link.is_symlink()
+    np.testing.assert_array_equal(read_volume(link).data, first.data * 2)
+    np.testing.assert_array_equal(read_volume(target).data, first.data)

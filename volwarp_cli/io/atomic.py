@@ -419,9 +419,18 @@ def _chmod_tree(root: str) -> None:
 
 
 def _remove_tree(root) -> None:
-    """Remove a temporary folder (again, if a writer thread still added files meanwhile)."""
+    """Remove a temporary folder (again, if a writer thread still added files meanwhile).
+
+    A link is removed, not followed: an output store named by a link is replaced
+    by the new store, as an output file named by one is by the new file, and the
+    link, swapped aside, was left behind (rmtree refuses links; its error ignored).
+    """
     import shutil
 
+    if os.path.islink(root):
+        with contextlib.suppress(OSError):
+            os.unlink(root)
+        return
     for _ in range(5):
         shutil.rmtree(root, ignore_errors=True)
         if not os.path.lexists(root):
