@@ -221,3 +221,30 @@ def test_a_render_named_in_no_utf8_is_written(tmp_path, ball_file):
         runs[out.name] = out.read_bytes()
     assert runs[name] == runs["plain.png"]
     assert runs[name].endswith(PNG_END)
+
+
+def test_long_output_names_are_written_or_refused_before_the_work(run, tmp_path, ball_file):
+    """A legal name of 220-255 bytes failed after the work (its temporary's name, 40 bytes
+    longer, too long to make; the error named the temporary); a name over 255 bytes too."""
+    from volwarp_cli.io import atomic
+
+    for n in (222, 250):
+        out = tmp_path / ("d" * (n - 5) + ".nrrd")
+        res = run("distance", ball_file, "--iso", "50", "-o", out)
+        assert res.code == 0, res.stderr
+        assert out.exists()
+        store = tmp_path / ("z" * (n - 9) + ".ome.zarr")
+        assert run("convert", ball_file, "-o", store).code == 0
+        assert store.is_dir()
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert not [m for m in names if ".vw-" in m]
+    # a dead process's temporary of a long name is cleaned by the next write, as a short one's
+    out = tmp_path / ("d" * 245 + ".nrrd")
+    stale = tmp_path / f".{atomic._temporary_stem(out.name)}.vw-4194303@{atomic._host()}.abcdefgh.part.nrrd"
+    stale.write_bytes(b"left by a killed run")
+    assert run("distance", ball_file, "--iso", "50", "-o", out).code == 0
+    assert not stale.exists()
+    too_long = tmp_path / ("e" * 251 + ".nrrd")
+    res = run("distance", ball_file, "--iso", "50", "-o", too_long)
+    assert res.code == 2 and "the name is 256 bytes, more than the 255" in res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == names

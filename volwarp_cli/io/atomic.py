@@ -168,6 +168,11 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
         raise VolwarpError(f"{path}: output folder {str(folder)!r} does not exist")
     if not os.access(folder, os.W_OK):
         raise VolwarpError(f"{path}: output folder {str(folder)!r} is not writable")
+    longest = _name_max(folder)
+    if len(os.fsencode(path.name)) > longest:  # (else the work ran, and its rename failed)
+        raise BadUsage(f"{option + ' ' if option else ''}{path}: the name is "
+                       f"{len(os.fsencode(path.name))} bytes, more than the {longest} a file "
+                       "name may have there: choose a shorter name")
     if is_folder_output(path):
         if path.is_dir() and not is_zarr_store(path):
             raise VolwarpError(f"{path}: is a folder that is not a Zarr store; volwarp "
@@ -623,7 +628,33 @@ def _make_temporary(prefix: str, suffix: str, folder) -> tuple[int, str]:
 
 def _temporary_prefix(name: str) -> str:
     """``.NAME.vw-PID@HOST.``: a temporary says whose it is (8 random characters follow)."""
-    return f".{name}.vw-{os.getpid()}@{_host()}."
+    return f".{_temporary_stem(name)}.vw-{os.getpid()}@{_host()}."
+
+
+def _name_max(folder) -> int:
+    """The longest file name, in bytes, the file system of ``folder`` takes (255 where unsaid)."""
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
+
+
+def _temporary_stem(name: str) -> str:
+    """The output's name as its temporaries carry it: whole, or cut and hashed where long.
+
+    A temporary adds about 40 bytes to the name (its owner, a random part, the
+    extension again): an output name of 220 to 255 bytes, legal itself, had
+    temporaries too long to make, a failure after the work, naming the temporary.
+    """
+    raw = os.fsencode(name)
+    # (a pid's room is its most digits, so that every process cuts a name the same way)
+    room = 255 - len(os.fsencode(f"..vw-{'9' * 7}@{_host()}.")) - 8 - 24
+    if len(raw) <= room:
+        return name
+    from _blake2 import blake2b
+
+    digest = blake2b(raw, digest_size=8).hexdigest()
+    return os.fsdecode(raw[:max(room - 17, 1)]) + "~" + digest
 
 
 def _remove_stale_temporaries(path: Path) -> None:
@@ -635,9 +666,11 @@ def _remove_stale_temporaries(path: Path) -> None:
     longer exists are removed: never another host's (a shared folder), a
     live process's, or anything else.
     """
-    pattern = re.compile(re.escape(f".{path.name}.vw-") + r"(\d+)@" + re.escape(_host())
+    pattern = re.compile(re.escape(f".{_temporary_stem(path.name)}.vw-") + r"(\d+)@"
+                         + re.escape(_host())
                          + r"\.[A-Za-z0-9_]{8}\.part")
-    folders = re.compile(re.escape(f".{path.name}.vw-") + r"(\d+)@" + re.escape(_host())
+    folders = re.compile(re.escape(f".{_temporary_stem(path.name)}.vw-") + r"(\d+)@"
+                         + re.escape(_host())
                          + r"\.[A-Za-z0-9_]{8}\.(partdir|old|gone|scratch)$")
     try:
         names = os.listdir(path.parent if str(path.parent) else ".")
