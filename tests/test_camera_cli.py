@@ -99,3 +99,25 @@ def test_sweep_and_morph_write_and_reuse_cameras(run, tmp_path):
     for i in range(2):
         assert np.array_equal(read_image(tmp_path / f"f_{i}.png"),
                               read_image(tmp_path / f"g_{i}.png"))
+
+
+def test_a_camera_file_with_a_key_twice_is_refused_and_a_bom_read(run, blob, tmp_path):
+    """A key given twice was last-wins (a render came out tiny, exit 0) while the YAML specs
+    refuse it; a byte-order mark was refused while the specs read it."""
+    cam = tmp_path / "cam.json"
+    assert run("mesh", blob, "--iso", "100", "--render", tmp_path / "a.png",
+               "--camera-to", cam).code == 0
+    text = cam.read_text()
+    twice = tmp_path / "twice.json"
+    twice.write_text(text.replace('"parallel_scale":', '"parallel_scale": 0.5, "parallel_scale":',
+                                  1))
+    res = run("mesh", blob, "--iso", "100", "--render", tmp_path / "b.png", "--camera-from",
+              twice)
+    assert res.code == 2
+    assert "'parallel_scale' is given twice" in res.stderr and str(twice) in res.stderr
+    assert not (tmp_path / "b.png").exists()
+    bom = tmp_path / "bom.json"
+    bom.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    res = run("mesh", blob, "--iso", "100", "--render", tmp_path / "c.png", "--camera-from", bom)
+    assert res.code == 0, res.stderr
+    assert np.array_equal(read_image(tmp_path / "a.png"), read_image(tmp_path / "c.png"))

@@ -303,15 +303,32 @@ def read_camera(path: str | os.PathLike) -> Camera:
     if len(raw) > _MAX_FILE_BYTES:
         raise CameraError("too large for a camera file (over 1 MiB)", file=where)
     try:
-        text = raw.decode("utf-8")
+        text = raw.decode("utf-8-sig")  # (a byte-order mark, as the YAML specs take it)
     except UnicodeDecodeError:
         raise CameraError("not a camera file (not UTF-8 text)", file=where) from None
     try:
-        d = json.loads(text)
+        d = json.loads(text, object_pairs_hook=_distinct_keys)
     except json.JSONDecodeError as exc:
         raise CameraError(f"not valid JSON: {exc.msg} (column {exc.colno})", file=where,
                           line=exc.lineno) from None
+    except _RepeatedKey as exc:
+        raise CameraError(f"the key {exc.args[0]!r} is given twice (which one is meant?)",
+                          file=where) from None
     return Camera.from_dict(d, file=where)
+
+
+class _RepeatedKey(ValueError):
+    """A JSON object with a key twice (json keeps the last without a word)."""
+
+
+def _distinct_keys(pairs) -> dict:
+    """A JSON object's dict; :class:`_RepeatedKey` for a key given twice, as the specs refuse."""
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise _RepeatedKey(key)
+        out[key] = value
+    return out
 
 
 def bounds_of(points) -> np.ndarray | None:
