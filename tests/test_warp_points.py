@@ -232,3 +232,15 @@ def test_a_points_file_of_no_point_is_written_as_empty(run, setup, tmp_path, nam
         assert out.read_text().splitlines() == ["x,y,z,label"]
     else:
         assert json.loads(out.read_text())["markups"][0]["controlPoints"] == []
+
+
+def test_a_points_file_naming_a_coordinate_twice_is_refused(run, setup, tmp_path):
+    """``x,y,z,x``: the first x was moved and the second passed through unchanged (exit 0)."""
+    vol, src, spec, froms, _ = setup
+    pin = tmp_path / "p.csv"
+    p = froms[0]
+    pin.write_text(f"x,y,z,X\n{p[0]!r},{p[1]!r},{p[2]!r},{p[0] + 1!r}\n")
+    res = run("warp", src, "--spec", spec, "--points-in", pin, "--points-to", tmp_path / "q.csv")
+    assert res.code == 1
+    assert "names column 'x' 2 times" in res.stderr
+    assert not (tmp_path / "q.csv").exists()

@@ -719,6 +719,10 @@ def _read_csv(path, text) -> PointsFile:
     except ValueError:
         raise VolwarpError(f"{path}: the header has no x, y, z columns (got "
                            f"{', '.join(rows[0])[:60]!r})") from None
+    twice = [k for k in ("x", "y", "z") if header.count(k) > 1]
+    if twice:  # (the first was moved, the second passed through as it was: which is meant?)
+        raise VolwarpError(f"{path}: the header names column {twice[0]!r} "
+                           f"{header.count(twice[0])} times: which one is the point's?")
     pts = np.empty((len(rows) - 1, 3))
     for n, row in enumerate(rows[1:]):
         try:
