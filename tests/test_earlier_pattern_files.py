@@ -62,6 +62,7 @@ def test_a_morphs_frames_and_a_label_meshes_pattern_are_checked_too(run, tmp_pat
         res = run("morph", a, b, "--iso", "0.5", "--frames", str(frames), "-o", out)
         assert res.code == 0, res.stderr
     assert "m_3.nrrd, m_4.nrrd match the pattern" in res.stderr
+    assert res.stderr.count("match the pattern") == 1  # (it was said for -o and --output)
     seg = np.zeros((20, 20, 20), np.uint8)
     seg[3:8, 3:8, 3:8], seg[10:16, 10:16, 10:16] = 1, 2
     write_volume(Volume(seg), tmp_path / "s.nrrd")

@@ -386,7 +386,10 @@ def say_earlier_pattern_files() -> None:
     Not removed (they are files the user may want): said, with the way out.
     """
     files = run_files()
-    for pattern, option in dict.fromkeys(files.patterns):
+    first = {}  # (a pattern noted twice, under its two spellings -o and --output: once)
+    for pattern, option in files.patterns:
+        first.setdefault(pattern, option)
+    for pattern, option in first.items():
         left = earlier_pattern_files(pattern, files.committed)
         if not left:
             continue
