@@ -248,3 +248,18 @@ def test_long_output_names_are_written_or_refused_before_the_work(run, tmp_path,
     res = run("distance", ball_file, "--iso", "50", "-o", too_long)
     assert res.code == 2 and "the name is 256 bytes, more than the 255" in res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == names
+
+
+def test_an_output_name_ending_in_a_slash_is_refused_but_a_stores(run, tmp_path, ball_file):
+    """``-o out.nrrd/`` wrote the file ``out.nrrd`` without a word (a slash names a folder:
+    ``-o scans/`` made a file named ``scans``); a store is a folder and may end in one."""
+    for args in (["convert", ball_file, "-o", f"{tmp_path / 'new.nrrd'}/"],
+                 ["mesh", ball_file, "--iso", "50", "-o", f"{tmp_path / 'm.ply'}/"],
+                 ["capture", ball_file, "-o", f"{tmp_path / 'c.vwc'}/"],
+                 ["distance", ball_file, "--iso", "50", "-o", f"{tmp_path / 'scans'}/"]):
+        res = run(*args)
+        assert res.code == 2, (args, res.stderr)
+        assert "ends in a slash, which names a folder" in res.stderr
+    res = run("convert", ball_file, "-o", f"{tmp_path / 'st.ome.zarr'}/")
+    assert res.code == 0, res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ball.nrrd", "st.ome.zarr"]

@@ -19,6 +19,7 @@ from .options import (
     common_options,
     core_parser,
     examples,
+    file_name_checked,
     finite,
     input_options,
     option,
@@ -91,7 +92,7 @@ def _format_stats(d: dict) -> str:
 ))
 @click.argument("input", type=INPUT_PATH)
 @click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
-              callback=core_parser(mesh_path),
+              callback=file_name_checked(core_parser(mesh_path)),
               help="Mesh file: .ply .stl .obj .vtp .vtk (binary where the format has it). "
                    "May be left out when --render or --stats is given.")
 @click.option("--iso", type=float, default=None, callback=finite,

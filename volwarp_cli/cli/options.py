@@ -301,6 +301,29 @@ def _volume_output(ctx, param, value):
     return value
 
 
+def file_name_checked(callback):
+    """``callback`` after a check that the output names a file, not a folder (``out.nrrd/``).
+
+    A trailing slash says a folder: ``-o out.nrrd/`` wrote the file ``out.nrrd``
+    without a word, and ``-o scans/`` a file named ``scans``. An OME-Zarr store
+    is a folder: its name may end in one.
+    """
+    from ..io import volume_format
+
+    def check(ctx, param, value):
+        if isinstance(value, str) and value.endswith(("/", os.sep)):
+            try:
+                folder = volume_format(value.rstrip("/" + os.sep)) in FOLDER_FORMATS
+            except VolwarpError:
+                folder = False
+            if not folder:
+                raise click.BadParameter(f"{value!r} ends in a slash, which names a folder: "
+                                         "give the output file's name", ctx=ctx, param=param)
+        return callback(ctx, param, value) if callback is not None else value
+
+    return check
+
+
 def output_option(help_text: str = "Output file (format by extension).", volume: bool = True,
                   callback=None, required: bool = True, folders: bool | None = None):
     """-o/--output; ``volume``: a volume file, its extension checked at once.
@@ -315,6 +338,7 @@ def output_option(help_text: str = "Output file (format by extension).", volume:
     if folders is None:
         folders = callback is _volume_output
     kind = click.Path(dir_okay=folders)
+    callback = file_name_checked(callback)
     # (click 8.2+: an explicit default, even None, satisfies `required`: none when required)
     extra = {} if required else {"default": None}
     return click.option("-o", "--output", required=required, type=kind, callback=callback,

@@ -155,6 +155,10 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
     """
     from .inputs import claim_output, opened_as_input, refuse_output_over_input
 
+    if isinstance(path, str) and path.endswith(("/", os.sep)) and \
+            not is_folder_output(Path(path)):  # (Path drops the slash: out.png/ wrote out.png)
+        raise BadUsage(f"{option + ' ' if option else ''}{path}: ends in a slash, which names a "
+                       "folder: give the output file's name")
     path = Path(path)
     refuse_output_over_input(path, option=option)
     if option is not None:  # (the commands' checks before any work name their option)
