@@ -8,6 +8,7 @@ int32's range in float32 rounded the bound up to 2**31, and the cast wrapped
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -261,3 +262,15 @@ def test_integers_a_float_type_cannot_hold_are_said(caplog):
     with pytest.raises(BadUsage, match="label ids 4000000001 "):
         refuse_merged_ids(np.array([0, 4_000_000_000, 4_000_000_001], np.uint32), "float32",
                           "lab.nrrd")
+
+
+def test_label_ids_a_float_cannot_hold_are_refused_whatever_they_are():
+    """(the exact check of float ids: inf and 1e300 overflowed it, a fraction beside 2**25
+    passed it)"""
+    from volwarp_cli.errors import BadUsage
+    from volwarp_cli.labelmap import refuse_merged_ids
+
+    for ids, shown in (([0, 1e300], "1.0000000000000001e+300"), ([0, np.inf], "inf"),
+                       ([0, 2**25, 2**25 + 0.5], "33554432.5")):
+        with pytest.raises(BadUsage, match=re.escape(f"label ids {shown} ")):
+            refuse_merged_ids(np.array(ids), "float32", "lab.nrrd")

@@ -180,8 +180,9 @@ def test_volume_output_on_a_full_disk_keeps_the_old_one(run, small_fs, tmp_path,
 
 def test_a_jpeg_over_the_file_size_limit_is_said_not_the_end_of_the_process(tmp_path, ball_file):
     """The JPEG library ends the process on a short write ("Output file write error ---
-    out of disk space?", exit 1, the temporaries left): the image is made in memory,
-    with room under the limit, and the output written by Python, whose error is said."""
+    out of disk space?", exit 1, the temporaries left): the image is made through a pipe
+    (no file size limit there), and the output written by Python, whose error is said;
+    a JPEG that fits under the limit is written."""
     import resource
     import sys
 
@@ -193,7 +194,7 @@ def test_a_jpeg_over_the_file_size_limit_is_said_not_the_end_of_the_process(tmp_
         return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
 
     for soft, hard, why in ((100 * 1024, resource.RLIM_INFINITY, "File too large"),
-                            (100 * 1024, 100 * 1024, "ulimit -f")):
+                            (100 * 1024, 100 * 1024, "File too large")):
         res = subprocess.run([sys.executable, "-m", "volwarp_cli", "mesh", str(ball_file),
                               "--iso", "50", "-o", str(tmp_path / "m.ply"), "--render",
                               str(out), "--render-size", "1500x1500", "-q"],
@@ -204,6 +205,11 @@ def test_a_jpeg_over_the_file_size_limit_is_said_not_the_end_of_the_process(tmp_
         assert str(out) in lines[0] and why in lines[0]
         assert out.read_bytes() == before
         only(tmp_path, "ball.nrrd", "out.jpg")
+    res = subprocess.run([sys.executable, "-m", "volwarp_cli", "mesh", str(ball_file), "--iso",
+                          "50", "--render", str(out), "--render-size", "400x300", "-q"],
+                         capture_output=True, text=True, preexec_fn=limit(300 * 1024, 300 * 1024))
+    assert res.returncode == 0, res.stderr
+    assert out.read_bytes() != before and out.read_bytes()[:2] == b"\xff\xd8"
 
 
 def test_a_render_named_in_no_utf8_is_written(tmp_path, ball_file):

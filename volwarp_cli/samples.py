@@ -133,11 +133,21 @@ def _integers_as_floats(data: np.ndarray, dt: np.dtype, what: str) -> np.ndarray
     """
     out = data.astype(dt)
     exact = 2 ** (np.finfo(dt).nmant + 1)
+    bits = 8 * data.dtype.itemsize - (data.dtype.kind == "i")
+    # (every int8/int16/uint16 fits float32 and every int32 float64; volwarp's sample types
+    # are at most 32-bit integers, which float64 holds with their error: int64, an API's
+    # own array, is cast as it is)
+    if 2 ** bits <= exact or data.dtype.itemsize > 4:
+        return out
     low, high = int(data.min()), int(data.max())
     if -exact <= low and high <= exact:
         return out
-    # (the sample types are at most 32-bit integers: float64 holds them, and the error)
-    worst = float(np.abs(out.astype(np.float64) - data.astype(np.float64)).max())
+    worst = 0.0
+    flat_in, flat_out = data.reshape(-1), out.reshape(-1)
+    for start in range(0, flat_in.size, 1 << 20):  # (by pieces: a block's memory is counted)
+        piece = slice(start, start + (1 << 20))
+        error = np.abs(flat_out[piece].astype(np.float64) - flat_in[piece])
+        worst = max(worst, float(error.max()))
     if worst > 0:
         _note_inexact(what, dt, worst)
     return out

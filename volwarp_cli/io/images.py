@@ -7,8 +7,9 @@ are always passed to it as ``(H, W, 1)``.
 
 from __future__ import annotations
 
-import contextlib
+import errno
 import os
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -154,58 +155,79 @@ def _write_checked(oiio, path: Path, tmp: Path, spec, arr: np.ndarray) -> None:
         return
     try:
         where = f"/proc/self/fd/{memory}"
-        with _file_size_room(path, ext, arr):
+        if ext in (".jpg", ".jpeg"):
+            _encode_through_pipe(oiio, path, ext, spec, arr, memory)
+        else:
             _encode(oiio, path, where, ext, spec, arr)
         _check_encoded(oiio, path, where, ext, arr.shape)
-        data = bytearray()
-        os.lseek(memory, 0, os.SEEK_SET)
-        while chunk := os.read(memory, 1 << 20):
-            data += chunk
+        try:
+            with open(tmp, "wb") as fh:
+                size = _copy_file(memory, fh.fileno())
+                os.fsync(fh.fileno())
+            if os.stat(tmp).st_size != size:
+                raise OSError(0, "the file written is cut short")
+        except OSError as exc:
+            raise VolwarpError(f"{path}: cannot write image ({exc.strerror or exc})") from exc
     finally:
         os.close(memory)
+
+
+def _copy_file(source: int, target: int) -> int:
+    """Copy the whole file ``source`` (a descriptor) to ``target``'s; the bytes copied.
+
+    By the kernel where it can (no copy of the image in this process's memory).
+    """
+    size = os.fstat(source).st_size
+    done = 0
     try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        if os.stat(tmp).st_size != len(data):
-            raise OSError(0, "the file written is cut short")
+        while done < size:
+            sent = os.sendfile(target, source, done, size - done)
+            if sent == 0:
+                raise OSError(0, "the file written is cut short")
+            done += sent
+        return done
+    except OSError as exc:
+        if done or exc.errno not in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+            raise
+    os.lseek(source, 0, os.SEEK_SET)  # (no sendfile between these: by pieces)
+    while chunk := os.read(source, 1 << 20):
+        view = memoryview(chunk)
+        while view:
+            view = view[os.write(target, view):]
+        done += len(chunk)
+    return done
+
+
+def _encode_through_pipe(oiio, path: Path, ext: str, spec, arr: np.ndarray, memory: int) -> None:
+    """Make a JPEG through a pipe, then put its bytes in the memory file ``memory``.
+
+    A JPEG is written in one pass, so a pipe takes it, and a pipe has no file
+    size limit: a memory file counts against ``ulimit -f``, and the JPEG
+    library ends the process on a short write. The bytes are then put in the
+    memory file by Python, whose error (``File too large``) is said.
+    """
+    read_end, write_end = os.pipe()
+    chunks: list[bytes] = []
+
+    def drain():
+        while chunk := os.read(read_end, 1 << 16):
+            chunks.append(chunk)
+
+    reader = threading.Thread(target=drain, name="volwarp-image-pipe", daemon=True)
+    reader.start()
+    try:
+        _encode(oiio, path, f"/proc/self/fd/{write_end}", ext, spec, arr)
+    finally:
+        os.close(write_end)  # (the writer's own end closed by now: the reader sees the end)
+        reader.join()
+        os.close(read_end)
+    try:
+        for chunk in chunks:
+            view = memoryview(chunk)
+            while view:
+                view = view[os.write(memory, view):]
     except OSError as exc:
         raise VolwarpError(f"{path}: cannot write image ({exc.strerror or exc})") from exc
-
-
-@contextlib.contextmanager
-def _file_size_room(path: Path, ext: str, arr: np.ndarray):
-    """Room under the file size limit (``ulimit -f``) for a JPEG made in memory.
-
-    A memory file counts against that limit too, and the JPEG library ends the
-    process on a short write: the soft limit is raised to the hard one while
-    the image is made (what is written to the output stays under the soft
-    limit: Python's write fails there, and is said), and an image that may not
-    fit under the hard limit is refused before.
-    """
-    if ext not in (".jpg", ".jpeg"):
-        yield
-        return
-    try:
-        import resource
-    except ImportError:  # pragma: no cover - not a POSIX system
-        yield
-        return
-    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-    bound = arr.nbytes + (1 << 16)  # (a JPEG of 8-bit samples: within its samples' size)
-    if hard != resource.RLIM_INFINITY and hard < bound:
-        raise VolwarpError(f"{path}: cannot write image (the file size limit, ulimit -f, is "
-                           f"{hard} bytes: a JPEG of {arr.shape[1]}x{arr.shape[0]} may need "
-                           f"{bound})")
-    if soft == hard:
-        yield
-        return
-    resource.setrlimit(resource.RLIMIT_FSIZE, (hard, hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
 
 
 def _memory_file() -> int | None:
