@@ -143,6 +143,9 @@ Core code (numpy only): the writers of :mod:`volwarp_cli.io` (pyramids),
 
 from __future__ import annotations
 
+import math
+import re
+
 import numpy as np
 
 #: ``--values`` of the commands that follow the rule (warp, distance): the samples taken as
@@ -164,7 +167,9 @@ VALUES_KEY = "volwarp_values"
 
 #: key prefixes that describe a label map's samples (a SEG's segments, an RTSTRUCT's ROIs)
 _LABEL_KEY_PREFIXES = ("NIfTI_intent_", "DICOM_Segment", "DICOM_ROI_", "DICOM_Structure",
-                       "DICOM_ContentLabel")
+                       "DICOM_ContentLabel", "OME_image_label")
+#: 3D Slicer's segmentation keys (a .seg.nrrd): ``Segment0_LabelValue``, ``Segmentation_...``
+_SLICER_KEY = re.compile(r"Segment\d+_|Segmentation_")
 
 
 def without_label_keys(meta) -> dict:
@@ -178,7 +183,7 @@ def without_label_keys(meta) -> dict:
     """
     out = {}
     for k, v in (meta or {}).items():
-        if k.startswith(_LABEL_KEY_PREFIXES) or k == VALUES_KEY:
+        if k.startswith(_LABEL_KEY_PREFIXES) or k == VALUES_KEY or _SLICER_KEY.match(k):
             continue
         if k == "DICOM_Modality" and str(v).strip().upper() in _SEGMENTATIONS:
             continue
@@ -195,8 +200,11 @@ def recorded_values(meta) -> str | None:
 def segmentation_of(meta) -> str | None:
     """What says a volume is a label map by its key/values (a DICOM SEG, ...), else None.
 
-    A DICOM SEG or RTSTRUCT, and a NIfTI whose intent is NIFTI_INTENT_LABEL
-    (the file itself says it holds labels): such a volume is a label map
+    A DICOM SEG or RTSTRUCT, a NIfTI whose intent is NIFTI_INTENT_LABEL, a 3D
+    Slicer segmentation (``Segment0_LabelValue`` ...), an OME-Zarr labels image
+    and a volume whose ``volwarp_values`` says labels (the file itself says it
+    holds labels; a Slicer file of single-voxel fiducials was blended, and a
+    pyramid of a warp's labels took the mean): such a volume is a label map
     whatever its samples look like. The rule below looks at its neighbours,
     and a SEG of single-voxel segments (or landmarks, or thin contours) fails
     its region test, so a warp blended its ids and ``convert --dtype uint8``
@@ -209,6 +217,12 @@ def segmentation_of(meta) -> str | None:
         return _SEGMENTATIONS[modality]
     if str(meta.get("NIfTI_intent_code", "")).strip() == str(NIFTI_INTENT_LABEL):
         return "a NIfTI label map (intent NIFTI_INTENT_LABEL)"
+    if any(re.fullmatch(r"Segment\d+_LabelValue", str(k)) for k in meta):
+        return "a 3D Slicer segmentation (its Segment keys)"
+    if "OME_image_label" in meta:
+        return "an OME-Zarr labels image (image-label)"
+    if recorded_values(meta) == "labels":
+        return "a label map by its record (volwarp_values)"
     return None
 
 
@@ -243,9 +257,10 @@ def refuse_merged_ids(ids, dtype, name: str, option: str = "--dtype") -> None:
     if dt.kind in "iu":
         info = np.iinfo(dt)
         lost = ids[(ids < info.min) | (ids > info.max)]
-    else:  # (exactly: 4000000000 is a float32, 4000000001 is not)
-        big = ids[np.abs(ids) > 2.0 ** (np.finfo(dt).nmant + 1)]
-        lost = big[[int(v) != int(dt.type(v)) for v in big.tolist()]]
+    else:  # (exactly: 4000000000 is a float32, 4000000001 is not; inf and 1e300 neither)
+        big = ids[~(np.abs(ids) <= 2.0 ** (np.finfo(dt).nmant + 1))]
+        with np.errstate(over="ignore"):
+            lost = big[[not math.isfinite(v) or float(dt.type(v)) != v for v in big.tolist()]]
     if lost.size:
         shown = ", ".join(f"{v:.17g}" for v in lost[:3].tolist())
         more = f" and {lost.size - 3} more" if lost.size > 3 else ""

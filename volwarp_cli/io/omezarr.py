@@ -1041,6 +1041,9 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
                         "rewrite it with volwarp convert", where)
     elif vw is not None:
         raise FormatError(f"{where}: the 'volwarp' attribute is not an object")
+    ome = attrs.get("ome") if isinstance(attrs.get("ome"), dict) else attrs
+    if "image-label" in ome:  # (an NGFF labels image: its samples are label ids)
+        meta = {**meta, "OME_image_label": json.dumps(ome["image-label"], sort_keys=True)}
     spacing, origin, direction = check_placement(
         spacing, origin, direction, zyx_to_xyz(shape_zyx), where=where, fields=_FIELDS)
     return Opened(arr, (tuple(index), transpose), shape_zyx, spacing, origin, direction, space,

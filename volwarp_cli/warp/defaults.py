@@ -199,6 +199,12 @@ def choose_values(source, given: str | None = None, *, name: str = "the input",
     segmentation = segmentation_of(meta)
     if segmentation and n is not None:
         return ValuesChoice("labels", f"read from {segmentation}: {n} labels", n, ids=ids)
+    if segmentation and kind == "f":  # (a NaN or a fraction among them: no id, and no guess)
+        from ..errors import ChoiceNeeded
+
+        raise ChoiceNeeded(f"{name} is {segmentation}, but its samples are not all whole ids "
+                           "(NaN or fractions among them): give --values intensity to treat "
+                           "them as intensities, or replace them first")
     return ValuesChoice("intensity", "not a label map", n,
                         sparse_ids_warning(name, ids, counts))
 

@@ -1,0 +1,111 @@
+"""Label maps known by what their files say, whatever their samples look like.
+
+A 3D Slicer segmentation of single-voxel fiducials (its ``Segment*`` keys), an
+OME-Zarr labels image (``image-label``) and a volume whose ``volwarp_values``
+says labels were taken for intensities where the neighbour rule could not tell
+(ids 10..60 blended into 0..34 by ``apply``, exit 0; a pyramid of a warp's
+labels took the mean); a float map whose NIfTI intent says labels but holds a
+NaN was blended too. Each is checked against SimpleITK's nearest neighbour or
+the ids it holds.
+"""
+
+from __future__ import annotations
+
+import json
+
+import nibabel as nib
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from volwarp_cli.io import read_volume, write_volume
+from volwarp_cli.volume import Volume
+
+POINTS = [(5, 6, 7), (10, 30, 12), (20, 20, 20), (25, 8, 30), (33, 15, 22), (12, 22, 33)]
+
+
+def _fiducials():
+    d = np.zeros((40, 40, 40), np.uint8)
+    for i, p in enumerate(POINTS):
+        d[p] = 10 * (i + 1)
+    return d
+
+
+@pytest.fixture
+def affine(tmp_path):
+    a = sitk.AffineTransform(3)
+    a.SetMatrix([0.95, 0.1, 0.02, -0.08, 1.03, 0.05, 0.01, -0.04, 0.98])
+    a.SetTranslation([0.37, -0.61, 0.23])
+    a.SetCenter([20, 20, 20])
+    path = tmp_path / "aff.tfm"
+    sitk.WriteTransform(a, str(path))
+    return path, a
+
+
+def test_a_slicer_segmentation_of_fiducials_is_resampled_as_labels(run, tmp_path, affine):
+    tfm, a = affine
+    img = sitk.GetImageFromArray(_fiducials())
+    for i in range(len(POINTS)):
+        for key, value in (("ID", f"Segment_{i + 1}"), ("Name", f"fiducial{i + 1}"),
+                           ("LabelValue", str(10 * (i + 1))), ("Layer", "0")):
+            img.SetMetaData(f"Segment{i}_{key}", value)
+    src = tmp_path / "fid.seg.nrrd"
+    sitk.WriteImage(img, str(src))
+    out = tmp_path / "moved.seg.nrrd"
+    res = run("apply", src, "-t", tfm, "-o", out, "-v")
+    assert res.code == 0, res.stderr
+    assert "read from a 3D Slicer segmentation (its Segment keys)" in res.stderr
+    got = read_volume(out).data
+    ref = sitk.GetArrayFromImage(sitk.Resample(img, img, a, sitk.sitkNearestNeighbor, 0))
+    assert set(np.unique(got)) <= {0, 10, 20, 30, 40, 50, 60}  # (no blend: 1..34 before)
+    assert np.count_nonzero(got != ref) <= 2  # (ties at exact half voxels, as SimpleITK's)
+    # a distance field of it is no label map: its Segment keys are not carried
+    dist = tmp_path / "d.nrrd"
+    assert run("distance", src, "--label", "30", "-o", dist).code == 0
+    assert not [k for k in read_volume(dist).meta if k.startswith("Segment")]
+
+
+def test_a_label_map_with_a_nan_is_not_blended(run, tmp_path, affine):
+    tfm, _ = affine
+    a = np.zeros((30, 30, 30), np.float32)
+    a[5:15, 5:15, 5:15], a[18:26, 18:26, 18:26] = 1, 2
+    a[0, 0, 0] = np.nan
+    img = nib.Nifti1Image(a, np.eye(4))
+    img.header.set_intent("label")
+    src = tmp_path / "lab.nii.gz"
+    nib.save(img, src)
+    res = run("apply", src, "-t", tfm, "-o", tmp_path / "o.nii.gz")
+    assert res.code == 2
+    assert "intent NIFTI_INTENT_LABEL), but its samples are not all whole ids" in res.stderr
+    assert not (tmp_path / "o.nii.gz").exists()
+    res = run("apply", src, "-t", tfm, "-o", tmp_path / "o.nii.gz", "--values", "intensity")
+    assert res.code == 0, res.stderr  # (the user's choice)
+
+
+def test_an_ome_zarr_labels_image_is_warped_as_labels(run, tmp_path):
+    store = tmp_path / "fid.ome.zarr"
+    write_volume(Volume(_fiducials()), store)
+    zarr_json = store / "zarr.json"
+    attrs = json.loads(zarr_json.read_text())
+    attrs["attributes"]["ome"]["image-label"] = {"version": "0.5"}
+    zarr_json.write_text(json.dumps(attrs))
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nunits: voxel\ncapture: {lattice: 6, oversample: 2}\nsteps:\n"
+                    "  - move:\n      - {index: [3, 3, 3], by: [2.3, -1.7, 1.1]}\n")
+    out = tmp_path / "w.nrrd"
+    res = run("warp", store, "--spec", spec, "-o", out, "-v")
+    assert res.code == 0, res.stderr
+    assert "read from an OME-Zarr labels image (image-label)" in res.stderr
+    assert set(np.unique(read_volume(out).data)) <= {0, 10, 20, 30, 40, 50, 60}
+
+
+def test_a_recorded_labels_choice_makes_a_pyramid_of_modes(run, tmp_path):
+    lab = np.zeros((32, 32, 32), np.int16)
+    for i, p in enumerate(POINTS):
+        lab[tuple(min(c, 31) for c in p)] = 10 * (i + 1)
+    src = tmp_path / "lab.nrrd"
+    write_volume(Volume(lab, meta={"volwarp_values": "labels"}), src)
+    res = run("convert", src, "-o", tmp_path / "p.ome.zarr", "--pyramid", "1", "-v")
+    assert res.code == 0, res.stderr
+    assert "by the mode (a label map)" in res.stderr
+    assert "is a label map by its record (volwarp_values)" in run("info", src).stdout
