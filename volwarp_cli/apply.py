@@ -125,6 +125,8 @@ class ApplyOperation(Operation):
         kinds = ", ".join(s.name for s in chain.steps) or "identity"
         self.what = (f"the resampling of {name} to {nx}x{ny}x{nz} voxels ({interpolation}; "
                      f"{kinds})")
+        #: a label map's ids (resampled as labels), whose absence from the output is said
+        self.label_ids = None
 
     def __getstate__(self):
         # (a task in another process writes through the executor's writers: the target
@@ -309,6 +311,10 @@ class ApplyOperation(Operation):
         region = self.region(box)
         if region is None:
             flat[:] = self._background_as(self.dtype)
+            if self.label_ids is not None:
+                from .samples import note_output_ids
+
+                note_output_ids(self._output, [self.background], self.label_ids)
             return {self.KEY: out}
         data, lo_xyz = self._region_samples(region)
         sampled = self._sampled_type(data.dtype)
@@ -324,6 +330,10 @@ class ApplyOperation(Operation):
         parallel.run_blocks(part, range(len(parts)), threads)
         if any(spread):
             self._warn_spread(region, box, sum(spread))
+        if self.label_ids is not None:
+            from .samples import note_output_ids
+
+            note_output_ids(self._output, np.unique(out), self.label_ids)
         return {self.KEY: out}
 
     def _warn_spread(self, region: Box, box: Box, count: int) -> None:
@@ -567,9 +577,13 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
     # (--values intensity too: asked for, the levels take the mean, never the mode)
     asked = values == "intensity" or sampling.choice.why == "given"
     labels = True if sampling.choice.is_labels else (False if asked else "auto")
-    return ApplyOperation(source, in_grid, chain, grid, interpolation=sampling.interpolation,
-                          background=sampling.background,
-                          target=Target(None, out, out_dtype, labels=labels), name=name)
+    op = ApplyOperation(source, in_grid, chain, grid, interpolation=sampling.interpolation,
+                        background=sampling.background,
+                        target=Target(None, out, out_dtype, labels=labels), name=name)
+    if sampling.choice.is_labels and sampling.choice.ids is not None:
+        ids = np.asarray(sampling.choice.ids)  # (the background label: not missed)
+        op.label_ids = ids[ids != sampling.background]
+    return op
 
 
 def _check_label_output(sampling: Sampling, dtype, out_dtype: np.dtype, name: str) -> None:

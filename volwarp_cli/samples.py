@@ -206,7 +206,7 @@ def _note_rounding(what: str, dt: np.dtype, data, rounded, low, high) -> None:
 _rounding_lock = threading.Lock()
 
 #: the kinds of :func:`_gathered` notes: a run's casts, judged or said at its end
-_NOTE_KINDS = ("rounding", "clipped", "inexact")
+_NOTE_KINDS = ("rounding", "clipped", "inexact", "ids")
 
 
 def _gathered(key: tuple, note: list) -> list:
@@ -221,12 +221,48 @@ def _gathered(key: tuple, note: list) -> list:
     with _rounding_lock:
         seen = files.decided.get(key)
         if seen is None:
-            seen = files.decided[key] = list(note)
+            seen = files.decided[key] = [set(note[0]), *note[1:]] if key[0] == "ids" \
+                else list(note)
             at_run_end(lambda: _note_at_end(key, seen, files))
+        elif key[0] == "ids":
+            seen[0] |= set(note[0])
         else:
             seen[0], seen[1] = min(seen[0], note[0]), max(seen[1], note[1])
             seen[2] = seen[2] or note[2]
     return seen
+
+
+def note_output_ids(what: str, ids, expected) -> None:
+    """Note the label ids a block of output ``what`` holds; at the run's end, those missing.
+
+    ``expected``: the input's ids. A label thinner than the output's voxels (a
+    landmark, a one-voxel line resampled onto a coarser grid) or outside the
+    output's grid is in no output voxel: nearest-neighbour resampling loses it
+    without a word, where the warp's label report names it. Gathered over the
+    output's blocks (and worker processes), said once when the run ends.
+    """
+    from .runscope import in_run
+
+    note = [set(int(v) for v in np.asarray(ids).ravel().tolist()),
+            tuple(int(v) for v in np.asarray(expected).ravel().tolist()), what]
+    if not in_run():
+        _say_missing_ids(note)
+        return
+    _gathered(("ids", what), note)
+
+
+def _say_missing_ids(note) -> None:
+    from .progress import log
+
+    held, expected, what = note
+    missing = [v for v in expected if v not in held]
+    if not missing:
+        return
+    shown = ", ".join(map(str, missing[:8])) + (f" and {len(missing) - 8} more"
+                                               if len(missing) > 8 else "")
+    log.warning("warning: %s: %d of the input's %d labels are in no output voxel (%s): "
+                "thinner than the output's voxels, or outside its grid", what, len(missing),
+                len(expected), shown, extra={"once": ("ids", what)})
 
 
 def run_notes() -> tuple:
@@ -238,7 +274,8 @@ def run_notes() -> tuple:
     from .runscope import run_files
 
     with _rounding_lock:
-        return tuple((key, list(note)) for key, note in run_files().decided.items()
+        return tuple((key, [set(note[0]), *note[1:]] if key[0] == "ids" else list(note))
+                     for key, note in run_files().decided.items()
                      if isinstance(key, tuple) and key and key[0] in _NOTE_KINDS)
 
 
@@ -261,6 +298,8 @@ def _note_at_end(key: tuple, seen: list, files) -> None:
         low, high, fractions = seen
         if fractions and high - low < FEW_LEVELS:
             _say_rounded_away(what, np.dtype(name), low, high, files.said)
+    elif key[0] == "ids":
+        _say_missing_ids(seen)
     elif key[0] == "inexact":
         _, name = key
         _say_inexact(seen[3], np.dtype(name), seen[1])
