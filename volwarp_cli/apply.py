@@ -134,6 +134,8 @@ class ApplyOperation(Operation):
         state = dict(self.__dict__)
         state["targets"] = {}
         state["output_name"] = self._output  # (what its casts' messages name)
+        if self.label_ids is not None:  # (a task notes what it holds; the ids stay here:
+            state["label_ids"] = np.empty(0, self.label_ids.dtype)  # 474,552 a task, slow)
         return state
 
     # -- regions -------------------------------------------------------------------------
@@ -311,10 +313,6 @@ class ApplyOperation(Operation):
         region = self.region(box)
         if region is None:
             flat[:] = self._background_as(self.dtype)
-            if self.label_ids is not None:
-                from .samples import note_output_ids
-
-                note_output_ids(self._output, [self.background], self.label_ids)
             return {self.KEY: out}
         data, lo_xyz = self._region_samples(region)
         sampled = self._sampled_type(data.dtype)
@@ -333,7 +331,7 @@ class ApplyOperation(Operation):
         if self.label_ids is not None:
             from .samples import note_output_ids
 
-            note_output_ids(self._output, np.unique(out), self.label_ids)
+            note_output_ids(self._output, out)
         return {self.KEY: out}
 
     def _warn_spread(self, region: Box, box: Box, count: int) -> None:
@@ -443,6 +441,16 @@ class ApplyOperation(Operation):
             # (the sum: one pass, no array; NaN or inf if any sample is, or if it overflows)
             spread[k] = len(res) - int(np.count_nonzero(np.isfinite(res)))
         return cast_samples(res, self.dtype, what=self._output)
+
+    def expect_label_ids(self) -> None:
+        """In a run, say at its end the label ids no output voxel holds (a map's resampling).
+
+        Once its output is named (the blocks' notes name it too).
+        """
+        if self.label_ids is not None and len(self.label_ids):
+            from .samples import expect_output_ids
+
+            expect_output_ids(self._output, self.label_ids)
 
     @property
     def _output(self) -> str:

@@ -339,6 +339,7 @@ def _resample(input, output, chain, ready, dtype, write, transform_paths, outsid
                                       byte_order=write["byte_order"],
                                       version=write["ome_zarr_version"],
                                       pyramid=write["pyramid"], labels=target.labels)
+    op.expect_label_ids()
     settings = scale_settings()
     ran = execute.run(op, execute.How(chunked=settings.chunked, block=settings.block,
                                       open_engine=settings.open_engine))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import os
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -199,35 +200,59 @@ def _copy_file(source: int, target: int) -> int:
 
 
 def _encode_through_pipe(oiio, path: Path, ext: str, spec, arr: np.ndarray, memory: int) -> None:
-    """Make a JPEG through a pipe, then put its bytes in the memory file ``memory``.
+    """Make a JPEG through a pipe into the memory file ``memory``.
 
     A JPEG is written in one pass, so a pipe takes it, and a pipe has no file
     size limit: a memory file counts against ``ulimit -f``, and the JPEG
-    library ends the process on a short write. The bytes are then put in the
-    memory file by Python, whose error (``File too large``) is said.
+    library ends the process on a short write. A thread moves the bytes from
+    the pipe to the memory file; a write it cannot make (``File too large``) is
+    said once the image is done, and it reads on to the end whatever happens,
+    so the writer never waits on a full pipe.
     """
     read_end, write_end = os.pipe()
-    chunks: list[bytes] = []
+    failed: list[BaseException] = []
+    buffer = bytearray(1 << 16)  # (read into, allocated once: a read allocates nothing)
 
     def drain():
-        while chunk := os.read(read_end, 1 << 16):
-            chunks.append(chunk)
+        # (the writer opens the pipe by its /proc name for reading and writing: it is a
+        # reader of its own pipe, so a full pipe blocks it for ever, whatever this end
+        # does; this thread reads on to the end, whatever fails)
+        view = memoryview(buffer)
+        while True:
+            try:
+                n = os.readv(read_end, [buffer])
+            except InterruptedError:
+                continue
+            except BaseException as exc:  # pragma: no cover - a pipe that cannot be read
+                failed.append(exc)
+                time.sleep(0.01)
+                continue
+            if n == 0:
+                return
+            if failed:
+                continue  # (read on to the end, keeping nothing)
+            try:
+                done = 0
+                while done < n:
+                    done += os.write(memory, view[done:n])
+            except BaseException as exc:
+                failed.append(exc)
 
     reader = threading.Thread(target=drain, name="volwarp-image-pipe", daemon=True)
     reader.start()
     try:
         _encode(oiio, path, f"/proc/self/fd/{write_end}", ext, spec, arr)
+    except VolwarpError:
+        if not failed:
+            raise
     finally:
         os.close(write_end)  # (the writer's own end closed by now: the reader sees the end)
         reader.join()
         os.close(read_end)
-    try:
-        for chunk in chunks:
-            view = memoryview(chunk)
-            while view:
-                view = view[os.write(memory, view):]
-    except OSError as exc:
-        raise VolwarpError(f"{path}: cannot write image ({exc.strerror or exc})") from exc
+    if failed:
+        exc = failed[0]
+        raise VolwarpError(f"{path}: cannot write image "
+                           f"({getattr(exc, 'strerror', None) or exc})") from exc
 
 
 def _memory_file() -> int | None:
