@@ -161,3 +161,30 @@ def test_spec_example_transform_runs(run, tmp_path):
     assert d1.min() < 0 and np.isfinite(d1).all()
     # the turn keeps the shape's volume
     assert abs(int((d1 < 0).sum()) - int((d0 < 0).sum())) < 0.03 * (d0 < 0).sum()
+
+
+def test_cli_update_takes_the_fields_own_metric(run, tmp_path):
+    """Without --metric, a min-norm field's uncovered voxels were filled with the euclidean
+    default's distances (up to 13 mm off), its key still saying minnorm; another --metric
+    than the field's is refused, and a chessboard field too."""
+    mask = ball_mask((14, 20, 22)).astype(np.uint8)
+    write_volume(Volume(mask), tmp_path / "ball.nrrd")
+    for metric in ("minnorm", "chessboard"):
+        assert run("distance", tmp_path / "ball.nrrd", "-o", tmp_path / f"{metric}.nrrd",
+                   "--iso", 0.5, "--metric", metric).code == 0
+    (tmp_path / "move.yaml").write_text("version: 1\ntranslate: [6.5, 0, 0]\n")
+    common = ["--transform", tmp_path / "move.yaml"]
+    r = run("distance", "--update", tmp_path / "minnorm.nrrd", *common, "-o", tmp_path / "a.nrrd")
+    assert r.code == 0, r.stderr
+    r = run("distance", "--update", tmp_path / "minnorm.nrrd", *common, "-o", tmp_path / "b.nrrd",
+            "--metric", "minnorm")
+    assert r.code == 0, r.stderr
+    np.testing.assert_array_equal(read_volume(tmp_path / "a.nrrd").data,
+                                  read_volume(tmp_path / "b.nrrd").data)
+    r = run("distance", "--update", tmp_path / "minnorm.nrrd", *common, "-o", tmp_path / "c.nrrd",
+            "--metric", "euclidean")
+    assert r.code == 2 and "is a minnorm field" in r.stderr
+    r = run("distance", "--update", tmp_path / "chessboard.nrrd", *common, "-o",
+            tmp_path / "d.nrrd")
+    assert r.code == 2 and "is a chessboard field" in r.stderr
+    assert not (tmp_path / "c.nrrd").exists() and not (tmp_path / "d.nrrd").exists()

@@ -101,12 +101,16 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
                             ("--label", label is not None), ("--values", values is not None)):
             if given:
                 raise click.UsageError(f"{flag} does not apply to --update (the field is given)")
+        from click.core import ParameterSource
+
+        metric_given = (click.get_current_context().get_parameter_source("metric")
+                        is ParameterSource.COMMANDLINE)
         if metric not in ("euclidean", "minnorm"):
             raise click.UsageError("--update propagates euclidean or minnorm fields only")
         if scale_settings().chunked:
             raise click.UsageError("--update runs in memory (its fill propagates across the "
                                    "whole field): not --chunked")
-        _update(update, transform, output, metric, max_distance,
+        _update(update, transform, output, metric if metric_given else None, max_distance,
                 write=dict(dtype=dtype, compress=compress, byte_order=byte_order, **ome_zarr),
                 read=dict(raw=raw, volume_index=volume_index, dicom=dicom))
         return
@@ -181,6 +185,31 @@ def _collector_paused():
             gc.enable()
 
 
+def _update_metric(meta, given: str | None, old_path) -> str:
+    """The metric an update fills with: the field's own (its ``volwarp_distance`` key).
+
+    Without ``--metric`` the euclidean default filled a min-norm field's uncovered
+    voxels with Euclidean distances (13 mm off), its key still saying minnorm; a
+    ``--metric`` other than the field's is refused, and a field without the key
+    takes ``given`` (default euclidean).
+    """
+    import re
+
+    from ..errors import BadUsage
+
+    found = re.search(r"\bmetric=(\w+)", str((meta or {}).get("volwarp_distance", "")))
+    recorded = found.group(1) if found else None
+    if recorded is None:
+        return given or "euclidean"
+    if given is not None and given != recorded:
+        raise BadUsage(f"{old_path} is a {recorded} field (its volwarp_distance key): --update "
+                       f"--metric {given} would fill it with another metric; leave --metric out")
+    if recorded not in ("euclidean", "minnorm"):
+        raise BadUsage(f"{old_path} is a {recorded} field: --update propagates euclidean or "
+                       "minnorm fields only")
+    return recorded
+
+
 def _update(old_path, transform_path, output, metric, max_distance, *, write, read):
     """The field of ``old_path`` moved (``read``: its read options; ``write``: the output's)."""
     from ..distance.field import finish_field
@@ -192,6 +221,7 @@ def _update(old_path, transform_path, output, metric, max_distance, *, write, re
     doc = load_spec(transform_path, "transform")
     check_output_path(output, option="-o")
     vol = load_input(old_path, read["raw"], read["volume_index"], dicom=read["dicom"])
+    metric = _update_metric(vol.meta, metric, old_path)
     params = {k: v for k, v in doc.data.items() if k != "version"}
     field, center = field_and_centre(vol, params, where=str(old_path))
     try:
