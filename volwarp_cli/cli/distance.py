@@ -52,7 +52,8 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 @click.option("--metric", type=click.Choice(_METRICS), default="euclidean", show_default=True,
               help="euclidean (exact); minnorm (the paper's shift-and-min passes; equals the "
                    "spacing-weighted taxicab distance); chessboard/taxicab (voxel steps, per-line passes; "
-                   "isotropic spacing only).")
+                   "isotropic spacing only). With --update: the field's own (its "
+                   "volwarp_distance key), which another --metric may not contradict.")
 @click.option("--surface", type=click.Choice(["auto", "voxel", "subvoxel"]), default="auto",
               show_default=True,
               help="euclidean: distances between voxel centres (binary shapes) or to the "
