@@ -76,7 +76,7 @@ def test_a_label_map_with_a_nan_is_not_blended(run, tmp_path, affine):
     nib.save(img, src)
     res = run("apply", src, "-t", tfm, "-o", tmp_path / "o.nii.gz")
     assert res.code == 2
-    assert "intent NIFTI_INTENT_LABEL), but its samples are not all whole ids" in res.stderr
+    assert "intent NIFTI_INTENT_LABEL), but some of its samples are NaN" in res.stderr
     assert not (tmp_path / "o.nii.gz").exists()
     res = run("apply", src, "-t", tfm, "-o", tmp_path / "o.nii.gz", "--values", "intensity")
     assert res.code == 0, res.stderr  # (the user's choice)
@@ -135,3 +135,29 @@ def test_apply_says_the_labels_no_output_voxel_holds(run, tmp_path, way):
     lines = [ln for ln in res.stderr.splitlines() if "in no output voxel" in ln]
     assert len(lines) == 1
     assert "3 of the input's 4 labels are in no output voxel (1, 2, 3)" in lines[0]
+
+
+def test_a_label_map_warped_as_intensities_does_not_keep_its_label_keys(run, tmp_path, affine):
+    """``--values intensity`` blends the ids: the output kept the map's Segment keys (or
+    NIfTI intent), so the next command took the blend for a label map, or asked."""
+    tfm, _ = affine
+    img = sitk.GetImageFromArray(_fiducials())
+    img.SetMetaData("Segment0_LabelValue", "10")
+    img.SetMetaData("Segment0_Name", "first")
+    src = tmp_path / "fid.seg.nrrd"
+    sitk.WriteImage(img, str(src))
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nunits: voxel\ncapture: {lattice: 6, oversample: 2}\nsteps:\n"
+                    "  - move:\n      - {index: [3, 3, 3], by: [2.3, -1.7, 1.1]}\n")
+    for args, out in ((["warp", src, "--spec", spec], "w.nrrd"), (["apply", src, "-t", tfm],
+                                                                   "a.nrrd")):
+        res = run(*args, "--values", "intensity", "--dtype", "float32", "-o", tmp_path / out)
+        assert res.code == 0, res.stderr
+        meta = read_volume(tmp_path / out).meta
+        assert not [k for k in meta if k.startswith("Segment")], meta
+        res = run("apply", tmp_path / out, "-t", tfm, "-o", tmp_path / ("again_" + out), "-v")
+        assert res.code == 0, res.stderr
+        assert "values: intensity" in res.stderr
+    # a label warp keeps them
+    assert run("warp", src, "--spec", spec, "-o", tmp_path / "l.nrrd").code == 0
+    assert read_volume(tmp_path / "l.nrrd").meta["Segment0_Name"] == "first"

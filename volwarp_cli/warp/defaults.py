@@ -199,14 +199,34 @@ def choose_values(source, given: str | None = None, *, name: str = "the input",
     segmentation = segmentation_of(meta)
     if segmentation and n is not None:
         return ValuesChoice("labels", f"read from {segmentation}: {n} labels", n, ids=ids)
-    if segmentation and kind == "f":  # (a NaN or a fraction among them: no id, and no guess)
-        from ..errors import ChoiceNeeded
+    if segmentation and kind == "f" and _ids_but_not_finite(source):
+        from ..errors import ChoiceNeeded  # (a label map with a NaN: no guess either way)
 
-        raise ChoiceNeeded(f"{name} is {segmentation}, but its samples are not all whole ids "
-                           "(NaN or fractions among them): give --values intensity to treat "
-                           "them as intensities, or replace them first")
+        raise ChoiceNeeded(f"{name} is {segmentation}, but some of its samples are NaN or "
+                           "infinite (no id): give --values intensity to treat them as "
+                           "intensities, or replace them first")
     return ValuesChoice("intensity", "not a label map", n,
                         sparse_ids_warning(name, ids, counts))
+
+
+def _ids_but_not_finite(source) -> bool:
+    """Whether float ``source``'s finite samples are all whole numbers and some are not finite.
+
+    A label map with a NaN, not a field of fractions that kept its map's keys (an
+    intensity warp's output before 0.1.10): those stay intensities, as before.
+    By slabs of planes (a lazy source is read once).
+    """
+    step = max(1, (1 << 22) // max(1, int(np.prod(source.shape[1:]))))
+    nonfinite = False
+    for z in range(0, source.shape[0], step):
+        block = np.asarray(source[z:z + step])
+        finite = np.isfinite(block)
+        if not finite.all():
+            nonfinite = True
+            block = block[finite]
+        if not np.array_equal(block, np.rint(block)):
+            return False
+    return nonfinite
 
 
 def output_grid(option: str | None, spec_grid: str | None,

@@ -54,6 +54,19 @@ class WarpFiles:
         return stamp(vol, "warp", self.input if inputs is None else inputs, self.spec)
 
 
+def _intensity_meta(vol, choice):
+    """``vol`` (a Volume or Header) without label keys where a label map was warped as intensities.
+
+    ``--values intensity``: its blended samples are no label map, and the next
+    command took them for one (a NIfTI intent, Slicer's Segment keys) or asked.
+    """
+    from ..labelmap import segmentation_of, without_label_keys
+
+    if choice.is_labels or not segmentation_of(vol.meta):
+        return vol
+    return vol.replace(meta=without_label_keys(vol.meta))
+
+
 def warp_files(req: WarpFiles, how) -> dict:
     """Run the warp ``req`` asks for, ``how`` (:class:`~volwarp_cli.execute.How`) says.
 
@@ -200,8 +213,8 @@ def _warp_once(req: WarpFiles, how) -> dict:
     w = req.write
     # (--values intensity: the pyramid's levels take the mean, as asked, not the writer's
     # rule on the warped samples, which took a nearest-pushed map's mode)
-    target = execute.Target(req.output, req.stamped(header), header.dtype,
-                            compress=w["compress"], byte_order=w["byte_order"],
+    target = execute.Target(req.output, req.stamped(_intensity_meta(header, choice)),
+                            header.dtype, compress=w["compress"], byte_order=w["byte_order"],
                             version=w.get("ome_zarr_version", "0.5"),
                             pyramid=w.get("pyramid", 0),
                             labels=False if _intensity_asked(choice) else "auto")
@@ -306,7 +319,8 @@ def _warp_frames(req: WarpFiles) -> dict:
     def write(vol, path):
         with timed(f"write {path}"):
             # (a label map's pyramid levels take the mode, as by blocks: never averaged ids)
-            write_volume(req.stamped(vol), path, **req.write,
+            write_volume(req.stamped(vol if labels else _intensity_meta(vol, choice)), path,
+                         **req.write,
                          **({"labels": True} if labels else
                             {"labels": False} if _intensity_asked(choice) else {}))
 
