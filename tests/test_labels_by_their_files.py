@@ -161,3 +161,12 @@ def test_a_label_map_warped_as_intensities_does_not_keep_its_label_keys(run, tmp
     # a label warp keeps them
     assert run("warp", src, "--spec", spec, "-o", tmp_path / "l.nrrd").code == 0
     assert read_volume(tmp_path / "l.nrrd").meta["Segment0_Name"] == "first"
+
+
+def test_capture_values_labels_of_fractions_is_refused_at_once(run, tmp_path):
+    """The capture accepted it (exit 0) and every warp of the file then failed."""
+    src = tmp_path / "f.nrrd"
+    write_volume(Volume(np.random.default_rng(0).random((12, 13, 14), dtype=np.float32)), src)
+    res = run("capture", src, "-o", tmp_path / "f.vwc", "--values", "labels")
+    assert res.code == 2 and "needs integer ids" in res.stderr
+    assert not (tmp_path / "f.vwc").exists()

@@ -872,6 +872,8 @@ def _refuse_blended_labels(vol: Volume, name: str, placement: str, oversample: f
     from .bspline.lattice import subdivision_of
     from .warp.defaults import choose_values
 
+    if values == "labels":  # (as warp refuses it: fractions are no ids; found now, not at
+        choose_values(vol.data, "labels", name=name)  # every later warp of the file)
     if values == "intensity" or subdivision_of(oversample, placement):
         return
     how = "the tripled placement" if placement != "uniform" else f"oversample {oversample:g}"
