@@ -193,6 +193,10 @@ BAD = [
      "scale: {keyframes: [[0, 1], [1, -1]]}\n", "scale", 5, "positive"),
     ("version: 1\nfields: {opacity: 1}\ntrajectory:\n  - line: {from: [0, 0, 0], to: [5, 0, 0]}\n"
      "up: binormal\n", "up", 5, "binormal is undefined"),
+    # (found when the sweep ran: no line, exit 1)
+    ("version: 1\nfields: {opacity: 1}\ntrajectory:\n"
+     "  - polyline: {points: [[0, 0, 0], [10, 0, 0], [0, 0, 0]]}\n",
+     "trajectory[0].polyline.points[1]", 4, "turns back on itself (180 degrees)"),
 ]
 
 
@@ -298,3 +302,14 @@ def test_example_makefile_pipeline(tmp_path):
     img = read_image(work / "out" / "at-bezier.png")
     assert img.shape == (512, 512, 3) and img.max() > 0.3
     assert read_volume(work / "out" / "at-bezier_geometry.nrrd").data.max() > 0.5
+
+
+def test_render_with_part_of_a_colour_says_it_is_white(tmp_path, run):
+    """Red and green without blue rendered a white picture without a word."""
+    (tmp_path / "s.yaml").write_text(GOOD.replace("  red: 0.25\n", "  red: 0.25\n  green: 1\n"))
+    res = run("sweep", tmp_path / "s.yaml", "-o", tmp_path / "o_{field}.nrrd", "--render",
+              tmp_path / "r.png")
+    assert res.code == 0, res.stderr
+    assert "has red, green but no blue: rendered in white" in res.stderr
+    img = read_image(tmp_path / "r.png")
+    assert np.allclose(img[..., 0], img[..., 1]) and np.allclose(img[..., 1], img[..., 2])

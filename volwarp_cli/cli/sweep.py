@@ -115,6 +115,14 @@ def command(spec, output, multi, render_path, view, render_size, shape, spacing,
         if "opacity" not in names:
             raise click.UsageError(f"--render needs an 'opacity' field; {spec} has "
                                    f"{', '.join(names)}")
+        given = [c for c in ("red", "green", "blue") if c in names]
+        if given and len(given) < 3:  # (a colour needs all three: it rendered white, unsaid)
+            missing = [c for c in ("red", "green", "blue") if c not in names]
+            from ..progress import log
+
+            log.warning("warning: --render colours by red, green and blue together; %s has "
+                        "%s but no %s: rendered in white (give %s: 0 for none)", spec,
+                        ", ".join(given), " or ".join(missing), missing[0])
         check_output_path(render_path, option="--render")
     if camera_to is not None:  # (again, now that the spec's templates are known inputs)
         check_output_path(camera_to, option="--camera-to")

@@ -211,6 +211,13 @@ def parse_segment(doc, path: tuple, item: dict) -> Segment:
     if np.any(steps == 0):
         i = int(np.argmax(steps == 0)) + 1
         raise spec_error(doc, bp + ("points", i), "a polyline point repeats the previous one")
+    edges = np.diff(pts, axis=0) / steps[:, None]
+    # (the sweep's joint rotates one edge's frame into the next: no rotation turns back)
+    back = np.flatnonzero(np.sum(edges[1:] * edges[:-1], axis=1) < np.cos(np.pi - 1e-6))
+    if back.size:
+        raise spec_error(doc, bp + ("points", int(back[0]) + 1), "the polyline turns back on "
+                         "itself (180 degrees) at this point: no turn of the template leads "
+                         "from one edge to the next")
     return Polyline(u0=u0, u1=u1, path=bp, points=pts)
 
 
