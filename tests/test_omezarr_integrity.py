@@ -309,3 +309,49 @@ def test_a_store_named_by_a_link_is_replaced_and_nothing_left_beside_it(run, tmp
     assert not link.is_symlink()
     np.testing.assert_array_equal(read_volume(link).data, first.data * 2)
     np.testing.assert_array_equal(read_volume(target).data, first.data)
+
+
+def _ome_v3(store: Path, version="0.5", path="0", shards=None, data=None):
+    import zarr
+
+    g = zarr.open_group(str(store), mode="w", zarr_format=3)
+    data = np.full((8, 8, 8), 3, np.uint8) if data is None else data
+    kw = {"shards": shards} if shards else {}
+    a = g.create_array("0", shape=data.shape, dtype=data.dtype, chunks=(4, 4, 4),
+                       fill_value=5, **kw)
+    a[...] = data
+    axes = [{"name": n, "type": "space", "unit": "millimeter"} for n in "zyx"]
+    g.attrs["ome"] = {"version": version, "multiscales": [{"axes": axes, "datasets": [
+        {"path": path, "coordinateTransformations": [{"type": "scale", "scale": [1, 1, 1]}]}]}]}
+    return store
+
+
+def test_an_empty_shard_file_is_refused_not_read_as_its_fill_value(run, tmp_path):
+    """zarr reads an empty shard as missing: volwarp's own store read as zeros, another
+    program's as its fill value, exit 0."""
+    src = tmp_path / "in.nrrd"
+    write_volume(Volume(np.full((20, 20, 20), 7, np.uint8)), src)
+    own = tmp_path / "own.ome.zarr"
+    assert run("convert", src, "-o", own).code == 0
+    (own / "0" / "c" / "0" / "0" / "0").write_bytes(b"")
+    other = _ome_v3(tmp_path / "other.ome.zarr", shards=(8, 8, 8))
+    shard = next(p for p in (other / "0").rglob("*") if p.is_file() and p.name != "zarr.json")
+    shard.write_bytes(b"")
+    for store in (own, other):
+        res = run("info", store)
+        assert res.code == 1 and "is an empty file" in res.stderr, res.stderr
+        with pytest.raises(FormatError, match="is an empty file"):
+            read_volume(store)
+
+
+def test_an_unknown_ngff_version_and_a_path_out_of_the_store_are_refused(run, tmp_path):
+    """(a later version's coordinate transformations read as 0.4's; a dataset path of
+    ``../other/0`` read another store's array)"""
+    res = run("info", _ome_v3(tmp_path / "v9.ome.zarr", version="0.9"))
+    assert res.code == 1 and "OME-NGFF version '0.9'" in res.stderr
+    _ome_v3(tmp_path / "elsewhere.ome.zarr")
+    for path in ("../elsewhere.ome.zarr/0", str(tmp_path / "elsewhere.ome.zarr" / "0")):
+        store = _ome_v3(tmp_path / "esc.ome.zarr", path=path)
+        res = run("info", store)
+        assert res.code == 1 and "leads out of the store" in res.stderr, res.stderr
+    np.testing.assert_array_equal(read_volume(_ome_v3(tmp_path / "ok.ome.zarr")).data, 3)

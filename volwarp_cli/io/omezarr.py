@@ -229,6 +229,10 @@ def store_layout(shape_zyx, version: str = "0.5", chunks=None) -> tuple[tuple, t
     return chunk, tuple(shard)
 
 
+#: the NGFF versions volwarp reads (0.3 and before: axes as names, read by name)
+READ_VERSIONS = ("0.1", "0.2", "0.3", "0.4", "0.5")
+
+
 def check_version(version: str) -> str:
     """The NGFF version, or raise naming the ones volwarp writes."""
     if str(version) not in VERSIONS:
@@ -943,6 +947,12 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
     where = str(path)
     fmt, attrs = group_metadata(path)
     ms = _multiscales(attrs, where)
+    ome = attrs.get("ome") if isinstance(attrs.get("ome"), dict) else {}
+    version = ome.get("version", ms.get("version"))
+    if version is not None and str(version) not in READ_VERSIONS:
+        # (later versions change how coordinate transformations are given: not guessed)
+        raise FormatError(f"{where}: OME-NGFF version {version!r}: volwarp reads versions "
+                          f"{', '.join(READ_VERSIONS)}")
     axes = ms.get("axes")
     if not isinstance(axes, list) or not axes:
         raise FormatError(f"{where}: multiscales has no 'axes'")
@@ -990,7 +1000,11 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
     order = [by_name["z"], by_name["y"], by_name["x"]]
     spacing_zyx = np.array([scale[i] for i in order]) * factors
     origin_zyx = np.array([translation[i] for i in order]) * factors
-    array_path = path / str(datasets[level]["path"])
+    key = str(datasets[level]["path"])
+    if os.path.isabs(key) or ".." in Path(key).parts:  # (a key in the store, not a path)
+        raise FormatError(f"{where}: dataset path {key!r} leads out of the store (NGFF paths "
+                          "are keys inside it)")
+    array_path = path / key
     try:
         arr = zarr.open_array(str(array_path), mode="r", zarr_format=fmt)
     except Exception as exc:  # zarr raises several types for missing or bad metadata
@@ -1041,6 +1055,8 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
                         "rewrite it with volwarp convert", where)
     elif vw is not None:
         raise FormatError(f"{where}: the 'volwarp' attribute is not an object")
+    elif getattr(arr, "shards", None):
+        _refuse_empty_files(array_path, where)
     ome = attrs.get("ome") if isinstance(attrs.get("ome"), dict) else attrs
     if "image-label" in ome:  # (an NGFF labels image: its samples are label ids)
         meta = {**meta, "OME_image_label": json.dumps(ome["image-label"], sort_keys=True)}
@@ -1133,6 +1149,23 @@ def _v3_checked(codecs) -> bool:
     return False
 
 
+def _refuse_empty_files(array_path: Path, where: str) -> None:
+    """Refuse an empty shard file of another program's store (zarr reads it as missing).
+
+    A shard holds at least its index; an empty one was cut (a copy, a full disk),
+    and zarr read it as its fill value, a block of zeros, without a word.
+    """
+    for folder, _, files in os.walk(array_path):
+        for name in files:
+            if name in ("zarr.json", ".zarray", ".zattrs", ".zgroup"):
+                continue
+            full = os.path.join(folder, name)
+            if os.path.getsize(full) == 0:
+                key = os.path.relpath(full, array_path)
+                raise FormatError(f"{where}: chunk data is damaged (shard {key!r} of level 0 "
+                                  "is an empty file)")
+
+
 def _check_chunks(arr, array_path: Path, where: str, complete: bool) -> bool:
     """Check the chunk files of level 0 of a volwarp store; True when all are checksummed.
 
@@ -1156,9 +1189,16 @@ def _check_chunks(arr, array_path: Path, where: str, complete: bool) -> bool:
     for coords in itertools.product(*grid):
         key = md.encode_chunk_key(coords)
         if not frames:
-            if not (array_path / key).is_file():
+            try:
+                size = (array_path / key).stat().st_size
+            except OSError:
+                size = None
+            if size is None or not (array_path / key).is_file():
                 raise FormatError(f"{where}: chunk {key!r} of level 0 is missing (the store is "
                                   "incomplete or damaged)")
+            if size == 0:  # (zarr reads an empty shard as missing: the fill value, silently)
+                raise FormatError(f"{where}: chunk data is damaged (chunk {key!r} of level 0 "
+                                  "is an empty file)")
             continue
         try:
             with open(array_path / key, "rb") as fh:
