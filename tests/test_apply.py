@@ -106,6 +106,50 @@ def test_reader_maps_points_as_transform_point(tmp_path, name):
     assert np.abs(ours - theirs).max() < 1e-9
 
 
+def test_damaged_itk_h5_and_mat_files_are_one_line_errors(tmp_path):
+    """A composite .h5 with a component deleted was applied without it (ITK refuses the
+    file); a missing TransformType, text for numbers, a TransformGroup that is no group
+    and a .mat of text were internal errors."""
+    import h5py
+    import scipy.io
+
+    from volwarp_cli.errors import VolwarpError
+
+    vol = smooth()
+    whole = tmp_path / "composite.h5"
+    sitk.WriteTransform(transforms(vol)["composite.h5"], str(whole))
+
+    def edited(name, edit):
+        path = tmp_path / name
+        path.write_bytes(whole.read_bytes())
+        with h5py.File(path, "a") as f:
+            edit(f)
+        return path
+
+    def params_as_text(f):
+        del f["TransformGroup/1/TransformParameters"]
+        f["TransformGroup/1/TransformParameters"] = np.array([b"abc"])
+
+    def group_as_data(f):
+        del f["TransformGroup"]
+        f["TransformGroup"] = np.zeros(3)
+
+    cases = {
+        edited("gap.h5", lambda f: f["TransformGroup"].__delitem__("2")):
+            r"holds \['0', '1', '3'\], not the transforms 0 to 2",
+        edited("notype.h5", lambda f: f["TransformGroup/1"].__delitem__("TransformType")):
+            "transform 1 has no TransformType",
+        edited("text.h5", params_as_text): "has parameters that are not numbers",
+        edited("data.h5", group_as_data): "is not a group",
+    }
+    text_mat = tmp_path / "text.mat"
+    scipy.io.savemat(text_mat, {"AffineTransform_double_3_3": "abc",
+                                "fixed": np.zeros((3, 1))}, format="4")
+    cases[text_mat] = "has parameters that are not numbers"
+    for path, words in cases.items():
+        with pytest.raises(VolwarpError, match=words):
+            read_chain([str(path)])
+
 def test_inverse_of_linear_file(tmp_path):
     path = tmp_path / "c.tfm"
     tr = sitk.CompositeTransform([affine(), euler()])

@@ -99,8 +99,11 @@ def _need(params, n: int, what: str, where: str, cls: str):
 
 def itk_transform(cls: str, params, fixed, where: str):
     """The step for ITK class ``cls`` with its parameters (module notes)."""
-    params = np.asarray(params, dtype=float).ravel()
-    fixed = np.asarray(fixed, dtype=float).ravel()
+    try:
+        params = np.asarray(params, dtype=float).ravel()
+        fixed = np.asarray(fixed, dtype=float).ravel()
+    except (TypeError, ValueError):  # (text where numbers belong: a damaged file)
+        raise VolwarpError(f"{where}: {cls} has parameters that are not numbers") from None
     if not (np.all(np.isfinite(params)) and np.all(np.isfinite(fixed))):
         raise VolwarpError(f"{where}: {cls} has parameters that are not finite numbers")
     name = f"{where} ({cls})"
@@ -222,9 +225,21 @@ def read_hdf5(path: str) -> list:
                 raise VolwarpError(f"{path}: an HDF5 file without ITK's TransformGroup: not a "
                                    "transform")
             group = f["TransformGroup"]
+            if not isinstance(group, h5py.Group):
+                raise VolwarpError(f"{path}: its TransformGroup is not a group: not an ITK "
+                                   "transform file")
+            keys = list(group)
+            # (ITK reads 0, 1, ... N-1 and refuses a gap: a component left out of a composite
+            # was skipped, the chain applied without it)
+            if sorted(keys, key=lambda k: (len(k), k)) != [str(i) for i in range(len(keys))]:
+                raise VolwarpError(f"{path}: its TransformGroup holds {sorted(keys)}, not the "
+                                   f"transforms 0 to {len(keys) - 1} ITK reads (one missing or "
+                                   "misnamed)")
             items = []
-            for key in sorted(group, key=lambda k: int(k) if k.isdigit() else 1 << 30):
+            for key in (str(i) for i in range(len(keys))):
                 g = group[key]
+                if not isinstance(g, h5py.Group) or "TransformType" not in g:
+                    raise VolwarpError(f"{path}: transform {key} has no TransformType")
                 kind = g["TransformType"][()]
                 kind = kind[0] if np.ndim(kind) else kind
                 kind = kind.decode() if isinstance(kind, bytes) else str(kind)
@@ -253,5 +268,5 @@ def read_matlab(path: str) -> list:
         raise VolwarpError(f"{path}: a MATLAB file without one ITK transform variable "
                            f"(AffineTransform_double_3_3, ...): not a transform")
     cls = split_name(names[0], path)
-    fixed = np.asarray(doc.get("fixed", []), dtype=float).ravel()  # (ITK: required)
-    return [itk_transform(cls, np.asarray(doc[names[0]], dtype=float).ravel(), fixed, path)]
+    # (ITK: "fixed" required; the numbers are checked as every file's are)
+    return [itk_transform(cls, doc[names[0]], doc.get("fixed", []), path)]
