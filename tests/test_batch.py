@@ -505,3 +505,40 @@ def test_shards_are_a_partition(count, n):
     assert sorted(flat) == [s.id for s in scans] and len(flat) == len(set(flat))
     assert max(map(len, parts)) - min(map(len, parts)) <= 1
     assert all([s.id for s in p] == sorted(s.id for s in p) for p in parts)
+
+
+def test_a_number_option_is_passed_with_every_digit_and_a_change_redoes(tmp_path):
+    """``--iso 50.12344`` ran as 50.1234 ({:g}), and an edit from 50.12341 was taken for no
+    change: the step skipped, its mesh stale (batch hunt)."""
+    scan = tmp_path / "scans" / "a.nrrd"
+    scan.parent.mkdir()
+    write_volume(scan_volume(0).with_data(scan_volume(0).data.astype(np.float32) + 0.1234), scan)
+    manifest = tmp_path / "m.yaml"
+    text = ('version: 1\ninputs: {glob: "scans/*.nrrd"}\noutput_dir: out\nsteps:\n'
+            '  - {name: s, run: mesh, output: "{stem}.ply", options: ["--iso", ISO]}\n')
+    for iso in ("50.12341", "50.12344", "3.0"):
+        manifest.write_text(text.replace("ISO", iso))
+        res = volwarp("batch", manifest, "--report", tmp_path / "r.json")
+        assert res.returncode == 0, res.stderr
+        assert "1 ok" in summary(res), res.stderr  # (done again each time: not skipped)
+        command = json.loads((tmp_path / "r.json").read_text())["scans"][0]["steps"][0]
+        argv = command.get("command") or command.get("argv")
+        assert argv[argv.index("--iso") + 1] == ("3" if iso == "3.0" else iso)
+        alone = tmp_path / f"alone_{iso}.ply"
+        assert volwarp("mesh", scan, "--iso", iso, "-o", alone, "-q").returncode == 0
+        assert (tmp_path / "out" / "a.ply").read_bytes()[-2000:] == alone.read_bytes()[-2000:]
+
+
+def test_a_scan_whose_stem_leads_out_of_output_dir_is_refused(tmp_path):
+    """A scan named ``...nrrd`` has stem ``..``: ``{stem}/conv.nrrd`` wrote ``conv.nrrd``
+    beside the manifest, outside the folder the batch locks."""
+    (tmp_path / "scans").mkdir()
+    write_volume(scan_volume(0), tmp_path / "scans" / "...nrrd")
+    write_volume(scan_volume(1), tmp_path / "scans" / "b.nrrd")
+    manifest = tmp_path / "m.yaml"
+    manifest.write_text('version: 1\ninputs: {list: [scans/...nrrd, scans/b.nrrd], root: scans}\n'
+                        'output_dir: out\nsteps:\n'
+                        '  - {name: conv, run: convert, output: "{stem}/conv.nrrd"}\n')
+    res = volwarp("batch", manifest)
+    assert res.returncode == 2 and "which leaves output_dir" in res.stderr
+    assert not list(tmp_path.rglob("conv.nrrd"))

@@ -176,6 +176,20 @@ def fill(text: str, scan: Scan) -> str:
     return text.format(stem=scan.stem, relpath=scan.relpath or ".")
 
 
+def _number_text(value) -> str:
+    """A YAML number as the command line gets it: every digit written (``180.1234``).
+
+    ``{:g}`` kept 6 significant digits: ``--iso 180.1234`` ran as 180.123, and an edit
+    to 180.1231 was taken for no change (the step skipped, its output stale). A whole
+    float is written as an integer (``3.0`` as ``3``: integer options take it).
+    """
+    if isinstance(value, float):
+        if value.is_integer() and abs(value) < 1e16:
+            return str(int(value))
+        return repr(value)
+    return str(value)
+
+
 def _check_pattern(doc: SpecDoc, path: tuple, text: str, *, output: bool = False) -> list[str]:
     """The placeholders of ``text``; a per-scan output's pattern must stay in output_dir.
 
@@ -285,8 +299,7 @@ def load_manifest(path: str | Path) -> Manifest:
             if isinstance(value, bool):
                 raise doc.error(key + ("options", k), "an option value must be a string or "
                                                       f"a number, not {value!r}")
-            text = value if isinstance(value, str) else f"{value:g}" if isinstance(
-                value, float) else str(value)
+            text = value if isinstance(value, str) else _number_text(value)
             flag = text.split("=", 1)[0]
             if "=" in text and flag.startswith("-") and placeholders(text.split("=", 1)[1]):
                 raise doc.error(key + ("options", k),

@@ -118,6 +118,12 @@ def output_path(manifest: Manifest, scan: Scan, pattern: str) -> Path:
     The scan's folder is mirrored there, unless the pattern places ``{relpath}`` itself.
     """
     filled = fill(pattern, scan)
+    if ".." in Path(filled).parts or Path(filled).is_absolute():
+        from ..errors import BadUsage  # (a scan named "...nrrd": its stem is "..")
+
+        raise BadUsage(f"scan {scan.id!r} ({scan.path}) fills output pattern {pattern!r} as "
+                       f"{filled!r}, which leaves output_dir (the folder this batch locks): "
+                       "rename the scan, or leave it out of inputs")
     if "relpath" in (placeholders(pattern) or ()):
         return manifest.output_dir / filled
     return manifest.output_dir / scan.relpath / filled
