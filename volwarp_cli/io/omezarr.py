@@ -79,6 +79,7 @@ from ..progress import log
 from ..samples import check_dtype
 from ..volume import Header, Volume, xyz_to_zyx, zyx_to_xyz
 from .common import make_volume, native
+from .units import NGFF_UNIT_TO_MM
 
 #: NGFF versions volwarp writes (and reads)
 VERSIONS = ("0.4", "0.5")
@@ -89,14 +90,6 @@ SHARD = 256
 ZSTD_LEVEL = 3
 #: version of volwarp's own attribute
 ATTRIBUTE_VERSION = 1
-
-#: millimetres per unit (UDUNITS-2 names used by NGFF, and common short forms)
-MM_PER_UNIT = {
-    "millimeter": 1.0, "mm": 1.0, "micrometer": 1e-3, "micron": 1e-3, "um": 1e-3,
-    "\u00b5m": 1e-3, "nanometer": 1e-6, "nm": 1e-6, "picometer": 1e-9, "angstrom": 1e-7,
-    "centimeter": 10.0, "cm": 10.0, "decimeter": 100.0, "meter": 1000.0, "m": 1000.0,
-    "kilometer": 1e6, "inch": 25.4, "foot": 304.8, "yard": 914.4,
-}
 
 _PERMUTATION_TOLERANCE = 1e-12
 
@@ -991,11 +984,11 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
         if unit is None:
             factors.append(1.0)
             continue
-        factor = MM_PER_UNIT.get(str(unit).lower()) or MM_PER_UNIT.get(str(unit))
+        factor = NGFF_UNIT_TO_MM.get(str(unit).lower()) or NGFF_UNIT_TO_MM.get(str(unit))
         if factor is None:
             raise FormatError(f"{where}: axis {names[i]!r} has unit {unit!r}, which volwarp "
                               f"cannot convert to millimetres (known: "
-                              f"{', '.join(sorted(k for k in MM_PER_UNIT if len(k) > 3))})")
+                              f"{', '.join(sorted(k for k in NGFF_UNIT_TO_MM if len(k) > 3))})")
         factors.append(factor)
     order = [by_name["z"], by_name["y"], by_name["x"]]
     spacing_zyx = np.array([scale[i] for i in order]) * factors

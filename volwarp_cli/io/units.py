@@ -1,9 +1,9 @@
 """Length units as the formats spell them, in millimetres (volwarp's world unit).
 
-One table for every reader that meets a unit: the OME schema's ``UnitsLength``
-symbols (OME-TIFF), ImageJ's words (TIFF stacks), and what NRRD headers carry
-in ``space units`` and ``units`` (teem leaves them free text: ``mm``,
-``microns``, ``cm``, ...).
+The tables of every reader that meets a unit: the OME schema's ``UnitsLength``
+symbols (OME-TIFF), ImageJ's words (TIFF stacks), what NRRD headers carry in
+``space units`` and ``units`` (teem leaves them free text: ``mm``, ``microns``,
+``cm``, ...), and the NGFF axes' UDUNITS names (OME-Zarr, :data:`NGFF_UNIT_TO_MM`).
 """
 
 from __future__ import annotations
@@ -19,6 +19,15 @@ OME_LENGTH_TO_MM = {
     "thou": 0.0254, "li": 25.4 / 12, "in": 25.4, "ft": 304.8, "yd": 914.4,
     "mi": 1609344.0, "ua": 1.495978707e14, "ly": 9.4607304725808e18,
     "pc": 3.0856775814913673e19, "pt": 25.4 / 72,
+}
+
+#: NGFF axis units (UDUNITS-2 names, and the common short forms) in millimetres: what
+#: the OME-Zarr reader takes (another unit is refused there, naming these)
+NGFF_UNIT_TO_MM = {
+    "millimeter": 1.0, "mm": 1.0, "micrometer": 1e-3, "micron": 1e-3, "um": 1e-3,
+    "\u00b5m": 1e-3, "nanometer": 1e-6, "nm": 1e-6, "picometer": 1e-9, "angstrom": 1e-7,
+    "centimeter": 10.0, "cm": 10.0, "decimeter": 100.0, "meter": 1000.0, "m": 1000.0,
+    "kilometer": 1e6, "inch": 25.4, "foot": 304.8, "yard": 914.4,
 }
 
 #: words for lengths (ImageJ's, Fiji writes "micron"; NRRD files' "microns", "millimeters")
