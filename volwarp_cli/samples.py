@@ -221,8 +221,7 @@ def _gathered(key: tuple, note: list) -> list:
     with _rounding_lock:
         seen = files.decided.get(key)
         if seen is None:
-            seen = files.decided[key] = [list(note[0]), *note[1:]] if key[0] == "ids" \
-                else list(note)
+            seen = files.decided[key] = _copied(key, note)
             at_run_end(lambda: _note_at_end(key, seen, files))
         elif key[0] == "ids":
             seen[0].extend(note[0])
@@ -232,6 +231,11 @@ def _gathered(key: tuple, note: list) -> list:
             seen[0], seen[1] = min(seen[0], note[0]), max(seen[1], note[1])
             seen[2] = seen[2] or note[2]
     return seen
+
+
+def _copied(key: tuple, note: list) -> list:
+    """A note's own copy: an ``ids`` note's list of pieces copied too (it grows)."""
+    return [list(note[0]), *note[1:]] if key[0] == "ids" else list(note)
 
 
 def expect_output_ids(what: str, expected) -> None:
@@ -315,8 +319,7 @@ def run_notes() -> tuple:
     from .runscope import run_files
 
     with _rounding_lock:
-        return tuple((key, [list(note[0]), *note[1:]] if key[0] == "ids" else list(note))
-                     for key, note in run_files().decided.items()
+        return tuple((key, _copied(key, note)) for key, note in run_files().decided.items()
                      if isinstance(key, tuple) and key and key[0] in _NOTE_KINDS)
 
 
