@@ -670,12 +670,9 @@ def _remove_stale_temporaries(path: Path) -> None:
     longer exists are removed: never another host's (a shared folder), a
     live process's, or anything else.
     """
-    pattern = re.compile(re.escape(f".{_temporary_stem(path.name)}.vw-") + r"(\d+)@"
-                         + re.escape(_host())
-                         + r"\.[A-Za-z0-9_]{8}\.part")
-    folders = re.compile(re.escape(f".{_temporary_stem(path.name)}.vw-") + r"(\d+)@"
-                         + re.escape(_host())
-                         + r"\.[A-Za-z0-9_]{8}\.(partdir|old|gone|scratch)$")
+    owner = re.escape(f".{_temporary_stem(path.name)}.vw-") + r"(\d+)@" + re.escape(_host())
+    pattern = re.compile(owner + r"\.[A-Za-z0-9_]{8}\.part")
+    folders = re.compile(owner + r"\.[A-Za-z0-9_]{8}\.(partdir|old|gone|scratch)$")
     try:
         names = os.listdir(path.parent if str(path.parent) else ".")
     except OSError:
