@@ -102,10 +102,9 @@ def command(input, output, iso, inside, label, values, metric, surface, unsigned
                             ("--label", label is not None), ("--values", values is not None)):
             if given:
                 raise click.UsageError(f"{flag} does not apply to --update (the field is given)")
-        from click.core import ParameterSource
+        from .view_options import option_given
 
-        metric_given = (click.get_current_context().get_parameter_source("metric")
-                        is ParameterSource.COMMANDLINE)
+        metric_given = option_given(click.get_current_context(), "metric")
         if metric not in ("euclidean", "minnorm"):
             raise click.UsageError("--update propagates euclidean or minnorm fields only")
         if scale_settings().chunked:
