@@ -205,6 +205,9 @@ def main() -> int:
     try:  # (a stop from here on is a stop: one line, no traceback)
         # (inherited by what the command starts: batch steps, Dask workers)
         configure_numba_cache()
+        from . import dataclass_code
+
+        dataclass_code.install()  # (before any module of a dataclass loads: 14-18 ms a warp)
         from . import numba_blas
 
         numba_blas.install()  # (scipy.linalg not imported by numba's BLAS probe: 0.2 s)

@@ -261,9 +261,11 @@ def run(*, verbosity: int = 1, list_only: bool = False) -> int:
     import contextlib
     import tempfile
 
+    from . import dataclass_code
     from .entry import configure_numba_cache
 
     folder = configure_numba_cache()
+    dataclass_code.install()  # (every command's classes made below: their methods kept)
 
     def say(message, level=1):
         if verbosity >= level:
@@ -300,6 +302,7 @@ def run(*, verbosity: int = 1, list_only: bool = False) -> int:
             say(f"  [{i}/{len(lines)}] {time.perf_counter() - t0:5.2f} s  "
                 f"volwarp {' '.join(line[:1] + [os.path.basename(a) for a in line[1:2]])}", 2)
     _mark()
+    dataclass_code.save(force=True)  # (as compileall writes bytecode, whatever the environment says)
     say(f"volwarp warm-up: done in {time.perf_counter() - start:.1f} s")
     return 0
 

@@ -270,4 +270,7 @@ def _end_process(code: int) -> None:
             pass
     if "logging" in sys.modules:  # (imported when a record was emitted: progress.log)
         sys.modules["logging"].shutdown()
+    from .. import dataclass_code
+
+    dataclass_code.save()  # (a class's methods compiled this run, for the next runs)
     os._exit(code)
