@@ -150,3 +150,26 @@ def test_use_direction_cosines_false_is_refused(run, tmp_path, initial):
               tmp_path / "q.csv")
     assert res.code == 1 and f'{first}: (UseDirectionCosines "false")' in res.stderr, res
     assert not (tmp_path / "q.csv").exists()
+
+
+@pytest.mark.parametrize("edit", [
+    ("(Size 20 18 16)", "(Size 20 18.5 16)", "(Size ...) must be whole numbers"),
+    ("(Index 0 0 0)", "(Index 0 0.5 0)", "(Index ...) must be whole numbers"),
+    ("(GridIndex 0 0 0)", "(GridIndex 0.25 0 0)", "(GridIndex ...) must be whole numbers"),
+    ("(GridSize 6 6 6)", "(GridSize 6.5 6 6)", "(GridSize ...) must be whole numbers"),
+    ('(Transform "BSplineTransform")', '(Transform "BSplineTransform" "AffineTransform")',
+     "(Transform ...) has 2 values"),
+])
+def test_a_number_or_word_elastix_would_not_read_is_refused(run, tmp_path, edit):
+    """A fractional size or index was cut to an integer (``(Size 20 18.5 16)``: 18 rows) and a
+    second Transform word ignored, the output written as if the file said otherwise."""
+    old, new, said = edit
+    path = tmp_path / "tp.txt"
+    bspline_file(path, "NoInitialTransform")
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new))
+    write_volume(Volume(np.zeros((4, 4, 4), np.float32)), tmp_path / "in.nrrd")
+    res = run("apply", tmp_path / "in.nrrd", "-o", tmp_path / "o.nrrd", "-t", path)
+    assert res.code == 1 and said in res.stderr and str(path) in res.stderr, res
+    assert not (tmp_path / "o.nrrd").exists()

@@ -76,7 +76,9 @@ def parse(text: str, where: str) -> dict:
     return out
 
 
-def _numbers(doc: dict, key: str, n: int | None, where: str, default=None) -> np.ndarray:
+def _numbers(doc: dict, key: str, n: int | None, where: str, default=None, *,
+             whole: bool = False) -> np.ndarray:
+    """``(key ...)``'s ``n`` numbers; ``whole``: sizes, indices, orders (``22.5`` refused, not cut)."""
     if key not in doc:
         if default is not None:
             return np.asarray(default, float)
@@ -84,11 +86,18 @@ def _numbers(doc: dict, key: str, n: int | None, where: str, default=None) -> np
     vals = doc[key]
     if any(isinstance(v, str) for v in vals) or (n is not None and len(vals) != n):
         raise VolwarpError(f"{where}: ({key} ...) must be {n or 'some'} numbers")
-    return np.asarray(vals, float)
+    out = np.asarray(vals, float)
+    if whole and not np.all(np.isfinite(out) & (out == np.round(out))):
+        raise VolwarpError(f"{where}: ({key} ...) must be whole numbers, not "
+                           f"{' '.join(f'{v:g}' for v in out)}")
+    return out
 
 
-def _word(doc: dict, key: str, default: str) -> str:
+def _word(doc: dict, key: str, default: str, where: str = "") -> str:
+    """``(key "word")``'s one word; two words (``(Transform "A" "B")``) refused, not one ignored."""
     vals = doc.get(key, [default])
+    if len(vals) > 1 and where:
+        raise VolwarpError(f"{where}: ({key} ...) has {len(vals)} values; elastix reads one")
     return str(vals[0]) if vals else default
 
 
@@ -97,8 +106,8 @@ def _column_major(values: np.ndarray) -> np.ndarray:
 
 
 def _step(doc: dict, where: str):
-    kind = _word(doc, "Transform", "")
-    dims = int(_numbers(doc, "FixedImageDimension", 1, where, [3])[0])
+    kind = _word(doc, "Transform", "", where)
+    dims = int(_numbers(doc, "FixedImageDimension", 1, where, [3], whole=True)[0])
     check_dimension(f"an elastix {kind}", dims, where)
     if kind not in _CLASSES:
         raise VolwarpError(f"{where}: elastix transform {kind!r} is not supported (supported: "
@@ -115,7 +124,7 @@ def _step(doc: dict, where: str):
     if kind == "EulerTransform":
         fixed.append(1.0 if _word(doc, "ComputeZYX", "false").lower() == "true" else 0.0)
     if kind == "BSplineTransform":
-        order = int(_numbers(doc, "BSplineTransformSplineOrder", 1, where, [3])[0])
+        order = int(_numbers(doc, "BSplineTransformSplineOrder", 1, where, [3], whole=True)[0])
         if order != 3:
             raise VolwarpError(f"{where}: a B-spline of order {order}: only cubic (3) is "
                                "supported")
@@ -126,9 +135,10 @@ def _step(doc: dict, where: str):
         # (transformix's coefficients start at GridIndex of a grid whose index 0 lies at
         # GridOrigin: ITK's grid origin is that node's point; a non-zero index, 3 mm off when
         # ignored, comes from files other tools or hands wrote)
-        index = _numbers(doc, "GridIndex", 3, where, [0, 0, 0])
+        index = _numbers(doc, "GridIndex", 3, where, [0, 0, 0], whole=True)
         origin = _numbers(doc, "GridOrigin", 3, where) + direction @ (spacing * index)
-        fixed = [*_numbers(doc, "GridSize", 3, where), *origin, *spacing, *direction.ravel()]
+        size = _numbers(doc, "GridSize", 3, where, whole=True)
+        fixed = [*size, *origin, *spacing, *direction.ravel()]
     return itk_transform(_CLASSES[kind], params, fixed, where)
 
 
@@ -140,7 +150,7 @@ def _initial(doc: dict, path: str, folder: str | None = None) -> str | None:
     """
     for key in _INITIAL:
         if key in doc:
-            name = _word(doc, key, "NoInitialTransform")
+            name = _word(doc, key, "NoInitialTransform", path)
             break
     else:
         return None
@@ -165,7 +175,7 @@ def read_elastix(path: str, text: str, _seen: tuple = ()) -> tuple[list, dict]:
     if os.path.realpath(path) in _seen:
         raise VolwarpError(f"{path}: its initial transforms loop back to it")
     doc = parse(text, path)
-    how = _word(doc, "HowToCombineTransforms", "Compose")
+    how = _word(doc, "HowToCombineTransforms", "Compose", path)
     steps: list = []
     initial = _initial(doc, path)
     if initial is not None:
@@ -211,11 +221,11 @@ def fixed_grid(doc: dict, where: str):
     """The fixed grid a parameter file states (transformix's output grid), a Geometry."""
     from ..geometry import Geometry
 
-    size = _numbers(doc, "Size", 3, where)
+    size = _numbers(doc, "Size", 3, where, whole=True)
     spacing = _numbers(doc, "Spacing", 3, where)
     origin = _numbers(doc, "Origin", 3, where)
     direction = _column_major(_numbers(doc, "Direction", 9, where, np.eye(3).ravel()))
-    index = _numbers(doc, "Index", 3, where, [0, 0, 0])
+    index = _numbers(doc, "Index", 3, where, [0, 0, 0], whole=True)
     origin = origin + direction @ (spacing * index)
     return Geometry.from_xyz(tuple(int(v) for v in size), spacing, origin, direction)
 
