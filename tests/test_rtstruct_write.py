@@ -229,3 +229,25 @@ def test_nested_labels_are_followed_to_every_depth():
     assert nested_labels({}, [1, 2], "m") == {}
     with pytest.raises(VolwarpError, match="m: key/value DICOM_ROI_nested.*INNER in OUTER"):
         nested_labels({"DICOM_ROI_nested": "2 inside 1"}, [1, 2], "m")
+
+
+def test_a_series_without_a_frame_of_reference_is_refused(tmp_path, run):
+    """An RTSTRUCT names its frame of reference (Type 1, in the structure set and each ROI):
+    over a series that has none it was written with empty UIDs, exit 0, as no other tool
+    would read it; it is refused as the SEG is, nothing written."""
+    folder = tmp_path / "ct"
+    for p in write_ct(folder, (6, 10, 12)):
+        ds = pydicom.dcmread(p)
+        del ds.FrameOfReferenceUID
+        ds.save_as(p)
+    ref = read_dicom(folder)
+    lab = np.zeros(ref.shape, np.uint8)
+    lab[2:4, 3:7, 4:8] = 3
+    write_volume(ref.with_data(lab), tmp_path / "lab.nrrd")
+    for kind in ("rtstruct", "seg"):
+        out = tmp_path / f"{kind}.dcm"
+        res = run("convert", tmp_path / "lab.nrrd", "--reference", folder, "--dicom-type", kind,
+                  "-o", out)
+        assert res.code == 1 and "Frame Of Reference UID" in res.stderr.replace(
+            "FrameOfReferenceUID", "Frame Of Reference UID"), res
+        assert not out.exists()
