@@ -170,3 +170,43 @@ def test_capture_values_labels_of_fractions_is_refused_at_once(run, tmp_path):
     res = run("capture", src, "-o", tmp_path / "f.vwc", "--values", "labels")
     assert res.code == 2 and "needs integer ids" in res.stderr
     assert not (tmp_path / "f.vwc").exists()
+
+
+@pytest.mark.parametrize("ext", ["nrrd", "nii.gz", "mha", "ome.zarr"])
+def test_labels_given_against_the_rule_are_recorded_for_the_next_command(run, tmp_path, affine,
+                                                                        ext):
+    """Six single-voxel ids are intensities by the rule: ``--values labels`` kept them, but the
+    output did not say so, and the next command blended them (exit 0). The choice is recorded;
+    the next ``apply`` resamples the output by nearest neighbour, as SimpleITK does."""
+    tfm, a = affine
+    src = tmp_path / "fid.nrrd"
+    write_volume(Volume(_fiducials()), src)
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nunits: voxel\ncapture: {lattice: 5}\nsteps:\n"
+                    "  - move:\n      - {index: [2, 2, 2], by: [0.0, 0.0, 0.0]}\n")
+    for cmd, args in (("warp", ["--spec", spec]), ("apply", ["-t", tfm])):
+        kept = tmp_path / f"{cmd}.{ext}"
+        res = run(cmd, src, *args, "--values", "labels", "-o", kept)
+        assert res.code == 0, res.stderr
+        assert read_volume(kept).meta.get("volwarp_values") == "labels"
+        again = tmp_path / f"again_{cmd}.nrrd"
+        res = run("apply", kept, "-t", tfm, "-o", again, "-v")
+        assert res.code == 0, res.stderr
+        assert "values: labels (recorded in the file (volwarp_values))" in res.stderr
+        img = sitk.GetImageFromArray(read_volume(kept).data)
+        ref = sitk.GetArrayFromImage(sitk.Resample(img, img, a, sitk.sitkNearestNeighbor, 0))
+        got = read_volume(again).data
+        assert set(np.unique(got)) <= {0, 10, 20, 30, 40, 50, 60}  # (blended before)
+        assert np.count_nonzero(got != ref) <= 2
+    # where the rule agrees (a label map of regions), the output is the rule's, byte for byte
+    regions = np.zeros((20, 20, 20), np.uint8)
+    regions[3:9, 4:12, 5:15] = 2
+    regions[10:17, 6:14, 2:10] = 5
+    write_volume(Volume(regions), tmp_path / "regions.nrrd")
+    outs = []
+    for extra in ([], ["--values", "labels"]):
+        outs.append(tmp_path / f"r{len(outs)}.nrrd")
+        assert run("warp", tmp_path / "regions.nrrd", "--spec", spec, *extra, "-o",
+                   outs[-1]).code == 0
+    assert outs[0].read_bytes() == outs[1].read_bytes()
+    assert "volwarp_values" not in read_volume(outs[1]).meta

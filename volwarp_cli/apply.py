@@ -580,11 +580,12 @@ def plan_resample(header, source, chain: Chain, reference=None, *,
         _check_label_output(sampling, dtype, out_dtype, name)
     out = header.replace(shape=grid.shape, dtype=out_dtype, spacing=np.array(grid.spacing),
                          origin=np.array(grid.origin), direction=np.array(grid.direction))
-    from .labelmap import segmentation_of, without_label_keys
+    from .labelmap import meta_as_taken
 
-    if not sampling.choice.is_labels and segmentation_of(out.meta):
-        # (a label map resampled as intensities, as asked: its keys would call the blend one)
-        out = out.replace(meta=without_label_keys(out.meta))
+    # (a label map resampled as intensities, as asked: its keys would call the blend one;
+    # labels asked of samples the rule takes for intensities: recorded)
+    out = out.replace(meta=meta_as_taken(out.meta, sampling.choice.is_labels,
+                                         sampling.choice.against_rule))
     # (the choice goes with the output: its pyramid's levels then take a label map's mode,
     # where the writer's own rule, on the resampled samples alone, took the mean)
     # (--values intensity too: asked for, the levels take the mean, never the mode)

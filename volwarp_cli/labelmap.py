@@ -191,6 +191,26 @@ def without_label_keys(meta) -> dict:
     return out
 
 
+def meta_as_taken(meta, labels: bool, against_rule: bool) -> dict:
+    """An output's key/values saying what its samples are, as its command took the input's.
+
+    Intensities made of a label map (``--values intensity``): without its label
+    keys, which would call the blend a label map (the next command resampled
+    it by nearest neighbour, or asked). A label map the user said is one
+    ``against_rule`` (the option or the spec, of sparse ids the rule takes for
+    intensities) whose file says nothing of it: the choice recorded
+    (:data:`VALUES_KEY`), so that the next command takes the output for the
+    label map it is instead of blending its ids. (Where the rule agrees, the
+    output is the one the rule's choice writes, byte for byte.)
+    """
+    meta = dict(meta or {})
+    if labels:
+        if against_rule and segmentation_of(meta) is None:
+            meta[VALUES_KEY] = "labels"
+        return meta
+    return without_label_keys(meta) if segmentation_of(meta) else meta
+
+
 def recorded_values(meta) -> str | None:
     """The values choice ``meta`` records (:data:`VALUES_KEY`), or None."""
     value = str((meta or {}).get(VALUES_KEY, ""))

@@ -72,7 +72,9 @@ class ValuesChoice:
     does not look like a label map; a sparse volume of a few ids taken for
     intensities, :func:`sparse_ids_warning`), or None; ``ids``: the distinct values
     themselves where they were counted (an output type must hold them:
-    :func:`~volwarp_cli.labelmap.refuse_merged_ids`).
+    :func:`~volwarp_cli.labelmap.refuse_merged_ids`); ``against_rule``: labels
+    given of samples the rule takes for intensities (an output records the
+    choice: :func:`~volwarp_cli.labelmap.meta_as_taken`).
     """
 
     values: str
@@ -80,6 +82,7 @@ class ValuesChoice:
     labels: int | None = None
     warning: str | None = None
     ids: np.ndarray | None = field(default=None, compare=False, repr=False)
+    against_rule: bool = False
 
     @property
     def is_labels(self) -> bool:
@@ -193,7 +196,7 @@ def choose_values(source, given: str | None = None, *, name: str = "the input",
                        f"{'' if n < 2 else ': the label rule takes it for intensities'}): "
                        "warped as labels as asked (each output voxel one of its values, "
                        "never a blend)")
-        return ValuesChoice("labels", "given", n, warning, ids)
+        return ValuesChoice("labels", "given", n, warning, ids, against_rule=not looks)
     if looks:
         return ValuesChoice("labels", f"looks like a label map: {n} labels", n, ids=ids)
     segmentation = segmentation_of(meta)

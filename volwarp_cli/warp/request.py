@@ -54,17 +54,16 @@ class WarpFiles:
         return stamp(vol, "warp", self.input if inputs is None else inputs, self.spec)
 
 
-def _intensity_meta(vol, choice):
-    """``vol`` (a Volume or Header) without label keys where a label map was warped as intensities.
+def _values_meta(vol, choice):
+    """``vol`` (a Volume or Header) whose key/values say what its samples are, as the warp took them.
 
-    ``--values intensity``: its blended samples are no label map, and the next
-    command took them for one (a NIfTI intent, Slicer's Segment keys) or asked.
+    (:func:`~volwarp_cli.labelmap.meta_as_taken`: ``--values intensity`` of a label
+    map drops its label keys; ``--values labels`` of samples the rule takes for
+    intensities records the choice.)
     """
-    from ..labelmap import segmentation_of, without_label_keys
+    from ..labelmap import meta_as_taken
 
-    if choice.is_labels or not segmentation_of(vol.meta):
-        return vol
-    return vol.replace(meta=without_label_keys(vol.meta))
+    return vol.replace(meta=meta_as_taken(vol.meta, choice.is_labels, choice.against_rule))
 
 
 def warp_files(req: WarpFiles, how) -> dict:
@@ -208,12 +207,12 @@ def _warp_once(req: WarpFiles, how) -> dict:
     choice, warp = plan_final(header, source, doc, spec, req.options, name=req.input,
                               cap=cap, choice=choice, exportable=bool(req.exports))
     if choice.is_labels:
-        return {**_warp_labels(req, warp, how), **values_json(choice)}
+        return {**_warp_labels(req, warp, how, choice), **values_json(choice)}
     header = warp.output_header()
     w = req.write
     # (--values intensity: the pyramid's levels take the mean, as asked, not the writer's
     # rule on the warped samples, which took a nearest-pushed map's mode)
-    target = execute.Target(req.output, req.stamped(_intensity_meta(header, choice)),
+    target = execute.Target(req.output, req.stamped(_values_meta(header, choice)),
                             header.dtype, compress=w["compress"], byte_order=w["byte_order"],
                             version=w.get("ome_zarr_version", "0.5"),
                             pyramid=w.get("pyramid", 0),
@@ -267,7 +266,7 @@ def _exports_by_slabs(req: WarpFiles, warp, how, *, held: int = 0) -> bool:
     return True
 
 
-def _warp_labels(req: WarpFiles, warp, how) -> dict:
+def _warp_labels(req: WarpFiles, warp, how, choice) -> dict:
     """A label map's warp (:class:`.label_blocks.LabelWarpOperation`): whole or by slabs.
 
     The map is read whole when the warp fits the memory budget, else box by
@@ -280,7 +279,8 @@ def _warp_labels(req: WarpFiles, warp, how) -> dict:
     from .labels import format_report
 
     slabs = _exports_by_slabs(req, warp, how)
-    ran = execute.run(LabelWarpOperation(warp, req.output, req.stamped(warp.header),
+    ran = execute.run(LabelWarpOperation(warp, req.output,
+                                         req.stamped(_values_meta(warp.header, choice)),
                                          req.write), how)
     report, by_slabs = ran.output, ran.by_blocks or slabs
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
@@ -319,7 +319,7 @@ def _warp_frames(req: WarpFiles) -> dict:
     def write(vol, path):
         with timed(f"write {path}"):
             # (a label map's pyramid levels take the mode, as by blocks: never averaged ids)
-            write_volume(req.stamped(vol if labels else _intensity_meta(vol, choice)), path,
+            write_volume(req.stamped(_values_meta(vol, choice)), path,
                          **req.write,
                          **({"labels": True} if labels else
                             {"labels": False} if _intensity_asked(choice) else {}))
