@@ -262,7 +262,16 @@ def test_an_output_name_ending_in_a_slash_is_refused_but_a_stores(run, tmp_path,
     for args in (["convert", ball_file, "-o", f"{tmp_path / 'new.nrrd'}/"],
                  ["mesh", ball_file, "--iso", "50", "-o", f"{tmp_path / 'm.ply'}/"],
                  ["capture", ball_file, "-o", f"{tmp_path / 'c.vwc'}/"],
-                 ["distance", ball_file, "--iso", "50", "-o", f"{tmp_path / 'scans'}/"]):
+                 ["distance", ball_file, "--iso", "50", "-o", f"{tmp_path / 'scans'}/"],
+                 # (an image or a frame pattern wrote its file too: `--render x.png/`)
+                 ["mesh", ball_file, "--iso", "50", "-o", tmp_path / "m.ply", "--render",
+                  f"{tmp_path / 'r.png'}/"],
+                 ["morph", ball_file, ball_file, "--frames", "2", "-o", tmp_path / "f{i}.nrrd",
+                  "--render-to", f"{tmp_path / 'f{i}.png'}/"],
+                 ["morph", ball_file, ball_file, "--frames", "2", "-o", tmp_path / "f{i}.nrrd",
+                  "--mesh-to", f"{tmp_path / 'f{i}.ply'}/"],
+                 ["morph", ball_file, ball_file, "--frames", "2", "-o", tmp_path / "f{i}.nrrd",
+                  "--render-to", tmp_path / "f{i}.png", "--sheet", f"{tmp_path / 's.png'}/"]):
         res = run(*args)
         assert res.code == 2, (args, res.stderr)
         assert "ends in a slash, which names a folder" in res.stderr

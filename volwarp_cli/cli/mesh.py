@@ -119,7 +119,7 @@ def _format_stats(d: dict) -> str:
               help="An empty surface is a warning (exit 0, empty mesh written) instead of an "
                    "error (exit 1).")
 @click.option("--render", type=click.Path(dir_okay=False), default=None, metavar="OUT.png",
-              callback=core_parser(image_path),
+              callback=file_name_checked(core_parser(image_path)),
               help="Also render the surface, shaded, to this image.")
 @click.option("--view", default="iso", show_default=True, callback=core_parser(parse_view),
               help=VIEW_HELP)

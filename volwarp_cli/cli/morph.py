@@ -27,6 +27,7 @@ from .options import (
     common_options,
     core_parser,
     examples,
+    file_name_checked,
     finite,
     output_option,
     parse_view,
@@ -81,13 +82,13 @@ def _pattern_check(kind: str):
                "format by extension. An earlier run's frames beyond this run's count are "
                "not removed (a frames folder of its own per run keeps them apart).",
                callback=_pattern_check("volume"))
-@click.option("--mesh-to", default=None, callback=_pattern_check("mesh"),
+@click.option("--mesh-to", default=None, callback=file_name_checked(_pattern_check("mesh")),
               help="Also write each frame's surface: pattern with a mesh extension "
                    "(.ply .stl .obj .vtp .vtk).")
-@click.option("--render-to", default=None, callback=_pattern_check("image"),
+@click.option("--render-to", default=None, callback=file_name_checked(_pattern_check("image")),
               help="Also render each frame's surface to an image (.png ...): pattern.")
 @click.option("--sheet", "sheet_path", default=None, type=click.Path(dir_okay=False),
-              callback=core_parser(image_path),
+              callback=file_name_checked(core_parser(image_path)),
               help="With --render-to: also one contact sheet of all frames' renders, each "
                    "titled with its time t.")
 @click.option("--frames", type=click.IntRange(min=2), default=None,

@@ -18,6 +18,7 @@ from .options import (
     common_options,
     core_parser,
     examples,
+    file_name_checked,
     output_option,
     parse_size,
     parse_view,
@@ -58,7 +59,7 @@ def output_paths(pattern: str, names: list[str], multi: bool) -> dict[str, str]:
 @click.option("--multi", is_flag=True,
               help="Write all fields into one multi-component NRRD (-o without {field}).")
 @click.option("--render", "render_path", type=click.Path(dir_okay=False), default=None,
-              callback=core_parser(image_path),
+              callback=file_name_checked(core_parser(image_path)),
               help="Also ray-cast the spatial object (opacity, red/green/blue, geometry) "
                    "to this PNG.")
 @click.option("--view", default="iso", show_default=True, callback=core_parser(parse_view),
