@@ -214,3 +214,25 @@ def test_a_command_keeps_its_classes_methods_for_the_next(tmp_path):
         assert (tmp_path / "c.nii").exists()
         counts.append(int(res.stderr.rsplit("compiled ", 1)[1]))
     assert counts[0] > 20 and counts[1] == 0
+
+
+def test_the_table_goes_where_python_puts_bytecode(tmp_path):
+    """Beside the package's ``__pycache__``; under ``PYTHONPYCACHEPREFIX`` where that is set
+    (it was written into the source tree beside a prefix's bytecode)."""
+    import volwarp_cli
+
+    code = ("from volwarp_cli import dataclass_code as d, warmup\n"
+            "warmup.main(['--list'])\n"  # (lists the commands: patches nothing)
+            "import dataclasses\n"
+            "print(d.table_path()); print('exec' in vars(dataclasses))")
+    package = os.path.dirname(volwarp_cli.__file__)
+    for prefix, folder in ((None, os.path.join(package, "__pycache__")),
+                           (str(tmp_path / "prefix"), str(tmp_path / "prefix") + package)):
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONPYCACHEPREFIX"}
+        if prefix:
+            env["PYTHONPYCACHEPREFIX"] = prefix
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=120, env=env)
+        assert res.returncode == 0, res.stderr
+        path, patched = res.stdout.splitlines()[-2:]
+        assert os.path.dirname(path) == folder and patched == "False"

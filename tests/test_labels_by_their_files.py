@@ -198,6 +198,14 @@ def test_labels_given_against_the_rule_are_recorded_for_the_next_command(run, tm
         got = read_volume(again).data
         assert set(np.unique(got)) <= {0, 10, 20, 30, 40, 50, 60}  # (blended before)
         assert np.count_nonzero(got != ref) <= 2
+    # convert --values labels records it too, and so does the library's warp
+    res = run("convert", src, "--values", "labels", "--dtype", "int16", "-o",
+              tmp_path / f"c.{ext}")
+    assert res.code == 0, res.stderr
+    assert read_volume(tmp_path / f"c.{ext}").meta.get("volwarp_values") == "labels"
+    from volwarp_cli import api
+
+    assert api.warp(src, spec, values="labels").meta.get("volwarp_values") == "labels"
     # where the rule agrees (a label map of regions), the output is the rule's, byte for byte
     regions = np.zeros((20, 20, 20), np.uint8)
     regions[3:9, 4:12, 5:15] = 2
@@ -210,3 +218,15 @@ def test_labels_given_against_the_rule_are_recorded_for_the_next_command(run, tm
                    outs[-1]).code == 0
     assert outs[0].read_bytes() == outs[1].read_bytes()
     assert "volwarp_values" not in read_volume(outs[1]).meta
+    # ... but a record of intensities it carried (a warp of a capture made --values
+    # intensity) is replaced: the next command blended the labels kept
+    write_volume(Volume(regions, meta={"volwarp_values": "intensity"}), tmp_path / "ri.nrrd")
+    for cmd, args in (("warp", ["--spec", spec]), ("apply", ["-t", tfm])):
+        out = tmp_path / f"ri_{cmd}.{ext}"
+        assert run(cmd, tmp_path / "ri.nrrd", *args, "--values", "labels", "-o", out).code == 0
+        assert read_volume(out).meta.get("volwarp_values") == "labels"
+    assert api.warp(tmp_path / "ri.nrrd", spec, values="labels").meta["volwarp_values"] == \
+        "labels"
+    # (and the library's intensity warp of an output that records labels drops the record)
+    kept = api.warp(tmp_path / f"warp.{ext}", spec, values="intensity", dtype="float32")
+    assert "volwarp_values" not in kept.meta

@@ -251,3 +251,5 @@ def test_a_series_without_a_frame_of_reference_is_refused(tmp_path, run):
         assert res.code == 1 and "Frame Of Reference UID" in res.stderr.replace(
             "FrameOfReferenceUID", "Frame Of Reference UID"), res
         assert not out.exists()
+        if kind == "rtstruct":  # (the series at fault named)
+            assert f"the reference series ({folder}) has no" in res.stderr

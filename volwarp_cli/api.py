@@ -361,8 +361,10 @@ def warp(volume, spec, *, values: str | None = None, pushforward: str | None = N
         choice, planned = plan_final(header, source, doc, wspec, options, name=name,
                                      cap=cap, choice=choice)
         if choice.is_labels:
-            return _warp_labels(planned, name, path, spec_path)
-        out = planned.output_header()
+            return _warp_labels(planned, name, path, spec_path, choice)
+        from .warp.request import values_meta
+
+        out = values_meta(planned.output_header(), choice)
         op = planned.operation(_target(_stamped(out, "warp", path, spec_path)), source=source)
         (result,) = _compute_whole(op).values()
         return result
@@ -845,16 +847,17 @@ def _compute_whole(op) -> dict:
             for key, target in op.targets.items()}
 
 
-def _warp_labels(planned, name: str, path, spec_path) -> Volume:
+def _warp_labels(planned, name: str, path, spec_path, choice) -> Volume:
     """A label map's warp, whole (as ``volwarp warp`` makes it in memory)."""
     from .memory import ensure_fits_once_loaded
     from .progress import log
     from .warp.labels import format_report
+    from .warp.request import values_meta
 
     ensure_fits_once_loaded(planned.memory_whole(), f"the warp of {name}'s labels", None)
     out, report = planned.compute_whole()
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
-    stamped = _stamped(planned.header, "warp", path, spec_path)
+    stamped = _stamped(values_meta(planned.header, choice), "warp", path, spec_path)
     return stamped.with_data(out.data, origin=out.origin)
 
 

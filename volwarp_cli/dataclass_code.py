@@ -11,7 +11,7 @@ A text and what it compiles to depend on nothing but the text (and the Python
 that compiles it), so the code can be kept: :func:`install` (the command
 line's entry point calls it, before any volwarp module loads) makes the
 ``exec`` of ``dataclasses`` compile a text of a ``volwarp_cli`` class once, from
-a table of texts and their code objects kept in the package's ``__pycache__``
+a table of texts and their code objects kept beside the package's bytecode
 (:data:`FILE`, marked with the interpreter's bytecode magic number as a
 ``.pyc`` is). The code run is what ``exec`` of the text would have compiled: the
 same compiler, the same flags (none inherited), the same ``"<string>"`` file
@@ -53,10 +53,17 @@ def _magic() -> bytes:
 
 
 def table_path() -> str | None:
-    """The table's path, or None where this Python keeps no bytecode (no cache tag)."""
+    """The table's path, or None where this Python keeps no bytecode (no cache tag).
+
+    Beside the package's bytecode: its ``__pycache__``, or the mirror folder under
+    ``PYTHONPYCACHEPREFIX`` where that is set.
+    """
     if sys.implementation.cache_tag is None:
         return None
-    return os.path.join(os.path.dirname(os.path.abspath(__file__)), "__pycache__", FILE)
+    from importlib.util import cache_from_source
+
+    here = os.path.join(os.path.dirname(os.path.abspath(__file__)), "__init__.py")
+    return os.path.join(os.path.dirname(cache_from_source(here)), FILE)
 
 
 def load(path: str | None) -> dict[str, bytes]:

@@ -200,12 +200,15 @@ def meta_as_taken(meta, labels: bool, against_rule: bool) -> dict:
     ``against_rule`` (the option or the spec, of sparse ids the rule takes for
     intensities) whose file says nothing of it: the choice recorded
     (:data:`VALUES_KEY`), so that the next command takes the output for the
-    label map it is instead of blending its ids. (Where the rule agrees, the
-    output is the one the rule's choice writes, byte for byte.)
+    label map it is instead of blending its ids (where the rule agrees, the
+    output is the one the rule's choice writes, byte for byte); a record of
+    intensities the input carried (a warp of a capture made ``--values
+    intensity``) is replaced, whatever the rule says.
     """
     meta = dict(meta or {})
     if labels:
-        if against_rule and segmentation_of(meta) is None:
+        if recorded_values(meta) == "intensity" or (against_rule
+                                                    and segmentation_of(meta) is None):
             meta[VALUES_KEY] = "labels"
         return meta
     return without_label_keys(meta) if segmentation_of(meta) else meta

@@ -261,11 +261,9 @@ def run(*, verbosity: int = 1, list_only: bool = False) -> int:
     import contextlib
     import tempfile
 
-    from . import dataclass_code
     from .entry import configure_numba_cache
 
     folder = configure_numba_cache()
-    dataclass_code.install()  # (every command's classes made below: their methods kept)
 
     def say(message, level=1):
         if verbosity >= level:
@@ -284,6 +282,9 @@ def run(*, verbosity: int = 1, list_only: bool = False) -> int:
             for line in command_lines(paths, out, chunked):
                 print("volwarp " + " ".join(line))
             return 0
+        from . import dataclass_code
+
+        dataclass_code.install()  # (every class made below: its methods kept)
         from .cli.main import cli
 
         paths = write_inputs(tmp)
@@ -301,10 +302,32 @@ def run(*, verbosity: int = 1, list_only: bool = False) -> int:
                 return 1
             say(f"  [{i}/{len(lines)}] {time.perf_counter() - t0:5.2f} s  "
                 f"volwarp {' '.join(line[:1] + [os.path.basename(a) for a in line[1:2]])}", 2)
+    _import_every_module()  # (the classes of paths no command above took: a label warp's)
     _mark()
     dataclass_code.save(force=True)  # (as compileall writes bytecode, whatever the environment says)
     say(f"volwarp warm-up: done in {time.perf_counter() - start:.1f} s")
     return 0
+
+
+def _import_every_module() -> None:
+    """Import every module of the package, so that each of its dataclasses is made once here.
+
+    Their methods then go into :mod:`volwarp_cli.dataclass_code`'s table with
+    those of the commands run: a class only a path the warm-up does not take
+    makes (a label map's warp) would otherwise be compiled in every run where
+    bytecode is not written (``PYTHONDONTWRITEBYTECODE``). A module whose
+    optional dependency is not installed is skipped.
+    """
+    import importlib
+    import pkgutil
+
+    from . import __path__ as package_path
+
+    for module in pkgutil.walk_packages(package_path, f"{__package__}."):
+        try:
+            importlib.import_module(module.name)
+        except ImportError:
+            continue
 
 
 def _mark() -> None:

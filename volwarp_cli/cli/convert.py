@@ -12,7 +12,7 @@ import click
 
 from ..errors import BadUsage
 from ..io import check_output_path, write_volume
-from ..labelmap import VALUES, keep_label_ids, segmentation_of, whole_ids
+from ..labelmap import VALUES, keep_label_ids, meta_as_taken, segmentation_of, whole_ids
 from ..memory import human_bytes
 from ..progress import timed
 from .common import load_input
@@ -136,6 +136,8 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
             raise BadUsage(f"{input}: --values labels needs a label map (integer ids), got "
                            f"{vol.dtype} samples that are not all integers")
         ids = False  # (a float field that kept a SEG's keys: intensities)
+    if values == "labels":  # (said of a file that does not say it: recorded for the next command)
+        vol = vol.replace(meta=meta_as_taken(vol.meta, True, True))
     if labels == "auto" and values is not None:
         labels = values == "labels"
     elif labels == "auto" and ids:  # (a SEG's ids whatever they look like)

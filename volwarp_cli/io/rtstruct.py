@@ -742,9 +742,11 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
 
     check_on_reference_grid(vol, reference, where)
     if not reference.frame_of_reference_uid:  # (Type 1 in the structure set and each ROI)
-        raise VolwarpError(f"{where}: the reference series has no FrameOfReferenceUID, which an "
-                           "RTSTRUCT's contours must name (a SEG is refused alike); give the "
-                           "series one, or write the labels as a volume")
+        series = os.path.dirname(str(reference.files[0])) or "."
+        raise VolwarpError(f"{where}: the reference series ({series}) has no "
+                           "FrameOfReferenceUID, which an RTSTRUCT's contours must name (a SEG "
+                           "is refused alike); give the series one, or write the labels as a "
+                           "volume")
     values = label_values(vol, where)
     names = dict(names or {})
     check_names(names, values, names_from or where)

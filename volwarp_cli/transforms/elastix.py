@@ -89,15 +89,13 @@ def _numbers(doc: dict, key: str, n: int | None, where: str, default=None, *,
     out = np.asarray(vals, float)
     if whole and not np.all(np.isfinite(out) & (out == np.round(out))):
         raise VolwarpError(f"{where}: ({key} ...) must be whole numbers, not "
-                           f"{' '.join(f'{v:g}' for v in out)}")
+                           f"{' '.join(repr(float(v)) for v in out)}")
     return out
 
 
-def _word(doc: dict, key: str, default: str, where: str = "") -> str:
-    """``(key "word")``'s one word; two words (``(Transform "A" "B")``) refused, not one ignored."""
+def _word(doc: dict, key: str, default: str) -> str:
+    """``(key "word" ...)``'s first word, as transformix reads it (more are ignored there too)."""
     vals = doc.get(key, [default])
-    if len(vals) > 1 and where:
-        raise VolwarpError(f"{where}: ({key} ...) has {len(vals)} values; elastix reads one")
     return str(vals[0]) if vals else default
 
 
@@ -106,7 +104,7 @@ def _column_major(values: np.ndarray) -> np.ndarray:
 
 
 def _step(doc: dict, where: str):
-    kind = _word(doc, "Transform", "", where)
+    kind = _word(doc, "Transform", "")
     dims = int(_numbers(doc, "FixedImageDimension", 1, where, [3], whole=True)[0])
     check_dimension(f"an elastix {kind}", dims, where)
     if kind not in _CLASSES:
@@ -150,7 +148,7 @@ def _initial(doc: dict, path: str, folder: str | None = None) -> str | None:
     """
     for key in _INITIAL:
         if key in doc:
-            name = _word(doc, key, "NoInitialTransform", path)
+            name = _word(doc, key, "NoInitialTransform")
             break
     else:
         return None
@@ -175,7 +173,7 @@ def read_elastix(path: str, text: str, _seen: tuple = ()) -> tuple[list, dict]:
     if os.path.realpath(path) in _seen:
         raise VolwarpError(f"{path}: its initial transforms loop back to it")
     doc = parse(text, path)
-    how = _word(doc, "HowToCombineTransforms", "Compose", path)
+    how = _word(doc, "HowToCombineTransforms", "Compose")
     steps: list = []
     initial = _initial(doc, path)
     if initial is not None:

@@ -54,7 +54,7 @@ class WarpFiles:
         return stamp(vol, "warp", self.input if inputs is None else inputs, self.spec)
 
 
-def _values_meta(vol, choice):
+def values_meta(vol, choice):
     """``vol`` (a Volume or Header) whose key/values say what its samples are, as the warp took them.
 
     (:func:`~volwarp_cli.labelmap.meta_as_taken`: ``--values intensity`` of a label
@@ -212,7 +212,7 @@ def _warp_once(req: WarpFiles, how) -> dict:
     w = req.write
     # (--values intensity: the pyramid's levels take the mean, as asked, not the writer's
     # rule on the warped samples, which took a nearest-pushed map's mode)
-    target = execute.Target(req.output, req.stamped(_values_meta(header, choice)),
+    target = execute.Target(req.output, req.stamped(values_meta(header, choice)),
                             header.dtype, compress=w["compress"], byte_order=w["byte_order"],
                             version=w.get("ome_zarr_version", "0.5"),
                             pyramid=w.get("pyramid", 0),
@@ -280,7 +280,7 @@ def _warp_labels(req: WarpFiles, warp, how, choice) -> dict:
 
     slabs = _exports_by_slabs(req, warp, how)
     ran = execute.run(LabelWarpOperation(warp, req.output,
-                                         req.stamped(_values_meta(warp.header, choice)),
+                                         req.stamped(values_meta(warp.header, choice)),
                                          req.write), how)
     report, by_slabs = ran.output, ran.by_blocks or slabs
     log.info("per-label volumes (mm^3):\n%s", format_report(report))
@@ -319,7 +319,7 @@ def _warp_frames(req: WarpFiles) -> dict:
     def write(vol, path):
         with timed(f"write {path}"):
             # (a label map's pyramid levels take the mode, as by blocks: never averaged ids)
-            write_volume(req.stamped(_values_meta(vol, choice)), path,
+            write_volume(req.stamped(values_meta(vol, choice)), path,
                          **req.write,
                          **({"labels": True} if labels else
                             {"labels": False} if _intensity_asked(choice) else {}))
