@@ -189,7 +189,9 @@ def scan_source(source, *, slab_bytes: int = 4 << 20) -> SourceScan:
     four times (min, max, faces, sample) while it is still in the cache, and
     the allocator hands the next slab the memory of the last; 64 MiB slabs,
     each fresh memory, took a 256^3 float32 scan 28-34 ms (60 ms the first
-    time in a process) where 4 MiB slabs take 16, on one thread.
+    time in a process) where 4 MiB slabs take 16, on one thread. (The whole
+    warp is no faster: it then takes the fresh pages the scan took before;
+    its peak is 6-7 MiB lower.)
     """
     from .. import parallel
     from ..memory import available_memory
