@@ -33,10 +33,10 @@ import marshal
 import os
 import sys
 
-#: the table's file name in the package's ``__pycache__`` (per interpreter, as a .pyc)
+#: the table's file name beside the package's bytecode (per interpreter, as a .pyc)
 FILE = f"volwarp-dataclass-code.{sys.implementation.cache_tag}.bin"
 #: entries kept at most: beyond that a write keeps only the texts its process used
-#: (the package's classes need about 300; edited classes leave their old texts behind)
+#: (the package's classes need about 470; edited classes leave their old texts behind)
 MAX_ENTRIES = 4000
 _PACKAGE = "volwarp_cli"
 
