@@ -167,7 +167,7 @@ def test_cli_errors(run, tmp_path):
     r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", 250, "--values", "intensity")
     assert r.code == 1 and "empty" in r.stderr and not out.exists()
     r = run("distance", tmp_path / "b.nrrd", "-o", out, "--iso", -1, "--values", "intensity")
-    assert r.code == 1 and "fills the whole grid" in r.stderr
+    assert r.code == 1 and f"{tmp_path / 'b.nrrd'}: the shape fills the whole grid" in r.stderr
     r = run("distance", tmp_path / "b.nrrd", "-o", out, "--values", "intensity")
     assert r.code == 2 and "--iso" in r.stderr
     write_volume(Volume(ball(12) * np.float32(0.5)), tmp_path / "f.nrrd")  # no label map

@@ -128,7 +128,7 @@ def test_command_refusals(run, vol, tmp_path):
     assert res.code == 2 and "looks like a label map" in res.stderr
     res = run("distance", src, "-o", out, "--iso", "5000", "--metric", "minnorm", "--chunked",
               "--values", "intensity")
-    assert res.code == 1 and "the shape is empty" in res.stderr
+    assert res.code == 1 and f"{src}: the shape is empty" in res.stderr  # (the file named)
     res = run("distance", src, "-o", out, "--iso", "500", "--metric", "minnorm", "--chunked",
               "--surface", "subvoxel")
     assert res.code == 2 and "need the euclidean metric" in res.stderr  # (options clash)

@@ -450,3 +450,27 @@ def test_a_slicer_ras_ply_is_read_in_lps_and_every_file_says_lps(blob, tmp_path,
     for fmt, where in (("ply", 400), ("obj", 200), ("stl", 80), ("vtk", 80)):
         write_mesh(blob, tmp_path / f"b.{fmt}")
         assert b"SPACE=LPS" in (tmp_path / f"b.{fmt}").read_bytes()[:where], fmt
+
+
+def test_float32_rounding_far_from_the_origin_is_said(run, tmp_path):
+    """Every mesh format stores float32 vertices: a 0.01 mm voxel's ball of a volume placed
+    1e5 mm out kept 24 distinct x values of 290 (0.39 voxel off), without a word. Said, with
+    float32's step there; a scan near the origin says nothing."""
+    from volwarp_cli.io import write_volume
+
+    z, y, x = np.mgrid[:18, :18, :18]
+    ball = (100 - 12 * np.sqrt((x - 8.5) ** 2 + (y - 8.5) ** 2 + (z - 8.5) ** 2)).astype(
+        np.float32)
+    for origin, said in (((1e5, 0.0, 0.0), True), ((-120.0, 80.0, 300.0), False)):
+        src = tmp_path / "ball.nrrd"
+        write_volume(Volume(ball, spacing=(0.01, 0.01, 0.01), origin=origin), src)
+        out = tmp_path / "ball.ply"
+        res = run("mesh", src, "--iso", "50", "-o", out)
+        assert res.code == 0 and out.exists(), res.stderr
+        assert ("stored as float32, whose steps 100000 mm from the origin are 0.0078 mm"
+                in res.stderr) is said, res.stderr
+        if said:  # (and it is so: the file's x values are float32's steps there)
+            from volwarp_cli.surface.mesh_io import read_mesh
+
+            xs = np.unique(read_mesh(out).vertices[:, 0])
+            assert np.all(np.diff(xs) >= 0.0078)

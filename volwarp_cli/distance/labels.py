@@ -26,7 +26,7 @@ the checks (a missing label, a shape that fills the grid) before any pass.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -44,7 +44,8 @@ class ShapeRule:
     ``iso``); ``why``: ``"looks like a label map: 4 labels"`` (the distinct
     values, 0 included, as ``warp`` counts them), ``"given"``, ``"not a label
     map"`` (no ids: renamed ids give the same note); ``ids``: the first few
-    non-zero ids, for ``-v``.
+    non-zero ids, for ``-v``; ``name``: the input's file, for the errors of
+    the shape's checks (an empty shape, one filling the grid).
     """
 
     values: str
@@ -53,6 +54,7 @@ class ShapeRule:
     iso: float | None = None
     inside: str = "above"
     ids: str = ""
+    name: str = field(default="", compare=False)
 
     @property
     def labels(self) -> bool:
@@ -163,7 +165,7 @@ def choose_shape(source, *, values: str | None = None, label: int | None = None,
 
     check_options(values=values, label=label, iso=iso, surface=surface)
     if values == "intensity":
-        return ShapeRule("intensity", "given", iso=iso, inside=inside)
+        return ShapeRule("intensity", "given", iso=iso, inside=inside, name=name)
     scan = scan_values(source, box_voxels=box_voxels)  # (detected: to say so when asked)
     segmentation = segmentation_of(meta) if scan.values is not None else None
     looks_like = scan.looks_like or segmentation is not None
@@ -172,7 +174,7 @@ def choose_shape(source, *, values: str | None = None, label: int | None = None,
             raise BadUsage(f"--iso V is required: {name} does not look like a label map, so "
                            f"the shape is the samples {inside} V (or give --values labels or "
                            "--label N to take its ids as labels)")
-        return ShapeRule("intensity", "not a label map", iso=iso, inside=inside)
+        return ShapeRule("intensity", "not a label map", iso=iso, inside=inside, name=name)
     given = "--values labels" if values == "labels" else "--label N"
     if scan.values is None:
         what = ("samples that are not all integers" if scan.dtype.kind == "f"
@@ -222,7 +224,7 @@ def choose_shape(source, *, values: str | None = None, label: int | None = None,
                  else f"every voxel has label {label}")
         raise VolwarpError(f"{name}: {whose}, so the shape fills the whole grid and has no "
                            "surface")
-    return ShapeRule("labels", why, label=label, ids=f"ids {_listed(ids)}")
+    return ShapeRule("labels", why, label=label, ids=f"ids {_listed(ids)}", name=name)
 
 
 def _listed(ids: np.ndarray, shown: int = 8) -> str:

@@ -59,8 +59,10 @@ class MaskSource:
     whole's checks (:meth:`box_and_stats`).
     """
 
-    def __init__(self, source, iso: float, inside: str, *, check: bool = True):
+    def __init__(self, source, iso: float, inside: str, *, check: bool = True,
+                 name: str = ""):
         self.source, self.iso, self.inside, self.check = source, float(iso), inside, check
+        self.name = name  # (the input's file: its checks' errors name it)
         self.shape = tuple(int(n) for n in source.shape)
         self.itemsize = np.dtype(source.dtype).itemsize
         self.is_bool = np.dtype(source.dtype) == bool
@@ -83,7 +85,8 @@ class MaskSource:
         """The whole's checks from the first pass's stats (an empty or full shape; NaNs)."""
         if self.check:
             nans, count, lo, hi, _ = merge_stats(values, self.is_bool)
-            check_shape(nans, count, int(np.prod(self.shape)), lo, hi, self.iso, self.inside)
+            check_shape(nans, count, int(np.prod(self.shape)), lo, hi, self.iso, self.inside,
+                        self.name)
 
 
 class LabelMaskSource(MaskSource):
@@ -94,7 +97,7 @@ class LabelMaskSource(MaskSource):
     """
 
     def __init__(self, source, label: int | None = None):
-        self.source, self.label, self.check = source, label, False
+        self.source, self.label, self.check, self.name = source, label, False, ""
         self.shape = tuple(int(n) for n in source.shape)
         self.itemsize = np.dtype(source.dtype).itemsize
         self.is_bool = False
@@ -114,7 +117,7 @@ def mask_source(source, rule) -> MaskSource:
     """The :class:`MaskSource` of ``rule``'s shape (:class:`.labels.ShapeRule`) in ``source``."""
     if rule.labels:
         return LabelMaskSource(source, rule.label)
-    return MaskSource(source, rule.iso, rule.inside)
+    return MaskSource(source, rule.iso, rule.inside, name=rule.name)
 
 
 def _field_target(target):

@@ -50,11 +50,14 @@ def merge_stats(stats, is_bool: bool = False):
             binary)
 
 
-def check_shape(nans: int, count: int, size: int, lo, hi, iso: float, inside: str) -> None:
+def check_shape(nans: int, count: int, size: int, lo, hi, iso: float, inside: str,
+                name: str = "") -> None:
     """The whole's refusals and warning, in :func:`.field.signed_distance`'s words.
 
-    NaN samples are warned about; an empty shape, or one filling the grid, refused.
+    NaN samples are warned about; an empty shape, or one filling the grid, refused
+    (the error naming ``name``, the input's file, where given).
     """
+    whose = f"{name}: " if name else ""
     if nans:
         from ..progress import log
         from ..runscope import first_said
@@ -66,10 +69,12 @@ def check_shape(nans: int, count: int, size: int, lo, hi, iso: float, inside: st
             log.warning("%d NaN samples (%.2g%%) count as outside the shape", nans,
                         100.0 * nans / size, extra={"once": key})
     if count == 0:
-        raise VolwarpError(f"the shape is empty: no sample is {inside} the iso level {iso:g} "
+        raise VolwarpError(f"{whose}the shape is empty: no sample is {inside} the iso level "
+                           f"{iso:g} "
                            f"(samples range {float(lo):g} to {float(hi):g})")
     if count == size:
-        raise VolwarpError(f"the shape fills the whole grid: every sample is {inside} the iso "
+        raise VolwarpError(f"{whose}the shape fills the whole grid: every sample is {inside} "
+                           "the iso "
                            f"level {iso:g}, so there is no surface")
 
 
@@ -85,7 +90,7 @@ def scan_box_voxels() -> int:
     return max(1 << 16, min(BOX_VOXELS, memory_limit() // 16))
 
 
-def scan_shape(source, iso: float, inside: str, *, box_voxels: int):
+def scan_shape(source, iso: float, inside: str, *, box_voxels: int, name: str = ""):
     """The whole's ``(nans, count, lo, hi, binary)``, read box by box over the threads.
 
     ``source``: an array or a sliceable lazy source; ``box_voxels``: about the
@@ -101,7 +106,7 @@ def scan_shape(source, iso: float, inside: str, *, box_voxels: int):
     stats = parallel.run_blocks(lambda box: block_stats(source[box.slices], iso, inside),
                                 scan_boxes(shape, box_voxels))
     merged = merge_stats(stats, dtype.kind == "b")
-    check_shape(*merged[:2], int(np.prod(shape)), *merged[2:4], iso, inside)
+    check_shape(*merged[:2], int(np.prod(shape)), *merged[2:4], iso, inside, name)
     return merged
 
 
@@ -120,5 +125,6 @@ def field_surface(source, rule, *, metric: str, surface: str, max_distance: floa
     """
     if rule.labels or metric != "euclidean" or (surface == "voxel" and max_distance is None):
         return "voxel"
-    *_, binary = scan_shape(source, rule.iso, rule.inside, box_voxels=box_voxels)
+    *_, binary = scan_shape(source, rule.iso, rule.inside, box_voxels=box_voxels,
+                            name=rule.name)
     return "subvoxel" if surface == "subvoxel" or not binary else "voxel"
