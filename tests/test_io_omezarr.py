@@ -29,7 +29,6 @@ from volwarp_cli.io.blockwrite import (
     grid_boxes,
     open_block_output,
 )
-from volwarp_cli.io.lazy import open_volume_lazy
 from volwarp_cli.volume import Volume
 
 RNG = np.random.default_rng(19)
@@ -584,32 +583,3 @@ def test_a_region_read_by_rows_of_chunks_is_the_region(data):
     order = data.draw(st.permutations(space), label="space axes in the store's order")
     got = _read_by_chunk_rows(arr, stored, list(order))
     np.testing.assert_array_equal(got, values[tuple(stored)])
-
-
-@pytest.mark.parametrize("fill", [None, 0])
-def test_a_chunk_never_written_without_a_fill_value_is_refused(tmp_path, fill):
-    """Zarr v2's ``fill_value: null``: a chunk never written has no samples, and zarr read it
-    as zeros (a block of 0 in a scan, exit 0). Refused, naming the chunk; a store with every
-    chunk reads as written, and a fill value of 0 still fills what was not written (the spec)."""
-    import os
-
-    import zarr
-
-    a = samples("uint16", (10, 12, 14)) + 100
-    path = tmp_path / "n.ome.zarr"
-    g = zarr.open_group(str(path), mode="w", zarr_format=2)
-    g.create_array("0", shape=a.shape, dtype=a.dtype, chunks=(5, 6, 7), fill_value=fill)[...] = a
-    axes = [{"name": n, "type": "space", "unit": "millimeter"} for n in "zyx"]
-    g.attrs["multiscales"] = [{"version": "0.4", "axes": axes, "datasets": [
-        {"path": "0", "coordinateTransformations": [{"type": "scale", "scale": [1, 1, 1]}]}]}]
-    assert np.array_equal(read_volume(path).data, a)
-    os.remove(path / "0" / "1.1.1")
-    if fill is None:
-        with pytest.raises(FormatError, match=r"chunk '1\.1\.1' of level 0 is missing .*"
-                                              r"fill_value is null"):
-            read_volume(path)
-        with pytest.raises(FormatError, match="fill_value is null"):
-            open_volume_lazy(path)
-    else:
-        got = read_volume(path).data
-        assert np.all(got[5:, 6:, 7:] == 0) and np.array_equal(got[:5], a[:5])

@@ -1050,11 +1050,6 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
         raise FormatError(f"{where}: the 'volwarp' attribute is not an object")
     elif getattr(arr, "shards", None):
         _refuse_empty_files(array_path, where)
-    elif getattr(arr.metadata, "zarr_format", 3) == 2 and arr.metadata.fill_value is None:
-        # (Zarr v2's fill_value null: a chunk never written has no samples, and zarr read it
-        # as zeros, exit 0; every chunk file must be there)
-        _check_chunks(arr, array_path, where, True,
-                      missing="the array's fill_value is null: its samples are undefined")
     ome = attrs.get("ome") if isinstance(attrs.get("ome"), dict) else attrs
     if "image-label" in ome:  # (an NGFF labels image: its samples are label ids)
         meta = {**meta, "OME_image_label": json.dumps(ome["image-label"], sort_keys=True)}
@@ -1164,13 +1159,11 @@ def _refuse_empty_files(array_path: Path, where: str) -> None:
                                   "is an empty file)")
 
 
-def _check_chunks(arr, array_path: Path, where: str, complete: bool,
-                  missing: str = "the store is incomplete or damaged") -> bool:
+def _check_chunks(arr, array_path: Path, where: str, complete: bool) -> bool:
     """Check the chunk files of level 0 of a volwarp store; True when all are checksummed.
 
-    ``complete`` (volwarp writes every chunk; another program's Zarr v2 array
-    without a fill value): a missing chunk (or shard) file is refused, the
-    error saying why it matters (``missing``). The checksums: from the metadata (:func:`chunks_are_checksummed`),
+    ``complete`` (volwarp writes every chunk): a missing chunk (or shard) file
+    is refused. The checksums: from the metadata (:func:`chunks_are_checksummed`),
     or, for zstd in Zarr v2, from each chunk's frame header (its
     Content_Checksum_flag), read here as the files are checked: a store of an
     older volwarp (0.4 without checksums) answers False.
@@ -1194,7 +1187,8 @@ def _check_chunks(arr, array_path: Path, where: str, complete: bool,
             except OSError:
                 size = None
             if size is None or not (array_path / key).is_file():
-                raise FormatError(f"{where}: chunk {key!r} of level 0 is missing ({missing})")
+                raise FormatError(f"{where}: chunk {key!r} of level 0 is missing (the store is "
+                                  "incomplete or damaged)")
             if size == 0:  # (zarr reads an empty shard as missing: the fill value, silently)
                 raise FormatError(f"{where}: chunk data is damaged (chunk {key!r} of level 0 "
                                   "is an empty file)")
@@ -1204,8 +1198,8 @@ def _check_chunks(arr, array_path: Path, where: str, complete: bool,
                 head = fh.read(5)
         except FileNotFoundError:
             if complete:
-                raise FormatError(f"{where}: chunk {key!r} of level 0 is missing "
-                                  f"({missing})") from None
+                raise FormatError(f"{where}: chunk {key!r} of level 0 is missing (the store "
+                                  "is incomplete or damaged)") from None
             continue
         except OSError as exc:
             raise FormatError(f"{where}: cannot read chunk {key!r} ({exc.strerror})") from None
