@@ -216,8 +216,12 @@ def test_labels_given_against_the_rule_are_recorded_for_the_next_command(run, tm
         outs.append(tmp_path / f"r{len(outs)}.nrrd")
         assert run("warp", tmp_path / "regions.nrrd", "--spec", spec, *extra, "-o",
                    outs[-1]).code == 0
-    assert outs[0].read_bytes() == outs[1].read_bytes()
-    assert "volwarp_values" not in read_volume(outs[1]).meta
+        outs.append(tmp_path / f"c{len(outs)}.nrrd")  # (and convert's, the same rule)
+        assert run("convert", tmp_path / "regions.nrrd", "--dtype", "uint16", *extra, "-o",
+                   outs[-1]).code == 0
+    assert outs[0].read_bytes() == outs[2].read_bytes()
+    assert outs[1].read_bytes() == outs[3].read_bytes()
+    assert not any("volwarp_values" in read_volume(o).meta for o in outs[2:])
     # ... but a record of intensities it carried (a warp of a capture made --values
     # intensity) is replaced: the next command blended the labels kept
     write_volume(Volume(regions, meta={"volwarp_values": "intensity"}), tmp_path / "ri.nrrd")

@@ -455,15 +455,18 @@ def test_a_slicer_ras_ply_is_read_in_lps_and_every_file_says_lps(blob, tmp_path,
 def test_float32_rounding_far_from_the_origin_is_said(run, tmp_path):
     """Every mesh format stores float32 vertices: a 0.01 mm voxel's ball of a volume placed
     1e5 mm out kept 24 distinct x values of 290 (0.39 voxel off), without a word. Said, with
-    float32's step there; a scan near the origin says nothing."""
+    float32's step there; a scan near the origin, or a CT's 1.25 m out with 0.6 mm voxels
+    (0.02% of an edge), says nothing."""
     from volwarp_cli.io import write_volume
 
     z, y, x = np.mgrid[:18, :18, :18]
     ball = (100 - 12 * np.sqrt((x - 8.5) ** 2 + (y - 8.5) ** 2 + (z - 8.5) ** 2)).astype(
         np.float32)
-    for origin, said in (((1e5, 0.0, 0.0), True), ((-120.0, 80.0, 300.0), False)):
+    for origin, spacing, said in (((1e5, 0.0, 0.0), 0.01, True),
+                                  ((-120.0, 80.0, 300.0), 0.01, False),
+                                  ((-180.0, -200.0, -1250.0), 0.6, False)):  # (a CT's table)
         src = tmp_path / "ball.nrrd"
-        write_volume(Volume(ball, spacing=(0.01, 0.01, 0.01), origin=origin), src)
+        write_volume(Volume(ball, spacing=(spacing,) * 3, origin=origin), src)
         out = tmp_path / "ball.ply"
         res = run("mesh", src, "--iso", "50", "-o", out)
         assert res.code == 0 and out.exists(), res.stderr

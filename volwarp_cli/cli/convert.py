@@ -136,8 +136,11 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
             raise BadUsage(f"{input}: --values labels needs a label map (integer ids), got "
                            f"{vol.dtype} samples that are not all integers")
         ids = False  # (a float field that kept a SEG's keys: intensities)
-    if values == "labels":  # (said of a file that does not say it: recorded for the next command)
-        vol = vol.replace(meta=meta_as_taken(vol.meta, True, True))
+    if values == "labels":  # (against the rule: recorded for the next command, as warp does)
+        from ..warp.defaults import choose_values
+
+        against = choose_values(vol.data, "labels", name=str(input), meta=vol.meta).against_rule
+        vol = vol.replace(meta=meta_as_taken(vol.meta, True, against))
     if labels == "auto" and values is not None:
         labels = values == "labels"
     elif labels == "auto" and ids:  # (a SEG's ids whatever they look like)

@@ -296,9 +296,10 @@ def shape_field(job: MorphJob, name: str, header, samples, steps: Steps, rule):
                              target=steps.target(name, header))
         with timed(f"{name} distance ({job.metric})"):
             field = steps.run(op, name)
-    except VolwarpError as exc:  # (named after its input; a refusal stays one)
+    except VolwarpError as exc:  # (named after its input, once; a refusal stays one)
         kind = OutOfMemoryError if isinstance(exc, OutOfMemoryError) else VolwarpError
-        raise kind(f"{ref.path}: {in_morph_terms(job, exc)}") from None
+        text = in_morph_terms(job, exc)
+        raise kind(text if text.startswith(f"{ref.path}: ") else f"{ref.path}: {text}") from None
     log.info("%s field: %s, %s surface", name,
              "passes" if isinstance(op, Passes) else "band", surface)
     return field
