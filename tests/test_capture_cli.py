@@ -389,3 +389,38 @@ def test_a_captures_values_choice_travels_in_the_file(run, tmp_path):
     res = run("warp", plain, "--spec", spec, "-o", tmp_path / "q.nrrd", "--json")
     assert res.code == 0 and json.loads(res.stdout)["values"] == "intensity"
     assert "taken for intensities" in res.stderr  # (the ids beside the mask: said)
+
+
+_PEAK = """\
+import resource, subprocess, sys
+code = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL).returncode
+print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
+sys.exit(code)
+"""
+
+
+def test_the_payload_checksum_pass_holds_no_large_read(tmp_path):
+    """The checksum pass read the payload 64 MiB at a time, which no budget charged: a warp
+    of a 256^3 capture peaked at 98 MiB under --memory-limit 64M (a hunt). ``info`` of a
+    32 MiB payload now peaks as that of a tiny one does (it was 31 MiB higher)."""
+    import subprocess
+    import sys
+
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    rng = np.random.default_rng(0)
+    peaks = []
+    for n in (16, 200):
+        write_volume(Volume(rng.random((n, n, n), dtype=np.float32)), tmp_path / f"v{n}.nrrd")
+        cap = tmp_path / f"c{n}.vwc"
+        done = subprocess.run([sys.executable, "-m", "volwarp_cli", "capture",
+                               str(tmp_path / f"v{n}.nrrd"), "--oversample", "1", "-o",
+                               str(cap)], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        res = subprocess.run([sys.executable, "-c", _PEAK, sys.executable, "-m", "volwarp_cli",
+                              "info", str(cap)], capture_output=True, text=True, timeout=120)
+        assert res.returncode == 0, res.stderr
+        peaks.append(int(res.stdout.split()[-1]))
+    assert cap.stat().st_size > 32 << 20
+    assert peaks[1] - peaks[0] < 8 << 20, peaks

@@ -340,22 +340,24 @@ class StoredDomain:
         return np.ascontiguousarray(self.source[box.slices], dtype=self.dtype)
 
 
-#: payload bytes the checksum pass reads at a time
-_CRC_CHUNK = 64 << 20
+#: payload bytes the checksum pass reads at a time, into one buffer (64 MiB reads, uncharged,
+#: took a warp of a 256^3 capture to 98 MiB under --memory-limit 64M: a hunt)
+_CRC_CHUNK = 1 << 20
 
 
 def _check_payload(path, payload: dict, offset: int) -> None:
     """Refuse a truncated or altered payload: its CRC-32 in one streamed pass (bounded memory)."""
     crc = 0
+    buffer = memoryview(bytearray(_CRC_CHUNK))
     with open(path, "rb") as fh:
         fh.seek(offset)
         left = int(payload["nbytes"])
         while left:
-            chunk = fh.read(min(left, _CRC_CHUNK))
-            if not chunk:
+            n = fh.readinto(buffer[:min(left, _CRC_CHUNK)])
+            if not n:
                 raise FormatError(f"{path}: capture file is truncated")
-            crc = zlib.crc32(chunk, crc)
-            left -= len(chunk)
+            crc = zlib.crc32(buffer[:n], crc)
+            left -= n
     if crc != int(payload["crc32"]):
         raise FormatError(f"{path}: capture file is corrupt (payload checksum mismatch)")
 
