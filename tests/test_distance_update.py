@@ -188,3 +188,44 @@ def test_cli_update_takes_the_fields_own_metric(run, tmp_path):
             tmp_path / "d.nrrd")
     assert r.code == 2 and "is a chessboard field" in r.stderr
     assert not (tmp_path / "c.nrrd").exists() and not (tmp_path / "d.nrrd").exists()
+
+
+_PEAK = """\
+import resource, subprocess, sys
+code = subprocess.run(sys.argv[1:]).returncode
+print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
+sys.exit(code)
+"""
+
+
+def test_an_update_is_held_to_the_memory_limit(tmp_path):
+    """``--update`` runs in memory and charged nothing: 357 MiB for a 256^3 field under
+    --memory-limit 160M (a hunt). It is charged before the field is read: refused at once
+    where it cannot fit, nothing written; run where it fits, its peak below the limit."""
+    import os
+    import subprocess
+    import sys
+
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    n = 128
+    z, y, x = np.mgrid[:n, :n, :n]
+    sdf = (np.sqrt((x - 60.5) ** 2 + (y - 64) ** 2 + (z - 66) ** 2) - 30).astype(np.float32)
+    write_volume(Volume(sdf), tmp_path / "old.nrrd")
+    turn = tmp_path / "turn.yaml"
+    turn.write_text("version: 1\nrotate: [0, 0, 30]\ntranslate: [4.0, 0.0, 0.0]\n")
+    env = {k: v for k, v in os.environ.items() if k != "VOLWARP_MEMORY_LIMIT"}
+    for limit, fits in (("70M", False), ("160M", True)):
+        out = tmp_path / f"new{limit}.nrrd"
+        res = subprocess.run([sys.executable, "-c", _PEAK, sys.executable, "-m", "volwarp_cli",
+                              "distance", "--update", str(tmp_path / "old.nrrd"), "--transform",
+                              str(turn), "-o", str(out), "--memory-limit", limit],
+                             capture_output=True, text=True, timeout=300, env=env)
+        peak = int(res.stdout.split()[-1])
+        if fits:
+            assert res.returncode == 0 and out.exists(), res.stderr
+            assert peak < 160 << 20, peak
+        else:
+            assert res.returncode == 1 and "the update of" in res.stderr, res.stderr
+            assert not out.exists() and peak < 70 << 20, peak
