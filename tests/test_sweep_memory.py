@@ -56,3 +56,18 @@ def test_a_render_whose_kernels_do_not_fit_is_refused_before_the_fields(tmp_path
     assert proc.returncode == 1, proc.stderr
     assert "loading numba" in proc.stderr and "voxelise" not in proc.stderr, proc.stderr
     assert not list(tmp_path.iterdir())
+
+
+def test_template_images_that_do_not_fit_are_the_budget_s_refusal_not_the_spec_s(tmp_path):
+    """Loading OpenImageIO for a spec's template images, refused by the budget, was worded
+    as the spec's error, exit 2 (a hunt): it is the budget's, exit 1, nothing written."""
+    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
+    spec = ROOT / "specs" / "sweep-ring-of-fire.yaml"
+    proc = subprocess.run([sys.executable, "-m", "volwarp_cli", "sweep", str(spec), "--shape",
+                           "64", "64", "64", "-o", str(tmp_path / "s_{field}.nrrd"),
+                           "--memory-limit", "60M"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 1, proc.stderr
+    assert "loading OpenImageIO" in proc.stderr and "memory limit" in proc.stderr
+    assert "fields.opacity" not in proc.stderr
+    assert not list(tmp_path.iterdir())

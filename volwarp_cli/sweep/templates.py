@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import VolwarpError
+from ..errors import OutOfMemoryError, VolwarpError
 from ..io.images import normalized, read_image
 from ..io.inputs import declare_input, declare_input_glob
 from ..spec.functions import Function, spec_error
@@ -132,6 +132,8 @@ class TemplateLoader:
                 if not Path(file).is_file():
                     raise self._err(path, f"template image {str(file)!r} does not exist")
                 self._images[key] = read_image(file)
+            except OutOfMemoryError:
+                raise  # (the budget's refusal, exit 1: not the spec's fault, exit 2)
             except VolwarpError as exc:
                 if getattr(exc, "key", None):
                     raise
