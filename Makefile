@@ -13,7 +13,8 @@
 # them (tests/peers/; about 2 GB, 35 s).
 # Both then compile and cache every numba kernel (python -m volwarp_cli.warmup, about a
 # minute on a fresh install; again only when the package's sources change), so that no
-# command, demo, test or cron job pays a kernel's compilation (3-7 s each) on its first run.
+# command, demo, test or cron job pays a kernel's compilation (3-7 s each) on its first run;
+# the warm-up also keeps volwarp's dataclass methods compiled (volwarp_cli/dataclass_code.py).
 
 PYTHON ?= python3
 VENV   ?= .venv
