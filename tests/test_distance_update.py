@@ -229,3 +229,32 @@ def test_an_update_is_held_to_the_memory_limit(tmp_path):
         else:
             assert res.returncode == 1 and "the update of" in res.stderr, res.stderr
             assert not out.exists() and peak < 70 << 20, peak
+
+
+def test_the_update_s_budget_check_reads_no_samples(tmp_path):
+    """The check opened the field to learn its shape and kept what it opened: a .nii.gz
+    field's samples, inflated, stayed beside the update's own (433 against 367 MiB for
+    256^3). It reads the header only: the .nii.gz update peaks as the .nrrd one does."""
+    import os
+    import subprocess
+    import sys
+
+    from volwarp_cli.io import write_volume
+    from volwarp_cli.volume import Volume
+
+    n = 160
+    z, y, x = np.mgrid[:n, :n, :n]
+    sdf = (np.sqrt((x - 80.5) ** 2 + (y - 78) ** 2 + (z - 81) ** 2) - 40).astype(np.float32)
+    turn = tmp_path / "turn.yaml"
+    turn.write_text("version: 1\nrotate: [0, 0, 30]\ntranslate: [4.0, 0.0, 0.0]\n")
+    env = {k: v for k, v in os.environ.items() if k != "VOLWARP_MEMORY_LIMIT"}
+    peaks = []
+    for name in ("old.nrrd", "old.nii.gz"):
+        write_volume(Volume(sdf), tmp_path / name)
+        res = subprocess.run([sys.executable, "-c", _PEAK, sys.executable, "-m", "volwarp_cli",
+                              "distance", "--update", str(tmp_path / name), "--transform",
+                              str(turn), "-o", str(tmp_path / f"new_{name}")],
+                             capture_output=True, text=True, timeout=300, env=env)
+        assert res.returncode == 0, res.stderr
+        peaks.append(int(res.stdout.split()[-1]))
+    assert peaks[1] - peaks[0] < 8 << 20, peaks  # (16 MiB of samples more before)

@@ -223,14 +223,17 @@ def _update(old_path, transform_path, output, metric, max_distance, *, write, re
     from ..distance.field import finish_field
     from ..distance.update import field_and_centre, update_distance
     from ..errors import VolwarpError
+    from ..io.lazy import open_volume_header
     from ..memory import ensure_fits_in_memory
     from ..morph.align import affine_from_params
     from ..spec.loader import load_spec
-    from .chunked import lazy_input
+    from .common import check_input_options
 
     doc = load_spec(transform_path, "transform")
     check_output_path(output, option="-o")
-    header, _ = lazy_input(old_path, read["raw"], read["volume_index"], read["dicom"])
+    check_input_options(old_path, read["raw"], read["dicom"])
+    header = open_volume_header(old_path, raw=read["raw"], volume_index=read["volume_index"],
+                                dicom=read["dicom"], samples=False)[0]  # (its shape: none read)
     # (in memory: the field read, moved, its unknown voxels and the fill's passes; a hunt
     # measured 357 MiB for 256^3 under --memory-limit 160M, nothing charged)
     ensure_fits_in_memory(UPDATE_BYTES_PER_VOXEL * int(np.prod(header.shape))
