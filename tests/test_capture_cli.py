@@ -391,13 +391,6 @@ def test_a_captures_values_choice_travels_in_the_file(run, tmp_path):
     assert "taken for intensities" in res.stderr  # (the ids beside the mask: said)
 
 
-_PEAK = """\
-import resource, subprocess, sys
-code = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL).returncode
-print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
-sys.exit(code)
-"""
-
 
 def test_the_payload_checksum_pass_holds_no_large_read(tmp_path):
     """The checksum pass read the payload 64 MiB at a time, which no budget charged: a warp
@@ -405,6 +398,8 @@ def test_the_payload_checksum_pass_holds_no_large_read(tmp_path):
     32 MiB payload now peaks as that of a tiny one does (it was 31 MiB higher)."""
     import subprocess
     import sys
+
+    from peaks import volwarp_peak
 
     from volwarp_cli.io import write_volume
     from volwarp_cli.volume import Volume
@@ -418,9 +413,8 @@ def test_the_payload_checksum_pass_holds_no_large_read(tmp_path):
                                str(tmp_path / f"v{n}.nrrd"), "--oversample", "1", "-o",
                                str(cap)], capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, done.stderr
-        res = subprocess.run([sys.executable, "-c", _PEAK, sys.executable, "-m", "volwarp_cli",
-                              "info", str(cap)], capture_output=True, text=True, timeout=120)
-        assert res.returncode == 0, res.stderr
-        peaks.append(int(res.stdout.split()[-1]))
+        code, err, peak = volwarp_peak("info", cap)
+        assert code == 0, err
+        peaks.append(peak)
     assert cap.stat().st_size > 32 << 20
     assert peaks[1] - peaks[0] < 8 << 20, peaks

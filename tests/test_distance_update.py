@@ -190,21 +190,12 @@ def test_cli_update_takes_the_fields_own_metric(run, tmp_path):
     assert not (tmp_path / "c.nrrd").exists() and not (tmp_path / "d.nrrd").exists()
 
 
-_PEAK = """\
-import resource, subprocess, sys
-code = subprocess.run(sys.argv[1:]).returncode
-print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
-sys.exit(code)
-"""
-
 
 def test_an_update_is_held_to_the_memory_limit(tmp_path):
     """``--update`` runs in memory and charged nothing: 357 MiB for a 256^3 field under
     --memory-limit 160M (a hunt). It is charged before the field is read: refused at once
     where it cannot fit, nothing written; run where it fits, its peak below the limit."""
-    import os
-    import subprocess
-    import sys
+    from peaks import volwarp_peak
 
     from volwarp_cli.io import write_volume
     from volwarp_cli.volume import Volume
@@ -215,19 +206,15 @@ def test_an_update_is_held_to_the_memory_limit(tmp_path):
     write_volume(Volume(sdf), tmp_path / "old.nrrd")
     turn = tmp_path / "turn.yaml"
     turn.write_text("version: 1\nrotate: [0, 0, 30]\ntranslate: [4.0, 0.0, 0.0]\n")
-    env = {k: v for k, v in os.environ.items() if k != "VOLWARP_MEMORY_LIMIT"}
     for limit, fits in (("70M", False), ("160M", True)):
         out = tmp_path / f"new{limit}.nrrd"
-        res = subprocess.run([sys.executable, "-c", _PEAK, sys.executable, "-m", "volwarp_cli",
-                              "distance", "--update", str(tmp_path / "old.nrrd"), "--transform",
-                              str(turn), "-o", str(out), "--memory-limit", limit],
-                             capture_output=True, text=True, timeout=300, env=env)
-        peak = int(res.stdout.split()[-1])
+        code, err, peak = volwarp_peak("distance", "--update", tmp_path / "old.nrrd",
+                                       "--transform", turn, "-o", out, "--memory-limit", limit)
         if fits:
-            assert res.returncode == 0 and out.exists(), res.stderr
+            assert code == 0 and out.exists(), err
             assert peak < 160 << 20, peak
         else:
-            assert res.returncode == 1 and "the update of" in res.stderr, res.stderr
+            assert code == 1 and "the update of" in err, err
             assert not out.exists() and peak < 70 << 20, peak
 
 
@@ -235,9 +222,7 @@ def test_the_update_s_budget_check_reads_no_samples(tmp_path):
     """The check opened the field to learn its shape and kept what it opened: a .nii.gz
     field's samples, inflated, stayed beside the update's own (433 against 367 MiB for
     256^3). It reads the header only: the .nii.gz update peaks as the .nrrd one does."""
-    import os
-    import subprocess
-    import sys
+    from peaks import volwarp_peak
 
     from volwarp_cli.io import write_volume
     from volwarp_cli.volume import Volume
@@ -247,14 +232,11 @@ def test_the_update_s_budget_check_reads_no_samples(tmp_path):
     sdf = (np.sqrt((x - 80.5) ** 2 + (y - 78) ** 2 + (z - 81) ** 2) - 40).astype(np.float32)
     turn = tmp_path / "turn.yaml"
     turn.write_text("version: 1\nrotate: [0, 0, 30]\ntranslate: [4.0, 0.0, 0.0]\n")
-    env = {k: v for k, v in os.environ.items() if k != "VOLWARP_MEMORY_LIMIT"}
     peaks = []
     for name in ("old.nrrd", "old.nii.gz"):
         write_volume(Volume(sdf), tmp_path / name)
-        res = subprocess.run([sys.executable, "-c", _PEAK, sys.executable, "-m", "volwarp_cli",
-                              "distance", "--update", str(tmp_path / name), "--transform",
-                              str(turn), "-o", str(tmp_path / f"new_{name}")],
-                             capture_output=True, text=True, timeout=300, env=env)
-        assert res.returncode == 0, res.stderr
-        peaks.append(int(res.stdout.split()[-1]))
+        code, err, peak = volwarp_peak("distance", "--update", tmp_path / name, "--transform",
+                                       turn, "-o", tmp_path / f"new_{name}")
+        assert code == 0, err
+        peaks.append(peak)
     assert peaks[1] - peaks[0] < 8 << 20, peaks  # (16 MiB of samples more before)

@@ -246,22 +246,13 @@ def test_a_points_file_naming_a_coordinate_twice_is_refused(run, setup, tmp_path
     assert not (tmp_path / "q.csv").exists()
 
 
-_PEAK = """\
-import resource, subprocess, sys
-code = subprocess.run(sys.argv[1:]).returncode
-print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
-sys.exit(code)
-"""
-
 
 def test_a_large_points_file_is_held_to_the_memory_limit(tmp_path):
     """A points file is read whole, with its rows kept to be written back: a 2M-point CSV
     took ``apply`` to 912 MiB under --memory-limit 100M, charged nothing (a hunt). It is
     charged before it is read: refused at once, nothing written, where it cannot fit; run
     under a limit it fits, its peak below that limit."""
-    import os
-    import subprocess
-    import sys
+    from peaks import volwarp_peak
 
     rng = np.random.default_rng(2)
     pts = tmp_path / "p.csv"
@@ -271,21 +262,16 @@ def test_a_large_points_file_is_held_to_the_memory_limit(tmp_path):
     tfm.write_text("#Insight Transform File V1.0\n#Transform 0\n"
                    "Transform: TranslationTransform_double_3_3\nParameters: 1 2 3\n"
                    "FixedParameters:\n")
-    env = {k: v for k, v in os.environ.items() if k != "VOLWARP_MEMORY_LIMIT"}
     for limit, fits in (("60M", False), ("200M", True)):
         out = tmp_path / f"q{limit}.csv"
-        res = subprocess.run([sys.executable, "-c", _PEAK, sys.executable, "-m", "volwarp_cli",
-                              "apply", "-t", str(tfm), "--points-in", str(pts), "--points-to",
-                              str(out), "--memory-limit", limit], capture_output=True,
-                             text=True, timeout=300, env=env)
-        peak = int(res.stdout.split()[-1])
+        code, err, peak = volwarp_peak("apply", "-t", tfm, "--points-in", pts, "--points-to",
+                                       out, "--memory-limit", limit)
         if fits:
-            assert res.returncode == 0, res.stderr
+            assert code == 0, err
             moved = np.loadtxt(out, delimiter=",", skiprows=1)
             np.testing.assert_allclose(moved, np.loadtxt(pts, delimiter=",", skiprows=1)
                                        - [1, 2, 3], atol=1e-9)
             assert peak < 200 << 20, peak
         else:
-            assert res.returncode == 1 and "its points, read with their rows, needs" in \
-                res.stderr, res.stderr
+            assert code == 1 and "its points, read with their rows, needs" in err, err
             assert not out.exists() and peak < 60 << 20, peak
