@@ -25,7 +25,9 @@ def volwarp_peak(*args, timeout: int = 300) -> tuple[int, str, int]:
 
     Run without a ``VOLWARP_MEMORY_LIMIT`` of the caller's (the test's own limits only).
     """
-    env = {k: v for k, v in os.environ.items() if k != "VOLWARP_MEMORY_LIMIT"}
+    from volwarp_cli.memory import MEMORY_ENV
+
+    env = {k: v for k, v in os.environ.items() if k != MEMORY_ENV}
     res = subprocess.run([sys.executable, "-c", _WRAPPER, sys.executable, "-m", "volwarp_cli",
                           *map(str, args)], capture_output=True, text=True, timeout=timeout,
                          env=env)

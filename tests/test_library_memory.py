@@ -77,22 +77,12 @@ def test_each_librarys_count_holds_what_its_import_adds():
     assert checked["numba"] > 64 << 20, checked["numba"]
 
 
-_PEAK = """\
-import resource, subprocess, sys
-code = subprocess.run(sys.argv[1:]).returncode
-print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
-sys.exit(code)
-"""
-
-
 def _distance(src, out, limit: str):
     """``volwarp distance`` (sub-voxel: numba's kernels) in a fresh process; its peak RSS."""
-    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
-    proc = subprocess.run([sys.executable, "-c", _PEAK, sys.executable, "-m", "volwarp_cli",
-                           "distance", str(src), "-o", str(out), "--iso", "5",
-                           "--memory-limit", limit],
-                          capture_output=True, text=True, env=env, timeout=120)
-    return proc.returncode, proc.stderr, int(proc.stdout.split()[-1])
+    from peaks import volwarp_peak
+
+    return volwarp_peak("distance", src, "-o", out, "--iso", "5", "--memory-limit", limit,
+                        timeout=120)
 
 
 @pytest.fixture

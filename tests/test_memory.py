@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import ball
+from peaks import volwarp_peak
 
 from volwarp_cli import memory
 from volwarp_cli.errors import OutOfMemoryError, VolwarpError
@@ -331,22 +332,10 @@ def test_cli_memory_limit_ends_with_the_command(run, tmp_path, holding):
     assert memory.memory_limit() >= min(before, 64 * M)  # not left at 8 MiB
 
 
-_WRAPPER = """\
-import resource, subprocess, sys
-code = subprocess.run(sys.argv[1:]).returncode
-print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
-sys.exit(code)
-"""
-
-
 def _distance(src: Path, out: Path, limit: str, *extra):
-    """``volwarp distance`` in a fresh process, and that process's peak RSS in bytes."""
-    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
-    proc = subprocess.run([sys.executable, "-c", _WRAPPER, sys.executable, "-m", "volwarp_cli",
-                           "distance", str(src), "-o", str(out), "--iso", "100",
-                           "--memory-limit", limit, *extra],
-                          capture_output=True, text=True, env=env, timeout=60)
-    return proc.returncode, proc.stderr, int(proc.stdout.split()[-1])
+    """``volwarp distance`` in a fresh process: its exit code, stderr and peak RSS in bytes."""
+    return volwarp_peak("distance", src, "-o", out, "--iso", "100", "--memory-limit", limit,
+                        *extra, timeout=60)
 
 
 def test_distance_held_to_its_memory_limit_measured(tmp_path):
@@ -422,20 +411,16 @@ def test_the_sweep_keeps_within_its_limit(tmp_path):
                     "trajectory:\n  - line: {from: [0, 0, 0], to: [12, 2, 1]}\n"
                     "  - arc: {center: [12, 6, 1], radius: 4, axis: [0, 0, 1], start: -90, "
                     "end: 90}\nup: [0, 0, 1]\nscale: [4, 4]\n")
-    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
     for limit in (30, 150):
         out = tmp_path / f"s{limit}_{{field}}.nrrd"
-        proc = subprocess.run([sys.executable, "-c", _WRAPPER, sys.executable, "-m",
-                               "volwarp_cli", "sweep", str(spec), "-o", str(out),
-                               "--memory-limit", f"{limit}M"],
-                              capture_output=True, text=True, env=env, timeout=120)
-        peak = int(proc.stdout.split()[-1])
+        code, err, peak = volwarp_peak("sweep", spec, "-o", out, "--memory-limit", f"{limit}M",
+                                       timeout=120)
         written = tmp_path / f"s{limit}_opacity.nrrd"
         if limit == 30:
-            assert proc.returncode == 1 and not written.exists()
-            assert "memory" in proc.stderr and proc.stderr.strip().count("\n") == 0
+            assert code == 1 and not written.exists()
+            assert "memory" in err and err.strip().count("\n") == 0
         else:
-            assert proc.returncode == 0 and written.exists()
+            assert code == 0 and written.exists()
             assert peak < limit * M, f"peak RSS {peak / M:.0f} MiB"
 
 
@@ -484,14 +469,9 @@ def test_convert_near_its_limit_is_refused_or_stays_under_it_measured(tmp_path, 
 
     data = (np.random.default_rng(1).random((96, 96, 96)) * 1000).astype(np.float32)
     write_volume(Volume(data), tmp_path / "in.nrrd")
-    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
-
     def convert(limit_bytes, out):
-        proc = subprocess.run([sys.executable, "-c", _WRAPPER, sys.executable, "-m",
-                               "volwarp_cli", "convert", str(tmp_path / "in.nrrd"), "-o",
-                               str(out), "--memory-limit", str(int(limit_bytes))],
-                              capture_output=True, text=True, env=env, timeout=60)
-        return proc.returncode, proc.stderr, int(proc.stdout.split()[-1])
+        return volwarp_peak("convert", tmp_path / "in.nrrd", "-o", out, "--memory-limit",
+                            int(limit_bytes), timeout=60)
 
     code, err, peak = convert(2 << 30, tmp_path / f"free_{name}")
     assert code == 0, err

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from peaks import volwarp_peak
 
 from volwarp_cli import memory, parallel
 from volwarp_cli.box import Box
@@ -55,15 +56,6 @@ def test_vertex_count_of_a_hollow_cube_capped_below():
     assert mesh.n_vertices == 600 == vertex_count(data, 0.5, True, "below", (7, 6, 9))
 
 
-_WRAPPER = """
-import resource, subprocess, sys
-proc = subprocess.run(sys.argv[1:], capture_output=True, text=True)
-sys.stderr.write(proc.stderr)
-print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
-raise SystemExit(proc.returncode)
-"""
-
-
 @pytest.fixture(scope="module")
 def gyroid(tmp_path_factory):
     from volwarp_cli.io import write_volume
@@ -93,18 +85,15 @@ def test_the_mesh_chain_is_held_to_its_budget(gyroid, tmp_path):
                     "-o", str(tmp_path / "warm.ply")], check=True, env=env, timeout=120)
     for limit in (150, 320):
         out = tmp_path / f"m{limit}.ply"
-        proc = subprocess.run([sys.executable, "-c", _WRAPPER, sys.executable, "-m",
-                               "volwarp_cli", "mesh", str(gyroid), "--iso", "0", "-o", str(out),
-                               "--memory-limit", f"{limit}M"],
-                              capture_output=True, text=True, env=env, timeout=120)
-        peak = int(proc.stdout.split()[-1])
+        code, err, peak = volwarp_peak("mesh", gyroid, "--iso", "0", "-o", out,
+                                       "--memory-limit", f"{limit}M", timeout=120)
         if limit == 150:
-            assert proc.returncode == 1, proc.stderr
+            assert code == 1, err
             # refused by the mesh's exact count, or (where the libraries alone take more
             # of the budget: a fresh install's newer wheels held 125 against 109 MiB) by
             # the isosurface's input before it: one line, the budget named, nothing written
-            assert "needs" in proc.stderr and "memory limit" in proc.stderr, proc.stderr
-            assert proc.stderr.strip().count("\n") == 0 and not out.exists()
+            assert "needs" in err and "memory limit" in err, err
+            assert err.strip().count("\n") == 0 and not out.exists()
         else:
-            assert proc.returncode == 0, proc.stderr
+            assert code == 0, err
             assert peak < limit * M, f"peak RSS {peak / M:.0f} MiB"

@@ -201,14 +201,6 @@ def test_smooth_samples_without_a_band_are_refused_in_morph_terms(shapes, tmp_pa
     assert not list(tmp_path.glob("b_*")) and not list(tmp_path.glob(".*"))
 
 
-_PEAK = """\
-import resource, subprocess, sys
-code = subprocess.run(sys.argv[1:]).returncode
-print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
-sys.exit(code)
-"""
-
-
 def _two_shapes(tmp_path):
     from volwarp_cli import api
     from volwarp_cli.volume import Volume
@@ -225,17 +217,10 @@ def _two_shapes(tmp_path):
 
 
 def _morph(spec, out, limit):
-    import os
-    import subprocess
-    import sys
+    from peaks import volwarp_peak
 
-    from volwarp_cli.memory import MEMORY_ENV
-
-    env = {k: v for k, v in os.environ.items() if k != MEMORY_ENV}
-    proc = subprocess.run([sys.executable, "-c", _PEAK, sys.executable, "-m", "volwarp_cli",
-                           "morph", "--spec", str(spec), "-o", str(out), "--memory-limit",
-                           limit], capture_output=True, text=True, env=env, timeout=120)
-    return proc.returncode, proc.stderr, int(proc.stdout.split()[-1])
+    return volwarp_peak("morph", "--spec", spec, "-o", out, "--memory-limit", limit,
+                        timeout=120)
 
 
 def test_an_in_memory_morph_is_not_refused_halfway_by_its_resampling(tmp_path):

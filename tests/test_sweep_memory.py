@@ -13,34 +13,23 @@ import sys
 from pathlib import Path
 
 import pytest
+from peaks import volwarp_peak
 
 from volwarp_cli import memory
 
 ROOT = Path(__file__).resolve().parents[1]
 M = 1 << 20
 
-_WRAPPER = """
-import resource, subprocess, sys
-proc = subprocess.run(sys.argv[1:], capture_output=True, text=True)
-sys.stderr.write(proc.stderr)
-print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
-raise SystemExit(proc.returncode)
-"""
-
-
 @pytest.mark.parametrize("options, limit", [(["--multi", "-o", "m.nrrd"], 300),
                                             (["--dtype", "uint8", "--multi", "-o", "m.nrrd"], 300),
                                             (["-o", "s_{field}.nrrd"], 140)],
                          ids=["multi", "multi-uint8", "fields-by-blocks"])
 def test_a_sweep_peaks_below_its_memory_limit(tmp_path, options, limit):
-    env = {k: v for k, v in os.environ.items() if k != memory.MEMORY_ENV}
     spec = ROOT / "specs" / "sweep-bottle.yaml"
-    argv = [sys.executable, "-m", "volwarp_cli", "sweep", str(spec), "--shape", "160", "160",
-            "160", *options[:-1], str(tmp_path / options[-1]), "--memory-limit", f"{limit}M"]
-    proc = subprocess.run([sys.executable, "-c", _WRAPPER, *argv], capture_output=True,
-                          text=True, env=env, timeout=300)
-    assert proc.returncode == 0, proc.stderr
-    peak = int(proc.stdout.split()[-1])
+    code, err, peak = volwarp_peak("sweep", spec, "--shape", "160", "160", "160",
+                                   *options[:-1], tmp_path / options[-1], "--memory-limit",
+                                   f"{limit}M")
+    assert code == 0, err
     assert peak < limit * M, f"peak RSS {peak / M:.0f} MiB under --memory-limit {limit}M"
 
 
