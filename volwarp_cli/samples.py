@@ -259,10 +259,10 @@ def note_output_ids(what: str, block: np.ndarray) -> None:
     from .runscope import in_run
 
     if in_run():
-        _gathered(("ids", what), [[_distinct(block)], None, what])
+        _gathered(("ids", what), [[distinct_values(block)], None, what])
 
 
-def _distinct(block: np.ndarray) -> np.ndarray:
+def distinct_values(block: np.ndarray) -> np.ndarray:
     """The distinct values of ``block``, sorted.
 
     Marked in a table where their range is small (a pass, no sort), else sorted.

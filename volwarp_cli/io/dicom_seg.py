@@ -664,16 +664,28 @@ def check_on_reference_grid(vol: Volume, reference, where: str) -> None:
             "the reference first")
 
 
-def label_values(vol: Volume, where: str) -> np.ndarray:
-    """The non-zero labels of an integer-valued label map (0 is background)."""
+def slice_labels(vol: Volume, where: str) -> tuple[np.ndarray, list[set[int]]]:
+    """The non-zero labels of an integer-valued label map (0 is background), and each plane's.
+
+    Sorted int64, and the set of labels of each z plane (what a SEG's frames
+    and an RTSTRUCT's contours are made of). Plane by plane: the distinct
+    values by a table pass for 8- and 16-bit ids, a float map's test of whole
+    numbers on a plane's copies; no whole-size copy beside the map (np.unique
+    sorts one).
+    """
+    from ..samples import distinct_values
+
     data = vol.data
-    if data.dtype.kind == "f":
-        if not np.all(np.isfinite(data)) or not np.array_equal(data, np.rint(data)):
+    if data.dtype.kind not in "iuf":
+        raise VolwarpError(f"{where}: cannot write samples of type {data.dtype} as labels")
+    per_plane = []
+    for plane in data:
+        if data.dtype.kind == "f" and (not np.all(np.isfinite(plane))
+                                       or not np.array_equal(plane, np.rint(plane))):
             raise VolwarpError(f"{where}: a segmentation is written from a label map: its "
                                "samples must be whole numbers")
-    elif data.dtype.kind not in "iu":
-        raise VolwarpError(f"{where}: cannot write samples of type {data.dtype} as labels")
-    values = np.unique(data)
+        per_plane.append(distinct_values(plane))
+    values = np.unique(np.concatenate(per_plane)) if per_plane else np.zeros(0, data.dtype)
     if values.size and values[0] < 0:
         raise VolwarpError(f"{where}: label {values[0]:g} is negative (labels are 0..65535)")
     values = values[values != 0].astype(np.int64)
@@ -683,7 +695,7 @@ def label_values(vol: Volume, where: str) -> np.ndarray:
     if not values.size:
         raise VolwarpError(f"{where}: the label map has no label (every voxel is 0): nothing "
                            "to write")
-    return values
+    return values, [set(p.astype(np.int64).tolist()) - {0} for p in per_plane]
 
 
 def check_names(names: dict[int, str], values, names_from: str) -> None:
@@ -752,7 +764,7 @@ def new_uid(*sources) -> str:
 def _content_key(vol: Volume, reference, kind: str, names: dict, described=None) -> str:
     import hashlib
 
-    h = hashlib.sha256(np.ascontiguousarray(vol.data).tobytes())
+    h = hashlib.sha256(memoryview(np.ascontiguousarray(vol.data)).cast("B"))  # (no copy)
     h.update(repr((str(vol.data.dtype), reference.series_uid, kind, sorted(names.items()))).encode())
     if described:  # (the labels' descriptions from the key/values)
         h.update(repr(sorted(described.items())).encode())
@@ -804,7 +816,7 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     from .. import __version__
 
     check_on_reference_grid(vol, reference, where)
-    values = label_values(vol, where)
+    values, in_slice = slice_labels(vol, where)
     names = dict(names or {})
     check_names(names, values, names_from or where)
     described = label_descriptions(vol.meta, values, source or where)
@@ -813,6 +825,12 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     def uid(what):
         return new_uid(key, what)
     inside = nested_labels(vol.meta, values, source or where)
+    from ..memory import ensure_fits_in_memory, human_bytes
+
+    need, frames = seg_memory(vol, values, in_slice, inside, labelmap, reference)
+    ensure_fits_in_memory(need, f"{where}: a {'LABELMAP' if labelmap else 'BINARY'} SEG of "
+                                f"{frames} frames of {vol.shape_xyz[0]}x{vol.shape_xyz[1]} "
+                                f"(beside the {human_bytes(vol.data.nbytes)} label map)")
     if labelmap:
         numbers = [int(v) for v in values]
         pixels = vol.data.astype(_label_dtype(int(values[-1])), copy=False)
@@ -830,7 +848,13 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
         numbers = list(range(1, len(values) + 1))
         lut = np.zeros(int(values[-1]) + 1, _label_dtype(len(values)))
         lut[values] = numbers
-        pixels = lut[vol.data.astype(np.int64)]
+        # indexed by 8- or 16-bit ids as they are (numpy casts an index array in buffered
+        # pieces: no 8-byte copy of the map), others cast to them first (label_values: all
+        # in 0..65535)
+        ids = vol.data
+        if ids.dtype.kind != "u" or ids.dtype.itemsize > 2:
+            ids = ids.astype(_label_dtype(int(values[-1])))
+        pixels = lut[ids]
     def description(n: int, v: int):
         d = described.get(v)
         name = names.get(v) or (d and (d.seg_label or d.roi_name)) or f"label {v}"
@@ -864,19 +888,61 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
     return seg
 
 
+#: What building and encoding a SEG adds beyond the arrays :func:`seg_memory` counts:
+#: highdicom loads the standard's module table on its first SEG (a JSON file held as 60 MiB
+#: of Python objects, more while it is parsed), a byte a voxel of its own copies, and the
+#: frames twice (its list of encoded frames and their join). Measured (peak less the
+#: process before the build) for 5-42 million voxels, 1-343 labels, 8- and 16-bit maps:
+#: 113-136 MiB up to 21 million voxels, 195-271 MiB for 512x512x160, 457 MiB for 256^3
+#: of 343 labels (12,544 frames: each frame's functional groups are pydicom objects of
+#: about 8 KiB); counted as 112 MiB, those terms and :data:`SEG_FRAME_BYTES` a frame
+#: (129-175, 233-354, 503 MiB).
+SEG_FIXED_BYTES = 112 << 20
+SEG_FRAME_BYTES = 12 << 10
+
+
+def seg_memory(vol: Volume, values, in_slice, inside: dict, labelmap: bool,
+               reference) -> tuple[int, int]:
+    """The bytes a SEG of ``vol`` needs beside it, and its number of frames.
+
+    Its frames are those :func:`build_seg` writes (empty ones omitted): a frame
+    a plane holding any label (LABELMAP), a frame a segment a plane holding it
+    or a label nested in it (BINARY, a bit a pixel). Counted: the pixels
+    handed to highdicom (a cast of the map or its segment numbers; overlapping
+    segments' masks), a multi-frame reference's frame array, the frames twice,
+    their functional groups and :data:`SEG_FIXED_BYTES`' part.
+    """
+    plane = vol.data.shape[1] * vol.data.shape[2]
+    n = vol.data.size
+    if labelmap:
+        frames = sum(1 for held in in_slice if held)
+        item = _label_dtype(int(values[-1])).itemsize
+        pixels = n * item if vol.data.dtype != _label_dtype(int(values[-1])) else 0
+        encoded = frames * plane * item
+    else:
+        frames = sum(sum(1 for held in in_slice if not held.isdisjoint([v, *inside.get(v, ())]))
+                     for v in values.tolist())
+        item = 1 if inside else _label_dtype(len(values)).itemsize
+        pixels = n * (len(values) if inside else item)
+        if not inside and (vol.data.dtype.kind != "u" or vol.data.dtype.itemsize > 2):
+            pixels += n * _label_dtype(int(values[-1])).itemsize  # (the ids cast first)
+        encoded = -(-frames * plane // 8)
+    if reference.multi_frame:  # (the pixels placed in the file's frames: one more array)
+        pixels += n * (len(values) if inside and not labelmap else item)
+    return SEG_FIXED_BYTES + n + pixels + 2 * encoded + SEG_FRAME_BYTES * frames, frames
+
+
 def _overlapping_segments(data: np.ndarray, values, inside: dict, where: str) -> np.ndarray:
     """Each label's mask [z, y, x, segment], an outer label's holding its nested labels' voxels.
 
     highdicom takes overlapping BINARY segments as one bool plane a segment, so
-    this needs a byte a voxel a label (checked against the memory budget).
+    this needs a byte a voxel a label (:func:`seg_memory` counts it).
     """
-    from ..memory import ensure_fits_in_memory
-
-    ensure_fits_in_memory(data.size * len(values), f"{where}: the {len(values)} segments, "
-                          "outer ones whole (their nested labels' voxels in them)")
     masks = np.zeros(data.shape + (len(values),), bool)
     for n, v in enumerate(int(x) for x in values):
-        masks[..., n] = np.isin(data, [v, *inside.get(v, ())])
+        members = [v, *inside.get(v, ())]
+        for k, plane in enumerate(data):  # (a plane at a time: isin's copies are the plane's)
+            masks[k, ..., n] = np.isin(plane, members)
     return masks
 
 

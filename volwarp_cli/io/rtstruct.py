@@ -705,6 +705,32 @@ def _ds(values) -> list[str]:
     return [f"{v:.6f}".rstrip("0").rstrip(".") if abs(v) < 1e9 else f"{v:.6e}" for v in values]
 
 
+#: (3006,0050) Contour Data
+CONTOUR_DATA = 0x30060050
+
+
+def _contour_item(values):
+    """A contour's item holding ``values`` (x, y, z, ...) as its Contour Data, encoded.
+
+    The bytes pydicom writes for the :func:`_ds` strings, kept as a raw element
+    in an item marked explicit VR little endian (pydicom's documented way to
+    write an element as it is): assigned as numbers, each would be a ``DSfloat``
+    of about 400 bytes until written, 300 MiB for a 512x512x160 map's 40 labels.
+    Its elements set after this are encoded by pydicom as they are written.
+    """
+    from pydicom.dataelem import RawDataElement
+    from pydicom.dataset import Dataset
+    from pydicom.tag import Tag
+
+    text = "\\".join(_ds(values)).encode("ascii")
+    if len(text) % 2:
+        text += b" "
+    item = Dataset()
+    item.set_original_encoding(False, True, "iso8859")
+    item[CONTOUR_DATA] = RawDataElement(Tag(CONTOUR_DATA), "DS", len(text), text, 0, False, True)
+    return item
+
+
 def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = None,
                    where: str = "RTSTRUCT", contours: str = "edges",
                    source: str | None = None, names_from: str | None = None):
@@ -736,8 +762,8 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
         _stamp,
         check_names,
         check_on_reference_grid,
-        label_values,
         new_uid,
+        slice_labels,
     )
 
     check_on_reference_grid(vol, reference, where)
@@ -747,7 +773,7 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
                            "FrameOfReferenceUID, which an RTSTRUCT's contours must name (a SEG "
                            "is refused alike); give the series one, or write the labels as a "
                            "volume")
-    values = label_values(vol, where)
+    values, in_slice = slice_labels(vol, where)
     names = dict(names or {})
     check_names(names, values, names_from or where)
     described = label_descriptions(vol.meta, values, source or where)
@@ -798,6 +824,7 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     rois, contours, observations = [], [], []
     data = vol.data
     inside = nested_labels(vol.meta, values, source or where)  # (an outer ROI written whole)
+    room = _Room(where, data.shape[1] * data.shape[2])
     for n, value in enumerate(values.tolist(), 1):
         roi = Dataset()
         roi.ROINumber = int(value)
@@ -809,15 +836,16 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
         rois.append(roi)
         seq = []
         members = [value, *inside.get(value, ())]
-        for k in np.flatnonzero(np.isin(data, members).any(axis=(1, 2))):
+        for k in (k for k, held in enumerate(in_slice) if not held.isdisjoint(members)):
             for loop in outlines(np.isin(data[k], members)):
                 xyz = g.index_to_world(np.column_stack([loop, np.full(len(loop), float(k))]))
-                item = Dataset()
+                item = _contour_item(xyz.ravel())
                 item.ContourImageSequence = Sequence([image_ref(int(k))])
                 item.ContourGeometricType = "CLOSED_PLANAR"
                 item.NumberOfContourPoints = len(loop)
-                item.ContourData = _ds(xyz.ravel())
                 seq.append(item)
+                room.made(item.get_item(CONTOUR_DATA).length)  # (raw: [] would decode it)
+            room.slice_done()
         c = Dataset()
         c.ReferencedROINumber = int(value)
         c.ROIDisplayColor = list(roi_colour(d) or (
@@ -833,7 +861,69 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
     ds.StructureSetROISequence = Sequence(rois)
     ds.ROIContourSequence = Sequence(contours)
     ds.RTROIObservationsSequence = Sequence(observations)
+    room.check_write()
     return ds
+
+
+#: What the memory checks of :class:`_Room` count, measured (peak less the process before,
+#: 20-160 planes of 256^2-512^2, 1-40 labels, 4x4-voxel noise of 10 labels: 61,202
+#: contours): a contour item about 3.7 KB of pydicom's objects beside its Contour Data's
+#: bytes; a plane's masks and outlines up to 48 bytes a pixel; the file's encoding about its
+#: size once more (pydicom encodes a sequence into a buffer before writing it), for which
+#: half as much again and 16 MiB are kept.
+CONTOUR_ITEM_BYTES = 4 << 10
+PLANE_BYTES_PER_PIXEL = 48
+ROOM_MARGIN = 16 << 20
+#: bytes of a contour item beside its Contour Data in the file (its image reference's UIDs,
+#: type, count and the items' and elements' headers: about 190)
+CONTOUR_ITEM_FILE_BYTES = 256
+
+
+class _Room:
+    """The memory limit kept while contours are made (their number is known only then).
+
+    An RTSTRUCT's size follows its contours, not its voxels (a speckled map
+    makes a contour an island: 61,202 of them for 20 planes of 256^2 held 224
+    MiB). So the budget is checked as they are made: every
+    :data:`CHECK_EVERY` contours or planes, room for that many more and a
+    plane's work must be left; and before the dataset is written, room for
+    its encoding. A refusal stops the build (no file written).
+    """
+
+    CHECK_EVERY = 64
+
+    def __init__(self, where: str, plane_pixels: int):
+        self.where = where
+        self.reserve = ROOM_MARGIN + PLANE_BYTES_PER_PIXEL * plane_pixels + \
+            self.CHECK_EVERY * CONTOUR_ITEM_BYTES
+        self.contours = self.data_bytes = self.since = 0
+
+    def made(self, data_bytes: int) -> None:
+        self.contours += 1
+        self.data_bytes += data_bytes
+        self.since += 1
+        if self.since >= self.CHECK_EVERY:
+            self._check()
+
+    def slice_done(self) -> None:
+        self.since += 1
+        if self.since >= self.CHECK_EVERY:
+            self._check()
+
+    def _check(self) -> None:
+        from ..memory import ensure_fits_in_memory
+
+        self.since = 0
+        ensure_fits_in_memory(self.reserve, f"{self.where}: the RTSTRUCT's contours "
+                                            f"({self.contours} made so far)")
+
+    def check_write(self) -> None:
+        from ..memory import ensure_fits_in_memory, human_bytes
+
+        size = self.data_bytes + self.contours * CONTOUR_ITEM_FILE_BYTES
+        ensure_fits_in_memory(size + size // 2 + ROOM_MARGIN,
+                              f"{self.where}: encoding the RTSTRUCT's {self.contours} contours "
+                              f"(about {human_bytes(size)})")
 
 
 def _series_images(reference, image_ref) -> list:
