@@ -87,3 +87,39 @@ def test_binary_seg_of_any_id_type_has_the_same_frames(speckled, tmp_path, dtype
     pixels = [build_seg(base.with_data(lab.astype(t)), ref, where="t").PixelData
               for t in (np.uint8, dtype)]
     assert pixels[0] == pixels[1]
+
+
+@pytest.fixture(scope="module")
+def blocks(tmp_path_factory):
+    """A CT series and a map of 64 labels in 8^3 blocks: a 14 MB map, its SEG or RTSTRUCT."""
+    folder = tmp_path_factory.mktemp("blocks")
+    shape = (96, 384, 384)
+    write_ct(folder / "ct", shape)
+    ref = read_dicom(folder / "ct")
+    z, y, x = np.indices(shape, dtype=np.int32)
+    lab = (1 + (z * 4 // 96) * 16 + (y * 4 // 384) * 4 + (x * 4 // 384)).astype(np.uint8)
+    src = folder / "labels.nrrd"
+    write_volume(ref.with_data(lab), src)
+    return folder, src
+
+
+@pytest.mark.parametrize("kind", ["labelmap-seg", "rtstruct"])
+def test_reading_back_under_a_limit_below_its_peak_is_refused_and_never_crossed(
+        blocks, tmp_path, kind):
+    """The file, then the map, charged before each is held (the map was not: 14 MiB over)."""
+    folder, src = blocks
+    dcm = tmp_path / f"{kind}.dcm"
+    code, err, _ = volwarp_peak("convert", src, "--reference", folder / "ct", "--dicom-type",
+                                kind, "-o", dcm)
+    assert code == 0, err
+    out = tmp_path / "back.nrrd"
+    args = ["convert", dcm, "--reference", folder / "ct", "-o", out]
+    code, err, peak = volwarp_peak(*args)
+    assert code == 0, err
+    out.unlink()
+    limit = peak - 2 * MiB
+    code, err, limited = volwarp_peak(*args, "--memory-limit", str(limit))
+    assert code == 1, err
+    assert "memory limit" in err
+    assert limited <= limit, (limited / MiB, limit / MiB)
+    assert not out.exists()

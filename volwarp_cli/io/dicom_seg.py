@@ -68,6 +68,14 @@ def _one_line(exc) -> str:
     return " ".join(str(exc).split())[:300]
 
 
+#: What reading a SEG holds, measured (peak less the process before: 5-108 MB files of
+#: 700-12,544 frames): its pixel data as read, each frame's functional groups as pydicom
+#: objects once parsed (about 7 KiB a frame), counted before the file is read; then the
+#: label map, before it is made (:func:`_fast_frames`); each with :data:`READ_MARGIN`
+READ_FRAME_BYTES = 8 << 10
+READ_MARGIN = 16 << 20
+
+
 def open_seg(path: str | os.PathLike):
     """The pydicom data set of the SEG at ``path`` (pixels included), or a FormatError.
 
@@ -76,8 +84,17 @@ def open_seg(path: str | os.PathLike):
     """
     import pydicom
 
+    from ..memory import ensure_fits_in_memory, human_bytes
+
+    force = str(path).lower().endswith(".dcm")
     try:
-        ds = pydicom.dcmread(str(path), force=str(path).lower().endswith(".dcm"))
+        head = pydicom.dcmread(str(path), force=force, stop_before_pixels=True)
+        frames = int(head.get("NumberOfFrames", 1) or 1)
+        del head
+        size = os.path.getsize(path)
+        ensure_fits_in_memory(size + frames * READ_FRAME_BYTES + READ_MARGIN,
+                              f"reading {path} ({human_bytes(size)}, {frames} frames)")
+        ds = pydicom.dcmread(str(path), force=force)
         uid = str(ds.get("SOPClassUID", ""))
         if uid not in SEG_SOPS:
             raise ValueError(f"SOPClassUID {uid or 'missing'} is not a SEG's")
@@ -86,6 +103,8 @@ def open_seg(path: str | os.PathLike):
     except OSError as exc:
         raise FormatError(f"{path}: cannot read ({exc.strerror or exc})") from None
     except Exception as exc:  # malformed SEGs raise many types in pydicom
+        if isinstance(exc, VolwarpError):
+            raise
         raise FormatError(f"{path}: not a readable DICOM SEG ({type(exc).__name__}: "
                           f"{_one_line(exc)})") from None
     return ds
@@ -315,6 +334,14 @@ def _fast_frames(ds, where: str, segment: int | None, reference=None):
         spacing = np.array([pixel_spacing[1], pixel_spacing[0],
                             spacing_z if n > 1 else _single_spacing(ds)], dtype=np.float64)
     npix = rows * cols
+    from ..memory import ensure_fits_in_memory
+
+    item = 1 if segment is not None else _label_dtype(max(numbers, default=0)).itemsize
+    # (compressed: highdicom's decoded frames, a byte a pixel at least, and their bytes)
+    decoded = n_frames * npix * max(1, bits // 8) + -(-n_frames * npix * bits // 8) \
+        if syntax.is_compressed else 0
+    ensure_fits_in_memory(n * npix * item + decoded + READ_MARGIN,
+                          f"{where}: its frames as a {cols}x{rows}x{n} label map")
     raw = _decoded(ds, kind, bits, where) if syntax.is_compressed else ds.PixelData
     need = -(-n_frames * npix * bits // 8)  # (BINARY: bits run on across frames)
     if len(raw) < need:
