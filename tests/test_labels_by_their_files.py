@@ -139,7 +139,8 @@ def test_apply_says_the_labels_no_output_voxel_holds(run, tmp_path, way):
 
 def test_a_label_map_warped_as_intensities_does_not_keep_its_label_keys(run, tmp_path, affine):
     """``--values intensity`` blends the ids: the output kept the map's Segment keys (or
-    NIfTI intent), so the next command took the blend for a label map, or asked."""
+    NIfTI intent), so the next command took the blend for a label map, or asked. A
+    convert's too: told they are intensities, its cast and pyramid treat them so."""
     tfm, _ = affine
     img = sitk.GetImageFromArray(_fiducials())
     img.SetMetaData("Segment0_LabelValue", "10")
@@ -149,8 +150,9 @@ def test_a_label_map_warped_as_intensities_does_not_keep_its_label_keys(run, tmp
     spec = tmp_path / "w.yaml"
     spec.write_text("version: 1\nunits: voxel\ncapture: {lattice: 6, oversample: 2}\nsteps:\n"
                     "  - move:\n      - {index: [3, 3, 3], by: [2.3, -1.7, 1.1]}\n")
-    for args, out in ((["warp", src, "--spec", spec], "w.nrrd"), (["apply", src, "-t", tfm],
-                                                                   "a.nrrd")):
+    for args, out in ((["warp", src, "--spec", spec], "w.nrrd"),
+                      (["apply", src, "-t", tfm], "a.nrrd"),
+                      (["convert", src], "c.nrrd")):  # (its samples the ids, cast: said so)
         res = run(*args, "--values", "intensity", "--dtype", "float32", "-o", tmp_path / out)
         assert res.code == 0, res.stderr
         meta = read_volume(tmp_path / out).meta

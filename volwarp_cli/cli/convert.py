@@ -141,6 +141,8 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
 
         against = choose_values(vol.data, "labels", name=str(input), meta=vol.meta).against_rule
         vol = vol.replace(meta=meta_as_taken(vol.meta, True, against))
+    elif values == "intensity":  # (its label keys dropped, as warp's and apply's)
+        vol = vol.replace(meta=meta_as_taken(vol.meta, False, False))
     if labels == "auto" and values is not None:
         labels = values == "labels"
     elif labels == "auto" and ids:  # (a SEG's ids whatever they look like)
