@@ -9,8 +9,9 @@ handler installed by :func:`install_signal_handlers` (the CLI calls it).
 A command's outputs belong together (a morph's frames and meshes, a warp and
 its exports): inside :func:`outputs_together` (every command but ``batch``
 runs in one) the renames are held until the command ends, then made
-together, so that a failure half-way leaves the previous run's files as
-they were, never a mix of new and old.
+together (:func:`_commit`: all of them, or, where one fails, none, the
+outputs already replaced put back), so that a failure half-way leaves the
+previous run's files as they were, never a mix of new and old.
 """
 
 from __future__ import annotations
@@ -51,12 +52,13 @@ def outputs_together():
 
     Inside, each atomic write completes its temporary and holds its rename
     (the temporary stays registered: a stop removes it). On a clean exit the
-    renames run in the order the outputs were written, with SIGINT and SIGTERM
-    held back, after the last checks (a stop asked meanwhile, an input that
-    changed); on any error or stop every held temporary is removed and every
-    existing output is left as it was. Nested, the outermost one commits. The
-    paths renamed into place are the run's ``committed``
-    (:mod:`volwarp_cli.runscope`).
+    renames run in the order the outputs were written, as one :func:`_commit`
+    (all made, or none: a rename that fails puts back the outputs already
+    replaced), with the stops held back, after the last checks (a stop asked
+    meanwhile, an input that changed); on any error or stop every held
+    temporary is removed and every existing output is left as it was.
+    Nested, the outermost one commits. The paths renamed into place are the
+    run's ``committed`` (:mod:`volwarp_cli.runscope`).
     """
     global _held
     if _held is not None:
@@ -69,21 +71,22 @@ def outputs_together():
         with blocked():
             check_stop()
             check_unchanged()
-            while held:
-                rename, tmps, path = held[0]
-                rename()
-                committed.append(str(path))
-                held.pop(0)  # (only once renamed: a failed one's temporary is removed below)
-                for tmp in tmps:
+            if held:
+                _commit([move for moves, _, _ in held for move in moves],
+                        [old for _, replaced, _ in held for old in replaced])
+            committed.extend(str(path) for _, _, path in held)
+            for moves, _, _ in held:
+                for tmp, _, _ in moves:
                     _live_temporaries.discard(tmp)
+            held.clear()
     except BaseException:
-        for _, tmps, _ in held:
-            for tmp in tmps:
+        for moves, _, _ in held:  # (those renamed into place and put back again are gone)
+            for tmp, _, _ in moves:
                 _remove_temporary(tmp)
         raise
     finally:
-        for _, tmps, _ in held:
-            for tmp in tmps:
+        for moves, _, _ in held:
+            for tmp, _, _ in moves:
                 _live_temporaries.discard(tmp)
         _held = None
         sync_temporaries()
@@ -104,15 +107,15 @@ def is_own_temporary(path: str | os.PathLike) -> bool:
     return any(real == f or real.startswith(f + os.sep) for f in folders)
 
 
-def _hold(rename, tmps, path: Path) -> bool:
-    """Hold ``rename`` of ``tmps`` until :func:`outputs_together` ends (False outside one).
+def _hold(moves: list, replaced, path: Path) -> bool:
+    """Hold ``moves`` (:func:`_commit`'s) until :func:`outputs_together` ends (False outside one).
 
     Never a file of a scratch folder (the work reads it back; it is not an output).
     """
     with _held_lock:
         if _held is None or os.path.realpath(path.parent) in _scratch_folders:
             return False
-        _held.append((rename, list(tmps), path))
+        _held.append((list(moves), list(replaced), path))
         return True
 
 
@@ -215,11 +218,11 @@ def atomic_folder(path: str | os.PathLike):
     For outputs that are folders (OME-Zarr stores). The temporary is
     registered with the signal handler's temporaries and removed on any
     error or stop; an existing store at ``path`` is untouched until the new
-    one is complete. Then, with SIGINT and SIGTERM held back, the new store
-    takes its place (:func:`_rename_folder`: the two names swapped in one step
-    where the file system can, else the old one renamed aside first), and only
-    then is the old one removed. (A folder cannot be renamed over another in
-    one step, as a file can.)
+    one is complete. Then, with the stops held back, the new store takes its
+    place (:func:`_rename_folder`: the two names swapped in one step where the
+    file system can, else the old one renamed aside first), and only then (once
+    every output of the set is in, :func:`_commit`) is the old one removed. (A
+    folder cannot be renamed over another in one step, as a file can.)
     """
     path = check_output_path(path)
     _remove_stale_temporaries(path)
@@ -235,9 +238,9 @@ def atomic_folder(path: str | os.PathLike):
         with blocked():
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
             check_unchanged()  # an input mapped for this output changed: no rename
-            held = _hold(lambda: _rename_folder(tmp, path), [tmp], path)
+            held = _hold([(tmp, path, True)], (), path)
             if not held:
-                _rename_folder(tmp, path)
+                _commit([(tmp, path, True)])
                 _live_temporaries.discard(tmp)
     except BaseException as exc:
         _remove_tree(tmp)
@@ -342,31 +345,181 @@ def _folder_held(folder: Path | None):
         os.close(fd)  # (the lock goes with it)
 
 
+def _commit(moves: list, replaced=()) -> None:
+    """Rename each finished temporary onto its output: all of them, or none.
+
+    ``moves``: ``(temporary, output, is_folder)``, renamed in that order;
+    ``replaced``: files of the earlier outputs no new one takes the place of,
+    removed once all are in. Renames run in order and one can fail half-way
+    (an output made immutable, another user's file in a sticky folder): so
+    each existing output but the last keeps a second name first (a hard link,
+    :func:`_keep`; a store swapped aside keeps its own), and where a rename
+    fails every output already replaced is put back from it, every new one
+    removed, before the error, which names the output and why. Only once all
+    are in are the earlier outputs removed. A single output needs none of it
+    (its rename is all or nothing by itself). Called with the stops held back
+    (:func:`~volwarp_cli.signals.blocked`): a stop waits for the whole commit,
+    rollback and clean-up included, and nothing is left behind.
+    """
+    done: list = []  # (output, is_folder, its earlier file or store's name now, or None)
+    failed = None  # (output, OSError) of the rename that failed
+    try:
+        with _folders_held(moves):
+            for i, (tmp, path, folder) in enumerate(moves):
+                path = Path(path)
+                note_committed(tmp, path)
+                try:
+                    if folder:
+                        done.append((path, True, _rename_folder_in(tmp, path)))
+                        continue
+                    kept = _keep(path) if i < len(moves) - 1 else None
+                    try:
+                        _replace_file(tmp, path, kept)
+                    except BaseException:
+                        _discard(kept)
+                        raise
+                    done.append((path, False, kept and kept[0]))
+                except OSError as exc:
+                    failed = path, exc
+                    raise
+    except BaseException as exc:
+        lost = _roll_back(done)
+        if failed is not None:
+            said = ("; " + "; ".join(lost) if lost else
+                    "; the other outputs are left as they were" if len(moves) > 1 else "")
+            raise VolwarpError(f"{failed[0]}: cannot put the new output in place "
+                               f"({_why(failed[1])}){said}") from exc
+        if lost:
+            raise VolwarpError(f"{exc}; " + "; ".join(lost)) from exc
+        raise
+    for _, folder, earlier in done:
+        if folder and earlier is not None:
+            _remove_old_store(earlier)
+        elif earlier is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(earlier)
+    for old in replaced:
+        with contextlib.suppress(OSError):
+            os.unlink(old)
+
+
 def _rename_folder(tmp: str, path: Path) -> None:
-    """Put the folder ``tmp`` at ``path``; an old one there removed after.
+    """Put the folder ``tmp`` at ``path`` (:func:`_commit` of one store)."""
+    _commit([(tmp, path, True)])
+
+
+@contextlib.contextmanager
+def _folders_held(moves: list):
+    """:func:`_folder_held` of every folder of a set of outputs (one output: none).
+
+    Each folder once (a second ``flock`` of it by this process would wait for
+    the first), in one order (two runs locking two folders never wait for each other).
+    """
+    if len(moves) < 2:
+        yield
+        return
+    folders = sorted({os.path.realpath(Path(path).parent if str(Path(path).parent) else ".")
+                      for _, path, _ in moves})
+    with contextlib.ExitStack() as stack:
+        for folder in folders:
+            stack.enter_context(_folder_held(Path(folder)))
+        yield
+
+
+def _keep(path: Path) -> tuple[str, bool] | None:
+    """A second name for the existing file ``path``, to put it back from: ``(name, linked)``.
+
+    A hard link where the file system makes one (cheap: no data copied); else
+    (none there, a file another user owns under ``protected_hardlinks``) only a
+    free name, which :func:`_replace_file` renames the earlier file to first.
+    Named as the stale temporaries are (``.old``): one left by a killed
+    process is removed by the next write, or put back where the output is missing.
+    None where there is no earlier file.
+    """
+    if not os.path.lexists(path):
+        return None
+    while True:
+        name = _spare_name(path, ".old")
+        try:
+            os.link(path, name, follow_symlinks=False)  # (a link output: the link kept)
+            return name, True
+        except FileExistsError:
+            continue
+        except OSError:
+            return name, False
+
+
+def _replace_file(tmp: str, path: Path, kept: tuple[str, bool] | None) -> None:
+    """Rename ``tmp`` onto ``path``.
+
+    Where the :func:`_keep` name is not a link, the earlier file is renamed to
+    it first (and back, where the new one's rename fails).
+    """
+    if kept is None or kept[1]:
+        os.replace(tmp, path)
+        return
+    os.rename(path, kept[0])
+    try:
+        os.rename(tmp, path)
+    except BaseException as exc:
+        try:
+            os.rename(kept[0], path)
+        except OSError as back:
+            raise VolwarpError(f"{path}: cannot put the new output in place ({_why(exc)}), "
+                               f"and the earlier one could not be put back ({_why(back)}): "
+                               f"it is kept at {kept[0]}") from exc
+        raise
+
+
+def _discard(kept: tuple[str, bool] | None) -> None:
+    """Remove a :func:`_keep` link no rename used (a name only: nothing to remove)."""
+    if kept is not None and kept[1]:
+        with contextlib.suppress(OSError):
+            os.unlink(kept[0])
+
+
+def _roll_back(done: list) -> list[str]:
+    """Put back the earlier outputs of a failed :func:`_commit`, the last one first.
+
+    Returns what could not be put back, each naming where its earlier output is kept.
+    """
+    lost = []
+    for path, folder, earlier in reversed(done):
+        try:
+            if folder:
+                _put_store_back(path, earlier)
+            elif earlier is not None:
+                os.replace(earlier, path)
+            else:
+                os.unlink(path)  # (a new output: there was none before)
+        except OSError as exc:
+            lost.append(f"{path}: the earlier output could not be put back ({_why(exc)})"
+                        + (f": it is kept at {earlier}" if earlier is not None else ""))
+    return lost
+
+
+def _rename_folder_in(tmp: str, path: Path) -> str | None:
+    """Put the folder ``tmp`` at ``path``; returns where the earlier store is now (or None).
 
     A folder cannot be renamed over another. Where the system can swap two
     names in one step (Linux's ``renameat2`` with ``RENAME_EXCHANGE``: ext4,
     xfs, btrfs, tmpfs), the old store and the new swap, so that ``path``
-    always holds a whole store, then the old one (now at ``tmp``) is removed.
-    Elsewhere the old store is renamed aside first, to ``.NAME.vw-...old``: a
-    process killed between the two renames leaves no store at ``path``, and
-    the next write of it puts the old one back (:func:`_remove_stale_temporaries`).
+    always holds a whole store: the old one is then at ``tmp``. Elsewhere the
+    old store is renamed aside first, to ``.NAME.vw-...old``: a process killed
+    between the two renames leaves no store at ``path``, and the next write of
+    it puts the old one back (:func:`_remove_stale_temporaries`). The earlier
+    store is removed by :func:`_commit` once every output is in.
     """
-    note_committed(tmp, path)
     if not path.is_dir():
         try:
             os.rename(tmp, path)
-            return
+            return None
         except OSError as exc:  # (another run's store put there since: replaced as any)
             if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not path.is_dir():
                 raise
     if _exchange(tmp, path):
-        _remove_tree(tmp)
-        return
-    aside = _tempfile().mkdtemp(prefix=_temporary_prefix(path.name), suffix=".old",
-                                dir=path.parent)
-    os.rmdir(aside)  # (only the unique name was wanted)
+        return tmp
+    aside = _spare_name(path, ".old")
     os.rename(path, aside)
     try:
         os.rename(tmp, path)
@@ -381,14 +534,51 @@ def _rename_folder(tmp: str, path: Path) -> None:
                 "back only while nothing is at that path, and removes it where another "
                 "store is)") from exc
         raise
-    # (renamed again before its removal: a kill during it leaves a '.gone' folder, never
-    # put back, where a half-removed '.old' would have been)
-    gone = aside[:-len(".old")] + ".gone"
-    try:
-        os.rename(aside, gone)
-    except OSError:
-        gone = aside
+    return aside
+
+
+def _put_store_back(path: Path, earlier: str | None) -> None:
+    """Undo :func:`_rename_folder_in`: the earlier store (or none) at ``path``, the new one removed."""
+    if earlier is not None and _exchange(earlier, path):
+        _remove_tree(earlier)  # (the new store, now)
+        return
+    new = _spare_name(path, ".gone")
+    os.rename(path, new)
+    if earlier is not None:
+        try:
+            os.rename(earlier, path)
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.rename(new, path)  # (the new one back: a store at the path, not none)
+            raise
+    _remove_tree(new)
+
+
+def _remove_old_store(old: str) -> None:
+    """Remove an earlier store set aside by :func:`_rename_folder_in`.
+
+    One renamed aside (``.old``) is renamed again before its removal: a kill
+    during it leaves a ``.gone`` folder, never put back, where a half-removed
+    ``.old`` would have been.
+    """
+    gone = old
+    if old.endswith(".old"):
+        gone = old[:-len(".old")] + ".gone"
+        try:
+            os.rename(old, gone)
+        except OSError:
+            gone = old
     _remove_tree(gone)
+
+
+def _spare_name(path: Path, suffix: str) -> str:
+    """A free name ``.NAME.vw-PID@HOST.XXXXXXXX`` + ``suffix`` beside ``path`` (nothing made)."""
+    prefix = os.path.join(os.path.abspath(path.parent if str(path.parent) else "."),
+                          _temporary_prefix(path.name))
+    while True:
+        name = prefix + "".join(_NAME_CHARS[b & 31] for b in os.urandom(8)) + suffix
+        if not os.path.lexists(name):
+            return name
 
 
 def _why(exc: BaseException) -> str:
@@ -468,9 +658,10 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
     """Temporaries for several files that belong together, renamed onto them together.
 
     A detached header and its data file (``.nhdr`` + ``.raw``, ``.mhd`` +
-    ``.raw``) must be both new or both old: the renames run with SIGINT and
-    SIGTERM held back, in the order given (the data file first, so that a
-    header never names data it does not describe), after the last checks.
+    ``.raw``) must be both new or both old: the renames run with the stops
+    held back, in the order given (the data file first, so that a header never
+    names data it does not describe), after the last checks, as one
+    :func:`_commit` (a failed one puts back what it replaced).
     ``replaced``: files of the earlier output these replace that no new file
     takes the place of (its data file under another name), removed with the
     renames.
@@ -499,20 +690,10 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
         with blocked():
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
             check_unchanged()  # an input mapped for these outputs changed: no rename
-            pairs = list(zip(tmps, paths, strict=True))
-
-            def rename():
-                with _folder_held(paths[-1].parent if len(pairs) > 1 else None):
-                    for tmp, path in pairs:
-                        note_committed(tmp, path)
-                        os.replace(tmp, path)
-                    for old in replaced:
-                        with contextlib.suppress(OSError):
-                            os.unlink(old)
-
-            held = _hold(rename, tmps, paths[-1])
+            moves = [(tmp, path, False) for tmp, path in zip(tmps, paths, strict=True)]
+            held = _hold(moves, replaced, paths[-1])
             if not held:
-                rename()
+                _commit(moves, replaced)
     except BaseException as exc:
         for tmp in tmps:
             with contextlib.suppress(OSError):
@@ -682,9 +863,9 @@ def _remove_stale_temporaries(path: Path) -> None:
         if m is None or _alive(int(m.group(1))):
             continue
         stale = path.parent / name
-        if name.endswith(".old") and not os.path.lexists(path) and stale.is_dir():
-            # a store set aside by a process killed before the new one took its place
-            # (_rename_folder): the earlier output, put back (and kept where that fails:
+        if name.endswith(".old") and not os.path.lexists(path):
+            # a store or file set aside by a process killed before the new one took its
+            # place (_commit): the earlier output, put back (and kept where that fails:
             # its only copy)
             try:
                 os.rename(stale, path)
