@@ -193,3 +193,49 @@ def test_a_stop_during_the_commit_waits_for_it_and_leaves_no_second_name(tmp_pat
     assert res.returncode == 128 + signal.SIGTERM, res.stderr
     assert _names(tmp_path) == ["a.txt", "b.txt"]
     assert [(tmp_path / n).read_text() for n in ("a.txt", "b.txt")] == ["new", "new"]
+
+
+def _chattr(flag: str, path) -> bool:
+    """``chattr flag path``; False where it cannot be done (not root, no such tool or file system)."""
+    try:
+        return subprocess.run(["chattr", flag, str(path)], capture_output=True).returncode == 0
+    except OSError:
+        return False
+
+
+@pytest.mark.parametrize(("flag", "what"), [("+i", "immutable (chattr +i)"),
+                                            ("+a", "append-only (chattr +a)")])
+def test_an_output_that_cannot_be_renamed_over_is_refused_before_any_work(run, tmp_path, flag,
+                                                                          what):
+    out, flat = tmp_path / "out.nhdr", tmp_path / "flat.nrrd"
+    write_volume(Volume(np.arange(60, dtype=np.uint8).reshape(3, 4, 5)), out)
+    write_volume(Volume(np.full((2, 2, 2), 7, np.int16)), flat)
+    before = {n: (tmp_path / n).read_bytes() for n in _names(tmp_path)}
+    if not _chattr(flag, out):
+        pytest.skip("chattr needs root and a file system with inode flags")
+    try:
+        res = run("convert", flat, "-o", out)
+    finally:
+        _chattr(flag.replace("+", "-"), out)
+    assert res.code == 1 and f"{out}: cannot be replaced: it is {what}" in res.stderr, res
+    assert {n: (tmp_path / n).read_bytes() for n in _names(tmp_path)} == before
+
+
+def test_another_user_s_file_in_a_sticky_folder_is_refused_before_any_work(tmp_path,
+                                                                          monkeypatch):
+    """As in /tmp: only the file's owner (or the folder's) may rename over it."""
+    folder = tmp_path / "shared"
+    folder.mkdir()
+    out = folder / "o.nrrd"
+    out.write_bytes(b"another user's")
+    try:
+        os.chown(out, 4242, -1)
+    except PermissionError:
+        pytest.skip("giving a file to another user needs root")
+    os.chmod(folder, 0o1777)
+    monkeypatch.setattr(atomic.os, "geteuid", lambda: 4343)
+    with pytest.raises(VolwarpError, match="o.nrrd: cannot be replaced: it belongs to another "
+                                           "user and its folder is sticky"):
+        atomic.check_output_path(out)
+    os.chmod(folder, 0o777)  # (not sticky: the rename may replace it)
+    assert atomic.check_output_path(out) == out

@@ -187,6 +187,7 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
         if path.exists() and not path.is_dir():
             raise VolwarpError(f"{path}: is a file; an OME-Zarr output is a folder (remove it "
                                "or choose another name)")
+        _check_replaceable(path)
         return path
     if path.is_dir():
         raise VolwarpError(f"{path}: is a folder, not a file")
@@ -195,7 +196,64 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
         raise VolwarpError(f"{path}: is {kind}, not a regular file; volwarp writes an output "
                            "as a new file renamed onto its name, which would replace it: "
                            "choose another output name")
+    _check_replaceable(path)
     return path
+
+
+#: <linux/fs.h>'s FS_IOC_GETFLAGS, ``_IOR('f', 1, long)`` as the machines below encode it
+_FS_IOC_GETFLAGS = (2 << 30) | ((8 if sys.maxsize > 2 ** 32 else 4) << 16) | (ord("f") << 8) | 1
+_GENERIC_IOCTL = ("x86_64", "i386", "i686", "aarch64", "armv7l", "armv6l", "riscv64", "s390x")
+_FS_IMMUTABLE_FL, _FS_APPEND_FL = 0x10, 0x20
+
+
+def _check_replaceable(path: Path) -> None:
+    """Fail before any work where the earlier output at ``path`` cannot be renamed over.
+
+    An immutable or append-only file or store (``chattr +i``, ``+a``), or
+    another user's in a sticky folder that is not this user's either: the
+    rename at the end failed, after all the work (and :func:`_commit` put back
+    the outputs renamed before it). What does not show here (a file system's
+    own refusal) still fails at the end, all outputs left as they were.
+    """
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return
+    if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
+        return
+    euid = os.geteuid()
+    if euid != 0 and st.st_uid != euid:  # (root may, as any holder of CAP_FOWNER)
+        with contextlib.suppress(OSError):
+            folder = os.stat(path.parent if str(path.parent) else ".")
+            if folder.st_mode & stat.S_ISVTX and folder.st_uid != euid:
+                raise VolwarpError(f"{path}: cannot be replaced: it belongs to another user "
+                                   "and its folder is sticky (as /tmp: only its owner may "
+                                   "replace it there); choose another output name")
+    flags = _inode_flags(path)
+    for flag, what in ((_FS_IMMUTABLE_FL, "immutable (chattr +i)"),
+                       (_FS_APPEND_FL, "append-only (chattr +a)")):
+        if flags & flag:
+            raise VolwarpError(f"{path}: cannot be replaced: it is {what}; choose another "
+                               "output name")
+
+
+def _inode_flags(path: Path) -> int:
+    """The Linux inode flags of ``path`` (``lsattr``'s), 0 where they cannot be read."""
+    if not sys.platform.startswith("linux") or os.uname().machine not in _GENERIC_IOCTL:
+        return 0
+    import fcntl
+
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError:
+        return 0
+    try:
+        got = fcntl.ioctl(fd, _FS_IOC_GETFLAGS, bytes(8))
+    except OSError:  # (a file system without them: ENOTTY)
+        return 0
+    finally:
+        os.close(fd)
+    return int.from_bytes(got[:4], sys.byteorder)
 
 
 def _special_kind(path: Path) -> str | None:
