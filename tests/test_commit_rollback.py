@@ -1,4 +1,4 @@
-"""A command's outputs are committed all or none.
+"""A command's outputs are committed all or none, and a replaced output keeps its mode.
 
 volwarp_cli.io.atomic._commit renames a set of finished temporaries onto their
 outputs; where one rename fails (an output made immutable, another user's file
@@ -13,6 +13,7 @@ from __future__ import annotations
 import errno
 import os
 import signal
+import stat
 import subprocess
 import sys
 import textwrap
@@ -193,6 +194,62 @@ def test_a_stop_during_the_commit_waits_for_it_and_leaves_no_second_name(tmp_pat
     assert res.returncode == 128 + signal.SIGTERM, res.stderr
     assert _names(tmp_path) == ["a.txt", "b.txt"]
     assert [(tmp_path / n).read_text() for n in ("a.txt", "b.txt")] == ["new", "new"]
+
+
+def _other_group() -> int | None:
+    """A group this process may give its files other than its own (None: none)."""
+    mine = os.getegid()
+    if os.geteuid() == 0:
+        return 1 if mine != 1 else 2
+    return next((g for g in os.getgroups() if g != mine), None)
+
+
+@pytest.mark.parametrize("mode", [0o640, 0o444, 0o600], ids=oct)
+def test_a_replaced_output_keeps_its_permissions_and_group(tmp_path, mode):
+    """A group-only output (patient data) became world-readable at the next run; a
+    read-only one writable."""
+    out = tmp_path / "o.nrrd"
+    vol = Volume(np.ones((2, 3, 4), np.uint8))
+    write_volume(vol, out)
+    group = _other_group()
+    if group is not None:
+        os.chown(out, -1, group)
+    os.chmod(out, mode)
+    write_volume(vol.with_data(np.zeros((2, 3, 4), np.uint8)), out)
+    st = os.stat(out)
+    assert stat.S_IMODE(st.st_mode) == mode
+    if group is not None:
+        assert st.st_gid == group
+    assert read_volume(out).data.max() == 0  # (replaced)
+
+
+def test_a_new_output_follows_the_umask(tmp_path):
+    old = os.umask(0o027)
+    try:
+        write_volume(Volume(np.ones((2, 3, 4), np.uint8)), tmp_path / "n.nrrd")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(os.stat(tmp_path / "n.nrrd").st_mode) == 0o640
+
+
+def test_a_replaced_store_keeps_its_permissions_and_group(tmp_path):
+    path = tmp_path / "o.ome.zarr"
+    vol = Volume(np.ones((2, 3, 4), np.uint8))
+    write_volume(vol, path)
+    group = _other_group()
+    os.chmod(path, 0o750)
+    if group is not None:
+        os.chown(path, -1, group)
+    write_volume(vol, path)
+    st = os.stat(path)
+    assert stat.S_IMODE(st.st_mode) == 0o750
+    for folder, dirs, files in os.walk(path):
+        for name in dirs:
+            assert stat.S_IMODE(os.stat(os.path.join(folder, name)).st_mode) == 0o750
+        for name in files:
+            assert stat.S_IMODE(os.stat(os.path.join(folder, name)).st_mode) == 0o640
+    if group is not None:
+        assert st.st_gid == group
 
 
 def _chattr(flag: str, path) -> bool:

@@ -12,6 +12,9 @@ runs in one) the renames are held until the command ends, then made
 together (:func:`_commit`: all of them, or, where one fails, none, the
 outputs already replaced put back), so that a failure half-way leaves the
 previous run's files as they were, never a mix of new and old.
+
+An output that replaces a file keeps that file's permissions and, where the
+process may give it, its group (:func:`_give_mode`); a new one has the umask's.
 """
 
 from __future__ import annotations
@@ -292,7 +295,7 @@ def atomic_folder(path: str | os.PathLike):
     try:
         sync_temporaries()
         yield Path(tmp)
-        _chmod_tree(tmp)
+        _chmod_tree(tmp, path)
         with blocked():
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
             check_unchanged()  # an input mapped for this output changed: no rename
@@ -664,15 +667,60 @@ def _exchange(a, b) -> bool:
     return call(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0
 
 
-def _chmod_tree(root: str) -> None:
-    """Give the output the usual modes (mkdtemp makes folders 0700)."""
-    mask = current_umask()
-    os.chmod(root, 0o777 & ~mask)
+def _chmod_tree(root: str, path: Path) -> None:
+    """Give the store ``root`` its modes (mkdtemp makes folders 0700): the earlier store's.
+
+    Where it replaces a store (:func:`_give_mode`), its folders get the earlier
+    top folder's permissions and its files the same without the execute bits,
+    and all the earlier one's group where the process may give it; a new store
+    has the umask's (folders ``0777 & ~umask``, files ``0666 & ~umask``).
+    """
+    earlier = _earlier_mode(path, stat.S_ISDIR)
+    folders = 0o777 & ~current_umask() if earlier is None else earlier[0]
+    group = None
+    if earlier is not None and os.stat(root).st_gid != earlier[1]:
+        group = earlier[1]
+    _set_mode(root, folders, group)
     for folder, dirs, files in os.walk(root):
         for d in dirs:
-            os.chmod(os.path.join(folder, d), 0o777 & ~mask)
+            _set_mode(os.path.join(folder, d), folders, group)
         for f in files:
-            os.chmod(os.path.join(folder, f), 0o666 & ~mask)
+            _set_mode(os.path.join(folder, f), folders & 0o666, group)
+
+
+def _earlier_mode(path, kind) -> tuple[int, int] | None:
+    """The permission bits and group of the earlier output at ``path``, a link followed.
+
+    None where there is none, or it is not a ``kind`` (``stat.S_ISREG``, ``stat.S_ISDIR``).
+    """
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_mode & 0o777, st.st_gid) if kind(st.st_mode) else None
+
+
+def _set_mode(name: str, mode: int, group: int | None) -> None:
+    if group is not None:  # (first: a chown may clear bits a chmod set)
+        with contextlib.suppress(OSError):  # (a group the process is not in: the default)
+            os.chown(name, -1, group)
+    os.chmod(name, mode)
+
+
+def _give_mode(tmp: str, path: Path, mask: int) -> None:
+    """Give the finished temporary ``tmp`` of ``path`` its mode (temporaries are 0600).
+
+    An output that replaces a file keeps that file's permission bits and, where
+    the process may set it, its group: a group-only output of patient data
+    (0640, a group of its readers) stays so through the next run, a read-only
+    one stays read-only. A new output gets ``0666 & ~umask``.
+    """
+    earlier = _earlier_mode(path, stat.S_ISREG)
+    if earlier is None:
+        os.chmod(tmp, 0o666 & ~mask)
+        return
+    mode, group = earlier
+    _set_mode(tmp, mode, group if os.stat(tmp).st_gid != group else None)
 
 
 def _remove_tree(root) -> None:
@@ -743,8 +791,8 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
         sync_temporaries()
         yield [Path(t) for t in tmps]
         mask = current_umask()
-        for tmp in tmps:  # the temporaries are 0600: give the outputs the usual mode
-            os.chmod(tmp, 0o666 & ~mask)
+        for tmp, path in zip(tmps, paths, strict=True):
+            _give_mode(tmp, path, mask)
         with blocked():
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
             check_unchanged()  # an input mapped for these outputs changed: no rename
