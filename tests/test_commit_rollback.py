@@ -252,6 +252,30 @@ def test_a_replaced_store_keeps_its_permissions_and_group(tmp_path):
         assert st.st_gid == group
 
 
+@pytest.mark.parametrize("signum", [signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM,
+                                    signal.SIGXCPU], ids=lambda s: s.name)
+def test_the_batch_system_s_signals_are_stops(tmp_path, signum):
+    """Slurm's ``--signal=USR1@60``, a timer's SIGALRM, a CPU limit's SIGXCPU killed the
+    run as they came, leaving its temporary output behind (exit 138, 142, 152)."""
+    code = textwrap.dedent(f"""
+        import os, sys, time
+        from volwarp_cli import signals
+        signals.install()
+        tmp = {str(tmp_path / ".o.nrrd.vw-1@h.abcdefgh.part.nrrd")!r}
+        open(tmp, "w").close()
+        signals.temporaries.add(tmp)
+        try:
+            os.kill(os.getpid(), {int(signum)})
+            time.sleep(30)
+        except signals.Interrupted as exc:
+            sys.exit(128 + exc.signum)
+        """)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60, preexec_fn=lambda: signal.signal(signum, signal.SIG_DFL))
+    assert res.returncode == 128 + signum, res.stderr
+    assert _names(tmp_path) == []
+
+
 def _chattr(flag: str, path) -> bool:
     """``chattr flag path``; False where it cannot be done (not root, no such tool or file system)."""
     try:

@@ -131,7 +131,7 @@ def _remove_temporary(tmp: str) -> None:
 
 
 def install_signal_handlers() -> None:
-    """Record and raise SIGINT/SIGTERM (:mod:`volwarp_cli.signals`) so outputs are cleaned up."""
+    """Record and raise the stops (:mod:`volwarp_cli.signals`) so outputs are cleaned up."""
     install()
 
 
