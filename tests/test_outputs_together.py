@@ -93,8 +93,11 @@ def test_a_failing_warp_with_an_export_keeps_both_old_files(run, data_dir, tmp_p
 
 
 def test_a_rename_failing_at_the_end_leaves_no_temporary(tmp_path, monkeypatch):
-    """The renames made before it stand; the failed one's and the later ones' temporaries go."""
+    """No temporary is left, and the one renamed before it, a new file, is removed again
+    (all new or all old: :mod:`tests.test_commit_rollback`); the error names the output."""
     import os
+
+    from volwarp_cli.errors import VolwarpError
 
     real = os.replace
     calls = []
@@ -105,10 +108,12 @@ def test_a_rename_failing_at_the_end_leaves_no_temporary(tmp_path, monkeypatch):
             raise OSError(28, "No space left on device", str(src))
         return real(src, dst)
 
-    with pytest.raises(OSError), outputs_together():
+    said = (r"b\.txt: cannot put the new output in place \(No space left on device\); "
+            "the other outputs are left as they were")
+    with pytest.raises(VolwarpError, match=said), outputs_together():
         for name in ("a.txt", "b.txt", "c.txt"):
             with atomic_output(tmp_path / name) as tmp:
                 tmp.write_text(name)
         monkeypatch.setattr(os, "replace", replace)
     monkeypatch.setattr(os, "replace", real)
-    assert _names(tmp_path) == ["a.txt"]
+    assert _names(tmp_path) == []

@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from volwarp_cli.signals import STOPS
+
 DATA = Path(__file__).parent / "data"
 VOLWARP = Path(sys.executable).parent / "volwarp"
 OLD = b"the old output, complete\n"
@@ -57,7 +59,7 @@ def _commands(tmp: Path):
 def _default_stops():
     """The stops a job gets from a terminal: a suite run under ``nohup`` (SIGHUP ignored,
     which a child inherits and volwarp then honours) would find nothing to stop."""
-    for signum in (signal.SIGHUP, signal.SIGINT, signal.SIGQUIT, signal.SIGTERM):
+    for signum in STOPS:
         signal.signal(signum, signal.SIG_DFL)
 
 
@@ -79,11 +81,14 @@ def test_a_stop_at_any_moment_keeps_the_old_output(tmp_path, name, signum):
 
 
 @pytest.mark.parametrize(("name", "signum"), [("distance", signal.SIGHUP),
-                                              ("convert", signal.SIGQUIT)], ids=["HUP", "QUIT"])
+                                              ("convert", signal.SIGQUIT),
+                                              ("warp", signal.SIGUSR1)],
+                         ids=["HUP", "QUIT", "USR1"])
 def test_a_closed_terminal_is_a_stop_too(tmp_path, name, signum):
     """SIGHUP (a job left in the foreground of an ssh session that closes) and SIGQUIT
     (Ctrl-\\) killed the process as they came: a distance by blocks left its hidden
-    256 MB temporary output behind, exit 129. Now stops like SIGTERM's."""
+    256 MB temporary output behind, exit 129. Now stops like SIGTERM's; so does a batch
+    system's warning before its time limit (Slurm's ``--signal=USR1@60``)."""
     _stop_at_any_moment(tmp_path, name, signum)
 
 

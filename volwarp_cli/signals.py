@@ -1,10 +1,14 @@
-"""Stopping on SIGINT, SIGTERM, SIGHUP, SIGQUIT: the stop is recorded, raised, checked again.
+"""Stopping on SIGINT, SIGTERM and the other signals that end a run: recorded, raised, checked again.
 
 A cron job or Make that kills a run must be able to rely on exit 130 / 143
 and on its old outputs; a job left in the foreground of an ssh session that
 closes gets SIGHUP (129), and it left its temporary output behind (a hidden
-256 MB file). SIGHUP and SIGQUIT are stops unless the process started with
-them ignored (``nohup`` ignores SIGHUP: such a job goes on).
+256 MB file). So did every signal whose default is to end the process: a
+batch system's warning before its time limit (Slurm's ``--signal=USR1@60``:
+SIGUSR1, 138), SIGUSR2, a timer's SIGALRM (142), a CPU limit's SIGXCPU (152).
+All of them are stops, SIGINT and SIGTERM always, the others unless the
+process started with them ignored (``nohup`` ignores SIGHUP: such a job goes
+on; a launcher that ignores SIGUSR1 keeps it ignored).
 
 Raising from the handler alone is not enough: a library's ``except
 Exception`` (nibabel's optional imports, a reader's catch-all turning any
@@ -37,9 +41,11 @@ import threading
 #: paths of temporary outputs not yet renamed into place (removed on a stop)
 temporaries: set[str] = set()
 _stop: list[int] = []  # the first stop's signal number, once one is asked
-#: the signals that stop a run (SIGHUP and SIGQUIT where not ignored: :func:`stops`)
-STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
-_HELD = frozenset(STOPS) | {signal.SIGALRM}  # (what blocked() and settle() hold back)
+#: the signals that stop a run (all but SIGINT and SIGTERM only where not ignored: :func:`stops`)
+STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1,
+         signal.SIGUSR2, signal.SIGALRM, signal.SIGXCPU)
+#: what blocked() and settle() hold back (SIGALRM: also the deferred stop's re-check)
+_HELD = frozenset(STOPS)
 
 
 def stops() -> tuple:

@@ -24,7 +24,8 @@ threads of the batch process, each waiting on its own child. The cluster form
 - ``retries``: a step whose process died of a signal (exit code < 0: SIGKILL from
   the out-of-memory killer, SIGSEGV) is run again, up to that many times; a
   step that failed (exit 1, 2) or was stopped never is.
-- SIGINT / SIGTERM (SIGHUP, SIGQUIT) to the batch: no new step starts, the running ones get the
+- SIGINT / SIGTERM (SIGHUP, SIGQUIT, SIGUSR1, ...: :data:`~volwarp_cli.signals.STOPS`) to the
+  batch: no new step starts, the running ones get the
   same signal (each leaves its old outputs, as every volwarp command
   guarantees), and :meth:`Batch.run` returns with the signal number. A second
   stop kills the children at once.

@@ -9,8 +9,12 @@ handler installed by :func:`install_signal_handlers` (the CLI calls it).
 A command's outputs belong together (a morph's frames and meshes, a warp and
 its exports): inside :func:`outputs_together` (every command but ``batch``
 runs in one) the renames are held until the command ends, then made
-together, so that a failure half-way leaves the previous run's files as
-they were, never a mix of new and old.
+together (:func:`_commit`: all of them, or, where one fails, none, the
+outputs already replaced put back), so that a failure half-way leaves the
+previous run's files as they were, never a mix of new and old.
+
+An output that replaces a file keeps that file's permissions and, where the
+process may give it, its group (:func:`_give_mode`); a new one has the umask's.
 """
 
 from __future__ import annotations
@@ -51,12 +55,13 @@ def outputs_together():
 
     Inside, each atomic write completes its temporary and holds its rename
     (the temporary stays registered: a stop removes it). On a clean exit the
-    renames run in the order the outputs were written, with SIGINT and SIGTERM
-    held back, after the last checks (a stop asked meanwhile, an input that
-    changed); on any error or stop every held temporary is removed and every
-    existing output is left as it was. Nested, the outermost one commits. The
-    paths renamed into place are the run's ``committed``
-    (:mod:`volwarp_cli.runscope`).
+    renames run in the order the outputs were written, as one :func:`_commit`
+    (all made, or none: a rename that fails puts back the outputs already
+    replaced), with the stops held back, after the last checks (a stop asked
+    meanwhile, an input that changed); on any error or stop every held
+    temporary is removed and every existing output is left as it was.
+    Nested, the outermost one commits. The paths renamed into place are the
+    run's ``committed`` (:mod:`volwarp_cli.runscope`).
     """
     global _held
     if _held is not None:
@@ -69,21 +74,22 @@ def outputs_together():
         with blocked():
             check_stop()
             check_unchanged()
-            while held:
-                rename, tmps, path = held[0]
-                rename()
-                committed.append(str(path))
-                held.pop(0)  # (only once renamed: a failed one's temporary is removed below)
-                for tmp in tmps:
+            if held:
+                _commit([move for moves, _, _ in held for move in moves],
+                        [old for _, replaced, _ in held for old in replaced])
+            committed.extend(str(path) for _, _, path in held)
+            for moves, _, _ in held:
+                for tmp, _, _ in moves:
                     _live_temporaries.discard(tmp)
+            held.clear()
     except BaseException:
-        for _, tmps, _ in held:
-            for tmp in tmps:
+        for moves, _, _ in held:  # (those renamed into place and put back again are gone)
+            for tmp, _, _ in moves:
                 _remove_temporary(tmp)
         raise
     finally:
-        for _, tmps, _ in held:
-            for tmp in tmps:
+        for moves, _, _ in held:
+            for tmp, _, _ in moves:
                 _live_temporaries.discard(tmp)
         _held = None
         sync_temporaries()
@@ -104,15 +110,15 @@ def is_own_temporary(path: str | os.PathLike) -> bool:
     return any(real == f or real.startswith(f + os.sep) for f in folders)
 
 
-def _hold(rename, tmps, path: Path) -> bool:
-    """Hold ``rename`` of ``tmps`` until :func:`outputs_together` ends (False outside one).
+def _hold(moves: list, replaced, path: Path) -> bool:
+    """Hold ``moves`` (:func:`_commit`'s) until :func:`outputs_together` ends (False outside one).
 
     Never a file of a scratch folder (the work reads it back; it is not an output).
     """
     with _held_lock:
         if _held is None or os.path.realpath(path.parent) in _scratch_folders:
             return False
-        _held.append((rename, list(tmps), path))
+        _held.append((list(moves), list(replaced), path))
         return True
 
 
@@ -125,7 +131,7 @@ def _remove_temporary(tmp: str) -> None:
 
 
 def install_signal_handlers() -> None:
-    """Record and raise SIGINT/SIGTERM (:mod:`volwarp_cli.signals`) so outputs are cleaned up."""
+    """Record and raise the stops (:mod:`volwarp_cli.signals`) so outputs are cleaned up."""
     install()
 
 
@@ -184,6 +190,7 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
         if path.exists() and not path.is_dir():
             raise VolwarpError(f"{path}: is a file; an OME-Zarr output is a folder (remove it "
                                "or choose another name)")
+        _check_replaceable(path)
         return path
     if path.is_dir():
         raise VolwarpError(f"{path}: is a folder, not a file")
@@ -192,7 +199,64 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
         raise VolwarpError(f"{path}: is {kind}, not a regular file; volwarp writes an output "
                            "as a new file renamed onto its name, which would replace it: "
                            "choose another output name")
+    _check_replaceable(path)
     return path
+
+
+#: <linux/fs.h>'s FS_IOC_GETFLAGS, ``_IOR('f', 1, long)`` as the machines below encode it
+_FS_IOC_GETFLAGS = (2 << 30) | ((8 if sys.maxsize > 2 ** 32 else 4) << 16) | (ord("f") << 8) | 1
+_GENERIC_IOCTL = ("x86_64", "i386", "i686", "aarch64", "armv7l", "armv6l", "riscv64", "s390x")
+_FS_IMMUTABLE_FL, _FS_APPEND_FL = 0x10, 0x20
+
+
+def _check_replaceable(path: Path) -> None:
+    """Fail before any work where the earlier output at ``path`` cannot be renamed over.
+
+    An immutable or append-only file or store (``chattr +i``, ``+a``), or
+    another user's in a sticky folder that is not this user's either: the
+    rename at the end failed, after all the work (and :func:`_commit` put back
+    the outputs renamed before it). What does not show here (a file system's
+    own refusal) still fails at the end, all outputs left as they were.
+    """
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return
+    if not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode)):
+        return
+    euid = os.geteuid()
+    if euid != 0 and st.st_uid != euid:  # (root may, as any holder of CAP_FOWNER)
+        with contextlib.suppress(OSError):
+            folder = os.stat(path.parent if str(path.parent) else ".")
+            if folder.st_mode & stat.S_ISVTX and folder.st_uid != euid:
+                raise VolwarpError(f"{path}: cannot be replaced: it belongs to another user "
+                                   "and its folder is sticky (as /tmp: only its owner may "
+                                   "replace it there); choose another output name")
+    flags = _inode_flags(path)
+    for flag, what in ((_FS_IMMUTABLE_FL, "immutable (chattr +i)"),
+                       (_FS_APPEND_FL, "append-only (chattr +a)")):
+        if flags & flag:
+            raise VolwarpError(f"{path}: cannot be replaced: it is {what}; choose another "
+                               "output name")
+
+
+def _inode_flags(path: Path) -> int:
+    """The Linux inode flags of ``path`` (``lsattr``'s), 0 where they cannot be read."""
+    if not sys.platform.startswith("linux") or os.uname().machine not in _GENERIC_IOCTL:
+        return 0
+    import fcntl
+
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError:
+        return 0
+    try:
+        got = fcntl.ioctl(fd, _FS_IOC_GETFLAGS, bytes(8))
+    except OSError:  # (a file system without them: ENOTTY)
+        return 0
+    finally:
+        os.close(fd)
+    return int.from_bytes(got[:4], sys.byteorder)
 
 
 def _special_kind(path: Path) -> str | None:
@@ -215,11 +279,11 @@ def atomic_folder(path: str | os.PathLike):
     For outputs that are folders (OME-Zarr stores). The temporary is
     registered with the signal handler's temporaries and removed on any
     error or stop; an existing store at ``path`` is untouched until the new
-    one is complete. Then, with SIGINT and SIGTERM held back, the new store
-    takes its place (:func:`_rename_folder`: the two names swapped in one step
-    where the file system can, else the old one renamed aside first), and only
-    then is the old one removed. (A folder cannot be renamed over another in
-    one step, as a file can.)
+    one is complete. Then, with the stops held back, the new store takes its
+    place (:func:`_rename_folder`: the two names swapped in one step where the
+    file system can, else the old one renamed aside first), and only then (once
+    every output of the set is in, :func:`_commit`) is the old one removed. (A
+    folder cannot be renamed over another in one step, as a file can.)
     """
     path = check_output_path(path)
     _remove_stale_temporaries(path)
@@ -231,13 +295,13 @@ def atomic_folder(path: str | os.PathLike):
     try:
         sync_temporaries()
         yield Path(tmp)
-        _chmod_tree(tmp)
+        _chmod_tree(tmp, path)
         with blocked():
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
             check_unchanged()  # an input mapped for this output changed: no rename
-            held = _hold(lambda: _rename_folder(tmp, path), [tmp], path)
+            held = _hold([(tmp, path, True)], (), path)
             if not held:
-                _rename_folder(tmp, path)
+                _commit([(tmp, path, True)])
                 _live_temporaries.discard(tmp)
     except BaseException as exc:
         _remove_tree(tmp)
@@ -342,31 +406,181 @@ def _folder_held(folder: Path | None):
         os.close(fd)  # (the lock goes with it)
 
 
+def _commit(moves: list, replaced=()) -> None:
+    """Rename each finished temporary onto its output: all of them, or none.
+
+    ``moves``: ``(temporary, output, is_folder)``, renamed in that order;
+    ``replaced``: files of the earlier outputs no new one takes the place of,
+    removed once all are in. Renames run in order and one can fail half-way
+    (an output made immutable, another user's file in a sticky folder): so
+    each existing output but the last keeps a second name first (a hard link,
+    :func:`_keep`; a store swapped aside keeps its own), and where a rename
+    fails every output already replaced is put back from it, every new one
+    removed, before the error, which names the output and why. Only once all
+    are in are the earlier outputs removed. A single output needs none of it
+    (its rename is all or nothing by itself). Called with the stops held back
+    (:func:`~volwarp_cli.signals.blocked`): a stop waits for the whole commit,
+    rollback and clean-up included, and nothing is left behind.
+    """
+    done: list = []  # (output, is_folder, its earlier file or store's name now, or None)
+    failed = None  # (output, OSError) of the rename that failed
+    try:
+        with _folders_held(moves):
+            for i, (tmp, path, folder) in enumerate(moves):
+                path = Path(path)
+                note_committed(tmp, path)
+                try:
+                    if folder:
+                        done.append((path, True, _rename_folder_in(tmp, path)))
+                        continue
+                    kept = _keep(path) if i < len(moves) - 1 else None
+                    try:
+                        _replace_file(tmp, path, kept)
+                    except BaseException:
+                        _discard(kept)
+                        raise
+                    done.append((path, False, kept and kept[0]))
+                except OSError as exc:
+                    failed = path, exc
+                    raise
+    except BaseException as exc:
+        lost = _roll_back(done)
+        if failed is not None:
+            said = ("; " + "; ".join(lost) if lost else
+                    "; the other outputs are left as they were" if len(moves) > 1 else "")
+            raise VolwarpError(f"{failed[0]}: cannot put the new output in place "
+                               f"({_why(failed[1])}){said}") from exc
+        if lost:
+            raise VolwarpError(f"{exc}; " + "; ".join(lost)) from exc
+        raise
+    for _, folder, earlier in done:
+        if folder and earlier is not None:
+            _remove_old_store(earlier)
+        elif earlier is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(earlier)
+    for old in replaced:
+        with contextlib.suppress(OSError):
+            os.unlink(old)
+
+
 def _rename_folder(tmp: str, path: Path) -> None:
-    """Put the folder ``tmp`` at ``path``; an old one there removed after.
+    """Put the folder ``tmp`` at ``path`` (:func:`_commit` of one store)."""
+    _commit([(tmp, path, True)])
+
+
+@contextlib.contextmanager
+def _folders_held(moves: list):
+    """:func:`_folder_held` of every folder of a set of outputs (one output: none).
+
+    Each folder once (a second ``flock`` of it by this process would wait for
+    the first), in one order (two runs locking two folders never wait for each other).
+    """
+    if len(moves) < 2:
+        yield
+        return
+    folders = sorted({os.path.realpath(Path(path).parent if str(Path(path).parent) else ".")
+                      for _, path, _ in moves})
+    with contextlib.ExitStack() as stack:
+        for folder in folders:
+            stack.enter_context(_folder_held(Path(folder)))
+        yield
+
+
+def _keep(path: Path) -> tuple[str, bool] | None:
+    """A second name for the existing file ``path``, to put it back from: ``(name, linked)``.
+
+    A hard link where the file system makes one (cheap: no data copied); else
+    (none there, a file another user owns under ``protected_hardlinks``) only a
+    free name, which :func:`_replace_file` renames the earlier file to first.
+    Named as the stale temporaries are (``.old``): one left by a killed
+    process is removed by the next write, or put back where the output is missing.
+    None where there is no earlier file.
+    """
+    if not os.path.lexists(path):
+        return None
+    while True:
+        name = _spare_name(path, ".old")
+        try:
+            os.link(path, name, follow_symlinks=False)  # (a link output: the link kept)
+            return name, True
+        except FileExistsError:
+            continue
+        except OSError:
+            return name, False
+
+
+def _replace_file(tmp: str, path: Path, kept: tuple[str, bool] | None) -> None:
+    """Rename ``tmp`` onto ``path``.
+
+    Where the :func:`_keep` name is not a link, the earlier file is renamed to
+    it first (and back, where the new one's rename fails).
+    """
+    if kept is None or kept[1]:
+        os.replace(tmp, path)
+        return
+    os.rename(path, kept[0])
+    try:
+        os.rename(tmp, path)
+    except BaseException as exc:
+        try:
+            os.rename(kept[0], path)
+        except OSError as back:
+            raise VolwarpError(f"{path}: cannot put the new output in place ({_why(exc)}), "
+                               f"and the earlier one could not be put back ({_why(back)}): "
+                               f"it is kept at {kept[0]}") from exc
+        raise
+
+
+def _discard(kept: tuple[str, bool] | None) -> None:
+    """Remove a :func:`_keep` link no rename used (a name only: nothing to remove)."""
+    if kept is not None and kept[1]:
+        with contextlib.suppress(OSError):
+            os.unlink(kept[0])
+
+
+def _roll_back(done: list) -> list[str]:
+    """Put back the earlier outputs of a failed :func:`_commit`, the last one first.
+
+    Returns what could not be put back, each naming where its earlier output is kept.
+    """
+    lost = []
+    for path, folder, earlier in reversed(done):
+        try:
+            if folder:
+                _put_store_back(path, earlier)
+            elif earlier is not None:
+                os.replace(earlier, path)
+            else:
+                os.unlink(path)  # (a new output: there was none before)
+        except OSError as exc:
+            lost.append(f"{path}: the earlier output could not be put back ({_why(exc)})"
+                        + (f": it is kept at {earlier}" if earlier is not None else ""))
+    return lost
+
+
+def _rename_folder_in(tmp: str, path: Path) -> str | None:
+    """Put the folder ``tmp`` at ``path``; returns where the earlier store is now (or None).
 
     A folder cannot be renamed over another. Where the system can swap two
     names in one step (Linux's ``renameat2`` with ``RENAME_EXCHANGE``: ext4,
     xfs, btrfs, tmpfs), the old store and the new swap, so that ``path``
-    always holds a whole store, then the old one (now at ``tmp``) is removed.
-    Elsewhere the old store is renamed aside first, to ``.NAME.vw-...old``: a
-    process killed between the two renames leaves no store at ``path``, and
-    the next write of it puts the old one back (:func:`_remove_stale_temporaries`).
+    always holds a whole store: the old one is then at ``tmp``. Elsewhere the
+    old store is renamed aside first, to ``.NAME.vw-...old``: a process killed
+    between the two renames leaves no store at ``path``, and the next write of
+    it puts the old one back (:func:`_remove_stale_temporaries`). The earlier
+    store is removed by :func:`_commit` once every output is in.
     """
-    note_committed(tmp, path)
     if not path.is_dir():
         try:
             os.rename(tmp, path)
-            return
+            return None
         except OSError as exc:  # (another run's store put there since: replaced as any)
             if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not path.is_dir():
                 raise
     if _exchange(tmp, path):
-        _remove_tree(tmp)
-        return
-    aside = _tempfile().mkdtemp(prefix=_temporary_prefix(path.name), suffix=".old",
-                                dir=path.parent)
-    os.rmdir(aside)  # (only the unique name was wanted)
+        return tmp
+    aside = _spare_name(path, ".old")
     os.rename(path, aside)
     try:
         os.rename(tmp, path)
@@ -381,14 +595,51 @@ def _rename_folder(tmp: str, path: Path) -> None:
                 "back only while nothing is at that path, and removes it where another "
                 "store is)") from exc
         raise
-    # (renamed again before its removal: a kill during it leaves a '.gone' folder, never
-    # put back, where a half-removed '.old' would have been)
-    gone = aside[:-len(".old")] + ".gone"
-    try:
-        os.rename(aside, gone)
-    except OSError:
-        gone = aside
+    return aside
+
+
+def _put_store_back(path: Path, earlier: str | None) -> None:
+    """Undo :func:`_rename_folder_in`: the earlier store (or none) at ``path``, the new one removed."""
+    if earlier is not None and _exchange(earlier, path):
+        _remove_tree(earlier)  # (the new store, now)
+        return
+    new = _spare_name(path, ".gone")
+    os.rename(path, new)
+    if earlier is not None:
+        try:
+            os.rename(earlier, path)
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.rename(new, path)  # (the new one back: a store at the path, not none)
+            raise
+    _remove_tree(new)
+
+
+def _remove_old_store(old: str) -> None:
+    """Remove an earlier store set aside by :func:`_rename_folder_in`.
+
+    One renamed aside (``.old``) is renamed again before its removal: a kill
+    during it leaves a ``.gone`` folder, never put back, where a half-removed
+    ``.old`` would have been.
+    """
+    gone = old
+    if old.endswith(".old"):
+        gone = old[:-len(".old")] + ".gone"
+        try:
+            os.rename(old, gone)
+        except OSError:
+            gone = old
     _remove_tree(gone)
+
+
+def _spare_name(path: Path, suffix: str) -> str:
+    """A free name ``.NAME.vw-PID@HOST.XXXXXXXX`` + ``suffix`` beside ``path`` (nothing made)."""
+    prefix = os.path.join(os.path.abspath(path.parent if str(path.parent) else "."),
+                          _temporary_prefix(path.name))
+    while True:
+        name = prefix + "".join(_NAME_CHARS[b & 31] for b in os.urandom(8)) + suffix
+        if not os.path.lexists(name):
+            return name
 
 
 def _why(exc: BaseException) -> str:
@@ -416,15 +667,60 @@ def _exchange(a, b) -> bool:
     return call(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0
 
 
-def _chmod_tree(root: str) -> None:
-    """Give the output the usual modes (mkdtemp makes folders 0700)."""
-    mask = current_umask()
-    os.chmod(root, 0o777 & ~mask)
+def _chmod_tree(root: str, path: Path) -> None:
+    """Give the store ``root`` its modes (mkdtemp makes folders 0700): the earlier store's.
+
+    Where it replaces a store (:func:`_give_mode`), its folders get the earlier
+    top folder's permissions and its files the same without the execute bits,
+    and all the earlier one's group where the process may give it; a new store
+    has the umask's (folders ``0777 & ~umask``, files ``0666 & ~umask``).
+    """
+    earlier = _earlier_mode(path, stat.S_ISDIR)
+    folders = 0o777 & ~current_umask() if earlier is None else earlier[0]
+    group = None
+    if earlier is not None and os.stat(root).st_gid != earlier[1]:
+        group = earlier[1]
+    _set_mode(root, folders, group)
     for folder, dirs, files in os.walk(root):
         for d in dirs:
-            os.chmod(os.path.join(folder, d), 0o777 & ~mask)
+            _set_mode(os.path.join(folder, d), folders, group)
         for f in files:
-            os.chmod(os.path.join(folder, f), 0o666 & ~mask)
+            _set_mode(os.path.join(folder, f), folders & 0o666, group)
+
+
+def _earlier_mode(path, kind) -> tuple[int, int] | None:
+    """The permission bits and group of the earlier output at ``path``, a link followed.
+
+    None where there is none, or it is not a ``kind`` (``stat.S_ISREG``, ``stat.S_ISDIR``).
+    """
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_mode & 0o777, st.st_gid) if kind(st.st_mode) else None
+
+
+def _set_mode(name: str, mode: int, group: int | None) -> None:
+    if group is not None:  # (first: a chown may clear bits a chmod set)
+        with contextlib.suppress(OSError):  # (a group the process is not in: the default)
+            os.chown(name, -1, group)
+    os.chmod(name, mode)
+
+
+def _give_mode(tmp: str, path: Path, mask: int) -> None:
+    """Give the finished temporary ``tmp`` of ``path`` its mode (temporaries are 0600).
+
+    An output that replaces a file keeps that file's permission bits and, where
+    the process may set it, its group: a group-only output of patient data
+    (0640, a group of its readers) stays so through the next run, a read-only
+    one stays read-only. A new output gets ``0666 & ~umask``.
+    """
+    earlier = _earlier_mode(path, stat.S_ISREG)
+    if earlier is None:
+        os.chmod(tmp, 0o666 & ~mask)
+        return
+    mode, group = earlier
+    _set_mode(tmp, mode, group if os.stat(tmp).st_gid != group else None)
 
 
 def _remove_tree(root) -> None:
@@ -468,9 +764,10 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
     """Temporaries for several files that belong together, renamed onto them together.
 
     A detached header and its data file (``.nhdr`` + ``.raw``, ``.mhd`` +
-    ``.raw``) must be both new or both old: the renames run with SIGINT and
-    SIGTERM held back, in the order given (the data file first, so that a
-    header never names data it does not describe), after the last checks.
+    ``.raw``) must be both new or both old: the renames run with the stops
+    held back, in the order given (the data file first, so that a header never
+    names data it does not describe), after the last checks, as one
+    :func:`_commit` (a failed one puts back what it replaced).
     ``replaced``: files of the earlier output these replace that no new file
     takes the place of (its data file under another name), removed with the
     renames.
@@ -494,25 +791,15 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
         sync_temporaries()
         yield [Path(t) for t in tmps]
         mask = current_umask()
-        for tmp in tmps:  # the temporaries are 0600: give the outputs the usual mode
-            os.chmod(tmp, 0o666 & ~mask)
+        for tmp, path in zip(tmps, paths, strict=True):
+            _give_mode(tmp, path, mask)
         with blocked():
             check_stop()  # a stop asked while writing (and swallowed somewhere): no rename
             check_unchanged()  # an input mapped for these outputs changed: no rename
-            pairs = list(zip(tmps, paths, strict=True))
-
-            def rename():
-                with _folder_held(paths[-1].parent if len(pairs) > 1 else None):
-                    for tmp, path in pairs:
-                        note_committed(tmp, path)
-                        os.replace(tmp, path)
-                    for old in replaced:
-                        with contextlib.suppress(OSError):
-                            os.unlink(old)
-
-            held = _hold(rename, tmps, paths[-1])
+            moves = [(tmp, path, False) for tmp, path in zip(tmps, paths, strict=True)]
+            held = _hold(moves, replaced, paths[-1])
             if not held:
-                rename()
+                _commit(moves, replaced)
     except BaseException as exc:
         for tmp in tmps:
             with contextlib.suppress(OSError):
@@ -682,9 +969,9 @@ def _remove_stale_temporaries(path: Path) -> None:
         if m is None or _alive(int(m.group(1))):
             continue
         stale = path.parent / name
-        if name.endswith(".old") and not os.path.lexists(path) and stale.is_dir():
-            # a store set aside by a process killed before the new one took its place
-            # (_rename_folder): the earlier output, put back (and kept where that fails:
+        if name.endswith(".old") and not os.path.lexists(path):
+            # a store or file set aside by a process killed before the new one took its
+            # place (_commit): the earlier output, put back (and kept where that fails:
             # its only copy)
             try:
                 os.rename(stale, path)
