@@ -54,7 +54,8 @@ def outputs_together():
     renames run in the order the outputs were written, with SIGINT and SIGTERM
     held back, after the last checks (a stop asked meanwhile, an input that
     changed); on any error or stop every held temporary is removed and every
-    existing output is left as it was. Nested, the outermost one commits. The
+    existing output is left as it was, and an error is that of an input that changed
+    meanwhile where one did. Nested, the outermost one commits. The
     paths renamed into place are the run's ``committed``
     (:mod:`volwarp_cli.runscope`).
     """
@@ -76,10 +77,14 @@ def outputs_together():
                 held.pop(0)  # (only once renamed: a failed one's temporary is removed below)
                 for tmp in tmps:
                     _live_temporaries.discard(tmp)
-    except BaseException:
+    except BaseException as exc:
         for _, tmps, _ in held:
             for tmp in tmps:
                 _remove_temporary(tmp)
+        if isinstance(exc, Exception):  # (not a stop)
+            # a failure of a run whose input changed meanwhile: the change is why (another
+            # store's chunk that does not decode, a mix taken for a label map)
+            check_unchanged()
         raise
     finally:
         for _, tmps, _ in held:
