@@ -32,8 +32,8 @@ are opened by path) is watched the same way (:func:`watch_folder`), by
 writes one) gave the rest of the read the new store's chunks, a mix written
 with exit 0. Its identity is the folder's inode and, under the folder that
 is read (the store's level 0), every entry's name, inode, size and
-modification time: a stat a file, some microseconds per thousand chunks
-beside the milliseconds each chunk's read takes. A chunk rewritten in place
+modification time: a stat a file, a few microseconds a chunk file beside the
+fraction of a millisecond each one's read takes. A chunk rewritten in place
 with its size and modification time kept goes unseen.
 """
 
@@ -56,6 +56,14 @@ def _identity(st: os.stat_result) -> tuple[int, int, int]:
 SAMPLES, SAMPLE_BYTES = 64, 4096
 
 
+def _blake2b():
+    try:
+        from _blake2 import blake2b  # (hashlib loads OpenSSL first: 4 ms of a small command)
+    except ImportError:  # pragma: no cover - a Python built without it
+        from hashlib import blake2b
+    return blake2b(digest_size=16)
+
+
 def _fingerprint(fd: int, size: int) -> bytes:
     """A hash of :data:`SAMPLES` pieces of the open file's ``size`` bytes (all of a small file).
 
@@ -63,12 +71,7 @@ def _fingerprint(fd: int, size: int) -> bytes:
     stretch longer than ``size / SAMPLES`` changes it: 256 KiB read, about a
     millisecond from the page cache.
     """
-    try:
-        from _blake2 import blake2b  # (hashlib loads OpenSSL first: 4 ms of a small command)
-    except ImportError:  # pragma: no cover - a Python built without it
-        from hashlib import blake2b
-
-    digest = blake2b(digest_size=16)
+    digest = _blake2b()
     if size <= SAMPLES * SAMPLE_BYTES:
         starts = range(0, size, SAMPLE_BYTES)
     else:
@@ -190,12 +193,7 @@ def folder_identity(root, inner, root_key: tuple | None = None) -> bytes | None:
     contents are read (a store swapped between the two then differs from
     every later identity). None where it cannot be read.
     """
-    try:
-        from _blake2 import blake2b
-    except ImportError:  # pragma: no cover - a Python built without it
-        from hashlib import blake2b
-
-    digest = blake2b(digest_size=16)
+    digest = _blake2b()
     try:
         if root_key is None:
             st = os.stat(root)
