@@ -30,7 +30,9 @@ class RunFiles:
     read (:mod:`volwarp_cli.io.inputs`), and ``expanded``: each one's files;
     ``mapped``: path -> ((size, mtime_ns, inode), ctime_ns, a hash of sampled
     pieces) of each input read as the work goes (by ``pread`` or a memory map),
-    when it was opened (:mod:`.io.mapped`); ``allow_outside_data``: detached headers
+    when it was opened (:mod:`.io.mapped`), and ``folders``: name -> (folder,
+    the folder read under it, their identity) of each folder input read file by
+    file as the work goes (an OME-Zarr store); ``allow_outside_data``: detached headers
     may read data files outside their own folder; ``dry_run``: the command runs
     its checks only, and stops at its first read of an input
     (:func:`stop_if_dry_run`); ``said``: the warnings a run says once;
@@ -50,6 +52,7 @@ class RunFiles:
     #: each output file (links followed) and the option that named it, as checked
     claimed: dict[str, str] = field(default_factory=dict)
     mapped: dict[str, tuple] = field(default_factory=dict)
+    folders: dict[str, tuple] = field(default_factory=dict)
     allow_outside_data: bool = False
     dry_run: bool = False
     said: set = field(default_factory=set)

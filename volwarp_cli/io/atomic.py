@@ -59,9 +59,10 @@ def outputs_together():
     (all made, or none: a rename that fails puts back the outputs already
     replaced), with the stops held back, after the last checks (a stop asked
     meanwhile, an input that changed); on any error or stop every held
-    temporary is removed and every existing output is left as it was.
-    Nested, the outermost one commits. The paths renamed into place are the
-    run's ``committed`` (:mod:`volwarp_cli.runscope`).
+    temporary is removed and every existing output is left as it was, and an
+    error is that of an input that changed meanwhile where one did. Nested,
+    the outermost one commits. The paths renamed into place are the run's
+    ``committed`` (:mod:`volwarp_cli.runscope`).
     """
     global _held
     if _held is not None:
@@ -82,10 +83,14 @@ def outputs_together():
                 for tmp, _, _ in moves:
                     _live_temporaries.discard(tmp)
             held.clear()
-    except BaseException:
+    except BaseException as exc:
         for moves, _, _ in held:  # (those renamed into place and put back again are gone)
             for tmp, _, _ in moves:
                 _remove_temporary(tmp)
+        if isinstance(exc, Exception):  # (not a stop)
+            # a failure of a run whose input changed meanwhile: the change is why (another
+            # store's chunk that does not decode, a mix taken for a label map)
+            check_unchanged()
         raise
     finally:
         for moves, _, _ in held:

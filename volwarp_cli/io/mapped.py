@@ -25,6 +25,16 @@ A mapped file (:func:`guard`) also gets a SIGBUS handler (in C,
 ``_mapguard``: it removes the temporary outputs, writes one line and exits
 1): if it is truncated while mapped (``cp new.nrrd in.nrrd`` truncates
 first), a read past the new end raises SIGBUS.
+
+A folder read file by file as the work goes (an OME-Zarr store: its chunks
+are opened by path) is watched the same way (:func:`watch_folder`), by
+:func:`folder_identity`: another store swapped in by renames (as volwarp
+writes one) gave the rest of the read the new store's chunks, a mix written
+with exit 0. Its identity is the folder's inode and, under the folder that
+is read (the store's level 0), every entry's name, inode, size and
+modification time: a stat a file, a few microseconds a chunk file beside the
+fraction of a millisecond each one's read takes. A chunk rewritten in place
+with its size and modification time kept goes unseen.
 """
 
 from __future__ import annotations
@@ -46,6 +56,14 @@ def _identity(st: os.stat_result) -> tuple[int, int, int]:
 SAMPLES, SAMPLE_BYTES = 64, 4096
 
 
+def _blake2b():
+    try:
+        from _blake2 import blake2b  # (hashlib loads OpenSSL first: 4 ms of a small command)
+    except ImportError:  # pragma: no cover - a Python built without it
+        from hashlib import blake2b
+    return blake2b(digest_size=16)
+
+
 def _fingerprint(fd: int, size: int) -> bytes:
     """A hash of :data:`SAMPLES` pieces of the open file's ``size`` bytes (all of a small file).
 
@@ -53,12 +71,7 @@ def _fingerprint(fd: int, size: int) -> bytes:
     stretch longer than ``size / SAMPLES`` changes it: 256 KiB read, about a
     millisecond from the page cache.
     """
-    try:
-        from _blake2 import blake2b  # (hashlib loads OpenSSL first: 4 ms of a small command)
-    except ImportError:  # pragma: no cover - a Python built without it
-        from hashlib import blake2b
-
-    digest = blake2b(digest_size=16)
+    digest = _blake2b()
     if size <= SAMPLES * SAMPLE_BYTES:
         starts = range(0, size, SAMPLE_BYTES)
     else:
@@ -138,7 +151,10 @@ def sync_temporaries() -> None:
 
 
 def check_unchanged() -> None:
-    """Raise if a mapped input of this run changed since it was mapped (before a rename)."""
+    """Raise if an input of this run read as the work goes changed since it was opened (before a rename)."""
+    for where, (root, inner, taken) in list(run_files().folders.items()):
+        if folder_identity(root, inner) != taken:
+            raise folder_changed(where, "; the output is not written")
     for where, (ident, ctime, sampled) in list(run_files().mapped.items()):
         how = _change(where, ident, ctime, sampled)
         if how == "replaced":
@@ -166,3 +182,58 @@ def _change(where: str, ident: tuple, ctime: int, sampled: bytes | None) -> str 
     if now[0] != ident:
         return "replaced"
     return None if now[2] == sampled else "rewritten"
+
+
+def folder_identity(root, inner, root_key: tuple | None = None) -> bytes | None:
+    """A digest of the folder ``root`` (device, inode) and of what lies under ``inner`` in it.
+
+    Every entry under ``inner``: its name, inode, size and modification time
+    (a folder's changes as entries come and go). ``root_key``: the
+    ``(device, inode)`` of ``root`` as first seen, for one taken before its
+    contents are read (a store swapped between the two then differs from
+    every later identity). None where it cannot be read.
+    """
+    digest = _blake2b()
+    try:
+        if root_key is None:
+            st = os.stat(root)
+            root_key = st.st_dev, st.st_ino
+        digest.update(repr(tuple(root_key)).encode())
+        folders = [(os.fspath(inner), ".")]  # (each with its name under ``inner``)
+        while folders:
+            folder, name = folders.pop()
+            st = os.stat(folder)
+            digest.update(f"{name}\0{st.st_ino}\0{st.st_mtime_ns}\n".encode(
+                "utf-8", "surrogateescape"))
+            with os.scandir(folder) as entries:
+                for entry in sorted(entries, key=lambda e: e.name):
+                    if entry.is_dir(follow_symlinks=False):
+                        folders.append((entry.path, f"{name}/{entry.name}"))
+                        continue
+                    st = entry.stat()
+                    digest.update(f"{entry.name}\0{st.st_ino}\0{st.st_size}\0"
+                                  f"{st.st_mtime_ns}\n".encode("utf-8", "surrogateescape"))
+    except OSError:
+        return None
+    return digest.digest()
+
+
+def watch_folder(root, inner, taken: bytes | None, where: str) -> None:
+    """Record ``taken`` (:func:`folder_identity` at the opening) of a folder read as the work goes.
+
+    ``where`` names it. As :func:`watch`: the first identity seen in a run
+    stands, only inside a run, never volwarp's own temporaries.
+    """
+    if not in_run():
+        return
+    from .atomic import is_own_temporary
+
+    if is_own_temporary(root) or where in run_files().folders:
+        return
+    run_files().folders[where] = (os.path.abspath(root), os.path.abspath(inner), taken)
+
+
+def folder_changed(where: str, then: str = "") -> FormatError:
+    """The error of a folder input (a store) that changed while it was read; ``then``: what follows."""
+    return FormatError(f"{where}: the store changed while it was being read (replaced or "
+                       f"rewritten by another program?){then}")

@@ -897,6 +897,15 @@ class Opened:
         self.spacing, self.origin, self.direction = spacing, origin, direction
         self.space, self.file_space, self.meta = space, file_space, meta
         self.where = where
+        #: ``(store, level 0's folder, identity)`` as opened (:func:`.mapped.folder_identity`)
+        self.identity = None
+
+    def changed(self) -> bool:
+        """Whether the store changed since it was opened (another one swapped in, say)."""
+        from .mapped import folder_identity
+
+        return self.identity is not None and folder_identity(*self.identity[:2]) \
+            != self.identity[2]
 
     def geometry(self):
         """The :class:`~volwarp_cli.geometry.Geometry` of the volume."""
@@ -936,8 +945,15 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
     """Open the store at ``path``: level 0 and the geometry volwarp gives it (module notes)."""
     import zarr
 
+    from .mapped import folder_identity
+
     path = Path(path)
     where = str(path)
+    try:  # (the store's own folder as first seen: one swapped in from here on is another)
+        st = os.stat(path)
+        root_key = st.st_dev, st.st_ino
+    except OSError:
+        root_key = None
     fmt, attrs = group_metadata(path)
     ms = _multiscales(attrs, where)
     ome = attrs.get("ome") if isinstance(attrs.get("ome"), dict) else {}
@@ -998,6 +1014,8 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
         raise FormatError(f"{where}: dataset path {key!r} leads out of the store (NGFF paths "
                           "are keys inside it)")
     array_path = path / key
+    # (before zarr reads level 0's metadata: the chunks read later must be of that store)
+    identity = (path, array_path, folder_identity(path, array_path, root_key))
     try:
         arr = zarr.open_array(str(array_path), mode="r", zarr_format=fmt)
     except Exception as exc:  # zarr raises several types for missing or bad metadata
@@ -1055,8 +1073,10 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
         meta = {**meta, "OME_image_label": json.dumps(ome["image-label"], sort_keys=True)}
     spacing, origin, direction = check_placement(
         spacing, origin, direction, zyx_to_xyz(shape_zyx), where=where, fields=_FIELDS)
-    return Opened(arr, (tuple(index), transpose), shape_zyx, spacing, origin, direction, space,
-                  file_space, meta, where)
+    opened = Opened(arr, (tuple(index), transpose), shape_zyx, spacing, origin, direction,
+                    space, file_space, meta, where)
+    opened.identity = identity
+    return opened
 
 
 #: the metadata each part of the geometry comes from (for the errors that name it)
@@ -1226,6 +1246,10 @@ def read_region(opened: Opened, region) -> np.ndarray:
     try:
         block = _read_by_chunk_rows(opened.array, stored, space_positions)
     except Exception as exc:  # a damaged chunk: checksums, zstd, shard index
+        if opened.changed():  # (the opening's shard index, another store's shard)
+            from .mapped import folder_changed
+
+            raise folder_changed(opened.where) from None
         raise FormatError(f"{opened.where}: chunk data is damaged ({type(exc).__name__}: "
                           f"{_one_line(exc)})") from None
     return native(block.transpose(transpose)) if transpose != [0, 1, 2] else native(block)
@@ -1294,6 +1318,10 @@ def read_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Vo
     ensure_fits_in_memory(int(np.prod(shape, dtype=np.int64)) * opened.array.dtype.itemsize,
                           f"{opened.where} ({'x'.join(map(str, zyx_to_xyz(shape)))})")
     data = read_region(opened, tuple(slice(0, n) for n in shape))
+    if opened.changed():  # (read row by row, by path: the last rows another store's)
+        from .mapped import folder_changed
+
+        raise folder_changed(opened.where)
     return make_volume(opened.where, data, spacing=opened.spacing, origin=opened.origin,
                        direction=opened.direction, space=opened.space,
                        file_space=opened.file_space, meta=opened.meta)
@@ -1303,7 +1331,12 @@ class LazyOmeZarr:
     """The level 0 of a store as a read-only array: ``[z0:z1, y0:y1, x0:x1]`` reads only that."""
 
     def __init__(self, opened: Opened):
+        from .mapped import watch_folder
+
         self._opened = opened
+        # (its chunks are read by path as the work goes: another store swapped in meanwhile
+        # gave a mix; no output is renamed into place then)
+        watch_folder(*opened.identity, opened.where)
         self.shape = tuple(opened.view_shape)
         self.dtype = native(np.zeros(0, dtype=opened.array.dtype)).dtype
         self.ndim = 3
