@@ -152,7 +152,10 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
     claimed for it, and a file another option claimed is a usage error too.
     A folder output (``.zarr``) may replace an existing Zarr store, never a
     folder that is not one (nor a file of that name: that is someone else's).
+    A detached header whose data file's name its header could not hold
+    (``' x.nhdr'``: :func:`~.common.data_file_name_problem`) is a usage error.
     """
+    from .common import refuse_unnamable_data_file
     from .inputs import claim_output, opened_as_input, refuse_output_over_input
 
     if isinstance(path, str) and path.endswith(("/", os.sep)) and \
@@ -160,6 +163,7 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
         raise BadUsage(f"{option + ' ' if option else ''}{path}: ends in a slash, which names a "
                        "folder: give the output file's name")
     path = Path(path)
+    refuse_unnamable_data_file(path, option)  # (.nhdr, .mhd: the name their header gives)
     refuse_output_over_input(path, option=option)
     if option is not None:  # (the commands' checks before any work name their option)
         claim_output(path, option)
