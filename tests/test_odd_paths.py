@@ -1,13 +1,21 @@
-"""Paths that are legal but read back as something else: odd output names.
+"""Paths that are legal but read back as something else: odd output names, inputs that are pipes.
 
 A detached header (``.nhdr``, ``.mhd``) writes its data file's name on one
 header line, where readers strip the spaces around it and read ``LIST``, a
 ``%`` pattern or a line break as something else: ``-o ' x.nhdr'`` exited 0
-and its header named an unrelated ``x.raw``. Refused before any work.
+and its header named an unrelated ``x.raw``. And an input that is a named
+pipe was opened twice: the first open drained it, the second waited forever
+(a cron job that never ended). Both are refused before any work; a spec,
+read once, may still be a pipe.
 """
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -119,3 +127,95 @@ def test_a_batch_refuses_a_scan_whose_name_its_header_cannot_hold_before_any_sca
         "  - {name: c, run: convert, output: '{stem}_c.nhdr'}\n")
     _one_line(run("batch", tmp_path / "m.yaml"), 2, "scan b%:", "'b%_c.raw'", "numbered pattern")
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*_c.*"))
+
+
+# -- inputs that are pipes -----------------------------------------------------------
+
+def _feed(fifo: Path, data: bytes) -> threading.Thread:
+    """A writer of ``data`` into the named pipe ``fifo``, as ``cat scan > fifo &`` is."""
+    def write():
+        try:
+            with open(fifo, "wb") as fh:
+                fh.write(data)
+        except OSError:  # (the reader went away: a broken pipe)
+            pass
+
+    thread = threading.Thread(target=write, daemon=True)
+    thread.start()
+    return thread
+
+
+def _release(fifo: Path, writer: threading.Thread) -> None:
+    """End a writer still waiting for a reader (volwarp never opened the pipe)."""
+    if writer.is_alive():
+        fd = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)
+        writer.join(5)
+        os.close(fd)
+    writer.join(5)
+    assert not writer.is_alive()
+
+
+def _volwarp(*args, stdin: bytes = b"") -> subprocess.CompletedProcess:
+    """The command line in a process of its own, which may not hang (killed after 20 s)."""
+    return subprocess.run([sys.executable, "-m", "volwarp_cli", *map(str, args)],
+                          input=stdin, capture_output=True, timeout=20)
+
+
+@pytest.mark.parametrize("case", ["info", "convert", "nifti", "transform"])
+def test_an_input_that_is_a_named_pipe_is_refused_at_once(tmp_path, case):
+    src = tmp_path / "ball.nrrd"
+    write_volume(Volume(ball(12)), src)
+    tfm = (b"#Insight Transform File V1.0\n#Transform 0\nTransform: "
+           b"AffineTransform_double_3_3\nParameters: 1 0 0 0 1 0 0 0 1 1 2 3\n"
+           b"FixedParameters: 0 0 0\n")
+    name, data = {"info": ("p.nrrd", src.read_bytes()), "convert": ("p.nrrd", src.read_bytes()),
+                  "nifti": ("p.nii.gz", src.read_bytes()), "transform": ("p.tfm", tfm)}[case]
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    out = tmp_path / "o.nrrd"
+    args = {"info": ["info", fifo], "convert": ["convert", fifo, "-o", out],
+            "nifti": ["convert", fifo, "-o", out],
+            "transform": ["apply", src, "-t", fifo, "-o", out]}[case]
+    writer = _feed(fifo, data)
+    try:
+        start = time.monotonic()
+        res = _volwarp(*args)
+        took = time.monotonic() - start
+    finally:
+        _release(fifo, writer)
+    assert res.returncode == 1, res.stderr
+    lines = res.stderr.decode().strip().splitlines()
+    assert lines == [lines[0]] and lines[0].startswith(f"volwarp: error: {fifo}: is a named "
+                                                       "pipe (FIFO), not a regular file")
+    assert "write the stream to a file first" in lines[0]
+    assert took < 10 and not out.exists()
+
+
+def test_a_character_device_input_is_refused(run, tmp_path):
+    (tmp_path / "z.nrrd").symlink_to("/dev/zero")
+    _one_line(run("info", tmp_path / "z.nrrd"), 1, "is a character device, not a regular file")
+
+
+@pytest.mark.parametrize("how", ["fifo", "stdin"])
+def test_a_spec_from_a_pipe_is_still_read(tmp_path, how):
+    """A spec is read once: ``--spec /dev/stdin``, ``<(...)`` or a named pipe still work,
+    and give what the spec's file gives."""
+    src = tmp_path / "in.nrrd"
+    write_volume(Volume(np.random.default_rng(0).random((12, 12, 12), dtype=np.float32)), src)
+    (tmp_path / "w.yaml").write_text(WARP_SPEC)
+    assert _volwarp("warp", src, "--spec", tmp_path / "w.yaml", "-o", tmp_path / "f.nrrd",
+                    "-q").returncode == 0
+    if how == "fifo":
+        fifo = tmp_path / "spec.yaml"
+        os.mkfifo(fifo)
+        writer = _feed(fifo, WARP_SPEC.encode())
+        try:
+            res = _volwarp("warp", src, "--spec", fifo, "-o", tmp_path / "p.nrrd", "-q")
+        finally:
+            _release(fifo, writer)
+    else:
+        res = _volwarp("warp", src, "--spec", "/dev/stdin", "-o", tmp_path / "p.nrrd", "-q",
+                       stdin=WARP_SPEC.encode())
+    assert res.returncode == 0, res.stderr
+    assert np.array_equal(read_volume(tmp_path / "p.nrrd").data,
+                          read_volume(tmp_path / "f.nrrd").data)

@@ -191,7 +191,7 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
         return path
     if path.is_dir():
         raise VolwarpError(f"{path}: is a folder, not a file")
-    kind = _special_kind(path)
+    kind = special_kind(path)
     if kind is not None:  # (the rename of a finished output would put a file in its place)
         raise VolwarpError(f"{path}: is {kind}, not a regular file; volwarp writes an output "
                            "as a new file renamed onto its name, which would replace it: "
@@ -199,10 +199,14 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
     return path
 
 
-def _special_kind(path: Path) -> str | None:
-    """What ``path`` is when it exists and is neither a file, a folder nor a link."""
+def special_kind(path: str | os.PathLike, *, follow: bool = False) -> str | None:
+    """What ``path`` is when it exists and is neither a file, a folder nor a link.
+
+    ``follow``: what a link leads to (an input is read through it; an output's
+    rename replaces the link itself).
+    """
     try:
-        mode = os.lstat(path).st_mode
+        mode = (os.stat if follow else os.lstat)(path).st_mode
     except OSError:
         return None
     for test, kind in ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
