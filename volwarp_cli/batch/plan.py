@@ -549,9 +549,12 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
     step reads (its spec, an option's file), the manifest, the scans' table;
     symbolic and hard links are followed
     (:func:`..io.inputs.refuse_output_over_input`). Two steps, two scans or a
-    step and a report writing one file are refused too.
+    step and a report writing one file are refused too, and so is a detached
+    header a scan's name would make unable to name its data file
+    (:func:`..io.common.refuse_unnamable_data_file`).
     """
     from ..errors import BadUsage
+    from ..io.common import refuse_unnamable_data_file
     from ..io.inputs import input_files
 
     scan_files = {os.path.realpath(f): s for s in scans for f in input_files(s.path)}
@@ -575,6 +578,7 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
                                                   f"{exc}") from None
                 _refuse_over_scans(manifest, key, out, option, scan_files)
                 try:
+                    refuse_unnamable_data_file(out, option)  # (a scan's name in a .nhdr's)
                     cells.refuse(out, option)
                 except BadUsage as exc:
                     raise _located(manifest, key, f"scan {scan.id}: {exc}") from None

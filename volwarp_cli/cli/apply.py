@@ -51,7 +51,7 @@ class TransformArg(InputPath):
     def convert(self, value, param, ctx):
         """The parsed spec, its file declared."""
         from ..errors import VolwarpError
-        from ..io.inputs import declare_input
+        from ..io.inputs import declare_input, refuse_stream_input
         from ..transforms import TransformSpec, parse_spec, refuse_folder
 
         if isinstance(value, TransformSpec):
@@ -61,6 +61,7 @@ class TransformArg(InputPath):
         except VolwarpError as exc:
             self.fail(str(exc), param, ctx)
         refuse_folder(spec.path)
+        refuse_stream_input(spec.path)  # (read for its initial transforms, then again)
         declare_input(spec.path)
         for initial in _initial_transforms(spec.path):
             declare_input(initial)

@@ -18,6 +18,7 @@ from ..progress import timed
 from .common import load_input
 from .options import (
     INPUT_PATH,
+    READ_ONCE_PATH,
     _volume_output,
     common_options,
     examples,
@@ -82,7 +83,7 @@ def _output(ctx, param, value):
                    "field, for planning systems that want smooth outlines (read back by "
                    "volwarp, also exact; their polygon areas are smaller: "
                    "docs/segmentations.md).")
-@click.option("--segments", type=INPUT_PATH, default=None, metavar="CSV",
+@click.option("--segments", type=READ_ONCE_PATH, default=None, metavar="CSV",
               help="With --dicom-type: segment or ROI names, a CSV file of label,name rows; "
                    "they win over the names the label map's key/values keep from the SEG or "
                    "RTSTRUCT it was read from (default: those, else 'label N' for a SEG, "

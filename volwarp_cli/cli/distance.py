@@ -19,6 +19,7 @@ from ..volume import xyz_to_zyx
 from .common import load_input, stamp
 from .options import (
     INPUT_PATH,
+    READ_ONCE_PATH,
     common_options,
     examples,
     finite,
@@ -67,7 +68,7 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
               metavar="D", help="Clamp distances to [-D, D] (world units).")
 @click.option("--update", "update", type=INPUT_PATH, default=None,
               metavar="OLD_SDF", help="Update an existing signed field instead (needs --transform).")
-@click.option("--transform", type=INPUT_PATH, default=None, metavar="AFFINE.yaml",
+@click.option("--transform", type=READ_ONCE_PATH, default=None, metavar="AFFINE.yaml",
               help="With --update: the move (transform spec, see specs/transform.schema.json).")
 @write_options(dtype_default="float32, whatever the input's type")
 @input_options

@@ -23,6 +23,7 @@ from ..progress import log
 from .mesh import image_path, mesh_path
 from .options import (
     INPUT_PATH,
+    READ_ONCE_PATH,
     VIEW_HELP,
     common_options,
     core_parser,
@@ -76,7 +77,7 @@ def _pattern_check(kind: str):
     "--sheet sheet.png",
 ))
 @click.argument("shapes", nargs=-1, type=INPUT_PATH, metavar="[SOURCE TARGET]")
-@click.option("--spec", "spec_path", type=INPUT_PATH, default=None,
+@click.option("--spec", "spec_path", type=READ_ONCE_PATH, default=None,
               help="Morph spec (YAML, see specs/morph.schema.json).")
 @output_option("Frame file pattern, e.g. 'frame_{i:03d}.nrrd' ({i} frame number, {t} time); "
                "format by extension. An earlier run's frames beyond this run's count are "

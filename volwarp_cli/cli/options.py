@@ -268,23 +268,33 @@ class InputPath(click.Path):
     error (exit 1). Declared (:func:`volwarp_cli.io.inputs.declare_input`)
     so that every output check of the run, made before any work, refuses an
     output that would replace it or a data file its header names.
+
+    A named pipe or a device is refused here, before anything opens it
+    (:func:`volwarp_cli.io.inputs.refuse_stream_input`), unless ``once``:
+    an input read once from start to end (a spec, a CSV file), which
+    ``--spec /dev/stdin`` or ``<(...)`` may give.
     """
 
-    def __init__(self, **kwargs):
+    def __init__(self, *, once: bool = False, **kwargs):
         super().__init__(readable=False, **kwargs)
+        self.once = once
 
     def convert(self, value, param, ctx):
         """The path, declared as an input of this run."""
-        from ..io.inputs import declare_input
+        from ..io.inputs import declare_input, refuse_stream_input
 
         value = super().convert(value, param, ctx)
         if value is not None:
+            if not self.once:
+                refuse_stream_input(value)
             declare_input(value)
         return value
 
 
 #: An input path (see :class:`InputPath`).
 INPUT_PATH = InputPath()
+#: An input read once, start to end (a spec, a CSV file): a pipe will do.
+READ_ONCE_PATH = InputPath(once=True)
 
 
 def _volume_output(ctx, param, value):
@@ -515,9 +525,9 @@ def moved_points_options(points: str, points_to: str, mesh: str, mesh_to: str):
     """
     def decorate(f):
         for decls, kw in reversed([
-                (("--points-in",), dict(type=INPUT_PATH, metavar="P.csv", help=points)),
+                (("--points-in",), dict(type=READ_ONCE_PATH, metavar="P.csv", help=points)),
                 (("--points-to",), dict(metavar="Q.csv", help=points_to)),
-                (("--mesh-in",), dict(type=INPUT_PATH, metavar="M.ply", help=mesh)),
+                (("--mesh-in",), dict(type=READ_ONCE_PATH, metavar="M.ply", help=mesh)),
                 (("--mesh-to",), dict(metavar="M2.ply", help=mesh_to))]):
             f = click.option(*decls, default=None, **kw)(f)
         return f

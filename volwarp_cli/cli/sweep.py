@@ -13,7 +13,7 @@ import click
 from ..errors import BadUsage, VolwarpError
 from .mesh import image_path
 from .options import (
-    INPUT_PATH,
+    READ_ONCE_PATH,
     VIEW_HELP,
     common_options,
     core_parser,
@@ -53,7 +53,7 @@ def output_paths(pattern: str, names: list[str], multi: bool) -> dict[str, str]:
     "volwarp sweep sweep-bottle.yaml -o 'bottle_{field}.nrrd' --render bottle.png --view -70,25",
     "volwarp sweep sweep-at-bezier.yaml -o at.nrrd --multi --spacing 0.5 --method direct",
 ))
-@click.argument("spec", type=INPUT_PATH)
+@click.argument("spec", type=READ_ONCE_PATH)
 @output_option("Output file pattern: '{field}' becomes each field's name "
                "(e.g. 'at_{field}.nrrd'); format by extension.")
 @click.option("--multi", is_flag=True,

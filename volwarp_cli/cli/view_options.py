@@ -125,7 +125,7 @@ def camera_options(f):
                  orientation_labels=orientation_labels, **kwargs)
 
     opts = [
-        click.option("--camera-from", "camera_from", type=InputPath(dir_okay=False),
+        click.option("--camera-from", "camera_from", type=InputPath(dir_okay=False, once=True),
                      default=None, metavar="FILE", callback=core_parser(_read_camera),
                      help=CAMERA_FROM_HELP),
         click.option("--camera-to", "camera_to", type=click.Path(dir_okay=False), default=None,

@@ -15,6 +15,7 @@ from ..warp.defaults import GRIDS, VALUES
 from .common import load_input
 from .options import (
     INPUT_PATH,
+    READ_ONCE_PATH,
     common_options,
     examples,
     finite,
@@ -45,7 +46,7 @@ from .warp_options import (
     "--frames-to 'pulled_{frame:03d}.nrrd'",
 ))
 @click.argument("input", type=INPUT_PATH)
-@click.option("--spec", "spec_path", required=True, type=INPUT_PATH,
+@click.option("--spec", "spec_path", required=True, type=READ_ONCE_PATH,
               help="Warp spec (YAML; schema specs/warp.schema.json).")
 @output_option("Warped volume (format by extension). Without it (and --frames-to) no "
                "volume is computed: the exports alone are written (--points-to, "

@@ -142,8 +142,11 @@ def read_volume(path: str | os.PathLike, *, raw: RawLayout | None = None,
     (series, irregular, duplicates, keep_shear, keep_phi); used for a DICOM
     input only (the command line refuses them for others).
     """
+    from .inputs import refuse_stream_input
+
     stop_if_dry_run(path)  # (volwarp batch's checks of a step end here)
     path = Path(path)
+    refuse_stream_input(path)  # (opened twice, a pipe waited forever)
     if volume_format(path, reading=True) == "omezarr":  # a folder: the reader checks it
         from .omezarr import read_omezarr
         return read_omezarr(path, volume_index)
@@ -189,8 +192,11 @@ def read_components(path: str | os.PathLike) -> tuple[Volume, np.ndarray]:
     reads one component a call: a field's three would read the file three
     times.)
     """
+    from .inputs import refuse_stream_input
+
     stop_if_dry_run(path)
     path = Path(path)
+    refuse_stream_input(path)
     fmt = volume_format(path, reading=True)
     _check_content(path, fmt)
     if fmt == "nrrd":

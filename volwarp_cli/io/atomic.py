@@ -163,7 +163,10 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
     claimed for it, and a file another option claimed is a usage error too.
     A folder output (``.zarr``) may replace an existing Zarr store, never a
     folder that is not one (nor a file of that name: that is someone else's).
+    A detached header whose data file's name its header could not hold
+    (``' x.nhdr'``: :func:`~.common.data_file_name_problem`) is a usage error.
     """
+    from .common import refuse_unnamable_data_file
     from .inputs import claim_output, opened_as_input, refuse_output_over_input
 
     if isinstance(path, str) and path.endswith(("/", os.sep)) and \
@@ -171,6 +174,7 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
         raise BadUsage(f"{option + ' ' if option else ''}{path}: ends in a slash, which names a "
                        "folder: give the output file's name")
     path = Path(path)
+    refuse_unnamable_data_file(path, option)  # (.nhdr, .mhd: the name their header gives)
     refuse_output_over_input(path, option=option)
     if option is not None:  # (the commands' checks before any work name their option)
         claim_output(path, option)
@@ -199,7 +203,7 @@ def check_output_path(path: str | os.PathLike, option: str | None = None) -> Pat
         return path
     if path.is_dir():
         raise VolwarpError(f"{path}: is a folder, not a file")
-    kind = _special_kind(path)
+    kind = special_kind(path)
     if kind is not None:  # (the rename of a finished output would put a file in its place)
         raise VolwarpError(f"{path}: is {kind}, not a regular file; volwarp writes an output "
                            "as a new file renamed onto its name, which would replace it: "
@@ -264,10 +268,14 @@ def _inode_flags(path: Path) -> int:
     return int.from_bytes(got[:4], sys.byteorder)
 
 
-def _special_kind(path: Path) -> str | None:
-    """What ``path`` is when it exists and is neither a file, a folder nor a link."""
+def special_kind(path: str | os.PathLike, *, follow: bool = False) -> str | None:
+    """What ``path`` is when it exists and is neither a file, a folder nor a link.
+
+    ``follow``: what a link leads to (an input is read through it; an output's
+    rename replaces the link itself).
+    """
     try:
-        mode = os.lstat(path).st_mode
+        mode = (os.stat if follow else os.lstat)(path).st_mode
     except OSError:
         return None
     for test, kind in ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),

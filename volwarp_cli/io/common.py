@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import FormatError, VolwarpError
+from ..errors import BadUsage, FormatError, VolwarpError
 from ..memory import available_memory, ensure_fits_in_memory  # noqa: F401
 from ..memory import human_bytes as _human  # noqa: F401
 from ..runscope import run_files
@@ -235,6 +235,53 @@ def open_data_file(header: Path, path: Path, where: str):
         raise FormatError(f"{where}: data file {str(path)!r}: {exc.strerror}") from None
     note_input(fh)
     return fh
+
+
+def data_file_name_problem(name: str) -> str | None:
+    """Why a detached header cannot name its data file ``name`` (None: it can).
+
+    NRRD's ``data file`` and MetaImage's ``ElementDataFile`` take the rest of
+    their line as the name, and their readers (teem, ITK's MetaIO, volwarp's
+    own) strip the spaces around it and read a name beginning with ``LIST``
+    (teem's ``SKIPLIST``), one with a ``%`` (a numbered pattern) and
+    ``LOCAL`` as forms of their own: written as it is, such a name reads as
+    another file, or as none (``-o ' x.nhdr'`` read an unrelated ``x.raw``).
+    """
+    if "\n" in name or "\r" in name:
+        return "a line break would end the header's line"
+    if name != name.strip():
+        return "readers strip the spaces around it, so it would name another file"
+    if "%" in name:
+        return "a name with '%' reads as a numbered pattern of files"
+    if name.startswith(("LIST", "SKIPLIST")):
+        return "a name beginning with LIST reads as a list of files"
+    if name.lower() == "local":
+        return "LOCAL means samples inside the header's own file"
+    return None
+
+
+def refuse_unnamable_data_file(path: Path, option: str | None = None) -> None:
+    """A usage error when the detached header ``path`` could not name its data file.
+
+    ``-o scan.nhdr`` writes ``scan.raw`` and a header naming it
+    (:func:`data_file_name_problem` says which names a header cannot hold);
+    checked with every output (:func:`~volwarp_cli.io.atomic.check_output_path`).
+    """
+    import re
+
+    from .inputs import output_files
+
+    for data in output_files(path)[1:]:  # (none but a detached header's)
+        why = data_file_name_problem(data.name)
+        if why is None:
+            continue
+        name = re.sub(r"[\r\n%]+", "_", path.name).strip()
+        name = "_" + name if name.startswith(("LIST", "SKIPLIST")) else name
+        better = path.with_name(name if name[:1] != "." else "out" + name)
+        attached = better.with_suffix(".nrrd" if path.suffix.lower() == ".nhdr" else ".mha")
+        raise BadUsage(f"{option + ' ' if option else ''}{str(path)!r}: its data file cannot "
+                       f"be named {data.name!r} ({why}): choose another name, e.g. "
+                       f"{better.name!r}, or write one file ({attached.name!r})")
 
 
 def pattern_numbers(fmt: str, words: list[str], what: str, where: str) -> list[int]:

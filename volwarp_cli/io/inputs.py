@@ -22,7 +22,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..errors import BadUsage
+from ..errors import BadUsage, FormatError
 from ..runscope import run_files
 
 #: extensions of detached headers, whose data files are inputs too
@@ -50,6 +50,24 @@ def declare_input_glob(pattern: str | os.PathLike) -> None:
     pattern = os.path.abspath(pattern)
     if pattern not in files.globs:
         files.globs.append(pattern)
+
+
+def refuse_stream_input(path: str | os.PathLike) -> None:
+    """Refuse, before it is opened, an input that is a pipe or a device (a FormatError).
+
+    volwarp opens an input more than once (its content checked, then its
+    header, then its samples): from a named pipe the first open drained the
+    stream and the next waited for a writer that had gone, forever (a cron
+    job that never ended). Inputs read once from start to end (specs, CSV
+    files) may be pipes (:class:`~volwarp_cli.cli.options.InputPath`).
+    """
+    from .atomic import special_kind
+
+    kind = special_kind(path, follow=True)
+    if kind is not None:
+        raise FormatError(f"{path}: is {kind}, not a regular file; volwarp opens an input "
+                          "more than once (to check it, then to read it), which a stream "
+                          "cannot give: write the stream to a file first and give that file")
 
 
 def opened_as_input(path: str | os.PathLike) -> bool:

@@ -104,11 +104,13 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
     """
     from ..runscope import stop_if_dry_run
     from . import read_volume, volume_format
+    from .inputs import refuse_stream_input
 
     stop_if_dry_run(path)  # (volwarp batch's checks of a step end here)
     path = Path(path)
     if not path.exists():  # (as read_volume says it: a FormatError, not an OSError)
         raise FormatError(f"{path}: no such file")
+    refuse_stream_input(path)
     fmt = volume_format(path, reading=True)
     try:
         if fmt == "dicom":  # a stack of files: slabs read from their frames' files

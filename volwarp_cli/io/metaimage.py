@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
+from ..errors import BadUsage, ChoiceNeeded, FormatError
 from ..geometry import check_placement
 from ..memory import ensure_fits_in_memory
 from ..samples import check_dtype, voxel_count
@@ -641,11 +641,7 @@ def write_metaimage(vol: Volume, path: str | os.PathLike, *, compress: bool = Fa
     size = len(payload) if compress else None
     if path.suffix.lower() == ".mhd":
         data_path = path.with_suffix(".zraw" if compress else ".raw")
-        name = data_path.name
-        if "%" in name or name.split()[:1] == ["LIST"] or name.lower() == "local" or (
-                name != name.strip()):
-            raise VolwarpError(f"{path}: a MetaImage data file cannot be named {name!r} "
-                               "(it would read as a LIST, a pattern or LOCAL)")
+        name = data_path.name  # (one a header can name: checked with the output's path)
     else:
         data_path, name = None, "LOCAL"
     header = metaimage_header(vol, dtype, byte_order=byte_order, data_file=name,
