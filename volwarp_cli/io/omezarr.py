@@ -1309,15 +1309,24 @@ def _read_by_chunk_rows(arr, stored: list, space_positions: list) -> np.ndarray:
     return out
 
 
+#: What a whole read holds beside the samples: a row of chunks (:data:`ROW_BYTES`) decoded on
+#: zarr's threads with their compressed bytes, and the codecs' libraries loaded on the first
+#: decode: 11-12 MiB measured (256^3 float32 of 64^3 zstd chunks), with its freed chunks given
+#: back as they are freed (:func:`~volwarp_cli.memory.large_allocations_mapped`: else glibc's
+#: arenas of zarr's threads kept 25 MiB more, to the process's peak)
+READ_BYTES = 16 << 20
+
+
 def read_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Volume:
     """Read level 0 of the OME-Zarr store at ``path`` (module notes)."""
-    from ..memory import ensure_fits_in_memory
+    from ..memory import ensure_fits_in_memory, large_allocations_mapped
 
     opened = open_omezarr(path, volume_index)
     shape = opened.view_shape
-    ensure_fits_in_memory(int(np.prod(shape, dtype=np.int64)) * opened.array.dtype.itemsize,
-                          f"{opened.where} ({'x'.join(map(str, zyx_to_xyz(shape)))})")
-    data = read_region(opened, tuple(slice(0, n) for n in shape))
+    ensure_fits_in_memory(int(np.prod(shape, dtype=np.int64)) * opened.array.dtype.itemsize
+                          + READ_BYTES, f"{opened.where} ({'x'.join(map(str, zyx_to_xyz(shape)))})")
+    with large_allocations_mapped():  # (zarr's decoding threads' freed chunks given back)
+        data = read_region(opened, tuple(slice(0, n) for n in shape))
     if opened.changed():  # (read row by row, by path: the last rows another store's)
         from .mapped import folder_changed
 
@@ -1347,10 +1356,12 @@ class LazyOmeZarr:
             self[0:1, 0:1, 0:1]
 
     def __getitem__(self, key):
+        from ..memory import large_allocations_mapped
         from .filearray import box_of_key
 
         box, pick = box_of_key(key, self.shape)
-        return read_region(self._opened, tuple(slice(lo, hi) for lo, hi in box))[pick]
+        with large_allocations_mapped():  # (as read_omezarr: decoded chunks given back when freed)
+            return read_region(self._opened, tuple(slice(lo, hi) for lo, hi in box))[pick]
 
     def __array__(self, dtype=None, copy=None):
         out = self[:, :, :]
