@@ -376,12 +376,15 @@ end_header
 """
 
 
-def test_read_mesh_skips_other_properties_and_elements(tmp_path):
+def test_read_mesh_skips_other_properties_and_elements(tmp_path, caplog):
     from volwarp_cli.surface.mesh_io import read_mesh
 
     path = tmp_path / "t.ply"
     path.write_text(TRI_ASCII)
     m = read_mesh(path)
+    # said, once: a mesh moved by apply --mesh-in lost its colours and labels without a word
+    said = [r.getMessage() for r in caplog.records if "not carried" in r.getMessage()]
+    assert len(said) == 1 and "vertex red" in said[0] and "1 edge" in said[0], said
     assert m.faces.tolist() == [[0, 1, 2], [0, 3, 1]]
     assert m.vertices.shape == (4, 3) and m.normals is None
     # the same as binary big-endian, per-face extras included
@@ -402,7 +405,16 @@ def test_read_mesh_skips_other_properties_and_elements(tmp_path):
     np.testing.assert_array_equal(mb.vertices, m.vertices)
 
 
+TETRA = ("ply\nformat ascii 1.0\nelement vertex 4\nproperty double x\nproperty double y\n"
+         "property double z\nelement face 4\nproperty list uchar int vertex_indices\n"
+         "end_header\n0 0 0\n{v} 0 0\n0 1 0\n0 0 1\n{faces}")
+
+
 @pytest.mark.parametrize("text, match", [
+    # beyond float32: every output held inf (and volwarp refused to read it back)
+    (TETRA.format(v="1e39", faces="3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n"), "beyond 1e"),
+    # four faces of no vertices: read as an empty mesh, exit 0
+    (TETRA.format(v="1", faces="0\n0\n0\n0\n"), "not triangles"),
     (TRI_ASCII.replace("3 0 3 1 6 0 0 1 0 0 1 7\n2 0 3\n", "3 0 3"), "truncated"),
     (TRI_ASCII.replace("3 0 1 2 6", "4 0 1 2 3 6"), "not triangles"),
     ("ply\nformat ascii 1.0\nelement vertex 0\nend_header", "needs vertex and face"),
@@ -477,3 +489,16 @@ def test_float32_rounding_far_from_the_origin_is_said(run, tmp_path):
 
             xs = np.unique(read_mesh(out).vertices[:, 0])
             assert np.all(np.diff(xs) >= 0.0078)
+
+
+def test_a_vtp_comment_holds_any_file_name(blob, tmp_path):
+    """A control character or "--" in a provenance value made an unreadable VTP (exit 0)."""
+    import vtk
+
+    path = tmp_path / "m.vtp"
+    write_mesh(blob, path, comments={"volwarp_input": "b\x01a--ll---.nrrd"})
+    reader = vtk.vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    assert reader.GetOutput().GetNumberOfPoints() == blob.n_vertices
+    assert "b\\u0001a- -ll- - -.nrrd" in path.read_bytes()[:400].decode()

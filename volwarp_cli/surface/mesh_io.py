@@ -112,6 +112,20 @@ def _one_line(value) -> str:
     return " ".join(str(value).split())
 
 
+def _xml_comment_text(text: str) -> str:
+    """``text`` as an XML comment may hold it: control characters escaped, no "--".
+
+    A control character of a file name made the VTP unreadable (VTK: "not
+    well-formed"), written with exit 0. (Undecodable bytes, kept as surrogates,
+    are escaped where the text is encoded, as in every format's comments.)
+    """
+    import re
+
+    text = re.sub("[\x00-\x08\x0b\x0c\x0e-\x1f\ufffe\uffff]",
+                  lambda m: f"\\u{ord(m.group()):04x}", text)
+    return re.sub("-(?=-)", "- ", text)  # ("--" may not appear in a comment)
+
+
 def _f32(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, dtype="<f4")
 
@@ -248,8 +262,7 @@ def _write_vtp(mesh: Mesh, fh, notes: list[str]) -> None:
         offset += 8 + nbytes
     point_data = ('      <PointData Normals="Normals">\n' + "\n".join(sections["PointData"])
                   + "\n      </PointData>\n") if sections["PointData"] else ""
-    # "--" may not appear inside an XML comment
-    comment = "".join(f"<!-- {n.replace('--', '- -')} -->\n" for n in notes)
+    comment = "".join(f"<!-- {_xml_comment_text(n)} -->\n" for n in notes)
     xml = (
         '<?xml version="1.0"?>\n' + comment +
         '<VTKFile type="PolyData" version="1.0" byte_order="LittleEndian" '
@@ -377,7 +390,7 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     faces = face.get("vertex_indices", face.get("vertex_index"))
     if faces is None:
         raise VolwarpError(f"{path}: faces have no vertex_indices list")
-    if faces.size == 0:  # (an empty mesh, as --allow-empty and morph's empty frames write)
+    if len(faces) == 0:  # (an empty mesh, as --allow-empty and morph's empty frames write)
         faces = np.zeros((0, 3), np.int64)
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise VolwarpError(f"{path}: faces that are not triangles (volwarp reads triangle "
@@ -388,11 +401,36 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise VolwarpError(f"{path}: face indices outside the {len(vertices)} vertices")
     _check_finite_vertices(vertices, faces, path)
+    _say_dropped(path, elements)
     if ras:  # (a half turn about z: the winding, and so the outside, stays)
         vertices[:, :2] *= -1
         if normals is not None:
             normals[:, :2] *= -1
     return Mesh(vertices, faces, normals)
+
+
+#: what :func:`read_mesh` reads of each element; anything else is dropped, and said
+_READ_PROPERTIES = {"vertex": {"x", "y", "z", "nx", "ny", "nz"},
+                    "face": {"vertex_indices", "vertex_index"}}
+
+
+def _say_dropped(path, elements) -> None:
+    """Say the PLY's elements and properties the mesh read does not carry (colours, labels).
+
+    They went without a word: a mesh moved by ``apply --mesh-in`` lost its vertex
+    colours and face labels, exit 0.
+    """
+    dropped = [f"{name} {prop}" for name, count, props in elements if count
+               for prop, _, _ in props if prop not in _READ_PROPERTIES.get(name, set())
+               and name in _READ_PROPERTIES]
+    dropped += [f"{count} {name}" for name, count, _ in elements
+                if count and name not in _READ_PROPERTIES]
+    if dropped:
+        from ..progress import log
+
+        log.warning("warning: %s: its %s %s not carried (volwarp reads a mesh's vertices, "
+                    "normals and triangles; the output has none of the rest)", path,
+                    ", ".join(dropped), "is" if len(dropped) == 1 else "are")
 
 
 def _check_finite_vertices(vertices, faces, path) -> None:
@@ -401,6 +439,14 @@ def _check_finite_vertices(vertices, faces, path) -> None:
     Moved, the used ones came out NaN without a word; the others go through
     as they are, as before.
     """
+    from ..geometry import PLACEMENT_LIMIT
+
+    far = np.flatnonzero((np.abs(np.where(np.isfinite(vertices), vertices, 0)) >
+                          PLACEMENT_LIMIT).any(axis=1))
+    if far.size:  # (float32 outputs: 1e39 became inf, a file volwarp then refused to read)
+        raise VolwarpError(f"{path}: {far.size} vert{'ex' if far.size == 1 else 'ices'} beyond "
+                           f"{PLACEMENT_LIMIT:g} in magnitude (the first: vertex {far[0]}), "
+                           "which volwarp's float32 mesh outputs cannot hold")
     bad = ~np.isfinite(vertices).all(axis=1)
     if not bad.any():
         return
