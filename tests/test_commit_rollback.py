@@ -320,3 +320,57 @@ def test_another_user_s_file_in_a_sticky_folder_is_refused_before_any_work(tmp_p
         atomic.check_output_path(out)
     os.chmod(folder, 0o777)  # (not sticky: the rename may replace it)
     assert atomic.check_output_path(out) == out
+
+
+def test_a_hard_link_kept_by_a_killed_process_is_never_put_back(tmp_path):
+    """A ``.kept`` link is a copy (the output was replaced after it was made): put back, it
+    brought back an output its user had deleted since, even on a failed run."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    out = tmp_path / "o.txt"
+    (tmp_path / f".o.txt.vw-{dead.pid}@{atomic._host()}.abcdefgh.kept").write_text("earlier")
+    atomic._remove_stale_temporaries(out)
+    assert _names(tmp_path) == []
+
+
+def test_a_read_only_store_replaced_stays_removable_by_its_owner(tmp_path):
+    """Its folders' modes copied whole, a read-only store's replacement was read-only too:
+    its temporary could not be removed, and each later run left one more behind."""
+    path = tmp_path / "o.ome.zarr"
+    vol = Volume(np.ones((2, 3, 4), np.uint8))
+    write_volume(vol, path)
+    for folder, dirs, files in os.walk(path, topdown=False):
+        for name in files:
+            os.chmod(os.path.join(folder, name), 0o444)
+        for name in dirs:
+            os.chmod(os.path.join(folder, name), 0o555)
+    os.chmod(path, 0o2555)
+    write_volume(vol, path)
+    assert stat.S_IMODE(os.stat(path).st_mode) & 0o700 == 0o700
+    for folder, dirs, files in os.walk(path):
+        for name in dirs:
+            assert stat.S_IMODE(os.stat(os.path.join(folder, name)).st_mode) & 0o700 == 0o700
+        for name in files:
+            assert stat.S_IMODE(os.stat(os.path.join(folder, name)).st_mode) == 0o444
+
+
+def test_a_commit_does_not_wait_for_a_lock_its_own_process_holds(tmp_path):
+    """``flock OUT volwarp ... -o OUT/x.nhdr``: the command inherits flock(1)'s locked
+    descriptor of OUT; its own lock of OUT waited for it for good (stops held back)."""
+    import fcntl
+
+    src = tmp_path / "in.nrrd"
+    write_volume(Volume(np.arange(24, dtype=np.uint8).reshape(2, 3, 4)), src)
+    out = tmp_path / "out"
+    out.mkdir()
+    fd = os.open(out, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        res = subprocess.run([sys.executable, "-m", "volwarp_cli", "convert", str(src), "-o",
+                              str(out / "x.nhdr")], pass_fds=(fd,), capture_output=True,
+                             text=True, timeout=60)
+    finally:
+        os.close(fd)
+    assert res.returncode == 0, res.stderr
+    assert np.array_equal(read_volume(out / "x.nhdr").data,
+                          np.arange(24, dtype=np.uint8).reshape(2, 3, 4))

@@ -412,11 +412,38 @@ def _folder_held(folder: Path | None):
         yield
         return
     try:
-        with contextlib.suppress(OSError):
-            fcntl.flock(fd, fcntl.LOCK_EX)
+        _lock_a_while(fd, fcntl)
         yield
     finally:
         os.close(fd)  # (the lock goes with it)
+
+
+#: how long a commit waits for a folder's lock before it renames without it
+LOCK_WAIT = 5.0
+
+
+def _lock_a_while(fd: int, fcntl) -> None:
+    """``flock(fd, LOCK_EX)``, tried for :data:`LOCK_WAIT` seconds at most, then given up.
+
+    A wait without end hung a run for good, its stops held back: a lock its own
+    process held through another descriptor (``flock OUT volwarp ... -o
+    OUT/...``: flock(1)'s, inherited) or the same folder reached by two paths
+    (a bind mount). The lock only orders two runs' renames of the same outputs;
+    without it they rename as they did before it was taken.
+    """
+    import time
+
+    deadline = time.monotonic() + LOCK_WAIT
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                return
+            time.sleep(0.02)
+        except OSError:  # (a file system that cannot lock)
+            return
 
 
 def _commit(moves: list, replaced=()) -> None:
@@ -492,11 +519,17 @@ def _folders_held(moves: list):
     if len(moves) < 2:
         yield
         return
-    folders = sorted({os.path.realpath(Path(path).parent if str(Path(path).parent) else ".")
-                      for _, path, _ in moves})
+    folders: dict = {}  # (device, inode) -> a path of it: a folder reached by two paths, once
+    for _, path, _ in moves:
+        folder = Path(path).parent if str(Path(path).parent) else Path(".")
+        try:
+            st = os.stat(folder)
+        except OSError:
+            continue
+        folders.setdefault((st.st_dev, st.st_ino), folder)
     with contextlib.ExitStack() as stack:
-        for folder in folders:
-            stack.enter_context(_folder_held(Path(folder)))
+        for key in sorted(folders):
+            stack.enter_context(_folder_held(folders[key]))
         yield
 
 
@@ -506,21 +539,23 @@ def _keep(path: Path) -> tuple[str, bool] | None:
     A hard link where the file system makes one (cheap: no data copied); else
     (none there, a file another user owns under ``protected_hardlinks``) only a
     free name, which :func:`_replace_file` renames the earlier file to first.
-    Named as the stale temporaries are (``.old``): one left by a killed
-    process is removed by the next write, or put back where the output is missing.
-    None where there is no earlier file.
+    Named as the stale temporaries are: a link ``.kept`` (a copy: one a killed
+    process left is only removed by the next write), a name to rename to
+    ``.old`` (then the only copy: put back by the next write where the output
+    is missing; a ``.kept`` put back would bring back an output its user
+    deleted since). None where there is no earlier file.
     """
     if not os.path.lexists(path):
         return None
     while True:
-        name = _spare_name(path, ".old")
+        name = _spare_name(path, ".kept")
         try:
             os.link(path, name, follow_symlinks=False)  # (a link output: the link kept)
             return name, True
         except FileExistsError:
             continue
         except OSError:
-            return name, False
+            return _spare_name(path, ".old"), False
 
 
 def _replace_file(tmp: str, path: Path, kept: tuple[str, bool] | None) -> None:
@@ -688,8 +723,10 @@ def _chmod_tree(root: str, path: Path) -> None:
     and all the earlier one's group where the process may give it; a new store
     has the umask's (folders ``0777 & ~umask``, files ``0666 & ~umask``).
     """
-    earlier = _earlier_mode(path, stat.S_ISDIR)
-    folders = 0o777 & ~current_umask() if earlier is None else earlier[0]
+    earlier = _earlier_mode(path, stat.S_ISDIR, 0o2777)
+    # (the owner keeps rwx on folders: a read-only store's copy could not be removed, and
+    # every later run left one more whole store behind)
+    folders = 0o777 & ~current_umask() if earlier is None else earlier[0] | 0o700
     group = None
     if earlier is not None and os.stat(root).st_gid != earlier[1]:
         group = earlier[1]
@@ -698,11 +735,12 @@ def _chmod_tree(root: str, path: Path) -> None:
         for d in dirs:
             _set_mode(os.path.join(folder, d), folders, group)
         for f in files:
-            _set_mode(os.path.join(folder, f), folders & 0o666, group)
+            _set_mode(os.path.join(folder, f), folders & 0o666 if earlier is None
+                      else earlier[0] & 0o666, group)
 
 
-def _earlier_mode(path, kind) -> tuple[int, int] | None:
-    """The permission bits and group of the earlier output at ``path``, a link followed.
+def _earlier_mode(path, kind, bits: int = 0o777) -> tuple[int, int] | None:
+    """The permission ``bits`` and group of the earlier output at ``path``, a link followed.
 
     None where there is none, or it is not a ``kind`` (``stat.S_ISREG``, ``stat.S_ISDIR``).
     """
@@ -710,7 +748,7 @@ def _earlier_mode(path, kind) -> tuple[int, int] | None:
         st = os.stat(path)
     except OSError:
         return None
-    return (st.st_mode & 0o777, st.st_gid) if kind(st.st_mode) else None
+    return (st.st_mode & bits, st.st_gid) if kind(st.st_mode) else None
 
 
 def _set_mode(name: str, mode: int, group: int | None) -> None:
@@ -972,7 +1010,7 @@ def _remove_stale_temporaries(path: Path) -> None:
     """
     owner = re.escape(f".{_temporary_stem(path.name)}.vw-") + r"(\d+)@" + re.escape(_host())
     pattern = re.compile(owner + r"\.[A-Za-z0-9_]{8}\.part")
-    folders = re.compile(owner + r"\.[A-Za-z0-9_]{8}\.(partdir|old|gone|scratch)$")
+    folders = re.compile(owner + r"\.[A-Za-z0-9_]{8}\.(partdir|old|kept|gone|scratch)$")
     try:
         names = os.listdir(path.parent if str(path.parent) else ".")
     except OSError:
