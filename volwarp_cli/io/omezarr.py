@@ -1356,12 +1356,10 @@ class LazyOmeZarr:
             self[0:1, 0:1, 0:1]
 
     def __getitem__(self, key):
-        from ..memory import large_allocations_mapped
         from .filearray import box_of_key
 
         box, pick = box_of_key(key, self.shape)
-        with large_allocations_mapped():  # (as read_omezarr: decoded chunks given back when freed)
-            return read_region(self._opened, tuple(slice(lo, hi) for lo, hi in box))[pick]
+        return read_region(self._opened, tuple(slice(lo, hi) for lo, hi in box))[pick]
 
     def __array__(self, dtype=None, copy=None):
         out = self[:, :, :]
