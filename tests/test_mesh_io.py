@@ -413,6 +413,7 @@ TETRA = ("ply\nformat ascii 1.0\nelement vertex 4\nproperty double x\nproperty d
 @pytest.mark.parametrize("text, match", [
     # beyond float32: every output held inf (and volwarp refused to read it back)
     (TETRA.format(v="1e39", faces="3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n"), "beyond 1e"),
+    (TETRA.format(v="1e20", faces="3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n"), "beyond 1e"),
     # four faces of no vertices: read as an empty mesh, exit 0
     (TETRA.format(v="1", faces="0\n0\n0\n0\n"), "not triangles"),
     (TRI_ASCII.replace("3 0 3 1 6 0 0 1 0 0 1 7\n2 0 3\n", "3 0 3"), "truncated"),

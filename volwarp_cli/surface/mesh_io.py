@@ -441,17 +441,18 @@ def _check_finite_vertices(vertices, faces, path) -> None:
     """
     from ..geometry import PLACEMENT_LIMIT
 
-    far = np.flatnonzero((np.abs(np.where(np.isfinite(vertices), vertices, 0)) >
-                          PLACEMENT_LIMIT).any(axis=1))
+    used = np.zeros(len(vertices), bool)
+    used[faces.ravel()] = True
+    far = np.flatnonzero(used & (np.abs(np.where(np.isfinite(vertices), vertices, 0)) >
+                                 PLACEMENT_LIMIT).any(axis=1))
     if far.size:  # (float32 outputs: 1e39 became inf, a file volwarp then refused to read)
-        raise VolwarpError(f"{path}: {far.size} vert{'ex' if far.size == 1 else 'ices'} beyond "
-                           f"{PLACEMENT_LIMIT:g} in magnitude (the first: vertex {far[0]}), "
-                           "which volwarp's float32 mesh outputs cannot hold")
+        have = "vertex of its faces is" if far.size == 1 else "vertices of its faces are"
+        raise VolwarpError(f"{path}: {far.size} {have} beyond {PLACEMENT_LIMIT:g} in magnitude "
+                           f"(the first: vertex {far[0]}), volwarp's bound on placements: its "
+                           "float32 mesh outputs would round them by 1e8 or more, or overflow")
     bad = ~np.isfinite(vertices).all(axis=1)
     if not bad.any():
         return
-    used = np.zeros(len(vertices), bool)
-    used[faces.ravel()] = True
     in_faces = np.flatnonzero(bad & used)
     if in_faces.size:
         have = "vertex of its faces has" if in_faces.size == 1 else "vertices of its faces have"
