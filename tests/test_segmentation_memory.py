@@ -123,3 +123,30 @@ def test_reading_back_under_a_limit_below_its_peak_is_refused_and_never_crossed(
     assert "memory limit" in err
     assert limited <= limit, (limited / MiB, limit / MiB)
     assert not out.exists()
+
+
+def test_reading_back_a_speckled_rtstruct_charges_each_roi_s_mask(tmp_path):
+    """Each ROI's mask is cut to its box, but a speckled ROI's box is the whole grid: ten
+    of them held ten bytes a voxel beyond the map's charge (186 MiB under 180M)."""
+    shape = (24, 256, 256)
+    write_ct(tmp_path / "ct", shape)
+    ref = read_dicom(tmp_path / "ct")
+    rng = np.random.default_rng(1)
+    ids = np.kron(rng.integers(0, 11, (24, 64, 64), dtype=np.uint8), np.ones((1, 4, 4), np.uint8))
+    keep = np.kron(rng.random((24, 64, 64)) < 0.3, np.ones((1, 4, 4), bool))
+    src = tmp_path / "specks.nrrd"
+    write_volume(ref.with_data(np.where(keep, ids, 0).astype(np.uint8)), src)
+    dcm = tmp_path / "specks.dcm"
+    code, err, _ = volwarp_peak("convert", src, "--reference", tmp_path / "ct", "--dicom-type",
+                                "rtstruct", "-o", dcm)
+    assert code == 0, err
+    out = tmp_path / "back.nrrd"
+    args = ["convert", dcm, "--reference", tmp_path / "ct", "-o", out]
+    code, err, peak = volwarp_peak(*args)
+    assert code == 0, err
+    out.unlink()
+    for limit in (peak - 4 * MiB, peak - 12 * MiB):
+        code, err, limited = volwarp_peak(*args, "--memory-limit", str(limit))
+        assert code == 1, err
+        assert limited <= limit, (limited / MiB, limit / MiB)
+        assert not out.exists()

@@ -77,6 +77,11 @@ def _one_line(exc) -> str:
 #: :data:`READ_MARGIN` for the work of a slab
 READ_BYTES_PER_FILE_BYTE = 12
 READ_MARGIN = 16 << 20
+#: what rasterising a ROI holds beside its mask (a byte a voxel of its box): a slab's
+#: crossing counts and their running sums (:data:`_FILL_CELLS` of 8 bytes each), and its
+#: edges' arrays, a few numbers a contour point
+RASTER_MARGIN = 24 << 20
+RASTER_BYTES_PER_POINT = 96
 
 
 def open_rtstruct(path: str | os.PathLike):
@@ -272,6 +277,13 @@ class RoiMask:
         lo = np.clip(lo, 0, shape_zyx)
         hi = np.clip(hi, lo, shape_zyx)
         shift = lo[:0:-1].astype(np.float64)  # (x0, y0)
+        from ..memory import ensure_fits_in_memory
+
+        # (a speckled ROI's box is the whole grid: ten such masks held ten bytes a voxel,
+        # beyond the map's charge)
+        ensure_fits_in_memory(int(np.prod(hi - lo)) + RASTER_BYTES_PER_POINT * len(pts)
+                              + RASTER_MARGIN, f"ROI {number} {name!r}: its mask of "
+                              f"{int(np.prod(hi - lo))} voxels")
         mask = rasterize([(k - lo[0], p - shift, c) for k, p, c in contours], tuple(hi - lo))
         return cls(number, name, (tuple(map(int, lo)), tuple(map(int, hi))), mask,
                    int(np.count_nonzero(mask)))
