@@ -945,7 +945,10 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
     """Open the store at ``path``: level 0 and the geometry volwarp gives it (module notes)."""
     import zarr
 
+    from ..memory import bound_arenas
     from .mapped import folder_identity
+
+    bound_arenas()  # (before zarr's decoding threads: their arenas kept the chunks they freed)
 
     path = Path(path)
     where = str(path)
