@@ -98,6 +98,7 @@ def test_a_store_replaced_while_read_by_blocks_writes_nothing(run, stores, tmp_p
     """The bug hunt's case: distance by blocks, the store swapped after the first block.
     Before: exit 0 and a field mixing A's and B's (or of zeros for the missing keys of
     a store of another layout), or "chunk data is damaged"."""
+    _read_by_box(monkeypatch)
     src, other = stores
     out = tmp_path / "d.nrrd"
     out.write_bytes(b"old output")
@@ -114,7 +115,15 @@ def test_a_store_replaced_while_read_by_blocks_writes_nothing(run, stores, tmp_p
     assert _listing(tmp_path) == ["S.ome.zarr", "d.nrrd"]  # (no temporary left)
 
 
-def test_a_worker_process_reading_the_new_store_cannot_hide_it(stores, tmp_path):
+def _read_by_box(monkeypatch) -> None:
+    """Stores read by box whatever their size (as those too big for their budget share are:
+    one that fits is read whole, its chunks decoded once)."""
+    from volwarp_cli.io import lazy
+
+    monkeypatch.setattr(lazy, "_fits_whole", lambda nbytes: False)
+
+
+def test_a_worker_process_reading_the_new_store_cannot_hide_it(stores, tmp_path, monkeypatch):
     """Worker processes (`--scheduler processes`) get the input pickled and reopen the store
     by its path: swapped between the command's opening and a worker's, the worker reads B
     whole, under A's opening. The command's watch refuses the output. (A worker's own
@@ -123,6 +132,7 @@ def test_a_worker_process_reading_the_new_store_cannot_hide_it(stores, tmp_path)
     from volwarp_cli.io import write_volume
     from volwarp_cli.runscope import run_scope
 
+    _read_by_box(monkeypatch)
     src, other = stores
     replace = other()
     out = tmp_path / "d.nrrd"
@@ -202,6 +212,7 @@ def test_a_level_0_rewritten_by_zarr_while_read_by_blocks_writes_nothing(run, st
     a chunk to a temporary and renames it into place)."""
     import zarr
 
+    _read_by_box(monkeypatch)
     src = stores[0]
     out = tmp_path / "d.nrrd"
 

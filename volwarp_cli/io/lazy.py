@@ -6,7 +6,9 @@ that reads only the samples asked for; the geometry is the one
 :func:`~volwarp_cli.io.read_volume` gives for the same file (the readers'
 own header parsers are used). Per format:
 
-- **OME-Zarr**: level 0 through zarr (chunks read on demand).
+- **OME-Zarr**: level 0 through zarr (chunks read on demand); inside a command's run,
+  a store whose samples fit their share of the budget is read whole instead (each
+  block decoded its chunks again: a 256^3 warp 2.35 s against 0.5 s from NRRD).
 - **NRRD** raw encoding (attached, or detached with one data file), **MetaImage**
   uncompressed (``.mha`` or ``.mhd`` with one data file) and headerless
   **raw**: a :class:`.filearray.FileArray` in the file's byte order, read with
@@ -130,6 +132,11 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
             from .omezarr import LazyOmeZarr, open_omezarr
 
             opened = open_omezarr(path, volume_index)
+            if samples and not require_lazy and _fits_whole(
+                    voxel_count(opened.view_shape) * opened.array.dtype.itemsize):
+                # (its chunks decoded once, not again for each box: a 256^3 warp of a store
+                # took 2.35 s against 0.5 s for the same volume as NRRD)
+                raise NotLazy("a store whose samples fit in memory is read whole")
             lazy = LazyOmeZarr(opened)
             return make_header(opened.where, lazy.shape, lazy.dtype,
                                spacing=opened.spacing, origin=opened.origin,
@@ -159,6 +166,18 @@ def open_volume_header(path: str | os.PathLike, *, raw=None, volume_index: int |
     return vol.header, vol.data
 
 
+def _fits_whole(nbytes: int) -> bool:
+    """Whether samples of ``nbytes`` are read whole rather than by box.
+
+    Inside a command's run, where they fit their share of the memory budget
+    (:func:`~volwarp_cli.memory.read_by_box`).
+    """
+    from ..memory import read_by_box
+    from ..runscope import in_run
+
+    return in_run() and not read_by_box(nbytes)
+
+
 def _inflated(original: Path, nbytes: int, file_dtype, shape_zyx, where: str, fill,
               copy: str, *, part=0, held: int | None = None):
     """A compressed input's samples read by box from a scratch copy, where too big to hold.
@@ -171,7 +190,6 @@ def _inflated(original: Path, nbytes: int, file_dtype, shape_zyx, where: str, fi
     outside a command's run or where ``copy`` forbids a copy, and
     :class:`NoRoomToInflate` where the disk has no room.
     """
-    from ..memory import read_by_box
     from ..runscope import in_run
     from .inflated import NoRoom, inflated_array
 
@@ -179,7 +197,7 @@ def _inflated(original: Path, nbytes: int, file_dtype, shape_zyx, where: str, fi
         return None
     if copy == "never" or not in_run():
         raise NotLazy("compressed samples are read whole")
-    if not read_by_box(nbytes if held is None else held):
+    if _fits_whole(nbytes if held is None else held):
         raise NotLazy("compressed samples that fit in memory are read whole")
     try:
         return inflated_array(original, nbytes, file_dtype, shape_zyx, where, fill, part)
