@@ -1330,10 +1330,13 @@ def read_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Vo
                           + READ_BYTES, f"{opened.where} ({'x'.join(map(str, zyx_to_xyz(shape)))})")
     with large_allocations_mapped():  # (zarr's decoding threads' freed chunks given back)
         data = read_region(opened, tuple(slice(0, n) for n in shape))
-    if opened.changed():  # (read row by row, by path: the last rows another store's)
-        from .mapped import folder_changed
+    from .mapped import folder_changed, watch_folder
 
+    if opened.changed():  # (read row by row, by path: the last rows another store's)
         raise folder_changed(opened.where)
+    # (and watched to the end of a run, as a store read by box is: a worker process given
+    # the input reopens it by path, and read another store swapped in, exit 0)
+    watch_folder(*opened.identity, opened.where)
     return make_volume(opened.where, data, spacing=opened.spacing, origin=opened.origin,
                        direction=opened.direction, space=opened.space,
                        file_space=opened.file_space, meta=opened.meta)
