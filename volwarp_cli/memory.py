@@ -284,6 +284,13 @@ _loaded = None
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
 
 
+#: the mmap threshold :func:`large_allocations_mapped` fixes (glibc's own starting value)
+MMAP_THRESHOLD = 128 << 10
+#: the thresholds it leaves: the highest glibc's own rule raises the mmap threshold to
+#: (DEFAULT_MMAP_THRESHOLD_MAX on 64-bit), and the trim threshold that rule pairs with it
+AFTER_MMAP_THRESHOLD, AFTER_TRIM_THRESHOLD = 32 << 20, 64 << 20
+
+
 def bound_arenas() -> None:
     """At most one glibc malloc arena a core from here on (glibc's default: eight a core).
 
@@ -305,11 +312,6 @@ def bound_arenas() -> None:
         from .parallel import available_cores
 
         mallopt(_M_ARENA_MAX, max(2, available_cores()))
-#: the mmap threshold :func:`large_allocations_mapped` fixes (glibc's own starting value)
-MMAP_THRESHOLD = 128 << 10
-#: the thresholds it leaves: the highest glibc's own rule raises the mmap threshold to
-#: (DEFAULT_MMAP_THRESHOLD_MAX on 64-bit), and the trim threshold that rule pairs with it
-AFTER_MMAP_THRESHOLD, AFTER_TRIM_THRESHOLD = 32 << 20, 64 << 20
 
 
 @contextlib.contextmanager

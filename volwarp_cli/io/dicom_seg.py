@@ -875,11 +875,8 @@ def build_seg(vol: Volume, reference, *, labelmap: bool = False,
         numbers = list(range(1, len(values) + 1))
         lut = np.zeros(int(values[-1]) + 1, _label_dtype(len(values)))
         lut[values] = numbers
-        # indexed by 8- or 16-bit ids as they are (numpy casts an index array in buffered
-        # pieces: no 8-byte copy of the map), others cast to them first (label_values: all
-        # in 0..65535)
         ids = vol.data
-        if ids.dtype.kind != "u" or ids.dtype.itemsize > 2:
+        if _cast_for_table(ids.dtype):
             ids = ids.astype(_label_dtype(int(values[-1])))
         pixels = lut[ids]
     def description(n: int, v: int):
@@ -928,6 +925,16 @@ SEG_FIXED_BYTES = 112 << 20
 SEG_FRAME_BYTES = 12 << 10
 
 
+def _cast_for_table(dtype) -> bool:
+    """Whether ids of ``dtype`` are cast before they index a table of segment numbers.
+
+    8- and 16-bit unsigned ids index it as they are (numpy casts an index array
+    in buffered pieces: no 8-byte copy of the map); others are cast to the
+    smallest unsigned type first (:func:`slice_labels`: all in 0..65535).
+    """
+    return np.dtype(dtype).kind != "u" or np.dtype(dtype).itemsize > 2
+
+
 def seg_memory(vol: Volume, values, in_slice, inside: dict, labelmap: bool,
                reference) -> tuple[int, int]:
     """The bytes a SEG of ``vol`` needs beside it, and its number of frames.
@@ -941,18 +948,19 @@ def seg_memory(vol: Volume, values, in_slice, inside: dict, labelmap: bool,
     """
     plane = vol.data.shape[1] * vol.data.shape[2]
     n = vol.data.size
+    ids = _label_dtype(int(values[-1]))  # (the type the map's ids are cast to)
     if labelmap:
         frames = sum(1 for held in in_slice if held)
-        item = _label_dtype(int(values[-1])).itemsize
-        pixels = n * item if vol.data.dtype != _label_dtype(int(values[-1])) else 0
+        item = ids.itemsize
+        pixels = n * item if vol.data.dtype != ids else 0
         encoded = frames * plane * item
     else:
         frames = sum(sum(1 for held in in_slice if not held.isdisjoint([v, *inside.get(v, ())]))
                      for v in values.tolist())
         item = 1 if inside else _label_dtype(len(values)).itemsize
         pixels = n * (len(values) if inside else item)
-        if not inside and (vol.data.dtype.kind != "u" or vol.data.dtype.itemsize > 2):
-            pixels += n * _label_dtype(int(values[-1])).itemsize  # (the ids cast first)
+        if not inside and _cast_for_table(vol.data.dtype):
+            pixels += n * ids.itemsize  # (the ids cast first)
         encoded = -(-frames * plane // 8)
     if reference.multi_frame:  # (the pixels placed in the file's frames: one more array)
         pixels += n * (len(values) if inside and not labelmap else item)

@@ -281,9 +281,9 @@ class RoiMask:
 
         # (a speckled ROI's box is the whole grid: ten such masks held ten bytes a voxel,
         # beyond the map's charge)
-        ensure_fits_in_memory(int(np.prod(hi - lo)) + RASTER_BYTES_PER_POINT * len(pts)
-                              + RASTER_MARGIN, f"ROI {number} {name!r}: its mask of "
-                              f"{int(np.prod(hi - lo))} voxels")
+        voxels = int(np.prod(hi - lo))
+        ensure_fits_in_memory(voxels + RASTER_BYTES_PER_POINT * len(pts) + RASTER_MARGIN,
+                              f"ROI {number} {name!r}: its mask of {voxels} voxels")
         mask = rasterize([(k - lo[0], p - shift, c) for k, p, c in contours], tuple(hi - lo))
         return cls(number, name, (tuple(map(int, lo)), tuple(map(int, hi))), mask,
                    int(np.count_nonzero(mask)))
@@ -879,7 +879,7 @@ def build_rtstruct(vol: Volume, reference, *, names: dict[int, str] | None = Non
                 item.NumberOfContourPoints = len(loop)
                 seq.append(item)
                 room.made(item.get_item(CONTOUR_DATA).length)  # (raw: [] would decode it)
-            room.slice_done()
+            room.tick()  # (a plane done)
         c = Dataset()
         c.ReferencedROINumber = int(value)
         c.ROIDisplayColor = list(roi_colour(d) or (
@@ -933,18 +933,16 @@ class _Room:
         self.contours = self.data_bytes = self.since = 0
 
     def made(self, data_bytes: int) -> None:
+        """A contour made, its Contour Data ``data_bytes`` long."""
         self.contours += 1
         self.data_bytes += data_bytes
-        self.since += 1
-        if self.since >= self.CHECK_EVERY:
-            self._check()
+        self.tick()
 
-    def slice_done(self) -> None:
+    def tick(self) -> None:
+        """A contour or a plane done: the budget checked every :data:`CHECK_EVERY`."""
         self.since += 1
-        if self.since >= self.CHECK_EVERY:
-            self._check()
-
-    def _check(self) -> None:
+        if self.since < self.CHECK_EVERY:
+            return
         from ..memory import ensure_fits_in_memory
 
         self.since = 0
