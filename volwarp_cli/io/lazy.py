@@ -507,6 +507,11 @@ def _tiff(path: Path, volume_index: int | None = None):
     from . import tiff as tiff_io
 
     where = str(path)
+    if in_run():  # (its pages are read by tifffile as the work goes: a file rewritten
+        # meanwhile gave a mix of the two, exit 0; refused before any rename instead)
+        from .mapped import watch
+
+        watch(path)
     # (refuses what the whole reader refuses, as it does)
     stack = tiff_io.read_tiff_stack(path, volume_index)
     header = make_header(where, stack.shape, stack.dtype, **stack.placement)

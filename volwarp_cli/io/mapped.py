@@ -35,6 +35,13 @@ is read (the store's level 0), every entry's name, inode, size and
 modification time: a stat a file, a few microseconds a chunk file beside the
 fraction of a millisecond each one's read takes. A chunk rewritten in place
 with its size and modification time kept goes unseen.
+
+A file scanned first and read later by what the scan found (a DICOM
+series: its headers scanned, then its images' pixels read by offset, slab by
+slab as the work goes) is stamped as its header is read (:func:`stamp`) and
+checked on the descriptor each later read opens (:func:`unchanged`): the
+pixels read are always the scanned file's, so nothing is left to check
+before a rename.
 """
 
 from __future__ import annotations
@@ -82,17 +89,18 @@ def _fingerprint(fd: int, size: int) -> bytes:
     return digest.digest()
 
 
-def _taken(file) -> tuple | None:
+def _taken(file, digest=_fingerprint) -> tuple | None:
     """``(identity, ctime_ns, fingerprint)`` of ``file`` (a path or a descriptor), None if unreadable.
 
-    The stat is taken again after the fingerprint, until both stats agree (a
+    ``digest(fd, size)``: the fingerprint (default :func:`_fingerprint`). The
+    stat is taken again after the fingerprint, until both stats agree (a
     change between them could pair the old identity with the new bytes).
     """
     fd = file if isinstance(file, int) else os.open(file, os.O_RDONLY)
     try:
         for _ in range(3):
             st = os.fstat(fd)
-            sampled = _fingerprint(fd, st.st_size)
+            sampled = digest(fd, st.st_size)
             again = os.fstat(fd)
             if (_identity(again), again.st_ctime_ns) == (_identity(st), st.st_ctime_ns):
                 return _identity(st), st.st_ctime_ns, sampled
@@ -102,6 +110,53 @@ def _taken(file) -> tuple | None:
     finally:
         if not isinstance(file, int):
             os.close(fd)
+
+
+def _head(head: int):
+    """A fingerprint of a file's first ``head`` bytes (a DICOM image's header).
+
+    Any other image has other identifiers there (its SOP Instance UID); a
+    rewrite of the same image's samples alone, its size and modification
+    time kept, goes unseen.
+    """
+    def digest(fd: int, size: int) -> bytes:
+        hashed = _blake2b()
+        hashed.update(os.pread(fd, min(head, size), 0))
+        return hashed.digest()
+    return digest
+
+
+def stamp(fd: int, head: int) -> tuple:
+    """What tells the open file ``fd`` from another put in its place or rewritten meanwhile.
+
+    For a file that is scanned first and whose samples are read later, by
+    offsets the scan found (a DICOM series' images: every one opened again
+    as its slices are needed): its size, modification time and inode, its
+    change time, and a hash of its first ``head`` bytes (the header scanned).
+    :func:`unchanged` tells, on the file opened again,
+    whether it is still that file.
+    """
+    taken = _taken(fd, _head(head))
+    if taken is None:  # (a file read a moment ago: its descriptor cannot fail a stat)
+        raise OSError(f"cannot stat the descriptor {fd}")
+    return head, taken
+
+
+def unchanged(fd: int, stamped: tuple) -> bool:
+    """Whether the open file ``fd`` is still the one :func:`stamp` gave ``stamped`` of.
+
+    Its size, modification time and inode are; where its change time moved
+    (a chmod, a hard link, or bytes rewritten and the modification time put
+    back), its header's hash too.
+    """
+    head, (ident, ctime, sampled) = stamped
+    st = os.fstat(fd)
+    if _identity(st) != ident:
+        return False
+    if st.st_ctime_ns == ctime:
+        return True
+    now = _taken(fd, _head(head))
+    return now is not None and now[0] == ident and sampled is not None and now[2] == sampled
 
 
 def watch(file, where: str | None = None) -> None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import warnings
 from collections import defaultdict
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -199,7 +200,7 @@ def _read_native(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
               and all(fr.slope == 1 and fr.intercept == 0 for _, _, fr in items))
     buf = None if direct else np.empty((fi.rows, fi.columns), dtype=sdt)
     try:
-        with open(fi.path, "rb") as fh:
+        with open_unchanged(fi) as fh:
             for frame, slot, fr in sorted(items, key=lambda t: t[0]):
                 fh.seek(fi.pixel_offset + frame * per_frame)
                 target = out[slot] if direct else buf
@@ -215,19 +216,40 @@ def _read_native(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
         raise FormatError(f"{fi.path}: cannot read ({exc.strerror})") from None
 
 
-def _source(fi):
-    """What pydicom's pixel functions read: the path, or the dataset of a deflated file.
+def _source(fi, fh):
+    """What pydicom's pixel functions read: the open file, or the dataset of a deflated file.
 
-    Given a path they parse the file themselves, without inflating a Deflated
+    Given a file they parse it themselves, without inflating a Deflated
     Explicit VR Little Endian body (they find no Pixel Data in it); ``dcmread``
     inflates it, so those files are read whole into a dataset first (their
     pixel data is in memory anyway: it lies inside the deflated stream).
     """
     if fi.transfer_syntax != DEFLATED:
-        return fi.path
+        return fh
     import pydicom
 
-    return pydicom.dcmread(fi.path, force=True)
+    return pydicom.dcmread(fh, force=True)
+
+
+@contextmanager
+def open_unchanged(fi):
+    """The file of ``fi`` (a :class:`._scan.FileInfo`), opened to read its pixels: the one scanned.
+
+    Its pixels are read by what its header scan found (their offset, their
+    layout, the slices they are): another file put in its place, or this one
+    rewritten, since the scan (a series exported again into its folder while
+    a command reads it slab by slab) gave that file's pixels as this file's
+    slices, a mix of two series written with exit 0. Refused instead
+    (:func:`~volwarp_cli.io.mapped.unchanged`).
+    """
+    from ..mapped import unchanged
+
+    with open(fi.path, "rb") as fh:
+        if fi.stamp is not None and not unchanged(fh.fileno(), fi.stamp):
+            raise FormatError(f"{fi.path}: the file changed after its header was read "
+                              "(replaced or rewritten by another program?); the series "
+                              "is not read")
+        yield fh
 
 
 def _read_decoded(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
@@ -235,9 +257,9 @@ def _read_decoded(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
 
     items = sorted(items, key=lambda t: t[0])
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), open_unchanged(fi) as fh:
             warnings.simplefilter("ignore")
-            src = _source(fi)
+            src = _source(fi, fh)
             if fi.n_frames == 1:
                 arrays = [pixel_array(src, raw=True)]
             else:

@@ -53,6 +53,8 @@ PHI_TAGS = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "Patie
 
 #: position tolerance (mm) for "same orientation / same pixel spacing"
 _ATOL = 1e-4
+#: a file's first bytes its stamp hashes (its header, up to the pixel data)
+HEADER_STAMP_BYTES = 1 << 16
 
 
 class DicomSeriesChoiceError(_ChoiceBase):
@@ -79,6 +81,10 @@ class FileInfo:
     dose_scaling: float | None
     meta: dict
     sop_uid: str = ""
+    #: :func:`~volwarp_cli.io.mapped.stamp` of the file as its header was read: its
+    #: pixels are read later (by offset, or a stack slab by slab as the work goes), from
+    #: it only (:func:`._pixels.open_unchanged`)
+    stamp: tuple | None = None
 
 
 @dataclass
@@ -169,19 +175,35 @@ def is_dicom_path(path) -> bool:
 
 
 def _read_dataset(path: str, *, force: bool = False, stop: bool = True):
-    """(dataset, file position where pydicom stopped) or a FormatError naming the file."""
+    """``(dataset, position, tail, stamp)`` of the file, or a FormatError naming it.
+
+    ``position``: where pydicom stopped; ``tail``: the 12 bytes from there;
+    ``stamp``: what tells this file from another put in its place or
+    rewritten before its pixels are read (:func:`~volwarp_cli.io.mapped.stamp`
+    of the header read).
+    """
     import pydicom
     from pydicom.errors import InvalidDicomError
+
+    from ..mapped import stamp as file_stamp
 
     try:
         with warnings.catch_warnings(record=True) as caught, open(path, "rb") as fh:
             warnings.simplefilter("always")
+            before = os.fstat(fh.fileno())
             ds = pydicom.dcmread(fh, stop_before_pixels=stop, force=force)
             pos = fh.tell()
             fh.seek(pos)
             tail = fh.read(12)
+            stamped = file_stamp(fh.fileno(), min(pos, HEADER_STAMP_BYTES))
+            if stamped[1][:2] != ((before.st_size, before.st_mtime_ns, before.st_ino),
+                                  before.st_ctime_ns):
+                raise FormatError(f"{path}: the file changed while its header was being read "
+                                  "(rewritten by another program?)")
         for w in caught:
             log.debug("pydicom: %s: %s", path, w.message)
+    except FormatError:
+        raise
     except InvalidDicomError as exc:
         raise FormatError(f"{path}: not a DICOM file ({_one_line(exc)})") from None
     except OSError as exc:
@@ -195,7 +217,7 @@ def _read_dataset(path: str, *, force: bool = False, stop: bool = True):
     if force and "TransferSyntaxUID" not in getattr(ds, "file_meta", {}):
         if len(ds) == 0:
             raise FormatError(f"{path}: not a DICOM file (no data elements)")
-    return ds, pos, tail
+    return ds, pos, tail, stamped
 
 
 #: file names that say "DICOM" (an empty or foreign one of them in a series folder is refused)
@@ -280,7 +302,7 @@ def _files_of(path: Path) -> tuple[list[tuple[str, str]], int]:
         return out, seen
     if not path.exists():
         raise FormatError(f"{path}: no such file or folder")
-    ds, _, _ = _read_dataset(str(path), force=not _has_preamble(str(path)))
+    ds = _read_dataset(str(path), force=not _has_preamble(str(path)))[0]
     if _sop_class(ds) == DICOMDIR_SOP or "DirectoryRecordSequence" in ds:
         return _dicomdir_files(path, ds), 1
     return [(str(path), path.name)], 1
@@ -414,14 +436,14 @@ def _pixel_element(tail: bytes, ts: str, pos: int, size: int, where: str = ""):
 def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
     """The frames of one file, or ([], reason) for a DICOM file without an image."""
     force = not _has_preamble(full)
-    ds, pos, tail = _read_dataset(full, force=force)
+    ds, pos, tail, stamped = _read_dataset(full, force=force)
     sop = _sop_class(ds)
     if sop == DICOMDIR_SOP or "DirectoryRecordSequence" in ds:
         return [], "DICOMDIR"
     meta_ds = getattr(ds, "file_meta", None)
     ts = str(meta_ds.get("TransferSyntaxUID", _IMPLICIT)) if meta_ds is not None else _IMPLICIT
     if ts == _DEFLATED:
-        ds, pos, tail = _read_dataset(full, force=force, stop=False)
+        ds, pos, tail, stamped = _read_dataset(full, force=force, stop=False)
         has_pixels = "PixelData" in ds
         float_pixels = "FloatPixelData" in ds or "DoubleFloatPixelData" in ds
         offset = length = None
@@ -466,7 +488,7 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
                     signed=signed, samples=samples, n_frames=n_frames, pixel_offset=offset,
                     pixel_length=length,
                     dose_scaling=_float(ds, "DoseGridScaling", 1.0, where) if is_dose else None,
-                    meta=meta, sop_uid=_text(ds, "SOPInstanceUID"))
+                    meta=meta, sop_uid=_text(ds, "SOPInstanceUID"), stamp=stamped)
     series_uid = _text(ds, "SeriesInstanceUID") or "(no SeriesInstanceUID)"
     common = {"FrameOfReferenceUID": _text(ds, "FrameOfReferenceUID"),
               "Rows/Columns": (rows, cols)}
@@ -838,7 +860,9 @@ def _same_stored(a: FileInfo, b: FileInfo, chunk: int = 1 << 22) -> bool:
     """Byte-for-byte equal raw PixelData values, compared a chunk at a time."""
     if a.pixel_length != b.pixel_length:
         return False
-    with open(a.path, "rb") as fa, open(b.path, "rb") as fb:
+    from ._pixels import open_unchanged
+
+    with open_unchanged(a) as fa, open_unchanged(b) as fb:
         fa.seek(a.pixel_offset)
         fb.seek(b.pixel_offset)
         left = a.pixel_length or 0

@@ -1,0 +1,66 @@
+"""A TIFF stack rewritten while a command reads it by box: refused, never a mix.
+
+A stack read lazily goes through tifffile's zarr view, which decodes its
+pages from the open file as the work asks for them: the file rewritten in
+place meanwhile (a program saving over it) gave the later boxes the new
+pages, a volume mixing two stacks written with exit 0. The file is now
+watched as mapped inputs are (:func:`volwarp_cli.io.mapped.watch`): the
+output is not renamed into place.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import tifffile
+
+from volwarp_cli.io import lazy
+
+SHAPE = (24, 12, 10)
+
+
+def _stack(path, seed: int) -> None:
+    data = np.random.default_rng(seed).integers(0, 3000, size=SHAPE).astype(np.uint16)
+    tifffile.imwrite(path, data)  # (pages tifffile's zarr view decodes, not a mapped layout)
+
+
+def test_a_stack_rewritten_while_read_by_blocks_writes_nothing(run, tmp_path, monkeypatch):
+    """Before: exit 0 and a field of the first stack's first slabs and the second's others."""
+    src, other = tmp_path / "s.tif", tmp_path / "other.tif"
+    _stack(src, 0)
+    _stack(other, 1)
+    out = tmp_path / "d.nrrd"
+    out.write_bytes(b"old output")
+    real = lazy._ZarrView.__getitem__
+    reads = []
+
+    def read(self, key):
+        reads.append(key)
+        got = real(self, key)
+        if len(reads) == 1:
+            shutil.copyfile(other, src)  # (in place: the view's open file sees the new pages)
+        return got
+
+    monkeypatch.setattr(lazy._ZarrView, "__getitem__", read)
+    r = run("distance", src, "--iso", "1500", "--values", "intensity", "--surface", "voxel",
+            "-o", out, "--chunked", "--block", "8", "--scheduler", "synchronous")
+    assert len(reads) > 1, "the stack was not read by box"
+    assert r.code == 1, r
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "s.tif: the file changed while it was being read" in lines[0], \
+        r.stderr
+    assert out.read_bytes() == b"old output"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.nrrd", "other.tif", "s.tif"]
+
+
+def test_a_stack_left_alone_is_read_by_blocks_as_in_memory(run, tmp_path):
+    """The watch refuses nothing that did not change: by blocks equals in memory."""
+    src = tmp_path / "s.tif"
+    _stack(src, 0)
+    args = ("distance", src, "--iso", "1500", "--values", "intensity", "--surface", "voxel")
+    assert run(*args, "-o", tmp_path / "a.nrrd").code == 0
+    r = run(*args, "-o", tmp_path / "b.nrrd", "--chunked", "--block", "8",
+            "--scheduler", "synchronous")
+    assert r.code == 0, r
+    assert (tmp_path / "a.nrrd").read_bytes() == (tmp_path / "b.nrrd").read_bytes()
