@@ -248,6 +248,9 @@ def test_a_store_neither_replaced_nor_put_back_is_named_and_put_back_later(tmp_p
     assert (tmp_path / aside / "zarr.json").read_text() == "old" and not path.exists()
     monkeypatch.setattr(atomic.os, "rename", real)
     # this process's name on it: another process's write of the output would put it back
+    # once this one is gone, and its claim on the store with it (atomic._claim)
+    for name in list(atomic._claims):
+        atomic._unclaim(name)
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     later = aside.replace(f".vw-{os.getpid()}@", f".vw-{dead.pid}@")

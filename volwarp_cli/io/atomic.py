@@ -81,7 +81,7 @@ def outputs_together():
             committed.extend(str(path) for _, _, path in held)
             for moves, _, _ in held:
                 for tmp, _, _ in moves:
-                    _live_temporaries.discard(tmp)
+                    _forget(tmp)
             held.clear()
     except BaseException as exc:
         for moves, _, _ in held:  # (those renamed into place and put back again are gone)
@@ -95,13 +95,104 @@ def outputs_together():
     finally:
         for moves, _, _ in held:
             for tmp, _, _ in moves:
-                _live_temporaries.discard(tmp)
+                _forget(tmp)
         _held = None
         sync_temporaries()
 
 
 #: the live :func:`scratch_folder` s: what is written in them is read back at once, not held
 _scratch_folders: set[str] = set()
+
+#: the descriptors holding this process's claims (:func:`_claim`), by the name claimed
+_claims: dict[str, list[int]] = {}
+#: claims held at once at most (each an open descriptor)
+CLAIMS_MAX = 256
+_claims_lock = threading.Lock()
+_OPEN_FOR_LOCK = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+
+
+def _claim(name: str, fd: int | None = None, *,
+           of: str | os.PathLike | None = None) -> int | None:
+    """Hold an exclusive ``flock`` on a temporary of this process for as long as it is live.
+
+    A temporary's name says whose it is (its process id and host name), and
+    the next write of the same output removes those of processes that no
+    longer exist (:func:`_remove_stale_temporaries`). A process id says
+    nothing across PID namespaces: two containers on one host name (``docker
+    run --network host``, a shared data folder) each took the other's live
+    temporaries for a dead process's and removed them, the work's output
+    with them, or put a store set aside back at its path mid-commit. The lock
+    is held by the open file, whatever process looks at it: a temporary
+    whose lock is held is live (:func:`_in_use`). ``fd``: the temporary's own
+    descriptor, kept open (else it is opened); ``of``: the file or folder to
+    open and lock, where ``name`` is the name it is about to take (an earlier
+    output set aside). Returns the descriptor holding the lock, or None where
+    none is held: a file system that cannot lock, a symbolic link, or more
+    than :data:`CLAIMS_MAX` claims at once (a morph's hundreds of frames,
+    renamed together at its end: a descriptor each would near the usual limit
+    of 1024 open files); those keep the liveness by process id alone, as
+    before.
+    """
+    import fcntl
+
+    with _claims_lock:
+        room = sum(map(len, _claims.values())) < CLAIMS_MAX
+    try:
+        if not room:
+            raise OSError(errno.EMFILE, "claims held")
+        if fd is None:
+            fd = os.open(of if of is not None else name, _OPEN_FOR_LOCK)
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        if fd is not None:
+            os.close(fd)
+        return None
+    with _claims_lock:
+        _claims.setdefault(str(name), []).append(fd)
+    return fd
+
+
+def _unclaim(name: str, fd: int | None = None) -> None:
+    """Let go of the :func:`_claim` s of ``name`` (``fd``: that one only); their locks go with them."""
+    with _claims_lock:
+        held = _claims.get(str(name), [])
+        mine = [d for d in held if fd is None or d == fd]
+        rest = [d for d in held if d not in mine]
+        if rest:
+            _claims[str(name)] = rest
+        else:
+            _claims.pop(str(name), None)
+    for d in mine:
+        with contextlib.suppress(OSError):
+            os.close(d)
+
+
+def _forget(tmp: str) -> None:
+    """``tmp`` is no temporary of this process any more: unregistered, its claim let go."""
+    _live_temporaries.discard(tmp)
+    _unclaim(tmp)
+
+
+def _in_use(name: str) -> bool:
+    """Whether some process holds the :func:`_claim` of the temporary ``name`` (any PID namespace).
+
+    False where it cannot be opened or locked (then its process id decides).
+    """
+    import fcntl
+
+    try:
+        fd = os.open(name, _OPEN_FOR_LOCK)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+    return False
 
 
 def is_own_temporary(path: str | os.PathLike) -> bool:
@@ -304,6 +395,7 @@ def atomic_folder(path: str | os.PathLike):
         tmp = _tempfile().mkdtemp(prefix=_temporary_prefix(path.name), suffix=".partdir",
                                   dir=path.parent)
         _live_temporaries.add(tmp)
+        _claim(tmp)
     held = False
     try:
         sync_temporaries()
@@ -315,7 +407,7 @@ def atomic_folder(path: str | os.PathLike):
             held = _hold([(tmp, path, True)], (), path)
             if not held:
                 _commit([(tmp, path, True)])
-                _live_temporaries.discard(tmp)
+                _forget(tmp)
     except BaseException as exc:
         _remove_tree(tmp)
         if isinstance(exc, OSError) and (exc.filename is None
@@ -324,7 +416,7 @@ def atomic_folder(path: str | os.PathLike):
         raise
     finally:
         if not held:
-            _live_temporaries.discard(tmp)
+            _forget(tmp)
         sync_temporaries()
 
 
@@ -499,6 +591,8 @@ def _commit(moves: list, replaced=()) -> None:
         elif earlier is not None:
             with contextlib.suppress(OSError):
                 os.unlink(earlier)
+        if earlier is not None:
+            _unclaim(earlier)
     for old in replaced:
         with contextlib.suppress(OSError):
             os.unlink(old)
@@ -551,11 +645,14 @@ def _keep(path: Path) -> tuple[str, bool] | None:
         name = _spare_name(path, ".kept")
         try:
             os.link(path, name, follow_symlinks=False)  # (a link output: the link kept)
+            _claim(name)
             return name, True
         except FileExistsError:
             continue
         except OSError:
-            return _spare_name(path, ".old"), False
+            aside = _spare_name(path, ".old")
+            _claim(aside, of=path)  # (the earlier file, before it is renamed to it)
+            return aside, False
 
 
 def _replace_file(tmp: str, path: Path, kept: tuple[str, bool] | None) -> None:
@@ -585,6 +682,8 @@ def _discard(kept: tuple[str, bool] | None) -> None:
     if kept is not None and kept[1]:
         with contextlib.suppress(OSError):
             os.unlink(kept[0])
+    if kept is not None:
+        _unclaim(kept[0])
 
 
 def _roll_back(done: list) -> list[str]:
@@ -601,6 +700,8 @@ def _roll_back(done: list) -> list[str]:
                 os.replace(earlier, path)
             else:
                 os.unlink(path)  # (a new output: there was none before)
+            if earlier is not None:
+                _unclaim(earlier)
         except OSError as exc:
             lost.append(f"{path}: the earlier output could not be put back ({_why(exc)})"
                         + (f": it is kept at {earlier}" if earlier is not None else ""))
@@ -626,15 +727,20 @@ def _rename_folder_in(tmp: str, path: Path) -> str | None:
         except OSError as exc:  # (another run's store put there since: replaced as any)
             if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or not path.is_dir():
                 raise
+    earlier = _claim(tmp, of=path)  # (the earlier store, at ``tmp`` once the two are swapped)
     if _exchange(tmp, path):
         return tmp
+    if earlier is not None:
+        _unclaim(tmp, earlier)
     aside = _spare_name(path, ".old")
+    _claim(aside, of=path)  # (the earlier store, before it is renamed to it)
     os.rename(path, aside)
     try:
         os.rename(tmp, path)
     except BaseException as exc:
         try:
             os.rename(aside, path)  # put the old store back
+            _unclaim(aside)
         except OSError as back:  # (both failed: say where the earlier output is)
             raise VolwarpError(
                 f"{path}: the new store could not take its place ({_why(exc)}) and the "
@@ -837,7 +943,7 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
                                           path.parent)
                 _live_temporaries.add(tmp)
                 tmps.append(tmp)
-                os.close(fd)  # (here: a stop deferred by blocked() is raised as it ends)
+                _claim(tmp, fd)  # (its descriptor kept open, holding the lock)
             writeback.replacing(tmp, os.path.lexists(path))
         sync_temporaries()
         yield [Path(t) for t in tmps]
@@ -865,7 +971,7 @@ def atomic_outputs(*paths: str | os.PathLike, suffixes: list[str] | None = None,
             writeback.replacing(tmp, False)
         if not held:
             for tmp in tmps:
-                _live_temporaries.discard(tmp)
+                _forget(tmp)
         sync_temporaries()
 
 
@@ -919,6 +1025,7 @@ def make_scratch_folder(near: str | os.PathLike) -> Path:
         tmp = _tempfile().mkdtemp(prefix=_temporary_prefix(path.name), suffix=".scratch",
                                   dir=path.parent if str(path.parent) else ".")
         _live_temporaries.add(tmp)
+        _claim(tmp)
         _scratch_folders.add(os.path.realpath(tmp))
     return Path(tmp)
 
@@ -930,7 +1037,7 @@ def remove_scratch_folder(tmp: str | os.PathLike) -> None:
     tmp = str(tmp)
     with blocked():
         shutil.rmtree(tmp, ignore_errors=True)
-        _live_temporaries.discard(tmp)
+        _forget(tmp)
         _scratch_folders.discard(os.path.realpath(tmp))
 
 
@@ -1020,6 +1127,8 @@ def _remove_stale_temporaries(path: Path) -> None:
         if m is None or _alive(int(m.group(1))):
             continue
         stale = path.parent / name
+        if _in_use(str(stale)):  # (a live run's, in another PID namespace: _claim)
+            continue
         if name.endswith(".old") and not os.path.lexists(path):
             # a store or file set aside by a process killed before the new one took its
             # place (_commit): the earlier output, put back (and kept where that fails:
