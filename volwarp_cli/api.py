@@ -817,9 +817,9 @@ def _provenance(command: str, inputs: list, spec) -> dict:
 
 def _stamped(vol: Header, command: str, path, spec_path) -> Header:
     """``vol`` with its provenance (:func:`volwarp_cli.provenance.stamp`'s, of what is known)."""
-    from .provenance import PROVENANCE_KEYS
+    from .provenance import computed_meta
 
-    meta = {k: v for k, v in vol.meta.items() if k not in PROVENANCE_KEYS}
+    meta = computed_meta(vol.meta)
     meta.update(_provenance(command, [path], spec_path))
     return vol.replace(meta=meta)
 

@@ -78,11 +78,39 @@ def _sha256(data: bytes):
 PROVENANCE_KEYS = ("volwarp_version", "volwarp_command", "volwarp_input", "volwarp_spec_sha256")
 
 
+#: Key/values of an input file's fields true of its samples as they are, on its grid:
+#: ``convert`` carries them (the same samples, the same grid); an output a command
+#: computes does not (:func:`stamp`): a display window would hide the new values, a slice
+#: thickness, slice axis or timing is no longer the acquisition's, a distance map's units
+#: are millimetres (:data:`volwarp_cli.io.nifti.AS_READ_FIELDS`,
+#: :data:`volwarp_cli.io.nrrd.AS_READ_FIELDS`)
+AS_READ_KEYS = frozenset((
+    "NIfTI_cal_min", "NIfTI_cal_max", "NIfTI_dim_info", "NIfTI_slice_code",
+    "NIfTI_slice_start", "NIfTI_slice_end", "NIfTI_slice_duration", "NIfTI_toffset",
+    "NIfTI_aux_file", "NRRD_sample units", "NRRD_thicknesses", "NRRD_labels"))
+#: those of :data:`AS_READ_KEYS` that name the file's axes or slices by their index order:
+#: dropped too where the samples are stored reindexed (an OME-Zarr store of a flipped or
+#: permuted grid, :func:`volwarp_cli.io.omezarr.reindexed_header`)
+AS_READ_AXIS_KEYS = frozenset((
+    "NIfTI_dim_info", "NIfTI_slice_code", "NIfTI_slice_start", "NIfTI_slice_end",
+    "NRRD_thicknesses", "NRRD_labels"))
+
+
+def computed_meta(meta) -> dict:
+    """An input's key/values as an output computed from it carries them.
+
+    Without the earlier step's provenance (:data:`PROVENANCE_KEYS`, replaced)
+    and the fields true of the input's samples only (:data:`AS_READ_KEYS`).
+    """
+    return {k: v for k, v in meta.items() if k not in PROVENANCE_KEYS and k not in AS_READ_KEYS}
+
+
 def stamp(vol: Volume | Header, command: str, inputs, spec=None) -> Volume | Header:
     """``vol`` (a Volume or a Header) with its provenance key/values set.
 
-    An earlier step's provenance is replaced.
+    An earlier step's provenance is replaced; the input's fields true of its
+    samples as read only are dropped (:func:`computed_meta`).
     """
-    meta = {k: v for k, v in vol.meta.items() if k not in PROVENANCE_KEYS}
+    meta = computed_meta(vol.meta)
     meta.update(provenance(command, inputs, spec))
     return vol.replace(meta=meta)

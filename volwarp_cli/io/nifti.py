@@ -75,10 +75,16 @@ it differs from what the writer does by default: codes 1 and 1, mm):
 * ``NIfTI_xyzt_units`` (the byte: space units | time units; default 2, mm);
 * ``NIfTI_intent_code``, ``NIfTI_intent_p1`` .. ``p3``, ``NIfTI_intent_name``
   (only when the file has an intent);
-* ``descrip`` (at most 79 bytes, latin-1).
-
-``cal_min``/``cal_max`` (a display window for the samples) are not carried:
-volwarp's commands change the samples, and a stale window would hide them.
+* ``descrip`` (at most 79 bytes, latin-1);
+* fields true of the samples as read, on their grid: ``NIfTI_cal_min``,
+  ``NIfTI_cal_max`` (a display window), ``NIfTI_dim_info`` (the frequency,
+  phase and slice axes), ``NIfTI_slice_code``, ``NIfTI_slice_start``,
+  ``NIfTI_slice_end``, ``NIfTI_slice_duration`` (slice timing),
+  ``NIfTI_toffset``, ``NIfTI_aux_file`` (a lookup table's name, as FSL uses
+  it). ``convert`` keeps them (the same samples on the same grid); a command
+  that computes new samples drops them (a stale window would hide the new
+  values, a slice axis or timing is no longer the acquisition's:
+  :func:`volwarp_cli.provenance.stamp`).
 
 volwarp's other key/values (``volwarp_version``, ``volwarp_command``,
 ``volwarp_input``, ``volwarp_spec_sha256``, key/values carried from an NRRD
@@ -171,8 +177,19 @@ EXTENSION_PREFIX = b"volwarp-meta-json/1\n"
 #: the meta keys that are NIfTI header fields (everything else goes to the extension)
 _INTENT_KEYS = ("NIfTI_intent_code", "NIfTI_intent_p1", "NIfTI_intent_p2", "NIfTI_intent_p3",
                 "NIfTI_intent_name")
+#: header fields true of the samples as read, on their grid, and their keys: kept by
+#: ``convert`` only (:data:`volwarp_cli.provenance.AS_READ_KEYS`); each a type and range
+#: (None: text)
+AS_READ_FIELDS = {
+    "NIfTI_cal_min": ("cal_min", float), "NIfTI_cal_max": ("cal_max", float),
+    "NIfTI_dim_info": ("dim_info", (0, 255)), "NIfTI_slice_code": ("slice_code", (0, 255)),
+    "NIfTI_slice_start": ("slice_start", (-32768, 32767)),
+    "NIfTI_slice_end": ("slice_end", (-32768, 32767)),
+    "NIfTI_slice_duration": ("slice_duration", float), "NIfTI_toffset": ("toffset", float),
+    "NIfTI_aux_file": ("aux_file", None),
+}
 HEADER_KEYS = ("descrip", "NIfTI_sform_code", "NIfTI_qform_code", "NIfTI_xyzt_units",
-               *_INTENT_KEYS)
+               *_INTENT_KEYS, *AS_READ_FIELDS)
 
 
 def choose_affine(header, where: str = "") -> tuple[np.ndarray, str]:
@@ -830,7 +847,38 @@ def _header_meta(header, where: str, chosen: tuple[np.ndarray, str],
     descrip = _text_field(header, "descrip")
     if descrip:
         meta["descrip"] = descrip
+    for key, (name, kind) in AS_READ_FIELDS.items():  # (where set: not 0, not empty)
+        if kind is None:
+            text = _text_field(header, name)
+            if text:
+                meta[key] = text
+            continue
+        value = header.get(name)
+        if value is None:
+            continue
+        value = float(np.asarray(value)) if kind is float else int(np.asarray(value))
+        if value and (kind is not float or np.isfinite(value)):
+            meta[key] = repr(value) if kind is float else str(value)
     return meta
+
+
+def _as_read_fields(meta: dict) -> dict:
+    """The :data:`AS_READ_FIELDS` of ``meta`` as header field values (invalid ones left out)."""
+    fields = {}
+    for key, (name, kind) in AS_READ_FIELDS.items():
+        if key not in meta:
+            continue
+        if kind is None:
+            fields[name] = str(meta[key]).encode("latin-1", errors="replace")[:23]
+        elif kind is float:
+            value = _meta_float(meta, key)
+            if value and abs(value) <= np.finfo(np.float32).max:
+                fields[name] = value
+        else:
+            value = _meta_int(meta, key, 0, *kind)
+            if value:
+                fields[name] = value
+    return fields
 
 
 def _extension_content(ext) -> bytes:
@@ -989,7 +1037,7 @@ def write_nifti(vol: Volume, path: str | os.PathLike, *, dtype=None) -> None:
                   str(meta.get("NIfTI_intent_name", "")))
     write_nifti_file(path, vol.data.transpose(2, 1, 0), aff, units=units, codes=codes,
                      intent=intent, descrip=str(meta.get("descrip", "")), meta=meta,
-                     dtype=dtype)
+                     dtype=dtype, fields=_as_read_fields(meta))
 
 
 def ras_affine(grid, scale: float = 1.0) -> np.ndarray:
@@ -1002,7 +1050,7 @@ def ras_affine(grid, scale: float = 1.0) -> np.ndarray:
 
 def write_nifti_file(path: str | os.PathLike, data_xyz: np.ndarray, aff: np.ndarray, *,
                      units: int, codes: tuple[int, int], intent=None, descrip: str = "",
-                     meta: dict | None = None, dtype=None) -> None:
+                     meta: dict | None = None, dtype=None, fields: dict | None = None) -> None:
     """``data_xyz`` (x fastest: 3-D, or 5-D with vectors) as a NIfTI-1 file, atomically.
 
     Gzipped for a ``.gz`` path. ``aff``: the voxel-to-RAS matrix written in
@@ -1011,7 +1059,7 @@ def write_nifti_file(path: str | os.PathLike, data_xyz: np.ndarray, aff: np.ndar
     (at most 79 bytes, latin-1); ``meta``: the key/values that are no header
     field go into volwarp's extension (module notes). ``dtype``: the samples
     cast to it as they are written (``.nii`` only: a ``.gz`` file's samples are
-    cast before).
+    cast before). ``fields``: other header fields, by name (:func:`_as_read_fields`).
     """
     import sys
 
@@ -1030,7 +1078,7 @@ def write_nifti_file(path: str | os.PathLike, data_xyz: np.ndarray, aff: np.ndar
     ext = _extension(meta or {})
     try:
         head = nifti1_header_bytes(samples.shape[::-1], out_dtype, aff, codes=codes,
-                                   units=units, intent=intent,
+                                   units=units, intent=intent, fields=fields,
                                    descrip=descrip[:79].encode("latin-1", errors="replace"),
                                    extensions=() if ext is None else (ext,))
     except ValueError as exc:

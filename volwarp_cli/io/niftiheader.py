@@ -96,14 +96,16 @@ def extension_bytes(code: int, content: bytes) -> bytes:
 
 def nifti1_header_bytes(shape_xyz: tuple[int, ...], dtype, aff: np.ndarray, *,
                         codes: tuple[int, int], units: int, intent=None, descrip: bytes = b"",
-                        extensions: tuple[tuple[int, bytes], ...] = ()) -> bytes:
+                        extensions: tuple[tuple[int, bytes], ...] = (),
+                        fields: dict | None = None) -> bytes:
     """The header and extensions of a single NIfTI-1 file, up to its first sample.
 
     ``shape_xyz``: the samples' sizes (x fastest; up to 7 axes); ``aff``: the
     voxel-to-RAS 4x4 matrix written in both forms, with ``codes`` (sform,
     qform); ``units``: ``xyzt_units``; ``intent``: ``(code, (p1, p2, p3),
     name bytes)`` or None; ``descrip``: at most 80 bytes; ``extensions``:
-    ``(code, content)`` pairs. A ValueError for a type or a size NIfTI-1
+    ``(code, content)`` pairs; ``fields``: other fields' values by name
+    (``cal_min``, ``dim_info``, ...). A ValueError for a type or a size NIfTI-1
     cannot hold: more than 32767 samples along an axis is refused (nibabel
     wrote a line of them with FreeSurfer's ``dim[1] = -1``, which ITK and
     SimpleITK do not read as such).
@@ -135,6 +137,8 @@ def nifti1_header_bytes(shape_xyz: tuple[int, ...], dtype, aff: np.ndarray, *,
         hdr["intent_p1"], hdr["intent_p2"], hdr["intent_p3"] = params
         hdr["intent_name"] = name[:16]
     hdr["descrip"] = descrip[:80]
+    for name, value in (fields or {}).items():
+        hdr[name] = value
     hdr["magic"] = b"n+1"
     tail = b"".join(extension_bytes(code, content) for code, content in extensions)
     hdr["vox_offset"] = 352 + len(tail)

@@ -8,7 +8,13 @@ data (one file, ``LIST`` or a ``%d`` pattern), line and byte skips.
 Key/value pairs (``key:=value``) are kept in ``Volume.meta``, with teem's
 two escapes (``\n`` a newline, ``\\`` a backslash: :func:`_unescape`); the
 descriptive fields ``content``, ``space units`` and ``measurement frame``
-are kept as ``NRRD_content`` etc. (ITK's names), and written back.
+are kept as ``NRRD_content`` etc. (ITK's names), and written back; so are
+``sample units``, ``thicknesses`` and ``labels`` (the last two of a 3-D
+file), true of the samples as read on their grid: ``convert`` keeps them, a
+command that computes new samples drops them
+(:func:`volwarp_cli.provenance.stamp`). ``centerings`` is read for the
+geometry and not written back (volwarp writes ``space directions``, cell
+centred as ITK takes them).
 
 Writes deterministic files (no timestamp, gzip with mtime 0) that pynrrd,
 SimpleITK and 3D Slicer open with the same geometry. The header is parsed
@@ -71,6 +77,11 @@ _ENCODINGS = {"raw": "raw", "gzip": "gzip", "gz": "gzip", "bzip2": "bzip2", "bz2
               "hex": "hex",
               "ascii": "ascii", "txt": "ascii", "text": "ascii"}
 _KEPT_FIELDS = ("content", "space units", "measurement frame")
+#: fields true of the samples as read, on their grid (``NRRD_<field>``): kept by ``convert``
+#: only (:data:`volwarp_cli.provenance.AS_READ_KEYS`); the two of an entry an axis from a 3-D
+#: file only (a 4-D file's name its component axis too)
+AS_READ_FIELDS = ("sample units", "thicknesses", "labels")
+_PER_AXIS = ("thicknesses", "labels")
 #: the NRRD field names (to tell a field from a file name after "data file: LIST")
 _FIELDS = frozenset((
     "dimension", "type", "block size", "blocksize", "encoding", "endian", "content", "number",
@@ -634,6 +645,13 @@ def _read_nrrd(path, component, *, mmap: bool, every: bool = False):
 def kept_fields(fields: dict, space, where: str) -> dict:
     """The header's kept fields as key/values ``NRRD_<field>`` (the measurement frame in LPS)."""
     meta = {f"NRRD_{name}": fields[name] for name in _KEPT_FIELDS if name in fields}
+    for name in AS_READ_FIELDS:
+        if name not in fields or not fields[name].strip():
+            continue
+        if name in _PER_AXIS and (fields.get("dimension", "").strip() != "3"
+                                  or len(_unit_words(fields, name) or ()) != 3):
+            continue
+        meta[f"NRRD_{name}"] = fields[name].strip()
     if "NRRD_space units" in meta and length_scale(fields, 3, where) is not None:
         meta["NRRD_space units"] = '"mm" "mm" "mm"'  # (the numbers are millimetres now)
     if "measurement frame" in fields and space is not None:
@@ -846,10 +864,11 @@ def nrrd_header(vol: Volume | Header, dtype: np.dtype, *, encoding: str, byte_or
         lines.append(f"endian: {byte_order}")
     lines.append(f"encoding: {encoding}")
     lines.append(f"space origin: {_vec(vol.origin)}")
-    for name in _KEPT_FIELDS:
+    for name in _KEPT_FIELDS + AS_READ_FIELDS:
         value = vol.meta.get(f"NRRD_{name}")
-        if value is not None:  # (a field has no escapes: one line)
-            lines.append(f"{name}: {' '.join(str(value).splitlines())}")
+        if value is None or (components is not None and name in _PER_AXIS):
+            continue  # (a multi-component file has one axis more than the entries)
+        lines.append(f"{name}: {' '.join(str(value).splitlines())}")  # (no escapes: one line)
     if data_file is not None:
         lines.append(f"data file: {data_file}")
     meta = {k: v for k, v in vol.meta.items() if not k.startswith("NRRD_")}

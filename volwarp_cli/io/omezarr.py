@@ -168,8 +168,13 @@ def reindexed_header(header: Header) -> Header:
         if np.array_equal(header.direction, np.eye(3)):
             return header
         return header.replace(direction=np.eye(3))
+    from ..provenance import AS_READ_AXIS_KEYS
+
     shape = tuple(header.shape[o] for o in order)
-    return header.replace(shape=shape, **reindexed_geometry(header, flips, order))
+    # (a slice axis, slice numbers or per-axis entries of the file's index order: not the
+    # store's, whose axes are flipped or permuted)
+    meta = {k: v for k, v in header.meta.items() if k not in AS_READ_AXIS_KEYS}
+    return header.replace(shape=shape, meta=meta, **reindexed_geometry(header, flips, order))
 
 
 def reindex_axes(direction) -> tuple[tuple[int, ...], tuple[int, int, int]] | None:
