@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from volwarp_cli import provenance
+from volwarp_cli.io import metaimage as metaimage_io
 from volwarp_cli.io import nifti as nifti_io
 from volwarp_cli.io import nrrd as nrrd_io
 
@@ -163,7 +164,8 @@ def test_the_per_axis_fields_of_a_4d_file_are_not_given_to_one_of_its_volumes(ru
 
 
 def test_the_keys_commands_drop_are_the_readers_fields():
-    readers = set(nifti_io.AS_READ_FIELDS) | {f"NRRD_{n}" for n in nrrd_io.AS_READ_FIELDS}
+    readers = (set(nifti_io.AS_READ_FIELDS) | {f"NRRD_{n}" for n in nrrd_io.AS_READ_FIELDS}
+               | {metaimage_io.PREFIX + n for n in metaimage_io.AS_READ_FIELDS})
     assert provenance.AS_READ_KEYS == readers
     assert provenance.AS_READ_AXIS_KEYS < provenance.AS_READ_KEYS
 
@@ -181,3 +183,26 @@ def test_a_store_of_an_unflipped_grid_keeps_the_slice_fields(run, tmp_path):
     header = nib.load(str(tmp_path / "b.nii")).header
     assert header.get_dim_info() == (0, 1, 2)
     assert (header["slice_start"], header["slice_end"], header["slice_code"]) == (1, 8, 3)
+
+
+def test_a_distance_of_a_metaimage_drops_its_samples_range(run, tmp_path):
+    """ElementMin/ElementMax say the samples' range: a distance map's is another (it kept
+    the input's 0..1); convert keeps them, with the rest of the header."""
+    header = ("ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
+              "TransformMatrix = 1 0 0 0 1 0 0 0 1\nOffset = 1 2 3\nElementSpacing = 0.8 0.9 1.1\n"
+              "Modality = MET_MOD_MR\nElementMin = 0\nElementMax = 1\nDimSize = 8 9 10\n"
+              "ElementType = MET_FLOAT\nElementDataFile = LOCAL\n")
+    src = tmp_path / "in.mha"
+    src.write_bytes(header.encode() + SAMPLES.tobytes(order="F"))
+    assert run("convert", src, "-o", tmp_path / "c.mha").code == 0
+    assert run("distance", src, "--iso", "0.5", "--values", "intensity",
+               "-o", tmp_path / "d.mha").code == 0
+
+    def fields(path):
+        head = path.read_bytes().split(b"ElementDataFile")[0].decode()
+        return dict(line.split(" = ", 1) for line in head.splitlines())
+
+    assert fields(tmp_path / "c.mha")["ElementMax"] == "1"
+    got = fields(tmp_path / "d.mha")
+    assert "ElementMin" not in got and "ElementMax" not in got
+    assert got["Modality"] == "MET_MOD_MR"

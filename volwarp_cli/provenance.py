@@ -82,12 +82,13 @@ PROVENANCE_KEYS = ("volwarp_version", "volwarp_command", "volwarp_input", "volwa
 #: ``convert`` carries them (the same samples, the same grid); an output a command
 #: computes does not (:func:`stamp`): a display window would hide the new values, a slice
 #: thickness, slice axis or timing is no longer the acquisition's, a distance map's units
-#: are millimetres (:data:`volwarp_cli.io.nifti.AS_READ_FIELDS`,
-#: :data:`volwarp_cli.io.nrrd.AS_READ_FIELDS`)
+#: are millimetres and its range is not its input's (:data:`volwarp_cli.io.nifti.AS_READ_FIELDS`,
+#: :data:`volwarp_cli.io.nrrd.AS_READ_FIELDS`, :data:`volwarp_cli.io.metaimage.AS_READ_FIELDS`)
 AS_READ_KEYS = frozenset((
     "NIfTI_cal_min", "NIfTI_cal_max", "NIfTI_dim_info", "NIfTI_slice_code",
     "NIfTI_slice_start", "NIfTI_slice_end", "NIfTI_slice_duration", "NIfTI_toffset",
-    "NIfTI_aux_file", "NRRD_sample units", "NRRD_thicknesses", "NRRD_labels"))
+    "NIfTI_aux_file", "NRRD_sample units", "NRRD_thicknesses", "NRRD_labels",
+    "MetaImage_ElementMin", "MetaImage_ElementMax"))
 #: those of :data:`AS_READ_KEYS` that name the file's axes or slices by their index order:
 #: dropped too where the samples are stored reindexed (an OME-Zarr store of a flipped or
 #: permuted grid, :func:`volwarp_cli.io.omezarr.reindexed_header`)

@@ -19,7 +19,8 @@ compute from the direction (``RAI`` for the identity), and on read keeps a
 file's value in ``meta`` only where it disagrees with that.
 
 ``meta``: MetaIO's descriptive fields (``Comment``, ``Name``, ``Modality``, ...)
-are kept as ``MetaImage_<Key>`` and written back; other (user) fields are kept
+are kept as ``MetaImage_<Key>`` and written back (``ElementMin``/``ElementMax``, the
+samples' range, by ``convert`` only: a command's new samples drop them); other (user) fields are kept
 under their own name, as ITK puts them in its metadata dictionary, so that they
 survive a trip through NRRD and back. Writes deterministic files, header fields
 in the order ITK writes them, floats exact (``repr``).
@@ -83,6 +84,9 @@ _DESCRIPTIVE = frozenset((
     "Comment", "ObjectSubType", "TransformType", "Name", "ID", "ParentID", "Color",
     "Modality", "SequenceID", "ElementMin", "ElementMax", "DistanceUnits", "AcquisitionDate"))
 PREFIX = "MetaImage_"
+#: those true of the samples as read (their range): kept by ``convert`` only
+#: (:data:`volwarp_cli.provenance.AS_READ_KEYS`)
+AS_READ_FIELDS = ("ElementMin", "ElementMax")
 _MAX_HEADER_LINES = 100_000
 _TRUE = ("true", "1")
 _FALSE = ("false", "0")
