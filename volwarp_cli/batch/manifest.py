@@ -347,6 +347,50 @@ def _glob_root(pattern: str) -> str:
     return str(Path(*fixed)) if fixed else "."
 
 
+def glob_pattern(manifest: Manifest) -> str | None:
+    """The manifest's ``inputs.glob``, resolved (None: its scans are listed or tabled)."""
+    inputs = manifest.doc.data["inputs"]
+    return str(manifest.doc.resolve(inputs["glob"])) if "glob" in inputs else None
+
+
+def glob_would_match(pattern: str, path) -> bool:
+    """Whether ``glob.glob(pattern, recursive=True)`` would list the file ``path`` were it there.
+
+    (Relative ones: of the working folder.) Component by component, as glob matches them: ``**`` any
+    number of folders (none too), the others by fnmatch's rules (case counts),
+    a wildcard never matching a name that starts with a dot (glob's hidden
+    files); a folder that exists is matched as glob would (it lists ``path``
+    only where every folder on the way matches).
+    """
+    import fnmatch
+
+    want = Path(os.path.normpath(os.path.abspath(pattern))).parts
+    have = Path(os.path.normpath(os.path.abspath(path))).parts
+
+    def match(i: int, j: int) -> bool:
+        if i == len(want):
+            return j == len(have)
+        part = want[i]
+        if part == "**":  # (last: the file and the folders above it, one at least)
+            if i == len(want) - 1:
+                return j < len(have) and not any(h.startswith(".") for h in have[j:])
+            if match(i + 1, j):
+                return True
+            return j < len(have) and not have[j].startswith(".") and match(i, j + 1)
+        if j == len(have):
+            return False
+        if glob.has_magic(part):
+            if have[j].startswith(".") and not part.startswith("."):
+                return False
+            if not fnmatch.fnmatchcase(have[j], part):
+                return False
+        elif part != have[j]:
+            return False
+        return match(i + 1, j + 1)
+
+    return match(0, 0)
+
+
 def find_scans(manifest: Manifest) -> list[Scan]:
     """The manifest's scans, sorted by id; two scans with one id are a spec error.
 

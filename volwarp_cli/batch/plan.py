@@ -577,6 +577,9 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
                     raise _located(manifest, key, f"{'' if fixed_name else f'scan {scan.id}: '}"
                                                   f"{exc}") from None
                 _refuse_over_scans(manifest, key, out, option, scan_files)
+                future = _future_scan(manifest, out, option)
+                if future is not None:
+                    raise _located(manifest, key, future)
                 try:
                     refuse_unnamable_data_file(out, option)  # (a scan's name in a .nhdr's)
                     cells.refuse(out, option)
@@ -647,6 +650,31 @@ def _refuse_over_scans(manifest, key, out: Path, option: str, scan_files: dict) 
                                           "replaces an input")
 
 
+def _future_scan(manifest, out: Path, option: str) -> str | None:
+    """Why ``out`` may not be written: ``inputs.glob`` matches it, outside the output folder.
+
+    (The glob leaves the output folder out.) Written on the first run, it was
+    a scan of every later one, and a step writing it was refused from then on
+    ("would overwrite the scan"): refused on the first run instead.
+    """
+    from ..io.inputs import output_files
+    from .manifest import glob_pattern, glob_would_match
+
+    pattern = glob_pattern(manifest)
+    if pattern is None:
+        return None
+    folder = os.path.realpath(manifest.output_dir)
+    for target in output_files(out):
+        real = os.path.realpath(target)
+        if real == folder or real.startswith(folder + os.sep):
+            continue
+        if glob_would_match(pattern, target):
+            return (f"{option} {out}: inputs.glob {pattern!r} matches it, so the next run "
+                    "would take it for a scan; write it under output_dir (a name with {stem} "
+                    "goes there) or name it so that the glob does not match it")
+    return None
+
+
 def _refuse_twice(manifest, key, out: Path, writer: _Writer, writers: dict) -> None:
     """Note ``writer`` of ``out`` (and of the data file it writes); refuse a second writer."""
     from ..io.inputs import output_files
@@ -684,9 +712,9 @@ def _check_reports(manifest, reports, fixed, scan_files, writers, cells) -> None
         _refuse_over(out, option, list(fixed), fixed)
         cells.refuse(out, option)
         scan_index.refuse(out, option)
-        inside = _in_records(manifest, out, option)
-        if inside is not None:
-            raise BadUsage(inside)
+        for why in (_in_records(manifest, out, option), _future_scan(manifest, out, option)):
+            if why is not None:
+                raise BadUsage(why)
         other = scan_files.get(os.path.realpath(out))
         if other is not None:
             raise BadUsage(f"{option} {path} would overwrite the scan {other.id!r} "
