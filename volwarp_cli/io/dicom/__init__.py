@@ -30,8 +30,9 @@ Candidates (:func:`scan_dicom`)
     When a path holds several candidates the caller must choose one
     (``series=`` a SeriesInstanceUID or a 0-based index): volwarp never picks
     the first silently (:class:`DicomSeriesChoiceError`).
-    Enhanced multi-frame files (and any multi-frame with per-frame functional
-    groups) give one frame record per frame from the per-frame groups
+    Enhanced multi-frame files (and any file with per-frame functional groups,
+    one frame too: a Legacy Converted Enhanced MR or PET of one slice has its
+    geometry and rescale only there) give one frame record per frame from the per-frame groups
     (PlanePosition, PlaneOrientation, PixelMeasures, PixelValueTransformation,
     the shared groups as fallback); different orientations, StackIDs, temporal
     positions or segments are different candidates. RT Dose frames lie at

@@ -545,7 +545,8 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
         keys = {"ImageOrientationPatient": tuple(iop), "PixelSpacing": _tup(top_spacing)}
         for k in range(n_frames):
             add(positions[k], row, col, top_spacing, 1.0, 0.0, single, keys, {}, frame=k)
-    elif pffg is not None and (n_frames > 1 or sop_is_enhanced(sop)):
+    elif pffg is not None:  # (one frame too, whatever the SOP class: a Legacy Converted
+        # Enhanced MR or PET of one frame has its geometry and rescale only there)
         _enhanced_frames(ds, pffg, n_frames, where, add, top_spacing, top_slope, top_inter,
                          single)
     else:
@@ -638,12 +639,6 @@ def _absolute_steps(offsets, ipp, normal, where: str) -> np.ndarray:
                           f"an absolute z position, but ImagePositionPatient's z is {ipp[2]:g} "
                           "(they must agree within 0.01 mm)")
     return (offsets - offsets[0]) / normal[2]
-
-
-def sop_is_enhanced(sop: str) -> bool:
-    return sop in ("1.2.840.10008.5.1.4.1.1.2.1", "1.2.840.10008.5.1.4.1.1.4.1",
-                   "1.2.840.10008.5.1.4.1.1.2.2", "1.2.840.10008.5.1.4.1.1.4.3",
-                   "1.2.840.10008.5.1.4.1.1.66.4", "1.2.840.10008.5.1.4.1.1.130")
 
 
 def _tup(v):
