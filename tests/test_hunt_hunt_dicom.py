@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import math
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ pydicom = pytest.importorskip("pydicom")
 sitk = pytest.importorskip("SimpleITK")
 
 from pydicom.data import get_testdata_file  # noqa: E402
+from test_io_dicom import write_series  # noqa: E402
 
 from volwarp_cli.io.dicom import read_dicom  # noqa: E402
 
@@ -83,3 +85,50 @@ def test_series_of_one_frame_legacy_enhanced_files_is_one_stack(tmp_path):
         point = vol.index_to_world(np.array([3, 5, k]))
         i, j, m = img.TransformPhysicalPointToIndex(tuple(point))
         assert sitk.GetArrayFromImage(img)[m, j, i] == vol.data[k, 5, 3]
+
+
+def _world_ramp(pts):
+    return 1000 + 3 * pts[..., 0] - 2 * pts[..., 1] + 5 * pts[..., 2]
+
+
+@pytest.mark.parametrize("labels", [False, True])
+def test_tilted_slice_shifted_by_whole_pixels_keeps_its_edge(tmp_path, labels):
+    """An oblique gantry-tilted stack whose last slice moves exactly 3 pixels along its rows:
+    its positions, written to six decimals, put that shift 4e-7 pixel off, and the
+    resampling took the field's edge column for outside: the volume's minimum, exit 0.
+    Every voxel of the field (to 1e-3 pixel) keeps the world ramp the slices hold; a
+    label map keeps its ids there."""
+    c, s = math.cos(0.5), math.sin(0.5)
+    orientation = (c, s, 0, -s * 0.6, c * 0.6, 0.8)
+    row, col = np.array(orientation[:3]), np.array(orientation[3:])
+    spacing, shape, n = (0.8, 0.7), (30, 26), 8
+    positions = [np.array([5.0, -3.0, 7.0]) + k * (2.0 * np.cross(row, col) + 0.3 * row - 0.2 * col)
+                 for k in range(n)]
+    j, i = np.mgrid[0:shape[0], 0:shape[1]]
+    stored = np.empty((n,) + shape, np.int16)
+    for k, p in enumerate(positions):
+        world = p + i[..., None] * spacing[1] * row + j[..., None] * spacing[0] * col
+        stored[k] = np.rint(_world_ramp(world))
+    if labels:
+        # ids 0, 7, 55 in bands of the ramp (the resampling picks the nearest sample)
+        lo, hi = np.percentile(stored, [40, 70])
+        stored = np.select([stored < lo, stored < hi], [0, 7], 55).astype(np.int16)
+    write_series(tmp_path / "t", stored, positions=positions, spacing=spacing,
+                 orientation=orientation)
+    vol = read_dicom(tmp_path / "t")
+    ijk = np.indices(vol.shape_xyz).reshape(3, -1).T
+    world = vol.index_to_world(ijk)
+    got = vol.data[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+    last = ijk[:, 2] == n - 1
+    # where each voxel of the last plane lies in the last slice's pixels
+    x = (world[last] - positions[-1]) @ row / spacing[1]
+    y = (world[last] - positions[-1]) @ col / spacing[0]
+    tol = 1e-3
+    inside = (x > -tol) & (x < shape[1] - 1 + tol) & (y > -tol) & (y < shape[0] - 1 + tol)
+    edge = inside & (np.abs(x) < tol)
+    assert edge.sum() >= 20  # the column the slice's shift puts at the field's edge
+    if labels:
+        xi, yi = np.rint(x[inside]).astype(int), np.rint(y[inside]).astype(int)
+        np.testing.assert_array_equal(got[last][inside], stored[-1][yi, xi])
+    else:
+        np.testing.assert_allclose(got[last][inside], _world_ramp(world[last][inside]), atol=0.51)

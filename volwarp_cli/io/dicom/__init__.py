@@ -69,7 +69,8 @@ Geometry
     orthogonal grid that has the normal as third axis, slice by slice in the
     slice planes (bilinear = trilinear with integer z), out-of-field voxels
     set to the volume's minimum (a voxel is interpolated from samples of the
-    field only, or is that fill), with the tilt angle logged; ``keep_shear``
+    field only, or is that fill; a slice's shift within 1e-3 pixel of whole
+    pixels is whole: its edge column stays in the field), with the tilt angle logged; ``keep_shear``
     returns the exact sheared geometry instead (third direction column the
     unit vector between successive slice origins, as ITK does).
 
