@@ -132,3 +132,29 @@ def test_tilted_slice_shifted_by_whole_pixels_keeps_its_edge(tmp_path, labels):
         np.testing.assert_array_equal(got[last][inside], stored[-1][yi, xi])
     else:
         np.testing.assert_allclose(got[last][inside], _world_ramp(world[last][inside]), atol=0.51)
+
+
+@pytest.mark.parametrize("orientation", [(1, 0, 0, 1e-5, 1, 0), (0.6, 0.8, 2e-5, 0, 3e-5, -1)])
+def test_cosines_a_hair_off_a_right_angle_are_squared_as_simpleitk(tmp_path, run, orientation):
+    """ImageOrientationPatient 1e-5 off orthogonal (cosines rounded by the scanner): the
+    grid was kept sheared by that much, unlike SimpleITK's, and ``convert`` to NIfTI
+    refused the series as a sheared grid (exit 1). The row cosine is made square to the
+    column cosine as ITK does: SimpleITK's direction, and the NIfTI holds the same points."""
+    rng = np.random.default_rng(11)
+    stored = rng.integers(-1000, 3000, size=(5, 6, 7)).astype(np.int16)
+    write_series(tmp_path / "s", stored, orientation=orientation)
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(tmp_path / "s")))
+    img = reader.Execute()
+    vol = read_dicom(tmp_path / "s")
+    np.testing.assert_allclose(vol.direction, np.reshape(img.GetDirection(), (3, 3)), atol=1e-12)
+    np.testing.assert_allclose(vol.origin, img.GetOrigin(), atol=1e-6)
+    np.testing.assert_allclose(vol.spacing, img.GetSpacing(), atol=1e-6)
+    out = tmp_path / "s.nii.gz"
+    res = run("convert", tmp_path / "s", "-o", out)
+    assert res.code == 0, res.stderr
+    nii = sitk.ReadImage(str(out))
+    np.testing.assert_allclose(np.reshape(nii.GetDirection(), (3, 3)),
+                               np.reshape(img.GetDirection(), (3, 3)), atol=1e-6)
+    np.testing.assert_allclose(nii.GetOrigin(), img.GetOrigin(), atol=1e-4)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(nii), sitk.GetArrayFromImage(img))

@@ -45,7 +45,8 @@ Geometry
     Slices are sorted by their position projected on the slice normal (row
     cosine x column cosine), never by InstanceNumber or file name. Direction
     columns are the row cosine (x), the column cosine (y) and the stack
-    direction; the origin is the first sorted slice's ImagePositionPatient.
+    direction (a row cosine within 1e-4 of square to the column, as rounded
+    cosines leave it, made square to it as ITK does); the origin is the first sorted slice's ImagePositionPatient.
     The slice spacing comes from the positions, never from SliceThickness;
     gaps must agree within max(1e-3 * spacing, 0.01 mm), else a FormatError
     names the gap (a multiple of the spacing is reported as missing slices),

@@ -53,6 +53,9 @@ PHI_TAGS = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "Patie
 
 #: position tolerance (mm) for "same orientation / same pixel spacing"
 _ATOL = 1e-4
+#: |row . column| of ImageOrientationPatient taken for a right angle (the cosines rounded):
+#: :attr:`volwarp_cli.geometry.Geometry.right_angled`'s tolerance
+_SQUARE = 1e-4
 #: a file's first bytes its stamp hashes (its header, up to the pixel data)
 HEADER_STAMP_BYTES = 1 << 16
 
@@ -392,6 +395,13 @@ def _cosines(iop, where: str):
     if np.linalg.norm(np.cross(row, col)) < 1e-3:
         raise FormatError(f"{where}: ImageOrientationPatient row and column are parallel "
                           f"({iop.tolist()})")
+    dot = float(row @ col)
+    if 0 < abs(dot) <= _SQUARE:
+        # cosines rounded by the scanner, a hair off a right angle: the row made square to
+        # the column as ITK does (SimpleITK's direction); kept, the grid was sheared by
+        # that hair and NIfTI outputs refused it
+        row = row - dot * col
+        row /= np.linalg.norm(row)
     return row, col
 
 
