@@ -30,8 +30,9 @@ Candidates (:func:`scan_dicom`)
     When a path holds several candidates the caller must choose one
     (``series=`` a SeriesInstanceUID or a 0-based index): volwarp never picks
     the first silently (:class:`DicomSeriesChoiceError`).
-    Enhanced multi-frame files (and any multi-frame with per-frame functional
-    groups) give one frame record per frame from the per-frame groups
+    Enhanced multi-frame files (and any file with per-frame functional groups,
+    one frame too: a Legacy Converted Enhanced MR or PET of one slice has its
+    geometry and rescale only there) give one frame record per frame from the per-frame groups
     (PlanePosition, PlaneOrientation, PixelMeasures, PixelValueTransformation,
     the shared groups as fallback); different orientations, StackIDs, temporal
     positions or segments are different candidates. RT Dose frames lie at
@@ -44,7 +45,8 @@ Geometry
     Slices are sorted by their position projected on the slice normal (row
     cosine x column cosine), never by InstanceNumber or file name. Direction
     columns are the row cosine (x), the column cosine (y) and the stack
-    direction; the origin is the first sorted slice's ImagePositionPatient.
+    direction (a row cosine within 1e-4 of square to the column, as rounded
+    cosines leave it, made square to it as ITK does); the origin is the first sorted slice's ImagePositionPatient.
     The slice spacing comes from the positions, never from SliceThickness;
     gaps must agree within max(1e-3 * spacing, 0.01 mm), else a FormatError
     names the gap (a multiple of the spacing is reported as missing slices),
@@ -68,7 +70,8 @@ Geometry
     orthogonal grid that has the normal as third axis, slice by slice in the
     slice planes (bilinear = trilinear with integer z), out-of-field voxels
     set to the volume's minimum (a voxel is interpolated from samples of the
-    field only, or is that fill), with the tilt angle logged; ``keep_shear``
+    field only, or is that fill; a slice's shift within 1e-3 pixel of whole
+    pixels is whole: its edge column stays in the field), with the tilt angle logged; ``keep_shear``
     returns the exact sheared geometry instead (third direction column the
     unit vector between successive slice origins, as ITK does).
 

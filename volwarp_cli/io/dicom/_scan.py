@@ -53,6 +53,9 @@ PHI_TAGS = ("PatientName", "PatientID", "PatientBirthDate", "PatientSex", "Patie
 
 #: position tolerance (mm) for "same orientation / same pixel spacing"
 _ATOL = 1e-4
+#: |row . column| of ImageOrientationPatient taken for a right angle (the cosines rounded):
+#: :attr:`volwarp_cli.geometry.Geometry.right_angled`'s tolerance
+_SQUARE = 1e-4
 #: a file's first bytes its stamp hashes (its header, up to the pixel data)
 HEADER_STAMP_BYTES = 1 << 16
 
@@ -392,6 +395,13 @@ def _cosines(iop, where: str):
     if np.linalg.norm(np.cross(row, col)) < 1e-3:
         raise FormatError(f"{where}: ImageOrientationPatient row and column are parallel "
                           f"({iop.tolist()})")
+    dot = float(row @ col)
+    if 0 < abs(dot) <= _SQUARE:
+        # cosines rounded by the scanner, a hair off a right angle: the row made square to
+        # the column as ITK does (SimpleITK's direction); kept, the grid was sheared by
+        # that hair and NIfTI outputs refused it
+        row = row - dot * col
+        row /= np.linalg.norm(row)
     return row, col
 
 
@@ -545,7 +555,8 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
         keys = {"ImageOrientationPatient": tuple(iop), "PixelSpacing": _tup(top_spacing)}
         for k in range(n_frames):
             add(positions[k], row, col, top_spacing, 1.0, 0.0, single, keys, {}, frame=k)
-    elif pffg is not None and (n_frames > 1 or sop_is_enhanced(sop)):
+    elif pffg is not None:  # (one frame too, whatever the SOP class: a Legacy Converted
+        # Enhanced MR or PET of one frame has its geometry and rescale only there)
         _enhanced_frames(ds, pffg, n_frames, where, add, top_spacing, top_slope, top_inter,
                          single)
     else:
@@ -638,12 +649,6 @@ def _absolute_steps(offsets, ipp, normal, where: str) -> np.ndarray:
                           f"an absolute z position, but ImagePositionPatient's z is {ipp[2]:g} "
                           "(they must agree within 0.01 mm)")
     return (offsets - offsets[0]) / normal[2]
-
-
-def sop_is_enhanced(sop: str) -> bool:
-    return sop in ("1.2.840.10008.5.1.4.1.1.2.1", "1.2.840.10008.5.1.4.1.1.4.1",
-                   "1.2.840.10008.5.1.4.1.1.2.2", "1.2.840.10008.5.1.4.1.1.4.3",
-                   "1.2.840.10008.5.1.4.1.1.66.4", "1.2.840.10008.5.1.4.1.1.130")
 
 
 def _tup(v):
