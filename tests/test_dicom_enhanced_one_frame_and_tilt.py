@@ -158,3 +158,26 @@ def test_cosines_a_hair_off_a_right_angle_are_squared_as_simpleitk(tmp_path, run
                                np.reshape(img.GetDirection(), (3, 3)), atol=1e-6)
     np.testing.assert_allclose(nii.GetOrigin(), img.GetOrigin(), atol=1e-4)
     np.testing.assert_array_equal(sitk.GetArrayFromImage(nii), sitk.GetArrayFromImage(img))
+
+
+def test_a_series_without_pixel_spacing_says_the_1mm_it_assumes(tmp_path, caplog):
+    """No PixelSpacing (nor ImagerPixelSpacing): 1 mm pixels, as SimpleITK takes them, but
+    said (a warning) and recorded in DICOM_geometry, as the docs promise of what the files
+    leave out; it was silent, and a distance or a mesh of it was off by the real size."""
+    import pydicom as dicom
+
+    stored = np.arange(3 * 4 * 5, dtype=np.int16).reshape(3, 4, 5)
+    paths = write_series(tmp_path / "s", stored)
+    for p in paths:
+        ds = dicom.dcmread(p)
+        del ds.PixelSpacing
+        ds.save_as(p)
+    with caplog.at_level("WARNING"):
+        vol = read_dicom(tmp_path / "s")
+    assert "no PixelSpacing" in caplog.text and "1 mm pixels assumed" in caplog.text
+    assert "1 mm pixels (no PixelSpacing)" in vol.meta["DICOM_geometry"]
+    ref = sitk.ImageSeriesReader()
+    ref.SetFileNames(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(tmp_path / "s")))
+    img = ref.Execute()
+    np.testing.assert_allclose(vol.spacing, img.GetSpacing(), atol=1e-6)
+    assert np.array_equal(vol.data, sitk.GetArrayFromImage(img))

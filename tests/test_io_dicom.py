@@ -222,7 +222,8 @@ def test_enhanced_mr_without_geometry_as_simpleitk():
     assert_same_geometry(vol, img)
     np.testing.assert_array_equal(vol.data, sitk.GetArrayFromImage(img))
     assert vol.meta["DICOM_geometry"] == ("assumed: origin 0 (no ImagePositionPatient), "
-                                          "identity orientation (no ImageOrientationPatient)")
+                                          "identity orientation (no ImageOrientationPatient), "
+                                          "1 mm pixels (no PixelSpacing)")
 
 
 def test_segmentation_multiframe_with_functional_groups():

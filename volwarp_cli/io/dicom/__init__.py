@@ -64,8 +64,9 @@ Geometry
     GDCM leaves out for NM, as fallback; detectors placed differently refused).
     Without SpacingBetweenSlices, unit spacing as ITK's (SliceThickness is not
     the spacing), with a warning; whatever the file leaves out and volwarp
-    assumed (that spacing, origin 0, identity orientation) is said in the key
-    ``DICOM_geometry``. A gantry-tilted stack (slice
+    assumed (that spacing, origin 0, identity orientation, 1 mm pixels where
+    neither PixelSpacing nor ImagerPixelSpacing is given, as ITK takes them:
+    with a warning too) is said in the key ``DICOM_geometry``. A gantry-tilted stack (slice
     origins moving in-plane along the stack) is by default resampled onto the
     orthogonal grid that has the normal as third axis, slice by slice in the
     slice planes (bilinear = trilinear with integer z), out-of-field voxels

@@ -15,7 +15,14 @@ from ..common import ensure_fits_in_memory, make_volume
 from ..lazy import make_header
 from ._geometry import plan_stack, resample
 from ._pixels import output_dtype, read_frames
-from ._scan import META_TAGS, PHI_TAGS, Candidate, DicomSeriesChoiceError, scan_dicom
+from ._scan import (
+    META_TAGS,
+    NO_PIXEL_SPACING,
+    PHI_TAGS,
+    Candidate,
+    DicomSeriesChoiceError,
+    scan_dicom,
+)
 
 _LPS = "left-posterior-superior"
 
@@ -174,9 +181,12 @@ def _plan(path, *, series, irregular, duplicates, keep_shear, keep_phi, candidat
         raise FormatError(f"{bad.file.path}: {bad.problem}")
     plan = plan_stack(list(cand.frames), where, irregular=irregular, duplicates=duplicates,
                       keep_shear=keep_shear)
-    if f0.assumed and plan.n_out > 1:  # (not silently: a grid with a guessed axis)
+    if f0.assumed and plan.n_out > 1 and f0.synthetic:  # (not silently: a guessed axis)
         log.warning("warning: %s: %d frames without positions of their own, stacked with %s",
                     f0.file.path, plan.n_out, f0.assumed)
+    elif NO_PIXEL_SPACING in f0.assumed:  # (a guessed scale: distances, volumes off)
+        log.warning("warning: %s: no PixelSpacing (nor ImagerPixelSpacing): 1 mm pixels "
+                    "assumed, as ITK does (recorded in DICOM_geometry)", where)
     _check_plan(plan)
     return plan, output_dtype(plan.frames), _meta(cand, plan, keep_phi)
 

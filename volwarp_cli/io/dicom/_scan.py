@@ -56,6 +56,8 @@ _ATOL = 1e-4
 #: |row . column| of ImageOrientationPatient taken for a right angle (the cosines rounded):
 #: :attr:`volwarp_cli.geometry.Geometry.right_angled`'s tolerance
 _SQUARE = 1e-4
+#: what ``Frame.assumed`` says of an image without PixelSpacing (or ImagerPixelSpacing)
+NO_PIXEL_SPACING = "1 mm pixels (no PixelSpacing)"
 #: a file's first bytes its stamp hashes (its header, up to the pixel data)
 HEADER_STAMP_BYTES = 1 << 16
 
@@ -524,6 +526,8 @@ def _file_frames(full: str, label: str, order: int) -> tuple[list[Frame], str]:
 
     def add(position, row, col, spacing, slope, inter, single, keys, split, synthetic=False,
             frame=0, assumed=""):
+        if spacing is None:  # (1 mm pixels, as ITK takes them: said, not silent)
+            assumed = ", ".join(filter(None, (assumed, NO_PIXEL_SPACING)))
         spacing = (1.0, 1.0) if spacing is None else (float(spacing[1]), float(spacing[0]))
         if spacing[0] <= 0 or spacing[1] <= 0:
             raise FormatError(f"{where}: PixelSpacing must be positive, got "
