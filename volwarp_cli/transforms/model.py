@@ -500,12 +500,15 @@ class BSplineGrid:
     ``coefficients`` (z, y, x, 3) LPS mm on the control grid ``frame`` (ITK's
     FixedParameters: size, origin, spacing, direction). As ITK, a point whose
     continuous grid index ``u`` is outside ``[1, n - 2)`` on some axis (its
-    support would leave the grid) is not moved.
+    support would leave the grid) is not moved, except on the far face
+    ``u = n - 2`` (``far_face``, :func:`_onto_far_face`): ITK's
+    ``InsideValidRegion`` takes it as inside; elastix's B-spline does not.
     """
 
     frame: GridFrame
     coefficients: np.ndarray
     name: str = "B-spline transform"
+    far_face: bool = True
 
     linear = False
 
@@ -514,6 +517,8 @@ class BSplineGrid:
         from ._applykernels import bspline_cubic
 
         idx = self.frame.to_index(p)
+        if self.far_face:
+            _onto_far_face(idx, self.frame.size)
         out = np.empty_like(idx)
         bspline_cubic(np.ascontiguousarray(self.coefficients, dtype=np.float64), idx, out)
         return out
@@ -527,6 +532,30 @@ class BSplineGrid:
         vmin, vmax = _range_over(self.coefficients, self.frame, lo, hi, grow=2, inside_lo=1.0,
                                  inside_hi_less=1.0)
         return np.asarray(lo) + vmin, np.asarray(hi) + vmax
+
+
+#: how near (in grid indices) the far face of an ITK B-spline's valid region a point lies on it
+FAR_FACE = 1e-9
+
+
+def _onto_far_face(idx: np.ndarray, size) -> None:
+    """Indices ``idx`` (N, 3) on the far face ``n - 2`` of the valid region moved just inside it.
+
+    ITK's ``BSplineTransform::InsideValidRegion`` takes an index within 4
+    ULPs of ``n - 2`` as an index a few ULPs below it (the last 4
+    coefficients: the spline's limit there), not as outside. A grid placed as ANTs places
+    it (``SetTransformDomain*`` from the fixed image's first voxel centre to
+    its last) puts the fixed grid's last voxels of each axis there: they
+    were left unmoved where ITK moves them. Within :data:`FAR_FACE` here,
+    volwarp's indices rounding otherwise than ITK's.
+    """
+    hi = np.asarray(size, float) - 2.0
+    gap = idx - hi
+    np.abs(gap, out=gap)
+    near = gap <= FAR_FACE
+    del gap
+    if near.any():
+        np.copyto(idx, np.broadcast_to(np.nextafter(hi, 0.0), idx.shape), where=near)
 
 
 @dataclass(frozen=True)
