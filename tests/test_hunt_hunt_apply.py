@@ -122,3 +122,25 @@ def test_elastix_bspline_keeps_its_far_face_outside(tmp_path):
     exactly = np.any(grid_idx >= f[:3] - 2, axis=1)  # (beyond by rounding: outside either way)
     assert exactly.any()
     assert np.array_equal(ours[exactly], pts[exactly])
+
+
+def test_bspline_by_blocks_gives_the_whole_bytes(run, tmp_path):
+    """By blocks = in memory, the same bytes, through a B-spline whose valid region's edge the
+    grid's points lie on: a block's parts of fewer than 4096 points were mapped to the grid's
+    indices by numpy's matmul, the whole's by the kernel, a few ULPs apart, and a point on the
+    edge moved in one and not in the other (voxels up to half the range apart, exit 0)."""
+    fixed = _fixed((1.0, 1.0, 1.0), _rotation(0.1, 0.25, -0.3))
+    sitk.WriteTransform(_ants_bspline(fixed), str(tmp_path / "b.h5"))
+    z, y, x = np.mgrid[:30, :36, :40].astype(np.float32)
+    moving = sitk.GetImageFromArray(np.sin(x / 3) * 100 + np.cos(y / 4) * 80 + z)
+    moving.SetOrigin([-10.0, 5.0, 3.0])
+    sitk.WriteImage(moving, str(tmp_path / "moving.nrrd"))
+    sitk.WriteImage(fixed, str(tmp_path / "fixed.nrrd"))
+    outs = []
+    for name, extra in (("whole", ()), ("blocks", ("--chunked", "--block", "5,6,7"))):
+        res = run("apply", tmp_path / "moving.nrrd", "-o", tmp_path / f"{name}.nrrd",
+                  "--reference", tmp_path / "fixed.nrrd", "-t", tmp_path / "b.h5",
+                  "--background-value", "0", *extra)
+        assert res.code == 0, res
+        outs.append(read_volume(tmp_path / f"{name}.nrrd").data)
+    assert np.array_equal(outs[0], outs[1])

@@ -44,14 +44,18 @@ WINDOW_BYTES = 32 << 20
 
 
 def _affine(p: np.ndarray, m: np.ndarray, o: np.ndarray) -> np.ndarray:
-    """``p @ m.T + o`` for points (N, 3): a kernel for many (numpy's matmul is slow for 3x3)."""
-    p = np.asarray(p, dtype=np.float64)
-    if len(p) < 4096:
-        return p @ np.asarray(m, float).T + o
+    """``p @ m.T + o`` for points (N, 3), by the kernel (numpy's matmul is slow for 3x3).
+
+    For any count: numpy's matmul rounds otherwise, and a block's parts of
+    fewer points then mapped a point a few ULPs off the whole's (a B-spline's
+    valid region's edge, a nearest sample's half-way point: other bytes).
+    """
     from ._applykernels import affine
 
+    p = np.asarray(p, dtype=np.float64)
     out = np.empty(p.shape)  # (C order, as the kernel writes)
-    affine(np.ascontiguousarray(p), np.asarray(m, float), np.asarray(o, float), out)
+    affine(np.ascontiguousarray(p.reshape(-1, 3)), np.asarray(m, float), np.asarray(o, float),
+           out.reshape(-1, 3))
     return out
 
 
