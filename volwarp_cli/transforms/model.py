@@ -233,24 +233,33 @@ class DisplacementField:
         ``grid``: a grid's index -> world map, ``p`` (N, 3) its points of the
         box, x fastest. When ``grid``'s voxels are this field's own nodes (the
         same axes and spacing, the origin a whole number of voxels away: ANTs'
-        ``1Warp.nii.gz`` applied on its fixed image's grid) and the box lies on
-        the field (this window's), the trilinear weights are 0 and 1 and the
-        displacement is the node's vector: added without interpolation (ITK adds
-        the neighbours of non-zero weight only). The kernel's interpolation there
-        gives the same bits where its indices are whole, else differs by
-        rounding (1e-13 mm). False (``p`` untouched): not so, or ``p`` not
-        contiguous; map through :meth:`map`. A non-finite vector moves its point
-        to NaN or infinity, outside every image, said as :meth:`map` says it.
+        ``1Warp.nii.gz`` applied on its fixed image's grid), the trilinear
+        weights are 0 and 1 and the displacement is the node's vector: added
+        without interpolation (ITK adds the neighbours of non-zero weight only);
+        the box's points off the field (a whole voxel or more beyond it) are not
+        moved, as ITK's rule has it. The kernel's interpolation there gives the
+        same bits where its indices are whole, else differs by rounding (1e-13
+        mm): so every block takes this way, whether it lies on the field or
+        not (a block across the field's edge interpolated, and the blocks' bytes
+        were not the whole's). False (``p`` untouched): not so, ``p`` not
+        contiguous, or the box's part on the field beyond this window; map
+        through :meth:`map`. A non-finite vector moves its point to NaN or
+        infinity, outside every image, said as :meth:`map` says it.
         """
         shift = self._node_shift(grid)
         if shift is None or self.vectors is None or not p.flags.c_contiguous:
             return False
-        a = np.asarray(lo, np.int64) + shift - np.asarray(self.offset, np.int64)
-        b = np.asarray(hi, np.int64) + shift - np.asarray(self.offset, np.int64)
-        if np.any(a < 0) or np.any(b > np.array(self.vectors.shape[2::-1])):
+        lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
+        a = np.maximum(lo + shift, 0)  # (the box's part on the field, its indices)
+        b = np.minimum(hi + shift, np.asarray(self.frame.size, np.int64))
+        if np.any(b <= a):
+            return True  # (no point on the field: none moved)
+        wa, wb = a - np.asarray(self.offset, np.int64), b - np.asarray(self.offset, np.int64)
+        if np.any(wa < 0) or np.any(wb > np.array(self.vectors.shape[2::-1])):
             return False
-        u = self.vectors[a[2]:b[2], a[1]:b[1], a[0]:b[0]]
-        view = p.reshape(u.shape)
+        u = self.vectors[wa[2]:wb[2], wa[1]:wb[1], wa[0]:wb[0]]
+        c, d = a - shift - lo, b - shift - lo  # (within the box)
+        view = p.reshape(*(hi - lo)[::-1], 3)[c[2]:d[2], c[1]:d[1], c[0]:d[0]]
         np.add(view, u, out=view)
         finite = np.isfinite(p)
         if not finite.all():
