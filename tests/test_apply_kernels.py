@@ -416,8 +416,10 @@ def test_a_field_on_the_output_grid_adds_the_vectors_its_kernel_interpolates(sha
     """A field whose nodes are the output's voxels (ANTs' warp on its fixed grid): its vectors
     are added as they lie, what the interpolating kernel gives there (the same bits where its
     indices are whole; within 1e-9 mm where rounding puts them a hair off). A window of the
-    field adds as the whole; a grid off the nodes, or a box beyond the field, is left to
-    the kernel (False, nothing added)."""
+    field adds as the whole; a box across the field's edge adds its nodes on the field and
+    leaves the rest, as the kernel does (an output's blocks across it: the whole's bytes); a
+    grid off the nodes, or a box beyond the window, is left to the kernel (False, nothing
+    added)."""
     field, grid = _node_case(shape, shift, oblique, seed)
     lo, hi = np.zeros(3, np.int64), np.array(shape[::-1], np.int64)
     p = np.empty((int(np.prod(shape)), 3))
@@ -438,12 +440,23 @@ def test_a_field_on_the_output_grid_adds_the_vectors_its_kernel_interpolates(sha
                             "field", offset=tuple(int(v) for v in a))
     w = p.copy()
     assert win.add_nodes(grid, lo, hi, w) and np.array_equal(w, q)
-    # half a voxel off the nodes, turned, or reaching past the window: the kernel's
+    # half a voxel off the nodes, turned, or reaching past the window on the field: the kernel's
     half = Affine(grid.matrix, grid.offset + grid.matrix @ [0.5, 0, 0], "grid")
     turned = Affine(grid.matrix @ np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]]), grid.offset,
                     "grid")
+    across = np.empty((int(np.prod(hi - lo + 7)), 3))
+    K.grid_points(lo - 7, hi, grid.matrix, grid.offset, across)
+    ref = field.map(across)
+    assert field.add_nodes(grid, lo - 7, hi, across)
+    if oblique:
+        np.testing.assert_allclose(across, ref, rtol=0, atol=1e-9)
+    else:
+        assert np.array_equal(across.view(np.uint64), ref.view(np.uint64))
+    first = lo + np.array(shift) + 3  # (the box's first node: a window without it)
+    cut = DisplacementField(field.frame, field.vectors[first[2] + 1:, first[1]:, first[0]:],
+                            "field", offset=(int(first[0]), int(first[1]), int(first[2]) + 1))
     for g, box, f in ((half, (lo, hi), field), (turned, (lo, hi), field),
-                      (grid, (lo, b - np.array(shift) - 2), win), (grid, (lo - 7, hi), field)):
+                      (grid, (lo, hi), cut)):
         r = np.empty((int(np.prod(box[1] - box[0])), 3))
         K.grid_points(box[0], box[1], g.matrix, g.offset, r)
         before = r.copy()

@@ -29,6 +29,7 @@ TransformixFilter, given the moving image in memory, only the output grid).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import shlex
@@ -137,7 +138,9 @@ def _step(doc: dict, where: str):
         origin = _numbers(doc, "GridOrigin", 3, where) + direction @ (spacing * index)
         size = _numbers(doc, "GridSize", 3, where, whole=True)
         fixed = [*size, *origin, *spacing, *direction.ravel()]
-    return itk_transform(_CLASSES[kind], params, fixed, where)
+    step = itk_transform(_CLASSES[kind], params, fixed, where)
+    # (elastix's valid region is [1, n - 2) to the letter: its far face is outside, not ITK's)
+    return dataclasses.replace(step, far_face=False) if kind == "BSplineTransform" else step
 
 
 def _initial(doc: dict, path: str, folder: str | None = None) -> str | None:

@@ -44,14 +44,18 @@ WINDOW_BYTES = 32 << 20
 
 
 def _affine(p: np.ndarray, m: np.ndarray, o: np.ndarray) -> np.ndarray:
-    """``p @ m.T + o`` for points (N, 3): a kernel for many (numpy's matmul is slow for 3x3)."""
-    p = np.asarray(p, dtype=np.float64)
-    if len(p) < 4096:
-        return p @ np.asarray(m, float).T + o
+    """``p @ m.T + o`` for points (N, 3), by the kernel (numpy's matmul is slow for 3x3).
+
+    For any count: numpy's matmul rounds otherwise, and a block's parts of
+    fewer points then mapped a point a few ULPs off the whole's (a B-spline's
+    valid region's edge, a nearest sample's half-way point: other bytes).
+    """
     from ._applykernels import affine
 
+    p = np.asarray(p, dtype=np.float64)
     out = np.empty(p.shape)  # (C order, as the kernel writes)
-    affine(np.ascontiguousarray(p), np.asarray(m, float), np.asarray(o, float), out)
+    affine(np.ascontiguousarray(p.reshape(-1, 3)), np.asarray(m, float), np.asarray(o, float),
+           out.reshape(-1, 3))
     return out
 
 
@@ -229,24 +233,33 @@ class DisplacementField:
         ``grid``: a grid's index -> world map, ``p`` (N, 3) its points of the
         box, x fastest. When ``grid``'s voxels are this field's own nodes (the
         same axes and spacing, the origin a whole number of voxels away: ANTs'
-        ``1Warp.nii.gz`` applied on its fixed image's grid) and the box lies on
-        the field (this window's), the trilinear weights are 0 and 1 and the
-        displacement is the node's vector: added without interpolation (ITK adds
-        the neighbours of non-zero weight only). The kernel's interpolation there
-        gives the same bits where its indices are whole, else differs by
-        rounding (1e-13 mm). False (``p`` untouched): not so, or ``p`` not
-        contiguous; map through :meth:`map`. A non-finite vector moves its point
-        to NaN or infinity, outside every image, said as :meth:`map` says it.
+        ``1Warp.nii.gz`` applied on its fixed image's grid), the trilinear
+        weights are 0 and 1 and the displacement is the node's vector: added
+        without interpolation (ITK adds the neighbours of non-zero weight only);
+        the box's points off the field (a whole voxel or more beyond it) are not
+        moved, as ITK's rule has it. The kernel's interpolation there gives the
+        same bits where its indices are whole, else differs by rounding (1e-13
+        mm): so every block takes this way, whether it lies on the field or
+        not (a block across the field's edge interpolated, and the blocks' bytes
+        were not the whole's). False (``p`` untouched): not so, ``p`` not
+        contiguous, or the box's part on the field beyond this window; map
+        through :meth:`map`. A non-finite vector moves its point to NaN or
+        infinity, outside every image, said as :meth:`map` says it.
         """
         shift = self._node_shift(grid)
         if shift is None or self.vectors is None or not p.flags.c_contiguous:
             return False
-        a = np.asarray(lo, np.int64) + shift - np.asarray(self.offset, np.int64)
-        b = np.asarray(hi, np.int64) + shift - np.asarray(self.offset, np.int64)
-        if np.any(a < 0) or np.any(b > np.array(self.vectors.shape[2::-1])):
+        lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
+        a = np.maximum(lo + shift, 0)  # (the box's part on the field, its indices)
+        b = np.minimum(hi + shift, np.asarray(self.frame.size, np.int64))
+        if np.any(b <= a):
+            return True  # (no point on the field: none moved)
+        wa, wb = a - np.asarray(self.offset, np.int64), b - np.asarray(self.offset, np.int64)
+        if np.any(wa < 0) or np.any(wb > np.array(self.vectors.shape[2::-1])):
             return False
-        u = self.vectors[a[2]:b[2], a[1]:b[1], a[0]:b[0]]
-        view = p.reshape(u.shape)
+        u = self.vectors[wa[2]:wb[2], wa[1]:wb[1], wa[0]:wb[0]]
+        c, d = a - shift - lo, b - shift - lo  # (within the box)
+        view = p.reshape(*(hi - lo)[::-1], 3)[c[2]:d[2], c[1]:d[1], c[0]:d[0]]
         np.add(view, u, out=view)
         finite = np.isfinite(p)
         if not finite.all():
@@ -500,12 +513,15 @@ class BSplineGrid:
     ``coefficients`` (z, y, x, 3) LPS mm on the control grid ``frame`` (ITK's
     FixedParameters: size, origin, spacing, direction). As ITK, a point whose
     continuous grid index ``u`` is outside ``[1, n - 2)`` on some axis (its
-    support would leave the grid) is not moved.
+    support would leave the grid) is not moved, except on the far face
+    ``u = n - 2`` (``far_face``, :func:`_onto_far_face`): ITK's
+    ``InsideValidRegion`` takes it as inside; elastix's B-spline does not.
     """
 
     frame: GridFrame
     coefficients: np.ndarray
     name: str = "B-spline transform"
+    far_face: bool = True
 
     linear = False
 
@@ -514,6 +530,8 @@ class BSplineGrid:
         from ._applykernels import bspline_cubic
 
         idx = self.frame.to_index(p)
+        if self.far_face:
+            _onto_far_face(idx, self.frame.size)
         out = np.empty_like(idx)
         bspline_cubic(np.ascontiguousarray(self.coefficients, dtype=np.float64), idx, out)
         return out
@@ -527,6 +545,30 @@ class BSplineGrid:
         vmin, vmax = _range_over(self.coefficients, self.frame, lo, hi, grow=2, inside_lo=1.0,
                                  inside_hi_less=1.0)
         return np.asarray(lo) + vmin, np.asarray(hi) + vmax
+
+
+#: how near (in grid indices) the far face of an ITK B-spline's valid region a point lies on it
+FAR_FACE = 1e-9
+
+
+def _onto_far_face(idx: np.ndarray, size) -> None:
+    """Indices ``idx`` (N, 3) on the far face ``n - 2`` of the valid region moved just inside it.
+
+    ITK's ``BSplineTransform::InsideValidRegion`` takes an index within 4
+    ULPs of ``n - 2`` as an index a few ULPs below it (the last 4
+    coefficients: the spline's limit there), not as outside. A grid placed as ANTs places
+    it (``SetTransformDomain*`` from the fixed image's first voxel centre to
+    its last) puts the fixed grid's last voxels of each axis there: they
+    were left unmoved where ITK moves them. Within :data:`FAR_FACE` here,
+    volwarp's indices rounding otherwise than ITK's.
+    """
+    hi = np.asarray(size, float) - 2.0
+    gap = idx - hi
+    np.abs(gap, out=gap)
+    near = gap <= FAR_FACE
+    del gap
+    if near.any():
+        np.copyto(idx, np.broadcast_to(np.nextafter(hi, 0.0), idx.shape), where=near)
 
 
 @dataclass(frozen=True)
