@@ -175,3 +175,28 @@ def test_field_on_the_output_grid_across_its_edge_by_blocks_gives_the_whole_byte
         moving, fixed, sitk.DisplacementFieldTransform(sitk.Cast(field, sitk.sitkVectorFloat64)),
         sitk.sitkLinear, 0.0, sitk.sitkFloat64))
     assert np.abs(outs[0] - theirs).max() <= 1e-9 * float(np.ptp(theirs))
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_a_bspline_of_another_order_is_refused_by_its_order(run, tmp_path, order):
+    """Refused before as "' BSplineTransform_double_3_3_1' is not an ITK transform name"
+    (a name ITK does write, a leading space): now by what it is."""
+    img = sitk.Image([8, 8, 8], sitk.sitkFloat32)
+    sitk.WriteImage(img, str(tmp_path / "i.nrrd"))
+    tfm = tmp_path / "b.tfm"
+    sitk.WriteTransform(sitk.BSplineTransformInitializer(img, [2, 2, 2], order), str(tfm))
+    r = run("apply", tmp_path / "i.nrrd", "-o", tmp_path / "o.nrrd", "-t", tfm)
+    assert r.code == 1
+    assert f"BSplineTransform of spline order {order} is not supported" in r.stderr, r.stderr
+    assert not (tmp_path / "o.nrrd").exists()
+
+
+def test_the_unsupported_class_message_lists_every_supported_class(run, tmp_path):
+    img = sitk.Image([8, 8, 8], sitk.sitkFloat32)
+    sitk.WriteImage(img, str(tmp_path / "i.nrrd"))
+    tfm = tmp_path / "s.tfm"
+    sitk.WriteTransform(sitk.ScaleSkewVersor3DTransform(), str(tfm))
+    r = run("apply", tmp_path / "i.nrrd", "-o", tmp_path / "o.nrrd", "-t", tfm)
+    assert r.code == 1 and "ScaleSkewVersor3DTransform is not supported" in r.stderr
+    for name in ("ScaleTransform", "Rigid3DTransform", "ScalableAffineTransform"):
+        assert name in r.stderr, r.stderr

@@ -48,7 +48,12 @@ def split_name(name: str, where: str) -> str:
     """The class of an ITK transform name (``Euler3DTransform_double_3_3``), its dimension checked."""
     m = _NAME.match(name.strip())
     if m is None:
-        raise VolwarpError(f"{where}: {name!r} is not an ITK transform name")
+        order = re.match(r"^(\w*BSpline\w*?)_(?:double|float)_3_3_(\d+)$", name.strip())
+        if order is not None and order.group(2) != "3":  # (ITK names a non-cubic spline so)
+            raise VolwarpError(f"{where}: {order.group(1)} of spline order {order.group(2)} "
+                               "is not supported (cubic B-splines only, as ANTs and elastix "
+                               "write them)")
+        raise VolwarpError(f"{where}: {name.strip()!r} is not an ITK transform name")
     cls, _, d_in, d_out = m.groups()
     if d_in != d_out:
         raise VolwarpError(f"{where}: {name.strip()} maps {d_in}-D points to {d_out}-D ones; "
@@ -148,8 +153,9 @@ def itk_transform(cls: str, params, fixed, where: str):
         coef = np.ascontiguousarray(np.moveaxis(params.reshape(3, nz, ny, nx), 0, -1))
         return BSplineGrid(frame, coef, name)
     raise VolwarpError(f"{where}: ITK transform {cls} is not supported (supported: "
-                       "AffineTransform, MatrixOffsetTransformBase, Euler3DTransform, "
-                       "Similarity3DTransform, VersorRigid3DTransform, TranslationTransform, "
+                       "AffineTransform, MatrixOffsetTransformBase, Rigid3DTransform, "
+                       "ScalableAffineTransform, Euler3DTransform, Similarity3DTransform, "
+                       "VersorRigid3DTransform, TranslationTransform, ScaleTransform, "
                        "BSplineTransform, DisplacementFieldTransform, CompositeTransform)")
 
 
