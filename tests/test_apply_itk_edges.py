@@ -136,14 +136,20 @@ def test_bspline_by_blocks_gives_the_whole_bytes(run, tmp_path):
     moving.SetOrigin([-10.0, 5.0, 3.0])
     sitk.WriteImage(moving, str(tmp_path / "moving.nrrd"))
     sitk.WriteImage(fixed, str(tmp_path / "fixed.nrrd"))
+    outs = _whole_and_blocks(run, tmp_path, "5,6,7", "-t", tmp_path / "b.h5")
+    assert np.array_equal(outs[0], outs[1])
+
+
+def _whole_and_blocks(run, tmp_path, block: str, *options) -> list:
+    """``apply moving.nrrd --reference fixed.nrrd OPTIONS`` in memory and by ``block`` blocks."""
     outs = []
-    for name, extra in (("whole", ()), ("blocks", ("--chunked", "--block", "5,6,7"))):
+    for name, extra in (("whole", ()), ("blocks", ("--chunked", "--block", block))):
         res = run("apply", tmp_path / "moving.nrrd", "-o", tmp_path / f"{name}.nrrd",
-                  "--reference", tmp_path / "fixed.nrrd", "-t", tmp_path / "b.h5",
+                  "--reference", tmp_path / "fixed.nrrd", *options,
                   "--background-value", "0", *extra)
         assert res.code == 0, res
         outs.append(read_volume(tmp_path / f"{name}.nrrd").data)
-    assert np.array_equal(outs[0], outs[1])
+    return outs
 
 
 def test_field_on_the_output_grid_across_its_edge_by_blocks_gives_the_whole_bytes(run, tmp_path):
@@ -163,13 +169,8 @@ def test_field_on_the_output_grid_across_its_edge_by_blocks_gives_the_whole_byte
     moving.SetOrigin([-10.0, 5.0, 3.0])
     sitk.WriteImage(moving, str(tmp_path / "moving.nrrd"))
     sitk.WriteImage(fixed, str(tmp_path / "fixed.nrrd"))
-    outs = []
-    for name, extra in (("whole", ()), ("blocks", ("--chunked", "--block", "5,7,9"))):
-        res = run("apply", tmp_path / "moving.nrrd", "-o", tmp_path / f"{name}.nrrd",
-                  "--reference", tmp_path / "fixed.nrrd", "-t", tmp_path / "field.nrrd",
-                  "--allow-outside-field", "--background-value", "0", *extra)
-        assert res.code == 0, res
-        outs.append(read_volume(tmp_path / f"{name}.nrrd").data)
+    outs = _whole_and_blocks(run, tmp_path, "5,7,9", "-t", tmp_path / "field.nrrd",
+                             "--allow-outside-field")
     assert outs[0].dtype == np.float64 and np.array_equal(outs[0], outs[1])
     theirs = sitk.GetArrayFromImage(sitk.Resample(
         moving, fixed, sitk.DisplacementFieldTransform(sitk.Cast(field, sitk.sitkVectorFloat64)),

@@ -19,6 +19,7 @@ import shutil
 
 import numpy as np
 import pytest
+from changed_input import distance_by_blocks_refused
 from test_io_dicom import write_series
 
 from volwarp_cli.errors import FormatError
@@ -137,12 +138,5 @@ def test_a_command_by_blocks_writes_nothing_from_a_series_changed_meanwhile(run,
         return got
 
     monkeypatch.setattr(_read.LazyDicom, "__getitem__", read)
-    r = run("distance", a, "--iso", "1500", "--values", "intensity", "--surface", "voxel",
-            "-o", out, "--chunked", "--block", "8", "--scheduler", "synchronous")
-    assert len(slabs) > 1, "the series was not read slab by slab"
-    assert r.code == 1, r
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and "the file changed after its header was read" in lines[0], \
-        r.stderr
-    assert out.read_bytes() == b"old output"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["A", "B", "d.nrrd"]
+    distance_by_blocks_refused(run, a, out, tmp_path, slabs,
+                               "the file changed after its header was read", ["A", "B", "d.nrrd"])
