@@ -6,6 +6,22 @@ Shared by the tests of inputs watched while they are read (DICOM series, TIFF st
 from __future__ import annotations
 
 
+def change_after_first_read(monkeypatch, cls, change) -> list:
+    """``change()`` run once the first read through ``cls.__getitem__`` is done; the reads."""
+    real = cls.__getitem__
+    reads: list = []
+
+    def read(self, key):
+        reads.append(key)
+        got = real(self, key)
+        if len(reads) == 1:
+            change()
+        return got
+
+    monkeypatch.setattr(cls, "__getitem__", read)
+    return reads
+
+
 def distance_by_blocks_refused(run, src, out, folder, reads: list, message: str,
                                listing: list[str]) -> None:
     """``distance`` of ``src`` by blocks into ``out`` (holding "old output"): refused.

@@ -19,7 +19,7 @@ import shutil
 
 import numpy as np
 import pytest
-from changed_input import distance_by_blocks_refused
+from changed_input import change_after_first_read, distance_by_blocks_refused
 from test_io_dicom import write_series
 
 from volwarp_cli.errors import FormatError
@@ -127,16 +127,7 @@ def test_a_command_by_blocks_writes_nothing_from_a_series_changed_meanwhile(run,
     a, b = folders
     out = tmp_path / "d.nrrd"
     out.write_bytes(b"old output")
-    real = _read.LazyDicom.__getitem__
-    slabs = []
-
-    def read(self, key):
-        slabs.append(key)
-        got = real(self, key)
-        if len(slabs) == 1:
-            _export_again(a, b, _renamed_in)
-        return got
-
-    monkeypatch.setattr(_read.LazyDicom, "__getitem__", read)
+    slabs = change_after_first_read(monkeypatch, _read.LazyDicom,
+                                    lambda: _export_again(a, b, _renamed_in))
     distance_by_blocks_refused(run, a, out, tmp_path, slabs,
                                "the file changed after its header was read", ["A", "B", "d.nrrd"])

@@ -14,7 +14,7 @@ import shutil
 
 import numpy as np
 import tifffile
-from changed_input import distance_by_blocks_refused
+from changed_input import change_after_first_read, distance_by_blocks_refused
 
 from volwarp_cli.io import lazy
 
@@ -33,17 +33,9 @@ def test_a_stack_rewritten_while_read_by_blocks_writes_nothing(run, tmp_path, mo
     _stack(other, 1)
     out = tmp_path / "d.nrrd"
     out.write_bytes(b"old output")
-    real = lazy._ZarrView.__getitem__
-    reads = []
-
-    def read(self, key):
-        reads.append(key)
-        got = real(self, key)
-        if len(reads) == 1:
-            shutil.copyfile(other, src)  # (in place: the view's open file sees the new pages)
-        return got
-
-    monkeypatch.setattr(lazy._ZarrView, "__getitem__", read)
+    # (copied in place: the view's open file sees the new pages)
+    reads = change_after_first_read(monkeypatch, lazy._ZarrView,
+                                    lambda: shutil.copyfile(other, src))
     distance_by_blocks_refused(run, src, out, tmp_path, reads,
                                "s.tif: the file changed while it was being read",
                                ["d.nrrd", "other.tif", "s.tif"])
