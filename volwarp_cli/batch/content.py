@@ -116,20 +116,41 @@ def _folder_files(folder: Path) -> list[Path]:
     return out
 
 
-def content_digest(path: str | os.PathLike, hashes: FileHashes) -> str:
-    """The sha256 of everything ``path`` stands for: its files' names and bytes.
+def _content_files(path: Path) -> tuple[list[Path], Path]:
+    """The files ``path`` stands for, and the folder their names are taken from.
 
     A file with the data files its header names (:func:`..io.inputs.input_files`),
-    a folder with every file in it. Raises OSError when one is missing.
+    a folder with every file in it.
     """
     from ..io.inputs import input_files
 
-    path = Path(path)
     if path.is_dir():
-        files = _folder_files(path)
-        base = path
-    else:
-        files = input_files(path)
-        base = path.parent
+        return _folder_files(path), path
+    return input_files(path), path.parent
+
+
+def content_digest(path: str | os.PathLike, hashes: FileHashes) -> str:
+    """The sha256 of everything ``path`` stands for: its files' names and bytes.
+
+    Raises OSError when one is missing.
+    """
+    files, base = _content_files(Path(path))
     parts = [(os.path.relpath(f, base), hashes.sha256(f)) for f in files]
     return hashlib.sha256(json.dumps(parts).encode()).hexdigest()
+
+
+def content_stamp(path: str | os.PathLike) -> list:
+    """The name and :func:`stat_key` of each file :func:`content_digest` reads (None: missing).
+
+    Taken before a step's inputs are hashed and again once it has run: a file
+    replaced meanwhile (and perhaps put back) may not be what the step read.
+    """
+    files, base = _content_files(Path(path))
+    out = []
+    for f in files:
+        try:
+            key = stat_key(os.stat(f))
+        except OSError:
+            key = None
+        out.append([os.path.relpath(f, base), key])
+    return out

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .. import __version__
-from .content import FileHashes, content_digest
+from .content import FileHashes, content_digest, content_stamp
 from .lock import BOOK_DIR
 from .manifest import (
     SCAN,
@@ -254,6 +254,30 @@ def made_from(manifest: Manifest, plan: StepPlan, hashes: FileHashes) -> dict:
             "command": command_digest(manifest, plan),
             "inputs": [[name, content_digest(path, hashes)]
                        for name, path in step_files(manifest, plan)]}
+
+
+def read_stamps(manifest: Manifest, plan: StepPlan) -> list:
+    """The identity of every file the step reads (:func:`.content.content_stamp`), by name.
+
+    Taken before :func:`made_from` hashes them, and compared once the step has
+    run (:func:`changed_while_run`).
+    """
+    return [[name, content_stamp(path)] for name, path in step_files(manifest, plan)]
+
+
+def changed_while_run(manifest: Manifest, plan: StepPlan, stamps: list) -> str | None:
+    """Why the step's outputs may not be made from what :func:`made_from` hashed, or None.
+
+    A file it reads was replaced or rewritten after ``stamps`` were taken: the
+    step may have read the other bytes (or a file half written), and a record
+    naming the hashed ones would skip that output for good once the file is
+    put back (a sync rewriting a scan in place with the same bytes).
+    """
+    for (name, then), (_, now) in zip(stamps, read_stamps(manifest, plan), strict=True):
+        if then != now:
+            return (f"{name} changed while the step ran: its outputs are not recorded, "
+                    "made again next run")
+    return None
 
 
 def _difference(old: dict, new: dict) -> str | None:

@@ -17,7 +17,9 @@ threads of the batch process, each waiting on its own child. The cluster form
 
 - Up-to-date steps are skipped (:func:`..plan.stale_reason`: by the content of
   what they read, never by dates) unless ``force``; a step whose input step ran
-  runs when that input's bytes changed.
+  runs when that input's bytes changed. A step during which a file it reads
+  was replaced or rewritten (:func:`..plan.changed_while_run`) fails, its
+  outputs not recorded: hashed before it ran, they may not be what it read.
 - A failed step fails its scan; the steps that depend on it are not run, the
   scan's other steps are (``make -k``). ``fail_fast``: no new scan starts after a
   failure; running ones finish.
@@ -49,7 +51,16 @@ from ..memory import MEMORY_ENV
 from ..parallel import THREADS_ENV
 from ..signals import STOPS, stops
 from .manifest import SCAN, Manifest, Scan
-from .plan import CommandRecord, Replaced, StepPlan, made_from, plan_scan, stale_reason
+from .plan import (
+    CommandRecord,
+    Replaced,
+    StepPlan,
+    changed_while_run,
+    made_from,
+    plan_scan,
+    read_stamps,
+    stale_reason,
+)
 
 #: seconds a stopped child is given before it is killed
 STOP_GRACE = 20.0
@@ -273,13 +284,18 @@ class ScanRunner:
             if self.stopping is not None:
                 res.status = "stopped"
                 continue
+            stamps = read_stamps(self.manifest, plan)  # (before the hashes they vouch for)
             made = self._consider(plan, res)
             if res.status == "skipped":
                 continue
             committed = self._run_step(plan, res)
             if res.status == "ok" and made is not None:
+                changed = changed_while_run(self.manifest, plan, stamps)
                 try:
-                    res.made = self.record.entries(plan, made, committed)
+                    if changed is None:
+                        res.made = self.record.entries(plan, made, committed)
+                    else:  # (what it read is unknown: the next run makes it again)
+                        res.status, res.error = "failed", changed
                 except Replaced as exc:
                     res.status, res.error = "failed", str(exc)
                 if res.made is not None:
