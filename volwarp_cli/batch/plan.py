@@ -19,7 +19,8 @@ the initial transforms it names).
 
 A step is up to date when what its outputs were made from is what it would
 be made from now, and its outputs are still what it made. "Made from" is
-volwarp's version and code (:func:`source_digest`), the step as the manifest
+volwarp's version and code (:func:`source_digest`), the libraries it runs on
+(:func:`library_versions`), the step as the manifest
 defines it (its options) and the sha256 of every file it reads (its input
 with the data files its header names, its spec, the files its options
 name): :func:`made_from`. The record
@@ -36,6 +37,7 @@ import functools
 import hashlib
 import json
 import os
+import re
 import threading
 import time
 from dataclasses import dataclass, field
@@ -248,9 +250,50 @@ def source_digest() -> str:
     return digest.hexdigest()
 
 
+#: volwarp's extras whose libraries read or write what a step does (DICOM, stores)
+_OUTPUT_EXTRAS = ("dicom", "scale")
+
+
+@functools.lru_cache(maxsize=1)
+def library_versions() -> dict[str, str | None]:
+    """The versions of the libraries volwarp runs on: its requirements, Python's, zlib's.
+
+    Part of what an output is made from: an upgraded scipy, vtk, isal or
+    OpenImageIO can change the bytes a command writes (an interpolation, a
+    render, a gzip stream), so an output made with other libraries is made
+    again, as one made by other code is. volwarp's own requirements and
+    those of its ``dicom`` and ``scale`` extras, as installed (None: not);
+    once per process (~20 ms).
+    """
+    import importlib.metadata as metadata
+    import platform
+    import zlib
+
+    versions: dict[str, str | None] = {"python": platform.python_version(),
+                                       "zlib": zlib.ZLIB_RUNTIME_VERSION}
+    try:
+        wanted = metadata.requires("volwarp-cli") or []
+    except metadata.PackageNotFoundError:  # (run from a source tree that is not installed)
+        wanted = []
+    for requirement in wanted:
+        spec, _, marker = requirement.partition(";")
+        extra = re.search(r"""extra\s*==\s*["']([^"']+)["']""", marker)
+        if extra is not None and extra.group(1) not in _OUTPUT_EXTRAS:
+            continue
+        name = re.match(r"[A-Za-z0-9._-]+", spec.strip()).group(0)
+        if name.lower() == "volwarp-cli":
+            continue
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    return dict(sorted(versions.items()))
+
+
 def made_from(manifest: Manifest, plan: StepPlan, hashes: FileHashes) -> dict:
     """What the step's outputs would be made from now (raises OSError for a missing input)."""
     return {"volwarp": __version__, "source": source_digest(),
+            "libraries": library_versions(),
             "command": command_digest(manifest, plan),
             "inputs": [[name, content_digest(path, hashes)]
                        for name, path in step_files(manifest, plan)]}
@@ -286,6 +329,12 @@ def _difference(old: dict, new: dict) -> str | None:
         return f"volwarp's version changed ({old.get('volwarp')} -> {new['volwarp']})"
     if old.get("source") != new["source"]:
         return "volwarp's code changed (same version)"
+    if old.get("libraries") != new["libraries"]:
+        then = old.get("libraries") or {}
+        moved = [f"{k} {then.get(k)} -> {v}" for k, v in new["libraries"].items()
+                 if then.get(k) != v]
+        return ("the libraries it runs on changed (" + ", ".join(moved[:3])
+                + (", ..." if len(moved) > 3 else "") + ")")
     if old.get("command") != new["command"]:
         return "its options changed"
     now = [(name, digest) for name, digest in new["inputs"]]
