@@ -64,10 +64,11 @@ class FileHashes:
         name = os.path.abspath(path)
         st = os.stat(name)
         key = stat_key(st)
-        with self.lock:
-            known = self.entries.get(name) or self._racy.get(name)
-        if known is not None and known[:-1] == key:
-            return known[-1]
+        with self.lock:  # (a saved entry out of date, a racy one of this run may be current)
+            known = [k for k in (self.entries.get(name), self._racy.get(name))
+                     if k is not None and k[:-1] == key]
+        if known:
+            return known[0][-1]
         digest = file_sha256(name)
         if stat_key(os.stat(name)) != key:  # changed while hashed: trust it nowhere
             return digest
