@@ -154,10 +154,22 @@ def command(input, output, dtype, compress, byte_order, pyramid_method, values, 
         # 255 in the full-resolution level were not)
         keep_label_ids(vol.data, dtype, str(input),
                        "auto" if values is None else values == "labels", vol.meta)
+        vol = vol.replace(meta=_without_range(vol.meta))
     _check_write_memory(vol, output, dtype, compress, byte_order, labels, ome_zarr)
     with timed(f"write {output}"):  # (its key/values kept, the provenance of its samples too)
         write_volume(vol, output, dtype=dtype, compress=compress, byte_order=byte_order,
                      labels=labels, **ome_zarr)
+
+
+def _without_range(meta) -> dict:
+    """``meta`` without MetaIO's ``ElementMin``/``ElementMax``: the range of the samples as read.
+
+    A ``--dtype`` cast clips and rounds them: an int16 scan of -1000..1000 as uint8 is
+    0..255, and a header still saying -1000..1000 was kept by ``convert`` as true.
+    """
+    from ..io.metaimage import AS_READ_FIELDS, PREFIX
+
+    return {k: v for k, v in meta.items() if k not in {PREFIX + f for f in AS_READ_FIELDS}}
 
 
 def _check_write_memory(vol, output, dtype, compress, byte_order, labels="auto",
