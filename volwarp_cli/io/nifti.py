@@ -1040,6 +1040,30 @@ def write_nifti(vol: Volume, path: str | os.PathLike, *, dtype=None) -> None:
                      dtype=dtype, fields=_as_read_fields(meta))
 
 
+#: voxels: a move of the grid by NIfTI's float32 matrices that is said
+FLOAT32_SHIFT_SAID = 0.01
+
+
+def _say_float32_shift(aff: np.ndarray, shape_xyz, path) -> None:
+    """Say where NIfTI's float32 matrices move the grid by :data:`FLOAT32_SHIFT_SAID` voxel or more.
+
+    The sform's rows are float32: a grid far from the origin with small voxels
+    (1e-3 mm voxels 1e5 mm out, where float32's step is 0.008 mm) moved by a
+    voxel or more without a word, within the format's precision. The
+    corners' shift in voxels of the smallest size.
+    """
+    aff = np.asarray(aff, dtype=np.float64)
+    corners = np.array([[x, y, z, 1.0] for x in (0, shape_xyz[0] - 1)
+                        for y in (0, shape_xyz[1] - 1) for z in (0, shape_xyz[2] - 1)]).T
+    with np.errstate(all="ignore"):
+        moved = np.abs((aff.astype(np.float32).astype(np.float64) - aff) @ corners)[:3].max()
+        voxel = float(np.linalg.norm(aff[:3, :3], axis=0).min())
+    if voxel > 0 and moved >= FLOAT32_SHIFT_SAID * voxel:
+        log.warning("warning: %s: NIfTI keeps its matrix in float32, which moves the grid's "
+                    "corners by up to %.3g voxels here (write .nrrd or .mha to keep the "
+                    "geometry exact)", path, moved / voxel)
+
+
 def ras_affine(grid, scale: float = 1.0) -> np.ndarray:
     """The voxel-to-RAS 4x4 matrix of an LPS grid (a Volume, a Header), ``scale`` per mm."""
     aff = np.eye(4)
@@ -1076,6 +1100,7 @@ def write_nifti_file(path: str | os.PathLike, data_xyz: np.ndarray, aff: np.ndar
         code, params, name = intent
         intent = (code, params, name[:15].encode("latin-1", errors="replace"))
     ext = _extension(meta or {})
+    _say_float32_shift(aff, samples.shape[::-1][:3], path)
     try:
         head = nifti1_header_bytes(samples.shape[::-1], out_dtype, aff, codes=codes,
                                    units=units, intent=intent, fields=fields,
