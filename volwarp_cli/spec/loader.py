@@ -88,7 +88,7 @@ def format_key(path: Key) -> str:
     """``("steps", 2, "move")`` -> ``steps[2].move``."""
     out = ""
     for part in path:
-        if isinstance(part, int):
+        if isinstance(part, int) and not isinstance(part, bool):  # (a key on: is True)
             out += f"[{part}]"
         else:
             out += ("." if out else "") + str(part)
@@ -188,7 +188,7 @@ def _node_line(node: yaml.Node, path: Key) -> int:
         found = None
         if isinstance(node, yaml.MappingNode):
             for key_node, value_node in node.value:  # the last one: merged keys come first
-                if isinstance(key_node, yaml.ScalarNode) and key_node.value == part:
+                if isinstance(key_node, yaml.ScalarNode) and _is_key(key_node, part):
                     found = value_node, key_node.start_mark.line + 1
         elif (isinstance(node, yaml.SequenceNode) and isinstance(part, int)
               and not isinstance(part, bool) and 0 <= part < len(node.value)):
@@ -197,6 +197,22 @@ def _node_line(node: yaml.Node, path: Key) -> int:
             break
         node, line = found
     return line
+
+
+def _is_key(key_node: yaml.ScalarNode, part) -> bool:
+    """Whether ``key_node`` is the key ``part`` of the data.
+
+    A key YAML reads as a boolean, a number or null (``on:``, ``1:``, ``~:``) is
+    not its text in the data: compared as read, so an error about it names its
+    own line, not its mapping's.
+    """
+    if isinstance(part, str):
+        return key_node.value == part
+    try:
+        value = yaml.constructor.SafeConstructor().construct_object(key_node)
+    except (yaml.YAMLError, ValueError, TypeError, ArithmeticError):
+        return False
+    return value == part and isinstance(value, bool) == isinstance(part, bool)
 
 
 class _TooDeep(Exception):
@@ -615,6 +631,14 @@ def _message(err) -> str:
     return message
 
 
+def _unquoted_hint(key) -> str:
+    """Why a key is a boolean or null where a name was meant (``on:``), or ``""``."""
+    if isinstance(key, bool) or key is None:
+        return (" (YAML reads an unquoted on, off, yes, no, true, false or ~ as a boolean "
+                "or null: quote a name)")
+    return ""
+
+
 def validate(doc: SpecDoc, schema: dict) -> None:
     """Raise a :class:`SpecError` for the first (most relevant) schema violation."""
     from .schema_subset import is_valid
@@ -639,9 +663,14 @@ def validate(doc: SpecDoc, schema: dict) -> None:
         if extra:
             path = path + (extra[0],)
             message = (f"unknown key {_quote(extra[0])}"
-                       + (f" (allowed: {', '.join(sorted(allowed))})" if allowed else ""))
+                       + (f" (allowed: {', '.join(sorted(allowed))})" if allowed else "")
+                       + _unquoted_hint(extra[0]))
     elif err.validator == "required":
         message = message.replace("is a required property", "is required")
+    elif "propertyNames" in err.absolute_schema_path:  # a name of the mapping, not its value
+        path = path + (err.instance,)
+        message = f"the key {_quote(err.instance)} is not a name here: {message}" \
+            + _unquoted_hint(err.instance)
     elif err.validator in ("oneOf", "anyOf") and err.context:
         deepest = max(err.context, key=lambda e: len(e.absolute_path))
         if len(deepest.absolute_path) > len(err.absolute_path):
