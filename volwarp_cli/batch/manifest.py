@@ -291,7 +291,8 @@ def load_manifest(path: str | Path) -> Manifest:
             raise doc.error(key + ("spec",), f"{run} takes no spec (only warp steps do)")
         spec_path = doc.resolve(spec) if spec is not None else None
         if spec_path is not None and not spec_path.is_file():
-            raise doc.error(key + ("spec",), f"no such spec file: {spec_path}")
+            raise doc.error(key + ("spec",), f"{spec_path} is a folder, not a spec file"
+                            if spec_path.is_dir() else f"no such spec file: {spec_path}")
         _check_pattern(doc, key + ("output",), raw["output"], output=True)
         _check_output_extension(doc, key + ("output",), run, raw["output"])
         options = []

@@ -284,6 +284,11 @@ class InputPath(click.Path):
         from ..io.inputs import declare_input, refuse_stream_input
 
         value = super().convert(value, param, ctx)
+        if value is not None and self.once and (value == "" or os.path.isdir(value)):
+            # (declared, a folder is an input folder: "-o out.nrrd would overwrite the input
+            # folder", said of `--spec ""` or a folder, blamed the output)
+            self.fail("an empty name: give the file to read" if value == "" else
+                      f"{value!r} is a folder: give the file to read", param, ctx)
         if value is not None:
             if not self.once:
                 refuse_stream_input(value)
