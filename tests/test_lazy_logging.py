@@ -76,7 +76,8 @@ def test_a_readers_warning_is_the_command_lines_whoever_loaded_logging(inputs):
                      metadata={"axes": "ZYX", "PhysicalSizeX": 0.5, "PhysicalSizeY": 0.5})
     code, err, _ = _volwarp(folder, "info", "noz.ome.tif")
     assert code == 0 and err.splitlines() == [
-        "volwarp: noz.ome.tif: the OME metadata give no PhysicalSizeZ: z spacing is 1"], err
+        "volwarp: warning: noz.ome.tif: the OME metadata give no PhysicalSizeZ: z spacing is 1"
+    ], err
     code, err, _ = _volwarp(folder, "info", "noz.ome.tif", "-q")
     assert code == 0 and err == ""
 
@@ -121,3 +122,26 @@ def test_a_caller_s_handler_does_not_take_the_command_line_s_stderr(inputs, tmp_
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120)
     assert out.stdout.split() == ["0", "True", "True"], (out.stdout, out.stderr)
+
+
+def test_every_warning_line_says_warning_once(capsys):
+    """Two thirds of volwarp's warnings wrote "warning:" themselves, the rest did not
+    ("volwarp: steps[1]: the handles cannot all be reached"): the command line's log says
+    it of every warning, once, and of nothing else."""
+    import logging
+
+    from volwarp_cli.progress import configure, log
+
+    configure(1)
+    try:
+        log.warning("steps[%d]: the handles cannot all be reached", 1)
+        log.warning("warning: %s: said by the caller", "x.nrrd")
+        log.info("read x.nrrd: %.3f s", 0.5)
+        logging.getLogger("volwarp.io").warning("a reader's own")
+    finally:
+        configure(0)
+    assert capsys.readouterr().err.splitlines() == [
+        "volwarp: warning: steps[1]: the handles cannot all be reached",
+        "volwarp: warning: x.nrrd: said by the caller",
+        "volwarp: read x.nrrd: 0.500 s",
+        "volwarp: warning: a reader's own"]

@@ -123,13 +123,27 @@ def _set_up(logger, level: int) -> None:
         def stream(self, value):  # StreamHandler.__init__ assigns it; the property ignores it
             pass
 
+    class _Formatter(logging.Formatter):
+        """``volwarp: MESSAGE``, a warning's ``volwarp: warning: MESSAGE`` whoever wrote it.
+
+        Two thirds of the warnings said it themselves and the rest did not
+        (``volwarp: steps[1]: the handles cannot all be reached``): a script
+        sorting stderr lines by that word missed them.
+        """
+
+        def format(self, record) -> str:
+            text = super().format(record)
+            if record.levelno == logging.WARNING and not text.startswith("volwarp: warning"):
+                text = "volwarp: warning: " + text[len("volwarp: "):]
+            return text
+
     logger.setLevel(level)
     # (its own handler looked for, not any: a caller's handler on the logger, added before
     # the first command, left the command lines of that process without their stderr)
     if not any(getattr(h, "volwarp_stderr", False) for h in logger.handlers):
         handler = _StderrHandler()
         handler.volwarp_stderr = True
-        handler.setFormatter(logging.Formatter("volwarp: %(message)s"))
+        handler.setFormatter(_Formatter("volwarp: %(message)s"))
         logger.addHandler(handler)
     logger.propagate = False
 
