@@ -206,3 +206,22 @@ def test_a_distance_of_a_metaimage_drops_its_samples_range(run, tmp_path):
     got = fields(tmp_path / "d.mha")
     assert "ElementMin" not in got and "ElementMax" not in got
     assert got["Modality"] == "MET_MOD_MR"
+
+
+@pytest.mark.parametrize("line, said", [
+    ("thicknesses: a b c", "'thicknesses' must be numbers"),
+    ("thicknesses: 1 2", "'thicknesses' has 2 entries, 'dimension' is 3"),
+    ("labels: x y z", "'labels' must be 3 quoted strings"),
+    ('labels: "x" "y"', "'labels' must be 3 quoted strings")])
+def test_a_malformed_per_axis_field_is_one_line_naming_it(run, tmp_path, line, said):
+    """Kept and written back as read, a malformed thicknesses or labels made an output
+    pynrrd (and teem) refuse: refused when read, as every malformed field is."""
+    src = tmp_path / "in.nrrd"
+    text = NRRD_HEADER.replace('labels: "left right" "y" "z"\n', "").replace(
+        "thicknesses: nan nan 2.5\n", line + "\n")
+    src.write_bytes(text.encode() + SAMPLES.tobytes(order="F"))
+    out = tmp_path / "out.nrrd"
+    r = run("convert", src, "-o", out)
+    assert r.code == 1 and r.stderr.splitlines() == [r.stderr.strip()], r.stderr
+    assert str(src) in r.stderr and said in r.stderr, r.stderr
+    assert not out.exists()

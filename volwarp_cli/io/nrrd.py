@@ -648,15 +648,33 @@ def kept_fields(fields: dict, space, where: str) -> dict:
     for name in AS_READ_FIELDS:
         if name not in fields or not fields[name].strip():
             continue
-        if name in _PER_AXIS and (fields.get("dimension", "").strip() != "3"
-                                  or len(_unit_words(fields, name) or ()) != 3):
-            continue
+        if name in _PER_AXIS:
+            dim = int(fields["dimension"])
+            _check_axis_entries(fields, name, dim, where)  # (written back: teem's own checks)
+            if dim != 3:
+                continue
         meta[f"NRRD_{name}"] = fields[name].strip()
     if "NRRD_space units" in meta and length_scale(fields, 3, where) is not None:
         meta["NRRD_space units"] = '"mm" "mm" "mm"'  # (the numbers are millimetres now)
     if "measurement frame" in fields and space is not None:
         meta["NRRD_measurement frame"] = _measurement_frame_lps(fields, space, where)
     return meta
+
+
+def _check_axis_entries(fields: dict[str, str], name: str, dim: int, where: str) -> None:
+    """Refuse a malformed ``thicknesses`` or ``labels`` (kept, they are written back).
+
+    A number or nan an axis, a quoted string an axis: written back as read, a
+    malformed one made an output teem and pynrrd refuse.
+    """
+    if name == "thicknesses":
+        _axis_values(fields, (name,), dim, where)
+        return
+    text = fields[name]
+    words = _QUOTED.findall(text)
+    if len(words) != dim or _QUOTED.sub("", text).strip():
+        raise FormatError(f"{where}: '{name}' must be {dim} quoted strings, one an axis, got "
+                          f"{short_text(text)!r}")
 
 
 def _measurement_frame_lps(fields: dict[str, str], space: str, where: str) -> str:
