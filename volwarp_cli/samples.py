@@ -206,7 +206,7 @@ def _note_rounding(what: str, dt: np.dtype, data, rounded, low, high) -> None:
 _rounding_lock = threading.Lock()
 
 #: the kinds of :func:`_gathered` notes: a run's casts, judged or said at its end
-_NOTE_KINDS = ("rounding", "clipped", "inexact", "ids")
+_NOTE_KINDS = ("rounding", "clipped", "inexact", "ids", "nonzero")
 
 
 def _gathered(key: tuple, note: list) -> list:
@@ -225,6 +225,10 @@ def _gathered(key: tuple, note: list) -> list:
             at_run_end(lambda: _note_at_end(key, seen, files))
         elif key[0] == "ids":
             seen[0].extend(note[0])
+            if seen[1] is None:
+                seen[1] = note[1]
+        elif key[0] == "nonzero":
+            seen[0] = seen[0] or note[0]
             if seen[1] is None:
                 seen[1] = note[1]
         else:
@@ -274,6 +278,36 @@ def distinct_values(block: np.ndarray) -> np.ndarray:
         present[unsigned] = True  # (bincount would make a copy of 8-byte counts first)
         return _sorted_distinct(np.flatnonzero(present).astype(unsigned.dtype).view(flat.dtype))
     return _sorted_distinct(flat)
+
+
+def expect_nonzero(what: str, message: str) -> None:
+    """Say ``message`` when the run ends if no block of output ``what`` held a non-zero sample.
+
+    For outputs that are 0 wherever the work reached nothing (a sweep whose
+    templates meet no voxel centre: a grid beside the sweep, a template
+    thinner than a voxel): an all-zero output then is a slip, not a result.
+    The blocks note what they held (:func:`note_nonzero`; a worker process's
+    notes go back with its results), the message stays here, once.
+    """
+    from .runscope import in_run
+
+    if in_run():
+        _gathered(("nonzero", what), [False, message])
+
+
+def note_nonzero(what: str, block: np.ndarray) -> None:
+    """Note whether a block of output ``what`` holds a non-zero sample (:func:`expect_nonzero`).
+
+    Once one block has, the others are not looked at (a pass over each saved).
+    """
+    from .runscope import in_run, run_files
+
+    if not in_run():
+        return
+    seen = run_files().decided.get(("nonzero", what))
+    if seen is not None and seen[0]:
+        return
+    _gathered(("nonzero", what), [bool(np.any(block)), None])
 
 
 def _sorted_distinct(values: np.ndarray) -> np.ndarray:
@@ -344,6 +378,11 @@ def _note_at_end(key: tuple, seen: list, files) -> None:
             _say_rounded_away(what, np.dtype(name), low, high, files.said)
     elif key[0] == "ids":
         _say_missing_ids(seen)
+    elif key[0] == "nonzero":
+        if not seen[0] and seen[1] is not None:
+            from .progress import log
+
+            log.warning("warning: %s", seen[1], extra={"once": key})
     elif key[0] == "inexact":
         _, name = key
         _say_inexact(seen[3], np.dtype(name), seen[1])

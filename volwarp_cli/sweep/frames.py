@@ -459,6 +459,34 @@ def prepare_frames(segments: list[Segment], functions: list[SweepFunctions]) -> 
                 fns.up = parse_function([0, 0, 1], fns.up_path, fns.doc, dim=3, name="up")
         elif not isinstance(fns.up, str):
             check_up(seg, fns, i)
+        check_sweeps_volume(seg, fns, i)
+
+
+def check_sweeps_volume(seg: Segment, fns: SweepFunctions, index: int,
+                        samples: int = 257) -> None:
+    """A spec error if every template of ``seg`` lies in one plane: it sweeps no volume.
+
+    A given direction perpendicular to a straight path (``direction: [0, 0, 1]``
+    along a line in x) moves the template within its own plane: the swept set
+    is flat, and every voxel of the output was 0, exit 0. Flat is: the
+    template normals within :data:`COLLINEAR` of the first one and the
+    template centres within ``COLLINEAR`` of the segment's size off its plane,
+    at ``samples`` parameters. (A normal that turns sweeps volume even where
+    the path is perpendicular to it: a template kept tangent to a circle
+    sweeps a ring.)
+    """
+    fr = compute_frames(seg, fns, seg.dense_parameters(samples), index)
+    normal = fr.EZ[0]
+    turn = float(np.linalg.norm(np.cross(fr.EZ, normal), axis=1).max())
+    size = max(float(np.ptp(fr.P, axis=0).max()), float(fr.SX.max()), float(fr.SY.max()))
+    off = float(np.abs((fr.P - fr.P[0]) @ normal).max())
+    if turn <= COLLINEAR and off <= COLLINEAR * size:
+        path = seg.path if isinstance(fns.direction, str) else fns.direction_path
+        raise spec_error(fns.doc, path,
+                         f"{seg.kind} segment {index} moves its template within the template's "
+                         f"own plane (normal {_fmt(np.round(normal, 6))} all along it): it "
+                         "sweeps no volume, every voxel would be 0; give a direction across "
+                         "the path, or leave direction out (the path's tangent)")
 
 
 def compute_frames(seg: Segment, fns: SweepFunctions, s: np.ndarray, index: int,

@@ -122,10 +122,12 @@ class SweepOperation(Operation):
 
     def prepare(self) -> None:
         """The plan every block shares (the subdivisions), made once."""
+        from ..samples import expect_nonzero
         from .chunked import prepare_sweep
 
         if self.plan is None:
             self.plan = prepare_sweep(self.spec, self.grid, method=self.method, tau=self.tau)
+            expect_nonzero(self.what, empty_sweep_message(self.spec, self.grid))
 
     def memory(self, box: Box) -> int:
         """Every field as float32 and its cast, the coverage and the blend's weights.
@@ -160,6 +162,9 @@ class SweepOperation(Operation):
         return self._cast(results[key], key)
 
     def _cast(self, data, name) -> np.ndarray:
+        from ..samples import note_nonzero
+
+        note_nonzero(self.what, data)  # (every field 0 everywhere: said at the end)
         return cast_samples(scale_to_dtype(data, self.dtype), self.dtype, what=str(name))
 
     def load(self) -> None:
@@ -170,6 +175,30 @@ class SweepOperation(Operation):
         """
         corner = Box((0, 0, 0), tuple(min(s, 4) for s in self.grid.shape))
         self.compute(corner, threads=1)
+
+
+def empty_sweep_message(spec, grid: Geometry) -> str:
+    """What to say when every field of the sweep on ``grid`` came out 0 (the likely cause).
+
+    A grid beside the sweep's bounds (a spec's ``grid`` with its own origin) is
+    named with both boxes; otherwise the templates reached no voxel centre
+    where they are not 0.
+    """
+    lo, hi = (np.asarray(v, np.float64) for v in spec.bounds())
+    g_lo = np.asarray(grid.origin_array, np.float64)
+    g_hi = g_lo + np.asarray(grid.spacing_array, np.float64) * (
+        np.asarray(grid.shape_xyz, np.float64) - 1)
+    box = "x".join(str(v) for v in grid.shape_xyz)
+
+    def span(a, b):
+        return " ".join(f"{x:.4g}..{y:.4g}" for x, y in zip(a, b, strict=True))
+
+    if np.any(hi < g_lo) or np.any(lo > g_hi):
+        return (f"every field of the sweep is 0: the output grid ({box} voxels, centres at "
+                f"x y z {span(g_lo, g_hi)} mm) does not meet the sweep (its templates span "
+                f"{span(lo, hi)} mm); check the spec's grid origin")
+    return (f"every field of the sweep is 0 on its {box} grid: the templates reached no "
+            "voxel centre where they are not 0 (thinner than a voxel? a finer --spacing)")
 
 
 def render(ran, op: SweepOperation, how: VolumeRender, slab_budget: int | None = None):
