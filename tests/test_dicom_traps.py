@@ -261,3 +261,21 @@ def test_hidden_files_in_a_series_folder_are_never_slices(tmp_path, stack):
     (tmp_path / "s" / ".lock").symlink_to(tmp_path / "gone")
     (tmp_path / "s" / ".DS_Store").write_bytes(b"\0\0\0\1Bud1")
     np.testing.assert_array_equal(read_dicom(tmp_path / "s").data, stack)
+
+
+def test_a_hidden_dicom_file_is_a_copy_under_way_and_refused(tmp_path, stack, run):
+    """rsync writes each file as ``.NAME.XXXXXX`` and renames it when whole: a series
+    read meanwhile lacked that slice (the last one: nothing else shows it), exit 0."""
+    paths = write_series(tmp_path / "s", stack, shuffle=False)
+    last = max(paths, key=lambda p: pydicom.dcmread(p).ImagePositionPatient[2])
+    partial = last.parent / f".{last.name}.Gx81kQ"
+    whole = last.read_bytes()
+    partial.write_bytes(whole[:400])  # (the copy's first bytes)
+    last.unlink()
+    with pytest.raises(FormatError, match="hidden DICOM file: a copy under way"):
+        read_dicom(tmp_path / "s")
+    res = run("convert", tmp_path / "s", "-o", tmp_path / "o.nrrd")
+    assert res.code == 1 and partial.name in res.stderr and not (tmp_path / "o.nrrd").exists()
+    partial.write_bytes(whole)
+    partial.rename(last)  # (the copy done: read whole)
+    np.testing.assert_array_equal(read_dicom(tmp_path / "s").data, stack)

@@ -252,14 +252,16 @@ def _folder_file(full: str, name: str) -> str:
 
     A file volwarp cannot open, or an empty or foreign one named like a DICOM
     file, may be a slice: skipped, it left a volume a slice short (the first or
-    last: nothing else shows it) with exit 0.
+    last: nothing else shows it) with exit 0. A hidden file (macOS's ``._*``
+    companions, ``.DS_Store``, locks, links) is skipped whatever it is, unless
+    it holds a DICOM data set: that is a copy under way (rsync writes each file
+    as ``.NAME.XXXXXX`` and renames it when whole), its slice not there yet.
     """
-    if name.startswith("."):  # (hidden: macOS's ._* companions, .DS_Store, locks, links)
-        return ""
+    hidden = name.startswith(".")
     try:
         st = os.stat(full)
     except OSError as exc:
-        return f"cannot read ({exc.strerror or exc})"
+        return "" if hidden else f"cannot read ({exc.strerror or exc})"
     import stat
 
     if not stat.S_ISREG(st.st_mode):
@@ -268,10 +270,12 @@ def _folder_file(full: str, name: str) -> str:
         with open(full, "rb") as fh:
             head = fh.read(132)
     except OSError as exc:
-        return f"cannot read ({exc.strerror or exc})"
-    if len(head) == 132 and head[128:132] == b"DICM":
-        return "dicom"
-    if _looks_like_dicom_body(head):
+        return "" if hidden else f"cannot read ({exc.strerror or exc})"
+    dicom = (len(head) == 132 and head[128:132] == b"DICM") or _looks_like_dicom_body(head)
+    if hidden:
+        return ("a hidden DICOM file (a copy under way? rsync writes .NAME.XXXXXX until the "
+                "file is whole: let it end, or move it out)" if dicom else "")
+    if dicom:
         return "dicom"
     if name.lower().endswith(_DICOM_SUFFIXES):
         return "empty file" if not head else "not a DICOM file (no DICM preamble, no DICOM header)"
