@@ -261,3 +261,44 @@ def test_a_file_rewritten_this_run_is_hashed_once_though_its_saved_entry_is_old(
     assert first == file_sha256(path) and hashes.hashed_bytes == path.stat().st_size
     assert hashes.sha256(path) == first
     assert hashes.hashed_bytes == path.stat().st_size  # (not hashed again)
+
+
+def test_on_a_filesystem_without_change_times_the_cache_is_not_trusted(tmp_path, monkeypatch):
+    """FAT and exFAT report the modification time as ctime: a scan rewritten in place
+    (same inode) with ``cp -p`` keeping its size and time kept every field of its stat key,
+    and the saved digest of its old bytes was taken for the new ones."""
+    from volwarp_cli.batch import content
+
+    def fat_key(st):  # (what FAT reports: ctime follows mtime, which cp -p sets back)
+        return [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_mtime_ns]
+
+    monkeypatch.setattr(content, "stat_key", fat_key)
+    path = tmp_path / "scan.nrrd"
+    path.write_bytes(b"the scan, first export")
+    old = os.stat(path)
+    saved = [*fat_key(old), content.file_sha256(path)]
+    with open(path, "r+b") as fh:  # (rewritten in place, the same size)
+        fh.write(b"THE SCAN")
+    os.utime(path, ns=(old.st_atime_ns, old.st_mtime_ns))
+    assert fat_key(os.stat(path)) == saved[:-1]
+    monkeypatch.setattr(content, "_change_time_kept", {}, raising=False)
+    monkeypatch.setattr(content, "filesystem_type", lambda dev: "vfat", raising=False)
+    assert content.FileHashes({str(path): saved}).sha256(path) == content.file_sha256(path)
+    monkeypatch.setattr(content, "_change_time_kept", {})
+    monkeypatch.setattr(content, "filesystem_type", lambda dev: "ext4")  # (a real ctime)
+    assert content.FileHashes({str(path): saved}).sha256(path) == saved[-1]
+
+
+def test_the_filesystem_type_is_the_mount_of_the_device(tmp_path):
+    """Read from the mount table by ``major:minor``: the device of a file of this tree
+    is found, with the type ``df``'s mount table gives it."""
+    from volwarp_cli.batch.content import filesystem_type
+
+    dev = os.stat(tmp_path).st_dev
+    table = tmp_path / "mountinfo"
+    table.write_text(f"36 25 {os.major(dev)}:{os.minor(dev)} / /media/usb rw,relatime - exfat "
+                     "/dev/sdb1 rw\n"
+                     "37 25 250:3 / /mnt rw - ext4 /dev/sdc1 rw\n")
+    assert filesystem_type(dev, str(table)) == "exfat"
+    assert filesystem_type(os.makedev(250, 4), str(table)) is None
+    assert filesystem_type(dev) is not None  # (this machine's own table names it)

@@ -10,6 +10,14 @@ mtime it was given; a file changed within :data:`RACY_SECONDS` of being
 hashed is hashed again next time (a timestamp's granularity could hide a
 second change, as git's "racily clean" index entries).
 
+FAT and exFAT keep no change time: Linux reports their ctime as the
+modification time (or the creation time), which ``cp -p`` and ``touch -r``
+set back, and a file rewritten in place keeps its inode (its directory
+entry's place). A scan replaced that way on a USB disk, same size, kept all
+five and its old digest: the batch skipped it. On those filesystems
+(:data:`NO_CHANGE_TIME`, found by the device's mount) a digest is never
+taken from the cache: every run hashes the files again.
+
 An input is all its files (:func:`content_digest`): a detached header with its
 data files, a folder (a DICOM series, a Zarr store) with every file in it,
 by name and content.
@@ -28,6 +36,38 @@ from pathlib import Path
 RACY_SECONDS = 2.0
 #: bytes read at once while hashing
 _CHUNK = 1 << 20
+
+
+#: filesystems whose ctime is not a change time (fuseblk: exfat-fuse's, and ntfs-3g's)
+NO_CHANGE_TIME = frozenset({"vfat", "msdos", "fat", "exfat", "fuseblk"})
+
+
+def filesystem_type(dev: int, mountinfo: str = "/proc/self/mountinfo") -> str | None:
+    """The type of the filesystem mounted as device ``dev`` (``st_dev``), or None if unknown.
+
+    From the mount table's ``major:minor`` field (a Linux mount table; none elsewhere).
+    """
+    want = f"{os.major(dev)}:{os.minor(dev)}"
+    try:
+        with open(mountinfo, encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                fields = line.split()
+                if len(fields) > 2 and fields[2] == want and " - " in line:
+                    return line.split(" - ", 1)[1].split()[0]
+    except OSError:
+        pass
+    return None
+
+
+_change_time_kept: dict[int, bool] = {}
+
+
+def keeps_change_time(dev: int) -> bool:
+    """Whether files on device ``dev`` have a ctime that changes with their bytes (module notes)."""
+    kept = _change_time_kept.get(dev)
+    if kept is None:
+        kept = _change_time_kept[dev] = filesystem_type(dev) not in NO_CHANGE_TIME
+    return kept
 
 
 def stat_key(st: os.stat_result) -> list[int]:
@@ -64,9 +104,10 @@ class FileHashes:
         name = os.path.abspath(path)
         st = os.stat(name)
         key = stat_key(st)
+        trusted = keeps_change_time(st.st_dev)
         with self.lock:  # (a saved entry out of date, a racy one of this run may be current)
             known = [k for k in (self.entries.get(name), self._racy.get(name))
-                     if k is not None and k[:-1] == key]
+                     if trusted and k is not None and k[:-1] == key]
         if known:
             return known[0][-1]
         digest = file_sha256(name)
