@@ -10,13 +10,14 @@ mtime it was given; a file changed within :data:`RACY_SECONDS` of being
 hashed is hashed again next time (a timestamp's granularity could hide a
 second change, as git's "racily clean" index entries).
 
-FAT and exFAT keep no change time: Linux reports their ctime as the
-modification time (or the creation time), which ``cp -p`` and ``touch -r``
-set back, and a file rewritten in place keeps its inode (its directory
-entry's place). A scan replaced that way on a USB disk, same size, kept all
-five and its old digest: the batch skipped it. On those filesystems
-(:data:`NO_CHANGE_TIME`, found by the device's mount) a digest is never
-taken from the cache: every run hashes the files again.
+FAT and exFAT store no change time: exfat-fuse reports the modification
+time as ctime, which ``cp -p`` and ``touch -r`` set back, and a file
+rewritten in place keeps its inode; the kernel's drivers keep a ctime in
+memory only (a creation time once read from the disk again). A scan
+replaced that way on a USB disk, same size, could keep all five and its old
+digest: the batch would skip it. On those filesystems (:data:`NO_CHANGE_TIME`,
+found by the device's mount) a digest is never taken from the cache: every
+run hashes the files again.
 
 An input is all its files (:func:`content_digest`): a detached header with its
 data files, a folder (a DICOM series, a Zarr store) with every file in it,
@@ -39,7 +40,7 @@ _CHUNK = 1 << 20
 
 
 #: filesystems whose ctime is not a change time (fuseblk: exfat-fuse's, and ntfs-3g's)
-NO_CHANGE_TIME = frozenset({"vfat", "msdos", "fat", "exfat", "fuseblk"})
+NO_CHANGE_TIME = frozenset({"vfat", "msdos", "fat", "exfat", "fuseblk", "fuse.exfat"})
 
 
 def filesystem_type(dev: int, mountinfo: str = "/proc/self/mountinfo") -> str | None:
