@@ -311,6 +311,9 @@ class ApplyOperation(Operation):
         out = np.empty(box.shape, dtype=self.dtype)
         flat = out.reshape(-1)
         region = self.region(box)
+        from .samples import note_reached
+
+        note_reached(self._inside, region is not None)
         if region is None:
             flat[:] = self._background_as(self.dtype)
             return {self.KEY: out}
@@ -451,6 +454,33 @@ class ApplyOperation(Operation):
             from .samples import expect_output_ids
 
             expect_output_ids(self._output, self.label_ids)
+
+    def expect_inside(self) -> None:
+        """In a run, say at its end if no output point mapped inside the input.
+
+        Every voxel is then the background, exit 0: transforms in the wrong
+        order or direction, or for another subject, or a reference grid far
+        from the input. Known per block before any sample is read (its
+        :meth:`region`, exact for a linear chain, a bound otherwise: a block
+        said to reach nothing reaches nothing). A label map's missing ids
+        are said already (:meth:`expect_label_ids`).
+        """
+        if self.label_ids is not None and len(self.label_ids):
+            return
+        from .samples import expect_reached
+
+        corners = self.in_grid.index_to_world(self.in_grid.corner_indices())
+        expect_reached(self._inside, (
+            f"every voxel of {self._output} is the background ({self.background:g}): no output "
+            f"point maps inside {self.name} (LPS "
+            f"{_box_text(corners.min(axis=0), corners.max(axis=0))} mm); check the transforms' order (-t acts on "
+            "the output's points in the order listed), their direction (an inverse: '[T,1]'?) "
+            "and --reference"))
+
+    @property
+    def _inside(self) -> str:
+        """The key of the note of whether any block's points reached the input."""
+        return f"{self._output}: inside {self.name}"
 
     @property
     def _output(self) -> str:

@@ -206,7 +206,7 @@ def _note_rounding(what: str, dt: np.dtype, data, rounded, low, high) -> None:
 _rounding_lock = threading.Lock()
 
 #: the kinds of :func:`_gathered` notes: a run's casts, judged or said at its end
-_NOTE_KINDS = ("rounding", "clipped", "inexact", "ids", "nonzero")
+_NOTE_KINDS = ("rounding", "clipped", "inexact", "ids", "reached")
 
 
 def _gathered(key: tuple, note: list) -> list:
@@ -227,7 +227,7 @@ def _gathered(key: tuple, note: list) -> list:
             seen[0].extend(note[0])
             if seen[1] is None:
                 seen[1] = note[1]
-        elif key[0] == "nonzero":
+        elif key[0] == "reached":
             seen[0] = seen[0] or note[0]
             if seen[1] is None:
                 seen[1] = note[1]
@@ -280,34 +280,36 @@ def distinct_values(block: np.ndarray) -> np.ndarray:
     return _sorted_distinct(flat)
 
 
-def expect_nonzero(what: str, message: str) -> None:
-    """Say ``message`` when the run ends if no block of output ``what`` held a non-zero sample.
+def expect_reached(what: str, message: str) -> None:
+    """Say ``message`` when the run ends if no block of the work ``what`` reached anything.
 
-    For outputs that are 0 wherever the work reached nothing (a sweep whose
-    templates meet no voxel centre: a grid beside the sweep, a template
-    thinner than a voxel): an all-zero output then is a slip, not a result.
-    The blocks note what they held (:func:`note_nonzero`; a worker process's
-    notes go back with its results), the message stays here, once.
+    For outputs that a slip leaves all background, exit 0: a sweep whose
+    templates meet no voxel centre (a grid beside the sweep), a resampling
+    whose every point maps outside its input (transforms in the wrong order
+    or direction). The blocks note whether they reached something
+    (:func:`note_reached`; a worker process's notes go back with its
+    results); the message stays here, once.
     """
     from .runscope import in_run
 
     if in_run():
-        _gathered(("nonzero", what), [False, message])
+        _gathered(("reached", what), [False, message])
 
 
-def note_nonzero(what: str, block: np.ndarray) -> None:
-    """Note whether a block of output ``what`` holds a non-zero sample (:func:`expect_nonzero`).
+def note_reached(what: str, reached) -> None:
+    """Note whether a block of ``what`` reached something (see :func:`expect_reached`).
 
-    Once one block has, the others are not looked at (a pass over each saved).
+    ``reached``: a bool, or a call giving it, made only while no block has
+    yet (a pass over an output saved once one block did).
     """
     from .runscope import in_run, run_files
 
     if not in_run():
         return
-    seen = run_files().decided.get(("nonzero", what))
+    seen = run_files().decided.get(("reached", what))
     if seen is not None and seen[0]:
         return
-    _gathered(("nonzero", what), [bool(np.any(block)), None])
+    _gathered(("reached", what), [bool(reached() if callable(reached) else reached), None])
 
 
 def _sorted_distinct(values: np.ndarray) -> np.ndarray:
@@ -378,7 +380,7 @@ def _note_at_end(key: tuple, seen: list, files) -> None:
             _say_rounded_away(what, np.dtype(name), low, high, files.said)
     elif key[0] == "ids":
         _say_missing_ids(seen)
-    elif key[0] == "nonzero":
+    elif key[0] == "reached":
         if not seen[0] and seen[1] is not None:
             from .progress import log
 

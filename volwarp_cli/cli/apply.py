@@ -341,6 +341,7 @@ def _resample(input, output, chain, ready, dtype, write, transform_paths, outsid
                                       version=write["ome_zarr_version"],
                                       pyramid=write["pyramid"], labels=target.labels)
     op.expect_label_ids()
+    op.expect_inside()
     settings = scale_settings()
     ran = execute.run(op, execute.How(chunked=settings.chunked, block=settings.block,
                                       open_engine=settings.open_engine))
