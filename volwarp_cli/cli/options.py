@@ -174,6 +174,52 @@ def common_options(f):
     return f
 
 
+class Command(click.Command):
+    """A subcommand (every one is this class): an option of one value given twice is refused.
+
+    An option of one value given twice: click keeps the last (``-o a.nrrd -o
+    b.nrrd`` wrote b.nrrd alone, ``--threads 1 --threads 4`` ran on 4), and in a
+    command line put together from a Makefile's variables one of the two places
+    was overruled without a word. Two different values (``--compress
+    --no-compress`` too) are a usage error; the same value twice is harmless and
+    taken once. ``multiple`` options (apply's ``-t``) and counts (``-vv``) take
+    every one; an environment variable is no value given. Said as the parser
+    meets the second value, before any option's callback and any work.
+    """
+
+    def make_parser(self, ctx):
+        """Click's parser, each value checked as it is stored."""
+        parser = super().make_parser(ctx)
+        # (click's parser has no hook for this: its options are wrapped where it keeps them)
+        for stored in {*parser._long_opt.values(), *parser._short_opt.values()}:
+            if stored.action in ("store", "store_const"):
+                stored.process = _checked(stored, ctx)
+        return parser
+
+
+def _checked(stored, ctx):
+    """``stored.process`` (a parser option's), refusing a second, other value."""
+    process = stored.process
+    spelling = (stored._long_opts or stored._short_opts)[0]
+    name = max(stored.obj.opts, key=len)
+    flag = stored.action == "store_const"
+
+    def check(value, state):
+        process(value, state)
+        # what was stored (a flag's constant: --compress True, --no-compress False; what an
+        # option class of its own made of its values: capture's --lattice 9 7 9)
+        now = state.opts[stored.dest]
+        shown = spelling if flag else repr(" ".join(now) if isinstance(now, tuple) else now)
+        first = vars(state).setdefault("volwarp_given", {}).setdefault(stored.dest,
+                                                                        (now, shown))
+        if first[0] != now:
+            message = (f"{first[1]} and {shown} both given: give one" if flag else
+                       f"{name} given twice, as {first[1]} and as {shown}: give it once")
+            raise click.BadOptionUsage(name, message, ctx=ctx)
+
+    return check
+
+
 #: ``ctx.meta`` key: values given with an old spelling, by the new option's name
 _RENAMED = "volwarp.renamed"
 _NOT_GIVEN = object()
