@@ -1,8 +1,10 @@
-"""The command line's silent slip: an option given twice.
+"""The command line's two silent slips: an option given twice, and an empty value.
 
 click kept the last of two values of a one-value option (``-o a.nrrd -o
-b.nrrd`` wrote b.nrrd alone, exit 0). A usage error now (exit 2, one line,
-nothing written), for every subcommand (:class:`volwarp_cli.cli.options.Command`).
+b.nrrd`` wrote b.nrrd alone, exit 0), and took an empty value as something
+(``--threads=`` every core, ``--frames-to=`` no frames, an empty INPUT the
+working folder). Both are usage errors now (exit 2, one line, nothing
+written), for every subcommand (:class:`volwarp_cli.cli.options.Command`).
 """
 
 from __future__ import annotations
@@ -128,6 +130,39 @@ def test_an_empty_environment_variable_is_an_unset_one(run, d, monkeypatch):
     monkeypatch.setenv("VOLWARP_THREADS", "")
     monkeypatch.setenv("VOLWARP_MEMORY_LIMIT", "")
     assert run("convert", "in.nrrd", "-o", "o.nrrd").code == 0
+
+
+@pytest.mark.parametrize("args", [
+    ["convert", "in.nrrd", "--threads="],  # (was every core)
+    ["convert", "in.nrrd", "--threads", " "],
+    ["distance", "in.nrrd", "--iso", "50", "--scheduler="],  # (was the default)
+    ["warp", "in.nrrd", "--spec", "a.yaml", "--frames-to="],  # (was: no frames)
+    ["apply", "in.nrrd", "-t", "t1.tfm", "--reference="],  # (said "would overwrite")
+    ["apply", "in.nrrd", "-t", "t1.tfm", "-t", ""],
+    ["convert", "in.nrrd", "--series="],
+    ["mesh", "in.nrrd", "--iso", "50", "--camera-to="],
+])
+def test_an_empty_option_value_is_a_usage_error(run, d, args):
+    out = d / "sub" / ("o.ply" if args[0] == "mesh" else "o.nrrd")
+    out.parent.mkdir()
+    res = run(*args, "-o", out)
+    assert res.code == 2, res
+    assert "is empty" in res.stderr or "is blank" in res.stderr, res
+    assert not list(out.parent.iterdir())
+
+
+def test_an_empty_input_is_not_the_working_folder(run, tmp_path, monkeypatch):
+    """`volwarp convert "$(SCAN)" -o out.nrrd`, SCAN unset, in a DICOM series' folder:
+    the folder's series was converted, exit 0."""
+    from test_io_dicom import write_series
+
+    write_series(tmp_path / "series", np.arange(4 * 5 * 6, dtype=np.int16).reshape(4, 5, 6),
+                 series="1.2.826.0.1.3680043.8.498.1")
+    monkeypatch.chdir(tmp_path / "series")
+    res = run("convert", "", "-o", tmp_path / "out.nrrd")
+    assert res.code == 2 and "an empty name" in res.stderr, res
+    assert not (tmp_path / "out.nrrd").exists()
+    assert run("info", "").code == 2
 
 
 BATCH = """version: 1
