@@ -53,7 +53,7 @@ def test_a_spec_that_is_a_folder_or_empty_is_said_so_not_blamed_on_the_output(
               "-o", "o.nrrd")
     assert res.code == 2
     assert "Invalid value for '--spec'" in one_line(res) and "overwrite" not in res.stderr
-    assert ("is a folder" if folder else "an empty name") in res.stderr
+    assert ("is a folder" if folder else "is empty") in res.stderr
     assert not out.exists()
 
 

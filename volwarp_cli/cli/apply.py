@@ -18,6 +18,7 @@ from ..labelmap import VALUES
 from ..progress import log, timed
 from .options import (
     INPUT_PATH,
+    Command,
     InputPath,
     common_options,
     examples,
@@ -84,7 +85,7 @@ def _initial_transforms(path) -> list:
         return []
 
 
-@click.command(name="apply", epilog=examples(
+@click.command(name="apply", cls=Command, epilog=examples(
     "volwarp apply moving.nii.gz -o moved.nii.gz --reference fixed.nii.gz "
     "-t 1Warp.nii.gz -t 0GenericAffine.mat",
     "volwarp apply -t 1Warp.nii.gz -t 0GenericAffine.mat --points-in landmarks.csv "

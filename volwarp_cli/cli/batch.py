@@ -13,7 +13,7 @@ import re
 
 import click
 
-from .options import INPUT_PATH, common_options, examples
+from .options import INPUT_PATH, Command, common_options, examples
 
 #: ``--scheduler`` words of the batch (the engine's others name clusters)
 POOL = "pool"
@@ -64,7 +64,7 @@ def _reports(ctx, param, value):
     return value
 
 
-@click.command(name="batch", epilog=examples(
+@click.command(name="batch", cls=Command, epilog=examples(
     "volwarp batch scans.yaml --jobs 4 --report night.html --report night.json",
     "volwarp batch scans.yaml --scheduler local --workers 4 --retries 2 --progress jsonl",
 ))

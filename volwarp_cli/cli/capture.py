@@ -8,7 +8,15 @@ from ..io import check_output_path
 from ..labelmap import VALUES
 from ..progress import timed
 from .common import load_input
-from .options import INPUT_PATH, common_options, examples, finite, input_options, output_option
+from .options import (
+    INPUT_PATH,
+    Command,
+    common_options,
+    examples,
+    finite,
+    input_options,
+    output_option,
+)
 
 
 class LatticeOption(click.Option):
@@ -60,7 +68,7 @@ def lattice_option(default="9"):
                              "the volume along each axis).")
 
 
-@click.command(name="capture", epilog=examples(
+@click.command(name="capture", cls=Command, epilog=examples(
     "volwarp capture head.nrrd -o head.vwc --lattice 9 --oversample 2",
     "volwarp capture block.nrrd -o block.vwc --lattice 9 7 9 --placement tripled",
 ))

@@ -19,6 +19,7 @@ from .common import load_input
 from .options import (
     INPUT_PATH,
     READ_ONCE_PATH,
+    Command,
     _volume_output,
     common_options,
     examples,
@@ -52,7 +53,7 @@ def _output(ctx, param, value):
     return _volume_output(ctx, param, value)
 
 
-@click.command(name="convert", epilog=examples(
+@click.command(name="convert", cls=Command, epilog=examples(
     "volwarp convert ct_series/ -o ct.nrrd --compress",
     "volwarp convert labels.nrrd --reference ct_series/ --dicom-type seg -o seg.dcm",
 ))

@@ -20,6 +20,7 @@ from .common import load_input, stamp
 from .options import (
     INPUT_PATH,
     READ_ONCE_PATH,
+    Command,
     common_options,
     examples,
     finite,
@@ -33,7 +34,7 @@ from .resources import scale_options, scale_settings
 _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 
 
-@click.command(name="distance", epilog=examples(
+@click.command(name="distance", cls=Command, epilog=examples(
     "volwarp distance head.nrrd -o head_sdf.nrrd --iso 40",
     "volwarp distance seg.nii.gz -o liver_sdf.nrrd --label 3",
 ))

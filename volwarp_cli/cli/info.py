@@ -9,7 +9,7 @@ import click
 from ..errors import ChoiceNeeded
 from ..io import volume_format
 from .common import describe_volume, load_input
-from .options import INPUT_PATH, common_options, examples, input_options
+from .options import INPUT_PATH, Command, common_options, examples, input_options
 
 
 def _format_text(d: dict) -> str:
@@ -60,7 +60,7 @@ def _format_text(d: dict) -> str:
     return "\n".join(lines)
 
 
-@click.command(name="info", epilog=examples(
+@click.command(name="info", cls=Command, epilog=examples(
     "volwarp info head.nii.gz",
     "volwarp info ct_series/ --series 2 --json",
 ))

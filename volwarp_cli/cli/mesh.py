@@ -16,6 +16,7 @@ from ..labelmap import VALUES
 from .options import (
     INPUT_PATH,
     VIEW_HELP,
+    Command,
     common_options,
     core_parser,
     examples,
@@ -86,7 +87,7 @@ def _format_stats(d: dict) -> str:
     ])
 
 
-@click.command(name="mesh", epilog=examples(
+@click.command(name="mesh", cls=Command, epilog=examples(
     "volwarp mesh head.nrrd --iso 40 -o head.ply --render head.png --view front --stats",
     "volwarp mesh seg.nii.gz --labels -o 'seg_{label}.ply' --smooth 20 --json",
 ))

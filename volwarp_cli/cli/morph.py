@@ -25,6 +25,7 @@ from .options import (
     INPUT_PATH,
     READ_ONCE_PATH,
     VIEW_HELP,
+    Command,
     common_options,
     core_parser,
     examples,
@@ -71,7 +72,7 @@ def _pattern_check(kind: str):
     return callback
 
 
-@click.command(name="morph", epilog=examples(
+@click.command(name="morph", cls=Command, epilog=examples(
     "volwarp morph ball.nrrd torus.nrrd --frames 9 --iso 0.5 -o 'frame_{i:02d}.nrrd'",
     "volwarp morph --spec morph.yaml -o 'f_{i:03d}.nrrd' --render-to 'f_{i:03d}.png' "
     "--sheet sheet.png",

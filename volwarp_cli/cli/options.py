@@ -174,6 +174,68 @@ def common_options(f):
     return f
 
 
+class Command(click.Command):
+    """A subcommand (every one is this class): what click takes silently, refused.
+
+    An option of one value given twice: click keeps the last (``-o a.nrrd -o
+    b.nrrd`` wrote b.nrrd alone, ``--threads 1 --threads 4`` ran on 4), and in a
+    command line put together from a Makefile's variables one of the two places
+    was overruled without a word. Two different values (``--compress
+    --no-compress`` too) are a usage error; the same value twice is harmless and
+    taken once. ``multiple`` options (apply's ``-t``) and counts (``-vv``) take
+    every one; an environment variable is no value given.
+
+    An empty (or blank) value, ``--threads=$(N)`` with N unset: ``--threads=``
+    ran on every core, ``--scheduler=`` on the default, ``--frames-to=`` wrote no
+    frames, ``--reference=`` named the working folder. No option takes an empty
+    value: a usage error, for every option.
+
+    Both are said as the parser meets the value, before any option's callback
+    and any work.
+    """
+
+    def make_parser(self, ctx):
+        """Click's parser, each value checked as it is stored."""
+        parser = super().make_parser(ctx)
+        # (click's parser has no hook for this: its options are wrapped where it keeps them)
+        for stored in {*parser._long_opt.values(), *parser._short_opt.values()}:
+            if stored.action in ("store", "store_const", "append"):
+                stored.process = _checked(stored, ctx)
+        return parser
+
+
+def _checked(stored, ctx):
+    """``stored.process`` (a parser option's), refusing an empty value and a second, other one."""
+    process = stored.process
+    spelling = (stored._long_opts or stored._short_opts)[0]
+    name = max(stored.obj.opts, key=len)
+    flag = stored.action == "store_const"
+    once = stored.action != "append"
+
+    def check(value, state):
+        for v in value if isinstance(value, tuple) else (value,):
+            if isinstance(v, str) and not v.strip():
+                raise click.BadOptionUsage(
+                    name, f"Invalid value for {name!r}: {v!r} is "
+                          f"{'blank' if v else 'empty'} (an unset variable?): give a value, "
+                          f"or leave {name} out", ctx=ctx)
+        process(value, state)
+        if not once:
+            return
+        # what was stored (a flag's constant: --compress True, --no-compress False; what an
+        # option class of its own made of its values: capture's --lattice 9 7 9)
+        now = state.opts[stored.dest]
+        shown = spelling if flag else repr(" ".join(now) if isinstance(now, tuple) else now)
+        first = vars(state).setdefault("volwarp_given", {}).setdefault(stored.dest,
+                                                                        (now, shown))
+        if first[0] != now:
+            message = (f"{first[1]} and {shown} both given: give one" if flag else
+                       f"{name} given twice, as {first[1]} and as {shown}: give it once")
+            raise click.BadOptionUsage(name, message, ctx=ctx)
+
+    return check
+
+
 #: ``ctx.meta`` key: values given with an old spelling, by the new option's name
 _RENAMED = "volwarp.renamed"
 _NOT_GIVEN = object()
@@ -272,7 +334,8 @@ class InputPath(click.Path):
     A named pipe or a device is refused here, before anything opens it
     (:func:`volwarp_cli.io.inputs.refuse_stream_input`), unless ``once``:
     an input read once from start to end (a spec, a CSV file), which
-    ``--spec /dev/stdin`` or ``<(...)`` may give.
+    ``--spec /dev/stdin`` or ``<(...)`` may give. An empty name (a positional
+    input's: an option's is :class:`Command`'s) is refused, never the working folder.
     """
 
     def __init__(self, *, once: bool = False, **kwargs):
@@ -284,11 +347,14 @@ class InputPath(click.Path):
         from ..io.inputs import declare_input, refuse_stream_input
 
         value = super().convert(value, param, ctx)
-        if value is not None and self.once and (value == "" or os.path.isdir(value)):
+        if value is not None and not str(value).strip():
+            # (an unset variable, `volwarp convert "$(SCAN)"`: read as the working folder, a
+            # DICOM series there was converted, exit 0; an option's is refused by the parser)
+            self.fail("an empty name: give the file to read", param, ctx)
+        if value is not None and self.once and os.path.isdir(value):
             # (declared, a folder is an input folder: "-o out.nrrd would overwrite the input
-            # folder", said of `--spec ""` or a folder, blamed the output)
-            self.fail("an empty name: give the file to read" if value == "" else
-                      f"{value!r} is a folder: give the file to read", param, ctx)
+            # folder", said of a folder, blamed the output)
+            self.fail(f"{value!r} is a folder: give the file to read", param, ctx)
         if value is not None:
             if not self.once:
                 refuse_stream_input(value)

@@ -15,6 +15,7 @@ from .mesh import image_path
 from .options import (
     READ_ONCE_PATH,
     VIEW_HELP,
+    Command,
     common_options,
     core_parser,
     examples,
@@ -49,7 +50,7 @@ def output_paths(pattern: str, names: list[str], multi: bool) -> dict[str, str]:
         raise click.BadParameter(str(exc), param_hint="'-o'") from None
 
 
-@click.command(name="sweep", epilog=examples(
+@click.command(name="sweep", cls=Command, epilog=examples(
     "volwarp sweep sweep-bottle.yaml -o 'bottle_{field}.nrrd' --render bottle.png --view -70,25",
     "volwarp sweep sweep-at-bezier.yaml -o at.nrrd --multi --spacing 0.5 --method direct",
 ))

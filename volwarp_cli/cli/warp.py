@@ -16,6 +16,7 @@ from .common import load_input
 from .options import (
     INPUT_PATH,
     READ_ONCE_PATH,
+    Command,
     common_options,
     examples,
     finite,
@@ -40,7 +41,7 @@ from .warp_options import (
 )
 
 
-@click.command(name="warp", epilog=examples(
+@click.command(name="warp", cls=Command, epilog=examples(
     "volwarp warp head.nrrd --spec bend.yaml -o bent.nrrd --points-in p.csv --points-to q.csv",
     "volwarp warp block.vwc --spec pull.yaml -o pulled.nrrd --grid grow "
     "--frames-to 'pulled_{frame:03d}.nrrd'",
