@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from volwarp_cli.io import read_volume
+from volwarp_cli.transforms import read_chain
 from volwarp_cli.transforms.vnl import itk_inverse
 
 sitk = pytest.importorskip("SimpleITK")
@@ -130,3 +131,36 @@ def test_nrrd_spacing_and_direction_are_itks_to_the_bit(tmp_path):
         assert tuple(ours.spacing) == theirs.GetSpacing()
         assert tuple(np.ravel(ours.direction)) == theirs.GetDirection()
 
+
+def test_bspline_deformable_transform_keeps_its_far_face_outside(tmp_path):
+    """ITK's older BSplineDeformableTransform (ITK 3, older ANTs) has the same grid as
+    BSplineTransform but its InsideValidRegion is [1, n - 2) to the letter (ValidRegionLast
+    = n - 2, no far-face exception): volwarp read it as a BSplineTransform and moved the fixed
+    grid's last planes, which ITK leaves. SimpleITK cannot read the class (not registered in
+    its transform factory), so ITK's result is computed here from its code: a
+    BSplineTransform's point where ITK's grid index is inside [1, n - 2) on every axis, the
+    point itself elsewhere."""
+    fixed = _image((22, 20, 18), (0.7, 0.8, 1.3), (-8.3, 6.1, 4.7), _rotation(0.1, 0.25, -0.3))
+    b = _ants_placed(fixed, [5, 4, 3], 3)
+    sitk.WriteTransform(b, str(tmp_path / "b.tfm"))
+    text = (tmp_path / "b.tfm").read_text()
+    assert "BSplineTransform_double_3_3" in text
+    (tmp_path / "d.tfm").write_text(text.replace("BSplineTransform_double_3_3",
+                                                 "BSplineDeformableTransform_double_3_3"))
+    size = fixed.GetSize()
+    idx = np.stack(np.meshgrid(*[np.arange(n) for n in size], indexing="ij"), -1).reshape(-1, 3)
+    pts = np.array([fixed.TransformIndexToPhysicalPoint([int(v) for v in i]) for i in idx])
+    f = np.asarray(b.GetFixedParameters())
+    inv = _itk_inverse_by_sitk(f[6:9], f[9:18].reshape(3, 3))
+    c = pts - f[3:6]
+    grid = (inv[:, 0][None] * c[:, [0]] + inv[:, 1][None] * c[:, [1]]) + inv[:, 2][None] * c[:, [2]]
+    inside = np.all((grid >= 1.0) & (grid < f[:3] - 2), axis=1)
+    theirs = np.where(inside[:, None], np.array([b.TransformPoint(p.tolist()) for p in pts]), pts)
+    ours = read_chain([str(tmp_path / "d.tfm")]).map(pts)
+    far = np.any(np.abs(grid - (f[:3] - 2)) < 1e-9, axis=1) & ~np.any(grid < 1.0, axis=1)
+    assert far.sum() > 500  # (the last planes: on the far face, ITK's BSplineTransform moves them)
+    assert np.count_nonzero(np.abs(ours - theirs).max(axis=1) > 1e-9) == 0
+    # and the newer class, from the same numbers, moves them as ITK does
+    newer = read_chain([str(tmp_path / "b.tfm")]).map(pts[far])
+    expect = np.array([b.TransformPoint(p.tolist()) for p in pts[far]])
+    assert np.abs(newer - expect).max() < 1e-9
