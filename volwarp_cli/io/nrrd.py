@@ -365,12 +365,10 @@ def _header_geometry(fields: dict[str, str], dim: int, where: str):
         mat = np.array(cols, dtype=np.float64).T  # columns are the axes
         if not np.all(np.isfinite(mat)):
             raise FormatError(f"{where}: 'space directions' has a non-finite axis")
-        # lengths scaled first: (1e200, 1e200, 0) is 1.4e200 long, not an overflow
         big = np.abs(mat).max(axis=0)
         if np.any(big == 0):
             raise FormatError(f"{where}: 'space directions' has a zero axis")
-        spacing = big * np.linalg.norm(mat / big[None, :], axis=0)
-        direction = mat / spacing[None, :]
+        spacing, direction = _axis_lengths(mat, big)
         if "space origin" in fields:
             m = _VECTOR.fullmatch(fields["space origin"].strip())
             if not m:
@@ -381,6 +379,26 @@ def _header_geometry(fields: dict[str, str], dim: int, where: str):
     else:
         spacing, origin = _axis_geometry(fields, dim, where)
     return spacing, origin, direction, space
+
+
+def _axis_lengths(mat: np.ndarray, big: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Spacing and direction of axis vectors (columns of ``mat``; ``big``: their largest entries).
+
+    As ITK's NRRD reader (teem's ``nrrdSpacingCalculate``): the length
+    ``sqrt(x*x + y*y + z*z)`` and the vector times its reciprocal, to the
+    bit: the grid's points are then ITK's, and one on an edge of a
+    B-spline's valid region falls on ITK's side of it. Lengths whose
+    squares overflow or underflow are scaled first ((1e200, 1e200, 0) is
+    1.4e200 long).
+    """
+    with np.errstate(over="ignore", under="ignore"):
+        squares = (mat[0] * mat[0] + mat[1] * mat[1]) + mat[2] * mat[2]
+        plain = np.isfinite(squares) & (squares >= np.finfo(np.float64).tiny)
+    if plain.all():
+        spacing = np.sqrt(squares)
+        return spacing, (1.0 / spacing)[None, :] * mat
+    spacing = big * np.linalg.norm(mat / big[None, :], axis=0)
+    return spacing, mat / spacing[None, :]
 
 
 #: teem's centerings: "???" and "none" are unknown (then ITK takes cell)

@@ -481,9 +481,11 @@ static PyObject *py_grid_points(PyObject *self, PyObject *args)
     for (int64_t k = lo[2]; k < hi[2]; k++)
         for (int64_t j = lo[1]; j < hi[1]; j++)
             for (int64_t i = lo[0]; i < hi[0]; i++, n++)
+                /* ITK's order (ImageBase::TransformIndexToPhysicalPoint: the origin first):
+                 * a point on an edge of a B-spline's valid region falls as in ITK */
                 for (int r = 0; r < 3; r++)
-                    out[3 * n + r] = m[3 * r] * (double)i + m[3 * r + 1] * (double)j +
-                                     m[3 * r + 2] * (double)k + o[r];
+                    out[3 * n + r] = o[r] + m[3 * r] * (double)i + m[3 * r + 1] * (double)j +
+                                     m[3 * r + 2] * (double)k;
     Py_END_ALLOW_THREADS
     PyBuffer_Release(&out_buf);
     Py_RETURN_NONE;
@@ -857,8 +859,8 @@ static PyMethodDef methods[] = {
      "input's edges where the points reach them (lo may be -2)."},
     {"affine", py_affine, METH_VARARGS, "affine(p, m, o, out): out = p @ m.T + o, points (N, 3)."},
     {"grid_points", py_grid_points, METH_VARARGS,
-     "grid_points(lo, hi, m, o, out): world points m @ (i, j, k) + o of the grid indices in "
-     "[lo, hi) (x, y, z), x fastest."},
+     "grid_points(lo, hi, m, o, out): world points o + m @ (i, j, k) of the grid indices in "
+     "[lo, hi) (x, y, z), x fastest, summed in ITK's order (the origin first)."},
     {"interleave", py_interleave, METH_VARARGS,
      "interleave(a, b, c, out): out[..., 0], out[..., 1], out[..., 2] = a, b, c ((z, y, x) "
      "planes)."},

@@ -16,6 +16,9 @@ act on a point. The classes and their parameters (ITK's definitions):
 - ``TranslationTransform``: the offset;
 - ``BSplineTransform``: the coefficients, all x then all y then all z (x
   fastest); fixed: grid size, origin, spacing, direction (row by row);
+  ``BSplineDeformableTransform`` (ITK 3's, older ANTs'): the same grid and
+  coefficients, but its ``InsideValidRegion`` has no far-face exception: a
+  point at grid index ``n - 2`` is outside, not moved;
 - ``DisplacementFieldTransform``: the vectors interleaved (x fastest); fixed
   as the B-spline's.
 
@@ -151,7 +154,8 @@ def itk_transform(cls: str, params, fixed, where: str):
             raise VolwarpError(f"{where}: {cls} has {len(params)} parameters, expected "
                                f"{3 * count} (3 per control point of {nx}x{ny}x{nz})")
         coef = np.ascontiguousarray(np.moveaxis(params.reshape(3, nz, ny, nx), 0, -1))
-        return BSplineGrid(frame, coef, name)
+        # (ITK's older class: the same grid, its valid region [1, n - 2) to the letter)
+        return BSplineGrid(frame, coef, name, far_face=cls == "BSplineTransform")
     raise VolwarpError(f"{where}: ITK transform {cls} is not supported (supported: "
                        "AffineTransform, MatrixOffsetTransformBase, Rigid3DTransform, "
                        "ScalableAffineTransform, Euler3DTransform, Similarity3DTransform, "

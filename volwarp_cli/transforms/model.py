@@ -27,10 +27,12 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
 from ..errors import VolwarpError
+from .vnl import itk_inverse
 
 #: the edge of the tiles whose extremes bound a field's range over a box
 TILE = 16
@@ -124,15 +126,25 @@ class GridFrame:
         """Index steps (x, y, z) to world vectors."""
         return np.asarray(self.direction, float) * np.asarray(self.spacing, float)[None, :]
 
-    @property
+    @cached_property
     def inverse_matrix(self) -> np.ndarray:
-        """World vectors to index steps."""
-        return np.linalg.inv(self.matrix)
+        """World vectors to index steps: ITK's inverse, to its last bit (:mod:`.vnl`)."""
+        return itk_inverse(self.matrix)
 
     def to_index(self, p: np.ndarray) -> np.ndarray:
-        """Continuous indices (x, y, z) of world points."""
-        inv = self.inverse_matrix
-        return _affine(p, inv, -inv @ np.asarray(self.origin, float))
+        """Continuous indices (x, y, z) of world points, as ITK's images compute them.
+
+        ``inverse_matrix @ (p - origin)`` in ITK's order of operations
+        (``TransformPhysicalPointToContinuousIndex``): a point on an edge of
+        a B-spline's valid region in exact arithmetic (ANTs' grids put the
+        fixed image's first voxels there) is then inside or outside as in ITK.
+        """
+        from ._applykernels import affine
+
+        idx = np.subtract(np.asarray(p, dtype=np.float64).reshape(-1, 3),
+                          np.asarray(self.origin, float))
+        affine(idx, self.inverse_matrix, np.zeros(3), idx)  # (in place: it reads a row first)
+        return idx.reshape(np.shape(p))
 
     def index_box(self, lo, hi) -> tuple[np.ndarray, np.ndarray]:
         """The continuous index box of world box ``[lo, hi]``."""
@@ -515,7 +527,10 @@ class BSplineGrid:
     continuous grid index ``u`` is outside ``[1, n - 2)`` on some axis (its
     support would leave the grid) is not moved, except on the far face
     ``u = n - 2`` (``far_face``, :func:`_onto_far_face`): ITK's
-    ``InsideValidRegion`` takes it as inside; elastix's B-spline does not.
+    ``InsideValidRegion`` takes it as inside; elastix's B-spline and ITK's
+    older ``BSplineDeformableTransform`` do not. The grid indices are ITK's
+    to the bit (:meth:`GridFrame.to_index`), so that a point on an edge in
+    exact arithmetic is moved where ITK moves it.
     """
 
     frame: GridFrame
@@ -547,28 +562,32 @@ class BSplineGrid:
         return np.asarray(lo) + vmin, np.asarray(hi) + vmax
 
 
-#: how near (in grid indices) the far face of an ITK B-spline's valid region a point lies on it
-FAR_FACE = 1e-9
+#: ITK's ``InsideValidRegion``: an index this many ULPs from the far face is on it...
+FAR_FACE_ULPS = 4
+#: ...and is taken this many ULPs below it (``FloatAddULP(maxLimit, -6)``)
+FAR_FACE_BELOW = 6
 
 
 def _onto_far_face(idx: np.ndarray, size) -> None:
     """Indices ``idx`` (N, 3) on the far face ``n - 2`` of the valid region moved just inside it.
 
     ITK's ``BSplineTransform::InsideValidRegion`` takes an index within 4
-    ULPs of ``n - 2`` as an index a few ULPs below it (the last 4
-    coefficients: the spline's limit there), not as outside. A grid placed as ANTs places
-    it (``SetTransformDomain*`` from the fixed image's first voxel centre to
-    its last) puts the fixed grid's last voxels of each axis there: they
-    were left unmoved where ITK moves them. Within :data:`FAR_FACE` here,
-    volwarp's indices rounding otherwise than ITK's.
+    ULPs of ``n - 2`` (``FloatAlmostEqual``) as the index 6 ULPs below it
+    (the last 4 coefficients: the spline's limit there), not as outside. A
+    grid placed as ANTs places it (``SetTransformDomain*`` from the fixed
+    image's first voxel centre to its last) puts the fixed grid's last
+    voxels of each axis there: they were left unmoved where ITK moves them.
+    The indices are ITK's own (:meth:`GridFrame.to_index`), so ITK's rule
+    to the ULP: a looser one moved points ITK leaves.
     """
-    hi = np.asarray(size, float) - 2.0
-    gap = idx - hi
-    np.abs(gap, out=gap)
-    near = gap <= FAR_FACE
-    del gap
+    hi = np.asarray(size, float) - 2.0  # (>= 2: positive, so ULPs are the bits' distance)
+    bits = idx.view(np.int64)
+    hi_bits = hi.view(np.int64)
+    near = np.abs(bits - hi_bits) <= FAR_FACE_ULPS
+    near &= idx > 0  # (a negative index's bits are not near: FloatAlmostEqual's sign test)
     if near.any():
-        np.copyto(idx, np.broadcast_to(np.nextafter(hi, 0.0), idx.shape), where=near)
+        inside = (hi_bits - FAR_FACE_BELOW).view(np.float64)
+        np.copyto(idx, np.broadcast_to(inside, idx.shape), where=near)
 
 
 @dataclass(frozen=True)
