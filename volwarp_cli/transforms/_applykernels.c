@@ -445,6 +445,42 @@ fail:
     return NULL;
 }
 
+static PyObject *py_affine_about(PyObject *self, PyObject *args)
+{
+    PyObject *o_p, *o_m, *o_c, *o_out;
+    Py_buffer b[2];
+    int nb = 0;
+    double m[9], c[3];
+    if (!PyArg_ParseTuple(args, "OOOO", &o_p, &o_m, &o_c, &o_out))
+        return NULL;
+    if (get_buf(o_p, &b[nb++], READ, KIND(F64), 2, "p") < 0 ||
+        get_buf(o_out, &b[nb++], WRITE, KIND(F64), 2, "out") < 0) {
+        nb--;
+        goto fail;
+    }
+    Py_ssize_t count = points(&b[0], "p");
+    if (count < 0 || points(&b[1], "out") < 0 ||
+        same_count(count, b[1].shape[0], "affine_about") < 0 ||
+        get_small(o_m, F64, 2, m, "m") < 0 || get_small(o_c, F64, 1, c, "c") < 0)
+        goto fail;
+    const double *p = b[0].buf;
+    double *out = b[1].buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < count; i++) {
+        /* ITK's ImageBase::TransformPhysicalPointToContinuousIndex: the origin off first,
+         * then each row's products summed from the first (vnl's matrix times vector) */
+        double x = p[3 * i] - c[0], y = p[3 * i + 1] - c[1], z = p[3 * i + 2] - c[2];
+        for (int r = 0; r < 3; r++)
+            out[3 * i + r] = m[3 * r] * x + m[3 * r + 1] * y + m[3 * r + 2] * z;
+    }
+    Py_END_ALLOW_THREADS
+    release_all(b, nb);
+    Py_RETURN_NONE;
+fail:
+    release_all(b, nb);
+    return NULL;
+}
+
 static PyObject *py_grid_points(PyObject *self, PyObject *args)
 {
     PyObject *o_lo, *o_hi, *o_m, *o_o, *o_out;
@@ -858,6 +894,9 @@ static PyMethodDef methods[] = {
      "prefiltered coefficients coef (float64) of the indices from lo on, mirrored beyond the "
      "input's edges where the points reach them (lo may be -2)."},
     {"affine", py_affine, METH_VARARGS, "affine(p, m, o, out): out = p @ m.T + o, points (N, 3)."},
+    {"affine_about", py_affine_about, METH_VARARGS,
+     "affine_about(p, m, c, out): out = m @ (p - c), points (N, 3), summed in ITK's order "
+     "(the point less c, then each row from its first product); out may be p."},
     {"grid_points", py_grid_points, METH_VARARGS,
      "grid_points(lo, hi, m, o, out): world points o + m @ (i, j, k) of the grid indices in "
      "[lo, hi) (x, y, z), x fastest, summed in ITK's order (the origin first)."},

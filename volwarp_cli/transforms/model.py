@@ -139,11 +139,11 @@ class GridFrame:
         a B-spline's valid region in exact arithmetic (ANTs' grids put the
         fixed image's first voxels there) is then inside or outside as in ITK.
         """
-        from ._applykernels import affine
+        from ._applykernels import affine_about
 
-        idx = np.subtract(np.asarray(p, dtype=np.float64).reshape(-1, 3),
-                          np.asarray(self.origin, float))
-        affine(idx, self.inverse_matrix, np.zeros(3), idx)  # (in place: it reads a row first)
+        flat = np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
+        idx = np.empty_like(flat)  # (one pass: a subtraction first took twice the time)
+        affine_about(flat, self.inverse_matrix, np.asarray(self.origin, float), idx)
         return idx.reshape(np.shape(p))
 
     def index_box(self, lo, hi) -> tuple[np.ndarray, np.ndarray]:
