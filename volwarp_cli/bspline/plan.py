@@ -172,6 +172,15 @@ def check_indices(doc, spec: WarpSpec, lattice) -> None:
 MAX_DISPLACEMENT = float(2 ** 40)
 
 
+def _check_reach(doc, key: tuple, displacement) -> None:
+    """A spec error at ``key`` if ``displacement`` (input voxels) is beyond :data:`MAX_DISPLACEMENT`."""
+    reach = float(np.abs(displacement).max(initial=0.0))
+    if not reach <= MAX_DISPLACEMENT:  # (NaN too)
+        raise doc.error(key, f"moves a control point {reach:.3g} input voxels, beyond the "
+                        f"{MAX_DISPLACEMENT:.3g} the warp's exact sums can place (a value in "
+                        "the wrong units?)")
+
+
 def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -> list[Frame]:
     """The lattice after every increment of every step, in order."""
     check_indices(doc, spec, grid.lattice)
@@ -181,12 +190,14 @@ def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -
     for s, step in enumerate(spec.steps):
         work = current.copy()
         _warn_idle(s, step)
-        for mv in step.get("move", []):
+        for m, mv in enumerate(step.get("move", [])):
             i, j, k = (int(v) for v in mv["index"])  # (7.0: an integer to the schema)
             if "by" in mv:
                 work[k, j, i] += geom.vector(mv["by"])
             else:
                 work[k, j, i] = geom.point(mv["to"]) - uniform[k, j, i]
+            _check_reach(doc, ("steps", s, "move", m, "by" if "by" in mv else "to"),
+                         work[k, j, i])
         if "drag" in step:
             drags = step["drag"]
             src = np.array([geom.point(h["from"]) for h in drags])
@@ -213,6 +224,9 @@ def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -
                                "the region the warped model covers (the input's voxel box, "
                                "carried by the earlier steps)")
                 raise doc.error(("steps", s, "drag", exc.index, "from"), message) from None
+            # (the handle that asks the most, before a warning about a compromise it forced)
+            _check_reach(doc, ("steps", s, "drag",
+                               int(np.argmax(np.abs(dst - src).max(axis=1))), "to"), delta)
             if free is not None:
                 _warn_strong_radius(s, float(step["radius"]), delta, src, dst, geom)
             work = work + delta
@@ -227,11 +241,7 @@ def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -
                             "voxel" if geom.units == "voxel" else "mm")
         else:
             handles = []
-        reach = float(np.abs(work).max(initial=0.0))
-        if not reach <= MAX_DISPLACEMENT:  # (NaN too)
-            raise doc.error(("steps", s), f"moves a control point {reach:.3g} input voxels, "
-                            f"beyond the {MAX_DISPLACEMENT:.3g} the warp's exact sums can "
-                            "place (a value in the wrong units?)")
+        _check_reach(doc, ("steps", s), work)  # (the moves and drags together)
         n = int(step.get("frames", 1))
         total = work - current if n > 1 else None
         for f in range(1, n):

@@ -21,6 +21,7 @@ from .options import (
     INPUT_PATH,
     READ_ONCE_PATH,
     Command,
+    band,
     common_options,
     examples,
     finite,
@@ -65,7 +66,7 @@ _METRICS = ["euclidean", "minnorm", "chessboard", "taxicab"]
 @click.option("--unsigned", is_flag=True,
               help="Distance to the shape (0 inside) instead of the signed field.")
 @click.option("--max-distance", type=click.FloatRange(min=0, min_open=True), default=None,
-              callback=finite,
+              callback=band,
               metavar="D", help="Clamp distances to [-D, D] (world units).")
 @click.option("--update", "update", type=INPUT_PATH, default=None,
               metavar="OLD_SDF", help="Update an existing signed field instead (needs --transform).")
@@ -228,10 +229,12 @@ def _update(old_path, transform_path, output, metric, max_distance, *, write, re
     from ..io.lazy import open_volume_header
     from ..memory import ensure_fits_in_memory
     from ..morph.align import affine_from_params
+    from ..morph.spec import check_affine_params
     from ..spec.loader import load_spec
     from .common import check_input_options
 
     doc = load_spec(transform_path, "transform")
+    check_affine_params(doc, (), doc.data)  # (before any sample is read)
     check_output_path(output, option="-o")
     check_input_options(old_path, read["raw"], read["dicom"])
     header = open_volume_header(old_path, raw=read["raw"], volume_index=read["volume_index"],

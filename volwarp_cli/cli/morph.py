@@ -26,6 +26,7 @@ from .options import (
     READ_ONCE_PATH,
     VIEW_HELP,
     Command,
+    band,
     common_options,
     core_parser,
     examples,
@@ -112,7 +113,7 @@ def _pattern_check(kind: str):
 @click.option("--grid", "grid_choice", type=click.Choice(["source", "target", "union"]),
               default=None, help="Short form: the frame grid when the inputs' grids differ.")
 @click.option("--max-distance", type=click.FloatRange(min=0, min_open=True), default=None,
-              callback=finite,
+              callback=band,
               metavar="D", help="Short form: clamp both fields to [-D, D] (world units); lets "
                                 "smooth samples (scans) morph by blocks (--chunked).")
 @click.option("--density", "as_density", is_flag=True,

@@ -314,6 +314,16 @@ def finite(ctx, param, value):
     return value
 
 
+def band(ctx, param, value):
+    """Callback: ``--max-distance``, finite and a band a float32 field holds."""
+    finite(ctx, param, value)
+    from ..distance.field import band_problem
+
+    if value is not None and band_problem(value):
+        raise click.BadParameter(band_problem(value), ctx=ctx, param=param)
+    return value
+
+
 def _positive(ctx, param, value):
     finite(ctx, param, value)
     if value is not None and any(v <= 0 for v in value):

@@ -34,6 +34,18 @@ import numpy as np
 from ..errors import BadUsage, VolwarpError
 
 METRICS = ("euclidean", "minnorm", "chessboard", "taxicab")
+#: the narrowest band a field may be clamped to (``--max-distance``, a morph's
+#: ``max_distance``): float32's smallest normal number. A band of 1e-300 is 0 in float32:
+#: every distance became 0 and the shape was lost, with exit 0.
+MIN_BAND = float(np.finfo(np.float32).tiny)
+
+
+def band_problem(max_distance: float) -> str | None:
+    """Why ``max_distance`` cannot be a band (:data:`MIN_BAND`), or None."""
+    if not max_distance >= MIN_BAND:
+        return (f"{max_distance:g} is below {MIN_BAND:.3g}, the smallest band a float32 "
+                "field holds (every distance would be 0)")
+    return None
 SURFACES = ("auto", "voxel", "subvoxel")
 
 
@@ -193,7 +205,7 @@ def finish_field(field: np.ndarray, *, unsigned: bool = False,
     if unsigned:
         np.maximum(field, 0, out=field)
     if max_distance is not None:
-        if not max_distance > 0:
-            raise VolwarpError(f"max distance must be positive, got {max_distance:g}")
+        if band_problem(max_distance):
+            raise VolwarpError(f"max distance: {band_problem(max_distance)}")
         np.clip(field, -max_distance, max_distance, out=field)
     return field

@@ -35,6 +35,13 @@ from ..labelmap import SCAN_BOX_VOXELS, VALUES
 from .field import inside_mask, signed_distance
 
 
+class LabelAbsent(VolwarpError):
+    """A label asked for (``--label N``, a spec's ``label: N``) that the volume does not hold.
+
+    Its own class so that a spec's caller can name the key that asked for it.
+    """
+
+
 @dataclass(frozen=True)
 class ShapeRule:
     """The shape a field is of, how it was chosen and why.
@@ -203,7 +210,7 @@ def choose_shape(source, *, values: str | None = None, label: int | None = None,
         raise BadUsage(f"{what}: {_SUBVOXEL}")
     chosen = ids if label is None else scan.values[scan.values == label]
     if label is not None and not chosen.size:
-        raise VolwarpError(f"{name}: label {label} does not occur in the volume "
+        raise LabelAbsent(f"{name}: label {label} does not occur in the volume "
                            f"(its values: {_listed(scan.values)})")
     if label is None and not chosen.size:
         raise VolwarpError(f"{name}: no label other than 0 in the volume")

@@ -233,7 +233,7 @@ def shape_rule(job: MorphJob, name: str, header, samples):
     ``distance``'s, in the spec's keys for a spec (:func:`.spec.spec_terms`).
     Read once, box by box: the same choice in memory and by blocks.
     """
-    from ..distance.labels import choose_shape
+    from ..distance.labels import LabelAbsent, choose_shape
     from ..distance.scan import scan_box_voxels
     from ..errors import BadUsage
     from .spec import spec_terms
@@ -244,12 +244,15 @@ def shape_rule(job: MorphJob, name: str, header, samples):
             rule = choose_shape(samples, values=ref.values, label=ref.label, iso=ref.iso,
                                 inside=ref.inside, surface=job.surface, name=str(ref.path),
                                 box_voxels=scan_box_voxels(), meta=header.meta)
-    except BadUsage as exc:
+    except (BadUsage, LabelAbsent) as exc:
         if job.doc is None:
             raise
-        # (the file by its name: the spec's line says which, and a long path clipped the hint)
+        # (the file by its name: the spec's line says which, and a long path clipped the hint;
+        # a label the volume lacks is the spec's label: key, a spec error as a warp's index
+        # outside its lattice is)
         message = spec_terms(str(exc)).replace(str(ref.path), ref.path.name)
-        raise job.doc.error((name,), message) from None
+        key = (name, "label") if isinstance(exc, LabelAbsent) else (name,)
+        raise job.doc.error(key, message) from None
     log.info("%s: %s", name, rule.describe())
     return rule
 

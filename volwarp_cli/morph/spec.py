@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import VolwarpError
+from ..spec.functions import MAX_ANGLE, MAX_VALUE, check_bounded
 from .align import affine_from_params
 
 
@@ -78,18 +79,31 @@ class MorphJob:
 
 #: largest world coordinate or length a morph spec may give (1e15 mm is 1e9 km): beyond
 #: it squared distances overflow and the results are noise
-MAX_COORD = 1e15
+MAX_COORD = MAX_VALUE
 
 
-def _check_bounded(doc, path: tuple, value) -> None:
-    """Refuse (key path and line) any number in ``value`` beyond :data:`MAX_COORD`."""
-    if isinstance(value, list):
-        for i, v in enumerate(value):
-            _check_bounded(doc, path + (i,), v)
-    elif isinstance(value, (int, float)) and not isinstance(value, bool):
-        if not abs(value) <= MAX_COORD:
-            raise doc.error(path, f"{value:g} is too large (world coordinates and lengths "
-                                  f"are at most {MAX_COORD:g})")
+def check_affine_params(doc, path: tuple, params) -> None:
+    """Refuse (key path and line) an affine's numbers out of bounds (:mod:`.align`'s keys).
+
+    Coordinates, lengths and matrix entries within :data:`MAX_COORD`, a scale
+    within ``[1 / MAX_COORD, MAX_COORD]``, angles within
+    :data:`~volwarp_cli.spec.functions.MAX_ANGLE` degrees. (A transform
+    ``scale: 1e300`` wrote a field of -inf with exit 0, ``rotate: 1e300`` a
+    turn by an angle with no digits left.)
+    """
+    if not isinstance(params, dict):
+        return
+    for name, what in (("translate", None), ("center", None), ("matrix", "matrix entries"),
+                       ("scale", "scales")):
+        check_bounded(doc, path + (name,), params.get(name),
+                      what=what or "world coordinates and lengths")
+    check_bounded(doc, path + ("rotate",), params.get("rotate"), limit=MAX_ANGLE,
+                  what="rotation angles (degrees)")
+    scale = params.get("scale")
+    for i, v in (enumerate(scale) if isinstance(scale, list) else [(None, scale)]):
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1 / MAX_COORD:
+            key = path + ("scale",) + (() if i is None else (i,))
+            raise doc.error(key, f"{v:g} is too small (a scale is at least {1 / MAX_COORD:g})")
 
 
 def _check_spacing(doc, sp) -> None:
@@ -136,14 +150,12 @@ def job_from_spec(doc) -> MorphJob:
     """A :class:`MorphJob` from a loaded, schema-valid spec document."""
     d = doc.data
     for side in ("source", "target"):
-        for name in ("translate", "center"):
-            _check_bounded(doc, ("align", side, name),
-                           (d.get("align", {}).get(side) or {}).get(name))
+        check_affine_params(doc, ("align", side), d.get("align", {}).get(side))
     for name in ("pairs", "source_points", "target_points", "sigma"):
-        _check_bounded(doc, ("warp", name), d.get("warp", {}).get(name))
+        check_bounded(doc, ("warp", name), d.get("warp", {}).get(name))
     if isinstance(d.get("grid"), dict):
         for name in ("origin", "spacing"):
-            _check_bounded(doc, ("grid", name), d["grid"].get(name))
+            check_bounded(doc, ("grid", name), d["grid"].get(name))
         sp = d["grid"].get("spacing")
         _check_spacing(doc, sp)
         size = d["grid"].get("size")
@@ -155,7 +167,7 @@ def job_from_spec(doc) -> MorphJob:
                     raise doc.error(("grid", "size", i), f"the grid is {a * n:g} world units "
                                     f"long along {'xyz'[i]} (at most {MAX_COORD:g})")
     if "density" in d:
-        _check_bounded(doc, ("density", "width"), d["density"].get("width"))
+        check_bounded(doc, ("density", "width"), d["density"].get("width"))
 
     def shape(key):
         s = d[key]
@@ -241,7 +253,11 @@ def job_from_spec(doc) -> MorphJob:
             raise doc.error(exc.key, str(exc)) from None
     job.margin = float(d.get("margin", 2.0))
     if "max_distance" in d:
-        _check_bounded(doc, ("max_distance",), d["max_distance"])
+        check_bounded(doc, ("max_distance",), d["max_distance"])
+        from ..distance.field import band_problem
+
+        if band_problem(float(d["max_distance"])):
+            raise doc.error(("max_distance",), band_problem(float(d["max_distance"])))
         job.max_distance = float(d["max_distance"])
     names = set()
     for i, a in enumerate(d.get("attributes", [])):

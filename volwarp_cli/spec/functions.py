@@ -32,7 +32,7 @@ from ..errors import SpecError
 from .loader import format_key
 
 __all__ = ["Function", "parse_function", "spec_error", "is_function_spec", "ALLOWED_FUNCTIONS",
-           "ALLOWED_NAMES", "MAX_EXPRESSION_LENGTH"]
+           "ALLOWED_NAMES", "MAX_EXPRESSION_LENGTH", "MAX_VALUE", "MAX_ANGLE", "check_bounded"]
 
 #: functions an expression may call, with their numpy implementation and arity (None: 2+)
 ALLOWED_FUNCTIONS: dict[str, tuple[Callable, int | None]] = {
@@ -44,6 +44,25 @@ ALLOWED_FUNCTIONS: dict[str, tuple[Callable, int | None]] = {
 ALLOWED_NAMES = ("u", "pi")
 MAX_EXPRESSION_LENGTH = 2000
 _MAX_FLOAT = float(np.finfo(np.float64).max)
+#: the largest magnitude of a spec's coordinates, lengths and function values: the
+#: placement bound every volume keeps (:data:`volwarp_cli.geometry.PLACEMENT_LIMIT`);
+#: beyond it squared distances overflow and a norm of 1e300 is inf (a direction of 0)
+MAX_VALUE = 1e15
+#: the largest rotation angle (degrees) a spec may give: 2777 turns; at 1e300 the angle
+#: has no digits left below a full turn (a double's step there is 1e284 degrees)
+MAX_ANGLE = 1e6
+
+
+def check_bounded(doc, path: Sequence, value, *, limit: float = MAX_VALUE,
+                  what: str = "world coordinates and lengths") -> None:
+    """Refuse (key path and line) any number in ``value`` (nested lists) beyond ``limit``."""
+    if isinstance(value, list):
+        for i, v in enumerate(value):
+            check_bounded(doc, tuple(path) + (i,), v, limit=limit, what=what)
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+        if not abs(value) <= limit:
+            raise spec_error(doc, path, f"{value:g} is too large ({what} are at most "
+                                        f"{limit:g})")
 
 _BINOPS = {ast.Add: np.add, ast.Sub: np.subtract, ast.Mult: np.multiply,
            ast.Div: np.divide, ast.Pow: np.power, ast.Mod: np.mod}
@@ -95,6 +114,7 @@ class Function:
         self.path = tuple(path)
         self.doc = doc
         self.constant = constant
+        self.limit = None  # the largest magnitude of a value (parse_function's ``limit``)
 
     @property
     def is_constant(self) -> bool:
@@ -115,6 +135,11 @@ class Function:
         if not np.all(np.isfinite(out)):
             bad = np.flatnonzero(~np.all(np.isfinite(out.reshape(u.shape[0], -1)), axis=1))[0]
             raise self.error(f"the {self.kind} gives a non-finite value at u={u[bad]:.6g}")
+        if self.limit is not None and not np.all(np.abs(out) <= self.limit):
+            row = np.abs(out.reshape(u.shape[0], -1)).max(axis=1)
+            bad = int(np.argmax(row > self.limit))
+            raise self.error(f"the {self.kind} gives {row[bad]:.3g} at u={u[bad]:.6g} (its "
+                             f"values are at most {self.limit:g})")
         return out
 
     def __repr__(self):
@@ -127,14 +152,15 @@ def is_function_spec(value: Any) -> bool:
 
 
 def parse_function(value: Any, path: Sequence = (), doc=None, *, dim: int | None | str = "any",
-                   name: str = "value") -> Function:
+                   name: str = "value", limit: float | None = None) -> Function:
     """Parse a spec value into a :class:`Function` of ``u``.
 
     ``dim``: ``None`` requires a scalar, an integer requires a vector of that
     length, ``"any"`` accepts either (the value decides). A scalar given where
     a vector of length ``dim`` is wanted is broadcast (``scale: 10`` means
     ``[10, 10]``) only when ``dim`` is an integer and the value is a plain number
-    or a scalar function.
+    or a scalar function. ``limit``: the largest magnitude of a value (a constant's
+    refused here, at its entry's key; any other's where it is evaluated).
     """
     path = tuple(path)
     if is_function_spec(value):
@@ -160,7 +186,11 @@ def parse_function(value: Any, path: Sequence = (), doc=None, *, dim: int | None
             fn = Function("constant", arr.shape[0],
                           lambda u, c=const: np.broadcast_to(c, (u.shape[0], c.shape[0])),
                           path, doc, constant=const)
-    return _conform(fn, dim, path, doc, name)
+    if limit is not None and not is_function_spec(value):
+        check_bounded(doc, path, value, limit=limit, what=f"{name}'s values")
+    fn = _conform(fn, dim, path, doc, name)
+    fn.limit = limit
+    return fn
 
 
 def _conform(fn: Function, dim, path, doc, name) -> Function:

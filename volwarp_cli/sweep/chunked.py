@@ -44,7 +44,7 @@ from ..geometry import Geometry
 from .cvg import combine_objects
 from .direct import check_direct, direct_block
 from .model import SceneNode, Sweep, SweepSpec
-from .voxelize import VoxelPlan, check_axis_aligned, plan_voxelize, voxelize_block
+from .voxelize import TooManyTemplates, VoxelPlan, check_axis_aligned, plan_voxelize, voxelize_block
 
 METHODS = ("voxelize", "direct")
 
@@ -139,8 +139,31 @@ def prepare_sweep(model, geometry: Geometry, *, method: str | None = None,
         if method == "direct":
             check_direct(sw)
         else:
-            plans.append(plan_voxelize(sw, _sweep_tau(sw, geometry, tau, default_tau)))
+            try:
+                plans.append(plan_voxelize(sw, _sweep_tau(sw, geometry, tau, default_tau)))
+            except TooManyTemplates as exc:
+                raise _too_many(exc, sw, getattr(model, "doc", None), tau, default_tau) from None
     return SweepPlan(root, method, names, geometry, plans)
+
+
+def _too_many(exc: TooManyTemplates, sweep: Sweep, doc, tau, default_tau) -> VolwarpError:
+    """``exc`` at what asked for it: ``--tau``, the spec's ``tau`` or a field's ``path`` key.
+
+    (A tau of 1e-300 was an exit 1 that named no key.) With the default tau
+    (half the grid's spacing) it stays as it is: the trajectory is too long for the grid.
+    """
+    from ..spec.functions import spec_error
+
+    if exc.cause == "path":
+        name = list(sweep.templates)[exc.template]
+        return spec_error(doc, sweep.key + ("fields", name, "path"), str(exc))
+    if tau is not None:
+        return BadUsage(f"--tau: {exc}")
+    if sweep.tau is not None:
+        return spec_error(doc, sweep.key + ("tau",), str(exc))
+    if default_tau is not None:
+        return spec_error(doc, ("tau",), str(exc))
+    return exc
 
 
 def block_fields(plan: SweepPlan, box: Box, *, threads: int = 1) -> dict[str, np.ndarray]:

@@ -13,7 +13,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import Geometry
-from ..spec.functions import Function, parse_function, spec_error
+from ..spec.functions import (
+    MAX_ANGLE,
+    MAX_VALUE,
+    Function,
+    check_bounded,
+    parse_function,
+    spec_error,
+)
 from .cvg import OPERATORS, resolve_ops
 from .frames import (
     Frames,
@@ -157,17 +164,23 @@ class SweepSpec:
 
 
 # -- parsing ------------------------------------------------------------------------
-def _vec(doc, path, value, n=3, name="value") -> np.ndarray:
+def _vec(doc, path, value, n=3, name="value", bounded=True) -> np.ndarray:
+    """``n`` finite numbers at key ``path``; ``bounded``: each within ``MAX_VALUE``.
+
+    (A point of 1e300 made a direction of inf / inf, and a ZeroDivisionError.)
+    """
     arr = np.asarray(value, dtype=np.float64)
     if arr.shape != (n,) or not np.all(np.isfinite(arr)):
         raise spec_error(doc, path, f"{name} must be {n} finite numbers")
+    if bounded:
+        check_bounded(doc, path, arr.tolist())
     return arr
 
 
 def _urange(doc, path, body) -> tuple[float, float]:
     if "u" not in body:
         return 0.0, 1.0
-    u = _vec(doc, path + ("u",), body["u"], 2, "u")
+    u = _vec(doc, path + ("u",), body["u"], 2, "u", bounded=False)
     if u[0] == u[1]:
         raise spec_error(doc, path + ("u",), "u range must not be empty")
     return float(u[0]), float(u[1])
@@ -190,6 +203,10 @@ def parse_segment(doc, path: tuple, item: dict) -> Segment:
         axis = _vec(doc, bp + ("axis",), body.get("axis", [0, 0, 1]), name="axis")
         if np.linalg.norm(axis) == 0:
             raise spec_error(doc, bp + ("axis",), "the arc's axis must not be zero")
+        check_bounded(doc, bp + ("radius",), body["radius"])
+        for key in ("start", "end"):
+            check_bounded(doc, bp + (key,), body.get(key), limit=MAX_ANGLE,
+                          what="arc angles (degrees)")
         r = float(body["radius"])
         start = float(body.get("start", 0.0))
         end = float(body.get("end", 360.0))
@@ -202,6 +219,7 @@ def parse_segment(doc, path: tuple, item: dict) -> Segment:
     pts = np.asarray(body["points"], dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
         raise spec_error(doc, bp + ("points",), "points must be a list of [x, y, z]")
+    check_bounded(doc, bp + ("points",), pts.tolist())
     if kind == "bezier":
         if np.ptp(pts, axis=0).max() == 0:
             raise spec_error(doc, bp + ("points",), "a Bezier curve needs control points "
@@ -229,7 +247,7 @@ def parse_trajectory(doc, path: tuple, items) -> list[Segment]:
 
 
 def _vector_fn(doc, path, value, name) -> Function:
-    fn = parse_function(value, path, doc, dim=3, name=name)
+    fn = parse_function(value, path, doc, dim=3, name=name, limit=MAX_VALUE)
     return fn
 
 
@@ -276,7 +294,8 @@ def parse_sweep(doc, path: tuple, body: dict, loader: TemplateLoader) -> Sweep:
         if "path" in fspec:
             if "frames" not in fspec:
                 raise spec_error(doc, fp + ("path",), "'path' (f(u)) goes with 'frames'")
-            path_fn = parse_function(fspec["path"], fp + ("path",), doc, dim=None, name="path")
+            path_fn = parse_function(fspec["path"], fp + ("path",), doc, dim=None, name="path",
+                                     limit=MAX_VALUE)
         templates[name] = loader.load(name, fspec, fp, path_fn)
     top = {k: body.get(k) for k in ("direction", "up", "scale")}
     functions = []
@@ -298,7 +317,7 @@ def parse_sweep(doc, path: tuple, body: dict, loader: TemplateLoader) -> Sweep:
         functions.append(SweepFunctions(
             direction=_direction(doc, dpath, dval, n),
             up=_up(doc, upath, uval, n),
-            scale=parse_function(sval, spath, doc, dim=2, name="scale"),
+            scale=parse_function(sval, spath, doc, dim=2, name="scale", limit=MAX_VALUE),
             direction_path=dpath, up_path=upath, doc=doc))
     ops = _ops(doc, path + ("combine",), body.get("combine"), list(templates))
     prepare_frames(segments, functions)
@@ -443,6 +462,12 @@ def output_grid(spec: SweepSpec, *, shape=None, spacing=None) -> Geometry:
                                     and spacing > 0):
         raise BadUsage(f"--spacing: a positive number, got {spacing!r}")
     grid_spec = dict(spec.grid)
+    from ..samples import MAX_AXIS
+
+    for i, n in enumerate(grid_spec.get("shape") or []):  # (1e20 was an OverflowError)
+        if shape is None and spacing is None and isinstance(n, int) and n > MAX_AXIS:
+            raise spec.doc.error(("grid", "shape", i), f"{n} samples is over the {MAX_AXIS} "
+                                 "an axis may have")
     if shape is not None:
         grid_spec = {"shape": [int(v) for v in shape], "margin": grid_spec.get("margin")}
     elif spacing is not None:

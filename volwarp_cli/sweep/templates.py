@@ -62,7 +62,9 @@ class Template:
             return np.zeros_like(s)
         if self.path_fn is None:
             return np.clip(s, 0.0, 1.0) * (self.n_slices - 1)
-        return self.path_fn(seg.u_of(s))
+        # (clamped as the samplers clamp them: a path far beyond the stack, u * 1e300, asks
+        # for no templates between slices that are all the last one)
+        return np.clip(self.path_fn(seg.u_of(s)), 0.0, self.n_slices - 1)
 
 
 def natural_order(name: str) -> tuple:
@@ -150,7 +152,11 @@ class TemplateLoader:
         """A :class:`Template` for field ``name`` from its spec mapping at key ``path``."""
         channel = int(spec.get("channel", 0))
         if "value" in spec:
-            data = np.full((1, 1, 1), float(spec["value"]), dtype=np.float32)
+            value = float(spec["value"])
+            if not abs(value) <= np.finfo(np.float32).max:  # (was "has non-finite values")
+                raise self._err(path, f"value {value:g} is beyond float32's range (the "
+                                "fields are float32, at most 3.4e+38)")
+            data = np.full((1, 1, 1), value, dtype=np.float32)
         elif "image" in spec:
             img = self._image(spec["image"], path + ("image",))
             data = self._channel(img, channel, path + ("channel",), spec["image"])[None]

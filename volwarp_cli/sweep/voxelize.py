@@ -64,6 +64,20 @@ from .trajectory import Polyline
 MAX_KNOTS = 2_000_000
 
 
+class TooManyTemplates(VolwarpError):
+    """A segment that needs more than :data:`MAX_KNOTS` templates.
+
+    ``cause``: ``"tau"`` (templates farther apart than tau) or ``"path"``
+    (template ``template``'s slices jump by more than one), so that the
+    caller can name the spec key or option that asked for it.
+    """
+
+    def __init__(self, message: str, cause: str, template: int | None = None):
+        super().__init__(message)
+        self.cause = cause
+        self.template = template
+
+
 def check_axis_aligned(grid: Geometry) -> None:
     """Refuse a grid with a direction other than the identity.
 
@@ -97,8 +111,12 @@ def _refine(evaluate, s0: np.ndarray, tau: float, slice_fn, what: str):
         if not np.any(split):
             return fr, sl
         if s.size + int(split.sum()) > MAX_KNOTS:
-            raise VolwarpError(f"{what} needs more than {MAX_KNOTS} templates at tau={tau:g}; "
-                               "raise tau or use a coarser grid")
+            if np.any(split & (move > tau)):
+                raise TooManyTemplates(f"{what} needs more than {MAX_KNOTS} templates at "
+                                       f"tau={tau:g}; raise tau or use a coarser grid", "tau")
+            bad = int(np.argmax(np.abs(np.diff(sl, axis=0))[split].max(axis=0)))
+            raise TooManyTemplates(f"{what}: the template's slices f(u) jump by more than one "
+                                   f"slice in over {MAX_KNOTS} places", "path", bad)
         mids = 0.5 * (s[:-1][split] + s[1:][split])
         s = np.sort(np.concatenate([s, mids]))
 
