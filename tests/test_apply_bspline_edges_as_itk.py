@@ -132,6 +132,22 @@ def test_nrrd_spacing_and_direction_are_itks_to_the_bit(tmp_path):
         assert tuple(np.ravel(ours.direction)) == theirs.GetDirection()
 
 
+def test_an_axis_along_a_world_axis_keeps_its_spacing_as_written(tmp_path):
+    """teem's sqrt(x * x) is not always x: 3.3000000000000003 came back 3.3, and a convert
+    changed a file's spacing; an axis with one entry keeps it (its direction a unit)."""
+    import nrrd
+
+    for sp in (1.1, 0.30000000000000004, 3.3000000000000003, 0.123456789, 2.2):
+        axes = np.diag([sp, 2 * sp, -3 * sp])[[1, 0, 2]]  # (pynrrd: a row an axis)
+        path = tmp_path / "a.nrrd"
+        nrrd.write(str(path), np.zeros((4, 4, 4), np.uint8),
+                   {"space": "left-posterior-superior", "space directions": axes,
+                    "space origin": [0.0, 0.0, 0.0]})
+        vol = read_volume(path)
+        np.testing.assert_array_equal((vol.direction * vol.spacing[None, :]).T, axes)
+        assert set(np.unique(vol.direction)) <= {-1.0, 0.0, 1.0}
+
+
 def test_bspline_deformable_transform_keeps_its_far_face_outside(tmp_path):
     """ITK's older BSplineDeformableTransform (ITK 3, older ANTs) has the same grid as
     BSplineTransform but its InsideValidRegion is [1, n - 2) to the letter (ValidRegionLast

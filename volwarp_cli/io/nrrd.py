@@ -389,16 +389,23 @@ def _axis_lengths(mat: np.ndarray, big: np.ndarray) -> tuple[np.ndarray, np.ndar
     bit: the grid's points are then ITK's, and one on an edge of a
     B-spline's valid region falls on ITK's side of it. Lengths whose
     squares overflow or underflow are scaled first ((1e200, 1e200, 0) is
-    1.4e200 long).
+    1.4e200 long). An axis along a world axis (one entry) keeps its entry
+    as written: ``sqrt(x * x)`` is not always ``x`` (3.3000000000000003
+    came back 3.3, a file's spacing changed by a convert).
     """
     with np.errstate(over="ignore", under="ignore"):
         squares = (mat[0] * mat[0] + mat[1] * mat[1]) + mat[2] * mat[2]
         plain = np.isfinite(squares) & (squares >= np.finfo(np.float64).tiny)
     if plain.all():
         spacing = np.sqrt(squares)
-        return spacing, (1.0 / spacing)[None, :] * mat
-    spacing = big * np.linalg.norm(mat / big[None, :], axis=0)
-    return spacing, mat / spacing[None, :]
+        direction = (1.0 / spacing)[None, :] * mat
+    else:
+        spacing = big * np.linalg.norm(mat / big[None, :], axis=0)
+        direction = mat / spacing[None, :]
+    single = np.count_nonzero(mat, axis=0) == 1
+    spacing = np.where(single, big, spacing)
+    direction[:, single] = np.sign(mat[:, single])
+    return spacing, direction
 
 
 #: teem's centerings: "???" and "none" are unknown (then ITK takes cell)
