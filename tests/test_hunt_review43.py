@@ -1,0 +1,87 @@
+"""Review of the day's notes and refusals: what they refused or said wrongly.
+
+A sweep whose templates stay in one plane was refused per segment, on 257
+samples of any direction: a staircase of lines (its in-plane legs add
+nothing, as a polyline's do) and a direction that nods between two samples
+were refused though they sweep a volume, exit 2 where they wrote it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from volwarp_cli.io import read_volume
+
+STAIR_LINES = """\
+version: 1
+grid: {spacing: 0.5, margin: 2}
+fields:
+  opacity: 1
+trajectory:
+  - line: {from: [0, 0, 0], to: [0, 0, 10]}
+  - line: {from: [0, 0, 10], to: [10, 0, 10]}
+  - line: {from: [10, 0, 10], to: [10, 0, 20]}
+direction: [0, 0, 1]
+scale: [4, 4]
+"""
+
+STAIR_POLYLINE = """\
+version: 1
+grid: {spacing: 0.5, margin: 2}
+fields:
+  opacity: 1
+trajectory:
+  - polyline: {points: [[0, 0, 0], [0, 0, 10], [10, 0, 10], [10, 0, 20]]}
+direction: [0, 0, 1]
+scale: [4, 4]
+"""
+
+
+def _sweep(tmp_path, run, spec, name="s"):
+    (tmp_path / f"{name}.yaml").write_text(spec)
+    out = tmp_path / f"{name}.nrrd"
+    res = run("sweep", tmp_path / f"{name}.yaml", "-o", out)
+    return res, out
+
+
+def test_a_staircase_of_lines_with_in_plane_legs_sweeps_as_its_polyline(tmp_path, run):
+    """The flat middle leg adds nothing; the vertical legs sweep two prisms, as the polyline."""
+    res, out = _sweep(tmp_path, run, STAIR_LINES, "lines")
+    assert res.code == 0, res.stderr
+    ref, ref_out = _sweep(tmp_path, run, STAIR_POLYLINE, "poly")
+    assert ref.code == 0, ref.stderr
+    a, b = read_volume(out), read_volume(ref_out)
+    assert np.count_nonzero(a.data) > 1000
+    # the same swept set: the lines' grid is the polyline's less its joint's reach
+    lo = np.round((np.asarray(a.origin) - np.asarray(b.origin)) / 0.5).astype(int)
+    nx, ny, nz = a.shape_xyz
+    part = np.asarray(b.data)[lo[2]:lo[2] + nz, lo[1]:lo[1] + ny, lo[0]:lo[0] + nx]
+    assert np.count_nonzero(np.asarray(b.data)) == np.count_nonzero(part)
+    np.testing.assert_array_equal(np.asarray(a.data), part)
+
+
+@pytest.mark.parametrize("direction", [
+    # a nod narrower than 1/256 of the path, between two of the check's samples
+    "{keyframes: [[0, [0, 0, 1]], [0.5005, [0, 0, 1]], [0.502, [1, 0, 1]],"
+    " [0.5035, [0, 0, 1]], [1, [0, 0, 1]]]}",
+    # a wobble whose every check sample is upright
+    '{expr: ["0.5 * sin(2 * pi * 128 * u)", "0", "1"]}',
+])
+def test_a_direction_that_turns_between_samples_sweeps(tmp_path, run, direction):
+    spec = STAIR_LINES.split("trajectory:")[0] + (
+        "trajectory:\n  - line: {from: [0, 0, 0], to: [100, 0, 0]}\n"
+        f"direction: {direction}\nscale: [10, 10]\n")
+    res, out = _sweep(tmp_path, run, spec)
+    assert res.code == 0, res.stderr
+    assert np.count_nonzero(read_volume(out).data) > 1000 and "warning" not in res.stderr
+
+
+def test_a_sweep_whose_every_segment_is_flat_is_still_refused(tmp_path, run):
+    spec = STAIR_LINES.replace("to: [0, 0, 10]}", "to: [0, 10, 0]}").replace(
+        "{from: [0, 0, 10], to: [10, 0, 10]}", "{from: [0, 10, 5], to: [10, 10, 5]}").replace(
+        "{from: [10, 0, 10], to: [10, 0, 20]}", "{from: [10, 10, 5], to: [20, 10, 5]}")
+    res, out = _sweep(tmp_path, run, spec)
+    assert res.code == 2 and "sweeps no volume" in res.stderr and "s.yaml:9: direction" \
+        in res.stderr, res.stderr
+    assert not out.exists()
