@@ -4,12 +4,19 @@ A sweep whose templates stay in one plane was refused per segment, on 257
 samples of any direction: a staircase of lines (its in-plane legs add
 nothing, as a polyline's do) and a direction that nods between two samples
 were refused though they sweep a volume, exit 2 where they wrote it.
+
+A DICOM folder's hidden link to one of its slices (no copy under way: rsync
+writes files) was refused as one; a folder whose only DICOM file is a copy
+under way was "a folder with no DICOM files".
 """
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 import pytest
+from test_io_dicom import write_series
 
 from volwarp_cli.io import read_volume
 
@@ -85,3 +92,33 @@ def test_a_sweep_whose_every_segment_is_flat_is_still_refused(tmp_path, run):
     assert res.code == 2 and "sweeps no volume" in res.stderr and "s.yaml:9: direction" \
         in res.stderr, res.stderr
     assert not out.exists()
+
+
+@pytest.fixture
+def stack():
+    return np.random.default_rng(43).integers(-1000, 2000, size=(5, 6, 7)).astype(np.int16)
+
+
+def _apple_double(path):
+    """A macOS AppleDouble companion (magic 0x00051607: Finder info, resource fork)."""
+    head = struct.pack(">II16sH", 0x00051607, 0x00020000, b"Mac OS X        ", 2)
+    head += struct.pack(">III", 9, 50, 3760) + struct.pack(">III", 2, 3810, 286)
+    path.write_bytes(head.ljust(4096, b"\0"))
+
+
+def test_a_hidden_link_to_a_slice_is_skipped_as_other_hidden_files(tmp_path, stack, run):
+    paths = write_series(tmp_path / "s", stack, shuffle=False)
+    (tmp_path / "s" / ".current").symlink_to(paths[0].name)
+    for p in paths:
+        _apple_double(p.parent / f"._{p.name}")
+    res = run("convert", tmp_path / "s", "-o", tmp_path / "o.nrrd")
+    assert res.code == 0 and "warning" not in res.stderr, res.stderr
+    np.testing.assert_array_equal(read_volume(tmp_path / "o.nrrd").data, stack)
+
+
+def test_a_folder_whose_only_slice_is_being_copied_says_so(tmp_path, stack, run):
+    first = write_series(tmp_path / "s", stack[:1])[0]
+    first.rename(first.parent / f".{first.name}.Gx81kQ")
+    res = run("convert", tmp_path / "s", "-o", tmp_path / "o.nrrd")
+    assert res.code == 1 and "a copy under way" in res.stderr, res.stderr
+    assert not (tmp_path / "o.nrrd").exists()
