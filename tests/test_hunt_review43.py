@@ -8,10 +8,15 @@ were refused though they sweep a volume, exit 2 where they wrote it.
 A DICOM folder's hidden link to one of its slices (no copy under way: rsync
 writes files) was refused as one; a folder whose only DICOM file is a copy
 under way was "a folder with no DICOM files".
+
+The batch's hash cache trusted the ctime of FUSE mounts: sshfs and rclone
+report the modification time as ctime, so a scan rewritten in place on the
+server with its time kept (``rsync -a --inplace``) kept its old digest.
 """
 
 from __future__ import annotations
 
+import os
 import struct
 
 import numpy as np
@@ -122,3 +127,34 @@ def test_a_folder_whose_only_slice_is_being_copied_says_so(tmp_path, stack, run)
     res = run("convert", tmp_path / "s", "-o", tmp_path / "o.nrrd")
     assert res.code == 1 and "a copy under way" in res.stderr, res.stderr
     assert not (tmp_path / "o.nrrd").exists()
+
+
+def test_an_sshfs_mount_is_found_and_its_cache_not_trusted(tmp_path, monkeypatch):
+    """Its mount point escaped (``\\040``), optional fields before ``-``: found by
+    ``major:minor``; a file rewritten in place with its size and times kept (sshfs's
+    ctime is its mtime) is hashed again, as on FAT."""
+    from volwarp_cli.batch import content
+
+    dev = os.stat(tmp_path).st_dev
+    table = tmp_path / "mountinfo"
+    table.write_text(
+        "25 1 8:1 / / rw,relatime shared:1 - ext4 /dev/sda1 rw\n"
+        f"52 25 {os.major(dev)}:{os.minor(dev)} / /mnt/pacs\\040share rw,nosuid,nodev "
+        "shared:30 master:2 - fuse.sshfs user@pacs:/export\\040data rw,user_id=0\n")
+    assert content.filesystem_type(dev, str(table)) == "fuse.sshfs"
+
+    def sshfs_key(st):  # (what sshfs reports: ctime is the mtime)
+        return [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_mtime_ns]
+
+    monkeypatch.setattr(content, "stat_key", sshfs_key)
+    path = tmp_path / "scan.nrrd"
+    path.write_bytes(b"the scan, first export")
+    old = os.stat(path)
+    saved = [*sshfs_key(old), content.file_sha256(path)]
+    with open(path, "r+b") as fh:
+        fh.write(b"THE SCAN")
+    os.utime(path, ns=(old.st_atime_ns, old.st_mtime_ns))
+    assert sshfs_key(os.stat(path)) == saved[:-1]
+    monkeypatch.setattr(content, "_change_time_kept", {})
+    monkeypatch.setattr(content, "filesystem_type", lambda dev: "fuse.sshfs")
+    assert content.FileHashes({str(path): saved}).sha256(path) == content.file_sha256(path)
