@@ -9,6 +9,10 @@ A DICOM folder's hidden link to one of its slices (no copy under way: rsync
 writes files) was refused as one; a folder whose only DICOM file is a copy
 under way was "a folder with no DICOM files".
 
+An apply through a B-spline that moves every point out of the input (its
+bound, the reach of its coefficients, still met the input) wrote the
+background everywhere without the warning its docs promise.
+
 The batch's hash cache trusted the ctime of FUSE mounts: sshfs and rclone
 report the modification time as ctime, so a scan rewritten in place on the
 server with its time kept (``rsync -a --inplace``) kept its old digest.
@@ -158,3 +162,42 @@ def test_an_sshfs_mount_is_found_and_its_cache_not_trusted(tmp_path, monkeypatch
     monkeypatch.setattr(content, "_change_time_kept", {})
     monkeypatch.setattr(content, "filesystem_type", lambda dev: "fuse.sshfs")
     assert content.FileHashes({str(path): saved}).sha256(path) == content.file_sha256(path)
+
+
+def _bspline_away(path, image, moved_nodes):
+    """A B-spline over ``image`` moving the points of the mesh nodes ``moved_nodes`` 5 m in x.
+
+    All of them but the middle one: whose support's points move by its neighbours' too.
+    """
+    import SimpleITK as sitk
+
+    bs = sitk.BSplineTransformInitializer(image, [4, 4, 4], 3)
+    n = len(bs.GetParameters()) // 3
+    cx = np.zeros((7, 7, 7))
+    cx[moved_nodes] = 5000.0
+    cx[3, 3, 3] = 0.0  # (one node unmoved: the coefficients' range, the bound, reaches in)
+    bs.SetParameters(np.concatenate([cx.ravel(), np.zeros(2 * n)]).tolist())
+    sitk.WriteTransform(bs, str(path))
+    return bs
+
+
+@pytest.mark.parametrize("blocks", [[], ["--chunked", "--block", "4", "--scheduler", "processes"]])
+@pytest.mark.parametrize("moved, said", [((slice(None),) * 3, True),
+                                         ((slice(None), slice(None), slice(3, None)), False)])
+def test_a_bspline_moving_every_point_out_is_said(tmp_path, run, blocks, moved, said):
+    import SimpleITK as sitk
+
+    image = sitk.GetImageFromArray((np.arange(20 ** 3).reshape(20, 20, 20) % 97 + 1)
+                                   .astype(np.float32))
+    image.SetSpacing((2, 2, 2))
+    image.SetOrigin((-20, -20, -20))
+    sitk.WriteImage(image, str(tmp_path / "in.nrrd"))
+    bs = _bspline_away(tmp_path / "bs.tfm", image, moved)
+    ref = sitk.GetArrayFromImage(sitk.Resample(image, image, bs, sitk.sitkLinear, 0.0))
+    assert ref.any() != said  # (SimpleITK: every voxel the background, or not)
+    out = tmp_path / "o.nrrd"
+    res = run("apply", tmp_path / "in.nrrd", "-t", tmp_path / "bs.tfm", "-o", out,
+              "--background-value", "0", *blocks)
+    assert res.code == 0, res.stderr
+    assert np.count_nonzero(read_volume(out).data) == np.count_nonzero(ref)
+    assert res.stderr.count("no output point maps inside") == int(said), res.stderr
