@@ -313,8 +313,8 @@ class ApplyOperation(Operation):
         region = self.region(box)
         from .samples import note_reached
 
-        note_reached(self._inside, region is not None)
-        if region is None:
+        if region is None:  # (else its points tell: the bound of a rotated block, of a
+            note_reached(self._inside, False)  # B-spline's reach, may meet the input alone)
             flat[:] = self._background_as(self.dtype)
             return {self.KEY: out}
         data, lo_xyz = self._region_samples(region)
@@ -325,8 +325,9 @@ class ApplyOperation(Operation):
         spread = [0] * len(parts)  # (each part's count of output voxels a NaN reached)
 
         def part(k):
-            flat[starts[k]:starts[k + 1]] = self._sample(data, self.map_indices(parts[k], ops),
-                                                         lo_xyz, spread, k)
+            coords = self.map_indices(parts[k], ops)
+            note_reached(self._inside, lambda: _any_inside(coords, self.n_xyz))
+            flat[starts[k]:starts[k + 1]] = self._sample(data, coords, lo_xyz, spread, k)
 
         parallel.run_blocks(part, range(len(parts)), threads)
         if any(spread):
@@ -460,9 +461,10 @@ class ApplyOperation(Operation):
 
         Every voxel is then the background, exit 0: transforms in the wrong
         order or direction, or for another subject, or a reference grid far
-        from the input. Known per block before any sample is read (its
-        :meth:`region`, exact for a linear chain, a bound otherwise: a block
-        said to reach nothing reaches nothing). A label map's missing ids
+        from the input. A block whose :meth:`region` is empty reaches nothing;
+        in the others, the mapped points tell, as the kernels test them, until
+        one is inside (a bound meets the input where its points may not: a
+        rotated block's box, a B-spline's reach). A label map's missing ids
         are said already (:meth:`expect_label_ids`).
         """
         if self.label_ids is not None and len(self.label_ids):
@@ -500,6 +502,14 @@ class ApplyOperation(Operation):
         """
         if self.interpolation == "bspline":
             import scipy.ndimage  # noqa: F401 - 25 MiB once imported
+
+
+def _any_inside(coords: np.ndarray, n: np.ndarray) -> bool:
+    """Whether a point of ``coords`` (N, 3 input indices) is inside, as the kernels test it.
+
+    ``-0.5 <= i < n - 0.5`` on every axis (NaN: outside).
+    """
+    return bool(np.all((coords >= -0.5) & (coords < n - 0.5), axis=1).any())
 
 
 def _windowed(op) -> bool:

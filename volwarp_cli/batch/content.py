@@ -17,7 +17,10 @@ memory only (a creation time once read from the disk again). A scan
 replaced that way on a USB disk, same size, could keep all five and its old
 digest: the batch would skip it. On those filesystems (:data:`NO_CHANGE_TIME`,
 found by the device's mount) a digest is never taken from the cache: every
-run hashes the files again.
+run hashes the files again. FUSE mounts (``fuse.*``) too: a FUSE daemon
+reports the ctime it chooses, and sshfs and rclone report the modification
+time (SFTP carries no change time), which ``rsync -a --inplace`` on the
+server sets back.
 
 An input is all its files (:func:`content_digest`): a detached header with its
 data files, a folder (a DICOM series, a Zarr store) with every file in it,
@@ -39,8 +42,9 @@ RACY_SECONDS = 2.0
 _CHUNK = 1 << 20
 
 
-#: filesystems whose ctime is not a change time (fuseblk: exfat-fuse's, and ntfs-3g's)
-NO_CHANGE_TIME = frozenset({"vfat", "msdos", "fat", "exfat", "fuseblk", "fuse.exfat"})
+#: filesystems whose ctime is not a change time (fuseblk: exfat-fuse's, and ntfs-3g's;
+#: fuse: every ``fuse.SUBTYPE``, sshfs's and rclone's the modification time)
+NO_CHANGE_TIME = frozenset({"vfat", "msdos", "fat", "exfat", "fuseblk", "fuse"})
 
 
 def filesystem_type(dev: int, mountinfo: str = "/proc/self/mountinfo") -> str | None:
@@ -67,7 +71,8 @@ def keeps_change_time(dev: int) -> bool:
     """Whether files on device ``dev`` have a ctime that changes with their bytes (module notes)."""
     kept = _change_time_kept.get(dev)
     if kept is None:
-        kept = _change_time_kept[dev] = filesystem_type(dev) not in NO_CHANGE_TIME
+        kind = (filesystem_type(dev) or "").split(".", 1)[0]  # (fuse.sshfs: fuse)
+        kept = _change_time_kept[dev] = kind not in NO_CHANGE_TIME
     return kept
 
 

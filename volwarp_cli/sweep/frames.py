@@ -459,34 +459,46 @@ def prepare_frames(segments: list[Segment], functions: list[SweepFunctions]) -> 
                 fns.up = parse_function([0, 0, 1], fns.up_path, fns.doc, dim=3, name="up")
         elif not isinstance(fns.up, str):
             check_up(seg, fns, i)
-        check_sweeps_volume(seg, fns, i)
+    check_sweeps_volume(segments, functions)
 
 
-def check_sweeps_volume(seg: Segment, fns: SweepFunctions, index: int,
+def check_sweeps_volume(segments: list[Segment], functions: list[SweepFunctions],
                         samples: int = 257) -> None:
-    """A spec error if every template of ``seg`` lies in one plane: it sweeps no volume.
+    """A spec error if every segment of a sweep keeps its templates in one plane: no volume.
 
     A given direction perpendicular to a straight path (``direction: [0, 0, 1]``
     along a line in x) moves the template within its own plane: the swept set
-    is flat, and every voxel of the output was 0, exit 0. Flat is: the
-    template normals within :data:`COLLINEAR` of the first one and the
-    template centres within ``COLLINEAR`` of the segment's size off its plane,
-    at ``samples`` parameters. (A normal that turns sweeps volume even where
-    the path is perpendicular to it: a template kept tangent to a circle
-    sweeps a ring.)
+    is flat, and every voxel of the output was 0, exit 0. Flat is: a constant
+    direction, and the template centres within :data:`COLLINEAR` of the
+    segment's size off the first template's plane at ``samples`` parameters
+    and the polyline vertices (all of the path: lines, arcs, Beziers of lower
+    degree). One flat segment among others that sweep is no slip: an in-plane
+    leg of a staircase adds nothing, as a polyline's in-plane leg does. A
+    direction that varies (keyframes, an expression, a secondary trajectory)
+    may turn between any two samples (a nod, a wobble): not refused here, an
+    all-zero output of it is said when the run ends.
     """
+    flat = [i for i, (seg, fns) in enumerate(zip(segments, functions, strict=True))
+            if isinstance(fns.direction, Function) and fns.direction.is_constant
+            and _in_one_plane(seg, fns, i, samples)]
+    if not flat or len(flat) < len(segments):
+        return
+    index = flat[0]
+    seg, fns = segments[index], functions[index]
+    normal = compute_frames(seg, fns, np.zeros(1), index).EZ[0]
+    raise spec_error(fns.doc, fns.direction_path,
+                     f"{seg.kind} segment {index} moves its template within the template's "
+                     f"own plane (normal {_fmt(np.round(normal, 6))} all along it)"
+                     + (", as every other segment does" if len(segments) > 1 else "")
+                     + ": it sweeps no volume, every voxel would be 0; give a direction "
+                     "across the path, or leave direction out (the path's tangent)")
+
+
+def _in_one_plane(seg: Segment, fns: SweepFunctions, index: int, samples: int) -> bool:
+    """Whether every template of ``seg`` lies in the plane of its first one."""
     fr = compute_frames(seg, fns, seg.dense_parameters(samples), index)
-    normal = fr.EZ[0]
-    turn = float(np.linalg.norm(np.cross(fr.EZ, normal), axis=1).max())
     size = max(float(np.ptp(fr.P, axis=0).max()), float(fr.SX.max()), float(fr.SY.max()))
-    off = float(np.abs((fr.P - fr.P[0]) @ normal).max())
-    if turn <= COLLINEAR and off <= COLLINEAR * size:
-        path = seg.path if isinstance(fns.direction, str) else fns.direction_path
-        raise spec_error(fns.doc, path,
-                         f"{seg.kind} segment {index} moves its template within the template's "
-                         f"own plane (normal {_fmt(np.round(normal, 6))} all along it): it "
-                         "sweeps no volume, every voxel would be 0; give a direction across "
-                         "the path, or leave direction out (the path's tangent)")
+    return float(np.abs((fr.P - fr.P[0]) @ fr.EZ[0]).max()) <= COLLINEAR * size
 
 
 def compute_frames(seg: Segment, fns: SweepFunctions, s: np.ndarray, index: int,

@@ -162,8 +162,8 @@ def is_dicom_path(path) -> bool:
     if p.is_dir():  # (by content, as the folder's files are read: the preamble or not)
         for root, dirs, files in os.walk(p):
             dirs.sort()
-            for name in sorted(files):
-                if _folder_file(os.path.join(root, name), name) == "dicom":
+            for name in sorted(files):  # (a copy under way too: its reader says so)
+                if _folder_file(os.path.join(root, name), name) in ("dicom", _HIDDEN_COPY):
                     return True
         return False
     if not p.is_file():
@@ -247,6 +247,11 @@ def _looks_like_dicom_body(head: bytes) -> bool:
     return length < 1 << 16
 
 
+#: a hidden file of a series folder holding a DICOM data set (:func:`_folder_file`)
+_HIDDEN_COPY = ("a hidden DICOM file (a copy under way? rsync writes .NAME.XXXXXX until the "
+                "file is whole: let it end, or move it out)")
+
+
 def _folder_file(full: str, name: str) -> str:
     """"dicom", "" (skip: not DICOM) or a reason to refuse, for one file of a series folder.
 
@@ -256,8 +261,11 @@ def _folder_file(full: str, name: str) -> str:
     companions, ``.DS_Store``, locks, links) is skipped whatever it is, unless
     it holds a DICOM data set: that is a copy under way (rsync writes each file
     as ``.NAME.XXXXXX`` and renames it when whole), its slice not there yet.
+    A hidden link is no copy (rsync writes files): skipped, as it always was.
     """
     hidden = name.startswith(".")
+    if hidden and os.path.islink(full):
+        return ""
     try:
         st = os.stat(full)
     except OSError as exc:
@@ -273,8 +281,7 @@ def _folder_file(full: str, name: str) -> str:
         return "" if hidden else f"cannot read ({exc.strerror or exc})"
     dicom = (len(head) == 132 and head[128:132] == b"DICM") or _looks_like_dicom_body(head)
     if hidden:
-        return ("a hidden DICOM file (a copy under way? rsync writes .NAME.XXXXXX until the "
-                "file is whole: let it end, or move it out)" if dicom else "")
+        return _HIDDEN_COPY if dicom else ""
     if dicom:
         return "dicom"
     if name.lower().endswith(_DICOM_SUFFIXES):
