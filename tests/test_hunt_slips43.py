@@ -1,7 +1,8 @@
 """Ordinary slips that gave a useless output with exit 0 and no word, now said.
 
-- ``warp --frames-to`` of moves that carry the whole model off the output's
-  grid (millimetres meant as voxels, a displacement 10x too large): the local update
+- ``warp``: a spec whose moves carry the whole model off the output's grid
+  (millimetres meant as voxels, a displacement 10x too large) wrote every
+  voxel the background. With ``--frames-to`` it was worse: the local update
   of a lattice whose new image misses the target kept the old output, so the
   last frame and ``-o`` were the unwarped input, not the one-shot warp's
   output (which the docs say they equal byte for byte).
@@ -12,9 +13,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from volwarp_cli.bspline.capture import capture_volume
 from volwarp_cli.bspline.scene import Scene
+from volwarp_cli.io import read_volume
 from volwarp_cli.volume import Volume
 
 DATA = Path(__file__).parent / "data"
@@ -27,6 +30,31 @@ def translation_spec(path: Path, by_mm) -> Path:
                       for i in range(4) for j in range(4) for k in range(4))
     path.write_text(f"version: 1\ncapture: {{lattice: 4, oversample: 1}}\nsteps:\n  - move:\n{moves}\n")
     return path
+
+
+WARP_WORDS = "off the output's grid"
+
+
+@pytest.mark.parametrize("how", [[], ["--frames-to", "f_{frame}.nrrd"],
+                                 ["--chunked", "--block", "16"]])
+def test_a_warp_that_moves_the_whole_model_off_the_grid_is_said(tmp_path, run, how,
+                                                                 monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "o.nrrd"
+    res = run("warp", SCAN, "--spec", translation_spec(tmp_path / "w.yaml", (0, 0, 5000)),
+              "-o", out, *how)
+    assert res.code == 0, res.stderr
+    assert not read_volume(out).data.any()  # (the border's median: 0)
+    assert res.stderr.count(WARP_WORDS) == 1 and "warning" in res.stderr
+
+
+def test_a_warp_that_keeps_part_of_the_model_says_nothing(tmp_path, run):
+    out = tmp_path / "o.nrrd"
+    res = run("warp", SCAN, "--spec", translation_spec(tmp_path / "w.yaml", (60, 0, 0)),
+              "-o", out)
+    assert res.code == 0, res.stderr
+    assert read_volume(out).data.any() and WARP_WORDS not in res.stderr
+    np.testing.assert_array_equal(read_volume(out).data.shape, read_volume(SCAN).data.shape)
 
 
 def test_a_local_update_that_carries_the_model_off_the_target_clears_it(local_updates):
