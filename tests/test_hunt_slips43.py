@@ -79,3 +79,45 @@ def test_frames_of_a_warp_off_the_grid_end_as_the_one_shot_warp(tmp_path, run, m
     assert res.code == 0, res.stderr
     assert (tmp_path / "once.nrrd").read_bytes() == (tmp_path / "framed.nrrd").read_bytes()
     assert (tmp_path / "f_1.nrrd").read_bytes() == (tmp_path / "framed.nrrd").read_bytes()
+
+
+def balls(tmp_path: Path, centres_x, origin_x=(0.0, 0.0)) -> list[Path]:
+    """0/1 balls of radius 5 voxels on 30^3 grids, one per centre (voxel x), origins given."""
+    from volwarp_cli.io import write_volume
+
+    z, y, x = np.mgrid[:30, :30, :30]
+    paths = []
+    for n, (cx, ox) in enumerate(zip(centres_x, origin_x, strict=True)):
+        data = ((x - cx) ** 2 + (y - 15) ** 2 + (z - 15) ** 2 < 25).astype(np.uint8)
+        paths.append(tmp_path / f"ball{n}.nrrd")
+        write_volume(Volume(data, origin=np.array([ox, 0.0, 0.0])), paths[-1])
+    return paths
+
+
+MORPH_WORDS = "no voxel lies inside"
+
+
+@pytest.mark.parametrize("how", [[], ["--chunked", "--block", "16"]])
+def test_morph_frames_whose_shape_vanishes_are_said(tmp_path, run, how):
+    """Two balls 15 voxels apart (radius 5): the middle frame's blend is positive everywhere."""
+    a, b = balls(tmp_path, (7, 22))
+    res = run("morph", a, b, "--frames", "3", "-o", tmp_path / "f_{i}.nrrd", *how)
+    assert res.code == 0, res.stderr
+    middle = read_volume(tmp_path / "f_1.nrrd").data
+    assert middle.min() > 0  # (the sum of the two fields: the shape is empty there)
+    assert res.stderr.count(MORPH_WORDS) == 1 and "frame 1 (t = 0.5)" in res.stderr
+
+
+def test_a_target_off_the_frame_grid_is_said(tmp_path, run):
+    """--grid source with a target ball that lies beside the source's grid: frames 1, 2 empty."""
+    a, b = balls(tmp_path, (7, 22), origin_x=(0.0, 20.0))
+    res = run("morph", a, b, "--frames", "3", "--grid", "source", "-o", tmp_path / "f_{i}.nrrd")
+    assert res.code == 0, res.stderr
+    assert read_volume(tmp_path / "f_2.nrrd").data.min() > 0
+    assert res.stderr.count(MORPH_WORDS) == 2 and "frame 0" not in res.stderr
+
+
+def test_overlapping_shapes_morph_without_a_word(tmp_path, run):
+    a, b = balls(tmp_path, (12, 17))
+    res = run("morph", a, b, "--frames", "3", "-o", tmp_path / "f_{i}.nrrd", "--density")
+    assert res.code == 0 and "warning" not in res.stderr, res.stderr
