@@ -6,6 +6,12 @@
   of a lattice whose new image misses the target kept the old output, so the
   last frame and ``-o`` were the unwarped input, not the one-shot warp's
   output (which the docs say they equal byte for byte).
+- ``morph`` of shapes that do not overlap (or one beside the frame grid):
+  empty frames, unsaid unless meshed.
+- ``mesh`` of volwarp's own distance field with the default ``--inside
+  above``: its outside, wound inwards; ``--iso`` at the samples' largest
+  value: a surface through the centres of the top samples (a 0/1 mask at
+  ``--iso 1``).
 """
 
 from __future__ import annotations
@@ -120,4 +126,51 @@ def test_a_target_off_the_frame_grid_is_said(tmp_path, run):
 def test_overlapping_shapes_morph_without_a_word(tmp_path, run):
     a, b = balls(tmp_path, (12, 17))
     res = run("morph", a, b, "--frames", "3", "-o", tmp_path / "f_{i}.nrrd", "--density")
+    assert res.code == 0 and "warning" not in res.stderr, res.stderr
+
+
+BALL = DATA / "ball_30_uint8.nrrd"
+SDF_WORDS = "--inside below"
+
+
+def test_a_distance_field_meshed_inside_out_is_said(tmp_path, run):
+    """volwarp's own distance field, negative inside, meshed with the default --inside above:
+    the surface of its outside, wound inwards (a negative enclosed volume)."""
+    import json
+
+    sdf = tmp_path / "sdf.nrrd"
+    assert run("distance", BALL, "-o", sdf).code == 0
+    res = run("mesh", sdf, "--iso", "0", "-o", tmp_path / "m.ply", "--json")
+    assert res.code == 0, res.stderr
+    assert json.loads(res.stdout)["volume"] < 0
+    assert res.stderr.count(SDF_WORDS) == 1 and "warning" in res.stderr
+    for inside in ("below", "above"):  # (asked for: as asked, no word)
+        res = run("mesh", sdf, "--iso", "0", "--inside", inside, "-o", tmp_path / "m.ply",
+                  "--json")
+        assert res.code == 0 and SDF_WORDS not in res.stderr, res.stderr
+    assert json.loads(res.stdout)["volume"] < 0 < json.loads(
+        run("mesh", sdf, "--iso", "0", "--inside", "below", "--json").stdout)["volume"]
+
+
+def test_a_morph_frame_meshed_inside_out_is_said_but_not_a_density(tmp_path, run):
+    a, b = balls(tmp_path, (12, 17))
+    assert run("morph", a, b, "--frames", "2", "-o", tmp_path / "s_{i}.nrrd").code == 0
+    res = run("mesh", tmp_path / "s_1.nrrd", "--iso", "0", "-o", tmp_path / "m.ply")
+    assert res.code == 0 and SDF_WORDS in res.stderr, res.stderr
+    assert run("morph", a, b, "--frames", "2", "--density",
+               "-o", tmp_path / "d_{i}.nrrd").code == 0
+    res = run("mesh", tmp_path / "d_1.nrrd", "--iso", "0.5", "-o", tmp_path / "m.ply")
+    assert res.code == 0 and "warning" not in res.stderr, res.stderr
+
+
+def test_a_level_at_the_samples_largest_is_said(tmp_path, run):
+    """--iso 200 on the 0/200 ball: the surface through the centres of its outer voxels
+    (12% less volume than its voxels'); a one-voxel mask at --iso 1 became a speck."""
+    import json
+
+    res = run("mesh", BALL, "--iso", "200", "-o", tmp_path / "m.ply", "--json")
+    assert res.code == 0, res.stderr
+    assert json.loads(res.stdout)["volume"] < 0.9 * np.count_nonzero(read_volume(BALL).data)
+    assert res.stderr.count("largest") == 1 and "--iso 100" in res.stderr
+    res = run("mesh", BALL, "--iso", "100", "-o", tmp_path / "m.ply")
     assert res.code == 0 and "warning" not in res.stderr, res.stderr
