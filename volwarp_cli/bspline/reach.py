@@ -202,8 +202,9 @@ class Reach:
         ``old_bounds``, ``new_bounds``: :func:`offset_bounds` of the lattice
         before and after. The target block: every target voxel the old or new
         image of those voxels can reach; the domain block: every voxel whose
-        new image can reach that target block; region by region. None when
-        the images miss the target.
+        new image can reach that target block (none when the new images all
+        miss it: a lattice that carries the model off the target), region by
+        region. None when the old and new images miss the target.
         """
         grid = self.grid
         vlo, vhi = voxels.xyz()
@@ -254,8 +255,8 @@ class Reach:
             inside &= first < last
             d_lo.append(first)
             d_hi.append(last)
-        if not inside.any():  # pragma: no cover - the moved voxels' images reach it
-            return None
+        if not inside.any():  # only the old images reach it: it is cleared, nothing added
+            return TargetBlock(Box.from_xyz(tlo.tolist(), thi.tolist()), Box((0, 0, 0), (0, 0, 0)))
         dlo = [int(v[inside].min()) for v in d_lo]
         dhi = [int(v[inside].max()) for v in d_hi]
         return TargetBlock(Box.from_xyz(tlo.tolist(), thi.tolist()), Box.from_xyz(dlo, dhi))

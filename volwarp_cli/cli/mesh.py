@@ -230,6 +230,8 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
             if cap:  # (said, not ignored: --label/--labels with --cap are refused)
                 log.warning("warning: --cap does not apply: %s is taken for a label map, "
                             "whose surface is always closed at the border", input)
+        else:
+            _say_inside_out(header.meta, input)
     op = MeshOperation(header, source, Level(iso, inside, cap),
                        cleanup=Cleanup(largest_component=largest_component, smooth=smooth,
                                        decimate=decimate),
@@ -256,6 +258,31 @@ def command(input, output, iso, inside, cap, smooth, decimate, largest_component
                                                                         header),
                 dict(view=view, size=render_size, color=color, background=background_color,
                      camera=camera), (camera_to, input))
+
+
+def _say_inside_out(meta, name) -> None:
+    """Warn when volwarp's own signed field (negative inside) is meshed with --inside above unasked.
+
+    The default takes the samples above the level for the shape: of a
+    distance field (``volwarp_distance``) or a morph's SDF frame, its outside,
+    so the surface came out wound inwards (a negative enclosed volume, its
+    renders lit from inside), exit 0. An --inside given is done as asked.
+    """
+    from click.core import ParameterSource
+
+    if click.get_current_context().get_parameter_source("inside") is not ParameterSource.DEFAULT:
+        return
+    meta = meta or {}
+    if "volwarp_distance" in meta:
+        what = "a distance field"
+    elif "output=sdf" in str(meta.get("volwarp_morph", "")):
+        what = "a morph frame's signed distance field"
+    else:
+        return
+    from ..progress import log
+
+    log.warning("warning: %s is %s, negative inside: --inside above (the default) meshes its "
+                "outside, wound inwards; give --inside below", name, what)
 
 
 def _volume_camera(header, view, size):

@@ -27,7 +27,7 @@ from ..box import Box
 from ..errors import VolwarpError
 from ..execute import Operation
 from ..progress import progress
-from ..samples import cast_samples
+from ..samples import cast_samples, expect_reached, note_reached
 from ..volume import Header, Volume
 from .interpolate import blend, check_time, density, occupancy_to_range, warp_on_grid
 from .pipeline import Prepared
@@ -242,6 +242,7 @@ class FrameOperation(Operation):
         self.dtype = np.dtype(values.dtype if values.range_source else np.float32)
         self.cast = None if cast is None else np.dtype(cast)
         self.targets = {}
+        self._inside = None  # (the note of whether a block holds an inside voxel: expect_shape)
         self.what = (f"the morph's frame at t = {t:g} on a "
                      f"{'x'.join(map(str, self.grid.shape_xyz))} grid")
         if fields.back is not None:
@@ -259,10 +260,28 @@ class FrameOperation(Operation):
         return box.size * (FRAME_BYTES_PER_VOXEL
                            + ATTRIBUTE_BYTES_PER_VOXEL * len(self.fields.attributes))
 
+    def expect_shape(self, i: int) -> None:
+        """In a run, say at its end if frame ``i``'s field is negative nowhere: no shape.
+
+        Two shapes that do not overlap (no alignment) blend into nothing
+        between them, and a shape beside the frame grid (``--grid source``
+        or ``target``) is none on it: frames of only the outside, exit 0.
+        Each block notes whether it holds an inside voxel (:meth:`compute`).
+        """
+        self._inside = f"morph frame {i}: inside"
+        expect_reached(self._inside, (
+            f"frame {i} (t = {self.t:g}) is empty: no voxel lies inside its surface (its "
+            "field is positive everywhere): the source's and target's shapes do not overlap "
+            "on the frame grid, or one lies beside it; align them (a spec's align) or choose "
+            "another grid (--grid union)"))
+
     def compute(self, box: Box, *, threads: int) -> dict:
         """``box`` of the frame and of each attribute (elementwise: ``threads`` unused)."""
         f, t = self.fields, self.t
-        out = {"frame": self.values(blend(*f.pair(t, f.source, f.target, box), t))}
+        sdf = blend(*f.pair(t, f.source, f.target, box), t)
+        if self._inside is not None:
+            note_reached(self._inside, lambda: bool(np.any(sdf < 0)))
+        out = {"frame": self.values(sdf)}
         for name, (a, b, kind) in f.attributes.items():
             out[name] = cast_samples(blend(*f.pair(t, a, b, box), t), kind,
                                      what=f"attribute {name} at t = {t:g}")
@@ -348,8 +367,9 @@ def frames(job: MorphJob, fields: FrameFields, values: FrameValues, make, *,
         meshes = MeshBlocks()
     with progress(len(job.times), "morph frames") as bar:
         for i, t in enumerate(job.times):
-            volume, attributes = make(i, FrameOperation(fields, values, t, meta=meta,
-                                                        space=space))
+            op = FrameOperation(fields, values, t, meta=meta, space=space)
+            op.expect_shape(i)
+            volume, attributes = make(i, op)
             frame = Frame(i, t, volume, attributes)
             if meshes is not None:
                 from ..surface.chunked import isosurface_blocks

@@ -139,7 +139,7 @@ def _stream(scene: Scene, box: Box):
     return reach, chunk, max(1, min(ring_planes(reach, chunk), box.shape[0]))
 
 
-def domain_box(scene: Scene, box: Box) -> Box:
+def domain_box(scene: Scene, box: Box, dq=None) -> Box:
     """The domain voxels (z, y, x) whose images can reach target block ``box``.
 
     Those inside the model only (on a subdivision grid the voxels around the
@@ -148,11 +148,12 @@ def domain_box(scene: Scene, box: Box) -> Box:
     the control points' hull reaches far wider where they spread, so parts
     cut along z scattered many planes twice (a 256^3 warp with every point of
     a 9^3 lattice moved, two parts: 1.14 times the voxels cut along y, 1.16
-    along z; now 1.02 along z).
+    along z; now 1.02 along z). ``dq``: for that lattice (default the scene's).
     """
-    need = warp_input(box, scene.dq, scene.grid, scene.pad, scene._offset_bounds(scene.dq))
+    dq = scene.dq if dq is None else dq
+    need = warp_input(box, dq, scene.grid, scene.pad, scene._offset_bounds(dq))
     model = Box.from_xyz(scene.grid.data_lo, scene.grid.data_hi)
-    g0, g1 = scene.tight_plane_reach(scene.dq).domain_window(box.lo[0], box.hi[0])
+    g0, g1 = scene.tight_plane_reach(dq).domain_window(box.lo[0], box.hi[0])
     planes = Box((g0, need.lo[1], need.lo[2]), (max(g0, g1), need.hi[1], need.hi[2]))
     return need.intersect(model).intersect(planes)
 

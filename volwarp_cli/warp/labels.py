@@ -389,7 +389,7 @@ def label_window(scene: Scene, dq, hull: Box | None) -> TargetBlock | None:
     voxels = Box.from_xyz((lead + k * lo).tolist(), (lead + k * hi).tolist())  # the domain's
     bounds = scene._offset_bounds(dq)
     block = scene.reach.rebuild_block(bounds, bounds, voxels)
-    if block is None:
+    if block is None or block.domain.empty:
         return None
     return TargetBlock(block.target, block.domain.intersect(scene._data_box))
 

@@ -409,6 +409,28 @@ class IntensityWarp(LatticeMoves):
         log.info("output grid: %s (%s)", self.grid, self.grid_why)
         log.info("background: %.9g (%s)", self.background, self.background_why)
         warn_once(resampling_warning(cap.placement, cap.oversample, cap.grid.subdivision))
+        self._say_if_nothing_lands()
+
+    def _say_if_nothing_lands(self) -> None:
+        """Warn when the final lattice carries the whole model off the output's grid.
+
+        Every voxel is then the background, exit 0: moves in millimetres meant
+        as voxels, a displacement ten times too large. Known from the lattice
+        alone (:func:`.blocks.domain_box`, the control points' hull: a bound,
+        so a model said to reach nothing reaches nothing). A label map's
+        vanished labels are said by its own report.
+        """
+        from .blocks import domain_box
+        from .prepare import output_window_box
+
+        window = output_window_box(self.cap, self.scene, self.options.crop)
+        if not domain_box(self.scene, window, self.final_lattice).empty:
+            return
+        grow = " (or --grid grow for a grid that holds it)" if self.grid == "input" else ""
+        log.warning("warning: every voxel of the warp of %s is the background (%g): its moves "
+                    "carry the whole model off the output's grid; check the spec's moves and "
+                    "its units (world: LPS mm; voxel: input voxel indices)%s", self.name,
+                    self.background, grow)
 
     def summary(self) -> dict:
         """The ``--json`` keys of the choices made: grid, background."""
