@@ -68,8 +68,8 @@ def test_bspline_resampled_as_sitk_on_every_voxel(run, tmp_path, spacing, direct
     """An ANTs-placed B-spline on an oblique fixed grid: volwarp moved hundreds of voxels of the
     first planes that ITK leaves (its valid region's lower edge, grid index 1, is strict, and
     ITK's index there is 1 +- a few ULPs: its SVD-based inverse of the grid's matrix, its point
-    summed from the origin, teem's NRRD spacing), and left some it moves. Each voxel now
-    equals sitk.Resample's (both reading the same files), linear and nearest."""
+    summed from the origin), and left some it moves. Each voxel now equals sitk.Resample's
+    (both reading the same files), linear and nearest; an oblique NRRD's but a voxel or two."""
     fixed = _image((26, 22, 18), spacing, (-8.3, 6.1, 4.7), direction)
     fixed_path = str(tmp_path / f"fixed.{ext}")
     sitk.WriteImage(fixed, fixed_path)
@@ -87,7 +87,11 @@ def test_bspline_resampled_as_sitk_on_every_voxel(run, tmp_path, spacing, direct
         theirs = sitk.GetArrayFromImage(sitk.Resample(
             sitk.ReadImage(moving), sitk.ReadImage(fixed_path), sitk.ReadTransform(tfm), kind,
             -1000.0, sitk.sitkFloat64))
-        assert np.count_nonzero(np.abs(ours - theirs) > 1e-6) == 0, interpolation
+        # (an oblique NRRD's axes are read as written, spacing * direction giving them back,
+        # where teem takes the reciprocal of the length: an ULP apart, a voxel of the edge
+        # planes may fall otherwise; docs/apply.md. The first version differed on 34-296.)
+        allowed = 0 if ext == "mha" else 2
+        assert np.count_nonzero(np.abs(ours - theirs) > 1e-6) <= allowed, interpolation
 
 
 def _itk_inverse_by_sitk(matrix_spacing, direction) -> np.ndarray:
@@ -116,20 +120,6 @@ def test_itk_inverse_is_itks_to_the_bit():
         spacing = rng.uniform(0.2, 5, 3) if k % 3 else rng.choice([0.5, 0.7, 0.9, 1.0, 1.1], 3)
         ours = itk_inverse(q * spacing[None, :])
         assert np.array_equal(ours, _itk_inverse_by_sitk(spacing, q)), (spacing, q)
-
-
-def test_nrrd_spacing_and_direction_are_itks_to_the_bit(tmp_path):
-    """teem's length (sqrt of the squares' sum) and direction (the vector times its reciprocal):
-    volwarp's scaled norm and division were an ULP off on oblique axes, and a B-spline's edge
-    voxels fell otherwise."""
-    for k, d in enumerate((_rotation(0.1, 0.25, -0.3), _rotation(0.3, -0.2, 0.5),
-                           _rotation(1.0, -2.0, 0.7))):
-        img = _image((4, 5, 6), (0.7, 0.8, 1.3), (-8.3, 6.1, 4.7), d)
-        path = str(tmp_path / f"g{k}.nrrd")
-        sitk.WriteImage(img, path)
-        theirs, ours = sitk.ReadImage(path), read_volume(path)
-        assert tuple(ours.spacing) == theirs.GetSpacing()
-        assert tuple(np.ravel(ours.direction)) == theirs.GetDirection()
 
 
 def test_an_axis_along_a_world_axis_keeps_its_spacing_as_written(tmp_path):

@@ -384,28 +384,17 @@ def _header_geometry(fields: dict[str, str], dim: int, where: str):
 def _axis_lengths(mat: np.ndarray, big: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Spacing and direction of axis vectors (columns of ``mat``; ``big``: their largest entries).
 
-    As ITK's NRRD reader (teem's ``nrrdSpacingCalculate``): the length
-    ``sqrt(x*x + y*y + z*z)`` and the vector times its reciprocal, to the
-    bit: the grid's points are then ITK's, and one on an edge of a
-    B-spline's valid region falls on ITK's side of it. Lengths whose
-    squares overflow or underflow are scaled first ((1e200, 1e200, 0) is
-    1.4e200 long). An axis along a world axis (one entry) keeps its entry
-    as written: ``sqrt(x * x)`` is not always ``x`` (3.3000000000000003
-    came back 3.3, a file's spacing changed by a convert).
+    Each length scaled first ((1e200, 1e200, 0) is 1.4e200 long, not an
+    overflow), the direction the vector divided by it: written back
+    (``spacing * direction``), the axes are the file's again, to the bit
+    for the files tested (a convert, a SEG's grid through an NRRD). teem
+    (ITK's reader) takes ``sqrt(x*x + y*y + z*z)`` and the vector times its
+    reciprocal: an oblique axis can be an ULP apart from ITK's, which decides
+    only where a point lies exactly on an edge (docs/apply.md); the
+    reciprocal broke the round trip (1.5 came back 1.5000000000000002).
     """
-    with np.errstate(over="ignore", under="ignore"):
-        squares = (mat[0] * mat[0] + mat[1] * mat[1]) + mat[2] * mat[2]
-        plain = np.isfinite(squares) & (squares >= np.finfo(np.float64).tiny)
-    if plain.all():
-        spacing = np.sqrt(squares)
-        direction = (1.0 / spacing)[None, :] * mat
-    else:
-        spacing = big * np.linalg.norm(mat / big[None, :], axis=0)
-        direction = mat / spacing[None, :]
-    single = np.count_nonzero(mat, axis=0) == 1
-    spacing = np.where(single, big, spacing)
-    direction[:, single] = np.sign(mat[:, single])
-    return spacing, direction
+    spacing = big * np.linalg.norm(mat / big[None, :], axis=0)
+    return spacing, mat / spacing[None, :]
 
 
 #: teem's centerings: "???" and "none" are unknown (then ITK takes cell)
