@@ -169,8 +169,8 @@ def plan_scan(manifest: Manifest, scan: Scan) -> list[StepPlan]:
         argv = [step.run, str(Path(source).absolute())]
         if step.spec is not None:
             argv += ["--spec", str(step.spec.absolute())]
-        # (-q before the step's own options: an option missing its value says so, not '-q')
-        argv += ["-o", str(output.absolute()), "-q", *options]
+        # (no -q: the step's warnings are kept for the report, run.step_warnings)
+        argv += ["-o", str(output.absolute()), *options]
         plans[step.name] = StepPlan(step, Path(source), output, extra, argv, flags,
                                     _fixed_outputs(manifest, step), reads)
     return list(plans.values())
@@ -411,9 +411,12 @@ class CommandRecord:
             entry = self.outputs.get(self._key(path))
         return entry if isinstance(entry, dict) else None
 
-    def entries(self, plan: StepPlan, made: dict, committed: dict | None = None
-                ) -> dict[str, dict] | None:
+    def entries(self, plan: StepPlan, made: dict, committed: dict | None = None,
+                warnings: list[str] | None = None) -> dict[str, dict] | None:
         """The record of ``plan``'s outputs just made from ``made`` (None: one is missing).
+
+        ``warnings``: what the step warned, kept so that a later run that skips
+        it reports them again (an output made with a warning stays that output).
 
         ``committed``: the identity of each output as the step renamed it into
         place, by absolute path (:func:`~volwarp_cli.io.atomic.note_committed`).
@@ -438,7 +441,8 @@ class CommandRecord:
             files = [(f, want) for f, want in files if want is not None or f == Path(path)]
             try:
                 before = [identity(f) for f, _ in files]
-                out[self._key(path)] = {**made, "sha256": content_digest(path, self.hashes)}
+                out[self._key(path)] = {**made, "sha256": content_digest(path, self.hashes),
+                                        **({"warnings": list(warnings)} if warnings else {})}
                 after = [identity(f) for f, _ in files]
             except OSError:
                 return None

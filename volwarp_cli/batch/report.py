@@ -5,6 +5,7 @@ bar, with a line for each failed scan; elsewhere (a log, a pipe) a line as each
 scan ends::
 
     ok site-a/p01 3.2 s
+      warning: warped: every voxel of the warp of ... is the background (0): ...
     skipped site-a/p02
     failed site-b/p17 0.4 s: truncated gzip stream
 
@@ -17,7 +18,7 @@ ends, with its ``seconds`` and ``peak_rss`` (bytes, its steps' largest).
 
 The summary (stderr, always), e.g.::
 
-    volwarp batch: 412 scans, 409 ok, 2 skipped, 1 failed: site-b/p17 (truncated gzip stream)
+    volwarp batch: 412 scans, 409 ok (1 with warnings), 2 skipped, 1 failed: site-b/p17 (truncated gzip stream)
 
 The report (``--report-json``, or ``--report`` with a ``.json`` name): per scan and per step its status, seconds,
 attempts, exit code, error line, command and outputs, with the provenance
@@ -43,7 +44,16 @@ def short_error(error: str | None, result: ScanResult) -> str:
     """The error line without ``volwarp: error:`` and without the scan's own path."""
     if not error:
         return "failed"
-    text = error[len(_PREFIX):] if error.startswith(_PREFIX) else error
+    return _without_path(error[len(_PREFIX):] if error.startswith(_PREFIX) else error, result)
+
+
+def short_warnings(result: ScanResult) -> list[str]:
+    """The scan's warning lines, each ``STEP: TEXT`` without the scan's own path."""
+    return [f"{step}: {_without_path(text, result)}" for step, text in result.warnings]
+
+
+def _without_path(text: str, result: ScanResult) -> str:
+    """``text`` without a leading ``PATH: `` naming the scan, an output or a command's file."""
     paths = [str(result.scan.path.absolute()), str(result.scan.path)]
     for step in result.steps:
         paths += step.outputs
@@ -55,13 +65,22 @@ def short_error(error: str | None, result: ScanResult) -> str:
 
 
 def progress_line(result: ScanResult) -> str:
-    """The progress line of a scan that ended: status, scan, seconds and, if failed, why."""
+    """The progress line of a scan that ended: status, scan, seconds and, if failed, why.
+
+    Then a line for each warning of its steps (``  warning: STEP: TEXT``); a
+    skipped scan's are those of the run that made its outputs, not said again.
+    """
     if result.status in ("skipped", "not started"):
         return f"{result.status} {result.scan.id}"
     line = f"{result.status} {result.scan.id} {result.seconds:.1f} s"
     if result.status == "failed":
         line += f": {short_error(result.error, result)}"
-    return line
+    return "\n".join([line, *(f"  warning: {w}" for w in short_warnings(result))])
+
+
+def warned(results: list[ScanResult]) -> int:
+    """How many scans that ran (not skipped) warned."""
+    return sum(1 for r in results if r.status != "skipped" and r.warnings)
 
 
 def counts(results: list[ScanResult]) -> dict[str, int]:
@@ -79,7 +98,10 @@ def summary_line(results: list[ScanResult], *, stop: int | None = None,
     head = f"{c['scans']} scan{'' if c['scans'] == 1 else 's'}"
     if shard is not None:
         head += f" (shard {shard[0]}/{shard[1]} of {shard[2]})"
-    parts = [head, f"{c['ok']} ok", f"{c['skipped']} skipped", f"{c['failed']} failed"]
+    ok = f"{c['ok']} ok"
+    if warned(results):  # (each said on its scan's progress line, and in the reports)
+        ok += f" ({warned(results)} with warnings)"
+    parts = [head, ok, f"{c['skipped']} skipped", f"{c['failed']} failed"]
     if c["stopped"]:
         parts.append(f"{c['stopped']} stopped")
     if c["not_started"]:
@@ -136,7 +158,7 @@ def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | N
                 "name": s.name, "run": s.run, "status": s.status,
                 "seconds": round(s.seconds, 3), "error": s.error, "attempts": s.attempts,
                 "exit_code": s.exit_code, "reason": s.reason, "peak_rss": s.peak_rss,
-                "command": s.command, "outputs": s.outputs,
+                "command": s.command, "outputs": s.outputs, "warnings": s.warnings,
             } for s in r.steps],
         } for r in results],
     }
@@ -244,12 +266,14 @@ class ScanProgress:
                                      seconds=round(result.seconds, 4),
                                      peak_rss=result.peak_rss, worker=result.worker,
                                      error=(short_error(result.error, result)
-                                            if result.status == "failed" else None))
+                                            if result.status == "failed" else None),
+                                     warnings=short_warnings(result) or None)
             elif self.mode == "lines":
                 self.stream.write(progress_line(result) + "\n")
                 self.stream.flush()
             elif self._bar is not None:
-                if result.status == "failed":  # above the bar, which is drawn again
+                if result.status == "failed" or (result.status != "skipped"
+                                                 and result.warnings):  # (above the bar)
                     self.stream.write("\r\x1b[2K" + progress_line(result) + "\n")
                 self._bar.advance()
 

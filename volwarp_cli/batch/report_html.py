@@ -16,7 +16,7 @@ import html
 import signal
 from pathlib import Path
 
-from .report import counts, short_error, summary_line
+from .report import counts, short_error, short_warnings, summary_line
 from .run import ScanResult
 
 _ORDER = {"failed": 0, "stopped": 1, "not started": 2, "ok": 3, "skipped": 4}
@@ -42,6 +42,8 @@ h1{font-size:1.3em;margin:0 0 .3em}
 .status-ok .status{background:#2a7d2a;color:#fff}
 .facts{color:#555;font-size:.9em;margin:2px 0 6px}
 .error{font-family:monospace;color:#a00;white-space:pre-wrap;word-break:break-word;
+ margin:4px 0}
+.warning{font-family:monospace;color:#8a5a00;white-space:pre-wrap;word-break:break-word;
  margin:4px 0}
 .thumbs{display:flex;gap:6px;flex-wrap:wrap;align-items:flex-start}
 figure{margin:0;text-align:center;font-size:.75em;color:#555}
@@ -104,6 +106,8 @@ def _card(r: ScanResult) -> str:
              f'<div class="facts">{_e(" · ".join(facts))}</div>']
     if status == "failed":
         parts.append(f'<div class="error">{_e(short_error(r.error, r))}</div>')
+    for line in short_warnings(r):  # (a skipped scan's: the run's that made its outputs)
+        parts.append(f'<div class="warning">warning: {_e(line)}</div>')
     thumbs = r.thumbnails or {}
     figures = [_figure("input: " + r.scan.path.name, thumbs.get("input"))]
     figures += [_figure(name, png) for name, png in thumbs.get("outputs", [])]

@@ -96,6 +96,9 @@ class StepResult:
     reason: str | None = None  # why it ran (or None: forced, or skipped)
     peak_rss: int | None = None  # bytes: the step process's peak resident memory
     made: dict | None = None  # the record of its outputs, when it ran and made them all
+    #: its warning lines (``volwarp: warning:`` taken off); a skipped step's: those of the
+    #: run that made its outputs, kept in the record
+    warnings: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -117,6 +120,11 @@ class ScanResult:
     def error(self) -> str | None:
         """The error line of the scan's first failed step, or None."""
         return next((s.error for s in self.steps if s.status == "failed"), None)
+
+    @property
+    def warnings(self) -> list[tuple[str, str]]:
+        """``(step name, warning line)`` of each of its steps' warnings, in step order."""
+        return [(s.name, w) for s in self.steps for w in s.warnings]
 
     @property
     def peak_rss(self) -> int | None:
@@ -151,6 +159,25 @@ def child_argv(argv: list[str], module: str = "volwarp_cli") -> list[str]:
         return [sys.executable, _SAFE_PATH, "-m", module, *argv]
     return [sys.executable, _SAFE_PATH, "-c", _BOOT.replace("{module!r}", repr(module)),
             str(os.getpid()), *argv]
+
+
+#: how a step's warning lines start (:mod:`volwarp_cli.progress`'s formatter)
+WARNING_PREFIX = "volwarp: warning: "
+
+
+def step_warnings(text: str) -> list[str]:
+    """The warning lines of a step's stderr, their prefix taken off, each once, in order.
+
+    A step warns where its output is written but may not be what was meant
+    (every voxel the background, a label in no output voxel, samples clipped):
+    the batch ran its steps with ``-q`` and said nothing of them, "2 ok".
+    """
+    out: list[str] = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith(WARNING_PREFIX) and line[len(WARNING_PREFIX):] not in out:
+            out.append(line[len(WARNING_PREFIX):])
+    return out
 
 
 def last_line(text: str) -> str | None:
@@ -293,7 +320,7 @@ class ScanRunner:
                 changed = changed_while_run(self.manifest, plan, stamps)
                 try:
                     if changed is None:
-                        res.made = self.record.entries(plan, made, committed)
+                        res.made = self.record.entries(plan, made, committed, res.warnings)
                     else:  # (what it read is unknown: the next run makes it again)
                         res.status, res.error = "failed", changed
                 except Replaced as exc:
@@ -318,6 +345,8 @@ class ScanRunner:
             res.reason = stale_reason(self.manifest, plan, self.record, made)
             if res.reason is None:
                 res.status = "skipped"
+                entry = self.record.entry(plan.made[0]) if plan.made else None
+                res.warnings = list((entry or {}).get("warnings", []))
         return made
 
     def _run_step(self, plan: StepPlan, res: StepResult) -> dict:
@@ -337,6 +366,7 @@ class ScanRunner:
             res.attempts += 1
             code, stderr, peak, committed = self._call(plan.argv)
             res.exit_code = code
+            res.warnings = step_warnings(stderr)
             res.seconds = time.monotonic() - start
             if peak is not None:
                 res.peak_rss = max(peak, res.peak_rss or 0)
