@@ -42,7 +42,11 @@ file its header names) is an input of the current run
 (:mod:`volwarp_cli.runscope`; outside any :func:`~volwarp_cli.runscope.run_scope`,
 the process's), and :func:`write` refuses to replace one, as every command
 does. Nothing here prints: warnings (and ``-v``'s steps, at INFO) go to
-the ``volwarp`` logger (:data:`volwarp_cli.progress.log`).
+the ``volwarp`` logger (:data:`volwarp_cli.progress.log`), as the command
+says them: once a call, and what a command says when its run ends (a cast's
+clipping over all its blocks, an output all background: a sweep beside its
+grid, a morph's empty frame) when the call returns
+(:func:`~volwarp_cli.runscope.call_scope`; not when it raises).
 How the work runs: on :func:`volwarp_cli.parallel.threads` threads, within
 :func:`volwarp_cli.memory.memory_limit` (work that cannot fit is refused
 before it starts, an :class:`~volwarp_cli.errors.OutOfMemoryError`; the
@@ -52,6 +56,7 @@ commands would run it by blocks, into their files).
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -83,7 +88,25 @@ class Mesh(_Mesh):
     meta: dict = field(default_factory=dict)
 
 
+def _said_as_the_command(fn):
+    """``fn`` in a :func:`~volwarp_cli.runscope.call_scope`: its warnings said as its command's.
+
+    Without one, a note a command gathers over its blocks was said at every
+    block (a warp cast to uint8: its clipping once a plane group), or never
+    (a sweep that reaches none of its grid: zeros without a word).
+    """
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        from .runscope import call_scope
+
+        with call_scope():
+            return fn(*args, **kwargs)
+
+    return call
+
+
 # -- files -------------------------------------------------------------------------------
+@_said_as_the_command
 def read(path: str | os.PathLike, **options) -> Volume:
     """The volume file ``path``, read as ``volwarp convert`` reads its input.
 
@@ -131,6 +154,7 @@ def read(path: str | os.PathLike, **options) -> Volume:
         return read_volume(path, raw=raw, volume_index=volume_index, dicom=dicom)
 
 
+@_said_as_the_command
 def write(obj, path: str | os.PathLike, *, dtype: str | None = None, compress: bool = False,
           byte_order: str = "little", ome_zarr_version: str = "0.5", pyramid: int = 0,
           labels="auto") -> None:
@@ -205,6 +229,7 @@ def write(obj, path: str | os.PathLike, *, dtype: str | None = None, compress: b
 
 
 # -- operations --------------------------------------------------------------------------
+@_said_as_the_command
 def capture(volume, *, lattice=9, placement: str = "uniform", oversample: float = 2.0,
             pad=None, sampling: str = "linear", name: str | None = None,
             values: str | None = None, **read_options):
@@ -281,6 +306,7 @@ def capture(volume, *, lattice=9, placement: str = "uniform", oversample: float 
         raise VolwarpError(f"{name}: {exc}") from None
 
 
+@_said_as_the_command
 def warp(volume, spec, *, values: str | None = None, pushforward: str | None = None,
          evaluator: str | None = None, background_value: float | None = None,
          grid: str | None = None, crop: bool = False, preserve_labels: bool = False,
@@ -370,6 +396,7 @@ def warp(volume, spec, *, values: str | None = None, pushforward: str | None = N
         return result
 
 
+@_said_as_the_command
 def sweep(spec, *, shape=None, spacing: float | None = None, method: str | None = None,
           tau: float | None = None, dtype: str | None = None) -> dict[str, Volume]:
     """``volwarp sweep``: the image-swept volume of ``spec``, one Volume per field.
@@ -420,6 +447,7 @@ def sweep(spec, *, shape=None, spacing: float | None = None, method: str | None 
     return _compute_whole(op)
 
 
+@_said_as_the_command
 def morph(spec, *, meshes: bool = False) -> list:
     """``volwarp morph``: the frames of a morph spec, computed in memory.
 
@@ -477,6 +505,7 @@ def morph(spec, *, meshes: bool = False) -> list:
     return frames
 
 
+@_said_as_the_command
 def distance(volume, iso: float | None = None, *, inside: str = "above",
              label: int | None = None, values: str | None = None, metric: str = "euclidean",
              surface: str = "auto", unsigned: bool = False,
@@ -551,6 +580,7 @@ def distance(volume, iso: float | None = None, *, inside: str = "above",
     return field
 
 
+@_said_as_the_command
 def mesh(volume, iso: float | None = None, *, inside: str = "above", cap: bool = False,
          smooth: int = 0, decimate: float = 0.0, largest_component: bool = False,
          allow_empty: bool = False, label: int | None = None, labels: bool = False,

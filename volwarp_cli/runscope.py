@@ -161,17 +161,54 @@ def in_run() -> bool:
     return _current.get() is not None
 
 
-def first_said(key) -> bool:
-    """True the first time ``key`` is asked in this run (a warning said once a run).
+#: a library call's warnings outside any run (:func:`call_scope`)
+_call: contextvars.ContextVar[RunFiles | None] = contextvars.ContextVar("volwarp_call",
+                                                                         default=None)
 
-    Always True outside a run: a script's every call says it.
+
+@contextlib.contextmanager
+def call_scope():
+    """A library call (:mod:`volwarp_cli.api`) outside any run: its warnings said as a command's.
+
+    A command says a warning once a run (:func:`first_said`) and the notes
+    gathered over its blocks (:mod:`volwarp_cli.samples`: a cast's reach, an
+    output all background) when it ends. Outside a run these were said at
+    every block, or never: a warp cast to uint8 said its clipping once a plane
+    group, a sweep beside its grid returned zeros without a word. Inside, they
+    are the call's (:func:`said_files`), its notes said when it returns (not
+    when it raises: its error is what it says). Its files stay the process's
+    (:func:`run_files`): what one call read, the next does not overwrite. A
+    call inside a run, or inside another call, is theirs.
     """
-    if not in_run():
+    if _current.get() is not None or _call.get() is not None:
+        yield
+        return
+    call = RunFiles()
+    token = _call.set(call)
+    try:
+        yield
+    finally:
+        _call.reset(token)
+    call.committed.append(None)  # (its outputs: the values it returns)
+    _run_ends(call)
+
+
+def said_files() -> RunFiles | None:
+    """Where warnings are said once and notes gathered: the run's, a library call's, or None."""
+    return _current.get() or _call.get()
+
+
+def first_said(key) -> bool:
+    """True the first time ``key`` is asked in this run or library call (said once).
+
+    Always True outside both: a script's every call says it.
+    """
+    files = said_files()
+    if files is None:
         return True
-    said = _current.get().said
-    if key in said:
+    if key in files.said:
         return False
-    said.add(key)
+    files.said.add(key)
     return True
 
 

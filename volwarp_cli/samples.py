@@ -155,9 +155,9 @@ def _integers_as_floats(data: np.ndarray, dt: np.dtype, what: str) -> np.ndarray
 
 def _note_inexact(what: str, dt: np.dtype, worst: int) -> None:
     """Note integer samples rounded to the nearest ``dt``, by up to ``worst``; said once a run."""
-    from .runscope import in_run
+    from .runscope import said_files
 
-    if not in_run():
+    if said_files() is None:
         _say_inexact(what, dt, worst)
         return
     _gathered(("inexact", dt.name), [-worst, worst, True, what])
@@ -186,12 +186,13 @@ def _note_rounding(what: str, dt: np.dtype, data, rounded, low, high) -> None:
     sweep scales its fields to the type first, and says so). A cast is often
     one block of many (a slab of planes): the reach of the whole output,
     gathered over its blocks, is judged when the run ends (a block at a
-    warp's edge holds 0..3 of a 0..255 field). Outside a run (the API), each
-    call is judged alone.
+    warp's edge holds 0..3 of a 0..255 field); in a library call
+    (:func:`volwarp_cli.runscope.call_scope`), when it returns. Outside
+    both (a script's own cast), each cast is judged alone.
     """
-    from .runscope import in_run
+    from .runscope import said_files
 
-    if not in_run():
+    if said_files() is None:
         if high - low < FEW_LEVELS and not np.array_equal(data, rounded):
             _say_rounded_away(what, dt, low, high)
         return
@@ -215,14 +216,14 @@ def _gathered(key: tuple, note: list) -> list:
     The first of a key in a run is kept (and judged at the run's end,
     :func:`_note_at_end`); a later one widens its reach and ors its flag.
     """
-    from .runscope import at_run_end, run_files
+    from .runscope import said_files
 
-    files = run_files()
+    files = said_files()  # (a run's, or a library call's: said when it returns)
     with _rounding_lock:
         seen = files.decided.get(key)
         if seen is None:
             seen = files.decided[key] = _copied(key, note)
-            at_run_end(lambda: _note_at_end(key, seen, files))
+            files.ends.append(lambda: _note_at_end(key, seen, files))
         elif key[0] == "ids":
             seen[0].extend(note[0])
             if seen[1] is None:
@@ -252,17 +253,17 @@ def expect_output_ids(what: str, expected) -> None:
     (:func:`note_output_ids`, worker processes' sent back with their results);
     the expected ids stay here, once.
     """
-    from .runscope import in_run
+    from .runscope import said_files
 
-    if in_run():
+    if said_files() is not None:
         _gathered(("ids", what), [[], _sorted_distinct(np.asarray(expected)), what])
 
 
 def note_output_ids(what: str, block: np.ndarray) -> None:
     """Note the ids a block of output ``what`` holds (see :func:`expect_output_ids`)."""
-    from .runscope import in_run
+    from .runscope import said_files
 
-    if in_run():
+    if said_files() is not None:
         _gathered(("ids", what), [[distinct_values(block)], None, what])
 
 
@@ -281,7 +282,7 @@ def distinct_values(block: np.ndarray) -> np.ndarray:
 
 
 def expect_reached(what: str, message: str) -> None:
-    """Say ``message`` when the run ends if no block of the work ``what`` reached anything.
+    """Say ``message`` when the run (or library call) ends if no block of ``what`` reached anything.
 
     For outputs that a slip leaves all background, exit 0: a sweep whose
     templates meet no voxel centre (a grid beside the sweep), a resampling
@@ -290,9 +291,9 @@ def expect_reached(what: str, message: str) -> None:
     (:func:`note_reached`; a worker process's notes go back with its
     results); the message stays here, once.
     """
-    from .runscope import in_run
+    from .runscope import said_files
 
-    if in_run():
+    if said_files() is not None:
         _gathered(("reached", what), [False, message])
 
 
@@ -302,11 +303,12 @@ def note_reached(what: str, reached) -> None:
     ``reached``: a bool, or a call giving it, made only while no block has
     yet (a pass over an output saved once one block did).
     """
-    from .runscope import in_run, run_files
+    from .runscope import said_files
 
-    if not in_run():
+    files = said_files()
+    if files is None:
         return
-    seen = run_files().decided.get(("reached", what))
+    seen = files.decided.get(("reached", what))
     if seen is not None and seen[0]:
         return
     _gathered(("reached", what), [bool(reached() if callable(reached) else reached), None])
@@ -399,11 +401,12 @@ def _note_clipped(what: str, dt: np.dtype, low, high) -> None:
 
     In a run, the reach over all its casts to ``dt`` (every block and thread of
     every output: the first output named) is said once at its end, the same
-    words whatever the cut into blocks; outside a run (the API), at once.
+    words whatever the cut into blocks (a library call's: when it returns);
+    outside both, at once.
     """
-    from .runscope import in_run
+    from .runscope import said_files
 
-    if not in_run():
+    if said_files() is None:
         _say_clipped(what, dt, low, high)
         return
     _gathered(("clipped", dt.name), [low, high, True, what])
@@ -433,7 +436,8 @@ def _say_clipped(what: str, dt: np.dtype, low, high) -> None:
 
     Said once a command's run for each type (:func:`_note_clipped` gathers the
     reach of all its casts first), naming the first output it happened to (a
-    morph's 100 frames: one line, not 100). Outside a run (the API), every time.
+    morph's 100 frames: one line, not 100); a library call's, once a call.
+    Outside both (a script's own cast), every time.
     """
     from .progress import log
 
