@@ -197,3 +197,21 @@ def test_a_warning_said_once_a_run_is_said_once_a_call(said, run, tmp_path):
     res = run("distance", tmp_path / "nan.nrrd", "--iso", "50", "-o", tmp_path / "d.nrrd")
     assert res.code == 0 and cli_warnings(res.stderr) == words
     assert len(words) == 1 and "NaN samples" in words[0]
+
+
+def test_a_sweep_s_fields_are_written_all_or_none(tmp_path):
+    """api.write of a dict of fields wrote them one by one: a later field's failure (a NaN
+    cast to an integer type) left the earlier files written, against "no partial output"."""
+    import numpy as np
+
+    from volwarp_cli import api
+    from volwarp_cli.volume import Volume
+
+    good = Volume(np.full((3, 4, 5), 0.5, np.float32))
+    bad = Volume(np.full((3, 4, 5), np.nan, np.float32))
+    (tmp_path / "o_a.nrrd").write_bytes(b"an earlier output")
+    with pytest.raises(Exception):  # noqa: B017 - the cast's own error, whichever it is
+        api.write({"a": good, "b": bad}, tmp_path / "o_{field}.nrrd", dtype="uint8")
+    assert (tmp_path / "o_a.nrrd").read_bytes() == b"an earlier output"
+    assert not (tmp_path / "o_b.nrrd").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # (no temporary)

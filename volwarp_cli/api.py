@@ -201,11 +201,13 @@ def write(obj, path: str | os.PathLike, *, dtype: str | None = None, compress: b
         write_volume(obj, path, labels=labels, **volume_options)
         return
     if isinstance(obj, Mapping) and obj and all(isinstance(v, Volume) for v in obj.values()):
+        from .io.atomic import outputs_together
         from .sweep.run import field_paths
 
         paths = field_paths(str(path), [str(k) for k in obj])
-        for name, vol in obj.items():
-            write(vol, paths[str(name)], labels=labels, **volume_options)
+        with outputs_together():  # (all the fields, or none: a later one's failure wrote some)
+            for name, vol in obj.items():
+                write(vol, paths[str(name)], labels=labels, **volume_options)
         return
     given = [k for k, v in volume_options.items() if v != defaults[k]]
     if labels != "auto":
