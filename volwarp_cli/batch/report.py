@@ -47,9 +47,14 @@ def short_error(error: str | None, result: ScanResult) -> str:
     return _without_path(error[len(_PREFIX):] if error.startswith(_PREFIX) else error, result)
 
 
-def short_warnings(result: ScanResult) -> list[str]:
-    """The scan's warning lines, each ``STEP: TEXT`` without the scan's own path."""
-    return [f"{step}: {_without_path(text, result)}" for step, text in result.warnings]
+def short_warnings(result: ScanResult, *, ran: bool = False) -> list[str]:
+    """The scan's warning lines, each ``STEP: TEXT`` without the scan's own path.
+
+    ``ran``: only those of the steps that ran now; a skipped step's are the
+    run's that made its outputs (kept in the reports), said and counted by that run.
+    """
+    return [f"{s.name}: {_without_path(text, result)}" for s in result.steps
+            if not (ran and s.status == "skipped") for text in s.warnings]
 
 
 def _without_path(text: str, result: ScanResult) -> str:
@@ -67,20 +72,23 @@ def _without_path(text: str, result: ScanResult) -> str:
 def progress_line(result: ScanResult) -> str:
     """The progress line of a scan that ended: status, scan, seconds and, if failed, why.
 
-    Then a line for each warning of its steps (``  warning: STEP: TEXT``); a
-    skipped scan's are those of the run that made its outputs, not said again.
+    Then a line for each warning of its steps that ran (``  warning: STEP: TEXT``);
+    a skipped step's are those of the run that made its outputs, not said again.
     """
     if result.status in ("skipped", "not started"):
         return f"{result.status} {result.scan.id}"
     line = f"{result.status} {result.scan.id} {result.seconds:.1f} s"
     if result.status == "failed":
         line += f": {short_error(result.error, result)}"
-    return "\n".join([line, *(f"  warning: {w}" for w in short_warnings(result))])
+    return "\n".join([line, *(f"  warning: {w}" for w in short_warnings(result, ran=True))])
 
 
 def warned(results: list[ScanResult]) -> int:
-    """How many scans that ran (not skipped) warned."""
-    return sum(1 for r in results if r.status != "skipped" and r.warnings)
+    """How many ok scans warned in a step that ran (the summary's ``N ok (M with warnings)``).
+
+    A failed scan's warnings are said on its line, not counted among the ok ones.
+    """
+    return sum(1 for r in results if r.status == "ok" and short_warnings(r, ran=True))
 
 
 def counts(results: list[ScanResult]) -> dict[str, int]:
@@ -272,8 +280,7 @@ class ScanProgress:
                 self.stream.write(progress_line(result) + "\n")
                 self.stream.flush()
             elif self._bar is not None:
-                if result.status == "failed" or (result.status != "skipped"
-                                                 and result.warnings):  # (above the bar)
+                if result.status == "failed" or short_warnings(result, ran=True):  # (above it)
                     self.stream.write("\r\x1b[2K" + progress_line(result) + "\n")
                 self._bar.advance()
 

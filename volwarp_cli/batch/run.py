@@ -122,11 +122,6 @@ class ScanResult:
         return next((s.error for s in self.steps if s.status == "failed"), None)
 
     @property
-    def warnings(self) -> list[tuple[str, str]]:
-        """``(step name, warning line)`` of each of its steps' warnings, in step order."""
-        return [(s.name, w) for s in self.steps for w in s.warnings]
-
-    @property
     def peak_rss(self) -> int | None:
         """The largest peak resident memory of the scan's step processes (bytes), or None."""
         peaks = [s.peak_rss for s in self.steps if s.peak_rss is not None]
@@ -181,8 +176,13 @@ def step_warnings(text: str) -> list[str]:
 
 
 def last_line(text: str) -> str | None:
-    """The last non-blank line of ``text`` (stripped; a failed step's error), or None."""
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    """The last non-blank line of ``text`` that is no warning (a failed step's error), or None.
+
+    A step killed (the out-of-memory killer) after a warning writes no error
+    line: its warning is not why it failed, and is kept as a warning.
+    """
+    lines = [line.strip() for line in text.splitlines()
+             if line.strip() and not line.strip().startswith(WARNING_PREFIX)]
     return lines[-1] if lines else None
 
 

@@ -58,8 +58,8 @@ _STAND_IN = "volwarp-batch-step-input.nrrd"
 #: options that print and end the command instead of running it
 _ENDING = ("-h", "--help", "-V", "--version")
 #: options whose product is the step's console output, which the batch does not keep (its
-#: stdout goes nowhere, its stderr to the last line of a failure): the report says what
-#: each step made and how long it took
+#: stdout goes nowhere, its stderr to its warnings and a failure's last line): the report
+#: says what each step made and how long it took
 _CONSOLE = ("--json", "--stats", "-v", "--verbose", "--progress")
 #: long options writing a file whose type is not a click.Path (besides every ``--*-to``)
 _OUTPUT_NAMES = ("--sheet",)
@@ -81,12 +81,19 @@ def check_steps(manifest: Manifest) -> list[Step]:
             values = option_values(command, step.options)
             _check_tokens(manifest, step, values)
             argv = _absolute(manifest, _apart(plan, Path(tmp)), step.options, values)
-            params, problem = _dry_run(manifest, step, command, argv)
+            params, problem, quiet = _dry_run(manifest, step, command, argv)
             inputs = _own_files(manifest, step, values)
             _check_inputs_exist(manifest, step, inputs)
             _check_specs(manifest, step, params)
             if problem is not None:
                 raise problem
+            if quiet:  # (the batch runs its steps at the default verbosity: warnings only)
+                from ..progress import log
+
+                log.warning("%s", manifest.doc.error(
+                    ("steps", step.index, "options"),
+                    "-q (--quiet) hides the step's warnings (an output written all "
+                    "background, a label lost), which the batch says and reports"))
             writes = tuple((v.index, v.option) for v in values if v.kind == "output")
             kept = tuple((name, params.get(name)) for name in FILE_PARAMS.get(step.run, ()))
             steps.append(dataclasses.replace(step, inputs=tuple(inputs), writes=writes,
@@ -261,10 +268,11 @@ def _absolute(manifest: Manifest, argv: list[str], options, values) -> list[str]
 
 
 def _dry_run(manifest: Manifest, step: Step, command, argv: list[str]):
-    """Parse and run ``volwarp ARGV`` up to its first read: ``(params, problem)``.
+    """Parse and run ``volwarp ARGV`` up to its first read: ``(params, problem, quiet)``.
 
     ``problem``: the usage or spec error the command raised before it read,
     as the manifest's error (None: none). A parse error is raised at once.
+    ``quiet``: the options hold ``-q`` (in any form: ``--quiet``, ``-qtFILE``).
     In a run scope of its own, in a copy of this context, with the log level
     put back: the run's side effects (``-q`` sets the level, ``--threads`` a
     context variable) stay there.
@@ -286,8 +294,9 @@ def _dry_run(manifest: Manifest, step: Step, command, argv: list[str]):
                                          f"{step.run}: its options end the command before "
                                          "it runs") from None
             params = dict(ctx.params)
+            quiet = ctx.meta.get("volwarp.verbosity", 0) < 0
             problem = _invoke(manifest, step, command, ctx)
-            return params, problem
+            return params, problem, quiet
 
     try:
         return contextvars.copy_context().run(run)
