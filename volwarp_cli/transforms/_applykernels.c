@@ -412,7 +412,10 @@ fail:
     return NULL;
 }
 
-static PyObject *py_affine(PyObject *self, PyObject *args)
+/* affine (about 0): out = m @ p + o; affine_about (about 1): out = m @ (p - o), in ITK's
+ * order (ImageBase::TransformPhysicalPointToContinuousIndex: the origin off first, then
+ * each row's products summed from the first, vnl's matrix times vector) */
+static PyObject *affine_impl(PyObject *args, int about, const char *name)
 {
     PyObject *o_p, *o_m, *o_o, *o_out;
     Py_buffer b[2];
@@ -426,16 +429,24 @@ static PyObject *py_affine(PyObject *self, PyObject *args)
         goto fail;
     }
     Py_ssize_t count = points(&b[0], "p");
-    if (count < 0 || points(&b[1], "out") < 0 || same_count(count, b[1].shape[0], "affine") < 0 ||
-        get_small(o_m, F64, 2, m, "m") < 0 || get_small(o_o, F64, 1, o, "o") < 0)
+    if (count < 0 || points(&b[1], "out") < 0 || same_count(count, b[1].shape[0], name) < 0 ||
+        get_small(o_m, F64, 2, m, "m") < 0 || get_small(o_o, F64, 1, o, about ? "c" : "o") < 0)
         goto fail;
     const double *p = b[0].buf;
     double *out = b[1].buf;
     Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t i = 0; i < count; i++) {
-        double x = p[3 * i], y = p[3 * i + 1], z = p[3 * i + 2];
-        for (int r = 0; r < 3; r++)
-            out[3 * i + r] = m[3 * r] * x + m[3 * r + 1] * y + m[3 * r + 2] * z + o[r];
+    if (about) {
+        for (Py_ssize_t i = 0; i < count; i++) {
+            double x = p[3 * i] - o[0], y = p[3 * i + 1] - o[1], z = p[3 * i + 2] - o[2];
+            for (int r = 0; r < 3; r++)
+                out[3 * i + r] = m[3 * r] * x + m[3 * r + 1] * y + m[3 * r + 2] * z;
+        }
+    } else {
+        for (Py_ssize_t i = 0; i < count; i++) {
+            double x = p[3 * i], y = p[3 * i + 1], z = p[3 * i + 2];
+            for (int r = 0; r < 3; r++)
+                out[3 * i + r] = m[3 * r] * x + m[3 * r + 1] * y + m[3 * r + 2] * z + o[r];
+        }
     }
     Py_END_ALLOW_THREADS
     release_all(b, nb);
@@ -445,40 +456,14 @@ fail:
     return NULL;
 }
 
+static PyObject *py_affine(PyObject *self, PyObject *args)
+{
+    return affine_impl(args, 0, "affine");
+}
+
 static PyObject *py_affine_about(PyObject *self, PyObject *args)
 {
-    PyObject *o_p, *o_m, *o_c, *o_out;
-    Py_buffer b[2];
-    int nb = 0;
-    double m[9], c[3];
-    if (!PyArg_ParseTuple(args, "OOOO", &o_p, &o_m, &o_c, &o_out))
-        return NULL;
-    if (get_buf(o_p, &b[nb++], READ, KIND(F64), 2, "p") < 0 ||
-        get_buf(o_out, &b[nb++], WRITE, KIND(F64), 2, "out") < 0) {
-        nb--;
-        goto fail;
-    }
-    Py_ssize_t count = points(&b[0], "p");
-    if (count < 0 || points(&b[1], "out") < 0 ||
-        same_count(count, b[1].shape[0], "affine_about") < 0 ||
-        get_small(o_m, F64, 2, m, "m") < 0 || get_small(o_c, F64, 1, c, "c") < 0)
-        goto fail;
-    const double *p = b[0].buf;
-    double *out = b[1].buf;
-    Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t i = 0; i < count; i++) {
-        /* ITK's ImageBase::TransformPhysicalPointToContinuousIndex: the origin off first,
-         * then each row's products summed from the first (vnl's matrix times vector) */
-        double x = p[3 * i] - c[0], y = p[3 * i + 1] - c[1], z = p[3 * i + 2] - c[2];
-        for (int r = 0; r < 3; r++)
-            out[3 * i + r] = m[3 * r] * x + m[3 * r + 1] * y + m[3 * r + 2] * z;
-    }
-    Py_END_ALLOW_THREADS
-    release_all(b, nb);
-    Py_RETURN_NONE;
-fail:
-    release_all(b, nb);
-    return NULL;
+    return affine_impl(args, 1, "affine_about");
 }
 
 static PyObject *py_grid_points(PyObject *self, PyObject *args)
