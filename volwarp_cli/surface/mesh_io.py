@@ -376,6 +376,7 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
 
         log.warning("warning: %s: %s after the elements its PLY header declares, ignored (a "
                     "header that counts too few?)", path, left)
+    _say_ascii_cut(path, fmt, data[body_at:])
     vert = parsed.get("vertex")
     if vert is None or "face" not in parsed:
         raise VolwarpError(f"{path}: a PLY mesh needs vertex and face elements")
@@ -431,6 +432,23 @@ def _say_dropped(path, elements) -> None:
         log.warning("warning: %s: its %s %s not carried (volwarp reads a mesh's vertices, "
                     "normals and triangles; the output has none of the rest)", path,
                     ", ".join(dropped), "is" if len(dropped) == 1 else "are")
+
+
+def _say_ascii_cut(path, fmt: str, body: bytes) -> None:
+    """Say an ASCII PLY whose last value ends the file, without a line end after it.
+
+    A file cut inside its last number read as a shorter number (a face's
+    index 155 as 15), exit 0, without a word: every other cut runs out of
+    values and is refused, but this one looks like a file without a final
+    line end, which writers (VTK, meshio, trimesh, volwarp) all put.
+    """
+    end = body.rstrip(b"\x00\x1a")[-1:]
+    if fmt == "ascii" and end and not end.isspace():
+        from ..progress import log
+
+        log.warning("warning: %s: the ASCII PLY ends inside a value, without a line end after "
+                    "its last one: a file cut short there reads as a shorter number; check "
+                    "that the file is whole", path)
 
 
 def _check_finite_vertices(vertices, faces, path) -> None:
