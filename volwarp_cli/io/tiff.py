@@ -1,9 +1,11 @@
 """TIFF stacks (one page per z slice, or an ImageJ hyperstack) via tifffile.
 
 Spacing is read the way ImageJ/Fiji store it: x and y from the resolution
-tags (pixels per unit), z from the ImageJ description's ``spacing``, all in
-its ``unit``, converted to millimetres where that is a length (``micron``,
-``um``, ``cm``, ...; :func:`imagej_unit_mm`; ``pixel`` keeps the numbers).
+tags (pixels per unit), z from the ImageJ description's ``spacing`` (1 without
+it: ImageJ writes none for a depth of 1), all in its ``unit``, converted to
+millimetres where that is a length (``micron``, ``um``, ``cm``, ...;
+:func:`imagej_unit_mm`; ``pixel`` keeps the numbers). As in ImageJ, tags of
+ResolutionUnit centimetre under ``unit=um`` count pixels per centimetre.
 Plain TIFFs with a ResolutionUnit of inch, centimetre, millimetre or
 micrometre (tifffile's 4 and 5) are converted to millimetres.
 
@@ -621,14 +623,18 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
             spacing[2] = _floats([ij["spacing"]], 1, where, "ImageJ spacing")[0]
             spacing[2] *= ij_scale or 1.0
             names[2] = "ImageJ spacing"
+        elif ij_scale is not None:  # ImageJ writes no spacing for a depth of 1 unit
+            spacing[2] = ij_scale
     elif tif.shaped_metadata and len(tif.shaped_metadata) > image:
         extra = tif.shaped_metadata[image]
         if "unit" in extra:
             meta["unit"] = str(extra["unit"])
     scale = ij_scale or 1.0
     tags = first.tags
-    if not ij and "ResolutionUnit" in tags and "volwarp_spacing" not in extra:
-        code = int(tags["ResolutionUnit"].value)
+    if ij and ij.get("unit") == "um" and _resolution_unit(tags) == 3:
+        scale = _RESUNIT_MM[3][1]  # (ImageJ's FileOpener: the tags count pixels per cm)
+    code = _resolution_unit(tags)
+    if not ij and code is not None and "volwarp_spacing" not in extra:
         if code in _RESUNIT_MM:
             scale = _RESUNIT_MM[code][1]
             meta["unit"] = "mm"
@@ -683,6 +689,11 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
         fields={"spacing": names, "origin": "volwarp_origin", "direction": "volwarp_direction"})
     return {"spacing": spacing, "origin": origin, "direction": direction, "space": space,
             "meta": meta}
+
+
+def _resolution_unit(tags) -> int | None:
+    """The ResolutionUnit tag's code, None without the tag."""
+    return int(tags["ResolutionUnit"].value) if "ResolutionUnit" in tags else None
 
 
 #: how far (relatively) a stack's calibration may be from the spacing volwarp stored with
