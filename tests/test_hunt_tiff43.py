@@ -73,3 +73,28 @@ def test_an_imagej_stack_has_the_voxel_size_fiji_shows(tmp_path, kwargs, expecte
     assert vol.meta.get("unit") == "mm"
     header, _ = open_volume_header(path, require_lazy=True)
     np.testing.assert_allclose(header.spacing, vol.spacing)
+
+
+@pytest.mark.parametrize("given,missing", [("X", "Y"), ("Y", "X")])
+def test_an_ome_size_given_for_x_or_y_only_is_both_as_bio_formats_reads_it(tmp_path, caplog,
+                                                                           given, missing):
+    """Bio-Formats' calibration takes a missing PhysicalSizeX/Y as the other one.
+
+    volwarp read the missing axis from the resolution tags tifffile leaves at 1
+    (no unit) beside the other one's 0.0005 mm: voxels 2000 times longer in y.
+    """
+    import logging
+
+    path = tmp_path / "x.ome.tif"
+    tifffile.imwrite(path, STACK, ome=True, photometric="minisblack", metadata={
+        "axes": "ZYX", f"PhysicalSize{given}": 0.5, f"PhysicalSize{given}Unit": "\u00b5m",
+        "PhysicalSizeZ": 2.0, "PhysicalSizeZUnit": "\u00b5m"})
+    with tifffile.TiffFile(path) as tif:
+        pixels = tifffile.xml2dict(tif.ome_metadata)["OME"]["Image"]["Pixels"]
+    assert f"PhysicalSize{missing}" not in pixels
+    with caplog.at_level(logging.WARNING, logger="volwarp"):
+        vol = read_volume(path)
+    np.testing.assert_allclose(vol.spacing, [0.0005, 0.0005, 0.002], rtol=1e-12)
+    assert any(f"no PhysicalSize{missing}" in r.getMessage() for r in caplog.records)
+    header, _ = open_volume_header(path, require_lazy=True)
+    np.testing.assert_allclose(header.spacing, vol.spacing)

@@ -21,7 +21,8 @@ element) come ahead of those: each is converted to millimetres from its
 not given, the schema's default), and meta ``unit`` is then ``mm``. An axis
 whose size is missing, not a positive number, or in a unit that is no length
 (``pixel``, ``reference frame``) keeps the source it had before (the
-resolution tags for x and y, 1 for z); a stack of several planes whose OME
+resolution tags for x and y, 1 for z), except x or y where the other has one:
+that one, with a warning, as Bio-Formats reads it; a stack of several planes whose OME
 metadata give x or y but no ``PhysicalSizeZ`` is read with z spacing 1 and a
 warning. volwarp also stores its exact spacing, origin
 and direction (keys ``volwarp_spacing``, ``volwarp_origin``,
@@ -661,6 +662,13 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
         spacing = _floats(extra["spacing"], 3, where, "spacing")
         names = ["spacing"] * 3
     ome = _ome_spacing(tif, where, image) if "volwarp_spacing" not in extra else None
+    if ome and (ome[0] is None) != (ome[1] is None):
+        # as Bio-Formats' calibration: the tags' y beside OME's x mixed units (1 with 0.0005 mm)
+        given, missing = (0, 1) if ome[1] is None else (1, 0)
+        ome[missing] = ome[given]
+        log.warning("%s: the OME metadata give no PhysicalSize%s: it is PhysicalSize%s, "
+                    "%g mm, as Bio-Formats reads it", where, "XY"[missing], "XY"[given],
+                    ome[given])
     if ome and any(v is not None for v in ome):
         for axis, value in enumerate(ome):
             if value is not None:
