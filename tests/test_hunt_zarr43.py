@@ -102,3 +102,29 @@ def test_a_nearly_flipped_grid_by_blocks_is_the_in_memory_store(tmp_path, chunks
     idx = np.rint(idx).astype(int)
     assert np.array_equal(back.data[ijk[:, 2], ijk[:, 1], ijk[:, 0]],
                           data[idx[:, 2], idx[:, 1], idx[:, 0]])
+
+
+def test_an_ngff_labels_image_inside_its_store_is_read_as_a_label_map(tmp_path):
+    """NGFF keeps a segmentation at ``image.ome.zarr/labels/<name>``, a folder without a
+    ``.zarr`` suffix: volwarp looked for DICOM files there ("a folder with no DICOM
+    files"), so the image-label groups formats.md says it reads as label maps could not
+    be given. A folder holding Zarr metadata is a store."""
+    import zarr
+    from ome_zarr.writer import write_image, write_labels
+
+    from volwarp_cli.io import volume_format
+    from volwarp_cli.labelmap import segmentation_of
+
+    image = np.arange(6 * 7 * 8, dtype=np.uint16).reshape(6, 7, 8)
+    seg = (image // 100).astype(np.uint8)
+    store = tmp_path / "img.ome.zarr"
+    group = zarr.open_group(str(store), mode="w")
+    write_image(image, group, axes="zyx", scale_factors=[],
+                scale={"z": 2.0, "y": 0.5, "x": 0.5},
+                axes_units={"z": "micrometer", "y": "micrometer", "x": "micrometer"})
+    write_labels(seg, group, name="cells", axes="zyx", scaler=None, scale_factors=[])
+    path = store / "labels" / "cells"
+    assert volume_format(path, reading=True) == "omezarr"
+    vol = read_volume(path)
+    assert np.array_equal(vol.data, seg)
+    assert "image-label" in segmentation_of(vol.meta)
