@@ -75,6 +75,10 @@ def volume_format(path: str | os.PathLike, *, reading: bool = False) -> str:
     if name.endswith(".zarr"):
         return "omezarr"  # a folder (OME-Zarr store), read or written
     if reading and Path(path).is_dir():
+        # (a Zarr group without the suffix: NGFF keeps a segmentation at
+        # image.ome.zarr/labels/<name>, which was searched for DICOM files)
+        if any((Path(path) / f).is_file() for f in ("zarr.json", ".zgroup", ".zattrs")):
+            return "omezarr"
         return "dicom"  # read_volume says so when it holds none
     if name.endswith(".nii.gz"):
         return "nifti"

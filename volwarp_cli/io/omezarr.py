@@ -15,9 +15,15 @@ NGFF 0.4/0.5 cannot store a rotation, so volwarp writes
   voxel. Every sample keeps its world point, and any NGFF reader sees it
   where it lies (in volwarp's world frame, LPS). Reading gives back that
   identity-direction volume, not the source's index order.
-- an *oblique* volume as it is, with the scale and the translation (the
-  origin) of its own index frame: readers that know only NGFF get the image in
-  its own frame (the rotation about the origin is missing).
+- an *oblique* volume reindexed the same way by its *nearest* signed
+  permutation (the world axis each index axis runs most along), so that its
+  index frame is the nearest to the world's, with the scale and the
+  translation (the origin) of that frame: readers that know only NGFF get the
+  image in that frame (the remaining rotation about the origin is missing). A
+  direction a hair off flips (a scanner's tilt of 1e-6 rad, a NIfTI sform's
+  float32 noise) was stored as it stood: those readers saw the scan mirrored.
+  One no index axis runs mostly along one world axis (45 degrees) is stored
+  as it is.
 
 Either way the group's namespaced ``volwarp`` attribute keeps origin, spacing
 and direction at full precision, the world frame, the volume's key/values
@@ -91,28 +97,28 @@ ZSTD_LEVEL = 3
 #: version of volwarp's own attribute
 ATTRIBUTE_VERSION = 1
 
-_PERMUTATION_TOLERANCE = 1e-12
-
+#: a reindexed direction this close to the identity is the identity (a signed permutation)
+_IDENTITY_TOLERANCE = 1e-12
 
 # -- geometry ---------------------------------------------------------------------------
 
 def signed_permutation(direction) -> tuple[list[int], list[float]] | None:
-    """``(perm, signs)`` when ``direction`` is a signed permutation, else None.
+    """``(perm, signs)``: the signed permutation nearest ``direction``, or None.
 
-    Index axis ``a`` (x, y, z) runs along world axis ``perm[a]`` with sign
-    ``signs[a]`` (``direction[perm[a], a] == signs[a]``).
+    Index axis ``a`` (x, y, z) runs most along world axis ``perm[a]``, with
+    sign ``signs[a]`` (``direction[perm[a], a]``'s). None where two index axes
+    run most along the same world axis (or one equally along two): no axis
+    order is nearer than another.
     """
     d = np.asarray(direction, dtype=np.float64)
     perm, signs = [], []
     for a in range(3):
-        col = d[:, a]
-        b = int(np.argmax(np.abs(col)))
-        if abs(abs(col[b]) - 1.0) > _PERMUTATION_TOLERANCE:
-            return None
-        if np.any(np.abs(np.delete(col, b)) > _PERMUTATION_TOLERANCE):
+        col = np.abs(d[:, a])
+        b = int(np.argmax(col))
+        if np.sum(col == col[b]) > 1:
             return None
         perm.append(b)
-        signs.append(1.0 if col[b] > 0 else -1.0)
+        signs.append(1.0 if d[b, a] > 0 else -1.0)
     if sorted(perm) != [0, 1, 2]:
         return None
     return perm, signs
@@ -122,8 +128,9 @@ def reindex_to_identity(vol: Volume) -> Volume:
     """``vol`` with identity direction, by flips and transposes only (signed permutations).
 
     Every sample keeps its world point; the origin becomes the world point of
-    the new first voxel. A volume whose direction is not a signed permutation
-    is returned as it is. Where axes move, the samples are a contiguous copy
+    the new first voxel. An oblique volume is reindexed by its nearest signed
+    permutation, its direction what remains (:func:`reindexed_geometry`); one
+    with none (:func:`signed_permutation`) is returned as it is. Where axes move, the samples are a contiguous copy
     (the writer writes :func:`reindexed_samples`, a view, instead).
     :func:`reindexed_header` is the same for a Header (a store written by
     blocks moves each block).
@@ -165,9 +172,10 @@ def reindexed_header(header: Header) -> Header:
         return header
     flips, order = found
     if not flips and order == (0, 1, 2):
-        if np.array_equal(header.direction, np.eye(3)):
-            return header
-        return header.replace(direction=np.eye(3))
+        if np.allclose(header.direction, np.eye(3), rtol=0, atol=_IDENTITY_TOLERANCE) \
+                and not np.array_equal(header.direction, np.eye(3)):
+            return header.replace(direction=np.eye(3))  # (a rounding's -0.0, 1 - 1e-16)
+        return header
     from ..provenance import AS_READ_AXIS_KEYS
 
     shape = tuple(header.shape[o] for o in order)
@@ -195,13 +203,24 @@ def reindex_axes(direction) -> tuple[tuple[int, ...], tuple[int, int, int]] | No
 
 
 def reindexed_geometry(vol: Volume | Header, flips, order) -> dict:
-    """Spacing, origin and (identity) direction of ``vol`` reindexed by ``(flips, order)``."""
+    """Spacing, origin and direction of ``vol`` reindexed by ``(flips, order)``.
+
+    The direction is the identity where ``vol``'s is a signed permutation (to
+    :data:`_IDENTITY_TOLERANCE`), else what remains of it (an oblique grid's
+    rotation from its nearest signed permutation, kept exactly).
+    """
     n = np.array(vol.shape_xyz)
     first = np.array([n[a] - 1 if 2 - a in flips else 0 for a in range(3)], dtype=np.float64)
     # stored index axis b (x) is array axis 2 - b, which came from array axis order[2 - b]
-    spacing = np.array([vol.spacing[2 - order[2 - b]] for b in range(3)])
+    old = [2 - order[2 - b] for b in range(3)]
+    spacing = np.array([vol.spacing[a] for a in old])
+    sign = [-1.0 if 2 - a in flips else 1.0 for a in old]
+    direction = np.column_stack([s * vol.direction[:, a] for s, a in zip(sign, old,
+                                                                          strict=True)])
+    if np.allclose(direction, np.eye(3), rtol=0, atol=_IDENTITY_TOLERANCE):
+        direction = np.eye(3)
     return {"spacing": spacing, "origin": vol.index_to_world(first) + 0.0,
-            "direction": np.eye(3)}
+            "direction": direction + 0.0}
 
 
 # -- layout -----------------------------------------------------------------------------
