@@ -670,7 +670,7 @@ def kept_fields(fields: dict, space, where: str) -> dict:
         meta[f"NRRD_{name}"] = fields[name].strip()
     if "NRRD_space units" in meta and length_scale(fields, 3, where) is not None:
         meta["NRRD_space units"] = '"mm" "mm" "mm"'  # (the numbers are millimetres now)
-    if "measurement frame" in fields and space is not None:
+    if "measurement frame" in fields:
         meta["NRRD_measurement frame"] = _measurement_frame_lps(fields, space, where)
     return meta
 
@@ -691,24 +691,35 @@ def _check_axis_entries(fields: dict[str, str], name: str, dim: int, where: str)
                           f"{short_text(text)!r}")
 
 
-def _measurement_frame_lps(fields: dict[str, str], space: str, where: str) -> str:
+def _measurement_frame_lps(fields: dict[str, str], space, where: str) -> str:
     """The ``measurement frame`` (its vectors are world directions) in LPS.
 
     The Volume converts origin and direction from the file's frame; the
-    measurement frame, which only NRRD has, is converted with the same matrix.
+    measurement frame, which only NRRD has, is converted with the same matrix
+    (without a ``space``, its numbers as they stand).
     """
-    try:
-        to_lps = frame_to_lps(space)
-    except VolwarpError as exc:
-        raise FormatError(f"{where}: 'space': {exc}") from None
-    text = fields["measurement frame"]
+    frame = measurement_frame(fields["measurement frame"], where)
+    if space is not None:
+        try:
+            frame = frame_to_lps(space) @ frame
+        except VolwarpError as exc:
+            raise FormatError(f"{where}: 'space': {exc}") from None
+    return " ".join(_vec(frame[:, a]) for a in range(3))
+
+
+def measurement_frame(text: str, where: str = "NRRD_measurement frame") -> np.ndarray:
+    """A ``measurement frame`` (or the kept ``NRRD_measurement frame``) as a matrix.
+
+    Its vectors are the columns: a vector of components ``v`` measured in the
+    frame is the world vector ``matrix @ v`` (teem's meaning; kept, in LPS
+    where the file had a ``space``: :func:`kept_fields`).
+    """
     vectors = [_parse_vector(m.group(1), where, "measurement frame")
                for m in _VECTOR.finditer(text)]
     if len(vectors) != 3 or any(len(v) != 3 for v in vectors):
         raise FormatError(f"{where}: 'measurement frame' must be 3 vectors of 3 numbers, got "
                           f"{short_text(text)!r}")
-    frame = to_lps @ np.array(vectors, dtype=np.float64).T  # columns are the vectors
-    return " ".join(_vec(frame[:, a]) for a in range(3))
+    return np.array(vectors, dtype=np.float64).T
 
 
 #: NRRD ``kinds`` of an axis that may be a volume's: a domain (teem's domain kinds, time
