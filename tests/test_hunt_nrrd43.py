@@ -5,7 +5,10 @@ vector components were measured (teem: the world vector is ``frame @ v``). A
 RAS file whose frame is ``(-1,0,0) (0,-1,0) (0,0,1)`` holds LPS vectors: volwarp
 turned them by the space's signs alone and moved every point mirrored in x
 and y, where SimpleITK (which reads the components unchanged, as LPS) and
-teem agree on the LPS vector.
+teem agree on the LPS vector. A field in microns (``space units: "um"``,
+microscopy) had its grid read in millimetres and its vectors not: every
+point moved 1000 times too far (SimpleITK reads every number of the three
+files in microns alike, and warps as a consistent reading does).
 """
 
 from __future__ import annotations
@@ -83,3 +86,42 @@ def test_field_vectors_are_the_measurement_frame_times_the_components(tmp_path, 
     assert (field.vectors is None) == by_windows
     np.testing.assert_allclose(vectors[3, 4, 5], lps, atol=1e-6)
     np.testing.assert_allclose(field.map(np.array([[0.0, 0.0, 0.0]]))[0], lps, atol=1e-5)
+
+
+def _um_file(path, data: np.ndarray, sizes, dirs: str, kinds: str) -> None:
+    """A LPS NRRD whose numbers are microns (``space units``), origin (-n, -n, -n)."""
+    n = sizes[-1]
+    header = (f"NRRD0004\ntype: float\ndimension: {len(sizes)}\nspace: left-posterior-superior\n"
+              f"sizes: {' '.join(map(str, sizes))}\nspace directions: {dirs}\nkinds: {kinds}\n"
+              f"endian: little\nencoding: raw\nspace origin: ({-n},{-n},{-n})\n"
+              'space units: "um" "um" "um"\n\n')
+    path.write_bytes(header.encode() + data.astype(np.float32).tobytes())
+
+
+@pytest.mark.parametrize("by_windows", [False, True])
+def test_a_field_in_microns_moves_points_by_microns(run, tmp_path, monkeypatch, by_windows):
+    """`apply` of image, field and reference all in microns: SimpleITK's samples."""
+    from volwarp_cli import memory
+
+    z, y, x = np.indices((20, 20, 20)).astype(np.float32)
+    axes = "(2,0,0) (0,2,0) (0,0,2)"
+    _um_file(tmp_path / "m.nrrd", x + 10 * y + 100 * z, (20, 20, 20), axes, "domain domain domain")
+    vec = np.zeros((12, 12, 12, 3), np.float32)
+    vec[...] = VECTOR  # microns
+    _um_file(tmp_path / "f.nrrd", vec, (3, 12, 12, 12), "none " + axes,
+             "vector domain domain domain")
+    _um_file(tmp_path / "ref.nrrd", np.zeros((8, 8, 8)), (8, 8, 8), axes, "domain domain domain")
+    tx = sitk.DisplacementFieldTransform(sitk.ReadImage(str(tmp_path / "f.nrrd"),
+                                                        sitk.sitkVectorFloat64))
+    expected = sitk.GetArrayFromImage(sitk.Resample(
+        sitk.ReadImage(str(tmp_path / "m.nrrd")), sitk.ReadImage(str(tmp_path / "ref.nrrd")),
+        tx, sitk.sitkLinear, 0.0))
+    args = ["apply", tmp_path / "m.nrrd", "-t", tmp_path / "f.nrrd", "--reference",
+            tmp_path / "ref.nrrd", "-o", tmp_path / "out.nrrd", "--interpolation", "linear"]
+    if by_windows:
+        monkeypatch.setattr(memory, "READ_BY_BOX_SHARE", 0.0)
+        args += ["--chunked", "--block", "4,4,4"]
+    res = run(*args)
+    assert res.code == 0, res.stderr
+    got = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "out.nrrd")))
+    np.testing.assert_allclose(got, expected, atol=1e-3)

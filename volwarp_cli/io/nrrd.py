@@ -722,6 +722,38 @@ def measurement_frame(text: str, where: str = "NRRD_measurement frame") -> np.nd
     return np.array(vectors, dtype=np.float64).T
 
 
+def vector_frame(path: str | os.PathLike) -> np.ndarray:
+    """The matrix taking the vector components of the NRRD at ``path`` to LPS millimetres.
+
+    teem's meaning: the components are measured along the ``measurement
+    frame``'s axes (the world vector is the frame times them, identity when
+    there is none), in the file's ``space`` (to LPS), in its length units (to
+    mm, as the geometry: :func:`length_scale`). A RAS file whose frame is
+    ``(-1,0,0) (0,-1,0) (0,0,1)`` holds LPS vectors (turned by the space's
+    signs alone, they were mirrored in x and y); a field in microns holds
+    microns (taken as mm, they moved points 1000 times too far). ITK and
+    SimpleITK take the components as LPS mm whatever the file says; where a
+    measurement frame makes the two differ, that is said once a run.
+    """
+    from ..progress import log
+    from ..runscope import first_said
+
+    where = str(path)
+    with open_input(Path(path), where) as fh:
+        fields, _ = read_header(fh, where)
+    frame = np.eye(3)
+    if "measurement frame" in fields:
+        frame = measurement_frame(fields["measurement frame"], where)
+    matrix = frame if fields.get("space") is None else frame_to_lps(fields["space"]) @ frame
+    if not np.array_equal(frame, np.eye(3)) and not np.array_equal(matrix, np.eye(3)) \
+            and first_said(("nrrd measurement frame", os.path.abspath(where))):
+        log.warning("%s: its 'measurement frame' turns the vectors (to LPS: %s); ITK and "
+                    "SimpleITK read the components unchanged, as LPS", where,
+                    " ".join(_vec(matrix[:, a]) for a in range(3)))
+    scale = length_scale(fields, int(fields["dimension"]), where)
+    return matrix if scale is None else scale[:, None] * matrix
+
+
 #: NRRD ``kinds`` of an axis that may be a volume's: a domain (teem's domain kinds, time
 #: among them: ITK reads a 2-D+t file as a volume), or unknown, or none said
 _SPATIAL_KINDS = ("domain", "space", "time", "???", "none")

@@ -156,41 +156,28 @@ def to_lps(vectors: np.ndarray, signs) -> np.ndarray:
     return vectors * signs if signs.ndim == 1 else vectors @ signs.T
 
 
-def frame_signs(file_space, meta=None, fmt: str = "") -> np.ndarray | None:
-    """What takes a file's vector components to LPS (:func:`to_lps`); None: they are LPS.
+def frame_signs(path: str, file_space) -> np.ndarray | None:
+    """What takes a field file's vector components to LPS mm (:func:`to_lps`); None: nothing.
 
-    The signs of the file's ``space``, or, for a NRRD with a ``measurement
-    frame`` (its components are measured along those axes: teem's meaning,
-    kept in LPS as ``NRRD_measurement frame``), that frame's matrix. A RAS
-    file whose frame is ``(-1,0,0) (0,-1,0) (0,0,1)`` holds LPS vectors:
-    turned by the space's signs alone they were mirrored (ITK and SimpleITK
-    read them unchanged, as LPS).
+    A NRRD's :func:`~volwarp_cli.io.nrrd.vector_frame` (its ``space``,
+    ``measurement frame`` and length units); else the signs of the file's
+    frame. Per-component factors (signs, a unit) where the matrix is
+    diagonal: exact, a NaN stays in its component.
     """
+    from ..io import volume_format
     from ..volume import frame_to_lps
 
-    matrix = frame_to_lps(file_space)
-    if fmt == "nrrd" and meta and "NRRD_measurement frame" in meta:
-        from ..io.nrrd import measurement_frame
+    if volume_format(path, reading=True) == "nrrd":
+        from ..io.nrrd import vector_frame
 
-        matrix = measurement_frame(meta["NRRD_measurement frame"])
+        matrix = vector_frame(path)
+    else:
+        matrix = frame_to_lps(file_space)
     if matrix is None or np.array_equal(matrix, np.eye(3)):
         return None
-    if np.array_equal(matrix, np.diag(np.diag(matrix))) and np.all(np.abs(np.diag(matrix)) == 1):
-        return np.diag(matrix).copy()  # (the frames are LPS's axes, signed)
-    _say_turned(matrix)
+    if np.array_equal(matrix, np.diag(np.diag(matrix))):
+        return np.diag(matrix).copy()
     return matrix
-
-
-def _say_turned(matrix: np.ndarray) -> None:
-    """Say (once a run) that a measurement frame turns the vectors, as ITK does not."""
-    from ..progress import log
-    from ..runscope import first_said
-
-    if first_said(("nrrd measurement frame", tuple(matrix.ravel()))):
-        log.warning("displacement field: its 'measurement frame' turns the vectors (LPS "
-                    "columns %s); ITK and SimpleITK read the components unchanged, as LPS",
-                    " ".join("(" + ",".join(f"{x:g}" for x in matrix[:, a]) + ")"
-                             for a in range(3)))
 
 
 def read_whole(path: str, nifti: bool) -> np.ndarray:
@@ -347,8 +334,7 @@ def _components(path: str, whole: bool = False):
             held = samples is not None and math.prod(samples.shape) * header.dtype.itemsize
             if held and read_by_box(held):
                 source = LazyField(samples, header.shape, planar=planar,
-                                   signs=frame_signs(header.file_space, header.meta,
-                                                     _format(path)), field=path,
+                                   signs=frame_signs(path, header.file_space), field=path,
                                    nifti=False)
                 return _frame(_geometry_of(header), header.shape), source, dict(header.meta)
         except NoRoomToInflate as why:
@@ -369,18 +355,11 @@ def _components(path: str, whole: bool = False):
                            "a displacement field (3 components per voxel)")
     if vectors.dtype.kind != "f":
         vectors = vectors.astype(np.float32)
-    signs = frame_signs(first.file_space, first.meta, _format(path))
+    signs = frame_signs(path, first.file_space)
     if signs is not None:
         vectors = to_lps(vectors, signs)
     return (_frame(_geometry_of(first), first.data.shape), np.ascontiguousarray(vectors),
             dict(first.meta))
-
-
-def _format(path: str) -> str:
-    """The file format of a NRRD or MetaImage field (only NRRD has a measurement frame)."""
-    from ..io import volume_format
-
-    return volume_format(path, reading=True)
 
 
 def _geometry_of(placed) -> dict:
