@@ -125,3 +125,24 @@ def test_a_field_in_microns_moves_points_by_microns(run, tmp_path, monkeypatch, 
     assert res.code == 0, res.stderr
     got = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "out.nrrd")))
     np.testing.assert_allclose(got, expected, atol=1e-3)
+
+
+def test_kinds_and_space_directions_naming_different_component_axes_are_refused(tmp_path):
+    """The component axis is the ``none`` direction's and the kinds' one, never a guess between.
+
+    ``kinds: vector domain domain domain`` beside a last ``none`` direction:
+    volwarp read the last axis (size 4) as the components, silently; ITK
+    refuses the file (its direction comes out singular).
+    """
+    from volwarp_cli.errors import FormatError
+    from volwarp_cli.io import read_components
+
+    path = tmp_path / "f.nrrd"
+    path.write_bytes(b"NRRD0004\ntype: float\ndimension: 4\nspace: left-posterior-superior\n"
+                     b"sizes: 3 2 3 4\nspace directions: (1.5,0,0) (0,2,0) (0,0,3) none\n"
+                     b"kinds: vector domain domain domain\nendian: little\nencoding: raw\n\n"
+                     + np.zeros(72, np.float32).tobytes())
+    with pytest.raises(RuntimeError):
+        sitk.ReadImage(str(path))
+    with pytest.raises(FormatError, match="'kinds'.*disagree"):
+        read_components(path)

@@ -781,6 +781,11 @@ def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: s
         entries = fields.get("space directions", "").split()
         if len(entries) == 4:
             nonspatial = [a for a, e in enumerate(entries) if e.lower() == "none"]
+            kinds = fields.get("kinds", "").lower().split()
+            said = [a for a, k in enumerate(kinds) if k not in ("domain", "space", "???", "none")]
+            if len(kinds) == 4 and said and said != nonspatial:  # (one was read, silently)
+                raise FormatError(f"{where}: 'kinds' ({fields['kinds']}) and 'space "
+                                  f"directions' disagree on which axis holds the components")
         else:  # no space directions: the kinds say which axis is not a domain
             kinds = fields.get("kinds", "").lower().split()
             nonspatial = ([a for a, k in enumerate(kinds) if k not in ("domain", "space")]
