@@ -16,14 +16,13 @@ NGFF 0.4/0.5 cannot store a rotation, so volwarp writes
   where it lies (in volwarp's world frame, LPS). Reading gives back that
   identity-direction volume, not the source's index order.
 - an *oblique* volume reindexed the same way by its *nearest* signed
-  permutation (the world axis each index axis runs most along), so that its
+  permutation (:func:`signed_permutation`), so that its
   index frame is the nearest to the world's, with the scale and the
   translation (the origin) of that frame: readers that know only NGFF get the
   image in that frame (the remaining rotation about the origin is missing). A
   direction a hair off flips (a scanner's tilt of 1e-6 rad, a NIfTI sform's
   float32 noise) was stored as it stood: those readers saw the scan mirrored.
-  One no index axis runs mostly along one world axis (45 degrees) is stored
-  as it is.
+  One with two equally near (exactly 45 degrees) is stored as it is.
 
 Either way the group's namespaced ``volwarp`` attribute keeps origin, spacing
 and direction at full precision, the world frame, the volume's key/values
@@ -71,6 +70,7 @@ The zarr imports stay inside this module (imported lazily by the dispatch).
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -105,22 +105,23 @@ _IDENTITY_TOLERANCE = 1e-12
 def signed_permutation(direction) -> tuple[list[int], list[float]] | None:
     """``(perm, signs)``: the signed permutation nearest ``direction``, or None.
 
-    Index axis ``a`` (x, y, z) runs most along world axis ``perm[a]``, with
-    sign ``signs[a]`` (``direction[perm[a], a]``'s). None where two index axes
-    run most along the same world axis (or one equally along two): no axis
-    order is nearer than another.
+    Index axis ``a`` (x, y, z) runs along world axis ``perm[a]``, with sign
+    ``signs[a]`` (``direction[perm[a], a]``'s), for the axis order whose
+    entries are largest (sum of ``|direction[perm[a], a]|``: the nearest in the
+    Frobenius norm). Not each axis' own largest entry: two index axes may run
+    most along one world axis (a double oblique of 40 degrees about x and y),
+    and such a grid was stored as it stood (a left-handed one mirrored in
+    other readers). None where two axis orders are equally near.
     """
     d = np.asarray(direction, dtype=np.float64)
-    perm, signs = [], []
-    for a in range(3):
-        col = np.abs(d[:, a])
-        b = int(np.argmax(col))
-        if np.sum(col == col[b]) > 1:
-            return None
-        perm.append(b)
-        signs.append(1.0 if d[b, a] > 0 else -1.0)
-    if sorted(perm) != [0, 1, 2]:
+    sums = {perm: np.abs(d[list(perm), [0, 1, 2]]).sum()
+            for perm in itertools.permutations(range(3))}
+    best = max(sums.values())
+    nearest = [perm for perm, total in sums.items() if total == best]
+    if len(nearest) > 1:
         return None
+    perm = list(nearest[0])
+    signs = [1.0 if d[perm[a], a] > 0 else -1.0 for a in range(3)]
     return perm, signs
 
 
