@@ -131,7 +131,7 @@ def reindex_to_identity(vol: Volume) -> Volume:
     Every sample keeps its world point; the origin becomes the world point of
     the new first voxel. An oblique volume is reindexed by its nearest signed
     permutation, its direction what remains (:func:`reindexed_geometry`); one
-    with none (:func:`signed_permutation`) is returned as it is. Where axes move, the samples are a contiguous copy
+    with none (:func:`signed_permutation`: an exact tie) is returned as it is. Where axes move, the samples are a contiguous copy
     (the writer writes :func:`reindexed_samples`, a view, instead).
     :func:`reindexed_header` is the same for a Header (a store written by
     blocks moves each block).
@@ -166,7 +166,7 @@ def reindexed_samples(data: np.ndarray, direction) -> np.ndarray:
 def reindexed_header(header: Header) -> Header:
     """:func:`reindex_to_identity` of a volume's Header: the stored grid, no samples.
 
-    ``header`` itself when its direction is the identity or not a signed permutation.
+    ``header`` itself when its direction is the identity or has no nearest signed permutation (an exact tie).
     """
     found = reindex_axes(header.direction)
     if found is None:
@@ -191,7 +191,7 @@ def reindex_axes(direction) -> tuple[tuple[int, ...], tuple[int, int, int]] | No
 
     The array (z, y, x) axes ``flips`` are reversed, then the array is
     transposed by ``order`` (stored axis ``c`` is array axis ``order[c]``).
-    None when ``direction`` is not a signed permutation.
+    None when ``direction`` has no nearest signed permutation (an exact tie).
     """
     found = signed_permutation(direction)
     if found is None:
