@@ -73,3 +73,15 @@ def test_a_step_without_warnings_says_nothing_more(tmp_path):
     assert "warning" not in res.stderr and "2 ok, 0 skipped" in summary(res)
     steps = [s for scan in json.loads(report.read_text())["scans"] for s in scan["steps"]]
     assert [s["warnings"] for s in steps] == [[], []]
+
+
+def test_folders_a_glob_matches_are_said_left_out(tmp_path):
+    """A glob over series folders (`scans/*`) took their files only: a DICOM series or a
+    store beside the scans was left out without a word, the summary one scan short."""
+    manifest = _tree(tmp_path, 1.0)
+    (tmp_path / "scans" / "series-7").mkdir()  # (a DICOM series folder, say)
+    manifest.write_text(MANIFEST.replace("scans/*.nrrd", "scans/*") % "t.tfm")
+    res = volwarp("batch", manifest, "--jobs", "1")
+    assert res.returncode == 0, res.stderr
+    assert "inputs.glob matches 1 folder (scans/series-7), left out" in res.stderr
+    assert "2 scans, 2 ok" in summary(res)

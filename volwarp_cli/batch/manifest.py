@@ -422,9 +422,12 @@ def _glob_scans(manifest: Manifest, pattern: str) -> list[tuple[Path, tuple]]:
     batches: dict[Path, Path | None] = {}  # folder -> the batch output folder it lies in
     others: dict[Path, int] = {}
     own: list[Path] = []  # matched in our output folder
+    folders: list[Path] = []  # matched folders (a DICOM series, a store): left out, said
     for name in sorted(glob.glob(pattern, recursive=True)):
         p = Path(name)
         if not p.is_file():  # (DICOM folders: convert them first, or list them)
+            if p.is_dir() and not p.resolve().is_relative_to(out):
+                folders.append(p)
             continue
         real = p.resolve()
         if real.is_relative_to(out):  # our own outputs are not scans
@@ -441,6 +444,15 @@ def _glob_scans(manifest: Manifest, pattern: str) -> list[tuple[Path, tuple]]:
         log.warning("warning: %s: inputs.glob: %d file%s under %s, another batch's output "
                     "folder, left out (outputs are not scans)", manifest.path, n,
                     "" if n == 1 else "s", other)
+    if folders:  # (a glob of `scans/*` over series folders ran "0 scans", exit 0)
+        from ..progress import log
+
+        log.warning("warning: %s: inputs.glob matches %d folder%s (%s%s), left out: a glob "
+                    "takes files; a DICOM series or an OME-Zarr store is a scan by "
+                    "inputs.list or inputs.csv", manifest.path, len(folders),
+                    "" if len(folders) == 1 else "s",
+                    os.path.relpath(folders[0], manifest.path.parent),
+                    f" and {len(folders) - 1} more" if len(folders) > 1 else "")
     _say_unrecorded(manifest, out, own)
     return paths
 
