@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import SpecError
+from ..geometry import PLACEMENT_LIMIT
 from .loader import format_key
 
 __all__ = ["Function", "parse_function", "spec_error", "is_function_spec", "ALLOWED_FUNCTIONS",
@@ -45,9 +46,9 @@ ALLOWED_NAMES = ("u", "pi")
 MAX_EXPRESSION_LENGTH = 2000
 _MAX_FLOAT = float(np.finfo(np.float64).max)
 #: the largest magnitude of a spec's coordinates, lengths and function values: the
-#: placement bound every volume keeps (:data:`volwarp_cli.geometry.PLACEMENT_LIMIT`);
-#: beyond it squared distances overflow and a norm of 1e300 is inf (a direction of 0)
-MAX_VALUE = 1e15
+#: placement bound every volume keeps; beyond it squared distances overflow and a norm
+#: of 1e300 is inf (a direction of 0)
+MAX_VALUE = PLACEMENT_LIMIT
 #: the largest rotation angle (degrees) a spec may give: 2777 turns; at 1e300 the angle
 #: has no digits left below a full turn (a double's step there is 1e284 degrees)
 MAX_ANGLE = 1e6

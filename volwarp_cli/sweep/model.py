@@ -500,7 +500,7 @@ def _check_grid(shape_xyz, origin, spacing, doc, from_options: bool, lo, hi,
         across = (np.asarray(hi, np.float64) - np.asarray(lo, np.float64)
                   + 2 * float(margin or 0.0)) / spacing
         ok = (np.all(np.isfinite(values)) and np.all((shape >= 1) & (shape <= MAX_AXIS))
-              and np.all(np.abs(values) <= 1e15) and np.all(across <= MAX_AXIS))
+              and np.all(np.abs(values) <= MAX_VALUE) and np.all(across <= MAX_AXIS))
     if ok:
         return
     what = (f"the output grid ({'x'.join(str(int(v)) if 0 <= v < 1e18 else '?' for v in shape)}"
@@ -512,12 +512,12 @@ def _check_grid(shape_xyz, origin, spacing, doc, from_options: bool, lo, hi,
 
     def extreme(name):
         v = np.abs(np.asarray(given[name], dtype=np.float64))
-        return bool(np.any(v > 1e15) or (name == "spacing" and np.any(v < 1e-9)))
+        return bool(np.any(v > MAX_VALUE) or (name == "spacing" and np.any(v < 1e-9)))
     names = [n for n in ("spacing", "margin", "origin", "shape") if n in given]
     bad = [n for n in names if extreme(n)]
     if bad:
         raise doc.error(("grid", bad[0]), what)
-    if not np.all(np.abs(bounds) <= 1e15):  # the sweep itself: its trajectory or scale
+    if not np.all(np.abs(bounds) <= MAX_VALUE):  # the sweep itself: its trajectory or scale
         for name in ("scale", "trajectory", "scene"):
             if name in doc.data:
                 raise doc.error((name,), f"the sweep reaches {np.abs(bounds).max():.3g} world "
