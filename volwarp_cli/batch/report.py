@@ -107,8 +107,9 @@ def summary_line(results: list[ScanResult], *, stop: int | None = None,
     if shard is not None:
         head += f" (shard {shard[0]}/{shard[1]} of {shard[2]})"
     ok = f"{c['ok']} ok"
-    if warned(results):  # (each said on its scan's progress line, and in the reports)
-        ok += f" ({warned(results)} with warnings)"
+    n = warned(results)
+    if n:  # (each said on its scan's progress line, and in the reports)
+        ok += f" ({n} with warnings)"
     parts = [head, ok, f"{c['skipped']} skipped", f"{c['failed']} failed"]
     if c["stopped"]:
         parts.append(f"{c['stopped']} stopped")

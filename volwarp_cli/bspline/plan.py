@@ -190,17 +190,20 @@ def plan(doc, spec: WarpSpec, grid: Lattice, dq0: np.ndarray, geom: SpecUnits) -
     for s, step in enumerate(spec.steps):
         work = current.copy()
         _warn_idle(s, step)
-        for m, mv in enumerate(step.get("move", [])):
-            i, j, k = (int(v) for v in mv["index"])  # (7.0: an integer to the schema)
-            if "by" in mv:
-                work[k, j, i] += geom.vector(mv["by"])
-            else:
-                work[k, j, i] = geom.point(mv["to"]) - uniform[k, j, i]
-            x, y, z = work[k, j, i].tolist()  # (floats: 729 numpy reductions took 3 ms)
-            if not (abs(x) <= MAX_DISPLACEMENT and abs(y) <= MAX_DISPLACEMENT
-                    and abs(z) <= MAX_DISPLACEMENT):  # (NaN too)
-                _check_reach(doc, ("steps", s, "move", m, "by" if "by" in mv else "to"),
-                             work[k, j, i])
+        moves = step.get("move", [])
+        moved = []  # (each move's offset as it left it: one check below, 729 took 1.1 ms)
+        with np.errstate(over="ignore", invalid="ignore"):  # (a later move of one refused)
+            for mv in moves:
+                i, j, k = (int(v) for v in mv["index"])  # (7.0: an integer to the schema)
+                if "by" in mv:
+                    work[k, j, i] += geom.vector(mv["by"])
+                else:
+                    work[k, j, i] = geom.point(mv["to"]) - uniform[k, j, i]
+                moved.append(work[k, j, i].tolist())
+        if moved:
+            m = int(np.argmin(np.all(np.abs(moved) <= MAX_DISPLACEMENT, axis=1)))  # (NaN too)
+            _check_reach(doc, ("steps", s, "move", m, "by" if "by" in moves[m] else "to"),
+                         moved[m])
         if "drag" in step:
             drags = step["drag"]
             src = np.array([geom.point(h["from"]) for h in drags])
