@@ -38,16 +38,20 @@ import common  # noqa: E402
 from bench_warp import volume, volwarp_bin, vtk_bspline_resample  # noqa: E402
 
 
-def paired(argv_a, argv_b, pairs):
+def paired(argv_a, argv_b, pairs, run=None):
     """Medians of two commands run in turn, and the median of the pairwise ratios a / b.
 
     With a the one-thread run and b the all-threads run, a / b is the speedup.
+    ``run``: two callables to time instead of the commands.
     """
+    if run is None:
+        run = tuple(lambda argv=argv: subprocess.run(argv, check=True, stdout=subprocess.DEVNULL)
+                    for argv in (argv_a, argv_b))
     a, b = [], []
     for _ in range(pairs):
-        for argv, times in ((argv_a, a), (argv_b, b)):
+        for go, times in zip(run, (a, b), strict=True):
             start = time.perf_counter()
-            subprocess.run(argv, check=True, stdout=subprocess.DEVNULL)
+            go()
             times.append(time.perf_counter() - start)
     return (statistics.median(a), statistics.median(b),
             statistics.median(x / y for x, y in zip(a, b, strict=True)))
@@ -142,6 +146,75 @@ def sitk_general(data, dq):
         return sitk.Resample(img, img, tx, sitk.sitkLinear, 0.0)
 
     return go
+
+
+def threads_speedup(run_at, cores, pairs):
+    """Medians at one thread and at ``cores`` (``run_at(n)`` runs the work on n), paired."""
+    run_at(1)
+    run_at(cores)
+    return paired(None, None, pairs, run=(lambda: run_at(1), lambda: run_at(cores)))
+
+
+def copy_in_threads(n_bytes=256 << 20):
+    """A memory-bound reference: a plain copy of ``n_bytes`` cut in as many parts as threads.
+
+    What this machine's memory gives a second thread when there is nothing
+    but loads and stores (numpy's copy releases the GIL).
+    """
+    from volwarp_cli import parallel
+
+    src = np.ones(n_bytes // 4, np.float32)
+    dst = np.empty_like(src)
+
+    def run_at(n):
+        edges = parallel.cuts(0, src.size, n)
+        parallel.run_blocks(lambda i: np.copyto(dst[edges[i]:edges[i + 1]],
+                                                src[edges[i]:edges[i + 1]]),
+                            range(len(edges) - 1), n)
+
+    return run_at
+
+
+def peer_scaling_rows(vol, spec, one, data, dq, cores, pairs):
+    """Each resample, in process, at one thread and at ``cores``: whose work scales here.
+
+    volwarp's warp (``api.warp`` of the volume held; through ``spec``, every point
+    moved, and ``one``, one point), vtkImageReslice and SimpleITK's Resample
+    through the same lattice as ``spec``, and a plain memory copy:
+    the slower a resample's arithmetic per voxel, the less it waits on memory,
+    and the better it scales on a machine whose memory a second core barely
+    widens.
+    """
+    import SimpleITK as sitk
+
+    from volwarp_cli import api, parallel
+
+    def ours(n, spec=spec):
+        with parallel.use_threads(n):
+            api.warp(vol, str(spec))
+
+    go_vtk = vtk_general(data, dq)
+
+    def vtk_at(n):
+        go_vtk.filter.SetNumberOfThreads(n)
+        go_vtk()
+
+    go_sitk = sitk_general(data, dq)
+
+    def sitk_at(n):
+        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(n)
+        go_sitk()
+
+    for name, run_at, k in (("volwarp warp, every point moved, in process", ours, pairs),
+                            ("volwarp warp, one point moved, in process",
+                             lambda n: ours(n, one), pairs),
+                            ("vtkImageReslice + vtkBSplineTransform", vtk_at, pairs),
+                            ("SimpleITK Resample + BSplineTransform", sitk_at, max(1, pairs // 2)),
+                            ("a plain copy of 256 MiB (memory only)", copy_in_threads(), pairs)):
+        t1, tn, r = threads_speedup(run_at, cores, k)
+        print(f"  {name:<44} 1 thread {t1:7.3f} s   {cores} threads {tn:7.3f} s   "
+              f"speedup {r:5.2f}x", flush=True)
+    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(cores)
 
 
 def main(quick: bool = False):
@@ -262,6 +335,8 @@ def main(quick: bool = False):
             common.row(f"general warp core {n}^3 vs vtkImageReslice+BSpline", ours, peer, "vtk", r)
             ours, peer, r = common.paired_times(core, go_sitk, 1 if quick else 3)
             common.row(f"general warp core {n}^3 vs SimpleITK Resample", ours, peer, "sitk", r)
+        # how each scales, in process, from one thread to all, in this same run
+        peer_scaling_rows(vol, general, one, data, dq, cores, pairs)
         import SimpleITK as sitk
         import vtk
 

@@ -105,6 +105,7 @@ def vtk_bspline_resample(data, coeff):
         rs.Update()
         return rs.GetOutput()
 
+    go.filter = rs  # (its thread count, for bench_threads)
     return go
 
 
