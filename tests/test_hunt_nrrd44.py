@@ -156,3 +156,27 @@ def test_kinds_of_their_size_still_read_as_simpleitk_reads_them(tmp_path, kind, 
     itk = sitk.GetArrayFromImage(sitk.ReadImage(str(path))).reshape(4, 3, 2, n)
     for c in range(n):
         assert np.array_equal(read_volume(path, volume_index=c).data, itk[..., c])
+
+
+@pytest.mark.parametrize("encoding, body", [
+    ("ascii", b"1500 " + " ".join(map(str, range(1, 24))).encode()),
+    ("hex", b"ffee" + np.arange(24, dtype="<i2").tobytes().hex().encode()),
+], ids=["ascii", "hex"])
+def test_a_byte_skip_of_ascii_and_hex_data_is_skipped_as_teem_skips_it(tmp_path, encoding,
+                                                                       body):
+    """teem skips ``byte skip`` bytes before ascii and hex samples too; volwarp ignored it:
+    ``1500 1 2 ...`` with a skip of 2 was read 1500, 1, 2 (SimpleITK: 0, 1, 2), exit 0."""
+    head = HEAD.replace("uint8", "short").replace("encoding: raw", f"encoding: {encoding}")
+    fields = ("endian: little\nspace: LPS\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n"
+              f"byte skip: {2 if encoding == 'ascii' else 4}\n")
+    path = _file(tmp_path, fields, head, body)
+    itk = sitk.GetArrayFromImage(sitk.ReadImage(str(path)))
+    assert np.array_equal(read_volume(path).data, itk)
+    assert np.array_equal(itk.ravel(), np.arange(24))
+
+
+def test_a_byte_skip_of_minus_one_in_ascii_is_refused_as_teem_refuses_it(tmp_path, run):
+    """-1 (the samples are the file's last bytes) is raw data's: teem refuses it for ascii."""
+    head = HEAD.replace("encoding: raw", "encoding: ascii")
+    _refused(_file(tmp_path, "byte skip: -1\n", head, " ".join(map(str, range(24))).encode()),
+             run, "'byte skip: -1'.*needs raw encoding")

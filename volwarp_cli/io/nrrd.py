@@ -921,6 +921,12 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
                                   "(replaced by another program?)") from None
         fh.seek(start)
         return np.frombuffer(read_exact(fh, nbytes, where), dtype=file_dtype)
+    if encoding in ("ascii", "hex") and byteskip:  # (teem skips them too: they were read)
+        if byteskip == -1:
+            raise FormatError(f"{where}: 'byte skip: -1' (samples at the end) needs raw "
+                              f"encoding, not {encoding} (as teem refuses it)")
+        if len(fh.read(byteskip)) < byteskip:
+            raise FormatError(f"{where}: file ends inside 'byte skip'")
     if encoding == "ascii":
         return ascii_values(fh.read().decode("latin-1"), file_dtype.newbyteorder("="), count,
                              where)
