@@ -180,3 +180,20 @@ def test_a_byte_skip_of_minus_one_in_ascii_is_refused_as_teem_refuses_it(tmp_pat
     head = HEAD.replace("encoding: raw", "encoding: ascii")
     _refused(_file(tmp_path, "byte skip: -1\n", head, " ".join(map(str, range(24))).encode()),
              run, "'byte skip: -1'.*needs raw encoding")
+
+
+def test_integer_ascii_samples_written_as_decimals_are_their_numbers_and_said(tmp_path, run):
+    """``numpy.savetxt``'s ``-5.000e+01`` in a ``short`` file: volwarp reads -50 (MetaIO
+    reads its ascii so), teem and SimpleITK -5 (the digits before the '.'): the two
+    differed without a word; now a warning names the file."""
+    import io
+
+    text = io.StringIO()
+    np.savetxt(text, np.arange(24.0) * 10 - 50)
+    head = HEAD.replace("uint8", "short").replace("encoding: raw", "encoding: ascii")
+    path = _file(tmp_path, "space: LPS\nspace directions: (1,0,0) (0,1,0) (0,0,1)\n", head,
+                 text.getvalue().encode())
+    assert sitk.GetArrayFromImage(sitk.ReadImage(str(path))).ravel()[0] == -5  # (documented)
+    res = run("convert", path, "-o", tmp_path / "o.nrrd")
+    assert res.code == 0 and "integer samples written as decimals" in res.stderr
+    assert np.array_equal(read_volume(tmp_path / "o.nrrd").data.ravel(), np.arange(24) * 10 - 50)

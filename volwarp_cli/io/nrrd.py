@@ -928,8 +928,11 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
         if len(fh.read(byteskip)) < byteskip:
             raise FormatError(f"{where}: file ends inside 'byte skip'")
     if encoding == "ascii":
-        return ascii_values(fh.read().decode("latin-1"), file_dtype.newbyteorder("="), count,
-                             where)
+        text = fh.read().decode("latin-1")
+        values = ascii_values(text, file_dtype.newbyteorder("="), count, where)
+        if file_dtype.kind in "iu":
+            _say_decimal_integers(text, where)
+        return values
     if encoding == "hex":
         return np.frombuffer(_hex_bytes(fh.read(), nbytes, where), dtype=file_dtype)
     if encoding == "gzip" and byteskip == 0:  # the common case: one pass, in place
@@ -950,6 +953,26 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
                 raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
                                   "(wrong sizes or type in the header?)")
     return np.frombuffer(buf, dtype=file_dtype)
+
+
+_DECIMAL = re.compile(r"[^\s,]*[.eE][^\s,]*")
+
+
+def _say_decimal_integers(text: str, where: str) -> None:
+    """Say once a run that integer samples written as decimals are read as their numbers.
+
+    ``-5.000e+01`` (``numpy.savetxt``'s default) of a ``short`` file is -50 to
+    volwarp (as MetaIO reads its ascii samples), while teem, and so ITK and
+    SimpleITK, read the digits before the ``.`` or ``e``: -5.
+    """
+    from ..progress import log
+    from ..runscope import first_said
+
+    m = _DECIMAL.search(text)
+    if m and first_said(("nrrd ascii decimals", os.path.abspath(where))):
+        log.warning("%s: integer samples written as decimals (%r): read as the numbers they "
+                    "write; teem, ITK and SimpleITK read only the digits before the '.' or "
+                    "'e'", where, short_text(m.group(0), 24))
 
 
 def _read_stream(stream, n: int, where: str) -> bytes:
