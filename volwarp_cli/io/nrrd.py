@@ -233,7 +233,7 @@ def _geometry(fields: dict[str, str], dim: int, where: str):
     Checked by :func:`~volwarp_cli.geometry.check_placement`: a refusal names
     the header field the bad number came from.
     """
-    _check_space_fields(fields, dim, where)
+    _check_space_fields(fields, where)
     spacing, origin, direction, space = _header_geometry(fields, dim, where)
     scale = length_scale(fields, dim, where)
     if scale is not None:  # (numbers in microns, cm, ...: to millimetres)
@@ -259,7 +259,7 @@ _AXIS_PLACING = ("spacings", "axis mins", "axismins", "axis maxs", "axismaxs")
 _SPACE_ONLY = ("space directions", "space origin", "space units", "measurement frame")
 
 
-def _check_space_fields(fields: dict[str, str], dim: int, where: str) -> None:
+def _check_space_fields(fields: dict[str, str], where: str) -> None:
     """Refuse the space fields teem refuses, or that ITK and teem would place apart.
 
     ``space`` and ``space dimension`` are one field (teem refuses both), the
