@@ -404,7 +404,7 @@ def test_nifti_header_nibabel_refuses_is_one_clear_error(tmp_path, capfd):
 def test_singular_nrrd_directions_name_the_file(tmp_path, run):
     path = tmp_path / "sing.nrrd"
     path.write_bytes(b"NRRD0005\ntype: uint8\ndimension: 3\nsizes: 2 2 2\n"
-                     b"space directions: (1,0,0) (1,0,0) (0,0,1)\nencoding: raw\n\n"
+                     b"space dimension: 3\nspace directions: (1,0,0) (1,0,0) (0,0,1)\nencoding: raw\n\n"
                      + bytes(8))
     with pytest.raises(FormatError, match=r"sing\.nrrd: 'space directions': direction matrix "
                        "is singular"):

@@ -233,12 +233,7 @@ def _geometry(fields: dict[str, str], dim: int, where: str):
     Checked by :func:`~volwarp_cli.geometry.check_placement`: a refusal names
     the header field the bad number came from.
     """
-    if "space directions" in fields:  # (teem refuses both; the spacings were dropped silently)
-        for other in ("spacings", "axis mins", "axismins", "axis maxs", "axismaxs"):
-            if other in fields and any(v.lower() != "nan" for v in fields[other].split()):
-                raise FormatError(f"{where}: '{other}' beside 'space directions': an axis with "
-                                  f"a direction vector takes no {other} (give NaN, or one of "
-                                  "the two)")
+    _check_space_fields(fields, where)
     spacing, origin, direction, space = _header_geometry(fields, dim, where)
     scale = length_scale(fields, dim, where)
     if scale is not None:  # (numbers in microns, cm, ...: to millimetres)
@@ -250,11 +245,70 @@ def _geometry(fields: dict[str, str], dim: int, where: str):
         names = {"spacing": "'space directions'", "direction": "'space directions'",
                  "origin": "'space origin'"}
     else:
-        names = {"spacing": "'spacings'", "origin": "'axis mins'"}
+        names = {"spacing": "'spacings'",
+                 "origin": "'space origin'" if "space origin" in fields else "'axis mins'"}
     spacing, origin, direction = check_placement(spacing, origin, direction,
                                                  _spatial_sizes(fields, dim, where),
                                                  where=where, fields=names)
     return spacing, origin, direction, space
+
+
+#: the per-axis fields that place an axis without a surrounding space
+_AXIS_PLACING = ("spacings", "axis mins", "axismins", "axis maxs", "axismaxs")
+#: the fields that only a header with a space (``space`` or ``space dimension``) may give
+_SPACE_ONLY = ("space directions", "space origin", "space units", "measurement frame")
+
+
+def _check_space_fields(fields: dict[str, str], where: str) -> None:
+    """Refuse the space fields teem refuses, or that ITK and teem would place apart.
+
+    ``space`` and ``space dimension`` are one field (teem refuses both), the
+    dimension 3; a field in that space (``space directions``, ``space origin``,
+    ``space units``, ``measurement frame``) needs one of them (teem refuses it
+    without: the origin was dropped, the directions read without a frame). An
+    axis with a direction vector takes no ``spacings``, ``axis mins``/``maxs``
+    or ``units`` (teem refuses them; they were dropped). A space without
+    ``space directions`` leaves its axes without a direction: ``spacings`` there
+    are refused by ITK, ``axis mins``/``maxs`` read by teem's origin and
+    ignored by ITK, and a RAS or LAS space is mirrored by volwarp's frame and
+    not by ITK's (its ``space origin`` is): each refused, naming the field.
+    """
+    if "space" in fields and "space dimension" in fields:
+        raise FormatError(f"{where}: 'space' and 'space dimension' are both given (one "
+                          "of the two says the space)")
+    if "space dimension" in fields:
+        text = fields["space dimension"]
+        if text != "3":
+            raise FormatError(f"{where}: 'space dimension' must be 3 (volwarp reads volumes "
+                              f"in a 3-D space), got {short_text(text)!r}")
+    elif "space" not in fields:
+        for name in _SPACE_ONLY:
+            if name in fields:
+                raise FormatError(f"{where}: '{name}' without 'space' or 'space dimension' "
+                                  "(the space it is given in)")
+        return
+    given = [n for n in _AXIS_PLACING
+             if n in fields and any(v.lower() != "nan" for v in fields[n].split())]
+    if any(w.strip().lower() not in ("", "???", "none") for w in _unit_words(fields, "units")
+           or []):
+        given.append("units")
+    if "space directions" in fields:
+        if given:  # (teem refuses them; they were dropped silently)
+            raise FormatError(f"{where}: '{given[0]}' beside 'space directions': an axis with "
+                              f"a direction vector takes no {given[0]} (give NaN, or one of "
+                              "the two)")
+        return
+    if given:
+        raise FormatError(f"{where}: '{given[0]}' in a 'space' without 'space directions': "
+                          "the axes have no direction in it (ITK refuses or ignores "
+                          f"{given[0]} there; give 'space directions')")
+    try:
+        frame = frame_to_lps(fields.get("space"))
+    except VolwarpError as exc:
+        raise FormatError(f"{where}: 'space': {exc}") from None
+    if frame is not None and not np.array_equal(frame, np.eye(3)):
+        raise FormatError(f"{where}: 'space: {fields['space']}' without 'space directions': "
+                          "the axes have no direction in it (give 'space directions')")
 
 
 _QUOTED = re.compile(r'"([^"]*)"')
@@ -271,7 +325,7 @@ def _unit_words(fields: dict[str, str], name: str) -> list[str] | None:
 def length_scale(fields: dict[str, str], dim: int, where: str) -> np.ndarray | None:
     """Millimetres per header unit along each world axis (x y z), or None: the numbers are mm.
 
-    ``space units`` (one a world axis, beside ``space directions``) or ``units``
+    ``space units`` (one a world axis, in a ``space``) or ``units``
     (one an axis, beside ``spacings``) in a length other than millimetres
     (``microns``, ``cm``, ``m``: :func:`~volwarp_cli.io.units.length_unit_mm`)
     scale spacing and origin to millimetres, as volwarp's NIfTI, TIFF and
@@ -284,7 +338,7 @@ def length_scale(fields: dict[str, str], dim: int, where: str) -> np.ndarray | N
     from ..runscope import first_said
     from .units import length_unit_mm
 
-    if "space directions" in fields:
+    if "space" in fields or "space dimension" in fields:  # (its numbers are in the space's units)
         name, words = "space units", _unit_words(fields, "space units")
         if words is not None and len(words) != 3:
             raise FormatError(f"{where}: 'space units' has {len(words)} entries for a 3-D space")
@@ -369,15 +423,15 @@ def _header_geometry(fields: dict[str, str], dim: int, where: str):
         if np.any(big == 0):
             raise FormatError(f"{where}: 'space directions' has a zero axis")
         spacing, direction = _axis_lengths(mat, big)
-        if "space origin" in fields:
-            m = _VECTOR.fullmatch(fields["space origin"].strip())
-            if not m:
-                raise FormatError(f"{where}: cannot read 'space origin'")
-            origin = np.array(_parse_vector(m.group(1), where, "space origin"))
-            if origin.shape != (3,):
-                raise FormatError(f"{where}: 'space origin' must have 3 components")
-    else:
+    elif "space" not in fields and "space dimension" not in fields:
         spacing, origin = _axis_geometry(fields, dim, where)
+    if "space origin" in fields:  # (a space without directions too, as ITK reads it)
+        m = _VECTOR.fullmatch(fields["space origin"].strip())
+        if not m:
+            raise FormatError(f"{where}: cannot read 'space origin'")
+        origin = np.array(_parse_vector(m.group(1), where, "space origin"))
+        if origin.shape != (3,):
+            raise FormatError(f"{where}: 'space origin' must have 3 components")
     return spacing, origin, direction, space
 
 
@@ -758,6 +812,46 @@ def vector_frame(path: str | os.PathLike) -> np.ndarray:
 #: among them: ITK reads a 2-D+t file as a volume), or unknown, or none said
 _SPATIAL_KINDS = ("domain", "space", "time", "???", "none")
 
+#: teem's kinds (lower case, its other spellings too) and the axis size each needs (0: any)
+_KIND_SIZES = {
+    **dict.fromkeys(("domain", "space", "time", "list", "point", "vector",
+                     "contravariant-vector", "covariant-vector", "normal", "???", "none"), 0),
+    "stub": 1, "scalar": 1, "complex": 2, "2-vector": 2,
+    **dict.fromkeys(("3-color", "rgb-color", "rgbcolor", "rgb", "hsv-color", "hsvcolor", "hsv",
+                     "xyz-color", "3-vector", "3-gradient", "3-normal"), 3),
+    **dict.fromkeys(("4-color", "rgba-color", "rgbacolor", "rgba", "4-vector", "quaternion"), 4),
+    **{f"2d-{m}-{w}": n for m, n in (("symmetric", 3), ("sym", 3), ("masked-symmetric", 4),
+                                     ("masked-sym", 4)) for w in ("matrix", "tensor")},
+    **{f"3d-{m}-{w}": n for m, n in (("symmetric", 6), ("sym", 6), ("masked-symmetric", 7),
+                                     ("masked-sym", 7)) for w in ("matrix", "tensor")},
+    "2d-matrix": 4, "2d-tensor": 4, "2d-masked-matrix": 5, "2d-masked-tensor": 5,
+    "3d-matrix": 9, "3d-tensor": 9, "3d-masked-matrix": 10, "3d-masked-tensor": 10,
+}
+
+
+def _kinds(fields: dict[str, str], sizes: list[int], where: str) -> list[str] | None:
+    """The ``kinds`` field, one lower-case kind an axis, or None when it is not given.
+
+    Refused as teem refuses it: a count other than the dimension (one kind too
+    few was ignored, and the component axis guessed), a kind teem does not know,
+    and a kind whose axis has another size than it needs (a ``3-vector`` axis
+    of 4 samples, an ``RGB-color`` of 2: read as that many components).
+    """
+    if "kinds" not in fields:
+        return None
+    words = fields["kinds"].split()
+    if len(words) != len(sizes):
+        raise FormatError(f"{where}: 'kinds' has {len(words)} entries, 'dimension' is "
+                          f"{len(sizes)}")
+    for axis, (word, size) in enumerate(zip(words, sizes, strict=True)):
+        want = _KIND_SIZES.get(word.lower())
+        if want is None:
+            raise FormatError(f"{where}: 'kinds': {word!r} (axis {axis}) is not a NRRD kind")
+        if want and want != size:
+            raise FormatError(f"{where}: 'kinds': a {word} axis has {want} sample"
+                              f"{'s' if want > 1 else ''}, axis {axis} has {size}")
+    return [w.lower() for w in words]
+
 
 def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: str):
     """The index of the one non-spatial axis of a 4-D header (None for 3-D).
@@ -766,9 +860,9 @@ def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: s
     a ``none`` space direction) is a 2-D image of several components per
     pixel, as ITK reads it: refused (its components were read as an x axis).
     """
+    kinds = _kinds(fields, sizes, where) or []
     if dim == 3:
-        kinds = fields.get("kinds", "").lower().split()
-        if len(kinds) == 3:  # (the kinds say what each axis is: a none direction of a time axis)
+        if kinds:  # (the kinds say what each axis is: a none direction of a time axis)
             other = [k for k in kinds if k not in _SPATIAL_KINDS]
         else:
             other = ["none"] * fields.get("space directions", "").lower().split().count("none")
@@ -781,13 +875,11 @@ def _component_axis(fields: dict[str, str], dim: int, sizes: list[int], where: s
         entries = fields.get("space directions", "").split()
         if len(entries) == 4:
             nonspatial = [a for a, e in enumerate(entries) if e.lower() == "none"]
-            kinds = fields.get("kinds", "").lower().split()
             said = [a for a, k in enumerate(kinds) if k not in ("domain", "space", "???", "none")]
             if len(kinds) == 4 and said and said != nonspatial:  # (one was read, silently)
                 raise FormatError(f"{where}: 'kinds' ({fields['kinds']}) and 'space "
                                   f"directions' disagree on which axis holds the components")
         else:  # no space directions: the kinds say which axis is not a domain
-            kinds = fields.get("kinds", "").lower().split()
             nonspatial = ([a for a, k in enumerate(kinds) if k not in ("domain", "space")]
                           if len(kinds) == 4 else [])
         if len(nonspatial) == 1:
@@ -829,9 +921,18 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
                                   "(replaced by another program?)") from None
         fh.seek(start)
         return np.frombuffer(read_exact(fh, nbytes, where), dtype=file_dtype)
+    if encoding in ("ascii", "hex") and byteskip:  # (teem skips them too: they were read)
+        if byteskip == -1:
+            raise FormatError(f"{where}: 'byte skip: -1' (samples at the end) needs raw "
+                              f"encoding, not {encoding} (as teem refuses it)")
+        if len(fh.read(byteskip)) < byteskip:
+            raise FormatError(f"{where}: file ends inside 'byte skip'")
     if encoding == "ascii":
-        return ascii_values(fh.read().decode("latin-1"), file_dtype.newbyteorder("="), count,
-                             where)
+        text = fh.read().decode("latin-1")
+        values = ascii_values(text, file_dtype.newbyteorder("="), count, where)
+        if file_dtype.kind in "iu":
+            _say_decimal_integers(text, where)
+        return values
     if encoding == "hex":
         return np.frombuffer(_hex_bytes(fh.read(), nbytes, where), dtype=file_dtype)
     if encoding == "gzip" and byteskip == 0:  # the common case: one pass, in place
@@ -852,6 +953,26 @@ def _read_data(fh, file_dtype, count, encoding, lineskip, byteskip, where, exact
                 raise FormatError(f"{where}: compressed data holds more than {nbytes} bytes "
                                   "(wrong sizes or type in the header?)")
     return np.frombuffer(buf, dtype=file_dtype)
+
+
+_DECIMAL = re.compile(r"[^\s,]*[.eE][^\s,]*")
+
+
+def _say_decimal_integers(text: str, where: str) -> None:
+    """Say once a run that integer samples written as decimals are read as their numbers.
+
+    ``-5.000e+01`` (``numpy.savetxt``'s default) of a ``short`` file is -50 to
+    volwarp (as MetaIO reads its ascii samples), while teem, and so ITK and
+    SimpleITK, read the digits before the ``.`` or ``e``: -5.
+    """
+    from ..progress import log
+    from ..runscope import first_said
+
+    m = _DECIMAL.search(text)
+    if m and first_said(("nrrd ascii decimals", os.path.abspath(where))):
+        log.warning("%s: integer samples written as decimals (%r): read as the numbers they "
+                    "write; teem, ITK and SimpleITK read only the digits before the '.' or "
+                    "'e'", where, short_text(m.group(0), 24))
 
 
 def _read_stream(stream, n: int, where: str) -> bytes:
