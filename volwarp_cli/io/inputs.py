@@ -80,12 +80,21 @@ def input_files(path: str | os.PathLike) -> list[Path]:
     """``path`` and the data files its header names (detached NRRD and MetaImage, a DICOMDIR's images).
 
     ``LIST`` headers and ``%d`` patterns name several. A folder (a DICOM
-    series, an OME-Zarr store) is itself: :func:`refuse_output_over_input`
-    treats every file inside it as the input's. A header that does not parse
-    gives ``[path]``.
+    series, an OME-Zarr store) is itself (:func:`refuse_output_over_input`
+    treats every file inside it as the input's) and the files outside it its
+    links lead its reader to (:func:`folder_files`): a series of links to
+    slices kept elsewhere had a slice replaced by an output named after the
+    link's target (an RTSTRUCT over a CT slice of its reference, exit 0). A
+    header that does not parse gives ``[path]``.
     """
     path = Path(path)
     files = [path]
+    if path.is_dir():
+        base = _real(path)
+        try:
+            return files + [f for f in folder_files(path) if not _inside(_real(f), base)]
+        except Exception:  # noqa: BLE001 - a folder its reader will refuse: the read says why
+            return files
     if not path.is_file():
         return files
     name = path.name.lower()
@@ -99,6 +108,33 @@ def input_files(path: str | os.PathLike) -> list[Path]:
     except Exception:  # noqa: BLE001 - a header its reader will refuse: the read says why
         pass
     return files
+
+
+def folder_files(folder: Path) -> list[Path]:
+    """Every file under ``folder``, in a fixed order (hidden temporaries too: they are content).
+
+    Through linked folders where its reader goes through them: an OME-Zarr
+    store's (zarr opens each key's path, links and all), each real folder
+    once (a link back up ends no walk); not a DICOM series' (its reader's
+    walk does not follow them). A linked file is read, whatever the folder.
+    """
+    from . import volume_format
+
+    follow = volume_format(folder, reading=True) != "dicom"
+    seen = {os.path.realpath(folder)}
+    out = []
+    for dirpath, dirnames, filenames in os.walk(folder, followlinks=follow):
+        dirnames.sort()
+        if follow:
+            kept = []
+            for name in dirnames:
+                real = os.path.realpath(os.path.join(dirpath, name))
+                if real not in seen:
+                    seen.add(real)
+                    kept.append(name)
+            dirnames[:] = kept
+        out += [Path(dirpath) / f for f in sorted(filenames)]
+    return out
 
 
 def _dicomdir_data_files(path: Path) -> list[Path]:
@@ -317,7 +353,9 @@ def _message(output, target: Path, given, file: Path, option: str | None) -> str
     what = f"{option} {output}" if option else str(output)
     if Path(target) != Path(output):
         what += f" (its data file {target})"
-    if Path(file) != Path(given):
+    if Path(file) != Path(given) and Path(given).is_dir():  # (through a link in it)
+        is_what = f"{_real(file)}, which {file} of the input folder {given} links to"
+    elif Path(file) != Path(given):
         is_what = f"the data file {file} of the input {given}"
     elif Path(given).is_dir() and _real(target) != _real(given):
         is_what = (f"a file of the input folder {given}" if _identity(target) is not None
