@@ -382,6 +382,31 @@ def _identity(path) -> tuple[int, int] | None:
     return st.st_dev, st.st_ino
 
 
+#: why an output inside another's store is refused (:func:`nested_outputs`)
+NESTED_WHY = ("a store's rename replaces its folder, with whatever lies in it; give each "
+              "output a place of its own")
+
+
+def nested_outputs(real: str, writes) -> list[tuple[str, str, object]]:
+    """The outputs of ``writes`` (:class:`~volwarp_cli.runscope.Outputs`) nested with ``real``.
+
+    ``(how, path, who)``: the output ``real`` "lies inside" the folder output
+    ``path`` (an OME-Zarr store: its rename replaces the folder, the file with
+    it, or the file is renamed into the earlier store, then replaced), or
+    ``real`` is a folder output that "holds" ``path``.
+    """
+    nested = []
+    folder, parent = real, os.path.dirname(real)
+    while parent != folder:
+        if parent in writes:
+            nested.append(("lies inside", parent, writes[parent]))
+        folder, parent = parent, os.path.dirname(parent)
+    held = writes.holding.get(real)
+    if held is not None:
+        nested.append(("holds", held, writes[held]))
+    return nested
+
+
 def _inside(path: str, folder: str) -> bool:
     try:
         return path != folder and os.path.commonpath([path, folder]) == folder
@@ -510,7 +535,10 @@ def claim_output(output: str | os.PathLike, option: str) -> None:
     ``-o x.nrrd --jacobian-to x.nrrd`` kept the last write, silently (the
     volume lost); a detached header's data file counts as written by its
     header's option. The same option naming a file again is fine (a check
-    made twice).
+    made twice). A file inside a folder output (an OME-Zarr store) another
+    output names is refused too, whichever option names it: ``-o o.ome.zarr
+    --frames-to 'o.ome.zarr/f_{frame}.nrrd'`` put the frames in the earlier
+    store, which the new one then replaced (the frames lost, exit 0).
     """
     claims = run_files().claimed
     for target in output_files(output):
@@ -519,5 +547,8 @@ def claim_output(output: str | os.PathLike, option: str) -> None:
         if other is not None and other != option:
             raise BadUsage(f"{option} {output} and {other} name the same file {target}: one "
                            "would overwrite the other; give each output its own name")
+        for how, path, other in nested_outputs(real, claims):
+            raise BadUsage(f"{option} {output} {how} {path}, which {other} writes: "
+                           f"{NESTED_WHY}")
     for target in output_files(output):
         claims.setdefault(_real(target), option)
