@@ -111,3 +111,65 @@ def test_morph_frames_that_name_one_file_through_links_are_refused(run, tmp_path
         line = _one_error_line(res)
         assert "gives frames 0 and 1 the same file" in line, line
         assert _snapshot(tmp_path) == before
+
+
+def test_an_output_inside_a_store_another_output_writes_is_refused(run, tmp_path, monkeypatch):
+    """-o o.ome.zarr --frames-to 'o.ome.zarr/f_{frame}.nrrd': the frames went into the earlier
+    store, which the new one replaced (exit 0, every frame lost); --jacobian-to inside it
+    failed after the work. Both ways round, and for a morph's meshes: refused before any."""
+    monkeypatch.chdir(tmp_path)
+    write_volume(Volume(ball(12) * 200), tmp_path / "a.nrrd")
+    write_volume(Volume(ball(12, radius=3) * 200), tmp_path / "b.nrrd")
+    (tmp_path / "spec.yaml").write_text(SPEC)
+    for name in ("o.ome.zarr", "m_1.ome.zarr"):  # (earlier runs' stores)
+        write_volume(Volume(ball(12)), tmp_path / name)
+    cases = [
+        ["warp", "a.nrrd", "--spec", "spec.yaml", "-o", "o.ome.zarr",
+         "--frames-to", "o.ome.zarr/f_{frame}.nrrd"],
+        ["warp", "a.nrrd", "--spec", "spec.yaml", "-o", "o.ome.zarr",
+         "--jacobian-to", "o.ome.zarr/0/j.nrrd"],
+        ["morph", "a.nrrd", "b.nrrd", "--iso", "100", "--frames", "3",
+         "-o", "m_{i}.ome.zarr", "--mesh-to", "m_1.ome.zarr/m{i}.ply"],
+    ]
+    for argv in cases:
+        before = _snapshot(tmp_path)
+        line = _one_error_line(run(*argv))
+        assert "lies inside" in line and "which -o writes" in line, line
+        assert _snapshot(tmp_path) == before
+
+
+def test_a_store_that_holds_an_output_named_before_it_is_refused():
+    """The other order: the file claimed first, then the store around it."""
+    import pytest
+
+    from volwarp_cli.errors import BadUsage
+    from volwarp_cli.io.inputs import claim_output
+    from volwarp_cli.runscope import run_scope
+
+    with run_scope():
+        claim_output("/tmp/x/s.ome.zarr/0/j.nrrd", "--jacobian-to")
+        claim_output("/tmp/x/s2.ome.zarr", "-o")  # (beside it: fine)
+        with pytest.raises(BadUsage, match="holds /tmp/x/s.ome.zarr/0/j.nrrd"):
+            claim_output("/tmp/x/s.ome.zarr", "-o")
+
+
+def test_batch_steps_writing_into_one_anothers_store_are_refused(run, tmp_path):
+    """A step's '{stem}.ome.zarr/sdf.nrrd' beside another's '{stem}.ome.zarr': the store's
+    rename took the file with it (or took it in: every step redone at every run)."""
+    write_volume(Volume(ball(12) * 200), tmp_path / "a.nrrd")
+    for first, second, how in (("{stem}.ome.zarr", "{stem}.ome.zarr/sdf.nrrd", "lies inside"),
+                               ("{stem}.ome.zarr/sdf.nrrd", "{stem}.ome.zarr", "holds")):
+        manifest = tmp_path / "m.yaml"
+        manifest.write_text(f"""version: 1
+inputs: {{list: [a.nrrd]}}
+output_dir: out
+steps:
+  - {{name: one, run: {'convert' if first.endswith('zarr') else 'distance'}, output: "{first}",
+     options: {'[]' if first.endswith('zarr') else '["--iso", "100"]'}}}
+  - {{name: two, run: {'convert' if second.endswith('zarr') else 'distance'}, output: "{second}",
+     options: {'[]' if second.endswith('zarr') else '["--iso", "100"]'}}}
+""")
+        before = _snapshot(tmp_path)
+        line = _one_error_line(run("batch", str(manifest)))
+        assert how in line and "step 'one'" in line, line
+        assert _snapshot(tmp_path) == before
