@@ -18,7 +18,34 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import os
 from dataclasses import dataclass, field
+
+
+class Outputs(dict):
+    """Each output (its real path) -> who writes it; ``holding``: each folder above one -> it.
+
+    So that an output folder (an OME-Zarr store) holding an output named
+    before it is found by one lookup (:func:`volwarp_cli.io.inputs.nested_outputs`),
+    not a pass over every output (a batch's thousands).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.holding: dict[str, str] = {}
+
+    def __setitem__(self, real: str, who) -> None:
+        super().__setitem__(real, who)
+        folder, parent = real, os.path.dirname(real)
+        while parent not in self.holding and parent != folder:  # (its own are there already)
+            self.holding[parent] = real
+            folder, parent = parent, os.path.dirname(parent)
+
+    def setdefault(self, real: str, who=None):
+        """As dict's, through :meth:`__setitem__` (dict's own would go round it)."""
+        if real not in self:
+            self[real] = who
+        return self[real]
 
 
 @dataclass
@@ -50,7 +77,7 @@ class RunFiles:
     declared: dict[str, None] = field(default_factory=dict)
     expanded: dict[str, list] = field(default_factory=dict)
     #: each output file (links followed) and the option that named it, as checked
-    claimed: dict[str, str] = field(default_factory=dict)
+    claimed: Outputs = field(default_factory=Outputs)
     mapped: dict[str, tuple] = field(default_factory=dict)
     folders: dict[str, tuple] = field(default_factory=dict)
     allow_outside_data: bool = False

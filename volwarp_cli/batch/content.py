@@ -137,43 +137,16 @@ class FileHashes:
                     if k in want or k.startswith(prefixes)}
 
 
-def _folder_files(folder: Path) -> list[Path]:
-    """Every file under ``folder``, in a fixed order (hidden temporaries too: they are content).
-
-    Through linked folders where its reader goes through them: an OME-Zarr
-    store's (zarr opens each key's path, links and all), each real folder
-    once (a link back up ends no walk); not a DICOM series' (its reader's
-    walk does not follow them).
-    """
-    from ..io import volume_format
-
-    follow = volume_format(folder, reading=True) != "dicom"
-    seen = {os.path.realpath(folder)}
-    out = []
-    for dirpath, dirnames, filenames in os.walk(folder, followlinks=follow):
-        dirnames.sort()
-        if follow:
-            kept = []
-            for name in dirnames:
-                real = os.path.realpath(os.path.join(dirpath, name))
-                if real not in seen:
-                    seen.add(real)
-                    kept.append(name)
-            dirnames[:] = kept
-        out += [Path(dirpath) / f for f in sorted(filenames)]
-    return out
-
-
 def _content_files(path: Path) -> tuple[list[Path], Path]:
     """The files ``path`` stands for, and the folder their names are taken from.
 
     A file with the data files its header names (:func:`..io.inputs.input_files`),
     a folder with every file in it.
     """
-    from ..io.inputs import input_files
+    from ..io.inputs import folder_files, input_files
 
     if path.is_dir():
-        return _folder_files(path), path
+        return folder_files(path), path
     return input_files(path), path.parent
 
 

@@ -633,10 +633,11 @@ def check_outputs(manifest: Manifest, scans: list[Scan],
     from ..errors import BadUsage
     from ..io.common import refuse_unnamable_data_file
     from ..io.inputs import input_files
+    from ..runscope import Outputs
 
     scan_files = {os.path.realpath(f): s for s in scans for f in input_files(s.path)}
     fixed = batch_reads(manifest)
-    writers: dict[str, _Writer] = {}
+    writers = Outputs()  # (real path -> _Writer)
     for step in manifest.steps:
         _refuse_patterns(manifest, step)
     plans = [(scan, plan_scan(manifest, scan)) for scan in scans]
@@ -753,8 +754,14 @@ def _future_scan(manifest, out: Path, option: str) -> str | None:
 
 
 def _refuse_twice(manifest, key, out: Path, writer: _Writer, writers: dict) -> None:
-    """Note ``writer`` of ``out`` (and of the data file it writes); refuse a second writer."""
-    from ..io.inputs import output_files
+    """Note ``writer`` of ``out`` (and of the data file it writes); refuse a second writer.
+
+    And an output inside another's store (:func:`..io.inputs.nested_outputs`):
+    a step's ``{stem}.ome.zarr/sdf.nrrd`` beside another's ``{stem}.ome.zarr``
+    was replaced with the store, or changed the store's content, every step
+    of the scan redone at every run.
+    """
+    from ..io.inputs import NESTED_WHY, nested_outputs, output_files
 
     for target in output_files(out):
         real = os.path.realpath(target)
@@ -762,6 +769,9 @@ def _refuse_twice(manifest, key, out: Path, writer: _Writer, writers: dict) -> N
         if old is not None and not (old.step is writer.step and old.scan == writer.scan
                                     and old.option == writer.option):
             raise manifest.doc.error(key, _clash(target, writer, old))
+        for how, path, old in nested_outputs(real, writers):
+            raise manifest.doc.error(key, f"{writer.option} {out} {how} {path}, which "
+                                          f"{old.what} writes: {NESTED_WHY}")
         writers[real] = writer
 
 
@@ -779,7 +789,7 @@ def _in_records(manifest, out: Path, option: str) -> str | None:
 def _check_reports(manifest, reports, fixed, scan_files, writers, cells) -> None:
     """The batch's reports: never over an input, never a file a step (or another report) writes."""
     from ..errors import BadUsage
-    from ..io.inputs import InputIndex
+    from ..io.inputs import NESTED_WHY, InputIndex, nested_outputs
 
     scan_index = InputIndex()  # (a report inside a scan's folder, a DICOM series: one of it)
     for scan in {id(s): s for s in scan_files.values()}.values():
@@ -800,4 +810,7 @@ def _check_reports(manifest, reports, fixed, scan_files, writers, cells) -> None
         if old is not None:
             raise BadUsage(f"{option} {path} is also written by {old.what}"
                            + (f" for scan {old.scan.id}" if old.scan is not None else ""))
+        for how, held, old in nested_outputs(os.path.realpath(out), writers):
+            raise BadUsage(f"{option} {path} {how} {held}, which {old.what} writes: "
+                           f"{NESTED_WHY}")
         writers[os.path.realpath(out)] = _Writer(f"{option} {path}")

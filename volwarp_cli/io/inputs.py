@@ -80,12 +80,21 @@ def input_files(path: str | os.PathLike) -> list[Path]:
     """``path`` and the data files its header names (detached NRRD and MetaImage, a DICOMDIR's images).
 
     ``LIST`` headers and ``%d`` patterns name several. A folder (a DICOM
-    series, an OME-Zarr store) is itself: :func:`refuse_output_over_input`
-    treats every file inside it as the input's. A header that does not parse
-    gives ``[path]``.
+    series, an OME-Zarr store) is itself (:func:`refuse_output_over_input`
+    treats every file inside it as the input's) and the files outside it its
+    links lead its reader to (:func:`folder_files`): a series of links to
+    slices kept elsewhere had a slice replaced by an output named after the
+    link's target (an RTSTRUCT over a CT slice of its reference, exit 0). A
+    header that does not parse gives ``[path]``.
     """
     path = Path(path)
     files = [path]
+    if path.is_dir():
+        base = _real(path)
+        try:
+            return files + [f for f in folder_files(path) if not _inside(_real(f), base)]
+        except Exception:  # noqa: BLE001 - a folder its reader will refuse: the read says why
+            return files
     if not path.is_file():
         return files
     name = path.name.lower()
@@ -99,6 +108,33 @@ def input_files(path: str | os.PathLike) -> list[Path]:
     except Exception:  # noqa: BLE001 - a header its reader will refuse: the read says why
         pass
     return files
+
+
+def folder_files(folder: Path) -> list[Path]:
+    """Every file under ``folder``, in a fixed order (hidden temporaries too: they are content).
+
+    Through linked folders where its reader goes through them: an OME-Zarr
+    store's (zarr opens each key's path, links and all), each real folder
+    once (a link back up ends no walk); not a DICOM series' (its reader's
+    walk does not follow them). A linked file is read, whatever the folder.
+    """
+    from . import volume_format
+
+    follow = volume_format(folder, reading=True) != "dicom"
+    seen = {os.path.realpath(folder)}
+    out = []
+    for dirpath, dirnames, filenames in os.walk(folder, followlinks=follow):
+        dirnames.sort()
+        if follow:
+            kept = []
+            for name in dirnames:
+                real = os.path.realpath(os.path.join(dirpath, name))
+                if real not in seen:
+                    seen.add(real)
+                    kept.append(name)
+            dirnames[:] = kept
+        out += [Path(dirpath) / f for f in sorted(filenames)]
+    return out
 
 
 def _dicomdir_data_files(path: Path) -> list[Path]:
@@ -317,7 +353,9 @@ def _message(output, target: Path, given, file: Path, option: str | None) -> str
     what = f"{option} {output}" if option else str(output)
     if Path(target) != Path(output):
         what += f" (its data file {target})"
-    if Path(file) != Path(given):
+    if Path(file) != Path(given) and Path(given).is_dir():  # (through a link in it)
+        is_what = f"{_real(file)}, which {file} of the input folder {given} links to"
+    elif Path(file) != Path(given):
         is_what = f"the data file {file} of the input {given}"
     elif Path(given).is_dir() and _real(target) != _real(given):
         is_what = (f"a file of the input folder {given}" if _identity(target) is not None
@@ -342,6 +380,31 @@ def _identity(path) -> tuple[int, int] | None:
     except OSError:
         return None
     return st.st_dev, st.st_ino
+
+
+#: why an output inside another's store is refused (:func:`nested_outputs`)
+NESTED_WHY = ("a store's rename replaces its folder, with whatever lies in it; give each "
+              "output a place of its own")
+
+
+def nested_outputs(real: str, writes) -> list[tuple[str, str, object]]:
+    """The outputs of ``writes`` (:class:`~volwarp_cli.runscope.Outputs`) nested with ``real``.
+
+    ``(how, path, who)``: the output ``real`` "lies inside" the folder output
+    ``path`` (an OME-Zarr store: its rename replaces the folder, the file with
+    it, or the file is renamed into the earlier store, then replaced), or
+    ``real`` is a folder output that "holds" ``path``.
+    """
+    nested = []
+    folder, parent = real, os.path.dirname(real)
+    while parent != folder:
+        if parent in writes:
+            nested.append(("lies inside", parent, writes[parent]))
+        folder, parent = parent, os.path.dirname(parent)
+    held = writes.holding.get(real)
+    if held is not None:
+        nested.append(("holds", held, writes[held]))
+    return nested
 
 
 def _inside(path: str, folder: str) -> bool:
@@ -472,7 +535,10 @@ def claim_output(output: str | os.PathLike, option: str) -> None:
     ``-o x.nrrd --jacobian-to x.nrrd`` kept the last write, silently (the
     volume lost); a detached header's data file counts as written by its
     header's option. The same option naming a file again is fine (a check
-    made twice).
+    made twice). A file inside a folder output (an OME-Zarr store) another
+    output names is refused too, whichever option names it: ``-o o.ome.zarr
+    --frames-to 'o.ome.zarr/f_{frame}.nrrd'`` put the frames in the earlier
+    store, which the new one then replaced (the frames lost, exit 0).
     """
     claims = run_files().claimed
     for target in output_files(output):
@@ -481,5 +547,8 @@ def claim_output(output: str | os.PathLike, option: str) -> None:
         if other is not None and other != option:
             raise BadUsage(f"{option} {output} and {other} name the same file {target}: one "
                            "would overwrite the other; give each output its own name")
+        for how, path, other in nested_outputs(real, claims):
+            raise BadUsage(f"{option} {output} {how} {path}, which {other} writes: "
+                           f"{NESTED_WHY}")
     for target in output_files(output):
         claims.setdefault(_real(target), option)

@@ -14,16 +14,23 @@ from ..errors import BadUsage
 
 
 def expand(pattern: str, times: list[float], option: str) -> list[str]:
-    """``pattern`` for each time: the frames' names (a :class:`BadUsage` naming ``option``)."""
+    """``pattern`` for each time: the frames' names (a :class:`BadUsage` naming ``option``).
+
+    Two frames naming one file, links followed (``'d{i}/f.nrrd'`` with each
+    ``d0``, ``d1`` a link to one folder, ``'a{i}/../f.nrrd'``), are refused:
+    each frame replaced the last, one file left of them, exit 0.
+    """
+    from ..io.inputs import note_pattern, one_file_twice
+
     try:
         names = [pattern.format(i=i, t=t) for i, t in enumerate(times)]
     except (KeyError, IndexError, ValueError, AttributeError) as exc:
         raise BadUsage(f"{option}: bad pattern {pattern!r} ({exc}); use {{i}} and {{t}}, "
                        "e.g. frame_{i:03d}.nrrd") from None
-    if len(set(names)) != len(names):
-        raise BadUsage(f"{option}: {pattern!r} gives the same file name to several frames; "
-                       "put {i} (or {t}) in it")
-    from ..io.inputs import note_pattern
+    twice = one_file_twice(enumerate(names))
+    if twice is not None:
+        raise BadUsage(f"{option}: {pattern!r} gives frames {twice[0]} and {twice[1]} the same "
+                       f"file {twice[2]}; put {{i}} (or {{t}}) in the file name")
 
     note_pattern(pattern, option)
     return names
