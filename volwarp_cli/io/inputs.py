@@ -82,7 +82,7 @@ def input_files(path: str | os.PathLike) -> list[Path]:
     ``LIST`` headers and ``%d`` patterns name several. A folder (a DICOM
     series, an OME-Zarr store) is itself (:func:`refuse_output_over_input`
     treats every file inside it as the input's) and the files outside it its
-    links lead its reader to (:func:`folder_files`): a series of links to
+    links lead its reader to (:func:`linked_files`): a series of links to
     slices kept elsewhere had a slice replaced by an output named after the
     link's target (an RTSTRUCT over a CT slice of its reference, exit 0). A
     header that does not parse gives ``[path]``.
@@ -90,9 +90,8 @@ def input_files(path: str | os.PathLike) -> list[Path]:
     path = Path(path)
     files = [path]
     if path.is_dir():
-        base = _real(path)
         try:
-            return files + [f for f in folder_files(path) if not _inside(_real(f), base)]
+            return files + linked_files(path)
         except Exception:  # noqa: BLE001 - a folder its reader will refuse: the read says why
             return files
     if not path.is_file():
@@ -134,6 +133,48 @@ def folder_files(folder: Path) -> list[Path]:
                     kept.append(name)
             dirnames[:] = kept
         out += [Path(dirpath) / f for f in sorted(filenames)]
+    return out
+
+
+def linked_files(folder: Path) -> list[Path]:
+    """The files outside ``folder`` that its reader reaches through links in it.
+
+    Walked as :func:`folder_files` walks (a store's linked folders followed,
+    a series' not; linked files always), in a fixed order; only the links'
+    real paths are looked up: a store's thousands of chunks, each resolved,
+    took 0.1 s of a command for 4096 (24 us a file).
+    """
+    from . import volume_format
+
+    follow = volume_format(folder, reading=True) != "dicom"
+    base = _real(folder)
+    seen = {base}
+    out: list[Path] = []
+    stack = [(str(folder), False)]  # (a folder, whether it lies outside ``folder``)
+    while stack:
+        here, outside = stack.pop()
+        try:
+            with os.scandir(here) as it:
+                entries = sorted(it, key=lambda e: e.name)
+        except OSError:
+            continue
+        below = []
+        for e in entries:
+            link = e.is_symlink()
+            if link and not follow and e.is_dir():
+                continue  # (a series' reader does not walk into a linked folder)
+            if e.is_dir(follow_symlinks=follow):
+                if link:
+                    real = os.path.realpath(e.path)
+                    if real in seen:
+                        continue
+                    seen.add(real)
+                    below.append((e.path, real != base and not _inside(real, base)))
+                else:
+                    below.append((e.path, outside))
+            elif outside or (link and not _inside(os.path.realpath(e.path), base)):
+                out.append(Path(e.path))
+        stack += reversed(below)
     return out
 
 
