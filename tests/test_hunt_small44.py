@@ -85,3 +85,54 @@ def test_a_space_mark_in_an_input_name_is_not_written(run, tmp_path, fmt):
         assert _slicer_frame(out, fmt) == "LPS"
     if fmt in ("obj", "ply", "vtp"):  # (the provenance still names the input)
         assert b"volwarp_input=x_SPACE\\x3dRAS.nrrd" in data
+
+
+# -- a gzip file named .nii (or .nrrd, .mha, .tif) ----------------------------------------
+
+
+@pytest.fixture
+def nifti_pair(tmp_path):
+    nib = pytest.importorskip("nibabel")
+    img = nib.Nifti1Image(np.arange(24, dtype=np.int16).reshape(2, 3, 4), np.diag([1., 2, 3, 1]))
+    nib.save(img, str(tmp_path / "a.nii"))
+    nib.save(img, str(tmp_path / "a.nii.gz"))
+    return tmp_path / "a.nii", tmp_path / "a.nii.gz"
+
+
+def test_a_gzipped_nii_is_refused_naming_gzip(run, nifti_pair, tmp_path):
+    """nibabel's "Cannot work out file type" reached the user; nibabel and SimpleITK both
+    refuse the file, so volwarp does not read it either, and says why."""
+    nib = pytest.importorskip("nibabel")
+    sitk = pytest.importorskip("SimpleITK")
+    bad = tmp_path / "gz.nii"
+    bad.write_bytes(nifti_pair[1].read_bytes())
+    with pytest.raises(nib.filebasedimages.ImageFileError):
+        nib.load(str(bad))
+    with pytest.raises(RuntimeError):
+        sitk.ReadImage(str(bad))
+    with pytest.raises(FormatError, match=r"gzip-compressed.*rename it \.nii\.gz"):
+        read_volume(bad)
+    for args in (("info", bad), ("convert", bad, "-o", tmp_path / "o.nrrd")):
+        res = run(*args)
+        assert res.code == 1 and "gzip-compressed" in res.stderr, res
+        assert len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "o.nrrd").exists()
+
+
+@pytest.mark.parametrize("out", ["o.nii", "o.nii.gz"])
+def test_volwarp_writes_gzip_only_under_gz(run, nifti_pair, tmp_path, out):
+    res = run("convert", nifti_pair[0], "-o", tmp_path / out, "--compress")
+    assert res.code == 0, res
+    assert ((tmp_path / out).read_bytes()[:2] == b"\x1f\x8b") == out.endswith(".gz")
+
+
+@pytest.mark.parametrize("ext", ["nrrd", "mha", "tif"])
+def test_other_formats_gzipped_whole_are_said_so(run, nifti_pair, tmp_path, ext):
+    import gzip
+
+    plain = tmp_path / f"v.{ext}"
+    assert run("convert", nifti_pair[0], "-o", plain).code == 0
+    bad = tmp_path / f"gz.{ext}"
+    bad.write_bytes(gzip.compress(plain.read_bytes()))
+    res = run("info", bad)
+    assert res.code == 1 and "gzip-compressed as a whole" in res.stderr, res
