@@ -136,3 +136,67 @@ def test_other_formats_gzipped_whole_are_said_so(run, nifti_pair, tmp_path, ext)
     bad.write_bytes(gzip.compress(plain.read_bytes()))
     res = run("info", bad)
     assert res.code == 1 and "gzip-compressed as a whole" in res.stderr, res
+
+
+# -- an oversample that leaves the domain coarser than the input -------------------------
+
+BALL = "tests/data/ball_30_uint8.nrrd"  # 30^3, a 0/200 ball
+
+
+def _spec(tmp_path, oversample, lattice=5):
+    spec = tmp_path / "w.yaml"
+    spec.write_text("version: 1\nunits: voxel\nvalues: intensity\n"
+                    f"capture: {{lattice: {lattice}, oversample: {oversample}}}\n"
+                    "steps:\n  - move:\n      - {index: [2, 2, 2], by: [1.0, 0.0, 0.0]}\n")
+    return spec
+
+
+@pytest.mark.parametrize("frames", [False, True])
+def test_a_domain_coarser_than_the_input_is_a_spec_error(run, tmp_path, frames):
+    """Oversample 0.06 on lattice 5 left 2 domain voxels per axis for the ball's 30: an
+    all-zero output with exit 0, warned only as "not an integer"."""
+    out = ["--frames-to", tmp_path / "f{frame}.nrrd"] if frames else ["-o", tmp_path / "o.nrrd"]
+    res = run("warp", BALL, "--spec", _spec(tmp_path, 0.06), *out)
+    assert res.code == 2, res
+    assert "w.yaml:4: capture.oversample:" in res.stderr
+    assert "smallest oversample accepted is 0.94" in res.stderr
+    assert list(tmp_path.glob("*.nrrd")) == []
+
+
+def test_the_smallest_accepted_oversample_warps_the_ball(run, tmp_path):
+    nrrd = pytest.importorskip("nrrd")
+    assert run("warp", BALL, "--spec", _spec(tmp_path, 0.93), "-o", tmp_path / "o.nrrd").code == 2
+    res = run("warp", BALL, "--spec", _spec(tmp_path, 0.94), "-o", tmp_path / "o.nrrd")
+    assert res.code == 0, res
+    out, _ = nrrd.read(str(tmp_path / "o.nrrd"))
+    ball, _ = nrrd.read(BALL)
+    assert abs(float(out.sum()) / float(ball.sum()) - 1) < 0.05
+
+
+def test_capture_refuses_it_at_its_option(run, tmp_path):
+    res = run("capture", BALL, "--lattice", "5", "--oversample", "0.06", "-o", tmp_path / "c.vwc")
+    assert res.code == 2 and "--oversample" in res.stderr and "0.94" in res.stderr, res
+    assert not (tmp_path / "c.vwc").exists()
+
+
+@pytest.mark.parametrize("size", [1, 7, 30, 181, 512])
+@pytest.mark.parametrize("count", [4, 5, 9, 40])
+def test_too_coarse_is_a_domain_smaller_than_the_input(size, count):
+    """Refused exactly where the domain (D = R ceil(k I / R)) has fewer voxels than the
+    input, and the value the message gives is accepted, 0.01 less refused."""
+    import math
+    import re
+
+    from volwarp_cli.bspline.lattice import Lattice, too_coarse
+
+    shape, lattice = (size, 8, 8), (count, 5, 5)
+    for k in [0.01, 0.06, 0.1, 0.25, 0.5, 0.75, 0.9, 0.99, 1, 1.5, 2]:
+        why = too_coarse(shape, lattice, k)
+        grid = Lattice.create(shape, lattice, 1.0)  # (not refused: oversample 1)
+        domain = [r * max(1, math.ceil(k * n / r - 1e-9)) for n, r in zip(shape, grid.regions, strict=True)]
+        assert (why is not None) == any(d < n for d, n in zip(domain, shape, strict=True)), (k, why)
+        if why is not None:
+            least = float(re.search(r"accepted is ([0-9.]+)", why).group(1))
+            assert too_coarse(shape, lattice, least) is None
+            assert least <= 1
+            assert too_coarse(shape, lattice, least - 0.01) is not None
