@@ -58,6 +58,32 @@ def granularity(size: int, regions: int, oversample: float) -> int:
     return max(1, int(math.ceil(round(oversample * size / regions, 9))))
 
 
+def too_coarse(input_shape, lattice, oversample: float) -> str | None:
+    """Why ``oversample`` leaves the domain coarser than the input on an axis, or None.
+
+    The capture samples the input at the domain voxels' centres: with fewer
+    domain voxels than input voxels along an axis (``D < I``, an oversample
+    below 1 with few regions) input voxels lie between the samples and never
+    reach the domain. Oversample 0.06 on 30 voxels, lattice 5: one domain
+    voxel per region, 15 input voxels apart, an all-zero warp of a ball (exit 0).
+    ``D >= I`` holds for ``oversample > (ceil(I / R) - 1) R / I``; the message
+    gives the smallest such value at two decimals.
+    """
+    sizes = [(int(n), int(c) - 3) for n, c in zip(input_shape, lattice, strict=True)]
+    short = [(a, n, granularity(n, r, oversample) * r) for a, (n, r) in enumerate(sizes)
+             if granularity(n, r, oversample) * r < n]
+    if not short:
+        return None
+    axis, n, d = short[0]
+    bound = max((math.ceil(n / r) - 1) * r / n for n, r in sizes)
+    least = (math.floor(round(bound * 100, 6)) + 1) / 100
+    counts = "x".join(str(int(c)) for c in lattice)
+    return (f"oversample {oversample:g} gives {d} domain voxels along {'xyz'[axis]} for the "
+            f"input's {n} ({n / d:.3g} input voxels apart): the capture would skip input "
+            f"voxels and the warp carry little or nothing; with lattice {counts} on this "
+            f"input the smallest oversample accepted is {least:.2f}")
+
+
 def subdivision_of(oversample: float, placement: str = "uniform") -> int:
     """The domain's subdivision of the input voxels.
 
@@ -92,6 +118,9 @@ class Lattice:
             raise VolwarpError(f"lattice must have at least 4 control points per axis, got {lattice}")
         if not oversample > 0:
             raise VolwarpError(f"oversample must be positive, got {oversample}")
+        why = too_coarse(input_shape, lattice, oversample)
+        if why is not None:
+            raise VolwarpError(why)
         g = tuple(granularity(n, c - 3, oversample) for n, c in zip(input_shape, lattice, strict=False))
         return cls(input_shape, lattice, g, subdivision_of(oversample, placement))
 

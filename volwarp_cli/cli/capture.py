@@ -90,7 +90,9 @@ def lattice_option(default="9"):
                    "ceil(oversample * I / R) for I input voxels and R regions): more gives "
                    "smoother warps of stretched parts, at oversample^3 the memory and time. "
                    "An integer one (uniform placement) makes each domain voxel an exact "
-                   "1/oversample of an input voxel, so what a warp leaves unmoved stays exact.")
+                   "1/oversample of an input voxel, so what a warp leaves unmoved stays exact. "
+                   "One that leaves fewer domain voxels than input voxels on an axis is "
+                   "refused (its capture skips input voxels).")
 @click.option("--pad", type=click.IntRange(min=0), default=None,
               help="Output padding in voxels per side, room for material moved past the "
                    "input's box, for later warps whose spec sets none: it asks them for a "
@@ -122,6 +124,7 @@ def command(input, output, lattice, placement, oversample, pad, sampling, values
     lattice's world positions (lattice_points[i][j][k]).
     """
     from ..api import capture
+    from ..bspline.lattice import too_coarse
     from ..warp.capture_file import write_capture
 
     if not output.lower().endswith(".vwc"):
@@ -131,6 +134,9 @@ def command(input, output, lattice, placement, oversample, pad, sampling, values
         raise click.BadParameter("the tripled placement needs at least 6 points per axis",
                                  param_hint="'--lattice'")
     vol = load_input(input, raw, volume_index, dicom=dicom)
+    why = too_coarse(vol.shape_xyz, lattice, oversample)
+    if why is not None:
+        raise click.BadParameter(why, param_hint="'--oversample'")
     cap = capture(vol, lattice=lattice, placement=placement, oversample=oversample,
                   sampling=sampling, pad=pad, name=input, values=values)
     with timed(f"write {output}"):

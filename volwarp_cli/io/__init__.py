@@ -126,6 +126,9 @@ def _check_content(path: Path, fmt: str) -> None:
             head = fh.read(352)
     except OSError as exc:
         raise FormatError(f"{path}: cannot open ({exc.strerror})") from None
+    if not check(head) and head[:2] == b"\x1f\x8b":  # (said as such, not as its bytes)
+        raise FormatError(f"{path}: is gzip-compressed as a whole, not a {_FORMAT_NAMES[fmt]} "
+                          "file: gunzip it (volwarp's --compress compresses inside the file)")
     if not check(head):
         raise FormatError(f"{path}: content is not {_FORMAT_NAMES[fmt]} "
                           f"(file starts with {head[:8]!r})")

@@ -251,6 +251,15 @@ def _read_start(path, count: int) -> bytes | None:
         return None
 
 
+def _gzipped(path) -> bool:
+    """True where the file starts with gzip's magic bytes (False where it cannot be read)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(2) == b"\x1f\x8b"
+    except OSError:
+        return False
+
+
 def _check_raw_header(block: bytes | None, where: str) -> None:
     """Refuse, before nibabel reads them, a vox_offset inside the header and an invalid quaternion.
 
@@ -577,6 +586,10 @@ def open_nifti(path: str | os.PathLike) -> NiftiFile:
     empty axes, axes beyond the 5th, an uncompressed file shorter than its samples.
     """
     where = str(path)
+    if not where.lower().endswith(".gz") and _gzipped(path):
+        # (nibabel's "Cannot work out file type" reached the user; ITK refuses it too)
+        raise FormatError(f"{where}: is gzip-compressed but named .nii: rename it .nii.gz "
+                          "(nibabel and ITK read a .nii as uncompressed)")
     start = _read_start(path, _SNIFF_BYTES)  # (read once for both: a .nii.gz inflates it)
     _check_raw_header(start if start is not None else _read_start(path, _HEADER_BYTES), where)
     header = header_without_nibabel(path, start, read=False)
@@ -621,11 +634,7 @@ def header_without_nibabel(path, start=None, *, read: bool = True):
     name = str(path).lower()
     if not name.endswith((".nii", ".nii.gz")):
         return None
-    try:
-        with open(path, "rb") as fh:
-            if (fh.read(2) == b"\x1f\x8b") != name.endswith(".gz"):
-                return None
-    except OSError:
+    if _gzipped(path) != name.endswith(".gz"):
         return None
     first = _read_start(path, _SNIFF_BYTES) if read else start
     if first is None:

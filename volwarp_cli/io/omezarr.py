@@ -882,6 +882,26 @@ def _multiscales(attrs: dict, where: str) -> dict:
     return found[0]
 
 
+def _or_dicom_series(path: Path, exc: FormatError) -> FormatError:
+    """``exc``, or for a folder that also holds DICOM files, a refusal naming both readings.
+
+    A ``.zattrs`` or ``zarr.json`` left in a DICOM series folder (by a tool, or
+    copied along) makes the folder a Zarr store here, refused as "no multiscales".
+    It is not read as DICOM instead: a true Zarr store's raw chunks can pass
+    for DICOM data sets (:func:`~.dicom.is_dicom_path` also takes files without
+    the preamble), and a store read as a DICOM series would be silently wrong.
+    """
+    from .dicom import is_dicom_path
+
+    if not is_dicom_path(path):
+        return exc
+    found = " and ".join(n for n in ("zarr.json", ".zgroup", ".zattrs") if (path / n).is_file())
+    why = str(exc).removeprefix(f"{path}: ")
+    return FormatError(f"{path}: holds DICOM files, and Zarr metadata ({found}) that is no "
+                       f"OME-Zarr image ({why}): a DICOM series? move {found} out of it; "
+                       "a Zarr store? volwarp reads OME-Zarr images only")
+
+
 def _transforms(items, n: int, where: str, what: str) -> tuple[np.ndarray, np.ndarray]:
     scale = np.ones(n)
     translation = np.zeros(n)
@@ -982,8 +1002,11 @@ def open_omezarr(path: str | os.PathLike, volume_index: int | None = None) -> Op
         root_key = st.st_dev, st.st_ino
     except OSError:
         root_key = None
-    fmt, attrs = group_metadata(path)
-    ms = _multiscales(attrs, where)
+    try:
+        fmt, attrs = group_metadata(path)
+        ms = _multiscales(attrs, where)
+    except FormatError as exc:
+        raise _or_dicom_series(path, exc) from None
     ome = attrs.get("ome") if isinstance(attrs.get("ome"), dict) else {}
     version = ome.get("version", ms.get("version"))
     if version is not None and str(version) not in READ_VERSIONS:

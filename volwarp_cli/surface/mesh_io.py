@@ -57,10 +57,11 @@ def write_mesh(mesh: Mesh, path: str | os.PathLike,
     text: ``comment key=value`` header lines in PLY, ``# key=value`` in OBJ,
     an XML comment in VTP; STL's 80-byte header and legacy VTK's title line
     are too small and keep their fixed text. PLY, OBJ, STL and VTK files say
-    ``SPACE=LPS`` where 3D Slicer looks for it (:data:`SPACE_MARK`).
+    ``SPACE=LPS`` where 3D Slicer looks for it (:data:`SPACE_MARK`), and the
+    comments say no other ``SPACE=`` (:func:`_no_space_mark`).
     """
     fmt = check_mesh_output(path)
-    notes = [f"{k}={_one_line(v)}" for k, v in sorted((comments or {}).items())]
+    notes = [_no_space_mark(f"{k}={_one_line(v)}") for k, v in sorted((comments or {}).items())]
     writer = {"ply": _write_ply, "stl": _write_stl, "obj": _write_obj,
               "vtp": _write_vtp, "vtk": _write_vtk}[fmt]
     if mesh.n_vertices > _INT32_MAX:
@@ -110,6 +111,16 @@ SPACE_MARK = "SPACE=LPS"
 
 def _one_line(value) -> str:
     return " ".join(str(value).split())
+
+
+def _no_space_mark(note: str) -> str:
+    r"""``note`` with each ``SPACE=`` written ``SPACE\x3d``: no frame mark but volwarp's own.
+
+    Slicer searches an OBJ's whole comment block for ``SPACE=RAS`` before
+    ``SPACE=LPS`` (and takes a PLY's first comment holding either): an input
+    named ``x_SPACE=RAS.nrrd`` in the provenance made it mirror the mesh.
+    """
+    return note.replace("SPACE=", "SPACE\\x3d")
 
 
 def _xml_comment_text(text: str) -> str:

@@ -139,8 +139,10 @@ def plan_final(header, source, doc, spec, options: WarpOptions = WarpOptions(), 
     from ..bspline.capture import capture_source
     from .defaults import choose_values, warn_once
     from .prepare import capture_as_spec
-    from .run import IntensityWarp
+    from .run import IntensityWarp, check_oversample
 
+    if cap is None:
+        check_oversample(doc, spec, header.shape_xyz)
     if choice is None:
         with timed("labels? (the rule, one pass)"):
             choice = choose_values(source, options.values or spec.values, name=name,

@@ -120,6 +120,18 @@ def capture_input(vol: Volume, settings, name: str):
         raise VolwarpError(f"{name}: {exc}") from None
 
 
+def check_oversample(doc, spec, shape_xyz) -> None:
+    """A spec error at ``capture.oversample`` where the domain is coarser than the input.
+
+    (:func:`~volwarp_cli.bspline.lattice.too_coarse`: the warp carried next to nothing.)
+    """
+    from ..bspline.lattice import too_coarse
+
+    why = too_coarse(shape_xyz, spec.capture.lattice, spec.capture.oversample)
+    if why is not None:
+        raise doc.error(("capture", "oversample"), why)
+
+
 def _capture_early(reading, given, settings, name):
     """``(values choice, capture)``, started before the spec is checked.
 
@@ -257,6 +269,7 @@ class WarpInput(AbstractContextManager):
         if self._reading is None:
             raise RuntimeError("WarpInput.source needs load_spec first, inside the with")
         vol = self._reading.result()  # a read error, after any spec error
+        check_oversample(doc, spec, vol.shape_xyz)
         choice, early = self._early.result() if given == self._early_given else (None, None)
         if self._settings != spec.capture:
             early = None
