@@ -121,6 +121,27 @@ def test_a_calibrated_plain_stack_says_its_z_spacing_is_not_in_the_file(tmp_path
     assert not caplog.records
 
 
+@pytest.mark.parametrize("unit", ["pixel", None, "furlong"])
+def test_an_imagej_stack_in_no_length_is_said(tmp_path, caplog, unit):
+    """Its numbers as they are (ImageJ's too), taken as mm: said, as NRRD's unknown units are."""
+    path = tmp_path / "ij.tif"
+    meta = {"axes": "ZYX", "spacing": 2.0, **({"unit": unit} if unit else {})}
+    tifffile.imwrite(path, STACK, imagej=True, resolution=(4, 4), metadata=meta)
+    with caplog.at_level(logging.WARNING, logger="volwarp"):
+        vol = read_volume(path)
+    np.testing.assert_allclose(vol.spacing, [0.25, 0.25, 2.0])
+    said = [r.getMessage() for r in caplog.records if "no voxel size" in r.getMessage()]
+    assert len(said) == 1 and "x, y and z" in said[0], said
+    # volwarp's own copy of it keeps its numbers, and says nothing more
+    from volwarp_cli.io import write_volume
+
+    write_volume(vol, tmp_path / "again.tif")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="volwarp"):
+        np.testing.assert_array_equal(read_volume(tmp_path / "again.tif").spacing, vol.spacing)
+    assert not caplog.records
+
+
 def test_the_warning_is_said_once_a_run(tmp_path, caplog):
     path = _uncalibrated_files(tmp_path)["pillow_72dpi"]
     with caplog.at_level(logging.WARNING, logger="volwarp"), run_scope():

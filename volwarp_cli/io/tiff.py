@@ -641,6 +641,8 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
     plain = not ij and "volwarp_spacing" not in extra
     uncalibrated = _uncalibrated(tags, code) if plain else None
     unitless = uncalibrated or ("ResolutionUnit none" if plain and code == 1 else None)
+    if ij and ij_scale is None:  # (ImageJ's pixel, no unit, a word: x, y and z in no length)
+        unitless = f"ImageJ unit {ij['unit']!r}" if ij.get("unit") else "no ImageJ unit"
     if plain and code is not None and uncalibrated is None:
         if code in _RESUNIT_MM:
             scale = _RESUNIT_MM[code][1]
@@ -688,9 +690,15 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
             log.warning("%s: the OME metadata give no PhysicalSizeZ: z spacing is %g", where,
                         spacing[2])
             z_said = True
-    if plain:
-        _say_uncalibrated(where, spacing, names, unitless, shape_zyx[0] > 1 and not z_said,
-                          meta)
+    stacked = shape_zyx[0] > 1 and not z_said
+    if ij:
+        z_lacks = unitless if stacked and names[2] in ("z spacing", "ImageJ spacing") else None
+    else:
+        z_lacks = "the file holds no slice spacing" if stacked and names[2] == "z spacing" \
+            else None
+    if plain or (ij and "volwarp_spacing" not in extra):  # (volwarp's own numbers: read)
+        xy_lacks = unitless if names[:2] == ["XResolution", "YResolution"] else None
+        _say_uncalibrated(where, spacing, meta, xy_lacks, z_lacks)
     if "volwarp_origin" in extra:
         origin = _floats(extra["volwarp_origin"], 3, where, "volwarp_origin")
     elif ij:
@@ -734,21 +742,20 @@ def _uncalibrated(tags, code) -> str | None:
     return None
 
 
-def _say_uncalibrated(where, spacing, names, unitless, stacked: bool, meta) -> None:
-    """Warn, once a run, of the voxel size a plain TIFF does not give and volwarp takes.
+def _say_uncalibrated(where, spacing, meta, xy_lacks, z_lacks) -> None:
+    """Warn, once a run, of the voxel size a TIFF does not give and volwarp takes.
 
-    ``unitless``: why x and y have no length (:func:`_uncalibrated`, or
-    ResolutionUnit none); ``names``: where each axis' spacing came from (the
-    OME metadata or tifffile's ``spacing`` replace the tags); z is given only
-    by those; ``stacked``: several slices, whose z spacing is not said yet.
+    ``xy_lacks``, ``z_lacks``: why x and y, and z, have no length in the
+    file (:func:`_uncalibrated`, ResolutionUnit none, ImageJ's ``pixel``,
+    a plain stack's missing slice spacing), or None where they have one.
     """
     from ..runscope import first_said
 
-    parts = []
-    if unitless and names[0] == "XResolution" and names[1] == "YResolution":
-        parts.append(f"x and y ({unitless})")
-    if stacked and names[2] == "z spacing":
-        parts.append("z (the file holds no slice spacing)")
+    if xy_lacks and xy_lacks == z_lacks:
+        parts = [f"x, y and z ({xy_lacks})"]
+    else:
+        parts = [f"{axes} ({why})" for axes, why in (("x and y", xy_lacks), ("z", z_lacks))
+                 if why]
     if not parts or not first_said(("tiff uncalibrated", os.path.abspath(where))):
         return
     unit = "mm" if meta.get("unit") == "mm" else "in no unit, taken as mm"
