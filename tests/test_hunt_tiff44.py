@@ -170,3 +170,22 @@ def test_a_resolution_that_is_no_positive_number_is_refused(tmp_path, run, image
     res = run("convert", path, "-o", tmp_path / "out.nrrd")
     assert res.code == 1 and res.stderr.count("\n") == 1, res
     assert not (tmp_path / "out.nrrd").exists()
+
+
+@pytest.mark.parametrize("kept", ["XResolution", "YResolution"])
+def test_one_resolution_tag_gives_both_axes(tmp_path, caplog, kept):
+    """The other axis was 1 mm beside the tag's 0.25 mm (ImageJ: 1 cm beside 0.025 cm)."""
+    base, path = tmp_path / "base.tif", tmp_path / "one.tif"
+    tifffile.imwrite(base, STACK, resolution=(40, 40), resolutionunit="CENTIMETER")
+    gone = "YResolution" if kept == "XResolution" else "XResolution"
+    raw = bytearray(base.read_bytes())
+    with tifffile.TiffFile(base) as tif:
+        for page in tif.pages:
+            struct.pack_into("<H", raw, page.tags[gone].offset, 65001)
+    path.write_bytes(bytes(raw))
+    with caplog.at_level(logging.WARNING, logger="volwarp"):
+        vol = read_volume(path)
+    np.testing.assert_allclose(vol.spacing, [0.25, 0.25, 1.0])
+    assert any(f"no {gone}: it is {kept}" in r.getMessage() for r in caplog.records)
+    header, _ = open_volume_header(path, require_lazy=True)
+    np.testing.assert_array_equal(header.spacing, vol.spacing)

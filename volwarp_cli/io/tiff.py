@@ -56,6 +56,7 @@ from ..errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..memory import ensure_fits_in_memory
 from ..progress import log
+from ..runscope import first_said
 from ..samples import check_dtype, voxel_count
 from ..volume import Volume, zyx_to_xyz
 from .atomic import atomic_output
@@ -657,6 +658,14 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
                 raise FormatError(f"{where}: TIFF {tag} is {num}/{den}, not a positive "
                                   "number of pixels per unit")
             spacing[axis] = scale * den / num
+    held = ["XResolution" in tags, "YResolution" in tags]
+    if uncalibrated is None and held[0] != held[1]:  # (y was 1 beside x's 0.25 mm)
+        given = held.index(True)
+        spacing[1 - given] = spacing[given]
+        if first_said(("tiff resolution pair", os.path.abspath(where))):
+                log.warning("%s: TIFF has no %s: it is %s, as the OME PhysicalSizeX/Y are read",
+                            where, ("XResolution", "YResolution")[1 - given],
+                            ("XResolution", "YResolution")[given])
     if "volwarp_spacing" in extra:
         stored = _floats(extra["volwarp_spacing"], 3, where, "volwarp_spacing")
         if _calibration_disagrees(stored, spacing, names, tags, ij):
@@ -749,8 +758,6 @@ def _say_uncalibrated(where, spacing, meta, xy_lacks, z_lacks) -> None:
     file (:func:`_uncalibrated`, ResolutionUnit none, ImageJ's ``pixel``,
     a plain stack's missing slice spacing), or None where they have one.
     """
-    from ..runscope import first_said
-
     if xy_lacks and xy_lacks == z_lacks:
         parts = [f"x, y and z ({xy_lacks})"]
     else:
