@@ -52,7 +52,9 @@ def _refused(folder):
         write(folder / name)
         out[name] = what
     # a tile of page 3 that does not decompress: refused on reading its samples
-    tifffile.imwrite(folder / "bad.tif", STACK, compression="zlib", tile=(16, 16))
+    # (its voxel size given, so that the error is the only line: a plain TIFF's is said)
+    tifffile.imwrite(folder / "bad.tif", STACK, compression="zlib", tile=(16, 16),
+                     metadata={"spacing": [1.0, 1.0, 1.0]})
     raw = bytearray((folder / "bad.tif").read_bytes())
     with tifffile.TiffFile(folder / "bad.tif") as tif:
         at = tif.pages[3].dataoffsets[1]

@@ -23,7 +23,9 @@ SHAPE = (24, 12, 10)
 
 def _stack(path, seed: int) -> None:
     data = np.random.default_rng(seed).integers(0, 3000, size=SHAPE).astype(np.uint16)
-    tifffile.imwrite(path, data)  # (pages tifffile's zarr view decodes, not a mapped layout)
+    # (pages tifffile's zarr view decodes, not a mapped layout; its voxel size given, so
+    # that the error is the only line)
+    tifffile.imwrite(path, data, metadata={"spacing": [1.0, 1.0, 1.0]})
 
 
 def test_a_stack_rewritten_while_read_by_blocks_writes_nothing(run, tmp_path, monkeypatch):

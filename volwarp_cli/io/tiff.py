@@ -7,7 +7,10 @@ millimetres where that is a length (``micron``, ``um``, ``cm``, ...;
 :func:`imagej_unit_mm`; ``pixel`` keeps the numbers). As in ImageJ, tags of
 ResolutionUnit centimetre under ``unit=um`` count pixels per centimetre.
 Plain TIFFs with a ResolutionUnit of inch, centimetre, millimetre or
-micrometre (tifffile's 4 and 5) are converted to millimetres.
+micrometre (tifffile's 4 and 5) are converted to millimetres; tags that give
+no size (none, no ResolutionUnit, 72 per inch) are uncalibrated, as ImageJ
+reads them, and what a plain TIFF does not give is said (:func:`_uncalibrated`,
+:func:`_say_uncalibrated`).
 
 A file of several images (OME ``Image`` elements, tifffile series) is read
 one image at a time, chosen by ``volume_index`` (:func:`_choose_image`); an
@@ -53,6 +56,7 @@ from ..errors import BadUsage, ChoiceNeeded, FormatError, VolwarpError
 from ..geometry import check_placement
 from ..memory import ensure_fits_in_memory
 from ..progress import log
+from ..runscope import first_said
 from ..samples import check_dtype, voxel_count
 from ..volume import Volume, zyx_to_xyz
 from .atomic import atomic_output
@@ -635,7 +639,12 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
     if ij and ij.get("unit") == "um" and _resolution_unit(tags) == 3:
         scale = _RESUNIT_MM[3][1]  # (ImageJ's FileOpener: the tags count pixels per cm)
     code = _resolution_unit(tags)
-    if not ij and code is not None and "volwarp_spacing" not in extra:
+    plain = not ij and "volwarp_spacing" not in extra
+    uncalibrated = _uncalibrated(tags, code) if plain else None
+    unitless = uncalibrated or ("ResolutionUnit none" if plain and code == 1 else None)
+    if ij and ij_scale is None:  # (ImageJ's pixel, no unit, a word: x, y and z in no length)
+        unitless = f"ImageJ unit {ij['unit']!r}" if ij.get("unit") else "no ImageJ unit"
+    if plain and code is not None and uncalibrated is None:
         if code in _RESUNIT_MM:
             scale = _RESUNIT_MM[code][1]
             meta["unit"] = "mm"
@@ -643,10 +652,20 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
             log.warning("%s: TIFF ResolutionUnit %d is no known unit: x and y spacing are "
                         "1 / resolution, in no unit", where, code)
     for axis, tag in ((0, "XResolution"), (1, "YResolution")):
-        if tag in tags:
+        if tag in tags and uncalibrated is None:
             num, den = tags[tag].value
-            if num > 0 and den > 0:
-                spacing[axis] = scale * den / num
+            if not (num > 0 and den > 0):  # (ImageJ takes it for no tag: x 1, y the tag's)
+                raise FormatError(f"{where}: TIFF {tag} is {num}/{den}, not a positive "
+                                  "number of pixels per unit")
+            spacing[axis] = scale * den / num
+    held = ["XResolution" in tags, "YResolution" in tags]
+    if uncalibrated is None and held[0] != held[1]:  # (y was 1 beside x's 0.25 mm)
+        given = held.index(True)
+        spacing[1 - given] = spacing[given]
+        if first_said(("tiff resolution pair", os.path.abspath(where))):
+                log.warning("%s: TIFF has no %s: it is %s, as the OME PhysicalSizeX/Y are read",
+                            where, ("XResolution", "YResolution")[1 - given],
+                            ("XResolution", "YResolution")[given])
     if "volwarp_spacing" in extra:
         stored = _floats(extra["volwarp_spacing"], 3, where, "volwarp_spacing")
         if _calibration_disagrees(stored, spacing, names, tags, ij):
@@ -662,6 +681,7 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
         spacing = _floats(extra["spacing"], 3, where, "spacing")
         names = ["spacing"] * 3
     ome = _ome_spacing(tif, where, image) if "volwarp_spacing" not in extra else None
+    z_said = False  # (the OME metadata's missing PhysicalSizeZ)
     if ome and (ome[0] is None) != (ome[1] is None):
         # as Bio-Formats' calibration: the tags' y beside OME's x mixed units (1 with 0.0005 mm)
         given, missing = (0, 1) if ome[1] is None else (1, 0)
@@ -678,6 +698,16 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
         if ome[2] is None and shape_zyx[0] > 1:
             log.warning("%s: the OME metadata give no PhysicalSizeZ: z spacing is %g", where,
                         spacing[2])
+            z_said = True
+    stacked = shape_zyx[0] > 1 and not z_said
+    if ij:
+        z_lacks = unitless if stacked and names[2] in ("z spacing", "ImageJ spacing") else None
+    else:
+        z_lacks = "the file holds no slice spacing" if stacked and names[2] == "z spacing" \
+            else None
+    if plain or (ij and "volwarp_spacing" not in extra):  # (volwarp's own numbers: read)
+        xy_lacks = unitless if names[:2] == ["XResolution", "YResolution"] else None
+        _say_uncalibrated(where, spacing, meta, xy_lacks, z_lacks)
     if "volwarp_origin" in extra:
         origin = _floats(extra["volwarp_origin"], 3, where, "volwarp_origin")
     elif ij:
@@ -697,6 +727,49 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
         fields={"spacing": names, "origin": "volwarp_origin", "direction": "volwarp_direction"})
     return {"spacing": spacing, "origin": origin, "direction": direction, "space": space,
             "meta": meta}
+
+
+#: ImageJ's uncalibrated resolution: the pixels per inch image editors, Pillow and many
+#: export tools write when they know no size (``ij.io.TiffDecoder``)
+_EDITORS_DPI = 72.0
+
+
+def _uncalibrated(tags, code) -> str | None:
+    """Why a plain TIFF's resolution tags give no voxel size (x and y are then 1), or None.
+
+    As ImageJ's TiffDecoder reads them: no ResolutionUnit, or XResolution 72
+    per inch, is uncalibrated (72 dpi read as a length made 0.353 mm voxels).
+    """
+    if "XResolution" not in tags and "YResolution" not in tags:
+        return "no resolution tags"
+    if code is None:
+        return "resolution tags without a ResolutionUnit"
+    if code == 2 and "XResolution" in tags:
+        num, den = tags["XResolution"].value
+        if den and num / den == _EDITORS_DPI:
+            return "72 pixels per inch, what image editors write for no size"
+    return None
+
+
+def _say_uncalibrated(where, spacing, meta, xy_lacks, z_lacks) -> None:
+    """Warn, once a run, of the voxel size a TIFF does not give and volwarp takes.
+
+    ``xy_lacks``, ``z_lacks``: why x and y, and z, have no length in the
+    file (:func:`_uncalibrated`, ResolutionUnit none, ImageJ's ``pixel``,
+    a plain stack's missing slice spacing), or None where they have one.
+    """
+    if xy_lacks and xy_lacks == z_lacks:
+        parts = [f"x, y and z ({xy_lacks})"]
+    else:
+        parts = [f"{axes} ({why})" for axes, why in (("x and y", xy_lacks), ("z", z_lacks))
+                 if why]
+    if not parts or not first_said(("tiff uncalibrated", os.path.abspath(where))):
+        return
+    unit = "mm" if meta.get("unit") == "mm" else "in no unit, taken as mm"
+    log.warning("%s: no voxel size in the TIFF for %s: spacing %s (%s); volwarp has no "
+                "option to set it: set it in Fiji (Image > Properties) and save, or convert "
+                "to .nhdr and edit 'space directions'", where,
+                " nor ".join(parts), " ".join(f"{v:g}" for v in spacing), unit)
 
 
 def _resolution_unit(tags) -> int | None:
