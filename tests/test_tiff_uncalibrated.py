@@ -189,3 +189,29 @@ def test_one_resolution_tag_gives_both_axes(tmp_path, caplog, kept):
     assert any(f"no {gone}: it is {kept}" in r.getMessage() for r in caplog.records)
     header, _ = open_volume_header(path, require_lazy=True)
     np.testing.assert_array_equal(header.spacing, vol.spacing)
+
+
+def test_a_sweep_template_stack_is_read_without_its_calibration_said(tmp_path):
+    """A sweep places its template stack itself: the stack's missing voxel size is not said.
+
+    ``info`` on the same stack says it (the warning above); a sweep over it
+    said it too, though no spacing of the file is used there.
+    """
+    import subprocess
+    import sys
+
+    stack = np.zeros((4, 32, 32), np.uint8)
+    stack[:, 8:24, 8:24] = 255
+    tifffile.imwrite(tmp_path / "t.tif", stack, photometric="minisblack")
+    (tmp_path / "s.yaml").write_text(
+        "version: 1\ngrid: {spacing: 0.5}\n"
+        "fields:\n  opacity: {frames: t.tif, path: {keyframes: [[0, 0], [1, 3]]}}\n"
+        "trajectory:\n  - line: {from: [0, 0, 0], to: [10, 0, 0]}\nup: [0, 0, 1]\nscale: [4, 4]\n")
+    run = [sys.executable, "-m", "volwarp_cli"]
+    info = subprocess.run(run + ["info", "t.tif"], cwd=tmp_path, capture_output=True, text=True)
+    assert info.returncode == 0 and "no voxel size in the TIFF" in info.stderr
+    sweep = subprocess.run(run + ["sweep", "s.yaml", "-o", "o_{field}.nrrd"], cwd=tmp_path,
+                           capture_output=True, text=True)
+    assert sweep.returncode == 0, sweep.stderr
+    assert "voxel size" not in sweep.stderr
+    assert read_volume(tmp_path / "o_opacity.nrrd").data.max() > 0

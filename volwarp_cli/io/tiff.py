@@ -40,6 +40,7 @@ geometry in tifffile's JSON description.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import json
 import logging
 import math
@@ -751,6 +752,24 @@ def _uncalibrated(tags, code) -> str | None:
     return None
 
 
+#: inside :func:`samples_only`: the file is read for its samples (a sweep's template stack)
+_SAMPLES_ONLY = contextvars.ContextVar("tiff_samples_only", default=False)
+
+
+@contextlib.contextmanager
+def samples_only():
+    """Read TIFFs inside for their samples only: their missing voxel size is not said.
+
+    A sweep's template stack is placed by its sweep, not by its calibration:
+    the warning of a stack without one (every plain stack) was noise there.
+    """
+    token = _SAMPLES_ONLY.set(True)
+    try:
+        yield
+    finally:
+        _SAMPLES_ONLY.reset(token)
+
+
 def _say_uncalibrated(where, spacing, meta, xy_lacks, z_lacks) -> None:
     """Warn, once a run, of the voxel size a TIFF does not give and volwarp takes.
 
@@ -763,7 +782,8 @@ def _say_uncalibrated(where, spacing, meta, xy_lacks, z_lacks) -> None:
     else:
         parts = [f"{axes} ({why})" for axes, why in (("x and y", xy_lacks), ("z", z_lacks))
                  if why]
-    if not parts or not first_said(("tiff uncalibrated", os.path.abspath(where))):
+    if not parts or _SAMPLES_ONLY.get() or not first_said(("tiff uncalibrated",
+                                                            os.path.abspath(where))):
         return
     unit = "mm" if meta.get("unit") == "mm" else "in no unit, taken as mm"
     log.warning("%s: no voxel size in the TIFF for %s: spacing %s (%s); volwarp has no "

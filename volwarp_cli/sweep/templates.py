@@ -190,8 +190,11 @@ class TemplateLoader:
             else:
                 if not file.is_file():
                     raise self._err(fpath, f"template volume {str(file)!r} does not exist")
+                from ..io.tiff import samples_only
+
                 try:
-                    vol = read_volume(file)
+                    with samples_only():  # (placed by the sweep: no calibration to say)
+                        vol = read_volume(file)
                 except VolwarpError as exc:
                     raise self._err(fpath, f"cannot read template volume: {exc}") from None
                 return normalized(vol.data)  # (as its slices would be as image files)
