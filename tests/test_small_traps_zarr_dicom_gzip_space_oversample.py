@@ -31,6 +31,25 @@ def test_a_dicom_folder_with_stray_zarr_metadata_names_both(run, tmp_path, stray
     assert read_volume(folder).data.shape == (6, 5, 7)
 
 
+def test_dicom_options_for_a_series_with_stray_zarr_metadata_name_it(run, tmp_path):
+    """``--series 0`` on such a folder was refused as "ser is not one" (a DICOM input),
+    though it holds a series: the refusal names the stray file, on the command line and
+    through the API alike."""
+    from volwarp_cli import api
+    from volwarp_cli.errors import BadUsage
+
+    folder = tmp_path / "ser"
+    write_series(folder, np.arange(6 * 5 * 7, dtype=np.int16).reshape(6, 5, 7))
+    (folder / ".zattrs").write_text("{}")
+    res = run("convert", folder, "--series", "0", "-o", tmp_path / "o.nrrd")
+    assert res.code == 2 and "holds Zarr metadata (.zattrs) beside its DICOM files" in res.stderr
+    assert not (tmp_path / "o.nrrd").exists()
+    with pytest.raises(BadUsage, match=r"move \.zattrs out of it"):
+        api.read(folder, series=0)
+    (folder / ".zattrs").unlink()
+    assert api.read(folder, series=0).data.shape == (6, 5, 7)
+
+
 def test_a_zarr_folder_without_dicom_keeps_its_message(tmp_path):
     folder = tmp_path / "store"
     folder.mkdir()

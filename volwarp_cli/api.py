@@ -716,10 +716,10 @@ def _read_arguments(path, options: dict):
 
     As the commands' ``--raw-*`` and DICOM options combine
     (``volwarp_cli.cli.options.input_options``), refused as they refuse them
-    (``volwarp_cli.cli.common.check_input_options``): an option for another
+    (:func:`volwarp_cli.io.check_read_options`): an option for another
     format than ``path``'s is a usage error.
     """
-    from .io import RawLayout, volume_format
+    from .io import RawLayout, check_read_options
     from .io.common import dicom_read_options
 
     _check_keys(options)
@@ -740,11 +740,7 @@ def _read_arguments(path, options: dict):
     dicom = dicom_read_options(o["series"], o["irregular"], o["duplicates"], o["keep_shear"],
                                o["keep_phi"], **_segmentation_arguments(
                                    o["reference"], o["segment"], o["structure"]))
-    if raw is not None and not str(path).lower().endswith((".raw", ".bin")):
-        raise BadUsage(f"--raw-* options describe headerless .raw/.bin inputs, not {path}")
-    if dicom is not None and volume_format(path, reading=True) != "dicom":
-        given = " ".join(f"--{k.replace('_', '-')}" for k in sorted(dicom))
-        raise BadUsage(f"{given} applies to DICOM inputs, and {path} is not one")
+    check_read_options(path, raw, dicom)
     return raw, o["volume_index"], dicom, bool(o["allow_outside_data"])
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 import numpy as np
 
-from ..io import read_volume, volume_format
+from ..io import read_volume
 from ..progress import timed
 from ..provenance import PROVENANCE_KEYS, provenance, stamp  # noqa: F401  (the commands')
 from ..volume import Volume
@@ -22,13 +22,17 @@ def load_input(path, raw=None, volume_index=None, mmap=False, dicom=None) -> Vol
 
 
 def check_input_options(path, raw=None, dicom=None) -> None:
-    """Usage errors for ``--raw-*`` or DICOM options given for an input of another format."""
-    if raw is not None and not str(path).lower().endswith((".raw", ".bin")):
-        raise click.UsageError(f"--raw-* options describe headerless .raw/.bin inputs, "
-                               f"not {path}")
-    if dicom is not None and volume_format(path, reading=True) != "dicom":
-        given = " ".join(f"--{k.replace('_', '-')}" for k in sorted(dicom))
-        raise click.UsageError(f"{given} applies to DICOM inputs, and {path} is not one")
+    """Usage errors for ``--raw-*`` or DICOM options given for an input of another format.
+
+    (:func:`volwarp_cli.io.check_read_options`, as click's usage errors.)
+    """
+    from ..errors import BadUsage
+    from ..io import check_read_options
+
+    try:
+        check_read_options(path, raw, dicom)
+    except BadUsage as exc:
+        raise click.UsageError(str(exc)) from None
 
 
 def describe_volume(vol: Volume, fmt: str) -> dict:

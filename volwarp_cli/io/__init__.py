@@ -101,6 +101,33 @@ def volume_format(path: str | os.PathLike, *, reading: bool = False) -> str:
     return fmt
 
 
+def check_read_options(path, raw=None, dicom=None) -> None:
+    """A :class:`BadUsage` for ``--raw-*`` or DICOM options given for an input of another format.
+
+    A DICOM series folder holding a stray ``.zattrs``/``zarr.json`` is read as
+    a Zarr store: DICOM options for it are refused naming the stray file (they
+    were refused as for any other format, "is not one", though it holds DICOM).
+    """
+    if raw is not None and not str(path).lower().endswith((".raw", ".bin")):
+        raise BadUsage(f"--raw-* options describe headerless .raw/.bin inputs, not {path}")
+    if dicom is None:
+        return
+    fmt = volume_format(path, reading=True)
+    if fmt == "dicom":
+        return
+    given = " ".join(f"--{k.replace('_', '-')}" for k in sorted(dicom))
+    why = f"{given} applies to DICOM inputs, and {path} is not one"
+    if fmt == "omezarr" and Path(path).is_dir():
+        from .dicom import is_dicom_path
+
+        stray = [n for n in ("zarr.json", ".zgroup", ".zattrs") if (Path(path) / n).is_file()]
+        if stray and is_dicom_path(path):
+            why = (f"{given} applies to DICOM inputs, and {path} is read as a Zarr store: it "
+                   f"holds Zarr metadata ({' and '.join(stray)}) beside its DICOM files; a "
+                   f"DICOM series? move {' and '.join(stray)} out of it")
+    raise BadUsage(why)
+
+
 def _metaimage_head(head: bytes) -> bool:
     from .metaimage import looks_like_metaimage
 
