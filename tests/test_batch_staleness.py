@@ -205,6 +205,21 @@ def test_an_output_pattern_that_leaves_output_dir_is_refused(tmp_path, pattern):
         assert sorted(p.name for p in (tmp_path / "scans").iterdir()) == ["p01.nrrd"]
 
 
+def test_an_output_pattern_with_dotdot_inside_output_dir_is_told_what_to_write(tmp_path):
+    """'./sub/../{stem}_c.nrrd' stays in output_dir; it is refused all the same ('..' in a
+    pattern), but was said to leave output_dir: the message names the plain path."""
+    (tmp_path / "scans").mkdir()
+    write_volume(Volume(np.zeros((4, 4, 4), np.float32)), tmp_path / "scans" / "p01.nrrd")
+    (tmp_path / "m.yaml").write_text(
+        "version: 1\ninputs: {glob: \"scans/*.nrrd\"}\noutput_dir: out\nsteps:\n"
+        "  - {name: c, run: convert, output: \"./sub/../{stem}_c.nrrd\"}\n")
+    res = volwarp("batch", tmp_path / "m.yaml", cwd=tmp_path)
+    assert res.returncode == 2, res.stderr
+    assert "leaves output_dir" not in res.stderr
+    assert "has '..' in it" in res.stderr and "'{stem}_c.nrrd'" in res.stderr
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").rglob("*.nrrd"))
+
+
 def test_a_level_linked_into_an_ome_zarr_store_is_what_the_step_reads(tmp_path):
     """zarr reads a store's keys through linked folders; the batch's walk did not follow
     them, so a changed level linked in from elsewhere was skipped (a review). A link back

@@ -215,9 +215,19 @@ def test_frames_a_pattern_gives_one_name_are_refused_before_any_is_written(run, 
     res = run("warp", src, "--spec", spec, "--frames-to", str(tmp_path / "s{sub}.nrrd"),
               "--values", values)
     assert res.code == 2, res.stderr
-    assert "names frames 1 and 4 both" in res.stderr and "{frame}" in res.stderr
+    assert "names frames 1 and 4 both" in res.stderr and "not {sub} alone" in res.stderr
     assert [p.name for p in tmp_path.glob("*.nrrd")] == ["s1.nrrd"]
     assert old.read_bytes() == b"an earlier frame"
+    # a pattern that has {frame} and still names one file (its folders links to one) is
+    # told to tell the frames apart, not to add {frame}
+    (tmp_path / "one").mkdir()
+    for n in range(10):
+        (tmp_path / f"d{n}").symlink_to(tmp_path / "one")
+    res = run("warp", src, "--spec", spec, "--frames-to", str(tmp_path / "d{frame}" / "f.nrrd"),
+              "--values", values)
+    assert res.code == 2 and "give {frame} a format that tells them apart" in res.stderr
+    assert [p.name for p in tmp_path.glob("*.nrrd")] == ["s1.nrrd"]
+    assert not any((tmp_path / "one").iterdir())
     for clash in (["-o", tmp_path / "f2.nrrd"], ["--jacobian-to", tmp_path / "f3.nrrd"]):
         res = run("warp", src, "--spec", spec, "--frames-to", str(tmp_path / "f{frame}.nrrd"),
                   *clash, "--values", values)

@@ -204,8 +204,12 @@ def _check_pattern(doc: SpecDoc, path: tuple, text: str, *, output: bool = False
                               + ", ".join("{" + p + "}" for p in PLACEHOLDERS)
                               + " (write {{ and }} for braces)")
     if (output or names) and (os.path.isabs(text) or ".." in Path(text).parts):
-        raise doc.error(path, f"{text!r} leaves output_dir: a scan's outputs land in it (the "
-                              "folder this batch locks); write a path inside it")
+        inside = not os.path.isabs(text) and not os.path.normpath(text).startswith("..")
+        raise doc.error(path, (f"{text!r} has '..' in it: a scan's name or a placeholder "
+                               "could take it out of output_dir; write it without "
+                               f"('{os.path.normpath(text)}')") if inside else
+                        (f"{text!r} leaves output_dir: a scan's outputs land in it (the "
+                         "folder this batch locks); write a path inside it"))
     return names
 
 

@@ -383,8 +383,11 @@ class LatticeMoves:
                  for n, fr in enumerate([None, *self.frames])]
         twice = one_file_twice(enumerate(names))
         if twice is not None:
+            fix = ("number them all with {frame} (e.g. {frame:03d}), not {sub} alone"
+                   if "{frame" not in pattern else "give {frame} a format that tells them "
+                   "apart (e.g. {frame:03d}), and each frame its own folder")
             raise BadUsage(f"--frames-to: {pattern!r} names frames {twice[0]} and {twice[1]} "
-                           f"both {twice[2]}; put {{frame}} in it")
+                           f"both {twice[2]}; {fix}")
         for name in names:
             check_output_path(name, option="--frames-to")
         return names
