@@ -37,6 +37,20 @@ def run():
     return _run
 
 
+@pytest.fixture(autouse=True)
+def _series_written_just_now(monkeypatch):
+    """No warning that a DICOM folder's newest file is seconds old (a copy under way?).
+
+    Every test reads the series it wrote a moment before, and many check that
+    a command says one line; the warning is tested in ``test_hunt_settle.py``.
+    """
+    try:
+        from volwarp_cli.io.dicom import _scan
+    except ImportError:  # (without pydicom: no DICOM folder is read)
+        return
+    monkeypatch.setattr(_scan, "YOUNG_SECONDS", 0.0)
+
+
 @pytest.fixture(params=["subtract", "rebuild"])
 def local_updates(request):
     """How scenes update locally (pass it as ``Scene(..., update=local_updates)``): each of

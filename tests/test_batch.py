@@ -145,7 +145,7 @@ def test_report_json(warped):
         (root / "manifest.yaml").read_bytes()).hexdigest()
     assert report["exit_code"] == 0 and report["jobs"] == 2 and report["shard"] is None
     assert report["summary"] == {"scans": 3, "ok": 3, "skipped": 0, "failed": 0, "stopped": 0,
-                                 "not_started": 0}
+                                 "not_started": 0, "still_arriving": 0}
     assert [s["scan"] for s in report["scans"]] == sorted(SCANS.values())
     for scan in report["scans"]:
         assert scan["status"] == "ok" and scan["error"] is None and scan["seconds"] > 0

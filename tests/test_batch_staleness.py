@@ -236,7 +236,7 @@ def test_a_level_linked_into_an_ome_zarr_store_is_what_the_step_reads(tmp_path):
     (store / "0").symlink_to("../../levels/z0")
     (tmp_path / "levels" / "z0" / "up").symlink_to("../../scans")  # (a loop)
     (tmp_path / "m.yaml").write_text(
-        "version: 1\ninputs: {list: [scans/z.ome.zarr]}\noutput_dir: out\nsteps:\n"
+        "version: 1\ninputs: {list: [scans/z.ome.zarr], settle: 0}\noutput_dir: out\nsteps:\n"
         "  - {name: conv, run: convert, output: \"z.nrrd\"}\n")
     assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
     assert batch(tmp_path / "m.yaml") == "volwarp batch: 1 scan, 0 ok, 1 skipped, 0 failed"

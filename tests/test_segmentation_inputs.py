@@ -188,7 +188,7 @@ def test_batch_manifest_reference_column(rs_case, tmp_path, run):
     table.write_text(f"path,reference\nrs.dcm,ct\n{rs_b.relative_to(tmp_path)},b/ct\n")
     manifest = tmp_path / "m.yaml"
     manifest.write_text(
-        "version: 1\ninputs: {csv: scans.csv}\noutput_dir: out\nsteps:\n"
+        "version: 1\ninputs: {csv: scans.csv, settle: 0}\noutput_dir: out\nsteps:\n"
         "  - name: ptv\n    run: distance\n    output: '{stem}_ptv.nrrd'\n"
         "    options: [--reference, '{reference}', --structure, PTV]\n")
     res = run("batch", manifest, "-q")

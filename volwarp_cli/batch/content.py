@@ -160,6 +160,52 @@ def content_digest(path: str | os.PathLike, hashes: FileHashes) -> str:
     return hashlib.sha256(json.dumps(parts).encode()).hexdigest()
 
 
+def changed_at(st: os.stat_result, now: float) -> float:
+    """When a file last changed or arrived (seconds since the epoch), as its times tell.
+
+    The later of its mtime and ctime: ``rsync -a`` and ``cp -p`` give a file
+    its source's old mtime, and its ctime (set by every write and rename, and
+    by no program back) says when it came. An mtime ahead of ``now`` is not
+    taken (a file dated by a clock ahead of this one, copied with its dates,
+    would else not settle before that date): the ctime is.
+    """
+    if st.st_mtime > now:
+        return st.st_ctime
+    return max(st.st_mtime, st.st_ctime)
+
+
+def last_change(files, now: float) -> float | None:
+    """The latest :func:`changed_at` of ``files`` (None: no file).
+
+    A file gone since it was listed was being moved: it changed ``now``. A
+    link whose target is missing counts by its own times (it stays as it is).
+    """
+    newest = None
+    for f in files:
+        try:
+            st = os.stat(f)
+        except OSError:
+            try:
+                st = os.lstat(f)
+            except OSError:
+                return now
+        t = changed_at(st, now)
+        newest = t if newest is None or t > newest else newest
+    return newest
+
+
+def age_words(age: float) -> str:
+    """``3 s old``, or ``dated 40 s ahead of this machine's clock`` (a file from a clock ahead)."""
+    if age > -1:
+        return f"{max(age, 0):.0f} s old"
+    return f"dated {-age:.0f} s ahead of this machine's clock"
+
+
+def input_last_change(path: str | os.PathLike, now: float) -> float | None:
+    """:func:`last_change` of every file ``path`` stands for (those :func:`content_digest` reads)."""
+    return last_change(_content_files(Path(path))[0], now)
+
+
 def content_stamp(path: str | os.PathLike) -> list:
     """The name and :func:`stat_key` of each file :func:`content_digest` reads (None: missing).
 

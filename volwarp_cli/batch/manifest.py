@@ -42,6 +42,9 @@ DOUBLE_EXTENSIONS = (".nii.gz", ".raw.gz")
 #: options the manifest's own keys set (given in ``options`` they would clash)
 RESERVED_OPTIONS = ("-o", "--output", "--spec")
 _MESH_EXTENSIONS = (".ply", ".stl", ".obj", ".vtp", ".vtk")
+#: seconds a folder scan's newest file must be old before it is read (``inputs.settle``):
+#: a PACS's own (Orthanc calls a series stable after 60 s without a new instance)
+DEFAULT_SETTLE = 60.0
 
 
 @dataclass(frozen=True)
@@ -91,6 +94,9 @@ class Manifest:
     doc: SpecDoc
     sha256: str = ""
     specs: dict[str, str] = field(default_factory=dict)  # spec path -> sha256
+    #: seconds a folder scan's newest file must be old before the scan is read
+    #: (``inputs.settle``, ``--settle``; 0: read at once), :func:`.plan.still_arriving`
+    settle: float = DEFAULT_SETTLE
     #: the scans :func:`find_scans` found (looked for once; not sent with cluster tasks)
     scans: list[Scan] | None = field(default=None, repr=False, compare=False)
 
@@ -330,7 +336,8 @@ def load_manifest(path: str | Path) -> Manifest:
         by_name[name] = step
     manifest = Manifest(path=path, base=base,
                         output_dir=doc.resolve(doc.data["output_dir"]).absolute(),
-                        steps=steps, doc=doc)
+                        steps=steps, doc=doc,
+                        settle=float(doc.data["inputs"].get("settle", DEFAULT_SETTLE)))
     from .steps import check_steps
 
     manifest.steps = check_steps(manifest)  # each step's options and spec, by its command

@@ -44,7 +44,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .. import __version__
-from .content import FileHashes, content_digest, content_stamp
+from .content import (
+    FileHashes,
+    age_words,
+    content_digest,
+    content_stamp,
+    input_last_change,
+)
 from .lock import BOOK_DIR
 from .manifest import (
     SCAN,
@@ -366,6 +372,37 @@ def stale_reason(manifest: Manifest, plan: StepPlan, record: CommandRecord, made
             return f"{out.name} is missing"
         if now != entry.get("sha256"):
             return f"{out.name} was changed since it was made"
+    return None
+
+
+def _now() -> float:
+    """The clock a folder's age is taken against (seconds since the epoch)."""
+    return time.time()
+
+
+def still_arriving(manifest: Manifest, scan: Scan) -> str | None:
+    """Why ``scan`` is not read this run (its folder still arriving), or None.
+
+    No DICOM tag says how many slices a classic series has: a series folder
+    read while a PACS, rsync or a scanner's export is still storing its
+    slices gives a volume short of them (and an OME-Zarr store its missing
+    chunks' fill value), exit 0. A folder (the scan's, a table cell's
+    ``{reference}`` series) whose newest file (:func:`.content.last_change`)
+    is younger than ``manifest.settle`` seconds is left to the next run.
+    A file scan is not held back: its reader knows its length from its header,
+    and rsync renames a file into place whole.
+    """
+    if manifest.settle <= 0:
+        return None
+    now = _now()
+    for column, path in [("", scan.path), *scan.files]:
+        if not Path(path).is_dir():
+            continue
+        newest = input_last_change(path, now)
+        if newest is None or now - newest >= manifest.settle:
+            continue
+        where = f"{{{column}}} {os.path.relpath(path, manifest.base)}: " if column else ""
+        return f"{where}newest file {age_words(now - newest)}, settle {manifest.settle:g} s"
     return None
 
 

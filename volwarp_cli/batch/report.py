@@ -1,24 +1,27 @@
 """What a batch says: a progress line per scan, one summary line, the JSON run report.
 
 Progress (stderr, unless ``--quiet``; :class:`ScanProgress`): on a terminal a
-bar, with a line for each failed scan; elsewhere (a log, a pipe) a line as each
-scan ends::
+bar, with a line for each failed scan and each still arriving; elsewhere (a
+log, a pipe) a line as each scan ends::
 
     ok site-a/p01 3.2 s
       warning: warped: every voxel of the warp of ... is the background (0): ...
     skipped site-a/p02
     failed site-b/p17 0.4 s: truncated gzip stream
+    still arriving site-b/p18 (newest file 3 s old, settle 60 s)
 
 and with ``--progress jsonl`` one JSON object a line (the block lines' format,
 :class:`volwarp_cli.engine.JsonlProgress`): ``{"event": "start", "kind":
 "scan", "id": "site-a/p01", "t": ...}`` as a scan starts (on a cluster: as its
 task starts on the worker, with ``worker`` and ``pid``), ``done`` (with
 ``status`` ok or skipped) or ``failed`` (with ``error``) or ``stopped`` as it
-ends, with its ``seconds`` and ``peak_rss`` (bytes, its steps' largest).
+ends, with its ``seconds`` and ``peak_rss`` (bytes, its steps' largest); a
+scan still arriving (its folder's newest file younger than the settle time)
+is ``done`` with that ``status`` and its ``reason``: not read, not failed.
 
 The summary (stderr, always), e.g.::
 
-    volwarp batch: 412 scans, 409 ok (1 with warnings), 2 skipped, 1 failed: site-b/p17 (truncated gzip stream)
+    volwarp batch: 412 scans, 409 ok (1 with warnings), 2 skipped, 1 failed, 1 still arriving: site-b/p17 (truncated gzip stream)
 
 The report (``--report-json``, or ``--report`` with a ``.json`` name): per scan and per step its status, seconds,
 attempts, exit code, error line, command and outputs, with the provenance
@@ -33,7 +36,7 @@ import signal
 from dataclasses import dataclass
 from pathlib import Path
 
-from .run import ScanResult
+from .run import ARRIVING, ScanResult
 
 #: at most this many failed scans are named in the summary line
 NAMED_FAILURES = 5
@@ -77,6 +80,8 @@ def progress_line(result: ScanResult) -> str:
     """
     if result.status in ("skipped", "not started"):
         return f"{result.status} {result.scan.id}"
+    if result.status == ARRIVING:
+        return f"{result.status} {result.scan.id} ({result.reason})"
     line = f"{result.status} {result.scan.id} {result.seconds:.1f} s"
     if result.status == "failed":
         line += f": {short_error(result.error, result)}"
@@ -94,7 +99,7 @@ def warned(results: list[ScanResult]) -> int:
 def counts(results: list[ScanResult]) -> dict[str, int]:
     """The number of scans, and of scans per status (``not started`` as ``not_started``)."""
     out = {"scans": len(results)}
-    for status in ("ok", "skipped", "failed", "stopped", "not started"):
+    for status in ("ok", "skipped", "failed", "stopped", "not started", ARRIVING):
         out[status.replace(" ", "_")] = sum(r.status == status for r in results)
     return out
 
@@ -115,6 +120,8 @@ def summary_line(results: list[ScanResult], *, stop: int | None = None,
         parts.append(f"{c['stopped']} stopped")
     if c["not_started"]:
         parts.append(f"{c['not_started']} not started")
+    if c["still_arriving"]:  # (not read, not failed: the next run takes them)
+        parts.append(f"{c['still_arriving']} {ARRIVING}")
     line = "volwarp batch: "
     if stop is not None:
         done = c["ok"] + c["skipped"] + c["failed"]
@@ -138,7 +145,8 @@ def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | N
     ``scheduler``: ``pool`` or the cluster as ``--scheduler`` named it. Per
     scan its ``attempts`` (runs of its task: more than one when a worker
     died), its ``worker`` (on a cluster) and ``peak_rss`` (bytes, the largest
-    of its steps'); per step the step process's ``peak_rss``.
+    of its steps'), ``reason`` (why a scan still arriving was not read); per
+    step the step process's ``peak_rss``.
     """
     from ..provenance import provenance
 
@@ -160,6 +168,7 @@ def report_dict(manifest, results: list[ScanResult], *, jobs: int, stop: int | N
             "status": r.status,
             "seconds": round(r.seconds, 3),
             "error": r.error,
+            "reason": r.reason,
             "attempts": r.attempts,
             "worker": r.worker,
             "peak_rss": r.peak_rss,
@@ -191,7 +200,11 @@ class Report:
 
     @property
     def return_code(self) -> int:
-        """The batch's exit code: 128 + the signal when stopped, 1 when a scan failed, else 0."""
+        """The batch's exit code: 128 + the signal when stopped, 1 when a scan failed, else 0.
+
+        A scan still arriving is no failure: a cron job's next run reads it, and
+        the summary and reports say it meanwhile.
+        """
         if self.stop is not None:
             return 128 + self.stop
         return 1 if any(r.status == "failed" for r in self.results) else 0
@@ -268,7 +281,8 @@ class ScanProgress:
         """A scan ended."""
         with self._lock:
             if self._jsonl is not None:
-                event = {"ok": "done", "skipped": "done", "failed": "failed"}.get(
+                event = {"ok": "done", "skipped": "done", ARRIVING: "done",
+                         "failed": "failed"}.get(
                     result.status, "stopped" if result.status == "stopped" else None)
                 if event is not None:
                     self._jsonl.emit(event, "scan", result.scan.id, status=result.status,
@@ -276,12 +290,13 @@ class ScanProgress:
                                      peak_rss=result.peak_rss, worker=result.worker,
                                      error=(short_error(result.error, result)
                                             if result.status == "failed" else None),
-                                     warnings=short_warnings(result) or None)
+                                     warnings=short_warnings(result) or None,
+                                     reason=result.reason)
             elif self.mode == "lines":
                 self.stream.write(progress_line(result) + "\n")
                 self.stream.flush()
             elif self._bar is not None:
-                if result.status == "failed" or short_warnings(result, ran=True):  # (above it)
+                if result.status in ("failed", ARRIVING) or short_warnings(result, ran=True):
                     self.stream.write("\r\x1b[2K" + progress_line(result) + "\n")
                 self._bar.advance()
 

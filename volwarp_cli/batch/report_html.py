@@ -19,7 +19,8 @@ from pathlib import Path
 from .report import counts, short_error, short_warnings, summary_line
 from .run import ScanResult
 
-_ORDER = {"failed": 0, "stopped": 1, "not started": 2, "ok": 3, "skipped": 4}
+_ORDER = {"failed": 0, "stopped": 1, "not started": 2, "still arriving": 3, "ok": 4,
+          "skipped": 5}
 
 _CSS = """
 body{font:14px/1.4 system-ui,sans-serif;margin:1.5em;color:#222;background:#fafafa}
@@ -34,7 +35,8 @@ h1{font-size:1.3em;margin:0 0 .3em}
 .scan.status-ok{border-left-color:#2a7d2a}
 .scan.status-skipped{border-left-color:#7a8fa6}
 .scan.status-failed{border-left-color:#c0392b;background:#fff5f4}
-.scan.status-stopped,.scan.status-not-started{border-left-color:#d68910}
+.scan.status-stopped,.scan.status-not-started,.scan.status-still-arriving{
+ border-left-color:#d68910}
 .scan h2{font-size:1em;margin:0 0 4px;word-break:break-all}
 .status{font-weight:bold;text-transform:uppercase;font-size:.8em;padding:1px 6px;
  border-radius:3px;background:#eee}
@@ -43,7 +45,7 @@ h1{font-size:1.3em;margin:0 0 .3em}
 .facts{color:#555;font-size:.9em;margin:2px 0 6px}
 .error{font-family:monospace;color:#a00;white-space:pre-wrap;word-break:break-word;
  margin:4px 0}
-.warning{font-family:monospace;color:#8a5a00;white-space:pre-wrap;word-break:break-word;
+.warning,.reason{font-family:monospace;color:#8a5a00;white-space:pre-wrap;word-break:break-word;
  margin:4px 0}
 .thumbs{display:flex;gap:6px;flex-wrap:wrap;align-items:flex-start}
 figure{margin:0;text-align:center;font-size:.75em;color:#555}
@@ -106,6 +108,8 @@ def _card(r: ScanResult) -> str:
              f'<div class="facts">{_e(" · ".join(facts))}</div>']
     if status == "failed":
         parts.append(f'<div class="error">{_e(short_error(r.error, r))}</div>')
+    if r.reason:  # (a scan still arriving: not read this run)
+        parts.append(f'<div class="reason">{_e(r.reason)}</div>')
     for line in short_warnings(r):  # (a skipped scan's: the run's that made its outputs)
         parts.append(f'<div class="warning">warning: {_e(line)}</div>')
     thumbs = r.thumbnails or {}

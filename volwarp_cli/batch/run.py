@@ -15,6 +15,9 @@ threads of the batch process, each waiting on its own child. The cluster form
 (:mod:`.cluster`) submits each scan as one task whose worker runs the same
 :class:`ScanRunner`.
 
+- A scan whose folder is still arriving (:func:`..plan.still_arriving`: its newest
+  file younger than the manifest's settle time) is not read: its status says
+  so (:data:`ARRIVING`), nothing is recorded, and the next run takes it.
 - Up-to-date steps are skipped (:func:`..plan.stale_reason`: by the content of
   what they read, never by dates) unless ``force``; a step whose input step ran
   runs when that input's bytes changed. A step during which a file it reads
@@ -60,11 +63,14 @@ from .plan import (
     plan_scan,
     read_stamps,
     stale_reason,
+    still_arriving,
 )
 
 #: seconds a stopped child is given before it is killed
 STOP_GRACE = 20.0
 _STOP_CODES = tuple(128 + s for s in STOPS)
+#: the status of a scan whose folder is still arriving (read by a later run)
+ARRIVING = "still arriving"
 #: Linux's prctl option asking for a signal when the parent (thread) dies
 _PR_SET_PDEATHSIG = 1
 #: Python's option leaving the working folder off ``sys.path`` (3.11+: ``PYTHONSAFEPATH``)
@@ -106,7 +112,7 @@ class ScanResult:
     """How one scan went: its status, time and the result of each of its steps."""
 
     scan: Scan
-    status: str  # ok | skipped | failed | stopped | not started
+    status: str  # ok | skipped | failed | stopped | not started | still arriving
     seconds: float = 0.0
     steps: list[StepResult] = field(default_factory=list)
     attempts: int = 1  # runs of the scan's task (more than one: its worker died)
@@ -115,6 +121,8 @@ class ScanResult:
     thumbnails: dict | None = None
     #: file hashes computed on a cluster worker, for the batch process's cache
     hashed: dict | None = None
+    #: why a scan still arriving was not read (``newest file 3 s old, settle 60 s``)
+    reason: str | None = None
 
     @property
     def error(self) -> str | None:
@@ -298,6 +306,10 @@ class ScanRunner:
         if self.on_start is not None:
             self.on_start(scan)
         start = time.monotonic()
+        arriving = still_arriving(self.manifest, scan)
+        if arriving is not None:
+            return ScanResult(scan, ARRIVING, time.monotonic() - start, reason=arriving,
+                              hashed={} if self.ships_hashes else None)
         plans = plan_scan(self.manifest, scan)
         results: dict[str, StepResult] = {}
         for plan in plans:

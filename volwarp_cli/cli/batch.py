@@ -2,7 +2,7 @@
 
 volwarp batch MANIFEST.yaml [--jobs N] [--scheduler pool|local|tcp://...|file:PATH|env]
 [--workers N] [--threads-per-worker N] [--shard I/N] [--force] [--fail-fast]
-[--retries N] [--progress bar|lines|jsonl|none] [--report REPORT.html|.json]
+[--retries N] [--settle SECONDS] [--progress bar|lines|jsonl|none] [--report REPORT.html|.json]
 [--report-json REPORT.json] [--wait] [-q]
 """
 
@@ -92,6 +92,11 @@ def _reports(ctx, param, value):
               metavar="N", help="Run a step again up to N times when its process died of a "
                                 "signal, and a scan whose cluster worker died (--scheduler "
                                 "local; never for a scan that failed).")
+@click.option("--settle", type=click.FloatRange(min=0, max=86400), default=None,
+              metavar="SECONDS",
+              help="Read a scan that is a folder (a DICOM series, an OME-Zarr store) only once "
+                   "its newest file is this old; a younger one is still arriving, left to the "
+                   "next run (default: the manifest's inputs.settle, else 60; 0: at once).")
 @click.option("--progress", "progress_mode", default=None,
               type=click.Choice(["bar", "lines", "jsonl", "none"]),
               help="Progress on stderr: a bar (the default on a terminal), a line per scan "
@@ -108,7 +113,7 @@ def _reports(ctx, param, value):
                    "(default: stop at once with exit 75).")
 @common_options
 def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force, fail_fast,
-            retries, progress_mode, reports, report_json, wait):
+            retries, settle, progress_mode, reports, report_json, wait):
     """Run every scan of MANIFEST through its chain of volwarp steps.
 
     Each scan is one task, of a local pool by default or of a Dask cluster
@@ -118,8 +123,10 @@ def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force
     every file the step reads, its options, volwarp's version) is what was
     recorded, and the outputs are unchanged; dates decide nothing. One batch
     at a time holds an output folder (--wait to wait for it). A failed scan
-    does not stop the others. Progress and a summary line go to stderr.
-    Exit 0 when every scan is ok or skipped, 1 when any failed, 2 for a
+    does not stop the others. A scan that is a folder whose newest file is
+    younger than the settle time (--settle) is still arriving: said, and left
+    to the next run. Progress and a summary line go to stderr.
+    Exit 0 when every scan is ok, skipped or still arriving, 1 when any failed, 2 for a
     malformed manifest or step option, 75 when another batch holds the
     output folder, 130/143 when stopped.
     """
@@ -143,6 +150,8 @@ def command(manifest, jobs, scheduler, workers, threads_per_worker, shard, force
                                "cluster; an existing cluster has its own", ctx=ctx)
     quiet = ctx.meta.get("volwarp.verbosity", 0) < 0
     m = load_manifest(manifest)
+    if settle is not None:
+        m.settle = settle
     json_reports = [p for p in reports if p.lower().endswith(".json")]
     html_reports = [p for p in reports if not p.lower().endswith(".json")]
     if report_json is not None:

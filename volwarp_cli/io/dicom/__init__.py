@@ -9,7 +9,10 @@ Finding files
     (README, thumbnails) are skipped, and so are DICOMDIR files (Media Storage
     Directory). A DICOMDIR given as the path is read with pydicom and only the
     files its records reference are used. One file without the preamble is
-    read when it is named explicitly and ends in ``.dcm`` (old files).
+    read when it is named explicitly and ends in ``.dcm`` (old files). A
+    folder whose newest file is younger than a few seconds is read with a
+    warning (once a run): a series still being stored would be read short,
+    and nothing in it says so (``volwarp batch`` waits for it: ``inputs.settle``).
 
 Candidates (:func:`scan_dicom`)
     A file that is an exact copy of another (the same SOPInstanceUID, frames

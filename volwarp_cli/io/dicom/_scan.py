@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import struct
+import time
 import warnings
 import zlib
 from dataclasses import dataclass, field
@@ -20,6 +21,7 @@ from pydicom.multival import MultiValue
 
 from ...errors import FormatError, VolwarpError
 from ...progress import log
+from ...runscope import first_said
 from ..inputs import has_dicom_preamble as _has_preamble
 
 try:  # the command line maps ChoiceNeeded to a usage error (exit 2)
@@ -315,6 +317,7 @@ def _files_of(path: Path) -> tuple[list[tuple[str, str]], int]:
         if out and skipped:
             more = f" and {len(skipped) - 1} more" if len(skipped) > 1 else ""
             log.warning("warning: %s: %s%s skipped (not DICOM)", path, skipped[0], more)
+        _say_young(path, [f for f, _ in out])
         return out, seen
     if not path.exists():
         raise FormatError(f"{path}: no such file or folder")
@@ -322,6 +325,31 @@ def _files_of(path: Path) -> tuple[list[tuple[str, str]], int]:
     if _sop_class(ds) == DICOMDIR_SOP or "DirectoryRecordSequence" in ds:
         return _dicomdir_files(path, ds), 1
     return [(str(path), path.name)], 1
+
+
+#: seconds: a series folder whose newest file is younger is said to be (:func:`_say_young`)
+YOUNG_SECONDS = 5.0
+
+
+def _say_young(path: Path, files: list[str]) -> None:
+    """Warn, once a run, where the newest of a series folder's files is seconds old.
+
+    No tag says how many slices a classic series has: a folder read while a
+    PACS or rsync is still storing slices gives a volume short of them, and
+    nothing else shows it. A command is not refused (a folder just written
+    whole is as young); ``volwarp batch`` leaves such a folder to its next run
+    (``inputs.settle``).
+    """
+    from ...batch.content import age_words, last_change
+
+    now = time.time()
+    newest = last_change(files, now)
+    if newest is None:
+        return
+    age = now - newest
+    if age < YOUNG_SECONDS and first_said(("young series", os.path.realpath(path))):
+        log.warning("warning: the newest file of %s is %s: a series still being copied "
+                    "would be read short", path, age_words(age))
 
 
 def _dicomdir_files(path: Path, ds) -> list[tuple[str, str]]:
