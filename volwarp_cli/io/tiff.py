@@ -408,7 +408,8 @@ def _check_stack(tif, where: str, records, volume_index: int | None = None) -> T
     of different shapes or types, an ImageJ hyperstack's channels or frames,
     an OME or tifffile image's channels or time points, several images without
     ``volume_index``, several volumetric pages, fewer pages than the metadata
-    declare, an ImageJ value calibration other than a straight line.
+    declare, an ImageJ value calibration other than a straight line, a
+    compression or predictor tifffile cannot decode (:func:`_check_codecs`).
     """
     pages = []
     seen: dict[int, int] = {}
@@ -451,6 +452,7 @@ def _check_stack(tif, where: str, records, volume_index: int | None = None) -> T
                           "not supported")
     if dtype0 is None:
         raise FormatError(f"{where}: unsupported TIFF sample format")
+    _check_codecs({(pages[i].compression, pages[i].predictor) for i in indices}, where)
     dtype = check_dtype(dtype0, where)
     ij = tif.imagej_metadata
     if ij:
@@ -477,6 +479,26 @@ def _check_stack(tif, where: str, records, volume_index: int | None = None) -> T
     return TiffStack(shape, out_dtype, dtype.newbyteorder(tif.byteorder),
                      tiff_placement(tif, first, ij, shape, where, image), planes_at,
                      tuple(indices), image, calibration)
+
+
+def _check_codecs(schemes, where: str) -> None:
+    """Refuse pages whose compression or predictor tifffile cannot decode, naming it.
+
+    Before any work (a run by blocks met it at its first block, after the
+    stack's warnings); the error is the one a read of the samples gives.
+    """
+    from tifffile import TIFF
+
+    for compression, predictor in sorted(schemes):
+        try:
+            TIFF.DECOMPRESSORS[compression]
+            # (an image codec's predictor is ignored, as tifffile does; 0 is left to the read:
+            # an ImageJ stack over 4 GiB is read without tifffile)
+            if predictor not in (0, 1) and compression not in TIFF.IMAGE_COMPRESSIONS:
+                TIFF.UNPREDICTORS[predictor]
+        except KeyError as exc:  # (tifffile's message: "<COMPRESSION.PIXARLOG: 32909> not
+            # supported", "... requires the 'imagecodecs' package")
+            raise unreadable_data(where, ValueError(*exc.args)) from None
 
 
 def _read_samples(tif, stack: TiffStack, where: str, records) -> Volume:
