@@ -53,3 +53,40 @@ def test_scaled_nifti_within_float32_stays_float32(tmp_path):
     vol = read_volume(path)
     assert vol.dtype == np.float32
     np.testing.assert_array_equal(vol.data, theirs.transpose(2, 1, 0))
+
+
+def _label_map(path):
+    """Ids -5, 1 and 1000 in blocks (int32), a map the label rule takes for labels."""
+    import SimpleITK as sitk
+
+    ids = np.zeros((24, 26, 28), np.int32)
+    ids[4:12, 4:12, 4:12] = 1
+    ids[12:20, 4:12, 4:16] = 1000
+    ids[4:20, 14:22, 8:20] = -5
+    sitk.WriteImage(sitk.GetImageFromArray(ids), str(path))
+    return ids
+
+
+def test_distance_update_refuses_a_label_map(tmp_path, run):
+    """`distance --update` resampled a label map's ids trilinearly as distances (137
+    values between -5 and 1000, exit 0): a label map is no field; its field is."""
+    sitk = pytest.importorskip("SimpleITK")
+    from volwarp_cli.io import read_volume
+
+    src = tmp_path / "ids.nrrd"
+    ids = _label_map(src)
+    move = tmp_path / "move.yaml"
+    move.write_text("version: 1\nrotate: [0, 0, 10]\n")
+    out = tmp_path / "moved.nrrd"
+    res = run("distance", "--update", src, "--transform", move, "-o", out)
+    assert res.code == 2, res.stderr
+    assert "label map" in res.stderr and not out.exists()
+    # a field made by another tool (SimpleITK, no volwarp key) still moves
+    field = sitk.SignedMaurerDistanceMap(sitk.GetImageFromArray((ids != 0).astype(np.uint8)),
+                                         insideIsPositive=False, squaredDistance=False,
+                                         useImageSpacing=True)
+    sdf = tmp_path / "sdf.nrrd"
+    sitk.WriteImage(sitk.Cast(field, sitk.sitkFloat32), str(sdf))
+    res = run("distance", "--update", sdf, "--transform", move, "-o", out)
+    assert res.code == 0, res.stderr
+    assert read_volume(out).data.dtype == np.float32
