@@ -213,6 +213,32 @@ def _update_metric(meta, given: str | None, old_path) -> str:
     return recorded
 
 
+def _refuse_label_map(vol, old_path) -> None:
+    """Refuse a label map given to ``--update`` as its field (a usage error).
+
+    ``--update`` moves a signed distance field by trilinear resampling: a
+    label map given there (a segmentation instead of its field) had its ids
+    blended as distances and the result written with exit 0. A field
+    ``volwarp distance`` wrote says so (its ``volwarp_distance`` key) and is
+    not scanned; any other volume is judged by the label rule and its file's
+    word (:func:`~volwarp_cli.labelmap.segmentation_of`), as ``distance``
+    judges its input.
+    """
+    from ..distance.labels import scan_values
+    from ..errors import BadUsage
+    from ..labelmap import segmentation_of
+
+    if "volwarp_distance" in (vol.meta or {}):
+        return
+    scan = scan_values(vol.data)
+    said = segmentation_of(vol.meta) if scan.values is not None else None
+    if scan.looks_like or said:
+        why = said or f"looks like a label map: {len(scan.values)} labels"
+        raise BadUsage(f"{old_path} is a label map ({why}), not a signed distance field: "
+                       f"--update would blend its ids as distances; compute its field first "
+                       f"(volwarp distance {old_path} -o SDF), then --update SDF")
+
+
 #: the memory an update takes a voxel, and beside them (the modules it loads), measured:
 #: processes of 357.5 MiB for 256^3 and 93.1 MiB for 128^3, 32 MiB held before the update
 UPDATE_BYTES_PER_VOXEL = 19
@@ -244,6 +270,7 @@ def _update(old_path, transform_path, output, metric, max_distance, *, write, re
     ensure_fits_in_memory(UPDATE_BYTES_PER_VOXEL * int(np.prod(header.shape))
                           + UPDATE_FIXED_BYTES, f"the update of {old_path}'s field")
     vol = load_input(old_path, read["raw"], read["volume_index"], dicom=read["dicom"])
+    _refuse_label_map(vol, old_path)
     metric = _update_metric(vol.meta, metric, old_path)
     params = {k: v for k, v in doc.data.items() if k != "version"}
     field, center = field_and_centre(vol, params, where=str(old_path))

@@ -381,11 +381,28 @@ class NiftiFile:
         return f"{'x'.join(map(str, self.shape))} {self.file_dtype.name} samples"
 
     def sample_dtype(self) -> np.dtype:
-        """The (native) type of the samples read: float for scaled ones, else the file's."""
+        """The (native) type of the samples read: float for scaled ones, else the file's.
+
+        Scaled 8- and 16-bit samples are float32 (as ITK reads them), unless a
+        whole slope and intercept take the type's range past 2**24, where
+        float32 stops holding every integer: then float64, as nibabel reads
+        them. A label map of int16 ids with ``scl_inter`` 16777216 read its
+        ids 0 and 1 as one id (and 3 as 16777220) in float32.
+        """
         dt = self.file_dtype
         if self.scaled and dt.kind in "iuf":
-            return np.dtype(np.float32 if dt.itemsize <= 2 else np.float64)
+            return np.dtype(np.float32 if dt.itemsize <= 2 and not self._whole_past_float32()
+                            else np.float64)
         return check_dtype(dt, self.where)
+
+    def _whole_past_float32(self) -> bool:
+        """Whether integer samples scaled by a whole slope and intercept can pass 2**24."""
+        slope, inter = float(self.slope), float(self.inter)
+        if self.file_dtype.kind not in "iu" or not (slope.is_integer() and inter.is_integer()):
+            return False
+        info = np.iinfo(self.file_dtype)
+        reach = max(abs(slope * info.min + inter), abs(slope * info.max + inter))
+        return reach > 2.0 ** (np.finfo(np.float32).nmant + 1)
 
     def select(self, volume_index: int | None) -> tuple[int, int | None]:
         """The sample block to read for ``volume_index``, and the component it is (or None)."""
