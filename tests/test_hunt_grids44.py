@@ -122,3 +122,15 @@ def test_distance_update_quarter_turn_of_an_oblique_grid_is_exact(run, tmp_path)
     pre = np.rint(np.tensordot(back, np.stack([i, j, k]) - half[:, None, None, None], 1)
                   + half[:, None, None, None]).astype(int)
     np.testing.assert_allclose(moved, ref[pre[2], pre[1], pre[0]], atol=1e-4)
+
+
+def test_default_morph_of_a_nrrd_and_its_nifti_copy_keeps_the_target_border(run, tmp_path):
+    """No --grid: the grids are the same (float32 NIfTI within 1e-6), frame 1 is the target's field."""
+    mask = _ball_touching_border((40, 36, 12))
+    sitk.WriteImage(mask, str(tmp_path / "src.nrrd"))
+    sitk.WriteImage(mask, str(tmp_path / "tgt.nii.gz"))
+    r = run("morph", tmp_path / "src.nrrd", tmp_path / "tgt.nii.gz", "--frames", 2,
+            "-o", tmp_path / "f_{i}.nrrd")
+    assert r.code == 0, r.stderr
+    np.testing.assert_allclose(_on_grid_of(tmp_path / "f_1.nrrd", mask), _exact_sdf(mask),
+                               atol=1e-4)
