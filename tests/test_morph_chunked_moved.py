@@ -166,7 +166,8 @@ def test_the_input_box_is_exactly_enough(outside):
     changed = set()
     for block in Box.from_shape(grid.shape).blocks((3, 4, 3)):
         need = needed_box(m, block, values.shape)
-        part = resample_box(values[need.slices], need, m, block, outside=outside)
+        part = resample_box(values[need.slices], need, m, block, values_shape=values.shape,
+                            outside=outside)
         assert np.array_equal(part, whole[block.slices], equal_nan=True)
         for axis in range(3):
             for side in (0, 1):
@@ -181,7 +182,8 @@ def test_the_input_box_is_exactly_enough(outside):
                 # (a side on the input's own border is not the rule's: nothing lies beyond)
                 if side == 1 and smaller.hi[axis] == vbox.hi[axis]:
                     continue
-                cut = resample_box(values[smaller.slices], smaller, m, block, outside=outside)
+                cut = resample_box(values[smaller.slices], smaller, m, block,
+                                   values_shape=values.shape, outside=outside)
                 if not np.array_equal(cut, whole[block.slices], equal_nan=True):
                     changed.add((axis, side))
     assert changed == {(a, s) for a in range(3) for s in (0, 1)}

@@ -175,10 +175,18 @@ def _translate(src: np.ndarray, offset, fill_value) -> np.ndarray:
 
 
 def _affine_threaded(src: np.ndarray, m_zyx: np.ndarray, fill_value) -> np.ndarray:
-    """SciPy's trilinear affine resampling, split in z slabs over the threads in effect."""
+    """SciPy's trilinear affine resampling, split in z slabs over the threads in effect.
+
+    ``fill_value`` where the pre-image lies off the grid by the morph's rule
+    (:func:`volwarp_cli.morph.interpolate.beyond_grid`): a quarter turn of an
+    oblique grid onto itself put its border voxels 1e-15 voxel outside, and
+    the fill took a shape's voxels there for outside it.
+    """
     from scipy import ndimage
 
     from .. import parallel
+    from ..box import Box
+    from ..morph.interpolate import beyond_grid, sample_coordinates
 
     out = np.empty(src.shape, np.float32)
     nz = src.shape[0]
@@ -188,8 +196,11 @@ def _affine_threaded(src: np.ndarray, m_zyx: np.ndarray, fill_value) -> np.ndarr
     def slab(i):
         z0, z1 = bounds[i], bounds[i + 1]
         offset = m_zyx[:3, 3] + m_zyx[:3, :3] @ [z0, 0, 0]
-        ndimage.affine_transform(src, m_zyx[:3, :3], offset=offset, order=1, mode="constant",
-                                 cval=fill_value, output=out[z0:z1])
+        ndimage.affine_transform(src, m_zyx[:3, :3], offset=offset, order=1, mode="nearest",
+                                 output=out[z0:z1])
+        for z in range(z0, z1):  # (one plane's coordinates at a time: little memory)
+            plane = Box((z, 0, 0), (z + 1, *src.shape[1:]))
+            out[z][beyond_grid(sample_coordinates(m_zyx, plane), src.shape)[0]] = fill_value
 
     parallel.run_blocks(slab, range(len(bounds) - 1), n)
     return out

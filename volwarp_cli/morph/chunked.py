@@ -114,7 +114,8 @@ def resample_chunks(shape, chunks, maps, block_bytes: int) -> tuple[int, int, in
 def _uncovered_task(box: Box, *, m, values_shape):
     need = needed_box(m, box, values_shape)
     ones = np.ones(need.shape, np.float32)  # finite samples: NaN exactly where uncovered
-    return int(np.isnan(resample_box(ones, need, m, box, outside="nan")).sum())
+    return int(np.isnan(resample_box(ones, need, m, box, values_shape=values_shape,
+                                          outside="nan")).sum())
 
 
 def check_covered(job: MorphJob, geometries: dict, matrices: dict, grid: Geometry, run,

@@ -164,7 +164,8 @@ class ResampleOperation(Operation):
         for part in self._parts(box):
             need = needed_box(self.m, part, self.values_shape)
             out[part.lo[0] - box.lo[0]:part.hi[0] - box.lo[0]] = resample_box(
-                self.values[need.slices], need, self.m, part, outside=self.outside)
+                self.values[need.slices], need, self.m, part, values_shape=self.values_shape,
+                outside=self.outside)
         if self.scale != 1.0:
             out *= np.float32(self.scale)
         return {"values": out}

@@ -12,8 +12,9 @@ How the two fields reach one grid (§0.4):
 1. Each field is computed once, on its own input's grid.
 2. It is resampled (trilinear) through the inverse of its alignment onto the
    frame grid (:mod:`.grid`), its values multiplied by the alignment's scale.
-   Where the frame grid lies outside the input's grid the field does not
-   exist; it is filled by the paper's shift-and-increment propagation
+   Where the frame grid lies outside the input's grid (beyond its outer
+   voxel centres by more than :data:`COVER_TOLERANCE`, a rounding's margin)
+   the field does not exist; it is filled by the paper's shift-and-increment propagation
    (§0.5.1, :func:`volwarp_cli.distance.update.fill_uncovered`).
 3. A landmark warp (:mod:`.landmarks`) is applied to the distance fields, as
    in the paper's dependent textures and Cohen-Or et al.:
@@ -72,6 +73,27 @@ def lands_on_grid(shape_zyx, values_i2w: np.ndarray, matrix: np.ndarray,
 #: a coordinate ``c`` reads samples ``floor(c)`` .. ``floor(c) + SUPPORT`` on each axis
 ORDER = 1
 SUPPORT = ORDER
+
+
+#: How far (in voxels) beyond an input's outer voxel centres a frame voxel still lies on the
+#: input, taking its border's value: grids that coincide but for rounding (a NIfTI's float32
+#: spacing beside a NRRD's, a matrix inverted, a quarter turn) put border voxels 1e-7 voxel
+#: outside, and the fill then took them for outside the shape (a mask stored RAS-flipped in
+#: a NIfTI and LPS in a NRRD turned 155 inside voxels of a morph's frame 0 positive)
+COVER_TOLERANCE = 1e-3
+
+
+def beyond_grid(coords: np.ndarray, values_shape) -> np.ndarray:
+    """Where coordinates (3, ...) lie beyond the voxel centres of ``values_shape`` (a bool array).
+
+    Beyond by more than :data:`COVER_TOLERANCE`: nearer, a coordinate is on
+    the grid, and an interpolation with ``mode="nearest"`` gives it the border's value.
+    """
+    out = np.zeros(coords.shape[1:], bool)
+    for axis, n in enumerate(values_shape):
+        out |= coords[axis] < -COVER_TOLERANCE
+        out |= coords[axis] > n - 1 + COVER_TOLERANCE
+    return out
 
 
 def index_map(values_i2w: np.ndarray, matrix: np.ndarray, grid: Geometry) -> np.ndarray:
@@ -139,7 +161,7 @@ def clip_box(first, last, values_shape) -> Box:
     return Box(tuple(int(v) for v in lo), tuple(int(v) for v in hi))
 
 
-def resample_box(values, values_box: Box, m: np.ndarray, box: Box, *,
+def resample_box(values, values_box: Box, m: np.ndarray, box: Box, *, values_shape,
                  outside: str = "nan") -> np.ndarray:
     """Target ``box`` of the frame grid sampled from the values in ``values_box`` through ``m``.
 
@@ -150,8 +172,9 @@ def resample_box(values, values_box: Box, m: np.ndarray, box: Box, *,
     coordinate reaches. The result is then that of the whole grid's: the
     coordinates are the whole grid's (:func:`sample_coordinates`), shifted
     by whole voxels (exact), so the trilinear weights and the samples
-    weighed, hence every float operation, are the same. ``outside``:
-    ``"nan"`` (uncovered voxels are NaN) or ``"nearest"`` (the border sample).
+    weighed, hence every float operation, are the same. ``values_shape``: the
+    whole values grid's; ``outside``: ``"nan"`` (voxels :func:`beyond_grid` are
+    NaN) or ``"nearest"`` (the border sample).
     """
     from scipy import ndimage
 
@@ -160,11 +183,14 @@ def resample_box(values, values_box: Box, m: np.ndarray, box: Box, *,
     if tuple(src.shape) != tuple(values_box.shape):
         raise VolwarpError(f"resample_box: samples of shape {src.shape} for a box of "
                            f"shape {values_box.shape}")
+    beyond = beyond_grid(coords, values_shape) if outside == "nan" else None
     for axis in range(3):
         if values_box.lo[axis]:
             coords[axis] -= values_box.lo[axis]  # exact: a whole number off a coordinate
-    kwargs = {"mode": "constant", "cval": np.nan} if outside == "nan" else {"mode": "nearest"}
-    return ndimage.map_coordinates(src, coords, order=ORDER, output=np.float32, **kwargs)
+    out = ndimage.map_coordinates(src, coords, order=ORDER, output=np.float32, mode="nearest")
+    if beyond is not None:
+        out[beyond] = np.nan
+    return out
 
 
 def warp_on_grid(values: np.ndarray, grid: Geometry, displacement: np.ndarray,
