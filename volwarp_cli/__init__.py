@@ -1,3 +1,3 @@
 """volwarp: a command-line toolkit for modelling with sampled volumes."""
 
-__version__ = "0.1.14"
+__version__ = "0.1.15"
