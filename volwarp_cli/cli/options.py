@@ -96,6 +96,7 @@ the segmentation inputs' ``--reference``, ``--segment``, ``--structure``),
     --segment                 capture warp apply distance mesh info convert
     --segments                convert
     --series                  capture warp apply distance mesh info convert
+    --settle                  batch
     --shape                   sweep
     --shard                   batch
     --sheet                   morph
