@@ -47,6 +47,11 @@ _IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 #: Within the bound the squares of every distance stay normal float32 numbers.
 PLACEMENT_LIMIT = 1e15
 
+#: How far a direction's column may be off a unit vector, and the cosine of two columns
+#: off a right angle, for a grid to count as not sheared (:attr:`Geometry.right_angled`):
+#: a DICOM series' cosines, written to six decimals, stay off by a few millionths.
+AXIS_TOLERANCE = 1e-4
+
 _AXES = "xyz"
 
 
@@ -244,12 +249,23 @@ class Geometry:
     def right_angled(self) -> bool:
         """Whether the index axes are at right angles in the world (the grid is not sheared).
 
-        Within 1e-4 of a right angle's cosine: a DICOM series' row and column
-        cosines, written to six decimals, stay off by a few millionths.
+        Within :data:`AXIS_TOLERANCE` of a right angle's cosine.
         """
         d = self.direction_array
         d = d / np.linalg.norm(d, axis=0)
-        return bool(np.allclose(d.T @ d, np.eye(3), atol=1e-4))
+        return bool(np.allclose(d.T @ d, np.eye(3), atol=AXIS_TOLERANCE))
+
+    @property
+    def orthonormal(self) -> bool:
+        """Whether the direction's columns are unit vectors at right angles (:data:`AXIS_TOLERANCE`).
+
+        Only then is the spacing the world step along each axis, as whatever
+        measures along the axes (a distance field's passes) takes it: every
+        reader but MetaImage's (ITK's ``TransformMatrix``, kept as it stands)
+        gives unit columns.
+        """
+        lengths = np.linalg.norm(self.direction_array, axis=0)
+        return bool(np.abs(lengths - 1).max() <= AXIS_TOLERANCE) and self.right_angled
 
     @property
     def matrix(self) -> np.ndarray:

@@ -7,7 +7,11 @@ Rules (documented in the README and the morph schema):
   source's own lattice, so that a source not moved is sampled at exactly its
   own voxels) to cover the voxel boxes of both aligned inputs plus ``margin``
   voxels on every side.
-* an explicit ``{origin, spacing, size, direction}``.
+* an explicit ``{origin, spacing, size, direction}``; the direction's
+  columns unit vectors at right angles (within the tolerance a volume's
+  grid is taken as not sheared), as every reader gives them: the fields'
+  fill of uncovered voxels and the density's default width measure along
+  the axes by the spacing, a world distance only then.
 * not given: the common grid when source and target share one and there is no
   alignment or warp; ``union`` when an alignment or warp is given; otherwise an
   error (the inputs lie on different grids and nothing says how to combine
@@ -91,9 +95,13 @@ def union_geometry(source: Geometry, target: Geometry, source_matrix: np.ndarray
 
 
 def explicit_grid(spec: dict) -> Geometry:
-    """The grid a spec gives as ``{origin, spacing, size, direction}`` (a GridError if singular).
+    """The grid a spec gives as ``{origin, spacing, size, direction}`` (a GridError: the module doc).
 
-    ``size`` is written (x, y, z); ``spacing`` is one number or three.
+    ``size`` is written (x, y, z); ``spacing`` is one number or three. A
+    direction whose columns are not unit vectors at right angles (the module
+    doc) is refused: a scaled column, a sheared grid (a gantry tilt's) put
+    errors of a quarter to a half of the distance in the fill of uncovered
+    voxels, and it is not the grid the spacing says.
     """
     direction = np.asarray(spec.get("direction", np.eye(3)), dtype=np.float64)
     with np.errstate(over="ignore", invalid="ignore"):
@@ -101,7 +109,19 @@ def explicit_grid(spec: dict) -> Geometry:
     if not abs(det) >= 1e-9:  # also NaN
         raise GridError("the direction matrix is singular (its columns are the axes' "
                         "directions: three independent vectors)", key=("grid", "direction"))
-    return Geometry.from_xyz(spec["size"], spec["spacing"], spec["origin"], direction)
+    grid = Geometry.from_xyz(spec["size"], spec["spacing"], spec["origin"], direction)
+    if not grid.orthonormal:
+        lengths = np.linalg.norm(direction, axis=0)
+        unit = direction / lengths
+        angles = [float(np.degrees(np.arccos(np.clip(unit[:, a] @ unit[:, b], -1, 1))))
+                  for a, b in ((0, 1), (0, 2), (1, 2))]
+        raise GridError(
+            "its columns must be the index axes' unit vectors at right angles (a voxel's size "
+            f"is the spacing): their lengths are x {lengths[0]:.6g}, y {lengths[1]:.6g}, "
+            f"z {lengths[2]:.6g}, the angles x-y {angles[0]:.6g}, x-z {angles[1]:.6g}, "
+            f"y-z {angles[2]:.6g} degrees (the frames' fields are measured along the axes by "
+            "the spacing)", key=("grid", "direction"))
+    return grid
 
 
 def choose_grid(grid_spec, source: Geometry, target: Geometry, source_matrix: np.ndarray,
