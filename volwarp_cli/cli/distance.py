@@ -250,8 +250,10 @@ def _update(old_path, transform_path, output, metric, max_distance, *, write, re
     import numpy as np
 
     from ..distance.field import finish_field
+    from ..distance.operation import check_axes
     from ..distance.update import field_and_centre, update_distance
     from ..errors import VolwarpError
+    from ..geometry import Geometry
     from ..io.lazy import open_volume_header
     from ..memory import ensure_fits_in_memory
     from ..morph.align import affine_from_params
@@ -265,6 +267,7 @@ def _update(old_path, transform_path, output, metric, max_distance, *, write, re
     check_input_options(old_path, read["raw"], read["dicom"])
     header = open_volume_header(old_path, raw=read["raw"], volume_index=read["volume_index"],
                                 dicom=read["dicom"], samples=False)[0]  # (its shape: none read)
+    check_axes(Geometry.of(header), str(old_path))  # (the fill measures along the axes)
     # (in memory: the field read, moved, its unknown voxels and the fill's passes; a hunt
     # measured 357 MiB for 256^3 under --memory-limit 160M, nothing charged)
     ensure_fits_in_memory(UPDATE_BYTES_PER_VOXEL * int(np.prod(header.shape))

@@ -9,6 +9,8 @@ run in passes (:mod:`.passes`). Either is an operation of
 
 from __future__ import annotations
 
+import numpy as np
+
 from ..errors import VolwarpError
 from .band import BandedDistance
 from .field import check_method
@@ -26,13 +28,10 @@ def field_operation(source, grid, rule, *, metric: str, surface: str,
     refused (the message starts with ``name``, the input, when given): every pass measures along an index
     axis by its spacing, a world distance only where the axes meet at right
     angles (a z axis leaning half a voxel per plane put 3.5 mm errors in a
-    10 mm ball's field).
+    10 mm ball's field); so is one whose direction's columns are not unit
+    vectors (the spacing is not the world step then).
     """
-    if not grid.right_angled:
-        raise VolwarpError(f"{name + ': ' if name else ''}its grid is sheared (its axes are not at right angles), "
-                           "and a distance field's passes measure along the axes: resample it "
-                           "onto a grid with right angles first (volwarp apply --reference), "
-                           "or read a tilted DICOM series without --keep-shear")
+    check_axes(grid, name)
     check_method(metric, surface)
     if metric == "euclidean" and (max_distance is not None or surface == "subvoxel"):
         return BandedDistance(source, grid, rule, surface=surface, max_distance=max_distance,
@@ -44,6 +43,25 @@ def field_operation(source, grid, rule, *, metric: str, surface: str,
                               max_distance=max_distance)
 
 
+def check_axes(grid, name: str | None = None) -> None:
+    """Refuse a grid along whose axes the spacing is not the world step (:func:`field_operation`).
+
+    ``name``: the input, which the message starts with when given.
+    """
+    if not grid.right_angled:
+        raise VolwarpError(f"{name + ': ' if name else ''}its grid is sheared (its axes are not at right angles), "
+                           "and a distance field's passes measure along the axes: resample it "
+                           "onto a grid with right angles first (volwarp apply --reference), "
+                           "or read a tilted DICOM series without --keep-shear")
+    if not grid.orthonormal:
+        lengths = ", ".join(f"{v:.6g}" for v in np.linalg.norm(grid.direction_array, axis=0))
+        raise VolwarpError(f"{name + ': ' if name else ''}its direction's columns are not unit "
+                           f"vectors (lengths {lengths}, as a MetaImage's TransformMatrix may "
+                           "have them), so its spacing is not the world step a distance "
+                           "field's passes measure by: convert it to .nrrd first (the lengths "
+                           "become its spacing)")
+
+
 def field_memory(shape_zyx, dtype, *, metric: str = "euclidean", surface: str = "auto",
                  max_distance: float | None = None) -> int:
     """The bytes the in-memory field of a grid of ``shape_zyx`` and ``dtype`` holds at its peak.
@@ -53,8 +71,6 @@ def field_memory(shape_zyx, dtype, *, metric: str = "euclidean", surface: str = 
     ``surface="auto"`` the euclidean field's larger of the voxel and
     sub-voxel ways (which one, the samples say); ``max_distance``: a band's.
     """
-    import numpy as np
-
     from ..geometry import Geometry
     from .labels import ShapeRule
 
