@@ -177,8 +177,8 @@ def _translate(src: np.ndarray, offset, fill_value) -> np.ndarray:
 def _affine_threaded(src: np.ndarray, m_zyx: np.ndarray, fill_value) -> np.ndarray:
     """SciPy's trilinear affine resampling, split in z slabs over the threads in effect.
 
-    ``fill_value`` where the pre-image lies off the grid by the morph's rule
-    (:func:`volwarp_cli.morph.interpolate.beyond_grid`): a quarter turn of an
+    ``fill_value`` where the pre-image lies off the grid by the one rule
+    (:func:`volwarp_cli.geometry.beyond_grid`): a quarter turn of an
     oblique grid onto itself put its border voxels 1e-15 voxel outside, and
     the fill took a shape's voxels there for outside it.
     """
@@ -186,7 +186,8 @@ def _affine_threaded(src: np.ndarray, m_zyx: np.ndarray, fill_value) -> np.ndarr
 
     from .. import parallel
     from ..box import Box
-    from ..morph.interpolate import beyond_grid, sample_coordinates
+    from ..geometry import beyond_grid
+    from ..morph.interpolate import sample_coordinates
 
     out = np.empty(src.shape, np.float32)
     nz = src.shape[0]
