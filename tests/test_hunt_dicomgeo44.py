@@ -11,9 +11,11 @@ linear ramps that linear interpolation reproduces exactly.
 
 from __future__ import annotations
 
+import nibabel as nib
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from scipy import ndimage
 from test_io_dicom import sitk_series, write_series
 
 from volwarp_cli.io.dicom import read_dicom
@@ -82,3 +84,35 @@ def test_tilted_irregular_series_keeps_the_field_rows_of_each_slice(tmp_path, dz
         got = vol.data[ijk[:, 2], ijk[:, 1], ijk[:, 0]]
         np.testing.assert_allclose(got, _ramp_world(vol.index_to_world(ijk)), atol=0.51,
                                    err_msg=f"slice {m}")
+
+
+def test_distance_update_by_whole_voxels_of_a_nifti_keeps_the_border_plane(run, tmp_path):
+    """A ball on a NIfTI's x = n - 1 face (spacing 0.7: 0.69999999 in float32) moved 1.4 mm
+    back along x by ``distance --update``: the field is the old one two voxels on, the
+    border plane too. 1.4 / 0.69999999 was 2.00000003 voxels; the plane read a hair past
+    the last one took the fill, and its 81 inside voxels came out outside, exit 0."""
+    nx, ny, nz = 30, 24, 8
+    spacing = (0.7, 0.7, 3.0)
+    k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    world = np.stack([i, j, k], -1) * spacing
+    centre = np.array([nx - 1, ny // 2, nz // 2]) * spacing
+    mask = np.linalg.norm(world - centre, axis=-1) <= 7.0  # [z, y, x]
+    affine = np.diag([-spacing[0], -spacing[1], spacing[2], 1.0])  # RAS of LPS axes
+    nib.save(nib.Nifti1Image(np.transpose(mask, (2, 1, 0)).astype(np.uint8), affine),
+             str(tmp_path / "m.nii.gz"))
+    r = run("distance", tmp_path / "m.nii.gz", "-o", tmp_path / "d.nrrd")
+    assert r.code == 0, r.stderr
+    img = sitk.ReadImage(str(tmp_path / "d.nrrd"))
+    assert img.GetSpacing()[0] != 0.7  # float32's 0.7, as the NIfTI holds it
+    old = sitk.GetArrayFromImage(img)
+    samp = img.GetSpacing()[::-1]
+    exact = (ndimage.distance_transform_edt(~mask, sampling=samp)
+             - ndimage.distance_transform_edt(mask, sampling=samp))
+    np.testing.assert_allclose(old, exact, atol=1e-4)
+    (tmp_path / "t.yaml").write_text("version: 1\ntranslate: [-1.4, 0, 0]\n")
+    r = run("distance", "--update", tmp_path / "d.nrrd", "--transform", tmp_path / "t.yaml",
+            "-o", tmp_path / "u.nrrd")
+    assert r.code == 0, r.stderr
+    new = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "u.nrrd")))
+    np.testing.assert_array_equal(new[..., :nx - 2], old[..., 2:])
+    assert (new[..., nx - 3] < 0).sum() == mask[..., nx - 1].sum()
