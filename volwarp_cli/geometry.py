@@ -55,6 +55,42 @@ AXIS_TOLERANCE = 1e-4
 _AXES = "xyz"
 
 
+#: How far (in voxels) beyond an input's outer voxel centres a frame voxel still lies on the
+#: input, taking its border's value: grids that coincide but for rounding (a NIfTI's float32
+#: spacing beside a NRRD's, a matrix inverted, a quarter turn, a DICOM series' positions in
+#: decimal strings) put border voxels 1e-7 voxel outside, and the fill then took them for
+#: outside the shape (a mask stored RAS-flipped in a NIfTI and LPS in a NRRD turned 155
+#: inside voxels of a morph's frame 0 positive). Every resampling that marks samples off its
+#: input's grid (NaN, a fill) follows it: :func:`beyond_grid`, :func:`snap_to_samples`.
+COVER_TOLERANCE = 1e-3
+
+
+def beyond_grid(coords: np.ndarray, values_shape) -> np.ndarray:
+    """Where coordinates (3, ...) lie beyond the voxel centres of ``values_shape`` (a bool array).
+
+    Beyond by more than :data:`COVER_TOLERANCE`: nearer, a coordinate is on
+    the grid, and an interpolation with ``mode="nearest"`` gives it the border's value.
+    """
+    out = np.zeros(coords.shape[1:], bool)
+    for axis, n in enumerate(values_shape):
+        out |= coords[axis] < -COVER_TOLERANCE
+        out |= coords[axis] > n - 1 + COVER_TOLERANCE
+    return out
+
+
+def snap_to_samples(coords) -> np.ndarray:
+    """Coordinates within :data:`COVER_TOLERANCE` of a whole number made that number.
+
+    Coordinates in voxels: shifts, offsets, interpolation weights. A sample a
+    rounding off another is that sample, for the resamplings that cannot clamp
+    (a fill outside, NaN carried on): there, one a hair off the border's sample
+    read the fill beside it, or blended it in.
+    """
+    coords = np.asarray(coords, dtype=np.float64)
+    whole = np.rint(coords)
+    return np.where(np.abs(coords - whole) <= COVER_TOLERANCE, whole, coords)
+
+
 def check_placement(spacing, origin, direction, shape_xyz=None, *, where: str | None = None,
                     fields: dict | None = None, error=FormatError):
     """``(spacing, origin, direction)`` as float64 arrays, or an error naming the bad field.

@@ -42,7 +42,7 @@ import numpy as np
 
 from ..box import Box
 from ..errors import VolwarpError
-from ..geometry import Geometry
+from ..geometry import COVER_TOLERANCE, Geometry, beyond_grid  # noqa: F401 (the rule's home)
 from .landmarks import LandmarkWarp
 
 
@@ -73,27 +73,6 @@ def lands_on_grid(shape_zyx, values_i2w: np.ndarray, matrix: np.ndarray,
 #: a coordinate ``c`` reads samples ``floor(c)`` .. ``floor(c) + SUPPORT`` on each axis
 ORDER = 1
 SUPPORT = ORDER
-
-
-#: How far (in voxels) beyond an input's outer voxel centres a frame voxel still lies on the
-#: input, taking its border's value: grids that coincide but for rounding (a NIfTI's float32
-#: spacing beside a NRRD's, a matrix inverted, a quarter turn) put border voxels 1e-7 voxel
-#: outside, and the fill then took them for outside the shape (a mask stored RAS-flipped in
-#: a NIfTI and LPS in a NRRD turned 155 inside voxels of a morph's frame 0 positive)
-COVER_TOLERANCE = 1e-3
-
-
-def beyond_grid(coords: np.ndarray, values_shape) -> np.ndarray:
-    """Where coordinates (3, ...) lie beyond the voxel centres of ``values_shape`` (a bool array).
-
-    Beyond by more than :data:`COVER_TOLERANCE`: nearer, a coordinate is on
-    the grid, and an interpolation with ``mode="nearest"`` gives it the border's value.
-    """
-    out = np.zeros(coords.shape[1:], bool)
-    for axis, n in enumerate(values_shape):
-        out |= coords[axis] < -COVER_TOLERANCE
-        out |= coords[axis] > n - 1 + COVER_TOLERANCE
-    return out
 
 
 def index_map(values_i2w: np.ndarray, matrix: np.ndarray, grid: Geometry) -> np.ndarray:

@@ -54,7 +54,10 @@ Geometry
     gaps must agree within max(1e-3 * spacing, 0.01 mm), else a FormatError
     names the gap (a multiple of the spacing is reported as missing slices),
     unless ``irregular="resample"``: then the stack is linearly interpolated
-    onto a uniform grid of the smallest gap, along the normal, with a warning.
+    onto a uniform grid of the smallest gap, along the normal, with a warning
+    (an extent within that tolerance of a whole number of gaps is that number,
+    and a grid slice within 1e-3 gap of an input slice is that slice:
+    positions are decimal strings of a few digits).
     Images at one position (exact copies dropped before): an error, or
     ``duplicates="first"``/``"last"`` keeps the first/last of them in file
     order (files sorted by path, frames by frame number), at every position.

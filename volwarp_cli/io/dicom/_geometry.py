@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import FormatError
+from ...geometry import snap_to_samples
 from ...progress import log
 
 
@@ -80,11 +81,18 @@ def plan_stack(frames, where: str, *, irregular: str = "error", duplicates: str 
         if irregular != "resample":
             raise FormatError(_gap_message(where, frames, gaps, nominal, tol, bad))
         step = float(gaps.min())
-        n_out = int(math.ceil(extent / step - 1e-6)) + 1
+        steps = extent / step
+        # (the extent a whole number of the smallest gap within the gaps' tolerance is that
+        # number: 1/3 mm slices at positions of six decimals, one missing, spanned 6.00001
+        # gaps, and the grid had 8 slices 0.286 mm apart, none of them an input slice)
+        whole = round(steps)
+        n_out = (whole if abs(steps - whole) * step <= tol else int(math.ceil(steps))) + 1
         step = extent / (n_out - 1)
         targets = d[0] + step * np.arange(n_out)
         ks = np.clip(np.searchsorted(d, targets, side="right") - 1, 0, n - 2)
-        ws = np.clip((targets - d[ks]) / (d[ks + 1] - d[ks]), 0.0, 1.0)
+        # (a target a rounding off an input slice is that slice: weighed 1e-15 against the
+        # next one, a tilted slice's out-of-field rim, NaN, took a row of the field with it)
+        ws = snap_to_samples(np.clip((targets - d[ks]) / (d[ks + 1] - d[ks]), 0.0, 1.0))
         planes = list(zip(ks.tolist(), ws.tolist(), strict=True))
         log.warning("warning: %s: irregular slice spacing (gaps %.4g..%.4g mm): resampled linearly onto "
                     "%d slices %.4g mm apart along the slice normal", where, gaps.min(),
@@ -106,26 +114,13 @@ def plan_stack(frames, where: str, *, irregular: str = "error", duplicates: str 
             return Plan(frames, pos[0], direction, np.array([sx, sy, step * length]), n_out,
                         planes=planes)
         q = inplane
-        shifts = _snap(np.column_stack([q @ col / sy, q @ row / sx]))
+        # (positions to six decimals put a shift of 3 pixels at 3.0000004: the slice's edge
+        # column then lay a hair outside the field and took the fill, exit 0)
+        shifts = snap_to_samples(np.column_stack([q @ col / sy, q @ row / sx]))
         log.warning("warning: %s: gantry tilt of %.3g degrees: resampled onto an orthogonal grid "
                     "(keep the sheared geometry with --keep-shear)", where, angle)
     return Plan(frames, pos[0], direction, np.array([sx, sy, step]), n_out, shifts=shifts,
                 planes=planes)
-
-
-#: pixels: a tilt shift this near a whole number of pixels is that number
-_SNAP = 1e-3
-
-
-def _snap(shifts: np.ndarray) -> np.ndarray:
-    """In-plane shifts (pixels) within :data:`_SNAP` of a whole number made that number.
-
-    Positions to six decimals put a shift of 3 pixels at 3.0000004: the slice's
-    edge column then lay a hair outside the field and took the fill, the
-    volume's minimum (linear and nearest alike), exit 0.
-    """
-    whole = np.rint(shifts)
-    return np.where(np.abs(shifts - whole) <= _SNAP, whole, shifts)
 
 
 def inplane_offsets(pos: np.ndarray, normal: np.ndarray) -> np.ndarray:
