@@ -13,7 +13,7 @@ How the two fields reach one grid (§0.4):
 2. It is resampled (trilinear) through the inverse of its alignment onto the
    frame grid (:mod:`.grid`), its values multiplied by the alignment's scale.
    Where the frame grid lies outside the input's grid (beyond its outer
-   voxel centres by more than :data:`COVER_TOLERANCE`, a rounding's margin)
+   voxel centres by more than :data:`~volwarp_cli.geometry.COVER_TOLERANCE`, a rounding's margin)
    the field does not exist; it is filled by the paper's shift-and-increment propagation
    (§0.5.1, :func:`volwarp_cli.distance.update.fill_uncovered`).
 3. A landmark warp (:mod:`.landmarks`) is applied to the distance fields, as
@@ -42,7 +42,7 @@ import numpy as np
 
 from ..box import Box
 from ..errors import VolwarpError
-from ..geometry import COVER_TOLERANCE, Geometry, beyond_grid  # noqa: F401 (the rule's home)
+from ..geometry import Geometry, beyond_grid
 from .landmarks import LandmarkWarp
 
 
