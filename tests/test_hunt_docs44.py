@@ -53,3 +53,30 @@ def test_a_stopped_run_counts_the_scans_still_arriving_as_done_with():
     line = summary_line(results, stop=signal.SIGTERM)
     assert line.startswith("volwarp batch: stopped by SIGTERM with 2 of 3 done: "), line
     assert line.endswith("1 not started, 1 still arriving"), line
+
+
+def test_a_compressed_multiframe_dicom_is_read_without_a_stray_traceback(monkeypatch):
+    """pydicom's frame generator was left suspended past the file's close: every read of a
+    compressed multi-frame file (RLE, JPEG 2000, a BINARY SEG read in a folder) printed
+    'Exception ignored in: <generator object iter_pixels> ... ValueError: seek of closed
+    file' on stderr. The samples are pydicom's own decoding."""
+    import gc
+    import sys
+
+    import numpy as np
+    import pytest
+
+    pydicom = pytest.importorskip("pydicom")
+    from pydicom.data import get_testdata_file
+
+    from volwarp_cli.io import read_volume
+
+    stray = []
+    monkeypatch.setattr(sys, "unraisablehook", stray.append)
+    path = get_testdata_file("emri_small_RLE.dcm")
+    vol = read_volume(path)
+    gc.collect()
+    assert not stray, [f"{u.exc_type.__name__}: {u.exc_value}" for u in stray]
+    frames = pydicom.dcmread(path).pixel_array  # [frame, y, x]
+    assert sorted(vol.data.reshape(-1).tolist()) == sorted(frames.reshape(-1).tolist())
+    assert np.asarray(vol.data).shape == frames.shape
