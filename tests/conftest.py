@@ -42,7 +42,7 @@ def _series_written_just_now(monkeypatch):
     """No warning that a DICOM folder's newest file is seconds old (a copy under way?).
 
     Every test reads the series it wrote a moment before, and many check that
-    a command says one line; the warning is tested in ``test_hunt_settle.py``.
+    a command says one line; the warning is tested in ``test_batch_settle.py``.
     """
     try:
         from volwarp_cli.io.dicom import _scan

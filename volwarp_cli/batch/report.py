@@ -124,7 +124,8 @@ def summary_line(results: list[ScanResult], *, stop: int | None = None,
         parts.append(f"{c['still_arriving']} {ARRIVING}")
     line = "volwarp batch: "
     if stop is not None:
-        done = c["ok"] + c["skipped"] + c["failed"]
+        # (a scan still arriving was left to the next run: dealt with, not cut short)
+        done = c["ok"] + c["skipped"] + c["failed"] + c["still_arriving"]
         line += f"stopped by {signal.Signals(stop).name} with {done} of {c['scans']} done: "
     line += ", ".join(parts)
     failed = [r for r in results if r.status == "failed"]

@@ -17,7 +17,7 @@ import signal
 from pathlib import Path
 
 from .report import counts, short_error, short_warnings, summary_line
-from .run import ScanResult
+from .run import ARRIVING, ScanResult
 
 _ORDER = {"failed": 0, "stopped": 1, "not started": 2, "still arriving": 3, "ok": 4,
           "skipped": 5}
@@ -95,7 +95,9 @@ def _figure(label: str, png: bytes | None) -> str:
 def _card(r: ScanResult) -> str:
     status = r.status
     cls = "status-" + status.replace(" ", "-")
-    facts = [f"{r.seconds:.1f} s"]
+    # (a scan not run, still arriving or not started, has no time of its own: "0.0 s" read
+    # as a run that took none)
+    facts = [] if status in (ARRIVING, "not started") else [f"{r.seconds:.1f} s"]
     if r.peak_rss is not None:
         facts.append(f"peak {_size(r.peak_rss)}")
     if r.attempts > 1:
@@ -105,7 +107,7 @@ def _card(r: ScanResult) -> str:
     parts = [f'<div class="scan {cls}" id="scan-{_e(r.scan.id)}" data-scan="{_e(r.scan.id)}" '
              f'data-status="{_e(status)}">',
              f'<h2>{_e(r.scan.id)} <span class="status">{_e(status)}</span></h2>',
-             f'<div class="facts">{_e(" · ".join(facts))}</div>']
+             *([f'<div class="facts">{_e(" · ".join(facts))}</div>'] if facts else [])]
     if status == "failed":
         parts.append(f'<div class="error">{_e(short_error(r.error, r))}</div>')
     if r.reason:  # (a scan still arriving: not read this run)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 import warnings
 from collections import defaultdict
-from contextlib import contextmanager
+from contextlib import closing, contextmanager, nullcontext
 
 import numpy as np
 
@@ -261,14 +261,16 @@ def _read_decoded(fi, items, dtype: np.dtype, out: np.ndarray) -> None:
             warnings.simplefilter("ignore")
             src = _source(fi, fh)
             if fi.n_frames == 1:
-                arrays = [pixel_array(src, raw=True)]
-            else:
-                arrays = iter_pixels(src, indices=[t[0] for t in items], raw=True)
-            for (frame, slot, fr), arr in zip(items, arrays, strict=False):
-                if arr.shape != (fi.rows, fi.columns):
-                    raise FormatError(f"{fi.path}: frame {frame + 1} decodes to shape "
-                                      f"{arr.shape}, expected ({fi.rows}, {fi.columns})")
-                _store(arr, fi, fr, dtype, out[slot])
+                frames = nullcontext([pixel_array(src, raw=True)])
+            else:  # (closed while its file is open: left suspended, it seeked the closed
+                # file when collected, and Python printed that traceback on stderr)
+                frames = closing(iter_pixels(src, indices=[t[0] for t in items], raw=True))
+            with frames as arrays:
+                for (frame, slot, fr), arr in zip(items, arrays, strict=False):
+                    if arr.shape != (fi.rows, fi.columns):
+                        raise FormatError(f"{fi.path}: frame {frame + 1} decodes to shape "
+                                          f"{arr.shape}, expected ({fi.rows}, {fi.columns})")
+                    _store(arr, fi, fr, dtype, out[slot])
     except FormatError:
         raise
     except Exception as exc:  # pydicom and its plugins raise many types for damaged data
