@@ -29,9 +29,11 @@ by name and content.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
+import stat
 import threading
 import time
 from pathlib import Path
@@ -178,19 +180,22 @@ def last_change(files, now: float) -> float | None:
     """The latest :func:`changed_at` of ``files`` (None: no file).
 
     A file gone since it was listed was being moved: it changed ``now``. A
-    link whose target is missing counts by its own times (it stays as it is).
+    link counts by its own times and its target's (a series of links made
+    one by one to slices stored long ago was read short, its slices' old
+    times taken: exit 0); one whose target is missing by its own.
     """
     newest = None
     for f in files:
         try:
-            st = os.stat(f)
+            found = [os.lstat(f)]
         except OSError:
-            try:
-                st = os.lstat(f)
-            except OSError:
-                return now
-        t = changed_at(st, now)
-        newest = t if newest is None or t > newest else newest
+            return now
+        if stat.S_ISLNK(found[0].st_mode):
+            with contextlib.suppress(OSError):
+                found.append(os.stat(f))
+        for st in found:
+            t = changed_at(st, now)
+            newest = t if newest is None or t > newest else newest
     return newest
 
 

@@ -1,0 +1,58 @@
+"""Review of the batch's settle time and the nested-output checks (review44a)."""
+
+from __future__ import annotations
+
+import os
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pydicom = pytest.importorskip("pydicom")
+sitk = pytest.importorskip("SimpleITK")
+
+from test_io_dicom import write_series  # noqa: E402
+
+from volwarp_cli.batch import plan  # noqa: E402
+
+HOUR = 3600.0
+STACK = np.arange(4 * 5 * 6, dtype=np.int16).reshape(4, 5, 6) * 3 - 40
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    """The batch's clock an hour ahead: every file the test wrote is an hour old."""
+    monkeypatch.setattr(plan, "_now", lambda: time.time() + HOUR)
+    return lambda: time.time() + HOUR
+
+
+def _summary(stderr: str) -> str:
+    line = [line for line in stderr.splitlines() if line.startswith("volwarp batch:")][-1]
+    return re.sub(r" \(\d+ with warnings\)", "", line)
+
+
+def _manifest(root: Path, scans: str) -> Path:
+    m = root / "m.yaml"
+    m.write_text(f"version: 1\ninputs: {{list: [{scans}]}}\noutput_dir: out\nsteps:\n"
+                 "  - {name: conv, run: convert, output: \"{stem}.nrrd\"}\n")
+    return m
+
+
+def test_a_series_of_links_being_made_is_still_arriving(tmp_path, run, clock):
+    """A series folder of links to slices stored an hour ago, two of its four links made
+    just now (the rest to come): the links' own times say the folder is arriving; the
+    targets' old times read it short (2 of 4 slices, "ok", exit 0)."""
+    paths = write_series(tmp_path / "store", STACK)
+    series = tmp_path / "scans" / "b"
+    series.mkdir(parents=True)
+    for p in paths[:2]:
+        link = series / p.name
+        link.symlink_to(p)
+        os.utime(link, (clock(), clock()), follow_symlinks=False)  # made just now
+    res = run("batch", _manifest(tmp_path, "scans/b"), "--progress", "lines")
+    assert res.code == 0, res.stderr
+    assert "still arriving scans/b (newest file 0 s old, settle 60 s)" in res.stderr, res.stderr
+    assert _summary(res.stderr).endswith("0 ok, 0 skipped, 0 failed, 1 still arriving")
+    assert not (tmp_path / "out" / "scans" / "b.nrrd").exists()
