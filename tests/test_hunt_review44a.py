@@ -56,3 +56,24 @@ def test_a_series_of_links_being_made_is_still_arriving(tmp_path, run, clock):
     assert "still arriving scans/b (newest file 0 s old, settle 60 s)" in res.stderr, res.stderr
     assert _summary(res.stderr).endswith("0 ok, 0 skipped, 0 failed, 1 still arriving")
     assert not (tmp_path / "out" / "scans" / "b.nrrd").exists()
+
+
+@pytest.mark.parametrize("how", ["a slice folder moved in", "an empty folder"])
+def test_a_folder_changed_just_now_is_still_arriving(tmp_path, run, clock, how):
+    """The folder's own times count: a folder of slices ``mv``-ed into the series keeps its
+    slices' old times (a rename changes the folder's, not its files'), and on exFAT or sshfs
+    (no ctime: ``rsync -a`` dates each slice back) only the folder's mtime says a slice came;
+    a series folder just made has no slice yet. Read at once: 2 of 4 slices, "ok", exit 0
+    (and the empty folder a failure, exit 1)."""
+    series = tmp_path / "scans" / "b"
+    series.mkdir(parents=True)
+    if how != "an empty folder":
+        paths = write_series(tmp_path / "staging", STACK)
+        (series / "part1").mkdir()
+        for p in paths[:2]:
+            p.rename(series / "part1" / p.name)
+    os.utime(series, (clock(), clock()))  # (its entries changed just now)
+    res = run("batch", _manifest(tmp_path, "scans/b"), "--progress", "lines")
+    assert res.code == 0, res.stderr
+    assert "still arriving scans/b (newest file 0 s old, settle 60 s)" in res.stderr, res.stderr
+    assert not (tmp_path / "out" / "scans" / "b.nrrd").exists()

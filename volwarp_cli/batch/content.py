@@ -207,8 +207,18 @@ def age_words(age: float) -> str:
 
 
 def input_last_change(path: str | os.PathLike, now: float) -> float | None:
-    """:func:`last_change` of every file ``path`` stands for (those :func:`content_digest` reads)."""
-    return last_change(_content_files(Path(path))[0], now)
+    """:func:`last_change` of every file ``path`` stands for (those :func:`content_digest` reads).
+
+    A folder's own, and each folder its files lie in, count too: a folder of
+    slices moved in keeps its slices' times (a rename changes the folder's
+    entries, not its files), on exFAT or sshfs (no ctime) ``rsync -a`` dates
+    each slice back and only the folder's mtime says one came, and a folder
+    just made has no file yet.
+    """
+    files, _ = _content_files(Path(path))
+    if Path(path).is_dir():
+        files = [*files, *dict.fromkeys([Path(path), *(f.parent for f in files)])]
+    return last_change(files, now)
 
 
 def content_stamp(path: str | os.PathLike) -> list:
