@@ -77,3 +77,22 @@ def test_a_folder_changed_just_now_is_still_arriving(tmp_path, run, clock, how):
     assert res.code == 0, res.stderr
     assert "still arriving scans/b (newest file 0 s old, settle 60 s)" in res.stderr, res.stderr
     assert not (tmp_path / "out" / "scans" / "b.nrrd").exists()
+
+
+def test_a_scan_that_is_a_link_made_just_now_is_read(tmp_path, run, clock):
+    """A script linking each series into ``scans/`` before the batch runs: the link's own
+    time is no slice arriving (the scan would be held back at every run)."""
+    write_series(tmp_path / "pacs" / "b", STACK)
+    (tmp_path / "scans").mkdir()
+    link = tmp_path / "scans" / "b"
+    link.symlink_to(tmp_path / "pacs" / "b")
+    os.utime(link, (clock(), clock()), follow_symlinks=False)  # made just now
+    res = run("batch", _manifest(tmp_path, "scans/b"), "--progress", "lines")
+    assert res.code == 0, res.stderr
+    assert _summary(res.stderr) == "volwarp batch: 1 scan, 1 ok, 0 skipped, 0 failed"
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(tmp_path / "pacs" / "b")))
+    from volwarp_cli.io import read_volume
+
+    np.testing.assert_array_equal(read_volume(tmp_path / "out" / "scans" / "b.nrrd").data,
+                                  sitk.GetArrayFromImage(reader.Execute()))

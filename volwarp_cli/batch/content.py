@@ -213,11 +213,15 @@ def input_last_change(path: str | os.PathLike, now: float) -> float | None:
     slices moved in keeps its slices' times (a rename changes the folder's
     entries, not its files), on exFAT or sshfs (no ctime) ``rsync -a`` dates
     each slice back and only the folder's mtime says one came, and a folder
-    just made has no file yet.
+    just made has no file yet. A link that is ``path`` itself counts by its
+    target's times only (a script making a link to each series before the
+    batch runs would else hold every scan back at every run).
     """
-    files, _ = _content_files(Path(path))
-    if Path(path).is_dir():
-        files = [*files, *dict.fromkeys([Path(path), *(f.parent for f in files)])]
+    path = Path(path)
+    files, _ = _content_files(path)
+    if path.is_dir():
+        folders = dict.fromkeys(f.parent for f in files if f.parent != path)
+        files = [*files, Path(os.path.realpath(path)), *folders]
     return last_change(files, now)
 
 
