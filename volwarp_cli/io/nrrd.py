@@ -287,17 +287,17 @@ def _check_space_fields(fields: dict[str, str], where: str) -> None:
                 raise FormatError(f"{where}: '{name}' without 'space' or 'space dimension' "
                                   "(the space it is given in)")
         return
-    given = [n for n in _AXIS_PLACING
-             if n in fields and any(v.lower() != "nan" for v in fields[n].split())]
-    if any(w.strip().lower() not in ("", "???", "none") for w in _unit_words(fields, "units")
-           or []):
-        given.append("units")
-    if "space directions" in fields:
+    placed = {n: _placed_axes(fields, n) for n in (*_AXIS_PLACING, "units") if n in fields}
+    if "space directions" in fields:  # (a ``none`` axis, a sequence's time, may have them)
+        directed = {a for a, e in enumerate(fields["space directions"].split())
+                    if e.lower() != "none"}
+        given = [n for n, axes in placed.items() if axes & directed]
         if given:  # (teem refuses them; they were dropped silently)
             raise FormatError(f"{where}: '{given[0]}' beside 'space directions': an axis with "
                               f"a direction vector takes no {given[0]} (give NaN, or one of "
                               "the two)")
         return
+    given = [n for n, axes in placed.items() if axes]
     if given:
         raise FormatError(f"{where}: '{given[0]}' in a 'space' without 'space directions': "
                           "the axes have no direction in it (ITK refuses or ignores "
@@ -309,6 +309,19 @@ def _check_space_fields(fields: dict[str, str], where: str) -> None:
     if frame is not None and not np.array_equal(frame, np.eye(3)):
         raise FormatError(f"{where}: 'space: {fields['space']}' without 'space directions': "
                           "the axes have no direction in it (give 'space directions')")
+
+
+def _placed_axes(fields: dict[str, str], name: str) -> set[int]:
+    """The axes a per-axis field (``spacings``, ``axis mins``, ``units``...) gives a value.
+
+    NaN gives none, nor an empty, ``???`` or ``none`` unit: teem's rule is
+    per axis (an axis with a direction vector takes none of them), and
+    3D Slicer writes ``units: "" "" "" "s"`` for a sequence's time axis.
+    """
+    if name == "units":
+        words = _unit_words(fields, name) or []
+        return {a for a, w in enumerate(words) if w.strip().lower() not in ("", "???", "none")}
+    return {a for a, v in enumerate(fields[name].split()) if v.lower() != "nan"}
 
 
 _QUOTED = re.compile(r'"([^"]*)"')
