@@ -7,7 +7,7 @@ pixel), and so are resolution tags without a ResolutionUnit. volwarp read
 72 dpi as 0.353 mm voxels and a 300 "dpi" without a unit as 0.0033 mm ones,
 silently; and a plain stack's z spacing, which no plain TIFF holds, was 1 mm
 beside x and y in micrometres without a word. A zero resolution, or one of
-denominator 0, gave x 1 beside y's tag: now refused.
+denominator 0, gave x 1 beside y's tag: now no size, as ImageJ reads it.
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ import pytest
 import tifffile
 from PIL import Image
 
-from volwarp_cli.errors import FormatError
 from volwarp_cli.io import read_volume
 from volwarp_cli.io.lazy import open_volume_header
 from volwarp_cli.runscope import run_scope
@@ -152,8 +151,11 @@ def test_the_warning_is_said_once_a_run(tmp_path, caplog):
 
 @pytest.mark.parametrize("imagej", [False, True])
 @pytest.mark.parametrize("num,den", [(0, 1), (4, 0), (0, 0)])
-def test_a_resolution_that_is_no_positive_number_is_refused(tmp_path, run, imagej, num, den):
-    """x was read 1 (the tag skipped) beside y's 0.25 mm: a made-up, anisotropic voxel."""
+def test_a_resolution_of_zero_is_no_size_as_imagej_reads_it(tmp_path, run, caplog, imagej,
+                                                            num, den):
+    """x was read 1 (the tag skipped) beside y's 0.25 mm: a made-up, anisotropic voxel;
+    then such files were refused (Pillow writes 0/1 for dpi=(0, 0)). ImageJ's TiffDecoder
+    takes a zero resolution for a missing tag: y's then gives both axes, said."""
     path = tmp_path / "r.tif"
     meta = {"axes": "ZYX", "unit": "mm", "spacing": 2.0} if imagej else None
     tifffile.imwrite(path, STACK, imagej=imagej, metadata=meta, resolution=(4, 4),
@@ -163,13 +165,26 @@ def test_a_resolution_that_is_no_positive_number_is_refused(tmp_path, run, image
         for page in tif.pages:
             struct.pack_into("<II", raw, page.tags["XResolution"].valueoffset, num, den)
     path.write_bytes(bytes(raw))
-    with pytest.raises(FormatError, match=f"XResolution is {num}/{den}"):
-        read_volume(path)
-    with pytest.raises(FormatError, match=f"XResolution is {num}/{den}"):
-        open_volume_header(path, require_lazy=True)
+    with caplog.at_level(logging.WARNING, logger="volwarp"), run_scope():
+        vol = read_volume(path)
+    assert np.allclose(vol.spacing[:2], [0.25, 0.25])
+    assert any(f"XResolution is {num}/{den}, no size" in r.getMessage() for r in caplog.records)
+    assert np.allclose(open_volume_header(path, require_lazy=True)[0].spacing[:2], [0.25, 0.25])
     res = run("convert", path, "-o", tmp_path / "out.nrrd")
-    assert res.code == 1 and res.stderr.count("\n") == 1, res
-    assert not (tmp_path / "out.nrrd").exists()
+    assert res.code == 0, res.stderr
+    assert np.allclose(read_volume(tmp_path / "out.nrrd").spacing[:2], [0.25, 0.25])
+
+
+def test_resolutions_of_zero_on_both_axes_are_uncalibrated(tmp_path, caplog):
+    """Pillow's dpi=(0, 0): no size on either axis, read as a TIFF without the tags."""
+    path = tmp_path / "z.tif"
+    Image.fromarray(STACK[0]).save(path, dpi=(0, 0))
+    with tifffile.TiffFile(path) as tif:
+        assert tif.pages[0].tags["XResolution"].value[0] == 0
+    with caplog.at_level(logging.WARNING, logger="volwarp"), run_scope():
+        vol = read_volume(path)
+    assert np.allclose(vol.spacing, [1, 1, 1])
+    assert any("resolution tags of 0" in r.getMessage() for r in caplog.records)
 
 
 @pytest.mark.parametrize("kept", ["XResolution", "YResolution"])

@@ -674,21 +674,21 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
         elif code != 1:  # 1: no unit, the numbers as they are
             log.warning("%s: TIFF ResolutionUnit %d is no known unit: x and y spacing are "
                         "1 / resolution, in no unit", where, code)
+    held = _resolutions(tags)
     for axis, tag in ((0, "XResolution"), (1, "YResolution")):
-        if tag in tags and uncalibrated is None:
-            num, den = tags[tag].value
-            if not (num > 0 and den > 0):  # (ImageJ takes it for no tag: x 1, y the tag's)
-                raise FormatError(f"{where}: TIFF {tag} is {num}/{den}, not a positive "
-                                  "number of pixels per unit")
+        if tag in held and uncalibrated is None:
+            num, den = held[tag]
             spacing[axis] = scale * den / num
-    held = ["XResolution" in tags, "YResolution" in tags]
-    if uncalibrated is None and held[0] != held[1]:  # (y was 1 beside x's 0.25 mm)
-        given = held.index(True)
+    if uncalibrated is None and len(held) == 1:  # (y was 1 beside x's 0.25 mm)
+        (tag, _), = held.items()
+        given = ("XResolution", "YResolution").index(tag)
         spacing[1 - given] = spacing[given]
         if first_said(("tiff resolution pair", os.path.abspath(where))):
-                log.warning("%s: TIFF has no %s: it is %s, as the OME PhysicalSizeX/Y are read",
-                            where, ("XResolution", "YResolution")[1 - given],
-                            ("XResolution", "YResolution")[given])
+            other = ("XResolution", "YResolution")[1 - given]
+            what = (f"its {other} is {'/'.join(map(str, tags[other].value))}, no size"
+                    if other in tags else f"it has no {other}")
+            log.warning("%s: TIFF %s: it is %s, as the OME PhysicalSizeX/Y are read",
+                        where, what, tag)
     if "volwarp_spacing" in extra:
         stored = _floats(extra["volwarp_spacing"], 3, where, "volwarp_spacing")
         if _calibration_disagrees(stored, spacing, names, tags, ij):
@@ -757,14 +757,32 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
 _EDITORS_DPI = 72.0
 
 
+def _resolutions(tags) -> dict:
+    """``{tag: (num, den)}`` of the XResolution/YResolution tags that give a size.
+
+    A resolution of 0, or of denominator 0, gives none: ImageJ's TiffDecoder
+    takes it for a missing tag (Pillow writes 0/1 for ``dpi=(0, 0)``; such a
+    file was refused, and before that read 1 beside the other axis' tag).
+    """
+    held = {}
+    for tag in ("XResolution", "YResolution"):
+        if tag in tags:
+            num, den = tags[tag].value
+            if num > 0 and den > 0:
+                held[tag] = (num, den)
+    return held
+
+
 def _uncalibrated(tags, code) -> str | None:
     """Why a plain TIFF's resolution tags give no voxel size (x and y are then 1), or None.
 
     As ImageJ's TiffDecoder reads them: no ResolutionUnit, or XResolution 72
-    per inch, is uncalibrated (72 dpi read as a length made 0.353 mm voxels).
+    per inch, is uncalibrated (72 dpi read as a length made 0.353 mm voxels);
+    so are tags of 0 (:func:`_resolutions`).
     """
-    if "XResolution" not in tags and "YResolution" not in tags:
-        return "no resolution tags"
+    if not _resolutions(tags):
+        return ("no resolution tags" if "XResolution" not in tags
+                and "YResolution" not in tags else "resolution tags of 0")
     if code is None:
         return "resolution tags without a ResolutionUnit"
     if code == 2 and "XResolution" in tags:
