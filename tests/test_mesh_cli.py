@@ -204,6 +204,19 @@ def test_iso_outside_range_is_an_error_and_writes_nothing(run, sphere_file, tmp_
     assert np.all(read_image(tmp_path / "e.png") == 1.0)
 
 
+def test_a_volume_of_one_value_says_so(run, tmp_path):
+    """A label filling the whole grid was said as "iso level 0.5 is outside the data range
+    [1, 1]", a plain constant volume as a level "never crossed": one value everywhere."""
+    path = tmp_path / "one.nrrd"
+    write_volume(Volume(np.ones((6, 6, 6), np.uint8)), path)
+    for extra in ([], ["--labels"]):
+        out = tmp_path / ("o_{label}.ply" if extra else "o.ply")
+        res = run("mesh", path, "-o", out, *extra)
+        assert res.code == 1 and res.stderr.count("\n") == 1, res.stderr
+        assert "is 1: there is no surface at any level" in res.stderr
+    assert not list(tmp_path.glob("o*.ply"))
+
+
 def test_level_never_crossed_is_an_error(run, tmp_path):
     path = tmp_path / "flat.nrrd"
     data = np.zeros((5, 5, 5), dtype=np.uint8)

@@ -258,7 +258,10 @@ class MeshOperation(Reduction):
         lo, hi = found.stats.lo, found.stats.hi
         check_finite_range(lo, hi, name)
         empty = None
-        if not lo <= iso <= hi:
+        if lo == hi:  # (a label filling the grid said "iso level 0.5 is outside [1, 1]")
+            empty = f"every voxel of {name} is {lo:g}: there is no surface at any level"
+            mesh = Mesh.empty()
+        elif not lo <= iso <= hi:
             empty = f"iso level {iso:g} is outside the data range [{lo:g}, {hi:g}] of {name}"
             mesh = Mesh.empty()
         else:
