@@ -752,6 +752,7 @@ class _ZarrOutput(BlockOutput):
         # direction, as write_omezarr stores it: each block is moved into place, on the
         # store's own block grid (counted from the far end along a reversed axis)
         stored = omezarr.reindexed_header(header)
+        omezarr.warn_if_oblique(stored, path)
         found = omezarr.reindex_axes(header.direction)
         reindex = None
         if found is not None and (found[0] or found[1] != (0, 1, 2)):
@@ -788,13 +789,16 @@ class _ZarrOutput(BlockOutput):
         # is; of an integer output, or a float one (a float map of integer ids is one
         # too), decided on commit, from the samples written (their pyramid levels take the
         # mode or the mean), as in memory
+        # (an integer one without levels too: its image-label says it, as in memory)
         self._segmentation = False  # (a float map its keys call labels: ids if integers)
         if labels == "auto" or labels is None:
             from ..labelmap import segmentation_of
 
-            self._segmentation = bool(pyramid and segmentation_of(getattr(header, "meta", None)))
-            labels = (True if self._segmentation and self.dtype.kind in "iu"
-                      else None if pyramid and self.dtype.kind in "iuf" else False)
+            integer = self.dtype.kind in "iu"
+            self._segmentation = bool((pyramid or integer)
+                                      and segmentation_of(getattr(header, "meta", None)))
+            labels = (True if self._segmentation and integer
+                      else None if integer or (pyramid and self.dtype.kind == "f") else False)
         self._labels = labels if labels is None else bool(labels)
         try:
             from ..memory import large_allocations_mapped
@@ -903,7 +907,8 @@ class _ZarrOutput(BlockOutput):
         omezarr.write_levels(self._arrays, None, self._labels, memory_limit())
         self._group.attrs.update(omezarr.group_attributes(
             omezarr.multiscales_metadata(self._stored, self._pyramid, self._version, method),
-            omezarr.volwarp_attribute(self._stored, self._header, method), self._version))
+            omezarr.volwarp_attribute(self._stored, self._header, method), self._version,
+            omezarr.tags_image_label(self._labels, self.dtype)))
 
 
 class _MappedOutput(BlockOutput):

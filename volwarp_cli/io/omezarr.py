@@ -23,6 +23,10 @@ NGFF 0.4/0.5 cannot store a rotation, so volwarp writes
   direction a hair off flips (a scanner's tilt of 1e-6 rad, a NIfTI sform's
   float32 noise) was stored as it stood: those readers saw the scan mirrored.
   One with two equally near (exactly 45 degrees) is stored as it is.
+  Writing one whose remaining rotation moves a voxel in those readers (more
+  than a thousandth of a voxel) warns, naming the angle
+  (:func:`warn_if_oblique`): .nrrd and .nii.gz keep the rotation for every
+  reader.
 
 Either way the group's namespaced ``volwarp`` attribute keeps origin, spacing
 and direction at full precision, the world frame, the volume's key/values
@@ -44,6 +48,16 @@ Choices:
   label map (piecewise constant: :func:`volwarp_cli.labelmap.looks_like_labels`, the
   rule :func:`volwarp_cli.labelmap.label_map_hint` says, whatever the number of
   labels: no segmentation is averaged for having many).
+- **Label maps.** A label map of integer samples (the same rule, decided
+  without levels too) carries NGFF's ``image-label`` (``{"version": ...}``)
+  beside ``multiscales``, so that ome-zarr-py and napari take its samples
+  for ids: NGFF 0.4 makes any group holding it a segmentation ("unlisted
+  groups MAY be labels", ``source`` optional); 0.5 describes label images
+  under an image's ``labels/`` group and says nothing of one standing alone
+  (ome/ngff#179 asks for it), which NGFF's label schema, ome-zarr-py and
+  ome-zarr-models accept. No ``colors`` (one per id of an atlas) and no
+  ``source`` (no image above). A float map of ids is not tagged: NGFF's
+  label images are integers.
 - **Other axes.** Space axes ``z, y, x`` (any order, by name) are required;
   time and channel axes of size 1 are dropped, and one such axis of larger
   size is selected with ``volume_index`` (``--volume-index``), as a 4-D NIfTI.
@@ -222,6 +236,36 @@ def reindexed_geometry(vol: Volume | Header, flips, order) -> dict:
         direction = np.eye(3)
     return {"spacing": spacing, "origin": vol.index_to_world(first) + 0.0,
             "direction": direction + 0.0}
+
+
+
+def warn_if_oblique(stored: Volume | Header, path) -> None:
+    """Say that readers other than volwarp misplace ``stored`` (the grid as the store holds it).
+
+    What the reindexing leaves of an oblique grid's rotation is kept in
+    volwarp's attribute only: ome-zarr-py, ngff-zarr, napari and neuroglancer
+    place the samples axis-aligned, silently. Said where that moves some voxel
+    centre by more than :data:`~volwarp_cli.geometry.COVER_TOLERANCE` of a
+    voxel (a grid that coincides but for rounding: a 1e-6 rad tilt, a NIfTI
+    sform's float32 noise, is not worth a warning).
+    """
+    from ..geometry import COVER_TOLERANCE
+
+    direction = np.asarray(stored.direction, dtype=np.float64)
+    if np.array_equal(direction, np.eye(3)):
+        return
+    n = np.array(stored.shape_xyz, dtype=np.float64) - 1
+    corners = np.array(list(itertools.product(*[(0.0, k) for k in n]))) * stored.spacing
+    # (the first voxel is where both put it; the farthest corner is the farthest off)
+    off = float(np.linalg.norm(corners @ (direction - np.eye(3)).T, axis=1).max())
+    if off <= COVER_TOLERANCE * float(np.min(stored.spacing)):
+        return
+    angle = math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(direction) - 1) / 2))))
+    log.warning("%s: the grid is oblique (turned %.3g degrees from the nearest axis-aligned "
+                "one) and NGFF has no rotation: readers other than volwarp (ome-zarr-py, "
+                "ngff-zarr, napari, neuroglancer) place it without the rotation, voxels up "
+                "to %.3g mm off; volwarp keeps it in its own attribute, .nrrd and .nii.gz "
+                "keep it for every reader", path, angle, off)
 
 
 # -- layout -----------------------------------------------------------------------------
@@ -409,11 +453,31 @@ def volwarp_attribute(vol: Volume | Header, source: Volume | Header, method: str
     return attr
 
 
-def group_attributes(multiscales: dict, volwarp: dict, version: str) -> dict:
-    """The group's attributes for ``version``."""
+def group_attributes(multiscales: dict, volwarp: dict, version: str,
+                     image_label: bool = False) -> dict:
+    """The group's attributes for ``version``; ``image_label``: NGFF's mark of a segmentation.
+
+    ``image-label`` (``version`` only: no colours, no ``source``, the store
+    being no image's ``labels/`` child) tells other readers the samples are ids
+    (ome-zarr-py, napari: a labels layer, not an image of intensities): NGFF
+    0.4 makes any group holding it a segmentation, "unlisted groups MAY be
+    labels". Of label maps of integer samples only (:func:`tags_image_label`).
+    """
+    ome = {"multiscales": [multiscales]}
+    if image_label:
+        ome["image-label"] = {"version": version}
     if version == "0.5":
-        return {"ome": {"version": "0.5", "multiscales": [multiscales]}, "volwarp": volwarp}
-    return {"multiscales": [multiscales], "volwarp": volwarp}
+        return {"ome": {"version": "0.5", **ome}, "volwarp": volwarp}
+    return {**ome, "volwarp": volwarp}
+
+
+def tags_image_label(labels: bool, dtype) -> bool:
+    """Whether a store of ``labels`` (the label-map choice) and ``dtype`` carries ``image-label``.
+
+    NGFF's label images are of integer types: a float32 map of ids is a label
+    map to volwarp (its levels take the mode), not to NGFF.
+    """
+    return bool(labels) and np.dtype(dtype).kind in "iu"
 
 
 # -- writing ----------------------------------------------------------------------------
@@ -764,7 +828,8 @@ def memory_bytes(shape_zyx, dtype, version: str = "0.5", pyramid: int = 0, label
 
     The largest of: level 0's one shard at a time (:func:`write_bytes`; NGFF
     0.4: one chunk at a time, the least: :func:`write_levels` writes as many
-    at once as the budget then holds), the label-map rule's count (``labels="auto"`` with levels: its boxes of
+    at once as the budget then holds), the label-map rule's count (``labels="auto"`` with levels
+    or of integer samples: its boxes of
     :data:`~volwarp_cli.labelmap.SCAN_BOX_VOXELS`) and the levels made in
     their smallest pieces (:func:`pyramid_bytes`: they take larger ones
     where the budget holds them).
@@ -775,10 +840,11 @@ def memory_bytes(shape_zyx, dtype, version: str = "0.5", pyramid: int = 0, label
     item = np.dtype(dtype).itemsize
     chunks, shards = store_layout(shape_zyx, version)
     need = write_bytes(shards or chunks, item, chunks, shards)
+    # (integer samples are looked at without levels too: whether image-label is written)
+    if (pyramid or np.dtype(dtype).kind in "iu") and (labels is None or labels == "auto"):
+        voxels = min(SCAN_BOX_VOXELS, math.prod(int(n) for n in shape_zyx))
+        need = max(need, COUNT_BYTES * voxels)
     if pyramid:
-        if labels is None or labels == "auto":
-            voxels = min(SCAN_BOX_VOXELS, math.prod(int(n) for n in shape_zyx))
-            need = max(need, COUNT_BYTES * voxels)
         need = max(need, pyramid_bytes(shape_zyx, item, version, pyramid, held=True))
     return need
 
@@ -798,7 +864,8 @@ def write_omezarr(vol: Volume, path: str | os.PathLike, *, version: str = "0.5",
 
     ``version``: ``"0.5"`` (Zarr v3, sharded) or ``"0.4"`` (Zarr v2);
     ``pyramid``: extra levels; ``labels``: True, False or ``"auto"`` (how the
-    levels are made); ``chunks``: chunk shape (z, y, x), default 64 per axis.
+    levels are made, and whether ``image-label`` says it holds ids); ``chunks``:
+    chunk shape (z, y, x), default 64 per axis.
     """
     from ..memory import large_allocations_mapped
     from .atomic import atomic_folder
@@ -819,14 +886,18 @@ def write_omezarr(vol: Volume, path: str | os.PathLike, *, version: str = "0.5",
     ensure_fits_in_memory(memory_bytes(stored.shape, data.dtype, version, pyramid, labels),
                           f"writing {path} ({'x'.join(map(str, vol.shape_xyz))}"
                           f"{f', {pyramid} levels' if pyramid else ''})")
-    is_labels = resolve_labels(labels, data, vol.meta) if pyramid else False
+    # (decided without levels too where the samples are integers: image-label says it)
+    is_labels = (resolve_labels(labels, data, vol.meta) if pyramid or data.dtype.kind in "iu"
+                 else False)
     method = ("mode" if is_labels else "mean") if pyramid else None
     if pyramid:  # (the label choice said at -v, as every command says it)
         log.info("%s: %d pyramid level(s) by the %s (%s)", path, pyramid, method,
                  "a label map" if is_labels else "intensities")
     shapes = level_shapes(stored.shape, pyramid)
     attrs = group_attributes(multiscales_metadata(stored, pyramid, version, method),
-                             volwarp_attribute(stored, vol, method), version)
+                             volwarp_attribute(stored, vol, method), version,
+                             tags_image_label(is_labels, data.dtype))
+    warn_if_oblique(stored, path)
     # (zarr's threads' freed frames given back as the store is written: see there)
     with large_allocations_mapped(), atomic_folder(path) as tmp:
         group = open_group_for_writing(tmp, version)
