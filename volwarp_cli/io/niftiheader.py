@@ -226,27 +226,53 @@ class NiftiHeader:
         code = int(self.fields["qform_code"])
         if coded and code == 0:
             return None, 0
-        f = self.fields
-        rot = _quaternion_matrix(_completed_quaternion(
-            [f["quatern_b"], f["quatern_c"], f["quatern_d"]], self.version))
-        vox = f["pixdim"][1:4].copy()
-        vox[-1] *= f["pixdim"][0]
-        out = np.eye(4)
-        out[0:3, 0:3] = np.dot(rot, np.diag(vox))
-        out[0:3, 3] = [f["qoffset_x"], f["qoffset_y"], f["qoffset_z"]]
+        out = _qform_matrix(self.fields, self.version)
         return (out, code) if coded else out
 
 
-def _completed_quaternion(bcd, version: int) -> np.ndarray:
+#: niftilib's bound (``nifti_quatern_to_mat44``, read by ITK, SimpleITK and FSL): where
+#: 1 - b^2 - c^2 - d^2 is below it, w is 0 (nibabel's bound is 3 epsilons, 3.6e-7 for
+#: NIfTI-1: near a half turn the two read one quaternion up to 1.3e-3 rad apart)
+NIFTILIB_W2_ZERO = 1e-7
+
+
+def _qform_matrix(f, version: int, w2_zero=None) -> np.ndarray:
+    """The qform's 4x4 matrix of header fields ``f``, w completed as nibabel (or below ``w2_zero``: 0)."""
+    rot = _quaternion_matrix(_completed_quaternion(
+        [f["quatern_b"], f["quatern_c"], f["quatern_d"]], version, w2_zero))
+    vox = f["pixdim"][1:4].copy()
+    vox[-1] *= f["pixdim"][0]
+    out = np.eye(4)
+    out[0:3, 0:3] = np.dot(rot, np.diag(vox))
+    out[0:3, 3] = [f["qoffset_x"], f["qoffset_y"], f["qoffset_z"]]
+    return out
+
+
+def written_qforms(aff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The qform written of ``aff`` as nibabel and as niftilib read it back (4x4 matrices).
+
+    Its quaternion is float32 and readers complete w from b, c, d: near a half
+    turn (w near 0: an LPS grid turned slightly in its plane, written in RAS)
+    that loses up to 1.3e-3 rad, and the two readers' bounds for a w of 0
+    differ (:data:`NIFTILIB_W2_ZERO`).
+    """
+    hdr = np.zeros((), dtype=HEADER1)
+    hdr["pixdim"] = 1
+    _set_qform(hdr, np.asarray(aff, dtype=np.float64))
+    return _qform_matrix(hdr, 1), _qform_matrix(hdr, 1, NIFTILIB_W2_ZERO)
+
+
+def _completed_quaternion(bcd, version: int, w2_zero=None) -> np.ndarray:
     """(w, b, c, d), w = sqrt(1 - b^2 - c^2 - d^2) in extended precision, 0 within rounding.
 
     Within 3 float32 epsilons (NIfTI-1) or 3 float64 ones (NIfTI-2) of a
-    unit vector, w is 0; beyond, a ValueError (the caller checked before).
+    unit vector, or below ``w2_zero`` where given (niftilib's rule), w is 0;
+    beyond, a ValueError (the caller checked before).
     """
     eps = np.finfo(np.float32 if version == 1 else np.float64).eps * 3
     xyz = np.asarray(bcd, dtype=np.longdouble)
     w2 = 1.0 - xyz @ xyz
-    if np.abs(w2) < eps:
+    if np.abs(w2) < eps or (w2_zero is not None and w2 < w2_zero):
         w = 0
     elif w2 < 0:
         raise ValueError(f"w2 should be positive, but is {w2:e}")
