@@ -1015,7 +1015,7 @@ def _meta_float(meta: dict, key: str) -> float:
     return value if np.isfinite(value) else 0.0
 
 
-def _form_codes(meta: dict, ras: np.ndarray, spacing: np.ndarray,
+def form_codes(meta: dict, ras: np.ndarray, spacing: np.ndarray,
                 shape_xyz) -> tuple[int, int]:
     """The sform and qform codes to write (module docstring: the codes rule)."""
     scode = _meta_int(meta, "NIfTI_sform_code", 1, 0, 5)
@@ -1103,7 +1103,7 @@ def write_nifti(vol: Volume, path: str | os.PathLike, *, dtype=None) -> None:
         raise VolwarpError(f"{path}: the geometry (spacing or origin up to "
                            f"{np.abs(aff).max():.3g}) is beyond NIfTI's float32 matrices; "
                            "write .nrrd or .mha")
-    codes = _form_codes(meta, aff, vol.spacing * to_file_units, vol.data.shape[::-1])
+    codes = form_codes(meta, aff, vol.spacing * to_file_units, vol.data.shape[::-1])
     intent = None
     if any(k in meta for k in _INTENT_KEYS):
         intent = (_meta_int(meta, "NIfTI_intent_code", 0, -32768, 32767),

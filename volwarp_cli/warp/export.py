@@ -633,12 +633,12 @@ def field_block_output(path: str, geometry: Header, meta: dict, kind: str, depth
 
 
 def _write_nifti_field(field, grid: Header, path: str, kind: str) -> None:
-    from ..io.nifti import _form_codes, ras_affine, write_nifti_file
+    from ..io.nifti import form_codes, ras_affine, write_nifti_file
 
     data = np.ascontiguousarray(field.transpose(2, 1, 0, 3))[:, :, :, None, :]
     aff = ras_affine(grid)  # (scanner codes, the qform's 0 where its quaternion cannot hold it)
     write_nifti_file(path, data, aff, units=2,  # mm
-                     codes=_form_codes({}, aff, np.asarray(grid.spacing), grid.shape[::-1]),
+                     codes=form_codes({}, aff, np.asarray(grid.spacing), grid.shape[::-1]),
                      intent=(1007, (0.0, 0.0, 0.0), ""),  # NIFTI_INTENT_VECTOR
                      descrip=f"volwarp {kind} displacement field, LPS mm", meta=grid.meta)
 
