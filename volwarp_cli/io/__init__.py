@@ -77,7 +77,7 @@ def volume_format(path: str | os.PathLike, *, reading: bool = False) -> str:
     if reading and Path(path).is_dir():
         # (a Zarr group without the suffix: NGFF keeps a segmentation at
         # image.ome.zarr/labels/<name>, which was searched for DICOM files)
-        if any((Path(path) / f).is_file() for f in ("zarr.json", ".zgroup", ".zattrs")):
+        if zarr_metadata_files(path):
             return "omezarr"
         return "dicom"  # read_volume says so when it holds none
     if name.endswith(".nii.gz"):
@@ -101,6 +101,23 @@ def volume_format(path: str | os.PathLike, *, reading: bool = False) -> str:
     return fmt
 
 
+def zarr_metadata_files(folder) -> list[str]:
+    """The Zarr group metadata files ``folder`` holds (``zarr.json``, ``.zgroup``, ``.zattrs``)."""
+    return [n for n in ("zarr.json", ".zgroup", ".zattrs") if (Path(folder) / n).is_file()]
+
+
+def stray_zarr_metadata(folder) -> str | None:
+    """``".zattrs"`` (or the files, joined by "and") where a folder of DICOM files holds Zarr metadata.
+
+    Such a folder is read as a Zarr store (:func:`volume_format`): the
+    refusals that follow name the stray files. None for any other folder.
+    """
+    from .dicom import is_dicom_path
+
+    found = zarr_metadata_files(folder) if Path(folder).is_dir() else []
+    return " and ".join(found) if found and is_dicom_path(folder) else None
+
+
 def check_read_options(path, raw=None, dicom=None) -> None:
     """A :class:`BadUsage` for ``--raw-*`` or DICOM options given for an input of another format.
 
@@ -117,14 +134,11 @@ def check_read_options(path, raw=None, dicom=None) -> None:
         return
     given = " ".join(f"--{k.replace('_', '-')}" for k in sorted(dicom))
     why = f"{given} applies to DICOM inputs, and {path} is not one"
-    if fmt == "omezarr" and Path(path).is_dir():
-        from .dicom import is_dicom_path
-
-        stray = [n for n in ("zarr.json", ".zgroup", ".zattrs") if (Path(path) / n).is_file()]
-        if stray and is_dicom_path(path):
-            why = (f"{given} applies to DICOM inputs, and {path} is read as a Zarr store: it "
-                   f"holds Zarr metadata ({' and '.join(stray)}) beside its DICOM files; a "
-                   f"DICOM series? move {' and '.join(stray)} out of it")
+    stray = stray_zarr_metadata(path) if fmt == "omezarr" else None
+    if stray:
+        why = (f"{given} applies to DICOM inputs, and {path} is read as a Zarr store: it "
+               f"holds Zarr metadata ({stray}) beside its DICOM files; a DICOM series? move "
+               f"{stray} out of it")
     raise BadUsage(why)
 
 

@@ -238,7 +238,6 @@ def reindexed_geometry(vol: Volume | Header, flips, order) -> dict:
             "direction": direction + 0.0}
 
 
-
 def warn_if_oblique(stored: Volume | Header, path) -> None:
     """Say that readers other than volwarp misplace ``stored`` (the grid as the store holds it).
 
@@ -962,11 +961,11 @@ def _or_dicom_series(path: Path, exc: FormatError) -> FormatError:
     for DICOM data sets (:func:`~.dicom.is_dicom_path` also takes files without
     the preamble), and a store read as a DICOM series would be silently wrong.
     """
-    from .dicom import is_dicom_path
+    from . import stray_zarr_metadata
 
-    if not is_dicom_path(path):
+    found = stray_zarr_metadata(path)
+    if found is None:
         return exc
-    found = " and ".join(n for n in ("zarr.json", ".zgroup", ".zattrs") if (path / n).is_file())
     why = str(exc).removeprefix(f"{path}: ")
     return FormatError(f"{path}: holds DICOM files, and Zarr metadata ({found}) that is no "
                        f"OME-Zarr image ({why}): a DICOM series? move {found} out of it; "
