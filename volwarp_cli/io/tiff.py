@@ -663,7 +663,8 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
         scale = _RESUNIT_MM[3][1]  # (ImageJ's FileOpener: the tags count pixels per cm)
     code = _resolution_unit(tags)
     plain = not ij and "volwarp_spacing" not in extra
-    uncalibrated = _uncalibrated(tags, code) if plain else None
+    held = _resolutions(tags)
+    uncalibrated = _uncalibrated(tags, held, code) if plain else None
     unitless = uncalibrated or ("ResolutionUnit none" if plain and code == 1 else None)
     if ij and ij_scale is None:  # (ImageJ's pixel, no unit, a word: x, y and z in no length)
         unitless = f"ImageJ unit {ij['unit']!r}" if ij.get("unit") else "no ImageJ unit"
@@ -674,7 +675,6 @@ def tiff_placement(tif, first, ij, shape_zyx, where: str, image: int = 0) -> dic
         elif code != 1:  # 1: no unit, the numbers as they are
             log.warning("%s: TIFF ResolutionUnit %d is no known unit: x and y spacing are "
                         "1 / resolution, in no unit", where, code)
-    held = _resolutions(tags)
     for axis, tag in ((0, "XResolution"), (1, "YResolution")):
         if tag in held and uncalibrated is None:
             num, den = held[tag]
@@ -773,21 +773,21 @@ def _resolutions(tags) -> dict:
     return held
 
 
-def _uncalibrated(tags, code) -> str | None:
+def _uncalibrated(tags, held: dict, code) -> str | None:
     """Why a plain TIFF's resolution tags give no voxel size (x and y are then 1), or None.
 
     As ImageJ's TiffDecoder reads them: no ResolutionUnit, or XResolution 72
     per inch, is uncalibrated (72 dpi read as a length made 0.353 mm voxels);
-    so are tags of 0 (:func:`_resolutions`).
+    so are tags of 0 (``held``: :func:`_resolutions`).
     """
-    if not _resolutions(tags):
+    if not held:
         return ("no resolution tags" if "XResolution" not in tags
                 and "YResolution" not in tags else "resolution tags of 0")
     if code is None:
         return "resolution tags without a ResolutionUnit"
-    if code == 2 and "XResolution" in tags:
-        num, den = tags["XResolution"].value
-        if den and num / den == _EDITORS_DPI:
+    if code == 2 and "XResolution" in held:
+        num, den = held["XResolution"]
+        if num / den == _EDITORS_DPI:
             return "72 pixels per inch, what image editors write for no size"
     return None
 
